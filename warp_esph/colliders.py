@@ -1,0 +1,97 @@
+"""Static colliders: planes (the ground), spheres and axis-aligned boxes.
+
+A particle found inside a collider after the position update is moved to its surface;
+the inward normal velocity is removed and the tangential velocity loses
+``friction * |inward normal velocity|`` (Coulomb friction; it stops when that exceeds it).
+"""
+
+import dataclasses
+import functools
+import types
+
+import warp as wp
+
+from ._types import type_set
+
+#: Collider loops are unrolled at compile time (a dynamic loop that carries positions
+#: through non-linear projections would get a wrong adjoint, WARP_NOTES trap 1).
+MAX_PER_KIND = 16
+
+
+@dataclasses.dataclass(frozen=True)
+class Plane:
+    normal: tuple[float, float, float]
+    offset: float  # the plane is dot(normal, x) = offset; the solid side is below it
+    friction: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Sphere:
+    center: tuple[float, float, float]
+    radius: float
+    friction: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Box:
+    center: tuple[float, float, float]
+    half_extents: tuple[float, float, float]
+    friction: float
+
+
+@functools.cache
+def funcs(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3 = T.vec3
+
+    @wp.func
+    def respond(x: vec3, v: vec3, depth: scalar, n: vec3, friction: scalar):
+        """Project a particle ``depth`` inside along outward normal ``n``; friction."""
+        x_new = x + depth * n
+        vn = wp.dot(v, n)
+        v_new = v
+        if vn < scalar(0.0):
+            vt = v - vn * n
+            vt_len = wp.length(vt)
+            drop = -friction * vn
+            if vt_len > drop:
+                v_new = vt * (scalar(1.0) - drop / vt_len)
+            else:
+                v_new = vec3()
+        return x_new, v_new
+
+    @wp.func
+    def collide_plane(x: vec3, v: vec3, n: vec3, offset: scalar, friction: scalar):
+        depth = offset - wp.dot(n, x)
+        if depth > scalar(0.0):
+            return respond(x, v, depth, n, friction)
+        return x, v
+
+    @wp.func
+    def collide_sphere(x: vec3, v: vec3, c: vec3, radius: scalar, friction: scalar):
+        d = x - c
+        r2 = wp.dot(d, d)
+        if r2 < radius * radius and r2 > scalar(0.0):
+            r = wp.sqrt(r2)
+            return respond(x, v, radius - r, d / r, friction)
+        return x, v
+
+    @wp.func
+    def collide_box(x: vec3, v: vec3, c: vec3, half: vec3, friction: scalar):
+        d = x - c
+        gap = vec3(wp.abs(d[0]) - half[0], wp.abs(d[1]) - half[1], wp.abs(d[2]) - half[2])
+        if gap[0] < scalar(0.0) and gap[1] < scalar(0.0) and gap[2] < scalar(0.0):
+            # Leave through the nearest face.
+            axis = int(0)
+            if gap[1] > gap[axis]:
+                axis = 1
+            if gap[2] > gap[axis]:
+                axis = 2
+            n = vec3()
+            n[axis] = wp.where(d[axis] < scalar(0.0), scalar(-1.0), scalar(1.0))
+            return respond(x, v, -gap[axis], n, friction)
+        return x, v
+
+    return types.SimpleNamespace(
+        respond=respond, collide_plane=collide_plane, collide_sphere=collide_sphere, collide_box=collide_box
+    )

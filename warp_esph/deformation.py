@@ -1,0 +1,107 @@
+"""Incremental deformation gradient (paper eqs. 1-8, SPEC §2).
+
+Over one step, with ``x`` the positions at its start and ``y`` at its end, the
+weighted least-squares affine fit to the same-body neighbours is
+
+    xb_j = x_j - x_i,  yb_j = y_j - y_i,  w_j = W_poly6(|xb_j|, h)     (eqs. 1, 7)
+    A = sum_j w_j xb_j xb_j^T,  B = sum_j w_j yb_j xb_j^T,  dF = B A^-1  (eqs. 5-6)
+    F_i <- dF F_i                                                       (eq. 8)
+
+Relative vectors make the fit translation invariant; it reproduces any affine motion
+exactly. The update is skipped (the old F kept, and counted) when the neighbourhood
+guard of ``neighbors`` fired or the candidate has ``det <= 0`` (an inverted or
+degenerate F: with the rotation-variant SVD that is exactly a signed singular value
+``<= 0``).
+"""
+
+import functools
+import types
+
+import warp as wp
+
+from ._types import type_set
+from . import smoothing
+
+#: Indices into the solver's guard counters.
+COUNT_FEW_NEIGHBORS = 0
+COUNT_ILL_CONDITIONED = 1
+COUNT_INVERTED = 2
+
+
+@functools.cache
+def kernels(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3, mat33 = T.vec3, T.mat33
+    w_poly6 = smoothing.funcs(scalar).w_poly6
+
+    @wp.func
+    def moment_sums(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+    ):
+        # Only the raw sums live in this loop: the caller's inverse must not see a loop
+        # accumulator, whose adjoint Warp would not replay (WARP_NOTES trap 1).
+        A = mat33()
+        B = mat33()
+        xi = x[i]
+        yi = y[i]
+        bi = body[i]
+        for k in range(n):
+            j = nbr[i, k]
+            if body[j] == bi:
+                xb = x[j] - xi
+                yb = y[j] - yi
+                w = w_poly6(wp.dot(xb, xb), h)
+                A += w * wp.outer(xb, xb)
+                B += w * wp.outer(yb, xb)
+        return A, B
+
+    @wp.func
+    def incremental_gradient(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+    ) -> mat33:
+        A, B = moment_sums(i, x, y, body, nbr, n, h)
+        return B * wp.inverse(A)
+
+    @wp.kernel
+    def update_deformation(
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        guard: wp.array(dtype=wp.int32),
+        F_prev: wp.array(dtype=mat33),
+        h: scalar,
+        F_out: wp.array(dtype=mat33),
+        counters: wp.array(dtype=wp.int32),
+    ):
+        i = wp.tid()
+        F = F_prev[i]
+        code = guard[i]
+        if code == 1:
+            wp.atomic_add(counters, 0, 1)
+        elif code == 2:
+            wp.atomic_add(counters, 1, 1)
+        else:
+            candidate = incremental_gradient(i, x, y, body, nbr, count[i], h) * F
+            if wp.determinant(candidate) > scalar(0.0):
+                F = candidate
+            else:
+                wp.atomic_add(counters, 2, 1)
+        F_out[i] = F
+
+    return types.SimpleNamespace(
+        update_deformation=update_deformation, incremental_gradient=incremental_gradient, moment_sums=moment_sums
+    )

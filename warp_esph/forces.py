@@ -1,0 +1,97 @@
+"""Stress (paper eq. 9, SPEC §5) and elastic pair forces (eqs. 10-13).
+
+Stress, in the SVD frame ``F = U diag(sigma) V^T``:
+
+    P^ = 2 mu (sigma - 1) + lam sum(sigma - 1)                    (eq. 9)
+    P* = U diag(sigma o P^) V^T                                   (U F^ P^ V^T of eq. 10)
+
+and the variants: ``hyperelastic`` squares the singular values first (paper Fig. 5),
+``P* = 2 mu (F F^T F - F) + lam (tr F^T F - 3) F`` (twice St. Venant-Kirchhoff), and
+``stvk`` is half of that, whose small-strain stiffness equals the linear model's.
+
+Pair forces, with ``r_ij = F_i^-1 (x_j - x_i)`` back-projected to reference space (eq. 11)
+and ``grad W`` the gradient of Solenthaler's kernel (eqs. 12-13):
+
+    g_ij = 2 V_i V_j P*_i grad W(r_ij),   f_j += ½ g_ij,   f_i -= ½ g_ij
+
+The paper prints eq. 10 with a minus sign on ``y_j - y_i``, which pushes stretched
+particles apart; this is the restoring sign (SPEC §5). Averaging ("equal and opposite")
+makes linear momentum exact to round-off. Only particles of the same body interact
+elastically; bodies meet through SPH pressure and colliders.
+"""
+
+import functools
+import types
+
+import warp as wp
+
+from ._types import type_set
+from . import isotropic, smoothing
+
+
+@functools.cache
+def funcs(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3, mat33 = T.vec3, T.mat33
+    iso = isotropic.funcs(scalar)
+
+    @wp.func
+    def stress(F: mat33, mu: scalar, lam: scalar, model: int) -> mat33:
+        """P* for material model ``model`` (index into ``material.MODELS``)."""
+        if model >= 2:
+            # hyperelastic (2) or stvk (3): a polynomial in F, no SVD.
+            scale = wp.where(model == 2, scalar(1.0), scalar(0.5))
+            C = wp.transpose(F) * F
+            tr = C[0, 0] + C[1, 1] + C[2, 2]
+            return scale * (scalar(2.0) * mu * (F * C - F) + lam * (tr - scalar(3.0)) * F)
+        s = iso.singular_values(F)
+        tr = s[0] + s[1] + s[2] - scalar(3.0)
+        one = vec3(scalar(1.0), scalar(1.0), scalar(1.0))
+        p_hat = scalar(2.0) * mu * (s - one) + lam * tr * one
+        f = wp.cw_mul(s, p_hat)
+        # (f_i - f_j)/(s_i - s_j) = 2 mu (s_i + s_j - 1) + lam tr: exact, also at s_i = s_j.
+        d1 = vec3(
+            scalar(2.0) * mu * (s[0] + s[1] - scalar(1.0)) + lam * tr,
+            scalar(2.0) * mu * (s[0] + s[2] - scalar(1.0)) + lam * tr,
+            scalar(2.0) * mu * (s[1] + s[2] - scalar(1.0)) + lam * tr,
+        )
+        return iso.isotropic_map(F, f, d1)
+
+    return types.SimpleNamespace(stress=stress)
+
+
+@functools.cache
+def kernels(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3, mat33 = T.vec3, T.mat33
+    grad_w = smoothing.funcs(scalar).grad_w_elastic
+
+    @wp.kernel
+    def elastic_forces(
+        x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        volume: wp.array(dtype=scalar),
+        stress: wp.array(dtype=mat33),
+        F_inv: wp.array(dtype=mat33),
+        h: scalar,
+        f: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        xi = x[i]
+        bi = body[i]
+        P = stress[i]
+        Finv = F_inv[i]
+        Vi = volume[i]
+        fi = vec3()
+        for k in range(count[i]):
+            j = nbr[i, k]
+            if body[j] == bi:
+                # ½ g_ij = V_i V_j P*_i grad W(F_i^-1 (x_j - x_i))
+                g = Vi * volume[j] * (P * grad_w(Finv * (x[j] - xi), h))
+                wp.atomic_add(f, j, g)
+                fi -= g
+        wp.atomic_add(f, i, fi)
+
+    return types.SimpleNamespace(elastic_forces=elastic_forces)

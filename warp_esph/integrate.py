@@ -1,0 +1,54 @@
+"""Symplectic Euler with gravity and collider response (SPEC §1.5):
+
+    u <- u + dt (f / m + g),   x <- x + dt u,   then colliders.
+"""
+
+import functools
+import types
+
+import warp as wp
+
+from ._types import type_set
+from . import colliders
+
+
+@functools.cache
+def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.SimpleNamespace:
+    """Specialised to the model's collider counts, so the collider loops unroll."""
+    T = type_set(scalar)
+    vec3 = T.vec3
+    col = colliders.funcs(scalar)
+
+    @wp.kernel
+    def integrate(
+        x_in: wp.array(dtype=vec3),
+        v_in: wp.array(dtype=vec3),
+        f: wp.array(dtype=vec3),
+        mass: wp.array(dtype=scalar),
+        gravity: vec3,
+        dt: scalar,
+        plane_normal: wp.array(dtype=vec3),
+        plane_offset: wp.array(dtype=scalar),
+        plane_friction: wp.array(dtype=scalar),
+        sphere_center: wp.array(dtype=vec3),
+        sphere_radius: wp.array(dtype=scalar),
+        sphere_friction: wp.array(dtype=scalar),
+        box_center: wp.array(dtype=vec3),
+        box_half: wp.array(dtype=vec3),
+        box_friction: wp.array(dtype=scalar),
+        x_out: wp.array(dtype=vec3),
+        v_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        v = v_in[i] + dt * (f[i] / mass[i] + gravity)
+        x = x_in[i] + dt * v
+        for c in range(wp.static(n_planes)):
+            x, v = col.collide_plane(x, v, plane_normal[c], plane_offset[c], plane_friction[c])
+        for c in range(wp.static(n_spheres)):
+            x, v = col.collide_sphere(x, v, sphere_center[c], sphere_radius[c], sphere_friction[c])
+        for c in range(wp.static(n_boxes)):
+            x, v = col.collide_box(x, v, box_center[c], box_half[c], box_friction[c])
+        x_out[i] = x
+        v_out[i] = v
+
+    return types.SimpleNamespace(integrate=integrate)

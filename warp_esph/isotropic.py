@@ -1,0 +1,95 @@
+"""Rotation-variant SVD (SPEC §3) and isotropic matrix maps with stable adjoints (SPEC §9).
+
+``wp.svd3`` returns proper rotations ``U, V`` (det +1) and lets the last singular value
+go negative for an inverted ``F``: that is Irving et al.'s rotation-variant SVD.
+
+Its built-in adjoint is wrong where singular values repeat, which is every particle at
+rest (``F = I``). The two functions here carry their own adjoints instead:
+
+* ``singular_values(F)``: ``dsigma_i = u_i^T dF v_i``, exact everywhere.
+* ``isotropic_map(F, g, d1) = U diag(g) V^T`` for ``g = f(sigma)`` computed by the caller
+  with ordinary autodiff. The adjoint sends ``diag(U^T Gbar V)`` to ``g`` (and from there
+  through ``f`` and ``singular_values`` to ``F`` and the material parameters) and adds
+  the off-diagonal part ``M_ij = ½ D1 (C_ij + C_ji) + ½ D2 (C_ij - C_ji)`` directly to
+  ``F``. ``D2 = (g_i + g_j)/(sigma_i + sigma_j)`` follows from ``g``; the divided
+  difference ``D1 = (g_i - g_j)/(sigma_i - sigma_j)`` must be passed in as ``d1``
+  (pairs 01, 02, 12) because only the caller knows its limit where ``sigma_i = sigma_j``.
+"""
+
+import functools
+import types
+
+import warp as wp
+
+from ._types import type_set
+
+
+@functools.cache
+def funcs(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3, mat33 = T.vec3, T.mat33
+
+    @wp.func
+    def singular_values(F: mat33) -> vec3:
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        return s
+
+    @wp.func_grad(singular_values)
+    def adj_singular_values(F: mat33, adj_ret: vec3):
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        wp.adjoint[F] += U * wp.diag(adj_ret) * wp.transpose(V)
+
+    @wp.func
+    def isotropic_map(F: mat33, g: vec3, d1: vec3) -> mat33:
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        return U * wp.diag(g) * wp.transpose(V)
+
+    @wp.func
+    def _d2(gi: scalar, gj: scalar, si: scalar, sj: scalar) -> scalar:
+        den = si + sj
+        # sigma_i + sigma_j >= 0 with the rotation-variant ordering; it reaches 0 only for
+        # a degenerate F, where the skew part of the derivative is unbounded anyway.
+        eps = scalar(1.0e-6)
+        if wp.abs(den) < eps:
+            den = wp.where(den < scalar(0.0), -eps, eps)
+        return (gi + gj) / den
+
+    @wp.func_grad(isotropic_map)
+    def adj_isotropic_map(F: mat33, g: vec3, d1: vec3, adj_ret: mat33):
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        C = wp.transpose(U) * adj_ret * V
+        wp.adjoint[g] += vec3(C[0, 0], C[1, 1], C[2, 2])
+        M = mat33()
+        # pair (0, 1)
+        sym = scalar(0.5) * (C[0, 1] + C[1, 0])
+        skw = scalar(0.5) * (C[0, 1] - C[1, 0])
+        d2 = _d2(g[0], g[1], s[0], s[1])
+        M[0, 1] = d1[0] * sym + d2 * skw
+        M[1, 0] = d1[0] * sym - d2 * skw
+        # pair (0, 2)
+        sym = scalar(0.5) * (C[0, 2] + C[2, 0])
+        skw = scalar(0.5) * (C[0, 2] - C[2, 0])
+        d2 = _d2(g[0], g[2], s[0], s[2])
+        M[0, 2] = d1[1] * sym + d2 * skw
+        M[2, 0] = d1[1] * sym - d2 * skw
+        # pair (1, 2)
+        sym = scalar(0.5) * (C[1, 2] + C[2, 1])
+        skw = scalar(0.5) * (C[1, 2] - C[2, 1])
+        d2 = _d2(g[1], g[2], s[1], s[2])
+        M[1, 2] = d1[2] * sym + d2 * skw
+        M[2, 1] = d1[2] * sym - d2 * skw
+        wp.adjoint[F] += U * M * wp.transpose(V)
+
+    return types.SimpleNamespace(singular_values=singular_values, isotropic_map=isotropic_map)

@@ -1,0 +1,201 @@
+"""``Model`` (what does not change during a run) and ``State`` (what a step advances).
+
+A ``State`` also holds the arrays the step that produced it computed on the way
+(neighbour lists, densities, stresses, forces). With one state per step under a
+``wp.Tape``, each step's intermediates then stay untouched until the backward pass
+reads them (WARP_NOTES traps 3-4); with two states swapped in a plain forward run,
+nothing is allocated inside the step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import warp as wp
+
+from ._types import type_set
+from .colliders import Box, Plane, Sphere
+from .material import MODEL_IDS, Material
+
+
+@dataclasses.dataclass(frozen=True)
+class Body:
+    """A contiguous range of particles made of one material."""
+
+    name: str
+    start: int
+    count: int
+    material: int
+    kind: str
+
+
+class State:
+    """Positions ``x``, velocities ``v``, elastic deformation gradient ``F`` (SPEC: the only
+    deformation state stored) and hardening accumulator ``alpha`` of every particle."""
+
+    def __init__(self, model: "Model", requires_grad: bool):
+        n, K, dev = model.particle_count, model.max_neighbors, model.device
+        T = model.types
+        self.x = wp.array(model.particle_x0, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+        self.v = wp.array(model.particle_v0, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+        self.F = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev, requires_grad=requires_grad)
+        self.alpha = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad)
+        # Written by the step that produced this state.
+        self.neighbors = wp.zeros((n, K), dtype=wp.int32, device=dev)
+        self.neighbor_d2 = wp.zeros((n, K), dtype=T.scalar, device=dev)
+        self.neighbor_count = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.guard = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.density = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad)
+        self.F_flowed = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
+        self.stress = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
+        self.F_inv = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
+        self.force = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+
+    #: The arrays that define the simulation state (what a checkpoint must hold).
+    STATE_FIELDS = ("x", "v", "F", "alpha")
+
+    def assign(self, other: "State"):
+        """Copy ``other``'s state fields into this state."""
+        for name in self.STATE_FIELDS:
+            wp.copy(getattr(self, name), getattr(other, name))
+
+    @property
+    def particle_count(self) -> int:
+        return self.x.shape[0]
+
+
+class Model:
+    """Particles, materials, bodies and colliders of a scene; built by ``SceneBuilder.finalize``."""
+
+    def __init__(
+        self,
+        *,
+        positions: np.ndarray,
+        velocities: np.ndarray,
+        particle_material: np.ndarray,
+        particle_body: np.ndarray,
+        materials: list[Material],
+        bodies: list[Body],
+        spacing: float,
+        support_radius: float,
+        gravity: tuple[float, float, float],
+        planes: list[Plane],
+        spheres: list[Sphere],
+        boxes: list[Box],
+        max_neighbors: int,
+        device,
+        scalar,
+        requires_grad: bool,
+    ):
+        self.device = wp.get_device(device)
+        self.types = type_set(scalar)
+        self.scalar = scalar
+        self.requires_grad = bool(requires_grad)
+        self.spacing = float(spacing)
+        self.support_radius = float(support_radius)
+        self.max_neighbors = int(max_neighbors)
+        self.gravity = tuple(float(g) for g in gravity)
+        self.materials = list(materials)
+        self.bodies = list(bodies)
+        self.planes, self.spheres, self.boxes = list(planes), list(spheres), list(boxes)
+        self.particle_count = int(positions.shape[0])
+        npf = self.types.np_dtype
+        self.particle_x0 = np.ascontiguousarray(positions, dtype=npf)
+        self.particle_v0 = np.ascontiguousarray(velocities, dtype=npf)
+        self.particle_material_np = np.ascontiguousarray(particle_material, dtype=np.int32)
+        self.particle_body_np = np.ascontiguousarray(particle_body, dtype=np.int32)
+
+        dev = self.device
+        self.particle_material = wp.array(self.particle_material_np, dtype=wp.int32, device=dev)
+        self.particle_body = wp.array(self.particle_body_np, dtype=wp.int32, device=dev)
+        # Lattice volume dx^3 per particle: V_i = m_i / rho0 (SPEC §5; the kernel is
+        # evaluated in reference space, so the rest volume is the right one).
+        volume = np.full(self.particle_count, self.spacing**3, dtype=npf)
+        density = np.array([m.density for m in materials], dtype=npf)[self.particle_material_np]
+        self.particle_volume = wp.array(volume, dtype=scalar, device=dev)
+        self.particle_mass = wp.array(volume * density, dtype=scalar, device=dev)
+        self.particle_rest_density = wp.zeros(self.particle_count, dtype=scalar, device=dev)
+
+        # Per-material parameters; differentiable when requires_grad.
+        self.mu = self._material_array("mu")
+        self.lam = self._material_array("lam")
+        self.yield_stress = self._material_array("yield_stress")
+        self.flow_rate = self._material_array("flow_rate")
+        self.hardening = self._material_array("hardening")
+        self.pressure_stiffness = self._material_array("pressure_stiffness")
+        self.viscosity = self._material_array("viscosity")
+        self.material_model = wp.array([MODEL_IDS[m.model] for m in materials], dtype=wp.int32, device=dev)
+        self.clamp_pressure = wp.array([int(m.clamp_pressure) for m in materials], dtype=wp.int32, device=dev)
+
+        V, S = self.types.vec3, scalar
+        self.plane_normal = self._collider_array([p.normal for p in planes], V)
+        self.plane_offset = self._collider_array([p.offset for p in planes], S)
+        self.plane_friction = self._collider_array([p.friction for p in planes], S)
+        self.sphere_center = self._collider_array([s.center for s in spheres], V)
+        self.sphere_radius = self._collider_array([s.radius for s in spheres], S)
+        self.sphere_friction = self._collider_array([s.friction for s in spheres], S)
+        self.box_center = self._collider_array([b.center for b in boxes], V)
+        self.box_half = self._collider_array([b.half_extents for b in boxes], V)
+        self.box_friction = self._collider_array([b.friction for b in boxes], S)
+
+    MATERIAL_FIELDS = ("mu", "lam", "yield_stress", "flow_rate", "hardening", "pressure_stiffness", "viscosity")
+
+    def _material_array(self, name: str) -> wp.array:
+        values = [getattr(m, name) for m in self.materials]
+        return wp.array(values, dtype=self.scalar, device=self.device, requires_grad=self.requires_grad)
+
+    def _collider_array(self, values, dtype) -> wp.array:
+        # Zero colliders of a kind still pass a (never read) one-element array.
+        values = list(values) or [np.zeros(3) if dtype is self.types.vec3 else 0.0]
+        return wp.array(np.array(values, dtype=self.types.np_dtype), dtype=dtype, device=self.device)
+
+    def set_material(self, index: int, material: Material):
+        """Replace material ``index`` in place (its particles keep their state)."""
+        if not 0 <= index < len(self.materials):
+            raise ValueError(f"index = {index!r} is not allowed: must be in [0, {len(self.materials) - 1}]")
+        self.materials[index] = material
+        for name in self.MATERIAL_FIELDS:
+            arr = getattr(self, name)
+            values = arr.numpy()
+            values[index] = getattr(material, name)
+            arr.assign(values)
+        for arr, value in ((self.material_model, MODEL_IDS[material.model]), (self.clamp_pressure, int(material.clamp_pressure))):
+            values = arr.numpy()
+            values[index] = value
+            arr.assign(values)
+
+    def state(self, requires_grad: bool | None = None) -> State:
+        """A new state at the initial configuration (F = I, alpha = 0)."""
+        return State(self, self.requires_grad if requires_grad is None else requires_grad)
+
+    def stable_dt(self, courant: float = 0.3) -> float:
+        """Explicit limit ``C dx / c_P`` of SPEC §8 over all materials."""
+        c = max(m.p_wave_speed for m in self.materials)
+        return courant * self.spacing / c
+
+    @property
+    def body_names(self) -> list[str]:
+        return [b.name for b in self.bodies]
+
+    def __repr__(self):
+        return (
+            f"Model({self.particle_count} particles, {len(self.bodies)} bodies, {len(self.materials)} materials, "
+            f"spacing={self.spacing:g}, h={self.support_radius:g}, dtype={self.scalar.__name__}, device={self.device})"
+        )
+
+    def compute_rest_density(self):
+        """SPH density of the initial configuration: each particle's pressure-free density."""
+        from . import neighbors, pressure  # noqa: PLC0415 (model data first, kernels on demand)
+
+        state = State(self, requires_grad=False)
+        search = neighbors.NeighborSearch(self.particle_count, self.scalar, self.device, self.support_radius)
+        search.build(state.x, self.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count, state.guard)
+        wp.launch(
+            pressure.kernels(self.scalar).density,
+            self.particle_count,
+            [state.x, self.particle_mass, state.neighbors, state.neighbor_count, self.scalar(self.support_radius)],
+            [self.particle_rest_density],
+            device=self.device,
+        )

@@ -1,0 +1,94 @@
+"""SPH density, pressure and viscosity (paper §4 "for additional stability"; SPEC §6,
+kernels of Müller et al. 2003).
+
+    rho_i = sum_{j in N_i + {i}} m_j W_poly6(|x_i - x_j|, h)
+    p_i   = k_p (rho_i - rho0_i)          (clamped at 0 unless the material says not)
+    f_i   = -sum_j V_i V_j (p_i + p_j)/2 grad W_spiky(x_i - x_j)
+            + sum_j eta_ij V_i V_j (u_j - u_i) lap W_visc(|x_i - x_j|)
+
+with ``V = m / rho``. ``rho0_i`` is each particle's SPH density in the initial
+configuration, so a body starts pressure-free even at its surface, where the SPH sum is
+short of neighbours. Lists are capped at 30 and so not symmetric: as for the elastic
+force each directed pair applies half its force to both particles, equal and opposite,
+which keeps linear momentum exact. Pressure acts between bodies too: it is what keeps
+them apart.
+"""
+
+import functools
+import types
+
+import warp as wp
+
+from ._types import type_set
+from . import smoothing
+
+
+@functools.cache
+def kernels(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3 = T.vec3
+    sm = smoothing.funcs(scalar)
+
+    @wp.kernel
+    def density(
+        x: wp.array(dtype=vec3),
+        mass: wp.array(dtype=scalar),
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        h: scalar,
+        rho: wp.array(dtype=scalar),
+    ):
+        i = wp.tid()
+        xi = x[i]
+        r = mass[i] * sm.w_poly6(scalar(0.0), h)
+        for k in range(count[i]):
+            j = nbr[i, k]
+            d = x[j] - xi
+            r += mass[j] * sm.w_poly6(wp.dot(d, d), h)
+        rho[i] = r
+
+    @wp.func
+    def pressure(rho: scalar, rho0: scalar, k_p: scalar, clamp: int) -> scalar:
+        p = k_p * (rho - rho0)
+        if clamp != 0:
+            p = wp.max(p, scalar(0.0))
+        return p
+
+    @wp.kernel
+    def pressure_forces(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        mass: wp.array(dtype=scalar),
+        rho: wp.array(dtype=scalar),
+        rest_density: wp.array(dtype=scalar),
+        material: wp.array(dtype=wp.int32),
+        pressure_stiffness: wp.array(dtype=scalar),
+        viscosity: wp.array(dtype=scalar),
+        clamp: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        h: scalar,
+        f: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        mi = material[i]
+        xi = x[i]
+        vi = v[i]
+        Vi = mass[i] / rho[i]
+        pi = pressure(rho[i], rest_density[i], pressure_stiffness[mi], clamp[mi])
+        fi = vec3()
+        for k in range(count[i]):
+            j = nbr[i, k]
+            mj = material[j]
+            pj = pressure(rho[j], rest_density[j], pressure_stiffness[mj], clamp[mj])
+            VV = Vi * mass[j] / rho[j]
+            rij = xi - x[j]
+            pair = -VV * scalar(0.5) * (pi + pj) * sm.grad_w_spiky(rij, h)
+            eta = scalar(0.5) * (viscosity[mi] + viscosity[mj])
+            pair += eta * VV * sm.lap_w_viscosity(wp.dot(rij, rij), h) * (v[j] - vi)
+            half = scalar(0.5) * pair
+            wp.atomic_add(f, j, -half)
+            fi += half
+        wp.atomic_add(f, i, fi)
+
+    return types.SimpleNamespace(density=density, pressure_forces=pressure_forces, pressure=pressure)
