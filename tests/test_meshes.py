@@ -1,0 +1,364 @@
+"""Mesh loading, checking and inside-sampling (warp_esph.meshes) and SceneBuilder.add_mesh."""
+
+import math
+import os
+import pathlib
+import tempfile
+
+import hypothesis.strategies as st
+import numpy as np
+import pytest
+import warp.examples
+from hypothesis import given, settings
+
+import warp_esph
+from warp_esph import builder, meshes
+
+ASSETS = pathlib.Path(warp.examples.get_asset_directory())
+BUNNY = ASSETS / "bunny.usd"
+BEAR = ASSETS / "bear.usd"
+
+# Measured on Warp's bunny.usd: bounding box (metres, Y up) and divergence-theorem volume.
+BUNNY_LO = (-0.9557561, 0.0211633, -0.5424289)
+BUNNY_HI = (0.6571599, 1.6401116, 0.6880714)
+BUNNY_VOLUME = 0.8758004  # m^3
+
+
+def cube(lo=(0.0, 0.0, 0.0), hi=(1.0, 1.0, 1.0)):
+    """An axis-aligned box as 8 points and 12 outward-facing triangles."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    unit = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
+    tris = np.array(
+        [[0, 3, 2], [0, 2, 1], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4],
+         [2, 3, 7], [2, 7, 6], [0, 4, 7], [0, 7, 3], [1, 2, 6], [1, 6, 5]],
+        dtype=np.int32,
+    )  # fmt: skip
+    return lo + unit * (hi - lo), tris
+
+
+def icosphere(radius=1.0, subdivisions=3):
+    """A closed triangulated sphere: an icosahedron split ``subdivisions`` times."""
+    t = (1.0 + math.sqrt(5.0)) / 2.0
+    verts = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t),
+             (0, -1, -t), (0, 1, -t), (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]  # fmt: skip
+    verts = [np.array(v, float) / np.linalg.norm(v) for v in verts]
+    faces = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4),
+             (11, 10, 2), (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8),
+             (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10), (8, 6, 7), (9, 8, 1)]  # fmt: skip
+    for _ in range(subdivisions):
+        mid, new = {}, []
+
+        def midpoint(a, b):
+            key = (min(a, b), max(a, b))
+            if key not in mid:
+                m = verts[a] + verts[b]
+                verts.append(m / np.linalg.norm(m))
+                mid[key] = len(verts) - 1
+            return mid[key]
+
+        for a, b, c in faces:
+            ab, bc, ca = midpoint(a, b), midpoint(b, c), midpoint(c, a)
+            new += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
+        faces = new
+    return radius * np.array(verts), np.array(faces, dtype=np.int32)
+
+
+def open_edges(triangles):
+    """Edges not shared by exactly two triangles (computed independently of meshes.py)."""
+    counts = {}
+    for tri in np.asarray(triangles):
+        for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])):
+            key = (min(a, b), max(a, b))
+            counts[key] = counts.get(key, 0) + 1
+    return sum(1 for c in counts.values() if c != 2)
+
+
+def write_usd(path, meshes_by_path, meters_per_unit=1.0, xform=None):
+    """A USD stage with Mesh prims {prim path: (points, faceVertexCounts, faceVertexIndices)}."""
+    from pxr import Gf, Usd, UsdGeom
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
+    root = UsdGeom.Xform.Define(stage, "/root")
+    if xform is not None:
+        translate, scale = xform
+        root.AddTranslateOp().Set(Gf.Vec3d(*translate))
+        root.AddScaleOp().Set(Gf.Vec3f(*scale))
+    for prim_path, (pts, counts, idx) in meshes_by_path.items():
+        mesh = UsdGeom.Mesh.Define(stage, prim_path)
+        mesh.GetPointsAttr().Set([Gf.Vec3f(*map(float, p)) for p in pts])
+        mesh.GetFaceVertexCountsAttr().Set([int(c) for c in counts])
+        mesh.GetFaceVertexIndicesAttr().Set([int(i) for i in idx])
+    stage.GetRootLayer().Save()
+
+
+# Unit cube as 6 outward quads (USD counter-clockwise), for fan triangulation.
+QUAD_CUBE = (
+    cube()[0],
+    [4] * 6,
+    [0, 3, 2, 1, 4, 5, 6, 7, 0, 1, 5, 4, 2, 3, 7, 6, 0, 4, 7, 3, 1, 2, 6, 5],
+)
+
+
+# ------------------------------------------------------------------------ sampling
+def test_unit_cube_gives_one_point_per_cell():
+    pts, tris = meshes.load_mesh(cube())
+    assert meshes.signed_volume(pts, tris) == pytest.approx(1.0)
+    inside = meshes.sample_inside(pts, tris, 0.1)
+    # Cell-centred lattice: 10 points per axis at 0.05, 0.15, ..., 0.95.
+    assert inside.shape == (1000, 3)
+    axis = 0.05 + 0.1 * np.arange(10)
+    for k in range(3):
+        np.testing.assert_allclose(np.unique(inside[:, k].round(9)), axis, atol=1e-9)
+
+
+def test_cube_far_from_origin_and_inverted_still_fills():
+    pts, tris = cube(lo=(1.0e4, -2.0e4, 5.0e3), hi=(1.0e4 + 1.0, -2.0e4 + 1.0, 5.0e3 + 1.0))
+    assert len(meshes.sample_inside(*meshes.load_mesh((pts, tris)), 0.1)) == 1000
+    p, t = meshes.load_mesh((pts, tris[:, ::-1]))  # inward-facing: turned outward
+    assert meshes.signed_volume(p, t) == pytest.approx(1.0)
+    assert len(meshes.sample_inside(p, t, 0.1)) == 1000
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    lo=st.tuples(*[st.floats(-2.0, 2.0)] * 3),
+    size=st.tuples(*[st.floats(0.05, 0.6)] * 3),
+    dx=st.sampled_from([0.02, 0.05, 0.1]),
+)
+def test_box_mesh_count_is_analytic_and_matches_add_box(lo, size, dx):
+    lo, size = np.array(lo), np.array(size)
+    pts, tris = meshes.load_mesh(cube(lo, lo + size))
+    expected = np.prod(np.maximum(np.floor(size / dx + 1e-9), 1))
+    inside = meshes.sample_inside(pts, tris, dx)
+    assert len(inside) == expected
+    # Same lattice convention as SceneBuilder.add_box of the same box.
+    b = warp_esph.SceneBuilder(spacing=dx)
+    b.add_box(lo + size / 2, size, warp_esph.Material.preset("dough"))
+    np.testing.assert_allclose(np.sort(inside, axis=0), np.sort(b._points[0], axis=0), atol=1e-9)
+
+
+def test_lattice_helper_matches_builder():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        lo = rng.uniform(-1, 1, 3)
+        hi = lo + rng.uniform(0.01, 1, 3)
+        dx = rng.uniform(0.01, 0.2)
+        np.testing.assert_array_equal(meshes._lattice(lo, hi, dx), builder._lattice(lo, hi, dx))
+
+
+def test_sphere_volume_from_point_count():
+    r, dx = 0.5, 0.04
+    pts, tris = meshes.load_mesh(icosphere(r, 3))
+    volume = meshes.signed_volume(pts, tris)
+    assert volume == pytest.approx(4 / 3 * math.pi * r**3, rel=0.03)  # faceted, slightly smaller
+    inside = meshes.sample_inside(pts, tris, dx)
+    assert len(inside) * dx**3 == pytest.approx(volume, rel=0.05)
+    assert np.all(np.linalg.norm(inside, axis=1) < r)
+
+
+def test_mesh_smaller_than_spacing_is_rejected():
+    # Two 1 cm cubes 10 cm apart: the one lattice point (the box centre) is between them.
+    (a, ta), (b, tb) = cube((0, 0, 0), (0.01, 0.01, 0.01)), cube((0.1, 0, 0), (0.11, 0.01, 0.01))
+    pts, tris = meshes.load_mesh((np.concatenate([a, b]), np.concatenate([ta, tb + 8])))
+    with pytest.raises(ValueError, match=r"spacing = 0\.5 is not allowed.*no lattice point"):
+        meshes.sample_inside(pts, tris, 0.5)
+    with pytest.raises(ValueError, match=r"spacing = -1 is not allowed"):
+        meshes.sample_inside(pts, tris, -1)
+    with pytest.raises(ValueError, match=r"^mesh \(points, triangles\) is not allowed: triangle indices"):
+        meshes.sample_inside(pts, tris + 1, 0.01)
+
+
+# ------------------------------------------------------------------------- file I/O
+@pytest.mark.parametrize("ext", [".obj", ".stl", ".ply", ".off", ".vtk"])
+def test_meshio_round_trip(tmp_path, ext):
+    pts, tris = icosphere(0.3, 2)
+    path = tmp_path / f"ball{ext}"
+    meshes.write_mesh(path, pts, tris)
+    p, t = meshes.load_mesh(path)
+    assert len(p) == len(pts) and len(t) == len(tris)  # STL's repeated corners merged again
+    assert open_edges(t) == 0
+    assert meshes.signed_volume(p, t) == pytest.approx(meshes.signed_volume(pts, tris), rel=1e-5)
+    assert len(meshes.sample_inside(p, t, 0.05)) == len(meshes.sample_inside(pts, tris, 0.05))
+    assert meshes.mesh_name(path) == "ball"
+    assert meshes.load_mesh(str(path))[0].shape == p.shape
+
+
+def test_obj_quads_and_tetrahedra_are_triangulated(tmp_path):
+    import meshio
+
+    pts = cube()[0]
+    quads = np.array(QUAD_CUBE[2]).reshape(6, 4)
+    meshio.write_points_cells(tmp_path / "quads.obj", pts, [("quad", quads)])
+    # Kuhn split of the unit cube into six tetrahedra along the diagonal 0 -> 6.
+    tets = np.array([[0, 1, 2, 6], [0, 2, 3, 6], [0, 3, 7, 6], [0, 7, 4, 6], [0, 4, 5, 6], [0, 5, 1, 6]])
+    meshio.write_points_cells(tmp_path / "tets.vtu", pts, [("tetra", tets)])
+    for name in ("quads.obj", "tets.vtu"):
+        p, t = meshes.load_mesh(tmp_path / name)
+        assert t.shape == (12, 3)
+        assert meshes.signed_volume(p, t) == pytest.approx(1.0)
+        assert len(meshes.sample_inside(p, t, 0.1)) == 1000
+
+
+def test_usd_quads_transform_units_and_prim_path(tmp_path):
+    path = tmp_path / "boxes.usda"
+    small = (cube()[0] * 0.5, *QUAD_CUBE[1:])
+    write_usd(path, {"/root/box": QUAD_CUBE, "/root/small": small}, meters_per_unit=0.01,
+              xform=((10.0, 0.0, 0.0), (2.0, 2.0, 2.0)))  # fmt: skip
+    # Unit cube scaled by 2, moved 10 units along x, in centimetres.
+    p, t = meshes.load_mesh(path)
+    assert t.shape == (12, 3)
+    np.testing.assert_allclose(p.min(axis=0), [0.10, 0.0, 0.0], atol=1e-7)
+    np.testing.assert_allclose(p.max(axis=0), [0.12, 0.02, 0.02], atol=1e-7)
+    assert len(meshes.sample_inside(p, t, 0.002)) == 1000
+    p2, _ = meshes.load_mesh(path, prim_path="/root/small")
+    np.testing.assert_allclose(p2.max(axis=0) - p2.min(axis=0), [0.01] * 3, atol=1e-7)
+
+
+# --------------------------------------------------------------------- Warp's assets
+def test_bunny_loads_closed_with_measured_size_and_volume():
+    p, t = meshes.load_mesh(BUNNY)
+    assert p.shape == (6102, 3) and t.shape == (12200, 3)
+    assert open_edges(t) == 0
+    np.testing.assert_allclose(p.min(axis=0), BUNNY_LO, atol=1e-6)
+    np.testing.assert_allclose(p.max(axis=0), BUNNY_HI, atol=1e-6)
+    assert meshes.signed_volume(p, t) == pytest.approx(BUNNY_VOLUME, rel=1e-6)
+    np.testing.assert_array_equal(meshes.load_mesh(str(BUNNY), prim_path="/root/bunny")[1], t)
+    assert meshes.mesh_name(BUNNY) == "bunny"
+
+
+def test_bunny_sampling_matches_its_volume():
+    p, t = meshes.load_mesh(BUNNY)
+    # Full size (1.6 m tall) at 4 cm: 13692 points measured.
+    full = meshes.sample_inside(p, t, 0.04)
+    assert 13_300 <= len(full) <= 14_100
+    assert len(full) * 0.04**3 == pytest.approx(BUNNY_VOLUME, rel=0.05)
+    # Scaled to 16 cm at 1 cm: 894 points measured.
+    small = meshes.sample_inside(p * 0.1, t, 0.01)
+    assert 850 <= len(small) <= 940
+    assert len(small) * 0.01**3 == pytest.approx(meshes.signed_volume(p * 0.1, t), rel=0.05)
+
+
+def test_bear_loads():
+    p, t = meshes.load_mesh(BEAR)
+    assert open_edges(t) == 0
+    np.testing.assert_allclose(p.max(axis=0) - p.min(axis=0), [4.89, 5.542, 9.78], rtol=1e-4)
+    assert meshes.signed_volume(p, t) == pytest.approx(98.429, rel=1e-4)
+
+
+def test_builder_add_mesh_bunny():
+    dough = warp_esph.Material.preset("dough")
+    b = warp_esph.SceneBuilder(spacing=0.01)
+    # The bunny is 1.6 m tall: at 1 cm it would be 876k particles, so it is scaled to 16 cm.
+    k = b.add_mesh(BUNNY, dough, scale=0.1, translation=(0.0, 0.05, 0.0))
+    p, t = meshes.load_mesh(BUNNY)
+    expected = meshes.sample_inside(p * 0.1 + [0.0, 0.05, 0.0], t, 0.01)
+    model = b.finalize()
+    assert model.particle_count == len(expected) == b.particle_count
+    assert model.bodies[k].name == "bunny" and model.bodies[k].count == len(expected)
+    # A (points, triangles) tuple gets a generic name.
+    k2 = b.add_mesh(cube((1.0, 0.0, 0.0), (1.1, 0.1, 0.1)), dough)
+    assert b._bodies[k2].name == "mesh1" and b._bodies[k2].count == 1000
+
+
+def test_mesh_name():
+    assert meshes.mesh_name("/a/b/bunny.usd") == "bunny"
+    assert meshes.mesh_name(pathlib.Path("my.model.obj")) == "my.model"
+    assert meshes.mesh_name("part.vol.gz") == "part"
+    assert meshes.mesh_name(b"dough.stl") == "dough"
+
+
+# ------------------------------------------------------------------------ validation
+def _bad_meshes():
+    pts, tris = cube()
+    flat = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    line = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]], float)
+    tet = np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0]])
+    nan = pts.copy()
+    nan[3, 1] = np.nan
+    flipped = tris.copy()
+    flipped[5] = flipped[5, ::-1]
+    return {
+        "empty": ((np.zeros((0, 3)), np.zeros((0, 3), int)), r"is empty"),
+        "no triangles": ((pts, np.zeros((0, 3), int)), r"is empty"),
+        "bad points shape": ((pts[:, :2], tris), r"points with shape \(8, 2\).*\(N, 3\)"),
+        "bad triangle shape": ((pts, tris.reshape(-1, 4)), r"triangles with shape \(9, 4\)"),
+        "fractional indices": ((pts, tris + 0.5), r"dtype float64.*integer"),
+        "index too large": ((pts, np.where(tris == 7, 8, tris)), r"indices must be in \[0, 7\].*\[0, 8\]"),
+        "negative index": ((pts, np.where(tris == 0, -1, tris)), r"indices must be in \[0, 7\].*\[-1, 7\]"),
+        "non-finite": ((nan, tris), r"1 of its 8 points are not finite"),
+        "zero area": ((line, tet), r"degenerate: all its triangles have zero area"),
+        "zero volume": ((flat, np.array([[0, 1, 2], [0, 2, 1]])), r"degenerate: it encloses no volume"),
+        "open": ((pts, tris[:-1]), r"not closed \(3 edges are not shared by exactly two triangles\)"),
+        "non-manifold": ((pts, np.concatenate([tris, tris[:2], tris[:2, ::-1]])), r"not closed \(5 edges"),
+        "inconsistent": ((pts, flipped), r"not consistently oriented \(3 edges"),
+    }
+
+
+@pytest.mark.parametrize("case", list(_bad_meshes()))
+def test_bad_arrays_are_rejected(case):
+    source, pattern = _bad_meshes()[case]
+    with pytest.raises(ValueError, match=r"^mesh \(points, triangles\) is not allowed: .*" + pattern):
+        meshes.load_mesh(source)
+
+
+def test_bad_files_are_rejected(tmp_path):
+    def rejects(source, *needles, **kw):
+        with pytest.raises(ValueError) as info:
+            meshes.load_mesh(source, **kw)
+        for needle in needles:
+            assert needle in str(info.value), str(info.value)
+
+    missing = tmp_path / "nope.obj"
+    rejects(missing, repr(str(missing)), "file not found")
+    rejects(tmp_path, repr(str(tmp_path)), "not a file")
+    (tmp_path / "points.xyz").write_text("0 0 0\n")
+    rejects(tmp_path / "points.xyz", "points.xyz", "unsupported extension '.xyz'", ".usd", ".obj", ".stl")
+    (tmp_path / "junk.stl").write_text("hello world\n")
+    rejects(tmp_path / "junk.stl", "junk.stl", "meshio cannot read it")
+    (tmp_path / "junk.vtu").write_text("<x")  # meshio calls sys.exit on this one
+    rejects(tmp_path / "junk.vtu", "junk.vtu", "meshio cannot read it")
+    (tmp_path / "junk.usda").write_text("#usda 1.0\n(((\n")
+    rejects(tmp_path / "junk.usda", "junk.usda", "pxr cannot open it")
+    (tmp_path / "points.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
+    rejects(tmp_path / "points.obj", "points.obj", "no triangles")
+    meshes.write_mesh(tmp_path / "open.obj", *cube()[0:1], cube()[1][:-1])
+    rejects(tmp_path / "open.obj", "open.obj", "not closed (3 edges")
+
+    write_usd(tmp_path / "quad.usda", {"/root/sheet": (cube()[0][:4], [4], [0, 1, 2, 3])})
+    rejects(tmp_path / "quad.usda", "quad.usda", "/root/sheet", "not closed (4 edges")
+    write_usd(tmp_path / "bad_counts.usda", {"/root/m": (cube()[0], [2, 3], [0, 1, 2, 3, 4])})
+    rejects(tmp_path / "bad_counts.usda", "bad_counts.usda", "1 faces have fewer than 3 vertices")
+    write_usd(tmp_path / "empty.usda", {})
+    rejects(tmp_path / "empty.usda", "empty.usda", "no UsdGeom.Mesh prim")
+
+    rejects(BUNNY, "prim_path = '/root/nothing'", "bunny.usd", "no prim there", prim_path="/root/nothing")
+    rejects(BUNNY, "prim_path = '/root'", "Xform prim, not a Mesh", prim_path="/root")
+    rejects(BUNNY, "prim_path = 'bunny'", "absolute prim path", prim_path="bunny")
+    rejects(BUNNY, "prim_path = 3", prim_path=3)
+    rejects(tmp_path / "open.obj", "prim_path = '/x'", "only for USD files", prim_path="/x")
+    rejects(cube(), "prim_path = '/x'", "only for USD files", prim_path="/x")
+    rejects(5, "source = 5", "file path or a (points, triangles) tuple")
+    rejects((1, 2, 3), "source with 3 items", "(points, triangles)")
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    ext=st.sampled_from([".obj", ".stl", ".ply", ".off", ".vtk", ".vtu", ".msh", ".usda", ".usdc", ".usd"]),
+    data=st.one_of(
+        st.binary(max_size=300),
+        st.text(alphabet="vf0123456789 .-\n#", max_size=200).map(str.encode),
+    ),
+)
+def test_reader_errors_never_escape(ext, data):
+    with tempfile.TemporaryDirectory() as d:
+        path = os.path.join(d, "fuzz" + ext)
+        with open(path, "wb") as f:
+            f.write(data)
+        try:
+            p, t = meshes.load_mesh(path)
+        except ValueError as e:
+            assert "fuzz" + ext in str(e)
+        else:  # whatever was read must be a valid closed mesh
+            assert p.shape[1] == 3 and t.shape[1] == 3 and open_edges(t) == 0

@@ -1,0 +1,372 @@
+"""Closed triangle meshes: loading (meshio or USD), checking, and filling with lattice points.
+
+``load_mesh`` returns a cleaned, outward-oriented closed mesh or raises a ``ValueError``
+that names the mesh and says what is wrong with it; ``sample_inside`` keeps the lattice
+points whose winding number says they are inside.
+"""
+
+import contextlib
+import io
+import os
+import pathlib
+import re
+import warnings
+
+import numpy as np
+import warp as wp
+
+from . import checks
+
+USD_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")
+
+
+def _meshio_extensions() -> tuple[str, ...]:
+    import meshio  # noqa: PLC0415 (meshio is slow to import and only needed for files)
+
+    return tuple(meshio.extension_to_filetypes)
+
+
+# ----------------------------------------------------------------------------- errors
+def _reject(label: str, reason: str):
+    raise ValueError(f"mesh {label} is not allowed: {reason}")
+
+
+def _short(exc: BaseException) -> str:
+    """One line from an exception raised by meshio or pxr."""
+    text = re.sub(r"\s+", " ", str(exc)).strip()
+    # pxr wraps each message in "Error in '<C++ function>' at line N in file F : '<message>'".
+    messages = re.findall(r" : '(.+?)'(?= Error in |$)", text)
+    text = "; ".join(messages) or text or "no details"
+    if len(text) > 300:
+        text = text[:297] + "..."
+    return f"{type(exc).__name__}: {text}"
+
+
+# ---------------------------------------------------------------------------- loading
+def _is_path(source) -> bool:
+    return isinstance(source, (str, bytes)) or hasattr(source, "__fspath__")
+
+
+def _extension(name: str, known) -> str | None:
+    """The longest known extension ``name`` ends with (so ``.vol.gz`` beats ``.gz``)."""
+    lower = name.lower()
+    matches = [e for e in known if lower.endswith(e)]
+    return max(matches, key=len) if matches else None
+
+
+def mesh_name(source) -> str:
+    """A body name from a mesh file's name without its extension ('bunny' for 'bunny.usd')."""
+    name = pathlib.Path(os.fsdecode(os.fspath(source))).name
+    ext = _extension(name, USD_EXTENSIONS + _meshio_extensions())
+    stem = name[: -len(ext)] if ext else pathlib.Path(name).stem
+    return stem or name
+
+
+def load_mesh(source, prim_path: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A closed triangle mesh as ``(points (N, 3) float64, triangles (M, 3) int32)``.
+
+    ``source`` is a file meshio reads, a USD file (``prim_path`` picks the Mesh prim,
+    else the first one; its local-to-world transform and the stage's metres per unit
+    are applied, the up axis is kept), or a tuple ``(points, triangles)``. Polygons are
+    fan-triangulated and tetrahedral meshes reduced to their surface. Coincident and
+    unused vertices are merged or dropped, and the triangles are turned to face outward.
+    """
+    if prim_path is not None and not isinstance(prim_path, str):
+        raise ValueError(f"prim_path = {prim_path!r} is not allowed: must be a string such as '/root/bunny' or None")
+    if isinstance(source, tuple):
+        if prim_path is not None:
+            raise ValueError(f"prim_path = {prim_path!r} is not allowed: it is only for USD files, not (points, triangles)")
+        if len(source) != 2:
+            raise ValueError(f"source with {len(source)} items is not allowed: a tuple must be (points, triangles)")
+        label = "(points, triangles)"
+        points, triangles = source
+    elif _is_path(source):
+        path = os.fsdecode(os.fspath(source))
+        label = repr(path)
+        if not os.path.exists(path):
+            _reject(label, "file not found")
+        if not os.path.isfile(path):
+            _reject(label, "it is not a file")
+        meshio_ext = _meshio_extensions()
+        if _extension(path, USD_EXTENSIONS):
+            points, triangles, prim = _read_usd(label, path, prim_path)
+            label = f"{label} (prim {prim!r})"
+        elif _extension(path, meshio_ext):
+            if prim_path is not None:
+                raise ValueError(f"prim_path = {prim_path!r} is not allowed: it is only for USD files, not {label}")
+            points, triangles = _read_meshio(label, path)
+        else:
+            suffix = pathlib.Path(path).suffix or "(none)"
+            allowed = ", ".join(USD_EXTENSIONS + meshio_ext)
+            _reject(label, f"unsupported extension {suffix!r}; must be one of {allowed}")
+    else:
+        raise ValueError(
+            f"source = {source!r} is not allowed: must be a mesh file path or a (points, triangles) tuple"
+        )
+    return _clean(label, points, triangles)
+
+
+def _as_arrays(label: str, points, triangles) -> tuple[np.ndarray, np.ndarray]:
+    try:
+        pts = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError):
+        _reject(label, "points must be an (N, 3) array of numbers")
+    try:
+        tri = np.asarray(triangles)
+    except (TypeError, ValueError):
+        _reject(label, "triangles must be an (M, 3) array of integers")
+    if pts.size == 0 or tri.size == 0:
+        _reject(label, f"it is empty ({len(pts)} points, {len(tri)} triangles)")
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        _reject(label, f"points with shape {pts.shape} are not allowed; must be (N, 3)")
+    if tri.ndim != 2 or tri.shape[1] != 3:
+        _reject(label, f"triangles with shape {tri.shape} are not allowed; must be (M, 3)")
+    if tri.dtype.kind not in "iu":
+        # Integral floats (from some readers or user code) are accepted, fractions are not.
+        if tri.dtype.kind != "f" or not np.all(np.isfinite(tri)) or np.any(tri != np.round(tri)):
+            _reject(label, f"triangles of dtype {tri.dtype} are not allowed; must be integer vertex indices")
+    return pts, tri.astype(np.int64)
+
+
+def _fan(counts: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """Fan triangulation (v0, vk, vk+1) of polygons given as USD faceVertexCounts/Indices."""
+    ntri = counts - 2
+    first = np.cumsum(counts) - counts
+    face = np.repeat(np.arange(len(counts)), ntri)
+    k = np.arange(int(ntri.sum())) - np.repeat(np.cumsum(ntri) - ntri, ntri) + 1
+    base = first[face]
+    return np.stack([indices[base], indices[base + k], indices[base + k + 1]], axis=1)
+
+
+def _read_usd(label: str, path: str, prim_path: str | None):
+    from pxr import Sdf, Usd, UsdGeom  # noqa: PLC0415 (USD only when a USD file is given)
+
+    try:
+        stage = Usd.Stage.Open(path)
+    except Exception as e:  # noqa: BLE001 (pxr raises Tf.ErrorException and others)
+        _reject(label, f"pxr cannot open it ({_short(e)})")
+    if stage is None:
+        _reject(label, "pxr cannot open it")
+    if prim_path is None:
+        prim = next((p for p in stage.Traverse(Usd.TraverseInstanceProxies()) if p.IsA(UsdGeom.Mesh)), None)
+        if prim is None:
+            _reject(label, "it has no UsdGeom.Mesh prim, so it is not a closed triangle mesh")
+    else:
+        if not Sdf.Path.IsValidPathString(prim_path) or not Sdf.Path(prim_path).IsAbsolutePath():
+            raise ValueError(f"prim_path = {prim_path!r} is not allowed: must be an absolute prim path such as '/root/bunny'")
+        prim = stage.GetPrimAtPath(prim_path)
+        if not prim.IsValid():
+            raise ValueError(f"prim_path = {prim_path!r} is not allowed: {label} has no prim there")
+        if not prim.IsA(UsdGeom.Mesh):
+            raise ValueError(
+                f"prim_path = {prim_path!r} is not allowed: it is a {prim.GetTypeName() or 'typeless'} prim, not a Mesh"
+            )
+    mesh = UsdGeom.Mesh(prim)
+    where = f"{label} (prim {str(prim.GetPath())!r})"
+    # EarliestTime reads the default value, or the first sample of animated points.
+    time = Usd.TimeCode.EarliestTime()
+    try:
+        pts = np.array(mesh.GetPointsAttr().Get(time) or [], dtype=np.float64).reshape(-1, 3)
+        counts = np.array(mesh.GetFaceVertexCountsAttr().Get(time) or [], dtype=np.int64)
+        idx = np.array(mesh.GetFaceVertexIndicesAttr().Get(time) or [], dtype=np.int64)
+        xform = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), dtype=np.float64)
+        meters = float(UsdGeom.GetStageMetersPerUnit(stage))
+    except Exception as e:  # noqa: BLE001
+        _reject(where, f"pxr cannot read it ({_short(e)})")
+    if len(pts) == 0 or len(counts) == 0:
+        _reject(where, f"it is empty ({len(pts)} points, {len(counts)} faces)")
+    if np.any(counts < 3):
+        _reject(where, f"{int(np.sum(counts < 3))} faces have fewer than 3 vertices")
+    if counts.sum() != len(idx):
+        _reject(where, f"faceVertexCounts sum to {int(counts.sum())} but there are {len(idx)} faceVertexIndices")
+    # USD matrices act on row vectors: p_world = [p, 1] @ M.
+    pts = (np.hstack([pts, np.ones((len(pts), 1))]) @ xform)[:, :3] * meters
+    return pts, _fan(counts, idx), str(prim.GetPath())
+
+
+def _read_meshio(label: str, path: str):
+    import meshio  # noqa: PLC0415
+
+    printed = io.StringIO()
+    try:
+        # On a ReadError meshio.read prints the reason, then calls sys.exit(1).
+        # Its STL reader overflows a uint32 while guessing ASCII vs binary; that is harmless.
+        with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed), np.errstate(over="ignore"):
+            m = meshio.read(path)
+    except (Exception, SystemExit) as e:  # noqa: BLE001 (meshio raises ReadError, KeyError, ValueError, ...)
+        said = re.sub(r"\s+", " ", printed.getvalue()).strip()
+        reason = said if isinstance(e, SystemExit) and said else _short(e)
+        _reject(label, f"meshio cannot read it ({reason})")
+    said = printed.getvalue().strip()
+    if said:
+        warnings.warn(f"meshio, reading {label}: {said}", stacklevel=3)
+    tris, tets = [], []
+    for block in m.cells:
+        kind = block.type
+        if kind.startswith("polyhedron"):
+            continue  # ragged lists of faces, not a surface
+        # Higher-order cells (triangle6, quad8, tetra10) list their corners first.
+        data = np.asarray(block.data)
+        corners = data.shape[1] if data.ndim == 2 else 0
+        if kind.startswith("tetra") and corners >= 4:
+            tets.append(data[:, :4])
+        elif kind.startswith("triangle") and corners >= 3:
+            tris.append(data[:, :3])
+        elif kind.startswith("quad") and corners >= 4:
+            tris.append(_fan(np.full(len(data), 4), data[:, :4].ravel()))
+        elif kind.startswith("polygon") and corners >= 3:
+            tris.append(_fan(np.full(len(data), corners), data.ravel()))
+    points = np.asarray(m.points, dtype=np.float64)
+    if tets:
+        tris.append(_tet_surface(points, np.concatenate(tets).astype(np.int64)))
+    if not tris:
+        kinds = ", ".join(sorted({b.type for b in m.cells})) or "none"
+        _reject(label, f"it has no triangles, polygons or tetrahedra (cell types: {kinds})")
+    return points, np.concatenate(tris).astype(np.int64)
+
+
+def _tet_surface(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """The faces used by one tetrahedron only, each facing away from its tetrahedron."""
+    if points.shape[1:] == (3,) and len(tets) and 0 <= tets.min() and tets.max() < len(points):
+        p = points[tets]
+        negative = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) < 0.0
+        tets = np.where(negative[:, None], tets[:, [0, 2, 1, 3]], tets)
+    faces = np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 3, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 1]]])
+    _, first, counts = np.unique(np.sort(faces, axis=1), axis=0, return_index=True, return_counts=True)
+    return faces[first[counts == 1]]
+
+
+# --------------------------------------------------------------------------- checking
+def _checked_arrays(label: str, points, triangles) -> tuple[np.ndarray, np.ndarray]:
+    pts, tri = _as_arrays(label, points, triangles)
+    n = len(pts)
+    lo, hi = int(tri.min()), int(tri.max())
+    if lo < 0 or hi >= n:
+        _reject(label, f"triangle indices must be in [0, {n - 1}] for {n} points, found [{lo}, {hi}]")
+    return pts, tri
+
+
+def _clean(label: str, points, triangles) -> tuple[np.ndarray, np.ndarray]:
+    pts, tri = _checked_arrays(label, points, triangles)
+    n = len(pts)
+    bad = int(np.sum(~np.isfinite(pts).all(axis=1)))
+    if bad:
+        _reject(label, f"{bad} of its {n} points are not finite")
+
+    # Merge coincident vertices (STL and seam-split meshes repeat them) so that edges
+    # shared by two triangles are recognised, and drop unused ones (they would widen the
+    # bounding box that is filled with lattice points).
+    used = np.unique(tri)
+    merged, inverse = np.unique(pts[used], axis=0, return_inverse=True)
+    remap = np.zeros(n, dtype=np.int64)
+    remap[used] = inverse.reshape(-1)
+    tri = remap[tri]
+    # A triangle that lost a corner to merging has no area and would break edge counting.
+    tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])]
+    diag = float(np.linalg.norm(merged.max(axis=0) - merged.min(axis=0)))
+    if len(tri) == 0 or diag == 0.0:
+        _reject(label, "it is degenerate: all its triangles have zero area")
+    a, b, c = merged[tri[:, 0]], merged[tri[:, 1]], merged[tri[:, 2]]
+    cross = np.cross(b - a, c - a)
+    if np.all(np.linalg.norm(cross, axis=1) <= 1e-12 * diag * diag):
+        _reject(label, "it is degenerate: all its triangles have zero area")
+
+    edges = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    _, uses = np.unique(np.sort(edges, axis=1), axis=0, return_counts=True)
+    open_edges = int(np.sum(uses != 2))
+    if open_edges:
+        _reject(label, f"it is not closed ({open_edges} edges are not shared by exactly two triangles)")
+    # In a consistently oriented closed mesh each directed edge occurs once; otherwise
+    # the winding number is not +-1 inside and the inside test is meaningless.
+    _, directed = np.unique(edges, axis=0, return_counts=True)
+    flipped = int(np.sum(directed > 1))
+    if flipped:
+        _reject(label, f"it is not consistently oriented ({flipped} edges run the same way in both their triangles)")
+
+    volume = float(np.sum(np.einsum("ij,ij->i", a, np.cross(b, c)))) / 6.0
+    if abs(volume) <= 1e-9 * diag**3:
+        _reject(label, f"it is degenerate: it encloses no volume ({volume:g})")
+    if volume < 0.0:
+        tri = tri[:, ::-1]  # inward-facing (or mirrored by a transform): turn outward
+    return merged, np.ascontiguousarray(tri, dtype=np.int32)
+
+
+def signed_volume(points, triangles) -> float:
+    """Volume enclosed by a closed triangle mesh (divergence theorem); > 0 if outward."""
+    p = np.asarray(points, dtype=np.float64)
+    t = np.asarray(triangles)
+    a, b, c = p[t[:, 0]], p[t[:, 1]], p[t[:, 2]]
+    return float(np.sum(np.einsum("ij,ij->i", a, np.cross(b, c)))) / 6.0
+
+
+def write_mesh(path, points, triangles) -> None:
+    """Writes a triangle mesh with meshio (format from the extension)."""
+    import meshio  # noqa: PLC0415
+
+    meshio.write_points_cells(
+        os.fspath(path), np.asarray(points, dtype=np.float64), [("triangle", np.asarray(triangles, dtype=np.int64))]
+    )
+
+
+# --------------------------------------------------------------------------- sampling
+def _lattice(lo: np.ndarray, hi: np.ndarray, dx: float) -> np.ndarray:
+    """Lattice points centred in the box [lo, hi], one per dx^3 cell that fits.
+
+    The same convention as ``builder._lattice`` (not imported: builder imports this module).
+    """
+    extent = hi - lo
+    counts = np.maximum(np.floor(extent / dx + 1e-9).astype(int), 1)
+    start = lo + 0.5 * (extent - (counts - 1) * dx)
+    axes = [start[k] + dx * np.arange(counts[k]) for k in range(3)]
+    g = np.meshgrid(*axes, indexing="ij")
+    return np.stack([a.ravel() for a in g], axis=1)
+
+
+@wp.kernel(enable_backward=False)
+def _inside_kernel(
+    mesh: wp.uint64,
+    queries: wp.array(dtype=wp.vec3f),
+    max_dist: wp.float32,
+    inside: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    q = wp.mesh_query_point_sign_winding_number(mesh, queries[i], max_dist)
+    inside[i] = wp.where(q.result and q.sign < 0.0, 1, 0)
+
+
+def sample_inside(points, triangles, spacing: float, device=None) -> np.ndarray:
+    """Lattice points of ``spacing`` (cell-centred over the bounding box) inside the mesh.
+
+    Expects an outward-oriented closed mesh such as ``load_mesh`` returns. The inside test
+    is Warp's fast winding number, run on ``device`` (Warp's default when None).
+    """
+    dx = checks.positive("spacing", spacing)
+    # wp.Mesh does not check its input and an index out of range crashes the process.
+    pts, tri = _checked_arrays("(points, triangles)", points, triangles)
+    if not np.isfinite(pts).all():
+        _reject("(points, triangles)", "its points must be finite")
+    tri = tri.astype(np.int32)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    # Work relative to the box centre: float32 keeps ~7 digits of the offset, not of the
+    # absolute position, so a mesh far from the origin is classified as accurately.
+    centre = 0.5 * (lo + hi)
+    grid = _lattice(lo - centre, hi - centre, dx)
+    dev = wp.get_device(device)
+    mesh = wp.Mesh(
+        points=wp.array((pts - centre).astype(np.float32), dtype=wp.vec3f, device=dev),
+        indices=wp.array(tri.reshape(-1), dtype=wp.int32, device=dev),
+        support_winding_number=True,
+    )
+    queries = wp.array(grid.astype(np.float32), dtype=wp.vec3f, device=dev)
+    inside = wp.zeros(len(grid), dtype=wp.int32, device=dev)
+    # Every query lies in the box, so the diagonal bounds its distance to the surface.
+    max_dist = 2.0 * float(np.linalg.norm(hi - lo)) + dx
+    wp.launch(_inside_kernel, dim=len(grid), inputs=[mesh.id, queries, max_dist], outputs=[inside], device=dev)
+    keep = inside.numpy().astype(bool)  # synchronises, so ``mesh`` outlives the launch
+    if not keep.any():
+        size = ", ".join(f"{s:g}" for s in hi - lo)
+        raise ValueError(
+            f"spacing = {spacing!r} is not allowed for this mesh: no lattice point falls inside it "
+            f"(its bounding box is {size}); use a smaller spacing or a larger scale"
+        )
+    return grid[keep] + centre
