@@ -104,16 +104,18 @@ class Material:
 # Presets: soft, kitchen-scale materials that run stably at 1-2 cm spacing with the
 # default time steps. Moduli are of the order measured for the real materials
 # (bread dough E ~ 10^4 Pa, modelling clay ~ 10^5 Pa, soft rubber ~ 10^5-10^6 Pa)
-# and chosen so each one shows its character in a drop onto the ground.
+# and chosen so each one shows its character in a drop onto the ground. The explicit
+# step dissipates nothing by itself: an undamped body rings after an impact for as
+# long as the run lasts, so each preset carries some viscosity (Pa s) to settle.
 PRESETS: dict[str, Material] = {
     # Flows under its own weight, slowly, and keeps the new shape (the paper's Fig. 6).
-    "dough": Material.from_young(2.0e4, 0.3, yield_stress=150.0, flow_rate=20.0, hardening=0.0, density=1150.0),
+    "dough": Material.from_young(2.0e4, 0.3, yield_stress=150.0, flow_rate=20.0, hardening=0.0, density=1150.0, viscosity=10.0),
     # Stiffer, yields under impact, hardens as it is worked.
-    "clay": Material.from_young(1.0e5, 0.3, yield_stress=2000.0, flow_rate=50.0, hardening=5000.0, density=1800.0),
+    "clay": Material.from_young(1.0e5, 0.3, yield_stress=2000.0, flow_rate=50.0, hardening=5000.0, density=1800.0, viscosity=20.0),
     # Elastic: bounces back to its rest shape.
-    "rubber": Material.from_young(2.0e5, 0.4, density=1100.0),
+    "rubber": Material.from_young(2.0e5, 0.4, density=1100.0, viscosity=2.0),
     # Non-Newtonian (paper Fig. 1): resists sudden stress, flows under small stress.
-    "putty": Material.from_young(5.0e4, 0.3, yield_stress=100.0, flow_rate=2.0e4, density=1200.0, model="non_newtonian"),
+    "putty": Material.from_young(5.0e4, 0.3, yield_stress=100.0, flow_rate=2.0e4, density=1200.0, viscosity=10.0, model="non_newtonian"),
     # Low yield, fast flow: slumps into a puddle.
-    "toothpaste": Material.from_young(1.0e4, 0.3, yield_stress=50.0, flow_rate=200.0, density=1300.0),
+    "toothpaste": Material.from_young(1.0e4, 0.3, yield_stress=50.0, flow_rate=200.0, density=1300.0, viscosity=5.0),
 }
