@@ -139,15 +139,6 @@ def test_box_mesh_count_is_analytic_and_matches_add_box(lo, size, dx):
     np.testing.assert_allclose(np.sort(inside, axis=0), np.sort(b._points[0], axis=0), atol=1e-9)
 
 
-def test_lattice_helper_matches_builder():
-    rng = np.random.default_rng(0)
-    for _ in range(20):
-        lo = rng.uniform(-1, 1, 3)
-        hi = lo + rng.uniform(0.01, 1, 3)
-        dx = rng.uniform(0.01, 0.2)
-        np.testing.assert_array_equal(meshes._lattice(lo, hi, dx), builder._lattice(lo, hi, dx))
-
-
 def test_sphere_volume_from_point_count():
     r, dx = 0.5, 0.04
     pts, tris = meshes.load_mesh(icosphere(r, 3))

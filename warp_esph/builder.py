@@ -13,26 +13,17 @@ from collections.abc import Sequence
 import numpy as np
 import warp as wp
 
-from . import checks
+from . import checks, meshes
 from ._types import scalar_type
 from .colliders import MAX_PER_KIND, Box, Plane, Sphere
 from .material import Material
+from .meshes import lattice_points
 from .model import Body, Model
 
 #: Allowed support radius, in units of the spacing. Below 1.5 dx an interior particle
 #: sees only its 6 face neighbours; above 3 dx the 30-neighbour cap cuts the
 #: neighbourhood anisotropically and the body loses stiffness (SPEC §1.1).
 SUPPORT_RANGE = (1.5, 3.0)
-
-
-def _lattice(lo: np.ndarray, hi: np.ndarray, dx: float) -> np.ndarray:
-    """Lattice points centred in the box [lo, hi], one per dx^3 cell that fits."""
-    extent = hi - lo
-    counts = np.maximum(np.floor(extent / dx + 1e-9).astype(int), 1)
-    start = lo + 0.5 * (extent - (counts - 1) * dx)
-    axes = [start[k] + dx * np.arange(counts[k]) for k in range(3)]
-    g = np.meshgrid(*axes, indexing="ij")
-    return np.stack([a.ravel() for a in g], axis=1)
 
 
 def star_polygon(outer_radius: float, inner_radius: float, points: int = 5) -> np.ndarray:
@@ -137,12 +128,12 @@ class SceneBuilder:
         """A solid box of full edge lengths ``size`` centred at ``center``."""
         c = np.array(checks.vector("center", center))
         s = np.array(checks.positive_vector("size", size))
-        return self.add_particles(_lattice(c - s / 2, c + s / 2, self.spacing), material, velocity, name, "box")
+        return self.add_particles(lattice_points(c - s / 2, c + s / 2, self.spacing), material, velocity, name, "box")
 
     def add_sphere(self, center, radius: float, material: Material, velocity=(0.0, 0.0, 0.0), name: str | None = None) -> int:
         c = np.array(checks.vector("center", center))
         r = checks.positive("radius", radius)
-        p = _lattice(c - r, c + r, self.spacing)
+        p = lattice_points(c - r, c + r, self.spacing)
         return self.add_particles(p[np.linalg.norm(p - c, axis=1) <= r], material, velocity, name, "sphere")
 
     def add_cylinder(self, center, radius: float, height: float, material: Material, axis: str = "y",
@@ -154,7 +145,7 @@ class SceneBuilder:
         a = _AXES[checks.choice("axis", axis, tuple(_AXES))]
         half = np.full(3, r)
         half[a] = hgt / 2
-        p = _lattice(c - half, c + half, self.spacing)
+        p = lattice_points(c - half, c + half, self.spacing)
         radial = np.delete(p - c, a, axis=1)
         return self.add_particles(p[np.linalg.norm(radial, axis=1) <= r], material, velocity, name, "cylinder")
 
@@ -170,7 +161,7 @@ class SceneBuilder:
         npts = checks.positive_int("points", points)
         if npts < 3:
             raise ValueError(f"points = {points!r} is not allowed: must be an integer >= 3")
-        p = _lattice(c - np.array([ro, t / 2, ro]), c + np.array([ro, t / 2, ro]), self.spacing)
+        p = lattice_points(c - np.array([ro, t / 2, ro]), c + np.array([ro, t / 2, ro]), self.spacing)
         inside = _inside_polygon((p - c)[:, [0, 2]], star_polygon(ro, ri, npts))
         return self.add_particles(p[inside], material, velocity, name, "star")
 
@@ -181,8 +172,6 @@ class SceneBuilder:
         ``source`` is a file (anything meshio reads, or ``.usd/.usda/.usdc``) or a tuple
         ``(points, triangles)``. The mesh is scaled by ``scale`` then translated.
         """
-        from . import meshes  # noqa: PLC0415 (mesh I/O only when meshes are used)
-
         points, triangles = meshes.load_mesh(source, prim_path=prim_path)
         s = checks.positive("scale", scale)
         t = np.array(checks.vector("translation", translation))

@@ -309,13 +309,14 @@ def write_mesh(path, points, triangles) -> None:
 
 
 # --------------------------------------------------------------------------- sampling
-def _lattice(lo: np.ndarray, hi: np.ndarray, dx: float) -> np.ndarray:
-    """Lattice points centred in the box [lo, hi], one per dx^3 cell that fits.
+def lattice_points(lo: np.ndarray, hi: np.ndarray, dx: float) -> np.ndarray:
+    """Lattice points centred in the box [lo, hi], one per whole dx^3 cell that fits.
 
-    The same convention as ``builder._lattice`` (not imported: builder imports this module).
+    Every body is sampled this way: each particle stands for one cell of material, so a
+    shape thinner than one cell along an axis gets no particles.
     """
     extent = hi - lo
-    counts = np.maximum(np.floor(extent / dx + 1e-9).astype(int), 1)
+    counts = np.maximum(np.floor(extent / dx + 1e-9).astype(int), 0)
     start = lo + 0.5 * (extent - (counts - 1) * dx)
     axes = [start[k] + dx * np.arange(counts[k]) for k in range(3)]
     g = np.meshgrid(*axes, indexing="ij")
@@ -350,7 +351,7 @@ def sample_inside(points, triangles, spacing: float, device=None) -> np.ndarray:
     # Work relative to the box centre: float32 keeps ~7 digits of the offset, not of the
     # absolute position, so a mesh far from the origin is classified as accurately.
     centre = 0.5 * (lo + hi)
-    grid = _lattice(lo - centre, hi - centre, dx)
+    grid = lattice_points(lo - centre, hi - centre, dx)
     dev = wp.get_device(device)
     mesh = wp.Mesh(
         points=wp.array((pts - centre).astype(np.float32), dtype=wp.vec3f, device=dev),

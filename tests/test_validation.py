@@ -1,0 +1,103 @@
+"""Bad input is refused before any kernel runs, each with its own message naming the
+parameter, the value and what is allowed."""
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warp_esph as we
+
+DOUGH = we.Material.preset("dough")
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        ({"mu": -1.0, "lam": 1.0}, r"Material\.mu = -1\.0 is not allowed: must be > 0"),
+        ({"mu": 0.0, "lam": 1.0}, r"Material\.mu = 0\.0 .* > 0"),
+        ({"mu": float("nan"), "lam": 1.0}, r"Material\.mu = nan .* finite"),
+        ({"mu": float("inf"), "lam": 1.0}, r"Material\.mu = inf .* finite"),
+        ({"mu": "soft", "lam": 1.0}, r"Material\.mu = 'soft' .* number"),
+        ({"mu": 3.0, "lam": -2.5}, r"Material\.lam = -2\.5 .* > -2 mu / 3 = -2"),
+        ({"mu": 1.0, "lam": 1.0, "yield_stress": -5.0}, r"Material\.yield_stress = -5\.0 .* >= 0"),
+        ({"mu": 1.0, "lam": 1.0, "flow_rate": -0.1}, r"Material\.flow_rate = -0\.1 .* >= 0"),
+        ({"mu": 1.0, "lam": 1.0, "density": 0.0}, r"Material\.density = 0\.0 .* > 0"),
+        ({"mu": 1.0, "lam": 1.0, "pressure_stiffness": -1.0}, r"Material\.pressure_stiffness = -1\.0 .* >= 0"),
+        ({"mu": 1.0, "lam": 1.0, "viscosity": -1.0}, r"Material\.viscosity = -1\.0 .* >= 0"),
+        ({"mu": 1.0, "lam": 1.0, "model": "plastic"}, r"Material\.model = 'plastic' .* one of 'linear'"),
+        ({"mu": 1.0, "lam": 1.0, "hardening": float("nan")}, r"Material\.hardening = nan .* finite"),
+        ({"mu": True, "lam": 1.0}, r"Material\.mu = True .* number"),
+    ],
+)
+def test_material_rejects(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        we.Material(**kwargs)
+
+
+def test_material_accepts_inf_yield_and_converts_young():
+    m = we.Material.from_young(1.0e5, 0.25, yield_stress=math.inf)
+    assert m.youngs_modulus == pytest.approx(1.0e5)
+    assert m.poisson_ratio == pytest.approx(0.25)
+    assert not m.plastic
+    with pytest.raises(ValueError, match=r"nu = 0\.5 .* \(-1, 0\.5\)"):
+        we.Material.from_young(1.0e5, 0.5)
+    with pytest.raises(ValueError, match=r"preset = 'jelly' .* one of 'dough'"):
+        we.Material.preset("jelly")
+
+
+@pytest.mark.parametrize(
+    "call,match",
+    [
+        (lambda: we.SceneBuilder(spacing=0.0), r"spacing = 0\.0 .* > 0"),
+        (lambda: we.SceneBuilder(spacing=0.01, support_radius=0.05), r"support_radius = 0\.05 .* \[1\.5 \* spacing, 3\.0 \* spacing\]"),
+        (lambda: we.SceneBuilder(spacing=0.01, support_radius=0.01), r"support_radius = 0\.01"),
+        (lambda: we.SceneBuilder(gravity=(0.0, -9.81)), r"gravity = \(0\.0, -9\.81\) .* 3 numbers"),
+        (lambda: we.SceneBuilder().add_box((0, 0, 0), (0.1, -0.1, 0.1), DOUGH), r"size = \(0\.1, -0\.1, 0\.1\) .* every component must be > 0"),
+        (lambda: we.SceneBuilder().add_box((0, float("nan"), 0), (0.1, 0.1, 0.1), DOUGH), r"center\[1\] = nan .* finite"),
+        (lambda: we.SceneBuilder(spacing=0.1).add_sphere((0, 0, 0), 0.01, DOUGH), r"body 'sphere0' has no particles"),
+        (lambda: we.SceneBuilder().add_sphere((0, 0, 0), 0.1, "dough"), r"material = 'dough' .* warp_esph\.Material"),
+        (lambda: we.SceneBuilder().add_cylinder((0, 0, 0), 0.1, 0.2, DOUGH, axis="w"), r"axis = 'w' .* one of 'x', 'y', 'z'"),
+        (lambda: we.SceneBuilder().add_star((0, 0, 0), 0.1, 0.2, 0.05, DOUGH), r"inner_radius = 0\.2 .* < outer_radius = 0\.1"),
+        (lambda: we.SceneBuilder().add_ground(friction=-0.1), r"friction = -0\.1 .* >= 0"),
+        (lambda: we.SceneBuilder().add_sphere_collider((0, 0, 0), -1.0), r"radius = -1\.0 .* > 0"),
+        (lambda: we.SceneBuilder().add_box_collider((0, 0, 0), (1, 0, 1)), r"half_extents = \(1, 0, 1\) .* > 0"),
+        (lambda: we.SceneBuilder().add_plane((0, 0, 0), 0.0), r"normal = \(0, 0, 0\) .* non-zero"),
+        (lambda: we.SceneBuilder().finalize(), r"the scene has no bodies"),
+        (lambda: _one_box().finalize(dtype="float16"), r"dtype = 'float16' .* wp\.float32 or wp\.float64"),
+        (lambda: _one_box().finalize(device="tpu"), r"device = 'tpu' is not allowed"),
+        (lambda: _one_box(name="a").add_box((1, 0, 0), (0.1, 0.1, 0.1), DOUGH, name="a"), r"name = 'a' .* exists already"),
+        (lambda: we.SceneBuilder().add_particles(np.zeros((4, 2)), DOUGH), r"positions with shape \(4, 2\) .* \(N, 3\)"),
+        (lambda: we.SceneBuilder().add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, velocity=(1, 2)), r"velocity"),
+    ],
+)
+def test_builder_rejects(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
+def _one_box(name=None):
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, name=name)
+    return b
+
+
+def test_solver_rejects_bad_dt_and_warns_above_stability_limit():
+    model = _one_box().finalize()
+    solver = we.Solver(model)
+    a, b = model.state(), model.state()
+    for bad, match in ((0.0, r"dt = 0\.0 .* > 0"), (-1e-4, r"dt = -0\.0001 .* > 0"), (float("nan"), r"dt = nan .* finite")):
+        with pytest.raises(ValueError, match=match):
+            solver.step(a, b, bad)
+    with pytest.raises(ValueError, match="pass two states"):
+        solver.step(a, a, 1e-4)
+    limit = model.stable_dt()
+    with pytest.warns(RuntimeWarning, match=r"above the explicit stability limit " + f"{limit:.3g}"):
+        solver.step(a, b, 2 * limit)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        solver.step(a, b, 0.5 * limit)
+    with pytest.raises(ValueError, match=r"min_neighbors = 0"):
+        we.Solver(model, min_neighbors=0)
