@@ -136,3 +136,33 @@ def test_plastic_flow_adjoint(case, yield_stress, flow_rate, non_newtonian):
     for k in PARAMS:
         fd = _central_difference(lambda v: run(F0, alpha0, {**base, k: v[()]}), np.array(base[k]))
         _assert_close(gp[k], fd, rel=2e-6)
+
+
+@pytest.mark.parametrize("scalar,tol", [(wp.float64, 1e-12), (wp.float32, 2e-2)])
+def test_rotation_variant_svd_reconstructs_and_flags_inversion(scalar, tol):
+    """U diag(sigma) V^T rebuilds F (float32: up to 1e-2 on badly conditioned input,
+    SPEC §3), U and V are proper rotations, and an inverted F has one negative sigma."""
+    from warp_esph import isotropic
+
+    Ts = type_set(scalar)
+    iso = isotropic.funcs(scalar)
+
+    @wp.kernel
+    def k(F: wp.array(dtype=Ts.mat33), s_out: wp.array(dtype=Ts.vec3), G_out: wp.array(dtype=Ts.mat33)):
+        i = wp.tid()
+        s = iso.singular_values(F[i])
+        s_out[i] = s
+        G_out[i] = iso.isotropic_map(F[i], s, Ts.vec3(Ts.scalar(1.0), Ts.scalar(1.0), Ts.scalar(1.0)))
+
+    rng = np.random.default_rng(7)
+    Fs = [_rotation(rng) @ np.diag(d) @ _rotation(rng) for d in ([1.0, 1.0, 1.0], [2.0, 1.0, 0.5], [1e3, 1.0, 1e-3], [1.2, 0.9, -0.7])]
+    Fs += list(rng.normal(size=(20, 3, 3)))
+    F = np.array(Fs)
+    s = wp.zeros(len(F), dtype=Ts.vec3)
+    G = wp.zeros(len(F), dtype=Ts.mat33)
+    wp.launch(k, len(F), [wp.array(F, dtype=Ts.mat33)], [s, G])
+    s, G = s.numpy(), G.numpy()
+    scale = np.abs(F).max(axis=(1, 2))
+    assert (np.abs(G - F).max(axis=(1, 2)) <= tol * scale).all()
+    assert ((s[:, 2] < 0) == (np.linalg.det(F) < 0)).all()
+    assert (s[:, 0] >= s[:, 1]).all() and (s[:, 1] >= np.abs(s[:, 2]) - 1e-6).all()
