@@ -9,5 +9,5 @@ os.environ.setdefault("WARP_CACHE_PATH", str(pathlib.Path(__file__).resolve().pa
 
 import warp as wp  # noqa: E402
 
-wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING
 wp.init()

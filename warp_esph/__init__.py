@@ -8,8 +8,13 @@ for Animating Elastoplastic Solids": ``SceneBuilder -> Model -> State``,
 from .builder import SceneBuilder
 from .material import MODELS, PRESETS, Material
 from .model import Body, Model, State
+from .simulate import SimulationError, simulate
 from .solver import GUARD_NAMES, Solver
+from .usd import UsdWriter
 
 __version__ = "0.1.0"
 
-__all__ = ["SceneBuilder", "Material", "MODELS", "PRESETS", "Model", "State", "Body", "Solver", "GUARD_NAMES", "__version__"]
+__all__ = [
+    "SceneBuilder", "Material", "MODELS", "PRESETS", "Model", "State", "Body", "Solver", "GUARD_NAMES",
+    "simulate", "SimulationError", "UsdWriter", "__version__",
+]

@@ -74,6 +74,8 @@ class Material:
     def preset(cls, name: str, **overrides) -> "Material":
         """A named preset (see ``PRESETS``), with any field overridden."""
         checks.choice("preset", name, tuple(PRESETS))
+        if {"mu", "lam", "density"} & overrides.keys() and "pressure_stiffness" not in overrides:
+            overrides["pressure_stiffness"] = None  # re-derive it from the new moduli
         return dataclasses.replace(PRESETS[name], **overrides)
 
     def replace(self, **changes) -> "Material":

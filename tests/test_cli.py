@@ -1,0 +1,224 @@
+"""The ``warp-esph`` command line, in-process through ``main`` and as a subprocess."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+from pxr import Sdf, Usd
+
+from warp_esph import solver as solver_module
+from warp_esph.cli import main
+from warp_esph.scenes import SCENES, get_scene
+from warp_esph.simulate import resolve_timestep
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TINY = ["--scale", "0.3", "--frames", "2", "--no-progress"]
+
+GOOD_TOML = textwrap.dedent(
+    """
+    [scene]
+    name = "tiny"
+    spacing = 0.05
+    frames = 2
+
+    [materials.soft]
+    preset = "dough"
+    E = 1.5e4
+    nu = 0.3
+
+    [[bodies]]
+    shape = "box"
+    material = "soft"
+    center = [0.0, 0.15, 0.0]
+    size = [0.2, 0.15, 0.2]
+
+    [[colliders]]
+    type = "ground"
+    """
+)
+
+
+def open_fresh(path) -> Usd.Stage:
+    layer = Sdf.Layer.OpenAsAnonymous(str(path))
+    assert layer is not None, f"pxr cannot open {path}"
+    return Usd.Stage.Open(layer)
+
+
+def frames_in(path, prim="/World/dough") -> list[float]:
+    stage = open_fresh(path)  # keep the stage alive while its prims are used
+    return stage.GetPrimAtPath(prim).GetAttribute("points").GetTimeSamples()
+
+
+def assert_one_line_error(err: str, *needles: str):
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, f"expected one stderr line, got: {err!r}"
+    assert lines[0].startswith("warp-esph: error: "), lines[0]
+    assert "Traceback" not in err
+    for needle in needles:
+        assert needle in lines[0], f"{needle!r} not in {lines[0]!r}"
+
+
+def test_run_default_scene_in_process(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", *TINY]) == 0
+    out, err = capsys.readouterr()
+    path = tmp_path / "dough_drop.usdc"  # default scene, default output name, current folder
+    assert path.exists()
+    assert str(path) in out and "3 frames" in out
+    for name in solver_module.GUARD_NAMES:
+        assert f"{name}=" in out
+    assert "warning" not in err and "Traceback" not in err
+    assert frames_in(path) == [0.0, 1.0, 2.0]
+    assert sorted(os.listdir(tmp_path)) == ["dough_drop.usdc"]
+
+
+def test_run_options_and_dt_warning(tmp_path, capsys):
+    out_path = tmp_path / "star.usda"
+    # 2 steps per frame at fps 10: far above the stable step of this scene.
+    assert main(["run", "star", "-o", str(out_path), "--fps", "10", "--dt", "0.05", *TINY]) == 0
+    out, err = capsys.readouterr()
+    warnings = [line for line in err.splitlines() if line.startswith("warp-esph: warning:")]
+    assert len(warnings) == 1 and "stability limit" in warnings[0], err
+    assert "Traceback" not in err
+    assert out_path.read_bytes().startswith(b"#usda")
+    stage = open_fresh(out_path)
+    assert stage.GetTimeCodesPerSecond() == 10 and stage.GetEndTimeCode() == 2
+
+
+def test_scenes_lists_every_scene(capsys):
+    assert main(["scenes"]) == 0
+    out = capsys.readouterr().out
+    lines = out.strip().splitlines()
+    assert len(lines) == len(SCENES)
+    for name, line in zip(SCENES, lines):
+        assert line.startswith(name) and len(line.split()) > 2
+    assert "(default)" in lines[0]
+
+
+def test_toml_scene_file_runs(tmp_path, capsys):
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(GOOD_TOML)
+    out_path = tmp_path / "tiny.usdc"
+    assert main(["run", str(scene), "-o", str(out_path), "--no-progress"]) == 0
+    assert frames_in(out_path, "/World/box0") == [0.0, 1.0, 2.0]
+
+
+BAD_TOML = {
+    "unknown_key": (GOOD_TOML.replace('shape = "box"', 'shape = "box"\ncolour = "red"'), ["'colour'", "[[bodies]] #1"]),
+    "typo_key": (GOOD_TOML.replace("spacing = 0.05", "spaceing = 0.05"), ["'spaceing'", "[scene]", "did you mean 'spacing'"]),
+    "typo_table": (GOOD_TOML.replace("[[colliders]]", "[[colliderz]]"), ["'colliderz'", "did you mean 'colliders'"]),
+    "wrong_type": (GOOD_TOML.replace("frames = 2", 'frames = "two"'), ["'frames'", "[scene]", "integer"]),
+    "wrong_vector": (GOOD_TOML.replace("size = [0.2, 0.15, 0.2]", "size = [0.2, 0.15]"), ["'size'", "3 numbers"]),
+    "bad_value": (GOOD_TOML.replace("nu = 0.3", "nu = 0.7"), ["nu = 0.7", "[materials.soft]"]),
+    "bad_syntax": (GOOD_TOML.replace("frames = 2", "frames = = 2"), ["invalid TOML", "line"]),
+    "bad_material": (GOOD_TOML.replace('material = "soft"', 'material = "sofft"'), ["'sofft'", "did you mean 'soft'"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_TOML))
+def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
+    text, needles = BAD_TOML[case]
+    scene = tmp_path / f"{case}.toml"
+    scene.write_text(text)
+    assert main(["run", str(scene), "-o", str(tmp_path / "x.usdc"), "--no-progress"]) == 2
+    out, err = capsys.readouterr()
+    assert_one_line_error(err, f"{case}.toml", *needles)
+    assert not (tmp_path / "x.usdc").exists()
+
+
+@pytest.mark.parametrize(
+    "args, needles",
+    [
+        (["run", "no_such_scene"], ["'no_such_scene'", "dough_drop"]),
+        (["run", "dough_drp"], ["did you mean 'dough_drop'"]),
+        (["run", "--dt", "-1"], ["--dt", "-1"]),
+        (["run", "--dt", "0.0007"], ["dt = 0.0007", "whole number"]),
+        (["run", "--frames", "0"], ["--frames", "0"]),
+        (["run", "--frames", "many"], ["--frames", "many"]),
+        (["run", "--scale", "0"], ["--scale"]),
+        (["run", "--fps", "-5"], ["--fps"]),
+        (["run", "--dtype", "float16"], ["--dtype", "float16"]),
+        (["run", "--device", "tpu"], ["--device", "tpu"]),
+        (["run", "-o", "out.obj"], ["out.obj", "extension"]),
+        (["run", "missing_scene.toml"], ["missing_scene.toml", "No such file"]),
+        (["run", "-o", "/nonexistent_dir_xyz/out.usdc", "--scale", "0.3"], ["/nonexistent_dir_xyz"]),
+        (["frobnicate"], ["frobnicate"]),
+    ],
+)
+def test_bad_input_is_one_line_exit_2(tmp_path, monkeypatch, capsys, args, needles):
+    monkeypatch.chdir(tmp_path)
+    assert main([*args, "--no-progress"] if args[0] == "run" else args) == 2
+    out, err = capsys.readouterr()
+    assert_one_line_error(err, *needles)
+    assert list(tmp_path.iterdir()) == []  # nothing written
+
+
+def _fail_after(monkeypatch, steps: int, action):
+    """Make Solver.step call ``action(state_out)`` once ``steps`` steps have run."""
+    original = solver_module.Solver.step
+    calls = {"n": 0}
+
+    def step(self, state_in, state_out, dt):
+        original(self, state_in, state_out, dt)
+        calls["n"] += 1
+        if calls["n"] == steps:
+            action(state_out)
+
+    monkeypatch.setattr(solver_module.Solver, "step", step)
+
+
+def _steps_per_frame(scale=0.3) -> int:
+    scene = get_scene("dough_drop", scale)
+    return resolve_timestep(scene.builder.finalize(), scene.fps)[0]
+
+
+def test_keyboard_interrupt_keeps_finished_frames(tmp_path, monkeypatch, capsys):
+    def interrupt(state):
+        raise KeyboardInterrupt
+
+    n = _steps_per_frame()
+    _fail_after(monkeypatch, 2 * n + 1, interrupt)  # inside frame 3
+    out_path = tmp_path / "stopped.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "10", "--no-progress"]) == 130
+    err = capsys.readouterr().err
+    assert "interrupted" in err and "Traceback" not in err
+    assert frames_in(out_path) == [0.0, 1.0, 2.0]
+    assert sorted(os.listdir(tmp_path)) == ["stopped.usdc"]
+
+
+def test_diverged_run_exit_3_keeps_frames(tmp_path, monkeypatch, capsys):
+    def poison(state):
+        x = state.x.numpy()
+        x[5] = np.inf
+        state.x.assign(x)
+
+    n = _steps_per_frame()
+    _fail_after(monkeypatch, n + 1, poison)  # inside frame 2: found after step 2 n
+    out_path = tmp_path / "diverged.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "10", "--no-progress"]) == 3
+    err = capsys.readouterr().err
+    assert_one_line_error(err, f"step {2 * n}", "particle", "'dough'", "keeps the 2 frames")
+    assert frames_in(out_path) == [0.0, 1.0]
+
+
+def _run_subprocess(*args, cwd):
+    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.run([sys.executable, "-m", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
+
+
+def test_subprocess_run_and_bad_input(tmp_path):
+    done = _run_subprocess("warp_esph.cli", "run", "three_cylinders", "-o", "cyl.usdc", *TINY, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr and "cyl.usdc" in done.stdout
+    stage = open_fresh(tmp_path / "cyl.usdc")
+    for name in ("elastic", "plastic", "very_plastic"):
+        assert stage.GetPrimAtPath(f"/World/{name}").GetAttribute("points").GetTimeSamples() == [0.0, 1.0, 2.0]
+
+    # A scene-file error after Warp has started: still exactly one line (no native Warp notes).
+    (tmp_path / "typo.toml").write_text(GOOD_TOML.replace("center = [0.0, 0.15, 0.0]", "centre = [0.0, 0.15, 0.0]"))
+    bad = _run_subprocess("warp_esph", "run", "typo.toml", "--no-progress", cwd=tmp_path)
+    assert bad.returncode == 2
+    assert_one_line_error(bad.stderr, "'centre'", "did you mean 'center'")

@@ -1,0 +1,147 @@
+"""Built-in scenes and the TOML scene-file loader."""
+
+import math
+import pathlib
+import re
+import textwrap
+
+import numpy as np
+import pytest
+
+from warp_esph import PRESETS
+from warp_esph.scenes import DEFAULT_SCENE, SCENES, Scene, get_scene, load_scene, load_scene_file
+from warp_esph.simulate import simulate
+
+DOCS = pathlib.Path(__file__).resolve().parent.parent / "docs"
+
+
+@pytest.mark.parametrize("name", list(SCENES))
+def test_scene_builds_and_runs_two_frames_tiny(name):
+    scene = get_scene(name, scale=0.35)
+    assert isinstance(scene, Scene) and scene.name == name and scene.description
+    assert scene.frames >= 1 and scene.fps > 0
+    model = scene.builder.finalize()
+    assert 10 <= model.particle_count <= 400
+    state = simulate(model, 2, fps=scene.fps, dt=scene.dt, progress=False)
+    x, v = state.x.numpy(), state.v.numpy()
+    assert np.isfinite(x).all() and np.isfinite(v).all()
+    assert not np.array_equal(x, model.particle_x0)  # it moved (gravity)
+
+
+@pytest.mark.parametrize("name", list(SCENES))
+def test_scale_sets_the_resolution(name):
+    full = get_scene(name).builder
+    half = get_scene(name, scale=0.5).builder
+    assert half.spacing == pytest.approx(2 * full.spacing)
+    assert 300 <= full.particle_count <= 5000  # a few thousand at most at scale 1
+    assert half.particle_count < full.particle_count / 4
+
+
+def test_default_scene_and_lookup(tmp_path):
+    assert DEFAULT_SCENE == "dough_drop" and list(SCENES)[0] == DEFAULT_SCENE
+    assert load_scene(None, scale=0.3).name == "dough_drop"
+    assert load_scene("star", scale=0.3).name == "star"
+    with pytest.raises(ValueError, match="did you mean 'rubber_bounce'"):
+        get_scene("rubber_bonce")
+    with pytest.raises(ValueError, match="scale"):
+        get_scene("star", scale=0)
+    path = tmp_path / "s.toml"
+    path.write_text('[[bodies]]\nshape = "sphere"\nmaterial = "clay"\ncenter = [0, 1, 0]\nradius = 0.1\n')
+    scene = load_scene(str(path))
+    assert scene.name == "s" and scene.frames == 60 and scene.fps == 30 and scene.dt is None
+
+
+def _doc_example() -> str:
+    text = (DOCS / "scene_format.md").read_text()
+    blocks = re.findall(r"```toml\n(.*?)```", text, flags=re.S)
+    assert blocks, "no TOML example in docs/scene_format.md"
+    return blocks[0]
+
+
+def test_documented_example_loads(tmp_path):
+    (tmp_path / "meshes").mkdir()
+    # A closed unit cube for the example's mesh body.
+    verts = [(x, y, z) for x in (0, 1) for y in (0, 1) for z in (0, 1)]
+    faces = [(1, 2, 4, 3), (5, 7, 8, 6), (1, 5, 6, 2), (3, 4, 8, 7), (1, 3, 7, 5), (2, 6, 8, 4)]
+    obj = "".join(f"v {x} {y} {z}\n" for x, y, z in verts) + "".join(f"f {a} {b} {c} {d}\n" for a, b, c, d in faces)
+    (tmp_path / "meshes" / "part.obj").write_text(obj)
+    path = tmp_path / "example.toml"
+    path.write_text(_doc_example())
+    scene = load_scene_file(path, scale=0.5)
+    b = scene.builder
+    assert scene.name == "dough_and_ball" and scene.frames == 60 and scene.fps == 30 and scene.dt is None
+    assert b.spacing == pytest.approx(0.02) and b.support_radius == pytest.approx(0.04)
+    names = [body.name for body in b._bodies]
+    assert names[:2] == ["slab", "ball"] and len(names) == 5
+    assert len(b.planes) == 2 and len(b.spheres) == 1 and len(b.boxes) == 1
+    # preset + E/nu: the preset's plastic settings, the new stiffness, pressure from the new bulk modulus.
+    soft = b._materials[0]
+    assert soft.youngs_modulus == pytest.approx(1.5e4) and soft.yield_stress == PRESETS["dough"].yield_stress
+    assert soft.pressure_stiffness == pytest.approx(soft.bulk_modulus / (2 * soft.density))
+    assert math.isinf(b._materials[1].yield_stress)
+    ball_v = b._velocities[1]
+    np.testing.assert_allclose(ball_v, np.tile([0.0, -1.0, 0.0], (len(ball_v), 1)))
+
+
+BASE = textwrap.dedent(
+    """
+    [scene]
+    spacing = 0.05
+
+    [materials.m]
+    preset = "dough"
+
+    [[bodies]]
+    shape = "sphere"
+    material = "m"
+    center = [0, 0.2, 0]
+    radius = 0.1
+
+    [[colliders]]
+    type = "plane"
+    normal = [0, 1, 0]
+    offset = 0.0
+    """
+)
+
+
+@pytest.mark.parametrize(
+    "old, new, pattern",
+    [
+        ("radius = 0.1", "raduis = 0.1", r"unknown key 'raduis' in \[\[bodies\]\] #1 \(shape 'sphere'\); did you mean 'radius'\?"),
+        ("radius = 0.1", "radius = 0.1\nsize = [1, 1, 1]", r"unknown key 'size' in \[\[bodies\]\] #1"),
+        ("spacing = 0.05", "spacing = 0.05\nsubsteps = 3", r"unknown key 'substeps' in \[scene\]"),
+        ('preset = "dough"', 'preset = "dough"\nyeild_stress = 5', r"'yeild_stress' in \[materials\.m\]; did you mean 'yield_stress'"),
+        ("offset = 0.0", "ofset = 0.0", r"unknown key 'ofset' in \[\[colliders\]\] #1 \(type 'plane'\); did you mean 'offset'"),
+        ("[scene]", "[scenes]", r"unknown key 'scenes' at the top level; did you mean 'scene'"),
+        ("radius = 0.1", 'radius = "0.1"', r"key 'radius' in \[\[bodies\]\] #1 \(shape 'sphere'\) must be a number, not str"),
+        ("radius = 0.1", "radius = true", r"key 'radius' .* must be a number, not bool"),
+        ("spacing = 0.05", "spacing = [0.05]", r"key 'spacing' in \[scene\] must be a number"),
+        ('preset = "dough"', 'preset = "dough"\nclamp_pressure = 1', r"key 'clamp_pressure' in \[materials\.m\] must be true or false"),
+        ('shape = "sphere"', 'shape = "sphear"', r"shape = 'sphear' .* did you mean 'sphere'"),
+        ('type = "plane"', 'type = "wall"', r"type = 'wall' .*allowed: ground, plane, sphere, box"),
+        ("radius = 0.1", "", r"missing key 'radius' in \[\[bodies\]\] #1"),
+        ("offset = 0.0", "", r"missing key 'offset' in \[\[colliders\]\] #1"),
+        ("radius = 0.1", "radius = -0.1", r"\[\[bodies\]\] #1 \(shape 'sphere'\): radius = -0.1 is not allowed"),
+        ('preset = "dough"', 'preset = "dough"\nE = 1e4', r"\[materials\.m\] gives E without nu"),
+        ('preset = "dough"', 'preset = "dough"\ndensity = 0', r"\[materials\.m\]: Material\.density = 0 is not allowed"),
+        ("spacing = 0.05", "spacing = 0.05\nsupport_radius = 0.5", r"\[scene\]: support_radius = .* is not allowed"),
+        ("spacing = 0.05", "spacing = 0.05\nframes = 0", r"\[scene\]: frames = 0 is not allowed"),
+        ("spacing = 0.05", "spacing = = 0.05", r"invalid TOML"),
+    ],
+)
+def test_scene_file_errors_name_file_table_and_key(tmp_path, old, new, pattern):
+    assert old in BASE
+    path = tmp_path / "bad.toml"
+    path.write_text(BASE.replace(old, new, 1))
+    with pytest.raises(ValueError, match=pattern) as info:
+        load_scene_file(path)
+    assert str(path) in str(info.value)
+
+
+def test_scene_file_unreadable(tmp_path):
+    with pytest.raises(ValueError, match="cannot read scene file .*nope.toml"):
+        load_scene_file(tmp_path / "nope.toml")
+    with pytest.raises(ValueError, match="no bodies"):
+        (tmp_path / "empty.toml").write_text("[scene]\nspacing = 0.05\n")
+        load_scene_file(tmp_path / "empty.toml")

@@ -1,0 +1,311 @@
+"""USD output: content, metadata, crash safety, append; and ``simulate``'s frame loop."""
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+from pxr import Sdf, Usd, UsdGeom
+
+from warp_esph import Material, SceneBuilder, Solver
+from warp_esph.simulate import SimulationError, resolve_timestep, simulate
+from warp_esph.usd import UsdWriter
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SAMPLED = ("points", "velocities", "widths", "extent", "primvars:singular_values", "primvars:alpha")
+
+
+@pytest.fixture(scope="module")
+def model():
+    """Two small bodies (two materials) and one collider of each kind."""
+    b = SceneBuilder(spacing=0.04)
+    b.add_box((0.0, 0.12, 0.0), (0.16, 0.12, 0.12), Material.preset("dough"), name="dough block")
+    b.add_sphere((0.3, 0.15, 0.0), 0.07, Material.from_young(5.0e4, 0.3), name="ball")
+    b.add_ground()
+    b.add_plane((1.0, 0.0, 0.0), -1.0)
+    b.add_sphere_collider((0.0, -0.5, 1.0), 0.2)
+    b.add_box_collider((1.0, -0.5, 0.0), (0.1, 0.2, 0.3))
+    return b.finalize()
+
+
+def open_fresh(path) -> Usd.Stage:
+    """Open ``path`` from disk, bypassing any layer of that name cached in this process."""
+    layer = Sdf.Layer.OpenAsAnonymous(str(path))
+    assert layer is not None, f"pxr cannot open {path}"
+    return Usd.Stage.Open(layer)
+
+
+def sampled_frames(stage: Usd.Stage, prim_path: str) -> dict:
+    prim = stage.GetPrimAtPath(prim_path)
+    return {name: prim.GetAttribute(name).GetTimeSamples() for name in SAMPLED}
+
+
+def run_recorded(model, path, frames=3, **kw):
+    """simulate with a UsdWriter; returns {frame: (x, v, F, alpha)} seen by the callback."""
+    seen = {}
+
+    def record(frame, state):
+        seen[frame] = (state.x.numpy().copy(), state.v.numpy().copy(), state.F.numpy().copy(), state.alpha.numpy().copy())
+
+    final = simulate(model, frames, fps=30, writer=UsdWriter(path, model, 30), progress=False, callback=record, **kw)
+    return seen, final
+
+
+@pytest.mark.parametrize("ext", ["usdc", "usda", "usd"])
+def test_frames_positions_primvars_metadata(model, tmp_path, ext):
+    path = tmp_path / f"out.{ext}"
+    seen, final = run_recorded(model, path, frames=3)
+    assert sorted(seen) == [0, 1, 2, 3]
+    head = path.read_bytes()[:8]
+    assert head.startswith(b"#usda") if ext == "usda" else head == b"PXR-USDC"
+    # Only the published file is left: the working copies are gone.
+    assert sorted(os.listdir(tmp_path)) == [path.name]
+
+    stage = open_fresh(path)
+    assert stage.GetTimeCodesPerSecond() == 30 and stage.GetFramesPerSecond() == 30
+    assert stage.GetStartTimeCode() == 0 and stage.GetEndTimeCode() == 3
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    assert stage.GetDefaultPrim().GetPath() == Sdf.Path("/World")
+
+    for body, prim_path in zip(model.bodies, ["/World/dough_block", "/World/ball"]):
+        prim = stage.GetPrimAtPath(prim_path)
+        assert prim.IsA(UsdGeom.Points)
+        assert prim.GetCustomDataByKey("warp_esph:body_name") == body.name
+        # One time sample per frame on every per-frame attribute.
+        for name, times in sampled_frames(stage, prim_path).items():
+            assert times == [0.0, 1.0, 2.0, 3.0], name
+        pts = UsdGeom.Points(prim)
+        s = slice(body.start, body.start + body.count)
+        for frame, (x, v, F, alpha) in seen.items():
+            np.testing.assert_array_equal(np.array(pts.GetPointsAttr().Get(frame)), x[s].astype(np.float32))
+            np.testing.assert_array_equal(np.array(pts.GetVelocitiesAttr().Get(frame)), v[s].astype(np.float32))
+            np.testing.assert_allclose(np.array(pts.GetWidthsAttr().Get(frame)), model.spacing, rtol=1e-6)
+            lo, hi = np.array(pts.GetExtentAttr().Get(frame))
+            assert np.all(lo <= x[s].min(axis=0)) and np.all(hi >= x[s].max(axis=0))
+            pv = UsdGeom.PrimvarsAPI(prim)
+            sv = np.array(pv.GetPrimvar("singular_values").Get(frame))
+            np.testing.assert_allclose(sv, np.linalg.svd(F[s].astype(np.float64), compute_uv=False), rtol=1e-5, atol=1e-6)
+            assert np.all(np.diff(sv, axis=1) <= 0)  # descending
+            np.testing.assert_allclose(np.array(pv.GetPrimvar("alpha").Get(frame)), alpha[s], rtol=1e-6)
+        pv = UsdGeom.PrimvarsAPI(prim)
+        for name in ("singular_values", "alpha"):
+            assert pv.GetPrimvar(name).GetInterpolation() == UsdGeom.Tokens.vertex
+        mid = pv.GetPrimvar("material_id")
+        assert mid.GetInterpolation() == UsdGeom.Tokens.constant and mid.Get() == body.material
+        assert mid.GetAttr().GetTimeSamples() == []  # constant over time
+    # The last frame is the state simulate returned.
+    np.testing.assert_array_equal(seen[3][0], final.x.numpy())
+
+    # Colliders.
+    plane = stage.GetPrimAtPath("/World/Colliders/plane_0")
+    assert plane.IsA(UsdGeom.Mesh)
+    assert len(stage.GetPrimAtPath("/World/Colliders/plane_1").GetAttribute("points").Get()) == 4
+    sphere = UsdGeom.Sphere(stage.GetPrimAtPath("/World/Colliders/sphere_0"))
+    assert sphere and sphere.GetRadiusAttr().Get() == pytest.approx(0.2)
+    box = stage.GetPrimAtPath("/World/Colliders/box_0")
+    assert box.IsA(UsdGeom.Cube)
+    # The cube's world box is the collider's box.
+    bound = UsdGeom.Imageable(box).ComputeWorldBound(0, UsdGeom.Tokens.default_).ComputeAlignedRange()
+    np.testing.assert_allclose(np.array(bound.GetMin()), [0.9, -0.7, -0.3], atol=1e-6)
+    np.testing.assert_allclose(np.array(bound.GetMax()), [1.1, -0.3, 0.3], atol=1e-6)
+    # The ground quad lies in y = 0 and faces +y.
+    ground = np.array(plane.GetAttribute("points").Get())
+    np.testing.assert_allclose(ground[:, 1], 0.0, atol=1e-6)
+    assert np.cross(ground[1] - ground[0], ground[2] - ground[1])[1] > 0
+
+
+def test_file_is_complete_after_every_frame(model, tmp_path):
+    path = tmp_path / "live.usdc"
+    checked = []
+
+    def check(frame, state):
+        stage = open_fresh(path)
+        assert stage.GetEndTimeCode() == frame
+        assert sampled_frames(stage, "/World/ball")["points"] == [float(f) for f in range(frame + 1)]
+        np.testing.assert_array_equal(np.array(stage.GetPrimAtPath("/World/ball").GetAttribute("points").Get(frame)),
+                                      state.x.numpy()[model.bodies[1].start:].astype(np.float32))
+        checked.append(frame)
+
+    simulate(model, 3, fps=30, writer=UsdWriter(path, model, 30), progress=False, callback=check)
+    assert checked == [0, 1, 2, 3]
+
+
+@pytest.mark.parametrize("ext", ["usdc", "usda"])
+def test_interrupted_run_keeps_finished_frames(model, tmp_path, ext):
+    path = tmp_path / f"stop.{ext}"
+
+    def stop(frame, state):
+        if frame == 3:
+            raise KeyboardInterrupt
+
+    writer = UsdWriter(path, model, 30)
+    with pytest.raises(KeyboardInterrupt):
+        simulate(model, 10, fps=30, writer=writer, progress=False, callback=stop)
+    assert writer.closed and writer.frames_written == 4
+    assert sorted(os.listdir(tmp_path)) == [path.name]
+    stage = open_fresh(path)
+    assert stage.GetEndTimeCode() == 3
+    for prim_path in ("/World/dough_block", "/World/ball"):
+        for name, times in sampled_frames(stage, prim_path).items():
+            assert times == [0.0, 1.0, 2.0, 3.0], name
+
+
+def test_simulation_error_names_step_particle_body(model, tmp_path):
+    path = tmp_path / "nan.usdc"
+    bad = model.bodies[1].start + 2  # a particle of "ball"
+
+    def poison(frame, state):
+        if frame == 2:
+            v = state.v.numpy()
+            v[bad] = np.nan
+            state.v.assign(v)
+
+    # One step of 1 ms per frame (below the stable step): the NaN has reached only the
+    # poisoned particle's neighbours when the check after frame 3 finds it.
+    writer = UsdWriter(path, model, 1000)
+    with pytest.raises(SimulationError) as info:
+        simulate(model, 6, fps=1000, substeps=1, writer=writer, progress=False, callback=poison)
+    e = info.value
+    assert isinstance(e, RuntimeError)
+    assert e.step == 3 and e.frame == 3
+    ball = model.bodies[1]
+    assert ball.start <= e.particle <= bad and e.body == "ball"
+    assert "step 3" in str(e) and f"particle {e.particle}" in str(e) and "'ball'" in str(e)
+    assert writer.closed
+    stage = open_fresh(path)
+    assert stage.GetEndTimeCode() == 2  # frames 0..2 kept, the bad frame not written
+    assert sampled_frames(stage, "/World/ball")["points"] == [0.0, 1.0, 2.0]
+
+
+def test_append_resumes_and_replaces_later_frames(model, tmp_path):
+    path = tmp_path / "resume.usdc"
+    simulate(model, 5, fps=30, writer=UsdWriter(path, model, 30), progress=False)
+    state = model.state()
+    x = state.x.numpy()
+    x[:, 1] += 1.0  # a recognisably different state
+    state.x.assign(x)
+    with UsdWriter(path, model, 30, append=True) as w:
+        w.write_frame(3, state)
+        w.write_frame(4, state)
+    stage = open_fresh(path)
+    assert stage.GetStartTimeCode() == 0 and stage.GetEndTimeCode() == 4
+    pts = stage.GetPrimAtPath("/World/dough_block").GetAttribute("points")
+    assert pts.GetTimeSamples() == [0.0, 1.0, 2.0, 3.0, 4.0]  # frame 5 of the first run is gone
+    np.testing.assert_array_equal(np.array(pts.Get(4)), x[: model.bodies[0].count].astype(np.float32))
+    assert np.array(pts.Get(2))[:, 1].max() < 0.5  # frames before the resume point are kept
+    with pytest.raises(ValueError, match="fps"):
+        UsdWriter(path, model, 24, append=True)
+    with pytest.raises(FileNotFoundError):
+        UsdWriter(tmp_path / "missing.usdc", model, 30, append=True)
+
+
+def test_writer_rejects_bad_arguments(model, tmp_path):
+    with pytest.raises(ValueError, match="extension"):
+        UsdWriter(tmp_path / "out.txt", model, 30)
+    with pytest.raises(ValueError, match="fps"):
+        UsdWriter(tmp_path / "out.usdc", model, 0)
+    with pytest.raises(FileNotFoundError):
+        UsdWriter(tmp_path / "no" / "out.usdc", model, 30)
+    with UsdWriter(tmp_path / "ok.usdc", model, 30) as w:
+        with pytest.raises(ValueError, match="frame_index"):
+            w.write_frame(-1, model.state())
+    with pytest.raises(ValueError, match="closed"):
+        w.write_frame(0, model.state())
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SIGKILL")
+def test_killed_process_leaves_valid_file(tmp_path):
+    """SIGKILL a writer at arbitrary moments: the file always opens with every finished frame."""
+    path = tmp_path / "killed.usdc"
+    child = textwrap.dedent(
+        f"""
+        import sys, warp as wp
+        wp.config.log_level = wp.LOG_WARNING
+        from warp_esph import Material, SceneBuilder
+        from warp_esph.usd import UsdWriter
+        b = SceneBuilder(spacing=0.01)
+        b.add_box((0, 0.5, 0), (0.25, 0.25, 0.25), Material.preset("dough"), name="a")
+        m = b.finalize()
+        s = m.state()
+        x0 = m.particle_x0.copy()
+        with UsdWriter({str(path)!r}, m, 30) as w:
+            for f in range(100000):
+                s.x.assign(x0 + 0.001 * f)
+                w.write_frame(f, s)
+                print(f, flush=True)
+        """
+    )
+    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    rng = np.random.default_rng(7)
+    for trial in range(2):
+        proc = subprocess.Popen([sys.executable, "-c", child], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env, text=True)
+        try:
+            first = proc.stdout.readline()
+            assert first.strip().isdigit(), "the writer process did not start"
+            time.sleep(float(rng.uniform(0.05, 0.4)))
+        finally:
+            proc.send_signal(signal.SIGKILL)
+            proc.wait()
+        printed = [int(line) for line in proc.stdout.read().split() if line.strip().isdigit()]
+        done = printed[-1] if printed else int(first)
+        stage = open_fresh(path)
+        end = int(stage.GetEndTimeCode())
+        assert end >= done
+        pts = stage.GetPrimAtPath("/World/a").GetAttribute("points")
+        assert pts.GetTimeSamples() == [float(f) for f in range(end + 1)]
+        x_end = np.array(pts.Get(end))
+        x_0 = np.array(pts.Get(0))
+        np.testing.assert_allclose(x_end - x_0, 0.001 * end, atol=1e-5)
+        del stage
+
+
+def test_resolve_timestep(model):
+    stable = model.stable_dt()
+    n, dt = resolve_timestep(model, 30)
+    assert dt <= stable and n * dt == pytest.approx(1 / 30)
+    assert n == 1 or (1 / 30) / (n - 1) > stable  # the largest step that fits a whole number of times
+    assert resolve_timestep(model, 30, substeps=7) == (7, pytest.approx(1 / 210))
+    assert resolve_timestep(model, 30, dt=1 / 300)[0] == 10
+    assert resolve_timestep(model, 25, dt=0.004)[0] == 10
+    with pytest.raises(ValueError, match="dt = 0.0007"):
+        resolve_timestep(model, 30, dt=0.0007)
+    with pytest.raises(ValueError, match="dt"):
+        resolve_timestep(model, 30, dt=-1.0)
+    with pytest.raises(ValueError, match="dt"):
+        resolve_timestep(model, 30, dt=0.1)  # longer than a frame
+    with pytest.raises(ValueError, match="substeps"):
+        resolve_timestep(model, 30, substeps=2, dt=1 / 60)
+    with pytest.raises(ValueError, match="fps"):
+        resolve_timestep(model, 0)
+
+
+def test_simulate_validates_and_does_not_touch_input_state(model):
+    with pytest.raises(ValueError, match="frames"):
+        simulate(model, 0, progress=False)
+    with pytest.raises(ValueError, match="frames"):
+        simulate(model, 2.5, progress=False)
+    with pytest.raises(ValueError, match="fps"):
+        simulate(model, 1, fps=-30, progress=False)
+    with pytest.raises(ValueError, match="solver"):
+        simulate(model, 1, progress=False, solver=object())
+    start = model.state()
+    x0 = start.x.numpy().copy()
+    solver = Solver(model)
+    final = simulate(model, 1, fps=300, substeps=3, progress=False, solver=solver, state=start)
+    assert solver.step_count == 3
+    np.testing.assert_array_equal(start.x.numpy(), x0)  # copied, not advanced
+    assert final is not start and not np.array_equal(final.x.numpy(), x0)
+
+
+@pytest.mark.parametrize("have_tqdm", [True, False])
+def test_progress_bar_shows_frames_and_steps_per_second(model, capsys, monkeypatch, have_tqdm):
+    if not have_tqdm:
+        monkeypatch.setitem(sys.modules, "tqdm", None)  # the plain fallback bar
+    simulate(model, 2, fps=30, progress=True)
+    err = capsys.readouterr().err
+    assert "2/2" in err and "steps/s" in err and f"{model.particle_count} particles" in err

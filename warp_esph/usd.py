@@ -1,0 +1,412 @@
+"""Crash-safe USD output: one ``UsdGeom.Points`` per body, one time sample per frame.
+
+Layout of the written stage (Y up, metres, time code = frame index)::
+
+    /World                      Xform, the default prim
+    /World/<body>               Points: points, velocities, widths, extent (time-sampled);
+                                primvars singular_values (float3, vertex), alpha (float,
+                                vertex) per frame; material_id (int, constant) and
+                                displayColor (constant) once
+    /World/Colliders/plane_<k>  Mesh: a large quad on the plane (solid below it)
+    /World/Colliders/sphere_<k> Sphere
+    /World/Colliders/box_<k>    Cube scaled to the box's half extents
+
+``.usd``/``.usdc`` are written as binary crate files, ``.usda`` as text.
+
+Crash safety
+------------
+After every ``write_frame`` the file at ``path`` is a complete, valid stage that holds
+every finished frame; a process killed at any moment leaves it so. USD's own in-place
+crate save is incremental (it appends the new samples, O(frame)) but it rewrites the
+structural sections at the end of the file before it rewrites the header, so a kill
+during a save would corrupt the file. Re-exporting the whole stage to a temporary file
+and renaming it over ``path`` is safe but costs O(all frames) per frame. This writer
+gets both: it keeps two working copies (``.<name>.wa.<ext>`` and ``.<name>.wb.<ext>``
+beside ``path``) that receive the same edits, saves them alternately with USD's cheap
+incremental save, and publishes the copy just saved by hard-linking it to a temporary
+name and ``os.replace``-ing that over ``path`` (atomic). The copy that ``path`` links
+to is never written to: the next save goes to the other one. ``close()`` deletes the
+working copies; ``path`` keeps the last one's data. Where hard links are not supported
+the published copy is copied instead (still atomic, O(file) per frame). After a crash
+the working copies stay behind; ``append=True`` and the next run replace them.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import time
+
+import numpy as np
+from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
+
+from . import checks
+from .model import Model
+
+__all__ = ["UsdWriter", "USD_EXTENSIONS", "body_prim_names"]
+
+#: Output extensions and the layer format each is written in.
+USD_EXTENSIONS = {".usd": "usdc", ".usdc": "usdc", ".usda": "usda"}
+
+_ROOT = "/World"
+_COLLIDERS = "/World/Colliders"
+_KEY = "warp_esph"
+
+# One display colour per material (cycled), so bodies are told apart in a viewer.
+_PALETTE = [
+    (0.90, 0.75, 0.50), (0.75, 0.35, 0.25), (0.25, 0.45, 0.80), (0.40, 0.70, 0.35),
+    (0.80, 0.55, 0.80), (0.95, 0.85, 0.30), (0.50, 0.50, 0.50),
+]
+
+
+def body_prim_names(model: Model) -> list[str]:
+    """The prim name of each body: a valid, unique USD identifier made from its name."""
+    names: list[str] = []
+    taken = {"Colliders"}
+    for body in model.bodies:
+        base = Tf.MakeValidIdentifier(body.name) or "body"
+        name, k = base, 1
+        while name in taken:
+            name = f"{base}_{k}"
+            k += 1
+        taken.add(name)
+        names.append(name)
+    return names
+
+
+def _singular_values(F: np.ndarray) -> np.ndarray:
+    """Singular values (descending) of each 3x3 matrix in ``F`` (N, 3, 3)."""
+    F64 = np.asarray(F, dtype=np.float64)
+    finite = np.isfinite(F64).all(axis=(1, 2))
+    out = np.full((len(F64), 3), np.nan)
+    if finite.any():
+        out[finite] = np.linalg.svd(F64[finite], compute_uv=False)
+    return out.astype(np.float32)
+
+
+class UsdWriter:
+    """Writes simulation frames to a USD file; use as a context manager.
+
+    ``path``: ``.usd``/``.usdc`` (binary) or ``.usda`` (text). ``fps``: frames per
+    second; the time code of frame ``k`` is ``k``. ``append=True`` reopens an existing
+    file written for the same scene and continues it: the first frame written then
+    replaces that frame and every later one already in the file (resume from a
+    checkpoint). ``plane_size``: edge length of the quads that show plane colliders
+    (default: 10x the scene size, at least 4 m).
+    """
+
+    def __init__(self, path, model: Model, fps: float = 30.0, *, append: bool = False, plane_size: float | None = None):
+        if not isinstance(model, Model):
+            raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
+        try:
+            self.path = os.path.abspath(os.fspath(path))
+        except TypeError:
+            raise ValueError(f"path = {path!r} is not allowed: must be a file path") from None
+        folder, name = os.path.split(self.path)
+        ext = os.path.splitext(name)[1].lower()
+        if ext not in USD_EXTENSIONS:
+            raise ValueError(f"path = {os.fspath(path)!r} is not allowed: the extension must be one of {', '.join(USD_EXTENSIONS)}")
+        if not os.path.isdir(folder):
+            raise FileNotFoundError(f"cannot write {self.path}: the folder {folder} does not exist")
+        self.format = USD_EXTENSIONS[ext]
+        self.model = model
+        self.fps = checks.positive("fps", fps)
+        self.append = bool(append)
+        self._plane_size = None if plane_size is None else checks.positive("plane_size", plane_size)
+        self._folder, self._name, self._ext = folder, name, ext
+        self._work = [os.path.join(folder, f".{name}.w{tag}{ext}") for tag in "ab"]
+        self._tmp = os.path.join(folder, f".{name}.{os.getpid()}.publish{ext}")
+        self._prim_names = body_prim_names(model)
+        self._stages: list[Usd.Stage] = []
+        self._published: int | None = None
+        self._use_links = True
+        self._truncate_pending = self.append
+        self._widths = [Vt.FloatArray.FromNumpy(np.full(b.count, model.spacing, dtype=np.float32)) for b in model.bodies]
+        self.closed = False
+        #: Frames written by this writer, and the largest frame index in the file.
+        self.frames_written = 0
+        self.first_frame: int | None = None
+        self.last_frame: int | None = None
+        #: Seconds spent saving and publishing, over all frames (measure the USD cost).
+        self.save_seconds = 0.0
+        try:
+            if self.append:
+                self._open_existing()
+            else:
+                self._create_new()
+        except BaseException:
+            self._release()
+            self._remove_work_files()
+            raise
+
+    # ------------------------------------------------------------------ setup
+    def _new_layer(self, file: str) -> Sdf.Layer:
+        if os.path.exists(file):
+            os.remove(file)
+        stale = Sdf.Layer.Find(file)
+        if stale is not None:
+            # A layer of that name is still alive in this process (an earlier writer's
+            # stage not yet garbage-collected): USD refuses to create a second one.
+            raise OSError(f"cannot create {file}: a USD layer of that name is still open in this process")
+        layer = Sdf.Layer.CreateNew(file, args={"format": self.format})
+        if layer is None:
+            raise OSError(f"cannot create {file}")
+        return layer
+
+    def _create_new(self):
+        for file in self._work:
+            stage = Usd.Stage.Open(self._new_layer(file))
+            self._author_static(stage)
+            self._stages.append(stage)
+        # Publish the empty stage (prims, colliders, metadata) at once: the file at
+        # ``path`` is valid from here on.
+        self._save_and_publish()
+
+    def _open_existing(self):
+        if not os.path.isfile(self.path):
+            raise FileNotFoundError(f"cannot append to {self.path}: no such file")
+        for file in self._work:
+            if os.path.exists(file):
+                os.remove(file)
+            shutil.copyfile(self.path, file)
+            layer = Sdf.Layer.FindOrOpen(file)
+            if layer is None:
+                raise ValueError(f"cannot append to {self.path}: it is not a USD file pxr can open")
+            layer.Reload(force=True)  # a layer of that name may be cached from an earlier writer
+            stage = Usd.Stage.Open(layer)
+            self._check_compatible(stage)
+            self._stages.append(stage)
+        times = self._stages[0].GetEndTimeCode()
+        start = self._stages[0].GetStartTimeCode()
+        self.first_frame, self.last_frame = int(start), int(times)
+        # ``path`` itself stays untouched until the first frame is published.
+
+    def _check_compatible(self, stage: Usd.Stage):
+        where = f"cannot append to {self.path}"
+        tcps = stage.GetTimeCodesPerSecond()
+        if not math.isclose(tcps, self.fps, rel_tol=1e-9):
+            raise ValueError(f"{where}: it was written at fps = {tcps:g}, not {self.fps:g}")
+        for body, name in zip(self.model.bodies, self._prim_names):
+            prim = stage.GetPrimAtPath(f"{_ROOT}/{name}")
+            if not prim or not prim.IsA(UsdGeom.Points):
+                raise ValueError(f"{where}: it has no Points prim {_ROOT}/{name} for body {body.name!r}")
+            count = (prim.GetCustomDataByKey(f"{_KEY}:particle_count"))
+            if count is not None and int(count) != body.count:
+                raise ValueError(f"{where}: body {body.name!r} has {count} particles there, {body.count} in the model")
+
+    def _author_static(self, stage: Usd.Stage):
+        m = self.model
+        stage.SetTimeCodesPerSecond(self.fps)
+        stage.SetFramesPerSecond(self.fps)
+        stage.SetStartTimeCode(0.0)
+        stage.SetEndTimeCode(0.0)
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+        world = UsdGeom.Xform.Define(stage, _ROOT)
+        stage.SetDefaultPrim(world.GetPrim())
+        from . import __version__  # noqa: PLC0415 (package fully imported by now)
+
+        stage.GetRootLayer().customLayerData = {
+            f"{_KEY}:version": __version__,
+            f"{_KEY}:particle_count": m.particle_count,
+            f"{_KEY}:spacing": m.spacing,
+            f"{_KEY}:support_radius": m.support_radius,
+            f"{_KEY}:gravity": Gf.Vec3d(*m.gravity),
+            f"{_KEY}:dtype": m.scalar.__name__,
+        }
+        for body, name, widths in zip(m.bodies, self._prim_names, self._widths):
+            pts = UsdGeom.Points.Define(stage, f"{_ROOT}/{name}")
+            prim = pts.GetPrim()
+            mat = m.materials[body.material]
+            prim.SetCustomDataByKey(f"{_KEY}:body_name", body.name)
+            prim.SetCustomDataByKey(f"{_KEY}:kind", body.kind)
+            prim.SetCustomDataByKey(f"{_KEY}:first_particle", body.start)
+            prim.SetCustomDataByKey(f"{_KEY}:particle_count", body.count)
+            for field in ("mu", "lam", "yield_stress", "flow_rate", "hardening", "density", "pressure_stiffness", "viscosity", "model"):
+                value = getattr(mat, field)
+                prim.SetCustomDataByKey(f"{_KEY}:material:{field}", value if isinstance(value, str) else float(value))
+            pts.CreatePointsAttr()
+            pts.CreateVelocitiesAttr()
+            pts.CreateWidthsAttr()
+            pts.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+            pts.CreateExtentAttr()
+            pv = UsdGeom.PrimvarsAPI(prim)
+            pv.CreatePrimvar("singular_values", Sdf.ValueTypeNames.Float3Array, UsdGeom.Tokens.vertex)
+            pv.CreatePrimvar("alpha", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex)
+            pv.CreatePrimvar("material_id", Sdf.ValueTypeNames.Int, UsdGeom.Tokens.constant).Set(int(body.material))
+            color = _PALETTE[body.material % len(_PALETTE)]
+            pts.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(Vt.Vec3fArray([Gf.Vec3f(*color)]))
+        self._author_colliders(stage)
+
+    def _author_colliders(self, stage: Usd.Stage):
+        m = self.model
+        if not (m.planes or m.spheres or m.boxes):
+            return
+        UsdGeom.Scope.Define(stage, _COLLIDERS)
+        x0 = np.asarray(m.particle_x0, dtype=np.float64)
+        lo, hi = x0.min(axis=0), x0.max(axis=0)
+        center = 0.5 * (lo + hi)
+        size = self._plane_size or max(4.0, 10.0 * float(np.linalg.norm(hi - lo)))
+        grey = Vt.Vec3fArray([Gf.Vec3f(0.55, 0.55, 0.6)])
+        for k, p in enumerate(m.planes):
+            n = np.asarray(p.normal, dtype=np.float64)
+            origin = center - (n @ center - p.offset) * n
+            t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 0.0, 1.0])
+            t1 /= np.linalg.norm(t1)
+            t2 = np.cross(n, t1)  # t1 x t2 = n: the quad faces +n
+            h = 0.5 * size
+            corners = [origin - h * t1 - h * t2, origin + h * t1 - h * t2, origin + h * t1 + h * t2, origin - h * t1 + h * t2]
+            mesh = UsdGeom.Mesh.Define(stage, f"{_COLLIDERS}/plane_{k}")
+            mesh.CreatePointsAttr(Vt.Vec3fArray([Gf.Vec3f(*c) for c in corners]))
+            mesh.CreateFaceVertexCountsAttr(Vt.IntArray([4]))
+            mesh.CreateFaceVertexIndicesAttr(Vt.IntArray([0, 1, 2, 3]))
+            mesh.CreateNormalsAttr(Vt.Vec3fArray([Gf.Vec3f(*n)] * 4))
+            mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+            mesh.CreateDoubleSidedAttr(True)
+            c = np.array(corners)
+            mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*c.min(axis=0)), Gf.Vec3f(*c.max(axis=0))]))
+            mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(grey)
+            self._collider_data(mesh.GetPrim(), "plane", friction=p.friction, normal=Gf.Vec3d(*p.normal), offset=p.offset)
+        for k, s in enumerate(m.spheres):
+            sph = UsdGeom.Sphere.Define(stage, f"{_COLLIDERS}/sphere_{k}")
+            sph.CreateRadiusAttr(float(s.radius))
+            r = float(s.radius)
+            sph.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-r, -r, -r), Gf.Vec3f(r, r, r)]))
+            sph.AddTranslateOp().Set(Gf.Vec3d(*s.center))
+            sph.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(grey)
+            self._collider_data(sph.GetPrim(), "sphere", friction=s.friction, center=Gf.Vec3d(*s.center), radius=s.radius)
+        for k, b in enumerate(m.boxes):
+            cube = UsdGeom.Cube.Define(stage, f"{_COLLIDERS}/box_{k}")
+            cube.CreateSizeAttr(2.0)
+            cube.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-1, -1, -1), Gf.Vec3f(1, 1, 1)]))
+            cube.AddTranslateOp().Set(Gf.Vec3d(*b.center))
+            cube.AddScaleOp().Set(Gf.Vec3f(*b.half_extents))
+            cube.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(grey)
+            self._collider_data(cube.GetPrim(), "box", friction=b.friction, center=Gf.Vec3d(*b.center), half_extents=Gf.Vec3d(*b.half_extents))
+
+    @staticmethod
+    def _collider_data(prim: Usd.Prim, kind: str, **values):
+        prim.SetCustomDataByKey(f"{_KEY}:collider", kind)
+        for key, value in values.items():
+            prim.SetCustomDataByKey(f"{_KEY}:{key}", float(value) if isinstance(value, (int, float)) else value)
+
+    # ----------------------------------------------------------------- frames
+    def write_frame(self, frame_index: int, state) -> None:
+        """Write ``state`` as frame ``frame_index`` (time code = frame index) and make it durable."""
+        if self.closed:
+            raise ValueError(f"cannot write frame {frame_index!r}: the writer of {self.path} is closed")
+        if isinstance(frame_index, bool) or not isinstance(frame_index, (int, np.integer)) or frame_index < 0:
+            raise ValueError(f"frame_index = {frame_index!r} is not allowed: must be an integer >= 0")
+        frame = int(frame_index)
+        m = self.model
+        x = state.x.numpy()
+        if x.shape[0] != m.particle_count:
+            raise ValueError(f"state has {x.shape[0]} particles, the model {m.particle_count}: it is not a state of this model")
+        v = state.v.numpy()
+        sv = _singular_values(state.F.numpy())
+        alpha = state.alpha.numpy()
+        x32, v32, a32 = x.astype(np.float32), v.astype(np.float32), alpha.astype(np.float32)
+
+        if self._truncate_pending:
+            for stage in self._stages:
+                self._drop_frames_from(stage, frame)
+            self._truncate_pending = False
+            self.first_frame = min(self.first_frame, frame) if self.first_frame is not None else frame
+            self.last_frame = None
+
+        t = Usd.TimeCode(float(frame))
+        half_w = 0.5 * m.spacing
+        samples = []
+        for body, widths in zip(m.bodies, self._widths):
+            s = slice(body.start, body.start + body.count)
+            xb = x32[s]
+            finite = np.isfinite(xb).all(axis=1)
+            if finite.any():
+                lo, hi = xb[finite].min(axis=0) - half_w, xb[finite].max(axis=0) + half_w
+            else:
+                lo = hi = np.zeros(3, np.float32)
+            samples.append((
+                Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(xb)),
+                Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(v32[s])),
+                widths,
+                Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]),
+                Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(sv[s])),
+                Vt.FloatArray.FromNumpy(np.ascontiguousarray(a32[s])),
+            ))
+        self.first_frame = frame if self.first_frame is None else min(self.first_frame, frame)
+        self.last_frame = frame if self.last_frame is None else max(self.last_frame, frame)
+        for stage in self._stages:
+            for name, (pts, vel, wid, ext, svals, alph) in zip(self._prim_names, samples):
+                prim = stage.GetPrimAtPath(f"{_ROOT}/{name}")
+                geom = UsdGeom.Points(prim)
+                geom.GetPointsAttr().Set(pts, t)
+                geom.GetVelocitiesAttr().Set(vel, t)
+                geom.GetWidthsAttr().Set(wid, t)
+                geom.GetExtentAttr().Set(ext, t)
+                prim.GetAttribute("primvars:singular_values").Set(svals, t)
+                prim.GetAttribute("primvars:alpha").Set(alph, t)
+            stage.SetStartTimeCode(float(self.first_frame))
+            stage.SetEndTimeCode(float(self.last_frame))
+        self._save_and_publish()
+        self.frames_written += 1
+
+    @staticmethod
+    def _drop_frames_from(stage: Usd.Stage, frame: int):
+        """Remove every time sample at or after ``frame`` (append mode: resume there)."""
+        for prim in stage.Traverse():
+            for attr in prim.GetAttributes():
+                for t in attr.GetTimeSamples():
+                    if t >= frame:
+                        attr.ClearAtTime(t)
+
+    def _save_and_publish(self):
+        t0 = time.perf_counter()
+        target = 0 if self._published is None else 1 - self._published
+        layer = self._stages[target].GetRootLayer()
+        if not layer.Save(force=True):
+            raise OSError(f"USD could not save {self._work[target]}")
+        self._publish(self._work[target])
+        self._published = target
+        self.save_seconds += time.perf_counter() - t0
+
+    def _publish(self, source: str):
+        """Atomically make ``path`` a complete copy of ``source`` (a hard link where possible)."""
+        if os.path.lexists(self._tmp):
+            os.remove(self._tmp)
+        if self._use_links:
+            try:
+                os.link(source, self._tmp)
+            except OSError:
+                self._use_links = False  # e.g. a file system without hard links
+        if not self._use_links:
+            shutil.copyfile(source, self._tmp)
+        os.replace(self._tmp, self.path)
+
+    # ------------------------------------------------------------------ close
+    def _release(self):
+        self._stages = []
+
+    def _remove_work_files(self):
+        for file in (*self._work, self._tmp):
+            try:
+                os.remove(file)
+            except FileNotFoundError:
+                pass
+
+    def close(self) -> None:
+        """Finish: ``path`` keeps every written frame; the working copies are removed."""
+        if self.closed:
+            return
+        self.closed = True
+        self._release()
+        self._remove_work_files()
+
+    def __enter__(self) -> "UsdWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self):
+        return f"UsdWriter({self.path!r}, frames_written={self.frames_written}, closed={self.closed})"
