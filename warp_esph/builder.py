@@ -24,6 +24,8 @@ from .model import Body, Model
 #: sees only its 6 face neighbours; above 3 dx the 30-neighbour cap cuts the
 #: neighbourhood anisotropically and the body loses stiffness (SPEC §1.1).
 SUPPORT_RANGE = (1.5, 3.0)
+#: Largest lattice a single body may be sampled from (about 1.6 GB of float64 points).
+MAX_PARTICLES_PER_BODY = 6.4e7
 
 
 def star_polygon(outer_radius: float, inner_radius: float, points: int = 5) -> np.ndarray:
@@ -84,6 +86,19 @@ class SceneBuilder:
         self._count = 0
 
     # ----------------------------------------------------------------- bodies
+    def _lattice(self, lo, hi, name: str, value) -> np.ndarray:
+        self._check_lattice_size(lo, hi, name, value)
+        return lattice_points(lo, hi, self.spacing)
+
+    def _check_lattice_size(self, lo, hi, name: str, value):
+        # Refuse before allocating: a typo in a size must not exhaust memory.
+        cells = np.prod(np.floor((np.asarray(hi) - np.asarray(lo)) / self.spacing + 1e-9))
+        if cells > MAX_PARTICLES_PER_BODY:
+            raise ValueError(
+                f"{name} = {value!r} is not allowed: at spacing {self.spacing:g} the body would need {cells:.3g} "
+                f"lattice cells, more than {MAX_PARTICLES_PER_BODY:.3g}"
+            )
+
     def _material_index(self, material: Material) -> int:
         if not isinstance(material, Material):
             raise ValueError(f"material = {material!r} is not allowed: must be a warp_esph.Material")
@@ -128,12 +143,12 @@ class SceneBuilder:
         """A solid box of full edge lengths ``size`` centred at ``center``."""
         c = np.array(checks.vector("center", center))
         s = np.array(checks.positive_vector("size", size))
-        return self.add_particles(lattice_points(c - s / 2, c + s / 2, self.spacing), material, velocity, name, "box")
+        return self.add_particles(self._lattice(c - s / 2, c + s / 2, "size", size), material, velocity, name, "box")
 
     def add_sphere(self, center, radius: float, material: Material, velocity=(0.0, 0.0, 0.0), name: str | None = None) -> int:
         c = np.array(checks.vector("center", center))
         r = checks.positive("radius", radius)
-        p = lattice_points(c - r, c + r, self.spacing)
+        p = self._lattice(c - r, c + r, "radius", radius)
         return self.add_particles(p[np.linalg.norm(p - c, axis=1) <= r], material, velocity, name, "sphere")
 
     def add_cylinder(self, center, radius: float, height: float, material: Material, axis: str = "y",
@@ -145,7 +160,7 @@ class SceneBuilder:
         a = _AXES[checks.choice("axis", axis, tuple(_AXES))]
         half = np.full(3, r)
         half[a] = hgt / 2
-        p = lattice_points(c - half, c + half, self.spacing)
+        p = self._lattice(c - half, c + half, "radius/height", (radius, height))
         radial = np.delete(p - c, a, axis=1)
         return self.add_particles(p[np.linalg.norm(radial, axis=1) <= r], material, velocity, name, "cylinder")
 
@@ -161,7 +176,7 @@ class SceneBuilder:
         npts = checks.positive_int("points", points)
         if npts < 3:
             raise ValueError(f"points = {points!r} is not allowed: must be an integer >= 3")
-        p = lattice_points(c - np.array([ro, t / 2, ro]), c + np.array([ro, t / 2, ro]), self.spacing)
+        p = self._lattice(c - np.array([ro, t / 2, ro]), c + np.array([ro, t / 2, ro]), "outer_radius/thickness", (ro, t))
         inside = _inside_polygon((p - c)[:, [0, 2]], star_polygon(ro, ri, npts))
         return self.add_particles(p[inside], material, velocity, name, "star")
 
@@ -176,6 +191,7 @@ class SceneBuilder:
         s = checks.positive("scale", scale)
         t = np.array(checks.vector("translation", translation))
         points = points * s + t
+        self._check_lattice_size(points.min(axis=0), points.max(axis=0), "scale", scale)
         inside = meshes.sample_inside(points, triangles, self.spacing)
         kind_name = name if name is not None else (meshes.mesh_name(source) if isinstance(source, (str, bytes)) or hasattr(source, "__fspath__") else None)
         return self.add_particles(inside, material, velocity, kind_name, "mesh")
@@ -188,7 +204,7 @@ class SceneBuilder:
 
     def add_ground(self, height: float = 0.0, friction: float = 0.5):
         """The plane y = ``height``, solid below; Coulomb ``friction`` >= 0."""
-        self.add_plane((0.0, 1.0, 0.0), height, friction)
+        self.add_plane((0.0, 1.0, 0.0), checks.number("height", height), friction)
 
     def add_plane(self, normal, offset: float, friction: float = 0.5):
         """The half-space dot(normal, x) < offset is solid."""
