@@ -1,0 +1,165 @@
+"""Differentiable rollout benchmark: time per step and memory, full tape vs checkpointing.
+
+For a block of dough falling onto the ground (float64, one material, SPH on), for each
+particle count and step count, with the whole run on one tape and with segment
+checkpointing (``checkpoint_every = ceil(sqrt(steps))`` by default), it measures
+
+- forward seconds per step (taped, or untaped with checkpoints),
+- backward seconds per step (the checkpointed backward re-runs each segment on a tape),
+- memory: bytes held by the rollout's Warp arrays (taped states with gradients,
+  checkpoints, frame buffers: exact), the peak of Python allocations (``tracemalloc``)
+  and the process's peak resident set size so far,
+- and checks the two modes give the same gradient.
+
+    python -m benchmarks.fit_bench                          # 250, 1000, 4000 particles x 50, 200 steps
+    python -m benchmarks.fit_bench --particles 500 --steps 20 --json out.json
+    python -m benchmarks.fit_bench --quick
+
+It prints a table and writes JSON (``--json``, default ``fit_bench.json``). Not a test.
+"""
+
+import argparse
+import gc
+import json
+import math
+import os
+import platform
+import resource
+import sys
+import time
+import tracemalloc
+
+import numpy as np
+import warp as wp
+
+try:
+    import warp_esph as we
+except ImportError:  # run from a checkout without installing the package
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    import warp_esph as we
+
+from warp_esph.losses import PositionLoss
+from warp_esph.rollout import PARAMETERS, Rollout
+
+
+def block_model(particles: int, dtype=wp.float64) -> we.Model:
+    """A dough block of about ``particles`` particles (2 cm spacing) just above the ground."""
+    dx = 0.02
+    side = max(2, round(particles ** (1.0 / 3.0)))
+    size = side * dx
+    b = we.SceneBuilder(spacing=dx)
+    b.add_box((0.0, 0.5 * size + 0.01, 0.0), (size, size, size), we.Material.preset("dough"), velocity=(0.0, -1.0, 0.0))
+    b.add_ground(friction=0.5)
+    model = b.finalize(dtype=dtype, requires_grad=True)
+    model.particle_x0 += np.random.default_rng(0).normal(scale=1e-3 * dx, size=model.particle_x0.shape)
+    model.compute_rest_density()
+    return model
+
+
+def _rss_mb() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return r / 1024.0 if sys.platform != "darwin" else r / 2**20
+
+
+def measure(model: we.Model, steps: int, checkpoint_every: int | None, repeats: int = 1) -> dict:
+    """Times (without tracemalloc, which slows Python down) then memory (with it)."""
+    dt = model.stable_dt()
+    frames = sorted({steps // 2, steps})
+    gc.collect()
+    rollout = Rollout(model, steps, dt, frames=frames, checkpoint_every=checkpoint_every)
+    positions = rollout.forward()  # warm-up (compiles kernels on the first call)
+    loss = PositionLoss(positions + 1e-3, frames=frames)
+    rollout.backward(loss)
+    fwd, bwd = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        rollout.forward()
+        t1 = time.perf_counter()
+        _, grads = rollout.backward(loss)
+        t2 = time.perf_counter()
+        fwd.append(t1 - t0)
+        bwd.append(t2 - t1)
+    mem = rollout.memory_bytes()
+    rollout.release()
+    del rollout
+    gc.collect()
+
+    # Python-side peak of a fresh rollout's forward and backward.
+    tracemalloc.start()
+    rollout = Rollout(model, steps, dt, frames=frames, checkpoint_every=checkpoint_every)
+    rollout.forward()
+    rollout.backward(loss)
+    _, py_peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    rollout.release()
+    del rollout
+    gc.collect()
+    return {
+        "particles": model.particle_count,
+        "steps": steps,
+        "checkpoint_every": checkpoint_every,
+        "segments": math.ceil(steps / checkpoint_every) if checkpoint_every else 1,
+        "forward_ms_per_step": 1e3 * min(fwd) / steps,
+        "backward_ms_per_step": 1e3 * min(bwd) / steps,
+        "array_bytes": mem,
+        "array_bytes_per_particle_step": mem["total"] / (model.particle_count * steps),
+        "python_peak_bytes": py_peak,
+        "process_peak_rss_mb": _rss_mb(),
+        "grad_norms": {k: float(np.linalg.norm(grads[k])) for k in ("mu", "yield_stress", "flow_rate", "v0")},
+        "_grads": {k: grads[k] for k in list(PARAMETERS) + ["v0"]},
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--particles", default="250,1000,4000", help="comma-separated particle counts (approximate)")
+    ap.add_argument("--steps", default="50,200", help="comma-separated step counts")
+    ap.add_argument("--checkpoint", default="sqrt", help="segment length for the checkpointed runs: an integer or 'sqrt'")
+    ap.add_argument("--repeats", type=int, default=1, help="timed repeats per configuration (the fastest is kept)")
+    ap.add_argument("--quick", action="store_true", help="a tiny run: 125 particles, 20 steps")
+    ap.add_argument("--json", default="fit_bench.json", help="output JSON path")
+    a = ap.parse_args(argv)
+    wp.config.quiet = True
+    wp.init()
+    sizes = [125] if a.quick else [int(s) for s in a.particles.split(",")]
+    step_counts = [20] if a.quick else [int(s) for s in a.steps.split(",")]
+
+    rows = []
+    for n in sizes:
+        model = block_model(n)
+        for steps in step_counts:
+            seg = math.ceil(math.sqrt(steps)) if a.checkpoint == "sqrt" else int(a.checkpoint)
+            full = measure(model, steps, None, a.repeats)
+            ck = measure(model, steps, seg, a.repeats)
+            worst = 0.0
+            for k, g in full.pop("_grads").items():
+                scale = float(np.abs(g).max())
+                if scale > 0:
+                    worst = max(worst, float(np.abs(g - ck["_grads"][k]).max()) / scale)
+            ck.pop("_grads")
+            ck["max_relative_gradient_difference_vs_full_tape"] = worst
+            rows += [full, ck]
+
+    hdr = f"{'particles':>9} {'steps':>6} {'mode':>10} {'fwd ms/step':>12} {'bwd ms/step':>12} {'arrays MB':>10} {'B/(p*step)':>11} {'py peak MB':>11}"
+    print(hdr)
+    print("-" * len(hdr))
+    for r in rows:
+        mode = "full tape" if r["checkpoint_every"] is None else f"ckpt {r['checkpoint_every']}"
+        print(f"{r['particles']:>9} {r['steps']:>6} {mode:>10} {r['forward_ms_per_step']:>12.3f} {r['backward_ms_per_step']:>12.3f} "
+              f"{r['array_bytes']['total'] / 2**20:>10.1f} {r['array_bytes_per_particle_step']:>11.0f} {r['python_peak_bytes'] / 2**20:>11.2f}")
+    diffs = [r["max_relative_gradient_difference_vs_full_tape"] for r in rows if "max_relative_gradient_difference_vs_full_tape" in r]
+    print(f"checkpointed vs full-tape gradients: max relative difference {max(diffs):.2e}")
+    report = {
+        "command": " ".join([os.path.basename(sys.argv[0])] + (argv if argv is not None else sys.argv[1:])),
+        "machine": {"platform": platform.platform(), "processor": platform.processor(), "python": platform.python_version(),
+                    "warp": wp.config.version, "device": "cpu", "dtype": "float64"},
+        "rows": rows,
+    }
+    with open(a.json, "w") as f:
+        json.dump(report, f, indent=2)
+    print("wrote", a.json)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

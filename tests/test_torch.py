@@ -1,0 +1,86 @@
+"""The rollout as a torch.autograd.Function (warp_esph.torch)."""
+
+import sys
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warp_esph as we
+from warp_esph.rollout import Rollout
+
+torch = pytest.importorskip("torch")
+
+from warp_esph.torch import RolloutModule, require_torch, rollout_positions  # noqa: E402
+
+
+def _cube(yield_stress=10.0, flow_rate=50.0):
+    """27 particles, stretched and squeezed so they yield within a few steps (float64).
+
+    No SPH pressure: its clamp max(p, 0) has its kink exactly at the rest density, where
+    every particle starts, so a finite difference of x0 would straddle it."""
+    mat = we.Material(mu=1.0e3, lam=1.5e3, yield_stress=yield_stress, flow_rate=flow_rate, hardening=200.0,
+                      pressure_stiffness=0.0, density=1000.0)
+    # Support radius 2.5 dx: no lattice distance (1, 1.41, 1.73, 2, 2.24, 2.45 dx) is near it, so a
+    # finite difference of x0 does not straddle a neighbour entering the support (a kink).
+    b = we.SceneBuilder(spacing=0.02, support_radius=0.05)
+    b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), mat)
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    # Jitter: exact distance ties would let a finite difference flip the neighbour choice.
+    model.particle_x0 += np.random.default_rng(5).normal(scale=2e-5, size=model.particle_x0.shape)
+    model.particle_v0 = 20.0 * model.particle_x0 * np.array([1.0, -0.5, 0.0])
+    return model
+
+
+def test_gradcheck_parameters_and_initial_state():
+    model = _cube()
+    assert model.particle_count == 27
+    rollout = Rollout(model, 3, 1.0e-3, frames=[2, 3])
+    log_p = torch.log(torch.tensor([[1.0e3], [1.5e3], [10.0], [50.0], [200.0]], dtype=torch.float64)).requires_grad_()
+    x0 = torch.tensor(model.particle_x0, dtype=torch.float64, requires_grad=True)
+    v0 = torch.tensor(model.particle_v0, dtype=torch.float64, requires_grad=True)
+    names = ["mu", "lam", "yield_stress", "flow_rate", "hardening"]
+
+    def positions(log_p, x0, v0):
+        return rollout_positions(rollout, {n: torch.exp(log_p[k]) for k, n in enumerate(names)}, x0=x0, v0=v0)
+
+    out = positions(log_p, x0, v0)
+    assert out.shape == (2, 27, 3) and out.dtype == torch.float64
+    # The rollout yields (so yield_stress, flow_rate and hardening matter).
+    grads = torch.autograd.grad(out.square().sum(), log_p)[0]
+    assert torch.all(grads.abs() > 0)
+    assert torch.autograd.gradcheck(positions, (log_p, x0, v0), eps=1e-6, atol=1e-8, rtol=1e-5)
+
+
+def test_torch_adam_drives_a_fit():
+    """torch.optim.Adam on a RolloutModule (log-space parameter) recovers the flow rate from 2x."""
+    steps, frames = 12, [4, 8, 12]
+    target = torch.from_numpy(Rollout(_cube(flow_rate=50.0), steps, 1.0e-3, frames=frames).forward())
+    module = RolloutModule(Rollout(_cube(flow_rate=100.0), steps, 1.0e-3, frames=frames), ["flow_rate"])
+    assert isinstance(module, torch.nn.Module) and len(list(module.parameters())) == 1
+    opt = torch.optim.Adam(module.parameters(), lr=0.1)
+    losses = []
+    for _ in range(40):
+        opt.zero_grad()
+        # In millimetres: Adam's eps (1e-8) would swamp gradients of a loss in m^2 (~1e-10).
+        loss = ((module() - target) * 1e3).square().mean()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < 1e-2 * losses[0]
+    assert module.values()["flow_rate"].item() == pytest.approx(50.0, rel=0.1)
+    assert module.rollout.model.flow_rate.numpy()[0] == pytest.approx(module.values()["flow_rate"].item(), rel=0.1)
+
+
+def test_inputs_are_checked_and_missing_torch_is_explained(monkeypatch):
+    model = _cube()
+    rollout = Rollout(model, 2, 1.0e-3)
+    with pytest.raises(ValueError, match="one value per material"):
+        rollout_positions(rollout, {"mu": torch.ones(3, dtype=torch.float64)})
+    with pytest.raises(ValueError, match="must be one of"):
+        rollout_positions(rollout, {"young": torch.ones(1, dtype=torch.float64)})
+    with pytest.raises(ValueError, match="shape"):
+        rollout_positions(rollout, x0=torch.zeros(5, 3, dtype=torch.float64))
+    monkeypatch.setitem(sys.modules, "torch", None)
+    with pytest.raises(ImportError, match="pip install torch"):
+        require_torch()

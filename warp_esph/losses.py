@@ -1,0 +1,649 @@
+"""Differentiable losses on particle positions at one or several observed steps.
+
+Every loss is a set of Warp kernels that ``wp.atomic_add`` into a one-element array,
+zeroed before each evaluation (WARP_NOTES trap 7). A loss reads the positions at its
+``frames`` (step indices of a ``Rollout``); ``value_and_grad(positions)`` records its
+kernels on a tape and returns the value and ``{step: dL/dx}``, which is what
+``Rollout.backward`` consumes (``rollout.backward(loss)`` calls it for you).
+
+- ``PositionLoss``: mean squared distance to target positions, particle by particle.
+- ``ChamferLoss``: truncated Chamfer distance to a target point cloud of any size. One
+  ``wp.HashGrid`` on the target finds the nearest target point of each particle, a
+  second one on the particles (rebuilt at each evaluation) the nearest particle of each
+  target point. Only points within ``radius`` count as found; a point with nothing found
+  within ``radius`` contributes ``radius**2`` (no gradient), so the loss is
+  ``mean_i min(d_i^2, r^2) + mean_j min(d_j^2, r^2)``: continuous as points cross the
+  radius. ``unmatched`` reports how many points found nothing at the last evaluation.
+- ``MeshLoss``: mean squared distance of the particles to a triangle mesh
+  (``wp.Mesh`` + ``wp.mesh_query_point_no_sign``); ``mode="outside"`` counts only
+  particles outside the (closed) mesh. Particles with no surface within ``max_dist``
+  contribute ``max_dist**2`` (no gradient).
+
+The nearest-point choices are discrete and made in untaped kernels; the distance to the
+chosen point is taped. Their gradient is then exact (for a closest point on a surface,
+by the envelope theorem) except where the choice itself switches. Losses combine:
+``loss_a + 0.5 * loss_b``. Each takes ``particles`` (indices) to use a subset (e.g.
+surface particles) and ``weight``.
+
+Normalisation: each loss is the mean over its frames of its per-frame value, times
+``weight``.
+"""
+
+import functools
+import os
+import types
+from collections.abc import Mapping
+
+import numpy as np
+import warp as wp
+
+from . import checks
+from ._types import type_set
+
+__all__ = ["Loss", "PositionLoss", "ChamferLoss", "MeshLoss", "SumLoss", "surface_particles"]
+
+#: HashGrid resolution cap per axis (the grid is periodic: aliasing beyond costs time only).
+_MAX_GRID_DIM = 128
+
+
+@functools.cache
+def _kernels(scalar):
+    T = type_set(scalar)
+    vec3 = T.vec3
+
+    @wp.kernel
+    def gather(x: wp.array(dtype=vec3), idx: wp.array(dtype=wp.int32), out: wp.array(dtype=vec3)):
+        k = wp.tid()
+        out[k] = x[idx[k]]
+
+    @wp.kernel(enable_backward=False)
+    def to_float32(x: wp.array(dtype=vec3), out: wp.array(dtype=wp.vec3f)):
+        i = wp.tid()
+        p = x[i]
+        out[i] = wp.vec3f(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
+
+    @wp.kernel
+    def squared_distance(x: wp.array(dtype=vec3), target: wp.array(dtype=vec3), w: scalar, out: wp.array(dtype=scalar)):
+        i = wp.tid()
+        d = x[i] - target[i]
+        wp.atomic_add(out, 0, w * wp.dot(d, d))
+
+    @wp.kernel(enable_backward=False)
+    def nearest(
+        grid: wp.uint64,
+        query32: wp.array(dtype=wp.vec3f),
+        query: wp.array(dtype=vec3),
+        points: wp.array(dtype=vec3),
+        radius: scalar,
+        idx: wp.array(dtype=wp.int32),
+        unmatched: wp.array(dtype=wp.int32),
+    ):
+        # Nearest of ``points`` (indexed by ``grid``) to each query within ``radius``; -1 if none.
+        i = wp.tid()
+        q = query[i]
+        best = radius * radius
+        found = int(-1)
+        it = wp.hash_grid_query(grid, query32[i], wp.float32(radius))
+        j = int(0)
+        while wp.hash_grid_query_next(it, j):
+            d = points[j] - q
+            d2 = wp.dot(d, d)
+            if d2 < best:
+                best = d2
+                found = j
+        idx[i] = found
+        if found < 0:
+            wp.atomic_add(unmatched, 0, 1)
+
+    @wp.kernel
+    def nearest_term(
+        src: wp.array(dtype=vec3),
+        dst: wp.array(dtype=vec3),
+        idx: wp.array(dtype=wp.int32),
+        r2: scalar,
+        w: scalar,
+        out: wp.array(dtype=scalar),
+    ):
+        i = wp.tid()
+        j = idx[i]
+        if j >= 0:
+            d = src[i] - dst[j]
+            wp.atomic_add(out, 0, w * wp.dot(d, d))
+        else:
+            wp.atomic_add(out, 0, w * r2)
+
+    @wp.func
+    def closest_on_triangle(p: vec3, a: vec3, b: vec3, c: vec3) -> vec3:
+        # Ericson, Real-Time Collision Detection, 5.1.5, in the loss's precision.
+        zero = scalar(0.0)
+        ab = b - a
+        ac = c - a
+        ap = p - a
+        d1 = wp.dot(ab, ap)
+        d2 = wp.dot(ac, ap)
+        if d1 <= zero and d2 <= zero:
+            return a
+        bp = p - b
+        d3 = wp.dot(ab, bp)
+        d4 = wp.dot(ac, bp)
+        if d3 >= zero and d4 <= d3:
+            return b
+        vc = d1 * d4 - d3 * d2
+        if vc <= zero and d1 >= zero and d3 <= zero:
+            return a + (d1 / (d1 - d3)) * ab
+        cp = p - c
+        d5 = wp.dot(ab, cp)
+        d6 = wp.dot(ac, cp)
+        if d6 >= zero and d5 <= d6:
+            return c
+        vb = d5 * d2 - d1 * d6
+        if vb <= zero and d2 >= zero and d6 <= zero:
+            return a + (d2 / (d2 - d6)) * ac
+        va = d3 * d6 - d5 * d4
+        if va <= zero and (d4 - d3) >= zero and (d5 - d6) >= zero:
+            return b + ((d4 - d3) / ((d4 - d3) + (d5 - d6))) * (c - b)
+        denom = scalar(1.0) / (va + vb + vc)
+        return a + ab * (vb * denom) + ac * (vc * denom)
+
+    @wp.kernel(enable_backward=False)
+    def closest_on_mesh(
+        mesh: wp.uint64,
+        x: wp.array(dtype=vec3),
+        verts: wp.array(dtype=vec3),
+        tris: wp.array(dtype=wp.int32),
+        max_dist: wp.float32,
+        outside_only: int,
+        closest: wp.array(dtype=vec3),
+        code: wp.array(dtype=wp.int32),
+        unmatched: wp.array(dtype=wp.int32),
+    ):
+        # code: 1 = use |x - closest|^2, 0 = inside (outside mode): nothing, -1 = none found.
+        i = wp.tid()
+        p = x[i]
+        p32 = wp.vec3f(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
+        face = int(-1)
+        inside = int(0)
+        if outside_only != 0:
+            q = wp.mesh_query_point_sign_winding_number(mesh, p32, max_dist)
+            if q.result:
+                face = q.face
+                if q.sign < 0.0:
+                    inside = 1
+        else:
+            q = wp.mesh_query_point_no_sign(mesh, p32, max_dist)
+            if q.result:
+                face = q.face
+        if face < 0:
+            code[i] = -1
+            closest[i] = p
+            wp.atomic_add(unmatched, 0, 1)
+        else:
+            c = closest_on_triangle(p, verts[tris[3 * face]], verts[tris[3 * face + 1]], verts[tris[3 * face + 2]])
+            closest[i] = c
+            code[i] = wp.where(inside != 0, 0, 1)
+
+    @wp.kernel
+    def mesh_term(
+        x: wp.array(dtype=vec3),
+        closest: wp.array(dtype=vec3),
+        code: wp.array(dtype=wp.int32),
+        d2_max: scalar,
+        w: scalar,
+        out: wp.array(dtype=scalar),
+    ):
+        i = wp.tid()
+        k = code[i]
+        if k == 1:
+            d = x[i] - closest[i]
+            wp.atomic_add(out, 0, w * wp.dot(d, d))
+        elif k < 0:
+            wp.atomic_add(out, 0, w * d2_max)
+
+    return types.SimpleNamespace(
+        gather=gather, to_float32=to_float32, squared_distance=squared_distance, nearest=nearest,
+        nearest_term=nearest_term, closest_on_mesh=closest_on_mesh, mesh_term=mesh_term,
+    )
+
+
+def _scalar_of(x: wp.array):
+    if x.dtype == wp.vec3d:
+        return wp.float64
+    if x.dtype == wp.vec3f:
+        return wp.float32
+    raise ValueError(f"positions of dtype {x.dtype} are not allowed: must be wp.vec3f or wp.vec3d")
+
+
+def _frames(frames) -> tuple[int, ...]:
+    if isinstance(frames, (int, np.integer)) and not isinstance(frames, bool):
+        frames = [frames]
+    out = []
+    for f in frames:
+        if isinstance(f, bool) or not isinstance(f, (int, np.integer)) or f < 0:
+            raise ValueError(f"frame {f!r} is not allowed: frames are step indices (integers >= 0)")
+        out.append(int(f))
+    if not out:
+        raise ValueError("frames = [] is not allowed: give at least one step index")
+    if len(set(out)) != len(out):
+        raise ValueError(f"frames = {out!r} is not allowed: they must be distinct")
+    return tuple(out)
+
+
+def _per_frame(name: str, data, frames, item_ndim: int) -> dict:
+    """``{frame: item}`` from one item for every frame, a sequence of items, or a mapping."""
+    if isinstance(data, Mapping):
+        keys = _frames(list(data.keys()))
+        if frames is not None and set(_frames(frames)) != set(keys):
+            raise ValueError(f"{name} is given for steps {sorted(keys)} but frames = {list(frames)}")
+        return {f: data[f] for f in keys}
+    if frames is None:
+        raise ValueError(f"frames is required: say at which step indices {name} applies")
+    frames = _frames(frames)
+    if isinstance(data, (list, tuple)) and data and all(np.ndim(d) == item_ndim for d in data):
+        items = list(data)
+    else:
+        try:
+            a = np.asarray(data, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name} is not allowed: give an array, a sequence of arrays or a {{step: array}} mapping") from None
+        if a.ndim == item_ndim:
+            return {f: a for f in frames}
+        if a.ndim != item_ndim + 1:
+            raise ValueError(f"{name} with shape {a.shape} is not allowed: must have {item_ndim} or {item_ndim + 1} dimensions")
+        items = list(a)
+    if len(items) != len(frames):
+        raise ValueError(f"{name}: {len(items)} given for {len(frames)} frames")
+    return dict(zip(frames, items))
+
+
+def _points(name: str, p) -> np.ndarray:
+    a = np.asarray(p, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0:
+        raise ValueError(f"{name} with shape {a.shape} is not allowed: must be (N, 3) with N >= 1")
+    if not np.isfinite(a).all():
+        raise ValueError(f"{name} is not allowed: it has non-finite values")
+    return a
+
+
+def _grid_dims(points: np.ndarray, cell: float) -> tuple[int, int, int]:
+    ext = points.max(axis=0) - points.min(axis=0) if len(points) else np.zeros(3)
+    dims = np.clip(np.ceil(ext / cell).astype(np.int64) + 2, 1, _MAX_GRID_DIM)
+    return tuple(int(d) for d in dims)
+
+
+class Loss:
+    """Base class: a differentiable scalar of the positions at ``frames``.
+
+    Subclasses implement ``_launch(frame, x, out, scale)``: taped kernels that add the
+    frame's value times ``scale`` into ``out[0]`` (untaped helper launches use
+    ``record_tape=False``). ``x`` is the frame's positions (or the ``particles`` subset).
+    """
+
+    def __init__(self, frames, weight: float = 1.0, particles=None):
+        self.frames = _frames(frames)
+        self.weight = checks.number("weight", weight)
+        if particles is not None:
+            idx = np.asarray(particles)
+            if idx.dtype == bool:
+                idx = np.flatnonzero(idx)
+            if idx.ndim != 1 or len(idx) == 0 or not np.issubdtype(idx.dtype, np.integer) or idx.min() < 0:
+                raise ValueError("particles is not allowed: give non-negative particle indices or a boolean mask")
+            particles = idx.astype(np.int32)
+        self.particles = particles
+        self._out = {}
+        self._copies = {}
+        self._subsets = {}
+        self._keep = []  # grids and meshes used by the last evaluation
+
+    # -------------------------------------------------------------- interface
+    def _launch(self, frame: int, x: wp.array, out: wp.array, scale: float):
+        raise NotImplementedError
+
+    def _check(self, frame: int, x: wp.array):
+        """Validate a frame's positions (particle count) before launching."""
+
+    def _prepare_x(self, frame: int, x: wp.array) -> wp.array:
+        if self.particles is None:
+            return x
+        if int(self.particles.max()) >= x.shape[0]:
+            raise ValueError(f"particles has index {int(self.particles.max())}, the positions only {x.shape[0]} particles")
+        key = (frame, x.dtype)
+        sub = self._subsets.get(key)
+        if sub is None or sub[1].device != x.device:
+            idx = wp.array(self.particles, dtype=wp.int32, device=x.device)
+            sub = (idx, wp.zeros(len(self.particles), dtype=x.dtype, device=x.device, requires_grad=True))
+            self._subsets[key] = sub
+        idx, xs = sub
+        wp.launch(_kernels(_scalar_of(x)).gather, len(idx), [x, idx], [xs], device=x.device)
+        return xs
+
+    def launch(self, frame: int, x: wp.array, out: wp.array, scale: float = 1.0):
+        """Record this loss's kernels for ``frame`` (adds ``weight * value / len(frames)``)."""
+        if frame not in self.frames:
+            return
+        xs = self._prepare_x(frame, x)
+        self._check(frame, xs)
+        self._launch(frame, xs, out, scale * self.weight / len(self.frames))
+
+    def _accumulator(self, x: wp.array) -> wp.array:
+        key = (str(x.device), x.dtype)
+        out = self._out.get(key)
+        if out is None:
+            out = wp.zeros(1, dtype=_scalar_of(x), device=x.device, requires_grad=True)
+            self._out[key] = out
+        return out
+
+    def value_and_grad(self, positions: Mapping[int, wp.array]) -> tuple[float, dict[int, wp.array]]:
+        """The loss at ``positions`` (``{step: wp.array of vec3}``) and ``{step: dL/dx}``."""
+        missing = [f for f in self.frames if f not in positions]
+        if missing:
+            raise ValueError(f"the loss needs positions at steps {missing}, given only at {sorted(positions)}")
+        any_x = positions[self.frames[0]]
+        out = self._accumulator(any_x)
+        out.zero_()
+        out.grad.zero_()
+        copies = {}
+        for f in self.frames:
+            x = positions[f]
+            c = self._copies.get(f)
+            if c is None or c.shape != x.shape or c.dtype != x.dtype or c.device != x.device:
+                c = wp.zeros(x.shape, dtype=x.dtype, device=x.device, requires_grad=True)
+                self._copies[f] = c
+            wp.copy(c, x)
+            c.grad.zero_()
+            copies[f] = c
+        self._keep = []
+        tape = wp.Tape()
+        with tape:
+            for f in self.frames:
+                self.launch(f, copies[f], out)
+        tape.backward(out)
+        value = float(out.numpy()[0])
+        grads = {f: wp.clone(copies[f].grad) for f in self.frames}
+        tape.zero()
+        return value, grads
+
+    def value(self, positions: Mapping[int, wp.array]) -> float:
+        return self.value_and_grad(positions)[0]
+
+    def __call__(self, positions):
+        """``value`` of ``{step: positions}`` (Warp arrays or numpy ``(n, 3)`` arrays)."""
+        return self.value(_as_warp_positions(positions))
+
+    # ------------------------------------------------------------- combining
+    def __add__(self, other):
+        if not isinstance(other, Loss):
+            return NotImplemented
+        return SumLoss([(1.0, self), (1.0, other)])
+
+    def __mul__(self, k):
+        k = checks.number("loss scale", k)
+        return SumLoss([(k, self)])
+
+    __rmul__ = __mul__
+
+
+def _as_warp_positions(positions) -> dict[int, wp.array]:
+    out = {}
+    for f, x in positions.items():
+        if not isinstance(x, wp.array):
+            a = np.asarray(x, dtype=np.float64)
+            x = wp.array(a, dtype=wp.vec3d)
+        out[int(f)] = x
+    return out
+
+
+class SumLoss(Loss):
+    """A weighted sum of losses (``a + b``, ``k * a``); its frames are the union."""
+
+    def __init__(self, terms):
+        flat = []
+        for k, loss in terms:
+            if isinstance(loss, SumLoss):
+                flat.extend((k * kk, ll) for kk, ll in loss.terms)
+            else:
+                flat.append((k, loss))
+        self.terms = flat
+        frames = sorted({f for _, loss in flat for f in loss.frames})
+        super().__init__(frames)
+
+    def launch(self, frame, x, out, scale: float = 1.0):
+        for k, loss in self.terms:
+            loss.launch(frame, x, out, scale * k)
+
+    def __repr__(self):
+        return " + ".join(f"{k:g} * {loss!r}" for k, loss in self.terms)
+
+
+class PositionLoss(Loss):
+    """``weight * mean over frames of mean_i |x_i - target_i|^2``.
+
+    ``targets``: ``(frames, n, 3)``, one ``(n, 3)`` array per frame, ``{step: (n, 3)}``,
+    or one ``(n, 3)`` array for every frame. ``particles``: use only these particles
+    (then targets are ``(len(particles), 3)`` per frame).
+    """
+
+    def __init__(self, targets, frames=None, weight: float = 1.0, particles=None):
+        per = _per_frame("targets", targets, frames, 2)
+        super().__init__(list(per), weight, particles)
+        self.targets = {f: _points(f"targets[{f}]", t) for f, t in per.items()}
+        self._wp_targets = {}
+
+    def _check(self, frame, x):
+        t = self.targets[frame]
+        if t.shape[0] != x.shape[0]:
+            raise ValueError(f"targets at step {frame} has {t.shape[0]} points, the positions {x.shape[0]} particles")
+
+    def _launch(self, frame, x, out, scale):
+        key = (frame, x.dtype, str(x.device))
+        t = self._wp_targets.get(key)
+        if t is None:
+            t = wp.array(self.targets[frame], dtype=x.dtype, device=x.device)
+            self._wp_targets[key] = t
+        S = _scalar_of(x)
+        wp.launch(_kernels(S).squared_distance, x.shape[0], [x, t, S(scale / x.shape[0])], [out], device=x.device)
+
+    def __repr__(self):
+        return f"PositionLoss(frames={list(self.frames)}, weight={self.weight:g})"
+
+
+class ChamferLoss(Loss):
+    """Truncated symmetric Chamfer distance to target point clouds (see the module doc).
+
+    ``targets``: one ``(M, 3)`` cloud for every frame, one per frame, or ``{step: cloud}``;
+    clouds may differ in size from the particle count and from each other. ``radius``
+    (m): the search radius of both nearest-point searches; choose it above the largest
+    expected particle-to-target gap (a few particle spacings), since nothing beyond it
+    pulls. After an evaluation ``unmatched[step] = (particles, targets)`` without a
+    match within ``radius``.
+    """
+
+    def __init__(self, targets, radius: float, frames=None, weight: float = 1.0, particles=None):
+        per = _per_frame("targets", targets, frames, 2)
+        super().__init__(list(per), weight, particles)
+        self.radius = checks.positive("radius", radius)
+        self.targets = {f: _points(f"targets[{f}]", t) for f, t in per.items()}
+        self._target_data = {}
+        self._particle_grid = {}
+        self._scratch = {}
+        self.unmatched: dict[int, tuple[int, int]] = {}
+
+    def _target(self, frame, x):
+        key = (frame, x.dtype, str(x.device))
+        d = self._target_data.get(key)
+        if d is None:
+            pts = self.targets[frame]
+            y = wp.array(pts, dtype=x.dtype, device=x.device)
+            y32 = wp.array(pts.astype(np.float32), dtype=wp.vec3f, device=x.device)
+            grid = wp.HashGrid(*_grid_dims(pts, self.radius), device=x.device)
+            grid.build(y32, self.radius)
+            d = (y, y32, grid)
+            self._target_data[key] = d
+        return d
+
+    def _buffers(self, frame, x, m):
+        key = (frame, x.dtype, str(x.device), x.shape[0], m)
+        s = self._scratch.get(key)
+        if s is None:
+            n = x.shape[0]
+            s = types.SimpleNamespace(
+                x32=wp.zeros(n, dtype=wp.vec3f, device=x.device),
+                idx_x=wp.zeros(n, dtype=wp.int32, device=x.device),
+                idx_y=wp.zeros(m, dtype=wp.int32, device=x.device),
+                unmatched=wp.zeros(2, dtype=wp.int32, device=x.device),
+            )
+            self._scratch[key] = s
+        return s
+
+    def _launch(self, frame, x, out, scale):
+        S = _scalar_of(x)
+        k = _kernels(S)
+        dev = x.device
+        y, y32, ygrid = self._target(frame, x)
+        n, m = x.shape[0], y.shape[0]
+        s = self._buffers(frame, x, m)
+        r = S(self.radius)
+        s.unmatched.zero_()
+        wp.launch(k.to_float32, n, [x], [s.x32], device=dev, record_tape=False)
+        # Particles -> nearest target point (grid on the target, built once).
+        wp.launch(k.nearest, n, [ygrid.id, s.x32, x, y, r], [s.idx_x, s.unmatched[0:1]], device=dev, record_tape=False)
+        # Target points -> nearest particle (grid on the particles, rebuilt now).
+        xs = s.x32.numpy()
+        dims = _grid_dims(xs, self.radius)
+        gkey = (frame, str(dev))
+        grid = self._particle_grid.get(gkey)
+        if grid is None or grid[0] != dims:
+            grid = (dims, wp.HashGrid(*dims, device=dev))
+            self._particle_grid[gkey] = grid
+        grid[1].build(s.x32, self.radius)
+        wp.launch(k.nearest, m, [grid[1].id, y32, y, x, r], [s.idx_y, s.unmatched[1:2]], device=dev, record_tape=False)
+        self._keep.extend([ygrid, grid[1]])
+        r2 = S(self.radius * self.radius)
+        wp.launch(k.nearest_term, n, [x, y, s.idx_x, r2, S(scale / n)], [out], device=dev)
+        wp.launch(k.nearest_term, m, [y, x, s.idx_y, r2, S(scale / m)], [out], device=dev)
+        um = s.unmatched.numpy()
+        self.unmatched[frame] = (int(um[0]), int(um[1]))
+
+    def __repr__(self):
+        return f"ChamferLoss(frames={list(self.frames)}, radius={self.radius:g}, weight={self.weight:g})"
+
+
+class MeshLoss(Loss):
+    """``weight * mean over frames of mean_i min(d(x_i, mesh)^2, max_dist^2)``.
+
+    ``mesh``: a mesh file (anything ``warp_esph.meshes.load_mesh`` reads) or
+    ``(points, triangles)``, for every frame, or ``{step: mesh}``. ``mode``:
+    ``"surface"`` (unsigned distance: every particle is pulled onto the surface; use
+    with ``particles=surface_particles(model)``) or ``"outside"`` (particles inside the
+    closed mesh contribute 0: the body is pulled inside the shape). ``max_dist`` (m):
+    search distance; particles with no surface within it contribute ``max_dist**2``
+    without gradient. ``unmatched[step]`` counts them after an evaluation.
+    """
+
+    MODES = ("surface", "outside")
+
+    def __init__(self, mesh, frames=None, mode: str = "surface", max_dist: float = 1.0, weight: float = 1.0, particles=None):
+        if isinstance(mesh, Mapping):
+            per = _per_frame("mesh", mesh, frames, 2)
+        else:
+            if frames is None:
+                raise ValueError("frames is required: say at which step indices the mesh applies")
+            per = {f: mesh for f in _frames(frames)}
+        super().__init__(list(per), weight, particles)
+        self.mode = checks.choice("mode", mode, self.MODES)
+        self.max_dist = checks.positive("max_dist", max_dist)
+        self.meshes = {f: self._load(m) for f, m in per.items()}
+        self._wp = {}
+        self._scratch = {}
+        self.unmatched: dict[int, int] = {}
+
+    @staticmethod
+    def _load(mesh):
+        if isinstance(mesh, (str, bytes, os.PathLike)):
+            from . import meshes  # noqa: PLC0415
+
+            points, tris = meshes.load_mesh(mesh)
+        else:
+            try:
+                points, tris = mesh
+            except (TypeError, ValueError):
+                raise ValueError("mesh is not allowed: give a mesh file or a (points, triangles) pair") from None
+        points = _points("mesh points", points)
+        tris = np.asarray(tris)
+        if tris.ndim != 2 or tris.shape[1] != 3 or len(tris) == 0 or not np.issubdtype(tris.dtype, np.integer):
+            raise ValueError(f"mesh triangles with shape {tris.shape} is not allowed: must be (T, 3) integers")
+        if tris.min() < 0 or tris.max() >= len(points):
+            raise ValueError("mesh triangles are not allowed: they index points that do not exist")
+        return points, tris.astype(np.int32)
+
+    def _mesh(self, frame, x):
+        key = (frame, x.dtype, str(x.device))
+        d = self._wp.get(key)
+        if d is None:
+            points, tris = self.meshes[frame]
+            flat = wp.array(tris.reshape(-1), dtype=wp.int32, device=x.device)
+            mesh = wp.Mesh(
+                points=wp.array(points.astype(np.float32), dtype=wp.vec3f, device=x.device),
+                indices=flat,
+                support_winding_number=self.mode == "outside",
+            )
+            verts = wp.array(points, dtype=x.dtype, device=x.device)
+            d = (mesh, verts, flat)
+            self._wp[key] = d
+        return d
+
+    def _launch(self, frame, x, out, scale):
+        S = _scalar_of(x)
+        k = _kernels(S)
+        dev = x.device
+        mesh, verts, flat = self._mesh(frame, x)
+        n = x.shape[0]
+        key = (frame, x.dtype, str(dev), n)
+        s = self._scratch.get(key)
+        if s is None:
+            s = types.SimpleNamespace(
+                closest=wp.zeros(n, dtype=x.dtype, device=dev),
+                code=wp.zeros(n, dtype=wp.int32, device=dev),
+                unmatched=wp.zeros(1, dtype=wp.int32, device=dev),
+            )
+            self._scratch[key] = s
+        s.unmatched.zero_()
+        wp.launch(
+            k.closest_on_mesh, n,
+            [mesh.id, x, verts, flat, wp.float32(self.max_dist), int(self.mode == "outside")],
+            [s.closest, s.code, s.unmatched], device=dev, record_tape=False,
+        )
+        self._keep.append(mesh)
+        wp.launch(k.mesh_term, n, [x, s.closest, s.code, S(self.max_dist**2), S(scale / n)], [out], device=dev)
+        self.unmatched[frame] = int(s.unmatched.numpy()[0])
+
+    def __repr__(self):
+        return f"MeshLoss(frames={list(self.frames)}, mode={self.mode!r}, weight={self.weight:g})"
+
+
+def surface_particles(model) -> np.ndarray:
+    """Indices of the particles on a body's surface in the model's initial configuration.
+
+    Particles are on each body's lattice; one is on the surface when any of its six face
+    neighbours on the lattice is not a particle of the same body.
+    """
+    x = np.asarray(model.particle_x0, dtype=np.float64)
+    body = np.asarray(model.particle_body_np, dtype=np.int64)
+    q = np.zeros((len(x), 3), dtype=np.int64)
+    for b in np.unique(body):
+        sel = body == b
+        q[sel] = np.round((x[sel] - x[sel].min(axis=0)) / model.spacing).astype(np.int64) + 1
+    dims = q.max(axis=0) + 2
+
+    def encode(c):
+        return ((body * dims[0] + c[:, 0]) * dims[1] + c[:, 1]) * dims[2] + c[:, 2]
+
+    keys = np.sort(encode(q))
+    free = np.zeros(len(x), dtype=bool)
+    for axis in range(3):
+        for sign in (-1, 1):
+            c = q.copy()
+            c[:, axis] += sign
+            k = encode(c)
+            pos = np.clip(np.searchsorted(keys, k), 0, len(keys) - 1)
+            free |= keys[pos] != k
+    return np.flatnonzero(free).astype(np.int32)

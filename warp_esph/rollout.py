@@ -1,0 +1,496 @@
+"""Differentiable rollouts of any length, with optional segment checkpointing.
+
+``Rollout(model, steps, dt, frames=[...], checkpoint_every=None)`` runs ``steps`` solver
+steps from the model's initial state and records the positions at ``frames`` (step
+indices in ``[0, steps]``). ``backward`` takes the gradient of a loss with respect to
+those positions (or a loss object from ``warp_esph.losses``) and returns the gradients
+with respect to every per-material parameter array of the model (``mu, lam,
+yield_stress, flow_rate, hardening, pressure_stiffness, viscosity``) and to the initial
+state (``x0, v0, F0, alpha0``)::
+
+    model = builder.finalize(dtype=wp.float64, requires_grad=True)
+    rollout = Rollout(model, steps=200, dt=1e-3, frames=[100, 200], checkpoint_every=50)
+    positions = rollout.forward()                  # (2, n, 3) numpy
+    value, grads = rollout.backward(loss)          # loss: a warp_esph.losses.Loss
+    grads["yield_stress"], grads["v0"]             # per material, per particle
+
+Memory
+------
+Without checkpointing (``checkpoint_every=None``) the forward pass is recorded on one
+``wp.Tape`` with one ``State`` per step: memory grows with ``steps`` (about 1.1 kB
+per particle per step in float64, see ``docs/fitting.md``). With ``checkpoint_every=S``
+the forward pass runs untaped, keeping only the state fields (``x, v, F, alpha``) at the
+start of every segment of ``S`` steps; ``backward`` re-runs each segment on a fresh tape,
+last segment first, seeds its end state with the adjoint that the later segment left at
+its start, and adds its parameter gradients into separate buffers before
+``tape.zero()`` (which also zeroes the model's parameter ``.grad``; WARP_NOTES trap 6).
+Memory is then ``steps / S`` light checkpoints plus ``S + 1`` taped states; time is one
+extra forward pass. The re-run is bitwise identical to the first, so the checkpointed
+gradient equals the full-tape one up to the order of floating-point sums (tested to
+1e-9 relative in float64).
+
+Per-particle parameters
+-----------------------
+The model design is one material per particle index: ``split_materials(model)`` returns
+a copy of a model in which every particle (of the chosen bodies) has its own material
+index, so each material parameter array becomes a per-particle field whose gradient
+``backward`` returns particle by particle.
+
+The gradient with respect to ``x0`` holds the SPH rest density fixed (it is a constant
+of the model, computed once from the model's own initial positions).
+"""
+
+import functools
+import types
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import warp as wp
+
+from . import checks
+from ._types import type_set
+from .model import Model, State
+from .solver import Solver
+
+__all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS"]
+
+#: The per-material parameter arrays of a ``Model`` whose gradients ``backward`` returns.
+PARAMETERS = Model.MATERIAL_FIELDS
+#: The initial-state gradients ``backward`` returns, by key.
+STATE_GRADIENTS = {"x0": "x", "v0": "v", "F0": "F", "alpha0": "alpha"}
+
+
+@functools.cache
+def _kernels(scalar):
+    T = type_set(scalar)
+    vec3 = T.vec3
+
+    @wp.kernel(enable_backward=False)
+    def add_vec3(src: wp.array(dtype=vec3), dst: wp.array(dtype=vec3)):
+        i = wp.tid()
+        dst[i] = dst[i] + src[i]
+
+    return types.SimpleNamespace(add_vec3=add_vec3)
+
+
+def _differentiable_solver(model: Model) -> Solver:
+    """A solver whose untaped steps run the same kernels as its taped ones."""
+    try:
+        return Solver(model, fused=False)
+    except TypeError:  # a Solver without the fused fast path
+        return Solver(model)
+
+
+class _Checkpoint:
+    """The state fields of one ``State`` (what a segment needs to restart), without grads."""
+
+    def __init__(self, model: Model):
+        n, T, dev = model.particle_count, model.types, model.device
+        self.x = wp.zeros(n, dtype=T.vec3, device=dev)
+        self.v = wp.zeros(n, dtype=T.vec3, device=dev)
+        self.F = wp.zeros(n, dtype=T.mat33, device=dev)
+        self.alpha = wp.zeros(n, dtype=T.scalar, device=dev)
+
+    def save(self, state):
+        for name in State.STATE_FIELDS:
+            wp.copy(getattr(self, name), getattr(state, name))
+
+    @property
+    def nbytes(self) -> int:
+        return sum(getattr(self, k).capacity for k in State.STATE_FIELDS)
+
+
+def state_nbytes(state: State) -> int:
+    """Bytes held by a ``State``'s arrays and their gradients."""
+    total = 0
+    for value in vars(state).values():
+        if isinstance(value, wp.array):
+            total += value.capacity
+            if value.grad is not None:
+                total += value.grad.capacity
+    return total
+
+
+class Rollout:
+    """A differentiable run of ``steps`` steps of ``dt`` observing positions at ``frames``.
+
+    - ``model``: finalized with ``requires_grad=True`` (float64 to validate gradients).
+    - ``frames``: step indices in ``[0, steps]`` whose positions ``forward`` returns and
+      whose position gradients ``backward`` takes; default ``[steps]``. Sorted, unique.
+    - ``checkpoint_every``: ``None`` records the whole run on one tape; an integer ``S``
+      keeps only segment starts every ``S`` steps and re-runs segments in ``backward``.
+    - ``solver``: a ``Solver`` of ``model`` (default: a new one). It and its hash grid are
+      kept for the rollout's lifetime. Its untaped fast path (``solver.fused``) is
+      switched off, so an untaped forward step is the step that a tape records.
+    """
+
+    def __init__(self, model: Model, steps: int, dt: float, frames: Sequence[int] | None = None,
+                 checkpoint_every: int | None = None, solver: Solver | None = None):
+        if not isinstance(model, Model):
+            raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
+        if not model.requires_grad:
+            raise ValueError("model is not allowed: it was finalized without requires_grad=True, so its "
+                             "parameter arrays have no gradients; use builder.finalize(requires_grad=True)")
+        self.model = model
+        self.steps = checks.positive_int("steps", steps)
+        self.dt = checks.positive("dt", dt)
+        if frames is None:
+            frames = [self.steps]
+        frames = [int(f) for f in np.atleast_1d(np.asarray(frames, dtype=np.int64))]
+        if not frames:
+            raise ValueError("frames = [] is not allowed: give at least one step index")
+        bad = [f for f in frames if not 0 <= f <= self.steps]
+        if bad:
+            raise ValueError(f"frames = {bad!r} are not allowed: step indices must be in [0, steps = {self.steps}]")
+        self.frames = tuple(sorted(set(frames)))
+        if checkpoint_every is None:
+            self.segment = self.steps
+        else:
+            self.segment = min(checks.positive_int("checkpoint_every", checkpoint_every), self.steps)
+        self.checkpointing = self.segment < self.steps
+        if solver is None:
+            solver = _differentiable_solver(model)
+        elif not isinstance(solver, Solver) or solver.model is not model:
+            raise ValueError("solver is not allowed: it must be a warp_esph.Solver built for this model")
+        # The untaped forward of a checkpointed rollout must compute exactly what the
+        # taped re-run of ``backward`` records: no fast path that only runs untaped.
+        if getattr(solver, "fused", False):
+            solver.fused = False
+        self.solver = solver
+        self.solver.check_dt(self.dt)
+        self._k = _kernels(model.scalar)
+        T, n, dev = model.types, model.particle_count, model.device
+        #: Positions at each frame after ``forward`` (Warp arrays, no gradients).
+        self.frame_positions = [wp.zeros(n, dtype=T.vec3, device=dev) for _ in self.frames]
+        self._frame_slot = {f: k for k, f in enumerate(self.frames)}
+        # (start step, number of steps) of each segment.
+        self.segments = [(s, min(self.segment, self.steps - s)) for s in range(0, self.steps, self.segment)]
+        self._initial = model.state(requires_grad=False)
+        self._states: list[State] | None = None  # taped states: whole run, or one segment
+        self._pair: list[State] | None = None  # untaped ping-pong pair (checkpointed forward)
+        self._checkpoints: list[_Checkpoint] = []
+        self._tape: wp.Tape | None = None
+        self._forward_done = False
+        #: Incremented by every ``forward``: lets callers (the torch wrapper) tell runs apart.
+        self.forward_count = 0
+
+    # ----------------------------------------------------------------- set-up
+    def set_parameters(self, values: Mapping[str, object]):
+        """Assign per-material parameter arrays (``{name: array of n_materials}``)."""
+        m = self.model
+        for name, value in values.items():
+            if name not in PARAMETERS:
+                raise ValueError(f"parameter {name!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
+            arr = getattr(m, name)
+            v = np.asarray(value, dtype=m.types.np_dtype).reshape(-1)
+            if v.size == 1 and arr.shape[0] > 1:
+                v = np.full(arr.shape[0], v[0], dtype=v.dtype)
+            if v.shape[0] != arr.shape[0]:
+                raise ValueError(f"{name} has {v.shape[0]} values, the model {arr.shape[0]} materials")
+            if not np.isfinite(v).all():
+                raise ValueError(f"{name} = {v!r} is not allowed: values must be finite")
+            arr.assign(v)
+
+    def get_parameters(self) -> dict[str, np.ndarray]:
+        return {name: getattr(self.model, name).numpy().copy() for name in PARAMETERS}
+
+    def _load_initial(self, initial_state, x0, v0, F0, alpha0):
+        init = self._initial
+        m = self.model
+        if initial_state is not None:
+            if not isinstance(initial_state, State) or initial_state.particle_count != m.particle_count:
+                raise ValueError("initial_state is not allowed: it must be a warp_esph.State of this model")
+            init.assign(initial_state)
+        else:
+            init.x.assign(m.particle_x0)
+            init.v.assign(m.particle_v0)
+            init.F.assign(np.tile(np.eye(3, dtype=m.types.np_dtype), (m.particle_count, 1, 1)))
+            init.alpha.zero_()
+        for name, value, shape in (("x0", x0, (3,)), ("v0", v0, (3,)), ("F0", F0, (3, 3)), ("alpha0", alpha0, ())):
+            if value is None:
+                continue
+            arr = getattr(init, STATE_GRADIENTS[name])
+            if isinstance(value, wp.array):
+                value = value.numpy()
+            v = np.asarray(value, dtype=m.types.np_dtype)
+            if v.shape != (m.particle_count, *shape):
+                if name == "alpha0" and v.size == 1:
+                    v = np.full(m.particle_count, float(v), dtype=m.types.np_dtype)
+                else:
+                    raise ValueError(f"{name} with shape {v.shape} is not allowed: must be {(m.particle_count, *shape)}")
+            arr.assign(v)
+
+    def _taped_states(self, count: int) -> list[State]:
+        if self._states is None or len(self._states) < count:
+            self._states = [self.model.state(requires_grad=True) for _ in range(count)]
+        return self._states
+
+    # ---------------------------------------------------------------- forward
+    def forward(self, x0=None, v0=None, *, F0=None, alpha0=None, initial_state: State | None = None) -> np.ndarray:
+        """Run the rollout; returns the positions at ``frames`` as an ``(frames, n, 3)`` array.
+
+        The initial state is the model's (``particle_x0``, ``particle_v0``, F = I, alpha =
+        0), or ``initial_state``'s fields, with ``x0, v0, F0, alpha0`` overriding.
+        """
+        self._load_initial(initial_state, x0, v0, F0, alpha0)
+        self._tape = None
+        if self.checkpointing:
+            self._forward_checkpointed()
+        else:
+            states = self._taped_states(self.steps + 1)
+            states[0].assign(self._initial)
+            tape = wp.Tape()
+            with tape:
+                for k in range(self.steps):
+                    self.solver.step(states[k], states[k + 1], self.dt)
+            self._tape = tape
+            for f, out in zip(self.frames, self.frame_positions):
+                wp.copy(out, states[f].x)
+        self._forward_done = True
+        self.forward_count += 1
+        return self.positions()
+
+    def _forward_checkpointed(self):
+        if self._pair is None:
+            self._pair = [self.model.state(requires_grad=False) for _ in range(2)]
+        if len(self._checkpoints) != len(self.segments):
+            self._checkpoints = [_Checkpoint(self.model) for _ in self.segments]
+        cur, nxt = self._pair
+        cur.assign(self._initial)
+        seg = 0
+        for k in range(self.steps + 1):
+            if seg < len(self.segments) and self.segments[seg][0] == k:
+                self._checkpoints[seg].save(cur)
+                seg += 1
+            if k in self._frame_slot:
+                wp.copy(self.frame_positions[self._frame_slot[k]], cur.x)
+            if k < self.steps:
+                self.solver.step(cur, nxt, self.dt)
+                cur, nxt = nxt, cur
+
+    def positions(self) -> np.ndarray:
+        """Positions at ``frames`` of the last ``forward``, ``(frames, n, 3)``."""
+        return np.stack([a.numpy() for a in self.frame_positions])
+
+    # --------------------------------------------------------------- backward
+    def _frame_gradients(self, grads) -> dict[int, wp.array]:
+        """Normalise the incoming position gradients to ``{frame: wp.array(vec3)}``."""
+        m = self.model
+        T = m.types
+        shape = (m.particle_count, 3)
+        if isinstance(grads, Mapping):
+            items = list(grads.items())
+        else:
+            if isinstance(grads, np.ndarray) and grads.ndim == 2 and len(self.frames) == 1:
+                grads = [grads]
+            grads = list(grads)
+            if len(grads) != len(self.frames):
+                raise ValueError(f"{len(grads)} frame gradients given, the rollout observes {len(self.frames)} frames")
+            items = list(zip(self.frames, grads))
+        out = {}
+        for f, g in items:
+            if f not in self._frame_slot:
+                raise ValueError(f"gradient for step {f!r} is not allowed: the rollout observes steps {list(self.frames)}")
+            if g is None:
+                continue
+            if isinstance(g, wp.array):
+                if g.dtype == T.vec3 and g.shape == (m.particle_count,) and g.device == m.device:
+                    out[f] = g
+                    continue
+                g = g.numpy()
+            a = np.asarray(g, dtype=T.np_dtype)
+            if a.shape != shape:
+                raise ValueError(f"gradient for step {f} with shape {a.shape} is not allowed: must be {shape}")
+            out[f] = wp.array(a, dtype=T.vec3, device=m.device)
+        return out
+
+    def _zero_parameter_grads(self):
+        for name in PARAMETERS:
+            getattr(self.model, name).grad.zero_()
+
+    def _add_parameter_grads(self, acc: dict[str, np.ndarray]):
+        for name in PARAMETERS:
+            acc[name] += getattr(self.model, name).grad.numpy()
+
+    def backward(self, grads) -> tuple[float | None, dict[str, np.ndarray]]:
+        """Gradients of a loss through the last ``forward``.
+
+        ``grads``: a ``warp_esph.losses.Loss`` (evaluated on the frame positions), or the
+        gradient of the loss with respect to the positions at ``frames``: a sequence (one
+        ``(n, 3)`` array per frame, ``None`` to skip one), an ``(frames, n, 3)`` array, or
+        ``{step: (n, 3) array}``.
+
+        Returns ``(loss value or None, gradients)``; gradients are numpy arrays keyed by
+        parameter name (one value per material) and ``x0, v0, F0, alpha0`` (per particle).
+        The model's parameter values must not change between ``forward`` and ``backward``.
+        """
+        if not self._forward_done:
+            raise RuntimeError("backward() before forward(): run forward() first")
+        value = None
+        if hasattr(grads, "value_and_grad"):
+            value, grads = grads.value_and_grad(dict(zip(self.frames, self.frame_positions)))
+        frame_grads = self._frame_gradients(grads)
+        acc = {name: np.zeros(getattr(self.model, name).shape[0], dtype=self.model.types.np_dtype) for name in PARAMETERS}
+        if self.checkpointing:
+            adj = self._backward_checkpointed(frame_grads, acc)
+        else:
+            adj = self._backward_full(frame_grads, acc)
+        result = dict(acc)
+        result.update(adj)
+        return value, result
+
+    def _seed(self, arr: wp.array, g: wp.array):
+        wp.launch(self._k.add_vec3, arr.shape[0], [g], [arr.grad], device=self.model.device, record_tape=False)
+
+    def _backward_full(self, frame_grads, acc):
+        states = self._states
+        tape = self._tape
+        tape.zero()
+        for s in states[: self.steps + 1]:
+            for name in State.STATE_FIELDS:
+                getattr(s, name).grad.zero_()
+        self._zero_parameter_grads()
+        for f, g in frame_grads.items():
+            self._seed(states[f].x, g)
+        tape.backward()
+        self._add_parameter_grads(acc)
+        adj = {key: getattr(states[0], name).grad.numpy().copy() for key, name in STATE_GRADIENTS.items()}
+        tape.zero()
+        for name in State.STATE_FIELDS:
+            getattr(states[0], name).grad.zero_()
+        return adj
+
+    def _backward_checkpointed(self, frame_grads, acc):
+        states = self._taped_states(self.segment + 1)
+        adj: dict[str, wp.array] | None = None  # adjoint of the current segment's end state
+        for (start, length), ck in reversed(list(zip(self.segments, self._checkpoints))):
+            seg = states[: length + 1]
+            for s in seg:
+                for name in State.STATE_FIELDS:
+                    getattr(s, name).grad.zero_()
+            seg[0].assign(ck)
+            tape = wp.Tape()
+            with tape:
+                for k in range(length):
+                    self.solver.step(seg[k], seg[k + 1], self.dt)
+            end = seg[length]
+            if adj is not None:
+                for name in State.STATE_FIELDS:
+                    wp.copy(getattr(end, name).grad, adj[name])
+            for f, g in frame_grads.items():
+                if start < f <= start + length:
+                    self._seed(seg[f - start].x, g)
+            self._zero_parameter_grads()
+            tape.backward()
+            # Trap 6: tape.zero() zeroes the parameter grads too: keep them first.
+            self._add_parameter_grads(acc)
+            adj = {name: wp.clone(getattr(seg[0], name).grad) for name in State.STATE_FIELDS}
+            tape.zero()
+            del tape
+        if 0 in frame_grads:
+            self._seed_plain(adj["x"], frame_grads[0])
+        for s in states:
+            for name in State.STATE_FIELDS:
+                getattr(s, name).grad.zero_()
+        self._zero_parameter_grads()
+        return {key: adj[name].numpy().copy() for key, name in STATE_GRADIENTS.items()}
+
+    def _seed_plain(self, arr: wp.array, g: wp.array):
+        wp.launch(self._k.add_vec3, arr.shape[0], [g], [arr], device=self.model.device, record_tape=False)
+
+    # ------------------------------------------------------------- utilities
+    def value_and_grad(self, loss, **initial) -> tuple[float, dict[str, np.ndarray]]:
+        """``forward(**initial)`` then ``backward(loss)``: the loss value and its gradients."""
+        self.forward(**initial)
+        value, grads = self.backward(loss)
+        return value, grads
+
+    def memory_bytes(self) -> dict[str, int]:
+        """Bytes held by the rollout's Warp arrays: taped states, checkpoints, frame buffers."""
+        taped = sum(state_nbytes(s) for s in (self._states or []))
+        pair = sum(state_nbytes(s) for s in (self._pair or []))
+        ck = sum(c.nbytes for c in self._checkpoints)
+        frames = sum(a.capacity for a in self.frame_positions)
+        return {"taped_states": taped, "untaped_states": pair, "checkpoints": ck, "frames": frames,
+                "total": taped + pair + ck + frames}
+
+    def release(self):
+        """Free the taped states and checkpoints (they are re-allocated when needed)."""
+        self._states = None
+        self._pair = None
+        self._checkpoints = []
+        self._tape = None
+        self._forward_done = False
+
+    def __repr__(self):
+        mode = f"checkpoint_every={self.segment}" if self.checkpointing else "full tape"
+        return f"Rollout({self.model.particle_count} particles, {self.steps} steps of {self.dt:g} s, frames={list(self.frames)}, {mode})"
+
+
+def split_materials(model: Model, bodies: Sequence[int | str] | None = None) -> Model:
+    """A copy of ``model`` in which every particle of ``bodies`` (default: all) has its own material.
+
+    Each material parameter array then holds one value per such particle (a per-particle
+    field; other bodies keep their shared materials, renumbered after them). The copy
+    has the same precision, device and ``requires_grad`` as ``model`` and starts from its
+    ``particle_x0`` / ``particle_v0``.
+    """
+    if not isinstance(model, Model):
+        raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
+    names = [b.name for b in model.bodies]
+    if bodies is None:
+        chosen = set(range(len(model.bodies)))
+    else:
+        chosen = set()
+        for b in bodies:
+            if isinstance(b, str):
+                if b not in names:
+                    raise ValueError(f"body {b!r} is not allowed: the model's bodies are {', '.join(names)}")
+                chosen.add(names.index(b))
+            elif isinstance(b, (int, np.integer)) and 0 <= int(b) < len(names):
+                chosen.add(int(b))
+            else:
+                raise ValueError(f"body {b!r} is not allowed: give a body name or an index in [0, {len(names) - 1}]")
+    old = model.particle_material_np
+    body_of = model.particle_body_np
+    materials = []
+    new_index = np.empty(model.particle_count, dtype=np.int32)
+    per_particle = np.isin(body_of, sorted(chosen))
+    for i in np.flatnonzero(per_particle):
+        new_index[i] = len(materials)
+        materials.append(model.materials[old[i]])
+    shared = {}
+    for i in np.flatnonzero(~per_particle):
+        k = int(old[i])
+        if k not in shared:
+            shared[k] = len(materials)
+            materials.append(model.materials[k])
+        new_index[i] = shared[k]
+    new_bodies = [
+        type(b)(name=b.name, start=b.start, count=b.count, material=int(new_index[b.start]), kind=b.kind) for b in model.bodies
+    ]
+    out = Model(
+        positions=model.particle_x0.copy(),
+        velocities=model.particle_v0.copy(),
+        particle_material=new_index,
+        particle_body=body_of.copy(),
+        materials=materials,
+        bodies=new_bodies,
+        spacing=model.spacing,
+        support_radius=model.support_radius,
+        gravity=model.gravity,
+        planes=model.planes,
+        spheres=model.spheres,
+        boxes=model.boxes,
+        max_neighbors=model.max_neighbors,
+        device=model.device,
+        scalar=model.scalar,
+        requires_grad=model.requires_grad,
+    )
+    # Copy the rest density rather than recompute it, so the split model runs identically.
+    wp.copy(out.particle_rest_density, model.particle_rest_density)
+    # Copy the parameter values too (they may differ from model.materials after a fit).
+    for name in PARAMETERS:
+        vals = getattr(model, name).numpy()
+        getattr(out, name).assign(vals[old][per_particle].tolist() + [vals[k] for k in shared])
+    return out

@@ -1,0 +1,193 @@
+"""PyTorch interop: a ``Rollout`` as a ``torch.autograd.Function``.
+
+::
+
+    import torch
+    from warp_esph.torch import rollout_positions, RolloutModule
+
+    rollout = Rollout(model, steps=100, dt=1e-3, frames=[50, 100])   # float64 model
+    mu = torch.tensor([1e3], dtype=torch.float64, requires_grad=True)
+    v0 = torch.zeros(model.particle_count, 3, dtype=torch.float64, requires_grad=True)
+    x = rollout_positions(rollout, {"mu": mu}, v0=v0)                # (frames, n, 3)
+    loss = ((x - target) ** 2).mean()
+    loss.backward()                                                  # mu.grad, v0.grad
+
+Inputs: any of the model's per-material parameter arrays (one value per material, see
+``warp_esph.rollout.PARAMETERS``) and the initial positions ``x0`` and velocities ``v0``
+(``(n, 3)``); inputs left out keep the model's values and get no gradient. Output: the
+positions at the rollout's ``frames``. The forward pass sets the model's parameter
+arrays to the given values (they keep them afterwards). The backward pass re-runs the
+forward pass first when the rollout has been run with other inputs since (as
+``torch.autograd.gradcheck`` does), so every output's gradient is taken at its own
+inputs. Tensors are copied to and from the model's device; use a float64 model with
+float64 tensors for ``gradcheck``.
+
+``RolloutModule`` holds chosen parameters as ``torch.nn.Parameter`` in log space (for
+positive ones) so ``torch.optim.Adam`` can drive a fit.
+
+PyTorch is imported only when these functions are used; without it they raise an
+``ImportError`` that says how to install it.
+"""
+
+import numpy as np
+
+from .rollout import PARAMETERS, Rollout
+
+__all__ = ["rollout_positions", "RolloutModule", "require_torch"]  # noqa: F822 (RolloutModule: module __getattr__)
+
+_INSTALL = "warp_esph.torch needs PyTorch: pip install torch==2.13.0 (or pip install 'warp-esph[torch]')"
+
+
+def require_torch():
+    """The ``torch`` module, or an ``ImportError`` with install instructions."""
+    try:
+        import torch  # noqa: PLC0415
+    except ImportError as e:  # pragma: no cover - torch is installed in the test environment
+        raise ImportError(_INSTALL) from e
+    return torch
+
+
+_FUNCTION = None
+
+
+def _function():
+    global _FUNCTION
+    if _FUNCTION is not None:
+        return _FUNCTION
+    torch = require_torch()
+
+    def _numpy(t, dtype):
+        return t.detach().to("cpu").numpy().astype(dtype, copy=True)
+
+    class RolloutFunction(torch.autograd.Function):
+        """``(rollout, names, x0, v0, *values) -> positions (frames, n, 3)``."""
+
+        @staticmethod
+        def forward(ctx, rollout, names, x0, v0, *values):
+            np_dtype = rollout.model.types.np_dtype
+            given = {name: _numpy(v, np_dtype) for name, v in zip(names, values)}
+            rollout.set_parameters(given)
+            ctx.rollout = rollout
+            ctx.names = names
+            ctx.params = rollout.get_parameters()
+            ctx.x0 = None if x0 is None else _numpy(x0, np_dtype)
+            ctx.v0 = None if v0 is None else _numpy(v0, np_dtype)
+            out = rollout.forward(x0=ctx.x0, v0=ctx.v0)
+            ctx.forward_count = rollout.forward_count
+            ref = next((t for t in (x0, v0, *values) if t is not None), None)
+            dtype = ref.dtype if ref is not None else torch.float64
+            device = ref.device if ref is not None else torch.device("cpu")
+            ctx.tensor_dtype, ctx.device = dtype, device
+            return torch.from_numpy(out).to(dtype=dtype, device=device)
+
+        @staticmethod
+        @torch.autograd.function.once_differentiable
+        def backward(ctx, grad_out):
+            rollout: Rollout = ctx.rollout
+            current = rollout.get_parameters()
+            same = rollout.forward_count == ctx.forward_count and all(
+                np.array_equal(current[k], ctx.params[k]) for k in PARAMETERS
+            )
+            if not same:
+                # The rollout ran with other inputs since: redo this forward first.
+                rollout.set_parameters(ctx.params)
+                rollout.forward(x0=ctx.x0, v0=ctx.v0)
+                ctx.forward_count = rollout.forward_count
+            _, grads = rollout.backward(_numpy(grad_out, rollout.model.types.np_dtype))
+
+            def tensor(a):
+                return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=ctx.tensor_dtype, device=ctx.device)
+
+            need = ctx.needs_input_grad
+            gx0 = tensor(grads["x0"]) if need[2] else None
+            gv0 = tensor(grads["v0"]) if need[3] else None
+            gvals = [tensor(grads[name]) if need[4 + k] else None for k, name in enumerate(ctx.names)]
+            return (None, None, gx0, gv0, *gvals)
+
+    _FUNCTION = RolloutFunction
+    return _FUNCTION
+
+
+def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
+    """Positions at ``rollout.frames`` as a differentiable torch tensor ``(frames, n, 3)``.
+
+    ``params``: ``{name: tensor of one value per material}`` (a scalar tensor is
+    broadcast to every material); ``x0``, ``v0``: ``(n, 3)`` tensors or None.
+    """
+    torch = require_torch()
+    if not isinstance(rollout, Rollout):
+        raise ValueError(f"rollout = {rollout!r} is not allowed: must be a warp_esph.rollout.Rollout")
+    params = dict(params or {})
+    names, values = [], []
+    n_mat = len(rollout.model.materials)
+    n = rollout.model.particle_count
+    for name, value in params.items():
+        if name not in PARAMETERS:
+            raise ValueError(f"parameter {name!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
+        if not isinstance(value, torch.Tensor):
+            value = torch.as_tensor(value, dtype=torch.float64)
+        if value.dim() == 0:
+            value = value.expand(n_mat)
+        if value.shape != (n_mat,):
+            raise ValueError(f"{name} with shape {tuple(value.shape)} is not allowed: must be ({n_mat},), one value per material")
+        names.append(name)
+        values.append(value)
+    for label, t in (("x0", x0), ("v0", v0)):
+        if t is not None and (not isinstance(t, torch.Tensor) or tuple(t.shape) != (n, 3)):
+            raise ValueError(f"{label} is not allowed: must be a torch tensor of shape ({n}, 3)")
+    return _function().apply(rollout, tuple(names), x0, v0, *values)
+
+
+_MODULE = None
+
+
+def _module_class():
+    global _MODULE
+    if _MODULE is not None:
+        return _MODULE
+    torch = require_torch()
+
+    class RolloutModule(torch.nn.Module):
+        """A ``torch.nn.Module`` with chosen material parameters as trainable ``nn.Parameter``.
+
+        ``RolloutModule(rollout, ["yield_stress", "flow_rate"])``: each parameter is
+        stored as ``log(value)`` (``log_space=True``, for positive parameters) with one
+        entry per material, initialised from the model. ``module(x0=None, v0=None)``
+        returns the positions at the rollout's frames; ``module.values()`` the current
+        parameter values.
+        """
+
+        def __init__(self, rollout: Rollout, params=("yield_stress", "flow_rate"), log_space: bool = True):
+            super().__init__()
+            if not isinstance(rollout, Rollout):
+                raise ValueError(f"rollout = {rollout!r} is not allowed: must be a warp_esph.rollout.Rollout")
+            self.rollout = rollout
+            self.names = [params] if isinstance(params, str) else list(params)
+            self.log_space = bool(log_space)
+            current = rollout.get_parameters()
+            for name in self.names:
+                if name not in PARAMETERS:
+                    raise ValueError(f"parameter {name!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
+                v = torch.tensor(current[name], dtype=torch.float64)
+                if self.log_space:
+                    if not bool((v > 0).all()):
+                        raise ValueError(f"{name} = {current[name].tolist()} is not allowed in log space: values must be > 0")
+                    v = torch.log(v)
+                self.register_parameter(name, torch.nn.Parameter(v))
+
+        def values(self) -> dict:
+            """The parameter values (exp of the stored logs in log space)."""
+            return {n: (torch.exp(getattr(self, n)) if self.log_space else getattr(self, n)) for n in self.names}
+
+        def forward(self, x0=None, v0=None):
+            return rollout_positions(self.rollout, self.values(), x0=x0, v0=v0)
+
+    _MODULE = RolloutModule
+    return _MODULE
+
+
+def __getattr__(name):
+    # ``RolloutModule`` subclasses torch.nn.Module, so it is made when first asked for.
+    if name == "RolloutModule":
+        return _module_class()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
