@@ -101,3 +101,12 @@ def test_solver_rejects_bad_dt_and_warns_above_stability_limit():
         solver.step(a, b, 0.5 * limit)
     with pytest.raises(ValueError, match=r"min_neighbors = 0"):
         we.Solver(model, min_neighbors=0)
+
+
+def test_solver_rejects_bad_neighbor_skin_and_fused():
+    model = _one_box().finalize()
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match=r"neighbor_skin = .* is not allowed"):
+            we.Solver(model, neighbor_skin=bad)
+    with pytest.raises(ValueError, match=r"fused = 1 is not allowed: must be True or False"):
+        we.Solver(model, fused=1)

@@ -32,7 +32,7 @@ COUNT_INVERTED = 2
 def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
-    w_poly6 = smoothing.funcs(scalar).w_poly6
+    sm = smoothing.funcs(scalar)
 
     @wp.func
     def moment_sums(
@@ -51,12 +51,13 @@ def kernels(scalar) -> types.SimpleNamespace:
         xi = x[i]
         yi = y[i]
         bi = body[i]
+        c6 = sm.poly6_coef(h)
         for k in range(n):
             j = nbr[i, k]
             if body[j] == bi:
                 xb = x[j] - xi
                 yb = y[j] - yi
-                w = w_poly6(wp.dot(xb, xb), h)
+                w = sm.w_poly6_c(wp.dot(xb, xb), h, c6)
                 A += w * wp.outer(xb, xb)
                 B += w * wp.outer(yb, xb)
         return A, B

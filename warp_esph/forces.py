@@ -64,7 +64,7 @@ def funcs(scalar) -> types.SimpleNamespace:
 def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
-    grad_w = smoothing.funcs(scalar).grad_w_elastic
+    sm = smoothing.funcs(scalar)
 
     @wp.kernel
     def elastic_forces(
@@ -84,12 +84,13 @@ def kernels(scalar) -> types.SimpleNamespace:
         P = stress[i]
         Finv = F_inv[i]
         Vi = volume[i]
+        c_el = sm.elastic_coef(h)
         fi = vec3()
         for k in range(count[i]):
             j = nbr[i, k]
             if body[j] == bi:
                 # ½ g_ij = V_i V_j P*_i grad W(F_i^-1 (x_j - x_i))
-                g = Vi * volume[j] * (P * grad_w(Finv * (x[j] - xi), h))
+                g = Vi * volume[j] * (P * sm.grad_w_elastic_c(Finv * (x[j] - xi), h, c_el))
                 wp.atomic_add(f, j, g)
                 fi -= g
         wp.atomic_add(f, i, fi)

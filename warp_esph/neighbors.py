@@ -1,12 +1,34 @@
 """Neighbour lists (paper §4, SPEC §1.1): the up-to-30 nearest particles ``j != i`` with
-``|x_j - x_i| < h``, found with ``wp.HashGrid`` and stored as a fixed-width int32 row
-plus a count.
+``|x_j - x_i| < h``, stored as a fixed-width int32 row plus a count.
 
 The lists are integers: they are recorded once per step and reused unchanged by the
-backward pass, so the tape never queries a hash grid (WARP_NOTES trap 3). The same
-kernel evaluates the deformation-update guards of paper §4 that depend only on the
-neighbourhood (too few neighbours, ill-conditioned moment matrix), because they need
-an eigen-decomposition whose adjoint is not wanted.
+backward pass, so the tape never queries a hash grid (WARP_NOTES trap 3). The
+selection kernel can also evaluate the deformation-update guards of paper §4 that
+depend only on the neighbourhood (too few neighbours, ill-conditioned moment matrix),
+because they need an eigen-decomposition whose adjoint is not wanted, and the SPH
+density of the forward-only step.
+
+Two stages (a Verlet list with a skin):
+
+1. ``build_candidates``: ``wp.HashGrid`` query of every particle within ``h + skin``,
+   stored as an int32 row sorted by particle index, together with the positions it was
+   built from. Only done when needed.
+2. ``select_neighbors``, every step: the particles within ``h`` among the candidates;
+   where there are more than 30, the 30 smallest keys ``(|x_j - x_i|², j)`` (nearest
+   first, ties to the lower index). Rows are written in index order.
+
+The candidates stay complete while every pair has moved by less than ``skin`` relative
+to each other since they were built: ``NeighborSearch.update`` checks a bound on that
+(from the bounding box of the displacements, so a body translating as a whole never
+forces a rebuild) and rebuilds otherwise. Since the selection and its order depend
+only on the current distances and indices, the lists are then exactly those of a
+fresh search: the skin changes the cost, never the result (so a run resumed from a
+checkpoint with a new solver is bit-identical). ``skin = 0`` searches afresh every
+step.
+
+Ties at the 30-neighbour cap go to the lower index. (Before, rows were sorted by
+distance with ties in hash-grid arrival order, which depended on the grid resolution
+and device.)
 """
 
 import functools
@@ -17,137 +39,429 @@ import numpy as np
 import warp as wp
 
 from ._types import type_set
-from . import smoothing
+from . import pressure, smoothing
 
 #: Guard codes written per particle (0 = the MLS update may run).
 GUARD_OK = 0
 GUARD_FEW_NEIGHBORS = 1
 GUARD_ILL_CONDITIONED = 2
 
+#: The displacement bound must stay below this fraction of the skin (margin for the
+#: rounding of the distances the candidate test and the selection compute).
+SKIN_SAFETY = 0.95
+#: Hash-grid cell width as a fraction of the search radius h + skin (measured: 0.45 is
+#: 15 % faster than 1 and leaves ~7 out-of-order entries per row to sort, not ~400).
+CELL_FRACTION = 0.45
+#: Candidate rows never grow beyond this many entries (a collapsed body).
+MAX_CANDIDATES = 4096
+
 
 @functools.cache
 def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
-    w_poly6 = smoothing.funcs(scalar).w_poly6
+    sm = smoothing.funcs(scalar)
+    pressure_of = pressure.kernels(scalar).pressure
+
+    @wp.func
+    def guard_code(A: mat33, same: int, min_neighbors: int, max_condition: scalar) -> int:
+        """Guard of paper §4 from the moment matrix ``A`` of ``same`` same-body neighbours."""
+        code = int(0)
+        if same < min_neighbors:
+            code = 1
+        else:
+            # cond(A) <= tr(A)^3 / (4 det A) for a positive semi-definite A (lmax <= tr,
+            # l1 l2 <= (tr / 2)^2): below half the limit, A is certainly well conditioned
+            # and the eigen-decomposition is skipped.
+            tr = A[0, 0] + A[1, 1] + A[2, 2]
+            det = wp.determinant(A)
+            if not (det > scalar(0.0) and tr * tr * tr < scalar(2.0) * max_condition * det):
+                Q = mat33()
+                lam = vec3()
+                wp.eig3(A, Q, lam)
+                lmin = wp.min(wp.min(lam[0], lam[1]), lam[2])
+                lmax = wp.max(wp.max(lam[0], lam[1]), lam[2])
+                if lmin <= scalar(0.0) or lmax > max_condition * lmin:
+                    code = 2
+        return code
+
+    @wp.func
+    def key_greater(da: scalar, ja: int, db: scalar, jb: int) -> bool:
+        return da > db or (da == db and ja > jb)
+
+    @wp.func
+    def sift_down(nbr: wp.array2d(dtype=wp.int32), nbr_d2: wp.array2d(dtype=scalar), i: int, start: int, n: int):
+        # Max-heap on the key (d2, j) over nbr[i, :n], restored below position ``start``.
+        pos = start
+        child = 2 * pos + 1
+        while child < n:
+            if child + 1 < n and key_greater(nbr_d2[i, child + 1], nbr[i, child + 1], nbr_d2[i, child], nbr[i, child]):
+                child += 1
+            if key_greater(nbr_d2[i, child], nbr[i, child], nbr_d2[i, pos], nbr[i, pos]):
+                tj = nbr[i, pos]
+                td = nbr_d2[i, pos]
+                nbr[i, pos] = nbr[i, child]
+                nbr_d2[i, pos] = nbr_d2[i, child]
+                nbr[i, child] = tj
+                nbr_d2[i, child] = td
+                pos = child
+                child = 2 * pos + 1
+            else:
+                child = n
 
     @wp.kernel(enable_backward=False)
-    def to_float32(x: wp.array(dtype=vec3), out: wp.array(dtype=wp.vec3f)):
+    def grid_points(x: wp.array(dtype=vec3), out: wp.array(dtype=wp.vec3f)):
+        """float32 points for the hash grid with x and z swapped: its query visits cells
+        with the first coordinate fastest, so bodies sampled in lattice order (z fastest,
+        ``meshes.lattice_points``) come out nearly sorted by index."""
         i = wp.tid()
         p = x[i]
-        out[i] = wp.vec3f(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
+        out[i] = wp.vec3f(wp.float32(p[2]), wp.float32(p[1]), wp.float32(p[0]))
 
     @wp.kernel(enable_backward=False)
-    def find_neighbors(
+    def build_candidates(
         grid: wp.uint64,
         grid_points: wp.array(dtype=wp.vec3f),
         x: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        h: scalar,
-        min_neighbors: int,
-        max_condition: scalar,
-        nbr: wp.array2d(dtype=wp.int32),
-        nbr_d2: wp.array2d(dtype=scalar),
-        count: wp.array(dtype=wp.int32),
-        guard: wp.array(dtype=wp.int32),
+        radius: scalar,
+        cand: wp.array2d(dtype=wp.int32),
+        cand_count: wp.array(dtype=wp.int32),
+        overflow: wp.array(dtype=wp.int32),
+        x_ref: wp.array(dtype=vec3),
     ):
+        """Every ``j != i`` with ``|x_j - x_i| < radius``, sorted by index."""
         i = wp.tid()
         xi = x[i]
-        kmax = nbr.shape[1]
-        h2 = h * h
+        cap = cand.shape[1]
+        r2 = radius * radius
         n = int(0)
-        query = wp.hash_grid_query(grid, grid_points[i], wp.float32(h))
+        # The float32 query box is padded a little: the exact test below decides.
+        query = wp.hash_grid_query(grid, grid_points[i], wp.float32(radius) * wp.float32(1.0001))
         j = int(0)
         while wp.hash_grid_query_next(query, j):
             if j == i:
                 continue
             d = x[j] - xi
+            if wp.dot(d, d) >= r2:
+                continue
+            if n < cap:
+                cand[i, n] = j
+            n += 1
+        if n > cap:
+            wp.atomic_max(overflow, 0, n)
+            n = cap
+        cand_count[i] = n
+        # Sort by index (insertion sort: the query returns ascending runs, one per cell;
+        # sorting after the query costs 40 % less than inserting during it).
+        for a in range(1, n):
+            v = cand[i, a]
+            b = a
+            while b > 0 and cand[i, b - 1] > v:
+                cand[i, b] = cand[i, b - 1]
+                b -= 1
+            cand[i, b] = v
+        x_ref[i] = xi
+
+    @wp.kernel(enable_backward=False)
+    def displacement_bounds(x: wp.array(dtype=vec3), x_ref: wp.array(dtype=vec3), c: vec3, out: wp.array(dtype=scalar)):
+        """For the displacements d = x - x_ref: out[k] = max d_k, out[k + 3] = max -d_k,
+        out[6] = max |d - c|^2 for a given centre c."""
+        i = wp.tid()
+        d = x[i] - x_ref[i]
+        for k in range(3):
+            if d[k] > out[k]:
+                wp.atomic_max(out, k, d[k])
+            if -d[k] > out[k + 3]:
+                wp.atomic_max(out, k + 3, -d[k])
+        e = d - c
+        e2 = wp.dot(e, e)
+        if e2 > out[6]:
+            wp.atomic_max(out, 6, e2)
+
+    @wp.kernel(enable_backward=False)
+    def select_neighbors(
+        x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        mass: wp.array(dtype=scalar),
+        cand: wp.array2d(dtype=wp.int32),
+        cand_count: wp.array(dtype=wp.int32),
+        h: scalar,
+        min_neighbors: int,
+        max_condition: scalar,
+        with_guard: int,
+        with_density: int,
+        material: wp.array(dtype=wp.int32),
+        rest_density: wp.array(dtype=scalar),
+        pressure_stiffness: wp.array(dtype=scalar),
+        clamp: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        nbr_d2: wp.array2d(dtype=scalar),
+        count: wp.array(dtype=wp.int32),
+        guard: wp.array(dtype=wp.int32),
+        rho: wp.array(dtype=scalar),
+        p: wp.array(dtype=scalar),
+        vol: wp.array(dtype=scalar),
+    ):
+        """The neighbour rows at ``x``; with ``with_guard`` the guards of paper §4; with
+        ``with_density`` the SPH density ``rho``, pressure ``p`` and volume ``m / rho``."""
+        i = wp.tid()
+        xi = x[i]
+        bi = body[i]
+        kmax = nbr.shape[1]
+        h2 = h * h
+        nc = cand_count[i]
+        # Pass 1: the within-h candidates in index order while the row has room. A row
+        # that overflows becomes a max-heap on the key (d2, j); a nearer candidate
+        # replaces its root, so the row ends with the kmax smallest keys. Candidates come
+        # in index order, so a new one is below the root exactly when its d2 is.
+        n_in = int(0)
+        c = int(0)
+        # Branch-free while the row has room (whether a candidate is within h is hard to
+        # predict in a deformed body): write every candidate at the next free slot and
+        # advance only past those within h.
+        while c < nc and n_in < kmax:
+            j = cand[i, c]
+            d = x[j] - xi
             d2 = wp.dot(d, d)
-            if d2 >= h2:
-                continue
-            pos = int(0)
-            if n < kmax:
-                pos = n
-                n += 1
-            elif d2 < nbr_d2[i, kmax - 1]:
-                pos = kmax - 1
-            else:
-                continue
-            # Insertion keeps the row sorted by distance, ties by arrival order.
-            while pos > 0 and nbr_d2[i, pos - 1] > d2:
-                nbr[i, pos] = nbr[i, pos - 1]
-                nbr_d2[i, pos] = nbr_d2[i, pos - 1]
-                pos -= 1
-            nbr[i, pos] = j
-            nbr_d2[i, pos] = d2
+            nbr[i, n_in] = j
+            nbr_d2[i, n_in] = d2
+            n_in += wp.where(d2 < h2, 1, 0)
+            c += 1
+        while c < nc:
+            j = cand[i, c]
+            d = x[j] - xi
+            d2 = wp.dot(d, d)
+            if d2 < h2:
+                if n_in == kmax:
+                    for q in range(kmax // 2):
+                        sift_down(nbr, nbr_d2, i, kmax // 2 - 1 - q, kmax)
+                if d2 < nbr_d2[i, 0]:
+                    nbr[i, 0] = j
+                    nbr_d2[i, 0] = d2
+                    sift_down(nbr, nbr_d2, i, 0, kmax)
+                n_in += 1
+            c += 1
+        max_d2 = nbr_d2[i, 0]
+        max_j = nbr[i, 0]
+        n = n_in
+        if n_in > kmax:
+            # Pass 2: rewrite the row in index order, every key up to the largest kept.
+            # Branch-free as above; it stops at the kmax-th kept key.
+            n = int(0)
+            c = int(0)
+            while c < nc and n < kmax:
+                j = cand[i, c]
+                d = x[j] - xi
+                d2 = wp.dot(d, d)
+                nbr[i, n] = j
+                nbr_d2[i, n] = d2
+                n += wp.where(d2 < max_d2 or (d2 == max_d2 and j <= max_j), 1, 0)
+                c += 1
         count[i] = n
 
-        # Guards of paper §4 on the same-body neighbourhood used by the MLS fit.
+        # SPH density (pressure.density) and the guards of paper §4 on the same-body
+        # neighbourhood used by the MLS fit.
+        c6 = sm.poly6_coef(h)
+        r = scalar(0.0)
+        if with_density != 0:
+            r = mass[i] * sm.w_poly6_c(scalar(0.0), h, c6)
         A = mat33()
         same = int(0)
         for k in range(n):
-            jj = nbr[i, k]
-            if body[jj] == body[i]:
-                d = x[jj] - xi
-                A += w_poly6(wp.dot(d, d), h) * wp.outer(d, d)
-                same += 1
-        code = int(0)
-        if same < min_neighbors:
-            code = 1
-        else:
-            Q = mat33()
-            lam = vec3()
-            wp.eig3(A, Q, lam)
-            lmin = wp.min(wp.min(lam[0], lam[1]), lam[2])
-            lmax = wp.max(wp.max(lam[0], lam[1]), lam[2])
-            if lmin <= scalar(0.0) or lmax > max_condition * lmin:
-                code = 2
-        guard[i] = code
+            j = nbr[i, k]
+            w = sm.w_poly6_c(nbr_d2[i, k], h, c6)
+            if with_density != 0:
+                r += mass[j] * w
+            if with_guard != 0:
+                if body[j] == bi:
+                    d = x[j] - xi
+                    A += w * wp.outer(d, d)
+                    same += 1
+        if with_density != 0:
+            rho[i] = r
+            m = material[i]
+            p[i] = pressure_of(r, rest_density[i], pressure_stiffness[m], clamp[m])
+            vol[i] = mass[i] / r
+        if with_guard != 0:
+            guard[i] = guard_code(A, same, min_neighbors, max_condition)
 
-    return types.SimpleNamespace(to_float32=to_float32, find_neighbors=find_neighbors)
+    return types.SimpleNamespace(
+        grid_points=grid_points,
+        build_candidates=build_candidates,
+        displacement_bounds=displacement_bounds,
+        select_neighbors=select_neighbors,
+        guard_code=guard_code,
+    )
 
 
 class NeighborSearch:
-    """Owns the hash grid; ``build`` fills a state's neighbour arrays from its positions.
+    """Owns the hash grid and the candidate lists; fills a state's neighbour arrays.
 
-    The grid is periodic, so its resolution is chosen from the domain extent at each
-    build: cells of width ``h`` covering the bounding box (WARP_NOTES: HashGrid).
+    ``skin`` (a length, >= 0) is the Verlet margin of the candidate lists; ``build``
+    always searches afresh, ``update`` reuses the candidates while they are complete.
+    ``rebuilds`` counts the candidate builds.
     """
 
-    def __init__(self, particle_count: int, scalar, device, h: float, *, min_neighbors: int = 6, max_condition: float = 1.0e3):
+    def __init__(
+        self,
+        particle_count: int,
+        scalar,
+        device,
+        h: float,
+        *,
+        min_neighbors: int = 6,
+        max_condition: float = 1.0e3,
+        skin: float = 0.0,
+        spacing: float | None = None,
+    ):
         self.scalar = scalar
         self.device = device
         self.h = float(h)
+        self.skin = float(skin)
         self.min_neighbors = int(min_neighbors)
         self.max_condition = float(max_condition)
         self.kernels = kernels(scalar)
+        self.particle_count = int(particle_count)
         self._grid_dims = None
         self.grid = None
-        self._points = None if scalar is wp.float32 else wp.zeros(particle_count, dtype=wp.vec3f, device=device)
+        self._points = wp.zeros(particle_count, dtype=wp.vec3f, device=device)
+        # Candidate capacity from the lattice count inside h + skin, with room for compression.
+        dx = float(spacing) if spacing else self.h / 2.0
+        ball = 4.0 / 3.0 * math.pi * ((self.h + self.skin) / dx) ** 3
+        self._capacity = int(8 * math.ceil((1.5 * ball + 16) / 8))
+        self.candidates = None
+        self.candidate_count = wp.zeros(particle_count, dtype=wp.int32, device=device)
+        self._x_ref = wp.zeros(particle_count, dtype=type_set(scalar).vec3, device=device)
+        self._overflow = wp.zeros(1, dtype=wp.int32, device=device)
+        self._bounds = wp.zeros(7, dtype=scalar, device=device)
+        self._centre = (0.0, 0.0, 0.0)
+        self._have_candidates = False
+        self.rebuilds = 0
+        self.updates = 0
+
+    @property
+    def capacity(self) -> int:
+        return self._capacity
 
     def _ensure_grid(self, x: wp.array):
-        # Grid dimensions only grow, and only when the body's extent outgrows them, so the
-        # grid is reallocated rarely; cell aliasing of a periodic grid costs time, not
-        # correctness (every candidate is distance-filtered).
+        # Cells of a bit under half the search radius: about one particle each, so a
+        # query visits few points outside the ball and returns rows nearly in index order
+        # (grid_points). Dimensions are fixed at the first build from the extent then
+        # (with room to spread); cell aliasing of the periodic grid later costs time,
+        # not correctness (every candidate is distance-filtered).
         if self._grid_dims is None:
-            dims = 128 if x.shape[0] > 50_000 else 64
-            self._grid_dims = (dims, dims, dims)
+            self.cell_width = CELL_FRACTION * (self.h + self.skin)
+            xs = x.numpy()
+            extent = xs.max(axis=0) - xs.min(axis=0) if len(xs) else np.zeros(3)
+            extent = np.where(np.isfinite(extent), extent, 0.0)
+            dims = [int(min(256, max(32, 2 * math.ceil(e / self.cell_width) + 8))) for e in extent[::-1]]
+            # At most ~16 cells (two int32 each) per particle: a sparse scene aliases more.
+            limit = max(16 * x.shape[0], 64**3)
+            while dims[0] * dims[1] * dims[2] > limit and max(dims) > 32:
+                k = dims.index(max(dims))
+                dims[k] = max(32, dims[k] // 2)
+            self._grid_dims = tuple(dims)
             self.grid = wp.HashGrid(*self._grid_dims, device=self.device)
 
-    def build(self, x: wp.array, body: wp.array, nbr, nbr_d2, count, guard):
+    def _build_candidates(self, x: wp.array):
         self._ensure_grid(x)
         n = x.shape[0]
-        if self._points is None:
-            points = x
-        else:
-            wp.launch(self.kernels.to_float32, n, [x], [self._points], device=self.device, record_tape=False)
-            points = self._points
-        self.grid.build(points, self.h)
+        wp.launch(self.kernels.grid_points, n, [x], [self._points], device=self.device, record_tape=False)
+        points = self._points
+        radius = self.h + self.skin
+        self.grid.build(points, self.cell_width)
+        while True:
+            if self.candidates is None or self.candidates.shape[1] != self._capacity:
+                self.candidates = wp.empty((n, self._capacity), dtype=wp.int32, device=self.device)
+            self._overflow.zero_()
+            wp.launch(
+                self.kernels.build_candidates,
+                n,
+                [self.grid.id, points, x, self.scalar(radius)],
+                [self.candidates, self.candidate_count, self._overflow, self._x_ref],
+                device=self.device,
+                record_tape=False,
+            )
+            need = int(self._overflow.numpy()[0])
+            if need == 0:
+                break
+            if need > MAX_CANDIDATES:
+                raise RuntimeError(
+                    f"a particle has {need} particles within h + skin = {radius:g}: more than {MAX_CANDIDATES}; "
+                    "the body has collapsed (reduce dt)"
+                )
+            self._capacity = int(8 * math.ceil(1.25 * need / 8))
+        self._have_candidates = True
+        self._centre = (0.0, 0.0, 0.0)
+        self.rebuilds += 1
+
+    def candidates_valid(self, x: wp.array) -> bool:
+        """Whether the candidates built earlier still hold every pair within ``h`` at ``x``.
+
+        Two particles moved relative to each other by at most ``D``, the smaller of the
+        diagonal of the displacements' bounding box and twice their largest distance from
+        any fixed point ``c`` (the box centre at the previous check): a pair not among the
+        candidates (``>= h + skin`` apart when they were built) is still ``>= h`` apart
+        while ``D < skin``."""
+        if not self._have_candidates or self.skin <= 0.0 or x.shape[0] != self.particle_count:
+            return False
+        self._bounds.fill_(-np.inf)
+        c = self._centre
         wp.launch(
-            self.kernels.find_neighbors,
-            n,
-            [self.grid.id, points, x, body, self.scalar(self.h), self.min_neighbors, self.scalar(self.max_condition)],
-            [nbr, nbr_d2, count, guard],
+            self.kernels.displacement_bounds, x.shape[0], [x, self._x_ref, type_set(self.scalar).vec3(*c)], [self._bounds],
+            device=self.device, record_tape=False,
+        )
+        b = self._bounds.numpy().astype(np.float64)
+        if not np.isfinite(b).all():
+            return False
+        width = b[:3] + b[3:6]
+        diag = math.sqrt(float(np.dot(width, width)))
+        spread = min(diag, 2.0 * math.sqrt(max(b[6], 0.0)))
+        self._centre = tuple(0.5 * (b[:3] - b[3:6]))
+        return spread < SKIN_SAFETY * self.skin
+
+    def _select(self, x, body, nbr, nbr_d2, count, guard, sph=None):
+        """``sph``: None, or (mass, material, rest_density, pressure_stiffness, clamp, rho, p, vol)."""
+        d = self._dummy_arrays()
+        if sph is None:
+            mass, material, rest_density, k_p, clamp, rho, p, vol = d["s"], d["i"], d["s"], d["s"], d["i"], d["s"], d["s"], d["s"]
+        else:
+            mass, material, rest_density, k_p, clamp, rho, p, vol = sph
+        with_guard = guard is not None
+        wp.launch(
+            self.kernels.select_neighbors,
+            x.shape[0],
+            [
+                x, body, mass, self.candidates, self.candidate_count, self.scalar(self.h), self.min_neighbors,
+                self.scalar(self.max_condition), int(with_guard), int(sph is not None), material, rest_density, k_p, clamp,
+            ],
+            [nbr, nbr_d2, count, guard if with_guard else d["i"], rho, p, vol],
             device=self.device,
             record_tape=False,
         )
+
+    def _dummy_arrays(self):
+        # Typed one-element placeholders for arguments a launch does not read.
+        if getattr(self, "_dummies", None) is None:
+            self._dummies = {
+                "s": wp.zeros(1, dtype=self.scalar, device=self.device),
+                "i": wp.zeros(1, dtype=wp.int32, device=self.device),
+            }
+        return self._dummies
+
+    def build(self, x: wp.array, body: wp.array, nbr, nbr_d2, count, guard, sph=None):
+        """A fresh search at ``x`` (the candidates are rebuilt). ``guard`` may be None
+        (not evaluated); ``sph``, see ``update``."""
+        self._build_candidates(x)
+        self._select(x, body, nbr, nbr_d2, count, guard, sph)
+
+    def update(self, x: wp.array, body: wp.array, nbr, nbr_d2, count, guard, sph=None):
+        """The same lists as ``build``, reusing the candidates while they are complete.
+
+        With ``sph = (mass, material, rest_density, pressure_stiffness, clamp, rho, p,
+        vol)``, also writes the SPH density ``rho`` over the new lists, the pressure
+        ``p`` and the volume ``vol = mass / rho`` (not recorded on a tape)."""
+        self.updates += 1
+        if not self.candidates_valid(x):
+            self._build_candidates(x)
+        self._select(x, body, nbr, nbr_d2, count, guard, sph)

@@ -48,6 +48,46 @@ def funcs(scalar) -> types.SimpleNamespace:
         return c * (wp.pow(a, p) - wp.pow(b, p)) / (a - b)
 
     @wp.func
+    def flow_step(
+        s: vec3,
+        mu: scalar,
+        yield_stress: scalar,
+        flow_rate: scalar,
+        hardening: scalar,
+        alpha: scalar,
+        dt: scalar,
+        non_newtonian: int,
+    ):
+        """Returns (flowed, new singular values g = c s^p, c, p, new alpha)."""
+        mean = (s[0] + s[1] + s[2]) / scalar(3.0)
+        dev = s - vec3(mean, mean, mean)
+        s_norm2 = scalar(4.0) * mu * mu * wp.dot(dev, dev)
+        y = wp.max(yield_stress + hardening * alpha, scalar(0.0))
+        flowed = int(0)
+        g = s
+        c = scalar(1.0)
+        p = scalar(1.0)
+        alpha_new = alpha
+        # Compare squares: |s| = 0 at rest, where sqrt has an infinite derivative.
+        if s_norm2 > y * y:
+            s_norm = wp.sqrt(s_norm2)
+            rate = flow_rate * dt * (s_norm - y) / s_norm
+            if non_newtonian != 0:
+                rate = rate / s_norm
+            gamma = wp.min(rate, scalar(1.0))
+            J = s[0] * s[1] * s[2]
+            if J >= j_lo and J <= j_hi:
+                c = wp.pow(J, gamma / scalar(3.0))
+            p = scalar(1.0) - gamma
+            g = c * vec3(wp.pow(s[0], p), wp.pow(s[1], p), wp.pow(s[2], p))
+            ls = vec3(wp.log(s[0]), wp.log(s[1]), wp.log(s[2]))
+            lm = (ls[0] + ls[1] + ls[2]) / scalar(3.0)
+            ld = ls - vec3(lm, lm, lm)
+            alpha_new = alpha + gamma * wp.sqrt(wp.dot(ld, ld))
+            flowed = 1
+        return flowed, g, c, p, alpha_new
+
+    @wp.func
     def plastic_flow(
         s: vec3,
         mu: scalar,
@@ -58,41 +98,21 @@ def funcs(scalar) -> types.SimpleNamespace:
         dt: scalar,
         non_newtonian: int,
     ):
-        """Returns (flowed, new singular values, divided differences, new alpha)."""
-        mean = (s[0] + s[1] + s[2]) / scalar(3.0)
-        dev = s - vec3(mean, mean, mean)
-        s_norm2 = scalar(4.0) * mu * mu * wp.dot(dev, dev)
-        y = wp.max(yield_stress + hardening * alpha, scalar(0.0))
-        flowed = int(0)
-        g = s
+        """Returns (flowed, new singular values, divided differences, new alpha).
+
+        The divided differences ``d1`` of ``g(sigma)`` only feed the adjoint of
+        ``isotropic.isotropic_map``; the forward-only kernel calls ``flow_step``."""
+        flowed, g, c, p, alpha_new = flow_step(s, mu, yield_stress, flow_rate, hardening, alpha, dt, non_newtonian)
         d1 = vec3(scalar(1.0), scalar(1.0), scalar(1.0))
-        alpha_new = alpha
-        # Compare squares: |s| = 0 at rest, where sqrt has an infinite derivative.
-        if s_norm2 > y * y:
-            s_norm = wp.sqrt(s_norm2)
-            rate = flow_rate * dt * (s_norm - y) / s_norm
-            if non_newtonian != 0:
-                rate = rate / s_norm
-            gamma = wp.min(rate, scalar(1.0))
-            J = s[0] * s[1] * s[2]
-            c = scalar(1.0)
-            if J >= j_lo and J <= j_hi:
-                c = wp.pow(J, gamma / scalar(3.0))
-            p = scalar(1.0) - gamma
-            g = c * vec3(wp.pow(s[0], p), wp.pow(s[1], p), wp.pow(s[2], p))
+        if flowed != 0:
             d1 = vec3(
                 power_difference(s[0], s[1], p, c),
                 power_difference(s[0], s[2], p, c),
                 power_difference(s[1], s[2], p, c),
             )
-            ls = vec3(wp.log(s[0]), wp.log(s[1]), wp.log(s[2]))
-            lm = (ls[0] + ls[1] + ls[2]) / scalar(3.0)
-            ld = ls - vec3(lm, lm, lm)
-            alpha_new = alpha + gamma * wp.sqrt(wp.dot(ld, ld))
-            flowed = 1
         return flowed, g, d1, alpha_new
 
-    return types.SimpleNamespace(plastic_flow=plastic_flow, power_difference=power_difference)
+    return types.SimpleNamespace(plastic_flow=plastic_flow, flow_step=flow_step, power_difference=power_difference)
 
 
 @functools.cache

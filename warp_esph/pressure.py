@@ -40,11 +40,12 @@ def kernels(scalar) -> types.SimpleNamespace:
     ):
         i = wp.tid()
         xi = x[i]
-        r = mass[i] * sm.w_poly6(scalar(0.0), h)
+        c6 = sm.poly6_coef(h)
+        r = mass[i] * sm.w_poly6_c(scalar(0.0), h, c6)
         for k in range(count[i]):
             j = nbr[i, k]
             d = x[j] - xi
-            r += mass[j] * sm.w_poly6(wp.dot(d, d), h)
+            r += mass[j] * sm.w_poly6_c(wp.dot(d, d), h, c6)
         rho[i] = r
 
     @wp.func
@@ -76,6 +77,8 @@ def kernels(scalar) -> types.SimpleNamespace:
         vi = v[i]
         Vi = mass[i] / rho[i]
         pi = pressure(rho[i], rest_density[i], pressure_stiffness[mi], clamp[mi])
+        c_spiky = sm.spiky_coef(h)
+        c_visc = sm.viscosity_coef(h)
         fi = vec3()
         for k in range(count[i]):
             j = nbr[i, k]
@@ -83,9 +86,9 @@ def kernels(scalar) -> types.SimpleNamespace:
             pj = pressure(rho[j], rest_density[j], pressure_stiffness[mj], clamp[mj])
             VV = Vi * mass[j] / rho[j]
             rij = xi - x[j]
-            pair = -VV * scalar(0.5) * (pi + pj) * sm.grad_w_spiky(rij, h)
+            pair = -VV * scalar(0.5) * (pi + pj) * sm.grad_w_spiky_c(rij, h, c_spiky)
             eta = scalar(0.5) * (viscosity[mi] + viscosity[mj])
-            pair += eta * VV * sm.lap_w_viscosity(wp.dot(rij, rij), h) * (v[j] - vi)
+            pair += eta * VV * sm.lap_w_viscosity_c(wp.dot(rij, rij), h, c_visc) * (v[j] - vi)
             half = scalar(0.5) * pair
             wp.atomic_add(f, j, -half)
             fi += half

@@ -6,16 +6,39 @@ per step can be recorded on a ``wp.Tape`` and differentiated.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import time
 import warnings
 
 import numpy as np
 import warp as wp
 
 from . import checks, deformation, forces, integrate, neighbors, plasticity, pressure
+from . import fused as fused_kernels
 from .model import Model, State
 
 GUARD_NAMES = ("few_neighbors", "ill_conditioned", "inverted", "plasticity_skipped")
+
+#: Default Verlet skin of the neighbour candidates, in units of the support radius
+#: (measured in benchmarks/step.py, docs/performance.md).
+DEFAULT_SKIN = 0.15
+
+#: Names ``profile_phases`` times: the fused step has neighbors, fused, integrate and
+#: deformation; the differentiable one (under a tape, or ``fused=False``) splits
+#: ``fused`` into density, constitutive, forces and pressure.
+PHASES = ("neighbors", "density", "constitutive", "forces", "pressure", "fused", "integrate", "deformation")
+
+
+_NO_PHASE = contextlib.nullcontext()
+
+
+def tape_recording() -> bool:
+    """Whether a ``wp.Tape`` is recording launches now."""
+    runtime = getattr(getattr(getattr(wp, "_src", None), "context", None), "runtime", None)
+    if runtime is None:  # pragma: no cover (older layout)
+        runtime = wp.context.runtime
+    return getattr(runtime, "tape", None) is not None
 
 
 class Solver:
@@ -23,17 +46,46 @@ class Solver:
 
     ``min_neighbors`` and ``max_condition`` are the guards of paper §4 on the
     deformation update; ``guard_counts()`` says how often each fired.
+
+    ``neighbor_skin`` (in units of the support radius ``h``, in [0, 1]; default
+    ``DEFAULT_SKIN``) is the Verlet margin of the neighbour candidates: they are rebuilt only when two
+    particles may have moved by more than it relative to each other, and the 30
+    nearest within ``h`` are selected from them every step, so the lists are those of
+    a fresh search (``0``: search afresh every step). ``fused`` (default on) runs the
+    constitutive update and all pair forces in one kernel with one SVD per particle
+    when no ``wp.Tape`` is recording; under a tape the differentiable kernels run.
     """
 
-    def __init__(self, model: Model, *, min_neighbors: int = 6, max_condition: float = 1.0e3):
+    def __init__(
+        self,
+        model: Model,
+        *,
+        min_neighbors: int = 6,
+        max_condition: float = 1.0e3,
+        neighbor_skin: float | None = None,
+        fused: bool = True,
+    ):
         self.model = model
         self.min_neighbors = checks.positive_int("min_neighbors", min_neighbors)
         self.max_condition = checks.greater_than("max_condition", max_condition, 1.0, "1")
         S = model.scalar
+        skin = DEFAULT_SKIN if neighbor_skin is None else checks.in_range("neighbor_skin", neighbor_skin, 0.0, 1.0)
+        if not isinstance(fused, bool):
+            raise ValueError(f"fused = {fused!r} is not allowed: must be True or False")
+        self.neighbor_skin = skin
         self.search = neighbors.NeighborSearch(
             model.particle_count, S, model.device, model.support_radius,
             min_neighbors=self.min_neighbors, max_condition=self.max_condition,
+            skin=skin * model.support_radius, spacing=model.spacing,
         )
+        self.fused = bool(fused)
+        self._k_fused = fused_kernels.kernels(S)
+        # Per-particle SPH pressure and volume m / rho of the fast path (scratch: written
+        # and read within one step).
+        self._pressure = wp.zeros(model.particle_count, dtype=S, device=model.device)
+        self._sph_volume = wp.zeros(model.particle_count, dtype=S, device=model.device)
+        #: Seconds per phase, summed over steps while ``profile_phases`` is on, else None.
+        self.phase_times: dict[str, float] | None = None
         self._k_deform = deformation.kernels(S)
         self._k_plastic = plasticity.kernels(S)
         self._k_forces = forces.kernels(S)
@@ -44,6 +96,23 @@ class Solver:
         self._stable_dt = model.stable_dt()
         self._warned_dt = set()
         self.step_count = 0
+
+    def _phase(self, name: str):
+        return _NO_PHASE if self.phase_times is None else self._timed_phase(name)
+
+    @contextlib.contextmanager
+    def _timed_phase(self, name: str):
+        wp.synchronize_device(self.model.device)
+        t0 = time.perf_counter()
+        yield
+        wp.synchronize_device(self.model.device)
+        self.phase_times[name] = self.phase_times.get(name, 0.0) + time.perf_counter() - t0
+
+    def profile_phases(self, on: bool = True):
+        """Time each phase of ``step`` (synchronising around it) into ``phase_times``
+        (seconds, summed over steps); ``profile_phases(False)`` stops. Instrumented
+        steps are slower: use them for the split, not for the rate."""
+        self.phase_times = {} if on else None
 
     def guard_counts(self) -> dict[str, int]:
         """How many particle-steps each guard skipped since construction or ``reset_counts``."""
@@ -74,66 +143,114 @@ class Solver:
         h = S(m.support_radius)
         dev = m.device
 
-        # 1. Neighbour lists and neighbourhood guards (integers, not taped).
-        self.search.build(
-            state_in.x, m.particle_body, state_out.neighbors, state_out.neighbor_d2, state_out.neighbor_count, state_out.guard
-        )
+        fast = self.fused and not tape_recording()
+        phase = self._phase
+
+        # 1. Neighbour lists and neighbourhood guards (integers, not taped). The fast
+        # path also sums the SPH density there (WARP_NOTES trap 1: it is finished
+        # before any pressure uses it).
+        with phase("neighbors"):
+            sph = None
+            if fast and self._sph:
+                sph = (
+                    m.particle_mass, m.particle_material, m.particle_rest_density, m.pressure_stiffness,
+                    m.clamp_pressure, state_out.density, self._pressure, self._sph_volume,
+                )
+            self.search.update(
+                state_in.x, m.particle_body, state_out.neighbors, state_out.neighbor_d2, state_out.neighbor_count,
+                None if fast else state_out.guard, sph,
+            )
         nbr, count = state_out.neighbors, state_out.neighbor_count
         state_out.force.zero_()
 
-        # 2. SPH density, finished before any pressure uses it (WARP_NOTES trap 1).
-        if self._sph:
-            wp.launch(self._k_pressure.density, n, [state_in.x, m.particle_mass, nbr, count, h], [state_out.density], device=dev)
+        if fast:
+            # 2-4 fused: plastic flow, stress, F^-1 and every pair force in one launch.
+            with phase("fused"):
+                wp.launch(
+                    self._k_fused.constitutive_forces,
+                    n,
+                    [
+                        state_in.x, state_in.v, state_in.F, state_in.alpha, m.particle_material, m.particle_body,
+                        m.particle_volume, m.particle_mass, state_out.density, self._pressure, self._sph_volume,
+                        m.mu, m.lam, m.yield_stress, m.flow_rate, m.hardening, m.material_model,
+                        m.viscosity, nbr, count, h, S(dt), int(self._sph),
+                    ],
+                    [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, state_out.force, self._counters],
+                    device=dev,
+                )
+        else:
+            # 2. SPH density, finished before any pressure uses it (WARP_NOTES trap 1).
+            if self._sph:
+                with phase("density"):
+                    wp.launch(self._k_pressure.density, n, [state_in.x, m.particle_mass, nbr, count, h], [state_out.density], device=dev)
 
-        # 3. Plastic flow of the stored F, stress, F^-1.
-        wp.launch(
-            self._k_plastic.constitutive_update,
-            n,
-            [state_in.F, state_in.alpha, m.particle_material, m.mu, m.lam, m.yield_stress, m.flow_rate, m.hardening, m.material_model, S(dt)],
-            [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, self._counters],
-            device=dev,
-        )
+            # 3. Plastic flow of the stored F, stress, F^-1.
+            with phase("constitutive"):
+                wp.launch(
+                    self._k_plastic.constitutive_update,
+                    n,
+                    [state_in.F, state_in.alpha, m.particle_material, m.mu, m.lam, m.yield_stress, m.flow_rate, m.hardening, m.material_model, S(dt)],
+                    [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, self._counters],
+                    device=dev,
+                )
 
-        # 4. Elastic pair forces, pressure and viscosity.
-        wp.launch(
-            self._k_forces.elastic_forces,
-            n,
-            [state_in.x, m.particle_body, nbr, count, m.particle_volume, state_out.stress, state_out.F_inv, h],
-            [state_out.force],
-            device=dev,
-        )
-        if self._sph:
+            # 4. Elastic pair forces, pressure and viscosity.
+            with phase("forces"):
+                wp.launch(
+                    self._k_forces.elastic_forces,
+                    n,
+                    [state_in.x, m.particle_body, nbr, count, m.particle_volume, state_out.stress, state_out.F_inv, h],
+                    [state_out.force],
+                    device=dev,
+                )
+            if self._sph:
+                with phase("pressure"):
+                    wp.launch(
+                        self._k_pressure.pressure_forces,
+                        n,
+                        [
+                            state_in.x, state_in.v, m.particle_mass, state_out.density, m.particle_rest_density, m.particle_material,
+                            m.pressure_stiffness, m.viscosity, m.clamp_pressure, nbr, count, h,
+                        ],
+                        [state_out.force],
+                        device=dev,
+                    )
+
+        # 5. Symplectic Euler, gravity, colliders.
+        with phase("integrate"):
             wp.launch(
-                self._k_pressure.pressure_forces,
+                self._k_integrate.integrate,
                 n,
                 [
-                    state_in.x, state_in.v, m.particle_mass, state_out.density, m.particle_rest_density, m.particle_material,
-                    m.pressure_stiffness, m.viscosity, m.clamp_pressure, nbr, count, h,
+                    state_in.x, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt),
+                    m.plane_normal, m.plane_offset, m.plane_friction,
+                    m.sphere_center, m.sphere_radius, m.sphere_friction,
+                    m.box_center, m.box_half, m.box_friction,
                 ],
-                [state_out.force],
+                [state_out.x, state_out.v],
                 device=dev,
             )
 
-        # 5. Symplectic Euler, gravity, colliders.
-        wp.launch(
-            self._k_integrate.integrate,
-            n,
-            [
-                state_in.x, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt),
-                m.plane_normal, m.plane_offset, m.plane_friction,
-                m.sphere_center, m.sphere_radius, m.sphere_friction,
-                m.box_center, m.box_half, m.box_friction,
-            ],
-            [state_out.x, state_out.v],
-            device=dev,
-        )
-
-        # 6. Incremental deformation gradient over the step (eqs. 1-8).
-        wp.launch(
-            self._k_deform.update_deformation,
-            n,
-            [state_in.x, state_out.x, m.particle_body, nbr, count, state_out.guard, state_out.F_flowed, h],
-            [state_out.F, self._counters],
-            device=dev,
-        )
+        # 6. Incremental deformation gradient over the step (eqs. 1-8); the fast path
+        # evaluates the neighbourhood guards here, on the fit's own moment matrix.
+        with phase("deformation"):
+            if fast:
+                wp.launch(
+                    self._k_fused.update_deformation,
+                    n,
+                    [
+                        state_in.x, state_out.x, m.particle_body, nbr, count, state_out.F_flowed, h,
+                        self.min_neighbors, S(self.max_condition),
+                    ],
+                    [state_out.F, state_out.guard, self._counters],
+                    device=dev,
+                )
+            else:
+                wp.launch(
+                    self._k_deform.update_deformation,
+                    n,
+                    [state_in.x, state_out.x, m.particle_body, nbr, count, state_out.guard, state_out.F_flowed, h],
+                    [state_out.F, self._counters],
+                    device=dev,
+                )
         self.step_count += 1

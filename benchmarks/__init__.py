@@ -1,0 +1,1 @@
+"""Benchmarks of warp_esph (run as modules: ``python -m benchmarks.step``)."""

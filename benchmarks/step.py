@@ -1,0 +1,718 @@
+"""Benchmark of the full elastoplastic step, side by side with SPlisHSPlasH and the paper.
+
+    python -m benchmarks.step                                  # CPU (and CUDA if present), 10k/50k/200k
+    python -m benchmarks.step --sizes 500 --steps 2 --warmup 1 --no-splishsplash --json out.json
+    python -m benchmarks.step --variants --baseline-commit 566e8ac   # each optimisation's effect
+
+Scene: a cube of ``Material.preset("dough")`` (E = 20 kPa, nu = 0.3, yield 150 Pa, SPH
+pressure on, viscosity 10 Pa s) on a 1 cm lattice, its bottom layer 0.75 cm above the
+ground and falling at 1 m/s (dropped from about 5 cm), float32, dt = 0.5 ms (the explicit
+limit of SPEC §8 is 0.54 ms). ``--warmup`` steps run first (compilation, the impact
+starts), then ``--steps`` are timed: the impact and the start of plastic flow.
+
+For each device and size it reports
+
+* forward particle-steps per second (wall clock; also the process's CPU time, which is
+  steadier on a shared machine), the best of ``--blocks`` blocks and their mean;
+* the time per phase (``Solver.profile_phases``: synchronise around each phase), for the
+  default fused step and for the differentiable kernels the step runs under a tape;
+* forward + backward: a taped window of ``--taped-steps`` steps with one ``State`` per
+  step, a loss on the last positions, ``tape.backward``;
+* memory per particle: the array bytes of the Model, two States and the Solver (plus the
+  hash grid's estimate), and of one taped State (with its gradients);
+
+then SPlisHSPlasH (``pip install pysplishsplash``) on the same particle counts and dt: an
+elastic cube (Becker et al. 2009 elasticity, DFSPH pressure) dropped on a floor, in a
+subprocess with ``OMP_NUM_THREADS=1`` (and ``LD_PRELOAD`` of libGLdispatch, which its
+import needs on Debian); and the paper's Table 1 rate. Ratios compare best blocks (on a
+shared machine the fastest block is the least disturbed estimate of each code's cost; the
+means are in the JSON too). Everything also goes to ``--json`` (see docs/performance.md).
+"""
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+#: Paper (Gerszewski et al. 2009, Table 1; one core of a 2008 Xeon), assuming 30 frames/s.
+PAPER = {
+    "fig1": {"particles": 52316, "dt": 5.0e-4, "seconds_per_frame": 96.5},
+    "fig5": {"particles": 665, "dt": 1.0e-4, "seconds_per_frame": 4.8},
+    "fps": 30.0,
+}
+for _fig in ("fig1", "fig5"):
+    _p = PAPER[_fig]
+    _p["particle_steps_per_second"] = _p["particles"] * (1.0 / PAPER["fps"] / _p["dt"]) / _p["seconds_per_frame"]
+PAPER_RATES = (PAPER["fig1"]["particle_steps_per_second"], PAPER["fig5"]["particle_steps_per_second"])
+
+DX = 0.01
+DT = 5.0e-4
+GLDISPATCH = "/lib/x86_64-linux-gnu/libGLdispatch.so.0"
+
+
+def _sizes(text: str) -> list[int]:
+    out = []
+    for part in text.split(","):
+        part = part.strip().lower()
+        if not part:
+            continue
+        scale = 1
+        if part.endswith("k"):
+            part, scale = part[:-1], 1000
+        elif part.endswith("m"):
+            part, scale = part[:-1], 1_000_000
+        out.append(int(float(part) * scale))
+    return out
+
+
+def box_side(n: int) -> int:
+    return max(2, round(n ** (1.0 / 3.0)))
+
+
+# ------------------------------------------------------------------ warp_esph
+def build_model(we, n: int, device, requires_grad: bool = False):
+    import warp as wp
+
+    side = box_side(n)
+    L = side * DX
+    b = we.SceneBuilder(spacing=DX)
+    b.add_box((0.0, L / 2 + 0.25 * DX, 0.0), (L, L, L), we.Material.preset("dough"), velocity=(0.0, -1.0, 0.0))
+    b.add_ground(0.0, friction=0.5)
+    return b.finalize(device=device, dtype=wp.float32, requires_grad=requires_grad)
+
+
+def _sync(device):
+    import warp as wp
+
+    wp.synchronize_device(device)
+
+
+def _array_bytes(obj, seen: set) -> int:
+    import warp as wp
+
+    total = 0
+    for value in vars(obj).values():
+        if isinstance(value, wp.array) and id(value) not in seen:
+            seen.add(id(value))
+            total += value.capacity
+            if value.grad is not None and id(value.grad) not in seen:
+                seen.add(id(value.grad))
+                total += value.grad.capacity
+    return total
+
+
+def memory_report(model, states, solver, taped_state) -> dict:
+    n = model.particle_count
+    seen: set = set()
+    model_b = _array_bytes(model, seen)
+    states_b = sum(_array_bytes(s, seen) for s in states)
+    solver_b = _array_bytes(solver, seen)
+    search = getattr(solver, "search", None)
+    search_b = _array_bytes(search, seen) if search is not None else 0
+    grid_b = 0
+    dims = getattr(search, "_grid_dims", None)
+    if dims:
+        # HashGrid (native): cell starts and ends, and per point its id, cell and key.
+        grid_b = 2 * 4 * dims[0] * dims[1] * dims[2] + 16 * n
+    taped_b = _array_bytes(taped_state, set())
+    forward_total = model_b + states_b + solver_b + search_b + grid_b
+    return {
+        "model_bytes": model_b,
+        "two_states_bytes": states_b,
+        "solver_bytes": solver_b + search_b,
+        "hash_grid_bytes_estimate": grid_b,
+        "forward_bytes_per_particle": forward_total / n,
+        "model_and_two_states_bytes_per_particle": (model_b + states_b) / n,
+        "taped_state_bytes_per_particle_per_step": taped_b / n,
+        "neighbor_candidate_capacity": getattr(search, "capacity", None),
+    }
+
+
+def _loss_kernel():
+    import warp as wp
+
+    @wp.kernel
+    def position_loss(x: wp.array(dtype=wp.vec3f), w: wp.array(dtype=wp.vec3f), loss: wp.array(dtype=wp.float32)):
+        i = wp.tid()
+        wp.atomic_add(loss, 0, wp.dot(x[i], w[i]))
+
+    return position_loss
+
+
+def time_forward(solver, states, steps: int, blocks: int, device) -> dict:
+    a, b = states
+    per_block = max(1, steps // blocks)
+    walls, cpus = [], []
+    done = 0
+    while done < steps:
+        k = min(per_block, steps - done)
+        _sync(device)
+        t0, c0 = time.perf_counter(), time.thread_time()
+        for _ in range(k):
+            solver.step(a, b, DT)
+            a, b = b, a
+        _sync(device)
+        walls.append((time.perf_counter() - t0) / k)
+        cpus.append((time.thread_time() - c0) / k)
+        done += k
+    states[0], states[1] = a, b
+    n = solver.model.particle_count
+    mean_wall = float(np.mean(walls))
+    return {
+        "steps": steps,
+        "ms_per_step": 1e3 * mean_wall,
+        "ms_per_step_best_block": 1e3 * min(walls),
+        "particle_steps_per_second": n / mean_wall,
+        "particle_steps_per_second_best_block": n / min(walls),
+        "particle_steps_per_second_cpu_time": n / float(np.mean(cpus)) if device.is_cpu else None,
+    }
+
+
+def time_phases(solver, states, steps: int) -> dict:
+    a, b = states
+    solver.profile_phases(True)
+    for _ in range(steps):
+        solver.step(a, b, DT)
+        a, b = b, a
+    times = {k: 1e3 * v / steps for k, v in solver.phase_times.items()}
+    solver.profile_phases(False)
+    states[0], states[1] = a, b
+    return {"ms_per_step": times, "total_ms_per_step": sum(times.values())}
+
+
+def time_taped(we, n: int, device, source_state, taped_steps: int, repeats: int) -> tuple[dict, object]:
+    import warp as wp
+
+    model = build_model(we, n, device, requires_grad=True)
+    solver = we.Solver(model)
+    states = [model.state() for _ in range(taped_steps + 1)]
+    for name in we.State.STATE_FIELDS:
+        wp.copy(getattr(states[0], name), getattr(source_state, name))
+    weights = wp.array(np.random.default_rng(0).normal(size=(model.particle_count, 3)), dtype=wp.vec3f, device=device)
+    loss = wp.zeros(1, dtype=wp.float32, device=device, requires_grad=True)
+    kernel = _loss_kernel()
+    best = None
+    for _ in range(repeats):
+        loss.zero_()
+        tape = wp.Tape()
+        _sync(device)
+        t0 = time.perf_counter()
+        with tape:
+            for k in range(taped_steps):
+                solver.step(states[k], states[k + 1], DT)
+            wp.launch(kernel, model.particle_count, [states[-1].x, weights], [loss], device=device)
+        _sync(device)
+        t1 = time.perf_counter()
+        tape.backward(loss)
+        _sync(device)
+        t2 = time.perf_counter()
+        grad_ok = bool(np.isfinite(model.mu.grad.numpy()).all() and np.isfinite(states[0].v.grad.numpy()).all())
+        tape.zero()
+        if best is None or t2 - t0 < best[2] - best[0]:
+            best = (t0, t1, t2, grad_ok)
+        del tape
+    t0, t1, t2, grad_ok = best
+    npart = model.particle_count
+    return {
+        "taped_steps": taped_steps,
+        "forward_ms_per_step": 1e3 * (t1 - t0) / taped_steps,
+        "backward_ms_per_step": 1e3 * (t2 - t1) / taped_steps,
+        "particle_steps_per_second": npart * taped_steps / (t2 - t0),
+        "gradients_finite": grad_ok,
+    }, states[1]
+
+
+def compile_kernels(we, device) -> float:
+    """Loads (or compiles) every module the benchmark runs, on a tiny model, untimed:
+    the fused step, the differentiable step, and a taped step with its backward pass."""
+    t0 = time.perf_counter()
+    for fused in (True, False):
+        model = build_model(we, 64, device)
+        solver = we.Solver(model, fused=fused)
+        a, b = model.state(), model.state()
+        solver.step(a, b, DT)
+    time_taped(we, 64, device, a, 1, 1)
+    _sync(device)
+    return time.perf_counter() - t0
+
+
+def bench_warp_esph(we, n: int, device, args) -> dict:
+    model = build_model(we, n, device)
+    solver = we.Solver(model)
+    states = [model.state(), model.state()]
+    t0 = time.perf_counter()
+    for _ in range(args.warmup):
+        solver.step(states[0], states[1], DT)
+        states.reverse()
+    _sync(device)
+    warm_s = time.perf_counter() - t0
+    solver.search.rebuilds = solver.search.updates = 0
+    forward = time_forward(solver, states, args.steps, args.blocks, device)
+    forward["neighbor_rebuilds"] = solver.search.rebuilds
+    forward["neighbor_updates"] = solver.search.updates
+    phases = time_phases(solver, states, args.phase_steps)
+    unfused = we.Solver(model, fused=False)
+    phases_diff = time_phases(unfused, states, args.phase_steps)
+    taped, taped_state = time_taped(we, n, device, states[0], args.taped_steps, args.taped_repeats)
+    memory = memory_report(model, states, solver, taped_state)
+    x = states[0].x.numpy()
+    return {
+        "particles": model.particle_count,
+        "box_side": box_side(n),
+        "warmup_steps": args.warmup,
+        "warmup_seconds": warm_s,
+        "forward": forward,
+        "phases_fused": phases,
+        "phases_differentiable": phases_diff,
+        "forward_backward": taped,
+        "memory": memory,
+        "guard_counts": solver.guard_counts(),
+        "finite": bool(np.isfinite(x).all()),
+        "lowest_particle_y": float(x[:, 1].min()),
+    }
+
+
+def variant_rates(n: int, device, args, baseline=None) -> dict:
+    """Forward rate of each optimisation switched off and on, in one run."""
+    import warp_esph as we
+
+    configs = [
+        ("differentiable kernels, fresh search", dict(fused=False, neighbor_skin=0.0)),
+        ("differentiable kernels, skin", dict(fused=False)),
+        ("fused, fresh search", dict(neighbor_skin=0.0)),
+        ("fused, skin (default)", dict()),
+    ]
+    runs = []
+    if baseline is not None:
+        runs.append((f"baseline {args.baseline_commit}", baseline, {}))
+    runs += [(name, we, kw) for name, kw in configs]
+    prepared = []
+    for name, mod, kw in runs:
+        model = build_model(mod, n, device)
+        solver = mod.Solver(model, **kw)
+        states = [model.state(), model.state()]
+        for _ in range(args.warmup):
+            solver.step(states[0], states[1], DT)
+            states.reverse()
+        prepared.append((name, solver, states, []))
+    # Interleave the blocks, so a load change on a shared machine hits every variant.
+    per_block = max(1, args.steps // args.blocks)
+    for _ in range(args.blocks):
+        for name, solver, states, times in prepared:
+            a, b = states
+            _sync(device)
+            t0, c0 = time.perf_counter(), time.thread_time()
+            for _ in range(per_block):
+                solver.step(a, b, DT)
+                a, b = b, a
+            _sync(device)
+            times.append(((time.perf_counter() - t0) / per_block, (time.thread_time() - c0) / per_block))
+            states[0], states[1] = a, b
+    out = {}
+    ref = None
+    for name, solver, states, times in prepared:
+        wall = min(t for t, _ in times)
+        cpu = min(c for _, c in times)
+        rate = solver.model.particle_count / wall
+        rate_cpu = solver.model.particle_count / cpu
+        ref = ref or (rate, rate_cpu)
+        out[name] = {
+            "particle_steps_per_second_best_block": rate,
+            "particle_steps_per_second_cpu_time_best_block": rate_cpu,
+            "speedup_vs_first": rate / ref[0],
+            "speedup_vs_first_cpu_time": rate_cpu / ref[1],
+        }
+    return out
+
+
+def compare_with_cpu(we, device, n: int = 4000, steps: int = 20) -> dict:
+    """The same run on ``device`` and on the CPU: neighbour rows and trajectories agree."""
+    out = {}
+    runs = {}
+    for dev in ("cpu", device):
+        model = build_model(we, n, dev)
+        solver = we.Solver(model)
+        a, b = model.state(), model.state()
+        rows = []
+        for _ in range(steps):
+            solver.step(a, b, DT)
+            rows.append((b.neighbors.numpy(), b.neighbor_count.numpy()))
+            a, b = b, a
+        runs[str(dev)] = (model, a, rows)
+    (m0, a0, r0), (_, a1, r1) = runs["cpu"], runs[str(device)]
+    same_rows = []
+    for (n0, c0), (n1, c1) in zip(r0, r1):
+        mask = np.arange(n0.shape[1])[None, :] < c0[:, None]
+        same = (c0 == c1) & np.all(np.where(mask, n0 == n1, True), axis=1)
+        same_rows.append(float(same.mean()))
+    x0, x1 = a0.x.numpy(), a1.x.numpy()
+    disp = np.abs(x0 - m0.particle_x0).max()
+    out = {
+        "particles": m0.particle_count,
+        "steps": steps,
+        "fraction_identical_neighbor_rows_min_over_steps": min(same_rows),
+        "max_position_difference": float(np.abs(x0 - x1).max()),
+        "max_displacement": float(disp),
+        "finite": bool(np.isfinite(x1).all()),
+    }
+    return out
+
+
+def load_baseline(commit: str):
+    """The warp_esph package of a git commit, importable as ``warp_esph_baseline``."""
+    import importlib
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    tmp = tempfile.mkdtemp(prefix="warp_esph_baseline_")
+    archive = subprocess.run(["git", "-C", root, "archive", commit, "warp_esph"], capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
+    os.rename(os.path.join(tmp, "warp_esph"), os.path.join(tmp, "warp_esph_baseline"))
+    sys.path.insert(0, tmp)
+    return importlib.import_module("warp_esph_baseline")
+
+
+# -------------------------------------------------------------- SPlisHSPlasH
+_UNIT_BOX_OBJ = """v -0.5 -0.5 -0.5
+v 0.5 -0.5 -0.5
+v 0.5 0.5 -0.5
+v -0.5 0.5 -0.5
+v -0.5 -0.5 0.5
+v 0.5 -0.5 0.5
+v 0.5 0.5 0.5
+v -0.5 0.5 0.5
+f 1 3 2
+f 1 4 3
+f 5 6 7
+f 5 7 8
+f 1 2 6
+f 1 6 5
+f 4 8 7
+f 4 7 3
+f 1 5 8
+f 1 8 4
+f 2 3 7
+f 2 7 6
+"""
+
+
+def splishsplash_scene(n: int, workdir: str) -> str:
+    """The same drop for SPlisHSPlasH: a block of side^3 particles of radius dx/2 (its
+    block sampling puts one particle per 2r cell strictly inside the box), E, nu and
+    density of the dough, Becker et al. 2009 elasticity, DFSPH pressure, a static floor
+    box (volume map). Solver settings as in SPlisHSPlasH's own deformable example
+    (data/Scenes/DeformableModel.json): DFSPH max. density error 0.01 %, zero-energy
+    mode control alpha = 0.1, standard viscosity 0.01."""
+    side = box_side(n)
+    L = (side + 1) * DX
+    bottom = 0.25 * DX
+    with open(os.path.join(workdir, "UnitBox.obj"), "w") as fh:
+        fh.write(_UNIT_BOX_OBJ)
+    floor = max(1.0, 3 * L)
+    scene = {
+        "Configuration": {
+            "timeStepSize": DT, "particleRadius": DX / 2, "numberOfStepsPerRenderUpdate": 1,
+            "simulationMethod": 4, "gravitation": [0, -9.81, 0], "cflMethod": 0, "cflFactor": 1,
+            "cflMaxTimeStepSize": DT, "boundaryHandlingMethod": 2,
+            "enablePartioExport": False, "enableVTKExport": False, "enableRigidBodyExport": False,
+            "DFSPH": {"minIterations": 2, "maxIterations": 100, "maxError": 0.01, "maxIterationsV": 100,
+                      "maxErrorV": 0.1, "enableDivergenceSolver": True},
+        },
+        "Materials": [{
+            "id": "Fluid", "density0": 1150, "elasticityMethod": 1, "viscosityMethod": 1,
+            "Standard viscosity": {"viscosity": 0.01},
+            "Becker et al. 2009": {"youngsModulus": 2.0e4, "poissonsRatio": 0.3, "alpha": 0.1},
+        }],
+        "RigidBodies": [{
+            "geometryFile": "UnitBox.obj", "translation": [0, -0.25, 0], "scale": [floor, 0.5, floor],
+            "isDynamic": False, "isWall": False, "mapInvert": False, "mapThickness": 0.0, "mapResolution": [20, 10, 20],
+        }],
+        "FluidBlocks": [{
+            "denseMode": 0, "start": [-L / 2, bottom, -L / 2], "end": [L / 2, bottom + L, L / 2],
+            "initialVelocity": [0, -1.0, 0],
+        }],
+    }
+    path = os.path.join(workdir, "scene.json")
+    with open(path, "w") as fh:
+        json.dump(scene, fh, indent=1)
+    return path
+
+
+def splishsplash_worker(args):
+    """Runs inside the subprocess: one size, writes its result to ``args.worker_out``."""
+    import pysplishsplash as sph  # noqa: PLC0415
+
+    workdir = tempfile.mkdtemp(prefix="sph_bench_")
+    scene = splishsplash_scene(args.worker_n, workdir)
+    total = args.warmup + args.steps
+    stamps = []
+    info = {}
+
+    def on_step():
+        stamps.append(time.perf_counter())
+        if not info:
+            fm = sph.Simulation.getCurrent().getFluidModel(0)
+            eb = fm.getElasticityBase()
+            info["particles"] = int(fm.numActiveParticles())
+            info["elasticity"] = eb.getMethodName() if eb is not None else None
+
+    base = sph.Exec.SimulatorBase()
+    base.init(sceneFile=scene, useGui=False, useCache=False, outputDir=os.path.join(workdir, "out"),
+              initialPause=False, stopAt=(total + 0.5) * DT)
+    base.setTimeStepCB(on_step)
+    t0 = time.perf_counter()
+    base.run()
+    wall = time.perf_counter() - t0
+    steps = np.diff(np.array(stamps))[max(0, args.warmup - 1):]
+    n = info.get("particles", 0)
+    result = {
+        "particles": n,
+        "elasticity": info.get("elasticity"),
+        "steps_timed": int(len(steps)),
+        "ms_per_step": 1e3 * float(np.mean(steps)),
+        "ms_per_step_best_block": 1e3 * float(min(np.mean(b) for b in np.array_split(steps, max(1, min(args.blocks, len(steps)))))),
+        "particle_steps_per_second": n / float(np.mean(steps)),
+        "run_seconds_including_setup": wall,
+        "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+    }
+    result["particle_steps_per_second_best_block"] = n / (result["ms_per_step_best_block"] * 1e-3)
+    with open(args.worker_out, "w") as fh:
+        json.dump(result, fh)
+    shutil.rmtree(workdir, ignore_errors=True)
+
+
+def bench_splishsplash(sizes: list[int], args) -> dict:
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    if os.path.exists(GLDISPATCH):
+        env["LD_PRELOAD"] = (GLDISPATCH + " " + env.get("LD_PRELOAD", "")).strip()
+    probe = subprocess.run([sys.executable, "-c", "import pysplishsplash"], env=env, capture_output=True, text=True)
+    if probe.returncode != 0:
+        msg = probe.stderr.strip().splitlines()[-1] if probe.stderr.strip() else f"exit code {probe.returncode}"
+        return {"available": False, "message": f"SPlisHSPlasH skipped: pysplishsplash does not import ({msg}); "
+                                               "install it with `pip install pysplishsplash`"}
+    out = {"available": True, "threads": 1, "method": "DFSPH + Becker et al. 2009 elasticity", "results": {}}
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    for n in sizes:
+        with tempfile.NamedTemporaryFile(suffix=".json", delete=False) as fh:
+            result_path = fh.name
+        cmd = [sys.executable, "-m", "benchmarks.step", "--splishsplash-worker", "--worker-n", str(n),
+               "--worker-out", result_path, "--warmup", str(args.warmup), "--steps", str(args.steps),
+               "--blocks", str(args.blocks)]
+        proc = subprocess.run(cmd, env=env, cwd=root, capture_output=True, text=True)
+        if proc.returncode != 0 or not os.path.getsize(result_path):
+            tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
+            out["results"][str(n)] = {"error": f"exit code {proc.returncode}: {' | '.join(tail)}"}
+        else:
+            with open(result_path) as fh:
+                out["results"][str(n)] = json.load(fh)
+        os.unlink(result_path)
+    return out
+
+
+# ---------------------------------------------------------------------- main
+def machine_info() -> dict:
+    import warp as wp
+
+    cpu = platform.processor()
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    info = {
+        "cpu": cpu,
+        "cpu_count": os.cpu_count(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "warp": wp.config.version,
+        "numpy": np.__version__,
+        "load_average_at_start": os.getloadavg() if hasattr(os, "getloadavg") else None,
+        "cuda_devices": [str(wp.get_device(f"cuda:{k}").name) for k in range(wp.get_cuda_device_count())],
+    }
+    return info
+
+
+def _fmt_rate(r):
+    if r is None:
+        return "-"
+    return f"{r / 1e6:.2f} M" if r >= 1e6 else f"{r / 1e3:.0f} k"
+
+
+def print_report(report: dict):
+    print()
+    print(f"machine: {report['machine']['cpu']} ({report['machine']['cpu_count']} cores), "
+          f"warp {report['machine']['warp']}, python {report['machine']['python']}")
+    sph = report.get("splishsplash", {})
+    for dev, per_size in report["warp_esph"].items():
+        print(f"\n== warp_esph on {dev}: particle-steps/s (dt {DT * 1e3:g} ms, float32, dough, pressure on)")
+        print(f"{'particles':>10} {'best blk':>10} {'mean':>10} {'cpu-time':>10} {'fwd+bwd':>10} "
+              f"{'B/particle':>11} {'B/p/taped':>10} {'rebuilds':>9}")
+        for key, r in per_size.items():
+            f, t, m = r["forward"], r["forward_backward"], r["memory"]
+            print(f"{r['particles']:>10} {_fmt_rate(f['particle_steps_per_second_best_block']):>10} "
+                  f"{_fmt_rate(f['particle_steps_per_second']):>10} "
+                  f"{_fmt_rate(f['particle_steps_per_second_cpu_time']):>10} {_fmt_rate(t['particle_steps_per_second']):>10} "
+                  f"{m['forward_bytes_per_particle']:>11.0f} {m['taped_state_bytes_per_particle_per_step']:>10.0f} "
+                  f"{f['neighbor_rebuilds']:>4}/{f['neighbor_updates']:<4}")
+        print("   phases, ms per step (fused step | differentiable kernels):")
+        for key, r in per_size.items():
+            pf = ", ".join(f"{k} {v:.2f}" for k, v in r["phases_fused"]["ms_per_step"].items())
+            pd = ", ".join(f"{k} {v:.2f}" for k, v in r["phases_differentiable"]["ms_per_step"].items())
+            print(f"   {r['particles']:>8}: {pf} | {pd}")
+        sizes = list(per_size)
+        if len(sizes) > 1:
+            base_key = sizes[0]
+            base = per_size[base_key]
+            c0 = base["forward"]["ms_per_step_best_block"] / base["particles"]
+            growth = ", ".join(
+                f"{per_size[k]['particles']}: x{(per_size[k]['forward']['ms_per_step_best_block'] / per_size[k]['particles']) / c0:.2f}"
+                for k in sizes[1:]
+            )
+            print(f"   cost per particle-step (best block) relative to {base['particles']}: {growth}")
+    if report.get("ratios"):
+        print("\n== ratios (forward, wall clock, best block of each)")
+        for dev, rows in report["ratios"].items():
+            for key, r in rows.items():
+                vs_sph = f"x{r['vs_splishsplash']:.2f}" if r.get("vs_splishsplash") else "-"
+                print(f"   {dev} {r['particles']:>8}: vs SPlisHSPlasH {vs_sph:>7} | vs paper "
+                      f"x{r['vs_paper_fig1']:.1f} (Fig. 1 rate {PAPER_RATES[0] / 1e3:.1f} k/s), "
+                      f"x{r['vs_paper_fig5']:.1f} (Fig. 5 rate {PAPER_RATES[1] / 1e3:.1f} k/s)")
+    if sph:
+        if not sph.get("available"):
+            print("\n" + sph.get("message", "SPlisHSPlasH skipped"))
+        else:
+            print("\n== SPlisHSPlasH (DFSPH + Becker 2009 elasticity, 1 thread)")
+            for key, r in sph["results"].items():
+                if "error" in r:
+                    print(f"   {key}: {r['error']}")
+                else:
+                    print(f"   {r['particles']:>8}: {_fmt_rate(r['particle_steps_per_second_best_block'])} particle-steps/s "
+                          f"best block ({_fmt_rate(r['particle_steps_per_second'])} mean), {r['ms_per_step']:.1f} ms/step")
+    if report.get("variants"):
+        print("\n== each optimisation (forward, best block, interleaved; speed-up vs the first row, wall | cpu time)")
+        for dev, per_size in report["variants"].items():
+            for key, rows in per_size.items():
+                print(f"   {dev} {key} particles:")
+                for name, r in rows.items():
+                    print(f"      {name:40s} {_fmt_rate(r['particle_steps_per_second_best_block']):>9} "
+                          f"x{r['speedup_vs_first']:.2f} | x{r['speedup_vs_first_cpu_time']:.2f}")
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog="python -m benchmarks.step", description=__doc__.split("\n\n")[0])
+    p.add_argument("--sizes", default="10000,50000,200000", help="particle counts on the CPU (cubes of round(n^(1/3))^3)")
+    p.add_argument("--cuda-sizes", default="10000,50000,200000,1000000", help="particle counts on CUDA devices")
+    p.add_argument("--devices", default="auto", help="'auto' (cpu, and cuda:0 if present) or a comma list")
+    p.add_argument("--steps", type=int, default=40, help="timed forward steps")
+    p.add_argument("--warmup", type=int, default=40, help="untimed steps first (compilation, impact)")
+    p.add_argument("--blocks", type=int, default=4, help="the timed steps are split into this many blocks")
+    p.add_argument("--phase-steps", type=int, default=5, help="instrumented steps for the phase split")
+    p.add_argument("--taped-steps", type=int, default=4, help="steps of the taped forward+backward window")
+    p.add_argument("--taped-repeats", type=int, default=2)
+    p.add_argument("--no-splishsplash", action="store_true", help="skip SPlisHSPlasH")
+    p.add_argument("--splishsplash-sizes", default=None, help="particle counts for SPlisHSPlasH (default: --sizes)")
+    p.add_argument("--variants", action="store_true", help="also time each optimisation off/on (CPU sizes)")
+    p.add_argument("--baseline-commit", default=None, help="with --variants: also time warp_esph at this git commit")
+    p.add_argument("--compare-cpu", action="store_true", help="check a short run on each CUDA device against the CPU")
+    p.add_argument("--json", default="benchmark_step.json", help="where the results go")
+    p.add_argument("--splishsplash-worker", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--worker-n", type=int, help=argparse.SUPPRESS)
+    p.add_argument("--worker-out", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+
+    if args.splishsplash_worker:
+        splishsplash_worker(args)
+        return 0
+
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    import warp_esph as we
+
+    if args.devices == "auto":
+        devices = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
+    else:
+        devices = [d.strip() for d in args.devices.split(",") if d.strip()]
+    report = {
+        "command": " ".join([os.path.basename(sys.executable), "-m", "benchmarks.step"] + (list(argv) if argv is not None else sys.argv[1:])),
+        "machine": machine_info(),
+        "config": {
+            "scene": "dough cube (Material.preset('dough')) dropped on the ground at 1 m/s",
+            "spacing": DX, "dt": DT, "dtype": "float32", "steps": args.steps, "warmup": args.warmup,
+            "blocks": args.blocks, "taped_steps": args.taped_steps,
+            "neighbor_skin": getattr(we.solver, "DEFAULT_SKIN", None),
+        },
+        "paper": PAPER,
+        "warp_esph": {},
+    }
+    for dev_name in devices:
+        device = wp.get_device(dev_name)
+        sizes = _sizes(args.sizes if device.is_cpu else args.cuda_sizes)
+        report["warp_esph"][dev_name] = {}
+        report.setdefault("compile_seconds", {})[dev_name] = compile_kernels(we, device)
+        for n in sizes:
+            print(f"warp_esph {dev_name} {n} ...", flush=True)
+            report["warp_esph"][dev_name][str(n)] = bench_warp_esph(we, n, device, args)
+    if args.compare_cpu:
+        report["device_vs_cpu"] = {}
+        for dev_name in devices:
+            if not wp.get_device(dev_name).is_cpu:
+                report["device_vs_cpu"][dev_name] = r = compare_with_cpu(we, wp.get_device(dev_name))
+                print(f"{dev_name} vs cpu: {r}", flush=True)
+    if args.variants:
+        baseline = load_baseline(args.baseline_commit) if args.baseline_commit else None
+        report["variants"] = {}
+        for dev_name in devices:
+            device = wp.get_device(dev_name)
+            report["variants"][dev_name] = {}
+            for n in _sizes(args.sizes if device.is_cpu else args.cuda_sizes):
+                print(f"variants {dev_name} {n} ...", flush=True)
+                report["variants"][dev_name][str(n)] = variant_rates(n, device, args, baseline)
+    if args.no_splishsplash:
+        report["splishsplash"] = {"available": False, "message": "SPlisHSPlasH skipped (--no-splishsplash)"}
+    else:
+        sph_sizes = _sizes(args.splishsplash_sizes or args.sizes)
+        print(f"SPlisHSPlasH {sph_sizes} ...", flush=True)
+        report["splishsplash"] = bench_splishsplash(sph_sizes, args)
+    report["ratios"] = {}
+    sph_by_n = {}
+    if report["splishsplash"].get("available"):
+        for key, r in report["splishsplash"]["results"].items():
+            if "error" not in r:
+                sph_by_n[int(key)] = r
+    for dev_name, per_size in report["warp_esph"].items():
+        report["ratios"][dev_name] = {}
+        for key, r in per_size.items():
+            # Best block against best block: on a shared machine the fastest block is the
+            # least disturbed estimate of each code's own cost; the means are in the JSON.
+            rate = r["forward"]["particle_steps_per_second_best_block"]
+            s = sph_by_n.get(int(key))
+            report["ratios"][dev_name][key] = {
+                "particles": r["particles"],
+                "particle_steps_per_second_best_block": rate,
+                "particle_steps_per_second_mean": r["forward"]["particle_steps_per_second"],
+                "vs_splishsplash": rate / s["particle_steps_per_second_best_block"] if s else None,
+                "vs_splishsplash_means": r["forward"]["particle_steps_per_second"] / s["particle_steps_per_second"] if s else None,
+                "splishsplash_particles": s["particles"] if s else None,
+                "vs_paper_fig1": rate / PAPER_RATES[0],
+                "vs_paper_fig5": rate / PAPER_RATES[1],
+            }
+    with open(args.json, "w") as fh:
+        json.dump(report, fh, indent=1, default=float)
+    print_report(report)
+    print(f"\nresults: {os.path.abspath(args.json)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,37 @@
+"""The step benchmark runs at a tiny size and writes every section of its JSON report."""
+
+import json
+import pathlib
+import sys
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks import step  # noqa: E402
+
+
+def test_tiny_benchmark_writes_the_expected_json(tmp_path):
+    out = tmp_path / "bench.json"
+    argv = ["--sizes", "500", "--devices", "cpu", "--steps", "2", "--warmup", "1", "--blocks", "1",
+            "--phase-steps", "1", "--taped-steps", "2", "--taped-repeats", "1", "--no-splishsplash", "--json", str(out)]
+    assert step.main(argv) == 0
+    report = json.loads(out.read_text())
+    for key in ("command", "machine", "config", "paper", "warp_esph", "splishsplash", "ratios"):
+        assert key in report, key
+    assert report["splishsplash"]["available"] is False
+    r = report["warp_esph"]["cpu"]["500"]
+    assert r["particles"] == 512 and r["finite"]
+    assert r["forward"]["particle_steps_per_second"] > 0
+    assert set(r["phases_fused"]["ms_per_step"]) == {"neighbors", "fused", "integrate", "deformation"}
+    assert {"neighbors", "constitutive", "forces", "pressure", "integrate", "deformation"} <= set(
+        r["phases_differentiable"]["ms_per_step"])
+    assert r["forward_backward"]["particle_steps_per_second"] > 0 and r["forward_backward"]["gradients_finite"]
+    for key in ("forward_bytes_per_particle", "model_and_two_states_bytes_per_particle",
+                "taped_state_bytes_per_particle_per_step"):
+        assert r["memory"][key] > 0
+    ratio = report["ratios"]["cpu"]["500"]
+    assert ratio["vs_splishsplash"] is None and ratio["vs_paper_fig1"] > 0 and ratio["vs_paper_fig5"] > 0
+    paper = report["paper"]
+    assert 35e3 < paper["fig1"]["particle_steps_per_second"] < 37e3
+    assert 45e3 < paper["fig5"]["particle_steps_per_second"] < 47e3
