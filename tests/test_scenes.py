@@ -9,13 +9,16 @@ import numpy as np
 import pytest
 
 from warp_esph import PRESETS
-from warp_esph.scenes import DEFAULT_SCENE, SCENES, Scene, get_scene, load_scene, load_scene_file
+from warp_esph.scenes import DEFAULT_SCENE, FIGURE_SCENES, SCENES, Scene, get_scene, load_scene, load_scene_file
 from warp_esph.simulate import simulate
 
 DOCS = pathlib.Path(__file__).resolve().parent.parent / "docs"
+#: The everyday scenes (a few thousand particles); the paper's figure scenes, at the
+#: paper's particle counts, are tested in test_figures.py.
+EVERYDAY = [name for name in SCENES if name not in FIGURE_SCENES]
 
 
-@pytest.mark.parametrize("name", list(SCENES))
+@pytest.mark.parametrize("name", EVERYDAY)
 def test_scene_builds_and_runs_two_frames_tiny(name):
     scene = get_scene(name, scale=0.35)
     assert isinstance(scene, Scene) and scene.name == name and scene.description
@@ -28,7 +31,7 @@ def test_scene_builds_and_runs_two_frames_tiny(name):
     assert not np.array_equal(x, model.particle_x0)  # it moved (gravity)
 
 
-@pytest.mark.parametrize("name", list(SCENES))
+@pytest.mark.parametrize("name", EVERYDAY)
 def test_scale_sets_the_resolution(name):
     full = get_scene(name).builder
     half = get_scene(name, scale=0.5).builder

@@ -1,4 +1,4 @@
-"""Command line: ``warp-esph run [SCENE] ...`` and ``warp-esph scenes``.
+"""Command line: ``warp-esph run [SCENE] ...``, ``scenes``, ``render OUT.usd`` and ``export OUT.usd``.
 
 Exit status: 0 success; 2 bad input (unknown scene, bad option value, bad scene file,
 unreadable or unwritable file); 3 the simulation diverged (``SimulationError``; the
@@ -15,6 +15,9 @@ import tempfile
 import warnings
 
 PROG = "warp-esph"
+# Kept here so the parser is built without importing the renderer (numpy, Pillow, pxr).
+COLOR_CHOICES = ("body", "material", "alpha", "singular_values")
+EXPORT_CHOICES = ("vtu", "ply")
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3
 EXIT_INTERRUPTED = 130
@@ -62,7 +65,47 @@ def _build_parser() -> _Parser:
     run.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="Warp device (default cpu)")
     run.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="precision (default float32)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
+    run.add_argument("--preview", action="store_true",
+                     help="at the end, render the last frame to <output>.png beside the output (software renderer)")
+    run.add_argument("--surface", action="store_true",
+                     help="also write a triangle surface per body and frame (UsdGeom.Mesh under /World/Surfaces)")
+    run.add_argument("--export", choices=EXPORT_CHOICES, metavar="FORMAT",
+                     help="at the end, also write every frame as vtu or ply files (meshio) into <output>_<FORMAT>/")
     sub.add_parser("scenes", help="list the built-in scenes", description="List the built-in scenes.")
+
+    ren = sub.add_parser("render", help="render frames of a USD output to PNG, GIF or MP4 (no display, no GPU)",
+                         description="Render frames of a warp-esph USD file with the built-in software renderer "
+                                     "(numpy + Pillow: no display, no GPU).")
+    ren.add_argument("usd", metavar="OUT.usd", help="a USD file written by 'warp-esph run'")
+    ren.add_argument("-o", "--output", metavar="DIR_OR_FILE",
+                     help="a folder (PNG per frame), a .png (one frame; several side by side), a .gif, or an .mp4 "
+                          "(needs ffmpeg); default: <OUT>.png, the last frame")
+    ren.add_argument("--frames", metavar="SPEC",
+                     help="'all', 'first', 'last', N, -N, A:B, A:B:STEP or a comma list (default: all; last for a .png)")
+    ren.add_argument("--color", choices=COLOR_CHOICES, default="body",
+                     help="colour particles by body, material, alpha (plastic strain) or singular_values "
+                          "(elastic strain max|ln sigma|) (default body)")
+    ren.add_argument("--width", type=int, default=800, help="picture width in pixels (default 800)")
+    ren.add_argument("--height", type=int, default=600, help="picture height in pixels (default 600)")
+    ren.add_argument("--supersample", type=int, default=2, metavar="K", help="antialiasing: K x K samples per pixel (1-4, default 2)")
+    ren.add_argument("--azimuth", type=float, metavar="DEG", help="camera azimuth about +y, from +z towards +x (default: the scene's, else 30)")
+    ren.add_argument("--elevation", type=float, metavar="DEG", help="camera elevation (default: the scene's, else 20)")
+    ren.add_argument("--zoom", type=float, default=1.0, help="> 1 moves the camera closer (default 1: fit all frames)")
+    ren.add_argument("--radius-scale", type=float, default=1.0, metavar="S", help="draw particles S times their width (default 1)")
+    ren.add_argument("--fit", choices=("all", "each"), default="all",
+                     help="frame the bounds of all chosen frames with one camera (default), or each picture on its own")
+    ren.add_argument("--columns", type=int, metavar="N", help="frames per row when several go into one .png (default up to 4)")
+    ren.add_argument("--fps", type=float, help="playback rate of a .gif/.mp4 (default: the file's)")
+    ren.add_argument("--no-label", action="store_true", help="no time label in the corner")
+    ren.add_argument("--no-shadows", action="store_true", help="no shadows (faster)")
+
+    exp = sub.add_parser("export", help="write particle frames of a USD output as .vtu or .ply files (meshio)",
+                         description="Write the particles of each frame of a warp-esph USD file as a .vtu or .ply file "
+                                     "with point data velocity, alpha, singular_values, body_id, material_id.")
+    exp.add_argument("usd", metavar="OUT.usd", help="a USD file written by 'warp-esph run'")
+    exp.add_argument("--format", choices=EXPORT_CHOICES, default="vtu", help="file format (default vtu)")
+    exp.add_argument("-o", "--output", metavar="DIR", help="output folder (default: <OUT>_<format>/ beside the file)")
+    exp.add_argument("--frames", metavar="SPEC", help="frames, as for render (default: all)")
     return p
 
 
@@ -148,7 +191,7 @@ def _cmd_run(args) -> int:
     substeps, dt = resolve_timestep(model, fps, dt=dt)
     solver = Solver(model)
     solver.check_dt(dt)  # the stability warning, once, before the run
-    writer = UsdWriter(output, model, fps)
+    writer = UsdWriter(output, model, fps, surface=args.surface, view=getattr(scene, "view", None))
     try:
         print(f"{PROG}: {scene.name}: {model.particle_count} particles, {len(model.bodies)} bodies, "
               f"{frames} frames at {fps:g} fps, dt = {dt:.4g} s ({substeps} steps/frame), {args.device} {args.dtype} "
@@ -169,6 +212,55 @@ def _cmd_run(args) -> int:
     print(f"wrote {writer.path}: {writer.frames_written} frames (0..{writer.last_frame}), "
           f"{model.particle_count} particles; USD save {per_frame:.2f} ms/frame")
     print(f"guard counts (particle-steps skipped): {guards}")
+    if args.surface:
+        print(f"surfaces: {1e3 * writer.surface_seconds / max(writer.frames_written, 1):.0f} ms/frame (/World/Surfaces)")
+    if args.export:
+        from .export import export_frames  # noqa: PLC0415
+
+        folder = f"{os.path.splitext(writer.path)[0]}_{args.export}"
+        files = export_frames(writer.path, args.export, folder)
+        print(f"exported {len(files)} files to {folder}")
+    if args.preview:
+        from .render import render_usd  # noqa: PLC0415
+
+        result = render_usd(writer.path, os.path.splitext(writer.path)[0] + ".png", frames="last")
+        print(f"preview: {result.output} ({result.seconds:.1f} s)")
+    return 0
+
+
+def _cmd_render(args) -> int:
+    from . import checks  # noqa: PLC0415
+    from .render import render_usd  # noqa: PLC0415
+
+    checks.positive_int("--width", args.width)
+    checks.positive_int("--height", args.height)
+    if args.columns is not None:
+        checks.positive_int("--columns", args.columns)
+    def show(k, n):
+        print(f"\r{PROG}: rendered {k}/{n} frames", end="" if k < n else "\n", file=sys.stderr, flush=True)
+
+    progress = show if sys.stderr.isatty() else None
+    result = render_usd(
+        args.usd, args.output, args.frames, color=args.color, width=args.width, height=args.height,
+        supersample=args.supersample, radius_scale=args.radius_scale, azimuth=args.azimuth, elevation=args.elevation,
+        zoom=args.zoom, label=not args.no_label, shadows=not args.no_shadows, columns=args.columns, fps=args.fps,
+        fit=args.fit, progress=progress,
+    )
+    what = {"dir": f"{len(result.files)} PNG files in {result.output}", "png": result.output,
+            "gif": f"{result.output} ({len(result.frames)} frames)", "mp4": f"{result.output} ({len(result.frames)} frames)"}
+    print(f"wrote {what[result.kind]}: {args.width}x{args.height}, {result.particles} particles, "
+          f"{result.seconds:.1f} s ({result.seconds_per_frame:.2f} s/frame)")
+    return 0
+
+
+def _cmd_export(args) -> int:
+    from .export import export_frames  # noqa: PLC0415
+
+    folder = args.output or f"{os.path.splitext(os.path.abspath(args.usd))[0]}_{args.format}"
+    files = export_frames(args.usd, args.format, folder, frames=args.frames)
+    frames = len(files) - (1 if args.format == "vtu" else 0)
+    extra = " and frames.pvd (open it in ParaView)" if args.format == "vtu" else ""
+    print(f"wrote {frames} .{args.format} files{extra} to {folder}")
     return 0
 
 
@@ -189,6 +281,10 @@ def main(argv=None) -> int:
         try:
             if args.command == "scenes":
                 return _cmd_scenes()
+            if args.command == "render":
+                return _cmd_render(args)
+            if args.command == "export":
+                return _cmd_export(args)
             return _cmd_run(args)
         except KeyboardInterrupt:
             print(f"{PROG}: interrupted", file=sys.stderr)

@@ -4,6 +4,10 @@ A scene is a configured ``SceneBuilder`` plus run settings (``Scene``). Every bu
 scene function takes ``scale``: the particle spacing is divided by it, so the geometry
 stays the same and the particle count goes with ``scale**3`` (``scale < 1``: fewer
 particles, e.g. for tests). Scene files are described in ``docs/scene_format.md``.
+
+Two kinds of built-in scenes: everyday ones (a few thousand particles, the stable time
+step), and one per figure of the paper (``fig1_...`` to ``fig7_...``), which run at the
+paper's particle count and time step (Table 1, ``TABLE1``) at scale 1.
 """
 
 from __future__ import annotations
@@ -22,18 +26,27 @@ except ModuleNotFoundError:  # Python 3.10: the same parser as the tomli package
     except ModuleNotFoundError:
         tomllib = None
 
+import numpy as np
+
 from . import checks
 from .builder import SceneBuilder
 from .material import PRESETS, Material
+from .meshes import lattice_points
 
-__all__ = ["Scene", "SCENES", "DEFAULT_SCENE", "get_scene", "load_scene", "load_scene_file", "scene_names"]
+__all__ = [
+    "Scene", "SCENES", "DEFAULT_SCENE", "FIGURE_SCENES", "TABLE1", "PaperRun", "get_scene", "load_scene", "load_scene_file",
+    "paper_run_scene", "scene_names",
+]
 
 
 @dataclasses.dataclass
 class Scene:
     """A scene ready to run: ``builder.finalize()`` makes the model.
 
-    ``dt = None`` lets ``simulate`` pick the stable step of the model.
+    ``dt = None`` lets ``simulate`` pick the stable step of the model. ``figure`` names
+    the paper's figure a scene reproduces (``"Fig. 2"``), ``None`` for the others.
+    ``view``: a suggested camera direction (azimuth, elevation) in degrees, written to
+    the USD file for ``warp-esph render`` (``None``: the renderer's default).
     """
 
     name: str
@@ -42,6 +55,8 @@ class Scene:
     frames: int = 60
     fps: float = 30.0
     dt: float | None = None
+    figure: str | None = None
+    view: tuple[float, float] | None = None
 
 
 def _scale(scale) -> float:
@@ -53,7 +68,9 @@ def _doc(fn) -> str:
     return (fn.__doc__ or "").strip().splitlines()[0]
 
 
-# ------------------------------------------------------------------ built-in scenes
+# ------------------------------------------------------------------ everyday scenes
+# Small scenes (a few thousand particles at 1-2 cm spacing) that run in seconds to
+# minutes on one CPU core, at the stable time step.
 def dough_drop(scale: float = 1.0) -> Scene:
     """A 15 cm box of bread dough dropped 10 cm onto the ground; it slumps and spreads."""
     b = SceneBuilder(spacing=0.01 / _scale(scale))
@@ -62,12 +79,17 @@ def dough_drop(scale: float = 1.0) -> Scene:
     return Scene("dough_drop", _doc(dough_drop), b, frames=60, fps=30.0)
 
 
-def star(scale: float = 1.0) -> Scene:
-    """An extruded five-point star of dough dropped flat on the ground (paper Fig. 6)."""
-    b = SceneBuilder(spacing=0.01 / _scale(scale))
+def _star_body(b: SceneBuilder, name: str = "star", material: Material | None = None):
+    """The dough star of Fig. 6: 30 cm across, 4 cm thick, lying flat just above the ground."""
     b.add_star((0.0, 0.07, 0.0), outer_radius=0.15, inner_radius=0.065, thickness=0.04,
-               material=Material.preset("dough"), name="star")
+               material=material or Material.preset("dough"), name=name)
     b.add_ground(friction=0.6)
+
+
+def star(scale: float = 1.0) -> Scene:
+    """An extruded five-point star of dough dropped flat on the ground (Fig. 6 setup, 1 cm spacing)."""
+    b = SceneBuilder(spacing=0.01 / _scale(scale))
+    _star_body(b)
     return Scene("star", _doc(star), b, frames=60, fps=30.0)
 
 
@@ -88,30 +110,302 @@ def clay_on_sphere(scale: float = 1.0) -> Scene:
     return Scene("clay_on_sphere", _doc(clay_on_sphere), b, frames=60, fps=30.0)
 
 
-def three_cylinders(scale: float = 1.0) -> Scene:
-    """Three cylinders of one stiffness and increasing plasticity fall on the ground (paper Fig. 2)."""
-    b = SceneBuilder(spacing=0.01 / _scale(scale))
+#: Fig. 2's materials: one stiffness, increasing plasticity (left to right). A little
+#: viscosity settles the elastic one: undamped, its ringing after the impact grows until
+#: the run diverges (about 1 s after landing).
+def _cylinder_materials() -> list[tuple[str, Material]]:
     E, nu = 3.0e4, 0.3
-    materials = [
-        ("elastic", Material.from_young(E, nu, density=1000.0)),
-        ("plastic", Material.from_young(E, nu, yield_stress=400.0, flow_rate=20.0, hardening=2000.0, density=1000.0)),
-        ("very_plastic", Material.from_young(E, nu, yield_stress=100.0, flow_rate=100.0, density=1000.0)),
+    return [
+        ("elastic", Material.from_young(E, nu, density=1000.0, viscosity=5.0)),
+        ("plastic", Material.from_young(E, nu, yield_stress=400.0, flow_rate=20.0, hardening=2000.0, density=1000.0, viscosity=5.0)),
+        ("very_plastic", Material.from_young(E, nu, yield_stress=100.0, flow_rate=100.0, density=1000.0, viscosity=5.0)),
     ]
-    for k, (name, mat) in enumerate(materials):
-        b.add_cylinder(((k - 1) * 0.16, 0.175, 0.0), radius=0.05, height=0.15, material=mat, axis="y", name=name)
+
+
+def _cylinder_bodies(b: SceneBuilder, only=None):
+    """Fig. 2: three upright cylinders (radius 5 cm, 15 cm tall) dropped 10 cm, 16 cm apart."""
+    for k, (name, mat) in enumerate(_cylinder_materials()):
+        if _wanted(only, name):
+            b.add_cylinder(((k - 1) * 0.16, 0.175, 0.0), radius=0.05, height=0.15, material=mat, axis="y", name=name)
     b.add_ground(friction=0.5)
+
+
+def three_cylinders(scale: float = 1.0) -> Scene:
+    """Three cylinders of one stiffness and increasing plasticity fall on the ground (Fig. 2 setup, 1 cm spacing)."""
+    b = SceneBuilder(spacing=0.01 / _scale(scale))
+    _cylinder_bodies(b)
     return Scene("three_cylinders", _doc(three_cylinders), b, frames=60, fps=30.0)
 
 
-#: Built-in scenes by name.
+# ------------------------------------------------------------------ the paper's figures
+# Each figure scene runs, at scale 1, at the particle count and time step of the paper's
+# Table 1 (docs/gallery.md lists what each one shows, docs/table1.md how fast it runs).
+# Counts are those of lattice sampling at the chosen spacing; ``tests/test_figures.py``
+# checks each is within 5 % of the paper. At ``scale`` S the spacing is divided by S and
+# the time step follows the spacing (dt = paper dt / S: the same Courant number), rounded
+# down so a frame is a whole number of steps: ``--scale 0.3`` is a quick, stable look.
+#
+# The frame rate is 25 fps: 1/25 s is a whole number of the paper's steps (400 of 0.1 ms,
+# 80 of 0.5 ms); at 30 fps neither step divides a frame.
+FIGURE_FPS = 25.0
+
+
+def _figure_dt(paper_dt: float, scale: float, fps: float = FIGURE_FPS) -> float:
+    """``paper_dt / scale`` rounded down to a whole number of steps per frame."""
+    frame = 1.0 / fps
+    steps = max(1, math.ceil(frame / (paper_dt / scale) - 1e-9))
+    return frame / steps
+
+
+def _wanted(only, name: str) -> bool:
+    return only is None or name in only
+
+
+def _check_only(scene: str, only, builder: SceneBuilder):
+    """``only`` (a subset of body names, for one run of a multi-run figure) must name bodies of the scene."""
+    if only is None:
+        return
+    built = {body.name for body in builder._bodies}
+    missing = [n for n in only if n not in built]
+    if missing or not built:
+        raise ValueError(f"only = {tuple(only)!r} is not allowed: scene {scene!r} has no body {missing[0] if missing else only!r}")
+
+
+def _asset(name: str) -> str:
+    """Path of a mesh bundled with Warp (``bunny.usd``, ``bear.usd``)."""
+    import warp.examples  # noqa: PLC0415 (ships with warp-lang)
+
+    return os.path.join(warp.examples.get_asset_directory(), name)
+
+
+def _rotation(axis, degrees: float) -> np.ndarray:
+    """Rotation matrix about ``axis`` by ``degrees`` (Rodrigues)."""
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    t = np.radians(degrees)
+    return np.eye(3) + np.sin(t) * K + (1.0 - np.cos(t)) * (K @ K)
+
+
+def _rotated_box_points(center, size: float, rotation: np.ndarray, spacing: float) -> np.ndarray:
+    """World-lattice points inside a cube of edge ``size`` turned by ``rotation`` (as a mesh is sampled)."""
+    c = np.asarray(center, dtype=np.float64)
+    r = 0.5 * math.sqrt(3.0) * size
+    p = lattice_points(-np.full(3, r), np.full(3, r), spacing)
+    inside = (np.abs(p @ rotation) <= 0.5 * size + 1e-12).all(axis=1)  # body coordinates R^T p
+    return p[inside] + c
+
+
+def fig1_non_newtonian(scale: float = 1.0, only=None) -> Scene:
+    """Paper Fig. 1: a non-Newtonian bear (Warp's bear.usd, 0.9 m tall) lands hard, rebounds a little, then flows."""
+    spacing = 0.02 / _scale(scale)
+    b = SceneBuilder(spacing=spacing)
+    # Flow rate divided by the stress (paper §4): the hard landing barely flows and the bear
+    # rebounds; once the stress has dropped it flows into a puddle within about a second.
+    # Stable at dt = 0.5 ms with 2 cm spacing (stable step 0.7 ms). Softer settings, a
+    # higher drop or less viscosity give a bigger bounce but diverge on landing: large
+    # elastic deformation is where the method breaks down (paper §4).
+    putty = Material.from_young(5.0e4, 0.3, yield_stress=500.0, flow_rate=2.0e5, density=1100.0,
+                                viscosity=12.0, model="non_newtonian")
+    if _wanted(only, "bear"):
+        # bear.usd is 5.5 m tall: scaled by 0.163 it is 0.90 m tall, 1.6 m long, and the
+        # 2 cm lattice holds 52,309 particles (paper: 52,316). Bottom 0.3 m above the ground.
+        b.add_mesh(_asset("bear.usd"), putty, scale=0.163, translation=(0.0, 0.3, 0.0), name="bear")
+    b.add_ground(friction=0.6)
+    _check_only("fig1_non_newtonian", only, b)
+    return Scene("fig1_non_newtonian", _doc(fig1_non_newtonian), b, frames=60, fps=FIGURE_FPS,
+                 dt=_figure_dt(5.0e-4, scale), figure="Fig. 1", view=(55.0, 15.0))
+
+
+def fig2_three_cylinders(scale: float = 1.0, only=None) -> Scene:
+    """Paper Fig. 2: three cylinders, one stiffness, elastic / plastic / very plastic, fall on the ground."""
+    # 4.1 mm spacing: 16,848 particles per cylinder (paper: 16,770 per run).
+    b = SceneBuilder(spacing=0.0041 / _scale(scale))
+    _cylinder_bodies(b, only)
+    _check_only("fig2_three_cylinders", only, b)
+    return Scene("fig2_three_cylinders", _doc(fig2_three_cylinders), b, frames=50, fps=FIGURE_FPS,
+                 dt=_figure_dt(1.0e-4, scale), figure="Fig. 2", view=(15.0, 15.0))
+
+
+def fig3_pile(scale: float = 1.0, only=None) -> Scene:
+    """Paper Fig. 3: twelve clay bodies of two shapes (bricks and discs) fall in a column and form a pile."""
+    spacing = 0.01 / _scale(scale)
+    b = SceneBuilder(spacing=spacing)
+    brick = Material.preset("clay")
+    disc = Material.preset("clay", yield_stress=1200.0)
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    for k in range(12):
+        shape = "brick" if k % 2 == 0 else "disc"
+        name = f"{shape}{k}"
+        if not _wanted(only, name):
+            continue
+        # A deterministic, slightly scattered column, bottom to top: each body 2.5 cm off the
+        # axis, 7.5 cm above the one below, bricks turned 90 degrees from the one before.
+        # Bodies touch only through SPH pressure (no friction between them), so shapes that
+        # roll (lying cylinders, spheres) would not stay on the pile: flat ones are used.
+        off = 0.025 * np.array([math.cos(k * golden), 0.0, math.sin(k * golden)])
+        center = off + np.array([0.0, 0.1 + 0.075 * k, 0.0])
+        if shape == "brick":
+            size = (0.14, 0.05, 0.08) if (k // 2) % 2 == 0 else (0.08, 0.05, 0.14)
+            b.add_box(center, size, brick, name=name)
+        else:
+            b.add_cylinder(center, radius=0.055, height=0.045, material=disc, axis="y", name=name)
+    b.add_ground(friction=0.7)
+    _check_only("fig3_pile", only, b)
+    return Scene("fig3_pile", _doc(fig3_pile), b, frames=60, fps=FIGURE_FPS, dt=_figure_dt(1.0e-4, scale), figure="Fig. 3", view=(30.0, 20.0))
+
+
+def fig4_bunny_on_sphere(scale: float = 1.0, only=None) -> Scene:
+    """Paper Fig. 4: an elastoplastic bunny of dough (Warp's bunny.usd, 29 cm tall) falls on a fixed sphere."""
+    spacing = 0.005 / _scale(scale)
+    b = SceneBuilder(spacing=spacing)
+    dough = Material.preset("dough")
+    radius = 0.15
+    # A sticky sphere (friction 1.5): the dough drapes over it and slides off slowly.
+    b.add_sphere_collider((0.0, radius, 0.0), radius, friction=1.5)
+    b.add_ground(friction=0.5)
+    if _wanted(only, "bunny"):
+        # bunny.usd is 1.6 m tall: scaled by 0.1795 it is 29 cm tall and the 5 mm lattice
+        # holds 40,591 particles (paper: 40,556). Its body over the sphere, 8 cm above it.
+        s = 0.1795
+        b.add_mesh(_asset("bunny.usd"), dough, scale=s, translation=(0.03, 2 * radius + 0.08 - 0.0212 * s, -0.02), name="bunny")
+    _check_only("fig4_bunny_on_sphere", only, b)
+    return Scene("fig4_bunny_on_sphere", _doc(fig4_bunny_on_sphere), b, frames=50, fps=FIGURE_FPS,
+                 dt=_figure_dt(1.0e-4, scale), figure="Fig. 4", view=(30.0, 20.0))
+
+
+def fig5_hyperelastic_boxes(scale: float = 1.0, only=None) -> Scene:
+    """Paper Fig. 5: two hyperelastic 10 cm cubes, stiff (left) and soft (right), dropped tilted on the ground."""
+    size = 0.10
+    # 8.65 lattice cells per edge: 664 particles per tilted cube (paper: 665).
+    spacing = size / 8.65 / _scale(scale)
+    b = SceneBuilder(spacing=spacing)
+    turn = _rotation((1.0, 0.0, 1.0), 10.0)
+    # Viscosity keeps the impact of these purely elastic cubes stable: the paper notes its
+    # method breaks down under large elastic deformation of soft bodies.
+    cubes = [
+        ("stiff", -0.12, Material.from_young(2.0e5, 0.3, density=1000.0, viscosity=3.0, model="hyperelastic")),
+        ("soft", 0.12, Material.from_young(2.0e4, 0.3, density=1000.0, viscosity=5.0, model="hyperelastic")),
+    ]
+    for name, x, mat in cubes:
+        if _wanted(only, name):
+            b.add_particles(_rotated_box_points((x, 0.25, 0.0), size, turn, spacing), mat, name=name, kind="box")
+    b.add_ground(friction=0.4)
+    _check_only("fig5_hyperelastic_boxes", only, b)
+    return Scene("fig5_hyperelastic_boxes", _doc(fig5_hyperelastic_boxes), b, frames=50, fps=FIGURE_FPS,
+                 dt=_figure_dt(1.0e-4, scale), figure="Fig. 5", view=(10.0, 15.0))
+
+
+def fig6_dough_star(scale: float = 1.0, only=None) -> Scene:
+    """Paper Fig. 6: an extruded star of slack bread dough slumps and spreads on the ground (5 mm spacing)."""
+    b = SceneBuilder(spacing=0.005 / _scale(scale))
+    if _wanted(only, "star"):
+        # Slacker than the dough preset (yield 60 Pa, flow 40/s): it spreads by 10 % in 3 s.
+        _star_body(b, material=Material.preset("dough", yield_stress=60.0, flow_rate=40.0))
+    else:
+        b.add_ground(friction=0.6)
+    _check_only("fig6_dough_star", only, b)
+    return Scene("fig6_dough_star", _doc(fig6_dough_star), b, frames=75, fps=FIGURE_FPS,
+                 dt=_figure_dt(1.0e-4, scale), figure="Fig. 6", view=(20.0, 45.0))
+
+
+def _grid_materials() -> list[tuple[str, str, Material]]:
+    """Fig. 7: (row, column, material) of the 3 x 2 grid; each row varies one plastic parameter."""
+    base = dict(density=1000.0, viscosity=4.0)
+    E, nu = 5.0e4, 0.3
+    return [
+        ("top", "left", Material.from_young(E, nu, yield_stress=150.0, flow_rate=60.0, **base)),
+        ("top", "right", Material.from_young(E, nu, yield_stress=1500.0, flow_rate=60.0, **base)),
+        ("center", "left", Material.from_young(E, nu, yield_stress=300.0, flow_rate=6.0, **base)),
+        ("center", "right", Material.from_young(E, nu, yield_stress=300.0, flow_rate=200.0, **base)),
+        ("bottom", "left", Material.from_young(E, nu, yield_stress=300.0, flow_rate=60.0, hardening=0.0, **base)),
+        ("bottom", "right", Material.from_young(E, nu, yield_stress=300.0, flow_rate=60.0, hardening=3.0e4, **base)),
+    ]
+
+
+#: Fig. 7 body names by (row, column): the parameter each row varies, low / high.
+FIG7_BODIES = {
+    ("top", "left"): "yield_low", ("top", "right"): "yield_high",
+    ("center", "left"): "flow_slow", ("center", "right"): "flow_fast",
+    ("bottom", "left"): "hardening_none", ("bottom", "right"): "hardening_strong",
+}
+
+
+def fig7_plastic_grid(scale: float = 1.0, only=None) -> Scene:
+    """Paper Fig. 7: a 3 x 2 grid of box drops; rows vary yield stress, flow rate, hardening (low left, high right)."""
+    # 23 cm boxes on a 1 cm lattice: 23^3 = 12,167 particles each (paper: 12,152 per run).
+    b = SceneBuilder(spacing=0.01 / _scale(scale))
+    rows = {"top": -0.6, "center": 0.0, "bottom": 0.6}  # z: the top row is the far one
+    cols = {"left": -0.3, "right": 0.3}
+    for row, col, mat in _grid_materials():
+        name = FIG7_BODIES[(row, col)]
+        if _wanted(only, name):
+            b.add_box((cols[col], 0.4, rows[row]), (0.23, 0.23, 0.23), mat, name=name)
+    b.add_ground(friction=0.6)
+    _check_only("fig7_plastic_grid", only, b)
+    return Scene("fig7_plastic_grid", _doc(fig7_plastic_grid), b, frames=50, fps=FIGURE_FPS,
+                 dt=_figure_dt(1.0e-4, scale), figure="Fig. 7", view=(20.0, 40.0))
+
+
+# Fig. 8 (our method vs. a rest-configuration and an additive strain model, SPEC §7) is
+# added with the comparison deformation models: a ``fig8_comparison`` function here, an
+# entry in SCENES and FIGURE_SCENES after fig7, and its rows (none in the paper's Table 1).
+
+
+#: Built-in scenes by name: the everyday scenes, then one per figure of the paper.
 SCENES: dict[str, Callable[..., Scene]] = {
     "dough_drop": dough_drop,
     "star": star,
     "rubber_bounce": rubber_bounce,
     "clay_on_sphere": clay_on_sphere,
     "three_cylinders": three_cylinders,
+    "fig1_non_newtonian": fig1_non_newtonian,
+    "fig2_three_cylinders": fig2_three_cylinders,
+    "fig3_pile": fig3_pile,
+    "fig4_bunny_on_sphere": fig4_bunny_on_sphere,
+    "fig5_hyperelastic_boxes": fig5_hyperelastic_boxes,
+    "fig6_dough_star": fig6_dough_star,
+    "fig7_plastic_grid": fig7_plastic_grid,
 }
 DEFAULT_SCENE = "dough_drop"
+#: The scenes that reproduce a figure of the paper, in figure order.
+FIGURE_SCENES = tuple(name for name in SCENES if name.startswith("fig"))
+
+
+@dataclasses.dataclass(frozen=True)
+class PaperRun:
+    """One row of the paper's Table 1: a run, its step, particle count and seconds per frame
+    (one core of a 2008 Xeon E5410). ``bodies``: the bodies of ``scene`` that make the run."""
+
+    label: str
+    scene: str
+    bodies: tuple[str, ...]
+    dt: float
+    particles: int
+    seconds_per_frame: float
+
+
+#: The paper's Table 1, row by row, mapped to the built-in figure scenes.
+TABLE1 = (
+    PaperRun("Fig. 1", "fig1_non_newtonian", ("bear",), 0.5e-3, 52316, 96.4888),
+    PaperRun("Fig. 4", "fig4_bunny_on_sphere", ("bunny",), 0.1e-3, 40556, 379.065),
+    PaperRun("Fig. 2 (left)", "fig2_three_cylinders", ("elastic",), 0.1e-3, 16770, 138.257),
+    PaperRun("Fig. 2 (center)", "fig2_three_cylinders", ("plastic",), 0.1e-3, 16770, 137.909),
+    PaperRun("Fig. 2 (right)", "fig2_three_cylinders", ("very_plastic",), 0.1e-3, 16770, 141.591),
+    PaperRun("Fig. 5 (left)", "fig5_hyperelastic_boxes", ("stiff",), 0.1e-3, 665, 4.76452),
+    PaperRun("Fig. 5 (right)", "fig5_hyperelastic_boxes", ("soft",), 0.1e-3, 665, 4.88767),
+    PaperRun("Fig. 7 (top, left)", "fig7_plastic_grid", ("yield_low",), 0.1e-3, 12152, 102.545),
+    PaperRun("Fig. 7 (center, left)", "fig7_plastic_grid", ("flow_slow",), 0.1e-3, 12152, 86.9948),
+    PaperRun("Fig. 7 (bottom, left)", "fig7_plastic_grid", ("hardening_none",), 0.1e-3, 12152, 94.4097),
+    PaperRun("Fig. 7 (top, right)", "fig7_plastic_grid", ("yield_high",), 0.1e-3, 12152, 96.135),
+    PaperRun("Fig. 7 (center, right)", "fig7_plastic_grid", ("flow_fast",), 0.1e-3, 12152, 87.1509),
+    PaperRun("Fig. 7 (bottom, right)", "fig7_plastic_grid", ("hardening_strong",), 0.1e-3, 12152, 94.3632),
+)
+
+
+def paper_run_scene(run: PaperRun, scale: float = 1.0) -> Scene:
+    """The scene of one Table 1 row: its figure scene with only that run's bodies."""
+    return SCENES[run.scene](scale=scale, only=run.bodies)
 
 
 def scene_names() -> list[str]:

@@ -10,6 +10,13 @@ Layout of the written stage (Y up, metres, time code = frame index)::
     /World/Colliders/plane_<k>  Mesh: a large quad on the plane (solid below it)
     /World/Colliders/sphere_<k> Sphere
     /World/Colliders/box_<k>    Cube scaled to the box's half extents
+    /World/Surfaces/<body>      Mesh (only with ``surface=True``): the body's triangle surface
+                                per frame (time-sampled points, faceVertexCounts,
+                                faceVertexIndices, extent; see ``warp_esph.surface``)
+
+The root layer's custom data holds ``warp_esph:*`` facts about the run (particle count,
+spacing, ...) and, where the scene suggests one, ``warp_esph:view`` = (azimuth,
+elevation) in degrees, which ``warp_esph.render`` uses as its default camera direction.
 
 ``.usd``/``.usdc`` are written as binary crate files, ``.usda`` as text.
 
@@ -37,6 +44,7 @@ import math
 import os
 import shutil
 import time
+import warnings
 
 import numpy as np
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
@@ -51,6 +59,7 @@ USD_EXTENSIONS = {".usd": "usdc", ".usdc": "usdc", ".usda": "usda"}
 
 _ROOT = "/World"
 _COLLIDERS = "/World/Colliders"
+_SURFACES = "/World/Surfaces"
 _KEY = "warp_esph"
 
 # One display colour per material (cycled), so bodies are told apart in a viewer.
@@ -63,7 +72,7 @@ _PALETTE = [
 def body_prim_names(model: Model) -> list[str]:
     """The prim name of each body: a valid, unique USD identifier made from its name."""
     names: list[str] = []
-    taken = {"Colliders"}
+    taken = {"Colliders", "Surfaces"}
     for body in model.bodies:
         base = Tf.MakeValidIdentifier(body.name) or "body"
         name, k = base, 1
@@ -93,10 +102,15 @@ class UsdWriter:
     file written for the same scene and continues it: the first frame written then
     replaces that frame and every later one already in the file (resume from a
     checkpoint). ``plane_size``: edge length of the quads that show plane colliders
-    (default: 10x the scene size, at least 4 m).
+    (default: 10x the scene size, at least 4 m). ``surface=True`` also writes a triangle
+    surface per body and frame under ``/World/Surfaces`` (marching cubes of a Zhu-Bridson
+    field, ``warp_esph.surface``; costs about 0.15 s per frame per 50k particles on one CPU
+    core). ``view``: a suggested camera direction (azimuth, elevation) in degrees for
+    renderers, stored in the layer's custom data.
     """
 
-    def __init__(self, path, model: Model, fps: float = 30.0, *, append: bool = False, plane_size: float | None = None):
+    def __init__(self, path, model: Model, fps: float = 30.0, *, append: bool = False, plane_size: float | None = None,
+                 surface: bool = False, view=None):
         if not isinstance(model, Model):
             raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
         try:
@@ -114,6 +128,19 @@ class UsdWriter:
         self.fps = checks.positive("fps", fps)
         self.append = bool(append)
         self._plane_size = None if plane_size is None else checks.positive("plane_size", plane_size)
+        if not isinstance(surface, bool):
+            raise ValueError(f"surface = {surface!r} is not allowed: must be True or False")
+        self.surface = surface
+        if view is not None:
+            try:
+                az, el = (float(v) for v in view)
+            except (TypeError, ValueError):
+                raise ValueError(f"view = {view!r} is not allowed: must be (azimuth, elevation) in degrees") from None
+            view = (checks.number("view azimuth", az), checks.number("view elevation", el))
+        self.view = view
+        #: Seconds spent building surfaces, over all frames.
+        self.surface_seconds = 0.0
+        self._surface_warned: set[str] = set()
         self._folder, self._name, self._ext = folder, name, ext
         self._work = [os.path.join(folder, f".{name}.w{tag}{ext}") for tag in "ab"]
         self._tmp = os.path.join(folder, f".{name}.{os.getpid()}.publish{ext}")
@@ -176,6 +203,7 @@ class UsdWriter:
             layer.Reload(force=True)  # a layer of that name may be cached from an earlier writer
             stage = Usd.Stage.Open(layer)
             self._check_compatible(stage)
+            self._author_surfaces(stage)
             self._stages.append(stage)
         times = self._stages[0].GetEndTimeCode()
         start = self._stages[0].GetStartTimeCode()
@@ -215,6 +243,10 @@ class UsdWriter:
             f"{_KEY}:gravity": Gf.Vec3d(*m.gravity),
             f"{_KEY}:dtype": m.scalar.__name__,
         }
+        if self.view is not None:
+            data = dict(stage.GetRootLayer().customLayerData)
+            data[f"{_KEY}:view"] = Gf.Vec2d(*self.view)
+            stage.GetRootLayer().customLayerData = data
         for body, name, widths in zip(m.bodies, self._prim_names, self._widths):
             pts = UsdGeom.Points.Define(stage, f"{_ROOT}/{name}")
             prim = pts.GetPrim()
@@ -238,6 +270,23 @@ class UsdWriter:
             color = _PALETTE[body.material % len(_PALETTE)]
             pts.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(Vt.Vec3fArray([Gf.Vec3f(*color)]))
         self._author_colliders(stage)
+        self._author_surfaces(stage)
+
+    def _author_surfaces(self, stage: Usd.Stage):
+        """The surface Mesh prims (idempotent: also used when appending to an existing file)."""
+        m = self.model
+        if self.surface:
+            UsdGeom.Scope.Define(stage, _SURFACES)
+            for body, name in zip(m.bodies, self._prim_names):
+                mesh = UsdGeom.Mesh.Define(stage, f"{_SURFACES}/{name}")
+                mesh.CreatePointsAttr()
+                mesh.CreateFaceVertexCountsAttr()
+                mesh.CreateFaceVertexIndicesAttr()
+                mesh.CreateExtentAttr()
+                mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+                mesh.GetPrim().SetCustomDataByKey(f"{_KEY}:body_name", body.name)
+                color = _PALETTE[body.material % len(_PALETTE)]
+                mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(Vt.Vec3fArray([Gf.Vec3f(*color)]))
 
     def _author_colliders(self, stage: Usd.Stage):
         m = self.model
@@ -334,9 +383,17 @@ class UsdWriter:
                 Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(sv[s])),
                 Vt.FloatArray.FromNumpy(np.ascontiguousarray(a32[s])),
             ))
+        surfaces = self._surfaces(x32) if self.surface else None
         self.first_frame = frame if self.first_frame is None else min(self.first_frame, frame)
         self.last_frame = frame if self.last_frame is None else max(self.last_frame, frame)
         for stage in self._stages:
+            if surfaces is not None:
+                for name, (pts, counts, indices, ext) in zip(self._prim_names, surfaces):
+                    mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"{_SURFACES}/{name}"))
+                    mesh.GetPointsAttr().Set(pts, t)
+                    mesh.GetFaceVertexCountsAttr().Set(counts, t)
+                    mesh.GetFaceVertexIndicesAttr().Set(indices, t)
+                    mesh.GetExtentAttr().Set(ext, t)
             for name, (pts, vel, wid, ext, svals, alph) in zip(self._prim_names, samples):
                 prim = stage.GetPrimAtPath(f"{_ROOT}/{name}")
                 geom = UsdGeom.Points(prim)
@@ -350,6 +407,33 @@ class UsdWriter:
             stage.SetEndTimeCode(float(self.last_frame))
         self._save_and_publish()
         self.frames_written += 1
+
+    def _surfaces(self, x32: np.ndarray) -> list:
+        """(points, counts, indices, extent) of each body's surface, as USD arrays."""
+        from .surface import particle_surface  # noqa: PLC0415 (Warp kernels, only when asked)
+
+        t0 = time.perf_counter()
+        out = []
+        for body in self.model.bodies:
+            xb = x32[body.start: body.start + body.count]
+            v, tri = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+            if np.isfinite(xb).all(axis=1).any():
+                try:
+                    v, tri = particle_surface(xb, self.model.spacing, device=self.model.device)
+                except ValueError as e:  # e.g. particles scattered over kilometres: the grid would not fit
+                    if body.name not in self._surface_warned:
+                        self._surface_warned.add(body.name)
+                        warnings.warn(f"no surface for body {body.name!r} (an empty mesh is written): {e}", stacklevel=3)
+            v32 = np.ascontiguousarray(v, dtype=np.float32)
+            lo, hi = (v32.min(axis=0), v32.max(axis=0)) if len(v32) else (np.zeros(3), np.zeros(3))
+            out.append((
+                Vt.Vec3fArray.FromNumpy(v32),
+                Vt.IntArray.FromNumpy(np.full(len(tri), 3, dtype=np.int32)),
+                Vt.IntArray.FromNumpy(np.ascontiguousarray(tri.reshape(-1), dtype=np.int32)),
+                Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]),
+            ))
+        self.surface_seconds += time.perf_counter() - t0
+        return out
 
     @staticmethod
     def _drop_frames_from(stage: Usd.Stage, frame: int):

@@ -1,0 +1,157 @@
+"""Surfaces from particles (marching cubes), surfaces in USD, and meshio export round trips."""
+
+import os
+
+import meshio
+import numpy as np
+import pytest
+from pxr import Sdf, Usd, UsdGeom
+
+import warp_esph as we
+from warp_esph.cli import main
+from warp_esph.export import export_frames
+from warp_esph.meshes import lattice_points, signed_volume
+from warp_esph.render import UsdFrames
+from warp_esph.surface import particle_surface
+
+
+def _edges_closed(tri: np.ndarray) -> bool:
+    """Every undirected edge is used by exactly two triangles, once in each direction."""
+    e = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    directed, counts = np.unique(e, axis=0, return_counts=True)
+    if (counts != 1).any():
+        return False
+    key = {tuple(x) for x in directed.tolist()}
+    return all((b, a) in key for a, b in key)
+
+
+@pytest.mark.parametrize("n", [6, 16])
+def test_block_surface_is_closed_outward_and_where_the_material_ends(n):
+    dx = 0.01
+    pts = lattice_points(np.zeros(3), np.full(3, n * dx), dx)  # the material fills [0, n dx]^3
+    v, tri = particle_surface(pts, dx)
+    assert len(tri) > 100 and tri.min() >= 0 and tri.max() < len(v)
+    assert _edges_closed(tri)
+    vol = signed_volume(v, tri)
+    assert vol > 0  # outward
+    # Faces within 0.15 dx of the block's faces; volume within a few per cent (edges round off).
+    assert np.abs(v.min(axis=0) - 0.0).max() < 0.15 * dx and np.abs(v.max(axis=0) - n * dx).max() < 0.15 * dx
+    assert vol == pytest.approx((n * dx) ** 3, rel=0.08 if n == 6 else 0.02)
+
+
+def test_separate_clusters_give_separate_components():
+    dx = 0.01
+    a = lattice_points(np.zeros(3), np.full(3, 0.06), dx)
+    b = a + np.array([0.2, 0.0, 0.0])
+    v, tri = particle_surface(np.concatenate([a, b]), dx)
+    left = v[tri].mean(axis=1)[:, 0] < 0.13
+    assert left.any() and (~left).any()
+    assert signed_volume(v, tri[left]) == pytest.approx(signed_volume(v, tri[~left]), rel=1e-3)
+
+
+def _model():
+    b = we.SceneBuilder(spacing=0.03)
+    b.add_box((0.0, 0.2, 0.0), (0.15, 0.15, 0.15), we.Material.preset("dough"), name="block")
+    b.add_sphere((0.4, 0.3, 0.0), 0.08, we.Material.preset("rubber"), name="ball", velocity=(0.0, -1.0, 0.0))
+    b.add_ground()
+    return b.finalize()
+
+
+def _open(path) -> Usd.Stage:
+    return Usd.Stage.Open(Sdf.Layer.OpenAsAnonymous(str(path)))
+
+
+def test_writer_surfaces_one_mesh_per_body_per_frame(tmp_path):
+    model = _model()
+    path = tmp_path / "s.usdc"
+    with we.UsdWriter(path, model, 30.0, surface=True) as writer:
+        we.simulate(model, 2, fps=30.0, writer=writer, progress=False)
+    stage = _open(path)
+    for body in ("block", "ball"):
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/Surfaces/{body}"))
+        assert mesh, body
+        assert mesh.GetPointsAttr().GetTimeSamples() == [0.0, 1.0, 2.0]
+        for t in (0.0, 2.0):
+            pts = np.asarray(mesh.GetPointsAttr().Get(t))
+            counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(t))
+            idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(t))
+            assert len(pts) > 0 and (counts == 3).all() and len(idx) == 3 * len(counts)
+            assert idx.min() >= 0 and idx.max() < len(pts)
+            assert _edges_closed(idx.reshape(-1, 3))
+            ext = np.asarray(mesh.GetExtentAttr().Get(t))
+            np.testing.assert_allclose(ext, [pts.min(axis=0), pts.max(axis=0)], atol=1e-6)
+    # The particles are still the Points prims; the renderer ignores the surfaces.
+    assert [n for n, _ in UsdFrames(path).bodies] == ["block", "ball"]
+
+
+@pytest.mark.parametrize("fmt", ["vtu", "ply"])
+def test_meshio_export_round_trip(tmp_path, fmt):
+    model = _model()
+    path = tmp_path / "e.usdc"
+    with we.UsdWriter(path, model, 30.0) as writer:
+        we.simulate(model, 2, fps=30.0, writer=writer, progress=False)
+    out = tmp_path / fmt
+    files = export_frames(path, fmt, out)
+    frames = [f for f in files if f.endswith(f".{fmt}")]
+    assert [os.path.basename(f) for f in frames] == [f"frame_0000{k}.{fmt}" for k in range(3)]
+    data = UsdFrames(path)
+    for k, file in enumerate(frames):
+        mesh = meshio.read(file)
+        ref = data.arrays(k)
+        n = model.particle_count
+        np.testing.assert_allclose(mesh.points, ref["points"], atol=1e-6)
+        pd = mesh.point_data
+        if fmt == "vtu":
+            vel, sv = pd["velocity"], pd["singular_values"]
+        else:
+            vel = np.stack([pd[f"velocity_{c}"] for c in "xyz"], axis=1)
+            sv = np.stack([pd[f"singular_values_{c}"] for c in "012"], axis=1)
+        assert vel.shape == (n, 3) and sv.shape == (n, 3)
+        np.testing.assert_allclose(vel, ref["velocities"], atol=1e-6)
+        np.testing.assert_allclose(sv, ref["singular_values"], atol=1e-6)
+        np.testing.assert_allclose(pd["alpha"], ref["alpha"], atol=1e-7)
+        body = np.asarray(pd["body_id"]).astype(int)
+        assert (body[: model.bodies[0].count] == 0).all() and (body[model.bodies[0].count:] == 1).all()
+        assert set(np.asarray(pd["material_id"]).astype(int)) == {0, 1}
+        assert sum(len(c.data) for c in mesh.cells) == n  # one vertex cell per particle
+    if fmt == "vtu":
+        pvd = (out / "frames.pvd").read_text()
+        assert pvd.count("<DataSet") == 3 and 'timestep="0.0333333333"' in pvd and "frame_00002.vtu" in pvd
+
+
+def test_run_with_surface_export_and_preview(tmp_path, capsys):
+    path = tmp_path / "dd.usdc"
+    assert main(["run", "dough_drop", "--scale", "0.3", "--frames", "2", "--no-progress", "-o", str(path),
+                 "--surface", "--export", "vtu", "--preview"]) == 0
+    out = capsys.readouterr().out
+    assert "surfaces:" in out and "exported 4 files" in out and "preview:" in out
+    assert sorted(os.listdir(tmp_path / "dd_vtu")) == ["frame_00000.vtu", "frame_00001.vtu", "frame_00002.vtu", "frames.pvd"]
+    assert (tmp_path / "dd.png").stat().st_size > 1000
+    stage = _open(path)
+    assert UsdGeom.Mesh(stage.GetPrimAtPath("/World/Surfaces/dough")).GetPointsAttr().GetTimeSamples() == [0.0, 1.0, 2.0]
+    # The export command on its own, ply, some frames.
+    assert main(["export", str(path), "--format", "ply", "--frames", "0,2", "-o", str(tmp_path / "p")]) == 0
+    assert sorted(os.listdir(tmp_path / "p")) == ["frame_00000.ply", "frame_00002.ply"]
+    assert main(["export", str(tmp_path / "nope.usdc")]) == 2
+    assert "nope.usdc" in capsys.readouterr().err
+
+
+def test_scattered_particles_get_an_empty_surface_and_one_warning(tmp_path):
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_particles(lattice_points(np.zeros(3), np.full(3, 0.1), 0.02), we.Material.preset("clay"), name="c")
+    model = b.finalize()
+    state = model.state()
+    x = model.particle_x0.copy()
+    x[0] = (5000.0, 0.0, 0.0)  # a grid over 5 km at 1 cm cells would not fit
+    state.x.assign(x.astype(np.float32))
+    with pytest.raises(ValueError, match="grid would have"):
+        particle_surface(x, model.spacing)
+    path = tmp_path / "far.usdc"
+    with pytest.warns(UserWarning, match="no surface for body 'c'") as record:
+        with we.UsdWriter(path, model, 30.0, surface=True) as writer:
+            writer.write_frame(0, state)
+            writer.write_frame(1, state)
+    assert len([r for r in record if "no surface" in str(r.message)]) == 1
+    stage = _open(path)
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Surfaces/c"))
+    assert len(mesh.GetPointsAttr().Get(1.0)) == 0

@@ -1,0 +1,101 @@
+"""The paper's figures as built-in scenes: Table 1 particle counts and steps, and short runs."""
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from warp_esph.cli import main
+from warp_esph.scenes import FIGURE_SCENES, SCENES, TABLE1, get_scene, paper_run_scene
+from warp_esph.simulate import resolve_timestep, simulate
+
+#: A scale per figure scene giving a few hundred particles (a coarse but complete scene).
+SMALL = {
+    "fig1_non_newtonian": 0.2,
+    "fig2_three_cylinders": 0.2,
+    "fig3_pile": 0.45,
+    "fig4_bunny_on_sphere": 0.2,
+    "fig5_hyperelastic_boxes": 0.6,
+    "fig6_dough_star": 0.3,
+    "fig7_plastic_grid": 0.15,
+}
+
+
+def test_every_figure_has_a_scene():
+    assert set(SMALL) == set(FIGURE_SCENES)
+    figures = sorted(get_scene(n, SMALL[n]).figure for n in FIGURE_SCENES)
+    assert figures == [f"Fig. {k}" for k in range(1, 8)]
+    assert list(SCENES)[0] == "dough_drop"  # still the default, first in the list
+
+
+@pytest.mark.parametrize("run", TABLE1, ids=lambda r: r.label)
+def test_table1_particle_count_and_step_at_scale_1(run):
+    scene = paper_run_scene(run)
+    n = scene.builder.particle_count
+    assert abs(n - run.particles) <= 0.05 * run.particles, f"{run.label}: {n} particles, paper {run.particles}"
+    assert [b.name for b in scene.builder._bodies] == list(run.bodies)
+    assert scene.dt == pytest.approx(run.dt, rel=1e-12)
+    # The paper's step divides a frame exactly (25 fps).
+    model_free_steps = (1.0 / scene.fps) / scene.dt
+    assert model_free_steps == pytest.approx(round(model_free_steps), abs=1e-6)
+
+
+@pytest.mark.parametrize("name", FIGURE_SCENES)
+def test_scale_keeps_the_courant_number(name):
+    full, small = get_scene(name).dt, get_scene(name, scale=0.5).dt
+    assert small == pytest.approx(2.0 * full, rel=0.02)  # dt follows the spacing, rounded to whole steps
+    assert small <= 2.0 * full * (1 + 1e-12)
+    frame = 1.0 / get_scene(name, 0.5).fps
+    assert frame / small == pytest.approx(round(frame / small), abs=1e-6)
+
+
+@pytest.mark.parametrize("name", FIGURE_SCENES)
+def test_figure_scene_runs_small_without_nan(name):
+    t0 = time.perf_counter()
+    scene = get_scene(name, scale=SMALL[name])
+    model = scene.builder.finalize()
+    assert 100 <= model.particle_count <= 1500
+    assert model.stable_dt() >= scene.dt * (1 - 1e-9), "the scene's step is above the stable step"
+    substeps, dt = resolve_timestep(model, scene.fps, dt=scene.dt)
+    state = simulate(model, 3, fps=scene.fps, dt=scene.dt, progress=False)
+    x, v = state.x.numpy(), state.v.numpy()
+    assert np.isfinite(x).all() and np.isfinite(v).all()
+    assert not np.array_equal(x, model.particle_x0)
+    # Nothing fell through the ground (small penetration allowed for the contact response).
+    assert x[:, 1].min() > -model.spacing
+    assert np.abs(v).max() < 20.0
+    seconds = time.perf_counter() - t0
+    assert seconds < 10.0, f"{name}: {seconds:.1f} s"
+
+
+def test_only_picks_the_bodies_of_one_run():
+    scene = get_scene("fig7_plastic_grid", scale=0.15)
+    assert len(scene.builder._bodies) == 6
+    one = SCENES["fig7_plastic_grid"](scale=0.15, only=("flow_fast",))
+    assert [b.name for b in one.builder._bodies] == ["flow_fast"]
+    assert len(one.builder.planes) == 1
+    with pytest.raises(ValueError, match="no body"):
+        SCENES["fig2_three_cylinders"](scale=0.2, only=("rubber",))
+
+
+def test_stable_at_the_paper_step_at_scale_1():
+    """The paper's step is within the explicit limit of every figure scene at full resolution."""
+    for name in FIGURE_SCENES:
+        scene = get_scene(name)
+        b = scene.builder
+        c = max(m.p_wave_speed for m in b._materials)
+        assert 0.3 * b.spacing / c >= scene.dt * (1 - 1e-9), name
+        assert math.isclose(scene.fps, 25.0)
+
+
+def test_cli_lists_and_runs_a_figure(tmp_path, capsys):
+    assert main(["scenes"]) == 0
+    out = capsys.readouterr().out
+    for name in FIGURE_SCENES:
+        assert any(line.startswith(name) and "Fig." in line for line in out.splitlines()), name
+    path = tmp_path / "fig5.usdc"
+    assert main(["run", "fig5_hyperelastic_boxes", "--scale", "0.5", "--frames", "1", "--no-progress", "-o", str(path),
+                 "--preview"]) == 0
+    out = capsys.readouterr().out
+    assert "dt = 0.0002 s" in out and (tmp_path / "fig5.png").exists() and "preview:" in out

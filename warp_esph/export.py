@@ -1,0 +1,92 @@
+"""Particle frames for ParaView and other tools: one ``.vtu`` or ``.ply`` file per frame (meshio).
+
+Reads a file ``UsdWriter`` wrote and writes, for every chosen frame, the particles as
+points (one ``vertex`` cell each, so ParaView shows them without a filter) with point
+data:
+
+=================  =========  ===========================================================
+name               shape      meaning
+=================  =========  ===========================================================
+velocity           (N, 3)     m/s
+alpha              (N,)       accumulated plastic strain
+singular_values    (N, 3)     singular values of the elastic deformation gradient
+body_id            (N,)       index of the body (order of the USD prims / the model)
+material_id        (N,)       index of the material
+=================  =========  ===========================================================
+
+PLY has no vector properties: there ``velocity`` and ``singular_values`` become
+``velocity_x``/``_y``/``_z`` and ``singular_values_0``/``_1``/``_2``. For ``.vtu`` a
+``frames.pvd`` collection beside the frames gives ParaView the time of each one (open it
+instead of the single files). File names: ``frame_00012.vtu`` (the frame index).
+"""
+
+from __future__ import annotations
+
+import os
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+__all__ = ["EXPORT_FORMATS", "export_frames", "frame_arrays_to_mesh"]
+
+EXPORT_FORMATS = ("vtu", "ply")
+
+
+def frame_arrays_to_mesh(arrays: dict, fmt: str):
+    """A ``meshio.Mesh`` of one frame's particle arrays (``UsdFrames.arrays``)."""
+    import meshio  # noqa: PLC0415
+
+    pts = np.asarray(arrays["points"], dtype=np.float64)
+    n = len(pts)
+    data = {
+        "velocity": np.asarray(arrays["velocities"], dtype=np.float32),
+        "alpha": np.asarray(arrays["alpha"], dtype=np.float32),
+        "singular_values": np.asarray(arrays["singular_values"], dtype=np.float32),
+        "body_id": np.asarray(arrays["body"], dtype=np.int32),
+        "material_id": np.asarray(arrays["material_id"], dtype=np.int32),
+    }
+    if fmt == "ply":
+        for name, suffixes in (("velocity", "xyz"), ("singular_values", "012")):
+            vec = data.pop(name)
+            for k, s in enumerate(suffixes):
+                data[f"{name}_{s}"] = np.ascontiguousarray(vec[:, k])
+    cells = [("vertex", np.arange(n, dtype=np.int64).reshape(-1, 1))] if n else []
+    return meshio.Mesh(pts, cells, point_data=data)
+
+
+def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None) -> list[str]:
+    """Write ``frames`` (see ``render.parse_frames``; default all) of ``usd_path`` as ``fmt``
+    (``vtu`` or ``ply``) files into ``output_dir`` (created); returns the files written."""
+    import meshio  # noqa: PLC0415
+
+    from . import checks  # noqa: PLC0415
+    from .render import UsdFrames, parse_frames  # noqa: PLC0415
+
+    fmt = checks.choice("format", fmt, EXPORT_FORMATS)
+    data = UsdFrames(usd_path)
+    chosen = parse_frames(frames, data.frames)
+    out = os.fspath(output_dir)
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise ValueError(f"output = {out!r} is not allowed: it is a file; give a folder for the {fmt} frames")
+    os.makedirs(out, exist_ok=True)
+    files = []
+    for k, f in enumerate(chosen):
+        file = os.path.join(out, f"frame_{f:05d}.{fmt}")
+        mesh = frame_arrays_to_mesh(data.arrays(f), fmt)
+        if fmt == "ply":
+            meshio.write(file, mesh, file_format="ply", binary=True)
+        else:
+            meshio.write(file, mesh, file_format="vtu", binary=True)
+        files.append(file)
+        if progress is not None:
+            progress(k + 1, len(chosen))
+    if fmt == "vtu":
+        lines = ['<?xml version="1.0"?>', '<VTKFile type="Collection" version="0.1">', "  <Collection>"]
+        for f, file in zip(chosen, files):
+            lines.append(f"    <DataSet timestep=\"{f / data.fps:.9g}\" file={quoteattr(os.path.basename(file))}/>")
+        lines += ["  </Collection>", "</VTKFile>", ""]
+        pvd = os.path.join(out, "frames.pvd")
+        with open(pvd, "w") as fh:
+            fh.write("\n".join(lines))
+        files.append(pvd)
+    return files

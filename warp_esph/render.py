@@ -1,0 +1,978 @@
+"""Headless software renderer for the USD files ``UsdWriter`` writes (numpy + Pillow only).
+
+No display, no GPU, no OpenGL: every frame is rasterised with vectorised numpy.
+
+- **Particles** are drawn as shaded spheres: each one is splatted as a disc of its
+  projected radius; every pixel of the disc gets the depth and normal of the sphere's
+  front surface there, and a z-buffer (``np.minimum.at``) keeps the nearest, so
+  overlapping spheres intersect correctly.
+- **Colliders** under ``/World/Colliders`` are ray cast per pixel: planes as a checkered
+  floor fading into the background, spheres, axis-aligned boxes. Surface meshes under
+  ``/World/Surfaces`` (``warp-esph run --surface``) are not drawn.
+- **Lighting**: a key light with a shadow map (particles cast shadows on the ground, on
+  colliders and on each other, 3 x 3 percentage-closer filtered), a fill light, ambient and
+  a specular highlight, shaded in linear RGB and written as sRGB.
+- **Camera**: perspective, looking at the bounds of the particles over all rendered frames
+  (and the sphere and box colliders) from ``azimuth``/``elevation``; the distance is the
+  smallest that keeps those bounds inside the picture. A scene may store a preferred view
+  (``warp_esph:view`` in the layer's custom data, written by ``warp-esph run``).
+- **Colour**: by body, by material, or a per-particle primvar through a colour map:
+  ``alpha`` (accumulated plastic strain) or ``singular_values`` (shown as the elastic
+  strain ``max_k |ln sigma_k|``), with a colour bar. The colour range is taken over all
+  rendered frames so it does not flicker.
+
+``render_usd(path, output, ...)`` writes PNG frames into a folder, one PNG (several frames
+side by side when more than one is chosen), an animated GIF, or an MP4 (only where the
+``ffmpeg`` program is on the PATH).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import shutil
+import subprocess
+import time
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+from . import checks
+
+__all__ = [
+    "COLOR_MODES", "OUTPUT_EXTENSIONS", "Camera", "UsdFrames", "Renderer", "auto_camera", "parse_frames", "render_usd",
+]
+
+#: How particles are coloured.
+COLOR_MODES = ("body", "material", "alpha", "singular_values")
+#: File outputs; any name without an extension is a folder of PNG frames.
+OUTPUT_EXTENSIONS = (".png", ".gif", ".mp4")
+
+# Body colours (sRGB): warm, distinct, pleasant on a light grey floor.
+BODY_PALETTE = np.array([
+    (0.93, 0.62, 0.32), (0.36, 0.58, 0.85), (0.86, 0.36, 0.36), (0.45, 0.72, 0.45),
+    (0.72, 0.52, 0.84), (0.95, 0.80, 0.35), (0.35, 0.75, 0.75), (0.85, 0.50, 0.65),
+    (0.60, 0.60, 0.40), (0.55, 0.45, 0.35), (0.50, 0.80, 0.95), (0.80, 0.70, 0.60),
+], dtype=np.float32)
+
+# Viridis, sampled at 9 points (sRGB); linear interpolation between them.
+_VIRIDIS = np.array([
+    (0.267, 0.005, 0.329), (0.283, 0.141, 0.458), (0.254, 0.265, 0.530), (0.207, 0.372, 0.553),
+    (0.164, 0.471, 0.558), (0.128, 0.567, 0.551), (0.135, 0.659, 0.518), (0.267, 0.749, 0.441),
+    (0.478, 0.821, 0.318), (0.741, 0.873, 0.150), (0.993, 0.906, 0.144),
+], dtype=np.float32)
+
+_BACKGROUND_TOP = np.array((0.80, 0.84, 0.90), dtype=np.float32)     # sRGB
+_BACKGROUND_BOTTOM = np.array((0.97, 0.97, 0.98), dtype=np.float32)
+_FLOOR = (np.array((0.86, 0.86, 0.88), dtype=np.float32), np.array((0.76, 0.77, 0.80), dtype=np.float32))
+_COLLIDER = np.array((0.55, 0.60, 0.68), dtype=np.float32)
+
+
+def _linear(srgb):
+    return np.power(np.asarray(srgb, dtype=np.float32), 2.2)
+
+
+def _to_srgb8(linear: np.ndarray) -> np.ndarray:
+    return (np.power(np.clip(linear, 0.0, 1.0), 1.0 / 2.2) * 255.0 + 0.5).astype(np.uint8)
+
+
+def colormap(values: np.ndarray) -> np.ndarray:
+    """Viridis (sRGB) of ``values`` in [0, 1]."""
+    v = np.clip(np.nan_to_num(np.asarray(values, dtype=np.float32), nan=0.0), 0.0, 1.0) * (len(_VIRIDIS) - 1)
+    k = np.minimum(v.astype(np.int32), len(_VIRIDIS) - 2)
+    f = (v - k)[..., None]
+    return _VIRIDIS[k] * (1.0 - f) + _VIRIDIS[k + 1] * f
+
+
+# ----------------------------------------------------------------------------- reading
+@dataclasses.dataclass
+class Collider:
+    kind: str            # "plane", "sphere", "box"
+    center: np.ndarray   # sphere/box centre; a point of the plane
+    size: np.ndarray     # sphere: (r, r, r); box: half extents; plane: (half size of the quad, 0, 0)
+    normal: np.ndarray | None = None
+    offset: float = 0.0
+
+
+class UsdFrames:
+    """The particles and colliders of a ``UsdWriter`` file, frame by frame."""
+
+    def __init__(self, path):
+        from pxr import Sdf, Usd, UsdGeom  # noqa: PLC0415
+
+        self.path = os.fspath(path)
+        if not os.path.isfile(self.path):
+            raise FileNotFoundError(f"cannot render {self.path}: no such file")
+        # Anonymous: a file rewritten in this process (run, then render) is read afresh.
+        layer = Sdf.Layer.OpenAsAnonymous(self.path)
+        if layer is None:
+            raise ValueError(f"cannot render {self.path}: pxr cannot open it as a USD file")
+        self._layer = layer
+        self.stage = Usd.Stage.Open(layer)
+        self.fps = float(self.stage.GetTimeCodesPerSecond() or 30.0)
+        data = dict(self.stage.GetRootLayer().customLayerData or {})
+        view = data.get("warp_esph:view")
+        self.view = tuple(float(v) for v in view) if view is not None and len(view) == 2 else None
+        self.bodies = []       # (name, prim)
+        for prim in self.stage.GetPrimAtPath("/World").GetChildren() if self.stage.GetPrimAtPath("/World") else []:
+            if prim.IsA(UsdGeom.Points):
+                self.bodies.append((prim.GetName(), prim))
+        if not self.bodies:
+            raise ValueError(f"cannot render {self.path}: it has no UsdGeom.Points under /World (not a warp-esph output?)")
+        times = set()
+        for _, prim in self.bodies:
+            times.update(UsdGeom.Points(prim).GetPointsAttr().GetTimeSamples())
+        self.frames = sorted(int(round(t)) for t in times)
+        if not self.frames:
+            raise ValueError(f"cannot render {self.path}: it holds no frames")
+        self.material_ids = []
+        self.display_colors = []
+        for _, prim in self.bodies:
+            mid = prim.GetAttribute("primvars:material_id").Get()
+            self.material_ids.append(int(mid) if mid is not None else 0)
+            col = UsdGeom.Points(prim).GetDisplayColorAttr().Get()
+            self.display_colors.append(np.array(col[0], dtype=np.float32) if col else np.array((0.8, 0.6, 0.4), np.float32))
+        self.colliders = self._read_colliders()
+
+    def _read_colliders(self) -> list[Collider]:
+        from pxr import UsdGeom  # noqa: PLC0415
+
+        out = []
+        scope = self.stage.GetPrimAtPath("/World/Colliders")
+        if not scope:
+            return out
+        for prim in scope.GetChildren():
+            kind = prim.GetCustomDataByKey("warp_esph:collider")
+            get = prim.GetCustomDataByKey
+            if kind == "plane":
+                n = np.array(get("warp_esph:normal"), dtype=np.float64)
+                n /= np.linalg.norm(n)
+                pts = np.array(UsdGeom.Mesh(prim).GetPointsAttr().Get(), dtype=np.float64)
+                center = pts.mean(axis=0)
+                half = 0.5 * float(np.linalg.norm(pts[1] - pts[0]))
+                out.append(Collider("plane", center, np.array([half, 0.0, 0.0]), n, float(get("warp_esph:offset"))))
+            elif kind == "sphere":
+                r = float(get("warp_esph:radius"))
+                out.append(Collider("sphere", np.array(get("warp_esph:center"), dtype=np.float64), np.full(3, r)))
+            elif kind == "box":
+                out.append(Collider("box", np.array(get("warp_esph:center"), dtype=np.float64),
+                                    np.array(get("warp_esph:half_extents"), dtype=np.float64)))
+        return out
+
+    def resolve(self, frame: int) -> int:
+        if frame not in self.frames:
+            raise ValueError(f"frame = {frame!r} is not allowed: {self.path} holds frames {self.frames[0]}..{self.frames[-1]}")
+        return frame
+
+    def arrays(self, frame: int) -> dict:
+        """Every particle at ``frame``, as written: points, velocities, widths, alpha,
+        singular_values (N, 3), body (index into ``bodies``) and material_id."""
+        from pxr import Usd, UsdGeom  # noqa: PLC0415
+
+        t = Usd.TimeCode(float(frame))
+        cols = {k: [] for k in ("points", "velocities", "widths", "alpha", "singular_values", "body", "material_id")}
+        for k, (_, prim) in enumerate(self.bodies):
+            geom = UsdGeom.Points(prim)
+            p = geom.GetPointsAttr().Get(t)
+            if p is None or len(p) == 0:
+                continue
+            n = len(p)
+
+            def get(attr, shape, fill):
+                value = attr.Get(t) if attr else None
+                if value is None or len(value) != n:
+                    return np.full(shape, fill, dtype=np.float32)
+                return np.asarray(value, dtype=np.float32).reshape(shape)
+
+            cols["points"].append(np.asarray(p, dtype=np.float32))
+            cols["velocities"].append(get(geom.GetVelocitiesAttr(), (n, 3), 0.0))
+            cols["widths"].append(get(geom.GetWidthsAttr(), (n,), 0.02))
+            cols["alpha"].append(get(prim.GetAttribute("primvars:alpha"), (n,), 0.0))
+            cols["singular_values"].append(get(prim.GetAttribute("primvars:singular_values"), (n, 3), 1.0))
+            cols["body"].append(np.full(n, k, np.int32))
+            cols["material_id"].append(np.full(n, self.material_ids[k], np.int32))
+        shapes = {"points": (0, 3), "velocities": (0, 3), "singular_values": (0, 3)}
+        return {k: (np.concatenate(v) if v else np.zeros(shapes.get(k, (0,)), np.int32 if k in ("body", "material_id") else np.float32))
+                for k, v in cols.items()}
+
+    def particles(self, frame: int) -> dict:
+        """What the renderer needs at ``frame``: points, radius, body, material, alpha and the
+        elastic strain ``max_k |ln sigma_k|`` (as ``singular_values``); non-finite particles dropped."""
+        a = self.arrays(frame)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            strain = np.abs(np.log(np.abs(a["singular_values"]))).max(axis=1) if len(a["points"]) else np.zeros(0, np.float32)
+        out = {"points": a["points"], "radius": 0.5 * a["widths"], "body": a["body"], "material": a["material_id"],
+               "alpha": a["alpha"], "singular_values": strain.astype(np.float32)}
+        keep = np.isfinite(a["points"]).all(axis=1)
+        if not keep.all():
+            out = {k: v[keep] for k, v in out.items()}
+        return out
+
+    def bounds(self, frames) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds of the particles over ``frames`` (the per-frame ``extent`` where written)."""
+        from pxr import Usd, UsdGeom  # noqa: PLC0415
+
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        for f in frames:
+            t = Usd.TimeCode(float(f))
+            for _, prim in self.bodies:
+                geom = UsdGeom.Points(prim)
+                ext = geom.GetExtentAttr().Get(t)
+                if ext is not None and len(ext) == 2:
+                    e = np.array(ext, dtype=np.float64)
+                else:
+                    p = geom.GetPointsAttr().Get(t)
+                    if p is None or len(p) == 0:
+                        continue
+                    p = np.asarray(p, dtype=np.float64)
+                    e = np.stack([np.nanmin(p, axis=0), np.nanmax(p, axis=0)])
+                if np.isfinite(e).all():
+                    lo, hi = np.minimum(lo, e[0]), np.maximum(hi, e[1])
+        if not np.isfinite(lo).all():
+            lo, hi = np.full(3, -0.5), np.full(3, 0.5)
+        return lo, hi
+
+
+# ----------------------------------------------------------------------------- camera
+@dataclasses.dataclass
+class Camera:
+    """A perspective pinhole camera; ``fov`` is the vertical field of view in degrees."""
+
+    eye: np.ndarray
+    target: np.ndarray
+    width: int
+    height: int
+    fov: float = 30.0
+    up: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+
+    def __post_init__(self):
+        self.eye = np.asarray(self.eye, dtype=np.float64)
+        self.target = np.asarray(self.target, dtype=np.float64)
+        f = self.target - self.eye
+        self.forward = f / np.linalg.norm(f)
+        r = np.cross(self.forward, np.asarray(self.up, dtype=np.float64))
+        if np.linalg.norm(r) < 1e-9:  # looking straight up or down
+            r = np.cross(self.forward, [0.0, 0.0, 1.0])
+        self.right = r / np.linalg.norm(r)
+        self.true_up = np.cross(self.right, self.forward)
+        self.focal = 0.5 * self.height / math.tan(math.radians(self.fov) / 2.0)
+
+    def project(self, points: np.ndarray):
+        """Pixel coordinates (x right, y down; pixel (i, j) spans [i, i+1)) and depth along the view."""
+        d = np.asarray(points, dtype=np.float64) - self.eye
+        z = d @ self.forward
+        zs = np.where(z > 1e-9, z, 1e-9)
+        px = 0.5 * self.width + self.focal * (d @ self.right) / zs
+        py = 0.5 * self.height - self.focal * (d @ self.true_up) / zs
+        return px, py, z
+
+    def pixel_rays(self):
+        """Per-pixel ray directions ``dir`` (H, W, 3) scaled so ``eye + z * dir`` is at view depth ``z``."""
+        i = (np.arange(self.width, dtype=np.float64) + 0.5 - 0.5 * self.width) / self.focal
+        j = (0.5 * self.height - np.arange(self.height, dtype=np.float64) - 0.5) / self.focal
+        return (self.forward[None, None, :] + i[None, :, None] * self.right[None, None, :]
+                + j[:, None, None] * self.true_up[None, None, :])
+
+
+def _view_direction(azimuth: float, elevation: float) -> np.ndarray:
+    """Unit vector from the target towards the eye: azimuth about +y from +z towards +x."""
+    a, e = math.radians(azimuth), math.radians(elevation)
+    return np.array([math.cos(e) * math.sin(a), math.sin(e), math.cos(e) * math.cos(a)])
+
+
+def auto_camera(lo, hi, width: int, height: int, azimuth: float = 30.0, elevation: float = 20.0,
+                fov: float = 30.0, zoom: float = 1.0, margin: float = 0.08) -> Camera:
+    """A camera that sees the box ``[lo, hi]`` from ``azimuth``/``elevation`` (degrees), filling
+    the picture up to ``margin`` (a fraction of it) on the tighter side; ``zoom > 1`` moves closer."""
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    direction = _view_direction(azimuth, elevation)
+    target = 0.5 * (lo + hi)
+    radius = max(0.5 * float(np.linalg.norm(hi - lo)), 1e-3)
+    limit = 1.0 - 2.0 * margin
+
+    def extent(dist, tgt):
+        cam = Camera(tgt + dist * direction, tgt, width, height, fov)
+        px, py, z = cam.project(corners)
+        if (z <= 1e-6).any():
+            return np.inf, cam, px, py
+        fx = np.abs(px - 0.5 * width).max() / (0.5 * width)
+        fy = np.abs(py - 0.5 * height).max() / (0.5 * height)
+        return max(fx, fy), cam, px, py
+
+    for _ in range(3):  # fit the distance, then centre the projected box, and again
+        near, far = radius * 1.01, radius * 200.0
+        for _ in range(40):
+            mid = math.sqrt(near * far)
+            if extent(mid, target)[0] > limit:
+                near = mid
+            else:
+                far = mid
+        _, cam, px, py = extent(far, target)
+        # Move the target so the projected box is centred (a shift in the image plane).
+        dx = 0.5 * (px.min() + px.max()) - 0.5 * width
+        dy = 0.5 * (py.min() + py.max()) - 0.5 * height
+        target = target + (far / cam.focal) * (dx * cam.right - dy * cam.true_up)
+    dist = far / checks.positive("zoom", zoom)
+    return Camera(target + dist * direction, target, width, height, fov)
+
+
+# ----------------------------------------------------------------------------- splatting
+_STENCILS: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _stencil(r: int):
+    if r not in _STENCILS:
+        o = np.arange(-r, r + 1)
+        ox, oy = np.meshgrid(o, o)
+        keep = ox**2 + oy**2 <= (r + 1) ** 2
+        _STENCILS[r] = (ox[keep].astype(np.int32), oy[keep].astype(np.int32))
+    return _STENCILS[r]
+
+
+def splat_spheres(px, py, depth, rad_px, rad_depth, width: int, height: int, max_radius: int = 64):
+    """Fragments of spheres splatted as discs: ``(pixel, depth, ux, uy, particle)``.
+
+    ``px, py``: centre in pixels; ``rad_px``: projected radius in pixels; ``rad_depth``: the
+    sphere's radius in depth units. A fragment's depth is that of the sphere's front surface,
+    ``depth - rad_depth * sqrt(1 - |u|^2)``; ``(ux, uy)`` is its offset from the centre in
+    units of the radius (x right, y up), which gives the normal.
+    """
+    rad_eff = np.maximum(rad_px, 0.6)  # a sphere smaller than a pixel still covers one
+    R = np.minimum(np.ceil(rad_eff - 0.5).astype(np.int32), max_radius)
+    pix, dep, uxs, uys, who = [], [], [], [], []
+    for r in np.unique(R):
+        sel = np.nonzero(R == r)[0]
+        ox, oy = _stencil(int(r))
+        cx = np.floor(px[sel]).astype(np.int32)
+        cy = np.floor(py[sel]).astype(np.int32)
+        X = cx[:, None] + ox[None, :]
+        Y = cy[:, None] + oy[None, :]
+        inv = (1.0 / rad_eff[sel]).astype(np.float32)[:, None]
+        ux = (X + 0.5 - px[sel, None].astype(np.float32)) * inv
+        uy = (py[sel, None].astype(np.float32) - (Y + 0.5)) * inv
+        q = ux * ux + uy * uy
+        m = (q < 1.0) & (X >= 0) & (X < width) & (Y >= 0) & (Y < height)
+        if not m.any():
+            continue
+        rows = np.broadcast_to(sel[:, None], m.shape)[m]
+        pix.append((Y[m] * width + X[m]).astype(np.int64))
+        dep.append((depth[rows] - rad_depth[rows] * np.sqrt(1.0 - q[m])).astype(np.float32))
+        uxs.append(ux[m])
+        uys.append(uy[m])
+        who.append(rows)
+    if not pix:
+        e = np.zeros(0)
+        return e.astype(np.int64), e.astype(np.float32), e.astype(np.float32), e.astype(np.float32), e.astype(np.int64)
+    return np.concatenate(pix), np.concatenate(dep), np.concatenate(uxs), np.concatenate(uys), np.concatenate(who)
+
+
+def zbuffer_resolve(pix, dep, zbuf_flat):
+    """Lower ``zbuf_flat`` to the nearest fragment per pixel; the mask of winning fragments."""
+    np.minimum.at(zbuf_flat, pix, dep)
+    return dep <= zbuf_flat[pix]
+
+
+# ----------------------------------------------------------------------------- renderer
+@dataclasses.dataclass
+class RenderOptions:
+    width: int = 800
+    height: int = 600
+    color: str = "body"
+    supersample: int = 2
+    radius_scale: float = 1.0
+    azimuth: float | None = None
+    elevation: float | None = None
+    zoom: float = 1.0
+    fov: float = 30.0
+    label: bool = True
+    shadows: bool = True
+
+    def __post_init__(self):
+        self.width = checks.positive_int("width", self.width)
+        self.height = checks.positive_int("height", self.height)
+        if not (16 <= self.width <= 8192 and 16 <= self.height <= 8192):
+            raise ValueError(f"width x height = {self.width} x {self.height} is not allowed: each must be in [16, 8192]")
+        checks.choice("color", self.color, COLOR_MODES)
+        self.supersample = checks.positive_int("supersample", self.supersample)
+        if self.supersample > 4:
+            raise ValueError(f"supersample = {self.supersample!r} is not allowed: must be 1, 2, 3 or 4")
+        self.radius_scale = checks.positive("radius_scale", self.radius_scale)
+        self.zoom = checks.positive("zoom", self.zoom)
+        self.fov = checks.positive("fov", self.fov)
+        if not self.fov < 170:
+            raise ValueError(f"fov = {self.fov!r} is not allowed: must be in (0, 170) degrees")
+        for name in ("azimuth", "elevation"):
+            value = getattr(self, name)
+            if value is not None:
+                setattr(self, name, checks.number(name, value))
+        if self.elevation is not None and not -89.0 <= self.elevation <= 89.0:
+            raise ValueError(f"elevation = {self.elevation!r} is not allowed: must be in [-89, 89] degrees")
+
+
+class Renderer:
+    """Renders frames of a ``UsdFrames`` with one camera and one colour range for all of them."""
+
+    def __init__(self, data: UsdFrames, frames, options: RenderOptions | None = None, camera: Camera | None = None,
+                 color_range: tuple[float, float] | None = None):
+        """``camera``: use this camera (its size must be the picture size times ``supersample``)
+        instead of framing the bounds of ``frames`` automatically. ``color_range``: the values
+        mapped to the ends of the colour map (default: 0 and the 99.5th percentile over ``frames``)."""
+        self.data = data
+        self.options = options or RenderOptions()
+        o = self.options
+        self.frames = list(frames)
+        lo, hi = data.bounds(self.frames)
+        self.particle_bounds = (lo.copy(), hi.copy())
+        for c in data.colliders:  # spheres and boxes are part of the picture; planes are not
+            if c.kind in ("sphere", "box"):
+                lo, hi = np.minimum(lo, c.center - c.size), np.maximum(hi, c.center + c.size)
+        self.bounds = (lo, hi)
+        view = data.view or (30.0, 20.0)
+        azimuth = o.azimuth if o.azimuth is not None else view[0]
+        elevation = o.elevation if o.elevation is not None else view[1]
+        ss = o.supersample
+        if camera is not None:
+            if (camera.width, camera.height) != (o.width * ss, o.height * ss):
+                raise ValueError(f"camera of {camera.width} x {camera.height} pixels is not allowed: the picture is "
+                                 f"{o.width * ss} x {o.height * ss} (width x height x supersample)")
+            self.camera = camera
+        else:
+            self.camera = auto_camera(lo, hi, o.width * ss, o.height * ss, azimuth, elevation, o.fov, o.zoom)
+        # Lights (world space): a key light from above, over the camera's left shoulder; a fill.
+        cam = self.camera
+        flat_fwd = cam.forward * np.array([1.0, 0.0, 1.0])
+        flat_fwd = flat_fwd / (np.linalg.norm(flat_fwd) or 1.0)
+        key = -0.55 * cam.right - 0.45 * flat_fwd + np.array([0.0, 1.0, 0.0])
+        self.key = key / np.linalg.norm(key)
+        fill = 0.8 * cam.right - 0.6 * flat_fwd + np.array([0.0, 0.35, 0.0])
+        self.fill = fill / np.linalg.norm(fill)
+        scalar = o.color in ("alpha", "singular_values")
+        self.color_range = (color_range or self._color_range()) if scalar else None
+        self._rays = cam.pixel_rays()
+        self._rays32 = self._rays.reshape(-1, 3).astype(np.float32)
+        self._static_cache = None
+        size = float(np.linalg.norm(self.particle_bounds[1] - self.particle_bounds[0]))
+        self.scene_size = max(size, 1e-3)
+        self.scene_center = 0.5 * (self.particle_bounds[0] + self.particle_bounds[1])
+
+    # ------------------------------------------------------------------ colours
+    def _color_range(self) -> tuple[float, float]:
+        key = self.options.color
+        values = [self.data.particles(f)[key] for f in self.frames]
+        v = np.concatenate(values) if values else np.zeros(1)
+        v = v[np.isfinite(v)]
+        if v.size == 0:
+            return 0.0, 1.0
+        top = float(np.percentile(v, 99.5))
+        return 0.0, top if top > 1e-6 else 1.0
+
+    def _particle_colors(self, parts: dict) -> np.ndarray:
+        mode = self.options.color
+        if mode == "body":
+            return BODY_PALETTE[parts["body"] % len(BODY_PALETTE)]
+        if mode == "material":
+            cols = np.array(self.data.display_colors, dtype=np.float32)
+            return cols[parts["body"]]
+        lo, hi = self.color_range
+        return colormap((parts[mode] - lo) / (hi - lo))
+
+    # ------------------------------------------------------------------ shadows
+    def _shadow_map(self, pts, rad):
+        """Depth of the particles seen from the key light (orthographic)."""
+        L = self.key
+        a = np.cross(L, [0.0, 0.0, 1.0] if abs(L[2]) < 0.9 else [1.0, 0.0, 0.0])
+        a /= np.linalg.norm(a)
+        b = np.cross(L, a)
+        u, v, d = pts @ a, pts @ b, -(pts @ L)
+        rmax = float(rad.max())
+        texel = max(float(np.median(rad)) * 0.5, 1e-6)
+        u0, v0 = u.min() - 2 * rmax, v.min() - 2 * rmax
+        nu = int(min(2048, math.ceil((u.max() + 2 * rmax - u0) / texel) + 1))
+        nv = int(min(2048, math.ceil((v.max() + 2 * rmax - v0) / texel) + 1))
+        texel = max((u.max() + 2 * rmax - u0) / (nu - 1), (v.max() + 2 * rmax - v0) / (nv - 1), texel)
+        px, py = (u - u0) / texel, (v - v0) / texel
+        zbuf = np.full(nu * nv, np.inf, dtype=np.float32)
+        pix, dep, _, _, _ = splat_spheres(px, py, d, rad / texel, rad, nu, nv, max_radius=32)
+        np.minimum.at(zbuf, pix, dep)
+        zpad = np.full((nv + 2, nu + 2), np.inf, dtype=np.float32)
+        zpad[1:-1, 1:-1] = zbuf.reshape(nv, nu)
+        return {"a": a, "b": b, "u0": u0, "v0": v0, "texel": texel, "shape": (nv, nu), "zpad": zpad.reshape(-1),
+                "zmin": float(zbuf.min())}
+
+    def _lit_fraction(self, smap, P, bias):
+        """Fraction of the key light reaching world points ``P`` (3 x 3 PCF on the shadow map)."""
+        lit = np.ones(len(P), dtype=np.float32)
+        if smap is None or len(P) == 0:
+            return lit
+        x = (P @ smap["a"] - smap["u0"]) / smap["texel"]
+        y = (P @ smap["b"] - smap["v0"]) / smap["texel"]
+        d = -(P @ self.key) - bias
+        nv, nu = smap["shape"]
+        # Only points over the map and behind its nearest particle can be in shadow.
+        cand = np.nonzero((x > -1) & (x < nu + 1) & (y > -1) & (y < nv + 1) & (d > smap["zmin"]))[0]
+        if len(cand) == 0:
+            return lit
+        xi = np.floor(x[cand]).astype(np.int64)
+        yi = np.floor(y[cand]).astype(np.int64)
+        dc = d[cand]
+        zpad = smap["zpad"]  # the map with a border of +inf, so the 3 x 3 taps need no tests
+        xi = np.clip(xi + 1, 0, nu + 1)
+        yi = np.clip(yi + 1, 0, nv + 1)
+        count = np.zeros(len(cand), dtype=np.float32)
+        for dy in (-1, 0, 1):
+            rows = np.clip(yi + dy, 0, nv + 1) * (nu + 2)
+            for dx in (-1, 0, 1):
+                count += dc <= zpad[rows + np.clip(xi + dx, 0, nu + 1)]
+        lit[cand] = count / 9.0
+        return lit
+
+    def _collider_shadow(self, P):
+        """1 where the key light reaches ``P`` past the sphere and box colliders, else 0."""
+        L = self.key
+        lit = np.ones(len(P), dtype=bool)
+        for c in self.data.colliders:
+            if c.kind == "sphere":
+                oc = P - c.center
+                b = oc @ L
+                cc = np.einsum("ij,ij->i", oc, oc) - c.size[0] ** 2
+                disc = b * b - cc
+                t = -b + np.sqrt(np.maximum(disc, 0.0))
+                lit &= ~((disc > 0) & (t > 1e-4) & (cc > 1e-6))
+            elif c.kind == "box":
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    inv = 1.0 / np.where(np.abs(L) > 1e-12, L, 1e-12)
+                t1 = (c.center - c.size - P) * inv
+                t2 = (c.center + c.size - P) * inv
+                tn = np.minimum(t1, t2).max(axis=1)
+                tf = np.maximum(t1, t2).min(axis=1)
+                lit &= ~((tf >= np.maximum(tn, 1e-4)))
+        return lit.astype(np.float32)
+
+    # ------------------------------------------------------------------ one frame
+    def _static(self):
+        """The colliders, ray cast once per renderer: everything but the particles' shadows."""
+        if getattr(self, "_static_cache", None) is not None:
+            return self._static_cache
+        cam = self.camera
+        W, H = cam.width, cam.height
+        rays = self._rays.reshape(-1, 3).astype(np.float32)
+        tgrad = np.linspace(0.0, 1.0, H, dtype=np.float32)[:, None, None]
+        bg = _linear(_BACKGROUND_TOP) * (1 - tgrad) + _linear(_BACKGROUND_BOTTOM) * tgrad
+        background = np.ascontiguousarray(np.broadcast_to(bg, (H, W, 3)).reshape(-1, 3))
+        zbuf = np.full(H * W, np.inf, dtype=np.float32)
+        # Per pixel hit by a collider: its kind's surface point, normal, colour and fade.
+        hits = []
+        for c in self.data.colliders:
+            hit = self._plane_hits(c, rays, zbuf) if c.kind == "plane" else self._solid_hits(c, rays, zbuf)
+            if hit is not None:
+                hits.append(hit)
+        owner = np.full(H * W, -1, dtype=np.int32)
+        for k, (idx, z, *_rest) in enumerate(hits):
+            closer = z < zbuf[idx]
+            zbuf[idx[closer]] = z[closer]
+            owner[idx[closer]] = k
+        image = background.copy()
+        idx_all, P_all, ambient_all, key_all, fade_all = [], [], [], [], []
+        for k, (idx, z, P, normal, base, fade, specular) in enumerate(hits):
+            keep = owner[idx] == k
+            idx, P, base, fade = idx[keep], P[keep], base[keep], fade[keep]
+            normal = normal if normal.ndim == 1 else normal[keep]
+            if len(idx) == 0:
+                continue
+            eye_dir = cam.eye.astype(np.float32) - P
+            eye_dir /= np.linalg.norm(eye_dir, axis=1, keepdims=True)
+            ambient, key = self._shade_parts(base, normal, eye_dir, specular)
+            key = key * self._collider_shadow(P)[:, None]
+            f = fade[:, None]
+            image[idx] = (ambient + key) * (1 - f) + background[idx] * f
+            idx_all.append(idx)
+            P_all.append(P)
+            ambient_all.append(ambient)
+            key_all.append(key * (1 - f))
+            fade_all.append(f)
+        cat = (lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape, np.float32))
+        self._static_cache = {
+            "background": background, "image": image, "zbuf": zbuf,
+            "idx": cat(idx_all, (0,)).astype(np.int64), "P": cat(P_all, (0, 3)), "key": cat(key_all, (0, 3)),
+        }
+        return self._static_cache
+
+    def render(self, frame: int) -> Image.Image:
+        """The picture of ``frame`` (a frame index of the file)."""
+        o, cam = self.options, self.camera
+        W, H = cam.width, cam.height
+        parts = self.data.particles(self.data.resolve(frame))
+        static = self._static()
+        zbuf = static["zbuf"].copy()
+        image = static["image"].copy()
+        pts = parts["points"].astype(np.float32)
+        rad = (parts["radius"] * o.radius_scale).astype(np.float32)
+        smap = self._shadow_map(pts, rad) if (o.shadows and len(pts)) else None
+        bias = 1.5 * float(np.median(rad)) if len(rad) else 0.0
+
+        # ---- the particles' shadows on the colliders: take the key light away where blocked
+        if smap is not None and len(static["idx"]):
+            sidx, P = static["idx"], static["P"]
+            lit = self._lit_fraction(smap, P, 0.25 * bias)
+            dark = lit < 1.0
+            image[sidx[dark]] -= static["key"][dark] * (1.0 - lit[dark])[:, None]
+
+        # ---- particles, splatted
+        if len(pts):
+            px, py, z = cam.project(pts)
+            idx = np.nonzero(z > 1e-3)[0]
+            zi = z[idx].astype(np.float32)
+            rp = (cam.focal * rad[idx] / zi).astype(np.float32)
+            pix, dep, ux, uy, who = splat_spheres(px[idx], py[idx], zi, rp, rad[idx], W, H)
+            win = zbuffer_resolve(pix, dep, zbuf)
+            pix, dep, ux, uy, who = pix[win], dep[win], ux[win], uy[win], idx[who[win]]
+            uz = np.sqrt(np.clip(1.0 - ux * ux - uy * uy, 0.0, 1.0))
+            right, up, fwd = (v.astype(np.float32) for v in (cam.right, cam.true_up, cam.forward))
+            normal = ux[:, None] * right + uy[:, None] * up - uz[:, None] * fwd
+            rays = self._rays32
+            P = cam.eye.astype(np.float32) + dep[:, None] * rays[pix]
+            eye_dir = -rays[pix]
+            eye_dir /= np.linalg.norm(eye_dir, axis=1, keepdims=True)
+            base = _linear(self._particle_colors(parts))[who]
+            ambient, key = self._shade_parts(base, normal, eye_dir, 0.25)
+            lit = self._lit_fraction(smap, P, bias) if smap is not None else np.ones(len(P), np.float32)
+            if self.data.colliders:
+                lit = lit * self._collider_shadow(P)
+            image[pix] = ambient + key * lit[:, None]
+
+        img = Image.fromarray(_to_srgb8(image.reshape(H, W, 3)), "RGB")
+        if o.supersample > 1:
+            img = img.reduce(o.supersample)
+        if o.label or self.color_range is not None:
+            self._annotate(img, frame)
+        return img
+
+    def _shade_parts(self, base, normal, eye_dir, specular, shininess=40.0):
+        """Linear RGB of surface points in two parts: what the key light adds, and the rest."""
+        key_dir = self.key.astype(np.float32)
+        h = key_dir + eye_dir
+        h /= np.linalg.norm(h, axis=1, keepdims=True)
+        if normal.ndim == 1:  # one normal for all points (a plane)
+            nk = np.float32(max(normal @ key_dir, 0.0))
+            nf = np.float32(max(normal @ self.fill.astype(np.float32), 0.0))
+            sky = np.float32(0.5 + 0.5 * normal[1])
+            spec = np.power(np.clip(h @ normal, 0.0, 1.0), shininess)
+            ambient = base * np.float32(0.22 + 0.13 * sky + 0.18 * nf)
+            key = base * np.float32(0.75 * nk) + specular * spec[:, None]
+            return ambient.astype(np.float32), key.astype(np.float32)
+        nk = np.clip(normal @ key_dir, 0.0, 1.0)
+        nf = np.clip(normal @ self.fill.astype(np.float32), 0.0, 1.0)
+        sky = 0.5 + 0.5 * normal[:, 1]  # hemisphere ambient
+        spec = np.power(np.clip(np.einsum("ij,ij->i", normal, h), 0.0, 1.0), shininess)
+        ambient = base * (0.22 + 0.13 * sky + 0.18 * nf)[:, None]
+        key = base * (0.75 * nk)[:, None] + specular * spec[:, None]
+        return ambient.astype(np.float32), key.astype(np.float32)
+
+    def _plane_hits(self, c: Collider, rays, zbuf):
+        cam = self.camera
+        n = c.normal
+        if n @ cam.eye <= c.offset:  # the camera is inside the solid: the plane would hide all
+            return None
+        # Component arrays: (N,) operations are much faster than (N, 3) @ (3,) here.
+        rx, ry, rz = (np.ascontiguousarray(rays[:, k]) for k in range(3))
+        denom = rx * np.float32(n[0]) + ry * np.float32(n[1]) + rz * np.float32(n[2])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.float32(c.offset - n @ cam.eye) / denom
+        idx = np.nonzero(np.isfinite(z) & (z > 1e-4))[0]
+        z = z[idx]
+        e = cam.eye.astype(np.float32)
+        Px, Py, Pz = e[0] + z * rx[idx], e[1] + z * ry[idx], e[2] + z * rz[idx]
+        cc = c.center.astype(np.float32)
+        half = np.float32(c.size[0] * 1.001 + 1e-9)
+        inside = (np.abs(Px - cc[0]) <= half) & (np.abs(Py - cc[1]) <= half) & (np.abs(Pz - cc[2]) <= half)  # the USD quad
+        # Fade into the background away from the scene.
+        sc = self.scene_center.astype(np.float32)
+        dx, dy, dz = Px - sc[0], Py - sc[1], Pz - sc[2]
+        dn = dx * np.float32(n[0]) + dy * np.float32(n[1]) + dz * np.float32(n[2])
+        r = np.sqrt(np.maximum(dx * dx + dy * dy + dz * dz - dn * dn, 0.0))
+        r0, r1 = 0.9 * self.scene_size, 2.2 * self.scene_size
+        f = np.clip((r - np.float32(r0)) / np.float32(r1 - r0), 0.0, 1.0)
+        fade = f * f * (3 - 2 * f)
+        keep = inside & (fade < 0.999)
+        idx, z, fade = idx[keep], z[keep], fade[keep].astype(np.float32)
+        Px, Py, Pz = Px[keep], Py[keep], Pz[keep]
+        # Checker in the plane's own coordinates, tiles of a round size ~ 1/8 of the scene.
+        t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 0.0, 1.0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(n, t1)
+        tile = _nice(self.scene_size / 8.0)
+        u1, u2 = (t1 / tile).astype(np.float32), (t2 / tile).astype(np.float32)
+        a = np.floor(Px * u1[0] + Py * u1[1] + Pz * u1[2]).astype(np.int64)
+        b = np.floor(Px * u2[0] + Py * u2[1] + Pz * u2[2]).astype(np.int64)
+        even = ((a + b) % 2 == 0)[:, None]
+        base = np.where(even, _linear(_FLOOR[0]), _linear(_FLOOR[1])).astype(np.float32)
+        P = np.stack([Px, Py, Pz], axis=1)
+        return idx, z, P, n.astype(np.float32), base, fade, 0.05
+
+    def _solid_hits(self, c: Collider, rays, zbuf):
+        e = self.camera.eye
+        if c.kind == "sphere":
+            oc = e - c.center
+            A = np.einsum("ij,ij->i", rays, rays)
+            B = 2.0 * (rays @ oc.astype(np.float32))
+            C = oc @ oc - c.size[0] ** 2
+            disc = B * B - 4 * A * C
+            idx = np.nonzero(disc > 0)[0]
+            z = (-B[idx] - np.sqrt(disc[idx])) / (2 * A[idx])
+            keep = z > 1e-4
+            idx, z = idx[keep], z[keep]
+            P = e.astype(np.float32) + z[:, None] * rays[idx]
+            normal = ((P - c.center) / c.size[0]).astype(np.float32)
+        else:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                inv = 1.0 / np.where(np.abs(rays) > 1e-12, rays, 1e-12)
+            t1 = (c.center - c.size - e).astype(np.float32) * inv
+            t2 = (c.center + c.size - e).astype(np.float32) * inv
+            tmin, tmax = np.minimum(t1, t2), np.maximum(t1, t2)
+            tn, tf = tmin.max(axis=1), tmax.min(axis=1)
+            idx = np.nonzero((tf >= tn) & (tn > 1e-4))[0]
+            z = tn[idx]
+            axis = tmin[idx].argmax(axis=1)
+            P = e.astype(np.float32) + z[:, None] * rays[idx]
+            rows = np.arange(len(idx))
+            normal = np.zeros((len(idx), 3), np.float32)
+            normal[rows, axis] = np.sign(P[rows, axis] - c.center[axis])
+        if len(idx) == 0:
+            return None
+        base = np.broadcast_to(_linear(_COLLIDER), P.shape).astype(np.float32)
+        return idx, z.astype(np.float32), P, normal, base, np.zeros(len(idx), np.float32), 0.3
+
+    def _annotate(self, img: Image.Image, frame: int):
+        draw = ImageDraw.Draw(img)
+        font = _font(max(10, img.height // 40))
+        if self.options.label:
+            text = f"t = {frame / self.data.fps:.2f} s  (frame {frame})"
+            draw.text((8, 6), text, fill=(40, 40, 48), font=font)
+        if self.color_range is not None:
+            lo, hi = self.color_range
+            bw, bh = max(10, img.width // 60), img.height // 3
+            x0, y0 = img.width - bw - 12, img.height - bh - 16
+            ramp = colormap(np.linspace(1.0, 0.0, bh))
+            bar = (np.repeat(ramp[:, None, :], bw, axis=1) * 255).astype(np.uint8)
+            img.paste(Image.fromarray(bar, "RGB"), (x0, y0))
+            draw.rectangle([x0 - 1, y0 - 1, x0 + bw, y0 + bh], outline=(60, 60, 60))
+            name = "alpha" if self.options.color == "alpha" else "max|ln s|"
+            for value, y in ((hi, y0), (lo, y0 + bh)):
+                label = f"{value:.3g}"
+                w = draw.textlength(label, font=font)
+                draw.text((x0 - 6 - w, y - font.size // 2), label, fill=(40, 40, 48), font=font)
+            w = draw.textlength(name, font=font)
+            draw.text((x0 + bw - w, y0 - font.size - 6), name, fill=(40, 40, 48), font=font)
+
+
+def _nice(x: float) -> float:
+    """1, 2 or 5 times a power of ten, near ``x``."""
+    if not x > 0:
+        return 1.0
+    e = math.floor(math.log10(x))
+    m = x / 10**e
+    return (1 if m < 1.5 else 2 if m < 3.5 else 5 if m < 7.5 else 10) * 10**e
+
+
+def _font(size: int):
+    try:
+        return ImageFont.load_default(size=size)
+    except TypeError:  # Pillow < 10.1: a fixed bitmap font
+        return ImageFont.load_default()
+
+
+# ----------------------------------------------------------------------------- frames / output
+def parse_frames(spec, available: list[int]) -> list[int]:
+    """Frame indices from a spec: ``all``, ``first``, ``last``, ``N``, ``-N`` (from the end),
+    ``A:B`` or ``A:B:STEP`` (B inclusive, either may be left out), or a comma list of those."""
+    if spec is None:
+        return list(available)
+    if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
+        spec = str(int(spec))
+    if isinstance(spec, (list, tuple)):
+        spec = ",".join(str(s) for s in spec)
+    if not isinstance(spec, str) or not spec.strip():
+        raise ValueError(f"frames = {spec!r} is not allowed: give e.g. 'all', 'last', '10', '0:60:5' or '0,30,60'")
+    first, last = available[0], available[-1]
+    have = set(available)
+
+    def one(text: str) -> int:
+        v = int(text)
+        return last + 1 + v if v < 0 else v
+
+    out: list[int] = []
+    for part in spec.split(","):
+        p = part.strip().lower()
+        try:
+            if p == "all":
+                out.extend(available)
+            elif p == "first":
+                out.append(first)
+            elif p == "last":
+                out.append(last)
+            elif ":" in p:
+                bits = p.split(":")
+                if len(bits) > 3:
+                    raise ValueError
+                a = one(bits[0]) if bits[0] else first
+                b = one(bits[1]) if bits[1] else last
+                step = int(bits[2]) if len(bits) == 3 and bits[2] else 1
+                if step < 1:
+                    raise ValueError
+                out.extend(f for f in available if a <= f <= b and (f - a) % step == 0)
+            else:
+                out.append(one(p))
+        except ValueError:
+            raise ValueError(
+                f"frames = {spec!r} is not allowed: {part!r} is not 'all', 'first', 'last', N, -N, A:B or A:B:STEP"
+            ) from None
+    missing = [f for f in out if f not in have]
+    if missing:
+        raise ValueError(f"frames = {spec!r} is not allowed: frame {missing[0]} is not in the file (it holds {first}..{last})")
+    if not out:
+        raise ValueError(f"frames = {spec!r} is not allowed: it selects no frame of the file (it holds {first}..{last})")
+    return out
+
+
+def output_kind(output) -> str:
+    """'png', 'gif', 'mp4' or 'dir' from an output name (no extension: a folder)."""
+    name = os.fspath(output)
+    ext = os.path.splitext(name)[1].lower()
+    if not ext or name.endswith(os.sep):
+        return "dir"
+    if ext not in OUTPUT_EXTENSIONS:
+        raise ValueError(f"output = {name!r} is not allowed: the extension must be one of {', '.join(OUTPUT_EXTENSIONS)}, "
+                         f"or no extension for a folder of PNG frames")
+    return ext[1:]
+
+
+def ffmpeg_path() -> str | None:
+    return shutil.which("ffmpeg")
+
+
+def _sheet(images: list[Image.Image], columns: int) -> Image.Image:
+    w, h = images[0].size
+    rows = math.ceil(len(images) / columns)
+    sheet = Image.new("RGB", (columns * w, rows * h), (255, 255, 255))
+    for k, im in enumerate(images):
+        sheet.paste(im, ((k % columns) * w, (k // columns) * h))
+    return sheet
+
+
+@dataclasses.dataclass
+class RenderResult:
+    output: str
+    kind: str
+    frames: list[int]
+    files: list[str]
+    seconds: float
+    particles: int
+
+    @property
+    def seconds_per_frame(self) -> float:
+        return self.seconds / max(len(self.frames), 1)
+
+
+def render_usd(path, output=None, frames=None, *, color: str = "body", width: int = 800, height: int = 600,
+               supersample: int = 2, radius_scale: float = 1.0, azimuth: float | None = None,
+               elevation: float | None = None, zoom: float = 1.0, fov: float = 30.0, label: bool = True,
+               shadows: bool = True, columns: int | None = None, fps: float | None = None, fit: str = "all",
+               progress=None) -> RenderResult:
+    """Render frames of a ``UsdWriter`` file.
+
+    ``output``: a folder (no extension; PNG per frame, ``frame_00012.png``), a ``.png``
+    (one frame; several frames side by side, ``columns`` per row), a ``.gif`` or an
+    ``.mp4`` (needs ``ffmpeg`` on the PATH). Default: ``<file>.png`` beside the USD file.
+    ``frames``: see ``parse_frames``; default all frames, or the last one for a ``.png``.
+    ``fps``: playback rate of a GIF/MP4 (default: the file's). ``fit``: ``"all"`` frames the
+    bounds of all chosen frames with one camera (the default: motion reads correctly),
+    ``"each"`` frames every picture on its own (the same view direction, its own
+    distance). ``progress(k, n)`` is called after each frame.
+    """
+    data = UsdFrames(path)
+    if output is None:
+        output = os.path.splitext(data.path)[0] + ".png"
+    out = os.fspath(output)
+    kind = output_kind(out)
+    if kind == "mp4" and ffmpeg_path() is None:
+        raise ValueError(f"output = {out!r} is not allowed: writing .mp4 needs the ffmpeg program, which is not on "
+                         f"this machine's PATH (install it, e.g. 'apt-get install ffmpeg'); write a .gif or a folder "
+                         f"of PNG frames instead")
+    if frames is None and kind == "png":
+        frames = "last"
+    chosen = parse_frames(frames, data.frames)
+    options = RenderOptions(width=width, height=height, color=color, supersample=supersample, radius_scale=radius_scale,
+                            azimuth=azimuth, elevation=elevation, zoom=zoom, fov=fov, label=label, shadows=shadows)
+    playback = checks.positive("fps", fps) if fps is not None else data.fps
+    parent = out if kind == "dir" else (os.path.dirname(os.path.abspath(out)) or ".")
+    if kind == "dir":
+        os.makedirs(out, exist_ok=True)
+    elif not os.path.isdir(parent):
+        raise FileNotFoundError(f"cannot write {out}: the folder {parent} does not exist")
+
+    checks.choice("fit", fit, ("all", "each"))
+    t0 = time.perf_counter()
+    renderer = Renderer(data, chosen, options)
+    shared_range = renderer.color_range
+    files: list[str] = []
+    images: list[Image.Image] = []
+    count = 0
+    writer = None
+    try:
+        for k, f in enumerate(chosen):
+            if fit == "each" and len(chosen) > 1:
+                renderer = Renderer(data, [f], options, color_range=shared_range)
+            img = renderer.render(f)
+            count = max(count, len(data.particles(f)["points"])) if k == 0 else count
+            if kind == "dir":
+                file = os.path.join(out, f"frame_{f:05d}.png")
+                img.save(file, optimize=True)
+                files.append(file)
+            elif kind == "mp4":
+                if writer is None:
+                    writer = _Mp4Writer(out, img.size, playback)
+                writer.write(img)
+            else:
+                images.append(img)
+            if progress is not None:
+                progress(k + 1, len(chosen))
+    finally:
+        if writer is not None:
+            writer.close()
+    if kind == "png":
+        img = images[0] if len(images) == 1 else _sheet(images, columns or min(len(images), 4))
+        img.save(out, optimize=True)
+        files.append(out)
+    elif kind == "gif":
+        pal = [im.quantize(colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE) for im in images]
+        pal[0].save(out, save_all=True, append_images=pal[1:], duration=max(20, round(1000.0 / playback)), loop=0,
+                    optimize=False, disposal=1)
+        files.append(out)
+    elif kind == "mp4":
+        files.append(out)
+    return RenderResult(out, kind, chosen, files, time.perf_counter() - t0, count)
+
+
+class _Mp4Writer:
+    """Pipes RGB frames into ffmpeg (H.264, yuv420p)."""
+
+    def __init__(self, path: str, size, fps: float):
+        w, h = size
+        self.size = (w - w % 2, h - h % 2)  # yuv420p needs even sizes
+        cmd = [ffmpeg_path(), "-y", "-loglevel", "error", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{self.size[0]}x{self.size[1]}",
+               "-r", f"{fps:g}", "-i", "-", "-c:v", "libx264", "-pix_fmt", "yuv420p", "-crf", "20", path]
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=subprocess.PIPE)
+
+    def write(self, img: Image.Image):
+        if img.size != self.size:
+            img = img.crop((0, 0, *self.size))
+        self.proc.stdin.write(img.tobytes())
+
+    def close(self):
+        self.proc.stdin.close()
+        err = self.proc.stderr.read().decode(errors="replace")
+        self.proc.stderr.close()
+        if self.proc.wait() != 0:
+            raise OSError(f"ffmpeg failed: {' '.join(err.split())[:300]}")

@@ -1,0 +1,131 @@
+"""Triangle surfaces from particles: a Zhu-Bridson implicit field on a grid, then marching cubes.
+
+For every grid node ``x`` the field is ``phi(x) = |x - xbar(x)| - r`` with
+``xbar = sum_j w_j x_j / sum_j w_j`` and ``w_j = max(0, 1 - |x - x_j|^2 / R^2)^3``
+(Zhu & Bridson 2005, "Animating sand as a fluid"): the distance to the kernel-weighted
+centre of the nearby particles, less a radius. Where no particle is within ``R`` the
+field is ``R`` (outside). The zero level set is extracted with Warp's marching cubes
+(``warp.geometry.IsoSurfaceMarchingCubes``, which runs on the CPU too). Both run as Warp
+kernels; each particle scatters its weights to the grid nodes within ``R``.
+
+Defaults, checked on lattice blocks (``tests/test_export.py``): ``R = 2 dx`` (the
+support radius) and ``r = 0.55 dx`` put the faces of an n x n x n block of particles
+half a spacing outside its outer particles, where the material ends (enclosed volume
+within 1 % of ``n^3 dx^3`` for n = 24); grid cell ``dx / 2``.
+
+Each body gets its own surface (bodies do not merge). Triangles face outward.
+"""
+
+import math
+
+import numpy as np
+import warp as wp
+
+from . import checks
+
+__all__ = ["particle_surface", "surface_field"]
+
+
+@wp.kernel(enable_backward=False)
+def _scatter_weights(
+    points: wp.array(dtype=wp.vec3f),
+    origin: wp.vec3f,
+    cell: wp.float32,
+    kernel_radius: wp.float32,
+    reach: int,
+    wsum: wp.array3d(dtype=wp.float32),
+    xsum: wp.array3d(dtype=wp.vec3f),
+):
+    # Each particle adds its weight to the grid nodes within the kernel radius: about
+    # (4/3) pi (R / cell)^3 nodes, fewer candidates than a hash-grid gather per node.
+    p = points[wp.tid()]
+    q = (p - origin) / cell
+    ci = int(wp.floor(q[0]))
+    cj = int(wp.floor(q[1]))
+    ck = int(wp.floor(q[2]))
+    inv_r2 = wp.float32(1.0) / (kernel_radius * kernel_radius)
+    for di in range(-reach + 1, reach + 1):
+        for dj in range(-reach + 1, reach + 1):
+            for dk in range(-reach + 1, reach + 1):
+                i = ci + di
+                j = cj + dj
+                k = ck + dk
+                x = origin + wp.vec3f(wp.float32(i) * cell, wp.float32(j) * cell, wp.float32(k) * cell)
+                d = p - x
+                s = wp.dot(d, d) * inv_r2
+                if s < wp.float32(1.0):
+                    w = wp.float32(1.0) - s
+                    w = w * w * w
+                    wp.atomic_add(wsum, i, j, k, w)
+                    wp.atomic_add(xsum, i, j, k, w * p)
+
+
+@wp.kernel(enable_backward=False)
+def _zhu_bridson_field(
+    wsum: wp.array3d(dtype=wp.float32),
+    xsum: wp.array3d(dtype=wp.vec3f),
+    origin: wp.vec3f,
+    cell: wp.float32,
+    kernel_radius: wp.float32,
+    radius: wp.float32,
+    field: wp.array3d(dtype=wp.float32),
+):
+    i, j, k = wp.tid()
+    w = wsum[i, j, k]
+    if w > wp.float32(0.0):
+        x = origin + wp.vec3f(wp.float32(i) * cell, wp.float32(j) * cell, wp.float32(k) * cell)
+        field[i, j, k] = wp.length(x - xsum[i, j, k] / w) - radius
+    else:
+        field[i, j, k] = kernel_radius
+
+
+def surface_field(points, spacing: float, *, kernel_radius: float | None = None, radius: float | None = None,
+                  cell: float | None = None, device="cpu"):
+    """The implicit field of ``points`` on a grid: ``(field (nx, ny, nz) float32 warp array, origin, cell)``."""
+    dx = checks.positive("spacing", spacing)
+    R = 2.0 * dx if kernel_radius is None else checks.positive("kernel_radius", kernel_radius)
+    r = 0.55 * dx if radius is None else checks.positive("radius", radius)
+    h = 0.5 * dx if cell is None else checks.positive("cell", cell)
+    p = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    p = p[np.isfinite(p).all(axis=1)]
+    if len(p) == 0:
+        raise ValueError("points = [] is not allowed: a surface needs at least one finite particle position")
+    pad = R + 3.0 * h
+    lo = p.min(axis=0) - pad
+    hi = p.max(axis=0) + pad
+    n = np.maximum(np.ceil((hi - lo) / h).astype(int) + 1, 2)
+    if int(np.prod(n)) > 256**3:
+        raise ValueError(f"cell = {h:g} is not allowed: the grid would have {int(np.prod(n))} nodes ({n[0]} x {n[1]} x {n[2]}); "
+                         f"use a larger cell")
+    dev = wp.get_device(device)
+    pts = wp.array(p, dtype=wp.vec3f, device=dev)
+    shape = tuple(int(v) for v in n)
+    wsum = wp.zeros(shape, dtype=wp.float32, device=dev)
+    xsum = wp.zeros(shape, dtype=wp.vec3f, device=dev)
+    origin = wp.vec3f(*lo)
+    # The padding keeps every node a particle reaches inside the grid.
+    reach = int(math.ceil(R / h))
+    wp.launch(_scatter_weights, dim=len(p), inputs=[pts, origin, float(h), float(R), reach], outputs=[wsum, xsum], device=dev)
+    field = wp.empty(shape=shape, dtype=wp.float32, device=dev)
+    wp.launch(_zhu_bridson_field, dim=shape, inputs=[wsum, xsum, origin, float(h), float(R), float(r)], outputs=[field], device=dev)
+    return field, lo.astype(np.float64), float(h)
+
+
+def particle_surface(points, spacing: float, *, kernel_radius: float | None = None, radius: float | None = None,
+                     cell: float | None = None, device="cpu") -> tuple[np.ndarray, np.ndarray]:
+    """A closed, outward-facing triangle surface around ``points``: ``(vertices (V, 3), triangles (T, 3))``.
+
+    ``spacing``: the particle spacing dx; ``kernel_radius`` (default 2 dx), ``radius`` (default
+    0.55 dx) and ``cell`` (grid cell, default dx / 2) as in the module notes.
+    """
+    import warp.geometry  # noqa: PLC0415 (marching cubes)
+
+    field, lo, h = surface_field(points, spacing, kernel_radius=kernel_radius, radius=radius, cell=cell, device=device)
+    n = np.array(field.shape)
+    upper = lo + (n - 1) * h
+    verts, indices = warp.geometry.IsoSurfaceMarchingCubes.extract(
+        field, 0.0, lower=wp.vec3f(*lo.astype(np.float32)), upper=wp.vec3f(*upper.astype(np.float32))
+    )
+    v = verts.numpy().astype(np.float64).reshape(-1, 3)
+    t = indices.numpy().astype(np.int64).reshape(-1, 3)
+    return v, t
