@@ -1,15 +1,19 @@
-"""Command line: ``warp-esph run [SCENE] ...``, ``scenes``, ``render OUT.usd`` and ``export OUT.usd``.
+"""Command line: ``warp-esph run [SCENE] ...``, ``scenes``, ``render OUT.usd``, ``export OUT.usd``
+and ``fit SCENE --target FILE``.
 
 Exit status: 0 success; 2 bad input (unknown scene, bad option value, bad scene file,
 unreadable or unwritable file); 3 the simulation diverged (``SimulationError``; the
-output keeps every frame finished before); 130 interrupted (Ctrl-C; the output keeps
-every finished frame). Errors are one line on stderr, ``warp-esph: error: ...``.
+output keeps every frame finished before); 130 interrupted (Ctrl-C), 143 terminated
+(SIGTERM): in both the output keeps every finished frame, and the last checkpoint
+(``--checkpoint-every``) resumes the run (``--resume``). Errors are one line on stderr,
+``warp-esph: error: ...``.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
 import tempfile
 import warnings
@@ -21,6 +25,7 @@ EXPORT_CHOICES = ("vtu", "ply")
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143  # 128 + SIGTERM
 
 
 class _UsageError(Exception):
@@ -71,7 +76,17 @@ def _build_parser() -> _Parser:
                      help="also write a triangle surface per body and frame (UsdGeom.Mesh under /World/Surfaces)")
     run.add_argument("--export", choices=EXPORT_CHOICES, metavar="FORMAT",
                      help="at the end, also write every frame as vtu or ply files (meshio) into <output>_<FORMAT>/")
+    run.add_argument("--checkpoint-every", type=int, metavar="N",
+                     help="save the full state every N frames to <output>.checkpoint.npz (atomically)")
+    run.add_argument("--resume", metavar="CHECKPOINT",
+                     help="continue the run saved in CHECKPOINT (.npz), appending to its USD file; "
+                          "the scene and its settings come from the checkpoint (--frames N: run to frame N instead)")
     sub.add_parser("scenes", help="list the built-in scenes", description="List the built-in scenes.")
+    from .fit import add_fit_arguments  # noqa: PLC0415
+
+    add_fit_arguments(sub.add_parser(
+        "fit", help="fit material parameters of a scene to a target by gradient descent",
+        description="Fit material parameters so the simulated scene reaches the target; writes JSON and USD."))
 
     ren = sub.add_parser("render", help="render frames of a USD output to PNG, GIF or MP4 (no display, no GPU)",
                          description="Render frames of a warp-esph USD file with the built-in software renderer "
@@ -181,22 +196,55 @@ def _cmd_run(args) -> int:
     from .solver import Solver  # noqa: PLC0415
     from .usd import UsdWriter  # noqa: PLC0415
 
+    from .checkpoint import load_state, read_checkpoint, save_state  # noqa: PLC0415
+
+    every = None if args.checkpoint_every is None else checks.positive_int("--checkpoint-every", args.checkpoint_every)
+    start_frame, state = 0, None
+    if args.resume is not None:
+        # The run record of the checkpoint decides everything the results depend on.
+        meta, _ = read_checkpoint(args.resume)
+        run = meta.get("run", {})
+        if not {"scene", "scale", "fps", "dt", "frames", "output", "dtype"} <= run.keys():
+            raise ValueError(f"--resume = {args.resume!r} is not allowed: the checkpoint was not written by 'warp-esph run'")
+        args.scene, scale, args.dtype = run["scene"], run["scale"], run["dtype"]
+        args.fps, args.dt, args.output, args.surface = run["fps"], run["dt"], run["output"], run.get("surface", False)
+        frames_total = args.frames if args.frames is not None else run["frames"]  # --frames extends a run
+        every = every or run.get("checkpoint_every")
     scene = load_scene(args.scene, scale=scale)
-    frames = args.frames if args.frames is not None else scene.frames
     fps = args.fps if args.fps is not None else scene.fps
     dt = args.dt if args.dt is not None else scene.dt
     output = args.output or f"{scene.name}.usdc"
+    if args.resume is None:
+        frames_total = args.frames if args.frames is not None else scene.frames
 
     model = scene.builder.finalize(device=args.device, dtype=args.dtype)
+    if args.resume is not None:
+        state, meta = load_state(args.resume, model)
+        start_frame = meta["frame"]
+    frames = frames_total - start_frame
+    if frames < 1:
+        raise ValueError(f"--resume = {args.resume!r} is not allowed: that run finished all {frames_total} frames")
     substeps, dt = resolve_timestep(model, fps, dt=dt)
     solver = Solver(model)
     solver.check_dt(dt)  # the stability warning, once, before the run
-    writer = UsdWriter(output, model, fps, surface=args.surface, view=getattr(scene, "view", None))
+    writer = UsdWriter(output, model, fps, surface=args.surface, view=getattr(scene, "view", None), append=args.resume is not None)
+    checkpoint_path = os.path.splitext(writer.path)[0] + ".checkpoint.npz"
+    run_record = {"scene": args.scene if args.scene is not None else scene.name, "scale": scale, "fps": fps, "dt": dt,
+                  "frames": frames_total, "output": os.path.abspath(writer.path), "dtype": args.dtype,
+                  "surface": bool(args.surface), "checkpoint_every": every}
+    if args.scene is not None and os.path.exists(str(args.scene)):
+        run_record["scene"] = os.path.abspath(args.scene)
+
+    def checkpoint(frame, current):
+        if every is not None and frame > start_frame and frame % every == 0:
+            save_state(checkpoint_path, model, current, step=frame * substeps, frame=frame, run=run_record)
+
     try:
         print(f"{PROG}: {scene.name}: {model.particle_count} particles, {len(model.bodies)} bodies, "
               f"{frames} frames at {fps:g} fps, dt = {dt:.4g} s ({substeps} steps/frame), {args.device} {args.dtype} "
-              f"-> {writer.path}", flush=True)
-        simulate(model, frames, fps=fps, dt=dt, writer=writer, progress=not args.no_progress, solver=solver)
+              f"-> {writer.path}" + (f" (resumed at frame {start_frame})" if start_frame else ""), flush=True)
+        simulate(model, frames, fps=fps, dt=dt, writer=writer, progress=not args.no_progress, solver=solver,
+                 state=state, start_frame=start_frame, callback=checkpoint if every is not None else None)
     except KeyboardInterrupt:
         writer.close()
         print(f"{PROG}: interrupted: {writer.path} keeps the {writer.frames_written} frames finished", file=sys.stderr)
@@ -275,6 +323,28 @@ def main(argv=None) -> int:
     if args.command is None:
         parser.print_help(sys.stderr)
         return EXIT_BAD_INPUT
+    terminated = []
+
+    def on_term(signum, frame):
+        # Unwinds like Ctrl-C, so the writer closes and keeps every finished frame.
+        terminated.append(signum)
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, on_term)
+    except ValueError:  # not the main thread
+        previous = None
+    try:
+        status = _dispatch(args)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    if terminated and status == EXIT_INTERRUPTED:
+        return EXIT_TERMINATED
+    return status
+
+
+def _dispatch(args) -> int:
     with warnings.catch_warnings():
         warnings.simplefilter("default")
         warnings.showwarning = _show_warning
@@ -285,6 +355,11 @@ def main(argv=None) -> int:
                 return _cmd_render(args)
             if args.command == "export":
                 return _cmd_export(args)
+            if args.command == "fit":
+                from .fit import fit_cli  # noqa: PLC0415
+
+                _init_warp(args.device)
+                return fit_cli(args)
             return _cmd_run(args)
         except KeyboardInterrupt:
             print(f"{PROG}: interrupted", file=sys.stderr)
