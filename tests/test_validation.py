@@ -110,3 +110,15 @@ def test_solver_rejects_bad_neighbor_skin_and_fused():
             we.Solver(model, neighbor_skin=bad)
     with pytest.raises(ValueError, match=r"fused = 1 is not allowed: must be True or False"):
         we.Solver(model, fused=1)
+
+
+def test_overlapping_bodies_are_refused_by_name():
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, name="first")
+    b.add_sphere((0.04, 0.0, 0.0), 0.05, DOUGH, name="second")
+    with pytest.raises(ValueError, match=r"bodies 'first' and 'second' are not allowed to overlap"):
+        b.finalize()
+    ok = we.SceneBuilder(spacing=0.02)
+    ok.add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, name="first")
+    ok.add_box((0.1, 0, 0), (0.1, 0.1, 0.1), DOUGH, name="touching")  # nearest particles one spacing apart
+    assert ok.finalize().particle_count == 250

@@ -83,6 +83,7 @@ class SceneBuilder:
         self.planes: list[Plane] = []
         self.spheres: list[Sphere] = []
         self.boxes: list[Box] = []
+        self.force_fields: list = []
         self._count = 0
 
     # ----------------------------------------------------------------- bodies
@@ -229,15 +230,50 @@ class SceneBuilder:
             "box",
         )
 
+    def add_compression_field(self, center, strength: float, t_on: float = 0.0, t_off: float = float("inf"), body: str | None = None):
+        """A horizontal compression ``a = -strength (x - center)`` (1/s^2) while ``t_on <= t < t_off``,
+        on the particles of ``body`` (a body name; ``None``: all). See ``fields.CompressionField``."""
+        from .fields import CompressionField  # noqa: PLC0415
+
+        index = -1
+        if body is not None:
+            names = [b.name for b in self._bodies]
+            if body not in names:
+                raise ValueError(f"body = {body!r} is not allowed: must be one of {names!r}")
+            index = names.index(body)
+        self.force_fields.append(CompressionField(center, strength, t_on, t_off, body=index))
+
     # --------------------------------------------------------------- finalize
     @property
     def particle_count(self) -> int:
         return self._count
 
+    def _check_overlap(self):
+        """Bodies must not share space: overlapping particles would start under huge pressure.
+
+        Particles are binned in cells of half the spacing; a body's own lattice puts at
+        most one particle in a cell, so a shared cell means two bodies closer than ~0.9 dx.
+        """
+        if len(self._bodies) < 2:
+            return
+        points = np.concatenate(self._points)
+        body = np.concatenate([np.full(b.count, k) for k, b in enumerate(self._bodies)])
+        cells = np.floor(points / (0.5 * self.spacing)).astype(np.int64)
+        _, first, inverse = np.unique(cells, axis=0, return_index=True, return_inverse=True)
+        owner = body[first][inverse.ravel()]
+        clash = np.nonzero(owner != body)[0]
+        if clash.size:
+            a, b = self._bodies[owner[clash[0]]].name, self._bodies[body[clash[0]]].name
+            raise ValueError(
+                f"bodies {a!r} and {b!r} are not allowed to overlap: {clash.size} particles of one lie within "
+                f"the other (at {np.round(points[clash[0]], 4).tolist()}); move them at least one spacing apart"
+            )
+
     def finalize(self, device="cpu", dtype=wp.float32, requires_grad: bool = False) -> Model:
         """Builds the ``Model`` on ``device`` in precision ``dtype`` (float32 or float64)."""
         if not self._bodies:
             raise ValueError("the scene has no bodies: add one with add_box, add_sphere, ... before finalize()")
+        self._check_overlap()
         scalar = scalar_type(dtype)
         try:
             dev = wp.get_device(device)
@@ -261,5 +297,6 @@ class SceneBuilder:
             scalar=scalar,
             requires_grad=requires_grad,
         )
+        model.force_fields = list(self.force_fields)
         model.compute_rest_density()
         return model
