@@ -19,13 +19,14 @@ SMALL = {
     "fig5_hyperelastic_boxes": 0.6,
     "fig6_dough_star": 0.3,
     "fig7_plastic_grid": 0.15,
+    "fig8_comparison": 0.4,
 }
 
 
 def test_every_figure_has_a_scene():
     assert set(SMALL) == set(FIGURE_SCENES)
     figures = sorted(get_scene(n, SMALL[n]).figure for n in FIGURE_SCENES)
-    assert figures == [f"Fig. {k}" for k in range(1, 8)]
+    assert figures == [f"Fig. {k}" for k in range(1, 9)]
     assert list(SCENES)[0] == "dough_drop"  # still the default, first in the list
 
 

@@ -31,6 +31,10 @@ def _checker(model, tol):
     floor = min([p.offset for p in model.planes] or [x0[:, 1].min()])
     height = x0 @ (-g) / max(np.linalg.norm(g), 1e-12)
     budget = 0.5 * (mass[:, None] * model.particle_v0**2).sum() + (mass * np.linalg.norm(g) * (height - floor).clip(0)).sum()
+    for f in model.force_fields:  # a compression field's potential, k |x - c|^2 / 2 horizontally
+        sel = slice(None) if f.body < 0 else model.particle_body.numpy() == f.body
+        r = (x0 - np.array(f.center))[:, [0, 2]][sel]
+        budget += 0.5 * f.strength * (mass[sel] * (r**2).sum(1)).sum()
 
     def check(frame, state):
         x, v = state.x.numpy().astype(np.float64), state.v.numpy().astype(np.float64)
@@ -56,8 +60,16 @@ def _checker(model, tol):
     return check
 
 
+#: Bodies a scene is meant to lose: Fig. 8 shows the rest-configuration model blowing up
+#: under large plastic flow (SPEC §7), so the soak runs that scene without it.
+EXPECTED_TO_FAIL = {"fig8_comparison": ("plastic_rest",)}
+
+
 def _soak(name, dt_factor=1.0, frames=None):
     scene = get_scene(name, scale=SOAK_SCALE)
+    if name in EXPECTED_TO_FAIL:
+        keep = [b.name for b in scene.builder._bodies if b.name not in EXPECTED_TO_FAIL[name]]
+        scene = SCENES[name](scale=SOAK_SCALE, only=keep)
     model = scene.builder.finalize()
     n_sub, dt = resolve_timestep(model, scene.fps, dt=scene.dt)
     n_sub = max(1, round(n_sub / dt_factor))

@@ -1,6 +1,8 @@
 """Checkpoints: the full simulation state in one ``.npz`` file, written atomically.
 
-A checkpoint holds every array a step reads (``x, v, F, alpha``), the current values of
+A checkpoint holds every array a step reads (``State.STATE_FIELDS``: ``x, v, F, alpha`` and
+the rest-configuration model's ``F_p``; an older checkpoint without it loads it as ``I``),
+the simulated time, the current values of
 the per-material parameters (they may have been fitted or edited since the scene was
 built), the step and frame counters, and a free-form ``run`` record (the CLI stores the
 scene, scale, time step and output there). The step depends on nothing else, so on the
@@ -39,6 +41,7 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
         "dtype": model.scalar.__name__,
         "bodies": [b.name for b in model.bodies],
         "run": run or {},
+        "time": float(getattr(state, "time", 0.0)),
     }
     arrays = {name: getattr(state, name).numpy() for name in State.STATE_FIELDS}
     arrays.update({f"material_{name}": getattr(model, name).numpy() for name in Model.MATERIAL_FIELDS})
@@ -70,7 +73,7 @@ def read_checkpoint(path) -> tuple[dict, dict[str, np.ndarray]]:
         raise ValueError(f"checkpoint = {str(path)!r} is not allowed: not a readable warp_esph checkpoint ({type(e).__name__})") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise ValueError(f"checkpoint = {str(path)!r} is not allowed: unknown format {meta.get('format') if isinstance(meta, dict) else None!r}")
-    missing = [n for n in State.STATE_FIELDS if n not in arrays]
+    missing = [n for n in State.STATE_FIELDS if n not in arrays and n not in State.OPTIONAL_FIELDS]
     if missing:
         raise ValueError(f"checkpoint = {str(path)!r} is not allowed: it lacks {', '.join(missing)}")
     return meta, arrays
@@ -93,7 +96,9 @@ def load_state(path, model: Model) -> tuple[State, dict]:
         raise ValueError(f"{where}: it is {meta['dtype']}, the model {model.scalar.__name__}")
     state = model.state()
     for name in State.STATE_FIELDS:
-        getattr(state, name).assign(arrays[name])
+        if name in arrays:
+            getattr(state, name).assign(arrays[name])
+    state.time = float(meta.get("time", 0.0))
     for name in Model.MATERIAL_FIELDS:
         key = f"material_{name}"
         if key in arrays:

@@ -75,6 +75,38 @@ def kernels(scalar) -> types.SimpleNamespace:
         A, B = moment_sums(i, x, y, body, nbr, n, h)
         return B * wp.inverse(A)
 
+    @wp.func
+    def step_gradient(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        code: int,
+        counters: wp.array(dtype=wp.int32),
+    ) -> mat33:
+        """This step's ``dF`` (eq. 4); ``I``, counted, where a guard of paper §4 holds."""
+        dF = wp.identity(n=3, dtype=scalar)
+        if code == 1:
+            wp.atomic_add(counters, 0, 1)
+        elif code == 2:
+            wp.atomic_add(counters, 1, 1)
+        else:
+            dF = incremental_gradient(i, x, y, body, nbr, n, h)
+        return dF
+
+    @wp.func
+    def unless_inverted(candidate: mat33, F: mat33, counters: wp.array(dtype=wp.int32)) -> mat33:
+        """``candidate`` unless it inverts (det <= 0, paper §4): then ``F``, counted."""
+        out = F
+        if wp.determinant(candidate) > scalar(0.0):
+            out = candidate
+        else:
+            wp.atomic_add(counters, 2, 1)
+        return out
+
     @wp.kernel
     def update_deformation(
         x: wp.array(dtype=vec3),
@@ -90,19 +122,11 @@ def kernels(scalar) -> types.SimpleNamespace:
     ):
         i = wp.tid()
         F = F_prev[i]
-        code = guard[i]
-        if code == 1:
-            wp.atomic_add(counters, 0, 1)
-        elif code == 2:
-            wp.atomic_add(counters, 1, 1)
-        else:
-            candidate = incremental_gradient(i, x, y, body, nbr, count[i], h) * F
-            if wp.determinant(candidate) > scalar(0.0):
-                F = candidate
-            else:
-                wp.atomic_add(counters, 2, 1)
-        F_out[i] = F
+        # A guarded particle gets dF = I: I F = F exactly, and det F > 0 always holds.
+        dF = step_gradient(i, x, y, body, nbr, count[i], h, guard[i], counters)
+        F_out[i] = unless_inverted(dF * F, F, counters)
 
     return types.SimpleNamespace(
-        update_deformation=update_deformation, incremental_gradient=incremental_gradient, moment_sums=moment_sums
+        update_deformation=update_deformation, incremental_gradient=incremental_gradient, moment_sums=moment_sums,
+        step_gradient=step_gradient, unless_inverted=unless_inverted,
     )

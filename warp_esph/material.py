@@ -20,10 +20,19 @@ from . import checks
 MODELS = ("linear", "non_newtonian", "hyperelastic", "stvk")
 MODEL_IDS = {name: k for k, name in enumerate(MODELS)}
 
+#: Deformation models (SPEC §7, paper Fig. 8): the paper's ``incremental`` update, and the
+#: comparison models ``rest`` (rest configuration and plastic F_p) and ``additive``
+#: (additive Green strain); see ``warp_esph/comparison.py``.
+DEFORMATIONS = ("incremental", "rest", "additive")
+DEFORMATION_IDS = {name: k for k, name in enumerate(DEFORMATIONS)}
+
 
 @dataclasses.dataclass(frozen=True)
 class Material:
     """An elastoplastic material.
+
+    ``deformation`` picks the deformation model (``DEFORMATIONS``): ``"incremental"`` (the
+    paper's, default), or the Fig. 8 comparison models ``"rest"`` and ``"additive"``.
 
     ``yield_stress = inf`` (or ``flow_rate = 0``) gives a purely elastic material.
     ``pressure_stiffness = None`` picks ``k_p = K / (2 rho0)`` with ``K = lam + 2 mu / 3``
@@ -41,6 +50,7 @@ class Material:
     viscosity: float = 0.0
     model: str = "linear"
     clamp_pressure: bool = True
+    deformation: str = "incremental"
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
@@ -56,6 +66,7 @@ class Material:
         set_("pressure_stiffness", checks.non_negative("Material.pressure_stiffness", self.pressure_stiffness))
         set_("viscosity", checks.non_negative("Material.viscosity", self.viscosity))
         checks.choice("Material.model", self.model, MODELS)
+        checks.choice("Material.deformation", self.deformation, DEFORMATIONS)
         if not isinstance(self.clamp_pressure, bool):
             raise ValueError(f"Material.clamp_pressure = {self.clamp_pressure!r} is not allowed: must be True or False")
 

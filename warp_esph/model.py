@@ -17,7 +17,7 @@ import warp as wp
 
 from ._types import type_set
 from .colliders import Box, Plane, Sphere
-from .material import MODEL_IDS, Material
+from .material import DEFORMATION_IDS, MODEL_IDS, Material
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,6 +42,11 @@ class State:
         self.v = wp.array(model.particle_v0, dtype=T.vec3, device=dev, requires_grad=requires_grad)
         self.F = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev, requires_grad=requires_grad)
         self.alpha = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad)
+        # The plastic F_p of the rest-configuration comparison model (SPEC §7; I elsewhere).
+        # The additive model's strain needs no field of its own: F holds I + eps there.
+        self.F_p = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev, requires_grad=requires_grad)
+        #: Simulated time (s) of this state: the step that writes it sets ``time_in + dt``.
+        self.time = 0.0
         # Written by the step that produced this state.
         self.neighbors = wp.zeros((n, K), dtype=wp.int32, device=dev)
         self.neighbor_d2 = wp.zeros((n, K), dtype=T.scalar, device=dev)
@@ -54,12 +59,15 @@ class State:
         self.force = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
 
     #: The arrays that define the simulation state (what a checkpoint must hold).
-    STATE_FIELDS = ("x", "v", "F", "alpha")
+    STATE_FIELDS = ("x", "v", "F", "alpha", "F_p")
+    #: Fields a checkpoint written before the comparison models lacks (then: initial values).
+    OPTIONAL_FIELDS = ("F_p",)
 
     def assign(self, other: "State"):
-        """Copy ``other``'s state fields into this state."""
+        """Copy ``other``'s state fields (and time) into this state."""
         for name in self.STATE_FIELDS:
             wp.copy(getattr(self, name), getattr(other, name))
+        self.time = getattr(other, "time", 0.0)
 
     @property
     def particle_count(self) -> int:
@@ -128,6 +136,16 @@ class Model:
         self.viscosity = self._material_array("viscosity")
         self.material_model = wp.array([MODEL_IDS[m.model] for m in materials], dtype=wp.int32, device=dev)
         self.clamp_pressure = wp.array([int(m.clamp_pressure) for m in materials], dtype=wp.int32, device=dev)
+        self.material_deformation = wp.array(
+            [DEFORMATION_IDS[m.deformation] for m in materials], dtype=wp.int32, device=dev
+        )
+        #: External force fields (``fields.CompressionField``), set by the builder.
+        self.force_fields: list = []
+        # Rest positions and initial neighbour lists of the rest-configuration model
+        # (``rest_neighbors()`` builds them once).
+        self.rest_x = None
+        self.rest_nbr = None
+        self.rest_count = None
 
         V, S = self.types.vec3, scalar
         self.plane_normal = self._collider_array([p.normal for p in planes], V)
@@ -161,7 +179,11 @@ class Model:
             values = arr.numpy()
             values[index] = getattr(material, name)
             arr.assign(values)
-        for arr, value in ((self.material_model, MODEL_IDS[material.model]), (self.clamp_pressure, int(material.clamp_pressure))):
+        for arr, value in (
+            (self.material_model, MODEL_IDS[material.model]),
+            (self.clamp_pressure, int(material.clamp_pressure)),
+            (self.material_deformation, DEFORMATION_IDS[material.deformation]),
+        ):
             values = arr.numpy()
             values[index] = value
             arr.assign(values)
@@ -184,6 +206,22 @@ class Model:
             f"Model({self.particle_count} particles, {len(self.bodies)} bodies, {len(self.materials)} materials, "
             f"spacing={self.spacing:g}, h={self.support_radius:g}, dtype={self.scalar.__name__}, device={self.device})"
         )
+
+    @property
+    def uses_comparison_models(self) -> bool:
+        """Whether any material uses a Fig. 8 comparison deformation model (SPEC §7)."""
+        return any(m.deformation != "incremental" for m in self.materials)
+
+    def rest_neighbors(self):
+        """``(X, neighbours, counts)`` of the initial configuration (same-body lists, built once)."""
+        if self.rest_x is None:
+            from . import neighbors  # noqa: PLC0415
+
+            state = State(self, requires_grad=False)
+            search = neighbors.NeighborSearch(self.particle_count, self.scalar, self.device, self.support_radius)
+            search.build(state.x, self.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count, state.guard)
+            self.rest_x, self.rest_nbr, self.rest_count = state.x, state.neighbors, state.neighbor_count
+        return self.rest_x, self.rest_nbr, self.rest_count
 
     def compute_rest_density(self):
         """SPH density of the initial configuration: each particle's pressure-free density."""

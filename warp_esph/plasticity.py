@@ -124,6 +124,33 @@ def kernels(scalar) -> types.SimpleNamespace:
     stress = forces.funcs(scalar).stress
     min_sigma = scalar(MIN_SINGULAR_VALUE)
 
+    @wp.func
+    def flow(
+        F: mat33,
+        a: scalar,
+        mu: scalar,
+        yield_stress: scalar,
+        flow_rate: scalar,
+        hardening: scalar,
+        kind: int,
+        dt: scalar,
+        counters: wp.array(dtype=wp.int32),
+    ):
+        """``(F_e, alpha)`` after this step's plastic flow of ``F`` (eq. 7-8); a particle whose
+        smallest singular value is below ``MIN_SINGULAR_VALUE`` keeps ``F`` and is counted."""
+        Fe = F
+        a_new = a
+        if flow_rate > scalar(0.0):
+            s = iso.singular_values(F)
+            if wp.min(wp.min(s[0], s[1]), s[2]) >= min_sigma:
+                flowed, g, d1, a_flow = plastic_flow(s, mu, yield_stress, flow_rate, hardening, a, dt, wp.where(kind == 1, 1, 0))
+                if flowed != 0:
+                    Fe = iso.isotropic_map(F, g, d1)
+                    a_new = a_flow
+            else:
+                wp.atomic_add(counters, 3, 1)
+        return Fe, a_new
+
     @wp.kernel
     def constitutive_update(
         F_in: wp.array(dtype=mat33),
@@ -145,25 +172,11 @@ def kernels(scalar) -> types.SimpleNamespace:
         """Plastic flow of the stored F, then the stress P* and F^-1 for the pair forces."""
         i = wp.tid()
         m = material[i]
-        F = F_in[i]
-        a = alpha_in[i]
-        Fe = F
-        a_new = a
         kind = model[m]
-        if flow_rate[m] > scalar(0.0):
-            s = iso.singular_values(F)
-            if wp.min(wp.min(s[0], s[1]), s[2]) >= min_sigma:
-                flowed, g, d1, a_flow = plastic_flow(
-                    s, mu[m], yield_stress[m], flow_rate[m], hardening[m], a, dt, wp.where(kind == 1, 1, 0)
-                )
-                if flowed != 0:
-                    Fe = iso.isotropic_map(F, g, d1)
-                    a_new = a_flow
-            else:
-                wp.atomic_add(counters, 3, 1)
+        Fe, a_new = flow(F_in[i], alpha_in[i], mu[m], yield_stress[m], flow_rate[m], hardening[m], kind, dt, counters)
         F_out[i] = Fe
         alpha_out[i] = a_new
         stress_out[i] = stress(Fe, mu[m], lam[m], kind)
         F_inv_out[i] = wp.inverse(Fe)
 
-    return types.SimpleNamespace(constitutive_update=constitutive_update)
+    return types.SimpleNamespace(constitutive_update=constitutive_update, flow=flow)

@@ -90,10 +90,13 @@ class _Checkpoint:
         self.v = wp.zeros(n, dtype=T.vec3, device=dev)
         self.F = wp.zeros(n, dtype=T.mat33, device=dev)
         self.alpha = wp.zeros(n, dtype=T.scalar, device=dev)
+        self.F_p = wp.zeros(n, dtype=T.mat33, device=dev)
+        self.time = 0.0
 
     def save(self, state):
         for name in State.STATE_FIELDS:
             wp.copy(getattr(self, name), getattr(state, name))
+        self.time = state.time
 
     @property
     def nbytes(self) -> int:
@@ -204,8 +207,11 @@ class Rollout:
         else:
             init.x.assign(m.particle_x0)
             init.v.assign(m.particle_v0)
-            init.F.assign(np.tile(np.eye(3, dtype=m.types.np_dtype), (m.particle_count, 1, 1)))
+            eye = np.tile(np.eye(3, dtype=m.types.np_dtype), (m.particle_count, 1, 1))
+            init.F.assign(eye)
+            init.F_p.assign(eye)
             init.alpha.zero_()
+            init.time = 0.0
         for name, value, shape in (("x0", x0, (3,)), ("v0", v0, (3,)), ("F0", F0, (3, 3)), ("alpha0", alpha0, ())):
             if value is None:
                 continue

@@ -6,7 +6,7 @@ stays the same and the particle count goes with ``scale**3`` (``scale < 1``: few
 particles, e.g. for tests). Scene files are described in ``docs/scene_format.md``.
 
 Two kinds of built-in scenes: everyday ones (a few thousand particles, the stable time
-step), and one per figure of the paper (``fig1_...`` to ``fig7_...``), which run at the
+step), and one per figure of the paper (``fig1_...`` to ``fig8_...``), which run at the
 paper's particle count and time step (Table 1, ``TABLE1``) at scale 1.
 """
 
@@ -347,9 +347,47 @@ def fig7_plastic_grid(scale: float = 1.0, only=None) -> Scene:
                  dt=_figure_dt(1.0e-4, scale), figure="Fig. 7", view=(20.0, 40.0))
 
 
-# Fig. 8 (our method vs. a rest-configuration and an additive strain model, SPEC §7) is
-# added with the comparison deformation models: a ``fig8_comparison`` function here, an
-# entry in SCENES and FIGURE_SCENES after fig7, and its rows (none in the paper's Table 1).
+def _fig8_materials() -> list[tuple[str, Material]]:
+    """Fig. 8: (row, material) of the elastic (top) and very plastic (bottom) rows."""
+    # SPH viscosity damps the ringing after the release, so the final shape is read at rest.
+    base = dict(density=1000.0, viscosity=20.0)
+    E, nu = 5.0e4, 0.3
+    return [
+        ("elastic", Material.from_young(E, nu, **base)),
+        ("plastic", Material.from_young(E, nu, yield_stress=1000.0, flow_rate=100.0, **base)),
+    ]
+
+
+#: Fig. 8 columns: the deformation model of each (left to right, SPEC §7).
+FIG8_MODELS = ("incremental", "rest", "additive")
+#: Fig. 8 timing (s): the compression acts on [0, FIG8_RELEASE), the run lasts FIG8_DURATION.
+FIG8_RELEASE = 0.3
+FIG8_DURATION = 1.0
+#: Fig. 8 compression (1/s^2): a = -k (x - c) horizontally, 300 m/s^2 at the cubes' faces;
+#: it squeezes the elastic cubes by about 10 % and the plastic ones by about 25 %.
+FIG8_STRENGTH = 1500.0
+#: Fig. 8 bodies: ``{row}_{model}``, e.g. ``plastic_rest``.
+FIG8_BODIES = tuple(f"{row}_{model}" for model in FIG8_MODELS for row in ("elastic", "plastic"))
+
+
+def fig8_comparison(scale: float = 1.0, only=None) -> Scene:
+    """Paper Fig. 8: incremental (ours), rest-configuration and additive models, elastic and very plastic, compressed then released."""
+    # 20 cm cubes, weightless and free (no ground): the compression, not contact, deforms them.
+    # Columns (x): incremental, rest, additive; rows (z): elastic (far), very plastic (near).
+    # The plastic rest-configuration cube is expected to blow up (the paper's lower middle).
+    b = SceneBuilder(spacing=0.02 / _scale(scale), gravity=(0.0, 0.0, 0.0))
+    rows = {"elastic": -0.35, "plastic": 0.35}
+    for k, deformation in enumerate(FIG8_MODELS):
+        for row, mat in _fig8_materials():
+            name = f"{row}_{deformation}"
+            if _wanted(only, name):
+                center = (0.6 * (k - 1), 0.3, rows[row])
+                b.add_box(center, (0.2, 0.2, 0.2), mat.replace(deformation=deformation), name=name)
+                b.add_compression_field(center, FIG8_STRENGTH, 0.0, FIG8_RELEASE, body=name)
+    _check_only("fig8_comparison", only, b)
+    frames = round(FIG8_DURATION * FIGURE_FPS)
+    return Scene("fig8_comparison", _doc(fig8_comparison), b, frames=frames, fps=FIGURE_FPS,
+                 dt=_figure_dt(1.0e-4, scale), figure="Fig. 8", view=(0.0, 50.0))
 
 
 #: Built-in scenes by name: the everyday scenes, then one per figure of the paper.
@@ -366,6 +404,7 @@ SCENES: dict[str, Callable[..., Scene]] = {
     "fig5_hyperelastic_boxes": fig5_hyperelastic_boxes,
     "fig6_dough_star": fig6_dough_star,
     "fig7_plastic_grid": fig7_plastic_grid,
+    "fig8_comparison": fig8_comparison,
 }
 DEFAULT_SCENE = "dough_drop"
 #: The scenes that reproduce a figure of the paper, in figure order.
@@ -498,6 +537,7 @@ MATERIAL_KEYS = {
     "preset": (STR, False), "E": (NUM, False), "nu": (NUM, False), "mu": (NUM, False), "lam": (NUM, False),
     "yield_stress": (NUM_INF, False), "flow_rate": (NUM, False), "hardening": (NUM, False), "density": (NUM, False),
     "pressure_stiffness": (NUM, False), "viscosity": (NUM, False), "model": (STR, False), "clamp_pressure": (BOOL, False),
+    "deformation": (STR, False),
 }
 BODY_COMMON = {"shape": (STR, True), "material": (STR, True), "name": (STR, False), "velocity": (VEC3, False)}
 BODY_SHAPES = {

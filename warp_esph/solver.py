@@ -14,7 +14,7 @@ import warnings
 import numpy as np
 import warp as wp
 
-from . import checks, deformation, forces, integrate, neighbors, plasticity, pressure
+from . import checks, comparison, deformation, fields, forces, integrate, neighbors, plasticity, pressure
 from . import fused as fused_kernels
 from .model import Model, State
 
@@ -54,6 +54,11 @@ class Solver:
     a fresh search (``0``: search afresh every step). ``fused`` (default on) runs the
     constitutive update and all pair forces in one kernel with one SVD per particle
     when no ``wp.Tape`` is recording; under a tape the differentiable kernels run.
+
+    A model with a material of a Fig. 8 comparison deformation model (``Material.deformation``
+    ``"rest"`` or ``"additive"``, SPEC §7) always runs the non-fused kernels, with the
+    constitutive and deformation updates of ``comparison.py``. The model's force fields
+    (``fields.CompressionField``) act while active at ``state_in.time``.
     """
 
     def __init__(
@@ -91,6 +96,11 @@ class Solver:
         self._k_forces = forces.kernels(S)
         self._k_pressure = pressure.kernels(S)
         self._k_integrate = integrate.kernels(S, len(model.planes), len(model.spheres), len(model.boxes))
+        self._cmp = model.uses_comparison_models
+        self._k_cmp = comparison.kernels(S) if self._cmp else None
+        if self._cmp:
+            model.rest_neighbors()
+        self._k_fields = fields.kernels(S)
         self._sph = any(m.pressure_stiffness > 0.0 or m.viscosity > 0.0 for m in model.materials)
         self._counters = wp.zeros(len(GUARD_NAMES), dtype=wp.int32, device=model.device)
         self._stable_dt = model.stable_dt()
@@ -143,7 +153,7 @@ class Solver:
         h = S(m.support_radius)
         dev = m.device
 
-        fast = self.fused and not tape_recording()
+        fast = self.fused and not self._cmp and not tape_recording()
         phase = self._phase
 
         # 1. Neighbour lists and neighbourhood guards (integers, not taped). The fast
@@ -186,13 +196,25 @@ class Solver:
 
             # 3. Plastic flow of the stored F, stress, F^-1.
             with phase("constitutive"):
-                wp.launch(
-                    self._k_plastic.constitutive_update,
-                    n,
-                    [state_in.F, state_in.alpha, m.particle_material, m.mu, m.lam, m.yield_stress, m.flow_rate, m.hardening, m.material_model, S(dt)],
-                    [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, self._counters],
-                    device=dev,
-                )
+                if self._cmp:
+                    wp.launch(
+                        self._k_cmp.constitutive_update,
+                        n,
+                        [
+                            state_in.F, state_in.alpha, state_in.F_p, m.particle_material, m.material_deformation, m.mu, m.lam,
+                            m.yield_stress, m.flow_rate, m.hardening, m.material_model, S(dt),
+                        ],
+                        [state_out.F_flowed, state_out.alpha, state_out.F_p, state_out.stress, state_out.F_inv, self._counters],
+                        device=dev,
+                    )
+                else:
+                    wp.launch(
+                        self._k_plastic.constitutive_update,
+                        n,
+                        [state_in.F, state_in.alpha, m.particle_material, m.mu, m.lam, m.yield_stress, m.flow_rate, m.hardening, m.material_model, S(dt)],
+                        [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, self._counters],
+                        device=dev,
+                    )
 
             # 4. Elastic pair forces, pressure and viscosity.
             with phase("forces"):
@@ -215,6 +237,17 @@ class Solver:
                         [state_out.force],
                         device=dev,
                     )
+
+        # External force fields active at the step's start time.
+        for fld in m.force_fields:
+            if fld.active(state_in.time):
+                wp.launch(
+                    self._k_fields.add_compression,
+                    n,
+                    [state_in.x, m.particle_mass, m.particle_body, int(fld.body), m.types.vec3(*fld.center), S(fld.strength)],
+                    [state_out.force],
+                    device=dev,
+                )
 
         # 5. Symplectic Euler, gravity, colliders.
         with phase("integrate"):
@@ -245,6 +278,18 @@ class Solver:
                     [state_out.F, state_out.guard, self._counters],
                     device=dev,
                 )
+            elif self._cmp:
+                rest_x, rest_nbr, rest_count = m.rest_neighbors()
+                wp.launch(
+                    self._k_cmp.update_deformation,
+                    n,
+                    [
+                        state_in.x, state_out.x, rest_x, m.particle_body, nbr, count, rest_nbr, rest_count, state_out.guard,
+                        m.particle_material, m.material_deformation, state_out.F_flowed, state_out.F_p, h,
+                    ],
+                    [state_out.F, self._counters],
+                    device=dev,
+                )
             else:
                 wp.launch(
                     self._k_deform.update_deformation,
@@ -253,4 +298,5 @@ class Solver:
                     [state_out.F, self._counters],
                     device=dev,
                 )
+        state_out.time = state_in.time + dt
         self.step_count += 1

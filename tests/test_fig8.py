@@ -1,0 +1,240 @@
+"""The Fig. 8 comparison models (SPEC §7): their kernels on exact cases, and the figure's behaviour.
+
+The behaviour test runs ``fig8_comparison`` (six 20 cm cubes, 8^3 particles each) through the
+compression and release, and measures each cube's shape error: the largest relative change
+of its principal extents (square roots of the eigenvalues of the positions' covariance),
+which ignores rigid motion. Each cube runs on its own (as in the paper), float32, dt 0.4 ms, 1 s: compressed on
+[0, 0.3 s), then free. Measured (shape error at 1 s / peak; ``docs/physics.md``):
+
+- elastic: incremental 0.30 % / 14 %, rest configuration 0.57 % / 15 %, additive 1.7 % / 12 %:
+  all three return within 5 %; the additive residual is ~6x the incremental one.
+- plastic: incremental keeps a shape error of 1.2 (a column) and comes to rest (KE 0.2 % of
+  its peak); the rest-configuration cube's F inverts (483k guarded particle-steps) and it
+  blows up near the release (KE 5.5e5 J against a peak of 0.95 J for the incremental one);
+  the additive one keeps flowing (KE 10 % of its peak at 1 s) but stays bounded.
+
+The paper reports that the additive model does not return an elastic body to its rest
+shape. At this compression (about 14 %) we measured it returning to within 5 %, with a
+residual ~6x larger than the incremental model's; the test asserts what was measured.
+"""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warp_esph as we
+from warp_esph import neighbors, scenes
+from warp_esph import comparison
+from warp_esph.material import DEFORMATIONS
+from warp_esph.scenes import FIG8_BODIES, FIG8_RELEASE, SCENES
+
+DT = 4.0e-4  # half the stable step at scale 0.8, 100 steps per 25 fps frame
+
+
+def _shape_error(x, x0):
+    """Largest relative change of the principal extents (rotation and translation free)."""
+    ev = np.linalg.eigvalsh(np.cov((x - x.mean(0)).T))
+    ev0 = np.linalg.eigvalsh(np.cov((x0 - x0.mean(0)).T))
+    return float(np.abs(np.sqrt(np.clip(ev, 0, None) / ev0) - 1.0).max())
+
+
+def _run_one(name):
+    """One cube of the figure on its own (as in the paper: the plastic rest-configuration
+    cube blows up, and its debris would otherwise hit the other cubes)."""
+    model = SCENES["fig8_comparison"](scale=0.8, only=(name,)).builder.finalize()
+    solver = we.Solver(model)
+    a, b = model.state(), model.state()
+    x0 = model.particle_x0.astype(np.float64)
+    mass = model.particle_mass.numpy().astype(np.float64)
+    r = {"shape": [], "ke": [], "finite": [], "time": []}
+    for k in range(2500):  # 1.0 s: compression on [0, 0.3), then free
+        solver.step(a, b, DT)
+        a, b = b, a
+        if (k + 1) % 125 == 0:  # every 0.05 s
+            x, v = a.x.numpy().astype(np.float64), a.v.numpy().astype(np.float64)
+            finite = bool(np.isfinite(x).all() and np.isfinite(v).all())
+            r["time"].append(a.time)
+            r["finite"].append(finite)
+            r["shape"].append(_shape_error(x, x0) if finite else np.inf)
+            r["ke"].append(0.5 * float((mass[:, None] * v**2).sum()) if finite else np.inf)
+    r["guards"] = solver.guard_counts()
+    return r
+
+
+@pytest.fixture(scope="module")
+def fig8_run():
+    record = {name: _run_one(name) for name in FIG8_BODIES}
+    print()
+    for name, r in record.items():
+        print(f"{name:22s} shape error at 1 s {r['shape'][-1]:.4g}, peak {max(r['shape']):.4g}; "
+              f"KE at 1 s {r['ke'][-1]:.3g} J, peak {max(r['ke']):.3g} J; {r['guards']}")
+    return record
+
+
+def test_scene_has_the_six_cubes():
+    scene = SCENES["fig8_comparison"](scale=0.5)
+    assert [b.name for b in scene.builder._bodies] == list(FIG8_BODIES)
+    model = scene.builder.finalize()
+    assert sorted({m.deformation for m in model.materials}) == sorted(DEFORMATIONS)
+    assert len(model.force_fields) == 6 and all(f.t_off == FIG8_RELEASE for f in model.force_fields)
+
+
+def test_elastic_cubes_return_to_their_rest_shape(fig8_run):
+    rec = fig8_run
+    for model in ("incremental", "rest", "additive"):
+        r = rec[f"elastic_{model}"]
+        # The compression deforms them visibly, and they come back after the release.
+        assert max(r["shape"]) > 0.08, (model, max(r["shape"]))
+        assert r["shape"][-1] < 0.05, (model, r["shape"][-1])
+        assert all(r["finite"]) and r["ke"][-1] < 0.05 * max(r["ke"])
+    # The additive model's sum of per-step Green strains is not the total strain: it keeps
+    # a residual, several times the incremental model's (measured 1.7 % against 0.30 %).
+    assert rec["elastic_additive"]["shape"][-1] > 2.0 * rec["elastic_incremental"]["shape"][-1]
+
+
+def test_plastic_incremental_cube_is_stable_and_keeps_its_dent(fig8_run):
+    rec = fig8_run
+    r = rec["plastic_incremental"]
+    assert all(r["finite"])
+    assert r["shape"][-1] > 0.15  # permanently deformed: plastic
+    assert r["ke"][-1] < 0.01 * max(r["ke"])  # and (nearly) at rest again
+    # The additive model also handles the plastic flow: bounded, no blow-up.
+    a = rec["plastic_additive"]
+    assert all(a["finite"]) and max(a["ke"]) < 2.0 * max(r["ke"]) and a["shape"][-1] > 0.15
+
+
+def test_plastic_rest_configuration_cube_degrades(fig8_run):
+    rec = fig8_run
+    inc, rest = rec["plastic_incremental"], rec["plastic_rest"]
+    # Under large plastic flow the rest-configuration fit inverts and the cube blows up.
+    blown = [t for t, ke, ok in zip(rest["time"], rest["ke"], rest["finite"]) if not ok or ke > 1e3 * max(inc["ke"])]
+    assert blown, "the plastic rest-configuration cube did not degrade"
+    assert blown[0] < 0.6
+    assert rest["guards"]["inverted"] > 0 and inc["guards"]["inverted"] == 0
+
+
+# ----------------------------------------------------------------------------------------
+# The comparison kernels on exact cases, float64.
+
+
+def _kernel_case(deformation, spacing=0.1):
+    b = we.SceneBuilder(spacing=spacing, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.8, 0.8, 0.8), we.Material(mu=1e4, lam=1e4, yield_stress=100.0, flow_rate=50.0, deformation=deformation))
+    return b.finalize(dtype=wp.float64)
+
+
+def _interior(model, margin):
+    x0 = model.particle_x0
+    return np.all(np.abs(x0) < 0.4 - margin, axis=1)
+
+
+def test_rest_model_fits_the_total_deformation_exactly():
+    model = _kernel_case("rest")
+    k = comparison.kernels(wp.float64)
+    rng = np.random.default_rng(3)
+    A = np.eye(3) + 0.3 * rng.standard_normal((3, 3))
+    X, nbr, count = model.rest_neighbors()
+    y = wp.array(model.particle_x0 @ A.T + 0.05, dtype=wp.vec3d)
+    n = model.particle_count
+    eye = np.tile(np.eye(3), (n, 1, 1))
+    Fp = rng.standard_normal((n, 3, 3)) * 0.1 + eye  # F_e = F F_p^-1
+    F_out = wp.zeros(n, dtype=wp.mat33d)
+    counters = wp.zeros(4, dtype=wp.int32)
+    wp.launch(k.update_deformation, n, [X, y, X, model.particle_body, nbr, count, nbr, count, wp.zeros(n, dtype=wp.int32),
+                                        model.particle_material, model.material_deformation, wp.array(eye, dtype=wp.mat33d),
+                                        wp.array(Fp, dtype=wp.mat33d), model.support_radius], [F_out, counters])
+    inner = _interior(model, model.support_radius)
+    assert inner.sum() > 10
+    got = F_out.numpy()[inner] @ Fp[inner]
+    np.testing.assert_allclose(got, np.broadcast_to(A, got.shape), atol=1e-10)
+
+
+def test_additive_model_adds_the_green_strain_of_the_step():
+    model = _kernel_case("additive")
+    k = comparison.kernels(wp.float64)
+    rng = np.random.default_rng(4)
+    dF = np.eye(3) + 0.05 * rng.standard_normal((3, 3))
+    n = model.particle_count
+    X = wp.array(model.particle_x0, dtype=wp.vec3d)
+    search = neighbors.NeighborSearch(n, wp.float64, "cpu", model.support_radius)
+    state = model.state()
+    search.build(state.x, model.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count, state.guard)
+    eps0 = 0.01 * rng.standard_normal((n, 3, 3))
+    eps0 = eps0 + eps0.transpose(0, 2, 1)
+    y = wp.array(model.particle_x0 @ dF.T, dtype=wp.vec3d)
+    F_out = wp.zeros(n, dtype=wp.mat33d)
+    counters = wp.zeros(4, dtype=wp.int32)
+    eye = np.tile(np.eye(3), (n, 1, 1))
+    wp.launch(k.update_deformation, n, [X, y, X, model.particle_body, state.neighbors, state.neighbor_count, state.neighbors,
+                                        state.neighbor_count, state.guard, model.particle_material, model.material_deformation,
+                                        wp.array(eye + eps0, dtype=wp.mat33d), wp.array(eye, dtype=wp.mat33d),
+                                        model.support_radius], [F_out, counters])
+    inner = _interior(model, model.support_radius)
+    expected = eps0 + 0.5 * (dF.T @ dF - np.eye(3))
+    np.testing.assert_allclose(F_out.numpy()[inner] - np.eye(3), expected[inner], atol=1e-10)
+
+
+def _constitutive(model, F, Fp, dt=1e-3):
+    k = comparison.kernels(wp.float64)
+    n = len(F)
+    m = model
+    outs = [wp.zeros(n, dtype=wp.mat33d), wp.zeros(n, dtype=wp.float64), wp.zeros(n, dtype=wp.mat33d),
+            wp.zeros(n, dtype=wp.mat33d), wp.zeros(n, dtype=wp.mat33d), wp.zeros(4, dtype=wp.int32)]
+    mat = wp.zeros(n, dtype=wp.int32)
+    wp.launch(k.constitutive_update, n, [wp.array(F, dtype=wp.mat33d), wp.zeros(n, dtype=wp.float64), wp.array(Fp, dtype=wp.mat33d),
+                                         mat, m.material_deformation, m.mu, m.lam, m.yield_stress, m.flow_rate, m.hardening,
+                                         m.material_model, dt], outs)
+    return [o.numpy() for o in outs]
+
+
+def test_rest_model_plastic_flow_keeps_the_total_deformation():
+    model = _kernel_case("rest")
+    rng = np.random.default_rng(5)
+    F = np.eye(3) + 0.2 * rng.standard_normal((16, 3, 3))
+    Fp = np.eye(3) + 0.1 * rng.standard_normal((16, 3, 3))
+    Fe, alpha, Fp_new, stress, F_inv, _ = _constitutive(model, F, Fp)
+    assert (alpha > 0).all()  # every one of these is past the yield point: it flowed
+    assert not np.allclose(Fe, F)
+    np.testing.assert_allclose(Fe @ Fp_new, F @ Fp, atol=1e-12)  # F = F_e F_p is unchanged by the flow
+    np.testing.assert_allclose(F_inv @ Fe, np.broadcast_to(np.eye(3), Fe.shape), atol=1e-10)
+
+
+def test_additive_model_flows_on_the_deviator_and_uses_linear_stress():
+    model = _kernel_case("additive")
+    rng = np.random.default_rng(6)
+    e = 0.05 * rng.standard_normal((16, 3, 3))
+    e = e + e.transpose(0, 2, 1)
+    F = np.eye(3) + e
+    Fe, alpha, _, stress, F_inv, _ = _constitutive(model, F, np.tile(np.eye(3), (16, 1, 1)))
+    eps = Fe - np.eye(3)
+    assert (alpha > 0).all()
+    np.testing.assert_allclose(np.trace(eps, axis1=1, axis2=2), np.trace(e, axis1=1, axis2=2), atol=1e-12)  # volume kept
+    dev = lambda a: a - np.trace(a, axis1=1, axis2=2)[:, None, None] * np.eye(3) / 3  # noqa: E731
+    shrink = np.linalg.norm(dev(eps), axis=(1, 2)) / np.linalg.norm(dev(e), axis=(1, 2))
+    assert (shrink < 1).all()
+    np.testing.assert_allclose(dev(eps), dev(e) * shrink[:, None, None], atol=1e-12)  # radial return
+    mu, lam = 1e4, 1e4
+    expected = 2 * mu * eps + lam * np.trace(eps, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+    np.testing.assert_allclose(stress, expected, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(F_inv, np.broadcast_to(np.eye(3), F_inv.shape))  # no back projection
+
+
+def test_deformation_is_checked_and_read_from_scene_files(tmp_path):
+    with pytest.raises(ValueError, match=r"Material.deformation = 'eulerian' is not allowed"):
+        we.Material(mu=1.0, lam=1.0, deformation="eulerian")
+    path = tmp_path / "s.toml"
+    path.write_text('[materials.m]\nmu = 1e4\nlam = 1e4\ndeformation = "additive"\n'
+                    '[[bodies]]\nshape = "box"\nmaterial = "m"\ncenter = [0, 0.5, 0]\nsize = [0.2, 0.2, 0.2]\n')
+    scene = scenes.load_scene_file(str(path))
+    assert scene.builder._materials[0].deformation == "additive"
+
+
+def test_compression_field_checks_its_values():
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0, 0.5, 0), (0.2, 0.2, 0.2), we.Material(mu=1e4, lam=1e4), name="a")
+    with pytest.raises(ValueError, match="body = 'b' is not allowed"):
+        b.add_compression_field((0, 0, 0), 10.0, body="b")
+    with pytest.raises(ValueError, match="t_off = 0.1 is not allowed"):
+        b.add_compression_field((0, 0, 0), 10.0, 0.2, 0.1)
+    with pytest.raises(ValueError, match="CompressionField.strength = nan is not allowed"):
+        b.add_compression_field((0, 0, 0), float("nan"))

@@ -1,0 +1,68 @@
+"""Time-varying external force fields (the paper's Fig. 8 compression).
+
+A ``CompressionField`` adds the acceleration ``-strength (x - center)`` in the horizontal
+directions (X and Z; Y is up) to every particle while ``t_on <= t < t_off``: an analytic
+compression that grows linearly away from the centre, applied and then released. ``t`` is
+the simulated time of the step's input state (``State.time``). Fields are part of the
+scene: ``SceneBuilder.add_compression_field`` stores them on the model.
+"""
+
+import dataclasses
+import functools
+import math
+import types
+
+import warp as wp
+
+from . import checks
+from ._types import type_set
+
+
+@dataclasses.dataclass(frozen=True)
+class CompressionField:
+    """``a = -strength (x - center)`` horizontally (1/s^2) while ``t_on <= t < t_off`` (s)."""
+
+    center: tuple[float, float, float]
+    strength: float
+    t_on: float = 0.0
+    t_off: float = math.inf
+    #: Index of the body it acts on (``-1``: every particle).
+    body: int = -1
+
+    def __post_init__(self):
+        object.__setattr__(self, "center", checks.vector("CompressionField.center", self.center))
+        object.__setattr__(self, "strength", checks.number("CompressionField.strength", self.strength))
+        object.__setattr__(self, "t_on", checks.non_negative("CompressionField.t_on", self.t_on))
+        t_off = checks.number("CompressionField.t_off", self.t_off, allow_inf=True)
+        if not t_off > self.t_on:
+            raise ValueError(f"CompressionField.t_off = {self.t_off!r} is not allowed: must be > t_on = {self.t_on:g}")
+        object.__setattr__(self, "t_off", t_off)
+        if isinstance(self.body, bool) or not isinstance(self.body, int) or self.body < -1:
+            raise ValueError(f"CompressionField.body = {self.body!r} is not allowed: must be a body index >= 0 or -1 (all)")
+
+    def active(self, t: float) -> bool:
+        return self.t_on <= t < self.t_off
+
+
+@functools.cache
+def kernels(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3 = T.vec3
+
+    @wp.kernel
+    def add_compression(
+        x: wp.array(dtype=vec3),
+        mass: wp.array(dtype=scalar),
+        particle_body: wp.array(dtype=wp.int32),
+        body: int,
+        center: vec3,
+        strength: scalar,
+        f: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        if body >= 0 and particle_body[i] != body:
+            return
+        r = x[i] - center
+        wp.atomic_add(f, i, -strength * mass[i] * vec3(r[0], scalar(0.0), r[2]))
+
+    return types.SimpleNamespace(add_compression=add_compression)
