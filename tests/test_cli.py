@@ -189,6 +189,30 @@ def test_keyboard_interrupt_keeps_finished_frames(tmp_path, monkeypatch, capsys)
     assert sorted(os.listdir(tmp_path)) == ["stopped.usdc"]
 
 
+def test_full_disk_exit_4_keeps_published_frames(tmp_path, monkeypatch, capsys):
+    """A write error mid-run (here: ENOSPC when frame 3 is published) keeps frames 0-2."""
+    import errno
+
+    from warp_esph import usd as usd_module
+
+    real_replace, calls = os.replace, []
+
+    def replace(src, dst):
+        calls.append(dst)
+        if len(calls) == 5:  # the empty file at the start, then frames 0, 1, 2 were published
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(dst))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(usd_module.os, "replace", replace)
+    out_path = tmp_path / "full.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "10", "--no-progress"]) == 4
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert "No space left on device" in err and "keeps the 3 frames" in err and str(out_path) in err
+    assert frames_in(out_path) == [0.0, 1.0, 2.0]
+    assert sorted(os.listdir(tmp_path)) == ["full.usdc"]  # no working copies left behind
+
+
 def test_diverged_run_exit_3_keeps_frames(tmp_path, monkeypatch, capsys):
     def poison(state):
         x = state.x.numpy()

@@ -3,7 +3,8 @@ and ``fit SCENE --target FILE``.
 
 Exit status: 0 success; 2 bad input (unknown scene, bad option value, bad scene file,
 unreadable or unwritable file); 3 the simulation diverged (``SimulationError``; the
-output keeps every frame finished before); 130 interrupted (Ctrl-C), 143 terminated
+output keeps every frame finished before); 4 the output could not be written mid-run
+(e.g. a full disk; it keeps every frame published before); 130 interrupted (Ctrl-C), 143 terminated
 (SIGTERM): in both the output keeps every finished frame, and the last checkpoint
 (``--checkpoint-every``) resumes the run (``--resume``). Errors are one line on stderr,
 ``warp-esph: error: ...``.
@@ -24,6 +25,7 @@ COLOR_CHOICES = ("body", "material", "alpha", "singular_values")
 EXPORT_CHOICES = ("vtu", "ply")
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3
+EXIT_WRITE_FAILED = 4
 EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143  # 128 + SIGTERM
 
@@ -253,6 +255,12 @@ def _cmd_run(args) -> int:
         writer.close()
         _err(f"{e} ({writer.path} keeps the {writer.frames_written} frames finished)")
         return EXIT_DIVERGED
+    except OSError as e:
+        # A full disk or a vanished folder mid-run: the file keeps the last published frame.
+        writer.close()
+        why = e.strerror or str(e)
+        _err(f"cannot write {writer.path}: {why} (it keeps the {writer.frames_written} frames finished)")
+        return EXIT_WRITE_FAILED
     finally:
         writer.close()
     guards = ", ".join(f"{k}={v}" for k, v in solver.guard_counts().items())
