@@ -113,6 +113,28 @@ def test_auto_camera_frames_every_frame(tmp_path):
     assert centres[0] < centres[1] < centres[2]
 
 
+def test_a_blown_up_body_is_left_out_of_the_framing(tmp_path):
+    path = tmp_path / "blown.usdc"
+    b = we.SceneBuilder(spacing=0.02)
+    mat = we.Material.preset("clay")
+    for k, c in enumerate([(-0.2, 0.0, 0.0), (0.2, 0.0, 0.0)]):
+        c = np.asarray(c)
+        b.add_particles(lattice_points(c - 0.05, c + 0.05, 0.02), mat, name=f"c{k}")
+    model = b.finalize()
+    state = model.state()
+    x0 = model.particle_x0.copy()
+    second = model.particle_body.numpy() == 1
+    with we.UsdWriter(path, model, 10.0) as writer:
+        writer.write_frame(0, state)
+        x = x0.copy()
+        x[second] = (x0[second] - (0.2, 0, 0)) * 1e6  # the second body blows up to a kilometre scale
+        state.x.assign(x.astype(np.float32))
+        writer.write_frame(1, state)
+    lo, hi = UsdFrames(str(path)).bounds([0, 1])
+    assert np.all(hi - lo < 1.0)  # framed on the body that is still there, not on the debris
+    assert lo[0] == pytest.approx(-0.25, abs=0.03) and hi[0] == pytest.approx(0.25, abs=0.03)
+
+
 def test_gif_folder_and_single_png_outputs(tmp_path):
     path = tmp_path / "anim.usdc"
     write_clusters(path, [(0.0, 0.2, 0.0)], frames=4, ground=True, shift=(0.0, -0.05, 0.0))

@@ -63,8 +63,14 @@ class SceneBuilder:
         gravity: Sequence[float] = (0.0, -9.81, 0.0),
         support_radius: float | None = None,
         max_neighbors: int = 30,
+        bodies_interact: bool = True,
     ):
         self.spacing = checks.positive("spacing", spacing)
+        if not isinstance(bodies_interact, bool):
+            raise ValueError(f"bodies_interact = {bodies_interact!r} is not allowed: must be True or False")
+        #: Whether SPH pressure and viscosity act between bodies (contact between bodies).
+        #: ``False`` makes every body a separate simulation that only shares colliders.
+        self.bodies_interact = bodies_interact
         self.gravity = checks.vector("gravity", gravity)
         h = 2.0 * self.spacing if support_radius is None else checks.positive("support_radius", support_radius)
         lo, hi = SUPPORT_RANGE
@@ -254,7 +260,7 @@ class SceneBuilder:
         Particles are binned in cells of half the spacing; a body's own lattice puts at
         most one particle in a cell, so a shared cell means two bodies closer than ~0.9 dx.
         """
-        if len(self._bodies) < 2:
+        if len(self._bodies) < 2 or not self.bodies_interact:
             return
         points = np.concatenate(self._points)
         body = np.concatenate([np.full(b.count, k) for k, b in enumerate(self._bodies)])
@@ -293,6 +299,7 @@ class SceneBuilder:
             spheres=self.spheres,
             boxes=self.boxes,
             max_neighbors=self.max_neighbors,
+            bodies_interact=self.bodies_interact,
             device=dev,
             scalar=scalar,
             requires_grad=requires_grad,

@@ -96,6 +96,7 @@ class Model:
         device,
         scalar,
         requires_grad: bool,
+        bodies_interact: bool = True,
     ):
         self.device = wp.get_device(device)
         self.types = type_set(scalar)
@@ -104,6 +105,8 @@ class Model:
         self.spacing = float(spacing)
         self.support_radius = float(support_radius)
         self.max_neighbors = int(max_neighbors)
+        #: Whether neighbour lists (so SPH pressure and viscosity) reach into other bodies.
+        self.bodies_interact = bool(bodies_interact)
         self.gravity = tuple(float(g) for g in gravity)
         self.materials = list(materials)
         self.bodies = list(bodies)
@@ -228,7 +231,9 @@ class Model:
         from . import neighbors, pressure  # noqa: PLC0415 (model data first, kernels on demand)
 
         state = State(self, requires_grad=False)
-        search = neighbors.NeighborSearch(self.particle_count, self.scalar, self.device, self.support_radius)
+        search = neighbors.NeighborSearch(
+            self.particle_count, self.scalar, self.device, self.support_radius, bodies_interact=self.bodies_interact
+        )
         search.build(state.x, self.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count, state.guard)
         wp.launch(
             pressure.kernels(self.scalar).density,

@@ -124,14 +124,18 @@ def kernels(scalar) -> types.SimpleNamespace:
         grid_points: wp.array(dtype=wp.vec3f),
         x: wp.array(dtype=vec3),
         radius: scalar,
+        body: wp.array(dtype=wp.int32),
+        same_body: int,
         cand: wp.array2d(dtype=wp.int32),
         cand_count: wp.array(dtype=wp.int32),
         overflow: wp.array(dtype=wp.int32),
         x_ref: wp.array(dtype=vec3),
     ):
-        """Every ``j != i`` with ``|x_j - x_i| < radius``, sorted by index."""
+        """Every ``j != i`` with ``|x_j - x_i| < radius`` (of ``i``'s body only, with
+        ``same_body``), sorted by index."""
         i = wp.tid()
         xi = x[i]
+        bi = body[i]
         cap = cand.shape[1]
         r2 = radius * radius
         n = int(0)
@@ -139,7 +143,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         query = wp.hash_grid_query(grid, grid_points[i], wp.float32(radius) * wp.float32(1.0001))
         j = int(0)
         while wp.hash_grid_query_next(query, j):
-            if j == i:
+            if j == i or (same_body != 0 and body[j] != bi):
                 continue
             d = x[j] - xi
             if wp.dot(d, d) >= r2:
@@ -313,8 +317,10 @@ class NeighborSearch:
         max_condition: float = 1.0e3,
         skin: float = 0.0,
         spacing: float | None = None,
+        bodies_interact: bool = True,
     ):
         self.scalar = scalar
+        self.bodies_interact = bool(bodies_interact)
         self.device = device
         self.h = float(h)
         self.skin = float(skin)
@@ -363,7 +369,7 @@ class NeighborSearch:
             self._grid_dims = tuple(dims)
             self.grid = wp.HashGrid(*self._grid_dims, device=self.device)
 
-    def _build_candidates(self, x: wp.array):
+    def _build_candidates(self, x: wp.array, body: wp.array):
         self._ensure_grid(x)
         n = x.shape[0]
         wp.launch(self.kernels.grid_points, n, [x], [self._points], device=self.device, record_tape=False)
@@ -377,7 +383,7 @@ class NeighborSearch:
             wp.launch(
                 self.kernels.build_candidates,
                 n,
-                [self.grid.id, points, x, self.scalar(radius)],
+                [self.grid.id, points, x, self.scalar(radius), body, int(not self.bodies_interact)],
                 [self.candidates, self.candidate_count, self._overflow, self._x_ref],
                 device=self.device,
                 record_tape=False,
@@ -452,7 +458,7 @@ class NeighborSearch:
     def build(self, x: wp.array, body: wp.array, nbr, nbr_d2, count, guard, sph=None):
         """A fresh search at ``x`` (the candidates are rebuilt). ``guard`` may be None
         (not evaluated); ``sph``, see ``update``."""
-        self._build_candidates(x)
+        self._build_candidates(x, body)
         self._select(x, body, nbr, nbr_d2, count, guard, sph)
 
     def update(self, x: wp.array, body: wp.array, nbr, nbr_d2, count, guard, sph=None):
@@ -463,5 +469,5 @@ class NeighborSearch:
         ``p`` and the volume ``vol = mass / rho`` (not recorded on a tape)."""
         self.updates += 1
         if not self.candidates_valid(x):
-            self._build_candidates(x)
+            self._build_candidates(x, body)
         self._select(x, body, nbr, nbr_d2, count, guard, sph)

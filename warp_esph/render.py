@@ -209,14 +209,20 @@ class UsdFrames:
             out = {k: v[keep] for k, v in out.items()}
         return out
 
+    #: A body whose extent grows past this many times its first rendered frame's has blown
+    #: up: it is left out of the framing, which would otherwise shrink the rest to a dot.
+    BLOWN_UP = 20.0
+
     def bounds(self, frames) -> tuple[np.ndarray, np.ndarray]:
-        """Bounds of the particles over ``frames`` (the per-frame ``extent`` where written)."""
+        """Bounds of the particles over ``frames`` (the per-frame ``extent`` where written),
+        leaving out a body in the frames where it has blown up (``BLOWN_UP``)."""
         from pxr import Usd, UsdGeom  # noqa: PLC0415
 
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        first_size = {}
         for f in frames:
             t = Usd.TimeCode(float(f))
-            for _, prim in self.bodies:
+            for k, (_, prim) in enumerate(self.bodies):
                 geom = UsdGeom.Points(prim)
                 ext = geom.GetExtentAttr().Get(t)
                 if ext is not None and len(ext) == 2:
@@ -227,8 +233,13 @@ class UsdFrames:
                         continue
                     p = np.asarray(p, dtype=np.float64)
                     e = np.stack([np.nanmin(p, axis=0), np.nanmax(p, axis=0)])
-                if np.isfinite(e).all():
-                    lo, hi = np.minimum(lo, e[0]), np.maximum(hi, e[1])
+                if not np.isfinite(e).all():
+                    continue
+                size = float((e[1] - e[0]).max())
+                size0 = first_size.setdefault(k, size)
+                if size > self.BLOWN_UP * max(size0, 1e-6):
+                    continue
+                lo, hi = np.minimum(lo, e[0]), np.maximum(hi, e[1])
         if not np.isfinite(lo).all():
             lo, hi = np.full(3, -0.5), np.full(3, 0.5)
         return lo, hi

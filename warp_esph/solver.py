@@ -81,7 +81,7 @@ class Solver:
         self.search = neighbors.NeighborSearch(
             model.particle_count, S, model.device, model.support_radius,
             min_neighbors=self.min_neighbors, max_condition=self.max_condition,
-            skin=skin * model.support_radius, spacing=model.spacing,
+            skin=skin * model.support_radius, spacing=model.spacing, bodies_interact=model.bodies_interact,
         )
         self.fused = bool(fused)
         self._k_fused = fused_kernels.kernels(S)
