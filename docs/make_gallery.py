@@ -28,6 +28,7 @@ GALLERY = [
     ("fig5_hyperelastic_boxes", 1.0, "0,6,9,50", []),
     ("fig6_dough_star", 0.6, "0,5,20,75", []),
     ("fig7_plastic_grid", 0.4, "0,6,10,50", []),
+    ("fig8_comparison", 0.8, "0,7,12,25", []),
 ]
 WIDTH, HEIGHT = 360, 270
 
