@@ -81,6 +81,21 @@ def test_material_gradient_matches_central_differences(weights, name, rel_step):
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
 
 
+@pytest.mark.parametrize("deformation", ["rest", "additive"])
+@pytest.mark.parametrize("name", ["mu", "yield_stress", "flow_rate"])
+def test_comparison_models_gradients_match_central_differences(weights, deformation, name):
+    """The Fig. 8 comparison kernels (``comparison.py``) are differentiable too."""
+    model = _model({"deformation": deformation})
+    _, grads = _rollout_loss(model, weights, grad_of=(name,))
+    base = getattr(model.materials[0], name)
+    eps = 1e-5 * abs(base)
+    plus = _rollout_loss(_model({name: base + eps, "deformation": deformation}), weights)[0]
+    minus = _rollout_loss(_model({name: base - eps, "deformation": deformation}), weights)[0]
+    fd = (plus - minus) / (2 * eps)
+    assert abs(fd) > 1e-11, f"the loss does not reach {name}"
+    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+
+
 def test_rollout_yields_and_guards_stay_quiet(weights):
     """The gradient setup exercises plastic flow (alpha grows) and no guard fires."""
     model = _model()
