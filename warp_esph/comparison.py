@@ -23,7 +23,6 @@ import warp as wp
 
 from ._types import type_set
 from . import deformation, forces, plasticity
-from .material import DEFORMATION_IDS, DEFORMATIONS  # noqa: F401 (re-exported)
 
 
 @functools.cache
