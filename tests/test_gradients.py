@@ -18,7 +18,8 @@ ALPHA0 = 0.02
 def _model(params=None, velocity_scale=20.0):
     # pressure_stiffness fixed: its default follows mu and lam, which would make the
     # finite difference in mu also move the pressure.
-    p = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "hardening": 200.0, "pressure_stiffness": 1.0}
+    p = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "hardening": 200.0, "pressure_stiffness": 1.0,
+         "viscosity": 2.0}
     p.update(params or {})
     mat = we.Material(density=1000.0, **p)
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
@@ -68,7 +69,7 @@ def weights():
 
 @pytest.mark.parametrize("name,rel_step", [("mu", 1e-5), ("yield_stress", 1e-5), ("lam", 1e-5),
                                             ("flow_rate", 1e-5), ("hardening", 1e-5),
-                                            ("pressure_stiffness", 1e-5)])
+                                            ("pressure_stiffness", 1e-5), ("viscosity", 1e-5)])
 def test_material_gradient_matches_central_differences(weights, name, rel_step):
     model = _model()
     _, grads = _rollout_loss(model, weights, grad_of=(name,))

@@ -15,10 +15,10 @@ NOTEBOOK = ROOT / "notebooks" / "fit_dough_star.ipynb"
 def test_fit_notebook_executes(tmp_path, monkeypatch):
     pytest.importorskip("matplotlib")
     out = tmp_path / "out"
-    # Reduced size for CI: 142 particles, 0.3 s of motion, 16 gradient evaluations.
+    # Reduced size for CI: 142 particles, 0.3 s of motion, 26 gradient evaluations.
     monkeypatch.setenv("FIT_SCALE", "0.5")
     monkeypatch.setenv("FIT_FRAMES", "9")
-    monkeypatch.setenv("FIT_ITERATIONS", "15")
+    monkeypatch.setenv("FIT_ITERATIONS", "25")
     monkeypatch.setenv("FIT_OUT", str(out))
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
     monkeypatch.setenv("MPLBACKEND", "Agg")

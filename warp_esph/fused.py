@@ -33,7 +33,7 @@ import types
 import warp as wp
 
 from ._types import type_set
-from . import neighbors, plasticity, smoothing
+from . import neighbors, plasticity, pressure, smoothing
 
 # Taylor coefficients of cos(pi s / 2) in t = s^2 up to t^7: on s in [0, 1] the
 # truncation error is below 1e-8, under float32 rounding (max error measured against
@@ -46,6 +46,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     sm = smoothing.funcs(scalar)
+    viscous_force = pressure.kernels(scalar).viscous_force
     flow_step = plasticity.funcs(scalar).flow_step
     min_sigma = scalar(plasticity.MIN_SINGULAR_VALUE)
     guard_code = neighbors.kernels(scalar).guard_code
@@ -202,7 +203,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                         gs = c_spiky * d * d / rl * rij
                     pair = -VV * scalar(0.5) * (pi + p[j]) * gs
                     eta = scalar(0.5) * (visc_i + viscosity[material[j]])
-                    pair += eta * VV * (c_visc * (h - rl)) * (v[j] - vi)
+                    pair += viscous_force(eta * VV, rij, r2, c_visc * (h - rl), v[j] - vi)
                     half = scalar(0.5) * pair
                     fj -= half
                     fi += half

@@ -4,9 +4,13 @@ kernels of Müller et al. 2003).
     rho_i = sum_{j in N_i + {i}} m_j W_poly6(|x_i - x_j|, h)
     p_i   = k_p (rho_i - rho0_i)          (clamped at 0 unless the material says not)
     f_i   = -sum_j V_i V_j (p_i + p_j)/2 grad W_spiky(x_i - x_j)
-            + sum_j eta_ij V_i V_j (u_j - u_i) lap W_visc(|x_i - x_j|)
+            + sum_j 5 eta_ij V_i V_j ((u_j - u_i) . e_ij) e_ij lap W_visc(|x_i - x_j|)
 
-with ``V = m / rho``. ``rho0_i`` is each particle's SPH density in the initial
+with ``V = m / rho`` and ``e_ij`` the unit vector between the pair. The viscous force is
+Müller's ``eta V_i V_j (u_j - u_i) lap W`` projected onto the line between the particles:
+a central force, so it conserves angular momentum and leaves a rigid rotation alone (the
+unprojected form stops a spinning body). The factor 5 (``d + 2``) keeps ``eta`` the shear
+viscosity: for a divergence-free flow the projection averages to 1/5 of the full sum. ``rho0_i`` is each particle's SPH density in the initial
 configuration, so a body starts pressure-free even at its surface, where the SPH sum is
 short of neighbours. Lists are capped at 30 and so not symmetric: as for the elastic
 force each directed pair applies half its force to both particles, equal and opposite,
@@ -55,6 +59,13 @@ def kernels(scalar) -> types.SimpleNamespace:
             p = wp.max(p, scalar(0.0))
         return p
 
+    @wp.func
+    def viscous_force(eta_VV: scalar, rij: vec3, r2: scalar, lap_w: scalar, vji: vec3) -> vec3:
+        """The pair's viscous force on ``i`` (``rij = x_i - x_j``, ``vji = u_j - u_i``)."""
+        if r2 <= scalar(1.0e-30):
+            return vec3()
+        return (scalar(5.0) * eta_VV * lap_w * wp.dot(vji, rij) / r2) * rij
+
     @wp.kernel
     def pressure_forces(
         x: wp.array(dtype=vec3),
@@ -88,10 +99,12 @@ def kernels(scalar) -> types.SimpleNamespace:
             rij = xi - x[j]
             pair = -VV * scalar(0.5) * (pi + pj) * sm.grad_w_spiky_c(rij, h, c_spiky)
             eta = scalar(0.5) * (viscosity[mi] + viscosity[mj])
-            pair += eta * VV * sm.lap_w_viscosity_c(wp.dot(rij, rij), h, c_visc) * (v[j] - vi)
+            r2 = wp.dot(rij, rij)
+            pair += viscous_force(eta * VV, rij, r2, sm.lap_w_viscosity_c(r2, h, c_visc), v[j] - vi)
             half = scalar(0.5) * pair
             wp.atomic_add(f, j, -half)
             fi += half
         wp.atomic_add(f, i, fi)
 
-    return types.SimpleNamespace(density=density, pressure_forces=pressure_forces, pressure=pressure)
+    return types.SimpleNamespace(density=density, pressure_forces=pressure_forces, pressure=pressure,
+                                 viscous_force=viscous_force)

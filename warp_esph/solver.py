@@ -137,7 +137,8 @@ class Solver:
             self._warned_dt.add(dt)
             warnings.warn(
                 f"dt = {dt:g} s is above the explicit stability limit {self._stable_dt:.3g} s "
-                f"(0.3 * spacing / p-wave speed, SPEC §8); the run may blow up",
+                f"(Model.stable_dt: 0.3 * spacing / p-wave speed, SPEC §8, and the viscous limit "
+                f"0.025 rho0 h^2 / viscosity); the run may blow up",
                 RuntimeWarning,
                 stacklevel=3,
             )
