@@ -77,13 +77,17 @@ def test_documented_example_loads(tmp_path):
     names = [body.name for body in b._bodies]
     assert names[:2] == ["slab", "ball"] and len(names) == 5
     assert len(b.planes) == 2 and len(b.spheres) == 1 and len(b.boxes) == 1
+    # The ball falls at 1 m/s and spins at 6 rad/s about z through its centroid.
+    ball = b._bodies[1]
+    x, v = b._points[1], b._velocities[1]
+    r = x - x.mean(axis=0)
+    assert np.allclose(v, np.array([0.0, -1.0, 0.0]) + np.cross([0.0, 0.0, 6.0], r), atol=1e-12)
+    assert ball.count == len(x) and np.allclose(v.mean(axis=0), [0.0, -1.0, 0.0], atol=1e-12)
     # preset + E/nu: the preset's plastic settings, the new stiffness, pressure from the new bulk modulus.
     soft = b._materials[0]
     assert soft.youngs_modulus == pytest.approx(1.5e4) and soft.yield_stress == PRESETS["dough"].yield_stress
     assert soft.pressure_stiffness == pytest.approx(soft.bulk_modulus / (2 * soft.density))
     assert math.isinf(b._materials[1].yield_stress)
-    ball_v = b._velocities[1]
-    np.testing.assert_allclose(ball_v, np.tile([0.0, -1.0, 0.0], (len(ball_v), 1)))
 
 
 BASE = textwrap.dedent(

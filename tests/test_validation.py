@@ -71,6 +71,7 @@ def test_material_accepts_inf_yield_and_converts_young():
         (lambda: _one_box(name="a").add_box((1, 0, 0), (0.1, 0.1, 0.1), DOUGH, name="a"), r"name = 'a' .* exists already"),
         (lambda: we.SceneBuilder().add_particles(np.zeros((4, 2)), DOUGH), r"positions with shape \(4, 2\) .* \(N, 3\)"),
         (lambda: we.SceneBuilder().add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, velocity=(1, 2)), r"velocity"),
+        (lambda: we.SceneBuilder().add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, angular_velocity=(1, float("nan"), 0)), r"angular_velocity\[1\] = nan .* finite"),
     ],
 )
 def test_builder_rejects(call, match):

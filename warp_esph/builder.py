@@ -115,8 +115,13 @@ class SceneBuilder:
         self._materials.append(material)
         return len(self._materials) - 1
 
-    def add_particles(self, positions, material: Material, velocity=(0.0, 0.0, 0.0), name: str | None = None, kind: str = "particles") -> int:
-        """Adds a body made of the given particle positions (N, 3); returns its index."""
+    def add_particles(self, positions, material: Material, velocity=(0.0, 0.0, 0.0), name: str | None = None, kind: str = "particles", angular_velocity=(0.0, 0.0, 0.0)) -> int:
+        """Adds a body made of the given particle positions (N, 3); returns its index.
+
+        Every ``add_*`` takes ``velocity`` (3 numbers, or one per particle) and
+        ``angular_velocity`` (rad/s, about the body's centroid): the body starts with
+        ``velocity + angular_velocity x (x - centroid)``.
+        """
         try:
             pts = np.asarray(positions, dtype=np.float64)
         except (TypeError, ValueError):
@@ -138,6 +143,9 @@ class SceneBuilder:
             vel = np.broadcast_to(checks.vector("velocity", velocity), pts.shape)
         elif vel.shape != pts.shape or not np.isfinite(vel).all():
             raise ValueError(f"velocity with shape {vel.shape} is not allowed: must be 3 finite numbers or one per particle")
+        omega = np.array(checks.vector("angular_velocity", angular_velocity))
+        if omega.any():
+            vel = vel + np.cross(omega, pts - pts.mean(axis=0))
         mat = self._material_index(material)
         self._points.append(pts)
         self._velocities.append(np.array(vel, dtype=np.float64))
@@ -146,20 +154,20 @@ class SceneBuilder:
         self._count += len(pts)
         return len(self._bodies) - 1
 
-    def add_box(self, center, size, material: Material, velocity=(0.0, 0.0, 0.0), name: str | None = None) -> int:
+    def add_box(self, center, size, material: Material, velocity=(0.0, 0.0, 0.0), name: str | None = None, angular_velocity=(0.0, 0.0, 0.0)) -> int:
         """A solid box of full edge lengths ``size`` centred at ``center``."""
         c = np.array(checks.vector("center", center))
         s = np.array(checks.positive_vector("size", size))
-        return self.add_particles(self._lattice(c - s / 2, c + s / 2, "size", size), material, velocity, name, "box")
+        return self.add_particles(self._lattice(c - s / 2, c + s / 2, "size", size), material, velocity, name, "box", angular_velocity)
 
-    def add_sphere(self, center, radius: float, material: Material, velocity=(0.0, 0.0, 0.0), name: str | None = None) -> int:
+    def add_sphere(self, center, radius: float, material: Material, velocity=(0.0, 0.0, 0.0), name: str | None = None, angular_velocity=(0.0, 0.0, 0.0)) -> int:
         c = np.array(checks.vector("center", center))
         r = checks.positive("radius", radius)
         p = self._lattice(c - r, c + r, "radius", radius)
-        return self.add_particles(p[np.linalg.norm(p - c, axis=1) <= r], material, velocity, name, "sphere")
+        return self.add_particles(p[np.linalg.norm(p - c, axis=1) <= r], material, velocity, name, "sphere", angular_velocity)
 
     def add_cylinder(self, center, radius: float, height: float, material: Material, axis: str = "y",
-                     velocity=(0.0, 0.0, 0.0), name: str | None = None) -> int:
+                     velocity=(0.0, 0.0, 0.0), name: str | None = None, angular_velocity=(0.0, 0.0, 0.0)) -> int:
         """A solid cylinder of ``radius`` and ``height`` along ``axis`` ('x', 'y' or 'z')."""
         c = np.array(checks.vector("center", center))
         r = checks.positive("radius", radius)
@@ -169,10 +177,10 @@ class SceneBuilder:
         half[a] = hgt / 2
         p = self._lattice(c - half, c + half, "radius/height", (radius, height))
         radial = np.delete(p - c, a, axis=1)
-        return self.add_particles(p[np.linalg.norm(radial, axis=1) <= r], material, velocity, name, "cylinder")
+        return self.add_particles(p[np.linalg.norm(radial, axis=1) <= r], material, velocity, name, "cylinder", angular_velocity)
 
     def add_star(self, center, outer_radius: float, inner_radius: float, thickness: float, material: Material,
-                 points: int = 5, velocity=(0.0, 0.0, 0.0), name: str | None = None) -> int:
+                 points: int = 5, velocity=(0.0, 0.0, 0.0), name: str | None = None, angular_velocity=(0.0, 0.0, 0.0)) -> int:
         """An extruded star lying flat (extruded along y), the paper's dough shape (Fig. 6)."""
         c = np.array(checks.vector("center", center))
         ro = checks.positive("outer_radius", outer_radius)
@@ -185,10 +193,10 @@ class SceneBuilder:
             raise ValueError(f"points = {points!r} is not allowed: must be an integer >= 3")
         p = self._lattice(c - np.array([ro, t / 2, ro]), c + np.array([ro, t / 2, ro]), "outer_radius/thickness", (ro, t))
         inside = _inside_polygon((p - c)[:, [0, 2]], star_polygon(ro, ri, npts))
-        return self.add_particles(p[inside], material, velocity, name, "star")
+        return self.add_particles(p[inside], material, velocity, name, "star", angular_velocity)
 
     def add_mesh(self, source, material: Material, *, scale: float = 1.0, translation=(0.0, 0.0, 0.0),
-                 velocity=(0.0, 0.0, 0.0), name: str | None = None, prim_path: str | None = None) -> int:
+                 velocity=(0.0, 0.0, 0.0), name: str | None = None, prim_path: str | None = None, angular_velocity=(0.0, 0.0, 0.0)) -> int:
         """A closed triangle mesh filled with particles (winding-number inside test).
 
         ``source`` is a file (anything meshio reads, or ``.usd/.usda/.usdc``) or a tuple
@@ -201,7 +209,7 @@ class SceneBuilder:
         self._check_lattice_size(points.min(axis=0), points.max(axis=0), "scale", scale)
         inside = meshes.sample_inside(points, triangles, self.spacing)
         kind_name = name if name is not None else (meshes.mesh_name(source) if isinstance(source, (str, bytes)) or hasattr(source, "__fspath__") else None)
-        return self.add_particles(inside, material, velocity, kind_name, "mesh")
+        return self.add_particles(inside, material, velocity, kind_name, "mesh", angular_velocity)
 
     # -------------------------------------------------------------- colliders
     def _add_collider(self, lst: list, item, kind: str):

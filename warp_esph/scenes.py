@@ -366,13 +366,19 @@ FIG8_DURATION = 1.0
 #: Fig. 8 compression (1/s^2): a = -k (x - c) horizontally, 300 m/s^2 at the cubes' faces;
 #: it squeezes the elastic cubes by about 10 % and the plastic ones by about 25 %.
 FIG8_STRENGTH = 1500.0
+#: Fig. 8 spin (rad/s) about the horizontal x axis. Over a path whose principal axes stay
+#: fixed, the sum of per-step Green strains is the log strain and returns to zero on release,
+#: so an additive model fails only where strained material rotates (its strain is summed in
+#: world axes, not turned with the material): the cubes tumble while squeezed.
+FIG8_SPIN = 12.0
 #: Fig. 8 bodies: ``{row}_{model}``, e.g. ``plastic_rest``.
 FIG8_BODIES = tuple(f"{row}_{model}" for model in FIG8_MODELS for row in ("elastic", "plastic"))
 
 
 def fig8_comparison(scale: float = 1.0, only=None) -> Scene:
     """Paper Fig. 8: incremental (ours), rest-configuration and additive models, elastic and very plastic, compressed then released."""
-    # 20 cm cubes, weightless and free (no ground): the compression, not contact, deforms them.
+    # 20 cm cubes, weightless and free (no ground): the compression, not contact, deforms
+    # them, while they tumble (FIG8_SPIN) so that the additive model's strain rotates.
     # Columns (x): incremental, rest, additive; rows (z): elastic (far), very plastic (near).
     # The plastic rest-configuration cube is expected to blow up (the paper's lower middle).
     # Six separate simulations in one scene, as in the paper: the bodies do not interact, so
@@ -384,7 +390,8 @@ def fig8_comparison(scale: float = 1.0, only=None) -> Scene:
             name = f"{row}_{deformation}"
             if _wanted(only, name):
                 center = (0.6 * (k - 1), 0.3, rows[row])
-                b.add_box(center, (0.2, 0.2, 0.2), mat.replace(deformation=deformation), name=name)
+                b.add_box(center, (0.2, 0.2, 0.2), mat.replace(deformation=deformation), name=name,
+                          angular_velocity=(FIG8_SPIN, 0.0, 0.0))
                 b.add_compression_field(center, FIG8_STRENGTH, 0.0, FIG8_RELEASE, body=name)
     _check_only("fig8_comparison", only, b)
     frames = round(FIG8_DURATION * FIGURE_FPS)
@@ -541,7 +548,8 @@ MATERIAL_KEYS = {
     "pressure_stiffness": (NUM, False), "viscosity": (NUM, False), "model": (STR, False), "clamp_pressure": (BOOL, False),
     "deformation": (STR, False),
 }
-BODY_COMMON = {"shape": (STR, True), "material": (STR, True), "name": (STR, False), "velocity": (VEC3, False)}
+BODY_COMMON = {"shape": (STR, True), "material": (STR, True), "name": (STR, False), "velocity": (VEC3, False),
+               "angular_velocity": (VEC3, False)}
 BODY_SHAPES = {
     "box": {"center": (VEC3, True), "size": (VEC3, True)},
     "sphere": {"center": (VEC3, True), "radius": (NUM, True)},
