@@ -14,7 +14,7 @@ Measured (shape error at 1 s / peak; ``docs/gallery.md``):
 - the same elastic cubes without the spin: incremental and additive both return within
   5 % (over a path whose principal axes stay put, the sum of per-step Green strains is the
   log strain, which returns to zero).
-- plastic: incremental keeps a large permanent shape error (~2: flattened) and comes to rest;
+- plastic: incremental is squeezed into a column for good (shape error 1.85) and comes to rest;
   the rest-configuration cube's F inverts and it blows up; the additive one stays bounded.
 """
 
