@@ -110,15 +110,31 @@ def test_rollout_yields_and_guards_stay_quiet(weights):
     assert solver.guard_counts()["inverted"] == 0
 
 
-def test_initial_velocity_gradient(weights):
-    model = _model()
+@pytest.mark.parametrize("elastic_force", ["paper", "variational"])
+def test_initial_velocity_gradient(weights, elastic_force):
+    model = _model({"elastic_force": elastic_force})
     _, grads = _rollout_loss(model, weights, grad_of=("v0",))
     rng = np.random.default_rng(3)
     for i, c in zip(rng.integers(0, model.particle_count, 3), rng.integers(0, 3, 3)):
         def loss_with(delta):
-            m = _model()
+            m = _model({"elastic_force": elastic_force})
             m.particle_v0[i, c] += delta
             return _rollout_loss(m, weights)[0]
 
         fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
         assert grads["v0"][i, c] == pytest.approx(fd, rel=1e-4, abs=1e-9)
+
+
+@pytest.mark.parametrize("name", ["mu", "lam", "yield_stress", "hardening"])
+def test_variational_force_gradients_match_central_differences(weights, name):
+    """The variational elastic force (``forces.py``: the fit's moment matrix inverted per
+    particle, its poly6 weights per pair) is differentiable too, from F = I."""
+    model = _model({"elastic_force": "variational"})
+    _, grads = _rollout_loss(model, weights, grad_of=(name,))
+    base = getattr(model.materials[0], name)
+    eps = 1e-5 * abs(base)
+    plus = _rollout_loss(_model({name: base + eps, "elastic_force": "variational"}), weights)[0]
+    minus = _rollout_loss(_model({name: base - eps, "elastic_force": "variational"}), weights)[0]
+    fd = (plus - minus) / (2 * eps)
+    assert abs(fd) > 1e-11, f"the loss does not reach {name}"
+    assert grads[name][0] == pytest.approx(fd, rel=1e-4)

@@ -372,10 +372,10 @@ def test_skin_gives_the_lists_of_a_fresh_search_every_step():
     assert s0.guard_counts() == s1.guard_counts()
 
 
-def _deformed_start(dtype, model_name):
+def _deformed_start(dtype, model_name, elastic_force="paper"):
     rng = np.random.default_rng(6)
     mat = we.Material.from_young(1.0e5, 0.3, density=1000.0, yield_stress=100.0, flow_rate=50.0, hardening=300.0,
-                                 viscosity=2.0, model=model_name)
+                                 viscosity=2.0, model=model_name, elastic_force=elastic_force)
     model = _block_model(n=(6, 5, 4), material=mat, dtype=dtype, gravity=(0.0, -9.81, 0.0), ground=0.3)
     n = model.particle_count
     start = model.state()
@@ -396,13 +396,14 @@ def _one_step(model, start, fused):
     return {name: getattr(out, name).numpy().astype(np.float64) for name in _STEP_FIELDS + ("guard", "neighbor_count")}, solver
 
 
-@pytest.mark.parametrize("model_name", ["linear", "non_newtonian", "hyperelastic"])
-def test_fused_step_matches_the_differentiable_step(model_name):
+@pytest.mark.parametrize("model_name,elastic_force", [("linear", "paper"), ("non_newtonian", "paper"), ("hyperelastic", "paper"),
+                                                      ("linear", "variational"), ("stvk", "variational")])
+def test_fused_step_matches_the_differentiable_step(model_name, elastic_force):
     """The forward-only fused kernels (one SVD, one pair loop) compute what the
     differentiable kernels do, to round-off, from a deformed and yielding state: in
     float64 to 1e-11; in float32 as close to a float64 step as the differentiable
     kernels are (the net force is a sum of much larger pair terms)."""
-    model, start = _deformed_start(wp.float64, model_name)
+    model, start = _deformed_start(wp.float64, model_name, elastic_force)
     (a, sa), (b_, sb) = _one_step(model, start, True), _one_step(model, start, False)
     assert sa.guard_counts() == sb.guard_counts()
     assert (b_["alpha"] > start.alpha.numpy()).any(), "some particles flow"
@@ -411,7 +412,7 @@ def test_fused_step_matches_the_differentiable_step(model_name):
     for name in ("guard", "neighbor_count"):
         np.testing.assert_array_equal(a[name], b_[name])
 
-    model32, start32 = _deformed_start(wp.float32, model_name)
+    model32, start32 = _deformed_start(wp.float32, model_name, elastic_force)
     f32, u32 = _one_step(model32, start32, True)[0], _one_step(model32, start32, False)[0]
     for name in _STEP_FIELDS:
         err_fused = np.abs(f32[name] - b_[name]).max()

@@ -30,6 +30,9 @@ DOUGH = we.Material.preset("dough")
         ({"mu": 1.0, "lam": 1.0, "model": "plastic"}, r"Material\.model = 'plastic' .* one of 'linear'"),
         ({"mu": 1.0, "lam": 1.0, "hardening": float("nan")}, r"Material\.hardening = nan .* finite"),
         ({"mu": True, "lam": 1.0}, r"Material\.mu = True .* number"),
+        ({"mu": 1.0, "lam": 1.0, "elastic_force": "exact"}, r"Material\.elastic_force = 'exact' .* one of 'paper', 'variational'"),
+        ({"mu": 1.0, "lam": 1.0, "elastic_force": "variational", "deformation": "rest"},
+         r"Material\.elastic_force = 'variational' is not allowed with deformation = 'rest': .* use deformation = 'incremental'"),
     ],
 )
 def test_material_rejects(kwargs, match):

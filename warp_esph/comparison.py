@@ -126,7 +126,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         I = wp.identity(n=3, dtype=scalar)
         if d == 1:
             # Rest configuration: the total F against X, always with the initial lists.
-            A, B = moment_sums(i, rest_x, y, body, rest_nbr, rest_count[i], h)
+            A, B, same = moment_sums(i, rest_x, y, body, rest_nbr, rest_count[i], h)
             F = unless_inverted((B * wp.inverse(A)) * wp.inverse(Fp[i]), F, counters)
         else:
             dF = step_gradient(i, x, y, body, nbr, count[i], h, guard[i], counters)

@@ -44,14 +44,18 @@ def kernels(scalar) -> types.SimpleNamespace:
         n: int,
         h: scalar,
     ):
-        # Only the raw sums live in this loop: the caller's inverse must not see a loop
-        # accumulator, whose adjoint Warp would not replay (WARP_NOTES trap 1).
+        """The fit's moments ``A, B`` and the number of same-body neighbours (the guard's).
+
+        Only the raw sums live in this loop: the caller's inverse must not see a loop
+        accumulator, whose adjoint Warp would not replay (WARP_NOTES trap 1). (Summing
+        only A's six distinct entries measured 9 % slower: the matrix form vectorises.)"""
         A = mat33()
         B = mat33()
         xi = x[i]
         yi = y[i]
         bi = body[i]
         c6 = sm.poly6_coef(h)
+        same = int(0)
         for k in range(n):
             j = nbr[i, k]
             if body[j] == bi:
@@ -60,7 +64,8 @@ def kernels(scalar) -> types.SimpleNamespace:
                 w = sm.w_poly6_c(wp.dot(xb, xb), h, c6)
                 A += w * wp.outer(xb, xb)
                 B += w * wp.outer(yb, xb)
-        return A, B
+                same += 1
+        return A, B, same
 
     @wp.func
     def incremental_gradient(
@@ -72,7 +77,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         n: int,
         h: scalar,
     ) -> mat33:
-        A, B = moment_sums(i, x, y, body, nbr, n, h)
+        A, B, same = moment_sums(i, x, y, body, nbr, n, h)
         return B * wp.inverse(A)
 
     @wp.func

@@ -18,6 +18,20 @@ The paper prints eq. 10 with a minus sign on ``y_j - y_i``, which pushes stretch
 particles apart; this is the restoring sign (SPEC §5). Averaging ("equal and opposite")
 makes linear momentum exact to round-off. Only particles of the same body interact
 elastically; bodies meet through SPH pressure and colliders.
+
+``Material(elastic_force="variational")`` replaces eqs. 10-13 by minus the gradient of the
+elastic energy ``E = sum_i V_i psi(F_i)`` of the incremental fit (``deformation.py``):
+within a step ``F_i = dF_i(y) F_i`` with ``dF_i = B_i A_i^-1`` linear in the end positions
+``y``, so at the step's start (``dF = I``)
+
+    M_i = V_i P*_i F_i^T A_i^-1,   g_ij = w_ij M_i xb_ij,   f_j -= g_ij,   f_i += g_ij
+
+with ``w_ij`` and ``A_i`` the fit's own poly6 weights and moment matrix. Its linear
+stiffness is ``sum_i V_i G_i^T C G_i`` (``G_i`` the fit's gradient operator): symmetric,
+so an undamped body cannot gain energy by flutter, which eqs. 10-13 (a different weight
+in the force than in the fit) allow. A particle whose fit is guarded (too few
+neighbours, ill-conditioned ``A``) keeps its ``F`` whatever the positions do, so its
+energy has no gradient and it applies no elastic force.
 """
 
 import functools
@@ -26,7 +40,7 @@ import types
 import warp as wp
 
 from ._types import type_set
-from . import isotropic, smoothing
+from . import deformation, isotropic, smoothing
 
 
 @functools.cache
@@ -57,7 +71,12 @@ def funcs(scalar) -> types.SimpleNamespace:
         )
         return iso.isotropic_map(F, f, d1)
 
-    return types.SimpleNamespace(stress=stress)
+    @wp.func
+    def variational_map(volume: scalar, P: mat33, F: mat33, A: mat33) -> mat33:
+        """``M = V P* F^T A^-1``: the variational force on neighbour ``j`` is ``-w_ij M xb_ij``."""
+        return volume * (P * wp.transpose(F) * wp.inverse(A))
+
+    return types.SimpleNamespace(stress=stress, variational_map=variational_map)
 
 
 @functools.cache
@@ -65,15 +84,21 @@ def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     sm = smoothing.funcs(scalar)
+    moment_sums = deformation.kernels(scalar).moment_sums
+    variational_map = funcs(scalar).variational_map
 
     @wp.kernel
     def elastic_forces(
         x: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
+        material: wp.array(dtype=wp.int32),
+        elastic_force: wp.array(dtype=wp.int32),
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
+        guard: wp.array(dtype=wp.int32),
         volume: wp.array(dtype=scalar),
         stress: wp.array(dtype=mat33),
+        F: wp.array(dtype=mat33),
         F_inv: wp.array(dtype=mat33),
         h: scalar,
         f: wp.array(dtype=vec3),
@@ -82,17 +107,31 @@ def kernels(scalar) -> types.SimpleNamespace:
         xi = x[i]
         bi = body[i]
         P = stress[i]
-        Finv = F_inv[i]
         Vi = volume[i]
-        c_el = sm.elastic_coef(h)
         fi = vec3()
-        for k in range(count[i]):
-            j = nbr[i, k]
-            if body[j] == bi:
-                # ½ g_ij = V_i V_j P*_i grad W(F_i^-1 (x_j - x_i))
-                g = Vi * volume[j] * (P * sm.grad_w_elastic_c(Finv * (x[j] - xi), h, c_el))
-                wp.atomic_add(f, j, g)
-                fi -= g
+        if elastic_force[material[i]] == 0:
+            Finv = F_inv[i]
+            c_el = sm.elastic_coef(h)
+            for k in range(count[i]):
+                j = nbr[i, k]
+                if body[j] == bi:
+                    # ½ g_ij = V_i V_j P*_i grad W(F_i^-1 (x_j - x_i))
+                    g = Vi * volume[j] * (P * sm.grad_w_elastic_c(Finv * (x[j] - xi), h, c_el))
+                    wp.atomic_add(f, j, g)
+                    fi -= g
+        elif guard[i] == 0:
+            # A from its own function: its inverse must not see a loop accumulator
+            # (WARP_NOTES trap 1).
+            A, B, same = moment_sums(i, x, x, body, nbr, count[i], h)
+            M = variational_map(Vi, P, F[i], A)
+            c6 = sm.poly6_coef(h)
+            for k in range(count[i]):
+                j = nbr[i, k]
+                if body[j] == bi:
+                    xb = x[j] - xi
+                    g = sm.w_poly6_c(wp.dot(xb, xb), h, c6) * (M * xb)
+                    wp.atomic_sub(f, j, g)
+                    fi += g
         wp.atomic_add(f, i, fi)
 
     return types.SimpleNamespace(elastic_forces=elastic_forces)

@@ -33,7 +33,7 @@ import types
 import warp as wp
 
 from ._types import type_set
-from . import neighbors, plasticity, pressure, smoothing
+from . import deformation, forces, neighbors, plasticity, pressure, smoothing
 
 # Taylor coefficients of cos(pi s / 2) in t = s^2 up to t^7: on s in [0, 1] the
 # truncation error is below 1e-8, under float32 rounding (max error measured against
@@ -50,6 +50,8 @@ def kernels(scalar) -> types.SimpleNamespace:
     flow_step = plasticity.funcs(scalar).flow_step
     min_sigma = scalar(plasticity.MIN_SINGULAR_VALUE)
     guard_code = neighbors.kernels(scalar).guard_code
+    moment_sums = deformation.kernels(scalar).moment_sums
+    variational_map = forces.funcs(scalar).variational_map
     c0, c1, c2, c3, c4, c5, c6, c7 = (scalar(c) for c in _COS_COEFFS)
     exact_cos = scalar is wp.float64
 
@@ -99,11 +101,14 @@ def kernels(scalar) -> types.SimpleNamespace:
         hardening: wp.array(dtype=scalar),
         model: wp.array(dtype=wp.int32),
         viscosity: wp.array(dtype=scalar),
+        elastic_force: wp.array(dtype=wp.int32),
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         h: scalar,
         dt: scalar,
         sph: int,
+        min_neighbors: int,
+        max_condition: scalar,
         F_out: wp.array(dtype=mat33),
         alpha_out: wp.array(dtype=scalar),
         stress_out: wp.array(dtype=mat33),
@@ -171,6 +176,17 @@ def kernels(scalar) -> types.SimpleNamespace:
         inv_h2 = scalar(1.0) / h2
         PF = P * Finv
         c_el = sm.elastic_coef(h)
+        # Elastic force: 0 the paper's (eqs. 10-13), 1 variational (forces.py), 2 none (a
+        # guarded particle of the variational force).
+        kind_el = elastic_force[m]
+        M = mat33()
+        if kind_el == 1:
+            A, B, same = moment_sums(i, x, x, body, nbr, count[i], h)
+            if guard_code(A, same, min_neighbors, max_condition) == 0:
+                M = variational_map(Vol_i, P, Fe, A)
+            else:
+                kind_el = 2
+        c6 = sm.poly6_coef(h)
         c_spiky = sm.spiky_coef(h)
         c_visc = sm.viscosity_coef(h)
         fi = vec3()
@@ -178,7 +194,13 @@ def kernels(scalar) -> types.SimpleNamespace:
             j = nbr[i, k]
             xj = x[j]
             fj = vec3()
-            if body[j] == bi:
+            if body[j] == bi and kind_el == 1:
+                # forces.py, variational: f_j -= w_ij M_i xb_ij.
+                dj = xj - xi
+                g = sm.w_poly6_c(wp.dot(dj, dj), h, c6) * (M * dj)
+                fj = -g
+                fi += g
+            elif body[j] == bi and kind_el == 0:
                 # ½ g_ij = V_i V_j P*_i grad W(r),  r = F_i^-1 (x_j - x_i), with
                 # grad W(r) = phi(|r|) r (smoothing.grad_w_elastic), so P*_i grad W(r) =
                 # phi (P*_i F_i^-1) (x_j - x_i).
@@ -210,37 +232,6 @@ def kernels(scalar) -> types.SimpleNamespace:
             wp.atomic_add(f, j, fj)
         wp.atomic_add(f, i, fi)
 
-    @wp.func
-    def moment_sums_counted(
-        i: int,
-        x: wp.array(dtype=vec3),
-        y: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        nbr: wp.array2d(dtype=wp.int32),
-        n: int,
-        h: scalar,
-    ):
-        """deformation.moment_sums and the number of same-body neighbours (the guard's).
-        (Summing only A's six distinct entries measured 9 % slower: the matrix form
-        vectorises.)"""
-        A = mat33()
-        B = mat33()
-        xi = x[i]
-        yi = y[i]
-        bi = body[i]
-        c6 = sm.poly6_coef(h)
-        same = int(0)
-        for k in range(n):
-            j = nbr[i, k]
-            if body[j] == bi:
-                xb = x[j] - xi
-                yb = y[j] - yi
-                w = sm.w_poly6_c(wp.dot(xb, xb), h, c6)
-                A += w * wp.outer(xb, xb)
-                B += w * wp.outer(yb, xb)
-                same += 1
-        return A, B, same
-
     @wp.kernel(enable_backward=False)
     def update_deformation(
         x: wp.array(dtype=vec3),
@@ -259,7 +250,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         """deformation.update_deformation with the neighbourhood guard of
         neighbors.select_neighbors evaluated here, on the moment matrix A of the fit."""
         i = wp.tid()
-        A, B, same = moment_sums_counted(i, x, y, body, nbr, count[i], h)
+        A, B, same = moment_sums(i, x, y, body, nbr, count[i], h)
         code = guard_code(A, same, min_neighbors, max_condition)
         guard[i] = code
         F = F_prev[i]

@@ -26,6 +26,12 @@ MODEL_IDS = {name: k for k, name in enumerate(MODELS)}
 DEFORMATIONS = ("incremental", "rest", "additive")
 DEFORMATION_IDS = {name: k for k, name in enumerate(DEFORMATIONS)}
 
+#: Elastic pair forces (``warp_esph/forces.py``): ``paper``, eqs. 10-13 of the paper;
+#: ``variational``, minus the gradient of the elastic energy of the incremental fit
+#: (``sum_i V_i psi(F_i)``), whose linear stiffness is symmetric (docs/physics.md).
+ELASTIC_FORCES = ("paper", "variational")
+ELASTIC_FORCE_IDS = {name: k for k, name in enumerate(ELASTIC_FORCES)}
+
 
 @dataclasses.dataclass(frozen=True)
 class Material:
@@ -33,6 +39,12 @@ class Material:
 
     ``deformation`` picks the deformation model (``DEFORMATIONS``): ``"incremental"`` (the
     paper's, default), or the Fig. 8 comparison models ``"rest"`` and ``"additive"``.
+
+    ``elastic_force`` picks the elastic pair force (``ELASTIC_FORCES``): ``"paper"`` (eqs.
+    10-13, default) or ``"variational"``, the exact negative gradient of the fit's elastic
+    energy. The paper's force has a non-symmetric stiffness: an undamped elastic body
+    gains energy at a rate that does not shrink with the time step (docs/physics.md);
+    the variational one does not. It needs ``deformation="incremental"``.
 
     ``yield_stress = inf`` (or ``flow_rate = 0``) gives a purely elastic material.
     ``pressure_stiffness = None`` picks ``k_p = K / (2 rho0)`` with ``K = lam + 2 mu / 3``
@@ -51,6 +63,7 @@ class Material:
     model: str = "linear"
     clamp_pressure: bool = True
     deformation: str = "incremental"
+    elastic_force: str = "paper"
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
@@ -67,6 +80,12 @@ class Material:
         set_("viscosity", checks.non_negative("Material.viscosity", self.viscosity))
         checks.choice("Material.model", self.model, MODELS)
         checks.choice("Material.deformation", self.deformation, DEFORMATIONS)
+        checks.choice("Material.elastic_force", self.elastic_force, ELASTIC_FORCES)
+        if self.elastic_force == "variational" and self.deformation != "incremental":
+            raise ValueError(
+                f"Material.elastic_force = 'variational' is not allowed with deformation = {self.deformation!r}: "
+                "it is the gradient of the incremental fit's energy; use deformation = 'incremental'"
+            )
         if not isinstance(self.clamp_pressure, bool):
             raise ValueError(f"Material.clamp_pressure = {self.clamp_pressure!r} is not allowed: must be True or False")
 

@@ -17,7 +17,7 @@ import warp as wp
 
 from ._types import type_set
 from .colliders import Box, Plane, Sphere
-from .material import DEFORMATION_IDS, MODEL_IDS, Material
+from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, Material
 
 
 @dataclasses.dataclass(frozen=True)
@@ -142,6 +142,9 @@ class Model:
         self.material_deformation = wp.array(
             [DEFORMATION_IDS[m.deformation] for m in materials], dtype=wp.int32, device=dev
         )
+        self.material_elastic_force = wp.array(
+            [ELASTIC_FORCE_IDS[m.elastic_force] for m in materials], dtype=wp.int32, device=dev
+        )
         #: External force fields (``fields.CompressionField``), set by the builder.
         self.force_fields: list = []
         # Rest positions and initial neighbour lists of the rest-configuration model
@@ -186,6 +189,7 @@ class Model:
             (self.material_model, MODEL_IDS[material.model]),
             (self.clamp_pressure, int(material.clamp_pressure)),
             (self.material_deformation, DEFORMATION_IDS[material.deformation]),
+            (self.material_elastic_force, ELASTIC_FORCE_IDS[material.elastic_force]),
         ):
             values = arr.numpy()
             values[index] = value

@@ -184,7 +184,8 @@ class Solver:
                         state_in.x, state_in.v, state_in.F, state_in.alpha, m.particle_material, m.particle_body,
                         m.particle_volume, m.particle_mass, state_out.density, self._pressure, self._sph_volume,
                         m.mu, m.lam, m.yield_stress, m.flow_rate, m.hardening, m.material_model,
-                        m.viscosity, nbr, count, h, S(dt), int(self._sph),
+                        m.viscosity, m.material_elastic_force, nbr, count, h, S(dt), int(self._sph),
+                        self.min_neighbors, S(self.max_condition),
                     ],
                     [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, state_out.force, self._counters],
                     device=dev,
@@ -222,7 +223,10 @@ class Solver:
                 wp.launch(
                     self._k_forces.elastic_forces,
                     n,
-                    [state_in.x, m.particle_body, nbr, count, m.particle_volume, state_out.stress, state_out.F_inv, h],
+                    [
+                        state_in.x, m.particle_body, m.particle_material, m.material_elastic_force, nbr, count,
+                        state_out.guard, m.particle_volume, state_out.stress, state_out.F_flowed, state_out.F_inv, h,
+                    ],
                     [state_out.force],
                     device=dev,
                 )
