@@ -144,8 +144,10 @@ PRESETS: dict[str, Material] = {
     "dough": Material.from_young(2.0e4, 0.3, yield_stress=150.0, flow_rate=20.0, hardening=0.0, density=1150.0, viscosity=10.0),
     # Stiffer, yields under impact, hardens as it is worked.
     "clay": Material.from_young(1.0e5, 0.3, yield_stress=2000.0, flow_rate=50.0, hardening=5000.0, density=1800.0, viscosity=20.0),
-    # Elastic: bounces back to its rest shape.
-    "rubber": Material.from_young(2.0e5, 0.4, density=1100.0, viscosity=2.0),
+    # Elastic: bounces back to its rest shape. The variational elastic force: with the
+    # paper's, the ball of the rubber_bounce scene gains internal kinetic energy after
+    # landing instead of coming to rest (docs/physics.md).
+    "rubber": Material.from_young(2.0e5, 0.4, density=1100.0, viscosity=2.0, elastic_force="variational"),
     # Non-Newtonian (paper Fig. 1): resists sudden stress, flows under small stress.
     "putty": Material.from_young(5.0e4, 0.3, yield_stress=100.0, flow_rate=2.0e4, density=1200.0, viscosity=10.0, model="non_newtonian"),
     # Low yield, fast flow: slumps into a puddle.
