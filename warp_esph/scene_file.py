@@ -194,17 +194,22 @@ def _material(file: str, name: str, table: dict) -> Material:
         raise ValueError(f"{file}: {where}: {msg}") from None
 
 
-def _body(file: str, k: int, table: dict, builder: SceneBuilder, materials: dict, base_dir: str):
-    where = f"[[bodies]] #{k + 1}"
+def _tagged(file: str, where: str, table, tag: str, kinds: dict) -> tuple[str, str]:
+    """Check the key ``tag`` that selects the schema of an array-of-tables entry (a body's
+    shape, a collider's type); returns the entry's description for messages and the kind."""
     if not isinstance(table, dict):
         raise ValueError(f"{file}: {where} must be a table, not {table!r}")
-    shape = table.get("shape")
-    if shape is None:
-        raise ValueError(f"{file}: missing key 'shape' in {where} (one of {', '.join(BODY_SHAPES)})")
-    if not isinstance(shape, str):
-        raise ValueError(f"{file}: key 'shape' in {where} must be a string, not {type(shape).__name__} {shape!r}")
-    _choice(file, where, "shape", shape, tuple(BODY_SHAPES))
-    where = f"{where} (shape {shape!r})"
+    kind = table.get(tag)
+    if kind is None:
+        raise ValueError(f"{file}: missing key {tag!r} in {where} (one of {', '.join(kinds)})")
+    if not isinstance(kind, str):
+        raise ValueError(f"{file}: key {tag!r} in {where} must be a string, not {type(kind).__name__} {kind!r}")
+    _choice(file, where, tag, kind, tuple(kinds))
+    return f"{where} ({tag} {kind!r})", kind
+
+
+def _body(file: str, k: int, table: dict, builder: SceneBuilder, materials: dict, base_dir: str):
+    where, shape = _tagged(file, f"[[bodies]] #{k + 1}", table, "shape", BODY_SHAPES)
     _check_table(file, where, table, {**BODY_COMMON, **BODY_SHAPES[shape]})
     mat_name = table["material"]
     if mat_name in materials:
@@ -237,16 +242,7 @@ def _body(file: str, k: int, table: dict, builder: SceneBuilder, materials: dict
 
 
 def _collider(file: str, k: int, table: dict, builder: SceneBuilder):
-    where = f"[[colliders]] #{k + 1}"
-    if not isinstance(table, dict):
-        raise ValueError(f"{file}: {where} must be a table, not {table!r}")
-    kind = table.get("type")
-    if kind is None:
-        raise ValueError(f"{file}: missing key 'type' in {where} (one of {', '.join(COLLIDER_TYPES)})")
-    if not isinstance(kind, str):
-        raise ValueError(f"{file}: key 'type' in {where} must be a string, not {type(kind).__name__} {kind!r}")
-    _choice(file, where, "type", kind, tuple(COLLIDER_TYPES))
-    where = f"{where} (type {kind!r})"
+    where, kind = _tagged(file, f"[[colliders]] #{k + 1}", table, "type", COLLIDER_TYPES)
     _check_table(file, where, table, {"type": (STR, True), **COLLIDER_TYPES[kind]})
     args = {k: v for k, v in table.items() if k != "type"}
     try:
