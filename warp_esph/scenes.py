@@ -22,7 +22,7 @@ import numpy as np
 
 from . import checks
 from .builder import SceneBuilder
-from .material import PRESETS, Material
+from .material import Material
 from .meshes import lattice_points
 from .scene_file import Scene, load_scene_file
 
