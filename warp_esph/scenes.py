@@ -331,7 +331,7 @@ def _fig8_materials() -> list[tuple[str, Material]]:
     ]
 
 
-#: Fig. 8 columns: the deformation model of each (left to right, SPEC §7).
+#: Fig. 8 columns: the deformation model of each (left to right, docs/method.md §7).
 FIG8_MODELS = ("incremental", "rest", "additive")
 #: Fig. 8 timing (s): the compression acts on [0, FIG8_RELEASE), the run lasts FIG8_DURATION.
 FIG8_RELEASE = 0.3
