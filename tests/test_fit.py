@@ -14,7 +14,8 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from warp_esph.fit import add_fit_arguments, fit, fit_cli, load_target, save_target
+from warp_esph.cli import add_fit_arguments, fit_cli
+from warp_esph.fit import fit, load_target, save_target
 from warp_esph.losses import ChamferLoss, MeshLoss, PositionLoss, surface_particles
 from warp_esph.rollout import PARAMETERS, Rollout, split_materials
 
