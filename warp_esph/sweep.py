@@ -432,6 +432,42 @@ def _summary(model, state, solver) -> dict:
     return out
 
 
+#: A run whose mechanical energy grew by more than this many times the scene's energy
+#: scale has blown up (see ``_blew_up``).
+BLOWUP_FACTOR = 10.0
+
+
+def _blew_up(model, state) -> str | None:
+    """Why the run has blown up without a non-finite value, or ``None``.
+
+    Without force fields nothing does work on the bodies but gravity (colliders are at
+    rest, pressure and elastic forces are internal, viscosity and plasticity dissipate),
+    so kinetic plus gravitational energy cannot grow: at the end it is at most its
+    initial value (the elastic energy, zero at rest, only takes from it). An explicit
+    step above the stable limit makes it grow without bound while the guards keep every
+    value finite, so ``simulate`` sees nothing. Growth beyond ``BLOWUP_FACTOR`` times the
+    scale ``KE0 + M |g| L`` (``L`` the initial bounding-box diagonal) is taken as a blow-up.
+    """
+    if getattr(model, "force_fields", None):
+        return None
+    m = model.particle_mass.numpy().astype(np.float64)
+    g = np.asarray(model.gravity, dtype=np.float64)
+
+    def energy(x, v):
+        return float(0.5 * (m * (v * v).sum(axis=1)).sum() - (m * (x @ g)).sum())
+
+    x0, v0 = model.particle_x0.astype(np.float64), model.particle_v0.astype(np.float64)
+    e0 = energy(x0, v0)
+    e1 = energy(state.x.numpy().astype(np.float64), state.v.numpy().astype(np.float64))
+    size = float(np.linalg.norm(x0.max(axis=0) - x0.min(axis=0))) + model.spacing
+    scale = 0.5 * float((m * (v0 * v0).sum(axis=1)).sum()) + m.sum() * float(np.linalg.norm(g)) * size
+    if e1 - e0 > BLOWUP_FACTOR * scale:
+        return (f"the simulation blew up: kinetic + gravitational energy grew by {e1 - e0:.4g} J, more than "
+                f"{BLOWUP_FACTOR:g} x the scene's energy scale {scale:.4g} J (nothing does work on the bodies); "
+                f"the time step is likely above the stable limit {model.stable_dt():.3g} s")
+    return None
+
+
 def _one_line(text) -> str:
     return " ".join(str(text).split())
 
@@ -457,6 +493,9 @@ def _run_sample(scene, task: _Task) -> dict:
             solver = Solver(model)
             state = simulate(model, task.frames, fps=task.fps, dt=dt, progress=False, solver=solver)
             row.update(_summary(model, state, solver))
+            why = _blew_up(model, state)
+            if why is not None:
+                row.update(status="failed", reason=why)
             if task.extra is not None:
                 row.update(task.extra(model, state, task.seed))
     except SimulationError as e:
@@ -608,7 +647,10 @@ def _table(rows: list[dict], names: list[str]) -> SweepTable:
     tail = ["wall_s", "reason", "warnings"]
     guards = sorted({k for r in rows for k in r if k.startswith("guard_")})
     extra = sorted({k for r in rows for k in r} - set(head) - set(tail) - set(guards))
-    return SweepTable(head + guards + extra + tail, rows, list(names))
+    columns = head + guards + extra + tail
+    # Every row has every column (None: no value), as read back from the CSV.
+    rows = [{c: r.get(c) for c in columns} for r in rows]
+    return SweepTable(columns, rows, list(names))
 
 
 def sweep(
@@ -650,6 +692,21 @@ def sweep(
 
     Raises ``ValueError`` for bad input before any sample runs.
     """
+    plan = _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale, dtype, device, workers,
+                 max_samples, extra)
+    return _execute(plan, workers, ray, on_result)
+
+
+@dataclasses.dataclass
+class _Plan:
+    scene: object
+    params: list
+    tasks: list
+
+
+def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale, dtype, device, workers, max_samples,
+          extra) -> _Plan:
+    """Every check of ``sweep``'s input, and one task per sample."""
     plist = _as_params(params)
     points = sample_points(plist, sample, samples, seed, max_samples)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -683,12 +740,19 @@ def sweep(
     assignments = _assignments(sc, plist)
     tasks = [(sc, _Task(i, _sample_seed(seed, i), values, assignments, frames, fps, dt, dtype, device, extra))
              for i, values in enumerate(points)]
+    return _Plan(sc, plist, tasks)
+
+
+def _execute(plan: _Plan, workers, ray, on_result) -> SweepTable:
     callback = None if on_result is None else (lambda i, row: on_result(row))
-    rows = parallel_map(_run_sample, tasks, workers=workers, ray=ray, on_result=callback)
-    return _table(rows, [p.name for p in plist])
+    rows = parallel_map(_run_sample, plan.tasks, workers=workers, ray=ray, on_result=callback)
+    return _table(rows, [p.name for p in plan.params])
 
 
 # ------------------------------------------------------------------ outputs
+_UNITS = {"centroid_height": "m", "max_height": "m", "radial_spread": "m", "max_radius": "m", "kinetic_energy": "J"}
+
+
 def plot(table: SweepTable, path, log_params: Sequence[str] = (), quantities: Sequence[str] = SUMMARY_COLUMNS) -> str:
     """One panel per (quantity, parameter): the quantity of every sample against the
     parameter; failed samples are red crosses on the axis. Needs matplotlib."""
@@ -712,8 +776,17 @@ def plot(table: SweepTable, path, log_params: Sequence[str] = (), quantities: Se
                            s=30, clip_on=False, label="failed")
             if name in log_params:
                 ax.set_xscale("log")
+            # The failed marks are drawn in axes coordinates, which autoscaling ignores.
+            fin = x[np.isfinite(x)]
+            if fin.size and fin.max() > fin.min():
+                lo, hi = float(fin.min()), float(fin.max())
+                if name in log_params and lo > 0:
+                    pad = (hi / lo) ** 0.05
+                    ax.set_xlim(lo / pad, hi * pad)
+                else:
+                    ax.set_xlim(lo - 0.05 * (hi - lo), hi + 0.05 * (hi - lo))
             if j == 0:
-                ax.set_ylabel(q.replace("_", " "))
+                ax.set_ylabel(f"{q.replace('_', ' ')} ({_UNITS.get(q, '')})")
             if i == len(quantities) - 1:
                 ax.set_xlabel(name)
     fig.suptitle(f"{len(table)} samples, {int(ok.sum())} ok")
@@ -753,18 +826,18 @@ def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_pa
 EXIT_SOME_FAILED = 3
 
 
-def sweep_cli(args, out=sys.stdout) -> int:
+def sweep_cli(args, out=None) -> int:
     """Run ``warp-esph sweep`` from parsed ``args``: 0 every sample ran, ``EXIT_SOME_FAILED``
     (3) some failed (see the table's ``reason``), 130 interrupted (the finished samples are
     written). Raises ``ValueError`` on bad input (the CLI exits 2)."""
     from . import __version__  # noqa: PLC0415
     from .cli import EXIT_INTERRUPTED, PROG  # noqa: PLC0415
 
-    plist = _as_params(args.param or [])
-    points = sample_points(plist, args.sample, args.samples, args.seed, args.max_samples)
-    if args.workers is not None:
-        checks.positive_int("--workers", args.workers)
-    sc = _load(args.scene, args.scale)
+    out = sys.stdout if out is None else out
+
+    plan = _plan(args.scene, args.param or [], args.sample, args.samples, args.seed, args.frames, args.duration, args.fps,
+                 args.dt, args.scale, args.dtype, "cpu", args.workers, args.max_samples, None)
+    sc, plist, points = plan.scene, plan.params, plan.tasks
     folder = args.output or f"sweep_{sc.name}"
     where = f"Ray at {args.ray}" if args.ray else f"{min(args.workers or os.cpu_count() or 1, len(points))} worker(s)"
     print(f"{PROG} sweep: {sc.name}: {len(points)} samples ({args.sample}) of {', '.join(p.name for p in plist)} "
@@ -790,9 +863,7 @@ def sweep_cli(args, out=sys.stdout) -> int:
     log_params = [p.name for p in plist if p.values is None and p.scale == "log"]
     t0 = time.perf_counter()
     try:
-        table = sweep(sc, plist, sample=args.sample, samples=args.samples, seed=args.seed, frames=args.frames,
-                      duration=args.duration, fps=args.fps, dt=args.dt, dtype=args.dtype, workers=args.workers,
-                      ray=args.ray, max_samples=args.max_samples, on_result=record)
+        table = _execute(plan, args.workers, args.ray, record)
     except KeyboardInterrupt:
         if bar is not None:
             bar.close()
