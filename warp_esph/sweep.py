@@ -343,7 +343,10 @@ def _parse_cell(column: str, text: str):
         return None
     if column in _TEXT_COLUMNS:
         return text
-    v = float(text)
+    try:
+        v = float(text)
+    except ValueError:  # a text column of an ``extra`` function
+        return text
     return int(v) if column in ("sample", "seed", "steps", "particles", "frames") or column.startswith("guard_") else v
 
 
@@ -513,6 +516,22 @@ def _call(fn, item):
     return fn(*item)
 
 
+def _ignore_sigint():
+    # Ctrl-C reaches every process of the terminal's group: the parent cancels the sweep
+    # and stops the workers, so they need not print a traceback each.
+    import signal  # noqa: PLC0415
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _cores() -> int:
+    """The cores this process may run on (its affinity mask where the OS has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 def _call_star(fn, *args):
     # Ray resolves object references only among a task's top-level arguments.
     return fn(*args)
@@ -526,7 +545,7 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
     - ``workers=1`` (and no ``ray``): in this process, one after the other.
     - ``workers=N``: N spawned processes (``concurrent.futures.ProcessPoolExecutor``; each
       its own interpreter and Warp context, so Warp's one-thread CPU launches use N cores).
-      Default: every core (``os.cpu_count()``), at most one per item.
+      Default: every core this process may use, at most one per item.
     - ``ray=ADDRESS``: one Ray task per item (``num_cpus=1``) on the cluster at ``ADDRESS``
       (``"auto"``, ``"ray://host:10001"``, ...); a Ray session already started in this
       process (``ray.init``) is used as it is and left running; one started here is shut
@@ -541,7 +560,7 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
     if ray is not None:
         return _ray_map(fn, items, ray, on_result, ray_resources)
     if workers is None:
-        workers = os.cpu_count() or 1
+        workers = _cores()
     workers = checks.positive_int("--workers", workers)
     workers = min(workers, max(len(items), 1))
     results: list = [None] * len(items)
@@ -556,7 +575,8 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
 
     # spawn, not fork: a forked child would inherit this process's Warp runtime (and any
     # threads), which Warp does not support; a spawned one initialises its own.
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_ignore_sigint)
     try:
         pending = {pool.submit(_call, fn, item): i for i, item in enumerate(items)}
         while pending:
@@ -571,6 +591,9 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
                 if on_result is not None:
                     on_result(i, results[i])
     except BaseException:
+        # Running samples would otherwise finish before the interpreter can exit.
+        for proc in list((getattr(pool, "_processes", None) or {}).values()):
+            proc.terminate()
         pool.shutdown(wait=False, cancel_futures=True)
         raise
     pool.shutdown(wait=True)
@@ -839,7 +862,7 @@ def sweep_cli(args, out=None) -> int:
                  args.dt, args.scale, args.dtype, "cpu", args.workers, args.max_samples, None)
     sc, plist, points = plan.scene, plan.params, plan.tasks
     folder = args.output or f"sweep_{sc.name}"
-    where = f"Ray at {args.ray}" if args.ray else f"{min(args.workers or os.cpu_count() or 1, len(points))} worker(s)"
+    where = f"Ray at {args.ray}" if args.ray else f"{min(args.workers or _cores(), len(points))} worker(s)"
     print(f"{PROG} sweep: {sc.name}: {len(points)} samples ({args.sample}) of {', '.join(p.name for p in plist)} "
           f"on {where} -> {folder}", file=sys.stderr, flush=True)
     done: list[dict] = []
