@@ -307,8 +307,11 @@ class SweepTable:
 
         data = {}
         for c in self.columns:
+            if _is_int_column(c):
+                data[c] = pa.array([None if r.get(c) is None else int(r[c]) for r in self.rows], type=pa.int64())
+                continue
             col = self.column(c)
-            data[c] = pa.array(col, type=pa.float64()) if col.dtype == np.float64 else pa.array(
+            data[c] = pa.array(col, type=pa.float64()) if col.dtype == np.float64 and c not in _TEXT_COLUMNS else pa.array(
                 [None if v is None else str(v) for v in col], type=pa.string())
         path = os.fspath(path)
         tmp = path + ".tmp"
@@ -347,7 +350,11 @@ def _parse_cell(column: str, text: str):
         v = float(text)
     except ValueError:  # a text column of an ``extra`` function
         return text
-    return int(v) if column in ("sample", "seed", "steps", "particles", "frames") or column.startswith("guard_") else v
+    return int(v) if _is_int_column(column) else v
+
+
+def _is_int_column(column: str) -> bool:
+    return column in ("sample", "seed", "steps", "particles") or column.startswith("guard_")
 
 
 # ------------------------------------------------------------------ one sample
