@@ -222,3 +222,32 @@ def test_bad_input_raises_value_error_in_python():
         sweep(_box(), ["flow_rate=5:5:lin:2"])
     with pytest.raises(ValueError, match="unknown parameter"):
         parse_param("density=1:2:lin:2")
+
+
+def _extra_that_fails(model, state, seed):
+    """An ``extra`` column function: kills its worker process in sample 0, raises in sample 1."""
+    from warp_esph.sweep import _sample_seed
+
+    if seed == _sample_seed(0, 0) and str(os.getpid()) != os.environ[PARENT]:
+        os._exit(7)
+    if seed == _sample_seed(0, 1):
+        raise TypeError("a bug in extra")
+    return {"top_x": float(state.x.numpy()[:, 0].max())}
+
+
+# The spawned workers import this module too; they inherit the variable with the test's pid.
+PARENT = "WARP_ESPH_TEST_SWEEP_PARENT"
+os.environ.setdefault(PARENT, str(os.getpid()))
+
+
+def test_a_failing_sample_is_a_row_and_the_sweep_goes_on():
+    # In this process: the exception of sample 1 is its row's reason; samples 0 and 2 run.
+    table = sweep(_box(), ["yield_stress=10,100,1000"], frames=2, workers=1, extra=_extra_that_fails)
+    assert [r["status"] for r in table.rows] == ["ok", "failed", "ok"]
+    assert table.rows[1]["reason"] == "TypeError: a bug in extra"
+    assert table.rows[0]["top_x"] > 0 and "top_x" in table.columns
+    # A worker process that dies: its sample (and any other it took down) is a failed row.
+    table = sweep(_box(), ["yield_stress=10,100"], frames=2, workers=2, extra=_extra_that_fails)
+    assert [r["sample"] for r in table.rows] == [0, 1]
+    assert table.rows[0]["status"] == "failed" and "worker process died" in table.rows[0]["reason"]
+    assert table.rows[0]["yield_stress"] == 10.0 and table.rows[1]["status"] == "failed"

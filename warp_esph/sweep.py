@@ -546,7 +546,8 @@ def _call_star(fn, *args):
 
 # ------------------------------------------------------------------ executors
 def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = None, ray: str | None = None,
-                 on_result: Callable | None = None, ray_resources: Mapping | None = None) -> list:
+                 on_result: Callable | None = None, on_error: Callable | None = None,
+                 ray_resources: Mapping | None = None) -> list:
     """``[fn(*item) for item in items]``, run in parallel; results in the order of ``items``.
 
     - ``workers=1`` (and no ``ray``): in this process, one after the other.
@@ -560,12 +561,16 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
 
     ``fn`` must be importable by name (a module-level function) and ``items`` picklable.
     ``on_result(index, result)`` is called in this process as each item finishes.
-    A worker that dies (a crash, not an exception) raises ``RuntimeError``; exceptions
-    raised by ``fn`` propagate.
+
+    An item fails when ``fn`` raises, its worker process dies (a crash in native code, out
+    of memory: every item not finished in that pool fails with it) or its Ray task or
+    worker fails. With ``on_error(index, message)`` its return value is that item's result
+    and the others go on; without, the first failure raises (``RuntimeError`` for a dead
+    worker). Ctrl-C stops the workers and raises ``KeyboardInterrupt``.
     """
     items = list(items)
     if ray is not None:
-        return _ray_map(fn, items, ray, on_result, ray_resources)
+        return _ray_map(fn, items, ray, on_result, on_error, ray_resources)
     if workers is None:
         workers = _cores()
     workers = checks.positive_int("--workers", workers)
@@ -573,7 +578,12 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
     results: list = [None] * len(items)
     if workers == 1:
         for i, item in enumerate(items):
-            results[i] = fn(*item)
+            try:
+                results[i] = fn(*item)
+            except Exception as e:
+                if on_error is None:
+                    raise
+                results[i] = on_error(i, _one_line(f"{type(e).__name__}: {e}"))
             if on_result is not None:
                 on_result(i, results[i])
         return results
@@ -593,8 +603,15 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
                 try:
                     results[i] = fut.result()
                 except BrokenProcessPool:
-                    raise RuntimeError(f"a sweep worker process died while running item {i} "
-                                       f"(out of memory or a crash in native code)") from None
+                    why = ("a worker process died before this item finished (a crash in native code or out of "
+                           "memory, in this item or another one running at the time); run it again")
+                    if on_error is None:
+                        raise RuntimeError(f"item {i}: {why}") from None
+                    results[i] = on_error(i, why)
+                except Exception as e:
+                    if on_error is None:
+                        raise
+                    results[i] = on_error(i, _one_line(f"{type(e).__name__}: {e}"))
                 if on_result is not None:
                     on_result(i, results[i])
     except BaseException:
@@ -607,7 +624,7 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
     return results
 
 
-def _ray_map(fn, items, address, on_result, resources):
+def _ray_map(fn, items, address, on_result, on_error, resources):
     try:
         import ray  # noqa: PLC0415
     except ModuleNotFoundError:
@@ -641,7 +658,12 @@ def _ray_map(fn, items, address, on_result, resources):
             done, pending = ray.wait(pending, num_returns=1)
             for ref in done:
                 i = refs[ref]
-                results[i] = ray.get(ref)
+                try:
+                    results[i] = ray.get(ref)
+                except ray.exceptions.RayError as e:
+                    if on_error is None:
+                        raise
+                    results[i] = on_error(i, _one_line(f"Ray: {type(e).__name__}: {e}")[:2000])
                 if on_result is not None:
                     on_result(i, results[i])
         return results
@@ -775,7 +797,13 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
 
 def _execute(plan: _Plan, workers, ray, on_result) -> SweepTable:
     callback = None if on_result is None else (lambda i, row: on_result(row))
-    rows = parallel_map(_run_sample, plan.tasks, workers=workers, ray=ray, on_result=callback)
+
+    def failed(i, why):
+        # The worker could not return a row (it died, or Ray lost it): the sample still gets one.
+        task = plan.tasks[i][1]
+        return {"sample": task.index, "status": "failed", **task.values, "seed": task.seed, "reason": why}
+
+    rows = parallel_map(_run_sample, plan.tasks, workers=workers, ray=ray, on_result=callback, on_error=failed)
     return _table(rows, [p.name for p in plan.params])
 
 
