@@ -397,3 +397,39 @@ def test_frames_without_a_surface_render_particles(tmp_path):
     assert _orange(surf0).sum() > 50 and _orange(part0).sum() > 50
     with pytest.raises(ValueError, match="surfaces"):
         RenderOptions(surfaces="yes")
+
+
+def test_triangles_cover_exactly_the_pixel_centres_inside_and_depth_is_the_plane():
+    from warp_esph.render import raster_triangles
+
+    rng = np.random.default_rng(3)
+    cam = front_camera()
+    for _ in range(5):
+        # A tilted quad as two triangles, a random fan of triangles inside it sharing its centre.
+        c = rng.uniform(-0.2, 0.2, 3)
+        a, b = rng.normal(size=3), rng.normal(size=3)
+        a, b = 0.3 * a / np.linalg.norm(a), 0.3 * b / np.linalg.norm(b)
+        quad = np.array([c - a - b, c + a - b, c + a + b, c - a + b, c])
+        tris = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+        px, py, z = cam.project(quad)
+        pix, dep, bary, who = raster_triangles(px, py, z, tris, W, H)
+        # Every pixel centre inside the projected quad once (or twice on a shared edge), none outside.
+        i, j = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+        corners = np.stack([px[:4], py[:4]], axis=1)
+        def side(k):  # z of (edge k) x (pixel centre - its start)
+            (x0, y0), (x1, y1) = corners[k], corners[(k + 1) % 4]
+            return (x1 - x0) * (j - y0) - (y1 - y0) * (i - x0)
+
+        edge = [side(k) for k in range(4)]
+        inside = (np.all([e > 1e-3 for e in edge], axis=0) | np.all([e < -1e-3 for e in edge], axis=0)).reshape(-1)
+        border = (np.min(np.abs(edge), axis=0) <= 1e-3).reshape(-1)
+        hits = np.bincount(pix, minlength=W * H)
+        assert (hits[inside] >= 1).all() and (hits[~inside & ~border] == 0).all()
+        # Depth: where the pixel's ray meets the quad's plane (perspective-correct interpolation).
+        n = np.cross(a, b)
+        rays = cam.pixel_rays().reshape(-1, 3)[pix]
+        expected = (n @ (c - cam.eye)) / (rays @ n)
+        assert np.allclose(dep, expected, rtol=1e-4, atol=1e-5)
+        # Barycentrics put the fragment on the triangle: the interpolated point is on the ray.
+        P = np.einsum("nk,nkj->nj", bary, quad[tris[who]])
+        assert np.allclose(P, cam.eye + dep[:, None] * rays, atol=1e-4)

@@ -371,12 +371,6 @@ def vertex_values(vertices, points, values, radius):
     return out.astype(np.float32)
 
 
-def zbuffer_resolve(pix, dep, zbuf_flat):
-    """Lower ``zbuf_flat`` to the nearest fragment per pixel; the mask of winning fragments."""
-    np.minimum.at(zbuf_flat, pix, dep)
-    return dep <= zbuf_flat[pix]
-
-
 # ----------------------------------------------------------------------------- renderer
 @dataclasses.dataclass
 class RenderOptions:
