@@ -75,7 +75,8 @@ def _build_parser() -> _Parser:
     run.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="precision (default float32)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--preview", action="store_true",
-                     help="at the end, render the last frame to <output>.png beside the output (software renderer)")
+                     help="at the end, render the last frame to <output>.png beside the output (software renderer; "
+                          "with --surface it draws the surfaces)")
     run.add_argument("--surface", action="store_true",
                      help="also write a triangle surface per body and frame (UsdGeom.Mesh under /World/Surfaces)")
     run.add_argument("--export", choices=EXPORT_CHOICES, metavar="FORMAT",
@@ -115,6 +116,9 @@ def _build_parser() -> _Parser:
     ren.add_argument("--fps", type=float, help="playback rate of a .gif/.mp4 (default: the file's)")
     ren.add_argument("--no-label", action="store_true", help="no time label in the corner")
     ren.add_argument("--no-shadows", action="store_true", help="no shadows (faster)")
+    ren.add_argument("--particles", "--no-surface", dest="particles", action="store_true",
+                     help="draw particles even where the file holds surface meshes ('run --surface'); "
+                          "by default a body with a surface is drawn as that surface")
 
     exp = sub.add_parser("export", help="write particle frames of a USD output as .vtu or .ply files (meshio)",
                          description="Write the particles of each frame of a warp-esph USD file as a .vtu or .ply file "
@@ -307,7 +311,8 @@ def _cmd_run(args) -> int:
         from .render import render_usd  # noqa: PLC0415
 
         result = render_usd(writer.path, os.path.splitext(writer.path)[0] + ".png", frames="last")
-        print(f"preview: {result.output} ({result.seconds:.1f} s)")
+        shown = "surfaces" if result.surface_bodies else "particles"
+        print(f"preview: {result.output} ({shown}, {result.seconds:.1f} s)")
     return 0
 
 
@@ -450,11 +455,12 @@ def _cmd_render(args) -> int:
         args.usd, args.output, args.frames, color=args.color, width=args.width, height=args.height,
         supersample=args.supersample, radius_scale=args.radius_scale, azimuth=args.azimuth, elevation=args.elevation,
         zoom=args.zoom, label=not args.no_label, shadows=not args.no_shadows, columns=args.columns, fps=args.fps,
-        fit=args.fit, progress=progress,
+        fit=args.fit, surfaces=not args.particles, progress=progress,
     )
     what = {"dir": f"{len(result.files)} PNG files in {result.output}", "png": result.output,
             "gif": f"{result.output} ({len(result.frames)} frames)", "mp4": f"{result.output} ({len(result.frames)} frames)"}
-    print(f"wrote {what[result.kind]}: {args.width}x{args.height}, {result.particles} particles, "
+    drawn = f"{result.particles} particles" + (f" ({result.surface_bodies} bodies as surfaces)" if result.surface_bodies else "")
+    print(f"wrote {what[result.kind]}: {args.width}x{args.height}, {drawn}, "
           f"{result.seconds:.1f} s ({result.seconds_per_frame:.2f} s/frame)")
     return 0
 
