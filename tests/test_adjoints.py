@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warp_esph import forces, plasticity
+from warp_esph.sim import forces, plasticity
 from warp_esph._types import type_set
 
 S = wp.float64
@@ -142,7 +142,7 @@ def test_plastic_flow_adjoint(case, yield_stress, flow_rate, non_newtonian):
 def test_rotation_variant_svd_reconstructs_and_flags_inversion(scalar, tol):
     """U diag(sigma) V^T rebuilds F (float32: up to 1e-2 on badly conditioned input,
     docs/method.md §3), U and V are proper rotations, and an inverted F has one negative sigma."""
-    from warp_esph import isotropic
+    from warp_esph.sim import isotropic
 
     Ts = type_set(scalar)
     iso = isotropic.funcs(scalar)

@@ -23,8 +23,9 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from warp_esph import neighbors, scenes
-from warp_esph import comparison
+from warp_esph import scenes
+from warp_esph.sim import neighbors
+from warp_esph.sim import comparison
 from warp_esph.material import DEFORMATIONS
 from warp_esph.scenes import FIG8_BODIES, FIG8_RELEASE, SCENES
 

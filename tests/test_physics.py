@@ -9,7 +9,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from warp_esph import deformation, plasticity, smoothing
+from warp_esph.sim import deformation, plasticity, smoothing
 from warp_esph._types import type_set
 
 
@@ -325,7 +325,7 @@ def _reference_lists(x, h, k):
 def test_neighbor_lists_are_the_30_nearest_with_ties_to_the_lower_index(dtype, skin):
     """Exactly representable lattices, so distances tie exactly: a compressed one has
     more than 30 particles within h and the cap cuts through ties."""
-    from warp_esph import neighbors
+    from warp_esph.sim import neighbors
 
     T = type_set(dtype)
     dx = 1.0 / 64.0

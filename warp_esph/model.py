@@ -16,7 +16,7 @@ import numpy as np
 import warp as wp
 
 from ._types import type_set
-from .colliders import Box, Plane, Sphere
+from .sim.colliders import Box, Plane, Sphere
 from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, Material
 
 
@@ -231,7 +231,7 @@ class Model:
     def rest_neighbors(self):
         """``(X, neighbours, counts)`` of the initial configuration (same-body lists, built once)."""
         if self.rest_x is None:
-            from . import neighbors  # noqa: PLC0415
+            from .sim import neighbors  # noqa: PLC0415
 
             state = State(self, requires_grad=False)
             search = neighbors.NeighborSearch(self.particle_count, self.scalar, self.device, self.support_radius)
@@ -241,7 +241,7 @@ class Model:
 
     def compute_rest_density(self):
         """SPH density of the initial configuration: each particle's pressure-free density."""
-        from . import neighbors, pressure  # noqa: PLC0415 (model data first, kernels on demand)
+        from .sim import neighbors, pressure  # noqa: PLC0415 (model data first, kernels on demand)
 
         state = State(self, requires_grad=False)
         search = neighbors.NeighborSearch(

@@ -50,7 +50,7 @@ import warp as wp
 from . import checks
 from ._types import type_set
 from .model import Model, State
-from .solver import Solver
+from .sim.solver import Solver
 
 __all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS"]
 

@@ -23,7 +23,7 @@ import types
 
 import warp as wp
 
-from ._types import type_set
+from .._types import type_set
 from . import smoothing
 
 

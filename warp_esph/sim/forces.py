@@ -39,7 +39,7 @@ import types
 
 import warp as wp
 
-from ._types import type_set
+from .._types import type_set
 from . import deformation, isotropic, smoothing
 
 

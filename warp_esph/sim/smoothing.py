@@ -10,7 +10,7 @@ import types
 
 import warp as wp
 
-from ._types import type_set
+from .._types import type_set
 
 
 def poly6(r2: float, h: float) -> float:

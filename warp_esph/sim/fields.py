@@ -14,8 +14,8 @@ import types
 
 import warp as wp
 
-from . import checks
-from ._types import type_set
+from .. import checks
+from .._types import type_set
 
 
 @dataclasses.dataclass(frozen=True)

@@ -14,9 +14,10 @@ import warnings
 import numpy as np
 import warp as wp
 
-from . import checks, comparison, deformation, fields, forces, integrate, neighbors, plasticity, pressure
+from .. import checks
+from . import comparison, deformation, fields, forces, integrate, neighbors, plasticity, pressure
 from . import fused as fused_kernels
-from .model import Model, State
+from ..model import Model, State
 
 GUARD_NAMES = ("few_neighbors", "ill_conditioned", "inverted", "plasticity_skipped")
 

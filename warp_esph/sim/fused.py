@@ -32,7 +32,7 @@ import types
 
 import warp as wp
 
-from ._types import type_set
+from .._types import type_set
 from . import deformation, forces, neighbors, plasticity, pressure, smoothing
 
 # Taylor coefficients of cos(pi s / 2) in t = s^2 up to t^7: on s in [0, 1] the

@@ -38,7 +38,7 @@ import types
 import numpy as np
 import warp as wp
 
-from ._types import type_set
+from .._types import type_set
 from . import pressure, smoothing
 
 #: Guard codes written per particle (0 = the MLS update may run).

@@ -20,7 +20,7 @@ import types
 
 import warp as wp
 
-from ._types import type_set
+from .._types import type_set
 from . import forces, isotropic
 
 #: Index into the solver's guard counters: plastic flow skipped because min sigma < 0.01.

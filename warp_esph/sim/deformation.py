@@ -19,7 +19,7 @@ import types
 
 import warp as wp
 
-from ._types import type_set
+from .._types import type_set
 from . import smoothing
 
 #: Indices into the solver's guard counters.
