@@ -201,8 +201,7 @@ def test_yield_onset_under_uniaxial_stretch_and_volume_kept(model_name):
         e0, e1 = k * de, (k + 1) * de
         xa = wp.array(x0 * [1 + e0, 1, 1], dtype=T.vec3)
         xb = wp.array(x0 * [1 + e1, 1, 1], dtype=T.vec3)
-        wp.launch(kc, n, [F, alpha, model.particle_material, model.mu, model.lam, model.yield_stress, model.flow_rate,
-                          model.hardening, model.material_model, S(dt)], scratch + [counters])
+        wp.launch(kc, n, [F, alpha, model.particle_material, model.material_arrays(), S(dt)], scratch + [counters])
         F_flowed = scratch[0].numpy()
         if onset is None and scratch[1].numpy().max() > 0.0:
             onset = e0  # the strain carried by F when the flow first ran

@@ -1,4 +1,4 @@
-"""The time step (SPEC §1): ``Solver(model).step(state_in, state_out, dt)``.
+"""The time step (docs/method.md §1): ``Solver(model).step(state_in, state_out, dt)``.
 
 ``step`` reads ``state_in`` and writes only ``state_out``, so a rollout with one state
 per step can be recorded on a ``wp.Tape`` and differentiated.
@@ -7,17 +7,14 @@ per step can be recorded on a ``wp.Tape`` and differentiated.
 from __future__ import annotations
 
 import contextlib
-import math
 import time
 import warnings
 
-import numpy as np
 import warp as wp
 
 from .. import checks
-from . import comparison, deformation, fields, forces, integrate, neighbors, plasticity, pressure
-from . import fused as fused_kernels
 from ..model import Model, State
+from . import comparison, deformation, fields, forces, fused, integrate, neighbors, plasticity, pressure
 
 GUARD_NAMES = ("few_neighbors", "ill_conditioned", "inverted", "plasticity_skipped")
 
@@ -42,6 +39,20 @@ def tape_recording() -> bool:
     return getattr(runtime, "tape", None) is not None
 
 
+class StepScratch:
+    """What the launches of one step share besides the model and the two states: the
+    guard counters, the fast path's per-particle SPH pressure and volume ``m / rho``
+    (written and read within one step), and the guard thresholds."""
+
+    def __init__(self, model: Model, min_neighbors: int, max_condition: float):
+        n, dev = model.particle_count, model.device
+        self.counters = wp.zeros(len(GUARD_NAMES), dtype=wp.int32, device=dev)
+        self.pressure = wp.zeros(n, dtype=model.scalar, device=dev)
+        self.sph_volume = wp.zeros(n, dtype=model.scalar, device=dev)
+        self.min_neighbors = min_neighbors
+        self.max_condition = max_condition
+
+
 class Solver:
     """Explicit elastoplastic step of Gerszewski et al. 2009.
 
@@ -56,8 +67,12 @@ class Solver:
     constitutive update and all pair forces in one kernel with one SVD per particle
     when no ``wp.Tape`` is recording; under a tape the differentiable kernels run.
 
+    Whether SPH pressure and viscosity run, and the stable time step ``check_dt`` warns
+    against, follow the model's parameter arrays at each step (``Model.sph_active``,
+    ``Model.stable_dt``): values a fit or ``warp_esph.torch`` wrote are the ones used.
+
     A model with a material of a Fig. 8 comparison deformation model (``Material.deformation``
-    ``"rest"`` or ``"additive"``, SPEC §7) always runs the non-fused kernels, with the
+    ``"rest"`` or ``"additive"``, docs/method.md §7) always runs the non-fused kernels, with the
     constitutive and deformation updates of ``comparison.py``. The model's force fields
     (``fields.CompressionField``) act while active at ``state_in.time``.
     """
@@ -74,37 +89,22 @@ class Solver:
         self.model = model
         self.min_neighbors = checks.positive_int("min_neighbors", min_neighbors)
         self.max_condition = checks.greater_than("max_condition", max_condition, 1.0, "1")
-        S = model.scalar
         skin = DEFAULT_SKIN if neighbor_skin is None else checks.in_range("neighbor_skin", neighbor_skin, 0.0, 1.0)
         if not isinstance(fused, bool):
             raise ValueError(f"fused = {fused!r} is not allowed: must be True or False")
         self.neighbor_skin = skin
         self.search = neighbors.NeighborSearch(
-            model.particle_count, S, model.device, model.support_radius,
+            model.particle_count, model.scalar, model.device, model.support_radius,
             min_neighbors=self.min_neighbors, max_condition=self.max_condition,
             skin=skin * model.support_radius, spacing=model.spacing, bodies_interact=model.bodies_interact,
         )
         self.fused = bool(fused)
-        self._k_fused = fused_kernels.kernels(S)
-        # Per-particle SPH pressure and volume m / rho of the fast path (scratch: written
-        # and read within one step).
-        self._pressure = wp.zeros(model.particle_count, dtype=S, device=model.device)
-        self._sph_volume = wp.zeros(model.particle_count, dtype=S, device=model.device)
+        self.scratch = StepScratch(model, self.min_neighbors, self.max_condition)
         #: Seconds per phase, summed over steps while ``profile_phases`` is on, else None.
         self.phase_times: dict[str, float] | None = None
-        self._k_deform = deformation.kernels(S)
-        self._k_plastic = plasticity.kernels(S)
-        self._k_forces = forces.kernels(S)
-        self._k_pressure = pressure.kernels(S)
-        self._k_integrate = integrate.kernels(S, len(model.planes), len(model.spheres), len(model.boxes))
         self._cmp = model.uses_comparison_models
-        self._k_cmp = comparison.kernels(S) if self._cmp else None
         if self._cmp:
             model.rest_neighbors()
-        self._k_fields = fields.kernels(S)
-        self._sph = any(m.pressure_stiffness > 0.0 or m.viscosity > 0.0 for m in model.materials)
-        self._counters = wp.zeros(len(GUARD_NAMES), dtype=wp.int32, device=model.device)
-        self._stable_dt = model.stable_dt()
         self._warned_dt = set()
         self.step_count = 0
 
@@ -127,18 +127,19 @@ class Solver:
 
     def guard_counts(self) -> dict[str, int]:
         """How many particle-steps each guard skipped since construction or ``reset_counts``."""
-        return dict(zip(GUARD_NAMES, (int(c) for c in self._counters.numpy())))
+        return dict(zip(GUARD_NAMES, (int(c) for c in self.scratch.counters.numpy())))
 
     def reset_counts(self):
-        self._counters.zero_()
+        self.scratch.counters.zero_()
 
     def check_dt(self, dt) -> float:
         dt = checks.positive("dt", dt)
-        if dt > self._stable_dt and dt not in self._warned_dt:
-            self._warned_dt.add(dt)
+        stable = self.model.stable_dt()
+        if dt > stable and (dt, stable) not in self._warned_dt:
+            self._warned_dt.add((dt, stable))
             warnings.warn(
-                f"dt = {dt:g} s is above the explicit stability limit {self._stable_dt:.3g} s "
-                f"(Model.stable_dt: 0.3 * spacing / p-wave speed, SPEC §8, and the viscous limit "
+                f"dt = {dt:g} s is above the explicit stability limit {stable:.3g} s "
+                f"(Model.stable_dt: 0.3 * spacing / p-wave speed, docs/method.md §8, and the viscous limit "
                 f"0.025 rho0 h^2 / viscosity); the run may blow up",
                 RuntimeWarning,
                 stacklevel=3,
@@ -146,163 +147,65 @@ class Solver:
         return dt
 
     def step(self, state_in: State, state_out: State, dt: float):
+        """One step of the method, stage by stage (docs/physics.md has the table)."""
         if state_in is state_out:
             raise ValueError("state_out is state_in: the step reads state_in and writes state_out, pass two states")
         dt = self.check_dt(dt)
         m = self.model
-        n = m.particle_count
-        S = m.scalar
-        h = S(m.support_radius)
-        dev = m.device
-
+        scratch = self.scratch
+        sph = m.sph_active
         fast = self.fused and not self._cmp and not tape_recording()
         phase = self._phase
 
         # 1. Neighbour lists and neighbourhood guards (integers, not taped). The fast
-        # path also sums the SPH density there (WARP_NOTES trap 1: it is finished
-        # before any pressure uses it).
+        # path also sums the SPH density there (docs/method.md, Warp pitfall 1: it is
+        # finished before any pressure uses it).
         with phase("neighbors"):
-            sph = None
-            if fast and self._sph:
-                sph = (
-                    m.particle_mass, m.particle_material, m.particle_rest_density, m.pressure_stiffness,
-                    m.clamp_pressure, state_out.density, self._pressure, self._sph_volume,
-                )
             self.search.update(
                 state_in.x, m.particle_body, state_out.neighbors, state_out.neighbor_d2, state_out.neighbor_count,
-                None if fast else state_out.guard, sph,
+                None if fast else state_out.guard,
+                (m.particle_mass, m.particle_material, m.particle_rest_density, m.material_arrays(),
+                 state_out.density, scratch.pressure, scratch.sph_volume) if fast and sph else None,
             )
-        nbr, count = state_out.neighbors, state_out.neighbor_count
         state_out.force.zero_()
 
         if fast:
             # 2-4 fused: plastic flow, stress, F^-1 and every pair force in one launch.
             with phase("fused"):
-                wp.launch(
-                    self._k_fused.constitutive_forces,
-                    n,
-                    [
-                        state_in.x, state_in.v, state_in.F, state_in.alpha, m.particle_material, m.particle_body,
-                        m.particle_volume, m.particle_mass, state_out.density, self._pressure, self._sph_volume,
-                        m.mu, m.lam, m.yield_stress, m.flow_rate, m.hardening, m.material_model,
-                        m.viscosity, m.material_elastic_force, nbr, count, h, S(dt), int(self._sph),
-                        self.min_neighbors, S(self.max_condition),
-                    ],
-                    [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, state_out.force, self._counters],
-                    device=dev,
-                )
+                fused.launch_constitutive_forces(m, state_in, state_out, dt, scratch, sph)
         else:
-            # 2. SPH density, finished before any pressure uses it (WARP_NOTES trap 1).
-            if self._sph:
+            # 2. SPH density, finished before any pressure uses it (docs/method.md, Warp pitfall 1).
+            if sph:
                 with phase("density"):
-                    wp.launch(self._k_pressure.density, n, [state_in.x, m.particle_mass, nbr, count, h], [state_out.density], device=dev)
-
+                    pressure.launch_density(m, state_in.x, state_out.neighbors, state_out.neighbor_count, state_out.density)
             # 3. Plastic flow of the stored F, stress, F^-1.
             with phase("constitutive"):
                 if self._cmp:
-                    wp.launch(
-                        self._k_cmp.constitutive_update,
-                        n,
-                        [
-                            state_in.F, state_in.alpha, state_in.F_p, m.particle_material, m.material_deformation, m.mu, m.lam,
-                            m.yield_stress, m.flow_rate, m.hardening, m.material_model, S(dt),
-                        ],
-                        [state_out.F_flowed, state_out.alpha, state_out.F_p, state_out.stress, state_out.F_inv, self._counters],
-                        device=dev,
-                    )
+                    comparison.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters)
                 else:
-                    wp.launch(
-                        self._k_plastic.constitutive_update,
-                        n,
-                        [state_in.F, state_in.alpha, m.particle_material, m.mu, m.lam, m.yield_stress, m.flow_rate, m.hardening, m.material_model, S(dt)],
-                        [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, self._counters],
-                        device=dev,
-                    )
-
+                    plasticity.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters)
             # 4. Elastic pair forces, pressure and viscosity.
             with phase("forces"):
-                wp.launch(
-                    self._k_forces.elastic_forces,
-                    n,
-                    [
-                        state_in.x, m.particle_body, m.particle_material, m.material_elastic_force, nbr, count,
-                        state_out.guard, m.particle_volume, state_out.stress, state_out.F_flowed, state_out.F_inv, h,
-                    ],
-                    [state_out.force],
-                    device=dev,
-                )
-            if self._sph:
+                forces.launch_elastic_forces(m, state_in, state_out)
+            if sph:
                 with phase("pressure"):
-                    wp.launch(
-                        self._k_pressure.pressure_forces,
-                        n,
-                        [
-                            state_in.x, state_in.v, m.particle_mass, state_out.density, m.particle_rest_density, m.particle_material,
-                            m.pressure_stiffness, m.viscosity, m.clamp_pressure, nbr, count, h,
-                        ],
-                        [state_out.force],
-                        device=dev,
-                    )
+                    pressure.launch_pressure_forces(m, state_in, state_out)
 
         # External force fields active at the step's start time.
-        for fld in m.force_fields:
-            if fld.active(state_in.time):
-                wp.launch(
-                    self._k_fields.add_compression,
-                    n,
-                    [state_in.x, m.particle_mass, m.particle_body, int(fld.body), m.types.vec3(*fld.center), S(fld.strength)],
-                    [state_out.force],
-                    device=dev,
-                )
+        fields.launch_force_fields(m, state_in, state_out)
 
         # 5. Symplectic Euler, gravity, colliders.
         with phase("integrate"):
-            wp.launch(
-                self._k_integrate.integrate,
-                n,
-                [
-                    state_in.x, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt),
-                    m.plane_normal, m.plane_offset, m.plane_friction,
-                    m.sphere_center, m.sphere_radius, m.sphere_friction,
-                    m.box_center, m.box_half, m.box_friction,
-                ],
-                [state_out.x, state_out.v],
-                device=dev,
-            )
+            integrate.launch_integrate(m, state_in, state_out, dt)
 
         # 6. Incremental deformation gradient over the step (eqs. 1-8); the fast path
         # evaluates the neighbourhood guards here, on the fit's own moment matrix.
         with phase("deformation"):
             if fast:
-                wp.launch(
-                    self._k_fused.update_deformation,
-                    n,
-                    [
-                        state_in.x, state_out.x, m.particle_body, nbr, count, state_out.F_flowed, h,
-                        self.min_neighbors, S(self.max_condition),
-                    ],
-                    [state_out.F, state_out.guard, self._counters],
-                    device=dev,
-                )
+                fused.launch_update_deformation(m, state_in, state_out, scratch)
             elif self._cmp:
-                rest_x, rest_nbr, rest_count = m.rest_neighbors()
-                wp.launch(
-                    self._k_cmp.update_deformation,
-                    n,
-                    [
-                        state_in.x, state_out.x, rest_x, m.particle_body, nbr, count, rest_nbr, rest_count, state_out.guard,
-                        m.particle_material, m.material_deformation, state_out.F_flowed, state_out.F_p, h,
-                    ],
-                    [state_out.F, self._counters],
-                    device=dev,
-                )
+                comparison.launch_update_deformation(m, state_in, state_out, scratch.counters)
             else:
-                wp.launch(
-                    self._k_deform.update_deformation,
-                    n,
-                    [state_in.x, state_out.x, m.particle_body, nbr, count, state_out.guard, state_out.F_flowed, h],
-                    [state_out.F, self._counters],
-                    device=dev,
-                )
+                deformation.launch_update_deformation(m, state_in, state_out, scratch.counters)
         state_out.time = state_in.time + dt
         self.step_count += 1
