@@ -73,12 +73,13 @@ def funcs(scalar) -> types.SimpleNamespace:
         return PI / (scalar(8.0) * h * h * h * h * (PI / scalar(3.0) - scalar(8.0) / PI + scalar(16.0) / (PI * PI)))
 
     @wp.func
-    def cos_half_pi(t: scalar) -> scalar:
-        """cos(pi s / 2) of s = sqrt(t) in [0, 1]: a polynomial in t in float32 (a third
-        of a pair's elastic-force cost was the libm call and its wait for the square
-        root), the library cosine in float64."""
+    def elastic_cos(r2: scalar, rl: scalar, h: scalar) -> scalar:
+        """cos(pi |r| / (2h)) of eq. 12's gradient, for ``r2 = |r|^2``, ``rl = |r|`` in [0, h]:
+        the library cosine in float64; in float32 a polynomial in ``|r|^2 / h^2`` (a third
+        of a pair's elastic-force cost was the libm call and its wait for the square root)."""
         if wp.static(exact_cos):
-            return wp.cos(PI * wp.sqrt(t) / scalar(2.0))
+            return wp.cos(PI * rl / (scalar(2.0) * h))
+        t = r2 * (scalar(1.0) / (h * h))
         return c0 + t * (c1 + t * (c2 + t * (c3 + t * (c4 + t * (c5 + t * (c6 + t * c7))))))
 
     @wp.func
@@ -88,7 +89,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         r2 = wp.dot(r, r)
         if r2 >= h * h or r2 <= scalar(1.0e-24) * h * h:
             return vec3()
-        return (-c * cos_half_pi(r2 * (scalar(1.0) / (h * h))) / wp.sqrt(r2)) * r
+        rl = wp.sqrt(r2)
+        return -c * elastic_cos(r2, rl, h) / rl * r
 
     @wp.func
     def grad_w_elastic(r: vec3, h: scalar) -> vec3:
@@ -137,6 +139,6 @@ def funcs(scalar) -> types.SimpleNamespace:
     return types.SimpleNamespace(
         w_poly6=w_poly6, grad_w_elastic=grad_w_elastic, grad_w_spiky=grad_w_spiky, lap_w_viscosity=lap_w_viscosity,
         poly6_coef=poly6_coef, w_poly6_c=w_poly6_c, elastic_coef=elastic_coef, grad_w_elastic_c=grad_w_elastic_c,
-        cos_half_pi=cos_half_pi, spiky_coef=spiky_coef, grad_w_spiky_c=grad_w_spiky_c, grad_w_spiky_at=grad_w_spiky_at,
+        elastic_cos=elastic_cos, spiky_coef=spiky_coef, grad_w_spiky_c=grad_w_spiky_c, grad_w_spiky_at=grad_w_spiky_at,
         viscosity_coef=viscosity_coef, lap_w_viscosity_c=lap_w_viscosity_c, lap_w_viscosity_at=lap_w_viscosity_at,
     )
