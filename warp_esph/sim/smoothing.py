@@ -13,15 +13,9 @@ import warp as wp
 from .._types import type_set
 
 
-def poly6(r2: float, h: float) -> float:
-    """Host-side poly6 value (eq. 7) for tests and rest-state sums."""
-    if r2 > h * h:
-        return 0.0
-    return 315.0 / (64.0 * math.pi * h**9) * (h * h - r2) ** 3
-
-
 def elastic_kernel(r: float, h: float) -> float:
-    """Host-side Solenthaler kernel W(r, h) of eq. 12 with c from eq. 13."""
+    """Host-side Solenthaler kernel W(r, h) of eq. 12 with c from eq. 13 (the step needs only
+    its gradient, ``grad_w_elastic_c``; tests check that against this)."""
     if r > h:
         return 0.0
     c = elastic_kernel_constant(h)
