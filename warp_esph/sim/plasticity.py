@@ -204,7 +204,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         stress_out[i] = stress(Fe, mu, mat.lam[m], kind)
         F_inv_out[i] = wp.inverse(Fe)
 
-    return types.SimpleNamespace(constitutive_update=constitutive_update)
+    return types.SimpleNamespace(constitutive_update=constitutive_update, flow=flow)
 
 
 def launch_constitutive_update(model, state_in, state_out, dt, counters):
