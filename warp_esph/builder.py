@@ -16,13 +16,14 @@ import warp as wp
 from . import checks, meshes
 from ._types import scalar_type
 from .sim.colliders import MAX_PER_KIND, Box, Plane, Sphere
+from .sim.neighbors import PAPER_MAX_NEIGHBORS, default_max_neighbors
 from .material import Material
 from .meshes import lattice_points
 from .model import Body, Model
 
 #: Allowed support radius, in units of the spacing. Below 1.5 dx an interior particle
-#: sees only its 6 face neighbours; above 3 dx the 30-neighbour cap cuts the
-#: neighbourhood anisotropically and the body loses stiffness (docs/method.md §1).
+#: sees only its 6 face neighbours; above 3 dx a particle has more than 120 neighbours
+#: and a step costs several times more (docs/method.md §1).
 SUPPORT_RANGE = (1.5, 3.0)
 #: Largest lattice a single body may be sampled from (about 1.6 GB of float64 points).
 MAX_PARTICLES_PER_BODY = 6.4e7
@@ -55,6 +56,12 @@ class SceneBuilder:
 
     ``spacing`` is the lattice spacing dx (m); ``support_radius`` the neighbourhood
     radius h (default 2 dx); ``gravity`` in m/s^2 (Y is up, as in Warp's assets and USD).
+
+    ``max_neighbors`` is the width of a neighbour row. The default (None) is
+    ``neighbors.default_max_neighbors(h / dx)`` (64 at h = 2 dx, 160 at 2.5 dx), wide enough
+    that no row is cut in practice, so the loss is smooth in the parameters; ``"paper"``
+    is the paper's 30 nearest (``PAPER_MAX_NEIGHBORS``). A row that is cut is counted in
+    ``Solver.guard_counts()["neighbors_cut"]`` (docs/method.md §1).
     """
 
     def __init__(
@@ -62,7 +69,7 @@ class SceneBuilder:
         spacing: float = 0.02,
         gravity: Sequence[float] = (0.0, -9.81, 0.0),
         support_radius: float | None = None,
-        max_neighbors: int = 30,
+        max_neighbors: int | str | None = None,
         bodies_interact: bool = True,
     ):
         self.spacing = checks.positive("spacing", spacing)
@@ -80,6 +87,13 @@ class SceneBuilder:
                 f"[{lo} * spacing, {hi} * spacing] = [{lo * self.spacing:g}, {hi * self.spacing:g}]"
             )
         self.support_radius = h
+        if max_neighbors is None:
+            max_neighbors = default_max_neighbors(h / self.spacing)
+        elif isinstance(max_neighbors, str):
+            if max_neighbors != "paper":
+                raise ValueError(f"max_neighbors = {max_neighbors!r} is not allowed: must be a positive integer, "
+                                 f"None (the default width) or 'paper' ({PAPER_MAX_NEIGHBORS})")
+            max_neighbors = PAPER_MAX_NEIGHBORS
         self.max_neighbors = checks.positive_int("max_neighbors", max_neighbors)
         self._points: list[np.ndarray] = []
         self._velocities: list[np.ndarray] = []

@@ -300,7 +300,7 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
             spacing=spacing,
             gravity=scene.get("gravity", (0.0, -9.81, 0.0)),
             support_radius=None if support is None else checks.positive("support_radius", support) / scale,
-            max_neighbors=scene.get("max_neighbors", 30),
+            max_neighbors=scene.get("max_neighbors"),
         )
         frames = checks.positive_int("frames", scene.get("frames", 60))
         fps = checks.positive("fps", scene.get("fps", 30.0))

@@ -45,7 +45,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         h: scalar,
     ):
         """Eqs. 5-7: the fit's moments ``A = sum w xb xb^T``, ``B = sum w yb xb^T`` and the
-        number of same-body neighbours (the guard's).
+        number of same-body neighbours closer than ``h`` (the guard's).
 
         Only the raw sums live in this loop: the caller's inverse must not see a loop
         accumulator, whose adjoint Warp would not replay (docs/method.md, Warp pitfall 1).
@@ -62,10 +62,13 @@ def funcs(scalar) -> types.SimpleNamespace:
             if body[j] == bi:
                 xb = x[j] - xi
                 yb = y[j] - yi
-                w = sm.w_poly6_c(wp.dot(xb, xb), h, c6)
+                r2 = wp.dot(xb, xb)
+                w = sm.w_poly6_c(r2, h, c6)
                 A += w * wp.outer(xb, xb)
                 B += w * wp.outer(yb, xb)
-                same += 1
+                # Rows may reach beyond h (neighbors.select_neighbors): only neighbours
+                # of non-zero weight count for the guard.
+                same += wp.where(r2 < h * h, 1, 0)
         return A, B, same
 
     @wp.func

@@ -54,6 +54,39 @@ SKIN_SAFETY = 0.95
 CELL_FRACTION = 0.45
 #: Candidate rows never grow beyond this many entries (a collapsed body).
 MAX_CANDIDATES = 4096
+#: The selection radius of a particle is ``h sigma_max(F)`` (``select_neighbors``): the
+#: elastic kernel is evaluated at ``F^-1 (x_j - x_i)`` (eq. 11), so a pair closer than
+#: ``h`` in the reference space can be up to ``sigma_max(F) h`` apart now, and a row cut
+#: at ``h`` would drop it while its force is not zero (a jump in the loss). The
+#: candidates are searched within ``h s + skin`` with ``s`` the largest stretch at the
+#: build times STRETCH_SLACK (so a growing stretch does not rebuild every step), at
+#: most MAX_STRETCH; they are rebuilt when a stretch exceeds ``s``.
+STRETCH_SLACK = 1.05
+MAX_STRETCH = 2.0
+#: Stretch assumed for the default row width (``default_max_neighbors``).
+TYPICAL_STRETCH = 1.1
+#: The interior lattice neighbour counts are scaled by this for the default row width
+#: (``default_max_neighbors``): room for compression, so the cap never binds in practice.
+DEFAULT_CAP_FACTOR = 2.0
+#: The paper's neighbour count ("up to 30 neighbours", paper §4).
+PAPER_MAX_NEIGHBORS = 30
+
+
+def lattice_neighbor_count(radius_over_spacing: float) -> int:
+    """Other points of a cubic lattice closer than ``radius_over_spacing`` lattice spacings
+    to a point (26 below 2, 80 below 2.5)."""
+    r = float(radius_over_spacing)
+    k = int(math.ceil(r))
+    g = np.arange(-k, k + 1)
+    d2 = g[:, None, None] ** 2 + g[None, :, None] ** 2 + g[None, None, :] ** 2
+    return int((d2 < r * r).sum()) - 1
+
+
+def default_max_neighbors(support_over_spacing: float) -> int:
+    """Default row width: ``DEFAULT_CAP_FACTOR`` times the lattice count within the largest
+    selection radius ``TYPICAL_STRETCH h``, rounded up to 8 (64 at h = 2 dx, 160 at 2.5 dx)."""
+    n = DEFAULT_CAP_FACTOR * lattice_neighbor_count(TYPICAL_STRETCH * float(support_over_spacing))
+    return int(8 * math.ceil(n / 8))
 
 
 @functools.cache
@@ -85,6 +118,23 @@ def kernels(scalar) -> types.SimpleNamespace:
                 if lmin <= scalar(0.0) or lmax > max_condition * lmin:
                     code = 2
         return code
+
+    @wp.func
+    def stretch_bound2(F: mat33) -> scalar:
+        """An upper bound of sigma_max(F)^2 = lambda_max(F^T F): the largest absolute row
+        sum of F^T F (Gershgorin), tight for a small strain."""
+        C = wp.transpose(F) * F
+        g = scalar(0.0)
+        for row in range(3):
+            g = wp.max(g, wp.abs(C[row, 0]) + wp.abs(C[row, 1]) + wp.abs(C[row, 2]))
+        return g
+
+    @wp.kernel(enable_backward=False)
+    def max_stretch2(F: wp.array(dtype=mat33), out: wp.array(dtype=scalar)):
+        """out[0] = max over particles of ``stretch_bound2``."""
+        g = stretch_bound2(F[wp.tid()])
+        if g > out[0]:
+            wp.atomic_max(out, 0, g)
 
     @wp.func
     def key_greater(da: scalar, ja: int, db: scalar, jb: int) -> bool:
@@ -198,6 +248,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         material: wp.array(dtype=wp.int32),
         rest_density: wp.array(dtype=scalar),
         mat: Materials,
+        F: wp.array(dtype=mat33),
+        with_stretch: int,
+        stretch_margin: scalar,
+        cut_index: int,
         nbr: wp.array2d(dtype=wp.int32),
         nbr_d2: wp.array2d(dtype=scalar),
         count: wp.array(dtype=wp.int32),
@@ -205,14 +259,30 @@ def kernels(scalar) -> types.SimpleNamespace:
         rho: wp.array(dtype=scalar),
         p: wp.array(dtype=scalar),
         vol: wp.array(dtype=scalar),
+        counters: wp.array(dtype=wp.int32),
     ):
         """The neighbour rows at ``x``; with ``with_guard`` the guards of paper §4; with
-        ``with_density`` the SPH density ``rho``, pressure ``p`` and volume ``m / rho``."""
+        ``with_density`` the SPH density ``rho``, pressure ``p`` and volume ``m / rho``.
+
+        With ``with_stretch`` the rows hold every particle within ``h sigma_max(F_i)``
+        (at most ``stretch_margin h``, the candidates' reach), so a pair enters or leaves a row only where every
+        kernel of the step, the elastic one at ``F_i^-1 (x_j - x_i)`` included, is zero.
+        A particle whose row may lack a neighbour of non-zero weight (the row width
+        reached, or a stretch beyond the margin) is counted in ``counters[cut_index]``."""
         i = wp.tid()
         xi = x[i]
         bi = body[i]
         kmax = nbr.shape[1]
-        h2 = h * h
+        h_fit2 = h * h
+        h2 = h_fit2
+        cut = int(0)
+        if with_stretch != 0:
+            g = stretch_bound2(F[i])
+            m2 = stretch_margin * stretch_margin
+            if g > m2:
+                cut = 1
+                g = m2
+            h2 = h_fit2 * wp.max(g, scalar(1.0))
         nc = cand_count[i]
         # Pass 1: the within-h candidates in index order while the row has room. A row
         # that overflows becomes a max-heap on the key (d2, j); a nearer candidate
@@ -261,7 +331,10 @@ def kernels(scalar) -> types.SimpleNamespace:
                 nbr_d2[i, n] = d2
                 n += wp.where(d2 < max_d2 or (d2 == max_d2 and j <= max_j), 1, 0)
                 c += 1
+            cut = 1
         count[i] = n
+        if cut != 0:
+            wp.atomic_add(counters, cut_index, 1)
 
         # SPH density (pressure.density) and the guards of paper §4 on the same-body
         # neighbourhood used by the MLS fit.
@@ -277,7 +350,9 @@ def kernels(scalar) -> types.SimpleNamespace:
             if with_density != 0:
                 r += mass[j] * w
             if with_guard != 0:
-                if body[j] == bi:
+                # Only neighbours of non-zero weight count for the guard (rows reach
+                # beyond h with with_stretch).
+                if body[j] == bi and nbr_d2[i, k] < h_fit2:
                     d = x[j] - xi
                     A += w * wp.outer(d, d)
                     same += 1
@@ -293,6 +368,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         grid_points=grid_points,
         build_candidates=build_candidates,
         displacement_bounds=displacement_bounds,
+        max_stretch2=max_stretch2,
         select_neighbors=select_neighbors,
         guard_code=guard_code,
     )
@@ -333,7 +409,7 @@ class NeighborSearch:
         self._points = wp.zeros(particle_count, dtype=wp.vec3f, device=device)
         # Candidate capacity from the lattice count inside h + skin, with room for compression.
         dx = float(spacing) if spacing else self.h / 2.0
-        ball = 4.0 / 3.0 * math.pi * ((self.h + self.skin) / dx) ** 3
+        ball = 4.0 / 3.0 * math.pi * ((self.h * TYPICAL_STRETCH + self.skin) / dx) ** 3
         self._capacity = int(8 * math.ceil((1.5 * ball + 16) / 8))
         self.candidates = None
         self.candidate_count = wp.zeros(particle_count, dtype=wp.int32, device=device)
@@ -342,12 +418,20 @@ class NeighborSearch:
         self._bounds = wp.zeros(7, dtype=scalar, device=device)
         self._centre = (0.0, 0.0, 0.0)
         self._have_candidates = False
+        #: Stretch the candidates cover (STRETCH_SLACK); 1 until built with an F.
+        self._stretch = 1.0
+        self._stretch2 = wp.zeros(1, dtype=scalar, device=device)
         self.rebuilds = 0
         self.updates = 0
 
     @property
     def capacity(self) -> int:
         return self._capacity
+
+    @property
+    def search_radius(self) -> float:
+        """Radius of the candidate search: the largest selection radius plus the skin."""
+        return self.h * self._stretch + self.skin
 
     def _ensure_grid(self, x: wp.array):
         # Cells of a bit under half the search radius: about one particle each, so a
@@ -356,7 +440,7 @@ class NeighborSearch:
         # (with room to spread); cell aliasing of the periodic grid later costs time,
         # not correctness (every candidate is distance-filtered).
         if self._grid_dims is None:
-            self.cell_width = CELL_FRACTION * (self.h + self.skin)
+            self.cell_width = CELL_FRACTION * self.search_radius
             xs = x.numpy()
             extent = xs.max(axis=0) - xs.min(axis=0) if len(xs) else np.zeros(3)
             extent = np.where(np.isfinite(extent), extent, 0.0)
@@ -369,12 +453,22 @@ class NeighborSearch:
             self._grid_dims = tuple(dims)
             self.grid = wp.HashGrid(*self._grid_dims, device=self.device)
 
-    def _build_candidates(self, x: wp.array, body: wp.array):
+    def _largest_stretch(self, F) -> float:
+        """An upper bound of the largest sigma_max(F) over the particles (1 without F)."""
+        if F is None:
+            return 1.0
+        self._stretch2.zero_()
+        wp.launch(self.kernels.max_stretch2, F.shape[0], [F], [self._stretch2], device=self.device, record_tape=False)
+        g = float(self._stretch2.numpy()[0])
+        return math.sqrt(g) if math.isfinite(g) else math.inf
+
+    def _build_candidates(self, x: wp.array, body: wp.array, F=None):
+        self._stretch = min(MAX_STRETCH, max(1.0, self._largest_stretch(F)) * STRETCH_SLACK) if F is not None else 1.0
         self._ensure_grid(x)
         n = x.shape[0]
         wp.launch(self.kernels.grid_points, n, [x], [self._points], device=self.device, record_tape=False)
         points = self._points
-        radius = self.h + self.skin
+        radius = self.search_radius
         self.grid.build(points, self.cell_width)
         while True:
             if self.candidates is None or self.candidates.shape[1] != self._capacity:
@@ -401,15 +495,18 @@ class NeighborSearch:
         self._centre = (0.0, 0.0, 0.0)
         self.rebuilds += 1
 
-    def candidates_valid(self, x: wp.array) -> bool:
-        """Whether the candidates built earlier still hold every pair within ``h`` at ``x``.
+    def candidates_valid(self, x: wp.array, F=None) -> bool:
+        """Whether the candidates built earlier still hold every pair within the selection
+        radius at ``x`` (``h``; with ``F``, ``h sigma_max(F)``).
 
         Two particles moved relative to each other by at most ``D``, the smaller of the
         diagonal of the displacements' bounding box and twice their largest distance from
         any fixed point ``c`` (the box centre at the previous check): a pair not among the
-        candidates (``>= h + skin`` apart when they were built) is still ``>= h`` apart
-        while ``D < skin``."""
+        candidates (``>= search_radius`` apart when they were built) is still beyond the
+        largest selection radius while ``D < skin``."""
         if not self._have_candidates or self.skin <= 0.0 or x.shape[0] != self.particle_count:
+            return False
+        if F is not None and (self._stretch < MAX_STRETCH and self._largest_stretch(F) > self._stretch):
             return False
         self._bounds.fill_(-np.inf)
         c = self._centre
@@ -426,8 +523,10 @@ class NeighborSearch:
         self._centre = tuple(0.5 * (b[:3] - b[3:6]))
         return spread < SKIN_SAFETY * self.skin
 
-    def _select(self, x, body, nbr, nbr_d2, count, guard, sph=None):
-        """``sph``: None, or (mass, material, rest_density, materials, rho, p, vol)."""
+    def _select(self, x, body, nbr, nbr_d2, count, guard, sph=None, F=None, counters=None, cut_index=0):
+        """``sph``: None, or (mass, material, rest_density, materials, rho, p, vol); ``F``:
+        None (rows within h) or the deformation gradients the rows must cover
+        (``select_neighbors``); ``counters[cut_index]`` counts the rows that may be short."""
         d = self._dummy_arrays()
         if sph is None:
             mass, material, rest_density, mats, rho, p, vol = d["s"], d["i"], d["s"], d["mat"], d["s"], d["s"], d["s"]
@@ -440,8 +539,9 @@ class NeighborSearch:
             [
                 x, body, mass, self.candidates, self.candidate_count, self.scalar(self.h), self.min_neighbors,
                 self.scalar(self.max_condition), int(with_guard), int(sph is not None), material, rest_density, mats,
+                d["F"] if F is None else F, int(F is not None), self.scalar(self._stretch), int(cut_index),
             ],
-            [nbr, nbr_d2, count, guard if with_guard else d["i"], rho, p, vol],
+            [nbr, nbr_d2, count, guard if with_guard else d["i"], rho, p, vol, d["c"] if counters is None else counters],
             device=self.device,
             record_tape=False,
         )
@@ -453,22 +553,27 @@ class NeighborSearch:
                 "s": wp.zeros(1, dtype=self.scalar, device=self.device),
                 "i": wp.zeros(1, dtype=wp.int32, device=self.device),
                 "mat": materials.make(self.scalar, self.device),
+                "F": wp.zeros(1, dtype=type_set(self.scalar).mat33, device=self.device),
+                "c": wp.zeros(1, dtype=wp.int32, device=self.device),
             }
         return self._dummies
 
-    def build(self, x: wp.array, body: wp.array, nbr, nbr_d2, count, guard, sph=None):
+    def build(self, x: wp.array, body: wp.array, nbr, nbr_d2, count, guard, sph=None, **stretch):
         """A fresh search at ``x`` (the candidates are rebuilt). ``guard`` may be None
-        (not evaluated); ``sph``, see ``update``."""
-        self._build_candidates(x, body)
-        self._select(x, body, nbr, nbr_d2, count, guard, sph)
+        (not evaluated); ``sph`` and ``stretch``, see ``update``."""
+        self._build_candidates(x, body, stretch.get("F"))
+        self._select(x, body, nbr, nbr_d2, count, guard, sph, **stretch)
 
-    def update(self, x: wp.array, body: wp.array, nbr, nbr_d2, count, guard, sph=None):
+    def update(self, x: wp.array, body: wp.array, nbr, nbr_d2, count, guard, sph=None, **stretch):
         """The same lists as ``build``, reusing the candidates while they are complete.
 
         With ``sph = (mass, material, rest_density, materials, rho, p, vol)`` (``materials``:
         the ``sim.materials`` struct), also writes the SPH density ``rho`` over the new lists, the pressure
-        ``p`` and the volume ``vol = mass / rho`` (not recorded on a tape)."""
+        ``p`` and the volume ``vol = mass / rho`` (not recorded on a tape). With ``F=`` (the
+        deformation gradients at ``x``) the rows reach ``h sigma_max(F)``; with
+        ``counters=, cut_index=`` rows that may be short are counted (``select_neighbors``)."""
         self.updates += 1
-        if not self.candidates_valid(x):
-            self._build_candidates(x, body)
-        self._select(x, body, nbr, nbr_d2, count, guard, sph)
+        F = stretch.get("F")
+        if not self.candidates_valid(x, F):
+            self._build_candidates(x, body, F)
+        self._select(x, body, nbr, nbr_d2, count, guard, sph, **stretch)

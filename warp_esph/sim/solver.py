@@ -16,7 +16,11 @@ from .. import checks
 from ..model import Model, State
 from . import comparison, deformation, fields, forces, fused, integrate, neighbors, plasticity, pressure
 
-GUARD_NAMES = ("few_neighbors", "ill_conditioned", "inverted", "plasticity_skipped")
+GUARD_NAMES = ("few_neighbors", "ill_conditioned", "inverted", "plasticity_skipped", "neighbors_cut")
+#: Index of ``neighbors_cut``: particle-steps whose neighbour row may lack a neighbour of
+#: non-zero weight (the row width ``Model.max_neighbors`` reached, or an elastic stretch
+#: beyond ``neighbors.MAX_STRETCH``). Each is a possible jump of the loss.
+COUNT_NEIGHBORS_CUT = 4
 
 #: Default Verlet skin of the neighbour candidates, in units of the support radius
 #: (measured in benchmarks/step.py, docs/performance.md).
@@ -106,7 +110,24 @@ class Solver:
         if self._cmp:
             model.rest_neighbors()
         self._warned_dt = set()
+        self._warned_cut = False
         self.step_count = 0
+
+    def _warn_cut(self):
+        # One small read per step until the first cut (the Verlet check reads too).
+        if int(self.scratch.counters.numpy()[COUNT_NEIGHBORS_CUT]) > 0:
+            self._warned_cut = True
+            m = self.model
+            warnings.warn(
+                f"a neighbour row was cut: more than max_neighbors = {m.max_neighbors} particles within the "
+                f"selection radius, or an elastic stretch above {neighbors.MAX_STRETCH:g}; the step is "
+                f"then not smooth in the parameters (gradients may disagree with finite differences). "
+                f"Raise max_neighbors (default for this support radius: "
+                f"{neighbors.default_max_neighbors(m.support_radius / m.spacing)}); "
+                f"Solver.guard_counts()['neighbors_cut'] counts these particle-steps",
+                RuntimeWarning,
+                stacklevel=3,
+            )
 
     def _phase(self, name: str):
         return _NO_PHASE if self.phase_times is None else self._timed_phase(name)
@@ -166,7 +187,10 @@ class Solver:
                 None if fast else state_out.guard,
                 (m.particle_mass, m.particle_material, m.particle_rest_density, m.material_arrays(),
                  state_out.density, scratch.pressure, scratch.sph_volume) if fast and sph else None,
+                F=state_in.F, counters=scratch.counters, cut_index=COUNT_NEIGHBORS_CUT,
             )
+            if not self._warned_cut:
+                self._warn_cut()
         state_out.force.zero_()
 
         if fast:
