@@ -58,7 +58,7 @@ class SceneBuilder:
     radius h (default 2 dx); ``gravity`` in m/s^2 (Y is up, as in Warp's assets and USD).
 
     ``max_neighbors`` is the width of a neighbour row. The default (None) is
-    ``neighbors.default_max_neighbors(h / dx)`` (64 at h = 2 dx, 160 at 2.5 dx), wide enough
+    ``neighbors.default_max_neighbors(h / dx)`` (96 at h = 2 dx, 240 at 2.5 dx), wide enough
     that no row is cut in practice, so the loss is smooth in the parameters; ``"paper"``
     is the paper's 30 nearest (``PAPER_MAX_NEIGHBORS``). A row that is cut is counted in
     ``Solver.guard_counts()["neighbors_cut"]`` (docs/method.md §1).

@@ -67,7 +67,7 @@ MAX_STRETCH = 2.0
 TYPICAL_STRETCH = 1.1
 #: The interior lattice neighbour counts are scaled by this for the default row width
 #: (``default_max_neighbors``): room for compression, so the cap never binds in practice.
-DEFAULT_CAP_FACTOR = 2.0
+DEFAULT_CAP_FACTOR = 3.0
 #: The paper's neighbour count ("up to 30 neighbours", paper §4).
 PAPER_MAX_NEIGHBORS = 30
 
@@ -84,7 +84,7 @@ def lattice_neighbor_count(radius_over_spacing: float) -> int:
 
 def default_max_neighbors(support_over_spacing: float) -> int:
     """Default row width: ``DEFAULT_CAP_FACTOR`` times the lattice count within the largest
-    selection radius ``TYPICAL_STRETCH h``, rounded up to 8 (64 at h = 2 dx, 160 at 2.5 dx)."""
+    selection radius ``TYPICAL_STRETCH h``, rounded up to 8 (96 at h = 2 dx, 240 at 2.5 dx)."""
     n = DEFAULT_CAP_FACTOR * lattice_neighbor_count(TYPICAL_STRETCH * float(support_over_spacing))
     return int(8 * math.ceil(n / 8))
 
