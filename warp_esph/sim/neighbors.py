@@ -57,10 +57,10 @@ MAX_CANDIDATES = 4096
 #: The selection radius of a particle is ``h sigma_max(F)`` (``select_neighbors``): the
 #: elastic kernel is evaluated at ``F^-1 (x_j - x_i)`` (eq. 11), so a pair closer than
 #: ``h`` in the reference space can be up to ``sigma_max(F) h`` apart now, and a row cut
-#: at ``h`` would drop it while its force is not zero (a jump in the loss). The
-#: candidates are searched within ``h s + skin`` with ``s`` the largest stretch at the
-#: build times STRETCH_SLACK (so a growing stretch does not rebuild every step), at
-#: most MAX_STRETCH; they are rebuilt when a stretch exceeds ``s``.
+#: at ``h`` would drop it while its force is not zero (a jump in the loss). Each
+#: particle's candidates are searched within ``h s_i + skin`` with ``s_i`` its stretch
+#: bound at the build times STRETCH_SLACK (so a growing stretch does not rebuild every
+#: step), at most MAX_STRETCH; they are rebuilt when a stretch bound exceeds its ``s_i``.
 STRETCH_SLACK = 1.05
 MAX_STRETCH = 2.0
 #: Stretch assumed for the default row width (``default_max_neighbors``).
@@ -129,12 +129,13 @@ def kernels(scalar) -> types.SimpleNamespace:
             g = wp.max(g, wp.abs(C[row, 0]) + wp.abs(C[row, 1]) + wp.abs(C[row, 2]))
         return g
 
-    @wp.kernel(enable_backward=False)
-    def max_stretch2(F: wp.array(dtype=mat33), out: wp.array(dtype=scalar)):
-        """out[0] = max over particles of ``stretch_bound2``."""
-        g = stretch_bound2(F[wp.tid()])
-        if g > out[0]:
-            wp.atomic_max(out, 0, g)
+    @wp.func
+    def candidate_stretch(F: mat33, with_stretch: int, slack: scalar, max_stretch: scalar) -> scalar:
+        """The stretch ``s_i`` a particle's candidates cover (1 without ``with_stretch``)."""
+        st = scalar(1.0)
+        if with_stretch != 0:
+            st = wp.min(max_stretch, wp.max(scalar(1.0), wp.sqrt(stretch_bound2(F))) * slack)
+        return st
 
     @wp.func
     def key_greater(da: scalar, ja: int, db: scalar, jb: int) -> bool:
@@ -174,20 +175,31 @@ def kernels(scalar) -> types.SimpleNamespace:
         grid: wp.uint64,
         grid_points: wp.array(dtype=wp.vec3f),
         x: wp.array(dtype=vec3),
-        radius: scalar,
+        h: scalar,
+        skin: scalar,
+        F: wp.array(dtype=mat33),
+        with_stretch: int,
+        slack: scalar,
+        max_stretch: scalar,
         body: wp.array(dtype=wp.int32),
         same_body: int,
         cand: wp.array2d(dtype=wp.int32),
         cand_count: wp.array(dtype=wp.int32),
         overflow: wp.array(dtype=wp.int32),
         x_ref: wp.array(dtype=vec3),
+        cand_stretch: wp.array(dtype=scalar),
     ):
-        """Every ``j != i`` with ``|x_j - x_i| < radius`` (of ``i``'s body only, with
-        ``same_body``), sorted by index."""
+        """Every ``j != i`` with ``|x_j - x_i| < h s_i + skin`` (of ``i``'s body only, with
+        ``same_body``), sorted by index; ``s_i`` (``candidate_stretch``) goes to ``cand_stretch``."""
         i = wp.tid()
         xi = x[i]
         bi = body[i]
         cap = cand.shape[1]
+        st = scalar(1.0)
+        if with_stretch != 0:
+            st = candidate_stretch(F[i], with_stretch, slack, max_stretch)
+        cand_stretch[i] = st
+        radius = h * st + skin
         r2 = radius * radius
         n = int(0)
         # The float32 query box is padded a little: the exact test below decides.
@@ -218,10 +230,24 @@ def kernels(scalar) -> types.SimpleNamespace:
         x_ref[i] = xi
 
     @wp.kernel(enable_backward=False)
-    def displacement_bounds(x: wp.array(dtype=vec3), x_ref: wp.array(dtype=vec3), c: vec3, out: wp.array(dtype=scalar)):
+    def displacement_bounds(
+        x: wp.array(dtype=vec3),
+        x_ref: wp.array(dtype=vec3),
+        c: vec3,
+        F: wp.array(dtype=mat33),
+        with_stretch: int,
+        max_stretch: scalar,
+        cand_stretch: wp.array(dtype=scalar),
+        out: wp.array(dtype=scalar),
+    ):
         """For the displacements d = x - x_ref: out[k] = max d_k, out[k + 3] = max -d_k,
-        out[6] = max |d - c|^2 for a given centre c."""
+        out[6] = max |d - c|^2 for a given centre c; with ``with_stretch``, out[7] = 1
+        where a stretch bound exceeds what the particle's candidates cover."""
         i = wp.tid()
+        if with_stretch != 0:
+            st = cand_stretch[i]
+            if st < max_stretch and stretch_bound2(F[i]) > st * st:
+                out[7] = scalar(1.0)
         d = x[i] - x_ref[i]
         for k in range(3):
             if d[k] > out[k]:
@@ -250,7 +276,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         mat: Materials,
         F: wp.array(dtype=mat33),
         with_stretch: int,
-        stretch_margin: scalar,
+        cand_stretch: wp.array(dtype=scalar),
         cut_index: int,
         nbr: wp.array2d(dtype=wp.int32),
         nbr_d2: wp.array2d(dtype=scalar),
@@ -265,7 +291,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         ``with_density`` the SPH density ``rho``, pressure ``p`` and volume ``m / rho``.
 
         With ``with_stretch`` the rows hold every particle within ``h sigma_max(F_i)``
-        (at most ``stretch_margin h``, the candidates' reach), so a pair enters or leaves a row only where every
+        (at most ``cand_stretch[i] h``, the candidates' reach), so a pair enters or leaves a row only where every
         kernel of the step, the elastic one at ``F_i^-1 (x_j - x_i)`` included, is zero.
         A particle whose row may lack a neighbour of non-zero weight (the row width
         reached, or a stretch beyond the margin) is counted in ``counters[cut_index]``."""
@@ -278,7 +304,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         cut = int(0)
         if with_stretch != 0:
             g = stretch_bound2(F[i])
-            m2 = stretch_margin * stretch_margin
+            m2 = cand_stretch[i] * cand_stretch[i]
             if g > m2:
                 cut = 1
                 g = m2
@@ -368,7 +394,6 @@ def kernels(scalar) -> types.SimpleNamespace:
         grid_points=grid_points,
         build_candidates=build_candidates,
         displacement_bounds=displacement_bounds,
-        max_stretch2=max_stretch2,
         select_neighbors=select_neighbors,
         guard_code=guard_code,
     )
@@ -415,12 +440,12 @@ class NeighborSearch:
         self.candidate_count = wp.zeros(particle_count, dtype=wp.int32, device=device)
         self._x_ref = wp.zeros(particle_count, dtype=type_set(scalar).vec3, device=device)
         self._overflow = wp.zeros(1, dtype=wp.int32, device=device)
-        self._bounds = wp.zeros(7, dtype=scalar, device=device)
+        self._bounds = wp.zeros(8, dtype=scalar, device=device)
         self._centre = (0.0, 0.0, 0.0)
         self._have_candidates = False
-        #: Stretch the candidates cover (STRETCH_SLACK); 1 until built with an F.
-        self._stretch = 1.0
-        self._stretch2 = wp.zeros(1, dtype=scalar, device=device)
+        # Per particle: the stretch its candidates cover (candidate_stretch).
+        self._cand_stretch = wp.ones(particle_count, dtype=scalar, device=device)
+        self._cand_with_stretch = False
         self.rebuilds = 0
         self.updates = 0
 
@@ -428,10 +453,6 @@ class NeighborSearch:
     def capacity(self) -> int:
         return self._capacity
 
-    @property
-    def search_radius(self) -> float:
-        """Radius of the candidate search: the largest selection radius plus the skin."""
-        return self.h * self._stretch + self.skin
 
     def _ensure_grid(self, x: wp.array):
         # Cells of a bit under half the search radius: about one particle each, so a
@@ -440,7 +461,7 @@ class NeighborSearch:
         # (with room to spread); cell aliasing of the periodic grid later costs time,
         # not correctness (every candidate is distance-filtered).
         if self._grid_dims is None:
-            self.cell_width = CELL_FRACTION * self.search_radius
+            self.cell_width = CELL_FRACTION * (self.h + self.skin)
             xs = x.numpy()
             extent = xs.max(axis=0) - xs.min(axis=0) if len(xs) else np.zeros(3)
             extent = np.where(np.isfinite(extent), extent, 0.0)
@@ -453,22 +474,11 @@ class NeighborSearch:
             self._grid_dims = tuple(dims)
             self.grid = wp.HashGrid(*self._grid_dims, device=self.device)
 
-    def _largest_stretch(self, F) -> float:
-        """An upper bound of the largest sigma_max(F) over the particles (1 without F)."""
-        if F is None:
-            return 1.0
-        self._stretch2.zero_()
-        wp.launch(self.kernels.max_stretch2, F.shape[0], [F], [self._stretch2], device=self.device, record_tape=False)
-        g = float(self._stretch2.numpy()[0])
-        return math.sqrt(g) if math.isfinite(g) else math.inf
-
     def _build_candidates(self, x: wp.array, body: wp.array, F=None):
-        self._stretch = min(MAX_STRETCH, max(1.0, self._largest_stretch(F)) * STRETCH_SLACK) if F is not None else 1.0
         self._ensure_grid(x)
         n = x.shape[0]
         wp.launch(self.kernels.grid_points, n, [x], [self._points], device=self.device, record_tape=False)
         points = self._points
-        radius = self.search_radius
         self.grid.build(points, self.cell_width)
         while True:
             if self.candidates is None or self.candidates.shape[1] != self._capacity:
@@ -477,8 +487,12 @@ class NeighborSearch:
             wp.launch(
                 self.kernels.build_candidates,
                 n,
-                [self.grid.id, points, x, self.scalar(radius), body, int(not self.bodies_interact)],
-                [self.candidates, self.candidate_count, self._overflow, self._x_ref],
+                [
+                    self.grid.id, points, x, self.scalar(self.h), self.scalar(self.skin),
+                    self._dummy_arrays()["F"] if F is None else F, int(F is not None), self.scalar(STRETCH_SLACK),
+                    self.scalar(MAX_STRETCH), body, int(not self.bodies_interact),
+                ],
+                [self.candidates, self.candidate_count, self._overflow, self._x_ref, self._cand_stretch],
                 device=self.device,
                 record_tape=False,
             )
@@ -487,11 +501,12 @@ class NeighborSearch:
                 break
             if need > MAX_CANDIDATES:
                 raise RuntimeError(
-                    f"a particle has {need} particles within h + skin = {radius:g}: more than {MAX_CANDIDATES}; "
+                    f"a particle has {need} particles within h s + skin = {self.h:g} s + {self.skin:g}: more than {MAX_CANDIDATES}; "
                     "the body has collapsed (reduce dt)"
                 )
             self._capacity = int(8 * math.ceil(1.25 * need / 8))
         self._have_candidates = True
+        self._cand_with_stretch = F is not None
         self._centre = (0.0, 0.0, 0.0)
         self.rebuilds += 1
 
@@ -502,19 +517,26 @@ class NeighborSearch:
         Two particles moved relative to each other by at most ``D``, the smaller of the
         diagonal of the displacements' bounding box and twice their largest distance from
         any fixed point ``c`` (the box centre at the previous check): a pair not among the
-        candidates (``>= search_radius`` apart when they were built) is still beyond the
-        largest selection radius while ``D < skin``."""
+        candidates (``>= h s_i + skin`` apart when they were built) is still beyond the
+        selection radius ``h sigma_max(F_i) <= h s_i`` while ``D < skin``."""
         if not self._have_candidates or self.skin <= 0.0 or x.shape[0] != self.particle_count:
             return False
-        if F is not None and (self._stretch < MAX_STRETCH and self._largest_stretch(F) > self._stretch):
+        if F is not None and not self._cand_with_stretch:
             return False
         self._bounds.fill_(-np.inf)
         c = self._centre
         wp.launch(
-            self.kernels.displacement_bounds, x.shape[0], [x, self._x_ref, type_set(self.scalar).vec3(*c)], [self._bounds],
-            device=self.device, record_tape=False,
+            self.kernels.displacement_bounds, x.shape[0],
+            [
+                x, self._x_ref, type_set(self.scalar).vec3(*c), self._dummy_arrays()["F"] if F is None else F,
+                int(F is not None), self.scalar(MAX_STRETCH), self._cand_stretch,
+            ],
+            [self._bounds], device=self.device, record_tape=False,
         )
         b = self._bounds.numpy().astype(np.float64)
+        if b[7] > 0.0:
+            return False
+        b = b[:7]
         if not np.isfinite(b).all():
             return False
         width = b[:3] + b[3:6]
@@ -539,7 +561,7 @@ class NeighborSearch:
             [
                 x, body, mass, self.candidates, self.candidate_count, self.scalar(self.h), self.min_neighbors,
                 self.scalar(self.max_condition), int(with_guard), int(sph is not None), material, rest_density, mats,
-                d["F"] if F is None else F, int(F is not None), self.scalar(self._stretch), int(cut_index),
+                d["F"] if F is None else F, int(F is not None), self._cand_stretch, int(cut_index),
             ],
             [nbr, nbr_d2, count, guard if with_guard else d["i"], rho, p, vol, d["c"] if counters is None else counters],
             device=self.device,
