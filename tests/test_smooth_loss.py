@@ -3,8 +3,10 @@
 A neighbour enters or leaves a row only where every kernel of the step is zero: the rows
 reach ``h sigma_max(F)`` (the elastic kernel is evaluated at ``F^-1 (x_j - x_i)``, eq. 11)
 and are wide enough that no row is cut. Central differences at a relative step of 1e-4
-then match the float64 tape in a flowing scene, at h = 2 dx and at h = 2.5 dx (where the
-paper's 30-neighbour cap would choose 30 of up to ~90 candidates)."""
+then match the float64 tape in a flowing scene of 640 particles, at h = 2 dx and at
+h = 2.5 dx (where rows hold up to ~100 particles). With the paper's rows (the 30 nearest
+within h) the same check failed by 12-31 % (mu, lam) at 2 dx and 51-70 % (mu, lam,
+flow_rate, viscosity) at 2.5 dx."""
 
 import numpy as np
 import pytest
@@ -12,7 +14,7 @@ import warp as wp
 
 import warp_esph as we
 
-STEPS = 30
+STEPS = 50
 DT = 1.0e-3
 DX = 0.02
 PARAMS = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "hardening": 200.0,
@@ -22,7 +24,7 @@ PARAMS = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "h
 def _model(h_over_dx, params=None, **builder):
     p = dict(PARAMS, **(params or {}))
     b = we.SceneBuilder(spacing=DX, support_radius=h_over_dx * DX, **builder)
-    b.add_box((0.0, 0.0, 0.0), (8 * DX, 6 * DX, 6 * DX), we.Material(density=1000.0, **p))
+    b.add_box((0.0, 0.0, 0.0), (10 * DX, 8 * DX, 8 * DX), we.Material(density=1000.0, **p))
     model = b.finalize(dtype=wp.float64, requires_grad=True)
     # A jittered lattice (no exact distance ties) stretched along x and squeezed along y
     # fast enough that the elastic part of F grows well past yield while it flows.
@@ -59,7 +61,7 @@ def _loss(model, grad_of=None):
 def test_loss_is_smooth_in_the_parameters(h_over_dx, name):
     _, grad, solver, states = _loss(_model(h_over_dx), grad_of=name)
     assert solver.guard_counts()["neighbors_cut"] == 0
-    assert states[-1].alpha.numpy().max() > 0.05, "the block flows"
+    assert states[-1].alpha.numpy().max() > 0.2, "the block flows"
     base = PARAMS[name]
     eps = 1e-4 * base
     fd = (_loss(_model(h_over_dx, {name: base + eps}))[0] - _loss(_model(h_over_dx, {name: base - eps}))[0]) / (2 * eps)
@@ -75,7 +77,7 @@ def test_rows_cover_the_stretched_elastic_support():
     _, _, solver, states = _loss(model)
     h = model.support_radius
     seen_beyond_h = 0
-    for k in (10, 20, 30):
+    for k in (10, 30, 50):
         x, F = states[k - 1].x.numpy(), states[k - 1].F.numpy()
         nbr, cnt = states[k].neighbors.numpy(), states[k].neighbor_count.numpy()
         for i in range(model.particle_count):
