@@ -1,5 +1,14 @@
-"""Neighbour lists (paper §4, docs/method.md §1.1): the up-to-30 nearest particles ``j != i`` with
-``|x_j - x_i| < h``, stored as a fixed-width int32 row plus a count.
+"""Neighbour lists (paper §4, docs/method.md §1): the particles ``j != i`` with
+``|x_j - x_i| < h sigma_max(F_i)``, the nearest ``max_neighbors`` of them where there are
+more, stored as a fixed-width int32 row plus a count.
+
+Rows reach ``h sigma_max(F_i)`` (an upper bound of it) because the elastic kernel is
+evaluated at ``F_i^-1 (x_j - x_i)`` (eq. 11): a pair then enters or leaves a row only
+where every kernel of the step is zero, and the loss is continuous in the parameters.
+The default width (``default_max_neighbors``) leaves room for compression, so rows are
+not cut in practice; a row that may be short of a weighted neighbour is counted
+(``Solver.guard_counts()["neighbors_cut"]``). The paper's "up to 30 neighbours" is
+``PAPER_MAX_NEIGHBORS``.
 
 The lists are integers: they are recorded once per step and reused unchanged by the
 backward pass, so the tape never queries a hash grid (docs/method.md, Warp pitfall 3). The
@@ -10,23 +19,25 @@ density of the forward-only step.
 
 Two stages (a Verlet list with a skin):
 
-1. ``build_candidates``: ``wp.HashGrid`` query of every particle within ``h + skin``,
-   stored as an int32 row sorted by particle index, together with the positions it was
-   built from. Only done when needed.
-2. ``select_neighbors``, every step: the particles within ``h`` among the candidates;
-   where there are more than 30, the 30 smallest keys ``(|x_j - x_i|², j)`` (nearest
-   first, ties to the lower index). Rows are written in index order.
+1. ``build_candidates``: ``wp.HashGrid`` query of every particle within ``h s_i + skin``
+   (``s_i`` the particle's stretch bound, ``candidate_stretch``), stored as an int32 row
+   sorted by particle index, together with the positions it was built from. Only done
+   when needed.
+2. ``select_neighbors``, every step: the particles within ``h sigma_max(F_i)`` among the
+   candidates; where there are more than the row width, the smallest keys
+   ``(|x_j - x_i|², j)`` (nearest first, ties to the lower index). Rows are written in
+   index order.
 
 The candidates stay complete while every pair has moved by less than ``skin`` relative
 to each other since they were built: ``NeighborSearch.update`` checks a bound on that
 (from the bounding box of the displacements, so a body translating as a whole never
-forces a rebuild) and rebuilds otherwise. Since the selection and its order depend
+forces a rebuild) and that no stretch bound grew past its ``s_i``, and rebuilds otherwise. Since the selection and its order depend
 only on the current distances and indices, the lists are then exactly those of a
 fresh search: the skin changes the cost, never the result (so a run resumed from a
 checkpoint with a new solver is bit-identical). ``skin = 0`` searches afresh every
 step.
 
-Ties at the 30-neighbour cap go to the lower index. (Before, rows were sorted by
+Ties at a full row go to the lower index. (Before, rows were sorted by
 distance with ties in hash-grid arrival order, which depended on the grid resolution
 and device.)
 """

@@ -65,9 +65,12 @@ class Solver:
 
     ``neighbor_skin`` (in units of the support radius ``h``, in [0, 1]; default
     ``DEFAULT_SKIN``) is the Verlet margin of the neighbour candidates: they are rebuilt only when two
-    particles may have moved by more than it relative to each other, and the 30
-    nearest within ``h`` are selected from them every step, so the lists are those of
-    a fresh search (``0``: search afresh every step). ``fused`` (default on) runs the
+    particles may have moved by more than it relative to each other, and the rows
+    (every particle within ``h sigma_max(F)``, the nearest ``Model.max_neighbors`` where
+    there are more) are selected from them every step, so the lists are those of a fresh
+    search (``0``: search afresh every step). ``guard_counts()["neighbors_cut"]`` counts
+    the particle-steps whose row may lack a neighbour of non-zero weight (docs/method.md §1);
+    the first one is warned about. ``fused`` (default on) runs the
     constitutive update and all pair forces in one kernel with one SVD per particle
     when no ``wp.Tape`` is recording; under a tape the differentiable kernels run.
 
