@@ -293,6 +293,10 @@ class Loss:
         self._copies = {}
         self._subsets = {}
         self._keep = []  # grids and meshes used by the last evaluation
+        self._counts: dict[int, int] = {}  # points used per frame at the last evaluation
+        #: Observation noise of this loss's residuals for ``warp_esph.diagnostics`` (None:
+        #: the noise given there).
+        self.noise = None
 
     # -------------------------------------------------------------- interface
     def _launch(self, frame: int, x: wp.array, out: wp.array, scale: float):
@@ -322,6 +326,7 @@ class Loss:
             return
         xs = self._prepare_x(frame, x)
         self._check(frame, xs)
+        self._counts[frame] = xs.shape[0]
         self._launch(frame, xs, out, scale * self.weight / len(self.frames))
 
     def _accumulator(self, x: wp.array) -> wp.array:
@@ -364,6 +369,21 @@ class Loss:
 
     def value(self, positions: Mapping[int, wp.array]) -> float:
         return self.value_and_grad(positions)[0]
+
+    # ------------------------------------------------------------ statistics
+    def _points_per_frame(self) -> float:
+        if not self._counts:
+            raise RuntimeError(f"{self!r}: evaluate the loss once before asking for its residual counts")
+        return float(np.mean([self._counts[f] for f in self.frames if f in self._counts]))
+
+    def residual_scale(self) -> float:
+        """``c`` with ``c * value = the sum of the squared residuals`` (m^2), for
+        ``warp_esph.diagnostics``: the loss is ``weight`` times a mean over frames and points."""
+        return len(self.frames) * self._points_per_frame() / self.weight
+
+    def observation_count(self) -> int:
+        """Scalar observations behind the loss (for the residual RMS)."""
+        return int(round(len(self.frames) * self._points_per_frame()))
 
     def __call__(self, positions):
         """``value`` of ``{step: positions}`` (Warp arrays or numpy ``(n, 3)`` arrays)."""
@@ -441,6 +461,20 @@ class PositionLoss(Loss):
             self._wp_targets[key] = t
         S = _scalar_of(x)
         wp.launch(_kernels(S).squared_distance, x.shape[0], [x, t, S(scale / x.shape[0])], [out], device=x.device)
+
+    def observation_count(self) -> int:
+        return 3 * super().observation_count()
+
+    def residuals(self, positions: Mapping[int, np.ndarray]) -> np.ndarray:
+        """The residual vector ``r`` (``sum r^2 = residual_scale() * value``): every
+        coordinate of ``x_i - target_i`` at every frame, from numpy ``{step: (n, 3)}``."""
+        out = []
+        for f in self.frames:
+            x = np.asarray(positions[f], dtype=np.float64)
+            if self.particles is not None:
+                x = x[self.particles]
+            out.append((x - self.targets[f]).ravel())
+        return np.concatenate(out)
 
     def __repr__(self):
         return f"PositionLoss(frames={list(self.frames)}, weight={self.weight:g})"
@@ -522,6 +556,16 @@ class ChamferLoss(Loss):
         wp.launch(k.nearest_term, m, [y, x, s.idx_y, r2, S(scale / m)], [out], device=dev)
         um = s.unmatched.numpy()
         self.unmatched[frame] = (int(um[0]), int(um[1]))
+
+    def residual_scale(self) -> float:
+        # mean_i d_i^2 + mean_j d_j^2: with n particles and m target points, (n + m) / 2
+        # points per frame give the same sum when every residual is alike.
+        m = float(np.mean([len(self.targets[f]) for f in self.frames]))
+        return len(self.frames) * 0.5 * (self._points_per_frame() + m) / self.weight
+
+    def observation_count(self) -> int:
+        m = float(np.mean([len(self.targets[f]) for f in self.frames]))
+        return int(round(len(self.frames) * (self._points_per_frame() + m)))
 
     def __repr__(self):
         return f"ChamferLoss(frames={list(self.frames)}, radius={self.radius:g}, weight={self.weight:g})"
