@@ -850,10 +850,44 @@ class Target:
     frames: list[int] | None
     fps: float | None
     path: str
+    #: The body whose particles ``data`` holds (a run's USD read for one body), or None: all.
+    body: str | None = None
+
+    def particles(self, model: Model) -> np.ndarray | None:
+        """Indices of the model's particles this target observes (None: all)."""
+        if self.body is None:
+            return None
+        names = [b.name for b in model.bodies]
+        try:
+            from .usd import body_prim_names  # noqa: PLC0415
+
+            prims = body_prim_names(model)
+        except ImportError:
+            prims = names
+        if self.body in names:
+            b = model.bodies[names.index(self.body)]
+        elif self.body in prims:
+            b = model.bodies[prims.index(self.body)]
+        else:
+            raise ValueError(f"target body {self.body!r} is not allowed: the scene's bodies are {', '.join(names)}")
+        return np.arange(b.start, b.start + b.count)
 
     def loss(self, model: Model, frame_steps: Mapping[int, int], radius: float | None = None, mode: str = "surface") -> Loss:
         """The loss for ``model``: ``frame_steps`` maps each rendered frame to its step."""
         steps = [frame_steps[f] for f in sorted(frame_steps)]
+        if self.kind == "positions" and self.body is not None:
+            idx = self.particles(model)
+            pos = np.asarray(self.data)
+            if pos.shape[1] != len(idx):
+                raise ValueError(f"target {self.path} has {pos.shape[1]} particles of body {self.body!r} per frame, the scene "
+                                 f"{len(idx)}: use the scene and --scale the run was made with")
+            keep = [k for k, f in enumerate(self.frames) if f != 0]
+            if not keep:
+                raise ValueError(f"target {self.path} holds only frame 0 (the initial state), which says nothing about the material")
+            return PositionLoss({frame_steps[self.frames[k]]: pos[k] for k in keep}, particles=idx)
+        if self.kind == "positions" and np.asarray(self.data).shape[0] == 1 and np.asarray(self.data).shape[1] != model.particle_count:
+            # One (M, 3) array of another size: a point cloud, not particle positions.
+            self.kind, self.data = "points", np.asarray(self.data)[0]
         if self.kind == "positions":
             pos = np.asarray(self.data)
             if pos.shape[1] != model.particle_count:
@@ -890,8 +924,13 @@ def save_target(path, positions, frames: Sequence[int], fps: float | None = None
     np.savez_compressed(path, positions=positions, frames=np.asarray(frames, dtype=np.int64), **extra)
 
 
-def load_target(path) -> Target:
+def load_target(path, body: str | None = None, frames=None) -> Target:
     """Read a target file.
+
+    - the ``.usd/.usda/.usdc`` of a previous ``warp-esph run`` (``UsdGeom.Points`` under
+      ``/World``): particle positions per rendered frame; ``body`` (a body or prim name)
+      keeps one body's particles, ``frames`` (``all``, ``2,4,6``, ``10:60:10``, ...; default
+      every frame after the first) chooses frames. Any other USD file is read as a mesh.
 
     - ``.npz``: ``positions`` ``(K, n, 3)`` (or ``(n, 3)``), optional ``frames`` (rendered
       frame indices; default 0..K-1) and ``fps``.
@@ -939,6 +978,9 @@ def load_target(path) -> Target:
             raise ValueError(f"target {p} cannot be read as a point cloud: {e}") from None
         return Target("points", pts, None, None, p)
     if ext in (".usd", ".usda", ".usdc"):
+        run = _usd_run_target(p, body, frames)
+        if run is not None:
+            return run
         from .meshes import load_mesh  # noqa: PLC0415
 
         return Target("mesh", load_mesh(p), None, None, p)
@@ -954,6 +996,32 @@ def load_target(path) -> Target:
 
         return Target("mesh", load_mesh(p), None, None, p)
     return Target("points", np.asarray(m.points, dtype=np.float64)[:, :3], None, None, p)
+
+
+def _usd_run_target(path: str, body, frames) -> Target | None:
+    """Positions from a ``warp-esph run`` USD file, or None when the file is not one."""
+    try:
+        from .render import UsdFrames, parse_frames  # noqa: PLC0415
+    except ImportError:
+        return None
+    try:
+        data = UsdFrames(path)
+    except ValueError:
+        return None  # no particles: a mesh file
+    names = [n for n, _ in data.bodies]
+    if body is not None and body not in names:
+        raise ValueError(f"--target-body {body!r} is not allowed: {path} holds bodies {', '.join(names)}")
+    chosen = parse_frames(frames, data.frames) if frames is not None else [f for f in data.frames if f != data.frames[0]]
+    if not chosen:
+        raise ValueError(f"target {path} holds only frame {data.frames[0]}, which says nothing about the material")
+    pos = []
+    for f in chosen:
+        a = data.arrays(f)
+        pts = a["points"].astype(np.float64)
+        if body is not None:
+            pts = pts[a["body"] == names.index(body)]
+        pos.append(pts)
+    return Target("positions", np.stack(pos), list(chosen), data.fps, path, body=body)
 
 
 # --------------------------------------------------------------------------- CLI

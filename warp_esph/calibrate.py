@@ -1,0 +1,272 @@
+"""The ``warp-esph fit`` command's work: read the targets, build the model, fit, report, write.
+
+``add_calibration_arguments(parser)`` declares the options beyond the basic ones
+(optimizer, jitter, support radius, loss scale, checkpointing from memory, global stage,
+diagnostics, output folder, USD-run and silhouette targets); ``run_fit(args)`` does the
+fit from parsed arguments and writes into ``--output-dir``:
+
+- ``fit.json``: fitted parameters, materials, termination, diagnostics, history;
+- ``history.csv``: one row per evaluation (stage, loss, each parameter, seconds);
+- ``loss.png``, ``params.png``: loss and parameters per evaluation (matplotlib, Agg);
+- ``fitted.usdc``: the fitted run (when USD support is installed; not with ``--no-usd``).
+
+It prints, before the fit, the rollout's memory and checkpointing; after the first
+evaluation, the time per evaluation and the estimate for the whole fit; after it, whether
+the fit converged, stalled or hit the iteration cap, and the diagnostics table.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import sys
+
+import numpy as np
+
+from . import checks
+from .rollout import PARAMETERS
+
+__all__ = ["add_calibration_arguments", "run_fit", "write_outputs", "jitter_model", "default_optimizer"]
+
+#: Up to this many fitted values the default optimiser is L-BFGS, above it Adam.
+LBFGS_MAX_VALUES = 4
+
+
+def add_calibration_arguments(parser):
+    """Declare the calibration options of ``warp-esph fit`` on ``parser``."""
+    g = parser.add_argument_group("calibration")
+    g.add_argument("--optimizer", choices=("lbfgs", "adam"),
+                   help=f"lbfgs (default for <= {LBFGS_MAX_VALUES} fitted values) or adam (default above; with --lr, --clip)")
+    g.add_argument("--output-dir", metavar="DIR",
+                   help="folder for fit.json, history.csv, loss.png, params.png, fitted.usdc (default: fit_<scene>/ here)")
+    g.add_argument("--target-body", metavar="BODY",
+                   help="USD-run targets: observe only this body's particles (default: every particle)")
+    g.add_argument("--jitter", type=float, default=1e-3, metavar="J",
+                   help="jitter the lattice by J * spacing (normal) so no neighbour distance ties (default 0.001; 0: off)")
+    g.add_argument("--seed", type=int, default=5, help="random seed of the jitter and the global stage (default 5)")
+    g.add_argument("--support-radius", type=float, metavar="K",
+                   help="support radius in spacings (e.g. 2.5: no particle at thin features drops below the neighbour guard)")
+    g.add_argument("--loss-scale", type=float, default=1.0, metavar="K",
+                   help="multiply the loss by K (e.g. 1e6 to work in mm^2 with Adam); default 1")
+    g.add_argument("--memory-limit", type=float, default=1024.0, metavar="MB",
+                   help="with --checkpoint-every auto: a full tape when it fits in MB, else checkpoint (default 1024)")
+    g.add_argument("--samples", type=int, default=0, metavar="N",
+                   help="global first stage: N Latin-hypercube points (loss only) before gradient descent (default 0)")
+    g.add_argument("--starts", type=int, default=1, metavar="K", help="descend from the best K of the samples (default 1)")
+    g.add_argument("--sample-range", type=float, default=4.0, metavar="F",
+                   help="samples within a factor F of the guess (or --bounds); default 4")
+    g.add_argument("--patience", type=int, default=10, metavar="N",
+                   help="stop as stalled after N evaluations without a lower loss (default 10)")
+    g.add_argument("--noise", type=float, metavar="SIGMA",
+                   help="observation noise in m for the diagnostics (default: the residual RMS, at least 1%% of the spacing)")
+    g.add_argument("--no-diagnostics", action="store_true", help="skip the diagnostics (2 P + 1 extra runs for P values)")
+    g.add_argument("--cameras", metavar="CAMERAS.json",
+                   help="silhouette targets: the cameras (see docs/fitting.md); --target then names mask images")
+    return parser
+
+
+def default_optimizer(values: int) -> str:
+    return "lbfgs" if values <= LBFGS_MAX_VALUES else "adam"
+
+
+def jitter_model(model, fraction: float, seed: int):
+    """Move every particle by a normal offset of ``fraction * spacing`` and recompute the
+    rest density (a perfect lattice has exact distance ties at the support radius, which
+    make neighbour lists, and the loss, switch under tiny parameter changes)."""
+    if fraction:
+        model.particle_x0 += np.random.default_rng(seed).normal(scale=fraction * model.spacing, size=model.particle_x0.shape)
+        model.compute_rest_density()
+    return model
+
+
+def _arg(args, name, default=None):
+    return getattr(args, name, default)
+
+
+def run_fit(args, out=sys.stdout, err=sys.stderr) -> int:
+    """Run ``warp-esph fit`` from parsed ``args``; returns 0. Raises ``ValueError`` on bad input."""
+    import warp as wp  # noqa: PLC0415
+
+    from .fit import _parse_bounds, fit, load_target  # noqa: PLC0415
+    from .scenes import load_scene  # noqa: PLC0415
+    from .simulate import resolve_timestep  # noqa: PLC0415
+
+    params = [p.strip() for p in str(args.params).split(",") if p.strip()]
+    for p in params:
+        if p not in PARAMETERS:
+            raise ValueError(f"--params entry {p!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
+    scale = checks.positive("--scale", args.scale)
+    if args.iterations < 0:
+        raise ValueError(f"--iterations = {args.iterations!r} is not allowed: must be >= 0")
+    jitter = checks.non_negative("--jitter", _arg(args, "jitter", 0.0))
+    loss_scale = checks.positive("--loss-scale", _arg(args, "loss_scale", 1.0))
+    memory_limit = checks.positive("--memory-limit", _arg(args, "memory_limit", 1024.0)) * 2**20
+    bounds = _parse_bounds(args.bounds)
+    targets = args.target if isinstance(args.target, (list, tuple)) else [args.target]
+    tframes = _arg(args, "target_frames")
+    tframes = tframes if isinstance(tframes, (list, tuple)) else ([tframes] if tframes else [])
+    if len(tframes) > 1 and len(tframes) != len(targets):
+        raise ValueError(f"--target-frames is given {len(tframes)} times for {len(targets)} --target files: "
+                         f"give it once per --target, in the same order, or once for all")
+
+    scene = load_scene(args.scene, scale=scale)
+    if _arg(args, "support_radius") is not None:
+        from .builder import SUPPORT_RANGE  # noqa: PLC0415
+
+        k = checks.in_range("--support-radius", args.support_radius, *SUPPORT_RANGE)
+        scene.builder.support_radius = k * scene.builder.spacing
+    dtype = {"float32": wp.float32, "float64": wp.float64}[args.dtype]
+    model = scene.builder.finalize(device=args.device, dtype=dtype, requires_grad=True)
+    jitter_model(model, jitter, _arg(args, "seed", 5))
+
+    cameras = _arg(args, "cameras")
+    loaded = []
+    for k, path in enumerate(targets):
+        spec = tframes[k] if len(tframes) > 1 else (tframes[0] if tframes else None)
+        if cameras:
+            loaded.append(("silhouette", path, spec))
+            continue
+        ext = os.path.splitext(str(path))[1].lower()
+        usd_spec = spec if ext in (".usd", ".usda", ".usdc") else None
+        t = load_target(path, body=_arg(args, "target_body"), frames=usd_spec)
+        if spec is not None and usd_spec is None:
+            try:
+                t.frames = [int(f) for f in str(spec).split(",")]
+            except ValueError:
+                raise ValueError(f"--target-frames = {spec!r} is not allowed: use comma-separated integers") from None
+            if t.kind == "positions" and len(t.frames) != np.asarray(t.data).shape[0]:
+                raise ValueError(f"--target-frames has {len(t.frames)} entries, the target {np.asarray(t.data).shape[0]} frames")
+        loaded.append(("file", path, t))
+    file_targets = [t for kind, _, t in loaded if kind == "file"]
+    fps = args.fps if args.fps is not None else next((t.fps for t in file_targets if t.fps is not None), scene.fps)
+    substeps, dt = resolve_timestep(model, fps, dt=args.dt if args.dt is not None else scene.dt)
+    shown = [f for t in file_targets for f in (t.frames or [])]
+    frames = args.frames if args.frames is not None else (max(shown) if shown else scene.frames)
+    frames = checks.positive_int("--frames", frames)
+
+    loss = None
+    for kind, path, t in loaded:
+        if kind == "silhouette":
+            from .silhouette import load_silhouette_target  # noqa: PLC0415
+
+            term = load_silhouette_target(cameras, path, t, frames, substeps)
+        else:
+            if t.frames is None:
+                t.frames = [frames]
+            if max(t.frames) > frames:
+                raise ValueError(f"the target {path} has frame {max(t.frames)}, beyond --frames = {frames}")
+            frame_steps = {f: f * substeps for f in t.frames if f > 0 or t.kind != "positions"}
+            term = t.loss(model, frame_steps, radius=args.radius, mode=args.mesh_mode)
+        loss = term if loss is None else loss + term
+    if loss_scale != 1.0:
+        loss = loss_scale * loss
+    materials = None
+    if args.material:
+        materials = [int(m) if m.isdigit() else m for m in args.material]
+    n_values = len(params) * (len(materials) if materials else len(model.materials))
+    optimizer = _arg(args, "optimizer") or default_optimizer(n_values)
+    ck = args.checkpoint_every if args.checkpoint_every is not None else "auto"
+
+    def log(message):
+        print(f"warp-esph fit: {message}", file=err, flush=True)
+
+    kinds = ", ".join(sorted({("silhouettes" if kind == "silhouette" else t.kind) for kind, _, t in loaded}))
+    log(f"{scene.name}: {model.particle_count} particles, {frames} frames at {fps:g} fps, dt = {dt:.4g} s "
+        f"({frames * substeps} steps); fitting {', '.join(params)} with {optimizer} to {kinds} from "
+        f"{', '.join(str(p) for p in targets)}")
+    result = fit(model, loss, params, steps=frames * substeps, dt=dt, materials=materials, iterations=args.iterations,
+                 lr=args.lr, bounds=bounds, clip=args.clip, checkpoint_every=ck, memory_limit=memory_limit,
+                 optimizer=optimizer, progress=not args.no_progress, samples=_arg(args, "samples", 0),
+                 starts=_arg(args, "starts", 1), sample_range=_arg(args, "sample_range", 4.0), seed=_arg(args, "seed", 5),
+                 patience=_arg(args, "patience", 10), diagnostics=not _arg(args, "no_diagnostics", False),
+                 noise=_arg(args, "noise"), log=log)
+
+    folder = _arg(args, "output_dir") or f"fit_{scene.name}"
+    meta = {"scene": scene.name, "scale": scale, "targets": [os.path.abspath(str(p)) for p in targets], "fps": fps, "dt": dt,
+            "frames": frames, "params_fitted": params, "optimizer": optimizer, "jitter": jitter, "loss_scale": loss_scale,
+            "support_radius": model.support_radius}
+    written = write_outputs(result, folder, meta, json_path=_arg(args, "output"))
+    print(f"fit {result.termination}", file=out)
+    print(f"loss {result.initial_loss:.4g} -> {result.loss:.4g} in {result.evaluations} evaluations", file=out)
+    for name, v in result.params.items():
+        print(f"  {name} = {', '.join(f'{x:.6g}' for x in v)}", file=out)
+    if result.diagnostics is not None:
+        print(result.diagnostics.summary(), file=out)
+    if not args.no_usd:
+        from .fit import write_fitted_usd  # noqa: PLC0415
+
+        usd_path = write_fitted_usd(result.model, os.path.join(folder, "fitted.usdc"), frames, fps, dt)
+        if usd_path:
+            written.append(usd_path)
+    print("wrote " + ", ".join(written), file=out)
+    return 0
+
+
+def write_outputs(result, folder, meta: dict | None = None, json_path: str | None = None) -> list[str]:
+    """Write ``fit.json`` (or ``json_path``), ``history.csv``, ``loss.png`` and ``params.png``
+    into ``folder`` (created); returns the paths written."""
+    os.makedirs(folder, exist_ok=True)
+    json_path = json_path or os.path.join(folder, "fit.json")
+    doc = {**(meta or {}), **result.to_dict()}
+    tmp = json_path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(doc, f, indent=2)
+    os.replace(tmp, json_path)
+    written = [json_path]
+    names = list(result.params)
+    k = len(next(iter(result.params.values())))
+    cols = [n if k == 1 else f"{n}[{j}]" for n in names for j in range(k)]
+    csv_path = os.path.join(folder, "history.csv")
+    with open(csv_path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["evaluation", "stage", "loss", *cols, "seconds"])
+        for h in result.history:
+            vals = [x for n in names for x in h["params"][n]]
+            w.writerow([h["iteration"], h.get("stage", "descent"), repr(h["loss"]), *[repr(v) for v in vals], f"{h['seconds']:.4f}"])
+    written.append(csv_path)
+    written += _plots(result, folder, names, cols)
+    return written
+
+
+def _plots(result, folder, names, cols) -> list[str]:
+    try:
+        import matplotlib  # noqa: PLC0415
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt  # noqa: PLC0415
+    except ImportError:
+        return []
+    hist = result.history
+    it = [h["iteration"] for h in hist]
+    loss = np.array([h["loss"] if h["loss"] is not None and math.isfinite(h["loss"]) else np.nan for h in hist])
+    sample = np.array([h.get("stage") == "sample" for h in hist])
+    fig, ax = plt.subplots(figsize=(6, 4))
+    if sample.any():
+        ax.semilogy(np.array(it)[sample], loss[sample], "o", color="0.6", label="global stage (loss only)")
+    ax.semilogy(np.array(it)[~sample], loss[~sample], ".-", label=f"descent ({result.stopped})")
+    ax.set_xlabel("evaluation")
+    ax.set_ylabel("loss")
+    ax.legend()
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    loss_png = os.path.join(folder, "loss.png")
+    fig.savefig(loss_png, dpi=100)
+    plt.close(fig)
+    vals = np.array([[x for n in names for x in h["params"][n]] for h in hist])
+    fig, axes = plt.subplots(len(cols), 1, figsize=(6, 2.2 * len(cols)), sharex=True, squeeze=False)
+    for j, (ax, col) in enumerate(zip(axes[:, 0], cols)):
+        if sample.any():
+            ax.plot(np.array(it)[sample], vals[sample, j], "o", color="0.6")
+        ax.plot(np.array(it)[~sample], vals[~sample, j], ".-")
+        if np.all(vals[:, j] > 0):
+            ax.set_yscale("log")
+        ax.set_ylabel(col)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[-1, 0].set_xlabel("evaluation")
+    fig.tight_layout()
+    params_png = os.path.join(folder, "params.png")
+    fig.savefig(params_png, dpi=100)
+    plt.close(fig)
+    return [loss_png, params_png]
