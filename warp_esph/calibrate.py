@@ -89,7 +89,8 @@ def run_fit(args, out=sys.stdout, err=sys.stderr) -> int:
     """Run ``warp-esph fit`` from parsed ``args``; returns 0. Raises ``ValueError`` on bad input."""
     import warp as wp  # noqa: PLC0415
 
-    from .fit import _parse_bounds, fit, load_target  # noqa: PLC0415
+    from .cli import _parse_bounds  # noqa: PLC0415
+    from .fit import fit, load_target  # noqa: PLC0415
     from .scenes import load_scene  # noqa: PLC0415
     from .simulate import resolve_timestep  # noqa: PLC0415
 

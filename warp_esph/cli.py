@@ -84,8 +84,6 @@ def _build_parser() -> _Parser:
                      help="continue the run saved in CHECKPOINT (.npz), appending to its USD file; "
                           "the scene and its settings come from the checkpoint (--frames N: run to frame N instead)")
     sub.add_parser("scenes", help="list the built-in scenes", description="List the built-in scenes.")
-    from .fit import add_fit_arguments  # noqa: PLC0415
-
     add_fit_arguments(sub.add_parser(
         "fit", help="fit material parameters of a scene to a target by gradient descent",
         description="Fit material parameters so the simulated scene reaches the target; writes JSON and USD."))
@@ -97,7 +95,7 @@ def _build_parser() -> _Parser:
     ren.add_argument("-o", "--output", metavar="DIR_OR_FILE",
                      help="a folder (PNG per frame), a .png (one frame; several side by side), a .gif, or an .mp4 "
                           "(needs ffmpeg); default: <OUT>.png, the last frame")
-    ren.add_argument("--frames", metavar="SPEC",
+    ren.add_argument("--frames", metavar="SELECTION",
                      help="'all', 'first', 'last', N, -N, A:B, A:B:STEP or a comma list (default: all; last for a .png)")
     ren.add_argument("--color", choices=COLOR_CHOICES, default="body",
                      help="colour particles by body, material, alpha (plastic strain) or singular_values "
@@ -122,7 +120,7 @@ def _build_parser() -> _Parser:
     exp.add_argument("usd", metavar="OUT.usd", help="a USD file written by 'warp-esph run'")
     exp.add_argument("--format", choices=EXPORT_CHOICES, default="vtu", help="file format (default vtu)")
     exp.add_argument("-o", "--output", metavar="DIR", help="output folder (default: <OUT>_<format>/ beside the file)")
-    exp.add_argument("--frames", metavar="SPEC", help="frames, as for render (default: all)")
+    exp.add_argument("--frames", metavar="SELECTION", help="frames, as for render (default: all)")
     return p
 
 
@@ -284,6 +282,85 @@ def _cmd_run(args) -> int:
     return 0
 
 
+def add_fit_arguments(parser):
+    """Declare the ``warp-esph fit`` options on an ``argparse`` (sub)parser."""
+    from .losses import MeshLoss  # noqa: PLC0415 (Warp is imported only when the parser is built)
+    from .rollout import PARAMETERS  # noqa: PLC0415
+
+    parser.add_argument("scene", metavar="SCENE", help="built-in scene name or .toml scene file (the initial guess)")
+    parser.add_argument("--target", required=True, action="append", metavar="FILE",
+                        help="target: a previous run's .usd (see --target-body), .npz/.npy positions per frame, a point "
+                             "cloud (.xyz/.ply/.npy (M, 3) ...), a mesh file, or masks with --cameras; repeatable (their "
+                             "losses add up)")
+    parser.add_argument("--params", default="yield_stress,flow_rate", metavar="A,B",
+                        help=f"comma-separated parameters to fit, of {','.join(PARAMETERS)} (default yield_stress,flow_rate)")
+    parser.add_argument("--material", action="append", metavar="BODY",
+                        help="fit only this body's material (name or material index); repeatable; default all")
+    parser.add_argument("--iterations", type=int, default=50, metavar="N",
+                        help="gradient evaluations after the first, line-search trials included (default 50)")
+    parser.add_argument("--lr", type=float, default=0.1, metavar="LR",
+                        help="Adam step size, relative; L-BFGS: its first step (default 0.1)")
+    parser.add_argument("--bounds", action="append", default=[], metavar="NAME=LO:HI", help="bounds of a parameter; repeatable")
+    parser.add_argument("--clip", type=float, metavar="C", help="clip the gradient norm (log space) to C")
+    parser.add_argument("--target-frames", action="append", metavar="F,G",
+                        help="a run's USD: the frames to fit ('2,4,6', '10:60:10', 'last'; default all after the first); "
+                             ".npz/.npy: the rendered frame of each target frame; a cloud, mesh or mask: the frame it "
+                             "shows (default: the last); once per --target or once for all")
+    parser.add_argument("--frames", type=int, metavar="N", help="frames to simulate (default: the last target frame or the scene's)")
+    parser.add_argument("--fps", type=float, metavar="F", help="frames per second (default: the target's or the scene's)")
+    parser.add_argument("--dt", type=float, metavar="DT", help="time step in s (default: the stable step)")
+    parser.add_argument("--scale", type=float, default=1.0, metavar="S", help="resolution scale of the scene (default 1)")
+    parser.add_argument("--radius", type=float, metavar="R", help="Chamfer search radius for point-cloud targets (default 3 spacings)")
+    parser.add_argument("--mesh-mode", choices=MeshLoss.MODES, default="surface", help="mesh targets: surface or outside")
+    parser.add_argument("--checkpoint-every", type=_checkpoint_every, metavar="S|auto",
+                        help="checkpoint the rollout every S steps (less memory, one more forward pass); default auto: "
+                             "sized from the memory estimate and --memory-limit")
+    parser.add_argument("--dtype", choices=("float32", "float64"), default="float64", help="precision (default float64)")
+    parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="Warp device (default cpu)")
+    parser.add_argument("-o", "--output", metavar="OUT.json", help="the fit's JSON file (default: fit.json in --output-dir)")
+    parser.add_argument("--no-usd", action="store_true", help="do not write the fitted run to USD")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from .calibrate import add_calibration_arguments  # noqa: PLC0415
+
+    add_calibration_arguments(parser)
+    return parser
+
+
+def _checkpoint_every(text):
+    if str(text).strip().lower() == "auto":
+        return "auto"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid value {text!r}: give a number of steps or 'auto'") from None
+
+
+def _parse_bounds(items) -> dict:
+    out = {}
+    for item in items or []:
+        try:
+            name, rng = item.split("=", 1)
+            lo, hi = rng.split(":", 1)
+            out[name.strip()] = (float(lo), float(hi))
+        except ValueError:
+            raise ValueError(f"--bounds {item!r} is not allowed: use NAME=LO:HI, e.g. flow_rate=1:1000") from None
+    return out
+
+
+def fit_cli(args, out=sys.stdout) -> int:
+    """Run ``warp-esph fit`` from parsed ``args`` (see ``add_fit_arguments``); returns 0.
+
+    The work is ``warp_esph.calibrate.run_fit``: it prints the memory and time estimates,
+    fits, says whether the fit converged, stalled or hit the iteration cap, prints the
+    diagnostics and writes ``fit.json``, ``history.csv``, ``loss.png``, ``params.png`` and
+    ``fitted.usdc`` into ``--output-dir``. Raises ``ValueError``/``OSError`` on bad input
+    (the CLI maps them to exit status 2).
+    """
+    from .calibrate import run_fit  # noqa: PLC0415
+
+    return run_fit(args, out=out)
+
+
 def _cmd_render(args) -> int:
     from . import checks  # noqa: PLC0415
     from .render import render_usd  # noqa: PLC0415
@@ -364,8 +441,6 @@ def _dispatch(args) -> int:
             if args.command == "export":
                 return _cmd_export(args)
             if args.command == "fit":
-                from .fit import fit_cli  # noqa: PLC0415
-
                 _init_warp(args.device)
                 return fit_cli(args)
             return _cmd_run(args)
