@@ -82,7 +82,8 @@ class FitResult:
     None, else ``descent``; ``grad`` is in optimiser space: ``p dL/dp`` for log-space
     parameters). ``stopped``: why the fit ended: ``converged`` (step or gradient below
     its tolerance), ``stalled`` (no lower loss for ``patience`` evaluations, or a line
-    search that found none), ``iterations`` (the cap), ``tol``, ``callback``;
+    search that found none), ``iterations`` (the cap), ``flat`` (the initial gradient is
+    exactly zero), ``tol``, ``callback``;
     ``converged`` is True only for ``converged`` and ``tol``. ``diagnostics``: a
     ``warp_esph.diagnostics.Diagnostics`` at the optimum (None when not asked for).
     ``models``/``experiment_materials``: per experiment of a joint fit.
@@ -109,6 +110,8 @@ class FitResult:
                    "(a rough loss, or a valley the optimiser cannot follow); the result may not be a minimum",
         "iterations": "hit the iteration cap before converging; the result may not be a minimum "
                       "(raise --iterations, or try --optimizer lbfgs)",
+        "flat": "stopped at once: the gradient is exactly zero, the loss does not depend on the fitted parameters "
+                "here (e.g. no particle reaches the yield stress); start elsewhere or observe another experiment",
         "callback": "stopped by the callback",
     }
 
@@ -506,7 +509,8 @@ def fit(
       optimiser coordinate by more than ``xtol`` or the gradient's largest entry falls
       below ``gtol`` times its initial one; ``"stalled"`` when ``patience`` evaluations
       in a row did not lower the best loss (by 1e-9 relative); ``"iterations"`` at the
-      cap; ``"tol"`` once the loss is below ``tol``; ``"callback"``.
+      cap; ``"flat"`` when the initial gradient is exactly zero (nothing to follow);
+      ``"tol"`` once the loss is below ``tol``; ``"callback"``.
     - Global first stage: ``samples = N > 0`` evaluates the loss alone (forward passes)
       at ``N`` Latin-hypercube points of optimiser space, within ``bounds`` or else within
       a factor ``sample_range`` of the guess (log space; linear ones +-``sample_range``
@@ -737,6 +741,8 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, history, xtol=
         value, g, finite = evaluate(z)
         if finite and g0 is None:
             g0 = float(np.abs(g).max())
+            if g0 == 0.0:
+                return "flat"
         if finite and g0 is not None and float(np.abs(g).max()) <= gtol * g0:
             return "converged"
         if it == iterations:
@@ -773,6 +779,8 @@ def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-
     if not finite:
         raise FloatingPointError(f"the loss or its gradient is not finite at the initial guess (loss = {f})")
     g0 = float(np.abs(g).max())
+    if g0 == 0.0:
+        return "flat"
     evals = 0
     S, Y = [], []
     while evals < iterations:

@@ -339,14 +339,18 @@ class SilhouetteLoss(Loss):
         return int(len(self.frames) * sum(c.width * c.height for c in self.cameras))
 
     def residuals(self, positions) -> np.ndarray:
-        """``O - M`` at every pixel of every camera and frame (numpy, from ``{step: (n, 3)}``)."""
+        """``O - M`` at every pixel of every camera and frame (numpy, from ``{step: (n, 3)}``),
+        scaled by ``sqrt(mean pixels / camera pixels)`` so that ``sum r^2 = residual_scale *
+        value`` exactly when the cameras differ in size (the loss averages per camera)."""
         out = []
+        mean_pixels = np.mean([c.width * c.height for c in self.cameras])
         for f in self.frames:
             X = np.asarray(positions[f], dtype=np.float64)
             if self.particles is not None:
                 X = X[self.particles]
             for c, m in zip(self.cameras, self.masks[f]):
-                out.append((soft_silhouette(X, c, self.radius, self.opacity) - m).ravel())
+                k = math.sqrt(mean_pixels / (c.width * c.height))
+                out.append(k * (soft_silhouette(X, c, self.radius, self.opacity) - m).ravel())
         return np.concatenate(out)
 
     def __repr__(self):
