@@ -32,20 +32,20 @@ frames = 6
 fps = 30
 
 [materials.dough]
-mu = 5000.0
-lam = 7500.0
+mu = 2000.0
+lam = 3000.0
 density = 1000.0
 yield_stress = {yield_stress}
 flow_rate = {flow_rate}
-viscosity = 5.0
+viscosity = 2.0
 
 [[bodies]]
 shape = "box"
 name = "dough"
 material = "dough"
-center = [0.0, 0.051, 0.0]
-size = [0.1, 0.1, 0.1]
-velocity = [0.0, -1.5, 0.0]
+center = [0.0, 0.045, 0.0]
+size = [0.08, 0.08, 0.08]
+velocity = [0.0, -1.0, 0.0]
 
 [[colliders]]
 type = "ground"
@@ -55,25 +55,26 @@ friction = 0.5
 
 
 def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys):
-    """``warp-esph run`` a dough block, then ``warp-esph fit`` a copy that starts 2x off in
-    yield stress and flow rate, with the run's USD (one body, frames 2, 4, 6) as the target."""
+    """``warp-esph run`` a dough block dropped on the ground (64 particles, 102 steps), then
+    ``warp-esph fit`` a copy that starts 2x off in yield stress and flow rate, with the
+    run's USD (one body, frames 2, 4, 6) as the target."""
     from warp_esph.cli import main
 
     truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
-    truth.write_text(SCENE.format(yield_stress=400.0, flow_rate=30.0))
-    guess.write_text(SCENE.format(yield_stress=800.0, flow_rate=60.0))
+    truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(SCENE.format(yield_stress=200.0, flow_rate=20.0))
     run = tmp_path / "run.usdc"
     assert main(["run", str(truth), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
     out = tmp_path / "calibration"
     capsys.readouterr()
     status = main(["fit", str(guess), "--target", str(run), "--target-body", "dough", "--target-frames", "2,4,6",
-                   "--iterations", "25", "--output-dir", str(out), "--no-progress", "--no-usd", "--noise", "1e-4"])
+                   "--iterations", "30", "--output-dir", str(out), "--no-progress", "--no-usd", "--noise", "1e-4"])
     captured = capsys.readouterr()
     assert status == 0, captured.err
     doc = json.loads((out / "fit.json").read_text())
     assert doc["optimizer"] == "lbfgs"  # the default for two values
-    assert doc["params"]["yield_stress"][0] == pytest.approx(400.0, rel=0.10)
-    assert doc["params"]["flow_rate"][0] == pytest.approx(30.0, rel=0.10)
+    assert doc["params"]["yield_stress"][0] == pytest.approx(100.0, rel=0.10)
+    assert doc["params"]["flow_rate"][0] == pytest.approx(10.0, rel=0.10)
     assert doc["loss"] < 1e-3 * doc["initial_loss"]
     # The command says how the fit ended, and before it, what it will cost.
     assert doc["stopped"] in ("converged", "stalled", "iterations")
@@ -165,7 +166,9 @@ def test_joint_fit_recovers_what_neither_experiment_determines():
     # Each experiment's model is left holding the shared fitted material.
     for m in result.models:
         assert m.materials[0].yield_stress == result.params["yield_stress"][0]
-    assert result.loss < 1e-2 * result.initial_loss
+    # The fit reaches the noise floor: residuals of 0.1 mm per coordinate, as put in.
+    assert result.stopped == "converged"
+    assert d.residual_rms == pytest.approx([1e-4, 1e-4], rel=0.2)
 
 
 def _cameras():

@@ -43,8 +43,10 @@ def add_calibration_arguments(parser):
                    help="folder for fit.json, history.csv, loss.png, params.png, fitted.usdc (default: fit_<scene>/ here)")
     g.add_argument("--target-body", metavar="BODY",
                    help="USD-run targets: observe only this body's particles (default: every particle)")
-    g.add_argument("--jitter", type=float, default=1e-3, metavar="J",
-                   help="jitter the lattice by J * spacing (normal) so no neighbour distance ties (default 0.001; 0: off)")
+    g.add_argument("--jitter", type=float, default=0.0, metavar="J",
+                   help="jitter the lattice by J * spacing (normal) so no neighbour distance is tied at the support "
+                        "radius (e.g. 0.001 with a support radius of 2 spacings; default 0: the scene as written, "
+                        "as a previous run of it was)")
     g.add_argument("--seed", type=int, default=5, help="random seed of the jitter and the global stage (default 5)")
     g.add_argument("--support-radius", type=float, metavar="K",
                    help="support radius in spacings (e.g. 2.5: no particle at thin features drops below the neighbour guard)")

@@ -281,6 +281,12 @@ def _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations
     if top > 0 and float(lam.min()) < -1e-6 * top:
         warnings.append(f"the curvature is negative along some direction (eigenvalue {lam.min():.3g}, largest {top:.3g}): "
                         f"this is not a minimum, or the loss is rough at the difference step; the errors are unreliable")
+    for k, (r, sigma) in enumerate(zip(rms, sigmas)):
+        if r > 3.0 * sigma:
+            which = f"experiment {k}" if len(rms) > 1 else "the experiment"
+            warnings.append(f"the residuals of {which} (RMS {r:.3g} per coordinate) are {r / sigma:.3g} times the stated noise "
+                            f"{sigma:.3g}: the model does not fit the data to the noise level (not at a minimum, a model "
+                            f"that cannot match, or the noise is larger than stated)")
     smax = float(sens.max()) if P else 0.0
     for k, label in enumerate(labels):
         reasons = []

@@ -109,7 +109,7 @@ class FitResult:
         "stalled": "stalled: the loss stopped decreasing before the step or gradient tolerance was met "
                    "(a rough loss, or a valley the optimiser cannot follow); the result may not be a minimum",
         "iterations": "hit the iteration cap before converging; the result may not be a minimum "
-                      "(raise --iterations, or try --optimizer lbfgs)",
+                      "(raise the iteration cap; with Adam, try L-BFGS)",
         "flat": "stopped at once: the gradient is exactly zero, the loss does not depend on the fitted parameters "
                 "here (e.g. no particle reaches the yield stress); start elsewhere or observe another experiment",
         "callback": "stopped by the callback",
@@ -706,7 +706,11 @@ def fit(
 
         t0 = time.perf_counter()
         result.diagnostics = diagnose_problem(prob, prob.to_z(p), noise=noise, step=fd_step)
-        say(f"diagnostics: {2 * len(prob.z0)} evaluations in {time.perf_counter() - t0:.3g} s")
+        d = result.diagnostics
+        say(f"diagnostics ({d.method}): {d.evaluations} evaluations in {time.perf_counter() - t0:.3g} s")
+        if not result.converged:
+            d.warnings.insert(0, f"the fit did not converge ({stopped}): these errors describe the curvature at its last "
+                                 f"point, not the uncertainty of a minimum")
         for r in runs:
             r.apply(p)
     return result
