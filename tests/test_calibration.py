@@ -280,3 +280,46 @@ def test_termination_memory_and_global_stage():
     assert result.initial_loss == result.history[0]["loss"]  # the guess
     assert any("global stage" in m for m in messages) and any("MiB" in m for m in messages)
     assert math.isfinite(result.loss) and result.loss <= result.history[5]["loss"]
+
+
+def test_targets_from_data(tmp_path):
+    """A run's USD read for one body and chosen frames; a point cloud (.npy of another
+    size, .ply) and a mesh at a chosen frame."""
+    from warp_esph.fit import load_target
+    from warp_esph.losses import ChamferLoss, MeshLoss
+    from warp_esph.simulate import simulate
+    from warp_esph.usd import UsdWriter
+
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.1, 0.0), (0.06, 0.06, 0.06), we.Material.preset("dough"), name="block")
+    b.add_sphere((0.2, 0.1, 0.0), 0.03, we.Material.preset("rubber"), name="ball")
+    b.add_ground()
+    model = b.finalize(dtype=wp.float64)
+    path = tmp_path / "run.usdc"
+    with UsdWriter(path, model, 30.0) as writer:
+        simulate(model, 3, fps=30.0, writer=writer, progress=False)
+    t = load_target(path, body="ball", frames="1,3")
+    ball = model.bodies[1]
+    assert t.kind == "positions" and t.frames == [1, 3] and t.fps == 30.0 and t.data.shape == (2, ball.count, 3)
+    loss = t.loss(model, {1: 10, 3: 30})
+    assert isinstance(loss, PositionLoss) and loss.frames == (10, 30)
+    assert np.array_equal(loss.particles, np.arange(ball.start, ball.start + ball.count))
+    assert load_target(path).frames == [1, 2, 3]  # default: every frame after the first
+    with pytest.raises(ValueError, match="holds bodies block, ball"):
+        load_target(path, body="cube")
+
+    cloud = np.random.default_rng(0).normal(size=(50, 3))
+    np.save(tmp_path / "cloud.npy", cloud)
+    t = load_target(tmp_path / "cloud.npy")
+    t.frames = [2]
+    loss = t.loss(model, {2: 20})
+    assert isinstance(loss, ChamferLoss) and loss.frames == (20,) and len(loss.targets[20]) == 50
+
+    import meshio
+
+    meshio.write(tmp_path / "cloud.ply", meshio.Mesh(cloud, []))
+    assert load_target(tmp_path / "cloud.ply").kind == "points"
+    tri = meshio.Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]), [("triangle", np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], dtype=np.int32))])
+    meshio.write(tmp_path / "shape.ply", tri)
+    t = load_target(tmp_path / "shape.ply")
+    assert t.kind == "mesh" and isinstance(t.loss(model, {3: 30}), MeshLoss)

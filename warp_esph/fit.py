@@ -243,33 +243,38 @@ class Experiment:
 MEMORY_LIMIT = 1 << 30
 
 
-def memory_estimate(model: Model, steps: int, checkpoint_every: int | None) -> int:
+def _state_bytes(model: Model) -> tuple[int, int, int]:
+    """Bytes of one taped ``State``, one untaped ``State`` and one checkpoint of ``model``."""
+    from .rollout import _Checkpoint, state_nbytes  # noqa: PLC0415
+
+    return (state_nbytes(model.state(requires_grad=True)), state_nbytes(model.state(requires_grad=False)),
+            _Checkpoint(model).nbytes)
+
+
+def memory_estimate(model: Model, steps: int, checkpoint_every: int | None, _sizes=None) -> int:
     """Bytes the rollout's Warp arrays will hold: ``steps + 1`` taped states for a full
     tape; ``S + 1`` taped states, two untaped ones and ``steps / S`` checkpoints with
     ``checkpoint_every = S`` (measured from this model's own ``State``, not a constant)."""
-    from .rollout import _Checkpoint, state_nbytes  # noqa: PLC0415
-
-    taped = state_nbytes(model.state(requires_grad=True))
+    taped, light, ck = _sizes or _state_bytes(model)
     if checkpoint_every is None or checkpoint_every >= steps:
         return (steps + 1) * taped
-    light = state_nbytes(model.state(requires_grad=False))
-    segments = math.ceil(steps / checkpoint_every)
-    return (checkpoint_every + 1) * taped + 2 * light + segments * _Checkpoint(model).nbytes
+    return (checkpoint_every + 1) * taped + 2 * light + math.ceil(steps / checkpoint_every) * ck
 
 
 def choose_checkpointing(model: Model, steps: int, memory_limit: float = MEMORY_LIMIT) -> int | None:
     """The segment length for ``checkpoint_every="auto"``: ``None`` (one full tape, the
     fastest) when that fits in ``memory_limit`` bytes, else the longest segment whose
     rollout fits, and never shorter than ``sqrt(steps)`` (the memory minimum)."""
-    if memory_estimate(model, steps, None) <= memory_limit:
+    sizes = _state_bytes(model)
+    if memory_estimate(model, steps, None, sizes) <= memory_limit:
         return None
     shortest = max(1, round(math.sqrt(steps)))
     lo, hi = shortest, steps - 1
-    if memory_estimate(model, steps, lo) > memory_limit:
+    if memory_estimate(model, steps, lo, sizes) > memory_limit:
         return shortest
     while lo < hi:  # the estimate grows with S beyond sqrt(steps)
         mid = (lo + hi + 1) // 2
-        if memory_estimate(model, steps, mid) <= memory_limit:
+        if memory_estimate(model, steps, mid, sizes) <= memory_limit:
             lo = mid
         else:
             hi = mid - 1
