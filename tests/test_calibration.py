@@ -239,6 +239,10 @@ def test_camera_file_and_masks(tmp_path):
     np.savez(tmp_path / "masks.npz", front_3=np.ones((24, 32)), side_3=np.zeros((24, 24)))
     masks = load_masks(tmp_path / "masks.npz", loaded)
     assert list(masks) == [3] and masks[3][0].shape == (24, 32)
+    from warp_esph.silhouette import load_silhouette_target
+
+    loss = load_silhouette_target(path, tmp_path / "masks.npz", None, frames=6, substeps=10)
+    assert loss.frames == (30,) and loss.radius == 0.01 and [c.name for c in loss.cameras] == ["front", "side"]
     doc["cameras"][0]["R"] = [[2, 0, 0], [0, 1, 0], [0, 0, 1]]
     path.write_text(json.dumps(doc))
     with pytest.raises(ValueError, match="not a rotation"):

@@ -713,7 +713,7 @@ def fit(
         result.diagnostics = diagnose_problem(prob, prob.to_z(p), noise=noise, step=fd_step)
         d = result.diagnostics
         say(f"diagnostics ({d.method}): {d.evaluations} evaluations in {time.perf_counter() - t0:.3g} s")
-        if not result.converged:
+        if iterations > 0 and not result.converged:
             d.warnings.insert(0, f"the fit did not converge ({stopped}): these errors describe the curvature at its last "
                                  f"point, not the uncertainty of a minimum")
         for r in runs:
