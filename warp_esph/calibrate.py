@@ -59,8 +59,8 @@ def add_calibration_arguments(parser):
     g.add_argument("--starts", type=int, default=1, metavar="K", help="descend from the best K of the samples (default 1)")
     g.add_argument("--sample-range", type=float, default=4.0, metavar="F",
                    help="samples within a factor F of the guess (or --bounds); default 4")
-    g.add_argument("--patience", type=int, default=10, metavar="N",
-                   help="stop as stalled after N evaluations without a lower loss (default 10)")
+    g.add_argument("--patience", type=int, default=20, metavar="N",
+                   help="stop as stalled after N evaluations without a lower loss (default 20)")
     g.add_argument("--noise", type=float, metavar="SIGMA",
                    help="observation noise in m for the diagnostics (default: the residual RMS, at least 1%% of the spacing)")
     g.add_argument("--no-diagnostics", action="store_true", help="skip the diagnostics (2 P + 1 extra runs for P values)")
@@ -183,7 +183,7 @@ def run_fit(args, out=sys.stdout, err=sys.stderr) -> int:
                  lr=args.lr, bounds=bounds, clip=args.clip, checkpoint_every=ck, memory_limit=memory_limit,
                  optimizer=optimizer, progress=not args.no_progress, samples=_arg(args, "samples", 0),
                  starts=_arg(args, "starts", 1), sample_range=_arg(args, "sample_range", 4.0), seed=_arg(args, "seed", 5),
-                 patience=_arg(args, "patience", 10), diagnostics=not _arg(args, "no_diagnostics", False),
+                 patience=_arg(args, "patience", 20), diagnostics=not _arg(args, "no_diagnostics", False),
                  noise=_arg(args, "noise"), log=log)
 
     folder = _arg(args, "output_dir") or f"fit_{scene.name}"

@@ -471,7 +471,7 @@ def fit(
     tol: float | None = None,
     xtol: float = 1e-6,
     gtol: float = 1e-7,
-    patience: int = 10,
+    patience: int = 20,
     callback: Callable | None = None,
     progress: bool = True,
     dtype=wp.float64,
