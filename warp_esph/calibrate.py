@@ -247,8 +247,10 @@ def _plots(result, folder, names, cols) -> list[str]:
     sample = np.array([h.get("stage") == "sample" for h in hist])
     fig, ax = plt.subplots(figsize=(6, 4))
     if sample.any():
-        ax.semilogy(np.array(it)[sample], loss[sample], "o", color="0.6", label="global stage (loss only)")
-    ax.semilogy(np.array(it)[~sample], loss[~sample], ".-", label=f"descent ({result.stopped})")
+        ax.plot(np.array(it)[sample], loss[sample], "o", color="0.6", label="global stage (loss only)")
+    ax.plot(np.array(it)[~sample], loss[~sample], ".-", label=f"descent ({result.stopped})")
+    if np.any(loss > 0):  # a loss of exactly 0 (a target the guess already matches) has no log scale
+        ax.set_yscale("log")
     ax.set_xlabel("evaluation")
     ax.set_ylabel("loss")
     ax.legend()
