@@ -327,3 +327,33 @@ def test_targets_from_data(tmp_path):
     meshio.write(tmp_path / "shape.ply", tri)
     t = load_target(tmp_path / "shape.ply")
     assert t.kind == "mesh" and isinstance(t.loss(model, {3: 30}), MeshLoss)
+
+
+def test_cli_joint_experiments_file(tmp_path):
+    """``--experiments`` adds experiments to a fit: the joint loss is the weighted sum of theirs."""
+    from warp_esph.cli import main
+
+    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
+    truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(SCENE.format(yield_stress=200.0, flow_rate=20.0))
+    assert main(["run", str(truth), "-o", str(tmp_path / "run.usdc"), "--frames", "2", "--dtype", "float64",
+                 "--no-progress"]) == 0
+    common = ["--iterations", "0", "--no-progress", "--no-usd", "--no-diagnostics"]
+    losses = []
+    for frames in ("2", "1"):
+        out = tmp_path / f"alone_{frames}"
+        assert main(["fit", str(guess), "--target", str(tmp_path / "run.usdc"), "--target-frames", frames,
+                     "--output-dir", str(out), *common]) == 0
+        losses.append(json.loads((out / "fit.json").read_text())["initial_loss"])
+    (tmp_path / "exps.json").write_text(json.dumps([{"scene": "guess.toml", "target": "run.usdc", "target_frames": "1",
+                                                     "weight": 2.0}]))
+    out = tmp_path / "joint"
+    assert main(["fit", str(guess), "--target", str(tmp_path / "run.usdc"), "--target-frames", "2",
+                 "--experiments", str(tmp_path / "exps.json"), "--output-dir", str(out), *common]) == 0
+    doc = json.loads((out / "fit.json").read_text())
+    assert len(doc["experiments"]) == 2 and doc["experiments"][1]["weight"] == 2.0
+    assert doc["initial_loss"] == pytest.approx(losses[0] + 2.0 * losses[1], rel=1e-12)
+    assert losses[0] > 0 and losses[1] > 0
+    (tmp_path / "bad.json").write_text(json.dumps([{"scene": "guess.toml", "targte": "run.usdc"}]))
+    assert main(["fit", str(guess), "--target", str(tmp_path / "run.usdc"), "--experiments", str(tmp_path / "bad.json"),
+                 "--output-dir", str(out), *common]) == 2

@@ -347,7 +347,7 @@ def _parse_bounds(items) -> dict:
     return out
 
 
-def fit_cli(args, out=sys.stdout) -> int:
+def fit_cli(args, out=None) -> int:
     """Run ``warp-esph fit`` from parsed ``args`` (see ``add_fit_arguments``); returns 0.
 
     The work is ``warp_esph.calibrate.run_fit``: it prints the memory and time estimates,
