@@ -357,3 +357,18 @@ def test_cli_joint_experiments_file(tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps([{"scene": "guess.toml", "targte": "run.usdc"}]))
     assert main(["fit", str(guess), "--target", str(tmp_path / "run.usdc"), "--experiments", str(tmp_path / "bad.json"),
                  "--output-dir", str(out), *common]) == 2
+
+
+def test_chamfer_residuals_match_the_loss():
+    """The residual vector the diagnostics use has ``sum r^2 = residual_scale * value``,
+    with clouds of different sizes and points beyond the radius."""
+    from warp_esph.losses import ChamferLoss
+
+    rng = np.random.default_rng(2)
+    x = rng.normal(scale=0.05, size=(60, 3))
+    y = np.concatenate([x[:40] + rng.normal(scale=0.005, size=(40, 3)), rng.normal(scale=0.05, size=(30, 3)) + 0.3])
+    loss = ChamferLoss(y, radius=0.03, frames=[4])
+    value = loss.value({4: wp.array(x, dtype=wp.vec3d)})
+    assert sum(loss.unmatched[4]) > 0  # some points on both sides find nothing within the radius
+    r = loss.residuals({4: x})
+    assert np.sum(r**2) == pytest.approx(loss.residual_scale() * value, rel=1e-10)

@@ -180,8 +180,8 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
     """Diagnostics of ``fit``'s problem at optimiser-space point ``z`` (see the module doc).
 
     ``method``: ``"gauss-newton"`` (``I = J^T J`` from central differences of the residual
-    vectors, forward passes only; every loss must have ``residuals``, as ``PositionLoss``
-    and ``SilhouetteLoss`` do), ``"hessian"`` (central differences of taped gradients of
+    vectors, forward passes only; every loss must have ``residuals``, as ``PositionLoss``,
+    ``ChamferLoss`` (nearest points kept from ``z``) and ``SilhouetteLoss`` do), ``"hessian"`` (central differences of taped gradients of
     the chi-square; any loss) or ``"auto"`` (the first where possible).
     """
     z = np.asarray(z, dtype=np.float64)
@@ -211,6 +211,10 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
     ups = np.minimum(z + step, hi)
     downs = np.maximum(z - step, lo)
     if method == "gauss-newton":
+        for run in prob.runs:
+            for leaf in leaf_terms(run.loss):
+                if hasattr(leaf, "reset_residuals"):
+                    leaf.reset_residuals()
         r0 = _scaled_residuals(prob, z, sigmas)
         J = np.zeros((len(r0), P))
         for j in range(P):

@@ -30,6 +30,7 @@ Normalisation: each loss is the mean over its frames of its per-frame value, tim
 """
 
 import functools
+import math
 import os
 import types
 from collections.abc import Mapping
@@ -557,6 +558,39 @@ class ChamferLoss(Loss):
         um = s.unmatched.numpy()
         self.unmatched[frame] = (int(um[0]), int(um[1]))
 
+    def reset_residuals(self):
+        """Forget the correspondences ``residuals`` fixed (the next call chooses them anew)."""
+        self._pairs = {}
+
+    def residuals(self, positions) -> np.ndarray:
+        """A residual vector for Gauss-Newton diagnostics (numpy, from ``{step: (n, 3)}``):
+        ``x_i - y_nn(i)`` and ``y_j - x_nn(j)`` with the nearest points chosen at the first
+        call after ``reset_residuals`` and then kept (so the vector is smooth in the
+        parameters, as the loss's own gradient is for fixed choices), each scaled so that
+        ``sum r^2 = residual_scale() * value`` where every point has a match within
+        ``radius``; a point without one adds the constant ``radius``. Kept pairs count motion
+        along the surface as observed, which a cloud does not see: standard errors from it
+        are lower bounds."""
+        pairs = getattr(self, "_pairs", None)
+        if pairs is None:
+            pairs = self._pairs = {}
+        out = []
+        for f in self.frames:
+            x = np.asarray(positions[f], dtype=np.float64)
+            if self.particles is not None:
+                x = x[self.particles]
+            y = self.targets[f]
+            n, m = len(x), len(y)
+            if f not in pairs:
+                pairs[f] = (_nearest_within(x, y, self.radius), _nearest_within(y, x, self.radius))
+            ix, iy = pairs[f]
+            half = 0.5 * (n + m)
+            for src, dst, idx, count in ((x, y, ix, n), (y, x, iy, m)):
+                r = np.where(idx[:, None] >= 0, src - dst[np.maximum(idx, 0)], 0.0)
+                r = np.concatenate([r.ravel(), np.full(int((idx < 0).sum()), self.radius)])
+                out.append(math.sqrt(half / count) * r)
+        return np.concatenate(out)
+
     def residual_scale(self) -> float:
         # mean_i d_i^2 + mean_j d_j^2: with n particles and m target points, (n + m) / 2
         # points per frame give the same sum when every residual is alike.
@@ -662,6 +696,17 @@ class MeshLoss(Loss):
 
     def __repr__(self):
         return f"MeshLoss(frames={list(self.frames)}, mode={self.mode!r}, weight={self.weight:g})"
+
+
+def _nearest_within(a: np.ndarray, b: np.ndarray, radius: float, chunk: int = 1024) -> np.ndarray:
+    """Index of the nearest point of ``b`` to each point of ``a`` within ``radius`` (-1: none)."""
+    out = np.full(len(a), -1, dtype=np.int64)
+    for s in range(0, len(a), chunk):
+        d2 = ((a[s: s + chunk, None, :] - b[None, :, :]) ** 2).sum(axis=2)
+        k = d2.argmin(axis=1)
+        ok = d2[np.arange(len(k)), k] < radius * radius
+        out[s: s + chunk] = np.where(ok, k, -1)
+    return out
 
 
 def surface_particles(model) -> np.ndarray:
