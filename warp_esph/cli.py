@@ -1,12 +1,14 @@
-"""Command line: ``warp-esph run [SCENE] ...``, ``scenes``, ``render OUT.usd``, ``export OUT.usd``
-and ``fit SCENE --target FILE``.
+"""Command line: ``warp-esph run [SCENE] ...``, ``scenes``, ``render OUT.usd``, ``export OUT.usd``,
+``fit SCENE --target FILE`` and ``sweep SCENE --param ...``.
 
 Exit status: 0 success; 2 bad input (unknown scene, bad option value, bad scene file,
 unreadable or unwritable file); 3 the simulation diverged (``SimulationError``; the
 output keeps every frame finished before); 4 the output could not be written mid-run
 (e.g. a full disk; it keeps every frame published before); 130 interrupted (Ctrl-C), 143 terminated
 (SIGTERM): in both the output keeps every finished frame, and the last checkpoint
-(``--checkpoint-every``) resumes the run (``--resume``). Errors are one line on stderr,
+(``--checkpoint-every``) resumes the run (``--resume``). ``sweep`` exits 3 when at least
+one sample failed (its row says why) and 130 when interrupted (the table keeps the
+finished samples). Errors are one line on stderr,
 ``warp-esph: error: ...``.
 """
 
@@ -73,7 +75,8 @@ def _build_parser() -> _Parser:
     run.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="precision (default float32)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--preview", action="store_true",
-                     help="at the end, render the last frame to <output>.png beside the output (software renderer)")
+                     help="at the end, render the last frame to <output>.png beside the output (software renderer; "
+                          "with --surface it draws the surfaces)")
     run.add_argument("--surface", action="store_true",
                      help="also write a triangle surface per body and frame (UsdGeom.Mesh under /World/Surfaces)")
     run.add_argument("--export", choices=EXPORT_CHOICES, metavar="FORMAT",
@@ -113,6 +116,9 @@ def _build_parser() -> _Parser:
     ren.add_argument("--fps", type=float, help="playback rate of a .gif/.mp4 (default: the file's)")
     ren.add_argument("--no-label", action="store_true", help="no time label in the corner")
     ren.add_argument("--no-shadows", action="store_true", help="no shadows (faster)")
+    ren.add_argument("--particles", "--no-surface", dest="particles", action="store_true",
+                     help="draw particles even where the file holds surface meshes ('run --surface'); "
+                          "by default a body with a surface is drawn as that surface")
 
     exp = sub.add_parser("export", help="write particle frames of a USD output as .vtu or .ply files (meshio)",
                          description="Write the particles of each frame of a warp-esph USD file as a .vtu or .ply file "
@@ -121,7 +127,34 @@ def _build_parser() -> _Parser:
     exp.add_argument("--format", choices=EXPORT_CHOICES, default="vtu", help="file format (default vtu)")
     exp.add_argument("-o", "--output", metavar="DIR", help="output folder (default: <OUT>_<format>/ beside the file)")
     exp.add_argument("--frames", metavar="SELECTION", help="frames, as for render (default: all)")
+    _add_sweep_parser(sub)
     return p
+
+
+def _add_sweep_parser(sub) -> None:
+    sw = sub.add_parser("sweep", help="run a scene for many material values in parallel; a table and a plot",
+                        description="Run a scene once per sample of material parameters (grid, random or Latin "
+                                    "hypercube), on every core or a Ray cluster; write a table (CSV, Parquet) of summary "
+                                    "quantities per sample and a plot. Exit 3 when some sample failed.")
+    sw.add_argument("scene", metavar="SCENE", help="built-in scene name or .toml scene file")
+    sw.add_argument("--param", action="append", metavar="NAME=LO:HI:SCALE:N",
+                    help="a swept parameter: yield_stress=100:1000:log:8 (every material), dough.yield_stress=... "
+                         "(a body's), 0.mu=... (material 0); LO:HI:SCALE for random/lhs; A,B,C or V; repeatable")
+    sw.add_argument("--sample", choices=("grid", "random", "lhs"), default="grid", help="sampling (default grid)")
+    sw.add_argument("--samples", type=int, metavar="N", help="number of samples for random and lhs")
+    sw.add_argument("--seed", type=int, default=0, metavar="S", help="seed of random and lhs samples (default 0)")
+    sw.add_argument("--max-samples", type=int, default=10000, metavar="N", help="refuse more samples (default 10000)")
+    when = sw.add_mutually_exclusive_group()
+    when.add_argument("--frames", type=int, metavar="N", help="frames per sample (default: the scene's)")
+    when.add_argument("--duration", type=float, metavar="SEC", help="simulated seconds per sample")
+    sw.add_argument("--fps", type=float, metavar="F", help="frames per second (default: the scene's)")
+    sw.add_argument("--dt", type=float, metavar="DT", help="time step; must divide 1/fps (default: each sample's stable step)")
+    sw.add_argument("--scale", type=float, default=1.0, metavar="S", help="resolution scale of the scene (default 1)")
+    sw.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="precision (default float32)")
+    sw.add_argument("-o", "--output", metavar="FOLDER", help="output folder (default: sweep_<scene>)")
+    sw.add_argument("--workers", type=int, metavar="N", help="processes, one per core (default: every core)")
+    sw.add_argument("--ray", metavar="ADDRESS", help="run the samples on the Ray cluster at ADDRESS (warp-esph[ray])")
+    sw.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def _init_warp(device: str) -> None:
@@ -278,7 +311,8 @@ def _cmd_run(args) -> int:
         from .render import render_usd  # noqa: PLC0415
 
         result = render_usd(writer.path, os.path.splitext(writer.path)[0] + ".png", frames="last")
-        print(f"preview: {result.output} ({result.seconds:.1f} s)")
+        shown = "surfaces" if result.surface_bodies else "particles"
+        print(f"preview: {result.output} ({shown}, {result.seconds:.1f} s)")
     return 0
 
 
@@ -377,11 +411,12 @@ def _cmd_render(args) -> int:
         args.usd, args.output, args.frames, color=args.color, width=args.width, height=args.height,
         supersample=args.supersample, radius_scale=args.radius_scale, azimuth=args.azimuth, elevation=args.elevation,
         zoom=args.zoom, label=not args.no_label, shadows=not args.no_shadows, columns=args.columns, fps=args.fps,
-        fit=args.fit, progress=progress,
+        fit=args.fit, surfaces=not args.particles, progress=progress,
     )
     what = {"dir": f"{len(result.files)} PNG files in {result.output}", "png": result.output,
             "gif": f"{result.output} ({len(result.frames)} frames)", "mp4": f"{result.output} ({len(result.frames)} frames)"}
-    print(f"wrote {what[result.kind]}: {args.width}x{args.height}, {result.particles} particles, "
+    drawn = f"{result.particles} particles" + (f" ({result.surface_bodies} bodies as surfaces)" if result.surface_bodies else "")
+    print(f"wrote {what[result.kind]}: {args.width}x{args.height}, {drawn}, "
           f"{result.seconds:.1f} s ({result.seconds_per_frame:.2f} s/frame)")
     return 0
 
@@ -440,6 +475,10 @@ def _dispatch(args) -> int:
                 return _cmd_render(args)
             if args.command == "export":
                 return _cmd_export(args)
+            if args.command == "sweep":
+                from .sweep import sweep_cli  # noqa: PLC0415
+
+                return sweep_cli(args)
             if args.command == "fit":
                 _init_warp(args.device)
                 return fit_cli(args)

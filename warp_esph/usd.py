@@ -1,6 +1,7 @@
 """Crash-safe USD output (``UsdWriter``): one ``UsdGeom.Points`` per body, one time sample
-per frame; and its reader (``UsdFrames``, ``parse_frames``), which the renderer and the
-exporter use, so the layout below is spelled out in this module only.
+per frame; and its reader (``UsdFrames``, ``parse_frames``: particles, surfaces, colliders),
+which the renderer and the exporter use, so the layout below is spelled out in this module
+only (``surface_prim_path`` names a body's surface prim).
 
 Layout of the written stage (Y up, metres, time code = frame index)::
 
@@ -55,7 +56,7 @@ from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 from . import checks
 from .model import Model
 
-__all__ = ["UsdWriter", "UsdFrames", "Collider", "USD_EXTENSIONS", "body_prim_names", "parse_frames"]
+__all__ = ["UsdWriter", "UsdFrames", "Collider", "USD_EXTENSIONS", "body_prim_names", "parse_frames", "surface_prim_path"]
 
 #: Output extensions and the layer format each is written in.
 USD_EXTENSIONS = {".usd": "usdc", ".usdc": "usdc", ".usda": "usda"}
@@ -91,6 +92,11 @@ def body_prim_names(model: Model) -> list[str]:
         taken.add(name)
         names.append(name)
     return names
+
+
+def surface_prim_path(body_prim: str) -> str:
+    """The path of the surface Mesh prim of the body whose Points prim is ``/World/<body_prim>``."""
+    return f"{_SURFACES}/{body_prim}"
 
 
 def _singular_values(F: np.ndarray) -> np.ndarray:
@@ -287,7 +293,7 @@ class UsdWriter:
         if self.surface:
             UsdGeom.Scope.Define(stage, _SURFACES)
             for body, name in zip(m.bodies, self._prim_names):
-                mesh = UsdGeom.Mesh.Define(stage, f"{_SURFACES}/{name}")
+                mesh = UsdGeom.Mesh.Define(stage, surface_prim_path(name))
                 mesh.CreatePointsAttr()
                 mesh.CreateFaceVertexCountsAttr()
                 mesh.CreateFaceVertexIndicesAttr()
@@ -398,7 +404,7 @@ class UsdWriter:
         for stage in self._stages:
             if surfaces is not None:
                 for name, (pts, counts, indices, ext) in zip(self._prim_names, surfaces):
-                    mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"{_SURFACES}/{name}"))
+                    mesh = UsdGeom.Mesh(stage.GetPrimAtPath(surface_prim_path(name)))
                     mesh.GetPointsAttr().Set(pts, t)
                     mesh.GetFaceVertexCountsAttr().Set(counts, t)
                     mesh.GetFaceVertexIndicesAttr().Set(indices, t)
@@ -518,7 +524,7 @@ class Collider:
 
 
 class UsdFrames:
-    """The particles and colliders of a ``UsdWriter`` file, frame by frame."""
+    """The particles, surfaces and colliders of a ``UsdWriter`` file, frame by frame."""
 
     def __init__(self, path):
         self.path = os.fspath(path)
@@ -554,6 +560,46 @@ class UsdFrames:
             col = UsdGeom.Points(prim).GetDisplayColorAttr().Get()
             self.display_colors.append(np.array(col[0], dtype=np.float32) if col else np.array((0.8, 0.6, 0.4), np.float32))
         self.colliders = self._read_colliders()
+        # The surface Mesh of each body (``surface_prim_path``), or None where the file has none.
+        self.surface_prims = []
+        for name, _ in self.bodies:
+            prim = self.stage.GetPrimAtPath(surface_prim_path(name))
+            self.surface_prims.append(prim if prim and prim.IsA(UsdGeom.Mesh) else None)
+
+    @property
+    def has_surfaces(self) -> bool:
+        """Whether any body has a surface Mesh prim (``warp-esph run --surface``)."""
+        return any(p is not None for p in self.surface_prims)
+
+    def surface(self, frame: int, body: int):
+        """``(vertices (V, 3) float32, triangles (T, 3) int64)`` of body ``body``'s surface at
+        ``frame`` (polygons split into fans), or None where there is no surface or it is empty."""
+        prim = self.surface_prims[body]
+        if prim is None:
+            return None
+        t = Usd.TimeCode(float(frame))
+        mesh = UsdGeom.Mesh(prim)
+        pts, counts, idx = (a.Get(t) for a in (mesh.GetPointsAttr(), mesh.GetFaceVertexCountsAttr(),
+                                                mesh.GetFaceVertexIndicesAttr()))
+        if pts is None or counts is None or idx is None or len(pts) == 0 or len(counts) == 0:
+            return None
+        v = np.asarray(pts, dtype=np.float32).reshape(-1, 3)
+        counts = np.asarray(counts, dtype=np.int64)
+        idx = np.asarray(idx, dtype=np.int64)
+        if counts.sum() != len(idx) or (counts < 3).any() or idx.min() < 0 or idx.max() >= len(v):
+            raise ValueError(f"cannot read {self.path}: the surface {prim.GetPath()} at frame {frame} is not a valid mesh")
+        if (counts == 3).all():
+            tri = idx.reshape(-1, 3)
+        else:  # fans: (v0, v_k, v_k+1) of each polygon
+            start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+            face = np.repeat(np.arange(len(counts)), counts - 2)
+            k = np.arange(len(face)) - np.repeat(np.cumsum(counts - 2) - (counts - 2), counts - 2)
+            first = start[face]
+            tri = np.stack([idx[first], idx[first + k + 1], idx[first + k + 2]], axis=1)
+        keep = np.isfinite(v).all(axis=1)
+        if not keep.all():
+            tri = tri[keep[tri].all(axis=1)]
+        return (v, tri) if len(tri) else None
 
     def _read_colliders(self) -> list[Collider]:
         out = []
