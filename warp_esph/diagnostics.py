@@ -202,9 +202,12 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
         r = math.sqrt(s / n) if n else 0.0
         rms.append(r)
         sigma = run.noise or noise or max(r, 0.01 * spacing)
-        sigmas.append(sigma)
+        own = [leaf.noise for leaf in leaf_terms(run.loss) if getattr(leaf, "noise", None) is not None]
+        # A run observed only through losses with their own noise (silhouettes) reports that.
+        sigmas.append(sigma if n or not own else own[0])
+        sigma_geometric = sigma
         observations += sum(leaf.observation_count() for leaf in leaf_terms(run.loss))
-        chi2s.append(chi_square_loss(run.loss, sigma))
+        chi2s.append(chi_square_loss(run.loss, sigma_geometric))
     P = len(z)
     lo, hi = prob.z_bounds()
     # Central where the bounds allow, one-sided at a bound.
