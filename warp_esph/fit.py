@@ -6,6 +6,11 @@
                  frames=[100, 200, 300], iterations=60)
     result.materials[0]        # the fitted Material
     result.history             # loss and parameter values per iteration
+    result.stopped             # converged, stalled, iterations, flat, tol or callback
+    result.diagnostics         # warp_esph.diagnostics.Diagnostics at the optimum
+
+    fit([Experiment(model_a, loss_a, ...), Experiment(model_b, loss_b, ...)], None, params)
+                               # a joint fit: several experiments sharing one material
 
 ``model`` is a ``Model`` finalized with ``requires_grad=True``, a ``SceneBuilder``, or a
 callable returning either (builders are finalized in ``dtype``, float64 by default). The
