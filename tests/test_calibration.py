@@ -372,3 +372,20 @@ def test_chamfer_residuals_match_the_loss():
     assert sum(loss.unmatched[4]) > 0  # some points on both sides find nothing within the radius
     r = loss.residuals({4: x})
     assert np.sum(r**2) == pytest.approx(loss.residual_scale() * value, rel=1e-10)
+
+
+@pytest.mark.parametrize("mode", ["surface", "outside"])
+def test_mesh_residuals_match_the_loss(mode):
+    """Point-to-plane residuals of a mesh target: ``sum r^2 = residual_scale * value`` at
+    the point they are taken, some particles inside the mesh, some beyond ``max_dist``."""
+    from warp_esph.losses import MeshLoss
+
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]) * 0.1
+    tris = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    x = np.random.default_rng(3).uniform(-0.05, 0.15, size=(80, 3))
+    x[:3] += 2.0  # far away: nothing within max_dist
+    loss = MeshLoss((verts, tris), frames=[2], mode=mode, max_dist=0.5)
+    value = loss.value({2: wp.array(x, dtype=wp.vec3d)})
+    r = loss.residuals({2: x})
+    assert loss.unmatched[2] == 3
+    assert np.sum(r**2) == pytest.approx(loss.residual_scale() * value, rel=1e-10)

@@ -6,11 +6,13 @@ weight for a ``PositionLoss``). With independent Gaussian observation noise of s
 deviation ``sigma`` per residual, ``chi2 = S / sigma^2`` and the Fisher information of the
 parameters ``z`` (optimiser space: ``log p`` for positive parameters) is
 
-    I = 1/2 d2 chi2 / dz2    (= J^T J / sigma^2 at a zero-residual optimum: Gauss-Newton)
+    I = J^T J / sigma^2      (Gauss-Newton: 1/2 d2 chi2 / dz2 at a zero-residual optimum)
 
-estimated here by central differences of taped gradients of ``chi2``: column ``j`` is
-``(g(z + h e_j) - g(z - h e_j)) / (4 h)``, ``2 P`` forward + backward evaluations for
-``P`` values. The covariance of the estimate is ``I^-1`` (a pseudo-inverse: a direction
+with ``J`` the derivative of the residual vector (``Loss.residuals``) with respect to
+``z``, from central differences of forward runs (``2 P + 1`` runs for ``P`` values). For a
+loss without a residual vector, ``I`` is half the Hessian of ``chi2`` from central
+differences of taped gradients: column ``j`` is ``(g(z + h e_j) - g(z - h e_j)) / (4 h)``,
+``2 P`` forward + backward evaluations. The covariance of the estimate is ``I^-1`` (a pseudo-inverse: a direction
 with no curvature has infinite variance); standard errors are the square roots of its
 diagonal (in log space: relative errors), correlations its normalised entries.
 
@@ -181,7 +183,8 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
 
     ``method``: ``"gauss-newton"`` (``I = J^T J`` from central differences of the residual
     vectors, forward passes only; every loss must have ``residuals``, as ``PositionLoss``,
-    ``ChamferLoss`` (nearest points kept from ``z``) and ``SilhouetteLoss`` do), ``"hessian"`` (central differences of taped gradients of
+    ``ChamferLoss`` (nearest points kept from ``z``), ``MeshLoss`` (tangent planes kept
+    from ``z``) and ``SilhouetteLoss`` do), ``"hessian"`` (central differences of taped gradients of
     the chi-square; any loss) or ``"auto"`` (the first where possible).
     """
     z = np.asarray(z, dtype=np.float64)

@@ -669,7 +669,8 @@ class MeshLoss(Loss):
             self._wp[key] = d
         return d
 
-    def _launch(self, frame, x, out, scale):
+    def _launch_query(self, frame, x):
+        """Untaped: the closest point and code of every particle (into the frame's scratch)."""
         S = _scalar_of(x)
         k = _kernels(S)
         dev = x.device
@@ -691,8 +692,49 @@ class MeshLoss(Loss):
             [s.closest, s.code, s.unmatched], device=dev, record_tape=False,
         )
         self._keep.append(mesh)
-        wp.launch(k.mesh_term, n, [x, s.closest, s.code, S(self.max_dist**2), S(scale / n)], [out], device=dev)
+        return s
+
+    def _launch(self, frame, x, out, scale):
+        S = _scalar_of(x)
+        s = self._launch_query(frame, x)
+        n = x.shape[0]
+        wp.launch(_kernels(S).mesh_term, n, [x, s.closest, s.code, S(self.max_dist**2), S(scale / n)], [out], device=x.device)
         self.unmatched[frame] = int(s.unmatched.numpy()[0])
+
+    def reset_residuals(self):
+        """Forget the closest points and normals ``residuals`` fixed."""
+        self._planes = {}
+
+    def residuals(self, positions) -> np.ndarray:
+        """A residual vector for Gauss-Newton diagnostics (numpy, from ``{step: (n, 3)}``):
+        ``n0 . (x_i - c0_i)``, the distance to the tangent plane at the closest point ``c0``
+        chosen at the first call after ``reset_residuals`` (``n0`` the unit direction from
+        ``c0`` to the particle then), so motion along the surface is not counted as
+        observed; particles with nothing within ``max_dist`` add the constant ``max_dist``,
+        those inside in ``outside`` mode and those exactly on the surface add 0. At the
+        first call ``sum r^2 = residual_scale() * value``."""
+        planes = getattr(self, "_planes", None)
+        if planes is None:
+            planes = self._planes = {}
+        out = []
+        for f in self.frames:
+            x = np.asarray(positions[f], dtype=np.float64)
+            if self.particles is not None:
+                x = x[self.particles]
+            if f not in planes:
+                xw = wp.array(x, dtype=wp.vec3d)
+                self._launch_query(f, xw)
+                s = self._scratch[(f, xw.dtype, str(xw.device), len(x))]
+                c, code = s.closest.numpy().astype(np.float64), s.code.numpy()
+                d = x - c
+                norm = np.linalg.norm(d, axis=1)
+                normal = np.where(norm[:, None] > 1e-12, d / np.maximum(norm, 1e-300)[:, None], 0.0)
+                normal[code != 1] = 0.0
+                planes[f] = (c, normal, code)
+            c, normal, code = planes[f]
+            r = np.einsum("ij,ij->i", normal, x - c)
+            out.append(np.concatenate([r, np.full(int((code < 0).sum()), self.max_dist)]))
+        return np.concatenate(out)
 
     def __repr__(self):
         return f"MeshLoss(frames={list(self.frames)}, mode={self.mode!r}, weight={self.weight:g})"
