@@ -12,9 +12,10 @@ with ``J`` the derivative of the residual vector (``Loss.residuals``) with respe
 ``z``, from central differences of forward runs (``2 P + 1`` runs for ``P`` values). For a
 loss without a residual vector, ``I`` is half the Hessian of ``chi2`` from central
 differences of taped gradients: column ``j`` is ``(g(z + h e_j) - g(z - h e_j)) / (4 h)``,
-``2 P`` forward + backward evaluations. The covariance of the estimate is ``I^-1`` (a pseudo-inverse: a direction
-with no curvature has infinite variance); standard errors are the square roots of its
-diagonal (in log space: relative errors), correlations its normalised entries.
+``2 P`` forward + backward evaluations. The covariance of the estimate is ``I^-1`` (a
+pseudo-inverse: a direction with no curvature has infinite variance); standard errors are
+the square roots of its diagonal (in log space: relative errors), correlations its
+normalised entries.
 
 ``sensitivity[i] = sqrt(I_ii)``: how many noise standard deviations (root of the chi-square
 increase) a unit change of ``z_i`` alone moves the fit; a 1 % change of a log-space
