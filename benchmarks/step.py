@@ -505,7 +505,7 @@ def main(argv=None):
             "scene": "dough cube (Material.preset('dough')) dropped on the ground at 1 m/s",
             "spacing": DX, "dt": DT, "dtype": "float32", "steps": args.steps, "warmup": args.warmup,
             "blocks": args.blocks, "taped_steps": args.taped_steps,
-            "neighbor_skin": getattr(we.solver, "DEFAULT_SKIN", None),
+            "neighbor_skin": getattr(we.sim.solver, "DEFAULT_SKIN", None),
         },
         "paper": PAPER,
         "warp_esph": {},

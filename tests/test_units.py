@@ -16,7 +16,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from warp_esph import forces, plasticity
+from warp_esph.sim import forces, plasticity
 
 
 @functools.cache

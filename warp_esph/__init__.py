@@ -9,7 +9,7 @@ from .builder import SceneBuilder
 from .material import MODELS, PRESETS, Material
 from .model import Body, Model, State
 from .simulate import SimulationError, simulate
-from .solver import GUARD_NAMES, Solver
+from .sim.solver import GUARD_NAMES, Solver
 from .usd import UsdWriter
 
 __version__ = "0.1.0"

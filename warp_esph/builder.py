@@ -15,7 +15,7 @@ import warp as wp
 
 from . import checks, meshes
 from ._types import scalar_type
-from .colliders import MAX_PER_KIND, Box, Plane, Sphere
+from .sim.colliders import MAX_PER_KIND, Box, Plane, Sphere
 from .material import Material
 from .meshes import lattice_points
 from .model import Body, Model
@@ -247,7 +247,7 @@ class SceneBuilder:
     def add_compression_field(self, center, strength: float, t_on: float = 0.0, t_off: float = float("inf"), body: str | None = None):
         """A horizontal compression ``a = -strength (x - center)`` (1/s^2) while ``t_on <= t < t_off``,
         on the particles of ``body`` (a body name; ``None``: all). See ``fields.CompressionField``."""
-        from .fields import CompressionField  # noqa: PLC0415
+        from .sim.fields import CompressionField  # noqa: PLC0415
 
         index = -1
         if body is not None:

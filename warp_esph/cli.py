@@ -226,7 +226,7 @@ def _cmd_run(args) -> int:
             raise ValueError("--device = 'cuda' is not allowed: Warp finds no CUDA device on this machine (use --device cpu)")
     from .scenes import load_scene  # noqa: PLC0415
     from .simulate import SimulationError, resolve_timestep, simulate  # noqa: PLC0415
-    from .solver import Solver  # noqa: PLC0415
+    from .sim.solver import Solver  # noqa: PLC0415
     from .usd import UsdWriter  # noqa: PLC0415
 
     from .checkpoint import load_state, read_checkpoint, save_state  # noqa: PLC0415

@@ -10,9 +10,11 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import numpy as np
+
 from . import checks
 
-#: Stress models (SPEC §4-5). ``linear``: eq. 9 with the Bargteil flow rule.
+#: Stress models (docs/method.md §4-5). ``linear``: eq. 9 with the Bargteil flow rule.
 #: ``non_newtonian``: eq. 9, flow rate divided by the stress magnitude (paper Fig. 1).
 #: ``hyperelastic``: eq. 9 with squared singular values (paper Fig. 5), twice the St.
 #: Venant-Kirchhoff stress. ``stvk``: the St. Venant-Kirchhoff stress itself, for
@@ -20,17 +22,23 @@ from . import checks
 MODELS = ("linear", "non_newtonian", "hyperelastic", "stvk")
 MODEL_IDS = {name: k for k, name in enumerate(MODELS)}
 
-#: Deformation models (SPEC §7, paper Fig. 8): the paper's ``incremental`` update, and the
+#: Deformation models (docs/method.md §7, paper Fig. 8): the paper's ``incremental`` update, and the
 #: comparison models ``rest`` (rest configuration and plastic F_p) and ``additive``
-#: (additive Green strain); see ``warp_esph/comparison.py``.
+#: (additive Green strain); see ``warp_esph/sim/comparison.py``.
 DEFORMATIONS = ("incremental", "rest", "additive")
 DEFORMATION_IDS = {name: k for k, name in enumerate(DEFORMATIONS)}
 
-#: Elastic pair forces (``warp_esph/forces.py``): ``paper``, eqs. 10-13 of the paper;
+#: Elastic pair forces (``warp_esph/sim/forces.py``): ``paper``, eqs. 10-13 of the paper;
 #: ``variational``, minus the gradient of the elastic energy of the incremental fit
 #: (``sum_i V_i psi(F_i)``), whose linear stiffness is symmetric (docs/physics.md).
 ELASTIC_FORCES = ("paper", "variational")
 ELASTIC_FORCE_IDS = {name: k for k, name in enumerate(ELASTIC_FORCES)}
+
+
+def p_wave_speed(mu, lam, density, pressure_stiffness):
+    """``sqrt((lam + 2 mu + rho0 k_p) / rho0)``, the speed the explicit step must resolve
+    (docs/method.md §8); numbers or numpy arrays."""
+    return np.sqrt((lam + 2.0 * mu + density * pressure_stiffness) / density)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -182,8 +190,8 @@ class Material:
 
     @property
     def p_wave_speed(self) -> float:
-        """sqrt((lam + 2 mu + rho0 k_p) / rho0), the speed the explicit step must resolve (SPEC §8)."""
-        return math.sqrt((self.lam + 2.0 * self.mu + self.density * self.pressure_stiffness) / self.density)
+        """The speed the explicit step must resolve (``p_wave_speed`` of its parameters)."""
+        return float(p_wave_speed(self.mu, self.lam, self.density, self.pressure_stiffness))
 
     @property
     def shear_yield_stress(self) -> float:

@@ -3,21 +3,21 @@
 A ``State`` also holds the arrays the step that produced it computed on the way
 (neighbour lists, densities, stresses, forces). With one state per step under a
 ``wp.Tape``, each step's intermediates then stay untouched until the backward pass
-reads them (WARP_NOTES traps 3-4); with two states swapped in a plain forward run,
+reads them (docs/method.md, Warp pitfalls 3-4); with two states swapped in a plain forward run,
 nothing is allocated inside the step.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 import warp as wp
 
 from ._types import type_set
-from .colliders import Box, Plane, Sphere
-from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, Material
+from .sim.colliders import Box, Plane, Sphere
+from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, Material, p_wave_speed
+from .sim import materials as material_struct
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,7 +32,7 @@ class Body:
 
 
 class State:
-    """Positions ``x``, velocities ``v``, elastic deformation gradient ``F`` (SPEC: the only
+    """Positions ``x``, velocities ``v``, elastic deformation gradient ``F`` (docs/method.md: the only
     deformation state stored) and hardening accumulator ``alpha`` of every particle."""
 
     def __init__(self, model: "Model", requires_grad: bool):
@@ -42,7 +42,7 @@ class State:
         self.v = wp.array(model.particle_v0, dtype=T.vec3, device=dev, requires_grad=requires_grad)
         self.F = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev, requires_grad=requires_grad)
         self.alpha = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad)
-        # The plastic F_p of the rest-configuration comparison model (SPEC §7; I elsewhere).
+        # The plastic F_p of the rest-configuration comparison model (docs/method.md §7; I elsewhere).
         # The additive model's strain needs no field of its own: F holds I + eps there.
         self.F_p = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev, requires_grad=requires_grad)
         #: Simulated time (s) of this state: the step that writes it sets ``time_in + dt``.
@@ -121,7 +121,7 @@ class Model:
         dev = self.device
         self.particle_material = wp.array(self.particle_material_np, dtype=wp.int32, device=dev)
         self.particle_body = wp.array(self.particle_body_np, dtype=wp.int32, device=dev)
-        # Lattice volume dx^3 per particle: V_i = m_i / rho0 (SPEC §5; the kernel is
+        # Lattice volume dx^3 per particle: V_i = m_i / rho0 (docs/method.md §5; the kernel is
         # evaluated in reference space, so the rest volume is the right one).
         volume = np.full(self.particle_count, self.spacing**3, dtype=npf)
         density = np.array([m.density for m in materials], dtype=npf)[self.particle_material_np]
@@ -199,18 +199,52 @@ class Model:
         """A new state at the initial configuration (F = I, alpha = 0)."""
         return State(self, self.requires_grad if requires_grad is None else requires_grad)
 
+    def material_arrays(self):
+        """The per-material arrays as one ``sim.materials`` struct, holding these very
+        arrays (so gradients reach ``model.mu.grad`` and the others)."""
+        return material_struct.make(
+            self.scalar, self.device, mu=self.mu, lam=self.lam, yield_stress=self.yield_stress, flow_rate=self.flow_rate,
+            hardening=self.hardening, pressure_stiffness=self.pressure_stiffness, viscosity=self.viscosity,
+            model=self.material_model, deformation=self.material_deformation, elastic_force=self.material_elastic_force,
+            clamp_pressure=self.clamp_pressure,
+        )
+
+    def parameter_values(self) -> dict[str, np.ndarray]:
+        """The current per-material parameters (``MATERIAL_FIELDS``), read from the arrays
+        the kernels use: after a fit or ``warp_esph.torch`` wrote them, these differ from
+        ``materials`` (which ``set_material`` keeps in step)."""
+        out = {}
+        for name in self.MATERIAL_FIELDS:
+            current = getattr(self, name).numpy().astype(np.float64)
+            declared = np.array([getattr(m, name) for m in self.materials], dtype=np.float64)
+            # Where the array still holds the material's value (rounded to the model's
+            # precision), the material's exact float: stable_dt then does not depend on
+            # the precision.
+            same = declared.astype(self.types.np_dtype).astype(np.float64) == current
+            out[name] = np.where(same, declared, current)
+        return out
+
+    @property
+    def sph_active(self) -> bool:
+        """Whether any material has SPH pressure or viscosity now (``parameter_values``)."""
+        return bool((self.pressure_stiffness.numpy() > 0.0).any() or (self.viscosity.numpy() > 0.0).any())
+
     def stable_dt(self, courant: float = 0.3) -> float:
-        """Explicit limit over all materials: the wave limit ``C dx / c_P`` of SPEC §8, and the
+        """Explicit limit over all materials, from the current parameters
+        (``parameter_values``): the wave limit ``C dx / c_P`` of docs/method.md §8, and the
         viscous limit ``(C / 12) rho0 h^2 / eta`` of the explicit viscous force.
 
-        (The viscous force, ``pressure.py``, measured unstable above ``dt eta / (rho0 h^2)
+        (The viscous force, ``sim/pressure.py``, measured unstable above ``dt eta / (rho0 h^2)
         = 0.0375`` and stable at 0.03, in a column of 7 x 7 x 20 particles; at ``C = 0.3``
         the limit is 0.025.)"""
-        c = max(m.p_wave_speed for m in self.materials)
-        dt = courant * self.spacing / c
-        for m in self.materials:
-            if m.viscosity > 0.0:
-                dt = min(dt, courant / 12.0 * m.density * self.support_radius**2 / m.viscosity)
+        p = self.parameter_values()
+        rho = np.array([m.density for m in self.materials], dtype=np.float64)
+        c = p_wave_speed(p["mu"], p["lam"], rho, p["pressure_stiffness"])
+        dt = courant * self.spacing / float(np.max(c))
+        eta = p["viscosity"]
+        viscous = eta > 0.0
+        if viscous.any():
+            dt = min(dt, float(np.min(courant / 12.0 * rho[viscous] * self.support_radius**2 / eta[viscous])))
         return dt
 
     @property
@@ -225,13 +259,13 @@ class Model:
 
     @property
     def uses_comparison_models(self) -> bool:
-        """Whether any material uses a Fig. 8 comparison deformation model (SPEC §7)."""
+        """Whether any material uses a Fig. 8 comparison deformation model (docs/method.md §7)."""
         return any(m.deformation != "incremental" for m in self.materials)
 
     def rest_neighbors(self):
         """``(X, neighbours, counts)`` of the initial configuration (same-body lists, built once)."""
         if self.rest_x is None:
-            from . import neighbors  # noqa: PLC0415
+            from .sim import neighbors  # noqa: PLC0415
 
             state = State(self, requires_grad=False)
             search = neighbors.NeighborSearch(self.particle_count, self.scalar, self.device, self.support_radius)
@@ -241,17 +275,11 @@ class Model:
 
     def compute_rest_density(self):
         """SPH density of the initial configuration: each particle's pressure-free density."""
-        from . import neighbors, pressure  # noqa: PLC0415 (model data first, kernels on demand)
+        from .sim import neighbors, pressure  # noqa: PLC0415 (model data first, kernels on demand)
 
         state = State(self, requires_grad=False)
         search = neighbors.NeighborSearch(
             self.particle_count, self.scalar, self.device, self.support_radius, bodies_interact=self.bodies_interact
         )
         search.build(state.x, self.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count, state.guard)
-        wp.launch(
-            pressure.kernels(self.scalar).density,
-            self.particle_count,
-            [state.x, self.particle_mass, state.neighbors, state.neighbor_count, self.scalar(self.support_radius)],
-            [self.particle_rest_density],
-            device=self.device,
-        )
+        pressure.launch_density(self, state.x, state.neighbors, state.neighbor_count, self.particle_rest_density)

@@ -23,7 +23,7 @@ the forward pass runs untaped, keeping only the state fields (``x, v, F, alpha``
 start of every segment of ``S`` steps; ``backward`` re-runs each segment on a fresh tape,
 last segment first, seeds its end state with the adjoint that the later segment left at
 its start, and adds its parameter gradients into separate buffers before
-``tape.zero()`` (which also zeroes the model's parameter ``.grad``; WARP_NOTES trap 6).
+``tape.zero()`` (which also zeroes the model's parameter ``.grad``; docs/method.md, Warp pitfall 6).
 Memory is then ``steps / S`` light checkpoints plus ``S + 1`` taped states; time is one
 extra forward pass. The re-run is bitwise identical to the first, so the checkpointed
 gradient equals the full-tape one up to the order of floating-point sums (tested to
@@ -50,7 +50,7 @@ import warp as wp
 from . import checks
 from ._types import type_set
 from .model import Model, State
-from .solver import Solver
+from .sim.solver import Solver
 
 __all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS"]
 
@@ -179,7 +179,8 @@ class Rollout:
 
     # ----------------------------------------------------------------- set-up
     def set_parameters(self, values: Mapping[str, object]):
-        """Assign per-material parameter arrays (``{name: array of n_materials}``)."""
+        """Assign per-material parameter arrays (``{name: array of n_materials}``); the solver
+        follows them at its next step (whether SPH runs, the stable ``dt``)."""
         m = self.model
         for name, value in values.items():
             if name not in PARAMETERS:
@@ -388,7 +389,7 @@ class Rollout:
                     self._seed(seg[f - start].x, g)
             self._zero_parameter_grads()
             tape.backward()
-            # Trap 6: tape.zero() zeroes the parameter grads too: keep them first.
+            # docs/method.md, Warp pitfall 6: tape.zero() zeroes the parameter grads too: keep them first.
             self._add_parameter_grads(acc)
             adj = {name: wp.clone(getattr(seg[0], name).grad) for name in State.STATE_FIELDS}
             tape.zero()

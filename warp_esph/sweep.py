@@ -488,7 +488,7 @@ def _run_sample(scene, task: _Task) -> dict:
 
     _init_warp(task.device)
     from .simulate import SimulationError, resolve_timestep, simulate  # noqa: PLC0415
-    from .solver import Solver  # noqa: PLC0415
+    from .sim.solver import Solver  # noqa: PLC0415
 
     row = {"sample": task.index, "status": "ok", **task.values, "seed": task.seed}
     t0 = time.perf_counter()

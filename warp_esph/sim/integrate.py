@@ -1,4 +1,4 @@
-"""Symplectic Euler with gravity and collider response (SPEC §1.5):
+"""Symplectic Euler with gravity and collider response (docs/method.md §1.5):
 
     u <- u + dt (f / m + g),   x <- x + dt u,   then colliders.
 """
@@ -8,7 +8,7 @@ import types
 
 import warp as wp
 
-from ._types import type_set
+from .._types import type_set
 from . import colliders
 
 
@@ -52,3 +52,22 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
         v_out[i] = v
 
     return types.SimpleNamespace(integrate=integrate)
+
+
+def launch_integrate(model, state_in, state_out, dt):
+    """Symplectic Euler of ``state_in`` under ``state_out.force`` and gravity, then the
+    colliders, into ``state_out.x``, ``state_out.v``."""
+    S = model.scalar
+    m = model
+    wp.launch(
+        kernels(S, len(m.planes), len(m.spheres), len(m.boxes)).integrate,
+        m.particle_count,
+        [
+            state_in.x, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt),
+            m.plane_normal, m.plane_offset, m.plane_friction,
+            m.sphere_center, m.sphere_radius, m.sphere_friction,
+            m.box_center, m.box_half, m.box_friction,
+        ],
+        [state_out.x, state_out.v],
+        device=m.device,
+    )

@@ -1,8 +1,8 @@
-"""Neighbour lists (paper §4, SPEC §1.1): the up-to-30 nearest particles ``j != i`` with
+"""Neighbour lists (paper §4, docs/method.md §1.1): the up-to-30 nearest particles ``j != i`` with
 ``|x_j - x_i| < h``, stored as a fixed-width int32 row plus a count.
 
 The lists are integers: they are recorded once per step and reused unchanged by the
-backward pass, so the tape never queries a hash grid (WARP_NOTES trap 3). The
+backward pass, so the tape never queries a hash grid (docs/method.md, Warp pitfall 3). The
 selection kernel can also evaluate the deformation-update guards of paper §4 that
 depend only on the neighbourhood (too few neighbours, ill-conditioned moment matrix),
 because they need an eigen-decomposition whose adjoint is not wanted, and the SPH
@@ -38,8 +38,8 @@ import types
 import numpy as np
 import warp as wp
 
-from ._types import type_set
-from . import pressure, smoothing
+from .._types import type_set
+from . import materials, pressure, smoothing
 
 #: Guard codes written per particle (0 = the MLS update may run).
 GUARD_OK = 0
@@ -61,7 +61,8 @@ def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     sm = smoothing.funcs(scalar)
-    pressure_of = pressure.kernels(scalar).pressure
+    pressure_of = pressure.funcs(scalar).pressure
+    Materials = materials.struct(scalar)
 
     @wp.func
     def guard_code(A: mat33, same: int, min_neighbors: int, max_condition: scalar) -> int:
@@ -196,8 +197,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         with_density: int,
         material: wp.array(dtype=wp.int32),
         rest_density: wp.array(dtype=scalar),
-        pressure_stiffness: wp.array(dtype=scalar),
-        clamp: wp.array(dtype=wp.int32),
+        mat: Materials,
         nbr: wp.array2d(dtype=wp.int32),
         nbr_d2: wp.array2d(dtype=scalar),
         count: wp.array(dtype=wp.int32),
@@ -284,7 +284,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         if with_density != 0:
             rho[i] = r
             m = material[i]
-            p[i] = pressure_of(r, rest_density[i], pressure_stiffness[m], clamp[m])
+            p[i] = pressure_of(r, rest_density[i], mat.pressure_stiffness[m], mat.clamp_pressure[m])
             vol[i] = mass[i] / r
         if with_guard != 0:
             guard[i] = guard_code(A, same, min_neighbors, max_condition)
@@ -427,19 +427,19 @@ class NeighborSearch:
         return spread < SKIN_SAFETY * self.skin
 
     def _select(self, x, body, nbr, nbr_d2, count, guard, sph=None):
-        """``sph``: None, or (mass, material, rest_density, pressure_stiffness, clamp, rho, p, vol)."""
+        """``sph``: None, or (mass, material, rest_density, materials, rho, p, vol)."""
         d = self._dummy_arrays()
         if sph is None:
-            mass, material, rest_density, k_p, clamp, rho, p, vol = d["s"], d["i"], d["s"], d["s"], d["i"], d["s"], d["s"], d["s"]
+            mass, material, rest_density, mats, rho, p, vol = d["s"], d["i"], d["s"], d["mat"], d["s"], d["s"], d["s"]
         else:
-            mass, material, rest_density, k_p, clamp, rho, p, vol = sph
+            mass, material, rest_density, mats, rho, p, vol = sph
         with_guard = guard is not None
         wp.launch(
             self.kernels.select_neighbors,
             x.shape[0],
             [
                 x, body, mass, self.candidates, self.candidate_count, self.scalar(self.h), self.min_neighbors,
-                self.scalar(self.max_condition), int(with_guard), int(sph is not None), material, rest_density, k_p, clamp,
+                self.scalar(self.max_condition), int(with_guard), int(sph is not None), material, rest_density, mats,
             ],
             [nbr, nbr_d2, count, guard if with_guard else d["i"], rho, p, vol],
             device=self.device,
@@ -452,6 +452,7 @@ class NeighborSearch:
             self._dummies = {
                 "s": wp.zeros(1, dtype=self.scalar, device=self.device),
                 "i": wp.zeros(1, dtype=wp.int32, device=self.device),
+                "mat": materials.make(self.scalar, self.device),
             }
         return self._dummies
 
@@ -464,8 +465,8 @@ class NeighborSearch:
     def update(self, x: wp.array, body: wp.array, nbr, nbr_d2, count, guard, sph=None):
         """The same lists as ``build``, reusing the candidates while they are complete.
 
-        With ``sph = (mass, material, rest_density, pressure_stiffness, clamp, rho, p,
-        vol)``, also writes the SPH density ``rho`` over the new lists, the pressure
+        With ``sph = (mass, material, rest_density, materials, rho, p, vol)`` (``materials``:
+        the ``sim.materials`` struct), also writes the SPH density ``rho`` over the new lists, the pressure
         ``p`` and the volume ``vol = mass / rho`` (not recorded on a tape)."""
         self.updates += 1
         if not self.candidates_valid(x):

@@ -11,10 +11,10 @@ import types
 
 import warp as wp
 
-from ._types import type_set
+from .._types import type_set
 
 #: Collider loops are unrolled at compile time (a dynamic loop that carries positions
-#: through non-linear projections would get a wrong adjoint, WARP_NOTES trap 1).
+#: through non-linear projections would get a wrong adjoint, docs/method.md, Warp pitfall 1).
 MAX_PER_KIND = 16
 
 
