@@ -128,6 +128,11 @@ class Solver:
         """How many particle-steps each guard skipped since construction or ``reset_counts``."""
         return dict(zip(GUARD_NAMES, (int(c) for c in self._counters.numpy())))
 
+    def reaction_forces(self, state: State) -> dict:
+        """``{tool name: (force, torque)}`` each moving collider and pinned set exerted on the
+        material in the step that produced ``state`` (definitions in ``tools.py``)."""
+        return {} if self.model.tools is None else self.model.tools.reaction(state)
+
     def reset_counts(self):
         self._counters.zero_()
 
@@ -256,18 +261,21 @@ class Solver:
 
         # 5. Symplectic Euler, gravity, colliders.
         with phase("integrate"):
-            wp.launch(
-                self._k_integrate.integrate,
-                n,
-                [
-                    state_in.x, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt),
-                    m.plane_normal, m.plane_offset, m.plane_friction,
-                    m.sphere_center, m.sphere_radius, m.sphere_friction,
-                    m.box_center, m.box_half, m.box_friction,
-                ],
-                [state_out.x, state_out.v],
-                device=dev,
-            )
+            if m.tools is not None:  # moving colliders and pinned sets (tools.py)
+                m.tools.integrate(self, state_in, state_out, dt)
+            else:
+                wp.launch(
+                    self._k_integrate.integrate,
+                    n,
+                    [
+                        state_in.x, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt),
+                        m.plane_normal, m.plane_offset, m.plane_friction,
+                        m.sphere_center, m.sphere_radius, m.sphere_friction,
+                        m.box_center, m.box_half, m.box_friction,
+                    ],
+                    [state_out.x, state_out.v],
+                    device=dev,
+                )
 
         # 6. Incremental deformation gradient over the step (eqs. 1-8); the fast path
         # evaluates the neighbourhood guards here, on the fit's own moment matrix.
