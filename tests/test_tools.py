@@ -36,15 +36,6 @@ def _run(solver, model, steps, dt, relax_after=None, every=10):
     return a
 
 
-def box_mesh(half):
-    hx, hy, hz = half
-    p = np.array([[sx * hx, sy * hy, sz * hz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
-    # Outward-wound quads (vertex index = 4 sx + 2 sy + sz with s in {0, 1}).
-    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
-    tris = [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]
-    return p, np.array(tris, dtype=np.int32)
-
-
 # ------------------------------------------------------------------------- pinned sets
 def test_pinned_set_stays_exactly_where_held_and_a_moving_pin_follows_its_motion():
     b = we.SceneBuilder(spacing=0.02)
@@ -160,7 +151,7 @@ def test_fast_mesh_blade_does_not_tunnel_and_momentum_balances_the_impulse():
     b.add_box((0.0, 0.0, 0.0), (0.1, 0.1, 0.1), _elastic(2e4), name="block")
     half = (0.001, 0.2, 0.2)
     speed = 20.0
-    b.add_tool("mesh", mesh=box_mesh(half), motion=tools.Velocity((speed, 0, 0), position=(-0.08, 0, 0)), name="blade")
+    b.add_tool("mesh", mesh=tools.box_mesh(half), motion=tools.Velocity((speed, 0, 0), position=(-0.08, 0, 0)), name="blade")
     m = b.finalize(dtype=wp.float64)
     s = we.Solver(m)
     dt = 2e-4

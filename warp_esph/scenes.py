@@ -399,6 +399,115 @@ def fig8_comparison(scale: float = 1.0, only=None) -> Scene:
                  dt=_figure_dt(1.0e-4, scale), figure="Fig. 8", view=(0.0, 50.0))
 
 
+# ------------------------------------------------------------------ lab tests (tools.py)
+# The standard tests of a texture or materials lab, with moving tools and pinned sets. Each
+# tool's pose and mean reaction force per frame go to <output>_tools.csv/.json
+# (warp-esph run); docs/tools.md says what each scene measures.
+def _lab_elastic(E: float, nu: float = 0.3, density: float = 1000.0, viscosity: float = 5.0) -> Material:
+    return Material.from_young(E, nu, density=density, viscosity=viscosity, pressure_stiffness=0.0, elastic_force="variational")
+
+
+def lab_compression(scale: float = 1.0) -> Scene:
+    """Texture-analyser compression: a 4 cm dough cylinder squeezed 30 % between a fixed and a descending plate."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.0025 / _scale(scale))
+    r, h = 0.02, 0.03
+    b.add_cylinder((0.0, h / 2, 0.0), r, h, Material.preset("dough"), name="sample")
+    b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=0.3, name="base")
+    speed = 0.3 * h / 2.0  # 30 % strain over the 2 s run
+    b.add_tool("box", half_extents=(0.04, 0.005, 0.04), friction=0.3,
+               motion=tools.Velocity((0.0, -speed, 0.0), position=(0.0, h + 0.005, 0.0)), name="plate")
+    return Scene("lab_compression", _doc(lab_compression), b, frames=60, fps=30.0)
+
+
+def lab_squeeze_flow(scale: float = 1.0) -> Scene:
+    """Squeeze flow: a toothpaste disc between no-slip plates, the top one closing the gap from 2 to 1 cm."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.004 / _scale(scale))
+    r, h = 0.04, 0.02
+    b.add_cylinder((0.0, h / 2, 0.0), r, h, Material.preset("toothpaste"), name="sample")
+    b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=1.0, static_friction=2.0, name="base")
+    b.add_tool("box", half_extents=(0.1, 0.005, 0.1), friction=1.0, static_friction=2.0,
+               motion=tools.Keyframes([0.0, 2.0], [(0.0, h + 0.005, 0.0), (0.0, h / 2 + 0.005, 0.0)]), name="plate")
+    return Scene("lab_squeeze_flow", _doc(lab_squeeze_flow), b, frames=60, fps=30.0)
+
+
+def lab_indentation(scale: float = 1.0) -> Scene:
+    """Sphere indentation: a 2 cm steel ball pressed 4 mm into a rubbery block on the ground, then withdrawn."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.005 / _scale(scale))
+    b.add_box((0.0, 0.02, 0.0), (0.08, 0.04, 0.08), _lab_elastic(1.0e5), name="block")
+    b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=0.5, name="base")
+    top, R = 0.04, 0.02
+    b.add_tool("sphere", radius=R, friction=0.0, name="indenter",
+               motion=tools.Keyframes([0.0, 1.0, 2.0], [(0.0, top + R, 0.0), (0.0, top + R - 0.004, 0.0), (0.0, top + R, 0.0)]))
+    return Scene("lab_indentation", _doc(lab_indentation), b, frames=60, fps=30.0)
+
+
+def lab_three_point_bending(scale: float = 1.0) -> Scene:
+    """Three-point bending: a 24 cm beam on two support pins 18 cm apart, pushed down at mid-span."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.005 / _scale(scale))
+    t = 0.04
+    b.add_box((0.0, 0.02 + t / 2, 0.0), (0.24, t, t), _lab_elastic(1.0e6), name="beam")
+    along_z = (math.sin(math.pi / 4), 0.0, 0.0, math.cos(math.pi / 4))  # a cylinder's y axis turned onto z
+    for name, x in (("support_left", -0.09), ("support_right", 0.09)):
+        b.add_tool("cylinder", radius=0.01, half_height=0.05, position=(x, 0.01, 0.0), orientation=along_z, name=name)
+    b.add_tool("cylinder", radius=0.01, half_height=0.05, name="loading_pin",
+               motion=tools.Velocity((0.0, -0.005, 0.0), position=(0.0, 0.03 + t, 0.0), orientation=along_z))
+    return Scene("lab_three_point_bending", _doc(lab_three_point_bending), b, frames=60, fps=30.0)
+
+
+def lab_cantilever(scale: float = 1.0) -> Scene:
+    """Clamped cantilever: a 20 cm beam, 5 x 5 cm, held at one end, sagging under its own weight."""
+    b = SceneBuilder(spacing=0.005 / _scale(scale))
+    L, t = 0.2, 0.05
+    clamp = 3 * b.spacing
+    b.add_box(((L - clamp) / 2, t / 2, 0.0), (L + clamp, t, t), _lab_elastic(1.0e6, viscosity=20.0), name="beam")
+    b.pin(body="beam", region=((-1.0, -1.0, -1.0), (0.0, 1.0, 1.0)), name="clamp")
+    return Scene("lab_cantilever", _doc(lab_cantilever), b, frames=60, fps=30.0)
+
+
+def lab_cutting(scale: float = 1.0) -> Scene:
+    """Cutting: a knife blade (a closed triangle mesh) pushed down through a block of dough at 5 cm/s."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.004 / _scale(scale))
+    b.add_box((0.0, 0.02, 0.0), (0.1, 0.04, 0.06), Material.preset("dough"), name="dough")
+    b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=0.5, name="board")
+    b.add_tool("mesh", mesh=tools.blade_mesh(0.12, 0.05, 0.004), friction=0.2, name="blade",
+               motion=tools.Velocity((0.0, -0.05, 0.0), position=(0.0, 0.041, 0.0)))
+    return Scene("lab_cutting", _doc(lab_cutting), b, frames=30, fps=30.0)
+
+
+def lab_fig8_plates(scale: float = 1.0) -> Scene:
+    """Fig. 8's compression done with moving plates: an elastic and a very plastic cube squeezed 15 % from four sides, then released."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.02 / _scale(scale), gravity=(0.0, 0.0, 0.0), bodies_interact=False)
+    squeeze = 0.15
+    for (row, mat), z0 in zip(_fig8_materials(), (-0.35, 0.35)):
+        center = np.array([0.0, 0.3, z0])
+        b.add_box(tuple(center), (0.2, 0.2, 0.2), mat, name=row)
+        pts = b._points[-1]
+        half = 0.5 * (pts.max(axis=0) - pts.min(axis=0))  # plates start on the outer particle layers
+        for axis, sign in ((0, 1), (0, -1), (2, 1), (2, -1)):
+            n = np.zeros(3)
+            n[axis] = -sign  # solid side away from the cube
+            start = center.copy()
+            start[axis] += sign * half[axis]
+            end = center.copy()
+            end[axis] += sign * half[axis] * (1.0 - squeeze)
+            b.add_tool("plane", normal=tuple(n), name=f"{row}_plate_{'xz'[axis // 2]}{'+' if sign > 0 else '-'}",
+                       motion=tools.Keyframes([0.0, FIG8_RELEASE, FIG8_RELEASE + 0.02], [start, end, start + sign * 0.1 * np.eye(3)[axis]]))
+    frames = round(FIG8_DURATION * FIGURE_FPS)
+    return Scene("lab_fig8_plates", _doc(lab_fig8_plates), b, frames=frames, fps=FIGURE_FPS, view=(0.0, 50.0))
+
+
 #: Built-in scenes by name: the everyday scenes, then one per figure of the paper.
 SCENES: dict[str, Callable[..., Scene]] = {
     "dough_drop": dough_drop,
@@ -406,6 +515,13 @@ SCENES: dict[str, Callable[..., Scene]] = {
     "rubber_bounce": rubber_bounce,
     "clay_on_sphere": clay_on_sphere,
     "three_cylinders": three_cylinders,
+    "lab_compression": lab_compression,
+    "lab_squeeze_flow": lab_squeeze_flow,
+    "lab_indentation": lab_indentation,
+    "lab_three_point_bending": lab_three_point_bending,
+    "lab_cantilever": lab_cantilever,
+    "lab_cutting": lab_cutting,
+    "lab_fig8_plates": lab_fig8_plates,
     "fig1_non_newtonian": fig1_non_newtonian,
     "fig2_three_cylinders": fig2_three_cylinders,
     "fig3_pile": fig3_pile,
@@ -537,6 +653,25 @@ class _Vec3:
 
 NUM, NUM_INF, INT, STR, BOOL, VEC3 = _Num(), _Num(allow_inf=True), _Int(), _Str(), _Bool(), _Vec3()
 
+
+class _List:
+    """Schema type: an array whose items all pass ``item`` (``length``: exact item count)."""
+
+    def __init__(self, item, what: str, length: int | None = None):
+        self.item, self.what, self.length = item, what, length
+
+    def check(self, value) -> bool:
+        return isinstance(value, list) and (self.length is None or len(value) == self.length) and all(self.item.check(v) for v in value)
+
+    def describe(self) -> str:
+        return self.what
+
+
+QUAT = _List(NUM, "an array of 4 numbers (x, y, z, w)", 4)
+NUMS, INTS = _List(NUM, "an array of numbers"), _List(INT, "an array of integers")
+VEC3S, QUATS = _List(VEC3, "an array of 3-number arrays"), _List(QUAT, "an array of 4-number arrays (x, y, z, w)")
+REGION = _List(VEC3, "an array of two 3-number arrays [lo, hi]", 2)
+
 #: Every key a scene file may hold, per table: name -> (type, required).
 SCENE_KEYS = {
     "name": (STR, False), "description": (STR, False), "spacing": (NUM, False), "support_radius": (NUM, False),
@@ -563,7 +698,18 @@ COLLIDER_TYPES = {
     "sphere": {"center": (VEC3, True), "radius": (NUM, True), "friction": (NUM, False)},
     "box": {"center": (VEC3, True), "half_extents": (VEC3, True), "friction": (NUM, False)},
 }
-TOP_KEYS = ("scene", "materials", "bodies", "colliders")
+#: Keys of a tool's or pinned set's rigid motion (tools.py): a constant velocity, or keyframes.
+MOTION_KEYS = {
+    "velocity": (VEC3, False), "angular_velocity": (VEC3, False), "keyframe_times": (NUMS, False),
+    "keyframe_positions": (VEC3S, False), "keyframe_orientations": (QUATS, False),
+}
+TOOL_KEYS = {
+    "shape": (STR, True), "name": (STR, False), "position": (VEC3, False), "orientation": (QUAT, False),
+    "friction": (NUM, False), "static_friction": (NUM, False), "normal": (VEC3, False), "half_extents": (VEC3, False),
+    "radius": (NUM, False), "half_height": (NUM, False), "file": (STR, False), "scale": (NUM, False), **MOTION_KEYS,
+}
+PIN_KEYS = {"name": (STR, False), "body": (STR, False), "region": (REGION, False), "indices": (INTS, False), **MOTION_KEYS}
+TOP_KEYS = ("scene", "materials", "bodies", "colliders", "tools", "pins")
 
 
 def _did_you_mean(key: str, allowed) -> str:
@@ -702,6 +848,54 @@ def _collider(file: str, k: int, table: dict, builder: SceneBuilder):
         raise ValueError(f"{file}: {where}: {e}") from None
 
 
+def _motion(args: dict):
+    """A ``tools`` motion from the motion keys in ``args`` (removed from it); None: static."""
+    from . import tools  # noqa: PLC0415
+
+    kf = {k: args.pop(k) for k in ("keyframe_times", "keyframe_positions", "keyframe_orientations") if k in args}
+    vel = {k: args.pop(k) for k in ("velocity", "angular_velocity") if k in args}
+    if kf and vel:
+        raise ValueError("velocity/angular_velocity and keyframe_* are not allowed together: give one motion")
+    if kf:
+        if "keyframe_times" not in kf or "keyframe_positions" not in kf:
+            raise ValueError("keyframe_times and keyframe_positions are both needed for a keyframed motion")
+        return tools.Keyframes(kf["keyframe_times"], kf["keyframe_positions"], kf.get("keyframe_orientations"))
+    if vel:
+        return tools.Velocity(vel.get("velocity", (0.0, 0.0, 0.0)), vel.get("angular_velocity", (0.0, 0.0, 0.0)))
+    return None
+
+
+def _tool(file: str, k: int, table: dict, builder: SceneBuilder, base_dir: str):
+    from . import tools  # noqa: PLC0415
+
+    where = f"[[tools]] #{k + 1}"
+    _check_table(file, where, table, TOOL_KEYS)
+    _choice(file, where, "shape", table["shape"], tools.KINDS)
+    args = dict(table)
+    shape = args.pop("shape")
+    try:
+        motion = _motion(args)
+        if "file" in args:
+            source = args.pop("file")
+            args["mesh"] = source if os.path.isabs(source) else os.path.join(base_dir, source)
+        if "orientation" in args:
+            args["orientation"] = tuple(args["orientation"])
+        builder.add_tool(shape, motion=motion, **args)
+    except ValueError as e:
+        raise ValueError(f"{file}: {where}: {e}") from None
+
+
+def _pin(file: str, k: int, table: dict, builder: SceneBuilder):
+    where = f"[[pins]] #{k + 1}"
+    _check_table(file, where, table, PIN_KEYS)
+    args = dict(table)
+    try:
+        motion = _motion(args)
+        builder.pin(args.pop("indices", None), motion=motion, **args)
+    except ValueError as e:
+        raise ValueError(f"{file}: {where}: {e}") from None
+
+
 def load_scene_file(path, scale: float = 1.0) -> Scene:
     """Read a TOML scene file (format: ``docs/scene_format.md``).
 
@@ -731,7 +925,8 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
         raise ValueError(f"{file}: 'materials' must be a table of [materials.NAME] tables, not {materials_table!r}")
     bodies = data.get("bodies", [])
     colliders = data.get("colliders", [])
-    for key, value in (("bodies", bodies), ("colliders", colliders)):
+    tool_tables, pin_tables = data.get("tools", []), data.get("pins", [])
+    for key, value in (("bodies", bodies), ("colliders", colliders), ("tools", tool_tables), ("pins", pin_tables)):
         if not isinstance(value, list):
             raise ValueError(f"{file}: '{key}' must be an array of tables ([[{key}]]), not {type(value).__name__}")
     if not bodies:
@@ -760,6 +955,10 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
         _body(file, k, table, builder, materials, base_dir)
     for k, table in enumerate(colliders):
         _collider(file, k, table, builder)
+    for k, table in enumerate(tool_tables):
+        _tool(file, k, table, builder, base_dir)
+    for k, table in enumerate(pin_tables):
+        _pin(file, k, table, builder)
     name = scene.get("name") or os.path.splitext(os.path.basename(file))[0]
     description = scene.get("description") or f"scene file {file}"
     return Scene(name, description, builder, frames=frames, fps=fps, dt=dt)

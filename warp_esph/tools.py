@@ -792,3 +792,169 @@ def select_particles(builder, *, indices=None, body=None, region=None, where=Non
     if out.size == 0:
         raise ValueError(f"pin {name!r} is not allowed: the selection holds no particle")
     return out
+
+
+# ------------------------------------------------------------------------ tool meshes
+def box_mesh(half_extents) -> tuple[np.ndarray, np.ndarray]:
+    """A closed box mesh ``(points, triangles)`` centred at the origin, outward wound."""
+    hx, hy, hz = checks.positive_vector("half_extents", half_extents)
+    p = np.array([[sx * hx, sy * hy, sz * hz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    return p, np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))], dtype=np.int32)
+
+
+def blade_mesh(length: float, height: float, thickness: float) -> tuple[np.ndarray, np.ndarray]:
+    """A closed knife blade: a triangular prism along z (``length``), its sharp edge at
+    y = 0 and its back (``thickness`` wide in x) at y = ``height``, outward wound."""
+    L, H, T = (checks.positive(n, v) for n, v in (("length", length), ("height", height), ("thickness", thickness)))
+    p = np.array([[0.0, 0.0, -L / 2], [-T / 2, H, -L / 2], [T / 2, H, -L / 2],
+                  [0.0, 0.0, L / 2], [-T / 2, H, L / 2], [T / 2, H, L / 2]])
+    tris = np.array([[0, 2, 1], [3, 4, 5], [0, 1, 4], [0, 4, 3], [0, 3, 5], [0, 5, 2], [1, 2, 5], [1, 5, 4]], dtype=np.int32)
+    return p, np.ascontiguousarray(tris[:, ::-1])
+
+
+# ------------------------------------------------------------------------------- USD
+USD_ROOT = "/World/Tools"
+
+
+def usd_author(stage, model, key: str = "warp_esph", plane_size: float = 1.0):
+    """One Xform prim per tool under ``/World/Tools`` (pose written per frame by
+    ``usd_write_frame``) with its geometry in the tool's frame as a child ``geom``; pinned
+    sets get an Xform only. Static custom data: kind, friction coefficients."""
+    from pxr import Gf, Sdf, UsdGeom, Vt  # noqa: PLC0415 (USD only when writing it)
+
+    tools = getattr(model, "tools", None)
+    if tools is None:
+        return
+    UsdGeom.Scope.Define(stage, USD_ROOT)
+    steel = Vt.Vec3fArray([Gf.Vec3f(0.62, 0.64, 0.7)])
+    for k, name in enumerate(tools.names):
+        path = f"{USD_ROOT}/{_usd_name(name, k)}"
+        xf = UsdGeom.Xform.Define(stage, path)
+        xf.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble)
+        xf.AddOrientOp(UsdGeom.XformOp.PrecisionDouble)
+        prim = xf.GetPrim()
+        prim.SetCustomDataByKey(f"{key}:tool_name", name)
+        prim.CreateAttribute(f"{key}:reaction_force", Sdf.ValueTypeNames.Double3)
+        prim.CreateAttribute(f"{key}:reaction_torque", Sdf.ValueTypeNames.Double3)
+        if k >= len(tools.colliders):
+            prim.SetCustomDataByKey(f"{key}:tool", "pin")
+            prim.SetCustomDataByKey(f"{key}:particle_count", int(len(tools.pins[k - len(tools.colliders)].indices)))
+            continue
+        c = tools.colliders[k]
+        prim.SetCustomDataByKey(f"{key}:tool", c.kind)
+        prim.SetCustomDataByKey(f"{key}:friction", float(c.friction))
+        prim.SetCustomDataByKey(f"{key}:static_friction", float(c.static_friction))
+        g = f"{path}/geom"
+        if c.kind == "box":
+            geom = UsdGeom.Cube.Define(stage, g)
+            geom.CreateSizeAttr(2.0)
+            geom.AddScaleOp().Set(Gf.Vec3f(*c.param))
+        elif c.kind == "sphere":
+            geom = UsdGeom.Sphere.Define(stage, g)
+            geom.CreateRadiusAttr(float(c.param[0]))
+        elif c.kind in ("capsule", "cylinder"):
+            geom = (UsdGeom.Capsule if c.kind == "capsule" else UsdGeom.Cylinder).Define(stage, g)
+            geom.CreateRadiusAttr(float(c.param[0]))
+            geom.CreateHeightAttr(2.0 * float(c.param[1]))
+            geom.CreateAxisAttr(UsdGeom.Tokens.y)
+        else:
+            if c.kind == "plane":
+                n = np.asarray(c.param, dtype=np.float64)
+                t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 0.0, 1.0])
+                t1 /= np.linalg.norm(t1)
+                t2 = np.cross(n, t1)
+                h = 0.5 * plane_size
+                pts = np.array([-h * t1 - h * t2, h * t1 - h * t2, h * t1 + h * t2, -h * t1 + h * t2])
+                tris = np.array([[0, 1, 2, 3]])
+            else:
+                pts, tris = np.asarray(c.mesh_points), np.asarray(c.mesh_triangles)
+            geom = UsdGeom.Mesh.Define(stage, g)
+            geom.CreatePointsAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, p)) for p in pts]))
+            geom.CreateFaceVertexCountsAttr(Vt.IntArray([int(tris.shape[1])] * len(tris)))
+            geom.CreateFaceVertexIndicesAttr(Vt.IntArray([int(i) for i in tris.ravel()]))
+            geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+            geom.CreateDoubleSidedAttr(c.kind == "plane")
+            geom.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, pts.min(axis=0))), Gf.Vec3f(*map(float, pts.max(axis=0)))]))
+        geom.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(steel)
+
+
+def usd_write_frame(stage, model, state, time_code, key: str = "warp_esph"):
+    """Each tool's pose at ``state.time`` (time-sampled translate and orient) and the reaction
+    force and torque of the step that produced ``state`` (time-sampled attributes)."""
+    from pxr import Gf  # noqa: PLC0415
+
+    tools = getattr(model, "tools", None)
+    if tools is None:
+        return
+    f = state.reaction_force.numpy().astype(np.float64)
+    tq = state.reaction_torque.numpy().astype(np.float64)
+    for k, name in enumerate(tools.names):
+        prim = stage.GetPrimAtPath(f"{USD_ROOT}/{_usd_name(name, k)}")
+        p, q = tools.pose_at(k, state.time)  # a pinned set's frame: (centroid, identity) at rest
+        prim.GetAttribute("xformOp:translate").Set(Gf.Vec3d(*map(float, p)), time_code)
+        prim.GetAttribute("xformOp:orient").Set(Gf.Quatd(float(q[3]), float(q[0]), float(q[1]), float(q[2])), time_code)
+        prim.GetAttribute(f"{key}:reaction_force").Set(Gf.Vec3d(*f[k]), time_code)
+        prim.GetAttribute(f"{key}:reaction_torque").Set(Gf.Vec3d(*tq[k]), time_code)
+
+
+def _usd_name(name: str, k: int) -> str:
+    import re  # noqa: PLC0415
+
+    clean = re.sub(r"[^A-Za-z0-9_]", "_", name)
+    return clean if clean and not clean[0].isdigit() else f"tool_{k}_{clean}"
+
+
+# ---------------------------------------------------------------------- reaction log
+class ReactionLog:
+    """Per-frame record of every tool's pose and its mean reaction force and torque over the
+    frame (impulse / frame time, summed on the device each step), for ``warp-esph run``'s
+    ``<output>_tools.csv`` / ``.json``. Attach with ``ReactionLog(solver)``, call
+    ``record(frame, state)`` after each frame."""
+
+    def __init__(self, solver):
+        m = solver.model
+        self.tools = m.tools
+        self.solver = solver
+        solver.tool_impulse = (
+            wp.zeros(self.tools.count, dtype=m.types.vec3, device=m.device),
+            wp.zeros(self.tools.count, dtype=m.types.vec3, device=m.device),
+        )
+        self.rows: list[dict] = []
+        self._t_last = None
+
+    def record(self, frame: int, state):
+        imp, ang = (a.numpy().astype(np.float64) for a in self.solver.tool_impulse)
+        span = None if self._t_last is None else state.time - self._t_last
+        self._t_last = state.time
+        for a in self.solver.tool_impulse:
+            a.zero_()
+        for k, name in enumerate(self.tools.names):
+            p, q = self.tools.pose_at(k, state.time)
+            f = imp[k] / span if span else np.zeros(3)
+            t = ang[k] / span if span else np.zeros(3)
+            self.rows.append({
+                "frame": int(frame), "time": float(state.time), "tool": name,
+                "position": [float(v) for v in p], "orientation": [float(v) for v in q],
+                "force": [float(v) for v in f], "torque": [float(v) for v in t],
+            })
+
+    def write(self, stem: str) -> tuple[str, str]:
+        """``stem + '_tools.csv'`` and ``stem + '_tools.json'``; returns both paths."""
+        import csv  # noqa: PLC0415
+        import json  # noqa: PLC0415
+
+        csv_path, json_path = f"{stem}_tools.csv", f"{stem}_tools.json"
+        with open(csv_path, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["frame", "time", "tool", "px", "py", "pz", "qx", "qy", "qz", "qw", "fx", "fy", "fz", "tx", "ty", "tz"])
+            for r in self.rows:
+                w.writerow([r["frame"], f"{r['time']:.9g}", r["tool"], *(f"{v:.9g}" for v in r["position"] + r["orientation"] + r["force"] + r["torque"])])
+        with open(json_path, "w") as fh:
+            json.dump({
+                "units": {"time": "s", "position": "m", "force": "N", "torque": "N m"},
+                "definition": "mean force and torque each tool exerted on the material over the frame ending at 'time' "
+                              "(torque about the tool's position); the material exerts minus these on the tool",
+                "rows": self.rows,
+            }, fh, indent=1)
+        return csv_path, json_path

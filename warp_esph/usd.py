@@ -49,7 +49,7 @@ import warnings
 import numpy as np
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
-from . import checks
+from . import checks, tools
 from .model import Model
 
 __all__ = ["UsdWriter", "USD_EXTENSIONS", "body_prim_names"]
@@ -271,6 +271,7 @@ class UsdWriter:
             pts.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(Vt.Vec3fArray([Gf.Vec3f(*color)]))
         self._author_colliders(stage)
         self._author_surfaces(stage)
+        tools.usd_author(stage, m, _KEY, self._plane_size or 1.0)
 
     def _author_surfaces(self, stage: Usd.Stage):
         """The surface Mesh prims (idempotent: also used when appending to an existing file)."""
@@ -403,6 +404,7 @@ class UsdWriter:
                 geom.GetExtentAttr().Set(ext, t)
                 prim.GetAttribute("primvars:singular_values").Set(svals, t)
                 prim.GetAttribute("primvars:alpha").Set(alph, t)
+            tools.usd_write_frame(stage, m, state, t, _KEY)
             stage.SetStartTimeCode(float(self.first_frame))
             stage.SetEndTimeCode(float(self.last_frame))
         self._save_and_publish()
