@@ -307,3 +307,84 @@ def test_bad_tool_input_is_a_value_error_naming_it(call, match):
     b.add_box((0, 0, 0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="d")
     with pytest.raises(ValueError, match=match):
         call(b)
+
+
+# ------------------------------------------------------------- scene files, CLI, USD
+SCENE_TOML = """
+[scene]
+spacing = 0.02
+frames = 2
+fps = 50
+
+[[bodies]]
+shape = "box"
+name = "block"
+material = "dough"
+center = [0.0, 0.05, 0.0]
+size = [0.1, 0.1, 0.1]
+
+[[tools]]
+shape = "plane"
+name = "base"
+
+[[tools]]
+shape = "box"
+name = "plate"
+half_extents = [0.1, 0.01, 0.1]
+friction = 0.2
+keyframe_times = [0.0, 0.04]
+keyframe_positions = [[0.0, 0.1, 0.0], [0.0, 0.09, 0.0]]
+
+[[pins]]
+name = "left"
+body = "block"
+region = [[-1, -1, -1], [-0.035, 1, 1]]
+"""
+
+
+def test_scene_file_tools_and_pins_run_through_the_cli_to_usd_csv_and_json(tmp_path):
+    import csv  # noqa: PLC0415
+    import json  # noqa: PLC0415
+
+    from pxr import Usd, UsdGeom  # noqa: PLC0415
+
+    from warp_esph.cli import main  # noqa: PLC0415
+    from warp_esph.scenes import load_scene_file  # noqa: PLC0415
+
+    path = tmp_path / "press.toml"
+    path.write_text(SCENE_TOML)
+    out = tmp_path / "press.usdc"
+    assert main(["run", str(path), "-o", str(out), "--no-progress"]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "press_tools.csv")))
+    assert [r["tool"] for r in rows] == ["base", "plate", "left"] * 3
+    plate = [r for r in rows if r["tool"] == "plate"]
+    assert [float(r["py"]) for r in plate] == pytest.approx([0.1, 0.095, 0.09], abs=1e-6)  # keyframes at t = 0, 0.02, 0.04
+    assert float(plate[-1]["fy"]) < 0.0  # the plate presses down on the block
+    data = json.load(open(tmp_path / "press_tools.json"))
+    assert len(data["rows"]) == 9 and data["units"]["force"] == "N"
+    stage = Usd.Stage.Open(str(out))
+    prim = stage.GetPrimAtPath("/World/Tools/plate")
+    assert prim.GetAttribute("xformOp:translate").Get(2)[1] == pytest.approx(0.09, abs=1e-6)
+    assert prim.GetAttribute("warp_esph:reaction_force").Get(2)[1] < 0.0
+    assert UsdGeom.Cube(stage.GetPrimAtPath("/World/Tools/plate/geom"))
+    # The pinned particles are in the USD frame exactly where they started.
+    model = load_scene_file(path).builder.finalize()
+    held = model.tools.pins[0].indices
+    x2 = np.array(UsdGeom.Points(stage.GetPrimAtPath("/World/block")).GetPointsAttr().Get(2))
+    np.testing.assert_array_equal(x2[held], model.particle_x0[held].astype(np.float32))
+
+
+@pytest.mark.parametrize("old,new,pattern", [
+    ('name = "plate"', 'name = "plate"\nradus = 1.0', r"unknown key 'radus' in \[\[tools\]\] #2; did you mean 'radius'"),
+    ('shape = "box"\nname = "plate"', 'shape = "cone"\nname = "plate"', r"shape = 'cone' in \[\[tools\]\] #2 is not allowed"),
+    ("keyframe_times = [0.0, 0.04]", "keyframe_times = [0.0, 0.04]\nvelocity = [0, 1, 0]", r"\[\[tools\]\] #2: .*not allowed together"),
+    ('body = "block"', 'body = "blok"', r"\[\[pins\]\] #1: body = 'blok' is not allowed"),
+])
+def test_scene_file_tool_errors_name_the_table_and_key(tmp_path, old, new, pattern):
+    from warp_esph.scenes import load_scene_file  # noqa: PLC0415
+
+    path = tmp_path / "bad.toml"
+    assert old in SCENE_TOML
+    path.write_text(SCENE_TOML.replace(old, new))
+    with pytest.raises(ValueError, match=pattern):
+        load_scene_file(path)

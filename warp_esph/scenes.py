@@ -408,16 +408,19 @@ def _lab_elastic(E: float, nu: float = 0.3, density: float = 1000.0, viscosity: 
 
 
 def lab_compression(scale: float = 1.0) -> Scene:
-    """Texture-analyser compression: a 4 cm dough cylinder squeezed 30 % between a fixed and a descending plate."""
+    """Texture-analyser compression: a 4 cm cylinder of firm dough squeezed 30 % between a fixed and a descending plate."""
     from . import tools  # noqa: PLC0415
 
     b = SceneBuilder(spacing=0.0025 / _scale(scale))
     r, h = 0.02, 0.03
-    b.add_cylinder((0.0, h / 2, 0.0), r, h, Material.preset("dough"), name="sample")
+    # Firmer than the dough preset (yield 150 Pa), which slumps under its own weight
+    # (rho g h = 340 Pa) before the plate arrives.
+    firm = Material.preset("dough").replace(yield_stress=1000.0)
+    b.add_cylinder((0.0, h / 2, 0.0), r, h, firm, name="sample")
     b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=0.3, name="base")
     speed = 0.3 * h / 2.0  # 30 % strain over the 2 s run
     b.add_tool("box", half_extents=(0.04, 0.005, 0.04), friction=0.3,
-               motion=tools.Velocity((0.0, -speed, 0.0), position=(0.0, h + 0.005, 0.0)), name="plate")
+               motion=tools.Velocity((0.0, -speed, 0.0), position=(0.0, h + 0.005, 0.0)), name="plate")  # touching
     return Scene("lab_compression", _doc(lab_compression), b, frames=60, fps=30.0)
 
 
@@ -479,7 +482,9 @@ def lab_cutting(scale: float = 1.0) -> Scene:
     b = SceneBuilder(spacing=0.004 / _scale(scale))
     b.add_box((0.0, 0.02, 0.0), (0.1, 0.04, 0.06), Material.preset("dough"), name="dough")
     b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=0.5, name="board")
-    b.add_tool("mesh", mesh=tools.blade_mesh(0.12, 0.05, 0.004), friction=0.2, name="blade",
+    # A wedge (1 cm back over 6 cm): a blade thinner than the spacing would pass between
+    # particle columns without touching any (docs/tools.md).
+    b.add_tool("mesh", mesh=tools.blade_mesh(0.12, 0.06, 0.01), friction=0.2, name="blade",
                motion=tools.Velocity((0.0, -0.05, 0.0), position=(0.0, 0.041, 0.0)))
     return Scene("lab_cutting", _doc(lab_cutting), b, frames=30, fps=30.0)
 
@@ -496,13 +501,14 @@ def lab_fig8_plates(scale: float = 1.0) -> Scene:
         pts = b._points[-1]
         half = 0.5 * (pts.max(axis=0) - pts.min(axis=0))  # plates start on the outer particle layers
         for axis, sign in ((0, 1), (0, -1), (2, 1), (2, -1)):
-            n = np.zeros(3)
-            n[axis] = -sign  # solid side away from the cube
+            # Finite plates (boxes 1 cm thick): an infinite plane would also push the other cube.
+            plate = np.full(3, 0.15)
+            plate[axis] = 0.005
             start = center.copy()
-            start[axis] += sign * half[axis]
-            end = center.copy()
-            end[axis] += sign * half[axis] * (1.0 - squeeze)
-            b.add_tool("plane", normal=tuple(n), name=f"{row}_plate_{'xz'[axis // 2]}{'+' if sign > 0 else '-'}",
+            start[axis] += sign * (half[axis] + plate[axis])
+            end = start.copy()
+            end[axis] -= sign * half[axis] * squeeze
+            b.add_tool("box", half_extents=tuple(plate), name=f"{row}_plate_{'xz'[axis // 2]}{'_plus' if sign > 0 else '_minus'}",
                        motion=tools.Keyframes([0.0, FIG8_RELEASE, FIG8_RELEASE + 0.02], [start, end, start + sign * 0.1 * np.eye(3)[axis]]))
     frames = round(FIG8_DURATION * FIGURE_FPS)
     return Scene("lab_fig8_plates", _doc(lab_fig8_plates), b, frames=frames, fps=FIGURE_FPS, view=(0.0, 50.0))

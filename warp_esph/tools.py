@@ -18,7 +18,8 @@ in the keyframes and velocities), then ``integrate`` does the symplectic Euler u
   relative normal velocity is removed, and Coulomb friction acts on the relative
   tangential velocity (static coefficient: sticks while ``|v_t| <= mu_s |dv_n|``; else
   kinetic: ``|v_t|`` shrinks by ``mu_k |dv_n|``);
-- pinned particles: ``x = p(t1) + R(t1) (X - c)`` with ``X`` the rest position and ``c`` the
+- pinned particles: ``x = p(t1) + R(t1) (X - c)`` (evaluated as ``X + (p - c) + (R - I)(X - c)``,
+  exactly ``X`` while the set is at rest) with ``X`` the rest position and ``c`` the
   set's rest centroid (the set's pose at rest is ``(c, identity)``), ``v = (x(t1) - x(t0)) / dt``.
   Pinned particles stay in every neighbour fit and force sum as ordinary particles: only
   their x and v are prescribed, so F is consistent across the clamp.
@@ -467,10 +468,13 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         if wp.static(n_pins > 0):
             k = pin[i]
             if k >= 0:
-                xr = rest_x[i] - pin_center[k]
+                # x = X + (p - c) + (R - I)(X - c): bit for bit X while the pose is at rest.
+                X = rest_x[i]
+                c0 = pin_center[k]
+                xr = X - c0
                 p1 = pose_p[2 * k + 1]
-                x1 = world(p1, pose_q[2 * k + 1], xr)
-                x0 = world(pose_p[2 * k], pose_q[2 * k], xr)
+                x1 = X + (p1 - c0) + (wp.quat_rotate(pose_q[2 * k + 1], xr) - xr)
+                x0 = X + (pose_p[2 * k] - c0) + (wp.quat_rotate(pose_q[2 * k], xr) - xr)
                 v1 = (x1 - x0) / dt
                 fr = m * (v1 - v_in[i]) / dt - f[i] - m * gravity
                 wp.atomic_add(rforce, k, fr)
@@ -902,7 +906,8 @@ def _usd_name(name: str, k: int) -> str:
     import re  # noqa: PLC0415
 
     clean = re.sub(r"[^A-Za-z0-9_]", "_", name)
-    return clean if clean and not clean[0].isdigit() else f"tool_{k}_{clean}"
+    # Changed names carry the tool index, so that 'a+' and 'a-' stay two prims.
+    return clean if clean == name and not clean[0].isdigit() else f"tool_{k}_{clean}"
 
 
 # ---------------------------------------------------------------------- reaction log
