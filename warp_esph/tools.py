@@ -13,7 +13,7 @@ in the keyframes and velocities), then ``integrate`` does the symplectic Euler u
   ``t1``; a particle found inside is moved to the nearest surface point, a particle of a
   mesh collider whose relative path in the collider frame (start in the ``t0`` frame, end in
   the ``t1`` frame) enters a face is stopped at the entry point (no tunnelling through a
-  thin mesh however fast it moves). The surface point's velocity over the step
+  thin mesh however fast it moves; the same for boxes). The surface point's velocity over the step
   ``(T1(c) - T0(c)) / dt`` is the velocity the contact is measured against: the inward
   relative normal velocity is removed, and Coulomb friction acts on the relative
   tangential velocity (static coefficient: sticks while ``|v_t| <= mu_s |dv_n|``; else
@@ -350,6 +350,42 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         return 0, xl, vec3()
 
     @wp.func
+    def slab(s: scalar, d: scalar, h: scalar):
+        """Entry and exit parameters of the path ``s + t d`` through ``|.| <= h``, and the
+        sign of the face it enters by."""
+        big = scalar(1.0e30)
+        if d == ZERO:
+            if wp.abs(s) <= h:
+                return -big, big, ZERO
+            return big, -big, ZERO
+        ta = (-h - s) / d
+        tb = (h - s) / d
+        if ta < tb:
+            return ta, tb, scalar(-1.0)
+        return tb, ta, ONE
+
+    @wp.func
+    def swept_box(xs: vec3, xl: vec3, half: vec3, margin: scalar):
+        """A box the relative path ``xs -> xl`` passes through (a thin plate moving more than
+        its thickness in a step): stop at the entry point."""
+        d = xl - xs
+        t0x, t1x, sx = slab(xs[0], d[0], half[0])
+        t0y, t1y, sy = slab(xs[1], d[1], half[1])
+        t0z, t1z, sz = slab(xs[2], d[2], half[2])
+        t_in = t0x
+        nl = vec3(sx, ZERO, ZERO)
+        if t0y > t_in:
+            t_in = t0y
+            nl = vec3(ZERO, sy, ZERO)
+        if t0z > t_in:
+            t_in = t0z
+            nl = vec3(ZERO, ZERO, sz)
+        t_out = wp.min(t1x, wp.min(t1y, t1z))
+        if t_in > ZERO and t_in <= ONE and t_in <= t_out:
+            return 1, xs + t_in * d + margin * nl, nl
+        return 0, xl, vec3()
+
+    @wp.func
     def shape_cylinder(xl: vec3, param: vec3):
         r = param[0]
         hh = param[1]
@@ -445,7 +481,13 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[1])):
             k = wp.static(offsets[1]) + c
-            hit, xc, nl = shape_box(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
+            # The entry point first (a path from outside), the nearest face only for a
+            # particle that was already inside: the nearest face of a thin plate that moved
+            # past most of a particle could be its back.
+            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
+            hit, xc, nl = swept_box(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
+            if hit == 0:
+                hit, xc, nl = shape_box(xl, param[k])
             x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[2])):
             k = wp.static(offsets[2]) + c
