@@ -44,6 +44,11 @@ def test_pinned_set_stays_exactly_where_held_and_a_moving_pin_follows_its_motion
     b.pin(body="held", region=((-1, -1, -1), (1, 0.07, 1)), name="base")
     v, w = np.array([0.0, 0.2, 0.1]), np.array([0.0, 1.0, 0.0])
     b.pin(body="carried", motion=tools.Velocity(v, w), name="grip")
+    b.add_box((0.6, 0.1, 0.0), (0.1, 0.1, 0.1), _elastic(2e4, viscosity=2.0), name="scripted")
+    c_s = np.concatenate(b._points)[250:].mean(axis=0)
+    half = 0.5 * np.linalg.norm(w)
+    b.pin(body="scripted", name="script", motion=tools.Scripted(
+        lambda t: (c_s + v * t, (0.0, np.sin(half * t), 0.0, np.cos(half * t)))))
     m = b.finalize()
     held = m.tools.pins[0].indices
     carried = m.tools.pins[1].indices
@@ -65,6 +70,9 @@ def test_pinned_set_stays_exactly_where_held_and_a_moving_pin_follows_its_motion
     R = np.array([[np.cos(ang), 0, np.sin(ang)], [0, 1, 0], [-np.sin(ang), 0, np.cos(ang)]])
     expect = c + v * t + (x0[carried] - c) @ R.T
     np.testing.assert_allclose(x[carried], expect, atol=2e-6)
+    # A Python callable giving the same motion moves its set the same way.
+    scripted = m.tools.pins[2].indices
+    np.testing.assert_allclose(x[scripted] - c_s, x[carried] - c, atol=2e-6)
 
 
 def test_clamped_cantilever_bends_like_a_beam_and_the_clamp_carries_its_weight():

@@ -476,16 +476,17 @@ def lab_cantilever(scale: float = 1.0) -> Scene:
 
 
 def lab_cutting(scale: float = 1.0) -> Scene:
-    """Cutting: a knife blade (a closed triangle mesh) pushed down through a block of dough at 5 cm/s."""
+    """Cutting: a knife blade (a closed triangle mesh) pushed down through a block of firm dough at 5 cm/s."""
     from . import tools  # noqa: PLC0415
 
     b = SceneBuilder(spacing=0.004 / _scale(scale))
-    b.add_box((0.0, 0.02, 0.0), (0.1, 0.04, 0.06), Material.preset("dough"), name="dough")
+    b.add_box((0.0, 0.02, 0.0), (0.1, 0.04, 0.06), Material.preset("dough").replace(yield_stress=1000.0), name="dough")
     b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=0.5, name="board")
-    # A wedge (1 cm back over 6 cm): a blade thinner than the spacing would pass between
-    # particle columns without touching any (docs/tools.md).
+    # A wedge (1 cm back over 6 cm) whose edge meets a column of particles: a blade thinner
+    # than the spacing between two columns would touch none (docs/tools.md).
+    edge_x = float(np.unique(b._points[-1][:, 0])[len(np.unique(b._points[-1][:, 0])) // 2])
     b.add_tool("mesh", mesh=tools.blade_mesh(0.12, 0.06, 0.01), friction=0.2, name="blade",
-               motion=tools.Velocity((0.0, -0.05, 0.0), position=(0.0, 0.041, 0.0)))
+               motion=tools.Velocity((0.0, -0.05, 0.0), position=(edge_x, 0.041, 0.0)))
     return Scene("lab_cutting", _doc(lab_cutting), b, frames=30, fps=30.0)
 
 
