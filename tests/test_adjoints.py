@@ -1,4 +1,4 @@
-"""Custom adjoints of the SVD maps (SPEC §9) against float64 central differences,
+"""Custom adjoints of the SVD maps (docs/method.md §9) against float64 central differences,
 at rest (F = I, every singular value repeated), with two repeated singular values,
 at a random F, across the yield point, and for every material parameter."""
 
@@ -141,7 +141,7 @@ def test_plastic_flow_adjoint(case, yield_stress, flow_rate, non_newtonian):
 @pytest.mark.parametrize("scalar,tol", [(wp.float64, 1e-12), (wp.float32, 2e-2)])
 def test_rotation_variant_svd_reconstructs_and_flags_inversion(scalar, tol):
     """U diag(sigma) V^T rebuilds F (float32: up to 1e-2 on badly conditioned input,
-    SPEC §3), U and V are proper rotations, and an inverted F has one negative sigma."""
+    docs/method.md §3), U and V are proper rotations, and an inverted F has one negative sigma."""
     from warp_esph import isotropic
 
     Ts = type_set(scalar)

@@ -1,4 +1,4 @@
-"""The Fig. 8 comparison models (SPEC §7): their kernels on exact cases, and the figure's behaviour.
+"""The Fig. 8 comparison models (docs/method.md §7): their kernels on exact cases, and the figure's behaviour.
 
 The behaviour test runs ``fig8_comparison`` (six 20 cm cubes, 8^3 particles each) through the
 compression and release, and measures each cube's shape error: the largest relative change

@@ -14,7 +14,8 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from warp_esph.fit import add_fit_arguments, fit, fit_cli, load_target, save_target
+from warp_esph.cli import add_fit_arguments, fit_cli
+from warp_esph.fit import fit, load_target, save_target
 from warp_esph.losses import ChamferLoss, MeshLoss, PositionLoss, surface_particles
 from warp_esph.rollout import PARAMETERS, Rollout, split_materials
 
@@ -326,17 +327,12 @@ def dough_target():
 
 
 def test_small_fit_recovers_two_parameters(dough_target):
-    import time
-
     truth, dt, steps, frames, target = dough_target
     model = _dough_block(800.0, 60.0)  # a factor 2 off in both
     assert 200 <= model.particle_count <= 400
-    t0 = time.perf_counter()
     seen = []
     result = fit(model, target, ["yield_stress", "flow_rate"], steps=steps, dt=dt, frames=frames, iterations=30,
                  optimizer="lbfgs", progress=False, callback=lambda k, v, p: seen.append(v))
-    seconds = time.perf_counter() - t0
-    assert seconds < 60.0
     assert result.params["yield_stress"][0] == pytest.approx(400.0, rel=0.10)
     assert result.params["flow_rate"][0] == pytest.approx(30.0, rel=0.10)
     assert result.loss < 1e-3 * result.initial_loss

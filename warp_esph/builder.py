@@ -22,7 +22,7 @@ from .model import Body, Model
 
 #: Allowed support radius, in units of the spacing. Below 1.5 dx an interior particle
 #: sees only its 6 face neighbours; above 3 dx the 30-neighbour cap cuts the
-#: neighbourhood anisotropically and the body loses stiffness (SPEC §1.1).
+#: neighbourhood anisotropically and the body loses stiffness (docs/method.md §1).
 SUPPORT_RANGE = (1.5, 3.0)
 #: Largest lattice a single body may be sampled from (about 1.6 GB of float64 points).
 MAX_PARTICLES_PER_BODY = 6.4e7

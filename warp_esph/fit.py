@@ -16,19 +16,18 @@ or target positions (``(frames, n, 3)``, ``{step: (n, 3)}``) fitted with a
 Positive parameters are optimised in log space (a step of Adam changes them by about
 ``lr`` relative), others (e.g. ``hardening = 0``) in linear space scaled by their initial
 magnitude. ``bounds={"flow_rate": (1, 1e3)}`` clips them; ``clip`` caps the norm of the
-optimiser-space gradient (long horizons can give exploding gradients, WARP_NOTES).
+optimiser-space gradient (long horizons can give exploding gradients, docs/method.md).
 
 ``tie_pressure``: a ``Material`` whose ``pressure_stiffness`` was left at its default
 follows ``mu`` and ``lam`` (``k_p = (lam + 2 mu / 3) / (2 rho0)``); with ``None`` (the
 default) each fitted material whose ``k_p`` equals that formula keeps following it while
 ``mu``/``lam`` change, with the chain rule applied to the gradient.
 
-``fit_cli(args)`` is the ``warp-esph fit`` subcommand (``add_fit_arguments`` declares its
-options); see ``docs/fitting.md``.
+The ``warp-esph fit`` subcommand is ``warp_esph.cli.fit_cli`` (``add_fit_arguments``
+declares its options); see ``docs/fitting.md``.
 """
 
 import dataclasses
-import json
 import math
 import os
 import sys
@@ -45,7 +44,7 @@ from .material import Material
 from .model import Model
 from .rollout import PARAMETERS, Rollout
 
-__all__ = ["fit", "FitResult", "Adam", "load_target", "save_target", "Target", "add_fit_arguments", "fit_cli"]
+__all__ = ["fit", "FitResult", "Adam", "load_target", "save_target", "Target", "write_fitted_usd"]
 
 #: Parameters that must stay > 0 (log space always).
 _POSITIVE = ("mu", "yield_stress", "flow_rate")
@@ -167,7 +166,7 @@ def _target_loss(target, frames) -> Loss:
     if isinstance(target, Loss):
         return target
     if isinstance(target, (str, os.PathLike)):
-        raise ValueError("target is a file: load it with load_target(path).loss(model, ...) first (or use fit_cli)")
+        raise ValueError("target is a file: load it with load_target(path).loss(model, ...) first (or use 'warp-esph fit')")
     if isinstance(target, Mapping):
         return PositionLoss(target)
     a = np.asarray(target, dtype=np.float64)
@@ -617,119 +616,6 @@ def load_target(path) -> Target:
 
         return Target("mesh", load_mesh(p), None, None, p)
     return Target("points", np.asarray(m.points, dtype=np.float64)[:, :3], None, None, p)
-
-
-# --------------------------------------------------------------------------- CLI
-def add_fit_arguments(parser):
-    """Declare the ``warp-esph fit`` options on an ``argparse`` (sub)parser."""
-    parser.add_argument("scene", metavar="SCENE", help="built-in scene name or .toml scene file (the initial guess)")
-    parser.add_argument("--target", required=True, metavar="FILE",
-                        help="target: .npz/.npy positions per frame, a point cloud (.xyz/.ply ...) or a mesh file")
-    parser.add_argument("--params", default="yield_stress,flow_rate", metavar="A,B",
-                        help=f"comma-separated parameters to fit, of {','.join(PARAMETERS)} (default yield_stress,flow_rate)")
-    parser.add_argument("--material", action="append", metavar="BODY",
-                        help="fit only this body's material (name or material index); repeatable; default all")
-    parser.add_argument("--iterations", type=int, default=50, metavar="N", help="optimiser iterations (default 50)")
-    parser.add_argument("--lr", type=float, default=0.1, metavar="LR", help="Adam step size, relative (default 0.1)")
-    parser.add_argument("--bounds", action="append", default=[], metavar="NAME=LO:HI", help="bounds of a parameter; repeatable")
-    parser.add_argument("--clip", type=float, metavar="C", help="clip the gradient norm (log space) to C")
-    parser.add_argument("--target-frames", metavar="F,G", help="rendered frame index of each target frame (default: from the file)")
-    parser.add_argument("--frames", type=int, metavar="N", help="frames to simulate (default: the last target frame or the scene's)")
-    parser.add_argument("--fps", type=float, metavar="F", help="frames per second (default: the target's or the scene's)")
-    parser.add_argument("--dt", type=float, metavar="DT", help="time step in s (default: the stable step)")
-    parser.add_argument("--scale", type=float, default=1.0, metavar="S", help="resolution scale of the scene (default 1)")
-    parser.add_argument("--radius", type=float, metavar="R", help="Chamfer search radius for point-cloud targets (default 3 spacings)")
-    parser.add_argument("--mesh-mode", choices=MeshLoss.MODES, default="surface", help="mesh targets: surface or outside")
-    parser.add_argument("--checkpoint-every", type=int, metavar="S", help="checkpoint the rollout every S steps (less memory)")
-    parser.add_argument("--dtype", choices=("float32", "float64"), default="float64", help="precision (default float64)")
-    parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="Warp device (default cpu)")
-    parser.add_argument("-o", "--output", metavar="OUT.json", help="fitted parameters (default: <target>.fit.json beside the target)")
-    parser.add_argument("--no-usd", action="store_true", help="do not write the fitted run to USD")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    return parser
-
-
-def _parse_bounds(items) -> dict:
-    out = {}
-    for item in items or []:
-        try:
-            name, rng = item.split("=", 1)
-            lo, hi = rng.split(":", 1)
-            out[name.strip()] = (float(lo), float(hi))
-        except ValueError:
-            raise ValueError(f"--bounds {item!r} is not allowed: use NAME=LO:HI, e.g. flow_rate=1:1000") from None
-    return out
-
-
-def fit_cli(args, out=sys.stdout) -> int:
-    """Run ``warp-esph fit`` from parsed ``args`` (see ``add_fit_arguments``); returns 0.
-
-    Writes the fitted parameters as JSON (``--output``, default ``<target>.fit.json``) and,
-    when ``warp_esph.usd`` is available, the fitted run as ``<target>.fit.usdc`` beside it.
-    Raises ``ValueError``/``OSError`` on bad input (the CLI maps them to exit status 2).
-    """
-    from .scenes import load_scene  # noqa: PLC0415
-    from .simulate import resolve_timestep  # noqa: PLC0415
-
-    params = [p.strip() for p in str(args.params).split(",") if p.strip()]
-    for p in params:
-        if p not in PARAMETERS:
-            raise ValueError(f"--params entry {p!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
-    scale = checks.positive("--scale", args.scale)
-    if args.iterations < 0:
-        raise ValueError(f"--iterations = {args.iterations!r} is not allowed: must be >= 0")
-    bounds = _parse_bounds(args.bounds)
-    target = load_target(args.target)
-    scene = load_scene(args.scene, scale=scale)
-    fps = args.fps if args.fps is not None else (target.fps if target.fps is not None else scene.fps)
-    dtype = {"float32": wp.float32, "float64": wp.float64}[args.dtype]
-    model = scene.builder.finalize(device=args.device, dtype=dtype, requires_grad=True)
-    substeps, dt = resolve_timestep(model, fps, dt=args.dt if args.dt is not None else scene.dt)
-
-    target_frames = target.frames
-    if args.target_frames:
-        try:
-            target_frames = [int(f) for f in args.target_frames.split(",")]
-        except ValueError:
-            raise ValueError(f"--target-frames = {args.target_frames!r} is not allowed: use comma-separated integers") from None
-        if target.kind == "positions" and len(target_frames) != np.asarray(target.data).shape[0]:
-            raise ValueError(f"--target-frames has {len(target_frames)} entries, the target {np.asarray(target.data).shape[0]} frames")
-        target.frames = target_frames
-    frames = args.frames if args.frames is not None else (max(target_frames) if target_frames else scene.frames)
-    frames = checks.positive_int("--frames", frames)
-    if target.frames is None:
-        target.frames = [frames]
-    if max(target.frames) > frames:
-        raise ValueError(f"the target has frame {max(target.frames)}, beyond --frames = {frames}")
-    frame_steps = {f: f * substeps for f in target.frames if f > 0 or target.kind != "positions"}
-    loss = target.loss(model, frame_steps, radius=args.radius, mode=args.mesh_mode)
-    materials = None
-    if args.material:
-        materials = [int(m) if m.isdigit() else m for m in args.material]
-
-    print(f"warp-esph fit: {scene.name}: {model.particle_count} particles, {frames} frames at {fps:g} fps, "
-          f"dt = {dt:.4g} s ({frames * substeps} steps), fitting {', '.join(params)} to {target.kind} from {target.path}",
-          file=sys.stderr)
-    result = fit(model, loss, params, steps=frames * substeps, dt=dt, materials=materials, iterations=args.iterations,
-                 lr=args.lr, bounds=bounds, clip=args.clip, checkpoint_every=args.checkpoint_every,
-                 progress=not args.no_progress)
-
-    stem = os.path.splitext(os.path.abspath(args.target))[0]
-    json_path = args.output or f"{stem}.fit.json"
-    doc = {"scene": scene.name, "scale": scale, "target": os.path.abspath(args.target), "fps": fps, "dt": dt,
-           "frames": frames, "params_fitted": params, **result.to_dict()}
-    tmp = json_path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(doc, f, indent=2)
-    os.replace(tmp, json_path)
-    print(f"wrote {json_path}: loss {result.initial_loss:.4g} -> {result.loss:.4g}", file=out)
-    for name, v in result.params.items():
-        print(f"  {name} = {', '.join(f'{x:.6g}' for x in v)}", file=out)
-    if not args.no_usd:
-        usd_path = write_fitted_usd(result.model, f"{stem}.fit.usdc", frames, fps, dt)
-        if usd_path:
-            print(f"wrote {usd_path}", file=out)
-    return 0
 
 
 def write_fitted_usd(model: Model, path, frames: int, fps: float, dt: float, progress: bool = False) -> str | None:

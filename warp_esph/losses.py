@@ -1,8 +1,8 @@
 """Differentiable losses on particle positions at one or several observed steps.
 
 Every loss is a set of Warp kernels that ``wp.atomic_add`` into a one-element array,
-zeroed before each evaluation (WARP_NOTES trap 7). A loss reads the positions at its
-``frames`` (step indices of a ``Rollout``); ``value_and_grad(positions)`` records its
+zeroed before each evaluation (docs/method.md, Warp pitfall 7). A loss reads the
+positions at its ``frames`` (step indices of a ``Rollout``); ``value_and_grad(positions)`` records its
 kernels on a tape and returns the value and ``{step: dL/dx}``, which is what
 ``Rollout.backward`` consumes (``rollout.backward(loss)`` calls it for you).
 

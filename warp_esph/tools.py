@@ -51,7 +51,7 @@ from . import checks, colliders
 from ._types import type_set
 
 #: Collider shapes, in the order their loops run in ``integrate`` (each kind's loop is
-#: unrolled, WARP_NOTES trap 1: a dynamic loop carrying x and v through non-linear
+#: unrolled, docs/method.md, Warp pitfall 1: a dynamic loop carrying x and v through non-linear
 #: projections gets a wrong adjoint).
 KINDS = ("plane", "box", "sphere", "capsule", "cylinder", "mesh")
 MAX_TOOLS = 16
@@ -606,7 +606,7 @@ class ToolSet:
         self.param = arr([c.param for c in self.colliders] + [(0.0,) * 3] * len(self.pins), T.vec3)
         self.friction = arr([c.friction for c in self.colliders] + [0.0] * len(self.pins), S, True, 1)
         self.static_friction = arr([c.static_friction for c in self.colliders] + [0.0] * len(self.pins), S, True, 1)
-        # Meshes: kept referenced here for the model's lifetime (WARP_NOTES trap 3).
+        # Meshes: kept referenced here for the model's lifetime (docs/method.md, Warp pitfall 3).
         self.meshes = []
         ids, lo, hi = [], [], []
         for c in self.colliders:
