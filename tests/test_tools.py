@@ -415,3 +415,40 @@ def test_fig8_with_plates_elastic_cube_recovers_and_plastic_cube_keeps_the_squee
     # Squeezed 15 % in x and z for 0.3 s, then released.
     assert np.all(np.abs(width["elastic"] - 1.0) < 0.05)
     assert width["plastic"][0] < 0.92 and width["plastic"][2] < 0.92 and width["plastic"][1] > 1.1
+
+
+@pytest.mark.parametrize("mu_k,mu_s", [(0.0, 0.0), (0.2, 0.2), (0.2, 1.0)])
+def test_block_on_a_slope_slides_with_coulomb_acceleration_or_sticks(mu_k, mu_s):
+    """A block settled on a plane tool, then gravity tilted by 20 degrees (the plane tilted
+    under it): the centroid accelerates at g (sin th - mu_k cos th) while sliding (tan 20 deg
+    = 0.364); with mu_s = 1 (above twice tan th, so the sway after the sudden tilt cannot
+    start a slip) it stays put."""
+    th, g, dt, steps = np.radians(20.0), 9.81, 2e-4, 1000
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -g, 0.0))
+    b.add_box((0, 0.03, 0), (0.06, 0.06, 0.06), _elastic(1e5, viscosity=1.0), name="block")
+    b.add_tool("plane", position=(0, 0.01, 0), friction=mu_k, static_friction=mu_s, name="slope")
+    m = b.finalize()
+    s = we.Solver(m)
+    a, c = m.state(), m.state()
+    for _ in range(1500):  # settle on the level plane
+        s.step(a, c, dt)
+        a, c = c, a
+    m.gravity = (g * np.sin(th), -g * np.cos(th), 0.0)  # read by every step
+    xs, forces = [], []
+    for _ in range(steps):
+        s.step(a, c, dt)
+        a, c = c, a
+        xs.append(a.x.numpy()[:, 0].mean())
+        forces.append(s.reaction_forces(a)["slope"][0])
+    t = dt * np.arange(1, steps + 1)
+    late = slice(steps // 2, steps)
+    acc = 2.0 * np.polyfit(t[late], np.array(xs)[late], 2)[0]
+    f = np.mean(forces[steps // 2:], axis=0)
+    weight = m.particle_mass.numpy().sum() * g
+    print(f"mu_k={mu_k} mu_s={mu_s}: acceleration {acc:.4f} m/s^2, friction/normal {-f[0] / f[1]:.4f}")
+    assert f[1] == pytest.approx(weight * np.cos(th), rel=0.02)  # the normal reaction carries the weight
+    if mu_s < np.tan(th):
+        assert acc == pytest.approx(g * (np.sin(th) - mu_k * np.cos(th)), rel=0.01)
+        assert -f[0] / f[1] == pytest.approx(mu_k, abs=1e-3)
+    else:
+        assert abs(xs[-1] - xs[0]) < 3e-4 and abs(acc) < 0.05  # stuck: only the elastic sway

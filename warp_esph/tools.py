@@ -299,12 +299,17 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         q0 = pose_q[2 * c]
         p1 = pose_p[2 * c + 1]
         q1 = pose_q[2 * c + 1]
-        x_new = world(p1, q1, xc)
-        vs = (x_new - world(p0, q0, xc)) / dt
-        v_new = contact_response(v, vs, wp.quat_rotate(q1, nl), mu_s[c], mu_k[c])
-        f = m * (v_new - v) / dt
+        x_s = world(p1, q1, xc)
+        vs = (x_s - world(p0, q0, xc)) / dt
+        n = wp.quat_rotate(q1, nl)
+        v_new = contact_response(v, vs, n, mu_s[c], mu_k[c])
+        # The tangential part of the step's displacement follows the responded velocity
+        # (x_in + dt v_new along the surface): a particle that sticks stays stuck.
+        dv = v_new - v
+        x_new = x_s + dt * (dv - wp.dot(dv, n) * n)
+        f = m * dv / dt
         wp.atomic_add(rforce, c, f)
-        wp.atomic_add(rtorque, c, wp.cross(x_new - p1, f))
+        wp.atomic_add(rtorque, c, wp.cross(x_s - p1, f))
         return x_new, v_new
 
     @wp.func
