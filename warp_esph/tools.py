@@ -10,14 +10,15 @@ in the keyframes and velocities), then ``integrate`` does the symplectic Euler u
 
 - the static colliders of ``colliders.py`` (unchanged),
 - each moving collider: the candidate position is expressed in the collider's frame at
-  ``t1``; a particle found inside is moved to the nearest surface point, a particle of a
-  mesh collider whose relative path in the collider frame (start in the ``t0`` frame, end in
-  the ``t1`` frame) enters a face is stopped at the entry point (no tunnelling through a
-  thin mesh however fast it moves; the same for boxes). The surface point's velocity over the step
-  ``(T1(c) - T0(c)) / dt`` is the velocity the contact is measured against: the inward
-  relative normal velocity is removed, and Coulomb friction acts on the relative
+  ``t1``. A particle of a mesh or box collider whose relative path in the collider frame
+  (start in the ``t0`` frame, end in the ``t1`` frame) enters a face is stopped at the entry
+  point (no tunnelling through a thin mesh or plate however fast it moves); otherwise a
+  particle found inside is moved to the nearest surface point. The surface point's velocity
+  over the step ``(T1(c) - T0(c)) / dt`` is the velocity the contact is measured against: the
+  inward relative normal velocity is removed, and Coulomb friction acts on the relative
   tangential velocity (static coefficient: sticks while ``|v_t| <= mu_s |dv_n|``; else
-  kinetic: ``|v_t|`` shrinks by ``mu_k |dv_n|``);
+  kinetic: ``|v_t|`` shrinks by ``mu_k |dv_n|``). The tangential part of the step's
+  displacement follows the responded velocity, so a sticking particle stays put;
 - pinned particles: ``x = p(t1) + R(t1) (X - c)`` (evaluated as ``X + (p - c) + (R - I)(X - c)``,
   exactly ``X`` while the set is at rest) with ``X`` the rest position and ``c`` the
   set's rest centroid (the set's pose at rest is ``(c, identity)``), ``v = (x(t1) - x(t0)) / dt``.
@@ -37,12 +38,11 @@ The torque is taken about the tool's position ``p(t1)``. The force the material 
 the tool is minus these.
 """
 
-
 import dataclasses
 import functools
 import math
 import types
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
 import numpy as np
 import warp as wp
