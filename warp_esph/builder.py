@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 import warp as wp
 
-from . import checks, meshes
+from . import checks, meshes, tools
 from ._types import scalar_type
 from .sim.colliders import MAX_PER_KIND, Box, Plane, Sphere
 from .material import Material
@@ -90,6 +90,8 @@ class SceneBuilder:
         self.spheres: list[Sphere] = []
         self.boxes: list[Box] = []
         self.force_fields: list = []
+        self.tools: list[tools.Collider] = []
+        self.pins: list[tools.PinSet] = []
         self._count = 0
 
     # ----------------------------------------------------------------- bodies
@@ -244,6 +246,73 @@ class SceneBuilder:
             "box",
         )
 
+    def add_tool(self, shape: str, *, motion=None, position=(0.0, 0.0, 0.0), orientation=tools.IDENTITY,
+                 friction: float = 0.0, static_friction: float | None = None, name: str | None = None,
+                 normal=None, half_extents=None, radius=None, half_height=None, mesh=None, scale: float = 1.0) -> str:
+        """A moving rigid collider (``tools.py``); returns its name.
+
+        ``shape``: ``"plane"`` (through the tool's origin, ``normal`` in its frame; solid
+        below), ``"box"`` (``half_extents``), ``"sphere"`` (``radius``), ``"capsule"`` and
+        ``"cylinder"`` (``radius``, ``half_height``, along the tool's y axis) or ``"mesh"``
+        (``mesh``: a file meshio or USD reads, or ``(points, triangles)``, closed, in the
+        tool's frame, times ``scale``). ``motion``: ``tools.Keyframes``, ``tools.Velocity``
+        or ``tools.Scripted``; ``None``: held at ``position`` / ``orientation`` (x, y, z, w).
+        ``friction``: kinetic Coulomb coefficient; ``static_friction`` (>= friction;
+        default: ``friction``)."""
+        kind = checks.choice("shape", shape, tools.KINDS)
+        if len(self.tools) >= tools.MAX_TOOLS:
+            raise ValueError(f"tools = {len(self.tools) + 1} is not allowed: at most {tools.MAX_TOOLS}")
+        name = f"{kind}_tool{len(self.tools)}" if name is None else name
+        if not isinstance(name, str) or not name or name in [t.name for t in self.tools] + [p.name for p in self.pins]:
+            raise ValueError(f"name = {name!r} is not allowed: must be a new non-empty string")
+        mu_k = checks.non_negative("friction", friction)
+        mu_s = mu_k if static_friction is None else checks.non_negative("static_friction", static_friction)
+        if mu_s < mu_k:
+            raise ValueError(f"static_friction = {static_friction!r} is not allowed: must be >= friction = {mu_k:g}")
+        pos = checks.vector("position", position)
+        ori = tools._quat("orientation", orientation)
+        if motion is None:
+            motion = tools.Velocity(position=pos, orientation=ori)
+        elif isinstance(motion, tools.Velocity):
+            if motion.position is None or motion.orientation is None:
+                motion = tools.Velocity(motion.velocity, motion.angular_velocity,
+                                        motion.position if motion.position is not None else pos,
+                                        motion.orientation if motion.orientation is not None else ori)
+        elif not isinstance(motion, tools.MOTIONS):
+            raise ValueError(f"motion = {motion!r} is not allowed: must be tools.Keyframes, tools.Velocity, tools.Scripted or None")
+        points = triangles = None
+        if kind == "mesh":
+            if mesh is None:
+                raise ValueError("mesh = None is not allowed: a mesh tool needs a mesh file or (points, triangles)")
+            points, triangles = meshes.load_mesh(mesh)
+            points = points * checks.positive("scale", scale)
+        param = tools.shape_param(kind, normal=normal, half_extents=half_extents, radius=radius, half_height=half_height)
+        self.tools.append(tools.Collider(name, kind, param, motion, mu_k, mu_s, points, triangles))
+        return name
+
+    def pin(self, indices=None, *, body: str | None = None, region=None, where=None, motion=None, name: str | None = None) -> str:
+        """Hold a set of particles fixed, or move it rigidly (``tools.py``); returns its name.
+
+        The set is the intersection of the given selections among the particles added so
+        far: ``indices`` (integer indices or a boolean mask), ``body`` (a body name),
+        ``region = (lo, hi)`` (an axis-aligned box of rest positions), ``where`` (a predicate
+        on the rest positions, ``(N, 3) -> bool (N,)``). ``motion``: ``None`` (held fixed),
+        ``tools.Velocity`` (from the set's rest centroid unless it gives a position),
+        ``tools.Keyframes`` (poses of the set's frame, whose rest pose is its centroid with
+        identity orientation) or ``tools.Scripted``. Pinned particles keep their place in
+        every neighbour fit; only their x and v are prescribed."""
+        name = f"pin{len(self.pins)}" if name is None else name
+        if not isinstance(name, str) or not name or name in [t.name for t in self.tools] + [p.name for p in self.pins]:
+            raise ValueError(f"name = {name!r} is not allowed: must be a new non-empty string")
+        if motion is not None and not isinstance(motion, tools.MOTIONS):
+            raise ValueError(f"motion = {motion!r} is not allowed: must be tools.Keyframes, tools.Velocity, tools.Scripted or None")
+        idx = tools.select_particles(self, indices=indices, body=body, region=region, where=where, name=name)
+        for p in self.pins:
+            if np.intersect1d(p.indices, idx).size:
+                raise ValueError(f"pin {name!r} is not allowed: it shares particles with pin {p.name!r}")
+        self.pins.append(tools.PinSet(name, idx, tools.Velocity() if motion is None else motion))
+        return name
+
     def add_compression_field(self, center, strength: float, t_on: float = 0.0, t_off: float = float("inf"), body: str | None = None):
         """A horizontal compression ``a = -strength (x - center)`` (1/s^2) while ``t_on <= t < t_off``,
         on the particles of ``body`` (a body name; ``None``: all). See ``fields.CompressionField``."""
@@ -313,5 +382,7 @@ class SceneBuilder:
             requires_grad=requires_grad,
         )
         model.force_fields = list(self.force_fields)
+        if self.tools or self.pins:
+            model.tools = tools.ToolSet(model, self.tools, self.pins)
         model.compute_rest_density()
         return model

@@ -272,12 +272,24 @@ def _cmd_run(args) -> int:
         if every is not None and frame > start_frame and frame % every == 0:
             save_state(checkpoint_path, model, current, step=frame * substeps, frame=frame, run=run_record)
 
+    # Tools (moving colliders, pinned sets): pose and mean reaction per frame, beside the USD.
+    log = None
+    if model.tools is not None:
+        from .tools import ReactionLog  # noqa: PLC0415
+
+        log = ReactionLog(solver)
+
+    def on_frame(frame, current):
+        if log is not None:
+            log.record(frame, current)
+        checkpoint(frame, current)
+
     try:
         print(f"{PROG}: {scene.name}: {model.particle_count} particles, {len(model.bodies)} bodies, "
               f"{frames} frames at {fps:g} fps, dt = {dt:.4g} s ({substeps} steps/frame), {args.device} {args.dtype} "
               f"-> {writer.path}" + (f" (resumed at frame {start_frame})" if start_frame else ""), flush=True)
         simulate(model, frames, fps=fps, dt=dt, writer=writer, progress=not args.no_progress, solver=solver,
-                 state=state, start_frame=start_frame, callback=checkpoint if every is not None else None)
+                 state=state, start_frame=start_frame, callback=on_frame if every is not None or log is not None else None)
     except KeyboardInterrupt:
         writer.close()
         print(f"{PROG}: interrupted: {writer.path} keeps the {writer.frames_written} frames finished", file=sys.stderr)
@@ -294,11 +306,15 @@ def _cmd_run(args) -> int:
         return EXIT_WRITE_FAILED
     finally:
         writer.close()
+        if log is not None and log.rows:
+            tool_files = log.write(os.path.splitext(writer.path)[0])
     guards = ", ".join(f"{k}={v}" for k, v in solver.guard_counts().items())
     per_frame = 1e3 * writer.save_seconds / max(writer.frames_written, 1)
     print(f"wrote {writer.path}: {writer.frames_written} frames (0..{writer.last_frame}), "
           f"{model.particle_count} particles; USD save {per_frame:.2f} ms/frame")
     print(f"guard counts (particle-steps skipped): {guards}")
+    if log is not None:
+        print(f"tool poses and reaction forces: {tool_files[0]}, {tool_files[1]}")
     if args.surface:
         print(f"surfaces: {1e3 * writer.surface_seconds / max(writer.frames_written, 1):.0f} ms/frame (/World/Surfaces)")
     if args.export:

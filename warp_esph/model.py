@@ -14,6 +14,7 @@ import dataclasses
 import numpy as np
 import warp as wp
 
+from . import tools
 from ._types import type_set
 from .sim.colliders import Box, Plane, Sphere
 from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, Material, p_wave_speed
@@ -57,6 +58,7 @@ class State:
         self.stress = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
         self.F_inv = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
         self.force = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+        tools.allocate_state(model, self, requires_grad)
 
     #: The arrays that define the simulation state (what a checkpoint must hold).
     STATE_FIELDS = ("x", "v", "F", "alpha", "F_p")
@@ -147,6 +149,8 @@ class Model:
         )
         #: External force fields (``fields.CompressionField``), set by the builder.
         self.force_fields: list = []
+        #: Moving colliders and pinned sets (``tools.ToolSet``), set by the builder; None: none.
+        self.tools = None
         # Rest positions and initial neighbour lists of the rest-configuration model
         # (``rest_neighbors()`` builds them once).
         self.rest_x = None
