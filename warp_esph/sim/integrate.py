@@ -43,11 +43,11 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
         v = v_in[i] + dt * (f[i] / mass[i] + gravity)
         x = x_in[i] + dt * v
         for c in range(wp.static(n_planes)):
-            x, v = col.collide_plane(x, v, plane_normal[c], plane_offset[c], plane_friction[c])
+            x, v = col.collide_plane(x, v, plane_normal[c], plane_offset[c], plane_friction[c], dt)
         for c in range(wp.static(n_spheres)):
-            x, v = col.collide_sphere(x, v, sphere_center[c], sphere_radius[c], sphere_friction[c])
+            x, v = col.collide_sphere(x, v, sphere_center[c], sphere_radius[c], sphere_friction[c], dt)
         for c in range(wp.static(n_boxes)):
-            x, v = col.collide_box(x, v, box_center[c], box_half[c], box_friction[c])
+            x, v = col.collide_box(x, v, box_center[c], box_half[c], box_friction[c], dt)
         x_out[i] = x
         v_out[i] = v
 
