@@ -16,7 +16,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from warp_esph.solver import Solver
+from warp_esph.sim.solver import Solver
 
 
 def _slump(n=8, dx=0.01, t_end=3.0, window=0.5):

@@ -48,7 +48,7 @@ import numpy as np
 import warp as wp
 
 from . import checks
-from .sim import colliders
+from .sim.integrate import funcs as integrate_funcs, static_collider_arrays
 from ._types import type_set
 
 #: Collider shapes, in the order their loops run in ``integrate`` (each kind's loop is
@@ -202,7 +202,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
     ``KINDS`` (tools are stored grouped by kind in that order, pinned sets after them)."""
     T = type_set(scalar)
     vec3, quat = T.vec3, (wp.quatf if scalar is wp.float32 else wp.quatd)
-    col = colliders.funcs(scalar)
+    kin = integrate_funcs(scalar, n_planes, n_spheres, n_boxes)
     offsets = [int(sum(counts[:k])) for k in range(len(counts))]
     n_col = int(sum(counts))
     ONE, ZERO, HALF = scalar(1.0), scalar(0.0), scalar(0.5)
@@ -473,14 +473,11 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
     ):
         i = wp.tid()
         m = mass[i]
-        v = v_in[i] + dt * (f[i] / m + gravity)
-        x = x_in[i] + dt * v
-        for c in range(wp.static(n_planes)):
-            x, v = col.collide_plane(x, v, plane_normal[c], plane_offset[c], plane_friction[c])
-        for c in range(wp.static(n_spheres)):
-            x, v = col.collide_sphere(x, v, sphere_center[c], sphere_radius[c], sphere_friction[c])
-        for c in range(wp.static(n_boxes)):
-            x, v = col.collide_box(x, v, box_center[c], box_half[c], box_friction[c])
+        x, v = kin.symplectic_euler(x_in[i], v_in[i], f[i], m, gravity, dt)
+        x, v = kin.static_colliders(
+            x, v, dt, plane_normal, plane_offset, plane_friction, sphere_center, sphere_radius, sphere_friction,
+            box_center, box_half, box_friction,
+        )
         for c in range(wp.static(counts[0])):
             k = wp.static(offsets[0]) + c
             hit, xc, nl = shape_plane(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
@@ -694,9 +691,7 @@ class ToolSet:
             m.particle_count,
             [
                 state_in.x, state_in.v, state_out.force, m.particle_mass, T.vec3(*m.gravity), S(dt),
-                m.plane_normal, m.plane_offset, m.plane_friction,
-                m.sphere_center, m.sphere_radius, m.sphere_friction,
-                m.box_center, m.box_half, m.box_friction,
+                *static_collider_arrays(m),
                 state_out.tool_pose_p, state_out.tool_pose_q, self.param, self.static_friction, self.friction,
                 self.mesh_id, self.mesh_lo, self.mesh_hi, S(self.margin),
                 self.pin, self.rest_x, self.pin_center,
