@@ -1,0 +1,81 @@
+"""The targets of issue 12, asserted at reduced size with the functions of the validation
+suite (``benchmarks/validation.py``; the full-size numbers are in docs/validation.md).
+
+Targets not met today are ``xfail(strict=True)`` with the number measured here, so that
+they turn red (XPASS) once the cause is fixed and the mark must go."""
+
+import math
+import pathlib
+import sys
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks import validation  # noqa: E402
+
+import warp_esph as we  # noqa: E402
+
+
+def test_slump_theory_is_the_1d_analysis():
+    # h/H0 = S (1 - ln S): 1 at S = 1 (nothing yields), the plug S alone as S -> 0.
+    assert validation.slump_theory(1.0) == pytest.approx(1.0)
+    assert validation.slump_theory(0.2) == pytest.approx(0.2 * (1.0 + math.log(5.0)))
+    assert validation.slump_theory(1e-6) < 2e-5
+
+
+def test_bar_frequency_within_2_percent_at_4_across_variational():
+    """Measured 0.9992 x c/(2L) (the paper's force: 0.879 x)."""
+    r = validation.bar_frequency(resolution=4, elastic_force="variational")
+    assert r["periods_measured"] >= 2
+    assert r["ratio"] == pytest.approx(1.0, abs=0.02), r["ratio"]
+
+
+@pytest.mark.xfail(strict=True, reason="variational beam 6 thick, span 5 thicknesses: measured 1.21 x Timoshenko (issue 12: within 10 %)")
+def test_beam_deflection_within_10_percent_at_6_thick_variational():
+    r = validation.beam_deflection(resolution=6, elastic_force="variational", span_over_thickness=5)
+    assert r["kinetic_energy"] < 1e-6 * r["particles"]
+    assert r["ratio"] == pytest.approx(1.0, abs=0.10), r["ratio"]
+
+
+@pytest.fixture(scope="module")
+def slumped():
+    """S = 0.2, 8 particles across H0, variational force, 2 s (20 x sqrt(H0/g))."""
+    return validation.slump(0.2, resolution=8, elastic_force="variational", duration=2.0)
+
+
+@pytest.mark.xfail(strict=True, reason="slump creep: the top still sinks 2.8 % H0/s at 2 s and no plug is left "
+                   "unyielded (S = 0.2, 8 across; issue 12: < 0.1 % H0/s with an unyielded plug)")
+def test_slumped_cylinder_comes_to_rest_with_an_unyielded_plug(slumped):
+    assert slumped["finite"]
+    assert abs(slumped["top_rate_pct_H0_per_s"]) < 0.1, slumped["top_rate_pct_H0_per_s"]
+    assert slumped["plug_unyielded_fraction"] > 0.9, slumped["plug_unyielded_fraction"]
+
+
+@pytest.mark.xfail(strict=True, reason="slump creep: h/H0 = 0.452 at 2 s against the 1-D 0.522 (13 % low; "
+                   "S = 0.2, 8 across; issue 12: within 10 %)")
+def test_slump_height_within_10_percent_of_the_1d_theory(slumped):
+    assert slumped["h_over_H0"] == pytest.approx(slumped["theory_h_over_H0"], rel=0.10)
+
+
+PRESET_RUNS = [label for label, _ in validation._stability_materials() if label.startswith("preset")]
+
+
+@pytest.mark.parametrize("label", PRESET_RUNS + ["Material(mu=1e5, lam=1e5), viscosity 5"])
+def test_no_preset_blows_up_at_half_the_stable_dt(label):
+    """Each preset, with its viscosity and with none, at rest on the ground for 0.3 s at
+    0.5 stable_dt: no particle ever faster than 5 m/s (measured: all below 0.6 m/s)."""
+    material = dict(validation._stability_materials())[label]
+    r = validation.stability(material, duration=0.3)
+    assert not r["blew_up"], r
+
+
+@pytest.mark.xfail(strict=True, reason="Material(mu=1e5, lam=1e5), paper force, pressure on, no viscosity: a 6^3 box "
+                   "on the ground passes 5 m/s at 0.5 stable_dt (issue 12: no default material blows up)")
+def test_default_material_does_not_blow_up_at_half_the_stable_dt():
+    material = we.Material(mu=1.0e5, lam=1.0e5)
+    assert material.elastic_force == "paper" and material.viscosity == 0.0
+    r = validation.stability(material, duration=0.5)
+    assert not r["blew_up"], r
