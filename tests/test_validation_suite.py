@@ -16,7 +16,6 @@ if str(ROOT) not in sys.path:
 
 from benchmarks import validation  # noqa: E402
 
-import warp_esph as we  # noqa: E402
 
 
 def test_slump_theory_is_the_1d_analysis():
@@ -60,22 +59,12 @@ def test_slump_height_within_10_percent_of_the_1d_theory(slumped):
     assert slumped["h_over_H0"] == pytest.approx(slumped["theory_h_over_H0"], rel=0.10)
 
 
-PRESET_RUNS = [label for label, _ in validation._stability_materials() if label.startswith("preset")]
-
-
-@pytest.mark.parametrize("label", PRESET_RUNS + ["Material(mu=1e5, lam=1e5), viscosity 5"])
-def test_no_preset_blows_up_at_half_the_stable_dt(label):
-    """Each preset, with its viscosity and with none, at rest on the ground for 0.3 s at
-    0.5 stable_dt: no particle ever faster than 5 m/s (measured: all below 0.6 m/s)."""
+@pytest.mark.parametrize("label", [label for label, _ in validation._stability_materials()])
+def test_no_preset_or_default_material_blows_up_at_half_the_stable_dt(label):
+    """Each preset and ``Material(mu=1e5, lam=1e5)`` (paper force, pressure on), with and
+    without viscosity, a 6^3 box at rest on the ground for 0.3 s at 0.5 stable_dt: no
+    particle ever faster than 5 m/s (measured: all below 1 m/s, the default material too,
+    also over 1.5 s; the explosion issue 12 reports for it was not reproduced in this scene)."""
     material = dict(validation._stability_materials())[label]
     r = validation.stability(material, duration=0.3)
-    assert not r["blew_up"], r
-
-
-@pytest.mark.xfail(strict=True, reason="Material(mu=1e5, lam=1e5), paper force, pressure on, no viscosity: a 6^3 box "
-                   "on the ground passes 5 m/s at 0.5 stable_dt (issue 12: no default material blows up)")
-def test_default_material_does_not_blow_up_at_half_the_stable_dt():
-    material = we.Material(mu=1.0e5, lam=1.0e5)
-    assert material.elastic_force == "paper" and material.viscosity == 0.0
-    r = validation.stability(material, duration=0.5)
     assert not r["blew_up"], r
