@@ -105,10 +105,13 @@ def _plots(results, img: pathlib.Path) -> list[str]:
         axes = np.atleast_1d(axes)
         for ax, (c, key, label) in zip(axes, elastic):
             for f in MARK:
-                rs = sorted((r for r in results if r["case"] == c and r["elastic_force"] == f
-                             and not (c == "beam" and _beam_blew_up(r))), key=lambda r: r["resolution"])
-                if rs:
-                    ax.plot([r["resolution"] for r in rs], [r[key] for r in rs], MARK[f] + "-", color=FORCE_COLOR[f], label=f)
+                for prec in ("float32", "float64"):
+                    rs = sorted((r for r in results if r["case"] == c and r["elastic_force"] == f and r.get("dtype", "float32") == prec
+                                 and r.get("span_over_thickness", 10) == 10 and not (c == "beam" and _beam_blew_up(r))),
+                                key=lambda r: r["resolution"])
+                    if rs:
+                        ax.plot([r["resolution"] for r in rs], [r[key] for r in rs], MARK[f] + ("-" if prec == "float32" else ":"),
+                                color=FORCE_COLOR[f], label=f if prec == "float32" else f"{f}, float64")
             ax.axhline(1.0, color="k", lw=0.8)
             ax.set_xlabel("particles across")
             ax.set_title(label, fontsize=9)
@@ -153,7 +156,7 @@ def _targets(results) -> list[tuple[str, str, str]]:
     for r in beams:
         e = abs(r["ratio"] - 1.0)
         got = "broke up (flutter)" if _beam_blew_up(r) else f"{r['ratio']:.3g} x theory, still moving {r['residual_rate_pct_per_s']:.2g} % of it per s"
-        out.append((f"beam deflection within 10 % at 6 thick ({r['elastic_force']})", got,
+        out.append((f"beam deflection within 10 % at 6 thick ({r['elastic_force']}, {r.get('dtype', 'float32')}, span {r['span_over_thickness']} t)", got,
                     "yes" if e < 0.1 and not _beam_blew_up(r) else "no"))
     slumps = [r for r in results if r["case"] == "slump" and 0.1 <= r["S"] <= 0.5]
     if slumps:
@@ -270,6 +273,9 @@ def write(results, out: pathlib.Path, meta: dict):
         if case == "beam":
             rs = [r | {"ratio": "broke up", "deflection": "–", "residual_rate_pct_per_s": "–"} if _beam_blew_up(r) else r for r in rs]
         if rs:
+            if case == "beam":
+                cols = [("dtype", "precision"), ("span_over_thickness", "span / t")] + cols
+                rs = [r | {"dtype": r.get("dtype", "float32")} for r in rs]
             ela.append(f"### {title}\n\n" + _table(["across", "force", "particles"] + [c[1] for c in cols],
                                                   [[r["resolution"], r["elastic_force"], r["particles"]] + [r[c[0]] for c in cols] for r in rs]))
     if ela:
