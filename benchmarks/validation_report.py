@@ -189,8 +189,8 @@ number is also in `docs/validation.json`. Each case is a function of
 `benchmarks/validation.py` taking its resolution and returning measured against theory; a
 CI-sized subset of them is asserted in `tests/test_validation_suite.py`. Both elastic forces
 (`Material(elastic_force="paper" | "variational")`) are run wherever the force matters.
-Resolutions are in particles across the thinnest dimension (across H0 for the slump). Float32,
-CPU. Quasi-static elastic results are read after dynamic relaxation (each step multiplies
+Resolutions are in particles across the thinnest dimension (across H0 for the slump). Float32
+(unless a row says float64), CPU. Quasi-static elastic results are read after dynamic relaxation (each step multiplies
 every velocity by `exp(-c dt)`, which leaves the equilibrium unchanged; SPH viscosity cannot
 damp a bending mode within its explicit step limit) and the residual rate of change over the
 end of the run is reported with them; the slump is not damped that way (only its own

@@ -32,10 +32,14 @@ def test_bar_frequency_within_2_percent_at_4_across_variational():
     assert r["ratio"] == pytest.approx(1.0, abs=0.02), r["ratio"]
 
 
-@pytest.mark.xfail(strict=True, reason="variational beam 6 thick, span 5 thicknesses: measured 1.21 x Timoshenko (issue 12: within 10 %)")
+@pytest.mark.xfail(strict=True, reason="variational beam 6 thick, span 5 thicknesses, float64: measured 1.159 x "
+                   "Timoshenko (issue 12: within 10 %)")
 def test_beam_deflection_within_10_percent_at_6_thick_variational():
-    r = validation.beam_deflection(resolution=6, elastic_force="variational", span_over_thickness=5)
-    assert r["kinetic_energy"] < 1e-6 * r["particles"]
+    """Float64: in float32 the loaded elastic beam creeps (round-off in the stored F), so the
+    static deflection is read in float64, where it settles (measured 0.04 % of it per s)."""
+    r = validation.beam_deflection(resolution=6, elastic_force="variational", span_over_thickness=5, dtype="float64")
+    assert not r["blew_up"]
+    assert abs(r["residual_rate_pct_per_s"]) < 1.0, r["residual_rate_pct_per_s"]
     assert r["ratio"] == pytest.approx(1.0, abs=0.10), r["ratio"]
 
 
