@@ -176,6 +176,8 @@ class Rollout:
         self._forward_done = False
         #: Incremented by every ``forward``: lets callers (the torch wrapper) tell runs apart.
         self.forward_count = 0
+        #: Each world's loss term at the last ``backward`` with a ``losses.WorldLoss`` (else None).
+        self.world_values = None
 
     # ----------------------------------------------------------------- set-up
     def set_parameters(self, values: Mapping[str, object]):
@@ -334,8 +336,11 @@ class Rollout:
         if not self._forward_done:
             raise RuntimeError("backward() before forward(): run forward() first")
         value = None
+        self.world_values = None
         if hasattr(grads, "value_and_grad"):
-            value, grads = grads.value_and_grad(dict(zip(self.frames, self.frame_positions)))
+            loss = grads
+            value, grads = loss.value_and_grad(dict(zip(self.frames, self.frame_positions)))
+            self.world_values = getattr(loss, "world_values", None)
         frame_grads = self._frame_gradients(grads)
         acc = {name: np.zeros(getattr(self.model, name).shape[0], dtype=self.model.types.np_dtype) for name in PARAMETERS}
         if self.checkpointing:
@@ -345,6 +350,15 @@ class Rollout:
         result = dict(acc)
         result.update(adj)
         return value, result
+
+    def per_world(self, gradients: Mapping[str, np.ndarray]) -> list[dict[str, np.ndarray]]:
+        """``backward``'s gradients split by world (``SceneBuilder.finalize(worlds=W)``):
+        one dict per world, with that world's entries of every parameter array (its
+        materials, ``model.world_materials(w)``) and of the initial-state gradients (its
+        particles). Worlds never interact, so with a ``losses.WorldLoss`` these are the
+        gradients of each world's own loss."""
+        parts = {key: self.model.per_world(value) for key, value in gradients.items()}
+        return [{key: p[w] for key, p in parts.items()} for w in range(self.model.world_count)]
 
     def _seed(self, arr: wp.array, g: wp.array):
         wp.launch(self._k.add_vec3, arr.shape[0], [g], [arr.grad], device=self.model.device, record_tape=False)
