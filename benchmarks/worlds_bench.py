@@ -55,17 +55,17 @@ def yield_stresses(worlds: int) -> np.ndarray:
     return base * np.geomspace(0.5, 2.0, worlds)
 
 
-def separate_models(particles, worlds, dtype, requires_grad=False):
+def separate_models(particles, worlds, dtype, requires_grad=False, device="cpu"):
     out = []
     for ys in yield_stresses(worlds):
-        m = builder(particles).finalize(dtype=dtype, requires_grad=requires_grad)
+        m = builder(particles).finalize(device=device, dtype=dtype, requires_grad=requires_grad)
         m.set_material(0, m.materials[0].replace(yield_stress=float(ys)))
         out.append(m)
     return out
 
 
-def world_model(particles, worlds, dtype, requires_grad=False):
-    m = builder(particles).finalize(dtype=dtype, requires_grad=requires_grad, worlds=worlds)
+def world_model(particles, worlds, dtype, requires_grad=False, device="cpu"):
+    m = builder(particles).finalize(device=device, dtype=dtype, requires_grad=requires_grad, worlds=worlds)
     for w, ys in enumerate(yield_stresses(worlds)):
         m.set_material(0, m.materials[m.world_materials(w).start].replace(yield_stress=float(ys)), world=w)
     return m
@@ -94,9 +94,9 @@ def timed_pair(fn_a, fn_b, repeat):
     return best[0], out[0], best[1], out[1]
 
 
-def forward_case(particles, worlds, steps, dtype, repeat):
-    seps = separate_models(particles, worlds, dtype)
-    multi = world_model(particles, worlds, dtype)
+def forward_case(particles, worlds, steps, dtype, repeat, device="cpu"):
+    seps = separate_models(particles, worlds, dtype, device=device)
+    multi = world_model(particles, worlds, dtype, device=device)
     dt = min(m.stable_dt() for m in seps)
     # Warm-up: kernels loaded, grids allocated in both set-ups.
     run(seps[0], 2, dt)
@@ -104,16 +104,16 @@ def forward_case(particles, worlds, steps, dtype, repeat):
     t_sep, xs_sep, t_multi, x_multi = timed_pair(lambda: [run(m, steps, dt) for m in seps], lambda: run(multi, steps, dt), repeat)
     diff = max(float(np.abs(x_multi[multi.world_particles(w)] - xs_sep[w]).max()) for w in range(worlds))
     return {
-        "case": "forward", "dtype": dtype.__name__, "worlds": worlds, "particles_per_world": seps[0].particle_count,
+        "case": "forward", "device": device, "dtype": dtype.__name__, "worlds": worlds, "particles_per_world": seps[0].particle_count,
         "steps": steps, "dt": dt, "seconds_separate": t_sep, "seconds_worlds": t_multi,
         "per_world_cost_ratio": t_multi / t_sep, "max_position_difference": diff,
     }
 
 
-def gradient_case(particles, worlds, steps, repeat):
+def gradient_case(particles, worlds, steps, repeat, device="cpu"):
     dtype = wp.float64
-    seps = separate_models(particles, worlds, dtype, requires_grad=True)
-    multi = world_model(particles, worlds, dtype, requires_grad=True)
+    seps = separate_models(particles, worlds, dtype, requires_grad=True, device=device)
+    multi = world_model(particles, worlds, dtype, requires_grad=True, device=device)
     dt = min(m.stable_dt() for m in seps)
     targets = [m.particle_x0 + np.array([0.0, -0.05, 0.0]) for m in seps]
     rollouts = [Rollout(m, steps, dt) for m in seps]
@@ -132,7 +132,7 @@ def gradient_case(particles, worlds, steps, repeat):
     t_sep, g_sep, t_multi, g_multi = timed_pair(separate, together, repeat)
     rel = float(np.max(np.abs(np.asarray(g_multi) - np.asarray(g_sep)) / np.maximum(np.abs(g_sep), 1e-300)))
     return {
-        "case": "gradient", "dtype": "float64", "worlds": worlds, "particles_per_world": seps[0].particle_count,
+        "case": "gradient", "device": device, "dtype": "float64", "worlds": worlds, "particles_per_world": seps[0].particle_count,
         "steps": steps, "dt": dt, "seconds_separate": t_sep, "seconds_worlds": t_multi,
         "per_world_cost_ratio": t_multi / t_sep, "max_yield_stress_gradient_rel_difference": rel,
     }
@@ -147,13 +147,14 @@ def main(argv=None):
     ap.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     ap.add_argument("--gradient", action="store_true", help="also time Rollout forward + backward (float64)")
     ap.add_argument("--gradient-steps", type=int, default=10)
+    ap.add_argument("--device", default="cpu", help="Warp device, e.g. cuda:0")
     ap.add_argument("--json", default="worlds_bench.json")
     args = ap.parse_args(argv)
     wp.config.quiet = True
     wp.init()
-    results = [forward_case(args.particles, args.worlds, args.steps, getattr(wp, args.dtype), args.repeat)]
+    results = [forward_case(args.particles, args.worlds, args.steps, getattr(wp, args.dtype), args.repeat, args.device)]
     if args.gradient:
-        results.append(gradient_case(args.particles, args.worlds, args.gradient_steps, args.repeat))
+        results.append(gradient_case(args.particles, args.worlds, args.gradient_steps, args.repeat, args.device))
     for r in results:
         print(
             f"{r['case']:8s} {r['dtype']:7s} {r['worlds']} worlds x {r['particles_per_world']} particles, {r['steps']} steps: "
@@ -161,7 +162,7 @@ def main(argv=None):
             f"per-world cost ratio {r['per_world_cost_ratio']:.3f}"
         )
     meta = {"machine": platform.machine(), "python": platform.python_version(), "warp": wp.__version__,
-            "device": str(wp.get_device())}
+            "device": str(wp.get_device(args.device))}
     with open(args.json, "w") as f:
         json.dump({"meta": meta, "results": results}, f, indent=2)
 
