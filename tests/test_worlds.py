@@ -209,3 +209,33 @@ def test_bad_input_names_the_parameter():
         we.finalize_worlds([b, other])
     with pytest.raises(ValueError, match=r"builders\[1\] = 3 is not allowed"):
         we.finalize_worlds([b, 3])
+
+
+def test_group_filter_alone_keeps_worlds_apart():
+    """The neighbour search's group filter (what ``bodies_interact=False`` uses) keeps
+    worlds apart by itself: without the hash-grid spread of worlds (``world=None``), two
+    worlds on the same spot still get the rows each would get alone."""
+    from warp_esph.sim.neighbors import NeighborSearch
+
+    model = _builder(MAT_A).finalize(dtype=wp.float64, worlds=2)
+    n, K = model.particle_count, model.max_neighbors
+    rows = {}
+    for group in (model.particle_world, None):
+        search = NeighborSearch(n, model.scalar, model.device, model.support_radius, group=group, world=None)
+        nbr, d2 = wp.zeros((n, K), dtype=wp.int32), wp.zeros((n, K), dtype=wp.float64)
+        count, guard = wp.zeros(n, dtype=wp.int32), wp.zeros(n, dtype=wp.int32)
+        search.build(wp.array(model.particle_x0, dtype=wp.vec3d), model.particle_body, nbr, d2, count, guard)
+        rows[group is None] = (nbr.numpy(), count.numpy())
+    (nbr, count), (nbr_all, count_all) = rows[False], rows[True]
+    half = n // 2
+    alone = _builder(MAT_A).finalize(dtype=wp.float64)
+    _, _, _ = alone.rest_neighbors()
+    ref_nbr, ref_count = alone.rest_nbr.numpy(), alone.rest_count.numpy()
+    np.testing.assert_array_equal(count[:half], ref_count)
+    np.testing.assert_array_equal(count[half:], ref_count)
+    for i in range(half):
+        np.testing.assert_array_equal(nbr[i, : count[i]], ref_nbr[i, : ref_count[i]])
+        np.testing.assert_array_equal(nbr[half + i, : count[half + i]], ref_nbr[i, : ref_count[i]] + half)
+    # Without the filter the worlds would see each other (the test could fail).
+    world = model.world_of_particle
+    assert any((world[nbr_all[i, : count_all[i]]] != world[i]).any() for i in range(n))
