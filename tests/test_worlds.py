@@ -239,3 +239,18 @@ def test_group_filter_alone_keeps_worlds_apart():
     # Without the filter the worlds would see each other (the test could fail).
     world = model.world_of_particle
     assert any((world[nbr_all[i, : count_all[i]]] != world[i]).any() for i in range(n))
+
+
+def test_split_materials_keeps_worlds():
+    """``split_materials`` (per-particle parameter fields) of a multi-world model keeps
+    the worlds apart and each world's materials contiguous: it runs as the model does."""
+    from warp_esph.rollout import split_materials
+
+    model = _builder(MAT_A).finalize(dtype=wp.float64, requires_grad=True, worlds=2)
+    model.set_material(0, MAT_B, world=1)
+    _perturb(model)
+    split = split_materials(model)
+    assert split.world_count == 2 and len(split.materials) == model.particle_count
+    assert split.world_materials(1) == slice(model.particle_count // 2, model.particle_count)
+    np.testing.assert_array_equal(split.per_world(split.mu)[1], MAT_B.mu)
+    np.testing.assert_array_equal(_run(split)[0], _run(model)[0])

@@ -40,6 +40,7 @@ The gradient with respect to ``x0`` holds the SPH rest density fixed (it is a co
 of the model, computed once from the model's own initial positions).
 """
 
+import dataclasses
 import functools
 import types
 from collections.abc import Mapping, Sequence
@@ -475,21 +476,28 @@ def split_materials(model: Model, bodies: Sequence[int | str] | None = None) -> 
     old = model.particle_material_np
     body_of = model.particle_body_np
     materials = []
+    source = []  # the model's material each new material copies
     new_index = np.empty(model.particle_count, dtype=np.int32)
     per_particle = np.isin(body_of, sorted(chosen))
-    for i in np.flatnonzero(per_particle):
-        new_index[i] = len(materials)
-        materials.append(model.materials[old[i]])
-    shared = {}
-    for i in np.flatnonzero(~per_particle):
-        k = int(old[i])
-        if k not in shared:
-            shared[k] = len(materials)
-            materials.append(model.materials[k])
-        new_index[i] = shared[k]
-    new_bodies = [
-        type(b)(name=b.name, start=b.start, count=b.count, material=int(new_index[b.start]), kind=b.kind) for b in model.bodies
-    ]
+    world_material_start = [0]
+    # World by world, so each world's materials stay contiguous (``Model.world_materials``).
+    for w in range(model.world_count):
+        s = model.world_particles(w)
+        idx = np.arange(s.start, s.stop)
+        for i in idx[per_particle[idx]]:
+            new_index[i] = len(materials)
+            materials.append(model.materials[old[i]])
+            source.append(int(old[i]))
+        shared = {}
+        for i in idx[~per_particle[idx]]:
+            k = int(old[i])
+            if k not in shared:
+                shared[k] = len(materials)
+                materials.append(model.materials[k])
+                source.append(k)
+            new_index[i] = shared[k]
+        world_material_start.append(len(materials))
+    new_bodies = [dataclasses.replace(b, material=int(new_index[b.start])) for b in model.bodies]
     out = Model(
         positions=model.particle_x0.copy(),
         velocities=model.particle_v0.copy(),
@@ -507,11 +515,15 @@ def split_materials(model: Model, bodies: Sequence[int | str] | None = None) -> 
         device=model.device,
         scalar=model.scalar,
         requires_grad=model.requires_grad,
+        bodies_interact=model.bodies_interact,
+        particle_world=model.world_of_particle.copy(),
+        world_material_start=world_material_start,
     )
+    out.force_fields = list(model.force_fields)
     # Copy the rest density rather than recompute it, so the split model runs identically.
     wp.copy(out.particle_rest_density, model.particle_rest_density)
     # Copy the parameter values too (they may differ from model.materials after a fit).
     for name in PARAMETERS:
         vals = getattr(model, name).numpy()
-        getattr(out, name).assign(vals[old][per_particle].tolist() + [vals[k] for k in shared])
+        getattr(out, name).assign(vals[np.asarray(source, dtype=np.int64)])
     return out
