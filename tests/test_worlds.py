@@ -254,3 +254,16 @@ def test_split_materials_keeps_worlds():
     assert split.world_materials(1) == slice(model.particle_count // 2, model.particle_count)
     np.testing.assert_array_equal(split.per_world(split.mu)[1], MAT_B.mu)
     np.testing.assert_array_equal(_run(split)[0], _run(model)[0])
+
+
+def test_world_without_sph_next_to_one_with_sph():
+    """SPH runs for the whole model when any world has it: a world with neither pressure
+    nor viscosity still computes what it computes alone (where SPH is skipped)."""
+    no_sph = MAT_A.replace(pressure_stiffness=0.0, viscosity=0.0)
+    model = _builder(no_sph).finalize(dtype=wp.float64, worlds=2)
+    model.set_material(0, MAT_B, world=1)
+    _perturb(model)
+    assert model.sph_active
+    alone = _separate(_builder(no_sph), wp.float64)
+    assert not alone.sph_active
+    assert np.abs(_run(model)[0][model.world_particles(0)] - _run(alone)[0]).max() <= 1e-12
