@@ -267,3 +267,22 @@ def test_world_without_sph_next_to_one_with_sph():
     alone = _separate(_builder(no_sph), wp.float64)
     assert not alone.sph_active
     assert np.abs(_run(model)[0][model.world_particles(0)] - _run(alone)[0]).max() <= 1e-12
+
+
+def test_model_refuses_worlds_out_of_order():
+    """The per-world slices need particles and materials world after world."""
+    model = _builder(MAT_A).finalize(dtype=wp.float64, worlds=2)
+    n = model.particle_count
+    common = dict(
+        positions=model.particle_x0, velocities=model.particle_v0, particle_material=model.particle_material_np,
+        particle_body=model.particle_body_np, materials=model.materials, bodies=model.bodies, spacing=model.spacing,
+        support_radius=model.support_radius, gravity=model.gravity, planes=model.planes, spheres=[], boxes=[],
+        max_neighbors=model.max_neighbors, device="cpu", scalar=wp.float64, requires_grad=False,
+    )
+    shuffled = np.tile([0, 1], n // 2)
+    with pytest.raises(ValueError, match="particle_world is not allowed"):
+        we.Model(**common, particle_world=shuffled, world_material_start=[0, 1, 2])
+    with pytest.raises(ValueError, match="world_material_start = "):
+        we.Model(**common, particle_world=model.world_of_particle, world_material_start=[0, 2])
+    with pytest.raises(ValueError, match="particle_material is not allowed"):
+        we.Model(**common, particle_world=model.world_of_particle, world_material_start=[0, 2, 2])

@@ -142,6 +142,7 @@ class Model:
         #: Materials of world ``w``: ``world_material_start[w]:world_material_start[w + 1]``
         #: (the entries of every per-material array, and of its gradient, that are world ``w``'s).
         self.world_material_start = np.asarray(world_material_start, dtype=np.int64)
+        self._check_worlds()
         self.particle_world = wp.array(self.world_of_particle, dtype=wp.int32, device=dev)
         if self.world_count > 1 and self.bodies_interact:
             #: Ids whose particles never appear in each other's neighbour lists (``None``: all
@@ -238,6 +239,21 @@ class Model:
             arr.assign(values)
 
     # ----------------------------------------------------------------- worlds
+    def _check_worlds(self):
+        # Every world-indexed slice assumes particles and materials come world after world.
+        w, ms = self.world_of_particle, self.world_material_start
+        if w.shape != (self.particle_count,) or (self.particle_count and (w[0] != 0 or (np.diff(w) < 0).any() or (np.diff(w) > 1).any())):
+            raise ValueError("particle_world is not allowed: must be one world per particle, 0, 1, ... in order, none empty")
+        if ms.shape != (self.world_count + 1,) or ms[0] != 0 or ms[-1] != len(self.materials) or (np.diff(ms) < 0).any():
+            raise ValueError(
+                f"world_material_start = {ms.tolist()} is not allowed: must be {self.world_count + 1} non-decreasing "
+                f"offsets from 0 to {len(self.materials)}"
+            )
+        if self.particle_count:
+            mat = self.particle_material_np
+            if ((mat < ms[w]) | (mat >= ms[w + 1])).any():
+                raise ValueError("particle_material is not allowed: a particle uses a material of another world")
+
     def _world_index(self, world) -> int:
         if isinstance(world, bool) or not isinstance(world, (int, np.integer)) or not 0 <= world < self.world_count:
             raise ValueError(f"world = {world!r} is not allowed: must be an integer in [0, {self.world_count - 1}]")
@@ -261,14 +277,17 @@ class Model:
         s = self.world_particles(world)
         return array[s.start:s.stop]
 
-    def per_world(self, values) -> list:
+    def per_world(self, values, kind: str | None = None) -> list:
         """Split a per-particle (length ``particle_count``) or per-material (length
         ``len(materials)``) array into one array per world; with equal worlds, stack
-        them with ``np.stack``."""
+        them with ``np.stack``. ``kind`` (``"particles"`` or ``"materials"``) says which
+        where the two lengths are equal; by default the length decides, particles first."""
         a = values.numpy() if isinstance(values, wp.array) else np.asarray(values)
-        if a.shape[0] == self.particle_count:
+        if kind not in (None, "particles", "materials"):
+            raise ValueError(f"kind = {kind!r} is not allowed: must be None, 'particles' or 'materials'")
+        if a.shape[0] == self.particle_count and kind != "materials":
             starts = self.world_start
-        elif a.shape[0] == len(self.materials):
+        elif a.shape[0] == len(self.materials) and kind != "particles":
             starts = self.world_material_start
         else:
             raise ValueError(
