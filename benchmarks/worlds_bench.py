@@ -81,16 +81,22 @@ def run(model, steps, dt):
     return a.x.numpy()
 
 
-def timed_pair(fn_a, fn_b, repeat):
-    """Best of ``repeat`` timings of each, alternating a and b, so that a change in the
-    machine's load (other processes) affects both alike."""
+def timed_pair(fn_a, fn_b, repeat, cpu=None):
+    """Best of ``repeat`` wall-clock timings of each, alternating a and b, so that a change
+    in the machine's load (other processes) affects both alike. ``cpu`` (a dict) receives
+    the best process CPU times too (``"a"``, ``"b"``): Warp runs CPU kernels on the calling
+    thread, so that is the code's own cost without the time other processes took."""
     best = [float("inf"), float("inf")]
+    best_cpu = [float("inf"), float("inf")]
     out = [None, None]
     for _ in range(repeat):
         for k, fn in enumerate((fn_a, fn_b)):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             out[k] = fn()
             best[k] = min(best[k], time.perf_counter() - t0)
+            best_cpu[k] = min(best_cpu[k], time.process_time() - c0)
+    if cpu is not None:
+        cpu["a"], cpu["b"] = best_cpu
     return best[0], out[0], best[1], out[1]
 
 
@@ -101,12 +107,16 @@ def forward_case(particles, worlds, steps, dtype, repeat, device="cpu"):
     # Warm-up: kernels loaded, grids allocated in both set-ups.
     run(seps[0], 2, dt)
     run(multi, 2, dt)
-    t_sep, xs_sep, t_multi, x_multi = timed_pair(lambda: [run(m, steps, dt) for m in seps], lambda: run(multi, steps, dt), repeat)
+    cpu = {}
+    t_sep, xs_sep, t_multi, x_multi = timed_pair(
+        lambda: [run(m, steps, dt) for m in seps], lambda: run(multi, steps, dt), repeat, cpu
+    )
     diff = max(float(np.abs(x_multi[multi.world_particles(w)] - xs_sep[w]).max()) for w in range(worlds))
     return {
         "case": "forward", "device": device, "dtype": dtype.__name__, "worlds": worlds, "particles_per_world": seps[0].particle_count,
         "steps": steps, "dt": dt, "seconds_separate": t_sep, "seconds_worlds": t_multi,
-        "per_world_cost_ratio": t_multi / t_sep, "max_position_difference": diff,
+        "per_world_cost_ratio": t_multi / t_sep, "cpu_seconds_separate": cpu["a"], "cpu_seconds_worlds": cpu["b"],
+        "per_world_cpu_cost_ratio": cpu["b"] / cpu["a"], "max_position_difference": diff,
     }
 
 
@@ -129,12 +139,22 @@ def gradient_case(particles, worlds, steps, repeat, device="cpu"):
 
     separate()
     together()
-    t_sep, g_sep, t_multi, g_multi = timed_pair(separate, together, repeat)
+    cpu = {}
+    t_sep, g_sep, t_multi, g_multi = timed_pair(separate, together, repeat, cpu)
+    # Forward and backward apart (the backward of the last forward, re-run each time).
+    t_fs, _, t_fm, _ = timed_pair(lambda: [r.forward() for r in rollouts], multi_rollout.forward, repeat)
+    for r in rollouts:
+        r.forward()
+    multi_rollout.forward()
+    t_bs, _, t_bm, _ = timed_pair(lambda: [r.backward(loss) for r, loss in zip(rollouts, sep_losses)],
+                                  lambda: multi_rollout.backward(world_loss), repeat)
     rel = float(np.max(np.abs(np.asarray(g_multi) - np.asarray(g_sep)) / np.maximum(np.abs(g_sep), 1e-300)))
     return {
         "case": "gradient", "device": device, "dtype": "float64", "worlds": worlds, "particles_per_world": seps[0].particle_count,
         "steps": steps, "dt": dt, "seconds_separate": t_sep, "seconds_worlds": t_multi,
-        "per_world_cost_ratio": t_multi / t_sep, "max_yield_stress_gradient_rel_difference": rel,
+        "per_world_cost_ratio": t_multi / t_sep, "cpu_seconds_separate": cpu["a"], "cpu_seconds_worlds": cpu["b"],
+        "per_world_cpu_cost_ratio": cpu["b"] / cpu["a"], "forward_ratio": t_fm / t_fs, "backward_ratio": t_bm / t_bs,
+        "max_yield_stress_gradient_rel_difference": rel,
     }
 
 
@@ -159,10 +179,11 @@ def main(argv=None):
         print(
             f"{r['case']:8s} {r['dtype']:7s} {r['worlds']} worlds x {r['particles_per_world']} particles, {r['steps']} steps: "
             f"separate {r['seconds_separate']:.3f} s, worlds {r['seconds_worlds']:.3f} s, "
-            f"per-world cost ratio {r['per_world_cost_ratio']:.3f}"
+            f"per-world cost ratio {r['per_world_cost_ratio']:.3f} (CPU time: {r['per_world_cpu_cost_ratio']:.3f})"
+            + (f"; forward {r['forward_ratio']:.3f}, backward {r['backward_ratio']:.3f}" if "forward_ratio" in r else "")
         )
     meta = {"machine": platform.machine(), "python": platform.python_version(), "warp": wp.__version__,
-            "device": str(wp.get_device(args.device))}
+            "device": str(wp.get_device(args.device)), "load_average": os.getloadavg()}
     with open(args.json, "w") as f:
         json.dump({"meta": meta, "results": results}, f, indent=2)
 
