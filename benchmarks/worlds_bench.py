@@ -170,7 +170,6 @@ def main(argv=None):
     ap.add_argument("--device", default="cpu", help="Warp device, e.g. cuda:0")
     ap.add_argument("--json", default="worlds_bench.json")
     args = ap.parse_args(argv)
-    wp.config.quiet = True
     wp.init()
     results = [forward_case(args.particles, args.worlds, args.steps, getattr(wp, args.dtype), args.repeat, args.device)]
     if args.gradient:

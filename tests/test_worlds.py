@@ -286,3 +286,20 @@ def test_model_refuses_worlds_out_of_order():
         we.Model(**common, particle_world=model.world_of_particle, world_material_start=[0, 2])
     with pytest.raises(ValueError, match="particle_material is not allowed"):
         we.Model(**common, particle_world=model.world_of_particle, world_material_start=[0, 2, 2])
+
+
+def test_worlds_benchmark_runs_small(tmp_path):
+    """``benchmarks/worlds_bench.py`` at 2 worlds of 64 particles, 2 steps: its own check
+    (every world equals its separate run, positions and gradients) holds."""
+    import json
+
+    from benchmarks import worlds_bench
+
+    out = tmp_path / "w.json"
+    worlds_bench.main(["--worlds", "2", "--particles", "64", "--steps", "2", "--repeat", "1", "--gradient",
+                       "--gradient-steps", "2", "--json", str(out)])
+    forward, gradient = json.loads(out.read_text())["results"]
+    assert forward["worlds"] == 2 and forward["particles_per_world"] == 64
+    assert forward["max_position_difference"] <= 1e-6 * 0.1
+    assert gradient["max_yield_stress_gradient_rel_difference"] <= 1e-9
+    assert forward["per_world_cost_ratio"] > 0.0 and gradient["per_world_cost_ratio"] > 0.0
