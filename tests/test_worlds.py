@@ -303,3 +303,29 @@ def test_worlds_benchmark_runs_small(tmp_path):
     assert forward["max_position_difference"] <= 1e-6 * 0.1
     assert gradient["max_yield_stress_gradient_rel_difference"] <= 1e-9
     assert forward["per_world_cost_ratio"] > 0.0 and gradient["per_world_cost_ratio"] > 0.0
+
+
+def test_fit_of_two_worlds_is_two_fits():
+    """``fit`` with Adam on a model of two worlds (two starting points, one target, a
+    ``WorldLoss``) moves each world's parameter as the fit of that world alone does
+    (Adam is per coordinate; here every iterate lowers both losses, so the best total is
+    each world's last iterate too)."""
+    from warp_esph.fit import fit
+
+    target_model = _separate(_builder(MAT_A.replace(yield_stress=15.0)), wp.float64)
+    target, _ = _run(target_model)
+
+    def model_of(starts):
+        m = _builder(MAT_A).finalize(dtype=wp.float64, requires_grad=True, worlds=len(starts))
+        for w, ys in enumerate(starts):
+            m.set_material(0, MAT_A.replace(yield_stress=ys), world=w)
+        _perturb(m)
+        return m
+
+    options = dict(params=["yield_stress"], steps=STEPS, dt=DT, iterations=4, progress=False)
+    model = model_of([5.0, 40.0])
+    joint = fit(model, losses.WorldLoss(model, losses.PositionLoss(target, frames=[STEPS])), **options)
+    for w, start in enumerate((5.0, 40.0)):
+        alone = fit(model_of([start]), losses.PositionLoss(target, frames=[STEPS]), **options)
+        assert alone.materials[0].yield_stress != start
+        assert joint.materials[w].yield_stress == pytest.approx(alone.materials[0].yield_stress, rel=1e-12)
