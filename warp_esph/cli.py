@@ -272,12 +272,24 @@ def _cmd_run(args) -> int:
         if every is not None and frame > start_frame and frame % every == 0:
             save_state(checkpoint_path, model, current, step=frame * substeps, frame=frame, run=run_record)
 
+    # Tools (moving colliders, pinned sets): pose and mean reaction per frame, beside the USD.
+    log = None
+    if model.tools is not None:
+        from .tools import ReactionLog  # noqa: PLC0415
+
+        log = ReactionLog(solver)
+
+    def on_frame(frame, current):
+        if log is not None:
+            log.record(frame, current)
+        checkpoint(frame, current)
+
     try:
         print(f"{PROG}: {scene.name}: {model.particle_count} particles, {len(model.bodies)} bodies, "
               f"{frames} frames at {fps:g} fps, dt = {dt:.4g} s ({substeps} steps/frame), {args.device} {args.dtype} "
               f"-> {writer.path}" + (f" (resumed at frame {start_frame})" if start_frame else ""), flush=True)
         simulate(model, frames, fps=fps, dt=dt, writer=writer, progress=not args.no_progress, solver=solver,
-                 state=state, start_frame=start_frame, callback=checkpoint if every is not None else None)
+                 state=state, start_frame=start_frame, callback=on_frame if every is not None or log is not None else None)
     except KeyboardInterrupt:
         writer.close()
         print(f"{PROG}: interrupted: {writer.path} keeps the {writer.frames_written} frames finished", file=sys.stderr)
@@ -294,11 +306,15 @@ def _cmd_run(args) -> int:
         return EXIT_WRITE_FAILED
     finally:
         writer.close()
+        if log is not None and log.rows:
+            tool_files = log.write(os.path.splitext(writer.path)[0])
     guards = ", ".join(f"{k}={v}" for k, v in solver.guard_counts().items())
     per_frame = 1e3 * writer.save_seconds / max(writer.frames_written, 1)
     print(f"wrote {writer.path}: {writer.frames_written} frames (0..{writer.last_frame}), "
           f"{model.particle_count} particles; USD save {per_frame:.2f} ms/frame")
     print(f"guard counts (particle-steps skipped): {guards}")
+    if log is not None:
+        print(f"tool poses and reaction forces: {tool_files[0]}, {tool_files[1]}")
     if args.surface:
         print(f"surfaces: {1e3 * writer.surface_seconds / max(writer.frames_written, 1):.0f} ms/frame (/World/Surfaces)")
     if args.export:
@@ -322,30 +338,51 @@ def add_fit_arguments(parser):
     from .rollout import PARAMETERS  # noqa: PLC0415
 
     parser.add_argument("scene", metavar="SCENE", help="built-in scene name or .toml scene file (the initial guess)")
-    parser.add_argument("--target", required=True, metavar="FILE",
-                        help="target: .npz/.npy positions per frame, a point cloud (.xyz/.ply ...) or a mesh file")
+    parser.add_argument("--target", required=True, action="append", metavar="FILE",
+                        help="target: a previous run's .usd (see --target-body), .npz/.npy positions per frame, a point "
+                             "cloud (.xyz/.ply/.npy (M, 3) ...), a mesh file, or masks with --cameras; repeatable (their "
+                             "losses add up)")
     parser.add_argument("--params", default="yield_stress,flow_rate", metavar="A,B",
                         help=f"comma-separated parameters to fit, of {','.join(PARAMETERS)} (default yield_stress,flow_rate)")
     parser.add_argument("--material", action="append", metavar="BODY",
                         help="fit only this body's material (name or material index); repeatable; default all")
-    parser.add_argument("--iterations", type=int, default=50, metavar="N", help="optimiser iterations (default 50)")
-    parser.add_argument("--lr", type=float, default=0.1, metavar="LR", help="Adam step size, relative (default 0.1)")
+    parser.add_argument("--iterations", type=int, default=50, metavar="N",
+                        help="gradient evaluations after the first, line-search trials included (default 50)")
+    parser.add_argument("--lr", type=float, default=0.1, metavar="LR",
+                        help="Adam step size, relative; L-BFGS: its first step (default 0.1)")
     parser.add_argument("--bounds", action="append", default=[], metavar="NAME=LO:HI", help="bounds of a parameter; repeatable")
     parser.add_argument("--clip", type=float, metavar="C", help="clip the gradient norm (log space) to C")
-    parser.add_argument("--target-frames", metavar="F,G", help="rendered frame index of each target frame (default: from the file)")
+    parser.add_argument("--target-frames", action="append", metavar="F,G",
+                        help="a run's USD: the frames to fit ('2,4,6', '10:60:10', 'last'; default all after the first); "
+                             ".npz/.npy: the rendered frame of each target frame; a cloud, mesh or mask: the frame it "
+                             "shows (default: the last); once per --target or once for all")
     parser.add_argument("--frames", type=int, metavar="N", help="frames to simulate (default: the last target frame or the scene's)")
     parser.add_argument("--fps", type=float, metavar="F", help="frames per second (default: the target's or the scene's)")
     parser.add_argument("--dt", type=float, metavar="DT", help="time step in s (default: the stable step)")
     parser.add_argument("--scale", type=float, default=1.0, metavar="S", help="resolution scale of the scene (default 1)")
     parser.add_argument("--radius", type=float, metavar="R", help="Chamfer search radius for point-cloud targets (default 3 spacings)")
     parser.add_argument("--mesh-mode", choices=MeshLoss.MODES, default="surface", help="mesh targets: surface or outside")
-    parser.add_argument("--checkpoint-every", type=int, metavar="S", help="checkpoint the rollout every S steps (less memory)")
+    parser.add_argument("--checkpoint-every", type=_checkpoint_every, metavar="S|auto",
+                        help="checkpoint the rollout every S steps (less memory, one more forward pass); default auto: "
+                             "sized from the memory estimate and --memory-limit")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float64", help="precision (default float64)")
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="Warp device (default cpu)")
-    parser.add_argument("-o", "--output", metavar="OUT.json", help="fitted parameters (default: <target>.fit.json beside the target)")
+    parser.add_argument("-o", "--output", metavar="OUT.json", help="the fit's JSON file (default: fit.json in --output-dir)")
     parser.add_argument("--no-usd", action="store_true", help="do not write the fitted run to USD")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from .calibrate import add_calibration_arguments  # noqa: PLC0415
+
+    add_calibration_arguments(parser)
     return parser
+
+
+def _checkpoint_every(text):
+    if str(text).strip().lower() == "auto":
+        return "auto"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid value {text!r}: give a number of steps or 'auto'") from None
 
 
 def _parse_bounds(items) -> dict:
@@ -360,83 +397,18 @@ def _parse_bounds(items) -> dict:
     return out
 
 
-def fit_cli(args, out=sys.stdout) -> int:
+def fit_cli(args, out=None) -> int:
     """Run ``warp-esph fit`` from parsed ``args`` (see ``add_fit_arguments``); returns 0.
 
-    Writes the fitted parameters as JSON (``--output``, default ``<target>.fit.json``) and,
-    when ``warp_esph.usd`` is available, the fitted run as ``<target>.fit.usdc`` beside it.
-    Raises ``ValueError``/``OSError`` on bad input (the CLI maps them to exit status 2).
+    The work is ``warp_esph.calibrate.run_fit``: it prints the memory and time estimates,
+    fits, says whether the fit converged, stalled or hit the iteration cap, prints the
+    diagnostics and writes ``fit.json``, ``history.csv``, ``loss.png``, ``params.png`` and
+    ``fitted.usdc`` into ``--output-dir``. Raises ``ValueError``/``OSError`` on bad input
+    (the CLI maps them to exit status 2).
     """
-    import json  # noqa: PLC0415
+    from .calibrate import run_fit  # noqa: PLC0415
 
-    import numpy as np  # noqa: PLC0415
-    import warp as wp  # noqa: PLC0415
-
-    from . import checks  # noqa: PLC0415
-    from .fit import fit, load_target, write_fitted_usd  # noqa: PLC0415
-    from .rollout import PARAMETERS  # noqa: PLC0415
-    from .scenes import load_scene  # noqa: PLC0415
-    from .simulate import resolve_timestep  # noqa: PLC0415
-
-    params = [p.strip() for p in str(args.params).split(",") if p.strip()]
-    for p in params:
-        if p not in PARAMETERS:
-            raise ValueError(f"--params entry {p!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
-    scale = checks.positive("--scale", args.scale)
-    if args.iterations < 0:
-        raise ValueError(f"--iterations = {args.iterations!r} is not allowed: must be >= 0")
-    bounds = _parse_bounds(args.bounds)
-    target = load_target(args.target)
-    scene = load_scene(args.scene, scale=scale)
-    fps = args.fps if args.fps is not None else (target.fps if target.fps is not None else scene.fps)
-    dtype = {"float32": wp.float32, "float64": wp.float64}[args.dtype]
-    model = scene.builder.finalize(device=args.device, dtype=dtype, requires_grad=True)
-    substeps, dt = resolve_timestep(model, fps, dt=args.dt if args.dt is not None else scene.dt)
-
-    target_frames = target.frames
-    if args.target_frames:
-        try:
-            target_frames = [int(f) for f in args.target_frames.split(",")]
-        except ValueError:
-            raise ValueError(f"--target-frames = {args.target_frames!r} is not allowed: use comma-separated integers") from None
-        if target.kind == "positions" and len(target_frames) != np.asarray(target.data).shape[0]:
-            raise ValueError(f"--target-frames has {len(target_frames)} entries, the target {np.asarray(target.data).shape[0]} frames")
-        target.frames = target_frames
-    frames = args.frames if args.frames is not None else (max(target_frames) if target_frames else scene.frames)
-    frames = checks.positive_int("--frames", frames)
-    if target.frames is None:
-        target.frames = [frames]
-    if max(target.frames) > frames:
-        raise ValueError(f"the target has frame {max(target.frames)}, beyond --frames = {frames}")
-    frame_steps = {f: f * substeps for f in target.frames if f > 0 or target.kind != "positions"}
-    loss = target.loss(model, frame_steps, radius=args.radius, mode=args.mesh_mode)
-    materials = None
-    if args.material:
-        materials = [int(m) if m.isdigit() else m for m in args.material]
-
-    print(f"warp-esph fit: {scene.name}: {model.particle_count} particles, {frames} frames at {fps:g} fps, "
-          f"dt = {dt:.4g} s ({frames * substeps} steps), fitting {', '.join(params)} to {target.kind} from {target.path}",
-          file=sys.stderr)
-    result = fit(model, loss, params, steps=frames * substeps, dt=dt, materials=materials, iterations=args.iterations,
-                 lr=args.lr, bounds=bounds, clip=args.clip, checkpoint_every=args.checkpoint_every,
-                 progress=not args.no_progress)
-
-    stem = os.path.splitext(os.path.abspath(args.target))[0]
-    json_path = args.output or f"{stem}.fit.json"
-    doc = {"scene": scene.name, "scale": scale, "target": os.path.abspath(args.target), "fps": fps, "dt": dt,
-           "frames": frames, "params_fitted": params, **result.to_dict()}
-    tmp = json_path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(doc, f, indent=2)
-    os.replace(tmp, json_path)
-    print(f"wrote {json_path}: loss {result.initial_loss:.4g} -> {result.loss:.4g}", file=out)
-    for name, v in result.params.items():
-        print(f"  {name} = {', '.join(f'{x:.6g}' for x in v)}", file=out)
-    if not args.no_usd:
-        usd_path = write_fitted_usd(result.model, f"{stem}.fit.usdc", frames, fps, dt)
-        if usd_path:
-            print(f"wrote {usd_path}", file=out)
-    return 0
+    return run_fit(args, out=out)
 
 
 def _cmd_render(args) -> int:

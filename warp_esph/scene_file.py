@@ -97,6 +97,25 @@ class _Vec3:
 
 NUM, NUM_INF, INT, STR, BOOL, VEC3 = _Num(), _Num(allow_inf=True), _Int(), _Str(), _Bool(), _Vec3()
 
+
+class _List:
+    """Schema type: an array whose items all pass ``item`` (``length``: exact item count)."""
+
+    def __init__(self, item, what: str, length: int | None = None):
+        self.item, self.what, self.length = item, what, length
+
+    def check(self, value) -> bool:
+        return isinstance(value, list) and (self.length is None or len(value) == self.length) and all(self.item.check(v) for v in value)
+
+    def describe(self) -> str:
+        return self.what
+
+
+QUAT = _List(NUM, "an array of 4 numbers (x, y, z, w)", 4)
+NUMS, INTS = _List(NUM, "an array of numbers"), _List(INT, "an array of integers")
+VEC3S, QUATS = _List(VEC3, "an array of 3-number arrays"), _List(QUAT, "an array of 4-number arrays (x, y, z, w)")
+REGION = _List(VEC3, "an array of two 3-number arrays [lo, hi]", 2)
+
 #: Every key a scene file may hold, per table: name -> (type, required).
 SCENE_KEYS = {
     "name": (STR, False), "description": (STR, False), "spacing": (NUM, False), "support_radius": (NUM, False),
@@ -123,7 +142,18 @@ COLLIDER_TYPES = {
     "sphere": {"center": (VEC3, True), "radius": (NUM, True), "friction": (NUM, False)},
     "box": {"center": (VEC3, True), "half_extents": (VEC3, True), "friction": (NUM, False)},
 }
-TOP_KEYS = ("scene", "materials", "bodies", "colliders")
+#: Keys of a tool's or pinned set's rigid motion (tools.py): a constant velocity, or keyframes.
+MOTION_KEYS = {
+    "velocity": (VEC3, False), "angular_velocity": (VEC3, False), "keyframe_times": (NUMS, False),
+    "keyframe_positions": (VEC3S, False), "keyframe_orientations": (QUATS, False),
+}
+TOOL_KEYS = {
+    "shape": (STR, True), "name": (STR, False), "position": (VEC3, False), "orientation": (QUAT, False),
+    "friction": (NUM, False), "static_friction": (NUM, False), "normal": (VEC3, False), "half_extents": (VEC3, False),
+    "radius": (NUM, False), "half_height": (NUM, False), "file": (STR, False), "scale": (NUM, False), **MOTION_KEYS,
+}
+PIN_KEYS = {"name": (STR, False), "body": (STR, False), "region": (REGION, False), "indices": (INTS, False), **MOTION_KEYS}
+TOP_KEYS = ("scene", "materials", "bodies", "colliders", "tools", "pins")
 
 
 def _did_you_mean(key: str, allowed) -> str:
@@ -258,6 +288,54 @@ def _collider(file: str, k: int, table: dict, builder: SceneBuilder):
         raise ValueError(f"{file}: {where}: {e}") from None
 
 
+def _motion(args: dict):
+    """A ``tools`` motion from the motion keys in ``args`` (removed from it); None: static."""
+    from . import tools  # noqa: PLC0415
+
+    kf = {k: args.pop(k) for k in ("keyframe_times", "keyframe_positions", "keyframe_orientations") if k in args}
+    vel = {k: args.pop(k) for k in ("velocity", "angular_velocity") if k in args}
+    if kf and vel:
+        raise ValueError("velocity/angular_velocity and keyframe_* are not allowed together: give one motion")
+    if kf:
+        if "keyframe_times" not in kf or "keyframe_positions" not in kf:
+            raise ValueError("keyframe_times and keyframe_positions are both needed for a keyframed motion")
+        return tools.Keyframes(kf["keyframe_times"], kf["keyframe_positions"], kf.get("keyframe_orientations"))
+    if vel:
+        return tools.Velocity(vel.get("velocity", (0.0, 0.0, 0.0)), vel.get("angular_velocity", (0.0, 0.0, 0.0)))
+    return None
+
+
+def _tool(file: str, k: int, table: dict, builder: SceneBuilder, base_dir: str):
+    from . import tools  # noqa: PLC0415
+
+    where = f"[[tools]] #{k + 1}"
+    _check_table(file, where, table, TOOL_KEYS)
+    _choice(file, where, "shape", table["shape"], tools.KINDS)
+    args = dict(table)
+    shape = args.pop("shape")
+    try:
+        motion = _motion(args)
+        if "file" in args:
+            source = args.pop("file")
+            args["mesh"] = source if os.path.isabs(source) else os.path.join(base_dir, source)
+        if "orientation" in args:
+            args["orientation"] = tuple(args["orientation"])
+        builder.add_tool(shape, motion=motion, **args)
+    except ValueError as e:
+        raise ValueError(f"{file}: {where}: {e}") from None
+
+
+def _pin(file: str, k: int, table: dict, builder: SceneBuilder):
+    where = f"[[pins]] #{k + 1}"
+    _check_table(file, where, table, PIN_KEYS)
+    args = dict(table)
+    try:
+        motion = _motion(args)
+        builder.pin(args.pop("indices", None), motion=motion, **args)
+    except ValueError as e:
+        raise ValueError(f"{file}: {where}: {e}") from None
+
+
 def load_scene_file(path, scale: float = 1.0) -> Scene:
     """Read a TOML scene file (format: ``docs/scene_format.md``).
 
@@ -287,7 +365,8 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
         raise ValueError(f"{file}: 'materials' must be a table of [materials.NAME] tables, not {materials_table!r}")
     bodies = data.get("bodies", [])
     colliders = data.get("colliders", [])
-    for key, value in (("bodies", bodies), ("colliders", colliders)):
+    tool_tables, pin_tables = data.get("tools", []), data.get("pins", [])
+    for key, value in (("bodies", bodies), ("colliders", colliders), ("tools", tool_tables), ("pins", pin_tables)):
         if not isinstance(value, list):
             raise ValueError(f"{file}: '{key}' must be an array of tables ([[{key}]]), not {type(value).__name__}")
     if not bodies:
@@ -316,6 +395,10 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
         _body(file, k, table, builder, materials, base_dir)
     for k, table in enumerate(colliders):
         _collider(file, k, table, builder)
+    for k, table in enumerate(tool_tables):
+        _tool(file, k, table, builder, base_dir)
+    for k, table in enumerate(pin_tables):
+        _pin(file, k, table, builder)
     name = scene.get("name") or os.path.splitext(os.path.basename(file))[0]
     description = scene.get("description") or f"scene file {file}"
     return Scene(name, description, builder, frames=frames, fps=fps, dt=dt)

@@ -372,6 +372,122 @@ def fig8_comparison(scale: float = 1.0, only=None) -> Scene:
                  dt=_figure_dt(1.0e-4, scale), figure="Fig. 8", view=(0.0, 50.0))
 
 
+# ------------------------------------------------------------------ lab tests (tools.py)
+# The standard tests of a texture or materials lab, with moving tools and pinned sets. Each
+# tool's pose and mean reaction force per frame go to <output>_tools.csv/.json
+# (warp-esph run); docs/tools.md says what each scene measures.
+def _lab_elastic(E: float, nu: float = 0.3, density: float = 1000.0, viscosity: float = 5.0) -> Material:
+    return Material.from_young(E, nu, density=density, viscosity=viscosity, pressure_stiffness=0.0, elastic_force="variational")
+
+
+def lab_compression(scale: float = 1.0) -> Scene:
+    """Texture-analyser compression: a 4 cm cylinder of firm dough squeezed 30 % between a fixed and a descending plate."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.0025 / _scale(scale))
+    r, h = 0.02, 0.03
+    # Firmer than the dough preset (yield 150 Pa), which slumps under its own weight
+    # (rho g h = 340 Pa) before the plate arrives.
+    firm = Material.preset("dough").replace(yield_stress=1000.0)
+    b.add_cylinder((0.0, h / 2, 0.0), r, h, firm, name="sample")
+    b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=0.3, name="base")
+    speed = 0.3 * h / 2.0  # 30 % strain over the 2 s run
+    b.add_tool("box", half_extents=(0.04, 0.005, 0.04), friction=0.3,
+               motion=tools.Velocity((0.0, -speed, 0.0), position=(0.0, h + 0.005, 0.0)), name="plate")  # touching
+    return Scene("lab_compression", _doc(lab_compression), b, frames=60, fps=30.0)
+
+
+def lab_squeeze_flow(scale: float = 1.0) -> Scene:
+    """Squeeze flow: a toothpaste disc between no-slip plates, the top one closing the gap from 2 to 1 cm."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.004 / _scale(scale))
+    r, h = 0.04, 0.02
+    b.add_cylinder((0.0, h / 2, 0.0), r, h, Material.preset("toothpaste"), name="sample")
+    b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=1.0, static_friction=2.0, name="base")
+    b.add_tool("box", half_extents=(0.1, 0.005, 0.1), friction=1.0, static_friction=2.0,
+               motion=tools.Keyframes([0.0, 2.0], [(0.0, h + 0.005, 0.0), (0.0, h / 2 + 0.005, 0.0)]), name="plate")
+    return Scene("lab_squeeze_flow", _doc(lab_squeeze_flow), b, frames=60, fps=30.0)
+
+
+def lab_indentation(scale: float = 1.0) -> Scene:
+    """Sphere indentation: a 2 cm steel ball pressed 4 mm into a rubbery block on the ground, then withdrawn."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.005 / _scale(scale))
+    b.add_box((0.0, 0.02, 0.0), (0.08, 0.04, 0.08), _lab_elastic(1.0e5), name="block")
+    b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=0.5, name="base")
+    top, R = 0.04, 0.02
+    b.add_tool("sphere", radius=R, friction=0.0, name="indenter",
+               motion=tools.Keyframes([0.0, 1.0, 2.0], [(0.0, top + R, 0.0), (0.0, top + R - 0.004, 0.0), (0.0, top + R, 0.0)]))
+    return Scene("lab_indentation", _doc(lab_indentation), b, frames=60, fps=30.0)
+
+
+def lab_three_point_bending(scale: float = 1.0) -> Scene:
+    """Three-point bending: a 24 cm beam on two support pins 18 cm apart, pushed down at mid-span."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.005 / _scale(scale))
+    t = 0.04
+    b.add_box((0.0, 0.02 + t / 2, 0.0), (0.24, t, t), _lab_elastic(1.0e6), name="beam")
+    along_z = (math.sin(math.pi / 4), 0.0, 0.0, math.cos(math.pi / 4))  # a cylinder's y axis turned onto z
+    for name, x in (("support_left", -0.09), ("support_right", 0.09)):
+        b.add_tool("cylinder", radius=0.01, half_height=0.05, position=(x, 0.01, 0.0), orientation=along_z, name=name)
+    b.add_tool("cylinder", radius=0.01, half_height=0.05, name="loading_pin",
+               motion=tools.Velocity((0.0, -0.005, 0.0), position=(0.0, 0.03 + t, 0.0), orientation=along_z))
+    return Scene("lab_three_point_bending", _doc(lab_three_point_bending), b, frames=60, fps=30.0)
+
+
+def lab_cantilever(scale: float = 1.0) -> Scene:
+    """Clamped cantilever: a 20 cm beam, 5 x 5 cm, held at one end, sagging under its own weight."""
+    b = SceneBuilder(spacing=0.005 / _scale(scale))
+    L, t = 0.2, 0.05
+    clamp = 3 * b.spacing
+    b.add_box(((L - clamp) / 2, t / 2, 0.0), (L + clamp, t, t), _lab_elastic(1.0e6, viscosity=20.0), name="beam")
+    b.pin(body="beam", region=((-1.0, -1.0, -1.0), (0.0, 1.0, 1.0)), name="clamp")
+    return Scene("lab_cantilever", _doc(lab_cantilever), b, frames=60, fps=30.0)
+
+
+def lab_cutting(scale: float = 1.0) -> Scene:
+    """Cutting: a knife blade (a closed triangle mesh) pushed down through a block of firm dough at 5 cm/s."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.004 / _scale(scale))
+    b.add_box((0.0, 0.02, 0.0), (0.1, 0.04, 0.06), Material.preset("dough").replace(yield_stress=1000.0), name="dough")
+    b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=0.5, name="board")
+    # A wedge (1 cm back over 6 cm) whose edge meets a column of particles: a blade thinner
+    # than the spacing between two columns would touch none (docs/tools.md).
+    edge_x = float(np.unique(b._points[-1][:, 0])[len(np.unique(b._points[-1][:, 0])) // 2])
+    b.add_tool("mesh", mesh=tools.blade_mesh(0.12, 0.06, 0.01), friction=0.2, name="blade",
+               motion=tools.Velocity((0.0, -0.05, 0.0), position=(edge_x, 0.041, 0.0)))
+    return Scene("lab_cutting", _doc(lab_cutting), b, frames=30, fps=30.0)
+
+
+def lab_fig8_plates(scale: float = 1.0) -> Scene:
+    """Fig. 8's compression done with moving plates: an elastic and a very plastic cube squeezed 15 % from four sides, then released."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.02 / _scale(scale), gravity=(0.0, 0.0, 0.0), bodies_interact=False)
+    squeeze = 0.15
+    for (row, mat), z0 in zip(_fig8_materials(), (-0.35, 0.35)):
+        center = np.array([0.0, 0.3, z0])
+        b.add_box(tuple(center), (0.2, 0.2, 0.2), mat, name=row)
+        pts = b._points[-1]
+        half = 0.5 * (pts.max(axis=0) - pts.min(axis=0))  # plates start on the outer particle layers
+        for axis, sign in ((0, 1), (0, -1), (2, 1), (2, -1)):
+            # Finite plates (boxes 1 cm thick): an infinite plane would also push the other cube.
+            plate = np.full(3, 0.15)
+            plate[axis] = 0.005
+            start = center.copy()
+            start[axis] += sign * (half[axis] + plate[axis])
+            end = start.copy()
+            end[axis] -= sign * half[axis] * squeeze
+            b.add_tool("box", half_extents=tuple(plate), name=f"{row}_plate_{'xz'[axis // 2]}{'_plus' if sign > 0 else '_minus'}",
+                       motion=tools.Keyframes([0.0, FIG8_RELEASE, FIG8_RELEASE + 0.02], [start, end, start + sign * 0.1 * np.eye(3)[axis]]))
+    frames = round(FIG8_DURATION * FIGURE_FPS)
+    return Scene("lab_fig8_plates", _doc(lab_fig8_plates), b, frames=frames, fps=FIGURE_FPS, view=(0.0, 50.0))
+
+
 #: Built-in scenes by name: the everyday scenes, then one per figure of the paper.
 SCENES: dict[str, Callable[..., Scene]] = {
     "dough_drop": dough_drop,
@@ -379,6 +495,13 @@ SCENES: dict[str, Callable[..., Scene]] = {
     "rubber_bounce": rubber_bounce,
     "clay_on_sphere": clay_on_sphere,
     "three_cylinders": three_cylinders,
+    "lab_compression": lab_compression,
+    "lab_squeeze_flow": lab_squeeze_flow,
+    "lab_indentation": lab_indentation,
+    "lab_three_point_bending": lab_three_point_bending,
+    "lab_cantilever": lab_cantilever,
+    "lab_cutting": lab_cutting,
+    "lab_fig8_plates": lab_fig8_plates,
     "fig1_non_newtonian": fig1_non_newtonian,
     "fig2_three_cylinders": fig2_three_cylinders,
     "fig3_pile": fig3_pile,

@@ -53,7 +53,7 @@ import warnings
 import numpy as np
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
-from . import checks
+from . import checks, tools
 from .model import Model
 
 __all__ = ["UsdWriter", "UsdFrames", "Collider", "USD_EXTENSIONS", "body_prim_names", "parse_frames", "surface_prim_path"]
@@ -82,7 +82,7 @@ _PALETTE = [
 def body_prim_names(model: Model) -> list[str]:
     """The prim name of each body: a valid, unique USD identifier made from its name."""
     names: list[str] = []
-    taken = {"Colliders", "Surfaces"}
+    taken = {"Colliders", "Surfaces", "Tools"}  # scopes of usd.py and tools.py
     for body in model.bodies:
         base = Tf.MakeValidIdentifier(body.name) or "body"
         name, k = base, 1
@@ -286,6 +286,7 @@ class UsdWriter:
             pts.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(Vt.Vec3fArray([Gf.Vec3f(*color)]))
         self._author_colliders(stage)
         self._author_surfaces(stage)
+        tools.usd_author(stage, m, _KEY, self._plane_size or 1.0)
 
     def _author_surfaces(self, stage: Usd.Stage):
         """The surface Mesh prims (idempotent: also used when appending to an existing file)."""
@@ -418,6 +419,7 @@ class UsdWriter:
                 geom.GetExtentAttr().Set(ext, t)
                 prim.GetAttribute(_PRIMVAR_SINGULAR_VALUES).Set(svals, t)
                 prim.GetAttribute(_PRIMVAR_ALPHA).Set(alph, t)
+            tools.usd_write_frame(stage, m, state, t, _KEY)
             stage.SetStartTimeCode(float(self.first_frame))
             stage.SetEndTimeCode(float(self.last_frame))
         self._save_and_publish()

@@ -104,6 +104,7 @@ class Solver:
             model.particle_count, model.scalar, model.device, model.support_radius,
             min_neighbors=self.min_neighbors, max_condition=self.max_condition,
             skin=skin * model.support_radius, spacing=model.spacing, bodies_interact=model.bodies_interact,
+            **model.neighbor_options(),
         )
         self.fused = bool(fused)
         self.scratch = StepScratch(model, self.min_neighbors, self.max_condition)
@@ -152,6 +153,11 @@ class Solver:
     def guard_counts(self) -> dict[str, int]:
         """How many particle-steps each guard skipped since construction or ``reset_counts``."""
         return dict(zip(GUARD_NAMES, (int(c) for c in self.scratch.counters.numpy())))
+
+    def reaction_forces(self, state: State) -> dict:
+        """``{tool name: (force, torque)}`` each moving collider and pinned set exerted on the
+        material in the step that produced ``state`` (definitions in ``warp_esph/tools.py``)."""
+        return {} if self.model.tools is None else self.model.tools.reaction(state)
 
     def reset_counts(self):
         self.scratch.counters.zero_()
@@ -221,9 +227,13 @@ class Solver:
         # External force fields active at the step's start time.
         fields.launch_force_fields(m, state_in, state_out)
 
-        # 5. Symplectic Euler, gravity, colliders.
+        # 5. Symplectic Euler, gravity, colliders (and the moving tools and pinned sets,
+        # docs/tools.md, when the model has them).
         with phase("integrate"):
-            integrate.launch_integrate(m, state_in, state_out, dt)
+            if m.tools is not None:
+                m.tools.integrate(self, state_in, state_out, dt)
+            else:
+                integrate.launch_integrate(m, state_in, state_out, dt)
 
         # 6. Incremental deformation gradient over the step (eqs. 1-8); the fast path
         # evaluates the neighbourhood guards here, on the fit's own moment matrix.
