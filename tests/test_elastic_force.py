@@ -140,14 +140,22 @@ def _vibrate(elastic_force, dt_factor, duration, stop_at=None):
 
 def test_undamped_elastic_body_keeps_its_energy_only_with_the_variational_force():
     """Measured: the variational cube's kinetic energy never exceeds its initial value
-    (peak 1.00001 in 1.5 s); the paper's passes 10x it after 1.74 s at the stable step and
-    1.59 s at half of it: a flutter of the force, not a time-step instability."""
+    (peak 1.00001 in 1.5 s); the paper's passes 10x it after 2.42 s at the stable step,
+    1.71 s at half of it and 1.91 s at a quarter (1.5x after 2.11, 1.29, 1.19 s): a flutter
+    of the force, not a time-step instability, which a smaller step would delay or remove.
+
+    The onset time itself is not a property of the force: the flutter grows from rounding-level
+    asymmetries, so it moves with anything that changes them. With rows of the paper's 30
+    nearest it was 1.74 s and 1.59 s; the wide rows that reach h sigma_max(F) give each
+    particle every neighbour inside its support and move it to the spread above. So the test
+    asks only that halving the step does not postpone it (by more than the scatter between
+    step sizes)."""
     peak, _ = _vibrate("variational", 1.0, 1.5)
     assert peak < 1.01
     _, t_full = _vibrate("paper", 1.0, 3.0, stop_at=10.0)
     _, t_half = _vibrate("paper", 0.5, 3.0, stop_at=10.0)
     assert t_full is not None and t_half is not None, "the paper's force gains energy"
-    assert abs(t_full - t_half) < 0.25 * t_full, (t_full, t_half)
+    assert t_half < 1.25 * t_full, (t_full, t_half)
 
 
 @pytest.mark.parametrize("fused", [True, False])

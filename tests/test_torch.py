@@ -60,14 +60,18 @@ def test_torch_adam_drives_a_fit():
     assert isinstance(module, torch.nn.Module) and len(list(module.parameters())) == 1
     opt = torch.optim.Adam(module.parameters(), lr=0.1)
     losses = []
-    for _ in range(40):
+    # Adam's momentum overshoots: the flow rate swings about 50 (37.8 at the 17th iterate,
+    # 54.5 at the 39th, measured) with a period of about 30 iterates, so where one iterate
+    # lands in a swing is chance. 60 iterates and the last ten: their largest loss is
+    # 1.8e-3 of the first (measured), the last flow rate 48.5.
+    for _ in range(60):
         opt.zero_grad()
         # In millimetres: Adam's eps (1e-8) would swamp gradients of a loss in m^2 (~1e-10).
         loss = ((module() - target) * 1e3).square().mean()
         loss.backward()
         opt.step()
         losses.append(loss.item())
-    assert losses[-1] < 1e-2 * losses[0]
+    assert max(losses[-10:]) < 1e-2 * losses[0]
     assert module.values()["flow_rate"].item() == pytest.approx(50.0, rel=0.1)
     assert module.rollout.model.flow_rate.numpy()[0] == pytest.approx(module.values()["flow_rate"].item(), rel=0.1)
 
