@@ -451,7 +451,7 @@ class _Problem:
         total = 0.0
         for r in self.runs:
             r.rollout.forward(**r.initial)
-            total += r.weight * r.loss.value(dict(zip(r.rollout.frames, r.rollout.frame_positions)))
+            total += r.weight * r.loss.value(r.rollout.observations())
         return total
 
 
