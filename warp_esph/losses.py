@@ -42,7 +42,7 @@ from . import checks
 from ._types import type_set
 
 __all__ = ["Loss", "PositionLoss", "ChamferLoss", "MeshLoss", "SumLoss", "surface_particles", "ReactionForceLoss",
-           "read_tools_csv", "is_tools_csv"]
+           "SlumpLoss", "read_tools_csv", "is_tools_csv"]
 
 #: HashGrid resolution cap per axis (the grid is periodic: aliasing beyond costs time only).
 _MAX_GRID_DIM = 128
@@ -448,7 +448,12 @@ class SumLoss(Loss):
             v, g = loss.value_and_grad(positions)
             value += k * v
             for key, a in g.items():
-                grads[key] = k * a if key not in grads else grads[key] + k * a
+                a = a.numpy() if isinstance(a, wp.array) else np.asarray(a)
+                if key in grads:
+                    b = grads[key]
+                    grads[key] = (b.numpy() if isinstance(b, wp.array) else b) + k * a
+                else:
+                    grads[key] = k * a
         return value, grads
 
     def __repr__(self):
@@ -976,3 +981,111 @@ def read_tools_csv(path) -> list[dict]:
     if not out:
         raise ValueError(f"{path} is not allowed as a force target: it has no rows")
     return out
+
+
+# ------------------------------------------------------------------- slump test
+def _soft_top(q: np.ndarray, tau: float) -> tuple[float, np.ndarray]:
+    """``M = sum_i w_i q_i`` with ``w = softmax(q / tau)`` (the top of ``q``, smoothly: the
+    mean of the topmost values within about ``tau``) and ``dM/dq``."""
+    z = (q - q.max()) / tau
+    w = np.exp(z)
+    w /= w.sum()
+    m = float(np.dot(w, q))
+    return m, w * (1.0 + (q - m) / tau)
+
+
+class SlumpLoss(Loss):
+    """The final height and spread of a slump test: ``weight * ((h - h*)^2 + (R - R*)^2)``.
+
+    ``h``: the top of the material above ``floor`` (y), ``R``: the largest horizontal
+    distance of the material from the vertical axis through ``center`` (x, z), each
+    measured as a lab would, to the edge of the outermost particles: the smooth maximum
+    (softmax-weighted mean, temperature ``tau``, default 0.05 ``spacing``: within a small
+    fraction of a spacing of the hard maximum a ruler reads) of the
+    particles' heights (distances) plus half a ``spacing`` (each particle stands for a
+    cell). ``height``/``spread``: the measured values (m); either may be None (not
+    measured). ``frame``: the step at which they were measured. ``noise``: their standard
+    deviation (m) for ``warp_esph.diagnostics`` (None: the fit's ``noise``).
+
+    Evaluated on the host (two numbers per evaluation) with the exact gradient.
+    """
+
+    _host = True
+
+    def __init__(self, height: float | None, spread: float | None, frame: int, spacing: float, floor: float = 0.0,
+                 center=(0.0, 0.0), tau: float | None = None, weight: float = 1.0, particles=None,
+                 noise: float | None = None):
+        super().__init__([frame], weight, particles)
+        if height is None and spread is None:
+            raise ValueError("height = None and spread = None is not allowed: give at least one measurement")
+        self.height = None if height is None else checks.positive("height", height)
+        self.spread = None if spread is None else checks.positive("spread", spread)
+        self.spacing = checks.positive("spacing", spacing)
+        self.floor = checks.number("floor", floor)
+        c = np.asarray(center, dtype=np.float64).ravel()
+        if c.shape != (2,) or not np.isfinite(c).all():
+            raise ValueError(f"center = {center!r} is not allowed: give the axis position (x, z)")
+        self.center = c
+        self.tau = 0.05 * self.spacing if tau is None else checks.positive("tau", tau)
+        self.noise = None if noise is None else checks.positive("noise", noise)
+
+    def launch(self, frame, x, out, scale: float = 1.0):
+        return
+
+    def _x(self, positions) -> np.ndarray:
+        x = positions[self.frames[0]]
+        x = x.numpy() if isinstance(x, wp.array) else np.asarray(x)
+        x = np.asarray(x, dtype=np.float64)
+        return x if self.particles is None else x[self.particles]
+
+    def measure(self, positions) -> tuple[float, float, np.ndarray, np.ndarray]:
+        """Simulated ``(height, spread)`` and their gradients with respect to the (observed) positions."""
+        x = self._x(positions)
+        half = 0.5 * self.spacing
+        h, dh = _soft_top(x[:, 1], self.tau)
+        g_h = np.zeros_like(x)
+        g_h[:, 1] = dh
+        d = np.stack([x[:, 0] - self.center[0], x[:, 2] - self.center[1]], axis=1)
+        r = np.sqrt((d * d).sum(axis=1))
+        R, dR = _soft_top(r, self.tau)
+        g_R = np.zeros_like(x)
+        safe = np.where(r > 0.0, r, 1.0)
+        g_R[:, 0] = dR * d[:, 0] / safe
+        g_R[:, 2] = dR * d[:, 1] / safe
+        return h + half - self.floor, R + half, g_h, g_R
+
+    def residuals(self, positions) -> np.ndarray:
+        h, R, _, _ = self.measure(positions)
+        out = []
+        if self.height is not None:
+            out.append(h - self.height)
+        if self.spread is not None:
+            out.append(R - self.spread)
+        return np.array(out)
+
+    def value_and_grad(self, positions):
+        h, R, g_h, g_R = self.measure(positions)
+        value, g = 0.0, np.zeros_like(g_h)
+        if self.height is not None:
+            value += (h - self.height) ** 2
+            g += 2.0 * (h - self.height) * g_h
+        if self.spread is not None:
+            value += (R - self.spread) ** 2
+            g += 2.0 * (R - self.spread) * g_R
+        f = self.frames[0]
+        if self.particles is not None:
+            x = positions[f]
+            full = np.zeros((x.shape[0], 3))
+            full[self.particles] = g
+            g = full
+        self._counts[f] = 1
+        return self.weight * value, {f: self.weight * g}
+
+    def residual_scale(self) -> float:
+        return 1.0 / self.weight
+
+    def observation_count(self) -> int:
+        return int(self.height is not None) + int(self.spread is not None)
+
+    def __repr__(self):
+        return f"SlumpLoss(height={self.height}, spread={self.spread}, frame={self.frames[0]}, weight={self.weight:g})"
