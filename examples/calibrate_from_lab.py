@@ -79,7 +79,7 @@ class Setup:
 
 SETUPS = {
     "full": Setup(),
-    "ci": Setup(slump_resolution=4, slump_duration=0.3, press_spacing=0.005, iterations=12),
+    "ci": Setup(slump_resolution=4, slump_duration=0.3, press_spacing=0.005, iterations=16),
 }
 
 #: The hidden material: mu = 10 rho g H0 (as benchmarks/validation.py's slump), a uniaxial

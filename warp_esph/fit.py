@@ -17,6 +17,8 @@ callable returning either (builders are finalized in ``dtype``, float64 by defau
 values the model holds are the initial guess. ``target`` is a ``warp_esph.losses.Loss``,
 or target positions (``(frames, n, 3)``, ``{step: (n, 3)}``) fitted with a
 ``PositionLoss``.
+A tool's force curve is a ``warp_esph.losses.ReactionForceLoss`` (``load_target`` reads
+the ``<output>_tools.csv`` of ``warp-esph run`` as one).
 
 Positive parameters are optimised in log space (a step of Adam changes them by about
 ``lr`` relative), others (e.g. ``hardening = 0``) in linear space scaled by their initial
