@@ -5,7 +5,7 @@ for Animating Elastoplastic Solids": ``SceneBuilder -> Model -> State``,
 ``Solver.step(state_in, state_out, dt)``.
 """
 
-from .builder import SceneBuilder
+from .builder import SceneBuilder, finalize_worlds
 from .material import MODELS, PRESETS, Material
 from .model import Body, Model, State
 from .simulate import SimulationError, simulate
@@ -15,6 +15,6 @@ from .usd import UsdWriter
 __version__ = "0.1.0"
 
 __all__ = [
-    "SceneBuilder", "Material", "MODELS", "PRESETS", "Model", "State", "Body", "Solver", "GUARD_NAMES",
+    "SceneBuilder", "finalize_worlds", "Material", "MODELS", "PRESETS", "Model", "State", "Body", "Solver", "GUARD_NAMES",
     "simulate", "SimulationError", "UsdWriter", "__version__",
 ]

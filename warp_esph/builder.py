@@ -7,6 +7,7 @@ when it is given, so a mistake is reported where it was made.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 
@@ -352,37 +353,111 @@ class SceneBuilder:
                 f"the other (at {np.round(points[clash[0]], 4).tolist()}); move them at least one spacing apart"
             )
 
-    def finalize(self, device="cpu", dtype=wp.float32, requires_grad: bool = False) -> Model:
-        """Builds the ``Model`` on ``device`` in precision ``dtype`` (float32 or float64)."""
-        if not self._bodies:
+    def finalize(self, device="cpu", dtype=wp.float32, requires_grad: bool = False, worlds: int = 1) -> Model:
+        """Builds the ``Model`` on ``device`` in precision ``dtype`` (float32 or float64).
+
+        ``worlds=W`` puts ``W`` copies of the scene in one model (``finalize_worlds``):
+        each with its own materials (``model.set_material(i, material, world=w)``), none
+        seeing another (they may overlap in space), all sharing the colliders."""
+        if isinstance(worlds, bool) or not isinstance(worlds, (int, np.integer)) or worlds < 1:
+            raise ValueError(f"worlds = {worlds!r} is not allowed: must be an integer >= 1")
+        return finalize_worlds([self] * int(worlds), device=device, dtype=dtype, requires_grad=requires_grad)
+
+
+#: What every world of a model must share (``finalize_worlds``).
+_SHARED = ("spacing", "support_radius", "gravity", "max_neighbors", "bodies_interact", "planes", "spheres", "boxes")
+
+
+def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.float32, requires_grad: bool = False) -> Model:
+    """One ``Model`` of ``len(builders)`` worlds: world ``w`` is ``builders[w]``'s scene.
+
+    Worlds are independent simulations in one set of arrays: particles, bodies and
+    materials world after world (``model.world_particles(w)``, ``model.world_materials(w)``),
+    neighbour lists (so SPH) never crossing worlds, every step advancing all of them in
+    the same launches. The builders must agree on spacing, support radius, gravity,
+    ``max_neighbors``, ``bodies_interact`` and colliders (a world is a scene at the same
+    place, colliders are shared). Bodies keep their names with one world; with several,
+    body ``name`` of world ``w`` is ``"w<w>/name"``.
+    """
+    if isinstance(builders, SceneBuilder) or not isinstance(builders, Sequence) or len(builders) < 1:
+        raise ValueError(f"builders = {builders!r} is not allowed: must be a non-empty list of SceneBuilder")
+    for k, b in enumerate(builders):
+        if not isinstance(b, SceneBuilder):
+            raise ValueError(f"builders[{k}] = {b!r} is not allowed: must be a SceneBuilder")
+        if not b._bodies:
             raise ValueError("the scene has no bodies: add one with add_box, add_sphere, ... before finalize()")
-        self._check_overlap()
-        scalar = scalar_type(dtype)
-        try:
-            dev = wp.get_device(device)
-        except Exception as e:  # noqa: BLE001 (Warp raises several kinds)
-            raise ValueError(f"device = {device!r} is not allowed: {e}") from None
-        model = Model(
-            positions=np.concatenate(self._points),
-            velocities=np.concatenate(self._velocities),
-            particle_material=np.concatenate(self._material_ids),
-            particle_body=np.concatenate([np.full(b.count, k, dtype=np.int32) for k, b in enumerate(self._bodies)]),
-            materials=self._materials,
-            bodies=self._bodies,
-            spacing=self.spacing,
-            support_radius=self.support_radius,
-            gravity=self.gravity,
-            planes=self.planes,
-            spheres=self.spheres,
-            boxes=self.boxes,
-            max_neighbors=self.max_neighbors,
-            bodies_interact=self.bodies_interact,
-            device=dev,
-            scalar=scalar,
-            requires_grad=requires_grad,
+    first = builders[0]
+    for k, b in enumerate(builders[1:], start=1):
+        for name in _SHARED:
+            if getattr(b, name) != getattr(first, name):
+                raise ValueError(
+                    f"builders[{k}].{name} = {getattr(b, name)!r} is not allowed: every world must have the "
+                    f"{name} of builders[0] ({getattr(first, name)!r})"
+                )
+    if len(builders) > 1 and any(b.tools or b.pins for b in builders):
+        raise ValueError(
+            f"worlds = {len(builders)} is not allowed with moving tools or pinned sets: "
+            "tools act on one world; build one model per scene with tools"
         )
-        model.force_fields = list(self.force_fields)
-        if self.tools or self.pins:
-            model.tools = tools.ToolSet(model, self.tools, self.pins)
-        model.compute_rest_density()
-        return model
+    # Overlap is checked within each world only: worlds overlap in space by design.
+    for b in {id(b): b for b in builders}.values():
+        b._check_overlap()
+    scalar = scalar_type(dtype)
+    try:
+        dev = wp.get_device(device)
+    except Exception as e:  # noqa: BLE001 (Warp raises several kinds)
+        raise ValueError(f"device = {device!r} is not allowed: {e}") from None
+    several = len(builders) > 1
+    points, velocities, mat_ids, body_ids, world_ids = [], [], [], [], []
+    materials: list[Material] = []
+    bodies: list[Body] = []
+    fields = []
+    mat_start = [0]
+    count = 0
+    same_fields = all(b.force_fields == first.force_fields for b in builders)
+    for w, b in enumerate(builders):
+        m0, b0 = len(materials), len(bodies)
+        points += b._points
+        velocities += b._velocities
+        mat_ids += [ids + m0 for ids in b._material_ids]
+        for k, body in enumerate(b._bodies):
+            name = f"w{w}/{body.name}" if several else body.name
+            bodies.append(Body(name=name, start=count, count=body.count, material=body.material + m0, kind=body.kind, world=w))
+            body_ids.append(np.full(body.count, b0 + k, dtype=np.int32))
+            world_ids.append(np.full(body.count, w, dtype=np.int32))
+            count += body.count
+        materials += list(b._materials)
+        mat_start.append(len(materials))
+        for fld in b.force_fields:
+            if fld.body >= 0:
+                fields.append(dataclasses.replace(fld, body=fld.body + b0))
+            elif not (same_fields and w > 0):
+                # A field on every particle acts on all worlds once when the worlds share
+                # it; a world's own such field acts on each of its bodies.
+                fields += [fld] if same_fields else [dataclasses.replace(fld, body=b0 + k) for k in range(len(b._bodies))]
+    model = Model(
+        positions=np.concatenate(points),
+        velocities=np.concatenate(velocities),
+        particle_material=np.concatenate(mat_ids),
+        particle_body=np.concatenate(body_ids),
+        materials=materials,
+        bodies=bodies,
+        spacing=first.spacing,
+        support_radius=first.support_radius,
+        gravity=first.gravity,
+        planes=first.planes,
+        spheres=first.spheres,
+        boxes=first.boxes,
+        max_neighbors=first.max_neighbors,
+        bodies_interact=first.bodies_interact,
+        device=dev,
+        scalar=scalar,
+        requires_grad=requires_grad,
+        particle_world=np.concatenate(world_ids),
+        world_material_start=mat_start,
+    )
+    model.force_fields = fields
+    if first.tools or first.pins:
+        model.tools = tools.ToolSet(model, first.tools, first.pins)
+    model.compute_rest_density()
+    return model

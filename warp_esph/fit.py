@@ -46,7 +46,7 @@ import warp as wp
 
 from . import checks
 from .builder import SceneBuilder
-from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, is_tools_csv, read_tools_csv
+from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, WorldLoss, is_tools_csv, read_tools_csv
 from .material import Material
 from .model import Model
 from .rollout import PARAMETERS, Rollout
@@ -613,7 +613,8 @@ def fit(
             "grad": [float(x) for x in gz],
             "seconds": seconds,
         })
-        if len(history) == 1:
+        if not state.get("timed"):
+            state["timed"] = True
             say(f"one evaluation (forward + backward) took {seconds:.3g} s: "
                 f"up to {iterations + 1} evaluations, ~{_duration(seconds * (iterations + 1) * starts)}")
         _record_best(value, finite, p)
@@ -713,7 +714,12 @@ def fit(
     result.experiment_materials = fitted
     result.starts = stops
     result.evaluations = sum(1 for h in history if h["stage"] == "descent")
-    if diagnostics:
+    # A worlds model fits W hypotheses at once: one Fisher matrix of their summed loss
+    # would describe none of them, so the diagnostics are left to one world at a time.
+    worlds = any(isinstance(r.loss, WorldLoss) for r in runs)
+    if diagnostics and worlds:
+        say("diagnostics: skipped for a WorldLoss (diagnose each world's fit on its own model)")
+    if diagnostics and not worlds:
         from .diagnostics import diagnose_problem  # noqa: PLC0415
 
         t0 = time.perf_counter()

@@ -41,8 +41,8 @@ import warp as wp
 from . import checks
 from ._types import type_set
 
-__all__ = ["Loss", "PositionLoss", "ChamferLoss", "MeshLoss", "SumLoss", "surface_particles", "ReactionForceLoss",
-           "SlumpLoss", "read_tools_csv", "is_tools_csv"]
+__all__ = ["Loss", "PositionLoss", "ChamferLoss", "MeshLoss", "SumLoss", "WorldLoss", "surface_particles",
+           "ReactionForceLoss", "SlumpLoss", "read_tools_csv", "is_tools_csv"]
 
 #: HashGrid resolution cap per axis (the grid is periodic: aliasing beyond costs time only).
 _MAX_GRID_DIM = 128
@@ -57,6 +57,10 @@ def _kernels(scalar):
     def gather(x: wp.array(dtype=vec3), idx: wp.array(dtype=wp.int32), out: wp.array(dtype=vec3)):
         k = wp.tid()
         out[k] = x[idx[k]]
+
+    @wp.kernel
+    def add_scalar(src: wp.array(dtype=scalar), dst: wp.array(dtype=scalar)):
+        wp.atomic_add(dst, 0, src[0])
 
     @wp.kernel(enable_backward=False)
     def to_float32(x: wp.array(dtype=vec3), out: wp.array(dtype=wp.vec3f)):
@@ -202,7 +206,7 @@ def _kernels(scalar):
             wp.atomic_add(out, 0, w * d2_max)
 
     return types.SimpleNamespace(
-        gather=gather, to_float32=to_float32, squared_distance=squared_distance, nearest=nearest,
+        gather=gather, add_scalar=add_scalar, to_float32=to_float32, squared_distance=squared_distance, nearest=nearest,
         nearest_term=nearest_term, closest_on_mesh=closest_on_mesh, mesh_term=mesh_term,
     )
 
@@ -458,6 +462,70 @@ class SumLoss(Loss):
 
     def __repr__(self):
         return " + ".join(f"{k:g} * {loss!r}" for k, loss in self.terms)
+
+
+class WorldLoss(Loss):
+    """The sum over the worlds of a model (``SceneBuilder.finalize(worlds=W)``) of one
+    loss per world, each evaluated on its own world's particles only.
+
+    ``losses``: one ``Loss`` used for every world, or a sequence of one per world (e.g.
+    ``PositionLoss`` with each world's own targets); a world's loss sees an array of that
+    world's particles (indices, ``particles=`` and target sizes are the world's). Since
+    worlds never interact, the gradient of the sum with respect to world ``w``'s
+    parameters (``model.world_materials(w)``) and initial state
+    (``model.world_particles(w)``) is that of world ``w``'s loss alone: one backward
+    pass gives every world's gradient. ``world_values`` holds each world's term after an
+    evaluation (scaled as it entered the sum).
+    """
+
+    def __init__(self, model, losses):
+        starts = getattr(model, "world_start", None)
+        if starts is None:
+            raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
+        W = len(starts) - 1
+        if isinstance(losses, Loss):
+            losses = [losses] * W
+        losses = list(losses)
+        if len(losses) != W or not all(isinstance(loss, Loss) for loss in losses):
+            raise ValueError(f"losses is not allowed: must be one warp_esph.losses.Loss or a list of {W} (one per world), got {len(losses)} items")
+        self.losses = losses
+        self.world_start = np.asarray(starts, dtype=np.int64)
+        super().__init__(sorted({f for loss in losses for f in loss.frames}))
+        self._world_x = {}
+        self._world_acc = {}
+        self._used: list[dict] = [{} for _ in losses]
+        #: Each world's term at the last evaluation (numpy, one value per world).
+        self.world_values = None
+
+    def launch(self, frame, x, out, scale: float = 1.0):
+        if x.shape[0] != self.world_start[-1]:
+            raise ValueError(f"positions with {x.shape[0]} particles are not allowed: the worlds have {int(self.world_start[-1])}")
+        k = _kernels(_scalar_of(x))
+        for w, loss in enumerate(self.losses):
+            if frame not in loss.frames:
+                continue
+            key = (w, frame, x.dtype, str(x.device))
+            if key not in self._world_x:
+                idx = wp.array(np.arange(self.world_start[w], self.world_start[w + 1], dtype=np.int32), device=x.device)
+                n = len(idx)
+                self._world_x[key] = (idx, wp.zeros(n, dtype=x.dtype, device=x.device, requires_grad=True))
+                self._world_acc[key] = wp.zeros(1, dtype=_scalar_of(x), device=x.device, requires_grad=True)
+            idx, xw = self._world_x[key]
+            acc = self._world_acc[key]
+            acc.zero_()
+            wp.launch(k.gather, len(idx), [x, idx], [xw], device=x.device)
+            loss.launch(frame, xw, acc, scale)
+            wp.launch(k.add_scalar, 1, [acc], [out], device=x.device)
+            self._used[w][key] = acc
+
+    def value_and_grad(self, positions):
+        self._used = [{} for _ in self.losses]
+        value, grads = super().value_and_grad(positions)
+        self.world_values = np.array([sum(float(a.numpy()[0]) for a in used.values()) for used in self._used])
+        return value, grads
+
+    def __repr__(self):
+        return f"WorldLoss({len(self.losses)} worlds: {self.losses[0]!r}, ...)"
 
 
 class PositionLoss(Loss):

@@ -10,6 +10,7 @@ nothing is allocated inside the step.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import numpy as np
 import warp as wp
@@ -30,6 +31,8 @@ class Body:
     count: int
     material: int
     kind: str
+    #: The world it belongs to (``SceneBuilder.finalize(worlds=W)``; 0 without worlds).
+    world: int = 0
 
 
 class State:
@@ -99,6 +102,8 @@ class Model:
         scalar,
         requires_grad: bool,
         bodies_interact: bool = True,
+        particle_world: np.ndarray | None = None,
+        world_material_start: Sequence[int] | None = None,
     ):
         self.device = wp.get_device(device)
         self.types = type_set(scalar)
@@ -123,6 +128,32 @@ class Model:
         dev = self.device
         self.particle_material = wp.array(self.particle_material_np, dtype=wp.int32, device=dev)
         self.particle_body = wp.array(self.particle_body_np, dtype=wp.int32, device=dev)
+
+        # Worlds: independent copies (or different scenes) in one model, particles and
+        # materials world after world; neighbour lists never cross them.
+        if particle_world is None:
+            particle_world = np.zeros(self.particle_count, dtype=np.int32)
+        #: World of each particle (numpy int32, non-decreasing).
+        self.world_of_particle = np.ascontiguousarray(particle_world, dtype=np.int32)
+        #: Number of worlds.
+        self.world_count = int(self.world_of_particle.max()) + 1 if self.particle_count else 1
+        #: Particles of world ``w``: ``world_start[w]:world_start[w + 1]``.
+        self.world_start = np.searchsorted(self.world_of_particle, np.arange(self.world_count + 1)).astype(np.int64)
+        if world_material_start is None:
+            world_material_start = (0, len(materials))
+        #: Materials of world ``w``: ``world_material_start[w]:world_material_start[w + 1]``
+        #: (the entries of every per-material array, and of its gradient, that are world ``w``'s).
+        self.world_material_start = np.asarray(world_material_start, dtype=np.int64)
+        self._check_worlds()
+        self.particle_world = wp.array(self.world_of_particle, dtype=wp.int32, device=dev)
+        if self.world_count > 1 and self.bodies_interact:
+            #: Ids whose particles never appear in each other's neighbour lists (``None``: all
+            #: may): the world with worlds; the body without body interaction.
+            self.neighbor_group = self.particle_world
+        elif not self.bodies_interact:
+            self.neighbor_group = self.particle_body
+        else:
+            self.neighbor_group = None
         # Lattice volume dx^3 per particle: V_i = m_i / rho0 (docs/method.md §5; the kernel is
         # evaluated in reference space, so the rest volume is the right one).
         volume = np.full(self.particle_count, self.spacing**3, dtype=npf)
@@ -179,10 +210,22 @@ class Model:
         values = list(values) or [np.zeros(3) if dtype is self.types.vec3 else 0.0]
         return wp.array(np.array(values, dtype=self.types.np_dtype), dtype=dtype, device=self.device)
 
-    def set_material(self, index: int, material: Material):
-        """Replace material ``index`` in place (its particles keep their state)."""
-        if not 0 <= index < len(self.materials):
+    def set_material(self, index: int, material: Material, world: int | None = None):
+        """Replace material ``index`` in place (its particles keep their state).
+
+        ``world=None``: ``index`` counts every material of the model (worlds after each
+        other); ``world=w``: ``index`` is the material's index within world ``w`` (as in its
+        builder), and only world ``w``'s copy changes."""
+        if world is not None:
+            w = self._world_index(world)
+            first, end = self.world_material_start[w], self.world_material_start[w + 1]
+            if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < end - first:
+                raise ValueError(f"index = {index!r} is not allowed: world {w} has materials 0..{end - first - 1}")
+            index = int(first + index)
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < len(self.materials):
             raise ValueError(f"index = {index!r} is not allowed: must be in [0, {len(self.materials) - 1}]")
+        if not isinstance(material, Material):
+            raise ValueError(f"material = {material!r} is not allowed: must be a warp_esph.Material")
         self.materials[index] = material
         for name in self.MATERIAL_FIELDS:
             arr = getattr(self, name)
@@ -198,6 +241,64 @@ class Model:
             values = arr.numpy()
             values[index] = value
             arr.assign(values)
+
+    # ----------------------------------------------------------------- worlds
+    def _check_worlds(self):
+        # Every world-indexed slice assumes particles and materials come world after world.
+        w, ms = self.world_of_particle, self.world_material_start
+        if w.shape != (self.particle_count,) or (self.particle_count and (w[0] != 0 or (np.diff(w) < 0).any() or (np.diff(w) > 1).any())):
+            raise ValueError("particle_world is not allowed: must be one world per particle, 0, 1, ... in order, none empty")
+        if ms.shape != (self.world_count + 1,) or ms[0] != 0 or ms[-1] != len(self.materials) or (np.diff(ms) < 0).any():
+            raise ValueError(
+                f"world_material_start = {ms.tolist()} is not allowed: must be {self.world_count + 1} non-decreasing "
+                f"offsets from 0 to {len(self.materials)}"
+            )
+        if self.particle_count:
+            mat = self.particle_material_np
+            if ((mat < ms[w]) | (mat >= ms[w + 1])).any():
+                raise ValueError("particle_material is not allowed: a particle uses a material of another world")
+
+    def _world_index(self, world) -> int:
+        if isinstance(world, bool) or not isinstance(world, (int, np.integer)) or not 0 <= world < self.world_count:
+            raise ValueError(f"world = {world!r} is not allowed: must be an integer in [0, {self.world_count - 1}]")
+        return int(world)
+
+    def world_particles(self, world: int) -> slice:
+        """The particle range of ``world``: ``state.x.numpy()[model.world_particles(w)]``."""
+        w = self._world_index(world)
+        return slice(int(self.world_start[w]), int(self.world_start[w + 1]))
+
+    def world_materials(self, world: int) -> slice:
+        """The entries of the per-material arrays (``mu``, ..., their gradients) of ``world``."""
+        w = self._world_index(world)
+        return slice(int(self.world_material_start[w]), int(self.world_material_start[w + 1]))
+
+    def world_view(self, array, world: int):
+        """The part of a per-particle array (a ``State`` field, Warp or numpy) that is
+        ``world``'s; for a Warp array, a view (no copy)."""
+        if array.shape[0] != self.particle_count:
+            raise ValueError(f"array with {array.shape[0]} entries is not allowed: must have one per particle ({self.particle_count})")
+        s = self.world_particles(world)
+        return array[s.start:s.stop]
+
+    def per_world(self, values, kind: str | None = None) -> list:
+        """Split a per-particle (length ``particle_count``) or per-material (length
+        ``len(materials)``) array into one array per world; with equal worlds, stack
+        them with ``np.stack``. ``kind`` (``"particles"`` or ``"materials"``) says which
+        where the two lengths are equal; by default the length decides, particles first."""
+        a = values.numpy() if isinstance(values, wp.array) else np.asarray(values)
+        if kind not in (None, "particles", "materials"):
+            raise ValueError(f"kind = {kind!r} is not allowed: must be None, 'particles' or 'materials'")
+        if a.shape[0] == self.particle_count and kind != "materials":
+            starts = self.world_start
+        elif a.shape[0] == len(self.materials) and kind != "particles":
+            starts = self.world_material_start
+        else:
+            raise ValueError(
+                f"values with {a.shape[0]} entries is not allowed: must have one per particle ({self.particle_count}) "
+                f"or one per material ({len(self.materials)})"
+            )
+        return [a[starts[w]:starts[w + 1]] for w in range(self.world_count)]
 
     def state(self, requires_grad: bool | None = None) -> State:
         """A new state at the initial configuration (F = I, alpha = 0)."""
@@ -251,6 +352,13 @@ class Model:
             dt = min(dt, float(np.min(courant / 12.0 * rho[viscous] * self.support_radius**2 / eta[viscous])))
         return dt
 
+    def neighbor_options(self, bodies: bool = True) -> dict:
+        """The ``NeighborSearch`` keywords that keep worlds (and, without body
+        interaction and with ``bodies``, bodies) out of each other's neighbour lists."""
+        worlds = self.world_count > 1
+        group = self.neighbor_group if bodies else (self.particle_world if worlds else None)
+        return {"group": group, "world": self.particle_world if worlds else None}
+
     @property
     def body_names(self) -> list[str]:
         return [b.name for b in self.bodies]
@@ -258,7 +366,8 @@ class Model:
     def __repr__(self):
         return (
             f"Model({self.particle_count} particles, {len(self.bodies)} bodies, {len(self.materials)} materials, "
-            f"spacing={self.spacing:g}, h={self.support_radius:g}, dtype={self.scalar.__name__}, device={self.device})"
+            + (f"{self.world_count} worlds, " if self.world_count > 1 else "")
+            + f"spacing={self.spacing:g}, h={self.support_radius:g}, dtype={self.scalar.__name__}, device={self.device})"
         )
 
     @property
@@ -272,7 +381,10 @@ class Model:
             from .sim import neighbors  # noqa: PLC0415
 
             state = State(self, requires_grad=False)
-            search = neighbors.NeighborSearch(self.particle_count, self.scalar, self.device, self.support_radius)
+            # Across bodies as always (the kernels keep to the body), never across worlds.
+            search = neighbors.NeighborSearch(
+                self.particle_count, self.scalar, self.device, self.support_radius, **self.neighbor_options(bodies=False)
+            )
             search.build(state.x, self.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count, state.guard)
             self.rest_x, self.rest_nbr, self.rest_count = state.x, state.neighbors, state.neighbor_count
         return self.rest_x, self.rest_nbr, self.rest_count
@@ -283,7 +395,8 @@ class Model:
 
         state = State(self, requires_grad=False)
         search = neighbors.NeighborSearch(
-            self.particle_count, self.scalar, self.device, self.support_radius, bodies_interact=self.bodies_interact
+            self.particle_count, self.scalar, self.device, self.support_radius, bodies_interact=self.bodies_interact,
+            **self.neighbor_options(),
         )
         search.build(state.x, self.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count, state.guard)
         pressure.launch_density(self, state.x, state.neighbors, state.neighbor_count, self.particle_rest_density)

@@ -51,6 +51,7 @@ The gradient with respect to ``x0`` holds the SPH rest density fixed (it is a co
 of the model, computed once from the model's own initial positions).
 """
 
+import dataclasses
 import functools
 import types
 from collections.abc import Mapping, Sequence
@@ -198,6 +199,8 @@ class Rollout:
         self._force_grads = None
         #: Incremented by every ``forward``: lets callers (the torch wrapper) tell runs apart.
         self.forward_count = 0
+        #: Each world's loss term at the last ``backward`` with a ``losses.WorldLoss`` (else None).
+        self.world_values = None
 
     # ----------------------------------------------------------------- set-up
     def set_parameters(self, values: Mapping[str, object]):
@@ -401,8 +404,11 @@ class Rollout:
         if not self._forward_done:
             raise RuntimeError("backward() before forward(): run forward() first")
         value = None
+        self.world_values = None
         if hasattr(grads, "value_and_grad"):
-            value, grads = grads.value_and_grad(self.observations())
+            loss = grads
+            value, grads = loss.value_and_grad(self.observations())
+            self.world_values = getattr(loss, "world_values", None)
         force_grads = None
         if isinstance(grads, Mapping) and FORCES in grads:
             grads = dict(grads)
@@ -417,6 +423,16 @@ class Rollout:
         result = dict(acc)
         result.update(adj)
         return value, result
+
+    def per_world(self, gradients: Mapping[str, np.ndarray]) -> list[dict[str, np.ndarray]]:
+        """``backward``'s gradients split by world (``SceneBuilder.finalize(worlds=W)``):
+        one dict per world, with that world's entries of every parameter array (its
+        materials, ``model.world_materials(w)``) and of the initial-state gradients (its
+        particles). Worlds never interact, so with a ``losses.WorldLoss`` these are the
+        gradients of each world's own loss."""
+        parts = {key: self.model.per_world(value, "materials" if key in PARAMETERS else "particles")
+                 for key, value in gradients.items()}
+        return [{key: p[w] for key, p in parts.items()} for w in range(self.model.world_count)]
 
     def _seed(self, arr: wp.array, g: wp.array):
         wp.launch(self._k.add_vec3, arr.shape[0], [g], [arr.grad], device=self.model.device, record_tape=False)
@@ -537,21 +553,28 @@ def split_materials(model: Model, bodies: Sequence[int | str] | None = None) -> 
     old = model.particle_material_np
     body_of = model.particle_body_np
     materials = []
+    source = []  # the model's material each new material copies
     new_index = np.empty(model.particle_count, dtype=np.int32)
     per_particle = np.isin(body_of, sorted(chosen))
-    for i in np.flatnonzero(per_particle):
-        new_index[i] = len(materials)
-        materials.append(model.materials[old[i]])
-    shared = {}
-    for i in np.flatnonzero(~per_particle):
-        k = int(old[i])
-        if k not in shared:
-            shared[k] = len(materials)
-            materials.append(model.materials[k])
-        new_index[i] = shared[k]
-    new_bodies = [
-        type(b)(name=b.name, start=b.start, count=b.count, material=int(new_index[b.start]), kind=b.kind) for b in model.bodies
-    ]
+    world_material_start = [0]
+    # World by world, so each world's materials stay contiguous (``Model.world_materials``).
+    for w in range(model.world_count):
+        s = model.world_particles(w)
+        idx = np.arange(s.start, s.stop)
+        for i in idx[per_particle[idx]]:
+            new_index[i] = len(materials)
+            materials.append(model.materials[old[i]])
+            source.append(int(old[i]))
+        shared = {}
+        for i in idx[~per_particle[idx]]:
+            k = int(old[i])
+            if k not in shared:
+                shared[k] = len(materials)
+                materials.append(model.materials[k])
+                source.append(k)
+            new_index[i] = shared[k]
+        world_material_start.append(len(materials))
+    new_bodies = [dataclasses.replace(b, material=int(new_index[b.start])) for b in model.bodies]
     out = Model(
         positions=model.particle_x0.copy(),
         velocities=model.particle_v0.copy(),
@@ -569,11 +592,15 @@ def split_materials(model: Model, bodies: Sequence[int | str] | None = None) -> 
         device=model.device,
         scalar=model.scalar,
         requires_grad=model.requires_grad,
+        bodies_interact=model.bodies_interact,
+        particle_world=model.world_of_particle.copy(),
+        world_material_start=world_material_start,
     )
+    out.force_fields = list(model.force_fields)
     # Copy the rest density rather than recompute it, so the split model runs identically.
     wp.copy(out.particle_rest_density, model.particle_rest_density)
     # Copy the parameter values too (they may differ from model.materials after a fit).
     for name in PARAMETERS:
         vals = getattr(model, name).numpy()
-        getattr(out, name).assign(vals[old][per_particle].tolist() + [vals[k] for k in shared])
+        getattr(out, name).assign(vals[np.asarray(source, dtype=np.int64)])
     return out

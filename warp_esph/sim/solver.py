@@ -97,6 +97,7 @@ class Solver:
             model.particle_count, model.scalar, model.device, model.support_radius,
             min_neighbors=self.min_neighbors, max_condition=self.max_condition,
             skin=skin * model.support_radius, spacing=model.spacing, bodies_interact=model.bodies_interact,
+            **model.neighbor_options(),
         )
         self.fused = bool(fused)
         self.scratch = StepScratch(model, self.min_neighbors, self.max_condition)
