@@ -26,6 +26,11 @@ from .model import Body, Model
 SUPPORT_RANGE = (1.5, 3.0)
 #: Largest lattice a single body may be sampled from (about 1.6 GB of float64 points).
 MAX_PARTICLES_PER_BODY = 6.4e7
+#: Largest neighbour list: every state holds particles x max_neighbors entries, and the
+#: support (h <= 3 spacing) holds at most 122 lattice neighbours.
+MAX_NEIGHBORS = 1024
+#: Most tips of a star (the polygon test costs particles x tips).
+MAX_STAR_POINTS = 1000
 
 
 def star_polygon(outer_radius: float, inner_radius: float, points: int = 5) -> np.ndarray:
@@ -80,7 +85,7 @@ class SceneBuilder:
                 f"[{lo} * spacing, {hi} * spacing] = [{lo * self.spacing:g}, {hi * self.spacing:g}]"
             )
         self.support_radius = h
-        self.max_neighbors = checks.positive_int("max_neighbors", max_neighbors)
+        self.max_neighbors = checks.positive_int("max_neighbors", max_neighbors, maximum=MAX_NEIGHBORS)
         self._points: list[np.ndarray] = []
         self._velocities: list[np.ndarray] = []
         self._bodies: list[Body] = []
@@ -188,9 +193,9 @@ class SceneBuilder:
         if ri >= ro:
             raise ValueError(f"inner_radius = {inner_radius!r} is not allowed: must be < outer_radius = {ro:g}")
         t = checks.positive("thickness", thickness)
-        npts = checks.positive_int("points", points)
+        npts = checks.positive_int("points", points, maximum=MAX_STAR_POINTS)
         if npts < 3:
-            raise ValueError(f"points = {points!r} is not allowed: must be an integer >= 3")
+            raise ValueError(f"points = {points!r} is not allowed: must be an integer in [3, {MAX_STAR_POINTS}]")
         p = self._lattice(c - np.array([ro, t / 2, ro]), c + np.array([ro, t / 2, ro]), "outer_radius/thickness", (ro, t))
         inside = _inside_polygon((p - c)[:, [0, 2]], star_polygon(ro, ri, npts))
         return self.add_particles(p[inside], material, velocity, name, "star", angular_velocity)
@@ -285,6 +290,7 @@ class SceneBuilder:
 
     def finalize(self, device="cpu", dtype=wp.float32, requires_grad: bool = False) -> Model:
         """Builds the ``Model`` on ``device`` in precision ``dtype`` (float32 or float64)."""
+        requires_grad = checks.boolean("requires_grad", requires_grad)
         if not self._bodies:
             raise ValueError("the scene has no bodies: add one with add_box, add_sphere, ... before finalize()")
         self._check_overlap()

@@ -145,8 +145,7 @@ class Solver:
         return dt
 
     def step(self, state_in: State, state_out: State, dt: float):
-        if state_in is state_out:
-            raise ValueError("state_out is state_in: the step reads state_in and writes state_out, pass two states")
+        checks.step_states(self.model, state_in, state_out)
         dt = self.check_dt(dt)
         m = self.model
         n = m.particle_count
