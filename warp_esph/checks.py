@@ -7,6 +7,10 @@ and what is allowed, so a user can fix the input without reading code.
 from __future__ import annotations
 
 import math
+import re
+import struct
+import zipfile
+import zlib
 from collections.abc import Sequence
 
 import numpy as np
@@ -178,3 +182,29 @@ def choice(name: str, value, allowed: Sequence[str]) -> str:
     if value not in allowed:
         _fail(name, value, "must be one of " + ", ".join(repr(a) for a in allowed))
     return value
+
+
+# ---------------------------------------------------------------- files that cannot be read
+#: What reading a damaged file raises besides ``ValueError``/``OSError``: a truncated or
+#: garbled ``.npz`` (zip, zlib, struct), text that is not UTF-8. pxr raises
+#: ``Tf.ErrorException`` (recognised by its module, so pxr need not be imported here).
+READ_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, UnicodeDecodeError, struct.error)
+
+
+def is_read_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is what a library raises on a damaged or foreign file."""
+    return isinstance(exc, READ_ERRORS) or type(exc).__module__.split(".")[0] == "pxr"
+
+
+def read_reason(exc: BaseException) -> str:
+    """One line from a reader's exception; pxr's C++ location is dropped, its message kept."""
+    text = re.sub(r"\s+", " ", str(exc)).strip()
+    # pxr wraps each message in "Error in '<C++ function>' at line N in file F : '<message>'".
+    messages = re.findall(r" : '(.+?)'(?= Error in |$)", text)
+    text = "; ".join(messages) or text or type(exc).__name__
+    return text if len(text) <= 300 else text[:297] + "..."
+
+
+def file_error(path, exc: BaseException, verb: str = "read") -> ValueError:
+    """``ValueError("cannot <verb> '<path>': <reason>")`` for a damaged or foreign file."""
+    return ValueError(f"cannot {verb} {str(path)!r}: {read_reason(exc)}")

@@ -194,7 +194,7 @@ def _cmd_run(args) -> int:
         if not wp.is_cuda_available():
             raise ValueError("--device = 'cuda' is not allowed: Warp finds no CUDA device on this machine (use --device cpu)")
     from .scenes import load_scene  # noqa: PLC0415
-    from .simulate import SimulationError, resolve_timestep, simulate  # noqa: PLC0415
+    from .simulate import SimulationError, check_step_count, resolve_timestep, simulate  # noqa: PLC0415
     from .solver import Solver  # noqa: PLC0415
     from .usd import UsdWriter  # noqa: PLC0415
 
@@ -206,8 +206,9 @@ def _cmd_run(args) -> int:
         # The run record of the checkpoint decides everything the results depend on.
         meta, _ = read_checkpoint(args.resume)
         run = meta.get("run", {})
-        if not {"scene", "scale", "fps", "dt", "frames", "output", "dtype"} <= run.keys():
+        if not isinstance(run, dict) or not {"scene", "scale", "fps", "dt", "frames", "output", "dtype"} <= run.keys():
             raise ValueError(f"--resume = {args.resume!r} is not allowed: the checkpoint was not written by 'warp-esph run'")
+        _check_run_record(args.resume, run)
         args.scene, scale, args.dtype = run["scene"], run["scale"], run["dtype"]
         args.fps, args.dt, args.output, args.surface = run["fps"], run["dt"], run["output"], run.get("surface", False)
         frames_total = args.frames if args.frames is not None else run["frames"]  # --frames extends a run
@@ -227,6 +228,7 @@ def _cmd_run(args) -> int:
     if frames < 1:
         raise ValueError(f"--resume = {args.resume!r} is not allowed: that run finished all {frames_total} frames")
     substeps, dt = resolve_timestep(model, fps, dt=dt)
+    check_step_count(frames, substeps)
     solver = Solver(model)
     solver.check_dt(dt)  # the stability warning, once, before the run
     writer = UsdWriter(output, model, fps, surface=args.surface, view=getattr(scene, "view", None), append=args.resume is not None)
@@ -282,6 +284,27 @@ def _cmd_run(args) -> int:
         result = render_usd(writer.path, os.path.splitext(writer.path)[0] + ".png", frames="last")
         print(f"preview: {result.output} ({result.seconds:.1f} s)")
     return 0
+
+
+def _check_run_record(path, run: dict) -> None:
+    """The run record of a checkpoint holds what ``_cmd_run`` wrote there (a foreign or
+    hand-edited file must fail here, by name, not as a TypeError later)."""
+    from . import checks  # noqa: PLC0415
+
+    where = f"--resume = {path!r} is not allowed: in its run record,"
+    try:
+        if not isinstance(run["scene"], str) or not isinstance(run["output"], str):
+            raise ValueError("scene and output must be text")
+        checks.positive("scale", run["scale"])
+        checks.positive("fps", run["fps"])
+        checks.positive("dt", run["dt"])
+        checks.positive_int("frames", run["frames"])
+        checks.choice("dtype", run["dtype"], ("float32", "float64"))
+        checks.boolean("surface", run.get("surface", False))
+        if run.get("checkpoint_every") is not None:
+            checks.positive_int("checkpoint_every", run["checkpoint_every"])
+    except ValueError as e:
+        raise ValueError(f"{where} {e}") from None
 
 
 def _cmd_render(args) -> int:
@@ -381,7 +404,38 @@ def _dispatch(args) -> int:
             if isinstance(e, SimulationError):
                 _err(e)
                 return EXIT_DIVERGED
-            raise
+            if not _is_read_error(e):
+                raise
+            _err(_read_failure(args, e))
+            return EXIT_BAD_INPUT
+        except Exception as e:  # noqa: BLE001 (only a damaged input file is turned into one line)
+            if not _is_read_error(e):
+                raise
+            _err(_read_failure(args, e))
+            return EXIT_BAD_INPUT
+
+
+def _is_read_error(exc: BaseException) -> bool:
+    from .checks import is_read_error  # noqa: PLC0415
+
+    return is_read_error(exc)
+
+
+def _read_failure(args, exc: BaseException) -> str:
+    """'cannot read <file>: <reason>' for an input file a library could not read (a pxr
+    error names no file: it is the USD input of the command)."""
+    from .checks import read_reason  # noqa: PLC0415
+
+    pxr = type(exc).__module__.split(".")[0] == "pxr"
+    if args.command in ("render", "export"):
+        files = [args.usd]
+    elif args.command == "run":
+        files = [args.output] if pxr and args.output else [args.resume or args.scene]
+    else:
+        files = [getattr(args, "target", None) if not pxr else None, getattr(args, "scene", None)]
+    name = next((f for f in files if f), None)
+    where = f" {str(name)!r}" if name else ""
+    return f"cannot read{where}: {read_reason(exc)} (a damaged or foreign file?)"
 
 
 if __name__ == "__main__":

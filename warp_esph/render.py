@@ -105,9 +105,9 @@ class UsdFrames:
         if not os.path.isfile(self.path):
             raise FileNotFoundError(f"cannot render {self.path}: no such file")
         # Anonymous: a file rewritten in this process (run, then render) is read afresh.
-        layer = Sdf.Layer.OpenAsAnonymous(self.path)
-        if layer is None:
-            raise ValueError(f"cannot render {self.path}: pxr cannot open it as a USD file")
+        from .usd import open_layer_checked  # noqa: PLC0415
+
+        layer = open_layer_checked(self.path)
         self._layer = layer
         self.stage = Usd.Stage.Open(layer)
         self.fps = float(self.stage.GetTimeCodesPerSecond() or 30.0)

@@ -69,6 +69,20 @@ _PALETTE = [
 ]
 
 
+def open_layer_checked(path, action: str = "read") -> Sdf.Layer:
+    """``Sdf.Layer.OpenAsAnonymous(path)`` (read afresh, not from pxr's layer cache), or a
+    ``ValueError`` naming the file and pxr's reason: a truncated, garbled or foreign file
+    makes pxr raise ``Tf.ErrorException`` with a C++ location, or return ``None``."""
+    path = os.fspath(path)
+    try:
+        layer = Sdf.Layer.OpenAsAnonymous(path)
+    except Exception as e:  # noqa: BLE001 (Tf.ErrorException, RuntimeError)
+        raise checks.file_error(path, e, action) from None
+    if layer is None:
+        raise ValueError(f"cannot {action} {path}: pxr cannot open it as a USD file")
+    return layer
+
+
 def body_prim_names(model: Model) -> list[str]:
     """The prim name of each body: a valid, unique USD identifier made from its name."""
     names: list[str] = []
