@@ -146,8 +146,10 @@ def load_state(path, model: Model) -> tuple[State, dict]:
         a = arrays[key]
         if a.shape != shape or a.dtype != np_dtype:
             raise ValueError(f"{where}: its {key} is {a.dtype} {a.shape}, the model needs {np.dtype(np_dtype)} {shape}")
-        if not np.isfinite(a).all():
-            bad = int(np.argmax(~np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1)))
+        # A yield stress may be +inf (a purely elastic material); nothing else may be.
+        ok = np.isfinite(a) | (np.isposinf(a) if key == "material_yield_stress" else False)
+        if not ok.all():
+            bad = int(np.argmax(~ok.reshape(a.shape[0], -1).all(axis=1)))
             raise ValueError(f"{where}: its {key} has non-finite values (first at index {bad})")
     state = model.state()
     for name in State.STATE_FIELDS:

@@ -159,6 +159,12 @@ def _init_warp(device: str) -> None:
             print(f"{PROG}: warning: {_one_line(note)}", file=sys.stderr)
 
 
+def _arm(args) -> None:
+    signals = getattr(args, "signals", None)
+    if signals is not None:
+        signals.arm()
+
+
 def _cmd_scenes() -> int:
     from .scenes import DEFAULT_SCENE, scene_descriptions  # noqa: PLC0415
 
@@ -231,8 +237,10 @@ def _cmd_run(args) -> int:
     check_step_count(frames, substeps)
     solver = Solver(model)
     solver.check_dt(dt)  # the stability warning, once, before the run
+    _arm(args)  # from here an interrupt unwinds through the writer
     writer = UsdWriter(output, model, fps, surface=args.surface, view=getattr(scene, "view", None), append=args.resume is not None)
-    checkpoint_path = os.path.splitext(writer.path)[0] + ".checkpoint.npz"
+    # The whole output name: a.usdc and a.usda in one folder must not share a checkpoint.
+    checkpoint_path = writer.path + ".checkpoint.npz"
     run_record = {"scene": args.scene if args.scene is not None else scene.name, "scale": scale, "fps": fps, "dt": dt,
                   "frames": frames_total, "output": os.path.abspath(writer.path), "dtype": args.dtype,
                   "surface": bool(args.surface), "checkpoint_every": every}
@@ -319,6 +327,7 @@ def _cmd_render(args) -> int:
         print(f"\r{PROG}: rendered {k}/{n} frames", end="" if k < n else "\n", file=sys.stderr, flush=True)
 
     progress = show if sys.stderr.isatty() else None
+    _arm(args)
     result = render_usd(
         args.usd, args.output, args.frames, color=args.color, width=args.width, height=args.height,
         supersample=args.supersample, radius_scale=args.radius_scale, azimuth=args.azimuth, elevation=args.elevation,
@@ -336,6 +345,7 @@ def _cmd_export(args) -> int:
     from .export import export_frames  # noqa: PLC0415
 
     folder = args.output or f"{os.path.splitext(os.path.abspath(args.usd))[0]}_{args.format}"
+    _arm(args)
     files = export_frames(args.usd, args.format, folder, frames=args.frames)
     frames = len(files) - (1 if args.format == "vtu" else 0)
     extra = " and frames.pvd (open it in ParaView)" if args.format == "vtu" else ""
@@ -343,36 +353,96 @@ def _cmd_export(args) -> int:
     return 0
 
 
-def main(argv=None) -> int:
-    """Entry point; returns the exit status (see the module docstring)."""
-    parser = _build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except _UsageError as e:
-        _err(e)
-        return EXIT_BAD_INPUT
-    if args.command is None:
-        parser.print_help(sys.stderr)
-        return EXIT_BAD_INPUT
-    terminated = []
+class _Signals:
+    """Ctrl-C (SIGINT) and SIGTERM, from the first moment of the process to the last.
 
-    def on_term(signum, frame):
-        # Unwinds like Ctrl-C, so the writer closes and keeps every finished frame.
-        terminated.append(signum)
-        raise KeyboardInterrupt
+    Disarmed (start-up: parsing, importing Warp and pxr, building the scene; and after the
+    command): nothing is open that needs closing, so the handler prints one line and ends
+    the process at once with 130 (143 for SIGTERM). A ``KeyboardInterrupt`` there would
+    print a traceback from whatever module was importing, or be swallowed by native code
+    that clears Python errors (it was, once, while pxr imported). Armed (``arm()``: an
+    output is being written): the handler raises ``KeyboardInterrupt``, which unwinds
+    through the writer, so the file keeps every finished frame.
+    """
 
+    def __init__(self):
+        self.armed = False
+        self.received: list[int] = []
+        self.previous = {}
+
+    def install(self) -> "_Signals":
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                if signal.getsignal(sig) is signal.SIG_IGN:
+                    continue  # started ignoring it (a background job of a script): keep ignoring
+                self.previous[sig] = signal.signal(sig, self._handle)
+            except ValueError:  # not the main thread: leave the process's handlers alone
+                pass
+        return self
+
+    def restore(self):
+        for sig, handler in self.previous.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+        self.previous = {}
+
+    def arm(self):
+        self.armed = True
+
+    def disarm(self):
+        self.armed = False
+
+    def _handle(self, signum, frame):
+        self.received.append(signum)
+        if self.armed:
+            raise KeyboardInterrupt
+        _exit_now(signum)
+
+
+def _exit_now(signum) -> None:
+    """One line, then leave at once (no cleanup runs, and none is needed)."""
     try:
-        previous = signal.signal(signal.SIGTERM, on_term)
-    except ValueError:  # not the main thread
-        previous = None
+        sys.stdout.flush()
+    except Exception:  # noqa: BLE001 (a reentrant flush in a signal handler)
+        pass
+    what = "terminated" if signum == signal.SIGTERM else "interrupted"
+    os.write(2, f"{PROG}: {what}\n".encode())
+    os._exit(EXIT_TERMINATED if signum == signal.SIGTERM else EXIT_INTERRUPTED)
+
+
+def console_main() -> int:
+    """The ``warp-esph`` console script and ``python -m warp_esph``: ``main`` with the
+    signal handlers kept until the process ends (interpreter shutdown included)."""
+    return main(restore_signals=False)
+
+
+def main(argv=None, *, restore_signals: bool = True) -> int:
+    """Entry point; returns the exit status (see the module docstring).
+
+    The signal handlers (``_Signals``) are installed first of all; ``restore_signals``
+    (the default, for callers in a Python process) puts the previous ones back on return.
+    """
+    signals = _Signals().install()
     try:
-        status = _dispatch(args)
+        parser = _build_parser()
+        try:
+            args = parser.parse_args(argv)
+        except _UsageError as e:
+            _err(e)
+            return EXIT_BAD_INPUT
+        if args.command is None:
+            parser.print_help(sys.stderr)
+            return EXIT_BAD_INPUT
+        args.signals = signals
+        try:
+            status = _dispatch(args)
+        finally:
+            signals.disarm()
+        if status == EXIT_INTERRUPTED and signal.SIGTERM in signals.received:
+            return EXIT_TERMINATED
+        return status
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
-    if terminated and status == EXIT_INTERRUPTED:
-        return EXIT_TERMINATED
-    return status
+        if restore_signals:
+            signals.restore()
 
 
 def _dispatch(args) -> int:
@@ -390,6 +460,7 @@ def _dispatch(args) -> int:
                 from .fit import fit_cli  # noqa: PLC0415
 
                 _init_warp(args.device)
+                _arm(args)
                 return fit_cli(args)
             return _cmd_run(args)
         except KeyboardInterrupt:
@@ -439,4 +510,4 @@ def _read_failure(args, exc: BaseException) -> str:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(console_main())
