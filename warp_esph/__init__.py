@@ -9,6 +9,8 @@ load Warp and pxr: the command line installs its Ctrl-C handler before they load
 """
 
 import importlib
+import sys
+import types
 
 __version__ = "0.1.0"
 
@@ -39,3 +41,17 @@ def __getattr__(name):
 
 def __dir__():
     return sorted(set(globals()) | set(_EXPORTS))
+
+
+class _Package(types.ModuleType):
+    """``simulate`` is both a submodule and the function the package exports: importing the
+    submodule sets the package attribute to the module, which must not hide the function
+    (the eager imports this package had rebound it after the import)."""
+
+    def __setattr__(self, name, value):
+        if isinstance(value, types.ModuleType) and _EXPORTS.get(name) == f".{name}":
+            value = getattr(value, name)
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package

@@ -288,6 +288,21 @@ class SceneBuilder:
                 f"the other (at {np.round(points[clash[0]], 4).tolist()}); move them at least one spacing apart"
             )
 
+    def _check_precision(self, scalar):
+        """Every material parameter and position fits the precision: 1e300 Pa cast to float32
+        became inf in the model without a word."""
+        big = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).max)
+        for k, m in enumerate(self._materials):
+            for field in (*Model.MATERIAL_FIELDS, "density"):
+                v = getattr(m, field)
+                if math.isfinite(v) and abs(v) > big:
+                    raise ValueError(
+                        f"Material.{field} = {v:g} (material {k}) is not allowed in {scalar.__name__}: "
+                        f"must be at most {big:.3g}; use dtype=float64 or a smaller value"
+                    )
+        if self._points and np.abs(np.concatenate(self._points)).max() > big:
+            raise ValueError(f"positions beyond {big:.3g} m are not allowed in {scalar.__name__}")
+
     def finalize(self, device="cpu", dtype=wp.float32, requires_grad: bool = False) -> Model:
         """Builds the ``Model`` on ``device`` in precision ``dtype`` (float32 or float64)."""
         requires_grad = checks.boolean("requires_grad", requires_grad)
@@ -295,6 +310,7 @@ class SceneBuilder:
             raise ValueError("the scene has no bodies: add one with add_box, add_sphere, ... before finalize()")
         self._check_overlap()
         scalar = scalar_type(dtype)
+        self._check_precision(scalar)
         try:
             dev = wp.get_device(device)
         except Exception as e:  # noqa: BLE001 (Warp raises several kinds)

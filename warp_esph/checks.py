@@ -17,7 +17,7 @@ import numpy as np
 
 
 def _fail(name: str, value, allowed: str):
-    raise ValueError(f"{name} = {_short(value)!r} is not allowed: {allowed}")
+    raise ValueError(f"{name} = {shorten(value)!r} is not allowed: {allowed}")
 
 
 class _Shown:
@@ -30,7 +30,8 @@ class _Shown:
         return self.text
 
 
-def _short(value):
+def shorten(value):
+    """``value`` for a message: a 400-digit int as ``1.234e+399``, long text cut."""
     if isinstance(value, _Shown):
         return value
     try:
@@ -56,7 +57,7 @@ def number(name: str, value, *, allow_inf: bool = False) -> float:
     try:
         v = float(value)
     except OverflowError:  # an int like 10**400
-        _fail(name, _short(value), "must be a finite number (it overflows a float)")
+        _fail(name, shorten(value), "must be a finite number (it overflows a float)")
     except (TypeError, ValueError):
         _fail(name, value, "must be a number")
     if math.isnan(v) or (math.isinf(v) and not allow_inf):
@@ -154,7 +155,7 @@ def same_state(model, name: str, state) -> None:
         where = f"{name}.{field}"
         got_shape = getattr(arr, "shape", None)
         if got_shape is None or not hasattr(arr, "device") or not hasattr(arr, "dtype"):
-            raise ValueError(f"{where} = {_short(arr)!r} is not allowed: must be a Warp array of shape {shape}")
+            raise ValueError(f"{where} = {shorten(arr)!r} is not allowed: must be a Warp array of shape {shape}")
         if tuple(got_shape) != shape:
             raise ValueError(
                 f"{name} does not belong to this model: {field} has shape {tuple(got_shape)}, the model needs {shape} "

@@ -467,7 +467,8 @@ def _dispatch(args) -> int:
             print(f"{PROG}: interrupted", file=sys.stderr)
             return EXIT_INTERRUPTED
         except (ValueError, OSError) as e:
-            _err(e)
+            # UnicodeDecodeError is a ValueError: a reader met bytes that are not text.
+            _err(_read_failure(args, e) if _is_read_error(e) else e)
             return EXIT_BAD_INPUT
         except RuntimeError as e:
             from .simulate import SimulationError  # noqa: PLC0415

@@ -16,6 +16,7 @@ import dataclasses
 import difflib
 import math
 import os
+import sys
 from collections.abc import Callable
 
 try:
@@ -497,10 +498,15 @@ class _Num:
         self.allow_inf = allow_inf
 
     def check(self, value) -> bool:
+        if isinstance(value, int) and not isinstance(value, bool) and not -_FLOAT_MAX <= value <= _FLOAT_MAX:
+            return False  # TOML integers are unbounded: 10**400 overflows a float
         return isinstance(value, (int, float)) and not isinstance(value, bool) and (self.allow_inf or math.isfinite(value)) and not (isinstance(value, float) and math.isnan(value))
 
     def describe(self) -> str:
-        return "a number" + (" (inf allowed)" if self.allow_inf else "")
+        return "a number" + (" (inf allowed)" if self.allow_inf else "") + " that fits a float"
+
+
+_FLOAT_MAX = int(sys.float_info.max)
 
 
 class _Int:
@@ -585,7 +591,7 @@ def _check_table(file: str, where: str, table, schema: dict) -> dict:
             )
         kind, _ = schema[key]
         if not kind.check(value):
-            raise ValueError(f"{file}: key {key!r} in {where} must be {kind.describe()}, not {type(value).__name__} {value!r}")
+            raise ValueError(f"{file}: key {key!r} in {where} must be {kind.describe()}, not {type(value).__name__} {checks.shorten(value)!r}")
     for key, (_, required) in schema.items():
         if required and key not in table:
             raise ValueError(f"{file}: missing key {key!r} in {where}")

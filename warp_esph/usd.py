@@ -40,9 +40,12 @@ the working copies stay behind; ``append=True`` and the next run replace them.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import shutil
+import sys
+import tempfile
 import time
 import warnings
 
@@ -75,12 +78,41 @@ def open_layer_checked(path, action: str = "read") -> Sdf.Layer:
     makes pxr raise ``Tf.ErrorException`` with a C++ location, or return ``None``."""
     path = os.fspath(path)
     try:
-        layer = Sdf.Layer.OpenAsAnonymous(path)
+        with _native_stderr() as notes:
+            layer = Sdf.Layer.OpenAsAnonymous(path)
     except Exception as e:  # noqa: BLE001 (Tf.ErrorException, RuntimeError)
         raise checks.file_error(path, e, action) from None
     if layer is None:
         raise ValueError(f"cannot {action} {path}: pxr cannot open it as a USD file")
+    # A file this package wrote opens without a word; pxr's warnings (invalid prim names,
+    # properties without a prim) mean damaged tokens, and the data read would be garbage.
+    said = [n.split(" -- ", 1)[-1].strip() for n in notes if n.strip()]
+    if said:
+        raise ValueError(f"cannot {action} {path!r}: pxr reads it as damaged ({checks.shorten(said[0]).text}"
+                         + (f", and {len(said) - 1} more warnings)" if len(said) > 1 else ")"))
     return layer
+
+
+@contextlib.contextmanager
+def _native_stderr():
+    """Collect what native code prints on file descriptor 2 (pxr's diagnostics go there
+    directly, not through Python) into the yielded list, instead of the terminal."""
+    notes: list[str] = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no descriptor 2: nothing to keep off the terminal
+        yield notes
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield notes
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            notes.extend(tmp.read().decode(errors="replace").splitlines())
 
 
 def body_prim_names(model: Model) -> list[str]:
