@@ -365,7 +365,10 @@ class _Signals:
     through the writer, so the file keeps every finished frame.
     """
 
-    def __init__(self):
+    def __init__(self, exit_at_once: bool = True):
+        #: False for ``main`` called inside someone else's Python process: never end it
+        #: with ``os._exit``, raise ``KeyboardInterrupt`` throughout.
+        self.exit_at_once = exit_at_once
         self.armed = False
         self.received: list[int] = []
         self.previous = {}
@@ -393,7 +396,7 @@ class _Signals:
 
     def _handle(self, signum, frame):
         self.received.append(signum)
-        if self.armed:
+        if self.armed or not self.exit_at_once:
             raise KeyboardInterrupt
         _exit_now(signum)
 
@@ -419,9 +422,10 @@ def main(argv=None, *, restore_signals: bool = True) -> int:
     """Entry point; returns the exit status (see the module docstring).
 
     The signal handlers (``_Signals``) are installed first of all; ``restore_signals``
-    (the default, for callers in a Python process) puts the previous ones back on return.
+    (the default, for callers in a Python process) puts the previous ones back on return
+    and never ends the caller's process: an interrupt there is a ``KeyboardInterrupt``.
     """
-    signals = _Signals().install()
+    signals = _Signals(exit_at_once=not restore_signals).install()
     try:
         parser = _build_parser()
         try:

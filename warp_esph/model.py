@@ -71,10 +71,10 @@ class State:
 
     def assign(self, other: "State"):
         """Copy ``other``'s state fields (and time) into this state."""
-        if not isinstance(other, State):
-            raise ValueError(f"other = {other!r} is not allowed: must be a warp_esph.State")
         for name in self.STATE_FIELDS:
-            a, b = getattr(self, name), getattr(other, name)
+            a, b = getattr(self, name), getattr(other, name, None)
+            if not isinstance(b, wp.array):  # a State, or anything holding its fields (rollout checkpoints)
+                raise ValueError(f"other = {other!r} is not allowed: must be a warp_esph.State (its {name} is {b!r})")
             if a.shape != b.shape or a.dtype is not b.dtype:
                 raise ValueError(
                     f"other is not allowed: its {name} is {b.shape} {getattr(b.dtype, '__name__', b.dtype)}, this state's "

@@ -503,7 +503,7 @@ class _Num:
         return isinstance(value, (int, float)) and not isinstance(value, bool) and (self.allow_inf or math.isfinite(value)) and not (isinstance(value, float) and math.isnan(value))
 
     def describe(self) -> str:
-        return "a number" + (" (inf allowed)" if self.allow_inf else "") + " that fits a float"
+        return "a number" + (" (inf allowed)" if self.allow_inf else "")
 
 
 _FLOAT_MAX = int(sys.float_info.max)

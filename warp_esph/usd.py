@@ -395,10 +395,13 @@ class UsdWriter:
             raise ValueError(f"frame_index = {frame_index!r} is not allowed: must be an integer >= 0")
         frame = int(frame_index)
         m = self.model
+        checks.same_state(m, "state", state)
         x = state.x.numpy()
-        if x.shape[0] != m.particle_count:
-            raise ValueError(f"state has {x.shape[0]} particles, the model {m.particle_count}: it is not a state of this model")
         v = state.v.numpy()
+        bad = ~(np.isfinite(x).all(axis=1) & np.isfinite(v).all(axis=1))
+        if bad.any():  # the file promises finished frames: a broken one is refused, not written
+            raise ValueError(f"state is not allowed: particle {int(np.argmax(bad))} has a non-finite position or velocity "
+                             f"({int(bad.sum())} particles); frame {frame} is not written")
         sv = _singular_values(state.F.numpy())
         alpha = state.alpha.numpy()
         x32, v32, a32 = x.astype(np.float32), v.astype(np.float32), alpha.astype(np.float32)
