@@ -159,6 +159,27 @@ def test_absurd_step_counts_are_refused_quickly(tmp_path, capsys, args, needles)
 
 
 @pytest.mark.parametrize(
+    "extra, needles",
+    [
+        ("[scene]\nspacing = 0.05\nmax_neighbors = 1000000000000\n", ["[scene]", "max_neighbors = 1000000000000", "[1, 1024]"]),
+        ("[scene]\nspacing = 0.05\n\n[[bodies]]\nshape = 'star'\nmaterial = 'dough'\ncenter = [0.0, 0.2, 0.0]\n"
+         "outer_radius = 0.2\ninner_radius = 0.1\nthickness = 0.1\npoints = 1000000000000\n",
+         ["shape 'star'", "points = 1000000000000", "[1, 1000]"]),
+    ],
+)
+def test_counts_beyond_the_machine_name_file_and_key(tmp_path, capsys, extra, needles):
+    """A star of 10**12 points raised MemoryError; max_neighbors = 10**12 a Warp message
+    naming neither the key nor the file."""
+    scene = tmp_path / "big.toml"
+    body = "" if "bodies" in extra else "\n[[bodies]]\nshape = 'box'\nmaterial = 'dough'\ncenter = [0.0, 0.2, 0.0]\nsize = [0.2, 0.2, 0.2]\n"
+    scene.write_text(extra + body)
+    assert main(["run", str(scene), "-o", str(tmp_path / "x.usdc"), "--no-progress"]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    for needle in ["big.toml", *needles]:
+        assert needle in line, line
+
+
+@pytest.mark.parametrize(
     "E, needles", [("1e30", ["stable step", "steps", "more than 1e+06"]), ("1e400", ["'E'", "number"]),
                    (str(10**400), ["'E'", "must be a number, not int 1.000e+400"])])
 def test_overflowing_stiffness_in_a_scene_file_is_one_line(tmp_path, capsys, E, needles):
@@ -249,7 +270,11 @@ def test_a_non_finite_state_is_never_checkpointed_nor_written(tmp_path):
         save_state(tmp_path / "c.npz", model, state, step=0, frame=0)
     with pytest.raises(ValueError, match="state is not allowed: it has a non-finite position"):
         we.simulate(model, 1, state=state, progress=False, writer=we.UsdWriter(tmp_path / "o.usdc", model, 30.0))
-    assert frames_in(tmp_path / "o.usdc") == []
+    with we.UsdWriter(tmp_path / "w.usdc", model, 30.0) as writer:
+        writer.write_frame(0, model.state())
+        with pytest.raises(ValueError, match="particle 0 has a non-finite position or velocity"):
+            writer.write_frame(1, state)
+    assert frames_in(tmp_path / "w.usdc") == [0.0]
 
 
 def test_two_outputs_with_one_stem_keep_separate_checkpoints(tmp_path):
