@@ -250,6 +250,18 @@ def test_resume_refuses_a_checkpoint_that_does_not_fit(small_run, tmp_path, caps
     assert small_run.read_bytes() == before  # the output is untouched
 
 
+@pytest.mark.parametrize("damage", ["truncated", "text"])
+def test_resume_onto_a_damaged_output_is_one_line(tmp_path, capsys, damage):
+    out = tmp_path / "r.usdc"
+    assert main(["run", "-o", str(out), "--frames", "1", "--checkpoint-every", "1", *SMALL]) == 0
+    good = out.read_bytes()
+    out.write_bytes(good[: len(good) // 2] if damage == "truncated" else b"not usd\n")
+    capsys.readouterr()
+    assert main(["run", "--resume", str(out) + ".checkpoint.npz", "--frames", "2", "--no-progress"]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert "cannot append to" in line and "r.usdc" in line, line
+
+
 def test_resume_refuses_an_edited_scene_file(tmp_path, capsys):
     scene = tmp_path / "box.toml"
     scene.write_text(STIFF_TOML.format(E="1.5e4").replace("frames = 10", "frames = 2"))

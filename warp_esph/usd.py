@@ -239,6 +239,7 @@ class UsdWriter:
     def _open_existing(self):
         if not os.path.isfile(self.path):
             raise FileNotFoundError(f"cannot append to {self.path}: no such file")
+        open_layer_checked(self.path, "append to")  # a damaged file: one message, not pxr's warnings
         for file in self._work:
             if os.path.exists(file):
                 os.remove(file)
