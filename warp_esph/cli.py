@@ -256,7 +256,8 @@ def _cmd_run(args) -> int:
               f"{frames} frames at {fps:g} fps, dt = {dt:.4g} s ({substeps} steps/frame), {args.device} {args.dtype} "
               f"-> {writer.path}" + (f" (resumed at frame {start_frame})" if start_frame else ""), flush=True)
         simulate(model, frames, fps=fps, dt=dt, writer=writer, progress=not args.no_progress, solver=solver,
-                 state=state, start_frame=start_frame, callback=checkpoint if every is not None else None)
+                 state=state, start_frame=start_frame, callback=checkpoint if every is not None else None,
+                 monitor_exempt=getattr(scene, "diverges", ()))
     except KeyboardInterrupt:
         writer.close()
         print(f"{PROG}: interrupted: {writer.path} keeps the {writer.frames_written} frames finished", file=sys.stderr)

@@ -77,11 +77,20 @@ class DivergenceMonitor:
     #: An upward-facing plane (its normal within ~8 degrees of up) is a floor that ends a fall.
     FLOOR_COSINE = 0.99
 
-    def __init__(self, model: Model, state: State):
-        x0 = state.x.numpy().astype(np.float64)
-        v0 = state.v.numpy().astype(np.float64)
-        self.mass = model.particle_mass.numpy().astype(np.float64)
-        self.enabled = all(f.strength >= 0.0 for f in model.force_fields) and np.isfinite(x0).all() and np.isfinite(v0).all()
+    def __init__(self, model: Model, state: State, exempt=()):
+        names = [b.name for b in model.bodies]
+        exempt = tuple(exempt)
+        for name in exempt:
+            if name not in names:
+                raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: {name!r} is not a body of the model ({names})")
+        #: Particles checked: all but those of the exempt bodies (a scene showing a method fail).
+        self.keep = ~np.isin(model.particle_body_np, [names.index(n) for n in exempt])
+        x0 = state.x.numpy().astype(np.float64)[self.keep]
+        v0 = state.v.numpy().astype(np.float64)[self.keep]
+        self.mass = model.particle_mass.numpy().astype(np.float64)[self.keep]
+        self.index = np.flatnonzero(self.keep)
+        self.enabled = (all(f.strength >= 0.0 for f in model.force_fields) and self.keep.any()
+                        and np.isfinite(x0).all() and np.isfinite(v0).all())
         g = np.array(model.gravity, dtype=np.float64)
         self.g = float(np.linalg.norm(g))
         self.up = -g / self.g if self.g > 0.0 else np.array([0.0, 1.0, 0.0])
@@ -89,6 +98,8 @@ class DivergenceMonitor:
         floors = [p.offset / float(np.dot(p.normal, self.up)) for p in model.planes
                   if float(np.dot(p.normal, self.up)) >= self.FLOOR_COSINE * float(np.linalg.norm(p.normal))]
         self.fall_height = float(self.h0.max() - min(floors + [float(self.h0.min())])) if floors else None
+        if not self.keep.any():
+            return
         lo, hi = x0.min(axis=0), x0.max(axis=0)
         for sph in model.spheres:
             lo, hi = np.minimum(lo, np.subtract(sph.center, sph.radius)), np.maximum(hi, np.add(sph.center, sph.radius))
@@ -114,6 +125,8 @@ class DivergenceMonitor:
         """``None``, or ``(why, particle)`` for the first bound exceeded."""
         if not self.enabled:
             return None
+        if not self.keep.all():
+            x, v = x[self.keep], v[self.keep]
         x = x.astype(np.float64, copy=False)
         v = v.astype(np.float64, copy=False)
         speed2 = (v * v).sum(axis=1)
@@ -122,20 +135,20 @@ class DivergenceMonitor:
         p = int(np.argmax(speed2))
         if speed2[p] > limit * limit:
             return (f"speed {math.sqrt(speed2[p]):.3g} m/s, more than {self.SPEED_FACTOR:g} x the {bound:.3g} m/s "
-                    f"the scene can produce (fall + p-wave + initial speed)"), p
+                    f"the scene can produce (fall + p-wave + initial speed)"), int(self.index[p])
         ke = 0.5 * self.mass * speed2
         released = float((self.mass * self.g * (self.h0 - x @ self.up)).sum())
         budget = max(self.ke0 + released + self.e_fields, 0.0)
         if ke.sum() > self.ENERGY_FACTOR * budget + self.e_floor:
             return (f"kinetic energy {ke.sum():.3g} J, more than {self.ENERGY_FACTOR:g} x the {budget:.3g} J of initial "
-                    f"kinetic energy and potential energy released (no work is done on the bodies)"), int(np.argmax(ke))
+                    f"kinetic energy and potential energy released (no work is done on the bodies)"), int(self.index[np.argmax(ke)])
         reach = self.REACH_FACTOR * (self.diagonal + bound * t)
         outside = np.maximum(np.maximum(self.lo - x, x - self.hi), 0.0)
         d2 = (outside * outside).sum(axis=1)
         p = int(np.argmax(d2))
         if d2[p] > reach * reach:
             return (f"a particle {math.sqrt(d2[p]):.3g} m outside the scene, more than {reach:.3g} m "
-                    f"({self.REACH_FACTOR:g} x its size plus the speed bound x time)"), p
+                    f"({self.REACH_FACTOR:g} x its size plus the speed bound x time)"), int(self.index[p])
         return None
 
 
@@ -252,6 +265,7 @@ def simulate(
     *,
     start_frame: int = 0,
     monitor: bool = True,
+    monitor_exempt=(),
 ) -> State:
     """Simulate ``frames`` frames at ``fps``; returns the final state.
 
@@ -268,7 +282,8 @@ def simulate(
       ``start_frame .. start_frame + frames``.
 
     - ``monitor``: stop a run that blows up but stays finite (``DivergenceMonitor``);
-      ``False`` keeps only the check for non-finite values.
+      ``False`` keeps only the check for non-finite values. ``monitor_exempt``: names of
+      bodies it leaves out (``Scene.diverges``: a body a scene shows blowing up).
 
     Two states are swapped, so nothing is allocated per step. Raises ``SimulationError``
     when a position or velocity becomes non-finite or the monitor finds a blow-up; the
@@ -307,7 +322,7 @@ def simulate(
         if initial is not None:
             raise ValueError(f"state is not allowed: it has a {initial[0]}")
         spare = model.state(requires_grad=False)
-        monitor = DivergenceMonitor(model, current) if monitor else None
+        monitor = DivergenceMonitor(model, current, monitor_exempt) if monitor else None
 
         bar = _progress_bar(frames, f"{model.particle_count} particles") if progress else None
         try:
