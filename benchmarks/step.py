@@ -7,7 +7,7 @@
 Scene: a cube of ``Material.preset("dough")`` (E = 20 kPa, nu = 0.3, yield 150 Pa, SPH
 pressure on, viscosity 10 Pa s) on a 1 cm lattice, its bottom layer 0.75 cm above the
 ground and falling at 1 m/s (dropped from about 5 cm), float32, dt = 0.5 ms (the explicit
-limit of SPEC §8 is 0.54 ms). ``--warmup`` steps run first (compilation, the impact
+limit of docs/method.md §8 is 0.54 ms). ``--warmup`` steps run first (compilation, the impact
 starts), then ``--steps`` are timed: the impact and the start of plastic flow.
 
 For each device and size it reports
@@ -22,10 +22,9 @@ For each device and size it reports
   hash grid's estimate), and of one taped State (with its gradients);
 
 then SPlisHSPlasH (``pip install pysplishsplash``) on the same particle counts and dt: an
-elastic cube (Becker et al. 2009 elasticity, DFSPH pressure) dropped on a floor, in a
-subprocess with ``OMP_NUM_THREADS=1`` (and ``LD_PRELOAD`` of libGLdispatch, which its
-import needs on Debian); and the paper's Table 1 rate. Ratios compare best blocks (on a
-shared machine the fastest block is the least disturbed estimate of each code's cost; the
+elastic cube (Becker et al. 2009 elasticity, DFSPH pressure) dropped on a floor, run by
+``benchmarks/splishsplash.py`` in a subprocess with one thread; and the paper's Table 1
+rate. Ratios compare best blocks (on a shared machine the fastest block is the least disturbed estimate of each code's cost; the
 means are in the JSON too). Everything also goes to ``--json`` (see docs/performance.md).
 """
 
@@ -33,13 +32,14 @@ import argparse
 import json
 import os
 import platform
-import shutil
 import subprocess
 import sys
 import tempfile
 import time
 
 import numpy as np
+
+from benchmarks.splishsplash import bench_splishsplash
 
 #: Paper (Gerszewski et al. 2009, Table 1; one core of a 2008 Xeon), assuming 30 frames/s.
 PAPER = {
@@ -54,7 +54,6 @@ PAPER_RATES = (PAPER["fig1"]["particle_steps_per_second"], PAPER["fig5"]["partic
 
 DX = 0.01
 DT = 5.0e-4
-GLDISPATCH = "/lib/x86_64-linux-gnu/libGLdispatch.so.0"
 
 
 def _sizes(text: str) -> list[int]:
@@ -378,143 +377,6 @@ def load_baseline(commit: str):
     return importlib.import_module("warp_esph_baseline")
 
 
-# -------------------------------------------------------------- SPlisHSPlasH
-_UNIT_BOX_OBJ = """v -0.5 -0.5 -0.5
-v 0.5 -0.5 -0.5
-v 0.5 0.5 -0.5
-v -0.5 0.5 -0.5
-v -0.5 -0.5 0.5
-v 0.5 -0.5 0.5
-v 0.5 0.5 0.5
-v -0.5 0.5 0.5
-f 1 3 2
-f 1 4 3
-f 5 6 7
-f 5 7 8
-f 1 2 6
-f 1 6 5
-f 4 8 7
-f 4 7 3
-f 1 5 8
-f 1 8 4
-f 2 3 7
-f 2 7 6
-"""
-
-
-def splishsplash_scene(n: int, workdir: str) -> str:
-    """The same drop for SPlisHSPlasH: a block of side^3 particles of radius dx/2 (its
-    block sampling puts one particle per 2r cell strictly inside the box), E, nu and
-    density of the dough, Becker et al. 2009 elasticity, DFSPH pressure, a static floor
-    box (volume map). Solver settings as in SPlisHSPlasH's own deformable example
-    (data/Scenes/DeformableModel.json): DFSPH max. density error 0.01 %, zero-energy
-    mode control alpha = 0.1, standard viscosity 0.01."""
-    side = box_side(n)
-    L = (side + 1) * DX
-    bottom = 0.25 * DX
-    with open(os.path.join(workdir, "UnitBox.obj"), "w") as fh:
-        fh.write(_UNIT_BOX_OBJ)
-    floor = max(1.0, 3 * L)
-    scene = {
-        "Configuration": {
-            "timeStepSize": DT, "particleRadius": DX / 2, "numberOfStepsPerRenderUpdate": 1,
-            "simulationMethod": 4, "gravitation": [0, -9.81, 0], "cflMethod": 0, "cflFactor": 1,
-            "cflMaxTimeStepSize": DT, "boundaryHandlingMethod": 2,
-            "enablePartioExport": False, "enableVTKExport": False, "enableRigidBodyExport": False,
-            "DFSPH": {"minIterations": 2, "maxIterations": 100, "maxError": 0.01, "maxIterationsV": 100,
-                      "maxErrorV": 0.1, "enableDivergenceSolver": True},
-        },
-        "Materials": [{
-            "id": "Fluid", "density0": 1150, "elasticityMethod": 1, "viscosityMethod": 1,
-            "Standard viscosity": {"viscosity": 0.01},
-            "Becker et al. 2009": {"youngsModulus": 2.0e4, "poissonsRatio": 0.3, "alpha": 0.1},
-        }],
-        "RigidBodies": [{
-            "geometryFile": "UnitBox.obj", "translation": [0, -0.25, 0], "scale": [floor, 0.5, floor],
-            "isDynamic": False, "isWall": False, "mapInvert": False, "mapThickness": 0.0, "mapResolution": [20, 10, 20],
-        }],
-        "FluidBlocks": [{
-            "denseMode": 0, "start": [-L / 2, bottom, -L / 2], "end": [L / 2, bottom + L, L / 2],
-            "initialVelocity": [0, -1.0, 0],
-        }],
-    }
-    path = os.path.join(workdir, "scene.json")
-    with open(path, "w") as fh:
-        json.dump(scene, fh, indent=1)
-    return path
-
-
-def splishsplash_worker(args):
-    """Runs inside the subprocess: one size, writes its result to ``args.worker_out``."""
-    import pysplishsplash as sph  # noqa: PLC0415
-
-    workdir = tempfile.mkdtemp(prefix="sph_bench_")
-    scene = splishsplash_scene(args.worker_n, workdir)
-    total = args.warmup + args.steps
-    stamps = []
-    info = {}
-
-    def on_step():
-        stamps.append(time.perf_counter())
-        if not info:
-            fm = sph.Simulation.getCurrent().getFluidModel(0)
-            eb = fm.getElasticityBase()
-            info["particles"] = int(fm.numActiveParticles())
-            info["elasticity"] = eb.getMethodName() if eb is not None else None
-
-    base = sph.Exec.SimulatorBase()
-    base.init(sceneFile=scene, useGui=False, useCache=False, outputDir=os.path.join(workdir, "out"),
-              initialPause=False, stopAt=(total + 0.5) * DT)
-    base.setTimeStepCB(on_step)
-    t0 = time.perf_counter()
-    base.run()
-    wall = time.perf_counter() - t0
-    steps = np.diff(np.array(stamps))[max(0, args.warmup - 1):]
-    n = info.get("particles", 0)
-    result = {
-        "particles": n,
-        "elasticity": info.get("elasticity"),
-        "steps_timed": int(len(steps)),
-        "ms_per_step": 1e3 * float(np.mean(steps)),
-        "ms_per_step_best_block": 1e3 * float(min(np.mean(b) for b in np.array_split(steps, max(1, min(args.blocks, len(steps)))))),
-        "particle_steps_per_second": n / float(np.mean(steps)),
-        "run_seconds_including_setup": wall,
-        "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
-    }
-    result["particle_steps_per_second_best_block"] = n / (result["ms_per_step_best_block"] * 1e-3)
-    with open(args.worker_out, "w") as fh:
-        json.dump(result, fh)
-    shutil.rmtree(workdir, ignore_errors=True)
-
-
-def bench_splishsplash(sizes: list[int], args) -> dict:
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
-    if os.path.exists(GLDISPATCH):
-        env["LD_PRELOAD"] = (GLDISPATCH + " " + env.get("LD_PRELOAD", "")).strip()
-    probe = subprocess.run([sys.executable, "-c", "import pysplishsplash"], env=env, capture_output=True, text=True)
-    if probe.returncode != 0:
-        msg = probe.stderr.strip().splitlines()[-1] if probe.stderr.strip() else f"exit code {probe.returncode}"
-        return {"available": False, "message": f"SPlisHSPlasH skipped: pysplishsplash does not import ({msg}); "
-                                               "install it with `pip install pysplishsplash`"}
-    out = {"available": True, "threads": 1, "method": "DFSPH + Becker et al. 2009 elasticity", "results": {}}
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    for n in sizes:
-        with tempfile.NamedTemporaryFile(suffix=".json", delete=False) as fh:
-            result_path = fh.name
-        cmd = [sys.executable, "-m", "benchmarks.step", "--splishsplash-worker", "--worker-n", str(n),
-               "--worker-out", result_path, "--warmup", str(args.warmup), "--steps", str(args.steps),
-               "--blocks", str(args.blocks)]
-        proc = subprocess.run(cmd, env=env, cwd=root, capture_output=True, text=True)
-        if proc.returncode != 0 or not os.path.getsize(result_path):
-            tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
-            out["results"][str(n)] = {"error": f"exit code {proc.returncode}: {' | '.join(tail)}"}
-        else:
-            with open(result_path) as fh:
-                out["results"][str(n)] = json.load(fh)
-        os.unlink(result_path)
-    return out
-
-
 # ---------------------------------------------------------------------- main
 def machine_info() -> dict:
     import warp as wp
@@ -624,14 +486,7 @@ def main(argv=None):
     p.add_argument("--baseline-commit", default=None, help="with --variants: also time warp_esph at this git commit")
     p.add_argument("--compare-cpu", action="store_true", help="check a short run on each CUDA device against the CPU")
     p.add_argument("--json", default="benchmark_step.json", help="where the results go")
-    p.add_argument("--splishsplash-worker", action="store_true", help=argparse.SUPPRESS)
-    p.add_argument("--worker-n", type=int, help=argparse.SUPPRESS)
-    p.add_argument("--worker-out", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
-
-    if args.splishsplash_worker:
-        splishsplash_worker(args)
-        return 0
 
     import warp as wp
 
@@ -650,7 +505,7 @@ def main(argv=None):
             "scene": "dough cube (Material.preset('dough')) dropped on the ground at 1 m/s",
             "spacing": DX, "dt": DT, "dtype": "float32", "steps": args.steps, "warmup": args.warmup,
             "blocks": args.blocks, "taped_steps": args.taped_steps,
-            "neighbor_skin": getattr(we.solver, "DEFAULT_SKIN", None),
+            "neighbor_skin": getattr(we.sim.solver, "DEFAULT_SKIN", None),
         },
         "paper": PAPER,
         "warp_esph": {},
@@ -683,7 +538,8 @@ def main(argv=None):
     else:
         sph_sizes = _sizes(args.splishsplash_sizes or args.sizes)
         print(f"SPlisHSPlasH {sph_sizes} ...", flush=True)
-        report["splishsplash"] = bench_splishsplash(sph_sizes, args)
+        report["splishsplash"] = bench_splishsplash(sph_sizes, side_of=box_side, dx=DX, dt=DT, warmup=args.warmup,
+                                                    steps=args.steps, blocks=args.blocks)
     report["ratios"] = {}
     sph_by_n = {}
     if report["splishsplash"].get("available"):

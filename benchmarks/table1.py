@@ -46,7 +46,7 @@ def measure(run, device: str, dtype: str, warmup: int, steps: int, min_seconds: 
     import warp as wp
 
     from warp_esph.scenes import paper_run_scene
-    from warp_esph.solver import Solver
+    from warp_esph.sim.solver import Solver
 
     scene = paper_run_scene(run)
     model = scene.builder.finalize(device=device, dtype=getattr(wp, dtype))

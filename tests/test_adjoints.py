@@ -1,4 +1,4 @@
-"""Custom adjoints of the SVD maps (SPEC §9) against float64 central differences,
+"""Custom adjoints of the SVD maps (docs/method.md §9) against float64 central differences,
 at rest (F = I, every singular value repeated), with two repeated singular values,
 at a random F, across the yield point, and for every material parameter."""
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warp_esph import forces, plasticity
+from warp_esph.sim import forces, materials, plasticity
 from warp_esph._types import type_set
 
 S = wp.float64
@@ -117,9 +117,8 @@ def test_plastic_flow_adjoint(case, yield_stress, flow_rate, non_newtonian):
         out = wp.zeros(1, dtype=S, requires_grad=True)
         tape = wp.Tape()
         with tape:
-            wp.launch(kern, 1, [F, alpha, wp.zeros(1, dtype=wp.int32), arrays["mu"], lam, arrays["yield_stress"],
-                                arrays["flow_rate"], arrays["hardening"], wp.array([non_newtonian], dtype=wp.int32), S(dt)],
-                      outs + [counters])
+            mats = materials.make(S, lam=lam, model=wp.array([non_newtonian], dtype=wp.int32), **arrays)
+            wp.launch(kern, 1, [F, alpha, wp.zeros(1, dtype=wp.int32), mats, S(dt)], outs + [counters])
             wp.launch(_weighted_sum, 1, [outs[0], outs[2], outs[1], Wa, Wb], [out])
         if not grad:
             return out.numpy()[0]
@@ -141,8 +140,8 @@ def test_plastic_flow_adjoint(case, yield_stress, flow_rate, non_newtonian):
 @pytest.mark.parametrize("scalar,tol", [(wp.float64, 1e-12), (wp.float32, 2e-2)])
 def test_rotation_variant_svd_reconstructs_and_flags_inversion(scalar, tol):
     """U diag(sigma) V^T rebuilds F (float32: up to 1e-2 on badly conditioned input,
-    SPEC §3), U and V are proper rotations, and an inverted F has one negative sigma."""
-    from warp_esph import isotropic
+    docs/method.md §3), U and V are proper rotations, and an inverted F has one negative sigma."""
+    from warp_esph.sim import isotropic
 
     Ts = type_set(scalar)
     iso = isotropic.funcs(scalar)

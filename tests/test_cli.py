@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from pxr import Sdf, Usd
 
-from warp_esph import solver as solver_module
+from warp_esph.sim import solver as solver_module
 from warp_esph.cli import main
 from warp_esph.scenes import SCENES, get_scene
 from warp_esph.simulate import resolve_timestep

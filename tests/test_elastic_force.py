@@ -183,11 +183,17 @@ def test_elastic_force_is_read_from_scene_files_and_presets(tmp_path):
         scenes.load_scene_file(str(path))
 
 
-def test_rubber_ball_bounces_and_comes_to_rest_in_its_shape():
+def test_rubber_ball_bounces_and_settles_in_its_shape():
     """The rubber preset (variational force) in the rubber_bounce scene, at 0.6 of its
-    resolution: after the bounce the ball comes to rest on the ground (internal kinetic
-    energy measured 4e-10 J/kg at 4 s) with its rest extents (measured 1.038, 0.994, 1.033
-    of them: it sags and spreads a little where it rests)."""
+    resolution: after the bounce the ball settles on the ground with its rest extents
+    (measured 1.038, 0.994, 1.033 of them: it sags and spreads a little where it rests).
+
+    Since static friction holds (the friction fix of docs/physics.md) the ball keeps
+    rocking on its flattened contact patch: the rocking is nearly rigid, which the central
+    SPH viscosity leaves alone, and the floor has no rolling resistance. Measured from
+    3.5 s to 7 s: internal kinetic energy 3e-6 to 3e-5 J/kg, mean speed 5-17 mm/s, the
+    centroid within 1 mm (before the fix the leaking contact damped it: 4e-10 J/kg at 4 s).
+    The bound below admits the rocking and nothing larger."""
     from warp_esph.scenes import get_scene
 
     scene = get_scene("rubber_bounce", scale=0.6)
@@ -206,7 +212,9 @@ def test_rubber_ball_bounces_and_comes_to_rest_in_its_shape():
     internal = 0.5 * ((v - v.mean(axis=0)) ** 2).mean()
     extents = np.ptp(x, axis=0) / np.ptp(model.particle_x0, axis=0)
     assert bounced
-    assert internal < 1e-6
-    assert np.abs(v.mean(axis=0)).max() < 1e-3
+    assert internal < 1e-4
+    assert np.abs(v.mean(axis=0)).max() < 0.03
+    centroid_drift = np.abs(x.mean(axis=0) - model.particle_x0.mean(axis=0))[[0, 2]].max()
+    assert centroid_drift < 0.02
     np.testing.assert_allclose(extents, 1.0, atol=0.05)
     assert x[:, 1].min() > -0.005

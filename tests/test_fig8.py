@@ -1,4 +1,4 @@
-"""The Fig. 8 comparison models (SPEC §7): their kernels on exact cases, and the figure's behaviour.
+"""The Fig. 8 comparison models (docs/method.md §7): their kernels on exact cases, and the figure's behaviour.
 
 The behaviour test runs ``fig8_comparison`` (six 20 cm cubes, 8^3 particles each) through the
 compression and release, and measures each cube's shape error: the largest relative change
@@ -23,8 +23,9 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from warp_esph import neighbors, scenes
-from warp_esph import comparison
+from warp_esph import scenes
+from warp_esph.sim import neighbors
+from warp_esph.sim import comparison
 from warp_esph.material import DEFORMATIONS
 from warp_esph.scenes import FIG8_BODIES, FIG8_RELEASE, SCENES
 
@@ -170,7 +171,7 @@ def test_rest_model_fits_the_total_deformation_exactly():
     F_out = wp.zeros(n, dtype=wp.mat33d)
     counters = wp.zeros(4, dtype=wp.int32)
     wp.launch(k.update_deformation, n, [X, y, X, model.particle_body, nbr, count, nbr, count, wp.zeros(n, dtype=wp.int32),
-                                        model.particle_material, model.material_deformation, wp.array(eye, dtype=wp.mat33d),
+                                        model.particle_material, model.material_arrays(), wp.array(eye, dtype=wp.mat33d),
                                         wp.array(Fp, dtype=wp.mat33d), model.support_radius], [F_out, counters])
     inner = _interior(model, model.support_radius)
     assert inner.sum() > 10
@@ -195,7 +196,7 @@ def test_additive_model_adds_the_green_strain_of_the_step():
     counters = wp.zeros(4, dtype=wp.int32)
     eye = np.tile(np.eye(3), (n, 1, 1))
     wp.launch(k.update_deformation, n, [X, y, X, model.particle_body, state.neighbors, state.neighbor_count, state.neighbors,
-                                        state.neighbor_count, state.guard, model.particle_material, model.material_deformation,
+                                        state.neighbor_count, state.guard, model.particle_material, model.material_arrays(),
                                         wp.array(eye + eps0, dtype=wp.mat33d), wp.array(eye, dtype=wp.mat33d),
                                         model.support_radius], [F_out, counters])
     inner = _interior(model, model.support_radius)
@@ -211,8 +212,7 @@ def _constitutive(model, F, Fp, dt=1e-3):
             wp.zeros(n, dtype=wp.mat33d), wp.zeros(n, dtype=wp.mat33d), wp.zeros(4, dtype=wp.int32)]
     mat = wp.zeros(n, dtype=wp.int32)
     wp.launch(k.constitutive_update, n, [wp.array(F, dtype=wp.mat33d), wp.zeros(n, dtype=wp.float64), wp.array(Fp, dtype=wp.mat33d),
-                                         mat, m.material_deformation, m.mu, m.lam, m.yield_stress, m.flow_rate, m.hardening,
-                                         m.material_model, dt], outs)
+                                         mat, m.material_arrays(), dt], outs)
     return [o.numpy() for o in outs]
 
 

@@ -1,7 +1,6 @@
 """The paper's figures as built-in scenes: Table 1 particle counts and steps, and short runs."""
 
 import math
-import time
 
 import numpy as np
 import pytest
@@ -53,7 +52,6 @@ def test_scale_keeps_the_courant_number(name):
 
 @pytest.mark.parametrize("name", FIGURE_SCENES)
 def test_figure_scene_runs_small_without_nan(name):
-    t0 = time.perf_counter()
     scene = get_scene(name, scale=SMALL[name])
     model = scene.builder.finalize()
     assert 100 <= model.particle_count <= 1500
@@ -66,8 +64,6 @@ def test_figure_scene_runs_small_without_nan(name):
     # Nothing fell through the ground (small penetration allowed for the contact response).
     assert x[:, 1].min() > -model.spacing
     assert np.abs(v).max() < 20.0
-    seconds = time.perf_counter() - t0
-    assert seconds < 10.0, f"{name}: {seconds:.1f} s"
 
 
 def test_only_picks_the_bodies_of_one_run():

@@ -14,7 +14,8 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from warp_esph.fit import add_fit_arguments, fit, fit_cli, load_target, save_target
+from warp_esph.cli import add_fit_arguments, fit_cli
+from warp_esph.fit import fit, load_target, save_target
 from warp_esph.losses import ChamferLoss, MeshLoss, PositionLoss, surface_particles
 from warp_esph.rollout import PARAMETERS, Rollout, split_materials
 
@@ -326,17 +327,16 @@ def dough_target():
 
 
 def test_small_fit_recovers_two_parameters(dough_target):
-    import time
-
     truth, dt, steps, frames, target = dough_target
     model = _dough_block(800.0, 60.0)  # a factor 2 off in both
     assert 200 <= model.particle_count <= 400
-    t0 = time.perf_counter()
     seen = []
     result = fit(model, target, ["yield_stress", "flow_rate"], steps=steps, dt=dt, frames=frames, iterations=30,
-                 optimizer="lbfgs", progress=False, callback=lambda k, v, p: seen.append(v))
-    seconds = time.perf_counter() - t0
-    assert seconds < 60.0
+                 optimizer="lbfgs", progress=False, callback=lambda k, v, p: seen.append(v), noise=1e-4)
+    assert result.stopped in ("converged", "iterations", "stalled")
+    assert result.converged == (result.stopped == "converged")
+    # Here stress and yield stress are comparable: the data determine both.
+    assert result.diagnostics.undetermined == [], result.diagnostics.summary()
     assert result.params["yield_stress"][0] == pytest.approx(400.0, rel=0.10)
     assert result.params["flow_rate"][0] == pytest.approx(30.0, rel=0.10)
     assert result.loss < 1e-3 * result.initial_loss
@@ -382,16 +382,19 @@ def test_fit_cli_writes_json_and_usd(tmp_path):
 
     parser = add_fit_arguments(argparse.ArgumentParser())
     args = parser.parse_args(["dough_drop", "--target", str(target), "--params", "yield_stress", "--scale", "0.25",
-                              "--iterations", "2", "--no-progress"])
+                              "--iterations", "2", "--no-progress", "--output-dir", str(tmp_path / "out")])
     assert fit_cli(args) == 0
-    doc = json.loads((tmp_path / "drop.fit.json").read_text())
-    assert doc["params_fitted"] == ["yield_stress"] and len(doc["history"]) == 3
+    doc = json.loads((tmp_path / "out" / "fit.json").read_text())
+    # Two frames of a drop stay below yield: the gradient is exactly zero, the fit stops
+    # at once and says so, and the diagnostics say the data do not determine the value.
+    assert doc["params_fitted"] == ["yield_stress"] and len(doc["history"]) == 1
+    assert doc["stopped"] == "flat" and not doc["converged"] and doc["diagnostics"]["undetermined"] == ["yield_stress"]
     assert doc["loss"] <= doc["initial_loss"]
     try:
         import warp_esph.usd  # noqa: F401
     except ImportError:
         return
-    assert (tmp_path / "drop.fit.usdc").stat().st_size > 0
+    assert (tmp_path / "out" / "fitted.usdc").stat().st_size > 0
 
     bad = parser.parse_args(["dough_drop", "--target", str(target), "--params", "youngs"])
     with pytest.raises(ValueError, match="--params"):

@@ -1,4 +1,5 @@
-"""The fitting notebook runs top to bottom (nbclient), at a reduced size."""
+"""The fitting notebook: committed executed (plots inline), and it runs top to bottom (nbclient),
+at a reduced size."""
 
 import os
 import pathlib
@@ -10,6 +11,39 @@ nbclient = pytest.importorskip("nbclient")
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 NOTEBOOK = ROOT / "notebooks" / "fit_dough_star.ipynb"
+
+
+# What Warp prints at start-up unless ``wp.config.log_level`` is raised before ``wp.init()``.
+WARP_BANNER = ("initialized:", "Kernel cache:", "load on device")
+
+
+def _outputs(nb):
+    return [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+
+
+def _stream_text(nb):
+    return "\n".join(o.get("text", "") for o in _outputs(nb) if o.get("output_type") == "stream")
+
+
+def _png_count(nb):
+    return sum("image/png" in o.get("data", {}) for o in _outputs(nb) if o.get("output_type") in ("display_data", "execute_result"))
+
+
+def test_committed_notebook_is_executed_with_inline_plots():
+    nb = nbformat.read(NOTEBOOK, as_version=4)
+    code = [c for c in nb.cells if c.cell_type == "code"]
+    assert code and all(c.get("execution_count") for c in code), "commit the notebook executed, every cell"
+    assert not any(o.get("output_type") == "error" for o in _outputs(nb))
+    # The loss/parameter curves and the 3-D view of target and fitted result, inline.
+    assert _png_count(nb) >= 2
+    text = _stream_text(nb)
+    assert "all within 10 %: True" in text and "rms distance fitted - target" in text
+    for line in WARP_BANNER:
+        assert line not in text, f"Warp start-up output {line!r} in the committed notebook"
+    source = "\n".join(c.source for c in code)
+    assert "wp.config.log_level" in source and "wp.config.quiet" not in source
+    lines = [line.strip() for line in source.splitlines()]
+    assert lines.index("wp.config.log_level = wp.LOG_WARNING") < lines.index("wp.init()")
 
 
 def test_fit_notebook_executes(tmp_path, monkeypatch):
@@ -26,10 +60,10 @@ def test_fit_notebook_executes(tmp_path, monkeypatch):
     client = nbclient.NotebookClient(nb, timeout=240, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOK.parent)}})
     client.execute()
 
-    text = "\n".join(
-        o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []) if o.get("output_type") == "stream"
-    )
+    text = _stream_text(nb)
     assert "evaluations in" in text
+    assert _png_count(nb) >= 2  # inline, also under MPLBACKEND=Agg
+    assert not any(line in text for line in WARP_BANNER)
     assert (out / "fit_curves.png").stat().st_size > 10_000
     assert (out / "target.npz").exists()
     # Even at this size the three parameters come back from the factor-2 guess within 10 %.

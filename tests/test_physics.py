@@ -9,7 +9,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from warp_esph import deformation, plasticity, smoothing
+from warp_esph.sim import deformation, plasticity, smoothing
 from warp_esph._types import type_set
 
 
@@ -201,8 +201,7 @@ def test_yield_onset_under_uniaxial_stretch_and_volume_kept(model_name):
         e0, e1 = k * de, (k + 1) * de
         xa = wp.array(x0 * [1 + e0, 1, 1], dtype=T.vec3)
         xb = wp.array(x0 * [1 + e1, 1, 1], dtype=T.vec3)
-        wp.launch(kc, n, [F, alpha, model.particle_material, model.mu, model.lam, model.yield_stress, model.flow_rate,
-                          model.hardening, model.material_model, S(dt)], scratch + [counters])
+        wp.launch(kc, n, [F, alpha, model.particle_material, model.material_arrays(), S(dt)], scratch + [counters])
         F_flowed = scratch[0].numpy()
         if onset is None and scratch[1].numpy().max() > 0.0:
             onset = e0  # the strain carried by F when the flow first ran
@@ -325,7 +324,7 @@ def _reference_lists(x, h, k):
 def test_neighbor_lists_are_the_30_nearest_with_ties_to_the_lower_index(dtype, skin):
     """Exactly representable lattices, so distances tie exactly: a compressed one has
     more than 30 particles within h and the cap cuts through ties."""
-    from warp_esph import neighbors
+    from warp_esph.sim import neighbors
 
     T = type_set(dtype)
     dx = 1.0 / 64.0

@@ -1,7 +1,7 @@
 """The software renderer: particles appear where the camera sees them, outputs have the right frames."""
 
 import os
-import time
+import textwrap
 
 import numpy as np
 import pytest
@@ -11,7 +11,9 @@ import warp_esph as we
 from warp_esph import render as render_module
 from warp_esph.cli import main
 from warp_esph.meshes import lattice_points
-from warp_esph.render import BODY_PALETTE, Camera, Renderer, RenderOptions, UsdFrames, parse_frames, render_usd
+from warp_esph.render import (BODY_PALETTE, Camera, Renderer, RenderOptions, UsdFrames, _linear, _to_srgb8, parse_frames,
+                               render_usd)
+from warp_esph.usd import surface_prim_path
 
 W, H = 160, 120
 
@@ -20,7 +22,7 @@ def _srgb(c):
     return np.asarray(c) * 255.0
 
 
-def write_clusters(path, centers, frames=1, spacing=0.02, ground=False, shift=(0.0, 0.0, 0.0)):
+def write_clusters(path, centers, frames=1, spacing=0.02, ground=False, shift=(0.0, 0.0, 0.0), surface=False):
     """A USD file (UsdWriter) with one 5 x 5 x 5 cluster per centre, ``frames`` frames, each
     frame moved by ``shift`` from the last; no simulation."""
     b = we.SceneBuilder(spacing=spacing)
@@ -35,7 +37,7 @@ def write_clusters(path, centers, frames=1, spacing=0.02, ground=False, shift=(0
     x0 = model.particle_x0.copy()
     alpha = np.linspace(0.0, 1.0, model.particle_count).astype(np.float32)
     state.alpha.assign(alpha)
-    with we.UsdWriter(path, model, 10.0) as writer:
+    with we.UsdWriter(path, model, 10.0, surface=surface) as writer:
         for f in range(frames):
             state.x.assign((x0 + f * np.asarray(shift)).astype(np.float32))
             writer.write_frame(f, state)
@@ -206,25 +208,6 @@ def test_render_command(tmp_path, capsys):
     assert err.startswith("warp-esph: error: ") and "frame 7" in err and len(err.strip().splitlines()) == 1
 
 
-def test_render_speed_50k_particles(tmp_path):
-    """About 50k particles per frame in a few seconds on one core (measured 0.27 s at 800 x 600)."""
-    b = we.SceneBuilder(spacing=0.01)
-    b.add_box((0.0, 0.2, 0.0), (0.37, 0.37, 0.37), we.Material.preset("dough"))  # 37^3 = 50,653 particles
-    b.add_ground()
-    model = b.finalize()
-    path = tmp_path / "big.usdc"
-    with we.UsdWriter(path, model, 30.0) as writer:
-        writer.write_frame(0, model.state())
-    data = UsdFrames(path)
-    r = Renderer(data, data.frames, RenderOptions(width=800, height=600, supersample=1))
-    r.render(0)  # the colliders are ray cast once per renderer
-    t0 = time.perf_counter()
-    img = r.render(0)
-    seconds = time.perf_counter() - t0
-    assert img.size == (800, 600)
-    assert seconds < 5.0, f"{seconds:.2f} s for {model.particle_count} particles"
-
-
 @pytest.mark.skipif(render_module.ffmpeg_path() is None, reason="ffmpeg is not installed")
 def test_mp4_with_ffmpeg(tmp_path):
     import subprocess
@@ -238,3 +221,195 @@ def test_mp4_with_ffmpeg(tmp_path):
                             "-of", "csv=p=0", str(out)], capture_output=True, text=True)
     if probe.returncode == 0:
         assert probe.stdout.strip() == f"{W},3"
+
+
+# ----------------------------------------------------------------------------- surfaces
+BOX_TOML = textwrap.dedent(
+    """
+    [scene]
+    name = "box"
+    spacing = 0.04
+    frames = 1
+
+    [materials.soft]
+    preset = "dough"
+
+    [[bodies]]
+    shape = "box"
+    material = "soft"
+    center = [0.0, 0.3, 0.0]
+    size = [0.24, 0.2, 0.16]
+    """
+)
+
+
+def _orange(img):
+    a = np.asarray(img, dtype=np.float64)
+    return (a[..., 0] - a[..., 2]) > 40
+
+
+def _holes(mask):
+    """Uncovered pixels that the background outside cannot reach (4-connected): see-through
+    gaps enclosed by the silhouette."""
+    outside = np.zeros_like(mask)
+    outside[0, :], outside[-1, :], outside[:, 0], outside[:, -1] = (~mask[0, :], ~mask[-1, :], ~mask[:, 0], ~mask[:, -1])
+    while True:
+        grown = outside.copy()
+        grown[1:] |= outside[:-1]
+        grown[:-1] |= outside[1:]
+        grown[:, 1:] |= outside[:, :-1]
+        grown[:, :-1] |= outside[:, 1:]
+        grown &= ~mask
+        if np.array_equal(grown, outside):
+            return ~mask & ~outside
+        outside = grown
+
+
+def test_run_with_surface_renders_a_closed_silhouette(tmp_path, capsys):
+    scene = tmp_path / "box.toml"
+    scene.write_text(BOX_TOML)
+    usd = tmp_path / "box.usdc"
+    assert main(["run", str(scene), "-o", str(usd), "--surface", "--preview", "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "preview:" in out and "surfaces" in out
+    assert UsdFrames(usd).has_surfaces
+    # Looking along the lattice's z axis, between its columns of particles the background shows through.
+    view = ["--frames", "0", "--azimuth", "0", "--elevation", "0", "--supersample", "1", "--width", "240", "--height", "180",
+            "--no-label"]
+    assert main(["render", str(usd), "-o", str(tmp_path / "surface.png"), *view]) == 0
+    assert "1 bodies as surfaces" in capsys.readouterr().out
+    assert main(["render", str(usd), "-o", str(tmp_path / "particles.png"), "--particles", *view]) == 0
+    surface, particles = (_orange(Image.open(tmp_path / f"{n}.png")) for n in ("surface", "particles"))
+    holes_surface, holes_particles = _holes(surface).sum(), _holes(particles).sum()
+    assert holes_particles > 0.01 * particles.sum(), holes_particles  # the gaps the surface closes
+    assert holes_surface == 0, holes_surface
+    # The same body in the same place: the silhouettes overlap (the surface lies about half a spacing out).
+    assert (surface & particles).sum() > 0.75 * particles.sum()
+
+
+def _cube_file(tmp_path, half=0.3):
+    """A cluster file whose body has, as its surface, a cube of quads with shared corners."""
+    from pxr import Usd, UsdGeom, Vt
+
+    path = tmp_path / "cube.usda"
+    write_clusters(path, [(0.0, 0.0, 0.0)])
+    stage = Usd.Stage.Open(str(path))
+    mesh = UsdGeom.Mesh.Define(stage, surface_prim_path(UsdFrames(path).bodies[0][0]))
+    corners = np.array([[x, y, z] for x in (-half, half) for y in (-half, half) for z in (-half, half)], np.float32)
+    # Outward quads (index = 4 x + 2 y + z over the corner signs).
+    quads = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(corners))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([4] * 6))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray([i for q in quads for i in q]))
+    stage.GetRootLayer().Save()
+    return path
+
+
+def test_flat_cube_faces_have_the_key_lights_brightness(tmp_path):
+    half = 0.3
+    data = UsdFrames(_cube_file(tmp_path, half))
+    v, tri = data.surface(0, 0)
+    assert v.shape == (8, 3) and tri.shape == (12, 3)  # quads split in two
+    cam = Camera(eye=(1.4, 1.1, 1.8), target=(0.0, 0.0, 0.0), width=W, height=H, fov=40.0)
+    r = Renderer(data, data.frames, RenderOptions(width=W, height=H, supersample=1, label=False, shadows=False), camera=cam)
+    img = np.asarray(r.render(0), dtype=np.float64)
+    # Which face each pixel's ray meets first, by a ray-box test here.
+    rays = cam.pixel_rays().reshape(-1, 3)
+    with np.errstate(divide="ignore"):
+        t1, t2 = (half - cam.eye) / rays, (-half - cam.eye) / rays
+    tn, tf = np.minimum(t1, t2).max(axis=1), np.maximum(t1, t2).min(axis=1)
+    hit = (tf >= tn) & (tn > 0)
+    axis = np.minimum(t1, t2).argmax(axis=1)
+    P = cam.eye + tn[:, None] * rays
+    sign = np.sign(P[np.arange(len(P)), axis])
+    face = np.where(hit, axis * 2 + (sign > 0), -1).reshape(H, W)
+    # Coverage: the rasterised cube is where the rays meet the box (but for edge pixels).
+    covered = np.abs(img - img[:, :1]).sum(axis=2) > 6  # the background is one colour per row
+    assert (covered == (face >= 0)).mean() > 0.99
+    brightness = {}
+    for f in np.unique(face[face >= 0]):
+        inner = face == f
+        for _ in range(2):  # away from the edges
+            inner = inner & np.roll(inner, 1, 0) & np.roll(inner, -1, 0) & np.roll(inner, 1, 1) & np.roll(inner, -1, 1)
+        ys, xs = np.nonzero(inner)
+        assert len(ys) > 100
+        n = np.zeros(3)
+        n[f // 2] = 1.0 if f % 2 else -1.0
+        # The particles' lighting model, evaluated with the face's normal at each pixel.
+        d = rays.reshape(H, W, 3)[ys, xs].astype(np.float32)
+        eye_dir = -d / np.linalg.norm(d, axis=1, keepdims=True)
+        base = np.broadcast_to(_linear(BODY_PALETTE[0]), (len(ys), 3)).astype(np.float32)
+        ambient, key = r._shade_parts(base, np.broadcast_to(n.astype(np.float32), (len(ys), 3)).copy(), eye_dir, 0.25)
+        expected = _to_srgb8(ambient + key).astype(np.float64)
+        got = img[ys, xs]
+        assert np.abs(got - expected).max() <= 2, (f, np.abs(got - expected).max())
+        assert got.std(axis=0).max() < 3.0  # flat: one shade per face (the shared corners are not smoothed)
+        brightness[f] = (float(n @ r.key), got.mean())
+    assert len(brightness) == 3  # three faces seen from this corner
+    # Relative brightness follows the key light: the face turned most towards it is the brightest.
+    order_key = sorted(brightness, key=lambda f: brightness[f][0])
+    order_seen = sorted(brightness, key=lambda f: brightness[f][1])
+    assert order_key == order_seen, brightness
+
+
+def test_frames_without_a_surface_render_particles(tmp_path):
+    from pxr import Usd, UsdGeom, Vt
+
+    path = tmp_path / "two.usda"
+    write_clusters(path, [(0.0, 0.0, 0.0)], frames=2, surface=True, shift=(0.05, 0.0, 0.0))
+    # Frame 1's surface empty, as the writer leaves it where no surface could be built.
+    stage = Usd.Stage.Open(str(path))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath(surface_prim_path(UsdFrames(path).bodies[0][0])))
+    mesh.GetPointsAttr().Set(Vt.Vec3fArray(), 1)
+    mesh.GetFaceVertexCountsAttr().Set(Vt.IntArray(), 1)
+    mesh.GetFaceVertexIndicesAttr().Set(Vt.IntArray(), 1)
+    stage.GetRootLayer().Save()
+    data = UsdFrames(path)
+    assert data.has_surfaces and data.surface(0, 0) is not None and data.surface(1, 0) is None
+    opts = dict(width=W, height=H, supersample=1, label=False, shadows=False)
+    cam = front_camera()
+    with_surface = Renderer(data, data.frames, RenderOptions(**opts), camera=cam)
+    particles = Renderer(data, data.frames, RenderOptions(**opts, surfaces=False), camera=cam)
+    assert list(with_surface.surfaces(0)) == [0] and with_surface.surfaces(1) == {}
+    assert np.array_equal(np.asarray(with_surface.render(1)), np.asarray(particles.render(1)))
+    surf0, part0 = np.asarray(with_surface.render(0)), np.asarray(particles.render(0))
+    assert not np.array_equal(surf0, part0)
+    assert _orange(surf0).sum() > 50 and _orange(part0).sum() > 50
+    with pytest.raises(ValueError, match="surfaces"):
+        RenderOptions(surfaces="yes")
+
+
+def test_triangles_cover_exactly_the_pixel_centres_inside_and_depth_is_the_plane():
+    from warp_esph.render import raster_triangles
+
+    rng = np.random.default_rng(3)
+    cam = front_camera()
+    for _ in range(5):
+        # A tilted quad as two triangles, a random fan of triangles inside it sharing its centre.
+        c = rng.uniform(-0.2, 0.2, 3)
+        a, b = rng.normal(size=3), rng.normal(size=3)
+        a, b = 0.3 * a / np.linalg.norm(a), 0.3 * b / np.linalg.norm(b)
+        quad = np.array([c - a - b, c + a - b, c + a + b, c - a + b, c])
+        tris = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+        px, py, z = cam.project(quad)
+        pix, dep, bary, who = raster_triangles(px, py, z, tris, W, H)
+        # Every pixel centre inside the projected quad once (or twice on a shared edge), none outside.
+        i, j = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+        corners = np.stack([px[:4], py[:4]], axis=1)
+        def side(k):  # z of (edge k) x (pixel centre - its start)
+            (x0, y0), (x1, y1) = corners[k], corners[(k + 1) % 4]
+            return (x1 - x0) * (j - y0) - (y1 - y0) * (i - x0)
+
+        edge = [side(k) for k in range(4)]
+        inside = (np.all([e > 1e-3 for e in edge], axis=0) | np.all([e < -1e-3 for e in edge], axis=0)).reshape(-1)
+        border = (np.min(np.abs(edge), axis=0) <= 1e-3).reshape(-1)
+        hits = np.bincount(pix, minlength=W * H)
+        assert (hits[inside] >= 1).all() and (hits[~inside & ~border] == 0).all()
+        # Depth: where the pixel's ray meets the quad's plane (perspective-correct interpolation).
+        n = np.cross(a, b)
+        rays = cam.pixel_rays().reshape(-1, 3)[pix]
+        expected = (n @ (c - cam.eye)) / (rays @ n)
+        assert np.allclose(dep, expected, rtol=1e-4, atol=1e-5)
+        # Barycentrics put the fragment on the triangle: the interpolated point is on the ray.
+        P = np.einsum("nk,nkj->nj", bary, quad[tris[who]])
+        assert np.allclose(P, cam.eye + dep[:, None] * rays, atol=1e-4)

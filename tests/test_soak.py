@@ -61,7 +61,7 @@ def _checker(model, tol):
 
 
 #: Bodies a scene is meant to lose: Fig. 8 shows the rest-configuration model blowing up
-#: under large plastic flow (SPEC §7), so the soak runs that scene without it.
+#: under large plastic flow (docs/method.md §7), so the soak runs that scene without it.
 EXPECTED_TO_FAIL = {"fig8_comparison": ("plastic_rest",)}
 
 

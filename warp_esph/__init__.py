@@ -16,16 +16,16 @@ __version__ = "0.1.0"
 
 #: Public name -> the module that defines it.
 _EXPORTS = {
-    "SceneBuilder": ".builder",
+    "SceneBuilder": ".builder", "finalize_worlds": ".builder",
     "Material": ".material", "MODELS": ".material", "PRESETS": ".material",
     "Model": ".model", "State": ".model", "Body": ".model",
     "simulate": ".simulate", "SimulationError": ".simulate",
-    "Solver": ".solver", "GUARD_NAMES": ".solver",
+    "Solver": ".sim.solver", "GUARD_NAMES": ".sim.solver",
     "UsdWriter": ".usd",
 }
 
 __all__ = [
-    "SceneBuilder", "Material", "MODELS", "PRESETS", "Model", "State", "Body", "Solver", "GUARD_NAMES",
+    "SceneBuilder", "finalize_worlds", "Material", "MODELS", "PRESETS", "Model", "State", "Body", "Solver", "GUARD_NAMES",
     "simulate", "SimulationError", "UsdWriter", "__version__",
 ]
 

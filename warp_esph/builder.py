@@ -7,22 +7,23 @@ when it is given, so a mistake is reported where it was made.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 
 import numpy as np
 import warp as wp
 
-from . import checks, meshes
+from . import checks, meshes, tools
 from ._types import scalar_type
-from .colliders import MAX_PER_KIND, Box, Plane, Sphere
+from .sim.colliders import MAX_PER_KIND, Box, Plane, Sphere
 from .material import Material
 from .meshes import lattice_points
 from .model import Body, Model
 
 #: Allowed support radius, in units of the spacing. Below 1.5 dx an interior particle
 #: sees only its 6 face neighbours; above 3 dx the 30-neighbour cap cuts the
-#: neighbourhood anisotropically and the body loses stiffness (SPEC §1.1).
+#: neighbourhood anisotropically and the body loses stiffness (docs/method.md §1).
 SUPPORT_RANGE = (1.5, 3.0)
 #: Largest lattice a single body may be sampled from (about 1.6 GB of float64 points).
 MAX_PARTICLES_PER_BODY = 6.4e7
@@ -95,6 +96,8 @@ class SceneBuilder:
         self.spheres: list[Sphere] = []
         self.boxes: list[Box] = []
         self.force_fields: list = []
+        self.tools: list[tools.Collider] = []
+        self.pins: list[tools.PinSet] = []
         self._count = 0
 
     # ----------------------------------------------------------------- bodies
@@ -249,10 +252,77 @@ class SceneBuilder:
             "box",
         )
 
+    def add_tool(self, shape: str, *, motion=None, position=(0.0, 0.0, 0.0), orientation=tools.IDENTITY,
+                 friction: float = 0.0, static_friction: float | None = None, name: str | None = None,
+                 normal=None, half_extents=None, radius=None, half_height=None, mesh=None, scale: float = 1.0) -> str:
+        """A moving rigid collider (``tools.py``); returns its name.
+
+        ``shape``: ``"plane"`` (through the tool's origin, ``normal`` in its frame; solid
+        below), ``"box"`` (``half_extents``), ``"sphere"`` (``radius``), ``"capsule"`` and
+        ``"cylinder"`` (``radius``, ``half_height``, along the tool's y axis) or ``"mesh"``
+        (``mesh``: a file meshio or USD reads, or ``(points, triangles)``, closed, in the
+        tool's frame, times ``scale``). ``motion``: ``tools.Keyframes``, ``tools.Velocity``
+        or ``tools.Scripted``; ``None``: held at ``position`` / ``orientation`` (x, y, z, w).
+        ``friction``: kinetic Coulomb coefficient; ``static_friction`` (>= friction;
+        default: ``friction``)."""
+        kind = checks.choice("shape", shape, tools.KINDS)
+        if len(self.tools) >= tools.MAX_TOOLS:
+            raise ValueError(f"tools = {len(self.tools) + 1} is not allowed: at most {tools.MAX_TOOLS}")
+        name = f"{kind}_tool{len(self.tools)}" if name is None else name
+        if not isinstance(name, str) or not name or name in [t.name for t in self.tools] + [p.name for p in self.pins]:
+            raise ValueError(f"name = {name!r} is not allowed: must be a new non-empty string")
+        mu_k = checks.non_negative("friction", friction)
+        mu_s = mu_k if static_friction is None else checks.non_negative("static_friction", static_friction)
+        if mu_s < mu_k:
+            raise ValueError(f"static_friction = {static_friction!r} is not allowed: must be >= friction = {mu_k:g}")
+        pos = checks.vector("position", position)
+        ori = tools._quat("orientation", orientation)
+        if motion is None:
+            motion = tools.Velocity(position=pos, orientation=ori)
+        elif isinstance(motion, tools.Velocity):
+            if motion.position is None or motion.orientation is None:
+                motion = tools.Velocity(motion.velocity, motion.angular_velocity,
+                                        motion.position if motion.position is not None else pos,
+                                        motion.orientation if motion.orientation is not None else ori)
+        elif not isinstance(motion, tools.MOTIONS):
+            raise ValueError(f"motion = {motion!r} is not allowed: must be tools.Keyframes, tools.Velocity, tools.Scripted or None")
+        points = triangles = None
+        if kind == "mesh":
+            if mesh is None:
+                raise ValueError("mesh = None is not allowed: a mesh tool needs a mesh file or (points, triangles)")
+            points, triangles = meshes.load_mesh(mesh)
+            points = points * checks.positive("scale", scale)
+        param = tools.shape_param(kind, normal=normal, half_extents=half_extents, radius=radius, half_height=half_height)
+        self.tools.append(tools.Collider(name, kind, param, motion, mu_k, mu_s, points, triangles))
+        return name
+
+    def pin(self, indices=None, *, body: str | None = None, region=None, where=None, motion=None, name: str | None = None) -> str:
+        """Hold a set of particles fixed, or move it rigidly (``tools.py``); returns its name.
+
+        The set is the intersection of the given selections among the particles added so
+        far: ``indices`` (integer indices or a boolean mask), ``body`` (a body name),
+        ``region = (lo, hi)`` (an axis-aligned box of rest positions), ``where`` (a predicate
+        on the rest positions, ``(N, 3) -> bool (N,)``). ``motion``: ``None`` (held fixed),
+        ``tools.Velocity`` (from the set's rest centroid unless it gives a position),
+        ``tools.Keyframes`` (poses of the set's frame, whose rest pose is its centroid with
+        identity orientation) or ``tools.Scripted``. Pinned particles keep their place in
+        every neighbour fit; only their x and v are prescribed."""
+        name = f"pin{len(self.pins)}" if name is None else name
+        if not isinstance(name, str) or not name or name in [t.name for t in self.tools] + [p.name for p in self.pins]:
+            raise ValueError(f"name = {name!r} is not allowed: must be a new non-empty string")
+        if motion is not None and not isinstance(motion, tools.MOTIONS):
+            raise ValueError(f"motion = {motion!r} is not allowed: must be tools.Keyframes, tools.Velocity, tools.Scripted or None")
+        idx = tools.select_particles(self, indices=indices, body=body, region=region, where=where, name=name)
+        for p in self.pins:
+            if np.intersect1d(p.indices, idx).size:
+                raise ValueError(f"pin {name!r} is not allowed: it shares particles with pin {p.name!r}")
+        self.pins.append(tools.PinSet(name, idx, tools.Velocity() if motion is None else motion))
+        return name
+
     def add_compression_field(self, center, strength: float, t_on: float = 0.0, t_off: float = float("inf"), body: str | None = None):
         """A horizontal compression ``a = -strength (x - center)`` (1/s^2) while ``t_on <= t < t_off``,
         on the particles of ``body`` (a body name; ``None``: all). See ``fields.CompressionField``."""
-        from .fields import CompressionField  # noqa: PLC0415
+        from .sim.fields import CompressionField  # noqa: PLC0415
 
         index = -1
         if body is not None:
@@ -303,37 +373,114 @@ class SceneBuilder:
         if self._points and np.abs(np.concatenate(self._points)).max() > big:
             raise ValueError(f"positions beyond {big:.3g} m are not allowed in {scalar.__name__}")
 
-    def finalize(self, device="cpu", dtype=wp.float32, requires_grad: bool = False) -> Model:
-        """Builds the ``Model`` on ``device`` in precision ``dtype`` (float32 or float64)."""
-        requires_grad = checks.boolean("requires_grad", requires_grad)
-        if not self._bodies:
+    def finalize(self, device="cpu", dtype=wp.float32, requires_grad: bool = False, worlds: int = 1) -> Model:
+        """Builds the ``Model`` on ``device`` in precision ``dtype`` (float32 or float64).
+
+        ``worlds=W`` puts ``W`` copies of the scene in one model (``finalize_worlds``):
+        each with its own materials (``model.set_material(i, material, world=w)``), none
+        seeing another (they may overlap in space), all sharing the colliders."""
+        if isinstance(worlds, bool) or not isinstance(worlds, (int, np.integer)) or worlds < 1:
+            raise ValueError(f"worlds = {worlds!r} is not allowed: must be an integer >= 1")
+        return finalize_worlds([self] * int(worlds), device=device, dtype=dtype, requires_grad=requires_grad)
+
+
+#: What every world of a model must share (``finalize_worlds``).
+_SHARED = ("spacing", "support_radius", "gravity", "max_neighbors", "bodies_interact", "planes", "spheres", "boxes")
+
+
+def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.float32, requires_grad: bool = False) -> Model:
+    """One ``Model`` of ``len(builders)`` worlds: world ``w`` is ``builders[w]``'s scene.
+
+    Worlds are independent simulations in one set of arrays: particles, bodies and
+    materials world after world (``model.world_particles(w)``, ``model.world_materials(w)``),
+    neighbour lists (so SPH) never crossing worlds, every step advancing all of them in
+    the same launches. The builders must agree on spacing, support radius, gravity,
+    ``max_neighbors``, ``bodies_interact`` and colliders (a world is a scene at the same
+    place, colliders are shared). Bodies keep their names with one world; with several,
+    body ``name`` of world ``w`` is ``"w<w>/name"``.
+    """
+    requires_grad = checks.boolean("requires_grad", requires_grad)
+    if isinstance(builders, SceneBuilder) or not isinstance(builders, Sequence) or len(builders) < 1:
+        raise ValueError(f"builders = {builders!r} is not allowed: must be a non-empty list of SceneBuilder")
+    for k, b in enumerate(builders):
+        if not isinstance(b, SceneBuilder):
+            raise ValueError(f"builders[{k}] = {b!r} is not allowed: must be a SceneBuilder")
+        if not b._bodies:
             raise ValueError("the scene has no bodies: add one with add_box, add_sphere, ... before finalize()")
-        self._check_overlap()
-        scalar = scalar_type(dtype)
-        self._check_precision(scalar)
-        try:
-            dev = wp.get_device(device)
-        except Exception as e:  # noqa: BLE001 (Warp raises several kinds)
-            raise ValueError(f"device = {device!r} is not allowed: {e}") from None
-        model = Model(
-            positions=np.concatenate(self._points),
-            velocities=np.concatenate(self._velocities),
-            particle_material=np.concatenate(self._material_ids),
-            particle_body=np.concatenate([np.full(b.count, k, dtype=np.int32) for k, b in enumerate(self._bodies)]),
-            materials=self._materials,
-            bodies=self._bodies,
-            spacing=self.spacing,
-            support_radius=self.support_radius,
-            gravity=self.gravity,
-            planes=self.planes,
-            spheres=self.spheres,
-            boxes=self.boxes,
-            max_neighbors=self.max_neighbors,
-            bodies_interact=self.bodies_interact,
-            device=dev,
-            scalar=scalar,
-            requires_grad=requires_grad,
+    first = builders[0]
+    for k, b in enumerate(builders[1:], start=1):
+        for name in _SHARED:
+            if getattr(b, name) != getattr(first, name):
+                raise ValueError(
+                    f"builders[{k}].{name} = {getattr(b, name)!r} is not allowed: every world must have the "
+                    f"{name} of builders[0] ({getattr(first, name)!r})"
+                )
+    if len(builders) > 1 and any(b.tools or b.pins for b in builders):
+        raise ValueError(
+            f"worlds = {len(builders)} is not allowed with moving tools or pinned sets: "
+            "tools act on one world; build one model per scene with tools"
         )
-        model.force_fields = list(self.force_fields)
-        model.compute_rest_density()
-        return model
+    # Overlap is checked within each world only: worlds overlap in space by design.
+    for b in {id(b): b for b in builders}.values():
+        b._check_overlap()
+    scalar = scalar_type(dtype)
+    for b in {id(b): b for b in builders}.values():
+        b._check_precision(scalar)
+    try:
+        dev = wp.get_device(device)
+    except Exception as e:  # noqa: BLE001 (Warp raises several kinds)
+        raise ValueError(f"device = {device!r} is not allowed: {e}") from None
+    several = len(builders) > 1
+    points, velocities, mat_ids, body_ids, world_ids = [], [], [], [], []
+    materials: list[Material] = []
+    bodies: list[Body] = []
+    fields = []
+    mat_start = [0]
+    count = 0
+    same_fields = all(b.force_fields == first.force_fields for b in builders)
+    for w, b in enumerate(builders):
+        m0, b0 = len(materials), len(bodies)
+        points += b._points
+        velocities += b._velocities
+        mat_ids += [ids + m0 for ids in b._material_ids]
+        for k, body in enumerate(b._bodies):
+            name = f"w{w}/{body.name}" if several else body.name
+            bodies.append(Body(name=name, start=count, count=body.count, material=body.material + m0, kind=body.kind, world=w))
+            body_ids.append(np.full(body.count, b0 + k, dtype=np.int32))
+            world_ids.append(np.full(body.count, w, dtype=np.int32))
+            count += body.count
+        materials += list(b._materials)
+        mat_start.append(len(materials))
+        for fld in b.force_fields:
+            if fld.body >= 0:
+                fields.append(dataclasses.replace(fld, body=fld.body + b0))
+            elif not (same_fields and w > 0):
+                # A field on every particle acts on all worlds once when the worlds share
+                # it; a world's own such field acts on each of its bodies.
+                fields += [fld] if same_fields else [dataclasses.replace(fld, body=b0 + k) for k in range(len(b._bodies))]
+    model = Model(
+        positions=np.concatenate(points),
+        velocities=np.concatenate(velocities),
+        particle_material=np.concatenate(mat_ids),
+        particle_body=np.concatenate(body_ids),
+        materials=materials,
+        bodies=bodies,
+        spacing=first.spacing,
+        support_radius=first.support_radius,
+        gravity=first.gravity,
+        planes=first.planes,
+        spheres=first.spheres,
+        boxes=first.boxes,
+        max_neighbors=first.max_neighbors,
+        bodies_interact=first.bodies_interact,
+        device=dev,
+        scalar=scalar,
+        requires_grad=requires_grad,
+        particle_world=np.concatenate(world_ids),
+        world_material_start=mat_start,
+    )
+    model.force_fields = fields
+    if first.tools or first.pins:
+        model.tools = tools.ToolSet(model, first.tools, first.pins)
+    model.compute_rest_density()
+    return model

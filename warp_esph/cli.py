@@ -1,12 +1,14 @@
-"""Command line: ``warp-esph run [SCENE] ...``, ``scenes``, ``render OUT.usd``, ``export OUT.usd``
-and ``fit SCENE --target FILE``.
+"""Command line: ``warp-esph run [SCENE] ...``, ``scenes``, ``render OUT.usd``, ``export OUT.usd``,
+``fit SCENE --target FILE`` and ``sweep SCENE --param ...``.
 
 Exit status: 0 success; 2 bad input (unknown scene, bad option value, bad scene file,
 unreadable or unwritable file); 3 the simulation diverged (``SimulationError``; the
 output keeps every frame finished before); 4 the output could not be written mid-run
 (e.g. a full disk; it keeps every frame published before); 130 interrupted (Ctrl-C), 143 terminated
 (SIGTERM): in both the output keeps every finished frame, and the last checkpoint
-(``--checkpoint-every``) resumes the run (``--resume``). Errors are one line on stderr,
+(``--checkpoint-every``) resumes the run (``--resume``). ``sweep`` exits 3 when at least
+one sample failed (its row says why) and 130 when interrupted (the table keeps the
+finished samples). Errors are one line on stderr,
 ``warp-esph: error: ...``.
 """
 
@@ -73,7 +75,8 @@ def _build_parser() -> _Parser:
     run.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="precision (default float32)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--preview", action="store_true",
-                     help="at the end, render the last frame to <output>.png beside the output (software renderer)")
+                     help="at the end, render the last frame to <output>.png beside the output (software renderer; "
+                          "with --surface it draws the surfaces)")
     run.add_argument("--surface", action="store_true",
                      help="also write a triangle surface per body and frame (UsdGeom.Mesh under /World/Surfaces)")
     run.add_argument("--export", choices=EXPORT_CHOICES, metavar="FORMAT",
@@ -84,8 +87,6 @@ def _build_parser() -> _Parser:
                      help="continue the run saved in CHECKPOINT (.npz), appending to its USD file; "
                           "the scene and its settings come from the checkpoint (--frames N: run to frame N instead)")
     sub.add_parser("scenes", help="list the built-in scenes", description="List the built-in scenes.")
-    from .fit import add_fit_arguments  # noqa: PLC0415
-
     add_fit_arguments(sub.add_parser(
         "fit", help="fit material parameters of a scene to a target by gradient descent",
         description="Fit material parameters so the simulated scene reaches the target; writes JSON and USD."))
@@ -97,7 +98,7 @@ def _build_parser() -> _Parser:
     ren.add_argument("-o", "--output", metavar="DIR_OR_FILE",
                      help="a folder (PNG per frame), a .png (one frame; several side by side), a .gif, or an .mp4 "
                           "(needs ffmpeg); default: <OUT>.png, the last frame")
-    ren.add_argument("--frames", metavar="SPEC",
+    ren.add_argument("--frames", metavar="SELECTION",
                      help="'all', 'first', 'last', N, -N, A:B, A:B:STEP or a comma list (default: all; last for a .png)")
     ren.add_argument("--color", choices=COLOR_CHOICES, default="body",
                      help="colour particles by body, material, alpha (plastic strain) or singular_values "
@@ -115,6 +116,9 @@ def _build_parser() -> _Parser:
     ren.add_argument("--fps", type=float, help="playback rate of a .gif/.mp4 (default: the file's)")
     ren.add_argument("--no-label", action="store_true", help="no time label in the corner")
     ren.add_argument("--no-shadows", action="store_true", help="no shadows (faster)")
+    ren.add_argument("--particles", "--no-surface", dest="particles", action="store_true",
+                     help="draw particles even where the file holds surface meshes ('run --surface'); "
+                          "by default a body with a surface is drawn as that surface")
 
     exp = sub.add_parser("export", help="write particle frames of a USD output as .vtu or .ply files (meshio)",
                          description="Write the particles of each frame of a warp-esph USD file as a .vtu or .ply file "
@@ -122,8 +126,35 @@ def _build_parser() -> _Parser:
     exp.add_argument("usd", metavar="OUT.usd", help="a USD file written by 'warp-esph run'")
     exp.add_argument("--format", choices=EXPORT_CHOICES, default="vtu", help="file format (default vtu)")
     exp.add_argument("-o", "--output", metavar="DIR", help="output folder (default: <OUT>_<format>/ beside the file)")
-    exp.add_argument("--frames", metavar="SPEC", help="frames, as for render (default: all)")
+    exp.add_argument("--frames", metavar="SELECTION", help="frames, as for render (default: all)")
+    _add_sweep_parser(sub)
     return p
+
+
+def _add_sweep_parser(sub) -> None:
+    sw = sub.add_parser("sweep", help="run a scene for many material values in parallel; a table and a plot",
+                        description="Run a scene once per sample of material parameters (grid, random or Latin "
+                                    "hypercube), on every core or a Ray cluster; write a table (CSV, Parquet) of summary "
+                                    "quantities per sample and a plot. Exit 3 when some sample failed.")
+    sw.add_argument("scene", metavar="SCENE", help="built-in scene name or .toml scene file")
+    sw.add_argument("--param", action="append", metavar="NAME=LO:HI:SCALE:N",
+                    help="a swept parameter: yield_stress=100:1000:log:8 (every material), dough.yield_stress=... "
+                         "(a body's), 0.mu=... (material 0); LO:HI:SCALE for random/lhs; A,B,C or V; repeatable")
+    sw.add_argument("--sample", choices=("grid", "random", "lhs"), default="grid", help="sampling (default grid)")
+    sw.add_argument("--samples", type=int, metavar="N", help="number of samples for random and lhs")
+    sw.add_argument("--seed", type=int, default=0, metavar="S", help="seed of random and lhs samples (default 0)")
+    sw.add_argument("--max-samples", type=int, default=10000, metavar="N", help="refuse more samples (default 10000)")
+    when = sw.add_mutually_exclusive_group()
+    when.add_argument("--frames", type=int, metavar="N", help="frames per sample (default: the scene's)")
+    when.add_argument("--duration", type=float, metavar="SEC", help="simulated seconds per sample")
+    sw.add_argument("--fps", type=float, metavar="F", help="frames per second (default: the scene's)")
+    sw.add_argument("--dt", type=float, metavar="DT", help="time step; must divide 1/fps (default: each sample's stable step)")
+    sw.add_argument("--scale", type=float, default=1.0, metavar="S", help="resolution scale of the scene (default 1)")
+    sw.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="precision (default float32)")
+    sw.add_argument("-o", "--output", metavar="FOLDER", help="output folder (default: sweep_<scene>)")
+    sw.add_argument("--workers", type=int, metavar="N", help="processes, one per core (default: every core)")
+    sw.add_argument("--ray", metavar="ADDRESS", help="run the samples on the Ray cluster at ADDRESS (warp-esph[ray])")
+    sw.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def _init_warp(device: str) -> None:
@@ -201,7 +232,7 @@ def _cmd_run(args) -> int:
             raise ValueError("--device = 'cuda' is not allowed: Warp finds no CUDA device on this machine (use --device cpu)")
     from .scenes import load_scene  # noqa: PLC0415
     from .simulate import SimulationError, check_step_count, resolve_timestep, simulate  # noqa: PLC0415
-    from .solver import Solver  # noqa: PLC0415
+    from .sim.solver import Solver  # noqa: PLC0415
     from .usd import UsdWriter  # noqa: PLC0415
 
     from .checkpoint import load_state, read_checkpoint, save_state  # noqa: PLC0415
@@ -251,12 +282,24 @@ def _cmd_run(args) -> int:
         if every is not None and frame > start_frame and frame % every == 0:
             save_state(checkpoint_path, model, current, step=frame * substeps, frame=frame, run=run_record)
 
+    # Tools (moving colliders, pinned sets): pose and mean reaction per frame, beside the USD.
+    log = None
+    if model.tools is not None:
+        from .tools import ReactionLog  # noqa: PLC0415
+
+        log = ReactionLog(solver)
+
+    def on_frame(frame, current):
+        if log is not None:
+            log.record(frame, current)
+        checkpoint(frame, current)
+
     try:
         print(f"{PROG}: {scene.name}: {model.particle_count} particles, {len(model.bodies)} bodies, "
               f"{frames} frames at {fps:g} fps, dt = {dt:.4g} s ({substeps} steps/frame), {args.device} {args.dtype} "
               f"-> {writer.path}" + (f" (resumed at frame {start_frame})" if start_frame else ""), flush=True)
         simulate(model, frames, fps=fps, dt=dt, writer=writer, progress=not args.no_progress, solver=solver,
-                 state=state, start_frame=start_frame, callback=checkpoint if every is not None else None,
+                 state=state, start_frame=start_frame, callback=on_frame if every is not None or log is not None else None,
                  monitor_exempt=getattr(scene, "diverges", ()))
     except KeyboardInterrupt:
         writer.close()
@@ -274,11 +317,15 @@ def _cmd_run(args) -> int:
         return EXIT_WRITE_FAILED
     finally:
         writer.close()
+        if log is not None and log.rows:
+            tool_files = log.write(os.path.splitext(writer.path)[0])
     guards = ", ".join(f"{k}={v}" for k, v in solver.guard_counts().items())
     per_frame = 1e3 * writer.save_seconds / max(writer.frames_written, 1)
     print(f"wrote {writer.path}: {writer.frames_written} frames (0..{writer.last_frame}), "
           f"{model.particle_count} particles; USD save {per_frame:.2f} ms/frame")
     print(f"guard counts (particle-steps skipped): {guards}")
+    if log is not None:
+        print(f"tool poses and reaction forces: {tool_files[0]}, {tool_files[1]}")
     if args.surface:
         print(f"surfaces: {1e3 * writer.surface_seconds / max(writer.frames_written, 1):.0f} ms/frame (/World/Surfaces)")
     if args.export:
@@ -291,7 +338,8 @@ def _cmd_run(args) -> int:
         from .render import render_usd  # noqa: PLC0415
 
         result = render_usd(writer.path, os.path.splitext(writer.path)[0] + ".png", frames="last")
-        print(f"preview: {result.output} ({result.seconds:.1f} s)")
+        shown = "surfaces" if result.surface_bodies else "particles"
+        print(f"preview: {result.output} ({shown}, {result.seconds:.1f} s)")
     return 0
 
 
@@ -316,6 +364,85 @@ def _check_run_record(path, run: dict) -> None:
         raise ValueError(f"{where} {e}") from None
 
 
+def add_fit_arguments(parser):
+    """Declare the ``warp-esph fit`` options on an ``argparse`` (sub)parser."""
+    from .losses import MeshLoss  # noqa: PLC0415 (Warp is imported only when the parser is built)
+    from .rollout import PARAMETERS  # noqa: PLC0415
+
+    parser.add_argument("scene", metavar="SCENE", help="built-in scene name or .toml scene file (the initial guess)")
+    parser.add_argument("--target", required=True, action="append", metavar="FILE",
+                        help="target: a previous run's .usd (see --target-body), .npz/.npy positions per frame, a point "
+                             "cloud (.xyz/.ply/.npy (M, 3) ...), a mesh file, or masks with --cameras; repeatable (their "
+                             "losses add up)")
+    parser.add_argument("--params", default="yield_stress,flow_rate", metavar="A,B",
+                        help=f"comma-separated parameters to fit, of {','.join(PARAMETERS)} (default yield_stress,flow_rate)")
+    parser.add_argument("--material", action="append", metavar="BODY",
+                        help="fit only this body's material (name or material index); repeatable; default all")
+    parser.add_argument("--iterations", type=int, default=50, metavar="N",
+                        help="gradient evaluations after the first, line-search trials included (default 50)")
+    parser.add_argument("--lr", type=float, default=0.1, metavar="LR",
+                        help="Adam step size, relative; L-BFGS: its first step (default 0.1)")
+    parser.add_argument("--bounds", action="append", default=[], metavar="NAME=LO:HI", help="bounds of a parameter; repeatable")
+    parser.add_argument("--clip", type=float, metavar="C", help="clip the gradient norm (log space) to C")
+    parser.add_argument("--target-frames", action="append", metavar="F,G",
+                        help="a run's USD: the frames to fit ('2,4,6', '10:60:10', 'last'; default all after the first); "
+                             ".npz/.npy: the rendered frame of each target frame; a cloud, mesh or mask: the frame it "
+                             "shows (default: the last); once per --target or once for all")
+    parser.add_argument("--frames", type=int, metavar="N", help="frames to simulate (default: the last target frame or the scene's)")
+    parser.add_argument("--fps", type=float, metavar="F", help="frames per second (default: the target's or the scene's)")
+    parser.add_argument("--dt", type=float, metavar="DT", help="time step in s (default: the stable step)")
+    parser.add_argument("--scale", type=float, default=1.0, metavar="S", help="resolution scale of the scene (default 1)")
+    parser.add_argument("--radius", type=float, metavar="R", help="Chamfer search radius for point-cloud targets (default 3 spacings)")
+    parser.add_argument("--mesh-mode", choices=MeshLoss.MODES, default="surface", help="mesh targets: surface or outside")
+    parser.add_argument("--checkpoint-every", type=_checkpoint_every, metavar="S|auto",
+                        help="checkpoint the rollout every S steps (less memory, one more forward pass); default auto: "
+                             "sized from the memory estimate and --memory-limit")
+    parser.add_argument("--dtype", choices=("float32", "float64"), default="float64", help="precision (default float64)")
+    parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="Warp device (default cpu)")
+    parser.add_argument("-o", "--output", metavar="OUT.json", help="the fit's JSON file (default: fit.json in --output-dir)")
+    parser.add_argument("--no-usd", action="store_true", help="do not write the fitted run to USD")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from .calibrate import add_calibration_arguments  # noqa: PLC0415
+
+    add_calibration_arguments(parser)
+    return parser
+
+
+def _checkpoint_every(text):
+    if str(text).strip().lower() == "auto":
+        return "auto"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid value {text!r}: give a number of steps or 'auto'") from None
+
+
+def _parse_bounds(items) -> dict:
+    out = {}
+    for item in items or []:
+        try:
+            name, rng = item.split("=", 1)
+            lo, hi = rng.split(":", 1)
+            out[name.strip()] = (float(lo), float(hi))
+        except ValueError:
+            raise ValueError(f"--bounds {item!r} is not allowed: use NAME=LO:HI, e.g. flow_rate=1:1000") from None
+    return out
+
+
+def fit_cli(args, out=None) -> int:
+    """Run ``warp-esph fit`` from parsed ``args`` (see ``add_fit_arguments``); returns 0.
+
+    The work is ``warp_esph.calibrate.run_fit``: it prints the memory and time estimates,
+    fits, says whether the fit converged, stalled or hit the iteration cap, prints the
+    diagnostics and writes ``fit.json``, ``history.csv``, ``loss.png``, ``params.png`` and
+    ``fitted.usdc`` into ``--output-dir``. Raises ``ValueError``/``OSError`` on bad input
+    (the CLI maps them to exit status 2).
+    """
+    from .calibrate import run_fit  # noqa: PLC0415
+
+    return run_fit(args, out=out)
+
+
 def _cmd_render(args) -> int:
     from . import checks  # noqa: PLC0415
     from .render import render_usd  # noqa: PLC0415
@@ -333,11 +460,12 @@ def _cmd_render(args) -> int:
         args.usd, args.output, args.frames, color=args.color, width=args.width, height=args.height,
         supersample=args.supersample, radius_scale=args.radius_scale, azimuth=args.azimuth, elevation=args.elevation,
         zoom=args.zoom, label=not args.no_label, shadows=not args.no_shadows, columns=args.columns, fps=args.fps,
-        fit=args.fit, progress=progress,
+        fit=args.fit, surfaces=not args.particles, progress=progress,
     )
     what = {"dir": f"{len(result.files)} PNG files in {result.output}", "png": result.output,
             "gif": f"{result.output} ({len(result.frames)} frames)", "mp4": f"{result.output} ({len(result.frames)} frames)"}
-    print(f"wrote {what[result.kind]}: {args.width}x{args.height}, {result.particles} particles, "
+    drawn = f"{result.particles} particles" + (f" ({result.surface_bodies} bodies as surfaces)" if result.surface_bodies else "")
+    print(f"wrote {what[result.kind]}: {args.width}x{args.height}, {drawn}, "
           f"{result.seconds:.1f} s ({result.seconds_per_frame:.2f} s/frame)")
     return 0
 
@@ -461,9 +589,11 @@ def _dispatch(args) -> int:
                 return _cmd_render(args)
             if args.command == "export":
                 return _cmd_export(args)
-            if args.command == "fit":
-                from .fit import fit_cli  # noqa: PLC0415
+            if args.command == "sweep":
+                from .sweep import sweep_cli  # noqa: PLC0415
 
+                return sweep_cli(args)
+            if args.command == "fit":
                 _init_warp(args.device)
                 _arm(args)
                 return fit_cli(args)
@@ -509,7 +639,10 @@ def _read_failure(args, exc: BaseException) -> str:
     elif args.command == "run":
         files = [args.output] if pxr and args.output else [args.resume or args.scene]
     else:
-        files = [getattr(args, "target", None) if not pxr else None, getattr(args, "scene", None)]
+        # fit's --target is repeatable (a list): one is named, several are listed.
+        targets = getattr(args, "target", None) or []
+        targets = [targets] if isinstance(targets, str) else list(targets)
+        files = [", ".join(map(str, targets)) if targets and not pxr else None, getattr(args, "scene", None)]
     name = next((f for f in files if f), None)
     where = f" {str(name)!r}" if name else ""
     return f"cannot read{where}: {read_reason(exc)} (a damaged or foreign file?)"

@@ -55,12 +55,12 @@ def frame_arrays_to_mesh(arrays: dict, fmt: str):
 
 
 def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None) -> list[str]:
-    """Write ``frames`` (see ``render.parse_frames``; default all) of ``usd_path`` as ``fmt``
+    """Write ``frames`` (see ``usd.parse_frames``; default all) of ``usd_path`` as ``fmt``
     (``vtu`` or ``ply``) files into ``output_dir`` (created); returns the files written."""
     import meshio  # noqa: PLC0415
 
     from . import checks  # noqa: PLC0415
-    from .render import UsdFrames, parse_frames  # noqa: PLC0415
+    from .usd import UsdFrames, parse_frames  # noqa: PLC0415
 
     fmt = checks.choice("format", fmt, EXPORT_FORMATS)
     data = UsdFrames(usd_path)

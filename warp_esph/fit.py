@@ -6,6 +6,11 @@
                  frames=[100, 200, 300], iterations=60)
     result.materials[0]        # the fitted Material
     result.history             # loss and parameter values per iteration
+    result.stopped             # converged, stalled, iterations, flat, tol or callback
+    result.diagnostics         # warp_esph.diagnostics.Diagnostics at the optimum
+
+    fit([Experiment(model_a, loss_a, ...), Experiment(model_b, loss_b, ...)], None, params)
+                               # a joint fit: several experiments sharing one material
 
 ``model`` is a ``Model`` finalized with ``requires_grad=True``, a ``SceneBuilder``, or a
 callable returning either (builders are finalized in ``dtype``, float64 by default). The
@@ -16,19 +21,18 @@ or target positions (``(frames, n, 3)``, ``{step: (n, 3)}``) fitted with a
 Positive parameters are optimised in log space (a step of Adam changes them by about
 ``lr`` relative), others (e.g. ``hardening = 0``) in linear space scaled by their initial
 magnitude. ``bounds={"flow_rate": (1, 1e3)}`` clips them; ``clip`` caps the norm of the
-optimiser-space gradient (long horizons can give exploding gradients, WARP_NOTES).
+optimiser-space gradient (long horizons can give exploding gradients, docs/method.md).
 
 ``tie_pressure``: a ``Material`` whose ``pressure_stiffness`` was left at its default
 follows ``mu`` and ``lam`` (``k_p = (lam + 2 mu / 3) / (2 rho0)``); with ``None`` (the
 default) each fitted material whose ``k_p`` equals that formula keeps following it while
 ``mu``/``lam`` change, with the chain rule applied to the gradient.
 
-``fit_cli(args)`` is the ``warp-esph fit`` subcommand (``add_fit_arguments`` declares its
-options); see ``docs/fitting.md``.
+The ``warp-esph fit`` subcommand is ``warp_esph.cli.fit_cli`` (``add_fit_arguments``
+declares its options); see ``docs/fitting.md``.
 """
 
 import dataclasses
-import json
 import math
 import os
 import sys
@@ -40,12 +44,13 @@ import warp as wp
 
 from . import checks
 from .builder import SceneBuilder
-from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss
+from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, WorldLoss
 from .material import Material
 from .model import Model
 from .rollout import PARAMETERS, Rollout
 
-__all__ = ["fit", "FitResult", "Adam", "load_target", "save_target", "Target", "add_fit_arguments", "fit_cli"]
+__all__ = ["fit", "FitResult", "Experiment", "Adam", "memory_estimate", "choose_checkpointing", "latin_hypercube",
+           "load_target", "save_target", "Target", "write_fitted_usd"]
 
 #: Parameters that must stay > 0 (log space always).
 _POSITIVE = ("mu", "yield_stress", "flow_rate")
@@ -76,10 +81,17 @@ class FitResult:
     """What ``fit`` returns.
 
     ``params``: the fitted values (lowest loss seen), ``{name: one value per fitted
-    material}``; ``materials``: every material of the model with those values;
-    ``history``: one dict per evaluation (``iteration, loss, params, grad, seconds``;
-    ``grad`` is in optimiser space: ``p dL/dp`` for log-space parameters).
-    ``stopped``: why the fit ended (``iterations``, ``converged``, ``tol``, ``callback``).
+    material}``; ``materials``: every material of the (first) model with those values;
+    ``history``: one dict per evaluation (``iteration, stage, loss, params, grad,
+    seconds``; ``stage`` is ``sample`` for the forward-only global stage, whose ``grad`` is
+    None, else ``descent``; ``grad`` is in optimiser space: ``p dL/dp`` for log-space
+    parameters). ``stopped``: why the fit ended: ``converged`` (step or gradient below
+    its tolerance), ``stalled`` (no lower loss for ``patience`` evaluations, or a line
+    search that found none), ``iterations`` (the cap), ``flat`` (the initial gradient is
+    exactly zero), ``tol``, ``callback``;
+    ``converged`` is True only for ``converged`` and ``tol``. ``diagnostics``: a
+    ``warp_esph.diagnostics.Diagnostics`` at the optimum (None when not asked for).
+    ``models``/``experiment_materials``: per experiment of a joint fit.
     """
 
     params: dict[str, np.ndarray]
@@ -90,6 +102,32 @@ class FitResult:
     history: list[dict]
     model: Model
     stopped: str = "iterations"
+    diagnostics: object = None
+    models: list = dataclasses.field(default_factory=list)
+    experiment_materials: list = dataclasses.field(default_factory=list)
+    starts: list = dataclasses.field(default_factory=list)
+    evaluations: int = 0
+
+    TERMINATION = {
+        "converged": "converged: the last step (or the gradient) fell below its tolerance",
+        "tol": "converged: the loss fell below tol",
+        "stalled": "stalled: the loss stopped decreasing before the step or gradient tolerance was met "
+                   "(a rough loss, or a valley the optimiser cannot follow); the result may not be a minimum",
+        "iterations": "hit the iteration cap before converging; the result may not be a minimum "
+                      "(raise the iteration cap; with Adam, try L-BFGS)",
+        "flat": "stopped at once: the gradient is exactly zero, the loss does not depend on the fitted parameters "
+                "here (e.g. no particle reaches the yield stress); start elsewhere or observe another experiment",
+        "callback": "stopped by the callback",
+    }
+
+    @property
+    def converged(self) -> bool:
+        return self.stopped in ("converged", "tol")
+
+    @property
+    def termination(self) -> str:
+        """One sentence: how the fit ended and what it means."""
+        return self.TERMINATION.get(self.stopped, self.stopped)
 
     @property
     def material(self) -> Material:
@@ -107,8 +145,12 @@ class FitResult:
             "materials": [mat(m) for m in self.materials],
             "loss": self.loss,
             "initial_loss": self.initial_loss,
-            "iterations": len(self.history) - 1,
+            "iterations": self.evaluations - 1,
             "stopped": self.stopped,
+            "converged": self.converged,
+            "termination": self.termination,
+            "starts": list(self.starts),
+            "diagnostics": None if self.diagnostics is None else self.diagnostics.to_dict(),
             "history": self.history,
         })
 
@@ -167,7 +209,7 @@ def _target_loss(target, frames) -> Loss:
     if isinstance(target, Loss):
         return target
     if isinstance(target, (str, os.PathLike)):
-        raise ValueError("target is a file: load it with load_target(path).loss(model, ...) first (or use fit_cli)")
+        raise ValueError("target is a file: load it with load_target(path).loss(model, ...) first (or use 'warp-esph fit')")
     if isinstance(target, Mapping):
         return PositionLoss(target)
     a = np.asarray(target, dtype=np.float64)
@@ -176,9 +218,246 @@ def _target_loss(target, frames) -> Loss:
     return PositionLoss(a, frames=frames)
 
 
+@dataclasses.dataclass
+class Experiment:
+    """One experiment of a joint fit: its own scene (``model``) and observation (``target``).
+
+    ``model``, ``target``, ``steps``, ``dt``, ``frames``, ``materials``, ``initial`` and
+    ``checkpoint_every`` mean what they mean for ``fit``. Every experiment fits the same
+    parameters: material ``k`` of each experiment's ``materials`` shares its values with
+    material ``k`` of every other (so each must select the same number of materials), and
+    the initial guess is the first experiment's. ``weight`` scales this experiment's loss
+    in the joint sum; ``noise`` is its observation noise for the diagnostics (None: the
+    ``noise`` given to ``fit``). ``name`` labels it in messages.
+    """
+
+    model: object
+    target: object
+    steps: int | None = None
+    dt: float | None = None
+    frames: Sequence[int] | None = None
+    materials: object = None
+    initial: Mapping[str, object] | None = None
+    checkpoint_every: int | str | None = "auto"
+    weight: float = 1.0
+    noise: float | None = None
+    name: str | None = None
+
+
+#: Default memory budget (bytes) of ``checkpoint_every="auto"``.
+MEMORY_LIMIT = 1 << 30
+
+
+def _state_bytes(model: Model) -> tuple[int, int, int]:
+    """Bytes of one taped ``State``, one untaped ``State`` and one checkpoint of ``model``."""
+    from .rollout import _Checkpoint, state_nbytes  # noqa: PLC0415
+
+    return (state_nbytes(model.state(requires_grad=True)), state_nbytes(model.state(requires_grad=False)),
+            _Checkpoint(model).nbytes)
+
+
+def memory_estimate(model: Model, steps: int, checkpoint_every: int | None, _sizes=None) -> int:
+    """Bytes the rollout's Warp arrays will hold: ``steps + 1`` taped states for a full
+    tape; ``S + 1`` taped states, two untaped ones and ``steps / S`` checkpoints with
+    ``checkpoint_every = S`` (measured from this model's own ``State``, not a constant)."""
+    taped, light, ck = _sizes or _state_bytes(model)
+    if checkpoint_every is None or checkpoint_every >= steps:
+        return (steps + 1) * taped
+    return (checkpoint_every + 1) * taped + 2 * light + math.ceil(steps / checkpoint_every) * ck
+
+
+def choose_checkpointing(model: Model, steps: int, memory_limit: float = MEMORY_LIMIT) -> int | None:
+    """The segment length for ``checkpoint_every="auto"``: ``None`` (one full tape, the
+    fastest) when that fits in ``memory_limit`` bytes, else the longest segment whose
+    rollout fits, and never shorter than ``sqrt(steps)`` (the memory minimum)."""
+    sizes = _state_bytes(model)
+    if memory_estimate(model, steps, None, sizes) <= memory_limit:
+        return None
+    shortest = max(1, round(math.sqrt(steps)))
+    lo, hi = shortest, steps - 1
+    if memory_estimate(model, steps, lo, sizes) > memory_limit:
+        return shortest
+    while lo < hi:  # the estimate grows with S beyond sqrt(steps)
+        mid = (lo + hi + 1) // 2
+        if memory_estimate(model, steps, mid, sizes) <= memory_limit:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+class _Run:
+    """One experiment made ready: its model, rollout, loss and fitted materials."""
+
+    def __init__(self, exp: Experiment, dtype, memory_limit, name):
+        self.name = name
+        self.model = _as_model(exp.model, dtype)
+        self.idx = _material_indices(self.model, exp.materials)
+        self.loss = _target_loss(exp.target, exp.frames)
+        loss = self.loss
+        self.steps = max(loss.frames) if exp.steps is None else checks.positive_int("steps", exp.steps)
+        if max(loss.frames) > self.steps:
+            raise ValueError(f"{name}: the target has frames up to step {max(loss.frames)}, beyond steps = {self.steps}")
+        self.dt = self.model.stable_dt() if exp.dt is None else checks.positive("dt", exp.dt)
+        ck = exp.checkpoint_every
+        if isinstance(ck, str):
+            if ck != "auto":
+                raise ValueError(f"checkpoint_every = {ck!r} is not allowed: give 'auto', None or a number of steps")
+            ck = choose_checkpointing(self.model, self.steps, memory_limit)
+        self.rollout = Rollout(self.model, self.steps, self.dt, frames=loss.frames, checkpoint_every=ck)
+        self.memory = memory_estimate(self.model, self.steps, self.rollout.segment if self.rollout.checkpointing else None)
+        self.initial = dict(exp.initial or {})
+        self.weight = checks.number("weight", exp.weight)
+        self.noise = None if exp.noise is None else checks.positive("noise", exp.noise)
+        self.values = self.rollout.get_parameters()
+        self.rho = np.array([m.density for m in self.model.materials])
+
+    def setup_tie(self, params, tie_pressure):
+        m = self.model.materials
+        if tie_pressure is None:
+            self.tied = [k for k in self.idx if math.isclose(m[k].pressure_stiffness, m[k].bulk_modulus / (2 * m[k].density),
+                                                             rel_tol=1e-9)]
+        else:
+            self.tied = list(self.idx) if tie_pressure else []
+        self.tie = bool(self.tied) and ("mu" in params or "lam" in params) and "pressure_stiffness" not in params
+
+    def apply(self, p):
+        v = self.values
+        full = {name: _full(v[name], self.idx, val) for name, val in p.items()}
+        if self.tie:
+            mu = full.get("mu", v["mu"])
+            lam = full.get("lam", v["lam"])
+            kp = v["pressure_stiffness"].copy()
+            kp[self.tied] = (lam[self.tied] + 2.0 * mu[self.tied] / 3.0) / (2.0 * self.rho[self.tied])
+            full["pressure_stiffness"] = kp
+        self.rollout.set_parameters(full)
+
+    def grads(self, params, grads) -> dict[str, np.ndarray]:
+        """Gradients of the fitted values (chain rule through the pressure tie)."""
+        out = {}
+        for name in params:
+            g = grads[name].copy()
+            if self.tie and name in ("mu", "lam"):
+                factor = 1.0 / (3.0 * self.rho) if name == "mu" else 1.0 / (2.0 * self.rho)
+                g[self.tied] += grads["pressure_stiffness"][self.tied] * factor[self.tied]
+            out[name] = g[self.idx]
+        return out
+
+    def finish(self, p, params):
+        """Leave the model holding the fitted materials; returns its material list."""
+        self.apply(p)
+        fitted = list(self.model.materials)
+        kp_now = self.rollout.get_parameters()["pressure_stiffness"]
+        for j, k in enumerate(self.idx):
+            changes = {name: float(p[name][j]) for name in params}
+            if self.tie and k in self.tied:
+                changes["pressure_stiffness"] = float(kp_now[k])
+            fitted[k] = dataclasses.replace(self.model.materials[k], **changes)
+        for k in self.idx:
+            self.model.set_material(k, fitted[k])
+        return fitted
+
+
+class _Problem:
+    """The shared parameter vector of one or more experiments, in optimiser space.
+
+    ``z = log(p)`` for positive parameters, ``p / scale`` for the others; ``bounds`` clip.
+    """
+
+    def __init__(self, runs: list[_Run], params, bounds):
+        self.runs, self.params = runs, params
+        first = runs[0]
+        self.k = len(first.idx)
+        for r in runs[1:]:
+            if len(r.idx) != self.k:
+                raise ValueError(f"{r.name} fits {len(r.idx)} materials, {first.name} {self.k}: a joint fit shares "
+                                 f"material k of every experiment, so each must select the same number (materials=...)")
+        values = first.values
+        self.spaces, self.scales = {}, {}
+        for name in params:
+            v = values[name][first.idx]
+            if name in _POSITIVE or (v > 0).all():
+                if not (v > 0).all():
+                    raise ValueError(f"{name} must be > 0 to be fitted, the initial values are {v.tolist()}")
+                self.spaces[name] = "log"
+            else:
+                self.spaces[name] = "linear"
+                self.scales[name] = max(float(np.abs(v).max()), 1.0)
+        self.bounds = {}
+        for name, (lo, hi) in (bounds or {}).items():
+            if name not in params:
+                raise ValueError(f"bounds for {name!r} are not allowed: {name} is not fitted (params = {params})")
+            lo, hi = float(lo), float(hi)
+            if not lo < hi or (self.spaces[name] == "log" and lo <= 0.0 and lo != -math.inf):
+                raise ValueError(f"bounds[{name!r}] = ({lo}, {hi}) is not allowed: need lo < hi (and lo > 0 for a positive parameter)")
+            self.bounds[name] = (lo, hi)
+        self.z0 = self.project(self.to_z({name: values[name][first.idx] for name in params}))
+        #: One label per entry of z: ``name`` or ``name[k]`` with several materials.
+        self.labels = [name if self.k == 1 else f"{name}[{j}]" for name in params for j in range(self.k)]
+
+    def to_z(self, p) -> np.ndarray:
+        return np.concatenate([np.log(p[n]) if self.spaces[n] == "log" else p[n] / self.scales[n] for n in self.params])
+
+    def from_z(self, z) -> dict[str, np.ndarray]:
+        out = {}
+        for j, name in enumerate(self.params):
+            zz = np.asarray(z[j * self.k: (j + 1) * self.k], dtype=np.float64)
+            v = np.exp(zz) if self.spaces[name] == "log" else zz * self.scales[name]
+            if name in self.bounds:
+                v = np.clip(v, *self.bounds[name])
+            out[name] = v
+        return out
+
+    def project(self, z) -> np.ndarray:
+        return self.to_z(self.from_z(z))
+
+    def z_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lo, hi = [], []
+        for name in self.params:
+            a, b = self.bounds.get(name, (-math.inf, math.inf))
+            if self.spaces[name] == "log":
+                a, b = (math.log(a) if a > 0 else -math.inf), (math.log(b) if b < math.inf else math.inf)
+            else:
+                a, b = a / self.scales[name], b / self.scales[name]
+            lo += [a] * self.k
+            hi += [b] * self.k
+        return np.array(lo), np.array(hi)
+
+    def grad_z(self, p, grads: dict[str, np.ndarray]) -> np.ndarray:
+        return np.concatenate([grads[n] * p[n] if self.spaces[n] == "log" else grads[n] * self.scales[n] for n in self.params])
+
+    def apply(self, z):
+        p = self.from_z(z)
+        for r in self.runs:
+            r.apply(p)
+        return p
+
+    def value_and_grad(self, z, losses=None) -> tuple[float, np.ndarray]:
+        """The weighted sum of the experiments' losses (or of ``losses``, one per run) and
+        its gradient in optimiser space."""
+        p = self.apply(z)
+        total, gz = 0.0, np.zeros(len(z))
+        for k, r in enumerate(self.runs):
+            loss = r.loss if losses is None else losses[k]
+            w = r.weight if losses is None else 1.0
+            value, grads = r.rollout.value_and_grad(loss, **r.initial)
+            total += w * float(value)
+            gz += w * self.grad_z(p, r.grads(self.params, grads))
+        return total, gz
+
+    def value(self, z) -> float:
+        """The loss alone (forward passes only, no tape backward)."""
+        self.apply(z)
+        total = 0.0
+        for r in self.runs:
+            r.rollout.forward(**r.initial)
+            total += r.weight * r.loss.value(dict(zip(r.rollout.frames, r.rollout.frame_positions)))
+        return total
+
+
 def fit(
     model,
-    target,
+    target=None,
     params: Sequence[str] = ("yield_stress", "flow_rate"),
     *,
     steps: int | None = None,
@@ -190,28 +469,45 @@ def fit(
     lr_end: float | None = None,
     bounds: Mapping[str, tuple[float, float]] | None = None,
     clip: float | None = None,
-    checkpoint_every: int | None = None,
+    checkpoint_every: int | str | None = "auto",
+    memory_limit: float = MEMORY_LIMIT,
     tie_pressure: bool | None = None,
     initial: Mapping[str, object] | None = None,
     tol: float | None = None,
+    xtol: float = 1e-6,
+    gtol: float = 1e-7,
+    patience: int = 20,
     callback: Callable | None = None,
     progress: bool = True,
     dtype=wp.float64,
     optimizer: str = "adam",
     max_step: float = 1.0,
     lbfgs_memory: int = 10,
+    samples: int = 0,
+    starts: int = 1,
+    sample_range: float = 4.0,
+    seed: int = 0,
+    diagnostics: bool = True,
+    noise: float | None = None,
+    fd_step: float = 1e-3,
+    log: Callable[[str], None] | None = None,
 ) -> FitResult:
     """Fit ``params`` of the model's materials so the rollout matches ``target``.
 
+    - ``model``: a ``Model`` (``requires_grad=True``), ``SceneBuilder`` or callable; or a
+      list of ``Experiment`` (then ``target`` is None): a joint fit of several experiments
+      sharing one material, the sum of their weighted losses.
     - ``steps``/``dt``: the rollout (default ``steps`` = the last target frame, ``dt`` =
       the model's stable step). ``frames``: step indices of target positions (a ``Loss``
       carries its own).
     - ``materials``: indices (or body names) of the materials to fit; default all. With a
       per-particle model (``rollout.split_materials``) this fits a field.
-    - ``iterations``, ``lr``: Adam steps and step size (relative, in log space);
-      ``lr_end``: decay the step size geometrically to this value at the last iteration.
+    - ``iterations``, ``lr``: optimiser steps and step size (relative, in log space);
+      ``lr_end``: decay Adam's step size geometrically to this value at the last iteration.
     - ``bounds``: ``{name: (lo, hi)}`` in the parameter's units. ``clip``: gradient norm cap.
-    - ``checkpoint_every``: segment length for checkpointed rollouts (long runs).
+    - ``checkpoint_every``: segment length for checkpointed rollouts; ``"auto"``: a full
+      tape when it fits in ``memory_limit`` bytes, else the longest segment that fits
+      (``choose_checkpointing``).
     - ``initial``: ``Rollout.forward`` keywords (``x0, v0, F0, alpha0, initial_state``).
     - ``optimizer``: ``"adam"`` (default; ``lr``, ``lr_end``, ``clip``) or ``"lbfgs"``
       (quasi-Newton with a backtracking line search: far fewer evaluations on a smooth
@@ -219,10 +515,25 @@ def fit(
       parameter by more than ``max_step`` in optimiser space, i.e. a factor ``e`` for
       log-space parameters). ``iterations`` counts gradient evaluations after the first
       (line-search trials included), so both optimisers cost ``iterations + 1`` rollouts.
-    - ``tol``: stop once the loss is below it. ``callback(evaluation, loss, params)``:
-      after each evaluation; return ``True`` to stop.
+    - Termination (``result.stopped``): ``"converged"`` when an accepted step moves no
+      optimiser coordinate by more than ``xtol`` or the gradient's largest entry falls
+      below ``gtol`` times its initial one; ``"stalled"`` when ``patience`` evaluations
+      in a row did not lower the best loss (by 1e-9 relative); ``"iterations"`` at the
+      cap; ``"flat"`` when the initial gradient is exactly zero (nothing to follow);
+      ``"tol"`` once the loss is below ``tol``; ``"callback"``.
+    - Global first stage: ``samples = N > 0`` evaluates the loss alone (forward passes)
+      at ``N`` Latin-hypercube points of optimiser space, within ``bounds`` or else within
+      a factor ``sample_range`` of the guess (log space; linear ones +-``sample_range``
+      times their scale), plus the guess; gradient descent then starts from the best
+      ``starts`` of them, one after the other, and the lowest loss wins (``seed``: RNG).
+    - ``diagnostics``: at the optimum, the Fisher (Gauss-Newton) information of the data
+      for observation noise ``noise`` (m; see ``warp_esph.diagnostics``), from central
+      differences (step ``fd_step`` in optimiser space) of taped gradients: ``2 P``
+      extra evaluations for ``P`` fitted values. ``result.diagnostics`` holds standard
+      errors, correlations and warnings about parameters the data do not determine.
+    - ``callback(evaluation, loss, params)``: after each evaluation; return ``True`` to
+      stop. ``log``: called with one-line messages (memory, time per evaluation, stages).
     """
-    model = _as_model(model, dtype)
     if isinstance(params, str):
         params = [p.strip() for p in params.split(",") if p.strip()]
     params = list(params)
@@ -233,7 +544,6 @@ def fit(
             raise ValueError(f"params entry {p!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
     if len(set(params)) != len(params):
         raise ValueError(f"params = {params!r} is not allowed: names must be distinct")
-    idx = _material_indices(model, materials)
     iterations = int(iterations)
     if iterations < 0:
         raise ValueError(f"iterations = {iterations!r} is not allowed: must be >= 0")
@@ -242,116 +552,71 @@ def fit(
     optimizer = checks.choice("optimizer", optimizer, ("adam", "lbfgs"))
     max_step = checks.positive("max_step", max_step)
     lbfgs_memory = checks.positive_int("lbfgs_memory", lbfgs_memory)
-    if callback is not None and not callable(callback):
-        raise ValueError(f"callback = {callback!r} is not allowed: must be callable")
-    loss = _target_loss(target, frames)
-    steps = max(loss.frames) if steps is None else checks.positive_int("steps", steps)
-    if max(loss.frames) > steps:
-        raise ValueError(f"the target has frames up to step {max(loss.frames)}, beyond steps = {steps}")
-    dt = model.stable_dt() if dt is None else checks.positive("dt", dt)
-    rollout = Rollout(model, steps, dt, frames=loss.frames, checkpoint_every=checkpoint_every)
-    initial = dict(initial or {})
-
-    # Optimiser space: z = log(p) (positive) or p / scale (others).
-    values = rollout.get_parameters()
-    spaces, scales = {}, {}
-    for name in params:
-        v = values[name][idx]
-        if name in _POSITIVE or (v > 0).all():
-            if not (v > 0).all():
-                raise ValueError(f"{name} must be > 0 to be fitted, the initial values are {v.tolist()}")
-            spaces[name] = "log"
-        else:
-            spaces[name] = "linear"
-            scales[name] = max(float(np.abs(v).max()), 1.0)
-    lo_hi = {}
-    for name, (lo, hi) in (bounds or {}).items():
-        if name not in params:
-            raise ValueError(f"bounds for {name!r} are not allowed: {name} is not fitted (params = {params})")
-        lo, hi = float(lo), float(hi)
-        if not lo < hi or (spaces[name] == "log" and lo <= 0.0 and lo != -math.inf):
-            raise ValueError(f"bounds[{name!r}] = ({lo}, {hi}) is not allowed: need lo < hi (and lo > 0 for a positive parameter)")
-        lo_hi[name] = (lo, hi)
-
-    rho = np.array([m.density for m in model.materials])
-    if tie_pressure is None:
-        tied = [k for k in idx if math.isclose(model.materials[k].pressure_stiffness,
-                                               model.materials[k].bulk_modulus / (2 * model.materials[k].density), rel_tol=1e-9)]
-    else:
-        tied = list(idx) if tie_pressure else []
-    tie = bool(tied) and ("mu" in params or "lam" in params) and "pressure_stiffness" not in params
-
-    def to_z(vals):
-        parts = []
-        for name in params:
-            v = vals[name][idx]
-            parts.append(np.log(v) if spaces[name] == "log" else v / scales[name])
-        return np.concatenate(parts)
-
-    def from_z(z):
-        out, k = {}, 0
-        for name in params:
-            zz = z[k: k + len(idx)]
-            k += len(idx)
-            v = np.exp(zz) if spaces[name] == "log" else zz * scales[name]
-            if name in lo_hi:
-                v = np.clip(v, *lo_hi[name])
-            out[name] = v
-        return out
-
-    def project(z):
-        return to_z({name: _full(values[name], idx, v) for name, v in from_z(z).items()})
-
-    def apply(p):
-        full = {name: _full(values[name], idx, v) for name, v in p.items()}
-        if tie:
-            mu = full.get("mu", values["mu"])
-            lam = full.get("lam", values["lam"])
-            kp = values["pressure_stiffness"].copy()
-            kp[tied] = (lam[tied] + 2.0 * mu[tied] / 3.0) / (2.0 * rho[tied])
-            full["pressure_stiffness"] = kp
-        rollout.set_parameters(full)
-
-    def grad_z(p, grads):
-        parts = []
-        for name in params:
-            g = grads[name].copy()
-            if tie and name in ("mu", "lam"):
-                gk = grads["pressure_stiffness"]
-                factor = 1.0 / (3.0 * rho) if name == "mu" else 1.0 / (2.0 * rho)
-                g[tied] += gk[tied] * factor[tied]
-            g = g[idx]
-            parts.append(g * p[name] if spaces[name] == "log" else g * scales[name])
-        return np.concatenate(parts)
-
-    z0 = project(to_z(values))
+    xtol = checks.positive("xtol", xtol)
+    gtol = checks.non_negative("gtol", gtol)
+    patience = checks.positive_int("patience", patience)
+    samples = int(samples)
+    if samples < 0:
+        raise ValueError(f"samples = {samples!r} is not allowed: must be >= 0")
+    starts = checks.positive_int("starts", starts)
+    sample_range = checks.greater_than("sample_range", sample_range, 1.0, "1")
+    memory_limit = checks.positive("memory_limit", memory_limit)
+    fd_step = checks.positive("fd_step", fd_step)
+    if noise is not None:
+        noise = checks.positive("noise", noise)
     if lr_end is not None:
         lr_end = checks.positive("lr_end", lr_end)
+    if callback is not None and not callable(callback):
+        raise ValueError(f"callback = {callback!r} is not allowed: must be callable")
+    say = log or (lambda message: None)
+
+    if isinstance(model, (list, tuple)) and model and all(isinstance(e, Experiment) for e in model):
+        if target is not None:
+            raise ValueError("target is not allowed with a list of Experiments: each carries its own")
+        exps = list(model)
+    else:
+        if target is None:
+            raise ValueError("target is required (or give a list of Experiment)")
+        exps = [Experiment(model, target, steps=steps, dt=dt, frames=frames, materials=materials, initial=initial,
+                           checkpoint_every=checkpoint_every, noise=noise)]
+    runs = [_Run(e, dtype, memory_limit, e.name or (f"experiment {k}" if len(exps) > 1 else "the experiment"))
+            for k, e in enumerate(exps)]
+    for r in runs:
+        r.setup_tie(params, tie_pressure)
+        mode = f"checkpoint every {r.rollout.segment} steps" if r.rollout.checkpointing else "full tape"
+        say(f"{r.name}: {r.model.particle_count} particles, {r.steps} steps of {r.dt:.4g} s; {mode}: "
+            f"~{r.memory / 2**20:.1f} MiB of Warp arrays "
+            f"({r.memory / (r.model.particle_count * r.steps):.0f} B per particle per step)")
+    prob = _Problem(runs, params, bounds)
     history: list[dict] = []
     best = [math.inf, None]
-    bar = None
+    state = {"since_best": 0, "bar": None, "stage": "descent"}
 
     def evaluate(z):
         """Loss and optimiser-space gradient at z; records history, best, callback."""
-        p = from_z(z)
-        apply(p)
         t0 = time.perf_counter()
+        p = prob.from_z(z)
         try:
-            value, grads = rollout.value_and_grad(loss, **initial)
-            gz = grad_z(p, grads)
+            value, gz = prob.value_and_grad(z)
         except FloatingPointError:
             value, gz = math.inf, np.full(len(z), np.nan)
         value = float(value)
         finite = math.isfinite(value) and bool(np.isfinite(gz).all())
+        seconds = time.perf_counter() - t0
         history.append({
             "iteration": len(history),
+            "stage": state["stage"],
             "loss": value,
             "params": {k: [float(x) for x in v] for k, v in p.items()},
             "grad": [float(x) for x in gz],
-            "seconds": time.perf_counter() - t0,
+            "seconds": seconds,
         })
-        if finite and value < best[0]:
-            best[0], best[1] = value, {k: v.copy() for k, v in p.items()}
+        if not state.get("timed"):
+            state["timed"] = True
+            say(f"one evaluation (forward + backward) took {seconds:.3g} s: "
+                f"up to {iterations + 1} evaluations, ~{_duration(seconds * (iterations + 1) * starts)}")
+        _record_best(value, finite, p)
+        bar = state["bar"]
         if bar is not None:
             shown = ", ".join(f"{k}={v[0]:.4g}" for k, v in p.items())
             bar.set_postfix_str(f"loss={value:.3e}, {shown}", refresh=False)
@@ -360,59 +625,146 @@ def fit(
             raise _Stop("callback")
         if tol is not None and finite and value < tol:
             raise _Stop("tol")
+        if state["since_best"] >= patience:
+            raise _Stop("stalled")
         return value, gz, finite
 
+    def _record_best(value, finite, p):
+        if finite and value < best[0] - 1e-9 * abs(best[0]):
+            state["since_best"] = 0
+        else:
+            state["since_best"] += 1
+        if finite and value < best[0]:
+            best[0], best[1] = value, {k: v.copy() for k, v in p.items()}
+
+    # ------------------------------------------------------------ global stage
+    start_points = [prob.z0]
+    if samples:
+        state["stage"] = "sample"
+        lo, hi = prob.z_bounds()
+        span = np.where(np.array([prob.spaces[n] == "log" for n in params for _ in range(prob.k)]),
+                        math.log(sample_range), sample_range)
+        lo = np.maximum(lo, prob.z0 - span)
+        hi = np.minimum(hi, prob.z0 + span)
+        rng = np.random.default_rng(seed)
+        cube = latin_hypercube(samples, len(prob.z0), rng)
+        cands = [prob.z0] + [lo + u * (hi - lo) for u in cube]
+        scored = []
+        t0 = time.perf_counter()
+        for z in cands:
+            try:
+                v = float(prob.value(z))
+            except FloatingPointError:
+                v = math.inf
+            history.append({"iteration": len(history), "stage": "sample", "loss": v,
+                            "params": {k: [float(x) for x in vv] for k, vv in prob.from_z(z).items()},
+                            "grad": None, "seconds": 0.0})
+            scored.append((v if math.isfinite(v) else math.inf, len(scored), z))
+        say(f"global stage: {len(cands)} forward-only evaluations in {time.perf_counter() - t0:.3g} s; "
+            f"best loss {min(s[0] for s in scored):.4g} (guess {scored[0][0]:.4g})")
+        scored.sort(key=lambda s: (s[0], s[1]))
+        start_points = [s[2] for s in scored[:starts]]
+        state["stage"] = "descent"
+
     stopped = "iterations"
+    stops = []
     if progress:
         from tqdm import tqdm  # noqa: PLC0415
 
-        bar = tqdm(total=iterations + 1, unit="eval", file=sys.stderr, dynamic_ncols=True, desc=f"fit ({optimizer})")
+        state["bar"] = tqdm(total=(iterations + 1) * len(start_points), unit="eval", file=sys.stderr,
+                            dynamic_ncols=True, desc=f"fit ({optimizer})")
+    run_best = []
     try:
-        if optimizer == "adam":
-            stopped = _run_adam(evaluate, project, z0, iterations, lr, lr_end, clip, history)
-        else:
-            stopped = _run_lbfgs(evaluate, project, z0, iterations, lr, max_step, memory=lbfgs_memory)
-    except _Stop as e:
-        stopped = str(e)
+        for z_start in start_points:
+            state["since_best"] = 0
+            best[0], best[1] = math.inf, None  # each start keeps its own best
+            try:
+                if optimizer == "adam":
+                    stop = _run_adam(evaluate, prob.project, z_start, iterations, lr, lr_end, clip, history, xtol, gtol)
+                else:
+                    stop = _run_lbfgs(evaluate, prob.project, z_start, iterations, lr, max_step, memory=lbfgs_memory,
+                                      xtol=xtol, gtol=gtol)
+            except _Stop as e:
+                stop = str(e)
+            stops.append(stop)
+            run_best.append((best[0], best[1], stop))
+            if stop == "callback":
+                break
     finally:
-        if bar is not None:
-            bar.close()
-    if best[1] is None:
+        if state["bar"] is not None:
+            state["bar"].close()
+    finite_runs = [rb for rb in run_best if rb[1] is not None]
+    if not finite_runs:
         raise FloatingPointError("no finite loss was found")
-    value, p = best
-    apply(p)
-    fitted_materials = list(model.materials)
-    kp_now = rollout.get_parameters()["pressure_stiffness"]
-    for j, k in enumerate(idx):
-        changes = {name: float(p[name][j]) for name in params}
-        if tie and k in tied:
-            changes["pressure_stiffness"] = float(kp_now[k])
-        fitted_materials[k] = dataclasses.replace(model.materials[k], **changes)
-    # Leave the model holding the fitted materials (arrays and Material objects agree).
-    for k in idx:
-        model.set_material(k, fitted_materials[k])
-    return FitResult(
+    value, p, stopped = min(finite_runs, key=lambda rb: rb[0])
+    fitted = [r.finish(p, params) for r in runs]
+    result = FitResult(
         params={k: v.copy() for k, v in p.items()},
-        materials=fitted_materials,
-        material_indices=idx,
+        materials=fitted[0],
+        material_indices=runs[0].idx,
         loss=value,
         initial_loss=history[0]["loss"],
         history=history,
-        model=model,
+        model=runs[0].model,
         stopped=stopped,
     )
+    result.models = [r.model for r in runs]
+    result.experiment_materials = fitted
+    result.starts = stops
+    result.evaluations = sum(1 for h in history if h["stage"] == "descent")
+    # A worlds model fits W hypotheses at once: one Fisher matrix of their summed loss
+    # would describe none of them, so the diagnostics are left to one world at a time.
+    worlds = any(isinstance(r.loss, WorldLoss) for r in runs)
+    if diagnostics and worlds:
+        say("diagnostics: skipped for a WorldLoss (diagnose each world's fit on its own model)")
+    if diagnostics and not worlds:
+        from .diagnostics import diagnose_problem  # noqa: PLC0415
+
+        t0 = time.perf_counter()
+        result.diagnostics = diagnose_problem(prob, prob.to_z(p), noise=noise, step=fd_step)
+        d = result.diagnostics
+        say(f"diagnostics ({d.method}): {d.evaluations} evaluations in {time.perf_counter() - t0:.3g} s")
+        if iterations > 0 and not result.converged:
+            d.warnings.insert(0, f"the fit did not converge ({stopped}): these errors describe the curvature at its last "
+                                 f"point, not the uncertainty of a minimum")
+        for r in runs:
+            r.apply(p)
+    return result
+
+
+def latin_hypercube(n: int, dims: int, rng) -> np.ndarray:
+    """``n`` points in ``[0, 1)^dims``, one in each of the ``n`` slices of every axis."""
+    u = (np.arange(n)[:, None] + rng.random((n, dims))) / n
+    for d in range(dims):
+        u[:, d] = u[rng.permutation(n), d]
+    return u
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
 
 
 class _Stop(Exception):
-    """Raised inside an evaluation to end the fit (callback or tol)."""
+    """Raised inside an evaluation to end the fit (callback, tol or stalled)."""
 
 
-def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, history) -> str:
+def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, history, xtol=1e-6, gtol=0.0) -> str:
     opt = Adam(len(z), lr=lr)
     decay = 1.0 if lr_end is None or iterations <= 1 else (lr_end / lr) ** (1.0 / (iterations - 1))
     good = None
+    g0 = None
     for it in range(iterations + 1):
         value, g, finite = evaluate(z)
+        if finite and g0 is None:
+            g0 = float(np.abs(g).max())
+            if g0 == 0.0:
+                return "flat"
+        if finite and g0 is not None and float(np.abs(g).max()) <= gtol * g0:
+            return "converged"
         if it == iterations:
             break
         if not finite:
@@ -429,12 +781,15 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, history) -> st
             norm = float(np.linalg.norm(g))
             if norm > clip:
                 g = g * (clip / norm)
-        z = project(opt.step(z, g))
+        z_new = project(opt.step(z, g))
+        if float(np.abs(z_new - z).max()) < xtol:
+            return "converged"
+        z = z_new
         opt.lr *= decay
     return "iterations"
 
 
-def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-4) -> str:
+def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-4, xtol=1e-6, gtol=0.0) -> str:
     """L-BFGS (two-loop recursion) with a backtracking Armijo line search, in optimiser space.
 
     Box bounds are handled by projecting each trial point; pairs with ``s.y <= 0`` are
@@ -443,9 +798,14 @@ def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-
     f, g, finite = evaluate(z)
     if not finite:
         raise FloatingPointError(f"the loss or its gradient is not finite at the initial guess (loss = {f})")
+    g0 = float(np.abs(g).max())
+    if g0 == 0.0:
+        return "flat"
     evals = 0
     S, Y = [], []
     while evals < iterations:
+        if float(np.abs(g).max()) <= gtol * g0:
+            return "converged"
         # Two-loop recursion: d = -H g.
         q = g.copy()
         alphas = []
@@ -472,8 +832,11 @@ def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-
         while True:
             z_new = project(z + t * d)
             step = z_new - z
-            if float(np.abs(step).max()) < 1e-12:
-                return "converged"
+            if float(np.abs(step).max()) < xtol:
+                # A full quasi-Newton step below the tolerance is convergence; a line
+                # search that had to shrink the step that far found no better point
+                # along a descent direction: the loss is too rough to make progress.
+                return "converged" if t == 1.0 else "stalled"
             f_new, g_new, finite = evaluate(z_new)
             evals += 1
             if finite and f_new <= f + c1 * g.dot(step):
@@ -488,9 +851,11 @@ def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-
             if len(S) > memory:
                 S.pop(0)
                 Y.pop(0)
-        if f_new == f and float(np.abs(s).max()) < 1e-10:
-            return "converged"
         z, f, g = z_new, f_new, g_new
+        if float(np.abs(s).max()) < xtol:
+            return "converged"
+    if float(np.abs(g).max()) <= gtol * g0:
+        return "converged"
     return "iterations"
 
 
@@ -513,10 +878,44 @@ class Target:
     frames: list[int] | None
     fps: float | None
     path: str
+    #: The body whose particles ``data`` holds (a run's USD read for one body), or None: all.
+    body: str | None = None
+
+    def particles(self, model: Model) -> np.ndarray | None:
+        """Indices of the model's particles this target observes (None: all)."""
+        if self.body is None:
+            return None
+        names = [b.name for b in model.bodies]
+        try:
+            from .usd import body_prim_names  # noqa: PLC0415
+
+            prims = body_prim_names(model)
+        except ImportError:
+            prims = names
+        if self.body in names:
+            b = model.bodies[names.index(self.body)]
+        elif self.body in prims:
+            b = model.bodies[prims.index(self.body)]
+        else:
+            raise ValueError(f"target body {self.body!r} is not allowed: the scene's bodies are {', '.join(names)}")
+        return np.arange(b.start, b.start + b.count)
 
     def loss(self, model: Model, frame_steps: Mapping[int, int], radius: float | None = None, mode: str = "surface") -> Loss:
         """The loss for ``model``: ``frame_steps`` maps each rendered frame to its step."""
         steps = [frame_steps[f] for f in sorted(frame_steps)]
+        if self.kind == "positions" and self.body is not None:
+            idx = self.particles(model)
+            pos = np.asarray(self.data)
+            if pos.shape[1] != len(idx):
+                raise ValueError(f"target {self.path} has {pos.shape[1]} particles of body {self.body!r} per frame, the scene "
+                                 f"{len(idx)}: use the scene and --scale the run was made with")
+            keep = [k for k, f in enumerate(self.frames) if f != 0]
+            if not keep:
+                raise ValueError(f"target {self.path} holds only frame 0 (the initial state), which says nothing about the material")
+            return PositionLoss({frame_steps[self.frames[k]]: pos[k] for k in keep}, particles=idx)
+        if self.kind == "positions" and np.asarray(self.data).shape[0] == 1 and np.asarray(self.data).shape[1] != model.particle_count:
+            # One (M, 3) array of another size: a point cloud, not particle positions.
+            self.kind, self.data = "points", np.asarray(self.data)[0]
         if self.kind == "positions":
             pos = np.asarray(self.data)
             if pos.shape[1] != model.particle_count:
@@ -553,8 +952,13 @@ def save_target(path, positions, frames: Sequence[int], fps: float | None = None
     np.savez_compressed(path, positions=positions, frames=np.asarray(frames, dtype=np.int64), **extra)
 
 
-def load_target(path) -> Target:
+def load_target(path, body: str | None = None, frames=None) -> Target:
     """Read a target file.
+
+    - the ``.usd/.usda/.usdc`` of a previous ``warp-esph run`` (``UsdGeom.Points`` under
+      ``/World``): particle positions per rendered frame; ``body`` (a body or prim name)
+      keeps one body's particles, ``frames`` (``all``, ``2,4,6``, ``10:60:10``, ...; default
+      every frame after the first) chooses frames. Any other USD file is read as a mesh.
 
     - ``.npz``: ``positions`` ``(K, n, 3)`` (or ``(n, 3)``), optional ``frames`` (rendered
       frame indices; default 0..K-1) and ``fps``.
@@ -604,6 +1008,9 @@ def load_target(path) -> Target:
             raise ValueError(f"target {p} cannot be read as a point cloud: {e}") from None
         return Target("points", pts, None, None, p)
     if ext in (".usd", ".usda", ".usdc"):
+        run = _usd_run_target(p, body, frames)
+        if run is not None:
+            return run
         from .meshes import load_mesh  # noqa: PLC0415
 
         return Target("mesh", load_mesh(p), None, None, p)
@@ -621,117 +1028,30 @@ def load_target(path) -> Target:
     return Target("points", np.asarray(m.points, dtype=np.float64)[:, :3], None, None, p)
 
 
-# --------------------------------------------------------------------------- CLI
-def add_fit_arguments(parser):
-    """Declare the ``warp-esph fit`` options on an ``argparse`` (sub)parser."""
-    parser.add_argument("scene", metavar="SCENE", help="built-in scene name or .toml scene file (the initial guess)")
-    parser.add_argument("--target", required=True, metavar="FILE",
-                        help="target: .npz/.npy positions per frame, a point cloud (.xyz/.ply ...) or a mesh file")
-    parser.add_argument("--params", default="yield_stress,flow_rate", metavar="A,B",
-                        help=f"comma-separated parameters to fit, of {','.join(PARAMETERS)} (default yield_stress,flow_rate)")
-    parser.add_argument("--material", action="append", metavar="BODY",
-                        help="fit only this body's material (name or material index); repeatable; default all")
-    parser.add_argument("--iterations", type=int, default=50, metavar="N", help="optimiser iterations (default 50)")
-    parser.add_argument("--lr", type=float, default=0.1, metavar="LR", help="Adam step size, relative (default 0.1)")
-    parser.add_argument("--bounds", action="append", default=[], metavar="NAME=LO:HI", help="bounds of a parameter; repeatable")
-    parser.add_argument("--clip", type=float, metavar="C", help="clip the gradient norm (log space) to C")
-    parser.add_argument("--target-frames", metavar="F,G", help="rendered frame index of each target frame (default: from the file)")
-    parser.add_argument("--frames", type=int, metavar="N", help="frames to simulate (default: the last target frame or the scene's)")
-    parser.add_argument("--fps", type=float, metavar="F", help="frames per second (default: the target's or the scene's)")
-    parser.add_argument("--dt", type=float, metavar="DT", help="time step in s (default: the stable step)")
-    parser.add_argument("--scale", type=float, default=1.0, metavar="S", help="resolution scale of the scene (default 1)")
-    parser.add_argument("--radius", type=float, metavar="R", help="Chamfer search radius for point-cloud targets (default 3 spacings)")
-    parser.add_argument("--mesh-mode", choices=MeshLoss.MODES, default="surface", help="mesh targets: surface or outside")
-    parser.add_argument("--checkpoint-every", type=int, metavar="S", help="checkpoint the rollout every S steps (less memory)")
-    parser.add_argument("--dtype", choices=("float32", "float64"), default="float64", help="precision (default float64)")
-    parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="Warp device (default cpu)")
-    parser.add_argument("-o", "--output", metavar="OUT.json", help="fitted parameters (default: <target>.fit.json beside the target)")
-    parser.add_argument("--no-usd", action="store_true", help="do not write the fitted run to USD")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    return parser
-
-
-def _parse_bounds(items) -> dict:
-    out = {}
-    for item in items or []:
-        try:
-            name, rng = item.split("=", 1)
-            lo, hi = rng.split(":", 1)
-            out[name.strip()] = (float(lo), float(hi))
-        except ValueError:
-            raise ValueError(f"--bounds {item!r} is not allowed: use NAME=LO:HI, e.g. flow_rate=1:1000") from None
-    return out
-
-
-def fit_cli(args, out=sys.stdout) -> int:
-    """Run ``warp-esph fit`` from parsed ``args`` (see ``add_fit_arguments``); returns 0.
-
-    Writes the fitted parameters as JSON (``--output``, default ``<target>.fit.json``) and,
-    when ``warp_esph.usd`` is available, the fitted run as ``<target>.fit.usdc`` beside it.
-    Raises ``ValueError``/``OSError`` on bad input (the CLI maps them to exit status 2).
-    """
-    from .scenes import load_scene  # noqa: PLC0415
-    from .simulate import resolve_timestep  # noqa: PLC0415
-
-    params = [p.strip() for p in str(args.params).split(",") if p.strip()]
-    for p in params:
-        if p not in PARAMETERS:
-            raise ValueError(f"--params entry {p!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
-    scale = checks.positive("--scale", args.scale)
-    if args.iterations < 0:
-        raise ValueError(f"--iterations = {args.iterations!r} is not allowed: must be >= 0")
-    bounds = _parse_bounds(args.bounds)
-    target = load_target(args.target)
-    scene = load_scene(args.scene, scale=scale)
-    fps = args.fps if args.fps is not None else (target.fps if target.fps is not None else scene.fps)
-    dtype = {"float32": wp.float32, "float64": wp.float64}[args.dtype]
-    model = scene.builder.finalize(device=args.device, dtype=dtype, requires_grad=True)
-    substeps, dt = resolve_timestep(model, fps, dt=args.dt if args.dt is not None else scene.dt)
-
-    target_frames = target.frames
-    if args.target_frames:
-        try:
-            target_frames = [int(f) for f in args.target_frames.split(",")]
-        except ValueError:
-            raise ValueError(f"--target-frames = {args.target_frames!r} is not allowed: use comma-separated integers") from None
-        if target.kind == "positions" and len(target_frames) != np.asarray(target.data).shape[0]:
-            raise ValueError(f"--target-frames has {len(target_frames)} entries, the target {np.asarray(target.data).shape[0]} frames")
-        target.frames = target_frames
-    frames = args.frames if args.frames is not None else (max(target_frames) if target_frames else scene.frames)
-    frames = checks.positive_int("--frames", frames)
-    if target.frames is None:
-        target.frames = [frames]
-    if max(target.frames) > frames:
-        raise ValueError(f"the target has frame {max(target.frames)}, beyond --frames = {frames}")
-    frame_steps = {f: f * substeps for f in target.frames if f > 0 or target.kind != "positions"}
-    loss = target.loss(model, frame_steps, radius=args.radius, mode=args.mesh_mode)
-    materials = None
-    if args.material:
-        materials = [int(m) if m.isdigit() else m for m in args.material]
-
-    print(f"warp-esph fit: {scene.name}: {model.particle_count} particles, {frames} frames at {fps:g} fps, "
-          f"dt = {dt:.4g} s ({frames * substeps} steps), fitting {', '.join(params)} to {target.kind} from {target.path}",
-          file=sys.stderr)
-    result = fit(model, loss, params, steps=frames * substeps, dt=dt, materials=materials, iterations=args.iterations,
-                 lr=args.lr, bounds=bounds, clip=args.clip, checkpoint_every=args.checkpoint_every,
-                 progress=not args.no_progress)
-
-    stem = os.path.splitext(os.path.abspath(args.target))[0]
-    json_path = args.output or f"{stem}.fit.json"
-    doc = {"scene": scene.name, "scale": scale, "target": os.path.abspath(args.target), "fps": fps, "dt": dt,
-           "frames": frames, "params_fitted": params, **result.to_dict()}
-    tmp = json_path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(doc, f, indent=2)
-    os.replace(tmp, json_path)
-    print(f"wrote {json_path}: loss {result.initial_loss:.4g} -> {result.loss:.4g}", file=out)
-    for name, v in result.params.items():
-        print(f"  {name} = {', '.join(f'{x:.6g}' for x in v)}", file=out)
-    if not args.no_usd:
-        usd_path = write_fitted_usd(result.model, f"{stem}.fit.usdc", frames, fps, dt)
-        if usd_path:
-            print(f"wrote {usd_path}", file=out)
-    return 0
+def _usd_run_target(path: str, body, frames) -> Target | None:
+    """Positions from a ``warp-esph run`` USD file, or None when the file is not one."""
+    try:
+        from .render import UsdFrames, parse_frames  # noqa: PLC0415
+    except ImportError:
+        return None
+    try:
+        data = UsdFrames(path)
+    except ValueError:
+        return None  # no particles: a mesh file
+    names = [n for n, _ in data.bodies]
+    if body is not None and body not in names:
+        raise ValueError(f"--target-body {body!r} is not allowed: {path} holds bodies {', '.join(names)}")
+    chosen = parse_frames(frames, data.frames) if frames is not None else [f for f in data.frames if f != data.frames[0]]
+    if not chosen:
+        raise ValueError(f"target {path} holds only frame {data.frames[0]}, which says nothing about the material")
+    pos = []
+    for f in chosen:
+        a = data.arrays(f)
+        pts = a["points"].astype(np.float64)
+        if body is not None:
+            pts = pts[a["body"] == names.index(body)]
+        pos.append(pts)
+    return Target("positions", np.stack(pos), list(chosen), data.fps, path, body=body)
 
 
 def write_fitted_usd(model: Model, path, frames: int, fps: float, dt: float, progress: bool = False) -> str | None:

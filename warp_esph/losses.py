@@ -1,8 +1,8 @@
 """Differentiable losses on particle positions at one or several observed steps.
 
 Every loss is a set of Warp kernels that ``wp.atomic_add`` into a one-element array,
-zeroed before each evaluation (WARP_NOTES trap 7). A loss reads the positions at its
-``frames`` (step indices of a ``Rollout``); ``value_and_grad(positions)`` records its
+zeroed before each evaluation (docs/method.md, Warp pitfall 7). A loss reads the
+positions at its ``frames`` (step indices of a ``Rollout``); ``value_and_grad(positions)`` records its
 kernels on a tape and returns the value and ``{step: dL/dx}``, which is what
 ``Rollout.backward`` consumes (``rollout.backward(loss)`` calls it for you).
 
@@ -30,6 +30,7 @@ Normalisation: each loss is the mean over its frames of its per-frame value, tim
 """
 
 import functools
+import math
 import os
 import types
 from collections.abc import Mapping
@@ -40,7 +41,7 @@ import warp as wp
 from . import checks
 from ._types import type_set
 
-__all__ = ["Loss", "PositionLoss", "ChamferLoss", "MeshLoss", "SumLoss", "surface_particles"]
+__all__ = ["Loss", "PositionLoss", "ChamferLoss", "MeshLoss", "SumLoss", "WorldLoss", "surface_particles"]
 
 #: HashGrid resolution cap per axis (the grid is periodic: aliasing beyond costs time only).
 _MAX_GRID_DIM = 128
@@ -55,6 +56,10 @@ def _kernels(scalar):
     def gather(x: wp.array(dtype=vec3), idx: wp.array(dtype=wp.int32), out: wp.array(dtype=vec3)):
         k = wp.tid()
         out[k] = x[idx[k]]
+
+    @wp.kernel
+    def add_scalar(src: wp.array(dtype=scalar), dst: wp.array(dtype=scalar)):
+        wp.atomic_add(dst, 0, src[0])
 
     @wp.kernel(enable_backward=False)
     def to_float32(x: wp.array(dtype=vec3), out: wp.array(dtype=wp.vec3f)):
@@ -200,7 +205,7 @@ def _kernels(scalar):
             wp.atomic_add(out, 0, w * d2_max)
 
     return types.SimpleNamespace(
-        gather=gather, to_float32=to_float32, squared_distance=squared_distance, nearest=nearest,
+        gather=gather, add_scalar=add_scalar, to_float32=to_float32, squared_distance=squared_distance, nearest=nearest,
         nearest_term=nearest_term, closest_on_mesh=closest_on_mesh, mesh_term=mesh_term,
     )
 
@@ -293,6 +298,10 @@ class Loss:
         self._copies = {}
         self._subsets = {}
         self._keep = []  # grids and meshes used by the last evaluation
+        self._counts: dict[int, int] = {}  # points used per frame at the last evaluation
+        #: Observation noise of this loss's residuals for ``warp_esph.diagnostics`` (None:
+        #: the noise given there).
+        self.noise = None
 
     # -------------------------------------------------------------- interface
     def _launch(self, frame: int, x: wp.array, out: wp.array, scale: float):
@@ -322,6 +331,7 @@ class Loss:
             return
         xs = self._prepare_x(frame, x)
         self._check(frame, xs)
+        self._counts[frame] = xs.shape[0]
         self._launch(frame, xs, out, scale * self.weight / len(self.frames))
 
     def _accumulator(self, x: wp.array) -> wp.array:
@@ -364,6 +374,21 @@ class Loss:
 
     def value(self, positions: Mapping[int, wp.array]) -> float:
         return self.value_and_grad(positions)[0]
+
+    # ------------------------------------------------------------ statistics
+    def _points_per_frame(self) -> float:
+        if not self._counts:
+            raise RuntimeError(f"{self!r}: evaluate the loss once before asking for its residual counts")
+        return float(np.mean([self._counts[f] for f in self.frames if f in self._counts]))
+
+    def residual_scale(self) -> float:
+        """``c`` with ``c * value = the sum of the squared residuals`` (m^2), for
+        ``warp_esph.diagnostics``: the loss is ``weight`` times a mean over frames and points."""
+        return len(self.frames) * self._points_per_frame() / self.weight
+
+    def observation_count(self) -> int:
+        """Scalar observations behind the loss (for the residual RMS)."""
+        return int(round(len(self.frames) * self._points_per_frame()))
 
     def __call__(self, positions):
         """``value`` of ``{step: positions}`` (Warp arrays or numpy ``(n, 3)`` arrays)."""
@@ -414,6 +439,70 @@ class SumLoss(Loss):
         return " + ".join(f"{k:g} * {loss!r}" for k, loss in self.terms)
 
 
+class WorldLoss(Loss):
+    """The sum over the worlds of a model (``SceneBuilder.finalize(worlds=W)``) of one
+    loss per world, each evaluated on its own world's particles only.
+
+    ``losses``: one ``Loss`` used for every world, or a sequence of one per world (e.g.
+    ``PositionLoss`` with each world's own targets); a world's loss sees an array of that
+    world's particles (indices, ``particles=`` and target sizes are the world's). Since
+    worlds never interact, the gradient of the sum with respect to world ``w``'s
+    parameters (``model.world_materials(w)``) and initial state
+    (``model.world_particles(w)``) is that of world ``w``'s loss alone: one backward
+    pass gives every world's gradient. ``world_values`` holds each world's term after an
+    evaluation (scaled as it entered the sum).
+    """
+
+    def __init__(self, model, losses):
+        starts = getattr(model, "world_start", None)
+        if starts is None:
+            raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
+        W = len(starts) - 1
+        if isinstance(losses, Loss):
+            losses = [losses] * W
+        losses = list(losses)
+        if len(losses) != W or not all(isinstance(loss, Loss) for loss in losses):
+            raise ValueError(f"losses is not allowed: must be one warp_esph.losses.Loss or a list of {W} (one per world), got {len(losses)} items")
+        self.losses = losses
+        self.world_start = np.asarray(starts, dtype=np.int64)
+        super().__init__(sorted({f for loss in losses for f in loss.frames}))
+        self._world_x = {}
+        self._world_acc = {}
+        self._used: list[dict] = [{} for _ in losses]
+        #: Each world's term at the last evaluation (numpy, one value per world).
+        self.world_values = None
+
+    def launch(self, frame, x, out, scale: float = 1.0):
+        if x.shape[0] != self.world_start[-1]:
+            raise ValueError(f"positions with {x.shape[0]} particles are not allowed: the worlds have {int(self.world_start[-1])}")
+        k = _kernels(_scalar_of(x))
+        for w, loss in enumerate(self.losses):
+            if frame not in loss.frames:
+                continue
+            key = (w, frame, x.dtype, str(x.device))
+            if key not in self._world_x:
+                idx = wp.array(np.arange(self.world_start[w], self.world_start[w + 1], dtype=np.int32), device=x.device)
+                n = len(idx)
+                self._world_x[key] = (idx, wp.zeros(n, dtype=x.dtype, device=x.device, requires_grad=True))
+                self._world_acc[key] = wp.zeros(1, dtype=_scalar_of(x), device=x.device, requires_grad=True)
+            idx, xw = self._world_x[key]
+            acc = self._world_acc[key]
+            acc.zero_()
+            wp.launch(k.gather, len(idx), [x, idx], [xw], device=x.device)
+            loss.launch(frame, xw, acc, scale)
+            wp.launch(k.add_scalar, 1, [acc], [out], device=x.device)
+            self._used[w][key] = acc
+
+    def value_and_grad(self, positions):
+        self._used = [{} for _ in self.losses]
+        value, grads = super().value_and_grad(positions)
+        self.world_values = np.array([sum(float(a.numpy()[0]) for a in used.values()) for used in self._used])
+        return value, grads
+
+    def __repr__(self):
+        return f"WorldLoss({len(self.losses)} worlds: {self.losses[0]!r}, ...)"
+
+
 class PositionLoss(Loss):
     """``weight * mean over frames of mean_i |x_i - target_i|^2``.
 
@@ -441,6 +530,20 @@ class PositionLoss(Loss):
             self._wp_targets[key] = t
         S = _scalar_of(x)
         wp.launch(_kernels(S).squared_distance, x.shape[0], [x, t, S(scale / x.shape[0])], [out], device=x.device)
+
+    def observation_count(self) -> int:
+        return 3 * super().observation_count()
+
+    def residuals(self, positions: Mapping[int, np.ndarray]) -> np.ndarray:
+        """The residual vector ``r`` (``sum r^2 = residual_scale() * value``): every
+        coordinate of ``x_i - target_i`` at every frame, from numpy ``{step: (n, 3)}``."""
+        out = []
+        for f in self.frames:
+            x = np.asarray(positions[f], dtype=np.float64)
+            if self.particles is not None:
+                x = x[self.particles]
+            out.append((x - self.targets[f]).ravel())
+        return np.concatenate(out)
 
     def __repr__(self):
         return f"PositionLoss(frames={list(self.frames)}, weight={self.weight:g})"
@@ -523,6 +626,49 @@ class ChamferLoss(Loss):
         um = s.unmatched.numpy()
         self.unmatched[frame] = (int(um[0]), int(um[1]))
 
+    def reset_residuals(self):
+        """Forget the correspondences ``residuals`` fixed (the next call chooses them anew)."""
+        self._pairs = {}
+
+    def residuals(self, positions) -> np.ndarray:
+        """A residual vector for Gauss-Newton diagnostics (numpy, from ``{step: (n, 3)}``):
+        ``x_i - y_nn(i)`` and ``y_j - x_nn(j)`` with the nearest points chosen at the first
+        call after ``reset_residuals`` and then kept (so the vector is smooth in the
+        parameters, as the loss's own gradient is for fixed choices), each scaled so that
+        ``sum r^2 = residual_scale() * value`` where every point has a match within
+        ``radius``; a point without one adds the constant ``radius``. Kept pairs count motion
+        along the surface as observed, which a cloud does not see: standard errors from it
+        are lower bounds."""
+        pairs = getattr(self, "_pairs", None)
+        if pairs is None:
+            pairs = self._pairs = {}
+        out = []
+        for f in self.frames:
+            x = np.asarray(positions[f], dtype=np.float64)
+            if self.particles is not None:
+                x = x[self.particles]
+            y = self.targets[f]
+            n, m = len(x), len(y)
+            if f not in pairs:
+                pairs[f] = (_nearest_within(x, y, self.radius), _nearest_within(y, x, self.radius))
+            ix, iy = pairs[f]
+            half = 0.5 * (n + m)
+            for src, dst, idx, count in ((x, y, ix, n), (y, x, iy, m)):
+                r = np.where(idx[:, None] >= 0, src - dst[np.maximum(idx, 0)], 0.0)
+                r = np.concatenate([r.ravel(), np.full(int((idx < 0).sum()), self.radius)])
+                out.append(math.sqrt(half / count) * r)
+        return np.concatenate(out)
+
+    def residual_scale(self) -> float:
+        # mean_i d_i^2 + mean_j d_j^2: with n particles and m target points, (n + m) / 2
+        # points per frame give the same sum when every residual is alike.
+        m = float(np.mean([len(self.targets[f]) for f in self.frames]))
+        return len(self.frames) * 0.5 * (self._points_per_frame() + m) / self.weight
+
+    def observation_count(self) -> int:
+        m = float(np.mean([len(self.targets[f]) for f in self.frames]))
+        return int(round(len(self.frames) * (self._points_per_frame() + m)))
+
     def __repr__(self):
         return f"ChamferLoss(frames={list(self.frames)}, radius={self.radius:g}, weight={self.weight:g})"
 
@@ -591,7 +737,8 @@ class MeshLoss(Loss):
             self._wp[key] = d
         return d
 
-    def _launch(self, frame, x, out, scale):
+    def _launch_query(self, frame, x):
+        """Untaped: the closest point and code of every particle (into the frame's scratch)."""
         S = _scalar_of(x)
         k = _kernels(S)
         dev = x.device
@@ -613,11 +760,63 @@ class MeshLoss(Loss):
             [s.closest, s.code, s.unmatched], device=dev, record_tape=False,
         )
         self._keep.append(mesh)
-        wp.launch(k.mesh_term, n, [x, s.closest, s.code, S(self.max_dist**2), S(scale / n)], [out], device=dev)
+        return s
+
+    def _launch(self, frame, x, out, scale):
+        S = _scalar_of(x)
+        s = self._launch_query(frame, x)
+        n = x.shape[0]
+        wp.launch(_kernels(S).mesh_term, n, [x, s.closest, s.code, S(self.max_dist**2), S(scale / n)], [out], device=x.device)
         self.unmatched[frame] = int(s.unmatched.numpy()[0])
+
+    def reset_residuals(self):
+        """Forget the closest points and normals ``residuals`` fixed."""
+        self._planes = {}
+
+    def residuals(self, positions) -> np.ndarray:
+        """A residual vector for Gauss-Newton diagnostics (numpy, from ``{step: (n, 3)}``):
+        ``n0 . (x_i - c0_i)``, the distance to the tangent plane at the closest point ``c0``
+        chosen at the first call after ``reset_residuals`` (``n0`` the unit direction from
+        ``c0`` to the particle then), so motion along the surface is not counted as
+        observed; particles with nothing within ``max_dist`` add the constant ``max_dist``,
+        those inside in ``outside`` mode and those exactly on the surface add 0. At the
+        first call ``sum r^2 = residual_scale() * value``."""
+        planes = getattr(self, "_planes", None)
+        if planes is None:
+            planes = self._planes = {}
+        out = []
+        for f in self.frames:
+            x = np.asarray(positions[f], dtype=np.float64)
+            if self.particles is not None:
+                x = x[self.particles]
+            if f not in planes:
+                xw = wp.array(x, dtype=wp.vec3d)
+                self._launch_query(f, xw)
+                s = self._scratch[(f, xw.dtype, str(xw.device), len(x))]
+                c, code = s.closest.numpy().astype(np.float64), s.code.numpy()
+                d = x - c
+                norm = np.linalg.norm(d, axis=1)
+                normal = np.where(norm[:, None] > 1e-12, d / np.maximum(norm, 1e-300)[:, None], 0.0)
+                normal[code != 1] = 0.0
+                planes[f] = (c, normal, code)
+            c, normal, code = planes[f]
+            r = np.einsum("ij,ij->i", normal, x - c)
+            out.append(np.concatenate([r, np.full(int((code < 0).sum()), self.max_dist)]))
+        return np.concatenate(out)
 
     def __repr__(self):
         return f"MeshLoss(frames={list(self.frames)}, mode={self.mode!r}, weight={self.weight:g})"
+
+
+def _nearest_within(a: np.ndarray, b: np.ndarray, radius: float, chunk: int = 1024) -> np.ndarray:
+    """Index of the nearest point of ``b`` to each point of ``a`` within ``radius`` (-1: none)."""
+    out = np.full(len(a), -1, dtype=np.int64)
+    for s in range(0, len(a), chunk):
+        d2 = ((a[s: s + chunk, None, :] - b[None, :, :]) ** 2).sum(axis=2)
+        k = d2.argmin(axis=1)
+        ok = d2[np.arange(len(k)), k] < radius * radius
+        out[s: s + chunk] = np.where(ok, k, -1)
+    return out
 
 
 def surface_particles(model) -> np.ndarray:

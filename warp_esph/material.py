@@ -10,9 +10,11 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import numpy as np
+
 from . import checks
 
-#: Stress models (SPEC §4-5). ``linear``: eq. 9 with the Bargteil flow rule.
+#: Stress models (docs/method.md §4-5). ``linear``: eq. 9 with the Bargteil flow rule.
 #: ``non_newtonian``: eq. 9, flow rate divided by the stress magnitude (paper Fig. 1).
 #: ``hyperelastic``: eq. 9 with squared singular values (paper Fig. 5), twice the St.
 #: Venant-Kirchhoff stress. ``stvk``: the St. Venant-Kirchhoff stress itself, for
@@ -20,17 +22,23 @@ from . import checks
 MODELS = ("linear", "non_newtonian", "hyperelastic", "stvk")
 MODEL_IDS = {name: k for k, name in enumerate(MODELS)}
 
-#: Deformation models (SPEC §7, paper Fig. 8): the paper's ``incremental`` update, and the
+#: Deformation models (docs/method.md §7, paper Fig. 8): the paper's ``incremental`` update, and the
 #: comparison models ``rest`` (rest configuration and plastic F_p) and ``additive``
-#: (additive Green strain); see ``warp_esph/comparison.py``.
+#: (additive Green strain); see ``warp_esph/sim/comparison.py``.
 DEFORMATIONS = ("incremental", "rest", "additive")
 DEFORMATION_IDS = {name: k for k, name in enumerate(DEFORMATIONS)}
 
-#: Elastic pair forces (``warp_esph/forces.py``): ``paper``, eqs. 10-13 of the paper;
+#: Elastic pair forces (``warp_esph/sim/forces.py``): ``paper``, eqs. 10-13 of the paper;
 #: ``variational``, minus the gradient of the elastic energy of the incremental fit
 #: (``sum_i V_i psi(F_i)``), whose linear stiffness is symmetric (docs/physics.md).
 ELASTIC_FORCES = ("paper", "variational")
 ELASTIC_FORCE_IDS = {name: k for k, name in enumerate(ELASTIC_FORCES)}
+
+
+def p_wave_speed(mu, lam, density, pressure_stiffness):
+    """``sqrt((lam + 2 mu + rho0 k_p) / rho0)``, the speed the explicit step must resolve
+    (docs/method.md §8); numbers or numpy arrays."""
+    return np.sqrt((lam + 2.0 * mu + density * pressure_stiffness) / density)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,6 +53,26 @@ class Material:
     energy. The paper's force has a non-symmetric stiffness: an undamped elastic body
     gains energy at a rate that does not shrink with the time step (docs/physics.md);
     the variational one does not. It needs ``deformation="incremental"``.
+
+    **What ``yield_stress`` and ``flow_rate`` mean.** The flow rule compares the Frobenius
+    norm of the deviatoric stress, ``|s| = 2 mu |sigma - mean(sigma)|`` (``sigma`` the
+    singular values of the elastic ``F``), with ``Y = yield_stress + hardening * alpha``
+    (docs/method.md §4). So ``yield_stress`` is neither the shear nor the uniaxial yield
+    stress a rheometer or a tensile test reports:
+
+    * shear yield stress ``tau_y = Y / sqrt(2)`` (simple shear ``tau`` has ``|s| = sqrt(2) tau``);
+    * uniaxial yield stress ``sigma_y = sqrt(3/2) Y`` (uniaxial ``sigma`` has ``|s| = sqrt(2/3) sigma``),
+      von Mises' ``sigma_y = sqrt(3) tau_y``.
+
+    Above yield the deviatoric elastic log strain relaxes at the rate
+    ``flow_rate * (|s| - Y) / |s|`` (1/s), so in steady simple shear at rate ``gamma_dot``
+    the shear stress is ``tau = tau_y + (mu / flow_rate) gamma_dot``: a Bingham fluid of
+    plastic viscosity ``eta_p = mu / flow_rate`` (Pa s) once it flows (``model="linear"``
+    and ``"stvk"``; the ``non_newtonian`` rule divides the rate by ``|s|`` once more, and
+    ``hyperelastic`` stresses are twice the linear ones at small strain). The properties
+    ``shear_yield_stress``, ``uniaxial_yield_stress`` and ``plastic_viscosity`` give these,
+    and ``Material.from_rheology`` builds a material from them
+    (``tests/test_units.py`` checks the relation in a simulated simple-shear test).
 
     ``yield_stress = inf`` (or ``flow_rate = 0``) gives a purely elastic material.
     ``pressure_stiffness = None`` picks ``k_p = K / (2 rho0)`` with ``K = lam + 2 mu / 3``
@@ -101,6 +129,43 @@ class Material:
         return cls(mu=mu, lam=lam, **kwargs)
 
     @classmethod
+    def from_rheology(
+        cls,
+        E: float,
+        nu: float,
+        *,
+        shear_yield_stress: float | None = None,
+        uniaxial_yield_stress: float | None = None,
+        plastic_viscosity: float | None = None,
+        **kwargs,
+    ) -> "Material":
+        """A Bingham-like material from the quantities a lab measures.
+
+        ``E`` (Pa) and ``nu`` the elastic part (as ``from_young``); exactly one of
+        ``shear_yield_stress`` (Pa, a rheometer's ``tau_y``) and ``uniaxial_yield_stress``
+        (Pa, a compression or tensile test's ``sigma_y``); ``plastic_viscosity`` (Pa s,
+        the Bingham ``eta_p``: ``tau = tau_y + eta_p gamma_dot`` in steady shear), which
+        sets ``flow_rate = mu / eta_p``. See the class docstring for the derivation.
+        """
+        if (shear_yield_stress is None) == (uniaxial_yield_stress is None):
+            raise ValueError(
+                f"shear_yield_stress = {shear_yield_stress!r} and uniaxial_yield_stress = {uniaxial_yield_stress!r} "
+                "are not allowed together or both missing: give exactly one of them"
+            )
+        if "yield_stress" in kwargs or "flow_rate" in kwargs:
+            raise ValueError(
+                "yield_stress and flow_rate are not allowed in Material.from_rheology: they are derived from "
+                "shear_yield_stress / uniaxial_yield_stress and plastic_viscosity"
+            )
+        if shear_yield_stress is not None:
+            Y = math.sqrt(2.0) * checks.non_negative("shear_yield_stress", shear_yield_stress)
+        else:
+            Y = math.sqrt(2.0 / 3.0) * checks.non_negative("uniaxial_yield_stress", uniaxial_yield_stress)
+        eta = checks.positive("plastic_viscosity", plastic_viscosity, allow_inf=True) if plastic_viscosity is not None else math.inf
+        probe = cls.from_young(E, nu)
+        return cls.from_young(E, nu, yield_stress=Y, flow_rate=probe.mu / eta, **kwargs)
+
+    @classmethod
     def preset(cls, name: str, **overrides) -> "Material":
         """A named preset (see ``PRESETS``), with any field overridden."""
         checks.choice("preset", name, tuple(PRESETS))
@@ -125,8 +190,23 @@ class Material:
 
     @property
     def p_wave_speed(self) -> float:
-        """sqrt((lam + 2 mu + rho0 k_p) / rho0), the speed the explicit step must resolve (SPEC §8)."""
-        return math.sqrt((self.lam + 2.0 * self.mu + self.density * self.pressure_stiffness) / self.density)
+        """The speed the explicit step must resolve (``p_wave_speed`` of its parameters)."""
+        return float(p_wave_speed(self.mu, self.lam, self.density, self.pressure_stiffness))
+
+    @property
+    def shear_yield_stress(self) -> float:
+        """``tau_y = yield_stress / sqrt(2)`` (Pa): the yield stress in simple shear."""
+        return self.yield_stress / math.sqrt(2.0)
+
+    @property
+    def uniaxial_yield_stress(self) -> float:
+        """``sigma_y = sqrt(3/2) yield_stress`` (Pa): the yield stress in uniaxial tension or compression."""
+        return math.sqrt(1.5) * self.yield_stress
+
+    @property
+    def plastic_viscosity(self) -> float:
+        """Bingham plastic viscosity ``eta_p = mu / flow_rate`` (Pa s; ``inf`` without flow)."""
+        return math.inf if self.flow_rate == 0.0 else self.mu / self.flow_rate
 
     @property
     def plastic(self) -> bool:

@@ -3,21 +3,23 @@
 A ``State`` also holds the arrays the step that produced it computed on the way
 (neighbour lists, densities, stresses, forces). With one state per step under a
 ``wp.Tape``, each step's intermediates then stay untouched until the backward pass
-reads them (WARP_NOTES traps 3-4); with two states swapped in a plain forward run,
+reads them (docs/method.md, Warp pitfalls 3-4); with two states swapped in a plain forward run,
 nothing is allocated inside the step.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
+from collections.abc import Sequence
 
 import numpy as np
 import warp as wp
 
+from . import tools
 from ._types import type_set
-from .colliders import Box, Plane, Sphere
-from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, Material
+from .sim.colliders import Box, Plane, Sphere
+from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, Material, p_wave_speed
+from .sim import materials as material_struct
 
 
 @dataclasses.dataclass(frozen=True)
@@ -29,10 +31,12 @@ class Body:
     count: int
     material: int
     kind: str
+    #: The world it belongs to (``SceneBuilder.finalize(worlds=W)``; 0 without worlds).
+    world: int = 0
 
 
 class State:
-    """Positions ``x``, velocities ``v``, elastic deformation gradient ``F`` (SPEC: the only
+    """Positions ``x``, velocities ``v``, elastic deformation gradient ``F`` (docs/method.md: the only
     deformation state stored) and hardening accumulator ``alpha`` of every particle."""
 
     def __init__(self, model: "Model", requires_grad: bool):
@@ -42,7 +46,7 @@ class State:
         self.v = wp.array(model.particle_v0, dtype=T.vec3, device=dev, requires_grad=requires_grad)
         self.F = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev, requires_grad=requires_grad)
         self.alpha = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad)
-        # The plastic F_p of the rest-configuration comparison model (SPEC §7; I elsewhere).
+        # The plastic F_p of the rest-configuration comparison model (docs/method.md §7; I elsewhere).
         # The additive model's strain needs no field of its own: F holds I + eps there.
         self.F_p = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev, requires_grad=requires_grad)
         #: Simulated time (s) of this state: the step that writes it sets ``time_in + dt``.
@@ -57,6 +61,7 @@ class State:
         self.stress = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
         self.F_inv = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
         self.force = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+        tools.allocate_state(model, self, requires_grad)
 
     #: The arrays that define the simulation state (what a checkpoint must hold).
     STATE_FIELDS = ("x", "v", "F", "alpha", "F_p")
@@ -112,6 +117,8 @@ class Model:
         scalar,
         requires_grad: bool,
         bodies_interact: bool = True,
+        particle_world: np.ndarray | None = None,
+        world_material_start: Sequence[int] | None = None,
     ):
         self.device = wp.get_device(device)
         self.types = type_set(scalar)
@@ -136,7 +143,33 @@ class Model:
         dev = self.device
         self.particle_material = wp.array(self.particle_material_np, dtype=wp.int32, device=dev)
         self.particle_body = wp.array(self.particle_body_np, dtype=wp.int32, device=dev)
-        # Lattice volume dx^3 per particle: V_i = m_i / rho0 (SPEC §5; the kernel is
+
+        # Worlds: independent copies (or different scenes) in one model, particles and
+        # materials world after world; neighbour lists never cross them.
+        if particle_world is None:
+            particle_world = np.zeros(self.particle_count, dtype=np.int32)
+        #: World of each particle (numpy int32, non-decreasing).
+        self.world_of_particle = np.ascontiguousarray(particle_world, dtype=np.int32)
+        #: Number of worlds.
+        self.world_count = int(self.world_of_particle.max()) + 1 if self.particle_count else 1
+        #: Particles of world ``w``: ``world_start[w]:world_start[w + 1]``.
+        self.world_start = np.searchsorted(self.world_of_particle, np.arange(self.world_count + 1)).astype(np.int64)
+        if world_material_start is None:
+            world_material_start = (0, len(materials))
+        #: Materials of world ``w``: ``world_material_start[w]:world_material_start[w + 1]``
+        #: (the entries of every per-material array, and of its gradient, that are world ``w``'s).
+        self.world_material_start = np.asarray(world_material_start, dtype=np.int64)
+        self._check_worlds()
+        self.particle_world = wp.array(self.world_of_particle, dtype=wp.int32, device=dev)
+        if self.world_count > 1 and self.bodies_interact:
+            #: Ids whose particles never appear in each other's neighbour lists (``None``: all
+            #: may): the world with worlds; the body without body interaction.
+            self.neighbor_group = self.particle_world
+        elif not self.bodies_interact:
+            self.neighbor_group = self.particle_body
+        else:
+            self.neighbor_group = None
+        # Lattice volume dx^3 per particle: V_i = m_i / rho0 (docs/method.md §5; the kernel is
         # evaluated in reference space, so the rest volume is the right one).
         volume = np.full(self.particle_count, self.spacing**3, dtype=npf)
         density = np.array([m.density for m in materials], dtype=npf)[self.particle_material_np]
@@ -162,6 +195,8 @@ class Model:
         )
         #: External force fields (``fields.CompressionField``), set by the builder.
         self.force_fields: list = []
+        #: Moving colliders and pinned sets (``tools.ToolSet``), set by the builder; None: none.
+        self.tools = None
         # Rest positions and initial neighbour lists of the rest-configuration model
         # (``rest_neighbors()`` builds them once).
         self.rest_x = None
@@ -190,10 +225,22 @@ class Model:
         values = list(values) or [np.zeros(3) if dtype is self.types.vec3 else 0.0]
         return wp.array(np.array(values, dtype=self.types.np_dtype), dtype=dtype, device=self.device)
 
-    def set_material(self, index: int, material: Material):
-        """Replace material ``index`` in place (its particles keep their state)."""
-        if not 0 <= index < len(self.materials):
+    def set_material(self, index: int, material: Material, world: int | None = None):
+        """Replace material ``index`` in place (its particles keep their state).
+
+        ``world=None``: ``index`` counts every material of the model (worlds after each
+        other); ``world=w``: ``index`` is the material's index within world ``w`` (as in its
+        builder), and only world ``w``'s copy changes."""
+        if world is not None:
+            w = self._world_index(world)
+            first, end = self.world_material_start[w], self.world_material_start[w + 1]
+            if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < end - first:
+                raise ValueError(f"index = {index!r} is not allowed: world {w} has materials 0..{end - first - 1}")
+            index = int(first + index)
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < len(self.materials):
             raise ValueError(f"index = {index!r} is not allowed: must be in [0, {len(self.materials) - 1}]")
+        if not isinstance(material, Material):
+            raise ValueError(f"material = {material!r} is not allowed: must be a warp_esph.Material")
         self.materials[index] = material
         for name in self.MATERIAL_FIELDS:
             arr = getattr(self, name)
@@ -210,23 +257,122 @@ class Model:
             values[index] = value
             arr.assign(values)
 
+    # ----------------------------------------------------------------- worlds
+    def _check_worlds(self):
+        # Every world-indexed slice assumes particles and materials come world after world.
+        w, ms = self.world_of_particle, self.world_material_start
+        if w.shape != (self.particle_count,) or (self.particle_count and (w[0] != 0 or (np.diff(w) < 0).any() or (np.diff(w) > 1).any())):
+            raise ValueError("particle_world is not allowed: must be one world per particle, 0, 1, ... in order, none empty")
+        if ms.shape != (self.world_count + 1,) or ms[0] != 0 or ms[-1] != len(self.materials) or (np.diff(ms) < 0).any():
+            raise ValueError(
+                f"world_material_start = {ms.tolist()} is not allowed: must be {self.world_count + 1} non-decreasing "
+                f"offsets from 0 to {len(self.materials)}"
+            )
+        if self.particle_count:
+            mat = self.particle_material_np
+            if ((mat < ms[w]) | (mat >= ms[w + 1])).any():
+                raise ValueError("particle_material is not allowed: a particle uses a material of another world")
+
+    def _world_index(self, world) -> int:
+        if isinstance(world, bool) or not isinstance(world, (int, np.integer)) or not 0 <= world < self.world_count:
+            raise ValueError(f"world = {world!r} is not allowed: must be an integer in [0, {self.world_count - 1}]")
+        return int(world)
+
+    def world_particles(self, world: int) -> slice:
+        """The particle range of ``world``: ``state.x.numpy()[model.world_particles(w)]``."""
+        w = self._world_index(world)
+        return slice(int(self.world_start[w]), int(self.world_start[w + 1]))
+
+    def world_materials(self, world: int) -> slice:
+        """The entries of the per-material arrays (``mu``, ..., their gradients) of ``world``."""
+        w = self._world_index(world)
+        return slice(int(self.world_material_start[w]), int(self.world_material_start[w + 1]))
+
+    def world_view(self, array, world: int):
+        """The part of a per-particle array (a ``State`` field, Warp or numpy) that is
+        ``world``'s; for a Warp array, a view (no copy)."""
+        if array.shape[0] != self.particle_count:
+            raise ValueError(f"array with {array.shape[0]} entries is not allowed: must have one per particle ({self.particle_count})")
+        s = self.world_particles(world)
+        return array[s.start:s.stop]
+
+    def per_world(self, values, kind: str | None = None) -> list:
+        """Split a per-particle (length ``particle_count``) or per-material (length
+        ``len(materials)``) array into one array per world; with equal worlds, stack
+        them with ``np.stack``. ``kind`` (``"particles"`` or ``"materials"``) says which
+        where the two lengths are equal; by default the length decides, particles first."""
+        a = values.numpy() if isinstance(values, wp.array) else np.asarray(values)
+        if kind not in (None, "particles", "materials"):
+            raise ValueError(f"kind = {kind!r} is not allowed: must be None, 'particles' or 'materials'")
+        if a.shape[0] == self.particle_count and kind != "materials":
+            starts = self.world_start
+        elif a.shape[0] == len(self.materials) and kind != "particles":
+            starts = self.world_material_start
+        else:
+            raise ValueError(
+                f"values with {a.shape[0]} entries is not allowed: must have one per particle ({self.particle_count}) "
+                f"or one per material ({len(self.materials)})"
+            )
+        return [a[starts[w]:starts[w + 1]] for w in range(self.world_count)]
+
     def state(self, requires_grad: bool | None = None) -> State:
         """A new state at the initial configuration (F = I, alpha = 0)."""
         return State(self, self.requires_grad if requires_grad is None else requires_grad)
 
+    def material_arrays(self):
+        """The per-material arrays as one ``sim.materials`` struct, holding these very
+        arrays (so gradients reach ``model.mu.grad`` and the others)."""
+        return material_struct.make(
+            self.scalar, self.device, mu=self.mu, lam=self.lam, yield_stress=self.yield_stress, flow_rate=self.flow_rate,
+            hardening=self.hardening, pressure_stiffness=self.pressure_stiffness, viscosity=self.viscosity,
+            model=self.material_model, deformation=self.material_deformation, elastic_force=self.material_elastic_force,
+            clamp_pressure=self.clamp_pressure,
+        )
+
+    def parameter_values(self) -> dict[str, np.ndarray]:
+        """The current per-material parameters (``MATERIAL_FIELDS``), read from the arrays
+        the kernels use: after a fit or ``warp_esph.torch`` wrote them, these differ from
+        ``materials`` (which ``set_material`` keeps in step)."""
+        out = {}
+        for name in self.MATERIAL_FIELDS:
+            current = getattr(self, name).numpy().astype(np.float64)
+            declared = np.array([getattr(m, name) for m in self.materials], dtype=np.float64)
+            # Where the array still holds the material's value (rounded to the model's
+            # precision), the material's exact float: stable_dt then does not depend on
+            # the precision.
+            same = declared.astype(self.types.np_dtype).astype(np.float64) == current
+            out[name] = np.where(same, declared, current)
+        return out
+
+    @property
+    def sph_active(self) -> bool:
+        """Whether any material has SPH pressure or viscosity now (``parameter_values``)."""
+        return bool((self.pressure_stiffness.numpy() > 0.0).any() or (self.viscosity.numpy() > 0.0).any())
+
     def stable_dt(self, courant: float = 0.3) -> float:
-        """Explicit limit over all materials: the wave limit ``C dx / c_P`` of SPEC §8, and the
+        """Explicit limit over all materials, from the current parameters
+        (``parameter_values``): the wave limit ``C dx / c_P`` of docs/method.md §8, and the
         viscous limit ``(C / 12) rho0 h^2 / eta`` of the explicit viscous force.
 
-        (The viscous force, ``pressure.py``, measured unstable above ``dt eta / (rho0 h^2)
+        (The viscous force, ``sim/pressure.py``, measured unstable above ``dt eta / (rho0 h^2)
         = 0.0375`` and stable at 0.03, in a column of 7 x 7 x 20 particles; at ``C = 0.3``
         the limit is 0.025.)"""
-        c = max(m.p_wave_speed for m in self.materials)
-        dt = courant * self.spacing / c
-        for m in self.materials:
-            if m.viscosity > 0.0:
-                dt = min(dt, courant / 12.0 * m.density * self.support_radius**2 / m.viscosity)
+        p = self.parameter_values()
+        rho = np.array([m.density for m in self.materials], dtype=np.float64)
+        c = p_wave_speed(p["mu"], p["lam"], rho, p["pressure_stiffness"])
+        dt = courant * self.spacing / float(np.max(c))
+        eta = p["viscosity"]
+        viscous = eta > 0.0
+        if viscous.any():
+            dt = min(dt, float(np.min(courant / 12.0 * rho[viscous] * self.support_radius**2 / eta[viscous])))
         return dt
+
+    def neighbor_options(self, bodies: bool = True) -> dict:
+        """The ``NeighborSearch`` keywords that keep worlds (and, without body
+        interaction and with ``bodies``, bodies) out of each other's neighbour lists."""
+        worlds = self.world_count > 1
+        group = self.neighbor_group if bodies else (self.particle_world if worlds else None)
+        return {"group": group, "world": self.particle_world if worlds else None}
 
     @property
     def body_names(self) -> list[str]:
@@ -235,38 +381,37 @@ class Model:
     def __repr__(self):
         return (
             f"Model({self.particle_count} particles, {len(self.bodies)} bodies, {len(self.materials)} materials, "
-            f"spacing={self.spacing:g}, h={self.support_radius:g}, dtype={self.scalar.__name__}, device={self.device})"
+            + (f"{self.world_count} worlds, " if self.world_count > 1 else "")
+            + f"spacing={self.spacing:g}, h={self.support_radius:g}, dtype={self.scalar.__name__}, device={self.device})"
         )
 
     @property
     def uses_comparison_models(self) -> bool:
-        """Whether any material uses a Fig. 8 comparison deformation model (SPEC §7)."""
+        """Whether any material uses a Fig. 8 comparison deformation model (docs/method.md §7)."""
         return any(m.deformation != "incremental" for m in self.materials)
 
     def rest_neighbors(self):
         """``(X, neighbours, counts)`` of the initial configuration (same-body lists, built once)."""
         if self.rest_x is None:
-            from . import neighbors  # noqa: PLC0415
+            from .sim import neighbors  # noqa: PLC0415
 
             state = State(self, requires_grad=False)
-            search = neighbors.NeighborSearch(self.particle_count, self.scalar, self.device, self.support_radius)
+            # Across bodies as always (the kernels keep to the body), never across worlds.
+            search = neighbors.NeighborSearch(
+                self.particle_count, self.scalar, self.device, self.support_radius, **self.neighbor_options(bodies=False)
+            )
             search.build(state.x, self.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count, state.guard)
             self.rest_x, self.rest_nbr, self.rest_count = state.x, state.neighbors, state.neighbor_count
         return self.rest_x, self.rest_nbr, self.rest_count
 
     def compute_rest_density(self):
         """SPH density of the initial configuration: each particle's pressure-free density."""
-        from . import neighbors, pressure  # noqa: PLC0415 (model data first, kernels on demand)
+        from .sim import neighbors, pressure  # noqa: PLC0415 (model data first, kernels on demand)
 
         state = State(self, requires_grad=False)
         search = neighbors.NeighborSearch(
-            self.particle_count, self.scalar, self.device, self.support_radius, bodies_interact=self.bodies_interact
+            self.particle_count, self.scalar, self.device, self.support_radius, bodies_interact=self.bodies_interact,
+            **self.neighbor_options(),
         )
         search.build(state.x, self.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count, state.guard)
-        wp.launch(
-            pressure.kernels(self.scalar).density,
-            self.particle_count,
-            [state.x, self.particle_mass, state.neighbors, state.neighbor_count, self.scalar(self.support_radius)],
-            [self.particle_rest_density],
-            device=self.device,
-        )
+        pressure.launch_density(self, state.x, state.neighbors, state.neighbor_count, self.particle_rest_density)

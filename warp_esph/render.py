@@ -6,12 +6,18 @@ No display, no GPU, no OpenGL: every frame is rasterised with vectorised numpy.
   projected radius; every pixel of the disc gets the depth and normal of the sphere's
   front surface there, and a z-buffer (``np.minimum.at``) keeps the nearest, so
   overlapping spheres intersect correctly.
+- **Surfaces**: where the file holds a body's surface mesh at a frame (``warp-esph run
+  --surface``, read by ``UsdFrames.surface``), that body is drawn as the mesh instead of its
+  particles (``surfaces=False`` / ``render --particles``: particles always). Triangles are
+  rasterised at pixel centres (``raster_triangles``: perspective-correct depth and
+  barycentrics) into the same z-buffer, shaded with the particles' lighting; normals are
+  smooth across a vertex and flat across a crease (``mesh_normals``). Colour by body or
+  material as the particles; a primvar colour is carried from the particles to the vertices.
 - **Colliders** under ``/World/Colliders`` are ray cast per pixel: planes as a checkered
-  floor fading into the background, spheres, axis-aligned boxes. Surface meshes under
-  ``/World/Surfaces`` (``warp-esph run --surface``) are not drawn.
-- **Lighting**: a key light with a shadow map (particles cast shadows on the ground, on
-  colliders and on each other, 3 x 3 percentage-closer filtered), a fill light, ambient and
-  a specular highlight, shaded in linear RGB and written as sRGB.
+  floor fading into the background, spheres, axis-aligned boxes.
+- **Lighting**: a key light with a shadow map (particles and surfaces cast shadows on the
+  ground, on colliders and on each other, 3 x 3 percentage-closer filtered), a fill light,
+  ambient and a specular highlight, shaded in linear RGB and written as sRGB.
 - **Camera**: perspective, looking at the bounds of the particles over all rendered frames
   (and the sphere and box colliders) from ``azimuth``/``elevation``; the distance is the
   smallest that keeps those bounds inside the picture. A scene may store a preferred view
@@ -39,9 +45,13 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from . import checks
+# The reader lives beside the writer; re-exported here because the renderer's users get
+# frames from it (``warp_esph.render.UsdFrames`` is a published name).
+from .usd import Collider, UsdFrames, parse_frames
 
 __all__ = [
-    "COLOR_MODES", "OUTPUT_EXTENSIONS", "Camera", "UsdFrames", "Renderer", "auto_camera", "parse_frames", "render_usd",
+    "COLOR_MODES", "OUTPUT_EXTENSIONS", "Camera", "Collider", "UsdFrames", "Renderer", "auto_camera", "mesh_normals",
+    "parse_frames", "raster_triangles", "render_usd", "vertex_values",
 ]
 
 #: How particles are coloured.
@@ -83,166 +93,6 @@ def colormap(values: np.ndarray) -> np.ndarray:
     k = np.minimum(v.astype(np.int32), len(_VIRIDIS) - 2)
     f = (v - k)[..., None]
     return _VIRIDIS[k] * (1.0 - f) + _VIRIDIS[k + 1] * f
-
-
-# ----------------------------------------------------------------------------- reading
-@dataclasses.dataclass
-class Collider:
-    kind: str            # "plane", "sphere", "box"
-    center: np.ndarray   # sphere/box centre; a point of the plane
-    size: np.ndarray     # sphere: (r, r, r); box: half extents; plane: (half size of the quad, 0, 0)
-    normal: np.ndarray | None = None
-    offset: float = 0.0
-
-
-class UsdFrames:
-    """The particles and colliders of a ``UsdWriter`` file, frame by frame."""
-
-    def __init__(self, path):
-        from pxr import Sdf, Usd, UsdGeom  # noqa: PLC0415
-
-        self.path = os.fspath(path)
-        if not os.path.isfile(self.path):
-            raise FileNotFoundError(f"cannot render {self.path}: no such file")
-        # Anonymous: a file rewritten in this process (run, then render) is read afresh.
-        from .usd import open_layer_checked  # noqa: PLC0415
-
-        layer = open_layer_checked(self.path)
-        self._layer = layer
-        self.stage = Usd.Stage.Open(layer)
-        self.fps = float(self.stage.GetTimeCodesPerSecond() or 30.0)
-        data = dict(self.stage.GetRootLayer().customLayerData or {})
-        view = data.get("warp_esph:view")
-        self.view = tuple(float(v) for v in view) if view is not None and len(view) == 2 else None
-        self.bodies = []       # (name, prim)
-        for prim in self.stage.GetPrimAtPath("/World").GetChildren() if self.stage.GetPrimAtPath("/World") else []:
-            if prim.IsA(UsdGeom.Points):
-                self.bodies.append((prim.GetName(), prim))
-        if not self.bodies:
-            raise ValueError(f"cannot render {self.path}: it has no UsdGeom.Points under /World (not a warp-esph output?)")
-        times = set()
-        for _, prim in self.bodies:
-            times.update(UsdGeom.Points(prim).GetPointsAttr().GetTimeSamples())
-        self.frames = sorted(int(round(t)) for t in times)
-        if not self.frames:
-            raise ValueError(f"cannot render {self.path}: it holds no frames")
-        self.material_ids = []
-        self.display_colors = []
-        for _, prim in self.bodies:
-            mid = prim.GetAttribute("primvars:material_id").Get()
-            self.material_ids.append(int(mid) if mid is not None else 0)
-            col = UsdGeom.Points(prim).GetDisplayColorAttr().Get()
-            self.display_colors.append(np.array(col[0], dtype=np.float32) if col else np.array((0.8, 0.6, 0.4), np.float32))
-        self.colliders = self._read_colliders()
-
-    def _read_colliders(self) -> list[Collider]:
-        from pxr import UsdGeom  # noqa: PLC0415
-
-        out = []
-        scope = self.stage.GetPrimAtPath("/World/Colliders")
-        if not scope:
-            return out
-        for prim in scope.GetChildren():
-            kind = prim.GetCustomDataByKey("warp_esph:collider")
-            get = prim.GetCustomDataByKey
-            if kind == "plane":
-                n = np.array(get("warp_esph:normal"), dtype=np.float64)
-                n /= np.linalg.norm(n)
-                pts = np.array(UsdGeom.Mesh(prim).GetPointsAttr().Get(), dtype=np.float64)
-                center = pts.mean(axis=0)
-                half = 0.5 * float(np.linalg.norm(pts[1] - pts[0]))
-                out.append(Collider("plane", center, np.array([half, 0.0, 0.0]), n, float(get("warp_esph:offset"))))
-            elif kind == "sphere":
-                r = float(get("warp_esph:radius"))
-                out.append(Collider("sphere", np.array(get("warp_esph:center"), dtype=np.float64), np.full(3, r)))
-            elif kind == "box":
-                out.append(Collider("box", np.array(get("warp_esph:center"), dtype=np.float64),
-                                    np.array(get("warp_esph:half_extents"), dtype=np.float64)))
-        return out
-
-    def resolve(self, frame: int) -> int:
-        if frame not in self.frames:
-            raise ValueError(f"frame = {frame!r} is not allowed: {self.path} holds frames {self.frames[0]}..{self.frames[-1]}")
-        return frame
-
-    def arrays(self, frame: int) -> dict:
-        """Every particle at ``frame``, as written: points, velocities, widths, alpha,
-        singular_values (N, 3), body (index into ``bodies``) and material_id."""
-        from pxr import Usd, UsdGeom  # noqa: PLC0415
-
-        t = Usd.TimeCode(float(frame))
-        cols = {k: [] for k in ("points", "velocities", "widths", "alpha", "singular_values", "body", "material_id")}
-        for k, (_, prim) in enumerate(self.bodies):
-            geom = UsdGeom.Points(prim)
-            p = geom.GetPointsAttr().Get(t)
-            if p is None or len(p) == 0:
-                continue
-            n = len(p)
-
-            def get(attr, shape, fill):
-                value = attr.Get(t) if attr else None
-                if value is None or len(value) != n:
-                    return np.full(shape, fill, dtype=np.float32)
-                return np.asarray(value, dtype=np.float32).reshape(shape)
-
-            cols["points"].append(np.asarray(p, dtype=np.float32))
-            cols["velocities"].append(get(geom.GetVelocitiesAttr(), (n, 3), 0.0))
-            cols["widths"].append(get(geom.GetWidthsAttr(), (n,), 0.02))
-            cols["alpha"].append(get(prim.GetAttribute("primvars:alpha"), (n,), 0.0))
-            cols["singular_values"].append(get(prim.GetAttribute("primvars:singular_values"), (n, 3), 1.0))
-            cols["body"].append(np.full(n, k, np.int32))
-            cols["material_id"].append(np.full(n, self.material_ids[k], np.int32))
-        shapes = {"points": (0, 3), "velocities": (0, 3), "singular_values": (0, 3)}
-        return {k: (np.concatenate(v) if v else np.zeros(shapes.get(k, (0,)), np.int32 if k in ("body", "material_id") else np.float32))
-                for k, v in cols.items()}
-
-    def particles(self, frame: int) -> dict:
-        """What the renderer needs at ``frame``: points, radius, body, material, alpha and the
-        elastic strain ``max_k |ln sigma_k|`` (as ``singular_values``); non-finite particles dropped."""
-        a = self.arrays(frame)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            strain = np.abs(np.log(np.abs(a["singular_values"]))).max(axis=1) if len(a["points"]) else np.zeros(0, np.float32)
-        out = {"points": a["points"], "radius": 0.5 * a["widths"], "body": a["body"], "material": a["material_id"],
-               "alpha": a["alpha"], "singular_values": strain.astype(np.float32)}
-        keep = np.isfinite(a["points"]).all(axis=1)
-        if not keep.all():
-            out = {k: v[keep] for k, v in out.items()}
-        return out
-
-    #: A body whose extent grows past this many times its first rendered frame's has blown
-    #: up: it is left out of the framing, which would otherwise shrink the rest to a dot.
-    BLOWN_UP = 20.0
-
-    def bounds(self, frames) -> tuple[np.ndarray, np.ndarray]:
-        """Bounds of the particles over ``frames`` (the per-frame ``extent`` where written),
-        leaving out a body in the frames where it has blown up (``BLOWN_UP``)."""
-        from pxr import Usd, UsdGeom  # noqa: PLC0415
-
-        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-        first_size = {}
-        for f in frames:
-            t = Usd.TimeCode(float(f))
-            for k, (_, prim) in enumerate(self.bodies):
-                geom = UsdGeom.Points(prim)
-                ext = geom.GetExtentAttr().Get(t)
-                if ext is not None and len(ext) == 2:
-                    e = np.array(ext, dtype=np.float64)
-                else:
-                    p = geom.GetPointsAttr().Get(t)
-                    if p is None or len(p) == 0:
-                        continue
-                    p = np.asarray(p, dtype=np.float64)
-                    e = np.stack([np.nanmin(p, axis=0), np.nanmax(p, axis=0)])
-                if not np.isfinite(e).all():
-                    continue
-                size = float((e[1] - e[0]).max())
-                size0 = first_size.setdefault(k, size)
-                if size > self.BLOWN_UP * max(size0, 1e-6):
-                    continue
-                lo, hi = np.minimum(lo, e[0]), np.maximum(hi, e[1])
-        if not np.isfinite(lo).all():
-            lo, hi = np.full(3, -0.5), np.full(3, 0.5)
-        return lo, hi
 
 
 # ----------------------------------------------------------------------------- camera
@@ -379,10 +229,146 @@ def splat_spheres(px, py, depth, rad_px, rad_depth, width: int, height: int, max
     return np.concatenate(pix), np.concatenate(dep), np.concatenate(uxs), np.concatenate(uys), np.concatenate(who)
 
 
-def zbuffer_resolve(pix, dep, zbuf_flat):
-    """Lower ``zbuf_flat`` to the nearest fragment per pixel; the mask of winning fragments."""
-    np.minimum.at(zbuf_flat, pix, dep)
-    return dep <= zbuf_flat[pix]
+def raster_triangles(px, py, depth, triangles, width: int, height: int, perspective: bool = True,
+                     chunk: int = 1 << 21):
+    """Fragments of triangles: ``(pixel, depth, bary (n, 3), triangle)``, one per pixel centre
+    inside a triangle (both windings; a centre on a shared edge goes to both, the z-buffer
+    keeps one, so a closed mesh leaves no holes).
+
+    ``px, py``: vertex positions in pixels; ``depth``: vertex depth. ``perspective``: the
+    depth is the view depth of a perspective camera, so ``1/depth`` and ``bary/depth`` are
+    what is linear in the picture (perspective-correct); otherwise (an orthographic view)
+    depth and barycentrics are interpolated linearly.
+    """
+    tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    X, Y, Z = (np.asarray(a, dtype=np.float32)[tri] for a in (px, py, depth))  # (T, 3) each
+    ok = np.isfinite(X).all(axis=1) & np.isfinite(Y).all(axis=1) & np.isfinite(Z).all(axis=1)
+    if perspective:
+        ok &= (Z > 1e-6).all(axis=1)
+    area = (X[:, 1] - X[:, 0]) * (Y[:, 2] - Y[:, 0]) - (X[:, 2] - X[:, 0]) * (Y[:, 1] - Y[:, 0])
+    x0 = np.ceil(np.where(ok, X.min(axis=1), 0.0) - 0.5)
+    x1 = np.floor(np.where(ok, X.max(axis=1), -1.0) - 0.5)
+    y0 = np.ceil(np.where(ok, Y.min(axis=1), 0.0) - 0.5)
+    y1 = np.floor(np.where(ok, Y.max(axis=1), -1.0) - 0.5)
+    x0, y0 = np.maximum(x0, 0), np.maximum(y0, 0)
+    x1, y1 = np.minimum(x1, width - 1), np.minimum(y1, height - 1)
+    ok &= (x1 >= x0) & (y1 >= y0) & (np.abs(area) > 1e-12)
+    # Bucket by the bounding box's larger side (rounded up to a power of two): one square
+    # stencil per bucket, a few triangles' candidate pixels per chunk.
+    side = np.maximum(x1 - x0, y1 - y0) + 1
+    bucket = np.where(ok, np.ceil(np.log2(np.maximum(side, 1))).astype(np.int64), -1)
+    pix, dep, bary, who = [], [], [], []
+    for b in np.unique(bucket[bucket >= 0]):
+        S = 1 << int(b)
+        o = np.arange(S, dtype=np.float32)
+        ox, oy = (g.reshape(-1) for g in np.meshgrid(o, o))
+        members = np.nonzero(bucket == b)[0]
+        step = max(1, chunk // (S * S))
+        for c in range(0, len(members), step):
+            t = members[c:c + step]
+            cx = x0[t, None] + ox[None, :]
+            cy = y0[t, None] + oy[None, :]
+            inside = (cx <= x1[t, None]) & (cy <= y1[t, None])
+            sx, sy = cx + np.float32(0.5), cy + np.float32(0.5)
+            Xt, Yt = X[t], Y[t]
+            inv = (1.0 / area[t])[:, None]
+            w0 = ((Xt[:, 1, None] - sx) * (Yt[:, 2, None] - sy) - (Xt[:, 2, None] - sx) * (Yt[:, 1, None] - sy)) * inv
+            w1 = ((Xt[:, 2, None] - sx) * (Yt[:, 0, None] - sy) - (Xt[:, 0, None] - sx) * (Yt[:, 2, None] - sy)) * inv
+            w2 = 1.0 - w0 - w1
+            inside &= (w0 >= 0) & (w1 >= 0) & (w2 >= 0)
+            rows, cols = np.nonzero(inside)
+            if len(rows) == 0:
+                continue
+            w = np.stack([w0[rows, cols], w1[rows, cols], w2[rows, cols]], axis=1).astype(np.float32)
+            tz = Z[t[rows]]
+            if perspective:
+                w = w / tz
+                s = w.sum(axis=1)
+                d = 1.0 / s
+                w = w * d[:, None]
+            else:
+                d = (w * tz).sum(axis=1)
+            pix.append((cy[rows, cols].astype(np.int64) * width + cx[rows, cols].astype(np.int64)))
+            dep.append(d.astype(np.float32))
+            bary.append(w)
+            who.append(t[rows])
+    if not pix:
+        return np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
+    return np.concatenate(pix), np.concatenate(dep), np.concatenate(bary), np.concatenate(who)
+
+
+def mesh_normals(vertices, triangles, crease: float = 45.0):
+    """Face normals (T, 3) and, per triangle corner, the normal to shade with (T, 3, 3).
+
+    A corner gets its vertex's normal (the mean of the faces around it, each weighted by its
+    angle there, so how a polygon was split into triangles does not matter) where that is
+    within ``crease`` degrees of the face's own, else the face normal: a marching cubes
+    surface is shaded smooth, a cube with shared corners stays flat (the mean of three
+    orthogonal faces is 54.7 degrees from each).
+    """
+    v = np.asarray(vertices, dtype=np.float32)
+    tri = np.asarray(triangles, dtype=np.int64)
+    cross = np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]])
+    length = np.linalg.norm(cross, axis=1, keepdims=True)
+    face = cross / np.where(length > 0, length, 1.0)
+    vn = np.zeros_like(v)
+    for k in range(3):
+        e1 = v[tri[:, (k + 1) % 3]] - v[tri[:, k]]
+        e2 = v[tri[:, (k + 2) % 3]] - v[tri[:, k]]
+        angle = np.arctan2(np.linalg.norm(np.cross(e1, e2), axis=1), np.einsum("ij,ij->i", e1, e2))
+        np.add.at(vn, tri[:, k], face * angle[:, None])
+    vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
+    corner = vn[tri]  # (T, 3, 3)
+    sharp = np.einsum("tkj,tj->tk", corner, face) < math.cos(math.radians(crease))
+    corner = np.where(sharp[:, :, None], face[:, None, :], corner)
+    return face, corner
+
+
+def vertex_values(vertices, points, values, radius):
+    """``values`` of the particles at ``points`` carried to mesh ``vertices``: a weighted mean
+    over the particles within ``radius`` (weight ``(1 - d^2/radius^2)^3``, as the surface
+    field of ``warp_esph.surface``), binned on a grid of cell ``radius``; the nearest bin's
+    mean where none is in reach."""
+    p = np.asarray(points, dtype=np.float64)
+    q = np.asarray(vertices, dtype=np.float64)
+    val = np.asarray(values, dtype=np.float64)
+    if len(p) == 0 or len(q) == 0:
+        return np.zeros(len(q), np.float32)
+    h = max(float(radius), 1e-9)
+    lo = p.min(axis=0) - 2 * h
+    cells = np.floor((p - lo) / h).astype(np.int64)
+    dims = cells.max(axis=0) + 3
+    key = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+    order = np.argsort(key, kind="stable")
+    skey = key[order]
+    num = np.zeros(len(q))
+    den = np.zeros(len(q))
+    qc = np.floor((q - lo) / h).astype(np.int64)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                c = qc + (dx, dy, dz)
+                valid = ((c >= 0) & (c < dims)).all(axis=1)
+                k = (c[:, 0] * dims[1] + c[:, 1]) * dims[2] + c[:, 2]
+                a = np.searchsorted(skey, k, "left")
+                b = np.where(valid, np.searchsorted(skey, k, "right"), a)
+                # Visit the particles of each vertex's cell, one slot at a time.
+                n = b - a
+                for j in range(int(n.max()) if len(n) else 0):
+                    has = np.nonzero(n > j)[0]
+                    idx = order[a[has] + j]
+                    d2 = ((q[has] - p[idx]) ** 2).sum(axis=1)
+                    w = np.clip(1.0 - d2 / (h * h), 0.0, None) ** 3
+                    num[has] += w * val[idx]
+                    den[has] += w
+    out = np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
+    missing = np.nonzero(~(den > 0))[0]
+    if len(missing):  # far from every particle (a coarse mesh): the nearest particle
+        step = max(1, (1 << 22) // len(p))
+        for s in range(0, len(missing), step):
+            m = missing[s:s + step]
+            out[m] = val[np.argmin(((q[m, None, :] - p[None, :, :]) ** 2).sum(axis=2), axis=1)]
+    return out.astype(np.float32)
 
 
 # ----------------------------------------------------------------------------- renderer
@@ -399,6 +385,7 @@ class RenderOptions:
     fov: float = 30.0
     label: bool = True
     shadows: bool = True
+    surfaces: bool = True
 
     def __post_init__(self):
         self.width = checks.positive_int("width", self.width)
@@ -411,6 +398,8 @@ class RenderOptions:
             raise ValueError(f"supersample = {self.supersample!r} is not allowed: must be 1, 2, 3 or 4")
         self.radius_scale = checks.positive("radius_scale", self.radius_scale)
         self.zoom = checks.positive("zoom", self.zoom)
+        if not isinstance(self.surfaces, bool):
+            raise ValueError(f"surfaces = {self.surfaces!r} is not allowed: must be True or False")
         self.fov = checks.positive("fov", self.fov)
         if not self.fov < 170:
             raise ValueError(f"fov = {self.fov!r} is not allowed: must be in (0, 170) degrees")
@@ -490,23 +479,35 @@ class Renderer:
         return colormap((parts[mode] - lo) / (hi - lo))
 
     # ------------------------------------------------------------------ shadows
-    def _shadow_map(self, pts, rad):
-        """Depth of the particles seen from the key light (orthographic)."""
+    def _shadow_map(self, pts, rad, meshes=(), median_rad=None):
+        """Depth seen from the key light (orthographic) of the particles ``pts`` (spheres of
+        radius ``rad``) and the surfaces ``meshes`` ((vertices, triangles) pairs)."""
         L = self.key
         a = np.cross(L, [0.0, 0.0, 1.0] if abs(L[2]) < 0.9 else [1.0, 0.0, 0.0])
         a /= np.linalg.norm(a)
         b = np.cross(L, a)
         u, v, d = pts @ a, pts @ b, -(pts @ L)
-        rmax = float(rad.max())
-        texel = max(float(np.median(rad)) * 0.5, 1e-6)
-        u0, v0 = u.min() - 2 * rmax, v.min() - 2 * rmax
-        nu = int(min(2048, math.ceil((u.max() + 2 * rmax - u0) / texel) + 1))
-        nv = int(min(2048, math.ceil((v.max() + 2 * rmax - v0) / texel) + 1))
-        texel = max((u.max() + 2 * rmax - u0) / (nu - 1), (v.max() + 2 * rmax - v0) / (nv - 1), texel)
-        px, py = (u - u0) / texel, (v - v0) / texel
+        mu = [m[0] @ a for m in meshes]
+        mv = [m[0] @ b for m in meshes]
+        md = [-(m[0] @ L) for m in meshes]
+        rmax = float(rad.max()) if len(rad) else 0.0
+        median_rad = float(np.median(rad)) if median_rad is None else median_rad
+        texel = max(median_rad * 0.5, 1e-6)
+        uall, vall = np.concatenate([u, *mu]), np.concatenate([v, *mv])
+        u0, v0 = uall.min() - 2 * rmax - texel, vall.min() - 2 * rmax - texel
+        u1, v1 = uall.max() + 2 * rmax + texel, vall.max() + 2 * rmax + texel
+        nu = int(min(2048, math.ceil((u1 - u0) / texel) + 1))
+        nv = int(min(2048, math.ceil((v1 - v0) / texel) + 1))
+        texel = max((u1 - u0) / (nu - 1), (v1 - v0) / (nv - 1), texel)
         zbuf = np.full(nu * nv, np.inf, dtype=np.float32)
-        pix, dep, _, _, _ = splat_spheres(px, py, d, rad / texel, rad, nu, nv, max_radius=32)
-        np.minimum.at(zbuf, pix, dep)
+        if len(pts):
+            px, py = (u - u0) / texel, (v - v0) / texel
+            pix, dep, _, _, _ = splat_spheres(px, py, d, rad / texel, rad, nu, nv, max_radius=32)
+            np.minimum.at(zbuf, pix, dep)
+        for (_, tri), mu_k, mv_k, md_k in zip(meshes, mu, mv, md):
+            pix, dep, _, _ = raster_triangles((mu_k - u0) / texel, (mv_k - v0) / texel, md_k, tri, nu, nv,
+                                              perspective=False)
+            np.minimum.at(zbuf, pix, dep)
         zpad = np.full((nv + 2, nu + 2), np.inf, dtype=np.float32)
         zpad[1:-1, 1:-1] = zbuf.reshape(nv, nu)
         return {"a": a, "b": b, "u0": u0, "v0": v0, "texel": texel, "shape": (nv, nu), "zpad": zpad.reshape(-1),
@@ -610,18 +611,49 @@ class Renderer:
         }
         return self._static_cache
 
+    def surfaces(self, frame: int) -> dict:
+        """``{body: (vertices, triangles)}`` of the bodies drawn as surfaces at ``frame``: those
+        whose file holds a non-empty surface there, unless ``options.surfaces`` is off."""
+        if not self.options.surfaces:
+            return {}
+        out = {}
+        for k in range(len(self.data.bodies)):
+            mesh = self.data.surface(frame, k)
+            if mesh is not None:
+                out[k] = mesh
+        return out
+
+    def _mesh_colors(self, body: int, vertices, parts) -> np.ndarray:
+        """sRGB per vertex (V, 3) of body ``body``'s surface, as its particles are coloured."""
+        mode = self.options.color
+        if mode == "body":
+            return np.broadcast_to(BODY_PALETTE[body % len(BODY_PALETTE)], vertices.shape)
+        if mode == "material":
+            return np.broadcast_to(np.asarray(self.data.display_colors[body], np.float32), vertices.shape)
+        mine = parts["body"] == body
+        rad = parts["radius"][mine]
+        reach = 4.0 * float(np.median(rad)) if len(rad) else 1.0  # the surface field's support, 2 spacings
+        lo, hi = self.color_range
+        return colormap((vertex_values(vertices, parts["points"][mine], parts[mode][mine], reach) - lo) / (hi - lo))
+
     def render(self, frame: int) -> Image.Image:
         """The picture of ``frame`` (a frame index of the file)."""
         o, cam = self.options, self.camera
         W, H = cam.width, cam.height
-        parts = self.data.particles(self.data.resolve(frame))
+        frame = self.data.resolve(frame)
+        parts = self.data.particles(frame)
+        meshes = self.surfaces(frame)
         static = self._static()
         zbuf = static["zbuf"].copy()
         image = static["image"].copy()
-        pts = parts["points"].astype(np.float32)
-        rad = (parts["radius"] * o.radius_scale).astype(np.float32)
-        smap = self._shadow_map(pts, rad) if (o.shadows and len(pts)) else None
-        bias = 1.5 * float(np.median(rad)) if len(rad) else 0.0
+        rad_all = (parts["radius"] * o.radius_scale).astype(np.float32)
+        # A body with a surface is drawn as that surface instead of its particles.
+        drawn = ~np.isin(parts["body"], list(meshes)) if meshes else np.ones(len(rad_all), bool)
+        pts = parts["points"][drawn].astype(np.float32)
+        rad = rad_all[drawn]
+        median_rad = float(np.median(rad_all)) if len(rad_all) else 0.0
+        smap = self._shadow_map(pts, rad, list(meshes.values()), median_rad) if (o.shadows and (len(pts) or meshes)) else None
+        bias = 1.5 * median_rad
 
         # ---- the particles' shadows on the colliders: take the key light away where blocked
         if smap is not None and len(static["idx"]):
@@ -630,28 +662,62 @@ class Renderer:
             dark = lit < 1.0
             image[sidx[dark]] -= static["key"][dark] * (1.0 - lit[dark])[:, None]
 
-        # ---- particles, splatted
+        # ---- fragments: particles splatted, surfaces rasterised; one z-buffer for both
+        sphere_frags = None
         if len(pts):
             px, py, z = cam.project(pts)
             idx = np.nonzero(z > 1e-3)[0]
             zi = z[idx].astype(np.float32)
             rp = (cam.focal * rad[idx] / zi).astype(np.float32)
             pix, dep, ux, uy, who = splat_spheres(px[idx], py[idx], zi, rp, rad[idx], W, H)
-            win = zbuffer_resolve(pix, dep, zbuf)
-            pix, dep, ux, uy, who = pix[win], dep[win], ux[win], uy[win], idx[who[win]]
-            uz = np.sqrt(np.clip(1.0 - ux * ux - uy * uy, 0.0, 1.0))
-            right, up, fwd = (v.astype(np.float32) for v in (cam.right, cam.true_up, cam.forward))
-            normal = ux[:, None] * right + uy[:, None] * up - uz[:, None] * fwd
-            rays = self._rays32
-            P = cam.eye.astype(np.float32) + dep[:, None] * rays[pix]
+            np.minimum.at(zbuf, pix, dep)
+            sphere_frags = (pix, dep, ux, uy, idx[who])
+        mesh_frags = []
+        for body, (v, tri) in meshes.items():
+            px, py, z = cam.project(v)
+            pix, dep, bary, t = raster_triangles(px, py, z, tri, W, H)
+            np.minimum.at(zbuf, pix, dep)
+            mesh_frags.append((body, v, tri, pix, dep, bary, t))
+
+        rays = self._rays32
+        eye = cam.eye.astype(np.float32)
+
+        def light(pix, dep, normal, base, specular, normal_offset=0.0):
+            P = eye + dep[:, None] * rays[pix]
             eye_dir = -rays[pix]
             eye_dir /= np.linalg.norm(eye_dir, axis=1, keepdims=True)
-            base = _linear(self._particle_colors(parts))[who]
-            ambient, key = self._shade_parts(base, normal, eye_dir, 0.25)
-            lit = self._lit_fraction(smap, P, bias) if smap is not None else np.ones(len(P), np.float32)
+            ambient, key = self._shade_parts(base, normal, eye_dir, specular)
+            if smap is not None:
+                # A flat surface at a grazing angle to the light crosses the shadow map's depth
+                # steps (stripes, "shadow acne"): look it up a little way out along its normal.
+                lit = self._lit_fraction(smap, P + np.float32(normal_offset * smap["texel"]) * normal, bias)
+            else:
+                lit = np.ones(len(P), np.float32)
             if self.data.colliders:
                 lit = lit * self._collider_shadow(P)
             image[pix] = ambient + key * lit[:, None]
+
+        if sphere_frags is not None:
+            pix, dep, ux, uy, who = sphere_frags
+            win = dep <= zbuf[pix]
+            pix, dep, ux, uy, who = pix[win], dep[win], ux[win], uy[win], who[win]
+            uz = np.sqrt(np.clip(1.0 - ux * ux - uy * uy, 0.0, 1.0))
+            right, up, fwd = (v.astype(np.float32) for v in (cam.right, cam.true_up, cam.forward))
+            normal = ux[:, None] * right + uy[:, None] * up - uz[:, None] * fwd
+            base = _linear(self._particle_colors({k: a[drawn] for k, a in parts.items()}))[who]
+            light(pix, dep, normal, base, 0.25)
+        for body, v, tri, pix, dep, bary, t in mesh_frags:
+            win = dep <= zbuf[pix]
+            pix, dep, bary, t = pix[win], dep[win], bary[win], t[win]
+            face, corner = mesh_normals(v, tri)
+            normal = np.einsum("nk,nkj->nj", bary, corner[t])
+            normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+            # Seen from behind (an open or inside-out mesh): shade the side that faces the eye.
+            back = np.einsum("nj,nj->n", face[t], rays[pix]) > 0
+            normal[back] = -normal[back]
+            colors = _linear(self._mesh_colors(body, v, parts)).astype(np.float32)
+            base = np.einsum("nk,nkj->nj", bary, colors[tri[t]])
+            light(pix, dep, normal.astype(np.float32), base.astype(np.float32), 0.25, normal_offset=2.0)
 
         img = Image.fromarray(_to_srgb8(image.reshape(H, W, 3)), "RGB")
         if o.supersample > 1:
@@ -795,58 +861,6 @@ def _font(size: int):
 
 
 # ----------------------------------------------------------------------------- frames / output
-def parse_frames(spec, available: list[int]) -> list[int]:
-    """Frame indices from a spec: ``all``, ``first``, ``last``, ``N``, ``-N`` (from the end),
-    ``A:B`` or ``A:B:STEP`` (B inclusive, either may be left out), or a comma list of those."""
-    if spec is None:
-        return list(available)
-    if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
-        spec = str(int(spec))
-    if isinstance(spec, (list, tuple)):
-        spec = ",".join(str(s) for s in spec)
-    if not isinstance(spec, str) or not spec.strip():
-        raise ValueError(f"frames = {spec!r} is not allowed: give e.g. 'all', 'last', '10', '0:60:5' or '0,30,60'")
-    first, last = available[0], available[-1]
-    have = set(available)
-
-    def one(text: str) -> int:
-        v = int(text)
-        return last + 1 + v if v < 0 else v
-
-    out: list[int] = []
-    for part in spec.split(","):
-        p = part.strip().lower()
-        try:
-            if p == "all":
-                out.extend(available)
-            elif p == "first":
-                out.append(first)
-            elif p == "last":
-                out.append(last)
-            elif ":" in p:
-                bits = p.split(":")
-                if len(bits) > 3:
-                    raise ValueError
-                a = one(bits[0]) if bits[0] else first
-                b = one(bits[1]) if bits[1] else last
-                step = int(bits[2]) if len(bits) == 3 and bits[2] else 1
-                if step < 1:
-                    raise ValueError
-                out.extend(f for f in available if a <= f <= b and (f - a) % step == 0)
-            else:
-                out.append(one(p))
-        except ValueError:
-            raise ValueError(
-                f"frames = {spec!r} is not allowed: {part!r} is not 'all', 'first', 'last', N, -N, A:B or A:B:STEP"
-            ) from None
-    missing = [f for f in out if f not in have]
-    if missing:
-        raise ValueError(f"frames = {spec!r} is not allowed: frame {missing[0]} is not in the file (it holds {first}..{last})")
-    if not out:
-        raise ValueError(f"frames = {spec!r} is not allowed: it selects no frame of the file (it holds {first}..{last})")
-    return out
-
-
 def output_kind(output) -> str:
     """'png', 'gif', 'mp4' or 'dir' from an output name (no extension: a folder)."""
     name = os.fspath(output)
@@ -880,6 +894,8 @@ class RenderResult:
     files: list[str]
     seconds: float
     particles: int
+    #: Bodies drawn as surface meshes in the first frame (0: particles only).
+    surface_bodies: int = 0
 
     @property
     def seconds_per_frame(self) -> float:
@@ -890,7 +906,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
                supersample: int = 2, radius_scale: float = 1.0, azimuth: float | None = None,
                elevation: float | None = None, zoom: float = 1.0, fov: float = 30.0, label: bool = True,
                shadows: bool = True, columns: int | None = None, fps: float | None = None, fit: str = "all",
-               progress=None) -> RenderResult:
+               surfaces: bool = True, progress=None) -> RenderResult:
     """Render frames of a ``UsdWriter`` file.
 
     ``output``: a folder (no extension; PNG per frame, ``frame_00012.png``), a ``.png``
@@ -900,7 +916,9 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     ``fps``: playback rate of a GIF/MP4 (default: the file's). ``fit``: ``"all"`` frames the
     bounds of all chosen frames with one camera (the default: motion reads correctly),
     ``"each"`` frames every picture on its own (the same view direction, its own
-    distance). ``progress(k, n)`` is called after each frame.
+    distance). ``surfaces``: draw a body's surface mesh (``warp-esph run --surface``) instead
+    of its particles where the file holds one (``False``: always particles). ``progress(k, n)``
+    is called after each frame.
     """
     data = UsdFrames(path)
     if output is None:
@@ -915,7 +933,8 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
         frames = "last"
     chosen = parse_frames(frames, data.frames)
     options = RenderOptions(width=width, height=height, color=color, supersample=supersample, radius_scale=radius_scale,
-                            azimuth=azimuth, elevation=elevation, zoom=zoom, fov=fov, label=label, shadows=shadows)
+                            azimuth=azimuth, elevation=elevation, zoom=zoom, fov=fov, label=label, shadows=shadows,
+                            surfaces=surfaces)
     playback = checks.positive("fps", fps) if fps is not None else data.fps
     parent = out if kind == "dir" else (os.path.dirname(os.path.abspath(out)) or ".")
     if kind == "dir":
@@ -930,13 +949,16 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     files: list[str] = []
     images: list[Image.Image] = []
     count = 0
+    surface_bodies = 0
     writer = None
     try:
         for k, f in enumerate(chosen):
             if fit == "each" and len(chosen) > 1:
                 renderer = Renderer(data, [f], options, color_range=shared_range)
             img = renderer.render(f)
-            count = max(count, len(data.particles(f)["points"])) if k == 0 else count
+            if k == 0:
+                count = len(data.particles(f)["points"])
+                surface_bodies = len(renderer.surfaces(f))
             if kind == "dir":
                 file = os.path.join(out, f"frame_{f:05d}.png")
                 img.save(file, optimize=True)
@@ -963,7 +985,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
         files.append(out)
     elif kind == "mp4":
         files.append(out)
-    return RenderResult(out, kind, chosen, files, time.perf_counter() - t0, count)
+    return RenderResult(out, kind, chosen, files, time.perf_counter() - t0, count, surface_bodies)
 
 
 class _Mp4Writer:

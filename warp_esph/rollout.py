@@ -23,7 +23,7 @@ the forward pass runs untaped, keeping only the state fields (``x, v, F, alpha``
 start of every segment of ``S`` steps; ``backward`` re-runs each segment on a fresh tape,
 last segment first, seeds its end state with the adjoint that the later segment left at
 its start, and adds its parameter gradients into separate buffers before
-``tape.zero()`` (which also zeroes the model's parameter ``.grad``; WARP_NOTES trap 6).
+``tape.zero()`` (which also zeroes the model's parameter ``.grad``; docs/method.md, Warp pitfall 6).
 Memory is then ``steps / S`` light checkpoints plus ``S + 1`` taped states; time is one
 extra forward pass. The re-run is bitwise identical to the first, so the checkpointed
 gradient equals the full-tape one up to the order of floating-point sums (tested to
@@ -40,6 +40,7 @@ The gradient with respect to ``x0`` holds the SPH rest density fixed (it is a co
 of the model, computed once from the model's own initial positions).
 """
 
+import dataclasses
 import functools
 import types
 from collections.abc import Mapping, Sequence
@@ -50,7 +51,7 @@ import warp as wp
 from . import checks
 from ._types import type_set
 from .model import Model, State
-from .solver import Solver
+from .sim.solver import Solver
 
 __all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS"]
 
@@ -176,10 +177,13 @@ class Rollout:
         self._forward_done = False
         #: Incremented by every ``forward``: lets callers (the torch wrapper) tell runs apart.
         self.forward_count = 0
+        #: Each world's loss term at the last ``backward`` with a ``losses.WorldLoss`` (else None).
+        self.world_values = None
 
     # ----------------------------------------------------------------- set-up
     def set_parameters(self, values: Mapping[str, object]):
-        """Assign per-material parameter arrays (``{name: array of n_materials}``)."""
+        """Assign per-material parameter arrays (``{name: array of n_materials}``); the solver
+        follows them at its next step (whether SPH runs, the stable ``dt``)."""
         m = self.model
         for name, value in values.items():
             if name not in PARAMETERS:
@@ -333,8 +337,11 @@ class Rollout:
         if not self._forward_done:
             raise RuntimeError("backward() before forward(): run forward() first")
         value = None
+        self.world_values = None
         if hasattr(grads, "value_and_grad"):
-            value, grads = grads.value_and_grad(dict(zip(self.frames, self.frame_positions)))
+            loss = grads
+            value, grads = loss.value_and_grad(dict(zip(self.frames, self.frame_positions)))
+            self.world_values = getattr(loss, "world_values", None)
         frame_grads = self._frame_gradients(grads)
         acc = {name: np.zeros(getattr(self.model, name).shape[0], dtype=self.model.types.np_dtype) for name in PARAMETERS}
         if self.checkpointing:
@@ -344,6 +351,16 @@ class Rollout:
         result = dict(acc)
         result.update(adj)
         return value, result
+
+    def per_world(self, gradients: Mapping[str, np.ndarray]) -> list[dict[str, np.ndarray]]:
+        """``backward``'s gradients split by world (``SceneBuilder.finalize(worlds=W)``):
+        one dict per world, with that world's entries of every parameter array (its
+        materials, ``model.world_materials(w)``) and of the initial-state gradients (its
+        particles). Worlds never interact, so with a ``losses.WorldLoss`` these are the
+        gradients of each world's own loss."""
+        parts = {key: self.model.per_world(value, "materials" if key in PARAMETERS else "particles")
+                 for key, value in gradients.items()}
+        return [{key: p[w] for key, p in parts.items()} for w in range(self.model.world_count)]
 
     def _seed(self, arr: wp.array, g: wp.array):
         wp.launch(self._k.add_vec3, arr.shape[0], [g], [arr.grad], device=self.model.device, record_tape=False)
@@ -388,7 +405,7 @@ class Rollout:
                     self._seed(seg[f - start].x, g)
             self._zero_parameter_grads()
             tape.backward()
-            # Trap 6: tape.zero() zeroes the parameter grads too: keep them first.
+            # docs/method.md, Warp pitfall 6: tape.zero() zeroes the parameter grads too: keep them first.
             self._add_parameter_grads(acc)
             adj = {name: wp.clone(getattr(seg[0], name).grad) for name in State.STATE_FIELDS}
             tape.zero()
@@ -460,21 +477,28 @@ def split_materials(model: Model, bodies: Sequence[int | str] | None = None) -> 
     old = model.particle_material_np
     body_of = model.particle_body_np
     materials = []
+    source = []  # the model's material each new material copies
     new_index = np.empty(model.particle_count, dtype=np.int32)
     per_particle = np.isin(body_of, sorted(chosen))
-    for i in np.flatnonzero(per_particle):
-        new_index[i] = len(materials)
-        materials.append(model.materials[old[i]])
-    shared = {}
-    for i in np.flatnonzero(~per_particle):
-        k = int(old[i])
-        if k not in shared:
-            shared[k] = len(materials)
-            materials.append(model.materials[k])
-        new_index[i] = shared[k]
-    new_bodies = [
-        type(b)(name=b.name, start=b.start, count=b.count, material=int(new_index[b.start]), kind=b.kind) for b in model.bodies
-    ]
+    world_material_start = [0]
+    # World by world, so each world's materials stay contiguous (``Model.world_materials``).
+    for w in range(model.world_count):
+        s = model.world_particles(w)
+        idx = np.arange(s.start, s.stop)
+        for i in idx[per_particle[idx]]:
+            new_index[i] = len(materials)
+            materials.append(model.materials[old[i]])
+            source.append(int(old[i]))
+        shared = {}
+        for i in idx[~per_particle[idx]]:
+            k = int(old[i])
+            if k not in shared:
+                shared[k] = len(materials)
+                materials.append(model.materials[k])
+                source.append(k)
+            new_index[i] = shared[k]
+        world_material_start.append(len(materials))
+    new_bodies = [dataclasses.replace(b, material=int(new_index[b.start])) for b in model.bodies]
     out = Model(
         positions=model.particle_x0.copy(),
         velocities=model.particle_v0.copy(),
@@ -492,11 +516,15 @@ def split_materials(model: Model, bodies: Sequence[int | str] | None = None) -> 
         device=model.device,
         scalar=model.scalar,
         requires_grad=model.requires_grad,
+        bodies_interact=model.bodies_interact,
+        particle_world=model.world_of_particle.copy(),
+        world_material_start=world_material_start,
     )
+    out.force_fields = list(model.force_fields)
     # Copy the rest density rather than recompute it, so the split model runs identically.
     wp.copy(out.particle_rest_density, model.particle_rest_density)
     # Copy the parameter values too (they may differ from model.materials after a fit).
     for name in PARAMETERS:
         vals = getattr(model, name).numpy()
-        getattr(out, name).assign(vals[old][per_particle].tolist() + [vals[k] for k in shared])
+        getattr(out, name).assign(vals[np.asarray(source, dtype=np.int64)])
     return out

@@ -1,4 +1,4 @@
-"""Built-in scenes and the TOML scene-file loader.
+"""Built-in scenes (the scene-file loader is ``warp_esph.scene_file``).
 
 A scene is a configured ``SceneBuilder`` plus run settings (``Scene``). Every built-in
 scene function takes ``scale``: the particle spacing is divided by it, so the geometry
@@ -16,51 +16,20 @@ import dataclasses
 import difflib
 import math
 import os
-import sys
 from collections.abc import Callable
-
-try:
-    import tomllib
-except ModuleNotFoundError:  # Python 3.10: the same parser as the tomli package
-    try:
-        import tomli as tomllib
-    except ModuleNotFoundError:
-        tomllib = None
 
 import numpy as np
 
 from . import checks
 from .builder import SceneBuilder
-from .material import PRESETS, Material
+from .material import Material
 from .meshes import lattice_points
+from .scene_file import Scene, load_scene_file
 
 __all__ = [
     "Scene", "SCENES", "DEFAULT_SCENE", "FIGURE_SCENES", "TABLE1", "PaperRun", "get_scene", "load_scene", "load_scene_file",
     "paper_run_scene", "scene_names",
 ]
-
-
-@dataclasses.dataclass
-class Scene:
-    """A scene ready to run: ``builder.finalize()`` makes the model.
-
-    ``dt = None`` lets ``simulate`` pick the stable step of the model. ``figure`` names
-    the paper's figure a scene reproduces (``"Fig. 2"``), ``None`` for the others.
-    ``view``: a suggested camera direction (azimuth, elevation) in degrees, written to
-    the USD file for ``warp-esph render`` (``None``: the renderer's default).
-    ``diverges``: names of bodies the scene shows blowing up (a method's failure, as the
-    paper's Fig. 8 does); ``simulate``'s divergence monitor leaves them out.
-    """
-
-    name: str
-    description: str
-    builder: SceneBuilder
-    frames: int = 60
-    fps: float = 30.0
-    dt: float | None = None
-    figure: str | None = None
-    view: tuple[float, float] | None = None
-    diverges: tuple[str, ...] = ()
 
 
 def _scale(scale) -> float:
@@ -362,7 +331,7 @@ def _fig8_materials() -> list[tuple[str, Material]]:
     ]
 
 
-#: Fig. 8 columns: the deformation model of each (left to right, SPEC §7).
+#: Fig. 8 columns: the deformation model of each (left to right, docs/method.md §7).
 FIG8_MODELS = ("incremental", "rest", "additive")
 #: Fig. 8 timing (s): the compression acts on [0, FIG8_RELEASE), the run lasts FIG8_DURATION.
 FIG8_RELEASE = 0.3
@@ -405,6 +374,122 @@ def fig8_comparison(scale: float = 1.0, only=None) -> Scene:
                  dt=_figure_dt(1.0e-4, scale), figure="Fig. 8", view=(0.0, 50.0), diverges=diverges)
 
 
+# ------------------------------------------------------------------ lab tests (tools.py)
+# The standard tests of a texture or materials lab, with moving tools and pinned sets. Each
+# tool's pose and mean reaction force per frame go to <output>_tools.csv/.json
+# (warp-esph run); docs/tools.md says what each scene measures.
+def _lab_elastic(E: float, nu: float = 0.3, density: float = 1000.0, viscosity: float = 5.0) -> Material:
+    return Material.from_young(E, nu, density=density, viscosity=viscosity, pressure_stiffness=0.0, elastic_force="variational")
+
+
+def lab_compression(scale: float = 1.0) -> Scene:
+    """Texture-analyser compression: a 4 cm cylinder of firm dough squeezed 30 % between a fixed and a descending plate."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.0025 / _scale(scale))
+    r, h = 0.02, 0.03
+    # Firmer than the dough preset (yield 150 Pa), which slumps under its own weight
+    # (rho g h = 340 Pa) before the plate arrives.
+    firm = Material.preset("dough").replace(yield_stress=1000.0)
+    b.add_cylinder((0.0, h / 2, 0.0), r, h, firm, name="sample")
+    b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=0.3, name="base")
+    speed = 0.3 * h / 2.0  # 30 % strain over the 2 s run
+    b.add_tool("box", half_extents=(0.04, 0.005, 0.04), friction=0.3,
+               motion=tools.Velocity((0.0, -speed, 0.0), position=(0.0, h + 0.005, 0.0)), name="plate")  # touching
+    return Scene("lab_compression", _doc(lab_compression), b, frames=60, fps=30.0)
+
+
+def lab_squeeze_flow(scale: float = 1.0) -> Scene:
+    """Squeeze flow: a toothpaste disc between no-slip plates, the top one closing the gap from 2 to 1 cm."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.004 / _scale(scale))
+    r, h = 0.04, 0.02
+    b.add_cylinder((0.0, h / 2, 0.0), r, h, Material.preset("toothpaste"), name="sample")
+    b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=1.0, static_friction=2.0, name="base")
+    b.add_tool("box", half_extents=(0.1, 0.005, 0.1), friction=1.0, static_friction=2.0,
+               motion=tools.Keyframes([0.0, 2.0], [(0.0, h + 0.005, 0.0), (0.0, h / 2 + 0.005, 0.0)]), name="plate")
+    return Scene("lab_squeeze_flow", _doc(lab_squeeze_flow), b, frames=60, fps=30.0)
+
+
+def lab_indentation(scale: float = 1.0) -> Scene:
+    """Sphere indentation: a 2 cm steel ball pressed 4 mm into a rubbery block on the ground, then withdrawn."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.005 / _scale(scale))
+    b.add_box((0.0, 0.02, 0.0), (0.08, 0.04, 0.08), _lab_elastic(1.0e5), name="block")
+    b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=0.5, name="base")
+    top, R = 0.04, 0.02
+    b.add_tool("sphere", radius=R, friction=0.0, name="indenter",
+               motion=tools.Keyframes([0.0, 1.0, 2.0], [(0.0, top + R, 0.0), (0.0, top + R - 0.004, 0.0), (0.0, top + R, 0.0)]))
+    return Scene("lab_indentation", _doc(lab_indentation), b, frames=60, fps=30.0)
+
+
+def lab_three_point_bending(scale: float = 1.0) -> Scene:
+    """Three-point bending: a 24 cm beam on two support pins 18 cm apart, pushed down at mid-span."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.005 / _scale(scale))
+    t = 0.04
+    b.add_box((0.0, 0.02 + t / 2, 0.0), (0.24, t, t), _lab_elastic(1.0e6), name="beam")
+    along_z = (math.sin(math.pi / 4), 0.0, 0.0, math.cos(math.pi / 4))  # a cylinder's y axis turned onto z
+    for name, x in (("support_left", -0.09), ("support_right", 0.09)):
+        b.add_tool("cylinder", radius=0.01, half_height=0.05, position=(x, 0.01, 0.0), orientation=along_z, name=name)
+    b.add_tool("cylinder", radius=0.01, half_height=0.05, name="loading_pin",
+               motion=tools.Velocity((0.0, -0.005, 0.0), position=(0.0, 0.03 + t, 0.0), orientation=along_z))
+    return Scene("lab_three_point_bending", _doc(lab_three_point_bending), b, frames=60, fps=30.0)
+
+
+def lab_cantilever(scale: float = 1.0) -> Scene:
+    """Clamped cantilever: a 20 cm beam, 5 x 5 cm, held at one end, sagging under its own weight."""
+    b = SceneBuilder(spacing=0.005 / _scale(scale))
+    L, t = 0.2, 0.05
+    clamp = 3 * b.spacing
+    b.add_box(((L - clamp) / 2, t / 2, 0.0), (L + clamp, t, t), _lab_elastic(1.0e6, viscosity=20.0), name="beam")
+    b.pin(body="beam", region=((-1.0, -1.0, -1.0), (0.0, 1.0, 1.0)), name="clamp")
+    return Scene("lab_cantilever", _doc(lab_cantilever), b, frames=60, fps=30.0)
+
+
+def lab_cutting(scale: float = 1.0) -> Scene:
+    """Cutting: a knife blade (a closed triangle mesh) pushed down through a block of firm dough at 5 cm/s."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.004 / _scale(scale))
+    b.add_box((0.0, 0.02, 0.0), (0.1, 0.04, 0.06), Material.preset("dough").replace(yield_stress=1000.0), name="dough")
+    b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=0.5, name="board")
+    # A wedge (1 cm back over 6 cm) whose edge meets a column of particles: a blade thinner
+    # than the spacing between two columns would touch none (docs/tools.md).
+    edge_x = float(np.unique(b._points[-1][:, 0])[len(np.unique(b._points[-1][:, 0])) // 2])
+    b.add_tool("mesh", mesh=tools.blade_mesh(0.12, 0.06, 0.01), friction=0.2, name="blade",
+               motion=tools.Velocity((0.0, -0.05, 0.0), position=(edge_x, 0.041, 0.0)))
+    return Scene("lab_cutting", _doc(lab_cutting), b, frames=30, fps=30.0)
+
+
+def lab_fig8_plates(scale: float = 1.0) -> Scene:
+    """Fig. 8's compression done with moving plates: an elastic and a very plastic cube squeezed 15 % from four sides, then released."""
+    from . import tools  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.02 / _scale(scale), gravity=(0.0, 0.0, 0.0), bodies_interact=False)
+    squeeze = 0.15
+    for (row, mat), z0 in zip(_fig8_materials(), (-0.35, 0.35)):
+        center = np.array([0.0, 0.3, z0])
+        b.add_box(tuple(center), (0.2, 0.2, 0.2), mat, name=row)
+        pts = b._points[-1]
+        half = 0.5 * (pts.max(axis=0) - pts.min(axis=0))  # plates start on the outer particle layers
+        for axis, sign in ((0, 1), (0, -1), (2, 1), (2, -1)):
+            # Finite plates (boxes 1 cm thick): an infinite plane would also push the other cube.
+            plate = np.full(3, 0.15)
+            plate[axis] = 0.005
+            start = center.copy()
+            start[axis] += sign * (half[axis] + plate[axis])
+            end = start.copy()
+            end[axis] -= sign * half[axis] * squeeze
+            b.add_tool("box", half_extents=tuple(plate), name=f"{row}_plate_{'xz'[axis // 2]}{'_plus' if sign > 0 else '_minus'}",
+                       motion=tools.Keyframes([0.0, FIG8_RELEASE, FIG8_RELEASE + 0.02], [start, end, start + sign * 0.1 * np.eye(3)[axis]]))
+    frames = round(FIG8_DURATION * FIGURE_FPS)
+    return Scene("lab_fig8_plates", _doc(lab_fig8_plates), b, frames=frames, fps=FIGURE_FPS, view=(0.0, 50.0))
+
+
 #: Built-in scenes by name: the everyday scenes, then one per figure of the paper.
 SCENES: dict[str, Callable[..., Scene]] = {
     "dough_drop": dough_drop,
@@ -412,6 +497,13 @@ SCENES: dict[str, Callable[..., Scene]] = {
     "rubber_bounce": rubber_bounce,
     "clay_on_sphere": clay_on_sphere,
     "three_cylinders": three_cylinders,
+    "lab_compression": lab_compression,
+    "lab_squeeze_flow": lab_squeeze_flow,
+    "lab_indentation": lab_indentation,
+    "lab_three_point_bending": lab_three_point_bending,
+    "lab_cantilever": lab_cantilever,
+    "lab_cutting": lab_cutting,
+    "lab_fig8_plates": lab_fig8_plates,
     "fig1_non_newtonian": fig1_non_newtonian,
     "fig2_three_cylinders": fig2_three_cylinders,
     "fig3_pile": fig3_pile,
@@ -493,284 +585,3 @@ def load_scene(name_or_path: str | os.PathLike | None = None, scale: float = 1.0
     if text.lower().endswith(".toml") or os.sep in text or (os.altsep and os.altsep in text) or os.path.exists(text):
         return load_scene_file(text, scale)
     return get_scene(text, scale)
-
-
-# ------------------------------------------------------------------ scene files
-class _Num:
-    """Schema type: a real number (int or float, not bool); ``inf`` only where allowed."""
-
-    def __init__(self, allow_inf: bool = False):
-        self.allow_inf = allow_inf
-
-    def check(self, value) -> bool:
-        if isinstance(value, int) and not isinstance(value, bool) and not -_FLOAT_MAX <= value <= _FLOAT_MAX:
-            return False  # TOML integers are unbounded: 10**400 overflows a float
-        return isinstance(value, (int, float)) and not isinstance(value, bool) and (self.allow_inf or math.isfinite(value)) and not (isinstance(value, float) and math.isnan(value))
-
-    def describe(self) -> str:
-        return "a number" + (" (inf allowed)" if self.allow_inf else "")
-
-
-_FLOAT_MAX = int(sys.float_info.max)
-
-
-class _Int:
-    def check(self, value) -> bool:
-        return isinstance(value, int) and not isinstance(value, bool)
-
-    def describe(self) -> str:
-        return "an integer"
-
-
-class _Str:
-    def check(self, value) -> bool:
-        return isinstance(value, str)
-
-    def describe(self) -> str:
-        return "a string"
-
-
-class _Bool:
-    def check(self, value) -> bool:
-        return isinstance(value, bool)
-
-    def describe(self) -> str:
-        return "true or false"
-
-
-class _Vec3:
-    def check(self, value) -> bool:
-        return isinstance(value, list) and len(value) == 3 and all(_Num().check(c) for c in value)
-
-    def describe(self) -> str:
-        return "an array of 3 numbers"
-
-
-NUM, NUM_INF, INT, STR, BOOL, VEC3 = _Num(), _Num(allow_inf=True), _Int(), _Str(), _Bool(), _Vec3()
-
-#: Every key a scene file may hold, per table: name -> (type, required).
-SCENE_KEYS = {
-    "name": (STR, False), "description": (STR, False), "spacing": (NUM, False), "support_radius": (NUM, False),
-    "gravity": (VEC3, False), "max_neighbors": (INT, False), "frames": (INT, False), "fps": (NUM, False), "dt": (NUM, False),
-}
-MATERIAL_KEYS = {
-    "preset": (STR, False), "E": (NUM, False), "nu": (NUM, False), "mu": (NUM, False), "lam": (NUM, False),
-    "yield_stress": (NUM_INF, False), "flow_rate": (NUM, False), "hardening": (NUM, False), "density": (NUM, False),
-    "pressure_stiffness": (NUM, False), "viscosity": (NUM, False), "model": (STR, False), "clamp_pressure": (BOOL, False),
-    "deformation": (STR, False), "elastic_force": (STR, False),
-}
-BODY_COMMON = {"shape": (STR, True), "material": (STR, True), "name": (STR, False), "velocity": (VEC3, False),
-               "angular_velocity": (VEC3, False)}
-BODY_SHAPES = {
-    "box": {"center": (VEC3, True), "size": (VEC3, True)},
-    "sphere": {"center": (VEC3, True), "radius": (NUM, True)},
-    "cylinder": {"center": (VEC3, True), "radius": (NUM, True), "height": (NUM, True), "axis": (STR, False)},
-    "star": {"center": (VEC3, True), "outer_radius": (NUM, True), "inner_radius": (NUM, True), "thickness": (NUM, True), "points": (INT, False)},
-    "mesh": {"file": (STR, True), "scale": (NUM, False), "translation": (VEC3, False), "prim_path": (STR, False)},
-}
-COLLIDER_TYPES = {
-    "ground": {"height": (NUM, False), "friction": (NUM, False)},
-    "plane": {"normal": (VEC3, True), "offset": (NUM, True), "friction": (NUM, False)},
-    "sphere": {"center": (VEC3, True), "radius": (NUM, True), "friction": (NUM, False)},
-    "box": {"center": (VEC3, True), "half_extents": (VEC3, True), "friction": (NUM, False)},
-}
-TOP_KEYS = ("scene", "materials", "bodies", "colliders")
-
-
-def _did_you_mean(key: str, allowed) -> str:
-    close = difflib.get_close_matches(key, list(allowed), n=1, cutoff=0.6)
-    if not close:
-        close = [a for a in allowed if a.lower() == key.lower()]
-    return f"; did you mean {close[0]!r}?" if close else ""
-
-
-def _check_table(file: str, where: str, table, schema: dict) -> dict:
-    """Reject unknown keys, missing required keys and wrongly typed values."""
-    if not isinstance(table, dict):
-        raise ValueError(f"{file}: {where} must be a table, not {type(table).__name__} {table!r}")
-    for key, value in table.items():
-        if key not in schema:
-            raise ValueError(
-                f"{file}: unknown key {key!r} in {where}{_did_you_mean(key, schema)} "
-                f"(allowed keys: {', '.join(schema)})"
-            )
-        kind, _ = schema[key]
-        if not kind.check(value):
-            raise ValueError(f"{file}: key {key!r} in {where} must be {kind.describe()}, not {type(value).__name__} {checks.shorten(value)!r}")
-    for key, (_, required) in schema.items():
-        if required and key not in table:
-            raise ValueError(f"{file}: missing key {key!r} in {where}")
-    return table
-
-
-def _choice(file: str, where: str, key: str, value: str, allowed) -> str:
-    if value not in allowed:
-        raise ValueError(
-            f"{file}: {key} = {value!r} in {where} is not allowed{_did_you_mean(value, allowed)} "
-            f"(allowed: {', '.join(allowed)})"
-        )
-    return value
-
-
-def _material(file: str, name: str, table: dict) -> Material:
-    where = f"[materials.{name}]"
-    _check_table(file, where, table, MATERIAL_KEYS)
-    fields = {k: v for k, v in table.items() if k not in ("preset", "E", "nu")}
-    if ("E" in table) != ("nu" in table):
-        raise ValueError(f"{file}: {where} gives {'E' if 'E' in table else 'nu'} without {'nu' if 'E' in table else 'E'}: give both")
-    if "E" in table:
-        if "mu" in table or "lam" in table:
-            raise ValueError(f"{file}: {where} gives E/nu and mu/lam: give one pair")
-        E, nu = table["E"], table["nu"]
-        if not E > 0:
-            raise ValueError(f"{file}: E = {E!r} in {where} is not allowed: must be > 0")
-        if not -1.0 < nu < 0.5:
-            raise ValueError(f"{file}: nu = {nu!r} in {where} is not allowed: must be in (-1, 0.5)")
-        fields["mu"] = E / (2.0 * (1.0 + nu))
-        fields["lam"] = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
-    try:
-        if "preset" in table:
-            preset = _choice(file, where, "preset", table["preset"], tuple(PRESETS))
-            if "pressure_stiffness" not in fields:
-                # Recomputed from the (possibly changed) bulk modulus, as for a new material.
-                fields["pressure_stiffness"] = None
-            return dataclasses.replace(PRESETS[preset], **fields)
-        if "mu" not in fields or "lam" not in fields:
-            raise ValueError(f"{file}: {where} needs a preset, E and nu, or mu and lam")
-        return Material(**fields)
-    except ValueError as e:
-        msg = str(e)
-        if msg.startswith(file):
-            raise
-        raise ValueError(f"{file}: {where}: {msg}") from None
-
-
-def _body(file: str, k: int, table: dict, builder: SceneBuilder, materials: dict, base_dir: str):
-    where = f"[[bodies]] #{k + 1}"
-    if not isinstance(table, dict):
-        raise ValueError(f"{file}: {where} must be a table, not {table!r}")
-    shape = table.get("shape")
-    if shape is None:
-        raise ValueError(f"{file}: missing key 'shape' in {where} (one of {', '.join(BODY_SHAPES)})")
-    if not isinstance(shape, str):
-        raise ValueError(f"{file}: key 'shape' in {where} must be a string, not {type(shape).__name__} {shape!r}")
-    _choice(file, where, "shape", shape, tuple(BODY_SHAPES))
-    where = f"{where} (shape {shape!r})"
-    _check_table(file, where, table, {**BODY_COMMON, **BODY_SHAPES[shape]})
-    mat_name = table["material"]
-    if mat_name in materials:
-        material = materials[mat_name]
-    elif mat_name in PRESETS:
-        material = materials.setdefault(mat_name, Material.preset(mat_name))
-    else:
-        known = list(materials) + [p for p in PRESETS if p not in materials]
-        raise ValueError(
-            f"{file}: material = {mat_name!r} in {where} is not allowed: no [materials.{mat_name}] table and no preset "
-            f"of that name{_did_you_mean(mat_name, known)} (known: {', '.join(known)})"
-        )
-    args = {k: v for k, v in table.items() if k not in ("shape", "material")}
-    try:
-        if shape == "box":
-            builder.add_box(material=material, **args)
-        elif shape == "sphere":
-            builder.add_sphere(material=material, **args)
-        elif shape == "cylinder":
-            builder.add_cylinder(material=material, **args)
-        elif shape == "star":
-            builder.add_star(material=material, **args)
-        else:
-            source = args.pop("file")
-            if not os.path.isabs(source):
-                source = os.path.join(base_dir, source)
-            builder.add_mesh(source, material, **args)
-    except ValueError as e:
-        raise ValueError(f"{file}: {where}: {e}") from None
-
-
-def _collider(file: str, k: int, table: dict, builder: SceneBuilder):
-    where = f"[[colliders]] #{k + 1}"
-    if not isinstance(table, dict):
-        raise ValueError(f"{file}: {where} must be a table, not {table!r}")
-    kind = table.get("type")
-    if kind is None:
-        raise ValueError(f"{file}: missing key 'type' in {where} (one of {', '.join(COLLIDER_TYPES)})")
-    if not isinstance(kind, str):
-        raise ValueError(f"{file}: key 'type' in {where} must be a string, not {type(kind).__name__} {kind!r}")
-    _choice(file, where, "type", kind, tuple(COLLIDER_TYPES))
-    where = f"{where} (type {kind!r})"
-    _check_table(file, where, table, {"type": (STR, True), **COLLIDER_TYPES[kind]})
-    args = {k: v for k, v in table.items() if k != "type"}
-    try:
-        if kind == "ground":
-            builder.add_ground(**args)
-        elif kind == "plane":
-            builder.add_plane(**args)
-        elif kind == "sphere":
-            builder.add_sphere_collider(**args)
-        else:
-            builder.add_box_collider(**args)
-    except ValueError as e:
-        raise ValueError(f"{file}: {where}: {e}") from None
-
-
-def load_scene_file(path, scale: float = 1.0) -> Scene:
-    """Read a TOML scene file (format: ``docs/scene_format.md``).
-
-    ``scale`` divides the spacing (and an explicit support radius) as for built-in
-    scenes. Any problem — unreadable file, TOML syntax, unknown or misspelt key, wrong
-    type, bad value — raises a ``ValueError`` that names the file, the table and the key.
-    """
-    scale = _scale(scale)
-    file = os.fspath(path)
-    if tomllib is None:
-        raise ValueError(f"cannot read scene file {file!r}: reading TOML needs Python >= 3.11 or the tomli package")
-    try:
-        with open(file, "rb") as fh:
-            data = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as e:
-        raise ValueError(f"{file}: invalid TOML: {e}") from None
-    except UnicodeDecodeError as e:
-        raise ValueError(f"{file}: invalid TOML: not UTF-8 text (byte {e.start})") from None
-    except OSError as e:
-        raise ValueError(f"cannot read scene file {file!r}: {e.strerror or e}") from None
-    for key in data:
-        if key not in TOP_KEYS:
-            raise ValueError(f"{file}: unknown key {key!r} at the top level{_did_you_mean(key, TOP_KEYS)} (allowed: {', '.join(TOP_KEYS)})")
-    scene = _check_table(file, "[scene]", data.get("scene", {}), SCENE_KEYS)
-    materials_table = data.get("materials", {})
-    if not isinstance(materials_table, dict):
-        raise ValueError(f"{file}: 'materials' must be a table of [materials.NAME] tables, not {materials_table!r}")
-    bodies = data.get("bodies", [])
-    colliders = data.get("colliders", [])
-    for key, value in (("bodies", bodies), ("colliders", colliders)):
-        if not isinstance(value, list):
-            raise ValueError(f"{file}: '{key}' must be an array of tables ([[{key}]]), not {type(value).__name__}")
-    if not bodies:
-        raise ValueError(f"{file}: the scene has no bodies: add at least one [[bodies]] table")
-
-    try:
-        spacing = checks.positive("spacing", scene.get("spacing", 0.02)) / scale
-        support = scene.get("support_radius")
-        builder = SceneBuilder(
-            spacing=spacing,
-            gravity=scene.get("gravity", (0.0, -9.81, 0.0)),
-            support_radius=None if support is None else checks.positive("support_radius", support) / scale,
-            max_neighbors=scene.get("max_neighbors", 30),
-        )
-        frames = checks.positive_int("frames", scene.get("frames", 60))
-        fps = checks.positive("fps", scene.get("fps", 30.0))
-        dt = scene.get("dt")
-        if dt is not None:
-            dt = checks.positive("dt", dt)
-    except ValueError as e:
-        raise ValueError(f"{file}: [scene]: {e}") from None
-
-    materials = {name: _material(file, name, table) for name, table in materials_table.items()}
-    base_dir = os.path.dirname(os.path.abspath(file))
-    for k, table in enumerate(bodies):
-        _body(file, k, table, builder, materials, base_dir)
-    for k, table in enumerate(colliders):
-        _collider(file, k, table, builder)
-    name = scene.get("name") or os.path.splitext(os.path.basename(file))[0]
-    description = scene.get("description") or f"scene file {file}"
-    return Scene(name, description, builder, frames=frames, fps=fps, dt=dt)

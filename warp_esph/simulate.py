@@ -18,7 +18,7 @@ import numpy as np
 
 from . import checks
 from .model import Model, State
-from .solver import Solver
+from .sim.solver import Solver
 
 __all__ = ["simulate", "resolve_timestep", "SimulationError", "DivergenceMonitor", "MAX_STEPS_PER_FRAME", "MAX_STEPS"]
 

@@ -1,4 +1,7 @@
-"""Crash-safe USD output: one ``UsdGeom.Points`` per body, one time sample per frame.
+"""Crash-safe USD output (``UsdWriter``): one ``UsdGeom.Points`` per body, one time sample
+per frame; and its reader (``UsdFrames``, ``parse_frames``: particles, surfaces, colliders),
+which the renderer and the exporter use, so the layout below is spelled out in this module
+only (``surface_prim_path`` names a body's surface prim).
 
 Layout of the written stage (Y up, metres, time code = frame index)::
 
@@ -41,6 +44,7 @@ the working copies stay behind; ``append=True`` and the next run replace them.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import os
 import shutil
@@ -52,18 +56,24 @@ import warnings
 import numpy as np
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
-from . import checks
+from . import checks, tools
 from .model import Model
 
-__all__ = ["UsdWriter", "USD_EXTENSIONS", "body_prim_names"]
+__all__ = ["UsdWriter", "UsdFrames", "Collider", "USD_EXTENSIONS", "body_prim_names", "parse_frames", "surface_prim_path"]
 
 #: Output extensions and the layer format each is written in.
 USD_EXTENSIONS = {".usd": "usdc", ".usdc": "usdc", ".usda": "usda"}
 
 _ROOT = "/World"
-_COLLIDERS = "/World/Colliders"
-_SURFACES = "/World/Surfaces"
+_COLLIDERS = f"{_ROOT}/Colliders"
+_SURFACES = f"{_ROOT}/Surfaces"
 _KEY = "warp_esph"
+_VIEW = f"{_KEY}:view"
+# Per-particle primvars of a body's Points prim (the writer creates them, the reader reads them).
+_SINGULAR_VALUES, _ALPHA, _MATERIAL_ID = "singular_values", "alpha", "material_id"
+_PRIMVAR_SINGULAR_VALUES = f"primvars:{_SINGULAR_VALUES}"
+_PRIMVAR_ALPHA = f"primvars:{_ALPHA}"
+_PRIMVAR_MATERIAL_ID = f"primvars:{_MATERIAL_ID}"
 
 # One display colour per material (cycled), so bodies are told apart in a viewer.
 _PALETTE = [
@@ -118,7 +128,7 @@ def _native_stderr():
 def body_prim_names(model: Model) -> list[str]:
     """The prim name of each body: a valid, unique USD identifier made from its name."""
     names: list[str] = []
-    taken = {"Colliders", "Surfaces"}
+    taken = {"Colliders", "Surfaces", "Tools"}  # scopes of usd.py and tools.py
     for body in model.bodies:
         base = Tf.MakeValidIdentifier(body.name) or "body"
         name, k = base, 1
@@ -128,6 +138,11 @@ def body_prim_names(model: Model) -> list[str]:
         taken.add(name)
         names.append(name)
     return names
+
+
+def surface_prim_path(body_prim: str) -> str:
+    """The path of the surface Mesh prim of the body whose Points prim is ``/World/<body_prim>``."""
+    return f"{_SURFACES}/{body_prim}"
 
 
 def _singular_values(F: np.ndarray) -> np.ndarray:
@@ -292,7 +307,7 @@ class UsdWriter:
         }
         if self.view is not None:
             data = dict(stage.GetRootLayer().customLayerData)
-            data[f"{_KEY}:view"] = Gf.Vec2d(*self.view)
+            data[_VIEW] = Gf.Vec2d(*self.view)
             stage.GetRootLayer().customLayerData = data
         for body, name, widths in zip(m.bodies, self._prim_names, self._widths):
             pts = UsdGeom.Points.Define(stage, f"{_ROOT}/{name}")
@@ -311,13 +326,14 @@ class UsdWriter:
             pts.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
             pts.CreateExtentAttr()
             pv = UsdGeom.PrimvarsAPI(prim)
-            pv.CreatePrimvar("singular_values", Sdf.ValueTypeNames.Float3Array, UsdGeom.Tokens.vertex)
-            pv.CreatePrimvar("alpha", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex)
-            pv.CreatePrimvar("material_id", Sdf.ValueTypeNames.Int, UsdGeom.Tokens.constant).Set(int(body.material))
+            pv.CreatePrimvar(_SINGULAR_VALUES, Sdf.ValueTypeNames.Float3Array, UsdGeom.Tokens.vertex)
+            pv.CreatePrimvar(_ALPHA, Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex)
+            pv.CreatePrimvar(_MATERIAL_ID, Sdf.ValueTypeNames.Int, UsdGeom.Tokens.constant).Set(int(body.material))
             color = _PALETTE[body.material % len(_PALETTE)]
             pts.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(Vt.Vec3fArray([Gf.Vec3f(*color)]))
         self._author_colliders(stage)
         self._author_surfaces(stage)
+        tools.usd_author(stage, m, _KEY, self._plane_size or 1.0)
 
     def _author_surfaces(self, stage: Usd.Stage):
         """The surface Mesh prims (idempotent: also used when appending to an existing file)."""
@@ -325,7 +341,7 @@ class UsdWriter:
         if self.surface:
             UsdGeom.Scope.Define(stage, _SURFACES)
             for body, name in zip(m.bodies, self._prim_names):
-                mesh = UsdGeom.Mesh.Define(stage, f"{_SURFACES}/{name}")
+                mesh = UsdGeom.Mesh.Define(stage, surface_prim_path(name))
                 mesh.CreatePointsAttr()
                 mesh.CreateFaceVertexCountsAttr()
                 mesh.CreateFaceVertexIndicesAttr()
@@ -439,7 +455,7 @@ class UsdWriter:
         for stage in self._stages:
             if surfaces is not None:
                 for name, (pts, counts, indices, ext) in zip(self._prim_names, surfaces):
-                    mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"{_SURFACES}/{name}"))
+                    mesh = UsdGeom.Mesh(stage.GetPrimAtPath(surface_prim_path(name)))
                     mesh.GetPointsAttr().Set(pts, t)
                     mesh.GetFaceVertexCountsAttr().Set(counts, t)
                     mesh.GetFaceVertexIndicesAttr().Set(indices, t)
@@ -451,8 +467,9 @@ class UsdWriter:
                 geom.GetVelocitiesAttr().Set(vel, t)
                 geom.GetWidthsAttr().Set(wid, t)
                 geom.GetExtentAttr().Set(ext, t)
-                prim.GetAttribute("primvars:singular_values").Set(svals, t)
-                prim.GetAttribute("primvars:alpha").Set(alph, t)
+                prim.GetAttribute(_PRIMVAR_SINGULAR_VALUES).Set(svals, t)
+                prim.GetAttribute(_PRIMVAR_ALPHA).Set(alph, t)
+            tools.usd_write_frame(stage, m, state, t, _KEY)
             stage.SetStartTimeCode(float(self.first_frame))
             stage.SetEndTimeCode(float(self.last_frame))
         self._save_and_publish()
@@ -544,3 +561,247 @@ class UsdWriter:
 
     def __repr__(self):
         return f"UsdWriter({self.path!r}, frames_written={self.frames_written}, closed={self.closed})"
+
+
+# ----------------------------------------------------------------------------- reading
+# The reader sits beside the writer so both use the same prim paths and keys; the
+# renderer (``warp_esph.render``) and the exporter (``warp_esph.export``) read through it.
+@dataclasses.dataclass
+class Collider:
+    kind: str            # "plane", "sphere", "box"
+    center: np.ndarray   # sphere/box centre; a point of the plane
+    size: np.ndarray     # sphere: (r, r, r); box: half extents; plane: (half size of the quad, 0, 0)
+    normal: np.ndarray | None = None
+    offset: float = 0.0
+
+
+class UsdFrames:
+    """The particles, surfaces and colliders of a ``UsdWriter`` file, frame by frame."""
+
+    def __init__(self, path):
+        self.path = os.fspath(path)
+        if not os.path.isfile(self.path):
+            raise FileNotFoundError(f"cannot read {self.path}: no such file")
+        # Anonymous: a file rewritten in this process (run, then render) is read afresh.
+        layer = open_layer_checked(self.path)
+        self._layer = layer
+        self.stage = Usd.Stage.Open(layer)
+        self.fps = float(self.stage.GetTimeCodesPerSecond() or 30.0)
+        data = dict(self.stage.GetRootLayer().customLayerData or {})
+        view = data.get(_VIEW)
+        self.view = tuple(float(v) for v in view) if view is not None and len(view) == 2 else None
+        self.bodies = []       # (name, prim)
+        for prim in self.stage.GetPrimAtPath(_ROOT).GetChildren() if self.stage.GetPrimAtPath(_ROOT) else []:
+            if prim.IsA(UsdGeom.Points):
+                self.bodies.append((prim.GetName(), prim))
+        if not self.bodies:
+            raise ValueError(f"cannot read {self.path}: it has no UsdGeom.Points under {_ROOT} (not a warp-esph output?)")
+        times = set()
+        for _, prim in self.bodies:
+            times.update(UsdGeom.Points(prim).GetPointsAttr().GetTimeSamples())
+        self.frames = sorted(int(round(t)) for t in times)
+        if not self.frames:
+            raise ValueError(f"cannot read {self.path}: it holds no frames")
+        self.material_ids = []
+        self.display_colors = []
+        for _, prim in self.bodies:
+            mid = prim.GetAttribute(_PRIMVAR_MATERIAL_ID).Get()
+            self.material_ids.append(int(mid) if mid is not None else 0)
+            col = UsdGeom.Points(prim).GetDisplayColorAttr().Get()
+            self.display_colors.append(np.array(col[0], dtype=np.float32) if col else np.array((0.8, 0.6, 0.4), np.float32))
+        self.colliders = self._read_colliders()
+        # The surface Mesh of each body (``surface_prim_path``), or None where the file has none.
+        self.surface_prims = []
+        for name, _ in self.bodies:
+            prim = self.stage.GetPrimAtPath(surface_prim_path(name))
+            self.surface_prims.append(prim if prim and prim.IsA(UsdGeom.Mesh) else None)
+
+    @property
+    def has_surfaces(self) -> bool:
+        """Whether any body has a surface Mesh prim (``warp-esph run --surface``)."""
+        return any(p is not None for p in self.surface_prims)
+
+    def surface(self, frame: int, body: int):
+        """``(vertices (V, 3) float32, triangles (T, 3) int64)`` of body ``body``'s surface at
+        ``frame`` (polygons split into fans), or None where there is no surface or it is empty."""
+        prim = self.surface_prims[body]
+        if prim is None:
+            return None
+        t = Usd.TimeCode(float(frame))
+        mesh = UsdGeom.Mesh(prim)
+        pts, counts, idx = (a.Get(t) for a in (mesh.GetPointsAttr(), mesh.GetFaceVertexCountsAttr(),
+                                                mesh.GetFaceVertexIndicesAttr()))
+        if pts is None or counts is None or idx is None or len(pts) == 0 or len(counts) == 0:
+            return None
+        v = np.asarray(pts, dtype=np.float32).reshape(-1, 3)
+        counts = np.asarray(counts, dtype=np.int64)
+        idx = np.asarray(idx, dtype=np.int64)
+        if counts.sum() != len(idx) or (counts < 3).any() or idx.min() < 0 or idx.max() >= len(v):
+            raise ValueError(f"cannot read {self.path}: the surface {prim.GetPath()} at frame {frame} is not a valid mesh")
+        if (counts == 3).all():
+            tri = idx.reshape(-1, 3)
+        else:  # fans: (v0, v_k, v_k+1) of each polygon
+            start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+            face = np.repeat(np.arange(len(counts)), counts - 2)
+            k = np.arange(len(face)) - np.repeat(np.cumsum(counts - 2) - (counts - 2), counts - 2)
+            first = start[face]
+            tri = np.stack([idx[first], idx[first + k + 1], idx[first + k + 2]], axis=1)
+        keep = np.isfinite(v).all(axis=1)
+        if not keep.all():
+            tri = tri[keep[tri].all(axis=1)]
+        return (v, tri) if len(tri) else None
+
+    def _read_colliders(self) -> list[Collider]:
+        out = []
+        scope = self.stage.GetPrimAtPath(_COLLIDERS)
+        if not scope:
+            return out
+        for prim in scope.GetChildren():
+            kind = prim.GetCustomDataByKey(f"{_KEY}:collider")
+            get = prim.GetCustomDataByKey
+            if kind == "plane":
+                n = np.array(get(f"{_KEY}:normal"), dtype=np.float64)
+                n /= np.linalg.norm(n)
+                pts = np.array(UsdGeom.Mesh(prim).GetPointsAttr().Get(), dtype=np.float64)
+                center = pts.mean(axis=0)
+                half = 0.5 * float(np.linalg.norm(pts[1] - pts[0]))
+                out.append(Collider("plane", center, np.array([half, 0.0, 0.0]), n, float(get(f"{_KEY}:offset"))))
+            elif kind == "sphere":
+                r = float(get(f"{_KEY}:radius"))
+                out.append(Collider("sphere", np.array(get(f"{_KEY}:center"), dtype=np.float64), np.full(3, r)))
+            elif kind == "box":
+                out.append(Collider("box", np.array(get(f"{_KEY}:center"), dtype=np.float64),
+                                    np.array(get(f"{_KEY}:half_extents"), dtype=np.float64)))
+        return out
+
+    def resolve(self, frame: int) -> int:
+        if frame not in self.frames:
+            raise ValueError(f"frame = {frame!r} is not allowed: {self.path} holds frames {self.frames[0]}..{self.frames[-1]}")
+        return frame
+
+    def arrays(self, frame: int) -> dict:
+        """Every particle at ``frame``, as written: points, velocities, widths, alpha,
+        singular_values (N, 3), body (index into ``bodies``) and material_id."""
+        t = Usd.TimeCode(float(frame))
+        cols = {k: [] for k in ("points", "velocities", "widths", "alpha", "singular_values", "body", "material_id")}
+        for k, (_, prim) in enumerate(self.bodies):
+            geom = UsdGeom.Points(prim)
+            p = geom.GetPointsAttr().Get(t)
+            if p is None or len(p) == 0:
+                continue
+            n = len(p)
+
+            def get(attr, shape, fill):
+                value = attr.Get(t) if attr else None
+                if value is None or len(value) != n:
+                    return np.full(shape, fill, dtype=np.float32)
+                return np.asarray(value, dtype=np.float32).reshape(shape)
+
+            cols["points"].append(np.asarray(p, dtype=np.float32))
+            cols["velocities"].append(get(geom.GetVelocitiesAttr(), (n, 3), 0.0))
+            cols["widths"].append(get(geom.GetWidthsAttr(), (n,), 0.02))
+            cols["alpha"].append(get(prim.GetAttribute(_PRIMVAR_ALPHA), (n,), 0.0))
+            cols["singular_values"].append(get(prim.GetAttribute(_PRIMVAR_SINGULAR_VALUES), (n, 3), 1.0))
+            cols["body"].append(np.full(n, k, np.int32))
+            cols["material_id"].append(np.full(n, self.material_ids[k], np.int32))
+        shapes = {"points": (0, 3), "velocities": (0, 3), "singular_values": (0, 3)}
+        return {k: (np.concatenate(v) if v else np.zeros(shapes.get(k, (0,)), np.int32 if k in ("body", "material_id") else np.float32))
+                for k, v in cols.items()}
+
+    def particles(self, frame: int) -> dict:
+        """What the renderer needs at ``frame``: points, radius, body, material, alpha and the
+        elastic strain ``max_k |ln sigma_k|`` (as ``singular_values``); non-finite particles dropped."""
+        a = self.arrays(frame)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            strain = np.abs(np.log(np.abs(a["singular_values"]))).max(axis=1) if len(a["points"]) else np.zeros(0, np.float32)
+        out = {"points": a["points"], "radius": 0.5 * a["widths"], "body": a["body"], "material": a["material_id"],
+               "alpha": a["alpha"], "singular_values": strain.astype(np.float32)}
+        keep = np.isfinite(a["points"]).all(axis=1)
+        if not keep.all():
+            out = {k: v[keep] for k, v in out.items()}
+        return out
+
+    #: A body whose extent grows past this many times its first rendered frame's has blown
+    #: up: it is left out of the framing, which would otherwise shrink the rest to a dot.
+    BLOWN_UP = 20.0
+
+    def bounds(self, frames) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds of the particles over ``frames`` (the per-frame ``extent`` where written),
+        leaving out a body in the frames where it has blown up (``BLOWN_UP``)."""
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        first_size = {}
+        for f in frames:
+            t = Usd.TimeCode(float(f))
+            for k, (_, prim) in enumerate(self.bodies):
+                geom = UsdGeom.Points(prim)
+                ext = geom.GetExtentAttr().Get(t)
+                if ext is not None and len(ext) == 2:
+                    e = np.array(ext, dtype=np.float64)
+                else:
+                    p = geom.GetPointsAttr().Get(t)
+                    if p is None or len(p) == 0:
+                        continue
+                    p = np.asarray(p, dtype=np.float64)
+                    e = np.stack([np.nanmin(p, axis=0), np.nanmax(p, axis=0)])
+                if not np.isfinite(e).all():
+                    continue
+                size = float((e[1] - e[0]).max())
+                size0 = first_size.setdefault(k, size)
+                if size > self.BLOWN_UP * max(size0, 1e-6):
+                    continue
+                lo, hi = np.minimum(lo, e[0]), np.maximum(hi, e[1])
+        if not np.isfinite(lo).all():
+            lo, hi = np.full(3, -0.5), np.full(3, 0.5)
+        return lo, hi
+
+
+def parse_frames(spec, available: list[int]) -> list[int]:
+    """Frame indices from a spec: ``all``, ``first``, ``last``, ``N``, ``-N`` (from the end),
+    ``A:B`` or ``A:B:STEP`` (B inclusive, either may be left out), or a comma list of those."""
+    if spec is None:
+        return list(available)
+    if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
+        spec = str(int(spec))
+    if isinstance(spec, (list, tuple)):
+        spec = ",".join(str(s) for s in spec)
+    if not isinstance(spec, str) or not spec.strip():
+        raise ValueError(f"frames = {spec!r} is not allowed: give e.g. 'all', 'last', '10', '0:60:5' or '0,30,60'")
+    first, last = available[0], available[-1]
+    have = set(available)
+
+    def one(text: str) -> int:
+        v = int(text)
+        return last + 1 + v if v < 0 else v
+
+    out: list[int] = []
+    for part in spec.split(","):
+        p = part.strip().lower()
+        try:
+            if p == "all":
+                out.extend(available)
+            elif p == "first":
+                out.append(first)
+            elif p == "last":
+                out.append(last)
+            elif ":" in p:
+                bits = p.split(":")
+                if len(bits) > 3:
+                    raise ValueError
+                a = one(bits[0]) if bits[0] else first
+                b = one(bits[1]) if bits[1] else last
+                step = int(bits[2]) if len(bits) == 3 and bits[2] else 1
+                if step < 1:
+                    raise ValueError
+                out.extend(f for f in available if a <= f <= b and (f - a) % step == 0)
+            else:
+                out.append(one(p))
+        except ValueError:
+            raise ValueError(
+                f"frames = {spec!r} is not allowed: {part!r} is not 'all', 'first', 'last', N, -N, A:B or A:B:STEP"
+            ) from None
+    missing = [f for f in out if f not in have]
+    if missing:
+        raise ValueError(f"frames = {spec!r} is not allowed: frame {missing[0]} is not in the file (it holds {first}..{last})")
+    if not out:
+        raise ValueError(f"frames = {spec!r} is not allowed: it selects no frame of the file (it holds {first}..{last})")
+    return out

@@ -1,8 +1,8 @@
-"""Neighbour lists (paper §4, SPEC §1.1): the up-to-30 nearest particles ``j != i`` with
+"""Neighbour lists (paper §4, docs/method.md §1.1): the up-to-30 nearest particles ``j != i`` with
 ``|x_j - x_i| < h``, stored as a fixed-width int32 row plus a count.
 
 The lists are integers: they are recorded once per step and reused unchanged by the
-backward pass, so the tape never queries a hash grid (WARP_NOTES trap 3). The
+backward pass, so the tape never queries a hash grid (docs/method.md, Warp pitfall 3). The
 selection kernel can also evaluate the deformation-update guards of paper §4 that
 depend only on the neighbourhood (too few neighbours, ill-conditioned moment matrix),
 because they need an eigen-decomposition whose adjoint is not wanted, and the SPH
@@ -38,8 +38,8 @@ import types
 import numpy as np
 import warp as wp
 
-from ._types import type_set
-from . import pressure, smoothing
+from .._types import type_set
+from . import materials, pressure, smoothing
 
 #: Guard codes written per particle (0 = the MLS update may run).
 GUARD_OK = 0
@@ -61,7 +61,8 @@ def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     sm = smoothing.funcs(scalar)
-    pressure_of = pressure.kernels(scalar).pressure
+    pressure_of = pressure.funcs(scalar).pressure
+    Materials = materials.struct(scalar)
 
     @wp.func
     def guard_code(A: mat33, same: int, min_neighbors: int, max_condition: scalar) -> int:
@@ -110,13 +111,19 @@ def kernels(scalar) -> types.SimpleNamespace:
                 child = n
 
     @wp.kernel(enable_backward=False)
-    def grid_points(x: wp.array(dtype=vec3), out: wp.array(dtype=wp.vec3f)):
+    def grid_points(x: wp.array(dtype=vec3), world: wp.array(dtype=wp.int32), stride: wp.float32, out: wp.array(dtype=wp.vec3f)):
         """float32 points for the hash grid with x and z swapped: its query visits cells
         with the first coordinate fastest, so bodies sampled in lattice order (z fastest,
-        ``meshes.lattice_points``) come out nearly sorted by index."""
+        ``meshes.lattice_points``) come out nearly sorted by index. With worlds
+        (``stride > 0``), world ``w`` is shifted by ``w * stride`` along the slowest grid
+        axis: worlds placed at the same spot then fill different cells, so a query does
+        not visit (and reject) the other worlds' particles."""
         i = wp.tid()
         p = x[i]
-        out[i] = wp.vec3f(wp.float32(p[2]), wp.float32(p[1]), wp.float32(p[0]))
+        shift = wp.float32(0.0)
+        if stride > wp.float32(0.0):
+            shift = wp.float32(world[i]) * stride
+        out[i] = wp.vec3f(wp.float32(p[2]), wp.float32(p[1]), wp.float32(p[0]) + shift)
 
     @wp.kernel(enable_backward=False)
     def build_candidates(
@@ -124,26 +131,30 @@ def kernels(scalar) -> types.SimpleNamespace:
         grid_points: wp.array(dtype=wp.vec3f),
         x: wp.array(dtype=vec3),
         radius: scalar,
-        body: wp.array(dtype=wp.int32),
-        same_body: int,
+        group: wp.array(dtype=wp.int32),
+        same_group: int,
         cand: wp.array2d(dtype=wp.int32),
         cand_count: wp.array(dtype=wp.int32),
         overflow: wp.array(dtype=wp.int32),
         x_ref: wp.array(dtype=vec3),
     ):
-        """Every ``j != i`` with ``|x_j - x_i| < radius`` (of ``i``'s body only, with
-        ``same_body``), sorted by index."""
+        """Every ``j != i`` with ``|x_j - x_i| < radius`` (of ``i``'s group only, with
+        ``same_group``: its body without body interaction, its world with worlds),
+        sorted by index."""
         i = wp.tid()
         xi = x[i]
-        bi = body[i]
+        bi = group[i]
         cap = cand.shape[1]
         r2 = radius * radius
         n = int(0)
-        # The float32 query box is padded a little: the exact test below decides.
-        query = wp.hash_grid_query(grid, grid_points[i], wp.float32(radius) * wp.float32(1.0001))
+        # The float32 query box is padded a little, by more than the float32 rounding of
+        # the (possibly world-shifted) grid points: the exact test below decides.
+        gp = grid_points[i]
+        big = wp.max(wp.max(wp.abs(gp[0]), wp.abs(gp[1])), wp.abs(gp[2])) + wp.float32(radius)
+        query = wp.hash_grid_query(grid, gp, wp.float32(radius) * wp.float32(1.0001) + wp.float32(5.0e-7) * big)
         j = int(0)
         while wp.hash_grid_query_next(query, j):
-            if j == i or (same_body != 0 and body[j] != bi):
+            if j == i or (same_group != 0 and group[j] != bi):
                 continue
             d = x[j] - xi
             if wp.dot(d, d) >= r2:
@@ -196,8 +207,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         with_density: int,
         material: wp.array(dtype=wp.int32),
         rest_density: wp.array(dtype=scalar),
-        pressure_stiffness: wp.array(dtype=scalar),
-        clamp: wp.array(dtype=wp.int32),
+        mat: Materials,
         nbr: wp.array2d(dtype=wp.int32),
         nbr_d2: wp.array2d(dtype=scalar),
         count: wp.array(dtype=wp.int32),
@@ -284,7 +294,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         if with_density != 0:
             rho[i] = r
             m = material[i]
-            p[i] = pressure_of(r, rest_density[i], pressure_stiffness[m], clamp[m])
+            p[i] = pressure_of(r, rest_density[i], mat.pressure_stiffness[m], mat.clamp_pressure[m])
             vol[i] = mass[i] / r
         if with_guard != 0:
             guard[i] = guard_code(A, same, min_neighbors, max_condition)
@@ -318,9 +328,17 @@ class NeighborSearch:
         skin: float = 0.0,
         spacing: float | None = None,
         bodies_interact: bool = True,
+        group: wp.array | None = None,
+        world: wp.array | None = None,
     ):
         self.scalar = scalar
         self.bodies_interact = bool(bodies_interact)
+        # ``group``: per-particle ids that never see each other across (overrides the
+        # body filter of ``bodies_interact=False``; ``Model.neighbor_group``). ``world``:
+        # per-particle world ids, only used to spread the worlds over the hash grid.
+        self.group = group
+        self.world = world
+        self._world_stride = 0.0
         self.device = device
         self.h = float(h)
         self.skin = float(skin)
@@ -358,6 +376,19 @@ class NeighborSearch:
         if self._grid_dims is None:
             self.cell_width = CELL_FRACTION * (self.h + self.skin)
             xs = x.numpy()
+            if self.world is not None and len(xs):
+                # Worlds side by side along x, a search radius apart, as grid_points
+                # places them (their extent then counts for the dimensions).
+                w = self.world.numpy()
+                width = 0.0
+                for k in np.unique(w):
+                    xk = xs[w == k, 0]
+                    xk = xk[np.isfinite(xk)]
+                    if len(xk):
+                        width = max(width, float(xk.max() - xk.min()))
+                self._world_stride = width + 2.0 * (self.h + self.skin)
+                xs = xs.copy()
+                xs[:, 0] += w * self._world_stride
             extent = xs.max(axis=0) - xs.min(axis=0) if len(xs) else np.zeros(3)
             extent = np.where(np.isfinite(extent), extent, 0.0)
             dims = [int(min(256, max(32, 2 * math.ceil(e / self.cell_width) + 8))) for e in extent[::-1]]
@@ -372,7 +403,11 @@ class NeighborSearch:
     def _build_candidates(self, x: wp.array, body: wp.array):
         self._ensure_grid(x)
         n = x.shape[0]
-        wp.launch(self.kernels.grid_points, n, [x], [self._points], device=self.device, record_tape=False)
+        world = self.world if self.world is not None else self._dummy_arrays()["i"]
+        wp.launch(
+            self.kernels.grid_points, n, [x, world, wp.float32(self._world_stride)], [self._points],
+            device=self.device, record_tape=False,
+        )
         points = self._points
         radius = self.h + self.skin
         self.grid.build(points, self.cell_width)
@@ -383,7 +418,8 @@ class NeighborSearch:
             wp.launch(
                 self.kernels.build_candidates,
                 n,
-                [self.grid.id, points, x, self.scalar(radius), body, int(not self.bodies_interact)],
+                [self.grid.id, points, x, self.scalar(radius), body if self.group is None else self.group,
+                 int(self.group is not None or not self.bodies_interact)],
                 [self.candidates, self.candidate_count, self._overflow, self._x_ref],
                 device=self.device,
                 record_tape=False,
@@ -427,19 +463,19 @@ class NeighborSearch:
         return spread < SKIN_SAFETY * self.skin
 
     def _select(self, x, body, nbr, nbr_d2, count, guard, sph=None):
-        """``sph``: None, or (mass, material, rest_density, pressure_stiffness, clamp, rho, p, vol)."""
+        """``sph``: None, or (mass, material, rest_density, materials, rho, p, vol)."""
         d = self._dummy_arrays()
         if sph is None:
-            mass, material, rest_density, k_p, clamp, rho, p, vol = d["s"], d["i"], d["s"], d["s"], d["i"], d["s"], d["s"], d["s"]
+            mass, material, rest_density, mats, rho, p, vol = d["s"], d["i"], d["s"], d["mat"], d["s"], d["s"], d["s"]
         else:
-            mass, material, rest_density, k_p, clamp, rho, p, vol = sph
+            mass, material, rest_density, mats, rho, p, vol = sph
         with_guard = guard is not None
         wp.launch(
             self.kernels.select_neighbors,
             x.shape[0],
             [
                 x, body, mass, self.candidates, self.candidate_count, self.scalar(self.h), self.min_neighbors,
-                self.scalar(self.max_condition), int(with_guard), int(sph is not None), material, rest_density, k_p, clamp,
+                self.scalar(self.max_condition), int(with_guard), int(sph is not None), material, rest_density, mats,
             ],
             [nbr, nbr_d2, count, guard if with_guard else d["i"], rho, p, vol],
             device=self.device,
@@ -452,6 +488,7 @@ class NeighborSearch:
             self._dummies = {
                 "s": wp.zeros(1, dtype=self.scalar, device=self.device),
                 "i": wp.zeros(1, dtype=wp.int32, device=self.device),
+                "mat": materials.make(self.scalar, self.device),
             }
         return self._dummies
 
@@ -464,8 +501,8 @@ class NeighborSearch:
     def update(self, x: wp.array, body: wp.array, nbr, nbr_d2, count, guard, sph=None):
         """The same lists as ``build``, reusing the candidates while they are complete.
 
-        With ``sph = (mass, material, rest_density, pressure_stiffness, clamp, rho, p,
-        vol)``, also writes the SPH density ``rho`` over the new lists, the pressure
+        With ``sph = (mass, material, rest_density, materials, rho, p, vol)`` (``materials``:
+        the ``sim.materials`` struct), also writes the SPH density ``rho`` over the new lists, the pressure
         ``p`` and the volume ``vol = mass / rho`` (not recorded on a tape)."""
         self.updates += 1
         if not self.candidates_valid(x):

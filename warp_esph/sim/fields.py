@@ -14,8 +14,8 @@ import types
 
 import warp as wp
 
-from . import checks
-from ._types import type_set
+from .. import checks
+from .._types import type_set
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,3 +66,17 @@ def kernels(scalar) -> types.SimpleNamespace:
         wp.atomic_add(f, i, -strength * mass[i] * vec3(r[0], scalar(0.0), r[2]))
 
     return types.SimpleNamespace(add_compression=add_compression)
+
+
+def launch_force_fields(model, state_in, state_out):
+    """The model's force fields active at ``state_in.time``, added to ``state_out.force``."""
+    S = model.scalar
+    for fld in model.force_fields:
+        if fld.active(state_in.time):
+            wp.launch(
+                kernels(S).add_compression,
+                model.particle_count,
+                [state_in.x, model.particle_mass, model.particle_body, int(fld.body), model.types.vec3(*fld.center), S(fld.strength)],
+                [state_out.force],
+                device=model.device,
+            )

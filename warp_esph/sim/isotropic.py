@@ -1,4 +1,5 @@
-"""Rotation-variant SVD (SPEC §3) and isotropic matrix maps with stable adjoints (SPEC §9).
+"""Rotation-variant SVD (docs/method.md §3) and isotropic matrix maps with stable adjoints
+(docs/method.md §9).
 
 ``wp.svd3`` returns proper rotations ``U, V`` (det +1) and lets the last singular value
 go negative for an inverted ``F``: that is Irving et al.'s rotation-variant SVD.
@@ -21,7 +22,7 @@ import types
 
 import warp as wp
 
-from ._types import type_set
+from .._types import type_set
 
 
 @functools.cache
@@ -46,12 +47,18 @@ def funcs(scalar) -> types.SimpleNamespace:
         wp.adjoint[F] += U * wp.diag(adj_ret) * wp.transpose(V)
 
     @wp.func
+    def from_principal(U: mat33, g: vec3, V: mat33) -> mat33:
+        """``U diag(g) V^T``: the isotropic function with principal values ``g`` in the
+        frame of ``F = U diag(sigma) V^T`` (forward only; ``isotropic_map`` for gradients)."""
+        return U * wp.diag(g) * wp.transpose(V)
+
+    @wp.func
     def isotropic_map(F: mat33, g: vec3, d1: vec3) -> mat33:
         U = mat33()
         s = vec3()
         V = mat33()
         wp.svd3(F, U, s, V)
-        return U * wp.diag(g) * wp.transpose(V)
+        return from_principal(U, g, V)
 
     @wp.func
     def _d2(gi: scalar, gj: scalar, si: scalar, sj: scalar) -> scalar:
@@ -92,4 +99,4 @@ def funcs(scalar) -> types.SimpleNamespace:
         M[2, 1] = d1[2] * sym - d2 * skw
         wp.adjoint[F] += U * M * wp.transpose(V)
 
-    return types.SimpleNamespace(singular_values=singular_values, isotropic_map=isotropic_map)
+    return types.SimpleNamespace(singular_values=singular_values, isotropic_map=isotropic_map, from_principal=from_principal)

@@ -1,4 +1,4 @@
-"""Incremental deformation gradient (paper eqs. 1-8, SPEC §2).
+"""Incremental deformation gradient (paper eqs. 1-8, docs/method.md §2).
 
 Over one step, with ``x`` the positions at its start and ``y`` at its end, the
 weighted least-squares affine fit to the same-body neighbours is
@@ -19,7 +19,7 @@ import types
 
 import warp as wp
 
-from ._types import type_set
+from .._types import type_set
 from . import smoothing
 
 #: Indices into the solver's guard counters.
@@ -29,7 +29,7 @@ COUNT_INVERTED = 2
 
 
 @functools.cache
-def kernels(scalar) -> types.SimpleNamespace:
+def funcs(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     sm = smoothing.funcs(scalar)
@@ -44,11 +44,12 @@ def kernels(scalar) -> types.SimpleNamespace:
         n: int,
         h: scalar,
     ):
-        """The fit's moments ``A, B`` and the number of same-body neighbours (the guard's).
+        """Eqs. 5-7: the fit's moments ``A = sum w xb xb^T``, ``B = sum w yb xb^T`` and the
+        number of same-body neighbours (the guard's).
 
         Only the raw sums live in this loop: the caller's inverse must not see a loop
-        accumulator, whose adjoint Warp would not replay (WARP_NOTES trap 1). (Summing
-        only A's six distinct entries measured 9 % slower: the matrix form vectorises.)"""
+        accumulator, whose adjoint Warp would not replay (docs/method.md, Warp pitfall 1).
+        (Summing only A's six distinct entries measured 9 % slower: the matrix form vectorises.)"""
         A = mat33()
         B = mat33()
         xi = x[i]
@@ -68,38 +69,21 @@ def kernels(scalar) -> types.SimpleNamespace:
         return A, B, same
 
     @wp.func
-    def incremental_gradient(
-        i: int,
-        x: wp.array(dtype=vec3),
-        y: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        nbr: wp.array2d(dtype=wp.int32),
-        n: int,
-        h: scalar,
-    ) -> mat33:
-        A, B, same = moment_sums(i, x, y, body, nbr, n, h)
+    def affine_fit(A: mat33, B: mat33) -> mat33:
+        """Eqs. 5-6: the least-squares affine map ``B A^-1`` of the weighted moments."""
         return B * wp.inverse(A)
 
     @wp.func
-    def step_gradient(
-        i: int,
-        x: wp.array(dtype=vec3),
-        y: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        nbr: wp.array2d(dtype=wp.int32),
-        n: int,
-        h: scalar,
-        code: int,
-        counters: wp.array(dtype=wp.int32),
-    ) -> mat33:
-        """This step's ``dF`` (eq. 4); ``I``, counted, where a guard of paper §4 holds."""
+    def step_gradient(A: mat33, B: mat33, code: int, counters: wp.array(dtype=wp.int32)) -> mat33:
+        """This step's ``dF = B A^-1`` (eqs. 4-6); ``I``, counted, where a guard of paper §4
+        holds (``code``: ``neighbors.GUARD_*``)."""
         dF = wp.identity(n=3, dtype=scalar)
         if code == 1:
-            wp.atomic_add(counters, 0, 1)
+            wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
         elif code == 2:
-            wp.atomic_add(counters, 1, 1)
+            wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
         else:
-            dF = incremental_gradient(i, x, y, body, nbr, n, h)
+            dF = affine_fit(A, B)
         return dF
 
     @wp.func
@@ -109,8 +93,26 @@ def kernels(scalar) -> types.SimpleNamespace:
         if wp.determinant(candidate) > scalar(0.0):
             out = candidate
         else:
-            wp.atomic_add(counters, 2, 1)
+            wp.atomic_add(counters, COUNT_INVERTED, 1)
         return out
+
+    @wp.func
+    def deformation_update(A: mat33, B: mat33, code: int, F: mat33, counters: wp.array(dtype=wp.int32)) -> mat33:
+        """Eq. 8 with the guards of paper §4: ``F <- dF F`` unless guarded or inverted."""
+        # A guarded particle gets dF = I: I F = F exactly, and det F > 0 always holds.
+        return unless_inverted(step_gradient(A, B, code, counters) * F, F, counters)
+
+    return types.SimpleNamespace(
+        moment_sums=moment_sums, affine_fit=affine_fit, step_gradient=step_gradient, unless_inverted=unless_inverted,
+        deformation_update=deformation_update,
+    )
+
+
+@functools.cache
+def kernels(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3, mat33 = T.vec3, T.mat33
+    fn = funcs(scalar)
 
     @wp.kernel
     def update_deformation(
@@ -126,12 +128,22 @@ def kernels(scalar) -> types.SimpleNamespace:
         counters: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
-        F = F_prev[i]
-        # A guarded particle gets dF = I: I F = F exactly, and det F > 0 always holds.
-        dF = step_gradient(i, x, y, body, nbr, count[i], h, guard[i], counters)
-        F_out[i] = unless_inverted(dF * F, F, counters)
+        A, B, same = fn.moment_sums(i, x, y, body, nbr, count[i], h)
+        F_out[i] = fn.deformation_update(A, B, guard[i], F_prev[i], counters)
 
-    return types.SimpleNamespace(
-        update_deformation=update_deformation, incremental_gradient=incremental_gradient, moment_sums=moment_sums,
-        step_gradient=step_gradient, unless_inverted=unless_inverted,
+    return types.SimpleNamespace(update_deformation=update_deformation)
+
+
+def launch_update_deformation(model, state_in, state_out, counters):
+    """Eqs. 1-8 over the step from ``state_in.x`` to ``state_out.x``, with the neighbourhood
+    guards the neighbour search wrote to ``state_out.guard``."""
+    wp.launch(
+        kernels(model.scalar).update_deformation,
+        model.particle_count,
+        [
+            state_in.x, state_out.x, model.particle_body, state_out.neighbors, state_out.neighbor_count, state_out.guard,
+            state_out.F_flowed, model.scalar(model.support_radius),
+        ],
+        [state_out.F, counters],
+        device=model.device,
     )

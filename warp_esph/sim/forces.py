@@ -1,4 +1,4 @@
-"""Stress (paper eq. 9, SPEC §5) and elastic pair forces (eqs. 10-13).
+"""Stress (paper eq. 9, docs/method.md §5) and elastic pair forces (eqs. 10-13).
 
 Stress, in the SVD frame ``F = U diag(sigma) V^T``:
 
@@ -15,7 +15,7 @@ and ``grad W`` the gradient of Solenthaler's kernel (eqs. 12-13):
     g_ij = 2 V_i V_j P*_i grad W(r_ij),   f_j += ½ g_ij,   f_i -= ½ g_ij
 
 The paper prints eq. 10 with a minus sign on ``y_j - y_i``, which pushes stretched
-particles apart; this is the restoring sign (SPEC §5). Averaging ("equal and opposite")
+particles apart; this is the restoring sign (docs/method.md §5). Averaging ("equal and opposite")
 makes linear momentum exact to round-off. Only particles of the same body interact
 elastically; bodies meet through SPH pressure and colliders.
 
@@ -39,8 +39,8 @@ import types
 
 import warp as wp
 
-from ._types import type_set
-from . import deformation, isotropic, smoothing
+from .._types import type_set
+from . import deformation, isotropic, materials, smoothing
 
 
 @functools.cache
@@ -48,35 +48,69 @@ def funcs(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     iso = isotropic.funcs(scalar)
+    sm = smoothing.funcs(scalar)
 
     @wp.func
-    def stress(F: mat33, mu: scalar, lam: scalar, model: int) -> mat33:
-        """P* for material model ``model`` (index into ``material.MODELS``)."""
-        if model >= 2:
-            # hyperelastic (2) or stvk (3): a polynomial in F, no SVD.
-            scale = wp.where(model == 2, scalar(1.0), scalar(0.5))
-            C = wp.transpose(F) * F
-            tr = C[0, 0] + C[1, 1] + C[2, 2]
-            return scale * (scalar(2.0) * mu * (F * C - F) + lam * (tr - scalar(3.0)) * F)
-        s = iso.singular_values(F)
+    def principal_stress(s: vec3, mu: scalar, lam: scalar) -> vec3:
+        """Eq. 9 in the SVD frame: the principal values ``sigma o P^`` of ``P* = U F^ P^ V^T``,
+        ``P^ = 2 mu (sigma - 1) + lam sum(sigma - 1)``."""
         tr = s[0] + s[1] + s[2] - scalar(3.0)
         one = vec3(scalar(1.0), scalar(1.0), scalar(1.0))
         p_hat = scalar(2.0) * mu * (s - one) + lam * tr * one
-        f = wp.cw_mul(s, p_hat)
-        # (f_i - f_j)/(s_i - s_j) = 2 mu (s_i + s_j - 1) + lam tr: exact, also at s_i = s_j.
-        d1 = vec3(
+        return wp.cw_mul(s, p_hat)
+
+    @wp.func
+    def principal_stress_differences(s: vec3, mu: scalar, lam: scalar) -> vec3:
+        """Divided differences ``(f_i - f_j)/(s_i - s_j)`` of ``principal_stress`` (pairs
+        01, 02, 12) for the adjoint of ``isotropic_map``: ``2 mu (s_i + s_j - 1) + lam tr``,
+        exact, also at ``s_i = s_j``."""
+        tr = s[0] + s[1] + s[2] - scalar(3.0)
+        return vec3(
             scalar(2.0) * mu * (s[0] + s[1] - scalar(1.0)) + lam * tr,
             scalar(2.0) * mu * (s[0] + s[2] - scalar(1.0)) + lam * tr,
             scalar(2.0) * mu * (s[1] + s[2] - scalar(1.0)) + lam * tr,
         )
-        return iso.isotropic_map(F, f, d1)
+
+    @wp.func
+    def polynomial_stress(F: mat33, mu: scalar, lam: scalar, model: int) -> mat33:
+        """Eq. 9 with squared singular values (paper Fig. 5), a polynomial in ``F``:
+        ``2 mu (F F^T F - F) + lam (tr F^T F - 3) F`` for ``hyperelastic`` (model 2),
+        half of it (St. Venant-Kirchhoff) for ``stvk`` (model 3)."""
+        scale = wp.where(model == 2, scalar(1.0), scalar(0.5))
+        C = wp.transpose(F) * F
+        tr = C[0, 0] + C[1, 1] + C[2, 2]
+        return scale * (scalar(2.0) * mu * (F * C - F) + lam * (tr - scalar(3.0)) * F)
+
+    @wp.func
+    def stress(F: mat33, mu: scalar, lam: scalar, model: int) -> mat33:
+        """P* for material model ``model`` (index into ``material.MODELS``), differentiable:
+        eq. 9 through ``isotropic_map`` (its adjoint stable at repeated singular values)."""
+        if model >= 2:
+            return polynomial_stress(F, mu, lam, model)
+        s = iso.singular_values(F)
+        return iso.isotropic_map(F, principal_stress(s, mu, lam), principal_stress_differences(s, mu, lam))
+
+    @wp.func
+    def elastic_pair_force(VV: scalar, P: mat33, F_inv: mat33, d: vec3, h: scalar, c_el: scalar) -> vec3:
+        """Eqs. 10-13: ``½ g_ij = V_i V_j P*_i grad W(F_i^-1 (x_j - x_i))`` for ``VV = V_i V_j``,
+        ``d = x_j - x_i``, ``c_el = elastic_coef(h)``; it is added to ``j`` and taken from ``i``."""
+        return VV * (P * sm.grad_w_elastic_c(F_inv * d, h, c_el))
 
     @wp.func
     def variational_map(volume: scalar, P: mat33, F: mat33, A: mat33) -> mat33:
         """``M = V P* F^T A^-1``: the variational force on neighbour ``j`` is ``-w_ij M xb_ij``."""
         return volume * (P * wp.transpose(F) * wp.inverse(A))
 
-    return types.SimpleNamespace(stress=stress, variational_map=variational_map)
+    @wp.func
+    def variational_pair_force(M: mat33, d: vec3, h: scalar, c6: scalar) -> vec3:
+        """``g_ij = w_ij M_i xb_ij`` (``d = xb_ij``, ``c6 = poly6_coef(h)``); taken from ``j``, added to ``i``."""
+        return sm.w_poly6_c(wp.dot(d, d), h, c6) * (M * d)
+
+    return types.SimpleNamespace(
+        stress=stress, principal_stress=principal_stress, principal_stress_differences=principal_stress_differences,
+        polynomial_stress=polynomial_stress, elastic_pair_force=elastic_pair_force, variational_map=variational_map,
+        variational_pair_force=variational_pair_force,
+    )
 
 
 @functools.cache
@@ -84,15 +118,16 @@ def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     sm = smoothing.funcs(scalar)
-    moment_sums = deformation.kernels(scalar).moment_sums
-    variational_map = funcs(scalar).variational_map
+    fn = funcs(scalar)
+    moment_sums = deformation.funcs(scalar).moment_sums
+    Materials = materials.struct(scalar)
 
     @wp.kernel
     def elastic_forces(
         x: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
         material: wp.array(dtype=wp.int32),
-        elastic_force: wp.array(dtype=wp.int32),
+        mat: Materials,
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         guard: wp.array(dtype=wp.int32),
@@ -109,29 +144,44 @@ def kernels(scalar) -> types.SimpleNamespace:
         P = stress[i]
         Vi = volume[i]
         fi = vec3()
-        if elastic_force[material[i]] == 0:
+        if mat.elastic_force[material[i]] == 0:
             Finv = F_inv[i]
             c_el = sm.elastic_coef(h)
             for k in range(count[i]):
                 j = nbr[i, k]
                 if body[j] == bi:
-                    # ½ g_ij = V_i V_j P*_i grad W(F_i^-1 (x_j - x_i))
-                    g = Vi * volume[j] * (P * sm.grad_w_elastic_c(Finv * (x[j] - xi), h, c_el))
+                    g = fn.elastic_pair_force(Vi * volume[j], P, Finv, x[j] - xi, h, c_el)
                     wp.atomic_add(f, j, g)
                     fi -= g
         elif guard[i] == 0:
             # A from its own function: its inverse must not see a loop accumulator
-            # (WARP_NOTES trap 1).
+            # (docs/method.md, Warp pitfall 1).
             A, B, same = moment_sums(i, x, x, body, nbr, count[i], h)
-            M = variational_map(Vi, P, F[i], A)
+            M = fn.variational_map(Vi, P, F[i], A)
             c6 = sm.poly6_coef(h)
             for k in range(count[i]):
                 j = nbr[i, k]
                 if body[j] == bi:
-                    xb = x[j] - xi
-                    g = sm.w_poly6_c(wp.dot(xb, xb), h, c6) * (M * xb)
+                    g = fn.variational_pair_force(M, x[j] - xi, h, c6)
                     wp.atomic_sub(f, j, g)
                     fi += g
         wp.atomic_add(f, i, fi)
 
     return types.SimpleNamespace(elastic_forces=elastic_forces)
+
+
+def launch_elastic_forces(model, state_in, state_out):
+    """Elastic pair forces (eqs. 10-13, or the variational force) into ``state_out.force``,
+    from the stress, ``F`` and ``F^-1`` the constitutive update wrote to ``state_out``."""
+    S = model.scalar
+    wp.launch(
+        kernels(S).elastic_forces,
+        model.particle_count,
+        [
+            state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
+            state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
+            state_out.F_inv, S(model.support_radius),
+        ],
+        [state_out.force],
+        device=model.device,
+    )

@@ -3,6 +3,10 @@
 A particle found inside a collider after the position update is moved to its surface;
 the inward normal velocity is removed and the tangential velocity loses
 ``friction * |inward normal velocity|`` (Coulomb friction; it stops when that exceeds it).
+The position is corrected by ``dt`` times the velocity friction removed: the drift moved the
+particle with the velocity before friction, so without it a particle that friction holds
+still slides ``a_t dt^2`` per step, a creep at speed ``a_t dt`` that kept slumped plastic
+piles sinking (docs/creep.md).
 """
 
 import dataclasses
@@ -11,10 +15,10 @@ import types
 
 import warp as wp
 
-from ._types import type_set
+from .._types import type_set
 
 #: Collider loops are unrolled at compile time (a dynamic loop that carries positions
-#: through non-linear projections would get a wrong adjoint, WARP_NOTES trap 1).
+#: through non-linear projections would get a wrong adjoint, docs/method.md, Warp pitfall 1).
 MAX_PER_KIND = 16
 
 
@@ -45,8 +49,8 @@ def funcs(scalar) -> types.SimpleNamespace:
     vec3 = T.vec3
 
     @wp.func
-    def respond(x: vec3, v: vec3, depth: scalar, n: vec3, friction: scalar):
-        """Project a particle ``depth`` inside along outward normal ``n``; friction."""
+    def respond(x: vec3, v: vec3, depth: scalar, n: vec3, friction: scalar, dt: scalar):
+        """Project a particle ``depth`` inside along outward normal ``n``; friction over the step ``dt``."""
         x_new = x + depth * n
         vn = wp.dot(v, n)
         v_new = v
@@ -58,26 +62,28 @@ def funcs(scalar) -> types.SimpleNamespace:
                 v_new = vt * (scalar(1.0) - drop / vt_len)
             else:
                 v_new = vec3()
+            # The drift moved x by dt vt; friction takes back what it removed from vt.
+            x_new = x_new + dt * (v_new - vt)
         return x_new, v_new
 
     @wp.func
-    def collide_plane(x: vec3, v: vec3, n: vec3, offset: scalar, friction: scalar):
+    def collide_plane(x: vec3, v: vec3, n: vec3, offset: scalar, friction: scalar, dt: scalar):
         depth = offset - wp.dot(n, x)
         if depth > scalar(0.0):
-            return respond(x, v, depth, n, friction)
+            return respond(x, v, depth, n, friction, dt)
         return x, v
 
     @wp.func
-    def collide_sphere(x: vec3, v: vec3, c: vec3, radius: scalar, friction: scalar):
+    def collide_sphere(x: vec3, v: vec3, c: vec3, radius: scalar, friction: scalar, dt: scalar):
         d = x - c
         r2 = wp.dot(d, d)
         if r2 < radius * radius and r2 > scalar(0.0):
             r = wp.sqrt(r2)
-            return respond(x, v, radius - r, d / r, friction)
+            return respond(x, v, radius - r, d / r, friction, dt)
         return x, v
 
     @wp.func
-    def collide_box(x: vec3, v: vec3, c: vec3, half: vec3, friction: scalar):
+    def collide_box(x: vec3, v: vec3, c: vec3, half: vec3, friction: scalar, dt: scalar):
         d = x - c
         gap = vec3(wp.abs(d[0]) - half[0], wp.abs(d[1]) - half[1], wp.abs(d[2]) - half[2])
         if gap[0] < scalar(0.0) and gap[1] < scalar(0.0) and gap[2] < scalar(0.0):
@@ -89,7 +95,7 @@ def funcs(scalar) -> types.SimpleNamespace:
                 axis = 2
             n = vec3()
             n[axis] = wp.where(d[axis] < scalar(0.0), scalar(-1.0), scalar(1.0))
-            return respond(x, v, -gap[axis], n, friction)
+            return respond(x, v, -gap[axis], n, friction, dt)
         return x, v
 
     return types.SimpleNamespace(

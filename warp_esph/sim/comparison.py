@@ -1,4 +1,4 @@
-"""The comparison deformation models of the paper's Fig. 8 (SPEC §7).
+"""The comparison deformation models of the paper's Fig. 8 (docs/method.md §7).
 
 Selected per material with ``Material(deformation=...)``:
 
@@ -21,18 +21,20 @@ import types
 
 import warp as wp
 
-from ._types import type_set
-from . import deformation, forces, plasticity
+from .._types import type_set
+from . import deformation, forces, materials, plasticity
 
 
 @functools.cache
 def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
-    flow = plasticity.kernels(scalar).flow
+    pf = plasticity.funcs(scalar)
+    flow, flow_fraction = pf.flow, pf.flow_fraction
     stress = forces.funcs(scalar).stress
-    dk = deformation.kernels(scalar)
-    moment_sums, step_gradient, unless_inverted = dk.moment_sums, dk.step_gradient, dk.unless_inverted
+    df = deformation.funcs(scalar)
+    moment_sums, step_gradient, unless_inverted = df.moment_sums, df.step_gradient, df.unless_inverted
+    Materials = materials.struct(scalar)
     third = scalar(1.0 / 3.0)
 
     @wp.kernel
@@ -41,13 +43,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         alpha_in: wp.array(dtype=scalar),
         Fp_in: wp.array(dtype=mat33),
         material: wp.array(dtype=wp.int32),
-        deform: wp.array(dtype=wp.int32),
-        mu: wp.array(dtype=scalar),
-        lam: wp.array(dtype=scalar),
-        yield_stress: wp.array(dtype=scalar),
-        flow_rate: wp.array(dtype=scalar),
-        hardening: wp.array(dtype=scalar),
-        model: wp.array(dtype=wp.int32),
+        mat: Materials,
         dt: scalar,
         F_out: wp.array(dtype=mat33),
         alpha_out: wp.array(dtype=scalar),
@@ -62,8 +58,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         F = F_in[i]
         a = alpha_in[i]
         Fp = Fp_in[i]
-        kind = model[m]
-        d = deform[m]
+        kind = mat.model[m]
+        d = mat.deformation[m]
+        mu = mat.mu[m]
+        lam = mat.lam[m]
         I = wp.identity(n=3, dtype=scalar)
         if d == 2:
             # Additive: F = I + eps, flow on dev eps, linear stress, no back projection.
@@ -71,25 +69,23 @@ def kernels(scalar) -> types.SimpleNamespace:
             tr = eps[0, 0] + eps[1, 1] + eps[2, 2]
             dev = eps - tr * third * I
             dn2 = wp.ddot(dev, dev)
-            s_norm2 = scalar(4.0) * mu[m] * mu[m] * dn2
-            y = wp.max(yield_stress[m] + hardening[m] * a, scalar(0.0))
             a_new = a
-            if flow_rate[m] > scalar(0.0) and s_norm2 > y * y:
-                s_norm = wp.sqrt(s_norm2)
-                rate = flow_rate[m] * dt * (s_norm - y) / s_norm
-                if kind == 1:
-                    rate = rate / s_norm
-                gamma = wp.min(rate, scalar(1.0))
-                eps = eps - gamma * dev
-                a_new = a + gamma * wp.sqrt(dn2)
+            if mat.flow_rate[m] > scalar(0.0):
+                flowed, gamma = flow_fraction(
+                    scalar(4.0) * mu * mu * dn2, mat.yield_stress[m], mat.hardening[m], a, mat.flow_rate[m], dt,
+                    wp.where(kind == 1, 1, 0),
+                )
+                if flowed != 0:
+                    eps = eps - gamma * dev
+                    a_new = a + gamma * wp.sqrt(dn2)
             tr = eps[0, 0] + eps[1, 1] + eps[2, 2]
             F_out[i] = I + eps
             alpha_out[i] = a_new
             Fp_out[i] = Fp
-            stress_out[i] = scalar(2.0) * mu[m] * eps + lam[m] * tr * I
+            stress_out[i] = scalar(2.0) * mu * eps + lam * tr * I
             F_inv_out[i] = I
         else:
-            Fe, a_new = flow(F, a, mu[m], yield_stress[m], flow_rate[m], hardening[m], kind, dt, counters)
+            Fe, a_new = flow(F, a, mu, mat.yield_stress[m], mat.flow_rate[m], mat.hardening[m], kind, dt, counters)
             Fe_inv = wp.inverse(Fe)
             if d == 1:
                 # Rest configuration: F_total = F_e F_p is kept, F_p <- F_e_new^-1 F_total.
@@ -97,7 +93,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             F_out[i] = Fe
             alpha_out[i] = a_new
             Fp_out[i] = Fp
-            stress_out[i] = stress(Fe, mu[m], lam[m], kind)
+            stress_out[i] = stress(Fe, mu, lam, kind)
             F_inv_out[i] = Fe_inv
 
     @wp.kernel
@@ -112,7 +108,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         rest_count: wp.array(dtype=wp.int32),
         guard: wp.array(dtype=wp.int32),
         material: wp.array(dtype=wp.int32),
-        deform: wp.array(dtype=wp.int32),
+        mat: Materials,
         F_prev: wp.array(dtype=mat33),
         Fp: wp.array(dtype=mat33),
         h: scalar,
@@ -122,14 +118,15 @@ def kernels(scalar) -> types.SimpleNamespace:
         """``deformation.update_deformation`` for every deformation model."""
         i = wp.tid()
         F = F_prev[i]
-        d = deform[material[i]]
+        d = mat.deformation[material[i]]
         I = wp.identity(n=3, dtype=scalar)
         if d == 1:
             # Rest configuration: the total F against X, always with the initial lists.
             A, B, same = moment_sums(i, rest_x, y, body, rest_nbr, rest_count[i], h)
-            F = unless_inverted((B * wp.inverse(A)) * wp.inverse(Fp[i]), F, counters)
+            F = unless_inverted(df.affine_fit(A, B) * wp.inverse(Fp[i]), F, counters)
         else:
-            dF = step_gradient(i, x, y, body, nbr, count[i], h, guard[i], counters)
+            A, B, same = moment_sums(i, x, y, body, nbr, count[i], h)
+            dF = step_gradient(A, B, guard[i], counters)
             if d == 2:
                 # Additive: F = I + eps, eps <- eps + (dF^T dF - I) / 2.
                 F = F + scalar(0.5) * (wp.transpose(dF) * dF - I)
@@ -138,3 +135,30 @@ def kernels(scalar) -> types.SimpleNamespace:
         F_out[i] = F
 
     return types.SimpleNamespace(constitutive_update=constitutive_update, update_deformation=update_deformation)
+
+
+def launch_constitutive_update(model, state_in, state_out, dt, counters):
+    """``plasticity.launch_constitutive_update`` for models with a Fig. 8 comparison material."""
+    wp.launch(
+        kernels(model.scalar).constitutive_update,
+        model.particle_count,
+        [state_in.F, state_in.alpha, state_in.F_p, model.particle_material, model.material_arrays(), model.scalar(dt)],
+        [state_out.F_flowed, state_out.alpha, state_out.F_p, state_out.stress, state_out.F_inv, counters],
+        device=model.device,
+    )
+
+
+def launch_update_deformation(model, state_in, state_out, counters):
+    """``deformation.launch_update_deformation`` for models with a Fig. 8 comparison material."""
+    rest_x, rest_nbr, rest_count = model.rest_neighbors()
+    wp.launch(
+        kernels(model.scalar).update_deformation,
+        model.particle_count,
+        [
+            state_in.x, state_out.x, rest_x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
+            rest_nbr, rest_count, state_out.guard, model.particle_material, model.material_arrays(), state_out.F_flowed,
+            state_out.F_p, model.scalar(model.support_radius),
+        ],
+        [state_out.F, counters],
+        device=model.device,
+    )

@@ -1,0 +1,582 @@
+"""Validation suite: the simulated material against closed-form results of rheology and
+elasticity, at two or more resolutions, for both elastic forces.
+
+    python -m benchmarks.validation            # full run (tens of minutes on one core), writes docs/validation.md
+    python -m benchmarks.validation --quick    # CI-sized run (a few minutes)
+    python -m benchmarks.validation --quick --out /tmp/v   # write the report elsewhere
+
+Each case is a function taking its size (``resolution``: particles across the thinnest
+dimension) and returning a dict of what was measured next to the theory. The report is
+``docs/validation.md`` (a table per case), ``docs/images/validation/*.png`` (measured vs
+theory and vs resolution) and ``docs/validation.json`` (every number).
+
+Only ``warp_esph``'s public API is used: ``SceneBuilder``, ``Material``, ``Solver``,
+``Model.stable_dt`` and the ``State`` arrays. Quasi-static results are read only after
+the kinetic energy has decayed, and the residual rate of change is reported with them.
+Where a case needs a static equilibrium of an elastic body (beam, column, plates) it is
+found by dynamic relaxation: every particle's velocity is multiplied by ``exp(-c dt)``
+after each step, a mass-proportional damping that does not change the equilibrium (SPH
+viscosity cannot damp a bending mode within its explicit step limit).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+G = 9.81
+RHO = 1000.0
+FORCES = ("paper", "variational")
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+#: Dimensionless uniaxial yield stresses of the slump runs (0.05: the spread regime).
+SLUMP_S = (0.05, 0.1, 0.2, 0.3, 0.5)
+#: Nominal strain amplitudes of the energy runs (the measured peak strain is reported).
+SMALL, LARGE = 0.002, 0.05
+
+
+def _we():
+    import warp as wp
+
+    wp.config.quiet = True
+    import warp_esph as we
+
+    return wp, we
+
+
+def _swap_run(model, solver, a, c, dt, steps, after=None):
+    """``steps`` steps from ``a``; ``after(state, k)`` sees each new state (``k`` from 1)."""
+    for k in range(1, steps + 1):
+        solver.step(a, c, dt)
+        a, c = c, a
+        if after is not None and after(a, k) is False:
+            break
+    return a, c
+
+
+def _kinetic(model, state) -> float:
+    m = model.particle_mass.numpy()
+    v = state.v.numpy().astype(np.float64)
+    return float(0.5 * (m[:, None] * v**2).sum())
+
+
+def _damp(state, factor: float):
+    # Mass-proportional damping of dynamic relaxation (docstring of the module).
+    state.v.assign(state.v.numpy() * factor)
+
+
+def _deviatoric_norm(F: np.ndarray, mu: float) -> np.ndarray:
+    """|s| = 2 mu |sigma - mean(sigma)| of the yield test (warp_esph/plasticity.py), sigma
+    the singular values of the stored elastic F."""
+    s = np.linalg.svd(F.astype(np.float64), compute_uv=False)
+    dev = s - s.mean(axis=1, keepdims=True)
+    return 2.0 * mu * np.linalg.norm(dev, axis=1)
+
+
+# --------------------------------------------------------------------- slump
+def slump_theory(S: float) -> float:
+    """h / H0 = S (1 - ln S) of the 1-D static analysis (Murata 1984, Pashias et al. 1996)."""
+    return S * (1.0 - math.log(S)) if S < 1.0 else 1.0
+
+
+def spread_radius_theory(volume: float, tau_y: float, rho: float = RHO, g: float = G) -> float:
+    """R = (225 rho g Omega^2 / (128 pi^2 tau_y))^(1/5), Roussel & Coussot (2005)."""
+    return (225.0 * rho * g * volume**2 / (128.0 * math.pi**2 * tau_y)) ** 0.2
+
+
+def slump(S: float, resolution: int = 12, elastic_force: str = "variational", duration: float = 4.0,
+          H0: float = 0.1, flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0,
+          dt_factor: float = 0.9, samples: int = 200) -> dict:
+    """A cylinder H0 = 2 R0 of a yield-stress material slumps on a rough floor.
+
+    ``S = sigma_y / (rho g H0)`` with sigma_y the uniaxial yield stress: ``yield_stress = Y
+    = sigma_y sqrt(2/3)`` (the code compares the Frobenius norm of the deviatoric stress with
+    Y; under uniaxial stress it is sqrt(2/3) sigma). mu = 10 rho g H0, nu = 0.3, default SPH
+    pressure, ``viscosity`` Pa s (a little, so that an unyielded body's ringing decays).
+    ``resolution`` is particles across H0 (and across the diameter). The height is the top
+    of the particles within R0/2 of the axis (plus dx/2: each stands for a cell)."""
+    wp, we = _we()
+    dx = H0 / resolution
+    R0 = H0 / 2.0
+    sigma_y = S * RHO * G * H0
+    Y = sigma_y * math.sqrt(2.0 / 3.0)
+    mu = 10.0 * RHO * G * H0
+    mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity,
+                      elastic_force=elastic_force)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
+    b.add_cylinder((0.0, H0 / 2.0, 0.0), R0, H0, mat)
+    b.add_ground(0.0, friction=friction)
+    model = b.finalize()
+    n = model.particle_count
+    x0 = model.particle_x0.astype(np.float64)
+    r0 = np.hypot(x0[:, 0], x0[:, 2])
+    # The 1-D analysis's plug: material less deep than sigma_y / (rho g) = S H0 never yields.
+    plug = (x0[:, 1] > H0 - 0.5 * S * H0) & (r0 < 0.5 * R0)
+    solver = we.Solver(model)
+    dt = dt_factor * model.stable_dt()
+    steps = int(round(duration / dt))
+    every = max(1, steps // samples)
+    a, c = model.state(), model.state()
+    times, heights, kes, radii = [], [], [], []
+
+    def height(x):
+        r = np.hypot(x[:, 0], x[:, 2])
+        near = r < 0.5 * R0
+        return float(x[near, 1].max() + 0.5 * dx) if near.any() else float("nan")
+
+    def sample(state, k):
+        if k % every and k != steps:
+            return
+        x = state.x.numpy().astype(np.float64)
+        times.append(k * dt)
+        heights.append(height(x))
+        kes.append(_kinetic(model, state))
+        radii.append(float(np.hypot(x[:, 0], x[:, 2]).max() + 0.5 * dx))
+        if not np.isfinite(x).all():
+            return False
+
+    t0 = time.perf_counter()
+    a, c = _swap_run(model, solver, a, c, dt, steps, sample)
+    wall = time.perf_counter() - t0
+    t, h, ke = np.array(times), np.array(heights), np.array(kes)
+    last = t >= t[-1] - 0.25 * duration
+    rate = -np.polyfit(t[last], h[last], 1)[0] if last.sum() > 2 else float("nan")
+    ratio = _deviatoric_norm(a.F.numpy(), mu) / Y
+    volume = n * dx**3
+    tau_y = Y / math.sqrt(2.0)
+    R_rc = spread_radius_theory(volume, tau_y)
+    weight_scale = float(model.particle_mass.numpy().sum()) * G * H0
+    return {
+        "case": "slump", "S": S, "resolution": resolution, "elastic_force": elastic_force,
+        "particles": n, "dt": dt, "duration": float(t[-1]), "steps": steps,
+        "h_over_H0": h[-1] / H0, "theory_h_over_H0": slump_theory(S),
+        "ratio_to_theory": (1.0 - h[-1] / H0) / (1.0 - slump_theory(S)),
+        "top_rate_pct_H0_per_s": 100.0 * rate / H0,
+        "kinetic_energy": ke[-1], "kinetic_over_MgH0": ke[-1] / weight_scale,
+        "fraction_at_yield": float((ratio >= 0.99).mean()),
+        "fraction_above_0p9_yield": float((ratio >= 0.9).mean()),
+        "plug_particles": int(plug.sum()),
+        "plug_unyielded_fraction": float((ratio[plug] < 0.9).mean()) if plug.any() else float("nan"),
+        "radius_over_R0": radii[-1] / R0, "spread_theory_radius_over_R0": R_rc / R0,
+        "radius_over_spread_theory": radii[-1] / R_rc,
+        "height_history": (t / 1.0).tolist(), "h_history": (h / H0).tolist(), "ke_history": (ke / weight_scale).tolist(),
+        "finite": bool(np.isfinite(h).all()), "wall_s": wall,
+    }
+
+
+# ---------------------------------------------------------------------- bar
+def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slenderness: int = 10,
+                  periods: float = 3.2, strain: float = 1.0e-3, E: float = 1.0e5, nu: float = 0.3) -> dict:
+    """Free-free bar, ``resolution`` x ``resolution`` particles across, ``slenderness`` times
+    as long, pressure off, no gravity, started in its first longitudinal mode
+    (``v = strain c cos(pi X / L)``). The frequency is read from the upward zero crossings
+    of the end-to-end length; theory f = c / (2 L), c = sqrt(E / rho), L = the bar's
+    material length (particles x dx)."""
+    wp, we = _we()
+    dx = 0.01
+    n, nl = resolution, resolution * slenderness
+    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force=elastic_force)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+    L = nl * dx
+    b.add_box((L / 2, 0.0, 0.0), (L, n * dx, n * dx), mat)
+    model = b.finalize()
+    x0 = model.particle_x0.astype(np.float64)
+    X = x0[:, 0] - x0[:, 0].min() + 0.5 * dx
+    c_bar = math.sqrt(E / RHO)
+    f_theory = c_bar / (2.0 * L)
+    v = np.zeros_like(x0)
+    v[:, 0] = strain * c_bar * np.cos(math.pi * X / L)
+    a, c = model.state(), model.state()
+    a.v.assign(v)
+    left = x0[:, 0] < x0[:, 0].min() + 0.5 * dx
+    right = x0[:, 0] > x0[:, 0].max() - 0.5 * dx
+    solver = we.Solver(model)
+    dt = model.stable_dt()
+    steps = int(periods / f_theory / dt)
+    lengths = []
+
+    def sample(state, k):
+        x = state.x.numpy()
+        lengths.append(float(x[right, 0].mean() - x[left, 0].mean()))
+
+    _swap_run(model, solver, a, c, dt, steps, sample)
+    s = np.array(lengths) - np.mean(lengths)
+    up = np.nonzero((s[:-1] < 0.0) & (s[1:] >= 0.0))[0]
+    # Linear interpolation of each crossing between its two samples.
+    tc = (up + s[up] / (s[up] - s[up + 1]) + 1.0) * dt
+    f = (len(tc) - 1) / (tc[-1] - tc[0]) if len(tc) >= 2 else float("nan")
+    return {"case": "bar", "resolution": n, "elastic_force": elastic_force, "particles": model.particle_count,
+            "frequency": f, "theory": f_theory, "ratio": f / f_theory, "periods_measured": len(tc) - 1}
+
+
+# --------------------------------------------------------------------- beam
+def beam_deflection(resolution: int = 6, elastic_force: str = "variational", span_over_thickness: int = 10,
+                    periods: float = 3.0, nu: float = 0.3, deflection_over_thickness: float = 0.03,
+                    kappa: float = 0.85, dtype: str = "float32") -> dict:
+    """A square beam ``resolution`` particles thick on two supports under its own weight.
+
+    The supports are two frictionless box colliders one particle column wide under the end
+    columns (span L between their centres: a simply supported beam with dx/2 overhangs).
+    E is chosen so that the Euler-Bernoulli deflection is ``deflection_over_thickness`` of
+    the thickness (small strain). Pressure off, no viscosity; the static deflection is found
+    by dynamic relaxation with c = 1.4 omega_1 (omega_1 the Euler-Bernoulli first bending
+    frequency) over ``periods`` of it. Deflection: mean height of the mid-span column
+    against the mean of the two support columns, from the start.
+    Theory (Timoshenko): 5 q L^4 / (384 E I) + q L^2 / (8 kappa G A)."""
+    wp, we = _we()
+    n = resolution
+    t = 0.04
+    dx = t / n
+    cols = n * span_over_thickness  # even: a mid-span column
+    L = cols * dx
+    A, I = t * t, t**4 / 12.0
+    q = RHO * G * A
+    E = 5.0 * q * L**4 / (384.0 * I) / (deflection_over_thickness * t)
+    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force=elastic_force)
+    Gs = mat.mu
+    theory_eb = 5.0 * q * L**4 / (384.0 * E * I)
+    theory = theory_eb + q * L**2 / (8.0 * kappa * Gs * A)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
+    # The bottom layer starts on the supports' top faces (y = 0).
+    b.add_box((0.0, t / 2.0 - dx / 2.0, 0.0), ((cols + 1) * dx, t, t), mat)
+    for xs in (-L / 2.0, L / 2.0):
+        b.add_box_collider((xs, -0.5, 0.0), (0.5 * dx * 0.999, 0.5, 1.0), friction=0.0)
+    model = b.finalize(dtype=getattr(wp, dtype))
+    x0 = model.particle_x0.astype(np.float64)
+    mid = np.abs(x0[:, 0]) < 0.25 * dx
+    ends = np.abs(np.abs(x0[:, 0]) - L / 2.0) < 0.25 * dx
+    omega1 = (math.pi / L) ** 2 * math.sqrt(E * I / (RHO * A))
+    damping = 1.4 * omega1
+    solver = we.Solver(model)
+    dt = model.stable_dt()
+    steps = int(periods * 2.0 * math.pi / omega1 / dt)
+    factor = math.exp(-damping * dt)
+    hist_t, hist_d = [], []
+    every = max(1, steps // 200)
+
+    def deflection(x):
+        return float((x0[mid, 1].mean() - x[mid, 1].mean()) - (x0[ends, 1].mean() - x[ends, 1].mean()))
+
+    def after(state, k):
+        _damp(state, factor)
+        if k % every == 0 or k == steps:
+            hist_t.append(k * dt)
+            hist_d.append(deflection(state.x.numpy().astype(np.float64)))
+
+    a, c = model.state(), model.state()
+    a, c = _swap_run(model, solver, a, c, dt, steps, after)
+    ht, hd = np.array(hist_t), np.array(hist_d)
+    last = ht >= ht[-1] - 0.1 * ht[-1]
+    rate = np.polyfit(ht[last], hd[last], 1)[0]
+    ke = _kinetic(model, a)
+    # Relaxed, the kinetic energy is round-off; a beam that broke up keeps moving.
+    blew_up = bool(not math.isfinite(ke) or ke > 1e-3 * float(model.particle_mass.numpy().sum()) * G * theory)
+    return {"case": "beam", "resolution": n, "elastic_force": elastic_force, "particles": model.particle_count,
+            "span_over_thickness": span_over_thickness, "deflection": hd[-1], "theory": theory,
+            "theory_euler_bernoulli": theory_eb, "ratio": hd[-1] / theory,
+            "residual_rate_pct_per_s": 100.0 * rate / theory, "kinetic_energy": ke, "blew_up": blew_up,
+            "t": ht.tolist(), "deflection_over_theory": (hd / theory).tolist()}
+
+
+# ------------------------------------------------------------------- column
+def column_settlement(resolution: int = 6, elastic_force: str = "variational", aspect: int = 5,
+                      E: float = 1.5e5, nu: float = 0.3, periods: float = 4.0) -> dict:
+    """A free-standing square column, ``resolution`` particles across and ``aspect`` times as
+    tall, on a frictionless floor (laterally free), pressure off, relaxed dynamically. The
+    shortening between the centres of the top and bottom layers, against
+    ``rho g L (L - dx) / (2 E)`` (the continuum ``rho g L^2 / (2 E)`` integrated between
+    those centres)."""
+    wp, we = _we()
+    dx = 0.01
+    n, nh = resolution, resolution * aspect
+    H = nh * dx
+    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force=elastic_force)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
+    b.add_box((0.0, H / 2.0, 0.0), (n * dx, H, n * dx), mat)
+    b.add_ground(0.0, friction=0.0)
+    model = b.finalize()
+    x0 = model.particle_x0.astype(np.float64)
+    top = x0[:, 1] > x0[:, 1].max() - 0.5 * dx
+    bottom = x0[:, 1] < x0[:, 1].min() + 0.5 * dx
+    L0 = x0[top, 1].mean() - x0[bottom, 1].mean()
+    theory = RHO * G * H * (H - dx) / (2.0 * E)
+    omega = 0.5 * math.pi * math.sqrt(E / RHO) / H  # fixed-free axial mode
+    solver = we.Solver(model)
+    dt = model.stable_dt()
+    steps = int(periods * 2.0 * math.pi / omega / dt)
+    factor = math.exp(-1.4 * omega * dt)
+    hist = []
+
+    def after(state, k):
+        _damp(state, factor)
+        if k > 0.9 * steps:
+            x = state.x.numpy().astype(np.float64)
+            hist.append((k * dt, L0 - (x[top, 1].mean() - x[bottom, 1].mean())))
+
+    a, c = model.state(), model.state()
+    a, c = _swap_run(model, solver, a, c, dt, steps, after)
+    h = np.array(hist)
+    rate = np.polyfit(h[:, 0], h[:, 1], 1)[0]
+    return {"case": "column", "resolution": n, "elastic_force": elastic_force, "particles": model.particle_count,
+            "shortening": h[-1, 1], "theory": theory, "ratio": h[-1, 1] / theory,
+            "residual_rate_pct_per_s": 100.0 * rate / theory, "kinetic_energy": _kinetic(model, a)}
+
+
+# ------------------------------------------------------------------ poisson
+def poisson_compression(resolution: int = 6, elastic_force: str = "variational", strain: float = 1.0e-3,
+                        E: float = 1.0e5, nu: float = 0.3, aspect: int = 2, periods: float = 20.0) -> dict:
+    """A block ``resolution`` particles across and ``aspect`` times as long, compressed along
+    x by ``strain`` (positions and F together) and held between two frictionless planes
+    at its end layers; no gravity, pressure off, relaxed dynamically. Measured: the lateral
+    strain of the middle third (centres of the side layers) against ``nu strain``, and the
+    plate force (internal force on an end layer) against ``E A strain``, A = (n dx)^2."""
+    wp, we = _we()
+    dx = 0.01
+    n, nl = resolution, resolution * aspect
+    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force=elastic_force)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (nl * dx, n * dx, n * dx), mat)
+    model = b.finalize()
+    x0 = model.particle_x0.astype(np.float64)
+    S = np.diag([1.0 - strain, 1.0, 1.0])
+    xs = x0 @ S.T
+    a_end = xs[:, 0].max()
+    b.add_plane((1.0, 0.0, 0.0), -a_end, friction=0.0)
+    b.add_plane((-1.0, 0.0, 0.0), -a_end, friction=0.0)
+    model = b.finalize()
+    a, c = model.state(), model.state()
+    a.x.assign(xs)
+    a.F.assign(np.tile(S, (model.particle_count, 1, 1)))
+    middle = np.abs(x0[:, 0]) <= (nl * dx) / 6.0
+    W0 = x0[:, 1].max() - x0[:, 1].min()
+    sides = [(middle & (x0[:, k] > x0[:, k].max() - 0.5 * dx), middle & (x0[:, k] < x0[:, k].min() + 0.5 * dx)) for k in (1, 2)]
+    end = x0[:, 0] > x0[:, 0].max() - 0.5 * dx
+    c_p = mat.p_wave_speed
+    omega = math.pi * c_p / (n * dx)
+    solver = we.Solver(model)
+    dt = model.stable_dt()
+    steps = int(periods * 2.0 * math.pi / omega / dt)
+    factor = math.exp(-omega * dt)
+    hist = []
+
+    def after(state, k):
+        _damp(state, factor)
+        if k > 0.9 * steps:
+            x = state.x.numpy().astype(np.float64)
+            lat = np.mean([(x[p, k_].mean() - x[m, k_].mean()) / W0 - 1.0 for (p, m), k_ in zip(sides, (1, 2))])
+            hist.append((k * dt, lat, float(state.force.numpy()[end, 0].sum())))
+
+    a, c = _swap_run(model, solver, a, c, dt, steps, after)
+    h = np.array(hist)
+    lat, force = h[-1, 1], h[-1, 2]
+    area = (n * dx) ** 2
+    return {"case": "poisson", "resolution": n, "elastic_force": elastic_force, "particles": model.particle_count,
+            "lateral_strain": lat, "poisson_measured": lat / strain, "poisson_theory": nu,
+            "poisson_ratio": lat / strain / nu, "force": force, "force_theory": E * area * strain,
+            "young_ratio": force / (E * area * strain),
+            "lateral_rate_per_s": float(np.polyfit(h[:, 0], h[:, 1], 1)[0]) / strain,
+            "kinetic_energy": _kinetic(model, a)}
+
+
+# ------------------------------------------------------------------- energy
+def _stvk_energy(model, F: np.ndarray, mu: float, lam: float) -> float:
+    F = F.astype(np.float64)
+    C = np.einsum("nki,nkj->nij", F, F)
+    Eg = 0.5 * (C - np.eye(3))
+    tr = np.trace(Eg, axis1=1, axis2=2)
+    psi = mu * np.einsum("nij,nij->n", Eg, Eg) + 0.5 * lam * tr**2
+    return float((model.particle_volume.numpy() * psi).sum())
+
+
+def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", resolution: int = 6,
+                 periods: float = 50.0, dt_factor: float = 1.0, E: float = 2.0e5, nu: float = 0.3) -> dict:
+    """An undamped elastic cube (``resolution``^3 particles, St. Venant-Kirchhoff, pressure
+    off, no gravity, no viscosity) set breathing with ``v = a (x - c)`` so that its peak
+    strain is about ``amplitude``. The total energy (kinetic + sum V psi(F), psi the
+    St. Venant-Kirchhoff energy of the stored F) over ``periods`` breathing periods:
+    drift = (E_end - E_0) / E_0 and the largest |E - E_0| / E_0. With the variational
+    force the elastic force is minus the gradient of exactly this energy."""
+    wp, we = _we()
+    dx = 0.02
+    n = resolution
+    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, model="stvk", elastic_force=elastic_force)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (n * dx,) * 3, mat)
+    model = b.finalize()
+    x0 = model.particle_x0.astype(np.float64)
+    # Breathing mode of a free cube: omega ~ pi c_p / side; strain amplitude a / omega.
+    omega = math.pi * mat.p_wave_speed / (n * dx)
+    rate = amplitude * omega
+    a, c = model.state(), model.state()
+    a.v.assign(rate * (x0 - x0.mean(axis=0)))
+    mu, lam = mat.mu, mat.lam
+    e0 = _kinetic(model, a) + _stvk_energy(model, a.F.numpy(), mu, lam)
+    solver = we.Solver(model)
+    dt = dt_factor * model.stable_dt()
+    steps = int(periods * 2.0 * math.pi / omega / dt)
+    every = max(1, steps // 400)
+    hist = []
+    peak_strain = [0.0]
+
+    def after(state, k):
+        if k % every == 0 or k == steps:
+            F = state.F.numpy()
+            e = _kinetic(model, state) + _stvk_energy(model, F, mu, lam)
+            hist.append((k * dt, e / e0 - 1.0))
+            s = np.linalg.svd(F.astype(np.float64), compute_uv=False)
+            peak_strain[0] = max(peak_strain[0], float(np.abs(s - 1.0).max()))
+            if not math.isfinite(e) or e > 100.0 * e0:
+                return False
+
+    _swap_run(model, solver, a, c, dt, steps, after)
+    h = np.array(hist)
+    blew = bool(not np.isfinite(h[-1, 1]) or h[-1, 1] > 99.0)
+    return {"case": "energy", "amplitude": amplitude, "elastic_force": elastic_force, "resolution": n,
+            "dt_factor": dt_factor, "periods": float(h[-1, 0] * omega / (2.0 * math.pi)),
+            "peak_strain": peak_strain[0], "drift": float(h[-1, 1]), "max_deviation": float(np.nanmax(np.abs(h[:, 1]))),
+            "blew_up": blew, "t": h[:, 0].tolist(), "relative_energy": h[:, 1].tolist()}
+
+
+# ---------------------------------------------------------------- stability
+def _stability_materials():
+    _, we = _we()
+    out = []
+    for name in sorted(we.PRESETS):
+        p = we.Material.preset(name)
+        out.append((f"preset {name}", p))
+        out.append((f"preset {name}, viscosity 0", p.replace(viscosity=0.0)))
+    default = we.Material(mu=1.0e5, lam=1.0e5)
+    out.append(("Material(mu=1e5, lam=1e5)", default))
+    out.append(("Material(mu=1e5, lam=1e5), viscosity 5", default.replace(viscosity=5.0)))
+    return out
+
+
+def stability(material, duration: float = 1.0, resolution: int = 6, dt_factor: float = 0.5, limit: float = 5.0) -> dict:
+    """A ``resolution``^3 box of ``material`` (2 cm spacing) resting on the ground (friction
+    0.5), run at ``dt_factor`` x ``Model.stable_dt()`` for ``duration`` s. It blew up if a
+    particle ever moved faster than ``limit`` m/s (a body at rest under gravity: well below
+    it) or any value went non-finite."""
+    wp, we = _we()
+    dx = 0.02
+    n = resolution
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
+    b.add_box((0.0, n * dx / 2.0, 0.0), (n * dx,) * 3, material)
+    b.add_ground(0.0, friction=0.5)
+    model = b.finalize()
+    solver = we.Solver(model)
+    dt = dt_factor * model.stable_dt()
+    steps = int(duration / dt)
+    peak = [0.0, None]
+
+    def after(state, k):
+        if k % 10 == 0 or k == steps:
+            v = state.v.numpy()
+            speed = float(np.sqrt((v.astype(np.float64) ** 2).sum(axis=1)).max()) if np.isfinite(v).all() else math.inf
+            peak[0] = max(peak[0], speed)
+            if speed > limit:
+                peak[1] = k * dt
+                return False
+
+    a, c = model.state(), model.state()
+    a, c = _swap_run(model, solver, a, c, dt, steps, after)
+    return {"case": "stability", "elastic_force": material.elastic_force, "dt": dt, "duration": duration,
+            "max_speed": peak[0], "blew_up": peak[1] is not None, "blew_up_at": peak[1],
+            "final_speed": float(np.abs(a.v.numpy()).max()) if peak[1] is None else None}
+
+
+# ------------------------------------------------------------------- driver
+def plan(quick: bool) -> list[tuple[str, dict]]:
+    """(function name, kwargs) of every run of the suite."""
+    runs: list[tuple[str, dict]] = []
+    if quick:
+        for f in FORCES:
+            runs.append(("slump", {"S": 0.2, "resolution": 8, "elastic_force": f, "duration": 2.0}))
+            runs.append(("bar_frequency", {"resolution": 4, "elastic_force": f}))
+            runs.append(("beam_deflection", {"resolution": 4, "elastic_force": f, "span_over_thickness": 6}))
+            runs.append(("column_settlement", {"resolution": 4, "elastic_force": f}))
+            runs.append(("poisson_compression", {"resolution": 4, "elastic_force": f}))
+            runs.append(("energy_drift", {"amplitude": SMALL, "elastic_force": f, "periods": 20.0}))
+        for label, _ in _stability_materials():
+            for f in FORCES:
+                runs.append(("stability", {"label": label, "elastic_force": f, "duration": 0.3}))
+        return runs
+    # Fast cases first: the JSON is rewritten after every run.
+    for f in FORCES:
+        for res in (4, 6):
+            runs.append(("bar_frequency", {"resolution": res, "elastic_force": f}))
+            runs.append(("beam_deflection", {"resolution": res, "elastic_force": f}))
+            runs.append(("column_settlement", {"resolution": res, "elastic_force": f}))
+            runs.append(("poisson_compression", {"resolution": res, "elastic_force": f}))
+        for amp in (SMALL, LARGE):
+            for dtf in (1.0, 0.5):
+                runs.append(("energy_drift", {"amplitude": amp, "elastic_force": f, "periods": 50.0, "dt_factor": dtf}))
+    for res in (8, 12):
+        for S in SLUMP_S:
+            for f in FORCES:
+                runs.append(("slump", {"S": S, "resolution": res, "elastic_force": f, "duration": 4.0}))
+    for label, _ in _stability_materials():
+        for f in FORCES:
+            runs.append(("stability", {"label": label, "elastic_force": f, "duration": 1.0}))
+    for S in (0.1, 0.2, 0.3, 0.5):
+        runs.append(("slump", {"S": S, "resolution": 16, "elastic_force": "variational", "duration": 4.0}))
+    return runs
+
+
+def run_one(name: str, kwargs: dict) -> dict:
+    kwargs = dict(kwargs)
+    if name == "stability":
+        label = kwargs.pop("label")
+        force = kwargs.pop("elastic_force")
+        material = dict(_stability_materials())[label].replace(elastic_force=force)
+        out = stability(material, **kwargs)
+        out["label"] = label
+        out["preset_force"] = dict(_stability_materials())[label].elastic_force
+        return out
+    return globals()[name](**kwargs)
+
+
+def main(argv=None) -> int:
+    from tqdm import tqdm
+
+    p = argparse.ArgumentParser(prog="python -m benchmarks.validation", description=__doc__.split("\n\n")[0])
+    p.add_argument("--quick", action="store_true", help="CI-sized run (reduced sizes and durations)")
+    p.add_argument("--out", default=str(ROOT / "docs"), help="folder for validation.md, validation.json, images/validation/")
+    p.add_argument("--only", default=None, help="comma-separated case functions to run (e.g. slump,bar_frequency)")
+    p.add_argument("--no-report", action="store_true", help="only write the JSON")
+    args = p.parse_args(argv)
+    runs = plan(args.quick)
+    if args.only:
+        keep = set(args.only.split(","))
+        runs = [r for r in runs if r[0] in keep]
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results = []
+    t0 = time.perf_counter()
+    bar = tqdm(runs, desc="validation", unit="run", file=sys.stderr)
+    for name, kwargs in bar:
+        bar.set_postfix_str((f"{name} " + " ".join(f"{k}={v}" for k, v in kwargs.items()))[:70])
+        r = run_one(name, kwargs)
+        results.append(r)
+        (out / "validation.json").write_text(json.dumps(_meta(args, t0) | {"results": results}, indent=1))
+    if not args.no_report:
+        from benchmarks import validation_report
+
+        validation_report.write(results, out, _meta(args, t0))
+    return 0
+
+
+def _meta(args, t0) -> dict:
+    import platform
+
+    return {"command": "python -m benchmarks.validation" + (" --quick" if args.quick else ""),
+            "machine": platform.machine(), "python": platform.python_version(), "wall_s": time.perf_counter() - t0}
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,394 @@
+"""Calibration a researcher can trust: the fit command on a previous run's USD, joint fits
+of several experiments, silhouette targets, and diagnostics that say when the data do not
+determine a parameter (warp_esph.calibrate, fit, diagnostics, silhouette).
+
+Scenes are tiny (64-125 particles, tens of steps) so the file runs in CI; gradients are
+checked in float64 against central differences.
+"""
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warp_esph as we
+from warp_esph.diagnostics import diagnose
+from warp_esph.fit import Experiment, choose_checkpointing, fit, latin_hypercube, memory_estimate
+from warp_esph.losses import PositionLoss
+from warp_esph.rollout import Rollout, state_nbytes
+from warp_esph.silhouette import PinholeCamera, SilhouetteLoss, load_cameras, load_masks, soft_silhouette
+
+pxr = pytest.importorskip("pxr")
+
+SCENE = """
+[scene]
+name = "dough_block"
+spacing = 0.02
+support_radius = 0.05
+frames = 6
+fps = 30
+
+[materials.dough]
+mu = 2000.0
+lam = 3000.0
+density = 1000.0
+yield_stress = {yield_stress}
+flow_rate = {flow_rate}
+viscosity = 2.0
+
+[[bodies]]
+shape = "box"
+name = "dough"
+material = "dough"
+center = [0.0, 0.045, 0.0]
+size = [0.08, 0.08, 0.08]
+velocity = [0.0, -1.0, 0.0]
+
+[[colliders]]
+type = "ground"
+height = 0.0
+friction = 0.5
+"""
+
+
+def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys):
+    """``warp-esph run`` a dough block dropped on the ground (64 particles, 102 steps), then
+    ``warp-esph fit`` a copy that starts 2x off in yield stress and flow rate, with the
+    run's USD (one body, frames 2, 4, 6) as the target. From the 2x guess alone L-BFGS
+    stops in a valley at yield_stress 217, flow_rate 10.8 (loss 4.9e-8, reported as not
+    converged); the sampled first stage (``--samples``) starts it in the right one."""
+    from warp_esph.cli import main
+
+    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
+    truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(SCENE.format(yield_stress=200.0, flow_rate=20.0))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(truth), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
+    out = tmp_path / "calibration"
+    capsys.readouterr()
+    status = main(["fit", str(guess), "--target", str(run), "--target-body", "dough", "--target-frames", "2,4,6",
+                   "--iterations", "30", "--samples", "6", "--output-dir", str(out), "--no-progress", "--no-usd",
+                   "--noise", "1e-4"])
+    captured = capsys.readouterr()
+    assert status == 0, captured.err
+    doc = json.loads((out / "fit.json").read_text())
+    assert doc["optimizer"] == "lbfgs"  # the default for two values
+    assert doc["params"]["yield_stress"][0] == pytest.approx(100.0, rel=0.10)
+    assert doc["params"]["flow_rate"][0] == pytest.approx(10.0, rel=0.10)
+    assert doc["loss"] < 1e-3 * doc["initial_loss"]
+    # The command says how the fit ended, and before it, what it will cost.
+    assert doc["stopped"] in ("converged", "stalled", "iterations")
+    assert f"fit {doc['termination']}" in captured.out
+    assert "MiB of Warp arrays" in captured.err and "one evaluation (forward + backward) took" in captured.err
+    assert "diagnostics" in captured.out and doc["diagnostics"]["labels"] == ["yield_stress", "flow_rate"]
+    # History as CSV (one row per evaluation) and the plots, in the chosen folder only.
+    rows = (out / "history.csv").read_text().strip().splitlines()
+    assert len(rows) == len(doc["history"]) + 1 and rows[0].startswith("evaluation,stage,loss,yield_stress,flow_rate")
+    assert (out / "loss.png").stat().st_size > 0 and (out / "params.png").stat().st_size > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration", "guess.toml", "run.usdc", "truth.toml"]
+
+
+def _drop(yield_stress, flow_rate):
+    """125 particles of a soft material hitting the ground at 1 m/s."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.055, 0.0), (0.1, 0.1, 0.1), we.Material(mu=2e3, lam=3e3, density=1000.0, yield_stress=yield_stress,
+                                                              flow_rate=flow_rate), velocity=(0.0, -1.0, 0.0))
+    b.add_ground(friction=0.5)
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * 0.02, size=model.particle_x0.shape)
+    model.compute_rest_density()
+    return model
+
+
+@pytest.mark.parametrize("yield_stress, flagged", [(1.0, True), (300.0, False)])
+def test_diagnostics_flag_an_unobservable_yield_stress(yield_stress, flagged):
+    """With a yield stress far below the stresses of the impact, the flow rule's
+    ``(|s| - Y) / |s|`` hardly depends on it: the diagnostics must say the data do not
+    determine it (and still determine the flow rate). At a yield stress the stresses are
+    comparable to, they must not."""
+    model = _drop(yield_stress, 10.0)
+    dt = model.stable_dt()
+    steps = 100
+    frames = [35, 70, 100]
+    target = Rollout(model, steps, dt, frames=frames).forward()
+    d = diagnose(model, PositionLoss(target, frames=frames), ["yield_stress", "flow_rate"], steps=steps, dt=dt, noise=1e-3)
+    assert d.method == "gauss-newton" and d.labels == ["yield_stress", "flow_rate"]
+    assert "flow_rate" not in d.undetermined
+    assert d.relative_error[1] < 0.01
+    if flagged:
+        assert d.undetermined == ["yield_stress"], d.summary()
+        assert d.relative_error[0] > 0.25 and d.sensitivity[0] < 1e-3 * d.sensitivity[1]
+        assert any(w.startswith("yield_stress is not determined") for w in d.warnings)
+    else:
+        assert d.undetermined == [] and d.warnings == [], d.summary()
+        assert d.relative_error[0] < 0.01
+    assert np.allclose(d.correlation, d.correlation.T) and np.allclose(np.diag(d.correlation), 1.0)
+
+
+def _stretch(rate, seconds, noise_seed, factor=1.0):
+    """64-125 particles stretched at a uniform rate (no gravity, no ground): one stress level."""
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.1, 0.1, 0.1), we.Material(mu=2e3, lam=3e3, density=1000.0, yield_stress=100.0,
+                                                            flow_rate=10.0))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * 0.02, size=model.particle_x0.shape)
+    model.compute_rest_density()
+    model.particle_v0 = rate * model.particle_x0 * np.array([1.0, -0.5, -0.5])
+    dt = model.stable_dt()
+    steps = int(seconds / dt)
+    frames = [steps // 3, 2 * steps // 3, steps]
+    target = Rollout(model, steps, dt, frames=frames).forward()
+    target = target + np.random.default_rng(noise_seed).normal(scale=1e-4, size=target.shape)
+    if factor != 1.0:
+        m = model.materials[0]
+        model.set_material(0, dataclasses.replace(m, yield_stress=factor * m.yield_stress, flow_rate=factor * m.flow_rate))
+    return Experiment(model, PositionLoss(target, frames=frames), steps=steps, dt=dt, noise=1e-4)
+
+
+def test_joint_fit_recovers_what_neither_experiment_determines():
+    """A slow and a fast stretch of one material: each alone fixes only a combination of
+    yield stress and flow rate (the rate of flow at its own stress level), so its
+    diagnostics flag both; together they determine both, and a joint fit from 2x off
+    recovers them from targets with 0.1 mm noise."""
+    params = ["yield_stress", "flow_rate"]
+    slow, fast = _stretch(4.0, 0.1, 1), _stretch(30.0, 0.04, 2)
+    for e in (slow, fast):
+        d = fit([e], None, params, iterations=0, progress=False).diagnostics
+        assert d.undetermined == params, d.summary()
+        assert abs(d.correlation[0, 1]) > 0.95
+    slow, fast = _stretch(4.0, 0.1, 1, factor=2.0), _stretch(30.0, 0.04, 2, factor=2.0)
+    result = fit([slow, fast], None, params, iterations=30, optimizer="lbfgs", progress=False)
+    d = result.diagnostics
+    assert d.undetermined == [], d.summary()
+    assert abs(d.correlation[0, 1]) < 0.9
+    assert result.params["yield_stress"][0] == pytest.approx(100.0, rel=0.10)
+    assert result.params["flow_rate"][0] == pytest.approx(10.0, rel=0.10)
+    # Each experiment's model is left holding the shared fitted material.
+    for m in result.models:
+        assert m.materials[0].yield_stress == result.params["yield_stress"][0]
+    # The fit reaches the noise floor: residuals of 0.1 mm per coordinate, as put in.
+    assert result.stopped == "converged"
+    assert d.residual_rms == pytest.approx([1e-4, 1e-4], rel=0.2)
+
+
+def _cameras():
+    front = PinholeCamera(32, 24, 60.0, 60.0, 15.5, 11.5, np.diag([1.0, -1.0, -1.0]), [0.0, 0.05, 0.5], "front")
+    side = PinholeCamera(24, 24, 50.0, 50.0, 11.5, 11.5, [[0.0, 0.0, -1.0], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0]],
+                         [0.0, 0.05, 0.5], "side")
+    return [front, side]
+
+
+def test_silhouette_loss_and_gradient_match_reference_and_central_differences():
+    rng = np.random.default_rng(0)
+    X = rng.normal(scale=0.03, size=(40, 3)) + np.array([0.0, 0.05, 0.0])
+    cams = _cameras()
+    masks = [(soft_silhouette(X + np.array([0.01, -0.005, 0.0]), c, 0.01) > 0.3).astype(float) for c in cams]
+    assert all(0.1 < m.mean() < 0.5 for m in masks)  # both views see the body, not all of the image
+    loss = SilhouetteLoss({5: masks}, cams, radius=0.01)
+    value, grads = loss.value_and_grad({5: wp.array(X, dtype=wp.vec3d)})
+    reference = np.mean([np.mean((soft_silhouette(X, c, 0.01) - m) ** 2) for c, m in zip(cams, masks)])
+    assert value == pytest.approx(reference, rel=1e-12)
+    g = grads[5].numpy()
+    h = 1e-6
+    for i in range(0, 40, 3):
+        for d in range(3):
+            xp, xm = X.copy(), X.copy()
+            xp[i, d] += h
+            xm[i, d] -= h
+            fd = (loss.value({5: wp.array(xp, dtype=wp.vec3d)}) - loss.value({5: wp.array(xm, dtype=wp.vec3d)})) / (2 * h)
+            assert g[i, d] == pytest.approx(fd, rel=1e-5, abs=1e-9)
+    # The residual vector is what the diagnostics use: sum r^2 = residual_scale * value.
+    r = loss.residuals({5: X})
+    assert np.sum(r**2) == pytest.approx(loss.residual_scale() * value, rel=1e-12)
+
+
+def test_silhouette_gradient_through_a_rollout():
+    """d(silhouette loss)/d(mu) through 4 steps of a stretched block, tape vs central differences."""
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.05, 0.0), (0.06, 0.06, 0.06), we.Material(mu=1e3, lam=1.5e3, density=1000.0))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * 0.02, size=model.particle_x0.shape)
+    model.compute_rest_density()
+    model.particle_v0 = 20.0 * (model.particle_x0 - [0.0, 0.05, 0.0]) * np.array([1.0, -0.5, 0.0])
+    r = Rollout(model, 4, 1e-3, frames=[4])
+    x = r.forward()[0]
+    cams = _cameras()
+    masks = [(soft_silhouette(x * 1.05, c, 0.01) > 0.3).astype(float) for c in cams]
+    loss = SilhouetteLoss({4: masks}, cams, radius=0.01)
+    _, grads = r.value_and_grad(loss)
+    mu = r.get_parameters()["mu"][0]
+    vals = []
+    for s in (1, -1):
+        r.set_parameters({"mu": [mu * (1 + s * 1e-5)]})
+        r.forward()
+        vals.append(loss.value(dict(zip(r.frames, r.frame_positions))))
+    fd = (vals[0] - vals[1]) / (2e-5 * mu)
+    assert abs(fd) > 0
+    assert grads["mu"][0] == pytest.approx(fd, rel=1e-4)
+
+
+def test_camera_file_and_masks(tmp_path):
+    cams = _cameras()
+    doc = {"cameras": [{"name": c.name, "width": c.width, "height": c.height, "K": [[c.fx, 0, c.cx], [0, c.fy, c.cy], [0, 0, 1]],
+                        "R": c.R.tolist(), "t": c.t.tolist()} for c in cams], "radius": 0.01}
+    path = tmp_path / "cameras.json"
+    path.write_text(json.dumps(doc))
+    loaded, options = load_cameras(path)
+    assert [c.name for c in loaded] == ["front", "side"] and options == {"radius": 0.01}
+    assert loaded[0].fx == 60.0 and np.array_equal(loaded[1].R, cams[1].R)
+    np.savez(tmp_path / "masks.npz", front_3=np.ones((24, 32)), side_3=np.zeros((24, 24)))
+    masks = load_masks(tmp_path / "masks.npz", loaded)
+    assert list(masks) == [3] and masks[3][0].shape == (24, 32)
+    from warp_esph.silhouette import load_silhouette_target
+
+    loss = load_silhouette_target(path, tmp_path / "masks.npz", None, frames=6, substeps=10)
+    assert loss.frames == (30,) and loss.radius == 0.01 and [c.name for c in loss.cameras] == ["front", "side"]
+    doc["cameras"][0]["R"] = [[2, 0, 0], [0, 1, 0], [0, 0, 1]]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="not a rotation"):
+        load_cameras(path)
+    with pytest.raises(ValueError, match="shape"):
+        SilhouetteLoss({1: [np.ones((5, 5)), np.ones((24, 24))]}, cams, radius=0.01)
+
+
+def test_termination_memory_and_global_stage():
+    """The fit says it hit the iteration cap; the memory estimate is the rollout's own;
+    the automatic checkpointing fits a limit; the Latin hypercube stratifies every axis."""
+    model = _drop(100.0, 10.0)
+    dt = model.stable_dt()
+    r = Rollout(model, 20, dt, frames=[10, 20])
+    target = r.forward()
+    r.forward()
+    taped = r.memory_bytes()["taped_states"]
+    assert taped == 21 * state_nbytes(model.state(requires_grad=True))
+    assert memory_estimate(model, 20, None) == taped
+    limit = memory_estimate(model, 400, 40) + 1
+    s = choose_checkpointing(model, 400, limit)
+    assert s is not None and 20 <= s < 400 and memory_estimate(model, 400, s) <= limit
+    assert choose_checkpointing(model, 400, 10 * memory_estimate(model, 400, None)) is None
+
+    u = latin_hypercube(7, 3, np.random.default_rng(0))
+    for d in range(3):
+        assert sorted(np.floor(u[:, d] * 7).astype(int)) == list(range(7))
+
+    guess = _drop(200.0, 20.0)
+    messages = []
+    result = fit(guess, PositionLoss(target, frames=[10, 20]), ["yield_stress", "flow_rate"], steps=20, dt=dt,
+                 iterations=2, optimizer="lbfgs", progress=False, samples=4, seed=1, diagnostics=False,
+                 log=messages.append)
+    assert result.stopped == "iterations" and not result.converged and "iteration cap" in result.termination
+    stages = [h["stage"] for h in result.history]
+    assert stages[:5] == ["sample"] * 5 and stages[5:] == ["descent"] * 3
+    # The descent starts from the best of the guess and the samples.
+    assert result.history[5]["loss"] == min(h["loss"] for h in result.history[:5])
+    assert result.initial_loss == result.history[0]["loss"]  # the guess
+    assert any("global stage" in m for m in messages) and any("MiB" in m for m in messages)
+    assert math.isfinite(result.loss) and result.loss <= result.history[5]["loss"]
+
+
+def test_targets_from_data(tmp_path):
+    """A run's USD read for one body and chosen frames; a point cloud (.npy of another
+    size, .ply) and a mesh at a chosen frame."""
+    from warp_esph.fit import load_target
+    from warp_esph.losses import ChamferLoss, MeshLoss
+    from warp_esph.simulate import simulate
+    from warp_esph.usd import UsdWriter
+
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.1, 0.0), (0.06, 0.06, 0.06), we.Material.preset("dough"), name="block")
+    b.add_sphere((0.2, 0.1, 0.0), 0.03, we.Material.preset("rubber"), name="ball")
+    b.add_ground()
+    model = b.finalize(dtype=wp.float64)
+    path = tmp_path / "run.usdc"
+    with UsdWriter(path, model, 30.0) as writer:
+        simulate(model, 3, fps=30.0, writer=writer, progress=False)
+    t = load_target(path, body="ball", frames="1,3")
+    ball = model.bodies[1]
+    assert t.kind == "positions" and t.frames == [1, 3] and t.fps == 30.0 and t.data.shape == (2, ball.count, 3)
+    loss = t.loss(model, {1: 10, 3: 30})
+    assert isinstance(loss, PositionLoss) and loss.frames == (10, 30)
+    assert np.array_equal(loss.particles, np.arange(ball.start, ball.start + ball.count))
+    assert load_target(path).frames == [1, 2, 3]  # default: every frame after the first
+    with pytest.raises(ValueError, match="holds bodies block, ball"):
+        load_target(path, body="cube")
+
+    cloud = np.random.default_rng(0).normal(size=(50, 3))
+    np.save(tmp_path / "cloud.npy", cloud)
+    t = load_target(tmp_path / "cloud.npy")
+    t.frames = [2]
+    loss = t.loss(model, {2: 20})
+    assert isinstance(loss, ChamferLoss) and loss.frames == (20,) and len(loss.targets[20]) == 50
+
+    import meshio
+
+    meshio.write(tmp_path / "cloud.ply", meshio.Mesh(cloud, []))
+    assert load_target(tmp_path / "cloud.ply").kind == "points"
+    tri = meshio.Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]), [("triangle", np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], dtype=np.int32))])
+    meshio.write(tmp_path / "shape.ply", tri)
+    t = load_target(tmp_path / "shape.ply")
+    assert t.kind == "mesh" and isinstance(t.loss(model, {3: 30}), MeshLoss)
+
+
+def test_cli_joint_experiments_file(tmp_path):
+    """``--experiments`` adds experiments to a fit: the joint loss is the weighted sum of theirs."""
+    from warp_esph.cli import main
+
+    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
+    truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(SCENE.format(yield_stress=200.0, flow_rate=20.0))
+    assert main(["run", str(truth), "-o", str(tmp_path / "run.usdc"), "--frames", "2", "--dtype", "float64",
+                 "--no-progress"]) == 0
+    common = ["--iterations", "0", "--no-progress", "--no-usd", "--no-diagnostics"]
+    losses = []
+    for frames in ("2", "1"):
+        out = tmp_path / f"alone_{frames}"
+        assert main(["fit", str(guess), "--target", str(tmp_path / "run.usdc"), "--target-frames", frames,
+                     "--output-dir", str(out), *common]) == 0
+        losses.append(json.loads((out / "fit.json").read_text())["initial_loss"])
+    (tmp_path / "exps.json").write_text(json.dumps([{"scene": "guess.toml", "target": "run.usdc", "target_frames": "1",
+                                                     "weight": 2.0}]))
+    out = tmp_path / "joint"
+    assert main(["fit", str(guess), "--target", str(tmp_path / "run.usdc"), "--target-frames", "2",
+                 "--experiments", str(tmp_path / "exps.json"), "--output-dir", str(out), *common]) == 0
+    doc = json.loads((out / "fit.json").read_text())
+    assert len(doc["experiments"]) == 2 and doc["experiments"][1]["weight"] == 2.0
+    assert doc["initial_loss"] == pytest.approx(losses[0] + 2.0 * losses[1], rel=1e-12)
+    assert losses[0] > 0 and losses[1] > 0
+    (tmp_path / "bad.json").write_text(json.dumps([{"scene": "guess.toml", "targte": "run.usdc"}]))
+    assert main(["fit", str(guess), "--target", str(tmp_path / "run.usdc"), "--experiments", str(tmp_path / "bad.json"),
+                 "--output-dir", str(out), *common]) == 2
+
+
+def test_chamfer_residuals_match_the_loss():
+    """The residual vector the diagnostics use has ``sum r^2 = residual_scale * value``,
+    with clouds of different sizes and points beyond the radius."""
+    from warp_esph.losses import ChamferLoss
+
+    rng = np.random.default_rng(2)
+    x = rng.normal(scale=0.05, size=(60, 3))
+    y = np.concatenate([x[:40] + rng.normal(scale=0.005, size=(40, 3)), rng.normal(scale=0.05, size=(30, 3)) + 0.3])
+    loss = ChamferLoss(y, radius=0.03, frames=[4])
+    value = loss.value({4: wp.array(x, dtype=wp.vec3d)})
+    assert sum(loss.unmatched[4]) > 0  # some points on both sides find nothing within the radius
+    r = loss.residuals({4: x})
+    assert np.sum(r**2) == pytest.approx(loss.residual_scale() * value, rel=1e-10)
+
+
+@pytest.mark.parametrize("mode", ["surface", "outside"])
+def test_mesh_residuals_match_the_loss(mode):
+    """Point-to-plane residuals of a mesh target: ``sum r^2 = residual_scale * value`` at
+    the point they are taken, some particles inside the mesh, some beyond ``max_dist``."""
+    from warp_esph.losses import MeshLoss
+
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]) * 0.1
+    tris = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    x = np.random.default_rng(3).uniform(-0.05, 0.15, size=(80, 3))
+    x[:3] += 2.0  # far away: nothing within max_dist
+    loss = MeshLoss((verts, tris), frames=[2], mode=mode, max_dist=0.5)
+    value = loss.value({2: wp.array(x, dtype=wp.vec3d)})
+    r = loss.residuals({2: x})
+    assert loss.unmatched[2] == 3
+    assert np.sum(r**2) == pytest.approx(loss.residual_scale() * value, rel=1e-10)

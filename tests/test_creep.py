@@ -1,0 +1,58 @@
+"""A slumped yield-stress cylinder must come to rest (issue 12; evidence in docs/creep.md).
+
+Cylinder H0 = 2 R0 = 8 dx of a Bingham-like material (shear yield stress 0.1 rho g H0,
+mu = 10 rho g H0, flow rate 200/s, variational force) on a floor with friction 1,
+dt = 0.9 Model.stable_dt(). The 1-D static analysis gives h/H0 = S (1 - ln S) = 0.477
+(S = sqrt(3/2) Y / (rho g H0)); a pile at rest has a top that no longer sinks.
+Before the fix of static friction in ``colliders.respond`` (docs/creep.md) the top still sank
+1.3 % H0/s at 3 s (h/H0 0.417, then 0.409 at 4 s), at a rate proportional to dt; now it stops
+(0.02 % H0/s at 3 s, h/H0 0.539: at 8 dx the pile slumps less than the 1-D theory).
+"""
+
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warp_esph as we
+from warp_esph.sim.solver import Solver
+
+
+def _slump(n=8, dx=0.01, t_end=3.0, window=0.5):
+    H0 = n * dx
+    rho, g = 1000.0, 9.81
+    scale = rho * g * H0
+    mu = 10.0 * scale
+    Y = math.sqrt(2.0) * 0.1 * scale  # shear yield stress Y / sqrt(2) = 0.1 rho g H0
+    mat = we.Material.from_young(2.0 * mu * 1.3, 0.3, yield_stress=Y, flow_rate=200.0, density=rho, elastic_force="variational")
+    b = we.SceneBuilder(spacing=dx)
+    b.add_cylinder((0.0, H0 / 2, 0.0), H0 / 2, H0, mat)
+    b.add_ground(0.0, friction=1.0)
+    model = b.finalize(dtype=wp.float32)
+    dt = 0.9 * model.stable_dt()
+    solver = Solver(model)
+    s0, s1 = model.state(), model.state()
+    x0 = s0.x.numpy()
+    core = np.hypot(x0[:, 0], x0[:, 2]) < 1.5 * dx
+    steps = int(round(t_end / dt))
+    mark = steps - int(round(window / dt))
+    heights = {}
+    for k in range(1, steps + 1):
+        solver.step(s0, s1, dt)
+        s0, s1 = s1, s0
+        if k in (mark, steps):
+            heights[k] = float(s0.x.numpy()[core, 1].max()) + 0.5 * dx
+    sink = (heights[mark] - heights[steps]) / H0 / ((steps - mark) * dt)
+    return heights[steps] / H0, sink
+
+
+def test_slumped_cylinder_comes_to_rest():
+    h, sink = _slump()
+    S = math.sqrt(1.5) * math.sqrt(2.0) * 0.1
+    theory = S * (1.0 - math.log(S))
+    # At rest: the top sinks below 0.1 % H0/s (issue 12's target).
+    assert sink < 1.0e-3, f"top still sinks {100 * sink:.2f} % H0/s at 3 s (h/H0 = {h:.3f})"
+    # 8 particles tall is coarse: within 15 % of the 1-D theory here (10 % is the target at
+    # the finer resolutions of the validation suite).
+    assert abs(h - theory) < 0.15 * theory, f"h/H0 = {h:.3f}, 1-D theory {theory:.3f}"

@@ -1,0 +1,253 @@
+"""Parameter sweeps (warp_esph.sweep, ``warp-esph sweep``): sampling, the table, workers, Ray.
+
+The scene is a 125-particle box of toothpaste (2 cm spacing) dropped 1 cm onto the
+ground, run for 10 frames at 30 fps (a third of a second): enough for a low yield stress
+to slump visibly and a high one to stay a box.
+"""
+
+import math
+import os
+
+import numpy as np
+import pytest
+
+from warp_esph import cli
+from warp_esph.builder import SceneBuilder
+from warp_esph.material import Material
+from warp_esph.scenes import Scene
+from warp_esph.sweep import SweepTable, parse_param, sample_points, sweep
+
+FRAMES = 10
+YIELD = "yield_stress=10:10000:log:3"
+
+SCENE_TOML = """
+[scene]
+name = "paste_box"
+spacing = 0.02
+frames = 10
+fps = 30
+
+[materials.paste]
+preset = "toothpaste"
+
+[[bodies]]
+shape = "box"
+name = "paste"
+material = "paste"
+center = [0.0, 0.06, 0.0]
+size = [0.1, 0.1, 0.1]
+
+[[colliders]]
+type = "ground"
+friction = 0.5
+"""
+
+
+def _box() -> Scene:
+    b = SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.06, 0.0), (0.1, 0.1, 0.1), Material.preset("toothpaste"), name="paste")
+    b.add_ground(friction=0.5)
+    return Scene("paste_box", "a small box of toothpaste", b, frames=FRAMES, fps=30.0)
+
+
+def _rows(table: SweepTable):
+    """The rows without ``wall_s``, the one column that depends on the machine's load."""
+    return [{k: v for k, v in r.items() if k != "wall_s"} for r in table.rows]
+
+
+@pytest.fixture(scope="module")
+def serial():
+    return sweep(_box(), [YIELD], frames=FRAMES, workers=1)
+
+
+@pytest.fixture
+def scene_file(tmp_path):
+    path = tmp_path / "box.toml"
+    path.write_text(SCENE_TOML)
+    return str(path)
+
+
+# ------------------------------------------------------------------ sampling
+def test_grid_is_every_combination_last_parameter_fastest():
+    pts = sample_points(["yield_stress=100:1000:log:3", "flow_rate=50:500:lin:4"])
+    assert len(pts) == 12
+    ys = np.geomspace(100.0, 1000.0, 3)
+    fr = np.linspace(50.0, 500.0, 4)
+    expected = [(y, f) for y in ys for f in fr]
+    assert [(p["yield_stress"], p["flow_rate"]) for p in pts] == expected
+    # Log levels are equally spaced in log: 100, 316.2..., 1000.
+    assert pts[4]["yield_stress"] == pytest.approx(math.sqrt(1e5), rel=1e-12)
+    # Explicit values and a fixed value.
+    pts = sample_points(["mu=1e3,2e3", "paste.flow_rate=7"])
+    assert pts == [{"mu": 1e3, "paste.flow_rate": 7.0}, {"mu": 2e3, "paste.flow_rate": 7.0}]
+
+
+@pytest.mark.parametrize("n", [1, 5, 17])
+@pytest.mark.parametrize("seed", [0, 3])
+def test_lhs_uses_each_stratum_once(n, seed):
+    specs = ["yield_stress=10:1000:log", "flow_rate=5:50"]
+    pts = sample_points(specs, "lhs", n, seed)
+    assert len(pts) == n
+    y = np.array([p["yield_stress"] for p in pts])
+    f = np.array([p["flow_rate"] for p in pts])
+    # Strata are equal in log for a log parameter, equal in value for a linear one.
+    sy = np.floor((np.log(y) - np.log(10.0)) / (np.log(1000.0) - np.log(10.0)) * n).astype(int)
+    sf = np.floor((f - 5.0) / 45.0 * n).astype(int)
+    assert sorted(sy) == list(range(n)) and sorted(sf) == list(range(n))
+    assert sample_points(specs, "lhs", n, seed) == pts
+    if n > 1:
+        assert sample_points(specs, "lhs", n, seed + 1) != pts
+
+
+def test_random_samples_stay_in_range_and_follow_the_seed():
+    pts = sample_points(["yield_stress=10:1000:log", "flow_rate=5:50:lin"], "random", 200, 7)
+    y = np.array([p["yield_stress"] for p in pts])
+    f = np.array([p["flow_rate"] for p in pts])
+    assert (y >= 10).all() and (y <= 1000).all() and (f >= 5).all() and (f <= 50).all()
+    # Log-uniform: about half the draws below the geometric midpoint 100, not ~9 %.
+    assert 0.35 < (y < 100.0).mean() < 0.65
+    assert pts == sample_points(["yield_stress=10:1000:log", "flow_rate=5:50:lin"], "random", 200, 7)
+
+
+# ------------------------------------------------------------------ physics and workers
+def test_yield_stress_changes_the_slump(serial):
+    assert [r["status"] for r in serial.rows] == ["ok"] * 3
+    assert list(serial.column("sample")) == [0, 1, 2]
+    y = serial.column("yield_stress")
+    assert y == pytest.approx([10.0, 316.22776601683796, 10000.0])
+    top = serial.column("max_height")
+    spread = serial.column("radial_spread")
+    # The box's top starts at 0.11 m: a higher yield stress flows less, so it stays taller
+    # and narrower.
+    assert top[0] < top[1] < top[2] < 0.11
+    assert spread[0] > spread[1] > spread[2]
+    assert serial.column("centroid_height")[0] < serial.column("centroid_height")[2]
+
+
+def test_a_row_is_the_run_of_that_material(serial):
+    """Sample 0 equals a plain run of the model with that yield stress, to the last bit."""
+    from warp_esph.simulate import resolve_timestep, simulate
+
+    model = _box().builder.finalize()
+    model.set_material(0, model.materials[0].replace(yield_stress=10.0))
+    _, dt = resolve_timestep(model, 30.0)
+    state = simulate(model, FRAMES, fps=30.0, dt=dt, progress=False)
+    x = state.x.numpy()
+    row = serial.rows[0]
+    assert row["max_height"] == float(x[:, 1].max())
+    assert row["steps"] == FRAMES * round(1 / 30.0 / dt) and row["dt"] == dt
+
+
+def test_two_workers_give_the_same_table(serial, tmp_path):
+    parallel = sweep(_box(), [YIELD], frames=FRAMES, workers=2)
+    assert parallel.columns == serial.columns
+    assert _rows(parallel) == _rows(serial)
+    # And the CSV round-trips every value exactly.
+    back = SweepTable.read_csv(parallel.to_csv(tmp_path / "t.csv"))
+    assert _rows(back) == _rows(parallel) and back.params == ["yield_stress"]
+
+
+def test_ray_gives_the_same_table(serial):
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False)
+    try:
+        remote = sweep(_box(), [YIELD], frames=FRAMES, ray="auto")
+    finally:
+        ray.shutdown()
+    assert remote.columns == serial.columns
+    assert _rows(remote) == _rows(serial)
+
+
+# ------------------------------------------------------------------ the command
+def test_cli_records_a_blown_up_sample_and_exits_3(scene_file, tmp_path, capsys):
+    out = tmp_path / "out"
+    # dt = 1/300 s is stable for mu = 1e3 Pa and 20x above the limit for mu = 1e6 Pa.
+    rc = cli.main(["sweep", scene_file, "--param", "paste.mu=1000,1000000", "--frames", "5", "--dt", "0.0033333333333333335",
+                   "--workers", "1", "-o", str(out), "--no-progress"])
+    captured = capsys.readouterr()
+    assert rc == 3
+    table = SweepTable.read_csv(out / "sweep.csv")
+    assert [r["status"] for r in table.rows] == ["ok", "failed"]
+    assert "blew up" in table.rows[1]["reason"] and table.rows[0]["reason"] is None
+    assert "1 ok, 1 failed" in captured.out
+    assert "sample 1 failed" in captured.err and "Traceback" not in captured.err
+    assert (out / "sweep.json").exists()
+    try:
+        import pyarrow.parquet as pq
+    except ImportError:
+        assert "pyarrow is not installed" in captured.out
+    else:
+        back = pq.read_table(out / "sweep.parquet").to_pydict()
+        assert back["paste.mu"] == [1000.0, 1000000.0] and back["status"] == ["ok", "failed"]
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        assert "matplotlib is not installed" in captured.out
+    else:
+        assert (out / "sweep.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--param", "yield_stress"], ["'yield_stress'", "NAME=LO:HI:SCALE:N"]),
+    (["--param", "yield_stress=1:2:log:3:4"], ["yield_stress", "5 fields"]),
+    (["--param", "yield_strss=100:1000:log:8"], ["'yield_strss'", "unknown parameter", "yield_stress"]),
+    (["--param", "yield_stress=1000:100:log:8"], ["yield_stress", "1000", "LO < HI"]),
+    (["--param", "yield_stress=0:100:log:8"], ["yield_stress", "LO = 0.0", "LO > 0"]),
+    (["--param", "yield_stress=10:100:log:0"], ["yield_stress", "N = 0", ">= 1"]),
+    (["--param", "yield_stress=10:100:log:x"], ["yield_stress", "'x'", "integer"]),
+    (["--param", "mu=-5:10:lin:2"], ["mu", "-5.0", "> 0"]),
+    (["--param", "yield_stress=10:100:log:200", "--param", "flow_rate=1:2:lin:100"],
+     ["20000", "--max-samples = 10000"]),
+    (["--param", "yield_stress=10:100:log:8", "--sample", "lhs", "--samples", "4"], ["N = 8", "--sample lhs"]),
+    (["--param", "yield_stress=10:100:log", "--sample", "lhs"], ["--samples is required"]),
+    (["--param", "yield_stress=10:100:log", "--sample", "lhs", "--samples", "0"], ["--samples = 0", ">= 1"]),
+    (["--param", "crust.yield_stress=10:100:log:2"], ["crust.yield_stress", "'crust'", "paste"]),
+    (["--param", "yield_stress=10:100:log:2", "--param", "paste.yield_stress=1:2:lin:2"], ["paste.yield_stress", "already"]),
+    (["--param", "yield_stress=10:100:log:2", "--workers", "0"], ["--workers", "0"]),
+    (["--param", "yield_stress=10:100:log:2", "--frames", "2", "--duration", "1"], ["--duration", "--frames"]),
+    (["--param", "yield_stress=10:100:log:2", "--dt", "0.007"], ["dt = 0.007", "whole number of steps"]),
+])
+def test_bad_input_exits_2_with_one_line(scene_file, capsys, args, words, tmp_path):
+    rc = cli.main(["sweep", scene_file, *args, "-o", str(tmp_path / "never"), "--no-progress"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2
+    assert len(err) == 1 and err[0].startswith("warp-esph: error:"), err
+    for w in words:
+        assert w in err[0], (w, err[0])
+    assert not os.path.exists(tmp_path / "never")
+
+
+def test_bad_input_raises_value_error_in_python():
+    with pytest.raises(ValueError, match="flow_rate.*LO < HI"):
+        sweep(_box(), ["flow_rate=5:5:lin:2"])
+    with pytest.raises(ValueError, match="unknown parameter"):
+        parse_param("density=1:2:lin:2")
+
+
+def _extra_that_fails(model, state, seed):
+    """An ``extra`` column function: kills its worker process in sample 0, raises in sample 1."""
+    from warp_esph.sweep import _sample_seed
+
+    if seed == _sample_seed(0, 0) and str(os.getpid()) != os.environ[PARENT]:
+        os._exit(7)
+    if seed == _sample_seed(0, 1):
+        raise TypeError("a bug in extra")
+    return {"top_x": float(state.x.numpy()[:, 0].max())}
+
+
+# The spawned workers import this module too; they inherit the variable with the test's pid.
+PARENT = "WARP_ESPH_TEST_SWEEP_PARENT"
+os.environ.setdefault(PARENT, str(os.getpid()))
+
+
+def test_a_failing_sample_is_a_row_and_the_sweep_goes_on():
+    # In this process: the exception of sample 1 is its row's reason; samples 0 and 2 run.
+    table = sweep(_box(), ["yield_stress=10,100,1000"], frames=2, workers=1, extra=_extra_that_fails)
+    assert [r["status"] for r in table.rows] == ["ok", "failed", "ok"]
+    assert table.rows[1]["reason"] == "TypeError: a bug in extra"
+    assert table.rows[0]["top_x"] > 0 and "top_x" in table.columns
+    # A worker process that dies: its sample (and any other it took down) is a failed row.
+    table = sweep(_box(), ["yield_stress=10,100"], frames=2, workers=2, extra=_extra_that_fails)
+    assert [r["sample"] for r in table.rows] == [0, 1]
+    assert table.rows[0]["status"] == "failed" and "worker process died" in table.rows[0]["reason"]
+    assert table.rows[0]["yield_stress"] == 10.0 and table.rows[1]["status"] == "failed"

@@ -1,0 +1,80 @@
+"""The targets of issue 12, asserted at reduced size with the functions of the validation
+suite (``benchmarks/validation.py``; the full-size numbers are in docs/validation.md).
+
+Targets not met today are ``xfail(strict=True)`` with the number measured here, so that
+they turn red (XPASS) once the cause is fixed and the mark must go."""
+
+import math
+import pathlib
+import sys
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks import validation  # noqa: E402
+
+
+
+def test_slump_theory_is_the_1d_analysis():
+    # h/H0 = S (1 - ln S): 1 at S = 1 (nothing yields), the plug S alone as S -> 0.
+    assert validation.slump_theory(1.0) == pytest.approx(1.0)
+    assert validation.slump_theory(0.2) == pytest.approx(0.2 * (1.0 + math.log(5.0)))
+    assert validation.slump_theory(1e-6) < 2e-5
+
+
+def test_bar_frequency_within_2_percent_at_4_across_variational():
+    """Measured 0.9992 x c/(2L) (the paper's force: 0.879 x)."""
+    r = validation.bar_frequency(resolution=4, elastic_force="variational")
+    assert r["periods_measured"] >= 2
+    assert r["ratio"] == pytest.approx(1.0, abs=0.02), r["ratio"]
+
+
+@pytest.mark.xfail(strict=True, reason="variational beam 6 thick, span 5 thicknesses, float64: measured 1.159 x "
+                   "Timoshenko (issue 12: within 10 %)")
+def test_beam_deflection_within_10_percent_at_6_thick_variational():
+    """Float64: in float32 the loaded elastic beam creeps (round-off in the stored F), so the
+    static deflection is read in float64, where it settles (measured 0.04 % of it per s)."""
+    r = validation.beam_deflection(resolution=6, elastic_force="variational", span_over_thickness=5, dtype="float64")
+    assert not r["blew_up"]
+    assert abs(r["residual_rate_pct_per_s"]) < 1.0, r["residual_rate_pct_per_s"]
+    assert r["ratio"] == pytest.approx(1.0, abs=0.10), r["ratio"]
+
+
+@pytest.fixture(scope="module")
+def slumped():
+    """S = 0.2, 8 particles across H0, variational force, 3 s (30 x sqrt(H0/g))."""
+    return validation.slump(0.2, resolution=8, elastic_force="variational", duration=3.0)
+
+
+def test_slumped_cylinder_comes_to_rest(slumped):
+    """Measured after the friction fix (docs/physics.md, the slump creep): the top sinks
+    0.08 % H0/s at 2 s and 6e-5 % H0/s at 4 s, kinetic energy 5e-11 M g H0 (before it:
+    2.8 % H0/s at 2 s)."""
+    assert slumped["finite"]
+    assert abs(slumped["top_rate_pct_H0_per_s"]) < 0.1, slumped["top_rate_pct_H0_per_s"]
+    assert slumped["kinetic_over_MgH0"] < 1e-8, slumped["kinetic_over_MgH0"]
+
+
+@pytest.mark.xfail(strict=True, reason="at rest the top of the 8-across pile is still at the yield stress: 0 % of "
+                   "the 12 top particles below yield (the 1-D plug is 1.6 particles thick at S = 0.2)")
+def test_slumped_cylinder_keeps_an_unyielded_plug(slumped):
+    assert slumped["plug_unyielded_fraction"] > 0.9, slumped["plug_unyielded_fraction"]
+
+
+def test_slump_height_within_10_percent_of_the_1d_theory(slumped):
+    """Measured: h/H0 0.545 against the 1-D 0.522 (+4.4 %) at 8 across."""
+    assert slumped["h_over_H0"] == pytest.approx(slumped["theory_h_over_H0"], rel=0.10)
+
+
+@pytest.mark.parametrize("label", [label for label, _ in validation._stability_materials()])
+def test_no_preset_or_default_material_blows_up_at_half_the_stable_dt(label):
+    """Each preset and ``Material(mu=1e5, lam=1e5)`` (paper force, pressure on), with and
+    without viscosity, a 6^3 box at rest on the ground for 0.3 s at 0.5 stable_dt: no
+    particle ever faster than 5 m/s (measured: all below 1 m/s, the default material too,
+    also over 1.5 s; the explosion issue 12 reports for it was not reproduced in this scene)."""
+    material = dict(validation._stability_materials())[label]
+    r = validation.stability(material, duration=0.3)
+    assert not r["blew_up"], r

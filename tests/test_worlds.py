@@ -1,0 +1,331 @@
+"""Worlds: several independent simulations in one ``Model`` (``finalize(worlds=W)``).
+
+A world of a multi-world model must compute what the same scene computes alone: its
+neighbour lists (so SPH pressure and viscosity) never reach into another world, even
+where the worlds occupy the same space, and its gradients are those of its own loss."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warp_esph as we
+from warp_esph import losses
+from warp_esph.rollout import PARAMETERS, Rollout
+
+DT = 1.0e-3
+STEPS = 12
+
+
+def _material(**changes):
+    p = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "hardening": 200.0, "viscosity": 2.0}
+    p.update(changes)
+    return we.Material(density=1000.0, **p)
+
+
+MAT_A = _material()
+MAT_B = _material(mu=1.6e3, yield_stress=25.0, viscosity=0.5)
+
+
+def _builder(material, shape="box", bodies_interact=True):
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0), bodies_interact=bodies_interact)
+    if shape == "box":
+        b.add_box((0.0, 0.0, 0.0), (0.12, 0.1, 0.1), material, name="block")  # 150 particles
+    else:
+        b.add_sphere((0.0, 0.01, 0.0), 0.07, material, name="ball")
+    b.add_plane((0.0, 1.0, 0.0), -0.06, friction=0.3)
+    return b
+
+
+def _perturb(model):
+    """Jittered positions (no exact distance ties) and a stretching velocity field, so
+    the bodies yield and hit the plane within the run; the same per particle in every world."""
+    x0 = model.particle_x0.copy()
+    for w in range(model.world_count):
+        s = model.world_particles(w)
+        x0[s] += np.random.default_rng(5).normal(scale=1e-3 * 0.02, size=x0[s].shape)
+    model.particle_x0[:] = x0
+    model.particle_v0[:] = 20.0 * x0 * np.array([1.0, -0.5, 0.0]) + np.array([0.0, -1.0, 0.0])
+
+
+def _run(model, steps=STEPS):
+    solver = we.Solver(model)
+    a, b = model.state(), model.state()
+    for _ in range(steps):
+        solver.step(a, b, DT)
+        a, b = b, a
+    return a.x.numpy().astype(np.float64), a
+
+
+def _separate(builder, dtype):
+    model = builder.finalize(dtype=dtype)
+    _perturb(model)
+    return model
+
+
+@pytest.mark.parametrize("dtype, tol", [(wp.float64, 1e-12), (wp.float32, 1e-6)])
+def test_two_worlds_match_two_separate_runs(dtype, tol):
+    """Two worlds of different materials, on top of each other, give the positions of
+    two separate runs (docs/fitting.md, Worlds: the same neighbour rows in the same order,
+    so the same sums; the tolerance allows for the order of floating-point sums)."""
+    model = _builder(MAT_A).finalize(dtype=dtype, worlds=2)
+    model.set_material(0, MAT_B, world=1)
+    _perturb(model)
+    assert model.world_count == 2 and model.body_names == ["w0/block", "w1/block"]
+    # The worlds occupy the same space (finalize's overlap check must not refuse them).
+    np.testing.assert_allclose(model.particle_x0[model.world_particles(0)], model.particle_x0[model.world_particles(1)], atol=1e-4)
+    x, state = _run(model)
+    xa, _ = _run(_separate(_builder(MAT_A), dtype))
+    xb, _ = _run(_separate(_builder(MAT_B), dtype))
+    scale = np.abs(xa).max()
+    assert np.abs(x[model.world_particles(0)] - xa).max() <= tol * scale
+    assert np.abs(x[model.world_particles(1)] - xb).max() <= tol * scale
+    # Different materials really give different runs (the comparison could not pass by accident).
+    assert np.abs(xa - xb).max() > 1e3 * tol * scale
+    # No neighbour row reaches into another world.
+    nbr, count = state.neighbors.numpy(), state.neighbor_count.numpy()
+    world = model.world_of_particle
+    for i in range(model.particle_count):
+        assert (world[nbr[i, : count[i]]] == world[i]).all()
+    assert count.max() > 10  # the rows are not empty: SPH ran on them
+
+
+def test_different_scenes_and_separate_bodies():
+    """``finalize_worlds`` with different scenes per world (a box, a ball), with
+    ``bodies_interact=False`` (the mechanism worlds build on): each world is its scene run alone."""
+    dtype = wp.float64
+    builders = [_builder(MAT_A, "box", False), _builder(MAT_B, "sphere", False)]
+    model = we.finalize_worlds(builders, dtype=dtype)
+    _perturb(model)
+    assert [b.world for b in model.bodies] == [0, 1]
+    assert model.world_materials(1) == slice(1, 2)
+    x, _ = _run(model)
+    for w, b in enumerate(builders):
+        xs, _ = _run(_separate(b, dtype))
+        assert np.abs(x[model.world_particles(w)] - xs).max() <= 1e-12
+
+
+def _targets(n_steps_model, dtype=wp.float64):
+    xs, _ = _run(n_steps_model, STEPS)
+    return xs + 0.01  # an offset target: a non-zero loss whose gradient reaches everything
+
+
+def _rollout(model):
+    return Rollout(model, steps=STEPS, dt=DT)
+
+
+def test_world_gradients_match_separate_tapes():
+    """One backward pass through two worlds (float64 tape) gives each world the
+    gradients of its own loss: those of the two separate runs' tapes."""
+    dtype = wp.float64
+    ref = {}
+    targets = []
+    for mat in (MAT_A, MAT_B):
+        target_model = _builder(mat.replace(yield_stress=mat.yield_stress * 1.5)).finalize(dtype=dtype)
+        _perturb(target_model)
+        targets.append(_targets(target_model))
+        model = _builder(mat).finalize(dtype=dtype, requires_grad=True)
+        _perturb(model)
+        r = _rollout(model)
+        r.forward()
+        ref[mat] = r.backward(losses.PositionLoss(targets[-1], frames=[STEPS]))
+    model = _builder(MAT_A).finalize(dtype=dtype, requires_grad=True, worlds=2)
+    model.set_material(0, MAT_B, world=1)
+    _perturb(model)
+    r = _rollout(model)
+    r.forward()
+    loss = losses.WorldLoss(model, [losses.PositionLoss(t, frames=[STEPS]) for t in targets])
+    value, grads = r.backward(loss)
+    per_world = r.per_world(grads)
+    for w, mat in enumerate((MAT_A, MAT_B)):
+        ref_value, ref_grads = ref[mat]
+        assert r.world_values[w] == pytest.approx(ref_value, rel=1e-12)
+        for name in (*PARAMETERS, "x0", "v0"):
+            g, g_ref = per_world[w][name], ref_grads[name]
+            assert np.abs(g_ref).max() > 0.0 or name == "pressure_stiffness", name
+            np.testing.assert_allclose(g, g_ref, rtol=1e-9, atol=1e-12 * np.abs(g_ref).max(), err_msg=name)
+    assert value == pytest.approx(sum(v for v, _ in ref.values()), rel=1e-12)
+
+
+def test_compression_field_acts_in_every_world():
+    """A force field on a named body acts on that body's copy in every world."""
+    dtype = wp.float64
+
+    def builder():
+        b = _builder(MAT_A)
+        b.add_compression_field((0.0, 0.0, 0.0), 400.0, t_off=0.005, body="block")
+        return b
+
+    model = builder().finalize(dtype=dtype, worlds=2)
+    model.set_material(0, MAT_B, world=1)
+    _perturb(model)
+    assert [f.body for f in model.force_fields] == [0, 1]
+    x, _ = _run(model)
+    ref_b = builder()
+    ref_model = _separate(ref_b, dtype)
+    ref_model.set_material(0, MAT_B)
+    xs, _ = _run(ref_model)
+    assert np.abs(x[model.world_particles(1)] - xs).max() <= 1e-12
+
+
+def test_views_and_per_world_split():
+    model = _builder(MAT_A).finalize(dtype=wp.float64, worlds=3)
+    state = model.state()
+    n = model.particle_count // 3
+    view = model.world_view(state.x, 2)
+    assert view.shape == (n,)
+    view.fill_(wp.vec3d(1.0, 2.0, 3.0))
+    x = state.x.numpy()
+    assert (x[2 * n:] == [1.0, 2.0, 3.0]).all() and not (x[:2 * n] == [1.0, 2.0, 3.0]).all(axis=1).any()
+    mu = model.per_world(model.mu)
+    assert [m.tolist() for m in mu] == [[MAT_A.mu]] * 3
+    model.set_material(0, MAT_B, world=2)
+    assert model.mu.numpy().tolist() == [MAT_A.mu, MAT_A.mu, MAT_B.mu]
+
+
+def test_bad_input_names_the_parameter():
+    b = _builder(MAT_A)
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="worlds = "):
+            b.finalize(worlds=bad)
+    model = b.finalize(worlds=2)
+    with pytest.raises(ValueError, match="world = 2 is not allowed"):
+        model.set_material(0, MAT_B, world=2)
+    with pytest.raises(ValueError, match="index = 1 is not allowed"):
+        model.set_material(1, MAT_B, world=0)
+    with pytest.raises(ValueError, match="world = -1 is not allowed"):
+        model.world_particles(-1)
+    with pytest.raises(ValueError, match="values with 5 entries"):
+        model.per_world(np.zeros(5))
+    with pytest.raises(ValueError, match="array with 3 entries"):
+        model.world_view(np.zeros((3, 3)), 0)
+    target = np.zeros((model.particle_count // 2, 3))
+    with pytest.raises(ValueError, match="losses is not allowed"):
+        losses.WorldLoss(model, [losses.PositionLoss(target, frames=[1])] * 3)
+    with pytest.raises(ValueError, match="builders = "):
+        we.finalize_worlds([])
+    other = we.SceneBuilder(spacing=0.025)
+    other.add_box((0.0, 0.0, 0.0), (0.1, 0.1, 0.1), MAT_A)
+    with pytest.raises(ValueError, match=r"builders\[1\].spacing = 0.025 is not allowed"):
+        we.finalize_worlds([b, other])
+    with pytest.raises(ValueError, match=r"builders\[1\] = 3 is not allowed"):
+        we.finalize_worlds([b, 3])
+
+
+def test_group_filter_alone_keeps_worlds_apart():
+    """The neighbour search's group filter (what ``bodies_interact=False`` uses) keeps
+    worlds apart by itself: without the hash-grid spread of worlds (``world=None``), two
+    worlds on the same spot still get the rows each would get alone."""
+    from warp_esph.sim.neighbors import NeighborSearch
+
+    model = _builder(MAT_A).finalize(dtype=wp.float64, worlds=2)
+    n, K = model.particle_count, model.max_neighbors
+    rows = {}
+    for group in (model.particle_world, None):
+        search = NeighborSearch(n, model.scalar, model.device, model.support_radius, group=group, world=None)
+        nbr, d2 = wp.zeros((n, K), dtype=wp.int32), wp.zeros((n, K), dtype=wp.float64)
+        count, guard = wp.zeros(n, dtype=wp.int32), wp.zeros(n, dtype=wp.int32)
+        search.build(wp.array(model.particle_x0, dtype=wp.vec3d), model.particle_body, nbr, d2, count, guard)
+        rows[group is None] = (nbr.numpy(), count.numpy())
+    (nbr, count), (nbr_all, count_all) = rows[False], rows[True]
+    half = n // 2
+    alone = _builder(MAT_A).finalize(dtype=wp.float64)
+    _, _, _ = alone.rest_neighbors()
+    ref_nbr, ref_count = alone.rest_nbr.numpy(), alone.rest_count.numpy()
+    np.testing.assert_array_equal(count[:half], ref_count)
+    np.testing.assert_array_equal(count[half:], ref_count)
+    for i in range(half):
+        np.testing.assert_array_equal(nbr[i, : count[i]], ref_nbr[i, : ref_count[i]])
+        np.testing.assert_array_equal(nbr[half + i, : count[half + i]], ref_nbr[i, : ref_count[i]] + half)
+    # Without the filter the worlds would see each other (the test could fail).
+    world = model.world_of_particle
+    assert any((world[nbr_all[i, : count_all[i]]] != world[i]).any() for i in range(n))
+
+
+def test_split_materials_keeps_worlds():
+    """``split_materials`` (per-particle parameter fields) of a multi-world model keeps
+    the worlds apart and each world's materials contiguous: it runs as the model does."""
+    from warp_esph.rollout import split_materials
+
+    model = _builder(MAT_A).finalize(dtype=wp.float64, requires_grad=True, worlds=2)
+    model.set_material(0, MAT_B, world=1)
+    _perturb(model)
+    split = split_materials(model)
+    assert split.world_count == 2 and len(split.materials) == model.particle_count
+    assert split.world_materials(1) == slice(model.particle_count // 2, model.particle_count)
+    np.testing.assert_array_equal(split.per_world(split.mu)[1], MAT_B.mu)
+    np.testing.assert_array_equal(_run(split)[0], _run(model)[0])
+
+
+def test_world_without_sph_next_to_one_with_sph():
+    """SPH runs for the whole model when any world has it: a world with neither pressure
+    nor viscosity still computes what it computes alone (where SPH is skipped)."""
+    no_sph = MAT_A.replace(pressure_stiffness=0.0, viscosity=0.0)
+    model = _builder(no_sph).finalize(dtype=wp.float64, worlds=2)
+    model.set_material(0, MAT_B, world=1)
+    _perturb(model)
+    assert model.sph_active
+    alone = _separate(_builder(no_sph), wp.float64)
+    assert not alone.sph_active
+    assert np.abs(_run(model)[0][model.world_particles(0)] - _run(alone)[0]).max() <= 1e-12
+
+
+def test_model_refuses_worlds_out_of_order():
+    """The per-world slices need particles and materials world after world."""
+    model = _builder(MAT_A).finalize(dtype=wp.float64, worlds=2)
+    n = model.particle_count
+    common = dict(
+        positions=model.particle_x0, velocities=model.particle_v0, particle_material=model.particle_material_np,
+        particle_body=model.particle_body_np, materials=model.materials, bodies=model.bodies, spacing=model.spacing,
+        support_radius=model.support_radius, gravity=model.gravity, planes=model.planes, spheres=[], boxes=[],
+        max_neighbors=model.max_neighbors, device="cpu", scalar=wp.float64, requires_grad=False,
+    )
+    shuffled = np.tile([0, 1], n // 2)
+    with pytest.raises(ValueError, match="particle_world is not allowed"):
+        we.Model(**common, particle_world=shuffled, world_material_start=[0, 1, 2])
+    with pytest.raises(ValueError, match="world_material_start = "):
+        we.Model(**common, particle_world=model.world_of_particle, world_material_start=[0, 2])
+    with pytest.raises(ValueError, match="particle_material is not allowed"):
+        we.Model(**common, particle_world=model.world_of_particle, world_material_start=[0, 2, 2])
+
+
+def test_worlds_benchmark_runs_small(tmp_path):
+    """``benchmarks/worlds_bench.py`` at 2 worlds of 64 particles, 2 steps: its own check
+    (every world equals its separate run, positions and gradients) holds."""
+    import json
+
+    from benchmarks import worlds_bench
+
+    out = tmp_path / "w.json"
+    worlds_bench.main(["--worlds", "2", "--particles", "64", "--steps", "2", "--repeat", "1", "--gradient",
+                       "--gradient-steps", "2", "--json", str(out)])
+    forward, gradient = json.loads(out.read_text())["results"]
+    assert forward["worlds"] == 2 and forward["particles_per_world"] == 64
+    assert forward["max_position_difference"] <= 1e-6 * 0.1
+    assert gradient["max_yield_stress_gradient_rel_difference"] <= 1e-9
+    assert forward["per_world_cost_ratio"] > 0.0 and gradient["per_world_cost_ratio"] > 0.0
+
+
+def test_fit_of_two_worlds_is_two_fits():
+    """``fit`` with Adam on a model of two worlds (two starting points, one target, a
+    ``WorldLoss``) moves each world's parameter as the fit of that world alone does
+    (Adam is per coordinate; here every iterate lowers both losses, so the best total is
+    each world's last iterate too)."""
+    from warp_esph.fit import fit
+
+    target_model = _separate(_builder(MAT_A.replace(yield_stress=15.0)), wp.float64)
+    target, _ = _run(target_model)
+
+    def model_of(starts):
+        m = _builder(MAT_A).finalize(dtype=wp.float64, requires_grad=True, worlds=len(starts))
+        for w, ys in enumerate(starts):
+            m.set_material(0, MAT_A.replace(yield_stress=ys), world=w)
+        _perturb(m)
+        return m
+
+    options = dict(params=["yield_stress"], steps=STEPS, dt=DT, iterations=4, progress=False)
+    model = model_of([5.0, 40.0])
+    joint = fit(model, losses.WorldLoss(model, losses.PositionLoss(target, frames=[STEPS])), **options)
+    for w, start in enumerate((5.0, 40.0)):
+        alone = fit(model_of([start]), losses.PositionLoss(target, frames=[STEPS]), **options)
+        assert alone.materials[0].yield_stress != start
+        assert joint.materials[w].yield_stress == pytest.approx(alone.materials[0].yield_stress, rel=1e-12)

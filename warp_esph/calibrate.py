@@ -1,0 +1,364 @@
+"""The ``warp-esph fit`` command's work: read the targets, build the model, fit, report, write.
+
+``add_calibration_arguments(parser)`` declares the options beyond the basic ones
+(optimizer, jitter, support radius, loss scale, checkpointing from memory, global stage,
+diagnostics, output folder, USD-run and silhouette targets); ``run_fit(args)`` does the
+fit from parsed arguments and writes into ``--output-dir``:
+
+- ``fit.json``: fitted parameters, materials, termination, diagnostics, history;
+- ``history.csv``: one row per evaluation (stage, loss, each parameter, seconds);
+- ``loss.png``, ``params.png``: loss and parameters per evaluation (matplotlib, Agg);
+- ``fitted.usdc``: the fitted run (when USD support is installed; not with ``--no-usd``).
+
+It prints, before the fit, the rollout's memory and checkpointing; after the first
+evaluation, the time per evaluation and the estimate for the whole fit; after it, whether
+the fit converged, stalled or hit the iteration cap, and the diagnostics table.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import sys
+
+import numpy as np
+
+from . import checks
+from .rollout import PARAMETERS
+
+__all__ = ["add_calibration_arguments", "run_fit", "write_outputs", "jitter_model", "default_optimizer"]
+
+#: Up to this many fitted values the default optimiser is L-BFGS, above it Adam.
+LBFGS_MAX_VALUES = 4
+
+
+def add_calibration_arguments(parser):
+    """Declare the calibration options of ``warp-esph fit`` on ``parser``."""
+    g = parser.add_argument_group("calibration")
+    g.add_argument("--optimizer", choices=("lbfgs", "adam"),
+                   help=f"lbfgs (default for <= {LBFGS_MAX_VALUES} fitted values) or adam (default above; with --lr, --clip)")
+    g.add_argument("--output-dir", metavar="DIR",
+                   help="folder for fit.json, history.csv, loss.png, params.png, fitted.usdc (default: fit_<scene>/ here)")
+    g.add_argument("--target-body", metavar="BODY",
+                   help="USD-run targets: observe only this body's particles (default: every particle)")
+    g.add_argument("--jitter", type=float, default=0.0, metavar="J",
+                   help="jitter the lattice by J * spacing (normal) so no neighbour distance is tied at the support "
+                        "radius (e.g. 0.001 with a support radius of 2 spacings; default 0: the scene as written, "
+                        "as a previous run of it was)")
+    g.add_argument("--seed", type=int, default=5, help="random seed of the jitter and the global stage (default 5)")
+    g.add_argument("--support-radius", type=float, metavar="K",
+                   help="support radius in spacings (e.g. 2.5: no particle at thin features drops below the neighbour guard)")
+    g.add_argument("--loss-scale", type=float, default=1.0, metavar="K",
+                   help="multiply the loss by K (e.g. 1e6 to work in mm^2 with Adam); default 1")
+    g.add_argument("--memory-limit", type=float, default=1024.0, metavar="MB",
+                   help="with --checkpoint-every auto: a full tape when it fits in MB, else checkpoint (default 1024)")
+    g.add_argument("--samples", type=int, default=0, metavar="N",
+                   help="global first stage: N Latin-hypercube points (loss only) before gradient descent (default 0)")
+    g.add_argument("--starts", type=int, default=1, metavar="K", help="descend from the best K of the samples (default 1)")
+    g.add_argument("--sample-range", type=float, default=4.0, metavar="F",
+                   help="samples within a factor F of the guess (or --bounds); default 4")
+    g.add_argument("--patience", type=int, default=20, metavar="N",
+                   help="stop as stalled after N evaluations without a lower loss (default 20)")
+    g.add_argument("--noise", type=float, metavar="SIGMA",
+                   help="observation noise in m for the diagnostics (default: the residual RMS, at least 1%% of the spacing)")
+    g.add_argument("--no-diagnostics", action="store_true", help="skip the diagnostics (2 P + 1 extra runs for P values)")
+    g.add_argument("--experiments", metavar="EXPERIMENTS.json",
+                   help="a joint fit: more experiments (each its own scene and target) sharing the fitted material "
+                        "with SCENE; a JSON list of objects with keys " + ", ".join(EXPERIMENT_KEYS))
+    g.add_argument("--cameras", metavar="CAMERAS.json",
+                   help="silhouette targets: the cameras (see docs/fitting.md); --target then names mask images")
+    return parser
+
+
+def default_optimizer(values: int) -> str:
+    return "lbfgs" if values <= LBFGS_MAX_VALUES else "adam"
+
+
+def jitter_model(model, fraction: float, seed: int):
+    """Move every particle by a normal offset of ``fraction * spacing`` and recompute the
+    rest density (a perfect lattice has exact distance ties at the support radius, which
+    make neighbour lists, and the loss, switch under tiny parameter changes)."""
+    if fraction:
+        model.particle_x0 += np.random.default_rng(seed).normal(scale=fraction * model.spacing, size=model.particle_x0.shape)
+        model.compute_rest_density()
+    return model
+
+
+def _arg(args, name, default=None):
+    return getattr(args, name, default)
+
+
+def run_fit(args, out=None, err=None) -> int:
+    """Run ``warp-esph fit`` from parsed ``args``; returns 0. Raises ``ValueError`` on bad input.
+    ``out``/``err``: the report and the progress messages (default: the current
+    ``sys.stdout``/``sys.stderr``, looked up at the call)."""
+    out = sys.stdout if out is None else out
+    err = sys.stderr if err is None else err
+    import warp as wp  # noqa: PLC0415
+
+    from .cli import _parse_bounds  # noqa: PLC0415
+    from .fit import Experiment, fit, load_target  # noqa: PLC0415
+    from .scenes import load_scene  # noqa: PLC0415
+    from .simulate import resolve_timestep  # noqa: PLC0415
+
+    params = [p.strip() for p in str(args.params).split(",") if p.strip()]
+    for p in params:
+        if p not in PARAMETERS:
+            raise ValueError(f"--params entry {p!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
+    if args.iterations < 0:
+        raise ValueError(f"--iterations = {args.iterations!r} is not allowed: must be >= 0")
+    jitter = checks.non_negative("--jitter", _arg(args, "jitter", 0.0))
+    loss_scale = checks.positive("--loss-scale", _arg(args, "loss_scale", 1.0))
+    memory_limit = checks.positive("--memory-limit", _arg(args, "memory_limit", 1024.0)) * 2**20
+    bounds = _parse_bounds(args.bounds)
+    dtype = {"float32": wp.float32, "float64": wp.float64}[args.dtype]
+    ck = args.checkpoint_every if args.checkpoint_every is not None else "auto"
+
+    main_spec = {"scene": args.scene, "target": args.target, "target_frames": _arg(args, "target_frames"),
+                 "target_body": _arg(args, "target_body"), "cameras": _arg(args, "cameras"), "scale": args.scale,
+                 "frames": args.frames, "fps": args.fps, "dt": args.dt, "material": args.material, "weight": 1.0,
+                 "noise": _arg(args, "noise")}
+    specs = [("", main_spec)]
+    if _arg(args, "experiments"):
+        specs += _read_experiments(args.experiments)
+    exps = [_experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep) for where, spec in specs]
+
+    def log(message):
+        print(f"warp-esph fit: {message}", file=err, flush=True)
+
+    for e in exps:
+        e.loss = loss_scale * e.loss if loss_scale != 1.0 else e.loss
+    n_values = len(params) * (len(exps[0].materials) if exps[0].materials else len(exps[0].model.materials))
+    optimizer = _arg(args, "optimizer") or default_optimizer(n_values)
+    for e in exps:
+        log(f"{e.scene.name}: {e.model.particle_count} particles, {e.frames} frames at {e.fps:g} fps, dt = {e.dt:.4g} s "
+            f"({e.frames * e.substeps} steps); fitting {', '.join(params)} with {optimizer} to {e.kinds} from "
+            f"{', '.join(str(p) for p in e.targets)}")
+    experiments = [Experiment(e.model, e.loss, steps=e.frames * e.substeps, dt=e.dt, materials=e.materials,
+                              checkpoint_every=ck, weight=e.weight, noise=e.noise, name=e.scene.name) for e in exps]
+    result = fit(experiments, None, params, iterations=args.iterations,
+                 lr=args.lr, bounds=bounds, clip=args.clip, memory_limit=memory_limit,
+                 optimizer=optimizer, progress=not args.no_progress, samples=_arg(args, "samples", 0),
+                 starts=_arg(args, "starts", 1), sample_range=_arg(args, "sample_range", 4.0), seed=_arg(args, "seed", 5),
+                 patience=_arg(args, "patience", 20), diagnostics=not _arg(args, "no_diagnostics", False),
+                 noise=_arg(args, "noise"), log=log)
+    scene, model, frames, fps, dt = exps[0].scene, exps[0].model, exps[0].frames, exps[0].fps, exps[0].dt
+    scale = exps[0].scale
+    targets = exps[0].targets
+
+    folder = _arg(args, "output_dir") or f"fit_{scene.name}"
+    meta = {"scene": scene.name, "scale": scale, "targets": [os.path.abspath(str(p)) for p in targets], "fps": fps, "dt": dt,
+            "frames": frames, "params_fitted": params, "optimizer": optimizer, "jitter": jitter, "loss_scale": loss_scale,
+            "support_radius": model.support_radius,
+            "experiments": [{"scene": e.scene.name, "scale": e.scale, "targets": [os.path.abspath(str(p)) for p in e.targets],
+                             "fps": e.fps, "dt": e.dt, "frames": e.frames, "weight": e.weight, "noise": e.noise}
+                            for e in exps]}
+    written = write_outputs(result, folder, meta, json_path=_arg(args, "output"))
+    print(f"fit {result.termination}", file=out)
+    print(f"loss {result.initial_loss:.4g} -> {result.loss:.4g} in {result.evaluations} evaluations", file=out)
+    for name, v in result.params.items():
+        print(f"  {name} = {', '.join(f'{x:.6g}' for x in v)}", file=out)
+    if result.diagnostics is not None:
+        print(result.diagnostics.summary(), file=out)
+    if not args.no_usd:
+        from .fit import write_fitted_usd  # noqa: PLC0415
+
+        usd_path = write_fitted_usd(result.model, os.path.join(folder, "fitted.usdc"), frames, fps, dt)
+        if usd_path:
+            written.append(usd_path)
+    print("wrote " + ", ".join(written), file=out)
+    return 0
+
+
+#: Keys of an entry of the ``--experiments`` file.
+EXPERIMENT_KEYS = ("scene", "target", "target_frames", "target_body", "cameras", "scale", "frames", "fps", "dt", "material",
+                   "weight", "noise")
+
+
+def _read_experiments(path) -> list[tuple[str, dict]]:
+    """``(where, spec)`` of each entry of an ``--experiments`` JSON file: a list of objects
+    with ``EXPERIMENT_KEYS`` (``scene`` and ``target`` required; files relative to the JSON
+    file's folder)."""
+    p = os.fspath(path)
+    try:
+        with open(p) as f:
+            doc = json.load(f)
+    except OSError as e:
+        raise ValueError(f"--experiments {p} cannot be read: {e}") from None
+    except json.JSONDecodeError as e:
+        raise ValueError(f"--experiments {p} is not valid JSON: {e}") from None
+    if isinstance(doc, dict):
+        doc = doc.get("experiments")
+    if not isinstance(doc, list) or not doc:
+        raise ValueError(f"--experiments {p} is not allowed: give a list of experiments (or {{\"experiments\": [...]}})")
+    base = os.path.dirname(os.path.abspath(p))
+    out = []
+    for k, spec in enumerate(doc):
+        where = f"{p}: experiment #{k + 1}: "
+        if not isinstance(spec, dict):
+            raise ValueError(f"{where}must be an object with keys {', '.join(EXPERIMENT_KEYS)}")
+        unknown = sorted(set(spec) - set(EXPERIMENT_KEYS))
+        if unknown:
+            raise ValueError(f"{where}unknown key {unknown[0]!r} (allowed: {', '.join(EXPERIMENT_KEYS)})")
+        for key in ("scene", "target"):
+            if key not in spec:
+                raise ValueError(f"{where}missing key {key!r}")
+        spec = {"scale": 1.0, "weight": 1.0, **spec}
+
+        def rel(x):
+            return x if os.path.isabs(str(x)) else os.path.join(base, str(x))
+
+        spec["target"] = [rel(t) for t in (spec["target"] if isinstance(spec["target"], list) else [spec["target"]])]
+        if os.path.splitext(str(spec["scene"]))[1].lower() == ".toml":
+            spec["scene"] = rel(spec["scene"])
+        if spec.get("cameras"):
+            spec["cameras"] = rel(spec["cameras"])
+        if isinstance(spec.get("material"), (str, int)):
+            spec["material"] = [str(spec["material"])]
+        out.append((where, spec))
+    return out
+
+
+def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep):
+    """One experiment of the command: scene, model (jittered), targets, loss, time step."""
+    import types  # noqa: PLC0415
+
+    scale = checks.positive(f"{where}--scale" if not where else f"{where}scale", spec["scale"])
+    targets = spec["target"] if isinstance(spec["target"], (list, tuple)) else [spec["target"]]
+    tframes = spec.get("target_frames")
+    tframes = tframes if isinstance(tframes, (list, tuple)) else ([tframes] if tframes else [])
+    if len(tframes) > 1 and len(tframes) != len(targets):
+        raise ValueError(f"{where}--target-frames is given {len(tframes)} times for {len(targets)} --target files: "
+                         f"give it once per --target, in the same order, or once for all")
+    scene = load_scene(spec["scene"], scale=scale)
+    if _arg(args, "support_radius") is not None:
+        from .builder import SUPPORT_RANGE  # noqa: PLC0415
+
+        k = checks.in_range("--support-radius", args.support_radius, *SUPPORT_RANGE)
+        scene.builder.support_radius = k * scene.builder.spacing
+    model = scene.builder.finalize(device=args.device, dtype=dtype, requires_grad=True)
+    jitter_model(model, jitter, _arg(args, "seed", 5))
+
+    cameras = spec.get("cameras")
+    loaded = []
+    for k, path in enumerate(targets):
+        fspec = tframes[k] if len(tframes) > 1 else (tframes[0] if tframes else None)
+        if cameras:
+            loaded.append(("silhouette", path, fspec))
+            continue
+        ext = os.path.splitext(str(path))[1].lower()
+        usd_spec = fspec if ext in (".usd", ".usda", ".usdc") else None
+        t = load_target(path, body=spec.get("target_body"), frames=usd_spec)
+        if fspec is not None and usd_spec is None:
+            try:
+                t.frames = [int(f) for f in str(fspec).split(",")]
+            except ValueError:
+                raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: use comma-separated integers") from None
+            if t.kind == "positions" and len(t.frames) != np.asarray(t.data).shape[0]:
+                raise ValueError(f"{where}--target-frames has {len(t.frames)} entries, the target "
+                                 f"{np.asarray(t.data).shape[0]} frames")
+        loaded.append(("file", path, t))
+    file_targets = [t for kind, _, t in loaded if kind == "file"]
+    fps = spec.get("fps")
+    fps = fps if fps is not None else next((t.fps for t in file_targets if t.fps is not None), scene.fps)
+    dt = spec.get("dt")
+    substeps, dt = resolve_timestep(model, fps, dt=dt if dt is not None else scene.dt)
+    shown = [f for t in file_targets for f in (t.frames or [])]
+    frames = spec.get("frames")
+    frames = checks.positive_int(f"{where}--frames", frames if frames is not None else (max(shown) if shown else scene.frames))
+
+    loss = None
+    for kind, path, t in loaded:
+        if kind == "silhouette":
+            from .silhouette import load_silhouette_target  # noqa: PLC0415
+
+            term = load_silhouette_target(cameras, path, t, frames, substeps)
+        else:
+            if t.frames is None:
+                t.frames = [frames]
+            if max(t.frames) > frames:
+                raise ValueError(f"{where}the target {path} has frame {max(t.frames)}, beyond --frames = {frames}")
+            frame_steps = {f: f * substeps for f in t.frames if f > 0 or t.kind != "positions"}
+            term = t.loss(model, frame_steps, radius=args.radius, mode=args.mesh_mode)
+        loss = term if loss is None else loss + term
+    materials = spec.get("material")
+    if materials:
+        materials = [int(m) if str(m).isdigit() else m for m in materials]
+    kinds = ", ".join(sorted({("silhouettes" if kind == "silhouette" else t.kind) for kind, _, t in loaded}))
+    noise = spec.get("noise")
+    return types.SimpleNamespace(scene=scene, model=model, loss=loss, frames=frames, fps=fps, dt=dt, substeps=substeps,
+                                 materials=materials, kinds=kinds, targets=targets, scale=scale,
+                                 weight=checks.number(f"{where}weight", spec.get("weight", 1.0)),
+                                 noise=None if noise is None else checks.positive(f"{where}noise", noise))
+
+
+def write_outputs(result, folder, meta: dict | None = None, json_path: str | None = None) -> list[str]:
+    """Write ``fit.json`` (or ``json_path``), ``history.csv``, ``loss.png`` and ``params.png``
+    into ``folder`` (created); returns the paths written."""
+    os.makedirs(folder, exist_ok=True)
+    json_path = json_path or os.path.join(folder, "fit.json")
+    doc = {**(meta or {}), **result.to_dict()}
+    tmp = json_path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(doc, f, indent=2)
+    os.replace(tmp, json_path)
+    written = [json_path]
+    names = list(result.params)
+    k = len(next(iter(result.params.values())))
+    cols = [n if k == 1 else f"{n}[{j}]" for n in names for j in range(k)]
+    csv_path = os.path.join(folder, "history.csv")
+    with open(csv_path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["evaluation", "stage", "loss", *cols, "seconds"])
+        for h in result.history:
+            vals = [x for n in names for x in h["params"][n]]
+            w.writerow([h["iteration"], h.get("stage", "descent"), repr(h["loss"]), *[repr(v) for v in vals], f"{h['seconds']:.4f}"])
+    written.append(csv_path)
+    written += _plots(result, folder, names, cols)
+    return written
+
+
+def _plots(result, folder, names, cols) -> list[str]:
+    try:
+        import matplotlib  # noqa: PLC0415
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt  # noqa: PLC0415
+    except ImportError:
+        return []
+    hist = result.history
+    it = [h["iteration"] for h in hist]
+    loss = np.array([h["loss"] if h["loss"] is not None and math.isfinite(h["loss"]) else np.nan for h in hist])
+    sample = np.array([h.get("stage") == "sample" for h in hist])
+    fig, ax = plt.subplots(figsize=(6, 4))
+    if sample.any():
+        ax.plot(np.array(it)[sample], loss[sample], "o", color="0.6", label="global stage (loss only)")
+    ax.plot(np.array(it)[~sample], loss[~sample], ".-", label=f"descent ({result.stopped})")
+    if np.any(loss > 0):  # a loss of exactly 0 (a target the guess already matches) has no log scale
+        ax.set_yscale("log")
+    ax.set_xlabel("evaluation")
+    ax.set_ylabel("loss")
+    ax.legend()
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    loss_png = os.path.join(folder, "loss.png")
+    fig.savefig(loss_png, dpi=100)
+    plt.close(fig)
+    vals = np.array([[x for n in names for x in h["params"][n]] for h in hist])
+    fig, axes = plt.subplots(len(cols), 1, figsize=(6, 2.2 * len(cols)), sharex=True, squeeze=False)
+    for j, (ax, col) in enumerate(zip(axes[:, 0], cols)):
+        if sample.any():
+            ax.plot(np.array(it)[sample], vals[sample, j], "o", color="0.6")
+        ax.plot(np.array(it)[~sample], vals[~sample, j], ".-")
+        if np.all(vals[:, j] > 0):
+            ax.set_yscale("log")
+        ax.set_ylabel(col)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[-1, 0].set_xlabel("evaluation")
+    fig.tight_layout()
+    params_png = os.path.join(folder, "params.png")
+    fig.savefig(params_png, dpi=100)
+    plt.close(fig)
+    return [loss_png, params_png]

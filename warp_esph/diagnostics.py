@@ -1,0 +1,333 @@
+"""How well the data determine fitted parameters: Fisher (Gauss-Newton) diagnostics at an optimum.
+
+A loss on observed positions is a scaled sum of squared residuals: ``S = c L`` with
+``c`` from the loss's normalisation (``Loss.residual_scale``: e.g. frames x particles /
+weight for a ``PositionLoss``). With independent Gaussian observation noise of standard
+deviation ``sigma`` per residual, ``chi2 = S / sigma^2`` and the Fisher information of the
+parameters ``z`` (optimiser space: ``log p`` for positive parameters) is
+
+    I = J^T J / sigma^2      (Gauss-Newton: 1/2 d2 chi2 / dz2 at a zero-residual optimum)
+
+with ``J`` the derivative of the residual vector (``Loss.residuals``) with respect to
+``z``, from central differences of forward runs (``2 P + 1`` runs for ``P`` values). For a
+loss without a residual vector, ``I`` is half the Hessian of ``chi2`` from central
+differences of taped gradients: column ``j`` is ``(g(z + h e_j) - g(z - h e_j)) / (4 h)``,
+``2 P`` forward + backward evaluations. The covariance of the estimate is ``I^-1`` (a
+pseudo-inverse: a direction with no curvature has infinite variance); standard errors are
+the square roots of its diagonal (in log space: relative errors), correlations its
+normalised entries.
+
+``sensitivity[i] = sqrt(I_ii)``: how many noise standard deviations (root of the chi-square
+increase) a unit change of ``z_i`` alone moves the fit; a 1 % change of a log-space
+parameter moves it by ``0.01 * sensitivity``.
+
+A parameter is reported as **not determined** by the data when its relative standard
+error exceeds ``max_relative_error``, when its sensitivity is below ``min_sensitivity``
+times the largest (the data barely depend on it; e.g. a yield stress far below the
+stresses that drive the flow, where the flow rule's ``(|s| - Y) / |s|`` hardly changes
+with ``Y``), or when it is correlated with another beyond ``max_correlation`` (the data
+fix a combination of the two, e.g. yield stress and flow rate along a valley).
+
+Noise: ``noise`` (m) for geometric losses; a loss with its own ``noise`` attribute (the
+silhouette loss, in occupancy units) uses that. With ``noise=None`` the residual RMS at
+the optimum is used, floored at 1 % of the particle spacing (a synthetic target fits to
+round-off, which would make every parameter look perfectly determined).
+"""
+
+import dataclasses
+import math
+
+import numpy as np
+
+from .losses import Loss, SumLoss
+
+__all__ = ["Diagnostics", "diagnose", "diagnose_problem", "chi_square_loss", "leaf_terms"]
+
+#: Defaults of the warnings (see the module doc).
+MAX_RELATIVE_ERROR = 0.25
+MIN_SENSITIVITY = 1e-3
+MAX_CORRELATION = 0.95
+#: Relative eigenvalue below which a direction of the Fisher matrix counts as flat.
+_FLAT = 1e-10
+
+
+@dataclasses.dataclass
+class Diagnostics:
+    """Fisher diagnostics at a point of a fit (see the module doc).
+
+    Per fitted value (``labels``, e.g. ``yield_stress`` or ``yield_stress[1]``): ``values``,
+    ``spaces`` (``log``/``linear``), ``standard_error`` (parameter units), ``relative_error``
+    (``standard_error / |value|``), ``sensitivity`` (``sqrt(I_ii)``), ``gradient`` (of the
+    chi-square, optimiser space). ``fisher``, ``covariance`` (optimiser space),
+    ``correlation``; ``noise``: the sigma used per experiment; ``residual_rms`` per
+    experiment; ``observations``; ``warnings`` (sentences) and ``undetermined`` (labels).
+    ``weakest``: the least determined direction of optimiser space (unit vector) and its
+    standard error.
+    """
+
+    labels: list[str]
+    values: np.ndarray
+    spaces: list[str]
+    standard_error: np.ndarray
+    relative_error: np.ndarray
+    sensitivity: np.ndarray
+    gradient: np.ndarray
+    fisher: np.ndarray
+    covariance: np.ndarray
+    correlation: np.ndarray
+    noise: list[float]
+    residual_rms: list[float]
+    observations: int
+    weakest: np.ndarray
+    weakest_error: float
+    warnings: list[str]
+    undetermined: list[str]
+    evaluations: int
+    step: float
+    method: str = "gauss-newton"
+
+    def summary(self) -> str:
+        """A table of values, standard errors, sensitivities and correlations, then warnings."""
+        noise = ", ".join(f"{s:.3g}" for s in self.noise)
+        lines = [f"diagnostics ({self.method}, observation noise sigma = {noise}; "
+                 f"{self.observations} observations):"]
+        w = max(len(label) for label in self.labels)
+        lines.append(f"  {'parameter':<{w}}  {'value':>11}  {'std. error':>11}  {'relative':>9}  {'sensitivity':>11}")
+        for k, label in enumerate(self.labels):
+            rel = self.relative_error[k]
+            rel_s = f"{100 * rel:8.3g}%" if math.isfinite(rel) else "     inf"
+            lines.append(f"  {label:<{w}}  {self.values[k]:11.5g}  {self.standard_error[k]:11.4g}  {rel_s:>9}  "
+                         f"{self.sensitivity[k]:11.4g}")
+        if len(self.labels) > 1:
+            lines.append("  correlation:")
+            for k, label in enumerate(self.labels):
+                row = " ".join(f"{c:+6.3f}" if math.isfinite(c) else "   nan" for c in self.correlation[k])
+                lines.append(f"    {label:<{w}}  {row}")
+            terms = " ".join(f"{c:+.3f}*{'log ' if s == 'log' else ''}{label}"
+                             for c, s, label in zip(self.weakest, self.spaces, self.labels))
+            lines.append(f"  least determined direction: {terms} (std. error {self.weakest_error:.3g})")
+        for message in self.warnings:
+            lines.append(f"  WARNING: {message}")
+        if not self.warnings:
+            lines.append("  every fitted parameter is determined by the data at this noise level")
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        def fl(a):
+            return [float(x) if math.isfinite(float(x)) else None for x in np.ravel(a)]
+
+        n = len(self.labels)
+        return {
+            "labels": list(self.labels), "values": fl(self.values), "spaces": list(self.spaces),
+            "standard_error": fl(self.standard_error), "relative_error": fl(self.relative_error),
+            "sensitivity": fl(self.sensitivity), "gradient": fl(self.gradient),
+            "fisher": [fl(r) for r in np.reshape(self.fisher, (n, n))],
+            "covariance": [fl(r) for r in np.reshape(self.covariance, (n, n))],
+            "correlation": [fl(r) for r in np.reshape(self.correlation, (n, n))],
+            "noise": list(self.noise), "residual_rms": list(self.residual_rms), "observations": self.observations,
+            "weakest": fl(self.weakest), "weakest_error": self.weakest_error if math.isfinite(self.weakest_error) else None,
+            "warnings": list(self.warnings), "undetermined": list(self.undetermined),
+            "evaluations": self.evaluations, "step": self.step, "method": self.method,
+        }
+
+
+def leaf_terms(loss: Loss) -> list[Loss]:
+    """The individual losses of a (possibly summed) loss."""
+    if isinstance(loss, SumLoss):
+        return [leaf for _, leaf in loss.terms]
+    return [loss]
+
+
+def chi_square_loss(loss: Loss, noise: float) -> Loss:
+    """``sum_leaves residual_scale / sigma^2 * leaf``: the chi-square of ``loss``'s residuals
+    (``sigma``: the leaf's own ``noise`` attribute when set, else ``noise``). The leaves
+    must have been evaluated once (their residual counts are known then)."""
+    terms = []
+    for leaf in leaf_terms(loss):
+        sigma = getattr(leaf, "noise", None) or noise
+        terms.append((leaf.residual_scale() / sigma**2, leaf))
+    return SumLoss(terms)
+
+
+def _residuals(run) -> tuple[float, int, float]:
+    """(sum of squared geometric residuals, their count, spacing) of a run at its last forward."""
+    positions = dict(zip(run.rollout.frames, run.rollout.frame_positions))
+    total, count = 0.0, 0
+    for leaf in leaf_terms(run.loss):
+        if getattr(leaf, "noise", None) is not None:
+            continue
+        total += leaf.residual_scale() * leaf.value(positions)
+        count += leaf.observation_count()
+    return total, count, run.model.spacing
+
+
+def _has_residuals(prob) -> bool:
+    return all(hasattr(leaf, "residuals") for run in prob.runs for leaf in leaf_terms(run.loss))
+
+
+def _scaled_residuals(prob, z, sigmas) -> np.ndarray:
+    """Every residual of every experiment divided by its noise, at ``z`` (forward passes)."""
+    prob.apply(z)
+    out = []
+    for run, sigma in zip(prob.runs, sigmas):
+        x = run.rollout.forward(**run.initial)
+        positions = dict(zip(run.rollout.frames, x))
+        for leaf in leaf_terms(run.loss):
+            out.append(leaf.residuals(positions) / (getattr(leaf, "noise", None) or sigma))
+    return np.concatenate(out)
+
+
+def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, method: str = "auto",
+                     max_relative_error: float = MAX_RELATIVE_ERROR, min_sensitivity: float = MIN_SENSITIVITY,
+                     max_correlation: float = MAX_CORRELATION) -> Diagnostics:
+    """Diagnostics of ``fit``'s problem at optimiser-space point ``z`` (see the module doc).
+
+    ``method``: ``"gauss-newton"`` (``I = J^T J`` from central differences of the residual
+    vectors, forward passes only; every loss must have ``residuals``, as ``PositionLoss``,
+    ``ChamferLoss`` (nearest points kept from ``z``), ``MeshLoss`` (tangent planes kept
+    from ``z``) and ``SilhouetteLoss`` do), ``"hessian"`` (central differences of taped gradients of
+    the chi-square; any loss) or ``"auto"`` (the first where possible).
+    """
+    z = np.asarray(z, dtype=np.float64)
+    if method not in ("auto", "gauss-newton", "hessian"):
+        raise ValueError(f"method = {method!r} is not allowed: must be auto, gauss-newton or hessian")
+    if method == "auto":
+        method = "gauss-newton" if _has_residuals(prob) else "hessian"
+    elif method == "gauss-newton" and not _has_residuals(prob):
+        raise ValueError("method = 'gauss-newton' is not allowed: a loss of the fit has no residual vector; use 'hessian'")
+    prob.apply(z)
+    sigmas, rms, chi2s, observations = [], [], [], 0
+    for run in prob.runs:
+        run.rollout.forward(**run.initial)
+        positions = dict(zip(run.rollout.frames, run.rollout.frame_positions))
+        for leaf in leaf_terms(run.loss):
+            leaf.value(positions)  # records the residual counts
+        s, n, spacing = _residuals(run)
+        r = math.sqrt(s / n) if n else 0.0
+        rms.append(r)
+        sigma = run.noise or noise or max(r, 0.01 * spacing)
+        own = [leaf.noise for leaf in leaf_terms(run.loss) if getattr(leaf, "noise", None) is not None]
+        # A run observed only through losses with their own noise (silhouettes) reports that.
+        sigmas.append(sigma if n or not own else own[0])
+        sigma_geometric = sigma
+        observations += sum(leaf.observation_count() for leaf in leaf_terms(run.loss))
+        chi2s.append(chi_square_loss(run.loss, sigma_geometric))
+    P = len(z)
+    lo, hi = prob.z_bounds()
+    # Central where the bounds allow, one-sided at a bound.
+    ups = np.minimum(z + step, hi)
+    downs = np.maximum(z - step, lo)
+    if method == "gauss-newton":
+        for run in prob.runs:
+            for leaf in leaf_terms(run.loss):
+                if hasattr(leaf, "reset_residuals"):
+                    leaf.reset_residuals()
+        r0 = _scaled_residuals(prob, z, sigmas)
+        J = np.zeros((len(r0), P))
+        for j in range(P):
+            zp, zm = z.copy(), z.copy()
+            zp[j], zm[j] = ups[j], downs[j]
+            J[:, j] = (_scaled_residuals(prob, zp, sigmas) - _scaled_residuals(prob, zm, sigmas)) / (ups[j] - downs[j])
+        fisher = J.T @ J
+        gradient = 2.0 * J.T @ r0
+        evaluations = 2 * P + 1
+    else:
+        H = np.zeros((P, P))
+        gsum = np.zeros(P)
+        for j in range(P):
+            zp, zm = z.copy(), z.copy()
+            zp[j], zm[j] = ups[j], downs[j]
+            _, gp = prob.value_and_grad(zp, losses=chi2s)
+            _, gm = prob.value_and_grad(zm, losses=chi2s)
+            H[:, j] = (gp - gm) / (ups[j] - downs[j])
+            gsum += 0.5 * (gp + gm)
+        fisher = 0.25 * (H + H.T)
+        gradient = gsum / P
+        evaluations = 2 * P
+    prob.apply(z)
+    d = _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations, step,
+                   max_relative_error, min_sensitivity, max_correlation)
+    d.method = method
+    return d
+
+
+def _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations, step,
+               max_relative_error, min_sensitivity, max_correlation) -> Diagnostics:
+    P = len(z)
+    labels = list(prob.labels)
+    spaces = [prob.spaces[name] for name in prob.params for _ in range(prob.k)]
+    scales = np.array([prob.scales.get(name, 1.0) for name in prob.params for _ in range(prob.k)])
+    p = prob.from_z(z)
+    values = np.concatenate([p[name] for name in prob.params])
+    lam, V = np.linalg.eigh(fisher)
+    top = max(float(lam.max()), 0.0)
+    flat = lam <= _FLAT * top if top > 0 else np.ones(P, dtype=bool)
+    inv = np.where(flat, 0.0, 1.0 / np.where(flat, 1.0, lam))
+    cov = (V * inv) @ V.T
+    var = np.diag(cov).copy()
+    # A flat direction has unbounded variance: every value that takes part in it is free.
+    for k in np.flatnonzero(flat):
+        var[np.abs(V[:, k]) > 1e-2] = math.inf
+    se_z = np.sqrt(np.maximum(var, 0.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        corr = cov / np.outer(d, d)
+    corr[~np.isfinite(corr)] = np.nan
+    for k in np.flatnonzero(flat):  # a flat pair: perfectly correlated along that direction
+        members = np.flatnonzero(np.abs(V[:, k]) > 1e-2)
+        for a in members:
+            for b in members:
+                if a != b:
+                    corr[a, b] = math.copysign(1.0, V[a, k] * V[b, k])
+    np.fill_diagonal(corr, 1.0)
+    se = np.where(np.array(spaces) == "log", se_z * np.abs(values), se_z * scales)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = np.where(np.array(spaces) == "log", se_z, se / np.abs(values))
+    sens = np.sqrt(np.maximum(np.diag(fisher), 0.0))
+    k_weak = int(np.argmin(lam))
+    weakest = V[:, k_weak] * (1.0 if V[np.argmax(np.abs(V[:, k_weak])), k_weak] > 0 else -1.0)
+    weakest_error = math.inf if flat[k_weak] else 1.0 / math.sqrt(lam[k_weak])
+
+    warnings, undetermined = [], []
+    if top > 0 and float(lam.min()) < -1e-6 * top:
+        warnings.append(f"the curvature is negative along some direction (eigenvalue {lam.min():.3g}, largest {top:.3g}): "
+                        f"this is not a minimum, or the loss is rough at the difference step; the errors are unreliable")
+    for k, (r, sigma) in enumerate(zip(rms, sigmas)):
+        if r > 3.0 * sigma:
+            which = f"experiment {k}" if len(rms) > 1 else "the experiment"
+            warnings.append(f"the residuals of {which} (RMS {r:.3g} per coordinate) are {r / sigma:.3g} times the stated noise "
+                            f"{sigma:.3g}: the model does not fit the data to the noise level (not at a minimum, a model "
+                            f"that cannot match, or the noise is larger than stated)")
+    smax = float(sens.max()) if P else 0.0
+    for k, label in enumerate(labels):
+        reasons = []
+        if not sens[k] > min_sensitivity * smax:
+            reasons.append(f"the data barely depend on it (sensitivity {sens[k]:.3g}, "
+                           f"{sens[k] / smax if smax > 0 else 0.0:.2g} of the largest)")
+        if not rel[k] <= max_relative_error:
+            shown = "unbounded" if not math.isfinite(rel[k]) else f"{100 * rel[k]:.3g} %"
+            reasons.append(f"its standard error is {shown} of its value (limit {100 * max_relative_error:.3g} %)")
+        partners = [labels[j] for j in range(P) if j != k and abs(corr[k, j]) > max_correlation]
+        if partners:
+            r = max(abs(corr[k, labels.index(q)]) for q in partners)
+            reasons.append(f"it is correlated with {', '.join(partners)} (|r| = {r:.3f} > {max_correlation:g}): "
+                           f"the data fix a combination, not each")
+        if reasons:
+            undetermined.append(label)
+            warnings.append(f"{label} is not determined by the data: " + "; ".join(reasons))
+    return Diagnostics(
+        labels=labels, values=values, spaces=spaces, standard_error=se, relative_error=rel, sensitivity=sens,
+        gradient=gradient, fisher=fisher, covariance=cov, correlation=corr, noise=list(sigmas), residual_rms=list(rms),
+        observations=int(observations), weakest=weakest, weakest_error=weakest_error, warnings=warnings,
+        undetermined=undetermined, evaluations=evaluations, step=step,
+    )
+
+
+def diagnose(model, target, params=("yield_stress", "flow_rate"), *, noise: float | None = None, step: float = 1e-3,
+             **fit_kwargs) -> Diagnostics:
+    """Diagnostics at the model's current parameter values (no fitting): ``fit`` with
+    ``iterations=0``, so ``model``, ``target`` and ``fit_kwargs`` are ``fit``'s."""
+    from .fit import fit  # noqa: PLC0415
+
+    fit_kwargs.setdefault("progress", False)
+    return fit(model, target, params, iterations=0, diagnostics=True, noise=noise, fd_step=step, **fit_kwargs).diagnostics

@@ -1,0 +1,413 @@
+"""Scene files: the TOML schema (every key each table may hold, its type, whether it is
+required) and the loader that checks a file against it and builds its ``Scene``.
+
+The format is described for users in ``docs/scene_format.md``. ``warp_esph.scenes`` holds
+the built-in scenes and re-exports ``Scene`` and ``load_scene_file`` from here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import os
+import sys
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10: the same parser as the tomli package
+    try:
+        import tomli as tomllib
+    except ModuleNotFoundError:
+        tomllib = None
+
+from . import checks
+from .builder import SceneBuilder
+from .material import PRESETS, Material
+
+__all__ = [
+    "Scene", "load_scene_file", "SCENE_KEYS", "MATERIAL_KEYS", "BODY_COMMON", "BODY_SHAPES", "COLLIDER_TYPES", "TOP_KEYS",
+]
+
+
+@dataclasses.dataclass
+class Scene:
+    """A scene ready to run: ``builder.finalize()`` makes the model.
+
+    ``dt = None`` lets ``simulate`` pick the stable step of the model. ``figure`` names
+    the paper's figure a scene reproduces (``"Fig. 2"``), ``None`` for the others.
+    ``view``: a suggested camera direction (azimuth, elevation) in degrees, written to
+    the USD file for ``warp-esph render`` (``None``: the renderer's default).
+    ``diverges``: names of bodies the scene shows blowing up (a method's failure, as the
+    paper's Fig. 8 does); ``simulate``'s divergence monitor leaves them out.
+    """
+
+    name: str
+    description: str
+    builder: SceneBuilder
+    frames: int = 60
+    fps: float = 30.0
+    dt: float | None = None
+    figure: str | None = None
+    view: tuple[float, float] | None = None
+    diverges: tuple[str, ...] = ()
+
+
+# ------------------------------------------------------------------ schema
+class _Num:
+    """Schema type: a real number (int or float, not bool); ``inf`` only where allowed."""
+
+    def __init__(self, allow_inf: bool = False):
+        self.allow_inf = allow_inf
+
+    def check(self, value) -> bool:
+        if isinstance(value, int) and not isinstance(value, bool) and not -_FLOAT_MAX <= value <= _FLOAT_MAX:
+            return False  # TOML integers are unbounded: 10**400 overflows a float
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and (self.allow_inf or math.isfinite(value)) and not (isinstance(value, float) and math.isnan(value))
+
+    def describe(self) -> str:
+        return "a number" + (" (inf allowed)" if self.allow_inf else "")
+
+
+_FLOAT_MAX = int(sys.float_info.max)
+
+
+class _Int:
+    def check(self, value) -> bool:
+        return isinstance(value, int) and not isinstance(value, bool)
+
+    def describe(self) -> str:
+        return "an integer"
+
+
+class _Str:
+    def check(self, value) -> bool:
+        return isinstance(value, str)
+
+    def describe(self) -> str:
+        return "a string"
+
+
+class _Bool:
+    def check(self, value) -> bool:
+        return isinstance(value, bool)
+
+    def describe(self) -> str:
+        return "true or false"
+
+
+class _Vec3:
+    def check(self, value) -> bool:
+        return isinstance(value, list) and len(value) == 3 and all(_Num().check(c) for c in value)
+
+    def describe(self) -> str:
+        return "an array of 3 numbers"
+
+
+NUM, NUM_INF, INT, STR, BOOL, VEC3 = _Num(), _Num(allow_inf=True), _Int(), _Str(), _Bool(), _Vec3()
+
+
+class _List:
+    """Schema type: an array whose items all pass ``item`` (``length``: exact item count)."""
+
+    def __init__(self, item, what: str, length: int | None = None):
+        self.item, self.what, self.length = item, what, length
+
+    def check(self, value) -> bool:
+        return isinstance(value, list) and (self.length is None or len(value) == self.length) and all(self.item.check(v) for v in value)
+
+    def describe(self) -> str:
+        return self.what
+
+
+QUAT = _List(NUM, "an array of 4 numbers (x, y, z, w)", 4)
+NUMS, INTS = _List(NUM, "an array of numbers"), _List(INT, "an array of integers")
+VEC3S, QUATS = _List(VEC3, "an array of 3-number arrays"), _List(QUAT, "an array of 4-number arrays (x, y, z, w)")
+REGION = _List(VEC3, "an array of two 3-number arrays [lo, hi]", 2)
+
+#: Every key a scene file may hold, per table: name -> (type, required).
+SCENE_KEYS = {
+    "name": (STR, False), "description": (STR, False), "spacing": (NUM, False), "support_radius": (NUM, False),
+    "gravity": (VEC3, False), "max_neighbors": (INT, False), "frames": (INT, False), "fps": (NUM, False), "dt": (NUM, False),
+}
+MATERIAL_KEYS = {
+    "preset": (STR, False), "E": (NUM, False), "nu": (NUM, False), "mu": (NUM, False), "lam": (NUM, False),
+    "yield_stress": (NUM_INF, False), "flow_rate": (NUM, False), "hardening": (NUM, False), "density": (NUM, False),
+    "pressure_stiffness": (NUM, False), "viscosity": (NUM, False), "model": (STR, False), "clamp_pressure": (BOOL, False),
+    "deformation": (STR, False), "elastic_force": (STR, False),
+}
+BODY_COMMON = {"shape": (STR, True), "material": (STR, True), "name": (STR, False), "velocity": (VEC3, False),
+               "angular_velocity": (VEC3, False)}
+BODY_SHAPES = {
+    "box": {"center": (VEC3, True), "size": (VEC3, True)},
+    "sphere": {"center": (VEC3, True), "radius": (NUM, True)},
+    "cylinder": {"center": (VEC3, True), "radius": (NUM, True), "height": (NUM, True), "axis": (STR, False)},
+    "star": {"center": (VEC3, True), "outer_radius": (NUM, True), "inner_radius": (NUM, True), "thickness": (NUM, True), "points": (INT, False)},
+    "mesh": {"file": (STR, True), "scale": (NUM, False), "translation": (VEC3, False), "prim_path": (STR, False)},
+}
+COLLIDER_TYPES = {
+    "ground": {"height": (NUM, False), "friction": (NUM, False)},
+    "plane": {"normal": (VEC3, True), "offset": (NUM, True), "friction": (NUM, False)},
+    "sphere": {"center": (VEC3, True), "radius": (NUM, True), "friction": (NUM, False)},
+    "box": {"center": (VEC3, True), "half_extents": (VEC3, True), "friction": (NUM, False)},
+}
+#: Keys of a tool's or pinned set's rigid motion (tools.py): a constant velocity, or keyframes.
+MOTION_KEYS = {
+    "velocity": (VEC3, False), "angular_velocity": (VEC3, False), "keyframe_times": (NUMS, False),
+    "keyframe_positions": (VEC3S, False), "keyframe_orientations": (QUATS, False),
+}
+TOOL_KEYS = {
+    "shape": (STR, True), "name": (STR, False), "position": (VEC3, False), "orientation": (QUAT, False),
+    "friction": (NUM, False), "static_friction": (NUM, False), "normal": (VEC3, False), "half_extents": (VEC3, False),
+    "radius": (NUM, False), "half_height": (NUM, False), "file": (STR, False), "scale": (NUM, False), **MOTION_KEYS,
+}
+PIN_KEYS = {"name": (STR, False), "body": (STR, False), "region": (REGION, False), "indices": (INTS, False), **MOTION_KEYS}
+TOP_KEYS = ("scene", "materials", "bodies", "colliders", "tools", "pins")
+
+
+def _did_you_mean(key: str, allowed) -> str:
+    close = difflib.get_close_matches(key, list(allowed), n=1, cutoff=0.6)
+    if not close:
+        close = [a for a in allowed if a.lower() == key.lower()]
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
+def _check_table(file: str, where: str, table, schema: dict) -> dict:
+    """Reject unknown keys, missing required keys and wrongly typed values."""
+    if not isinstance(table, dict):
+        raise ValueError(f"{file}: {where} must be a table, not {type(table).__name__} {table!r}")
+    for key, value in table.items():
+        if key not in schema:
+            raise ValueError(
+                f"{file}: unknown key {key!r} in {where}{_did_you_mean(key, schema)} "
+                f"(allowed keys: {', '.join(schema)})"
+            )
+        kind, _ = schema[key]
+        if not kind.check(value):
+            raise ValueError(f"{file}: key {key!r} in {where} must be {kind.describe()}, not {type(value).__name__} {checks.shorten(value)!r}")
+    for key, (_, required) in schema.items():
+        if required and key not in table:
+            raise ValueError(f"{file}: missing key {key!r} in {where}")
+    return table
+
+
+def _choice(file: str, where: str, key: str, value: str, allowed) -> str:
+    if value not in allowed:
+        raise ValueError(
+            f"{file}: {key} = {value!r} in {where} is not allowed{_did_you_mean(value, allowed)} "
+            f"(allowed: {', '.join(allowed)})"
+        )
+    return value
+
+
+def _material(file: str, name: str, table: dict) -> Material:
+    where = f"[materials.{name}]"
+    _check_table(file, where, table, MATERIAL_KEYS)
+    fields = {k: v for k, v in table.items() if k not in ("preset", "E", "nu")}
+    if ("E" in table) != ("nu" in table):
+        raise ValueError(f"{file}: {where} gives {'E' if 'E' in table else 'nu'} without {'nu' if 'E' in table else 'E'}: give both")
+    if "E" in table:
+        if "mu" in table or "lam" in table:
+            raise ValueError(f"{file}: {where} gives E/nu and mu/lam: give one pair")
+        E, nu = table["E"], table["nu"]
+        if not E > 0:
+            raise ValueError(f"{file}: E = {E!r} in {where} is not allowed: must be > 0")
+        if not -1.0 < nu < 0.5:
+            raise ValueError(f"{file}: nu = {nu!r} in {where} is not allowed: must be in (-1, 0.5)")
+        fields["mu"] = E / (2.0 * (1.0 + nu))
+        fields["lam"] = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    try:
+        if "preset" in table:
+            preset = _choice(file, where, "preset", table["preset"], tuple(PRESETS))
+            if "pressure_stiffness" not in fields:
+                # Recomputed from the (possibly changed) bulk modulus, as for a new material.
+                fields["pressure_stiffness"] = None
+            return dataclasses.replace(PRESETS[preset], **fields)
+        if "mu" not in fields or "lam" not in fields:
+            raise ValueError(f"{file}: {where} needs a preset, E and nu, or mu and lam")
+        return Material(**fields)
+    except ValueError as e:
+        msg = str(e)
+        if msg.startswith(file):
+            raise
+        raise ValueError(f"{file}: {where}: {msg}") from None
+
+
+def _tagged(file: str, where: str, table, tag: str, kinds: dict) -> tuple[str, str]:
+    """Check the key ``tag`` that selects the schema of an array-of-tables entry (a body's
+    shape, a collider's type); returns the entry's description for messages and the kind."""
+    if not isinstance(table, dict):
+        raise ValueError(f"{file}: {where} must be a table, not {table!r}")
+    kind = table.get(tag)
+    if kind is None:
+        raise ValueError(f"{file}: missing key {tag!r} in {where} (one of {', '.join(kinds)})")
+    if not isinstance(kind, str):
+        raise ValueError(f"{file}: key {tag!r} in {where} must be a string, not {type(kind).__name__} {kind!r}")
+    _choice(file, where, tag, kind, tuple(kinds))
+    return f"{where} ({tag} {kind!r})", kind
+
+
+def _body(file: str, k: int, table: dict, builder: SceneBuilder, materials: dict, base_dir: str):
+    where, shape = _tagged(file, f"[[bodies]] #{k + 1}", table, "shape", BODY_SHAPES)
+    _check_table(file, where, table, {**BODY_COMMON, **BODY_SHAPES[shape]})
+    mat_name = table["material"]
+    if mat_name in materials:
+        material = materials[mat_name]
+    elif mat_name in PRESETS:
+        material = materials.setdefault(mat_name, Material.preset(mat_name))
+    else:
+        known = list(materials) + [p for p in PRESETS if p not in materials]
+        raise ValueError(
+            f"{file}: material = {mat_name!r} in {where} is not allowed: no [materials.{mat_name}] table and no preset "
+            f"of that name{_did_you_mean(mat_name, known)} (known: {', '.join(known)})"
+        )
+    args = {k: v for k, v in table.items() if k not in ("shape", "material")}
+    try:
+        if shape == "box":
+            builder.add_box(material=material, **args)
+        elif shape == "sphere":
+            builder.add_sphere(material=material, **args)
+        elif shape == "cylinder":
+            builder.add_cylinder(material=material, **args)
+        elif shape == "star":
+            builder.add_star(material=material, **args)
+        else:
+            source = args.pop("file")
+            if not os.path.isabs(source):
+                source = os.path.join(base_dir, source)
+            builder.add_mesh(source, material, **args)
+    except ValueError as e:
+        raise ValueError(f"{file}: {where}: {e}") from None
+
+
+def _collider(file: str, k: int, table: dict, builder: SceneBuilder):
+    where, kind = _tagged(file, f"[[colliders]] #{k + 1}", table, "type", COLLIDER_TYPES)
+    _check_table(file, where, table, {"type": (STR, True), **COLLIDER_TYPES[kind]})
+    args = {k: v for k, v in table.items() if k != "type"}
+    try:
+        if kind == "ground":
+            builder.add_ground(**args)
+        elif kind == "plane":
+            builder.add_plane(**args)
+        elif kind == "sphere":
+            builder.add_sphere_collider(**args)
+        else:
+            builder.add_box_collider(**args)
+    except ValueError as e:
+        raise ValueError(f"{file}: {where}: {e}") from None
+
+
+def _motion(args: dict):
+    """A ``tools`` motion from the motion keys in ``args`` (removed from it); None: static."""
+    from . import tools  # noqa: PLC0415
+
+    kf = {k: args.pop(k) for k in ("keyframe_times", "keyframe_positions", "keyframe_orientations") if k in args}
+    vel = {k: args.pop(k) for k in ("velocity", "angular_velocity") if k in args}
+    if kf and vel:
+        raise ValueError("velocity/angular_velocity and keyframe_* are not allowed together: give one motion")
+    if kf:
+        if "keyframe_times" not in kf or "keyframe_positions" not in kf:
+            raise ValueError("keyframe_times and keyframe_positions are both needed for a keyframed motion")
+        return tools.Keyframes(kf["keyframe_times"], kf["keyframe_positions"], kf.get("keyframe_orientations"))
+    if vel:
+        return tools.Velocity(vel.get("velocity", (0.0, 0.0, 0.0)), vel.get("angular_velocity", (0.0, 0.0, 0.0)))
+    return None
+
+
+def _tool(file: str, k: int, table: dict, builder: SceneBuilder, base_dir: str):
+    from . import tools  # noqa: PLC0415
+
+    where = f"[[tools]] #{k + 1}"
+    _check_table(file, where, table, TOOL_KEYS)
+    _choice(file, where, "shape", table["shape"], tools.KINDS)
+    args = dict(table)
+    shape = args.pop("shape")
+    try:
+        motion = _motion(args)
+        if "file" in args:
+            source = args.pop("file")
+            args["mesh"] = source if os.path.isabs(source) else os.path.join(base_dir, source)
+        if "orientation" in args:
+            args["orientation"] = tuple(args["orientation"])
+        builder.add_tool(shape, motion=motion, **args)
+    except ValueError as e:
+        raise ValueError(f"{file}: {where}: {e}") from None
+
+
+def _pin(file: str, k: int, table: dict, builder: SceneBuilder):
+    where = f"[[pins]] #{k + 1}"
+    _check_table(file, where, table, PIN_KEYS)
+    args = dict(table)
+    try:
+        motion = _motion(args)
+        builder.pin(args.pop("indices", None), motion=motion, **args)
+    except ValueError as e:
+        raise ValueError(f"{file}: {where}: {e}") from None
+
+
+def load_scene_file(path, scale: float = 1.0) -> Scene:
+    """Read a TOML scene file (format: ``docs/scene_format.md``).
+
+    ``scale`` divides the spacing (and an explicit support radius) as for built-in
+    scenes. Any problem — unreadable file, TOML syntax, unknown or misspelt key, wrong
+    type, bad value — raises a ``ValueError`` that names the file, the table and the key.
+    """
+    scale = checks.positive("scale", scale)
+    file = os.fspath(path)
+    if tomllib is None:
+        raise ValueError(f"cannot read scene file {file!r}: reading TOML needs Python >= 3.11 or the tomli package")
+    try:
+        with open(file, "rb") as fh:
+            data = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"{file}: invalid TOML: {e}") from None
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{file}: invalid TOML: not UTF-8 text (byte {e.start})") from None
+    except OSError as e:
+        raise ValueError(f"cannot read scene file {file!r}: {e.strerror or e}") from None
+    for key in data:
+        if key not in TOP_KEYS:
+            raise ValueError(f"{file}: unknown key {key!r} at the top level{_did_you_mean(key, TOP_KEYS)} (allowed: {', '.join(TOP_KEYS)})")
+    scene = _check_table(file, "[scene]", data.get("scene", {}), SCENE_KEYS)
+    materials_table = data.get("materials", {})
+    if not isinstance(materials_table, dict):
+        raise ValueError(f"{file}: 'materials' must be a table of [materials.NAME] tables, not {materials_table!r}")
+    bodies = data.get("bodies", [])
+    colliders = data.get("colliders", [])
+    tool_tables, pin_tables = data.get("tools", []), data.get("pins", [])
+    for key, value in (("bodies", bodies), ("colliders", colliders), ("tools", tool_tables), ("pins", pin_tables)):
+        if not isinstance(value, list):
+            raise ValueError(f"{file}: '{key}' must be an array of tables ([[{key}]]), not {type(value).__name__}")
+    if not bodies:
+        raise ValueError(f"{file}: the scene has no bodies: add at least one [[bodies]] table")
+
+    try:
+        spacing = checks.positive("spacing", scene.get("spacing", 0.02)) / scale
+        support = scene.get("support_radius")
+        builder = SceneBuilder(
+            spacing=spacing,
+            gravity=scene.get("gravity", (0.0, -9.81, 0.0)),
+            support_radius=None if support is None else checks.positive("support_radius", support) / scale,
+            max_neighbors=scene.get("max_neighbors", 30),
+        )
+        frames = checks.positive_int("frames", scene.get("frames", 60))
+        fps = checks.positive("fps", scene.get("fps", 30.0))
+        dt = scene.get("dt")
+        if dt is not None:
+            dt = checks.positive("dt", dt)
+    except ValueError as e:
+        raise ValueError(f"{file}: [scene]: {e}") from None
+
+    materials = {name: _material(file, name, table) for name, table in materials_table.items()}
+    base_dir = os.path.dirname(os.path.abspath(file))
+    for k, table in enumerate(bodies):
+        _body(file, k, table, builder, materials, base_dir)
+    for k, table in enumerate(colliders):
+        _collider(file, k, table, builder)
+    for k, table in enumerate(tool_tables):
+        _tool(file, k, table, builder, base_dir)
+    for k, table in enumerate(pin_tables):
+        _pin(file, k, table, builder)
+    name = scene.get("name") or os.path.splitext(os.path.basename(file))[0]
+    description = scene.get("description") or f"scene file {file}"
+    return Scene(name, description, builder, frames=frames, fps=fps, dt=dt)

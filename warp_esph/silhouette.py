@@ -1,0 +1,383 @@
+"""Silhouette targets: binary masks from calibrated cameras against a differentiable soft
+silhouette of the particles.
+
+Cameras are pinholes in the OpenCV convention: a world point ``X`` is at ``x = R X + t`` in
+camera coordinates (``z > 0`` in front, ``y`` down the image), and at pixel
+``u = fx x / z + cx``, ``v = fy y / z + cy`` (pixel centres at integer coordinates; the
+pixel in row ``j``, column ``i`` of a mask is at ``(u, v) = (i, j)``).
+
+Each particle is a Gaussian splat of opacity ``a0`` and world radius ``radius``: at pixel
+``q`` it covers ``a_k(q) = a0 exp(-|q - u_k|^2 / (2 s_k^2))`` with ``s_k = radius sqrt(fx fy)
+/ z_k`` pixels, and the soft silhouette is the occupancy
+
+    O(q) = 1 - prod_k (1 - a_k(q)) = 1 - exp(sum_k log(1 - a_k(q)))
+
+(transmittance through independent splats: any number of particles behind one another
+saturate at 1, as a mask does). Each particle adds ``log(1 - a_k)`` to the pixels within
+4 ``s_k`` of it (beyond, ``a_k < 3.4e-4 a0``), one thread per particle and pixel offset, so
+the cost is particles x window area, not particles x pixels. The loss is
+
+    weight * mean over frames of mean over cameras of mean over pixels (O(q) - M(q))^2.
+
+Both kernels are taped; the window (which pixels a particle touches) is an integer choice
+without gradient, and a pixel leaving it changes the loss by less than ``(3.4e-4 a0)^2``.
+
+Camera file (JSON)::
+
+    {"cameras": [{"name": "front", "width": 64, "height": 48,
+                  "fx": 80, "fy": 80, "cx": 31.5, "cy": 23.5,      # or "K": 3x3
+                  "R": [[1,0,0],[0,-1,0],[0,0,-1]], "t": [0, 0.1, 0.6]}],
+     "radius": 0.01, "opacity": 0.5}                                 # optional
+
+Masks: an image (PNG, ...) or ``.npy`` ``(height, width)`` for one camera (nonzero or
+> 0.5 of the maximum: inside), or an ``.npz`` with one array per camera and frame named
+``<camera>_<frame>`` (rendered frame index).
+"""
+
+
+import dataclasses
+import functools
+import json
+import math
+import os
+import types
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import warp as wp
+
+from . import checks
+from ._types import type_set
+from .losses import Loss, _frames, _scalar_of
+
+__all__ = ["PinholeCamera", "SilhouetteLoss", "load_cameras", "load_masks", "soft_silhouette", "load_silhouette_target"]
+
+#: Splat window half-width in splat standard deviations.
+WINDOW_SIGMAS = 4.0
+#: Largest window half-width in pixels (a particle nearer than this blurs over the image).
+MAX_WINDOW = 64
+
+
+@dataclasses.dataclass
+class PinholeCamera:
+    """A calibrated pinhole camera (see the module doc for the conventions)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    R: np.ndarray
+    t: np.ndarray
+    name: str = "camera"
+
+    def __post_init__(self):
+        self.width = checks.positive_int("width", self.width)
+        self.height = checks.positive_int("height", self.height)
+        for k in ("fx", "fy"):
+            setattr(self, k, checks.positive(k, getattr(self, k)))
+        self.cx, self.cy = checks.number("cx", self.cx), checks.number("cy", self.cy)
+        self.R = np.asarray(self.R, dtype=np.float64)
+        self.t = np.asarray(self.t, dtype=np.float64).reshape(-1)
+        if self.R.shape != (3, 3) or not np.isfinite(self.R).all():
+            raise ValueError(f"camera {self.name!r}: R with shape {self.R.shape} is not allowed: must be a finite 3x3 rotation")
+        if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-6):
+            raise ValueError(f"camera {self.name!r}: R is not allowed: it is not a rotation (R R^T != I)")
+        if self.t.shape != (3,) or not np.isfinite(self.t).all():
+            raise ValueError(f"camera {self.name!r}: t with shape {self.t.shape} is not allowed: must be 3 finite numbers")
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> "PinholeCamera":
+        d = dict(d)
+        name = str(d.get("name", "camera"))
+        if "K" in d:
+            K = np.asarray(d["K"], dtype=np.float64)
+            if K.shape != (3, 3):
+                raise ValueError(f"camera {name!r}: K with shape {K.shape} is not allowed: must be 3x3")
+            d.update(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2])
+        missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy", "R", "t") if k not in d]
+        if missing:
+            raise ValueError(f"camera {name!r} is not allowed: it lacks {', '.join(missing)}")
+        return cls(int(d["width"]), int(d["height"]), d["fx"], d["fy"], d["cx"], d["cy"], d["R"], d["t"], name)
+
+    def project(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pixel coordinates ``u, v`` and depth ``z`` of world points ``(N, 3)``."""
+        x = np.asarray(X, dtype=np.float64) @ self.R.T + self.t
+        z = x[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return self.fx * x[:, 0] / z + self.cx, self.fy * x[:, 1] / z + self.cy, z
+
+
+def load_cameras(path) -> tuple[list[PinholeCamera], dict]:
+    """Cameras and options (``radius``, ``opacity``) from a JSON camera file."""
+    p = os.fspath(path)
+    try:
+        with open(p) as f:
+            doc = json.load(f)
+    except OSError as e:
+        raise ValueError(f"camera file {p} cannot be read: {e}") from None
+    except json.JSONDecodeError as e:
+        raise ValueError(f"camera file {p} is not valid JSON: {e}") from None
+    cams = doc.get("cameras") if isinstance(doc, dict) else None
+    if not isinstance(cams, list) or not cams:
+        raise ValueError(f"camera file {p} is not allowed: it needs a non-empty 'cameras' list")
+    cameras = [PinholeCamera.from_dict(c) for c in cams]
+    names = [c.name for c in cameras]
+    if len(set(names)) != len(names):
+        raise ValueError(f"camera file {p} is not allowed: camera names must be distinct ({names})")
+    options = {k: doc[k] for k in ("radius", "opacity") if k in doc}
+    return cameras, options
+
+
+def _mask_array(a, where: str) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim == 3:
+        a = a[..., :3].mean(axis=2)
+    if a.ndim != 2 or a.size == 0:
+        raise ValueError(f"mask {where} with shape {a.shape} is not allowed: must be (height, width)")
+    top = float(a.max()) if a.size else 0.0
+    return (a > 0.5 * top).astype(np.float64) if top > 0 else np.zeros_like(a)
+
+
+def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None) -> dict[int | None, list[np.ndarray]]:
+    """``{rendered frame: [mask per camera]}`` from a mask file (see the module doc); a
+    single image applies to the only camera at ``frame``."""
+    p = os.fspath(path)
+    if not os.path.isfile(p):
+        raise FileNotFoundError(f"mask file {p} does not exist")
+    ext = os.path.splitext(p)[1].lower()
+    if ext == ".npz":
+        data = np.load(p)
+        out: dict[int, dict[str, np.ndarray]] = {}
+        names = {c.name for c in cameras}
+        for key in data.files:
+            cam, _, f = key.rpartition("_")
+            if cam not in names or not f.isdigit():
+                raise ValueError(f"mask {key!r} in {p} is not allowed: name arrays <camera>_<frame> with cameras {sorted(names)}")
+            out.setdefault(int(f), {})[cam] = _mask_array(data[key], f"{p}:{key}")
+        result = {}
+        for f, by in out.items():
+            if set(by) != names:
+                raise ValueError(f"{p}: frame {f} has masks for {sorted(by)}, the cameras are {sorted(names)}")
+            result[f] = [by[c.name] for c in cameras]
+        return result
+    if len(cameras) != 1:
+        raise ValueError(f"mask file {p} holds one image, for {len(cameras)} cameras: use an .npz with <camera>_<frame> arrays")
+    if ext == ".npy":
+        a = np.load(p)
+    else:
+        from PIL import Image  # noqa: PLC0415
+
+        try:
+            a = np.asarray(Image.open(p))
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"mask {p} cannot be read as an image: {e}") from None
+    return {frame: [_mask_array(a, p)]}
+
+
+def soft_silhouette(X: np.ndarray, camera: PinholeCamera, radius: float, opacity: float = 0.5) -> np.ndarray:
+    """The soft silhouette ``O`` ``(height, width)`` of points ``X`` (numpy, float64;
+    the same splats and window as the loss's kernels)."""
+    u, v, z = camera.project(X)
+    S = np.zeros((camera.height, camera.width))
+    f = math.sqrt(camera.fx * camera.fy)
+    for uk, vk, zk in zip(u, v, z):
+        if not zk > 1e-6:
+            continue
+        s = radius * f / zk
+        w = min(int(math.ceil(WINDOW_SIGMAS * s)), MAX_WINDOW)
+        cu, cv = int(math.floor(uk + 0.5)), int(math.floor(vk + 0.5))
+        i0, i1 = max(cu - w, 0), min(cu + w, camera.width - 1)
+        j0, j1 = max(cv - w, 0), min(cv + w, camera.height - 1)
+        if i0 > i1 or j0 > j1:
+            continue
+        ii, jj = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1 + 1))
+        a = opacity * np.exp(-((ii - uk) ** 2 + (jj - vk) ** 2) / (2 * s * s))
+        S[j0: j1 + 1, i0: i1 + 1] += np.log1p(-a)
+    return 1.0 - np.exp(S)
+
+
+@functools.cache
+def _kernels(scalar):
+    T = type_set(scalar)
+    vec3, mat33 = T.vec3, T.mat33
+
+    @wp.kernel
+    def splat(
+        x: wp.array(dtype=vec3),
+        R: mat33,
+        t: vec3,
+        fx: scalar,
+        fy: scalar,
+        cx: scalar,
+        cy: scalar,
+        width: int,
+        height: int,
+        window: int,
+        radius: scalar,
+        opacity: scalar,
+        log_t: wp.array(dtype=scalar),
+    ):
+        # One thread per (particle, pixel offset in the window): no loop, so no
+        # accumulator is read back inside the kernel (docs/method.md, Warp pitfall 1).
+        i, k = wp.tid()
+        p = R * x[i] + t
+        z = p[2]
+        if z <= scalar(1.0e-6):
+            return
+        u = fx * p[0] / z + cx
+        v = fy * p[1] / z + cy
+        s = radius * wp.sqrt(fx * fy) / z
+        w = wp.min(int(wp.ceil(scalar(4.0) * s)), window)
+        side = 2 * window + 1
+        di = k % side - window
+        dj = k // side - window
+        if di < -w or di > w or dj < -w or dj > w:
+            return
+        qi = int(wp.floor(u + scalar(0.5))) + di
+        qj = int(wp.floor(v + scalar(0.5))) + dj
+        if qi < 0 or qi >= width or qj < 0 or qj >= height:
+            return
+        du = scalar(qi) - u
+        dv = scalar(qj) - v
+        a = opacity * wp.exp(-(du * du + dv * dv) / (scalar(2.0) * s * s))
+        wp.atomic_add(log_t, qj * width + qi, wp.log(scalar(1.0) - a))
+
+    @wp.kernel
+    def compare(log_t: wp.array(dtype=scalar), mask: wp.array(dtype=scalar), w: scalar, out: wp.array(dtype=scalar)):
+        q = wp.tid()
+        r = scalar(1.0) - wp.exp(log_t[q]) - mask[q]
+        wp.atomic_add(out, 0, w * r * r)
+
+    return types.SimpleNamespace(splat=splat, compare=compare)
+
+
+class SilhouetteLoss(Loss):
+    """Soft-silhouette loss against binary masks (see the module doc).
+
+    ``masks``: for each frame (step index) one mask ``(height, width)`` per camera:
+    ``{step: [mask, ...]}``, or a list of per-camera lists with ``frames``. ``cameras``:
+    ``PinholeCamera`` list (or a camera JSON file). ``radius`` (m): splat radius, about
+    half a particle spacing; ``opacity`` in (0, 1). ``noise``: the residual noise for
+    ``warp_esph.diagnostics``, in occupancy units (default 0.1).
+    """
+
+    def __init__(self, masks, cameras, radius: float, frames=None, opacity: float = 0.5, weight: float = 1.0,
+                 particles=None, noise: float = 0.1):
+        if isinstance(cameras, (str, os.PathLike)):
+            cameras, _ = load_cameras(cameras)
+        self.cameras = list(cameras)
+        if not self.cameras or not all(isinstance(c, PinholeCamera) for c in self.cameras):
+            raise ValueError("cameras is not allowed: give a list of PinholeCamera (or a camera JSON file)")
+        if isinstance(masks, Mapping):
+            per = {f: masks[f] for f in _frames(list(masks))}
+        else:
+            if frames is None:
+                raise ValueError("frames is required: say at which step indices the masks apply")
+            fr = _frames(frames)
+            masks = list(masks)
+            if len(masks) != len(fr):
+                raise ValueError(f"masks: {len(masks)} frames of masks given for {len(fr)} frames")
+            per = dict(zip(fr, masks))
+        super().__init__(list(per), weight, particles)
+        self.radius = checks.positive("radius", radius)
+        self.opacity = checks.in_range("opacity", opacity, 1e-6, 0.999)
+        self.noise = checks.positive("noise", noise)
+        self.masks = {}
+        for f, ms in per.items():
+            ms = [ms] if isinstance(ms, np.ndarray) and ms.ndim == 2 else list(ms)
+            if len(ms) != len(self.cameras):
+                raise ValueError(f"masks at step {f}: {len(ms)} given for {len(self.cameras)} cameras")
+            out = []
+            for m, c in zip(ms, self.cameras):
+                m = np.asarray(m, dtype=np.float64)
+                if m.shape != (c.height, c.width):
+                    raise ValueError(f"mask of camera {c.name!r} at step {f} with shape {m.shape} is not allowed: "
+                                     f"the camera is {c.height} x {c.width} (height x width)")
+                out.append(m)
+            self.masks[f] = out
+        self._buffers = {}
+
+    def _window(self, x: wp.array) -> int:
+        X = x.numpy().astype(np.float64)
+        w = 1
+        for c in self.cameras:
+            _, _, z = c.project(X)
+            z = z[z > 1e-6]
+            if len(z):
+                w = max(w, int(math.ceil(WINDOW_SIGMAS * self.radius * math.sqrt(c.fx * c.fy) / float(z.min()))))
+        return min(w, MAX_WINDOW)
+
+    def _launch(self, frame, x, out, scale):
+        S = _scalar_of(x)
+        k = _kernels(S)
+        dev = x.device
+        window = self._window(x)
+        side = 2 * window + 1
+        for ci, c in enumerate(self.cameras):
+            key = (frame, ci, x.dtype, str(dev))
+            buf = self._buffers.get(key)
+            if buf is None:
+                buf = (wp.zeros(c.width * c.height, dtype=S, device=dev, requires_grad=True),
+                       wp.array(self.masks[frame][ci].reshape(-1), dtype=S, device=dev))
+                self._buffers[key] = buf
+            log_t, mask = buf
+            log_t.zero_()
+            wp.launch(k.splat, (x.shape[0], side * side),
+                      [x, T_mat(S, c.R), T_vec(S, c.t), S(c.fx), S(c.fy), S(c.cx), S(c.cy), c.width, c.height, window,
+                       S(self.radius), S(self.opacity)], [log_t], device=dev)
+            wp.launch(k.compare, c.width * c.height, [log_t, mask, S(scale / (len(self.cameras) * c.width * c.height))],
+                      [out], device=dev)
+
+    # ------------------------------------------------------------ statistics
+    def residual_scale(self) -> float:
+        pixels = np.mean([c.width * c.height for c in self.cameras])
+        return len(self.frames) * len(self.cameras) * pixels / self.weight
+
+    def observation_count(self) -> int:
+        return int(len(self.frames) * sum(c.width * c.height for c in self.cameras))
+
+    def residuals(self, positions) -> np.ndarray:
+        """``O - M`` at every pixel of every camera and frame (numpy, from ``{step: (n, 3)}``),
+        scaled by ``sqrt(mean pixels / camera pixels)`` so that ``sum r^2 = residual_scale *
+        value`` exactly when the cameras differ in size (the loss averages per camera)."""
+        out = []
+        mean_pixels = np.mean([c.width * c.height for c in self.cameras])
+        for f in self.frames:
+            X = np.asarray(positions[f], dtype=np.float64)
+            if self.particles is not None:
+                X = X[self.particles]
+            for c, m in zip(self.cameras, self.masks[f]):
+                k = math.sqrt(mean_pixels / (c.width * c.height))
+                out.append(k * (soft_silhouette(X, c, self.radius, self.opacity) - m).ravel())
+        return np.concatenate(out)
+
+    def __repr__(self):
+        return (f"SilhouetteLoss(frames={list(self.frames)}, cameras={[c.name for c in self.cameras]}, "
+                f"radius={self.radius:g}, weight={self.weight:g})")
+
+
+def T_mat(S, R):
+    return (wp.mat33d if S is wp.float64 else wp.mat33f)(*np.asarray(R, dtype=np.float64).ravel().tolist())
+
+
+def T_vec(S, t):
+    return (wp.vec3d if S is wp.float64 else wp.vec3f)(*np.asarray(t, dtype=np.float64).tolist())
+
+
+def load_silhouette_target(cameras_path, masks_path, frames_spec, frames: int, substeps: int) -> SilhouetteLoss:
+    """The silhouette loss of the ``warp-esph fit`` command: cameras from ``cameras_path``,
+    masks from ``masks_path`` at rendered frames (an image: ``frames_spec`` or the last
+    frame), with ``substeps`` steps per frame. The splat radius is the file's ``radius``
+    (default: half of... given per file; required)."""
+    cameras, options = load_cameras(cameras_path)
+    frame = int(frames_spec) if frames_spec is not None else frames
+    masks = load_masks(masks_path, cameras, frame)
+    bad = [f for f in masks if f > frames or f <= 0]
+    if bad:
+        raise ValueError(f"masks at frame {bad[0]} are not allowed: frames are 1..{frames} (--frames)")
+    if "radius" not in options:
+        raise ValueError(f"camera file {cameras_path} is not allowed: give the splat 'radius' in m (about half a particle spacing)")
+    return SilhouetteLoss({f * substeps: m for f, m in masks.items()}, cameras, radius=float(options["radius"]),
+                          opacity=float(options.get("opacity", 0.5)))

@@ -1,0 +1,220 @@
+"""The forward-only schedule of the step, used when no ``wp.Tape`` is recording.
+
+``constitutive_forces`` does, per particle, what ``plasticity.constitutive_update``,
+``forces.elastic_forces`` and ``pressure.pressure_forces`` do in three launches, calling
+the same functions for every formula (``plasticity.guarded_flow_step``,
+``forces.principal_stress`` / ``polynomial_stress``, ``forces.elastic_pair_force`` /
+``variational_pair_force``, ``pressure.sph_pair_force``). What it saves:
+
+* one SVD of ``F`` instead of four: the plastic flow ``F_e = U diag(g) V^T`` keeps the
+  singular vectors, so the stress reuses ``U, g, V`` instead of decomposing ``F_e``
+  again (and the SVD maps' own decompositions, there for their adjoints, are gone);
+  the stress is an isotropic function of ``F_e``, so the result is the same up to
+  round-off (in float32 closer to a float64 step than the differentiable kernels:
+  one SVD's error instead of two);
+* the divided differences the SVD maps' adjoints need are not computed;
+* the stress and ``F^-1`` of particle ``i`` are used where they are computed (they are
+  still written to the state), and one loop over the neighbours applies the elastic
+  pair force and the SPH pressure and viscosity forces, with each particle's pressure
+  and volume ``m / rho`` computed once, in the neighbour pass.
+
+``update_deformation`` is ``deformation.update_deformation`` with the neighbourhood
+guard evaluated on the fit's own moment matrix (the neighbour pass then skips it).
+
+Neither has an adjoint: under a tape the solver launches the differentiable kernels.
+``tests/test_physics.py::test_fused_step_matches_the_differentiable_step`` compares
+the two.
+"""
+import functools
+import types
+
+import warp as wp
+
+from .._types import type_set
+from . import deformation, forces, isotropic, materials, neighbors, plasticity, pressure, smoothing
+
+
+@functools.cache
+def kernels(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3, mat33 = T.vec3, T.mat33
+    sm = smoothing.funcs(scalar)
+    iso = isotropic.funcs(scalar)
+    fo = forces.funcs(scalar)
+    sph_pair_force = pressure.funcs(scalar).sph_pair_force
+    guarded_flow_step = plasticity.funcs(scalar).guarded_flow_step
+    guard_code = neighbors.kernels(scalar).guard_code
+    df = deformation.funcs(scalar)
+    Materials = materials.struct(scalar)
+
+    @wp.kernel(enable_backward=False)
+    def constitutive_forces(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        F_in: wp.array(dtype=mat33),
+        alpha_in: wp.array(dtype=scalar),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        body: wp.array(dtype=wp.int32),
+        volume: wp.array(dtype=scalar),
+        p: wp.array(dtype=scalar),
+        vol: wp.array(dtype=scalar),
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        h: scalar,
+        dt: scalar,
+        sph: int,
+        min_neighbors: int,
+        max_condition: scalar,
+        F_out: wp.array(dtype=mat33),
+        alpha_out: wp.array(dtype=scalar),
+        stress_out: wp.array(dtype=mat33),
+        F_inv_out: wp.array(dtype=mat33),
+        f: wp.array(dtype=vec3),
+        counters: wp.array(dtype=wp.int32),
+    ):
+        i = wp.tid()
+        m = material[i]
+        F = F_in[i]
+        kind = mat.model[m]
+        mu = mat.mu[m]
+        lam = mat.lam[m]
+
+        # 1. Plastic flow (plasticity.flow) with a single SVD.
+        Fe = F
+        a_new = alpha_in[i]
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        have_svd = int(0)
+        if mat.flow_rate[m] > scalar(0.0):
+            wp.svd3(F, U, s, V)
+            have_svd = 1
+            flowed, g, c, pw, a_flow = guarded_flow_step(
+                s, mu, mat.yield_stress[m], mat.flow_rate[m], mat.hardening[m], a_new, dt, kind, counters
+            )
+            if flowed != 0:
+                Fe = iso.from_principal(U, g, V)
+                s = g
+                a_new = a_flow
+
+        # 2. Stress P* (forces.stress, reusing the SVD) and F^-1.
+        P = mat33()
+        if kind >= 2:
+            P = fo.polynomial_stress(Fe, mu, lam, kind)
+        else:
+            if have_svd == 0:
+                wp.svd3(Fe, U, s, V)
+            P = iso.from_principal(U, fo.principal_stress(s, mu, lam), V)
+        Finv = wp.inverse(Fe)
+        F_out[i] = Fe
+        alpha_out[i] = a_new
+        stress_out[i] = P
+        F_inv_out[i] = Finv
+
+        # 3. Pair forces: elastic (forces.elastic_forces), then pressure and viscosity
+        # (pressure.pressure_forces) with the pressure p and volume m / rho of every
+        # particle from the neighbour pass, each pair's share applied equal and opposite.
+        xi = x[i]
+        bi = body[i]
+        Vol_i = volume[i]
+        vi = v[i]
+        Vi = scalar(0.0)
+        pi = scalar(0.0)
+        visc_i = mat.viscosity[m]
+        if sph != 0:
+            Vi = vol[i]
+            pi = p[i]
+        c_el = sm.elastic_coef(h)
+        # Elastic force: 0 the paper's (eqs. 10-13), 1 variational, 2 none (a guarded
+        # particle of the variational force).
+        kind_el = mat.elastic_force[m]
+        M = mat33()
+        if kind_el == 1:
+            A, B, same = df.moment_sums(i, x, x, body, nbr, count[i], h)
+            if guard_code(A, same, min_neighbors, max_condition) == 0:
+                M = fo.variational_map(Vol_i, P, Fe, A)
+            else:
+                kind_el = 2
+        c6 = sm.poly6_coef(h)
+        c_spiky = sm.spiky_coef(h)
+        c_visc = sm.viscosity_coef(h)
+        fi = vec3()
+        for k in range(count[i]):
+            j = nbr[i, k]
+            xj = x[j]
+            fj = vec3()
+            if body[j] == bi and kind_el == 1:
+                g = fo.variational_pair_force(M, xj - xi, h, c6)
+                fj = -g
+                fi += g
+            elif body[j] == bi and kind_el == 0:
+                g = fo.elastic_pair_force(Vol_i * volume[j], P, Finv, xj - xi, h, c_el)
+                fj = g
+                fi -= g
+            if sph != 0:
+                eta = scalar(0.5) * (visc_i + mat.viscosity[material[j]])
+                half = scalar(0.5) * sph_pair_force(Vi * vol[j], pi, p[j], eta, xi - xj, v[j] - vi, h, c_spiky, c_visc)
+                fj -= half
+                fi += half
+            wp.atomic_add(f, j, fj)
+        wp.atomic_add(f, i, fi)
+
+    @wp.kernel(enable_backward=False)
+    def update_deformation(
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        F_prev: wp.array(dtype=mat33),
+        h: scalar,
+        min_neighbors: int,
+        max_condition: scalar,
+        F_out: wp.array(dtype=mat33),
+        guard: wp.array(dtype=wp.int32),
+        counters: wp.array(dtype=wp.int32),
+    ):
+        """deformation.update_deformation with the neighbourhood guard of
+        neighbors.select_neighbors evaluated here, on the moment matrix A of the fit."""
+        i = wp.tid()
+        A, B, same = df.moment_sums(i, x, y, body, nbr, count[i], h)
+        code = guard_code(A, same, min_neighbors, max_condition)
+        guard[i] = code
+        F_out[i] = df.deformation_update(A, B, code, F_prev[i], counters)
+
+    return types.SimpleNamespace(constitutive_forces=constitutive_forces, update_deformation=update_deformation)
+
+
+def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: bool):
+    """Plastic flow, stress, ``F^-1`` and every pair force in one launch; with ``sph`` the
+    SPH pressure and volume ``scratch.pressure``, ``scratch.sph_volume`` of the neighbour pass."""
+    S = model.scalar
+    wp.launch(
+        kernels(S).constitutive_forces,
+        model.particle_count,
+        [
+            state_in.x, state_in.v, state_in.F, state_in.alpha, model.particle_material, model.material_arrays(),
+            model.particle_body, model.particle_volume, scratch.pressure, scratch.sph_volume, state_out.neighbors,
+            state_out.neighbor_count, S(model.support_radius), S(dt), int(sph), scratch.min_neighbors,
+            S(scratch.max_condition),
+        ],
+        [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, state_out.force, scratch.counters],
+        device=model.device,
+    )
+
+
+def launch_update_deformation(model, state_in, state_out, scratch):
+    """``deformation.launch_update_deformation`` that also evaluates the neighbourhood
+    guards (into ``state_out.guard``) on the fit's own moment matrix."""
+    S = model.scalar
+    wp.launch(
+        kernels(S).update_deformation,
+        model.particle_count,
+        [
+            state_in.x, state_out.x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
+            state_out.F_flowed, S(model.support_radius), scratch.min_neighbors, S(scratch.max_condition),
+        ],
+        [state_out.F, state_out.guard, scratch.counters],
+        device=model.device,
+    )

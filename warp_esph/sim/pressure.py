@@ -1,0 +1,166 @@
+"""SPH density, pressure and viscosity (paper §4 "for additional stability"; docs/method.md §6,
+kernels of Müller et al. 2003).
+
+    rho_i = sum_{j in N_i + {i}} m_j W_poly6(|x_i - x_j|, h)
+    p_i   = k_p (rho_i - rho0_i)          (clamped at 0 unless the material says not)
+    f_i   = -sum_j V_i V_j (p_i + p_j)/2 grad W_spiky(x_i - x_j)
+            + sum_j 5 eta_ij V_i V_j ((u_j - u_i) . e_ij) e_ij lap W_visc(|x_i - x_j|)
+
+with ``V = m / rho`` and ``e_ij`` the unit vector between the pair. The viscous force is
+Müller's ``eta V_i V_j (u_j - u_i) lap W`` projected onto the line between the particles:
+a central force, so it conserves angular momentum and leaves a rigid rotation alone (the
+unprojected form stops a spinning body). The factor 5 (``d + 2``) keeps ``eta`` the shear
+viscosity: for a divergence-free flow the projection averages to 1/5 of the full sum. ``rho0_i`` is each particle's SPH density in the initial
+configuration, so a body starts pressure-free even at its surface, where the SPH sum is
+short of neighbours. Lists are capped at 30 and so not symmetric: as for the elastic
+force each directed pair applies half its force to both particles, equal and opposite,
+which keeps linear momentum exact. Pressure acts between bodies too: it is what keeps
+them apart.
+"""
+
+import functools
+import types
+
+import warp as wp
+
+from .._types import type_set
+from . import materials, smoothing
+
+
+@functools.cache
+def funcs(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3 = T.vec3
+    sm = smoothing.funcs(scalar)
+
+    @wp.func
+    def pressure(rho: scalar, rho0: scalar, k_p: scalar, clamp: int) -> scalar:
+        """The equation of state ``p = k_p (rho - rho0)``, clamped at 0 when ``clamp``."""
+        p = k_p * (rho - rho0)
+        if clamp != 0:
+            p = wp.max(p, scalar(0.0))
+        return p
+
+    @wp.func
+    def pressure_pair_force(VV: scalar, p_i: scalar, p_j: scalar, rij: vec3, rl: scalar, h: scalar, c_spiky: scalar) -> vec3:
+        """``-V_i V_j (p_i + p_j)/2 grad W_spiky(x_i - x_j)`` on ``i`` (``VV = V_i V_j``,
+        ``rij = x_i - x_j``, ``rl = |rij|`` in (0, h))."""
+        return -VV * scalar(0.5) * (p_i + p_j) * sm.grad_w_spiky_at(rij, rl, h, c_spiky)
+
+    @wp.func
+    def viscous_pair_force(eta_VV: scalar, rij: vec3, r2: scalar, lap_w: scalar, vji: vec3) -> vec3:
+        """``5 eta V_i V_j ((u_j - u_i) . e_ij) e_ij lap W`` on ``i`` (``eta_VV = eta_ij V_i V_j``,
+        ``rij = x_i - x_j``, ``r2 = |rij|^2``, ``vji = u_j - u_i``)."""
+        if r2 <= scalar(1.0e-30):
+            return vec3()
+        return (scalar(5.0) * eta_VV * lap_w * wp.dot(vji, rij) / r2) * rij
+
+    @wp.func
+    def sph_pair_force(
+        VV: scalar, p_i: scalar, p_j: scalar, eta: scalar, rij: vec3, vji: vec3, h: scalar, c_spiky: scalar, c_visc: scalar
+    ) -> vec3:
+        """Pressure plus viscous force of the pair on ``i``, the two kernels sharing one ``|rij|``."""
+        r2 = wp.dot(rij, rij)
+        f = vec3()
+        if r2 < h * h:
+            rl = wp.sqrt(r2)
+            if r2 > scalar(1.0e-24) * h * h:
+                f = pressure_pair_force(VV, p_i, p_j, rij, rl, h, c_spiky)
+            f += viscous_pair_force(eta * VV, rij, r2, sm.lap_w_viscosity_at(rl, h, c_visc), vji)
+        return f
+
+    return types.SimpleNamespace(
+        pressure=pressure, pressure_pair_force=pressure_pair_force, viscous_pair_force=viscous_pair_force,
+        sph_pair_force=sph_pair_force,
+    )
+
+
+@functools.cache
+def kernels(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3 = T.vec3
+    sm = smoothing.funcs(scalar)
+    fn = funcs(scalar)
+    Materials = materials.struct(scalar)
+
+    @wp.kernel
+    def density(
+        x: wp.array(dtype=vec3),
+        mass: wp.array(dtype=scalar),
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        h: scalar,
+        rho: wp.array(dtype=scalar),
+    ):
+        i = wp.tid()
+        xi = x[i]
+        c6 = sm.poly6_coef(h)
+        r = mass[i] * sm.w_poly6_c(scalar(0.0), h, c6)
+        for k in range(count[i]):
+            j = nbr[i, k]
+            d = x[j] - xi
+            r += mass[j] * sm.w_poly6_c(wp.dot(d, d), h, c6)
+        rho[i] = r
+
+    @wp.kernel
+    def pressure_forces(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        mass: wp.array(dtype=scalar),
+        rho: wp.array(dtype=scalar),
+        rest_density: wp.array(dtype=scalar),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        h: scalar,
+        f: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        mi = material[i]
+        xi = x[i]
+        vi = v[i]
+        Vi = mass[i] / rho[i]
+        pi = fn.pressure(rho[i], rest_density[i], mat.pressure_stiffness[mi], mat.clamp_pressure[mi])
+        visc_i = mat.viscosity[mi]
+        c_spiky = sm.spiky_coef(h)
+        c_visc = sm.viscosity_coef(h)
+        fi = vec3()
+        for k in range(count[i]):
+            j = nbr[i, k]
+            mj = material[j]
+            pj = fn.pressure(rho[j], rest_density[j], mat.pressure_stiffness[mj], mat.clamp_pressure[mj])
+            VV = Vi * mass[j] / rho[j]
+            eta = scalar(0.5) * (visc_i + mat.viscosity[mj])
+            half = scalar(0.5) * fn.sph_pair_force(VV, pi, pj, eta, xi - x[j], v[j] - vi, h, c_spiky, c_visc)
+            wp.atomic_add(f, j, -half)
+            fi += half
+        wp.atomic_add(f, i, fi)
+
+    return types.SimpleNamespace(density=density, pressure_forces=pressure_forces)
+
+
+def launch_density(model, x, neighbors, neighbor_count, rho):
+    """SPH density at ``x`` over the given neighbour lists into ``rho``."""
+    wp.launch(
+        kernels(model.scalar).density,
+        model.particle_count,
+        [x, model.particle_mass, neighbors, neighbor_count, model.scalar(model.support_radius)],
+        [rho],
+        device=model.device,
+    )
+
+
+def launch_pressure_forces(model, state_in, state_out):
+    """SPH pressure and viscosity forces into ``state_out.force`` (density in ``state_out.density``)."""
+    wp.launch(
+        kernels(model.scalar).pressure_forces,
+        model.particle_count,
+        [
+            state_in.x, state_in.v, model.particle_mass, state_out.density, model.particle_rest_density,
+            model.particle_material, model.material_arrays(), state_out.neighbors, state_out.neighbor_count,
+            model.scalar(model.support_radius),
+        ],
+        [state_out.force],
+        device=model.device,
+    )

@@ -1,0 +1,138 @@
+"""Smoothing kernels: poly6 (eq. 7), the Solenthaler elastic kernel (eqs. 12-13), and
+the spiky and viscosity kernels of Müller et al. 2003 used by SPH (docs/method.md §6).
+
+Each factory returns ``wp.func`` objects specialised to one scalar type.
+"""
+
+import functools
+import math
+import types
+
+import warp as wp
+
+from .._types import type_set
+
+
+def elastic_kernel(r: float, h: float) -> float:
+    """Host-side Solenthaler kernel W(r, h) of eq. 12 with c from eq. 13 (the step needs only
+    its gradient, ``grad_w_elastic_c``; tests check that against this)."""
+    if r > h:
+        return 0.0
+    c = elastic_kernel_constant(h)
+    return c * 2.0 * h / math.pi * (math.cos((r + h) * math.pi / (2.0 * h)) + 1.0)
+
+
+def elastic_kernel_constant(h: float) -> float:
+    """c of eq. 13, which makes eq. 12 integrate to 1 over the ball of radius h."""
+    return math.pi / (8.0 * h**4 * (math.pi / 3.0 - 8.0 / math.pi + 16.0 / math.pi**2))
+
+
+# Taylor coefficients of cos(pi s / 2) in t = s^2 up to t^7: on s in [0, 1] the
+# truncation error is below 1e-8, under float32 rounding (max error measured against
+# float64: 1.4e-7, libm cosf: 1.1e-7).
+_COS_COEFFS = [(-1) ** k * (math.pi / 2) ** (2 * k) / math.factorial(2 * k) for k in range(8)]
+
+
+@functools.cache
+def funcs(scalar) -> types.SimpleNamespace:
+    """Each kernel's formula once, with its ``h``-dependent constant passed in (``*_coef``),
+    so a kernel computes the constant once per particle instead of once per pair (pow and
+    divisions are a large part of a pair's cost on the CPU); the two-argument forms
+    (``w_poly6(r2, h)``, ...) compute the constant themselves."""
+    T = type_set(scalar)
+    vec3 = T.vec3
+    PI = scalar(math.pi)
+    c0, c1, c2, c3, c4, c5, c6, c7 = (scalar(c) for c in _COS_COEFFS)
+    exact_cos = scalar is wp.float64
+
+    @wp.func
+    def poly6_coef(h: scalar) -> scalar:
+        return scalar(315.0) / (scalar(64.0) * PI * wp.pow(h, scalar(9.0)))
+
+    @wp.func
+    def w_poly6_c(r2: scalar, h: scalar, coef: scalar) -> scalar:
+        """Eq. 7, on the squared distance: smooth in r and zero with zero slope at r = h."""
+        if r2 >= h * h:
+            return scalar(0.0)
+        d = h * h - r2
+        return coef * d * d * d
+
+    @wp.func
+    def w_poly6(r2: scalar, h: scalar) -> scalar:
+        return w_poly6_c(r2, h, poly6_coef(h))
+
+    @wp.func
+    def elastic_coef(h: scalar) -> scalar:
+        """c of eq. 13."""
+        return PI / (scalar(8.0) * h * h * h * h * (PI / scalar(3.0) - scalar(8.0) / PI + scalar(16.0) / (PI * PI)))
+
+    @wp.func
+    def elastic_cos(r2: scalar, rl: scalar, h: scalar) -> scalar:
+        """cos(pi |r| / (2h)) of eq. 12's gradient, for ``r2 = |r|^2``, ``rl = |r|`` in [0, h]:
+        the library cosine in float64; in float32 a polynomial in ``|r|^2 / h^2`` (a third
+        of a pair's elastic-force cost was the libm call and its wait for the square root)."""
+        if wp.static(exact_cos):
+            return wp.cos(PI * rl / (scalar(2.0) * h))
+        t = r2 * (scalar(1.0) / (h * h))
+        return c0 + t * (c1 + t * (c2 + t * (c3 + t * (c4 + t * (c5 + t * (c6 + t * c7))))))
+
+    @wp.func
+    def grad_w_elastic_c(r: vec3, h: scalar, c: scalar) -> vec3:
+        """Gradient of eq. 12: -c cos(pi |r| / (2h)) r/|r|. It does not vanish as r -> 0,
+        so coincident particles (|r| = 0) get no force instead of a NaN direction."""
+        r2 = wp.dot(r, r)
+        if r2 >= h * h or r2 <= scalar(1.0e-24) * h * h:
+            return vec3()
+        rl = wp.sqrt(r2)
+        return -c * elastic_cos(r2, rl, h) / rl * r
+
+    @wp.func
+    def grad_w_elastic(r: vec3, h: scalar) -> vec3:
+        return grad_w_elastic_c(r, h, elastic_coef(h))
+
+    @wp.func
+    def spiky_coef(h: scalar) -> scalar:
+        return -scalar(45.0) / (PI * wp.pow(h, scalar(6.0)))
+
+    @wp.func
+    def grad_w_spiky_at(r: vec3, rl: scalar, h: scalar, coef: scalar) -> vec3:
+        """-45/(pi h^6) (h - |r|)^2 r/|r| (Müller et al. 2003) given ``rl = |r|`` in (0, h)."""
+        d = h - rl
+        return coef * d * d / rl * r
+
+    @wp.func
+    def grad_w_spiky_c(r: vec3, h: scalar, coef: scalar) -> vec3:
+        r2 = wp.dot(r, r)
+        if r2 >= h * h or r2 <= scalar(1.0e-24) * h * h:
+            return vec3()
+        return grad_w_spiky_at(r, wp.sqrt(r2), h, coef)
+
+    @wp.func
+    def grad_w_spiky(r: vec3, h: scalar) -> vec3:
+        return grad_w_spiky_c(r, h, spiky_coef(h))
+
+    @wp.func
+    def viscosity_coef(h: scalar) -> scalar:
+        return scalar(45.0) / (PI * wp.pow(h, scalar(6.0)))
+
+    @wp.func
+    def lap_w_viscosity_at(rl: scalar, h: scalar, coef: scalar) -> scalar:
+        """45/(pi h^6) (h - |r|) (Müller et al. 2003) given ``rl = |r| < h``."""
+        return coef * (h - rl)
+
+    @wp.func
+    def lap_w_viscosity_c(r2: scalar, h: scalar, coef: scalar) -> scalar:
+        if r2 >= h * h:
+            return scalar(0.0)
+        return lap_w_viscosity_at(wp.sqrt(r2), h, coef)
+
+    @wp.func
+    def lap_w_viscosity(r2: scalar, h: scalar) -> scalar:
+        return lap_w_viscosity_c(r2, h, viscosity_coef(h))
+
+    return types.SimpleNamespace(
+        w_poly6=w_poly6, grad_w_elastic=grad_w_elastic, grad_w_spiky=grad_w_spiky, lap_w_viscosity=lap_w_viscosity,
+        poly6_coef=poly6_coef, w_poly6_c=w_poly6_c, elastic_coef=elastic_coef, grad_w_elastic_c=grad_w_elastic_c,
+        elastic_cos=elastic_cos, spiky_coef=spiky_coef, grad_w_spiky_c=grad_w_spiky_c, grad_w_spiky_at=grad_w_spiky_at,
+        viscosity_coef=viscosity_coef, lap_w_viscosity_c=lap_w_viscosity_c, lap_w_viscosity_at=lap_w_viscosity_at,
+    )

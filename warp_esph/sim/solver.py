@@ -1,0 +1,220 @@
+"""The time step (docs/method.md §1): ``Solver(model).step(state_in, state_out, dt)``.
+
+``step`` reads ``state_in`` and writes only ``state_out``, so a rollout with one state
+per step can be recorded on a ``wp.Tape`` and differentiated.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+import warnings
+
+import warp as wp
+
+from .. import checks
+from ..model import Model, State
+from . import comparison, deformation, fields, forces, fused, integrate, neighbors, plasticity, pressure
+
+GUARD_NAMES = ("few_neighbors", "ill_conditioned", "inverted", "plasticity_skipped")
+
+#: Default Verlet skin of the neighbour candidates, in units of the support radius
+#: (measured in benchmarks/step.py, docs/performance.md).
+DEFAULT_SKIN = 0.15
+
+#: Names ``profile_phases`` times: the fused step has neighbors, fused, integrate and
+#: deformation; the differentiable one (under a tape, or ``fused=False``) splits
+#: ``fused`` into density, constitutive, forces and pressure.
+PHASES = ("neighbors", "density", "constitutive", "forces", "pressure", "fused", "integrate", "deformation")
+
+
+_NO_PHASE = contextlib.nullcontext()
+
+
+def tape_recording() -> bool:
+    """Whether a ``wp.Tape`` is recording launches now."""
+    runtime = getattr(getattr(getattr(wp, "_src", None), "context", None), "runtime", None)
+    if runtime is None:  # pragma: no cover (older layout)
+        runtime = wp.context.runtime
+    return getattr(runtime, "tape", None) is not None
+
+
+class StepScratch:
+    """What the launches of one step share besides the model and the two states: the
+    guard counters, the fast path's per-particle SPH pressure and volume ``m / rho``
+    (written and read within one step), and the guard thresholds."""
+
+    def __init__(self, model: Model, min_neighbors: int, max_condition: float):
+        n, dev = model.particle_count, model.device
+        self.counters = wp.zeros(len(GUARD_NAMES), dtype=wp.int32, device=dev)
+        self.pressure = wp.zeros(n, dtype=model.scalar, device=dev)
+        self.sph_volume = wp.zeros(n, dtype=model.scalar, device=dev)
+        self.min_neighbors = min_neighbors
+        self.max_condition = max_condition
+
+
+class Solver:
+    """Explicit elastoplastic step of Gerszewski et al. 2009.
+
+    ``min_neighbors`` and ``max_condition`` are the guards of paper §4 on the
+    deformation update; ``guard_counts()`` says how often each fired.
+
+    ``neighbor_skin`` (in units of the support radius ``h``, in [0, 1]; default
+    ``DEFAULT_SKIN``) is the Verlet margin of the neighbour candidates: they are rebuilt only when two
+    particles may have moved by more than it relative to each other, and the 30
+    nearest within ``h`` are selected from them every step, so the lists are those of
+    a fresh search (``0``: search afresh every step). ``fused`` (default on) runs the
+    constitutive update and all pair forces in one kernel with one SVD per particle
+    when no ``wp.Tape`` is recording; under a tape the differentiable kernels run.
+
+    Whether SPH pressure and viscosity run, and the stable time step ``check_dt`` warns
+    against, follow the model's parameter arrays at each step (``Model.sph_active``,
+    ``Model.stable_dt``): values a fit or ``warp_esph.torch`` wrote are the ones used.
+
+    A model with a material of a Fig. 8 comparison deformation model (``Material.deformation``
+    ``"rest"`` or ``"additive"``, docs/method.md §7) always runs the non-fused kernels, with the
+    constitutive and deformation updates of ``comparison.py``. The model's force fields
+    (``fields.CompressionField``) act while active at ``state_in.time``.
+    """
+
+    def __init__(
+        self,
+        model: Model,
+        *,
+        min_neighbors: int = 6,
+        max_condition: float = 1.0e3,
+        neighbor_skin: float | None = None,
+        fused: bool = True,
+    ):
+        self.model = model
+        self.min_neighbors = checks.positive_int("min_neighbors", min_neighbors)
+        self.max_condition = checks.greater_than("max_condition", max_condition, 1.0, "1")
+        skin = DEFAULT_SKIN if neighbor_skin is None else checks.in_range("neighbor_skin", neighbor_skin, 0.0, 1.0)
+        if not isinstance(fused, bool):
+            raise ValueError(f"fused = {fused!r} is not allowed: must be True or False")
+        self.neighbor_skin = skin
+        self.search = neighbors.NeighborSearch(
+            model.particle_count, model.scalar, model.device, model.support_radius,
+            min_neighbors=self.min_neighbors, max_condition=self.max_condition,
+            skin=skin * model.support_radius, spacing=model.spacing, bodies_interact=model.bodies_interact,
+            **model.neighbor_options(),
+        )
+        self.fused = bool(fused)
+        self.scratch = StepScratch(model, self.min_neighbors, self.max_condition)
+        #: Seconds per phase, summed over steps while ``profile_phases`` is on, else None.
+        self.phase_times: dict[str, float] | None = None
+        self._cmp = model.uses_comparison_models
+        if self._cmp:
+            model.rest_neighbors()
+        self._warned_dt = set()
+        self.step_count = 0
+
+    def _phase(self, name: str):
+        return _NO_PHASE if self.phase_times is None else self._timed_phase(name)
+
+    @contextlib.contextmanager
+    def _timed_phase(self, name: str):
+        wp.synchronize_device(self.model.device)
+        t0 = time.perf_counter()
+        yield
+        wp.synchronize_device(self.model.device)
+        self.phase_times[name] = self.phase_times.get(name, 0.0) + time.perf_counter() - t0
+
+    def profile_phases(self, on: bool = True):
+        """Time each phase of ``step`` (synchronising around it) into ``phase_times``
+        (seconds, summed over steps); ``profile_phases(False)`` stops. Instrumented
+        steps are slower: use them for the split, not for the rate."""
+        self.phase_times = {} if on else None
+
+    def guard_counts(self) -> dict[str, int]:
+        """How many particle-steps each guard skipped since construction or ``reset_counts``."""
+        return dict(zip(GUARD_NAMES, (int(c) for c in self.scratch.counters.numpy())))
+
+    def reaction_forces(self, state: State) -> dict:
+        """``{tool name: (force, torque)}`` each moving collider and pinned set exerted on the
+        material in the step that produced ``state`` (definitions in ``warp_esph/tools.py``)."""
+        return {} if self.model.tools is None else self.model.tools.reaction(state)
+
+    def reset_counts(self):
+        self.scratch.counters.zero_()
+
+    def check_dt(self, dt) -> float:
+        dt = checks.positive("dt", dt)
+        stable = self.model.stable_dt()
+        if dt > stable and (dt, stable) not in self._warned_dt:
+            self._warned_dt.add((dt, stable))
+            warnings.warn(
+                f"dt = {dt:g} s is above the explicit stability limit {stable:.3g} s "
+                f"(Model.stable_dt: 0.3 * spacing / p-wave speed, docs/method.md §8, and the viscous limit "
+                f"0.025 rho0 h^2 / viscosity); the run may blow up",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+        return dt
+
+    def step(self, state_in: State, state_out: State, dt: float):
+        """One step of the method, stage by stage (docs/physics.md has the table)."""
+        checks.step_states(self.model, state_in, state_out)
+        dt = self.check_dt(dt)
+        m = self.model
+        scratch = self.scratch
+        sph = m.sph_active
+        fast = self.fused and not self._cmp and not tape_recording()
+        phase = self._phase
+
+        # 1. Neighbour lists and neighbourhood guards (integers, not taped). The fast
+        # path also sums the SPH density there (docs/method.md, Warp pitfall 1: it is
+        # finished before any pressure uses it).
+        with phase("neighbors"):
+            self.search.update(
+                state_in.x, m.particle_body, state_out.neighbors, state_out.neighbor_d2, state_out.neighbor_count,
+                None if fast else state_out.guard,
+                (m.particle_mass, m.particle_material, m.particle_rest_density, m.material_arrays(),
+                 state_out.density, scratch.pressure, scratch.sph_volume) if fast and sph else None,
+            )
+        state_out.force.zero_()
+
+        if fast:
+            # 2-4 fused: plastic flow, stress, F^-1 and every pair force in one launch.
+            with phase("fused"):
+                fused.launch_constitutive_forces(m, state_in, state_out, dt, scratch, sph)
+        else:
+            # 2. SPH density, finished before any pressure uses it (docs/method.md, Warp pitfall 1).
+            if sph:
+                with phase("density"):
+                    pressure.launch_density(m, state_in.x, state_out.neighbors, state_out.neighbor_count, state_out.density)
+            # 3. Plastic flow of the stored F, stress, F^-1.
+            with phase("constitutive"):
+                if self._cmp:
+                    comparison.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters)
+                else:
+                    plasticity.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters)
+            # 4. Elastic pair forces, pressure and viscosity.
+            with phase("forces"):
+                forces.launch_elastic_forces(m, state_in, state_out)
+            if sph:
+                with phase("pressure"):
+                    pressure.launch_pressure_forces(m, state_in, state_out)
+
+        # External force fields active at the step's start time.
+        fields.launch_force_fields(m, state_in, state_out)
+
+        # 5. Symplectic Euler, gravity, colliders (and the moving tools and pinned sets,
+        # docs/tools.md, when the model has them).
+        with phase("integrate"):
+            if m.tools is not None:
+                m.tools.integrate(self, state_in, state_out, dt)
+            else:
+                integrate.launch_integrate(m, state_in, state_out, dt)
+
+        # 6. Incremental deformation gradient over the step (eqs. 1-8); the fast path
+        # evaluates the neighbourhood guards here, on the fit's own moment matrix.
+        with phase("deformation"):
+            if fast:
+                fused.launch_update_deformation(m, state_in, state_out, scratch)
+            elif self._cmp:
+                comparison.launch_update_deformation(m, state_in, state_out, scratch.counters)
+            else:
+                deformation.launch_update_deformation(m, state_in, state_out, scratch.counters)
+        state_out.time = state_in.time + dt
+        self.step_count += 1

@@ -1,0 +1,947 @@
+"""Parameter sweeps: run a scene for many material values, one summary row per sample.
+
+::
+
+    table = sweep("dough_drop", ["yield_stress=100:1000:log:8", "flow_rate=50:500:lin:4"],
+                  frames=30, workers=2)
+    table.column("max_height")      # numpy array, one value per sample (NaN where it failed)
+    table.to_csv("sweep.csv")
+
+A parameter is a material field of ``Model.MATERIAL_FIELDS`` (the names ``fit`` uses):
+``yield_stress`` sets it in every material, ``dough.yield_stress`` in the materials of
+the body ``dough``, ``0.yield_stress`` in material 0. A spec is ``NAME=LO:HI:SCALE:N``
+(``SCALE`` is ``lin`` or ``log``; ``N`` levels on the grid), ``NAME=LO:HI[:SCALE]`` for
+``random``/``lhs`` sampling (``samples`` draws in all), ``NAME=A,B,C`` (these values) or
+``NAME=V`` (one value for every sample).
+
+Samples run one per process (``workers``, default every core; spawned processes, each
+with its own Warp context) or as Ray tasks (``ray=ADDRESS``, the optional extra
+``warp-esph[ray]``). Every sample is a deterministic CPU run of its own model, and the
+sample values are drawn in the calling process from ``seed``, so the table does not
+depend on where or in which order the samples ran; only ``wall_s`` (the seconds one
+sample took) varies from run to run. Rows are sorted by sample index.
+
+A sample that diverges (``SimulationError``) or whose values make an invalid material is
+a row with ``status = "failed"`` and the one-line ``reason``; the sweep goes on.
+
+``parallel_map`` is the executor underneath, for other per-sample jobs (e.g. one fit per
+starting point of a multi-start fit, with the starting points from ``sample_points``).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import itertools
+import json
+import math
+import multiprocessing
+import os
+import sys
+import time
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+
+import numpy as np
+
+from . import checks
+
+__all__ = ["Param", "SweepTable", "sweep", "parse_param", "sample_points", "parallel_map", "write_outputs", "SAMPLINGS",
+           "MAX_SAMPLES", "SUMMARY_COLUMNS"]
+
+SAMPLINGS = ("grid", "random", "lhs")
+SCALES = ("lin", "log")
+#: Default cap on the number of samples: a grid of 8 levels in 6 parameters already has 262144.
+MAX_SAMPLES = 10000
+#: The summary quantities of every row (``y`` is up), in table order.
+SUMMARY_COLUMNS = ("centroid_height", "max_height", "radial_spread", "max_radius", "kinetic_energy")
+
+# Lower limits the Material checks impose (Material.__post_init__), checked before any
+# sample runs so a range that cannot work is reported as bad input, not as N failures.
+_MINIMUM = {"mu": (0.0, False), "yield_stress": (0.0, True), "flow_rate": (0.0, True),
+            "pressure_stiffness": (0.0, True), "viscosity": (0.0, True)}
+
+
+def _fields() -> tuple[str, ...]:
+    from .model import Model  # noqa: PLC0415
+
+    return Model.MATERIAL_FIELDS
+
+
+@dataclasses.dataclass(frozen=True)
+class Param:
+    """One swept parameter: ``name`` (``field``, ``body.field`` or ``index.field``) and either
+    a range ``lo..hi`` on a ``lin``/``log`` scale with ``n`` grid levels (``None``: only for
+    random/LHS sampling), or explicit ``values``."""
+
+    name: str
+    lo: float | None = None
+    hi: float | None = None
+    scale: str = "lin"
+    n: int | None = None
+    values: tuple[float, ...] | None = None
+
+    @property
+    def field(self) -> str:
+        return self.name.rsplit(".", 1)[-1]
+
+    @property
+    def target(self) -> str | None:
+        """The body name or material index before the dot; ``None``: every material."""
+        return self.name.rsplit(".", 1)[0] if "." in self.name else None
+
+    def levels(self) -> np.ndarray:
+        """The grid levels."""
+        if self.values is not None:
+            return np.asarray(self.values, dtype=np.float64)
+        if self.n is None:
+            raise ValueError(f"--param {self.name}: no level count is not allowed with grid sampling: "
+                             f"give NAME=LO:HI:SCALE:N (e.g. {self.name}={self.lo:g}:{self.hi:g}:{self.scale}:4), "
+                             f"or use --sample random|lhs with --samples N")
+        if self.n == 1:
+            return np.array([self.lo if self.scale == "lin" else math.sqrt(self.lo * self.hi)])
+        if self.scale == "log":
+            return np.geomspace(self.lo, self.hi, self.n)
+        return np.linspace(self.lo, self.hi, self.n)
+
+    def from_unit(self, u: np.ndarray) -> np.ndarray:
+        """Map ``u`` in [0, 1) onto the range (random and LHS sampling)."""
+        if self.values is not None:
+            v = np.asarray(self.values, dtype=np.float64)
+            return v[np.minimum((u * len(v)).astype(np.int64), len(v) - 1)]
+        if self.scale == "log":
+            return np.exp(math.log(self.lo) + u * (math.log(self.hi) - math.log(self.lo)))
+        return self.lo + u * (self.hi - self.lo)
+
+
+def _number(name: str, spec: str, text: str, what: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise ValueError(f"--param {spec!r}: {what} = {text!r} is not allowed: must be a number") from None
+    if not math.isfinite(v):
+        raise ValueError(f"--param {spec!r}: {what} = {text!r} is not allowed: must be finite")
+    return v
+
+
+def parse_param(spec) -> Param:
+    """A ``Param`` from ``NAME=LO:HI:SCALE:N``, ``NAME=LO:HI[:SCALE]``, ``NAME=A,B,C`` or ``NAME=V``.
+
+    Checks the syntax, the field name and the range (``lo < hi``, ``lo > 0`` on a log
+    scale, ``N >= 1``, values the material allows); the body or material index is checked
+    against the scene by ``sweep``.
+    """
+    if isinstance(spec, Param):
+        p = spec
+    else:
+        text = str(spec).strip()
+        name, sep, rng = text.partition("=")
+        name = name.strip()
+        if not sep or not name or not rng.strip():
+            raise ValueError(f"--param {text!r} is not allowed: use NAME=LO:HI:SCALE:N (e.g. yield_stress=100:1000:log:8), "
+                             f"NAME=LO:HI:SCALE for random/lhs sampling, NAME=A,B,C or NAME=V")
+        rng = rng.strip()
+        if ":" in rng:
+            parts = [s.strip() for s in rng.split(":")]
+            if len(parts) not in (2, 3, 4):
+                raise ValueError(f"--param {text!r} is not allowed: a range is LO:HI, LO:HI:SCALE or LO:HI:SCALE:N "
+                                 f"(SCALE lin or log), not {len(parts)} fields")
+            lo = _number(name, text, parts[0], "LO")
+            hi = _number(name, text, parts[1], "HI")
+            scale = parts[2] if len(parts) > 2 else "lin"
+            if scale not in SCALES:
+                raise ValueError(f"--param {text!r}: SCALE = {scale!r} is not allowed: must be lin or log")
+            n = None
+            if len(parts) == 4:
+                try:
+                    n = int(parts[3])
+                except ValueError:
+                    raise ValueError(f"--param {text!r}: N = {parts[3]!r} is not allowed: must be an integer >= 1") from None
+            p = Param(name, lo, hi, scale, n)
+        else:
+            values = tuple(_number(name, text, s.strip(), "value") for s in rng.split(","))
+            p = Param(name, values=values)
+    fields = _fields()
+    if not isinstance(p.name, str) or p.field not in fields or (p.target is not None and not p.target):
+        raise ValueError(f"--param {p.name!r} is not allowed: unknown parameter; name one of {', '.join(fields)}, "
+                         f"optionally prefixed by a body name or material index (e.g. dough.yield_stress, 0.yield_stress)")
+    if p.values is not None:
+        if not p.values:
+            raise ValueError(f"--param {p.name}: values = () is not allowed: give at least one value")
+        lows = list(p.values)
+    else:
+        if p.scale not in SCALES:
+            raise ValueError(f"--param {p.name}: scale = {p.scale!r} is not allowed: must be lin or log")
+        if not (isinstance(p.lo, (int, float)) and isinstance(p.hi, (int, float))) or not p.lo < p.hi:
+            raise ValueError(f"--param {p.name}: LO = {p.lo!r}, HI = {p.hi!r} is not allowed: need LO < HI")
+        if p.scale == "log" and p.lo <= 0.0:
+            raise ValueError(f"--param {p.name}: LO = {p.lo!r} is not allowed on a log scale: need LO > 0 (or use lin)")
+        if p.n is not None and (isinstance(p.n, bool) or not isinstance(p.n, (int, np.integer)) or p.n < 1):
+            raise ValueError(f"--param {p.name}: N = {p.n!r} is not allowed: must be an integer >= 1")
+        lows = [p.lo]
+    if p.field in _MINIMUM:
+        bound, inclusive = _MINIMUM[p.field]
+        bad = [v for v in lows if v < bound or (v == bound and not inclusive)]
+        if bad:
+            op = ">=" if inclusive else ">"
+            raise ValueError(f"--param {p.name}: value {bad[0]!r} is not allowed: {p.field} must be {op} {bound:g}")
+    return p
+
+
+def _as_params(params) -> list[Param]:
+    if isinstance(params, (str, Param)):
+        params = [params]
+    if isinstance(params, Mapping):
+        params = [Param(k, values=tuple(float(x) for x in np.atleast_1d(v))) if not isinstance(v, str) else f"{k}={v}"
+                  for k, v in params.items()]
+    out = [parse_param(p) for p in params]
+    if not out:
+        raise ValueError("params = [] is not allowed: give at least one --param NAME=LO:HI:SCALE:N")
+    names = [p.name for p in out]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"--param {dup[0]} is not allowed twice: give each parameter once")
+    return out
+
+
+def sample_points(params, sample: str = "grid", samples: int | None = None, seed: int = 0,
+                  max_samples: int = MAX_SAMPLES) -> list[dict[str, float]]:
+    """The sample values, ``[{name: value}]`` in sample order.
+
+    ``grid``: every combination of the levels, the last parameter varying fastest.
+    ``random``: ``samples`` independent uniform draws (uniform in log for ``log``).
+    ``lhs``: a Latin hypercube of ``samples`` points: each parameter's range is cut into
+    ``samples`` equal strata (equal in log for ``log``) and each stratum holds exactly one
+    sample. Draws come from ``numpy.random.default_rng(seed)``: the same seed, the same
+    points. Parameters with explicit values (``NAME=A,B,C``) pick among them.
+    """
+    params = _as_params(params)
+    sample = checks.choice("--sample", sample, SAMPLINGS)
+    max_samples = checks.positive_int("max_samples", max_samples)
+    names = [p.name for p in params]
+    if sample == "grid":
+        if samples is not None:
+            raise ValueError(f"--samples = {samples!r} is not allowed with --sample grid: the grid has the product of "
+                             f"the levels of each --param; use --sample random or lhs to choose the count")
+        levels = [p.levels() for p in params]
+        total = math.prod(len(v) for v in levels)
+        if total > max_samples:
+            sizes = " x ".join(f"{len(v)} ({p.name})" for p, v in zip(params, levels))
+            raise ValueError(f"the grid has {sizes} = {total} samples, more than --max-samples = {max_samples} allows: "
+                             f"use fewer levels, --sample lhs --samples N, or raise --max-samples")
+        return [dict(zip(names, (float(x) for x in combo))) for combo in itertools.product(*levels)]
+    if samples is None:
+        raise ValueError(f"--samples is required with --sample {sample}: the number of samples to draw")
+    if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or samples < 1:
+        raise ValueError(f"--samples = {samples!r} is not allowed: must be an integer >= 1")
+    if samples > max_samples:
+        raise ValueError(f"--samples = {samples} is not allowed: more than --max-samples = {max_samples}")
+    for p in params:
+        if p.values is None and p.n is not None:
+            raise ValueError(f"--param {p.name}: N = {p.n} levels is not allowed with --sample {sample}: the count is "
+                             f"--samples; write {p.name}={p.lo:g}:{p.hi:g}:{p.scale}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"--seed = {seed!r} is not allowed: must be an integer >= 0")
+    rng = np.random.default_rng(int(seed))
+    n = int(samples)
+    cols = []
+    for p in params:
+        if sample == "random":
+            u = rng.random(n)
+        else:
+            u = (rng.permutation(n) + rng.random(n)) / n
+        cols.append(p.from_unit(u))
+    return [{name: float(col[i]) for name, col in zip(names, cols)} for i in range(n)]
+
+
+def _sample_seed(seed: int, index: int) -> int:
+    """A per-sample seed from the sweep's seed and the sample index (independent streams)."""
+    return int(np.random.SeedSequence(int(seed), spawn_key=(int(index),)).generate_state(1, np.uint32)[0])
+
+
+# ------------------------------------------------------------------ the table
+@dataclasses.dataclass
+class SweepTable:
+    """The sweep's rows (one dict per sample, sorted by ``sample``) and their column order."""
+
+    columns: list[str]
+    rows: list[dict]
+    params: list[str]
+
+    def __len__(self):
+        return len(self.rows)
+
+    def column(self, name: str) -> np.ndarray:
+        """A column as an array: floats (NaN where empty) for numeric columns, else objects."""
+        if name not in self.columns:
+            raise ValueError(f"column {name!r} is not allowed: the table has {', '.join(self.columns)}")
+        values = [r.get(name) for r in self.rows]
+        if all(v is None or isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+            return np.array([np.nan if v is None else v for v in values], dtype=np.float64)
+        return np.array(values, dtype=object)
+
+    @property
+    def failed(self) -> list[dict]:
+        return [r for r in self.rows if r["status"] != "ok"]
+
+    @property
+    def all_ok(self) -> bool:
+        return not self.failed
+
+    def to_csv(self, path) -> str:
+        """Write the table as CSV (floats round-trip exactly; empty cell = no value)."""
+        path = os.fspath(path)
+        tmp = path + ".tmp"
+        with open(tmp, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(self.columns)
+            for r in self.rows:
+                w.writerow([_cell(r.get(c)) for c in self.columns])
+        os.replace(tmp, path)
+        return path
+
+    def to_parquet(self, path) -> str:
+        """Write the table as Parquet; ``ImportError`` without pyarrow."""
+        import pyarrow as pa  # noqa: PLC0415
+        import pyarrow.parquet as pq  # noqa: PLC0415
+
+        data = {}
+        for c in self.columns:
+            if _is_int_column(c):
+                data[c] = pa.array([None if r.get(c) is None else int(r[c]) for r in self.rows], type=pa.int64())
+                continue
+            col = self.column(c)
+            data[c] = pa.array(col, type=pa.float64()) if col.dtype == np.float64 and c not in _TEXT_COLUMNS else pa.array(
+                [None if v is None else str(v) for v in col], type=pa.string())
+        path = os.fspath(path)
+        tmp = path + ".tmp"
+        pq.write_table(pa.table(data), tmp)
+        os.replace(tmp, path)
+        return path
+
+    @classmethod
+    def read_csv(cls, path) -> "SweepTable":
+        """Read a table written by ``to_csv`` (numbers back as floats, empty cells as None)."""
+        with open(os.fspath(path), newline="") as f:
+            reader = csv.reader(f)
+            columns = next(reader)
+            rows = [{c: _parse_cell(c, v) for c, v in zip(columns, line)} for line in reader]
+        start, end = columns.index("status") + 1, columns.index("seed")
+        return cls(columns, rows, columns[start:end])
+
+
+_TEXT_COLUMNS = ("status", "reason", "warnings")
+
+
+def _cell(v) -> str:
+    if v is None or isinstance(v, float) and math.isnan(v):
+        return ""
+    if isinstance(v, float):
+        return repr(v)
+    return str(v)
+
+
+def _parse_cell(column: str, text: str):
+    if text == "":
+        return None
+    if column in _TEXT_COLUMNS:
+        return text
+    try:
+        v = float(text)
+    except ValueError:  # a text column of an ``extra`` function
+        return text
+    return int(v) if _is_int_column(column) else v
+
+
+def _is_int_column(column: str) -> bool:
+    return column in ("sample", "seed", "steps", "particles") or column.startswith("guard_")
+
+
+# ------------------------------------------------------------------ one sample
+def _assignments(scene, params: list[Param]) -> list[tuple[str, str, list[int]]]:
+    """``(param name, field, material indices)`` per parameter, checked against the scene."""
+    from .fit import _material_indices  # noqa: PLC0415 (the names fit uses for bodies and materials)
+
+    b = scene.builder
+    # fit's resolver reads these three attributes; the builder has them before finalize,
+    # so names are checked without building the model.
+    view = _BuilderView(bodies=list(b._bodies), materials=list(b._materials),
+                        particle_material_np=np.concatenate(b._material_ids) if b._material_ids else np.zeros(0, np.int32))
+    out, seen = [], {}
+    for p in params:
+        target = p.target
+        if target is None:
+            idx = list(range(len(view.materials)))
+        else:
+            key = int(target) if target.isdigit() else target
+            try:
+                idx = _material_indices(view, [key])
+            except ValueError as e:
+                raise ValueError(f"--param {p.name} is not allowed: {e}") from None
+        for k in idx:
+            if (k, p.field) in seen:
+                raise ValueError(f"--param {p.name} is not allowed: it sets {p.field} of material {k}, "
+                                 f"which --param {seen[(k, p.field)]} sets already")
+            seen[(k, p.field)] = p.name
+        out.append((p.name, p.field, idx))
+    return out
+
+
+@dataclasses.dataclass
+class _BuilderView:
+    bodies: list
+    materials: list
+    particle_material_np: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class _Task:
+    index: int
+    seed: int
+    values: dict
+    assignments: list
+    frames: int
+    fps: float
+    dt: float | None
+    dtype: str
+    device: str
+    extra: Callable | None
+
+
+def _apply(model, assignments, values):
+    """Set the sample's values in the model's materials (through ``Material`` checks).
+
+    A material whose pressure stiffness follows its moduli (the default ``k_p = K / (2
+    rho0)``) keeps following them when ``mu`` or ``lam`` change, as in ``fit``.
+    """
+    changes: dict[int, dict] = {}
+    for name, field, idx in assignments:
+        for k in idx:
+            changes.setdefault(k, {})[field] = values[name]
+    for k, ch in changes.items():
+        m = model.materials[k]
+        if ({"mu", "lam"} & ch.keys()) and "pressure_stiffness" not in ch and math.isclose(
+                m.pressure_stiffness, m.bulk_modulus / (2.0 * m.density), rel_tol=1e-9):
+            ch["pressure_stiffness"] = None
+        model.set_material(k, m.replace(**ch))
+
+
+def _summary(model, state, solver) -> dict:
+    """The summary quantities of the final state (``y`` up): mass-weighted centroid height,
+    highest particle, RMS and largest horizontal distance from the centroid's vertical axis,
+    kinetic energy, and the guard counts."""
+    x = state.x.numpy().astype(np.float64)
+    v = state.v.numpy().astype(np.float64)
+    m = model.particle_mass.numpy().astype(np.float64)
+    c = (m[:, None] * x).sum(axis=0) / m.sum()
+    r = np.hypot(x[:, 0] - c[0], x[:, 2] - c[2])
+    out = {"centroid_height": float(c[1]), "max_height": float(x[:, 1].max()),
+           "radial_spread": float(math.sqrt((m * r * r).sum() / m.sum())), "max_radius": float(r.max()),
+           "kinetic_energy": float(0.5 * (m * (v * v).sum(axis=1)).sum())}
+    out.update({f"guard_{k}": int(n) for k, n in solver.guard_counts().items()})
+    return out
+
+
+#: A run whose mechanical energy grew by more than this many times the scene's energy
+#: scale has blown up (see ``_blew_up``).
+BLOWUP_FACTOR = 10.0
+
+
+def _blew_up(model, state) -> str | None:
+    """Why the run has blown up without a non-finite value, or ``None``.
+
+    Without force fields nothing does work on the bodies but gravity (colliders are at
+    rest, pressure and elastic forces are internal, viscosity and plasticity dissipate),
+    so kinetic plus gravitational energy cannot grow: at the end it is at most its
+    initial value (the elastic energy, zero at rest, only takes from it). An explicit
+    step above the stable limit makes it grow without bound while the guards keep every
+    value finite, so ``simulate`` sees nothing. Growth beyond ``BLOWUP_FACTOR`` times the
+    scale ``KE0 + M |g| L`` (``L`` the initial bounding-box diagonal) is taken as a blow-up.
+    """
+    if getattr(model, "force_fields", None):
+        return None
+    m = model.particle_mass.numpy().astype(np.float64)
+    g = np.asarray(model.gravity, dtype=np.float64)
+
+    def energy(x, v):
+        return float(0.5 * (m * (v * v).sum(axis=1)).sum() - (m * (x @ g)).sum())
+
+    x0, v0 = model.particle_x0.astype(np.float64), model.particle_v0.astype(np.float64)
+    e0 = energy(x0, v0)
+    e1 = energy(state.x.numpy().astype(np.float64), state.v.numpy().astype(np.float64))
+    size = float(np.linalg.norm(x0.max(axis=0) - x0.min(axis=0))) + model.spacing
+    scale = 0.5 * float((m * (v0 * v0).sum(axis=1)).sum()) + m.sum() * float(np.linalg.norm(g)) * size
+    if e1 - e0 > BLOWUP_FACTOR * scale:
+        return (f"the simulation blew up: kinetic + gravitational energy grew by {e1 - e0:.4g} J, more than "
+                f"{BLOWUP_FACTOR:g} x the scene's energy scale {scale:.4g} J (nothing does work on the bodies); "
+                f"the time step is likely above the stable limit {model.stable_dt():.3g} s")
+    return None
+
+
+def _one_line(text) -> str:
+    return " ".join(str(text).split())
+
+
+def _run_sample(scene, task: _Task) -> dict:
+    """Run one sample in this process; never raises for a failed sample (it is a row)."""
+    from .cli import _init_warp  # noqa: PLC0415 (quiet Warp start, shared with the CLI)
+
+    _init_warp(task.device)
+    from .simulate import SimulationError, resolve_timestep, simulate  # noqa: PLC0415
+    from .sim.solver import Solver  # noqa: PLC0415
+
+    row = {"sample": task.index, "status": "ok", **task.values, "seed": task.seed}
+    t0 = time.perf_counter()
+    caught = []
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            model = scene.builder.finalize(device=task.device, dtype=task.dtype)
+            _apply(model, task.assignments, task.values)
+            substeps, dt = resolve_timestep(model, task.fps, dt=task.dt)
+            row.update({"particles": model.particle_count, "steps": task.frames * substeps, "dt": dt})
+            solver = Solver(model)
+            state = simulate(model, task.frames, fps=task.fps, dt=dt, progress=False, solver=solver)
+            row.update(_summary(model, state, solver))
+            why = _blew_up(model, state)
+            if why is not None:
+                row.update(status="failed", reason=why)
+            if task.extra is not None:
+                row.update(task.extra(model, state, task.seed))
+    except SimulationError as e:
+        row.update(status="failed", reason=_one_line(e))
+    except (ValueError, ArithmeticError, RuntimeError) as e:
+        row.update(status="failed", reason=_one_line(f"{type(e).__name__}: {e}"))
+    row["wall_s"] = time.perf_counter() - t0
+    notes = sorted({_one_line(w.message) for w in caught})
+    if notes:
+        row["warnings"] = "; ".join(notes)
+    return row
+
+
+def _call(fn, item):
+    return fn(*item)
+
+
+def _ignore_sigint():
+    # Ctrl-C reaches every process of the terminal's group: the parent cancels the sweep
+    # and stops the workers, so they need not print a traceback each.
+    import signal  # noqa: PLC0415
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _cores() -> int:
+    """The cores this process may run on (its affinity mask where the OS has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def _call_star(fn, *args):
+    # Ray resolves object references only among a task's top-level arguments.
+    return fn(*args)
+
+
+# ------------------------------------------------------------------ executors
+def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = None, ray: str | None = None,
+                 on_result: Callable | None = None, on_error: Callable | None = None,
+                 ray_resources: Mapping | None = None) -> list:
+    """``[fn(*item) for item in items]``, run in parallel; results in the order of ``items``.
+
+    - ``workers=1`` (and no ``ray``): in this process, one after the other.
+    - ``workers=N``: N spawned processes (``concurrent.futures.ProcessPoolExecutor``; each
+      its own interpreter and Warp context, so Warp's one-thread CPU launches use N cores).
+      Default: every core this process may use, at most one per item.
+    - ``ray=ADDRESS``: one Ray task per item (``num_cpus=1``) on the cluster at ``ADDRESS``
+      (``"auto"``, ``"ray://host:10001"``, ...); a Ray session already started in this
+      process (``ray.init``) is used as it is and left running; one started here is shut
+      down at the end. Needs ``pip install warp-esph[ray]`` and warp-esph on every node.
+
+    ``fn`` must be importable by name (a module-level function) and ``items`` picklable.
+    ``on_result(index, result)`` is called in this process as each item finishes.
+
+    An item fails when ``fn`` raises, its worker process dies (a crash in native code, out
+    of memory: every item not finished in that pool fails with it) or its Ray task or
+    worker fails. With ``on_error(index, message)`` its return value is that item's result
+    and the others go on; without, the first failure raises (``RuntimeError`` for a dead
+    worker). Ctrl-C stops the workers and raises ``KeyboardInterrupt``.
+    """
+    items = list(items)
+    if ray is not None:
+        return _ray_map(fn, items, ray, on_result, on_error, ray_resources)
+    if workers is None:
+        workers = _cores()
+    workers = checks.positive_int("--workers", workers)
+    workers = min(workers, max(len(items), 1))
+    results: list = [None] * len(items)
+    if workers == 1:
+        for i, item in enumerate(items):
+            try:
+                results[i] = fn(*item)
+            except Exception as e:
+                if on_error is None:
+                    raise
+                results[i] = on_error(i, _one_line(f"{type(e).__name__}: {e}"))
+            if on_result is not None:
+                on_result(i, results[i])
+        return results
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait  # noqa: PLC0415
+    from concurrent.futures.process import BrokenProcessPool  # noqa: PLC0415
+
+    # spawn, not fork: a forked child would inherit this process's Warp runtime (and any
+    # threads), which Warp does not support; a spawned one initialises its own.
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_ignore_sigint)
+    try:
+        pending = {pool.submit(_call, fn, item): i for i, item in enumerate(items)}
+        while pending:
+            done, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in done:
+                i = pending.pop(fut)
+                try:
+                    results[i] = fut.result()
+                except BrokenProcessPool:
+                    why = ("a worker process died before this item finished (a crash in native code or out of "
+                           "memory, in this item or another one running at the time); run it again")
+                    if on_error is None:
+                        raise RuntimeError(f"item {i}: {why}") from None
+                    results[i] = on_error(i, why)
+                except Exception as e:
+                    if on_error is None:
+                        raise
+                    results[i] = on_error(i, _one_line(f"{type(e).__name__}: {e}"))
+                if on_result is not None:
+                    on_result(i, results[i])
+    except BaseException:
+        # Running samples would otherwise finish before the interpreter can exit.
+        for proc in list((getattr(pool, "_processes", None) or {}).values()):
+            proc.terminate()
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
+    return results
+
+
+def _ray_map(fn, items, address, on_result, on_error, resources):
+    try:
+        import ray  # noqa: PLC0415
+    except ModuleNotFoundError:
+        raise ValueError(f"--ray {address} is not allowed: Ray is not installed; pip install 'warp-esph[ray]'") from None
+    started = False
+    if not ray.is_initialized():
+        try:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False)
+        except (ConnectionError, ValueError, RuntimeError) as e:
+            raise ValueError(f"--ray {address} is not allowed: cannot connect to a Ray cluster there: "
+                             f"{_one_line(e)}") from None
+        started = True
+    try:
+        remote = ray.remote(num_cpus=1, **dict(resources or {}))(_call_star)
+        fn_ref = ray.put(fn)
+        # Large shared arguments (the scene) are put once, not once per task.
+        shared: dict[int, object] = {}
+        refs = {}
+        for i, item in enumerate(items):
+            args = []
+            for a in item:
+                if not isinstance(a, (_Task, int, float, str)) and a is not None:
+                    if id(a) not in shared:
+                        shared[id(a)] = ray.put(a)
+                    a = shared[id(a)]
+                args.append(a)
+            refs[remote.remote(fn_ref, *args)] = i
+        results: list = [None] * len(items)
+        pending = list(refs)
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            for ref in done:
+                i = refs[ref]
+                try:
+                    results[i] = ray.get(ref)
+                except ray.exceptions.RayError as e:
+                    if on_error is None:
+                        raise
+                    results[i] = on_error(i, _one_line(f"Ray: {type(e).__name__}: {e}")[:2000])
+                if on_result is not None:
+                    on_result(i, results[i])
+        return results
+    except BaseException:
+        for ref in refs if "refs" in locals() else ():
+            try:
+                ray.cancel(ref)
+            except Exception:  # noqa: BLE001 (finished tasks cannot be cancelled)
+                pass
+        raise
+    finally:
+        if started:
+            ray.shutdown()
+
+
+# ------------------------------------------------------------------ the sweep
+def _load(scene, scale):
+    from .builder import SceneBuilder  # noqa: PLC0415
+    from .scenes import Scene, load_scene  # noqa: PLC0415
+
+    if isinstance(scene, Scene):
+        return scene
+    if isinstance(scene, SceneBuilder):
+        return Scene("scene", "a SceneBuilder", scene)
+    if isinstance(scene, (str, os.PathLike)) or scene is None:
+        return load_scene(scene, scale=checks.positive("--scale", scale))
+    raise ValueError(f"scene = {scene!r} is not allowed: give a built-in scene name, a .toml scene file, a Scene or a SceneBuilder")
+
+
+def _table(rows: list[dict], names: list[str]) -> SweepTable:
+    rows = sorted(rows, key=lambda r: r["sample"])
+    head = ["sample", "status", *names, "seed", "particles", "steps", "dt", *SUMMARY_COLUMNS]
+    tail = ["wall_s", "reason", "warnings"]
+    guards = sorted({k for r in rows for k in r if k.startswith("guard_")})
+    extra = sorted({k for r in rows for k in r} - set(head) - set(tail) - set(guards))
+    columns = head + guards + extra + tail
+    # Every row has every column (None: no value), as read back from the CSV.
+    rows = [{c: r.get(c) for c in columns} for r in rows]
+    return SweepTable(columns, rows, list(names))
+
+
+def sweep(
+    scene,
+    params,
+    *,
+    sample: str = "grid",
+    samples: int | None = None,
+    seed: int = 0,
+    frames: int | None = None,
+    duration: float | None = None,
+    fps: float | None = None,
+    dt: float | None = None,
+    scale: float = 1.0,
+    dtype: str = "float32",
+    device: str = "cpu",
+    workers: int | None = None,
+    ray: str | None = None,
+    max_samples: int = MAX_SAMPLES,
+    extra: Callable | None = None,
+    on_result: Callable | None = None,
+) -> SweepTable:
+    """Run ``scene`` once per sample of ``params``; returns the table (see the module doc).
+
+    - ``scene``: a built-in scene name or a ``.toml`` scene file (as ``warp-esph run``
+      takes, at ``scale``), a ``Scene`` or a ``SceneBuilder``.
+    - ``params``: specs (``"yield_stress=100:1000:log:8"``), ``Param``s, or
+      ``{name: values}``. ``sample``: ``grid`` (default), ``random`` or ``lhs`` with
+      ``samples`` draws from ``seed``. More than ``max_samples`` samples is an error.
+    - ``frames`` or ``duration`` (s): how long each sample runs (default the scene's
+      frames) at ``fps`` (default the scene's). ``dt``: the time step (must divide
+      ``1/fps``); default the scene's, else each sample's own stable step (it depends on
+      the swept moduli).
+    - ``workers``/``ray``: where the samples run (``parallel_map``).
+    - ``extra(model, state, seed) -> dict``: more columns per sample, from the final
+      state (a module-level function, so it can be sent to the workers); ``seed`` is the
+      sample's own seed, the same wherever it runs.
+    - ``on_result(row)``: called as each sample finishes (in finishing order).
+
+    Raises ``ValueError`` for bad input before any sample runs.
+    """
+    plan = _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale, dtype, device, workers,
+                 max_samples, extra)
+    return _execute(plan, workers, ray, on_result)
+
+
+@dataclasses.dataclass
+class _Plan:
+    scene: object
+    params: list
+    tasks: list
+
+
+def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale, dtype, device, workers, max_samples,
+          extra) -> _Plan:
+    """Every check of ``sweep``'s input, and one task per sample."""
+    plist = _as_params(params)
+    points = sample_points(plist, sample, samples, seed, max_samples)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"--seed = {seed!r} is not allowed: must be an integer >= 0")
+    if frames is not None and duration is not None:
+        raise ValueError(f"--frames = {frames!r} and --duration = {duration!r} are not allowed together: give one")
+    if frames is not None:
+        frames = checks.positive_int("--frames", frames)
+    if duration is not None:
+        duration = checks.positive("--duration", duration)
+    if fps is not None:
+        fps = checks.positive("--fps", fps)
+    if dt is not None:
+        dt = checks.positive("--dt", dt)
+    dtype = checks.choice("--dtype", str(getattr(dtype, "__name__", dtype)), ("float32", "float64"))
+    device = checks.choice("--device", device, ("cpu", "cuda"))
+    if workers is not None:
+        workers = checks.positive_int("--workers", workers)
+    if extra is not None and not callable(extra):
+        raise ValueError(f"extra = {extra!r} is not allowed: must be callable as extra(model, state, seed)")
+    sc = _load(scene, scale)
+    fps = fps if fps is not None else sc.fps
+    if duration is not None:
+        frames = max(1, round(duration * fps))
+    frames = frames if frames is not None else sc.frames
+    dt = dt if dt is not None else sc.dt
+    if dt is not None:
+        from .simulate import resolve_timestep  # noqa: PLC0415
+
+        resolve_timestep(None, fps, dt=dt)  # with dt given only its ratio to 1/fps is checked
+    assignments = _assignments(sc, plist)
+    tasks = [(sc, _Task(i, _sample_seed(seed, i), values, assignments, frames, fps, dt, dtype, device, extra))
+             for i, values in enumerate(points)]
+    return _Plan(sc, plist, tasks)
+
+
+def _execute(plan: _Plan, workers, ray, on_result) -> SweepTable:
+    callback = None if on_result is None else (lambda i, row: on_result(row))
+
+    def failed(i, why):
+        # The worker could not return a row (it died, or Ray lost it): the sample still gets one.
+        task = plan.tasks[i][1]
+        return {"sample": task.index, "status": "failed", **task.values, "seed": task.seed, "reason": why}
+
+    rows = parallel_map(_run_sample, plan.tasks, workers=workers, ray=ray, on_result=callback, on_error=failed)
+    return _table(rows, [p.name for p in plan.params])
+
+
+# ------------------------------------------------------------------ outputs
+_UNITS = {"centroid_height": "m", "max_height": "m", "radial_spread": "m", "max_radius": "m", "kinetic_energy": "J"}
+
+
+def plot(table: SweepTable, path, log_params: Sequence[str] = (), quantities: Sequence[str] = SUMMARY_COLUMNS) -> str:
+    """One panel per (quantity, parameter): the quantity of every sample against the
+    parameter; failed samples are red crosses on the axis. Needs matplotlib."""
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    names = table.params
+    quantities = [q for q in quantities if q in table.columns]
+    ok = table.column("status") == "ok"
+    fig, axes = plt.subplots(len(quantities), len(names), figsize=(3.2 * len(names) + 0.6, 2.4 * len(quantities) + 0.6),
+                             squeeze=False, sharex="col", constrained_layout=True)
+    for j, name in enumerate(names):
+        x = table.column(name)
+        for i, q in enumerate(quantities):
+            ax = axes[i, j]
+            ax.scatter(x[ok], table.column(q)[ok], s=14, alpha=0.8)
+            if (~ok).any():
+                ax.scatter(x[~ok], np.zeros((~ok).sum()), transform=ax.get_xaxis_transform(), marker="x", color="red",
+                           s=30, clip_on=False, label="failed")
+            if name in log_params:
+                ax.set_xscale("log")
+            # The failed marks are drawn in axes coordinates, which autoscaling ignores.
+            fin = x[np.isfinite(x)]
+            if fin.size and fin.max() > fin.min():
+                lo, hi = float(fin.min()), float(fin.max())
+                if name in log_params and lo > 0:
+                    pad = (hi / lo) ** 0.05
+                    ax.set_xlim(lo / pad, hi * pad)
+                else:
+                    ax.set_xlim(lo - 0.05 * (hi - lo), hi + 0.05 * (hi - lo))
+            if j == 0:
+                ax.set_ylabel(f"{q.replace('_', ' ')} ({_UNITS.get(q, '')})")
+            if i == len(quantities) - 1:
+                ax.set_xlabel(name)
+    fig.suptitle(f"{len(table)} samples, {int(ok.sum())} ok")
+    path = os.fspath(path)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_params: Sequence[str] = (),
+                  plot_figure: bool = True) -> list[str]:
+    """Write ``sweep.csv``, ``sweep.parquet`` (with pyarrow), ``sweep.png`` (with
+    matplotlib) and ``sweep.json`` (``meta``) into ``folder``; returns one line per file
+    written or skipped."""
+    folder = os.fspath(folder)
+    os.makedirs(folder, exist_ok=True)
+    lines = [f"wrote {table.to_csv(os.path.join(folder, 'sweep.csv'))}"]
+    try:
+        lines.append(f"wrote {table.to_parquet(os.path.join(folder, 'sweep.parquet'))}")
+    except ImportError:
+        lines.append("no Parquet table: pyarrow is not installed (pip install pyarrow); the CSV has the same data")
+    if plot_figure:
+        try:
+            lines.append(f"wrote {plot(table, os.path.join(folder, 'sweep.png'), log_params)}")
+        except ImportError:
+            lines.append("no plot: matplotlib is not installed (pip install 'warp-esph[plot]')")
+    if meta is not None:
+        path = os.path.join(folder, "sweep.json")
+        with open(path + ".tmp", "w") as f:
+            json.dump(dict(meta), f, indent=2)
+        os.replace(path + ".tmp", path)
+        lines.append(f"wrote {path}")
+    return lines
+
+
+#: Exit status of ``warp-esph sweep`` when at least one sample failed (the table has them).
+EXIT_SOME_FAILED = 3
+
+
+def sweep_cli(args, out=None) -> int:
+    """Run ``warp-esph sweep`` from parsed ``args``: 0 every sample ran, ``EXIT_SOME_FAILED``
+    (3) some failed (see the table's ``reason``), 130 interrupted (the finished samples are
+    written). Raises ``ValueError`` on bad input (the CLI exits 2)."""
+    from . import __version__  # noqa: PLC0415
+    from .cli import EXIT_INTERRUPTED, PROG  # noqa: PLC0415
+
+    out = sys.stdout if out is None else out
+
+    plan = _plan(args.scene, args.param or [], args.sample, args.samples, args.seed, args.frames, args.duration, args.fps,
+                 args.dt, args.scale, args.dtype, "cpu", args.workers, args.max_samples, None)
+    sc, plist, points = plan.scene, plan.params, plan.tasks
+    folder = args.output or f"sweep_{sc.name}"
+    where = f"Ray at {args.ray}" if args.ray else f"{min(args.workers or _cores(), len(points))} worker(s)"
+    print(f"{PROG} sweep: {sc.name}: {len(points)} samples ({args.sample}) of {', '.join(p.name for p in plist)} "
+          f"on {where} -> {folder}", file=sys.stderr, flush=True)
+    done: list[dict] = []
+    bar = None
+    if not args.no_progress:
+        from .simulate import _progress_bar  # noqa: PLC0415
+
+        bar = _progress_bar(len(points), "samples")
+
+    def record(row):
+        done.append(row)
+        if bar is not None:
+            bar.update(1)
+
+    meta = {"command": "sweep", "version": __version__, "scene": args.scene if args.scene else sc.name,
+            "scale": args.scale, "params": [dataclasses.asdict(p) for p in plist], "sample": args.sample,
+            "samples": len(points), "seed": args.seed, "frames": args.frames, "duration": args.duration, "fps": args.fps,
+            "dt": args.dt, "dtype": args.dtype, "workers": args.workers, "ray": args.ray}
+    if args.scene and os.path.exists(str(args.scene)):
+        meta["scene"] = os.path.abspath(args.scene)
+    log_params = [p.name for p in plist if p.values is None and p.scale == "log"]
+    from .cli import _arm  # noqa: PLC0415
+
+    _arm(args)  # from here Ctrl-C unwinds to the except below, which writes the samples finished
+    t0 = time.perf_counter()
+    try:
+        table = _execute(plan, args.workers, args.ray, record)
+    except KeyboardInterrupt:
+        if bar is not None:
+            bar.close()
+        table = _table(done, [p.name for p in plist])
+        for line in write_outputs(table, folder, {**meta, "interrupted": True}, log_params):
+            print(line, file=out)
+        print(f"{PROG}: interrupted: the table keeps the {len(done)} of {len(points)} samples finished", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if bar is not None:
+        bar.close()
+    meta["seconds"] = time.perf_counter() - t0
+    for line in write_outputs(table, folder, meta, log_params):
+        print(line, file=out)
+    failed = table.failed
+    print(f"{len(table)} samples, {len(table) - len(failed)} ok, {len(failed)} failed, {meta['seconds']:.1f} s", file=out)
+    for r in failed[:5]:
+        print(f"{PROG}: sample {r['sample']} failed: {r.get('reason')}", file=sys.stderr)
+    if len(failed) > 5:
+        print(f"{PROG}: ... and {len(failed) - 5} more failed samples (see the table's reason column)", file=sys.stderr)
+    return EXIT_SOME_FAILED if failed else 0

@@ -1,0 +1,1008 @@
+"""Tools and boundary conditions: moving rigid colliders, pinned (kinematic) particle sets,
+and the reaction force and torque each of them exerts on the material.
+
+Every tool (a collider or a pinned set) follows a rigid motion: a pose ``(p(t), q(t))``
+(position, unit quaternion in Warp's ``(x, y, z, w)`` order) given by keyframes, by a
+constant linear and angular velocity, or by a Python callable. Each step evaluates the
+pose at the step's start ``t0`` and end ``t1 = t0 + dt`` (``poses`` kernel, differentiable
+in the keyframes and velocities), then ``integrate`` does the symplectic Euler update of
+``integrate.py`` followed by
+
+- the static colliders of ``colliders.py`` (unchanged),
+- each moving collider: the candidate position is expressed in the collider's frame at
+  ``t1``. A particle of a mesh or box collider whose relative path in the collider frame
+  (start in the ``t0`` frame, end in the ``t1`` frame) enters a face is stopped at the entry
+  point (no tunnelling through a thin mesh or plate however fast it moves); otherwise a
+  particle found inside is moved to the nearest surface point. The surface point's velocity
+  over the step ``(T1(c) - T0(c)) / dt`` is the velocity the contact is measured against: the
+  inward relative normal velocity is removed, and Coulomb friction acts on the relative
+  tangential velocity (static coefficient: sticks while ``|v_t| <= mu_s |dv_n|``; else
+  kinetic: ``|v_t|`` shrinks by ``mu_k |dv_n|``). The tangential part of the step's
+  displacement follows the responded velocity, so a sticking particle stays put;
+- pinned particles: ``x = p(t1) + R(t1) (X - c)`` (evaluated as ``X + (p - c) + (R - I)(X - c)``,
+  exactly ``X`` while the set is at rest) with ``X`` the rest position and ``c`` the
+  set's rest centroid (the set's pose at rest is ``(c, identity)``), ``v = (x(t1) - x(t0)) / dt``.
+  Pinned particles stay in every neighbour fit and force sum as ordinary particles: only
+  their x and v are prescribed, so F is consistent across the clamp.
+
+Reaction force (written into ``state_out.reaction_force`` / ``reaction_torque``, one row per
+tool, differentiable): the force the tool exerts on the material during the step,
+
+- collider: ``sum_i m_i (v_i^after - v_i^before) / dt`` over its contacts (the impulse of the
+  contact response over dt; ``v^before`` is the velocity after forces and gravity);
+- pinned set: ``sum_i [m_i (v_i(t1) - v_i(t0)) / dt - f_i - m_i g]``, the force the support
+  must add to the internal forces ``f_i`` and gravity on the pinned particles to give them
+  their prescribed acceleration (for a static clamp: ``-(sum f_i + m g)``).
+
+The torque is taken about the tool's position ``p(t1)``. The force the material exerts on
+the tool is minus these.
+"""
+
+import dataclasses
+import functools
+import math
+import types
+from collections.abc import Callable
+
+import numpy as np
+import warp as wp
+
+from . import checks
+from .sim.integrate import funcs as integrate_funcs, static_collider_arrays
+from ._types import type_set
+
+#: Collider shapes, in the order their loops run in ``integrate`` (each kind's loop is
+#: unrolled, docs/method.md, Warp pitfall 1: a dynamic loop carrying x and v through non-linear
+#: projections gets a wrong adjoint).
+KINDS = ("plane", "box", "sphere", "capsule", "cylinder", "mesh")
+MAX_TOOLS = 16
+IDENTITY = (0.0, 0.0, 0.0, 1.0)
+
+
+# --------------------------------------------------------------------------- motions
+def _quat(name: str, value) -> tuple[float, float, float, float]:
+    q = np.array(checks.vector(name, value, 4))
+    n = np.linalg.norm(q)
+    if n == 0.0:
+        raise ValueError(f"{name} = {value!r} is not allowed: must be a non-zero quaternion (x, y, z, w)")
+    return tuple(q / n)
+
+
+@dataclasses.dataclass(frozen=True)
+class Keyframes:
+    """Piecewise motion through keyframes: position linear, orientation slerp in between;
+    held at the first pose before ``times[0]`` and at the last after ``times[-1]``.
+
+    ``orientations``: unit quaternions (x, y, z, w); default: identity throughout.
+    ``position=None`` is not allowed here: keyframes are absolute poses."""
+
+    times: tuple
+    positions: tuple
+    orientations: tuple | None = None
+
+    def __post_init__(self):
+        t = np.asarray(self.times, dtype=np.float64).ravel()
+        if t.size < 1 or not np.isfinite(t).all() or np.any(np.diff(t) <= 0.0):
+            raise ValueError(f"times = {self.times!r} is not allowed: must be one or more finite, increasing numbers")
+        p = np.asarray(self.positions, dtype=np.float64)
+        if p.shape != (t.size, 3) or not np.isfinite(p).all():
+            raise ValueError(f"positions with shape {p.shape} is not allowed: must be ({t.size}, 3) finite numbers, one per time")
+        if self.orientations is None:
+            q = np.tile(np.array(IDENTITY), (t.size, 1))
+        else:
+            q = np.asarray(self.orientations, dtype=np.float64)
+            if q.shape != (t.size, 4) or not np.isfinite(q).all() or np.any(np.linalg.norm(q, axis=1) == 0.0):
+                raise ValueError(f"orientations with shape {q.shape} is not allowed: must be ({t.size}, 4) non-zero quaternions")
+            q = q / np.linalg.norm(q, axis=1, keepdims=True)
+            # Shortest arcs: consecutive keyframes in the same hemisphere.
+            for k in range(1, len(q)):
+                if np.dot(q[k], q[k - 1]) < 0.0:
+                    q[k] = -q[k]
+        object.__setattr__(self, "times", tuple(t))
+        object.__setattr__(self, "positions", tuple(map(tuple, p)))
+        object.__setattr__(self, "orientations", tuple(map(tuple, q)))
+
+    def sample(self, t: float) -> tuple[int, int, float]:
+        ts = self.times
+        if t <= ts[0]:
+            return 0, 0, 0.0
+        if t >= ts[-1]:
+            return len(ts) - 1, len(ts) - 1, 0.0
+        k = int(np.searchsorted(ts, t, side="right")) - 1
+        return k, k + 1, (t - ts[k]) / (ts[k + 1] - ts[k])
+
+
+@dataclasses.dataclass(frozen=True)
+class Velocity:
+    """Constant linear ``velocity`` (m/s) and ``angular_velocity`` (rad/s, about the tool's
+    position) from the pose ``(position, orientation)`` at t = 0; ``None``: the tool's own
+    rest pose (a collider's ``position``/``orientation``, a pinned set's centroid)."""
+
+    velocity: tuple = (0.0, 0.0, 0.0)
+    angular_velocity: tuple = (0.0, 0.0, 0.0)
+    position: tuple | None = None
+    orientation: tuple | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "velocity", checks.vector("velocity", self.velocity))
+        object.__setattr__(self, "angular_velocity", checks.vector("angular_velocity", self.angular_velocity))
+        if self.position is not None:
+            object.__setattr__(self, "position", checks.vector("position", self.position))
+        if self.orientation is not None:
+            object.__setattr__(self, "orientation", _quat("orientation", self.orientation))
+
+
+@dataclasses.dataclass(frozen=True)
+class Scripted:
+    """A Python callable ``fn(t) -> (position, quaternion (x, y, z, w))``, evaluated on the
+    host every step (not differentiable)."""
+
+    fn: Callable
+
+    def __post_init__(self):
+        if not callable(self.fn):
+            raise ValueError(f"fn = {self.fn!r} is not allowed: must be callable as fn(t) -> (position, quaternion)")
+
+    def pose(self, t: float):
+        try:
+            p, q = self.fn(float(t))
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"fn = {self.fn!r} is not allowed: fn({t:g}) must return (position, quaternion): {e}") from None
+        return checks.vector("position", p), _quat("quaternion", q)
+
+
+MOTIONS = (Keyframes, Velocity, Scripted)
+
+
+# ---------------------------------------------------------------------------- shapes
+@dataclasses.dataclass(frozen=True)
+class Collider:
+    """A moving rigid collider (see ``SceneBuilder.add_tool``)."""
+
+    name: str
+    kind: str
+    param: tuple  # plane: local normal; box: half extents; sphere: (r, 0, 0); capsule/cylinder: (r, half height, 0)
+    motion: object
+    friction: float
+    static_friction: float
+    mesh_points: np.ndarray | None = None
+    mesh_triangles: np.ndarray | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class PinSet:
+    name: str
+    indices: np.ndarray
+    motion: object
+
+
+def shape_param(kind: str, *, normal=None, half_extents=None, radius=None, half_height=None) -> tuple:
+    """The local-frame shape parameter of a collider kind, checked."""
+    kind = checks.choice("shape", kind, KINDS)
+    if kind == "plane":
+        n = np.array(checks.vector("normal", (0.0, 1.0, 0.0) if normal is None else normal))
+        if np.linalg.norm(n) == 0.0:
+            raise ValueError(f"normal = {normal!r} is not allowed: must be a non-zero vector")
+        return tuple(n / np.linalg.norm(n))
+    if kind == "box":
+        if half_extents is None:
+            raise ValueError("half_extents = None is not allowed: a box collider needs 3 positive half extents")
+        return checks.positive_vector("half_extents", half_extents)
+    if kind == "sphere":
+        return (checks.positive("radius", radius), 0.0, 0.0)
+    if kind in ("capsule", "cylinder"):
+        return (checks.positive("radius", radius), checks.positive("half_height", half_height), 0.0)
+    return (0.0, 0.0, 0.0)
+
+
+# --------------------------------------------------------------------------- kernels
+@functools.cache
+def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, n_pins: int) -> types.SimpleNamespace:
+    """Specialised to the static collider counts and the number of tools of each kind in
+    ``KINDS`` (tools are stored grouped by kind in that order, pinned sets after them)."""
+    T = type_set(scalar)
+    vec3, quat = T.vec3, (wp.quatf if scalar is wp.float32 else wp.quatd)
+    kin = integrate_funcs(scalar, n_planes, n_spheres, n_boxes)
+    offsets = [int(sum(counts[:k])) for k in range(len(counts))]
+    n_col = int(sum(counts))
+    ONE, ZERO, HALF = scalar(1.0), scalar(0.0), scalar(0.5)
+
+    @wp.func
+    def quat_exp(r: vec3):
+        """Unit quaternion of the rotation vector ``r`` (series below 1e-6 rad, so the
+        gradient at r = 0 is finite)."""
+        th = wp.length(r)
+        s = HALF
+        c = ONE
+        if th > scalar(1.0e-6):
+            s = wp.sin(HALF * th) / th
+            c = wp.cos(HALF * th)
+        else:
+            c = ONE - th * th / scalar(8.0)
+        return quat(s * r[0], s * r[1], s * r[2], c)
+
+    @wp.func
+    def interp_quat(a: quat, b: quat, w: scalar):
+        """Slerp (normalised lerp below 0.5 degrees, where slerp's 1/sin divides by ~0)."""
+        d = wp.dot(a, b)
+        if d > scalar(0.99999):
+            return wp.normalize(a * (ONE - w) + b * w)
+        th = wp.acos(wp.min(d, ONE))
+        s = wp.sin(th)
+        return a * (wp.sin((ONE - w) * th) / s) + b * (wp.sin(w * th) / s)
+
+    @wp.kernel(module="unique")
+    def poses(
+        kf_p: wp.array(dtype=vec3),
+        kf_q: wp.array(dtype=quat),
+        lin_v: wp.array(dtype=vec3),
+        ang_v: wp.array(dtype=vec3),
+        s_i0: wp.array(dtype=wp.int32),
+        s_i1: wp.array(dtype=wp.int32),
+        s_w: wp.array(dtype=scalar),
+        s_t: wp.array(dtype=scalar),
+        s_direct: wp.array(dtype=wp.int32),
+        s_p: wp.array(dtype=vec3),
+        s_q: wp.array(dtype=quat),
+        pose_p: wp.array(dtype=vec3),
+        pose_q: wp.array(dtype=quat),
+    ):
+        """Pose of tool ``s // 2`` at its sample ``s`` (even: step start, odd: step end)."""
+        s = wp.tid()
+        c = s // 2
+        if s_direct[s] != 0:
+            pose_p[s] = s_p[s]
+            pose_q[s] = s_q[s]
+        else:
+            i0 = s_i0[s]
+            i1 = s_i1[s]
+            w = s_w[s]
+            t = s_t[s]
+            p = kf_p[i0] * (ONE - w) + kf_p[i1] * w + lin_v[c] * t
+            q = quat_exp(ang_v[c] * t) * interp_quat(kf_q[i0], kf_q[i1], w)
+            pose_p[s] = p
+            pose_q[s] = q
+
+    @wp.func
+    def world(p: vec3, q: quat, xl: vec3):
+        return p + wp.quat_rotate(q, xl)
+
+    @wp.func
+    def local(p: vec3, q: quat, x: vec3):
+        return wp.quat_rotate_inv(q, x - p)
+
+    @wp.func
+    def contact_response(v: vec3, vs: vec3, n: vec3, mu_s: scalar, mu_k: scalar):
+        """Velocity after contact with a surface moving at ``vs`` (outward normal ``n``):
+        no inward relative normal velocity; Coulomb friction, static then kinetic."""
+        vr = v - vs
+        vn = wp.dot(vr, n)
+        if vn < ZERO:
+            vt = vr - vn * n
+            vt_len = wp.length(vt)
+            dvn = -vn
+            if vt_len <= mu_s * dvn:
+                return vs
+            return vs + vt * (ONE - mu_k * dvn / vt_len)
+        return v
+
+    @wp.func
+    def apply(
+        x: vec3, v: vec3, hit: int, xc: vec3, nl: vec3, c: int, m: scalar, dt: scalar,
+        pose_p: wp.array(dtype=vec3), pose_q: wp.array(dtype=quat), mu_s: wp.array(dtype=scalar), mu_k: wp.array(dtype=scalar),
+        rforce: wp.array(dtype=vec3), rtorque: wp.array(dtype=vec3),
+    ):
+        """Move a particle in contact to the surface point ``xc`` (collider frame) and
+        respond relative to that point's velocity; adds the impulse / dt to the tool's row."""
+        if hit == 0:
+            return x, v
+        p0 = pose_p[2 * c]
+        q0 = pose_q[2 * c]
+        p1 = pose_p[2 * c + 1]
+        q1 = pose_q[2 * c + 1]
+        x_s = world(p1, q1, xc)
+        vs = (x_s - world(p0, q0, xc)) / dt
+        n = wp.quat_rotate(q1, nl)
+        v_new = contact_response(v, vs, n, mu_s[c], mu_k[c])
+        # The tangential part of the step's displacement follows the responded velocity
+        # (x_in + dt v_new along the surface): a particle that sticks stays stuck.
+        dv = v_new - v
+        x_new = x_s + dt * (dv - wp.dot(dv, n) * n)
+        f = m * dv / dt
+        wp.atomic_add(rforce, c, f)
+        wp.atomic_add(rtorque, c, wp.cross(x_s - p1, f))
+        return x_new, v_new
+
+    @wp.func
+    def shape_plane(xl: vec3, nrm: vec3):
+        d = wp.dot(nrm, xl)
+        if d < ZERO:
+            return 1, xl - d * nrm, nrm
+        return 0, xl, nrm
+
+    @wp.func
+    def shape_sphere_at(xl: vec3, a: vec3, r: scalar):
+        d = xl - a
+        r2 = wp.dot(d, d)
+        if r2 < r * r and r2 > ZERO:
+            nl = d / wp.sqrt(r2)
+            return 1, a + r * nl, nl
+        return 0, xl, vec3()
+
+    @wp.func
+    def shape_sphere(xl: vec3, param: vec3):
+        return shape_sphere_at(xl, vec3(), param[0])
+
+    @wp.func
+    def shape_capsule(xl: vec3, param: vec3):
+        y = wp.clamp(xl[1], -param[1], param[1])
+        return shape_sphere_at(xl, vec3(ZERO, y, ZERO), param[0])
+
+    @wp.func
+    def shape_box(xl: vec3, half: vec3):
+        gap = vec3(wp.abs(xl[0]) - half[0], wp.abs(xl[1]) - half[1], wp.abs(xl[2]) - half[2])
+        if gap[0] < ZERO and gap[1] < ZERO and gap[2] < ZERO:
+            axis = int(0)
+            if gap[1] > gap[axis]:
+                axis = 1
+            if gap[2] > gap[axis]:
+                axis = 2
+            # No component assignment (xc[axis] = ...): its adjoint in Warp 1.19 let the
+            # overwritten component's gradient through (measured: 12x off against central
+            # differences).
+            e = vec3(wp.where(axis == 0, ONE, ZERO), wp.where(axis == 1, ONE, ZERO), wp.where(axis == 2, ONE, ZERO))
+            sgn = wp.where(xl[axis] < ZERO, scalar(-1.0), ONE)
+            return 1, xl + (sgn * half[axis] - xl[axis]) * e, sgn * e
+        return 0, xl, vec3()
+
+    @wp.func
+    def slab(s: scalar, d: scalar, h: scalar):
+        """Entry and exit parameters of the path ``s + t d`` through ``|.| <= h``, and the
+        sign of the face it enters by."""
+        big = scalar(1.0e30)
+        if d == ZERO:
+            if wp.abs(s) <= h:
+                return -big, big, ZERO
+            return big, -big, ZERO
+        ta = (-h - s) / d
+        tb = (h - s) / d
+        if ta < tb:
+            return ta, tb, scalar(-1.0)
+        return tb, ta, ONE
+
+    @wp.func
+    def swept_box(xs: vec3, xl: vec3, half: vec3, margin: scalar):
+        """A box the relative path ``xs -> xl`` passes through (a thin plate moving more than
+        its thickness in a step): stop at the entry point."""
+        d = xl - xs
+        t0x, t1x, sx = slab(xs[0], d[0], half[0])
+        t0y, t1y, sy = slab(xs[1], d[1], half[1])
+        t0z, t1z, sz = slab(xs[2], d[2], half[2])
+        t_in = t0x
+        nl = vec3(sx, ZERO, ZERO)
+        if t0y > t_in:
+            t_in = t0y
+            nl = vec3(ZERO, sy, ZERO)
+        if t0z > t_in:
+            t_in = t0z
+            nl = vec3(ZERO, ZERO, sz)
+        t_out = wp.min(t1x, wp.min(t1y, t1z))
+        if t_in > ZERO and t_in <= ONE and t_in <= t_out:
+            return 1, xs + t_in * d + margin * nl, nl
+        return 0, xl, vec3()
+
+    @wp.func
+    def shape_cylinder(xl: vec3, param: vec3):
+        r = param[0]
+        hh = param[1]
+        rho2 = xl[0] * xl[0] + xl[2] * xl[2]
+        if rho2 < r * r and wp.abs(xl[1]) < hh:
+            rho = wp.sqrt(rho2)
+            if r - rho < hh - wp.abs(xl[1]) and rho > ZERO:
+                nl = vec3(xl[0] / rho, ZERO, xl[2] / rho)
+                return 1, vec3(r * nl[0], xl[1], r * nl[2]), nl
+            sgn = wp.where(xl[1] < ZERO, scalar(-1.0), ONE)
+            return 1, vec3(xl[0], sgn * hh, xl[2]), vec3(ZERO, sgn, ZERO)
+        return 0, xl, vec3()
+
+    @wp.func
+    def shape_mesh(xl: vec3, xs: vec3, mesh: wp.uint64, lo: vec3, hi: vec3, margin: scalar):
+        """Closed mesh in its own frame: the entry point of the relative path ``xs -> xl``
+        if it enters a face, else the nearest surface point if ``xl`` ends inside."""
+        # Both ends beyond the padded bounds on the same side: no contact.
+        a = wp.min(xl, xs)
+        b = wp.max(xl, xs)
+        if b[0] < lo[0] or b[1] < lo[1] or b[2] < lo[2] or a[0] > hi[0] or a[1] > hi[1] or a[2] > hi[2]:
+            return 0, xl, vec3()
+        seg = xl - xs
+        seg_len = wp.length(seg)
+        if seg_len > ZERO:
+            dirf = wp.vec3f(wp.float32(seg[0] / seg_len), wp.float32(seg[1] / seg_len), wp.float32(seg[2] / seg_len))
+            start = wp.vec3f(wp.float32(xs[0]), wp.float32(xs[1]), wp.float32(xs[2]))
+            ray = wp.mesh_query_ray(mesh, start, dirf, wp.float32(seg_len))
+            if ray.result and wp.dot(dirf, ray.normal) < wp.float32(0.0):
+                nl = vec3(scalar(ray.normal[0]), scalar(ray.normal[1]), scalar(ray.normal[2]))
+                nl = wp.normalize(nl)
+                return 1, xs + seg * (scalar(ray.t) / seg_len) + margin * nl, nl
+        qf = wp.vec3f(wp.float32(xl[0]), wp.float32(xl[1]), wp.float32(xl[2]))
+        far = wp.float32(wp.length(hi - lo))
+        res = wp.mesh_query_point(mesh, qf, far)
+        if res.result and res.sign < wp.float32(0.0):
+            cp = wp.mesh_eval_position(mesh, res.face, res.u, res.v)
+            cl = vec3(scalar(cp[0]), scalar(cp[1]), scalar(cp[2]))
+            d = cl - xl
+            dl = wp.length(d)
+            if dl > ZERO:
+                nl = d / dl
+                return 1, cl + margin * nl, nl
+        return 0, xl, vec3()
+
+    @wp.kernel(module="unique")
+    def integrate(
+        x_in: wp.array(dtype=vec3),
+        v_in: wp.array(dtype=vec3),
+        f: wp.array(dtype=vec3),
+        mass: wp.array(dtype=scalar),
+        gravity: vec3,
+        dt: scalar,
+        plane_normal: wp.array(dtype=vec3),
+        plane_offset: wp.array(dtype=scalar),
+        plane_friction: wp.array(dtype=scalar),
+        sphere_center: wp.array(dtype=vec3),
+        sphere_radius: wp.array(dtype=scalar),
+        sphere_friction: wp.array(dtype=scalar),
+        box_center: wp.array(dtype=vec3),
+        box_half: wp.array(dtype=vec3),
+        box_friction: wp.array(dtype=scalar),
+        pose_p: wp.array(dtype=vec3),
+        pose_q: wp.array(dtype=quat),
+        param: wp.array(dtype=vec3),
+        mu_s: wp.array(dtype=scalar),
+        mu_k: wp.array(dtype=scalar),
+        mesh_id: wp.array(dtype=wp.uint64),
+        mesh_lo: wp.array(dtype=vec3),
+        mesh_hi: wp.array(dtype=vec3),
+        margin: scalar,
+        pin: wp.array(dtype=wp.int32),
+        rest_x: wp.array(dtype=vec3),
+        pin_center: wp.array(dtype=vec3),
+        x_out: wp.array(dtype=vec3),
+        v_out: wp.array(dtype=vec3),
+        rforce: wp.array(dtype=vec3),
+        rtorque: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        m = mass[i]
+        x, v = kin.symplectic_euler(x_in[i], v_in[i], f[i], m, gravity, dt)
+        x, v = kin.static_colliders(
+            x, v, dt, plane_normal, plane_offset, plane_friction, sphere_center, sphere_radius, sphere_friction,
+            box_center, box_half, box_friction,
+        )
+        for c in range(wp.static(counts[0])):
+            k = wp.static(offsets[0]) + c
+            hit, xc, nl = shape_plane(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
+            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+        for c in range(wp.static(counts[1])):
+            k = wp.static(offsets[1]) + c
+            # The entry point first (a path from outside), the nearest face only for a
+            # particle that was already inside: the nearest face of a thin plate that moved
+            # past most of a particle could be its back.
+            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
+            hit, xc, nl = swept_box(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
+            if hit == 0:
+                hit, xc, nl = shape_box(xl, param[k])
+            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+        for c in range(wp.static(counts[2])):
+            k = wp.static(offsets[2]) + c
+            hit, xc, nl = shape_sphere(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
+            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+        for c in range(wp.static(counts[3])):
+            k = wp.static(offsets[3]) + c
+            hit, xc, nl = shape_capsule(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
+            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+        for c in range(wp.static(counts[4])):
+            k = wp.static(offsets[4]) + c
+            hit, xc, nl = shape_cylinder(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
+            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+        for c in range(wp.static(counts[5])):
+            k = wp.static(offsets[5]) + c
+            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
+            xs = local(pose_p[2 * k], pose_q[2 * k], x_in[i])
+            hit, xc, nl = shape_mesh(xl, xs, mesh_id[k], mesh_lo[k], mesh_hi[k], margin)
+            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+        if wp.static(n_pins > 0):
+            k = pin[i]
+            if k >= 0:
+                # x = X + (p - c) + (R - I)(X - c): bit for bit X while the pose is at rest.
+                X = rest_x[i]
+                c0 = pin_center[k]
+                xr = X - c0
+                p1 = pose_p[2 * k + 1]
+                x1 = X + (p1 - c0) + (wp.quat_rotate(pose_q[2 * k + 1], xr) - xr)
+                x0 = X + (pose_p[2 * k] - c0) + (wp.quat_rotate(pose_q[2 * k], xr) - xr)
+                v1 = (x1 - x0) / dt
+                fr = m * (v1 - v_in[i]) / dt - f[i] - m * gravity
+                wp.atomic_add(rforce, k, fr)
+                wp.atomic_add(rtorque, k, wp.cross(x1 - p1, fr))
+                x = x1
+                v = v1
+        x_out[i] = x
+        v_out[i] = v
+
+    @wp.kernel(module="unique")
+    def accumulate(src: wp.array(dtype=vec3), scale: scalar, dst: wp.array(dtype=vec3)):
+        k = wp.tid()
+        dst[k] = dst[k] + scale * src[k]
+
+    return types.SimpleNamespace(poses=poses, integrate=integrate, accumulate=accumulate, quat=quat)
+
+
+# --------------------------------------------------------------------------- tool set
+class ToolSet:
+    """The model's moving colliders and pinned sets (``model.tools``), and their arrays.
+
+    Differentiable (when the model ``requires_grad``): ``friction`` and ``static_friction``
+    (one per tool), ``keyframe_positions`` / ``keyframe_orientations`` (all keyframes of all
+    tools, tool ``k``'s from ``keyframe_start[k]``), ``velocity`` and ``angular_velocity`` (one
+    per tool; zero for keyframed tools).
+    """
+
+    def __init__(self, model, tool_colliders: list[Collider], pins: list[PinSet]):
+        S, dev = model.scalar, model.device
+        T = model.types
+        npf = T.np_dtype
+        order = sorted(range(len(tool_colliders)), key=lambda k: KINDS.index(tool_colliders[k].kind))
+        self.colliders = [tool_colliders[k] for k in order]
+        self.pins = list(pins)
+        self.names = [c.name for c in self.colliders] + [p.name for p in self.pins]
+        self.counts = tuple(sum(1 for c in self.colliders if c.kind == kind) for kind in KINDS)
+        n = len(self.names)
+        self.count = n
+        self.scalar = S
+        k_ = kernels(S, len(model.planes), len(model.spheres), len(model.boxes), self.counts, len(self.pins))
+        self.quat = k_.quat
+        self.margin = 1.0e-3 * model.spacing
+
+        x0 = model.particle_x0
+        pin_of = np.full(model.particle_count, -1, dtype=np.int32)
+        centers = np.zeros((max(n, 1), 3), dtype=npf)
+        for j, ps in enumerate(self.pins):
+            k = len(self.colliders) + j
+            if (pin_of[ps.indices] >= 0).any():
+                raise ValueError(f"pin {ps.name!r} is not allowed: it shares particles with pin {self.names[pin_of[ps.indices].max()]!r}")
+            pin_of[ps.indices] = k
+            centers[k] = x0[ps.indices].mean(axis=0)
+        self.pin_np = pin_of
+
+        # Rest pose of each tool: colliders' from their motion, pinned sets' (centroid, I).
+        kf_p, kf_q, start, lin, ang = [], [], [], [], []
+        self.motions = [c.motion for c in self.colliders] + [p.motion for p in self.pins]
+        for k, motion in enumerate(self.motions):
+            rest_p = tuple(centers[k]) if k >= len(self.colliders) else (0.0, 0.0, 0.0)
+            start.append(len(kf_p))
+            if isinstance(motion, Keyframes):
+                kf_p.extend(motion.positions)
+                kf_q.extend(motion.orientations)
+                lin.append((0.0,) * 3)
+                ang.append((0.0,) * 3)
+            elif isinstance(motion, Velocity):
+                kf_p.append(motion.position if motion.position is not None else rest_p)
+                kf_q.append(motion.orientation if motion.orientation is not None else IDENTITY)
+                lin.append(motion.velocity)
+                ang.append(motion.angular_velocity)
+            else:  # Scripted: the host writes its poses every step
+                kf_p.append(rest_p)
+                kf_q.append(IDENTITY)
+                lin.append((0.0,) * 3)
+                ang.append((0.0,) * 3)
+        self.keyframe_start = start
+        rg = model.requires_grad
+
+        def arr(values, dtype, grad=False, width=3):
+            values = list(values) or [(0.0,) * width if width > 1 else 0.0]
+            return wp.array(np.array(values, dtype=npf), dtype=dtype, device=dev, requires_grad=grad and rg)
+
+        self.keyframe_positions = arr(kf_p, T.vec3, True)
+        self.keyframe_orientations = arr(kf_q, self.quat, True, 4)
+        self.velocity = arr(lin, T.vec3, True)
+        self.angular_velocity = arr(ang, T.vec3, True)
+        self.param = arr([c.param for c in self.colliders] + [(0.0,) * 3] * len(self.pins), T.vec3)
+        self.friction = arr([c.friction for c in self.colliders] + [0.0] * len(self.pins), S, True, 1)
+        self.static_friction = arr([c.static_friction for c in self.colliders] + [0.0] * len(self.pins), S, True, 1)
+        # Meshes: kept referenced here for the model's lifetime (docs/method.md, Warp pitfall 3).
+        self.meshes = []
+        ids, lo, hi = [], [], []
+        for c in self.colliders:
+            if c.kind == "mesh":
+                pts = np.asarray(c.mesh_points, dtype=np.float32)
+                mesh = wp.Mesh(points=wp.array(pts, dtype=wp.vec3f, device=dev),
+                               indices=wp.array(np.asarray(c.mesh_triangles, dtype=np.int32).ravel(), dtype=wp.int32, device=dev))
+                self.meshes.append(mesh)
+                ids.append(mesh.id)
+                pad = 2.0 * model.support_radius
+                lo.append(pts.min(axis=0) - pad)
+                hi.append(pts.max(axis=0) + pad)
+            else:
+                ids.append(0)
+                lo.append((0.0,) * 3)
+                hi.append((0.0,) * 3)
+        self.mesh_id = wp.array(np.array(ids or [0], dtype=np.uint64), dtype=wp.uint64, device=dev)
+        self.mesh_lo = arr(lo, T.vec3)
+        self.mesh_hi = arr(hi, T.vec3)
+        self.pin = wp.array(pin_of, dtype=wp.int32, device=dev)
+        self.rest_x = wp.array(x0, dtype=T.vec3, device=dev)
+        self.pin_center = wp.array(centers, dtype=T.vec3, device=dev)
+        self.kernels = k_
+        self.model = model
+
+    def index(self, name: str) -> int:
+        if name not in self.names:
+            raise ValueError(f"name = {name!r} is not allowed: must be one of the tools {self.names!r}")
+        return self.names.index(name)
+
+    # ------------------------------------------------------------------ per step
+    def _samples(self, t0: float, t1: float):
+        n = self.count
+        i0 = np.zeros(2 * n, dtype=np.int32)
+        i1 = np.zeros(2 * n, dtype=np.int32)
+        w = np.zeros(2 * n)
+        ts = np.zeros(2 * n)
+        direct = np.zeros(2 * n, dtype=np.int32)
+        sp = np.zeros((2 * n, 3))
+        sq = np.tile(np.array(IDENTITY), (2 * n, 1))
+        for k, motion in enumerate(self.motions):
+            for j, t in enumerate((t0, t1)):
+                s = 2 * k + j
+                ts[s] = t
+                base = self.keyframe_start[k]
+                if isinstance(motion, Keyframes):
+                    a, b, w[s] = motion.sample(t)
+                    i0[s], i1[s] = base + a, base + b
+                elif isinstance(motion, Velocity):
+                    i0[s] = i1[s] = base
+                else:
+                    direct[s] = 1
+                    sp[s], sq[s] = motion.pose(t)
+        return i0, i1, w, ts, direct, sp, sq
+
+    def integrate(self, solver, state_in, state_out, dt: float):
+        """Poses at the step's start and end, then the integrate kernel (see module doc)."""
+        m = self.model
+        S, dev, T = m.scalar, m.device, m.types
+        n = self.count
+        i0, i1, w, ts, direct, sp, sq = self._samples(state_in.time, state_in.time + dt)
+        npf = T.np_dtype
+        samples = (
+            wp.array(i0, dtype=wp.int32, device=dev), wp.array(i1, dtype=wp.int32, device=dev),
+            wp.array(w.astype(npf), dtype=S, device=dev), wp.array(ts.astype(npf), dtype=S, device=dev),
+            wp.array(direct, dtype=wp.int32, device=dev), wp.array(sp.astype(npf), dtype=T.vec3, device=dev),
+            wp.array(sq.astype(npf), dtype=self.quat, device=dev),
+        )
+        state_out.tool_samples = samples  # referenced until a backward pass has read them
+        wp.launch(
+            self.kernels.poses, 2 * n,
+            [self.keyframe_positions, self.keyframe_orientations, self.velocity, self.angular_velocity, *samples],
+            [state_out.tool_pose_p, state_out.tool_pose_q], device=dev,
+        )
+        state_out.reaction_force.zero_()
+        state_out.reaction_torque.zero_()
+        wp.launch(
+            self.kernels.integrate,
+            m.particle_count,
+            [
+                state_in.x, state_in.v, state_out.force, m.particle_mass, T.vec3(*m.gravity), S(dt),
+                *static_collider_arrays(m),
+                state_out.tool_pose_p, state_out.tool_pose_q, self.param, self.static_friction, self.friction,
+                self.mesh_id, self.mesh_lo, self.mesh_hi, S(self.margin),
+                self.pin, self.rest_x, self.pin_center,
+            ],
+            [state_out.x, state_out.v, state_out.reaction_force, state_out.reaction_torque],
+            device=dev,
+        )
+        acc = getattr(solver, "tool_impulse", None)
+        if acc is not None and not _taping():
+            wp.launch(self.kernels.accumulate, n, [state_out.reaction_force, S(dt)], [acc[0]], device=dev)
+            wp.launch(self.kernels.accumulate, n, [state_out.reaction_torque, S(dt)], [acc[1]], device=dev)
+
+    # ----------------------------------------------------------------- queries
+    def reaction(self, state) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """``{tool name: (force, torque)}`` the tool exerted on the material in the step that
+        produced ``state`` (N and N m; torque about the tool's position at the step end)."""
+        f = state.reaction_force.numpy()
+        tq = state.reaction_torque.numpy()
+        return {name: (f[k].astype(np.float64), tq[k].astype(np.float64)) for k, name in enumerate(self.names)}
+
+    def pose(self, state) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """``{tool name: (position, quaternion (x, y, z, w))}`` at ``state.time``."""
+        return {name: self.pose_at(k, state.time) for k, name in enumerate(self.names)}
+
+    def pose_at(self, k: int, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Pose of tool ``k`` at time ``t`` evaluated on the host (the same formulas as ``poses``)."""
+        motion = self.motions[k]
+        base = self.keyframe_start[k]
+        kp = self.keyframe_positions.numpy().astype(np.float64)
+        kq = self.keyframe_orientations.numpy().astype(np.float64)
+        if isinstance(motion, Scripted):
+            p, q = motion.pose(t)
+            return np.array(p), np.array(q)
+        if isinstance(motion, Keyframes):
+            a, b, w = motion.sample(t)
+        else:
+            a, b, w = 0, 0, 0.0
+        p = kp[base + a] * (1 - w) + kp[base + b] * w + self.velocity.numpy()[k] * t
+        q = _np_mul(_np_exp(self.angular_velocity.numpy()[k].astype(np.float64) * t), _np_slerp(kq[base + a], kq[base + b], w))
+        return p, q
+
+
+def _taping() -> bool:
+    from .sim.solver import tape_recording  # noqa: PLC0415 (solver imports this module)
+
+    return tape_recording()
+
+
+def _np_exp(r):
+    th = np.linalg.norm(r)
+    if th < 1e-12:
+        return np.array([0.0, 0.0, 0.0, 1.0])
+    a = r / th * math.sin(th / 2)
+    return np.array([a[0], a[1], a[2], math.cos(th / 2)])
+
+
+def _np_mul(a, b):
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return np.array([
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    ])
+
+
+def _np_slerp(a, b, w):
+    d = float(np.dot(a, b))
+    if d > 0.99999:
+        q = a * (1 - w) + b * w
+        return q / np.linalg.norm(q)
+    th = math.acos(min(d, 1.0))
+    return (a * math.sin((1 - w) * th) + b * math.sin(w * th)) / math.sin(th)
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    x, y, z, w = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def allocate_state(model, state, requires_grad: bool):
+    """The per-step tool arrays of a ``State`` (poses at the step's start and end, reaction
+    force and torque per tool); none when the model has no tools."""
+    tools = getattr(model, "tools", None)
+    if tools is None:
+        return
+    n, T, dev = tools.count, model.types, model.device
+    state.tool_pose_p = wp.zeros(2 * n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+    state.tool_pose_q = wp.zeros(2 * n, dtype=tools.quat, device=dev, requires_grad=requires_grad)
+    state.reaction_force = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+    state.reaction_torque = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+
+
+# --------------------------------------------------------------------------- selection
+def select_particles(builder, *, indices=None, body=None, region=None, where=None, name: str) -> np.ndarray:
+    """Indices of the particles selected by all the given criteria (intersection): an index
+    array, a body name, an axis-aligned box ``region = (lo, hi)`` and a predicate ``where``
+    on rest positions ``(N, 3) -> bool (N,)``."""
+    n = builder.particle_count
+    points = np.concatenate(builder._points) if builder._points else np.zeros((0, 3))
+    mask = np.ones(n, dtype=bool)
+    if indices is None and body is None and region is None and where is None:
+        raise ValueError(f"pin {name!r}: no selection is not allowed: give indices, body, region and/or where")
+    if indices is not None:
+        idx = np.asarray(indices)
+        if idx.dtype == bool:
+            if idx.shape != (n,):
+                raise ValueError(f"indices with shape {idx.shape} is not allowed: a boolean mask must have one entry per particle ({n})")
+            sel = idx
+        else:
+            if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer) or (idx.size and (idx.min() < 0 or idx.max() >= n)):
+                raise ValueError(f"indices = {indices!r} is not allowed: must be integers in [0, {n - 1}]")
+            sel = np.zeros(n, dtype=bool)
+            sel[idx] = True
+        mask &= sel
+    if body is not None:
+        names = [b.name for b in builder._bodies]
+        if body not in names:
+            raise ValueError(f"body = {body!r} is not allowed: must be one of {names!r}")
+        b = builder._bodies[names.index(body)]
+        sel = np.zeros(n, dtype=bool)
+        sel[b.start:b.start + b.count] = True
+        mask &= sel
+    if region is not None:
+        try:
+            lo, hi = (np.array(checks.vector("region", r)) for r in region)
+        except (TypeError, ValueError):
+            raise ValueError(f"region = {region!r} is not allowed: must be (lo, hi), two 3-vectors") from None
+        if np.any(hi < lo):
+            raise ValueError(f"region = {region!r} is not allowed: lo must be <= hi in every axis")
+        mask &= np.all((points >= lo) & (points <= hi), axis=1)
+    if where is not None:
+        if not callable(where):
+            raise ValueError(f"where = {where!r} is not allowed: must be callable as where(rest_positions) -> bool array")
+        sel = np.asarray(where(points.copy()), dtype=bool)
+        if sel.shape != (n,):
+            raise ValueError(f"where returned shape {sel.shape}, which is not allowed: must be ({n},)")
+        mask &= sel
+    out = np.nonzero(mask)[0]
+    if out.size == 0:
+        raise ValueError(f"pin {name!r} is not allowed: the selection holds no particle")
+    return out
+
+
+# ------------------------------------------------------------------------ tool meshes
+def box_mesh(half_extents) -> tuple[np.ndarray, np.ndarray]:
+    """A closed box mesh ``(points, triangles)`` centred at the origin, outward wound."""
+    hx, hy, hz = checks.positive_vector("half_extents", half_extents)
+    p = np.array([[sx * hx, sy * hy, sz * hz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    return p, np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))], dtype=np.int32)
+
+
+def blade_mesh(length: float, height: float, thickness: float) -> tuple[np.ndarray, np.ndarray]:
+    """A closed knife blade: a triangular prism along z (``length``), its sharp edge at
+    y = 0 and its back (``thickness`` wide in x) at y = ``height``, outward wound."""
+    L, H, T = (checks.positive(n, v) for n, v in (("length", length), ("height", height), ("thickness", thickness)))
+    p = np.array([[0.0, 0.0, -L / 2], [-T / 2, H, -L / 2], [T / 2, H, -L / 2],
+                  [0.0, 0.0, L / 2], [-T / 2, H, L / 2], [T / 2, H, L / 2]])
+    tris = np.array([[0, 2, 1], [3, 4, 5], [0, 1, 4], [0, 4, 3], [0, 3, 5], [0, 5, 2], [1, 2, 5], [1, 5, 4]], dtype=np.int32)
+    return p, np.ascontiguousarray(tris[:, ::-1])
+
+
+# ------------------------------------------------------------------------------- USD
+USD_ROOT = "/World/Tools"
+
+
+def usd_author(stage, model, key: str = "warp_esph", plane_size: float = 1.0):
+    """One Xform prim per tool under ``/World/Tools`` (pose written per frame by
+    ``usd_write_frame``) with its geometry in the tool's frame as a child ``geom``; pinned
+    sets get an Xform only. Static custom data: kind, friction coefficients."""
+    from pxr import Gf, Sdf, UsdGeom, Vt  # noqa: PLC0415 (USD only when writing it)
+
+    tools = getattr(model, "tools", None)
+    if tools is None:
+        return
+    UsdGeom.Scope.Define(stage, USD_ROOT)
+    steel = Vt.Vec3fArray([Gf.Vec3f(0.62, 0.64, 0.7)])
+    for k, name in enumerate(tools.names):
+        path = f"{USD_ROOT}/{_usd_name(name, k)}"
+        xf = UsdGeom.Xform.Define(stage, path)
+        xf.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble)
+        xf.AddOrientOp(UsdGeom.XformOp.PrecisionDouble)
+        prim = xf.GetPrim()
+        prim.SetCustomDataByKey(f"{key}:tool_name", name)
+        prim.CreateAttribute(f"{key}:reaction_force", Sdf.ValueTypeNames.Double3)
+        prim.CreateAttribute(f"{key}:reaction_torque", Sdf.ValueTypeNames.Double3)
+        if k >= len(tools.colliders):
+            prim.SetCustomDataByKey(f"{key}:tool", "pin")
+            prim.SetCustomDataByKey(f"{key}:particle_count", int(len(tools.pins[k - len(tools.colliders)].indices)))
+            continue
+        c = tools.colliders[k]
+        prim.SetCustomDataByKey(f"{key}:tool", c.kind)
+        prim.SetCustomDataByKey(f"{key}:friction", float(c.friction))
+        prim.SetCustomDataByKey(f"{key}:static_friction", float(c.static_friction))
+        g = f"{path}/geom"
+        if c.kind == "box":
+            geom = UsdGeom.Cube.Define(stage, g)
+            geom.CreateSizeAttr(2.0)
+            geom.AddScaleOp().Set(Gf.Vec3f(*c.param))
+        elif c.kind == "sphere":
+            geom = UsdGeom.Sphere.Define(stage, g)
+            geom.CreateRadiusAttr(float(c.param[0]))
+        elif c.kind in ("capsule", "cylinder"):
+            geom = (UsdGeom.Capsule if c.kind == "capsule" else UsdGeom.Cylinder).Define(stage, g)
+            geom.CreateRadiusAttr(float(c.param[0]))
+            geom.CreateHeightAttr(2.0 * float(c.param[1]))
+            geom.CreateAxisAttr(UsdGeom.Tokens.y)
+        else:
+            if c.kind == "plane":
+                n = np.asarray(c.param, dtype=np.float64)
+                t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 0.0, 1.0])
+                t1 /= np.linalg.norm(t1)
+                t2 = np.cross(n, t1)
+                h = 0.5 * plane_size
+                pts = np.array([-h * t1 - h * t2, h * t1 - h * t2, h * t1 + h * t2, -h * t1 + h * t2])
+                tris = np.array([[0, 1, 2, 3]])
+            else:
+                pts, tris = np.asarray(c.mesh_points), np.asarray(c.mesh_triangles)
+            geom = UsdGeom.Mesh.Define(stage, g)
+            geom.CreatePointsAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, p)) for p in pts]))
+            geom.CreateFaceVertexCountsAttr(Vt.IntArray([int(tris.shape[1])] * len(tris)))
+            geom.CreateFaceVertexIndicesAttr(Vt.IntArray([int(i) for i in tris.ravel()]))
+            geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+            geom.CreateDoubleSidedAttr(c.kind == "plane")
+            geom.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, pts.min(axis=0))), Gf.Vec3f(*map(float, pts.max(axis=0)))]))
+        geom.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(steel)
+
+
+def usd_write_frame(stage, model, state, time_code, key: str = "warp_esph"):
+    """Each tool's pose at ``state.time`` (time-sampled translate and orient) and the reaction
+    force and torque of the step that produced ``state`` (time-sampled attributes)."""
+    from pxr import Gf  # noqa: PLC0415
+
+    tools = getattr(model, "tools", None)
+    if tools is None:
+        return
+    f = state.reaction_force.numpy().astype(np.float64)
+    tq = state.reaction_torque.numpy().astype(np.float64)
+    for k, name in enumerate(tools.names):
+        prim = stage.GetPrimAtPath(f"{USD_ROOT}/{_usd_name(name, k)}")
+        p, q = tools.pose_at(k, state.time)  # a pinned set's frame: (centroid, identity) at rest
+        prim.GetAttribute("xformOp:translate").Set(Gf.Vec3d(*map(float, p)), time_code)
+        prim.GetAttribute("xformOp:orient").Set(Gf.Quatd(float(q[3]), float(q[0]), float(q[1]), float(q[2])), time_code)
+        prim.GetAttribute(f"{key}:reaction_force").Set(Gf.Vec3d(*f[k]), time_code)
+        prim.GetAttribute(f"{key}:reaction_torque").Set(Gf.Vec3d(*tq[k]), time_code)
+
+
+def _usd_name(name: str, k: int) -> str:
+    import re  # noqa: PLC0415
+
+    clean = re.sub(r"[^A-Za-z0-9_]", "_", name)
+    # Changed names carry the tool index, so that 'a+' and 'a-' stay two prims.
+    return clean if clean == name and not clean[0].isdigit() else f"tool_{k}_{clean}"
+
+
+# ---------------------------------------------------------------------- reaction log
+class ReactionLog:
+    """Per-frame record of every tool's pose and its mean reaction force and torque over the
+    frame (impulse / frame time, summed on the device each step), for ``warp-esph run``'s
+    ``<output>_tools.csv`` / ``.json``. Attach with ``ReactionLog(solver)``, call
+    ``record(frame, state)`` after each frame."""
+
+    def __init__(self, solver):
+        m = solver.model
+        self.tools = m.tools
+        self.solver = solver
+        solver.tool_impulse = (
+            wp.zeros(self.tools.count, dtype=m.types.vec3, device=m.device),
+            wp.zeros(self.tools.count, dtype=m.types.vec3, device=m.device),
+        )
+        self.rows: list[dict] = []
+        self._t_last = None
+
+    def record(self, frame: int, state):
+        imp, ang = (a.numpy().astype(np.float64) for a in self.solver.tool_impulse)
+        span = None if self._t_last is None else state.time - self._t_last
+        self._t_last = state.time
+        for a in self.solver.tool_impulse:
+            a.zero_()
+        for k, name in enumerate(self.tools.names):
+            p, q = self.tools.pose_at(k, state.time)
+            f = imp[k] / span if span else np.zeros(3)
+            t = ang[k] / span if span else np.zeros(3)
+            self.rows.append({
+                "frame": int(frame), "time": float(state.time), "tool": name,
+                "position": [float(v) for v in p], "orientation": [float(v) for v in q],
+                "force": [float(v) for v in f], "torque": [float(v) for v in t],
+            })
+
+    def write(self, stem: str) -> tuple[str, str]:
+        """``stem + '_tools.csv'`` and ``stem + '_tools.json'``; returns both paths."""
+        import csv  # noqa: PLC0415
+        import json  # noqa: PLC0415
+
+        csv_path, json_path = f"{stem}_tools.csv", f"{stem}_tools.json"
+        with open(csv_path, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["frame", "time", "tool", "px", "py", "pz", "qx", "qy", "qz", "qw", "fx", "fy", "fz", "tx", "ty", "tz"])
+            for r in self.rows:
+                w.writerow([r["frame"], f"{r['time']:.9g}", r["tool"], *(f"{v:.9g}" for v in r["position"] + r["orientation"] + r["force"] + r["torque"])])
+        with open(json_path, "w") as fh:
+            json.dump({
+                "units": {"time": "s", "position": "m", "force": "N", "torque": "N m"},
+                "definition": "mean force and torque each tool exerted on the material over the frame ending at 'time' "
+                              "(torque about the tool's position); the material exerts minus these on the tool",
+                "rows": self.rows,
+            }, fh, indent=1)
+        return csv_path, json_path
