@@ -990,6 +990,8 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
     if ext in (".npz", ".npy"):
         try:
             data = np.load(p)
+            if ext == ".npz":  # read every array here: a damaged zip fails on access, not on open
+                data = {k: data[k] for k in data.files}
         except Exception as e:  # noqa: BLE001
             raise ValueError(f"target {p} cannot be read: {e}") from None
         frames, fps = None, None

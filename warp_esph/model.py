@@ -68,8 +68,23 @@ class State:
     #: Fields a checkpoint written before the comparison models lacks (then: initial values).
     OPTIONAL_FIELDS = ("F_p",)
 
+    def __setattr__(self, name, value):
+        # A replaced array may not fit the model any more: ``checks.same_state`` checks again.
+        if name != "time":
+            self.__dict__.pop("_checked_for", None)
+        object.__setattr__(self, name, value)
+
     def assign(self, other: "State"):
         """Copy ``other``'s state fields (and time) into this state."""
+        for name in self.STATE_FIELDS:
+            a, b = getattr(self, name), getattr(other, name, None)
+            if not isinstance(b, wp.array):  # a State, or anything holding its fields (rollout checkpoints)
+                raise ValueError(f"other = {other!r} is not allowed: must be a warp_esph.State (its {name} is {b!r})")
+            if a.shape != b.shape or a.dtype is not b.dtype:
+                raise ValueError(
+                    f"other is not allowed: its {name} is {b.shape} {getattr(b.dtype, '__name__', b.dtype)}, this state's "
+                    f"{a.shape} {getattr(a.dtype, '__name__', a.dtype)} (a state of another model?)"
+                )
         for name in self.STATE_FIELDS:
             wp.copy(getattr(self, name), getattr(other, name))
         self.time = getattr(other, "time", 0.0)

@@ -154,8 +154,7 @@ class Solver:
 
     def step(self, state_in: State, state_out: State, dt: float):
         """One step of the method, stage by stage (docs/physics.md has the table)."""
-        if state_in is state_out:
-            raise ValueError("state_out is state_in: the step reads state_in and writes state_out, pass two states")
+        checks.step_states(self.model, state_in, state_out)
         dt = self.check_dt(dt)
         m = self.model
         scratch = self.scratch
