@@ -107,6 +107,9 @@ class Solver:
             model.rest_neighbors()
         self._warned_dt = set()
         self.step_count = 0
+        #: Under a tape, run the hand-written adjoints (``deformation.update_deformation_adjoint``)
+        #: in place of Warp's generated ones; False: the generated ones (the tests' reference).
+        self.hand_adjoints = True
 
     def _phase(self, name: str):
         return _NO_PHASE if self.phase_times is None else self._timed_phase(name)
@@ -215,6 +218,6 @@ class Solver:
             elif self._cmp:
                 comparison.launch_update_deformation(m, state_in, state_out, scratch.counters)
             else:
-                deformation.launch_update_deformation(m, state_in, state_out, scratch.counters)
+                deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, self.hand_adjoints)
         state_out.time = state_in.time + dt
         self.step_count += 1
