@@ -203,7 +203,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     return types.SimpleNamespace(update_deformation=update_deformation, update_deformation_adjoint=update_deformation_adjoint)
 
 
-def _recording_tape():
+def recording_tape():
     """The ``wp.Tape`` recording launches now, or None."""
     runtime = getattr(getattr(getattr(wp, "_src", None), "context", None), "runtime", None)
     if runtime is None:  # pragma: no cover (older layout)
@@ -221,7 +221,7 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
         state_in.x, state_out.x, model.particle_body, state_out.neighbors, state_out.neighbor_count, state_out.guard,
         state_out.F_flowed, model.scalar(model.support_radius),
     ]
-    tape = _recording_tape()
+    tape = recording_tape()
     grads = (state_in.x, state_out.x, state_out.F_flowed, state_out.F)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
         wp.launch(k.update_deformation, model.particle_count, inputs, [state_out.F, counters], device=model.device)

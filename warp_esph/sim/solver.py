@@ -194,7 +194,7 @@ class Solver:
                     plasticity.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters)
             # 4. Elastic pair forces, pressure and viscosity.
             with phase("forces"):
-                forces.launch_elastic_forces(m, state_in, state_out)
+                forces.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
             if sph:
                 with phase("pressure"):
                     pressure.launch_pressure_forces(m, state_in, state_out)
