@@ -197,7 +197,7 @@ class Solver:
                 forces.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
             if sph:
                 with phase("pressure"):
-                    pressure.launch_pressure_forces(m, state_in, state_out)
+                    pressure.launch_pressure_forces(m, state_in, state_out, self.hand_adjoints)
 
         # External force fields active at the step's start time.
         fields.launch_force_fields(m, state_in, state_out)
