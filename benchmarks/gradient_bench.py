@@ -68,7 +68,8 @@ def star_model(dtype, scale: float = 0.5) -> we.Model:
 
 
 class AdjointProfile:
-    """Times each adjoint launch of ``tape.backward`` by kernel name (CPU launches are synchronous)."""
+    """Times each launch while active by kernel name (CPU launches are synchronous): in a
+    backward pass, the generated adjoints and the hand-written adjoint kernels."""
 
     def __init__(self):
         self.seconds = collections.defaultdict(float)
@@ -78,12 +79,11 @@ class AdjointProfile:
         self._launch = wp.launch
 
         def timed(kernel, *args, **kwargs):
-            if not kwargs.get("adjoint", False):
-                return self._launch(kernel, *args, **kwargs)
             t0 = time.perf_counter()
             out = self._launch(kernel, *args, **kwargs)
-            self.seconds[kernel.key] += time.perf_counter() - t0
-            self.calls[kernel.key] += 1
+            name = kernel.key.replace("kernels__locals__", "").replace("_kernels__locals__", "")
+            self.seconds[name] += time.perf_counter() - t0
+            self.calls[name] += 1
             return out
 
         wp.launch = timed
@@ -93,13 +93,14 @@ class AdjointProfile:
         wp.launch = self._launch
 
 
-def measure(model: we.Model, steps: int, repeats: int, profile: bool) -> dict:
+def measure(model: we.Model, steps: int, repeats: int, profile: bool, hand: bool = True) -> dict:
     dt = model.stable_dt()
     n = model.particle_count
     fused = Solver(model)
     pair = [model.state(requires_grad=False) for _ in range(2)]
     initial = model.state(requires_grad=False)
     rollout = Rollout(model, steps, dt)
+    rollout.solver.hand_adjoints = hand
 
     def run_fused():
         pair[0].assign(initial)
@@ -115,21 +116,30 @@ def measure(model: we.Model, steps: int, repeats: int, profile: bool) -> dict:
     loss = PositionLoss(positions + 1e-3, frames=[steps])
     rollout.backward(loss)
 
+    # Wall time (best of the repeats) and CPU time (best, the process's: Warp's CPU
+    # launches run on the calling thread, so it is the cost without other load's waits).
     t_fused, t_taped, t_back = [], [], []
+    c_fused, c_taped, c_back = [], [], []
+    clocks = (time.perf_counter, time.process_time)
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = (c() for c in clocks)
         run_fused()
-        t1 = time.perf_counter()
+        t1, c1 = (c() for c in clocks)
         rollout.forward()
-        t2 = time.perf_counter()
+        t2, c2 = (c() for c in clocks)
         _, grads = rollout.backward(loss)
-        t3 = time.perf_counter()
+        t3, c3 = (c() for c in clocks)
         t_fused.append(t1 - t0)
         t_taped.append(t2 - t1)
         t_back.append(t3 - t2)
+        c_fused.append(c1 - c0)
+        c_taped.append(c2 - c1)
+        c_back.append(c3 - c2)
     f, tf, bw = min(t_fused), min(t_taped), min(t_back)
+    cf, ctf, cbw = min(c_fused), min(c_taped), min(c_back)
     out = {
         "particles": n,
+        "adjoints": "hand-written" if hand else "generated",
         "dtype": model.types.np_dtype.__name__,
         "steps": steps,
         "fused_ms_per_step": 1e3 * f / steps,
@@ -138,18 +148,37 @@ def measure(model: we.Model, steps: int, repeats: int, profile: bool) -> dict:
         "taped_over_fused": tf / f,
         "backward_over_fused": bw / f,
         "gradient_over_fused": (tf + bw) / f,
+        "cpu_taped_over_fused": ctf / cf,
+        "cpu_backward_over_fused": cbw / cf,
+        "cpu_gradient_over_fused": (ctf + cbw) / cf,
         "taped_bytes_per_particle_step": state_nbytes(rollout._states[1]) / n,
         "grads": {k: np.asarray(grads[k]).tolist() for k in ("mu", "yield_stress", "flow_rate")},
         "grad_v0": grads["v0"],
     }
     if profile:
-        rollout.forward()
+        with AdjointProfile() as fused_prof:
+            run_fused()
+        with AdjointProfile() as taped_prof:
+            rollout.forward()
         with AdjointProfile() as prof:
             rollout.backward(loss)
-        total = sum(prof.seconds.values())
-        out["adjoint_ms_per_step"] = {k: 1e3 * s / steps for k, s in sorted(prof.seconds.items(), key=lambda kv: -kv[1])}
-        out["adjoint_total_ms_per_step"] = 1e3 * total / steps
+        for key, p in (("fused_launch_ms_per_step", fused_prof), ("taped_launch_ms_per_step", taped_prof),
+                       ("adjoint_ms_per_step", prof)):
+            out[key] = {k: 1e3 * s / steps for k, s in sorted(p.seconds.items(), key=lambda kv: -kv[1]) if s * 1e3 / steps > 0.005}
     return out
+
+
+def report(r: dict, profile: bool):
+    print(f"{r['scene']:>6} {r['dtype']} ({r['adjoints']} adjoints): {r['particles']} particles, {r['steps']} steps, "
+          f"fused {r['fused_ms_per_step']:.2f} ms/step; taped {r['taped_over_fused']:.2f}x, "
+          f"backward {r['backward_over_fused']:.2f}x, gradient {r['gradient_over_fused']:.2f}x the fused forward "
+          f"(CPU time: {r['cpu_taped_over_fused']:.2f}x, {r['cpu_backward_over_fused']:.2f}x, "
+          f"{r['cpu_gradient_over_fused']:.2f}x); {r['taped_bytes_per_particle_step']:.0f} B per particle per taped step",
+          flush=True)
+    if profile:
+        for key, label in (("fused_launch_ms_per_step", "fused"), ("taped_launch_ms_per_step", "taped"),
+                           ("adjoint_ms_per_step", "backward")):
+            print(f"    {label} launches, ms/step: " + ", ".join(f"{k} {v:.2f}" for k, v in r[key].items()))
 
 
 def main(argv=None) -> int:
@@ -157,8 +186,12 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", default="10000,star", help="comma-separated: particle counts of a block, or 'star'")
     ap.add_argument("--dtypes", default="float32,float64")
     ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--star-steps", type=int, default=150,
+                    help="steps of the star (it must reach the ground for the material to matter)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--profile", action="store_true", help="time each kernel's adjoint launch")
+    ap.add_argument("--generated", action="store_true",
+                    help="also time the rollout with Warp's generated adjoints only (Solver.hand_adjoints = False)")
     ap.add_argument("--json", default=None, help="write the results here")
     a = ap.parse_args(argv)
     wp.config.quiet = True
@@ -169,15 +202,19 @@ def main(argv=None) -> int:
         for name in a.dtypes.split(","):
             dtype = getattr(wp, name)
             model = star_model(dtype) if size == "star" else block_model(int(size), dtype)
-            r = measure(model, a.steps, a.repeats, a.profile)
+            steps = a.star_steps if size == "star" else a.steps
+            runs = [measure(model, steps, a.repeats, a.profile, hand=True)]
+            if a.generated:
+                runs.append(measure(model, steps, a.repeats, a.profile, hand=False))
+            for r in runs[1:]:
+                r["scene"] = size
+                report(r, a.profile)
+                r.pop("grad_v0")
+                rows.append(r)
+            r = runs[0]
             r["scene"] = size
             by_dtype[name] = r
-            print(f"{size:>6} {name}: {r['particles']} particles, fused {r['fused_ms_per_step']:.2f} ms/step, "
-                  f"taped {r['taped_over_fused']:.2f}x, backward {r['backward_over_fused']:.2f}x, "
-                  f"gradient {r['gradient_over_fused']:.2f}x the fused forward; "
-                  f"{r['taped_bytes_per_particle_step']:.0f} B per particle per taped step", flush=True)
-            if a.profile:
-                print("    adjoint ms/step: " + ", ".join(f"{k} {v:.2f}" for k, v in r["adjoint_ms_per_step"].items()))
+            report(r, a.profile)
         if "float32" in by_dtype and "float64" in by_dtype:
             g32, g64 = by_dtype["float32"], by_dtype["float64"]
             err = {}

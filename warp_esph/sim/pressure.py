@@ -137,6 +137,35 @@ def kernels(scalar) -> types.SimpleNamespace:
             fi += half
         wp.atomic_add(f, i, fi)
 
+    @wp.kernel(enable_backward=False)
+    def density_adjoint(
+        x: wp.array(dtype=vec3),
+        mass: wp.array(dtype=scalar),
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        h: scalar,
+        adj_rho: wp.array(dtype=scalar),
+        adj_x: wp.array(dtype=vec3),
+    ):
+        """Hand-written adjoint of ``density``: ``d rho_i / d x_j = 2 m_j W'(r2) d``,
+        ``W' = -3 c6 (h^2 - r2)^2`` the poly6 slope in ``r2 = |d|^2``, ``d = x_j - x_i``."""
+        i = wp.tid()
+        a = adj_rho[i]
+        xi = x[i]
+        c6 = sm.poly6_coef(h)
+        hh = h * h
+        gx_i = vec3()
+        for k in range(count[i]):
+            j = nbr[i, k]
+            d = x[j] - xi
+            r2 = wp.dot(d, d)
+            if r2 < hh:
+                e = hh - r2
+                g = (a * mass[j] * scalar(-6.0) * c6 * e * e) * d
+                wp.atomic_add(adj_x, j, g)
+                gx_i -= g
+        wp.atomic_add(adj_x, i, gx_i)
+
     @wp.func
     def pressure_slope(rho: scalar, rho0: scalar, k_p: scalar, clamp: int) -> scalar:
         """1 where ``pressure`` follows ``k_p (rho - rho0)``, 0 where the clamp holds it at 0
@@ -250,18 +279,25 @@ def kernels(scalar) -> types.SimpleNamespace:
         wp.atomic_add(adj_visc, mi, adj_visc_i)
 
     return types.SimpleNamespace(density=density, pressure_forces=pressure_forces,
-                                 pressure_forces_adjoint=pressure_forces_adjoint)
+                                 pressure_forces_adjoint=pressure_forces_adjoint, density_adjoint=density_adjoint)
 
 
-def launch_density(model, x, neighbors, neighbor_count, rho):
-    """SPH density at ``x`` over the given neighbour lists into ``rho``."""
-    wp.launch(
-        kernels(model.scalar).density,
-        model.particle_count,
-        [x, model.particle_mass, neighbors, neighbor_count, model.scalar(model.support_radius)],
-        [rho],
-        device=model.device,
-    )
+def launch_density(model, x, neighbors, neighbor_count, rho, hand_adjoint: bool = True):
+    """SPH density at ``x`` over the given neighbour lists into ``rho``; under a ``wp.Tape``
+    the backward runs ``density_adjoint`` (``hand_adjoint=False``: Warp's generated adjoint)."""
+    k = kernels(model.scalar)
+    inputs = [x, model.particle_mass, neighbors, neighbor_count, model.scalar(model.support_radius)]
+    tape = deformation.recording_tape()
+    if tape is None or not hand_adjoint or x.grad is None or rho.grad is None:
+        wp.launch(k.density, model.particle_count, inputs, [rho], device=model.device)
+        return
+    wp.launch(k.density, model.particle_count, inputs, [rho], device=model.device, record_tape=False)
+
+    def backward():
+        wp.launch(k.density_adjoint, model.particle_count, inputs + [rho.grad, x.grad], device=model.device,
+                  record_tape=False)
+
+    tape.record_func(backward, [x, rho])
 
 
 def launch_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True):

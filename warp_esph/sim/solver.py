@@ -185,7 +185,8 @@ class Solver:
             # 2. SPH density, finished before any pressure uses it (docs/method.md, Warp pitfall 1).
             if sph:
                 with phase("density"):
-                    pressure.launch_density(m, state_in.x, state_out.neighbors, state_out.neighbor_count, state_out.density)
+                    pressure.launch_density(m, state_in.x, state_out.neighbors, state_out.neighbor_count, state_out.density,
+                                            self.hand_adjoints)
             # 3. Plastic flow of the stored F, stress, F^-1.
             with phase("constitutive"):
                 if self._cmp:
