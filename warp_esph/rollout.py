@@ -103,6 +103,13 @@ class _Checkpoint:
         return sum(getattr(self, k).capacity for k in State.STATE_FIELDS)
 
 
+def _zero_state_grads(state: State):
+    for name in State.STATE_FIELDS:
+        g = getattr(state, name).grad
+        if g is not None:  # F_p has none without a comparison model
+            g.zero_()
+
+
 def state_nbytes(state: State) -> int:
     """Bytes held by a ``State``'s arrays and their gradients."""
     total = 0
@@ -354,8 +361,7 @@ class Rollout:
         tape = self._tape
         tape.zero()
         for s in states[: self.steps + 1]:
-            for name in State.STATE_FIELDS:
-                getattr(s, name).grad.zero_()
+            _zero_state_grads(s)
         self._zero_parameter_grads()
         for f, g in frame_grads.items():
             self._seed(states[f].x, g)
@@ -363,8 +369,7 @@ class Rollout:
         self._add_parameter_grads(acc)
         adj = {key: getattr(states[0], name).grad.numpy().copy() for key, name in STATE_GRADIENTS.items()}
         tape.zero()
-        for name in State.STATE_FIELDS:
-            getattr(states[0], name).grad.zero_()
+        _zero_state_grads(states[0])
         return adj
 
     def _backward_checkpointed(self, frame_grads, acc):
@@ -373,8 +378,7 @@ class Rollout:
         for (start, length), ck in reversed(list(zip(self.segments, self._checkpoints))):
             seg = states[: length + 1]
             for s in seg:
-                for name in State.STATE_FIELDS:
-                    getattr(s, name).grad.zero_()
+                _zero_state_grads(s)
             seg[0].assign(ck)
             tape = wp.Tape()
             with tape:
@@ -382,8 +386,8 @@ class Rollout:
                     self.solver.step(seg[k], seg[k + 1], self.dt)
             end = seg[length]
             if adj is not None:
-                for name in State.STATE_FIELDS:
-                    wp.copy(getattr(end, name).grad, adj[name])
+                for name, g in adj.items():
+                    wp.copy(getattr(end, name).grad, g)
             for f, g in frame_grads.items():
                 if start < f <= start + length:
                     self._seed(seg[f - start].x, g)
@@ -391,14 +395,14 @@ class Rollout:
             tape.backward()
             # docs/method.md, Warp pitfall 6: tape.zero() zeroes the parameter grads too: keep them first.
             self._add_parameter_grads(acc)
-            adj = {name: wp.clone(getattr(seg[0], name).grad) for name in State.STATE_FIELDS}
+            adj = {name: wp.clone(getattr(seg[0], name).grad) for name in State.STATE_FIELDS
+                   if getattr(seg[0], name).grad is not None}
             tape.zero()
             del tape
         if 0 in frame_grads:
             self._seed_plain(adj["x"], frame_grads[0])
         for s in states:
-            for name in State.STATE_FIELDS:
-                getattr(s, name).grad.zero_()
+            _zero_state_grads(s)
         self._zero_parameter_grads()
         return {key: adj[name].numpy().copy() for key, name in STATE_GRADIENTS.items()}
 

@@ -49,6 +49,8 @@ class StepScratch:
         self.counters = wp.zeros(len(GUARD_NAMES), dtype=wp.int32, device=dev)
         self.pressure = wp.zeros(n, dtype=model.scalar, device=dev)
         self.sph_volume = wp.zeros(n, dtype=model.scalar, device=dev)
+        # The neighbour selection's squared distances: read only within the search.
+        self.neighbor_d2 = wp.zeros((n, model.max_neighbors), dtype=model.scalar, device=dev)
         self.min_neighbors = min_neighbors
         self.max_condition = max_condition
 
@@ -170,7 +172,7 @@ class Solver:
         # finished before any pressure uses it).
         with phase("neighbors"):
             self.search.update(
-                state_in.x, m.particle_body, state_out.neighbors, state_out.neighbor_d2, state_out.neighbor_count,
+                state_in.x, m.particle_body, state_out.neighbors, scratch.neighbor_d2, state_out.neighbor_count,
                 None if fast else state_out.guard,
                 (m.particle_mass, m.particle_material, m.particle_rest_density, m.material_arrays(),
                  state_out.density, scratch.pressure, scratch.sph_volume) if fast and sph else None,
