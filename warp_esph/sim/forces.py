@@ -206,8 +206,8 @@ def kernels(scalar) -> types.SimpleNamespace:
                 r = Finv * d
                 VV = Vi * volume[j]
                 a = VV * (adj_f[j] - ai)
-                aP += wp.outer(a, sm.grad_w_elastic_c(r, h, c_el))
-                ar = sm.grad_w_elastic_adjoint(r, h, c_el, PT * a)
+                gw, ar = sm.grad_w_elastic_adjoint(r, h, c_el, PT * a)
+                aP += wp.outer(a, gw)
                 aFinv += wp.outer(ar, d)
                 ad = FinvT * ar
                 wp.atomic_add(adj_x, j, ad)

@@ -90,18 +90,19 @@ def funcs(scalar) -> types.SimpleNamespace:
         return d * ih2
 
     @wp.func
-    def grad_w_elastic_adjoint(r: vec3, h: scalar, c: scalar, adj: vec3) -> vec3:
-        """Adjoint of ``grad_w_elastic_c`` at ``r``: ``J^T adj``, ``J = d gradW / d r``.
-        With ``gradW = phi(r2) r``, ``phi = -c cos / |r|``: ``J = phi I + 2 phi' r r^T``."""
+    def grad_w_elastic_adjoint(r: vec3, h: scalar, c: scalar, adj: vec3):
+        """``grad_w_elastic_c(r)`` and its adjoint ``J^T adj`` (``J = d gradW / d r``), sharing
+        one square root and cosine. With ``gradW = phi(r2) r``, ``phi = -c cos / |r|``:
+        ``J = phi I + 2 phi' r r^T``."""
         r2 = wp.dot(r, r)
         if r2 >= h * h or r2 <= scalar(1.0e-24) * h * h:
-            return vec3()
+            return vec3(), vec3()
         rl = wp.sqrt(r2)
         cs = elastic_cos(r2, rl, h)
         phi = -c * cs / rl
         # d phi / d r2 = -c (cos' / rl - cos / (2 rl^3))
         dphi = -c * (elastic_cos_dr2(r2, rl, h) / rl - cs / (scalar(2.0) * rl * r2))
-        return phi * adj + scalar(2.0) * dphi * wp.dot(r, adj) * r
+        return phi * r, phi * adj + scalar(2.0) * dphi * wp.dot(r, adj) * r
 
     @wp.func
     def grad_w_elastic_c(r: vec3, h: scalar, c: scalar) -> vec3:
