@@ -17,7 +17,7 @@ state (``x0, v0, F0, alpha0``)::
 Memory
 ------
 Without checkpointing (``checkpoint_every=None``) the forward pass is recorded on one
-``wp.Tape`` with one ``State`` per step: memory grows with ``steps`` (about 1.1 kB
+``wp.Tape`` with one ``State`` per step: memory grows with ``steps`` (about 0.95 kB
 per particle per step in float64, see ``docs/fitting.md``). With ``checkpoint_every=S``
 the forward pass runs untaped, keeping only the state fields (``x, v, F, alpha``) at the
 start of every segment of ``S`` steps; ``backward`` re-runs each segment on a fresh tape,
