@@ -74,11 +74,12 @@ def _kernels(scalar):
 
 
 def _differentiable_solver(model: Model) -> Solver:
-    """A solver whose untaped steps run the same kernels as its taped ones."""
-    try:
-        return Solver(model, fused=False)
-    except TypeError:  # a Solver without the fused fast path
-        return Solver(model)
+    """A solver whose untaped steps run the same kernels as its taped ones (the fused ones
+    where ``Solver.fast_under_tape``, the differentiable ones otherwise)."""
+    solver = Solver(model)
+    if not solver.fast_under_tape():
+        solver.fused = False
+    return solver
 
 
 class _Checkpoint:
@@ -130,8 +131,10 @@ class Rollout:
     - ``checkpoint_every``: ``None`` records the whole run on one tape; an integer ``S``
       keeps only segment starts every ``S`` steps and re-runs segments in ``backward``.
     - ``solver``: a ``Solver`` of ``model`` (default: a new one). It and its hash grid are
-      kept for the rollout's lifetime. Its untaped fast path (``solver.fused``) is
-      switched off, so an untaped forward step is the step that a tape records.
+      kept for the rollout's lifetime. Its fused fast path (``solver.fused``) is switched
+      off unless ``solver.fast_under_tape()`` (then a taped step runs the fused kernels too),
+      so an untaped forward step is the step that a tape records. Set ``hand_adjoints``
+      before passing it.
     """
 
     def __init__(self, model: Model, steps: int, dt: float, frames: Sequence[int] | None = None,
@@ -163,8 +166,8 @@ class Rollout:
         elif not isinstance(solver, Solver) or solver.model is not model:
             raise ValueError("solver is not allowed: it must be a warp_esph.Solver built for this model")
         # The untaped forward of a checkpointed rollout must compute exactly what the
-        # taped re-run of ``backward`` records: no fast path that only runs untaped.
-        if getattr(solver, "fused", False):
+        # taped re-run of ``backward`` records: the fused kernels only where a tape runs them too.
+        if getattr(solver, "fused", False) and not solver.fast_under_tape():
             solver.fused = False
         self.solver = solver
         self.solver.check_dt(self.dt)

@@ -230,9 +230,18 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     wp.launch(k.update_deformation, model.particle_count, inputs, [state_out.F, counters], device=model.device,
               record_tape=False)
 
-    def backward():
-        wp.launch(k.update_deformation_adjoint, model.particle_count,
-                  inputs + [state_out.F.grad, state_in.x.grad, state_out.x.grad, state_out.F_flowed.grad],
-                  device=model.device, record_tape=False)
+    tape.record_func(lambda: launch_update_deformation_adjoint(model, state_in, state_out), list(grads))
 
-    tape.record_func(backward, list(grads))
+
+def launch_update_deformation_adjoint(model, state_in, state_out):
+    """``update_deformation_adjoint``: ``state_out.F.grad`` into the gradients of ``state_in.x``,
+    ``state_out.x`` and ``state_out.F_flowed``, with the guards in ``state_out.guard``."""
+    wp.launch(
+        kernels(model.scalar).update_deformation_adjoint, model.particle_count,
+        [
+            state_in.x, state_out.x, model.particle_body, state_out.neighbors, state_out.neighbor_count, state_out.guard,
+            state_out.F_flowed, model.scalar(model.support_radius), state_out.F.grad, state_in.x.grad, state_out.x.grad,
+            state_out.F_flowed.grad,
+        ],
+        device=model.device, record_tape=False,
+    )

@@ -239,13 +239,17 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True)
         return
     wp.launch(k.elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
 
-    def backward():
-        wp.launch(
-            k.elastic_forces_adjoint, model.particle_count,
-            [state_in.x, model.particle_body, state_out.neighbors, state_out.neighbor_count, model.particle_volume,
-             state_out.stress, state_out.F_inv, S(model.support_radius), state_out.force.grad, state_in.x.grad,
-             state_out.stress.grad, state_out.F_inv.grad],
-            device=model.device, record_tape=False,
-        )
+    tape.record_func(lambda: launch_elastic_forces_adjoint(model, state_in, state_out), list(grads))
 
-    tape.record_func(backward, list(grads))
+
+def launch_elastic_forces_adjoint(model, state_in, state_out):
+    """``elastic_forces_adjoint``: ``state_out.force.grad`` into the gradients of ``state_in.x``,
+    ``state_out.stress`` and ``state_out.F_inv`` (eqs. 10-13 only)."""
+    S = model.scalar
+    wp.launch(
+        kernels(S).elastic_forces_adjoint, model.particle_count,
+        [state_in.x, model.particle_body, state_out.neighbors, state_out.neighbor_count, model.particle_volume,
+         state_out.stress, state_out.F_inv, S(model.support_radius), state_out.force.grad, state_in.x.grad,
+         state_out.stress.grad, state_out.F_inv.grad],
+        device=model.device, record_tape=False,
+    )

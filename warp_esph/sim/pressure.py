@@ -293,11 +293,16 @@ def launch_density(model, x, neighbors, neighbor_count, rho, hand_adjoint: bool 
         return
     wp.launch(k.density, model.particle_count, inputs, [rho], device=model.device, record_tape=False)
 
-    def backward():
-        wp.launch(k.density_adjoint, model.particle_count, inputs + [rho.grad, x.grad], device=model.device,
-                  record_tape=False)
+    tape.record_func(lambda: launch_density_adjoint(model, x, neighbors, neighbor_count, rho), [x, rho])
 
-    tape.record_func(backward, [x, rho])
+
+def launch_density_adjoint(model, x, neighbors, neighbor_count, rho):
+    """``density_adjoint``: ``rho.grad`` into ``x.grad``."""
+    wp.launch(
+        kernels(model.scalar).density_adjoint, model.particle_count,
+        [x, model.particle_mass, neighbors, neighbor_count, model.scalar(model.support_radius), rho.grad, x.grad],
+        device=model.device, record_tape=False,
+    )
 
 
 def launch_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True):
@@ -317,12 +322,19 @@ def launch_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True
         return
     wp.launch(k.pressure_forces, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
 
-    def backward():
-        wp.launch(
-            k.pressure_forces_adjoint, model.particle_count,
-            inputs + [state_out.force.grad, state_in.x.grad, state_in.v.grad, state_out.density.grad,
-                      model.pressure_stiffness.grad, model.viscosity.grad],
-            device=model.device, record_tape=False,
-        )
+    tape.record_func(lambda: launch_pressure_forces_adjoint(model, state_in, state_out), list(grads))
 
-    tape.record_func(backward, list(grads))
+
+def launch_pressure_forces_adjoint(model, state_in, state_out):
+    """``pressure_forces_adjoint``: ``state_out.force.grad`` into the gradients of ``state_in.x,
+    v``, ``state_out.density`` and the model's ``pressure_stiffness`` and ``viscosity``."""
+    wp.launch(
+        kernels(model.scalar).pressure_forces_adjoint, model.particle_count,
+        [
+            state_in.x, state_in.v, model.particle_mass, state_out.density, model.particle_rest_density,
+            model.particle_material, model.material_arrays(), state_out.neighbors, state_out.neighbor_count,
+            model.scalar(model.support_radius), state_out.force.grad, state_in.x.grad, state_in.v.grad,
+            state_out.density.grad, model.pressure_stiffness.grad, model.viscosity.grad,
+        ],
+        device=model.device, record_tape=False,
+    )

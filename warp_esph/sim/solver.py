@@ -14,6 +14,7 @@ import warp as wp
 
 from .. import checks
 from ..model import Model, State
+from .deformation import recording_tape
 from . import comparison, deformation, fields, forces, fused, integrate, neighbors, plasticity, pressure
 
 GUARD_NAMES = ("few_neighbors", "ill_conditioned", "inverted", "plasticity_skipped")
@@ -33,10 +34,7 @@ _NO_PHASE = contextlib.nullcontext()
 
 def tape_recording() -> bool:
     """Whether a ``wp.Tape`` is recording launches now."""
-    runtime = getattr(getattr(getattr(wp, "_src", None), "context", None), "runtime", None)
-    if runtime is None:  # pragma: no cover (older layout)
-        runtime = wp.context.runtime
-    return getattr(runtime, "tape", None) is not None
+    return recording_tape() is not None
 
 
 class StepScratch:
@@ -113,6 +111,19 @@ class Solver:
         #: in place of Warp's generated ones; False: the generated ones (the tests' reference).
         self.hand_adjoints = True
 
+    def fast_under_tape(self) -> bool:
+        """Whether a taped step runs the fused forward kernels (not recorded) and records the
+        hand-written adjoints (and the constitutive update's generated one) in their place:
+        with ``fused`` and ``hand_adjoints``, a ``requires_grad`` model, no comparison model and
+        every material with the eqs. 10-13 elastic force. Otherwise the differentiable kernels run."""
+        m = self.model
+        return (self.fused and self.hand_adjoints and m.requires_grad and not self._cmp
+                and not m.material_elastic_force.numpy().any())
+
+    def _fast_under_tape(self, state_in, state_out) -> bool:
+        return (self.fast_under_tape() and state_in.x.grad is not None and state_out.x.grad is not None
+                and state_in.F.grad is not None)
+
     def _phase(self, name: str):
         return _NO_PHASE if self.phase_times is None else self._timed_phase(name)
 
@@ -164,7 +175,9 @@ class Solver:
         m = self.model
         scratch = self.scratch
         sph = m.sph_active
-        fast = self.fused and not self._cmp and not tape_recording()
+        tape = recording_tape()
+        fast = self.fused and not self._cmp and (tape is None or self._fast_under_tape(state_in, state_out))
+        fast_tape = tape if fast else None
         phase = self._phase
 
         # 1. Neighbour lists and neighbourhood guards (integers, not taped). The fast
@@ -182,7 +195,7 @@ class Solver:
         if fast:
             # 2-4 fused: plastic flow, stress, F^-1 and every pair force in one launch.
             with phase("fused"):
-                fused.launch_constitutive_forces(m, state_in, state_out, dt, scratch, sph)
+                fused.launch_constitutive_forces(m, state_in, state_out, dt, scratch, sph, fast_tape)
         else:
             # 2. SPH density, finished before any pressure uses it (docs/method.md, Warp pitfall 1).
             if sph:
@@ -217,7 +230,7 @@ class Solver:
         # evaluates the neighbourhood guards here, on the fit's own moment matrix.
         with phase("deformation"):
             if fast:
-                fused.launch_update_deformation(m, state_in, state_out, scratch)
+                fused.launch_update_deformation(m, state_in, state_out, scratch, fast_tape)
             elif self._cmp:
                 comparison.launch_update_deformation(m, state_in, state_out, scratch.counters)
             else:
