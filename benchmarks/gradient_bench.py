@@ -14,7 +14,12 @@ with its gradients, bytes per particle), and, with ``--profile``, the time of ea
 kernel's adjoint launch in the backward pass.
 
     python -m benchmarks.gradient_bench                      # 10k block and fit star, f32 + f64
+    python -m benchmarks.gradient_bench --generated --profile   # also the old path; per-kernel times
     python -m benchmarks.gradient_bench --sizes 1000 --repeats 2 --profile
+
+``--generated`` also runs the rollout with ``Solver.hand_adjoints = False`` (the
+differentiable kernels on the tape with Warp's generated adjoints: the code before the
+hand-written adjoints), for a before/after in one run. Ratios are printed in wall and CPU time.
 
 Not a test.
 """
