@@ -48,12 +48,17 @@ class State:
         self.alpha = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad)
         # The plastic F_p of the rest-configuration comparison model (docs/method.md §7; I elsewhere).
         # The additive model's strain needs no field of its own: F holds I + eps there.
-        self.F_p = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev, requires_grad=requires_grad)
+        # Its gradient only where a comparison model reads it (a taped step's memory).
+        self.F_p = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev,
+                            requires_grad=requires_grad and model.uses_comparison_models)
         #: Simulated time (s) of this state: the step that writes it sets ``time_in + dt``.
         self.time = 0.0
         # Written by the step that produced this state.
         self.neighbors = wp.zeros((n, K), dtype=wp.int32, device=dev)
-        self.neighbor_d2 = wp.zeros((n, K), dtype=T.scalar, device=dev)
+        # The selection's squared distances: scratch of the search, allocated only when asked
+        # for (the solver keeps its own), so a taped step does not hold K scalars per particle.
+        self._neighbor_d2 = None
+        self._d2_spec = ((n, K), T.scalar, dev)
         self.neighbor_count = wp.zeros(n, dtype=wp.int32, device=dev)
         self.guard = wp.zeros(n, dtype=wp.int32, device=dev)
         self.density = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad)
@@ -62,6 +67,14 @@ class State:
         self.F_inv = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
         self.force = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
         tools.allocate_state(model, self, requires_grad)
+
+    @property
+    def neighbor_d2(self) -> wp.array:
+        """Squared distances of the neighbour selection (``NeighborSearch.build``'s scratch)."""
+        if self._neighbor_d2 is None:
+            shape, dtype, dev = self._d2_spec
+            self._neighbor_d2 = wp.zeros(shape, dtype=dtype, device=dev)
+        return self._neighbor_d2
 
     #: The arrays that define the simulation state (what a checkpoint must hold).
     STATE_FIELDS = ("x", "v", "F", "alpha", "F_p")

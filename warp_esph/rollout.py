@@ -17,7 +17,7 @@ state (``x0, v0, F0, alpha0``)::
 Memory
 ------
 Without checkpointing (``checkpoint_every=None``) the forward pass is recorded on one
-``wp.Tape`` with one ``State`` per step: memory grows with ``steps`` (about 1.1 kB
+``wp.Tape`` with one ``State`` per step: memory grows with ``steps`` (about 0.95 kB
 per particle per step in float64, see ``docs/fitting.md``). With ``checkpoint_every=S``
 the forward pass runs untaped, keeping only the state fields (``x, v, F, alpha``) at the
 start of every segment of ``S`` steps; ``backward`` re-runs each segment on a fresh tape,
@@ -91,11 +91,12 @@ def _kernels(scalar):
 
 
 def _differentiable_solver(model: Model) -> Solver:
-    """A solver whose untaped steps run the same kernels as its taped ones."""
-    try:
-        return Solver(model, fused=False)
-    except TypeError:  # a Solver without the fused fast path
-        return Solver(model)
+    """A solver whose untaped steps run the same kernels as its taped ones (the fused ones
+    where ``Solver.fast_under_tape``, the differentiable ones otherwise)."""
+    solver = Solver(model)
+    if not solver.fast_under_tape():
+        solver.fused = False
+    return solver
 
 
 class _Checkpoint:
@@ -120,6 +121,13 @@ class _Checkpoint:
         return sum(getattr(self, k).capacity for k in State.STATE_FIELDS)
 
 
+def _zero_state_grads(state: State):
+    for name in State.STATE_FIELDS:
+        g = getattr(state, name).grad
+        if g is not None:  # F_p has none without a comparison model
+            g.zero_()
+
+
 def state_nbytes(state: State) -> int:
     """Bytes held by a ``State``'s arrays and their gradients."""
     total = 0
@@ -140,8 +148,10 @@ class Rollout:
     - ``checkpoint_every``: ``None`` records the whole run on one tape; an integer ``S``
       keeps only segment starts every ``S`` steps and re-runs segments in ``backward``.
     - ``solver``: a ``Solver`` of ``model`` (default: a new one). It and its hash grid are
-      kept for the rollout's lifetime. Its untaped fast path (``solver.fused``) is
-      switched off, so an untaped forward step is the step that a tape records.
+      kept for the rollout's lifetime. Its fused fast path (``solver.fused``) is switched
+      off unless ``solver.fast_under_tape()`` (then a taped step runs the fused kernels too),
+      so an untaped forward step is the step that a tape records. Set ``hand_adjoints``
+      before passing it.
     """
 
     def __init__(self, model: Model, steps: int, dt: float, frames: Sequence[int] | None = None,
@@ -173,8 +183,8 @@ class Rollout:
         elif not isinstance(solver, Solver) or solver.model is not model:
             raise ValueError("solver is not allowed: it must be a warp_esph.Solver built for this model")
         # The untaped forward of a checkpointed rollout must compute exactly what the
-        # taped re-run of ``backward`` records: no fast path that only runs untaped.
-        if getattr(solver, "fused", False):
+        # taped re-run of ``backward`` records: the fused kernels only where a tape runs them too.
+        if getattr(solver, "fused", False) and not solver.fast_under_tape():
             solver.fused = False
         self.solver = solver
         self.solver.check_dt(self.dt)
@@ -442,8 +452,7 @@ class Rollout:
         tape = self._tape
         tape.zero()
         for s in states[: self.steps + 1]:
-            for name in State.STATE_FIELDS:
-                getattr(s, name).grad.zero_()
+            _zero_state_grads(s)
         self._zero_parameter_grads()
         for f, g in frame_grads.items():
             self._seed(states[f].x, g)
@@ -453,8 +462,7 @@ class Rollout:
         self._add_parameter_grads(acc)
         adj = {key: getattr(states[0], name).grad.numpy().copy() for key, name in STATE_GRADIENTS.items()}
         tape.zero()
-        for name in State.STATE_FIELDS:
-            getattr(states[0], name).grad.zero_()
+        _zero_state_grads(states[0])
         return adj
 
     def _backward_checkpointed(self, frame_grads, acc):
@@ -463,8 +471,7 @@ class Rollout:
         for (start, length), ck in reversed(list(zip(self.segments, self._checkpoints))):
             seg = states[: length + 1]
             for s in seg:
-                for name in State.STATE_FIELDS:
-                    getattr(s, name).grad.zero_()
+                _zero_state_grads(s)
             seg[0].assign(ck)
             tape = wp.Tape()
             with tape:
@@ -472,8 +479,8 @@ class Rollout:
                     self.solver.step(seg[k], seg[k + 1], self.dt)
             end = seg[length]
             if adj is not None:
-                for name in State.STATE_FIELDS:
-                    wp.copy(getattr(end, name).grad, adj[name])
+                for name, g in adj.items():
+                    wp.copy(getattr(end, name).grad, g)
             for f, g in frame_grads.items():
                 if start < f <= start + length:
                     self._seed(seg[f - start].x, g)
@@ -483,14 +490,14 @@ class Rollout:
             tape.backward()
             # docs/method.md, Warp pitfall 6: tape.zero() zeroes the parameter grads too: keep them first.
             self._add_parameter_grads(acc)
-            adj = {name: wp.clone(getattr(seg[0], name).grad) for name in State.STATE_FIELDS}
+            adj = {name: wp.clone(getattr(seg[0], name).grad) for name in State.STATE_FIELDS
+                   if getattr(seg[0], name).grad is not None}
             tape.zero()
             del tape
         if 0 in frame_grads:
             self._seed_plain(adj["x"], frame_grads[0])
         for s in states:
-            for name in State.STATE_FIELDS:
-                getattr(s, name).grad.zero_()
+            _zero_state_grads(s)
         self._zero_parameter_grads()
         return {key: adj[name].numpy().copy() for key, name in STATE_GRADIENTS.items()}
 
