@@ -18,7 +18,10 @@ from . import checks
 from .model import Model, State
 from .sim.solver import Solver
 
-__all__ = ["simulate", "resolve_timestep", "SimulationError"]
+__all__ = ["simulate", "resolve_timestep", "adaptive_timestep", "SimulationError", "AUTO"]
+
+#: ``dt = AUTO`` (``"auto"``) asks ``simulate`` for an adaptive (CFL) time step.
+AUTO = "auto"
 
 
 class SimulationError(RuntimeError):
@@ -67,6 +70,38 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
             f"dt = {dt!r} is not allowed: a frame (1/fps = {frame_dt:.6g} s) must be a whole number of steps, "
             f"but 1/fps / dt = {ratio:.6g}; use e.g. {hint}, or give substeps instead"
         )
+    return n, frame_dt / n
+
+
+def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: float = 0.3) -> tuple[int, float]:
+    """``(substeps, dt)`` for the next frame of ``state``, ``substeps * dt = 1 / fps``.
+
+    The CFL limit of docs/method.md §8 with the signal speed measured now: a disturbance
+    travels at the p-wave speed relative to the material, which itself moves, so
+
+        dt <= C dx / (c_P + v_max + |g| / fps)
+
+    where ``v_max`` is the largest particle speed of ``state`` and ``|g| / fps`` bounds
+    what gravity adds to it within the frame; and ``dt`` is at most the viscous limit of
+    ``Model.stable_dt``. A body at rest gets ``stable_dt`` (to the gravity term); one in
+    flight or hit hard gets smaller steps. Rounded down to a whole number of steps per frame.
+    """
+    fps = checks.positive("fps", fps)
+    courant = checks.positive("courant", courant)
+    frame_dt = 1.0 / fps
+    stable = model.stable_dt(courant)
+    p = model.parameter_values()
+    rho = np.array([m.density for m in model.materials], dtype=np.float64)
+    from .material import p_wave_speed  # noqa: PLC0415
+
+    c = float(np.max(p_wave_speed(p["mu"], p["lam"], rho, p["pressure_stiffness"])))
+    v = state.v.numpy().astype(np.float64)
+    v_max = float(np.sqrt((v * v).sum(axis=1)).max()) if len(v) else 0.0
+    if not math.isfinite(v_max):
+        v_max = 0.0  # the divergence check after the frame reports it
+    g = float(np.linalg.norm(model.gravity))
+    dt = min(stable, courant * model.spacing / (c + v_max + g * frame_dt))
+    n = max(1, math.ceil(frame_dt / dt * (1.0 - 1e-12)))
     return n, frame_dt / n
 
 
@@ -127,7 +162,9 @@ def simulate(
 ) -> State:
     """Simulate ``frames`` frames at ``fps``; returns the final state.
 
-    - ``substeps`` / ``dt``: at most one; see ``resolve_timestep``.
+    - ``substeps`` / ``dt``: at most one; see ``resolve_timestep``. ``dt="auto"``: an
+      adaptive (CFL) step, chosen anew for each frame by ``adaptive_timestep`` (whole
+      steps per frame, never above ``model.stable_dt()``).
     - ``writer``: anything with ``write_frame(frame_index, state)`` (e.g. ``UsdWriter``).
       Frame ``start_frame`` (the initial state) is written first, then one frame per
       rendered frame. The writer is closed when the run ends, also when it fails.
@@ -150,7 +187,15 @@ def simulate(
             raise ValueError(f"start_frame = {start_frame!r} is not allowed: must be an integer >= 0")
         start_frame = int(start_frame)
         fps = checks.positive("fps", fps)
-        n_sub, dt = resolve_timestep(model, fps, substeps, dt)
+        adaptive = isinstance(dt, str)
+        if adaptive:
+            if dt != AUTO:
+                raise ValueError(f"dt = {dt!r} is not allowed: must be a number of seconds or {AUTO!r}")
+            if substeps is not None:
+                raise ValueError(f"substeps = {substeps!r} and dt = {AUTO!r} are not allowed together: the adaptive step chooses the substeps")
+            n_sub, dt = 1, model.stable_dt()
+        else:
+            n_sub, dt = resolve_timestep(model, fps, substeps, dt)
         if writer is not None:
             if not callable(getattr(writer, "write_frame", None)):
                 raise ValueError(f"writer = {writer!r} is not allowed: it must have a write_frame(frame_index, state) method")
@@ -181,6 +226,8 @@ def simulate(
             steps = 0
             t0 = time.perf_counter()
             for k in range(1, frames + 1):
+                if adaptive:
+                    n_sub, dt = adaptive_timestep(model, current, fps)
                 for _ in range(n_sub):
                     solver.step(current, spare, dt)
                     current, spare = spare, current
@@ -190,7 +237,7 @@ def simulate(
                 if bad is not None:
                     p, count = bad
                     body = model.bodies[int(model.particle_body_np[p])].name
-                    step = start_frame * n_sub + steps
+                    step = steps if adaptive else start_frame * n_sub + steps
                     raise SimulationError(
                         f"the simulation diverged: non-finite position or velocity after step {step} "
                         f"(frame {frame}, t = {frame / fps:.4g} s, dt = {dt:.4g} s): particle {p} of body {body!r} "
