@@ -68,7 +68,9 @@ def _build_parser() -> _Parser:
     run.add_argument("-o", "--output", metavar="OUT.usd", help="output .usd/.usdc/.usda file; default: <scene>.usdc here")
     run.add_argument("--frames", type=int, metavar="N", help="number of frames after the initial one (default: the scene's)")
     run.add_argument("--fps", type=float, metavar="F", help="frames per second (default: the scene's)")
-    run.add_argument("--dt", type=float, metavar="DT", help="time step in s; must divide 1/fps (default: the stable step)")
+    run.add_argument("--dt", type=_dt_arg, metavar="DT",
+                     help="time step in s; must divide 1/fps (default: the stable step); 'auto': an adaptive (CFL) step per frame")
+    run.add_argument("--adaptive-dt", action="store_true", help="the same as --dt auto")
     run.add_argument("--scale", type=float, default=1.0, metavar="S",
                      help="resolution scale: spacing / S, particle count ~ S^3 (default 1)")
     run.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="Warp device (default cpu)")
@@ -207,6 +209,16 @@ def _cmd_scenes() -> int:
     return 0
 
 
+def _dt_arg(text: str):
+    """``--dt``: seconds, or ``auto`` for the adaptive step."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--dt = {text!r} is not allowed: must be a number of seconds or 'auto'") from None
+
+
 def _cmd_run(args) -> int:
     from . import checks  # noqa: PLC0415
 
@@ -215,7 +227,11 @@ def _cmd_run(args) -> int:
         checks.positive_int("--frames", args.frames)
     if args.fps is not None:
         checks.positive("--fps", args.fps)
-    if args.dt is not None:
+    if args.adaptive_dt:
+        if args.dt is not None and args.dt != "auto":
+            raise ValueError(f"--dt = {args.dt!r} and --adaptive-dt are not allowed together: give one of them")
+        args.dt = "auto"
+    if args.dt is not None and args.dt != "auto":
         checks.positive("--dt", args.dt)
     scale = checks.positive("--scale", args.scale)
     if args.output is not None:
@@ -264,10 +280,13 @@ def _cmd_run(args) -> int:
     frames = frames_total - start_frame
     if frames < 1:
         raise ValueError(f"--resume = {args.resume!r} is not allowed: that run finished all {frames_total} frames")
-    substeps, dt = resolve_timestep(model, fps, dt=dt)
+    adaptive = dt == "auto"
+    substeps, dt_shown = resolve_timestep(model, fps) if adaptive else resolve_timestep(model, fps, dt=dt)
+    if not adaptive:
+        dt = dt_shown
     check_step_count(frames, substeps)
     solver = Solver(model)
-    solver.check_dt(dt)  # the stability warning, once, before the run
+    solver.check_dt(dt_shown)  # the stability warning, once, before the run
     _arm(args)  # from here an interrupt unwinds through the writer
     writer = UsdWriter(output, model, fps, surface=args.surface, view=getattr(scene, "view", None), append=args.resume is not None)
     # The whole output name: a.usdc and a.usda in one folder must not share a checkpoint.
@@ -280,7 +299,8 @@ def _cmd_run(args) -> int:
 
     def checkpoint(frame, current):
         if every is not None and frame > start_frame and frame % every == 0:
-            save_state(checkpoint_path, model, current, step=frame * substeps, frame=frame, run=run_record)
+            # With the adaptive step the step count is not a function of the frame: -1.
+            save_state(checkpoint_path, model, current, step=-1 if adaptive else frame * substeps, frame=frame, run=run_record)
 
     # Tools (moving colliders, pinned sets): pose and mean reaction per frame, beside the USD.
     log = None
@@ -296,7 +316,9 @@ def _cmd_run(args) -> int:
 
     try:
         print(f"{PROG}: {scene.name}: {model.particle_count} particles, {len(model.bodies)} bodies, "
-              f"{frames} frames at {fps:g} fps, dt = {dt:.4g} s ({substeps} steps/frame), {args.device} {args.dtype} "
+              f"{frames} frames at {fps:g} fps, "
+              + ("adaptive dt (CFL), at most " if adaptive else "")
+              + f"dt = {dt_shown:.4g} s ({substeps} steps/frame), {args.device} {args.dtype} "
               f"-> {writer.path}" + (f" (resumed at frame {start_frame})" if start_frame else ""), flush=True)
         simulate(model, frames, fps=fps, dt=dt, writer=writer, progress=not args.no_progress, solver=solver,
                  state=state, start_frame=start_frame, callback=on_frame if every is not None or log is not None else None,

@@ -20,7 +20,10 @@ from . import checks
 from .model import Model, State
 from .sim.solver import Solver
 
-__all__ = ["simulate", "resolve_timestep", "SimulationError", "DivergenceMonitor", "MAX_STEPS_PER_FRAME", "MAX_STEPS"]
+__all__ = [
+    "simulate", "resolve_timestep", "adaptive_timestep", "SimulationError", "DivergenceMonitor", "AUTO",
+    "MAX_STEPS_PER_FRAME", "MAX_STEPS",
+]
 
 #: Most steps one frame may take. The stiffest useful material at a fine spacing (steel,
 #: c_P ~ 6 km/s, at 5 mm) needs about 1e5 at 30 fps; more is a mistake that would run for
@@ -28,6 +31,9 @@ __all__ = ["simulate", "resolve_timestep", "SimulationError", "DivergenceMonitor
 MAX_STEPS_PER_FRAME = 10**6
 #: Most steps one run may take (1e10 steps of the smallest scene take about a month here).
 MAX_STEPS = 10**10
+
+#: ``dt = AUTO`` (``"auto"``) asks ``simulate`` for an adaptive (CFL) time step.
+AUTO = "auto"
 
 
 class SimulationError(RuntimeError):
@@ -206,6 +212,38 @@ def check_step_count(frames: int, substeps: int) -> None:
         )
 
 
+def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: float = 0.3) -> tuple[int, float]:
+    """``(substeps, dt)`` for the next frame of ``state``, ``substeps * dt = 1 / fps``.
+
+    The CFL limit of docs/method.md §8 with the signal speed measured now: a disturbance
+    travels at the p-wave speed relative to the material, which itself moves, so
+
+        dt <= C dx / (c_P + v_max + |g| / fps)
+
+    where ``v_max`` is the largest particle speed of ``state`` and ``|g| / fps`` bounds
+    what gravity adds to it within the frame; and ``dt`` is at most the viscous limit of
+    ``Model.stable_dt``. A body at rest gets ``stable_dt`` (to the gravity term); one in
+    flight or hit hard gets smaller steps. Rounded down to a whole number of steps per frame.
+    """
+    fps = checks.positive("fps", fps)
+    courant = checks.positive("courant", courant)
+    frame_dt = 1.0 / fps
+    stable = model.stable_dt(courant)
+    p = model.parameter_values()
+    rho = np.array([m.density for m in model.materials], dtype=np.float64)
+    from .material import p_wave_speed  # noqa: PLC0415
+
+    c = float(np.max(p_wave_speed(p["mu"], p["lam"], rho, p["pressure_stiffness"])))
+    v = state.v.numpy().astype(np.float64)
+    v_max = float(np.sqrt((v * v).sum(axis=1)).max()) if len(v) else 0.0
+    if not math.isfinite(v_max):
+        v_max = 0.0  # the divergence check after the frame reports it
+    g = float(np.linalg.norm(model.gravity))
+    dt = min(stable, courant * model.spacing / (c + v_max + g * frame_dt))
+    n = max(1, math.ceil(frame_dt / dt * (1.0 - 1e-12)))
+    return n, frame_dt / n
+
+
 def _frame_count(frames) -> int:
     if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1:
         raise ValueError(f"frames = {frames!r} is not allowed: must be an integer >= 1")
@@ -269,7 +307,9 @@ def simulate(
 ) -> State:
     """Simulate ``frames`` frames at ``fps``; returns the final state.
 
-    - ``substeps`` / ``dt``: at most one; see ``resolve_timestep``.
+    - ``substeps`` / ``dt``: at most one; see ``resolve_timestep``. ``dt="auto"``: an
+      adaptive (CFL) step, chosen anew for each frame by ``adaptive_timestep`` (whole
+      steps per frame, never above ``model.stable_dt()``).
     - ``writer``: anything with ``write_frame(frame_index, state)`` (e.g. ``UsdWriter``).
       Frame ``start_frame`` (the initial state) is written first, then one frame per
       rendered frame. The writer is closed when the run ends, also when it fails.
@@ -298,8 +338,16 @@ def simulate(
         start_frame = int(start_frame)
         monitor = checks.boolean("monitor", monitor)
         fps = checks.positive("fps", fps)
-        n_sub, dt = resolve_timestep(model, fps, substeps, dt)
-        check_step_count(frames, n_sub)
+        adaptive = isinstance(dt, str)
+        if adaptive:
+            if dt != AUTO:
+                raise ValueError(f"dt = {dt!r} is not allowed: must be a number of seconds or {AUTO!r}")
+            if substeps is not None:
+                raise ValueError(f"substeps = {substeps!r} and dt = {AUTO!r} are not allowed together: the adaptive step chooses the substeps")
+            n_sub, dt = 1, model.stable_dt()
+        else:
+            n_sub, dt = resolve_timestep(model, fps, substeps, dt)
+            check_step_count(frames, n_sub)
         if writer is not None:
             if not callable(getattr(writer, "write_frame", None)):
                 raise ValueError(f"writer = {writer!r} is not allowed: it must have a write_frame(frame_index, state) method")
@@ -333,16 +381,18 @@ def simulate(
             steps = 0
             t0 = time.perf_counter()
             for k in range(1, frames + 1):
+                if adaptive:
+                    n_sub, dt = adaptive_timestep(model, current, fps)
                 for _ in range(n_sub):
                     solver.step(current, spare, dt)
                     current, spare = spare, current
                 steps += n_sub
                 frame = start_frame + k
-                bad = _first_bad(model, current, monitor, steps * dt)
+                bad = _first_bad(model, current, monitor, k / fps)  # simulated time of this run
                 if bad is not None:
                     what, p = bad
                     body = model.bodies[int(model.particle_body_np[p])].name
-                    step = start_frame * n_sub + steps
+                    step = steps if adaptive else start_frame * n_sub + steps
                     raise SimulationError(
                         f"the simulation diverged after step {step} (frame {frame}, t = {frame / fps:.4g} s, "
                         f"dt = {dt:.4g} s): {what}, at particle {p} of body {body!r}; try a smaller dt (stable limit "

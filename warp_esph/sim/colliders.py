@@ -6,7 +6,7 @@ the inward normal velocity is removed and the tangential velocity loses
 The position is corrected by ``dt`` times the velocity friction removed: the drift moved the
 particle with the velocity before friction, so without it a particle that friction holds
 still slides ``a_t dt^2`` per step, a creep at speed ``a_t dt`` that kept slumped plastic
-piles sinking (docs/creep.md).
+piles sinking (docs/physics.md, "The slump creep").
 """
 
 import dataclasses
