@@ -106,7 +106,10 @@ def read_checkpoint(path) -> tuple[dict, dict[str, np.ndarray]]:
         meta = json.loads(arrays.pop("meta").tobytes().decode())
     except FileNotFoundError:
         raise ValueError(f"checkpoint = {str(path)!r} is not allowed: no such file") from None
-    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, json.JSONDecodeError, UnicodeDecodeError) as e:
+    # zipfile also raises RuntimeError (a damaged 'encrypted' flag) and NotImplementedError
+    # (a damaged compression method): in this block, only reading the file can raise them.
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, json.JSONDecodeError, UnicodeDecodeError,
+            RuntimeError, NotImplementedError) as e:
         raise ValueError(f"checkpoint = {str(path)!r} is not allowed: not a readable warp_esph checkpoint ({type(e).__name__})") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise ValueError(f"checkpoint = {str(path)!r} is not allowed: unknown format {meta.get('format') if isinstance(meta, dict) else None!r}")

@@ -192,8 +192,19 @@ def choice(name: str, value, allowed: Sequence[str]) -> str:
 READ_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, UnicodeDecodeError, struct.error)
 
 
+def _raised_in_zipfile(exc: BaseException) -> bool:
+    """Whether ``exc`` was raised inside the zipfile module: it raises RuntimeError (a
+    damaged 'encrypted' flag) and NotImplementedError (a damaged compression method)."""
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return tb is not None and tb.tb_frame.f_globals.get("__name__", "").split(".")[0] == "zipfile"
+
+
 def is_read_error(exc: BaseException) -> bool:
     """Whether ``exc`` is what a library raises on a damaged or foreign file."""
+    if isinstance(exc, (RuntimeError, NotImplementedError)) and _raised_in_zipfile(exc):
+        return True
     return isinstance(exc, READ_ERRORS) or type(exc).__module__.split(".")[0] == "pxr"
 
 
