@@ -493,6 +493,7 @@ def main(argv=None):
     wp.config.quiet = True
     wp.init()
     import warp_esph as we
+    from warp_esph.sim.solver import DEFAULT_SKIN
 
     if args.devices == "auto":
         devices = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
@@ -505,7 +506,7 @@ def main(argv=None):
             "scene": "dough cube (Material.preset('dough')) dropped on the ground at 1 m/s",
             "spacing": DX, "dt": DT, "dtype": "float32", "steps": args.steps, "warmup": args.warmup,
             "blocks": args.blocks, "taped_steps": args.taped_steps,
-            "neighbor_skin": getattr(we.sim.solver, "DEFAULT_SKIN", None),
+            "neighbor_skin": DEFAULT_SKIN,
         },
         "paper": PAPER,
         "warp_esph": {},

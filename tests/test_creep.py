@@ -1,10 +1,10 @@
-"""A slumped yield-stress cylinder must come to rest (issue 12; evidence in docs/creep.md).
+"""A slumped yield-stress cylinder must come to rest (issue 12; evidence in docs/physics.md, "The slump creep").
 
 Cylinder H0 = 2 R0 = 8 dx of a Bingham-like material (shear yield stress 0.1 rho g H0,
 mu = 10 rho g H0, flow rate 200/s, variational force) on a floor with friction 1,
 dt = 0.9 Model.stable_dt(). The 1-D static analysis gives h/H0 = S (1 - ln S) = 0.477
 (S = sqrt(3/2) Y / (rho g H0)); a pile at rest has a top that no longer sinks.
-Before the fix of static friction in ``colliders.respond`` (docs/creep.md) the top still sank
+Before the fix of static friction in ``colliders.respond`` (docs/physics.md, "The slump creep") the top still sank
 1.3 % H0/s at 3 s (h/H0 0.417, then 0.409 at 4 s), at a rate proportional to dt; now it stops
 (0.02 % H0/s at 3 s, h/H0 0.539: at 8 dx the pile slumps less than the 1-D theory).
 """

@@ -4,7 +4,7 @@ the contact matches central differences.
 
 Before the position correction in ``respond``, a held particle still drifted ``a_t dt^2`` per
 step (the drift used the velocity before friction removed it): a creep at speed ``a_t dt``,
-which kept every slumped plastic pile sinking (docs/creep.md)."""
+which kept every slumped plastic pile sinking (docs/physics.md, "The slump creep")."""
 
 import math
 

@@ -33,7 +33,7 @@ def test_resume_writes_what_the_uninterrupted_run_writes(tmp_path):
     assert main(ARGS + ["--frames", "6", "-o", str(full)]) == 0
     part = tmp_path / "part.usdc"
     assert main(ARGS + ["--frames", "4", "-o", str(part), "--checkpoint-every", "2"]) == 0
-    ckpt = tmp_path / "part.checkpoint.npz"
+    ckpt = tmp_path / "part.usdc.checkpoint.npz"
     assert read_checkpoint(ckpt)[0]["frame"] == 4
     assert main(["run", "--resume", str(ckpt), "--frames", "6", "--no-progress"]) == 0
     assert read_checkpoint(ckpt)[0]["frame"] == 6

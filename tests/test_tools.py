@@ -403,7 +403,9 @@ def test_scene_file_tool_errors_name_the_table_and_key(tmp_path, old, new, patte
 def test_fig8_with_plates_elastic_cube_recovers_and_plastic_cube_keeps_the_squeeze():
     from warp_esph.scenes import get_scene  # noqa: PLC0415
 
-    scene = get_scene("lab_fig8_plates", 0.35)
+    # Scale 0.5 (5 particles across): at 0.35 (3.5 across) the variational force rests the
+    # released elastic cube 5.4 % tall, at 0.5 within 1.4 %, a resolution effect.
+    scene = get_scene("lab_fig8_plates", 0.5)
     model = scene.builder.finalize()
     state = we.simulate(model, scene.frames, fps=scene.fps, dt=scene.dt, progress=False)
     x, x0 = state.x.numpy(), model.particle_x0
@@ -411,7 +413,7 @@ def test_fig8_with_plates_elastic_cube_recovers_and_plastic_cube_keeps_the_squee
     for b in model.bodies:
         s = slice(b.start, b.start + b.count)
         width[b.name] = (x[s].max(axis=0) - x[s].min(axis=0)) / (x0[s].max(axis=0) - x0[s].min(axis=0))
-    print({k: np.round(v, 3).tolist() for k, v in width.items()})  # measured: elastic 1.009, 1.019; plastic 0.874, 1.338
+    print({k: np.round(v, 3).tolist() for k, v in width.items()})  # measured: elastic 1.003, 1.013; plastic 0.876, 1.446
     # Squeezed 15 % in x and z for 0.3 s, then released.
     assert np.all(np.abs(width["elastic"] - 1.0) < 0.05)
     assert width["plastic"][0] < 0.92 and width["plastic"][2] < 0.92 and width["plastic"][1] > 1.1

@@ -28,6 +28,11 @@ from .model import Body, Model
 SUPPORT_RANGE = (1.5, 3.0)
 #: Largest lattice a single body may be sampled from (about 1.6 GB of float64 points).
 MAX_PARTICLES_PER_BODY = 6.4e7
+#: Largest neighbour list: every state holds particles x max_neighbors entries, and the
+#: support (h <= 3 spacing) holds at most 122 lattice neighbours.
+MAX_NEIGHBORS = 1024
+#: Most tips of a star (the polygon test costs particles x tips).
+MAX_STAR_POINTS = 1000
 
 
 def star_polygon(outer_radius: float, inner_radius: float, points: int = 5) -> np.ndarray:
@@ -95,7 +100,7 @@ class SceneBuilder:
                 raise ValueError(f"max_neighbors = {max_neighbors!r} is not allowed: must be a positive integer, "
                                  f"None (the default width) or 'paper' ({PAPER_MAX_NEIGHBORS})")
             max_neighbors = PAPER_MAX_NEIGHBORS
-        self.max_neighbors = checks.positive_int("max_neighbors", max_neighbors)
+        self.max_neighbors = checks.positive_int("max_neighbors", max_neighbors, maximum=MAX_NEIGHBORS)
         self._points: list[np.ndarray] = []
         self._velocities: list[np.ndarray] = []
         self._bodies: list[Body] = []
@@ -205,9 +210,9 @@ class SceneBuilder:
         if ri >= ro:
             raise ValueError(f"inner_radius = {inner_radius!r} is not allowed: must be < outer_radius = {ro:g}")
         t = checks.positive("thickness", thickness)
-        npts = checks.positive_int("points", points)
+        npts = checks.positive_int("points", points, maximum=MAX_STAR_POINTS)
         if npts < 3:
-            raise ValueError(f"points = {points!r} is not allowed: must be an integer >= 3")
+            raise ValueError(f"points = {points!r} is not allowed: must be an integer in [3, {MAX_STAR_POINTS}]")
         p = self._lattice(c - np.array([ro, t / 2, ro]), c + np.array([ro, t / 2, ro]), "outer_radius/thickness", (ro, t))
         inside = _inside_polygon((p - c)[:, [0, 2]], star_polygon(ro, ri, npts))
         return self.add_particles(p[inside], material, velocity, name, "star", angular_velocity)
@@ -367,6 +372,21 @@ class SceneBuilder:
                 f"the other (at {np.round(points[clash[0]], 4).tolist()}); move them at least one spacing apart"
             )
 
+    def _check_precision(self, scalar):
+        """Every material parameter and position fits the precision: 1e300 Pa cast to float32
+        became inf in the model without a word."""
+        big = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).max)
+        for k, m in enumerate(self._materials):
+            for field in (*Model.MATERIAL_FIELDS, "density"):
+                v = getattr(m, field)
+                if math.isfinite(v) and abs(v) > big:
+                    raise ValueError(
+                        f"Material.{field} = {v:g} (material {k}) is not allowed in {scalar.__name__}: "
+                        f"must be at most {big:.3g}; use dtype=float64 or a smaller value"
+                    )
+        if self._points and np.abs(np.concatenate(self._points)).max() > big:
+            raise ValueError(f"positions beyond {big:.3g} m are not allowed in {scalar.__name__}")
+
     def finalize(self, device="cpu", dtype=wp.float32, requires_grad: bool = False, worlds: int = 1) -> Model:
         """Builds the ``Model`` on ``device`` in precision ``dtype`` (float32 or float64).
 
@@ -393,6 +413,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     place, colliders are shared). Bodies keep their names with one world; with several,
     body ``name`` of world ``w`` is ``"w<w>/name"``.
     """
+    requires_grad = checks.boolean("requires_grad", requires_grad)
     if isinstance(builders, SceneBuilder) or not isinstance(builders, Sequence) or len(builders) < 1:
         raise ValueError(f"builders = {builders!r} is not allowed: must be a non-empty list of SceneBuilder")
     for k, b in enumerate(builders):
@@ -417,6 +438,8 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     for b in {id(b): b for b in builders}.values():
         b._check_overlap()
     scalar = scalar_type(dtype)
+    for b in {id(b): b for b in builders}.values():
+        b._check_precision(scalar)
     try:
         dev = wp.get_device(device)
     except Exception as e:  # noqa: BLE001 (Warp raises several kinds)

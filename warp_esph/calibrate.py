@@ -43,6 +43,9 @@ def add_calibration_arguments(parser):
                    help="folder for fit.json, history.csv, loss.png, params.png, fitted.usdc (default: fit_<scene>/ here)")
     g.add_argument("--target-body", metavar="BODY",
                    help="USD-run targets: observe only this body's particles (default: every particle)")
+    g.add_argument("--target-tool", metavar="TOOL",
+                   help="reaction-force targets (the <output>_tools.csv of 'warp-esph run'): fit this tool's force curve "
+                        "(default: the only tool of the file)")
     g.add_argument("--jitter", type=float, default=0.0, metavar="J",
                    help="jitter the lattice by J * spacing (normal) so no neighbour distance is tied at the support "
                         "radius (e.g. 0.001 with a support radius of 2 spacings; default 0: the scene as written, "
@@ -117,7 +120,7 @@ def run_fit(args, out=None, err=None) -> int:
     ck = args.checkpoint_every if args.checkpoint_every is not None else "auto"
 
     main_spec = {"scene": args.scene, "target": args.target, "target_frames": _arg(args, "target_frames"),
-                 "target_body": _arg(args, "target_body"), "cameras": _arg(args, "cameras"), "scale": args.scale,
+                 "target_body": _arg(args, "target_body"), "target_tool": _arg(args, "target_tool"), "cameras": _arg(args, "cameras"), "scale": args.scale,
                  "frames": args.frames, "fps": args.fps, "dt": args.dt, "material": args.material, "weight": 1.0,
                  "noise": _arg(args, "noise")}
     specs = [("", main_spec)]
@@ -173,7 +176,7 @@ def run_fit(args, out=None, err=None) -> int:
 
 
 #: Keys of an entry of the ``--experiments`` file.
-EXPERIMENT_KEYS = ("scene", "target", "target_frames", "target_body", "cameras", "scale", "frames", "fps", "dt", "material",
+EXPERIMENT_KEYS = ("scene", "target", "target_frames", "target_body", "target_tool", "cameras", "scale", "frames", "fps", "dt", "material",
                    "weight", "noise")
 
 
@@ -250,7 +253,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             continue
         ext = os.path.splitext(str(path))[1].lower()
         usd_spec = fspec if ext in (".usd", ".usda", ".usdc") else None
-        t = load_target(path, body=spec.get("target_body"), frames=usd_spec)
+        t = load_target(path, body=spec.get("target_body"), frames=usd_spec, tool=spec.get("target_tool"))
         if fspec is not None and usd_spec is None:
             try:
                 t.frames = [int(f) for f in str(fspec).split(",")]
@@ -280,7 +283,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                 t.frames = [frames]
             if max(t.frames) > frames:
                 raise ValueError(f"{where}the target {path} has frame {max(t.frames)}, beyond --frames = {frames}")
-            frame_steps = {f: f * substeps for f in t.frames if f > 0 or t.kind != "positions"}
+            frame_steps = {f: f * substeps for f in t.frames if f > 0 or t.kind not in ("positions", "forces")}
             term = t.loss(model, frame_steps, radius=args.radius, mode=args.mesh_mode)
         loss = term if loss is None else loss + term
     materials = spec.get("material")

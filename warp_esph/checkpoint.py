@@ -11,11 +11,14 @@ CPU a run resumed from a checkpoint reproduces the uninterrupted run bit for bit
 
 from __future__ import annotations
 
+import hashlib
 import json
+import math
 import os
 import pathlib
 import tempfile
 import zipfile
+import zlib
 
 import numpy as np
 
@@ -24,15 +27,47 @@ from .model import Model, State
 FORMAT = "warp_esph.checkpoint/1"
 
 
+def model_fingerprint(model: Model) -> str:
+    """A hash of everything a step depends on that a checkpoint does not carry: the initial
+    particles, bodies, lattice, colliders, force fields, gravity and each material's kind and
+    density (the fitted parameters ``Model.MATERIAL_FIELDS`` are in the checkpoint itself).
+
+    A checkpoint resumed into a model with another fingerprint would continue a different
+    scene from this one's state, so ``load_state`` refuses it.
+    """
+    h = hashlib.sha256()
+    for arr in (model.particle_x0, model.particle_v0, model.particle_material_np, model.particle_body_np):
+        a = np.ascontiguousarray(arr, dtype=np.float64 if arr.dtype.kind == "f" else np.int64)
+        h.update(repr(a.shape).encode())
+        h.update(a.tobytes())
+    record = {
+        "spacing": model.spacing, "support_radius": model.support_radius, "max_neighbors": model.max_neighbors,
+        "bodies_interact": model.bodies_interact, "gravity": model.gravity,
+        "bodies": [(b.name, b.start, b.count, b.material, b.kind) for b in model.bodies],
+        "materials": [(m.density, m.model, m.deformation, m.elastic_force, bool(m.clamp_pressure)) for m in model.materials],
+        "colliders": [repr(c) for c in (*model.planes, *model.spheres, *model.boxes)],
+        "fields": [repr(f) for f in model.force_fields],
+    }
+    h.update(repr(record).encode())
+    return h.hexdigest()[:32]
+
+
 def save_state(path, model: Model, state: State, *, step: int, frame: int, run: dict | None = None) -> pathlib.Path:
     """Write ``state`` (and ``model``'s material parameters) to ``path`` atomically.
 
     The file appears complete or not at all: it is written beside ``path`` and renamed
-    over it, so an interrupted save leaves the previous checkpoint intact.
+    over it, so an interrupted save leaves the previous checkpoint intact. A state with a
+    non-finite value is refused (``ValueError``): a checkpoint is for resuming.
     """
+    from . import checks  # noqa: PLC0415
+
     path = pathlib.Path(path)
     if path.suffix != ".npz":
         raise ValueError(f"checkpoint path = {str(path)!r} is not allowed: must end in .npz")
+    checks.same_state(model, "state", state)
+    for name in State.STATE_FIELDS:
+        if not np.isfinite(getattr(state, name).numpy()).all():
+            raise ValueError(f"state is not allowed: its {name} has non-finite values; a checkpoint must resume a sound run")
     meta = {
         "format": FORMAT,
         "step": int(step),
@@ -42,6 +77,7 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
         "bodies": [b.name for b in model.bodies],
         "run": run or {},
         "time": float(getattr(state, "time", 0.0)),
+        "fingerprint": model_fingerprint(model),
     }
     arrays = {name: getattr(state, name).numpy() for name in State.STATE_FIELDS}
     arrays.update({f"material_{name}": getattr(model, name).numpy() for name in Model.MATERIAL_FIELDS})
@@ -64,12 +100,16 @@ def read_checkpoint(path) -> tuple[dict, dict[str, np.ndarray]]:
     """The metadata and arrays of a checkpoint file; ``ValueError`` if it is not one."""
     path = pathlib.Path(path)
     try:
-        with np.load(path, allow_pickle=False) as data:
+        # Our own handle: np.load leaves its file open when the zip is damaged.
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
         meta = json.loads(arrays.pop("meta").tobytes().decode())
     except FileNotFoundError:
         raise ValueError(f"checkpoint = {str(path)!r} is not allowed: no such file") from None
-    except (OSError, KeyError, ValueError, zipfile.BadZipFile, json.JSONDecodeError, UnicodeDecodeError) as e:
+    # zipfile also raises RuntimeError (a damaged 'encrypted' flag) and NotImplementedError
+    # (a damaged compression method): in this block, only reading the file can raise them.
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, json.JSONDecodeError, UnicodeDecodeError,
+            RuntimeError, NotImplementedError) as e:
         raise ValueError(f"checkpoint = {str(path)!r} is not allowed: not a readable warp_esph checkpoint ({type(e).__name__})") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise ValueError(f"checkpoint = {str(path)!r} is not allowed: unknown format {meta.get('format') if isinstance(meta, dict) else None!r}")
@@ -87,6 +127,7 @@ def load_state(path, model: Model) -> tuple[State, dict]:
     """
     meta, arrays = read_checkpoint(path)
     where = f"checkpoint = {str(path)!r} is not allowed"
+    _check_meta(where, meta)
     if meta["particle_count"] != model.particle_count or meta["bodies"] != [b.name for b in model.bodies]:
         raise ValueError(
             f"{where}: it holds {meta['particle_count']} particles in bodies {meta['bodies']}, "
@@ -94,6 +135,25 @@ def load_state(path, model: Model) -> tuple[State, dict]:
         )
     if meta["dtype"] != model.scalar.__name__:
         raise ValueError(f"{where}: it is {meta['dtype']}, the model {model.scalar.__name__}")
+    if "fingerprint" in meta and meta["fingerprint"] != model_fingerprint(model):
+        raise ValueError(
+            f"{where}: it was written for another scene (its fingerprint {meta['fingerprint']!r} is not this model's "
+            f"{model_fingerprint(model)!r}: particles, bodies, colliders, fields or materials differ; was the scene edited?)"
+        )
+    n, np_dtype = model.particle_count, model.types.np_dtype
+    shapes = {"x": (n, 3), "v": (n, 3), "F": (n, 3, 3), "alpha": (n,), "F_p": (n, 3, 3)}
+    shapes.update({f"material_{name}": (len(model.materials),) for name in Model.MATERIAL_FIELDS})
+    for key, shape in shapes.items():
+        if key not in arrays:
+            continue
+        a = arrays[key]
+        if a.shape != shape or a.dtype != np_dtype:
+            raise ValueError(f"{where}: its {key} is {a.dtype} {a.shape}, the model needs {np.dtype(np_dtype)} {shape}")
+        # A yield stress may be +inf (a purely elastic material); nothing else may be.
+        ok = np.isfinite(a) | (np.isposinf(a) if key == "material_yield_stress" else False)
+        if not ok.all():
+            bad = int(np.argmax(~ok.reshape(a.shape[0], -1).all(axis=1)))
+            raise ValueError(f"{where}: its {key} has non-finite values (first at index {bad})")
     state = model.state()
     for name in State.STATE_FIELDS:
         if name in arrays:
@@ -104,3 +164,29 @@ def load_state(path, model: Model) -> tuple[State, dict]:
         if key in arrays:
             getattr(model, name).assign(arrays[key])
     return state, meta
+
+
+def _check_meta(where: str, meta: dict) -> None:
+    """The metadata's fields have the types ``save_state`` writes (a hand-edited or foreign
+    file must not end in a ``TypeError`` later)."""
+    def is_int(v):
+        return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+
+    wrong = []
+    for key in ("step", "frame", "particle_count"):
+        if not is_int(meta.get(key)):
+            wrong.append(f"{key} = {meta.get(key)!r} (must be an integer >= 0)")
+    if not isinstance(meta.get("dtype"), str):
+        wrong.append(f"dtype = {meta.get('dtype')!r} (must be 'float32' or 'float64')")
+    bodies = meta.get("bodies")
+    if not isinstance(bodies, list) or not all(isinstance(b, str) for b in bodies):
+        wrong.append(f"bodies = {bodies!r} (must be a list of names)")
+    if not isinstance(meta.get("run", {}), dict):
+        wrong.append(f"run = {meta.get('run')!r} (must be a table)")
+    t = meta.get("time", 0.0)
+    if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t < 0:
+        wrong.append(f"time = {t!r} (must be a finite number >= 0)")
+    if "fingerprint" in meta and not isinstance(meta["fingerprint"], str):
+        wrong.append(f"fingerprint = {meta['fingerprint']!r} (must be a string)")
+    if wrong:
+        raise ValueError(f"{where}: its metadata has " + "; ".join(wrong))

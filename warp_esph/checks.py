@@ -7,11 +7,47 @@ and what is allowed, so a user can fix the input without reading code.
 from __future__ import annotations
 
 import math
+import re
+import struct
+import zipfile
+import zlib
 from collections.abc import Sequence
+
+import numpy as np
 
 
 def _fail(name: str, value, allowed: str):
-    raise ValueError(f"{name} = {value!r} is not allowed: {allowed}")
+    raise ValueError(f"{name} = {shorten(value)!r} is not allowed: {allowed}")
+
+
+class _Shown:
+    """A value shortened for a message (``repr`` of an int with 400 digits is not helpful)."""
+
+    def __init__(self, text: str):
+        self.text = text
+
+    def __repr__(self):
+        return self.text
+
+
+def shorten(value):
+    """``value`` for a message: a 400-digit int as ``1.234e+399``, long text cut."""
+    if isinstance(value, _Shown):
+        return value
+    try:
+        text = repr(value)
+    except Exception:  # noqa: BLE001 (a repr that fails must not hide the real error)
+        text = f"<{type(value).__name__}>"
+    if len(text) > 60:
+        if isinstance(value, int) and not isinstance(value, bool) and value != 0:
+            text = f"{'-' if value < 0 else ''}{text.lstrip('-')[0]}.{text.lstrip('-')[1:4]}e+{len(text.lstrip('-')) - 1}"
+        else:
+            text = text[:57] + "..."
+    return _Shown(text)
+
+
+#: Default upper bound of ``positive_int``: Warp indexes arrays with int32.
+MAX_INT = 2**31 - 1
 
 
 def number(name: str, value, *, allow_inf: bool = False) -> float:
@@ -20,6 +56,8 @@ def number(name: str, value, *, allow_inf: bool = False) -> float:
         _fail(name, value, "must be a number")
     try:
         v = float(value)
+    except OverflowError:  # an int like 10**400
+        _fail(name, shorten(value), "must be a finite number (it overflows a float)")
     except (TypeError, ValueError):
         _fail(name, value, "must be a number")
     if math.isnan(v) or (math.isinf(v) and not allow_inf):
@@ -70,16 +108,117 @@ def positive_vector(name: str, value, length: int = 3) -> tuple[float, ...]:
     return v
 
 
-def positive_int(name: str, value) -> int:
+def positive_int(name: str, value, maximum: int = MAX_INT) -> int:
+    """An integer in ``[1, maximum]`` (bools and floats rejected)."""
     if isinstance(value, bool) or not isinstance(value, int) and not (hasattr(value, "__index__")):
         _fail(name, value, "must be an integer >= 1")
-    v = int(value)
+    v = int(value.__index__())
     if v < 1:
         _fail(name, value, "must be an integer >= 1")
+    if v > maximum:
+        _fail(name, value, f"must be an integer in [1, {maximum}]")
     return v
+
+
+def boolean(name: str, value) -> bool:
+    """``True`` or ``False`` (numpy bools too); not 1, not ``"yes"``."""
+    if not isinstance(value, (bool, np.bool_)):
+        _fail(name, value, "must be True or False")
+    return bool(value)
+
+
+def same_state(model, name: str, state) -> None:
+    """``state`` is a ``State`` whose every array fits ``model``: size, precision and device.
+
+    A step launched on arrays of another size reads and writes out of bounds (on the
+    CPU: a crash), so this runs before every step. It is cheap: a state remembers the
+    model it was last checked against, and forgets it when one of its arrays is replaced
+    (``State.__setattr__``), so the full check runs once per state and model.
+    """
+    if getattr(state, "_checked_for", None) is model:
+        return
+    import warp as wp  # noqa: PLC0415 (checks stays light for the CLI's first checks)
+
+    from .model import State  # noqa: PLC0415
+
+    if not isinstance(state, State):
+        _fail(name, state, "must be a warp_esph.State made by model.state()")
+    n, K, T, dev = model.particle_count, model.max_neighbors, model.types, model.device
+    want = {
+        "x": ((n,), T.vec3), "v": ((n,), T.vec3), "F": ((n,), T.mat33), "alpha": ((n,), T.scalar),
+        "F_p": ((n,), T.mat33), "neighbors": ((n, K), wp.int32),
+        "neighbor_count": ((n,), wp.int32), "guard": ((n,), wp.int32), "density": ((n,), T.scalar),
+        "F_flowed": ((n,), T.mat33), "stress": ((n,), T.mat33), "F_inv": ((n,), T.mat33), "force": ((n,), T.vec3),
+    }
+    # (Not neighbor_d2: the step keeps it in the solver's scratch, and reading it here would
+    # allocate the state's own copy.)
+    for field, (shape, dtype) in want.items():
+        arr = getattr(state, field, None)
+        where = f"{name}.{field}"
+        got_shape = getattr(arr, "shape", None)
+        if got_shape is None or not hasattr(arr, "device") or not hasattr(arr, "dtype"):
+            raise ValueError(f"{where} = {shorten(arr)!r} is not allowed: must be a Warp array of shape {shape}")
+        if tuple(got_shape) != shape:
+            raise ValueError(
+                f"{name} does not belong to this model: {field} has shape {tuple(got_shape)}, the model needs {shape} "
+                f"({n} particles, max_neighbors = {K}); make states with model.state()"
+            )
+        if arr.dtype is not dtype:
+            raise ValueError(
+                f"{name} does not belong to this model: {field} is {getattr(arr.dtype, '__name__', arr.dtype)}, "
+                f"the model is {T.scalar.__name__} (a state of a model of another precision?)"
+            )
+        if arr.device != dev:
+            raise ValueError(f"{name} does not belong to this model: {field} is on {arr.device}, the model on {dev}")
+    state.__dict__["_checked_for"] = model
+
+
+def step_states(model, state_in, state_out) -> None:
+    """The checks of ``Solver.step``: two distinct states that both fit ``model``."""
+    same_state(model, "state_in", state_in)
+    same_state(model, "state_out", state_out)
+    if state_in is state_out:
+        raise ValueError("state_out is state_in: the step reads state_in and writes state_out, pass two states")
 
 
 def choice(name: str, value, allowed: Sequence[str]) -> str:
     if value not in allowed:
         _fail(name, value, "must be one of " + ", ".join(repr(a) for a in allowed))
     return value
+
+
+# ---------------------------------------------------------------- files that cannot be read
+#: What reading a damaged file raises besides ``ValueError``/``OSError``: a truncated or
+#: garbled ``.npz`` (zip, zlib, struct), text that is not UTF-8. pxr raises
+#: ``Tf.ErrorException`` (recognised by its module, so pxr need not be imported here).
+READ_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, UnicodeDecodeError, struct.error)
+
+
+def _raised_in_zipfile(exc: BaseException) -> bool:
+    """Whether ``exc`` was raised inside the zipfile module: it raises RuntimeError (a
+    damaged 'encrypted' flag) and NotImplementedError (a damaged compression method)."""
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return tb is not None and tb.tb_frame.f_globals.get("__name__", "").split(".")[0] == "zipfile"
+
+
+def is_read_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is what a library raises on a damaged or foreign file."""
+    if isinstance(exc, (RuntimeError, NotImplementedError)) and _raised_in_zipfile(exc):
+        return True
+    return isinstance(exc, READ_ERRORS) or type(exc).__module__.split(".")[0] == "pxr"
+
+
+def read_reason(exc: BaseException) -> str:
+    """One line from a reader's exception; pxr's C++ location is dropped, its message kept."""
+    text = re.sub(r"\s+", " ", str(exc)).strip()
+    # pxr wraps each message in "Error in '<C++ function>' at line N in file F : '<message>'".
+    messages = re.findall(r" : '(.+?)'(?= Error in |$)", text)
+    text = "; ".join(messages) or text or type(exc).__name__
+    return text if len(text) <= 300 else text[:297] + "..."
+
+
+def file_error(path, exc: BaseException, verb: str = "read") -> ValueError:
+    """``ValueError("cannot <verb> '<path>': <reason>")`` for a damaged or foreign file."""
+    return ValueError(f"cannot {verb} {str(path)!r}: {read_reason(exc)}")

@@ -68,7 +68,9 @@ def _build_parser() -> _Parser:
     run.add_argument("-o", "--output", metavar="OUT.usd", help="output .usd/.usdc/.usda file; default: <scene>.usdc here")
     run.add_argument("--frames", type=int, metavar="N", help="number of frames after the initial one (default: the scene's)")
     run.add_argument("--fps", type=float, metavar="F", help="frames per second (default: the scene's)")
-    run.add_argument("--dt", type=float, metavar="DT", help="time step in s; must divide 1/fps (default: the stable step)")
+    run.add_argument("--dt", type=_dt_arg, metavar="DT",
+                     help="time step in s; must divide 1/fps (default: the stable step); 'auto': an adaptive (CFL) step per frame")
+    run.add_argument("--adaptive-dt", action="store_true", help="the same as --dt auto")
     run.add_argument("--scale", type=float, default=1.0, metavar="S",
                      help="resolution scale: spacing / S, particle count ~ S^3 (default 1)")
     run.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="Warp device (default cpu)")
@@ -190,6 +192,12 @@ def _init_warp(device: str) -> None:
             print(f"{PROG}: warning: {_one_line(note)}", file=sys.stderr)
 
 
+def _arm(args) -> None:
+    signals = getattr(args, "signals", None)
+    if signals is not None:
+        signals.arm()
+
+
 def _cmd_scenes() -> int:
     from .scenes import DEFAULT_SCENE, scene_descriptions  # noqa: PLC0415
 
@@ -201,6 +209,16 @@ def _cmd_scenes() -> int:
     return 0
 
 
+def _dt_arg(text: str):
+    """``--dt``: seconds, or ``auto`` for the adaptive step."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--dt = {text!r} is not allowed: must be a number of seconds or 'auto'") from None
+
+
 def _cmd_run(args) -> int:
     from . import checks  # noqa: PLC0415
 
@@ -209,7 +227,11 @@ def _cmd_run(args) -> int:
         checks.positive_int("--frames", args.frames)
     if args.fps is not None:
         checks.positive("--fps", args.fps)
-    if args.dt is not None:
+    if args.adaptive_dt:
+        if args.dt is not None and args.dt != "auto":
+            raise ValueError(f"--dt = {args.dt!r} and --adaptive-dt are not allowed together: give one of them")
+        args.dt = "auto"
+    if args.dt is not None and args.dt != "auto":
         checks.positive("--dt", args.dt)
     scale = checks.positive("--scale", args.scale)
     if args.output is not None:
@@ -225,7 +247,7 @@ def _cmd_run(args) -> int:
         if not wp.is_cuda_available():
             raise ValueError("--device = 'cuda' is not allowed: Warp finds no CUDA device on this machine (use --device cpu)")
     from .scenes import load_scene  # noqa: PLC0415
-    from .simulate import SimulationError, resolve_timestep, simulate  # noqa: PLC0415
+    from .simulate import SimulationError, check_step_count, resolve_timestep, simulate  # noqa: PLC0415
     from .sim.solver import Solver  # noqa: PLC0415
     from .usd import UsdWriter  # noqa: PLC0415
 
@@ -237,8 +259,9 @@ def _cmd_run(args) -> int:
         # The run record of the checkpoint decides everything the results depend on.
         meta, _ = read_checkpoint(args.resume)
         run = meta.get("run", {})
-        if not {"scene", "scale", "fps", "dt", "frames", "output", "dtype"} <= run.keys():
+        if not isinstance(run, dict) or not {"scene", "scale", "fps", "dt", "frames", "output", "dtype"} <= run.keys():
             raise ValueError(f"--resume = {args.resume!r} is not allowed: the checkpoint was not written by 'warp-esph run'")
+        _check_run_record(args.resume, run)
         args.scene, scale, args.dtype = run["scene"], run["scale"], run["dtype"]
         args.fps, args.dt, args.output, args.surface = run["fps"], run["dt"], run["output"], run.get("surface", False)
         frames_total = args.frames if args.frames is not None else run["frames"]  # --frames extends a run
@@ -257,11 +280,17 @@ def _cmd_run(args) -> int:
     frames = frames_total - start_frame
     if frames < 1:
         raise ValueError(f"--resume = {args.resume!r} is not allowed: that run finished all {frames_total} frames")
-    substeps, dt = resolve_timestep(model, fps, dt=dt)
+    adaptive = dt == "auto"
+    substeps, dt_shown = resolve_timestep(model, fps) if adaptive else resolve_timestep(model, fps, dt=dt)
+    if not adaptive:
+        dt = dt_shown
+    check_step_count(frames, substeps)
     solver = Solver(model)
-    solver.check_dt(dt)  # the stability warning, once, before the run
+    solver.check_dt(dt_shown)  # the stability warning, once, before the run
+    _arm(args)  # from here an interrupt unwinds through the writer
     writer = UsdWriter(output, model, fps, surface=args.surface, view=getattr(scene, "view", None), append=args.resume is not None)
-    checkpoint_path = os.path.splitext(writer.path)[0] + ".checkpoint.npz"
+    # The whole output name: a.usdc and a.usda in one folder must not share a checkpoint.
+    checkpoint_path = writer.path + ".checkpoint.npz"
     run_record = {"scene": args.scene if args.scene is not None else scene.name, "scale": scale, "fps": fps, "dt": dt,
                   "frames": frames_total, "output": os.path.abspath(writer.path), "dtype": args.dtype,
                   "surface": bool(args.surface), "checkpoint_every": every}
@@ -270,7 +299,8 @@ def _cmd_run(args) -> int:
 
     def checkpoint(frame, current):
         if every is not None and frame > start_frame and frame % every == 0:
-            save_state(checkpoint_path, model, current, step=frame * substeps, frame=frame, run=run_record)
+            # With the adaptive step the step count is not a function of the frame: -1.
+            save_state(checkpoint_path, model, current, step=-1 if adaptive else frame * substeps, frame=frame, run=run_record)
 
     # Tools (moving colliders, pinned sets): pose and mean reaction per frame, beside the USD.
     log = None
@@ -286,10 +316,13 @@ def _cmd_run(args) -> int:
 
     try:
         print(f"{PROG}: {scene.name}: {model.particle_count} particles, {len(model.bodies)} bodies, "
-              f"{frames} frames at {fps:g} fps, dt = {dt:.4g} s ({substeps} steps/frame), {args.device} {args.dtype} "
+              f"{frames} frames at {fps:g} fps, "
+              + ("adaptive dt (CFL), at most " if adaptive else "")
+              + f"dt = {dt_shown:.4g} s ({substeps} steps/frame), {args.device} {args.dtype} "
               f"-> {writer.path}" + (f" (resumed at frame {start_frame})" if start_frame else ""), flush=True)
         simulate(model, frames, fps=fps, dt=dt, writer=writer, progress=not args.no_progress, solver=solver,
-                 state=state, start_frame=start_frame, callback=on_frame if every is not None or log is not None else None)
+                 state=state, start_frame=start_frame, callback=on_frame if every is not None or log is not None else None,
+                 monitor_exempt=getattr(scene, "diverges", ()))
     except KeyboardInterrupt:
         writer.close()
         print(f"{PROG}: interrupted: {writer.path} keeps the {writer.frames_written} frames finished", file=sys.stderr)
@@ -330,6 +363,27 @@ def _cmd_run(args) -> int:
         shown = "surfaces" if result.surface_bodies else "particles"
         print(f"preview: {result.output} ({shown}, {result.seconds:.1f} s)")
     return 0
+
+
+def _check_run_record(path, run: dict) -> None:
+    """The run record of a checkpoint holds what ``_cmd_run`` wrote there (a foreign or
+    hand-edited file must fail here, by name, not as a TypeError later)."""
+    from . import checks  # noqa: PLC0415
+
+    where = f"--resume = {path!r} is not allowed: in its run record,"
+    try:
+        if not isinstance(run["scene"], str) or not isinstance(run["output"], str):
+            raise ValueError("scene and output must be text")
+        checks.positive("scale", run["scale"])
+        checks.positive("fps", run["fps"])
+        checks.positive("dt", run["dt"])
+        checks.positive_int("frames", run["frames"])
+        checks.choice("dtype", run["dtype"], ("float32", "float64"))
+        checks.boolean("surface", run.get("surface", False))
+        if run.get("checkpoint_every") is not None:
+            checks.positive_int("checkpoint_every", run["checkpoint_every"])
+    except ValueError as e:
+        raise ValueError(f"{where} {e}") from None
 
 
 def add_fit_arguments(parser):
@@ -423,6 +477,7 @@ def _cmd_render(args) -> int:
         print(f"\r{PROG}: rendered {k}/{n} frames", end="" if k < n else "\n", file=sys.stderr, flush=True)
 
     progress = show if sys.stderr.isatty() else None
+    _arm(args)
     result = render_usd(
         args.usd, args.output, args.frames, color=args.color, width=args.width, height=args.height,
         supersample=args.supersample, radius_scale=args.radius_scale, azimuth=args.azimuth, elevation=args.elevation,
@@ -441,6 +496,7 @@ def _cmd_export(args) -> int:
     from .export import export_frames  # noqa: PLC0415
 
     folder = args.output or f"{os.path.splitext(os.path.abspath(args.usd))[0]}_{args.format}"
+    _arm(args)
     files = export_frames(args.usd, args.format, folder, frames=args.frames)
     frames = len(files) - (1 if args.format == "vtu" else 0)
     extra = " and frames.pvd (open it in ParaView)" if args.format == "vtu" else ""
@@ -448,36 +504,100 @@ def _cmd_export(args) -> int:
     return 0
 
 
-def main(argv=None) -> int:
-    """Entry point; returns the exit status (see the module docstring)."""
-    parser = _build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except _UsageError as e:
-        _err(e)
-        return EXIT_BAD_INPUT
-    if args.command is None:
-        parser.print_help(sys.stderr)
-        return EXIT_BAD_INPUT
-    terminated = []
+class _Signals:
+    """Ctrl-C (SIGINT) and SIGTERM, from the first moment of the process to the last.
 
-    def on_term(signum, frame):
-        # Unwinds like Ctrl-C, so the writer closes and keeps every finished frame.
-        terminated.append(signum)
-        raise KeyboardInterrupt
+    Disarmed (start-up: parsing, importing Warp and pxr, building the scene; and after the
+    command): nothing is open that needs closing, so the handler prints one line and ends
+    the process at once with 130 (143 for SIGTERM). A ``KeyboardInterrupt`` there would
+    print a traceback from whatever module was importing, or be swallowed by native code
+    that clears Python errors (it was, once, while pxr imported). Armed (``arm()``: an
+    output is being written): the handler raises ``KeyboardInterrupt``, which unwinds
+    through the writer, so the file keeps every finished frame.
+    """
 
+    def __init__(self, exit_at_once: bool = True):
+        #: False for ``main`` called inside someone else's Python process: never end it
+        #: with ``os._exit``, raise ``KeyboardInterrupt`` throughout.
+        self.exit_at_once = exit_at_once
+        self.armed = False
+        self.received: list[int] = []
+        self.previous = {}
+
+    def install(self) -> "_Signals":
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                if signal.getsignal(sig) is signal.SIG_IGN:
+                    continue  # started ignoring it (a background job of a script): keep ignoring
+                self.previous[sig] = signal.signal(sig, self._handle)
+            except ValueError:  # not the main thread: leave the process's handlers alone
+                pass
+        return self
+
+    def restore(self):
+        for sig, handler in self.previous.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+        self.previous = {}
+
+    def arm(self):
+        self.armed = True
+
+    def disarm(self):
+        self.armed = False
+
+    def _handle(self, signum, frame):
+        self.received.append(signum)
+        if self.armed or not self.exit_at_once:
+            raise KeyboardInterrupt
+        _exit_now(signum)
+
+
+def _exit_now(signum) -> None:
+    """One line, then leave at once (no cleanup runs, and none is needed)."""
     try:
-        previous = signal.signal(signal.SIGTERM, on_term)
-    except ValueError:  # not the main thread
-        previous = None
+        sys.stdout.flush()
+    except Exception:  # noqa: BLE001 (a reentrant flush in a signal handler)
+        pass
+    what = "terminated" if signum == signal.SIGTERM else "interrupted"
+    os.write(2, f"{PROG}: {what}\n".encode())
+    os._exit(EXIT_TERMINATED if signum == signal.SIGTERM else EXIT_INTERRUPTED)
+
+
+def console_main() -> int:
+    """The ``warp-esph`` console script and ``python -m warp_esph``: ``main`` with the
+    signal handlers kept until the process ends (interpreter shutdown included)."""
+    return main(restore_signals=False)
+
+
+def main(argv=None, *, restore_signals: bool = True) -> int:
+    """Entry point; returns the exit status (see the module docstring).
+
+    The signal handlers (``_Signals``) are installed first of all; ``restore_signals``
+    (the default, for callers in a Python process) puts the previous ones back on return
+    and never ends the caller's process: an interrupt there is a ``KeyboardInterrupt``.
+    """
+    signals = _Signals(exit_at_once=not restore_signals).install()
     try:
-        status = _dispatch(args)
+        parser = _build_parser()
+        try:
+            args = parser.parse_args(argv)
+        except _UsageError as e:
+            _err(e)
+            return EXIT_BAD_INPUT
+        if args.command is None:
+            parser.print_help(sys.stderr)
+            return EXIT_BAD_INPUT
+        args.signals = signals
+        try:
+            status = _dispatch(args)
+        finally:
+            signals.disarm()
+        if status == EXIT_INTERRUPTED and signal.SIGTERM in signals.received:
+            return EXIT_TERMINATED
+        return status
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
-    if terminated and status == EXIT_INTERRUPTED:
-        return EXIT_TERMINATED
-    return status
+        if restore_signals:
+            signals.restore()
 
 
 def _dispatch(args) -> int:
@@ -497,13 +617,15 @@ def _dispatch(args) -> int:
                 return sweep_cli(args)
             if args.command == "fit":
                 _init_warp(args.device)
+                _arm(args)
                 return fit_cli(args)
             return _cmd_run(args)
         except KeyboardInterrupt:
             print(f"{PROG}: interrupted", file=sys.stderr)
             return EXIT_INTERRUPTED
         except (ValueError, OSError) as e:
-            _err(e)
+            # UnicodeDecodeError is a ValueError: a reader met bytes that are not text.
+            _err(_read_failure(args, e) if _is_read_error(e) else e)
             return EXIT_BAD_INPUT
         except RuntimeError as e:
             from .simulate import SimulationError  # noqa: PLC0415
@@ -511,8 +633,42 @@ def _dispatch(args) -> int:
             if isinstance(e, SimulationError):
                 _err(e)
                 return EXIT_DIVERGED
-            raise
+            if not _is_read_error(e):
+                raise
+            _err(_read_failure(args, e))
+            return EXIT_BAD_INPUT
+        except Exception as e:  # noqa: BLE001 (only a damaged input file is turned into one line)
+            if not _is_read_error(e):
+                raise
+            _err(_read_failure(args, e))
+            return EXIT_BAD_INPUT
+
+
+def _is_read_error(exc: BaseException) -> bool:
+    from .checks import is_read_error  # noqa: PLC0415
+
+    return is_read_error(exc)
+
+
+def _read_failure(args, exc: BaseException) -> str:
+    """'cannot read <file>: <reason>' for an input file a library could not read (a pxr
+    error names no file: it is the USD input of the command)."""
+    from .checks import read_reason  # noqa: PLC0415
+
+    pxr = type(exc).__module__.split(".")[0] == "pxr"
+    if args.command in ("render", "export"):
+        files = [args.usd]
+    elif args.command == "run":
+        files = [args.output] if pxr and args.output else [args.resume or args.scene]
+    else:
+        # fit's --target is repeatable (a list): one is named, several are listed.
+        targets = getattr(args, "target", None) or []
+        targets = [targets] if isinstance(targets, str) else list(targets)
+        files = [", ".join(map(str, targets)) if targets and not pxr else None, getattr(args, "scene", None)]
+    name = next((f for f in files if f), None)
+    where = f" {str(name)!r}" if name else ""
+    return f"cannot read{where}: {read_reason(exc)} (a damaged or foreign file?)"
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(console_main())

@@ -151,7 +151,7 @@ def chi_square_loss(loss: Loss, noise: float) -> Loss:
 
 def _residuals(run) -> tuple[float, int, float]:
     """(sum of squared geometric residuals, their count, spacing) of a run at its last forward."""
-    positions = dict(zip(run.rollout.frames, run.rollout.frame_positions))
+    positions = run.rollout.observations()
     total, count = 0.0, 0
     for leaf in leaf_terms(run.loss):
         if getattr(leaf, "noise", None) is not None:
@@ -170,8 +170,8 @@ def _scaled_residuals(prob, z, sigmas) -> np.ndarray:
     prob.apply(z)
     out = []
     for run, sigma in zip(prob.runs, sigmas):
-        x = run.rollout.forward(**run.initial)
-        positions = dict(zip(run.rollout.frames, x))
+        run.rollout.forward(**run.initial)
+        positions = run.rollout.observations(numpy=True)
         for leaf in leaf_terms(run.loss):
             out.append(leaf.residuals(positions) / (getattr(leaf, "noise", None) or sigma))
     return np.concatenate(out)
@@ -199,7 +199,7 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
     sigmas, rms, chi2s, observations = [], [], [], 0
     for run in prob.runs:
         run.rollout.forward(**run.initial)
-        positions = dict(zip(run.rollout.frames, run.rollout.frame_positions))
+        positions = run.rollout.observations()
         for leaf in leaf_terms(run.loss):
             leaf.value(positions)  # records the residual counts
         s, n, spacing = _residuals(run)

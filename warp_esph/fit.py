@@ -17,6 +17,8 @@ callable returning either (builders are finalized in ``dtype``, float64 by defau
 values the model holds are the initial guess. ``target`` is a ``warp_esph.losses.Loss``,
 or target positions (``(frames, n, 3)``, ``{step: (n, 3)}``) fitted with a
 ``PositionLoss``.
+A tool's force curve is a ``warp_esph.losses.ReactionForceLoss`` (``load_target`` reads
+the ``<output>_tools.csv`` of ``warp-esph run`` as one).
 
 Positive parameters are optimised in log space (a step of Adam changes them by about
 ``lr`` relative), others (e.g. ``hardening = 0``) in linear space scaled by their initial
@@ -44,7 +46,7 @@ import warp as wp
 
 from . import checks
 from .builder import SceneBuilder
-from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, WorldLoss
+from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, WorldLoss, is_tools_csv, read_tools_csv
 from .material import Material
 from .model import Model
 from .rollout import PARAMETERS, Rollout
@@ -451,7 +453,7 @@ class _Problem:
         total = 0.0
         for r in self.runs:
             r.rollout.forward(**r.initial)
-            total += r.weight * r.loss.value(dict(zip(r.rollout.frames, r.rollout.frame_positions)))
+            total += r.weight * r.loss.value(r.rollout.observations())
         return total
 
 
@@ -869,7 +871,8 @@ def _full(base: np.ndarray, idx: list[int], v: np.ndarray) -> np.ndarray:
 @dataclasses.dataclass
 class Target:
     """A target read from a file. ``kind``: ``positions`` (``data``: ``(K, n, 3)``),
-    ``points`` (a cloud, ``(M, 3)``) or ``mesh`` (``(points, triangles)``). ``frames``:
+    ``points`` (a cloud, ``(M, 3)``), ``mesh`` (``(points, triangles)``) or ``forces``
+    (the CSV rows of one ``tool``'s reaction force). ``frames``:
     rendered frame index of each position frame (or the frame a cloud/mesh shows; None:
     the last simulated frame). ``fps``: as stored, or None."""
 
@@ -880,6 +883,8 @@ class Target:
     path: str
     #: The body whose particles ``data`` holds (a run's USD read for one body), or None: all.
     body: str | None = None
+    #: ``forces`` targets: the tool whose reaction force ``data`` (CSV rows) holds.
+    tool: str | None = None
 
     def particles(self, model: Model) -> np.ndarray | None:
         """Indices of the model's particles this target observes (None: all)."""
@@ -903,6 +908,15 @@ class Target:
     def loss(self, model: Model, frame_steps: Mapping[int, int], radius: float | None = None, mode: str = "surface") -> Loss:
         """The loss for ``model``: ``frame_steps`` maps each rendered frame to its step."""
         steps = [frame_steps[f] for f in sorted(frame_steps)]
+        if self.kind == "forces":
+            from .losses import ReactionForceLoss  # noqa: PLC0415
+
+            names = [] if model.tools is None else list(model.tools.names)
+            if self.tool not in names:
+                raise ValueError(f"target {self.path} holds the force of tool {self.tool!r}, which is not allowed: the "
+                                 f"scene's tools are {', '.join(names) or 'none'}")
+            chosen = [f for f in sorted(frame_steps) if f > 0]
+            return ReactionForceLoss.from_csv(self.path, self.tool, frame_steps, frames=chosen)
         if self.kind == "positions" and self.body is not None:
             idx = self.particles(model)
             pos = np.asarray(self.data)
@@ -952,7 +966,7 @@ def save_target(path, positions, frames: Sequence[int], fps: float | None = None
     np.savez_compressed(path, positions=positions, frames=np.asarray(frames, dtype=np.int64), **extra)
 
 
-def load_target(path, body: str | None = None, frames=None) -> Target:
+def load_target(path, body: str | None = None, frames=None, tool: str | None = None) -> Target:
     """Read a target file.
 
     - the ``.usd/.usda/.usdc`` of a previous ``warp-esph run`` (``UsdGeom.Points`` under
@@ -963,6 +977,9 @@ def load_target(path, body: str | None = None, frames=None) -> Target:
     - ``.npz``: ``positions`` ``(K, n, 3)`` (or ``(n, 3)``), optional ``frames`` (rendered
       frame indices; default 0..K-1) and ``fps``.
     - ``.npy``: positions ``(K, n, 3)`` of frames ``0..K-1``, or ``(n, 3)``: the last frame.
+    - ``<output>_tools.csv`` of ``warp-esph run`` (a CSV whose header names ``frame, time,
+      tool, fx, fy, fz``): the reaction-force curve of ``tool`` (the only tool when there is
+      one), a ``ReactionForceLoss`` per rendered frame.
     - ``.xyz/.txt/.csv/.pts``: a point cloud, three numbers per line.
     - anything else ``meshio`` (or ``.usd``) reads: a mesh when it has faces, else a cloud.
     """
@@ -973,6 +990,8 @@ def load_target(path, body: str | None = None, frames=None) -> Target:
     if ext in (".npz", ".npy"):
         try:
             data = np.load(p)
+            if ext == ".npz":  # read every array here: a damaged zip fails on access, not on open
+                data = {k: data[k] for k in data.files}
         except Exception as e:  # noqa: BLE001
             raise ValueError(f"target {p} cannot be read: {e}") from None
         frames, fps = None, None
@@ -999,6 +1018,8 @@ def load_target(path, body: str | None = None, frames=None) -> Target:
         if len(frames) != pos.shape[0] or min(frames) < 0 or len(set(frames)) != len(frames):
             raise ValueError(f"target {p} is not allowed: 'frames' must be {pos.shape[0]} distinct indices >= 0")
         return Target("positions", pos, frames, fps, p)
+    if ext == ".csv" and is_tools_csv(p):
+        return _forces_target(p, tool)
     if ext in _CLOUD_TEXT:
         try:
             pts = np.loadtxt(p, delimiter="," if ext == ".csv" else None, ndmin=2)[:, :3]
@@ -1024,6 +1045,24 @@ def load_target(path, body: str | None = None, frames=None) -> Target:
 
         return Target("mesh", load_mesh(p), None, None, p)
     return Target("points", np.asarray(m.points, dtype=np.float64)[:, :3], None, None, p)
+
+
+def _forces_target(path: str, tool: str | None) -> Target:
+    """The reaction-force curve of one tool from a ``<output>_tools.csv``."""
+    rows = read_tools_csv(path)
+    names = list(dict.fromkeys(r["tool"] for r in rows))
+    if tool is None:
+        if len(names) > 1:
+            raise ValueError(f"--target-tool is required: {path} holds the forces of tools {', '.join(names)}")
+        tool = names[0]
+    if tool not in names:
+        raise ValueError(f"--target-tool {tool!r} is not allowed: {path} holds tools {', '.join(names)}")
+    mine = [r for r in rows if r["tool"] == tool]
+    frames = sorted(r["frame"] for r in mine if r["frame"] > 0)
+    if not frames:
+        raise ValueError(f"target {path} holds only frame 0 of tool {tool!r}, which has no force yet")
+    fps = next((r["frame"] / r["time"] for r in mine if r["frame"] > 0 and r["time"] > 0), None)
+    return Target("forces", mine, frames, fps, path, tool=tool)
 
 
 def _usd_run_target(path: str, body, frames) -> Target | None:

@@ -41,7 +41,8 @@ import warp as wp
 from . import checks
 from ._types import type_set
 
-__all__ = ["Loss", "PositionLoss", "ChamferLoss", "MeshLoss", "SumLoss", "WorldLoss", "surface_particles"]
+__all__ = ["Loss", "PositionLoss", "ChamferLoss", "MeshLoss", "SumLoss", "WorldLoss", "surface_particles",
+           "ReactionForceLoss", "SlumpLoss", "read_tools_csv", "is_tools_csv"]
 
 #: HashGrid resolution cap per axis (the grid is periodic: aliasing beyond costs time only).
 _MAX_GRID_DIM = 128
@@ -346,7 +347,7 @@ class Loss:
         """The loss at ``positions`` (``{step: wp.array of vec3}``) and ``{step: dL/dx}``."""
         missing = [f for f in self.frames if f not in positions]
         if missing:
-            raise ValueError(f"the loss needs positions at steps {missing}, given only at {sorted(positions)}")
+            raise ValueError(f"the loss needs positions at steps {missing}, given only at {sorted(k for k in positions if isinstance(k, int))}")
         any_x = positions[self.frames[0]]
         out = self._accumulator(any_x)
         out.zero_()
@@ -434,6 +435,30 @@ class SumLoss(Loss):
     def launch(self, frame, x, out, scale: float = 1.0):
         for k, loss in self.terms:
             loss.launch(frame, x, out, scale * k)
+
+    def value_and_grad(self, positions):
+        # Terms evaluated on the host (reaction forces) add their own value and gradient.
+        host = [(k, loss) for k, loss in self.terms if getattr(loss, "_host", False)]
+        if not host:
+            return super().value_and_grad(positions)
+        kernel_terms = [(k, loss) for k, loss in self.terms if not getattr(loss, "_host", False)]
+        value, grads = 0.0, {}
+        if kernel_terms:
+            if getattr(self, "_kernel_sum", None) is None:
+                self._kernel_sum = SumLoss(kernel_terms)
+            value, grads = self._kernel_sum.value_and_grad(positions)
+            grads = dict(grads)
+        for k, loss in host:
+            v, g = loss.value_and_grad(positions)
+            value += k * v
+            for key, a in g.items():
+                a = a.numpy() if isinstance(a, wp.array) else np.asarray(a)
+                if key in grads:
+                    b = grads[key]
+                    grads[key] = (b.numpy() if isinstance(b, wp.array) else b) + k * a
+                else:
+                    grads[key] = k * a
+        return value, grads
 
     def __repr__(self):
         return " + ".join(f"{k:g} * {loss!r}" for k, loss in self.terms)
@@ -846,3 +871,289 @@ def surface_particles(model) -> np.ndarray:
             pos = np.clip(np.searchsorted(keys, k), 0, len(keys) - 1)
             free |= keys[pos] != k
     return np.flatnonzero(free).astype(np.int32)
+
+
+# ------------------------------------------------------------ reaction forces
+_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+class ReactionForceLoss(Loss):
+    """A tool's reaction force over time (a force-displacement curve): ``weight * mean over
+    observed windows of |P (F_j - target_j)|^2``.
+
+    ``F_j`` is the mean over the ``window`` steps ending at step ``steps[j]`` of the force the
+    ``tool`` exerted on the material (``warp_esph.tools``: ``state.reaction_force``), i.e.
+    what ``warp-esph run`` writes per frame to ``<output>_tools.csv`` with ``window`` =
+    steps per frame. ``P`` keeps ``components`` (``"xyz"`` default, or e.g. ``"y"``, the
+    loading axis of a compression test). ``targets``: ``(K, len(components))`` newtons (or
+    ``(K,)`` with one component), one row per entry of ``steps``.
+
+    The loss observes the rollout's step forces (``Rollout.observations()`` under
+    ``rollout.FORCES``), not positions: its ``frames`` are the window ends, so that a fit
+    runs long enough. Its arithmetic (a few numbers per step) is done on the host with its
+    exact gradient, which ``Rollout.backward`` seeds into each step's reaction-force adjoint;
+    the gradient through the simulation is the tape's.
+
+    ``noise``: the force measurement's standard deviation (N) for ``warp_esph.diagnostics``;
+    default 1 % of the target's RMS force.
+    """
+
+    _host = True
+
+    def __init__(self, targets, tool: str | int, steps, window: int = 1, components: str = "xyz",
+                 weight: float = 1.0, noise: float | None = None):
+        steps = [int(s) for s in np.atleast_1d(np.asarray(steps))]
+        super().__init__(steps, weight)
+        if list(self.frames) != steps:
+            raise ValueError(f"steps = {steps!r} is not allowed: window end steps must be distinct and increasing")
+        self.window = checks.positive_int("window", window)
+        if steps[0] < self.window:
+            raise ValueError(f"steps[0] = {steps[0]} is not allowed: the first window of {self.window} steps must end "
+                             f"at step >= {self.window}")
+        comps = str(components).lower()
+        if not comps or any(c not in _AXES for c in comps) or len(set(comps)) != len(comps):
+            raise ValueError(f"components = {components!r} is not allowed: give distinct axes among x, y, z (e.g. 'y')")
+        self.components = comps
+        self._axes = [_AXES[c] for c in comps]
+        t = np.asarray(targets, dtype=np.float64)
+        if t.ndim == 1 and len(comps) == 1:
+            t = t[:, None]
+        if t.shape != (len(steps), len(comps)) or not np.isfinite(t).all():
+            raise ValueError(f"targets with shape {t.shape} is not allowed: must be ({len(steps)}, {len(comps)}) finite "
+                             f"newtons, one row per window, one column per component ({comps})")
+        self.targets = t
+        if isinstance(tool, bool) or not isinstance(tool, (str, int, np.integer)):
+            raise ValueError(f"tool = {tool!r} is not allowed: give the tool's name or index")
+        self.tool = tool
+        if noise is None:
+            rms = float(np.sqrt(np.mean(t**2)))
+            noise = 0.01 * rms if rms > 0 else 1.0
+        self.noise = checks.positive("noise", noise)
+
+    # The positions of a frame are not observed.
+    def launch(self, frame, x, out, scale: float = 1.0):
+        return
+
+    def _tool_index(self, names) -> int:
+        if isinstance(self.tool, str):
+            if self.tool not in names:
+                raise ValueError(f"tool {self.tool!r} is not allowed: the scene's tools are {', '.join(names) or 'none'}")
+            return names.index(self.tool)
+        if not 0 <= int(self.tool) < len(names):
+            raise ValueError(f"tool {self.tool!r} is not allowed: indices are 0..{len(names) - 1}")
+        return int(self.tool)
+
+    def _forces(self, obs) -> tuple[np.ndarray, int, int]:
+        from .rollout import FORCES, TOOL_NAMES  # noqa: PLC0415 (rollout imports the model, not losses)
+
+        if FORCES not in obs:
+            raise ValueError("a ReactionForceLoss is not allowed here: the observations hold no reaction forces "
+                             "(the scene has no tools, or the caller passed positions only)")
+        names = list(obs[TOOL_NAMES])
+        f = obs[FORCES]
+        f = f.numpy() if isinstance(f, wp.array) else np.asarray(f)
+        f = np.asarray(f, dtype=np.float64).reshape(-1, len(names), 3)
+        if self.frames[-1] > f.shape[0]:
+            raise ValueError(f"the loss observes up to step {self.frames[-1]}, the rollout ran {f.shape[0]} steps")
+        return f, self._tool_index(names), len(names)
+
+    def curve(self, obs) -> np.ndarray:
+        """The simulated window means ``F_j`` (``(K, len(components))``, N)."""
+        f, c, _ = self._forces(obs)
+        w = self.window
+        return np.stack([f[e - w:e, c].mean(axis=0)[self._axes] for e in self.frames])
+
+    def residuals(self, obs) -> np.ndarray:
+        return (self.curve(obs) - self.targets).ravel()
+
+    def value_and_grad(self, obs):
+        from .rollout import FORCES  # noqa: PLC0415
+
+        f, c, n_tools = self._forces(obs)
+        r = self.curve(obs) - self.targets
+        K, w = len(self.frames), self.window
+        value = self.weight / K * float(np.sum(r * r))
+        g = np.zeros_like(f)
+        for j, e in enumerate(self.frames):
+            g[e - w:e, c, self._axes] += (2.0 * self.weight / (K * w)) * r[j]
+        return value, {FORCES: g}
+
+    def residual_scale(self) -> float:
+        return len(self.frames) / self.weight
+
+    def observation_count(self) -> int:
+        return len(self.frames) * len(self._axes)
+
+    def __repr__(self):
+        return (f"ReactionForceLoss(tool={self.tool!r}, {len(self.frames)} windows of {self.window} steps, "
+                f"components={self.components!r}, weight={self.weight:g})")
+
+    @classmethod
+    def from_csv(cls, path, tool: str, frame_steps, components: str = "xyz", frames=None, weight: float = 1.0,
+                 noise: float | None = None) -> "ReactionForceLoss":
+        """The loss for the ``tool`` rows of a ``<output>_tools.csv`` (``warp-esph run``):
+        ``frame_steps`` maps a rendered frame to its step (``f * substeps``); each frame's
+        row is the mean over that frame's steps. ``frames``: the frames to observe (default
+        every frame after the first, whose row has no preceding frame)."""
+        rows = read_tools_csv(path)
+        mine = [r for r in rows if r["tool"] == tool]
+        if not mine:
+            raise ValueError(f"--target-tool {tool!r} is not allowed: {path} holds tools "
+                             f"{', '.join(sorted({r['tool'] for r in rows}))}")
+        by_frame = {r["frame"]: r for r in mine}
+        chosen = sorted(f for f in by_frame if f > 0) if frames is None else [int(f) for f in frames]
+        missing = [f for f in chosen if f not in by_frame]
+        if missing:
+            raise ValueError(f"frames {missing} are not allowed: {path} has no row of tool {tool!r} for them")
+        steps = [int(frame_steps[f]) for f in chosen]
+        windows = {round(s / f) for s, f in zip(steps, chosen) if f > 0}
+        if len(windows) != 1 or any(s != f * next(iter(windows)) for s, f in zip(steps, chosen)):
+            raise ValueError(f"frame_steps = {dict(frame_steps)} is not allowed: every frame must span the same number of steps")
+        axes = [_AXES[c] for c in str(components).lower() if c in _AXES]
+        targets = np.array([[by_frame[f]["force"][a] for a in axes] for f in chosen])
+        return cls(targets, tool, steps, window=next(iter(windows)), components=components, weight=weight, noise=noise)
+
+
+TOOLS_CSV_COLUMNS = ("frame", "time", "tool", "fx", "fy", "fz")
+
+
+def is_tools_csv(path) -> bool:
+    """Whether ``path`` is a reaction-force log (``<output>_tools.csv``): its header names
+    ``frame``, ``time``, ``tool`` and ``fx, fy, fz``."""
+    try:
+        with open(path, newline="") as fh:
+            head = fh.readline()
+    except OSError:
+        return False
+    cols = [c.strip() for c in head.split(",")]
+    return all(c in cols for c in TOOLS_CSV_COLUMNS)
+
+
+def read_tools_csv(path) -> list[dict]:
+    """Rows of a reaction-force log: ``{frame, time, tool, force (3,)}``."""
+    import csv  # noqa: PLC0415
+
+    out = []
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        missing = [c for c in TOOLS_CSV_COLUMNS if c not in (reader.fieldnames or [])]
+        if missing:
+            raise ValueError(f"{path} is not allowed as a force target: it lacks the columns {', '.join(missing)} "
+                             f"(a '<output>_tools.csv' of 'warp-esph run' has them)")
+        for k, row in enumerate(reader):
+            try:
+                out.append({"frame": int(row["frame"]), "time": float(row["time"]), "tool": row["tool"],
+                            "force": np.array([float(row["fx"]), float(row["fy"]), float(row["fz"])])})
+            except (TypeError, ValueError):
+                raise ValueError(f"{path}, row {k + 2} is not allowed: frame, time, fx, fy, fz must be numbers") from None
+    if not out:
+        raise ValueError(f"{path} is not allowed as a force target: it has no rows")
+    return out
+
+
+# ------------------------------------------------------------------- slump test
+def _soft_top(q: np.ndarray, tau: float) -> tuple[float, np.ndarray]:
+    """``M = sum_i w_i q_i`` with ``w = softmax(q / tau)`` (the top of ``q``, smoothly: the
+    mean of the topmost values within about ``tau``) and ``dM/dq``."""
+    z = (q - q.max()) / tau
+    w = np.exp(z)
+    w /= w.sum()
+    m = float(np.dot(w, q))
+    return m, w * (1.0 + (q - m) / tau)
+
+
+class SlumpLoss(Loss):
+    """The final height and spread of a slump test: ``weight * ((h - h*)^2 + (R - R*)^2)``.
+
+    ``h``: the top of the material above ``floor`` (y), ``R``: the largest horizontal
+    distance of the material from the vertical axis through ``center`` (x, z), each
+    measured as a lab would, to the edge of the outermost particles: the smooth maximum
+    (softmax-weighted mean, temperature ``tau``, default 0.05 ``spacing``: within a small
+    fraction of a spacing of the hard maximum a ruler reads) of the
+    particles' heights (distances) plus half a ``spacing`` (each particle stands for a
+    cell). ``height``/``spread``: the measured values (m); either may be None (not
+    measured). ``frame``: the step at which they were measured. ``noise``: their standard
+    deviation (m) for ``warp_esph.diagnostics`` (None: the fit's ``noise``).
+
+    Evaluated on the host (two numbers per evaluation) with the exact gradient.
+    """
+
+    _host = True
+
+    def __init__(self, height: float | None, spread: float | None, frame: int, spacing: float, floor: float = 0.0,
+                 center=(0.0, 0.0), tau: float | None = None, weight: float = 1.0, particles=None,
+                 noise: float | None = None):
+        super().__init__([frame], weight, particles)
+        if height is None and spread is None:
+            raise ValueError("height = None and spread = None is not allowed: give at least one measurement")
+        self.height = None if height is None else checks.positive("height", height)
+        self.spread = None if spread is None else checks.positive("spread", spread)
+        self.spacing = checks.positive("spacing", spacing)
+        self.floor = checks.number("floor", floor)
+        c = np.asarray(center, dtype=np.float64).ravel()
+        if c.shape != (2,) or not np.isfinite(c).all():
+            raise ValueError(f"center = {center!r} is not allowed: give the axis position (x, z)")
+        self.center = c
+        self.tau = 0.05 * self.spacing if tau is None else checks.positive("tau", tau)
+        self.noise = None if noise is None else checks.positive("noise", noise)
+
+    def launch(self, frame, x, out, scale: float = 1.0):
+        return
+
+    def _x(self, positions) -> np.ndarray:
+        x = positions[self.frames[0]]
+        x = x.numpy() if isinstance(x, wp.array) else np.asarray(x)
+        x = np.asarray(x, dtype=np.float64)
+        return x if self.particles is None else x[self.particles]
+
+    def measure(self, positions) -> tuple[float, float, np.ndarray, np.ndarray]:
+        """Simulated ``(height, spread)`` and their gradients with respect to the (observed) positions."""
+        x = self._x(positions)
+        half = 0.5 * self.spacing
+        h, dh = _soft_top(x[:, 1], self.tau)
+        g_h = np.zeros_like(x)
+        g_h[:, 1] = dh
+        d = np.stack([x[:, 0] - self.center[0], x[:, 2] - self.center[1]], axis=1)
+        r = np.sqrt((d * d).sum(axis=1))
+        R, dR = _soft_top(r, self.tau)
+        g_R = np.zeros_like(x)
+        safe = np.where(r > 0.0, r, 1.0)
+        g_R[:, 0] = dR * d[:, 0] / safe
+        g_R[:, 2] = dR * d[:, 1] / safe
+        return h + half - self.floor, R + half, g_h, g_R
+
+    def residuals(self, positions) -> np.ndarray:
+        h, R, _, _ = self.measure(positions)
+        out = []
+        if self.height is not None:
+            out.append(h - self.height)
+        if self.spread is not None:
+            out.append(R - self.spread)
+        return np.array(out)
+
+    def value_and_grad(self, positions):
+        h, R, g_h, g_R = self.measure(positions)
+        value, g = 0.0, np.zeros_like(g_h)
+        if self.height is not None:
+            value += (h - self.height) ** 2
+            g += 2.0 * (h - self.height) * g_h
+        if self.spread is not None:
+            value += (R - self.spread) ** 2
+            g += 2.0 * (R - self.spread) * g_R
+        f = self.frames[0]
+        if self.particles is not None:
+            x = positions[f]
+            full = np.zeros((x.shape[0], 3))
+            full[self.particles] = g
+            g = full
+        self._counts[f] = 1
+        return self.weight * value, {f: self.weight * g}
+
+    def residual_scale(self) -> float:
+        return 1.0 / self.weight
+
+    def observation_count(self) -> int:
+        return int(self.height is not None) + int(self.spread is not None)
+
+    def __repr__(self):
+        return f"SlumpLoss(height={self.height}, spread={self.spread}, frame={self.frames[0]}, weight={self.weight:g})"

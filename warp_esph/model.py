@@ -48,12 +48,17 @@ class State:
         self.alpha = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad)
         # The plastic F_p of the rest-configuration comparison model (docs/method.md §7; I elsewhere).
         # The additive model's strain needs no field of its own: F holds I + eps there.
-        self.F_p = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev, requires_grad=requires_grad)
+        # Its gradient only where a comparison model reads it (a taped step's memory).
+        self.F_p = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev,
+                            requires_grad=requires_grad and model.uses_comparison_models)
         #: Simulated time (s) of this state: the step that writes it sets ``time_in + dt``.
         self.time = 0.0
         # Written by the step that produced this state.
         self.neighbors = wp.zeros((n, K), dtype=wp.int32, device=dev)
-        self.neighbor_d2 = wp.zeros((n, K), dtype=T.scalar, device=dev)
+        # The selection's squared distances: scratch of the search, allocated only when asked
+        # for (the solver keeps its own), so a taped step does not hold K scalars per particle.
+        self._neighbor_d2 = None
+        self._d2_spec = ((n, K), T.scalar, dev)
         self.neighbor_count = wp.zeros(n, dtype=wp.int32, device=dev)
         self.guard = wp.zeros(n, dtype=wp.int32, device=dev)
         self.density = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad)
@@ -63,13 +68,36 @@ class State:
         self.force = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
         tools.allocate_state(model, self, requires_grad)
 
+    @property
+    def neighbor_d2(self) -> wp.array:
+        """Squared distances of the neighbour selection (``NeighborSearch.build``'s scratch)."""
+        if self._neighbor_d2 is None:
+            shape, dtype, dev = self._d2_spec
+            self._neighbor_d2 = wp.zeros(shape, dtype=dtype, device=dev)
+        return self._neighbor_d2
+
     #: The arrays that define the simulation state (what a checkpoint must hold).
     STATE_FIELDS = ("x", "v", "F", "alpha", "F_p")
     #: Fields a checkpoint written before the comparison models lacks (then: initial values).
     OPTIONAL_FIELDS = ("F_p",)
 
+    def __setattr__(self, name, value):
+        # A replaced array may not fit the model any more: ``checks.same_state`` checks again.
+        if name != "time":
+            self.__dict__.pop("_checked_for", None)
+        object.__setattr__(self, name, value)
+
     def assign(self, other: "State"):
         """Copy ``other``'s state fields (and time) into this state."""
+        for name in self.STATE_FIELDS:
+            a, b = getattr(self, name), getattr(other, name, None)
+            if not isinstance(b, wp.array):  # a State, or anything holding its fields (rollout checkpoints)
+                raise ValueError(f"other = {other!r} is not allowed: must be a warp_esph.State (its {name} is {b!r})")
+            if a.shape != b.shape or a.dtype is not b.dtype:
+                raise ValueError(
+                    f"other is not allowed: its {name} is {b.shape} {getattr(b.dtype, '__name__', b.dtype)}, this state's "
+                    f"{a.shape} {getattr(a.dtype, '__name__', a.dtype)} (a state of another model?)"
+                )
         for name in self.STATE_FIELDS:
             wp.copy(getattr(self, name), getattr(other, name))
         self.time = getattr(other, "time", 0.0)

@@ -17,7 +17,7 @@ state (``x0, v0, F0, alpha0``)::
 Memory
 ------
 Without checkpointing (``checkpoint_every=None``) the forward pass is recorded on one
-``wp.Tape`` with one ``State`` per step: memory grows with ``steps`` (about 1.1 kB
+``wp.Tape`` with one ``State`` per step: memory grows with ``steps`` (about 0.95 kB
 per particle per step in float64, see ``docs/fitting.md``). With ``checkpoint_every=S``
 the forward pass runs untaped, keeping only the state fields (``x, v, F, alpha``) at the
 start of every segment of ``S`` steps; ``backward`` re-runs each segment on a fresh tape,
@@ -36,6 +36,17 @@ a copy of a model in which every particle (of the chosen bodies) has its own mat
 index, so each material parameter array becomes a per-particle field whose gradient
 ``backward`` returns particle by particle.
 
+Reaction forces
+---------------
+A model with tools (``warp_esph.tools``) also has the reaction force of every tool in every
+step recorded by ``forward`` (``step_forces()``: ``(steps, tools, 3)``, row ``k`` the force
+during step ``k``, i.e. ``state[k + 1].reaction_force``). A loss may observe them
+(``warp_esph.losses.ReactionForceLoss``): ``observations()`` hands the losses the frame
+positions and, under the key ``FORCES``, the step forces; ``backward`` seeds the
+gradient a loss returns under that key into each step's ``reaction_force`` adjoint (on the
+full tape or in each re-run segment), so the gradient flows through the contact response
+that produced the force.
+
 The gradient with respect to ``x0`` holds the SPH rest density fixed (it is a constant
 of the model, computed once from the model's own initial positions).
 """
@@ -53,12 +64,17 @@ from ._types import type_set
 from .model import Model, State
 from .sim.solver import Solver
 
-__all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS"]
+__all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS", "FORCES", "TOOL_NAMES"]
 
 #: The per-material parameter arrays of a ``Model`` whose gradients ``backward`` returns.
 PARAMETERS = Model.MATERIAL_FIELDS
 #: The initial-state gradients ``backward`` returns, by key.
 STATE_GRADIENTS = {"x0": "x", "v0": "v", "F0": "F", "alpha0": "alpha"}
+#: Key of the step reaction forces (``(steps * tools,)`` vec3, row ``k * tools + c``) in
+#: ``Rollout.observations()`` and of their gradient in what a loss returns.
+FORCES = "reaction_force"
+#: Key of the tool names in ``Rollout.observations()``.
+TOOL_NAMES = "tool_names"
 
 
 @functools.cache
@@ -75,11 +91,12 @@ def _kernels(scalar):
 
 
 def _differentiable_solver(model: Model) -> Solver:
-    """A solver whose untaped steps run the same kernels as its taped ones."""
-    try:
-        return Solver(model, fused=False)
-    except TypeError:  # a Solver without the fused fast path
-        return Solver(model)
+    """A solver whose untaped steps run the same kernels as its taped ones (the fused ones
+    where ``Solver.fast_under_tape``, the differentiable ones otherwise)."""
+    solver = Solver(model)
+    if not solver.fast_under_tape():
+        solver.fused = False
+    return solver
 
 
 class _Checkpoint:
@@ -104,6 +121,13 @@ class _Checkpoint:
         return sum(getattr(self, k).capacity for k in State.STATE_FIELDS)
 
 
+def _zero_state_grads(state: State):
+    for name in State.STATE_FIELDS:
+        g = getattr(state, name).grad
+        if g is not None:  # F_p has none without a comparison model
+            g.zero_()
+
+
 def state_nbytes(state: State) -> int:
     """Bytes held by a ``State``'s arrays and their gradients."""
     total = 0
@@ -124,8 +148,10 @@ class Rollout:
     - ``checkpoint_every``: ``None`` records the whole run on one tape; an integer ``S``
       keeps only segment starts every ``S`` steps and re-runs segments in ``backward``.
     - ``solver``: a ``Solver`` of ``model`` (default: a new one). It and its hash grid are
-      kept for the rollout's lifetime. Its untaped fast path (``solver.fused``) is
-      switched off, so an untaped forward step is the step that a tape records.
+      kept for the rollout's lifetime. Its fused fast path (``solver.fused``) is switched
+      off unless ``solver.fast_under_tape()`` (then a taped step runs the fused kernels too),
+      so an untaped forward step is the step that a tape records. Set ``hand_adjoints``
+      before passing it.
     """
 
     def __init__(self, model: Model, steps: int, dt: float, frames: Sequence[int] | None = None,
@@ -157,8 +183,8 @@ class Rollout:
         elif not isinstance(solver, Solver) or solver.model is not model:
             raise ValueError("solver is not allowed: it must be a warp_esph.Solver built for this model")
         # The untaped forward of a checkpointed rollout must compute exactly what the
-        # taped re-run of ``backward`` records: no fast path that only runs untaped.
-        if getattr(solver, "fused", False):
+        # taped re-run of ``backward`` records: the fused kernels only where a tape runs them too.
+        if getattr(solver, "fused", False) and not solver.fast_under_tape():
             solver.fused = False
         self.solver = solver
         self.solver.check_dt(self.dt)
@@ -167,6 +193,11 @@ class Rollout:
         #: Positions at each frame after ``forward`` (Warp arrays, no gradients).
         self.frame_positions = [wp.zeros(n, dtype=T.vec3, device=dev) for _ in self.frames]
         self._frame_slot = {f: k for k, f in enumerate(self.frames)}
+        tools = getattr(model, "tools", None)
+        self.tool_names = [] if tools is None else list(tools.names)
+        #: Every step's reaction force of every tool after ``forward`` (no gradients).
+        self.forces = (wp.zeros(self.steps * len(self.tool_names), dtype=T.vec3, device=dev)
+                       if self.tool_names else None)
         # (start step, number of steps) of each segment.
         self.segments = [(s, min(self.segment, self.steps - s)) for s in range(0, self.steps, self.segment)]
         self._initial = model.state(requires_grad=False)
@@ -175,6 +206,7 @@ class Rollout:
         self._checkpoints: list[_Checkpoint] = []
         self._tape: wp.Tape | None = None
         self._forward_done = False
+        self._force_grads = None
         #: Incremented by every ``forward``: lets callers (the torch wrapper) tell runs apart.
         self.forward_count = 0
         #: Each world's loss term at the last ``backward`` with a ``losses.WorldLoss`` (else None).
@@ -256,6 +288,9 @@ class Rollout:
             self._tape = tape
             for f, out in zip(self.frames, self.frame_positions):
                 wp.copy(out, states[f].x)
+            if self.forces is not None:
+                for k in range(self.steps):
+                    self._store_forces(k, states[k + 1])
         self._forward_done = True
         self.forward_count += 1
         return self.positions()
@@ -276,7 +311,30 @@ class Rollout:
                 wp.copy(self.frame_positions[self._frame_slot[k]], cur.x)
             if k < self.steps:
                 self.solver.step(cur, nxt, self.dt)
+                if self.forces is not None:
+                    self._store_forces(k, nxt)
                 cur, nxt = nxt, cur
+
+    def _store_forces(self, k: int, state):
+        n = len(self.tool_names)
+        wp.copy(self.forces, state.reaction_force, dest_offset=k * n, src_offset=0, count=n)
+
+    def step_forces(self) -> np.ndarray:
+        """Reaction force of every tool in every step of the last ``forward``, ``(steps, tools, 3)``
+        (row ``k``: the step from ``k`` to ``k + 1``; see ``warp_esph.tools``)."""
+        if self.forces is None:
+            raise ValueError("step_forces is not allowed: the model has no tools, so nothing reports a reaction force")
+        return self.forces.numpy().astype(np.float64).reshape(self.steps, len(self.tool_names), 3)
+
+    def observations(self, numpy: bool = False) -> dict:
+        """What a loss may observe after ``forward``: ``{step: positions}`` at ``frames``, and
+        with tools ``FORCES`` (every step's reaction forces, flat, see ``FORCES``) and
+        ``TOOL_NAMES``. ``numpy=True``: numpy arrays instead of Warp arrays."""
+        out = {f: (a.numpy() if numpy else a) for f, a in zip(self.frames, self.frame_positions)}
+        if self.forces is not None:
+            out[FORCES] = self.forces.numpy() if numpy else self.forces
+            out[TOOL_NAMES] = list(self.tool_names)
+        return out
 
     def positions(self) -> np.ndarray:
         """Positions at ``frames`` of the last ``forward``, ``(frames, n, 3)``."""
@@ -314,6 +372,25 @@ class Rollout:
             out[f] = wp.array(a, dtype=T.vec3, device=m.device)
         return out
 
+    def _force_gradients(self, g) -> np.ndarray | None:
+        """The gradient with respect to every step's reaction forces as ``(steps, tools, 3)``."""
+        if g is None:
+            return None
+        if self.forces is None:
+            raise ValueError("a reaction-force gradient is not allowed: the model has no tools")
+        if isinstance(g, wp.array):
+            g = g.numpy()
+        a = np.asarray(g, dtype=self.model.types.np_dtype)
+        shape = (self.steps, len(self.tool_names), 3)
+        if a.size != int(np.prod(shape)):
+            raise ValueError(f"reaction-force gradient with shape {a.shape} is not allowed: must be {shape}")
+        return a.reshape(shape)
+
+    def _seed_forces(self, state, k: int):
+        """Seed the adjoint of the reaction force of step ``k`` (the one ``state`` ends)."""
+        if self._force_grads is not None:
+            state.reaction_force.grad.assign(self._force_grads[k])
+
     def _zero_parameter_grads(self):
         for name in PARAMETERS:
             getattr(self.model, name).grad.zero_()
@@ -340,9 +417,14 @@ class Rollout:
         self.world_values = None
         if hasattr(grads, "value_and_grad"):
             loss = grads
-            value, grads = loss.value_and_grad(dict(zip(self.frames, self.frame_positions)))
+            value, grads = loss.value_and_grad(self.observations())
             self.world_values = getattr(loss, "world_values", None)
+        force_grads = None
+        if isinstance(grads, Mapping) and FORCES in grads:
+            grads = dict(grads)
+            force_grads = self._force_gradients(grads.pop(FORCES))
         frame_grads = self._frame_gradients(grads)
+        self._force_grads = force_grads
         acc = {name: np.zeros(getattr(self.model, name).shape[0], dtype=self.model.types.np_dtype) for name in PARAMETERS}
         if self.checkpointing:
             adj = self._backward_checkpointed(frame_grads, acc)
@@ -370,17 +452,17 @@ class Rollout:
         tape = self._tape
         tape.zero()
         for s in states[: self.steps + 1]:
-            for name in State.STATE_FIELDS:
-                getattr(s, name).grad.zero_()
+            _zero_state_grads(s)
         self._zero_parameter_grads()
         for f, g in frame_grads.items():
             self._seed(states[f].x, g)
+        for k in range(self.steps):
+            self._seed_forces(states[k + 1], k)
         tape.backward()
         self._add_parameter_grads(acc)
         adj = {key: getattr(states[0], name).grad.numpy().copy() for key, name in STATE_GRADIENTS.items()}
         tape.zero()
-        for name in State.STATE_FIELDS:
-            getattr(states[0], name).grad.zero_()
+        _zero_state_grads(states[0])
         return adj
 
     def _backward_checkpointed(self, frame_grads, acc):
@@ -389,8 +471,7 @@ class Rollout:
         for (start, length), ck in reversed(list(zip(self.segments, self._checkpoints))):
             seg = states[: length + 1]
             for s in seg:
-                for name in State.STATE_FIELDS:
-                    getattr(s, name).grad.zero_()
+                _zero_state_grads(s)
             seg[0].assign(ck)
             tape = wp.Tape()
             with tape:
@@ -398,23 +479,25 @@ class Rollout:
                     self.solver.step(seg[k], seg[k + 1], self.dt)
             end = seg[length]
             if adj is not None:
-                for name in State.STATE_FIELDS:
-                    wp.copy(getattr(end, name).grad, adj[name])
+                for name, g in adj.items():
+                    wp.copy(getattr(end, name).grad, g)
             for f, g in frame_grads.items():
                 if start < f <= start + length:
                     self._seed(seg[f - start].x, g)
+            for j in range(length):
+                self._seed_forces(seg[j + 1], start + j)
             self._zero_parameter_grads()
             tape.backward()
             # docs/method.md, Warp pitfall 6: tape.zero() zeroes the parameter grads too: keep them first.
             self._add_parameter_grads(acc)
-            adj = {name: wp.clone(getattr(seg[0], name).grad) for name in State.STATE_FIELDS}
+            adj = {name: wp.clone(getattr(seg[0], name).grad) for name in State.STATE_FIELDS
+                   if getattr(seg[0], name).grad is not None}
             tape.zero()
             del tape
         if 0 in frame_grads:
             self._seed_plain(adj["x"], frame_grads[0])
         for s in states:
-            for name in State.STATE_FIELDS:
-                getattr(s, name).grad.zero_()
+            _zero_state_grads(s)
         self._zero_parameter_grads()
         return {key: adj[name].numpy().copy() for key, name in STATE_GRADIENTS.items()}
 

@@ -11,6 +11,7 @@ import dataclasses
 import difflib
 import math
 import os
+import sys
 
 try:
     import tomllib
@@ -37,6 +38,8 @@ class Scene:
     the paper's figure a scene reproduces (``"Fig. 2"``), ``None`` for the others.
     ``view``: a suggested camera direction (azimuth, elevation) in degrees, written to
     the USD file for ``warp-esph render`` (``None``: the renderer's default).
+    ``diverges``: names of bodies the scene shows blowing up (a method's failure, as the
+    paper's Fig. 8 does); ``simulate``'s divergence monitor leaves them out.
     """
 
     name: str
@@ -47,6 +50,7 @@ class Scene:
     dt: float | None = None
     figure: str | None = None
     view: tuple[float, float] | None = None
+    diverges: tuple[str, ...] = ()
 
 
 # ------------------------------------------------------------------ schema
@@ -57,10 +61,15 @@ class _Num:
         self.allow_inf = allow_inf
 
     def check(self, value) -> bool:
+        if isinstance(value, int) and not isinstance(value, bool) and not -_FLOAT_MAX <= value <= _FLOAT_MAX:
+            return False  # TOML integers are unbounded: 10**400 overflows a float
         return isinstance(value, (int, float)) and not isinstance(value, bool) and (self.allow_inf or math.isfinite(value)) and not (isinstance(value, float) and math.isnan(value))
 
     def describe(self) -> str:
         return "a number" + (" (inf allowed)" if self.allow_inf else "")
+
+
+_FLOAT_MAX = int(sys.float_info.max)
 
 
 class _Int:
@@ -175,7 +184,7 @@ def _check_table(file: str, where: str, table, schema: dict) -> dict:
             )
         kind, _ = schema[key]
         if not kind.check(value):
-            raise ValueError(f"{file}: key {key!r} in {where} must be {kind.describe()}, not {type(value).__name__} {value!r}")
+            raise ValueError(f"{file}: key {key!r} in {where} must be {kind.describe()}, not {type(value).__name__} {checks.shorten(value)!r}")
     for key, (_, required) in schema.items():
         if required and key not in table:
             raise ValueError(f"{file}: missing key {key!r} in {where}")

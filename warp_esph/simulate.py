@@ -1,9 +1,11 @@
 """``simulate``: run a model for a number of rendered frames, optionally writing USD.
 
 Frame 0 is the initial state; frame ``k`` is the state after ``k * substeps`` steps of
-``dt``, ``substeps * dt = 1 / fps``. After every frame the positions and velocities are
-checked; the first non-finite value stops the run with a ``SimulationError`` that names
-the step, the particle and its body, after the writer has kept every finished frame.
+``dt``, ``substeps * dt = 1 / fps``. After every frame, before it is written, the
+positions and velocities are checked: a non-finite value, or a blow-up that stays finite
+(``DivergenceMonitor``: speeds, kinetic energy or distances no motion of the scene can
+reach), stops the run with a ``SimulationError`` that names the step, the particle and
+its body, after the writer has kept every finished frame.
 """
 
 from __future__ import annotations
@@ -18,11 +20,25 @@ from . import checks
 from .model import Model, State
 from .sim.solver import Solver
 
-__all__ = ["simulate", "resolve_timestep", "SimulationError"]
+__all__ = [
+    "simulate", "resolve_timestep", "adaptive_timestep", "SimulationError", "DivergenceMonitor", "AUTO",
+    "MAX_STEPS_PER_FRAME", "MAX_STEPS",
+]
+
+#: Most steps one frame may take. The stiffest useful material at a fine spacing (steel,
+#: c_P ~ 6 km/s, at 5 mm) needs about 1e5 at 30 fps; more is a mistake that would run for
+#: days (``--dt 1e-300`` asks for 3e298).
+MAX_STEPS_PER_FRAME = 10**6
+#: Most steps one run may take (1e10 steps of the smallest scene take about a month here).
+MAX_STEPS = 10**10
+
+#: ``dt = AUTO`` (``"auto"``) asks ``simulate`` for an adaptive (CFL) time step.
+AUTO = "auto"
 
 
 class SimulationError(RuntimeError):
-    """The simulation produced a non-finite position or velocity.
+    """The simulation produced a non-finite position or velocity, or blew up while staying
+    finite (``DivergenceMonitor``).
 
     ``step``: the number of steps taken when it was detected (counted from the start of
     the run; the bad value arose in one of the steps of the last frame). ``particle``:
@@ -38,6 +54,110 @@ class SimulationError(RuntimeError):
         self.frame = frame
 
 
+class DivergenceMonitor:
+    """Catches a run that has blown up but stays finite, from what the scene can do.
+
+    Made from the model and the run's first state; ``check(state, t)`` (``t``: seconds since
+    that state) returns ``None`` or ``(what, particle)``. Three bounds, each a generous
+    multiple of what the physics allows:
+
+    - speed: no particle can move faster than its initial speed, plus the fall from the
+      highest particle to the lowest floor (``sqrt(2 g H)``; ``g t`` where nothing stops a
+      fall), plus the fastest p-wave speed (an elastic rebound), plus what the force fields
+      can give (``sqrt(strength) R``, a harmonic field over the scene's radius);
+      ``SPEED_FACTOR`` times that is a blow-up.
+    - energy: with no work done on the bodies, the kinetic energy is at most the initial
+      one plus the potential energy released since (``sum m g (h_0 - h)``) plus the
+      fields' potential energy; ``ENERGY_FACTOR`` times that, plus a floor for the elastic
+      energy a resumed state may hold (``0.5 M (0.1 c_P)^2``), is a blow-up.
+    - reach: a particle farther from the scene's box (particles and colliders) than
+      ``REACH_FACTOR`` times (its diagonal + the speed bound x ``t``) is a blow-up.
+
+    A repelling field (``strength < 0``) can add energy without bound: then only the
+    non-finite check runs.
+    """
+
+    SPEED_FACTOR = 10.0
+    ENERGY_FACTOR = 10.0
+    REACH_FACTOR = 10.0
+    #: An upward-facing plane (its normal within ~8 degrees of up) is a floor that ends a fall.
+    FLOOR_COSINE = 0.99
+
+    def __init__(self, model: Model, state: State, exempt=()):
+        names = [b.name for b in model.bodies]
+        exempt = tuple(exempt)
+        for name in exempt:
+            if name not in names:
+                raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: {name!r} is not a body of the model ({names})")
+        #: Particles checked: all but those of the exempt bodies (a scene showing a method fail).
+        self.keep = ~np.isin(model.particle_body_np, [names.index(n) for n in exempt])
+        x0 = state.x.numpy().astype(np.float64)[self.keep]
+        v0 = state.v.numpy().astype(np.float64)[self.keep]
+        self.mass = model.particle_mass.numpy().astype(np.float64)[self.keep]
+        self.index = np.flatnonzero(self.keep)
+        self.enabled = (all(f.strength >= 0.0 for f in model.force_fields) and self.keep.any()
+                        and np.isfinite(x0).all() and np.isfinite(v0).all())
+        g = np.array(model.gravity, dtype=np.float64)
+        self.g = float(np.linalg.norm(g))
+        self.up = -g / self.g if self.g > 0.0 else np.array([0.0, 1.0, 0.0])
+        self.h0 = x0 @ self.up
+        floors = [p.offset / float(np.dot(p.normal, self.up)) for p in model.planes
+                  if float(np.dot(p.normal, self.up)) >= self.FLOOR_COSINE * float(np.linalg.norm(p.normal))]
+        self.fall_height = float(self.h0.max() - min(floors + [float(self.h0.min())])) if floors else None
+        if not self.keep.any():
+            return
+        lo, hi = x0.min(axis=0), x0.max(axis=0)
+        for sph in model.spheres:
+            lo, hi = np.minimum(lo, np.subtract(sph.center, sph.radius)), np.maximum(hi, np.add(sph.center, sph.radius))
+        for box in model.boxes:
+            lo, hi = np.minimum(lo, np.subtract(box.center, box.half_extents)), np.maximum(hi, np.add(box.center, box.half_extents))
+        self.lo, self.hi = lo, hi
+        self.diagonal = float(np.linalg.norm(hi - lo)) + 2.0 * model.support_radius
+        self.v0 = float(np.sqrt((v0 * v0).sum(axis=1).max()))
+        self.wave = max(m.p_wave_speed for m in model.materials)
+        self.v_fields, self.e_fields = 0.0, 0.0
+        for f in model.force_fields:
+            r = np.linalg.norm((x0 - np.asarray(f.center))[:, [0, 2]], axis=1).max() + self.diagonal
+            self.v_fields += math.sqrt(f.strength) * r
+            self.e_fields += 0.5 * f.strength * r * r * float(self.mass.sum())
+        self.ke0 = 0.5 * float((self.mass * (v0 * v0).sum(axis=1)).sum())
+        self.e_floor = 0.5 * float(self.mass.sum()) * (0.1 * self.wave) ** 2
+
+    def speed_bound(self, t: float) -> float:
+        fall = self.g * t if self.fall_height is None else min(self.g * t, math.sqrt(2.0 * self.g * self.fall_height))
+        return self.v0 + fall + self.wave + self.v_fields
+
+    def check(self, x: np.ndarray, v: np.ndarray, t: float):
+        """``None``, or ``(why, particle)`` for the first bound exceeded."""
+        if not self.enabled:
+            return None
+        if not self.keep.all():
+            x, v = x[self.keep], v[self.keep]
+        x = x.astype(np.float64, copy=False)
+        v = v.astype(np.float64, copy=False)
+        speed2 = (v * v).sum(axis=1)
+        bound = self.speed_bound(t)
+        limit = self.SPEED_FACTOR * bound
+        p = int(np.argmax(speed2))
+        if speed2[p] > limit * limit:
+            return (f"speed {math.sqrt(speed2[p]):.3g} m/s, more than {self.SPEED_FACTOR:g} x the {bound:.3g} m/s "
+                    f"the scene can produce (fall + p-wave + initial speed)"), int(self.index[p])
+        ke = 0.5 * self.mass * speed2
+        released = float((self.mass * self.g * (self.h0 - x @ self.up)).sum())
+        budget = max(self.ke0 + released + self.e_fields, 0.0)
+        if ke.sum() > self.ENERGY_FACTOR * budget + self.e_floor:
+            return (f"kinetic energy {ke.sum():.3g} J, more than {self.ENERGY_FACTOR:g} x the {budget:.3g} J of initial "
+                    f"kinetic energy and potential energy released (no work is done on the bodies)"), int(self.index[np.argmax(ke)])
+        reach = self.REACH_FACTOR * (self.diagonal + bound * t)
+        outside = np.maximum(np.maximum(self.lo - x, x - self.hi), 0.0)
+        d2 = (outside * outside).sum(axis=1)
+        p = int(np.argmax(d2))
+        if d2[p] > reach * reach:
+            return (f"a particle {math.sqrt(d2[p]):.3g} m outside the scene, more than {reach:.3g} m "
+                    f"({self.REACH_FACTOR:g} x its size plus the speed bound x time)"), int(self.index[p])
+        return None
+
+
 def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = None, dt: float | None = None) -> tuple[int, float]:
     """``(substeps, dt)`` with ``substeps * dt = 1 / fps``.
 
@@ -51,14 +171,27 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
     if substeps is not None and dt is not None:
         raise ValueError(f"substeps = {substeps!r} and dt = {dt!r} are not allowed together: give one of them (or neither)")
     if substeps is not None:
-        n = checks.positive_int("substeps", substeps)
+        n = checks.positive_int("substeps", substeps, maximum=MAX_STEPS_PER_FRAME)
         return n, frame_dt / n
     if dt is None:
         stable = model.stable_dt()
-        n = max(1, math.ceil(frame_dt / stable * (1.0 - 1e-12)))
+        ratio = frame_dt / stable * (1.0 - 1e-12)
+        if not ratio <= MAX_STEPS_PER_FRAME:
+            stiff = max(model.materials, key=lambda m: m.p_wave_speed)
+            raise ValueError(
+                f"the stable step {stable:.3g} s is not allowed: a frame (1/fps = {frame_dt:.6g} s) would take {ratio:.3g} steps, "
+                f"more than {MAX_STEPS_PER_FRAME:.0e}; the stiffest material (p-wave speed {stiff.p_wave_speed:.3g} m/s) "
+                f"or the most viscous one needs it: use softer materials, a larger spacing, or give dt or substeps"
+            )
+        n = max(1, math.ceil(ratio))
         return n, frame_dt / n
     dt = checks.positive("dt", dt)
     ratio = frame_dt / dt
+    if not ratio <= MAX_STEPS_PER_FRAME:
+        raise ValueError(
+            f"dt = {dt!r} is not allowed: a frame (1/fps = {frame_dt:.6g} s) would take {ratio:.3g} steps, "
+            f"more than {MAX_STEPS_PER_FRAME:.0e}; use dt >= {frame_dt / MAX_STEPS_PER_FRAME:.3g} s"
+        )
     n = round(ratio)
     if n < 1 or abs(ratio - n) > 1e-6 * ratio:
         lo = max(1, math.floor(ratio))
@@ -67,6 +200,47 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
             f"dt = {dt!r} is not allowed: a frame (1/fps = {frame_dt:.6g} s) must be a whole number of steps, "
             f"but 1/fps / dt = {ratio:.6g}; use e.g. {hint}, or give substeps instead"
         )
+    return n, frame_dt / n
+
+
+def check_step_count(frames: int, substeps: int) -> None:
+    """Refuse a run of more than ``MAX_STEPS`` steps before it starts."""
+    if frames * substeps > MAX_STEPS:
+        raise ValueError(
+            f"frames = {frames!r} is not allowed: at {substeps} steps per frame the run would take "
+            f"{frames * substeps:.3g} steps, more than {MAX_STEPS:.0e}; use fewer frames or a larger dt"
+        )
+
+
+def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: float = 0.3) -> tuple[int, float]:
+    """``(substeps, dt)`` for the next frame of ``state``, ``substeps * dt = 1 / fps``.
+
+    The CFL limit of docs/method.md §8 with the signal speed measured now: a disturbance
+    travels at the p-wave speed relative to the material, which itself moves, so
+
+        dt <= C dx / (c_P + v_max + |g| / fps)
+
+    where ``v_max`` is the largest particle speed of ``state`` and ``|g| / fps`` bounds
+    what gravity adds to it within the frame; and ``dt`` is at most the viscous limit of
+    ``Model.stable_dt``. A body at rest gets ``stable_dt`` (to the gravity term); one in
+    flight or hit hard gets smaller steps. Rounded down to a whole number of steps per frame.
+    """
+    fps = checks.positive("fps", fps)
+    courant = checks.positive("courant", courant)
+    frame_dt = 1.0 / fps
+    stable = model.stable_dt(courant)
+    p = model.parameter_values()
+    rho = np.array([m.density for m in model.materials], dtype=np.float64)
+    from .material import p_wave_speed  # noqa: PLC0415
+
+    c = float(np.max(p_wave_speed(p["mu"], p["lam"], rho, p["pressure_stiffness"])))
+    v = state.v.numpy().astype(np.float64)
+    v_max = float(np.sqrt((v * v).sum(axis=1)).max()) if len(v) else 0.0
+    if not math.isfinite(v_max):
+        v_max = 0.0  # the divergence check after the frame reports it
+    g = float(np.linalg.norm(model.gravity))
+    dt = min(stable, courant * model.spacing / (c + v_max + g * frame_dt))
+    n = max(1, math.ceil(frame_dt / dt * (1.0 - 1e-12)))
     return n, frame_dt / n
 
 
@@ -101,14 +275,18 @@ def _progress_bar(total: int, desc: str):
     return tqdm(total=total, unit="frame", file=sys.stderr, dynamic_ncols=True, leave=True, desc=desc)
 
 
-def _first_bad(model: Model, state: State) -> tuple[int, int] | None:
-    """(first particle with a non-finite position or velocity, number of such particles)."""
+def _first_bad(model: Model, state: State, monitor: DivergenceMonitor | None = None, t: float = 0.0):
+    """``None`` or ``(what went wrong, first bad particle)``: a non-finite position or
+    velocity, else a bound of ``monitor`` exceeded."""
     x = state.x.numpy()
     v = state.v.numpy()
     bad = ~(np.isfinite(x).all(axis=1) & np.isfinite(v).all(axis=1))
-    if not bad.any():
-        return None
-    return int(np.argmax(bad)), int(bad.sum())
+    if bad.any():
+        p = int(np.argmax(bad))
+        return f"non-finite position or velocity (particle {p} is the first of {int(bad.sum())} bad particles)", p
+    if monitor is not None:
+        return monitor.check(x, v, t)
+    return None
 
 
 def simulate(
@@ -124,10 +302,14 @@ def simulate(
     callback=None,
     *,
     start_frame: int = 0,
+    monitor: bool = True,
+    monitor_exempt=(),
 ) -> State:
     """Simulate ``frames`` frames at ``fps``; returns the final state.
 
-    - ``substeps`` / ``dt``: at most one; see ``resolve_timestep``.
+    - ``substeps`` / ``dt``: at most one; see ``resolve_timestep``. ``dt="auto"``: an
+      adaptive (CFL) step, chosen anew for each frame by ``adaptive_timestep`` (whole
+      steps per frame, never above ``model.stable_dt()``).
     - ``writer``: anything with ``write_frame(frame_index, state)`` (e.g. ``UsdWriter``).
       Frame ``start_frame`` (the initial state) is written first, then one frame per
       rendered frame. The writer is closed when the run ends, also when it fails.
@@ -139,8 +321,13 @@ def simulate(
     - ``start_frame``: index of the initial frame (resuming a run); frames are numbered
       ``start_frame .. start_frame + frames``.
 
+    - ``monitor``: stop a run that blows up but stays finite (``DivergenceMonitor``);
+      ``False`` keeps only the check for non-finite values. ``monitor_exempt``: names of
+      bodies it leaves out (``Scene.diverges``: a body a scene shows blowing up).
+
     Two states are swapped, so nothing is allocated per step. Raises ``SimulationError``
-    when a position or velocity becomes non-finite.
+    when a position or velocity becomes non-finite or the monitor finds a blow-up; the
+    frame that shows it is not written.
     """
     try:
         if not isinstance(model, Model):
@@ -149,8 +336,18 @@ def simulate(
         if isinstance(start_frame, bool) or not isinstance(start_frame, (int, np.integer)) or start_frame < 0:
             raise ValueError(f"start_frame = {start_frame!r} is not allowed: must be an integer >= 0")
         start_frame = int(start_frame)
+        monitor = checks.boolean("monitor", monitor)
         fps = checks.positive("fps", fps)
-        n_sub, dt = resolve_timestep(model, fps, substeps, dt)
+        adaptive = isinstance(dt, str)
+        if adaptive:
+            if dt != AUTO:
+                raise ValueError(f"dt = {dt!r} is not allowed: must be a number of seconds or {AUTO!r}")
+            if substeps is not None:
+                raise ValueError(f"substeps = {substeps!r} and dt = {AUTO!r} are not allowed together: the adaptive step chooses the substeps")
+            n_sub, dt = 1, model.stable_dt()
+        else:
+            n_sub, dt = resolve_timestep(model, fps, substeps, dt)
+            check_step_count(frames, n_sub)
         if writer is not None:
             if not callable(getattr(writer, "write_frame", None)):
                 raise ValueError(f"writer = {writer!r} is not allowed: it must have a write_frame(frame_index, state) method")
@@ -167,10 +364,13 @@ def simulate(
 
         current = model.state(requires_grad=False)
         if state is not None:
-            if not isinstance(state, State) or state.particle_count != model.particle_count:
-                raise ValueError("state is not allowed: it must be a warp_esph.State of this model")
+            checks.same_state(model, "state", state)
             current.assign(state)
+        initial = _first_bad(model, current)
+        if initial is not None:
+            raise ValueError(f"state is not allowed: it has a {initial[0]}")
         spare = model.state(requires_grad=False)
+        monitor = DivergenceMonitor(model, current, monitor_exempt) if monitor else None
 
         bar = _progress_bar(frames, f"{model.particle_count} particles") if progress else None
         try:
@@ -181,20 +381,21 @@ def simulate(
             steps = 0
             t0 = time.perf_counter()
             for k in range(1, frames + 1):
+                if adaptive:
+                    n_sub, dt = adaptive_timestep(model, current, fps)
                 for _ in range(n_sub):
                     solver.step(current, spare, dt)
                     current, spare = spare, current
                 steps += n_sub
                 frame = start_frame + k
-                bad = _first_bad(model, current)
+                bad = _first_bad(model, current, monitor, k / fps)  # simulated time of this run
                 if bad is not None:
-                    p, count = bad
+                    what, p = bad
                     body = model.bodies[int(model.particle_body_np[p])].name
-                    step = start_frame * n_sub + steps
+                    step = steps if adaptive else start_frame * n_sub + steps
                     raise SimulationError(
-                        f"the simulation diverged: non-finite position or velocity after step {step} "
-                        f"(frame {frame}, t = {frame / fps:.4g} s, dt = {dt:.4g} s): particle {p} of body {body!r} "
-                        f"is the first of {count} bad particles; try a smaller dt (stable limit "
+                        f"the simulation diverged after step {step} (frame {frame}, t = {frame / fps:.4g} s, "
+                        f"dt = {dt:.4g} s): {what}, at particle {p} of body {body!r}; try a smaller dt (stable limit "
                         f"{model.stable_dt():.3g} s) or stiffer-to-softer material settings",
                         step=step, particle=p, body=body, frame=frame,
                     )

@@ -919,6 +919,9 @@ def sweep_cli(args, out=None) -> int:
     if args.scene and os.path.exists(str(args.scene)):
         meta["scene"] = os.path.abspath(args.scene)
     log_params = [p.name for p in plist if p.values is None and p.scale == "log"]
+    from .cli import _arm  # noqa: PLC0415
+
+    _arm(args)  # from here Ctrl-C unwinds to the except below, which writes the samples finished
     t0 = time.perf_counter()
     try:
         table = _execute(plan, args.workers, args.ray, record)

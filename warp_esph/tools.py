@@ -48,6 +48,7 @@ import numpy as np
 import warp as wp
 
 from . import checks
+from .sim import colliders
 from .sim.integrate import funcs as integrate_funcs, static_collider_arrays
 from ._types import type_set
 
@@ -203,6 +204,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
     T = type_set(scalar)
     vec3, quat = T.vec3, (wp.quatf if scalar is wp.float32 else wp.quatd)
     kin = integrate_funcs(scalar, n_planes, n_spheres, n_boxes)
+    col = colliders.funcs(scalar)
     offsets = [int(sum(counts[:k])) for k in range(len(counts))]
     n_col = int(sum(counts))
     ONE, ZERO, HALF = scalar(1.0), scalar(0.0), scalar(0.5)
@@ -272,21 +274,6 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         return wp.quat_rotate_inv(q, x - p)
 
     @wp.func
-    def contact_response(v: vec3, vs: vec3, n: vec3, mu_s: scalar, mu_k: scalar):
-        """Velocity after contact with a surface moving at ``vs`` (outward normal ``n``):
-        no inward relative normal velocity; Coulomb friction, static then kinetic."""
-        vr = v - vs
-        vn = wp.dot(vr, n)
-        if vn < ZERO:
-            vt = vr - vn * n
-            vt_len = wp.length(vt)
-            dvn = -vn
-            if vt_len <= mu_s * dvn:
-                return vs
-            return vs + vt * (ONE - mu_k * dvn / vt_len)
-        return v
-
-    @wp.func
     def apply(
         x: vec3, v: vec3, hit: int, xc: vec3, nl: vec3, c: int, m: scalar, dt: scalar,
         pose_p: wp.array(dtype=vec3), pose_q: wp.array(dtype=quat), mu_s: wp.array(dtype=scalar), mu_k: wp.array(dtype=scalar),
@@ -303,7 +290,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         x_s = world(p1, q1, xc)
         vs = (x_s - world(p0, q0, xc)) / dt
         n = wp.quat_rotate(q1, nl)
-        v_new = contact_response(v, vs, n, mu_s[c], mu_k[c])
+        v_new = col.coulomb_response(v, vs, n, mu_s[c], mu_k[c])
         # The tangential part of the step's displacement follows the responded velocity
         # (x_in + dt v_new along the surface): a particle that sticks stays stuck.
         dv = v_new - v

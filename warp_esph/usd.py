@@ -43,10 +43,13 @@ the working copies stay behind; ``append=True`` and the next run replace them.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
 import shutil
+import sys
+import tempfile
 import time
 import warnings
 
@@ -77,6 +80,49 @@ _PALETTE = [
     (0.90, 0.75, 0.50), (0.75, 0.35, 0.25), (0.25, 0.45, 0.80), (0.40, 0.70, 0.35),
     (0.80, 0.55, 0.80), (0.95, 0.85, 0.30), (0.50, 0.50, 0.50),
 ]
+
+
+def open_layer_checked(path, action: str = "read") -> Sdf.Layer:
+    """``Sdf.Layer.OpenAsAnonymous(path)`` (read afresh, not from pxr's layer cache), or a
+    ``ValueError`` naming the file and pxr's reason: a truncated, garbled or foreign file
+    makes pxr raise ``Tf.ErrorException`` with a C++ location, or return ``None``."""
+    path = os.fspath(path)
+    try:
+        with _native_stderr() as notes:
+            layer = Sdf.Layer.OpenAsAnonymous(path)
+    except Exception as e:  # noqa: BLE001 (Tf.ErrorException, RuntimeError)
+        raise checks.file_error(path, e, action) from None
+    if layer is None:
+        raise ValueError(f"cannot {action} {path}: pxr cannot open it as a USD file")
+    # A file this package wrote opens without a word; pxr's warnings (invalid prim names,
+    # properties without a prim) mean damaged tokens, and the data read would be garbage.
+    said = [n.split(" -- ", 1)[-1].strip() for n in notes if n.strip()]
+    if said:
+        raise ValueError(f"cannot {action} {path!r}: pxr reads it as damaged ({checks.shorten(said[0]).text}"
+                         + (f", and {len(said) - 1} more warnings)" if len(said) > 1 else ")"))
+    return layer
+
+
+@contextlib.contextmanager
+def _native_stderr():
+    """Collect what native code prints on file descriptor 2 (pxr's diagnostics go there
+    directly, not through Python) into the yielded list, instead of the terminal."""
+    notes: list[str] = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no descriptor 2: nothing to keep off the terminal
+        yield notes
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield notes
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            notes.extend(tmp.read().decode(errors="replace").splitlines())
 
 
 def body_prim_names(model: Model) -> list[str]:
@@ -208,6 +254,7 @@ class UsdWriter:
     def _open_existing(self):
         if not os.path.isfile(self.path):
             raise FileNotFoundError(f"cannot append to {self.path}: no such file")
+        open_layer_checked(self.path, "append to")  # a damaged file: one message, not pxr's warnings
         for file in self._work:
             if os.path.exists(file):
                 os.remove(file)
@@ -365,10 +412,13 @@ class UsdWriter:
             raise ValueError(f"frame_index = {frame_index!r} is not allowed: must be an integer >= 0")
         frame = int(frame_index)
         m = self.model
+        checks.same_state(m, "state", state)
         x = state.x.numpy()
-        if x.shape[0] != m.particle_count:
-            raise ValueError(f"state has {x.shape[0]} particles, the model {m.particle_count}: it is not a state of this model")
         v = state.v.numpy()
+        bad = ~(np.isfinite(x).all(axis=1) & np.isfinite(v).all(axis=1))
+        if bad.any():  # the file promises finished frames: a broken one is refused, not written
+            raise ValueError(f"state is not allowed: particle {int(np.argmax(bad))} has a non-finite position or velocity "
+                             f"({int(bad.sum())} particles); frame {frame} is not written")
         sv = _singular_values(state.F.numpy())
         alpha = state.alpha.numpy()
         x32, v32, a32 = x.astype(np.float32), v.astype(np.float32), alpha.astype(np.float32)
@@ -533,9 +583,7 @@ class UsdFrames:
         if not os.path.isfile(self.path):
             raise FileNotFoundError(f"cannot read {self.path}: no such file")
         # Anonymous: a file rewritten in this process (run, then render) is read afresh.
-        layer = Sdf.Layer.OpenAsAnonymous(self.path)
-        if layer is None:
-            raise ValueError(f"cannot read {self.path}: pxr cannot open it as a USD file")
+        layer = open_layer_checked(self.path)
         self._layer = layer
         self.stage = Usd.Stage.Open(layer)
         self.fps = float(self.stage.GetTimeCodesPerSecond() or 30.0)

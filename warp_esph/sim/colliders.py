@@ -6,7 +6,7 @@ the inward normal velocity is removed and the tangential velocity loses
 The position is corrected by ``dt`` times the velocity friction removed: the drift moved the
 particle with the velocity before friction, so without it a particle that friction holds
 still slides ``a_t dt^2`` per step, a creep at speed ``a_t dt`` that kept slumped plastic
-piles sinking (docs/creep.md).
+piles sinking (docs/physics.md, "The slump creep").
 """
 
 import dataclasses
@@ -49,22 +49,32 @@ def funcs(scalar) -> types.SimpleNamespace:
     vec3 = T.vec3
 
     @wp.func
-    def respond(x: vec3, v: vec3, depth: scalar, n: vec3, friction: scalar, dt: scalar):
-        """Project a particle ``depth`` inside along outward normal ``n``; friction over the step ``dt``."""
-        x_new = x + depth * n
-        vn = wp.dot(v, n)
-        v_new = v
+    def coulomb_response(v: vec3, vs: vec3, n: vec3, mu_s: scalar, mu_k: scalar):
+        """Velocity after contact with a surface moving at ``vs`` (outward normal ``n``): no
+        inward relative normal velocity; Coulomb friction on the relative tangential
+        velocity, sticking while it is at most ``mu_s`` times the normal velocity removed,
+        else reduced by ``mu_k`` times it. The one contact law of the static colliders and
+        the moving tools (``warp_esph/tools.py``)."""
+        vr = v - vs
+        vn = wp.dot(vr, n)
         if vn < scalar(0.0):
-            vt = v - vn * n
+            vt = vr - vn * n
             vt_len = wp.length(vt)
-            drop = -friction * vn
-            if vt_len > drop:
-                v_new = vt * (scalar(1.0) - drop / vt_len)
-            else:
-                v_new = vec3()
-            # The drift moved x by dt vt; friction takes back what it removed from vt.
-            x_new = x_new + dt * (v_new - vt)
-        return x_new, v_new
+            dvn = -vn
+            if vt_len <= mu_s * dvn:
+                return vs
+            return vs + vt * (scalar(1.0) - mu_k * dvn / vt_len)
+        return v
+
+    @wp.func
+    def respond(x: vec3, v: vec3, depth: scalar, n: vec3, friction: scalar, dt: scalar):
+        """Project a particle ``depth`` inside along outward normal ``n`` of a static
+        collider; friction over the step ``dt``."""
+        v_new = coulomb_response(v, vec3(), n, friction, friction)
+        # The drift moved x by dt times the tangential velocity; friction takes back what it
+        # removed from it, so a particle that sticks stays where it was.
+        dv = v_new - v
+        return x + depth * n + dt * (dv - wp.dot(dv, n) * n), v_new
 
     @wp.func
     def collide_plane(x: vec3, v: vec3, n: vec3, offset: scalar, friction: scalar, dt: scalar):
@@ -99,5 +109,5 @@ def funcs(scalar) -> types.SimpleNamespace:
         return x, v
 
     return types.SimpleNamespace(
-        respond=respond, collide_plane=collide_plane, collide_sphere=collide_sphere, collide_box=collide_box
+        coulomb_response=coulomb_response, respond=respond, collide_plane=collide_plane, collide_sphere=collide_sphere, collide_box=collide_box
     )

@@ -167,21 +167,89 @@ def kernels(scalar) -> types.SimpleNamespace:
                     fi += g
         wp.atomic_add(f, i, fi)
 
-    return types.SimpleNamespace(elastic_forces=elastic_forces)
+    @wp.kernel(enable_backward=False)
+    def elastic_forces_adjoint(
+        x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        volume: wp.array(dtype=scalar),
+        stress: wp.array(dtype=mat33),
+        F_inv: wp.array(dtype=mat33),
+        h: scalar,
+        adj_f: wp.array(dtype=vec3),
+        adj_x: wp.array(dtype=vec3),
+        adj_stress: wp.array(dtype=mat33),
+        adj_F_inv: wp.array(dtype=mat33),
+    ):
+        """Hand-written adjoint of ``elastic_forces`` for eqs. 10-13 (every material
+        ``elastic_force="paper"``): per pair, with ``a = adj f_j - adj f_i``, ``r = F_i^-1 d``
+        and ``g = V_i V_j P_i gradW(r)``: ``adj P_i += V_i V_j a gradW^T``,
+        ``adj r = J^T V_i V_j P_i^T a``, ``adj F_i^-1 += adj r d^T``, ``adj d = F_i^-T adj r``."""
+        i = wp.tid()
+        xi = x[i]
+        bi = body[i]
+        P = stress[i]
+        PT = wp.transpose(P)
+        Vi = volume[i]
+        Finv = F_inv[i]
+        FinvT = wp.transpose(Finv)
+        ai = adj_f[i]
+        c_el = sm.elastic_coef(h)
+        aP = mat33()
+        aFinv = mat33()
+        gx_i = vec3()
+        for k in range(count[i]):
+            j = nbr[i, k]
+            if body[j] == bi:
+                d = x[j] - xi
+                r = Finv * d
+                VV = Vi * volume[j]
+                a = VV * (adj_f[j] - ai)
+                gw, ar = sm.grad_w_elastic_adjoint(r, h, c_el, PT * a)
+                aP += wp.outer(a, gw)
+                aFinv += wp.outer(ar, d)
+                ad = FinvT * ar
+                wp.atomic_add(adj_x, j, ad)
+                gx_i -= ad
+        wp.atomic_add(adj_x, i, gx_i)
+        adj_stress[i] = adj_stress[i] + aP
+        adj_F_inv[i] = adj_F_inv[i] + aFinv
+
+    return types.SimpleNamespace(elastic_forces=elastic_forces, elastic_forces_adjoint=elastic_forces_adjoint)
 
 
-def launch_elastic_forces(model, state_in, state_out):
+def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True):
     """Elastic pair forces (eqs. 10-13, or the variational force) into ``state_out.force``,
-    from the stress, ``F`` and ``F^-1`` the constitutive update wrote to ``state_out``."""
+    from the stress, ``F`` and ``F^-1`` the constitutive update wrote to ``state_out``.
+    Under a ``wp.Tape``, when every material uses eqs. 10-13, the backward runs
+    ``elastic_forces_adjoint`` (``hand_adjoint=False``: Warp's generated adjoint)."""
+    S = model.scalar
+    k = kernels(S)
+    inputs = [
+        state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
+        state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
+        state_out.F_inv, S(model.support_radius),
+    ]
+    tape = deformation.recording_tape()
+    grads = (state_in.x, state_out.stress, state_out.F_inv, state_out.force)
+    if (tape is None or not hand_adjoint or any(a.grad is None for a in grads)
+            or model.material_elastic_force.numpy().any()):  # 0: eqs. 10-13 ("paper")
+        wp.launch(k.elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device)
+        return
+    wp.launch(k.elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
+
+    tape.record_func(lambda: launch_elastic_forces_adjoint(model, state_in, state_out), list(grads))
+
+
+def launch_elastic_forces_adjoint(model, state_in, state_out):
+    """``elastic_forces_adjoint``: ``state_out.force.grad`` into the gradients of ``state_in.x``,
+    ``state_out.stress`` and ``state_out.F_inv`` (eqs. 10-13 only)."""
     S = model.scalar
     wp.launch(
-        kernels(S).elastic_forces,
-        model.particle_count,
-        [
-            state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
-            state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
-            state_out.F_inv, S(model.support_radius),
-        ],
-        [state_out.force],
-        device=model.device,
+        kernels(S).elastic_forces_adjoint, model.particle_count,
+        [state_in.x, model.particle_body, state_out.neighbors, state_out.neighbor_count, model.particle_volume,
+         state_out.stress, state_out.F_inv, S(model.support_radius), state_out.force.grad, state_in.x.grad,
+         state_out.stress.grad, state_out.F_inv.grad],
+        device=model.device, record_tape=False,
     )

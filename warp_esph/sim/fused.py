@@ -186,9 +186,15 @@ def kernels(scalar) -> types.SimpleNamespace:
     return types.SimpleNamespace(constitutive_forces=constitutive_forces, update_deformation=update_deformation)
 
 
-def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: bool):
+def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: bool, tape=None):
     """Plastic flow, stress, ``F^-1`` and every pair force in one launch; with ``sph`` the
-    SPH pressure and volume ``scratch.pressure``, ``scratch.sph_volume`` of the neighbour pass."""
+    SPH pressure and volume ``scratch.pressure``, ``scratch.sph_volume`` of the neighbour pass.
+
+    With ``tape`` (a recording ``wp.Tape``; every material with the eqs. 10-13 elastic force,
+    the states with gradients) the launch is not recorded; the tape gets, in its place, the
+    adjoints of what the differentiable kernels compute from the same outputs: SPH pressure
+    and viscosity, elastic forces, the constitutive update (Warp's generated adjoint) and the
+    SPH density the neighbour pass summed."""
     S = model.scalar
     wp.launch(
         kernels(S).constitutive_forces,
@@ -201,12 +207,31 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
         ],
         [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, state_out.force, scratch.counters],
         device=model.device,
+        record_tape=tape is None,
     )
+    if tape is None:
+        return
+
+    def backward():
+        # Reverse order of the differentiable step: density, constitutive, elastic, pressure.
+        if sph:
+            pressure.launch_pressure_forces_adjoint(model, state_in, state_out)
+        forces.launch_elastic_forces_adjoint(model, state_in, state_out)
+        plasticity.launch_constitutive_update_adjoint(model, state_in, state_out, dt, scratch.counters, tape)
+        if sph:
+            pressure.launch_density_adjoint(model, state_in.x, state_out.neighbors, state_out.neighbor_count,
+                                            state_out.density)
+
+    arrays = [state_in.x, state_in.v, state_in.F, state_in.alpha, state_out.F_flowed, state_out.alpha, state_out.stress,
+              state_out.F_inv, state_out.force, state_out.density]
+    arrays += [getattr(model, name) for name in model.MATERIAL_FIELDS]
+    tape.record_func(backward, arrays)
 
 
-def launch_update_deformation(model, state_in, state_out, scratch):
+def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
     """``deformation.launch_update_deformation`` that also evaluates the neighbourhood
-    guards (into ``state_out.guard``) on the fit's own moment matrix."""
+    guards (into ``state_out.guard``) on the fit's own moment matrix. With ``tape``: not
+    recorded, ``deformation.update_deformation_adjoint`` recorded in its place."""
     S = model.scalar
     wp.launch(
         kernels(S).update_deformation,
@@ -217,4 +242,8 @@ def launch_update_deformation(model, state_in, state_out, scratch):
         ],
         [state_out.F, state_out.guard, scratch.counters],
         device=model.device,
+        record_tape=tape is None,
     )
+    if tape is not None:
+        tape.record_func(lambda: deformation.launch_update_deformation_adjoint(model, state_in, state_out),
+                         [state_in.x, state_out.x, state_out.F_flowed, state_out.F])

@@ -216,3 +216,18 @@ def launch_constitutive_update(model, state_in, state_out, dt, counters):
         [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, counters],
         device=model.device,
     )
+
+
+def launch_constitutive_update_adjoint(model, state_in, state_out, dt, counters, tape):
+    """Warp's generated adjoint of ``constitutive_update``, launched by hand (for the fused
+    step under a tape, which writes the same outputs in its own kernel): the gradients of
+    ``state_out.F_flowed, alpha, stress, F_inv`` into those of ``state_in.F, alpha`` and the
+    material parameters."""
+    mats = model.material_arrays()
+    inputs = [state_in.F, state_in.alpha, model.particle_material, mats, model.scalar(dt)]
+    outputs = [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, counters]
+    wp.launch(
+        kernels(model.scalar).constitutive_update, model.particle_count, inputs, outputs,
+        adj_inputs=[tape.get_adjoint(a) for a in inputs], adj_outputs=[tape.get_adjoint(a) for a in outputs],
+        device=model.device, adjoint=True, record_tape=False,
+    )

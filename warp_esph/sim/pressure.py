@@ -24,7 +24,7 @@ import types
 import warp as wp
 
 from .._types import type_set
-from . import materials, smoothing
+from . import deformation, materials, smoothing
 
 
 @functools.cache
@@ -137,30 +137,204 @@ def kernels(scalar) -> types.SimpleNamespace:
             fi += half
         wp.atomic_add(f, i, fi)
 
-    return types.SimpleNamespace(density=density, pressure_forces=pressure_forces)
+    @wp.kernel(enable_backward=False)
+    def density_adjoint(
+        x: wp.array(dtype=vec3),
+        mass: wp.array(dtype=scalar),
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        h: scalar,
+        adj_rho: wp.array(dtype=scalar),
+        adj_x: wp.array(dtype=vec3),
+    ):
+        """Hand-written adjoint of ``density``: ``d rho_i / d x_j = 2 m_j W'(r2) d``,
+        ``W' = -3 c6 (h^2 - r2)^2`` the poly6 slope in ``r2 = |d|^2``, ``d = x_j - x_i``."""
+        i = wp.tid()
+        a = adj_rho[i]
+        xi = x[i]
+        c6 = sm.poly6_coef(h)
+        hh = h * h
+        gx_i = vec3()
+        for k in range(count[i]):
+            j = nbr[i, k]
+            d = x[j] - xi
+            r2 = wp.dot(d, d)
+            if r2 < hh:
+                e = hh - r2
+                g = (a * mass[j] * scalar(-6.0) * c6 * e * e) * d
+                wp.atomic_add(adj_x, j, g)
+                gx_i -= g
+        wp.atomic_add(adj_x, i, gx_i)
+
+    @wp.func
+    def pressure_slope(rho: scalar, rho0: scalar, k_p: scalar, clamp: int) -> scalar:
+        """1 where ``pressure`` follows ``k_p (rho - rho0)``, 0 where the clamp holds it at 0
+        (as Warp's adjoint of ``max``: a tie goes to the clamp)."""
+        out = scalar(1.0)
+        if clamp != 0:
+            if not (k_p * (rho - rho0) > scalar(0.0)):
+                out = scalar(0.0)
+        return out
+
+    @wp.kernel(enable_backward=False)
+    def pressure_forces_adjoint(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        mass: wp.array(dtype=scalar),
+        rho: wp.array(dtype=scalar),
+        rest_density: wp.array(dtype=scalar),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        h: scalar,
+        adj_f: wp.array(dtype=vec3),
+        adj_x: wp.array(dtype=vec3),
+        adj_v: wp.array(dtype=vec3),
+        adj_rho: wp.array(dtype=scalar),
+        adj_k: wp.array(dtype=scalar),
+        adj_visc: wp.array(dtype=scalar),
+    ):
+        """Hand-written adjoint of ``pressure_forces``: per pair, with ``a = (adj f_i -
+        adj f_j) / 2`` against the pair's force on ``i`` (pressure ``-VV (p_i + p_j)/2
+        psi(|r|) r``, ``psi = c_s (h - |r|)^2 / |r|``; viscosity ``s (v_ji . r) r``,
+        ``s = 5 eta VV c_v (h - |r|) / |r|^2``), the chain rule to ``r = x_i - x_j``,
+        ``v_ji``, ``VV = m_i m_j / (rho_i rho_j)``, ``p`` (then ``rho`` and ``k_p``) and ``eta``."""
+        i = wp.tid()
+        mi = material[i]
+        xi = x[i]
+        vi = v[i]
+        rho_i = rho[i]
+        Vi = mass[i] / rho_i
+        k_i = mat.pressure_stiffness[mi]
+        pi = fn.pressure(rho_i, rest_density[i], k_i, mat.clamp_pressure[mi])
+        visc_i = mat.viscosity[mi]
+        c_spiky = sm.spiky_coef(h)
+        c_visc = sm.viscosity_coef(h)
+        hh = h * h
+        afi = adj_f[i]
+        adj_pi = scalar(0.0)
+        adj_rho_i = scalar(0.0)
+        adj_visc_i = scalar(0.0)
+        gx_i = vec3()
+        gv_i = vec3()
+        for k in range(count[i]):
+            j = nbr[i, k]
+            r = xi - x[j]
+            r2 = wp.dot(r, r)
+            if r2 < hh:
+                mj = material[j]
+                rho_j = rho[j]
+                k_j = mat.pressure_stiffness[mj]
+                pj = fn.pressure(rho_j, rest_density[j], k_j, mat.clamp_pressure[mj])
+                VV = Vi * mass[j] / rho_j
+                eta = scalar(0.5) * (visc_i + mat.viscosity[mj])
+                a = scalar(0.5) * (afi - adj_f[j])
+                rl = wp.sqrt(r2)
+                adj_r = vec3()
+                adj_VV = scalar(0.0)
+                adj_rl = scalar(0.0)
+                if r2 > scalar(1.0e-24) * hh:
+                    d = h - rl
+                    psi = c_spiky * d * d / rl
+                    q = psi * wp.dot(a, r)
+                    adj_VV -= scalar(0.5) * (pi + pj) * q
+                    adj_p = scalar(-0.5) * VV * q
+                    adj_pi += adj_p
+                    adj_pj = adj_p * pressure_slope(rho_j, rest_density[j], k_j, mat.clamp_pressure[mj])
+                    wp.atomic_add(adj_rho, j, adj_pj * k_j)
+                    wp.atomic_add(adj_k, mj, adj_pj * (rho_j - rest_density[j]))
+                    b = scalar(-0.5) * VV * (pi + pj) * a
+                    adj_r += psi * b
+                    adj_rl += -c_spiky * d * (scalar(2.0) * rl + d) / r2 * wp.dot(r, b)
+                if r2 > scalar(1.0e-30):
+                    vji = v[j] - vi
+                    lap = sm.lap_w_viscosity_at(rl, h, c_visc)
+                    s5 = scalar(5.0) * eta * VV * lap / r2
+                    u = wp.dot(vji, r)
+                    ar = wp.dot(a, r)
+                    adj_s = u * ar
+                    adj_u = s5 * ar
+                    adj_r += s5 * u * a + adj_u * vji
+                    adj_vji = adj_u * r
+                    wp.atomic_add(adj_v, j, adj_vji)
+                    gv_i -= adj_vji
+                    base = scalar(5.0) * lap / r2
+                    adj_eta = adj_s * base * VV
+                    adj_visc_i += scalar(0.5) * adj_eta
+                    wp.atomic_add(adj_visc, mj, scalar(0.5) * adj_eta)
+                    adj_VV += adj_s * base * eta
+                    adj_rl -= c_visc * adj_s * scalar(5.0) * eta * VV / r2
+                    adj_r -= scalar(2.0) * adj_s * s5 / r2 * r
+                adj_r += (adj_rl / rl) * r
+                adj_rho_i -= adj_VV * VV / rho_i
+                wp.atomic_add(adj_rho, j, -adj_VV * VV / rho_j)
+                gx_i += adj_r
+                wp.atomic_add(adj_x, j, -adj_r)
+        wp.atomic_add(adj_x, i, gx_i)
+        wp.atomic_add(adj_v, i, gv_i)
+        adj_pi *= pressure_slope(rho_i, rest_density[i], k_i, mat.clamp_pressure[mi])
+        wp.atomic_add(adj_rho, i, adj_rho_i + adj_pi * k_i)
+        wp.atomic_add(adj_k, mi, adj_pi * (rho_i - rest_density[i]))
+        wp.atomic_add(adj_visc, mi, adj_visc_i)
+
+    return types.SimpleNamespace(density=density, pressure_forces=pressure_forces,
+                                 pressure_forces_adjoint=pressure_forces_adjoint, density_adjoint=density_adjoint)
 
 
-def launch_density(model, x, neighbors, neighbor_count, rho):
-    """SPH density at ``x`` over the given neighbour lists into ``rho``."""
+def launch_density(model, x, neighbors, neighbor_count, rho, hand_adjoint: bool = True):
+    """SPH density at ``x`` over the given neighbour lists into ``rho``; under a ``wp.Tape``
+    the backward runs ``density_adjoint`` (``hand_adjoint=False``: Warp's generated adjoint)."""
+    k = kernels(model.scalar)
+    inputs = [x, model.particle_mass, neighbors, neighbor_count, model.scalar(model.support_radius)]
+    tape = deformation.recording_tape()
+    if tape is None or not hand_adjoint or x.grad is None or rho.grad is None:
+        wp.launch(k.density, model.particle_count, inputs, [rho], device=model.device)
+        return
+    wp.launch(k.density, model.particle_count, inputs, [rho], device=model.device, record_tape=False)
+
+    tape.record_func(lambda: launch_density_adjoint(model, x, neighbors, neighbor_count, rho), [x, rho])
+
+
+def launch_density_adjoint(model, x, neighbors, neighbor_count, rho):
+    """``density_adjoint``: ``rho.grad`` into ``x.grad``."""
     wp.launch(
-        kernels(model.scalar).density,
-        model.particle_count,
-        [x, model.particle_mass, neighbors, neighbor_count, model.scalar(model.support_radius)],
-        [rho],
-        device=model.device,
+        kernels(model.scalar).density_adjoint, model.particle_count,
+        [x, model.particle_mass, neighbors, neighbor_count, model.scalar(model.support_radius), rho.grad, x.grad],
+        device=model.device, record_tape=False,
     )
 
 
-def launch_pressure_forces(model, state_in, state_out):
-    """SPH pressure and viscosity forces into ``state_out.force`` (density in ``state_out.density``)."""
+def launch_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True):
+    """SPH pressure and viscosity forces into ``state_out.force`` (density in ``state_out.density``).
+    Under a ``wp.Tape`` the backward runs ``pressure_forces_adjoint`` (``hand_adjoint=False``:
+    Warp's generated adjoint)."""
+    k = kernels(model.scalar)
+    inputs = [
+        state_in.x, state_in.v, model.particle_mass, state_out.density, model.particle_rest_density,
+        model.particle_material, model.material_arrays(), state_out.neighbors, state_out.neighbor_count,
+        model.scalar(model.support_radius),
+    ]
+    tape = deformation.recording_tape()
+    grads = (state_in.x, state_in.v, state_out.density, model.pressure_stiffness, model.viscosity, state_out.force)
+    if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
+        wp.launch(k.pressure_forces, model.particle_count, inputs, [state_out.force], device=model.device)
+        return
+    wp.launch(k.pressure_forces, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
+
+    tape.record_func(lambda: launch_pressure_forces_adjoint(model, state_in, state_out), list(grads))
+
+
+def launch_pressure_forces_adjoint(model, state_in, state_out):
+    """``pressure_forces_adjoint``: ``state_out.force.grad`` into the gradients of ``state_in.x,
+    v``, ``state_out.density`` and the model's ``pressure_stiffness`` and ``viscosity``."""
     wp.launch(
-        kernels(model.scalar).pressure_forces,
-        model.particle_count,
+        kernels(model.scalar).pressure_forces_adjoint, model.particle_count,
         [
             state_in.x, state_in.v, model.particle_mass, state_out.density, model.particle_rest_density,
             model.particle_material, model.material_arrays(), state_out.neighbors, state_out.neighbor_count,
-            model.scalar(model.support_radius),
+            model.scalar(model.support_radius), state_out.force.grad, state_in.x.grad, state_in.v.grad,
+            state_out.density.grad, model.pressure_stiffness.grad, model.viscosity.grad,
         ],
-        [state_out.force],
-        device=model.device,
+        device=model.device, record_tape=False,
     )

@@ -77,6 +77,34 @@ def funcs(scalar) -> types.SimpleNamespace:
         return c0 + t * (c1 + t * (c2 + t * (c3 + t * (c4 + t * (c5 + t * (c6 + t * c7))))))
 
     @wp.func
+    def elastic_cos_dr2(r2: scalar, rl: scalar, h: scalar) -> scalar:
+        """``d elastic_cos / d r2``: of the library cosine in float64, of the polynomial in
+        float32 (the function the forward evaluates, so hand-written adjoints are exact)."""
+        if wp.static(exact_cos):
+            k = PI / (scalar(2.0) * h)
+            return -wp.sin(k * rl) * k / (scalar(2.0) * rl)
+        ih2 = scalar(1.0) / (h * h)
+        t = r2 * ih2
+        d = c1 + t * (scalar(2.0) * c2 + t * (scalar(3.0) * c3 + t * (scalar(4.0) * c4 + t * (
+            scalar(5.0) * c5 + t * (scalar(6.0) * c6 + t * scalar(7.0) * c7)))))
+        return d * ih2
+
+    @wp.func
+    def grad_w_elastic_adjoint(r: vec3, h: scalar, c: scalar, adj: vec3):
+        """``grad_w_elastic_c(r)`` and its adjoint ``J^T adj`` (``J = d gradW / d r``), sharing
+        one square root and cosine. With ``gradW = phi(r2) r``, ``phi = -c cos / |r|``:
+        ``J = phi I + 2 phi' r r^T``."""
+        r2 = wp.dot(r, r)
+        if r2 >= h * h or r2 <= scalar(1.0e-24) * h * h:
+            return vec3(), vec3()
+        rl = wp.sqrt(r2)
+        cs = elastic_cos(r2, rl, h)
+        phi = -c * cs / rl
+        # d phi / d r2 = -c (cos' / rl - cos / (2 rl^3))
+        dphi = -c * (elastic_cos_dr2(r2, rl, h) / rl - cs / (scalar(2.0) * rl * r2))
+        return phi * r, phi * adj + scalar(2.0) * dphi * wp.dot(r, adj) * r
+
+    @wp.func
     def grad_w_elastic_c(r: vec3, h: scalar, c: scalar) -> vec3:
         """Gradient of eq. 12: -c cos(pi |r| / (2h)) r/|r|. It does not vanish as r -> 0,
         so coincident particles (|r| = 0) get no force instead of a NaN direction."""
@@ -133,6 +161,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     return types.SimpleNamespace(
         w_poly6=w_poly6, grad_w_elastic=grad_w_elastic, grad_w_spiky=grad_w_spiky, lap_w_viscosity=lap_w_viscosity,
         poly6_coef=poly6_coef, w_poly6_c=w_poly6_c, elastic_coef=elastic_coef, grad_w_elastic_c=grad_w_elastic_c,
+        grad_w_elastic_adjoint=grad_w_elastic_adjoint, elastic_cos_dr2=elastic_cos_dr2,
         elastic_cos=elastic_cos, spiky_coef=spiky_coef, grad_w_spiky_c=grad_w_spiky_c, grad_w_spiky_at=grad_w_spiky_at,
         viscosity_coef=viscosity_coef, lap_w_viscosity_c=lap_w_viscosity_c, lap_w_viscosity_at=lap_w_viscosity_at,
     )

@@ -14,6 +14,7 @@ import warp as wp
 
 from .. import checks
 from ..model import Model, State
+from .deformation import recording_tape
 from . import comparison, deformation, fields, forces, fused, integrate, neighbors, plasticity, pressure
 
 GUARD_NAMES = ("few_neighbors", "ill_conditioned", "inverted", "plasticity_skipped", "neighbors_cut")
@@ -37,10 +38,7 @@ _NO_PHASE = contextlib.nullcontext()
 
 def tape_recording() -> bool:
     """Whether a ``wp.Tape`` is recording launches now."""
-    runtime = getattr(getattr(getattr(wp, "_src", None), "context", None), "runtime", None)
-    if runtime is None:  # pragma: no cover (older layout)
-        runtime = wp.context.runtime
-    return getattr(runtime, "tape", None) is not None
+    return recording_tape() is not None
 
 
 class StepScratch:
@@ -53,6 +51,8 @@ class StepScratch:
         self.counters = wp.zeros(len(GUARD_NAMES), dtype=wp.int32, device=dev)
         self.pressure = wp.zeros(n, dtype=model.scalar, device=dev)
         self.sph_volume = wp.zeros(n, dtype=model.scalar, device=dev)
+        # The neighbour selection's squared distances: read only within the search.
+        self.neighbor_d2 = wp.zeros((n, model.max_neighbors), dtype=model.scalar, device=dev)
         self.min_neighbors = min_neighbors
         self.max_condition = max_condition
 
@@ -116,6 +116,22 @@ class Solver:
         self._warned_dt = set()
         self._warned_cut = False
         self.step_count = 0
+        #: Under a tape, run the hand-written adjoints (``deformation.update_deformation_adjoint``)
+        #: in place of Warp's generated ones; False: the generated ones (the tests' reference).
+        self.hand_adjoints = True
+
+    def fast_under_tape(self) -> bool:
+        """Whether a taped step runs the fused forward kernels (not recorded) and records the
+        hand-written adjoints (and the constitutive update's generated one) in their place:
+        with ``fused`` and ``hand_adjoints``, a ``requires_grad`` model, no comparison model and
+        every material with the eqs. 10-13 elastic force. Otherwise the differentiable kernels run."""
+        m = self.model
+        return (self.fused and self.hand_adjoints and m.requires_grad and not self._cmp
+                and not m.material_elastic_force.numpy().any())
+
+    def _fast_under_tape(self, state_in, state_out) -> bool:
+        return (self.fast_under_tape() and state_in.x.grad is not None and state_out.x.grad is not None
+                and state_in.F.grad is not None)
 
     def _warn_cut(self):
         # One small read per step until the first cut (the Verlet check reads too).
@@ -178,13 +194,14 @@ class Solver:
 
     def step(self, state_in: State, state_out: State, dt: float):
         """One step of the method, stage by stage (docs/physics.md has the table)."""
-        if state_in is state_out:
-            raise ValueError("state_out is state_in: the step reads state_in and writes state_out, pass two states")
+        checks.step_states(self.model, state_in, state_out)
         dt = self.check_dt(dt)
         m = self.model
         scratch = self.scratch
         sph = m.sph_active
-        fast = self.fused and not self._cmp and not tape_recording()
+        tape = recording_tape()
+        fast = self.fused and not self._cmp and (tape is None or self._fast_under_tape(state_in, state_out))
+        fast_tape = tape if fast else None
         phase = self._phase
 
         # 1. Neighbour lists and neighbourhood guards (integers, not taped). The fast
@@ -192,7 +209,7 @@ class Solver:
         # finished before any pressure uses it).
         with phase("neighbors"):
             self.search.update(
-                state_in.x, m.particle_body, state_out.neighbors, state_out.neighbor_d2, state_out.neighbor_count,
+                state_in.x, m.particle_body, state_out.neighbors, scratch.neighbor_d2, state_out.neighbor_count,
                 None if fast else state_out.guard,
                 (m.particle_mass, m.particle_material, m.particle_rest_density, m.material_arrays(),
                  state_out.density, scratch.pressure, scratch.sph_volume) if fast and sph else None,
@@ -205,12 +222,13 @@ class Solver:
         if fast:
             # 2-4 fused: plastic flow, stress, F^-1 and every pair force in one launch.
             with phase("fused"):
-                fused.launch_constitutive_forces(m, state_in, state_out, dt, scratch, sph)
+                fused.launch_constitutive_forces(m, state_in, state_out, dt, scratch, sph, fast_tape)
         else:
             # 2. SPH density, finished before any pressure uses it (docs/method.md, Warp pitfall 1).
             if sph:
                 with phase("density"):
-                    pressure.launch_density(m, state_in.x, state_out.neighbors, state_out.neighbor_count, state_out.density)
+                    pressure.launch_density(m, state_in.x, state_out.neighbors, state_out.neighbor_count, state_out.density,
+                                            self.hand_adjoints)
             # 3. Plastic flow of the stored F, stress, F^-1.
             with phase("constitutive"):
                 if self._cmp:
@@ -219,10 +237,10 @@ class Solver:
                     plasticity.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters)
             # 4. Elastic pair forces, pressure and viscosity.
             with phase("forces"):
-                forces.launch_elastic_forces(m, state_in, state_out)
+                forces.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
             if sph:
                 with phase("pressure"):
-                    pressure.launch_pressure_forces(m, state_in, state_out)
+                    pressure.launch_pressure_forces(m, state_in, state_out, self.hand_adjoints)
 
         # External force fields active at the step's start time.
         fields.launch_force_fields(m, state_in, state_out)
@@ -239,10 +257,10 @@ class Solver:
         # evaluates the neighbourhood guards here, on the fit's own moment matrix.
         with phase("deformation"):
             if fast:
-                fused.launch_update_deformation(m, state_in, state_out, scratch)
+                fused.launch_update_deformation(m, state_in, state_out, scratch, fast_tape)
             elif self._cmp:
                 comparison.launch_update_deformation(m, state_in, state_out, scratch.counters)
             else:
-                deformation.launch_update_deformation(m, state_in, state_out, scratch.counters)
+                deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, self.hand_adjoints)
         state_out.time = state_in.time + dt
         self.step_count += 1

@@ -1,0 +1,243 @@
+"""Cost of one gradient against one forward run, side by side in one process.
+
+For a dough block (about 10k particles by default) and the star of
+``examples/fit_dough_star.py`` (its default scale 0.5, 142 particles), in float32 and
+float64, it times, interleaved, over the same ``--steps`` steps from the same state:
+
+- ``fused``: the production forward (``Solver`` with its fused fast path, no tape),
+- ``taped``: ``Rollout.forward`` (the differentiable kernels recorded on a ``wp.Tape``),
+- ``backward``: ``Rollout.backward`` of a position loss on the last frame,
+
+and reports the ratios ``gradient / fused = (taped + backward) / fused`` and
+``backward / fused`` (best of ``--repeats``), the memory of one taped step (a ``State``
+with its gradients, bytes per particle), and, with ``--profile``, the time of each
+kernel's adjoint launch in the backward pass.
+
+    python -m benchmarks.gradient_bench                      # 10k block and fit star, f32 + f64
+    python -m benchmarks.gradient_bench --generated --profile   # also the old path; per-kernel times
+    python -m benchmarks.gradient_bench --sizes 1000 --repeats 2 --profile
+
+``--generated`` also runs the rollout with ``Solver.hand_adjoints = False`` (the
+differentiable kernels on the tape with Warp's generated adjoints: the code before the
+hand-written adjoints), for a before/after in one run. Ratios are printed in wall and CPU time.
+
+Not a test.
+"""
+
+import argparse
+import collections
+import json
+import os
+import sys
+import time
+
+import numpy as np
+import warp as wp
+
+try:
+    import warp_esph as we
+except ImportError:  # run from a checkout without installing the package
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    import warp_esph as we
+
+from warp_esph.losses import PositionLoss
+from warp_esph.rollout import Rollout, state_nbytes
+from warp_esph.sim.solver import Solver
+
+
+def block_model(particles: int, dtype) -> we.Model:
+    """A dough block of about ``particles`` particles (2 cm spacing) falling onto the ground."""
+    dx = 0.02
+    side = max(2, round(particles ** (1.0 / 3.0)))
+    size = side * dx
+    b = we.SceneBuilder(spacing=dx)
+    b.add_box((0.0, 0.5 * size + 0.01, 0.0), (size, size, size), we.Material.preset("dough"), velocity=(0.0, -1.0, 0.0))
+    b.add_ground(friction=0.5)
+    model = b.finalize(dtype=dtype, requires_grad=True)
+    model.particle_x0 += np.random.default_rng(0).normal(scale=1e-3 * dx, size=model.particle_x0.shape)
+    model.compute_rest_density()
+    return model
+
+
+def star_model(dtype, scale: float = 0.5) -> we.Model:
+    """The fit example's star (``examples/fit_dough_star.py``), at ``dtype``."""
+    dx = 0.01 / scale
+    b = we.SceneBuilder(spacing=dx, support_radius=2.5 * dx)
+    b.add_star((0.0, 0.07, 0.0), outer_radius=0.15, inner_radius=0.065, thickness=0.04,
+               material=we.Material.preset("dough").replace(mu=2.0 * we.Material.preset("dough").mu), name="star")
+    b.add_ground(friction=0.6)
+    model = b.finalize(dtype=dtype, requires_grad=True)
+    model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * dx, size=model.particle_x0.shape)
+    model.compute_rest_density()
+    return model
+
+
+class AdjointProfile:
+    """Times each launch while active by kernel name (CPU launches are synchronous): in a
+    backward pass, the generated adjoints and the hand-written adjoint kernels."""
+
+    def __init__(self):
+        self.seconds = collections.defaultdict(float)
+        self.calls = collections.Counter()
+
+    def __enter__(self):
+        self._launch = wp.launch
+
+        def timed(kernel, *args, **kwargs):
+            t0 = time.perf_counter()
+            out = self._launch(kernel, *args, **kwargs)
+            name = kernel.key.replace("kernels__locals__", "").replace("_kernels__locals__", "")
+            self.seconds[name] += time.perf_counter() - t0
+            self.calls[name] += 1
+            return out
+
+        wp.launch = timed
+        return self
+
+    def __exit__(self, *exc):
+        wp.launch = self._launch
+
+
+def measure(model: we.Model, steps: int, repeats: int, profile: bool, hand: bool = True) -> dict:
+    dt = model.stable_dt()
+    n = model.particle_count
+    fused = Solver(model)
+    pair = [model.state(requires_grad=False) for _ in range(2)]
+    initial = model.state(requires_grad=False)
+    rollout = Rollout(model, steps, dt)
+    rollout.solver.hand_adjoints = hand
+
+    def run_fused():
+        pair[0].assign(initial)
+        a, b = pair
+        for _ in range(steps):
+            fused.step(a, b, dt)
+            a, b = b, a
+        return a
+
+    # Warm-up (kernel compilation, first allocations), and the loss.
+    run_fused()
+    positions = rollout.forward()
+    loss = PositionLoss(positions + 1e-3, frames=[steps])
+    rollout.backward(loss)
+
+    # Wall time (best of the repeats) and CPU time (best, the process's: Warp's CPU
+    # launches run on the calling thread, so it is the cost without other load's waits).
+    t_fused, t_taped, t_back = [], [], []
+    c_fused, c_taped, c_back = [], [], []
+    clocks = (time.perf_counter, time.process_time)
+    for _ in range(repeats):
+        t0, c0 = (c() for c in clocks)
+        run_fused()
+        t1, c1 = (c() for c in clocks)
+        rollout.forward()
+        t2, c2 = (c() for c in clocks)
+        _, grads = rollout.backward(loss)
+        t3, c3 = (c() for c in clocks)
+        t_fused.append(t1 - t0)
+        t_taped.append(t2 - t1)
+        t_back.append(t3 - t2)
+        c_fused.append(c1 - c0)
+        c_taped.append(c2 - c1)
+        c_back.append(c3 - c2)
+    f, tf, bw = min(t_fused), min(t_taped), min(t_back)
+    cf, ctf, cbw = min(c_fused), min(c_taped), min(c_back)
+    out = {
+        "particles": n,
+        "adjoints": "hand-written" if hand else "generated",
+        "dtype": model.types.np_dtype.__name__,
+        "steps": steps,
+        "fused_ms_per_step": 1e3 * f / steps,
+        "taped_ms_per_step": 1e3 * tf / steps,
+        "backward_ms_per_step": 1e3 * bw / steps,
+        "taped_over_fused": tf / f,
+        "backward_over_fused": bw / f,
+        "gradient_over_fused": (tf + bw) / f,
+        "cpu_taped_over_fused": ctf / cf,
+        "cpu_backward_over_fused": cbw / cf,
+        "cpu_gradient_over_fused": (ctf + cbw) / cf,
+        "taped_bytes_per_particle_step": state_nbytes(rollout._states[1]) / n,
+        "grads": {k: np.asarray(grads[k]).tolist() for k in ("mu", "yield_stress", "flow_rate")},
+        "grad_v0": grads["v0"],
+    }
+    if profile:
+        with AdjointProfile() as fused_prof:
+            run_fused()
+        with AdjointProfile() as taped_prof:
+            rollout.forward()
+        with AdjointProfile() as prof:
+            rollout.backward(loss)
+        for key, p in (("fused_launch_ms_per_step", fused_prof), ("taped_launch_ms_per_step", taped_prof),
+                       ("adjoint_ms_per_step", prof)):
+            out[key] = {k: 1e3 * s / steps for k, s in sorted(p.seconds.items(), key=lambda kv: -kv[1]) if s * 1e3 / steps > 0.005}
+    return out
+
+
+def report(r: dict, profile: bool):
+    print(f"{r['scene']:>6} {r['dtype']} ({r['adjoints']} adjoints): {r['particles']} particles, {r['steps']} steps, "
+          f"fused {r['fused_ms_per_step']:.2f} ms/step; taped {r['taped_over_fused']:.2f}x, "
+          f"backward {r['backward_over_fused']:.2f}x, gradient {r['gradient_over_fused']:.2f}x the fused forward "
+          f"(CPU time: {r['cpu_taped_over_fused']:.2f}x, {r['cpu_backward_over_fused']:.2f}x, "
+          f"{r['cpu_gradient_over_fused']:.2f}x); {r['taped_bytes_per_particle_step']:.0f} B per particle per taped step",
+          flush=True)
+    if profile:
+        for key, label in (("fused_launch_ms_per_step", "fused"), ("taped_launch_ms_per_step", "taped"),
+                           ("adjoint_ms_per_step", "backward")):
+            print(f"    {label} launches, ms/step: " + ", ".join(f"{k} {v:.2f}" for k, v in r[key].items()))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", default="10000,star", help="comma-separated: particle counts of a block, or 'star'")
+    ap.add_argument("--dtypes", default="float32,float64")
+    ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--star-steps", type=int, default=150,
+                    help="steps of the star (it must reach the ground for the material to matter)")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--profile", action="store_true", help="time each kernel's adjoint launch")
+    ap.add_argument("--generated", action="store_true",
+                    help="also time the rollout with Warp's generated adjoints only (Solver.hand_adjoints = False)")
+    ap.add_argument("--json", default=None, help="write the results here")
+    a = ap.parse_args(argv)
+    wp.config.quiet = True
+    wp.init()
+    rows = []
+    for size in a.sizes.split(","):
+        by_dtype = {}
+        for name in a.dtypes.split(","):
+            dtype = getattr(wp, name)
+            model = star_model(dtype) if size == "star" else block_model(int(size), dtype)
+            steps = a.star_steps if size == "star" else a.steps
+            runs = [measure(model, steps, a.repeats, a.profile, hand=True)]
+            if a.generated:
+                runs.append(measure(model, steps, a.repeats, a.profile, hand=False))
+            for r in runs[1:]:
+                r["scene"] = size
+                report(r, a.profile)
+                r.pop("grad_v0")
+                rows.append(r)
+            r = runs[0]
+            r["scene"] = size
+            by_dtype[name] = r
+            report(r, a.profile)
+        if "float32" in by_dtype and "float64" in by_dtype:
+            g32, g64 = by_dtype["float32"], by_dtype["float64"]
+            err = {}
+            for k in g64["grads"]:
+                ref = np.asarray(g64["grads"][k])
+                err[k] = float(np.abs(np.asarray(g32["grads"][k]) - ref).max() / max(np.abs(ref).max(), 1e-300))
+            ref = g64["grad_v0"]
+            err["v0"] = float(np.linalg.norm(g32["grad_v0"] - ref) / max(np.linalg.norm(ref), 1e-300))
+            g32["float32_relative_error"] = err
+            print("    float32 gradient vs float64 (relative): " + ", ".join(f"{k} {v:.1e}" for k, v in err.items()))
+        for r in by_dtype.values():
+            r.pop("grad_v0")
+            rows.append(r)
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(rows, f, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

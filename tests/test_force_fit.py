@@ -1,0 +1,145 @@
+"""Reaction-force curves as fit targets (``warp_esph.losses.ReactionForceLoss``): the
+gradient of a force-curve loss through the tape against float64 central differences, and
+``warp-esph fit`` recovering the elastic modulus and yield stress of a compression test
+from the ``<output>_tools.csv`` a previous ``warp-esph run`` wrote."""
+
+import json
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warp_esph as we
+from warp_esph import tools
+from warp_esph.losses import PositionLoss, ReactionForceLoss
+from warp_esph.rollout import FORCES, Rollout
+
+DX = 0.005
+
+
+def _compression(mu=5.0e3, yield_stress=1000.0, speed=0.1):
+    """A 2 cm cube (4 x 4 x 4 particles) between a frictionless base and a frictionless
+    plate descending at ``speed``; both touch the outer particle layers at t = 0."""
+    mat = we.Material(mu=mu, lam=mu, yield_stress=yield_stress, flow_rate=2000.0, density=1000.0, viscosity=2.0)
+    b = we.SceneBuilder(spacing=DX, gravity=(0.0, -9.81, 0.0))
+    h = 4 * DX
+    b.add_box((0.0, h / 2, 0.0), (h, h, h), mat, name="sample")
+    b.add_tool("plane", position=(0.0, DX / 2, 0.0), name="base")
+    b.add_tool("box", half_extents=(0.05, 0.005, 0.05), name="plate",
+               motion=tools.Velocity((0.0, -speed, 0.0), position=(0.0, h - DX / 2 + 0.005, 0.0)))
+    return b
+
+
+@pytest.mark.parametrize("checkpoint_every", [None, 16])
+def test_force_curve_loss_gradient_matches_central_differences(checkpoint_every):
+    """d/dp of a loss on the plate's force curve (window means, all components) plus the
+    base's vertical force and a position term, for mu and yield stress (which the sample
+    reaches: 300 Pa), full tape and checkpointed, against central differences in float64."""
+    model = _compression(yield_stress=300.0).finalize(dtype=wp.float64, requires_grad=True)
+    steps, W = 60, 10
+    ro = Rollout(model, steps, 2.0e-4, frames=[steps], checkpoint_every=checkpoint_every)
+    ro.forward()
+    F = ro.step_forces()
+    assert F.shape == (steps, 2, 3) and F[:, 1, 1].min() < 0.0  # the plate pushes down on the sample
+    ends = list(range(W, steps + 1, W))
+    curve = np.array([F[e - W:e, 1].mean(axis=0) for e in ends])
+    plate = ReactionForceLoss(1.1 * curve + 0.01, "plate", ends, window=W)
+    base = ReactionForceLoss(0.9 * curve[:, 1], 0, ends, window=W, components="y")
+    x_end = ro.positions()[0]
+    loss = plate + 0.5 * base + 100.0 * PositionLoss({steps: x_end * 1.01})
+    value, grads = ro.value_and_grad(loss)
+    assert value > 0.0
+    for name in ("mu", "yield_stress"):
+        base_value = ro.get_parameters()[name]
+        h = 1e-5 * base_value[0]
+        vals = []
+        for s in (1.0, -1.0):
+            ro.set_parameters({name: base_value + s * h})
+            ro.forward()
+            vals.append(loss.value(ro.observations()))
+        ro.set_parameters({name: base_value})
+        fd = (vals[0] - vals[1]) / (2 * h)
+        assert grads[name][0] != 0.0
+        assert grads[name][0] == pytest.approx(fd, rel=1e-5), name
+
+
+def test_force_loss_rejects_bad_input():
+    with pytest.raises(ValueError, match="components"):
+        ReactionForceLoss(np.zeros((2, 1)), "plate", [10, 20], window=10, components="w")
+    with pytest.raises(ValueError, match="targets with shape"):
+        ReactionForceLoss(np.zeros((3, 3)), "plate", [10, 20], window=10)
+    with pytest.raises(ValueError, match="steps\\[0\\]"):
+        ReactionForceLoss(np.zeros((2, 3)), "plate", [5, 20], window=10)
+    model = _compression().finalize(dtype=wp.float64, requires_grad=True)
+    ro = Rollout(model, 20, 2.0e-4)
+    ro.forward()
+    with pytest.raises(ValueError, match="tool 'anvil' is not allowed"):
+        ReactionForceLoss(np.zeros((2, 3)), "anvil", [10, 20], window=10).value(ro.observations())
+    assert ro.observations()[FORCES].shape == (20 * 2,)
+
+
+SCENE = """
+[scene]
+name = "compression"
+spacing = 0.005
+frames = 10
+fps = 200
+dt = 2.0e-4
+
+[materials.sample]
+mu = {mu}
+lam = {mu}
+density = 1000.0
+yield_stress = {yield_stress}
+flow_rate = 2000.0
+viscosity = 2.0
+
+[[bodies]]
+shape = "box"
+name = "sample"
+material = "sample"
+center = [0.0, 0.01, 0.0]
+size = [0.02, 0.02, 0.02]
+
+[[tools]]
+shape = "plane"
+name = "base"
+position = [0.0, 0.0025, 0.0]
+
+[[tools]]
+shape = "box"
+name = "plate"
+half_extents = [0.05, 0.005, 0.05]
+position = [0.0, 0.0225, 0.0]
+velocity = [0.0, -0.1, 0.0]
+"""
+
+
+def test_cli_fits_modulus_and_yield_stress_to_a_compression_force_curve(tmp_path, capsys):
+    """``warp-esph run`` a compression test (64 particles, 250 steps: an elastic ramp to
+    about 10 % strain, then the plastic plateau up to 25 %), then ``warp-esph fit`` mu and
+    yield stress from 2x guesses to the plate's force curve in ``<output>_tools.csv``."""
+    from warp_esph.cli import main
+
+    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
+    truth.write_text(SCENE.format(mu=5000.0, yield_stress=1000.0))
+    guess.write_text(SCENE.format(mu=10000.0, yield_stress=2000.0))
+    run = tmp_path / "press.usdc"
+    assert main(["run", str(truth), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
+    csv = tmp_path / "press_tools.csv"
+    assert csv.exists()
+    out = tmp_path / "fit"
+    capsys.readouterr()
+    status = main(["fit", str(guess), "--target", str(csv), "--target-tool", "plate", "--params", "mu,yield_stress",
+                   "--iterations", "12", "--output-dir", str(out), "--no-progress", "--no-usd"])
+    captured = capsys.readouterr()
+    assert status == 0, captured.err
+    doc = json.loads((out / "fit.json").read_text())
+    assert doc["params"]["mu"][0] == pytest.approx(5000.0, rel=0.10)
+    assert doc["params"]["yield_stress"][0] == pytest.approx(1000.0, rel=0.10)
+    assert doc["loss"] < 1e-2 * doc["initial_loss"]
+    # Without --target-tool, a file of two tools is ambiguous.
+    from warp_esph.fit import load_target
+
+    with pytest.raises(ValueError, match="--target-tool is required"):
+        load_target(csv)

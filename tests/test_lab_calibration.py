@@ -1,0 +1,50 @@
+"""``examples/calibrate_from_lab.py`` at CI size: the closed-form inversions invert their
+forward formulas, and the joint fit of a slump (final height and spread) and a compression
+force curve, from synthetic lab files with noise, recovers the hidden yield stress and
+plastic viscosity from 2x guesses (tolerance below)."""
+
+import importlib.util
+import json
+import math
+import pathlib
+
+import pytest
+
+EXAMPLE = pathlib.Path(__file__).resolve().parent.parent / "examples" / "calibrate_from_lab.py"
+
+
+def _example():
+    spec = importlib.util.spec_from_file_location("calibrate_from_lab", EXAMPLE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_closed_form_inversions_invert_their_formulas():
+    ex = _example()
+    rho_g = ex.RHO * ex.G
+    for S in (0.05, 0.3, 0.8):
+        h = 0.1 * S * (1.0 - math.log(S))
+        assert ex.invert_slump_height(h, 0.1) == pytest.approx(S * rho_g * 0.1, rel=1e-9)
+    volume, tau_y = 7.85e-4, 120.0
+    R = (225.0 * rho_g * volume**2 / (128.0 * math.pi**2 * tau_y)) ** 0.2
+    assert ex.invert_spread(R, volume) == pytest.approx(tau_y, rel=1e-9)
+    # A perfectly plastic sample at constant volume: F = sigma_y * volume / H.
+    press = {"height": 0.02, "speed": 0.1, "volume": 6.0e-6}
+    rows = [{"frame": f, "time": f / 200.0, "tool": "plate",
+             "force": [0.0, -300.0 * press["volume"] / (0.02 - 0.1 * f / 200.0), 0.0]} for f in range(11)]
+    assert ex.invert_plateau(rows, press) == pytest.approx(300.0, rel=1e-12)
+
+
+def test_joint_fit_of_slump_and_compression_recovers_yield_stress_and_plastic_viscosity(tmp_path):
+    """48-particle slump (0.3 s) and 48-particle compression (250 steps): within TOL of
+    the truth and within 3 of the diagnostics' standard errors."""
+    TOL = 0.15
+    ex = _example()
+    assert ex.main(["--size", "ci", "--out", str(tmp_path)]) == 0
+    doc = json.loads((tmp_path / "result.json").read_text())
+    assert (tmp_path / "compression_tools.csv").exists() and (tmp_path / "slump.json").exists()
+    true, fitted, se = doc["true"], doc["fitted"], doc["standard_error"]
+    for name in ("yield_stress", "flow_rate"):
+        assert fitted[name] == pytest.approx(true[name], rel=TOL), name
+        assert abs(fitted[name] - true[name]) < 3.0 * se[name], name

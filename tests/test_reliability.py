@@ -1,0 +1,366 @@
+"""Reliability of the command line: a run that blows up while staying finite exits 3 and
+keeps its good frames, no built-in scene trips that monitor at its own time step, absurd
+configurations are refused before running, damaged inputs and checkpoints of another
+scene are one line and exit 2, two outputs with one stem keep separate checkpoints, and
+Ctrl-C at any moment of start-up exits 130 without a traceback."""
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from pxr import Sdf, Usd
+
+import warp_esph as we
+from warp_esph.checkpoint import read_checkpoint, save_state
+from warp_esph.cli import main
+from warp_esph.scenes import get_scene
+from warp_esph.simulate import DivergenceMonitor, SimulationError, resolve_timestep
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SMALL = ["--scale", "0.3", "--no-progress"]
+
+STIFF_TOML = """
+[scene]
+name = "stiff"
+spacing = 0.05
+frames = 10
+
+[materials.hard]
+preset = "rubber"
+E = {E}
+nu = 0.3
+
+[[bodies]]
+shape = "box"
+material = "hard"
+center = [0.0, 0.15, 0.0]
+size = [0.2, 0.15, 0.2]
+
+[[colliders]]
+type = "ground"
+"""
+
+
+def one_error_line(err: str) -> str:
+    lines = [line for line in err.splitlines() if line.strip() and "warning:" not in line]
+    assert len(lines) == 1 and lines[0].startswith("warp-esph: error: "), err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+def frames_in(path, prim="/World/dough"):
+    stage = Usd.Stage.Open(Sdf.Layer.OpenAsAnonymous(str(path)))
+    return stage.GetPrimAtPath(prim).GetAttribute("points").GetTimeSamples()
+
+
+# ------------------------------------------------------------------ the divergence monitor
+def test_finite_runaway_at_18x_the_stable_step_exits_3_keeping_good_frames(tmp_path, capsys):
+    """dough_drop at scale 0.3 is stable at 19 steps per frame; at one step per frame (18x
+    the stable step) it blew up to particles 2,000 km away with every value finite, and
+    exited 0. Now: exit 3 naming step, particle and body; the frames before are kept."""
+    out = tmp_path / "runaway.usdc"
+    status = main(["run", "-o", str(out), "--frames", "30", "--dt", repr(1 / 30), *SMALL])
+    line = one_error_line(capsys.readouterr().err)
+    assert status == 3
+    assert "diverged after step" in line and "particle" in line and "'dough'" in line, line
+    kept = int(line.split("keeps the ")[1].split()[0])
+    assert 1 <= kept < 31
+    times = frames_in(out)
+    assert times == [float(k) for k in range(kept)]
+    stage = Usd.Stage.Open(Sdf.Layer.OpenAsAnonymous(str(out)))
+    for t in times:  # every written frame is finite (checked before writing, not after)
+        assert np.isfinite(np.array(stage.GetPrimAtPath("/World/dough").GetAttribute("points").Get(t))).all()
+
+
+def test_very_stiff_material_at_a_large_dt_exits_3(tmp_path, capsys):
+    """E = 1e9 Pa has a stable step of 1.2e-5 s at 5 cm; at 3.3e-4 s speeds reached 1e9 m/s
+    with exit 0."""
+    scene = tmp_path / "stiff.toml"
+    scene.write_text(STIFF_TOML.format(E="1e9"))
+    status = main(["run", str(scene), "-o", str(tmp_path / "s.usdc"), "--dt", repr(1 / 3000), "--no-progress"])
+    line = one_error_line(capsys.readouterr().err)
+    assert status == 3 and "'box0'" in line and "step" in line
+
+
+@pytest.mark.parametrize("name", ["dough_drop", "rubber_bounce", "star"])
+def test_built_in_scene_at_its_own_dt_does_not_trip_the_monitor(name):
+    """Full duration at scale 0.3 (the soak suite runs every scene, ``-m slow``); the worst
+    ratio of each monitored quantity to its bound (before the safety factor) stays well
+    below 1, so the factor 10 is margin, not tuning."""
+    scene = get_scene(name, scale=0.3)
+    model = scene.builder.finalize()
+    n_sub, dt = resolve_timestep(model, scene.fps, dt=scene.dt)
+    mon = DivergenceMonitor(model, model.state())
+    worst = {"speed": 0.0, "energy": 0.0}
+
+    def record(frame, state):
+        t = frame / scene.fps
+        x, v = state.x.numpy().astype(np.float64), state.v.numpy().astype(np.float64)
+        worst["speed"] = max(worst["speed"], math.sqrt((v * v).sum(1).max()) / mon.speed_bound(t))
+        ke = 0.5 * (mon.mass * (v * v).sum(1)).sum()
+        budget = mon.ke0 + (mon.mass * mon.g * (mon.h0 - x @ mon.up)).sum() + mon.e_fields
+        worst["energy"] = max(worst["energy"], (ke - mon.e_floor) / max(budget, 1e-12))
+
+    we.simulate(model, scene.frames, fps=scene.fps, substeps=n_sub, progress=False, callback=record)
+    assert worst["speed"] < 0.5 and worst["energy"] < 1.0, worst
+
+
+def test_a_body_a_scene_shows_blowing_up_is_left_out():
+    """Fig. 8 shows the plastic rest-configuration cube blowing up (finite: 1.8e5 m/s 0.36 s
+    in at scale 1, which tripped the monitor); the scene names it in ``diverges`` and the
+    monitor leaves that body out, but not the others."""
+    scene = get_scene("fig8_comparison", 0.3)
+    assert scene.diverges == ("plastic_rest",)
+    model = scene.builder.finalize()
+    state = model.state()
+    mon = DivergenceMonitor(model, state, scene.diverges)
+    x, v = state.x.numpy(), state.v.numpy().copy()
+    names = [b.name for b in model.bodies]
+    rest = model.bodies[names.index("plastic_rest")]
+    v[rest.start] = (1.8e5, 0.0, 0.0)
+    assert mon.check(x, v, 0.36) is None
+    other = model.bodies[names.index("plastic_incremental")]
+    v[other.start + 1] = (1.8e5, 0.0, 0.0)
+    what, p = mon.check(x, v, 0.36)
+    assert p == other.start + 1 and what.startswith("speed")
+    with pytest.raises(ValueError, match="'nope' is not a body"):
+        DivergenceMonitor(model, state, ("nope",))
+
+
+def test_monitor_bounds_are_physical():
+    """A body in free fall (no floor) for 2 s passes: its speed g t is within the bound; the
+    same state with one particle 11x faster than the bound, or flung 1 km away, does not."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.0, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    model = b.finalize()
+    state = model.state()
+    mon = DivergenceMonitor(model, state)
+    assert mon.fall_height is None
+    t = 2.0
+    x0 = state.x.numpy().astype(np.float64)
+    v = np.tile([0.0, -9.81 * t, 0.0], (model.particle_count, 1))
+    x = x0 + np.array([0.0, -0.5 * 9.81 * t * t, 0.0])
+    assert mon.check(x, v, t) is None
+    fast = v.copy()
+    fast[3] = [0.0, 0.0, 11.0 * mon.speed_bound(t)]
+    what, p = mon.check(x, fast, t)
+    assert p == 3 and what.startswith("speed")
+    far = x.copy()
+    far[5] += [0.0, 0.0, 10.0 * (mon.diagonal + mon.speed_bound(t) * t) + 1.0]
+    what, p = mon.check(far, v, t)
+    assert p == 5 and "outside the scene" in what
+    # Energy: every particle just under the speed limit is too much kinetic energy for a
+    # body that has fallen nowhere.
+    hot = np.tile([0.0, 0.0, 9.0 * mon.speed_bound(0.0)], (model.particle_count, 1))
+    what, _ = mon.check(x0, hot, 0.0)
+    assert what.startswith("kinetic energy")
+
+
+# ------------------------------------------------------------------ refused before running
+@pytest.mark.parametrize(
+    "args, needles",
+    [
+        (["run", "--dt", "1e-300"], ["dt = 1e-300", "3.33e+298 steps", "use dt >= "]),
+        (["run", "--frames", str(10**12)], ["--frames", "must be an integer in [1, 2147483647]"]),
+        (["run", "--frames", "2000000000"], ["frames = 2000000000", "more than 1e+10"]),
+    ],
+)
+def test_absurd_step_counts_are_refused_quickly(tmp_path, capsys, args, needles):
+    t0 = time.perf_counter()
+    assert main([*args, "-o", str(tmp_path / "x.usdc"), *SMALL]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    for needle in needles:
+        assert needle in line, line
+    assert time.perf_counter() - t0 < 30
+    assert not (tmp_path / "x.usdc").exists()  # refused before anything was written
+
+
+@pytest.mark.parametrize(
+    "extra, needles",
+    [
+        ("[scene]\nspacing = 0.05\nmax_neighbors = 1000000000000\n", ["[scene]", "max_neighbors = 1000000000000", "[1, 1024]"]),
+        ("[scene]\nspacing = 0.05\n\n[[bodies]]\nshape = 'star'\nmaterial = 'dough'\ncenter = [0.0, 0.2, 0.0]\n"
+         "outer_radius = 0.2\ninner_radius = 0.1\nthickness = 0.1\npoints = 1000000000000\n",
+         ["shape 'star'", "points = 1000000000000", "[1, 1000]"]),
+    ],
+)
+def test_counts_beyond_the_machine_name_file_and_key(tmp_path, capsys, extra, needles):
+    """A star of 10**12 points raised MemoryError; max_neighbors = 10**12 a Warp message
+    naming neither the key nor the file."""
+    scene = tmp_path / "big.toml"
+    body = "" if "bodies" in extra else "\n[[bodies]]\nshape = 'box'\nmaterial = 'dough'\ncenter = [0.0, 0.2, 0.0]\nsize = [0.2, 0.2, 0.2]\n"
+    scene.write_text(extra + body)
+    assert main(["run", str(scene), "-o", str(tmp_path / "x.usdc"), "--no-progress"]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    for needle in ["big.toml", *needles]:
+        assert needle in line, line
+
+
+@pytest.mark.parametrize(
+    "E, needles", [("1e30", ["stable step", "steps", "more than 1e+06"]), ("1e400", ["'E'", "number"]),
+                   (str(10**400), ["'E'", "must be a number, not int 1.000e+400"])])
+def test_overflowing_stiffness_in_a_scene_file_is_one_line(tmp_path, capsys, E, needles):
+    scene = tmp_path / "hard.toml"
+    scene.write_text(STIFF_TOML.format(E=E))
+    assert main(["run", str(scene), "-o", str(tmp_path / "x.usdc"), "--no-progress"]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    for needle in needles:
+        assert needle in line, line
+
+
+# --------------------------------------------------------------------- files and checkpoints
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("run")
+    out = folder / "a.usdc"
+    assert main(["run", "-o", str(out), "--frames", "2", "--checkpoint-every", "1", *SMALL]) == 0
+    return out
+
+
+@pytest.mark.parametrize("command", ["render", "export"])
+@pytest.mark.parametrize("damage", ["truncated", "text", "garbage"])
+def test_damaged_usd_is_one_line_naming_the_file(small_run, tmp_path, capsys, command, damage):
+    good = small_run.read_bytes()
+    data = {"truncated": good[: len(good) // 3], "text": b"hello\n", "garbage": bytes(range(256)) * 8}[damage]
+    bad = tmp_path / "bad.usda" if damage == "garbage" else tmp_path / "bad.usdc"
+    bad.write_bytes(data)
+    args = [command, str(bad), "-o", str(tmp_path / ("out.png" if command == "render" else "out"))]
+    if command == "render":
+        args += ["--width", "64", "--height", "48"]
+    assert main(args) == 2
+    assert bad.name in one_error_line(capsys.readouterr().err)
+
+
+def _tampered_checkpoint(small_run, tmp_path, change):
+    meta, arrays = read_checkpoint(str(small_run) + ".checkpoint.npz")
+    change(meta, arrays)
+    path = tmp_path / "tampered.npz"
+    arrays["meta"] = np.frombuffer(__import__("json").dumps(meta).encode(), dtype=np.uint8)
+    np.savez(path, **arrays)
+    return path
+
+
+def _nan_x(meta, arrays):
+    arrays["x"] = arrays["x"].copy()
+    arrays["x"][3, 1] = np.nan
+
+
+TAMPERING = {
+    "few_particles": (lambda m, a: a.update(x=a["x"][:10]), ["its x is float32 (10, 3)", "(64, 3)"]),
+    "nan_position": (_nan_x, ["non-finite values", "index 3"]),
+    "float64_arrays": (lambda m, a: a.update(v=a["v"].astype(np.float64)), ["its v is float64"]),
+    "frame_as_text": (lambda m, a: m.update(frame="two"), ["frame = 'two'"]),
+    "scale_as_text": (lambda m, a: m["run"].update(scale="big"), ["scale = 'big'"]),
+    "another_scene": (lambda m, a: m.update(fingerprint="0" * 32), ["written for another scene"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(TAMPERING))
+def test_resume_refuses_a_checkpoint_that_does_not_fit(small_run, tmp_path, capsys, case):
+    change, needles = TAMPERING[case]
+    path = _tampered_checkpoint(small_run, tmp_path, change)
+    before = small_run.read_bytes()
+    assert main(["run", "--resume", str(path), "--frames", "4", "--no-progress"]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    for needle in needles:
+        assert needle in line, line
+    assert small_run.read_bytes() == before  # the output is untouched
+
+
+@pytest.mark.parametrize("damage", ["truncated", "text"])
+def test_resume_onto_a_damaged_output_is_one_line(tmp_path, capsys, damage):
+    out = tmp_path / "r.usdc"
+    assert main(["run", "-o", str(out), "--frames", "1", "--checkpoint-every", "1", *SMALL]) == 0
+    good = out.read_bytes()
+    out.write_bytes(good[: len(good) // 2] if damage == "truncated" else b"not usd\n")
+    capsys.readouterr()
+    assert main(["run", "--resume", str(out) + ".checkpoint.npz", "--frames", "2", "--no-progress"]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert "cannot append to" in line and "r.usdc" in line, line
+
+
+def test_resume_refuses_an_edited_scene_file(tmp_path, capsys):
+    scene = tmp_path / "box.toml"
+    scene.write_text(STIFF_TOML.format(E="1.5e4").replace("frames = 10", "frames = 2"))
+    out = tmp_path / "box.usdc"
+    assert main(["run", str(scene), "-o", str(out), "--checkpoint-every", "1", "--no-progress"]) == 0
+    scene.write_text(STIFF_TOML.format(E="1.5e4").replace("frames = 10", "frames = 2").replace("0.15, 0.0]", "0.25, 0.0]"))
+    assert main(["run", "--resume", str(out) + ".checkpoint.npz", "--frames", "3", "--no-progress"]) == 2
+    assert "written for another scene" in one_error_line(capsys.readouterr().err)
+
+
+def test_a_non_finite_state_is_never_checkpointed_nor_written(tmp_path):
+    model = get_scene("dough_drop", 0.3).builder.finalize()
+    state = model.state()
+    x = state.x.numpy()
+    x[0, 0] = np.inf
+    state.x.assign(x)
+    with pytest.raises(ValueError, match="non-finite"):
+        save_state(tmp_path / "c.npz", model, state, step=0, frame=0)
+    with pytest.raises(ValueError, match="state is not allowed: it has a non-finite position"):
+        we.simulate(model, 1, state=state, progress=False, writer=we.UsdWriter(tmp_path / "o.usdc", model, 30.0))
+    with we.UsdWriter(tmp_path / "w.usdc", model, 30.0) as writer:
+        writer.write_frame(0, model.state())
+        with pytest.raises(ValueError, match="particle 0 has a non-finite position or velocity"):
+            writer.write_frame(1, state)
+    assert frames_in(tmp_path / "w.usdc") == [0.0]
+
+
+def test_two_outputs_with_one_stem_keep_separate_checkpoints(tmp_path):
+    a, b = tmp_path / "same.usdc", tmp_path / "same.usda"
+    assert main(["run", "-o", str(a), "--frames", "2", "--checkpoint-every", "1", *SMALL]) == 0
+    assert main(["run", "three_cylinders", "-o", str(b), "--frames", "3", "--checkpoint-every", "1", *SMALL]) == 0
+    meta_a, _ = read_checkpoint(str(a) + ".checkpoint.npz")
+    meta_b, _ = read_checkpoint(str(b) + ".checkpoint.npz")
+    assert (meta_a["run"]["output"], meta_a["frame"]) == (str(a), 2)
+    assert (meta_b["run"]["output"], meta_b["frame"]) == (str(b), 3)
+
+
+def test_step_count_limit_does_not_refuse_a_real_scene():
+    # The stiffest built-in material at its scene's own scale stays far below the limit.
+    scene = get_scene("fig5_hyperelastic_boxes", 1.0)
+    n, _ = resolve_timestep(scene.builder.finalize(), scene.fps, dt=scene.dt)
+    assert n <= 1000
+
+
+# --------------------------------------------------------------------------- Ctrl-C at start
+def _handlers_installed(pid) -> bool:
+    """Whether the process catches SIGTERM: Python does not by default, and warp_esph's
+    __main__ installs its SIGINT handler just before its SIGTERM one."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("SigCgt:"):
+                    return bool(int(line.split()[1], 16) >> (signal.SIGTERM - 1) & 1)
+    except FileNotFoundError:
+        pass
+    return False
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="needs /proc to see when the handlers are in")
+@pytest.mark.parametrize("delay", [0.0, 0.05, 0.3, 1.0])
+def test_sigint_during_start_up_exits_130_without_traceback(tmp_path, delay):
+    """From the moment the handlers are in (first thing in ``python -m warp_esph``), through
+    the Warp and pxr imports and the scene build, Ctrl-C ends the process with 130 and one
+    line. (Before, it printed a KeyboardInterrupt traceback, and was once swallowed while
+    pxr was importing, and the run went on.)"""
+    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "warp_esph", "run", "-o", str(tmp_path / "x.usdc"), "--frames", "30", *SMALL],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal, also under a background runner
+    )
+    deadline = time.monotonic() + 60
+    while not _handlers_installed(proc.pid) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.002)
+    time.sleep(delay)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, (proc.returncode, err)
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err
+    assert "interrupted" in err
