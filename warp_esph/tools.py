@@ -290,7 +290,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         x_s = world(p1, q1, xc)
         vs = (x_s - world(p0, q0, xc)) / dt
         n = wp.quat_rotate(q1, nl)
-        v_new = col.coulomb_response(v, vs, n, mu_s[c], mu_k[c])
+        v_new = col.coulomb_response(v, vs, n, wp.dot(x_s - x, n), dt, mu_s[c], mu_k[c])
         # The tangential part of the step's displacement follows the responded velocity
         # (x_in + dt v_new along the surface): a particle that sticks stays stuck.
         dv = v_new - v

@@ -49,28 +49,39 @@ def funcs(scalar) -> types.SimpleNamespace:
     vec3 = T.vec3
 
     @wp.func
-    def coulomb_response(v: vec3, vs: vec3, n: vec3, mu_s: scalar, mu_k: scalar):
-        """Velocity after contact with a surface moving at ``vs`` (outward normal ``n``): no
-        inward relative normal velocity; Coulomb friction on the relative tangential
-        velocity, sticking while it is at most ``mu_s`` times the normal velocity removed,
-        else reduced by ``mu_k`` times it. The one contact law of the static colliders and
-        the moving tools (``warp_esph/tools.py``)."""
+    def coulomb_response(v: vec3, vs: vec3, n: vec3, depth: scalar, dt: scalar, mu_s: scalar, mu_k: scalar):
+        """Velocity after contact with a surface moving at ``vs`` (outward normal ``n``) of a
+        particle found ``depth`` inside it after the drift: the inward relative normal
+        velocity ``-vn`` is removed up to ``depth / dt``, the normal speed the particle had
+        in excess of what keeps it out (the speculative-contact form of the constraint);
+        Coulomb friction on the relative tangential velocity, sticking while it is at most
+        ``mu_s`` times the normal velocity removed, else reduced by ``mu_k`` times it. The
+        one contact law of the static colliders and the moving tools
+        (``warp_esph/tools.py``).
+
+        Removing only ``depth / dt`` makes the response continuous in the state: a particle
+        that barely crosses the surface in a step loses barely any normal velocity and gets
+        barely any friction, and the rest one step later, instead of all of it at once or
+        none (docs/method.md §1.5). A particle that starts the step on the surface (resting,
+        sticking, or pressed by a moving tool) has ``depth = -vn dt`` and loses all of it, as
+        before."""
         vr = v - vs
         vn = wp.dot(vr, n)
-        if vn < scalar(0.0):
+        if vn < scalar(0.0) and depth > scalar(0.0):
             vt = vr - vn * n
             vt_len = wp.length(vt)
-            dvn = -vn
+            dvn = wp.min(-vn, depth / dt)
+            vn_left = (vn + dvn) * n
             if vt_len <= mu_s * dvn:
-                return vs
-            return vs + vt * (scalar(1.0) - mu_k * dvn / vt_len)
+                return vs + vn_left
+            return vs + vn_left + vt * (scalar(1.0) - mu_k * dvn / vt_len)
         return v
 
     @wp.func
     def respond(x: vec3, v: vec3, depth: scalar, n: vec3, friction: scalar, dt: scalar):
         """Project a particle ``depth`` inside along outward normal ``n`` of a static
         collider; friction over the step ``dt``."""
-        v_new = coulomb_response(v, vec3(), n, friction, friction)
+        v_new = coulomb_response(v, vec3(), n, depth, dt, friction, friction)
         # The drift moved x by dt times the tangential velocity; friction takes back what it
         # removed from it, so a particle that sticks stays where it was.
         dv = v_new - v

@@ -10,9 +10,11 @@ In the SVD frame ``F = U diag(sigma) V^T`` the deviatoric stress is
 
 which is ``F_e = F F_p^-1`` with ``F_p <- V (J^(-1/3) F^)^gamma V^T F_p`` without storing
 ``F_p``. ``nu_f`` is a rate (1/s): ``nu_f dt`` is the paper's per-step fraction, so a result
-does not depend on the time step. Where ``J`` leaves [0.8, 1.25] the flow uses ``F^``
-instead of ``J^(-1/3) F^`` (paper §4: relaxing volume preservation under large volume
-change improves stability), and where ``min sigma < 0.01`` the flow is skipped.
+does not depend on the time step. Where ``J`` leaves [0.8, 1.25] the flow uses
+``J_c^(1/3) J^(-1/3) F^`` with ``J_c`` the nearer end of the range, relaxing the volume
+change beyond it (paper §4: relaxing volume preservation under large volume change improves
+stability; the paper's ``F^`` alone would make the flow jump where ``J`` crosses an end), and
+where ``min sigma < 0.01`` the flow is skipped.
 """
 
 import functools
@@ -98,9 +100,10 @@ def funcs(scalar) -> types.SimpleNamespace:
         p = scalar(1.0)
         alpha_new = alpha
         if flowed != 0:
+            # Volume is kept inside [j_lo, j_hi]; outside, only the volume change beyond
+            # the range is relaxed (paper §4), so c is continuous in J (docs/method.md §4).
             J = s[0] * s[1] * s[2]
-            if J >= j_lo and J <= j_hi:
-                c = wp.pow(J, gamma / scalar(3.0))
+            c = wp.pow(wp.min(wp.max(J, j_lo), j_hi), gamma / scalar(3.0))
             p = scalar(1.0) - gamma
             g = c * vec3(wp.pow(s[0], p), wp.pow(s[1], p), wp.pow(s[2], p))
             ls = vec3(wp.log(s[0]), wp.log(s[1]), wp.log(s[2]))
