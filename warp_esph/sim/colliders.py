@@ -49,6 +49,19 @@ def funcs(scalar) -> types.SimpleNamespace:
     vec3 = T.vec3
 
     @wp.func
+    def slip_speed(a: scalar, band: scalar) -> scalar:
+        """Tangential speed left after Coulomb friction, ``max(a, 0)`` for the excess ``a``
+        of the tangential speed over the friction impulse, rounded over ``0 < a < band`` to
+        ``a^2 (2 band - a) / band^2`` (value and slope continuous at both ends, never above
+        ``a``: up to 0.15 band more friction there). Stick (``a <= 0``) and sliding faster
+        than ``band`` are exactly Coulomb; the rounding removes the kink of the loss at the
+        stick-slip transition (docs/method.md §1.5)."""
+        r = a
+        if a < band:
+            r = a * a * (scalar(2.0) * band - a) / (band * band)
+        return r
+
+    @wp.func
     def coulomb_response(v: vec3, vs: vec3, n: vec3, depth: scalar, dt: scalar, mu_s: scalar, mu_k: scalar):
         """Velocity after contact with a surface moving at ``vs`` (outward normal ``n``) of a
         particle found ``depth`` inside it after the drift: the inward relative normal
@@ -74,7 +87,8 @@ def funcs(scalar) -> types.SimpleNamespace:
             vn_left = (vn + dvn) * n
             if vt_len <= mu_s * dvn:
                 return vs + vn_left
-            return vs + vn_left + vt * (scalar(1.0) - mu_k * dvn / vt_len)
+            slip = slip_speed(vt_len - mu_k * dvn, mu_k * dvn)
+            return vs + vn_left + vt * (slip / vt_len)
         return v
 
     @wp.func
@@ -120,5 +134,5 @@ def funcs(scalar) -> types.SimpleNamespace:
         return x, v
 
     return types.SimpleNamespace(
-        coulomb_response=coulomb_response, respond=respond, collide_plane=collide_plane, collide_sphere=collide_sphere, collide_box=collide_box
+        coulomb_response=coulomb_response, slip_speed=slip_speed, respond=respond, collide_plane=collide_plane, collide_sphere=collide_sphere, collide_box=collide_box
     )
