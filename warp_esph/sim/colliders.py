@@ -1,8 +1,11 @@
 """Static colliders: planes (the ground), spheres and axis-aligned boxes.
 
 A particle found inside a collider after the position update is moved to its surface;
-the inward normal velocity is removed and the tangential velocity loses
-``friction * |inward normal velocity|`` (Coulomb friction; it stops when that exceeds it).
+the inward normal velocity is removed, at most ``depth / dt`` of it, and the tangential
+velocity loses ``friction`` times the normal velocity removed (Coulomb friction; it stops
+when that exceeds it, with the stick-slip transition rounded). Both keep the step
+continuous in the state, so a loss is continuous in the parameters through contact
+(docs/method.md §1, "Contact").
 The position is corrected by ``dt`` times the velocity friction removed: the drift moved the
 particle with the velocity before friction, so without it a particle that friction holds
 still slides ``a_t dt^2`` per step, a creep at speed ``a_t dt`` that kept slumped plastic
@@ -55,7 +58,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         ``a^2 (2 band - a) / band^2`` (value and slope continuous at both ends, never above
         ``a``: up to 0.15 band more friction there). Stick (``a <= 0``) and sliding faster
         than ``band`` are exactly Coulomb; the rounding removes the kink of the loss at the
-        stick-slip transition (docs/method.md §1.5)."""
+        stick-slip transition (docs/method.md §1, "Contact")."""
         r = a
         if a < band:
             r = a * a * (scalar(2.0) * band - a) / (band * band)
@@ -75,7 +78,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         Removing only ``depth / dt`` makes the response continuous in the state: a particle
         that barely crosses the surface in a step loses barely any normal velocity and gets
         barely any friction, and the rest one step later, instead of all of it at once or
-        none (docs/method.md §1.5). A particle that starts the step on the surface (resting,
+        none (docs/method.md §1, "Contact"). A particle that starts the step on the surface (resting,
         sticking, or pressed by a moving tool) has ``depth = -vn dt`` and loses all of it, as
         before."""
         vr = v - vs
