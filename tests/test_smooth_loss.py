@@ -6,7 +6,10 @@ and are wide enough that no row is cut. Central differences at a relative step o
 then match the float64 tape in a flowing scene of 640 particles, at h = 2 dx and at
 h = 2.5 dx (where rows hold up to ~100 particles). With the paper's rows (the 30 nearest
 within h) the same check failed by 12-31 % (mu, lam) at 2 dx and 51-70 % (mu, lam,
-flow_rate, viscosity) at 2.5 dx."""
+flow_rate, viscosity) at 2.5 dx.
+
+Through ground contact the contact law must be continuous too (docs/method.md §1,
+"Contact"): a block that lands on a rough ground while it flows."""
 
 import numpy as np
 import pytest
