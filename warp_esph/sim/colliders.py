@@ -23,6 +23,9 @@ from .._types import type_set
 #: Collider loops are unrolled at compile time (a dynamic loop that carries positions
 #: through non-linear projections would get a wrong adjoint, docs/method.md, Warp pitfall 1).
 MAX_PER_KIND = 16
+#: Default ``Model.contact_ramp``: a particle found ``depth`` inside loses at most
+#: ``depth / (CONTACT_RAMP dt)`` of its inward normal velocity (0: all of it).
+CONTACT_RAMP = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,7 +68,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         return r
 
     @wp.func
-    def coulomb_response(v: vec3, vs: vec3, n: vec3, depth: scalar, dt: scalar, mu_s: scalar, mu_k: scalar):
+    def coulomb_response(v: vec3, vs: vec3, n: vec3, depth: scalar, dt: scalar, ramp: scalar, mu_s: scalar, mu_k: scalar):
         """Velocity after contact with a surface moving at ``vs`` (outward normal ``n``) of a
         particle found ``depth`` inside it after the drift: the inward relative normal
         velocity ``-vn`` is removed up to ``depth / dt``, the normal speed the particle had
@@ -80,48 +83,53 @@ def funcs(scalar) -> types.SimpleNamespace:
         barely any friction, and the rest one step later, instead of all of it at once or
         none (docs/method.md §1, "Contact"). A particle that starts the step on the surface (resting,
         sticking, or pressed by a moving tool) has ``depth = -vn dt`` and loses all of it, as
-        before."""
+        before. ``ramp`` (``Model.contact_ramp``) scales the cap to ``depth / (ramp dt)``;
+        ``ramp = 0`` is the earlier law (all of it, friction not rounded)."""
         vr = v - vs
         vn = wp.dot(vr, n)
         if vn < scalar(0.0) and depth > scalar(0.0):
             vt = vr - vn * n
             vt_len = wp.length(vt)
-            dvn = wp.min(-vn, depth / dt)
+            dvn = -vn
+            band = scalar(0.0)
+            if ramp > scalar(0.0):
+                dvn = wp.min(-vn, depth / (ramp * dt))
+                band = mu_k * dvn
             vn_left = (vn + dvn) * n
             if vt_len <= mu_s * dvn:
                 return vs + vn_left
-            slip = slip_speed(vt_len - mu_k * dvn, mu_k * dvn)
+            slip = slip_speed(vt_len - mu_k * dvn, band)
             return vs + vn_left + vt * (slip / vt_len)
         return v
 
     @wp.func
-    def respond(x: vec3, v: vec3, depth: scalar, n: vec3, friction: scalar, dt: scalar):
+    def respond(x: vec3, v: vec3, depth: scalar, n: vec3, friction: scalar, dt: scalar, ramp: scalar):
         """Project a particle ``depth`` inside along outward normal ``n`` of a static
         collider; friction over the step ``dt``."""
-        v_new = coulomb_response(v, vec3(), n, depth, dt, friction, friction)
+        v_new = coulomb_response(v, vec3(), n, depth, dt, ramp, friction, friction)
         # The drift moved x by dt times the tangential velocity; friction takes back what it
         # removed from it, so a particle that sticks stays where it was.
         dv = v_new - v
         return x + depth * n + dt * (dv - wp.dot(dv, n) * n), v_new
 
     @wp.func
-    def collide_plane(x: vec3, v: vec3, n: vec3, offset: scalar, friction: scalar, dt: scalar):
+    def collide_plane(x: vec3, v: vec3, n: vec3, offset: scalar, friction: scalar, dt: scalar, ramp: scalar):
         depth = offset - wp.dot(n, x)
         if depth > scalar(0.0):
-            return respond(x, v, depth, n, friction, dt)
+            return respond(x, v, depth, n, friction, dt, ramp)
         return x, v
 
     @wp.func
-    def collide_sphere(x: vec3, v: vec3, c: vec3, radius: scalar, friction: scalar, dt: scalar):
+    def collide_sphere(x: vec3, v: vec3, c: vec3, radius: scalar, friction: scalar, dt: scalar, ramp: scalar):
         d = x - c
         r2 = wp.dot(d, d)
         if r2 < radius * radius and r2 > scalar(0.0):
             r = wp.sqrt(r2)
-            return respond(x, v, radius - r, d / r, friction, dt)
+            return respond(x, v, radius - r, d / r, friction, dt, ramp)
         return x, v
 
     @wp.func
-    def collide_box(x: vec3, v: vec3, c: vec3, half: vec3, friction: scalar, dt: scalar):
+    def collide_box(x: vec3, v: vec3, c: vec3, half: vec3, friction: scalar, dt: scalar, ramp: scalar):
         d = x - c
         gap = vec3(wp.abs(d[0]) - half[0], wp.abs(d[1]) - half[1], wp.abs(d[2]) - half[2])
         if gap[0] < scalar(0.0) and gap[1] < scalar(0.0) and gap[2] < scalar(0.0):
@@ -133,7 +141,7 @@ def funcs(scalar) -> types.SimpleNamespace:
                 axis = 2
             n = vec3()
             n[axis] = wp.where(d[axis] < scalar(0.0), scalar(-1.0), scalar(1.0))
-            return respond(x, v, -gap[axis], n, friction, dt)
+            return respond(x, v, -gap[axis], n, friction, dt, ramp)
         return x, v
 
     return types.SimpleNamespace(

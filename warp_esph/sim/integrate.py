@@ -41,14 +41,15 @@ def funcs(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.SimpleNa
         box_center: wp.array(dtype=vec3),
         box_half: wp.array(dtype=vec3),
         box_friction: wp.array(dtype=scalar),
+        ramp: scalar,
     ):
         """Every static plane, sphere and box in turn (``colliders.py``)."""
         for c in range(wp.static(n_planes)):
-            x, v = col.collide_plane(x, v, plane_normal[c], plane_offset[c], plane_friction[c], dt)
+            x, v = col.collide_plane(x, v, plane_normal[c], plane_offset[c], plane_friction[c], dt, ramp)
         for c in range(wp.static(n_spheres)):
-            x, v = col.collide_sphere(x, v, sphere_center[c], sphere_radius[c], sphere_friction[c], dt)
+            x, v = col.collide_sphere(x, v, sphere_center[c], sphere_radius[c], sphere_friction[c], dt, ramp)
         for c in range(wp.static(n_boxes)):
-            x, v = col.collide_box(x, v, box_center[c], box_half[c], box_friction[c], dt)
+            x, v = col.collide_box(x, v, box_center[c], box_half[c], box_friction[c], dt, ramp)
         return x, v
 
     return types.SimpleNamespace(symplectic_euler=symplectic_euler, static_colliders=static_colliders)
@@ -77,6 +78,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
         box_center: wp.array(dtype=vec3),
         box_half: wp.array(dtype=vec3),
         box_friction: wp.array(dtype=scalar),
+        ramp: scalar,
         x_out: wp.array(dtype=vec3),
         v_out: wp.array(dtype=vec3),
     ):
@@ -84,7 +86,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
         x, v = fn.symplectic_euler(x_in[i], v_in[i], f[i], mass[i], gravity, dt)
         x, v = fn.static_colliders(
             x, v, dt, plane_normal, plane_offset, plane_friction, sphere_center, sphere_radius, sphere_friction,
-            box_center, box_half, box_friction,
+            box_center, box_half, box_friction, ramp,
         )
         x_out[i] = x
         v_out[i] = v
@@ -98,7 +100,7 @@ def static_collider_arrays(model) -> list:
     return [
         m.plane_normal, m.plane_offset, m.plane_friction,
         m.sphere_center, m.sphere_radius, m.sphere_friction,
-        m.box_center, m.box_half, m.box_friction,
+        m.box_center, m.box_half, m.box_friction, m.scalar(m.contact_ramp),
     ]
 
 
