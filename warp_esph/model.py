@@ -146,10 +146,6 @@ class Model:
         self.materials = list(materials)
         self.bodies = list(bodies)
         self.planes, self.spheres, self.boxes = list(planes), list(spheres), list(boxes)
-        #: The contact law of the colliders and tools (``colliders.coulomb_response``):
-        #: 0 removes the whole inward normal velocity of a particle found inside; r > 0 at
-        #: most ``depth / (r dt)`` of it, with the stick-slip transition rounded, which is
-        #: continuous in the state (docs/method.md §1, "Contact").
         self.contact_ramp = CONTACT_RAMP
         self.particle_count = int(positions.shape[0])
         npf = self.types.np_dtype
@@ -237,6 +233,23 @@ class Model:
     def _material_array(self, name: str) -> wp.array:
         values = [getattr(m, name) for m in self.materials]
         return wp.array(values, dtype=self.scalar, device=self.device, requires_grad=self.requires_grad)
+
+    @property
+    def contact_ramp(self) -> float:
+        """The contact law of the colliders and tools (``colliders.coulomb_response``): 0
+        (default) removes the whole inward normal velocity of a particle found inside; ``r > 0``
+        at most ``depth / (r dt)`` of it, with the stick-slip transition rounded, which is
+        continuous in the state, so a loss is continuous in the parameters through contact
+        (1: ``colliders.CONTINUOUS_CONTACT_RAMP``; docs/method.md §1, "Contact")."""
+        return self._contact_ramp
+
+    @contact_ramp.setter
+    def contact_ramp(self, value: float):
+        v = float(value)
+        if not (v >= 0.0 and v < float("inf")):
+            raise ValueError(f"contact_ramp = {value!r} is not allowed: must be a finite number >= 0 "
+                             f"(0: the whole inward velocity removed; 1: the continuous contact)")
+        self._contact_ramp = v
 
     def _collider_array(self, values, dtype) -> wp.array:
         # Zero colliders of a kind still pass a (never read) one-element array.

@@ -23,9 +23,12 @@ from .._types import type_set
 #: Collider loops are unrolled at compile time (a dynamic loop that carries positions
 #: through non-linear projections would get a wrong adjoint, docs/method.md, Warp pitfall 1).
 MAX_PER_KIND = 16
-#: Default ``Model.contact_ramp``: a particle found ``depth`` inside loses at most
-#: ``depth / (CONTACT_RAMP dt)`` of its inward normal velocity (0: all of it).
-CONTACT_RAMP = 1.0
+#: Default ``Model.contact_ramp``: 0, the whole inward normal velocity of a particle found
+#: inside is removed (the earlier law, discontinuous where a particle crosses the surface).
+#: ``model.contact_ramp = CONTINUOUS_CONTACT_RAMP`` removes at most ``depth / dt`` of it and
+#: rounds the stick-slip transition: continuous in the state (docs/method.md §1, "Contact").
+CONTACT_RAMP = 0.0
+CONTINUOUS_CONTACT_RAMP = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,16 +93,19 @@ def funcs(scalar) -> types.SimpleNamespace:
         if vn < scalar(0.0) and depth > scalar(0.0):
             vt = vr - vn * n
             vt_len = wp.length(vt)
-            dvn = -vn
-            band = scalar(0.0)
             if ramp > scalar(0.0):
                 dvn = wp.min(-vn, depth / (ramp * dt))
-                band = mu_k * dvn
-            vn_left = (vn + dvn) * n
+                vn_left = (vn + dvn) * n
+                if vt_len <= mu_s * dvn:
+                    return vs + vn_left
+                slip = slip_speed(vt_len - mu_k * dvn, mu_k * dvn)
+                return vs + vn_left + vt * (slip / vt_len)
+            # The earlier law, as it was computed (a float32 run of the rubber ball settles
+            # differently under a rounding-level change of this expression).
+            dvn = -vn
             if vt_len <= mu_s * dvn:
-                return vs + vn_left
-            slip = slip_speed(vt_len - mu_k * dvn, band)
-            return vs + vn_left + vt * (slip / vt_len)
+                return vs
+            return vs + vt * (scalar(1.0) - mu_k * dvn / vt_len)
         return v
 
     @wp.func
