@@ -1,11 +1,12 @@
 """Static colliders: planes (the ground), spheres and axis-aligned boxes.
 
 A particle found inside a collider after the position update is moved to its surface;
-the inward normal velocity is removed, at most ``depth / dt`` of it, and the tangential
-velocity loses ``friction`` times the normal velocity removed (Coulomb friction; it stops
-when that exceeds it, with the stick-slip transition rounded). Both keep the step
-continuous in the state, so a loss is continuous in the parameters through contact
-(docs/method.md §1, "Contact").
+the inward normal velocity is removed and the tangential velocity loses ``friction`` times
+it (Coulomb friction; it stops when that exceeds it). With ``Model.contact_ramp > 0``
+(opt-in, ``CONTINUOUS_CONTACT_RAMP``) at most ``depth / (ramp dt)`` of the normal velocity
+is removed and the stick-slip transition is rounded, which keeps the step continuous in the
+state, so a loss is continuous in the parameters through contact (docs/method.md §1,
+"Contact").
 The position is corrected by ``dt`` times the velocity friction removed: the drift moved the
 particle with the velocity before friction, so without it a particle that friction holds
 still slides ``a_t dt^2`` per step, a creep at speed ``a_t dt`` that kept slumped plastic
