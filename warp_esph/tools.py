@@ -379,6 +379,100 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         return 0, xl, vec3()
 
     @wp.func
+    def ray_sphere(xs: vec3, d: vec3, a: vec3, r: scalar):
+        """Entry parameter ``t`` of the path ``xs + t d`` into the sphere ``(a, r)``; 2 (no
+        entry in the step) when the path misses it or starts inside it."""
+        o = xs - a
+        dd = wp.dot(d, d)
+        cc = wp.dot(o, o) - r * r
+        t = scalar(2.0)
+        if cc > ZERO and dd > ZERO:
+            b = wp.dot(o, d)
+            disc = b * b - dd * cc
+            if disc > ZERO and b < ZERO:
+                t = (-b - wp.sqrt(disc)) / dd
+        return t
+
+    @wp.func
+    def ray_disc(ox: scalar, oz: scalar, dx: scalar, dz: scalar, r: scalar):
+        """Entry and exit parameters of the path ``o + t d`` (projected on x-z) through the
+        infinite cylinder ``x^2 + z^2 <= r^2`` along y."""
+        big = scalar(1.0e30)
+        dd = dx * dx + dz * dz
+        cc = ox * ox + oz * oz - r * r
+        if dd == ZERO:
+            if cc < ZERO:
+                return -big, big
+            return big, -big
+        b = ox * dx + oz * dz
+        disc = b * b - dd * cc
+        if disc <= ZERO:
+            return big, -big
+        sq = wp.sqrt(disc)
+        return (-b - sq) / dd, (-b + sq) / dd
+
+    @wp.func
+    def swept_sphere(xs: vec3, xl: vec3, param: vec3, margin: scalar):
+        """A sphere the relative path ``xs -> xl`` enters during the step (however fast the
+        tool moves past the particle): stop at the entry point."""
+        d = xl - xs
+        t = ray_sphere(xs, d, vec3(), param[0])
+        if t > ZERO and t <= ONE:
+            nl = wp.normalize(xs + t * d)
+            return 1, xs + t * d + margin * nl, nl
+        return 0, xl, vec3()
+
+    @wp.func
+    def swept_capsule(xs: vec3, xl: vec3, param: vec3, margin: scalar):
+        """The capsule is the union of its side and its two end spheres: the path enters it
+        where it first enters one of them."""
+        r = param[0]
+        h = param[1]
+        d = xl - xs
+        # Starting inside: the nearest-point projection handles it.
+        ys = wp.clamp(xs[1], -h, h)
+        o = xs - vec3(ZERO, ys, ZERO)
+        if wp.dot(o, o) <= r * r:
+            return 0, xl, vec3()
+        t = scalar(2.0)
+        a = vec3()
+        tc, tc_out = ray_disc(xs[0], xs[2], d[0], d[2], r)
+        yc = xs[1] + tc * d[1]
+        if tc > ZERO and tc < tc_out and yc >= -h and yc <= h:
+            t = tc
+            a = vec3(ZERO, yc, ZERO)
+        top = vec3(ZERO, h, ZERO)
+        t_top = ray_sphere(xs, d, top, r)
+        if t_top < t:
+            t = t_top
+            a = top
+        t_bot = ray_sphere(xs, d, -top, r)
+        if t_bot < t:
+            t = t_bot
+            a = -top
+        if t > ZERO and t <= ONE:
+            nl = wp.normalize(xs + t * d - a)
+            return 1, xs + t * d + margin * nl, nl
+        return 0, xl, vec3()
+
+    @wp.func
+    def swept_cylinder(xs: vec3, xl: vec3, param: vec3, margin: scalar):
+        """The capped cylinder is the infinite cylinder cut by the slab ``|y| <= h``: the path
+        enters it at the later of its two entries, if that precedes both exits."""
+        r = param[0]
+        d = xl - xs
+        tc0, tc1 = ray_disc(xs[0], xs[2], d[0], d[2], r)
+        ty0, ty1, sy = slab(xs[1], d[1], param[1])
+        t_in = wp.max(tc0, ty0)
+        if t_in > ZERO and t_in <= ONE and t_in <= wp.min(tc1, ty1):
+            p = xs + t_in * d
+            nl = vec3(ZERO, sy, ZERO)
+            if tc0 > ty0:
+                nl = wp.normalize(vec3(p[0], ZERO, p[2]))
+            return 1, p + margin * nl, nl
+        return 0, xl, vec3()
+
+    @wp.func
     def shape_cylinder(xl: vec3, param: vec3):
         r = param[0]
         hh = param[1]
@@ -481,15 +575,24 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[2])):
             k = wp.static(offsets[2]) + c
-            hit, xc, nl = shape_sphere(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
+            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
+            hit, xc, nl = swept_sphere(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
+            if hit == 0:
+                hit, xc, nl = shape_sphere(xl, param[k])
             x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[3])):
             k = wp.static(offsets[3]) + c
-            hit, xc, nl = shape_capsule(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
+            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
+            hit, xc, nl = swept_capsule(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
+            if hit == 0:
+                hit, xc, nl = shape_capsule(xl, param[k])
             x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[4])):
             k = wp.static(offsets[4]) + c
-            hit, xc, nl = shape_cylinder(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
+            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
+            hit, xc, nl = swept_cylinder(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
+            if hit == 0:
+                hit, xc, nl = shape_cylinder(xl, param[k])
             x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[5])):
             k = wp.static(offsets[5]) + c
