@@ -351,6 +351,66 @@ def test_gradients_of_friction_tool_velocity_keyframe_and_a_reaction_force_loss_
     assert g["mu"] == pytest.approx(fd, rel=1e-4)
 
 
+def _mesh_keyframe_model():
+    """A frictional mesh press sliding over a block while pressing it, and a box pusher
+    keyframed in position and orientation (it turns 0.2 rad about y as it advances)."""
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
+    b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), _elastic(5e3, viscosity=1.0), name="block", velocity=(0.4, 0.0, 0.1))
+    b.add_tool("plane", position=(0, 0.0102, 0), friction=0.3, name="floor")
+    b.add_tool("mesh", mesh=tools.box_mesh((0.1, 0.01, 0.1)), friction=0.2,
+               motion=tools.Velocity((0.2, -0.5, 0.0), position=(0, 0.0602, 0)), name="press")
+    turn = (0.0, np.sin(0.1), 0.0, np.cos(0.1))
+    b.add_tool("box", half_extents=(0.02, 0.03, 0.03), friction=0.1, name="pusher",
+               motion=tools.Keyframes([0.0, 0.01], [(-0.045, 0.03, 0.0), (-0.03, 0.03, 0.0)], [tools.IDENTITY, turn]))
+    m = b.finalize(dtype=wp.float64, requires_grad=True)
+    m.particle_x0 += np.random.default_rng(3).normal(scale=2e-5, size=m.particle_x0.shape)
+    return m
+
+
+#: (array of model.tools, tool, row offset (keyframe index), component, step h)
+_TOOL_PARAMS = {
+    "mesh velocity x": ("velocity", "press", 0, 0, 1e-5),
+    "mesh velocity y": ("velocity", "press", 0, 1, 1e-5),
+    "mesh friction": ("friction", "press", 0, None, 1e-5),
+    "keyframe time": ("keyframe_times", "pusher", 1, None, 1e-7),
+    "keyframe position": ("keyframe_positions", "pusher", 1, 0, 1e-6),
+    "keyframe orientation": ("keyframe_orientations", "pusher", 1, 1, 1e-6),
+}
+
+
+def _row(t, array, tool, offset):
+    k = t.index(tool)
+    return (t.keyframe_start[k] + offset) if array.startswith("keyframe") else k
+
+
+def test_gradients_of_a_mesh_tool_and_of_keyframe_times_and_orientations_match_central_differences():
+    """Mesh contact (float64 geometry on the face Warp's float32 query picks), its velocity
+    and friction; a keyframe's time, position and orientation (raw quaternion component):
+    the tape against float64 central differences of the same loss as above."""
+    model = _mesh_keyframe_model()
+    _loss(model, grad=True)  # (it also checks that every tool touched the block)
+    t = model.tools
+    grads = {name: getattr(t, arr).grad.numpy()[_row(t, arr, tool, off)] for name, (arr, tool, off, _c, _h) in _TOOL_PARAMS.items()}
+    for name, (arr, tool, off, comp, h) in _TOOL_PARAMS.items():
+        g = grads[name] if comp is None else grads[name][comp]
+        vals = []
+        for sign in (1, -1):
+            m = _mesh_keyframe_model()
+            a = getattr(m.tools, arr)
+            v = a.numpy()
+            row = _row(m.tools, arr, tool, off)
+            if comp is None:
+                v[row] += sign * h
+            else:
+                v[row][comp] += sign * h
+            a.assign(v)
+            vals.append(_loss(m))
+        fd = (vals[0] - vals[1]) / (2 * h)
+        print(name, g, fd)
+        assert g == pytest.approx(fd, rel=1e-4, abs=1e-9), name
+        assert abs(fd) > 1e-6, name  # the parameter acts on the loss
+
+
 # ------------------------------------------------------------------------- bad input
 @pytest.mark.parametrize("call,match", [
     (lambda b: b.add_tool("cone"), "shape"),

@@ -104,13 +104,17 @@ class Keyframes:
         object.__setattr__(self, "orientations", tuple(map(tuple, q)))
 
     def sample(self, t: float) -> tuple[int, int, float]:
-        ts = self.times
-        if t <= ts[0]:
-            return 0, 0, 0.0
-        if t >= ts[-1]:
-            return len(ts) - 1, len(ts) - 1, 0.0
-        k = int(np.searchsorted(ts, t, side="right")) - 1
-        return k, k + 1, (t - ts[k]) / (ts[k + 1] - ts[k])
+        return sample_times(self.times, t)
+
+
+def sample_times(ts, t: float) -> tuple[int, int, float]:
+    """The keyframes ``(a, b)`` around time ``t`` and the weight ``w`` of ``b``."""
+    if t <= ts[0]:
+        return 0, 0, 0.0
+    if t >= ts[-1]:
+        return len(ts) - 1, len(ts) - 1, 0.0
+    k = int(np.searchsorted(ts, t, side="right")) - 1
+    return k, k + 1, (t - ts[k]) / (ts[k + 1] - ts[k])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -235,6 +239,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
 
     @wp.kernel(module="unique")
     def poses(
+        kf_t: wp.array(dtype=scalar),
         kf_p: wp.array(dtype=vec3),
         kf_q: wp.array(dtype=quat),
         lin_v: wp.array(dtype=vec3),
@@ -258,8 +263,12 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         else:
             i0 = s_i0[s]
             i1 = s_i1[s]
-            w = s_w[s]
             t = s_t[s]
+            # The weight from the keyframe times on the tape (differentiable in them); the
+            # host only chose the segment (s_w is its value, for the hold before / after).
+            w = s_w[s]
+            if i1 != i0:
+                w = (t - kf_t[i0]) / (kf_t[i1] - kf_t[i0])
             p = kf_p[i0] * (ONE - w) + kf_p[i1] * w + lin_v[c] * t
             q = quat_exp(ang_v[c] * t) * interp_quat(kf_q[i0], kf_q[i1], w)
             pose_p[s] = p
@@ -487,9 +496,51 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         return 0, xl, vec3()
 
     @wp.func
-    def shape_mesh(xl: vec3, xs: vec3, mesh: wp.uint64, lo: vec3, hi: vec3, margin: scalar):
+    def closest_on_triangle(p: vec3, a: vec3, b: vec3, c: vec3):
+        """Closest point to ``p`` on the triangle ``abc`` (Voronoi regions of its vertices,
+        edges and face)."""
+        ab = b - a
+        ac = c - a
+        ap = p - a
+        d1 = wp.dot(ab, ap)
+        d2 = wp.dot(ac, ap)
+        bp = p - b
+        d3 = wp.dot(ab, bp)
+        d4 = wp.dot(ac, bp)
+        cp = p - c
+        d5 = wp.dot(ab, cp)
+        d6 = wp.dot(ac, cp)
+        vc = d1 * d4 - d3 * d2
+        vb = d5 * d2 - d1 * d6
+        va = d3 * d6 - d5 * d4
+        out = a
+        if d1 <= ZERO and d2 <= ZERO:
+            out = a
+        elif d3 >= ZERO and d4 <= d3:
+            out = b
+        elif vc <= ZERO and d1 >= ZERO and d3 <= ZERO:
+            out = a + ab * (d1 / (d1 - d3))
+        elif d6 >= ZERO and d5 <= d6:
+            out = c
+        elif vb <= ZERO and d2 >= ZERO and d6 <= ZERO:
+            out = a + ac * (d2 / (d2 - d6))
+        elif va <= ZERO and (d4 - d3) >= ZERO and (d5 - d6) >= ZERO:
+            out = b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))
+        else:
+            den = ONE / (va + vb + vc)
+            out = a + ab * (vb * den) + ac * (vc * den)
+        return out
+
+    @wp.func
+    def shape_mesh(xl: vec3, xs: vec3, mesh: wp.uint64, lo: vec3, hi: vec3, margin: scalar,
+                   verts: wp.array(dtype=vec3), tris: wp.array(dtype=wp.int32), vofs: int, fofs: int):
         """Closed mesh in its own frame: the entry point of the relative path ``xs -> xl``
-        if it enters a face, else the nearest surface point if ``xl`` ends inside."""
+        if it enters a face, else the nearest surface point if ``xl`` ends inside.
+
+        Warp's mesh queries are float32: they only pick the face (and inside / outside); the
+        entry point and the nearest point are then computed on that face from the mesh's
+        vertices in the model's precision, so a float64 run has float64 contact geometry
+        and its gradient matches central differences."""
         # Both ends beyond the padded bounds on the same side: no contact.
         a = wp.min(xl, xs)
         b = wp.max(xl, xs)
@@ -502,15 +553,22 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             start = wp.vec3f(wp.float32(xs[0]), wp.float32(xs[1]), wp.float32(xs[2]))
             ray = wp.mesh_query_ray(mesh, start, dirf, wp.float32(seg_len))
             if ray.result and wp.dot(dirf, ray.normal) < wp.float32(0.0):
-                nl = vec3(scalar(ray.normal[0]), scalar(ray.normal[1]), scalar(ray.normal[2]))
-                nl = wp.normalize(nl)
-                return 1, xs + seg * (scalar(ray.t) / seg_len) + margin * nl, nl
+                f = 3 * (fofs + ray.face)
+                va = verts[vofs + tris[f]]
+                vb = verts[vofs + tris[f + 1]]
+                vc = verts[vofs + tris[f + 2]]
+                nl = wp.normalize(wp.cross(vb - va, vc - va))
+                den = wp.dot(seg, nl)
+                if den < ZERO:
+                    # Where the path crosses the face's plane (the face the float32 ray hit).
+                    t = wp.clamp(wp.dot(va - xs, nl) / den, ZERO, ONE)
+                    return 1, xs + t * seg + margin * nl, nl
         qf = wp.vec3f(wp.float32(xl[0]), wp.float32(xl[1]), wp.float32(xl[2]))
         far = wp.float32(wp.length(hi - lo))
         res = wp.mesh_query_point(mesh, qf, far)
         if res.result and res.sign < wp.float32(0.0):
-            cp = wp.mesh_eval_position(mesh, res.face, res.u, res.v)
-            cl = vec3(scalar(cp[0]), scalar(cp[1]), scalar(cp[2]))
+            f = 3 * (fofs + res.face)
+            cl = closest_on_triangle(xl, verts[vofs + tris[f]], verts[vofs + tris[f + 1]], verts[vofs + tris[f + 2]])
             d = cl - xl
             dl = wp.length(d)
             if dl > ZERO:
@@ -543,6 +601,10 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         mesh_id: wp.array(dtype=wp.uint64),
         mesh_lo: wp.array(dtype=vec3),
         mesh_hi: wp.array(dtype=vec3),
+        mesh_verts: wp.array(dtype=vec3),
+        mesh_tris: wp.array(dtype=wp.int32),
+        mesh_vofs: wp.array(dtype=wp.int32),
+        mesh_fofs: wp.array(dtype=wp.int32),
         margin: scalar,
         pin: wp.array(dtype=wp.int32),
         rest_x: wp.array(dtype=vec3),
@@ -598,7 +660,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             k = wp.static(offsets[5]) + c
             xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
             xs = local(pose_p[2 * k], pose_q[2 * k], x_in[i])
-            hit, xc, nl = shape_mesh(xl, xs, mesh_id[k], mesh_lo[k], mesh_hi[k], margin)
+            hit, xc, nl = shape_mesh(xl, xs, mesh_id[k], mesh_lo[k], mesh_hi[k], margin, mesh_verts, mesh_tris, mesh_vofs[k], mesh_fofs[k])
             x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         if wp.static(n_pins > 0):
             k = pin[i]
@@ -665,22 +727,25 @@ class ToolSet:
         self.pin_np = pin_of
 
         # Rest pose of each tool: colliders' from their motion, pinned sets' (centroid, I).
-        kf_p, kf_q, start, lin, ang = [], [], [], [], []
+        kf_t, kf_p, kf_q, start, lin, ang = [], [], [], [], [], []
         self.motions = [c.motion for c in self.colliders] + [p.motion for p in self.pins]
         for k, motion in enumerate(self.motions):
             rest_p = tuple(centers[k]) if k >= len(self.colliders) else (0.0, 0.0, 0.0)
             start.append(len(kf_p))
             if isinstance(motion, Keyframes):
+                kf_t.extend(motion.times)
                 kf_p.extend(motion.positions)
                 kf_q.extend(motion.orientations)
                 lin.append((0.0,) * 3)
                 ang.append((0.0,) * 3)
             elif isinstance(motion, Velocity):
+                kf_t.append(0.0)
                 kf_p.append(motion.position if motion.position is not None else rest_p)
                 kf_q.append(motion.orientation if motion.orientation is not None else IDENTITY)
                 lin.append(motion.velocity)
                 ang.append(motion.angular_velocity)
             else:  # Scripted: the host writes its poses every step
+                kf_t.append(0.0)
                 kf_p.append(rest_p)
                 kf_q.append(IDENTITY)
                 lin.append((0.0,) * 3)
@@ -692,6 +757,7 @@ class ToolSet:
             values = list(values) or [(0.0,) * width if width > 1 else 0.0]
             return wp.array(np.array(values, dtype=npf), dtype=dtype, device=dev, requires_grad=grad and rg)
 
+        self.keyframe_times = arr(kf_t, S, True, 1)
         self.keyframe_positions = arr(kf_p, T.vec3, True)
         self.keyframe_orientations = arr(kf_q, self.quat, True, 4)
         self.velocity = arr(lin, T.vec3, True)
@@ -702,8 +768,15 @@ class ToolSet:
         # Meshes: kept referenced here for the model's lifetime (docs/method.md, Warp pitfall 3).
         self.meshes = []
         ids, lo, hi = [], [], []
+        # Every mesh's vertices in the model's precision and its triangles, concatenated
+        # (the contact geometry, ``shape_mesh``); tool k's from mesh_vofs[k] / mesh_fofs[k].
+        verts, tris, vofs, fofs = [], [], [], []
         for c in self.colliders:
+            vofs.append(sum(len(v) for v in verts))
+            fofs.append(sum(len(t) for t in tris))
             if c.kind == "mesh":
+                verts.append(np.asarray(c.mesh_points, dtype=np.float64))
+                tris.append(np.asarray(c.mesh_triangles, dtype=np.int32).reshape(-1, 3))
                 pts = np.asarray(c.mesh_points, dtype=np.float32)
                 mesh = wp.Mesh(points=wp.array(pts, dtype=wp.vec3f, device=dev),
                                indices=wp.array(np.asarray(c.mesh_triangles, dtype=np.int32).ravel(), dtype=wp.int32, device=dev))
@@ -719,11 +792,27 @@ class ToolSet:
         self.mesh_id = wp.array(np.array(ids or [0], dtype=np.uint64), dtype=wp.uint64, device=dev)
         self.mesh_lo = arr(lo, T.vec3)
         self.mesh_hi = arr(hi, T.vec3)
+        self.mesh_verts = arr(np.concatenate(verts) if verts else [], T.vec3)
+        self.mesh_tris = wp.array(np.concatenate(tris).ravel() if tris else np.zeros(3, np.int32), dtype=wp.int32, device=dev)
+        self.mesh_vofs = wp.array(np.array(vofs or [0], dtype=np.int32), dtype=wp.int32, device=dev)
+        self.mesh_fofs = wp.array(np.array(fofs or [0], dtype=np.int32), dtype=wp.int32, device=dev)
         self.pin = wp.array(pin_of, dtype=wp.int32, device=dev)
         self.rest_x = wp.array(x0, dtype=T.vec3, device=dev)
         self.pin_center = wp.array(centers, dtype=T.vec3, device=dev)
         self.kernels = k_
         self.model = model
+
+    def _times_now(self) -> np.ndarray:
+        """The keyframe times as they are now (an optimiser may have changed the array)."""
+        if not any(isinstance(mo, Keyframes) for mo in self.motions):
+            return np.zeros(0)
+        kt = self.keyframe_times.numpy().astype(np.float64)
+        for k, mo in enumerate(self.motions):
+            if isinstance(mo, Keyframes):
+                ts = kt[self.keyframe_start[k]:self.keyframe_start[k] + len(mo.times)]
+                if not np.isfinite(ts).all() or np.any(np.diff(ts) <= 0.0):
+                    raise ValueError(f"keyframe_times of tool {self.names[k]!r} = {ts.tolist()!r} is not allowed: must be finite and increasing")
+        return kt
 
     def index(self, name: str) -> int:
         if name not in self.names:
@@ -740,13 +829,14 @@ class ToolSet:
         direct = np.zeros(2 * n, dtype=np.int32)
         sp = np.zeros((2 * n, 3))
         sq = np.tile(np.array(IDENTITY), (2 * n, 1))
+        kt = self._times_now()
         for k, motion in enumerate(self.motions):
             for j, t in enumerate((t0, t1)):
                 s = 2 * k + j
                 ts[s] = t
                 base = self.keyframe_start[k]
                 if isinstance(motion, Keyframes):
-                    a, b, w[s] = motion.sample(t)
+                    a, b, w[s] = sample_times(kt[base:base + len(motion.times)], t)
                     i0[s], i1[s] = base + a, base + b
                 elif isinstance(motion, Velocity):
                     i0[s] = i1[s] = base
@@ -771,7 +861,7 @@ class ToolSet:
         state_out.tool_samples = samples  # referenced until a backward pass has read them
         wp.launch(
             self.kernels.poses, 2 * n,
-            [self.keyframe_positions, self.keyframe_orientations, self.velocity, self.angular_velocity, *samples],
+            [self.keyframe_times, self.keyframe_positions, self.keyframe_orientations, self.velocity, self.angular_velocity, *samples],
             [state_out.tool_pose_p, state_out.tool_pose_q], device=dev,
         )
         state_out.reaction_force.zero_()
@@ -783,7 +873,8 @@ class ToolSet:
                 state_in.x, state_in.v, state_out.force, m.particle_mass, T.vec3(*m.gravity), S(dt),
                 *static_collider_arrays(m),
                 state_out.tool_pose_p, state_out.tool_pose_q, self.param, self.static_friction, self.friction,
-                self.mesh_id, self.mesh_lo, self.mesh_hi, S(self.margin),
+                self.mesh_id, self.mesh_lo, self.mesh_hi, self.mesh_verts, self.mesh_tris, self.mesh_vofs, self.mesh_fofs,
+                S(self.margin),
                 self.pin, self.rest_x, self.pin_center,
             ],
             [state_out.x, state_out.v, state_out.reaction_force, state_out.reaction_torque],
@@ -816,7 +907,7 @@ class ToolSet:
             p, q = motion.pose(t)
             return np.array(p), np.array(q)
         if isinstance(motion, Keyframes):
-            a, b, w = motion.sample(t)
+            a, b, w = sample_times(self._times_now()[base:base + len(motion.times)], t)
         else:
             a, b, w = 0, 0, 0.0
         p = kp[base + a] * (1 - w) + kp[base + b] * w + self.velocity.numpy()[k] * t
