@@ -1,12 +1,15 @@
 """Tools and boundary conditions (``warp_esph/tools.py``): pinned sets, moving colliders,
 reaction forces, and their gradients against float64 central differences."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import warp as wp
 
 import warp_esph as we
 from warp_esph import tools
+from warp_esph.builder import finalize_worlds
 
 G = 9.81
 
@@ -569,3 +572,52 @@ def test_block_on_a_slope_slides_with_coulomb_acceleration_or_sticks(mu_k, mu_s)
         assert -f[0] / f[1] == pytest.approx(mu_k, abs=1e-3)
     else:
         assert abs(xs[-1] - xs[0]) < 3e-4 and abs(acc) < 0.05  # stuck: only the elastic sway
+
+
+# ------------------------------------------------------------------------------ worlds
+def _world_builder(material):
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
+    b.add_box((0.0, 0.035, 0.0), (0.1, 0.06, 0.06), material, name="bar", velocity=(0.0, -0.3, 0.0))
+    b.pin(region=((-0.06, -1, -1), (-0.03, 1, 1)), name="clamp")
+    b.add_tool("sphere", radius=0.03, friction=0.3, motion=tools.Velocity((0.0, -0.6, 0.0), position=(0.03, 0.085, 0.0)), name="press")
+    b.add_tool("plane", position=(0.0, 0.012, 0.0), friction=0.5, name="floor")
+    return b
+
+
+def test_tools_in_worlds_act_per_world_and_report_each_world_its_own_reaction():
+    """Two worlds of different stiffness meet the same press, floor and clamp: each world's
+    positions and reaction rows ("w<w>/<name>") are those of its scene run alone, and the
+    worlds' reactions differ (the comparison cannot pass by accident)."""
+    soft, stiff = _elastic(4e3, viscosity=1.0), _elastic(2e4, viscosity=1.0)
+    model = _world_builder(soft).finalize(dtype=wp.float64, worlds=2)
+    model.set_material(0, stiff, world=1)
+    names = model.tools.names
+    assert model.tools.row_names == [f"w{w}/{n}" for w in range(2) for n in names]
+    steps, dt = 40, 5e-4
+
+    def run(m):
+        s = we.Solver(m)
+        a, c = m.state(), m.state()
+        total = {}
+        for _ in range(steps):
+            s.step(a, c, dt)
+            a, c = c, a
+            for key, (f, _t) in s.reaction_forces(a).items():
+                total[key] = total.get(key, 0.0) + f * dt
+        return a.x.numpy(), a.v.numpy(), total
+
+    x, v, imp = run(model)
+    for w, mat in enumerate((soft, stiff)):
+        xs, vs, imp_s = run(_world_builder(mat).finalize(dtype=wp.float64))
+        sl = model.world_particles(w)
+        np.testing.assert_allclose(x[sl], xs, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(v[sl], vs, rtol=0, atol=1e-9)
+        for n in names:
+            np.testing.assert_allclose(imp[f"w{w}/{n}"], imp_s[n], rtol=1e-10, atol=1e-14)
+            assert np.abs(imp_s[n]).max() > 0.0, n  # every tool acted
+    assert np.abs(imp["w0/press"] - imp["w1/press"]).max() > 1e-3 * np.abs(imp["w1/press"]).max()
+    # Worlds share their tools: a world whose tools differ is refused before anything runs.
+    other = _world_builder(soft)
+    other.tools[0] = dataclasses.replace(other.tools[0], friction=0.4)
+    with pytest.raises(ValueError, match=r"builders\[1\] tools and pinned sets"):
+        finalize_worlds([_world_builder(soft), other])

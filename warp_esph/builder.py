@@ -388,6 +388,17 @@ class SceneBuilder:
 _SHARED = ("spacing", "support_radius", "gravity", "max_neighbors", "bodies_interact", "planes", "spheres", "boxes")
 
 
+def _tool_signature(b: SceneBuilder) -> tuple:
+    """What must be equal in every world's tools and pins (``finalize_worlds``)."""
+    cols = tuple(
+        (c.name, c.kind, c.param, repr(c.motion), c.friction, c.static_friction,
+         None if c.mesh_points is None else np.asarray(c.mesh_points).tobytes(),
+         None if c.mesh_triangles is None else np.asarray(c.mesh_triangles).tobytes())
+        for c in b.tools
+    )
+    return cols, tuple((p.name, repr(p.motion), len(p.indices)) for p in b.pins)
+
+
 def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.float32, requires_grad: bool = False) -> Model:
     """One ``Model`` of ``len(builders)`` worlds: world ``w`` is ``builders[w]``'s scene.
 
@@ -415,11 +426,15 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
                     f"builders[{k}].{name} = {getattr(b, name)!r} is not allowed: every world must have the "
                     f"{name} of builders[0] ({getattr(first, name)!r})"
                 )
-    if len(builders) > 1 and any(b.tools or b.pins for b in builders):
-        raise ValueError(
-            f"worlds = {len(builders)} is not allowed with moving tools or pinned sets: "
-            "tools act on one world; build one model per scene with tools"
-        )
+    for k, b in enumerate(builders[1:], start=1):
+        # Tools are shared by the worlds like the static colliders (one motion, one set of
+        # differentiable parameters); each world reports its own reaction.
+        if _tool_signature(b) != _tool_signature(first):
+            raise ValueError(
+                f"builders[{k}] tools and pinned sets are not allowed to differ from builders[0]'s: every world "
+                "meets the same tools (same names, shapes, motions, friction; pinned sets of the same name, "
+                "motion and particle count)"
+            )
     # Overlap is checked within each world only: worlds overlap in space by design.
     for b in {id(b): b for b in builders}.values():
         b._check_overlap()
@@ -481,6 +496,6 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     )
     model.force_fields = fields
     if first.tools or first.pins:
-        model.tools = tools.ToolSet(model, first.tools, first.pins)
+        model.tools = tools.ToolSet(model, first.tools, first.pins, world_pins=[[p.indices for p in b.pins] for b in builders])
     model.compute_rest_density()
     return model

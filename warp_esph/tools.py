@@ -284,12 +284,13 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
 
     @wp.func
     def apply(
-        x: vec3, v: vec3, hit: int, xc: vec3, nl: vec3, c: int, m: scalar, dt: scalar,
+        x: vec3, v: vec3, hit: int, xc: vec3, nl: vec3, c: int, row: int, m: scalar, dt: scalar,
         pose_p: wp.array(dtype=vec3), pose_q: wp.array(dtype=quat), mu_s: wp.array(dtype=scalar), mu_k: wp.array(dtype=scalar),
         rforce: wp.array(dtype=vec3), rtorque: wp.array(dtype=vec3),
     ):
         """Move a particle in contact to the surface point ``xc`` (collider frame) and
-        respond relative to that point's velocity; adds the impulse / dt to the tool's row."""
+        respond relative to that point's velocity; adds the impulse / dt to the reaction row
+        ``row`` (tool ``c`` in the particle's world)."""
         if hit == 0:
             return x, v
         p0 = pose_p[2 * c]
@@ -305,8 +306,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         dv = v_new - v
         x_new = x_s + dt * (dv - wp.dot(dv, n) * n)
         f = m * dv / dt
-        wp.atomic_add(rforce, c, f)
-        wp.atomic_add(rtorque, c, wp.cross(x_s - p1, f))
+        wp.atomic_add(rforce, row, f)
+        wp.atomic_add(rtorque, row, wp.cross(x_s - p1, f))
         return x_new, v_new
 
     @wp.func
@@ -609,6 +610,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         pin: wp.array(dtype=wp.int32),
         rest_x: wp.array(dtype=vec3),
         pin_center: wp.array(dtype=vec3),
+        world: wp.array(dtype=wp.int32),
+        n_tools: int,
         x_out: wp.array(dtype=vec3),
         v_out: wp.array(dtype=vec3),
         rforce: wp.array(dtype=vec3),
@@ -616,6 +619,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
     ):
         i = wp.tid()
         m = mass[i]
+        # Every world meets the same tools; each reports its own reaction rows.
+        base = world[i] * n_tools
         x, v = kin.symplectic_euler(x_in[i], v_in[i], f[i], m, gravity, dt)
         x, v = kin.static_colliders(
             x, v, dt, plane_normal, plane_offset, plane_friction, sphere_center, sphere_radius, sphere_friction,
@@ -624,7 +629,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         for c in range(wp.static(counts[0])):
             k = wp.static(offsets[0]) + c
             hit, xc, nl = shape_plane(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[1])):
             k = wp.static(offsets[1]) + c
             # The entry point first (a path from outside), the nearest face only for a
@@ -634,34 +639,34 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             hit, xc, nl = swept_box(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
             if hit == 0:
                 hit, xc, nl = shape_box(xl, param[k])
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[2])):
             k = wp.static(offsets[2]) + c
             xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
             hit, xc, nl = swept_sphere(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
             if hit == 0:
                 hit, xc, nl = shape_sphere(xl, param[k])
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[3])):
             k = wp.static(offsets[3]) + c
             xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
             hit, xc, nl = swept_capsule(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
             if hit == 0:
                 hit, xc, nl = shape_capsule(xl, param[k])
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[4])):
             k = wp.static(offsets[4]) + c
             xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
             hit, xc, nl = swept_cylinder(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
             if hit == 0:
                 hit, xc, nl = shape_cylinder(xl, param[k])
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[5])):
             k = wp.static(offsets[5]) + c
             xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
             xs = local(pose_p[2 * k], pose_q[2 * k], x_in[i])
             hit, xc, nl = shape_mesh(xl, xs, mesh_id[k], mesh_lo[k], mesh_hi[k], margin, mesh_verts, mesh_tris, mesh_vofs[k], mesh_fofs[k])
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         if wp.static(n_pins > 0):
             k = pin[i]
             if k >= 0:
@@ -674,8 +679,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
                 x0 = X + (pose_p[2 * k] - c0) + (wp.quat_rotate(pose_q[2 * k], xr) - xr)
                 v1 = (x1 - x0) / dt
                 fr = m * (v1 - v_in[i]) / dt - f[i] - m * gravity
-                wp.atomic_add(rforce, k, fr)
-                wp.atomic_add(rtorque, k, wp.cross(x1 - p1, fr))
+                wp.atomic_add(rforce, base + k, fr)
+                wp.atomic_add(rtorque, base + k, wp.cross(x1 - p1, fr))
                 x = x1
                 v = v1
         x_out[i] = x
@@ -697,9 +702,16 @@ class ToolSet:
     (one per tool), ``keyframe_positions`` / ``keyframe_orientations`` (all keyframes of all
     tools, tool ``k``'s from ``keyframe_start[k]``), ``velocity`` and ``angular_velocity`` (one
     per tool; zero for keyframed tools).
+
+    Worlds (``SceneBuilder.finalize(worlds=W)``): every world meets the same tools (one
+    motion, one set of parameters, like the shared static colliders) and reports its own
+    reaction: ``state.reaction_force`` has one row per world and tool, row ``w * count + k``,
+    named ``row_names[w * count + k] = "w<w>/<name>"``. ``world_pins[w][j]``: the particles
+    (world-local indices) of pinned set ``j`` in world ``w``; default: ``pins[j].indices``
+    in every world.
     """
 
-    def __init__(self, model, tool_colliders: list[Collider], pins: list[PinSet]):
+    def __init__(self, model, tool_colliders: list[Collider], pins: list[PinSet], world_pins=None):
         S, dev = model.scalar, model.device
         T = model.types
         npf = T.np_dtype
@@ -710,6 +722,10 @@ class ToolSet:
         self.counts = tuple(sum(1 for c in self.colliders if c.kind == kind) for kind in KINDS)
         n = len(self.names)
         self.count = n
+        W = model.world_count
+        self.world_count = W
+        #: Names of the reaction rows: the tool names, or with worlds ``"w<w>/<name>"``.
+        self.row_names = list(self.names) if W == 1 else [f"w{w}/{name}" for w in range(W) for name in self.names]
         self.scalar = S
         k_ = kernels(S, len(model.planes), len(model.spheres), len(model.boxes), self.counts, len(self.pins))
         self.quat = k_.quat
@@ -718,13 +734,22 @@ class ToolSet:
         x0 = model.particle_x0
         pin_of = np.full(model.particle_count, -1, dtype=np.int32)
         centers = np.zeros((max(n, 1), 3), dtype=npf)
+        if world_pins is None:
+            world_pins = [[ps.indices for ps in self.pins]] * W
         for j, ps in enumerate(self.pins):
             k = len(self.colliders) + j
-            if (pin_of[ps.indices] >= 0).any():
-                raise ValueError(f"pin {ps.name!r} is not allowed: it shares particles with pin {self.names[pin_of[ps.indices].max()]!r}")
-            pin_of[ps.indices] = k
-            centers[k] = x0[ps.indices].mean(axis=0)
-        self.pin_np = pin_of
+            for w in range(W):
+                idx = np.asarray(world_pins[w][j]) + model.world_start[w]
+                if (pin_of[idx] >= 0).any():
+                    raise ValueError(f"pin {ps.name!r} is not allowed: it shares particles with pin {self.names[pin_of[idx].max()]!r}")
+                pin_of[idx] = k
+                c = x0[idx].mean(axis=0)
+                if w == 0:
+                    centers[k] = c
+                elif np.abs(c - centers[k]).max() > 1e-9 * max(1.0, np.abs(centers[k]).max()):
+                    # One motion moves the set's frame, whose rest pose is the centroid.
+                    raise ValueError(f"pin {ps.name!r} is not allowed with worlds: its rest centroid in world {w} "
+                                     f"({c.tolist()}) is not the one in world 0 ({centers[k].tolist()})")
 
         # Rest pose of each tool: colliders' from their motion, pinned sets' (centroid, I).
         kf_t, kf_p, kf_q, start, lin, ang = [], [], [], [], [], []
@@ -875,23 +900,25 @@ class ToolSet:
                 state_out.tool_pose_p, state_out.tool_pose_q, self.param, self.static_friction, self.friction,
                 self.mesh_id, self.mesh_lo, self.mesh_hi, self.mesh_verts, self.mesh_tris, self.mesh_vofs, self.mesh_fofs,
                 S(self.margin),
-                self.pin, self.rest_x, self.pin_center,
+                self.pin, self.rest_x, self.pin_center, m.particle_world, int(n),
             ],
             [state_out.x, state_out.v, state_out.reaction_force, state_out.reaction_torque],
             device=dev,
         )
         acc = getattr(solver, "tool_impulse", None)
         if acc is not None and not _taping():
-            wp.launch(self.kernels.accumulate, n, [state_out.reaction_force, S(dt)], [acc[0]], device=dev)
-            wp.launch(self.kernels.accumulate, n, [state_out.reaction_torque, S(dt)], [acc[1]], device=dev)
+            rows = n * self.world_count
+            wp.launch(self.kernels.accumulate, rows, [state_out.reaction_force, S(dt)], [acc[0]], device=dev)
+            wp.launch(self.kernels.accumulate, rows, [state_out.reaction_torque, S(dt)], [acc[1]], device=dev)
 
     # ----------------------------------------------------------------- queries
     def reaction(self, state) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """``{tool name: (force, torque)}`` the tool exerted on the material in the step that
-        produced ``state`` (N and N m; torque about the tool's position at the step end)."""
+        produced ``state`` (N and N m; torque about the tool's position at the step end).
+        With worlds, one entry per world and tool, keyed ``"w<w>/<name>"`` (``row_names``)."""
         f = state.reaction_force.numpy()
         tq = state.reaction_torque.numpy()
-        return {name: (f[k].astype(np.float64), tq[k].astype(np.float64)) for k, name in enumerate(self.names)}
+        return {name: (f[r].astype(np.float64), tq[r].astype(np.float64)) for r, name in enumerate(self.row_names)}
 
     def pose(self, state) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """``{tool name: (position, quaternion (x, y, z, w))}`` at ``state.time``."""
@@ -965,10 +992,11 @@ def allocate_state(model, state, requires_grad: bool):
     if tools is None:
         return
     n, T, dev = tools.count, model.types, model.device
+    rows = n * tools.world_count
     state.tool_pose_p = wp.zeros(2 * n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
     state.tool_pose_q = wp.zeros(2 * n, dtype=tools.quat, device=dev, requires_grad=requires_grad)
-    state.reaction_force = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
-    state.reaction_torque = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+    state.reaction_force = wp.zeros(rows, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+    state.reaction_torque = wp.zeros(rows, dtype=T.vec3, device=dev, requires_grad=requires_grad)
 
 
 # --------------------------------------------------------------------------- selection
@@ -1109,7 +1137,8 @@ def usd_author(stage, model, key: str = "warp_esph", plane_size: float = 1.0):
 
 def usd_write_frame(stage, model, state, time_code, key: str = "warp_esph"):
     """Each tool's pose at ``state.time`` (time-sampled translate and orient) and the reaction
-    force and torque of the step that produced ``state`` (time-sampled attributes)."""
+    force and torque of the step that produced ``state`` (time-sampled attributes; with
+    worlds, world 0's: the others are in ``state.reaction_force``)."""
     from pxr import Gf  # noqa: PLC0415
 
     tools = getattr(model, "tools", None)
@@ -1145,9 +1174,10 @@ class ReactionLog:
         m = solver.model
         self.tools = m.tools
         self.solver = solver
+        rows = len(self.tools.row_names)
         solver.tool_impulse = (
-            wp.zeros(self.tools.count, dtype=m.types.vec3, device=m.device),
-            wp.zeros(self.tools.count, dtype=m.types.vec3, device=m.device),
+            wp.zeros(rows, dtype=m.types.vec3, device=m.device),
+            wp.zeros(rows, dtype=m.types.vec3, device=m.device),
         )
         self.rows: list[dict] = []
         self._t_last = None
@@ -1158,8 +1188,8 @@ class ReactionLog:
         self._t_last = state.time
         for a in self.solver.tool_impulse:
             a.zero_()
-        for k, name in enumerate(self.tools.names):
-            p, q = self.tools.pose_at(k, state.time)
+        for k, name in enumerate(self.tools.row_names):
+            p, q = self.tools.pose_at(k % self.tools.count, state.time)
             f = imp[k] / span if span else np.zeros(3)
             t = ang[k] / span if span else np.zeros(3)
             self.rows.append({
