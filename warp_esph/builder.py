@@ -378,7 +378,8 @@ class SceneBuilder:
 
         ``worlds=W`` puts ``W`` copies of the scene in one model (``finalize_worlds``):
         each with its own materials (``model.set_material(i, material, world=w)``), none
-        seeing another (they may overlap in space), all sharing the colliders."""
+        seeing another (they may overlap in space), all sharing the colliders and tools
+        (each world reports its own tool reactions, ``tools.ToolSet``)."""
         if isinstance(worlds, bool) or not isinstance(worlds, (int, np.integer)) or worlds < 1:
             raise ValueError(f"worlds = {worlds!r} is not allowed: must be an integer >= 1")
         return finalize_worlds([self] * int(worlds), device=device, dtype=dtype, requires_grad=requires_grad)
@@ -406,8 +407,8 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     materials world after world (``model.world_particles(w)``, ``model.world_materials(w)``),
     neighbour lists (so SPH) never crossing worlds, every step advancing all of them in
     the same launches. The builders must agree on spacing, support radius, gravity,
-    ``max_neighbors``, ``bodies_interact`` and colliders (a world is a scene at the same
-    place, colliders are shared). Bodies keep their names with one world; with several,
+    ``max_neighbors``, ``bodies_interact``, colliders, tools and pinned sets (a world is a
+    scene at the same place, colliders and tools are shared; tool reactions are per world). Bodies keep their names with one world; with several,
     body ``name`` of world ``w`` is ``"w<w>/name"``.
     """
     requires_grad = checks.boolean("requires_grad", requires_grad)

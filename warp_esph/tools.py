@@ -10,10 +10,11 @@ in the keyframes and velocities), then ``integrate`` does the symplectic Euler u
 
 - the static colliders of ``colliders.py`` (unchanged),
 - each moving collider: the candidate position is expressed in the collider's frame at
-  ``t1``. A particle of a mesh or box collider whose relative path in the collider frame
-  (start in the ``t0`` frame, end in the ``t1`` frame) enters a face is stopped at the entry
-  point (no tunnelling through a thin mesh or plate however fast it moves); otherwise a
-  particle found inside is moved to the nearest surface point. The surface point's velocity
+  ``t1``. A particle of a box, sphere, capsule, cylinder or mesh collider whose relative
+  path in the collider frame (start in the ``t0`` frame, end in the ``t1`` frame) enters it
+  is stopped at the entry point (no tunnelling through a thin or fast tool); otherwise a
+  particle found inside is moved to the nearest surface point (a plane, a half-space that
+  no path can cross, always so). The surface point's velocity
   over the step ``(T1(c) - T0(c)) / dt`` is the velocity the contact is measured against: the
   inward relative normal velocity is removed, and Coulomb friction acts on the relative
   tangential velocity (static coefficient: sticks while ``|v_t| <= mu_s |dv_n|``; else
