@@ -575,11 +575,11 @@ def test_block_on_a_slope_slides_with_coulomb_acceleration_or_sticks(mu_k, mu_s)
 
 
 # ------------------------------------------------------------------------------ worlds
-def _world_builder(material):
+def _world_builder(material, press_y=0.085):
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
     b.add_box((0.0, 0.035, 0.0), (0.1, 0.06, 0.06), material, name="bar", velocity=(0.0, -0.3, 0.0))
     b.pin(region=((-0.06, -1, -1), (-0.03, 1, 1)), name="clamp")
-    b.add_tool("sphere", radius=0.03, friction=0.3, motion=tools.Velocity((0.0, -0.6, 0.0), position=(0.03, 0.085, 0.0)), name="press")
+    b.add_tool("sphere", radius=0.03, friction=0.3, motion=tools.Velocity((0.0, -0.6, 0.0), position=(0.03, press_y, 0.0)), name="press")
     b.add_tool("plane", position=(0.0, 0.012, 0.0), friction=0.5, name="floor")
     return b
 
@@ -621,3 +621,37 @@ def test_tools_in_worlds_act_per_world_and_report_each_world_its_own_reaction():
     other.tools[0] = dataclasses.replace(other.tools[0], friction=0.4)
     with pytest.raises(ValueError, match=r"builders\[1\] tools and pinned sets"):
         finalize_worlds([_world_builder(soft), other])
+
+
+def test_gradient_of_a_shared_tool_parameter_in_worlds_is_the_sum_over_the_worlds():
+    """A loss on both worlds' press reactions: the tape's gradient with respect to the shared
+    press velocity and friction is the sum of the single-world gradients."""
+    soft, stiff = _elastic(4e3, viscosity=1.0), _elastic(2e4, viscosity=1.0)
+
+    def grads(model, rows):
+        s = we.Solver(model)
+        states = [model.state() for _ in range(9)]
+        loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+        zero = wp.zeros(model.particle_count, dtype=wp.vec3d)
+        tape = wp.Tape()
+        with tape:
+            for k in range(8):
+                s.step(states[k], states[k + 1], 5e-4)
+                for r in rows:
+                    wp.launch(_loss_kernel, model.particle_count, [states[k + 1].x, zero, states[k + 1].reaction_force, r, 1e-3], [loss])
+        tape.backward(loss)
+        t = model.tools
+        k = t.index("press")
+        return np.array([t.velocity.grad.numpy()[k][1], t.friction.grad.numpy()[k]])
+
+    model = _world_builder(soft, 0.075).finalize(dtype=wp.float64, requires_grad=True, worlds=2)
+    model.set_material(0, stiff, world=1)
+    rows = [model.tools.row_names.index(f"w{w}/press") for w in range(2)]
+    g = grads(model, rows)
+    alone = []
+    for mat in (soft, stiff):
+        m = _world_builder(mat, 0.075).finalize(dtype=wp.float64, requires_grad=True)
+        alone.append(grads(m, [m.tools.index("press")]))
+    print(g, alone)
+    assert np.abs(alone[0] - alone[1]).max() > 1e-3 * np.abs(alone[1]).max()  # the worlds differ
+    np.testing.assert_allclose(g, alone[0] + alone[1], rtol=1e-9)
