@@ -655,3 +655,27 @@ def test_gradient_of_a_shared_tool_parameter_in_worlds_is_the_sum_over_the_world
     print(g, alone)
     assert np.abs(alone[0] - alone[1]).max() > 1e-3 * np.abs(alone[1]).max()  # the worlds differ
     np.testing.assert_allclose(g, alone[0] + alone[1], rtol=1e-9)
+
+
+def test_reaction_force_loss_on_one_world_of_a_rollout():
+    """``ReactionForceLoss(tool="w1/press")`` through a checkpointed ``Rollout`` of two
+    worlds: the loss and the gradient of world 1's shear modulus are those of world 1's
+    scene alone; world 0's material gets none."""
+    from warp_esph.losses import ReactionForceLoss
+    from warp_esph.rollout import Rollout
+
+    soft, stiff = _elastic(4e3, viscosity=1.0), _elastic(2e4, viscosity=1.0)
+    model = _world_builder(soft, 0.075).finalize(dtype=wp.float64, requires_grad=True, worlds=2)
+    model.set_material(0, stiff, world=1)
+    r = Rollout(model, 8, 5e-4, frames=[8], checkpoint_every=4)
+    r.forward()
+    assert r.step_forces().shape == (8, 6, 3)
+    value, g = r.backward(ReactionForceLoss(np.zeros((1, 1)), "w1/press", [8], window=4, components="y"))
+    alone = _world_builder(stiff, 0.075).finalize(dtype=wp.float64, requires_grad=True)
+    r1 = Rollout(alone, 8, 5e-4, frames=[8], checkpoint_every=4)
+    r1.forward()
+    value1, g1 = r1.backward(ReactionForceLoss(np.zeros((1, 1)), "press", [8], window=4, components="y"))
+    assert value1 > 0.0 and abs(g1["mu"][0]) > 0.0
+    assert value == pytest.approx(value1, rel=1e-12)
+    assert g["mu"][0] == 0.0
+    assert g["mu"][1] == pytest.approx(g1["mu"][0], rel=1e-9)
