@@ -188,13 +188,14 @@ def test_fast_blade_does_not_tunnel_and_momentum_balances_the_impulse(shape):
     np.testing.assert_allclose(p1 - p0, impulse, rtol=1e-9, atol=1e-12 * np.abs(impulse).max())
 
 
-@pytest.mark.parametrize("shape", ["sphere", "capsule", "cylinder", "plane"])
+@pytest.mark.parametrize("shape", ["sphere", "capsule", "cylinder", "box", "mesh", "plane"])
 def test_fast_primitive_does_not_tunnel_at_the_stable_step_and_momentum_balances_the_impulse(shape):
-    """A 2 mm thick sphere, capsule or cylinder (a rod across the block, axis along z) moves
-    2.5 times its thickness per step, at the material's stable step, through a row of
-    particles: tested on its end-of-step position alone, it would step over them. Every
-    particle in its path must end in front of it, none inside it; a fast plane (a
-    half-space, which cannot be stepped over) checks the same bookkeeping."""
+    """A 2 mm thick sphere, or a rod across the block (capsule, cylinder, square box or box
+    mesh, long axis along z) moves 2.5 times its thickness per step, at the material's
+    stable step, through a row of particles: tested on its end-of-step position alone, it
+    would step over them. Every particle in its path must end in front of it, none inside
+    it; a fast plane (a half-space, which cannot be stepped over) checks the same
+    bookkeeping."""
     r, hh = 0.001, 0.2
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
     b.add_box((0.0, 0.0, 0.0), (0.1, 0.1, 0.1), _elastic(2e4), name="block")
@@ -205,6 +206,7 @@ def test_fast_primitive_does_not_tunnel_at_the_stable_step_and_momentum_balances
     geometry = {
         "sphere": {"radius": r}, "capsule": {"radius": r, "half_height": hh, "orientation": y_to_z},
         "cylinder": {"radius": r, "half_height": hh, "orientation": y_to_z}, "plane": {"normal": (1.0, 0.0, 0.0)},
+        "box": {"half_extents": (r, r, hh)}, "mesh": {"mesh": tools.box_mesh((r, r, hh))},
     }[shape]
     start = -0.06
     b.add_tool(shape, **geometry, motion=tools.Velocity((speed, 0, 0), position=(start, 0, 0)), name="t")
