@@ -232,6 +232,20 @@ regime (Roussel & Coussot 2005), for a shallow no-slip layer `h(r) = sqrt(2 tau_
 of volume `Omega`, gives `R = (225 rho g Omega^2 / (128 pi^2 tau_y))^(1/5)` with `tau_y = Y / sqrt(2)`;
 it holds where the final height is much smaller than the radius (the smallest `S`).
 
+The plug. The 1-D plug (depth `z < S H0`) carries `rho g z < sigma_y`, but the runs start
+stress-free with gravity acting at once, and in an elastic column suddenly loaded by its
+weight the stress at depth `z` swings up to `2 rho g z`: only the top `S H0 / 2` stays below
+yield through the release. A particle's deformation is fitted over its support radius `h`,
+so that region is resolved only where `S H0 / 2 >= h` (S >= 0.5 at 8 across, 0.33 at 12,
+0.25 at 16). There the suite reads the plug by its accumulated plastic strain (`State.alpha`)
+in yield strains `Y / (2 mu)` (below 1: it changed shape plastically less than the elastic
+strain it can hold) and by `|s| < 0.99 Y` at rest. Material that flowed rests at `|s| = Y`
+(the flow stops where `|s|` reaches `Y`), so "at yield" marks where the pile flowed. The 1-D
+analysis neglects shear: a plug of thickness `S H0` dragged outward at its base by up to
+`tau_y` yields in tension at its centre once `R / (S H0) > sqrt(3)`, about `S < 0.29` for
+`R = R0 = H0 / 2`, so below that a 3-D pile need not keep one (docs/physics.md, the plug).
+The shallow pile's central height is `h_RC = sqrt(2 tau_y R_RC / (rho g))`.
+
 """
 
 
