@@ -528,6 +528,8 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
             runs.append(("column_settlement", {"resolution": 4, "elastic_force": f}))
             runs.append(("poisson_compression", {"resolution": 4, "elastic_force": f}))
             runs.append(("energy_drift", {"amplitude": SMALL, "elastic_force": f, "periods": 20.0}))
+        # The smallest run that resolves the plug (its top S H0 / 2 is one support radius).
+        runs.append(("slump", {"S": 0.5, "resolution": 8, "elastic_force": "variational", "duration": 3.0}))
         for label, _ in _stability_materials():
             for f in FORCES:
                 runs.append(("stability", {"label": label, "elastic_force": f, "duration": 0.3}))
