@@ -216,7 +216,12 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
         # Reverse order of the differentiable step: density, constitutive, elastic, pressure.
         if sph:
             pressure.launch_pressure_forces_adjoint(model, state_in, state_out)
-        forces.launch_elastic_forces_adjoint(model, state_in, state_out)
+        kinds = set(model.material_elastic_force.numpy().tolist())
+        if 0 in kinds:
+            forces.launch_elastic_forces_adjoint(model, state_in, state_out)
+        if 1 in kinds:
+            forces.launch_variational_forces_adjoint(model, state_in, state_out, scratch.min_neighbors,
+                                                     scratch.max_condition)
         plasticity.launch_constitutive_update_adjoint(model, state_in, state_out, dt, scratch.counters, tape)
         if sph:
             pressure.launch_density_adjoint(model, state_in.x, state_out.neighbors, state_out.neighbor_count,
