@@ -252,34 +252,38 @@ def kernels(scalar) -> types.SimpleNamespace:
         ``adj A = -A^-T (V F P^T adj M) A^-T``; per pair
         ``adj xb_j = w_j (M^T a_j + (adj A + adj A^T) xb_j)
         + 2 w'_j (a_j . M xb_j + xb_j . adj A xb_j) xb_j`` (``w' = dw / d|xb|^2``), scattered
-        to ``j`` and taken from ``i``. Recomputes ``A`` and ``M`` (one more loop over the
-        row) instead of storing them."""
+        to ``j`` and taken from ``i``. Recomputes ``A`` and ``M`` (two passes over the row:
+        ``A`` with ``adj M``, then the scatter) instead of storing them."""
         i = wp.tid()
         if elastic_force[material[i]] != 1:
             return
-        A, B, same = moment_sums(i, x, x, body, nbr, count[i], h)
-        if guard_code(A, same, min_neighbors, max_condition) != 0:
-            return
         xi = x[i]
         bi = body[i]
+        ai = adj_f[i]
+        c6 = sm.poly6_coef(h)
+        hh = h * h
+        # One pass: the moment matrix A (as deformation.moment_sums) and adj M, which does
+        # not depend on A. (No generated adjoint here, so loop accumulators may feed the
+        # inverse: docs/method.md, Warp pitfall 1, concerns generated adjoints only.)
+        A = mat33()
+        adj_M = mat33()
+        same = int(0)
+        for k in range(count[i]):
+            j = nbr[i, k]
+            if body[j] == bi:
+                d = x[j] - xi
+                w = sm.w_poly6_c(wp.dot(d, d), h, c6)
+                A += w * wp.outer(d, d)
+                adj_M += w * wp.outer(ai - adj_f[j], d)
+                same += 1
+        if guard_code(A, same, min_neighbors, max_condition) != 0:
+            return
         Vi = volume[i]
         P = stress[i]
         Fi = F[i]
         Ainv = wp.inverse(A)
         M = Vi * (P * wp.transpose(Fi) * Ainv)
         MT = wp.transpose(M)
-        ai = adj_f[i]
-        c6 = sm.poly6_coef(h)
-        hh = h * h
-        adj_M = mat33()
-        for k in range(count[i]):
-            j = nbr[i, k]
-            if body[j] == bi:
-                d = x[j] - xi
-                r2 = wp.dot(d, d)
-                if r2 < hh:
-                    e = hh - r2
-                    adj_M += (c6 * e * e * e) * wp.outer(ai - adj_f[j], d)
         AinvT = wp.transpose(Ainv)
         adj_stress[i] = adj_stress[i] + Vi * (adj_M * AinvT * Fi)
         adj_F[i] = adj_F[i] + Vi * (Ainv * wp.transpose(adj_M) * P)
