@@ -89,3 +89,62 @@ def test_worlds_refuse_what_they_cannot_replicate(target):
             diagnostics=False)
     with pytest.raises(ValueError, match="worlds = 0 is not allowed"):
         we.replicate_worlds(model, 0)
+
+
+SCENE = """
+[scene]
+name = "dough_block"
+spacing = 0.02
+support_radius = 0.05
+frames = 2
+fps = 30
+
+[materials.dough]
+mu = 2000.0
+lam = 3000.0
+density = 1000.0
+yield_stress = {yield_stress}
+flow_rate = {flow_rate}
+viscosity = 2.0
+
+[[bodies]]
+shape = "box"
+name = "dough"
+material = "dough"
+center = [0.0, 0.045, 0.0]
+size = [0.08, 0.08, 0.08]
+velocity = [0.0, -1.0, 0.0]
+
+[[colliders]]
+type = "ground"
+height = 0.0
+friction = 0.5
+"""
+
+
+def test_cli_starts_as_worlds(tmp_path, capsys):
+    """``warp-esph fit --starts 3 --worlds``: three starts, one model of three worlds; the
+    JSON has one history per start and the best start's result."""
+    import json
+
+    pytest.importorskip("pxr")
+    from warp_esph.cli import main
+
+    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
+    truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(SCENE.format(yield_stress=200.0, flow_rate=20.0))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(truth), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
+    out = tmp_path / "fit"
+    capsys.readouterr()
+    status = main(["fit", str(guess), "--target", str(run), "--target-body", "dough", "--target-frames", "1,2",
+                   "--iterations", "2", "--starts", "3", "--worlds", "--optimizer", "adam", "--output-dir", str(out),
+                   "--no-progress", "--no-usd", "--no-diagnostics"])
+    captured = capsys.readouterr()
+    assert status == 0, captured.err
+    assert "3 starts as 3 worlds" in captured.err
+    doc = json.loads((out / "fit.json").read_text())
+    assert len(doc["starts"]) == 3
+    descent = [h for h in doc["history"] if h["stage"] == "descent"]
+    assert sorted({h["start"] for h in descent}) == [0, 1, 2] and len(descent) == 9
+    assert doc["loss"] == min(h["loss"] for h in descent)
