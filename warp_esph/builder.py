@@ -500,3 +500,56 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
         model.tools = tools.ToolSet(model, first.tools, first.pins, world_pins=[[p.indices for p in b.pins] for b in builders])
     model.compute_rest_density()
     return model
+
+
+def replicate_worlds(model: Model, worlds: int, requires_grad: bool | None = None) -> Model:
+    """A ``Model`` of ``worlds`` copies of the one-world ``model``, as it is now: its
+    initial positions and velocities (``particle_x0``, ``particle_v0``, jitter included),
+    rest densities, current parameter values (``parameter_values()``, which a fit may have
+    changed) and force fields. World ``w``'s copy of material ``k`` is material
+    ``w * len(model.materials) + k`` (``model.world_materials(w)``). For the multi-start fit
+    (``fit(..., starts=K, worlds=True)``), which has a model rather than its builder."""
+    if not isinstance(model, Model):
+        raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
+    if isinstance(worlds, bool) or not isinstance(worlds, (int, np.integer)) or worlds < 1:
+        raise ValueError(f"worlds = {worlds!r} is not allowed: must be an integer >= 1")
+    if model.world_count != 1:
+        raise ValueError(f"model is not allowed: it already has {model.world_count} worlds; replicate a one-world model")
+    if model.tools is not None:
+        raise ValueError("model is not allowed: it has moving tools or pinned sets, which act on one world; "
+                         "build one model per scene with tools")
+    W, n, M, B = int(worlds), model.particle_count, len(model.materials), len(model.bodies)
+    several = W > 1
+    bodies = []
+    for w in range(W):
+        for b in model.bodies:
+            bodies.append(dataclasses.replace(b, name=f"w{w}/{b.name}" if several else b.name, start=b.start + w * n,
+                                              material=b.material + w * M, world=w))
+    out = Model(
+        positions=np.tile(model.particle_x0, (W, 1)),
+        velocities=np.tile(model.particle_v0, (W, 1)),
+        particle_material=np.concatenate([model.particle_material_np + w * M for w in range(W)]),
+        particle_body=np.concatenate([model.particle_body_np + w * B for w in range(W)]),
+        materials=list(model.materials) * W,
+        bodies=bodies,
+        spacing=model.spacing,
+        support_radius=model.support_radius,
+        gravity=model.gravity,
+        planes=model.planes,
+        spheres=model.spheres,
+        boxes=model.boxes,
+        max_neighbors=model.max_neighbors,
+        bodies_interact=model.bodies_interact,
+        device=model.device,
+        scalar=model.scalar,
+        requires_grad=model.requires_grad if requires_grad is None else checks.boolean("requires_grad", requires_grad),
+        particle_world=np.repeat(np.arange(W, dtype=np.int32), n),
+        world_material_start=[w * M for w in range(W + 1)],
+    )
+    # A field on every particle acts once on all worlds; one on a body acts on each copy.
+    out.force_fields = [f for f in model.force_fields if f.body < 0]
+    out.force_fields += [dataclasses.replace(f, body=f.body + w * B) for w in range(W) for f in model.force_fields if f.body >= 0]
+    for name, values in model.parameter_values().items():
+        getattr(out, name).assign(np.tile(values, W).astype(model.types.np_dtype))
+    out.particle_rest_density.assign(np.tile(model.particle_rest_density.numpy(), W))
+    return out
