@@ -43,7 +43,7 @@ def press_model(heights):
     top = 0.025  # the top particle layer: the press starts touching it
     pad = 0.005  # half the press's thickness: its position is 5 mm above its bottom face
     # A frictionless press: with friction 0.5 the mean top height, smooth between the steps
-    # where a particle sticks or slips, jumps at them, and pieces of it fall as the press
+    # where a particle sticks or slips, jumps at them, and between the jumps it rises as the press
     # goes deeper (measured: the local derivative at 16 mm points the wrong way, and the
     # search stopped at 16.2 mm with the top at 21.8 mm).
     b.add_tool("box", half_extents=(0.06, pad, 0.06), friction=0.0, name="press",
