@@ -528,3 +528,7 @@ def test_a_plane_tool_is_drawn_as_the_plane_collider_at_its_pose(tmp_path):
     assert np.abs(low - high).max() > 50  # the two heights differ in the picture
     assert np.array_equal(picture("tool.usdc", 0), low)
     assert np.array_equal(picture("tool.usdc", 8), high)
+    # One renderer for both frames: the ray cast planes follow the tool (not kept from frame 0).
+    both = Renderer(UsdFrames(tmp_path / "tool.usdc"), [0, 8], opts, camera=cam)
+    assert np.array_equal(np.asarray(both.render(0), dtype=np.int64), low)
+    assert np.array_equal(np.asarray(both.render(8), dtype=np.int64), high)

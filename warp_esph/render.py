@@ -655,8 +655,10 @@ class Renderer:
     # ------------------------------------------------------------------ one frame
     def _static(self, planes=()):
         """The colliders (and ``planes``: plane tools at this frame), ray cast: everything but
-        the particles' shadows. Cached when there are no ``planes`` (then it is per renderer)."""
-        if not planes and getattr(self, "_static_cache", None) is not None:
+        the particles' shadows. Kept while the planes stay where they are (a static floor tool
+        is ray cast once per renderer, a moving plate every frame)."""
+        plane_key = tuple((tuple(c.center), tuple(c.normal)) for c in planes)
+        if getattr(self, "_static_cache", None) is not None and self._static_key == plane_key:
             return self._static_cache
         cam = self.camera
         W, H = cam.width, cam.height
@@ -700,8 +702,7 @@ class Renderer:
             "background": background, "image": image, "zbuf": zbuf,
             "idx": cat(idx_all, (0,)).astype(np.int64), "P": cat(P_all, (0, 3)), "key": cat(key_all, (0, 3)),
         }
-        if not planes:
-            self._static_cache = static
+        self._static_cache, self._static_key = static, plane_key
         return static
 
     def surfaces(self, frame: int) -> dict:
