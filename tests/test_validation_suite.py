@@ -103,3 +103,42 @@ def test_no_preset_or_default_material_blows_up_at_half_the_stable_dt(label):
     material = dict(validation._stability_materials())[label]
     r = validation.stability(material, duration=0.3)
     assert not r["blew_up"], r
+
+
+# ------------------------------------------------------------- lab tests with tools
+def test_plate_compression_force_and_lateral_strain_within_10_percent_at_8_across():
+    """Frictionless plane tools, 1 % strain: measured force 1.080 x E A eps and lateral
+    strain 0.950 x nu eps at 8 across (4 across: 1.215 and 0.908), docs/validation.md."""
+    r = validation.plate_compression(resolution=8)
+    assert r["force_ratio"] == pytest.approx(1.0, abs=0.10), r["force_ratio"]
+    assert r["lateral_ratio"] == pytest.approx(1.0, abs=0.10), r["lateral_ratio"]
+
+
+def test_three_point_bending_is_soft_at_4_across_and_the_supports_carry_the_pin_load():
+    """Measured: mid-span stiffness 0.702 x Timoshenko (0.610 x 48 E I / L^3) at 4 across,
+    0.862 x (0.749 x) at 8 across (docs/validation.md): soft, approaching the theory with
+    resolution. Asserted: that range at 4 across, and static equilibrium."""
+    r = validation.three_point_bending(resolution=4)
+    assert 0.6 < r["ratio"] < 0.8, r["ratio"]
+    assert r["ratio_euler_bernoulli"] < r["ratio"]  # the shear term makes the beam softer in theory
+    assert r["support_force"] == pytest.approx(r["force"], rel=1e-2)  # equilibrium: supports carry the pin
+    assert r["deflection"] == pytest.approx(r["pin_travel"], rel=0.1)  # little local indentation
+
+
+@pytest.fixture(scope="module")
+def indented():
+    return validation.sphere_indentation(resolution=8)
+
+
+def test_sphere_indentation_at_1_mm_within_10_percent_of_hertz(indented):
+    """Measured 1.062 x Hertz at 1 mm (contact radius 1.3 dx) and 1.251 x at 2 mm (1.8 dx),
+    exponent 1.74 for Hertz's 1.5, at 8 across; 12 across in docs/validation.md."""
+    assert indented["ratios"][0] == pytest.approx(1.0, abs=0.10), indented["ratios"]
+    assert 1.0 < indented["ratios"][1] < 1.4, indented["ratios"]
+    assert 1.3 < indented["exponent"] < 2.0, indented["exponent"]
+
+
+@pytest.mark.xfail(strict=True, reason="under a sphere the particle columns at the apex slide sideways between their "
+                   "neighbours: held 0.1 s longer at 2 mm the force falls to 0.62 x Hertz (from 1.25 x) at 8 across")
+def test_sphere_indentation_force_holds_while_the_sphere_is_held(indented):
+    assert indented["late_ratio"] == pytest.approx(indented["ratios"][-1], rel=0.10)
