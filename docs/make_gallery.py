@@ -1,4 +1,4 @@
-"""Make the pictures of docs/gallery.md: run each figure scene at a moderate scale, render a strip.
+"""Make the pictures of docs/gallery.md: run each figure and lab scene at a moderate scale, render a strip.
 
     python docs/make_gallery.py                       # every figure scene (about 15 min on one core)
     python docs/make_gallery.py fig5_hyperelastic_boxes fig6_dough_star
@@ -29,6 +29,12 @@ GALLERY = [
     ("fig6_dough_star", 0.6, "0,5,20,75", []),
     ("fig7_plastic_grid", 0.4, "0,6,10,50", []),
     ("fig8_comparison", 0.8, "0,7,12,25", []),
+    # The lab tests with tools (docs/tools.md), drawn at each frame's tool pose.
+    ("lab_compression", 0.5, "0,20,40,60", ["--elevation", "6"]),
+    ("lab_indentation", 0.5, "0,15,30,60", []),
+    ("lab_three_point_bending", 0.5, "0,20,40,60", []),
+    ("lab_cutting", 0.5, "0,10,20,30", []),
+    ("lab_fig8_plates", 0.5, "0,7,9,25", []),
 ]
 WIDTH, HEIGHT = 360, 270
 

@@ -68,3 +68,29 @@ def test_fit_notebook_executes(tmp_path, monkeypatch):
     assert (out / "target.npz").exists()
     # Even at this size the three parameters come back from the factor-2 guess within 10 %.
     assert "all within 10 %: True" in text
+
+
+PRESS_NOTEBOOK = ROOT / "notebooks" / "press_and_fit.ipynb"
+
+
+def test_committed_press_notebook_is_executed_with_inline_plots_and_reached_its_targets():
+    """notebooks/press_and_fit.ipynb takes about a minute to execute, so it is not run here;
+    the functions it imports are tested in tests/test_press_and_fit.py."""
+    nb = nbformat.read(PRESS_NOTEBOOK, as_version=4)
+    code = [c for c in nb.cells if c.cell_type == "code"]
+    assert code and all(c.get("execution_count") for c in code), "commit the notebook executed, every cell"
+    assert not any(o.get("output_type") == "error" for o in _outputs(nb))
+    assert _png_count(nb) >= 2
+    text = _stream_text(nb)
+    for line in WARP_BANNER:
+        assert line not in text, f"Warp start-up output {line!r} in the committed notebook"
+    source = "\n".join(c.source for c in code)
+    lines = [line.strip() for line in source.splitlines()]
+    assert lines.index("wp.config.log_level = wp.LOG_WARNING") < lines.index("wp.init()")
+    assert "import press_and_fit as pf" in source  # the example's functions, not a copy
+    # What the outputs say: the top reached 21 mm to 0.05 mm, E came back to 0.1 %.
+    import re
+    top = float(re.search(r"the top ends at ([0-9.]+) mm", text).group(1))
+    assert abs(top - 21.0) <= 0.05
+    E = float(re.search(r"fitted E = ([0-9.]+) Pa", text).group(1))
+    assert abs(E / 2.0e4 - 1.0) < 1e-3

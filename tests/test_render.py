@@ -413,3 +413,122 @@ def test_triangles_cover_exactly_the_pixel_centres_inside_and_depth_is_the_plane
         # Barycentrics put the fragment on the triangle: the interpolated point is on the ray.
         P = np.einsum("nk,nkj->nj", bary, quad[tris[who]])
         assert np.allclose(P, cam.eye + dep[:, None] * rays, atol=1e-4)
+
+
+# ----------------------------------------------------------------------------- tools
+def _write_tool_file(path, add_tool, frames=9, fps=10.0, cluster=(0.0, 0.0, 5.0), ground=None):
+    """A USD file of a model with the tools ``add_tool(builder)`` adds and a particle cluster
+    at ``cluster`` (by default behind the front camera), each frame at time ``frame / fps``:
+    the tools' poses come from their motions; no simulation."""
+    b = we.SceneBuilder(spacing=0.02)
+    c = np.asarray(cluster, dtype=np.float64)
+    b.add_particles(lattice_points(c - 0.05, c + 0.05, 0.02), we.Material.preset("clay"), name="cluster")
+    if ground is not None:
+        b.add_ground(ground)
+    add_tool(b)
+    model = b.finalize()
+    state = model.state()
+    with we.UsdWriter(path, model, fps) as writer:
+        for f in range(frames):
+            state.time = f / fps
+            writer.write_frame(f, state)
+    return model
+
+
+def _rot(q):
+    from warp_esph.usd import quat_matrix
+    return quat_matrix(q)
+
+
+def _sphere_points(center, r, n=4000):
+    """Points on a sphere (a Fibonacci lattice): their projected bounds are the silhouette's."""
+    k = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * k / n)
+    th = np.pi * (1 + 5**0.5) * k
+    return np.asarray(center) + r * np.stack([np.cos(th) * np.sin(phi), np.cos(phi), np.sin(th) * np.sin(phi)], axis=1)
+
+
+def _silhouette_points(kind):
+    """The shape's surface points in the tool's frame, from its parameters (not the renderer's
+    tessellation)."""
+    if kind == "box":
+        return np.array([[x, y, z] for x in (-0.15, 0.15) for y in (-0.08, 0.08) for z in (-0.1, 0.1)])
+    if kind == "sphere":
+        return _sphere_points((0, 0, 0), 0.12)
+    a = np.linspace(0, 2 * np.pi, 721)
+    ring = np.stack([0.08 * np.cos(a), np.zeros_like(a), 0.08 * np.sin(a)], axis=1)
+    if kind == "cylinder":
+        return np.concatenate([ring + (0, 0.15, 0), ring - (0, 0.15, 0)])
+    if kind == "capsule":
+        return np.concatenate([_sphere_points((0, 0.15, 0), 0.08), _sphere_points((0, -0.15, 0), 0.08)])
+    from warp_esph.tools import blade_mesh
+    return blade_mesh(0.3, 0.2, 0.05)[0]
+
+
+def _add_moving_tool(kind):
+    from warp_esph import tools
+    shape = {"box": dict(half_extents=(0.15, 0.08, 0.1)), "sphere": dict(radius=0.12),
+             "cylinder": dict(radius=0.08, half_height=0.15), "capsule": dict(radius=0.08, half_height=0.15),
+             "mesh": dict(mesh=tools.blade_mesh(0.3, 0.2, 0.05))}[kind]
+    # From the left of the picture to the right, turning about z and x as it goes.
+    motion = tools.Velocity((0.6, 0.1, 0.0), (0.4, 0.3, 1.2), position=(-0.3, -0.05, 0.0))
+    return lambda b: b.add_tool(kind, name="tool", motion=motion, **shape)
+
+
+@pytest.mark.parametrize("kind", ["box", "sphere", "cylinder", "capsule", "mesh"])
+def test_a_moving_tool_is_drawn_where_its_pose_puts_it(tmp_path, kind):
+    from warp_esph import tools
+    path = tmp_path / f"{kind}.usdc"
+    model = _write_tool_file(path, _add_moving_tool(kind))
+    data = UsdFrames(path)
+    assert [t.name for t in data.tools] == ["tool"]
+    cam = front_camera()
+    renderer = Renderer(data, [0, 8], RenderOptions(width=W, height=H, supersample=1, label=False, shadows=False),
+                        camera=cam)
+    background = _to_srgb8(renderer._static()["background"]).reshape(H, W, 3).astype(np.int64)
+    local = _silhouette_points(kind)
+    boxes = []
+    for f in (0, 8):
+        img = np.asarray(renderer.render(f), dtype=np.int64)
+        mask = np.abs(img - background).max(axis=2) > 6
+        ys, xs = np.nonzero(mask)
+        # The pose the motion gives at this frame's time (the model's own evaluation).
+        p, q = model.tools.pose_at(0, f / 10.0)
+        px, py, _ = cam.project(local @ _rot(q).T + p)
+        # Drawn pixel centres lie inside the silhouette's projected bounds (nothing is drawn
+        # elsewhere), and reach them to within 2 px (a wedge's sharp edge is thinner than a
+        # pixel at its tip; a polygon within 0.2 % of a sphere's radius).
+        lo, hi = np.array([px.min(), py.min()]), np.array([px.max(), py.max()])
+        got_lo, got_hi = np.array([xs.min(), ys.min()]) + 0.5, np.array([xs.max(), ys.max()]) + 0.5
+        assert (got_lo >= lo - 0.05).all() and (got_hi <= hi + 0.05).all(), (kind, f, got_lo, got_hi, lo, hi)
+        assert (got_lo - lo < 2.0).all() and (hi - got_hi < 2.0).all(), (kind, f, got_lo, got_hi, lo, hi)
+        boxes.append((xs.min(), xs.max()))
+        # Tool pixels are the tool's grey, not a particle's orange.
+        mean = img[mask].mean(axis=0)
+        assert abs(mean[0] - mean[2]) < 40 and mean[2] >= mean[0] - 5, mean
+    assert boxes[1][0] > boxes[0][1], "the tool moved right across the picture by more than its width"
+
+
+def test_a_plane_tool_is_drawn_as_the_plane_collider_at_its_pose(tmp_path):
+    from warp_esph import tools
+    # A floor tool rising from y = -0.2 at 0.1 m/s: at t = 0.8 s it is the plane y = -0.12.
+    _write_tool_file(tmp_path / "tool.usdc", lambda b: b.add_tool("plane", name="floor", position=(0.0, -0.2, 0.0),
+                                                                    motion=tools.Velocity((0.0, 0.1, 0.0))),
+                     cluster=(0.0, 0.0, 0.0))
+    for h in (-0.2, -0.12):
+        _write_tool_file(tmp_path / f"static{h}.usdc", lambda b: None, cluster=(0.0, 0.0, 0.0), ground=h)
+    cam = Camera(eye=(0.0, 0.6, 2.0), target=(0.0, 0.0, 0.0), width=W, height=H, fov=40.0)
+    opts = RenderOptions(width=W, height=H, supersample=1, label=False)
+
+    def picture(name, frame):
+        data = UsdFrames(tmp_path / name)
+        return np.asarray(Renderer(data, [frame], opts, camera=cam).render(frame), dtype=np.int64)
+
+    low, high = picture("static-0.2.usdc", 8), picture("static-0.12.usdc", 8)
+    assert np.abs(low - high).max() > 50  # the two heights differ in the picture
+    assert np.array_equal(picture("tool.usdc", 0), low)
+    assert np.array_equal(picture("tool.usdc", 8), high)
+    # One renderer for both frames: the ray cast planes follow the tool (not kept from frame 0).
+    both = Renderer(UsdFrames(tmp_path / "tool.usdc"), [0, 8], opts, camera=cam)
+    assert np.array_equal(np.asarray(both.render(0), dtype=np.int64), low)
+    assert np.array_equal(np.asarray(both.render(8), dtype=np.int64), high)

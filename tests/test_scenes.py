@@ -152,3 +152,32 @@ def test_scene_file_unreadable(tmp_path):
     with pytest.raises(ValueError, match="no bodies"):
         (tmp_path / "empty.toml").write_text("[scene]\nspacing = 0.05\n")
         load_scene_file(tmp_path / "empty.toml")
+
+
+@pytest.mark.parametrize("scale", [0.5, 1.0])
+def test_lab_tools_start_touching_the_outer_particle_layers(scale):
+    """The platen, the indenting ball, the bending pin and supports touch the particle
+    centres of the outer layers at t = 0 (placed at the bodies' faces, half a spacing out,
+    at scale 0.5 the ball and the pin never reached the material, their force stayed 0), and
+    the beam has particle columns under the pin and over the supports."""
+    def setup(name):
+        model = get_scene(name, scale=scale).builder.finalize()
+        x0 = model.particle_x0.astype(np.float64)
+        return model, x0, x0[:, 1].min(), x0[:, 1].max()
+
+    def pose(model, tool):
+        return model.tools.pose_at(model.tools.index(tool), 0.0)[0]
+
+    model, x0, lo, hi = setup("lab_compression")
+    assert pose(model, "plate")[1] - 0.005 == pytest.approx(hi, abs=1e-7)  # the platen's bottom face
+    assert pose(model, "base")[1] == pytest.approx(lo, abs=1e-7)
+    model, x0, lo, hi = setup("lab_indentation")
+    assert pose(model, "indenter")[1] - 0.02 == pytest.approx(hi, abs=1e-7)  # the ball's lowest point
+    assert pose(model, "indenter")[1] - 0.02 - model.tools.pose_at(model.tools.index("indenter"), 1.0)[0][1] + 0.02 == \
+        pytest.approx(0.004, abs=1e-7)  # 4 mm into the particles at t = 1 s
+    model, x0, lo, hi = setup("lab_three_point_bending")
+    assert pose(model, "loading_pin")[1] - 0.01 == pytest.approx(hi, abs=1e-7)
+    for side, x in (("support_left", -0.09), ("support_right", 0.09)):
+        assert pose(model, side)[1] + 0.01 == pytest.approx(lo, abs=1e-7)
+        assert np.abs(x0[:, 0] - x).min() < 1e-7  # a column over the support's axis
+    assert np.abs(x0[:, 0]).min() < 1e-7  # and one under the pin

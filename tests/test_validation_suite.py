@@ -58,10 +58,35 @@ def test_slumped_cylinder_comes_to_rest(slumped):
     assert slumped["kinetic_over_MgH0"] < 1e-8, slumped["kinetic_over_MgH0"]
 
 
-@pytest.mark.xfail(strict=True, reason="at rest the top of the 8-across pile is still at the yield stress: 0 % of "
-                   "the 12 top particles below yield (the 1-D plug is 1.6 particles thick at S = 0.2)")
-def test_slumped_cylinder_keeps_an_unyielded_plug(slumped):
-    assert slumped["plug_unyielded_fraction"] > 0.9, slumped["plug_unyielded_fraction"]
+def test_the_plug_is_not_judged_where_the_run_cannot_resolve_it(slumped):
+    """S = 0.2, 8 across: the 1-D plug (S H0 = 1.6 dx) is thinner than the support radius (2 dx): every top
+    particle's fit reaches into flowing material, so this run cannot show a plug (docs/
+    validation.md, the plug). Measured: its top layer flowed 0.37 (45 yield strains) and
+    rests at yield, coherently (layer-mean deviator 0.93 Y)."""
+    assert slumped["plug_particles"] == 0
+    assert math.isnan(slumped["plug_plastic_strain"])
+
+
+@pytest.fixture(scope="module")
+def slumped_stiff():
+    """S = 0.5, 8 across, variational force, 3 s: the 1-D plug is 4 dx thick, and its top
+    half, which the sudden release leaves below yield, is 2 dx = one support radius: resolved
+    (the top 2 layers near the axis, 24 particles)."""
+    return validation.slump(0.5, resolution=8, elastic_force="variational", duration=3.0)
+
+
+def test_slumped_cylinder_keeps_an_unyielded_plug(slumped_stiff):
+    """Where the plug is resolved it does not flow and rests below yield (docs/validation.md,
+    the plug). Measured: plastic strain 0.63 (mean), 1.6 (max) yield strains in the plug
+    against 3.8 more than a support radius below the 1-D yield surface; 23 of 24 plug
+    particles below 0.99 Y; top 0.011 % H0/s. (12 across: 0.45 yield strains, 96 % below Y.
+    S = 0.3 has no plug at any resolution tried: 8.9 / 8.4 yield strains at 12 / 16 across.)"""
+    r = slumped_stiff
+    assert r["plug_particles"] >= 12, r["plug_particles"]
+    assert abs(r["top_rate_pct_H0_per_s"]) < 0.1, r["top_rate_pct_H0_per_s"]
+    assert r["flowed_plastic_strain"] > 2.0, r["flowed_plastic_strain"]  # the base did flow
+    assert r["plug_plastic_strain"] < 1.0, r["plug_plastic_strain"]
+    assert r["plug_unyielded_fraction"] > 0.9, r["plug_unyielded_fraction"]
 
 
 def test_slump_height_within_10_percent_of_the_1d_theory(slumped):
@@ -78,3 +103,44 @@ def test_no_preset_or_default_material_blows_up_at_half_the_stable_dt(label):
     material = dict(validation._stability_materials())[label]
     r = validation.stability(material, duration=0.3)
     assert not r["blew_up"], r
+
+
+# ------------------------------------------------------------- lab tests with tools
+def test_plate_compression_force_and_lateral_strain_within_10_percent_at_8_across():
+    """Frictionless plane tools, 1 % strain: measured force 1.080 x E A eps and lateral
+    strain 0.950 x nu eps at 8 across (4 across: 1.215 and 0.908), docs/validation.md."""
+    r = validation.plate_compression(resolution=8)
+    assert r["force_ratio"] == pytest.approx(1.0, abs=0.10), r["force_ratio"]
+    assert r["lateral_ratio"] == pytest.approx(1.0, abs=0.10), r["lateral_ratio"]
+
+
+def test_three_point_bending_is_soft_at_4_across_and_the_supports_carry_the_pin_load():
+    """Measured: mid-span stiffness 0.702 x Timoshenko (0.610 x 48 E I / L^3) at 4 across,
+    0.862 x (0.749 x) at 8 across (docs/validation.md): soft, approaching the theory with
+    resolution. Asserted: that range at 4 across, and static equilibrium to 2 % (measured:
+    supports 1.2 % above the pin with the swept cylinder contact; the rest is the beam's
+    momentum rate at the end of the kinetic-damping relaxation)."""
+    r = validation.three_point_bending(resolution=4)
+    assert 0.6 < r["ratio"] < 0.8, r["ratio"]
+    assert r["ratio_euler_bernoulli"] < r["ratio"]  # the shear term makes the beam softer in theory
+    assert r["support_force"] == pytest.approx(r["force"], rel=2e-2)  # equilibrium: supports carry the pin
+    assert r["deflection"] == pytest.approx(r["pin_travel"], rel=0.1)  # little local indentation
+
+
+@pytest.fixture(scope="module")
+def indented():
+    return validation.sphere_indentation(resolution=8)
+
+
+def test_sphere_indentation_at_1_mm_within_10_percent_of_hertz(indented):
+    """Measured 1.062 x Hertz at 1 mm (contact radius 1.3 dx) and 1.251 x at 2 mm (1.8 dx),
+    exponent 1.74 for Hertz's 1.5, at 8 across; 12 across in docs/validation.md."""
+    assert indented["ratios"][0] == pytest.approx(1.0, abs=0.10), indented["ratios"]
+    assert 1.0 < indented["ratios"][1] < 1.4, indented["ratios"]
+    assert 1.3 < indented["exponent"] < 2.0, indented["exponent"]
+
+
+@pytest.mark.xfail(strict=True, reason="under a sphere the particle columns at the apex slide sideways between their "
+                   "neighbours: held 0.1 s longer at 2 mm the force falls to 0.62 x Hertz (from 1.25 x) at 8 across")
+def test_sphere_indentation_force_holds_while_the_sphere_is_held(indented):
+    assert indented["late_ratio"] == pytest.approx(indented["ratios"][-1], rel=0.10)

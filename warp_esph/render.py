@@ -15,6 +15,12 @@ No display, no GPU, no OpenGL: every frame is rasterised with vectorised numpy.
   material as the particles; a primvar colour is carried from the particles to the vertices.
 - **Colliders** under ``/World/Colliders`` are ray cast per pixel: planes as a checkered
   floor fading into the background, spheres, axis-aligned boxes.
+- **Tools** under ``/World/Tools`` (``SceneBuilder.add_tool``) are drawn at their pose of the
+  frame (the file's time-sampled translate and orient): a plane tool as a plane collider
+  (left out while the camera is on its solid side, where it would hide everything), the
+  other shapes as triangle meshes (``tool_mesh``: boxes, spheres, capsules and cylinders
+  tessellated, meshes as stored) rasterised into the particles' z-buffer, in steel grey,
+  casting shadows. Pinned sets have no geometry and are not drawn.
 - **Lighting**: a key light with a shadow map (particles and surfaces cast shadows on the
   ground, on colliders and on each other, 3 x 3 percentage-closer filtered), a fill light,
   ambient and a specular highlight, shaded in linear RGB and written as sRGB.
@@ -47,11 +53,11 @@ from PIL import Image, ImageDraw, ImageFont
 from . import checks
 # The reader lives beside the writer; re-exported here because the renderer's users get
 # frames from it (``warp_esph.render.UsdFrames`` is a published name).
-from .usd import Collider, UsdFrames, parse_frames
+from .usd import Collider, Tool, UsdFrames, parse_frames, quat_matrix
 
 __all__ = [
     "COLOR_MODES", "OUTPUT_EXTENSIONS", "Camera", "Collider", "UsdFrames", "Renderer", "auto_camera", "mesh_normals",
-    "parse_frames", "raster_triangles", "render_usd", "vertex_values",
+    "parse_frames", "raster_triangles", "render_usd", "tool_mesh", "vertex_values",
 ]
 
 #: How particles are coloured.
@@ -77,6 +83,7 @@ _BACKGROUND_TOP = np.array((0.80, 0.84, 0.90), dtype=np.float32)     # sRGB
 _BACKGROUND_BOTTOM = np.array((0.97, 0.97, 0.98), dtype=np.float32)
 _FLOOR = (np.array((0.86, 0.86, 0.88), dtype=np.float32), np.array((0.76, 0.77, 0.80), dtype=np.float32))
 _COLLIDER = np.array((0.55, 0.60, 0.68), dtype=np.float32)
+_TOOL = np.array((0.62, 0.64, 0.70), dtype=np.float32)  # the displayColor tools.usd_author writes
 
 
 def _linear(srgb):
@@ -371,6 +378,62 @@ def vertex_values(vertices, points, values, radius):
     return out.astype(np.float32)
 
 
+# ----------------------------------------------------------------------------- tools
+def _revolve(profile, segments: int):
+    """Triangles of the surface swept by the ``(radius, y)`` polyline ``profile`` about the y
+    axis; a repeated profile point starts a new ring there (a crease: flat shading across it)."""
+    prof = np.asarray(profile, dtype=np.float64)
+    a = np.linspace(0.0, 2.0 * math.pi, segments, endpoint=False)
+    ca, sa = np.cos(a), np.sin(a)
+    verts = np.stack([prof[:, 0, None] * ca[None, :], np.broadcast_to(prof[:, 1, None], (len(prof), segments)),
+                      prof[:, 0, None] * sa[None, :]], axis=2).reshape(-1, 3)
+    tris = []
+    j = np.arange(segments)
+    jn = (j + 1) % segments
+    for i in range(len(prof) - 1):
+        if np.allclose(prof[i], prof[i + 1]):
+            continue
+        v00, v01 = i * segments + j, i * segments + jn
+        v10, v11 = (i + 1) * segments + j, (i + 1) * segments + jn
+        if prof[i, 0] > 0:
+            tris.append(np.stack([v00, v01, v11], axis=1))
+        if prof[i + 1, 0] > 0:
+            tris.append(np.stack([v00, v11, v10], axis=1))
+    return verts, np.concatenate(tris)
+
+
+def tool_mesh(tool: Tool, segments: int = 48) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(vertices (V, 3), triangles (T, 3))`` of a tool's surface in its own frame (None for a
+    plane, which is drawn as a plane): a box's 12 triangles, a sphere, capsule (along y) and
+    capped cylinder (along y) tessellated with ``segments`` around, a mesh as stored."""
+    r, hh = float(tool.param[0]), float(tool.param[1])
+    if tool.kind == "plane":
+        return None
+    if tool.kind == "box":
+        h = np.asarray(tool.param, dtype=np.float64)
+        corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64) * h
+        # Each face as two triangles, wound outwards (corner index = 4 x + 2 y + z).
+        quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+        tri = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))], dtype=np.int64)
+        return corners, tri
+    if tool.kind in ("sphere", "capsule"):
+        lat = np.linspace(0.5 * math.pi, -0.5 * math.pi, segments // 2 + 1)
+        shift = hh if tool.kind == "capsule" else 0.0
+        upper = [(r * math.cos(t), r * math.sin(t) + shift) for t in lat if t >= 0]
+        lower = [(r * math.cos(t), r * math.sin(t) - shift) for t in lat if t <= 0]
+        return _revolve(upper + lower, segments)
+    if tool.kind == "cylinder":
+        return _revolve([(0.0, hh), (r, hh), (r, hh), (r, -hh), (r, -hh), (0.0, -hh)], segments)
+    return np.asarray(tool.points, dtype=np.float64), np.asarray(tool.triangles, dtype=np.int64)
+
+
+def _tool_plane(tool: Tool, p, q) -> Collider:
+    """A plane tool at pose ``(p, q)`` as the plane collider the renderer ray casts."""
+    n = quat_matrix(q) @ tool.param
+    half = 0.5 * float(np.linalg.norm(tool.points[1] - tool.points[0])) if tool.points is not None else 2.0
+    return Collider("plane", np.asarray(p, dtype=np.float64), np.array([half, 0.0, 0.0]), n, float(n @ p))
+
+
 # ----------------------------------------------------------------------------- renderer
 @dataclasses.dataclass
 class RenderOptions:
@@ -428,6 +491,17 @@ class Renderer:
         for c in data.colliders:  # spheres and boxes are part of the picture; planes are not
             if c.kind in ("sphere", "box"):
                 lo, hi = np.minimum(lo, c.center - c.size), np.maximum(hi, c.center + c.size)
+        self._tool_shapes = [(k, tool_mesh(t)) for k, t in enumerate(data.tools)]
+        # Tools over the chosen frames, as far as they are near the material: a tool that
+        # starts a metre away (or a long rail) would otherwise shrink the material to a dot.
+        plo, phi = self.particle_bounds
+        reach = np.maximum(phi - plo, 1e-3).max() if np.isfinite(plo).all() else np.inf
+        for f in self.frames:
+            for v, _ in self.tool_meshes(f):
+                tlo = np.maximum(v.min(axis=0), plo - reach)
+                thi = np.minimum(v.max(axis=0), phi + reach)
+                if (tlo <= thi).all():
+                    lo, hi = np.minimum(lo, tlo), np.maximum(hi, thi)
         self.bounds = (lo, hi)
         view = data.view or (30.0, 20.0)
         azimuth = o.azimuth if o.azimuth is not None else view[0]
@@ -562,10 +636,29 @@ class Renderer:
                 lit &= ~((tf >= np.maximum(tn, 1e-4)))
         return lit.astype(np.float32)
 
+    # ------------------------------------------------------------------ tools
+    def tool_meshes(self, frame: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """``(world vertices (V, 3) float32, triangles)`` of each non-plane tool at ``frame``."""
+        out = []
+        for k, shape in self._tool_shapes:
+            if shape is None:
+                continue
+            p, q = self.data.tools[k].pose(frame)
+            v = shape[0] @ quat_matrix(q).T + p
+            out.append((v.astype(np.float32), shape[1]))
+        return out
+
+    def tool_planes(self, frame: int) -> list[Collider]:
+        """The plane tools at ``frame``, as plane colliders."""
+        return [_tool_plane(t, *t.pose(frame)) for t in self.data.tools if t.kind == "plane"]
+
     # ------------------------------------------------------------------ one frame
-    def _static(self):
-        """The colliders, ray cast once per renderer: everything but the particles' shadows."""
-        if getattr(self, "_static_cache", None) is not None:
+    def _static(self, planes=()):
+        """The colliders (and ``planes``: plane tools at this frame), ray cast: everything but
+        the particles' shadows. Kept while the planes stay where they are (a static floor tool
+        is ray cast once per renderer, a moving plate every frame)."""
+        plane_key = tuple((tuple(c.center), tuple(c.normal)) for c in planes)
+        if getattr(self, "_static_cache", None) is not None and self._static_key == plane_key:
             return self._static_cache
         cam = self.camera
         W, H = cam.width, cam.height
@@ -576,7 +669,7 @@ class Renderer:
         zbuf = np.full(H * W, np.inf, dtype=np.float32)
         # Per pixel hit by a collider: its kind's surface point, normal, colour and fade.
         hits = []
-        for c in self.data.colliders:
+        for c in [*self.data.colliders, *planes]:
             hit = self._plane_hits(c, rays, zbuf) if c.kind == "plane" else self._solid_hits(c, rays, zbuf)
             if hit is not None:
                 hits.append(hit)
@@ -605,11 +698,12 @@ class Renderer:
             key_all.append(key * (1 - f))
             fade_all.append(f)
         cat = (lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape, np.float32))
-        self._static_cache = {
+        static = {
             "background": background, "image": image, "zbuf": zbuf,
             "idx": cat(idx_all, (0,)).astype(np.int64), "P": cat(P_all, (0, 3)), "key": cat(key_all, (0, 3)),
         }
-        return self._static_cache
+        self._static_cache, self._static_key = static, plane_key
+        return static
 
     def surfaces(self, frame: int) -> dict:
         """``{body: (vertices, triangles)}`` of the bodies drawn as surfaces at ``frame``: those
@@ -643,7 +737,8 @@ class Renderer:
         frame = self.data.resolve(frame)
         parts = self.data.particles(frame)
         meshes = self.surfaces(frame)
-        static = self._static()
+        tool_meshes = self.tool_meshes(frame)
+        static = self._static(self.tool_planes(frame))
         zbuf = static["zbuf"].copy()
         image = static["image"].copy()
         rad_all = (parts["radius"] * o.radius_scale).astype(np.float32)
@@ -652,7 +747,8 @@ class Renderer:
         pts = parts["points"][drawn].astype(np.float32)
         rad = rad_all[drawn]
         median_rad = float(np.median(rad_all)) if len(rad_all) else 0.0
-        smap = self._shadow_map(pts, rad, list(meshes.values()), median_rad) if (o.shadows and (len(pts) or meshes)) else None
+        casters = list(meshes.values()) + tool_meshes
+        smap = self._shadow_map(pts, rad, casters, median_rad) if (o.shadows and (len(pts) or casters)) else None
         bias = 1.5 * median_rad
 
         # ---- the particles' shadows on the colliders: take the key light away where blocked
@@ -678,6 +774,11 @@ class Renderer:
             pix, dep, bary, t = raster_triangles(px, py, z, tri, W, H)
             np.minimum.at(zbuf, pix, dep)
             mesh_frags.append((body, v, tri, pix, dep, bary, t))
+        for v, tri in tool_meshes:
+            px, py, z = cam.project(v)
+            pix, dep, bary, t = raster_triangles(px, py, z, tri, W, H)
+            np.minimum.at(zbuf, pix, dep)
+            mesh_frags.append((None, v, tri, pix, dep, bary, t))
 
         rays = self._rays32
         eye = cam.eye.astype(np.float32)
@@ -715,6 +816,10 @@ class Renderer:
             # Seen from behind (an open or inside-out mesh): shade the side that faces the eye.
             back = np.einsum("nj,nj->n", face[t], rays[pix]) > 0
             normal[back] = -normal[back]
+            if body is None:  # a tool: steel, a sharper highlight
+                base = np.broadcast_to(_linear(_TOOL), (len(pix), 3)).astype(np.float32)
+                light(pix, dep, normal.astype(np.float32), base, 0.35, normal_offset=2.0)
+                continue
             colors = _linear(self._mesh_colors(body, v, parts)).astype(np.float32)
             base = np.einsum("nk,nkj->nj", bary, colors[tri[t]])
             light(pix, dep, normal.astype(np.float32), base.astype(np.float32), 0.25, normal_offset=2.0)

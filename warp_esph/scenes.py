@@ -398,10 +398,13 @@ def lab_compression(scale: float = 1.0) -> Scene:
     # (rho g h = 340 Pa) before the plate arrives.
     firm = Material.preset("dough").replace(yield_stress=1000.0)
     b.add_cylinder((0.0, h / 2, 0.0), r, h, firm, name="sample")
-    b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=0.3, name="base")
-    speed = 0.3 * h / 2.0  # 30 % strain over the 2 s run
+    # Tools on the outer particle layers (their centres), half a spacing inside the faces:
+    # a platen at the face would travel half a spacing before it touched anything.
+    bottom, top = float(b._points[-1][:, 1].min()), float(b._points[-1][:, 1].max())
+    b.add_tool("plane", position=(0.0, bottom, 0.0), friction=0.3, name="base")
+    speed = 0.3 * (top - bottom) / 2.0  # 30 % strain over the 2 s run
     b.add_tool("box", half_extents=(0.04, 0.005, 0.04), friction=0.3,
-               motion=tools.Velocity((0.0, -speed, 0.0), position=(0.0, h + 0.005, 0.0)), name="plate")  # touching
+               motion=tools.Velocity((0.0, -speed, 0.0), position=(0.0, top + 0.005, 0.0)), name="plate")  # touching
     return Scene("lab_compression", _doc(lab_compression), b, frames=60, fps=30.0)
 
 
@@ -424,8 +427,11 @@ def lab_indentation(scale: float = 1.0) -> Scene:
 
     b = SceneBuilder(spacing=0.005 / _scale(scale))
     b.add_box((0.0, 0.02, 0.0), (0.08, 0.04, 0.08), _lab_elastic(1.0e5), name="block")
-    b.add_tool("plane", position=(0.0, 0.0, 0.0), friction=0.5, name="base")
-    top, R = 0.04, 0.02
+    # The ball starts touching the top particle layer (centres, half a spacing below the
+    # block's face), so that it goes the full 4 mm into the particles.
+    bottom, top = float(b._points[-1][:, 1].min()), float(b._points[-1][:, 1].max())
+    b.add_tool("plane", position=(0.0, bottom, 0.0), friction=0.5, name="base")
+    R = 0.02
     b.add_tool("sphere", radius=R, friction=0.0, name="indenter",
                motion=tools.Keyframes([0.0, 1.0, 2.0], [(0.0, top + R, 0.0), (0.0, top + R - 0.004, 0.0), (0.0, top + R, 0.0)]))
     return Scene("lab_indentation", _doc(lab_indentation), b, frames=60, fps=30.0)
@@ -437,12 +443,16 @@ def lab_three_point_bending(scale: float = 1.0) -> Scene:
 
     b = SceneBuilder(spacing=0.005 / _scale(scale))
     t = 0.04
-    b.add_box((0.0, 0.02 + t / 2, 0.0), (0.24, t, t), _lab_elastic(1.0e6), name="beam")
+    # 24 cm plus a spacing: an odd number of particle columns, so that one column is at
+    # mid-span under the pin and one over each support.
+    b.add_box((0.0, 0.02 + t / 2, 0.0), (0.24 + b.spacing, t, t), _lab_elastic(1.0e6), name="beam")
+    bottom, top = float(b._points[-1][:, 1].min()), float(b._points[-1][:, 1].max())
     along_z = (math.sin(math.pi / 4), 0.0, 0.0, math.cos(math.pi / 4))  # a cylinder's y axis turned onto z
+    # Supports and pin touch the outer particle layers (centres) at t = 0.
     for name, x in (("support_left", -0.09), ("support_right", 0.09)):
-        b.add_tool("cylinder", radius=0.01, half_height=0.05, position=(x, 0.01, 0.0), orientation=along_z, name=name)
+        b.add_tool("cylinder", radius=0.01, half_height=0.05, position=(x, bottom - 0.01, 0.0), orientation=along_z, name=name)
     b.add_tool("cylinder", radius=0.01, half_height=0.05, name="loading_pin",
-               motion=tools.Velocity((0.0, -0.005, 0.0), position=(0.0, 0.03 + t, 0.0), orientation=along_z))
+               motion=tools.Velocity((0.0, -0.005, 0.0), position=(0.0, top + 0.01, 0.0), orientation=along_z))
     return Scene("lab_three_point_bending", _doc(lab_three_point_bending), b, frames=60, fps=30.0)
 
 

@@ -59,7 +59,7 @@ from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 from . import checks, tools
 from .model import Model
 
-__all__ = ["UsdWriter", "UsdFrames", "Collider", "USD_EXTENSIONS", "body_prim_names", "parse_frames", "surface_prim_path"]
+__all__ = ["UsdWriter", "UsdFrames", "Collider", "Tool", "USD_EXTENSIONS", "body_prim_names", "parse_frames", "surface_prim_path"]
 
 #: Output extensions and the layer format each is written in.
 USD_EXTENSIONS = {".usd": "usdc", ".usdc": "usdc", ".usda": "usda"}
@@ -333,7 +333,7 @@ class UsdWriter:
             pts.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(Vt.Vec3fArray([Gf.Vec3f(*color)]))
         self._author_colliders(stage)
         self._author_surfaces(stage)
-        tools.usd_author(stage, m, _KEY, self._plane_size or 1.0)
+        tools.usd_author(stage, m, _KEY, self._plane_quad_size())
 
     def _author_surfaces(self, stage: Usd.Stage):
         """The surface Mesh prims (idempotent: also used when appending to an existing file)."""
@@ -357,9 +357,8 @@ class UsdWriter:
             return
         UsdGeom.Scope.Define(stage, _COLLIDERS)
         x0 = np.asarray(m.particle_x0, dtype=np.float64)
-        lo, hi = x0.min(axis=0), x0.max(axis=0)
-        center = 0.5 * (lo + hi)
-        size = self._plane_size or max(4.0, 10.0 * float(np.linalg.norm(hi - lo)))
+        center = 0.5 * (x0.min(axis=0) + x0.max(axis=0))
+        size = self._plane_quad_size()
         grey = Vt.Vec3fArray([Gf.Vec3f(0.55, 0.55, 0.6)])
         for k, p in enumerate(m.planes):
             n = np.asarray(p.normal, dtype=np.float64)
@@ -396,6 +395,13 @@ class UsdWriter:
             cube.AddScaleOp().Set(Gf.Vec3f(*b.half_extents))
             cube.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(grey)
             self._collider_data(cube.GetPrim(), "box", friction=b.friction, center=Gf.Vec3d(*b.center), half_extents=Gf.Vec3d(*b.half_extents))
+
+    def _plane_quad_size(self) -> float:
+        """Edge of the quads that show planes (static colliders and plane tools alike)."""
+        if self._plane_size:
+            return self._plane_size
+        x0 = np.asarray(self.model.particle_x0, dtype=np.float64)
+        return max(4.0, 10.0 * float(np.linalg.norm(x0.max(axis=0) - x0.min(axis=0)))) if len(x0) else 4.0
 
     @staticmethod
     def _collider_data(prim: Usd.Prim, kind: str, **values):
@@ -575,8 +581,56 @@ class Collider:
     offset: float = 0.0
 
 
+@dataclasses.dataclass
+class Tool:
+    """A tool (moving collider) of ``/World/Tools``: its shape in its own frame and the prim
+    whose time-sampled ``xformOp:translate`` / ``xformOp:orient`` give its pose per frame."""
+
+    name: str
+    kind: str                     # one of tools.KINDS
+    prim: object                  # the tool's Xform prim
+    param: np.ndarray             # box: half extents; sphere: (r, 0, 0); capsule/cylinder: (r, half height, 0); plane: local normal
+    points: np.ndarray | None = None     # plane (the quad) and mesh: vertices in the tool's frame
+    triangles: np.ndarray | None = None  # mesh: (T, 3) vertex indices
+
+    def pose(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(position (3,), quaternion (x, y, z, w))`` at ``frame`` (held outside the samples)."""
+        t = Usd.TimeCode(float(frame))
+        p = self.prim.GetAttribute("xformOp:translate").Get(t)
+        q = self.prim.GetAttribute("xformOp:orient").Get(t)
+        p = np.zeros(3) if p is None else np.array(p, dtype=np.float64)
+        if q is None:
+            return p, np.array([0.0, 0.0, 0.0, 1.0])
+        im = q.GetImaginary()
+        q = np.array([im[0], im[1], im[2], q.GetReal()], dtype=np.float64)
+        return p, q / np.linalg.norm(q)
+
+
+def quat_matrix(q) -> np.ndarray:
+    """Rotation matrix of a unit quaternion ``(x, y, z, w)``."""
+    x, y, z, w = (float(v) for v in q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _fan(counts, idx) -> np.ndarray:
+    """Polygons (face vertex counts, indices) split into triangle fans (T, 3)."""
+    counts = np.asarray(counts, dtype=np.int64)
+    idx = np.asarray(idx, dtype=np.int64)
+    if (counts == 3).all():
+        return idx.reshape(-1, 3)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    face = np.repeat(np.arange(len(counts)), counts - 2)
+    k = np.arange(len(face)) - np.repeat(np.cumsum(counts - 2) - (counts - 2), counts - 2)
+    first = start[face]
+    return np.stack([idx[first], idx[first + k + 1], idx[first + k + 2]], axis=1)
+
+
 class UsdFrames:
-    """The particles, surfaces and colliders of a ``UsdWriter`` file, frame by frame."""
+    """The particles, surfaces, colliders and tools of a ``UsdWriter`` file, frame by frame."""
 
     def __init__(self, path):
         self.path = os.fspath(path)
@@ -610,6 +664,8 @@ class UsdFrames:
             col = UsdGeom.Points(prim).GetDisplayColorAttr().Get()
             self.display_colors.append(np.array(col[0], dtype=np.float32) if col else np.array((0.8, 0.6, 0.4), np.float32))
         self.colliders = self._read_colliders()
+        #: The tools (moving colliders) under ``/World/Tools``; pinned sets are left out.
+        self.tools = self._read_tools()
         # The surface Mesh of each body (``surface_prim_path``), or None where the file has none.
         self.surface_prims = []
         for name, _ in self.bodies:
@@ -638,14 +694,7 @@ class UsdFrames:
         idx = np.asarray(idx, dtype=np.int64)
         if counts.sum() != len(idx) or (counts < 3).any() or idx.min() < 0 or idx.max() >= len(v):
             raise ValueError(f"cannot read {self.path}: the surface {prim.GetPath()} at frame {frame} is not a valid mesh")
-        if (counts == 3).all():
-            tri = idx.reshape(-1, 3)
-        else:  # fans: (v0, v_k, v_k+1) of each polygon
-            start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-            face = np.repeat(np.arange(len(counts)), counts - 2)
-            k = np.arange(len(face)) - np.repeat(np.cumsum(counts - 2) - (counts - 2), counts - 2)
-            first = start[face]
-            tri = np.stack([idx[first], idx[first + k + 1], idx[first + k + 2]], axis=1)
+        tri = _fan(counts, idx)
         keep = np.isfinite(v).all(axis=1)
         if not keep.all():
             tri = tri[keep[tri].all(axis=1)]
@@ -672,6 +721,40 @@ class UsdFrames:
             elif kind == "box":
                 out.append(Collider("box", np.array(get(f"{_KEY}:center"), dtype=np.float64),
                                     np.array(get(f"{_KEY}:half_extents"), dtype=np.float64)))
+        return out
+
+    def _read_tools(self) -> list[Tool]:
+        out = []
+        scope = self.stage.GetPrimAtPath(tools.USD_ROOT)
+        if not scope:
+            return out
+        for prim in scope.GetChildren():
+            kind = prim.GetCustomDataByKey(f"{_KEY}:tool")
+            geom = prim.GetChild("geom")
+            if kind not in tools.KINDS or not geom:
+                continue  # a pinned set (no geometry) or something this reader does not know
+            name = str(prim.GetCustomDataByKey(f"{_KEY}:tool_name") or prim.GetName())
+            param, points, tri = np.zeros(3), None, None
+            if kind == "box":
+                scale = np.ones(3)
+                for op in UsdGeom.Xformable(geom).GetOrderedXformOps():
+                    if op.GetOpType() == UsdGeom.XformOp.TypeScale:
+                        scale = np.array(op.Get(), dtype=np.float64)
+                param = scale * 0.5 * float(UsdGeom.Cube(geom).GetSizeAttr().Get() or 2.0)
+            elif kind == "sphere":
+                param = np.array([float(UsdGeom.Sphere(geom).GetRadiusAttr().Get()), 0.0, 0.0])
+            elif kind in ("capsule", "cylinder"):
+                g = (UsdGeom.Capsule if kind == "capsule" else UsdGeom.Cylinder)(geom)
+                param = np.array([float(g.GetRadiusAttr().Get()), 0.5 * float(g.GetHeightAttr().Get()), 0.0])
+            else:
+                mesh = UsdGeom.Mesh(geom)
+                points = np.asarray(mesh.GetPointsAttr().Get(), dtype=np.float64).reshape(-1, 3)
+                tri = _fan(mesh.GetFaceVertexCountsAttr().Get(), mesh.GetFaceVertexIndicesAttr().Get())
+                if kind == "plane":
+                    # The quad faces +n (tools.usd_author: t1 x t2 = n).
+                    n = np.cross(points[1] - points[0], points[2] - points[1])
+                    param = n / np.linalg.norm(n)
+            out.append(Tool(name, kind, prim, np.asarray(param, dtype=np.float64), points, tri))
         return out
 
     def resolve(self, frame: int) -> int:
