@@ -1033,12 +1033,9 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         from .meshes import load_mesh  # noqa: PLC0415
 
         return Target("mesh", load_mesh(p), None, None, p)
-    try:
-        import meshio  # noqa: PLC0415
+    from .meshes import read_meshio  # noqa: PLC0415
 
-        m = meshio.read(p)
-    except Exception as e:  # noqa: BLE001
-        raise ValueError(f"target {p} cannot be read: {e}") from None
+    m = read_meshio(repr(p), p)  # checked or read in a child process: a damaged file cannot hang
     has_faces = any(c.type in ("triangle", "quad", "polygon", "tetra") or c.type.startswith("triangle") for c in m.cells)
     if has_faces:
         from .meshes import load_mesh  # noqa: PLC0415
