@@ -371,3 +371,27 @@ def test_extreme_stiffness_without_dt_is_refused(E):
         resolve_timestep(model, 30.0, substeps=10**7)
     with pytest.raises(ValueError, match=r"frames = 100000 is not allowed: .* more than 1e\+10"):
         we.simulate(model, 100000, fps=30.0, substeps=10**6, progress=False)
+
+
+@pytest.mark.parametrize("reader", ["target", "masks"])
+def test_damaged_npz_leaves_no_file_open(good_files, tmp_path, reader):
+    """np.load leaves its file handle open when the zip is damaged; reading a damaged .npz
+    target or mask file must close it (a ResourceWarning, an error here)."""
+    import gc
+    import warnings
+
+    from warp_esph.fit import load_target
+    from warp_esph.silhouette import PinholeCamera, load_masks
+
+    good = (good_files / "target.npz").read_bytes()
+    cams = [PinholeCamera(8, 8, 10.0, 10.0, 3.5, 3.5, np.eye(3), (0.0, 0.0, 1.0), name="cam")]
+    # Cut inside the central directory, in the middle of the data, and not a zip at all.
+    for i, data in enumerate([good[: len(good) - 30], good[: len(good) // 2], b"PK\x03\x04" + b"\0" * 40]):
+        path = tmp_path / f"bad{i}.npz"
+        path.write_bytes(data)
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            with pytest.raises(ValueError, match=f"bad{i}.npz"):
+                load_target(path) if reader == "target" else load_masks(path, cams)
+            gc.collect()
+        assert not [w for w in seen if issubclass(w.category, ResourceWarning)], [str(w.message) for w in seen]

@@ -989,9 +989,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
     ext = os.path.splitext(p)[1].lower()
     if ext in (".npz", ".npy"):
         try:
-            data = np.load(p)
-            if ext == ".npz":  # read every array here: a damaged zip fails on access, not on open
-                data = {k: data[k] for k in data.files}
+            data = read_arrays(p)
         except Exception as e:  # noqa: BLE001
             raise ValueError(f"target {p} cannot be read: {e}") from None
         frames, fps = None, None
@@ -1042,6 +1040,18 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
 
         return Target("mesh", load_mesh(p), None, None, p)
     return Target("points", np.asarray(m.points, dtype=np.float64)[:, :3], None, None, p)
+
+
+def read_arrays(path: str):
+    """The arrays of an ``.npz`` file as a dict (every one read now: a damaged zip fails on
+    access, not on open), or the array of an ``.npy`` file; the file is closed whatever
+    happens (np.load leaves its handle open when the zip is damaged: a ResourceWarning)."""
+    with open(path, "rb") as fh:
+        data = np.load(fh, allow_pickle=False)
+        if isinstance(data, np.lib.npyio.NpzFile):
+            with data:
+                return {k: data[k] for k in data.files}
+        return data
 
 
 def _forces_target(path: str, tool: str | None) -> Target:

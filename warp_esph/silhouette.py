@@ -147,11 +147,18 @@ def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None)
     if not os.path.isfile(p):
         raise FileNotFoundError(f"mask file {p} does not exist")
     ext = os.path.splitext(p)[1].lower()
+    from .fit import read_arrays  # noqa: PLC0415
+
     if ext == ".npz":
-        data = np.load(p)
+        try:
+            data = read_arrays(p)
+        except Exception as e:  # noqa: BLE001 (zipfile, zlib and numpy raise many kinds)
+            raise ValueError(f"mask file {p} cannot be read: {type(e).__name__}: {e}") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"mask file {p} is not allowed: it holds one array, not <camera>_<frame> arrays")
         out: dict[int, dict[str, np.ndarray]] = {}
         names = {c.name for c in cameras}
-        for key in data.files:
+        for key in data:
             cam, _, f = key.rpartition("_")
             if cam not in names or not f.isdigit():
                 raise ValueError(f"mask {key!r} in {p} is not allowed: name arrays <camera>_<frame> with cameras {sorted(names)}")
@@ -165,7 +172,12 @@ def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None)
     if len(cameras) != 1:
         raise ValueError(f"mask file {p} holds one image, for {len(cameras)} cameras: use an .npz with <camera>_<frame> arrays")
     if ext == ".npy":
-        a = np.load(p)
+        try:
+            a = read_arrays(p)
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"mask file {p} cannot be read: {type(e).__name__}: {e}") from None
+        if isinstance(a, dict):
+            raise ValueError(f"mask file {p} is not allowed: it is a zip of arrays, not one .npy image")
     else:
         from PIL import Image  # noqa: PLC0415
 
