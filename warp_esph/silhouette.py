@@ -382,7 +382,7 @@ def load_silhouette_target(cameras_path, masks_path, frames_spec, frames: int, s
     """The silhouette loss of the ``warp-esph fit`` command: cameras from ``cameras_path``,
     masks from ``masks_path`` at rendered frames (an image: ``frames_spec`` or the last
     frame), with ``substeps`` steps per frame. The splat radius is the file's ``radius``
-    (default: half of... given per file; required)."""
+    (required: about half a particle spacing) and the opacity its ``opacity`` (default 0.5)."""
     cameras, options = load_cameras(cameras_path)
     frame = int(frames_spec) if frames_spec is not None else frames
     masks = load_masks(masks_path, cameras, frame)
