@@ -228,6 +228,32 @@ def test_joint_fit_recovers_what_neither_experiment_determines():
     assert d.residual_rms == pytest.approx([1e-4, 1e-4], rel=0.2)
 
 
+def test_gauss_newton_fits_the_joint_experiments_from_forward_runs():
+    """optimizer="gauss-newton" (Levenberg-Marquardt on the residual vectors, Jacobian by
+    forward differences): the joint stretch fit from 2x off reaches the noise floor from
+    forward runs only, its history's loss is the sum of squared weighted residuals (the
+    loss itself), and a loss without residuals is refused before any run."""
+    params = ["yield_stress", "flow_rate"]
+    slow, fast = _stretch(4.0, 0.1, 1, factor=2.0), _stretch(30.0, 0.04, 2, factor=2.0)
+    result = fit([slow, fast], None, params, iterations=30, optimizer="gauss-newton", xtol=1e-4, progress=False)
+    assert result.stopped == "converged", result.termination
+    assert result.params["yield_stress"][0] == pytest.approx(100.0, rel=0.10)
+    assert result.params["flow_rate"][0] == pytest.approx(10.0, rel=0.10)
+    assert result.diagnostics.residual_rms == pytest.approx([1e-4, 1e-4], rel=0.2)
+    assert all(h["grad"] is None for h in result.history)  # no backward pass
+    # The residual vector is the loss: the same value from fit's loss evaluation.
+    again = fit([slow, fast], None, params, iterations=0, diagnostics=False, progress=False)
+    assert again.loss == pytest.approx(result.loss, rel=1e-9)
+
+    class NoResiduals(PositionLoss):
+        residuals = property(lambda self: (_ for _ in ()).throw(AttributeError("residuals")))
+
+    e = _stretch(4.0, 0.1, 1)
+    e.target = NoResiduals(np.zeros((1, e.model.particle_count, 3)), frames=[e.steps])
+    with pytest.raises(ValueError, match="optimizer = 'gauss-newton' is not allowed: .* has no residual vector"):
+        fit([e], None, params, iterations=5, optimizer="gauss-newton", progress=False)
+
+
 def _cameras():
     front = PinholeCamera(32, 24, 60.0, 60.0, 15.5, 11.5, np.diag([1.0, -1.0, -1.0]), [0.0, 0.05, 0.5], "front")
     side = PinholeCamera(24, 24, 50.0, 50.0, 11.5, 11.5, [[0.0, 0.0, -1.0], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0]],

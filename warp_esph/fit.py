@@ -46,7 +46,7 @@ import warp as wp
 
 from . import checks
 from .builder import SceneBuilder
-from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, WorldLoss, is_tools_csv, read_tools_csv
+from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, SumLoss, WorldLoss, is_tools_csv, read_tools_csv
 from .material import Material
 from .model import Model
 from .rollout import PARAMETERS, Rollout
@@ -511,7 +511,10 @@ def fit(
       tape when it fits in ``memory_limit`` bytes, else the longest segment that fits
       (``choose_checkpointing``).
     - ``initial``: ``Rollout.forward`` keywords (``x0, v0, F0, alpha0, initial_state``).
-    - ``optimizer``: ``"adam"`` (default; ``lr``, ``lr_end``, ``clip``) or ``"lbfgs"``
+    - ``optimizer``: ``"adam"`` (default; ``lr``, ``lr_end``, ``clip``), ``"gauss-newton"``
+      (Levenberg-Marquardt on the losses' residual vectors from forward runs only, the
+      Jacobian by forward differences of ``GN_STEP``: for least-squares losses with few
+      parameters along a curved valley; every loss needs ``residuals``) or ``"lbfgs"``
       (quasi-Newton with a backtracking line search: far fewer evaluations on a smooth
       loss with few parameters; its first step moves by ``lr`` and no step moves a
       parameter by more than ``max_step`` in optimiser space, i.e. a factor ``e`` for
@@ -551,7 +554,7 @@ def fit(
         raise ValueError(f"iterations = {iterations!r} is not allowed: must be >= 0")
     if clip is not None:
         clip = checks.positive("clip", clip)
-    optimizer = checks.choice("optimizer", optimizer, ("adam", "lbfgs"))
+    optimizer = checks.choice("optimizer", optimizer, ("adam", "lbfgs", "gauss-newton"))
     max_step = checks.positive("max_step", max_step)
     lbfgs_memory = checks.positive_int("lbfgs_memory", lbfgs_memory)
     xtol = checks.positive("xtol", xtol)
@@ -631,6 +634,61 @@ def fit(
             raise _Stop("stalled")
         return value, gz, finite
 
+    def residual_evaluation(z, reset=False):
+        """The weighted residual vector at z (forward passes only; ``sum r^2`` is the loss),
+        recorded in the history like an evaluation (``grad`` None). ``reset``: new
+        correspondences (nearest points, tangent planes) for the losses that keep them."""
+        from .diagnostics import leaf_terms  # noqa: PLC0415
+
+        t0 = time.perf_counter()
+        p = prob.from_z(z)
+        prob.apply(z)
+        parts = []
+        try:
+            for r in prob.runs:
+                r.rollout.forward(**r.initial)
+                arrays = r.rollout.observations(numpy=True)
+                terms = r.loss.terms if isinstance(r.loss, SumLoss) else [(1.0, r.loss)]
+                for coef, leaf in terms:
+                    if reset or not getattr(leaf, "_counts", True):
+                        if hasattr(leaf, "reset_residuals"):
+                            leaf.reset_residuals()
+                        leaf.value(r.rollout.observations())  # records the residual counts
+                    parts.append(math.sqrt(r.weight * coef / leaf.residual_scale()) * leaf.residuals(arrays))
+            res = np.concatenate(parts)
+        except FloatingPointError:
+            res = np.full(1, np.inf)
+        value = float(res @ res) if np.isfinite(res).all() else math.inf
+        finite = math.isfinite(value)
+        history.append({"iteration": len(history), "stage": state["stage"], "loss": value,
+                        "params": {k: [float(x) for x in v] for k, v in p.items()}, "grad": None,
+                        "seconds": time.perf_counter() - t0})
+        if not state.get("timed"):
+            state["timed"] = True
+            seconds = time.perf_counter() - t0
+            say(f"one evaluation (forward only) took {seconds:.3g} s: up to {iterations + 1} evaluations, "
+                f"~{_duration(seconds * (iterations + 1) * starts)}")
+        _record_best(value, finite, p)
+        bar = state["bar"]
+        if bar is not None:
+            shown = ", ".join(f"{k}={v[0]:.4g}" for k, v in p.items())
+            bar.set_postfix_str(f"loss={value:.3e}, {shown}", refresh=False)
+            bar.update(1)
+        if callback is not None and callback(len(history) - 1, value, {k: v.copy() for k, v in p.items()}):
+            raise _Stop("callback")
+        if tol is not None and finite and value < tol:
+            raise _Stop("tol")
+        if state["since_best"] >= patience:
+            raise _Stop("stalled")
+        return res, finite
+
+    if optimizer == "gauss-newton":
+        from .diagnostics import leaf_terms  # noqa: PLC0415
+
+        lacking = [repr(leaf) for r in runs for leaf in leaf_terms(r.loss) if not hasattr(leaf, "residuals")]
+        if lacking:
+            raise ValueError(f"optimizer = 'gauss-newton' is not allowed: {lacking[0]} has no residual vector; use lbfgs")
+
     def _record_best(value, finite, p):
         if finite and value < best[0] - 1e-9 * abs(best[0]):
             state["since_best"] = 0
@@ -683,6 +741,8 @@ def fit(
             try:
                 if optimizer == "adam":
                     stop = _run_adam(evaluate, prob.project, z_start, iterations, lr, lr_end, clip, history, xtol, gtol)
+                elif optimizer == "gauss-newton":
+                    stop = _run_gauss_newton(residual_evaluation, prob.project, z_start, iterations, max_step, GN_STEP, xtol)
                 else:
                     stop = _run_lbfgs(evaluate, prob.project, z_start, iterations, lr, max_step, memory=lbfgs_memory,
                                       xtol=xtol, gtol=gtol)
@@ -858,6 +918,75 @@ def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-
             return "converged"
     if float(np.abs(g).max()) <= gtol * g0:
         return "converged"
+    return "iterations"
+
+
+#: Forward-difference step of the Gauss-Newton Jacobian in optimiser space (1 %): large
+#: against the loss's roughness (contacts and neighbours switching one particle at a time
+#: make it jump at 1e-3), small against the per-cent changes a fit must resolve.
+GN_STEP = 1e-2
+
+
+def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6) -> str:
+    """Levenberg-Marquardt on the residual vector ``r(z)`` (``loss = r . r``), in optimiser
+    space, from forward runs only: the Jacobian by forward differences of step ``h`` (one
+    run per value), then steps ``-(J^T J + lam diag(J^T J))^-1 J^T r``, ``lam`` divided by
+    10 after an accepted step and multiplied by 10 after a rejected one. A least-squares
+    loss with few parameters and a curved valley (yield stress against flow rate) is what
+    it is for: each step uses the valley's curvature at once, where L-BFGS learns it over
+    many steps. ``iterations`` counts runs after the first, Jacobian runs included."""
+    r, finite = residuals(z, reset=True)
+    if not finite:
+        raise FloatingPointError("the loss is not finite at the initial guess")
+    f = float(r @ r)
+    lam = 1e-3
+    evals = 0
+    while evals + len(z) < iterations:
+        J = np.empty((len(r), len(z)))
+        for j in range(len(z)):
+            zj = z.copy()
+            zj[j] += h
+            rj, ok = residuals(zj)
+            evals += 1
+            if not ok:
+                zj[j] = z[j] - h  # a blow-up on one side: the other
+                rj, ok = residuals(zj)
+                evals += 1
+                if not ok:
+                    return "stalled"
+            J[:, j] = (rj - r) / (zj[j] - z[j])
+        A, g = J.T @ J, J.T @ r
+        if not np.any(A.diagonal() > 0.0):
+            return "flat"
+        while True:
+            D = np.diag(np.maximum(A.diagonal(), 1e-12 * max(float(A.diagonal().max()), 1e-300)))
+            try:
+                dz = -np.linalg.solve(A + lam * D, g)
+            except np.linalg.LinAlgError:
+                dz = -g / max(float(np.abs(g).max()), 1e-300) * h
+            big = float(np.abs(dz).max())
+            if big > max_step:
+                dz *= max_step / big
+            z_new = project(z + dz)
+            step = z_new - z
+            if float(np.abs(step).max()) < xtol:
+                # No lower loss along the damped steps down to xtol (MINPACK's xtol test):
+                # the minimum is found to the resolution asked for.
+                return "converged"
+            if evals >= iterations:
+                return "iterations"
+            r_new, ok = residuals(z_new, reset=True)
+            evals += 1
+            f_new = float(r_new @ r_new) if ok else math.inf
+            if f_new < f:
+                lam = max(lam / 10.0, 1e-9)
+                break
+            lam *= 10.0
+            if lam > 1e8:
+                return "stalled"
+        z, r, f = z_new, r_new, f_new
+        if float(np.abs(step).max()) < xtol:
+            return "converged"
     return "iterations"
 
 

@@ -365,6 +365,21 @@ class SilhouetteLoss(Loss):
                 out.append(k * (soft_silhouette(X, c, self.radius, self.opacity) - m).ravel())
         return np.concatenate(out)
 
+    def correlated_pixels(self, positions) -> float:
+        """Pixels per independent observation: the area ``pi (2 s)^2`` of a splat (``s`` its
+        pixel radius at the particles' median depth), averaged over cameras. A particle moves
+        its whole splat, so the residuals within it rise and fall together; counting each
+        pixel as an independent observation overstates what the masks say by about this factor."""
+        X = np.concatenate([np.asarray(positions[f], dtype=np.float64).reshape(-1, 3) for f in self.frames])
+        areas = []
+        for c in self.cameras:
+            _, _, z = c.project(X)
+            z = z[z > 1e-9]
+            if len(z):
+                s = self.radius * math.sqrt(c.fx * c.fy) / float(np.median(z))
+                areas.append(math.pi * (2.0 * s) ** 2)
+        return max(float(np.mean(areas)), 1.0) if areas else 1.0
+
     def __repr__(self):
         return (f"SilhouetteLoss(frames={list(self.frames)}, cameras={[c.name for c in self.cameras]}, "
                 f"radius={self.radius:g}, weight={self.weight:g})")
