@@ -70,12 +70,6 @@ class Setup:
     length_noise: float = 5e-4       # m: a ruler's half millimetre
     force_noise: float = 0.02        # of the peak force
     iterations: int = 12
-    #: A fit first at this smaller setup, from the guess; this one then starts at its result
-    #: (the coarse model is ~10x cheaper per evaluation and lands within a few per cent).
-    coarse: str | None = None
-    #: Global first stage: forward-only runs at this many Latin-hypercube points within a
-    #: factor 2.5 of the guess; L-BFGS starts from the best (0: from the guess).
-    samples: int = 0
     #: The time step stays below 0.5 / flow_rate of the largest flow rate the fit visits:
     #: with flow_rate * dt >= 1 the flow step saturates (gamma = 1, a full return to the yield
     #: surface each step) and the taped gradient of a long slump disagrees with central
@@ -84,7 +78,7 @@ class Setup:
 
 
 SETUPS = {
-    "full": Setup(coarse="ci", iterations=10),
+    "full": Setup(iterations=20),
     "ci": Setup(slump_resolution=4, slump_duration=0.3, press_spacing=0.005, iterations=20),
 }
 
@@ -230,7 +224,7 @@ def invert_plateau(rows: list[dict], press: dict, tail: float = 0.4) -> float:
 
 
 # ------------------------------------------------------------ the fit
-def calibrate(folder: str, s: Setup, guess: dict, progress: bool = False, diagnostics: bool = True):
+def calibrate(folder: str, s: Setup, guess: dict, progress: bool = False):
     """The joint fit of yield_stress and flow_rate to the lab files in ``folder``."""
     slump = json.load(open(os.path.join(folder, "slump.json")))
     press = json.load(open(os.path.join(folder, "compression.json")))
@@ -253,9 +247,9 @@ def calibrate(folder: str, s: Setup, guess: dict, progress: bool = False, diagno
 
     experiments = [Experiment(sm, slump_loss, steps=end, dt=dt_s, name="slump"),
                    Experiment(pm, press_loss, steps=frames * sub_p, dt=dt_p, name="compression")]
-    # lr: L-BFGS's first step moves the parameters by up to 50 % (the guesses are far off).
+    # lr (L-BFGS only): its first step moves the parameters by up to 50 % (the guesses are far off).
     return fit(experiments, None, ["yield_stress", "flow_rate"], optimizer=OPTIMIZER, iterations=s.iterations, lr=0.5,
-               xtol=XTOL, samples=s.samples, sample_range=2.5, diagnostics=diagnostics, progress=progress,
+               xtol=XTOL, progress=progress,
                log=(lambda m: print("  " + m, file=sys.stderr)) if progress else None)
 
 
@@ -286,15 +280,6 @@ def main(argv=None) -> int:
           f"force curve of {round(s.press_duration * s.press_fps)} frames ({time.perf_counter() - t0:.0f} s)")
     guess = {k: 2.0 * v for k, v in TRUE.items()}
     t1 = time.perf_counter()
-    stages = []
-    if s.coarse is not None:
-        coarse = calibrate(folder, SETUPS[s.coarse], guess, progress=True, diagnostics=False)
-        guess = {k: float(v[0]) for k, v in coarse.params.items()}
-        stages.append({"setup": s.coarse, "stopped": coarse.stopped, "evaluations": coarse.evaluations, "params": guess,
-                       "seconds": time.perf_counter() - t1})
-        print(f"coarse stage ({s.coarse} size): {coarse.termination} ({coarse.evaluations} evaluations, "
-              f"{time.perf_counter() - t1:.0f} s): yield_stress {guess['yield_stress']:.1f} Pa, "
-              f"flow_rate {guess['flow_rate']:.1f} /s")
     result = calibrate(folder, s, guess, progress=True)
     d = result.diagnostics
     cf = closed_forms(folder)
@@ -311,7 +296,7 @@ def main(argv=None) -> int:
     print(f"(yield_stress Y = sqrt(2/3) sigma_y = sqrt(2) tau_y; plastic viscosity = mu / flow_rate, mu = {MU:.0f} Pa)")
     print(d.summary())
     out = {"true": TRUE, "fitted": fitted, "standard_error": {k: float(v) for k, v in se.items()}, "closed_form": cf,
-           "stopped": result.stopped, "evaluations": result.evaluations, "stages": stages,
+           "stopped": result.stopped, "evaluations": result.evaluations,
            "undetermined": list(d.undetermined), "seconds": time.perf_counter() - t0, "lab": lab}
     with open(os.path.join(folder, "result.json"), "w") as fh:
         json.dump(out, fh, indent=1, default=float)
