@@ -78,8 +78,8 @@ class Setup:
 
 
 SETUPS = {
-    "full": Setup(iterations=20),
-    "ci": Setup(slump_resolution=4, slump_duration=0.3, press_spacing=0.005, iterations=20),
+    "full": Setup(iterations=30),
+    "ci": Setup(slump_resolution=4, slump_duration=0.3, press_spacing=0.005, iterations=24),
 }
 
 #: Convergence: the fit stops when an accepted step changes no log-parameter by more than

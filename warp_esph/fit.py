@@ -930,8 +930,9 @@ GN_STEP = 1e-2
 def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6) -> str:
     """Levenberg-Marquardt on the residual vector ``r(z)`` (``loss = r . r``), in optimiser
     space, from forward runs only: the Jacobian by forward differences of step ``h`` (one
-    run per value), then steps ``-(J^T J + lam diag(J^T J))^-1 J^T r``, ``lam`` divided by
-    10 after an accepted step and multiplied by 10 after a rejected one. A least-squares
+    run per value), then steps ``-(J^T J + lam diag(J^T J))^-1 J^T r``, with ``lam`` set by
+    the gain ratio (actual over predicted decrease; Nielsen's update: a step the linear
+    model predicted well lowers ``lam``, a rejected one doubles its growth factor). A least-squares
     loss with few parameters and a curved valley (yield stress against flow rate) is what
     it is for: each step uses the valley's curvature at once, where L-BFGS learns it over
     many steps. ``iterations`` counts runs after the first, Jacobian runs included."""
@@ -939,7 +940,7 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6)
     if not finite:
         raise FloatingPointError("the loss is not finite at the initial guess")
     f = float(r @ r)
-    lam = 1e-3
+    lam, nu = 1e-3, 2.0
     evals = 0
     while evals + len(z) < iterations:
         J = np.empty((len(r), len(z)))
@@ -978,10 +979,15 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6)
             r_new, ok = residuals(z_new, reset=True)
             evals += 1
             f_new = float(r_new @ r_new) if ok else math.inf
-            if f_new < f:
-                lam = max(lam / 10.0, 1e-9)
+            # Gain ratio: the actual decrease over the one the linear model predicts.
+            predicted = -(2.0 * g @ step + step @ A @ step)
+            rho = (f - f_new) / predicted if predicted > 0.0 else -1.0
+            if f_new < f and rho > 0.0:
+                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)  # Nielsen's update
+                nu = 2.0
                 break
-            lam *= 10.0
+            lam *= nu
+            nu *= 2.0
             if lam > 1e8:
                 return "stalled"
         z, r, f = z_new, r_new, f_new
