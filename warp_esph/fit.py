@@ -638,8 +638,6 @@ def fit(
         """The weighted residual vector at z (forward passes only; ``sum r^2`` is the loss),
         recorded in the history like an evaluation (``grad`` None). ``reset``: new
         correspondences (nearest points, tangent planes) for the losses that keep them."""
-        from .diagnostics import leaf_terms  # noqa: PLC0415
-
         t0 = time.perf_counter()
         p = prob.from_z(z)
         prob.apply(z)
