@@ -67,7 +67,7 @@ def add_calibration_arguments(parser):
                    help="stop as stalled after N evaluations without a lower loss (default 20)")
     g.add_argument("--noise", type=float, metavar="SIGMA",
                    help="observation noise in m for the diagnostics (default: the residual RMS, at least 1%% of the spacing)")
-    g.add_argument("--no-diagnostics", action="store_true", help="skip the diagnostics (2 P + 1 extra runs for P values)")
+    g.add_argument("--no-diagnostics", action="store_true", help="skip the diagnostics (4 P + 1 extra runs for P values, the range check included)")
     g.add_argument("--experiments", metavar="EXPERIMENTS.json",
                    help="a joint fit: more experiments (each its own scene and target) sharing the fitted material "
                         "with SCENE; a JSON list of objects with keys " + ", ".join(EXPERIMENT_KEYS))
