@@ -98,7 +98,7 @@ class AdjointProfile:
         wp.launch = self._launch
 
 
-def measure(model: we.Model, steps: int, repeats: int, profile: bool, hand: bool = True) -> dict:
+def measure(model: we.Model, steps: int, repeats: int, profile: bool, hand: bool = True, fused_tape: bool = True) -> dict:
     dt = model.stable_dt()
     n = model.particle_count
     fused = Solver(model)
@@ -106,6 +106,10 @@ def measure(model: we.Model, steps: int, repeats: int, profile: bool, hand: bool
     initial = model.state(requires_grad=False)
     rollout = Rollout(model, steps, dt)
     rollout.solver.hand_adjoints = hand
+    if not fused_tape:
+        # The taped forward on the differentiable kernels (hand-written adjoints where they
+        # exist for them): how a variational-force model ran before its adjoint was written.
+        rollout.solver.fused = False
 
     def run_fused():
         pair[0].assign(initial)
@@ -144,7 +148,7 @@ def measure(model: we.Model, steps: int, repeats: int, profile: bool, hand: bool
     cf, ctf, cbw = min(c_fused), min(c_taped), min(c_back)
     out = {
         "particles": n,
-        "adjoints": "hand-written" if hand else "generated",
+        "adjoints": ("hand-written" if fused_tape else "hand-written, differentiable taped forward") if hand else "generated",
         "dtype": model.types.np_dtype.__name__,
         "steps": steps,
         "fused_ms_per_step": 1e3 * f / steps,
@@ -197,6 +201,9 @@ def main(argv=None) -> int:
     ap.add_argument("--profile", action="store_true", help="time each kernel's adjoint launch")
     ap.add_argument("--generated", action="store_true",
                     help="also time the rollout with Warp's generated adjoints only (Solver.hand_adjoints = False)")
+    ap.add_argument("--differentiable", action="store_true",
+                    help="also time the rollout with the taped forward on the differentiable kernels (Solver.fused = "
+                         "False; hand-written adjoints where they exist for them)")
     ap.add_argument("--json", default=None, help="write the results here")
     a = ap.parse_args(argv)
     wp.config.quiet = True
@@ -209,6 +216,8 @@ def main(argv=None) -> int:
             model = star_model(dtype) if size == "star" else block_model(int(size), dtype)
             steps = a.star_steps if size == "star" else a.steps
             runs = [measure(model, steps, a.repeats, a.profile, hand=True)]
+            if a.differentiable:
+                runs.append(measure(model, steps, a.repeats, a.profile, hand=True, fused_tape=False))
             if a.generated:
                 runs.append(measure(model, steps, a.repeats, a.profile, hand=False))
             for r in runs[1:]:

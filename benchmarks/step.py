@@ -76,13 +76,16 @@ def box_side(n: int) -> int:
 
 
 # ------------------------------------------------------------------ warp_esph
-def build_model(we, n: int, device, requires_grad: bool = False):
+def build_model(we, n: int, device, requires_grad: bool = False, elastic_force: str | None = None):
     import warp as wp
 
     side = box_side(n)
     L = side * DX
     b = we.SceneBuilder(spacing=DX)
-    b.add_box((0.0, L / 2 + 0.25 * DX, 0.0), (L, L, L), we.Material.preset("dough"), velocity=(0.0, -1.0, 0.0))
+    mat = we.Material.preset("dough")
+    if elastic_force is not None:
+        mat = mat.replace(elastic_force=elastic_force)
+    b.add_box((0.0, L / 2 + 0.25 * DX, 0.0), (L, L, L), mat, velocity=(0.0, -1.0, 0.0))
     b.add_ground(0.0, friction=0.5)
     return b.finalize(device=device, dtype=wp.float32, requires_grad=requires_grad)
 
@@ -331,6 +334,46 @@ def variant_rates(n: int, device, args, baseline=None) -> dict:
     return out
 
 
+def elastic_force_rates(n: int, device, args) -> dict:
+    """Forward rate of the dough with each elastic force (the default variational one and
+    the paper's eqs. 10-13), blocks interleaved in one run; ratios against the paper's."""
+    import warp_esph as we
+
+    prepared = []
+    for force in ("paper", "variational"):
+        model = build_model(we, n, device, elastic_force=force)
+        solver = we.Solver(model)
+        states = [model.state(), model.state()]
+        for _ in range(args.warmup):
+            solver.step(states[0], states[1], DT)
+            states.reverse()
+        prepared.append((force, solver, states, []))
+    per_block = max(1, args.steps // args.blocks)
+    for _ in range(args.blocks):
+        for _force, solver, states, times in prepared:
+            a, b = states
+            _sync(device)
+            t0, c0 = time.perf_counter(), time.thread_time()
+            for _ in range(per_block):
+                solver.step(a, b, DT)
+                a, b = b, a
+            _sync(device)
+            times.append(((time.perf_counter() - t0) / per_block, (time.thread_time() - c0) / per_block))
+            states[0], states[1] = a, b
+    out = {}
+    for force, solver, _states, times in prepared:
+        n_p = solver.model.particle_count
+        out[force] = {
+            "particle_steps_per_second_best_block": n_p / min(t for t, _ in times),
+            "particle_steps_per_second_mean": n_p / float(np.mean([t for t, _ in times])),
+            "particle_steps_per_second_cpu_time_best_block": n_p / min(c for _, c in times),
+        }
+    for key in ("particle_steps_per_second_best_block", "particle_steps_per_second_mean",
+                "particle_steps_per_second_cpu_time_best_block"):
+        out.setdefault("variational_over_paper", {})[key] = out["variational"][key] / out["paper"][key]
+    return out
+
+
 def compare_with_cpu(we, device, n: int = 4000, steps: int = 20) -> dict:
     """The same run on ``device`` and on the CPU: neighbour rows and trajectories agree."""
     out = {}
@@ -485,6 +528,8 @@ def main(argv=None):
     p.add_argument("--variants", action="store_true", help="also time each optimisation off/on (CPU sizes)")
     p.add_argument("--baseline-commit", default=None, help="with --variants: also time warp_esph at this git commit")
     p.add_argument("--compare-cpu", action="store_true", help="check a short run on each CUDA device against the CPU")
+    p.add_argument("--elastic-forces", action="store_true",
+                   help="also time the dough with the variational (default) and the paper's elastic force, interleaved")
     p.add_argument("--json", default="benchmark_step.json", help="where the results go")
     args = p.parse_args(argv)
 
@@ -534,6 +579,19 @@ def main(argv=None):
             for n in _sizes(args.sizes if device.is_cpu else args.cuda_sizes):
                 print(f"variants {dev_name} {n} ...", flush=True)
                 report["variants"][dev_name][str(n)] = variant_rates(n, device, args, baseline)
+    if args.elastic_forces:
+        report["elastic_forces"] = {}
+        for dev_name in devices:
+            device = wp.get_device(dev_name)
+            report["elastic_forces"][dev_name] = {}
+            for n in _sizes(args.sizes if device.is_cpu else args.cuda_sizes):
+                print(f"elastic forces {dev_name} {n} ...", flush=True)
+                r = report["elastic_forces"][dev_name][str(n)] = elastic_force_rates(n, device, args)
+                print("  " + ", ".join(f"{f}: {r[f]['particle_steps_per_second_best_block'] / 1e3:.0f} k/s best block "
+                                       f"({r[f]['particle_steps_per_second_cpu_time_best_block'] / 1e3:.0f} k/s CPU time)"
+                                       for f in ("paper", "variational"))
+                      + "; variational / paper: " + ", ".join(f"{v:.3f}" for v in r["variational_over_paper"].values()),
+                      flush=True)
     if args.no_splishsplash:
         report["splishsplash"] = {"available": False, "message": "SPlisHSPlasH skipped (--no-splishsplash)"}
     else:

@@ -173,13 +173,18 @@ def _targets(results) -> list[tuple[str, str, str]]:
             rs = [r for r in slumps if r["elastic_force"] == f and r["resolution"] == finest]
             worst = max(abs(r["h_over_H0"] / r["theory_h_over_H0"] - 1.0) for r in rs)
             rate = max(abs(r["top_rate_pct_H0_per_s"]) for r in rs)
-            plugs = [r["plug_unyielded_fraction"] for r in rs if r["plug_unyielded_fraction"] == r["plug_unyielded_fraction"]]
-            plug = min(plugs) if plugs else float("nan")
+            # The plug is judged only where the run resolves it (plug_particles > 0: the top S H0 / 2
+            # is at least one support radius thick; docs/validation.md, the plug).
+            resolved = [r for r in slumps if r["elastic_force"] == f and r.get("plug_particles", 0) > 0
+                        and r.get("plug_plastic_strain", float("nan")) == r.get("plug_plastic_strain", float("nan"))]
+            plug = min((r["plug_unyielded_fraction"] for r in resolved), default=float("nan"))
+            strain = max((r["plug_plastic_strain"] for r in resolved), default=float("nan"))
             out.append((f"slump h within 10 % of the 1-D theory, S in [0.1, 0.5], {finest} across ({f})",
                         f"worst {100 * worst:.3g} % off", "yes" if worst < 0.1 else "no"))
-            out.append((f"slumped top at rest (< 0.1 % H0/s) with an unyielded plug ({f})",
-                        f"fastest {rate:.3g} % H0/s; plug unyielded fraction >= {plug:.2g}",
-                        "yes" if rate < 0.1 and plug > 0.9 else "no"))  # nan (no plug particle): not met
+            out.append((f"slumped top at rest (< 0.1 % H0/s) with an unyielded plug where resolved ({f})",
+                        f"fastest {rate:.3g} % H0/s; {len(resolved)} runs resolve a plug: below yield >= {plug:.2g}, "
+                        f"plastic strain <= {strain:.2g} yield strains",
+                        "yes" if rate < 0.1 and plug > 0.9 and strain < 1.0 else "no"))  # none resolved: not met
     stab = [r for r in results if r["case"] == "stability"]
     if stab:
         blown = [f"{r['label']} ({r['elastic_force']})" for r in stab if r["blew_up"]]
@@ -227,6 +232,20 @@ regime (Roussel & Coussot 2005), for a shallow no-slip layer `h(r) = sqrt(2 tau_
 of volume `Omega`, gives `R = (225 rho g Omega^2 / (128 pi^2 tau_y))^(1/5)` with `tau_y = Y / sqrt(2)`;
 it holds where the final height is much smaller than the radius (the smallest `S`).
 
+The plug. The 1-D plug (depth `z < S H0`) carries `rho g z < sigma_y`, but the runs start
+stress-free with gravity acting at once, and in an elastic column suddenly loaded by its
+weight the stress at depth `z` swings up to `2 rho g z`: only the top `S H0 / 2` stays below
+yield through the release. A particle's deformation is fitted over its support radius `h`,
+so that region is resolved only where `S H0 / 2 >= h` (S >= 0.5 at 8 across, 0.33 at 12,
+0.25 at 16). There the suite reads the plug by its accumulated plastic strain (`State.alpha`)
+in yield strains `Y / (2 mu)` (below 1: it changed shape plastically less than the elastic
+strain it can hold) and by `|s| < 0.99 Y` at rest. Material that flowed rests at `|s| = Y`
+(the flow stops where `|s|` reaches `Y`), so "at yield" marks where the pile flowed. The 1-D
+analysis neglects shear: a plug of thickness `S H0` dragged outward at its base by up to
+`tau_y` yields in tension at its centre once `R / (S H0) > sqrt(3)`, about `S < 0.29` for
+`R = R0 = H0 / 2`, so below that a 3-D pile need not keep one (docs/physics.md, the plug).
+The shallow pile's central height is `h_RC = sqrt(2 tau_y R_RC / (rho g))`.
+
 """
 
 
@@ -250,18 +269,24 @@ def write(results, out: pathlib.Path, meta: dict):
         slumps.sort(key=lambda r: (r["S"], r["resolution"], r["elastic_force"]))
         rows = [[r["S"], r["resolution"], r["elastic_force"], r["particles"], r["duration"], r["h_over_H0"], r["theory_h_over_H0"],
                  r["ratio_to_theory"], r["top_rate_pct_H0_per_s"], r["kinetic_over_MgH0"], r["fraction_at_yield"],
-                 r["plug_unyielded_fraction"], r["radius_over_R0"], r["radius_over_spread_theory"]] for r in slumps]
+                 r["plug_particles"], r["plug_unyielded_fraction"], r.get("plug_plastic_strain", float("nan")),
+                 r.get("flowed_plastic_strain", float("nan")), r["radius_over_R0"], r["radius_over_spread_theory"],
+                 r.get("spread_theory_h_over_H0", float("nan"))] for r in slumps]
         parts.append(
             "## Bingham slump of a cylinder\n\n"
             "`benchmarks.validation.slump`: H0 = 2 R0 = 0.1 m, rho = 1000 kg/m^3, mu = 10 rho g H0, nu = 0.3, "
             "flow rate 200 /s, default SPH pressure, viscosity 2 Pa s, floor friction 1, dt = 0.9 `stable_dt()`. "
             "h: top of the particles within R0/2 of the axis (+ dx/2), at the end of the run. Slump ratio: "
             "(1 - h/H0) / (1 - theory). Top rate: sinking speed of h over the last quarter of the run. "
-            "At yield: fraction of all particles with |s| >= 0.99 Y. Plug: of the particles that start within "
-            "S H0 / 2 of the top and R0 / 2 of the axis (inside the 1-D plug), the fraction below 0.9 Y at the end. "
-            "R: largest particle distance from the axis (+ dx/2); R_RC: Roussel & Coussot.\n\n"
+            "At yield: fraction of all particles with |s| >= 0.99 Y. Plug: the particles within R0 / 2 of the axis "
+            "that start less than S H0 / 2 deep (the part of the 1-D plug that the release leaves below yield; "
+            "none where that is thinner than the support radius h); below Y: their fraction with |s| < 0.99 Y at the end; eps_p: their mean "
+            "accumulated plastic strain (`State.alpha`) in yield strains Y / (2 mu), and that of the particles "
+            "deeper than S H0 + h (flowed). R: largest particle distance from the axis (+ dx/2); R_RC, h_RC: "
+            "radius and central height of the Roussel & Coussot shallow pile.\n\n"
             + _table(["S", "across", "force", "particles", "t (s)", "h/H0", "theory", "slump ratio", "top rate (% H0/s)",
-                      "KE / (M g H0)", "at yield", "plug unyielded", "R/R0", "R/R_RC"], rows)
+                      "KE / (M g H0)", "at yield", "plug particles", "plug below Y", "plug eps_p", "flowed eps_p",
+                      "R/R0", "R/R_RC", "h_RC/H0"], rows)
             + "\n\n![slump height and spread](images/validation/slump_height.png)\n\n"
             "![slump height over time](images/validation/slump_history.png)\n")
     ela = []

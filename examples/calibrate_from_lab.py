@@ -74,9 +74,9 @@ class Setup:
     force_noise: float = 0.02        # of the peak force
     iterations: int = 12
     #: The time step stays below 0.5 / flow_rate of the largest flow rate the fit visits:
-    #: with flow_rate * dt >= 1 the flow step saturates (gamma = 1, a full return to the yield
-    #: surface each step) and the taped gradient of a long slump disagrees with central
-    #: differences (measured: 100 steps of 1 ms at flow_rate 981 /s, d/dY -0.011 vs 1.6e-6).
+    #: with flow_rate * dt >= 1 the flow step can saturate (gamma = 1, a full return to the
+    #: yield surface each step) and a long slump becomes so sensitive that its loss is rough:
+    #: the taped gradient is the slope of the ripple, not of the trend (docs/fitting.md).
     max_dt: float = 5e-4
 
 

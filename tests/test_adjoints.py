@@ -167,13 +167,14 @@ def test_rotation_variant_svd_reconstructs_and_flags_inversion(scalar, tol):
     assert (s[:, 0] >= s[:, 1]).all() and (s[:, 1] >= np.abs(s[:, 2]) - 1e-6).all()
 
 
-def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4):
+def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_force: str = "variational",
+                               model_name: str = "linear", flow_rate: float = 50.0):
     """Gradients of a weighted sum of final positions through a yielding, stretching block,
     with the solver's hand-written adjoints (``hand``) or Warp's generated ones."""
     import warp_esph as we  # noqa: PLC0415
 
-    mat = we.Material(density=1000.0, mu=1.0e3, lam=1.5e3, yield_stress=10.0, flow_rate=50.0, hardening=200.0,
-                      pressure_stiffness=1.0, viscosity=2.0)
+    mat = we.Material(density=1000.0, mu=1.0e3, lam=1.5e3, yield_stress=10.0, flow_rate=flow_rate, hardening=200.0,
+                      pressure_stiffness=1.0, viscosity=2.0, elastic_force=elastic_force, model=model_name)
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
     b.add_box((0.0, 0.0, 0.0), (0.1, 0.08, 0.08), mat)
     model = b.finalize(dtype=scalar, requires_grad=True)
@@ -181,6 +182,7 @@ def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4):
     model.particle_v0 = 20.0 * model.particle_x0 * np.array([1.0, -0.5, 0.0])
     solver = we.Solver(model)
     solver.hand_adjoints = hand
+    assert solver.fast_under_tape() == hand  # the fused forward with the hand-written adjoints, or neither
     states = [model.state() for _ in range(steps + 1)]
     states[0].alpha.fill_(0.02)
     w = wp.array(np.random.default_rng(0).normal(size=(model.particle_count, 3)), dtype=type_set(scalar).vec3)
@@ -196,17 +198,31 @@ def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4):
     return out
 
 
+@pytest.mark.parametrize("elastic_force", ["paper", "variational"])
 @pytest.mark.parametrize("scalar,tol", [(wp.float64, 1e-10), (wp.float32, 2e-4)])
-def test_hand_written_adjoints_match_the_generated_ones(scalar, tol):
+def test_hand_written_adjoints_match_the_generated_ones(scalar, tol, elastic_force):
     """The solver's hand-written adjoints (``deformation.update_deformation_adjoint``,
-    ``forces.elastic_forces_adjoint``) give the gradients Warp's generated adjoints give,
-    to round-off, for every initial state field and material parameter (the rollout
-    gradients are checked against float64 central differences in ``tests/test_gradients.py``,
-    which runs the hand-written ones). float32 checks the polynomial cosine's derivative."""
-    hand = _hand_vs_generated_rollout(True, scalar)
-    gen = _hand_vs_generated_rollout(False, scalar)
+    ``forces.elastic_forces_adjoint`` or ``forces.variational_forces_adjoint``, the SPH
+    ones) give the gradients Warp's generated adjoints give, to round-off, for every initial
+    state field and material parameter (the rollout gradients are checked against float64
+    central differences in ``tests/test_gradients.py``, which runs the hand-written ones).
+    float32 checks the polynomial cosine's derivative."""
+    _assert_hand_matches_generated(scalar, tol, elastic_force=elastic_force)
+
+
+def _assert_hand_matches_generated(scalar, tol, **kw):
+    hand = _hand_vs_generated_rollout(True, scalar, **kw)
+    gen = _hand_vs_generated_rollout(False, scalar, **kw)
     for name, g in gen.items():
         scale = np.abs(g).max()
         assert scale > 0, f"the loss does not reach {name}"
         err = np.abs(hand[name] - g).max() / scale
         assert err <= tol, (name, err)
+
+
+@pytest.mark.parametrize("model_name,flow_rate", [("non_newtonian", 50.0), ("linear", 2000.0)])
+def test_hand_written_constitutive_adjoint_other_branches(model_name, flow_rate):
+    """``plasticity.constitutive_update_adjoint`` on the non-Newtonian flow rule and with
+    ``flow_rate * dt = 2`` (some flows saturate at gamma = 1, where the gradient must stop
+    at the clamp as the generated one does), float64, against Warp's generated adjoints."""
+    _assert_hand_matches_generated(wp.float64, 1e-10, model_name=model_name, flow_rate=flow_rate)

@@ -193,7 +193,10 @@ def test_rubber_ball_bounces_and_settles_in_its_shape():
     SPH viscosity leaves alone, and the floor has no rolling resistance. Measured from
     3.5 s to 7 s: internal kinetic energy 3e-6 to 3e-5 J/kg, mean speed 5-17 mm/s, the
     centroid within 1 mm (before the fix the leaking contact damped it: 4e-10 J/kg at 4 s).
-    The bound below admits the rocking and nothing larger."""
+    It is physical, not the contact law (docs/tools.md, "Rocking on the contact patch"):
+    nothing feeds it, it decays at the same rate at half the step, and ten times the
+    viscosity damps it 2.3 times faster. The bound below admits the rocking and nothing
+    larger."""
     from warp_esph.scenes import get_scene
 
     scene = get_scene("rubber_bounce", scale=0.6)

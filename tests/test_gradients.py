@@ -138,3 +138,50 @@ def test_variational_force_gradients_match_central_differences(weights, name):
     fd = (plus - minus) / (2 * eps)
     assert abs(fd) > 1e-11, f"the loss does not reach {name}"
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+
+
+def _clamped_flows(params) -> tuple[int, int]:
+    """(particle-steps whose flow fraction saturated at 1, particle-steps that flowed) in the
+    rollout of ``_model(params)``: a saturated flow leaves equal singular values (F_e = c R)."""
+    model = _model(params)
+    solver = we.Solver(model)
+    a, b = model.state(), model.state()
+    a.alpha.fill_(ALPHA0)
+    clamped = flowed = 0
+    for _ in range(STEPS):
+        solver.step(a, b, DT)
+        s_in = np.linalg.svd(a.F.numpy(), compute_uv=False)
+        s_out = np.linalg.svd(b.F_flowed.numpy(), compute_uv=False)
+        moved = np.abs(s_out - s_in).max(axis=1) > 1e-12
+        flowed += int(moved.sum())
+        clamped += int((moved & (np.ptp(s_out, axis=1) < 1e-12 * s_out.max(axis=1))).sum())
+        a, b = b, a
+    return clamped, flowed
+
+
+@pytest.mark.parametrize("elastic_force", ["paper", "variational"])
+@pytest.mark.parametrize("rate_dt", [0.5, 1.0, 2.0])
+def test_gradient_across_the_saturated_flow_step(weights, elastic_force, rate_dt):
+    """``gamma = min(flow_rate dt (|s| - Y) / |s|, 1)`` (plasticity.flow_fraction): at
+    ``flow_rate * dt = 2`` some particles saturate (gamma = 1, a full return: their flow no
+    longer depends on flow_rate or Y) and others do not; at 0.5 and 1.0 none can. The
+    taped gradients of flow_rate and yield_stress match central differences in every case,
+    and at the kink both one-sided differences agree with it too."""
+    params = {"elastic_force": elastic_force, "flow_rate": rate_dt / DT}
+    clamped, flowed = _clamped_flows(params)
+    assert flowed > 0
+    if rate_dt < 1.0 + 1e-12:
+        assert clamped == 0
+    else:
+        assert 0 < clamped < flowed, (clamped, flowed)
+    for name in ("flow_rate", "yield_stress"):
+        base = params.get(name, 10.0)
+        value, grads = _rollout_loss(_model(params), weights, grad_of=(name,))
+        eps = 1e-6 * base
+        plus = _rollout_loss(_model({**params, name: base + eps}), weights)[0]
+        minus = _rollout_loss(_model({**params, name: base - eps}), weights)[0]
+        fd = (plus - minus) / (2 * eps)
+        assert abs(fd) > 1e-12, f"the loss does not reach {name}"
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
+        for one_sided in ((plus - value) / eps, (value - minus) / eps):
+            assert grads[name][0] == pytest.approx(one_sided, rel=1e-3), name

@@ -1,12 +1,15 @@
 """Tools and boundary conditions (``warp_esph/tools.py``): pinned sets, moving colliders,
 reaction forces, and their gradients against float64 central differences."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import warp as wp
 
 import warp_esph as we
 from warp_esph import tools
+from warp_esph.builder import finalize_worlds
 
 G = 9.81
 
@@ -185,6 +188,63 @@ def test_fast_blade_does_not_tunnel_and_momentum_balances_the_impulse(shape):
     np.testing.assert_allclose(p1 - p0, impulse, rtol=1e-9, atol=1e-12 * np.abs(impulse).max())
 
 
+@pytest.mark.parametrize("shape", ["sphere", "capsule", "cylinder", "box", "mesh", "plane"])
+def test_fast_primitive_does_not_tunnel_at_the_stable_step_and_momentum_balances_the_impulse(shape):
+    """A 2 mm thick sphere, or a rod across the block (capsule, cylinder, square box or box
+    mesh, long axis along z) moves 2.5 times its thickness per step, at the material's
+    stable step, through a row of particles: tested on its end-of-step position alone, it
+    would step over them. Every particle in its path must end in front of it, none inside
+    it; a fast plane (a half-space, which cannot be stepped over) checks the same
+    bookkeeping."""
+    r, hh = 0.001, 0.2
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.1, 0.1, 0.1), _elastic(2e4), name="block")
+    m0 = b.finalize(dtype=wp.float64)
+    dt = m0.stable_dt()
+    speed = 2.5 * 2 * r / dt
+    y_to_z = (np.sin(np.pi / 4), 0.0, 0.0, np.cos(np.pi / 4))  # the tool's y axis along world z
+    geometry = {
+        "sphere": {"radius": r}, "capsule": {"radius": r, "half_height": hh, "orientation": y_to_z},
+        "cylinder": {"radius": r, "half_height": hh, "orientation": y_to_z}, "plane": {"normal": (1.0, 0.0, 0.0)},
+        "box": {"half_extents": (r, r, hh)}, "mesh": {"mesh": tools.box_mesh((r, r, hh))},
+    }[shape]
+    start = -0.06
+    b.add_tool(shape, **geometry, motion=tools.Velocity((speed, 0, 0), position=(start, 0, 0)), name="t")
+    m = b.finalize(dtype=wp.float64)
+    s = we.Solver(m)
+    a, c = m.state(), m.state()
+    mass = m.particle_mass.numpy()[:, None]
+    p0 = (mass * a.v.numpy()).sum(axis=0)
+    impulse = np.zeros(3)
+    steps = 16  # the tool from x = -0.06 to 0.02, through three particles of its row
+    for _ in range(steps):
+        s.step(a, c, dt)
+        a, c = c, a
+        impulse += s.reaction_forces(a)["t"][0] * dt
+    x = a.x.numpy()
+    rel = x - np.array([start + speed * steps * dt, 0.0, 0.0])
+    if shape == "sphere":
+        lateral = np.hypot(rel[:, 1], rel[:, 2]) < r
+        inside = np.linalg.norm(rel, axis=1) < r - 1e-9
+    elif shape == "plane":
+        lateral = np.ones(len(x), dtype=bool)
+        inside = rel[:, 0] < -1e-9
+    else:
+        lateral = (np.abs(rel[:, 1]) < r) & (np.abs(rel[:, 2]) < hh)
+        inside = lateral & (np.abs(rel[:, 0]) < r - 1e-9)
+    in_path = (np.abs(m.particle_x0[:, 1]) < r) & (np.abs(m.particle_x0[:, 2]) < (r if shape == "sphere" else 1.0))
+    in_path &= m.particle_x0[:, 0] < rel[:, 0].max()
+    assert in_path.sum() >= 3  # the check is not vacuous
+    behind = lateral & (rel[:, 0] < -1e-9)
+    assert not inside.any() and not behind.any(), (inside.sum(), behind.sum())
+    assert (rel[in_path, 0] >= -1e-9).all()
+    assert impulse[0] > 0.0
+    # No gravity, internal forces cancel in pairs: the material's momentum changed by the
+    # impulse the tool gave it (minus the impulse on the tool).
+    p1 = (mass * a.v.numpy()).sum(axis=0)
+    np.testing.assert_allclose(p1 - p0, impulse, rtol=1e-9, atol=1e-12 * np.abs(impulse).max())
+
+
 @pytest.mark.parametrize("shape,kw", [
     ("sphere", {"radius": 0.05}), ("capsule", {"radius": 0.04, "half_height": 0.05}),
     ("cylinder", {"radius": 0.04, "half_height": 0.05}), ("box", {"half_extents": (0.04, 0.04, 0.04)}),
@@ -294,6 +354,66 @@ def test_gradients_of_friction_tool_velocity_keyframe_and_a_reaction_force_loss_
     fd = (with_mu(mu0 + dmu) - with_mu(mu0 - dmu)) / (2 * dmu)
     print("mu", g["mu"], fd)
     assert g["mu"] == pytest.approx(fd, rel=1e-4)
+
+
+def _mesh_keyframe_model():
+    """A frictional mesh press sliding over a block while pressing it, and a box pusher
+    keyframed in position and orientation (it turns 0.2 rad about y as it advances)."""
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
+    b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), _elastic(5e3, viscosity=1.0), name="block", velocity=(0.4, 0.0, 0.1))
+    b.add_tool("plane", position=(0, 0.0102, 0), friction=0.3, name="floor")
+    b.add_tool("mesh", mesh=tools.box_mesh((0.1, 0.01, 0.1)), friction=0.2,
+               motion=tools.Velocity((0.2, -0.5, 0.0), position=(0, 0.0602, 0)), name="press")
+    turn = (0.0, np.sin(0.1), 0.0, np.cos(0.1))
+    b.add_tool("box", half_extents=(0.02, 0.03, 0.03), friction=0.1, name="pusher",
+               motion=tools.Keyframes([0.0, 0.01], [(-0.045, 0.03, 0.0), (-0.03, 0.03, 0.0)], [tools.IDENTITY, turn]))
+    m = b.finalize(dtype=wp.float64, requires_grad=True)
+    m.particle_x0 += np.random.default_rng(3).normal(scale=2e-5, size=m.particle_x0.shape)
+    return m
+
+
+#: (array of model.tools, tool, row offset (keyframe index), component, step h)
+_TOOL_PARAMS = {
+    "mesh velocity x": ("velocity", "press", 0, 0, 1e-5),
+    "mesh velocity y": ("velocity", "press", 0, 1, 1e-5),
+    "mesh friction": ("friction", "press", 0, None, 1e-5),
+    "keyframe time": ("keyframe_times", "pusher", 1, None, 1e-7),
+    "keyframe position": ("keyframe_positions", "pusher", 1, 0, 1e-6),
+    "keyframe orientation": ("keyframe_orientations", "pusher", 1, 1, 1e-6),
+}
+
+
+def _row(t, array, tool, offset):
+    k = t.index(tool)
+    return (t.keyframe_start[k] + offset) if array.startswith("keyframe") else k
+
+
+def test_gradients_of_a_mesh_tool_and_of_keyframe_times_and_orientations_match_central_differences():
+    """Mesh contact (float64 geometry on the face Warp's float32 query picks), its velocity
+    and friction; a keyframe's time, position and orientation (raw quaternion component):
+    the tape against float64 central differences of the same loss as above."""
+    model = _mesh_keyframe_model()
+    _loss(model, grad=True)  # (it also checks that every tool touched the block)
+    t = model.tools
+    grads = {name: getattr(t, arr).grad.numpy()[_row(t, arr, tool, off)] for name, (arr, tool, off, _c, _h) in _TOOL_PARAMS.items()}
+    for name, (arr, tool, off, comp, h) in _TOOL_PARAMS.items():
+        g = grads[name] if comp is None else grads[name][comp]
+        vals = []
+        for sign in (1, -1):
+            m = _mesh_keyframe_model()
+            a = getattr(m.tools, arr)
+            v = a.numpy()
+            row = _row(m.tools, arr, tool, off)
+            if comp is None:
+                v[row] += sign * h
+            else:
+                v[row][comp] += sign * h
+            a.assign(v)
+            vals.append(_loss(m))
+        fd = (vals[0] - vals[1]) / (2 * h)
+        print(name, g, fd)
+        assert g == pytest.approx(fd, rel=1e-4, abs=1e-9), name
+        assert abs(fd) > 1e-6, name  # the parameter acts on the loss
 
 
 # ------------------------------------------------------------------------- bad input
@@ -454,3 +574,110 @@ def test_block_on_a_slope_slides_with_coulomb_acceleration_or_sticks(mu_k, mu_s)
         assert -f[0] / f[1] == pytest.approx(mu_k, abs=1e-3)
     else:
         assert abs(xs[-1] - xs[0]) < 3e-4 and abs(acc) < 0.05  # stuck: only the elastic sway
+
+
+# ------------------------------------------------------------------------------ worlds
+def _world_builder(material, press_y=0.085):
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
+    b.add_box((0.0, 0.035, 0.0), (0.1, 0.06, 0.06), material, name="bar", velocity=(0.0, -0.3, 0.0))
+    b.pin(region=((-0.06, -1, -1), (-0.03, 1, 1)), name="clamp")
+    b.add_tool("sphere", radius=0.03, friction=0.3, motion=tools.Velocity((0.0, -0.6, 0.0), position=(0.03, press_y, 0.0)), name="press")
+    b.add_tool("plane", position=(0.0, 0.012, 0.0), friction=0.5, name="floor")
+    return b
+
+
+def test_tools_in_worlds_act_per_world_and_report_each_world_its_own_reaction():
+    """Two worlds of different stiffness meet the same press, floor and clamp: each world's
+    positions and reaction rows ("w<w>/<name>") are those of its scene run alone, and the
+    worlds' reactions differ (the comparison cannot pass by accident)."""
+    soft, stiff = _elastic(4e3, viscosity=1.0), _elastic(2e4, viscosity=1.0)
+    model = _world_builder(soft).finalize(dtype=wp.float64, worlds=2)
+    model.set_material(0, stiff, world=1)
+    names = model.tools.names
+    assert model.tools.row_names == [f"w{w}/{n}" for w in range(2) for n in names]
+    steps, dt = 40, 5e-4
+
+    def run(m):
+        s = we.Solver(m)
+        a, c = m.state(), m.state()
+        total = {}
+        for _ in range(steps):
+            s.step(a, c, dt)
+            a, c = c, a
+            for key, (f, _t) in s.reaction_forces(a).items():
+                total[key] = total.get(key, 0.0) + f * dt
+        return a.x.numpy(), a.v.numpy(), total
+
+    x, v, imp = run(model)
+    for w, mat in enumerate((soft, stiff)):
+        xs, vs, imp_s = run(_world_builder(mat).finalize(dtype=wp.float64))
+        sl = model.world_particles(w)
+        np.testing.assert_allclose(x[sl], xs, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(v[sl], vs, rtol=0, atol=1e-9)
+        for n in names:
+            np.testing.assert_allclose(imp[f"w{w}/{n}"], imp_s[n], rtol=1e-10, atol=1e-14)
+            assert np.abs(imp_s[n]).max() > 0.0, n  # every tool acted
+    assert np.abs(imp["w0/press"] - imp["w1/press"]).max() > 1e-3 * np.abs(imp["w1/press"]).max()
+    # Worlds share their tools: a world whose tools differ is refused before anything runs.
+    other = _world_builder(soft)
+    other.tools[0] = dataclasses.replace(other.tools[0], friction=0.4)
+    with pytest.raises(ValueError, match=r"builders\[1\] tools and pinned sets"):
+        finalize_worlds([_world_builder(soft), other])
+
+
+def test_gradient_of_a_shared_tool_parameter_in_worlds_is_the_sum_over_the_worlds():
+    """A loss on both worlds' press reactions: the tape's gradient with respect to the shared
+    press velocity and friction is the sum of the single-world gradients."""
+    soft, stiff = _elastic(4e3, viscosity=1.0), _elastic(2e4, viscosity=1.0)
+
+    def grads(model, rows):
+        s = we.Solver(model)
+        states = [model.state() for _ in range(9)]
+        loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+        zero = wp.zeros(model.particle_count, dtype=wp.vec3d)
+        tape = wp.Tape()
+        with tape:
+            for k in range(8):
+                s.step(states[k], states[k + 1], 5e-4)
+                for r in rows:
+                    wp.launch(_loss_kernel, model.particle_count, [states[k + 1].x, zero, states[k + 1].reaction_force, r, 1e-3], [loss])
+        tape.backward(loss)
+        t = model.tools
+        k = t.index("press")
+        return np.array([t.velocity.grad.numpy()[k][1], t.friction.grad.numpy()[k]])
+
+    model = _world_builder(soft, 0.075).finalize(dtype=wp.float64, requires_grad=True, worlds=2)
+    model.set_material(0, stiff, world=1)
+    rows = [model.tools.row_names.index(f"w{w}/press") for w in range(2)]
+    g = grads(model, rows)
+    alone = []
+    for mat in (soft, stiff):
+        m = _world_builder(mat, 0.075).finalize(dtype=wp.float64, requires_grad=True)
+        alone.append(grads(m, [m.tools.index("press")]))
+    print(g, alone)
+    assert np.abs(alone[0] - alone[1]).max() > 1e-3 * np.abs(alone[1]).max()  # the worlds differ
+    np.testing.assert_allclose(g, alone[0] + alone[1], rtol=1e-9)
+
+
+def test_reaction_force_loss_on_one_world_of_a_rollout():
+    """``ReactionForceLoss(tool="w1/press")`` through a checkpointed ``Rollout`` of two
+    worlds: the loss and the gradient of world 1's shear modulus are those of world 1's
+    scene alone; world 0's material gets none."""
+    from warp_esph.losses import ReactionForceLoss
+    from warp_esph.rollout import Rollout
+
+    soft, stiff = _elastic(4e3, viscosity=1.0), _elastic(2e4, viscosity=1.0)
+    model = _world_builder(soft, 0.075).finalize(dtype=wp.float64, requires_grad=True, worlds=2)
+    model.set_material(0, stiff, world=1)
+    r = Rollout(model, 8, 5e-4, frames=[8], checkpoint_every=4)
+    r.forward()
+    assert r.step_forces().shape == (8, 6, 3)
+    value, g = r.backward(ReactionForceLoss(np.zeros((1, 1)), "w1/press", [8], window=4, components="y"))
+    alone = _world_builder(stiff, 0.075).finalize(dtype=wp.float64, requires_grad=True)
+    r1 = Rollout(alone, 8, 5e-4, frames=[8], checkpoint_every=4)
+    r1.forward()
+    value1, g1 = r1.backward(ReactionForceLoss(np.zeros((1, 1)), "press", [8], window=4, components="y"))
+    assert value1 > 0.0 and abs(g1["mu"][0]) > 0.0
+    assert value == pytest.approx(value1, rel=1e-12)
+    assert g["mu"][0] == 0.0
+    assert g["mu"][1] == pytest.approx(g1["mu"][0], rel=1e-9)

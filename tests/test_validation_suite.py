@@ -58,10 +58,35 @@ def test_slumped_cylinder_comes_to_rest(slumped):
     assert slumped["kinetic_over_MgH0"] < 1e-8, slumped["kinetic_over_MgH0"]
 
 
-@pytest.mark.xfail(strict=True, reason="at rest the top of the 8-across pile is still at the yield stress: 0 % of "
-                   "the 12 top particles below yield (the 1-D plug is 1.6 particles thick at S = 0.2)")
-def test_slumped_cylinder_keeps_an_unyielded_plug(slumped):
-    assert slumped["plug_unyielded_fraction"] > 0.9, slumped["plug_unyielded_fraction"]
+def test_the_plug_is_not_judged_where_the_run_cannot_resolve_it(slumped):
+    """S = 0.2, 8 across: the 1-D plug (S H0 = 1.6 dx) is thinner than the support radius (2 dx): every top
+    particle's fit reaches into flowing material, so this run cannot show a plug (docs/
+    validation.md, the plug). Measured: its top layer flowed 0.37 (45 yield strains) and
+    rests at yield, coherently (layer-mean deviator 0.93 Y)."""
+    assert slumped["plug_particles"] == 0
+    assert math.isnan(slumped["plug_plastic_strain"])
+
+
+@pytest.fixture(scope="module")
+def slumped_stiff():
+    """S = 0.5, 8 across, variational force, 3 s: the 1-D plug is 4 dx thick, and its top
+    half, which the sudden release leaves below yield, is 2 dx = one support radius: resolved
+    (the top 2 layers near the axis, 24 particles)."""
+    return validation.slump(0.5, resolution=8, elastic_force="variational", duration=3.0)
+
+
+def test_slumped_cylinder_keeps_an_unyielded_plug(slumped_stiff):
+    """Where the plug is resolved it does not flow and rests below yield (docs/validation.md,
+    the plug). Measured: plastic strain 0.63 (mean), 1.6 (max) yield strains in the plug
+    against 3.8 more than a support radius below the 1-D yield surface; 23 of 24 plug
+    particles below 0.99 Y; top 0.011 % H0/s. (12 across: 0.45 yield strains, 96 % below Y.
+    S = 0.3 has no plug at any resolution tried: 8.9 / 8.4 yield strains at 12 / 16 across.)"""
+    r = slumped_stiff
+    assert r["plug_particles"] >= 12, r["plug_particles"]
+    assert abs(r["top_rate_pct_H0_per_s"]) < 0.1, r["top_rate_pct_H0_per_s"]
+    assert r["flowed_plastic_strain"] > 2.0, r["flowed_plastic_strain"]  # the base did flow
+    assert r["plug_plastic_strain"] < 1.0, r["plug_plastic_strain"]
+    assert r["plug_unyielded_fraction"] > 0.9, r["plug_unyielded_fraction"]
 
 
 def test_slump_height_within_10_percent_of_the_1d_theory(slumped):

@@ -16,7 +16,7 @@ __version__ = "0.1.0"
 
 #: Public name -> the module that defines it.
 _EXPORTS = {
-    "SceneBuilder": ".builder", "finalize_worlds": ".builder",
+    "SceneBuilder": ".builder", "finalize_worlds": ".builder", "replicate_worlds": ".builder",
     "Material": ".material", "MODELS": ".material", "PRESETS": ".material",
     "Model": ".model", "State": ".model", "Body": ".model",
     "simulate": ".simulate", "SimulationError": ".simulate",
@@ -25,7 +25,7 @@ _EXPORTS = {
 }
 
 __all__ = [
-    "SceneBuilder", "finalize_worlds", "Material", "MODELS", "PRESETS", "Model", "State", "Body", "Solver", "GUARD_NAMES",
+    "SceneBuilder", "finalize_worlds", "replicate_worlds", "Material", "MODELS", "PRESETS", "Model", "State", "Body", "Solver", "GUARD_NAMES",
     "simulate", "SimulationError", "UsdWriter", "__version__",
 ]
 

@@ -378,7 +378,8 @@ class SceneBuilder:
 
         ``worlds=W`` puts ``W`` copies of the scene in one model (``finalize_worlds``):
         each with its own materials (``model.set_material(i, material, world=w)``), none
-        seeing another (they may overlap in space), all sharing the colliders."""
+        seeing another (they may overlap in space), all sharing the colliders and tools
+        (each world reports its own tool reactions, ``tools.ToolSet``)."""
         if isinstance(worlds, bool) or not isinstance(worlds, (int, np.integer)) or worlds < 1:
             raise ValueError(f"worlds = {worlds!r} is not allowed: must be an integer >= 1")
         return finalize_worlds([self] * int(worlds), device=device, dtype=dtype, requires_grad=requires_grad)
@@ -388,6 +389,17 @@ class SceneBuilder:
 _SHARED = ("spacing", "support_radius", "gravity", "max_neighbors", "bodies_interact", "planes", "spheres", "boxes")
 
 
+def _tool_signature(b: SceneBuilder) -> tuple:
+    """What must be equal in every world's tools and pins (``finalize_worlds``)."""
+    cols = tuple(
+        (c.name, c.kind, c.param, repr(c.motion), c.friction, c.static_friction,
+         None if c.mesh_points is None else np.asarray(c.mesh_points).tobytes(),
+         None if c.mesh_triangles is None else np.asarray(c.mesh_triangles).tobytes())
+        for c in b.tools
+    )
+    return cols, tuple((p.name, repr(p.motion), len(p.indices)) for p in b.pins)
+
+
 def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.float32, requires_grad: bool = False) -> Model:
     """One ``Model`` of ``len(builders)`` worlds: world ``w`` is ``builders[w]``'s scene.
 
@@ -395,8 +407,8 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     materials world after world (``model.world_particles(w)``, ``model.world_materials(w)``),
     neighbour lists (so SPH) never crossing worlds, every step advancing all of them in
     the same launches. The builders must agree on spacing, support radius, gravity,
-    ``max_neighbors``, ``bodies_interact`` and colliders (a world is a scene at the same
-    place, colliders are shared). Bodies keep their names with one world; with several,
+    ``max_neighbors``, ``bodies_interact``, colliders, tools and pinned sets (a world is a
+    scene at the same place, colliders and tools are shared; tool reactions are per world). Bodies keep their names with one world; with several,
     body ``name`` of world ``w`` is ``"w<w>/name"``.
     """
     requires_grad = checks.boolean("requires_grad", requires_grad)
@@ -415,11 +427,15 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
                     f"builders[{k}].{name} = {getattr(b, name)!r} is not allowed: every world must have the "
                     f"{name} of builders[0] ({getattr(first, name)!r})"
                 )
-    if len(builders) > 1 and any(b.tools or b.pins for b in builders):
-        raise ValueError(
-            f"worlds = {len(builders)} is not allowed with moving tools or pinned sets: "
-            "tools act on one world; build one model per scene with tools"
-        )
+    for k, b in enumerate(builders[1:], start=1):
+        # Tools are shared by the worlds like the static colliders (one motion, one set of
+        # differentiable parameters); each world reports its own reaction.
+        if _tool_signature(b) != _tool_signature(first):
+            raise ValueError(
+                f"builders[{k}] tools and pinned sets are not allowed to differ from builders[0]'s: every world "
+                "meets the same tools (same names, shapes, motions, friction; pinned sets of the same name, "
+                "motion and particle count)"
+            )
     # Overlap is checked within each world only: worlds overlap in space by design.
     for b in {id(b): b for b in builders}.values():
         b._check_overlap()
@@ -481,6 +497,59 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     )
     model.force_fields = fields
     if first.tools or first.pins:
-        model.tools = tools.ToolSet(model, first.tools, first.pins)
+        model.tools = tools.ToolSet(model, first.tools, first.pins, world_pins=[[p.indices for p in b.pins] for b in builders])
     model.compute_rest_density()
     return model
+
+
+def replicate_worlds(model: Model, worlds: int, requires_grad: bool | None = None) -> Model:
+    """A ``Model`` of ``worlds`` copies of the one-world ``model``, as it is now: its
+    initial positions and velocities (``particle_x0``, ``particle_v0``, jitter included),
+    rest densities, current parameter values (``parameter_values()``, which a fit may have
+    changed) and force fields. World ``w``'s copy of material ``k`` is material
+    ``w * len(model.materials) + k`` (``model.world_materials(w)``). For the multi-start fit
+    (``fit(..., starts=K, worlds=True)``), which has a model rather than its builder."""
+    if not isinstance(model, Model):
+        raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
+    if isinstance(worlds, bool) or not isinstance(worlds, (int, np.integer)) or worlds < 1:
+        raise ValueError(f"worlds = {worlds!r} is not allowed: must be an integer >= 1")
+    if model.world_count != 1:
+        raise ValueError(f"model is not allowed: it already has {model.world_count} worlds; replicate a one-world model")
+    if model.tools is not None:
+        raise ValueError("model is not allowed: it has moving tools or pinned sets, which act on one world; "
+                         "build one model per scene with tools")
+    W, n, M, B = int(worlds), model.particle_count, len(model.materials), len(model.bodies)
+    several = W > 1
+    bodies = []
+    for w in range(W):
+        for b in model.bodies:
+            bodies.append(dataclasses.replace(b, name=f"w{w}/{b.name}" if several else b.name, start=b.start + w * n,
+                                              material=b.material + w * M, world=w))
+    out = Model(
+        positions=np.tile(model.particle_x0, (W, 1)),
+        velocities=np.tile(model.particle_v0, (W, 1)),
+        particle_material=np.concatenate([model.particle_material_np + w * M for w in range(W)]),
+        particle_body=np.concatenate([model.particle_body_np + w * B for w in range(W)]),
+        materials=list(model.materials) * W,
+        bodies=bodies,
+        spacing=model.spacing,
+        support_radius=model.support_radius,
+        gravity=model.gravity,
+        planes=model.planes,
+        spheres=model.spheres,
+        boxes=model.boxes,
+        max_neighbors=model.max_neighbors,
+        bodies_interact=model.bodies_interact,
+        device=model.device,
+        scalar=model.scalar,
+        requires_grad=model.requires_grad if requires_grad is None else checks.boolean("requires_grad", requires_grad),
+        particle_world=np.repeat(np.arange(W, dtype=np.int32), n),
+        world_material_start=[w * M for w in range(W + 1)],
+    )
+    # A field on every particle acts once on all worlds; one on a body acts on each copy.
+    out.force_fields = [f for f in model.force_fields if f.body < 0]
+    out.force_fields += [dataclasses.replace(f, body=f.body + w * B) for w in range(W) for f in model.force_fields if f.body >= 0]
+    for name, values in model.parameter_values().items():
+        getattr(out, name).assign(np.tile(values, W).astype(model.types.np_dtype))
+    out.particle_rest_density.assign(np.tile(model.particle_rest_density.numpy(), W))
+    return out

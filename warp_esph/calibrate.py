@@ -60,7 +60,11 @@ def add_calibration_arguments(parser):
                    help="with --checkpoint-every auto: a full tape when it fits in MB, else checkpoint (default 1024)")
     g.add_argument("--samples", type=int, default=0, metavar="N",
                    help="global first stage: N Latin-hypercube points (loss only) before gradient descent (default 0)")
-    g.add_argument("--starts", type=int, default=1, metavar="K", help="descend from the best K of the samples (default 1)")
+    g.add_argument("--starts", type=int, default=1, metavar="K",
+                   help="descend from the best K of the samples, or without --samples from the guess and K - 1 "
+                        "Latin-hypercube points (default 1)")
+    g.add_argument("--worlds", action="store_true",
+                   help="run the --starts at once, as worlds of one model (same evaluations, one launch per kernel for all)")
     g.add_argument("--sample-range", type=float, default=4.0, metavar="F",
                    help="samples within a factor F of the guess (or --bounds); default 4")
     g.add_argument("--patience", type=int, default=20, metavar="N",
@@ -145,7 +149,7 @@ def run_fit(args, out=None, err=None) -> int:
     result = fit(experiments, None, params, iterations=args.iterations,
                  lr=args.lr, bounds=bounds, clip=args.clip, memory_limit=memory_limit,
                  optimizer=optimizer, progress=not args.no_progress, samples=_arg(args, "samples", 0),
-                 starts=_arg(args, "starts", 1), sample_range=_arg(args, "sample_range", 4.0), seed=_arg(args, "seed", 5),
+                 starts=_arg(args, "starts", 1), worlds=_arg(args, "worlds", False), sample_range=_arg(args, "sample_range", 4.0), seed=_arg(args, "seed", 5),
                  patience=_arg(args, "patience", 20), diagnostics=not _arg(args, "no_diagnostics", False),
                  noise=_arg(args, "noise"), log=log)
     scene, model, frames, fps, dt = exps[0].scene, exps[0].model, exps[0].frames, exps[0].fps, exps[0].dt

@@ -487,6 +487,7 @@ def fit(
     lbfgs_memory: int = 10,
     samples: int = 0,
     starts: int = 1,
+    worlds: bool = False,
     sample_range: float = 4.0,
     seed: int = 0,
     diagnostics: bool = True,
@@ -531,6 +532,15 @@ def fit(
       a factor ``sample_range`` of the guess (log space; linear ones +-``sample_range``
       times their scale), plus the guess; gradient descent then starts from the best
       ``starts`` of them, one after the other, and the lowest loss wins (``seed``: RNG).
+      Without ``samples``, ``starts = K > 1`` descends from the guess and ``K - 1``
+      Latin-hypercube points of the same box.
+    - ``worlds``: with several starts, run them at once as the worlds of one model per
+      experiment (``builder.replicate_worlds``, ``losses.WorldLoss``): each start keeps its
+      own optimiser (Adam or L-BFGS, line search included) and history, and one forward and
+      backward pass per round evaluates every start that has not finished. The same
+      evaluations as one start after the other, to round-off (``tests/test_fit_worlds.py``),
+      with one launch per kernel for all starts. Not with moving tools, host-evaluated
+      losses (``SlumpLoss``, ``ReactionForceLoss``) or ``initial``.
     - ``diagnostics``: at the optimum, the Fisher (Gauss-Newton) information of the data
       for observation noise ``noise`` (m; see ``warp_esph.diagnostics``), from central
       differences (step ``fd_step`` in optimiser space) of taped gradients: ``2 P``
@@ -564,6 +574,7 @@ def fit(
     if samples < 0:
         raise ValueError(f"samples = {samples!r} is not allowed: must be >= 0")
     starts = checks.positive_int("starts", starts)
+    worlds = checks.boolean("worlds", worlds)
     sample_range = checks.greater_than("sample_range", sample_range, 1.0, "1")
     memory_limit = checks.positive("memory_limit", memory_limit)
     fd_step = checks.positive("fd_step", fd_step)
@@ -593,118 +604,126 @@ def fit(
             f"~{r.memory / 2**20:.1f} MiB of Warp arrays "
             f"({r.memory / (r.model.particle_count * r.steps):.0f} B per particle per step)")
     prob = _Problem(runs, params, bounds)
-    history: list[dict] = []
-    best = [math.inf, None]
-    state = {"since_best": 0, "bar": None, "stage": "descent"}
-
-    def evaluate(z):
-        """Loss and optimiser-space gradient at z; records history, best, callback."""
-        t0 = time.perf_counter()
-        p = prob.from_z(z)
-        try:
-            value, gz = prob.value_and_grad(z)
-        except FloatingPointError:
-            value, gz = math.inf, np.full(len(z), np.nan)
-        value = float(value)
-        finite = math.isfinite(value) and bool(np.isfinite(gz).all())
-        seconds = time.perf_counter() - t0
-        history.append({
-            "iteration": len(history),
-            "stage": state["stage"],
-            "loss": value,
-            "params": {k: [float(x) for x in v] for k, v in p.items()},
-            "grad": [float(x) for x in gz],
-            "seconds": seconds,
-        })
-        if not state.get("timed"):
-            state["timed"] = True
-            say(f"one evaluation (forward + backward) took {seconds:.3g} s: "
-                f"up to {iterations + 1} evaluations, ~{_duration(seconds * (iterations + 1) * starts)}")
-        _record_best(value, finite, p)
-        bar = state["bar"]
-        if bar is not None:
-            shown = ", ".join(f"{k}={v[0]:.4g}" for k, v in p.items())
-            bar.set_postfix_str(f"loss={value:.3e}, {shown}", refresh=False)
-            bar.update(1)
-        if callback is not None and callback(len(history) - 1, value, {k: v.copy() for k, v in p.items()}):
-            raise _Stop("callback")
-        if tol is not None and finite and value < tol:
-            raise _Stop("tol")
-        if state["since_best"] >= patience:
-            raise _Stop("stalled")
-        return value, gz, finite
-
-    def residual_evaluation(z, reset=False):
-        """The weighted residual vector at z (forward passes only; ``sum r^2`` is the loss),
-        recorded in the history like an evaluation (``grad`` None). ``reset``: new
-        correspondences (nearest points, tangent planes) for the losses that keep them."""
-        t0 = time.perf_counter()
-        p = prob.from_z(z)
-        prob.apply(z)
-        parts = []
-        try:
-            for r in prob.runs:
-                r.rollout.forward(**r.initial)
-                arrays = r.rollout.observations(numpy=True)
-                terms = r.loss.terms if isinstance(r.loss, SumLoss) else [(1.0, r.loss)]
-                for coef, leaf in terms:
-                    if reset or not getattr(leaf, "_counts", True):
-                        if hasattr(leaf, "reset_residuals"):
-                            leaf.reset_residuals()
-                        leaf.value(r.rollout.observations())  # records the residual counts
-                    parts.append(math.sqrt(r.weight * coef / leaf.residual_scale()) * leaf.residuals(arrays))
-            res = np.concatenate(parts)
-        except FloatingPointError:
-            res = np.full(1, np.inf)
-        value = float(res @ res) if np.isfinite(res).all() else math.inf
-        finite = math.isfinite(value)
-        history.append({"iteration": len(history), "stage": state["stage"], "loss": value,
-                        "params": {k: [float(x) for x in v] for k, v in p.items()}, "grad": None,
-                        "seconds": time.perf_counter() - t0})
-        if not state.get("timed"):
-            state["timed"] = True
-            seconds = time.perf_counter() - t0
-            say(f"one evaluation (forward only) took {seconds:.3g} s: up to {iterations + 1} evaluations, "
-                f"~{_duration(seconds * (iterations + 1) * starts)}")
-        _record_best(value, finite, p)
-        bar = state["bar"]
-        if bar is not None:
-            shown = ", ".join(f"{k}={v[0]:.4g}" for k, v in p.items())
-            bar.set_postfix_str(f"loss={value:.3e}, {shown}", refresh=False)
-            bar.update(1)
-        if callback is not None and callback(len(history) - 1, value, {k: v.copy() for k, v in p.items()}):
-            raise _Stop("callback")
-        if tol is not None and finite and value < tol:
-            raise _Stop("tol")
-        if state["since_best"] >= patience:
-            raise _Stop("stalled")
-        return res, finite
-
     if optimizer == "gauss-newton":
         from .diagnostics import leaf_terms  # noqa: PLC0415
 
         lacking = [repr(leaf) for r in runs for leaf in leaf_terms(r.loss) if not hasattr(leaf, "residuals")]
         if lacking:
             raise ValueError(f"optimizer = 'gauss-newton' is not allowed: {lacking[0]} has no residual vector; use lbfgs")
+        if worlds:
+            raise ValueError("worlds = True is not allowed with optimizer = 'gauss-newton': its starts run one after "
+                             "the other (forward runs only)")
+    history: list[dict] = []
+    state = {"bar": None, "stage": "descent", "stop_all": None}
 
-    def _record_best(value, finite, p):
-        if finite and value < best[0] - 1e-9 * abs(best[0]):
-            state["since_best"] = 0
+    class _Track:
+        """One start's descent: its best point and evaluations since the best improved."""
+
+        def __init__(self, index):
+            self.index, self.best, self.best_p, self.since_best = index, math.inf, None, 0
+
+    def record(track, z, value, gz, seconds):
+        """Records one evaluation of ``track``'s start (history, best, callback); raises
+        ``_Stop`` where the start ends; returns ``(value, gz, finite)`` for the optimiser."""
+        p = prob.from_z(z)
+        value = float(value)
+        # gz None: a forward-only evaluation (Gauss-Newton's residuals).
+        finite = math.isfinite(value) and (gz is None or bool(np.isfinite(gz).all()))
+        entry = {"iteration": len(history), "stage": state["stage"], "loss": value,
+                 "params": {k: [float(x) for x in v] for k, v in p.items()},
+                 "grad": None if gz is None else [float(x) for x in gz], "seconds": seconds}
+        if track_count > 1:
+            entry["start"] = track.index
+        history.append(entry)
+        if not state.get("timed"):
+            state["timed"] = True
+            per = "" if not use_worlds else f" for {track_count} worlds at once"
+            rounds = (iterations + 1) * (1 if use_worlds else track_count)
+            passes = "forward only" if gz is None else "forward + backward"
+            say(f"one evaluation ({passes}{per}) took {seconds:.3g} s: "
+                f"up to {iterations + 1} evaluations per start, ~{_duration(seconds * rounds)}")
+        if finite and value < track.best - 1e-9 * abs(track.best):
+            track.since_best = 0
         else:
-            state["since_best"] += 1
-        if finite and value < best[0]:
-            best[0], best[1] = value, {k: v.copy() for k, v in p.items()}
+            track.since_best += 1
+        if finite and value < track.best:
+            track.best, track.best_p = value, {k: v.copy() for k, v in p.items()}
+        bar = state["bar"]
+        if bar is not None:
+            shown = ", ".join(f"{k}={v[0]:.4g}" for k, v in p.items())
+            bar.set_postfix_str(f"loss={value:.3e}, {shown}", refresh=False)
+            bar.update(1)
+        if state["stop_all"] is not None:
+            raise _Stop(state["stop_all"])
+        if callback is not None and callback(len(history) - 1, value, {k: v.copy() for k, v in p.items()}):
+            state["stop_all"] = "callback"
+            raise _Stop("callback")
+        if tol is not None and finite and value < tol:
+            raise _Stop("tol")
+        if track.since_best >= patience:
+            raise _Stop("stalled")
+        return value, gz, finite
+
+    def residual_evaluate(track):
+        """For Gauss-Newton: the weighted residual vector at z (forward passes only;
+        ``sum r^2`` is the loss), recorded like an evaluation (``grad`` None). ``reset``:
+        new correspondences (nearest points, tangent planes) for the losses that keep them."""
+
+        def residuals(z, reset=False):
+            t0 = time.perf_counter()
+            prob.apply(z)
+            parts = []
+            try:
+                for r in prob.runs:
+                    r.rollout.forward(**r.initial)
+                    arrays = r.rollout.observations(numpy=True)
+                    terms = r.loss.terms if isinstance(r.loss, SumLoss) else [(1.0, r.loss)]
+                    for coef, leaf in terms:
+                        if reset or not getattr(leaf, "_counts", True):
+                            if hasattr(leaf, "reset_residuals"):
+                                leaf.reset_residuals()
+                            leaf.value(r.rollout.observations())  # records the residual counts
+                        parts.append(math.sqrt(r.weight * coef / leaf.residual_scale()) * leaf.residuals(arrays))
+                res = np.concatenate(parts)
+            except FloatingPointError:
+                res = np.full(1, np.inf)
+            value = float(res @ res) if np.isfinite(res).all() else math.inf
+            _, _, finite = record(track, z, value, None, time.perf_counter() - t0)
+            return res, finite
+
+        return residuals
+
+    def sequential_evaluate(track):
+        def evaluate(z):
+            t0 = time.perf_counter()
+            try:
+                value, gz = prob.value_and_grad(z)
+            except FloatingPointError:
+                value, gz = math.inf, np.full(len(z), np.nan)
+            return record(track, z, value, gz, time.perf_counter() - t0)
+        return evaluate
+
+    def descend(evaluate, z_start):
+        try:
+            if optimizer == "gauss-newton":
+                return _run_gauss_newton(evaluate, prob.project, z_start, iterations, max_step, GN_STEP, xtol)
+            if optimizer == "adam":
+                return _run_adam(evaluate, prob.project, z_start, iterations, lr, lr_end, clip, history, xtol, gtol)
+            return _run_lbfgs(evaluate, prob.project, z_start, iterations, lr, max_step, memory=lbfgs_memory,
+                              xtol=xtol, gtol=gtol)
+        except _Stop as e:
+            return str(e)
 
     # ------------------------------------------------------------ global stage
     start_points = [prob.z0]
+    lo, hi = prob.z_bounds()
+    span = np.where(np.array([prob.spaces[n] == "log" for n in params for _ in range(prob.k)]),
+                    math.log(sample_range), sample_range)
+    lo = np.maximum(lo, prob.z0 - span)
+    hi = np.minimum(hi, prob.z0 + span)
+    rng = np.random.default_rng(seed)
     if samples:
         state["stage"] = "sample"
-        lo, hi = prob.z_bounds()
-        span = np.where(np.array([prob.spaces[n] == "log" for n in params for _ in range(prob.k)]),
-                        math.log(sample_range), sample_range)
-        lo = np.maximum(lo, prob.z0 - span)
-        hi = np.minimum(hi, prob.z0 + span)
-        rng = np.random.default_rng(seed)
         cube = latin_hypercube(samples, len(prob.z0), rng)
         cands = [prob.z0] + [lo + u * (hi - lo) for u in cube]
         scored = []
@@ -723,36 +742,35 @@ def fit(
         scored.sort(key=lambda s: (s[0], s[1]))
         start_points = [s[2] for s in scored[:starts]]
         state["stage"] = "descent"
+    elif starts > 1:
+        # No sampled stage: the guess and starts - 1 Latin-hypercube points of the same box.
+        start_points += [prob.project(lo + u * (hi - lo)) for u in latin_hypercube(starts - 1, len(prob.z0), rng)]
+    track_count = len(start_points)
+    use_worlds = worlds and track_count > 1
+    if use_worlds:
+        say(f"multi-start: {track_count} starts as {track_count} worlds of one model per experiment")
+    tracks = [_Track(k) for k in range(track_count)]
 
-    stopped = "iterations"
     stops = []
     if progress:
         from tqdm import tqdm  # noqa: PLC0415
 
-        state["bar"] = tqdm(total=(iterations + 1) * len(start_points), unit="eval", file=sys.stderr,
+        state["bar"] = tqdm(total=(iterations + 1) * track_count, unit="eval", file=sys.stderr,
                             dynamic_ncols=True, desc=f"fit ({optimizer})")
-    run_best = []
     try:
-        for z_start in start_points:
-            state["since_best"] = 0
-            best[0], best[1] = math.inf, None  # each start keeps its own best
-            try:
-                if optimizer == "adam":
-                    stop = _run_adam(evaluate, prob.project, z_start, iterations, lr, lr_end, clip, history, xtol, gtol)
-                elif optimizer == "gauss-newton":
-                    stop = _run_gauss_newton(residual_evaluation, prob.project, z_start, iterations, max_step, GN_STEP, xtol)
-                else:
-                    stop = _run_lbfgs(evaluate, prob.project, z_start, iterations, lr, max_step, memory=lbfgs_memory,
-                                      xtol=xtol, gtol=gtol)
-            except _Stop as e:
-                stop = str(e)
-            stops.append(stop)
-            run_best.append((best[0], best[1], stop))
-            if stop == "callback":
-                break
+        if use_worlds:
+            stops = _lockstep(tracks, start_points, descend, _WorldsProblem(runs, prob, track_count, dtype, memory_limit),
+                              record)
+        else:
+            for track, z_start in zip(tracks, start_points):
+                stop = descend(residual_evaluate(track) if optimizer == "gauss-newton" else sequential_evaluate(track), z_start)
+                stops.append(stop)
+                if stop == "callback":
+                    break
     finally:
         if state["bar"] is not None:
             state["bar"].close()
+    run_best = [(t.best, t.best_p, stop) for t, stop in zip(tracks, stops)]
     finite_runs = [rb for rb in run_best if rb[1] is not None]
     if not finite_runs:
         raise FloatingPointError("no finite loss was found")
@@ -790,6 +808,138 @@ def fit(
         for r in runs:
             r.apply(p)
     return result
+
+
+# ------------------------------------------------------------ multi-start over worlds
+def _has_host_terms(loss) -> bool:
+    return bool(getattr(loss, "_host", False)) or any(_has_host_terms(t) for _, t in getattr(loss, "terms", ()))
+
+
+class _WorldsProblem:
+    """The experiments of a fit as ``W`` worlds each (``builder.replicate_worlds``): world
+    ``w`` of every experiment holds start ``w``'s parameters, and one forward and backward
+    pass per experiment evaluates every start (``WorldLoss``: each world's loss and gradient
+    are its own)."""
+
+    def __init__(self, runs: list[_Run], prob: _Problem, worlds: int, dtype, memory_limit):
+        from .builder import replicate_worlds  # noqa: PLC0415
+
+        self.prob, self.W = prob, worlds
+        self.runs = []
+        for r in runs:
+            if r.initial:
+                raise ValueError(f"{r.name}: initial = {sorted(r.initial)} is not allowed with worlds=True: the worlds "
+                                 f"start from the model's own initial state (set model.particle_x0 / particle_v0)")
+            if isinstance(r.loss, WorldLoss) or r.model.world_count != 1:
+                raise ValueError(f"{r.name}: worlds=True is not allowed with a model of worlds or a WorldLoss: it "
+                                 f"makes the worlds itself from a one-world model")
+            if _has_host_terms(r.loss):
+                raise ValueError(f"{r.name}: worlds=True is not allowed with {type(r.loss).__name__}: its terms are "
+                                 f"evaluated on the host for one model (use worlds=False)")
+            model = replicate_worlds(r.model, worlds)
+            exp = Experiment(model, WorldLoss(model, r.loss), steps=r.steps, dt=r.dt,
+                             checkpoint_every=r.rollout.segment if r.rollout.checkpointing else None, weight=r.weight)
+            wr = _Run(exp, dtype, memory_limit, f"{r.name} ({worlds} worlds)")
+            M = len(r.model.materials)
+            wr.idx = [w * M + k for w in range(worlds) for k in r.idx]
+            wr.tied = [w * M + k for w in range(worlds) for k in getattr(r, "tied", [])]
+            wr.tie = r.tie
+            self.runs.append(wr)
+        self.p = [None] * worlds
+
+    def evaluate(self, batch: dict[int, np.ndarray]) -> dict[int, tuple[float, np.ndarray, float]]:
+        """Loss, optimiser-space gradient and seconds of each start in ``batch``
+        (``{world: z}``); the other worlds keep their last parameters."""
+        t0 = time.perf_counter()
+        prob, W, k = self.prob, self.W, self.prob.k
+        for w, z in batch.items():
+            self.p[w] = prob.from_z(z)
+        values = np.zeros(W)
+        gz = {w: np.zeros(len(prob.z0)) for w in batch}
+        try:
+            for r in self.runs:
+                r.apply({name: np.concatenate([self.p[w][name] for w in range(W)]) for name in prob.params})
+                _, grads = r.rollout.value_and_grad(r.loss)
+                values += r.weight * np.asarray(r.loss.world_values, dtype=np.float64)
+                g = r.grads(prob.params, grads)
+                for w in batch:
+                    gz[w] += r.weight * prob.grad_z(self.p[w], {n: g[n][w * k:(w + 1) * k] for n in prob.params})
+        except FloatingPointError:
+            values[:] = math.inf
+            gz = {w: np.full(len(prob.z0), np.nan) for w in batch}
+        seconds = time.perf_counter() - t0
+        return {w: (float(values[w]), gz[w], seconds) for w in batch}
+
+
+def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record) -> list[str]:
+    """Runs one optimiser per start, each in its own thread, in lockstep: every round, each
+    start that has not finished asks for one evaluation, and one ``worlds.evaluate`` of all of
+    them answers. Only this (the calling) thread launches Warp kernels and records history
+    (in start order); the optimiser threads do host arithmetic only."""
+    import threading  # noqa: PLC0415
+
+    cv = threading.Condition()
+    pending: dict[int, np.ndarray] = {}
+    answers: dict[int, object] = {}
+    active = set(range(len(tracks)))
+    stops: list = [None] * len(tracks)
+    errors: list = []
+
+    def worker(w):
+        def evaluate(z):
+            with cv:
+                pending[w] = np.array(z, dtype=np.float64)
+                cv.notify_all()
+                while w not in answers:
+                    cv.wait()
+                answer = answers.pop(w)
+            if isinstance(answer, BaseException):
+                raise answer
+            return answer
+
+        try:
+            stops[w] = descend(evaluate, start_points[w])
+        except BaseException as e:  # noqa: BLE001 (handed to the calling thread)
+            errors.append(e)
+        finally:
+            with cv:
+                active.discard(w)
+                cv.notify_all()
+
+    threads = [threading.Thread(target=worker, args=(w,), daemon=True) for w in range(len(tracks))]
+    for t in threads:
+        t.start()
+    try:
+        while True:
+            with cv:
+                while active and not active.issubset(pending):
+                    cv.wait()
+                if not active:
+                    break
+                batch = {w: pending.pop(w) for w in sorted(active)}
+            results = worlds.evaluate(batch)
+            out = {}
+            for w in sorted(batch):
+                value, gz, seconds = results[w]
+                try:
+                    out[w] = record(tracks[w], batch[w], value, gz, seconds)
+                except BaseException as e:  # noqa: BLE001 (_Stop ends that start, in its thread)
+                    out[w] = e
+            with cv:
+                answers.update(out)
+                cv.notify_all()
+    finally:
+        with cv:
+            # Threads still waiting (an error here) end at once.
+            for w in list(pending):
+                answers[w] = _Stop("callback")
+            pending.clear()
+            cv.notify_all()
+        for t in threads:
+            t.join()
+    if errors:
+        raise errors[0]
+    return stops
 
 
 def latin_hypercube(n: int, dims: int, rng) -> np.ndarray:

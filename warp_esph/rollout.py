@@ -194,7 +194,8 @@ class Rollout:
         self.frame_positions = [wp.zeros(n, dtype=T.vec3, device=dev) for _ in self.frames]
         self._frame_slot = {f: k for k, f in enumerate(self.frames)}
         tools = getattr(model, "tools", None)
-        self.tool_names = [] if tools is None else list(tools.names)
+        # With worlds one row per world and tool, named "w<w>/<name>" (tools.ToolSet.row_names).
+        self.tool_names = [] if tools is None else list(tools.row_names)
         #: Every step's reaction force of every tool after ``forward`` (no gradients).
         self.forces = (wp.zeros(self.steps * len(self.tool_names), dtype=T.vec3, device=dev)
                        if self.tool_names else None)

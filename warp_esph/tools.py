@@ -10,10 +10,11 @@ in the keyframes and velocities), then ``integrate`` does the symplectic Euler u
 
 - the static colliders of ``colliders.py`` (unchanged),
 - each moving collider: the candidate position is expressed in the collider's frame at
-  ``t1``. A particle of a mesh or box collider whose relative path in the collider frame
-  (start in the ``t0`` frame, end in the ``t1`` frame) enters a face is stopped at the entry
-  point (no tunnelling through a thin mesh or plate however fast it moves); otherwise a
-  particle found inside is moved to the nearest surface point. The surface point's velocity
+  ``t1``. A particle of a box, sphere, capsule, cylinder or mesh collider whose relative
+  path in the collider frame (start in the ``t0`` frame, end in the ``t1`` frame) enters it
+  is stopped at the entry point (no tunnelling through a thin or fast tool); otherwise a
+  particle found inside is moved to the nearest surface point (a plane, a half-space that
+  no path can cross, always so). The surface point's velocity
   over the step ``(T1(c) - T0(c)) / dt`` is the velocity the contact is measured against: the
   inward relative normal velocity is removed, and Coulomb friction acts on the relative
   tangential velocity (static coefficient: sticks while ``|v_t| <= mu_s |dv_n|``; else
@@ -104,13 +105,17 @@ class Keyframes:
         object.__setattr__(self, "orientations", tuple(map(tuple, q)))
 
     def sample(self, t: float) -> tuple[int, int, float]:
-        ts = self.times
-        if t <= ts[0]:
-            return 0, 0, 0.0
-        if t >= ts[-1]:
-            return len(ts) - 1, len(ts) - 1, 0.0
-        k = int(np.searchsorted(ts, t, side="right")) - 1
-        return k, k + 1, (t - ts[k]) / (ts[k + 1] - ts[k])
+        return sample_times(self.times, t)
+
+
+def sample_times(ts, t: float) -> tuple[int, int, float]:
+    """The keyframes ``(a, b)`` around time ``t`` and the weight ``w`` of ``b``."""
+    if t <= ts[0]:
+        return 0, 0, 0.0
+    if t >= ts[-1]:
+        return len(ts) - 1, len(ts) - 1, 0.0
+    k = int(np.searchsorted(ts, t, side="right")) - 1
+    return k, k + 1, (t - ts[k]) / (ts[k + 1] - ts[k])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -235,6 +240,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
 
     @wp.kernel(module="unique")
     def poses(
+        kf_t: wp.array(dtype=scalar),
         kf_p: wp.array(dtype=vec3),
         kf_q: wp.array(dtype=quat),
         lin_v: wp.array(dtype=vec3),
@@ -258,8 +264,12 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         else:
             i0 = s_i0[s]
             i1 = s_i1[s]
-            w = s_w[s]
             t = s_t[s]
+            # The weight from the keyframe times on the tape (differentiable in them); the
+            # host only chose the segment (s_w is its value, for the hold before / after).
+            w = s_w[s]
+            if i1 != i0:
+                w = (t - kf_t[i0]) / (kf_t[i1] - kf_t[i0])
             p = kf_p[i0] * (ONE - w) + kf_p[i1] * w + lin_v[c] * t
             q = quat_exp(ang_v[c] * t) * interp_quat(kf_q[i0], kf_q[i1], w)
             pose_p[s] = p
@@ -275,12 +285,13 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
 
     @wp.func
     def apply(
-        x: vec3, v: vec3, hit: int, xc: vec3, nl: vec3, c: int, m: scalar, dt: scalar,
+        x: vec3, v: vec3, hit: int, xc: vec3, nl: vec3, c: int, row: int, m: scalar, dt: scalar,
         pose_p: wp.array(dtype=vec3), pose_q: wp.array(dtype=quat), mu_s: wp.array(dtype=scalar), mu_k: wp.array(dtype=scalar),
         rforce: wp.array(dtype=vec3), rtorque: wp.array(dtype=vec3),
     ):
         """Move a particle in contact to the surface point ``xc`` (collider frame) and
-        respond relative to that point's velocity; adds the impulse / dt to the tool's row."""
+        respond relative to that point's velocity; adds the impulse / dt to the reaction row
+        ``row`` (tool ``c`` in the particle's world)."""
         if hit == 0:
             return x, v
         p0 = pose_p[2 * c]
@@ -296,8 +307,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         dv = v_new - v
         x_new = x_s + dt * (dv - wp.dot(dv, n) * n)
         f = m * dv / dt
-        wp.atomic_add(rforce, c, f)
-        wp.atomic_add(rtorque, c, wp.cross(x_s - p1, f))
+        wp.atomic_add(rforce, row, f)
+        wp.atomic_add(rtorque, row, wp.cross(x_s - p1, f))
         return x_new, v_new
 
     @wp.func
@@ -379,6 +390,100 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         return 0, xl, vec3()
 
     @wp.func
+    def ray_sphere(xs: vec3, d: vec3, a: vec3, r: scalar):
+        """Entry parameter ``t`` of the path ``xs + t d`` into the sphere ``(a, r)``; 2 (no
+        entry in the step) when the path misses it or starts inside it."""
+        o = xs - a
+        dd = wp.dot(d, d)
+        cc = wp.dot(o, o) - r * r
+        t = scalar(2.0)
+        if cc > ZERO and dd > ZERO:
+            b = wp.dot(o, d)
+            disc = b * b - dd * cc
+            if disc > ZERO and b < ZERO:
+                t = (-b - wp.sqrt(disc)) / dd
+        return t
+
+    @wp.func
+    def ray_disc(ox: scalar, oz: scalar, dx: scalar, dz: scalar, r: scalar):
+        """Entry and exit parameters of the path ``o + t d`` (projected on x-z) through the
+        infinite cylinder ``x^2 + z^2 <= r^2`` along y."""
+        big = scalar(1.0e30)
+        dd = dx * dx + dz * dz
+        cc = ox * ox + oz * oz - r * r
+        if dd == ZERO:
+            if cc < ZERO:
+                return -big, big
+            return big, -big
+        b = ox * dx + oz * dz
+        disc = b * b - dd * cc
+        if disc <= ZERO:
+            return big, -big
+        sq = wp.sqrt(disc)
+        return (-b - sq) / dd, (-b + sq) / dd
+
+    @wp.func
+    def swept_sphere(xs: vec3, xl: vec3, param: vec3, margin: scalar):
+        """A sphere the relative path ``xs -> xl`` enters during the step (however fast the
+        tool moves past the particle): stop at the entry point."""
+        d = xl - xs
+        t = ray_sphere(xs, d, vec3(), param[0])
+        if t > ZERO and t <= ONE:
+            nl = wp.normalize(xs + t * d)
+            return 1, xs + t * d + margin * nl, nl
+        return 0, xl, vec3()
+
+    @wp.func
+    def swept_capsule(xs: vec3, xl: vec3, param: vec3, margin: scalar):
+        """The capsule is the union of its side and its two end spheres: the path enters it
+        where it first enters one of them."""
+        r = param[0]
+        h = param[1]
+        d = xl - xs
+        # Starting inside: the nearest-point projection handles it.
+        ys = wp.clamp(xs[1], -h, h)
+        o = xs - vec3(ZERO, ys, ZERO)
+        if wp.dot(o, o) <= r * r:
+            return 0, xl, vec3()
+        t = scalar(2.0)
+        a = vec3()
+        tc, tc_out = ray_disc(xs[0], xs[2], d[0], d[2], r)
+        yc = xs[1] + tc * d[1]
+        if tc > ZERO and tc < tc_out and yc >= -h and yc <= h:
+            t = tc
+            a = vec3(ZERO, yc, ZERO)
+        top = vec3(ZERO, h, ZERO)
+        t_top = ray_sphere(xs, d, top, r)
+        if t_top < t:
+            t = t_top
+            a = top
+        t_bot = ray_sphere(xs, d, -top, r)
+        if t_bot < t:
+            t = t_bot
+            a = -top
+        if t > ZERO and t <= ONE:
+            nl = wp.normalize(xs + t * d - a)
+            return 1, xs + t * d + margin * nl, nl
+        return 0, xl, vec3()
+
+    @wp.func
+    def swept_cylinder(xs: vec3, xl: vec3, param: vec3, margin: scalar):
+        """The capped cylinder is the infinite cylinder cut by the slab ``|y| <= h``: the path
+        enters it at the later of its two entries, if that precedes both exits."""
+        r = param[0]
+        d = xl - xs
+        tc0, tc1 = ray_disc(xs[0], xs[2], d[0], d[2], r)
+        ty0, ty1, sy = slab(xs[1], d[1], param[1])
+        t_in = wp.max(tc0, ty0)
+        if t_in > ZERO and t_in <= ONE and t_in <= wp.min(tc1, ty1):
+            p = xs + t_in * d
+            nl = vec3(ZERO, sy, ZERO)
+            if tc0 > ty0:
+                nl = wp.normalize(vec3(p[0], ZERO, p[2]))
+            return 1, p + margin * nl, nl
+        return 0, xl, vec3()
+
+    @wp.func
     def shape_cylinder(xl: vec3, param: vec3):
         r = param[0]
         hh = param[1]
@@ -393,9 +498,51 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         return 0, xl, vec3()
 
     @wp.func
-    def shape_mesh(xl: vec3, xs: vec3, mesh: wp.uint64, lo: vec3, hi: vec3, margin: scalar):
+    def closest_on_triangle(p: vec3, a: vec3, b: vec3, c: vec3):
+        """Closest point to ``p`` on the triangle ``abc`` (Voronoi regions of its vertices,
+        edges and face)."""
+        ab = b - a
+        ac = c - a
+        ap = p - a
+        d1 = wp.dot(ab, ap)
+        d2 = wp.dot(ac, ap)
+        bp = p - b
+        d3 = wp.dot(ab, bp)
+        d4 = wp.dot(ac, bp)
+        cp = p - c
+        d5 = wp.dot(ab, cp)
+        d6 = wp.dot(ac, cp)
+        vc = d1 * d4 - d3 * d2
+        vb = d5 * d2 - d1 * d6
+        va = d3 * d6 - d5 * d4
+        out = a
+        if d1 <= ZERO and d2 <= ZERO:
+            out = a
+        elif d3 >= ZERO and d4 <= d3:
+            out = b
+        elif vc <= ZERO and d1 >= ZERO and d3 <= ZERO:
+            out = a + ab * (d1 / (d1 - d3))
+        elif d6 >= ZERO and d5 <= d6:
+            out = c
+        elif vb <= ZERO and d2 >= ZERO and d6 <= ZERO:
+            out = a + ac * (d2 / (d2 - d6))
+        elif va <= ZERO and (d4 - d3) >= ZERO and (d5 - d6) >= ZERO:
+            out = b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))
+        else:
+            den = ONE / (va + vb + vc)
+            out = a + ab * (vb * den) + ac * (vc * den)
+        return out
+
+    @wp.func
+    def shape_mesh(xl: vec3, xs: vec3, mesh: wp.uint64, lo: vec3, hi: vec3, margin: scalar,
+                   verts: wp.array(dtype=vec3), tris: wp.array(dtype=wp.int32), vofs: int, fofs: int):
         """Closed mesh in its own frame: the entry point of the relative path ``xs -> xl``
-        if it enters a face, else the nearest surface point if ``xl`` ends inside."""
+        if it enters a face, else the nearest surface point if ``xl`` ends inside.
+
+        Warp's mesh queries are float32: they only pick the face (and inside / outside); the
+        entry point and the nearest point are then computed on that face from the mesh's
+        vertices in the model's precision, so a float64 run has float64 contact geometry
+        and its gradient matches central differences."""
         # Both ends beyond the padded bounds on the same side: no contact.
         a = wp.min(xl, xs)
         b = wp.max(xl, xs)
@@ -408,15 +555,22 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             start = wp.vec3f(wp.float32(xs[0]), wp.float32(xs[1]), wp.float32(xs[2]))
             ray = wp.mesh_query_ray(mesh, start, dirf, wp.float32(seg_len))
             if ray.result and wp.dot(dirf, ray.normal) < wp.float32(0.0):
-                nl = vec3(scalar(ray.normal[0]), scalar(ray.normal[1]), scalar(ray.normal[2]))
-                nl = wp.normalize(nl)
-                return 1, xs + seg * (scalar(ray.t) / seg_len) + margin * nl, nl
+                f = 3 * (fofs + ray.face)
+                va = verts[vofs + tris[f]]
+                vb = verts[vofs + tris[f + 1]]
+                vc = verts[vofs + tris[f + 2]]
+                nl = wp.normalize(wp.cross(vb - va, vc - va))
+                den = wp.dot(seg, nl)
+                if den < ZERO:
+                    # Where the path crosses the face's plane (the face the float32 ray hit).
+                    t = wp.clamp(wp.dot(va - xs, nl) / den, ZERO, ONE)
+                    return 1, xs + t * seg + margin * nl, nl
         qf = wp.vec3f(wp.float32(xl[0]), wp.float32(xl[1]), wp.float32(xl[2]))
         far = wp.float32(wp.length(hi - lo))
         res = wp.mesh_query_point(mesh, qf, far)
         if res.result and res.sign < wp.float32(0.0):
-            cp = wp.mesh_eval_position(mesh, res.face, res.u, res.v)
-            cl = vec3(scalar(cp[0]), scalar(cp[1]), scalar(cp[2]))
+            f = 3 * (fofs + res.face)
+            cl = closest_on_triangle(xl, verts[vofs + tris[f]], verts[vofs + tris[f + 1]], verts[vofs + tris[f + 2]])
             d = cl - xl
             dl = wp.length(d)
             if dl > ZERO:
@@ -449,10 +603,16 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         mesh_id: wp.array(dtype=wp.uint64),
         mesh_lo: wp.array(dtype=vec3),
         mesh_hi: wp.array(dtype=vec3),
+        mesh_verts: wp.array(dtype=vec3),
+        mesh_tris: wp.array(dtype=wp.int32),
+        mesh_vofs: wp.array(dtype=wp.int32),
+        mesh_fofs: wp.array(dtype=wp.int32),
         margin: scalar,
         pin: wp.array(dtype=wp.int32),
         rest_x: wp.array(dtype=vec3),
         pin_center: wp.array(dtype=vec3),
+        world: wp.array(dtype=wp.int32),
+        n_tools: int,
         x_out: wp.array(dtype=vec3),
         v_out: wp.array(dtype=vec3),
         rforce: wp.array(dtype=vec3),
@@ -460,6 +620,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
     ):
         i = wp.tid()
         m = mass[i]
+        # Every world meets the same tools; each reports its own reaction rows.
+        base = world[i] * n_tools
         x, v = kin.symplectic_euler(x_in[i], v_in[i], f[i], m, gravity, dt)
         x, v = kin.static_colliders(
             x, v, dt, plane_normal, plane_offset, plane_friction, sphere_center, sphere_radius, sphere_friction,
@@ -468,7 +630,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         for c in range(wp.static(counts[0])):
             k = wp.static(offsets[0]) + c
             hit, xc, nl = shape_plane(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[1])):
             k = wp.static(offsets[1]) + c
             # The entry point first (a path from outside), the nearest face only for a
@@ -478,25 +640,34 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             hit, xc, nl = swept_box(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
             if hit == 0:
                 hit, xc, nl = shape_box(xl, param[k])
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[2])):
             k = wp.static(offsets[2]) + c
-            hit, xc, nl = shape_sphere(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
+            hit, xc, nl = swept_sphere(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
+            if hit == 0:
+                hit, xc, nl = shape_sphere(xl, param[k])
+            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[3])):
             k = wp.static(offsets[3]) + c
-            hit, xc, nl = shape_capsule(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
+            hit, xc, nl = swept_capsule(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
+            if hit == 0:
+                hit, xc, nl = shape_capsule(xl, param[k])
+            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[4])):
             k = wp.static(offsets[4]) + c
-            hit, xc, nl = shape_cylinder(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
+            hit, xc, nl = swept_cylinder(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
+            if hit == 0:
+                hit, xc, nl = shape_cylinder(xl, param[k])
+            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[5])):
             k = wp.static(offsets[5]) + c
             xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
             xs = local(pose_p[2 * k], pose_q[2 * k], x_in[i])
-            hit, xc, nl = shape_mesh(xl, xs, mesh_id[k], mesh_lo[k], mesh_hi[k], margin)
-            x, v = apply(x, v, hit, xc, nl, k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            hit, xc, nl = shape_mesh(xl, xs, mesh_id[k], mesh_lo[k], mesh_hi[k], margin, mesh_verts, mesh_tris, mesh_vofs[k], mesh_fofs[k])
+            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         if wp.static(n_pins > 0):
             k = pin[i]
             if k >= 0:
@@ -509,8 +680,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
                 x0 = X + (pose_p[2 * k] - c0) + (wp.quat_rotate(pose_q[2 * k], xr) - xr)
                 v1 = (x1 - x0) / dt
                 fr = m * (v1 - v_in[i]) / dt - f[i] - m * gravity
-                wp.atomic_add(rforce, k, fr)
-                wp.atomic_add(rtorque, k, wp.cross(x1 - p1, fr))
+                wp.atomic_add(rforce, base + k, fr)
+                wp.atomic_add(rtorque, base + k, wp.cross(x1 - p1, fr))
                 x = x1
                 v = v1
         x_out[i] = x
@@ -532,9 +703,16 @@ class ToolSet:
     (one per tool), ``keyframe_positions`` / ``keyframe_orientations`` (all keyframes of all
     tools, tool ``k``'s from ``keyframe_start[k]``), ``velocity`` and ``angular_velocity`` (one
     per tool; zero for keyframed tools).
+
+    Worlds (``SceneBuilder.finalize(worlds=W)``): every world meets the same tools (one
+    motion, one set of parameters, like the shared static colliders) and reports its own
+    reaction: ``state.reaction_force`` has one row per world and tool, row ``w * count + k``,
+    named ``row_names[w * count + k] = "w<w>/<name>"``. ``world_pins[w][j]``: the particles
+    (world-local indices) of pinned set ``j`` in world ``w``; default: ``pins[j].indices``
+    in every world.
     """
 
-    def __init__(self, model, tool_colliders: list[Collider], pins: list[PinSet]):
+    def __init__(self, model, tool_colliders: list[Collider], pins: list[PinSet], world_pins=None):
         S, dev = model.scalar, model.device
         T = model.types
         npf = T.np_dtype
@@ -545,6 +723,10 @@ class ToolSet:
         self.counts = tuple(sum(1 for c in self.colliders if c.kind == kind) for kind in KINDS)
         n = len(self.names)
         self.count = n
+        W = model.world_count
+        self.world_count = W
+        #: Names of the reaction rows: the tool names, or with worlds ``"w<w>/<name>"``.
+        self.row_names = list(self.names) if W == 1 else [f"w{w}/{name}" for w in range(W) for name in self.names]
         self.scalar = S
         k_ = kernels(S, len(model.planes), len(model.spheres), len(model.boxes), self.counts, len(self.pins))
         self.quat = k_.quat
@@ -553,31 +735,43 @@ class ToolSet:
         x0 = model.particle_x0
         pin_of = np.full(model.particle_count, -1, dtype=np.int32)
         centers = np.zeros((max(n, 1), 3), dtype=npf)
+        if world_pins is None:
+            world_pins = [[ps.indices for ps in self.pins]] * W
         for j, ps in enumerate(self.pins):
             k = len(self.colliders) + j
-            if (pin_of[ps.indices] >= 0).any():
-                raise ValueError(f"pin {ps.name!r} is not allowed: it shares particles with pin {self.names[pin_of[ps.indices].max()]!r}")
-            pin_of[ps.indices] = k
-            centers[k] = x0[ps.indices].mean(axis=0)
-        self.pin_np = pin_of
+            for w in range(W):
+                idx = np.asarray(world_pins[w][j]) + model.world_start[w]
+                if (pin_of[idx] >= 0).any():
+                    raise ValueError(f"pin {ps.name!r} is not allowed: it shares particles with pin {self.names[pin_of[idx].max()]!r}")
+                pin_of[idx] = k
+                c = x0[idx].mean(axis=0)
+                if w == 0:
+                    centers[k] = c
+                elif np.abs(c - centers[k]).max() > 1e-9 * max(1.0, np.abs(centers[k]).max()):
+                    # One motion moves the set's frame, whose rest pose is the centroid.
+                    raise ValueError(f"pin {ps.name!r} is not allowed with worlds: its rest centroid in world {w} "
+                                     f"({c.tolist()}) is not the one in world 0 ({centers[k].tolist()})")
 
         # Rest pose of each tool: colliders' from their motion, pinned sets' (centroid, I).
-        kf_p, kf_q, start, lin, ang = [], [], [], [], []
+        kf_t, kf_p, kf_q, start, lin, ang = [], [], [], [], [], []
         self.motions = [c.motion for c in self.colliders] + [p.motion for p in self.pins]
         for k, motion in enumerate(self.motions):
             rest_p = tuple(centers[k]) if k >= len(self.colliders) else (0.0, 0.0, 0.0)
             start.append(len(kf_p))
             if isinstance(motion, Keyframes):
+                kf_t.extend(motion.times)
                 kf_p.extend(motion.positions)
                 kf_q.extend(motion.orientations)
                 lin.append((0.0,) * 3)
                 ang.append((0.0,) * 3)
             elif isinstance(motion, Velocity):
+                kf_t.append(0.0)
                 kf_p.append(motion.position if motion.position is not None else rest_p)
                 kf_q.append(motion.orientation if motion.orientation is not None else IDENTITY)
                 lin.append(motion.velocity)
                 ang.append(motion.angular_velocity)
             else:  # Scripted: the host writes its poses every step
+                kf_t.append(0.0)
                 kf_p.append(rest_p)
                 kf_q.append(IDENTITY)
                 lin.append((0.0,) * 3)
@@ -589,6 +783,7 @@ class ToolSet:
             values = list(values) or [(0.0,) * width if width > 1 else 0.0]
             return wp.array(np.array(values, dtype=npf), dtype=dtype, device=dev, requires_grad=grad and rg)
 
+        self.keyframe_times = arr(kf_t, S, True, 1)
         self.keyframe_positions = arr(kf_p, T.vec3, True)
         self.keyframe_orientations = arr(kf_q, self.quat, True, 4)
         self.velocity = arr(lin, T.vec3, True)
@@ -599,8 +794,15 @@ class ToolSet:
         # Meshes: kept referenced here for the model's lifetime (docs/method.md, Warp pitfall 3).
         self.meshes = []
         ids, lo, hi = [], [], []
+        # Every mesh's vertices in the model's precision and its triangles, concatenated
+        # (the contact geometry, ``shape_mesh``); tool k's from mesh_vofs[k] / mesh_fofs[k].
+        verts, tris, vofs, fofs = [], [], [], []
         for c in self.colliders:
+            vofs.append(sum(len(v) for v in verts))
+            fofs.append(sum(len(t) for t in tris))
             if c.kind == "mesh":
+                verts.append(np.asarray(c.mesh_points, dtype=np.float64))
+                tris.append(np.asarray(c.mesh_triangles, dtype=np.int32).reshape(-1, 3))
                 pts = np.asarray(c.mesh_points, dtype=np.float32)
                 mesh = wp.Mesh(points=wp.array(pts, dtype=wp.vec3f, device=dev),
                                indices=wp.array(np.asarray(c.mesh_triangles, dtype=np.int32).ravel(), dtype=wp.int32, device=dev))
@@ -616,11 +818,27 @@ class ToolSet:
         self.mesh_id = wp.array(np.array(ids or [0], dtype=np.uint64), dtype=wp.uint64, device=dev)
         self.mesh_lo = arr(lo, T.vec3)
         self.mesh_hi = arr(hi, T.vec3)
+        self.mesh_verts = arr(np.concatenate(verts) if verts else [], T.vec3)
+        self.mesh_tris = wp.array(np.concatenate(tris).ravel() if tris else np.zeros(3, np.int32), dtype=wp.int32, device=dev)
+        self.mesh_vofs = wp.array(np.array(vofs or [0], dtype=np.int32), dtype=wp.int32, device=dev)
+        self.mesh_fofs = wp.array(np.array(fofs or [0], dtype=np.int32), dtype=wp.int32, device=dev)
         self.pin = wp.array(pin_of, dtype=wp.int32, device=dev)
         self.rest_x = wp.array(x0, dtype=T.vec3, device=dev)
         self.pin_center = wp.array(centers, dtype=T.vec3, device=dev)
         self.kernels = k_
         self.model = model
+
+    def _times_now(self) -> np.ndarray:
+        """The keyframe times as they are now (an optimiser may have changed the array)."""
+        if not any(isinstance(mo, Keyframes) for mo in self.motions):
+            return np.zeros(0)
+        kt = self.keyframe_times.numpy().astype(np.float64)
+        for k, mo in enumerate(self.motions):
+            if isinstance(mo, Keyframes):
+                ts = kt[self.keyframe_start[k]:self.keyframe_start[k] + len(mo.times)]
+                if not np.isfinite(ts).all() or np.any(np.diff(ts) <= 0.0):
+                    raise ValueError(f"keyframe_times of tool {self.names[k]!r} = {ts.tolist()!r} is not allowed: must be finite and increasing")
+        return kt
 
     def index(self, name: str) -> int:
         if name not in self.names:
@@ -637,13 +855,14 @@ class ToolSet:
         direct = np.zeros(2 * n, dtype=np.int32)
         sp = np.zeros((2 * n, 3))
         sq = np.tile(np.array(IDENTITY), (2 * n, 1))
+        kt = self._times_now()
         for k, motion in enumerate(self.motions):
             for j, t in enumerate((t0, t1)):
                 s = 2 * k + j
                 ts[s] = t
                 base = self.keyframe_start[k]
                 if isinstance(motion, Keyframes):
-                    a, b, w[s] = motion.sample(t)
+                    a, b, w[s] = sample_times(kt[base:base + len(motion.times)], t)
                     i0[s], i1[s] = base + a, base + b
                 elif isinstance(motion, Velocity):
                     i0[s] = i1[s] = base
@@ -668,7 +887,7 @@ class ToolSet:
         state_out.tool_samples = samples  # referenced until a backward pass has read them
         wp.launch(
             self.kernels.poses, 2 * n,
-            [self.keyframe_positions, self.keyframe_orientations, self.velocity, self.angular_velocity, *samples],
+            [self.keyframe_times, self.keyframe_positions, self.keyframe_orientations, self.velocity, self.angular_velocity, *samples],
             [state_out.tool_pose_p, state_out.tool_pose_q], device=dev,
         )
         state_out.reaction_force.zero_()
@@ -680,24 +899,27 @@ class ToolSet:
                 state_in.x, state_in.v, state_out.force, m.particle_mass, T.vec3(*m.gravity), S(dt),
                 *static_collider_arrays(m),
                 state_out.tool_pose_p, state_out.tool_pose_q, self.param, self.static_friction, self.friction,
-                self.mesh_id, self.mesh_lo, self.mesh_hi, S(self.margin),
-                self.pin, self.rest_x, self.pin_center,
+                self.mesh_id, self.mesh_lo, self.mesh_hi, self.mesh_verts, self.mesh_tris, self.mesh_vofs, self.mesh_fofs,
+                S(self.margin),
+                self.pin, self.rest_x, self.pin_center, m.particle_world, int(n),
             ],
             [state_out.x, state_out.v, state_out.reaction_force, state_out.reaction_torque],
             device=dev,
         )
         acc = getattr(solver, "tool_impulse", None)
         if acc is not None and not _taping():
-            wp.launch(self.kernels.accumulate, n, [state_out.reaction_force, S(dt)], [acc[0]], device=dev)
-            wp.launch(self.kernels.accumulate, n, [state_out.reaction_torque, S(dt)], [acc[1]], device=dev)
+            rows = n * self.world_count
+            wp.launch(self.kernels.accumulate, rows, [state_out.reaction_force, S(dt)], [acc[0]], device=dev)
+            wp.launch(self.kernels.accumulate, rows, [state_out.reaction_torque, S(dt)], [acc[1]], device=dev)
 
     # ----------------------------------------------------------------- queries
     def reaction(self, state) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """``{tool name: (force, torque)}`` the tool exerted on the material in the step that
-        produced ``state`` (N and N m; torque about the tool's position at the step end)."""
+        produced ``state`` (N and N m; torque about the tool's position at the step end).
+        With worlds, one entry per world and tool, keyed ``"w<w>/<name>"`` (``row_names``)."""
         f = state.reaction_force.numpy()
         tq = state.reaction_torque.numpy()
-        return {name: (f[k].astype(np.float64), tq[k].astype(np.float64)) for k, name in enumerate(self.names)}
+        return {name: (f[r].astype(np.float64), tq[r].astype(np.float64)) for r, name in enumerate(self.row_names)}
 
     def pose(self, state) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """``{tool name: (position, quaternion (x, y, z, w))}`` at ``state.time``."""
@@ -713,7 +935,7 @@ class ToolSet:
             p, q = motion.pose(t)
             return np.array(p), np.array(q)
         if isinstance(motion, Keyframes):
-            a, b, w = motion.sample(t)
+            a, b, w = sample_times(self._times_now()[base:base + len(motion.times)], t)
         else:
             a, b, w = 0, 0, 0.0
         p = kp[base + a] * (1 - w) + kp[base + b] * w + self.velocity.numpy()[k] * t
@@ -771,10 +993,11 @@ def allocate_state(model, state, requires_grad: bool):
     if tools is None:
         return
     n, T, dev = tools.count, model.types, model.device
+    rows = n * tools.world_count
     state.tool_pose_p = wp.zeros(2 * n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
     state.tool_pose_q = wp.zeros(2 * n, dtype=tools.quat, device=dev, requires_grad=requires_grad)
-    state.reaction_force = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
-    state.reaction_torque = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+    state.reaction_force = wp.zeros(rows, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+    state.reaction_torque = wp.zeros(rows, dtype=T.vec3, device=dev, requires_grad=requires_grad)
 
 
 # --------------------------------------------------------------------------- selection
@@ -915,7 +1138,8 @@ def usd_author(stage, model, key: str = "warp_esph", plane_size: float = 1.0):
 
 def usd_write_frame(stage, model, state, time_code, key: str = "warp_esph"):
     """Each tool's pose at ``state.time`` (time-sampled translate and orient) and the reaction
-    force and torque of the step that produced ``state`` (time-sampled attributes)."""
+    force and torque of the step that produced ``state`` (time-sampled attributes; with
+    worlds, world 0's: the others are in ``state.reaction_force``)."""
     from pxr import Gf  # noqa: PLC0415
 
     tools = getattr(model, "tools", None)
@@ -951,9 +1175,10 @@ class ReactionLog:
         m = solver.model
         self.tools = m.tools
         self.solver = solver
+        rows = len(self.tools.row_names)
         solver.tool_impulse = (
-            wp.zeros(self.tools.count, dtype=m.types.vec3, device=m.device),
-            wp.zeros(self.tools.count, dtype=m.types.vec3, device=m.device),
+            wp.zeros(rows, dtype=m.types.vec3, device=m.device),
+            wp.zeros(rows, dtype=m.types.vec3, device=m.device),
         )
         self.rows: list[dict] = []
         self._t_last = None
@@ -964,8 +1189,8 @@ class ReactionLog:
         self._t_last = state.time
         for a in self.solver.tool_impulse:
             a.zero_()
-        for k, name in enumerate(self.tools.names):
-            p, q = self.tools.pose_at(k, state.time)
+        for k, name in enumerate(self.tools.row_names):
+            p, q = self.tools.pose_at(k % self.tools.count, state.time)
             f = imp[k] / span if span else np.zeros(3)
             t = ang[k] / span if span else np.zeros(3)
             self.rows.append({

@@ -40,7 +40,7 @@ import types
 import warp as wp
 
 from .._types import type_set
-from . import deformation, isotropic, materials, smoothing
+from . import deformation, isotropic, materials, neighbors, smoothing
 
 
 @functools.cache
@@ -171,6 +171,8 @@ def kernels(scalar) -> types.SimpleNamespace:
     def elastic_forces_adjoint(
         x: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
+        material: wp.array(dtype=wp.int32),
+        elastic_force: wp.array(dtype=wp.int32),
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         volume: wp.array(dtype=scalar),
@@ -185,8 +187,11 @@ def kernels(scalar) -> types.SimpleNamespace:
         """Hand-written adjoint of ``elastic_forces`` for eqs. 10-13 (every material
         ``elastic_force="paper"``): per pair, with ``a = adj f_j - adj f_i``, ``r = F_i^-1 d``
         and ``g = V_i V_j P_i gradW(r)``: ``adj P_i += V_i V_j a gradW^T``,
-        ``adj r = J^T V_i V_j P_i^T a``, ``adj F_i^-1 += adj r d^T``, ``adj d = F_i^-T adj r``."""
+        ``adj r = J^T V_i V_j P_i^T a``, ``adj F_i^-1 += adj r d^T``, ``adj d = F_i^-T adj r``.
+        Particles of the variational force are ``variational_forces_adjoint``'s."""
         i = wp.tid()
+        if elastic_force[material[i]] != 0:
+            return
         xi = x[i]
         bi = body[i]
         P = stress[i]
@@ -216,7 +221,92 @@ def kernels(scalar) -> types.SimpleNamespace:
         adj_stress[i] = adj_stress[i] + aP
         adj_F_inv[i] = adj_F_inv[i] + aFinv
 
-    return types.SimpleNamespace(elastic_forces=elastic_forces, elastic_forces_adjoint=elastic_forces_adjoint)
+    guard_code = neighbors.kernels(scalar).guard_code
+
+    @wp.kernel(enable_backward=False)
+    def variational_forces_adjoint(
+        x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        material: wp.array(dtype=wp.int32),
+        elastic_force: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        volume: wp.array(dtype=scalar),
+        stress: wp.array(dtype=mat33),
+        F: wp.array(dtype=mat33),
+        h: scalar,
+        min_neighbors: int,
+        max_condition: scalar,
+        adj_f: wp.array(dtype=vec3),
+        adj_x: wp.array(dtype=vec3),
+        adj_stress: wp.array(dtype=mat33),
+        adj_F: wp.array(dtype=mat33),
+    ):
+        """Hand-written adjoint of the variational elastic force (``variational_map``,
+        ``variational_pair_force``) as the fused step applies it: the guard evaluated on the
+        moment matrix ``A`` at the step's start (a guarded particle applies no force).
+
+        With ``a_j = adj f_i - adj f_j`` (``g_j = w_j M xb_j`` is added to ``i``, taken from
+        ``j``) and ``M = V P F^T A^-1``: ``adj M = sum_j w_j a_j xb_j^T``;
+        ``adj P = V adj M A^-T F``, ``adj F = V A^-1 adj M^T P``,
+        ``adj A = -A^-T (V F P^T adj M) A^-T``; per pair
+        ``adj xb_j = w_j (M^T a_j + (adj A + adj A^T) xb_j)
+        + 2 w'_j (a_j . M xb_j + xb_j . adj A xb_j) xb_j`` (``w' = dw / d|xb|^2``), scattered
+        to ``j`` and taken from ``i``. Recomputes ``A`` and ``M`` (two passes over the row:
+        ``A`` with ``adj M``, then the scatter) instead of storing them."""
+        i = wp.tid()
+        if elastic_force[material[i]] != 1:
+            return
+        xi = x[i]
+        bi = body[i]
+        ai = adj_f[i]
+        c6 = sm.poly6_coef(h)
+        hh = h * h
+        # One pass: the moment matrix A (as deformation.moment_sums) and adj M, which does
+        # not depend on A. (No generated adjoint here, so loop accumulators may feed the
+        # inverse: docs/method.md, Warp pitfall 1, concerns generated adjoints only.)
+        A = mat33()
+        adj_M = mat33()
+        same = int(0)
+        for k in range(count[i]):
+            j = nbr[i, k]
+            if body[j] == bi:
+                d = x[j] - xi
+                w = sm.w_poly6_c(wp.dot(d, d), h, c6)
+                A += w * wp.outer(d, d)
+                adj_M += w * wp.outer(ai - adj_f[j], d)
+                same += 1
+        if guard_code(A, same, min_neighbors, max_condition) != 0:
+            return
+        Vi = volume[i]
+        P = stress[i]
+        Fi = F[i]
+        Ainv = wp.inverse(A)
+        M = Vi * (P * wp.transpose(Fi) * Ainv)
+        MT = wp.transpose(M)
+        AinvT = wp.transpose(Ainv)
+        adj_stress[i] = adj_stress[i] + Vi * (adj_M * AinvT * Fi)
+        adj_F[i] = adj_F[i] + Vi * (Ainv * wp.transpose(adj_M) * P)
+        adj_A = -(AinvT * (Vi * (Fi * wp.transpose(P) * adj_M)) * AinvT)
+        adj_A_sym = adj_A + wp.transpose(adj_A)
+        gx_i = vec3()
+        for k in range(count[i]):
+            j = nbr[i, k]
+            if body[j] == bi:
+                d = x[j] - xi
+                r2 = wp.dot(d, d)
+                if r2 < hh:
+                    e = hh - r2
+                    w = c6 * e * e * e
+                    dw = scalar(-3.0) * c6 * e * e
+                    a = ai - adj_f[j]
+                    gx = w * (MT * a + adj_A_sym * d) + scalar(2.0) * dw * (wp.dot(a, M * d) + wp.dot(d, adj_A * d)) * d
+                    wp.atomic_add(adj_x, j, gx)
+                    gx_i -= gx
+        wp.atomic_add(adj_x, i, gx_i)
+
+    return types.SimpleNamespace(elastic_forces=elastic_forces, elastic_forces_adjoint=elastic_forces_adjoint,
+                                 variational_forces_adjoint=variational_forces_adjoint)
 
 
 def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True):
@@ -248,8 +338,23 @@ def launch_elastic_forces_adjoint(model, state_in, state_out):
     S = model.scalar
     wp.launch(
         kernels(S).elastic_forces_adjoint, model.particle_count,
-        [state_in.x, model.particle_body, state_out.neighbors, state_out.neighbor_count, model.particle_volume,
-         state_out.stress, state_out.F_inv, S(model.support_radius), state_out.force.grad, state_in.x.grad,
-         state_out.stress.grad, state_out.F_inv.grad],
+        [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force, state_out.neighbors,
+         state_out.neighbor_count, model.particle_volume, state_out.stress, state_out.F_inv, S(model.support_radius),
+         state_out.force.grad, state_in.x.grad, state_out.stress.grad, state_out.F_inv.grad],
+        device=model.device, record_tape=False,
+    )
+
+
+def launch_variational_forces_adjoint(model, state_in, state_out, min_neighbors: int, max_condition: float):
+    """``variational_forces_adjoint``: ``state_out.force.grad`` into the gradients of
+    ``state_in.x``, ``state_out.stress`` and ``state_out.F_flowed`` (the particles of the
+    variational force only; the guard as the fused step evaluates it)."""
+    S = model.scalar
+    wp.launch(
+        kernels(S).variational_forces_adjoint, model.particle_count,
+        [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force, state_out.neighbors,
+         state_out.neighbor_count, model.particle_volume, state_out.stress, state_out.F_flowed, S(model.support_radius),
+         int(min_neighbors), S(max_condition), state_out.force.grad, state_in.x.grad, state_out.stress.grad,
+         state_out.F_flowed.grad],
         device=model.device, record_tape=False,
     )

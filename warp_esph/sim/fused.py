@@ -21,7 +21,9 @@ the same functions for every formula (``plasticity.guarded_flow_step``,
 ``update_deformation`` is ``deformation.update_deformation`` with the neighbourhood
 guard evaluated on the fit's own moment matrix (the neighbour pass then skips it).
 
-Neither has an adjoint: under a tape the solver launches the differentiable kernels.
+Neither has a generated adjoint: under a tape the solver either launches them unrecorded
+and records hand-written adjoints in their place (``Solver.fast_under_tape``), or launches
+the differentiable kernels.
 ``tests/test_physics.py::test_fused_step_matches_the_differentiable_step`` compares
 the two.
 """
@@ -190,11 +192,12 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
     """Plastic flow, stress, ``F^-1`` and every pair force in one launch; with ``sph`` the
     SPH pressure and volume ``scratch.pressure``, ``scratch.sph_volume`` of the neighbour pass.
 
-    With ``tape`` (a recording ``wp.Tape``; every material with the eqs. 10-13 elastic force,
-    the states with gradients) the launch is not recorded; the tape gets, in its place, the
-    adjoints of what the differentiable kernels compute from the same outputs: SPH pressure
-    and viscosity, elastic forces, the constitutive update (Warp's generated adjoint) and the
-    SPH density the neighbour pass summed."""
+    With ``tape`` (a recording ``wp.Tape``, the states with gradients) the launch is not
+    recorded; the tape gets, in its place, the adjoints of what the differentiable kernels
+    compute from the same outputs: SPH pressure and viscosity, elastic forces (eqs. 10-13 and
+    the variational force, each for its own particles), the constitutive update (hand-written
+    for the linear and non-Newtonian models, Warp's generated adjoint for the polynomial ones)
+    and the SPH density the neighbour pass summed."""
     S = model.scalar
     wp.launch(
         kernels(S).constitutive_forces,
@@ -216,7 +219,12 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
         # Reverse order of the differentiable step: density, constitutive, elastic, pressure.
         if sph:
             pressure.launch_pressure_forces_adjoint(model, state_in, state_out)
-        forces.launch_elastic_forces_adjoint(model, state_in, state_out)
+        kinds = set(model.material_elastic_force.numpy().tolist())
+        if 0 in kinds:
+            forces.launch_elastic_forces_adjoint(model, state_in, state_out)
+        if 1 in kinds:
+            forces.launch_variational_forces_adjoint(model, state_in, state_out, scratch.min_neighbors,
+                                                     scratch.max_condition)
         plasticity.launch_constitutive_update_adjoint(model, state_in, state_out, dt, scratch.counters, tape)
         if sph:
             pressure.launch_density_adjoint(model, state_in.x, state_out.neighbors, state_out.neighbor_count,

@@ -204,7 +204,211 @@ def kernels(scalar) -> types.SimpleNamespace:
         stress_out[i] = stress(Fe, mu, mat.lam[m], kind)
         F_inv_out[i] = wp.inverse(Fe)
 
-    return types.SimpleNamespace(constitutive_update=constitutive_update, flow=flow)
+    vec3 = T.vec3
+    fl = funcs(scalar)
+    fo = forces.funcs(scalar)
+    min_sigma = scalar(MIN_SINGULAR_VALUE)
+    j_lo = scalar(VOLUME_PRESERVING_RANGE[0])
+    j_hi = scalar(VOLUME_PRESERVING_RANGE[1])
+
+    @wp.func
+    def skew_coefficient(gi: scalar, gj: scalar, si: scalar, sj: scalar) -> scalar:
+        # (g_i + g_j) / (s_i + s_j), as isotropic.adj_isotropic_map's D2.
+        den = si + sj
+        eps = scalar(1.0e-6)
+        if wp.abs(den) < eps:
+            den = wp.where(den < scalar(0.0), -eps, eps)
+        return (gi + gj) / den
+
+    @wp.func
+    def off_diagonal(C: mat33, d1: vec3, d2: vec3) -> mat33:
+        """The off-diagonal part ``M`` of an isotropic map's adjoint (isotropic.py):
+        ``M_ij = d1 (C_ij + C_ji) / 2 +- d2 (C_ij - C_ji) / 2`` for pairs 01, 02, 12."""
+        M = mat33()
+        sym = scalar(0.5) * (C[0, 1] + C[1, 0])
+        skw = scalar(0.5) * (C[0, 1] - C[1, 0])
+        M[0, 1] = d1[0] * sym + d2[0] * skw
+        M[1, 0] = d1[0] * sym - d2[0] * skw
+        sym = scalar(0.5) * (C[0, 2] + C[2, 0])
+        skw = scalar(0.5) * (C[0, 2] - C[2, 0])
+        M[0, 2] = d1[1] * sym + d2[1] * skw
+        M[2, 0] = d1[1] * sym - d2[1] * skw
+        sym = scalar(0.5) * (C[1, 2] + C[2, 1])
+        skw = scalar(0.5) * (C[1, 2] - C[2, 1])
+        M[1, 2] = d1[2] * sym + d2[2] * skw
+        M[2, 1] = d1[2] * sym - d2[2] * skw
+        return M
+
+    @wp.func
+    def pair_d2(g: vec3, s: vec3) -> vec3:
+        return vec3(skew_coefficient(g[0], g[1], s[0], s[1]), skew_coefficient(g[0], g[2], s[0], s[2]),
+                    skew_coefficient(g[1], g[2], s[1], s[2]))
+
+    @wp.kernel(enable_backward=False)
+    def constitutive_update_adjoint(
+        F_in: wp.array(dtype=mat33),
+        alpha_in: wp.array(dtype=scalar),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        dt: scalar,
+        F_out: wp.array(dtype=mat33),
+        F_inv_out: wp.array(dtype=mat33),
+        adj_F_out: wp.array(dtype=mat33),
+        adj_alpha_out: wp.array(dtype=scalar),
+        adj_stress: wp.array(dtype=mat33),
+        adj_F_inv: wp.array(dtype=mat33),
+        adj_F_in: wp.array(dtype=mat33),
+        adj_alpha_in: wp.array(dtype=scalar),
+        adj_mu: wp.array(dtype=scalar),
+        adj_lam: wp.array(dtype=scalar),
+        adj_yield: wp.array(dtype=scalar),
+        adj_rate: wp.array(dtype=scalar),
+        adj_hardening: wp.array(dtype=scalar),
+    ):
+        """Hand-written adjoint of ``constitutive_update`` for the SVD-based models (linear,
+        non-Newtonian): one SVD of ``F`` where Warp's generated adjoint replays and
+        differentiates four (``flow``'s and ``stress``'s ``singular_values`` and
+        ``isotropic_map``), as the fused forward reuses one.
+
+        ``F = U diag(s) V^T``; plastic flow ``F_e = U diag(g) V^T`` (``g = c s^p``,
+        ``flow_step``); ``P = U diag(f(g)) V^T`` (eq. 9, ``principal_stress``); ``F^-1``.
+        Backward: ``adj F_e = adj F_out - F^-T adj F^-1 F^-T + U (diag(J_f^T diag(C_P)) + M_P) V^T``
+        with ``C_P = U^T adj P V`` and ``M_P`` the off-diagonal part with the divided
+        differences of ``f`` (isotropic.py); then ``C = U^T adj F_e V``, ``adj g = diag(C)``
+        through ``flow_step`` by the chain rule below to ``adj s`` and the parameters, and
+        ``adj F = U (diag(adj s) + M) V^T`` with ``M`` from ``g``'s divided differences."""
+        i = wp.tid()
+        m = material[i]
+        kind = mat.model[m]
+        mu = mat.mu[m]
+        lam = mat.lam[m]
+        Y = mat.yield_stress[m]
+        nu = mat.flow_rate[m]
+        K = mat.hardening[m]
+        F = F_in[i]
+        a0 = alpha_in[i]
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        Ut = wp.transpose(U)
+
+        # Forward, as flow_step (only where it flows do g, c, p differ from s, 1, 1).
+        flowed = int(0)
+        g = s
+        c = scalar(1.0)
+        p = scalar(1.0)
+        gamma = scalar(0.0)
+        in_range = int(0)
+        s_norm = scalar(0.0)
+        y = scalar(0.0)
+        nn = wp.where(kind == 1, 1, 0)
+        mean = (s[0] + s[1] + s[2]) / scalar(3.0)
+        dev = s - vec3(mean, mean, mean)
+        if nu > scalar(0.0) and wp.min(wp.min(s[0], s[1]), s[2]) >= min_sigma:
+            y = wp.max(Y + K * a0, scalar(0.0))
+            s_norm2 = scalar(4.0) * mu * mu * wp.dot(dev, dev)
+            if s_norm2 > y * y:
+                flowed = 1
+                s_norm = wp.sqrt(s_norm2)
+                rate = nu * dt * (s_norm - y) / s_norm
+                if nn != 0:
+                    rate = rate / s_norm
+                gamma = wp.min(rate, scalar(1.0))
+                J = s[0] * s[1] * s[2]
+                if J >= j_lo and J <= j_hi:
+                    c = wp.pow(J, gamma / scalar(3.0))
+                    in_range = 1
+                p = scalar(1.0) - gamma
+                g = c * vec3(wp.pow(s[0], p), wp.pow(s[1], p), wp.pow(s[2], p))
+
+        # Stress P = U diag(f(g)) V^T and F^-1 into adj F_e (in the frame: C = U^T adj V).
+        Finv = F_inv_out[i]
+        FinvT = wp.transpose(Finv)
+        G = adj_F_out[i] - FinvT * adj_F_inv[i] * FinvT
+        C = Ut * G * V
+        CP = Ut * adj_stress[i] * V
+        af = vec3(CP[0, 0], CP[1, 1], CP[2, 2])
+        tr = g[0] + g[1] + g[2] - scalar(3.0)
+        one = vec3(scalar(1.0), scalar(1.0), scalar(1.0))
+        f = fo.principal_stress(g, mu, lam)
+        base = scalar(2.0) * mu * (g - one) + lam * tr * one
+        afg = wp.dot(af, g)
+        ag_P = wp.cw_mul(af, base) + scalar(2.0) * mu * wp.cw_mul(af, g) + lam * afg * one
+        a_mu = scalar(2.0) * wp.dot(af, wp.cw_mul(g, g - one))
+        a_lam = afg * tr
+        C = C + wp.diag(ag_P) + off_diagonal(CP, fo.principal_stress_differences(g, mu, lam), pair_d2(f, g))
+
+        a_alpha = adj_alpha_out[i]
+        ag = vec3(C[0, 0], C[1, 1], C[2, 2])
+        a_s = ag
+        M = mat33()
+        a_Y = scalar(0.0)
+        a_nu = scalar(0.0)
+        a_K = scalar(0.0)
+        if flowed != 0:
+            d1 = vec3(fl.power_difference(s[0], s[1], p, c), fl.power_difference(s[0], s[2], p, c),
+                      fl.power_difference(s[1], s[2], p, c))
+            M = off_diagonal(C, d1, pair_d2(g, s))
+            # g_k = c s_k^p
+            a_c = wp.dot(ag, g) / c
+            ls = vec3(wp.log(s[0]), wp.log(s[1]), wp.log(s[2]))
+            a_p = wp.dot(wp.cw_mul(ag, g), ls)
+            a_s = p * wp.cw_div(wp.cw_mul(ag, g), s)
+            a_gamma = -a_p
+            if in_range != 0:
+                # c = J^(gamma / 3): ln c = gamma / 3 (ln s_0 + ln s_1 + ln s_2)
+                a_gamma += a_c * c * (ls[0] + ls[1] + ls[2]) / scalar(3.0)
+                a_s += (a_c * c * gamma / scalar(3.0)) * wp.cw_div(one, s)
+            # alpha_new = alpha + gamma |ld|, ld = ls - mean(ls)
+            lm = (ls[0] + ls[1] + ls[2]) / scalar(3.0)
+            ld = ls - vec3(lm, lm, lm)
+            nld = wp.sqrt(wp.dot(ld, ld))
+            a_gamma += a_alpha * nld
+            if nld > scalar(0.0):
+                a_ld = (a_alpha * gamma / nld) * ld
+                a_ldm = (a_ld[0] + a_ld[1] + a_ld[2]) / scalar(3.0)
+                a_s += wp.cw_div(a_ld - vec3(a_ldm, a_ldm, a_ldm), s)
+            # gamma = min(rate, 1) (the gradient goes to rate only below the clamp, as Warp's min)
+            rate = nu * dt * (s_norm - y) / s_norm
+            if nn != 0:
+                rate = rate / s_norm
+            if rate < scalar(1.0):
+                a_rate = a_gamma
+                a_sn = scalar(0.0)
+                a_y = scalar(0.0)
+                if nn != 0:
+                    a_nu = a_rate * dt * (s_norm - y) / (s_norm * s_norm)
+                    a_y = -a_rate * nu * dt / (s_norm * s_norm)
+                    a_sn = a_rate * nu * dt * (scalar(2.0) * y - s_norm) / (s_norm * s_norm * s_norm)
+                else:
+                    a_nu = a_rate * dt * (s_norm - y) / s_norm
+                    a_y = -a_rate * nu * dt / s_norm
+                    a_sn = a_rate * nu * dt * y / (s_norm * s_norm)
+                # y = max(Y + K alpha, 0)
+                if Y + K * a0 > scalar(0.0):
+                    a_Y = a_y
+                    a_K = a_y * a0
+                    a_alpha += a_y * K
+                # s_norm = sqrt(4 mu^2 |dev|^2)
+                a_n2 = a_sn / (scalar(2.0) * s_norm)
+                a_mu += a_n2 * scalar(8.0) * mu * wp.dot(dev, dev)
+                a_dev = (a_n2 * scalar(8.0) * mu * mu) * dev
+                a_devm = (a_dev[0] + a_dev[1] + a_dev[2]) / scalar(3.0)
+                a_s += a_dev - vec3(a_devm, a_devm, a_devm)
+            adj_F_in[i] = adj_F_in[i] + U * (wp.diag(a_s) + M) * wp.transpose(V)
+        else:
+            # F_e = F: adj F = adj F_e = U C V^T.
+            adj_F_in[i] = adj_F_in[i] + U * C * wp.transpose(V)
+        adj_alpha_in[i] = adj_alpha_in[i] + a_alpha
+        wp.atomic_add(adj_mu, m, a_mu)
+        wp.atomic_add(adj_lam, m, a_lam)
+        wp.atomic_add(adj_yield, m, a_Y)
+        wp.atomic_add(adj_rate, m, a_nu)
+        wp.atomic_add(adj_hardening, m, a_K)
+
+    return types.SimpleNamespace(constitutive_update=constitutive_update, flow=flow,
+                                 constitutive_update_adjoint=constitutive_update_adjoint)
 
 
 def launch_constitutive_update(model, state_in, state_out, dt, counters):
@@ -218,11 +422,23 @@ def launch_constitutive_update(model, state_in, state_out, dt, counters):
     )
 
 
-def launch_constitutive_update_adjoint(model, state_in, state_out, dt, counters, tape):
-    """Warp's generated adjoint of ``constitutive_update``, launched by hand (for the fused
-    step under a tape, which writes the same outputs in its own kernel): the gradients of
-    ``state_out.F_flowed, alpha, stress, F_inv`` into those of ``state_in.F, alpha`` and the
-    material parameters."""
+def launch_constitutive_update_adjoint(model, state_in, state_out, dt, counters, tape, hand: bool = True):
+    """The adjoint of ``constitutive_update`` (for the fused step under a tape, which writes
+    the same outputs in its own kernel): the gradients of ``state_out.F_flowed, alpha,
+    stress, F_inv`` into those of ``state_in.F, alpha`` and the material parameters. The
+    hand-written ``constitutive_update_adjoint`` when every material is linear or
+    non-Newtonian (and ``hand``), else Warp's generated adjoint, launched by hand."""
+    if hand and model.material_model.numpy().max() <= 1:
+        S = model.scalar
+        wp.launch(
+            kernels(S).constitutive_update_adjoint, model.particle_count,
+            [state_in.F, state_in.alpha, model.particle_material, model.material_arrays(), S(dt), state_out.F_flowed,
+             state_out.F_inv, state_out.F_flowed.grad, state_out.alpha.grad, state_out.stress.grad, state_out.F_inv.grad,
+             state_in.F.grad, state_in.alpha.grad, model.mu.grad, model.lam.grad, model.yield_stress.grad,
+             model.flow_rate.grad, model.hardening.grad],
+            device=model.device, record_tape=False,
+        )
+        return
     mats = model.material_arrays()
     inputs = [state_in.F, state_in.alpha, model.particle_material, mats, model.scalar(dt)]
     outputs = [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, counters]

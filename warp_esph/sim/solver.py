@@ -115,11 +115,12 @@ class Solver:
     def fast_under_tape(self) -> bool:
         """Whether a taped step runs the fused forward kernels (not recorded) and records the
         hand-written adjoints (and the constitutive update's generated one) in their place:
-        with ``fused`` and ``hand_adjoints``, a ``requires_grad`` model, no comparison model and
-        every material with the eqs. 10-13 elastic force. Otherwise the differentiable kernels run."""
+        with ``fused`` and ``hand_adjoints``, a ``requires_grad`` model and no comparison model
+        (either elastic force: ``forces.elastic_forces_adjoint`` for eqs. 10-13,
+        ``forces.variational_forces_adjoint`` for the variational one). Otherwise the
+        differentiable kernels run."""
         m = self.model
-        return (self.fused and self.hand_adjoints and m.requires_grad and not self._cmp
-                and not m.material_elastic_force.numpy().any())
+        return self.fused and self.hand_adjoints and m.requires_grad and not self._cmp
 
     def _fast_under_tape(self, state_in, state_out) -> bool:
         return (self.fast_under_tape() and state_in.x.grad is not None and state_out.x.grad is not None
