@@ -341,7 +341,9 @@ def _cmd_run(args) -> int:
     finally:
         writer.close()
         if log is not None and log.rows:
-            tool_files = log.write(os.path.splitext(writer.path)[0])
+            # The whole output name, as for the checkpoint and preview: a.usdc and a.usda in one
+            # folder must not share a force log.
+            tool_files = log.write(writer.path)
     guards = ", ".join(f"{k}={v}" for k, v in solver.guard_counts().items())
     per_frame = 1e3 * writer.save_seconds / max(writer.frames_written, 1)
     print(f"wrote {writer.path}: {writer.frames_written} frames (0..{writer.last_frame}), "
