@@ -11,3 +11,11 @@ import warp as wp  # noqa: E402
 
 wp.config.log_level = wp.LOG_WARNING
 wp.init()
+
+# Under CI=true the property tests draw the same examples every run (a failure there is
+# reproducible from the log); locally they explore new ones and keep failures in the database.
+from hypothesis import settings  # noqa: E402
+
+settings.register_profile("ci", derandomize=True, print_blob=True)
+if os.environ.get("CI", "").lower() == "true":
+    settings.load_profile("ci")

@@ -125,8 +125,8 @@ def test_run_with_surface_export_and_preview(tmp_path, capsys):
                  "--surface", "--export", "vtu", "--preview"]) == 0
     out = capsys.readouterr().out
     assert "surfaces:" in out and "exported 4 files" in out and "preview:" in out
-    assert sorted(os.listdir(tmp_path / "dd_vtu")) == ["frame_00000.vtu", "frame_00001.vtu", "frame_00002.vtu", "frames.pvd"]
-    assert (tmp_path / "dd.png").stat().st_size > 1000
+    assert sorted(os.listdir(tmp_path / "dd.usdc_vtu")) == ["frame_00000.vtu", "frame_00001.vtu", "frame_00002.vtu", "frames.pvd"]
+    assert (tmp_path / "dd.usdc.png").stat().st_size > 1000
     stage = _open(path)
     assert UsdGeom.Mesh(stage.GetPrimAtPath("/World/Surfaces/dough")).GetPointsAttr().GetTimeSamples() == [0.0, 1.0, 2.0]
     # The export command on its own, ply, some frames.
@@ -155,3 +155,23 @@ def test_scattered_particles_get_an_empty_surface_and_one_warning(tmp_path):
     stage = _open(path)
     mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Surfaces/c"))
     assert len(mesh.GetPointsAttr().Get(1.0)) == 0
+
+
+def test_two_outputs_with_one_stem_keep_their_own_pictures_and_frames(tmp_path, capsys):
+    """-o a.usdc and -o a.usda in one folder: the preview, the exported frames and the
+    checkpoint are named from the whole output name, so neither run overwrites the other's."""
+    runs = {"a.usdc": "0.3", "a.usda": "0.35"}  # two sizes: the files differ in what they hold
+    for name, scale in runs.items():
+        assert main(["run", "dough_drop", "--scale", scale, "--frames", "1", "--no-progress", "-o", str(tmp_path / name),
+                     "--export", "ply", "--preview", "--checkpoint-every", "1"]) == 0
+    capsys.readouterr()
+    for name in runs:
+        assert (tmp_path / f"{name}.png").stat().st_size > 1000 and (tmp_path / f"{name}.checkpoint.npz").exists()
+        frames = sorted(os.listdir(tmp_path / f"{name}_ply"))
+        assert frames == ["frame_00000.ply", "frame_00001.ply"]
+    counts = {name: len(meshio.read(tmp_path / f"{name}_ply" / "frame_00001.ply").points) for name in runs}
+    assert counts["a.usdc"] < counts["a.usda"], counts  # each folder holds its own run's particles
+    assert not (tmp_path / "a.png").exists() and not (tmp_path / "a_ply").exists()
+    # The export and render commands' defaults follow the same rule.
+    assert main(["export", str(tmp_path / "a.usda"), "--format", "vtu", "--frames", "1"]) == 0
+    assert os.listdir(tmp_path / "a.usda_vtu") and not (tmp_path / "a.usdc_vtu").exists()

@@ -95,4 +95,4 @@ def test_cli_lists_and_runs_a_figure(tmp_path, capsys):
     assert main(["run", "fig5_hyperelastic_boxes", "--scale", "0.5", "--frames", "1", "--no-progress", "-o", str(path),
                  "--preview"]) == 0
     out = capsys.readouterr().out
-    assert "dt = 0.0002 s" in out and (tmp_path / "fig5.png").exists() and "preview:" in out
+    assert "dt = 0.0002 s" in out and (tmp_path / "fig5.usdc.png").exists() and "preview:" in out

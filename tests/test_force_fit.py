@@ -126,7 +126,7 @@ def test_cli_fits_modulus_and_yield_stress_to_a_compression_force_curve(tmp_path
     guess.write_text(SCENE.format(mu=10000.0, yield_stress=2000.0))
     run = tmp_path / "press.usdc"
     assert main(["run", str(truth), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
-    csv = tmp_path / "press_tools.csv"
+    csv = tmp_path / "press.usdc_tools.csv"
     assert csv.exists()
     out = tmp_path / "fit"
     capsys.readouterr()

@@ -334,6 +334,52 @@ def test_bad_files_are_rejected(tmp_path):
     rejects((1, 2, 3), "source with 3 items", "(points, triangles)")
 
 
+def test_headers_that_declare_more_than_the_file_holds_are_refused_at_once(tmp_path):
+    """meshio's PLY reader walked 400 million declared faces past the end of a 148-byte
+    body (longer than 10 minutes), and its PLY and OFF readers loop for ever on a header
+    cut short; the header is now checked against the file's size first."""
+    import time
+
+    pts, tris = icosphere(0.3, 1)
+    for ext in (".ply", ".off"):
+        meshes.write_mesh(tmp_path / f"good{ext}", pts, tris)
+    good_ply = (tmp_path / "good.ply").read_bytes()
+    good_off = (tmp_path / "good.off").read_bytes()
+    cases = {
+        "faces.ply": (good_ply.replace(b"element face 80", b"element face 400000000"), "declares 42 vertex, 400000000 face"),
+        "verts.ply": (good_ply.replace(b"element vertex 42", b"element vertex 4200"), "declares 4200 vertex, 80 face"),
+        "cut.ply": (good_ply[: good_ply.index(b"end_header")], "no 'ply' first line and 'end_header' line"),
+        "cut.off": (b"OFF\n", "it must start with 'OFF' and a line '<vertices> <faces> <edges>'"),
+        "big.off": (good_off.replace(b"42 80 0", b"42 80000000 0"), "declares 42 vertices and 80000000 faces"),
+    }
+    for name, (data, needle) in cases.items():
+        (tmp_path / name).write_bytes(data)
+        start = time.perf_counter()
+        with pytest.raises(ValueError) as info:
+            meshes.load_mesh(tmp_path / name)
+        assert time.perf_counter() - start < 5.0
+        assert str(info.value).startswith(f"mesh {str(tmp_path / name)!r} is not allowed: ") and needle in str(info.value)
+    # Finite but huge coordinates (a damaged binary PLY) once ended in an OverflowError.
+    meshes.write_mesh(tmp_path / "huge.ply", pts * 1e200, tris)
+    with pytest.raises(ValueError, match=r"huge\.ply' is not allowed: its points span 6e\+199 .* must be at most 1e\+30"):
+        meshes.load_mesh(tmp_path / "huge.ply")
+    # The checks let every good file through.
+    for ext in (".ply", ".off"):
+        assert len(meshes.load_mesh(tmp_path / f"good{ext}")[1]) == len(tris)
+
+
+def test_other_formats_are_read_in_a_child_with_a_time_limit(tmp_path, monkeypatch):
+    """Formats whose meshio reader was not checked run in a child process: a reader that
+    does not finish within the limit is stopped and the file refused by name."""
+    pts, tris = icosphere(0.3, 1)
+    meshes.write_mesh(tmp_path / "ball.vtk", pts, tris)
+    p, t = meshes.load_mesh(tmp_path / "ball.vtk")
+    assert meshes.signed_volume(p, t) == pytest.approx(meshes.signed_volume(pts, tris), rel=1e-6)
+    monkeypatch.setattr(meshes, "_CHILD_SECONDS", 0.01)  # no Python starts in 10 ms
+    with pytest.raises(ValueError, match=r"ball\.vtk' is not allowed: meshio did not finish reading it within 0\.0[0-9]* s"):
+        meshes.load_mesh(tmp_path / "ball.vtk")
+
+
 @settings(max_examples=40, deadline=None)
 @given(
     ext=st.sampled_from([".obj", ".stl", ".ply", ".off", ".vtk", ".vtu", ".msh", ".usda", ".usdc", ".usd"]),

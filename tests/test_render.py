@@ -202,7 +202,7 @@ def test_render_command(tmp_path, capsys):
     assert "out.gif" in out and "2 frames" in out and "s/frame" in out
     assert Image.open(tmp_path / "out.gif").n_frames == 2
     assert main(["render", str(path), "--width", "96", "--height", "72"]) == 0  # default: <file>.png, last frame
-    assert (tmp_path / "cli.png").exists()
+    assert (tmp_path / "cli.usdc.png").exists()
     assert main(["render", str(path), "-o", str(tmp_path / "o.png"), "--frames", "7"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("warp-esph: error: ") and "frame 7" in err and len(err.strip().splitlines()) == 1

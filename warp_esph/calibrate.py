@@ -37,8 +37,9 @@ LBFGS_MAX_VALUES = 4
 def add_calibration_arguments(parser):
     """Declare the calibration options of ``warp-esph fit`` on ``parser``."""
     g = parser.add_argument_group("calibration")
-    g.add_argument("--optimizer", choices=("lbfgs", "adam"),
-                   help=f"lbfgs (default for <= {LBFGS_MAX_VALUES} fitted values) or adam (default above; with --lr, --clip)")
+    g.add_argument("--optimizer", choices=("lbfgs", "adam", "gauss-newton"),
+                   help=f"lbfgs (default for <= {LBFGS_MAX_VALUES} fitted values), adam (default above; with --lr, --clip) "
+                        "or gauss-newton (Levenberg-Marquardt from forward runs: least-squares targets, few values)")
     g.add_argument("--output-dir", metavar="DIR",
                    help="folder for fit.json, history.csv, loss.png, params.png, fitted.usdc (default: fit_<scene>/ here)")
     g.add_argument("--target-body", metavar="BODY",
@@ -70,7 +71,7 @@ def add_calibration_arguments(parser):
                    help="stop as stalled after N evaluations without a lower loss (default 20)")
     g.add_argument("--noise", type=float, metavar="SIGMA",
                    help="observation noise in m for the diagnostics (default: the residual RMS, at least 1%% of the spacing)")
-    g.add_argument("--no-diagnostics", action="store_true", help="skip the diagnostics (2 P + 1 extra runs for P values)")
+    g.add_argument("--no-diagnostics", action="store_true", help="skip the diagnostics (4 P + 1 extra runs for P values, the range check included)")
     g.add_argument("--experiments", metavar="EXPERIMENTS.json",
                    help="a joint fit: more experiments (each its own scene and target) sharing the fitted material "
                         "with SCENE; a JSON list of objects with keys " + ", ".join(EXPERIMENT_KEYS))

@@ -77,12 +77,13 @@ def _build_parser() -> _Parser:
     run.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="precision (default float32)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--preview", action="store_true",
-                     help="at the end, render the last frame to <output>.png beside the output (software renderer; "
+                     help="at the end, render the last frame to <output>.png beside the output (the whole name: a.usdc.png; software renderer; "
                           "with --surface it draws the surfaces)")
     run.add_argument("--surface", action="store_true",
                      help="also write a triangle surface per body and frame (UsdGeom.Mesh under /World/Surfaces)")
     run.add_argument("--export", choices=EXPORT_CHOICES, metavar="FORMAT",
-                     help="at the end, also write every frame as vtu or ply files (meshio) into <output>_<FORMAT>/")
+                     help="at the end, also write every frame as vtu or ply files (meshio) into <output>_<FORMAT>/ "
+                          "(the whole output name: a.usdc_vtu/)")
     run.add_argument("--checkpoint-every", type=int, metavar="N",
                      help="save the full state every N frames to <output>.checkpoint.npz (atomically)")
     run.add_argument("--resume", metavar="CHECKPOINT",
@@ -99,7 +100,7 @@ def _build_parser() -> _Parser:
     ren.add_argument("usd", metavar="OUT.usd", help="a USD file written by 'warp-esph run'")
     ren.add_argument("-o", "--output", metavar="DIR_OR_FILE",
                      help="a folder (PNG per frame), a .png (one frame; several side by side), a .gif, or an .mp4 "
-                          "(needs ffmpeg); default: <OUT>.png, the last frame")
+                          "(needs ffmpeg); default: <OUT>.png (a.usdc.png), the last frame")
     ren.add_argument("--frames", metavar="SELECTION",
                      help="'all', 'first', 'last', N, -N, A:B, A:B:STEP or a comma list (default: all; last for a .png)")
     ren.add_argument("--color", choices=COLOR_CHOICES, default="body",
@@ -127,7 +128,7 @@ def _build_parser() -> _Parser:
                                      "with point data velocity, alpha, singular_values, body_id, material_id.")
     exp.add_argument("usd", metavar="OUT.usd", help="a USD file written by 'warp-esph run'")
     exp.add_argument("--format", choices=EXPORT_CHOICES, default="vtu", help="file format (default vtu)")
-    exp.add_argument("-o", "--output", metavar="DIR", help="output folder (default: <OUT>_<format>/ beside the file)")
+    exp.add_argument("-o", "--output", metavar="DIR", help="output folder (default: <OUT>_<format>/ beside the file, e.g. a.usdc_vtu/)")
     exp.add_argument("--frames", metavar="SELECTION", help="frames, as for render (default: all)")
     _add_sweep_parser(sub)
     return p
@@ -340,7 +341,9 @@ def _cmd_run(args) -> int:
     finally:
         writer.close()
         if log is not None and log.rows:
-            tool_files = log.write(os.path.splitext(writer.path)[0])
+            # The whole output name, as for the checkpoint and preview: a.usdc and a.usda in one
+            # folder must not share a force log.
+            tool_files = log.write(writer.path)
     guards = ", ".join(f"{k}={v}" for k, v in solver.guard_counts().items())
     per_frame = 1e3 * writer.save_seconds / max(writer.frames_written, 1)
     print(f"wrote {writer.path}: {writer.frames_written} frames (0..{writer.last_frame}), "
@@ -353,13 +356,15 @@ def _cmd_run(args) -> int:
     if args.export:
         from .export import export_frames  # noqa: PLC0415
 
-        folder = f"{os.path.splitext(writer.path)[0]}_{args.export}"
+        # The whole output name, as the checkpoint's: a.usdc and a.usda in one folder must
+        # not share (and overwrite) one folder or picture.
+        folder = f"{writer.path}_{args.export}"
         files = export_frames(writer.path, args.export, folder)
         print(f"exported {len(files)} files to {folder}")
     if args.preview:
         from .render import render_usd  # noqa: PLC0415
 
-        result = render_usd(writer.path, os.path.splitext(writer.path)[0] + ".png", frames="last")
+        result = render_usd(writer.path, writer.path + ".png", frames="last")
         shown = "surfaces" if result.surface_bodies else "particles"
         print(f"preview: {result.output} ({shown}, {result.seconds:.1f} s)")
     return 0
@@ -495,7 +500,7 @@ def _cmd_render(args) -> int:
 def _cmd_export(args) -> int:
     from .export import export_frames  # noqa: PLC0415
 
-    folder = args.output or f"{os.path.splitext(os.path.abspath(args.usd))[0]}_{args.format}"
+    folder = args.output or f"{os.path.abspath(args.usd)}_{args.format}"
     _arm(args)
     files = export_frames(args.usd, args.format, folder, frames=args.frames)
     frames = len(files) - (1 if args.format == "vtu" else 0)

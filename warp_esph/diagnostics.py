@@ -28,6 +28,18 @@ stresses that drive the flow, where the flow rule's ``(|s| - Y) / |s|`` hardly c
 with ``Y``), or when it is correlated with another beyond ``max_correlation`` (the data
 fix a combination of the two, e.g. yield stress and flow rate along a valley).
 
+The Fisher matrix describes the loss near the optimum only. A **range check** therefore
+also moves each log-space parameter alone by a factor ``RANGE_FACTOR`` (1.5) both ways
+(``2 P`` forward runs): if the chi-square rises by less than 1 on either side, the data
+cannot tell these values apart and the parameter is reported as not determined, whatever
+the local curvature says (a silhouette fit stopped at 1.88 x the true yield stress, where
+the loss is curved but 0.15 % below its value at 1.5 x less).
+
+Silhouette residuals are pixels, and the pixels within a particle's splat rise and fall
+together: each silhouette loss counts one observation per splat area ``pi (2 s)^2``
+(``SilhouetteLoss.correlated_pixels``), i.e. its pixel noise is multiplied by the square
+root of that area.
+
 Noise: ``noise`` (m) for geometric losses; a loss with its own ``noise`` attribute (the
 silhouette loss, in occupancy units) uses that. With ``noise=None`` the residual RMS at
 the optimum is used, floored at 1 % of the particle spacing (a synthetic target fits to
@@ -85,6 +97,10 @@ class Diagnostics:
     evaluations: int
     step: float
     method: str = "gauss-newton"
+    #: Per value: the chi-square's change when it alone is divided and multiplied by
+    #: ``RANGE_FACTOR`` (NaN: not checked, a linear-space value or at a bound).
+    range_rise: np.ndarray | None = None
+    notes: list[str] = dataclasses.field(default_factory=list)
 
     def summary(self) -> str:
         """A table of values, standard errors, sensitivities and correlations, then warnings."""
@@ -106,6 +122,8 @@ class Diagnostics:
             terms = " ".join(f"{c:+.3f}*{'log ' if s == 'log' else ''}{label}"
                              for c, s, label in zip(self.weakest, self.spaces, self.labels))
             lines.append(f"  least determined direction: {terms} (std. error {self.weakest_error:.3g})")
+        for note in self.notes:
+            lines.append(f"  ({note})")
         for message in self.warnings:
             lines.append(f"  WARNING: {message}")
         if not self.warnings:
@@ -128,6 +146,8 @@ class Diagnostics:
             "weakest": fl(self.weakest), "weakest_error": self.weakest_error if math.isfinite(self.weakest_error) else None,
             "warnings": list(self.warnings), "undetermined": list(self.undetermined),
             "evaluations": self.evaluations, "step": self.step, "method": self.method,
+            "range_rise": None if self.range_rise is None else [fl(r) for r in np.reshape(self.range_rise, (n, 2))],
+            "notes": list(self.notes),
         }
 
 
@@ -138,13 +158,25 @@ def leaf_terms(loss: Loss) -> list[Loss]:
     return [loss]
 
 
-def chi_square_loss(loss: Loss, noise: float) -> Loss:
+def leaf_noise(leaf: Loss, noise: float, positions=None) -> float:
+    """The noise of one residual of ``leaf``: its own ``noise`` attribute when set, else
+    ``noise``; for a leaf whose residuals are correlated in groups (silhouette pixels within
+    a splat: ``correlated_pixels``) times the square root of the group size, so that a group
+    counts as one observation."""
+    sigma = getattr(leaf, "noise", None) or noise
+    if positions is not None and hasattr(leaf, "correlated_pixels"):
+        sigma *= math.sqrt(leaf.correlated_pixels(positions))
+    return sigma
+
+
+def chi_square_loss(loss: Loss, noise: float, positions=None) -> Loss:
     """``sum_leaves residual_scale / sigma^2 * leaf``: the chi-square of ``loss``'s residuals
-    (``sigma``: the leaf's own ``noise`` attribute when set, else ``noise``). The leaves
-    must have been evaluated once (their residual counts are known then)."""
+    (``sigma``: ``leaf_noise``; ``positions``, numpy ``{step: (n, 3)}``, size the groups of
+    correlated residuals). The leaves must have been evaluated once (their residual counts
+    are known then)."""
     terms = []
     for leaf in leaf_terms(loss):
-        sigma = getattr(leaf, "noise", None) or noise
+        sigma = leaf_noise(leaf, noise, positions)
         terms.append((leaf.residual_scale() / sigma**2, leaf))
     return SumLoss(terms)
 
@@ -165,7 +197,7 @@ def _has_residuals(prob) -> bool:
     return all(hasattr(leaf, "residuals") for run in prob.runs for leaf in leaf_terms(run.loss))
 
 
-def _scaled_residuals(prob, z, sigmas) -> np.ndarray:
+def _scaled_residuals(prob, z, sigmas, leaf_sigmas) -> np.ndarray:
     """Every residual of every experiment divided by its noise, at ``z`` (forward passes)."""
     prob.apply(z)
     out = []
@@ -173,8 +205,22 @@ def _scaled_residuals(prob, z, sigmas) -> np.ndarray:
         run.rollout.forward(**run.initial)
         positions = run.rollout.observations(numpy=True)
         for leaf in leaf_terms(run.loss):
-            out.append(leaf.residuals(positions) / (getattr(leaf, "noise", None) or sigma))
+            out.append(leaf.residuals(positions) / leaf_sigmas.get(id(leaf), sigma))
     return np.concatenate(out)
+
+
+#: The range check: each log-space parameter alone is moved by this factor both ways.
+RANGE_FACTOR = 1.5
+
+
+def _chi_square_at(prob, z, chi2s) -> float:
+    """The chi-square of every experiment at ``z`` (forward passes only)."""
+    prob.apply(z)
+    total = 0.0
+    for run, chi2 in zip(prob.runs, chi2s):
+        run.rollout.forward(**run.initial)
+        total += chi2.value(run.rollout.observations())
+    return total
 
 
 def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, method: str = "auto",
@@ -196,10 +242,11 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
     elif method == "gauss-newton" and not _has_residuals(prob):
         raise ValueError("method = 'gauss-newton' is not allowed: a loss of the fit has no residual vector; use 'hessian'")
     prob.apply(z)
-    sigmas, rms, chi2s, observations = [], [], [], 0
+    sigmas, rms, chi2s, observations, leaf_sigmas, grouped = [], [], [], 0, {}, 0
     for run in prob.runs:
         run.rollout.forward(**run.initial)
         positions = run.rollout.observations()
+        arrays = run.rollout.observations(numpy=True)
         for leaf in leaf_terms(run.loss):
             leaf.value(positions)  # records the residual counts
         s, n, spacing = _residuals(run)
@@ -210,8 +257,14 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
         # A run observed only through losses with their own noise (silhouettes) reports that.
         sigmas.append(sigma if n or not own else own[0])
         sigma_geometric = sigma
-        observations += sum(leaf.observation_count() for leaf in leaf_terms(run.loss))
-        chi2s.append(chi_square_loss(run.loss, sigma_geometric))
+        for leaf in leaf_terms(run.loss):
+            leaf_sigmas[id(leaf)] = leaf_noise(leaf, sigma_geometric, arrays)
+            count = leaf.observation_count()
+            if hasattr(leaf, "correlated_pixels"):
+                count = count / leaf.correlated_pixels(arrays)
+                grouped += 1
+            observations += count
+        chi2s.append(chi_square_loss(run.loss, sigma_geometric, arrays))
     P = len(z)
     lo, hi = prob.z_bounds()
     # Central where the bounds allow, one-sided at a bound.
@@ -222,12 +275,12 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
             for leaf in leaf_terms(run.loss):
                 if hasattr(leaf, "reset_residuals"):
                     leaf.reset_residuals()
-        r0 = _scaled_residuals(prob, z, sigmas)
+        r0 = _scaled_residuals(prob, z, sigmas, leaf_sigmas)
         J = np.zeros((len(r0), P))
         for j in range(P):
             zp, zm = z.copy(), z.copy()
             zp[j], zm[j] = ups[j], downs[j]
-            J[:, j] = (_scaled_residuals(prob, zp, sigmas) - _scaled_residuals(prob, zm, sigmas)) / (ups[j] - downs[j])
+            J[:, j] = (_scaled_residuals(prob, zp, sigmas, leaf_sigmas) - _scaled_residuals(prob, zm, sigmas, leaf_sigmas)) / (ups[j] - downs[j])
         fisher = J.T @ J
         gradient = 2.0 * J.T @ r0
         evaluations = 2 * P + 1
@@ -244,15 +297,33 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
         fisher = 0.25 * (H + H.T)
         gradient = gsum / P
         evaluations = 2 * P
+    # The range check: the curvature at z describes the loss near z only. A loss that is
+    # flat over a wide range but curved at the optimum (a silhouette fit that stopped at
+    # 1.88 x the true yield stress, its loss 0.15 % below that at 1.5 x less) looks
+    # determined there; moving each value by a factor RANGE_FACTOR both ways shows it.
+    chi0 = _chi_square_at(prob, z, chi2s)
+    log_space = [prob.spaces[name] == "log" for name in prob.params for _ in range(prob.k)]
+    rises = np.full((P, 2), np.nan)
+    for j in range(P):
+        if not log_space[j]:
+            continue
+        for side, sign in enumerate((-1.0, 1.0)):
+            zj = z.copy()
+            zj[j] = min(max(z[j] + sign * math.log(RANGE_FACTOR), lo[j]), hi[j])
+            if zj[j] != z[j]:
+                rises[j, side] = _chi_square_at(prob, zj, chi2s) - chi0
+                evaluations += 1
     prob.apply(z)
     d = _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations, step,
-                   max_relative_error, min_sensitivity, max_correlation)
+                   max_relative_error, min_sensitivity, max_correlation, rises)
     d.method = method
+    if grouped:
+        d.notes.append("silhouettes: one observation per splat area of pixels (pixels within a splat move together)")
     return d
 
 
 def _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations, step,
-               max_relative_error, min_sensitivity, max_correlation) -> Diagnostics:
+               max_relative_error, min_sensitivity, max_correlation, rises=None) -> Diagnostics:
     P = len(z)
     labels = list(prob.labels)
     spaces = [prob.spaces[name] for name in prob.params for _ in range(prob.k)]
@@ -312,14 +383,19 @@ def _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations
             r = max(abs(corr[k, labels.index(q)]) for q in partners)
             reasons.append(f"it is correlated with {', '.join(partners)} (|r| = {r:.3f} > {max_correlation:g}): "
                            f"the data fix a combination, not each")
+        if rises is not None and np.isfinite(rises[k]).any() and not np.nanmin(rises[k]) >= 1.0:
+            lowest = float(np.nanmin(rises[k]))
+            reasons.append(f"moving it alone by a factor {RANGE_FACTOR:g} changes the chi-square by only {lowest:.3g} "
+                           f"(less than 1: the data cannot tell these values apart)")
         if reasons:
             undetermined.append(label)
             warnings.append(f"{label} is not determined by the data: " + "; ".join(reasons))
     return Diagnostics(
         labels=labels, values=values, spaces=spaces, standard_error=se, relative_error=rel, sensitivity=sens,
         gradient=gradient, fisher=fisher, covariance=cov, correlation=corr, noise=list(sigmas), residual_rms=list(rms),
-        observations=int(observations), weakest=weakest, weakest_error=weakest_error, warnings=warnings,
+        observations=int(round(observations)), weakest=weakest, weakest_error=weakest_error, warnings=warnings,
         undetermined=undetermined, evaluations=evaluations, step=step,
+        range_rise=np.full((P, 2), np.nan) if rises is None else rises,
     )
 
 

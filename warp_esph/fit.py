@@ -46,7 +46,7 @@ import warp as wp
 
 from . import checks
 from .builder import SceneBuilder
-from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, WorldLoss, is_tools_csv, read_tools_csv
+from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, SumLoss, WorldLoss, is_tools_csv, read_tools_csv
 from .material import Material
 from .model import Model
 from .rollout import PARAMETERS, Rollout
@@ -512,7 +512,10 @@ def fit(
       tape when it fits in ``memory_limit`` bytes, else the longest segment that fits
       (``choose_checkpointing``).
     - ``initial``: ``Rollout.forward`` keywords (``x0, v0, F0, alpha0, initial_state``).
-    - ``optimizer``: ``"adam"`` (default; ``lr``, ``lr_end``, ``clip``) or ``"lbfgs"``
+    - ``optimizer``: ``"adam"`` (default; ``lr``, ``lr_end``, ``clip``), ``"gauss-newton"``
+      (Levenberg-Marquardt on the losses' residual vectors from forward runs only, the
+      Jacobian by forward differences of ``GN_STEP``: for least-squares losses with few
+      parameters along a curved valley; every loss needs ``residuals``) or ``"lbfgs"``
       (quasi-Newton with a backtracking line search: far fewer evaluations on a smooth
       loss with few parameters; its first step moves by ``lr`` and no step moves a
       parameter by more than ``max_step`` in optimiser space, i.e. a factor ``e`` for
@@ -561,7 +564,7 @@ def fit(
         raise ValueError(f"iterations = {iterations!r} is not allowed: must be >= 0")
     if clip is not None:
         clip = checks.positive("clip", clip)
-    optimizer = checks.choice("optimizer", optimizer, ("adam", "lbfgs"))
+    optimizer = checks.choice("optimizer", optimizer, ("adam", "lbfgs", "gauss-newton"))
     max_step = checks.positive("max_step", max_step)
     lbfgs_memory = checks.positive_int("lbfgs_memory", lbfgs_memory)
     xtol = checks.positive("xtol", xtol)
@@ -601,6 +604,15 @@ def fit(
             f"~{r.memory / 2**20:.1f} MiB of Warp arrays "
             f"({r.memory / (r.model.particle_count * r.steps):.0f} B per particle per step)")
     prob = _Problem(runs, params, bounds)
+    if optimizer == "gauss-newton":
+        from .diagnostics import leaf_terms  # noqa: PLC0415
+
+        lacking = [repr(leaf) for r in runs for leaf in leaf_terms(r.loss) if not hasattr(leaf, "residuals")]
+        if lacking:
+            raise ValueError(f"optimizer = 'gauss-newton' is not allowed: {lacking[0]} has no residual vector; use lbfgs")
+        if worlds:
+            raise ValueError("worlds = True is not allowed with optimizer = 'gauss-newton': its starts run one after "
+                             "the other (forward runs only)")
     history: list[dict] = []
     state = {"bar": None, "stage": "descent", "stop_all": None}
 
@@ -615,10 +627,11 @@ def fit(
         ``_Stop`` where the start ends; returns ``(value, gz, finite)`` for the optimiser."""
         p = prob.from_z(z)
         value = float(value)
-        finite = math.isfinite(value) and bool(np.isfinite(gz).all())
+        # gz None: a forward-only evaluation (Gauss-Newton's residuals).
+        finite = math.isfinite(value) and (gz is None or bool(np.isfinite(gz).all()))
         entry = {"iteration": len(history), "stage": state["stage"], "loss": value,
-                 "params": {k: [float(x) for x in v] for k, v in p.items()}, "grad": [float(x) for x in gz],
-                 "seconds": seconds}
+                 "params": {k: [float(x) for x in v] for k, v in p.items()},
+                 "grad": None if gz is None else [float(x) for x in gz], "seconds": seconds}
         if track_count > 1:
             entry["start"] = track.index
         history.append(entry)
@@ -626,7 +639,8 @@ def fit(
             state["timed"] = True
             per = "" if not use_worlds else f" for {track_count} worlds at once"
             rounds = (iterations + 1) * (1 if use_worlds else track_count)
-            say(f"one evaluation (forward + backward{per}) took {seconds:.3g} s: "
+            passes = "forward only" if gz is None else "forward + backward"
+            say(f"one evaluation ({passes}{per}) took {seconds:.3g} s: "
                 f"up to {iterations + 1} evaluations per start, ~{_duration(seconds * rounds)}")
         if finite and value < track.best - 1e-9 * abs(track.best):
             track.since_best = 0
@@ -650,6 +664,35 @@ def fit(
             raise _Stop("stalled")
         return value, gz, finite
 
+    def residual_evaluate(track):
+        """For Gauss-Newton: the weighted residual vector at z (forward passes only;
+        ``sum r^2`` is the loss), recorded like an evaluation (``grad`` None). ``reset``:
+        new correspondences (nearest points, tangent planes) for the losses that keep them."""
+
+        def residuals(z, reset=False):
+            t0 = time.perf_counter()
+            prob.apply(z)
+            parts = []
+            try:
+                for r in prob.runs:
+                    r.rollout.forward(**r.initial)
+                    arrays = r.rollout.observations(numpy=True)
+                    terms = r.loss.terms if isinstance(r.loss, SumLoss) else [(1.0, r.loss)]
+                    for coef, leaf in terms:
+                        if reset or not getattr(leaf, "_counts", True):
+                            if hasattr(leaf, "reset_residuals"):
+                                leaf.reset_residuals()
+                            leaf.value(r.rollout.observations())  # records the residual counts
+                        parts.append(math.sqrt(r.weight * coef / leaf.residual_scale()) * leaf.residuals(arrays))
+                res = np.concatenate(parts)
+            except FloatingPointError:
+                res = np.full(1, np.inf)
+            value = float(res @ res) if np.isfinite(res).all() else math.inf
+            _, _, finite = record(track, z, value, None, time.perf_counter() - t0)
+            return res, finite
+
+        return residuals
+
     def sequential_evaluate(track):
         def evaluate(z):
             t0 = time.perf_counter()
@@ -662,6 +705,8 @@ def fit(
 
     def descend(evaluate, z_start):
         try:
+            if optimizer == "gauss-newton":
+                return _run_gauss_newton(evaluate, prob.project, z_start, iterations, max_step, GN_STEP, xtol)
             if optimizer == "adam":
                 return _run_adam(evaluate, prob.project, z_start, iterations, lr, lr_end, clip, history, xtol, gtol)
             return _run_lbfgs(evaluate, prob.project, z_start, iterations, lr, max_step, memory=lbfgs_memory,
@@ -718,7 +763,7 @@ def fit(
                               record)
         else:
             for track, z_start in zip(tracks, start_points):
-                stop = descend(sequential_evaluate(track), z_start)
+                stop = descend(residual_evaluate(track) if optimizer == "gauss-newton" else sequential_evaluate(track), z_start)
                 stops.append(stop)
                 if stop == "callback":
                     break
@@ -1024,6 +1069,81 @@ def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-
     return "iterations"
 
 
+#: Forward-difference step of the Gauss-Newton Jacobian in optimiser space (1 %): large
+#: against the loss's roughness (contacts and neighbours switching one particle at a time
+#: make it jump at 1e-3), small against the per-cent changes a fit must resolve.
+GN_STEP = 1e-2
+
+
+def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6) -> str:
+    """Levenberg-Marquardt on the residual vector ``r(z)`` (``loss = r . r``), in optimiser
+    space, from forward runs only: the Jacobian by forward differences of step ``h`` (one
+    run per value), then steps ``-(J^T J + lam diag(J^T J))^-1 J^T r``, with ``lam`` set by
+    the gain ratio (actual over predicted decrease; Nielsen's update: a step the linear
+    model predicted well lowers ``lam``, a rejected one doubles its growth factor). A least-squares
+    loss with few parameters and a curved valley (yield stress against flow rate) is what
+    it is for: each step uses the valley's curvature at once, where L-BFGS learns it over
+    many steps. ``iterations`` counts runs after the first, Jacobian runs included."""
+    r, finite = residuals(z, reset=True)
+    if not finite:
+        raise FloatingPointError("the loss is not finite at the initial guess")
+    f = float(r @ r)
+    lam, nu = 1e-3, 2.0
+    evals = 0
+    while evals + len(z) < iterations:
+        J = np.empty((len(r), len(z)))
+        for j in range(len(z)):
+            zj = z.copy()
+            zj[j] += h
+            rj, ok = residuals(zj)
+            evals += 1
+            if not ok:
+                zj[j] = z[j] - h  # a blow-up on one side: the other
+                rj, ok = residuals(zj)
+                evals += 1
+                if not ok:
+                    return "stalled"
+            J[:, j] = (rj - r) / (zj[j] - z[j])
+        A, g = J.T @ J, J.T @ r
+        if not np.any(A.diagonal() > 0.0):
+            return "flat"
+        while True:
+            D = np.diag(np.maximum(A.diagonal(), 1e-12 * max(float(A.diagonal().max()), 1e-300)))
+            try:
+                dz = -np.linalg.solve(A + lam * D, g)
+            except np.linalg.LinAlgError:
+                dz = -g / max(float(np.abs(g).max()), 1e-300) * h
+            big = float(np.abs(dz).max())
+            if big > max_step:
+                dz *= max_step / big
+            z_new = project(z + dz)
+            step = z_new - z
+            if float(np.abs(step).max()) < xtol:
+                # No lower loss along the damped steps down to xtol (MINPACK's xtol test):
+                # the minimum is found to the resolution asked for.
+                return "converged"
+            if evals >= iterations:
+                return "iterations"
+            r_new, ok = residuals(z_new, reset=True)
+            evals += 1
+            f_new = float(r_new @ r_new) if ok else math.inf
+            # Gain ratio: the actual decrease over the one the linear model predicts.
+            predicted = -(2.0 * g @ step + step @ A @ step)
+            rho = (f - f_new) / predicted if predicted > 0.0 else -1.0
+            if f_new < f and rho > 0.0:
+                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)  # Nielsen's update
+                nu = 2.0
+                break
+            lam *= nu
+            nu *= 2.0
+            if lam > 1e8:
+                return "stalled"
+        z, r, f = z_new, r_new, f_new
+        if float(np.abs(step).max()) < xtol:
+            return "converged"
+    return "iterations"
+
+
 def _full(base: np.ndarray, idx: list[int], v: np.ndarray) -> np.ndarray:
     out = np.array(base, dtype=np.float64)
     out[idx] = v
@@ -1152,9 +1272,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
     ext = os.path.splitext(p)[1].lower()
     if ext in (".npz", ".npy"):
         try:
-            data = np.load(p)
-            if ext == ".npz":  # read every array here: a damaged zip fails on access, not on open
-                data = {k: data[k] for k in data.files}
+            data = read_arrays(p)
         except Exception as e:  # noqa: BLE001
             raise ValueError(f"target {p} cannot be read: {e}") from None
         frames, fps = None, None
@@ -1196,18 +1314,27 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         from .meshes import load_mesh  # noqa: PLC0415
 
         return Target("mesh", load_mesh(p), None, None, p)
-    try:
-        import meshio  # noqa: PLC0415
+    from .meshes import read_meshio  # noqa: PLC0415
 
-        m = meshio.read(p)
-    except Exception as e:  # noqa: BLE001
-        raise ValueError(f"target {p} cannot be read: {e}") from None
+    m = read_meshio(repr(p), p)  # checked or read in a child process: a damaged file cannot hang
     has_faces = any(c.type in ("triangle", "quad", "polygon", "tetra") or c.type.startswith("triangle") for c in m.cells)
     if has_faces:
         from .meshes import load_mesh  # noqa: PLC0415
 
         return Target("mesh", load_mesh(p), None, None, p)
     return Target("points", np.asarray(m.points, dtype=np.float64)[:, :3], None, None, p)
+
+
+def read_arrays(path: str):
+    """The arrays of an ``.npz`` file as a dict (every one read now: a damaged zip fails on
+    access, not on open), or the array of an ``.npy`` file; the file is closed whatever
+    happens (np.load leaves its handle open when the zip is damaged: a ResourceWarning)."""
+    with open(path, "rb") as fh:
+        data = np.load(fh, allow_pickle=False)
+        if isinstance(data, np.lib.npyio.NpzFile):
+            with data:
+                return {k: data[k] for k in data.files}
+        return data
 
 
 def _forces_target(path: str, tool: str | None) -> Target:

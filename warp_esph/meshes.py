@@ -18,6 +18,8 @@ import warp as wp
 from . import checks
 
 USD_EXTENSIONS = (".usd", ".usda", ".usdc", ".usdz")
+# No body is 1e30 units across; beyond this the volume and area tests overflow a float.
+MAX_SPAN = 1e30
 
 
 def _meshio_extensions() -> tuple[str, ...]:
@@ -184,7 +186,126 @@ def _read_usd(label: str, path: str, prim_path: str | None):
     return pts, _fan(counts, idx), str(prim.GetPath())
 
 
-def _read_meshio(label: str, path: str):
+# ------------------------------------------------------------- bounded reading (meshio)
+# meshio's readers trust the file: its PLY and OFF readers loop for ever on a header cut
+# short (they skip blank lines until a non-blank one comes, and at the end of the file
+# none does), and its binary PLY reader walks as many faces as the header declares even
+# past the end of the data (400 million faces took longer than 10 minutes). The formats
+# read here in-process are the ones whose reader is linear in the file's size once the
+# header has been checked against the size; every other format is read in a child
+# process with a time limit, so no damaged file can hang the caller.
+_CHECKED_FORMATS = (".obj", ".stl", ".ply", ".off")
+_PLY_SIZES = {
+    "char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+    "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
+    "int64": 8, "uint64": 8, "double": 8, "float64": 8,
+}
+_HEADER_LIMIT = 1 << 20  # a PLY header longer than 1 MiB is not one meshio wrote or reads
+
+
+def _check_ply(label: str, path: str) -> None:
+    """Refuses a PLY file whose header is cut short or declares more than the file holds."""
+    size = os.path.getsize(path)
+    with open(path, "rb") as f:
+        head = f.read(min(size, _HEADER_LIMIT))
+    end = re.search(rb"^end_header[ \t]*\r?\n", head, re.MULTILINE)
+    if not head.startswith(b"ply") or end is None:
+        _reject(label, "it is not a PLY file: no 'ply' first line and 'end_header' line in its first 1 MiB")
+    lines = [ln.strip() for ln in head[: end.start()].decode("latin-1").splitlines()]
+    fmt = next((ln.split()[1] for ln in lines if ln.startswith("format") and len(ln.split()) > 1), None)
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        _reject(label, f"its PLY header has format {fmt!r}; must be ascii, binary_little_endian or binary_big_endian")
+    elements = []  # [name, count, smallest bytes per element]
+    for ln in lines:
+        words = ln.split()
+        if words[:1] == ["element"]:
+            if len(words) != 3 or not words[2].isdigit():
+                _reject(label, f"its PLY header line {ln[:60]!r} is not 'element <name> <count>'")
+            elements.append([words[1], int(words[2]), 0])
+        elif words[:1] == ["property"]:
+            if not elements:
+                _reject(label, f"its PLY header has {ln[:60]!r} before any element line")
+            # A list may be empty, so it takes at least its count; ASCII needs a digit and a space.
+            kinds = words[2:4] if words[1:2] == ["list"] else words[1:2]
+            if len(words) < (5 if words[1:2] == ["list"] else 3) or any(k not in _PLY_SIZES for k in kinds):
+                _reject(label, f"its PLY header line {ln[:60]!r} is not a property of a known type")
+            elements[-1][2] += 2 if fmt == "ascii" else _PLY_SIZES[kinds[0]]
+    body = size - end.end()
+    needed = sum(count * max(each, 1) for _, count, each in elements)
+    if needed > body:
+        declared = ", ".join(f"{count} {name}" for name, count, _ in elements)
+        _reject(label, f"its PLY header declares {declared}, which need at least {needed} bytes, but {body} follow it")
+
+
+def _check_off(label: str, path: str) -> None:
+    """Refuses an OFF file without its counts line, or with more items than it has bytes."""
+    size = os.path.getsize(path)
+    with open(path, "rb") as f:
+        text = f.read(min(size, _HEADER_LIMIT)).decode("latin-1")
+    lines = [ln.strip() for ln in text.splitlines()]
+    counts = next((ln.split() for ln in lines[1:] if ln and not ln.startswith("#")), None)
+    if not lines or lines[0] != "OFF" or counts is None or len(counts) != 3 or not all(c.isdigit() for c in counts):
+        _reject(label, "it is not an OFF file: it must start with 'OFF' and a line '<vertices> <faces> <edges>'")
+    if 6 * int(counts[0]) + 8 * int(counts[1]) > size:  # 'x y z' and '3 i j k', a digit and a space each
+        _reject(label, f"it declares {counts[0]} vertices and {counts[1]} faces, more than its {size} bytes can hold")
+
+
+# Generous for a legitimate file (meshio reads tens of MB per second), short for a loop.
+_CHILD_SECONDS = 30.0
+# The child reads the file and hands back points and cells as arrays: nothing but numpy.
+_CHILD = """
+import contextlib, io, sys
+import numpy as np
+import meshio
+printed = io.StringIO()
+try:
+    with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed), np.errstate(over="ignore"):
+        m = meshio.read(sys.argv[1])
+except BaseException as e:
+    said = " ".join(printed.getvalue().split())
+    text = said if isinstance(e, SystemExit) and said else type(e).__name__ + ": " + (" ".join(str(e).split()) or "no details")
+    sys.stderr.write(text[:300])
+    sys.exit(3)
+arrays = {"points": np.asarray(m.points)}
+for i, b in enumerate(m.cells):
+    if not b.type.startswith("polyhedron"):
+        arrays[f"cell{i:06d}_{b.type}"] = np.asarray(b.data)
+np.savez(sys.argv[2], **arrays)
+"""
+
+
+def _read_in_child(label: str, path: str):
+    import subprocess  # noqa: PLC0415
+    import sys  # noqa: PLC0415
+    import tempfile  # noqa: PLC0415
+    import types  # noqa: PLC0415
+
+    limit = _CHILD_SECONDS + 2.0 * os.path.getsize(path) / 1e6
+    with tempfile.TemporaryDirectory() as tmp:
+        out = os.path.join(tmp, "mesh.npz")
+        try:
+            done = subprocess.run([sys.executable, "-c", _CHILD, path, out], capture_output=True, timeout=limit, check=False)
+        except subprocess.TimeoutExpired:
+            _reject(label, f"meshio did not finish reading it within {limit:.3g} s (a damaged header declaring more than the file holds?)")
+        if done.returncode != 0 or not os.path.exists(out):
+            reason = done.stderr.decode("utf-8", "replace").strip().splitlines()
+            _reject(label, f"meshio cannot read it ({reason[-1][:300] if reason else f'exit status {done.returncode}'})")
+        with np.load(out) as data:
+            cells = [types.SimpleNamespace(type=k.split("_", 1)[1], data=data[k]) for k in sorted(data.files) if k != "points"]
+            return types.SimpleNamespace(points=data["points"], cells=cells)
+
+
+def read_meshio(label: str, path: str):
+    """A meshio mesh (``points``, ``cells`` with ``type`` and ``data``) read so that no file can hang.
+
+    A file that cannot be read raises ``ValueError`` naming ``label`` and the reason."""
+    ext = _extension(path, _CHECKED_FORMATS)
+    if ext is None:
+        return _read_in_child(label, path)
+    if ext == ".ply":
+        _check_ply(label, path)
+    elif ext == ".off":
+        _check_off(label, path)
     import meshio  # noqa: PLC0415
 
     printed = io.StringIO()
@@ -199,7 +320,12 @@ def _read_meshio(label: str, path: str):
         _reject(label, f"meshio cannot read it ({reason})")
     said = printed.getvalue().strip()
     if said:
-        warnings.warn(f"meshio, reading {label}: {said}", stacklevel=3)
+        warnings.warn(f"meshio, reading {label}: {said}", stacklevel=4)
+    return m
+
+
+def _read_meshio(label: str, path: str):
+    m = read_meshio(label, path)
     tris, tets = [], []
     for block in m.cells:
         kind = block.type
@@ -263,6 +389,9 @@ def _clean(label: str, points, triangles) -> tuple[np.ndarray, np.ndarray]:
     tri = remap[tri]
     # A triangle that lost a corner to merging has no area and would break edge counting.
     tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])]
+    span = float(np.max(merged.max(axis=0) - merged.min(axis=0)))
+    if not span <= MAX_SPAN:  # also inf: the difference of two huge finite coordinates
+        _reject(label, f"its points span {span:.3g} (file units); must be at most {MAX_SPAN:g} (the volume test cubes it)")
     diag = float(np.linalg.norm(merged.max(axis=0) - merged.min(axis=0)))
     if len(tri) == 0 or diag == 0.0:
         _reject(label, "it is degenerate: all its triangles have zero area")

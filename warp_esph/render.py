@@ -1016,7 +1016,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
 
     ``output``: a folder (no extension; PNG per frame, ``frame_00012.png``), a ``.png``
     (one frame; several frames side by side, ``columns`` per row), a ``.gif`` or an
-    ``.mp4`` (needs ``ffmpeg`` on the PATH). Default: ``<file>.png`` beside the USD file.
+    ``.mp4`` (needs ``ffmpeg`` on the PATH). Default: ``<file>.png`` beside the USD file (``a.usdc.png``).
     ``frames``: see ``parse_frames``; default all frames, or the last one for a ``.png``.
     ``fps``: playback rate of a GIF/MP4 (default: the file's). ``fit``: ``"all"`` frames the
     bounds of all chosen frames with one camera (the default: motion reads correctly),
@@ -1027,7 +1027,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     """
     data = UsdFrames(path)
     if output is None:
-        output = os.path.splitext(data.path)[0] + ".png"
+        output = data.path + ".png"  # the whole name: a.usdc and a.usda must not share a.png
     out = os.fspath(output)
     kind = output_kind(out)
     if kind == "mp4" and ffmpeg_path() is None:

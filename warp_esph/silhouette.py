@@ -147,11 +147,18 @@ def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None)
     if not os.path.isfile(p):
         raise FileNotFoundError(f"mask file {p} does not exist")
     ext = os.path.splitext(p)[1].lower()
+    from .fit import read_arrays  # noqa: PLC0415
+
     if ext == ".npz":
-        data = np.load(p)
+        try:
+            data = read_arrays(p)
+        except Exception as e:  # noqa: BLE001 (zipfile, zlib and numpy raise many kinds)
+            raise ValueError(f"mask file {p} cannot be read: {type(e).__name__}: {e}") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"mask file {p} is not allowed: it holds one array, not <camera>_<frame> arrays")
         out: dict[int, dict[str, np.ndarray]] = {}
         names = {c.name for c in cameras}
-        for key in data.files:
+        for key in data:
             cam, _, f = key.rpartition("_")
             if cam not in names or not f.isdigit():
                 raise ValueError(f"mask {key!r} in {p} is not allowed: name arrays <camera>_<frame> with cameras {sorted(names)}")
@@ -165,7 +172,12 @@ def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None)
     if len(cameras) != 1:
         raise ValueError(f"mask file {p} holds one image, for {len(cameras)} cameras: use an .npz with <camera>_<frame> arrays")
     if ext == ".npy":
-        a = np.load(p)
+        try:
+            a = read_arrays(p)
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"mask file {p} cannot be read: {type(e).__name__}: {e}") from None
+        if isinstance(a, dict):
+            raise ValueError(f"mask file {p} is not allowed: it is a zip of arrays, not one .npy image")
     else:
         from PIL import Image  # noqa: PLC0415
 
@@ -353,6 +365,21 @@ class SilhouetteLoss(Loss):
                 out.append(k * (soft_silhouette(X, c, self.radius, self.opacity) - m).ravel())
         return np.concatenate(out)
 
+    def correlated_pixels(self, positions) -> float:
+        """Pixels per independent observation: the area ``pi (2 s)^2`` of a splat (``s`` its
+        pixel radius at the particles' median depth), averaged over cameras. A particle moves
+        its whole splat, so the residuals within it rise and fall together; counting each
+        pixel as an independent observation overstates what the masks say by about this factor."""
+        X = np.concatenate([np.asarray(positions[f], dtype=np.float64).reshape(-1, 3) for f in self.frames])
+        areas = []
+        for c in self.cameras:
+            _, _, z = c.project(X)
+            z = z[z > 1e-9]
+            if len(z):
+                s = self.radius * math.sqrt(c.fx * c.fy) / float(np.median(z))
+                areas.append(math.pi * (2.0 * s) ** 2)
+        return max(float(np.mean(areas)), 1.0) if areas else 1.0
+
     def __repr__(self):
         return (f"SilhouetteLoss(frames={list(self.frames)}, cameras={[c.name for c in self.cameras]}, "
                 f"radius={self.radius:g}, weight={self.weight:g})")
@@ -370,7 +397,7 @@ def load_silhouette_target(cameras_path, masks_path, frames_spec, frames: int, s
     """The silhouette loss of the ``warp-esph fit`` command: cameras from ``cameras_path``,
     masks from ``masks_path`` at rendered frames (an image: ``frames_spec`` or the last
     frame), with ``substeps`` steps per frame. The splat radius is the file's ``radius``
-    (default: half of... given per file; required)."""
+    (required: about half a particle spacing) and the opacity its ``opacity`` (default 0.5)."""
     cameras, options = load_cameras(cameras_path)
     frame = int(frames_spec) if frames_spec is not None else frames
     masks = load_masks(masks_path, cameras, frame)

@@ -1201,7 +1201,8 @@ class ReactionLog:
             })
 
     def write(self, stem: str) -> tuple[str, str]:
-        """``stem + '_tools.csv'`` and ``stem + '_tools.json'``; returns both paths."""
+        """``stem + '_tools.csv'`` and ``stem + '_tools.json'``; returns both paths (the CLI passes
+        the whole output name, ``a.usdc`` -> ``a.usdc_tools.csv``)."""
         import csv  # noqa: PLC0415
         import json  # noqa: PLC0415
 
