@@ -75,7 +75,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     ):
         """Eqs. 5-7 with the curvature terms: ``A = sum w xb xb^T``, ``B = sum w yb xb^T``,
         ``C = sum w xb q^T``, ``D = sum w q q^T``, ``E = sum w yb q^T`` and the number of
-        same-body neighbours. Only the raw sums live in this loop: the caller's inverse must
+        same-body neighbours closer than ``h``. Only the raw sums live in this loop: the caller's inverse must
         not see a loop accumulator (docs/method.md, Warp pitfall 1)."""
         A = mat33()
         B = mat33()
@@ -92,7 +92,8 @@ def funcs(scalar) -> types.SimpleNamespace:
             if body[j] == bi:
                 xb = x[j] - xi
                 yb = y[j] - yi
-                w = sm.w_poly6_c(wp.dot(xb, xb), h, c6)
+                r2 = wp.dot(xb, xb)
+                w = sm.w_poly6_c(r2, h, c6)
                 q = curvature_basis(xb, h)
                 wxb = w * xb
                 wq = w * q
@@ -101,7 +102,8 @@ def funcs(scalar) -> types.SimpleNamespace:
                 C += wp.outer(wxb, q)
                 D += wp.outer(wq, q)
                 E += wp.outer(yb, wq)
-                same += 1
+                # Only neighbours of non-zero weight count (rows may reach beyond h).
+                same += wp.where(r2 < h * h, 1, 0)
         return A, B, C, D, E, same
 
     @wp.func
