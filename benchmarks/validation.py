@@ -244,8 +244,9 @@ def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slend
 # --------------------------------------------------------------------- beam
 def beam_deflection(resolution: int = 6, elastic_force: str = "variational", span_over_thickness: int = 10,
                     periods: float = 3.0, nu: float = 0.3, deflection_over_thickness: float = 0.03,
-                    kappa: float = 0.85, dtype: str = "float32") -> dict:
-    """A square beam ``resolution`` particles thick on two supports under its own weight.
+                    kappa: float = 0.85, dtype: str = "float32", fit: str = "linear") -> dict:
+    """A square beam ``resolution`` particles thick on two supports under its own weight
+    (``fit``: the solver's incremental fit, ``Solver(fit=...)``).
 
     The supports are two frictionless box colliders one particle column wide under the end
     columns (span L between their centres: a simply supported beam with dx/2 overhangs).
@@ -279,7 +280,7 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
     ends = np.abs(np.abs(x0[:, 0]) - L / 2.0) < 0.25 * dx
     omega1 = (math.pi / L) ** 2 * math.sqrt(E * I / (RHO * A))
     damping = 1.4 * omega1
-    solver = we.Solver(model)
+    solver = we.Solver(model, fit=fit)
     dt = model.stable_dt()
     steps = int(periods * 2.0 * math.pi / omega1 / dt)
     factor = math.exp(-damping * dt)
@@ -303,8 +304,8 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
     ke = _kinetic(model, a)
     # Relaxed, the kinetic energy is round-off; a beam that broke up keeps moving.
     blew_up = bool(not math.isfinite(ke) or ke > 1e-3 * float(model.particle_mass.numpy().sum()) * G * theory)
-    return {"case": "beam", "resolution": n, "elastic_force": elastic_force, "particles": model.particle_count,
-            "span_over_thickness": span_over_thickness, "deflection": hd[-1], "theory": theory,
+    return {"case": "beam", "resolution": n, "elastic_force": elastic_force, "fit": fit,
+            "particles": model.particle_count, "span_over_thickness": span_over_thickness, "deflection": hd[-1], "theory": theory,
             "theory_euler_bernoulli": theory_eb, "ratio": hd[-1] / theory,
             "residual_rate_pct_per_s": 100.0 * rate / theory, "kinetic_energy": ke, "blew_up": blew_up,
             "t": ht.tolist(), "deflection_over_theory": (hd / theory).tolist()}

@@ -34,8 +34,9 @@ def _model(params=None, velocity_scale=20.0):
     return model
 
 
-def _rollout_loss(model, weights, grad_of=()):
-    solver = we.Solver(model)
+def _rollout_loss(model, weights, grad_of=(), fit="linear", hand_adjoints=True):
+    solver = we.Solver(model, fit=fit)
+    solver.hand_adjoints = hand_adjoints
     states = [model.state() for _ in range(STEPS + 1)]
     # A pre-worked material (alpha > 0), so the loss reaches the hardening modulus.
     states[0].alpha.fill_(ALPHA0)
@@ -185,3 +186,33 @@ def test_gradient_across_the_saturated_flow_step(weights, elastic_force, rate_dt
         assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
         for one_sided in ((plus - value) / eps, (value - minus) / eps):
             assert grads[name][0] == pytest.approx(one_sided, rel=1e-3), name
+
+
+@pytest.mark.parametrize("name", ["mu", "yield_stress", "v0"])
+def test_curvature_corrected_fit_gradients_match_central_differences(weights, name):
+    """``Solver(fit="curvature_corrected")`` (``curvature.py``): its deformation update's
+    hand-written adjoint and its variational force's generated one, against central
+    differences; and the hand-written adjoint against Warp's generated one."""
+    params = {"elastic_force": "variational"}
+    model = _model(params)
+    _, grads = _rollout_loss(model, weights, grad_of=(name,), fit="curvature_corrected")
+    _, generated = _rollout_loss(_model(params), weights, grad_of=(name,), fit="curvature_corrected", hand_adjoints=False)
+    np.testing.assert_allclose(grads[name], generated[name], rtol=1e-8, atol=1e-12 * np.abs(generated[name]).max())
+    if name == "v0":
+        i, c, eps = 7, 1, 1e-6
+
+        def loss_with(delta):
+            m = _model(params)
+            m.particle_v0[i, c] += delta
+            return _rollout_loss(m, weights, fit="curvature_corrected")[0]
+
+        fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
+        assert grads["v0"][i, c] == pytest.approx(fd, rel=1e-4, abs=1e-9)
+        return
+    base = getattr(model.materials[0], name)
+    eps = 1e-5 * abs(base)
+    plus = _rollout_loss(_model({name: base + eps, **params}), weights, fit="curvature_corrected")[0]
+    minus = _rollout_loss(_model({name: base - eps, **params}), weights, fit="curvature_corrected")[0]
+    fd = (plus - minus) / (2 * eps)
+    assert abs(fd) > 1e-11, f"the loss does not reach {name}"
+    assert grads[name][0] == pytest.approx(fd, rel=1e-4)

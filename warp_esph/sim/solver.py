@@ -15,7 +15,7 @@ import warp as wp
 from .. import checks
 from ..model import Model, State
 from .deformation import recording_tape
-from . import comparison, deformation, fields, forces, fused, integrate, neighbors, plasticity, pressure
+from . import comparison, curvature, deformation, fields, forces, fused, integrate, neighbors, plasticity, pressure
 
 GUARD_NAMES = ("few_neighbors", "ill_conditioned", "inverted", "plasticity_skipped", "neighbors_cut")
 #: Index of ``neighbors_cut``: particle-steps whose neighbour row may lack a neighbour of
@@ -26,6 +26,9 @@ COUNT_NEIGHBORS_CUT = 4
 #: Default Verlet skin of the neighbour candidates, in units of the support radius
 #: (measured in benchmarks/step.py, docs/performance.md).
 DEFAULT_SKIN = 0.15
+#: The incremental fits ``Solver(fit=...)`` offers (docs/method.md §2): the paper's affine
+#: one (default) and the curvature-corrected one (``curvature.py``).
+FITS = ("linear", "curvature_corrected")
 
 #: Names ``profile_phases`` times: the fused step has neighbors, fused, integrate and
 #: deformation; the differentiable one (under a tape, or ``fused=False``) splits
@@ -80,7 +83,16 @@ class Solver:
 
     A model with a material of a Fig. 8 comparison deformation model (``Material.deformation``
     ``"rest"`` or ``"additive"``, docs/method.md §7) always runs the non-fused kernels, with the
-    constitutive and deformation updates of ``comparison.py``. The model's force fields
+    constitutive and deformation updates of ``comparison.py``.
+
+    ``fit`` chooses the incremental fit of the deformation update and of the variational
+    elastic force (docs/method.md §2): ``"linear"`` (default), the paper's affine fit (eqs.
+    5-6); ``"curvature_corrected"``, the fit that also carries the mixed quadratic terms and
+    keeps only the gradient (``curvature.py``; docs/physics.md, "Bending stiffness": a bent
+    beam within a few % of Timoshenko instead of 1.16x too soft at 6 particles thick). The
+    corrected fit runs the non-fused kernels (forward and under a tape: its elastic force
+    with Warp's generated adjoint, its deformation update with a hand-written one) and
+    cannot be combined with a comparison deformation model. The model's force fields
     (``fields.CompressionField``) act while active at ``state_in.time``.
     """
 
@@ -92,6 +104,7 @@ class Solver:
         max_condition: float = 1.0e3,
         neighbor_skin: float | None = None,
         fused: bool = True,
+        fit: str = "linear",
     ):
         self.model = model
         self.min_neighbors = checks.positive_int("min_neighbors", min_neighbors)
@@ -99,6 +112,14 @@ class Solver:
         skin = DEFAULT_SKIN if neighbor_skin is None else checks.in_range("neighbor_skin", neighbor_skin, 0.0, 1.0)
         if not isinstance(fused, bool):
             raise ValueError(f"fused = {fused!r} is not allowed: must be True or False")
+        if not isinstance(fit, str) or fit not in FITS:
+            raise ValueError(f"fit = {fit!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
+        if fit == "curvature_corrected" and model.uses_comparison_models:
+            raise ValueError(f"fit = {fit!r} is not allowed with a comparison deformation model "
+                             f"(Material.deformation 'rest' or 'additive'): only 'linear'")
+        #: The incremental fit (``FITS``); the corrected one runs the non-fused kernels.
+        self.fit = fit
+        self._curved = fit == "curvature_corrected"
         self.neighbor_skin = skin
         self.search = neighbors.NeighborSearch(
             model.particle_count, model.scalar, model.device, model.support_radius,
@@ -128,7 +149,7 @@ class Solver:
         ``forces.variational_forces_adjoint`` for the variational one). Otherwise the
         differentiable kernels run."""
         m = self.model
-        return self.fused and self.hand_adjoints and m.requires_grad and not self._cmp
+        return self.fused and self.hand_adjoints and m.requires_grad and not self._cmp and not self._curved
 
     def _fast_under_tape(self, state_in, state_out) -> bool:
         return (self.fast_under_tape() and state_in.x.grad is not None and state_out.x.grad is not None
@@ -201,7 +222,7 @@ class Solver:
         scratch = self.scratch
         sph = m.sph_active
         tape = recording_tape()
-        fast = self.fused and not self._cmp and (tape is None or self._fast_under_tape(state_in, state_out))
+        fast = self.fused and not self._cmp and not self._curved and (tape is None or self._fast_under_tape(state_in, state_out))
         fast_tape = tape if fast else None
         phase = self._phase
 
@@ -238,7 +259,10 @@ class Solver:
                     plasticity.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters)
             # 4. Elastic pair forces, pressure and viscosity.
             with phase("forces"):
-                forces.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
+                if self._curved:
+                    curvature.launch_elastic_forces(m, state_in, state_out)
+                else:
+                    forces.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
             if sph:
                 with phase("pressure"):
                     pressure.launch_pressure_forces(m, state_in, state_out, self.hand_adjoints)
@@ -261,6 +285,8 @@ class Solver:
                 fused.launch_update_deformation(m, state_in, state_out, scratch, fast_tape)
             elif self._cmp:
                 comparison.launch_update_deformation(m, state_in, state_out, scratch.counters)
+            elif self._curved:
+                curvature.launch_update_deformation(m, state_in, state_out, scratch.counters, self.hand_adjoints)
             else:
                 deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, self.hand_adjoints)
         state_out.time = state_in.time + dt

@@ -1,0 +1,389 @@
+"""Curvature-corrected incremental fit (opt-in: ``Solver(model, fit="curvature_corrected")``;
+docs/physics.md, "Bending stiffness"; docs/method.md §2).
+
+Where the neighbourhood is one-sided (within h of a free surface) a curved motion leaks
+into the linear fit of eqs. 5-6 (``deformation.py``): with ``yb = G xb + (quadratic in xb)``,
+the quadratic part's third moments ``sum w xb_x^2 yb`` no longer vanish, and the fit
+returns the gradient at the neighbourhood's centroid, inside the body, instead of at the
+particle; a bent beam's surface fibres then report too little strain and the beam is too
+soft (1.16 x the Timoshenko deflection at 6 particles thick, float64). This fit carries,
+besides ``G``, the three mixed quadratic terms ``q(xb) = (xb_x xb_y, xb_x xb_z, xb_y xb_z) / h``
+and keeps only ``G``. By the Schur complement it is the paper's fit with ``xb`` replaced
+by its part orthogonal to ``q``:
+
+    C = sum_j w_j xb_j q_j^T,  D = sum_j w_j q_j q_j^T,  E = sum_j w_j yb_j q_j^T
+    K = (D + eps I)^-1 C^T,  eps = 1e-4 tr(A) / 3
+    A~ = A - C K,  B~ = B - E K,  dF = B~ A~^-1
+
+In a neighbourhood symmetric about the particle (the interior of a lattice) ``C = E = 0``:
+exactly the paper's fit. Affine motions are still reproduced exactly. ``eps`` keeps ``D``
+invertible where a mixed term vanishes on every neighbour (a one-particle-thick sheet).
+The correction is dropped (``K = 0``, the paper's fit) where it would leave ``det A~``
+below ``CURVATURE_DET_RATIO det A`` (sharp, jittered tips, where ``A~`` is near singular).
+The three mixed terms are those of the world axes: a bend in a coordinate plane is
+corrected fully, one about a tilted axis in part (the full quadratic basis, which is
+rotation invariant, makes ``A~`` singular at every lattice edge at h = 2 dx).
+
+The variational elastic force (``forces.py``) follows the same operator:
+``M_i = V_i P*_i F_i^T A~_i^-1``, ``g_ij = w_ij M_i (xb_ij - K_i^T q(xb_ij))``.
+
+Kept in its own module so that the default (linear) fit's kernels are untouched: the
+solver runs these, non-fused, only when the option is on. Under a tape the deformation
+update has a hand-written adjoint (``update_deformation_adjoint``); the elastic force
+kernel uses Warp's generated adjoint (the hand-written ``forces.variational_forces_adjoint``
+is the linear fit's).
+"""
+
+import functools
+import types
+
+import warp as wp
+
+from .._types import type_set
+from . import deformation, forces, materials, smoothing
+
+#: The curvature correction is dropped (the paper's fit kept) where it would leave
+#: ``det A~`` below this fraction of ``det A`` (on a lattice it is above 0.4 everywhere).
+CURVATURE_DET_RATIO = 0.1
+
+COUNT_FEW_NEIGHBORS = deformation.COUNT_FEW_NEIGHBORS
+COUNT_ILL_CONDITIONED = deformation.COUNT_ILL_CONDITIONED
+
+
+@functools.cache
+def funcs(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3, mat33 = T.vec3, T.mat33
+    sm = smoothing.funcs(scalar)
+    df = deformation.funcs(scalar)
+
+    @wp.func
+    def curvature_basis(d: vec3, h: scalar) -> vec3:
+        """``q(xb) = (xb_x xb_y, xb_x xb_z, xb_y xb_z) / h``: the mixed quadratic terms the fit
+        carries beside the gradient (module docstring)."""
+        return vec3(d[0] * d[1], d[0] * d[2], d[1] * d[2]) / h
+
+    @wp.func
+    def moment_sums(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+    ):
+        """Eqs. 5-7 with the curvature terms: ``A = sum w xb xb^T``, ``B = sum w yb xb^T``,
+        ``C = sum w xb q^T``, ``D = sum w q q^T``, ``E = sum w yb q^T`` and the number of
+        same-body neighbours closer than ``h``. Only the raw sums live in this loop: the caller's inverse must
+        not see a loop accumulator (docs/method.md, Warp pitfall 1)."""
+        A = mat33()
+        B = mat33()
+        C = mat33()
+        D = mat33()
+        E = mat33()
+        xi = x[i]
+        yi = y[i]
+        bi = body[i]
+        c6 = sm.poly6_coef(h)
+        same = int(0)
+        for k in range(n):
+            j = nbr[i, k]
+            if body[j] == bi:
+                xb = x[j] - xi
+                yb = y[j] - yi
+                r2 = wp.dot(xb, xb)
+                w = sm.w_poly6_c(r2, h, c6)
+                q = curvature_basis(xb, h)
+                wxb = w * xb
+                wq = w * q
+                A += wp.outer(wxb, xb)
+                B += wp.outer(yb, wxb)
+                C += wp.outer(wxb, q)
+                D += wp.outer(wq, q)
+                E += wp.outer(yb, wq)
+                # Only neighbours of non-zero weight count (rows may reach beyond h).
+                same += wp.where(r2 < h * h, 1, 0)
+        return A, B, C, D, E, same
+
+    @wp.func
+    def curvature_kept(A: mat33, C: mat33, K: mat33) -> bool:
+        """Whether the correction ``K`` is kept: where the curvature terms nearly repeat the
+        linear ones (few, one-sided neighbours: a sharp tip), ``A~ = A - C K`` is near
+        singular, and the paper's fit is used there (``K = 0``)."""
+        return wp.determinant(A - C * K) > scalar(CURVATURE_DET_RATIO) * wp.determinant(A)
+
+    @wp.func
+    def curvature_projection(A: mat33, C: mat33, D: mat33) -> mat33:
+        """``K = (D + eps I)^-1 C^T``, ``eps = 1e-4 tr(A) / 3``: the curvature terms' share of
+        ``xb`` (``xb - K^T q(xb)`` is orthogonal to them in the fit's weights)."""
+        eps = scalar(1.0e-4 / 3.0) * (A[0, 0] + A[1, 1] + A[2, 2])
+        K = wp.inverse(D + eps * wp.identity(n=3, dtype=scalar)) * wp.transpose(C)
+        if not curvature_kept(A, C, K):
+            K = mat33()
+        return K
+
+    @wp.func
+    def corrected_moment(M: mat33, N: mat33, K: mat33) -> mat33:
+        """A moment of eqs. 5-6 with the curvature terms projected out (Schur complement):
+        ``M - N K`` (``A~ = A - C K``, ``B~ = B - E K``)."""
+        return M - N * K
+
+    @wp.func
+    def corrected_offset(K: mat33, d: vec3, h: scalar) -> vec3:
+        """``xb - K^T q(xb)``: the relative position the corrected fit weighs ``yb`` with
+        (``dF = sum_j w_j yb_j (xb_j - K^T q_j)^T A~^-1``)."""
+        return d - wp.transpose(K) * curvature_basis(d, h)
+
+    @wp.func
+    def corrected_fit(A: mat33, B: mat33, C: mat33, D: mat33, E: mat33) -> mat33:
+        """Eqs. 5-6 with the curvature correction: ``B~ A~^-1``."""
+        K = curvature_projection(A, C, D)
+        return df.affine_fit(corrected_moment(A, C, K), corrected_moment(B, E, K))
+
+    @wp.func
+    def step_gradient(A: mat33, B: mat33, C: mat33, D: mat33, E: mat33, code: int,
+                      counters: wp.array(dtype=wp.int32)) -> mat33:
+        """This step's ``dF = B~ A~^-1``; ``I``, counted, where a guard of paper §4 holds
+        (``code``: ``neighbors.GUARD_*``)."""
+        dF = wp.identity(n=3, dtype=scalar)
+        if code == 1:
+            wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
+        elif code == 2:
+            wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
+        else:
+            dF = corrected_fit(A, B, C, D, E)
+        return dF
+
+    @wp.func
+    def variational_pair_force(M: mat33, K: mat33, d: vec3, h: scalar, c6: scalar) -> vec3:
+        """``g_ij = w_ij M_i (xb_ij - K_i^T q(xb_ij))`` (``d = xb_ij``, ``M = V P* F^T A~^-1``);
+        taken from ``j``, added to ``i``."""
+        return sm.w_poly6_c(wp.dot(d, d), h, c6) * (M * corrected_offset(K, d, h))
+
+    return types.SimpleNamespace(
+        curvature_basis=curvature_basis, moment_sums=moment_sums, curvature_kept=curvature_kept,
+        curvature_projection=curvature_projection, corrected_moment=corrected_moment,
+        corrected_offset=corrected_offset, corrected_fit=corrected_fit, step_gradient=step_gradient,
+        variational_pair_force=variational_pair_force,
+    )
+
+
+@functools.cache
+def kernels(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3, mat33 = T.vec3, T.mat33
+    sm = smoothing.funcs(scalar)
+    df = deformation.funcs(scalar)
+    fo = forces.funcs(scalar)
+    fn = funcs(scalar)
+    Materials = materials.struct(scalar)
+
+    @wp.kernel
+    def update_deformation(
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        guard: wp.array(dtype=wp.int32),
+        F_prev: wp.array(dtype=mat33),
+        h: scalar,
+        F_out: wp.array(dtype=mat33),
+        counters: wp.array(dtype=wp.int32),
+    ):
+        """``deformation.update_deformation`` with the corrected fit (eq. 8: ``F <- dF F``
+        unless guarded or inverted)."""
+        i = wp.tid()
+        A, B, C, D, E, same = fn.moment_sums(i, x, y, body, nbr, count[i], h)
+        Fp = F_prev[i]
+        F_out[i] = df.unless_inverted(fn.step_gradient(A, B, C, D, E, guard[i], counters) * Fp, Fp, counters)
+
+    @wp.kernel(enable_backward=False)
+    def update_deformation_adjoint(
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        guard: wp.array(dtype=wp.int32),
+        F_prev: wp.array(dtype=mat33),
+        h: scalar,
+        adj_F_out: wp.array(dtype=mat33),
+        adj_x: wp.array(dtype=vec3),
+        adj_y: wp.array(dtype=vec3),
+        adj_F_prev: wp.array(dtype=mat33),
+    ):
+        """Hand-written adjoint of ``update_deformation`` (as ``deformation.update_deformation_adjoint``
+        for the linear fit: the generated one spends many times the forward).
+
+        With ``K = (D + eps I)^-1 C^T``, ``A~ = A - C K``, ``B~ = B - E K``, ``dF = B~ A~^-1``
+        and ``F_out = dF F``: ``adj F = dF^T G``, ``adj B~ = G F^T A~^-T``,
+        ``adj A~ = -dF^T adj B~``; ``adj B = adj B~``, ``adj E = -adj B~ K^T``,
+        ``adj A = adj A~ + (1e-4/3) tr(adj Dr) I``, ``adj K = -E^T adj B~ - C^T adj A~``,
+        ``adj C = -adj A~ K^T + adj K^T Dr^-1``, ``adj D = -Dr^-T adj K K^T`` (``Dr = D + eps I``;
+        where the correction is dropped, ``K = 0`` does not depend on ``C`` or ``D``).
+        Per pair the sums depend on ``xb`` through ``w(|xb|^2)``, ``xb`` and ``q(xb)``, and on
+        ``yb`` linearly. Guarded or inverted particles keep ``F``: all of ``G`` goes to ``F``."""
+        i = wp.tid()
+        G = adj_F_out[i]
+        Fp = F_prev[i]
+        code = guard[i]
+        A, B, C, D, E, same = fn.moment_sums(i, x, y, body, nbr, count[i], h)
+        if code == 1 or code == 2:
+            adj_F_prev[i] = adj_F_prev[i] + G
+            return
+        I3 = wp.identity(n=3, dtype=scalar)
+        eps_c = scalar(1.0e-4 / 3.0)
+        Dr_inv = wp.inverse(D + eps_c * (A[0, 0] + A[1, 1] + A[2, 2]) * I3)
+        K = Dr_inv * wp.transpose(C)
+        used = scalar(1.0)
+        if not fn.curvature_kept(A, C, K):
+            K = mat33()
+            used = scalar(0.0)
+        At = fn.corrected_moment(A, C, K)
+        Bt = fn.corrected_moment(B, E, K)
+        At_inv = wp.inverse(At)
+        dF = Bt * At_inv
+        if wp.determinant(dF * Fp) <= scalar(0.0):
+            adj_F_prev[i] = adj_F_prev[i] + G
+            return
+        adj_F_prev[i] = adj_F_prev[i] + wp.transpose(dF) * G
+        adj_Bt = G * wp.transpose(Fp) * wp.transpose(At_inv)
+        adj_At = -(wp.transpose(dF) * adj_Bt)
+        KT = wp.transpose(K)
+        adj_B = adj_Bt
+        adj_E = -(adj_Bt * KT)
+        adj_K = -(wp.transpose(E) * adj_Bt) - wp.transpose(C) * adj_At
+        adj_C = -(adj_At * KT) + used * (wp.transpose(adj_K) * Dr_inv)
+        adj_D = -(used * (wp.transpose(Dr_inv) * adj_K * KT))
+        adj_A = adj_At + eps_c * (adj_D[0, 0] + adj_D[1, 1] + adj_D[2, 2]) * I3
+        adj_A_sym = adj_A + wp.transpose(adj_A)
+        adj_D_sym = adj_D + wp.transpose(adj_D)
+        adj_BT = wp.transpose(adj_B)
+        adj_CT = wp.transpose(adj_C)
+        adj_ET = wp.transpose(adj_E)
+        xi = x[i]
+        yi = y[i]
+        bi = body[i]
+        c6 = sm.poly6_coef(h)
+        hh = h * h
+        gx_i = vec3()
+        gy_i = vec3()
+        for k in range(count[i]):
+            j = nbr[i, k]
+            if body[j] == bi:
+                xb = x[j] - xi
+                r2 = wp.dot(xb, xb)
+                if r2 < hh:
+                    yb = y[j] - yi
+                    d = hh - r2
+                    w = c6 * d * d * d
+                    dw = scalar(-3.0) * c6 * d * d  # d w / d r2
+                    q = fn.curvature_basis(xb, h)
+                    Bx = adj_B * xb
+                    Eq = adj_E * q
+                    Cq = adj_C * q
+                    s = wp.dot(xb, adj_A * xb) + wp.dot(yb, Bx) + wp.dot(xb, Cq) + wp.dot(q, adj_D * q) + wp.dot(yb, Eq)
+                    # d s / d q (through C, D, E), carried back through q(xb) = (xy, xz, yz) / h.
+                    aq = adj_CT * xb + adj_D_sym * q + adj_ET * yb
+                    jq = vec3(xb[1] * aq[0] + xb[2] * aq[1], xb[0] * aq[0] + xb[2] * aq[2],
+                              xb[0] * aq[1] + xb[1] * aq[2]) / h
+                    gx = w * (adj_A_sym * xb + adj_BT * yb + Cq + jq) + scalar(2.0) * dw * s * xb
+                    gy = w * (Bx + Eq)
+                    wp.atomic_add(adj_x, j, gx)
+                    wp.atomic_add(adj_y, j, gy)
+                    gx_i -= gx
+                    gy_i -= gy
+        wp.atomic_add(adj_x, i, gx_i)
+        wp.atomic_add(adj_y, i, gy_i)
+
+    @wp.kernel
+    def elastic_forces(
+        x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        guard: wp.array(dtype=wp.int32),
+        volume: wp.array(dtype=scalar),
+        stress: wp.array(dtype=mat33),
+        F: wp.array(dtype=mat33),
+        F_inv: wp.array(dtype=mat33),
+        h: scalar,
+        f: wp.array(dtype=vec3),
+    ):
+        """``forces.elastic_forces`` with the variational force of the corrected fit
+        (eqs. 10-13 unchanged)."""
+        i = wp.tid()
+        xi = x[i]
+        bi = body[i]
+        P = stress[i]
+        Vi = volume[i]
+        fi = vec3()
+        if mat.elastic_force[material[i]] == 0:
+            Finv = F_inv[i]
+            c_el = sm.elastic_coef(h)
+            for k in range(count[i]):
+                j = nbr[i, k]
+                if body[j] == bi:
+                    g = fo.elastic_pair_force(Vi * volume[j], P, Finv, x[j] - xi, h, c_el)
+                    wp.atomic_add(f, j, g)
+                    fi -= g
+        elif guard[i] == 0:
+            # The moments from their own function: the inverses must not see a loop
+            # accumulator (docs/method.md, Warp pitfall 1).
+            A, B, C, D, E, same = fn.moment_sums(i, x, x, body, nbr, count[i], h)
+            K = fn.curvature_projection(A, C, D)
+            M = fo.variational_map(Vi, P, F[i], fn.corrected_moment(A, C, K))
+            c6 = sm.poly6_coef(h)
+            for k in range(count[i]):
+                j = nbr[i, k]
+                if body[j] == bi:
+                    g = fn.variational_pair_force(M, K, x[j] - xi, h, c6)
+                    wp.atomic_sub(f, j, g)
+                    fi += g
+        wp.atomic_add(f, i, fi)
+
+    return types.SimpleNamespace(update_deformation=update_deformation,
+                                 update_deformation_adjoint=update_deformation_adjoint, elastic_forces=elastic_forces)
+
+
+def launch_elastic_forces(model, state_in, state_out):
+    """``forces.launch_elastic_forces`` with the corrected fit's variational force; under a
+    tape Warp's generated adjoint (as the linear fit's non-fused path for that force)."""
+    S = model.scalar
+    wp.launch(
+        kernels(S).elastic_forces, model.particle_count,
+        [state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
+         state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
+         state_out.F_inv, S(model.support_radius)],
+        [state_out.force], device=model.device,
+    )
+
+
+def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint: bool = True):
+    """``deformation.launch_update_deformation`` with the corrected fit; under a tape the
+    backward runs ``update_deformation_adjoint`` (``hand_adjoint=False``: Warp's generated one)."""
+    k = kernels(model.scalar)
+    inputs = [
+        state_in.x, state_out.x, model.particle_body, state_out.neighbors, state_out.neighbor_count, state_out.guard,
+        state_out.F_flowed, model.scalar(model.support_radius),
+    ]
+    tape = deformation.recording_tape()
+    grads = (state_in.x, state_out.x, state_out.F_flowed, state_out.F)
+    if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
+        wp.launch(k.update_deformation, model.particle_count, inputs, [state_out.F, counters], device=model.device)
+        return
+    wp.launch(k.update_deformation, model.particle_count, inputs, [state_out.F, counters], device=model.device,
+              record_tape=False)
+
+    def adjoint():
+        wp.launch(
+            k.update_deformation_adjoint, model.particle_count,
+            inputs + [state_out.F.grad, state_in.x.grad, state_out.x.grad, state_out.F_flowed.grad],
+            device=model.device, record_tape=False,
+        )
+
+    tape.record_func(adjoint, list(grads))
