@@ -325,7 +325,7 @@ def test_silhouette_only_diagnostics_flag_the_yield_stress():
     At the fit's end point the loss is curved in Y (the Gauss-Newton error alone said 1.5 %
     before silhouette pixels were counted per splat area), but moving Y by a factor 1.5
     changes the chi-square by less than 1 (measured 0.34): the diagnostics must say Y is
-    not determined, and the flow rate is."""
+    not determined, and the flow rate is. (Measured at splat opacity 0.5, the default then.)"""
     front = PinholeCamera(48, 48, 80.0, 80.0, 23.5, 23.5, np.diag([1.0, -1.0, -1.0]), [0.0, 0.05, 0.5], "front")
     top = PinholeCamera(48, 48, 80.0, 80.0, 23.5, 23.5, [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]],
                         [0.0, 0.0, 0.5], "top")
@@ -333,9 +333,9 @@ def test_silhouette_only_diagnostics_flag_the_yield_stress():
     model = _drop(100.0, 10.0)
     dt, steps, frames = model.stable_dt(), 100, [50, 100]
     xs = Rollout(model, steps, dt, frames=frames).forward()
-    masks = {f: [(soft_silhouette(np.asarray(x, dtype=np.float64), c, 0.01) > 0.5).astype(float) for c in cams]
+    masks = {f: [(soft_silhouette(np.asarray(x, dtype=np.float64), c, 0.01, 0.5) > 0.5).astype(float) for c in cams]
              for f, x in zip(frames, xs)}
-    d = diagnose(_drop(188.0, 9.82), SilhouetteLoss(masks, cams, radius=0.01), ["yield_stress", "flow_rate"],
+    d = diagnose(_drop(188.0, 9.82), SilhouetteLoss(masks, cams, radius=0.01, opacity=0.5), ["yield_stress", "flow_rate"],
                  steps=steps, dt=dt)
     assert d.undetermined == ["yield_stress"], d.summary()
     assert any("factor 1.5 changes the chi-square by only" in w for w in d.warnings)

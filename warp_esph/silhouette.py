@@ -27,7 +27,7 @@ Camera file (JSON)::
     {"cameras": [{"name": "front", "width": 64, "height": 48,
                   "fx": 80, "fy": 80, "cx": 31.5, "cy": 23.5,      # or "K": 3x3
                   "R": [[1,0,0],[0,-1,0],[0,0,-1]], "t": [0, 0.1, 0.6]}],
-     "radius": 0.01, "opacity": 0.5}                                 # optional
+     "radius": 0.01, "opacity": 0.9}                                 # optional
 
 Masks: an image (PNG, ...) or ``.npy`` ``(height, width)`` for one camera (nonzero or
 > 0.5 of the maximum: inside), or an ``.npz`` with one array per camera and frame named
@@ -56,6 +56,9 @@ __all__ = ["PinholeCamera", "SilhouetteLoss", "load_cameras", "load_masks", "sof
 WINDOW_SIGMAS = 4.0
 #: Largest window half-width in pixels (a particle nearer than this blurs over the image).
 MAX_WINDOW = 64
+#: Splat opacity: a body a few particles thick must reach full occupancy inside, or the
+#: loss rewards a wider, softer body (docs/fitting.md, silhouette fits).
+DEFAULT_OPACITY = 0.9
 
 
 @dataclasses.dataclass
@@ -107,6 +110,7 @@ class PinholeCamera:
         z = x[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             return self.fx * x[:, 0] / z + self.cx, self.fy * x[:, 1] / z + self.cy, z
+
 
 
 def load_cameras(path) -> tuple[list[PinholeCamera], dict]:
@@ -188,7 +192,7 @@ def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None)
     return {frame: [_mask_array(a, p)]}
 
 
-def soft_silhouette(X: np.ndarray, camera: PinholeCamera, radius: float, opacity: float = 0.5) -> np.ndarray:
+def soft_silhouette(X: np.ndarray, camera: PinholeCamera, radius: float, opacity: float = DEFAULT_OPACITY) -> np.ndarray:
     """The soft silhouette ``O`` ``(height, width)`` of points ``X`` (numpy, float64;
     the same splats and window as the loss's kernels)."""
     u, v, z = camera.project(X)
@@ -271,11 +275,12 @@ class SilhouetteLoss(Loss):
     ``masks``: for each frame (step index) one mask ``(height, width)`` per camera:
     ``{step: [mask, ...]}``, or a list of per-camera lists with ``frames``. ``cameras``:
     ``PinholeCamera`` list (or a camera JSON file). ``radius`` (m): splat radius, about
-    half a particle spacing; ``opacity`` in (0, 1). ``noise``: the residual noise for
+    half a particle spacing; ``opacity`` in (0, 1), default 0.9 (with 0.5 a body a few particles
+    thick never fills its mask, so a softer, wider body always lowers the loss: docs/fitting.md). ``noise``: the residual noise for
     ``warp_esph.diagnostics``, in occupancy units (default 0.1).
     """
 
-    def __init__(self, masks, cameras, radius: float, frames=None, opacity: float = 0.5, weight: float = 1.0,
+    def __init__(self, masks, cameras, radius: float, frames=None, opacity: float = DEFAULT_OPACITY, weight: float = 1.0,
                  particles=None, noise: float = 0.1):
         if isinstance(cameras, (str, os.PathLike)):
             cameras, _ = load_cameras(cameras)
@@ -397,7 +402,7 @@ def load_silhouette_target(cameras_path, masks_path, frames_spec, frames: int, s
     """The silhouette loss of the ``warp-esph fit`` command: cameras from ``cameras_path``,
     masks from ``masks_path`` at rendered frames (an image: ``frames_spec`` or the last
     frame), with ``substeps`` steps per frame. The splat radius is the file's ``radius``
-    (required: about half a particle spacing) and the opacity its ``opacity`` (default 0.5)."""
+    (required: about half a particle spacing) and the opacity its ``opacity`` (default 0.9)."""
     cameras, options = load_cameras(cameras_path)
     frame = int(frames_spec) if frames_spec is not None else frames
     masks = load_masks(masks_path, cameras, frame)
@@ -407,4 +412,4 @@ def load_silhouette_target(cameras_path, masks_path, frames_spec, frames: int, s
     if "radius" not in options:
         raise ValueError(f"camera file {cameras_path} is not allowed: give the splat 'radius' in m (about half a particle spacing)")
     return SilhouetteLoss({f * substeps: m for f, m in masks.items()}, cameras, radius=float(options["radius"]),
-                          opacity=float(options.get("opacity", 0.5)))
+                          opacity=float(options.get("opacity", DEFAULT_OPACITY)))
