@@ -34,8 +34,8 @@ No display, no GPU, no OpenGL: every frame is rasterised with vectorised numpy.
   rendered frames so it does not flicker.
 
 ``render_usd(path, output, ...)`` writes PNG frames into a folder, one PNG (several frames
-side by side when more than one is chosen), an animated GIF, or an MP4 (only where the
-``ffmpeg`` program is on the PATH).
+side by side when more than one is chosen), an animated GIF, or an MP4 (where the
+``ffmpeg`` program is on the PATH, or the ``mp4`` extra installed the one ``imageio-ffmpeg`` bundles).
 """
 
 from __future__ import annotations
@@ -979,7 +979,19 @@ def output_kind(output) -> str:
 
 
 def ffmpeg_path() -> str | None:
-    return shutil.which("ffmpeg")
+    """The ``ffmpeg`` on the PATH, else the one the ``imageio-ffmpeg`` wheel bundles
+    (``pip install 'warp-esph[mp4]'``), else ``None``."""
+    found = shutil.which("ffmpeg")
+    if found is not None:
+        return found
+    try:
+        import imageio_ffmpeg  # noqa: PLC0415
+    except ImportError:
+        return None
+    try:
+        return imageio_ffmpeg.get_ffmpeg_exe()
+    except RuntimeError:  # the wheel has no binary for this platform
+        return None
 
 
 def _sheet(images: list[Image.Image], columns: int) -> Image.Image:
@@ -1032,7 +1044,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     kind = output_kind(out)
     if kind == "mp4" and ffmpeg_path() is None:
         raise ValueError(f"output = {out!r} is not allowed: writing .mp4 needs the ffmpeg program, which is not on "
-                         f"this machine's PATH (install it, e.g. 'apt-get install ffmpeg'); write a .gif or a folder "
+                         f"this machine's PATH (install it, e.g. 'apt-get install ffmpeg', or pip install 'warp-esph[mp4]'); write a .gif or a folder "
                          f"of PNG frames instead")
     if frames is None and kind == "png":
         frames = "last"
