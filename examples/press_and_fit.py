@@ -183,8 +183,7 @@ def fit_stiffness(E_true=2.0e4, E_start=1.0e4, iterations=8):
 
 
 if __name__ == "__main__":
-    wp.config.log_level = wp.LOG_WARNING  # before wp.init(): no start-up banner
-    wp.init()
+    we.init_warp()  # no start-up banner, no native note about a missing CUDA driver
     depth = optimise_press()
     print(f"press depth: {1e3 * depth:.2f} mm")
     E = fit_stiffness()

@@ -246,3 +246,25 @@ def test_subprocess_run_and_bad_input(tmp_path):
     bad = _run_subprocess("warp_esph", "run", "typo.toml", "--no-progress", cwd=tmp_path)
     assert bad.returncode == 2
     assert_one_line_error(bad.stderr, "'centre'", "did you mean 'center'")
+
+
+def test_init_warp_holds_back_only_the_native_cuda_note(capfd):
+    """``we.init_warp()`` (the notebooks' and the CLI's start): a Python process starting Warp
+    this way writes nothing on stderr on a CPU machine, where a bare ``wp.init()`` writes
+    Warp's native CUDA-driver note; other native output still reaches stderr."""
+    from warp_esph.startup import _native_notes
+
+    notes = _native_notes(lambda: os.write(2, b"native note A\nWarp CUDA warning: no driver\n"))
+    assert notes == ["native note A", "Warp CUDA warning: no driver"]
+    os.write(2, b"after\n")  # fd 2 is back where it was
+    assert capfd.readouterr().err == "after\n"
+
+    code = "import warp as wp, warp_esph as we; print(len(we.init_warp())); print(wp.get_device())"
+    quiet = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert quiet.returncode == 0, quiet.stderr
+    assert "CUDA" not in quiet.stderr and "Warp" not in quiet.stderr and "Warp" not in quiet.stdout
+    bare = subprocess.run([sys.executable, "-c", "import warp as wp; wp.config.log_level = wp.LOG_WARNING; wp.init()"],
+                          capture_output=True, text=True, timeout=120)
+    held = int(quiet.stdout.split()[0])
+    # Whatever a bare start prints natively is what init_warp held back (none on a GPU machine).
+    assert held == len([line for line in bare.stderr.splitlines() if line.strip()])

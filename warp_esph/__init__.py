@@ -21,12 +21,12 @@ _EXPORTS = {
     "Model": ".model", "State": ".model", "Body": ".model",
     "simulate": ".simulate", "SimulationError": ".simulate",
     "Solver": ".sim.solver", "GUARD_NAMES": ".sim.solver",
-    "UsdWriter": ".usd",
+    "UsdWriter": ".usd", "init_warp": ".startup",
 }
 
 __all__ = [
     "SceneBuilder", "finalize_worlds", "replicate_worlds", "Material", "MODELS", "PRESETS", "Model", "State", "Body", "Solver", "GUARD_NAMES",
-    "simulate", "SimulationError", "UsdWriter", "__version__",
+    "simulate", "SimulationError", "UsdWriter", "init_warp", "__version__",
 ]
 
 

@@ -18,7 +18,6 @@ import argparse
 import os
 import signal
 import sys
-import tempfile
 import warnings
 
 PROG = "warp-esph"
@@ -161,35 +160,13 @@ def _add_sweep_parser(sub) -> None:
 
 
 def _init_warp(device: str) -> None:
-    """Initialise Warp without its banner; keep its native stderr notes off the terminal.
+    """Initialise Warp without its banner; the native note a CPU machine prints about the
+    missing CUDA driver is held back for a CPU run and reported as a warning for a CUDA run
+    (``warp_esph.startup.init_warp``)."""
+    from .startup import init_warp  # noqa: PLC0415
 
-    Warp prints a note on stderr from native code when no CUDA driver is found; for a
-    CPU run that note is noise, for a CUDA run the failure is reported as an error.
-    """
-    import warp as wp  # noqa: PLC0415
-
-    wp.config.log_level = wp.LOG_WARNING
-    from warp._src import context  # noqa: PLC0415
-
-    if getattr(context, "runtime", None) is not None:
-        return
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except OSError:
-        wp.init()
-        return
-    with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), 2)
-        try:
-            wp.init()
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-        tmp.seek(0)
-        notes = tmp.read().decode(errors="replace").splitlines()
-    for note in notes:
-        if note.strip() and (device != "cpu" or "CUDA" not in note):
+    for note in init_warp(device, echo=False):
+        if device != "cpu" or "CUDA" not in note:
             print(f"{PROG}: warning: {_one_line(note)}", file=sys.stderr)
 
 

@@ -484,9 +484,9 @@ def _one_line(text) -> str:
 
 def _run_sample(scene, task: _Task) -> dict:
     """Run one sample in this process; never raises for a failed sample (it is a row)."""
-    from .cli import _init_warp  # noqa: PLC0415 (quiet Warp start, shared with the CLI)
+    from .startup import init_warp  # noqa: PLC0415 (quiet Warp start, shared with the CLI)
 
-    _init_warp(task.device)
+    init_warp(task.device)
     from .simulate import SimulationError, resolve_timestep, simulate  # noqa: PLC0415
     from .sim.solver import Solver  # noqa: PLC0415
 

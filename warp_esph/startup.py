@@ -1,0 +1,61 @@
+"""Starting Warp quietly: ``init_warp()`` for scripts, notebooks, the CLI and sweep workers.
+
+``wp.config.log_level`` silences what Warp's Python side prints at start-up (the banner, the
+kernel-cache line, module loads). One note does not pass through it: on a machine without a
+CUDA driver, Warp's native initialisation writes "could not find or load the NVIDIA CUDA
+driver" straight to the process's standard error, below Python. For a CPU run that note is
+noise (a notebook would carry it in its committed outputs); for a run that asked for a GPU it
+is the reason the run cannot go on. ``init_warp`` holds the native output back while Warp
+starts and decides which of the two it is.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+
+
+def _native_notes(init) -> list[str]:
+    """Run ``init()`` with file descriptor 2 sent to a temporary file; return its lines."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no real stderr (some embedded interpreters)
+        init()
+        return []
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        tmp.seek(0)
+        text = tmp.read().decode(errors="replace")
+    return [line for line in text.splitlines() if line.strip()]
+
+
+def init_warp(device: str | None = None, log_level: int | None = None, echo: bool = True) -> list[str]:
+    """Initialise Warp without its start-up lines; return the native notes it printed.
+
+    ``log_level`` (default ``wp.LOG_WARNING``) is set on ``wp.config`` before ``wp.init()``.
+    Native notes about a missing CUDA driver are held back when the run does not ask for a
+    GPU (``device`` None or ``"cpu"``); every other note (and those, for ``device="cuda..."``)
+    is echoed to ``sys.stderr`` when ``echo`` is true. Calling it again, or after Warp has
+    started, only sets the log level and returns ``[]``.
+    """
+    import warp as wp  # noqa: PLC0415 (importing this module must not load Warp)
+
+    wp.config.log_level = wp.LOG_WARNING if log_level is None else int(log_level)
+    from warp._src import context  # noqa: PLC0415
+
+    if getattr(context, "runtime", None) is not None:
+        return []
+    notes = _native_notes(wp.init)
+    wants_gpu = device is not None and str(device).startswith("cuda")
+    if echo:
+        for note in notes:
+            if wants_gpu or "CUDA" not in note:
+                print(note, file=sys.stderr)
+    return notes
