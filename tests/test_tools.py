@@ -686,3 +686,82 @@ def test_reaction_force_loss_on_one_world_of_a_rollout():
     assert value == pytest.approx(value1, rel=1e-12)
     assert g["mu"][0] == 0.0
     assert g["mu"][1] == pytest.approx(g1["mu"][0], rel=1e-9)
+
+
+# ------------------------------------------------------------ non-differentiable motions
+def test_a_scripted_motion_has_no_gradient_and_says_so_while_keyframes_and_velocity_do():
+    """``tools.Scripted`` is a host callable: a taped step warns that its motion gets no
+    gradient, and asking for that gradient is a ValueError, not silent zeros. The same press
+    given as ``tools.Velocity`` gets a non-zero gradient in the same taped run."""
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
+    b.add_box((-0.05, 0.03, 0.0), (0.06, 0.06, 0.06), _elastic(1e4), name="left")
+    b.add_box((0.05, 0.03, 0.0), (0.06, 0.06, 0.06), _elastic(1e4), name="right")
+    b.add_tool("plane", position=(0, 0.01, 0), name="floor")
+    b.add_tool("sphere", radius=0.02, name="scripted",
+               motion=tools.Scripted(lambda t: ((-0.05, 0.069 - 0.5 * t, 0.0), tools.IDENTITY)))
+    b.add_tool("sphere", radius=0.02, name="pressed", motion=tools.Velocity((0.0, -0.5, 0.0), position=(0.05, 0.069, 0.0)))
+    m = b.finalize(dtype=wp.float64, requires_grad=True)
+    s = we.Solver(m)
+    states = [m.state() for _ in range(6)]
+    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+    w = wp.array(np.ones((m.particle_count, 3)), dtype=wp.vec3d)
+    tape = wp.Tape()
+    with pytest.warns(UserWarning, match=r"\['scripted'\].*Scripted.*no gradient flows to their motion"):
+        with tape:
+            for k in range(5):
+                s.step(states[k], states[k + 1], 1e-3)
+            wp.launch(_loss_kernel, m.particle_count, [states[-1].x, w, states[-1].reaction_force, 0, 0.0], [loss])
+    tape.backward(loss)
+    # Both presses touched their blocks.
+    rf = states[-1].reaction_force.numpy()
+    assert abs(rf[m.tools.index("scripted")][1]) > 0 and abs(rf[m.tools.index("pressed")][1]) > 0
+    g = m.tools.motion_gradient("pressed")
+    assert abs(g["velocity"][1]) > 0
+    with pytest.raises(ValueError, match=r"'scripted' follows a tools.Scripted motion.*Keyframes or tools.Velocity"):
+        m.tools.motion_gradient("scripted")
+    # One warning per tool set, not one per step.
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with wp.Tape():
+            s.step(states[0], states[1], 1e-3)
+
+
+# ------------------------------------------------------- resting and sliding on a tool
+def _block_on_tool(shape, friction, velocity=(0.0, 0.0, 0.0)):
+    """A 3 x 3 x 3 elastic block whose bottom layer starts on a held tool: the top of a box,
+    or the apex of a sphere (R = 0.5 m)."""
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
+    b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), _elastic(1e5, viscosity=1.0), name="block", velocity=velocity)
+    if shape == "box":
+        b.add_tool("box", half_extents=(0.5, 0.05, 0.5), position=(0.0, 0.01 - 0.05, 0.0), friction=friction, name="support")
+    else:
+        b.add_tool("sphere", radius=0.5, position=(0.0, 0.01 - 0.5, 0.0), friction=friction, name="support")
+    m = b.finalize()
+    return m, we.Solver(m)
+
+
+def test_a_block_sticking_on_a_held_sphere_tool_does_not_creep():
+    """Friction 0.5 on the apex of a held sphere tool: relaxed, then 0.4 s left alone, no
+    particle moves sideways by more than 10 um, and the tool carries the weight. A particle
+    resting on a tool is stopped where its path enters it (the swept test); before the
+    tangential displacement was taken from the start of the path (``tangential_follow``),
+    each step moved a sticking particle back by the drift after that entry point, against
+    the tangential force (measured: 25 um sideways in 0.4 s, and growing; now 4 um)."""
+    m, s = _block_on_tool("sphere", 0.5)
+    a = _run(s, m, 2000, 2e-4, relax_after=0.0)
+    x1 = a.x.numpy().copy()
+    c = m.state()
+    forces = []
+    for _ in range(2000):
+        s.step(a, c, 2e-4)
+        a, c = c, a
+        forces.append(s.reaction_forces(a)["support"][0])
+    d = a.x.numpy() - x1
+    sideways = np.hypot(d[:, 0], d[:, 2]).max()
+    force = np.mean(forces, axis=0)
+    weight = m.particle_mass.numpy().sum() * G
+    print(f"largest sideways displacement over 0.4 s: {sideways:.2e} m; support force {force} N, weight {weight:.4f} N")
+    assert sideways < 1e-5
+    np.testing.assert_allclose(force, [0.0, weight, 0.0], atol=1e-2 * weight)
