@@ -78,10 +78,17 @@ def test_pinned_set_stays_exactly_where_held_and_a_moving_pin_follows_its_motion
     np.testing.assert_allclose(x[scripted] - c_s, x[carried] - c, atol=2e-6)
 
 
-def test_clamped_cantilever_bends_like_a_beam_and_the_clamp_carries_its_weight():
-    """Clamped at x < 0, free length L = 0.2 m, 5 x 5 cm section (5 particles across),
-    own weight. Static tip deflection vs Euler-Bernoulli + Timoshenko shear (kappa = 0.85)
-    evaluated at the tip particles' x; docs/tools.md gives the measured ratio."""
+@pytest.mark.parametrize("fit", ["linear", "curvature_corrected"])
+def test_clamped_cantilever_bends_like_a_beam_and_the_clamp_carries_its_weight(fit):
+    """Clamped at x < 0 (3 particle columns held: deeper than the support radius, so the
+    held particles' own fits are interior ones), 5 x 5 cm section (5 particles across), own
+    weight. Static tip deflection vs Euler-Bernoulli + Timoshenko shear (kappa = 0.85). The
+    theory's clamp line is the centre of the outermost held column (x = -dx/2), as the
+    beam's supports are particle centres: a held particle fixes its position only, and the
+    fits of the particles on both sides of x = 0 span the half spacing in between, so that
+    strip deforms (the free length is L + dx/2 = 20.5 cm; measured with the clamp line at
+    x = 0 instead: 1.39). With either fit it then agrees with the simply supported beam of
+    the same thickness (docs/validation.md, "Clamped cantilever")."""
     E, nu, rho, dx, L, t, nc = 1.0e6, 0.3, 1000.0, 0.01, 0.2, 0.05, 3
     b = we.SceneBuilder(spacing=dx)
     b.add_box((L / 2 - nc * dx / 2, t / 2, 0.0), (L + nc * dx, t, t), _elastic(E, nu, rho), name="beam")
@@ -89,25 +96,32 @@ def test_clamped_cantilever_bends_like_a_beam_and_the_clamp_carries_its_weight()
     m = b.finalize()
     x0 = m.particle_x0
     tip = np.nonzero(x0[:, 0] > x0[:, 0].max() - 0.5 * dx)[0]
-    s = we.Solver(m)
-    st = _run(s, m, 900, m.stable_dt(), relax_after=0.0)
+    s = we.Solver(m, fit=fit)
+    # The corrected fit settles later (docs/physics.md, "After the change").
+    st = _run(s, m, 900 if fit == "linear" else 1800, m.stable_dt(), relax_after=0.0)
     sag = st.x.numpy()[tip, 1].mean() - x0[tip, 1].mean()
-    xt = x0[tip, 0].mean()
+    clamp_line = x0[m.tools.pins[0].indices, 0].max()
+    assert clamp_line == pytest.approx(-dx / 2)
+    Lc, xt = L - clamp_line, x0[tip, 0].mean() - clamp_line
     A, I, G_ = t * t, t**4 / 12, E / (2 * (1 + nu))
     q = rho * G * A
-    ref = q * xt**2 * (6 * L * L - 4 * L * xt + xt * xt) / (24 * E * I) + q * (L * xt - xt * xt / 2) / (0.85 * G_ * A)
+    ref = q * xt**2 * (6 * Lc * Lc - 4 * Lc * xt + xt * xt) / (24 * E * I) + q * (Lc * xt - xt * xt / 2) / (0.85 * G_ * A)
     ratio = -sag / ref
     print(f"cantilever tip deflection / (Euler-Bernoulli + shear) = {ratio:.3f}")
     assert sag < 0.0
-    # The method is soft in bending at 5 particles across (measured 1.39; 1.47 at 8 across,
-    # docs/tools.md): order and sign, not the 25 % the brief hoped for.
-    assert 1.0 < ratio < 1.6
+    # The fit's bending deficit at 5 across, as the simply supported beam's at the same
+    # thickness (static solutions, docs/validation.md: cantilever 1.253 / 1.066, beam 5 thick
+    # 1.217 / 1.040, linear / corrected fit); measured here: 1.262 (900 steps) / 1.067 (1800).
+    if fit == "linear":
+        assert 1.15 < ratio < 1.35
+    else:
+        assert ratio == pytest.approx(1.0, abs=0.10)  # the beam tests' 10 %
     # The clamp's reaction is the beam's weight (static), and its moment the weight's moment
     # about the clamp's reference point (its pose position, the clamp centroid).
     force, torque = s.reaction_forces(st)["clamp"]
     weight = m.particle_mass.numpy().sum() * G
+    print(f"clamp force {force} N vs weight {weight:.4f} N")
     np.testing.assert_allclose(force, [0.0, weight, 0.0], atol=1e-2 * weight)
-    print(f"clamp force {force[1]:.4f} N vs weight {weight:.4f} N")
     xc = x0[m.tools.pins[0].indices].mean(axis=0)
     mass = m.particle_mass.numpy()
     arm = (mass * (st.x.numpy()[:, 0] - xc[0])).sum() / mass.sum()

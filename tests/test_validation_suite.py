@@ -152,18 +152,30 @@ def test_three_point_bending_is_soft_at_4_across_and_the_supports_carry_the_pin_
 
 @pytest.fixture(scope="module")
 def indented():
-    return validation.sphere_indentation(resolution=8)
+    """8 across, with the opt-in hourglass control ``Solver(hourglass=0.1)`` (docs/physics.md,
+    "Hourglass modes")."""
+    return validation.sphere_indentation(resolution=8, hourglass=0.1)
 
 
 def test_sphere_indentation_at_1_mm_within_10_percent_of_hertz(indented):
-    """Measured 1.062 x Hertz at 1 mm (contact radius 1.3 dx) and 1.251 x at 2 mm (1.8 dx),
-    exponent 1.74 for Hertz's 1.5, at 8 across; 12 across in docs/validation.md."""
+    """Measured 1.031 x Hertz at 1 mm (contact radius 1.3 dx) and 1.271 x at 2 mm (1.8 dx),
+    exponent 1.80 for Hertz's 1.5, at 8 across (without the control: 1.062, 1.251, 1.74);
+    12 across in docs/validation.md."""
     assert indented["ratios"][0] == pytest.approx(1.0, abs=0.10), indented["ratios"]
     assert 1.0 < indented["ratios"][1] < 1.4, indented["ratios"]
     assert 1.3 < indented["exponent"] < 2.0, indented["exponent"]
 
 
-@pytest.mark.xfail(strict=True, reason="under a sphere the particle columns at the apex slide sideways between their "
-                   "neighbours: held 0.1 s longer at 2 mm the force falls to 0.62 x Hertz (from 1.25 x) at 8 across")
 def test_sphere_indentation_force_holds_while_the_sphere_is_held(indented):
-    assert indented["late_ratio"] == pytest.approx(indented["ratios"][-1], rel=0.10)
+    """Held 0.1 s longer at 2 mm: measured 1.265 x Hertz against 1.271 x at the first reading
+    (without the control it fell to 0.63 x, next test)."""
+    assert indented["late_ratio"] == pytest.approx(indented["ratios"][-1], rel=0.03)
+
+
+def test_without_the_hourglass_control_the_lattice_under_a_held_sphere_gives_way():
+    """The cause of the decay, kept visible: the same indentation straight to 2 mm without
+    the control, the force 0.1 s later is well below its first reading (measured: 0.632 x
+    Hertz from 1.254 x): the layers under the apex take up the fit's zero-energy pattern."""
+    r = validation.sphere_indentation(resolution=8, depths=(0.002,))
+    print(f"without the control: {r['ratios'][-1]:.3f} then {r['late_ratio']:.3f} x Hertz")
+    assert r["late_ratio"] < 0.8 * r["ratios"][-1], (r["ratios"], r["late_ratio"])
