@@ -546,7 +546,7 @@ def three_point_stiffness(E: float, nu: float, L: float, t: float, kappa: float 
 
 
 def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, deflection: float = 0.0005,
-                        kappa: float = 0.85) -> dict:
+                        kappa: float = 0.85, hold: float = 0.2, hourglass: float = 0.0) -> dict:
     """A 24 x 4 x 4 cm beam (``resolution`` particles across its 4 cm) on two frictionless
     cylinder tools (r = 1 cm) 18 cm apart, a frictionless cylinder loading pin lowered
     ``deflection`` at mid-span in 0.1 s and held 0.2 s with kinetic damping; no gravity,
@@ -574,8 +574,8 @@ def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, 
     b.add_tool("cylinder", radius=r, half_height=t, name="pin", orientation=along_z,
                motion=tools.Keyframes([0.0, 0.1], [top, (0.0, yhi + r - deflection, 0.0)], [along_z, along_z]))
     model = b.finalize()
-    solver = we.Solver(model)
-    a, c, f = _relaxed_reaction(model, solver, ["pin", "support_left", "support_right"], 0.1, 0.2)
+    solver = we.Solver(model, hourglass=hourglass)
+    a, c, f = _relaxed_reaction(model, solver, ["pin", "support_left", "support_right"], 0.1, hold)
     x0 = model.particle_x0.astype(np.float64)
     x = a.x.numpy().astype(np.float64)
     core = np.abs(x0[:, 1] - 0.5 * (ylo + yhi)) < 0.5 * t - 0.75 * dx  # away from the loaded faces
