@@ -94,6 +94,12 @@ class Solver:
     with Warp's generated adjoint, its deformation update with a hand-written one) and
     cannot be combined with a comparison deformation model. The model's force fields
     (``fields.CompressionField``) act while active at ``state_in.time``.
+
+    ``hourglass`` (>= 0, default 0: off, not launched) is the strength ``c`` of the opt-in
+    control of the fit's zero-energy modes (``hourglass.py``; docs/physics.md, "Hourglass
+    modes"): for elastic solids under concentrated loads (a held sphere indenter keeps its
+    force with ``c = 0.1``); it measures ``F`` against the rest positions, so it would pull
+    a plastically flowed body back towards its rest shape.
     """
 
     def __init__(
