@@ -100,9 +100,11 @@ def beam(n: int = 6, span: int = 5, hdx: float = 2.0, fit: str = "paper", nu: fl
 
 
 def cantilever(n: int = 5, clamp_cols: int = 3, hdx: float = 2.0, fit: str = "paper", nu: float = 0.3,
-               kappa: float = 0.85, length_over_t: int = 4) -> float:
+               kappa: float = 0.85, length_over_t: int = 4, clamp_line: float = -0.5) -> float:
     """tests/test_tools.py's cantilever (clamp: the particles at x < 0 held): tip deflection /
-    (Euler-Bernoulli + shear) at the tip particles' x."""
+    (Euler-Bernoulli + shear) at the tip particles' x, the theory's clamp at ``x =
+    clamp_line`` (dx = 1): the centre of the outermost held column, -0.5 (as the tools test
+    reads it), or 0, the held region's face."""
     L = length_over_t * n
     k, j, l = np.meshgrid(np.arange(L + clamp_cols), np.arange(n), np.arange(n), indexing="ij")
     x = np.stack([k - clamp_cols + 0.5, j + 0.5, l - (n - 1) / 2], -1).reshape(-1, 3).astype(float)
@@ -115,9 +117,9 @@ def cantilever(n: int = 5, clamp_cols: int = 3, hdx: float = 2.0, fit: str = "pa
     u = np.zeros(3 * len(x))
     u[free] = np.linalg.solve(K[np.ix_(free, free)], f[free])
     tip = x[:, 0] > x[:, 0].max() - 0.5
-    xt, t = x[tip, 0].mean(), float(n)
+    xt, t, Lc = x[tip, 0].mean() - clamp_line, float(n), L - clamp_line
     A, I = t * t, t**4 / 12
-    ref = A * xt**2 * (6 * L * L - 4 * L * xt + xt * xt) / (24 * I) + A * (L * xt - xt * xt / 2) / (kappa * mu * A)
+    ref = A * xt**2 * (6 * Lc * Lc - 4 * Lc * xt + xt * xt) / (24 * I) + A * (Lc * xt - xt * xt / 2) / (kappa * mu * A)
     return -u[1::3][tip].mean() / ref
 
 
@@ -129,5 +131,7 @@ if __name__ == "__main__":
             print(f"{fit:9s} beam 6 thick, span 5 t, h {hdx} dx: {beam(6, 5, hdx, fit):.4f}", flush=True)
         print(f"{fit:9s} beam 4 thick, span 10 t: {beam(4, 10, 2.0, fit):.4f}", flush=True)
         for n in (5, 8):
-            print(f"{fit:9s} cantilever {n} across: {cantilever(n, 3, 2.0, fit):.4f}", flush=True)
+            for line in (0.0, -0.5):
+                print(f"{fit:9s} cantilever {n} across, clamp line {line:+.1f} dx: {cantilever(n, 3, 2.0, fit, clamp_line=line):.4f}",
+                      flush=True)
     print(f"centroid  beam 6 thick, span 5 t: {beam(6, 5, 2.0, 'centroid'):.4f}")

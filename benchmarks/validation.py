@@ -487,7 +487,7 @@ def hertz_force(E: float, nu: float, R: float, depth: float) -> float:
 
 
 def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.0e5, nu: float = 0.3,
-                       R: float = 0.04, hold: float = 0.015, late: float = 0.1) -> dict:
+                       R: float = 0.04, hold: float = 0.015, late: float = 0.1, hourglass: float = 0.0) -> dict:
     """A frictionless rigid sphere (R = 4 cm) pressed into a block 10 x 4 x 10 cm
     (``resolution`` particles across its 4 cm height) standing on a plane tool that holds its
     base (mu = 2); no gravity, pressure off, variational force. The sphere starts touching
@@ -519,7 +519,7 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
     b.add_tool("sphere", radius=R, name="indenter",
                motion=tools.Keyframes(times, [(0.0, h, 0.0) for h in heights]))
     model = b.finalize()
-    solver = we.Solver(model)
+    solver = we.Solver(model, hourglass=hourglass)
     a = c = None
     forces = []
     for _ in depths:
@@ -529,7 +529,7 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
     a, c, f = _relaxed_reaction(model, solver, ["indenter"], 0.0, late, a, c, average=50)
     theory = [hertz_force(E, nu, R, dep) for dep in depths]
     exponent = math.log(forces[1] / forces[0]) / math.log(depths[1] / depths[0]) if len(depths) > 1 else float("nan")
-    return {"case": "indentation", "resolution": resolution, "particles": model.particle_count, "R": R,
+    return {"case": "indentation", "resolution": resolution, "hourglass": hourglass, "particles": model.particle_count, "R": R,
             "depths": list(depths), "forces": forces, "theory": theory,
             "ratios": [f / t for f, t in zip(forces, theory)], "exponent": exponent,
             "contact_radius_over_dx": [math.sqrt(R * dep) / dx for dep in depths], "kinetic_energy": ke,
@@ -546,7 +546,7 @@ def three_point_stiffness(E: float, nu: float, L: float, t: float, kappa: float 
 
 
 def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, deflection: float = 0.0005,
-                        kappa: float = 0.85) -> dict:
+                        kappa: float = 0.85, hold: float = 0.2, hourglass: float = 0.0) -> dict:
     """A 24 x 4 x 4 cm beam (``resolution`` particles across its 4 cm) on two frictionless
     cylinder tools (r = 1 cm) 18 cm apart, a frictionless cylinder loading pin lowered
     ``deflection`` at mid-span in 0.1 s and held 0.2 s with kinetic damping; no gravity,
@@ -574,8 +574,8 @@ def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, 
     b.add_tool("cylinder", radius=r, half_height=t, name="pin", orientation=along_z,
                motion=tools.Keyframes([0.0, 0.1], [top, (0.0, yhi + r - deflection, 0.0)], [along_z, along_z]))
     model = b.finalize()
-    solver = we.Solver(model)
-    a, c, f = _relaxed_reaction(model, solver, ["pin", "support_left", "support_right"], 0.1, 0.2)
+    solver = we.Solver(model, hourglass=hourglass)
+    a, c, f = _relaxed_reaction(model, solver, ["pin", "support_left", "support_right"], 0.1, hold)
     x0 = model.particle_x0.astype(np.float64)
     x = a.x.numpy().astype(np.float64)
     core = np.abs(x0[:, 1] - 0.5 * (ylo + yhi)) < 0.5 * t - 0.75 * dx  # away from the loaded faces
@@ -715,6 +715,7 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
         runs.append(("plate_compression", {"resolution": 4}))
         runs.append(("three_point_bending", {"resolution": 4}))
         runs.append(("sphere_indentation", {"resolution": 8}))
+        runs.append(("sphere_indentation", {"resolution": 8, "hourglass": 0.1}))
         for label, _ in _stability_materials():
             for f in FORCES:
                 runs.append(("stability", {"label": label, "elastic_force": f, "duration": 0.3}))
@@ -733,7 +734,8 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
         runs.append(("plate_compression", {"resolution": res}))
         runs.append(("three_point_bending", {"resolution": res}))
     for res in (8, 12):
-        runs.append(("sphere_indentation", {"resolution": res}))
+        for hg in (0.0, 0.1):
+            runs.append(("sphere_indentation", {"resolution": res, "hourglass": hg}))
     for res in (8, 12):
         for S in SLUMP_S:
             for f in FORCES:

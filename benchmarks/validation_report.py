@@ -262,20 +262,21 @@ def _lab_tests(results) -> str:
                    + _table(["across", "particles", "force (N)", "E A eps (N)", "ratio", "lateral strain", "nu eps", "ratio"],
                             [[r["resolution"], r["particles"], r["force"], r["force_theory"], r["force_ratio"],
                               r["lateral_strain"], r["lateral_theory"], r["lateral_ratio"]] for r in pl]))
-    ind = sorted((r for r in results if r["case"] == "indentation"), key=lambda r: r["resolution"])
+    ind = sorted((r for r in results if r["case"] == "indentation"), key=lambda r: (r["resolution"], r.get("hourglass", 0.0)))
     if ind:
         rows = []
         for r in ind:
             for k, d in enumerate(r["depths"]):
-                rows.append([r["resolution"], r["particles"], 1e3 * d, r["contact_radius_over_dx"][k], r["forces"][k],
+                rows.append([r["resolution"], r.get("hourglass", 0.0), r["particles"], 1e3 * d, r["contact_radius_over_dx"][k], r["forces"][k],
                              r["theory"][k], r["ratios"][k], r["exponent"] if k == len(r["depths"]) - 1 else "",
                              r["late_ratio"] if k == len(r["depths"]) - 1 else ""])
         out.append("### Sphere indentation: force against Hertz, F = 4/3 E/(1 - nu^2) sqrt(R) d^1.5\n\n"
                    "`sphere_indentation`: a frictionless sphere, R = 4 cm, lowered into a 10 x 4 x 10 cm block (E = 1e5 Pa) "
                    "on a plane tool that holds its base, to each depth in 0.02 s, then held 0.015 s with kinetic damping; "
                    "no gravity. Exponent: log(F2/F1) / log(d2/d1) (Hertz: 1.5). Late: force / Hertz after a further "
-                   "0.1 s at the deepest (see Notes: the columns under the apex give way).\n\n"
-                   + _table(["across", "particles", "depth (mm)", "contact radius / dx", "force (N)", "Hertz (N)", "ratio",
+                   "0.1 s at the deepest (see Notes: the columns under the apex give way without the hourglass "
+                   "control). hourglass: `Solver(hourglass=c)`, docs/physics.md, \"Hourglass modes\".\n\n"
+                   + _table(["across", "hourglass", "particles", "depth (mm)", "contact radius / dx", "force (N)", "Hertz (N)", "ratio",
                              "exponent", "late ratio"], rows))
     be = sorted((r for r in results if r["case"] == "bending"), key=lambda r: r["resolution"])
     if be:

@@ -34,8 +34,8 @@ def _model(params=None, velocity_scale=20.0):
     return model
 
 
-def _rollout_loss(model, weights, grad_of=(), fit="linear", hand_adjoints=True):
-    solver = we.Solver(model, fit=fit)
+def _rollout_loss(model, weights, grad_of=(), fit="linear", hand_adjoints=True, hourglass=0.0):
+    solver = we.Solver(model, fit=fit, hourglass=hourglass)
     solver.hand_adjoints = hand_adjoints
     states = [model.state() for _ in range(STEPS + 1)]
     # A pre-worked material (alpha > 0), so the loss reaches the hardening modulus.
@@ -216,3 +216,40 @@ def test_curvature_corrected_fit_gradients_match_central_differences(weights, na
     fd = (plus - minus) / (2 * eps)
     assert abs(fd) > 1e-11, f"the loss does not reach {name}"
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+
+
+def _hourglass_model(params=None):
+    """The variational block with a random velocity on top of the stretch: non-affine, so
+    the hourglass control (which an affine motion does not see) acts."""
+    m = _model({"elastic_force": "variational", **(params or {})})
+    m.particle_v0 = m.particle_v0 + np.random.default_rng(11).normal(scale=0.05, size=m.particle_v0.shape)
+    return m
+
+
+@pytest.mark.parametrize("name", ["mu", "v0"])
+def test_hourglass_control_gradients_match_central_differences(weights, name):
+    """``Solver(hourglass=c)`` (``hourglass.py``, Warp's generated adjoint; it reads the
+    stored F and mu) against central differences, with a control strong enough to move
+    the loss."""
+    c = 0.5
+    loss_on = _rollout_loss(_hourglass_model(), weights, hourglass=c)[0]
+    loss_off = _rollout_loss(_hourglass_model(), weights)[0]
+    assert abs(loss_on - loss_off) > 1e-6 * abs(loss_off), (loss_on, loss_off)
+    _, grads = _rollout_loss(_hourglass_model(), weights, grad_of=(name,), hourglass=c)
+    if name == "v0":
+        i, comp, eps = 7, 1, 1e-6
+
+        def loss_with(delta):
+            m = _hourglass_model()
+            m.particle_v0[i, comp] += delta
+            return _rollout_loss(m, weights, hourglass=c)[0]
+
+        fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
+        assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
+        return
+    base = _model().materials[0].mu
+    eps = 1e-5 * base
+    plus = _rollout_loss(_hourglass_model({"mu": base + eps}), weights, hourglass=c)[0]
+    minus = _rollout_loss(_hourglass_model({"mu": base - eps}), weights, hourglass=c)[0]
+    fd = (plus - minus) / (2 * eps)
+    assert grads["mu"][0] == pytest.approx(fd, rel=1e-4)

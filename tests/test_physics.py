@@ -132,6 +132,40 @@ def test_rigid_motion_gives_no_force_and_f_stays_a_rotation():
     assert out.alpha.numpy().max() == 0.0
 
 
+def test_hourglass_control_leaves_affine_motion_alone_conserves_momentum_and_is_validated():
+    """``Solver(hourglass=c)`` (``hourglass.py``): an affine motion (stretch, shear and
+    rotation rate, from a rotated, strained F) has ``r_ij = x_ij - F X_ij = 0``, so the
+    control adds no force; a non-affine one gets equal and opposite pair forces (the sum of
+    the forces does not change); a negative strength is a ValueError."""
+    rng = np.random.default_rng(4)
+    model = _block_model(n=(4, 4, 4))
+    Fa = _rotation(rng) @ (np.eye(3) + 0.05 * rng.normal(size=(3, 3)))
+    x0 = model.particle_x0
+
+    def one_step(c, jitter=0.0):
+        state = model.state()
+        state.x.assign(x0 @ Fa.T + jitter * rng.normal(size=x0.shape))
+        state.F.assign(np.tile(Fa, (model.particle_count, 1, 1)))
+        state.v.assign(x0 @ (0.5 * rng.normal(size=(3, 3))).T)
+        out, _ = _run(model, 1, 1e-4, state=state, solver=we.Solver(model, hourglass=c))
+        return out.force.numpy()
+
+    rng = np.random.default_rng(5)
+    f_off = one_step(0.0)
+    rng = np.random.default_rng(5)
+    f_on = one_step(0.5)
+    scale = np.abs(f_off).max()
+    assert np.abs(f_on - f_off).max() < 1e-9 * scale
+    rng = np.random.default_rng(6)
+    g_off = one_step(0.0, jitter=1e-4)
+    rng = np.random.default_rng(6)
+    g_on = one_step(0.5, jitter=1e-4)
+    assert np.abs(g_on - g_off).max() > 1e-3 * scale  # a non-affine offset is pushed back
+    np.testing.assert_allclose((g_on - g_off).sum(axis=0), 0.0, atol=1e-12 * scale)
+    with pytest.raises(ValueError, match="hourglass"):
+        we.Solver(model, hourglass=-0.1)
+
+
 def test_linear_momentum_conserved_and_angular_momentum_measured():
     """Isolated body, pressure on, no gravity or colliders: sum(m v) exact to round-off.
 

@@ -19,11 +19,11 @@ def _elastic(E, nu=0.3, rho=1000.0, **kw):
     return we.Material.from_young(E, nu, density=rho, pressure_stiffness=0.0, elastic_force="variational", **kw)
 
 
-def _run(solver, model, steps, dt, relax_after=None, every=10):
-    """Steps with two swapped states; after time ``relax_after`` kinetic damping (all
-    velocities zeroed whenever the kinetic energy has dropped since the last check, the
-    dynamic-relaxation way to the static solution)."""
-    a, b = model.state(), model.state()
+def _run(solver, model, steps, dt, relax_after=None, every=10, state=None):
+    """Steps with two swapped states (from ``state``, else the rest state); after time
+    ``relax_after`` kinetic damping (all velocities zeroed whenever the kinetic energy has
+    dropped since the last check, the dynamic-relaxation way to the static solution)."""
+    a, b = (state, model.state()) if state is not None else (model.state(), model.state())
     mass = model.particle_mass.numpy()[:, None]
     ke_prev = 0.0
     for k in range(steps):
@@ -78,10 +78,17 @@ def test_pinned_set_stays_exactly_where_held_and_a_moving_pin_follows_its_motion
     np.testing.assert_allclose(x[scripted] - c_s, x[carried] - c, atol=2e-6)
 
 
-def test_clamped_cantilever_bends_like_a_beam_and_the_clamp_carries_its_weight():
-    """Clamped at x < 0, free length L = 0.2 m, 5 x 5 cm section (5 particles across),
-    own weight. Static tip deflection vs Euler-Bernoulli + Timoshenko shear (kappa = 0.85)
-    evaluated at the tip particles' x; docs/tools.md gives the measured ratio."""
+@pytest.mark.parametrize("fit", ["linear", "curvature_corrected"])
+def test_clamped_cantilever_bends_like_a_beam_and_the_clamp_carries_its_weight(fit):
+    """Clamped at x < 0 (3 particle columns held: deeper than the support radius, so the
+    held particles' own fits are interior ones), 5 x 5 cm section (5 particles across), own
+    weight. Static tip deflection vs Euler-Bernoulli + Timoshenko shear (kappa = 0.85). The
+    theory's clamp line is the centre of the outermost held column (x = -dx/2), as the
+    beam's supports are particle centres: a held particle fixes its position only, and the
+    fits of the particles on both sides of x = 0 span the half spacing in between, so that
+    strip deforms (the free length is L + dx/2 = 20.5 cm; measured with the clamp line at
+    x = 0 instead: 1.39). With either fit it then agrees with the simply supported beam of
+    the same thickness (docs/validation.md, "Clamped cantilever")."""
     E, nu, rho, dx, L, t, nc = 1.0e6, 0.3, 1000.0, 0.01, 0.2, 0.05, 3
     b = we.SceneBuilder(spacing=dx)
     b.add_box((L / 2 - nc * dx / 2, t / 2, 0.0), (L + nc * dx, t, t), _elastic(E, nu, rho), name="beam")
@@ -89,29 +96,66 @@ def test_clamped_cantilever_bends_like_a_beam_and_the_clamp_carries_its_weight()
     m = b.finalize()
     x0 = m.particle_x0
     tip = np.nonzero(x0[:, 0] > x0[:, 0].max() - 0.5 * dx)[0]
-    s = we.Solver(m)
-    st = _run(s, m, 900, m.stable_dt(), relax_after=0.0)
+    s = we.Solver(m, fit=fit)
+    # The corrected fit settles later (docs/physics.md, "After the change").
+    st = _run(s, m, 900 if fit == "linear" else 1800, m.stable_dt(), relax_after=0.0)
     sag = st.x.numpy()[tip, 1].mean() - x0[tip, 1].mean()
-    xt = x0[tip, 0].mean()
+    clamp_line = x0[m.tools.pins[0].indices, 0].max()
+    assert clamp_line == pytest.approx(-dx / 2)
+    Lc, xt = L - clamp_line, x0[tip, 0].mean() - clamp_line
     A, I, G_ = t * t, t**4 / 12, E / (2 * (1 + nu))
     q = rho * G * A
-    ref = q * xt**2 * (6 * L * L - 4 * L * xt + xt * xt) / (24 * E * I) + q * (L * xt - xt * xt / 2) / (0.85 * G_ * A)
+    ref = q * xt**2 * (6 * Lc * Lc - 4 * Lc * xt + xt * xt) / (24 * E * I) + q * (Lc * xt - xt * xt / 2) / (0.85 * G_ * A)
     ratio = -sag / ref
     print(f"cantilever tip deflection / (Euler-Bernoulli + shear) = {ratio:.3f}")
     assert sag < 0.0
-    # The method is soft in bending at 5 particles across (measured 1.39; 1.47 at 8 across,
-    # docs/tools.md): order and sign, not the 25 % the brief hoped for.
-    assert 1.0 < ratio < 1.6
+    # The fit's bending deficit at 5 across, as the simply supported beam's at the same
+    # thickness (static solutions, docs/validation.md: cantilever 1.253 / 1.066, beam 5 thick
+    # 1.217 / 1.040, linear / corrected fit); measured here: 1.262 (900 steps) / 1.067 (1800).
+    if fit == "linear":
+        assert 1.15 < ratio < 1.35
+    else:
+        assert ratio == pytest.approx(1.0, abs=0.10)  # the beam tests' 10 %
     # The clamp's reaction is the beam's weight (static), and its moment the weight's moment
     # about the clamp's reference point (its pose position, the clamp centroid).
     force, torque = s.reaction_forces(st)["clamp"]
     weight = m.particle_mass.numpy().sum() * G
+    print(f"clamp force {force} N vs weight {weight:.4f} N")
     np.testing.assert_allclose(force, [0.0, weight, 0.0], atol=1e-2 * weight)
-    print(f"clamp force {force[1]:.4f} N vs weight {weight:.4f} N")
     xc = x0[m.tools.pins[0].indices].mean(axis=0)
     mass = m.particle_mass.numpy()
     arm = (mass * (st.x.numpy()[:, 0] - xc[0])).sum() / mass.sum()
     assert torque[2] == pytest.approx(weight * arm, rel=0.02)
+
+
+def test_cantilever_8_across_settles_with_the_hourglass_control():
+    """The 8-across cantilever (same beam, dx = 6.25 mm, 2240 particles) kept sagging under
+    kinetic damping without the control: 1.18, 1.38, 1.43, 1.43 x the theory (clamp line at
+    the held centres) at 900, 1800, 3600, 5400 steps, past the static solution's 1.099. With
+    ``Solver(hourglass=0.1)`` it settles: 1.101, 1.105, 1.095, 1.096 (docs/physics.md,
+    "Hourglass modes"), as the beam of that thickness (8 thick: 1.084 static)."""
+    E, nu, rho, L, t, nc, n = 1.0e6, 0.3, 1000.0, 0.2, 0.05, 3, 8
+    dx = t / n
+    b = we.SceneBuilder(spacing=dx)
+    b.add_box((L / 2 - nc * dx / 2, t / 2, 0.0), (L + nc * dx, t, t), _elastic(E, nu, rho), name="beam")
+    b.pin(region=((-1, -1, -1), (-1e-9, 1, 1)), name="clamp")
+    m = b.finalize()
+    x0 = m.particle_x0
+    tip = np.nonzero(x0[:, 0] > x0[:, 0].max() - 0.5 * dx)[0]
+    clamp_line = x0[m.tools.pins[0].indices, 0].max()
+    Lc, xt = L - clamp_line, x0[tip, 0].mean() - clamp_line
+    A, I, G_ = t * t, t**4 / 12, E / (2 * (1 + nu))
+    q = rho * G * A
+    ref = q * xt**2 * (6 * Lc * Lc - 4 * Lc * xt + xt * xt) / (24 * E * I) + q * (Lc * xt - xt * xt / 2) / (0.85 * G_ * A)
+    s = we.Solver(m, hourglass=0.1)
+    dt = m.stable_dt()
+    st = _run(s, m, 1800, dt, relax_after=0.0)
+    r1 = -(st.x.numpy()[tip, 1].mean() - x0[tip, 1].mean()) / ref
+    st2 = _run(s, m, 900, dt, relax_after=0.0, state=st)
+    r2 = -(st2.x.numpy()[tip, 1].mean() - x0[tip, 1].mean()) / ref
+    print(f"8 across, hourglass 0.1: {r1:.4f} at 1800 steps, {r2:.4f} at 2700")
+    assert r1 == pytest.approx(1.0, abs=0.15) and r2 == pytest.approx(1.0, abs=0.15)
+    assert r2 == pytest.approx(r1, rel=0.02)  # settled (without the control: +3 % from 1800 to 3600 steps)
 
 
 # ------------------------------------------------------------------ plates and meshes
@@ -686,3 +730,82 @@ def test_reaction_force_loss_on_one_world_of_a_rollout():
     assert value == pytest.approx(value1, rel=1e-12)
     assert g["mu"][0] == 0.0
     assert g["mu"][1] == pytest.approx(g1["mu"][0], rel=1e-9)
+
+
+# ------------------------------------------------------------ non-differentiable motions
+def test_a_scripted_motion_has_no_gradient_and_says_so_while_keyframes_and_velocity_do():
+    """``tools.Scripted`` is a host callable: a taped step warns that its motion gets no
+    gradient, and asking for that gradient is a ValueError, not silent zeros. The same press
+    given as ``tools.Velocity`` gets a non-zero gradient in the same taped run."""
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
+    b.add_box((-0.05, 0.03, 0.0), (0.06, 0.06, 0.06), _elastic(1e4), name="left")
+    b.add_box((0.05, 0.03, 0.0), (0.06, 0.06, 0.06), _elastic(1e4), name="right")
+    b.add_tool("plane", position=(0, 0.01, 0), name="floor")
+    b.add_tool("sphere", radius=0.02, name="scripted",
+               motion=tools.Scripted(lambda t: ((-0.05, 0.069 - 0.5 * t, 0.0), tools.IDENTITY)))
+    b.add_tool("sphere", radius=0.02, name="pressed", motion=tools.Velocity((0.0, -0.5, 0.0), position=(0.05, 0.069, 0.0)))
+    m = b.finalize(dtype=wp.float64, requires_grad=True)
+    s = we.Solver(m)
+    states = [m.state() for _ in range(6)]
+    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+    w = wp.array(np.ones((m.particle_count, 3)), dtype=wp.vec3d)
+    tape = wp.Tape()
+    with pytest.warns(UserWarning, match=r"\['scripted'\].*Scripted.*no gradient flows to their motion"):
+        with tape:
+            for k in range(5):
+                s.step(states[k], states[k + 1], 1e-3)
+            wp.launch(_loss_kernel, m.particle_count, [states[-1].x, w, states[-1].reaction_force, 0, 0.0], [loss])
+    tape.backward(loss)
+    # Both presses touched their blocks.
+    rf = states[-1].reaction_force.numpy()
+    assert abs(rf[m.tools.index("scripted")][1]) > 0 and abs(rf[m.tools.index("pressed")][1]) > 0
+    g = m.tools.motion_gradient("pressed")
+    assert abs(g["velocity"][1]) > 0
+    with pytest.raises(ValueError, match=r"'scripted' follows a tools.Scripted motion.*Keyframes or tools.Velocity"):
+        m.tools.motion_gradient("scripted")
+    # One warning per tool set, not one per step.
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with wp.Tape():
+            s.step(states[0], states[1], 1e-3)
+
+
+# ------------------------------------------------------- resting and sliding on a tool
+def _block_on_tool(shape, friction, velocity=(0.0, 0.0, 0.0)):
+    """A 3 x 3 x 3 elastic block whose bottom layer starts on a held tool: the top of a box,
+    or the apex of a sphere (R = 0.5 m)."""
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
+    b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), _elastic(1e5, viscosity=1.0), name="block", velocity=velocity)
+    if shape == "box":
+        b.add_tool("box", half_extents=(0.5, 0.05, 0.5), position=(0.0, 0.01 - 0.05, 0.0), friction=friction, name="support")
+    else:
+        b.add_tool("sphere", radius=0.5, position=(0.0, 0.01 - 0.5, 0.0), friction=friction, name="support")
+    m = b.finalize()
+    return m, we.Solver(m)
+
+
+def test_a_block_sticking_on_a_held_sphere_tool_does_not_creep():
+    """Friction 0.5 on the apex of a held sphere tool: relaxed, then 0.4 s left alone, no
+    particle moves sideways by more than 10 um, and the tool carries the weight. A particle
+    resting on a tool is stopped where its path enters it (the swept test); before the
+    tangential displacement was taken from the start of the path (``tangential_follow``),
+    each step moved a sticking particle back by the drift after that entry point, against
+    the tangential force (measured: 25 um sideways in 0.4 s, and growing; now 4 um)."""
+    m, s = _block_on_tool("sphere", 0.5)
+    a = _run(s, m, 2000, 2e-4, relax_after=0.0)
+    x1 = a.x.numpy().copy()
+    c = m.state()
+    forces = []
+    for _ in range(2000):
+        s.step(a, c, 2e-4)
+        a, c = c, a
+        forces.append(s.reaction_forces(a)["support"][0])
+    d = a.x.numpy() - x1
+    sideways = np.hypot(d[:, 0], d[:, 2]).max()
+    force = np.mean(forces, axis=0)
+    weight = m.particle_mass.numpy().sum() * G
+    print(f"largest sideways displacement over 0.4 s: {sideways:.2e} m; support force {force} N, weight {weight:.4f} N")
+    assert sideways < 1e-5
+    np.testing.assert_allclose(force, [0.0, weight, 0.0], atol=1e-2 * weight)

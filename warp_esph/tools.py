@@ -43,6 +43,7 @@ import dataclasses
 import functools
 import math
 import types
+import warnings
 from collections.abc import Callable
 
 import numpy as np
@@ -141,7 +142,9 @@ class Velocity:
 @dataclasses.dataclass(frozen=True)
 class Scripted:
     """A Python callable ``fn(t) -> (position, quaternion (x, y, z, w))``, evaluated on the
-    host every step (not differentiable)."""
+    host every step. Not differentiable: its poses enter the tape as constants, so nothing
+    flows back to the motion (``ToolSet.motion_gradient`` refuses it, and a taped step warns
+    once per tool set); ``Keyframes`` and ``Velocity`` are the differentiable motions."""
 
     fn: Callable
 
@@ -284,8 +287,25 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         return wp.quat_rotate_inv(q, x - p)
 
     @wp.func
+    def tangential_follow(x_start: vec3, x_s: vec3, v_new: vec3, vs: vec3, n: vec3, p0: vec3, q0: quat, p1: vec3, q1: quat, dt: scalar):
+        """Tangential offset from the contact point ``x_s`` (normal ``n``) to where the
+        particle's step ends: its start carried with the tool plus ``dt`` times its responded
+        velocity relative to the surface, projected on the tangent plane. The step's
+        tangential displacement relative to the tool is then ``dt`` times the responded
+        relative velocity, whether ``x_s`` is the nearest surface point of the end of the path
+        or the point where the path entered the tool: a sticking particle stays where it was
+        on the tool, a sliding one moves with its velocity. (Offsetting ``x_s`` by the
+        velocity change alone, as before, was right only for the nearest point: from an entry
+        point a particle resting on a tool lost the part of the drift after the entry each
+        step: one sticking on a sphere crept against the tangential force, a frictionless one
+        kept a tangential velocity its position never followed, and the lattice under a held
+        sphere indenter came apart, docs/validation.md.)"""
+        d = world(p1, q1, local(p0, q0, x_start)) + dt * (v_new - vs) - x_s
+        return d - wp.dot(d, n) * n
+
+    @wp.func
     def apply(
-        x: vec3, v: vec3, hit: int, xc: vec3, nl: vec3, c: int, row: int, m: scalar, dt: scalar, ramp: scalar,
+        x: vec3, v: vec3, x_start: vec3, hit: int, xc: vec3, nl: vec3, c: int, row: int, m: scalar, dt: scalar, ramp: scalar,
         pose_p: wp.array(dtype=vec3), pose_q: wp.array(dtype=quat), mu_s: wp.array(dtype=scalar), mu_k: wp.array(dtype=scalar),
         rforce: wp.array(dtype=vec3), rtorque: wp.array(dtype=vec3),
     ):
@@ -302,11 +322,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         vs = (x_s - world(p0, q0, xc)) / dt
         n = wp.quat_rotate(q1, nl)
         v_new = col.coulomb_response(v, vs, n, wp.dot(x_s - x, n), dt, ramp, mu_s[c], mu_k[c])
-        # The tangential part of the step's displacement follows the responded velocity
-        # (x_in + dt v_new along the surface): a particle that sticks stays stuck.
-        dv = v_new - v
-        x_new = x_s + dt * (dv - wp.dot(dv, n) * n)
-        f = m * dv / dt
+        x_new = x_s + tangential_follow(x_start, x_s, v_new, vs, n, p0, q0, p1, q1, dt)
+        f = m * (v_new - v) / dt
         wp.atomic_add(rforce, row, f)
         wp.atomic_add(rtorque, row, wp.cross(x_s - p1, f))
         return x_new, v_new
@@ -631,7 +648,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         for c in range(wp.static(counts[0])):
             k = wp.static(offsets[0]) + c
             hit, xc, nl = shape_plane(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
-            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[1])):
             k = wp.static(offsets[1]) + c
             # The entry point first (a path from outside), the nearest face only for a
@@ -641,34 +658,34 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             hit, xc, nl = swept_box(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
             if hit == 0:
                 hit, xc, nl = shape_box(xl, param[k])
-            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[2])):
             k = wp.static(offsets[2]) + c
             xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
             hit, xc, nl = swept_sphere(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
             if hit == 0:
                 hit, xc, nl = shape_sphere(xl, param[k])
-            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[3])):
             k = wp.static(offsets[3]) + c
             xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
             hit, xc, nl = swept_capsule(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
             if hit == 0:
                 hit, xc, nl = shape_capsule(xl, param[k])
-            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[4])):
             k = wp.static(offsets[4]) + c
             xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
             hit, xc, nl = swept_cylinder(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
             if hit == 0:
                 hit, xc, nl = shape_cylinder(xl, param[k])
-            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[5])):
             k = wp.static(offsets[5]) + c
             xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
             xs = local(pose_p[2 * k], pose_q[2 * k], x_in[i])
             hit, xc, nl = shape_mesh(xl, xs, mesh_id[k], mesh_lo[k], mesh_hi[k], margin, mesh_verts, mesh_tris, mesh_vofs[k], mesh_fofs[k])
-            x, v = apply(x, v, hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         if wp.static(n_pins > 0):
             k = pin[i]
             if k >= 0:
@@ -828,6 +845,7 @@ class ToolSet:
         self.pin_center = wp.array(centers, dtype=T.vec3, device=dev)
         self.kernels = k_
         self.model = model
+        self._warned_scripted = False
 
     def _times_now(self) -> np.ndarray:
         """The keyframe times as they are now (an optimiser may have changed the array)."""
@@ -840,6 +858,43 @@ class ToolSet:
                 if not np.isfinite(ts).all() or np.any(np.diff(ts) <= 0.0):
                     raise ValueError(f"keyframe_times of tool {self.names[k]!r} = {ts.tolist()!r} is not allowed: must be finite and increasing")
         return kt
+
+    def motion_gradient(self, name: str) -> dict[str, np.ndarray]:
+        """The gradient a backward pass left on tool ``name``'s motion parameters:
+        ``Keyframes``: ``{"times", "positions", "orientations"}`` (its keyframes' rows);
+        ``Velocity``: ``{"velocity", "angular_velocity"}``; a held tool (``motion=None``) is
+        a ``Velocity`` of zero. A ``Scripted`` motion is evaluated on the host and has no
+        gradient: ``ValueError`` rather than zeros that would read as "no sensitivity"."""
+        k = self.index(name)
+        motion = self.motions[k]
+        if isinstance(motion, Scripted):
+            raise ValueError(f"tool {name!r} follows a tools.Scripted motion, which is not allowed here: a Python callable "
+                             "is evaluated on the host and has no gradient; give the motion as tools.Keyframes or "
+                             "tools.Velocity to differentiate through it")
+        if not self.model.requires_grad:
+            raise ValueError(f"tool {name!r}: the model has requires_grad = False, which is not allowed here: build it "
+                             "with SceneBuilder.finalize(requires_grad=True) to get gradients")
+
+        def grad(a, rows):
+            g = a.grad
+            return np.zeros((len(rows),) + a.numpy().shape[1:]) if g is None else g.numpy()[rows].astype(np.float64)
+
+        if isinstance(motion, Keyframes):
+            rows = np.arange(self.keyframe_start[k], self.keyframe_start[k] + len(motion.times))
+            return {"times": grad(self.keyframe_times, rows), "positions": grad(self.keyframe_positions, rows),
+                    "orientations": grad(self.keyframe_orientations, rows)}
+        return {"velocity": grad(self.velocity, [k])[0], "angular_velocity": grad(self.angular_velocity, [k])[0]}
+
+    def _warn_scripted_on_tape(self):
+        if self._warned_scripted:
+            return
+        names = [n for n, mo in zip(self.names, self.motions) if isinstance(mo, Scripted)]
+        if names:
+            self._warned_scripted = True
+            warnings.warn(f"tools {names!r} follow tools.Scripted motions, evaluated on the host: a taped step records "
+                          "their poses as constants, so no gradient flows to their motion (other parameters' gradients "
+                          "are unaffected); use tools.Keyframes or tools.Velocity for a differentiable motion",
+                          stacklevel=4)
 
     def index(self, name: str) -> int:
         if name not in self.names:
@@ -886,6 +941,8 @@ class ToolSet:
             wp.array(sq.astype(npf), dtype=self.quat, device=dev),
         )
         state_out.tool_samples = samples  # referenced until a backward pass has read them
+        if _taping():
+            self._warn_scripted_on_tape()
         wp.launch(
             self.kernels.poses, 2 * n,
             [self.keyframe_times, self.keyframe_positions, self.keyframe_orientations, self.velocity, self.angular_velocity, *samples],

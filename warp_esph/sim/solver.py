@@ -15,7 +15,7 @@ import warp as wp
 from .. import checks
 from ..model import Model, State
 from .deformation import recording_tape
-from . import comparison, curvature, deformation, fields, forces, fused, integrate, neighbors, plasticity, pressure
+from . import comparison, curvature, deformation, fields, forces, fused, hourglass, integrate, neighbors, plasticity, pressure
 
 GUARD_NAMES = ("few_neighbors", "ill_conditioned", "inverted", "plasticity_skipped", "neighbors_cut")
 #: Index of ``neighbors_cut``: particle-steps whose neighbour row may lack a neighbour of
@@ -94,6 +94,12 @@ class Solver:
     with Warp's generated adjoint, its deformation update with a hand-written one) and
     cannot be combined with a comparison deformation model. The model's force fields
     (``fields.CompressionField``) act while active at ``state_in.time``.
+
+    ``hourglass`` (>= 0, default 0: off, not launched) is the strength ``c`` of the opt-in
+    control of the fit's zero-energy modes (``hourglass.py``; docs/physics.md, "Hourglass
+    modes"): for elastic solids under concentrated loads (a held sphere indenter keeps its
+    force with ``c = 0.1``); it measures ``F`` against the rest positions, so it would pull
+    a plastically flowed body back towards its rest shape.
     """
 
     def __init__(
@@ -105,8 +111,13 @@ class Solver:
         neighbor_skin: float | None = None,
         fused: bool = True,
         fit: str = "linear",
+        hourglass: float = 0.0,
     ):
         self.model = model
+        #: Strength ``c`` of the opt-in hourglass control (``hourglass.py``); 0: off.
+        self.hourglass = checks.non_negative("hourglass", hourglass)
+        self._rest = (wp.array(model.particle_x0, dtype=model.types.vec3, device=model.device)
+                      if self.hourglass > 0.0 else None)
         self.min_neighbors = checks.positive_int("min_neighbors", min_neighbors)
         self.max_condition = checks.greater_than("max_condition", max_condition, 1.0, "1")
         skin = DEFAULT_SKIN if neighbor_skin is None else checks.in_range("neighbor_skin", neighbor_skin, 0.0, 1.0)
@@ -266,6 +277,11 @@ class Solver:
             if sph:
                 with phase("pressure"):
                     pressure.launch_pressure_forces(m, state_in, state_out, self.hand_adjoints)
+
+        # Opt-in control of the fit's zero-energy modes (hourglass.py), on either path.
+        if self.hourglass > 0.0:
+            with phase("hourglass"):
+                hourglass.launch_hourglass_forces(m, state_in, state_out, self._rest, self.hourglass)
 
         # External force fields active at the step's start time.
         fields.launch_force_fields(m, state_in, state_out)

@@ -1,0 +1,104 @@
+"""Opt-in control of the zero-energy (hourglass) modes of the affine fit
+(``Solver(hourglass=c)``, docs/physics.md, "Hourglass modes"). Not in the paper.
+
+The fit of eqs. 5-6 sees a neighbourhood only through its weighted moments: on a regular
+lattice a displacement that alternates from one particle layer to the next (``(-1)^j``)
+leaves every interior particle's ``B`` unchanged, so it costs no elastic energy. A
+concentrated load (a sphere pressed into a block) drives such a pattern: the particle
+layers under the load slide between their neighbours and the load-bearing column gives
+way. The control penalises the part of each neighbour's offset that the particle's stored
+``F`` does not explain,
+
+    r_ij = (x_j - x_i) - F_i (X_j - X_i)            (X: rest positions)
+    E_i = c mu_i V_i / (2 S_i) sum_j w_ij |r_ij|^2,  S_i = sum_j w_ij |X_j - X_i|^2
+
+(``w_ij`` the poly6 weight of the rest distance, same-body neighbours of the current
+list), with the force ``-dE/dx`` at fixed ``F``: ``f_j -= g_ij``, ``f_i += g_ij``,
+``g_ij = c mu_i V_i w_ij r_ij / S_i``, equal and opposite. An affine motion (``x_ij = F
+X_ij``) has ``r = 0``: no force. It is measured against the rest positions, so it is for
+elastic solids: after plastic flow the stored ``F`` no longer maps the rest neighbourhood
+to the current one and the control would pull the body back towards its rest shape.
+"""
+
+import functools
+import types
+
+import warp as wp
+
+from .._types import type_set
+from . import smoothing
+from . import materials
+
+
+@functools.cache
+def kernels(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3, mat33 = T.vec3, T.mat33
+    sm = smoothing.funcs(scalar)
+    Materials = materials.struct(scalar)
+
+    @wp.func
+    def rest_moment(i: int, rest: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32), nbr: wp.array2d(dtype=wp.int32),
+                    n: int, h: scalar, c6: scalar):
+        """``S_i = sum_j w_ij |X_ij|^2`` over the same-body neighbours (rest positions only:
+        no gradient flows through it; its own function so that the caller's division does
+        not see a loop accumulator, docs/method.md, Warp pitfall 1)."""
+        s = scalar(0.0)
+        for k in range(n):
+            j = nbr[i, k]
+            if body[j] == body[i]:
+                d = rest[j] - rest[i]
+                r2 = wp.dot(d, d)
+                s += sm.w_poly6_c(r2, h, c6) * r2
+        return s
+
+    @wp.func
+    def hourglass_pair_force(coef: scalar, Fi: mat33, xb: vec3, Xb: vec3, h: scalar, c6: scalar):
+        """``g_ij = coef w(|X_ij|) (x_ij - F_i X_ij)``, ``coef = c mu_i V_i / S_i``: minus the
+        gradient of ``E_i`` with respect to ``x_j`` at fixed ``F_i``."""
+        return coef * sm.w_poly6_c(wp.dot(Xb, Xb), h, c6) * (xb - Fi * Xb)
+
+    @wp.kernel
+    def hourglass_forces(
+        x: wp.array(dtype=vec3),
+        rest: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        volume: wp.array(dtype=scalar),
+        F: wp.array(dtype=mat33),
+        h: scalar,
+        c: scalar,
+        f: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        n = count[i]
+        c6 = sm.poly6_coef(h)
+        s = rest_moment(i, rest, body, nbr, n, h, c6)
+        if s > scalar(0.0):
+            coef = c * mat.mu[material[i]] * volume[i] / s
+            Fi = F[i]
+            xi = x[i]
+            Xi = rest[i]
+            for k in range(n):
+                j = nbr[i, k]
+                if body[j] == body[i]:
+                    g = hourglass_pair_force(coef, Fi, x[j] - xi, rest[j] - Xi, h, c6)
+                    wp.atomic_sub(f, j, g)
+                    wp.atomic_add(f, i, g)
+
+    return types.SimpleNamespace(hourglass_forces=hourglass_forces, hourglass_pair_force=hourglass_pair_force)
+
+
+def launch_hourglass_forces(model, state_in, state_out, rest, c: float):
+    """Add the control's forces (module doc) into ``state_out.force``; ``rest``: the rest
+    positions as a device array."""
+    S = model.scalar
+    wp.launch(
+        kernels(S).hourglass_forces, model.particle_count,
+        [state_in.x, rest, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
+         state_out.neighbor_count, model.particle_volume, state_in.F, S(model.support_radius), S(c)],
+        [state_out.force], device=model.device,
+    )
