@@ -542,3 +542,9 @@ def test_pressure_force_is_minus_the_gradient_of_the_pressure_energy(pressure_fo
         assert err < 1e-6, err
     else:
         assert err > 0.1, err
+
+
+def test_pressure_force_choice_is_validated_and_spiky_by_default():
+    assert we.Material(mu=1.0, lam=1.0).pressure_force == "spiky"
+    with pytest.raises(ValueError, match=r"Material\.pressure_force = 'exact' is not allowed"):
+        we.Material(mu=1.0, lam=1.0, pressure_force="exact")
