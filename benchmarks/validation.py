@@ -98,7 +98,7 @@ def spread_height_theory(radius: float, tau_y: float, rho: float = RHO, g: float
 
 def slump(S: float, resolution: int = 12, elastic_force: str = "variational", duration: float = 4.0,
           H0: float = 0.1, flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0,
-          dt_factor: float = 0.9, samples: int = 200) -> dict:
+          dt_factor: float = 0.9, samples: int = 200, pressure_force: str = "spiky") -> dict:
     """A cylinder H0 = 2 R0 of a yield-stress material slumps on a rough floor.
 
     ``S = sigma_y / (rho g H0)`` with sigma_y the uniaxial yield stress: ``yield_stress = Y
@@ -106,7 +106,8 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     Y; under uniaxial stress it is sqrt(2/3) sigma). mu = 10 rho g H0, nu = 0.3, default SPH
     pressure, ``viscosity`` Pa s (a little, so that an unyielded body's ringing decays).
     ``resolution`` is particles across H0 (and across the diameter). The height is the top
-    of the particles within R0/2 of the axis (plus dx/2: each stands for a cell)."""
+    of the particles within R0/2 of the axis (plus dx/2: each stands for a cell).
+    ``pressure_force``: ``Material.pressure_force`` (docs/physics.md, the SPH pressure)."""
     wp, we = _we()
     dx = H0 / resolution
     R0 = H0 / 2.0
@@ -114,7 +115,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     Y = sigma_y * math.sqrt(2.0 / 3.0)
     mu = 10.0 * RHO * G * H0
     mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity,
-                      elastic_force=elastic_force)
+                      elastic_force=elastic_force, pressure_force=pressure_force)
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
     b.add_cylinder((0.0, H0 / 2.0, 0.0), R0, H0, mat)
     b.add_ground(0.0, friction=friction)
@@ -170,7 +171,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     R_rc = spread_radius_theory(volume, tau_y)
     weight_scale = float(model.particle_mass.numpy().sum()) * G * H0
     return {
-        "case": "slump", "S": S, "resolution": resolution, "elastic_force": elastic_force,
+        "case": "slump", "S": S, "resolution": resolution, "elastic_force": elastic_force, "pressure_force": pressure_force,
         "particles": n, "dt": dt, "duration": float(t[-1]), "steps": steps,
         "h_over_H0": h[-1] / H0, "theory_h_over_H0": slump_theory(S),
         "ratio_to_theory": (1.0 - h[-1] / H0) / (1.0 - slump_theory(S)),

@@ -168,13 +168,14 @@ def test_rotation_variant_svd_reconstructs_and_flags_inversion(scalar, tol):
 
 
 def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_force: str = "variational",
-                               model_name: str = "linear", flow_rate: float = 50.0):
+                               model_name: str = "linear", flow_rate: float = 50.0, pressure_force: str = "spiky"):
     """Gradients of a weighted sum of final positions through a yielding, stretching block,
     with the solver's hand-written adjoints (``hand``) or Warp's generated ones."""
     import warp_esph as we  # noqa: PLC0415
 
     mat = we.Material(density=1000.0, mu=1.0e3, lam=1.5e3, yield_stress=10.0, flow_rate=flow_rate, hardening=200.0,
-                      pressure_stiffness=1.0, viscosity=2.0, elastic_force=elastic_force, model=model_name)
+                      pressure_stiffness=1.0, viscosity=2.0, elastic_force=elastic_force, model=model_name,
+                      pressure_force=pressure_force)
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
     b.add_box((0.0, 0.0, 0.0), (0.1, 0.08, 0.08), mat)
     model = b.finalize(dtype=scalar, requires_grad=True)
@@ -226,3 +227,11 @@ def test_hand_written_constitutive_adjoint_other_branches(model_name, flow_rate)
     ``flow_rate * dt = 2`` (some flows saturate at gamma = 1, where the gradient must stop
     at the clamp as the generated one does), float64, against Warp's generated adjoints."""
     _assert_hand_matches_generated(wp.float64, 1e-10, model_name=model_name, flow_rate=flow_rate)
+
+
+@pytest.mark.parametrize("scalar,tol", [(wp.float64, 1e-10), (wp.float32, 2e-4)])
+def test_hand_written_energy_pressure_adjoint(scalar, tol):
+    """``pressure.pressure_forces_adjoint`` on the energy pressure force
+    (``pressure_force = "energy"``; the default, ``"spiky"``, is in the test above)
+    against Warp's generated adjoints."""
+    _assert_hand_matches_generated(scalar, tol, pressure_force="energy")

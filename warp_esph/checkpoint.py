@@ -44,7 +44,8 @@ def model_fingerprint(model: Model) -> str:
         "spacing": model.spacing, "support_radius": model.support_radius, "max_neighbors": model.max_neighbors,
         "bodies_interact": model.bodies_interact, "gravity": model.gravity,
         "bodies": [(b.name, b.start, b.count, b.material, b.kind) for b in model.bodies],
-        "materials": [(m.density, m.model, m.deformation, m.elastic_force, bool(m.clamp_pressure)) for m in model.materials],
+        "materials": [(m.density, m.model, m.deformation, m.elastic_force, bool(m.clamp_pressure), m.pressure_force)
+                      for m in model.materials],
         "colliders": [repr(c) for c in (*model.planes, *model.spheres, *model.boxes)],
         "fields": [repr(f) for f in model.force_fields],
     }

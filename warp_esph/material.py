@@ -34,6 +34,15 @@ DEFORMATION_IDS = {name: k for k, name in enumerate(DEFORMATIONS)}
 ELASTIC_FORCES = ("paper", "variational")
 ELASTIC_FORCE_IDS = {name: k for k, name in enumerate(ELASTIC_FORCES)}
 
+#: SPH pressure pair forces (``warp_esph/sim/pressure.py``, docs/method.md §6): ``spiky``
+#: (default), Müller et al.'s ``(p_i + p_j) / 2`` along the spiky kernel's gradient, which is
+#: the gradient of no energy and keeps the 16-across S = 0.5 slump creeping; ``energy``, the
+#: exact negative gradient of the SPH pressure energy ``sum_i m_i e_i(rho_i)`` (the poly6
+#: density's own kernel gradient, ``p / rho^2`` pair weights), which does no net work on a
+#: closed path of the particles (docs/physics.md, the SPH pressure: why it is not the default).
+PRESSURE_FORCES = ("energy", "spiky")
+PRESSURE_FORCE_IDS = {name: k for k, name in enumerate(PRESSURE_FORCES)}
+
 
 def p_wave_speed(mu, lam, density, pressure_stiffness):
     """``sqrt((lam + 2 mu + rho0 k_p) / rho0)``, the speed the explicit step must resolve
@@ -83,6 +92,15 @@ class Material:
     ``pressure_stiffness = None`` picks ``k_p = K / (2 rho0)`` with ``K = lam + 2 mu / 3``
     the bulk modulus: SPH pressure then adds half the bulk stiffness again, the
     "additional stability" of the paper's §4. Use ``0`` to switch pressure off.
+
+    ``pressure_force`` picks the SPH pressure pair force (``PRESSURE_FORCES``): ``"spiky"``
+    (default), Müller et al.'s symmetrised pressure along the spiky kernel's gradient, or
+    ``"energy"``, minus the gradient of the pressure's energy ``sum_i m_i e_i(rho_i)`` with
+    ``de/drho = p / rho^2``. The spiky force is the gradient of no energy; at 16 particles
+    across it keeps a slumped yield-stress pile creeping at a flat rate, where the energy
+    force lets it come to rest; but the energy force's poly6 gradient vanishes as two
+    particles meet, and at 8 across a pile without viscosity and a bouncing rubber ball
+    take longer to settle with it (docs/physics.md, the SPH pressure).
     """
 
     mu: float
@@ -97,6 +115,7 @@ class Material:
     clamp_pressure: bool = True
     deformation: str = "incremental"
     elastic_force: str | None = None
+    pressure_force: str = "spiky"
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
@@ -118,6 +137,7 @@ class Material:
         checks.choice("Material.model", self.model, MODELS)
         checks.choice("Material.deformation", self.deformation, DEFORMATIONS)
         checks.choice("Material.elastic_force", self.elastic_force, ELASTIC_FORCES)
+        checks.choice("Material.pressure_force", self.pressure_force, PRESSURE_FORCES)
         if self.elastic_force == "variational" and self.deformation != "incremental":
             raise ValueError(
                 f"Material.elastic_force = 'variational' is not allowed with deformation = {self.deformation!r}: "

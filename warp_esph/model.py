@@ -18,7 +18,7 @@ import warp as wp
 from . import tools
 from ._types import type_set
 from .sim.colliders import CONTACT_RAMP, Box, Plane, Sphere
-from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, Material, p_wave_speed
+from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, PRESSURE_FORCE_IDS, Material, p_wave_speed
 from .sim import materials as material_struct
 
 
@@ -207,6 +207,9 @@ class Model:
         self.material_elastic_force = wp.array(
             [ELASTIC_FORCE_IDS[m.elastic_force] for m in materials], dtype=wp.int32, device=dev
         )
+        self.material_pressure_force = wp.array(
+            [PRESSURE_FORCE_IDS[m.pressure_force] for m in materials], dtype=wp.int32, device=dev
+        )
         #: External force fields (``fields.CompressionField``), set by the builder.
         self.force_fields: list = []
         #: Moving colliders and pinned sets (``tools.ToolSet``), set by the builder; None: none.
@@ -283,6 +286,7 @@ class Model:
             (self.clamp_pressure, int(material.clamp_pressure)),
             (self.material_deformation, DEFORMATION_IDS[material.deformation]),
             (self.material_elastic_force, ELASTIC_FORCE_IDS[material.elastic_force]),
+            (self.material_pressure_force, PRESSURE_FORCE_IDS[material.pressure_force]),
         ):
             values = arr.numpy()
             values[index] = value
@@ -357,7 +361,7 @@ class Model:
             self.scalar, self.device, mu=self.mu, lam=self.lam, yield_stress=self.yield_stress, flow_rate=self.flow_rate,
             hardening=self.hardening, pressure_stiffness=self.pressure_stiffness, viscosity=self.viscosity,
             model=self.material_model, deformation=self.material_deformation, elastic_force=self.material_elastic_force,
-            clamp_pressure=self.clamp_pressure,
+            clamp_pressure=self.clamp_pressure, pressure_force=self.material_pressure_force,
         )
 
     def parameter_values(self) -> dict[str, np.ndarray]:

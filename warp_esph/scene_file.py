@@ -134,7 +134,7 @@ MATERIAL_KEYS = {
     "preset": (STR, False), "E": (NUM, False), "nu": (NUM, False), "mu": (NUM, False), "lam": (NUM, False),
     "yield_stress": (NUM_INF, False), "flow_rate": (NUM, False), "hardening": (NUM, False), "density": (NUM, False),
     "pressure_stiffness": (NUM, False), "viscosity": (NUM, False), "model": (STR, False), "clamp_pressure": (BOOL, False),
-    "deformation": (STR, False), "elastic_force": (STR, False),
+    "deformation": (STR, False), "elastic_force": (STR, False), "pressure_force": (STR, False),
 }
 BODY_COMMON = {"shape": (STR, True), "material": (STR, True), "name": (STR, False), "velocity": (VEC3, False),
                "angular_velocity": (VEC3, False)}

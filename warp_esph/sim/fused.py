@@ -61,6 +61,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         volume: wp.array(dtype=scalar),
         p: wp.array(dtype=scalar),
         vol: wp.array(dtype=scalar),
+        rho: wp.array(dtype=scalar),
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         h: scalar,
@@ -123,10 +124,13 @@ def kernels(scalar) -> types.SimpleNamespace:
         vi = v[i]
         Vi = scalar(0.0)
         pi = scalar(0.0)
+        rho_i = scalar(0.0)
         visc_i = mat.viscosity[m]
+        form = mat.pressure_force[m]
         if sph != 0:
             Vi = vol[i]
             pi = p[i]
+            rho_i = rho[i]
         c_el = sm.elastic_coef(h)
         # Elastic force: 0 the paper's (eqs. 10-13), 1 variational, 2 none (a guarded
         # particle of the variational force).
@@ -156,7 +160,8 @@ def kernels(scalar) -> types.SimpleNamespace:
                 fi -= g
             if sph != 0:
                 eta = scalar(0.5) * (visc_i + mat.viscosity[material[j]])
-                half = scalar(0.5) * sph_pair_force(Vi * vol[j], pi, p[j], eta, xi - xj, v[j] - vi, h, c_spiky, c_visc)
+                half = scalar(0.5) * sph_pair_force(Vi * vol[j], pi, p[j], rho_i, rho[j], form, eta, xi - xj, v[j] - vi, h, c6,
+                                                   c_spiky, c_visc)
                 fj -= half
                 fi += half
             wp.atomic_add(f, j, fj)
@@ -204,7 +209,7 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
         model.particle_count,
         [
             state_in.x, state_in.v, state_in.F, state_in.alpha, model.particle_material, model.material_arrays(),
-            model.particle_body, model.particle_volume, scratch.pressure, scratch.sph_volume, state_out.neighbors,
+            model.particle_body, model.particle_volume, scratch.pressure, scratch.sph_volume, state_out.density, state_out.neighbors,
             state_out.neighbor_count, S(model.support_radius), S(dt), int(sph), scratch.min_neighbors,
             S(scratch.max_condition),
         ],

@@ -12,8 +12,8 @@ import warp as wp
 
 #: Differentiable per-material scalars (``Model.MATERIAL_FIELDS``, same order).
 SCALAR_FIELDS = ("mu", "lam", "yield_stress", "flow_rate", "hardening", "pressure_stiffness", "viscosity")
-#: Per-material choices (indices into ``material.MODELS``, ``DEFORMATIONS``, ``ELASTIC_FORCES``; 0/1).
-INT_FIELDS = ("model", "deformation", "elastic_force", "clamp_pressure")
+#: Per-material choices (indices into ``material.MODELS``, ``DEFORMATIONS``, ``ELASTIC_FORCES``; 0/1; ``PRESSURE_FORCES``).
+INT_FIELDS = ("model", "deformation", "elastic_force", "clamp_pressure", "pressure_force")
 
 
 @functools.cache
@@ -33,6 +33,7 @@ def struct(scalar):
         deformation: wp.array(dtype=wp.int32)
         elastic_force: wp.array(dtype=wp.int32)
         clamp_pressure: wp.array(dtype=wp.int32)
+        pressure_force: wp.array(dtype=wp.int32)
 
     return Materials
 

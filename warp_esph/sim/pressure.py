@@ -44,8 +44,22 @@ def funcs(scalar) -> types.SimpleNamespace:
     @wp.func
     def pressure_pair_force(VV: scalar, p_i: scalar, p_j: scalar, rij: vec3, rl: scalar, h: scalar, c_spiky: scalar) -> vec3:
         """``-V_i V_j (p_i + p_j)/2 grad W_spiky(x_i - x_j)`` on ``i`` (``VV = V_i V_j``,
-        ``rij = x_i - x_j``, ``rl = |rij|`` in (0, h))."""
+        ``rij = x_i - x_j``, ``rl = |rij|`` in (0, h)): Müller et al.'s force
+        (``pressure_force = "spiky"``, docs/method.md §6)."""
         return -VV * scalar(0.5) * (p_i + p_j) * sm.grad_w_spiky_at(rij, rl, h, c_spiky)
+
+    @wp.func
+    def energy_pressure_pair_force(
+        VV: scalar, p_i: scalar, p_j: scalar, rho_i: scalar, rho_j: scalar, rij: vec3, r2: scalar, h: scalar, c6: scalar
+    ) -> vec3:
+        """``-m_i m_j (p_i / rho_i^2 + p_j / rho_j^2) grad W_poly6(x_i - x_j)`` on ``i``, the
+        pair's share of ``-grad sum_k m_k e_k(rho_k)`` with ``de/drho = p / rho^2`` and ``rho``
+        the poly6 sum (``pressure_force = "energy"``, docs/method.md §6). ``VV = V_i V_j =
+        m_i m_j / (rho_i rho_j)``, ``rij = x_i - x_j``, ``r2 = |rij|^2 < h^2``; ``grad W_poly6(r)
+        = -6 c6 (h^2 - |r|^2)^2 r``."""
+        e = h * h - r2
+        w = VV * (p_i * rho_j / rho_i + p_j * rho_i / rho_j)
+        return (scalar(6.0) * c6 * w * e * e) * rij
 
     @wp.func
     def viscous_pair_force(eta_VV: scalar, rij: vec3, r2: scalar, lap_w: scalar, vji: vec3) -> vec3:
@@ -57,20 +71,25 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     @wp.func
     def sph_pair_force(
-        VV: scalar, p_i: scalar, p_j: scalar, eta: scalar, rij: vec3, vji: vec3, h: scalar, c_spiky: scalar, c_visc: scalar
+        VV: scalar, p_i: scalar, p_j: scalar, rho_i: scalar, rho_j: scalar, form: int, eta: scalar, rij: vec3,
+        vji: vec3, h: scalar, c6: scalar, c_spiky: scalar, c_visc: scalar
     ) -> vec3:
-        """Pressure plus viscous force of the pair on ``i``, the two kernels sharing one ``|rij|``."""
+        """Pressure (``form``: 0 ``energy_pressure_pair_force``, 1 ``pressure_pair_force``)
+        plus viscous force of the pair on ``i``, the kernels sharing one ``|rij|``."""
         r2 = wp.dot(rij, rij)
         f = vec3()
         if r2 < h * h:
             rl = wp.sqrt(r2)
-            if r2 > scalar(1.0e-24) * h * h:
+            if form == 0:
+                f = energy_pressure_pair_force(VV, p_i, p_j, rho_i, rho_j, rij, r2, h, c6)
+            elif r2 > scalar(1.0e-24) * h * h:
                 f = pressure_pair_force(VV, p_i, p_j, rij, rl, h, c_spiky)
             f += viscous_pair_force(eta * VV, rij, r2, sm.lap_w_viscosity_at(rl, h, c_visc), vji)
         return f
 
     return types.SimpleNamespace(
-        pressure=pressure, pressure_pair_force=pressure_pair_force, viscous_pair_force=viscous_pair_force,
+        pressure=pressure, pressure_pair_force=pressure_pair_force,
+        energy_pressure_pair_force=energy_pressure_pair_force, viscous_pair_force=viscous_pair_force,
         sph_pair_force=sph_pair_force,
     )
 
@@ -123,6 +142,8 @@ def kernels(scalar) -> types.SimpleNamespace:
         Vi = mass[i] / rho[i]
         pi = fn.pressure(rho[i], rest_density[i], mat.pressure_stiffness[mi], mat.clamp_pressure[mi])
         visc_i = mat.viscosity[mi]
+        form = mat.pressure_force[mi]
+        c6 = sm.poly6_coef(h)
         c_spiky = sm.spiky_coef(h)
         c_visc = sm.viscosity_coef(h)
         fi = vec3()
@@ -132,7 +153,8 @@ def kernels(scalar) -> types.SimpleNamespace:
             pj = fn.pressure(rho[j], rest_density[j], mat.pressure_stiffness[mj], mat.clamp_pressure[mj])
             VV = Vi * mass[j] / rho[j]
             eta = scalar(0.5) * (visc_i + mat.viscosity[mj])
-            half = scalar(0.5) * fn.sph_pair_force(VV, pi, pj, eta, xi - x[j], v[j] - vi, h, c_spiky, c_visc)
+            half = scalar(0.5) * fn.sph_pair_force(VV, pi, pj, rho[i], rho[j], form, eta, xi - x[j], v[j] - vi, h, c6,
+                                                   c_spiky, c_visc)
             wp.atomic_add(f, j, -half)
             fi += half
         wp.atomic_add(f, i, fi)
@@ -196,10 +218,12 @@ def kernels(scalar) -> types.SimpleNamespace:
         adj_visc: wp.array(dtype=scalar),
     ):
         """Hand-written adjoint of ``pressure_forces``: per pair, with ``a = (adj f_i -
-        adj f_j) / 2`` against the pair's force on ``i`` (pressure ``-VV (p_i + p_j)/2
+        adj f_j) / 2`` against the pair's force on ``i`` (pressure, ``energy``: ``6 c6 m_i m_j
+        (A_i + A_j) (h^2 - |r|^2)^2 r`` with ``A = p / rho^2``; ``spiky``: ``-VV (p_i + p_j)/2
         psi(|r|) r``, ``psi = c_s (h - |r|)^2 / |r|``; viscosity ``s (v_ji . r) r``,
         ``s = 5 eta VV c_v (h - |r|) / |r|^2``), the chain rule to ``r = x_i - x_j``,
-        ``v_ji``, ``VV = m_i m_j / (rho_i rho_j)``, ``p`` (then ``rho`` and ``k_p``) and ``eta``."""
+        ``v_ji``, ``VV = m_i m_j / (rho_i rho_j)``, ``A`` and ``p`` (then ``rho`` and ``k_p``)
+        and ``eta``."""
         i = wp.tid()
         mi = material[i]
         xi = x[i]
@@ -209,11 +233,14 @@ def kernels(scalar) -> types.SimpleNamespace:
         k_i = mat.pressure_stiffness[mi]
         pi = fn.pressure(rho_i, rest_density[i], k_i, mat.clamp_pressure[mi])
         visc_i = mat.viscosity[mi]
+        form = mat.pressure_force[mi]
+        c6 = sm.poly6_coef(h)
         c_spiky = sm.spiky_coef(h)
         c_visc = sm.viscosity_coef(h)
         hh = h * h
         afi = adj_f[i]
         adj_pi = scalar(0.0)
+        adj_Ai = scalar(0.0)
         adj_rho_i = scalar(0.0)
         adj_visc_i = scalar(0.0)
         gx_i = vec3()
@@ -234,7 +261,21 @@ def kernels(scalar) -> types.SimpleNamespace:
                 adj_r = vec3()
                 adj_VV = scalar(0.0)
                 adj_rl = scalar(0.0)
-                if r2 > scalar(1.0e-24) * hh:
+                if form == 0:
+                    # energy_pressure_pair_force: G = C w e^2 r, w = m_i m_j (A_i + A_j).
+                    e = hh - r2
+                    ar = wp.dot(a, r)
+                    mm = mass[i] * mass[j]
+                    w = mm * (pi / (rho_i * rho_i) + pj / (rho_j * rho_j))
+                    adj_A = scalar(6.0) * c6 * mm * e * e * ar
+                    adj_Ai += adj_A
+                    adj_pj = adj_A / (rho_j * rho_j)
+                    wp.atomic_add(adj_rho, j, scalar(-2.0) * adj_A * pj / (rho_j * rho_j * rho_j))
+                    adj_pj *= pressure_slope(rho_j, rest_density[j], k_j, mat.clamp_pressure[mj])
+                    wp.atomic_add(adj_rho, j, adj_pj * k_j)
+                    wp.atomic_add(adj_k, mj, adj_pj * (rho_j - rest_density[j]))
+                    adj_r += (scalar(6.0) * c6 * w * e) * (e * a - scalar(4.0) * ar * r)
+                elif r2 > scalar(1.0e-24) * hh:
                     d = h - rl
                     psi = c_spiky * d * d / rl
                     q = psi * wp.dot(a, r)
@@ -266,13 +307,16 @@ def kernels(scalar) -> types.SimpleNamespace:
                     adj_VV += adj_s * base * eta
                     adj_rl -= c_visc * adj_s * scalar(5.0) * eta * VV / r2
                     adj_r -= scalar(2.0) * adj_s * s5 / r2 * r
-                adj_r += (adj_rl / rl) * r
+                if rl > scalar(0.0):
+                    adj_r += (adj_rl / rl) * r
                 adj_rho_i -= adj_VV * VV / rho_i
                 wp.atomic_add(adj_rho, j, -adj_VV * VV / rho_j)
                 gx_i += adj_r
                 wp.atomic_add(adj_x, j, -adj_r)
         wp.atomic_add(adj_x, i, gx_i)
         wp.atomic_add(adj_v, i, gv_i)
+        adj_pi += adj_Ai / (rho_i * rho_i)
+        adj_rho_i -= scalar(2.0) * adj_Ai * pi / (rho_i * rho_i * rho_i)
         adj_pi *= pressure_slope(rho_i, rest_density[i], k_i, mat.clamp_pressure[mi])
         wp.atomic_add(adj_rho, i, adj_rho_i + adj_pi * k_i)
         wp.atomic_add(adj_k, mi, adj_pi * (rho_i - rest_density[i]))
