@@ -158,6 +158,7 @@ def test_solver_table_sets_the_fit_and_contact_of_the_model_and_its_solver(tmp_p
     step of a solver given the option explicitly, and differs from the linear fit's (an
     impact bends the surface, where the two fits differ)."""
     from warp_esph import Solver
+    from warp_esph.model import DEFAULT_FIT
     from warp_esph.sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP
 
     text = BASE.replace("radius = 0.1", "radius = 0.1\nvelocity = [0, -4, 0]").replace("center = [0, 0.2, 0]", "center = [0, 0.15, 0]")
@@ -168,8 +169,8 @@ def test_solver_table_sets_the_fit_and_contact_of_the_model_and_its_solver(tmp_p
     m = load_scene_file(chosen).builder.finalize()
     base = load_scene_file(plain).builder.finalize()
     assert (m.fit, m.contact_ramp) == ("curvature_corrected", CONTINUOUS_CONTACT_RAMP)
-    assert (base.fit, base.contact_ramp) == ("linear", CONTACT_RAMP)
-    assert Solver(m).fit == "curvature_corrected" and Solver(base).fit == "linear"
+    assert (base.fit, base.contact_ramp) == (DEFAULT_FIT, CONTACT_RAMP) and DEFAULT_FIT == "linear"
+    assert Solver(m).fit == "curvature_corrected" and Solver(base).fit == DEFAULT_FIT
 
     def run(model, **kw):
         return simulate(model, 2, progress=False, solver=Solver(model, **kw)).x.numpy()
@@ -181,7 +182,10 @@ def test_solver_table_sets_the_fit_and_contact_of_the_model_and_its_solver(tmp_p
 
 
 def test_solver_options_refuse_bad_names_in_python():
-    from warp_esph import SceneBuilder
+    import dataclasses
+
+    from warp_esph import SceneBuilder, Solver
+    from warp_esph.model import DEFAULT_FIT
 
     with pytest.raises(ValueError, match=r"fit = 'quad' is not allowed: must be one of 'linear', 'curvature_corrected'"):
         SceneBuilder(fit="quad")
@@ -196,7 +200,17 @@ def test_solver_options_refuse_bad_names_in_python():
     model = b.finalize()
     with pytest.raises(ValueError, match=r"fit = 'quad' is not allowed"):
         model.fit = "quad"
-    assert model.fit == "linear"
+    assert model.fit == DEFAULT_FIT
+    # A Fig. 8 comparison model has only the linear fit: its default, and a chosen corrected
+    # fit is refused by the solver before any kernel runs.
+    b = SceneBuilder(spacing=0.05)
+    b.add_box(center=(0, 0, 0), size=(0.1, 0.1, 0.1), material=dataclasses.replace(PRESETS["rubber"], deformation="rest",
+                                                                                   elastic_force="paper"))
+    model = b.finalize()
+    assert model.fit == "linear" and Solver(model).fit == "linear"
+    model.fit = "curvature_corrected"
+    with pytest.raises(ValueError, match="fit = 'curvature_corrected' is not allowed with a comparison deformation model"):
+        Solver(model)
 
 
 def test_scene_file_unreadable(tmp_path):

@@ -20,7 +20,7 @@ from .sim.colliders import CONTACT_RAMP, MAX_PER_KIND, Box, Plane, Sphere
 from .sim.neighbors import PAPER_MAX_NEIGHBORS, default_max_neighbors
 from .material import Material
 from .meshes import lattice_points
-from .model import CONTACTS, DEFAULT_FIT, FITS, Body, Model
+from .model import CONTACTS, FITS, Body, Model
 
 #: Allowed support radius, in units of the spacing. Below 1.5 dx an interior particle
 #: sees only its 6 face neighbours; above 3 dx a particle has more than 120 neighbours
@@ -70,7 +70,7 @@ class SceneBuilder:
     ``Solver.guard_counts()["neighbors_cut"]`` (docs/method.md §1).
 
     ``fit`` and ``contact_ramp`` become the model's ``Model.fit`` (the incremental fit a
-    ``Solver`` runs by default) and ``Model.contact_ramp`` (``contact=`` names it: one of
+    ``Solver`` runs by default; None: ``Model.fit``'s default) and ``Model.contact_ramp`` (``contact=`` names it: one of
     ``model.CONTACTS``, "instant" or "continuous"); scene files set them in ``[solver]``.
     """
 
@@ -82,13 +82,13 @@ class SceneBuilder:
         max_neighbors: int | str | None = None,
         bodies_interact: bool = True,
         *,
-        fit: str = DEFAULT_FIT,
+        fit: str | None = None,
         contact: str | None = None,
         contact_ramp: float = CONTACT_RAMP,
     ):
         self.spacing = checks.positive("spacing", spacing)
-        #: ``Model.fit`` of the model ``finalize`` makes.
-        self.fit = checks.choice("fit", fit, FITS)
+        #: ``Model.fit`` of the model ``finalize`` makes (None: the model's default).
+        self.fit = None if fit is None else checks.choice("fit", fit, FITS)
         if contact is not None:
             if contact_ramp != CONTACT_RAMP:
                 raise ValueError(f"contact = {contact!r} and contact_ramp = {contact_ramp!r} are not allowed together: give one")
@@ -578,7 +578,7 @@ def replicate_worlds(model: Model, worlds: int, requires_grad: bool | None = Non
         particle_world=np.repeat(np.arange(W, dtype=np.int32), n),
         world_material_start=[w * M for w in range(W + 1)],
     )
-    out.fit, out.contact_ramp = model.fit, model.contact_ramp
+    out._fit, out.contact_ramp = model._fit, model.contact_ramp
     # A field on every particle acts once on all worlds; one on a body acts on each copy.
     out.force_fields = [f for f in model.force_fields if f.body < 0]
     out.force_fields += [dataclasses.replace(f, body=f.body + w * B) for w in range(W) for f in model.force_fields if f.body >= 0]

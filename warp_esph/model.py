@@ -157,7 +157,7 @@ class Model:
         self.bodies = list(bodies)
         self.planes, self.spheres, self.boxes = list(planes), list(spheres), list(boxes)
         self.contact_ramp = CONTACT_RAMP
-        self.fit = DEFAULT_FIT
+        self._fit = None  # the default (``fit``), until one is chosen
         self.particle_count = int(positions.shape[0])
         npf = self.types.np_dtype
         self.particle_x0 = np.ascontiguousarray(positions, dtype=npf)
@@ -267,12 +267,17 @@ class Model:
         """The incremental fit (``FITS``) a ``Solver`` of this model runs unless its ``fit=``
         says otherwise: ``"linear"``, the paper's eqs. 5-6; ``"curvature_corrected"``, the fit
         that also carries the mixed quadratic terms (``sim/curvature.py``; docs/physics.md,
-        "Bending stiffness"). Scene files set it in ``[solver]`` (docs/scene_format.md)."""
-        return self._fit
+        "Bending stiffness"). Until one is set: ``DEFAULT_FIT``, or ``"linear"`` for a model
+        with a Fig. 8 comparison deformation model (the only fit those have). Scene files set
+        it in ``[solver]`` (docs/scene_format.md)."""
+        if self._fit is not None:
+            return self._fit
+        return "linear" if self.uses_comparison_models else DEFAULT_FIT
 
     @fit.setter
-    def fit(self, value: str):
-        if not isinstance(value, str) or value not in FITS:
+    def fit(self, value: str | None):
+        """None: back to the default."""
+        if value is not None and (not isinstance(value, str) or value not in FITS):
             raise ValueError(f"fit = {value!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
         self._fit = value
 

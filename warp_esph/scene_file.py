@@ -24,7 +24,7 @@ except ModuleNotFoundError:  # Python 3.10: the same parser as the tomli package
 from . import checks
 from .builder import SceneBuilder
 from .material import PRESETS, Material
-from .model import CONTACTS, DEFAULT_FIT, FITS
+from .model import CONTACTS, FITS
 
 __all__ = [
     "Scene", "load_scene_file", "SCENE_KEYS", "MATERIAL_KEYS", "BODY_COMMON", "BODY_SHAPES", "COLLIDER_TYPES", "TOP_KEYS",
@@ -375,7 +375,9 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
             raise ValueError(f"{file}: unknown key {key!r} at the top level{_did_you_mean(key, TOP_KEYS)} (allowed: {', '.join(TOP_KEYS)})")
     scene = _check_table(file, "[scene]", data.get("scene", {}), SCENE_KEYS)
     solver = _check_table(file, "[solver]", data.get("solver", {}), SOLVER_KEYS)
-    fit = _choice(file, "[solver]", "fit", solver.get("fit", DEFAULT_FIT), FITS)
+    fit = solver.get("fit")
+    if fit is not None:
+        _choice(file, "[solver]", "fit", fit, FITS)
     contact = solver.get("contact")
     if contact is not None:
         _choice(file, "[solver]", "contact", contact, tuple(CONTACTS))

@@ -46,6 +46,9 @@ from . import deformation, forces, materials, smoothing
 #: ``det A~`` below this fraction of ``det A`` (on a lattice it is above 0.4 everywhere).
 CURVATURE_DET_RATIO = 0.1
 
+#: The ridge ``eps`` of ``curvature_projection``, relative to ``tr(A) / 3``.
+CURVATURE_RIDGE = 1.0e-4
+
 COUNT_FEW_NEIGHBORS = deformation.COUNT_FEW_NEIGHBORS
 COUNT_ILL_CONDITIONED = deformation.COUNT_ILL_CONDITIONED
 
@@ -117,7 +120,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     def curvature_projection(A: mat33, C: mat33, D: mat33) -> mat33:
         """``K = (D + eps I)^-1 C^T``, ``eps = 1e-4 tr(A) / 3``: the curvature terms' share of
         ``xb`` (``xb - K^T q(xb)`` is orthogonal to them in the fit's weights)."""
-        eps = scalar(1.0e-4 / 3.0) * (A[0, 0] + A[1, 1] + A[2, 2])
+        eps = scalar(CURVATURE_RIDGE / 3.0) * (A[0, 0] + A[1, 1] + A[2, 2])
         K = wp.inverse(D + eps * wp.identity(n=3, dtype=scalar)) * wp.transpose(C)
         if not curvature_kept(A, C, K):
             K = mat33()
@@ -220,7 +223,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         With ``K = (D + eps I)^-1 C^T``, ``A~ = A - C K``, ``B~ = B - E K``, ``dF = B~ A~^-1``
         and ``F_out = dF F``: ``adj F = dF^T G``, ``adj B~ = G F^T A~^-T``,
         ``adj A~ = -dF^T adj B~``; ``adj B = adj B~``, ``adj E = -adj B~ K^T``,
-        ``adj A = adj A~ + (1e-4/3) tr(adj Dr) I``, ``adj K = -E^T adj B~ - C^T adj A~``,
+        ``adj A = adj A~ + (eps / tr(A)) tr(adj Dr) I``, ``adj K = -E^T adj B~ - C^T adj A~``,
         ``adj C = -adj A~ K^T + adj K^T Dr^-1``, ``adj D = -Dr^-T adj K K^T`` (``Dr = D + eps I``;
         where the correction is dropped, ``K = 0`` does not depend on ``C`` or ``D``).
         Per pair the sums depend on ``xb`` through ``w(|xb|^2)``, ``xb`` and ``q(xb)``, and on
@@ -234,7 +237,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             adj_F_prev[i] = adj_F_prev[i] + G
             return
         I3 = wp.identity(n=3, dtype=scalar)
-        eps_c = scalar(1.0e-4 / 3.0)
+        eps_c = scalar(CURVATURE_RIDGE / 3.0)
         Dr_inv = wp.inverse(D + eps_c * (A[0, 0] + A[1, 1] + A[2, 2]) * I3)
         K = Dr_inv * wp.transpose(C)
         used = scalar(1.0)
