@@ -259,7 +259,7 @@ class Solver:
             # 4. Elastic pair forces, pressure and viscosity.
             with phase("forces"):
                 if self._curved:
-                    curvature.launch_elastic_forces(m, state_in, state_out)
+                    curvature.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
                 else:
                     forces.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
             if sph:
