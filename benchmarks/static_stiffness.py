@@ -8,15 +8,22 @@ should reach, without the relaxation. numpy only, dense: small lattices (a few t
 particles).
 
     python -m benchmarks.static_stiffness                  # the table of docs/physics.md
+    python -m benchmarks.static_stiffness --modes          # the free cube's modes, the ridge and the residual penalty
 
 Fits: ``"paper"`` (eqs. 5-6, ``g = w A^-1 xb``), ``"corrected"`` (the curvature-corrected
 fit of ``warp_esph/sim/curvature.py``, ``Solver(fit="curvature_corrected")``, ``g = w A~^-1 (xb - K^T q(xb))``), ``"centroid"``
 (an affine fit with an intercept, for comparison).
+
+``hourglass = c`` adds the stiffness of a penalty on each fit's residual (not a part of
+the solver: the remedy docs/physics.md, "Side effects of the corrected fit", measured):
+``c mu / 2 sum_i sum_j (w_ij / sum_k w_ik) |u_j - u_i - G_i xb_ij|^2 / |xb_ij|^2``, with
+``G_i`` the fit's gradient (either fit), so affine motions cost nothing.
 """
 
 import numpy as np
 
-EPS = 1.0e-4  # curvature.curvature_projection's ridge, relative to tr(A) / 3
+EPS = 1.0e-4  # curvature.CURVATURE_RIDGE: the ridge of curvature_projection, relative to tr(A) / 3
+DET_RATIO = 0.1  # curvature.CURVATURE_DET_RATIO: the correction is dropped below det A~ / det A
 
 
 def neighbours(x: np.ndarray, h: float) -> list:
@@ -25,7 +32,8 @@ def neighbours(x: np.ndarray, h: float) -> list:
     return [np.nonzero(row < h * h)[0] for row in r2]
 
 
-def gradient_ops(x: np.ndarray, nb: list, h: float, fit: str = "paper") -> list:
+def gradient_ops(x: np.ndarray, nb: list, h: float, fit: str = "paper", eps: float = EPS,
+                 det_ratio: float = DET_RATIO) -> list:
     """Per particle ``(j, g)``: ``grad u_i = sum_j (u_j - u_i) g_j^T``."""
     ops = []
     for i in range(len(x)):
@@ -37,8 +45,10 @@ def gradient_ops(x: np.ndarray, nb: list, h: float, fit: str = "paper") -> list:
         elif fit == "corrected":
             q = np.stack([xb[:, 0] * xb[:, 1], xb[:, 0] * xb[:, 2], xb[:, 1] * xb[:, 2]], 1) / h
             C = np.einsum("n,ni,nj->ij", w, xb, q)
-            D = np.einsum("n,ni,nj->ij", w, q, q) + EPS * np.trace(A) / 3.0 * np.eye(3)
+            D = np.einsum("n,ni,nj->ij", w, q, q) + eps * np.trace(A) / 3.0 * np.eye(3)
             K = np.linalg.solve(D, C.T)
+            if np.linalg.det(A - C @ K) <= det_ratio * np.linalg.det(A):
+                K = np.zeros((3, 3))
             g = w[:, None] * np.linalg.solve(A - C @ K, (xb - q @ K).T).T
         elif fit == "centroid":
             ws = np.concatenate([[h**6], w])
@@ -72,11 +82,45 @@ def stiffness(n_particles: int, ops: list, mu: float, lam: float, volume: float 
     return K
 
 
+def residual_stiffness(x: np.ndarray, ops: list, h: float, mu: float, c: float) -> np.ndarray:
+    """Stiffness of the residual penalty (module docstring, ``hourglass = c``)."""
+    n = len(x)
+    K = np.zeros((3 * n, 3 * n))
+    for i, (js, g) in enumerate(ops):
+        xb = x[js] - x[i]
+        r2 = (xb * xb).sum(1)
+        w = (h * h - r2) ** 3
+        R = np.eye(len(js)) - xb @ g.T  # r_j = sum_k R[j, k] (u_k - u_i)
+        Rf = np.concatenate([-R.sum(1, keepdims=True), R], 1)
+        M = c * mu * Rf.T @ ((w / w.sum() / r2)[:, None] * Rf)
+        idx = np.concatenate([[i], js])
+        for a in range(3):
+            K[np.ix_(3 * idx + a, 3 * idx + a)] += M
+    return K
+
+
+def _operator(x: np.ndarray, hdx: float, fit: str, nu: float, hourglass: float, **fit_kw) -> np.ndarray:
+    mu, lam = _lame(nu)
+    ops = gradient_ops(x, neighbours(x, hdx), hdx, fit, **fit_kw)
+    K = stiffness(len(x), ops, mu, lam)
+    return K + residual_stiffness(x, ops, hdx, mu, hourglass) if hourglass else K
+
+
+def cube_modes(n: int = 6, hdx: float = 2.0, fit: str = "paper", nu: float = 0.3, hourglass: float = 0.0, **fit_kw) -> np.ndarray:
+    """``omega^2`` of a free ``n^3`` lattice cube (dx = 1, E = 1, unit masses), the six rigid
+    modes left out, ascending."""
+    k, j, l = np.meshgrid(*(np.arange(n),) * 3, indexing="ij")
+    x = np.stack([k, j, l], -1).reshape(-1, 3).astype(float)
+    K = _operator(x, hdx, fit, nu, hourglass, **fit_kw)
+    return np.sort(np.linalg.eigvalsh(0.5 * (K + K.T)))[6:]
+
+
 def _lame(nu: float, E: float = 1.0):
     return E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
 
 
-def beam(n: int = 6, span: int = 5, hdx: float = 2.0, fit: str = "paper", nu: float = 0.3, kappa: float = 0.85) -> float:
+def beam(n: int = 6, span: int = 5, hdx: float = 2.0, fit: str = "paper", nu: float = 0.3, kappa: float = 0.85,
+         hourglass: float = 0.0, **fit_kw) -> float:
     """``benchmarks.validation.beam_deflection``'s beam (dx = 1, E = 1, rho g = 1): the bottom
     particles of the two end columns held vertically; midspan deflection / Timoshenko."""
     cols = n * span
@@ -84,7 +128,7 @@ def beam(n: int = 6, span: int = 5, hdx: float = 2.0, fit: str = "paper", nu: fl
     x = np.stack([k - cols / 2, j, l - (n - 1) / 2], -1).reshape(-1, 3).astype(float)
     L, t = float(cols), float(n)
     mu, lam = _lame(nu)
-    K = stiffness(len(x), gradient_ops(x, neighbours(x, hdx), hdx, fit), mu, lam)
+    K = _operator(x, hdx, fit, nu, hourglass, **fit_kw)
     f = np.zeros(3 * len(x))
     f[1::3] = -1.0
     ends = np.abs(np.abs(x[:, 0]) - L / 2) < 0.25
@@ -123,7 +167,22 @@ def cantilever(n: int = 5, clamp_cols: int = 3, hdx: float = 2.0, fit: str = "pa
     return -u[1::3][tip].mean() / ref
 
 
+def _modes_table():
+    for hdx in (2.0, 2.5):
+        for fit, kw in (("paper", {}), ("corrected", {}), ("corrected", {"eps": 0.05}), ("corrected", {"eps": 0.1}),
+                        ("corrected", {"det_ratio": 0.5}), ("paper", {"hourglass": 0.05}), ("corrected", {"hourglass": 0.05})):
+            w2 = cube_modes(6, hdx, fit, **kw)
+            b = beam(6, 5, hdx, fit, **kw)
+            print(f"h {hdx} dx {fit:9s} {str(kw):22s} cube 6^3: lowest omega^2 {w2[0]:.4f}, {int((w2 < 0.01).sum())} below 0.01, "
+                  f"highest {w2[-1]:.3f}; beam 6 thick static {b:.4f}", flush=True)
+
+
 if __name__ == "__main__":
+    import sys
+
+    if "--modes" in sys.argv:
+        _modes_table()
+        raise SystemExit(0)
     for fit in ("paper", "corrected"):
         for n in (4, 6, 8):
             print(f"{fit:9s} beam {n} thick, span 5 t, h 2 dx: {beam(n, 5, 2.0, fit):.4f}", flush=True)

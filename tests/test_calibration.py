@@ -477,6 +477,31 @@ def test_cli_joint_experiments_file(tmp_path):
                  "--output-dir", str(out), *common]) == 2
 
 
+def test_cli_fit_takes_the_solver_options(tmp_path, capsys):
+    """``fit --solver-fit/--contact`` reach the fit's solver: the initial loss against a run of
+    the same scene with the corrected fit and continuous contact is 0 with those options (the
+    same forward run; up to the float32 rounding of the USD target) and not without; a bad
+    name is one line, exit 2."""
+    from warp_esph.cli import main
+
+    truth = tmp_path / "truth.toml"
+    truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
+    options = ["--solver-fit", "curvature_corrected", "--contact", "continuous"]
+    assert main(["run", str(truth), "-o", str(tmp_path / "run.usdc"), "--frames", "2", "--dtype", "float64",
+                 "--no-progress", *options]) == 0
+    common = ["--iterations", "0", "--no-progress", "--no-usd", "--no-diagnostics", "--target-frames", "2"]
+    losses = []
+    for name, extra in (("same", options), ("default", [])):
+        out = tmp_path / name
+        assert main(["fit", str(truth), "--target", str(tmp_path / "run.usdc"), "--output-dir", str(out), *common, *extra]) == 0
+        losses.append(json.loads((out / "fit.json").read_text())["initial_loss"])
+    assert losses[0] < 1e-9 * losses[1]
+    capsys.readouterr()
+    assert main(["fit", str(truth), "--target", str(tmp_path / "run.usdc"), "--solver-fit", "quad", *common]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--solver-fit = 'quad'" in err[0] and "'curvature_corrected'" in err[0]
+
+
 def test_chamfer_residuals_match_the_loss():
     """The residual vector the diagnostics use has ``sum r^2 = residual_scale * value``,
     with clouds of different sizes and points beyond the radius."""

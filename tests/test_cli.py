@@ -106,6 +106,34 @@ def test_toml_scene_file_runs(tmp_path, capsys):
     assert frames_in(out_path, "/World/box0") == [0.0, 1.0, 2.0]
 
 
+def test_solver_options_from_scene_file_and_cli(tmp_path, capsys):
+    """``[solver]`` in the file runs the corrected fit; ``--solver-fit linear`` overrides it
+    (the same frames as the file without ``[solver]``); the run record keeps the choice."""
+    from warp_esph.checkpoint import read_checkpoint
+
+    falling = GOOD_TOML.replace('material = "soft"', 'material = "soft"\nvelocity = [0.0, -3.0, 0.0]')
+    plain, chosen = tmp_path / "plain.toml", tmp_path / "chosen.toml"
+    plain.write_text(falling)
+    chosen.write_text('[solver]\nfit = "curvature_corrected"\ncontact = "continuous"\n' + falling)
+
+    def last_frame(scene, name, *extra):
+        out = tmp_path / f"{name}.usdc"
+        assert main(["run", str(scene), "-o", str(out), "--no-progress", "--checkpoint-every", "2", *extra]) == 0
+        stage = open_fresh(out)
+        x = np.array(stage.GetPrimAtPath("/World/box0").GetAttribute("points").Get(2.0))
+        return x, read_checkpoint(str(out) + ".checkpoint.npz")[0]["run"]
+
+    x_plain, run_plain = last_frame(plain, "plain")
+    x_chosen, run_chosen = last_frame(chosen, "chosen")
+    x_back, run_back = last_frame(chosen, "back", "--solver-fit", "linear", "--contact", "instant")
+    assert (run_plain["fit"], run_plain["contact_ramp"]) == ("linear", 0.0)
+    assert (run_chosen["fit"], run_chosen["contact_ramp"]) == ("curvature_corrected", 1.0)
+    assert (run_back["fit"], run_back["contact_ramp"]) == ("linear", 0.0)
+    assert np.array_equal(x_back, x_plain)
+    assert np.abs(x_chosen - x_plain).max() > 1e-4  # the impact bends the surface: the fits differ there
+    capsys.readouterr()
+
+
 BAD_TOML = {
     "unknown_key": (GOOD_TOML.replace('shape = "box"', 'shape = "box"\ncolour = "red"'), ["'colour'", "[[bodies]] #1"]),
     "typo_key": (GOOD_TOML.replace("spacing = 0.05", "spaceing = 0.05"), ["'spaceing'", "[scene]", "did you mean 'spacing'"]),
@@ -115,6 +143,7 @@ BAD_TOML = {
     "bad_value": (GOOD_TOML.replace("nu = 0.3", "nu = 0.7"), ["nu = 0.7", "[materials.soft]"]),
     "bad_syntax": (GOOD_TOML.replace("frames = 2", "frames = = 2"), ["invalid TOML", "line"]),
     "bad_material": (GOOD_TOML.replace('material = "soft"', 'material = "sofft"'), ["'sofft'", "did you mean 'soft'"]),
+    "bad_fit": ('[solver]\nfit = "quadratic"\n' + GOOD_TOML, ["fit = 'quadratic' in [solver]", "linear, curvature_corrected"]),
 }
 
 
@@ -146,6 +175,8 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         (["run", "missing_scene.toml"], ["missing_scene.toml", "No such file"]),
         (["run", "-o", "/nonexistent_dir_xyz/out.usdc", "--scale", "0.3"], ["/nonexistent_dir_xyz"]),
         (["frobnicate"], ["frobnicate"]),
+        (["run", "--solver-fit", "quadratic"], ["--solver-fit = 'quadratic'", "'linear', 'curvature_corrected'"]),
+        (["run", "--contact", "soft"], ["--contact = 'soft'", "'instant', 'continuous'"]),
     ],
 )
 def test_bad_input_is_one_line_exit_2(tmp_path, monkeypatch, capsys, args, needles):

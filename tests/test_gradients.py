@@ -188,12 +188,14 @@ def test_gradient_across_the_saturated_flow_step(weights, elastic_force, rate_dt
             assert grads[name][0] == pytest.approx(one_sided, rel=1e-3), name
 
 
-@pytest.mark.parametrize("name", ["mu", "yield_stress", "v0"])
-def test_curvature_corrected_fit_gradients_match_central_differences(weights, name):
-    """``Solver(fit="curvature_corrected")`` (``curvature.py``): its deformation update's
-    hand-written adjoint and its variational force's generated one, against central
-    differences; and the hand-written adjoint against Warp's generated one."""
-    params = {"elastic_force": "variational"}
+@pytest.mark.parametrize("name, elastic_force", [("mu", "variational"), ("yield_stress", "variational"),
+                                                  ("v0", "variational"), ("mu", "paper")])
+def test_curvature_corrected_fit_gradients_match_central_differences(weights, name, elastic_force):
+    """``Solver(fit="curvature_corrected")`` (``curvature.py``): the hand-written adjoints of
+    its deformation update and its elastic force (``variational_forces_adjoint``; eqs. 10-13:
+    ``forces.elastic_forces_adjoint``) against central differences, and against Warp's
+    generated adjoints."""
+    params = {"elastic_force": elastic_force}
     model = _model(params)
     _, grads = _rollout_loss(model, weights, grad_of=(name,), fit="curvature_corrected")
     _, generated = _rollout_loss(_model(params), weights, grad_of=(name,), fit="curvature_corrected", hand_adjoints=False)

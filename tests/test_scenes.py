@@ -74,6 +74,7 @@ def test_documented_example_loads(tmp_path):
     b = scene.builder
     assert scene.name == "dough_and_ball" and scene.frames == 60 and scene.fps == 30 and scene.dt is None
     assert b.spacing == pytest.approx(0.02) and b.support_radius == pytest.approx(0.04)
+    assert (b.fit, b.contact_ramp) == ("curvature_corrected", 1.0)
     names = [body.name for body in b._bodies]
     assert names[:2] == ["slab", "ball"] and len(names) == 5
     assert len(b.planes) == 2 and len(b.spheres) == 1 and len(b.boxes) == 1
@@ -135,6 +136,12 @@ BASE = textwrap.dedent(
         ("spacing = 0.05", "spacing = 0.05\nsupport_radius = 0.5", r"\[scene\]: support_radius = .* is not allowed"),
         ("spacing = 0.05", "spacing = 0.05\nframes = 0", r"\[scene\]: frames = 0 is not allowed"),
         ("spacing = 0.05", "spacing = = 0.05", r"invalid TOML"),
+        ("[scene]", '[solver]\nfit = "quadratic"\n[scene]',
+         r"fit = 'quadratic' in \[solver\] is not allowed \(allowed: linear, curvature_corrected\)"),
+        ("[scene]", '[solver]\ncontact = "contiuous"\n[scene]',
+         r"contact = 'contiuous' in \[solver\] is not allowed; did you mean 'continuous'\? \(allowed: instant, continuous\)"),
+        ("[scene]", '[solver]\nfitt = "linear"\n[scene]', r"unknown key 'fitt' in \[solver\]; did you mean 'fit'"),
+        ("[scene]", "[solver]\nfit = 2\n[scene]", r"key 'fit' in \[solver\] must be a string, not int"),
     ],
 )
 def test_scene_file_errors_name_file_table_and_key(tmp_path, old, new, pattern):
@@ -144,6 +151,66 @@ def test_scene_file_errors_name_file_table_and_key(tmp_path, old, new, pattern):
     with pytest.raises(ValueError, match=pattern) as info:
         load_scene_file(path)
     assert str(path) in str(info.value)
+
+
+def test_solver_table_sets_the_fit_and_contact_of_the_model_and_its_solver(tmp_path):
+    """``[solver]`` reaches ``Solver(model)``: a step of the scene's model is, bit for bit, the
+    step of a solver given the option explicitly, and differs from the linear fit's (an
+    impact bends the surface, where the two fits differ)."""
+    from warp_esph import Solver
+    from warp_esph.model import DEFAULT_FIT
+    from warp_esph.sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP
+
+    text = BASE.replace("radius = 0.1", "radius = 0.1\nvelocity = [0, -4, 0]").replace("center = [0, 0.2, 0]", "center = [0, 0.15, 0]")
+    plain = tmp_path / "plain.toml"
+    plain.write_text(text)
+    chosen = tmp_path / "chosen.toml"
+    chosen.write_text('[solver]\nfit = "curvature_corrected"\ncontact = "continuous"\n' + text)
+    m = load_scene_file(chosen).builder.finalize()
+    base = load_scene_file(plain).builder.finalize()
+    assert (m.fit, m.contact_ramp) == ("curvature_corrected", CONTINUOUS_CONTACT_RAMP)
+    assert (base.fit, base.contact_ramp) == (DEFAULT_FIT, CONTACT_RAMP) and DEFAULT_FIT == "linear"
+    assert Solver(m).fit == "curvature_corrected" and Solver(base).fit == DEFAULT_FIT
+
+    def run(model, **kw):
+        return simulate(model, 2, progress=False, solver=Solver(model, **kw)).x.numpy()
+
+    x = run(m)
+    base.contact_ramp = CONTINUOUS_CONTACT_RAMP
+    assert np.array_equal(x, run(base, fit="curvature_corrected"))
+    assert np.abs(x - run(base)).max() > 1e-6
+
+
+def test_solver_options_refuse_bad_names_in_python():
+    import dataclasses
+
+    from warp_esph import SceneBuilder, Solver
+    from warp_esph.model import DEFAULT_FIT
+
+    with pytest.raises(ValueError, match=r"fit = 'quad' is not allowed: must be one of 'linear', 'curvature_corrected'"):
+        SceneBuilder(fit="quad")
+    with pytest.raises(ValueError, match=r"contact = 'soft' is not allowed: must be one of 'instant', 'continuous'"):
+        SceneBuilder(contact="soft")
+    with pytest.raises(ValueError, match=r"contact = 'continuous' and contact_ramp = 0.5 are not allowed together"):
+        SceneBuilder(contact="continuous", contact_ramp=0.5)
+    with pytest.raises(ValueError, match=r"contact_ramp = -1 is not allowed: must be >= 0"):
+        SceneBuilder(contact_ramp=-1)
+    b = SceneBuilder(spacing=0.05)
+    b.add_box(center=(0, 0, 0), size=(0.1, 0.1, 0.1), material=PRESETS["rubber"])
+    model = b.finalize()
+    with pytest.raises(ValueError, match=r"fit = 'quad' is not allowed"):
+        model.fit = "quad"
+    assert model.fit == DEFAULT_FIT
+    # A Fig. 8 comparison model has only the linear fit: its default, and a chosen corrected
+    # fit is refused by the solver before any kernel runs.
+    b = SceneBuilder(spacing=0.05)
+    b.add_box(center=(0, 0, 0), size=(0.1, 0.1, 0.1), material=dataclasses.replace(PRESETS["rubber"], deformation="rest",
+                                                                                   elastic_force="paper"))
+    model = b.finalize()
+    assert model.fit == "linear" and Solver(model).fit == "linear"
+    model.fit = "curvature_corrected"
+    with pytest.raises(ValueError, match="fit = 'curvature_corrected' is not allowed with a comparison deformation model"):
+        Solver(model)
 
 
 def test_scene_file_unreadable(tmp_path):

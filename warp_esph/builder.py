@@ -16,11 +16,11 @@ import warp as wp
 
 from . import checks, meshes, tools
 from ._types import scalar_type
-from .sim.colliders import MAX_PER_KIND, Box, Plane, Sphere
+from .sim.colliders import CONTACT_RAMP, MAX_PER_KIND, Box, Plane, Sphere
 from .sim.neighbors import PAPER_MAX_NEIGHBORS, default_max_neighbors
 from .material import Material
 from .meshes import lattice_points
-from .model import Body, Model
+from .model import CONTACTS, FITS, Body, Model
 
 #: Allowed support radius, in units of the spacing. Below 1.5 dx an interior particle
 #: sees only its 6 face neighbours; above 3 dx a particle has more than 120 neighbours
@@ -68,6 +68,10 @@ class SceneBuilder:
     that no row is cut in practice, so the loss is smooth in the parameters; ``"paper"``
     is the paper's 30 nearest (``PAPER_MAX_NEIGHBORS``). A row that is cut is counted in
     ``Solver.guard_counts()["neighbors_cut"]`` (docs/method.md §1).
+
+    ``fit`` and ``contact_ramp`` become the model's ``Model.fit`` (the incremental fit a
+    ``Solver`` runs by default; None: ``Model.fit``'s default) and ``Model.contact_ramp`` (``contact=`` names it: one of
+    ``model.CONTACTS``, "instant" or "continuous"); scene files set them in ``[solver]``.
     """
 
     def __init__(
@@ -77,8 +81,20 @@ class SceneBuilder:
         support_radius: float | None = None,
         max_neighbors: int | str | None = None,
         bodies_interact: bool = True,
+        *,
+        fit: str | None = None,
+        contact: str | None = None,
+        contact_ramp: float = CONTACT_RAMP,
     ):
         self.spacing = checks.positive("spacing", spacing)
+        #: ``Model.fit`` of the model ``finalize`` makes (None: the model's default).
+        self.fit = None if fit is None else checks.choice("fit", fit, FITS)
+        if contact is not None:
+            if contact_ramp != CONTACT_RAMP:
+                raise ValueError(f"contact = {contact!r} and contact_ramp = {contact_ramp!r} are not allowed together: give one")
+            contact_ramp = CONTACTS[checks.choice("contact", contact, tuple(CONTACTS))]
+        #: ``Model.contact_ramp`` of the model ``finalize`` makes.
+        self.contact_ramp = checks.non_negative("contact_ramp", contact_ramp)
         if not isinstance(bodies_interact, bool):
             raise ValueError(f"bodies_interact = {bodies_interact!r} is not allowed: must be True or False")
         #: Whether SPH pressure and viscosity act between bodies (contact between bodies).
@@ -400,7 +416,8 @@ class SceneBuilder:
 
 
 #: What every world of a model must share (``finalize_worlds``).
-_SHARED = ("spacing", "support_radius", "gravity", "max_neighbors", "bodies_interact", "planes", "spheres", "boxes")
+_SHARED = ("spacing", "support_radius", "gravity", "max_neighbors", "bodies_interact", "planes", "spheres", "boxes",
+           "fit", "contact_ramp")
 
 
 def _tool_signature(b: SceneBuilder) -> tuple:
@@ -510,6 +527,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
         world_material_start=mat_start,
     )
     model.force_fields = fields
+    model.fit, model.contact_ramp = first.fit, first.contact_ramp
     if first.tools or first.pins:
         model.tools = tools.ToolSet(model, first.tools, first.pins, world_pins=[[p.indices for p in b.pins] for b in builders])
     model.compute_rest_density()
@@ -560,6 +578,7 @@ def replicate_worlds(model: Model, worlds: int, requires_grad: bool | None = Non
         particle_world=np.repeat(np.arange(W, dtype=np.int32), n),
         world_material_start=[w * M for w in range(W + 1)],
     )
+    out._fit, out.contact_ramp = model._fit, model.contact_ramp
     # A field on every particle acts once on all worlds; one on a body acts on each copy.
     out.force_fields = [f for f in model.force_fields if f.body < 0]
     out.force_fields += [dataclasses.replace(f, body=f.body + w * B) for w in range(W) for f in model.force_fields if f.body >= 0]

@@ -241,6 +241,9 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         raise ValueError(f"{where}--target-frames is given {len(tframes)} times for {len(targets)} --target files: "
                          f"give it once per --target, in the same order, or once for all")
     scene = load_scene(spec["scene"], scale=scale)
+    from .cli import _apply_solver_options, _solver_options  # noqa: PLC0415
+
+    _apply_solver_options(scene.builder, _solver_options(args))  # --solver-fit / --contact over the scene's [solver]
     if _arg(args, "support_radius") is not None:
         from .builder import SUPPORT_RANGE  # noqa: PLC0415
 

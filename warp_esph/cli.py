@@ -88,6 +88,7 @@ def _build_parser() -> _Parser:
     run.add_argument("--resume", metavar="CHECKPOINT",
                      help="continue the run saved in CHECKPOINT (.npz), appending to its USD file; "
                           "the scene and its settings come from the checkpoint (--frames N: run to frame N instead)")
+    _add_solver_arguments(run)
     sub.add_parser("scenes", help="list the built-in scenes", description="List the built-in scenes.")
     add_fit_arguments(sub.add_parser(
         "fit", help="fit material parameters of a scene to a target by gradient descent",
@@ -131,6 +132,35 @@ def _build_parser() -> _Parser:
     exp.add_argument("--frames", metavar="SELECTION", help="frames, as for render (default: all)")
     _add_sweep_parser(sub)
     return p
+
+
+def _add_solver_arguments(parser) -> None:
+    """``--solver-fit`` and ``--contact``: the scene's ``[solver]`` options, overridden."""
+    parser.add_argument("--solver-fit", metavar="NAME",
+                        help="incremental fit of the solver: linear (the paper's) or curvature_corrected (stiffer in bending "
+                             "near free surfaces); default: the scene's [solver] fit, else linear")
+    parser.add_argument("--contact", metavar="NAME",
+                        help="contact law of colliders and tools: instant (the whole inward velocity removed) or continuous "
+                             "(continuous in the state, so a loss is continuous through contact); default: the scene's "
+                             "[solver] contact, else instant")
+
+
+def _solver_options(args) -> dict:
+    """The checked ``--solver-fit`` / ``--contact`` as ``Model`` attribute values (only those given)."""
+    from . import checks  # noqa: PLC0415
+    from .model import CONTACTS, FITS  # noqa: PLC0415
+
+    out = {}
+    if getattr(args, "solver_fit", None) is not None:
+        out["fit"] = checks.choice("--solver-fit", args.solver_fit, FITS)
+    if getattr(args, "contact", None) is not None:
+        out["contact_ramp"] = CONTACTS[checks.choice("--contact", args.contact, tuple(CONTACTS))]
+    return out
+
+
+def _apply_solver_options(builder, options: dict) -> None:
+    for name, value in options.items():
+        setattr(builder, name, value)
 
 
 def _add_sweep_parser(sub) -> None:
@@ -232,6 +262,7 @@ def _cmd_run(args) -> int:
     from .checkpoint import load_state, read_checkpoint, save_state  # noqa: PLC0415
 
     every = None if args.checkpoint_every is None else checks.positive_int("--checkpoint-every", args.checkpoint_every)
+    options = _solver_options(args)
     start_frame, state = 0, None
     if args.resume is not None:
         # The run record of the checkpoint decides everything the results depend on.
@@ -244,7 +275,9 @@ def _cmd_run(args) -> int:
         args.fps, args.dt, args.output, args.surface = run["fps"], run["dt"], run["output"], run.get("surface", False)
         frames_total = args.frames if args.frames is not None else run["frames"]  # --frames extends a run
         every = every or run.get("checkpoint_every")
+        options = {k: run[k] for k in ("fit", "contact_ramp") if k in run}  # the run's own, not the scene's now
     scene = load_scene(args.scene, scale=scale)
+    _apply_solver_options(scene.builder, options)
     fps = args.fps if args.fps is not None else scene.fps
     dt = args.dt if args.dt is not None else scene.dt
     output = args.output or f"{scene.name}.usdc"
@@ -271,7 +304,7 @@ def _cmd_run(args) -> int:
     checkpoint_path = writer.path + ".checkpoint.npz"
     run_record = {"scene": args.scene if args.scene is not None else scene.name, "scale": scale, "fps": fps, "dt": dt,
                   "frames": frames_total, "output": os.path.abspath(writer.path), "dtype": args.dtype,
-                  "surface": bool(args.surface), "checkpoint_every": every}
+                  "surface": bool(args.surface), "checkpoint_every": every, "fit": model.fit, "contact_ramp": model.contact_ramp}
     if args.scene is not None and os.path.exists(str(args.scene)):
         run_record["scene"] = os.path.abspath(args.scene)
 
@@ -364,6 +397,12 @@ def _check_run_record(path, run: dict) -> None:
         checks.boolean("surface", run.get("surface", False))
         if run.get("checkpoint_every") is not None:
             checks.positive_int("checkpoint_every", run["checkpoint_every"])
+        if "fit" in run:
+            from .model import FITS  # noqa: PLC0415
+
+            checks.choice("fit", run["fit"], FITS)
+        if "contact_ramp" in run:
+            checks.non_negative("contact_ramp", run["contact_ramp"])
     except ValueError as e:
         raise ValueError(f"{where} {e}") from None
 
@@ -406,6 +445,7 @@ def add_fit_arguments(parser):
     parser.add_argument("-o", "--output", metavar="OUT.json", help="the fit's JSON file (default: fit.json in --output-dir)")
     parser.add_argument("--no-usd", action="store_true", help="do not write the fitted run to USD")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_solver_arguments(parser)
     from .calibrate import add_calibration_arguments  # noqa: PLC0415
 
     add_calibration_arguments(parser)

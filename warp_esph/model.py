@@ -17,9 +17,19 @@ import warp as wp
 
 from . import tools
 from ._types import type_set
-from .sim.colliders import CONTACT_RAMP, Box, Plane, Sphere
+from .sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP, Box, Plane, Sphere
 from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, PRESSURE_FORCE_IDS, Material, p_wave_speed
 from .sim import materials as material_struct
+
+
+#: The incremental fits a ``Solver`` offers (docs/method.md §2): the paper's affine one and
+#: the curvature-corrected one (``sim/curvature.py``). ``Model.fit`` picks a model's.
+FITS = ("linear", "curvature_corrected")
+#: ``Model.fit`` of a new model.
+DEFAULT_FIT = "linear"
+#: The contact laws by name (scene files' ``[solver] contact``, the CLI's ``--contact``):
+#: name -> ``Model.contact_ramp``.
+CONTACTS = {"instant": CONTACT_RAMP, "continuous": CONTINUOUS_CONTACT_RAMP}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,6 +157,7 @@ class Model:
         self.bodies = list(bodies)
         self.planes, self.spheres, self.boxes = list(planes), list(spheres), list(boxes)
         self.contact_ramp = CONTACT_RAMP
+        self._fit = None  # the default (``fit``), until one is chosen
         self.particle_count = int(positions.shape[0])
         npf = self.types.np_dtype
         self.particle_x0 = np.ascontiguousarray(positions, dtype=npf)
@@ -253,6 +264,25 @@ class Model:
             raise ValueError(f"contact_ramp = {value!r} is not allowed: must be a finite number >= 0 "
                              f"(0: the whole inward velocity removed; 1: the continuous contact)")
         self._contact_ramp = v
+
+    @property
+    def fit(self) -> str:
+        """The incremental fit (``FITS``) a ``Solver`` of this model runs unless its ``fit=``
+        says otherwise: ``"linear"``, the paper's eqs. 5-6; ``"curvature_corrected"``, the fit
+        that also carries the mixed quadratic terms (``sim/curvature.py``; docs/physics.md,
+        "Bending stiffness"). Until one is set: ``DEFAULT_FIT``, or ``"linear"`` for a model
+        with a Fig. 8 comparison deformation model (the only fit those have). Scene files set
+        it in ``[solver]`` (docs/scene_format.md)."""
+        if self._fit is not None:
+            return self._fit
+        return "linear" if self.uses_comparison_models else DEFAULT_FIT
+
+    @fit.setter
+    def fit(self, value: str | None):
+        """None: back to the default."""
+        if value is not None and (not isinstance(value, str) or value not in FITS):
+            raise ValueError(f"fit = {value!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
+        self._fit = value
 
     def _collider_array(self, values, dtype) -> wp.array:
         # Zero colliders of a kind still pass a (never read) one-element array.

@@ -24,9 +24,11 @@ except ModuleNotFoundError:  # Python 3.10: the same parser as the tomli package
 from . import checks
 from .builder import SceneBuilder
 from .material import PRESETS, Material
+from .model import CONTACTS, FITS
 
 __all__ = [
     "Scene", "load_scene_file", "SCENE_KEYS", "MATERIAL_KEYS", "BODY_COMMON", "BODY_SHAPES", "COLLIDER_TYPES", "TOP_KEYS",
+    "SOLVER_KEYS",
 ]
 
 
@@ -162,7 +164,10 @@ TOOL_KEYS = {
     "radius": (NUM, False), "half_height": (NUM, False), "file": (STR, False), "scale": (NUM, False), **MOTION_KEYS,
 }
 PIN_KEYS = {"name": (STR, False), "body": (STR, False), "region": (REGION, False), "indices": (INTS, False), **MOTION_KEYS}
-TOP_KEYS = ("scene", "materials", "bodies", "colliders", "tools", "pins")
+#: ``[solver]``: the numerical options of ``Model`` a scene may choose (``Model.fit``, the
+#: contact law ``Model.contact_ramp`` by name: ``model.CONTACTS``).
+SOLVER_KEYS = {"fit": (STR, False), "contact": (STR, False)}
+TOP_KEYS = ("scene", "solver", "materials", "bodies", "colliders", "tools", "pins")
 
 
 def _did_you_mean(key: str, allowed) -> str:
@@ -369,6 +374,13 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
         if key not in TOP_KEYS:
             raise ValueError(f"{file}: unknown key {key!r} at the top level{_did_you_mean(key, TOP_KEYS)} (allowed: {', '.join(TOP_KEYS)})")
     scene = _check_table(file, "[scene]", data.get("scene", {}), SCENE_KEYS)
+    solver = _check_table(file, "[solver]", data.get("solver", {}), SOLVER_KEYS)
+    fit = solver.get("fit")
+    if fit is not None:
+        _choice(file, "[solver]", "fit", fit, FITS)
+    contact = solver.get("contact")
+    if contact is not None:
+        _choice(file, "[solver]", "contact", contact, tuple(CONTACTS))
     materials_table = data.get("materials", {})
     if not isinstance(materials_table, dict):
         raise ValueError(f"{file}: 'materials' must be a table of [materials.NAME] tables, not {materials_table!r}")
@@ -389,6 +401,8 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
             gravity=scene.get("gravity", (0.0, -9.81, 0.0)),
             support_radius=None if support is None else checks.positive("support_radius", support) / scale,
             max_neighbors=scene.get("max_neighbors"),
+            fit=fit,
+            contact=contact,
         )
         frames = checks.positive_int("frames", scene.get("frames", 60))
         fps = checks.positive("fps", scene.get("fps", 30.0))

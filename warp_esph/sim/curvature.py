@@ -28,10 +28,11 @@ The variational elastic force (``forces.py``) follows the same operator:
 ``M_i = V_i P*_i F_i^T A~_i^-1``, ``g_ij = w_ij M_i (xb_ij - K_i^T q(xb_ij))``.
 
 Kept in its own module so that the default (linear) fit's kernels are untouched: the
-solver runs these, non-fused, only when the option is on. Under a tape the deformation
-update has a hand-written adjoint (``update_deformation_adjoint``); the elastic force
-kernel uses Warp's generated adjoint (the hand-written ``forces.variational_forces_adjoint``
-is the linear fit's).
+solver runs these, non-fused, only when the option is on. Under a tape both have
+hand-written adjoints: the deformation update's ``update_deformation_adjoint``, the
+variational force's ``variational_forces_adjoint`` (eqs. 10-13's particles use
+``forces.elastic_forces_adjoint``); ``Solver.hand_adjoints = False`` runs Warp's generated
+ones, which the tests compare them with in float64.
 """
 
 import functools
@@ -45,6 +46,9 @@ from . import deformation, forces, materials, smoothing
 #: The curvature correction is dropped (the paper's fit kept) where it would leave
 #: ``det A~`` below this fraction of ``det A`` (on a lattice it is above 0.4 everywhere).
 CURVATURE_DET_RATIO = 0.1
+
+#: The ridge ``eps`` of ``curvature_projection``, relative to ``tr(A) / 3``.
+CURVATURE_RIDGE = 1.0e-4
 
 COUNT_FEW_NEIGHBORS = deformation.COUNT_FEW_NEIGHBORS
 COUNT_ILL_CONDITIONED = deformation.COUNT_ILL_CONDITIONED
@@ -117,7 +121,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     def curvature_projection(A: mat33, C: mat33, D: mat33) -> mat33:
         """``K = (D + eps I)^-1 C^T``, ``eps = 1e-4 tr(A) / 3``: the curvature terms' share of
         ``xb`` (``xb - K^T q(xb)`` is orthogonal to them in the fit's weights)."""
-        eps = scalar(1.0e-4 / 3.0) * (A[0, 0] + A[1, 1] + A[2, 2])
+        eps = scalar(CURVATURE_RIDGE / 3.0) * (A[0, 0] + A[1, 1] + A[2, 2])
         K = wp.inverse(D + eps * wp.identity(n=3, dtype=scalar)) * wp.transpose(C)
         if not curvature_kept(A, C, K):
             K = mat33()
@@ -220,7 +224,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         With ``K = (D + eps I)^-1 C^T``, ``A~ = A - C K``, ``B~ = B - E K``, ``dF = B~ A~^-1``
         and ``F_out = dF F``: ``adj F = dF^T G``, ``adj B~ = G F^T A~^-T``,
         ``adj A~ = -dF^T adj B~``; ``adj B = adj B~``, ``adj E = -adj B~ K^T``,
-        ``adj A = adj A~ + (1e-4/3) tr(adj Dr) I``, ``adj K = -E^T adj B~ - C^T adj A~``,
+        ``adj A = adj A~ + (eps / tr(A)) tr(adj Dr) I``, ``adj K = -E^T adj B~ - C^T adj A~``,
         ``adj C = -adj A~ K^T + adj K^T Dr^-1``, ``adj D = -Dr^-T adj K K^T`` (``Dr = D + eps I``;
         where the correction is dropped, ``K = 0`` does not depend on ``C`` or ``D``).
         Per pair the sums depend on ``xb`` through ``w(|xb|^2)``, ``xb`` and ``q(xb)``, and on
@@ -234,7 +238,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             adj_F_prev[i] = adj_F_prev[i] + G
             return
         I3 = wp.identity(n=3, dtype=scalar)
-        eps_c = scalar(1.0e-4 / 3.0)
+        eps_c = scalar(CURVATURE_RIDGE / 3.0)
         Dr_inv = wp.inverse(D + eps_c * (A[0, 0] + A[1, 1] + A[2, 2]) * I3)
         K = Dr_inv * wp.transpose(C)
         used = scalar(1.0)
@@ -346,21 +350,154 @@ def kernels(scalar) -> types.SimpleNamespace:
                     fi += g
         wp.atomic_add(f, i, fi)
 
+    @wp.kernel(enable_backward=False)
+    def variational_forces_adjoint(
+        x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        material: wp.array(dtype=wp.int32),
+        elastic_force: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        guard: wp.array(dtype=wp.int32),
+        volume: wp.array(dtype=scalar),
+        stress: wp.array(dtype=mat33),
+        F: wp.array(dtype=mat33),
+        h: scalar,
+        adj_f: wp.array(dtype=vec3),
+        adj_x: wp.array(dtype=vec3),
+        adj_stress: wp.array(dtype=mat33),
+        adj_F: wp.array(dtype=mat33),
+    ):
+        """Hand-written adjoint of ``elastic_forces``' variational force (as
+        ``forces.variational_forces_adjoint`` for the linear fit; eqs. 10-13's particles are
+        ``forces.elastic_forces_adjoint``'s).
+
+        With ``a_j = adj f_i - adj f_j`` (``g_j = w_j M o_j``, ``o_j = xb_j - K^T q_j``, added
+        to ``i``, taken from ``j``) and ``M = V P F^T A~^-1``: ``adj M = sum_j w_j a_j o_j^T``,
+        ``adj o_j = w_j M^T a_j``, ``adj K = -sum_j q_j adj o_j^T``; ``adj P = V adj M A~^-T F``,
+        ``adj F = V A~^-1 adj M^T P``, ``adj A~ = -A~^-T (V F P^T adj M) A~^-T``; then through
+        ``A~ = A - C K`` and ``K = (D + eps I)^-1 C^T`` as ``update_deformation_adjoint``.
+        Per pair ``A``, ``C``, ``D`` depend on ``xb`` through ``w(|xb|^2)``, ``xb`` and
+        ``q(xb)``; ``o_j`` through ``xb`` and ``q``. Guarded particles apply no force."""
+        i = wp.tid()
+        if elastic_force[material[i]] != 1 or guard[i] != 0:
+            return
+        xi = x[i]
+        bi = body[i]
+        ai = adj_f[i]
+        c6 = sm.poly6_coef(h)
+        hh = h * h
+        # One pass: the moments A, C, D and, for adj M = S1 - S2 K and adj K = -S2^T M (which
+        # need K and M, known only after the pass), S1 = sum w a xb^T and S2 = sum w a q^T.
+        # (No generated adjoint here, so loop accumulators may feed the inverses:
+        # docs/method.md, Warp pitfall 1, concerns generated adjoints only.)
+        A = mat33()
+        C = mat33()
+        D = mat33()
+        S1 = mat33()
+        S2 = mat33()
+        for k in range(count[i]):
+            j = nbr[i, k]
+            if body[j] == bi:
+                d = x[j] - xi
+                r2 = wp.dot(d, d)
+                if r2 < hh:
+                    e = hh - r2
+                    w = c6 * e * e * e
+                    q = fn.curvature_basis(d, h)
+                    wd = w * d
+                    A += wp.outer(wd, d)
+                    C += wp.outer(wd, q)
+                    D += w * wp.outer(q, q)
+                    wa = w * (ai - adj_f[j])
+                    S1 += wp.outer(wa, d)
+                    S2 += wp.outer(wa, q)
+        I3 = wp.identity(n=3, dtype=scalar)
+        eps_c = scalar(CURVATURE_RIDGE / 3.0)
+        Dr_inv = wp.inverse(D + eps_c * (A[0, 0] + A[1, 1] + A[2, 2]) * I3)
+        K = Dr_inv * wp.transpose(C)
+        used = scalar(1.0)
+        if not fn.curvature_kept(A, C, K):
+            K = mat33()
+            used = scalar(0.0)
+        KT = wp.transpose(K)
+        Ainv = wp.inverse(fn.corrected_moment(A, C, K))
+        AinvT = wp.transpose(Ainv)
+        Vi = volume[i]
+        P = stress[i]
+        Fi = F[i]
+        M = Vi * (P * wp.transpose(Fi) * Ainv)
+        MT = wp.transpose(M)
+        adj_M = S1 - S2 * K
+        adj_K = -(wp.transpose(S2) * M)
+        adj_stress[i] = adj_stress[i] + Vi * (adj_M * AinvT * Fi)
+        adj_F[i] = adj_F[i] + Vi * (Ainv * wp.transpose(adj_M) * P)
+        adj_At = -(AinvT * (Vi * (Fi * wp.transpose(P) * adj_M)) * AinvT)
+        adj_K = adj_K - wp.transpose(C) * adj_At
+        adj_C = -(adj_At * KT) + used * (wp.transpose(adj_K) * Dr_inv)
+        adj_D = -(used * (wp.transpose(Dr_inv) * adj_K * KT))
+        adj_A = adj_At + eps_c * (adj_D[0, 0] + adj_D[1, 1] + adj_D[2, 2]) * I3
+        adj_A_sym = adj_A + wp.transpose(adj_A)
+        adj_D_sym = adj_D + wp.transpose(adj_D)
+        adj_CT = wp.transpose(adj_C)
+        # Second pass: the scatter to the positions.
+        gx_i = vec3()
+        for k in range(count[i]):
+            j = nbr[i, k]
+            if body[j] == bi:
+                d = x[j] - xi
+                r2 = wp.dot(d, d)
+                if r2 < hh:
+                    e = hh - r2
+                    w = c6 * e * e * e
+                    dw = scalar(-3.0) * c6 * e * e  # d w / d r2
+                    a = ai - adj_f[j]
+                    q = fn.curvature_basis(d, h)
+                    o = d - KT * q
+                    adj_o = w * (MT * a)
+                    Cq = adj_C * q
+                    s = wp.dot(d, adj_A * d) + wp.dot(d, Cq) + wp.dot(q, adj_D * q) + wp.dot(a, M * o)
+                    # d / d q (the moments C, D and the offset o), carried back through q(xb).
+                    aq = w * (adj_CT * d + adj_D_sym * q) - K * adj_o
+                    jq = vec3(d[1] * aq[0] + d[2] * aq[1], d[0] * aq[0] + d[2] * aq[2], d[0] * aq[1] + d[1] * aq[2]) / h
+                    gx = w * (adj_A_sym * d + Cq) + jq + adj_o + scalar(2.0) * dw * s * d
+                    wp.atomic_add(adj_x, j, gx)
+                    gx_i -= gx
+        wp.atomic_add(adj_x, i, gx_i)
+
     return types.SimpleNamespace(update_deformation=update_deformation,
-                                 update_deformation_adjoint=update_deformation_adjoint, elastic_forces=elastic_forces)
+                                 update_deformation_adjoint=update_deformation_adjoint, elastic_forces=elastic_forces,
+                                 variational_forces_adjoint=variational_forces_adjoint)
 
 
-def launch_elastic_forces(model, state_in, state_out):
-    """``forces.launch_elastic_forces`` with the corrected fit's variational force; under a
-    tape Warp's generated adjoint (as the linear fit's non-fused path for that force)."""
+def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True):
+    """``forces.launch_elastic_forces`` with the corrected fit's variational force. Under a
+    tape the backward runs ``variational_forces_adjoint`` and, for the particles of eqs.
+    10-13, ``forces.elastic_forces_adjoint`` (``hand_adjoint=False``: Warp's generated one)."""
     S = model.scalar
-    wp.launch(
-        kernels(S).elastic_forces, model.particle_count,
-        [state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
-         state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
-         state_out.F_inv, S(model.support_radius)],
-        [state_out.force], device=model.device,
-    )
+    inputs = [state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
+              state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
+              state_out.F_inv, S(model.support_radius)]
+    tape = deformation.recording_tape()
+    grads = (state_in.x, state_out.stress, state_out.F_flowed, state_out.F_inv, state_out.force)
+    if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
+        wp.launch(kernels(S).elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device)
+        return
+    wp.launch(kernels(S).elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device,
+              record_tape=False)
+
+    def adjoint():
+        wp.launch(
+            kernels(S).variational_forces_adjoint, model.particle_count,
+            [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force,
+             state_out.neighbors, state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress,
+             state_out.F_flowed, S(model.support_radius), state_out.force.grad, state_in.x.grad, state_out.stress.grad,
+             state_out.F_flowed.grad],
+            device=model.device, record_tape=False,
+        )
+        forces.launch_elastic_forces_adjoint(model, state_in, state_out)
+
+    tape.record_func(adjoint, list(grads))
 
 
 def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint: bool = True):

@@ -13,7 +13,7 @@ import warnings
 import warp as wp
 
 from .. import checks
-from ..model import Model, State
+from ..model import FITS, Model, State  # noqa: F401 (FITS: re-exported)
 from .deformation import recording_tape
 from . import comparison, curvature, deformation, fields, forces, fused, hourglass, integrate, neighbors, plasticity, pressure
 
@@ -26,9 +26,6 @@ COUNT_NEIGHBORS_CUT = 4
 #: Default Verlet skin of the neighbour candidates, in units of the support radius
 #: (measured in benchmarks/step.py, docs/performance.md).
 DEFAULT_SKIN = 0.15
-#: The incremental fits ``Solver(fit=...)`` offers (docs/method.md §2): the paper's affine
-#: one (default) and the curvature-corrected one (``curvature.py``).
-FITS = ("linear", "curvature_corrected")
 
 #: Names ``profile_phases`` times: the fused step has neighbors, fused, integrate and
 #: deformation; the differentiable one (under a tape, or ``fused=False``) splits
@@ -86,8 +83,8 @@ class Solver:
     constitutive and deformation updates of ``comparison.py``.
 
     ``fit`` chooses the incremental fit of the deformation update and of the variational
-    elastic force (docs/method.md §2): ``"linear"`` (default), the paper's affine fit (eqs.
-    5-6); ``"curvature_corrected"``, the fit that also carries the mixed quadratic terms and
+    elastic force (docs/method.md §2; ``FITS``; None: the model's ``Model.fit``, which a scene
+    file's ``[solver] fit`` sets): ``"linear"`` (default), the paper's affine fit (eqs. 5-6); ``"curvature_corrected"``, the fit that also carries the mixed quadratic terms and
     keeps only the gradient (``curvature.py``; docs/physics.md, "Bending stiffness": a bent
     beam within a few % of Timoshenko instead of 1.16x too soft at 6 particles thick). The
     corrected fit runs the non-fused kernels (forward and under a tape: its elastic force
@@ -110,7 +107,7 @@ class Solver:
         max_condition: float = 1.0e3,
         neighbor_skin: float | None = None,
         fused: bool = True,
-        fit: str = "linear",
+        fit: str | None = None,
         hourglass: float = 0.0,
     ):
         self.model = model
@@ -123,6 +120,8 @@ class Solver:
         skin = DEFAULT_SKIN if neighbor_skin is None else checks.in_range("neighbor_skin", neighbor_skin, 0.0, 1.0)
         if not isinstance(fused, bool):
             raise ValueError(f"fused = {fused!r} is not allowed: must be True or False")
+        if fit is None:
+            fit = model.fit
         if not isinstance(fit, str) or fit not in FITS:
             raise ValueError(f"fit = {fit!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
         if fit == "curvature_corrected" and model.uses_comparison_models:
@@ -271,7 +270,7 @@ class Solver:
             # 4. Elastic pair forces, pressure and viscosity.
             with phase("forces"):
                 if self._curved:
-                    curvature.launch_elastic_forces(m, state_in, state_out)
+                    curvature.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
                 else:
                     forces.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
             if sph:
