@@ -196,6 +196,103 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     }
 
 
+def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0, elastic_force: str = "variational",
+           flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, dt_factor: float = 0.9,
+           pressure_stiffness: float | None = None, support_radius: float = 2.0, samples: int = 200,
+           save: str | None = None) -> dict:
+    """The spread limit of Roussel & Coussot (2005): a wide, low cylinder of a yield-stress
+    material spreads on a rough floor into a pile much wider than tall.
+
+    The scene is built from its theoretical end state. ``shallowness`` ``a = h_RC / R_RC`` is
+    the aspect ratio of the shallow no-slip pile ``h(r) = sqrt(2 l (R - r))``, ``l = tau_y /
+    (rho g)`` (tau_y = Y / sqrt(2), the shear yield stress), whose centre height is ``h_RC =
+    sqrt(2 l R_RC)``: so ``R_RC = 2 l / a^2`` and ``h_RC = 2 l / a``. ``resolution`` is
+    particles through ``h_RC`` (dx = h_RC / resolution). The initial cylinder is twice as tall
+    as ``h_RC`` (so all of it has to flow: a part that never yields keeps its initial
+    thickness, and the theory's critical profile is reached only where the pile flowed) and
+    holds the theory's volume ``Omega = pi sqrt(128 l / 225) R^(5/2)``: radius ``sqrt(Omega /
+    (2 pi h_RC))``. h_RC = 0.025 m; mu = 10 rho g H_i (H_i = 2 h_RC, the initial height), so the
+    yield strain ``Y / (2 mu)`` is that of the S = 0.1 slump; the rest as in ``slump``.
+
+    The theory neglects everything but the basal shear (error of order ``a``); its radius is
+    the smallest a static shallow pile of that volume can have (any static shallow pile has
+    ``h |h'| <= l``), so a pile that overshoots in its flow rests wider, never narrower.
+    Radius: the outermost particle + dx/2; height: the top of the particles within R_RC / 8
+    of the axis + dx/2 (as in ``slump``)."""
+    wp, we = _we()
+    h_rc = 0.025
+    ell = 0.5 * shallowness * h_rc
+    R_rc = 2.0 * ell / shallowness**2
+    tau_y = RHO * G * ell
+    Y = math.sqrt(2.0) * tau_y
+    volume = math.pi * math.sqrt(128.0 * ell / 225.0) * R_rc**2.5
+    H_i = 2.0 * h_rc
+    R_i = math.sqrt(volume / (math.pi * H_i))
+    dx = h_rc / resolution
+    mu = 10.0 * RHO * G * H_i
+    mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity,
+                      elastic_force=elastic_force, pressure_stiffness=pressure_stiffness)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0), support_radius=support_radius * dx)
+    b.add_cylinder((0.0, H_i / 2.0, 0.0), R_i, H_i, mat)
+    b.add_ground(0.0, friction=friction)
+    model = b.finalize()
+    n = model.particle_count
+    solver = we.Solver(model)
+    dt = dt_factor * model.stable_dt()
+    steps = int(round(duration / dt))
+    every = max(1, steps // samples)
+    a, c = model.state(), model.state()
+    times, heights, kes, radii = [], [], [], []
+
+    def sample(state, k):
+        if k % every and k != steps:
+            return
+        x = state.x.numpy().astype(np.float64)
+        r = np.hypot(x[:, 0], x[:, 2])
+        near = r < R_rc / 8.0
+        times.append(k * dt)
+        heights.append(float(x[near, 1].max() + 0.5 * dx) if near.any() else float("nan"))
+        kes.append(_kinetic(model, state))
+        radii.append(float(r.max() + 0.5 * dx))
+        if not np.isfinite(x).all():
+            return False
+
+    t0 = time.perf_counter()
+    a, c = _swap_run(model, solver, a, c, dt, steps, sample)
+    wall = time.perf_counter() - t0
+    t, h, ke, R = np.array(times), np.array(heights), np.array(kes), np.array(radii)
+    last = t >= t[-1] - 0.25 * duration
+    rate = np.polyfit(t[last], R[last], 1)[0] if last.sum() > 2 else float("nan")
+    x = a.x.numpy().astype(np.float64)
+    r = np.hypot(x[:, 0], x[:, 2])
+    # The profile against the theory's h(r) = sqrt(2 l (R_RC - r)): the top of each radial
+    # band of width R_RC / 8 (+ dx/2), over the theory at the band's middle.
+    bands = []
+    for k in range(8):
+        sel = (r >= k * R_rc / 8.0) & (r < (k + 1) * R_rc / 8.0)
+        mid = (k + 0.5) * R_rc / 8.0
+        bands.append(float(x[sel, 1].max() + 0.5 * dx) / math.sqrt(2.0 * ell * (R_rc - mid)) if sel.any() else 0.0)
+    ratio = _deviatoric_norm(a.F.numpy(), mu) / Y
+    if save:
+        np.savez(save, x=x, v=a.v.numpy(), F=a.F.numpy(), alpha=a.alpha.numpy(), dx=dx, Y=Y, mu=mu, ell=ell, R_rc=R_rc)
+    weight_scale = float(model.particle_mass.numpy().sum()) * G * h_rc
+    return {
+        "case": "spread", "shallowness": shallowness, "resolution": resolution, "elastic_force": elastic_force,
+        "flow_rate": flow_rate, "particles": n, "dt": dt, "duration": float(t[-1]), "steps": steps,
+        "initial_height": H_i, "initial_radius": R_i, "yield_length": ell,
+        "S_initial": math.sqrt(3.0) * tau_y / (RHO * G * H_i),
+        "theory_radius": R_rc, "theory_height": h_rc,
+        "radius_over_theory": R[-1] / R_rc, "height_over_theory": h[-1] / h_rc,
+        "height_over_radius": h[-1] / R[-1],
+        "profile_over_theory": bands,
+        "radius_rate_pct_per_s": 100.0 * rate / R_rc,
+        "kinetic_energy": ke[-1], "kinetic_over_Mgh": ke[-1] / weight_scale,
+        "fraction_at_yield": float((ratio >= 0.99).mean()),
+        "time_history": t.tolist(), "radius_history": (R / R_rc).tolist(), "height_history": (h / h_rc).tolist(),
+        "finite": bool(np.isfinite(R).all()), "wall_s": wall,
+    }
+
+
 # ---------------------------------------------------------------------- bar
 def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slenderness: int = 10,
                   periods: float = 3.2, strain: float = 1.0e-3, E: float = 1.0e5, nu: float = 0.3) -> dict:
