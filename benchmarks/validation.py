@@ -198,8 +198,8 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
 
 def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0, elastic_force: str = "variational",
            flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, dt_factor: float = 0.9,
-           pressure_stiffness: float | None = None, support_radius: float = 2.0, samples: int = 200,
-           save: str | None = None) -> dict:
+           pressure_stiffness: float | None = None, support_radius: float = 2.0, initial_height: float = 2.0,
+           samples: int = 200) -> dict:
     """The spread limit of Roussel & Coussot (2005): a wide, low cylinder of a yield-stress
     material spreads on a rough floor into a pile much wider than tall.
 
@@ -207,18 +207,20 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
     the aspect ratio of the shallow no-slip pile ``h(r) = sqrt(2 l (R - r))``, ``l = tau_y /
     (rho g)`` (tau_y = Y / sqrt(2), the shear yield stress), whose centre height is ``h_RC =
     sqrt(2 l R_RC)``: so ``R_RC = 2 l / a^2`` and ``h_RC = 2 l / a``. ``resolution`` is
-    particles through ``h_RC`` (dx = h_RC / resolution). The initial cylinder is twice as tall
-    as ``h_RC`` (so all of it has to flow: a part that never yields keeps its initial
-    thickness, and the theory's critical profile is reached only where the pile flowed) and
-    holds the theory's volume ``Omega = pi sqrt(128 l / 225) R^(5/2)``: radius ``sqrt(Omega /
-    (2 pi h_RC))``. h_RC = 0.025 m; mu = 10 rho g H_i (H_i = 2 h_RC, the initial height), so the
-    yield strain ``Y / (2 mu)`` is that of the S = 0.1 slump; the rest as in ``slump``.
+    particles through ``h_RC`` (dx = h_RC / resolution). The initial cylinder is
+    ``initial_height`` x ``h_RC`` tall (default 2, so that all of it has to flow: a part that
+    never yields keeps its initial thickness, and the theory's profile is reached only where
+    the pile flowed) and holds the theory's volume ``Omega = pi sqrt(128 l / 225) R^(5/2)``
+    (the integral of the profile). h_RC = 0.025 m; mu = 20 rho g h_RC (= 10 rho g H_i at the
+    default initial height, so the yield strain ``Y / (2 mu)`` is that of the S = 0.1 slump);
+    nu = 0.3, the rest as in ``slump``.
 
-    The theory neglects everything but the basal shear (error of order ``a``); its radius is
-    the smallest a static shallow pile of that volume can have (any static shallow pile has
-    ``h |h'| <= l``), so a pile that overshoots in its flow rests wider, never narrower.
-    Radius: the outermost particle + dx/2; height: the top of the particles within R_RC / 8
-    of the axis + dx/2 (as in ``slump``)."""
+    The theory keeps only the basal shear; its radius is the smallest a static shallow pile
+    of that volume can have (any static shallow pile has ``h |h'| <= l``), so a pile that
+    overshoots in its flow rests wider, never narrower. Radius: the outermost particle +
+    dx/2; height: the top of the particles within R_RC / 8 of the axis + dx/2 (as in
+    ``slump``); profile: the top of each radial band R_RC / 8 wide (+ dx/2) over the theory
+    at the band's middle."""
     wp, we = _we()
     h_rc = 0.025
     ell = 0.5 * shallowness * h_rc
@@ -226,10 +228,10 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
     tau_y = RHO * G * ell
     Y = math.sqrt(2.0) * tau_y
     volume = math.pi * math.sqrt(128.0 * ell / 225.0) * R_rc**2.5
-    H_i = 2.0 * h_rc
+    H_i = initial_height * h_rc
     R_i = math.sqrt(volume / (math.pi * H_i))
     dx = h_rc / resolution
-    mu = 10.0 * RHO * G * H_i
+    mu = 20.0 * RHO * G * h_rc
     mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity,
                       elastic_force=elastic_force, pressure_stiffness=pressure_stiffness)
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0), support_radius=support_radius * dx)
@@ -273,13 +275,12 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
         mid = (k + 0.5) * R_rc / 8.0
         bands.append(float(x[sel, 1].max() + 0.5 * dx) / math.sqrt(2.0 * ell * (R_rc - mid)) if sel.any() else 0.0)
     ratio = _deviatoric_norm(a.F.numpy(), mu) / Y
-    if save:
-        np.savez(save, x=x, v=a.v.numpy(), F=a.F.numpy(), alpha=a.alpha.numpy(), dx=dx, Y=Y, mu=mu, ell=ell, R_rc=R_rc)
     weight_scale = float(model.particle_mass.numpy().sum()) * G * h_rc
     return {
         "case": "spread", "shallowness": shallowness, "resolution": resolution, "elastic_force": elastic_force,
         "flow_rate": flow_rate, "particles": n, "dt": dt, "duration": float(t[-1]), "steps": steps,
         "initial_height": H_i, "initial_radius": R_i, "yield_length": ell,
+        "volume_over_theory": n * dx**3 / volume,
         "S_initial": math.sqrt(3.0) * tau_y / (RHO * G * H_i),
         "theory_radius": R_rc, "theory_height": h_rc,
         "radius_over_theory": R[-1] / R_rc, "height_over_theory": h[-1] / h_rc,
@@ -808,6 +809,8 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
             runs.append(("energy_drift", {"amplitude": SMALL, "elastic_force": f, "periods": 20.0}))
         # The smallest run that resolves the plug (its top S H0 / 2 is one support radius).
         runs.append(("slump", {"S": 0.5, "resolution": 8, "elastic_force": "variational", "duration": 3.0}))
+        # The spread limit at its smallest size (3 particles through the theory's height).
+        runs.append(("spread", {"resolution": 3, "shallowness": 0.25, "duration": 6.0}))
         # The lab tests with tools (variational force only: the default).
         runs.append(("plate_compression", {"resolution": 4}))
         runs.append(("three_point_bending", {"resolution": 4}))
@@ -838,6 +841,10 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     for label, _ in _stability_materials():
         for f in FORCES:
             runs.append(("stability", {"label": label, "elastic_force": f, "duration": 1.0}))
+    # The spread limit: three resolutions at a = h_RC / R_RC = 0.25, and a shallower pile.
+    for res in (3, 4, 5):
+        runs.append(("spread", {"resolution": res, "shallowness": 0.25, "duration": 6.0}))
+    runs.append(("spread", {"resolution": 3, "shallowness": 0.18, "duration": 8.0}))
     for S in (0.1, 0.2, 0.3, 0.5):
         runs.append(("slump", {"S": S, "resolution": 16, "elastic_force": "variational", "duration": 4.0}))
     return runs
