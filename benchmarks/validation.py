@@ -197,6 +197,104 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     }
 
 
+def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0, elastic_force: str = "variational",
+           flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, dt_factor: float = 0.9,
+           pressure_stiffness: float | None = None, support_radius: float = 2.0, initial_height: float = 2.0,
+           samples: int = 200) -> dict:
+    """The spread limit of Roussel & Coussot (2005): a wide, low cylinder of a yield-stress
+    material spreads on a rough floor into a pile much wider than tall.
+
+    The scene is built from its theoretical end state. ``shallowness`` ``a = h_RC / R_RC`` is
+    the aspect ratio of the shallow no-slip pile ``h(r) = sqrt(2 l (R - r))``, ``l = tau_y /
+    (rho g)`` (tau_y = Y / sqrt(2), the shear yield stress), whose centre height is ``h_RC =
+    sqrt(2 l R_RC)``: so ``R_RC = 2 l / a^2`` and ``h_RC = 2 l / a``. ``resolution`` is
+    particles through ``h_RC`` (dx = h_RC / resolution). The initial cylinder is
+    ``initial_height`` x ``h_RC`` tall (default 2, so that all of it has to flow: a part that
+    never yields keeps its initial thickness, and the theory's profile is reached only where
+    the pile flowed) and holds the theory's volume ``Omega = pi sqrt(128 l / 225) R^(5/2)``
+    (the integral of the profile). h_RC = 0.025 m; mu = 20 rho g h_RC (= 10 rho g H_i at the
+    default initial height, so the yield strain ``Y / (2 mu)`` is that of the S = 0.1 slump);
+    nu = 0.3, the rest as in ``slump``.
+
+    The theory keeps only the basal shear; its radius is the smallest a static shallow pile
+    of that volume can have (any static shallow pile has ``h |h'| <= l``), so a pile that
+    overshoots in its flow rests wider, never narrower. Radius: the outermost particle +
+    dx/2; height: the top of the particles within R_RC / 8 of the axis + dx/2 (as in
+    ``slump``); profile: the top of each radial band R_RC / 8 wide (+ dx/2) over the theory
+    at the band's middle."""
+    wp, we = _we()
+    h_rc = 0.025
+    ell = 0.5 * shallowness * h_rc
+    R_rc = 2.0 * ell / shallowness**2
+    tau_y = RHO * G * ell
+    Y = math.sqrt(2.0) * tau_y
+    volume = math.pi * math.sqrt(128.0 * ell / 225.0) * R_rc**2.5
+    H_i = initial_height * h_rc
+    R_i = math.sqrt(volume / (math.pi * H_i))
+    dx = h_rc / resolution
+    mu = 20.0 * RHO * G * h_rc
+    mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity,
+                      elastic_force=elastic_force, pressure_stiffness=pressure_stiffness)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0), support_radius=support_radius * dx)
+    b.add_cylinder((0.0, H_i / 2.0, 0.0), R_i, H_i, mat)
+    b.add_ground(0.0, friction=friction)
+    model = b.finalize()
+    n = model.particle_count
+    solver = we.Solver(model)
+    dt = dt_factor * model.stable_dt()
+    steps = int(round(duration / dt))
+    every = max(1, steps // samples)
+    a, c = model.state(), model.state()
+    times, heights, kes, radii = [], [], [], []
+
+    def sample(state, k):
+        if k % every and k != steps:
+            return
+        x = state.x.numpy().astype(np.float64)
+        r = np.hypot(x[:, 0], x[:, 2])
+        near = r < R_rc / 8.0
+        times.append(k * dt)
+        heights.append(float(x[near, 1].max() + 0.5 * dx) if near.any() else float("nan"))
+        kes.append(_kinetic(model, state))
+        radii.append(float(r.max() + 0.5 * dx))
+        if not np.isfinite(x).all():
+            return False
+
+    t0 = time.perf_counter()
+    a, c = _swap_run(model, solver, a, c, dt, steps, sample)
+    wall = time.perf_counter() - t0
+    t, h, ke, R = np.array(times), np.array(heights), np.array(kes), np.array(radii)
+    last = t >= t[-1] - 0.25 * duration
+    rate = np.polyfit(t[last], R[last], 1)[0] if last.sum() > 2 else float("nan")
+    x = a.x.numpy().astype(np.float64)
+    r = np.hypot(x[:, 0], x[:, 2])
+    # The profile against the theory's h(r) = sqrt(2 l (R_RC - r)): the top of each radial
+    # band of width R_RC / 8 (+ dx/2), over the theory at the band's middle.
+    bands = []
+    for k in range(8):
+        sel = (r >= k * R_rc / 8.0) & (r < (k + 1) * R_rc / 8.0)
+        mid = (k + 0.5) * R_rc / 8.0
+        bands.append(float(x[sel, 1].max() + 0.5 * dx) / math.sqrt(2.0 * ell * (R_rc - mid)) if sel.any() else 0.0)
+    ratio = _deviatoric_norm(a.F.numpy(), mu) / Y
+    weight_scale = float(model.particle_mass.numpy().sum()) * G * h_rc
+    return {
+        "case": "spread", "shallowness": shallowness, "resolution": resolution, "elastic_force": elastic_force,
+        "flow_rate": flow_rate, "particles": n, "dt": dt, "duration": float(t[-1]), "steps": steps,
+        "initial_height": H_i, "initial_radius": R_i, "yield_length": ell,
+        "volume_over_theory": n * dx**3 / volume,
+        "S_initial": math.sqrt(3.0) * tau_y / (RHO * G * H_i),
+        "theory_radius": R_rc, "theory_height": h_rc,
+        "radius_over_theory": R[-1] / R_rc, "height_over_theory": h[-1] / h_rc,
+        "height_over_radius": h[-1] / R[-1],
+        "profile_over_theory": bands,
+        "radius_rate_pct_per_s": 100.0 * rate / R_rc,
+        "kinetic_energy": ke[-1], "kinetic_over_Mgh": ke[-1] / weight_scale,
+        "fraction_at_yield": float((ratio >= 0.99).mean()),
+        "time_history": t.tolist(), "radius_history": (R / R_rc).tolist(), "height_history": (h / h_rc).tolist(),
+        "finite": bool(np.isfinite(R).all()), "wall_s": wall,
+    }
+
+
 # ---------------------------------------------------------------------- bar
 def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slenderness: int = 10,
                   periods: float = 3.2, strain: float = 1.0e-3, E: float = 1.0e5, nu: float = 0.3) -> dict:
@@ -712,6 +810,8 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
             runs.append(("energy_drift", {"amplitude": SMALL, "elastic_force": f, "periods": 20.0}))
         # The smallest run that resolves the plug (its top S H0 / 2 is one support radius).
         runs.append(("slump", {"S": 0.5, "resolution": 8, "elastic_force": "variational", "duration": 3.0}))
+        # The spread limit at its smallest size (3 particles through the theory's height).
+        runs.append(("spread", {"resolution": 3, "shallowness": 0.25, "duration": 6.0}))
         # The lab tests with tools (variational force only: the default).
         runs.append(("plate_compression", {"resolution": 4}))
         runs.append(("three_point_bending", {"resolution": 4}))
@@ -744,6 +844,10 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     for label, _ in _stability_materials():
         for f in FORCES:
             runs.append(("stability", {"label": label, "elastic_force": f, "duration": 1.0}))
+    # The spread limit: three resolutions at a = h_RC / R_RC = 0.25, and a shallower pile.
+    for res in (3, 4, 5):
+        runs.append(("spread", {"resolution": res, "shallowness": 0.25, "duration": 6.0}))
+    runs.append(("spread", {"resolution": 3, "shallowness": 0.18, "duration": 8.0}))
     for S in (0.1, 0.2, 0.3, 0.5):
         runs.append(("slump", {"S": S, "resolution": 16, "elastic_force": "variational", "duration": 4.0}))
     return runs
