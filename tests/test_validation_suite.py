@@ -44,23 +44,30 @@ def test_beam_deflection_within_10_percent_at_6_thick_variational():
     assert r["ratio"] == pytest.approx(1.0, abs=0.10), r["ratio"]
 
 
-def test_beam_deflection_within_10_percent_at_6_thick_curvature_corrected_fit():
+CURVATURE_BEAM = {"elastic_force": "variational", "span_over_thickness": 5, "dtype": "float64", "fit": "curvature_corrected"}
+
+
+@pytest.fixture(scope="module")
+def beam6_curvature_corrected():
+    """One run shared by the two tests below (the same beam, 6 thick)."""
+    return validation.beam_deflection(resolution=6, **CURVATURE_BEAM)
+
+
+def test_beam_deflection_within_10_percent_at_6_thick_curvature_corrected_fit(beam6_curvature_corrected):
     """The same beam with ``Solver(fit="curvature_corrected")`` (docs/physics.md, "Bending
     stiffness"): measured 1.034 x Timoshenko (the default linear fit: 1.159, above)."""
-    r = validation.beam_deflection(resolution=6, elastic_force="variational", span_over_thickness=5, dtype="float64",
-                                   fit="curvature_corrected")
+    r = beam6_curvature_corrected
     assert not r["blew_up"]
     assert abs(r["residual_rate_pct_per_s"]) < 1.0, r["residual_rate_pct_per_s"]
     assert r["ratio"] == pytest.approx(1.0, abs=0.10), r["ratio"]
 
 
-def test_beam_deflection_converges_with_thickness_curvature_corrected_fit():
+def test_beam_deflection_converges_with_thickness_curvature_corrected_fit(beam6_curvature_corrected):
     """4 and 6 particles thick, span 5 t, float64, ``fit="curvature_corrected"``: the error
     shrinks with resolution, both within 10 % (measured 1.061 and 1.034; the linear fit
     1.35 and 1.159)."""
-    kw = {"elastic_force": "variational", "span_over_thickness": 5, "dtype": "float64", "fit": "curvature_corrected"}
-    r4 = validation.beam_deflection(resolution=4, **kw)
-    r6 = validation.beam_deflection(resolution=6, **kw)
+    r4 = validation.beam_deflection(resolution=4, **CURVATURE_BEAM)
+    r6 = beam6_curvature_corrected
     assert not r4["blew_up"] and not r6["blew_up"]
     assert r4["ratio"] == pytest.approx(1.0, abs=0.10), r4["ratio"]
     assert abs(r6["ratio"] - 1.0) < abs(r4["ratio"] - 1.0), (r4["ratio"], r6["ratio"])
