@@ -298,8 +298,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         velocity change alone, as before, was right only for the nearest point: from an entry
         point a particle resting on a tool lost the part of the drift after the entry each
         step: one sticking on a sphere crept against the tangential force, a frictionless one
-        kept a tangential velocity its position never followed, and the lattice under a held
-        sphere indenter came apart, docs/validation.md.)"""
+        kept a tangential velocity its position never followed, and the apex particles under
+        a held frictional sphere indenter wandered by more than a spacing, docs/tools.md.)"""
         d = world(p1, q1, local(p0, q0, x_start)) + dt * (v_new - vs) - x_s
         return d - wp.dot(d, n) * n
 
