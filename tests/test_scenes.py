@@ -142,6 +142,13 @@ BASE = textwrap.dedent(
          r"contact = 'contiuous' in \[solver\] is not allowed; did you mean 'continuous'\? \(allowed: instant, continuous\)"),
         ("[scene]", '[solver]\nfitt = "linear"\n[scene]', r"unknown key 'fitt' in \[solver\]; did you mean 'fit'"),
         ("[scene]", "[solver]\nfit = 2\n[scene]", r"key 'fit' in \[solver\] must be a string, not int"),
+        ("[scene]", "[solver]\nhourglass = -0.1\n[scene]",
+         r"key 'hourglass' in \[solver\] must be a number >= 0 \(0: off\), not float -0\.1"),
+        ("[scene]", '[solver]\nhourglass = "0.1"\n[scene]',
+         r"key 'hourglass' in \[solver\] must be a number >= 0 \(0: off\), not str '0\.1'"),
+        ("[scene]", "[solver]\nhourglass = nan\n[scene]", r"key 'hourglass' in \[solver\] must be a number >= 0"),
+        ('preset = "dough"', 'preset = "dough"\npressure_force = "spikey"',
+         r"\[materials\.m\]: Material\.pressure_force = 'spikey' is not allowed: must be one of 'energy', 'spiky'"),
     ],
 )
 def test_scene_file_errors_name_file_table_and_key(tmp_path, old, new, pattern):
@@ -179,6 +186,52 @@ def test_solver_table_sets_the_fit_and_contact_of_the_model_and_its_solver(tmp_p
     base.contact_ramp = CONTINUOUS_CONTACT_RAMP
     assert np.array_equal(x, run(base, fit="curvature_corrected"))
     assert np.abs(x - run(base)).max() > 1e-6
+
+
+def test_solver_table_sets_the_hourglass_control_of_the_model_and_its_solver(tmp_path):
+    """``[solver] hourglass = 0.1`` reaches ``Solver(model)`` and the worlds copied from the
+    model: a step is, bit for bit, that of ``Solver(model, hourglass=0.1)`` on the scene
+    without it, and differs from the step without the control (an impact drives the
+    non-affine offsets the control acts on)."""
+    from warp_esph import SceneBuilder, Solver, replicate_worlds
+
+    text = BASE.replace("radius = 0.1", "radius = 0.1\nvelocity = [0, -4, 0]").replace("center = [0, 0.2, 0]", "center = [0, 0.15, 0]")
+    plain = tmp_path / "plain.toml"
+    plain.write_text(text)
+    chosen = tmp_path / "chosen.toml"
+    chosen.write_text("[solver]\nhourglass = 0.1\n" + text)
+    m = load_scene_file(chosen).builder.finalize()
+    base = load_scene_file(plain).builder.finalize()
+    assert (m.hourglass, base.hourglass) == (0.1, 0.0)
+    assert Solver(m).hourglass == 0.1 and Solver(base).hourglass == 0.0 and Solver(m, hourglass=0).hourglass == 0.0
+    assert replicate_worlds(m, 2).hourglass == 0.1
+
+    def run(model, **kw):
+        return simulate(model, 2, progress=False, solver=Solver(model, **kw)).x.numpy()
+
+    x = run(m)
+    assert np.array_equal(x, run(base, hourglass=0.1))
+    assert np.abs(x - run(base)).max() > 1e-6
+    with pytest.raises(ValueError, match=r"hourglass = -1 is not allowed: must be >= 0"):
+        SceneBuilder(hourglass=-1)
+    with pytest.raises(ValueError, match=r"hourglass = 'x' is not allowed: must be a number"):
+        m.hourglass = "x"
+    assert m.hourglass == 0.1
+
+
+def test_material_table_sets_the_pressure_force(tmp_path):
+    """A material table's ``pressure_force`` becomes ``Material.pressure_force`` and changes
+    the run (the two forms differ once the body is compressed)."""
+    text = BASE.replace("radius = 0.1", "radius = 0.1\nvelocity = [0, -4, 0]").replace("center = [0, 0.2, 0]", "center = [0, 0.15, 0]")
+    plain, energy = tmp_path / "plain.toml", tmp_path / "energy.toml"
+    plain.write_text(text)
+    energy.write_text(text.replace('preset = "dough"', 'preset = "dough"\npressure_force = "energy"', 1))
+    a, b = load_scene_file(plain).builder.finalize(), load_scene_file(energy).builder.finalize()
+    assert [mat.pressure_force for mat in a.materials] == ["spiky"]
+    assert [mat.pressure_force for mat in b.materials] == ["energy"]
+    xa = simulate(a, 2, progress=False).x.numpy()
+    xb = simulate(b, 2, progress=False).x.numpy()
+    assert np.abs(xa - xb).max() > 1e-6
 
 
 def test_solver_options_refuse_bad_names_in_python():

@@ -71,7 +71,9 @@ class SceneBuilder:
 
     ``fit`` and ``contact_ramp`` become the model's ``Model.fit`` (the incremental fit a
     ``Solver`` runs by default; None: ``Model.fit``'s default) and ``Model.contact_ramp`` (``contact=`` names it: one of
-    ``model.CONTACTS``, "instant" or "continuous"); scene files set them in ``[solver]``.
+    ``model.CONTACTS``, "instant" or "continuous"); ``hourglass`` the model's
+    ``Model.hourglass`` (the strength of the hourglass control a ``Solver`` runs by default; 0:
+    off). Scene files set them in ``[solver]``.
     """
 
     def __init__(
@@ -85,6 +87,7 @@ class SceneBuilder:
         fit: str | None = None,
         contact: str | None = None,
         contact_ramp: float = CONTACT_RAMP,
+        hourglass: float = 0.0,
     ):
         self.spacing = checks.positive("spacing", spacing)
         #: ``Model.fit`` of the model ``finalize`` makes (None: the model's default).
@@ -95,6 +98,8 @@ class SceneBuilder:
             contact_ramp = CONTACTS[checks.choice("contact", contact, tuple(CONTACTS))]
         #: ``Model.contact_ramp`` of the model ``finalize`` makes.
         self.contact_ramp = checks.non_negative("contact_ramp", contact_ramp)
+        #: ``Model.hourglass`` of the model ``finalize`` makes.
+        self.hourglass = checks.non_negative("hourglass", hourglass)
         if not isinstance(bodies_interact, bool):
             raise ValueError(f"bodies_interact = {bodies_interact!r} is not allowed: must be True or False")
         #: Whether SPH pressure and viscosity act between bodies (contact between bodies).
@@ -417,7 +422,7 @@ class SceneBuilder:
 
 #: What every world of a model must share (``finalize_worlds``).
 _SHARED = ("spacing", "support_radius", "gravity", "max_neighbors", "bodies_interact", "planes", "spheres", "boxes",
-           "fit", "contact_ramp")
+           "fit", "contact_ramp", "hourglass")
 
 
 def _tool_signature(b: SceneBuilder) -> tuple:
@@ -527,7 +532,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
         world_material_start=mat_start,
     )
     model.force_fields = fields
-    model.fit, model.contact_ramp = first.fit, first.contact_ramp
+    model.fit, model.contact_ramp, model.hourglass = first.fit, first.contact_ramp, first.hourglass
     if first.tools or first.pins:
         model.tools = tools.ToolSet(model, first.tools, first.pins, world_pins=[[p.indices for p in b.pins] for b in builders])
     model.compute_rest_density()
@@ -578,7 +583,7 @@ def replicate_worlds(model: Model, worlds: int, requires_grad: bool | None = Non
         particle_world=np.repeat(np.arange(W, dtype=np.int32), n),
         world_material_start=[w * M for w in range(W + 1)],
     )
-    out._fit, out.contact_ramp = model._fit, model.contact_ramp
+    out._fit, out.contact_ramp, out.hourglass = model._fit, model.contact_ramp, model.hourglass
     # A field on every particle acts once on all worlds; one on a body acts on each copy.
     out.force_fields = [f for f in model.force_fields if f.body < 0]
     out.force_fields += [dataclasses.replace(f, body=f.body + w * B) for w in range(W) for f in model.force_fields if f.body >= 0]

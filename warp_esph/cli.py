@@ -135,7 +135,7 @@ def _build_parser() -> _Parser:
 
 
 def _add_solver_arguments(parser) -> None:
-    """``--solver-fit`` and ``--contact``: the scene's ``[solver]`` options, overridden."""
+    """``--solver-fit``, ``--contact`` and ``--hourglass``: the scene's ``[solver]`` options, overridden."""
     parser.add_argument("--solver-fit", metavar="NAME",
                         help="incremental fit of the solver: linear (the paper's) or curvature_corrected (stiffer in bending "
                              "near free surfaces); default: the scene's [solver] fit, else linear")
@@ -143,10 +143,14 @@ def _add_solver_arguments(parser) -> None:
                         help="contact law of colliders and tools: instant (the whole inward velocity removed) or continuous "
                              "(continuous in the state, so a loss is continuous through contact); default: the scene's "
                              "[solver] contact, else instant")
+    parser.add_argument("--hourglass", metavar="C",
+                        help="strength (>= 0) of the hourglass control of the fit's zero-energy modes, for elastic solids "
+                             "under concentrated loads (0.1 holds a pressed sphere indenter); 0: off; default: the scene's "
+                             "[solver] hourglass, else 0")
 
 
 def _solver_options(args) -> dict:
-    """The checked ``--solver-fit`` / ``--contact`` as ``Model`` attribute values (only those given)."""
+    """The checked ``--solver-fit`` / ``--contact`` / ``--hourglass`` as ``Model`` attribute values (only those given)."""
     from . import checks  # noqa: PLC0415
     from .model import CONTACTS, FITS  # noqa: PLC0415
 
@@ -155,7 +159,20 @@ def _solver_options(args) -> dict:
         out["fit"] = checks.choice("--solver-fit", args.solver_fit, FITS)
     if getattr(args, "contact", None) is not None:
         out["contact_ramp"] = CONTACTS[checks.choice("--contact", args.contact, tuple(CONTACTS))]
+    if getattr(args, "hourglass", None) is not None:
+        out["hourglass"] = _hourglass_arg(args.hourglass)
     return out
+
+
+def _hourglass_arg(text) -> float:
+    """``--hourglass`` as a number >= 0 (argparse's own type error would print the usage too)."""
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not 0.0 <= value < float("inf"):
+        raise ValueError(f"--hourglass = {text!r} is not allowed: must be a finite number >= 0 (0: off)")
+    return value
 
 
 def _apply_solver_options(builder, options: dict) -> None:
@@ -187,6 +204,7 @@ def _add_sweep_parser(sub) -> None:
     sw.add_argument("--workers", type=int, metavar="N", help="processes, one per core (default: every core)")
     sw.add_argument("--ray", metavar="ADDRESS", help="run the samples on the Ray cluster at ADDRESS (warp-esph[ray])")
     sw.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_solver_arguments(sw)
 
 
 def _init_warp(device: str) -> None:
@@ -275,7 +293,7 @@ def _cmd_run(args) -> int:
         args.fps, args.dt, args.output, args.surface = run["fps"], run["dt"], run["output"], run.get("surface", False)
         frames_total = args.frames if args.frames is not None else run["frames"]  # --frames extends a run
         every = every or run.get("checkpoint_every")
-        options = {k: run[k] for k in ("fit", "contact_ramp") if k in run}  # the run's own, not the scene's now
+        options = {k: run[k] for k in ("fit", "contact_ramp", "hourglass") if k in run}  # the run's own, not the scene's now
     scene = load_scene(args.scene, scale=scale)
     _apply_solver_options(scene.builder, options)
     fps = args.fps if args.fps is not None else scene.fps
@@ -304,7 +322,8 @@ def _cmd_run(args) -> int:
     checkpoint_path = writer.path + ".checkpoint.npz"
     run_record = {"scene": args.scene if args.scene is not None else scene.name, "scale": scale, "fps": fps, "dt": dt,
                   "frames": frames_total, "output": os.path.abspath(writer.path), "dtype": args.dtype,
-                  "surface": bool(args.surface), "checkpoint_every": every, "fit": model.fit, "contact_ramp": model.contact_ramp}
+                  "surface": bool(args.surface), "checkpoint_every": every, "fit": model.fit, "contact_ramp": model.contact_ramp,
+                  "hourglass": model.hourglass}
     if args.scene is not None and os.path.exists(str(args.scene)):
         run_record["scene"] = os.path.abspath(args.scene)
 
@@ -403,6 +422,8 @@ def _check_run_record(path, run: dict) -> None:
             checks.choice("fit", run["fit"], FITS)
         if "contact_ramp" in run:
             checks.non_negative("contact_ramp", run["contact_ramp"])
+        if "hourglass" in run:
+            checks.non_negative("hourglass", run["hourglass"])
     except ValueError as e:
         raise ValueError(f"{where} {e}") from None
 

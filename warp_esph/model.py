@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import numpy as np
 import warp as wp
 
-from . import tools
+from . import checks, tools
 from ._types import type_set
 from .sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP, Box, Plane, Sphere
 from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, PRESSURE_FORCE_IDS, Material, p_wave_speed
@@ -158,6 +158,7 @@ class Model:
         self.planes, self.spheres, self.boxes = list(planes), list(spheres), list(boxes)
         self.contact_ramp = CONTACT_RAMP
         self._fit = None  # the default (``fit``), until one is chosen
+        self.hourglass = 0.0
         self.particle_count = int(positions.shape[0])
         npf = self.types.np_dtype
         self.particle_x0 = np.ascontiguousarray(positions, dtype=npf)
@@ -283,6 +284,18 @@ class Model:
         if value is not None and (not isinstance(value, str) or value not in FITS):
             raise ValueError(f"fit = {value!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
         self._fit = value
+
+    @property
+    def hourglass(self) -> float:
+        """Strength ``c`` (>= 0) of the hourglass control a ``Solver`` of this model runs
+        unless its ``hourglass=`` says otherwise (``sim/hourglass.py``; docs/physics.md,
+        "Hourglass modes"): 0 (default) off. For elastic solids only: it measures ``F``
+        against the rest positions. Scene files set it in ``[solver]`` (docs/scene_format.md)."""
+        return self._hourglass
+
+    @hourglass.setter
+    def hourglass(self, value: float):
+        self._hourglass = checks.non_negative("hourglass", value)
 
     def _collider_array(self, values, dtype) -> wp.array:
         # Zero colliders of a kind still pass a (never read) one-element array.

@@ -74,6 +74,16 @@ class _Num:
 _FLOAT_MAX = int(sys.float_info.max)
 
 
+class _NonNegative(_Num):
+    """Schema type: a finite number >= 0 (``[solver] hourglass``; 0: off)."""
+
+    def check(self, value) -> bool:
+        return super().check(value) and value >= 0
+
+    def describe(self) -> str:
+        return "a number >= 0 (0: off)"
+
+
 class _Int:
     def check(self, value) -> bool:
         return isinstance(value, int) and not isinstance(value, bool)
@@ -165,8 +175,8 @@ TOOL_KEYS = {
 }
 PIN_KEYS = {"name": (STR, False), "body": (STR, False), "region": (REGION, False), "indices": (INTS, False), **MOTION_KEYS}
 #: ``[solver]``: the numerical options of ``Model`` a scene may choose (``Model.fit``, the
-#: contact law ``Model.contact_ramp`` by name: ``model.CONTACTS``).
-SOLVER_KEYS = {"fit": (STR, False), "contact": (STR, False)}
+#: contact law ``Model.contact_ramp`` by name: ``model.CONTACTS``, ``Model.hourglass``).
+SOLVER_KEYS = {"fit": (STR, False), "contact": (STR, False), "hourglass": (_NonNegative(), False)}
 TOP_KEYS = ("scene", "solver", "materials", "bodies", "colliders", "tools", "pins")
 
 
@@ -381,6 +391,7 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
     contact = solver.get("contact")
     if contact is not None:
         _choice(file, "[solver]", "contact", contact, tuple(CONTACTS))
+    hourglass = solver.get("hourglass", 0.0)
     materials_table = data.get("materials", {})
     if not isinstance(materials_table, dict):
         raise ValueError(f"{file}: 'materials' must be a table of [materials.NAME] tables, not {materials_table!r}")
@@ -403,6 +414,7 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
             max_neighbors=scene.get("max_neighbors"),
             fit=fit,
             contact=contact,
+            hourglass=hourglass,
         )
         frames = checks.positive_int("frames", scene.get("frames", 60))
         fps = checks.positive("fps", scene.get("fps", 30.0))

@@ -892,10 +892,14 @@ def sweep_cli(args, out=None) -> int:
     from .cli import EXIT_INTERRUPTED, PROG  # noqa: PLC0415
 
     out = sys.stdout if out is None else out
+    from .cli import _apply_solver_options, _solver_options  # noqa: PLC0415
 
+    options = _solver_options(args)
     plan = _plan(args.scene, args.param or [], args.sample, args.samples, args.seed, args.frames, args.duration, args.fps,
                  args.dt, args.scale, args.dtype, "cpu", args.workers, args.max_samples, None)
     sc, plist, points = plan.scene, plan.params, plan.tasks
+    # Every task holds this scene: its builder's [solver] options, overridden, reach each sample's Solver(model).
+    _apply_solver_options(sc.builder, options)
     folder = args.output or f"sweep_{sc.name}"
     where = f"Ray at {args.ray}" if args.ray else f"{min(args.workers or _cores(), len(points))} worker(s)"
     print(f"{PROG} sweep: {sc.name}: {len(points)} samples ({args.sample}) of {', '.join(p.name for p in plist)} "
@@ -915,7 +919,8 @@ def sweep_cli(args, out=None) -> int:
     meta = {"command": "sweep", "version": __version__, "scene": args.scene if args.scene else sc.name,
             "scale": args.scale, "params": [dataclasses.asdict(p) for p in plist], "sample": args.sample,
             "samples": len(points), "seed": args.seed, "frames": args.frames, "duration": args.duration, "fps": args.fps,
-            "dt": args.dt, "dtype": args.dtype, "workers": args.workers, "ray": args.ray}
+            "dt": args.dt, "dtype": args.dtype, "workers": args.workers, "ray": args.ray,
+            "fit": sc.builder.fit, "contact_ramp": sc.builder.contact_ramp, "hourglass": sc.builder.hourglass}
     if args.scene and os.path.exists(str(args.scene)):
         meta["scene"] = os.path.abspath(args.scene)
     log_params = [p.name for p in plist if p.values is None and p.scale == "log"]

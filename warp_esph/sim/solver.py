@@ -92,7 +92,7 @@ class Solver:
     cannot be combined with a comparison deformation model. The model's force fields
     (``fields.CompressionField``) act while active at ``state_in.time``.
 
-    ``hourglass`` (>= 0, default 0: off, not launched) is the strength ``c`` of the opt-in
+    ``hourglass`` (>= 0; None: ``Model.hourglass``, default 0: off, not launched) is the strength ``c`` of the opt-in
     control of the fit's zero-energy modes (``hourglass.py``; docs/physics.md, "Hourglass
     modes"): for elastic solids under concentrated loads (a held sphere indenter keeps its
     force with ``c = 0.1``); it measures ``F`` against the rest positions, so it would pull
@@ -108,11 +108,11 @@ class Solver:
         neighbor_skin: float | None = None,
         fused: bool = True,
         fit: str | None = None,
-        hourglass: float = 0.0,
+        hourglass: float | None = None,
     ):
         self.model = model
         #: Strength ``c`` of the opt-in hourglass control (``hourglass.py``); 0: off.
-        self.hourglass = checks.non_negative("hourglass", hourglass)
+        self.hourglass = checks.non_negative("hourglass", model.hourglass if hourglass is None else hourglass)
         self._rest = (wp.array(model.particle_x0, dtype=model.types.vec3, device=model.device)
                       if self.hourglass > 0.0 else None)
         self.min_neighbors = checks.positive_int("min_neighbors", min_neighbors)
