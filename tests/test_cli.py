@@ -134,6 +134,43 @@ def test_solver_options_from_scene_file_and_cli(tmp_path, capsys):
     capsys.readouterr()
 
 
+def test_hourglass_from_scene_file_cli_and_resume(tmp_path, capsys):
+    """``[solver] hourglass = 0.1`` runs the control (other frames than without it);
+    ``--hourglass 0`` overrides it (the frames of the file without ``[solver]``); the run
+    record keeps the value, and ``--resume`` keeps the run's value even when the scene file
+    no longer has it: the resumed run writes the frames of the uninterrupted one."""
+    from warp_esph.checkpoint import read_checkpoint
+
+    falling = GOOD_TOML.replace('material = "soft"', 'material = "soft"\nvelocity = [0.0, -3.0, 0.0]')
+    plain, chosen = tmp_path / "plain.toml", tmp_path / "chosen.toml"
+    plain.write_text(falling)
+    chosen.write_text("[solver]\nhourglass = 0.1\n" + falling)
+
+    def frames(out):
+        stage = open_fresh(out)
+        return [np.array(stage.GetPrimAtPath("/World/box0").GetAttribute("points").Get(float(t))) for t in range(5)]
+
+    def run(scene, name, *extra):
+        out = tmp_path / f"{name}.usdc"
+        assert main(["run", str(scene), "-o", str(out), "--no-progress", "--frames", "4", *extra]) == 0
+        return out
+
+    x_plain = frames(run(plain, "plain"))
+    x_chosen = frames(run(chosen, "chosen"))
+    x_off = frames(run(chosen, "off", "--hourglass", "0"))
+    x_flag = frames(run(plain, "flag", "--hourglass", "0.1"))
+    assert all(np.array_equal(a, b) for a, b in zip(x_off, x_plain))
+    assert all(np.array_equal(a, b) for a, b in zip(x_flag, x_chosen))
+    assert np.abs(x_chosen[-1] - x_plain[-1]).max() > 1e-5
+    part = run(chosen, "part", "--frames", "2", "--checkpoint-every", "2")  # the last --frames wins: 2
+    ckpt = str(part) + ".checkpoint.npz"
+    assert read_checkpoint(ckpt)[0]["run"]["hourglass"] == 0.1
+    chosen.write_text(falling)  # the scene now says 0: the resumed run keeps its 0.1
+    assert main(["run", "--resume", ckpt, "--frames", "4", "--no-progress"]) == 0
+    assert all(np.array_equal(a, b) for a, b in zip(frames(part), x_chosen))
+    capsys.readouterr()
+
+
 BAD_TOML = {
     "unknown_key": (GOOD_TOML.replace('shape = "box"', 'shape = "box"\ncolour = "red"'), ["'colour'", "[[bodies]] #1"]),
     "typo_key": (GOOD_TOML.replace("spacing = 0.05", "spaceing = 0.05"), ["'spaceing'", "[scene]", "did you mean 'spacing'"]),
@@ -144,6 +181,7 @@ BAD_TOML = {
     "bad_syntax": (GOOD_TOML.replace("frames = 2", "frames = = 2"), ["invalid TOML", "line"]),
     "bad_material": (GOOD_TOML.replace('material = "soft"', 'material = "sofft"'), ["'sofft'", "did you mean 'soft'"]),
     "bad_fit": ('[solver]\nfit = "quadratic"\n' + GOOD_TOML, ["fit = 'quadratic' in [solver]", "linear, curvature_corrected"]),
+    "bad_hourglass": ("[solver]\nhourglass = -0.1\n" + GOOD_TOML, ["'hourglass' in [solver]", "-0.1", ">= 0"]),
 }
 
 
@@ -177,6 +215,10 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         (["frobnicate"], ["frobnicate"]),
         (["run", "--solver-fit", "quadratic"], ["--solver-fit = 'quadratic'", "'linear', 'curvature_corrected'"]),
         (["run", "--contact", "soft"], ["--contact = 'soft'", "'instant', 'continuous'"]),
+        (["run", "--hourglass", "-0.1"], ["--hourglass = '-0.1'", ">= 0"]),
+        (["run", "--hourglass", "strong"], ["--hourglass = 'strong'", ">= 0"]),
+        (["run", "--hourglass", "inf"], ["--hourglass = 'inf'", "finite number >= 0"]),
+        (["fit", "dough_drop", "--target", "t.npz", "--hourglass", "-1"], ["--hourglass = '-1'", ">= 0"]),
     ],
 )
 def test_bad_input_is_one_line_exit_2(tmp_path, monkeypatch, capsys, args, needles):

@@ -211,6 +211,37 @@ def test_cli_records_a_blown_up_sample_and_exits_3(scene_file, tmp_path, capsys)
         assert (out / "sweep.png").stat().st_size > 0
 
 
+def test_cli_solver_options_override_the_scene_files(scene_file, tmp_path, capsys):
+    """``--hourglass``, ``--solver-fit`` and ``--contact`` reach every sample's solver as the
+    scene file's ``[solver]`` table does: the same rows, bit for bit, and other rows than
+    without them; ``sweep.json`` records the options run."""
+    import json
+
+    chosen = tmp_path / "chosen.toml"
+    chosen.write_text('[solver]\nhourglass = 0.1\nfit = "curvature_corrected"\ncontact = "continuous"\n' + SCENE_TOML)
+
+    def rows(scene, name, *extra):
+        out = tmp_path / name
+        assert cli.main(["sweep", str(scene), "--param", "paste.yield_stress=10000", "--frames", "3", "--workers", "1",
+                         "-o", str(out), "--no-progress", *extra]) == 0
+        meta = json.loads((out / "sweep.json").read_text())
+        return [{k: v for k, v in r.items() if k not in ("wall_s", "warnings")} for r in SweepTable.read_csv(out / "sweep.csv").rows], meta
+
+    plain, meta_plain = rows(scene_file, "plain")
+    by_file, meta_file = rows(chosen, "file")
+    by_flags, meta_flags = rows(scene_file, "flags", "--hourglass", "0.1", "--solver-fit", "curvature_corrected",
+                                "--contact", "continuous")
+    back, _ = rows(chosen, "back", "--hourglass", "0", "--solver-fit", "linear", "--contact", "instant")
+    assert by_flags == by_file and back == plain
+    hourglass_only, _ = rows(scene_file, "hourglass", "--hourglass", "0.1")
+    assert by_file[0]["max_height"] != plain[0]["max_height"]
+    assert hourglass_only[0]["kinetic_energy"] != plain[0]["kinetic_energy"]  # the control alone reaches the samples
+    assert (meta_plain["hourglass"], meta_plain["contact_ramp"]) == (0.0, 0.0)
+    assert (meta_flags["hourglass"], meta_flags["fit"], meta_flags["contact_ramp"]) == (0.1, "curvature_corrected", 1.0)
+    assert (meta_file["hourglass"], meta_file["fit"]) == (0.1, "curvature_corrected")
+    capsys.readouterr()
+
+
 @pytest.mark.parametrize("args, words", [
     (["--param", "yield_stress"], ["'yield_stress'", "NAME=LO:HI:SCALE:N"]),
     (["--param", "yield_stress=1:2:log:3:4"], ["yield_stress", "5 fields"]),
@@ -230,6 +261,10 @@ def test_cli_records_a_blown_up_sample_and_exits_3(scene_file, tmp_path, capsys)
     (["--param", "yield_stress=10:100:log:2", "--workers", "0"], ["--workers", "0"]),
     (["--param", "yield_stress=10:100:log:2", "--frames", "2", "--duration", "1"], ["--duration", "--frames"]),
     (["--param", "yield_stress=10:100:log:2", "--dt", "0.007"], ["dt = 0.007", "whole number of steps"]),
+    (["--param", "yield_stress=10:100:log:2", "--hourglass", "-1"], ["--hourglass = '-1'", ">= 0"]),
+    (["--param", "yield_stress=10:100:log:2", "--hourglass", "x"], ["--hourglass = 'x'", ">= 0"]),
+    (["--param", "yield_stress=10:100:log:2", "--solver-fit", "quad"], ["--solver-fit = 'quad'", "'linear'"]),
+    (["--param", "yield_stress=10:100:log:2", "--contact", "soft"], ["--contact = 'soft'", "'instant', 'continuous'"]),
 ])
 def test_bad_input_exits_2_with_one_line(scene_file, capsys, args, words, tmp_path):
     rc = cli.main(["sweep", scene_file, *args, "-o", str(tmp_path / "never"), "--no-progress"])
