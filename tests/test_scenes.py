@@ -193,7 +193,7 @@ def test_solver_table_sets_the_hourglass_control_of_the_model_and_its_solver(tmp
     model: a step is, bit for bit, that of ``Solver(model, hourglass=0.1)`` on the scene
     without it, and differs from the step without the control (an impact drives the
     non-affine offsets the control acts on)."""
-    from warp_esph import SceneBuilder, Solver, replicate_worlds
+    from warp_esph import SceneBuilder, Solver, finalize_worlds, replicate_worlds
 
     text = BASE.replace("radius = 0.1", "radius = 0.1\nvelocity = [0, -4, 0]").replace("center = [0, 0.2, 0]", "center = [0, 0.15, 0]")
     plain = tmp_path / "plain.toml"
@@ -205,6 +205,10 @@ def test_solver_table_sets_the_hourglass_control_of_the_model_and_its_solver(tmp
     assert (m.hourglass, base.hourglass) == (0.1, 0.0)
     assert Solver(m).hourglass == 0.1 and Solver(base).hourglass == 0.0 and Solver(m, hourglass=0).hourglass == 0.0
     assert replicate_worlds(m, 2).hourglass == 0.1
+    b0, b1 = load_scene_file(chosen).builder, load_scene_file(plain).builder
+    assert finalize_worlds([b0, b0]).hourglass == 0.1
+    with pytest.raises(ValueError, match=r"builders\[1\]\.hourglass = 0\.0 is not allowed: every world must have the hourglass"):
+        finalize_worlds([b0, b1])
 
     def run(model, **kw):
         return simulate(model, 2, progress=False, solver=Solver(model, **kw)).x.numpy()
