@@ -477,16 +477,17 @@ def test_cli_joint_experiments_file(tmp_path):
                  "--output-dir", str(out), *common]) == 2
 
 
-def test_cli_fit_takes_the_solver_options(tmp_path, capsys):
-    """``fit --solver-fit/--contact`` reach the fit's solver: the initial loss against a run of
-    the same scene with the corrected fit and continuous contact is 0 with those options (the
-    same forward run; up to the float32 rounding of the USD target) and not without; a bad
-    name is one line, exit 2."""
+@pytest.mark.parametrize("options", [["--solver-fit", "curvature_corrected", "--contact", "continuous"],
+                                     ["--hourglass", "0.1"]], ids=["fit_contact", "hourglass"])
+def test_cli_fit_takes_the_solver_options(tmp_path, capsys, options):
+    """``fit --solver-fit/--contact/--hourglass`` reach the fit's solver: the initial loss
+    against a run of the same scene with those options is 0 with them (the same forward run;
+    up to the float32 rounding of the USD target) and not without; a bad name is one line,
+    exit 2."""
     from warp_esph.cli import main
 
     truth = tmp_path / "truth.toml"
     truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
-    options = ["--solver-fit", "curvature_corrected", "--contact", "continuous"]
     assert main(["run", str(truth), "-o", str(tmp_path / "run.usdc"), "--frames", "2", "--dtype", "float64",
                  "--no-progress", *options]) == 0
     common = ["--iterations", "0", "--no-progress", "--no-usd", "--no-diagnostics", "--target-frames", "2"]
