@@ -59,6 +59,9 @@ def _interrupt(tmp_path, sig, expected_status):
     proc = subprocess.Popen(
         [sys.executable, "-m", "warp_esph", "run", "dough_drop", "--scale", "0.5", "--frames", "400", "-o", str(out), "--no-progress"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ.copy(),
+        # As in a terminal: a pytest-xdist worker ignores SIGINT and its children inherit
+        # that, and the CLI rightly keeps an inherited ignore (as `nohup` asks).
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     deadline = time.time() + 120
     while time.time() < deadline and not (out.exists() and len(_points(out).get("/World/dough", {})) >= 3):
