@@ -7,10 +7,9 @@ import pathlib
 # (CLI tests) then load kernels compiled once instead of compiling them again.
 os.environ.setdefault("WARP_CACHE_PATH", str(pathlib.Path(__file__).resolve().parent.parent / ".warp_cache"))
 
-import warp as wp  # noqa: E402
+from warp_esph.startup import init_warp  # noqa: E402
 
-wp.config.log_level = wp.LOG_WARNING
-wp.init()
+init_warp()  # wp.config.log_level = WARNING, and no native CUDA-driver note on a CPU machine
 
 # Under CI=true the property tests draw the same examples every run (a failure there is
 # reproducible from the log); locally they explore new ones and keep failures in the database.
