@@ -119,8 +119,9 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="a tiny run: 125 particles, 20 steps")
     ap.add_argument("--json", default="fit_bench.json", help="output JSON path")
     a = ap.parse_args(argv)
-    wp.config.quiet = True
-    wp.init()
+    from warp_esph.startup import init_warp  # noqa: PLC0415 (log_level, no native CUDA note)
+
+    init_warp()
     sizes = [125] if a.quick else [int(s) for s in a.particles.split(",")]
     step_counts = [20] if a.quick else [int(s) for s in a.steps.split(",")]
 

@@ -206,8 +206,9 @@ def main(argv=None) -> int:
                          "False; hand-written adjoints where they exist for them)")
     ap.add_argument("--json", default=None, help="write the results here")
     a = ap.parse_args(argv)
-    wp.config.quiet = True
-    wp.init()
+    from warp_esph.startup import init_warp  # noqa: PLC0415 (log_level, no native CUDA note)
+
+    init_warp()
     rows = []
     for size in a.sizes.split(","):
         by_dtype = {}

@@ -535,8 +535,9 @@ def main(argv=None):
 
     import warp as wp
 
-    wp.config.quiet = True
-    wp.init()
+    from warp_esph.startup import init_warp  # noqa: PLC0415 (log_level, no native CUDA note)
+
+    init_warp()
     import warp_esph as we
     from warp_esph.sim.solver import DEFAULT_SKIN
 

@@ -106,9 +106,9 @@ def main(argv=None) -> int:
     os.environ.setdefault("WARP_CACHE_PATH", os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".warp_cache"))
     import warp as wp
 
-    wp.config.quiet = True
-    wp.config.log_level = wp.LOG_WARNING
-    wp.init()
+    from warp_esph.startup import init_warp  # noqa: PLC0415 (log_level, no native CUDA note)
+
+    init_warp()
     from warp_esph.scenes import TABLE1
 
     wanted = None if args.rows is None else [w.strip() for w in args.rows.split(",") if w.strip()]

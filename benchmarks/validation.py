@@ -44,8 +44,9 @@ SMALL, LARGE = 0.002, 0.05
 def _we():
     import warp as wp
 
-    wp.config.quiet = True
     import warp_esph as we
+
+    we.init_warp()
 
     return wp, we
 

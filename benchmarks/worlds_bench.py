@@ -170,7 +170,9 @@ def main(argv=None):
     ap.add_argument("--device", default="cpu", help="Warp device, e.g. cuda:0")
     ap.add_argument("--json", default="worlds_bench.json")
     args = ap.parse_args(argv)
-    wp.init()
+    from warp_esph.startup import init_warp  # noqa: PLC0415 (log_level, no native CUDA note)
+
+    init_warp()
     results = [forward_case(args.particles, args.worlds, args.steps, getattr(wp, args.dtype), args.repeat, args.device)]
     if args.gradient:
         results.append(gradient_case(args.particles, args.worlds, args.gradient_steps, args.repeat, args.device))

@@ -205,7 +205,7 @@ def main(argv=None) -> int:
                     help="precision of the fitted model (float32: about half the time per evaluation)")
     a = ap.parse_args(argv)
     scale = 1.0 if a.full else a.scale
-    wp.config.quiet = True
+    we.init_warp()  # log_level WARNING, no native CUDA-driver note on a CPU machine
     summary = run(scale, a.frames, a.iterations, a.optimizer, a.out, usd=not a.no_usd, progress=a.progress,
                   checkpoint_every=a.checkpoint_every, dtype=a.dtype)
     return 0 if summary["within_10_percent"] else 1
