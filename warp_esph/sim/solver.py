@@ -87,8 +87,8 @@ class Solver:
     file's ``[solver] fit`` sets): ``"linear"`` (default), the paper's affine fit (eqs. 5-6); ``"curvature_corrected"``, the fit that also carries the mixed quadratic terms and
     keeps only the gradient (``curvature.py``; docs/physics.md, "Bending stiffness": a bent
     beam within a few % of Timoshenko instead of 1.16x too soft at 6 particles thick). The
-    corrected fit runs the non-fused kernels (forward and under a tape: its elastic force
-    with Warp's generated adjoint, its deformation update with a hand-written one) and
+    corrected fit runs the non-fused kernels (under a tape with hand-written adjoints for its
+    elastic force, ``curvature.variational_forces_adjoint``, and its deformation update) and
     cannot be combined with a comparison deformation model. The model's force fields
     (``fields.CompressionField``) act while active at ``state_in.time``.
 
