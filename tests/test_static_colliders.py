@@ -276,3 +276,40 @@ def test_reaction_gradient_matches_central_differences():
         print(f"{name}: tape {g:.6e}, central differences {fd:.6e}")
         assert abs(fd) > 1e-9, f"the loss does not reach {name}"
         assert g == pytest.approx(fd, rel=1e-3)
+
+
+def test_each_world_reports_its_own_collider_rows():
+    """Two worlds of a block dropped onto the ground beside a box collider: over the landing
+    each world's rows (``w<w>/plane0``, ``w<w>/box0``) hold the single-world model's
+    reaction step by step (compared as the summed impulse and its moment); the second world,
+    given twice the drop speed, holds its own."""
+    def scene(worlds):
+        b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
+        mat = we.Material.from_young(1e5, 0.3, density=1000.0, pressure_stiffness=0.0, elastic_force="variational")
+        b.add_box((0.0, 0.04, 0.0), (0.06, 0.06, 0.06), mat)
+        b.add_ground(0.0, friction=0.4)
+        b.add_box_collider((2.0, 0.0, 0.0), (0.1, 0.1, 0.1))  # touches nothing
+        return b.finalize(worlds=worlds)
+
+    def run(m, speeds):
+        s = we.Solver(m)
+        a, c = m.state(), m.state()
+        v = np.zeros((m.particle_count, 3))
+        v[:, 1] = -np.asarray(speeds)[m.world_of_particle]
+        a.v.assign(v)
+        total = {}
+        for _ in range(150):
+            s.step(a, c, DT)
+            a, c = c, a
+            for name, ft in s.collider_reactions(a).items():
+                total[name] = total.get(name, 0.0) + DT * np.array(ft)
+        return total
+
+    single = [run(scene(1), [speed])["plane0"] for speed in (1.0, 2.0)]
+    both = run(scene(2), [1.0, 2.0])
+    assert list(both) == ["w0/plane0", "w0/box0", "w1/plane0", "w1/box0"]
+    assert single[0][0][1] > 0.0 and single[1][0][1] > single[0][0][1]  # both landed, the faster one harder
+    for w in range(2):
+        np.testing.assert_allclose(both[f"w{w}/plane0"][0], single[w][0], rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(both[f"w{w}/plane0"][1], single[w][1], rtol=1e-5, atol=1e-7)
+        assert np.abs(np.array(both[f"w{w}/box0"])).max() == 0.0
