@@ -3,34 +3,51 @@
 sliding and sticking against closed-form values, and a resting body held at the surface
 with a reaction that carries its weight.
 
-Static colliders report no reaction force (a tool held in place, ``add_tool(...,
-motion=None)``, does, docs/tools.md); here the reaction is read from the momentum balance:
-the colliders are the only external force besides gravity, and the internal forces sum to
-zero, so their force on the body is ``dP/dt - M g``."""
+Each static collider reports the force and torque it exerted on the material in the step
+(``Solver.collider_reactions``, ``state.collider_force``, docs/tools.md); the tests check it
+against the momentum balance (the colliders are the only external force besides gravity,
+and the internal forces sum to zero, so their force on the body is ``dP/dt - M g``), the
+weight, Coulomb's ``mu N``, the torque balance of a body at rest, both step schedules,
+and float64 central differences."""
 
 import numpy as np
 import pytest
 
+import warp as wp
+
 import warp_esph as we
+from warp_esph.sim.colliders import CONTINUOUS_CONTACT_RAMP
 
 G = 9.81
 DT = 2.0e-4
 TOP = 0.01  # the collider's top face: the block's bottom particle layer starts on it
 
 
-def _block(friction, collider="box"):
+#: The block's centre on the ground (off the origin, so the ground's torque about the
+#: origin, its reference point, is not zero).
+GROUND_AT = (0.2, 0.03, -0.1)
+
+
+def _block(friction, collider="box", fused=True):
     """A 3 x 3 x 3 elastic block (6 cm, 2 cm spacing, mildly viscous) whose bottom layer
-    rests on the top of a static box or on the apex of a static sphere (R = 0.5 m)."""
+    rests on the top of a static box, on the apex of a static sphere (R = 0.5 m), or on the
+    ground y = TOP at ``GROUND_AT``."""
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
     mat = we.Material.from_young(1e5, 0.3, density=1000.0, pressure_stiffness=0.0, elastic_force="variational",
                                  viscosity=1.0)
-    b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), mat, name="block")
+    b.add_box(GROUND_AT if collider == "ground" else (0.0, 0.03, 0.0), (0.06, 0.06, 0.06), mat, name="block")
     if collider == "box":
         b.add_box_collider((0.0, TOP - 0.05, 0.0), (0.5, 0.05, 0.5), friction=friction)
-    else:
+    elif collider == "sphere":
         b.add_sphere_collider((0.0, TOP - 0.5, 0.0), 0.5, friction=friction)
+    else:
+        b.add_ground(TOP, friction=friction)
     m = b.finalize()
-    return m, we.Solver(m)
+    return m, we.Solver(m, fused=fused)
+
+
+#: Each collider's reference point for its torque (docs/tools.md).
+REFERENCE = {"box": (0.0, TOP - 0.05, 0.0), "sphere": (0.0, TOP - 0.5, 0.0), "ground": (0.0, TOP, 0.0)}
 
 
 def _settle(m, s, steps=1500, relax=False):
@@ -68,14 +85,22 @@ def test_block_sliding_on_a_box_decelerates_at_mu_g_then_stops():
     a.v.assign(v)
     x_start = a.x.numpy()[:, 0].mean()
     t_stop = v0 / (mu * G)
-    xs, ts = [], []
+    xs, ts, fs = [], [], []
     for k in range(int(1.5 * t_stop / DT)):
         s.step(a, c, DT)
         a, c = c, a
         xs.append(a.x.numpy()[:, 0].mean())
         ts.append((k + 1) * DT)
-    xs, ts = np.array(xs), np.array(ts)
+        fs.append(s.collider_reactions(a)["box0"][0])
+    xs, ts, fs = np.array(xs), np.array(ts), np.array(fs)
     sliding = ts < 0.8 * t_stop
+    # The box's reported force while the block slides: the weight up, mu times it back.
+    M = m.particle_mass.numpy().sum()
+    f = fs[sliding].mean(axis=0)
+    print(f"reported force while sliding {f} N (weight {M * G:.5f} N, mu M g {mu * M * G:.5f} N)")
+    assert f[1] == pytest.approx(M * G, rel=1e-2)
+    assert -f[0] == pytest.approx(mu * M * G, rel=1e-2)
+    assert abs(f[2]) < 1e-3 * M * G
     acc = 2.0 * np.polyfit(ts[sliding], xs[sliding], 2)[0]
     print(f"acceleration {acc:.4f} m/s^2 (-mu g = {-mu * G:.4f}); slid {xs[-1] - x_start:.5f} m "
           f"(v0^2 / (2 mu g) = {v0 ** 2 / (2 * mu * G):.5f})")
@@ -98,18 +123,21 @@ def test_block_on_a_tilted_box_slides_below_tan_phi_and_stays_above(mu):
     a, c = _settle(m, s)
     m.gravity = (G * np.sin(th), -G * np.cos(th), 0.0)
     steps = 1000
-    xs, p = [], [_momentum(m, a)]
+    xs, p, fs = [], [_momentum(m, a)], []
     for _ in range(steps):
         s.step(a, c, DT)
         a, c = c, a
         xs.append(a.x.numpy()[:, 0].mean())
         p.append(_momentum(m, a))
+        fs.append(s.collider_reactions(a)["box0"][0])
     t = DT * np.arange(1, steps + 1)
     late = slice(steps // 2, steps)
     acc = 2.0 * np.polyfit(t[late], np.array(xs)[late], 2)[0]
     M = m.particle_mass.numpy().sum()
     reaction = (p[-1] - p[steps // 2]) / (DT * (steps - steps // 2)) - M * np.array(m.gravity)
     print(f"mu={mu}: acceleration {acc:.4f} m/s^2, reaction {reaction} N, weight {M * G:.4f} N")
+    # The reported force is the momentum balance's, step by step (float32 round-off apart).
+    np.testing.assert_allclose(np.mean(fs[steps // 2:], axis=0), reaction, atol=1e-3 * M * G)
     assert reaction[1] == pytest.approx(M * G * np.cos(th), rel=0.02)
     if mu < np.tan(th):
         assert acc == pytest.approx(G * (np.sin(th) - mu * np.cos(th)), rel=0.01)
@@ -120,26 +148,168 @@ def test_block_on_a_tilted_box_slides_below_tan_phi_and_stays_above(mu):
     assert a.x.numpy()[:, 1].min() > TOP - 1e-6
 
 
-@pytest.mark.parametrize("collider", ["box", "sphere"])
+@pytest.mark.parametrize("collider", ["box", "sphere", "ground"])
 def test_resting_block_carries_its_weight_without_penetration(collider):
-    """Settled (with kinetic damping) on a box top or on a sphere's apex, then left alone
-    for 0.1 s: it stays at rest, the colliders' force over that time is the weight, straight
-    up, and no particle is inside."""
+    """Settled (with kinetic damping) on a box top, on a sphere's apex or off the origin on
+    the ground, then left alone for 0.1 s: it stays at rest, the colliders' force over that
+    time is the weight, straight up, both from the momentum balance and as the collider
+    reports it, the reported torque about the collider's reference point balances the
+    weight's (``(c - ref) x M g`` up, ``c`` the centroid), and no particle is inside."""
     m, s = _block(0.5, collider)
     a, c = _settle(m, s, 2500, relax=True)
     p0 = _momentum(m, a)
     n = 500
+    name = {"box": "box0", "sphere": "sphere0", "ground": "plane0"}[collider]
+    reported = np.zeros((2, 3))
     for _ in range(n):
         s.step(a, c, DT)
         a, c = c, a
+        reactions = s.collider_reactions(a)
+        assert list(reactions) == [name]
+        reported += np.array(reactions[name]) / n
     M = m.particle_mass.numpy().sum()
     reaction = (_momentum(m, a) - p0) / (n * DT) - M * np.array(m.gravity)
     x = a.x.numpy().astype(np.float64)
-    print(f"{collider}: reaction {reaction} N for the weight {M * G:.5f} N; speed {np.abs(a.v.numpy()).max():.2e} m/s")
-    np.testing.assert_allclose(reaction, [0.0, M * G, 0.0], atol=1e-3 * M * G)
+    print(f"{collider}: reaction {reaction} N, reported {reported[0]} N, torque {reported[1]} N m, for the weight "
+          f"{M * G:.5f} N; speed {np.abs(a.v.numpy()).max():.2e} m/s")
+    weight_up = np.array([0.0, M * G, 0.0])
+    np.testing.assert_allclose(reaction, weight_up, atol=1e-3 * M * G)
+    np.testing.assert_allclose(reported[0], weight_up, atol=1e-3 * M * G)
+    lever = x.mean(axis=0) - np.array(REFERENCE[collider])
+    np.testing.assert_allclose(reported[1], np.cross(lever, weight_up), atol=1e-3 * M * G * np.linalg.norm(lever))
+    if collider == "ground":
+        assert abs(reported[1][0]) > 0.05 * M * G and abs(reported[1][2]) > 0.1 * M * G  # not a vacuous check
     assert np.abs(a.v.numpy()).max() < 1e-3
-    if collider == "box":
+    if collider != "sphere":
         assert x[:, 1].min() > TOP - 1e-6
     else:
         assert np.linalg.norm(x - np.array([0.0, TOP - 0.5, 0.0]), axis=1).min() > 0.5 - 1e-6
         assert np.abs(x[:, [0, 2]].mean(axis=0)).max() < 1e-4  # stays over the apex
+
+
+def _reactions_after_one_step(m, s, a):
+    c = m.state()
+    s.step(a, c, DT)
+    return s.collider_reactions(c), c
+
+
+def test_reaction_is_the_same_on_both_schedules_and_with_tools():
+    """One step of a block sliding on the ground (launched at 0.5 m/s after settling) from
+    the same state: the fused and the staged schedule, and a model with a (never touching)
+    moving tool, whose step runs the static colliders in the tools' integrate kernel,
+    report the same ground force and torque."""
+    m, s = _block(0.3, "ground")
+    a, _ = _settle(m, s, 600)
+    v = a.v.numpy()
+    v[:, 0] += 0.5
+    a.v.assign(v)
+    fused, _ = _reactions_after_one_step(m, s, a)
+    staged, _ = _reactions_after_one_step(m, we.Solver(m, fused=False), a)
+
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
+    mat = we.Material.from_young(1e5, 0.3, density=1000.0, pressure_stiffness=0.0, elastic_force="variational",
+                                 viscosity=1.0)
+    b.add_box(GROUND_AT, (0.06, 0.06, 0.06), mat, name="block")
+    b.add_ground(TOP, friction=0.3)
+    b.add_tool("sphere", radius=0.01, position=(5.0, 5.0, 5.0), name="far")
+    mt = b.finalize()
+    at = mt.state()
+    for name in ("x", "v", "F", "alpha"):
+        getattr(at, name).assign(getattr(a, name).numpy())
+    with_tool, ct = _reactions_after_one_step(mt, we.Solver(mt), at)
+    assert np.abs(ct.reaction_force.numpy()).max() == 0.0  # the tool touches nothing
+
+    M = m.particle_mass.numpy().sum()
+    f, tq = fused["plane0"]
+    print(f"fused {fused['plane0']}, staged {staged['plane0']}, with a tool {with_tool['plane0']}")
+    assert f[1] > 0.1 * M * G and -f[0] > 0.1 * 0.3 * M * G  # in contact, sliding
+    for other in (staged, with_tool):
+        np.testing.assert_allclose(other["plane0"][0], f, rtol=1e-4, atol=1e-6 * M * G)
+        np.testing.assert_allclose(other["plane0"][1], tq, rtol=1e-4, atol=1e-6 * M * G)
+
+
+@wp.kernel
+def _reaction_loss(f: wp.array(dtype=wp.vec3d), tq: wp.array(dtype=wp.vec3d), w: wp.vec3d, wt: wp.vec3d,
+                   loss: wp.array(dtype=wp.float64)):
+    wp.atomic_add(loss, 0, wp.dot(f[0], w) + wp.dot(tq[0], wt))
+
+
+def _landing_reaction_loss(viscosity, mu, grad=False):
+    """A small viscous block lands on a rough ground (continuous contact law) while moving
+    sideways; the loss weighs the ground's force and torque summed over every step."""
+    dx = 0.02
+    b = we.SceneBuilder(spacing=dx, support_radius=2.0 * dx, gravity=(0.0, -G, 0.0))
+    b.add_box((0.0, 0.045, 0.0), (5 * dx, 4 * dx, 4 * dx),
+              we.Material(density=1000.0, mu=mu, lam=1.5e3, pressure_stiffness=1.0, viscosity=viscosity))
+    b.add_ground(friction=0.6)
+    m = b.finalize(dtype=wp.float64, requires_grad=True)
+    m.contact_ramp = CONTINUOUS_CONTACT_RAMP
+    m.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * dx, size=m.particle_x0.shape)
+    m.particle_v0 = np.tile([0.4, -1.0, 0.0], (m.particle_count, 1))
+    s = we.Solver(m)
+    states = [m.state() for _ in range(31)]
+    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        for k in range(30):
+            s.step(states[k], states[k + 1], 1.0e-3)
+            wp.launch(_reaction_loss, 1, [states[k + 1].collider_force, states[k + 1].collider_torque,
+                                          wp.vec3d(0.7, 1.0, -0.3), wp.vec3d(5.0, 2.0, 8.0)], [loss])
+    touching = sum(np.abs(st.collider_force.numpy()).max() > 0.0 for st in states[1:])
+    if not grad:
+        return loss.numpy()[0], touching
+    tape.backward(loss)
+    return loss.numpy()[0], touching, m.viscosity.grad.numpy()[0], m.mu.grad.numpy()[0]
+
+
+def test_reaction_gradient_matches_central_differences():
+    """A loss on the ground's reported force and torque: the tape's gradient in the
+    viscosity and the shear modulus against float64 central differences."""
+    loss, touching, g_visc, g_mu = _landing_reaction_loss(2.0, 1.0e3, grad=True)
+    assert touching > 10, "the block lands during the rollout"
+    for name, base, g in (("viscosity", 2.0, g_visc), ("mu", 1.0e3, g_mu)):
+        eps = 1e-4 * base
+        args = {"viscosity": 2.0, "mu": 1.0e3}
+        hi = _landing_reaction_loss(**dict(args, **{name: base + eps}))[0]
+        lo = _landing_reaction_loss(**dict(args, **{name: base - eps}))[0]
+        fd = (hi - lo) / (2 * eps)
+        print(f"{name}: tape {g:.6e}, central differences {fd:.6e}")
+        assert abs(fd) > 1e-9, f"the loss does not reach {name}"
+        assert g == pytest.approx(fd, rel=1e-3)
+
+
+def test_each_world_reports_its_own_collider_rows():
+    """Two worlds of a block dropped onto the ground beside a box collider: over the landing
+    each world's rows (``w<w>/plane0``, ``w<w>/box0``) hold the single-world model's
+    reaction step by step (compared as the summed impulse and its moment); the second world,
+    given twice the drop speed, holds its own."""
+    def scene(worlds):
+        b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
+        mat = we.Material.from_young(1e5, 0.3, density=1000.0, pressure_stiffness=0.0, elastic_force="variational")
+        b.add_box((0.0, 0.04, 0.0), (0.06, 0.06, 0.06), mat)
+        b.add_ground(0.0, friction=0.4)
+        b.add_box_collider((2.0, 0.0, 0.0), (0.1, 0.1, 0.1))  # touches nothing
+        return b.finalize(worlds=worlds)
+
+    def run(m, speeds):
+        s = we.Solver(m)
+        a, c = m.state(), m.state()
+        v = np.zeros((m.particle_count, 3))
+        v[:, 1] = -np.asarray(speeds)[m.world_of_particle]
+        a.v.assign(v)
+        total = {}
+        for _ in range(150):
+            s.step(a, c, DT)
+            a, c = c, a
+            for name, ft in s.collider_reactions(a).items():
+                total[name] = total.get(name, 0.0) + DT * np.array(ft)
+        return total
+
+    single = [run(scene(1), [speed])["plane0"] for speed in (1.0, 2.0)]
+    both = run(scene(2), [1.0, 2.0])
+    assert list(both) == ["w0/plane0", "w0/box0", "w1/plane0", "w1/box0"]
+    assert single[0][0][1] > 0.0 and single[1][0][1] > single[0][0][1]  # both landed, the faster one harder
+    for w in range(2):
+        np.testing.assert_allclose(both[f"w{w}/plane0"][0], single[w][0], rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(both[f"w{w}/plane0"][1], single[w][1], rtol=1e-5, atol=1e-7)
+        assert np.abs(np.array(both[f"w{w}/box0"])).max() == 0.0

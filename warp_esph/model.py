@@ -19,6 +19,7 @@ from . import checks, tools
 from ._types import type_set
 from .sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP, Box, Plane, Sphere
 from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, PRESSURE_FORCE_IDS, Material, p_wave_speed
+from .sim import integrate
 from .sim import materials as material_struct
 
 
@@ -77,6 +78,7 @@ class State:
         self.F_inv = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
         self.force = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
         tools.allocate_state(model, self, requires_grad)
+        integrate.allocate_state(model, self, requires_grad)
 
     @property
     def neighbor_d2(self) -> wp.array:

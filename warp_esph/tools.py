@@ -635,6 +635,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         v_out: wp.array(dtype=vec3),
         rforce: wp.array(dtype=vec3),
         rtorque: wp.array(dtype=vec3),
+        cforce: wp.array(dtype=vec3),
+        ctorque: wp.array(dtype=vec3),
     ):
         i = wp.tid()
         m = mass[i]
@@ -643,7 +645,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         x, v = kin.symplectic_euler(x_in[i], v_in[i], f[i], m, gravity, dt)
         x, v = kin.static_colliders(
             x, v, dt, plane_normal, plane_offset, plane_friction, sphere_center, sphere_radius, sphere_friction,
-            box_center, box_half, box_friction, ramp,
+            box_center, box_half, box_friction, ramp, m, world[i] * wp.static(n_planes + n_spheres + n_boxes),
+            cforce, ctorque,
         )
         for c in range(wp.static(counts[0])):
             k = wp.static(offsets[0]) + c
@@ -950,6 +953,8 @@ class ToolSet:
         )
         state_out.reaction_force.zero_()
         state_out.reaction_torque.zero_()
+        state_out.collider_force.zero_()
+        state_out.collider_torque.zero_()
         wp.launch(
             self.kernels.integrate,
             m.particle_count,
@@ -961,7 +966,8 @@ class ToolSet:
                 S(self.margin),
                 self.pin, self.rest_x, self.pin_center, m.particle_world, int(n),
             ],
-            [state_out.x, state_out.v, state_out.reaction_force, state_out.reaction_torque],
+            [state_out.x, state_out.v, state_out.reaction_force, state_out.reaction_torque,
+             state_out.collider_force, state_out.collider_torque],
             device=dev,
         )
         acc = getattr(solver, "tool_impulse", None)

@@ -1,6 +1,14 @@
 """Symplectic Euler with gravity and collider response (docs/method.md §1.5):
 
     u <- u + dt (f / m + g),   x <- x + dt u,   then colliders.
+
+Reaction of the static colliders (``state_out.collider_force`` / ``collider_torque``, one row
+per world and collider, planes then spheres then boxes, row ``w * n_static + c``): the force
+each exerted on the material in the step, ``sum_i m_i (v_i^after - v_i^before) / dt`` over
+the particles it responded to (``v^before``: the velocity entering that collider's
+response), and its torque about the collider's reference point (a plane's point
+``offset * normal`` nearest the origin, a sphere's or box's centre), ``(x_i^after - ref) x
+f_i``. The same definition as the moving tools' rows (``warp_esph/tools.py``).
 """
 
 import functools
@@ -28,6 +36,18 @@ def funcs(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.SimpleNa
         return x + dt * v_new, v_new
 
     @wp.func
+    def react(x: vec3, v: vec3, v0: vec3, mass: scalar, dt: scalar, ref: vec3, row: int,
+              cforce: wp.array(dtype=vec3), ctorque: wp.array(dtype=vec3)):
+        """A static collider's force ``m (v - v0) / dt`` on one particle and its torque about
+        ``ref``, added to the collider's row (only where it responded: particles out of
+        contact would all contend for the row to add zero)."""
+        dv = v - v0
+        if wp.length_sq(dv) > scalar(0.0):
+            f = mass * dv / dt
+            wp.atomic_add(cforce, row, f)
+            wp.atomic_add(ctorque, row, wp.cross(x - ref, f))
+
+    @wp.func
     def static_colliders(
         x: vec3,
         v: vec3,
@@ -42,14 +62,25 @@ def funcs(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.SimpleNa
         box_half: wp.array(dtype=vec3),
         box_friction: wp.array(dtype=scalar),
         ramp: scalar,
+        mass: scalar,
+        row: int,
+        cforce: wp.array(dtype=vec3),
+        ctorque: wp.array(dtype=vec3),
     ):
-        """Every static plane, sphere and box in turn (``colliders.py``)."""
+        """Every static plane, sphere and box in turn (``colliders.py``), each adding its
+        reaction on this particle to its row ``row + c`` (module doc)."""
         for c in range(wp.static(n_planes)):
+            v0 = v
             x, v = col.collide_plane(x, v, plane_normal[c], plane_offset[c], plane_friction[c], dt, ramp)
+            react(x, v, v0, mass, dt, plane_offset[c] * plane_normal[c], row + c, cforce, ctorque)
         for c in range(wp.static(n_spheres)):
+            v0 = v
             x, v = col.collide_sphere(x, v, sphere_center[c], sphere_radius[c], sphere_friction[c], dt, ramp)
+            react(x, v, v0, mass, dt, sphere_center[c], row + wp.static(n_planes) + c, cforce, ctorque)
         for c in range(wp.static(n_boxes)):
+            v0 = v
             x, v = col.collide_box(x, v, box_center[c], box_half[c], box_friction[c], dt, ramp)
+            react(x, v, v0, mass, dt, box_center[c], row + wp.static(n_planes + n_spheres) + c, cforce, ctorque)
         return x, v
 
     return types.SimpleNamespace(symplectic_euler=symplectic_euler, static_colliders=static_colliders)
@@ -79,14 +110,19 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
         box_half: wp.array(dtype=vec3),
         box_friction: wp.array(dtype=scalar),
         ramp: scalar,
+        world: wp.array(dtype=wp.int32),
         x_out: wp.array(dtype=vec3),
         v_out: wp.array(dtype=vec3),
+        cforce: wp.array(dtype=vec3),
+        ctorque: wp.array(dtype=vec3),
     ):
         i = wp.tid()
-        x, v = fn.symplectic_euler(x_in[i], v_in[i], f[i], mass[i], gravity, dt)
+        m = mass[i]
+        x, v = fn.symplectic_euler(x_in[i], v_in[i], f[i], m, gravity, dt)
         x, v = fn.static_colliders(
             x, v, dt, plane_normal, plane_offset, plane_friction, sphere_center, sphere_radius, sphere_friction,
-            box_center, box_half, box_friction, ramp,
+            box_center, box_half, box_friction, ramp, m, world[i] * wp.static(n_planes + n_spheres + n_boxes),
+            cforce, ctorque,
         )
         x_out[i] = x
         v_out[i] = v
@@ -106,13 +142,36 @@ def static_collider_arrays(model) -> list:
 
 def launch_integrate(model, state_in, state_out, dt):
     """Symplectic Euler of ``state_in`` under ``state_out.force`` and gravity, then the
-    colliders, into ``state_out.x``, ``state_out.v``."""
+    colliders, into ``state_out.x``, ``state_out.v``, and the static colliders' reaction
+    into ``state_out.collider_force``, ``collider_torque``."""
     S = model.scalar
     m = model
+    state_out.collider_force.zero_()
+    state_out.collider_torque.zero_()
     wp.launch(
         kernels(S, len(m.planes), len(m.spheres), len(m.boxes)).integrate,
         m.particle_count,
-        [state_in.x, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt), *static_collider_arrays(m)],
-        [state_out.x, state_out.v],
+        [state_in.x, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt), *static_collider_arrays(m),
+         m.particle_world],
+        [state_out.x, state_out.v, state_out.collider_force, state_out.collider_torque],
         device=m.device,
     )
+
+
+def static_collider_names(model) -> list[str]:
+    """Row names of ``state.collider_force``: ``plane<k>``, ``sphere<k>``, ``box<k>`` in the
+    order the builder added each kind, prefixed ``w<w>/`` with several worlds."""
+    names = ([f"plane{k}" for k in range(len(model.planes))] + [f"sphere{k}" for k in range(len(model.spheres))]
+             + [f"box{k}" for k in range(len(model.boxes))])
+    if model.world_count == 1:
+        return names
+    return [f"w{w}/{n}" for w in range(model.world_count) for n in names]
+
+
+def allocate_state(model, state, requires_grad: bool):
+    """``state.collider_force`` / ``collider_torque``: one row per world and static collider
+    (at least one row, so the kernels always get an array)."""
+    rows = max(1, model.world_count * (len(model.planes) + len(model.spheres) + len(model.boxes)))
+    T, dev = model.types, model.device
+    state.collider_force = wp.zeros(rows, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+    state.collider_torque = wp.zeros(rows, dtype=T.vec3, device=dev, requires_grad=requires_grad)

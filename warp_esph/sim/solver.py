@@ -10,6 +10,7 @@ import contextlib
 import time
 import warnings
 
+import numpy as np
 import warp as wp
 
 from .. import checks
@@ -206,6 +207,17 @@ class Solver:
         """``{tool name: (force, torque)}`` each moving collider and pinned set exerted on the
         material in the step that produced ``state`` (definitions in ``warp_esph/tools.py``)."""
         return {} if self.model.tools is None else self.model.tools.reaction(state)
+
+    def collider_reactions(self, state: State) -> dict:
+        """``{collider name: (force, torque)}`` each static collider (``SceneBuilder.add_ground``,
+        ``add_plane``, ``add_sphere_collider``, ``add_box_collider``) exerted on the material in
+        the step that produced ``state`` (N and N m; torque about a plane's point nearest the
+        origin, a sphere's or box's centre). Names ``plane<k>``, ``sphere<k>``, ``box<k>`` by
+        the order each kind was added, ``w<w>/...`` with worlds (``warp_esph/sim/integrate.py``)."""
+        f = state.collider_force.numpy()
+        tq = state.collider_torque.numpy()
+        return {name: (f[r].astype(np.float64), tq[r].astype(np.float64))
+                for r, name in enumerate(integrate.static_collider_names(self.model))}
 
     def reset_counts(self):
         self.scratch.counters.zero_()
