@@ -151,6 +151,9 @@ class Solver:
         #: Under a tape, run the hand-written adjoints (``deformation.update_deformation_adjoint``)
         #: in place of Warp's generated ones; False: the generated ones (the tests' reference).
         self.hand_adjoints = True
+        #: ``(impulse, angular impulse)`` arrays of the static colliders' rows that untaped
+        #: steps add ``dt`` times their reaction to (``tools.ReactionLog`` sets them); None: off.
+        self.collider_impulse = None
 
     def fast_under_tape(self) -> bool:
         """Whether a taped step runs the fused forward kernels (not recorded) and records the
@@ -304,6 +307,8 @@ class Solver:
                 m.tools.integrate(self, state_in, state_out, dt)
             else:
                 integrate.launch_integrate(m, state_in, state_out, dt)
+            if self.collider_impulse is not None and tape is None:
+                integrate.accumulate_impulse(m, state_out, dt, self.collider_impulse)
 
         # 6. Incremental deformation gradient over the step (eqs. 1-8); the fast path
         # evaluates the neighbourhood guards here, on the fit's own moment matrix.
