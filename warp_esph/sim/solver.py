@@ -227,13 +227,15 @@ class Solver:
 
     def check_dt(self, dt) -> float:
         dt = checks.positive("dt", dt)
-        stable = self.model.stable_dt()
+        stable = self.model.stable_dt(hourglass=self.hourglass)
         if dt > stable and (dt, stable) not in self._warned_dt:
             self._warned_dt.add((dt, stable))
             warnings.warn(
                 f"dt = {dt:g} s is above the explicit stability limit {stable:.3g} s "
-                f"(Model.stable_dt: 0.3 * spacing / p-wave speed, docs/method.md §8, and the viscous limit "
-                f"0.025 rho0 h^2 / viscosity); the run may blow up",
+                f"(Model.stable_dt: 0.3 * spacing / p-wave speed, docs/method.md §8, the viscous limit "
+                f"0.025 rho0 h^2 / viscosity"
+                + (f", and that of the hourglass control at c = {self.hourglass:g}" if self.hourglass > 0.0 else "")
+                + "); the run may blow up",
                 RuntimeWarning,
                 stacklevel=3,
             )
