@@ -120,6 +120,7 @@ def test_ground_force_curve_loss_gradient_matches_central_differences(checkpoint
         np.full(len(ends), 0.1), "box0", ends, window=W, components="y")
     value, grads = ro.value_and_grad(loss)
     assert ro.observations()[COLLIDER_FORCES].shape == (steps * 2,)
+    assert loss(ro.observations()) == pytest.approx(value, rel=1e-12)  # calling a loss passes the forces through
     for name in ("viscosity", "mu"):
         base_value = ro.get_parameters()[name]
         h = 1e-5 * base_value[0]

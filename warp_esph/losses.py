@@ -411,6 +411,9 @@ class Loss:
 def _as_warp_positions(positions) -> dict[int, wp.array]:
     out = {}
     for f, x in positions.items():
+        if isinstance(f, str):  # not positions: the reaction forces and names of Rollout.observations()
+            out[f] = x
+            continue
         if not isinstance(x, wp.array):
             a = np.asarray(x, dtype=np.float64)
             x = wp.array(a, dtype=wp.vec3d)
