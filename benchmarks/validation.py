@@ -519,7 +519,7 @@ def _relaxed_reaction(model, solver, names, load_time: float, hold_time: float, 
     energy has dropped since the last check: the dynamic-relaxation route to the static
     state, which it does not change). Returns the states and, per tool name, the mean
     reaction force on the material over the last ``average`` steps."""
-    dt = model.stable_dt()
+    dt = model.stable_dt(hourglass=solver.hourglass)
     if a is None:
         a, c = model.state(), model.state()
     mass = model.particle_mass.numpy().astype(np.float64)[:, None]

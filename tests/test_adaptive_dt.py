@@ -111,3 +111,77 @@ def test_stable_dt_holds_for_the_tightest_preset():
             peak = max(peak, float(np.abs(v).max()))
     # Measured peak 0.68 m/s at 1.0 x (the box settling from its lattice), 69 m/s at 1.5 x.
     assert peak < 1.0, peak
+
+
+def _shaken_block(n=8):
+    """An elastic block of n^3 particles without gravity, every velocity component random
+    (1 mm/s): all modes, the hourglass ones too, start with some energy."""
+    b = we.SceneBuilder(spacing=DX, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (n * DX,) * 3, we.Material.from_young(1.0e5, 0.3, density=1000.0, pressure_stiffness=0.0))
+    model = b.finalize()
+    state = model.state()
+    state.v.assign(np.random.default_rng(1).normal(scale=1e-3, size=(model.particle_count, 3)))
+    return model, state
+
+
+def _peak_speed(model, state, hourglass, dt, steps=400):
+    """Largest speed over ``steps`` steps (checked every 20), inf once it is non-finite or
+    above 1 m/s (1000 x the start: blown up)."""
+    solver = we.Solver(model, hourglass=hourglass)
+    a, c = model.state(), model.state()
+    a.assign(state)
+    peak = 0.0
+    with pytest.warns(RuntimeWarning) if dt > model.stable_dt(hourglass=hourglass) else _nothing():
+        for k in range(steps):
+            solver.step(a, c, dt)
+            a, c = c, a
+            if k % 20 == 19:
+                v = float(np.abs(a.v.numpy()).max())
+                if not v < 1.0:
+                    return math.inf
+                peak = max(peak, v)
+    return peak
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def test_stable_dt_includes_the_hourglass_control_and_holds():
+    """``Model.stable_dt(hourglass=c)`` adds the limit of the hourglass control's springs
+    (``sim/hourglass.py``) to the wave limit, and it holds. At ``c = 3`` the step is 4.0 %
+    shorter and a run at it stays bounded. At ``c = 1000`` (a stiffness test, not a setting)
+    the control rules: a run at the returned step stays bounded, one at 3 x it blows up,
+    while the same 3 x step without the control is stable (it is below the wave limit).
+    ``Model.hourglass`` is the default, the solver's warning and ``simulate``'s steps (fixed
+    and adaptive) follow the solver's ``c``."""
+    model, state = _shaken_block()
+    plain = model.stable_dt()
+    assert model.stable_dt(hourglass=0.0) == plain
+    mild, stiff = model.stable_dt(hourglass=3.0), model.stable_dt(hourglass=1000.0)
+    print(f"stable_dt: c = 0 {plain:.4e}, c = 3 {mild:.4e} ({mild / plain:.4f} x), c = 1000 {stiff:.4e} ({stiff / plain:.4f} x)")
+    assert 0.95 * plain < mild < plain and stiff < plain / 3.0
+    start = float(np.abs(state.v.numpy()).max())
+    peaks = [_peak_speed(model, state, c, dt) for c, dt in ((3.0, mild), (1000.0, stiff), (1000.0, 3.0 * stiff), (0.0, 3.0 * stiff))]
+    print(f"peak speed / start ({start:.2e} m/s): c = 3 at its step {peaks[0] / start:.2f}, c = 1000 at its step "
+          f"{peaks[1] / start:.2f}, at 3 x {peaks[2] / start:.3g}, c = 0 at that step {peaks[3] / start:.2f}")
+    # Bounded: an undamped elastic block keeps its energy (the peak speed wanders within a
+    # few times the start as the modes beat); blown up: past 1 m/s within 400 steps.
+    assert peaks[0] < 3.0 * start and peaks[1] < 3.0 * start and peaks[3] < 3.0 * start
+    assert peaks[2] == math.inf
+    with pytest.warns(RuntimeWarning, match="hourglass control at c = 1000"):
+        we.Solver(model, hourglass=1000.0).check_dt(1.01 * stiff)
+    model.hourglass = 1000.0
+    assert model.stable_dt() == stiff and model.stable_dt(hourglass=0.0) == plain
+    assert resolve_timestep(model, 100.0)[1] <= stiff
+    # simulate's steps follow the solver it is given (the model's control is 1000 here).
+    fixed = simulate(model, 1, fps=100.0, solver=we.Solver(model, hourglass=0.0), progress=False)
+    adaptive = simulate(model, 1, fps=100.0, dt="auto", progress=False, state=state)
+    assert np.isfinite(fixed.x.numpy()).all() and np.abs(adaptive.v.numpy()).max() < 3.0 * start
+    model.hourglass = 0.0
+    with pytest.raises(ValueError, match="hourglass = -1 is not allowed"):
+        model.stable_dt(hourglass=-1)

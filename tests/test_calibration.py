@@ -88,7 +88,9 @@ def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys):
     rows = (out / "history.csv").read_text().strip().splitlines()
     assert len(rows) == len(doc["history"]) + 1 and rows[0].startswith("evaluation,stage,loss,yield_stress,flow_rate")
     assert (out / "loss.png").stat().st_size > 0 and (out / "params.png").stat().st_size > 0
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration", "guess.toml", "run.usdc", "truth.toml"]
+    # (the run's force log of its ground beside its USD)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration", "guess.toml", "run.usdc", "run.usdc_tools.csv",
+                                                          "run.usdc_tools.json", "truth.toml"]
 
 
 def test_cli_fits_yield_stress_to_masks_from_calibrated_cameras(tmp_path, capsys):

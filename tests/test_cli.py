@@ -52,6 +52,23 @@ def frames_in(path, prim="/World/dough") -> list[float]:
     return stage.GetPrimAtPath(prim).GetAttribute("points").GetTimeSamples()
 
 
+def log_frames(usd_path) -> dict[str, list[int]]:
+    """The frames of each row name in the force log beside ``usd_path``, read from the CSV and
+    checked against the JSON (the two must hold the same rows)."""
+    import csv  # noqa: PLC0415
+    import json  # noqa: PLC0415
+
+    out = {}
+    with open(f"{usd_path}_tools.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    for r in rows:
+        out.setdefault(r["tool"], []).append(int(r["frame"]))
+    data = json.load(open(f"{usd_path}_tools.json"))["rows"]
+    assert [(r["tool"], r["frame"]) for r in data] == [(r["tool"], int(r["frame"])) for r in rows]
+    assert all(np.isfinite(r["force"]).all() and np.isfinite(r["torque"]).all() for r in data)
+    return out
+
+
 def assert_one_line_error(err: str, *needles: str):
     lines = [line for line in err.splitlines() if line.strip()]
     assert len(lines) == 1, f"expected one stderr line, got: {err!r}"
@@ -72,7 +89,9 @@ def test_run_default_scene_in_process(tmp_path, capsys, monkeypatch):
         assert f"{name}=" in out
     assert "warning" not in err and "Traceback" not in err
     assert frames_in(path) == [0.0, 1.0, 2.0]
-    assert sorted(os.listdir(tmp_path)) == ["dough_drop.usdc"]
+    # The ground's reaction per frame beside the USD (a scene without tools).
+    assert sorted(os.listdir(tmp_path)) == ["dough_drop.usdc", "dough_drop.usdc_tools.csv", "dough_drop.usdc_tools.json"]
+    assert log_frames(tmp_path / "dough_drop.usdc") == {"plane0": [0, 1, 2]}
 
 
 def test_run_options_and_dt_warning(tmp_path, capsys):
@@ -171,6 +190,96 @@ def test_hourglass_from_scene_file_cli_and_resume(tmp_path, capsys):
     capsys.readouterr()
 
 
+RESTING_TOML = textwrap.dedent(
+    """
+    [scene]
+    spacing = 0.02
+    frames = 20
+    fps = 50
+
+    [materials.gel]
+    E = 1.0e5
+    nu = 0.3
+    density = 1000.0
+    viscosity = 2.0
+
+    [[bodies]]
+    shape = "box"
+    name = "block"
+    material = "gel"
+    center = [0.2, 0.03, -0.1]
+    size = [0.06, 0.06, 0.06]
+
+    [[colliders]]
+    type = "ground"
+    height = 0.01
+    """
+)
+
+
+def test_run_writes_the_static_colliders_reaction_rows_and_usd_attributes(tmp_path, capsys):
+    """A 3 x 3 x 3 block whose bottom layer starts on the ground (y = 0.01), off the origin,
+    for 0.4 s (float64): each frame's ``plane0`` row of ``<output>_tools.csv`` is the momentum
+    balance over the frame, ``(P_k - P_(k-1)) / T - M g``, from the USD velocities; once the
+    block has settled the rows carry its weight straight up, with the torque of the weight
+    about the plane's reference point (0, 0.01, 0); the USD collider prim holds the same
+    force as time-sampled attributes."""
+    import csv  # noqa: PLC0415
+
+    from warp_esph.scenes import load_scene_file  # noqa: PLC0415
+
+    scene = tmp_path / "resting.toml"
+    scene.write_text(RESTING_TOML)
+    out = tmp_path / "rest.usdc"
+    assert main(["run", str(scene), "-o", str(out), "--dtype", "float64", "--no-progress"]) == 0
+    assert "reaction forces (static colliders)" in capsys.readouterr().out
+    rows = list(csv.DictReader(open(f"{out}_tools.csv", newline="")))
+    assert [r["tool"] for r in rows] == ["plane0"] * 21 and [int(r["frame"]) for r in rows] == list(range(21))
+    force = np.array([[float(r[k]) for k in ("fx", "fy", "fz")] for r in rows])
+    torque = np.array([[float(r[k]) for k in ("tx", "ty", "tz")] for r in rows])
+    np.testing.assert_array_equal([[float(r[k]) for k in ("px", "py", "pz")] for r in rows[:1]], [[0.0, 0.01, 0.0]])
+
+    model = load_scene_file(scene).builder.finalize()
+    mass = model.particle_mass.numpy().astype(np.float64)
+    M, g, T = mass.sum(), np.array(model.gravity), 1.0 / 50.0
+    stage = open_fresh(out)
+    points = stage.GetPrimAtPath("/World/block")
+    P = np.array([(mass[:, None] * np.array(points.GetAttribute("velocities").Get(float(k)), dtype=np.float64)).sum(axis=0)
+                  for k in range(21)])
+    balance = (P[1:] - P[:-1]) / T - M * g
+    print(f"weight {M * 9.81:.5f} N; frame 1 {force[1]}, balance {balance[0]}; late mean {force[11:].mean(axis=0)}")
+    assert np.all(force[0] == 0.0)  # frame 0 has no preceding frame
+    assert force[1, 1] > 0.5 * M * 9.81  # it is in contact from the start
+    np.testing.assert_allclose(force[1:], balance, rtol=0.0, atol=1e-5 * M * 9.81)  # float32 velocities in the USD
+    weight_up = np.array([0.0, M * 9.81, 0.0])
+    late = force[11:].mean(axis=0)
+    np.testing.assert_allclose(late, weight_up, atol=0.01 * M * 9.81)
+    lever = np.array(points.GetAttribute("points").Get(20.0), dtype=np.float64).mean(axis=0) - [0.0, 0.01, 0.0]
+    np.testing.assert_allclose(torque[11:].mean(axis=0), np.cross(lever, late), atol=1e-3 * M * 9.81 * np.linalg.norm(lever))
+    prim = stage.GetPrimAtPath("/World/Colliders/plane_0")
+    assert prim.GetCustomDataByKey("warp_esph:collider_name") == "plane0"
+    attr = prim.GetAttribute("warp_esph:reaction_force")
+    assert attr.GetTimeSamples() == [float(k) for k in range(21)]
+    usd_late = np.array([attr.Get(float(k)) for k in range(11, 21)])  # the frame's last step, not the mean
+    np.testing.assert_allclose(usd_late.mean(axis=0), weight_up, atol=0.05 * M * 9.81)
+
+
+def test_resumed_run_keeps_and_continues_the_force_log(tmp_path, capsys):
+    """A run stopped after frame 3 with a checkpoint at frame 2, then resumed to frame 6:
+    the force log holds every frame once, bit for bit the uninterrupted run's (the rows the
+    stopped run finished up to the checkpoint are kept, the later ones recomputed)."""
+    scene = tmp_path / "resting.toml"
+    scene.write_text(RESTING_TOML.replace("frames = 20", "frames = 6"))
+    whole, part = tmp_path / "whole.usdc", tmp_path / "part.usdc"
+    assert main(["run", str(scene), "-o", str(whole), "--no-progress"]) == 0
+    assert main(["run", str(scene), "-o", str(part), "--no-progress", "--frames", "3", "--checkpoint-every", "2"]) == 0
+    assert log_frames(part) == {"plane0": [0, 1, 2, 3]}
+    assert main(["run", "--resume", f"{part}.checkpoint.npz", "--frames", "6", "--no-progress"]) == 0
+    assert log_frames(part) == {"plane0": list(range(7))}
+    assert open(f"{part}_tools.csv").read() == open(f"{whole}_tools.csv").read()
+    capsys.readouterr()
+
+
 BAD_TOML = {
     "unknown_key": (GOOD_TOML.replace('shape = "box"', 'shape = "box"\ncolour = "red"'), ["'colour'", "[[bodies]] #1"]),
     "typo_key": (GOOD_TOML.replace("spacing = 0.05", "spaceing = 0.05"), ["'spaceing'", "[scene]", "did you mean 'spacing'"]),
@@ -259,7 +368,8 @@ def test_keyboard_interrupt_keeps_finished_frames(tmp_path, monkeypatch, capsys)
     err = capsys.readouterr().err
     assert "interrupted" in err and "Traceback" not in err
     assert frames_in(out_path) == [0.0, 1.0, 2.0]
-    assert sorted(os.listdir(tmp_path)) == ["stopped.usdc"]
+    assert sorted(os.listdir(tmp_path)) == ["stopped.usdc", "stopped.usdc_tools.csv", "stopped.usdc_tools.json"]
+    assert log_frames(out_path) == {"plane0": [0, 1, 2]}  # the finished frames, as in the USD
 
 
 def test_full_disk_exit_4_keeps_published_frames(tmp_path, monkeypatch, capsys):
@@ -283,7 +393,9 @@ def test_full_disk_exit_4_keeps_published_frames(tmp_path, monkeypatch, capsys):
     assert err.count("\n") == 1 and "Traceback" not in err
     assert "No space left on device" in err and "keeps the 3 frames" in err and str(out_path) in err
     assert frames_in(out_path) == [0.0, 1.0, 2.0]
-    assert sorted(os.listdir(tmp_path)) == ["full.usdc"]  # no working copies left behind
+    # No working copies left behind; the force log holds the published frames.
+    assert sorted(os.listdir(tmp_path)) == ["full.usdc", "full.usdc_tools.csv", "full.usdc_tools.json"]
+    assert log_frames(out_path) == {"plane0": [0, 1, 2]}
 
 
 def test_diverged_run_exit_3_keeps_frames(tmp_path, monkeypatch, capsys):
@@ -299,6 +411,7 @@ def test_diverged_run_exit_3_keeps_frames(tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert_one_line_error(err, f"step {2 * n}", "particle", "'dough'", "keeps the 2 frames")
     assert frames_in(out_path) == [0.0, 1.0]
+    assert log_frames(out_path) == {"plane0": [0, 1]}
 
 
 def _run_subprocess(*args, cwd):

@@ -73,9 +73,86 @@ def test_force_loss_rejects_bad_input():
     model = _compression().finalize(dtype=wp.float64, requires_grad=True)
     ro = Rollout(model, 20, 2.0e-4)
     ro.forward()
-    with pytest.raises(ValueError, match="tool 'anvil' is not allowed"):
+    with pytest.raises(ValueError, match="tool = 'anvil' is not allowed: the scene's tools are base, plate, its static "
+                                         "colliders none"):
         ReactionForceLoss(np.zeros((2, 3)), "anvil", [10, 20], window=10).value(ro.observations())
     assert ro.observations()[FORCES].shape == (20 * 2,)
+
+
+def _landing(viscosity=2.0, mu=1.0e3):
+    """A small viscous block (5 x 4 x 4 particles, lattice jittered by 1e-3 spacings) thrown
+    down and sideways onto a rough ground (continuous contact law) beside a box collider
+    it never touches; float64."""
+    from warp_esph.sim.colliders import CONTINUOUS_CONTACT_RAMP  # noqa: PLC0415
+
+    dx = 0.02
+    b = we.SceneBuilder(spacing=dx, support_radius=2.0 * dx, gravity=(0.0, -9.81, 0.0))
+    b.add_box((0.0, 0.045, 0.0), (5 * dx, 4 * dx, 4 * dx),
+              we.Material(density=1000.0, mu=mu, lam=1.5e3, pressure_stiffness=1.0, viscosity=viscosity))
+    b.add_ground(friction=0.6)
+    b.add_box_collider((2.0, 0.0, 0.0), (0.1, 0.1, 0.1))
+    m = b.finalize(dtype=wp.float64, requires_grad=True)
+    m.contact_ramp = CONTINUOUS_CONTACT_RAMP
+    m.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * dx, size=m.particle_x0.shape)
+    m.particle_v0 = np.tile([0.4, -1.0, 0.0], (m.particle_count, 1))
+    return m
+
+
+@pytest.mark.parametrize("checkpoint_every", [None, 8])
+def test_ground_force_curve_loss_gradient_matches_central_differences(checkpoint_every):
+    """A ``ReactionForceLoss`` on the ground's force (``"plane0"``, a static collider: its
+    ``collider_force`` row) over a landing, 5-step window means of all three components, plus
+    one on the untouched box collider's, for the viscosity and the shear modulus: the
+    tape's gradient (the loss's host gradient seeded into each step's collider-force adjoint,
+    full tape and checkpointed) against float64 central differences."""
+    from warp_esph.rollout import COLLIDER_FORCES  # noqa: PLC0415
+
+    model = _landing()
+    steps, W = 30, 5
+    ro = Rollout(model, steps, 1.0e-3, frames=[steps], checkpoint_every=checkpoint_every)
+    ro.forward()
+    F = ro.step_collider_forces()
+    assert ro.collider_names == ["plane0", "box0"] and F.shape == (steps, 2, 3)
+    assert (F[:, 0, 1] > 0.0).sum() > 10 and np.abs(F[:, 1]).max() == 0.0  # it lands, on the ground only
+    ends = list(range(W, steps + 1, W))
+    curve = np.array([F[e - W:e, 0].mean(axis=0) for e in ends])
+    loss = ReactionForceLoss(1.2 * curve + 0.05, "plane0", ends, window=W) + ReactionForceLoss(
+        np.full(len(ends), 0.1), "box0", ends, window=W, components="y")
+    value, grads = ro.value_and_grad(loss)
+    assert ro.observations()[COLLIDER_FORCES].shape == (steps * 2,)
+    assert loss(ro.observations()) == pytest.approx(value, rel=1e-12)  # calling a loss passes the forces through
+    for name in ("viscosity", "mu"):
+        base_value = ro.get_parameters()[name]
+        h = 1e-5 * base_value[0]
+        vals = []
+        for sgn in (1.0, -1.0):
+            ro.set_parameters({name: base_value + sgn * h})
+            ro.forward()
+            vals.append(loss.value(ro.observations()))
+        ro.set_parameters({name: base_value})
+        fd = (vals[0] - vals[1]) / (2 * h)
+        print(f"{name}: tape {grads[name][0]:.9e}, central differences {fd:.9e}")
+        assert abs(fd) > 1e-9 * value / base_value[0], f"the loss does not reach {name}"
+        assert grads[name][0] == pytest.approx(fd, rel=1e-5), name
+
+
+def test_static_collider_force_loss_rejects_unknown_names():
+    """An unknown name lists the tools and the static colliders; an index names a tool only."""
+    model = _landing()
+    ro = Rollout(model, 10, 1.0e-3)
+    ro.forward()
+    obs = ro.observations()
+    with pytest.raises(ValueError, match="tool = 'plane1' is not allowed: the scene's tools are none, its static colliders "
+                                         "plane0, box0"):
+        ReactionForceLoss(np.zeros((2, 3)), "plane1", [5, 10], window=5).value(obs)
+    with pytest.raises(ValueError, match="tool = 0 is not allowed: the scene has no tools"):
+        ReactionForceLoss(np.zeros((2, 3)), 0, [5, 10], window=5).value(obs)
+    with pytest.raises(ValueError, match="static-collider force gradient with shape"):
+        ro.backward({ro.frames[0]: None, "collider_force": np.zeros((3, 3))})
+    # A tool may not take a static collider's row name.
+    b = we.SceneBuilder(spacing=0.02)
+    with pytest.raises(ValueError, match="name = 'plane0' is not allowed: plane<k>, sphere<k> and box<k>"):
+        b.add_tool("sphere", radius=0.01, name="plane0")
 
 
 SCENE = """
@@ -143,3 +220,62 @@ def test_cli_fits_modulus_and_yield_stress_to_a_compression_force_curve(tmp_path
 
     with pytest.raises(ValueError, match="--target-tool is required"):
         load_target(csv)
+
+
+LANDING = """
+[scene]
+name = "landing"
+spacing = 0.02
+frames = 6
+fps = 100
+dt = 1.0e-3
+
+[solver]
+contact = "continuous"
+
+[materials.gel]
+mu = {mu}
+lam = 1500.0
+density = 1000.0
+viscosity = 2.0
+pressure_stiffness = 1.0
+
+[[bodies]]
+shape = "box"
+name = "block"
+material = "gel"
+center = [0.0, 0.045, 0.0]
+size = [0.1, 0.08, 0.08]
+velocity = [0.4, -1.0, 0.0]
+
+[[colliders]]
+type = "ground"
+friction = 0.6
+"""
+
+
+def test_cli_fits_the_modulus_to_the_grounds_force_curve(tmp_path, capsys):
+    """``warp-esph run`` a block thrown onto the ground (no tools), then ``warp-esph fit`` its
+    shear modulus from a 2x guess to the ground's force curve (``--target-tool plane0``, the
+    rows the run wrote for the static collider) in ``<output>_tools.csv``."""
+    from warp_esph.cli import main
+    from warp_esph.fit import load_target
+
+    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
+    truth.write_text(LANDING.format(mu=1000.0))
+    guess.write_text(LANDING.format(mu=2000.0))
+    run = tmp_path / "land.usdc"
+    assert main(["run", str(truth), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
+    csv = tmp_path / "land.usdc_tools.csv"
+    assert load_target(csv).tool == "plane0"  # the file's only row name is the default
+    out = tmp_path / "fit"
+    capsys.readouterr()
+    status = main(["fit", str(guess), "--target", str(csv), "--target-tool", "plane0", "--params", "mu",
+                   "--iterations", "10", "--output-dir", str(out), "--no-progress", "--no-usd"])
+    captured = capsys.readouterr()
+    assert status == 0, captured.err
+    doc = json.loads((out / "fit.json").read_text())
+    assert doc["params"]["mu"][0] == pytest.approx(1000.0, rel=0.01)
+    assert doc["loss"] < 1e-6 * doc["initial_loss"]
+    with pytest.raises(ValueError, match="--target-tool = 'plane1' is not allowed: .* holds the forces of plane0"):
+        load_target(csv, tool="plane1")

@@ -287,6 +287,18 @@ class SceneBuilder:
             "box",
         )
 
+    def _check_tool_name(self, name):
+        """A tool's or pinned set's name: new, non-empty, and not one the static colliders'
+        reaction rows use (``plane<k>``, ``sphere<k>``, ``box<k>``, ``Solver.collider_reactions``:
+        the force log and ``ReactionForceLoss`` look both up by name)."""
+        import re  # noqa: PLC0415
+
+        if not isinstance(name, str) or not name or name in [t.name for t in self.tools] + [p.name for p in self.pins]:
+            raise ValueError(f"name = {name!r} is not allowed: must be a new non-empty string")
+        if re.fullmatch(r"(plane|sphere|box)[0-9]+", name):
+            raise ValueError(f"name = {name!r} is not allowed: plane<k>, sphere<k> and box<k> name the static colliders' "
+                             f"reaction rows; choose another name")
+
     def add_tool(self, shape: str, *, motion=None, position=(0.0, 0.0, 0.0), orientation=tools.IDENTITY,
                  friction: float = 0.0, static_friction: float | None = None, name: str | None = None,
                  normal=None, half_extents=None, radius=None, half_height=None, mesh=None, scale: float = 1.0) -> str:
@@ -304,8 +316,7 @@ class SceneBuilder:
         if len(self.tools) >= tools.MAX_TOOLS:
             raise ValueError(f"tools = {len(self.tools) + 1} is not allowed: at most {tools.MAX_TOOLS}")
         name = f"{kind}_tool{len(self.tools)}" if name is None else name
-        if not isinstance(name, str) or not name or name in [t.name for t in self.tools] + [p.name for p in self.pins]:
-            raise ValueError(f"name = {name!r} is not allowed: must be a new non-empty string")
+        self._check_tool_name(name)
         mu_k = checks.non_negative("friction", friction)
         mu_s = mu_k if static_friction is None else checks.non_negative("static_friction", static_friction)
         if mu_s < mu_k:
@@ -343,8 +354,7 @@ class SceneBuilder:
         identity orientation) or ``tools.Scripted``. Pinned particles keep their place in
         every neighbour fit; only their x and v are prescribed."""
         name = f"pin{len(self.pins)}" if name is None else name
-        if not isinstance(name, str) or not name or name in [t.name for t in self.tools] + [p.name for p in self.pins]:
-            raise ValueError(f"name = {name!r} is not allowed: must be a new non-empty string")
+        self._check_tool_name(name)
         if motion is not None and not isinstance(motion, tools.MOTIONS):
             raise ValueError(f"motion = {motion!r} is not allowed: must be tools.Keyframes, tools.Velocity, tools.Scripted or None")
         idx = tools.select_particles(self, indices=indices, body=body, region=region, where=where, name=name)

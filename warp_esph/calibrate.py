@@ -45,8 +45,8 @@ def add_calibration_arguments(parser):
     g.add_argument("--target-body", metavar="BODY",
                    help="USD-run targets: observe only this body's particles (default: every particle)")
     g.add_argument("--target-tool", metavar="TOOL",
-                   help="reaction-force targets (the <output>_tools.csv of 'warp-esph run'): fit this tool's force curve "
-                        "(default: the only tool of the file)")
+                   help="reaction-force targets (the <output>_tools.csv of 'warp-esph run'): fit this tool's or static "
+                        "collider's force curve (plane0: the ground; default: the only one in the file)")
     g.add_argument("--jitter", type=float, default=0.0, metavar="J",
                    help="jitter the lattice by J * spacing (normal) so no neighbour distance is tied at the support "
                         "radius (e.g. 0.001 with a support radius of 2 spacings; default 0: the scene as written, "

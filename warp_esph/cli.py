@@ -332,12 +332,15 @@ def _cmd_run(args) -> int:
             # With the adaptive step the step count is not a function of the frame: -1.
             save_state(checkpoint_path, model, current, step=-1 if adaptive else frame * substeps, frame=frame, run=run_record)
 
-    # Tools (moving colliders, pinned sets): pose and mean reaction per frame, beside the USD.
+    # Tools (moving colliders, pinned sets) and static colliders: pose and mean reaction per
+    # frame, beside the USD.
     log = None
-    if model.tools is not None:
+    if model.tools is not None or model.planes or model.spheres or model.boxes:
         from .tools import ReactionLog  # noqa: PLC0415
 
         log = ReactionLog(solver)
+        if args.resume is not None:
+            log.resume(writer.path, start_frame)  # the finished frames of the run it continues
 
     def on_frame(frame, current):
         if log is not None:
@@ -379,7 +382,7 @@ def _cmd_run(args) -> int:
           f"{model.particle_count} particles; USD save {per_frame:.2f} ms/frame")
     print(f"guard counts (particle-steps skipped): {guards}")
     if log is not None:
-        print(f"tool poses and reaction forces: {tool_files[0]}, {tool_files[1]}")
+        print(f"reaction forces ({', '.join(_log_kinds(model))}): {tool_files[0]}, {tool_files[1]}")
     if args.surface:
         print(f"surfaces: {1e3 * writer.surface_seconds / max(writer.frames_written, 1):.0f} ms/frame (/World/Surfaces)")
     if args.export:
@@ -397,6 +400,11 @@ def _cmd_run(args) -> int:
         shown = "surfaces" if result.surface_bodies else "particles"
         print(f"preview: {result.output} ({shown}, {result.seconds:.1f} s)")
     return 0
+
+
+def _log_kinds(model) -> list[str]:
+    kinds = [] if model.tools is None else ["tool poses"]
+    return kinds + (["static colliders"] if model.planes or model.spheres or model.boxes else [])
 
 
 def _check_run_record(path, run: dict) -> None:

@@ -1194,10 +1194,14 @@ class Target:
         if self.kind == "forces":
             from .losses import ReactionForceLoss  # noqa: PLC0415
 
+            from .sim.integrate import static_collider_names  # noqa: PLC0415
+
             names = [] if model.tools is None else list(model.tools.names)
-            if self.tool not in names:
+            static = static_collider_names(model)
+            if self.tool not in names + static:
                 raise ValueError(f"target {self.path} holds the force of tool {self.tool!r}, which is not allowed: the "
-                                 f"scene's tools are {', '.join(names) or 'none'}")
+                                 f"scene's tools are {', '.join(names) or 'none'}, its static colliders "
+                                 f"{', '.join(static) or 'none'}")
             chosen = [f for f in sorted(frame_steps) if f > 0]
             return ReactionForceLoss.from_csv(self.path, self.tool, frame_steps, frames=chosen)
         if self.kind == "positions" and self.body is not None:
@@ -1261,7 +1265,8 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
       frame indices; default 0..K-1) and ``fps``.
     - ``.npy``: positions ``(K, n, 3)`` of frames ``0..K-1``, or ``(n, 3)``: the last frame.
     - ``<output>_tools.csv`` of ``warp-esph run`` (a CSV whose header names ``frame, time,
-      tool, fx, fy, fz``): the reaction-force curve of ``tool`` (the only tool when there is
+      tool, fx, fy, fz``): the reaction-force curve of ``tool`` (a tool's or a static
+      collider's name, ``plane0`` for the ground; default: the only one when the file holds
       one), a ``ReactionForceLoss`` per rendered frame.
     - ``.xyz/.txt/.csv/.pts``: a point cloud, three numbers per line.
     - anything else ``meshio`` (or ``.usd``) reads: a mesh when it has faces, else a cloud.
@@ -1343,10 +1348,11 @@ def _forces_target(path: str, tool: str | None) -> Target:
     names = list(dict.fromkeys(r["tool"] for r in rows))
     if tool is None:
         if len(names) > 1:
-            raise ValueError(f"--target-tool is required: {path} holds the forces of tools {', '.join(names)}")
+            raise ValueError(f"--target-tool is required: {path} holds the forces of tools and static colliders "
+                             f"{', '.join(names)}")
         tool = names[0]
     if tool not in names:
-        raise ValueError(f"--target-tool {tool!r} is not allowed: {path} holds tools {', '.join(names)}")
+        raise ValueError(f"--target-tool = {tool!r} is not allowed: {path} holds the forces of {', '.join(names)}")
     mine = [r for r in rows if r["tool"] == tool]
     frames = sorted(r["frame"] for r in mine if r["frame"] > 0)
     if not frames:

@@ -411,6 +411,9 @@ class Loss:
 def _as_warp_positions(positions) -> dict[int, wp.array]:
     out = {}
     for f, x in positions.items():
+        if isinstance(f, str):  # not positions: the reaction forces and names of Rollout.observations()
+            out[f] = x
+            continue
         if not isinstance(x, wp.array):
             a = np.asarray(x, dtype=np.float64)
             x = wp.array(a, dtype=wp.vec3d)
@@ -878,21 +881,24 @@ _AXES = {"x": 0, "y": 1, "z": 2}
 
 
 class ReactionForceLoss(Loss):
-    """A tool's reaction force over time (a force-displacement curve): ``weight * mean over
-    observed windows of |P (F_j - target_j)|^2``.
+    """A tool's or a static collider's reaction force over time (a force-displacement curve):
+    ``weight * mean over observed windows of |P (F_j - target_j)|^2``.
 
     ``F_j`` is the mean over the ``window`` steps ending at step ``steps[j]`` of the force the
     ``tool`` exerted on the material (``warp_esph.tools``: ``state.reaction_force``), i.e.
     what ``warp-esph run`` writes per frame to ``<output>_tools.csv`` with ``window`` =
-    steps per frame. ``P`` keeps ``components`` (``"xyz"`` default, or e.g. ``"y"``, the
+    steps per frame. ``tool`` may also name a static collider as ``Solver.collider_reactions``
+    does (``"plane0"``, the first plane or ground; ``"sphere0"``, ``"box0"``; ``"w<w>/..."``
+    with worlds): its ``state.collider_force`` row. ``P`` keeps ``components`` (``"xyz"`` default, or e.g. ``"y"``, the
     loading axis of a compression test). ``targets``: ``(K, len(components))`` newtons (or
     ``(K,)`` with one component), one row per entry of ``steps``.
 
     The loss observes the rollout's step forces (``Rollout.observations()`` under
     ``rollout.FORCES``), not positions: its ``frames`` are the window ends, so that a fit
     runs long enough. Its arithmetic (a few numbers per step) is done on the host with its
-    exact gradient, which ``Rollout.backward`` seeds into each step's reaction-force adjoint;
-    the gradient through the simulation is the tape's.
+    exact gradient, which ``Rollout.backward`` seeds into each step's reaction-force adjoint
+    (a static collider's: its ``collider_force`` adjoint); the gradient through the
+    simulation is the tape's.
 
     ``noise``: the force measurement's standard deviation (N) for ``warp_esph.diagnostics``;
     default 1 % of the target's RMS force.
@@ -923,7 +929,7 @@ class ReactionForceLoss(Loss):
                              f"newtons, one row per window, one column per component ({comps})")
         self.targets = t
         if isinstance(tool, bool) or not isinstance(tool, (str, int, np.integer)):
-            raise ValueError(f"tool = {tool!r} is not allowed: give the tool's name or index")
+            raise ValueError(f"tool = {tool!r} is not allowed: give the tool's or static collider's name, or the tool's index")
         self.tool = tool
         if noise is None:
             rms = float(np.sqrt(np.mean(t**2)))
@@ -934,28 +940,39 @@ class ReactionForceLoss(Loss):
     def launch(self, frame, x, out, scale: float = 1.0):
         return
 
-    def _tool_index(self, names) -> int:
-        if isinstance(self.tool, str):
-            if self.tool not in names:
-                raise ValueError(f"tool {self.tool!r} is not allowed: the scene's tools are {', '.join(names) or 'none'}")
-            return names.index(self.tool)
-        if not 0 <= int(self.tool) < len(names):
-            raise ValueError(f"tool {self.tool!r} is not allowed: indices are 0..{len(names) - 1}")
-        return int(self.tool)
+    def _source(self, obs) -> tuple[str, int]:
+        """The observation key (``rollout.FORCES`` or ``COLLIDER_FORCES``) and row of ``tool``."""
+        from .rollout import COLLIDER_FORCES, COLLIDER_NAMES, FORCES, TOOL_NAMES  # noqa: PLC0415 (rollout imports the model, not losses)
 
-    def _forces(self, obs) -> tuple[np.ndarray, int, int]:
-        from .rollout import FORCES, TOOL_NAMES  # noqa: PLC0415 (rollout imports the model, not losses)
-
-        if FORCES not in obs:
+        tools = list(obs.get(TOOL_NAMES, [])) if FORCES in obs else []
+        static = list(obs.get(COLLIDER_NAMES, [])) if COLLIDER_FORCES in obs else []
+        if not tools and not static:
             raise ValueError("a ReactionForceLoss is not allowed here: the observations hold no reaction forces "
-                             "(the scene has no tools, or the caller passed positions only)")
-        names = list(obs[TOOL_NAMES])
-        f = obs[FORCES]
+                             "(the scene has no tools or static colliders, or the caller passed positions only)")
+        if isinstance(self.tool, str):
+            if self.tool in tools:
+                return FORCES, tools.index(self.tool)
+            if self.tool in static:
+                return COLLIDER_FORCES, static.index(self.tool)
+            raise ValueError(f"tool = {self.tool!r} is not allowed: the scene's tools are {', '.join(tools) or 'none'}, "
+                             f"its static colliders {', '.join(static) or 'none'}")
+        if not 0 <= int(self.tool) < len(tools):
+            raise ValueError(f"tool = {self.tool!r} is not allowed: tool indices are 0..{len(tools) - 1}"
+                             if tools else f"tool = {self.tool!r} is not allowed: the scene has no tools (give a static "
+                             f"collider's name: {', '.join(static)})")
+        return FORCES, int(self.tool)
+
+    def _forces(self, obs) -> tuple[np.ndarray, int, str]:
+        from .rollout import COLLIDER_NAMES, FORCES, TOOL_NAMES  # noqa: PLC0415
+
+        key, row = self._source(obs)
+        names = list(obs[TOOL_NAMES if key == FORCES else COLLIDER_NAMES])
+        f = obs[key]
         f = f.numpy() if isinstance(f, wp.array) else np.asarray(f)
         f = np.asarray(f, dtype=np.float64).reshape(-1, len(names), 3)
         if self.frames[-1] > f.shape[0]:
             raise ValueError(f"the loss observes up to step {self.frames[-1]}, the rollout ran {f.shape[0]} steps")
-        return f, self._tool_index(names), len(names)
+        return f, row, key
 
     def curve(self, obs) -> np.ndarray:
         """The simulated window means ``F_j`` (``(K, len(components))``, N)."""
@@ -967,16 +984,14 @@ class ReactionForceLoss(Loss):
         return (self.curve(obs) - self.targets).ravel()
 
     def value_and_grad(self, obs):
-        from .rollout import FORCES  # noqa: PLC0415
-
-        f, c, n_tools = self._forces(obs)
+        f, c, key = self._forces(obs)
         r = self.curve(obs) - self.targets
         K, w = len(self.frames), self.window
         value = self.weight / K * float(np.sum(r * r))
         g = np.zeros_like(f)
         for j, e in enumerate(self.frames):
             g[e - w:e, c, self._axes] += (2.0 * self.weight / (K * w)) * r[j]
-        return value, {FORCES: g}
+        return value, {key: g}
 
     def residual_scale(self) -> float:
         return len(self.frames) / self.weight
@@ -998,8 +1013,8 @@ class ReactionForceLoss(Loss):
         rows = read_tools_csv(path)
         mine = [r for r in rows if r["tool"] == tool]
         if not mine:
-            raise ValueError(f"--target-tool {tool!r} is not allowed: {path} holds tools "
-                             f"{', '.join(sorted({r['tool'] for r in rows}))}")
+            raise ValueError(f"tool = {tool!r} is not allowed: {path} holds the forces of "
+                             f"{', '.join(dict.fromkeys(r['tool'] for r in rows))}")
         by_frame = {r["frame"]: r for r in mine}
         chosen = sorted(f for f in by_frame if f > 0) if frames is None else [int(f) for f in frames]
         missing = [f for f in chosen if f not in by_frame]

@@ -47,6 +47,13 @@ gradient a loss returns under that key into each step's ``reaction_force`` adjoi
 full tape or in each re-run segment), so the gradient flows through the contact response
 that produced the force.
 
+The static colliders (``SceneBuilder.add_ground``, ``add_plane``, ``add_sphere_collider``,
+``add_box_collider``) report theirs the same way, under their own keys: every step's
+``state.collider_force`` rows (``step_collider_forces()``: ``(steps, rows, 3)``, names
+``COLLIDER_NAMES``: ``plane<k>``, ``sphere<k>``, ``box<k>``, ``Solver.collider_reactions``)
+under ``COLLIDER_FORCES``, whose gradient ``backward`` seeds into each step's
+``collider_force`` adjoint.
+
 The gradient with respect to ``x0`` holds the SPH rest density fixed (it is a constant
 of the model, computed once from the model's own initial positions).
 """
@@ -64,7 +71,8 @@ from ._types import type_set
 from .model import Model, State
 from .sim.solver import Solver
 
-__all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS", "FORCES", "TOOL_NAMES"]
+__all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS", "FORCES", "TOOL_NAMES", "COLLIDER_FORCES",
+           "COLLIDER_NAMES"]
 
 #: The per-material parameter arrays of a ``Model`` whose gradients ``backward`` returns.
 PARAMETERS = Model.MATERIAL_FIELDS
@@ -75,6 +83,12 @@ STATE_GRADIENTS = {"x0": "x", "v0": "v", "F0": "F", "alpha0": "alpha"}
 FORCES = "reaction_force"
 #: Key of the tool names in ``Rollout.observations()``.
 TOOL_NAMES = "tool_names"
+#: Key of the static colliders' step reaction forces (``(steps * rows,)`` vec3, row ``k * rows
+#: + c``, ``Solver.collider_reactions``' order) in ``Rollout.observations()`` and of their
+#: gradient in what a loss returns.
+COLLIDER_FORCES = "collider_force"
+#: Key of the static colliders' row names in ``Rollout.observations()``.
+COLLIDER_NAMES = "collider_names"
 
 
 @functools.cache
@@ -199,6 +213,13 @@ class Rollout:
         #: Every step's reaction force of every tool after ``forward`` (no gradients).
         self.forces = (wp.zeros(self.steps * len(self.tool_names), dtype=T.vec3, device=dev)
                        if self.tool_names else None)
+        from .sim.integrate import static_collider_names  # noqa: PLC0415
+
+        #: The static colliders' row names (``Solver.collider_reactions``), and every step's
+        #: force of each after ``forward`` (no gradients; None without static colliders).
+        self.collider_names = static_collider_names(model)
+        self.collider_forces = (wp.zeros(self.steps * len(self.collider_names), dtype=T.vec3, device=dev)
+                                if self.collider_names else None)
         # (start step, number of steps) of each segment.
         self.segments = [(s, min(self.segment, self.steps - s)) for s in range(0, self.steps, self.segment)]
         self._initial = model.state(requires_grad=False)
@@ -208,6 +229,7 @@ class Rollout:
         self._tape: wp.Tape | None = None
         self._forward_done = False
         self._force_grads = None
+        self._collider_grads = None
         #: Incremented by every ``forward``: lets callers (the torch wrapper) tell runs apart.
         self.forward_count = 0
         #: Each world's loss term at the last ``backward`` with a ``losses.WorldLoss`` (else None).
@@ -289,9 +311,8 @@ class Rollout:
             self._tape = tape
             for f, out in zip(self.frames, self.frame_positions):
                 wp.copy(out, states[f].x)
-            if self.forces is not None:
-                for k in range(self.steps):
-                    self._store_forces(k, states[k + 1])
+            for k in range(self.steps):
+                self._store_forces(k, states[k + 1])
         self._forward_done = True
         self.forward_count += 1
         return self.positions()
@@ -312,13 +333,16 @@ class Rollout:
                 wp.copy(self.frame_positions[self._frame_slot[k]], cur.x)
             if k < self.steps:
                 self.solver.step(cur, nxt, self.dt)
-                if self.forces is not None:
-                    self._store_forces(k, nxt)
+                self._store_forces(k, nxt)
                 cur, nxt = nxt, cur
 
     def _store_forces(self, k: int, state):
-        n = len(self.tool_names)
-        wp.copy(self.forces, state.reaction_force, dest_offset=k * n, src_offset=0, count=n)
+        if self.forces is not None:
+            n = len(self.tool_names)
+            wp.copy(self.forces, state.reaction_force, dest_offset=k * n, src_offset=0, count=n)
+        if self.collider_forces is not None:
+            n = len(self.collider_names)
+            wp.copy(self.collider_forces, state.collider_force, dest_offset=k * n, src_offset=0, count=n)
 
     def step_forces(self) -> np.ndarray:
         """Reaction force of every tool in every step of the last ``forward``, ``(steps, tools, 3)``
@@ -327,14 +351,26 @@ class Rollout:
             raise ValueError("step_forces is not allowed: the model has no tools, so nothing reports a reaction force")
         return self.forces.numpy().astype(np.float64).reshape(self.steps, len(self.tool_names), 3)
 
+    def step_collider_forces(self) -> np.ndarray:
+        """Force of every static collider in every step of the last ``forward``, ``(steps, rows,
+        3)`` (row ``k``: the step from ``k`` to ``k + 1``; columns ``collider_names``)."""
+        if self.collider_forces is None:
+            raise ValueError("step_collider_forces is not allowed: the model has no static colliders (ground, planes, "
+                             "spheres, boxes)")
+        return self.collider_forces.numpy().astype(np.float64).reshape(self.steps, len(self.collider_names), 3)
+
     def observations(self, numpy: bool = False) -> dict:
         """What a loss may observe after ``forward``: ``{step: positions}`` at ``frames``, and
         with tools ``FORCES`` (every step's reaction forces, flat, see ``FORCES``) and
-        ``TOOL_NAMES``. ``numpy=True``: numpy arrays instead of Warp arrays."""
+        ``TOOL_NAMES``, with static colliders ``COLLIDER_FORCES`` and ``COLLIDER_NAMES``.
+        ``numpy=True``: numpy arrays instead of Warp arrays."""
         out = {f: (a.numpy() if numpy else a) for f, a in zip(self.frames, self.frame_positions)}
         if self.forces is not None:
             out[FORCES] = self.forces.numpy() if numpy else self.forces
             out[TOOL_NAMES] = list(self.tool_names)
+        if self.collider_forces is not None:
+            out[COLLIDER_FORCES] = self.collider_forces.numpy() if numpy else self.collider_forces
+            out[COLLIDER_NAMES] = list(self.collider_names)
         return out
 
     def positions(self) -> np.ndarray:
@@ -373,24 +409,28 @@ class Rollout:
             out[f] = wp.array(a, dtype=T.vec3, device=m.device)
         return out
 
-    def _force_gradients(self, g) -> np.ndarray | None:
-        """The gradient with respect to every step's reaction forces as ``(steps, tools, 3)``."""
+    def _force_gradients(self, g, names=None, what="reaction-force", lacks="tools") -> np.ndarray | None:
+        """The gradient with respect to every step's reaction forces as ``(steps, rows, 3)``
+        (the tools', or with ``names`` the static colliders')."""
         if g is None:
             return None
-        if self.forces is None:
-            raise ValueError("a reaction-force gradient is not allowed: the model has no tools")
+        names = self.tool_names if names is None else names
+        if not names:
+            raise ValueError(f"a {what} gradient is not allowed: the model has no {lacks}")
         if isinstance(g, wp.array):
             g = g.numpy()
         a = np.asarray(g, dtype=self.model.types.np_dtype)
-        shape = (self.steps, len(self.tool_names), 3)
+        shape = (self.steps, len(names), 3)
         if a.size != int(np.prod(shape)):
-            raise ValueError(f"reaction-force gradient with shape {a.shape} is not allowed: must be {shape}")
+            raise ValueError(f"{what} gradient with shape {a.shape} is not allowed: must be {shape}")
         return a.reshape(shape)
 
     def _seed_forces(self, state, k: int):
-        """Seed the adjoint of the reaction force of step ``k`` (the one ``state`` ends)."""
+        """Seed the adjoint of the reaction forces of step ``k`` (the one ``state`` ends)."""
         if self._force_grads is not None:
             state.reaction_force.grad.assign(self._force_grads[k])
+        if self._collider_grads is not None:
+            state.collider_force.grad.assign(self._collider_grads[k])
 
     def _zero_parameter_grads(self):
         for name in PARAMETERS:
@@ -420,12 +460,15 @@ class Rollout:
             loss = grads
             value, grads = loss.value_and_grad(self.observations())
             self.world_values = getattr(loss, "world_values", None)
-        force_grads = None
-        if isinstance(grads, Mapping) and FORCES in grads:
+        force_grads = collider_grads = None
+        if isinstance(grads, Mapping) and (FORCES in grads or COLLIDER_FORCES in grads):
             grads = dict(grads)
-            force_grads = self._force_gradients(grads.pop(FORCES))
+            force_grads = self._force_gradients(grads.pop(FORCES, None))
+            collider_grads = self._force_gradients(grads.pop(COLLIDER_FORCES, None), self.collider_names,
+                                                   "static-collider force", "static colliders")
         frame_grads = self._frame_gradients(grads)
         self._force_grads = force_grads
+        self._collider_grads = collider_grads
         acc = {name: np.zeros(getattr(self.model, name).shape[0], dtype=self.model.types.np_dtype) for name in PARAMETERS}
         if self.checkpointing:
             adj = self._backward_checkpointed(frame_grads, acc)

@@ -158,12 +158,13 @@ class DivergenceMonitor:
         return None
 
 
-def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = None, dt: float | None = None) -> tuple[int, float]:
+def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = None, dt: float | None = None,
+                     hourglass: float | None = None) -> tuple[int, float]:
     """``(substeps, dt)`` with ``substeps * dt = 1 / fps``.
 
     Give at most one of ``substeps`` and ``dt``. With neither, ``dt`` is the model's
-    stable step (``model.stable_dt()``) rounded down so that a whole number of steps
-    fills a frame. A given ``dt`` must divide ``1 / fps`` into a whole number of steps
+    stable step (``model.stable_dt(hourglass=hourglass)``: None, the model's hourglass
+    control) rounded down so that a whole number of steps fills a frame. A given ``dt`` must divide ``1 / fps`` into a whole number of steps
     (to 1e-6 relative).
     """
     fps = checks.positive("fps", fps)
@@ -174,7 +175,7 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
         n = checks.positive_int("substeps", substeps, maximum=MAX_STEPS_PER_FRAME)
         return n, frame_dt / n
     if dt is None:
-        stable = model.stable_dt()
+        stable = model.stable_dt(hourglass=hourglass)
         ratio = frame_dt / stable * (1.0 - 1e-12)
         if not ratio <= MAX_STEPS_PER_FRAME:
             stiff = max(model.materials, key=lambda m: m.p_wave_speed)
@@ -212,7 +213,8 @@ def check_step_count(frames: int, substeps: int) -> None:
         )
 
 
-def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: float = 0.3) -> tuple[int, float]:
+def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: float = 0.3,
+                      hourglass: float | None = None) -> tuple[int, float]:
     """``(substeps, dt)`` for the next frame of ``state``, ``substeps * dt = 1 / fps``.
 
     The CFL limit of docs/method.md §8 with the signal speed measured now: a disturbance
@@ -222,13 +224,14 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
 
     where ``v_max`` is the largest particle speed of ``state`` and ``|g| / fps`` bounds
     what gravity adds to it within the frame; and ``dt`` is at most the viscous limit of
-    ``Model.stable_dt``. A body at rest gets ``stable_dt`` (to the gravity term); one in
+    ``Model.stable_dt`` (with the limit of the hourglass control of strength ``hourglass``;
+    None: the model's). A body at rest gets ``stable_dt`` (to the gravity term); one in
     flight or hit hard gets smaller steps. Rounded down to a whole number of steps per frame.
     """
     fps = checks.positive("fps", fps)
     courant = checks.positive("courant", courant)
     frame_dt = 1.0 / fps
-    stable = model.stable_dt(courant)
+    stable = model.stable_dt(courant, hourglass=hourglass)
     p = model.parameter_values()
     rho = np.array([m.density for m in model.materials], dtype=np.float64)
     from .material import p_wave_speed  # noqa: PLC0415
@@ -338,15 +341,17 @@ def simulate(
         start_frame = int(start_frame)
         monitor = checks.boolean("monitor", monitor)
         fps = checks.positive("fps", fps)
+        # The stable step follows the control the solver runs (a given solver's own).
+        hourglass = solver.hourglass if isinstance(solver, Solver) else None
         adaptive = isinstance(dt, str)
         if adaptive:
             if dt != AUTO:
                 raise ValueError(f"dt = {dt!r} is not allowed: must be a number of seconds or {AUTO!r}")
             if substeps is not None:
                 raise ValueError(f"substeps = {substeps!r} and dt = {AUTO!r} are not allowed together: the adaptive step chooses the substeps")
-            n_sub, dt = 1, model.stable_dt()
+            n_sub, dt = 1, model.stable_dt(hourglass=hourglass)
         else:
-            n_sub, dt = resolve_timestep(model, fps, substeps, dt)
+            n_sub, dt = resolve_timestep(model, fps, substeps, dt, hourglass=hourglass)
             check_step_count(frames, n_sub)
         if writer is not None:
             if not callable(getattr(writer, "write_frame", None)):
@@ -382,7 +387,7 @@ def simulate(
             t0 = time.perf_counter()
             for k in range(1, frames + 1):
                 if adaptive:
-                    n_sub, dt = adaptive_timestep(model, current, fps)
+                    n_sub, dt = adaptive_timestep(model, current, fps, hourglass=hourglass)
                 for _ in range(n_sub):
                     solver.step(current, spare, dt)
                     current, spare = spare, current
@@ -396,7 +401,7 @@ def simulate(
                     raise SimulationError(
                         f"the simulation diverged after step {step} (frame {frame}, t = {frame / fps:.4g} s, "
                         f"dt = {dt:.4g} s): {what}, at particle {p} of body {body!r}; try a smaller dt (stable limit "
-                        f"{model.stable_dt():.3g} s) or stiffer-to-softer material settings",
+                        f"{model.stable_dt(hourglass=solver.hourglass):.3g} s) or stiffer-to-softer material settings",
                         step=step, particle=p, body=body, frame=frame,
                     )
                 if writer is not None:

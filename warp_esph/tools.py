@@ -1232,29 +1232,63 @@ def _usd_name(name: str, k: int) -> str:
 class ReactionLog:
     """Per-frame record of every tool's pose and its mean reaction force and torque over the
     frame (impulse / frame time, summed on the device each step), for ``warp-esph run``'s
-    ``<output>_tools.csv`` / ``.json``. Attach with ``ReactionLog(solver)``, call
-    ``record(frame, state)`` after each frame."""
+    ``<output>_tools.csv`` / ``.json``; then the same for every static collider (``plane<k>``,
+    ``sphere<k>``, ``box<k>``, ``Solver.collider_reactions``), whose pose is its reference
+    point (the torque's origin) with the identity orientation. Attach with
+    ``ReactionLog(solver)``, call ``record(frame, state)`` after each frame."""
 
     def __init__(self, solver):
+        from .sim import integrate  # noqa: PLC0415
+
         m = solver.model
         self.tools = m.tools
         self.solver = solver
-        rows = len(self.tools.row_names)
-        solver.tool_impulse = (
-            wp.zeros(rows, dtype=m.types.vec3, device=m.device),
-            wp.zeros(rows, dtype=m.types.vec3, device=m.device),
-        )
+        vec3, dev = m.types.vec3, m.device
+        if self.tools is not None:
+            rows = len(self.tools.row_names)
+            solver.tool_impulse = (wp.zeros(rows, dtype=vec3, device=dev), wp.zeros(rows, dtype=vec3, device=dev))
+        self.static_names = integrate.static_collider_names(m)
+        self.static_refs = integrate.static_collider_references(m)
+        if self.static_names:
+            rows = len(self.static_names)
+            solver.collider_impulse = (wp.zeros(rows, dtype=vec3, device=dev), wp.zeros(rows, dtype=vec3, device=dev))
         self.rows: list[dict] = []
         self._t_last = None
+        self._kept = None
+
+    def resume(self, stem: str, frame: int):
+        """Continue the log ``write(stem)`` wrote before, from ``frame`` (a resumed run): its
+        rows up to ``frame`` are kept (the resumed run's first record, at ``frame``, has no
+        preceding frame and only sets the start)."""
+        import json  # noqa: PLC0415
+
+        try:
+            with open(f"{stem}_tools.json") as fh:
+                rows = json.load(fh)["rows"]
+        except (OSError, ValueError, KeyError, TypeError):
+            return  # no earlier log (or not one of ours): the resumed frames only
+        self.rows = [r for r in rows if isinstance(r, dict) and isinstance(r.get("frame"), int) and r["frame"] <= frame]
+        self._kept = frame if any(r["frame"] == frame for r in self.rows) else None
+
+    def _take(self, impulse):
+        if impulse is None:
+            return None
+        out = tuple(a.numpy().astype(np.float64) for a in impulse)
+        for a in impulse:
+            a.zero_()
+        return out
 
     def record(self, frame: int, state):
-        imp, ang = (a.numpy().astype(np.float64) for a in self.solver.tool_impulse)
+        tool = self._take(getattr(self.solver, "tool_impulse", None) if self.tools is not None else None)
+        static = self._take(self.solver.collider_impulse if self.static_names else None)
         span = None if self._t_last is None else state.time - self._t_last
         self._t_last = state.time
-        for a in self.solver.tool_impulse:
-            a.zero_()
-        for k, name in enumerate(self.tools.row_names):
-            p, q = self.tools.pose_at(k % self.tools.count, state.time)
+        if frame == self._kept:
+            self._kept = None
+            return  # the earlier run's row of this frame stands
+        identity = [float(v) for v in IDENTITY]
+
+        def row(name, p, q, imp, ang, k):
             f = imp[k] / span if span else np.zeros(3)
             t = ang[k] / span if span else np.zeros(3)
             self.rows.append({
@@ -1262,6 +1296,14 @@ class ReactionLog:
                 "position": [float(v) for v in p], "orientation": [float(v) for v in q],
                 "force": [float(v) for v in f], "torque": [float(v) for v in t],
             })
+
+        if tool is not None:
+            for k, name in enumerate(self.tools.row_names):
+                p, q = self.tools.pose_at(k % self.tools.count, state.time)
+                row(name, p, q, *tool, k)
+        if static is not None:
+            for k, (name, ref) in enumerate(zip(self.static_names, self.static_refs)):
+                row(name, ref, identity, *static, k)
 
     def write(self, stem: str) -> tuple[str, str]:
         """``stem + '_tools.csv'`` and ``stem + '_tools.json'``; returns both paths (the CLI passes
@@ -1278,8 +1320,9 @@ class ReactionLog:
         with open(json_path, "w") as fh:
             json.dump({
                 "units": {"time": "s", "position": "m", "force": "N", "torque": "N m"},
-                "definition": "mean force and torque each tool exerted on the material over the frame ending at 'time' "
-                              "(torque about the tool's position); the material exerts minus these on the tool",
+                "definition": "mean force and torque each tool or static collider exerted on the material over the "
+                              "frame ending at 'time' (torque about the tool's position; a static collider's position is "
+                              "its reference point); the material exerts minus these on it",
                 "rows": self.rows,
             }, fh, indent=1)
         return csv_path, json_path

@@ -266,6 +266,7 @@ class UsdWriter:
             stage = Usd.Stage.Open(layer)
             self._check_compatible(stage)
             self._author_surfaces(stage)
+            self._author_collider_reactions(stage)
             self._stages.append(stage)
         times = self._stages[0].GetEndTimeCode()
         start = self._stages[0].GetStartTimeCode()
@@ -332,6 +333,7 @@ class UsdWriter:
             color = _PALETTE[body.material % len(_PALETTE)]
             pts.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(Vt.Vec3fArray([Gf.Vec3f(*color)]))
         self._author_colliders(stage)
+        self._author_collider_reactions(stage)
         self._author_surfaces(stage)
         tools.usd_author(stage, m, _KEY, self._plane_quad_size())
 
@@ -395,6 +397,42 @@ class UsdWriter:
             cube.AddScaleOp().Set(Gf.Vec3f(*b.half_extents))
             cube.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(grey)
             self._collider_data(cube.GetPrim(), "box", friction=b.friction, center=Gf.Vec3d(*b.center), half_extents=Gf.Vec3d(*b.half_extents))
+
+    def _collider_prim_paths(self) -> list[str]:
+        """The static colliders' prims in the order of ``Solver.collider_reactions`` (world 0)."""
+        m = self.model
+        return ([f"{_COLLIDERS}/plane_{k}" for k in range(len(m.planes))] + [f"{_COLLIDERS}/sphere_{k}" for k in range(len(m.spheres))]
+                + [f"{_COLLIDERS}/box_{k}" for k in range(len(m.boxes))])
+
+    def _author_collider_reactions(self, stage: Usd.Stage):
+        """Each static collider's reaction attributes (time-sampled by ``write_frame``) and its
+        row name (``plane<k>``, ... as ``Solver.collider_reactions`` names it); idempotent, so
+        a file appended to gets them too."""
+        from .sim.integrate import static_collider_names  # noqa: PLC0415
+
+        names = static_collider_names(self.model)
+        for path, name in zip(self._collider_prim_paths(), names):
+            prim = stage.GetPrimAtPath(path)
+            if not prim:
+                continue  # a file written without this collider: nothing to attach to
+            prim.SetCustomDataByKey(f"{_KEY}:collider_name", name.split("/")[-1])
+            prim.CreateAttribute(f"{_KEY}:reaction_force", Sdf.ValueTypeNames.Double3)
+            prim.CreateAttribute(f"{_KEY}:reaction_torque", Sdf.ValueTypeNames.Double3)
+
+    def _write_collider_reactions(self, stage: Usd.Stage, state, t):
+        """The static colliders' force and torque of the step that produced ``state``
+        (world 0's rows, as the tools' attributes; the others are in ``state.collider_force``)."""
+        paths = self._collider_prim_paths()
+        if not paths:
+            return
+        f = state.collider_force.numpy().astype(np.float64)
+        tq = state.collider_torque.numpy().astype(np.float64)
+        for k, path in enumerate(paths):
+            prim = stage.GetPrimAtPath(path)
+            force = prim.GetAttribute(f"{_KEY}:reaction_force") if prim else None
+            if force:
+                force.Set(Gf.Vec3d(*f[k]), t)
+                prim.GetAttribute(f"{_KEY}:reaction_torque").Set(Gf.Vec3d(*tq[k]), t)
 
     def _plane_quad_size(self) -> float:
         """Edge of the quads that show planes (static colliders and plane tools alike)."""
@@ -476,6 +514,7 @@ class UsdWriter:
                 prim.GetAttribute(_PRIMVAR_SINGULAR_VALUES).Set(svals, t)
                 prim.GetAttribute(_PRIMVAR_ALPHA).Set(alph, t)
             tools.usd_write_frame(stage, m, state, t, _KEY)
+            self._write_collider_reactions(stage, state, t)
             stage.SetStartTimeCode(float(self.first_frame))
             stage.SetEndTimeCode(float(self.last_frame))
         self._save_and_publish()

@@ -18,11 +18,28 @@ list), with the force ``-dE/dx`` at fixed ``F``: ``f_j -= g_ij``, ``f_i += g_ij`
 X_ij``) has ``r = 0``: no force. It is measured against the rest positions, so it is for
 elastic solids: after plastic flow the stored ``F`` no longer maps the rest neighbourhood
 to the current one and the control would pull the body back towards its rest shape.
+
+Stable step (``stable_dt``, in ``Model.stable_dt(hourglass=c)``). At fixed ``F`` the
+control is a set of zero-length springs: ``g_ij`` is linear in ``x_j - x_i`` with the
+isotropic stiffness ``k_ij = c mu_i V_i w_ij / S_i``, and ``j`` pulls back on ``i`` with
+``k_ji``. Its stiffness matrix is the graph Laplacian of the weights ``k_ij + k_ji`` (times
+the 3 x 3 identity), whose largest eigenvalue (Gershgorin) is at most twice the largest
+diagonal entry, ``2 sum_j (k_ij + k_ji)``. On a regular lattice every particle has the same
+``W / S`` (``W_i = sum_j w_ij``), so with ``V / m = 1 / rho``
+
+    omega^2 <= 4 c (mu / rho) W / S,
+
+and the symplectic Euler step of such a spring system is stable for ``dt omega <= 2``:
+``dt <= sqrt(rho S / (c mu W))``. The lattice's highest hourglass mode, the checkerboard
+``(-1)^(i+j+k)``, is at 0.8 of that bound (its same-parity neighbours, the edge diagonals,
+do not move relative to it), so the bound keeps a factor 1.25.
 """
 
 import functools
+import math
 import types
 
+import numpy as np
 import warp as wp
 
 from .._types import type_set
@@ -90,6 +107,27 @@ def kernels(scalar) -> types.SimpleNamespace:
                     wp.atomic_add(f, i, g)
 
     return types.SimpleNamespace(hourglass_forces=hourglass_forces, hourglass_pair_force=hourglass_pair_force)
+
+
+@functools.cache
+def lattice_weight_ratio(k: float) -> float:
+    """``W / S`` of an interior particle of the cubic lattice (``S`` in units of the spacing
+    squared) for a support radius of ``k`` spacings: ``sum_j w_ij / sum_j w_ij |X_ij|^2`` over
+    the lattice offsets within ``k`` (poly6 weights; their constant cancels)."""
+    n = int(math.ceil(k))
+    r = np.arange(-n, n + 1, dtype=np.float64)
+    r2 = (r[:, None, None] ** 2 + r[None, :, None] ** 2 + r[None, None, :] ** 2).ravel()
+    r2 = r2[(r2 > 0.0) & (r2 < k * k)]
+    w = (k * k - r2) ** 3
+    return float(w.sum() / (w * r2).sum())
+
+
+def stable_dt(c: float, mu_over_rho: float, spacing: float, support_radius: float) -> float:
+    """The step limit ``2 / omega`` of the control alone at strength ``c`` (module doc):
+    ``sqrt(rho S / (c mu W))`` with ``W / S`` of the lattice of ``spacing`` and
+    ``support_radius``; ``inf`` where ``c mu = 0``."""
+    stiffness = 4.0 * c * mu_over_rho * lattice_weight_ratio(support_radius / spacing) / spacing**2
+    return 2.0 / math.sqrt(stiffness) if stiffness > 0.0 else math.inf
 
 
 def launch_hourglass_forces(model, state_in, state_out, rest, c: float):

@@ -127,7 +127,12 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
         x_out[i] = x
         v_out[i] = v
 
-    return types.SimpleNamespace(integrate=integrate)
+    @wp.kernel
+    def accumulate(src: wp.array(dtype=vec3), scale: scalar, dst: wp.array(dtype=vec3)):
+        k = wp.tid()
+        dst[k] = dst[k] + scale * src[k]
+
+    return types.SimpleNamespace(integrate=integrate, accumulate=accumulate)
 
 
 def static_collider_arrays(model) -> list:
@@ -156,6 +161,23 @@ def launch_integrate(model, state_in, state_out, dt):
         [state_out.x, state_out.v, state_out.collider_force, state_out.collider_torque],
         device=m.device,
     )
+
+
+def accumulate_impulse(model, state_out, dt, impulse):
+    """Add ``dt`` times the step's static-collider force and torque rows to ``impulse``
+    (a pair of arrays of the rows' shape; ``tools.ReactionLog``, untaped steps only)."""
+    k = kernels(model.scalar, len(model.planes), len(model.spheres), len(model.boxes)).accumulate
+    S = model.scalar
+    for src, dst in zip((state_out.collider_force, state_out.collider_torque), impulse):
+        wp.launch(k, src.shape[0], [src, S(dt)], [dst], device=model.device)
+
+
+def static_collider_references(model) -> list:
+    """Reference point of each row of ``static_collider_names`` (the torque's origin: a
+    plane's point ``offset * normal``, a sphere's or box's centre), as 3-tuples."""
+    refs = ([tuple(p.offset * float(n) for n in p.normal) for p in model.planes] + [tuple(s.center) for s in model.spheres]
+            + [tuple(b.center) for b in model.boxes])
+    return refs * model.world_count
 
 
 def static_collider_names(model) -> list[str]:

@@ -151,6 +151,9 @@ class Solver:
         #: Under a tape, run the hand-written adjoints (``deformation.update_deformation_adjoint``)
         #: in place of Warp's generated ones; False: the generated ones (the tests' reference).
         self.hand_adjoints = True
+        #: ``(impulse, angular impulse)`` arrays of the static colliders' rows that untaped
+        #: steps add ``dt`` times their reaction to (``tools.ReactionLog`` sets them); None: off.
+        self.collider_impulse = None
 
     def fast_under_tape(self) -> bool:
         """Whether a taped step runs the fused forward kernels (not recorded) and records the
@@ -224,13 +227,15 @@ class Solver:
 
     def check_dt(self, dt) -> float:
         dt = checks.positive("dt", dt)
-        stable = self.model.stable_dt()
+        stable = self.model.stable_dt(hourglass=self.hourglass)
         if dt > stable and (dt, stable) not in self._warned_dt:
             self._warned_dt.add((dt, stable))
             warnings.warn(
                 f"dt = {dt:g} s is above the explicit stability limit {stable:.3g} s "
-                f"(Model.stable_dt: 0.3 * spacing / p-wave speed, docs/method.md §8, and the viscous limit "
-                f"0.025 rho0 h^2 / viscosity); the run may blow up",
+                f"(Model.stable_dt: 0.3 * spacing / p-wave speed, docs/method.md §8, the viscous limit "
+                f"0.025 rho0 h^2 / viscosity"
+                + (f", and that of the hourglass control at c = {self.hourglass:g}" if self.hourglass > 0.0 else "")
+                + "); the run may blow up",
                 RuntimeWarning,
                 stacklevel=3,
             )
@@ -304,6 +309,8 @@ class Solver:
                 m.tools.integrate(self, state_in, state_out, dt)
             else:
                 integrate.launch_integrate(m, state_in, state_out, dt)
+            if self.collider_impulse is not None and tape is None:
+                integrate.accumulate_impulse(m, state_out, dt, self.collider_impulse)
 
         # 6. Incremental deformation gradient over the step (eqs. 1-8); the fast path
         # evaluates the neighbourhood guards here, on the fit's own moment matrix.
