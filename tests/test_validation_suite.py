@@ -213,19 +213,34 @@ def indented():
     return validation.sphere_indentation(resolution=8, hourglass=0.1)
 
 
-def test_sphere_indentation_at_1_mm_within_10_percent_of_hertz(indented):
-    """Measured 1.031 x Hertz at 1 mm (contact radius 1.3 dx) and 1.271 x at 2 mm (1.8 dx),
-    exponent 1.80 for Hertz's 1.5, at 8 across (without the control: 1.062, 1.251, 1.74);
-    12 across in docs/validation.md."""
-    assert indented["ratios"][0] == pytest.approx(1.0, abs=0.10), indented["ratios"]
-    assert 1.0 < indented["ratios"][1] < 1.4, indented["ratios"]
-    assert 1.3 < indented["exponent"] < 2.0, indented["exponent"]
+def test_sphere_indentation_at_2_mm_within_3_percent_of_the_bonded_layer(indented):
+    """The 4 cm block on its held base is a layer bonded to a rigid base, not a half-space:
+    at 2 mm (contact radius 1.8 dx, chi = a / h = 0.26) the layer correction of Dimitriadis et
+    al. (2002) makes it 28 % stiffer than Hertz. Measured at 8 across: 0.993 x the bonded
+    layer (1.271 x Hertz) at 2 mm, 0.869 x at 1 mm (contact radius 1.3 dx: under-resolved),
+    exponent 1.80 for the layer's 1.61; 12 and 16 across: 0.984 and 0.969 x at 2 mm, 1.011
+    and 0.995 x at 1 mm, exponent 1.56 (docs/validation.md)."""
+    r = indented
+    assert r["ratios"][1] == pytest.approx(1.0, abs=0.03), r["ratios"]
+    assert r["ratios_hertz"][1] > 1.15, r["ratios_hertz"]  # the half-space misses the layer's stiffening
+    assert 0.8 < r["ratios"][0] < 1.05, r["ratios"]
+    assert r["exponent"] == pytest.approx(r["theory_exponent"], abs=0.25), (r["exponent"], r["theory_exponent"])
+
+
+def test_sphere_indentation_base_is_bonded_and_carries_the_load(indented):
+    """The bonded-layer theory holds the base: the plane tool's friction (mu = 2) keeps the
+    base layer in place (measured: largest sideways motion 0.7 % of the depth, rise 0.03 %),
+    and the base carries the sphere's load (static: measured 1.001 x)."""
+    r = indented
+    assert r["base_slip"] < 0.02, r["base_slip"]
+    assert r["base_lift"] < 0.01, r["base_lift"]
+    assert r["base_forces"][1] == pytest.approx(r["forces"][1], rel=0.01), (r["base_forces"], r["forces"])
 
 
 def test_sphere_indentation_force_holds_while_the_sphere_is_held(indented):
-    """Held 0.1 s longer at 2 mm: measured 1.265 x Hertz against 1.271 x at the first reading
-    (without the control it fell to 0.63 x, next test)."""
-    assert indented["late_ratio"] == pytest.approx(indented["ratios"][-1], rel=0.03)
+    """Held 0.1 s longer at 2 mm: measured 0.989 x the bonded layer against 0.993 x at the
+    first reading (without the control it fell to half, next test)."""
+    assert indented["late_ratio"] == pytest.approx(indented["ratios"][-1], rel=0.01)
 
 
 def test_without_the_hourglass_control_the_lattice_under_a_held_sphere_gives_way():
@@ -233,5 +248,5 @@ def test_without_the_hourglass_control_the_lattice_under_a_held_sphere_gives_way
     the control, the force 0.1 s later is well below its first reading (measured: 0.632 x
     Hertz from 1.254 x): the layers under the apex take up the fit's zero-energy pattern."""
     r = validation.sphere_indentation(resolution=8, depths=(0.002,))
-    print(f"without the control: {r['ratios'][-1]:.3f} then {r['late_ratio']:.3f} x Hertz")
+    print(f"without the control: {r['ratios'][-1]:.3f} then {r['late_ratio']:.3f} x the bonded layer")
     assert r["late_ratio"] < 0.8 * r["ratios"][-1], (r["ratios"], r["late_ratio"])
