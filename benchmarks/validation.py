@@ -632,7 +632,7 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
     to a rigid base (``layer_factor``), whose thickness is that of the lattice between the
     held base layer's centres (on the plane) and the top layer's (where the sphere pushes):
     h = 4 cm - dx. The contact radius sqrt(R d) is 6-9 mm, so chi = sqrt(R d) / h is
-    0.16-0.26 and the layer is 16-28 % stiffer than the half-space. Also returned: the ratios
+    0.16-0.26 and the layer is 17-28 % stiffer than the half-space. Also returned: the ratios
     to Hertz, to the bonded layer of the full 4 cm, to a layer that slides on its base, and
     how much the base layer moved (``base_slip``: its largest sideways displacement,
     ``base_lift``: its largest rise off the plane, both over the sphere's depth), which says
