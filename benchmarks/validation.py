@@ -616,9 +616,9 @@ def layer_factor(nu: float, chi: float, bonded: bool = True) -> float:
 
 def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.0e5, nu: float = 0.3,
                        R: float = 0.04, hold: float = 0.015, late: float = 0.1, hourglass: float = 0.0,
-                       width: float = 0.10) -> dict:
-    """A frictionless rigid sphere (R = 4 cm) pressed into a block ``width`` x 4 x ``width``
-    (``resolution`` particles across its 4 cm height) standing on a plane tool that holds its
+                       width: float = 0.10, height: float = 0.04) -> dict:
+    """A frictionless rigid sphere (R = 4 cm) pressed into a block ``width`` x ``height`` x
+    ``width`` (default 10 x 4 x 10 cm; ``resolution`` particles across its height) standing on a plane tool that holds its
     base (mu = 2); no gravity, pressure off, variational force. The sphere starts touching
     the top layer's particle centres and is lowered to each of ``depths`` in 0.02 s, then
     held ``hold`` s with kinetic damping; the force is the mean reaction over the last 50
@@ -631,16 +631,16 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
     Theory: Hertz for a half-space (``hertz_force``) times the correction of a layer bonded
     to a rigid base (``layer_factor``), whose thickness is that of the lattice between the
     held base layer's centres (on the plane) and the top layer's (where the sphere pushes):
-    h = 4 cm - dx. The contact radius sqrt(R d) is 6-9 mm, so chi = sqrt(R d) / h is
-    0.16-0.26 and the layer is 17-28 % stiffer than the half-space. Also returned: the ratios
-    to Hertz, to the bonded layer of the full 4 cm, to a layer that slides on its base, and
+    h = ``height`` - dx. The contact radius sqrt(R d) is 6-9 mm, so in the 4 cm block chi =
+    sqrt(R d) / h is 0.16-0.26 and the layer is 17-28 % stiffer than the half-space. Also
+    returned: the ratios to Hertz, to the bonded layer of the full ``height``, to a layer that slides on its base, and
     how much the base layer moved (``base_slip``: its largest sideways displacement,
     ``base_lift``: its largest rise off the plane, both over the sphere's depth), which says
     whether the base is held as the bonded theory assumes."""
     wp, we = _we()
     from warp_esph import tools
 
-    H, Wd = 0.04, width
+    H, Wd = height, width
     dx = H / resolution
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force="variational")
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
@@ -680,7 +680,7 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
                        else float("nan"))
     late_force = -f["indenter"][1]
     return {"case": "indentation", "resolution": resolution, "hourglass": hourglass, "particles": model.particle_count, "R": R,
-            "width": Wd, "thickness": h, "depths": list(depths), "forces": forces, "base_forces": base_forces,
+            "width": Wd, "height": H, "thickness": h, "depths": list(depths), "forces": forces, "base_forces": base_forces,
             "hertz": hertz, "theory": theory, "ratios": [f / t for f, t in zip(forces, theory)],
             "ratios_hertz": [f / t for f, t in zip(forces, hertz)],
             "ratios_full_thickness": [f / t for f, t in zip(forces, full)],
@@ -907,10 +907,13 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
                 runs.append(("energy_drift", {"amplitude": amp, "elastic_force": f, "periods": 50.0, "dt_factor": dtf}))
     for res in (4, 8):
         runs.append(("plate_compression", {"resolution": res}))
-        runs.append(("three_point_bending", {"resolution": res}))
+    # A particle column over each support needs 9 cm to be a multiple of the spacing.
+    runs.append(("three_point_bending", {"resolution": 4}))
+    runs.append(("three_point_bending", {"resolution": 8, "hold": 0.6}))
     for res in (8, 12):
         for hg in (0.0, 0.1):
             runs.append(("sphere_indentation", {"resolution": res, "hourglass": hg}))
+    runs.append(("sphere_indentation", {"resolution": 16, "hourglass": 0.1}))
     for res in (8, 12):
         for S in SLUMP_S:
             for f in FORCES:

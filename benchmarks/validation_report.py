@@ -298,14 +298,14 @@ def _lab_tests(results) -> str:
     if be:
         out.append("### Three-point bending: mid-span stiffness against 48 E I / L^3\n\n"
                    "`three_point_bending`: a 24 x 4 x 4 cm beam (E = 1e6 Pa) on two frictionless cylinder tools 18 cm "
-                   "apart, a frictionless cylinder pin lowered 0.5 mm at mid-span in 0.1 s and held 0.5 s with "
+                   "apart, a frictionless cylinder pin lowered 0.5 mm at mid-span in 0.1 s and held (0.5 s by default) with "
                    "mass-proportional damping at the first bending frequency, `Solver(hourglass=0.1)`; no gravity. "
                    "Stiffness: the pin's force over the mid-span deflection of the beam's inner layers relative to "
                    "those over the supports, both means over the last 0.1 s; creep: the deflection's rate of change "
                    "over those 0.1 s. Timoshenko: 1 / (L^3 / (48 E I) + L / (4 kappa G A)), kappa = 0.85.\n\n"
-                   + _table(["across", "particles", "force (N)", "deflection (m)", "creep (1/s)", "stiffness (N/m)",
+                   + _table(["across", "particles", "hold (s)", "force (N)", "deflection (m)", "creep (1/s)", "stiffness (N/m)",
                              "48 E I / L^3", "ratio", "Timoshenko", "ratio", "supports / pin"],
-                            [[r["resolution"], r["particles"], r["force"], r["deflection"], r.get("creep", ""),
+                            [[r["resolution"], r["particles"], r.get("hold", ""), r["force"], r["deflection"], r.get("creep", ""),
                               r["stiffness"], r["theory_euler_bernoulli"], r["ratio_euler_bernoulli"], r["theory"],
                               r["ratio"], r["support_force"] / r["force"]] for r in be]))
     if not out:

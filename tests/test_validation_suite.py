@@ -187,23 +187,24 @@ def bent():
 
 
 def test_three_point_bending_is_soft_at_4_across(bent):
-    """Measured: mid-span stiffness 0.616 x Timoshenko at 4 across with the tool contact's
-    tangential displacement taken from the particle's start (docs/tools.md, "Contact"; 0.657 x
-    before, 0.702 x before the swept cylinder contact), 0.862 x (0.749 x 48 E I / L^3) at 8
-    across (docs/validation.md): soft, approaching the theory with resolution."""
+    """Held 0.5 s with mass-proportional damping and ``Solver(hourglass=0.1)``, measured: mid-span
+    stiffness 0.699 x Timoshenko (0.608 x 48 E I / L^3) at 4 across, 0.848 x at 8 across
+    (docs/validation.md): soft, as the linear fit's beams are at these thicknesses, approaching
+    the theory with resolution."""
     r = bent
     assert 0.6 < r["ratio"] < 0.8, r["ratio"]
     assert r["ratio_euler_bernoulli"] < r["ratio"]  # the shear term makes the beam softer in theory
     assert r["deflection"] == pytest.approx(r["pin_travel"], rel=0.1)  # little local indentation
 
 
-@pytest.mark.xfail(strict=True, reason="the 0.2 s hold is not a static state: with the particles free to slide along the "
-                   "frictionless cylinders, the supports' mean force over the last 100 steps is 1.196 x the pin's "
-                   "(1.06 x over 1000, 1.02 x over 2000 steps); held 0.8 s the beam drifts off (either contact law)")
-def test_three_point_bending_supports_carry_the_pin_load(bent):
-    """Static equilibrium to 2 % (measured 1.012 with the earlier contact law, whose particles
-    at a swept contact did not follow their tangential velocity and so could not slide)."""
-    assert bent["support_force"] == pytest.approx(bent["force"], rel=2e-2)
+def test_three_point_bending_supports_carry_the_pin_load_in_a_static_state(bent):
+    """Static equilibrium: over the last 0.1 s the supports carry the pin's load (measured
+    0.986 x; 0.997 x at 8 across) and the deflection changes by less than 1 % over those
+    0.1 s (measured: it creeps by 2.1 % of itself per s, which the incremental deformation
+    model does, docs/validation.md; kinetic damping instead of the mass-proportional one let
+    a motion at the free ends grow until contact was lost)."""
+    assert bent["support_force"] == pytest.approx(bent["force"], rel=3e-2), (bent["support_force"], bent["force"])
+    assert abs(bent["creep"]) < 0.1, bent["creep"]
 
 
 @pytest.fixture(scope="module")
