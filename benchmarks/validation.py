@@ -513,12 +513,15 @@ def poisson_compression(resolution: int = 6, elastic_force: str = "variational",
 
 # ------------------------------------------------------------------ lab tests with tools
 def _relaxed_reaction(model, solver, names, load_time: float, hold_time: float, a=None, c=None, every: int = 10,
-                      average: int = 100, after=None):
+                      average: int = 100, after=None, viscous: float = 0.0):
     """Step through ``load_time`` (the tools move) and ``hold_time`` (they stay) with kinetic
     damping during the hold (all velocities zeroed, every ``every`` steps, whenever the kinetic
     energy has dropped since the last check: the dynamic-relaxation route to the static
-    state, which it does not change). Returns the states and, per tool name, the mean
-    reaction force on the material over the last ``average`` steps."""
+    state, which it does not change), or, with ``viscous`` = c > 0, mass-proportional damping
+    instead (every velocity times exp(-c dt) after each step of the hold: it also holds back
+    a slowly growing motion, which kinetic damping, acting only when the energy drops, lets
+    grow). Returns the states and, per tool name, the mean reaction force on the material
+    over the last ``average`` steps."""
     dt = model.stable_dt(hourglass=solver.hourglass)
     if a is None:
         a, c = model.state(), model.state()
@@ -530,7 +533,9 @@ def _relaxed_reaction(model, solver, names, load_time: float, hold_time: float, 
         solver.step(a, c, dt)
         a, c = c, a
         k += 1
-        if a.time > t_hold and k % every == 0:
+        if a.time > t_hold and viscous > 0.0:
+            _damp(a, math.exp(-viscous * dt))
+        elif a.time > t_hold and k % every == 0:
             v = a.v.numpy().astype(np.float64)
             ke = 0.5 * float((mass * v * v).sum())
             if ke < ke_prev:
@@ -586,24 +591,56 @@ def hertz_force(E: float, nu: float, R: float, depth: float) -> float:
     return 4.0 / 3.0 * E / (1.0 - nu * nu) * math.sqrt(R) * depth**1.5
 
 
+def layer_factor(nu: float, chi: float, bonded: bool = True) -> float:
+    """F / F_Hertz for a rigid sphere pressed into an elastic layer of thickness h on a rigid
+    base, chi = sqrt(R d) / h the contact radius over the thickness: Dimitriadis et al.
+    (2002, Biophys. J. 82:2798), 1 - 2 a0 chi / pi + 4 a0^2 chi^2 / pi^2
+    - 8 / pi^3 (a0^3 + 4 pi^2 b0 / 15) chi^3, with, for a layer bonded to the base,
+    a0 = -(1.2876 - 1.4678 nu + 1.3442 nu^2) / (1 - nu), b0 = (0.6387 - 1.0277 nu
+    + 1.5164 nu^2) / (1 - nu), and for one that slides on it freely a0 = -0.347 (3 - 2 nu)
+    / (1 - nu), b0 = 0.056 (5 - 2 nu) / (1 - nu). At nu = 0.5 these give the paper's
+    incompressible series (bonded 1 + 1.133 chi + 1.283 chi^2 + 0.769 chi^3, free 1 + 0.884
+    chi + 0.781 chi^2 + 0.386 chi^3). The chi^4 term is left out: it is below 0.15 % for
+    chi < 0.26 (and its sign for bonded layers differs between the paper's general and
+    incompressible forms)."""
+    if bonded:
+        a0 = -(1.2876 - 1.4678 * nu + 1.3442 * nu * nu) / (1.0 - nu)
+        b0 = (0.6387 - 1.0277 * nu + 1.5164 * nu * nu) / (1.0 - nu)
+    else:
+        a0 = -0.347 * (3.0 - 2.0 * nu) / (1.0 - nu)
+        b0 = 0.056 * (5.0 - 2.0 * nu) / (1.0 - nu)
+    pi = math.pi
+    return (1.0 - 2.0 * a0 * chi / pi + 4.0 * a0 * a0 * chi**2 / pi**2
+            - 8.0 / pi**3 * (a0**3 + 4.0 * pi * pi * b0 / 15.0) * chi**3)
+
+
 def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.0e5, nu: float = 0.3,
-                       R: float = 0.04, hold: float = 0.015, late: float = 0.1, hourglass: float = 0.0) -> dict:
-    """A frictionless rigid sphere (R = 4 cm) pressed into a block 10 x 4 x 10 cm
-    (``resolution`` particles across its 4 cm height) standing on a plane tool that holds its
+                       R: float = 0.04, hold: float = 0.015, late: float = 0.1, hourglass: float = 0.0,
+                       width: float = 0.10, height: float = 0.04) -> dict:
+    """A frictionless rigid sphere (R = 4 cm) pressed into a block ``width`` x ``height`` x
+    ``width`` (default 10 x 4 x 10 cm; ``resolution`` particles across its height) standing on a plane tool that holds its
     base (mu = 2); no gravity, pressure off, variational force. The sphere starts touching
     the top layer's particle centres and is lowered to each of ``depths`` in 0.02 s, then
     held ``hold`` s with kinetic damping; the force is the mean reaction over the last 50
     steps of each hold. At the deepest it is then held ``late`` s longer and the force read
-    again: the point-based contact under a sphere is not stable for long (the particle
-    columns under the apex slide sideways between their neighbours and the force decays,
-    docs/validation.md), so the first reading is the elastic response before that.
-    Theory: Hertz for a half-space (``hertz_force``); the contact radius sqrt(R d) is 6-9 mm,
-    so the 4 cm layer on a held base is a little stiffer than the half-space (a few per
-    cent at h/a = 4.5-6)."""
+    again: the point-based contact under a sphere is not stable for long without the
+    hourglass control (the particle columns under the apex slide sideways between their
+    neighbours and the force decays, docs/validation.md), so the first reading is the
+    elastic response before that.
+
+    Theory: Hertz for a half-space (``hertz_force``) times the correction of a layer bonded
+    to a rigid base (``layer_factor``), whose thickness is that of the lattice between the
+    held base layer's centres (on the plane) and the top layer's (where the sphere pushes):
+    h = ``height`` - dx. The contact radius sqrt(R d) is 6-9 mm, so in the 4 cm block chi =
+    sqrt(R d) / h is 0.16-0.26 and the layer is 17-28 % stiffer than the half-space. Also
+    returned: the ratios to Hertz, to the bonded layer of the full ``height``, to a layer that slides on its base, and
+    how much the base layer moved (``base_slip``: its largest sideways displacement,
+    ``base_lift``: its largest rise off the plane, both over the sphere's depth), which says
+    whether the base is held as the bonded theory assumes."""
     wp, we = _we()
     from warp_esph import tools
 
-    H, Wd = 0.04, 0.10
+    H, Wd = height, width
     dx = H / resolution
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force="variational")
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
@@ -620,20 +657,38 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
                motion=tools.Keyframes(times, [(0.0, h, 0.0) for h in heights]))
     model = b.finalize()
     solver = we.Solver(model, hourglass=hourglass)
+    x0 = model.particle_x0.astype(np.float64)
+    base = x0[:, 1] < ylo + 0.5 * dx
     a = c = None
-    forces = []
+    forces, base_forces = [], []
     for _ in depths:
-        a, c, f = _relaxed_reaction(model, solver, ["indenter"], 0.02, hold, a, c, average=50)
+        a, c, f = _relaxed_reaction(model, solver, ["indenter", "base"], 0.02, hold, a, c, average=50)
         forces.append(-f["indenter"][1])  # the material pushes the sphere up: reaction on the material is down
+        base_forces.append(f["base"][1])
+    x = a.x.numpy().astype(np.float64)
+    base_slip = float(np.linalg.norm((x - x0)[base][:, [0, 2]], axis=1).max()) / depths[-1]
+    base_lift = float((x[base, 1] - ylo).max()) / depths[-1]
     ke = _kinetic(model, a)
     a, c, f = _relaxed_reaction(model, solver, ["indenter"], 0.0, late, a, c, average=50)
-    theory = [hertz_force(E, nu, R, dep) for dep in depths]
+    h = float(ytop - ylo)
+    hertz = [hertz_force(E, nu, R, dep) for dep in depths]
+    theory = [fh * layer_factor(nu, math.sqrt(R * dep) / h) for fh, dep in zip(hertz, depths)]
+    full = [fh * layer_factor(nu, math.sqrt(R * dep) / H) for fh, dep in zip(hertz, depths)]
+    free = [fh * layer_factor(nu, math.sqrt(R * dep) / h, bonded=False) for fh, dep in zip(hertz, depths)]
     exponent = math.log(forces[1] / forces[0]) / math.log(depths[1] / depths[0]) if len(depths) > 1 else float("nan")
+    theory_exponent = (math.log(theory[1] / theory[0]) / math.log(depths[1] / depths[0]) if len(depths) > 1
+                       else float("nan"))
+    late_force = -f["indenter"][1]
     return {"case": "indentation", "resolution": resolution, "hourglass": hourglass, "particles": model.particle_count, "R": R,
-            "depths": list(depths), "forces": forces, "theory": theory,
-            "ratios": [f / t for f, t in zip(forces, theory)], "exponent": exponent,
+            "width": Wd, "height": H, "thickness": h, "depths": list(depths), "forces": forces, "base_forces": base_forces,
+            "hertz": hertz, "theory": theory, "ratios": [f / t for f, t in zip(forces, theory)],
+            "ratios_hertz": [f / t for f, t in zip(forces, hertz)],
+            "ratios_full_thickness": [f / t for f, t in zip(forces, full)],
+            "ratios_unbonded": [f / t for f, t in zip(forces, free)],
+            "chi": [math.sqrt(R * dep) / h for dep in depths], "exponent": exponent, "theory_exponent": theory_exponent,
             "contact_radius_over_dx": [math.sqrt(R * dep) / dx for dep in depths], "kinetic_energy": ke,
-            "late_s": late, "late_force": -f["indenter"][1], "late_ratio": -f["indenter"][1] / theory[-1]}
+            "base_slip": base_slip, "base_lift": base_lift,
+            "late_s": late, "late_force": late_force, "late_ratio": late_force / theory[-1]}
 
 
 def three_point_stiffness(E: float, nu: float, L: float, t: float, kappa: float = 0.85) -> tuple[float, float]:
@@ -646,15 +701,22 @@ def three_point_stiffness(E: float, nu: float, L: float, t: float, kappa: float 
 
 
 def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, deflection: float = 0.0005,
-                        kappa: float = 0.85, hold: float = 0.2, hourglass: float = 0.0) -> dict:
+                        kappa: float = 0.85, hold: float = 0.5, hourglass: float = 0.1, damping: float = 1.0,
+                        average: float = 0.1, fit: str = "linear") -> dict:
     """A 24 x 4 x 4 cm beam (``resolution`` particles across its 4 cm) on two frictionless
     cylinder tools (r = 1 cm) 18 cm apart, a frictionless cylinder loading pin lowered
-    ``deflection`` at mid-span in 0.1 s and held 0.2 s with kinetic damping; no gravity,
-    pressure off, variational force. Measured: the pin's reaction force over the mid-span
-    deflection of the beam (mean height change of the mid-span particle column's middle
-    layers against that of the two columns over the supports, which takes out the local
-    indentation under the pin and at the supports), against 48 E I / L^3 with and without
-    the shear term (``three_point_stiffness``)."""
+    ``deflection`` at mid-span in 0.1 s and held ``hold`` s; no gravity, pressure off,
+    variational force, ``Solver(hourglass=hourglass, fit=fit)``. During the hold the
+    velocities are damped mass-proportionally at c = ``damping`` omega_1 (omega_1 the first
+    bending frequency of the span, Euler-Bernoulli); ``damping=0``: kinetic damping instead,
+    under which a motion starting at the beam's free ends grows after about 0.25 s of hold
+    until contact is lost (docs/validation.md). Measured, as means over the last ``average``
+    s: the pin's reaction force, the supports' and the mid-span deflection of the beam (mean
+    height change of the mid-span particle column's middle layers against that of the two
+    columns over the supports, which takes out the local indentation under the pin and at
+    the supports); the stiffness is force over deflection, against 48 E I / L^3 with and
+    without the shear term (``three_point_stiffness``). ``creep``: the deflection's rate of
+    change over that window (a straight-line fit), per s, as a fraction of it."""
     wp, we = _we()
     from warp_esph import tools
 
@@ -674,20 +736,31 @@ def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, 
     b.add_tool("cylinder", radius=r, half_height=t, name="pin", orientation=along_z,
                motion=tools.Keyframes([0.0, 0.1], [top, (0.0, yhi + r - deflection, 0.0)], [along_z, along_z]))
     model = b.finalize()
-    solver = we.Solver(model, hourglass=hourglass)
-    a, c, f = _relaxed_reaction(model, solver, ["pin", "support_left", "support_right"], 0.1, hold)
+    solver = we.Solver(model, hourglass=hourglass, fit=fit)
     x0 = model.particle_x0.astype(np.float64)
-    x = a.x.numpy().astype(np.float64)
     core = np.abs(x0[:, 1] - 0.5 * (ylo + yhi)) < 0.5 * t - 0.75 * dx  # away from the loaded faces
     mid = core & (np.abs(x0[:, 0]) < 0.6 * dx)
     ends = core & (np.abs(np.abs(x0[:, 0]) - L / 2) < 0.6 * dx)
-    sag = -((x[mid, 1] - x0[mid, 1]).mean() - (x[ends, 1] - x0[ends, 1]).mean())
+    sags = []
+
+    def record(state):
+        y = state.x.numpy()[:, 1].astype(np.float64) - x0[:, 1]
+        sags.append((state.time, -(y[mid].mean() - y[ends].mean())))
+
+    omega1 = (math.pi / L) ** 2 * math.sqrt(E * t * t / (12.0 * RHO))
+    steps = max(1, int(round(average / model.stable_dt(hourglass=solver.hourglass))))
+    a, c, f = _relaxed_reaction(model, solver, ["pin", "support_left", "support_right"], 0.1, hold,
+                                average=steps, after=record, viscous=damping * omega1)
+    ts, ss = np.array(sags[-steps:]).T
+    sag = float(ss.mean())
+    creep = float(np.polyfit(ts, ss, 1)[0]) / sag
     force = -f["pin"][1]
     eb, timo = three_point_stiffness(E, nu, L, t, kappa)
     k = force / sag
-    return {"case": "bending", "resolution": resolution, "particles": model.particle_count, "force": force,
+    return {"case": "bending", "resolution": resolution, "particles": model.particle_count, "hourglass": hourglass,
+            "damping": damping, "fit": fit, "hold": hold, "force": force,
             "support_force": float(f["support_left"][1] + f["support_right"][1]), "deflection": sag,
-            "pin_travel": deflection, "stiffness": k, "theory_euler_bernoulli": eb, "theory": timo,
+            "creep": creep, "pin_travel": deflection, "stiffness": k, "theory_euler_bernoulli": eb, "theory": timo,
             "ratio": k / timo, "ratio_euler_bernoulli": k / eb, "kinetic_energy": _kinetic(model, a)}
 
 
@@ -834,10 +907,13 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
                 runs.append(("energy_drift", {"amplitude": amp, "elastic_force": f, "periods": 50.0, "dt_factor": dtf}))
     for res in (4, 8):
         runs.append(("plate_compression", {"resolution": res}))
-        runs.append(("three_point_bending", {"resolution": res}))
+    # A particle column over each support needs 9 cm to be a multiple of the spacing.
+    runs.append(("three_point_bending", {"resolution": 4}))
+    runs.append(("three_point_bending", {"resolution": 8, "hold": 0.6}))
     for res in (8, 12):
         for hg in (0.0, 0.1):
             runs.append(("sphere_indentation", {"resolution": res, "hourglass": hg}))
+    runs.append(("sphere_indentation", {"resolution": 16, "hourglass": 0.1}))
     for res in (8, 12):
         for S in SLUMP_S:
             for f in FORCES:

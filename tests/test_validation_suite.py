@@ -187,23 +187,24 @@ def bent():
 
 
 def test_three_point_bending_is_soft_at_4_across(bent):
-    """Measured: mid-span stiffness 0.616 x Timoshenko at 4 across with the tool contact's
-    tangential displacement taken from the particle's start (docs/tools.md, "Contact"; 0.657 x
-    before, 0.702 x before the swept cylinder contact), 0.862 x (0.749 x 48 E I / L^3) at 8
-    across (docs/validation.md): soft, approaching the theory with resolution."""
+    """Held 0.5 s with mass-proportional damping and ``Solver(hourglass=0.1)``, measured: mid-span
+    stiffness 0.699 x Timoshenko (0.608 x 48 E I / L^3) at 4 across, 0.848 x at 8 across
+    (docs/validation.md): soft, as the linear fit's beams are at these thicknesses, approaching
+    the theory with resolution."""
     r = bent
     assert 0.6 < r["ratio"] < 0.8, r["ratio"]
     assert r["ratio_euler_bernoulli"] < r["ratio"]  # the shear term makes the beam softer in theory
     assert r["deflection"] == pytest.approx(r["pin_travel"], rel=0.1)  # little local indentation
 
 
-@pytest.mark.xfail(strict=True, reason="the 0.2 s hold is not a static state: with the particles free to slide along the "
-                   "frictionless cylinders, the supports' mean force over the last 100 steps is 1.196 x the pin's "
-                   "(1.06 x over 1000, 1.02 x over 2000 steps); held 0.8 s the beam drifts off (either contact law)")
-def test_three_point_bending_supports_carry_the_pin_load(bent):
-    """Static equilibrium to 2 % (measured 1.012 with the earlier contact law, whose particles
-    at a swept contact did not follow their tangential velocity and so could not slide)."""
-    assert bent["support_force"] == pytest.approx(bent["force"], rel=2e-2)
+def test_three_point_bending_supports_carry_the_pin_load_in_a_static_state(bent):
+    """Static equilibrium: over the last 0.1 s the supports carry the pin's load (measured
+    0.986 x; 0.997 x at 8 across) and the deflection changes by less than 1 % over those
+    0.1 s (measured: it creeps by 2.1 % of itself per s, which the incremental deformation
+    model does, docs/validation.md; kinetic damping instead of the mass-proportional one let
+    a motion at the free ends grow until contact was lost)."""
+    assert bent["support_force"] == pytest.approx(bent["force"], rel=3e-2), (bent["support_force"], bent["force"])
+    assert abs(bent["creep"]) < 0.1, bent["creep"]
 
 
 @pytest.fixture(scope="module")
@@ -213,19 +214,34 @@ def indented():
     return validation.sphere_indentation(resolution=8, hourglass=0.1)
 
 
-def test_sphere_indentation_at_1_mm_within_10_percent_of_hertz(indented):
-    """Measured 1.031 x Hertz at 1 mm (contact radius 1.3 dx) and 1.271 x at 2 mm (1.8 dx),
-    exponent 1.80 for Hertz's 1.5, at 8 across (without the control: 1.062, 1.251, 1.74);
-    12 across in docs/validation.md."""
-    assert indented["ratios"][0] == pytest.approx(1.0, abs=0.10), indented["ratios"]
-    assert 1.0 < indented["ratios"][1] < 1.4, indented["ratios"]
-    assert 1.3 < indented["exponent"] < 2.0, indented["exponent"]
+def test_sphere_indentation_at_2_mm_within_3_percent_of_the_bonded_layer(indented):
+    """The 4 cm block on its held base is a layer bonded to a rigid base, not a half-space:
+    at 2 mm (contact radius 1.8 dx, chi = a / h = 0.26) the layer correction of Dimitriadis et
+    al. (2002) makes it 28 % stiffer than Hertz. Measured at 8 across: 0.993 x the bonded
+    layer (1.271 x Hertz) at 2 mm, 0.869 x at 1 mm (contact radius 1.3 dx: under-resolved),
+    exponent 1.80 for the layer's 1.61; 12 and 16 across: 0.984 and 0.969 x at 2 mm, 1.011
+    and 0.995 x at 1 mm, exponent 1.56 (docs/validation.md)."""
+    r = indented
+    assert r["ratios"][1] == pytest.approx(1.0, abs=0.03), r["ratios"]
+    assert r["ratios_hertz"][1] > 1.15, r["ratios_hertz"]  # the half-space misses the layer's stiffening
+    assert 0.8 < r["ratios"][0] < 1.05, r["ratios"]
+    assert r["exponent"] == pytest.approx(r["theory_exponent"], abs=0.25), (r["exponent"], r["theory_exponent"])
+
+
+def test_sphere_indentation_base_is_bonded_and_carries_the_load(indented):
+    """The bonded-layer theory holds the base: the plane tool's friction (mu = 2) keeps the
+    base layer in place (measured: largest sideways motion 0.7 % of the depth, rise 0.03 %),
+    and the base carries the sphere's load (static: measured 1.001 x)."""
+    r = indented
+    assert r["base_slip"] < 0.02, r["base_slip"]
+    assert r["base_lift"] < 0.01, r["base_lift"]
+    assert r["base_forces"][1] == pytest.approx(r["forces"][1], rel=0.01), (r["base_forces"], r["forces"])
 
 
 def test_sphere_indentation_force_holds_while_the_sphere_is_held(indented):
-    """Held 0.1 s longer at 2 mm: measured 1.265 x Hertz against 1.271 x at the first reading
-    (without the control it fell to 0.63 x, next test)."""
-    assert indented["late_ratio"] == pytest.approx(indented["ratios"][-1], rel=0.03)
+    """Held 0.1 s longer at 2 mm: measured 0.989 x the bonded layer against 0.993 x at the
+    first reading (without the control it fell to half, next test)."""
+    assert indented["late_ratio"] == pytest.approx(indented["ratios"][-1], rel=0.01)
 
 
 def test_without_the_hourglass_control_the_lattice_under_a_held_sphere_gives_way():
@@ -233,5 +249,5 @@ def test_without_the_hourglass_control_the_lattice_under_a_held_sphere_gives_way
     the control, the force 0.1 s later is well below its first reading (measured: 0.632 x
     Hertz from 1.254 x): the layers under the apex take up the fit's zero-energy pattern."""
     r = validation.sphere_indentation(resolution=8, depths=(0.002,))
-    print(f"without the control: {r['ratios'][-1]:.3f} then {r['late_ratio']:.3f} x Hertz")
+    print(f"without the control: {r['ratios'][-1]:.3f} then {r['late_ratio']:.3f} x the bonded layer")
     assert r["late_ratio"] < 0.8 * r["ratios"][-1], (r["ratios"], r["late_ratio"])
