@@ -7,6 +7,8 @@ import pathlib
 # (CLI tests) then load kernels compiled once instead of compiling them again.
 os.environ.setdefault("WARP_CACHE_PATH", str(pathlib.Path(__file__).resolve().parent.parent / ".warp_cache"))
 
+import pytest  # noqa: E402
+
 from warp_esph.startup import init_warp  # noqa: E402
 
 init_warp()  # wp.config.log_level = WARNING, and no native CUDA-driver note on a CPU machine
@@ -18,3 +20,44 @@ from hypothesis import settings  # noqa: E402
 settings.register_profile("ci", derandomize=True, print_blob=True)
 if os.environ.get("CI", "").lower() == "true":
     settings.load_profile("ci")
+
+DOUGH_SCENE = """
+[scene]
+name = "dough_block"
+spacing = 0.02
+support_radius = 0.05
+frames = {frames}
+fps = 30
+
+[materials.dough]
+mu = 2000.0
+lam = 3000.0
+density = 1000.0
+yield_stress = {yield_stress}
+flow_rate = {flow_rate}
+viscosity = 2.0
+
+[[bodies]]
+shape = "box"
+name = "dough"
+material = "dough"
+center = [0.0, 0.045, 0.0]
+size = [0.08, 0.08, 0.08]
+velocity = [0.0, -1.0, 0.0]
+
+[[colliders]]
+type = "ground"
+height = 0.0
+friction = 0.5
+"""
+
+
+@pytest.fixture
+def dough_scene():
+    """``dough_scene(yield_stress, flow_rate, frames=6)``: the TOML of a 64-particle dough
+    block dropped on the ground at 1 m/s (the command-line fit tests' scene)."""
+
+    def scene(yield_stress, flow_rate, frames=6):
+        return DOUGH_SCENE.format(yield_stress=yield_stress, flow_rate=flow_rate, frames=frames)
+
+    return scene

@@ -23,38 +23,8 @@ from warp_esph.silhouette import PinholeCamera, SilhouetteLoss, load_cameras, lo
 
 pxr = pytest.importorskip("pxr")
 
-SCENE = """
-[scene]
-name = "dough_block"
-spacing = 0.02
-support_radius = 0.05
-frames = 6
-fps = 30
 
-[materials.dough]
-mu = 2000.0
-lam = 3000.0
-density = 1000.0
-yield_stress = {yield_stress}
-flow_rate = {flow_rate}
-viscosity = 2.0
-
-[[bodies]]
-shape = "box"
-name = "dough"
-material = "dough"
-center = [0.0, 0.045, 0.0]
-size = [0.08, 0.08, 0.08]
-velocity = [0.0, -1.0, 0.0]
-
-[[colliders]]
-type = "ground"
-height = 0.0
-friction = 0.5
-"""
-
-
-def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys):
+def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys, dough_scene):
     """``warp-esph run`` a dough block dropped on the ground (64 particles, 102 steps), then
     ``warp-esph fit`` a copy that starts 2x off in yield stress and flow rate, with the
     run's USD (one body, frames 2, 4, 6) as the target. From the 2x guess alone L-BFGS
@@ -63,8 +33,8 @@ def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys):
     from warp_esph.cli import main
 
     truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
-    truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
-    guess.write_text(SCENE.format(yield_stress=200.0, flow_rate=20.0))
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
     run = tmp_path / "run.usdc"
     assert main(["run", str(truth), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
     out = tmp_path / "calibration"
@@ -91,7 +61,7 @@ def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration", "guess.toml", "run.usdc", "truth.toml"]
 
 
-def test_cli_fits_yield_stress_to_masks_from_calibrated_cameras(tmp_path, capsys):
+def test_cli_fits_yield_stress_to_masks_from_calibrated_cameras(tmp_path, capsys, dough_scene):
     """End to end from the command line with ``--cameras``: a dough block dropped on the
     ground (64 particles) seen by two calibrated cameras (front and side, intrinsics ``K``
     and extrinsics ``R, t`` in a JSON file), binary masks of the true run at frames 2, 4, 6,
@@ -107,8 +77,8 @@ def test_cli_fits_yield_stress_to_masks_from_calibrated_cameras(tmp_path, capsys
     from warp_esph.render import UsdFrames
 
     truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
-    truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
-    guess.write_text(SCENE.format(yield_stress=400.0, flow_rate=10.0))
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(dough_scene(yield_stress=400.0, flow_rate=10.0))
     run = tmp_path / "run.usdc"
     assert main(["run", str(truth), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
     down = np.diag([1.0, -1.0, -1.0])  # looking along -z, image y down
@@ -447,13 +417,13 @@ def test_targets_from_data(tmp_path):
     assert t.kind == "mesh" and isinstance(t.loss(model, {3: 30}), MeshLoss)
 
 
-def test_cli_joint_experiments_file(tmp_path):
+def test_cli_joint_experiments_file(tmp_path, dough_scene):
     """``--experiments`` adds experiments to a fit: the joint loss is the weighted sum of theirs."""
     from warp_esph.cli import main
 
     truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
-    truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
-    guess.write_text(SCENE.format(yield_stress=200.0, flow_rate=20.0))
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
     assert main(["run", str(truth), "-o", str(tmp_path / "run.usdc"), "--frames", "2", "--dtype", "float64",
                  "--no-progress"]) == 0
     common = ["--iterations", "0", "--no-progress", "--no-usd", "--no-diagnostics"]
@@ -479,7 +449,7 @@ def test_cli_joint_experiments_file(tmp_path):
 
 @pytest.mark.parametrize("options", [["--solver-fit", "curvature_corrected", "--contact", "continuous"],
                                      ["--hourglass", "0.1"]], ids=["fit_contact", "hourglass"])
-def test_cli_fit_takes_the_solver_options(tmp_path, capsys, options):
+def test_cli_fit_takes_the_solver_options(tmp_path, capsys, options, dough_scene):
     """``fit --solver-fit/--contact/--hourglass`` reach the fit's solver: the initial loss
     against a run of the same scene with those options is 0 with them (the same forward run;
     up to the float32 rounding of the USD target) and not without; a bad name is one line,
@@ -487,7 +457,7 @@ def test_cli_fit_takes_the_solver_options(tmp_path, capsys, options):
     from warp_esph.cli import main
 
     truth = tmp_path / "truth.toml"
-    truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
     assert main(["run", str(truth), "-o", str(tmp_path / "run.usdc"), "--frames", "2", "--dtype", "float64",
                  "--no-progress", *options]) == 0
     common = ["--iterations", "0", "--no-progress", "--no-usd", "--no-diagnostics", "--target-frames", "2"]

@@ -91,38 +91,7 @@ def test_worlds_refuse_what_they_cannot_replicate(target):
         we.replicate_worlds(model, 0)
 
 
-SCENE = """
-[scene]
-name = "dough_block"
-spacing = 0.02
-support_radius = 0.05
-frames = 2
-fps = 30
-
-[materials.dough]
-mu = 2000.0
-lam = 3000.0
-density = 1000.0
-yield_stress = {yield_stress}
-flow_rate = {flow_rate}
-viscosity = 2.0
-
-[[bodies]]
-shape = "box"
-name = "dough"
-material = "dough"
-center = [0.0, 0.045, 0.0]
-size = [0.08, 0.08, 0.08]
-velocity = [0.0, -1.0, 0.0]
-
-[[colliders]]
-type = "ground"
-height = 0.0
-friction = 0.5
-"""
-
-
-def test_cli_starts_as_worlds(tmp_path, capsys):
+def test_cli_starts_as_worlds(tmp_path, capsys, dough_scene):
     """``warp-esph fit --starts 3 --worlds``: three starts, one model of three worlds; the
     JSON has one history per start and the best start's result."""
     import json
@@ -131,8 +100,8 @@ def test_cli_starts_as_worlds(tmp_path, capsys):
     from warp_esph.cli import main
 
     truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
-    truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
-    guess.write_text(SCENE.format(yield_stress=200.0, flow_rate=20.0))
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0, frames=2))
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
     run = tmp_path / "run.usdc"
     assert main(["run", str(truth), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
     out = tmp_path / "fit"
