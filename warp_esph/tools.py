@@ -206,16 +206,12 @@ def shape_param(kind: str, *, normal=None, half_extents=None, radius=None, half_
 
 # --------------------------------------------------------------------------- kernels
 @functools.cache
-def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, n_pins: int) -> types.SimpleNamespace:
-    """Specialised to the static collider counts and the number of tools of each kind in
-    ``KINDS`` (tools are stored grouped by kind in that order, pinned sets after them)."""
+def pose_kernels(scalar) -> types.SimpleNamespace:
+    """The kernels that do not depend on the tool configuration: one compiled module each
+    per scalar type, whatever tools a model has (``kernels`` is specialised)."""
     T = type_set(scalar)
     vec3, quat = T.vec3, (wp.quatf if scalar is wp.float32 else wp.quatd)
-    kin = integrate_funcs(scalar, n_planes, n_spheres, n_boxes)
-    col = colliders.funcs(scalar)
-    offsets = [int(sum(counts[:k])) for k in range(len(counts))]
-    n_col = int(sum(counts))
-    ONE, ZERO, HALF = scalar(1.0), scalar(0.0), scalar(0.5)
+    ONE, HALF = scalar(1.0), scalar(0.5)
 
     @wp.func
     def quat_exp(r: vec3):
@@ -277,6 +273,26 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             q = quat_exp(ang_v[c] * t) * interp_quat(kf_q[i0], kf_q[i1], w)
             pose_p[s] = p
             pose_q[s] = q
+
+    @wp.kernel(module="unique")
+    def accumulate(src: wp.array(dtype=vec3), scale: scalar, dst: wp.array(dtype=vec3)):
+        k = wp.tid()
+        dst[k] = dst[k] + scale * src[k]
+
+    return types.SimpleNamespace(poses=poses, accumulate=accumulate, quat=quat)
+
+
+@functools.cache
+def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, n_pins: int) -> types.SimpleNamespace:
+    """Specialised to the static collider counts and the number of tools of each kind in
+    ``KINDS`` (tools are stored grouped by kind in that order, pinned sets after them)."""
+    T = type_set(scalar)
+    vec3, quat = T.vec3, (wp.quatf if scalar is wp.float32 else wp.quatd)
+    kin = integrate_funcs(scalar, n_planes, n_spheres, n_boxes)
+    col = colliders.funcs(scalar)
+    offsets = [int(sum(counts[:k])) for k in range(len(counts))]
+    n_col = int(sum(counts))
+    ONE, ZERO = scalar(1.0), scalar(0.0)
 
     @wp.func
     def world(p: vec3, q: quat, xl: vec3):
@@ -708,12 +724,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         x_out[i] = x
         v_out[i] = v
 
-    @wp.kernel(module="unique")
-    def accumulate(src: wp.array(dtype=vec3), scale: scalar, dst: wp.array(dtype=vec3)):
-        k = wp.tid()
-        dst[k] = dst[k] + scale * src[k]
-
-    return types.SimpleNamespace(poses=poses, integrate=integrate, accumulate=accumulate, quat=quat)
+    pk = pose_kernels(scalar)
+    return types.SimpleNamespace(poses=pk.poses, integrate=integrate, accumulate=pk.accumulate, quat=quat)
 
 
 # --------------------------------------------------------------------------- tool set
