@@ -612,6 +612,15 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
                 return 1, cl + margin * nl, nl
         return 0, xl, vec3()
 
+    # Tools of the swept kinds (box, sphere, capsule, cylinder: KINDS[1:5], stored in that
+    # order from offsets[1]) differ only in their two contact tests: tool offsets[1] + c's,
+    # chosen at code generation (the loop over them is unrolled).
+    by_kind = {"box": (swept_box, shape_box), "sphere": (swept_sphere, shape_sphere),
+               "capsule": (swept_capsule, shape_capsule), "cylinder": (swept_cylinder, shape_cylinder)}
+    tests = [by_kind[kind] for kind, n in zip(KINDS, counts) for _ in range(n) if kind in by_kind]
+    swept_test = [t[0] for t in tests]
+    inside_test = [t[1] for t in tests]
+
     @wp.kernel(module="unique")
     def integrate(
         x_in: wp.array(dtype=vec3),
@@ -656,36 +665,15 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             k = wp.static(offsets[0]) + c
             hit, xc, nl = shape_plane(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
             x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
-        for c in range(wp.static(counts[1])):
+        for c in range(wp.static(len(swept_test))):
             k = wp.static(offsets[1]) + c
             # The entry point first (a path from outside), the nearest face only for a
             # particle that was already inside: the nearest face of a thin plate that moved
             # past most of a particle could be its back.
             xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
-            hit, xc, nl = swept_box(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
+            hit, xc, nl = wp.static(swept_test[c])(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
             if hit == 0:
-                hit, xc, nl = shape_box(xl, param[k])
-            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
-        for c in range(wp.static(counts[2])):
-            k = wp.static(offsets[2]) + c
-            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
-            hit, xc, nl = swept_sphere(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
-            if hit == 0:
-                hit, xc, nl = shape_sphere(xl, param[k])
-            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
-        for c in range(wp.static(counts[3])):
-            k = wp.static(offsets[3]) + c
-            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
-            hit, xc, nl = swept_capsule(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
-            if hit == 0:
-                hit, xc, nl = shape_capsule(xl, param[k])
-            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
-        for c in range(wp.static(counts[4])):
-            k = wp.static(offsets[4]) + c
-            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
-            hit, xc, nl = swept_cylinder(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
-            if hit == 0:
-                hit, xc, nl = shape_cylinder(xl, param[k])
+                hit, xc, nl = wp.static(inside_test[c])(xl, param[k])
             x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[5])):
             k = wp.static(offsets[5]) + c
