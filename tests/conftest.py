@@ -69,8 +69,8 @@ def dough_scene():
 
 
 @pytest.fixture(scope="session")
-def dough_drop():
-    """``dough_drop(yield_stress, flow_rate, size=0.1)``: a float64 model with gradients of a
+def dropped_cube():
+    """``dropped_cube(yield_stress, flow_rate, size=0.1)``: a float64 model with gradients of a
     soft cube of side ``size`` (2 cm spacing: 125 particles at 0.1) hitting the ground at
     1 m/s, the lattice jittered by 1e-3 of the spacing (seed 5)."""
 

@@ -119,12 +119,12 @@ def test_cli_fits_yield_stress_to_masks_from_calibrated_cameras(tmp_path, capsys
 
 
 @pytest.mark.parametrize("yield_stress, flagged", [(1.0, True), (300.0, False)])
-def test_diagnostics_flag_an_unobservable_yield_stress(yield_stress, flagged, dough_drop):
+def test_diagnostics_flag_an_unobservable_yield_stress(yield_stress, flagged, dropped_cube):
     """With a yield stress far below the stresses of the impact, the flow rule's
     ``(|s| - Y) / |s|`` hardly depends on it: the diagnostics must say the data do not
     determine it (and still determine the flow rate). At a yield stress the stresses are
     comparable to, they must not."""
-    model = dough_drop(yield_stress, 10.0)
+    model = dropped_cube(yield_stress, 10.0)
     dt = model.stable_dt()
     steps = 100
     frames = [35, 70, 100]
@@ -276,7 +276,7 @@ def test_silhouette_gradient_through_a_rollout():
     assert grads["mu"][0] == pytest.approx(fd, rel=1e-4)
 
 
-def test_silhouette_only_diagnostics_flag_the_yield_stress(dough_drop):
+def test_silhouette_only_diagnostics_flag_the_yield_stress(dropped_cube):
     """Silhouettes alone do not determine the yield stress of the drop (docs/fitting.md: a
     fit from 2x ended at Y = 188 Pa, +88 %, flow rate within 2 %). Two 48 x 48 cameras
     (front, top), masks of the true run (Y = 100 Pa, flow rate 10/s) at steps 50 and 100.
@@ -288,12 +288,12 @@ def test_silhouette_only_diagnostics_flag_the_yield_stress(dough_drop):
     top = PinholeCamera(48, 48, 80.0, 80.0, 23.5, 23.5, [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]],
                         [0.0, 0.0, 0.5], "top")
     cams = [front, top]
-    model = dough_drop(100.0, 10.0)
+    model = dropped_cube(100.0, 10.0)
     dt, steps, frames = model.stable_dt(), 100, [50, 100]
     xs = Rollout(model, steps, dt, frames=frames).forward()
     masks = {f: [(soft_silhouette(np.asarray(x, dtype=np.float64), c, 0.01, 0.5) > 0.5).astype(float) for c in cams]
              for f, x in zip(frames, xs)}
-    d = diagnose(dough_drop(188.0, 9.82), SilhouetteLoss(masks, cams, radius=0.01, opacity=0.5), ["yield_stress", "flow_rate"],
+    d = diagnose(dropped_cube(188.0, 9.82), SilhouetteLoss(masks, cams, radius=0.01, opacity=0.5), ["yield_stress", "flow_rate"],
                  steps=steps, dt=dt)
     assert d.undetermined == ["yield_stress"], d.summary()
     assert any("factor 1.5 changes the chi-square by only" in w for w in d.warnings)
@@ -327,10 +327,10 @@ def test_camera_file_and_masks(tmp_path):
         SilhouetteLoss({1: [np.ones((5, 5)), np.ones((24, 24))]}, cams, radius=0.01)
 
 
-def test_termination_memory_and_global_stage(dough_drop):
+def test_termination_memory_and_global_stage(dropped_cube):
     """The fit says it hit the iteration cap; the memory estimate is the rollout's own;
     the automatic checkpointing fits a limit; the Latin hypercube stratifies every axis."""
-    model = dough_drop(100.0, 10.0)
+    model = dropped_cube(100.0, 10.0)
     dt = model.stable_dt()
     r = Rollout(model, 20, dt, frames=[10, 20])
     target = r.forward()
@@ -347,7 +347,7 @@ def test_termination_memory_and_global_stage(dough_drop):
     for d in range(3):
         assert sorted(np.floor(u[:, d] * 7).astype(int)) == list(range(7))
 
-    guess = dough_drop(200.0, 20.0)
+    guess = dropped_cube(200.0, 20.0)
     messages = []
     result = fit(guess, PositionLoss(target, frames=[10, 20]), ["yield_stress", "flow_rate"], steps=20, dt=dt,
                  iterations=2, optimizer="lbfgs", progress=False, samples=4, seed=1, diagnostics=False,

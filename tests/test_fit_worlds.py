@@ -15,21 +15,21 @@ STEPS, DT, FRAMES = 50, 1.0e-3, [25, 50]
 
 
 @pytest.fixture(scope="module")
-def target(dough_drop):
-    return Rollout(dough_drop(100.0, 10.0, size=0.06), STEPS, DT, frames=FRAMES).forward()
+def target(dropped_cube):
+    return Rollout(dropped_cube(100.0, 10.0, size=0.06), STEPS, DT, frames=FRAMES).forward()
 
 
-def _fit(dough_drop, target, optimizer, worlds, **kw):
-    return fit(dough_drop(200.0, 20.0, size=0.06), PositionLoss(target, frames=FRAMES), ["yield_stress", "flow_rate"], steps=STEPS, dt=DT,
+def _fit(dropped_cube, target, optimizer, worlds, **kw):
+    return fit(dropped_cube(200.0, 20.0, size=0.06), PositionLoss(target, frames=FRAMES), ["yield_stress", "flow_rate"], steps=STEPS, dt=DT,
                iterations=3, optimizer=optimizer, progress=False, starts=3, worlds=worlds, diagnostics=False, seed=2, **kw)
 
 
 @pytest.mark.parametrize("optimizer", ["adam", "lbfgs"])
-def test_worlds_make_the_evaluations_of_separate_starts(dough_drop, target, optimizer):
+def test_worlds_make_the_evaluations_of_separate_starts(dropped_cube, target, optimizer):
     """Every start's losses, gradients and parameters, evaluation by evaluation, equal those
     of the same start run alone (1e-12 relative; measured on the CPU: equal), L-BFGS's line
     search included; the result is the best start's."""
-    seq, par = _fit(dough_drop, target, optimizer, False), _fit(dough_drop, target, optimizer, True)
+    seq, par = _fit(dropped_cube, target, optimizer, False), _fit(dropped_cube, target, optimizer, True)
     key = lambda h: (h["start"], h["iteration"])  # noqa: E731
     a, b = sorted(seq.history, key=key), sorted(par.history, key=key)
     assert len(a) == len(b) and {h["start"] for h in a} == {0, 1, 2}
@@ -54,10 +54,10 @@ def test_worlds_make_the_evaluations_of_separate_starts(dough_drop, target, opti
         assert getattr(par.model, name).numpy()[0] == pytest.approx(par.params[name][0], rel=1e-12)
 
 
-def test_replicated_worlds_match_the_model(dough_drop):
+def test_replicated_worlds_match_the_model(dropped_cube):
     """``replicate_worlds``: every world is the model (positions, parameters, rest density),
     and its rollout gives each world the model's positions."""
-    model = dough_drop(150.0, 15.0, size=0.06)
+    model = dropped_cube(150.0, 15.0, size=0.06)
     model.yield_stress.assign(np.array([123.0]))  # a value the fit wrote: arrays, not materials
     three = we.replicate_worlds(model, 3)
     assert three.world_count == 3 and three.particle_count == 3 * model.particle_count
@@ -69,8 +69,8 @@ def test_replicated_worlds_match_the_model(dough_drop):
         np.testing.assert_allclose(many[three.world_particles(w)], one, rtol=0.0, atol=1e-12)
 
 
-def test_worlds_refuse_what_they_cannot_replicate(dough_drop, target):
-    model = dough_drop(200.0, 20.0, size=0.06)
+def test_worlds_refuse_what_they_cannot_replicate(dropped_cube, target):
+    model = dropped_cube(200.0, 20.0, size=0.06)
     loss = SlumpLoss(0.05, 0.05, STEPS, 0.02)
     with pytest.raises(ValueError, match="worlds=True is not allowed with SlumpLoss"):
         fit(model, loss, ["yield_stress"], steps=STEPS, dt=DT, iterations=1, starts=2, worlds=True, progress=False,
