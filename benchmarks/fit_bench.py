@@ -38,22 +38,9 @@ except ImportError:  # run from a checkout without installing the package
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import warp_esph as we
 
+from benchmarks.blocks import block_model
 from warp_esph.losses import PositionLoss
 from warp_esph.rollout import PARAMETERS, Rollout
-
-
-def block_model(particles: int, dtype=wp.float64) -> we.Model:
-    """A dough block of about ``particles`` particles (2 cm spacing) just above the ground."""
-    dx = 0.02
-    side = max(2, round(particles ** (1.0 / 3.0)))
-    size = side * dx
-    b = we.SceneBuilder(spacing=dx)
-    b.add_box((0.0, 0.5 * size + 0.01, 0.0), (size, size, size), we.Material.preset("dough"), velocity=(0.0, -1.0, 0.0))
-    b.add_ground(friction=0.5)
-    model = b.finalize(dtype=dtype, requires_grad=True)
-    model.particle_x0 += np.random.default_rng(0).normal(scale=1e-3 * dx, size=model.particle_x0.shape)
-    model.compute_rest_density()
-    return model
 
 
 def _rss_mb() -> float:
@@ -127,7 +114,7 @@ def main(argv=None) -> int:
 
     rows = []
     for n in sizes:
-        model = block_model(n)
+        model = block_model(n, wp.float64)
         for steps in step_counts:
             seg = math.ceil(math.sqrt(steps)) if a.checkpoint == "sqrt" else int(a.checkpoint)
             full = measure(model, steps, None, a.repeats)

@@ -148,23 +148,49 @@ def _loss_kernel():
     return position_loss
 
 
-def time_forward(solver, states, steps: int, blocks: int, device) -> dict:
+def warmed_states(model, solver, warmup: int) -> list:
+    """Two states of ``model`` after ``warmup`` steps, the latest first."""
+    states = [model.state(), model.state()]
+    for _ in range(warmup):
+        solver.step(states[0], states[1], DT)
+        states.reverse()
+    return states
+
+
+def time_block(solver, states, k: int, device) -> tuple[float, float]:
+    """Wall and CPU seconds per step over ``k`` steps from ``states[0]`` (left holding the
+    latest state first)."""
     a, b = states
+    _sync(device)
+    t0, c0 = time.perf_counter(), time.thread_time()
+    for _ in range(k):
+        solver.step(a, b, DT)
+        a, b = b, a
+    _sync(device)
+    states[0], states[1] = a, b
+    return (time.perf_counter() - t0) / k, (time.thread_time() - c0) / k
+
+
+def time_interleaved(prepared, device, args):
+    """``args.steps`` steps of every ``(name, solver, states, times)`` in ``args.blocks``
+    blocks, interleaved so a load change on a shared machine hits every variant; each
+    block's ``time_block`` is appended to its ``times``."""
+    per_block = max(1, args.steps // args.blocks)
+    for _ in range(args.blocks):
+        for _name, solver, states, times in prepared:
+            times.append(time_block(solver, states, per_block, device))
+
+
+def time_forward(solver, states, steps: int, blocks: int, device) -> dict:
     per_block = max(1, steps // blocks)
     walls, cpus = [], []
     done = 0
     while done < steps:
         k = min(per_block, steps - done)
-        _sync(device)
-        t0, c0 = time.perf_counter(), time.thread_time()
-        for _ in range(k):
-            solver.step(a, b, DT)
-            a, b = b, a
-        _sync(device)
-        walls.append((time.perf_counter() - t0) / k)
-        cpus.append((time.thread_time() - c0) / k)
+        wall, cpu = time_block(solver, states, k, device)
+        walls.append(wall)
+        cpus.append(cpu)
         done += k
-    states[0], states[1] = a, b
     n = solver.model.particle_count
     mean_wall = float(np.mean(walls))
     return {
@@ -248,11 +274,8 @@ def compile_kernels(we, device) -> float:
 def bench_warp_esph(we, n: int, device, args) -> dict:
     model = build_model(we, n, device)
     solver = we.Solver(model)
-    states = [model.state(), model.state()]
     t0 = time.perf_counter()
-    for _ in range(args.warmup):
-        solver.step(states[0], states[1], DT)
-        states.reverse()
+    states = warmed_states(model, solver, args.warmup)
     _sync(device)
     warm_s = time.perf_counter() - t0
     solver.search.rebuilds = solver.search.updates = 0
@@ -299,24 +322,8 @@ def variant_rates(n: int, device, args, baseline=None) -> dict:
     for name, mod, kw in runs:
         model = build_model(mod, n, device)
         solver = mod.Solver(model, **kw)
-        states = [model.state(), model.state()]
-        for _ in range(args.warmup):
-            solver.step(states[0], states[1], DT)
-            states.reverse()
-        prepared.append((name, solver, states, []))
-    # Interleave the blocks, so a load change on a shared machine hits every variant.
-    per_block = max(1, args.steps // args.blocks)
-    for _ in range(args.blocks):
-        for name, solver, states, times in prepared:
-            a, b = states
-            _sync(device)
-            t0, c0 = time.perf_counter(), time.thread_time()
-            for _ in range(per_block):
-                solver.step(a, b, DT)
-                a, b = b, a
-            _sync(device)
-            times.append(((time.perf_counter() - t0) / per_block, (time.thread_time() - c0) / per_block))
-            states[0], states[1] = a, b
+        prepared.append((name, solver, warmed_states(model, solver, args.warmup), []))
+    time_interleaved(prepared, device, args)
     out = {}
     ref = None
     for name, solver, states, times in prepared:
@@ -343,23 +350,8 @@ def elastic_force_rates(n: int, device, args) -> dict:
     for force in ("paper", "variational"):
         model = build_model(we, n, device, elastic_force=force)
         solver = we.Solver(model)
-        states = [model.state(), model.state()]
-        for _ in range(args.warmup):
-            solver.step(states[0], states[1], DT)
-            states.reverse()
-        prepared.append((force, solver, states, []))
-    per_block = max(1, args.steps // args.blocks)
-    for _ in range(args.blocks):
-        for _force, solver, states, times in prepared:
-            a, b = states
-            _sync(device)
-            t0, c0 = time.perf_counter(), time.thread_time()
-            for _ in range(per_block):
-                solver.step(a, b, DT)
-                a, b = b, a
-            _sync(device)
-            times.append(((time.perf_counter() - t0) / per_block, (time.thread_time() - c0) / per_block))
-            states[0], states[1] = a, b
+        prepared.append((force, solver, warmed_states(model, solver, args.warmup), []))
+    time_interleaved(prepared, device, args)
     out = {}
     for force, solver, _states, times in prepared:
         n_p = solver.model.particle_count

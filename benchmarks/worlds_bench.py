@@ -35,19 +35,9 @@ except ImportError:  # run from a checkout without installing the package
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import warp_esph as we
 
+from benchmarks.blocks import block_builder
 from warp_esph import losses
 from warp_esph.rollout import Rollout
-
-
-def builder(particles: int) -> we.SceneBuilder:
-    """A dough block of about ``particles`` particles (2 cm spacing) just above the ground."""
-    dx = 0.02
-    side = max(2, round(particles ** (1.0 / 3.0)))
-    size = side * dx
-    b = we.SceneBuilder(spacing=dx)
-    b.add_box((0.0, 0.5 * size + 0.01, 0.0), (size, size, size), we.Material.preset("dough"), velocity=(0.0, -1.0, 0.0))
-    b.add_ground(friction=0.5)
-    return b
 
 
 def yield_stresses(worlds: int) -> np.ndarray:
@@ -58,14 +48,14 @@ def yield_stresses(worlds: int) -> np.ndarray:
 def separate_models(particles, worlds, dtype, requires_grad=False, device="cpu"):
     out = []
     for ys in yield_stresses(worlds):
-        m = builder(particles).finalize(device=device, dtype=dtype, requires_grad=requires_grad)
+        m = block_builder(particles).finalize(device=device, dtype=dtype, requires_grad=requires_grad)
         m.set_material(0, m.materials[0].replace(yield_stress=float(ys)))
         out.append(m)
     return out
 
 
 def world_model(particles, worlds, dtype, requires_grad=False, device="cpu"):
-    m = builder(particles).finalize(device=device, dtype=dtype, requires_grad=requires_grad, worlds=worlds)
+    m = block_builder(particles).finalize(device=device, dtype=dtype, requires_grad=requires_grad, worlds=worlds)
     for w, ys in enumerate(yield_stresses(worlds)):
         m.set_material(0, m.materials[m.world_materials(w).start].replace(yield_stress=float(ys)), world=w)
     return m

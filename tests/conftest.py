@@ -7,9 +7,16 @@ import pathlib
 # (CLI tests) then load kernels compiled once instead of compiling them again.
 os.environ.setdefault("WARP_CACHE_PATH", str(pathlib.Path(__file__).resolve().parent.parent / ".warp_cache"))
 
+import pytest  # noqa: E402
+
 from warp_esph.startup import init_warp  # noqa: E402
 
 init_warp()  # wp.config.log_level = WARNING, and no native CUDA-driver note on a CPU machine
+
+import numpy as np  # noqa: E402
+import warp as wp  # noqa: E402
+
+import warp_esph as we  # noqa: E402
 
 # Under CI=true the property tests draw the same examples every run (a failure there is
 # reproducible from the log); locally they explore new ones and keep failures in the database.
@@ -18,3 +25,64 @@ from hypothesis import settings  # noqa: E402
 settings.register_profile("ci", derandomize=True, print_blob=True)
 if os.environ.get("CI", "").lower() == "true":
     settings.load_profile("ci")
+
+DOUGH_SCENE = """
+[scene]
+name = "dough_block"
+spacing = 0.02
+support_radius = 0.05
+frames = {frames}
+fps = 30
+
+[materials.dough]
+mu = 2000.0
+lam = 3000.0
+density = 1000.0
+yield_stress = {yield_stress}
+flow_rate = {flow_rate}
+viscosity = 2.0
+
+[[bodies]]
+shape = "box"
+name = "dough"
+material = "dough"
+center = [0.0, 0.045, 0.0]
+size = [0.08, 0.08, 0.08]
+velocity = [0.0, -1.0, 0.0]
+
+[[colliders]]
+type = "ground"
+height = 0.0
+friction = 0.5
+"""
+
+
+@pytest.fixture
+def dough_scene():
+    """``dough_scene(yield_stress, flow_rate, frames=6)``: the TOML of a 64-particle dough
+    block dropped on the ground at 1 m/s (the command-line fit tests' scene)."""
+
+    def scene(yield_stress, flow_rate, frames=6):
+        return DOUGH_SCENE.format(yield_stress=yield_stress, flow_rate=flow_rate, frames=frames)
+
+    return scene
+
+
+@pytest.fixture(scope="session")
+def dropped_cube():
+    """``dropped_cube(yield_stress, flow_rate, size=0.1)``: a float64 model with gradients of a
+    soft cube of side ``size`` (2 cm spacing: 125 particles at 0.1) hitting the ground at
+    1 m/s, the lattice jittered by 1e-3 of the spacing (seed 5)."""
+
+    def drop(yield_stress, flow_rate, size=0.1):
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.055, 0.0), (size, size, size), we.Material(mu=2e3, lam=3e3, density=1000.0,
+                                                                     yield_stress=yield_stress, flow_rate=flow_rate),
+                  velocity=(0.0, -1.0, 0.0))
+        b.add_ground(friction=0.5)
+        model = b.finalize(dtype=wp.float64, requires_grad=True)
+        model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * 0.02, size=model.particle_x0.shape)
+        model.compute_rest_density()
+        return model
+
+    return drop

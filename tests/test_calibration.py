@@ -23,38 +23,8 @@ from warp_esph.silhouette import PinholeCamera, SilhouetteLoss, load_cameras, lo
 
 pxr = pytest.importorskip("pxr")
 
-SCENE = """
-[scene]
-name = "dough_block"
-spacing = 0.02
-support_radius = 0.05
-frames = 6
-fps = 30
 
-[materials.dough]
-mu = 2000.0
-lam = 3000.0
-density = 1000.0
-yield_stress = {yield_stress}
-flow_rate = {flow_rate}
-viscosity = 2.0
-
-[[bodies]]
-shape = "box"
-name = "dough"
-material = "dough"
-center = [0.0, 0.045, 0.0]
-size = [0.08, 0.08, 0.08]
-velocity = [0.0, -1.0, 0.0]
-
-[[colliders]]
-type = "ground"
-height = 0.0
-friction = 0.5
-"""
-
-
-def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys):
+def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys, dough_scene):
     """``warp-esph run`` a dough block dropped on the ground (64 particles, 102 steps), then
     ``warp-esph fit`` a copy that starts 2x off in yield stress and flow rate, with the
     run's USD (one body, frames 2, 4, 6) as the target. From the 2x guess alone L-BFGS
@@ -63,8 +33,8 @@ def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys):
     from warp_esph.cli import main
 
     truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
-    truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
-    guess.write_text(SCENE.format(yield_stress=200.0, flow_rate=20.0))
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
     run = tmp_path / "run.usdc"
     assert main(["run", str(truth), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
     out = tmp_path / "calibration"
@@ -93,7 +63,7 @@ def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys):
                                                           "run.usdc_tools.json", "truth.toml"]
 
 
-def test_cli_fits_yield_stress_to_masks_from_calibrated_cameras(tmp_path, capsys):
+def test_cli_fits_yield_stress_to_masks_from_calibrated_cameras(tmp_path, capsys, dough_scene):
     """End to end from the command line with ``--cameras``: a dough block dropped on the
     ground (64 particles) seen by two calibrated cameras (front and side, intrinsics ``K``
     and extrinsics ``R, t`` in a JSON file), binary masks of the true run at frames 2, 4, 6,
@@ -109,8 +79,8 @@ def test_cli_fits_yield_stress_to_masks_from_calibrated_cameras(tmp_path, capsys
     from warp_esph.render import UsdFrames
 
     truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
-    truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
-    guess.write_text(SCENE.format(yield_stress=400.0, flow_rate=10.0))
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(dough_scene(yield_stress=400.0, flow_rate=10.0))
     run = tmp_path / "run.usdc"
     assert main(["run", str(truth), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
     down = np.diag([1.0, -1.0, -1.0])  # looking along -z, image y down
@@ -150,25 +120,13 @@ def test_cli_fits_yield_stress_to_masks_from_calibrated_cameras(tmp_path, capsys
     assert min(result["diagnostics"]["range_rise"][0]) < 1.0
 
 
-def _drop(yield_stress, flow_rate):
-    """125 particles of a soft material hitting the ground at 1 m/s."""
-    b = we.SceneBuilder(spacing=0.02)
-    b.add_box((0.0, 0.055, 0.0), (0.1, 0.1, 0.1), we.Material(mu=2e3, lam=3e3, density=1000.0, yield_stress=yield_stress,
-                                                              flow_rate=flow_rate), velocity=(0.0, -1.0, 0.0))
-    b.add_ground(friction=0.5)
-    model = b.finalize(dtype=wp.float64, requires_grad=True)
-    model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * 0.02, size=model.particle_x0.shape)
-    model.compute_rest_density()
-    return model
-
-
 @pytest.mark.parametrize("yield_stress, flagged", [(1.0, True), (300.0, False)])
-def test_diagnostics_flag_an_unobservable_yield_stress(yield_stress, flagged):
+def test_diagnostics_flag_an_unobservable_yield_stress(yield_stress, flagged, dropped_cube):
     """With a yield stress far below the stresses of the impact, the flow rule's
     ``(|s| - Y) / |s|`` hardly depends on it: the diagnostics must say the data do not
     determine it (and still determine the flow rate). At a yield stress the stresses are
     comparable to, they must not."""
-    model = _drop(yield_stress, 10.0)
+    model = dropped_cube(yield_stress, 10.0)
     dt = model.stable_dt()
     steps = 100
     frames = [35, 70, 100]
@@ -320,7 +278,7 @@ def test_silhouette_gradient_through_a_rollout():
     assert grads["mu"][0] == pytest.approx(fd, rel=1e-4)
 
 
-def test_silhouette_only_diagnostics_flag_the_yield_stress():
+def test_silhouette_only_diagnostics_flag_the_yield_stress(dropped_cube):
     """Silhouettes alone do not determine the yield stress of the drop (docs/fitting.md: a
     fit from 2x ended at Y = 188 Pa, +88 %, flow rate within 2 %). Two 48 x 48 cameras
     (front, top), masks of the true run (Y = 100 Pa, flow rate 10/s) at steps 50 and 100.
@@ -332,12 +290,12 @@ def test_silhouette_only_diagnostics_flag_the_yield_stress():
     top = PinholeCamera(48, 48, 80.0, 80.0, 23.5, 23.5, [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]],
                         [0.0, 0.0, 0.5], "top")
     cams = [front, top]
-    model = _drop(100.0, 10.0)
+    model = dropped_cube(100.0, 10.0)
     dt, steps, frames = model.stable_dt(), 100, [50, 100]
     xs = Rollout(model, steps, dt, frames=frames).forward()
     masks = {f: [(soft_silhouette(np.asarray(x, dtype=np.float64), c, 0.01, 0.5) > 0.5).astype(float) for c in cams]
              for f, x in zip(frames, xs)}
-    d = diagnose(_drop(188.0, 9.82), SilhouetteLoss(masks, cams, radius=0.01, opacity=0.5), ["yield_stress", "flow_rate"],
+    d = diagnose(dropped_cube(188.0, 9.82), SilhouetteLoss(masks, cams, radius=0.01, opacity=0.5), ["yield_stress", "flow_rate"],
                  steps=steps, dt=dt)
     assert d.undetermined == ["yield_stress"], d.summary()
     assert any("factor 1.5 changes the chi-square by only" in w for w in d.warnings)
@@ -371,10 +329,10 @@ def test_camera_file_and_masks(tmp_path):
         SilhouetteLoss({1: [np.ones((5, 5)), np.ones((24, 24))]}, cams, radius=0.01)
 
 
-def test_termination_memory_and_global_stage():
+def test_termination_memory_and_global_stage(dropped_cube):
     """The fit says it hit the iteration cap; the memory estimate is the rollout's own;
     the automatic checkpointing fits a limit; the Latin hypercube stratifies every axis."""
-    model = _drop(100.0, 10.0)
+    model = dropped_cube(100.0, 10.0)
     dt = model.stable_dt()
     r = Rollout(model, 20, dt, frames=[10, 20])
     target = r.forward()
@@ -391,7 +349,7 @@ def test_termination_memory_and_global_stage():
     for d in range(3):
         assert sorted(np.floor(u[:, d] * 7).astype(int)) == list(range(7))
 
-    guess = _drop(200.0, 20.0)
+    guess = dropped_cube(200.0, 20.0)
     messages = []
     result = fit(guess, PositionLoss(target, frames=[10, 20]), ["yield_stress", "flow_rate"], steps=20, dt=dt,
                  iterations=2, optimizer="lbfgs", progress=False, samples=4, seed=1, diagnostics=False,
@@ -449,13 +407,13 @@ def test_targets_from_data(tmp_path):
     assert t.kind == "mesh" and isinstance(t.loss(model, {3: 30}), MeshLoss)
 
 
-def test_cli_joint_experiments_file(tmp_path):
+def test_cli_joint_experiments_file(tmp_path, dough_scene):
     """``--experiments`` adds experiments to a fit: the joint loss is the weighted sum of theirs."""
     from warp_esph.cli import main
 
     truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
-    truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
-    guess.write_text(SCENE.format(yield_stress=200.0, flow_rate=20.0))
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
     assert main(["run", str(truth), "-o", str(tmp_path / "run.usdc"), "--frames", "2", "--dtype", "float64",
                  "--no-progress"]) == 0
     common = ["--iterations", "0", "--no-progress", "--no-usd", "--no-diagnostics"]
@@ -481,7 +439,7 @@ def test_cli_joint_experiments_file(tmp_path):
 
 @pytest.mark.parametrize("options", [["--solver-fit", "curvature_corrected", "--contact", "continuous"],
                                      ["--hourglass", "0.1"]], ids=["fit_contact", "hourglass"])
-def test_cli_fit_takes_the_solver_options(tmp_path, capsys, options):
+def test_cli_fit_takes_the_solver_options(tmp_path, capsys, options, dough_scene):
     """``fit --solver-fit/--contact/--hourglass`` reach the fit's solver: the initial loss
     against a run of the same scene with those options is 0 with them (the same forward run;
     up to the float32 rounding of the USD target) and not without; a bad name is one line,
@@ -489,7 +447,7 @@ def test_cli_fit_takes_the_solver_options(tmp_path, capsys, options):
     from warp_esph.cli import main
 
     truth = tmp_path / "truth.toml"
-    truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
     assert main(["run", str(truth), "-o", str(tmp_path / "run.usdc"), "--frames", "2", "--dtype", "float64",
                  "--no-progress", *options]) == 0
     common = ["--iterations", "0", "--no-progress", "--no-usd", "--no-diagnostics", "--target-frames", "2"]

@@ -14,34 +14,22 @@ from warp_esph.rollout import Rollout
 STEPS, DT, FRAMES = 50, 1.0e-3, [25, 50]
 
 
-def _drop(yield_stress, flow_rate):
-    """27 particles of a soft yield-stress material hitting the ground at 1 m/s."""
-    b = we.SceneBuilder(spacing=0.02)
-    b.add_box((0.0, 0.055, 0.0), (0.06, 0.06, 0.06), we.Material(mu=2e3, lam=3e3, density=1000.0, yield_stress=yield_stress,
-                                                                 flow_rate=flow_rate), velocity=(0.0, -1.0, 0.0))
-    b.add_ground(friction=0.5)
-    model = b.finalize(dtype=wp.float64, requires_grad=True)
-    model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * 0.02, size=model.particle_x0.shape)
-    model.compute_rest_density()
-    return model
-
-
 @pytest.fixture(scope="module")
-def target():
-    return Rollout(_drop(100.0, 10.0), STEPS, DT, frames=FRAMES).forward()
+def target(dropped_cube):
+    return Rollout(dropped_cube(100.0, 10.0, size=0.06), STEPS, DT, frames=FRAMES).forward()
 
 
-def _fit(target, optimizer, worlds, **kw):
-    return fit(_drop(200.0, 20.0), PositionLoss(target, frames=FRAMES), ["yield_stress", "flow_rate"], steps=STEPS, dt=DT,
+def _fit(dropped_cube, target, optimizer, worlds, **kw):
+    return fit(dropped_cube(200.0, 20.0, size=0.06), PositionLoss(target, frames=FRAMES), ["yield_stress", "flow_rate"], steps=STEPS, dt=DT,
                iterations=3, optimizer=optimizer, progress=False, starts=3, worlds=worlds, diagnostics=False, seed=2, **kw)
 
 
 @pytest.mark.parametrize("optimizer", ["adam", "lbfgs"])
-def test_worlds_make_the_evaluations_of_separate_starts(target, optimizer):
+def test_worlds_make_the_evaluations_of_separate_starts(dropped_cube, target, optimizer):
     """Every start's losses, gradients and parameters, evaluation by evaluation, equal those
     of the same start run alone (1e-12 relative; measured on the CPU: equal), L-BFGS's line
     search included; the result is the best start's."""
-    seq, par = _fit(target, optimizer, False), _fit(target, optimizer, True)
+    seq, par = _fit(dropped_cube, target, optimizer, False), _fit(dropped_cube, target, optimizer, True)
     key = lambda h: (h["start"], h["iteration"])  # noqa: E731
     a, b = sorted(seq.history, key=key), sorted(par.history, key=key)
     assert len(a) == len(b) and {h["start"] for h in a} == {0, 1, 2}
@@ -66,10 +54,10 @@ def test_worlds_make_the_evaluations_of_separate_starts(target, optimizer):
         assert getattr(par.model, name).numpy()[0] == pytest.approx(par.params[name][0], rel=1e-12)
 
 
-def test_replicated_worlds_match_the_model():
+def test_replicated_worlds_match_the_model(dropped_cube):
     """``replicate_worlds``: every world is the model (positions, parameters, rest density),
     and its rollout gives each world the model's positions."""
-    model = _drop(150.0, 15.0)
+    model = dropped_cube(150.0, 15.0, size=0.06)
     model.yield_stress.assign(np.array([123.0]))  # a value the fit wrote: arrays, not materials
     three = we.replicate_worlds(model, 3)
     assert three.world_count == 3 and three.particle_count == 3 * model.particle_count
@@ -81,8 +69,8 @@ def test_replicated_worlds_match_the_model():
         np.testing.assert_allclose(many[three.world_particles(w)], one, rtol=0.0, atol=1e-12)
 
 
-def test_worlds_refuse_what_they_cannot_replicate(target):
-    model = _drop(200.0, 20.0)
+def test_worlds_refuse_what_they_cannot_replicate(dropped_cube, target):
+    model = dropped_cube(200.0, 20.0, size=0.06)
     loss = SlumpLoss(0.05, 0.05, STEPS, 0.02)
     with pytest.raises(ValueError, match="worlds=True is not allowed with SlumpLoss"):
         fit(model, loss, ["yield_stress"], steps=STEPS, dt=DT, iterations=1, starts=2, worlds=True, progress=False,
@@ -91,38 +79,7 @@ def test_worlds_refuse_what_they_cannot_replicate(target):
         we.replicate_worlds(model, 0)
 
 
-SCENE = """
-[scene]
-name = "dough_block"
-spacing = 0.02
-support_radius = 0.05
-frames = 2
-fps = 30
-
-[materials.dough]
-mu = 2000.0
-lam = 3000.0
-density = 1000.0
-yield_stress = {yield_stress}
-flow_rate = {flow_rate}
-viscosity = 2.0
-
-[[bodies]]
-shape = "box"
-name = "dough"
-material = "dough"
-center = [0.0, 0.045, 0.0]
-size = [0.08, 0.08, 0.08]
-velocity = [0.0, -1.0, 0.0]
-
-[[colliders]]
-type = "ground"
-height = 0.0
-friction = 0.5
-"""
-
-
-def test_cli_starts_as_worlds(tmp_path, capsys):
+def test_cli_starts_as_worlds(tmp_path, capsys, dough_scene):
     """``warp-esph fit --starts 3 --worlds``: three starts, one model of three worlds; the
     JSON has one history per start and the best start's result."""
     import json
@@ -131,8 +88,8 @@ def test_cli_starts_as_worlds(tmp_path, capsys):
     from warp_esph.cli import main
 
     truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
-    truth.write_text(SCENE.format(yield_stress=100.0, flow_rate=10.0))
-    guess.write_text(SCENE.format(yield_stress=200.0, flow_rate=20.0))
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0, frames=2))
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
     run = tmp_path / "run.usdc"
     assert main(["run", str(truth), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
     out = tmp_path / "fit"

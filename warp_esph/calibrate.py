@@ -190,13 +190,7 @@ def _read_experiments(path) -> list[tuple[str, dict]]:
     with ``EXPERIMENT_KEYS`` (``scene`` and ``target`` required; files relative to the JSON
     file's folder)."""
     p = os.fspath(path)
-    try:
-        with open(p) as f:
-            doc = json.load(f)
-    except OSError as e:
-        raise ValueError(f"--experiments {p} cannot be read: {e}") from None
-    except json.JSONDecodeError as e:
-        raise ValueError(f"--experiments {p} is not valid JSON: {e}") from None
+    doc = checks.json_file("--experiments", p)
     if isinstance(doc, dict):
         doc = doc.get("experiments")
     if not isinstance(doc, list) or not doc:

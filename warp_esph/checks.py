@@ -6,7 +6,9 @@ and what is allowed, so a user can fix the input without reading code.
 
 from __future__ import annotations
 
+import json
 import math
+import os
 import re
 import struct
 import zipfile
@@ -217,6 +219,19 @@ def read_reason(exc: BaseException) -> str:
     messages = re.findall(r" : '(.+?)'(?= Error in |$)", text)
     text = "; ".join(messages) or text or type(exc).__name__
     return text if len(text) <= 300 else text[:297] + "..."
+
+
+def json_file(what: str, path):
+    """The parsed JSON document of the file ``path``; a ``ValueError`` naming ``what`` and the
+    file where it cannot be read or is not JSON."""
+    p = os.fspath(path)
+    try:
+        with open(p) as f:
+            return json.load(f)
+    except OSError as e:
+        raise ValueError(f"{what} {p} cannot be read: {e}") from None
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{what} {p} is not valid JSON: {e}") from None
 
 
 def file_error(path, exc: BaseException, verb: str = "read") -> ValueError:

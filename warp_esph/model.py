@@ -409,6 +409,13 @@ class Model:
             clamp_pressure=self.clamp_pressure, pressure_force=self.material_pressure_force,
         )
 
+    def settings(self) -> dict:
+        """This model's scene-wide constructor arguments (spacing, support radius, gravity,
+        static colliders, neighbour rows, device, precision), for a model made from it."""
+        return dict(spacing=self.spacing, support_radius=self.support_radius, gravity=self.gravity, planes=self.planes,
+                    spheres=self.spheres, boxes=self.boxes, max_neighbors=self.max_neighbors,
+                    bodies_interact=self.bodies_interact, device=self.device, scalar=self.scalar)
+
     def parameter_values(self) -> dict[str, np.ndarray]:
         """The current per-material parameters (``MATERIAL_FIELDS``), read from the arrays
         the kernels use: after a fit or ``warp_esph.torch`` wrote them, these differ from

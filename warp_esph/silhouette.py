@@ -37,7 +37,6 @@ Masks: an image (PNG, ...) or ``.npy`` ``(height, width)`` for one camera (nonze
 
 import dataclasses
 import functools
-import json
 import math
 import os
 import types
@@ -116,13 +115,7 @@ class PinholeCamera:
 def load_cameras(path) -> tuple[list[PinholeCamera], dict]:
     """Cameras and options (``radius``, ``opacity``) from a JSON camera file."""
     p = os.fspath(path)
-    try:
-        with open(p) as f:
-            doc = json.load(f)
-    except OSError as e:
-        raise ValueError(f"camera file {p} cannot be read: {e}") from None
-    except json.JSONDecodeError as e:
-        raise ValueError(f"camera file {p} is not valid JSON: {e}") from None
+    doc = checks.json_file("camera file", p)
     cams = doc.get("cameras") if isinstance(doc, dict) else None
     if not isinstance(cams, list) or not cams:
         raise ValueError(f"camera file {p} is not allowed: it needs a non-empty 'cameras' list")

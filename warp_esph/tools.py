@@ -51,7 +51,7 @@ import warp as wp
 
 from . import checks
 from .sim import colliders
-from .sim.integrate import funcs as integrate_funcs, static_collider_arrays
+from .sim.integrate import funcs as integrate_funcs, static_collider_struct, struct as static_struct
 from ._types import type_set
 
 #: Collider shapes, in the order their loops run in ``integrate`` (each kind's loop is
@@ -206,16 +206,12 @@ def shape_param(kind: str, *, normal=None, half_extents=None, radius=None, half_
 
 # --------------------------------------------------------------------------- kernels
 @functools.cache
-def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, n_pins: int) -> types.SimpleNamespace:
-    """Specialised to the static collider counts and the number of tools of each kind in
-    ``KINDS`` (tools are stored grouped by kind in that order, pinned sets after them)."""
+def pose_kernels(scalar) -> types.SimpleNamespace:
+    """The kernels that do not depend on the tool configuration: one compiled module each
+    per scalar type, whatever tools a model has (``kernels`` is specialised)."""
     T = type_set(scalar)
     vec3, quat = T.vec3, (wp.quatf if scalar is wp.float32 else wp.quatd)
-    kin = integrate_funcs(scalar, n_planes, n_spheres, n_boxes)
-    col = colliders.funcs(scalar)
-    offsets = [int(sum(counts[:k])) for k in range(len(counts))]
-    n_col = int(sum(counts))
-    ONE, ZERO, HALF = scalar(1.0), scalar(0.0), scalar(0.5)
+    ONE, HALF = scalar(1.0), scalar(0.5)
 
     @wp.func
     def quat_exp(r: vec3):
@@ -277,6 +273,27 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             q = quat_exp(ang_v[c] * t) * interp_quat(kf_q[i0], kf_q[i1], w)
             pose_p[s] = p
             pose_q[s] = q
+
+    @wp.kernel(module="unique")
+    def accumulate(src: wp.array(dtype=vec3), scale: scalar, dst: wp.array(dtype=vec3)):
+        k = wp.tid()
+        dst[k] = dst[k] + scale * src[k]
+
+    return types.SimpleNamespace(poses=poses, accumulate=accumulate, quat=quat)
+
+
+@functools.cache
+def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, n_pins: int) -> types.SimpleNamespace:
+    """Specialised to the static collider counts and the number of tools of each kind in
+    ``KINDS`` (tools are stored grouped by kind in that order, pinned sets after them)."""
+    T = type_set(scalar)
+    vec3, quat = T.vec3, (wp.quatf if scalar is wp.float32 else wp.quatd)
+    kin = integrate_funcs(scalar, n_planes, n_spheres, n_boxes)
+    StaticColliders = static_struct(scalar)
+    col = colliders.funcs(scalar)
+    offsets = [int(sum(counts[:k])) for k in range(len(counts))]
+    n_col = int(sum(counts))
+    ONE, ZERO = scalar(1.0), scalar(0.0)
 
     @wp.func
     def world(p: vec3, q: quat, xl: vec3):
@@ -595,6 +612,15 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
                 return 1, cl + margin * nl, nl
         return 0, xl, vec3()
 
+    # Tools of the swept kinds (box, sphere, capsule, cylinder: KINDS[1:5], stored in that
+    # order from offsets[1]) differ only in their two contact tests: tool offsets[1] + c's,
+    # chosen at code generation (the loop over them is unrolled).
+    by_kind = {"box": (swept_box, shape_box), "sphere": (swept_sphere, shape_sphere),
+               "capsule": (swept_capsule, shape_capsule), "cylinder": (swept_cylinder, shape_cylinder)}
+    tests = [by_kind[kind] for kind, n in zip(KINDS, counts) for _ in range(n) if kind in by_kind]
+    swept_test = [t[0] for t in tests]
+    inside_test = [t[1] for t in tests]
+
     @wp.kernel(module="unique")
     def integrate(
         x_in: wp.array(dtype=vec3),
@@ -603,16 +629,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         mass: wp.array(dtype=scalar),
         gravity: vec3,
         dt: scalar,
-        plane_normal: wp.array(dtype=vec3),
-        plane_offset: wp.array(dtype=scalar),
-        plane_friction: wp.array(dtype=scalar),
-        sphere_center: wp.array(dtype=vec3),
-        sphere_radius: wp.array(dtype=scalar),
-        sphere_friction: wp.array(dtype=scalar),
-        box_center: wp.array(dtype=vec3),
-        box_half: wp.array(dtype=vec3),
-        box_friction: wp.array(dtype=scalar),
-        ramp: scalar,
+        sc: StaticColliders,
         pose_p: wp.array(dtype=vec3),
         pose_q: wp.array(dtype=quat),
         param: wp.array(dtype=vec3),
@@ -643,52 +660,27 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         # Every world meets the same tools; each reports its own reaction rows.
         base = world[i] * n_tools
         x, v = kin.symplectic_euler(x_in[i], v_in[i], f[i], m, gravity, dt)
-        x, v = kin.static_colliders(
-            x, v, dt, plane_normal, plane_offset, plane_friction, sphere_center, sphere_radius, sphere_friction,
-            box_center, box_half, box_friction, ramp, m, world[i] * wp.static(n_planes + n_spheres + n_boxes),
-            cforce, ctorque,
-        )
+        x, v = kin.static_colliders(x, v, dt, sc, m, world[i] * wp.static(n_planes + n_spheres + n_boxes), cforce, ctorque)
         for c in range(wp.static(counts[0])):
             k = wp.static(offsets[0]) + c
             hit, xc, nl = shape_plane(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
-            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
-        for c in range(wp.static(counts[1])):
+            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+        for c in range(wp.static(len(swept_test))):
             k = wp.static(offsets[1]) + c
             # The entry point first (a path from outside), the nearest face only for a
             # particle that was already inside: the nearest face of a thin plate that moved
             # past most of a particle could be its back.
             xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
-            hit, xc, nl = swept_box(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
+            hit, xc, nl = wp.static(swept_test[c])(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
             if hit == 0:
-                hit, xc, nl = shape_box(xl, param[k])
-            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
-        for c in range(wp.static(counts[2])):
-            k = wp.static(offsets[2]) + c
-            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
-            hit, xc, nl = swept_sphere(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
-            if hit == 0:
-                hit, xc, nl = shape_sphere(xl, param[k])
-            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
-        for c in range(wp.static(counts[3])):
-            k = wp.static(offsets[3]) + c
-            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
-            hit, xc, nl = swept_capsule(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
-            if hit == 0:
-                hit, xc, nl = shape_capsule(xl, param[k])
-            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
-        for c in range(wp.static(counts[4])):
-            k = wp.static(offsets[4]) + c
-            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
-            hit, xc, nl = swept_cylinder(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
-            if hit == 0:
-                hit, xc, nl = shape_cylinder(xl, param[k])
-            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+                hit, xc, nl = wp.static(inside_test[c])(xl, param[k])
+            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         for c in range(wp.static(counts[5])):
             k = wp.static(offsets[5]) + c
             xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
             xs = local(pose_p[2 * k], pose_q[2 * k], x_in[i])
             hit, xc, nl = shape_mesh(xl, xs, mesh_id[k], mesh_lo[k], mesh_hi[k], margin, mesh_verts, mesh_tris, mesh_vofs[k], mesh_fofs[k])
-            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         if wp.static(n_pins > 0):
             k = pin[i]
             if k >= 0:
@@ -708,12 +700,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         x_out[i] = x
         v_out[i] = v
 
-    @wp.kernel(module="unique")
-    def accumulate(src: wp.array(dtype=vec3), scale: scalar, dst: wp.array(dtype=vec3)):
-        k = wp.tid()
-        dst[k] = dst[k] + scale * src[k]
-
-    return types.SimpleNamespace(poses=poses, integrate=integrate, accumulate=accumulate, quat=quat)
+    pk = pose_kernels(scalar)
+    return types.SimpleNamespace(poses=pk.poses, integrate=integrate, accumulate=pk.accumulate, quat=quat)
 
 
 # --------------------------------------------------------------------------- tool set
@@ -960,7 +948,7 @@ class ToolSet:
             m.particle_count,
             [
                 state_in.x, state_in.v, state_out.force, m.particle_mass, T.vec3(*m.gravity), S(dt),
-                *static_collider_arrays(m),
+                static_collider_struct(m),
                 state_out.tool_pose_p, state_out.tool_pose_q, self.param, self.static_friction, self.friction,
                 self.mesh_id, self.mesh_lo, self.mesh_hi, self.mesh_verts, self.mesh_tris, self.mesh_vofs, self.mesh_fofs,
                 S(self.margin),

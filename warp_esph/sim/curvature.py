@@ -118,14 +118,50 @@ def funcs(scalar) -> types.SimpleNamespace:
         return wp.determinant(A - C * K) > scalar(CURVATURE_DET_RATIO) * wp.determinant(A)
 
     @wp.func
+    def curvature_basis_adjoint(d: vec3, adj_q: vec3, h: scalar) -> vec3:
+        """Adjoint of ``curvature_basis``: ``(dq / d xb)^T adj q``."""
+        return vec3(d[1] * adj_q[0] + d[2] * adj_q[1], d[0] * adj_q[0] + d[2] * adj_q[2],
+                    d[0] * adj_q[1] + d[1] * adj_q[2]) / h
+
+    @wp.func
+    def ridge_inverse(A: mat33, D: mat33) -> mat33:
+        """``(D + eps I)^-1``, ``eps = 1e-4 tr(A) / 3`` (``CURVATURE_RIDGE``)."""
+        eps = scalar(CURVATURE_RIDGE / 3.0) * (A[0, 0] + A[1, 1] + A[2, 2])
+        return wp.inverse(D + eps * wp.identity(n=3, dtype=scalar))
+
+    @wp.func
+    def projection_terms(A: mat33, C: mat33, D: mat33):
+        """``curvature_projection``'s ``K``, with ``(D + eps I)^-1`` and whether ``K`` is kept
+        (1 or 0), which its adjoint (``projection_adjoint``) needs."""
+        D_inv = ridge_inverse(A, D)
+        K = D_inv * wp.transpose(C)
+        kept = scalar(1.0)
+        if not curvature_kept(A, C, K):
+            K = mat33()
+            kept = scalar(0.0)
+        return K, D_inv, kept
+
+    @wp.func
     def curvature_projection(A: mat33, C: mat33, D: mat33) -> mat33:
         """``K = (D + eps I)^-1 C^T``, ``eps = 1e-4 tr(A) / 3``: the curvature terms' share of
         ``xb`` (``xb - K^T q(xb)`` is orthogonal to them in the fit's weights)."""
-        eps = scalar(CURVATURE_RIDGE / 3.0) * (A[0, 0] + A[1, 1] + A[2, 2])
-        K = wp.inverse(D + eps * wp.identity(n=3, dtype=scalar)) * wp.transpose(C)
-        if not curvature_kept(A, C, K):
-            K = mat33()
+        K, D_inv, kept = projection_terms(A, C, D)
         return K
+
+    @wp.func
+    def projection_adjoint(adj_At: mat33, adj_K: mat33, C: mat33, K: mat33, D_inv: mat33, kept: scalar):
+        """Adjoint of ``A~ = A - C K``, ``K = (D + eps I)^-1 C^T`` (``projection_terms``), from
+        ``adj A~`` and ``adj K``'s other terms: with ``adj K -= C^T adj A~``,
+        ``adj C = -adj A~ K^T + adj K^T Dr^-1``, ``adj D = -Dr^-T adj K K^T`` (``Dr = D + eps I``),
+        ``adj A = adj A~ + (eps / tr(A)) tr(adj D) I``. Where the correction is dropped
+        (``kept = 0``), ``K = 0`` depends on neither ``C`` nor ``D``. Returns ``adj A, adj C, adj D``."""
+        KT = wp.transpose(K)
+        adj_K_all = adj_K - wp.transpose(C) * adj_At
+        adj_C = -(adj_At * KT) + kept * (wp.transpose(adj_K_all) * D_inv)
+        adj_D = -(kept * (wp.transpose(D_inv) * adj_K_all * KT))
+        adj_A = adj_At + scalar(CURVATURE_RIDGE / 3.0) * (adj_D[0, 0] + adj_D[1, 1] + adj_D[2, 2]) * wp.identity(
+            n=3, dtype=scalar)
+        return adj_A, adj_C, adj_D
 
     @wp.func
     def corrected_moment(M: mat33, N: mat33, K: mat33) -> mat33:
@@ -165,11 +201,30 @@ def funcs(scalar) -> types.SimpleNamespace:
         taken from ``j``, added to ``i``."""
         return sm.w_poly6_c(wp.dot(d, d), h, c6) * (M * corrected_offset(K, d, h))
 
+    @wp.func
+    def variational_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                           nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, K: mat33, h: scalar,
+                           f: wp.array(dtype=vec3)) -> vec3:
+        """``forces.variational_forces`` with the corrected fit's pair force."""
+        xi = x[i]
+        bi = body[i]
+        c6 = sm.poly6_coef(h)
+        fi = vec3()
+        for k in range(n):
+            j = nbr[i, k]
+            if body[j] == bi:
+                g = variational_pair_force(M, K, x[j] - xi, h, c6)
+                wp.atomic_sub(f, j, g)
+                fi += g
+        return fi
+
     return types.SimpleNamespace(
-        curvature_basis=curvature_basis, moment_sums=moment_sums, curvature_kept=curvature_kept,
-        curvature_projection=curvature_projection, corrected_moment=corrected_moment,
-        corrected_offset=corrected_offset, corrected_fit=corrected_fit, step_gradient=step_gradient,
-        variational_pair_force=variational_pair_force,
+        curvature_basis=curvature_basis, curvature_basis_adjoint=curvature_basis_adjoint, moment_sums=moment_sums,
+        curvature_kept=curvature_kept, ridge_inverse=ridge_inverse, projection_terms=projection_terms,
+        curvature_projection=curvature_projection, projection_adjoint=projection_adjoint,
+        corrected_moment=corrected_moment, corrected_offset=corrected_offset, corrected_fit=corrected_fit,
+        step_gradient=step_gradient, variational_pair_force=variational_pair_force,
+        variational_forces=variational_forces,
     )
 
 
@@ -237,14 +292,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         if code == 1 or code == 2:
             adj_F_prev[i] = adj_F_prev[i] + G
             return
-        I3 = wp.identity(n=3, dtype=scalar)
-        eps_c = scalar(CURVATURE_RIDGE / 3.0)
-        Dr_inv = wp.inverse(D + eps_c * (A[0, 0] + A[1, 1] + A[2, 2]) * I3)
-        K = Dr_inv * wp.transpose(C)
-        used = scalar(1.0)
-        if not fn.curvature_kept(A, C, K):
-            K = mat33()
-            used = scalar(0.0)
+        K, D_inv, kept = fn.projection_terms(A, C, D)
         At = fn.corrected_moment(A, C, K)
         Bt = fn.corrected_moment(B, E, K)
         At_inv = wp.inverse(At)
@@ -258,10 +306,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         KT = wp.transpose(K)
         adj_B = adj_Bt
         adj_E = -(adj_Bt * KT)
-        adj_K = -(wp.transpose(E) * adj_Bt) - wp.transpose(C) * adj_At
-        adj_C = -(adj_At * KT) + used * (wp.transpose(adj_K) * Dr_inv)
-        adj_D = -(used * (wp.transpose(Dr_inv) * adj_K * KT))
-        adj_A = adj_At + eps_c * (adj_D[0, 0] + adj_D[1, 1] + adj_D[2, 2]) * I3
+        adj_A, adj_C, adj_D = fn.projection_adjoint(adj_At, -(wp.transpose(E) * adj_Bt), C, K, D_inv, kept)
         adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_D_sym = adj_D + wp.transpose(adj_D)
         adj_BT = wp.transpose(adj_B)
@@ -281,9 +326,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 r2 = wp.dot(xb, xb)
                 if r2 < hh:
                     yb = y[j] - yi
-                    d = hh - r2
-                    w = c6 * d * d * d
-                    dw = scalar(-3.0) * c6 * d * d  # d w / d r2
+                    w, dw = sm.w_poly6_inside(r2, hh, c6)
                     q = fn.curvature_basis(xb, h)
                     Bx = adj_B * xb
                     Eq = adj_E * q
@@ -291,8 +334,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                     s = wp.dot(xb, adj_A * xb) + wp.dot(yb, Bx) + wp.dot(xb, Cq) + wp.dot(q, adj_D * q) + wp.dot(yb, Eq)
                     # d s / d q (through C, D, E), carried back through q(xb) = (xy, xz, yz) / h.
                     aq = adj_CT * xb + adj_D_sym * q + adj_ET * yb
-                    jq = vec3(xb[1] * aq[0] + xb[2] * aq[1], xb[0] * aq[0] + xb[2] * aq[2],
-                              xb[0] * aq[1] + xb[1] * aq[2]) / h
+                    jq = fn.curvature_basis_adjoint(xb, aq, h)
                     gx = w * (adj_A_sym * xb + adj_BT * yb + Cq + jq) + scalar(2.0) * dw * s * xb
                     gy = w * (Bx + Eq)
                     wp.atomic_add(adj_x, j, gx)
@@ -321,33 +363,16 @@ def kernels(scalar) -> types.SimpleNamespace:
         """``forces.elastic_forces`` with the variational force of the corrected fit
         (eqs. 10-13 unchanged)."""
         i = wp.tid()
-        xi = x[i]
-        bi = body[i]
-        P = stress[i]
-        Vi = volume[i]
         fi = vec3()
         if mat.elastic_force[material[i]] == 0:
-            Finv = F_inv[i]
-            c_el = sm.elastic_coef(h)
-            for k in range(count[i]):
-                j = nbr[i, k]
-                if body[j] == bi:
-                    g = fo.elastic_pair_force(Vi * volume[j], P, Finv, x[j] - xi, h, c_el)
-                    wp.atomic_add(f, j, g)
-                    fi -= g
+            fi = fo.paper_forces(i, x, body, nbr, count[i], volume, stress[i], F_inv[i], h, f)
         elif guard[i] == 0:
             # The moments from their own function: the inverses must not see a loop
             # accumulator (docs/method.md, Warp pitfall 1).
             A, B, C, D, E, same = fn.moment_sums(i, x, x, body, nbr, count[i], h)
             K = fn.curvature_projection(A, C, D)
-            M = fo.variational_map(Vi, P, F[i], fn.corrected_moment(A, C, K))
-            c6 = sm.poly6_coef(h)
-            for k in range(count[i]):
-                j = nbr[i, k]
-                if body[j] == bi:
-                    g = fn.variational_pair_force(M, K, x[j] - xi, h, c6)
-                    wp.atomic_sub(f, j, g)
-                    fi += g
+            M = fo.variational_map(volume[i], stress[i], F[i], wp.inverse(fn.corrected_moment(A, C, K)))
+            fi = fn.variational_forces(i, x, body, nbr, count[i], M, K, h, f)
         wp.atomic_add(f, i, fi)
 
     @wp.kernel(enable_backward=False)
@@ -402,8 +427,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 d = x[j] - xi
                 r2 = wp.dot(d, d)
                 if r2 < hh:
-                    e = hh - r2
-                    w = c6 * e * e * e
+                    w, dw = sm.w_poly6_inside(r2, hh, c6)
                     q = fn.curvature_basis(d, h)
                     wd = w * d
                     A += wp.outer(wd, d)
@@ -412,31 +436,19 @@ def kernels(scalar) -> types.SimpleNamespace:
                     wa = w * (ai - adj_f[j])
                     S1 += wp.outer(wa, d)
                     S2 += wp.outer(wa, q)
-        I3 = wp.identity(n=3, dtype=scalar)
-        eps_c = scalar(CURVATURE_RIDGE / 3.0)
-        Dr_inv = wp.inverse(D + eps_c * (A[0, 0] + A[1, 1] + A[2, 2]) * I3)
-        K = Dr_inv * wp.transpose(C)
-        used = scalar(1.0)
-        if not fn.curvature_kept(A, C, K):
-            K = mat33()
-            used = scalar(0.0)
+        K, D_inv, kept = fn.projection_terms(A, C, D)
         KT = wp.transpose(K)
         Ainv = wp.inverse(fn.corrected_moment(A, C, K))
-        AinvT = wp.transpose(Ainv)
         Vi = volume[i]
         P = stress[i]
         Fi = F[i]
-        M = Vi * (P * wp.transpose(Fi) * Ainv)
+        M = fo.variational_map(Vi, P, Fi, Ainv)
         MT = wp.transpose(M)
         adj_M = S1 - S2 * K
-        adj_K = -(wp.transpose(S2) * M)
-        adj_stress[i] = adj_stress[i] + Vi * (adj_M * AinvT * Fi)
-        adj_F[i] = adj_F[i] + Vi * (Ainv * wp.transpose(adj_M) * P)
-        adj_At = -(AinvT * (Vi * (Fi * wp.transpose(P) * adj_M)) * AinvT)
-        adj_K = adj_K - wp.transpose(C) * adj_At
-        adj_C = -(adj_At * KT) + used * (wp.transpose(adj_K) * Dr_inv)
-        adj_D = -(used * (wp.transpose(Dr_inv) * adj_K * KT))
-        adj_A = adj_At + eps_c * (adj_D[0, 0] + adj_D[1, 1] + adj_D[2, 2]) * I3
+        adj_P, adj_Fi, adj_At = fo.variational_map_adjoint(Vi, P, Fi, Ainv, adj_M)
+        adj_stress[i] = adj_stress[i] + adj_P
+        adj_F[i] = adj_F[i] + adj_Fi
+        adj_A, adj_C, adj_D = fn.projection_adjoint(adj_At, -(wp.transpose(S2) * M), C, K, D_inv, kept)
         adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_D_sym = adj_D + wp.transpose(adj_D)
         adj_CT = wp.transpose(adj_C)
@@ -448,9 +460,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 d = x[j] - xi
                 r2 = wp.dot(d, d)
                 if r2 < hh:
-                    e = hh - r2
-                    w = c6 * e * e * e
-                    dw = scalar(-3.0) * c6 * e * e  # d w / d r2
+                    w, dw = sm.w_poly6_inside(r2, hh, c6)
                     a = ai - adj_f[j]
                     q = fn.curvature_basis(d, h)
                     o = d - KT * q
@@ -459,7 +469,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                     s = wp.dot(d, adj_A * d) + wp.dot(d, Cq) + wp.dot(q, adj_D * q) + wp.dot(a, M * o)
                     # d / d q (the moments C, D and the offset o), carried back through q(xb).
                     aq = w * (adj_CT * d + adj_D_sym * q) - K * adj_o
-                    jq = vec3(d[1] * aq[0] + d[2] * aq[1], d[0] * aq[0] + d[2] * aq[2], d[0] * aq[1] + d[1] * aq[2]) / h
+                    jq = fn.curvature_basis_adjoint(d, aq, h)
                     gx = w * (adj_A_sym * d + Cq) + jq + adj_o + scalar(2.0) * dw * s * d
                     wp.atomic_add(adj_x, j, gx)
                     gx_i -= gx

@@ -189,9 +189,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 r2 = wp.dot(xb, xb)
                 if r2 < hh:
                     yb = y[j] - yi
-                    d = hh - r2
-                    w = c6 * d * d * d
-                    dw = scalar(-3.0) * c6 * d * d  # d w / d r2
+                    w, dw = sm.w_poly6_inside(r2, hh, c6)
                     Bx = adj_B * xb
                     s = wp.dot(xb, adj_A * xb) + wp.dot(yb, Bx)
                     gx = w * (adj_A_sym * xb + wp.transpose(adj_B) * yb) + scalar(2.0) * dw * s * xb

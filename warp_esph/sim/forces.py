@@ -97,19 +97,66 @@ def funcs(scalar) -> types.SimpleNamespace:
         return VV * (P * sm.grad_w_elastic_c(F_inv * d, h, c_el))
 
     @wp.func
-    def variational_map(volume: scalar, P: mat33, F: mat33, A: mat33) -> mat33:
-        """``M = V P* F^T A^-1``: the variational force on neighbour ``j`` is ``-w_ij M xb_ij``."""
-        return volume * (P * wp.transpose(F) * wp.inverse(A))
+    def paper_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32), nbr: wp.array2d(dtype=wp.int32),
+                     n: int, volume: wp.array(dtype=scalar), P: mat33, F_inv: mat33, h: scalar,
+                     f: wp.array(dtype=vec3)) -> vec3:
+        """Eqs. 10-13 over particle ``i``'s row (``n`` neighbours, same body only): adds
+        ``½ g_ij`` to ``f_j`` and returns ``i``'s share, ``-sum_j ½ g_ij``."""
+        xi = x[i]
+        bi = body[i]
+        Vi = volume[i]
+        c_el = sm.elastic_coef(h)
+        fi = vec3()
+        for k in range(n):
+            j = nbr[i, k]
+            if body[j] == bi:
+                g = elastic_pair_force(Vi * volume[j], P, F_inv, x[j] - xi, h, c_el)
+                wp.atomic_add(f, j, g)
+                fi -= g
+        return fi
+
+    @wp.func
+    def variational_map(volume: scalar, P: mat33, F: mat33, A_inv: mat33) -> mat33:
+        """``M = V P* F^T A^-1`` (given ``A^-1``): the variational force on neighbour ``j``
+        is ``-w_ij M xb_ij``."""
+        return volume * (P * wp.transpose(F) * A_inv)
+
+    @wp.func
+    def variational_map_adjoint(volume: scalar, P: mat33, F: mat33, A_inv: mat33, adj_M: mat33):
+        """Adjoint of ``variational_map``: ``adj P = V adj M A^-T F``, ``adj F = V A^-1 adj M^T P``,
+        ``adj A = -A^-T (V F P^T adj M) A^-T``."""
+        A_invT = wp.transpose(A_inv)
+        return (volume * (adj_M * A_invT * F), volume * (A_inv * wp.transpose(adj_M) * P),
+                -(A_invT * (volume * (F * wp.transpose(P) * adj_M)) * A_invT))
 
     @wp.func
     def variational_pair_force(M: mat33, d: vec3, h: scalar, c6: scalar) -> vec3:
         """``g_ij = w_ij M_i xb_ij`` (``d = xb_ij``, ``c6 = poly6_coef(h)``); taken from ``j``, added to ``i``."""
         return sm.w_poly6_c(wp.dot(d, d), h, c6) * (M * d)
 
+    @wp.func
+    def variational_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                           nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, h: scalar,
+                           f: wp.array(dtype=vec3)) -> vec3:
+        """The variational force over particle ``i``'s row: takes ``g_ij`` from ``f_j`` and
+        returns ``i``'s share, ``sum_j g_ij``."""
+        xi = x[i]
+        bi = body[i]
+        c6 = sm.poly6_coef(h)
+        fi = vec3()
+        for k in range(n):
+            j = nbr[i, k]
+            if body[j] == bi:
+                g = variational_pair_force(M, x[j] - xi, h, c6)
+                wp.atomic_sub(f, j, g)
+                fi += g
+        return fi
+
     return types.SimpleNamespace(
         stress=stress, principal_stress=principal_stress, principal_stress_differences=principal_stress_differences,
-        polynomial_stress=polynomial_stress, elastic_pair_force=elastic_pair_force, variational_map=variational_map,
-        variational_pair_force=variational_pair_force,
+        polynomial_stress=polynomial_stress, elastic_pair_force=elastic_pair_force, paper_forces=paper_forces,
+        variational_map=variational_map, variational_map_adjoint=variational_map_adjoint,
+        variational_pair_force=variational_pair_force, variational_forces=variational_forces,
     )
 
 
@@ -139,32 +186,15 @@ def kernels(scalar) -> types.SimpleNamespace:
         f: wp.array(dtype=vec3),
     ):
         i = wp.tid()
-        xi = x[i]
-        bi = body[i]
-        P = stress[i]
-        Vi = volume[i]
         fi = vec3()
         if mat.elastic_force[material[i]] == 0:
-            Finv = F_inv[i]
-            c_el = sm.elastic_coef(h)
-            for k in range(count[i]):
-                j = nbr[i, k]
-                if body[j] == bi:
-                    g = fn.elastic_pair_force(Vi * volume[j], P, Finv, x[j] - xi, h, c_el)
-                    wp.atomic_add(f, j, g)
-                    fi -= g
+            fi = fn.paper_forces(i, x, body, nbr, count[i], volume, stress[i], F_inv[i], h, f)
         elif guard[i] == 0:
             # A from its own function: its inverse must not see a loop accumulator
             # (docs/method.md, Warp pitfall 1).
             A, B, same = moment_sums(i, x, x, body, nbr, count[i], h)
-            M = fn.variational_map(Vi, P, F[i], A)
-            c6 = sm.poly6_coef(h)
-            for k in range(count[i]):
-                j = nbr[i, k]
-                if body[j] == bi:
-                    g = fn.variational_pair_force(M, x[j] - xi, h, c6)
-                    wp.atomic_sub(f, j, g)
-                    fi += g
+            M = fn.variational_map(volume[i], stress[i], F[i], wp.inverse(A))
+            fi = fn.variational_forces(i, x, body, nbr, count[i], M, h, f)
         wp.atomic_add(f, i, fi)
 
     @wp.kernel(enable_backward=False)
@@ -282,12 +312,11 @@ def kernels(scalar) -> types.SimpleNamespace:
         P = stress[i]
         Fi = F[i]
         Ainv = wp.inverse(A)
-        M = Vi * (P * wp.transpose(Fi) * Ainv)
+        M = fn.variational_map(Vi, P, Fi, Ainv)
         MT = wp.transpose(M)
-        AinvT = wp.transpose(Ainv)
-        adj_stress[i] = adj_stress[i] + Vi * (adj_M * AinvT * Fi)
-        adj_F[i] = adj_F[i] + Vi * (Ainv * wp.transpose(adj_M) * P)
-        adj_A = -(AinvT * (Vi * (Fi * wp.transpose(P) * adj_M)) * AinvT)
+        adj_P, adj_Fi, adj_A = fn.variational_map_adjoint(Vi, P, Fi, Ainv, adj_M)
+        adj_stress[i] = adj_stress[i] + adj_P
+        adj_F[i] = adj_F[i] + adj_Fi
         adj_A_sym = adj_A + wp.transpose(adj_A)
         gx_i = vec3()
         for k in range(count[i]):
@@ -296,9 +325,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 d = x[j] - xi
                 r2 = wp.dot(d, d)
                 if r2 < hh:
-                    e = hh - r2
-                    w = c6 * e * e * e
-                    dw = scalar(-3.0) * c6 * e * e
+                    w, dw = sm.w_poly6_inside(r2, hh, c6)
                     a = ai - adj_f[j]
                     gx = w * (MT * a + adj_A_sym * d) + scalar(2.0) * dw * (wp.dot(a, M * d) + wp.dot(d, adj_A * d)) * d
                     wp.atomic_add(adj_x, j, gx)

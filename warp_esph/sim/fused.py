@@ -139,7 +139,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         if kind_el == 1:
             A, B, same = df.moment_sums(i, x, x, body, nbr, count[i], h)
             if guard_code(A, same, min_neighbors, max_condition) == 0:
-                M = fo.variational_map(Vol_i, P, Fe, A)
+                M = fo.variational_map(Vol_i, P, Fe, wp.inverse(A))
             else:
                 kind_el = 2
         c6 = sm.poly6_coef(h)

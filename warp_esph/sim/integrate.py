@@ -21,6 +21,29 @@ from . import colliders
 
 
 @functools.cache
+def struct(scalar):
+    """The static colliders' arrays (planes, spheres, boxes: ``colliders.py``) and the
+    contact ramp (``Model.contact_ramp``) as one ``wp.struct``, what ``static_colliders``
+    reads; ``static_collider_struct(model)`` fills it."""
+    T = type_set(scalar)
+
+    @wp.struct
+    class StaticColliders:
+        plane_normal: wp.array(dtype=T.vec3)
+        plane_offset: wp.array(dtype=scalar)
+        plane_friction: wp.array(dtype=scalar)
+        sphere_center: wp.array(dtype=T.vec3)
+        sphere_radius: wp.array(dtype=scalar)
+        sphere_friction: wp.array(dtype=scalar)
+        box_center: wp.array(dtype=T.vec3)
+        box_half: wp.array(dtype=T.vec3)
+        box_friction: wp.array(dtype=scalar)
+        ramp: scalar
+
+    return StaticColliders
+
+
+@functools.cache
 def funcs(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.SimpleNamespace:
     """The step's kinematics, specialised to the model's static collider counts so the
     collider loops unroll. ``warp_esph/tools.py`` calls the same funcs before its moving
@@ -28,6 +51,7 @@ def funcs(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.SimpleNa
     T = type_set(scalar)
     vec3 = T.vec3
     col = colliders.funcs(scalar)
+    StaticColliders = struct(scalar)
 
     @wp.func
     def symplectic_euler(x: vec3, v: vec3, f: vec3, mass: scalar, gravity: vec3, dt: scalar):
@@ -48,39 +72,22 @@ def funcs(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.SimpleNa
             wp.atomic_add(ctorque, row, wp.cross(x - ref, f))
 
     @wp.func
-    def static_colliders(
-        x: vec3,
-        v: vec3,
-        dt: scalar,
-        plane_normal: wp.array(dtype=vec3),
-        plane_offset: wp.array(dtype=scalar),
-        plane_friction: wp.array(dtype=scalar),
-        sphere_center: wp.array(dtype=vec3),
-        sphere_radius: wp.array(dtype=scalar),
-        sphere_friction: wp.array(dtype=scalar),
-        box_center: wp.array(dtype=vec3),
-        box_half: wp.array(dtype=vec3),
-        box_friction: wp.array(dtype=scalar),
-        ramp: scalar,
-        mass: scalar,
-        row: int,
-        cforce: wp.array(dtype=vec3),
-        ctorque: wp.array(dtype=vec3),
-    ):
+    def static_colliders(x: vec3, v: vec3, dt: scalar, sc: StaticColliders, mass: scalar, row: int,
+                         cforce: wp.array(dtype=vec3), ctorque: wp.array(dtype=vec3)):
         """Every static plane, sphere and box in turn (``colliders.py``), each adding its
         reaction on this particle to its row ``row + c`` (module doc)."""
         for c in range(wp.static(n_planes)):
             v0 = v
-            x, v = col.collide_plane(x, v, plane_normal[c], plane_offset[c], plane_friction[c], dt, ramp)
-            react(x, v, v0, mass, dt, plane_offset[c] * plane_normal[c], row + c, cforce, ctorque)
+            x, v = col.collide_plane(x, v, sc.plane_normal[c], sc.plane_offset[c], sc.plane_friction[c], dt, sc.ramp)
+            react(x, v, v0, mass, dt, sc.plane_offset[c] * sc.plane_normal[c], row + c, cforce, ctorque)
         for c in range(wp.static(n_spheres)):
             v0 = v
-            x, v = col.collide_sphere(x, v, sphere_center[c], sphere_radius[c], sphere_friction[c], dt, ramp)
-            react(x, v, v0, mass, dt, sphere_center[c], row + wp.static(n_planes) + c, cforce, ctorque)
+            x, v = col.collide_sphere(x, v, sc.sphere_center[c], sc.sphere_radius[c], sc.sphere_friction[c], dt, sc.ramp)
+            react(x, v, v0, mass, dt, sc.sphere_center[c], row + wp.static(n_planes) + c, cforce, ctorque)
         for c in range(wp.static(n_boxes)):
             v0 = v
-            x, v = col.collide_box(x, v, box_center[c], box_half[c], box_friction[c], dt, ramp)
-            react(x, v, v0, mass, dt, box_center[c], row + wp.static(n_planes + n_spheres) + c, cforce, ctorque)
+            x, v = col.collide_box(x, v, sc.box_center[c], sc.box_half[c], sc.box_friction[c], dt, sc.ramp)
+            react(x, v, v0, mass, dt, sc.box_center[c], row + wp.static(n_planes + n_spheres) + c, cforce, ctorque)
         return x, v
 
     return types.SimpleNamespace(symplectic_euler=symplectic_euler, static_colliders=static_colliders)
@@ -91,6 +98,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
     T = type_set(scalar)
     vec3 = T.vec3
     fn = funcs(scalar, n_planes, n_spheres, n_boxes)
+    StaticColliders = struct(scalar)
 
     @wp.kernel
     def integrate(
@@ -100,16 +108,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
         mass: wp.array(dtype=scalar),
         gravity: vec3,
         dt: scalar,
-        plane_normal: wp.array(dtype=vec3),
-        plane_offset: wp.array(dtype=scalar),
-        plane_friction: wp.array(dtype=scalar),
-        sphere_center: wp.array(dtype=vec3),
-        sphere_radius: wp.array(dtype=scalar),
-        sphere_friction: wp.array(dtype=scalar),
-        box_center: wp.array(dtype=vec3),
-        box_half: wp.array(dtype=vec3),
-        box_friction: wp.array(dtype=scalar),
-        ramp: scalar,
+        sc: StaticColliders,
         world: wp.array(dtype=wp.int32),
         x_out: wp.array(dtype=vec3),
         v_out: wp.array(dtype=vec3),
@@ -119,11 +118,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
         i = wp.tid()
         m = mass[i]
         x, v = fn.symplectic_euler(x_in[i], v_in[i], f[i], m, gravity, dt)
-        x, v = fn.static_colliders(
-            x, v, dt, plane_normal, plane_offset, plane_friction, sphere_center, sphere_radius, sphere_friction,
-            box_center, box_half, box_friction, ramp, m, world[i] * wp.static(n_planes + n_spheres + n_boxes),
-            cforce, ctorque,
-        )
+        x, v = fn.static_colliders(x, v, dt, sc, m, world[i] * wp.static(n_planes + n_spheres + n_boxes), cforce, ctorque)
         x_out[i] = x
         v_out[i] = v
 
@@ -135,14 +130,15 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
     return types.SimpleNamespace(integrate=integrate, accumulate=accumulate)
 
 
-def static_collider_arrays(model) -> list:
-    """The static colliders' arrays in the order ``static_colliders`` takes them."""
-    m = model
-    return [
-        m.plane_normal, m.plane_offset, m.plane_friction,
-        m.sphere_center, m.sphere_radius, m.sphere_friction,
-        m.box_center, m.box_half, m.box_friction, m.scalar(m.contact_ramp),
-    ]
+def static_collider_struct(model):
+    """``struct``'s instance holding the model's static collider arrays (these very arrays)
+    and its contact ramp."""
+    out = struct(model.scalar)()
+    for name in struct(model.scalar).vars:
+        if name != "ramp":
+            setattr(out, name, getattr(model, name))
+    out.ramp = model.scalar(model.contact_ramp)
+    return out
 
 
 def launch_integrate(model, state_in, state_out, dt):
@@ -156,7 +152,7 @@ def launch_integrate(model, state_in, state_out, dt):
     wp.launch(
         kernels(S, len(m.planes), len(m.spheres), len(m.boxes)).integrate,
         m.particle_count,
-        [state_in.x, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt), *static_collider_arrays(m),
+        [state_in.x, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt), static_collider_struct(m),
          m.particle_world],
         [state_out.x, state_out.v, state_out.collider_force, state_out.collider_torque],
         device=m.device,

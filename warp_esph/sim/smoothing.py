@@ -58,6 +58,14 @@ def funcs(scalar) -> types.SimpleNamespace:
         return coef * d * d * d
 
     @wp.func
+    def w_poly6_inside(r2: scalar, hh: scalar, coef: scalar):
+        """Eq. 7 and its slope on the squared distance, ``w = coef e^3`` and
+        ``d w / d r2 = -3 coef e^2`` with ``e = h^2 - r2``, for ``r2 < hh = h^2`` (the
+        hand-written adjoints' pairs; the caller tests the support)."""
+        e = hh - r2
+        return coef * e * e * e, scalar(-3.0) * coef * e * e
+
+    @wp.func
     def w_poly6(r2: scalar, h: scalar) -> scalar:
         return w_poly6_c(r2, h, poly6_coef(h))
 
@@ -160,7 +168,8 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(
         w_poly6=w_poly6, grad_w_elastic=grad_w_elastic, grad_w_spiky=grad_w_spiky, lap_w_viscosity=lap_w_viscosity,
-        poly6_coef=poly6_coef, w_poly6_c=w_poly6_c, elastic_coef=elastic_coef, grad_w_elastic_c=grad_w_elastic_c,
+        poly6_coef=poly6_coef, w_poly6_c=w_poly6_c, w_poly6_inside=w_poly6_inside, elastic_coef=elastic_coef,
+        grad_w_elastic_c=grad_w_elastic_c,
         grad_w_elastic_adjoint=grad_w_elastic_adjoint, elastic_cos_dr2=elastic_cos_dr2,
         elastic_cos=elastic_cos, spiky_coef=spiky_coef, grad_w_spiky_c=grad_w_spiky_c, grad_w_spiky_at=grad_w_spiky_at,
         viscosity_coef=viscosity_coef, lap_w_viscosity_c=lap_w_viscosity_c, lap_w_viscosity_at=lap_w_viscosity_at,
