@@ -45,6 +45,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
+import io
 import math
 import os
 import shutil
@@ -668,9 +670,28 @@ def _fan(counts, idx) -> np.ndarray:
     return np.stack([idx[first], idx[first + k + 1], idx[first + k + 2]], axis=1)
 
 
+def _held_stderr(method):
+    """Run a reader method with what pxr prints to ``sys.stderr`` held back: on a damaged
+    file pxr prints the Python error of a value it cannot convert and then raises its own;
+    the raised error is reported (one line, by the caller), so the print is dropped. When the
+    method succeeds whatever was printed is passed on."""
+
+    @functools.wraps(method)
+    def held(*args, **kwargs):
+        buffer = io.StringIO()
+        with contextlib.redirect_stderr(buffer):
+            result = method(*args, **kwargs)
+        if buffer.getvalue():
+            sys.stderr.write(buffer.getvalue())
+        return result
+
+    return held
+
+
 class UsdFrames:
     """The particles, surfaces, colliders and tools of a ``UsdWriter`` file, frame by frame."""
 
+    @_held_stderr
     def __init__(self, path):
         self.path = os.fspath(path)
         if not os.path.isfile(self.path):
@@ -702,9 +723,17 @@ class UsdFrames:
             self.material_ids.append(int(mid) if mid is not None else 0)
             col = UsdGeom.Points(prim).GetDisplayColorAttr().Get()
             self.display_colors.append(np.array(col[0], dtype=np.float32) if col else np.array((0.8, 0.6, 0.4), np.float32))
-        self.colliders = self._read_colliders()
-        #: The tools (moving colliders) under ``/World/Tools``; pinned sets are left out.
-        self.tools = self._read_tools()
+        try:
+            self.colliders = self._read_colliders()
+            #: The tools (moving colliders) under ``/World/Tools``; pinned sets are left out.
+            self.tools = self._read_tools()
+        except (TypeError, IndexError, KeyError, AttributeError, ValueError) as e:
+            # A damaged file can hold a collider or tool prim whose custom data or geometry is
+            # missing or of the wrong type; say which file, not the parser's traceback.
+            if isinstance(e, ValueError) and str(self.path) in str(e):
+                raise
+            detail = (str(e).strip().splitlines() or [type(e).__name__])[0]
+            raise ValueError(f"cannot read {self.path}: a collider or tool is damaged ({detail})") from None
         # The surface Mesh of each body (``surface_prim_path``), or None where the file has none.
         self.surface_prims = []
         for name, _ in self.bodies:
@@ -716,6 +745,7 @@ class UsdFrames:
         """Whether any body has a surface Mesh prim (``warp-esph run --surface``)."""
         return any(p is not None for p in self.surface_prims)
 
+    @_held_stderr
     def surface(self, frame: int, body: int):
         """``(vertices (V, 3) float32, triangles (T, 3) int64)`` of body ``body``'s surface at
         ``frame`` (polygons split into fans), or None where there is no surface or it is empty."""
@@ -801,6 +831,7 @@ class UsdFrames:
             raise ValueError(f"frame = {frame!r} is not allowed: {self.path} holds frames {self.frames[0]}..{self.frames[-1]}")
         return frame
 
+    @_held_stderr
     def arrays(self, frame: int) -> dict:
         """Every particle at ``frame``, as written: points, velocities, widths, alpha,
         singular_values (N, 3), body (index into ``bodies``) and material_id."""
@@ -847,6 +878,7 @@ class UsdFrames:
     #: up: it is left out of the framing, which would otherwise shrink the rest to a dot.
     BLOWN_UP = 20.0
 
+    @_held_stderr
     def bounds(self, frames) -> tuple[np.ndarray, np.ndarray]:
         """Bounds of the particles over ``frames`` (the per-frame ``extent`` where written),
         leaving out a body in the frames where it has blown up (``BLOWN_UP``)."""
