@@ -180,6 +180,13 @@ def test_thin_layer_on_a_floor_of_its_own_particles_stops_below_and_flows_above_
     assert above["top_speed"] > 0.5 * scale, (above["top_speed"], scale)
 
 
+@pytest.mark.parametrize("case", ["incline", "slump", "spread"])
+def test_an_unknown_floor_is_refused_by_name(case):
+    kwargs = {"S": 0.1} if case == "slump" else {}
+    with pytest.raises(ValueError, match="floor = 'sand'"):
+        getattr(validation, case)(floor="sand", **kwargs)
+
+
 @pytest.mark.xfail(strict=True, reason="a layer 3 particles thick on the rough ground collider stops at 1.3 tau_y of "
                    "basal shear (measured -0.09 mm/s at 0.6 s; it flows only from about 2.5 tau_y, 2.2 at 6 "
                    "thick): the ground's bottom layer is held and its one-sided fit doubles its share "
