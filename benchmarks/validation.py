@@ -80,6 +80,45 @@ def _deviatoric_norm(F: np.ndarray, mu: float) -> np.ndarray:
     return 2.0 * mu * np.linalg.norm(dev, axis=1)
 
 
+# --------------------------------------------------------------------- floors
+FLOORS = ("ground", "particles")
+#: Layers of pinned particles under a body on a ``floor="particles"`` (two: a particle's fit
+#: reaches one spacing below it at the default support radius 2 dx, and so sees an interior
+#: neighbourhood at the base).
+FLOOR_LAYERS = 2
+
+
+def _check_floor(floor: str):
+    if floor not in FLOORS:
+        raise ValueError(f"floor = {floor!r} is not allowed: must be one of {', '.join(map(repr, FLOORS))}")
+
+
+def _add_on_floor(b, points: np.ndarray, material, floor: str, radius: float, friction: float, name: str):
+    """Adds the body ``points`` (its base at y = 0) on the floor: ``"ground"``, the static
+    ground collider with Coulomb ``friction``; ``"particles"``, FLOOR_LAYERS layers of pinned
+    particles of the same body (so in every fit) under a disc of ``radius`` on the body's
+    lattice: a rough floor whose first layer of material has an interior neighbourhood.
+    Returns the mask of the free particles (all of them on the ground)."""
+    from warp_esph.meshes import lattice_points
+
+    dx = b.spacing
+    if floor == "ground":
+        b.add_particles(points, material, name=name)
+        b.add_ground(0.0, friction=friction)
+        return np.ones(len(points), dtype=bool)
+    half = dx * math.ceil(radius / dx)
+    base = lattice_points(np.array([-half, -FLOOR_LAYERS * dx, -half]), np.array([half, 0.0, half]), dx)
+    base = base[np.hypot(base[:, 0], base[:, 2]) <= radius]
+    # On the body's lattice (the cylinders are centred on the axis, and so is the base).
+    near = points[np.argmin(np.abs(points[:, 0]) + np.abs(points[:, 2]))]
+    shift = (near - base[np.argmin(np.abs(base[:, 0]) + np.abs(base[:, 2]))])[[0, 2]]
+    shift -= dx * np.round(shift / dx)
+    base[:, [0, 2]] += shift
+    b.add_particles(np.vstack([points, base]), material, name=name)
+    b.pin(indices=np.arange(len(points), len(points) + len(base)), name="floor")
+    return np.arange(len(points) + len(base)) < len(points)
+
+
 # --------------------------------------------------------------------- slump
 def slump_theory(S: float) -> float:
     """h / H0 = S (1 - ln S) of the 1-D static analysis (Murata 1984, Pashias et al. 1996)."""
@@ -99,7 +138,8 @@ def spread_height_theory(radius: float, tau_y: float, rho: float = RHO, g: float
 
 def slump(S: float, resolution: int = 12, elastic_force: str = "variational", duration: float = 4.0,
           H0: float = 0.1, flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0,
-          dt_factor: float = 0.9, samples: int = 200, pressure_force: str = "spiky") -> dict:
+          dt_factor: float = 0.9, samples: int = 200, pressure_force: str = "spiky", floor: str = "ground",
+          floor_radius: float = 3.2) -> dict:
     """A cylinder H0 = 2 R0 of a yield-stress material slumps on a rough floor.
 
     ``S = sigma_y / (rho g H0)`` with sigma_y the uniaxial yield stress: ``yield_stress = Y
@@ -108,8 +148,12 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     pressure, ``viscosity`` Pa s (a little, so that an unyielded body's ringing decays).
     ``resolution`` is particles across H0 (and across the diameter). The height is the top
     of the particles within R0/2 of the axis (plus dx/2: each stands for a cell).
-    ``pressure_force``: ``Material.pressure_force`` (docs/physics.md, the SPH pressure)."""
+    ``pressure_force``: ``Material.pressure_force`` (docs/physics.md, the SPH pressure).
+    ``floor``: ``"ground"`` (the ground collider) or ``"particles"`` (pinned layers of the
+    same body under a disc of ``floor_radius`` R0, ``_add_on_floor``; docs/physics.md, the
+    spread regime); every measure is over the free particles."""
     wp, we = _we()
+    _check_floor(floor)
     dx = H0 / resolution
     R0 = H0 / 2.0
     sigma_y = S * RHO * G * H0
@@ -118,11 +162,14 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity,
                       elastic_force=elastic_force, pressure_force=pressure_force)
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
-    b.add_cylinder((0.0, H0 / 2.0, 0.0), R0, H0, mat)
-    b.add_ground(0.0, friction=friction)
+    from warp_esph.meshes import lattice_points
+
+    pts = lattice_points(np.array([-R0, 0.0, -R0]), np.array([R0, H0, R0]), dx)
+    pts = pts[np.hypot(pts[:, 0], pts[:, 2]) <= R0]  # what add_cylinder places
+    free = _add_on_floor(b, pts, mat, floor, floor_radius * R0, friction, "cylinder0")
     model = b.finalize()
-    n = model.particle_count
-    x0 = model.particle_x0.astype(np.float64)
+    n = int(free.sum())
+    x0 = model.particle_x0.astype(np.float64)[free]
     r0 = np.hypot(x0[:, 0], x0[:, 2])
     # The 1-D analysis's plug: material less deep than sigma_y / (rho g) = S H0 never yields
     # under its static load rho g z. The run starts stress-free and gravity acts at once, so
@@ -150,7 +197,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     def sample(state, k):
         if k % every and k != steps:
             return
-        x = state.x.numpy().astype(np.float64)
+        x = state.x.numpy().astype(np.float64)[free]
         times.append(k * dt)
         heights.append(height(x))
         kes.append(_kinetic(model, state))
@@ -164,16 +211,16 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     t, h, ke = np.array(times), np.array(heights), np.array(kes)
     last = t >= t[-1] - 0.25 * duration
     rate = -np.polyfit(t[last], h[last], 1)[0] if last.sum() > 2 else float("nan")
-    ratio = _deviatoric_norm(a.F.numpy(), mu) / Y
-    alpha = a.alpha.numpy().astype(np.float64)
+    ratio = _deviatoric_norm(a.F.numpy()[free], mu) / Y
+    alpha = a.alpha.numpy().astype(np.float64)[free]
     yield_strain = Y / (2.0 * mu)
     volume = n * dx**3
     tau_y = Y / math.sqrt(2.0)
     R_rc = spread_radius_theory(volume, tau_y)
-    weight_scale = float(model.particle_mass.numpy().sum()) * G * H0
+    weight_scale = float(model.particle_mass.numpy()[free].sum()) * G * H0
     return {
         "case": "slump", "S": S, "resolution": resolution, "elastic_force": elastic_force, "pressure_force": pressure_force,
-        "particles": n, "dt": dt, "duration": float(t[-1]), "steps": steps,
+        "floor": floor, "particles": n, "dt": dt, "duration": float(t[-1]), "steps": steps,
         "h_over_H0": h[-1] / H0, "theory_h_over_H0": slump_theory(S),
         "ratio_to_theory": (1.0 - h[-1] / H0) / (1.0 - slump_theory(S)),
         "top_rate_pct_H0_per_s": 100.0 * rate / H0,
@@ -201,7 +248,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
 def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0, elastic_force: str = "variational",
            flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, dt_factor: float = 0.9,
            pressure_stiffness: float | None = None, support_radius: float = 2.0, initial_height: float = 2.0,
-           samples: int = 200) -> dict:
+           samples: int = 200, floor: str = "ground", floor_radius: float = 1.2) -> dict:
     """The spread limit of Roussel & Coussot (2005): a wide, low cylinder of a yield-stress
     material spreads on a rough floor into a pile much wider than tall.
 
@@ -222,8 +269,10 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
     overshoots in its flow rests wider, never narrower. Radius: the outermost particle +
     dx/2; height: the top of the particles within R_RC / 8 of the axis + dx/2 (as in
     ``slump``); profile: the top of each radial band R_RC / 8 wide (+ dx/2) over the theory
-    at the band's middle."""
+    at the band's middle. ``floor``: as in ``slump`` (``"particles"``: pinned layers of the
+    same body under a disc of ``floor_radius`` R_RC)."""
     wp, we = _we()
+    _check_floor(floor)
     h_rc = 0.025
     ell = 0.5 * shallowness * h_rc
     R_rc = 2.0 * ell / shallowness**2
@@ -237,10 +286,13 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
     mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity,
                       elastic_force=elastic_force, pressure_stiffness=pressure_stiffness)
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0), support_radius=support_radius * dx)
-    b.add_cylinder((0.0, H_i / 2.0, 0.0), R_i, H_i, mat)
-    b.add_ground(0.0, friction=friction)
+    from warp_esph.meshes import lattice_points
+
+    pts = lattice_points(np.array([-R_i, 0.0, -R_i]), np.array([R_i, H_i, R_i]), dx)
+    pts = pts[np.hypot(pts[:, 0], pts[:, 2]) <= R_i]  # what add_cylinder places
+    free = _add_on_floor(b, pts, mat, floor, floor_radius * R_rc, friction, "cylinder0")
     model = b.finalize()
-    n = model.particle_count
+    n = int(free.sum())
     solver = we.Solver(model)
     dt = dt_factor * model.stable_dt()
     steps = int(round(duration / dt))
@@ -251,7 +303,7 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
     def sample(state, k):
         if k % every and k != steps:
             return
-        x = state.x.numpy().astype(np.float64)
+        x = state.x.numpy().astype(np.float64)[free]
         r = np.hypot(x[:, 0], x[:, 2])
         near = r < R_rc / 8.0
         times.append(k * dt)
@@ -267,7 +319,7 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
     t, h, ke, R = np.array(times), np.array(heights), np.array(kes), np.array(radii)
     last = t >= t[-1] - 0.25 * duration
     rate = np.polyfit(t[last], R[last], 1)[0] if last.sum() > 2 else float("nan")
-    x = a.x.numpy().astype(np.float64)
+    x = a.x.numpy().astype(np.float64)[free]
     r = np.hypot(x[:, 0], x[:, 2])
     # The profile against the theory's h(r) = sqrt(2 l (R_RC - r)): the top of each radial
     # band of width R_RC / 8 (+ dx/2), over the theory at the band's middle.
@@ -276,10 +328,11 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
         sel = (r >= k * R_rc / 8.0) & (r < (k + 1) * R_rc / 8.0)
         mid = (k + 0.5) * R_rc / 8.0
         bands.append(float(x[sel, 1].max() + 0.5 * dx) / math.sqrt(2.0 * ell * (R_rc - mid)) if sel.any() else 0.0)
-    ratio = _deviatoric_norm(a.F.numpy(), mu) / Y
-    weight_scale = float(model.particle_mass.numpy().sum()) * G * h_rc
+    ratio = _deviatoric_norm(a.F.numpy()[free], mu) / Y
+    weight_scale = float(model.particle_mass.numpy()[free].sum()) * G * h_rc
     return {
         "case": "spread", "shallowness": shallowness, "resolution": resolution, "elastic_force": elastic_force,
+        "floor": floor,
         "flow_rate": flow_rate, "particles": n, "dt": dt, "duration": float(t[-1]), "steps": steps,
         "initial_height": H_i, "initial_radius": R_i, "yield_length": ell,
         "volume_over_theory": n * dx**3 / volume,
@@ -293,6 +346,91 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
         "fraction_at_yield": float((ratio >= 0.99).mean()),
         "time_history": t.tolist(), "radius_history": (R / R_rc).tolist(), "height_history": (h / h_rc).tolist(),
         "finite": bool(np.isfinite(R).all()), "wall_s": wall,
+    }
+
+
+# ------------------------------------------------------------------ incline
+def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration: float = 1.5, spacing: float = 0.005,
+            critical_angle: float = 10.0, length: float = 12.0, width: int = 2, yield_strain: float = 0.005,
+            flow_rate: float = 1000.0, viscosity: float = 0.5, friction: float = 5.0, dt_factor: float = 0.9,
+            ramp: float = 0.15, samples: int = 40) -> dict:
+    """The shear strength of a thin layer: ``layers`` particles thick (h = layers x spacing),
+    ``length`` h long, on an incline (gravity tilted by theta in the x-y plane), plane strain
+    (``width`` particles between frictionless walls normal to z).
+
+    In a continuum the infinite slope flows iff its basal shear ``rho g h sin theta``
+    exceeds the shear yield stress ``tau_y = Y / sqrt(2)`` (docs/validation.md), and then at
+    the Bingham surface speed ``rho g sin theta (h - h_p)^2 / (2 eta)``, ``h_p = tau_y /
+    (rho g sin theta)``, ``eta = mu / flow_rate`` (tests/test_units.py). ``load`` is
+    ``rho g h sin theta / tau_y``: tau_y is set so that the continuum's critical angle is
+    ``critical_angle`` degrees, and ``sin theta = load sin(critical_angle)``. The speed is
+    read on the top layer of the middle quarter of the strip (away from its free ends).
+
+    ``floor``: ``"ground"``, the static ground collider with Coulomb ``friction`` at the
+    layer's base (the floor of ``slump`` and ``spread``); ``"particles"``, FLOOR_LAYERS
+    layers of the same body below the base, pinned (``SceneBuilder.pin``): a floor that is
+    part of every fit, as the material's own interior would be. mu = Y / (2 yield_strain), nu = 0.3.
+    Gravity grows linearly from 0 over the first ``ramp`` seconds (``Model.gravity`` is read
+    at every step), so that the load is applied without the dynamic overshoot of a sudden
+    release (up to twice the static stress)."""
+    wp, we = _we()
+    _check_floor(floor)
+    dx = spacing
+    h = layers * dx
+    tau_y = RHO * G * h * math.sin(math.radians(critical_angle))
+    Y = math.sqrt(2.0) * tau_y
+    mu = Y / (2.0 * yield_strain)
+    s = load * math.sin(math.radians(critical_angle))
+    if not 0.0 < s < 1.0:
+        raise ValueError(f"load = {load!r} is not allowed: sin(theta) = load sin(critical_angle) must be in (0, 1)")
+    theta = math.asin(s)
+    mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0) if ramp > 0.0 else (G * s, -G * math.cos(theta), 0.0))
+    L = length * h
+    W = width * dx
+    below = FLOOR_LAYERS if floor == "particles" else 0
+    b.add_box((L / 2.0, (h - below * dx) / 2.0, W / 2.0), (L, h + below * dx, W), mat, name="layer")
+    if below:
+        b.pin(region=((-L, -h, -h), (2.0 * L, 0.0, 2.0 * h)), name="floor")
+    else:
+        b.add_ground(0.0, friction=friction)
+    b.add_plane((0.0, 0.0, 1.0), 0.0, 0.0)
+    b.add_plane((0.0, 0.0, -1.0), -W, 0.0)
+    model = b.finalize()
+    solver = we.Solver(model)
+    dt = dt_factor * model.stable_dt()
+    steps = int(round(duration / dt))
+    every = max(1, steps // samples)
+    x0 = model.particle_x0.astype(np.float64)
+    top = (np.abs(x0[:, 0] - L / 2.0) < L / 8.0) & (x0[:, 1] > h - dx)
+    a, c = model.state(), model.state()
+    times, speeds = [], []
+    g_full = (G * s, -G * math.cos(theta), 0.0)
+
+    def sample(state, k):
+        f = min((k + 1) * dt / ramp, 1.0) if ramp > 0.0 else 1.0
+        model.gravity = tuple(f * g for g in g_full)
+        if k % every and k != steps:
+            return
+        times.append(k * dt)
+        speeds.append(float(state.v.numpy()[top, 0].astype(np.float64).mean()))
+
+    t0 = time.perf_counter()
+    a, c = _swap_run(model, solver, a, c, dt, steps, sample)
+    wall = time.perf_counter() - t0
+    eta = mu / flow_rate
+    h_p = tau_y / (RHO * G * s)
+    bingham = RHO * G * s * max(h - h_p, 0.0) ** 2 / (2.0 * eta)
+    v = np.array(speeds)
+    k23 = (2 * len(v)) // 3
+    return {
+        "case": "incline", "layers": layers, "load": load, "floor": floor, "theta_deg": math.degrees(theta),
+        "particles": model.particle_count, "dt": dt, "steps": steps, "duration": float(times[-1]),
+        "tau_y": tau_y, "bingham_surface_speed": bingham,
+        # The top's speed at the end and at two thirds of the run (mean of 3 samples each):
+        # a flowing layer keeps it, a stopping one loses it.
+        "top_speed": float(v[-3:].mean()), "top_speed_two_thirds": float(v[max(k23 - 1, 0):k23 + 2].mean()),
+        "time_history": times, "speed_history": speeds, "finite": bool(np.isfinite(v).all()), "wall_s": wall,
     }
 
 
