@@ -329,3 +329,26 @@ def test_fit_of_two_worlds_is_two_fits():
         alone = fit(model_of([start]), losses.PositionLoss(target, frames=[STEPS]), **options)
         assert alone.materials[0].yield_stress != start
         assert joint.materials[w].yield_stress == pytest.approx(alone.materials[0].yield_stress, rel=1e-12)
+
+
+def test_split_materials_keeps_tools_and_solver_options():
+    """A split model keeps the tools (with their current parameters), the pinned sets and
+    the model's hourglass control: it runs as its source does, reactions included."""
+    from warp_esph import tools
+    from warp_esph.rollout import split_materials
+
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0), hourglass=0.1)
+    b.add_box((0.0, 0.0, 0.0), (0.12, 0.1, 0.1), MAT_A, name="block")
+    b.add_plane((0.0, 1.0, 0.0), -0.06, friction=0.3)
+    b.add_tool("plane", name="press", normal=(0.0, -1.0, 0.0), friction=0.5,
+               motion=tools.Keyframes([0.0, STEPS * DT], [(0.0, 0.045, 0.0), (0.0, 0.03, 0.0)]))
+    b.pin(region=((-0.07, -0.07, -0.07), (-0.04, 0.07, 0.07)), name="left")
+    model = b.finalize(dtype=wp.float64)
+    model.tools.friction.assign(np.array([0.8, 0.0]))  # as a fit would have moved it
+    split = split_materials(model)
+    assert split.hourglass == model.hourglass == 0.1 and split.tools.names == model.tools.names
+    x_split, s_split = _run(split)
+    x_model, s_model = _run(model)
+    np.testing.assert_array_equal(x_split, x_model)
+    np.testing.assert_array_equal(s_split.reaction_force.numpy(), s_model.reaction_force.numpy())
+    assert (np.abs(s_model.reaction_force.numpy()).max(axis=1) > 0.0).all()  # the press touched, the pin held

@@ -639,6 +639,22 @@ def split_materials(model: Model, bodies: Sequence[int | str] | None = None) -> 
         world_material_start=world_material_start,
     )
     out.force_fields = list(model.force_fields)
+    # The solver's scene-wide options and the tools, as replicate_worlds keeps them: a split
+    # model must run as its source does.
+    out._fit, out.contact_ramp, out.hourglass = model._fit, model.contact_ramp, model.hourglass
+    if model.tools is not None:
+        from .tools import ToolSet  # noqa: PLC0415 (tools imports the solver's modules)
+
+        src = model.tools
+        pin = src.pin.numpy()
+        first = len(src.colliders)
+        world_pins = [[np.flatnonzero(pin[model.world_particles(w)] == first + j) for j in range(len(src.pins))]
+                      for w in range(model.world_count)]
+        out.tools = ToolSet(out, src.colliders, src.pins, world_pins=world_pins)
+        # Their parameters too (a fit may have moved them from the colliders' values).
+        for name in ("friction", "static_friction", "keyframe_positions", "keyframe_orientations", "velocity",
+                     "angular_velocity"):
+            wp.copy(getattr(out.tools, name), getattr(src, name))
     # Copy the rest density rather than recompute it, so the split model runs identically.
     wp.copy(out.particle_rest_density, model.particle_rest_density)
     # Copy the parameter values too (they may differ from model.materials after a fit).
