@@ -97,26 +97,17 @@ def _add_on_floor(b, points: np.ndarray, material, floor: str, radius: float, fr
     """Adds the body ``points`` (its base at y = 0) on the floor: ``"ground"``, the static
     ground collider with Coulomb ``friction``; ``"particles"``, FLOOR_LAYERS layers of pinned
     particles of the same body (so in every fit) under a disc of ``radius`` on the body's
-    lattice: a rough floor whose first layer of material has an interior neighbourhood.
-    Returns the mask of the free particles (all of them on the ground)."""
-    from warp_esph.meshes import lattice_points
-
-    dx = b.spacing
+    lattice (``SceneBuilder.add_particle_floor``): a rough floor whose first layer of
+    material has an interior neighbourhood. Returns the mask of the free particles (all of
+    them on the ground)."""
+    b.add_particles(points, material, name=name)
     if floor == "ground":
-        b.add_particles(points, material, name=name)
         b.add_ground(0.0, friction=friction)
         return np.ones(len(points), dtype=bool)
-    half = dx * math.ceil(radius / dx)
-    base = lattice_points(np.array([-half, -FLOOR_LAYERS * dx, -half]), np.array([half, 0.0, half]), dx)
-    base = base[np.hypot(base[:, 0], base[:, 2]) <= radius]
-    # On the body's lattice (the cylinders are centred on the axis, and so is the base).
-    near = points[np.argmin(np.abs(points[:, 0]) + np.abs(points[:, 2]))]
-    shift = (near - base[np.argmin(np.abs(base[:, 0]) + np.abs(base[:, 2]))])[[0, 2]]
-    shift -= dx * np.round(shift / dx)
-    base[:, [0, 2]] += shift
-    b.add_particles(np.vstack([points, base]), material, name=name)
-    b.pin(indices=np.arange(len(points), len(points) + len(base)), name="floor")
-    return np.arange(len(points) + len(base)) < len(points)
+    # A margin of radius + dx reaches the whole disc from the column nearest the axis.
+    b.add_particle_floor(name, margin=radius + b.spacing, layers=FLOOR_LAYERS, name="floor",
+                         where=lambda p: np.hypot(p[:, 0], p[:, 2]) <= radius)
+    return np.arange(b.particle_count) < len(points)
 
 
 # --------------------------------------------------------------------- slump
