@@ -359,7 +359,7 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
 
     ``floor``: ``"ground"``, the static ground collider with Coulomb ``friction`` at the
     layer's base (the floor of ``slump`` and ``spread``); ``"particles"``, FLOOR_LAYERS
-    layers of the same body below the base, pinned (``SceneBuilder.pin``): a floor that is
+    layers of the same body below the base, pinned (``SceneBuilder.add_particle_floor``): a floor that is
     part of every fit, as the material's own interior would be. mu = Y / (2 yield_strain), nu = 0.3.
     Gravity grows linearly from 0 over the first ``ramp`` seconds (``Model.gravity`` is read
     at every step), so that the load is applied without the dynamic overshoot of a sudden
@@ -379,10 +379,10 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0) if ramp > 0.0 else (G * s, -G * math.cos(theta), 0.0))
     L = length * h
     W = width * dx
-    below = FLOOR_LAYERS if floor == "particles" else 0
-    b.add_box((L / 2.0, (h - below * dx) / 2.0, W / 2.0), (L, h + below * dx, W), mat, name="layer")
-    if below:
-        b.pin(region=((-L, -h, -h), (2.0 * L, 0.0, 2.0 * h)), name="floor")
+    b.add_box((L / 2.0, h / 2.0, W / 2.0), (L, h, W), mat, name="layer")
+    if floor == "particles":
+        # Under the strip only (margin 0): the walls normal to z bound it, its ends are free.
+        b.add_particle_floor("layer", margin=0.0, layers=FLOOR_LAYERS, name="floor")
     else:
         b.add_ground(0.0, friction=friction)
     b.add_plane((0.0, 0.0, 1.0), 0.0, 0.0)
