@@ -154,6 +154,7 @@ BASE = textwrap.dedent(
         ("radius = 0.1", "radius = 0.1\nfloor_margin = 0.1\nfloor_layers = 9",
          r"floor_layers = 9 is not allowed: must be an integer in \[1, 8\]"),
         ("radius = 0.1", "radius = 0.1\nfloor_layers = 2", r"floor_layers = 2 is not allowed without floor_margin"),
+        ("radius = 0.1", "radius = 0.1\nfloor_margin = 100.0", r"\(shape 'sphere'\): floor_margin = 100\.0 is not allowed: .*2000 spacings"),
         ("radius = 0.1", 'radius = 0.1\nfloor_margin = "wide"', r"key 'floor_margin' in \[\[bodies\]\] #1 .* must be a number, not str"),
         ("radius = 0.1", "radius = 0.1\nfloor = 2", r"unknown key 'floor' in \[\[bodies\]\] #1"),
         ('preset = "dough"', 'preset = "dough"\npressure_force = "spikey"',

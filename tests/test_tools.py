@@ -207,6 +207,8 @@ def test_particle_floor_is_pinned_and_holds_a_resting_block_its_pin_reaction_is_
     (lambda b: b.add_particle_floor("e", margin=0.0, layers=9), r"layers = 9 is not allowed: must be an integer in \[1, 8\]"),
     (lambda b: b.add_particle_floor("e", margin=0.0, layers=2.0), r"layers = 2\.0 is not allowed"),
     (lambda b: b.add_particle_floor("e", margin=1e6), r"margin = 1000000\.0 is not allowed: .*more than"),
+    (lambda b: b.add_particle_floor("e", margin=1e300), r"margin = 1e\+300 is not allowed: .*inf particles"),
+    (lambda b: b.add_particle_floor("e", margin=30.0), r"margin = 30\.0 is not allowed: .*1500 spacings .*column operations"),
     (lambda b: b.add_particle_floor("e", margin=0.0, where="disc"), r"where = 'disc' is not allowed: must be callable"),
     (lambda b: b.add_particle_floor("e", margin=0.0, where=lambda p: p[:, 0] > 1e3), r"keeps none of the floor's positions"),
     (lambda b: b.add_particle_floor("e", margin=0.0, where=lambda p: True), r"where returned shape \(\)"),

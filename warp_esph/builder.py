@@ -36,6 +36,10 @@ MAX_STAR_POINTS = 1000
 #: Most layers of a particle floor (``SceneBuilder.add_particle_floor``): a fit reaches at
 #: most 3 spacings, so more layers only cost particles.
 MAX_FLOOR_LAYERS = 8
+#: Most column operations of a particle floor's footprint test (rows of the margin's disc x
+#: columns of the grid; about 10 s of numpy): a margin of thousands of spacings is refused
+#: before it stalls the builder.
+MAX_FLOOR_WORK = 5e8
 
 
 def star_polygon(outer_radius: float, inner_radius: float, points: int = 5) -> np.ndarray:
@@ -300,12 +304,19 @@ class SceneBuilder:
         pts = self._points[-1]
         ref = pts[np.argmin(pts[:, 1])]
         cols = np.round((pts[:, [0, 2]] - ref[[0, 2]]) / dx).astype(np.int64)
-        reach = int(math.floor(m + 1e-9))
+        # Sizes in floats first: a margin of 1e300 m must be refused, not overflow an integer.
+        reach_f = math.floor(m + 1e-9) * 1.0
+        span = [float(c) + 1.0 + 2.0 * reach_f for c in cols.max(axis=0) - cols.min(axis=0)]
+        if span[0] * span[1] * layers > MAX_PARTICLES_PER_BODY:
+            raise ValueError(f"margin = {margin!r} is not allowed: at spacing {dx:g} the floor would need "
+                             f"{span[0] * span[1] * layers:.3g} particles, more than {MAX_PARTICLES_PER_BODY:.3g}")
+        work = (2.0 * reach_f + 1.0) * span[0] * span[1]
+        if work > MAX_FLOOR_WORK:
+            raise ValueError(f"margin = {margin!r} is not allowed: at spacing {dx:g} it reaches {reach_f:.0f} spacings beyond "
+                             f"the body, and the footprint test would take {work:.3g} column operations, more than {MAX_FLOOR_WORK:.3g}")
+        reach = int(reach_f)
         lo, hi = cols.min(axis=0) - reach, cols.max(axis=0) + reach
         size = hi - lo + 1
-        if float(size[0]) * float(size[1]) * layers > MAX_PARTICLES_PER_BODY:
-            raise ValueError(f"margin = {margin!r} is not allowed: at spacing {dx:g} the floor would need "
-                             f"{float(size[0]) * float(size[1]) * layers:.3g} particles, more than {MAX_PARTICLES_PER_BODY:.3g}")
         foot = np.zeros(size, dtype=bool)
         foot[cols[:, 0] - lo[0], cols[:, 1] - lo[1]] = True
         # Dilation by a disc of radius m columns: per row offset a, a running window of

@@ -302,7 +302,12 @@ def _body(file: str, k: int, table: dict, builder: SceneBuilder, materials: dict
             layers = table.get("floor_layers")
             if layers is not None:
                 layers = checks.positive_int("floor_layers", layers, maximum=MAX_FLOOR_LAYERS)
-            builder.add_particle_floor(index, margin=margin, layers=layers)
+            try:
+                builder.add_particle_floor(index, margin=margin, layers=layers)
+            except ValueError as e:
+                # The method names its arguments; the file's keys are floor_<argument>.
+                msg = str(e)
+                raise ValueError("floor_" + msg if msg.startswith(("margin = ", "layers = ")) else msg) from None
     except ValueError as e:
         raise ValueError(f"{file}: {where}: {e}") from None
 
