@@ -97,26 +97,17 @@ def _add_on_floor(b, points: np.ndarray, material, floor: str, radius: float, fr
     """Adds the body ``points`` (its base at y = 0) on the floor: ``"ground"``, the static
     ground collider with Coulomb ``friction``; ``"particles"``, FLOOR_LAYERS layers of pinned
     particles of the same body (so in every fit) under a disc of ``radius`` on the body's
-    lattice: a rough floor whose first layer of material has an interior neighbourhood.
-    Returns the mask of the free particles (all of them on the ground)."""
-    from warp_esph.meshes import lattice_points
-
-    dx = b.spacing
+    lattice (``SceneBuilder.add_particle_floor``): a rough floor whose first layer of
+    material has an interior neighbourhood. Returns the mask of the free particles (all of
+    them on the ground)."""
+    b.add_particles(points, material, name=name)
     if floor == "ground":
-        b.add_particles(points, material, name=name)
         b.add_ground(0.0, friction=friction)
         return np.ones(len(points), dtype=bool)
-    half = dx * math.ceil(radius / dx)
-    base = lattice_points(np.array([-half, -FLOOR_LAYERS * dx, -half]), np.array([half, 0.0, half]), dx)
-    base = base[np.hypot(base[:, 0], base[:, 2]) <= radius]
-    # On the body's lattice (the cylinders are centred on the axis, and so is the base).
-    near = points[np.argmin(np.abs(points[:, 0]) + np.abs(points[:, 2]))]
-    shift = (near - base[np.argmin(np.abs(base[:, 0]) + np.abs(base[:, 2]))])[[0, 2]]
-    shift -= dx * np.round(shift / dx)
-    base[:, [0, 2]] += shift
-    b.add_particles(np.vstack([points, base]), material, name=name)
-    b.pin(indices=np.arange(len(points), len(points) + len(base)), name="floor")
-    return np.arange(len(points) + len(base)) < len(points)
+    # A margin of radius + dx reaches the whole disc from the column nearest the axis.
+    b.add_particle_floor(name, margin=radius + b.spacing, layers=FLOOR_LAYERS, name="floor",
+                         where=lambda p: np.hypot(p[:, 0], p[:, 2]) <= radius)
+    return np.arange(b.particle_count) < len(points)
 
 
 # --------------------------------------------------------------------- slump
@@ -368,7 +359,7 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
 
     ``floor``: ``"ground"``, the static ground collider with Coulomb ``friction`` at the
     layer's base (the floor of ``slump`` and ``spread``); ``"particles"``, FLOOR_LAYERS
-    layers of the same body below the base, pinned (``SceneBuilder.pin``): a floor that is
+    layers of the same body below the base, pinned (``SceneBuilder.add_particle_floor``): a floor that is
     part of every fit, as the material's own interior would be. mu = Y / (2 yield_strain), nu = 0.3.
     Gravity grows linearly from 0 over the first ``ramp`` seconds (``Model.gravity`` is read
     at every step), so that the load is applied without the dynamic overshoot of a sudden
@@ -388,10 +379,10 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0) if ramp > 0.0 else (G * s, -G * math.cos(theta), 0.0))
     L = length * h
     W = width * dx
-    below = FLOOR_LAYERS if floor == "particles" else 0
-    b.add_box((L / 2.0, (h - below * dx) / 2.0, W / 2.0), (L, h + below * dx, W), mat, name="layer")
-    if below:
-        b.pin(region=((-L, -h, -h), (2.0 * L, 0.0, 2.0 * h)), name="floor")
+    b.add_box((L / 2.0, h / 2.0, W / 2.0), (L, h, W), mat, name="layer")
+    if floor == "particles":
+        # Under the strip only (margin 0): the walls normal to z bound it, its ends are free.
+        b.add_particle_floor("layer", margin=0.0, layers=FLOOR_LAYERS, name="floor")
     else:
         b.add_ground(0.0, friction=friction)
     b.add_plane((0.0, 0.0, 1.0), 0.0, 0.0)

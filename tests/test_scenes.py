@@ -147,6 +147,16 @@ BASE = textwrap.dedent(
         ("[scene]", '[solver]\nhourglass = "0.1"\n[scene]',
          r"key 'hourglass' in \[solver\] must be a number >= 0 \(0: off\), not str '0\.1'"),
         ("[scene]", "[solver]\nhourglass = nan\n[scene]", r"key 'hourglass' in \[solver\] must be a number >= 0"),
+        ("radius = 0.1", "radius = 0.1\nfloor_margin = -0.1",
+         r"\[\[bodies\]\] #1 \(shape 'sphere'\): floor_margin = -0\.1 is not allowed: must be >= 0"),
+        ("radius = 0.1", "radius = 0.1\nfloor_margin = 0.1\nfloor_layers = 0",
+         r"\[\[bodies\]\] #1 \(shape 'sphere'\): floor_layers = 0 is not allowed: must be an integer >= 1"),
+        ("radius = 0.1", "radius = 0.1\nfloor_margin = 0.1\nfloor_layers = 9",
+         r"floor_layers = 9 is not allowed: must be an integer in \[1, 8\]"),
+        ("radius = 0.1", "radius = 0.1\nfloor_layers = 2", r"floor_layers = 2 is not allowed without floor_margin"),
+        ("radius = 0.1", "radius = 0.1\nfloor_margin = 100.0", r"\(shape 'sphere'\): floor_margin = 100\.0 is not allowed: .*2000 spacings"),
+        ("radius = 0.1", 'radius = 0.1\nfloor_margin = "wide"', r"key 'floor_margin' in \[\[bodies\]\] #1 .* must be a number, not str"),
+        ("radius = 0.1", "radius = 0.1\nfloor = 2", r"unknown key 'floor' in \[\[bodies\]\] #1"),
         ('preset = "dough"', 'preset = "dough"\npressure_force = "spikey"',
          r"\[materials\.m\]: Material\.pressure_force = 'spikey' is not allowed: must be one of 'energy', 'spiky'"),
     ],
@@ -158,6 +168,34 @@ def test_scene_file_errors_name_file_table_and_key(tmp_path, old, new, pattern):
     with pytest.raises(ValueError, match=pattern) as info:
         load_scene_file(path)
     assert str(path) in str(info.value)
+
+
+def test_floor_keys_build_the_same_model_as_add_particle_floor(tmp_path):
+    """``floor_margin`` / ``floor_layers`` on a body are ``SceneBuilder.add_particle_floor``:
+    the same particles, velocities, bodies and pinned set."""
+    from warp_esph import SceneBuilder  # noqa: PLC0415
+
+    path = tmp_path / "floor.toml"
+    path.write_text(BASE.replace("radius = 0.1", "radius = 0.1\nfloor_margin = 0.12\nfloor_layers = 3", 1)
+                    + '\n[[bodies]]\nshape = "box"\nmaterial = "m"\ncenter = [0.5, 0.2, 0]\nsize = [0.2, 0.1, 0.2]\n')
+    b = load_scene_file(path).builder
+    ref = SceneBuilder(spacing=0.05)
+    mat = PRESETS["dough"]
+    ref.add_sphere((0, 0.2, 0), 0.1, mat)
+    assert ref.add_particle_floor(0, margin=0.12, layers=3) == "sphere0_floor"
+    ref.add_box((0.5, 0.2, 0), (0.2, 0.1, 0.2), mat)
+    assert [(x.name, x.start, x.count) for x in b._bodies] == [(x.name, x.start, x.count) for x in ref._bodies]
+    np.testing.assert_array_equal(np.concatenate(b._points), np.concatenate(ref._points))
+    np.testing.assert_array_equal(np.concatenate(b._velocities), np.concatenate(ref._velocities))
+    assert [p.name for p in b.pins] == ["sphere0_floor"]
+    np.testing.assert_array_equal(b.pins[0].indices, ref.pins[0].indices)
+    # Three layers under the sphere's footprint, one spacing apart, the top one a spacing
+    # below its lowest particle; the box after it has none.
+    sphere = b._bodies[0]
+    floor = np.concatenate(b._points)[b.pins[0].indices]
+    assert b.pins[0].indices.min() > sphere.start and b.pins[0].indices.max() == sphere.start + sphere.count - 1
+    low = np.concatenate(b._points)[sphere.start:b.pins[0].indices.min(), 1].min()
+    np.testing.assert_allclose(np.unique(np.round(floor[:, 1], 9)), low - 0.05 * np.arange(3, 0, -1), atol=1e-9)
 
 
 def test_solver_table_sets_the_fit_and_contact_of_the_model_and_its_solver(tmp_path):

@@ -33,6 +33,13 @@ MAX_PARTICLES_PER_BODY = 6.4e7
 MAX_NEIGHBORS = 1024
 #: Most tips of a star (the polygon test costs particles x tips).
 MAX_STAR_POINTS = 1000
+#: Most layers of a particle floor (``SceneBuilder.add_particle_floor``): a fit reaches at
+#: most 3 spacings, so more layers only cost particles.
+MAX_FLOOR_LAYERS = 8
+#: Most column operations of a particle floor's footprint test (rows of the margin's disc x
+#: columns of the grid; about 10 s of numpy): a margin of thousands of spacings is refused
+#: before it stalls the builder.
+MAX_FLOOR_WORK = 5e8
 
 
 def star_polygon(outer_radius: float, inner_radius: float, points: int = 5) -> np.ndarray:
@@ -134,6 +141,7 @@ class SceneBuilder:
         self.tools: list[tools.Collider] = []
         self.pins: list[tools.PinSet] = []
         self._count = 0
+        self._floors: set[str] = set()
 
     # ----------------------------------------------------------------- bodies
     def _lattice(self, lo, hi, name: str, value) -> np.ndarray:
@@ -253,6 +261,98 @@ class SceneBuilder:
         inside = meshes.sample_inside(points, triangles, self.spacing)
         kind_name = name if name is not None else (meshes.mesh_name(source) if isinstance(source, (str, bytes)) or hasattr(source, "__fspath__") else None)
         return self.add_particles(inside, material, velocity, kind_name, "mesh", angular_velocity)
+
+    def add_particle_floor(self, body, *, margin: float, layers: int | None = None, where=None, name: str | None = None) -> str:
+        """A rough floor that enters the fits: ``layers`` lattice layers of ``body``'s own
+        particles under it, pinned (``pin``); returns the pin's name (default ``"<body>_floor"``).
+
+        ``body`` (a name, or the index an ``add_*`` returned) must be the body added last: the
+        floor particles are appended to it, so they are in every fit of its particles (a
+        floor of another body, or the ground collider, is not: the bottom layer's fit is
+        then one-sided, docs/physics.md, thin layers in shear). The floor lies under the
+        body along -y (Y is up), its top layer one spacing below the body's lowest particle,
+        on the body's lattice (that of its lowest particle), under every column within
+        ``margin`` (m, horizontally) of one of the body's columns: the footprint plus a
+        margin wide enough for the material to spread on. ``layers`` defaults to
+        ``ceil(support_radius / spacing)`` (2 at the default h = 2 dx): the floor's top layer
+        then has a full neighbourhood too. ``where``, a predicate on the floor positions
+        ``(N, 3) -> bool (N,)``, keeps only some of them (e.g. a disc)."""
+        names = [b.name for b in self._bodies]
+        if isinstance(body, str):
+            if body not in names:
+                raise ValueError(f"body = {body!r} is not allowed: must be one of {names!r}")
+            k = names.index(body)
+        elif isinstance(body, (int, np.integer)) and not isinstance(body, bool) and 0 <= body < len(names):
+            k = int(body)
+        else:
+            raise ValueError(f"body = {body!r} is not allowed: must be a body name or index (0..{len(names) - 1})")
+        bd = self._bodies[k]
+        if k != len(self._bodies) - 1:
+            raise ValueError(f"body = {body!r} is not allowed: a particle floor grows its body, so it must be the body "
+                             f"added last ({names[-1]!r}); add the floor right after the body")
+        if bd.name in self._floors:
+            raise ValueError(f"body = {body!r} is not allowed: it has a particle floor already")
+        dx = self.spacing
+        m = checks.non_negative("margin", margin) / dx
+        if layers is None:
+            layers = math.ceil(self.support_radius / dx - 1e-9)
+        layers = checks.positive_int("layers", layers, maximum=MAX_FLOOR_LAYERS)
+        if where is not None and not callable(where):
+            raise ValueError(f"where = {where!r} is not allowed: must be callable as where(floor_positions) -> bool array")
+        name = f"{bd.name}_floor" if name is None else name
+        self._check_tool_name(name)
+        pts = self._points[-1]
+        ref = pts[np.argmin(pts[:, 1])]
+        cols = np.round((pts[:, [0, 2]] - ref[[0, 2]]) / dx).astype(np.int64)
+        # Sizes in floats first: a margin of 1e300 m must be refused, not overflow an integer.
+        reach_f = math.floor(m + 1e-9) * 1.0
+        span = [float(c) + 1.0 + 2.0 * reach_f for c in cols.max(axis=0) - cols.min(axis=0)]
+        if span[0] * span[1] * layers > MAX_PARTICLES_PER_BODY:
+            raise ValueError(f"margin = {margin!r} is not allowed: at spacing {dx:g} the floor would need "
+                             f"{span[0] * span[1] * layers:.3g} particles, more than {MAX_PARTICLES_PER_BODY:.3g}")
+        work = (2.0 * reach_f + 1.0) * span[0] * span[1]
+        if work > MAX_FLOOR_WORK:
+            raise ValueError(f"margin = {margin!r} is not allowed: at spacing {dx:g} it reaches {reach_f:.0f} spacings beyond "
+                             f"the body, and the footprint test would take {work:.3g} column operations, more than {MAX_FLOOR_WORK:.3g}")
+        reach = int(reach_f)
+        lo, hi = cols.min(axis=0) - reach, cols.max(axis=0) + reach
+        size = hi - lo + 1
+        foot = np.zeros(size, dtype=bool)
+        foot[cols[:, 0] - lo[0], cols[:, 1] - lo[1]] = True
+        # Dilation by a disc of radius m columns: per row offset a, a running window of
+        # half-width sqrt(m^2 - a^2) along z (cumulative sums), so the cost is rows x grid.
+        under = np.zeros_like(foot)
+        for a in range(-reach, reach + 1):
+            w = int(math.floor(math.sqrt(max(m * m - a * a, 0.0)) + 1e-9))
+            row = np.zeros_like(foot)
+            if a >= 0:
+                row[a:] = foot[:size[0] - a]
+            else:
+                row[:a] = foot[-a:]
+            cs = np.cumsum(np.pad(row, ((0, 0), (w + 1, w))), axis=1)
+            under |= (cs[:, 2 * w + 1:] - cs[:, :size[1]]) > 0
+        # Ordered as a lattice_points box: x slowest, then y (upwards), then z.
+        ix, iz = np.nonzero(under)
+        cx, cz = ref[0] + dx * (ix + lo[0]), ref[2] + dx * (iz + lo[1])
+        ys = ref[1] - dx * np.arange(layers, 0, -1)
+        nc = len(ix)
+        order = np.lexsort((np.tile(np.arange(nc), layers), np.repeat(np.arange(layers), nc), np.tile(ix, layers)))
+        floor = np.stack([np.tile(cx, layers), np.repeat(ys, nc), np.tile(cz, layers)], axis=1)[order]
+        if where is not None:
+            keep = np.asarray(where(floor.copy()), dtype=bool)
+            if keep.shape != (len(floor),):
+                raise ValueError(f"where returned shape {keep.shape}: it must return one bool per floor position ({len(floor)})")
+            floor = floor[keep]
+        if len(floor) == 0:
+            raise ValueError(f"where = {where!r} is not allowed: it keeps none of the floor's positions")
+        start = self._count
+        self._points[-1] = np.vstack([pts, floor])
+        self._velocities[-1] = np.vstack([self._velocities[-1], np.zeros_like(floor)])
+        self._material_ids[-1] = np.concatenate([self._material_ids[-1], np.full(len(floor), bd.material, dtype=np.int32)])
+        self._bodies[-1] = dataclasses.replace(bd, count=bd.count + len(floor))
+        self._count += len(floor)
+        self._floors.add(bd.name)
+        return self.pin(indices=np.arange(start, self._count), name=name)
 
     # -------------------------------------------------------------- colliders
     def _add_collider(self, lst: list, item, kind: str):

@@ -22,7 +22,7 @@ except ModuleNotFoundError:  # Python 3.10: the same parser as the tomli package
         tomllib = None
 
 from . import checks
-from .builder import SceneBuilder
+from .builder import MAX_FLOOR_LAYERS, SceneBuilder
 from .material import PRESETS, Material
 from .model import CONTACTS, FITS
 
@@ -148,8 +148,10 @@ MATERIAL_KEYS = {
     "pressure_stiffness": (NUM, False), "viscosity": (NUM, False), "model": (STR, False), "clamp_pressure": (BOOL, False),
     "deformation": (STR, False), "elastic_force": (STR, False), "pressure_force": (STR, False),
 }
+#: ``floor_margin`` puts a particle floor under the body (``SceneBuilder.add_particle_floor``;
+#: ``floor_layers`` its layers, default ceil(support_radius / spacing)).
 BODY_COMMON = {"shape": (STR, True), "material": (STR, True), "name": (STR, False), "velocity": (VEC3, False),
-               "angular_velocity": (VEC3, False)}
+               "angular_velocity": (VEC3, False), "floor_margin": (NUM, False), "floor_layers": (INT, False)}
 BODY_SHAPES = {
     "box": {"center": (VEC3, True), "size": (VEC3, True)},
     "sphere": {"center": (VEC3, True), "radius": (NUM, True)},
@@ -276,21 +278,36 @@ def _body(file: str, k: int, table: dict, builder: SceneBuilder, materials: dict
             f"{file}: material = {mat_name!r} in {where} is not allowed: no [materials.{mat_name}] table and no preset "
             f"of that name{_did_you_mean(mat_name, known)} (known: {', '.join(known)})"
         )
-    args = {k: v for k, v in table.items() if k not in ("shape", "material")}
+    args = {k: v for k, v in table.items() if k not in ("shape", "material", "floor_margin", "floor_layers")}
     try:
+        if "floor_layers" in table and "floor_margin" not in table:
+            raise ValueError(f"floor_layers = {table['floor_layers']!r} is not allowed without floor_margin: "
+                             f"give floor_margin (m) to put a particle floor under the body")
         if shape == "box":
-            builder.add_box(material=material, **args)
+            index = builder.add_box(material=material, **args)
         elif shape == "sphere":
-            builder.add_sphere(material=material, **args)
+            index = builder.add_sphere(material=material, **args)
         elif shape == "cylinder":
-            builder.add_cylinder(material=material, **args)
+            index = builder.add_cylinder(material=material, **args)
         elif shape == "star":
-            builder.add_star(material=material, **args)
+            index = builder.add_star(material=material, **args)
         else:
             source = args.pop("file")
             if not os.path.isabs(source):
                 source = os.path.join(base_dir, source)
-            builder.add_mesh(source, material, **args)
+            index = builder.add_mesh(source, material, **args)
+        if "floor_margin" in table:
+            # Checked here so that the message names the file's keys, not the method's arguments.
+            margin = checks.non_negative("floor_margin", table["floor_margin"])
+            layers = table.get("floor_layers")
+            if layers is not None:
+                layers = checks.positive_int("floor_layers", layers, maximum=MAX_FLOOR_LAYERS)
+            try:
+                builder.add_particle_floor(index, margin=margin, layers=layers)
+            except ValueError as e:
+                # The method names its arguments; the file's keys are floor_<argument>.
+                msg = str(e)
+                raise ValueError("floor_" + msg if msg.startswith(("margin = ", "layers = ")) else msg) from None
     except ValueError as e:
         raise ValueError(f"{file}: {where}: {e}") from None
 
