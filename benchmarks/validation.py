@@ -108,8 +108,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     pressure, ``viscosity`` Pa s (a little, so that an unyielded body's ringing decays).
     ``resolution`` is particles across H0 (and across the diameter). The height is the top
     of the particles within R0/2 of the axis (plus dx/2: each stands for a cell).
-    ``pressure_force``: ``Material.pressure_force`` (docs/physics.md, the SPH pressure); the
-    suite's tables were measured with ``"spiky"``, the material default before ``"energy"``."""
+    ``pressure_force``: ``Material.pressure_force`` (docs/physics.md, the SPH pressure)."""
     wp, we = _we()
     dx = H0 / resolution
     R0 = H0 / 2.0

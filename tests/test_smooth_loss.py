@@ -163,10 +163,7 @@ def test_no_jump_in_the_loss_through_ground_contact(name):
     10 % of the tape's at the centre. A jump anywhere in the range shows as one increment
     far off (measured with the earlier contact law, which removed all inward velocity of a
     particle once it crossed the surface: increments of -20 to 4 times the slope; with the
-    flow's volume factor jumping where J left [0.8, 1.25]: 0.71 and 1.25; then, with the spiky
-    pressure force at k_p = 1.0, 0.971-1.004 for mu, 0.974-1.001 for viscosity; with the energy
-    force, the default, at k_p = 0.5 (the same bulk stiffness) 0.926-1.000 for viscosity: it
-    bends more, docs/physics.md, the SPH pressure)."""
+    flow's volume factor jumping where J left [0.8, 1.25]: 0.71 and 1.25; now 0.971-1.004 for mu, 0.974-1.001 for viscosity)."""
     base = PARAMS[name]
     _, grad, _, _ = _landing_loss(_landing_model(), grad_of=name)
     values = base * (1.0 + np.linspace(-1e-2, 1e-2, 21))

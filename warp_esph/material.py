@@ -34,12 +34,12 @@ DEFORMATION_IDS = {name: k for k, name in enumerate(DEFORMATIONS)}
 ELASTIC_FORCES = ("paper", "variational")
 ELASTIC_FORCE_IDS = {name: k for k, name in enumerate(ELASTIC_FORCES)}
 
-#: SPH pressure pair forces (``warp_esph/sim/pressure.py``, docs/method.md §6): ``energy``
-#: (default), the exact negative gradient of the SPH pressure energy ``sum_i m_i e_i(rho_i)``
-#: (the poly6 density's own kernel gradient, ``p / rho^2`` pair weights), which does no net
-#: work on a closed path of the particles; ``spiky``, Müller et al.'s ``(p_i + p_j) / 2``
-#: along the spiky kernel's gradient, the gradient of no energy, which keeps the 16-across
-#: S = 0.5 slump creeping (docs/physics.md, the SPH pressure).
+#: SPH pressure pair forces (``warp_esph/sim/pressure.py``, docs/method.md §6): ``spiky``
+#: (default), Müller et al.'s ``(p_i + p_j) / 2`` along the spiky kernel's gradient, the
+#: gradient of no energy, which keeps the 16-across S = 0.5 slump creeping; ``energy``, the
+#: exact negative gradient of the SPH pressure energy ``sum_i m_i e_i(rho_i)`` (the poly6
+#: density's own kernel gradient, ``p / rho^2`` pair weights), which does no net work on a
+#: closed path of the particles (docs/physics.md, the SPH pressure: why it is not the default).
 PRESSURE_FORCES = ("energy", "spiky")
 PRESSURE_FORCE_IDS = {name: k for k, name in enumerate(PRESSURE_FORCES)}
 
@@ -104,13 +104,14 @@ class Material:
     stiffness again, the "additional stability" of the paper's §4. Use ``0`` to switch
     pressure off.
 
-    ``pressure_force`` picks the SPH pressure pair force (``PRESSURE_FORCES``): ``"energy"``
-    (default), minus the gradient of the pressure's energy ``sum_i m_i e_i(rho_i)`` with
-    ``de/drho = p / rho^2``, or ``"spiky"``, Müller et al.'s symmetrised pressure along the
-    spiky kernel's gradient. The spiky force is the gradient of no energy; at 16 particles
+    ``pressure_force`` picks the SPH pressure pair force (``PRESSURE_FORCES``): ``"spiky"``
+    (default), Müller et al.'s symmetrised pressure along the spiky kernel's gradient, or
+    ``"energy"``, minus the gradient of the pressure's energy ``sum_i m_i e_i(rho_i)`` with
+    ``de/drho = p / rho^2``. The spiky force is the gradient of no energy; at 16 particles
     across it keeps a slumped yield-stress pile creeping at a flat rate, where the energy
-    force lets it come to rest (docs/physics.md, the SPH pressure). Scenes that reproduce a
-    published result made with Müller et al.'s pressure ask for ``"spiky"`` by name.
+    force lets it come to rest; but with the energy force a bouncing rubber ball rocks
+    more after its bounce and a loss through ground contact bends more (docs/physics.md,
+    the SPH pressure).
     """
 
     mu: float

@@ -3,8 +3,7 @@ kernels of Müller et al. 2003).
 
     rho_i = sum_{j in N_i + {i}} m_j W_poly6(|x_i - x_j|, h)
     p_i   = k_p (rho_i - rho0_i)          (clamped at 0 unless the material says not)
-    f_i   = -sum_j m_i m_j (p_i / rho_i^2 + p_j / rho_j^2) grad W_poly6(x_i - x_j)   ("energy", default)
-         or -sum_j V_i V_j (p_i + p_j)/2 grad W_spiky(x_i - x_j)                    ("spiky")
+    f_i   = -sum_j V_i V_j (p_i + p_j)/2 grad W_spiky(x_i - x_j)
             + sum_j 5 eta_ij V_i V_j ((u_j - u_i) . e_ij) e_ij lap W_visc(|x_i - x_j|)
 
 with ``V = m / rho`` and ``e_ij`` the unit vector between the pair. The viscous force is
