@@ -87,8 +87,7 @@ def test_documented_example_loads(tmp_path):
     # preset + E/nu: the preset's plastic settings, the new stiffness, pressure from the new bulk modulus.
     soft = b._materials[0]
     assert soft.youngs_modulus == pytest.approx(1.5e4) and soft.yield_stress == PRESETS["dough"].yield_stress
-    assert soft.pressure_stiffness == pytest.approx(soft.default_pressure_stiffness)
-    assert soft.pressure_stiffness == pytest.approx(soft.bulk_modulus / (4 * soft.density))  # energy force
+    assert soft.pressure_stiffness == pytest.approx(soft.bulk_modulus / (2 * soft.density))
     assert math.isinf(b._materials[1].yield_stress)
 
 
@@ -228,14 +227,12 @@ def test_material_table_sets_the_pressure_force(tmp_path):
     """A material table's ``pressure_force`` becomes ``Material.pressure_force`` and changes
     the run (the two forms differ once the body is compressed)."""
     text = BASE.replace("radius = 0.1", "radius = 0.1\nvelocity = [0, -4, 0]").replace("center = [0, 0.2, 0]", "center = [0, 0.15, 0]")
-    plain, spiky = tmp_path / "plain.toml", tmp_path / "spiky.toml"
+    plain, energy = tmp_path / "plain.toml", tmp_path / "energy.toml"
     plain.write_text(text)
-    spiky.write_text(text.replace('preset = "dough"', 'preset = "dough"\npressure_force = "spiky"', 1))
-    a, b = load_scene_file(plain).builder.finalize(), load_scene_file(spiky).builder.finalize()
-    assert [mat.pressure_force for mat in a.materials] == ["energy"]
-    assert [mat.pressure_force for mat in b.materials] == ["spiky"]
-    # each force at its own default stiffness (material.PRESSURE_BULK_SHARE)
-    assert b.materials[0].pressure_stiffness == pytest.approx(2.0 * a.materials[0].pressure_stiffness)
+    energy.write_text(text.replace('preset = "dough"', 'preset = "dough"\npressure_force = "energy"', 1))
+    a, b = load_scene_file(plain).builder.finalize(), load_scene_file(energy).builder.finalize()
+    assert [mat.pressure_force for mat in a.materials] == ["spiky"]
+    assert [mat.pressure_force for mat in b.materials] == ["energy"]
     xa = simulate(a, 2, progress=False).x.numpy()
     xb = simulate(b, 2, progress=False).x.numpy()
     assert np.abs(xa - xb).max() > 1e-6

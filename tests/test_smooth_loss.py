@@ -21,10 +21,8 @@ from warp_esph.sim.colliders import CONTINUOUS_CONTACT_RAMP
 STEPS = 50
 DT = 1.0e-3
 DX = 0.02
-# pressure_stiffness 0.5 = K / (4 rho0), the energy force's default (0.54): with k_p = 1.0 the
-# energy force is twice as stiff in bulk as the spiky force was at that value (docs/physics.md).
 PARAMS = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "hardening": 200.0,
-          "pressure_stiffness": 0.5, "viscosity": 2.0}
+          "pressure_stiffness": 1.0, "viscosity": 2.0}
 
 
 def _model(h_over_dx, params=None, **builder):

@@ -126,7 +126,7 @@ class Material:
     clamp_pressure: bool = True
     deformation: str = "incremental"
     elastic_force: str | None = None
-    pressure_force: str = "energy"
+    pressure_force: str = "spiky"
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
