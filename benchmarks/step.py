@@ -76,7 +76,8 @@ def box_side(n: int) -> int:
 
 
 # ------------------------------------------------------------------ warp_esph
-def build_model(we, n: int, device, requires_grad: bool = False, elastic_force: str | None = None):
+def build_model(we, n: int, device, requires_grad: bool = False, elastic_force: str | None = None,
+                pressure_force: str | None = None):
     import warp as wp
 
     side = box_side(n)
@@ -85,6 +86,8 @@ def build_model(we, n: int, device, requires_grad: bool = False, elastic_force: 
     mat = we.Material.preset("dough")
     if elastic_force is not None:
         mat = mat.replace(elastic_force=elastic_force)
+    if pressure_force is not None:
+        mat = mat.replace(pressure_force=pressure_force)
     b.add_box((0.0, L / 2 + 0.25 * DX, 0.0), (L, L, L), mat, velocity=(0.0, -1.0, 0.0))
     b.add_ground(0.0, friction=0.5)
     return b.finalize(device=device, dtype=wp.float32, requires_grad=requires_grad)
@@ -344,25 +347,40 @@ def variant_rates(n: int, device, args, baseline=None) -> dict:
 def elastic_force_rates(n: int, device, args) -> dict:
     """Forward rate of the dough with each elastic force (the default variational one and
     the paper's eqs. 10-13), blocks interleaved in one run; ratios against the paper's."""
+    return _interleaved_rates(n, device, args, "elastic_force", ("paper", "variational"))
+
+
+def pressure_force_rates(n: int, device, args) -> dict:
+    """Forward rate of the dough with each SPH pressure force (the default spiky one and
+    the energy force, each at its default ``k_p``), blocks interleaved in one run; ratios
+    against the spiky one."""
+    return _interleaved_rates(n, device, args, "pressure_force", ("spiky", "energy"))
+
+
+def _interleaved_rates(n: int, device, args, field: str, choices) -> dict:
+    """Forward rates of the dough with ``Material(field=choice)`` for each choice, the timed
+    blocks interleaved so that a drifting machine load affects each alike; the ratios
+    ``"<last>_over_<first>"``."""
     import warp_esph as we
 
     prepared = []
-    for force in ("paper", "variational"):
-        model = build_model(we, n, device, elastic_force=force)
+    for choice in choices:
+        model = build_model(we, n, device, **{field: choice})
         solver = we.Solver(model)
-        prepared.append((force, solver, warmed_states(model, solver, args.warmup), []))
+        prepared.append((choice, solver, warmed_states(model, solver, args.warmup), []))
     time_interleaved(prepared, device, args)
     out = {}
-    for force, solver, _states, times in prepared:
+    for choice, solver, _states, times in prepared:
         n_p = solver.model.particle_count
-        out[force] = {
+        out[choice] = {
             "particle_steps_per_second_best_block": n_p / min(t for t, _ in times),
             "particle_steps_per_second_mean": n_p / float(np.mean([t for t, _ in times])),
             "particle_steps_per_second_cpu_time_best_block": n_p / min(c for _, c in times),
         }
+    ratio = f"{choices[-1]}_over_{choices[0]}"
     for key in ("particle_steps_per_second_best_block", "particle_steps_per_second_mean",
                 "particle_steps_per_second_cpu_time_best_block"):
-        out.setdefault("variational_over_paper", {})[key] = out["variational"][key] / out["paper"][key]
+        out.setdefault(ratio, {})[key] = out[choices[-1]][key] / out[choices[0]][key]
     return out
 
 
@@ -522,6 +540,8 @@ def main(argv=None):
     p.add_argument("--compare-cpu", action="store_true", help="check a short run on each CUDA device against the CPU")
     p.add_argument("--elastic-forces", action="store_true",
                    help="also time the dough with the variational (default) and the paper's elastic force, interleaved")
+    p.add_argument("--pressure-forces", action="store_true",
+                   help="also time the dough with the spiky (default) and the energy SPH pressure force, interleaved")
     p.add_argument("--json", default="benchmark_step.json", help="where the results go")
     args = p.parse_args(argv)
 
@@ -584,6 +604,19 @@ def main(argv=None):
                                        f"({r[f]['particle_steps_per_second_cpu_time_best_block'] / 1e3:.0f} k/s CPU time)"
                                        for f in ("paper", "variational"))
                       + "; variational / paper: " + ", ".join(f"{v:.3f}" for v in r["variational_over_paper"].values()),
+                      flush=True)
+    if args.pressure_forces:
+        report["pressure_forces"] = {}
+        for dev_name in devices:
+            device = wp.get_device(dev_name)
+            report["pressure_forces"][dev_name] = {}
+            for n in _sizes(args.sizes if device.is_cpu else args.cuda_sizes):
+                print(f"pressure forces {dev_name} {n} ...", flush=True)
+                r = report["pressure_forces"][dev_name][str(n)] = pressure_force_rates(n, device, args)
+                print("  " + ", ".join(f"{f}: {r[f]['particle_steps_per_second_best_block'] / 1e3:.0f} k/s best block "
+                                       f"({r[f]['particle_steps_per_second_cpu_time_best_block'] / 1e3:.0f} k/s CPU time)"
+                                       for f in ("spiky", "energy"))
+                      + "; energy / spiky: " + ", ".join(f"{v:.3f}" for v in r["energy_over_spiky"].values()),
                       flush=True)
     if args.no_splishsplash:
         report["splishsplash"] = {"available": False, "message": "SPlisHSPlasH skipped (--no-splishsplash)"}

@@ -960,9 +960,11 @@ def _stability_materials():
         p = we.Material.preset(name)
         out.append((f"preset {name}", p))
         out.append((f"preset {name}, viscosity 0", p.replace(viscosity=0.0)))
+        out.append((f"preset {name}, energy pressure, viscosity 0", p.replace(pressure_force="energy", viscosity=0.0)))
     default = we.Material(mu=1.0e5, lam=1.0e5)
     out.append(("Material(mu=1e5, lam=1e5)", default))
     out.append(("Material(mu=1e5, lam=1e5), viscosity 5", default.replace(viscosity=5.0)))
+    out.append(("Material(mu=1e5, lam=1e5), energy pressure", default.replace(pressure_force="energy")))
     return out
 
 

@@ -11,6 +11,7 @@ import warp as wp
 import warp_esph as we
 from warp_esph.sim import curvature, deformation, plasticity, smoothing
 from warp_esph._types import type_set
+from warp_esph.material import PRESSURE_BULK_SHARE
 
 
 def _rotation(rng):
@@ -576,6 +577,46 @@ def test_pressure_force_is_minus_the_gradient_of_the_pressure_energy(pressure_fo
         assert err < 1e-6, err
     else:
         assert err > 0.1, err
+
+
+@pytest.mark.parametrize("pressure_force", ["energy", "spiky"])
+def test_default_pressure_stiffness_adds_the_same_bulk_stiffness_with_either_force(pressure_force):
+    """Under a uniform compression the pressure forces' virial ``sum_i f_i . (x_i - c)``
+    is ``3 sum_i V_i p`` for a force that is minus the gradient of the pressure energy
+    (``-dE_p/dV = p``, the bulk stiffness ``k_p rho0``); the spiky form's ``(p_i + p_j) / 2``
+    weights carry only about half of it (in the continuum they give ``grad p / 2``). So the
+    default ``k_p`` is ``K / (4 rho0)`` for the energy force and ``K / (2 rho0)`` for the
+    spiky one (``material.PRESSURE_BULK_SHARE``): either adds about 0.23 K. An 8^3 block
+    compressed 1 % (float64): measured virial 0.949 (energy) and 0.447 (spiky) of
+    ``3 sum V p``; 0.237 K and 0.223 K (docs/physics.md, the SPH pressure)."""
+    mat = we.Material.from_young(1.0e5, 0.3, density=1000.0, pressure_force=pressure_force)
+    assert mat.pressure_stiffness == pytest.approx(PRESSURE_BULK_SHARE[pressure_force] * mat.bulk_modulus / mat.density)
+    model = _block_model(n=(8, 8, 8), material=mat)
+    x0 = model.particle_x0
+    c = x0.mean(0)
+    x = c + 0.99 * (x0 - c)
+    _, f = _pressure_energy_and_forces(pressure_force, x, model)
+    h = model.support_radius
+    m = model.particle_mass.numpy()
+    d2 = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)
+    rho = (m[None, :] * 315.0 / (64.0 * math.pi * h**9) * np.clip(h * h - d2, 0.0, None) ** 3).sum(1)
+    p = mat.pressure_stiffness * np.maximum(rho - model.particle_rest_density.numpy(), 0.0)
+    share = float((f * (x - c)).sum() / (3.0 * (m / rho * p).sum()))
+    assert share == pytest.approx(0.95 if pressure_force == "energy" else 0.45, abs=0.03), share
+    bulk = mat.pressure_stiffness * mat.density * share / mat.bulk_modulus
+    assert bulk == pytest.approx(0.23, abs=0.015), bulk
+
+
+def test_a_default_pressure_stiffness_follows_the_pressure_force():
+    """Switching the force (``replace``, a preset override) keeps the added bulk stiffness
+    (the default ``k_p`` of the new force); an explicit ``k_p`` is kept."""
+    m = we.Material.from_young(1.0e5, 0.3, density=1000.0)
+    e = m.replace(pressure_force="energy")
+    assert e.pressure_stiffness == pytest.approx(m.pressure_stiffness / 2.0)
+    assert e.replace(pressure_force="spiky").pressure_stiffness == pytest.approx(m.pressure_stiffness)
+    assert m.replace(pressure_stiffness=3.0).replace(pressure_force="energy").pressure_stiffness == 3.0
+    rubber = we.Material.preset("rubber", pressure_force="energy")
+    assert rubber.pressure_stiffness == pytest.approx(rubber.bulk_modulus / (4.0 * rubber.density))
 
 
 def test_pressure_force_choice_is_validated_and_spiky_by_default():

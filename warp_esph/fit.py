@@ -26,7 +26,8 @@ magnitude. ``bounds={"flow_rate": (1, 1e3)}`` clips them; ``clip`` caps the norm
 optimiser-space gradient (long horizons can give exploding gradients, docs/method.md).
 
 ``tie_pressure``: a ``Material`` whose ``pressure_stiffness`` was left at its default
-follows ``mu`` and ``lam`` (``k_p = (lam + 2 mu / 3) / (2 rho0)``); with ``None`` (the
+follows ``mu`` and ``lam`` (``k_p = share (lam + 2 mu / 3) / rho0``, ``share`` the pressure
+force's ``material.PRESSURE_BULK_SHARE``); with ``None`` (the
 default) each fitted material whose ``k_p`` equals that formula keeps following it while
 ``mu``/``lam`` change, with the chain rule applied to the gradient.
 
@@ -47,7 +48,7 @@ import warp as wp
 from . import checks
 from .builder import SceneBuilder
 from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, SumLoss, WorldLoss, is_tools_csv, read_tools_csv
-from .material import Material
+from .material import PRESSURE_BULK_SHARE, Material
 from .model import Model
 from .rollout import PARAMETERS, Rollout
 
@@ -313,12 +314,13 @@ class _Run:
         self.noise = None if exp.noise is None else checks.positive("noise", exp.noise)
         self.values = self.rollout.get_parameters()
         self.rho = np.array([m.density for m in self.model.materials])
+        # k_p = share K / rho0 of the tied materials (material.PRESSURE_BULK_SHARE)
+        self.kp_share = np.array([PRESSURE_BULK_SHARE[m.pressure_force] for m in self.model.materials])
 
     def setup_tie(self, params, tie_pressure):
         m = self.model.materials
         if tie_pressure is None:
-            self.tied = [k for k in self.idx if math.isclose(m[k].pressure_stiffness, m[k].bulk_modulus / (2 * m[k].density),
-                                                             rel_tol=1e-9)]
+            self.tied = [k for k in self.idx if m[k].has_default_pressure_stiffness]
         else:
             self.tied = list(self.idx) if tie_pressure else []
         self.tie = bool(self.tied) and ("mu" in params or "lam" in params) and "pressure_stiffness" not in params
@@ -330,7 +332,7 @@ class _Run:
             mu = full.get("mu", v["mu"])
             lam = full.get("lam", v["lam"])
             kp = v["pressure_stiffness"].copy()
-            kp[self.tied] = (lam[self.tied] + 2.0 * mu[self.tied] / 3.0) / (2.0 * self.rho[self.tied])
+            kp[self.tied] = self.kp_share[self.tied] * (lam[self.tied] + 2.0 * mu[self.tied] / 3.0) / self.rho[self.tied]
             full["pressure_stiffness"] = kp
         self.rollout.set_parameters(full)
 
@@ -340,7 +342,7 @@ class _Run:
         for name in params:
             g = grads[name].copy()
             if self.tie and name in ("mu", "lam"):
-                factor = 1.0 / (3.0 * self.rho) if name == "mu" else 1.0 / (2.0 * self.rho)
+                factor = self.kp_share * (2.0 / 3.0 if name == "mu" else 1.0) / self.rho
                 g[self.tied] += grads["pressure_stiffness"][self.tied] * factor[self.tied]
             out[name] = g[self.idx]
         return out

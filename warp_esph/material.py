@@ -35,13 +35,22 @@ ELASTIC_FORCES = ("paper", "variational")
 ELASTIC_FORCE_IDS = {name: k for k, name in enumerate(ELASTIC_FORCES)}
 
 #: SPH pressure pair forces (``warp_esph/sim/pressure.py``, docs/method.md §6): ``spiky``
-#: (default), Müller et al.'s ``(p_i + p_j) / 2`` along the spiky kernel's gradient, which is
-#: the gradient of no energy and keeps the 16-across S = 0.5 slump creeping; ``energy``, the
+#: (default), Müller et al.'s ``(p_i + p_j) / 2`` along the spiky kernel's gradient, the
+#: gradient of no energy, which keeps the 16-across S = 0.5 slump creeping; ``energy``, the
 #: exact negative gradient of the SPH pressure energy ``sum_i m_i e_i(rho_i)`` (the poly6
 #: density's own kernel gradient, ``p / rho^2`` pair weights), which does no net work on a
 #: closed path of the particles (docs/physics.md, the SPH pressure: why it is not the default).
 PRESSURE_FORCES = ("energy", "spiky")
 PRESSURE_FORCE_IDS = {name: k for k, name in enumerate(PRESSURE_FORCES)}
+
+#: The default ``k_p = share * K / rho0`` of each pressure force (``K`` the bulk modulus).
+#: Either adds about a quarter of ``K`` to the bulk stiffness: the energy force's pressure
+#: is the virial pressure of its pair forces (``-dE_p/dV``), while the spiky force's pair
+#: forces carry 0.47 of ``p`` on a uniformly compressed lattice (``h = 2 dx``; in the
+#: continuum ``(p_i + p_j) / 2`` weights give half of ``grad p``), so ``K / (2 rho0)``, the
+#: spiky force's default since it was the only one, adds 0.23 K through it
+#: (docs/physics.md, the SPH pressure).
+PRESSURE_BULK_SHARE = {"energy": 0.25, "spiky": 0.5}
 
 
 def p_wave_speed(mu, lam, density, pressure_stiffness):
@@ -89,18 +98,20 @@ class Material:
     (``tests/test_units.py`` checks the relation in a simulated simple-shear test).
 
     ``yield_stress = inf`` (or ``flow_rate = 0``) gives a purely elastic material.
-    ``pressure_stiffness = None`` picks ``k_p = K / (2 rho0)`` with ``K = lam + 2 mu / 3``
-    the bulk modulus: SPH pressure then adds half the bulk stiffness again, the
-    "additional stability" of the paper's §4. Use ``0`` to switch pressure off.
+    ``pressure_stiffness = None`` picks ``k_p = K / (4 rho0)`` (``K = lam + 2 mu / 3`` the
+    bulk modulus) for the energy force and ``K / (2 rho0)`` for the spiky one
+    (``PRESSURE_BULK_SHARE``): either way SPH pressure adds about a quarter of the bulk
+    stiffness again, the "additional stability" of the paper's §4. Use ``0`` to switch
+    pressure off.
 
     ``pressure_force`` picks the SPH pressure pair force (``PRESSURE_FORCES``): ``"spiky"``
     (default), Müller et al.'s symmetrised pressure along the spiky kernel's gradient, or
     ``"energy"``, minus the gradient of the pressure's energy ``sum_i m_i e_i(rho_i)`` with
     ``de/drho = p / rho^2``. The spiky force is the gradient of no energy; at 16 particles
     across it keeps a slumped yield-stress pile creeping at a flat rate, where the energy
-    force lets it come to rest; but the energy force's poly6 gradient vanishes as two
-    particles meet, and at 8 across a pile without viscosity and a bouncing rubber ball
-    take longer to settle with it (docs/physics.md, the SPH pressure).
+    force lets it come to rest; but ``Model.stable_dt()`` does not bound the energy force
+    (a toothpaste box without viscosity blows up at 0.85 of it) and a loss through ground
+    contact bends more with it (docs/physics.md, the SPH pressure).
     """
 
     mu: float
@@ -130,14 +141,14 @@ class Material:
         set_("flow_rate", checks.non_negative("Material.flow_rate", self.flow_rate))
         set_("hardening", checks.number("Material.hardening", self.hardening))
         set_("density", checks.positive("Material.density", self.density))
+        checks.choice("Material.pressure_force", self.pressure_force, PRESSURE_FORCES)
         if self.pressure_stiffness is None:
-            set_("pressure_stiffness", self.bulk_modulus / (2.0 * self.density))
+            set_("pressure_stiffness", self.default_pressure_stiffness)
         set_("pressure_stiffness", checks.non_negative("Material.pressure_stiffness", self.pressure_stiffness))
         set_("viscosity", checks.non_negative("Material.viscosity", self.viscosity))
         checks.choice("Material.model", self.model, MODELS)
         checks.choice("Material.deformation", self.deformation, DEFORMATIONS)
         checks.choice("Material.elastic_force", self.elastic_force, ELASTIC_FORCES)
-        checks.choice("Material.pressure_force", self.pressure_force, PRESSURE_FORCES)
         if self.elastic_force == "variational" and self.deformation != "incremental":
             raise ValueError(
                 f"Material.elastic_force = 'variational' is not allowed with deformation = {self.deformation!r}: "
@@ -198,12 +209,27 @@ class Material:
     def preset(cls, name: str, **overrides) -> "Material":
         """A named preset (see ``PRESETS``), with any field overridden."""
         checks.choice("preset", name, tuple(PRESETS))
-        if {"mu", "lam", "density"} & overrides.keys() and "pressure_stiffness" not in overrides:
-            overrides["pressure_stiffness"] = None  # re-derive it from the new moduli
+        if {"mu", "lam", "density", "pressure_force"} & overrides.keys() and "pressure_stiffness" not in overrides:
+            overrides["pressure_stiffness"] = None  # re-derive it from the new moduli / force
         return dataclasses.replace(PRESETS[name], **overrides)
 
     def replace(self, **changes) -> "Material":
+        """A copy with ``changes``. A ``pressure_stiffness`` at its default follows a new
+        ``pressure_force`` (each force's default adds the same bulk stiffness) unless
+        ``changes`` sets it; new moduli keep the old value."""
+        if "pressure_force" in changes and "pressure_stiffness" not in changes and self.has_default_pressure_stiffness:
+            changes["pressure_stiffness"] = None
         return dataclasses.replace(self, **changes)
+
+    @property
+    def default_pressure_stiffness(self) -> float:
+        """``k_p = PRESSURE_BULK_SHARE[pressure_force] * K / rho0`` (m^2/s^2)."""
+        return PRESSURE_BULK_SHARE[self.pressure_force] * self.bulk_modulus / self.density
+
+    @property
+    def has_default_pressure_stiffness(self) -> bool:
+        """Whether ``pressure_stiffness`` is ``default_pressure_stiffness`` (to rounding)."""
+        return math.isclose(self.pressure_stiffness, self.default_pressure_stiffness, rel_tol=1e-9)
 
     @property
     def youngs_modulus(self) -> float:

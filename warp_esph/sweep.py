@@ -411,8 +411,9 @@ class _Task:
 def _apply(model, assignments, values):
     """Set the sample's values in the model's materials (through ``Material`` checks).
 
-    A material whose pressure stiffness follows its moduli (the default ``k_p = K / (2
-    rho0)``) keeps following them when ``mu`` or ``lam`` change, as in ``fit``.
+    A material whose pressure stiffness follows its moduli (the default ``k_p``,
+    ``Material.default_pressure_stiffness``) keeps following them when ``mu`` or ``lam``
+    change, as in ``fit``.
     """
     changes: dict[int, dict] = {}
     for name, field, idx in assignments:
@@ -420,8 +421,7 @@ def _apply(model, assignments, values):
             changes.setdefault(k, {})[field] = values[name]
     for k, ch in changes.items():
         m = model.materials[k]
-        if ({"mu", "lam"} & ch.keys()) and "pressure_stiffness" not in ch and math.isclose(
-                m.pressure_stiffness, m.bulk_modulus / (2.0 * m.density), rel_tol=1e-9):
+        if ({"mu", "lam"} & ch.keys()) and "pressure_stiffness" not in ch and m.has_default_pressure_stiffness:
             ch["pressure_stiffness"] = None
         model.set_material(k, m.replace(**ch))
 

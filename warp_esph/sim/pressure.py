@@ -58,7 +58,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         m_i m_j / (rho_i rho_j)``, ``rij = x_i - x_j``, ``r2 = |rij|^2 < h^2``; ``grad W_poly6(r)
         = -6 c6 (h^2 - |r|^2)^2 r``."""
         e = h * h - r2
-        w = VV * (p_i * rho_j / rho_i + p_j * rho_i / rho_j)
+        # p_i rho_j / rho_i + p_j rho_i / rho_j over one division (one per pair, not two)
+        w = VV * (p_i * rho_j * rho_j + p_j * rho_i * rho_i) / (rho_i * rho_j)
         return (scalar(6.0) * c6 * w * e * e) * rij
 
     @wp.func
