@@ -193,18 +193,25 @@ def test_elastic_force_is_read_from_scene_files_and_presets(tmp_path):
 
 def test_rubber_ball_bounces_and_settles_in_its_shape():
     """The rubber preset (variational force) in the rubber_bounce scene, at 0.6 of its
-    resolution: after the bounce the ball settles on the ground with its rest extents
-    (measured 1.038, 0.994, 1.033 of them: it sags and spreads a little where it rests).
+    resolution: after the bounce the ball settles on the ground in its rest shape (its
+    principal second moments about the centroid within 5 % of the start's: it sags and
+    spreads a little where it rests).
 
     Since static friction holds (the friction fix of docs/physics.md) the ball keeps
     rocking on its flattened contact patch: the rocking is nearly rigid, which the central
-    SPH viscosity leaves alone, and the floor has no rolling resistance. Measured from
-    3.5 s to 7 s: internal kinetic energy 3e-6 to 3e-5 J/kg, mean speed 5-17 mm/s, the
-    centroid within 1 mm (before the fix the leaking contact damped it: 4e-10 J/kg at 4 s).
-    It is physical, not the contact law (docs/tools.md, "Rocking on the contact patch"):
-    nothing feeds it, it decays at the same rate at half the step, and ten times the
-    viscosity damps it 2.3 times faster. The bound below admits the rocking and nothing
-    larger."""
+    SPH viscosity leaves alone, and the floor has no rolling resistance. It is physical, not
+    the contact law (docs/tools.md, "Rocking on the contact patch"): nothing feeds it, it
+    decays at the same rate at half the step, and ten times the viscosity damps it 2.3 times
+    faster. How much of it is left at 4 s is chaotic: over the unjittered start and three
+    starts jittered by 1e-5 m (0.04 % of the spacing), the internal kinetic energy at 4 s
+    (mean ``|v - v_mean|^2 / 2``) is 5.0e-5 to 5.5e-4 J/kg with the spiky pressure force and
+    1.2e-4 to 4.5e-4 with the energy force, the centroid's speed 0.012-0.036 / 0.013-0.033 m/s
+    (docs/physics.md, the SPH pressure): the earlier bounds on these (1e-4 J/kg, 0.03 m/s)
+    held for one realization only. So the bounds are on the deformation's kinetic energy, the
+    rigid rotation about the centroid removed (measured 3.0e-6 to 3.2e-5 / 6.7e-6 to 3.8e-5
+    J/kg), on the shape by its principal second moments (0.966-1.006 / 0.972-1.016 of the
+    start's; the axis extents of a turned lattice sphere change by up to 15 %), on the
+    centroid's drift (at most 0.012 m) and on its speed with room for the rocking."""
     from warp_esph.scenes import get_scene
 
     scene = get_scene("rubber_bounce", scale=0.6)
@@ -219,13 +226,18 @@ def test_rubber_ball_bounces_and_settles_in_its_shape():
         a, c = c, a
         if k % 50 == 0:
             bounced |= bool(a.v.numpy()[:, 1].mean() > 0.5)
-    x, v = a.x.numpy(), a.v.numpy()
-    internal = 0.5 * ((v - v.mean(axis=0)) ** 2).mean()
-    extents = np.ptp(x, axis=0) / np.ptp(model.particle_x0, axis=0)
+    x, v = a.x.numpy().astype(np.float64), a.v.numpy().astype(np.float64)
+    r = x - x.mean(axis=0)
+    u = v - v.mean(axis=0)
+    inertia = (r * r).sum() * np.eye(3) - r.T @ r
+    omega = np.linalg.solve(inertia, np.cross(r, u).sum(axis=0))
+    deformation = 0.5 * ((u - np.cross(omega, r)) ** 2).sum(axis=1).mean()
+    r0 = model.particle_x0 - model.particle_x0.mean(axis=0)
+    moments = np.linalg.eigvalsh(r.T @ r) / np.linalg.eigvalsh(r0.T @ r0)
     assert bounced
-    assert internal < 1e-4
-    assert np.abs(v.mean(axis=0)).max() < 0.03
+    assert deformation < 1e-4, deformation
+    assert np.abs(v.mean(axis=0)).max() < 0.06
     centroid_drift = np.abs(x.mean(axis=0) - model.particle_x0.mean(axis=0))[[0, 2]].max()
     assert centroid_drift < 0.02
-    np.testing.assert_allclose(extents, 1.0, atol=0.05)
+    np.testing.assert_allclose(moments, 1.0, atol=0.05)
     assert x[:, 1].min() > -0.005
