@@ -592,31 +592,24 @@ def main(argv=None):
             for n in _sizes(args.sizes if device.is_cpu else args.cuda_sizes):
                 print(f"variants {dev_name} {n} ...", flush=True)
                 report["variants"][dev_name][str(n)] = variant_rates(n, device, args, baseline)
-    if args.elastic_forces:
-        report["elastic_forces"] = {}
+    # Each choice of one Material field, blocks interleaved (the ratio against its first).
+    for flag, key, label, rates, choices in (
+            ("elastic_forces", "elastic_forces", "elastic forces", elastic_force_rates, ("paper", "variational")),
+            ("pressure_forces", "pressure_forces", "pressure forces", pressure_force_rates, ("spiky", "energy"))):
+        if not getattr(args, flag):
+            continue
+        report[key] = {}
+        ratio = f"{choices[-1]}_over_{choices[0]}"
         for dev_name in devices:
             device = wp.get_device(dev_name)
-            report["elastic_forces"][dev_name] = {}
+            report[key][dev_name] = {}
             for n in _sizes(args.sizes if device.is_cpu else args.cuda_sizes):
-                print(f"elastic forces {dev_name} {n} ...", flush=True)
-                r = report["elastic_forces"][dev_name][str(n)] = elastic_force_rates(n, device, args)
+                print(f"{label} {dev_name} {n} ...", flush=True)
+                r = report[key][dev_name][str(n)] = rates(n, device, args)
                 print("  " + ", ".join(f"{f}: {r[f]['particle_steps_per_second_best_block'] / 1e3:.0f} k/s best block "
                                        f"({r[f]['particle_steps_per_second_cpu_time_best_block'] / 1e3:.0f} k/s CPU time)"
-                                       for f in ("paper", "variational"))
-                      + "; variational / paper: " + ", ".join(f"{v:.3f}" for v in r["variational_over_paper"].values()),
-                      flush=True)
-    if args.pressure_forces:
-        report["pressure_forces"] = {}
-        for dev_name in devices:
-            device = wp.get_device(dev_name)
-            report["pressure_forces"][dev_name] = {}
-            for n in _sizes(args.sizes if device.is_cpu else args.cuda_sizes):
-                print(f"pressure forces {dev_name} {n} ...", flush=True)
-                r = report["pressure_forces"][dev_name][str(n)] = pressure_force_rates(n, device, args)
-                print("  " + ", ".join(f"{f}: {r[f]['particle_steps_per_second_best_block'] / 1e3:.0f} k/s best block "
-                                       f"({r[f]['particle_steps_per_second_cpu_time_best_block'] / 1e3:.0f} k/s CPU time)"
-                                       for f in ("spiky", "energy"))
-                      + "; energy / spiky: " + ", ".join(f"{v:.3f}" for v in r["energy_over_spiky"].values()),
+                                       for f in choices)
+                      + f"; {choices[-1]} / {choices[0]}: " + ", ".join(f"{v:.3f}" for v in r[ratio].values()),
                       flush=True)
     if args.no_splishsplash:
         report["splishsplash"] = {"available": False, "message": "SPlisHSPlasH skipped (--no-splishsplash)"}
