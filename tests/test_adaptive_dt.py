@@ -89,15 +89,52 @@ def test_cli_adaptive_dt(tmp_path, capsys):
     assert "--dt = 0.001 and --adaptive-dt are not allowed together" in capsys.readouterr().err
 
 
-def test_stable_dt_holds_for_the_tightest_preset():
-    """``Model.stable_dt()`` is a bound that holds (docs/method.md §8). The toothpaste preset
-    without its viscosity has the smallest measured margin (a 6^3 box at rest on the ground
-    blew up at 1.5 x stable_dt within 400 steps, not at 1.0 x); it must rest at 1.0 x."""
-    mat = we.Material.preset("toothpaste", viscosity=0.0)
+def _toothpaste_box(pressure_force, **overrides):
+    """The toothpaste preset without its viscosity (the smallest margin under ``stable_dt``
+    of the presets), a 6^3 box at rest on the ground."""
+    mat = we.Material.preset("toothpaste", viscosity=0.0, pressure_force=pressure_force, **overrides)
     b = we.SceneBuilder(spacing=DX, gravity=(0.0, -9.81, 0.0))
     b.add_box((0.0, 3 * DX, 0.0), (6 * DX,) * 3, mat)
     b.add_ground(0.0, friction=0.5)
-    model = b.finalize()
+    return b.finalize()
+
+
+def _box_peak_speed(model, dt, duration):
+    """Largest speed over ``duration`` s (checked every 20 steps), inf once it is non-finite
+    or above 5 m/s (blown up: a fall from the box's height reaches 1.1 m/s)."""
+    solver = we.Solver(model)
+    a, c = model.state(), model.state()
+    peak = 0.0
+    with pytest.warns(RuntimeWarning) if dt > model.stable_dt() else _nothing():
+        for k in range(int(duration / dt)):
+            solver.step(a, c, dt)
+            a, c = c, a
+            if k % 20 == 19:
+                v = float(np.abs(a.v.numpy()).max())
+                if not v < 5.0:
+                    return math.inf
+                peak = max(peak, v)
+    return peak
+
+
+@pytest.mark.parametrize(
+    "pressure_force",
+    [
+        "spiky",
+        pytest.param("energy", marks=pytest.mark.xfail(strict=True, reason=(
+            "undamped fast plastic flow (flow_rate 200/s, no viscosity) is not bounded by "
+            "stable_dt; blows up at 0.24 s with the energy force, at 0.95 s with the spiky one "
+            "(docs/physics.md, the SPH pressure, item 4)"))),
+    ],
+)
+def test_stable_dt_holds_for_the_tightest_preset(pressure_force):
+    """``Model.stable_dt()`` is a bound that holds (docs/method.md §8). The toothpaste preset
+    without its viscosity has the smallest measured margin: it must rest at 1.0 x for 400
+    steps (0.69 s with the spiky force). Its fast plastic flow without damping is not what
+    the bound covers: the spiky force too blows up at 1.0 x, later (0.95 s), and at 0.5 and
+    0.8 x within 1.5 s (from starts jittered by 1e-5 m, at 0.3 and 0.4 x too); the energy
+    force within this window (docs/physics.md, the SPH pressure, item 4); ``test_stable_dt_bounds_either_pressure_force`` is the elastic case."""
+    model = _toothpaste_box(pressure_force)
     solver = we.Solver(model)
     dt = model.stable_dt()
     a, c = model.state(), model.state()
@@ -111,6 +148,20 @@ def test_stable_dt_holds_for_the_tightest_preset():
             peak = max(peak, float(np.abs(v).max()))
     # Measured peak 0.68 m/s at 1.0 x (the box settling from its lattice), 69 m/s at 1.5 x.
     assert peak < 1.0, peak
+
+
+@pytest.mark.parametrize("pressure_force", ["spiky", "energy"])
+def test_stable_dt_bounds_either_pressure_force(pressure_force):
+    """The wave limit of ``Model.stable_dt()`` bounds either SPH pressure force: the
+    toothpaste box without viscosity, elastic (no plastic flow), rests at 1.0 x for 1 s and
+    blows up at 3.5 x. (Measured, 1 s: peak 0.78 / 0.85 m/s at 1.0 x and 0.72 / 0.78 at 2.5 x
+    with the energy / spiky force; at 3.5 x blown up at 0.24 / 0.57 s.) The energy force's
+    poly6 core sets no shorter step than its wave speed (docs/physics.md, the SPH pressure,
+    item 4)."""
+    model = _toothpaste_box(pressure_force, yield_stress=math.inf)
+    dt = model.stable_dt()
+    assert _box_peak_speed(model, dt, 1.0) < 1.0
+    assert _box_peak_speed(model, 3.5 * dt, 1.0) == math.inf
 
 
 def _shaken_block(n=8):

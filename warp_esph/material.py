@@ -109,9 +109,11 @@ class Material:
     ``"energy"``, minus the gradient of the pressure's energy ``sum_i m_i e_i(rho_i)`` with
     ``de/drho = p / rho^2``. The spiky force is the gradient of no energy; at 16 particles
     across it keeps a slumped yield-stress pile creeping at a flat rate, where the energy
-    force lets it come to rest; but ``Model.stable_dt()`` does not bound the energy force
-    (a toothpaste box without viscosity blows up at 0.85 of it) and a loss through ground
-    contact bends more with it (docs/physics.md, the SPH pressure).
+    force lets it come to rest; ``Model.stable_dt()`` bounds either force, not the toothpaste
+    preset's undamped plastic flow (without viscosity it rests up to 0.4 ``stable_dt`` with
+    the energy force, 0.15 with the spiky one; at 1.0 it blows up sooner with the energy
+    force), and a loss through ground contact bends more with it (docs/physics.md, the SPH
+    pressure).
     """
 
     mu: float
