@@ -86,6 +86,8 @@ FLOORS = ("ground", "particles")
 #: reaches one spacing below it at the default support radius 2 dx, and so sees an interior
 #: neighbourhood at the base).
 FLOOR_LAYERS = 2
+#: Where ``incline`` puts its walls normal to z (see its docstring).
+INCLINE_WALLS = ("faces", "centres")
 
 
 def _check_floor(floor: str):
@@ -344,7 +346,7 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
 def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration: float = 1.5, spacing: float = 0.005,
             critical_angle: float = 10.0, length: float = 12.0, width: int = 2, yield_strain: float = 0.005,
             flow_rate: float = 1000.0, viscosity: float = 0.5, friction: float = 5.0, dt_factor: float = 0.9,
-            ramp: float = 0.15, samples: int = 40) -> dict:
+            ramp: float = 0.15, samples: int = 40, walls: str = "faces") -> dict:
     """The shear strength of a thin layer: ``layers`` particles thick (h = layers x spacing),
     ``length`` h long, on an incline (gravity tilted by theta in the x-y plane), plane strain
     (``width`` particles between frictionless walls normal to z).
@@ -363,9 +365,17 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     part of every fit, as the material's own interior would be. mu = Y / (2 yield_strain), nu = 0.3.
     Gravity grows linearly from 0 over the first ``ramp`` seconds (``Model.gravity`` is read
     at every step), so that the load is applied without the dynamic overshoot of a sudden
-    release (up to twice the static stress)."""
+    release (up to twice the static stress).
+
+    ``walls``: where the frictionless walls normal to z stand. ``"faces"``, at the strip's
+    faces (z = 0 and ``width`` x spacing); a plane collider acts on particle centres, so the
+    outer rows, half a spacing inside, may move out to it and the strip widen by one
+    spacing. ``"centres"``, through the outer rows' centres: the strip cannot widen
+    (docs/physics.md, thin layers in shear: widening lets the layers close up and stop)."""
     wp, we = _we()
     _check_floor(floor)
+    if walls not in INCLINE_WALLS:
+        raise ValueError(f"walls = {walls!r} is not allowed: one of {INCLINE_WALLS}")
     dx = spacing
     h = layers * dx
     tau_y = RHO * G * h * math.sin(math.radians(critical_angle))
@@ -385,15 +395,17 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
         b.add_particle_floor("layer", margin=0.0, layers=FLOOR_LAYERS, name="floor")
     else:
         b.add_ground(0.0, friction=friction)
-    b.add_plane((0.0, 0.0, 1.0), 0.0, 0.0)
-    b.add_plane((0.0, 0.0, -1.0), -W, 0.0)
+    inset = 0.5 * dx if walls == "centres" else 0.0
+    b.add_plane((0.0, 0.0, 1.0), inset, 0.0)
+    b.add_plane((0.0, 0.0, -1.0), -(W - inset), 0.0)
     model = b.finalize()
     solver = we.Solver(model)
     dt = dt_factor * model.stable_dt()
     steps = int(round(duration / dt))
     every = max(1, steps // samples)
     x0 = model.particle_x0.astype(np.float64)
-    top = (np.abs(x0[:, 0] - L / 2.0) < L / 8.0) & (x0[:, 1] > h - dx)
+    middle = (np.abs(x0[:, 0] - L / 2.0) < L / 8.0) & (x0[:, 1] > 0.0)
+    top = middle & (x0[:, 1] > h - dx)
     a, c = model.state(), model.state()
     times, speeds = [], []
     g_full = (G * s, -G * math.cos(theta), 0.0)
@@ -409,6 +421,7 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     t0 = time.perf_counter()
     a, c = _swap_run(model, solver, a, c, dt, steps, sample)
     wall = time.perf_counter() - t0
+    x_end = a.x.numpy().astype(np.float64)
     eta = mu / flow_rate
     h_p = tau_y / (RHO * G * s)
     bingham = RHO * G * s * max(h - h_p, 0.0) ** 2 / (2.0 * eta)
@@ -422,6 +435,11 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
         # a flowing layer keeps it, a stopping one loses it.
         "top_speed": float(v[-3:].mean()), "top_speed_two_thirds": float(v[max(k23 - 1, 0):k23 + 2].mean()),
         "time_history": times, "speed_history": speeds, "finite": bool(np.isfinite(v).all()), "wall_s": wall,
+        # At the end, over their initial values (both 1 while the strip keeps its shape): the
+        # top layer's height above the base, and the strip's width (the mean distance from
+        # its mid-plane in z) over the middle quarter.
+        "top_height_ratio": float(x_end[top, 1].mean() / x0[top, 1].mean()),
+        "width_ratio": float(np.abs(x_end[middle, 2] - W / 2.0).mean() / np.abs(x0[middle, 2] - W / 2.0).mean()),
     }
 
 

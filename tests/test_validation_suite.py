@@ -180,6 +180,29 @@ def test_thin_layer_on_a_floor_of_its_own_particles_stops_below_and_flows_above_
     assert above["top_speed"] > 0.5 * scale, (above["top_speed"], scale)
 
 
+def test_thin_layer_on_a_particle_floor_stops_after_sliding_only_when_it_widens_between_its_walls():
+    """The layer's flow stops after about one spacing of slip (docs/physics.md, thin layers
+    in shear) because the strip widens: its walls normal to z act on particle centres, half a
+    spacing outside its outer rows, which move out to them, so the layers close up in y.
+    Measured at 1.3 tau_y over 1.0 s: walls at the faces, mean distance from the mid-plane
+    1.158 x, top layer at 0.768 of its height, top stopped (0.00 mm/s); walls through the
+    outer rows' centres, 0.994 x and 0.885, top still at 4.15 mm/s (Bingham 3.67)."""
+    faces = validation.incline(load=1.3, floor="particles", layers=3, length=8.0, duration=1.0)
+    centres = validation.incline(load=1.3, floor="particles", layers=3, length=8.0, duration=1.0, walls="centres")
+    assert faces["finite"] and centres["finite"]
+    scale = centres["bingham_surface_speed"]
+    assert faces["width_ratio"] > 1.08 and faces["top_height_ratio"] < 0.82, faces
+    assert abs(faces["top_speed"]) < 0.1 * scale, (faces["top_speed"], scale)
+    assert centres["width_ratio"] == pytest.approx(1.0, abs=0.02), centres["width_ratio"]
+    assert centres["top_height_ratio"] > 0.85, centres["top_height_ratio"]
+    assert centres["top_speed"] > 0.5 * scale, (centres["top_speed"], scale)
+
+
+def test_incline_refuses_unknown_walls_by_name():
+    with pytest.raises(ValueError, match="walls = 'glass'"):
+        validation.incline(walls="glass")
+
+
 @pytest.mark.parametrize("case", ["incline", "slump", "spread"])
 def test_an_unknown_floor_is_refused_by_name(case):
     kwargs = {"S": 0.1} if case == "slump" else {}
