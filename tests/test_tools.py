@@ -78,6 +78,17 @@ def test_pinned_set_stays_exactly_where_held_and_a_moving_pin_follows_its_motion
     np.testing.assert_allclose(x[scripted] - c_s, x[carried] - c, atol=2e-6)
 
 
+def _clamped_beam(dx, L=0.2, t=0.05, nc=3, E=1.0e6, nu=0.3, rho=1000.0):
+    """A square beam ``t`` thick and ``L`` long beyond ``nc`` clamped columns (pinned at
+    x < 0); returns the model and its tip particles."""
+    b = we.SceneBuilder(spacing=dx)
+    b.add_box((L / 2 - nc * dx / 2, t / 2, 0.0), (L + nc * dx, t, t), _elastic(E, nu, rho), name="beam")
+    b.pin(region=((-1, -1, -1), (-1e-9, 1, 1)), name="clamp")
+    m = b.finalize()
+    x0 = m.particle_x0
+    return m, np.nonzero(x0[:, 0] > x0[:, 0].max() - 0.5 * dx)[0]
+
+
 @pytest.mark.parametrize("fit", ["linear", "curvature_corrected"])
 def test_clamped_cantilever_bends_like_a_beam_and_the_clamp_carries_its_weight(fit):
     """Clamped at x < 0 (3 particle columns held: deeper than the support radius, so the
@@ -89,13 +100,9 @@ def test_clamped_cantilever_bends_like_a_beam_and_the_clamp_carries_its_weight(f
     strip deforms (the free length is L + dx/2 = 20.5 cm; measured with the clamp line at
     x = 0 instead: 1.39). With either fit it then agrees with the simply supported beam of
     the same thickness (docs/validation.md, "Clamped cantilever")."""
-    E, nu, rho, dx, L, t, nc = 1.0e6, 0.3, 1000.0, 0.01, 0.2, 0.05, 3
-    b = we.SceneBuilder(spacing=dx)
-    b.add_box((L / 2 - nc * dx / 2, t / 2, 0.0), (L + nc * dx, t, t), _elastic(E, nu, rho), name="beam")
-    b.pin(region=((-1, -1, -1), (-1e-9, 1, 1)), name="clamp")
-    m = b.finalize()
+    E, nu, rho, dx, L, t = 1.0e6, 0.3, 1000.0, 0.01, 0.2, 0.05
+    m, tip = _clamped_beam(dx, L, t, E=E, nu=nu, rho=rho)
     x0 = m.particle_x0
-    tip = np.nonzero(x0[:, 0] > x0[:, 0].max() - 0.5 * dx)[0]
     s = we.Solver(m, fit=fit)
     # The corrected fit settles later (docs/physics.md, "After the change").
     st = _run(s, m, 900 if fit == "linear" else 1800, m.stable_dt(), relax_after=0.0)
@@ -134,14 +141,10 @@ def test_cantilever_8_across_settles_with_the_hourglass_control():
     the held centres) at 900, 1800, 3600, 5400 steps, past the static solution's 1.099. With
     ``Solver(hourglass=0.1)`` it settles: 1.101, 1.105, 1.095, 1.096 (docs/physics.md,
     "Hourglass modes"), as the beam of that thickness (8 thick: 1.084 static)."""
-    E, nu, rho, L, t, nc, n = 1.0e6, 0.3, 1000.0, 0.2, 0.05, 3, 8
+    E, nu, rho, L, t, n = 1.0e6, 0.3, 1000.0, 0.2, 0.05, 8
     dx = t / n
-    b = we.SceneBuilder(spacing=dx)
-    b.add_box((L / 2 - nc * dx / 2, t / 2, 0.0), (L + nc * dx, t, t), _elastic(E, nu, rho), name="beam")
-    b.pin(region=((-1, -1, -1), (-1e-9, 1, 1)), name="clamp")
-    m = b.finalize()
+    m, tip = _clamped_beam(dx, L, t, E=E, nu=nu, rho=rho)
     x0 = m.particle_x0
-    tip = np.nonzero(x0[:, 0] > x0[:, 0].max() - 0.5 * dx)[0]
     clamp_line = x0[m.tools.pins[0].indices, 0].max()
     Lc, xt = L - clamp_line, x0[tip, 0].mean() - clamp_line
     A, I, G_ = t * t, t**4 / 12, E / (2 * (1 + nu))
