@@ -131,7 +131,7 @@ def spread_height_theory(radius: float, tau_y: float, rho: float = RHO, g: float
 
 def slump(S: float, resolution: int = 12, elastic_force: str = "variational", duration: float = 4.0,
           H0: float = 0.1, flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0,
-          dt_factor: float = 0.9, samples: int = 200, pressure_force: str = "spiky", floor: str = "ground",
+          dt_factor: float = 0.9, samples: int = 200, pressure_force: str = "energy", floor: str = "ground",
           floor_radius: float = 3.2) -> dict:
     """A cylinder H0 = 2 R0 of a yield-stress material slumps on a rough floor.
 

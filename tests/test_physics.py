@@ -552,7 +552,7 @@ def _pressure_energy_and_forces(pressure_force, x, model):
 def test_pressure_force_is_minus_the_gradient_of_the_pressure_energy(pressure_force):
     """``pressure_force="energy"`` is the exact negative gradient of the pressure energy of
     the positions, so it does no net work on a packing that rearranges and comes back;
-    Müller et al.'s spiky form (the default) is the gradient of no energy, and on a 16-across
+    Müller et al.'s spiky form (the paper's) is the gradient of no energy, and on a 16-across
     slump it keeps the pile creeping (docs/physics.md, the SPH pressure).
     A block compressed by 10 % and jittered by 0.15 dx, float64, against central differences
     of the energy: measured 4e-8 relative (energy) and 0.59 (spiky)."""
@@ -610,16 +610,17 @@ def test_default_pressure_stiffness_adds_the_same_bulk_stiffness_with_either_for
 def test_a_default_pressure_stiffness_follows_the_pressure_force():
     """Switching the force (``replace``, a preset override) keeps the added bulk stiffness
     (the default ``k_p`` of the new force); an explicit ``k_p`` is kept."""
-    m = we.Material.from_young(1.0e5, 0.3, density=1000.0)
-    e = m.replace(pressure_force="energy")
-    assert e.pressure_stiffness == pytest.approx(m.pressure_stiffness / 2.0)
-    assert e.replace(pressure_force="spiky").pressure_stiffness == pytest.approx(m.pressure_stiffness)
-    assert m.replace(pressure_stiffness=3.0).replace(pressure_force="energy").pressure_stiffness == 3.0
-    rubber = we.Material.preset("rubber", pressure_force="energy")
-    assert rubber.pressure_stiffness == pytest.approx(rubber.bulk_modulus / (4.0 * rubber.density))
+    m = we.Material.from_young(1.0e5, 0.3, density=1000.0)  # the energy force, the default
+    s = m.replace(pressure_force="spiky")
+    assert s.pressure_stiffness == pytest.approx(2.0 * m.pressure_stiffness)
+    assert s.replace(pressure_force="energy").pressure_stiffness == pytest.approx(m.pressure_stiffness)
+    assert m.replace(pressure_stiffness=3.0).replace(pressure_force="spiky").pressure_stiffness == 3.0
+    rubber = we.Material.preset("rubber", pressure_force="spiky")
+    assert rubber.pressure_stiffness == pytest.approx(rubber.bulk_modulus / (2.0 * rubber.density))
+    assert we.Material.preset("rubber").pressure_stiffness == pytest.approx(rubber.pressure_stiffness / 2.0)
 
 
-def test_pressure_force_choice_is_validated_and_spiky_by_default():
-    assert we.Material(mu=1.0, lam=1.0).pressure_force == "spiky"
+def test_pressure_force_choice_is_validated_and_energy_by_default():
+    assert we.Material(mu=1.0, lam=1.0).pressure_force == "energy"
     with pytest.raises(ValueError, match=r"Material\.pressure_force = 'exact' is not allowed"):
         we.Material(mu=1.0, lam=1.0, pressure_force="exact")

@@ -87,7 +87,7 @@ def test_documented_example_loads(tmp_path):
     # preset + E/nu: the preset's plastic settings, the new stiffness, pressure from the new bulk modulus.
     soft = b._materials[0]
     assert soft.youngs_modulus == pytest.approx(1.5e4) and soft.yield_stress == PRESETS["dough"].yield_stress
-    assert soft.pressure_stiffness == pytest.approx(soft.bulk_modulus / (2 * soft.density))
+    assert soft.pressure_stiffness == pytest.approx(soft.bulk_modulus / (4 * soft.density))  # the energy force's default
     assert math.isinf(b._materials[1].yield_stress)
 
 
@@ -265,12 +265,12 @@ def test_material_table_sets_the_pressure_force(tmp_path):
     """A material table's ``pressure_force`` becomes ``Material.pressure_force`` and changes
     the run (the two forms differ once the body is compressed)."""
     text = BASE.replace("radius = 0.1", "radius = 0.1\nvelocity = [0, -4, 0]").replace("center = [0, 0.2, 0]", "center = [0, 0.15, 0]")
-    plain, energy = tmp_path / "plain.toml", tmp_path / "energy.toml"
+    plain, spiky = tmp_path / "plain.toml", tmp_path / "spiky.toml"
     plain.write_text(text)
-    energy.write_text(text.replace('preset = "dough"', 'preset = "dough"\npressure_force = "energy"', 1))
-    a, b = load_scene_file(plain).builder.finalize(), load_scene_file(energy).builder.finalize()
-    assert [mat.pressure_force for mat in a.materials] == ["spiky"]
-    assert [mat.pressure_force for mat in b.materials] == ["energy"]
+    spiky.write_text(text.replace('preset = "dough"', 'preset = "dough"\npressure_force = "spiky"', 1))
+    a, b = load_scene_file(plain).builder.finalize(), load_scene_file(spiky).builder.finalize()
+    assert [mat.pressure_force for mat in a.materials] == ["energy"]
+    assert [mat.pressure_force for mat in b.materials] == ["spiky"]
     xa = simulate(a, 2, progress=False).x.numpy()
     xb = simulate(b, 2, progress=False).x.numpy()
     assert np.abs(xa - xb).max() > 1e-6

@@ -34,12 +34,12 @@ DEFORMATION_IDS = {name: k for k, name in enumerate(DEFORMATIONS)}
 ELASTIC_FORCES = ("paper", "variational")
 ELASTIC_FORCE_IDS = {name: k for k, name in enumerate(ELASTIC_FORCES)}
 
-#: SPH pressure pair forces (``warp_esph/sim/pressure.py``, docs/method.md §6): ``spiky``
-#: (default), Müller et al.'s ``(p_i + p_j) / 2`` along the spiky kernel's gradient, the
-#: gradient of no energy, which keeps the 16-across S = 0.5 slump creeping; ``energy``, the
-#: exact negative gradient of the SPH pressure energy ``sum_i m_i e_i(rho_i)`` (the poly6
-#: density's own kernel gradient, ``p / rho^2`` pair weights), which does no net work on a
-#: closed path of the particles (docs/physics.md, the SPH pressure: why it is not the default).
+#: SPH pressure pair forces (``warp_esph/sim/pressure.py``, docs/method.md §6): ``energy``
+#: (default), the exact negative gradient of the SPH pressure energy ``sum_i m_i e_i(rho_i)``
+#: (the poly6 density's own kernel gradient, ``p / rho^2`` pair weights), which does no net
+#: work on a closed path of the particles; ``spiky``, Müller et al.'s ``(p_i + p_j) / 2``
+#: along the spiky kernel's gradient (the paper's), the gradient of no energy, which keeps
+#: the 16-across S = 0.5 slump creeping (docs/physics.md, the SPH pressure).
 PRESSURE_FORCES = ("energy", "spiky")
 PRESSURE_FORCE_IDS = {name: k for k, name in enumerate(PRESSURE_FORCES)}
 
@@ -104,16 +104,16 @@ class Material:
     stiffness again, the "additional stability" of the paper's §4. Use ``0`` to switch
     pressure off.
 
-    ``pressure_force`` picks the SPH pressure pair force (``PRESSURE_FORCES``): ``"spiky"``
-    (default), Müller et al.'s symmetrised pressure along the spiky kernel's gradient, or
-    ``"energy"``, minus the gradient of the pressure's energy ``sum_i m_i e_i(rho_i)`` with
-    ``de/drho = p / rho^2``. The spiky force is the gradient of no energy; at 16 particles
-    across it keeps a slumped yield-stress pile creeping at a flat rate, where the energy
-    force lets it come to rest; ``Model.stable_dt()`` bounds either force, not the toothpaste
-    preset's undamped plastic flow (without viscosity it rests up to 0.4 ``stable_dt`` with
-    the energy force, 0.15 with the spiky one; at 1.0 it blows up sooner with the energy
-    force), and a loss through ground contact bends more with it (docs/physics.md, the SPH
-    pressure).
+    ``pressure_force`` picks the SPH pressure pair force (``PRESSURE_FORCES``): ``"energy"``
+    (default), minus the gradient of the pressure's energy ``sum_i m_i e_i(rho_i)`` with
+    ``de/drho = p / rho^2``, or ``"spiky"``, Müller et al.'s symmetrised pressure along the
+    spiky kernel's gradient (the paper's). The spiky force is the gradient of no energy; at
+    16 particles across it keeps a slumped yield-stress pile creeping at a flat rate, where
+    the energy force lets it come to rest. ``Model.stable_dt()`` bounds either force's
+    stiffness, not the toothpaste preset's undamped plastic flow (without viscosity it rests
+    up to 0.4 ``stable_dt`` with the energy force, 0.15 with the spiky one; at 1.0 it blows
+    up sooner with the energy force), and a loss through ground contact bends a little more
+    with the energy force (docs/physics.md, the SPH pressure).
     """
 
     mu: float
@@ -128,7 +128,7 @@ class Material:
     clamp_pressure: bool = True
     deformation: str = "incremental"
     elastic_force: str | None = None
-    pressure_force: str = "spiky"
+    pressure_force: str = "energy"
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
