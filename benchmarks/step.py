@@ -351,9 +351,9 @@ def elastic_force_rates(n: int, device, args) -> dict:
 
 
 def pressure_force_rates(n: int, device, args) -> dict:
-    """Forward rate of the dough with each SPH pressure force (the default spiky one and
-    the energy force, each at its default ``k_p``), blocks interleaved in one run; ratios
-    against the spiky one."""
+    """Forward rate of the dough with each SPH pressure force (the paper's spiky one and
+    the energy force, the default, each at its default ``k_p``), blocks interleaved in one
+    run; ratios against the spiky one."""
     return _interleaved_rates(n, device, args, "pressure_force", ("spiky", "energy"))
 
 
@@ -541,7 +541,7 @@ def main(argv=None):
     p.add_argument("--elastic-forces", action="store_true",
                    help="also time the dough with the variational (default) and the paper's elastic force, interleaved")
     p.add_argument("--pressure-forces", action="store_true",
-                   help="also time the dough with the spiky (default) and the energy SPH pressure force, interleaved")
+                   help="also time the dough with the paper's spiky and the energy (default) SPH pressure force, interleaved")
     p.add_argument("--json", default="benchmark_step.json", help="where the results go")
     args = p.parse_args(argv)
 

@@ -232,6 +232,6 @@ def test_hand_written_constitutive_adjoint_other_branches(model_name, flow_rate)
 @pytest.mark.parametrize("scalar,tol", [(wp.float64, 1e-10), (wp.float32, 2e-4)])
 def test_hand_written_energy_pressure_adjoint(scalar, tol):
     """``pressure.pressure_forces_adjoint`` on the energy pressure force
-    (``pressure_force = "energy"``; the default, ``"spiky"``, is in the test above)
+    (``pressure_force = "energy"``, the default; the spiky one is in the test above)
     against Warp's generated adjoints."""
     _assert_hand_matches_generated(scalar, tol, pressure_force="energy")

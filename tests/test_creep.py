@@ -61,7 +61,7 @@ def test_slumped_cylinder_comes_to_rest():
 @pytest.mark.slow
 def test_energy_pressure_force_lets_the_16_across_slump_come_to_rest():
     """``benchmarks.validation.slump(0.5, resolution=16)`` (3328 particles, 4 s: minutes on
-    one core) with ``Material(pressure_force="energy")``. With the default spiky pressure
+    one core) with ``Material(pressure_force="energy")`` (the default). With the spiky pressure
     force the top still sinks a flat 2.0-2.5 % H0/s from 1 to 3 s (h/H0 0.787 at 3 s); with
     the energy force (its default ``k_p = K / (4 rho0)``) the flow decays: measured 0.42 % H0/s
     at 3 s, 0.23 at 4 s, 0.14 at 4.75 s (per 0.25 s), h/H0 0.811 at 4 s against the 1-D 0.847
