@@ -80,7 +80,7 @@ def time_step(scale: float, mu_max: float) -> tuple[int, float]:
     return substeps, 1.0 / FPS / substeps
 
 
-def run(scale: float = 0.5, frames: int = 15, iterations: int = 30, optimizer: str = "lbfgs", out: str = "fit_dough_star_out",
+def run(scale: float = 0.5, frames: int = 15, iterations: int = 40, optimizer: str = "lbfgs", out: str = "fit_dough_star_out",
         usd: bool = True, progress: bool = True, checkpoint_every: int | None = None, verbose: bool = True,
         dtype: str = "float64") -> dict:
     """The whole example; returns a summary dict (also written to ``out/fit.json``).
@@ -198,7 +198,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scale", type=float, default=0.5, help="resolution: spacing = 1 cm / scale (default 0.5: 142 particles)")
     ap.add_argument("--full", action="store_true", help="full size: scale 1 (1152 particles, the `star` scene's resolution)")
     ap.add_argument("--frames", type=int, default=15, help="last target frame at 30 fps (default 15: 0.5 s)")
-    ap.add_argument("--iterations", type=int, default=30, help="gradient evaluations after the first (default 30)")
+    ap.add_argument("--iterations", type=int, default=40, help="gradient evaluations after the first (default 40)")
     ap.add_argument("--optimizer", choices=("lbfgs", "adam"), default="lbfgs")
     ap.add_argument("--checkpoint-every", type=int, help="checkpoint the rollout every S steps")
     ap.add_argument("--out", default="fit_dough_star_out", help="output folder")
