@@ -109,10 +109,10 @@ class Material:
     ``"energy"``, minus the gradient of the pressure's energy ``sum_i m_i e_i(rho_i)`` with
     ``de/drho = p / rho^2``. The spiky force is the gradient of no energy; at 16 particles
     across it keeps a slumped yield-stress pile creeping at a flat rate, where the energy
-    force lets it come to rest; ``Model.stable_dt()`` bounds either force, not the toothpaste
-    preset's undamped plastic flow (without viscosity it rests up to 0.4 ``stable_dt`` with
-    the energy force, 0.15 with the spiky one; at 1.0 it blows up sooner with the energy
-    force), and a loss through ground contact bends more with it (docs/physics.md, the SPH
+    force lets it come to rest; ``Model.stable_dt()`` bounds either force (the toothpaste
+    preset without viscosity rests at 0.5 and 1.0 ``stable_dt`` with either, since the fit
+    guard ``cond(A) > 20``: docs/physics.md, "The step bound of undamped fast plastic
+    flow"), and a loss through ground contact bends more with it (docs/physics.md, the SPH
     pressure).
     """
 
