@@ -105,10 +105,11 @@ def _toothpaste_box(pressure_force, **overrides):
 def test_stable_dt_holds_for_the_tightest_preset(pressure_force):
     """``Model.stable_dt()`` is a bound that holds (docs/method.md §8). The toothpaste preset
     without its viscosity has the smallest measured margin: it must rest at 1.0 x for 400
-    steps (0.65 / 0.69 s with the spiky / energy force's default stiffness), with either. Its fast plastic flow spreads the box into
-    a thin layer whose fits can become ill-conditioned; the fit guard (``Solver``'s
-    ``max_condition``, default 20) keeps them from setting a shorter step
-    (docs/physics.md, "The step bound of undamped fast plastic flow")."""
+    steps (0.65 / 0.69 s with the spiky / energy force's default stiffness), with either.
+    Its fast plastic flow spreads the box into a thin layer whose fits can become
+    ill-conditioned; the fit guard (``Solver``'s ``max_condition``, default 20) keeps them
+    from setting a shorter step (docs/physics.md, "The step bound of undamped fast plastic
+    flow"); ``test_stable_dt_bounds_either_pressure_force`` is the elastic case."""
     model = _toothpaste_box(pressure_force)
     solver = we.Solver(model)
     dt = model.stable_dt()
@@ -155,10 +156,10 @@ def test_undamped_fast_plastic_flow_rests_at_half_the_stable_step(pressure_force
     200/s), three starts jittered by 1e-5 m, 2 s at 0.5 ``stable_dt``, with either pressure
     force. A fall from the box's height reaches 1.1 m/s; blown up is above 5 m/s. With the
     old fit guard (``cond(A) > 1e3``) the start ``blew_up`` blew up (spiky: the first at
-    0.57 s; energy: the second at 0.78 s): a particle at the spreading layer's edge whose neighbours leave one direction
-    unsampled (``cond(A)`` 200-500) oscillated step by step along it (docs/physics.md, "The
-    step bound of undamped fast plastic flow"). Measured with the guard at 20: peak 0.83 /
-    0.82 m/s for every start."""
+    0.57 s; energy: the second at 0.78 s): a particle at the spreading layer's edge whose
+    neighbours leave one direction unsampled (``cond(A)`` 200-500) oscillated step by step
+    along it (docs/physics.md, "The step bound of undamped fast plastic flow"). Measured
+    with the guard at 20: peak 0.83 / 0.82 m/s for every start."""
     model = _toothpaste_box(pressure_force)
     dt = 0.5 * model.stable_dt()
     peaks = [_jittered_peak(model, dt, 2.0, seed) for seed in range(3)]
