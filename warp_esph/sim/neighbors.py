@@ -88,7 +88,7 @@ PAPER_MAX_NEIGHBORS = 30
 #: limit of ``Model.stable_dt``: plastic flow spreading a body into a thin layer on the
 #: ground makes such fits (``cond`` 200-500 where the toothpaste preset without viscosity
 #: blew up at 0.5 ``stable_dt``). Lattices (up to 2.05 at ``h = 2 dx``), lattices jittered by
-#: 0.3 dx (5) and every preset's drop and the ``test_creep`` pile (at most 9.9) stay below
+#: 0.3 dx (5-7.4) and every preset's drop and the ``test_creep`` pile (at most 9.9) stay below
 #: it (docs/method.md §2, docs/physics.md "The step bound of undamped fast plastic flow").
 MAX_CONDITION = 20.0
 
