@@ -156,7 +156,7 @@ def test_undamped_fast_plastic_flow_rests_at_half_the_stable_step(pressure_force
     200/s), three starts jittered by 1e-5 m, 2 s at 0.5 ``stable_dt``, with either pressure
     force. A fall from the box's height reaches 1.1 m/s; blown up is above 5 m/s. With the
     old fit guard (``cond(A) > 1e3``) the start ``blew_up`` blew up (spiky: the first at
-    0.57 s; energy: the second at 0.78 s): a particle at the spreading layer's edge whose
+    0.57 s; energy: the second at 0.68 s): a particle at the spreading layer's edge whose
     neighbours leave one direction unsampled (``cond(A)`` 200-500) oscillated step by step
     along it (docs/physics.md, "The step bound of undamped fast plastic flow"). Measured
     with the guard at 20: peak 0.83 / 0.82 m/s for every start."""
