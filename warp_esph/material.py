@@ -109,11 +109,11 @@ class Material:
     ``de/drho = p / rho^2``, or ``"spiky"``, Müller et al.'s symmetrised pressure along the
     spiky kernel's gradient (the paper's). The spiky force is the gradient of no energy; at
     16 particles across it keeps a slumped yield-stress pile creeping at a flat rate, where
-    the energy force lets it come to rest. ``Model.stable_dt()`` bounds either force's
-    stiffness, not the toothpaste preset's undamped plastic flow (without viscosity it rests
-    up to 0.4 ``stable_dt`` with the energy force, 0.15 with the spiky one; at 1.0 it blows
-    up sooner with the energy force), and a loss through ground contact bends a little more
-    with the energy force (docs/physics.md, the SPH pressure).
+    the energy force lets it come to rest. ``Model.stable_dt()`` bounds either force (the
+    toothpaste preset without viscosity rests at 0.5 and 1.0 ``stable_dt`` with either, since
+    the fit guard ``cond(A) > 20``: docs/physics.md, "The step bound of undamped fast plastic
+    flow"), and a loss through ground contact bends a little more with the energy force
+    (docs/physics.md, the SPH pressure).
     """
 
     mu: float

@@ -445,6 +445,14 @@ class Model:
         = 0.0375`` and stable at 0.03, in a column of 7 x 7 x 20 particles; at ``C = 0.3``
         the limit is 0.025.)
 
+        The limit assumes well-conditioned fits: a particle whose neighbours leave a
+        direction nearly unsampled is stiffer along it (``dF - I`` grows as ``A^-1``). The
+        solver's fit guard (``Solver(max_condition=20)``, docs/method.md §2) drops such fits;
+        with it the toothpaste preset without viscosity, whose plastic flow spreads it into
+        a thin layer, rests at 0.5 and 1.0 x this step (with the old threshold 1e3 it blew
+        up at 0.3-0.5 x; docs/physics.md, "The step bound of undamped fast plastic flow").
+        No flow-rate term is needed.
+
         ``hourglass``: the strength ``c`` of the hourglass control the step runs (None: this
         model's ``hourglass``, what a ``Solver(model)`` runs; ``Solver.check_dt`` passes its
         own). Its springs add to the elastic stiffness, so with ``c > 0`` the wave limit

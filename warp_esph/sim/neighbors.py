@@ -81,6 +81,16 @@ TYPICAL_STRETCH = 1.1
 DEFAULT_CAP_FACTOR = 3.0
 #: The paper's neighbour count ("up to 30 neighbours", paper §4).
 PAPER_MAX_NEIGHBORS = 30
+#: Default guard of paper §4 on the fit's moment matrix: ``cond(A) = lmax / lmin`` above it
+#: keeps the old ``F`` and drops the particle's variational force. A fit whose neighbours
+#: leave a direction nearly unsampled turns a small displacement of the particle along it
+#: into a large ``dF`` (``dF - I`` grows as ``A^-1``), a local stiffness far above the wave
+#: limit of ``Model.stable_dt``: plastic flow spreading a body into a thin layer on the
+#: ground makes such fits (``cond`` 200-500 where the toothpaste preset without viscosity
+#: blew up at 0.5 ``stable_dt``). Lattices (up to 2.05 at ``h = 2 dx``), lattices jittered by
+#: 0.3 dx (5-7.4) and every preset's drop and the ``test_creep`` pile (at most 9.9) stay below
+#: it (docs/method.md §2, docs/physics.md "The step bound of undamped fast plastic flow").
+MAX_CONDITION = 20.0
 
 
 def lattice_neighbor_count(radius_over_spacing: float) -> int:
@@ -436,7 +446,7 @@ class NeighborSearch:
         h: float,
         *,
         min_neighbors: int = 6,
-        max_condition: float = 1.0e3,
+        max_condition: float = MAX_CONDITION,
         skin: float = 0.0,
         spacing: float | None = None,
         bodies_interact: bool = True,

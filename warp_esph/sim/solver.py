@@ -62,7 +62,9 @@ class Solver:
     """Explicit elastoplastic step of Gerszewski et al. 2009.
 
     ``min_neighbors`` and ``max_condition`` are the guards of paper §4 on the
-    deformation update; ``guard_counts()`` says how often each fired.
+    deformation update; ``guard_counts()`` says how often each fired. ``max_condition``
+    (default ``neighbors.MAX_CONDITION`` = 20) also bounds the local stiffness of a fit
+    that ``Model.stable_dt`` does not see (docs/method.md §2 and §8).
 
     ``neighbor_skin`` (in units of the support radius ``h``, in [0, 1]; default
     ``DEFAULT_SKIN``) is the Verlet margin of the neighbour candidates: they are rebuilt only when two
@@ -105,7 +107,7 @@ class Solver:
         model: Model,
         *,
         min_neighbors: int = 6,
-        max_condition: float = 1.0e3,
+        max_condition: float = neighbors.MAX_CONDITION,
         neighbor_skin: float | None = None,
         fused: bool = True,
         fit: str | None = None,
