@@ -132,7 +132,7 @@ def spread_height_theory(radius: float, tau_y: float, rho: float = RHO, g: float
 
 def slump(S: float, resolution: int = 12, elastic_force: str = "variational", duration: float = 4.0,
           H0: float = 0.1, flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0,
-          dt_factor: float = 0.9, samples: int = 200, pressure_force: str = "spiky", floor: str = "ground",
+          dt_factor: float = 0.9, samples: int = 200, pressure_force: str = "spiky", floor: str = "particles",
           floor_radius: float = 3.2, pressure_stiffness: float | None = None, support_radius: float = 2.0,
           stiffness: float = 10.0, gravity_ramp: float = 0.0, floor_layers: int = FLOOR_LAYERS) -> dict:
     """A cylinder H0 = 2 R0 of a yield-stress material slumps on a rough floor.
@@ -144,9 +144,13 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     ``resolution`` is particles across H0 (and across the diameter). The height is the top
     of the particles within R0/2 of the axis (plus dx/2: each stands for a cell).
     ``pressure_force``: ``Material.pressure_force`` (docs/physics.md, the SPH pressure).
-    ``floor``: ``"ground"`` (the ground collider) or ``"particles"`` (pinned layers of the
-    same body under a disc of ``floor_radius`` R0, ``_add_on_floor``; docs/physics.md, the
-    spread regime); every measure is over the free particles. One change at a time
+    ``floor``: ``"particles"`` (the default: pinned layers of the same body under a disc of
+    ``floor_radius`` R0, ``_add_on_floor``) or ``"ground"`` (the ground collider with Coulomb
+    ``friction``). Both theories assume a no-slip base; the particle floor is the one that
+    gives a thin layer its continuum shear strength, the ground collider makes a layer 3
+    particles thick about 2.5 x too strong (docs/physics.md, the spread regime, thin layers
+    in shear). ``floor_radius`` must reach past the resting pile (``radius_over_R0``): 3.2
+    holds S >= 0.05. Every measure is over the free particles. One change at a time
     (docs/physics.md, the spread regime): ``pressure_stiffness`` (``Material``'s; 0: the SPH
     pressure off), ``support_radius`` (h in dx), ``stiffness`` (mu in rho g H0),
     ``gravity_ramp`` (s: gravity rises linearly from 0 over that time instead of acting at
@@ -253,7 +257,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
 def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0, elastic_force: str = "variational",
            flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, dt_factor: float = 0.9,
            pressure_stiffness: float | None = None, support_radius: float = 2.0, initial_height: float = 2.0,
-           samples: int = 200, floor: str = "ground", floor_radius: float = 1.2) -> dict:
+           samples: int = 200, floor: str = "particles", floor_radius: float = 1.2) -> dict:
     """The spread limit of Roussel & Coussot (2005): a wide, low cylinder of a yield-stress
     material spreads on a rough floor into a pile much wider than tall.
 
@@ -274,8 +278,8 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
     overshoots in its flow rests wider, never narrower. Radius: the outermost particle +
     dx/2; height: the top of the particles within R_RC / 8 of the axis + dx/2 (as in
     ``slump``); profile: the top of each radial band R_RC / 8 wide (+ dx/2) over the theory
-    at the band's middle. ``floor``: as in ``slump`` (``"particles"``: pinned layers of the
-    same body under a disc of ``floor_radius`` R_RC)."""
+    at the band's middle. ``floor``: as in ``slump`` (``"particles"``, the default: pinned
+    layers of the same body under a disc of ``floor_radius`` R_RC)."""
     wp, we = _we()
     _check_floor(floor)
     h_rc = 0.025
@@ -1037,16 +1041,19 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     runs: list[tuple[str, dict]] = []
     if quick:
         for f in FORCES:
-            runs.append(("slump", {"S": 0.2, "resolution": 8, "elastic_force": f, "duration": 2.0}))
+            # On the particle floor (the default) the S = 0.2 pile rests by about 4 s, within 1.7 R0.
+            runs.append(("slump", {"S": 0.2, "resolution": 8, "elastic_force": f, "duration": 5.0, "floor_radius": 2.4}))
             runs.append(("bar_frequency", {"resolution": 4, "elastic_force": f}))
             runs.append(("beam_deflection", {"resolution": 4, "elastic_force": f, "span_over_thickness": 6}))
             runs.append(("column_settlement", {"resolution": 4, "elastic_force": f}))
             runs.append(("poisson_compression", {"resolution": 4, "elastic_force": f}))
             runs.append(("energy_drift", {"amplitude": SMALL, "elastic_force": f, "periods": 20.0}))
         # The smallest run that resolves the plug (its top S H0 / 2 is one support radius).
-        runs.append(("slump", {"S": 0.5, "resolution": 8, "elastic_force": "variational", "duration": 3.0}))
-        # The spread limit at its smallest size (3 particles through the theory's height).
-        runs.append(("spread", {"resolution": 3, "shallowness": 0.25, "duration": 6.0}))
+        runs.append(("slump", {"S": 0.5, "resolution": 8, "elastic_force": "variational", "duration": 3.0,
+                               "floor_radius": 2.4}))
+        # The spread limit at its smallest size (3 particles through the theory's height); on
+        # the particle floor it rests by 8 s at 0.87 R_RC.
+        runs.append(("spread", {"resolution": 3, "shallowness": 0.25, "duration": 8.0, "floor_radius": 1.0}))
         # The lab tests with tools (variational force only: the default).
         runs.append(("plate_compression", {"resolution": 4}))
         runs.append(("three_point_bending", {"resolution": 4}))
