@@ -223,6 +223,11 @@ def test_an_unknown_floor_is_refused_by_name(case):
         getattr(validation, case)(floor="sand", **kwargs)
 
 
+def test_slump_refuses_a_negative_gravity_ramp_by_name():
+    with pytest.raises(ValueError, match="gravity_ramp = -1.0"):
+        validation.slump(0.1, gravity_ramp=-1.0)
+
+
 @pytest.mark.xfail(strict=True, reason="a layer 3 particles thick on the rough ground collider stops at 1.3 tau_y of "
                    "basal shear (measured -0.09 mm/s at 0.6 s; it flows only from about 2.5 tau_y, 2.2 at 6 "
                    "thick): the ground's bottom layer is held and its one-sided fit doubles its share "
