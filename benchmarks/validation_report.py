@@ -334,7 +334,8 @@ def write(results, out: pathlib.Path, meta: dict):
     slumps = [r for r in results if r["case"] == "slump"]
     if slumps:
         slumps.sort(key=lambda r: (r["S"], r["resolution"], r["elastic_force"]))
-        rows = [[r["S"], r["resolution"], r["elastic_force"], r["particles"], r["duration"], r["h_over_H0"], r["theory_h_over_H0"],
+        rows = [[r["S"], r["resolution"], r["elastic_force"], r.get("floor", "ground"), r["particles"], r["duration"],
+                 r["h_over_H0"], r["theory_h_over_H0"],
                  r["ratio_to_theory"], r["top_rate_pct_H0_per_s"], r["kinetic_over_MgH0"], r["fraction_at_yield"],
                  r["plug_particles"], r["plug_unyielded_fraction"], r.get("plug_plastic_strain", float("nan")),
                  r.get("flowed_plastic_strain", float("nan")), r["radius_over_R0"], r["radius_over_spread_theory"],
@@ -342,7 +343,9 @@ def write(results, out: pathlib.Path, meta: dict):
         parts.append(
             "## Bingham slump of a cylinder\n\n"
             "`benchmarks.validation.slump`: H0 = 2 R0 = 0.1 m, rho = 1000 kg/m^3, mu = 10 rho g H0, nu = 0.3, "
-            "flow rate 200 /s, default SPH pressure, viscosity 2 Pa s, floor friction 1, dt = 0.9 `stable_dt()`. "
+            "flow rate 200 /s, default SPH pressure, viscosity 2 Pa s, dt = 0.9 `stable_dt()`. Floor: \"particles\", two "
+            "pinned layers of the body's own lattice under a disc of 3.2 R0 (the default, a no-slip base inside every "
+            "fit); \"ground\", the ground collider with friction 1 (docs/physics.md, the spread regime). "
             "h: top of the particles within R0/2 of the axis (+ dx/2), at the end of the run. Slump ratio: "
             "(1 - h/H0) / (1 - theory). Top rate: sinking speed of h over the last quarter of the run. "
             "At yield: fraction of all particles with |s| >= 0.99 Y. Plug: the particles within R0 / 2 of the axis "
@@ -351,14 +354,14 @@ def write(results, out: pathlib.Path, meta: dict):
             "accumulated plastic strain (`State.alpha`) in yield strains Y / (2 mu), and that of the particles "
             "deeper than S H0 + h (flowed). R: largest particle distance from the axis (+ dx/2); R_RC, h_RC: "
             "radius and central height of the Roussel & Coussot shallow pile.\n\n"
-            + _table(["S", "across", "force", "particles", "t (s)", "h/H0", "theory", "slump ratio", "top rate (% H0/s)",
+            + _table(["S", "across", "force", "floor", "particles", "t (s)", "h/H0", "theory", "slump ratio", "top rate (% H0/s)",
                       "KE / (M g H0)", "at yield", "plug particles", "plug below Y", "plug eps_p", "flowed eps_p",
                       "R/R0", "R/R_RC", "h_RC/H0"], rows)
             + "\n\n![slump height and spread](images/validation/slump_height.png)\n\n"
             "![slump height over time](images/validation/slump_history.png)\n")
     spreads = sorted((r for r in results if r["case"] == "spread"), key=lambda r: (-r["shallowness"], r["resolution"]))
     if spreads:
-        rows = [[r["shallowness"], r["resolution"], r["particles"], r["duration"], r["radius_over_theory"],
+        rows = [[r["shallowness"], r["resolution"], r.get("floor", "ground"), r["particles"], r["duration"], r["radius_over_theory"],
                  r["height_over_theory"], r["height_over_radius"], min(p for p in r["profile_over_theory"] if p > 0),
                  max(r["profile_over_theory"]), r["radius_rate_pct_per_s"], r["kinetic_over_Mgh"]] for r in spreads]
         parts.append(
@@ -366,11 +369,11 @@ def write(results, out: pathlib.Path, meta: dict):
             "`benchmarks.validation.spread`: a cylinder 2 h_RC tall holding the volume of the shallow no-slip pile "
             "h(r) = sqrt(2 l (R_RC - r)), l = tau_y / (rho g), tau_y = Y / sqrt(2), of aspect a = h_RC / R_RC, "
             "h_RC = 2.5 cm; mu = 20 rho g h_RC, nu = 0.3, flow rate 200 /s, default SPH pressure, viscosity 2 Pa s, "
-            "floor friction 1, variational force. Across: particles through h_RC. R: outermost particle (+ dx/2); "
+            "variational force; floor as in the slump (\"particles\" under a disc of 1.2 R_RC). Across: particles through h_RC. R: outermost particle (+ dx/2); "
             "h: top within R_RC / 8 of the axis (+ dx/2); profile: top of each band R_RC / 8 wide over the theory "
             "there (smallest and largest); R rate: growth of R over the last quarter of the run. A static shallow "
             "pile cannot be narrower than R_RC.\n\n"
-            + _table(["a", "across", "particles", "t (s)", "R/R_RC", "h/h_RC", "h/R", "profile min", "profile max",
+            + _table(["a", "across", "floor", "particles", "t (s)", "R/R_RC", "h/h_RC", "h/R", "profile min", "profile max",
                       "R rate (% R_RC/s)", "KE / (M g h_RC)"], rows) + "\n")
     ela = []
     for case, title, cols in (
