@@ -158,17 +158,20 @@ def spread_pile():
 
 
 def test_spread_pile_holds_the_theory_volume_and_comes_to_rest(spread_pile):
-    """Measured on the particle floor: R grows 0.068 % R_RC/s over 6-8 s, kinetic energy
-    6.8e-9 M g h_RC; the particles hold the theory volume to 0.5 %."""
+    """Measured on the particle floor with the energy pressure force and the fit guard
+    cond(A) > 20 (the defaults): R grows 0.067 % R_RC/s over 6-8 s, kinetic energy 2.5e-8
+    M g h_RC (rms speed 1e-4 m/s, 0.013 dx/s: the slow end of the spreading, not round-off;
+    with the spiky force and the old guard 6.8e-9); the particles hold the theory volume to
+    0.5 %."""
     r = spread_pile
     assert r["finite"]
     assert r["volume_over_theory"] == pytest.approx(1.0, abs=0.03), r["volume_over_theory"]
     assert abs(r["radius_rate_pct_per_s"]) < 0.1, r["radius_rate_pct_per_s"]
-    assert r["kinetic_over_Mgh"] < 1e-8, r["kinetic_over_Mgh"]
+    assert r["kinetic_over_Mgh"] < 5e-8, r["kinetic_over_Mgh"]
 
 
-@pytest.mark.xfail(strict=True, reason="spread limit, a = 0.25, 3 through h_RC, particle floor: measured R = 0.869 "
-                   "R_RC (ground collider 0.834); at 3 through the yield length l is 0.375 dx and the pile a "
+@pytest.mark.xfail(strict=True, reason="spread limit, a = 0.25, 3 through h_RC, particle floor: measured R = 0.857 "
+                   "R_RC (spiky pressure force 0.869, ground collider 0.834); at 3 through the yield length l is 0.375 dx and the pile a "
                    "disc 3 particles thick with a rim 6 l tall (docs/physics.md, the spread regime)")
 def test_spread_radius_within_10_percent_of_roussel_coussot(spread_pile):
     assert spread_pile["radius_over_theory"] == pytest.approx(1.0, abs=0.10), spread_pile["radius_over_theory"]
