@@ -128,25 +128,13 @@ def test_stable_dt_holds_for_the_tightest_preset(pressure_force):
 
 
 def _jittered_peak(model, dt, seconds, seed, max_condition=None):
-    """Largest speed over ``seconds`` at step ``dt`` (checked every 20 steps; inf once
-    above ``BOX_BLOWN_UP``) from the model's start moved by up to 1e-5 m per coordinate
+    """Largest speed over ``seconds`` at step ``dt`` (``_peak_speed``, blown up above
+    ``BOX_BLOWN_UP``) from the model's start moved by up to 1e-5 m per coordinate
     (``seed``): the blow-ups of undamped plastic flow depend on the start at that level."""
-    kw = {} if max_condition is None else {"max_condition": max_condition}
     state = model.state()
     x = state.x.numpy()
     state.x.assign(x + np.random.default_rng(seed).uniform(-1e-5, 1e-5, size=x.shape).astype(x.dtype))
-    solver = we.Solver(model, **kw)
-    a, c = state, model.state()
-    peak = 0.0
-    for k in range(int(round(seconds / dt))):
-        solver.step(a, c, dt)
-        a, c = c, a
-        if k % 20 == 19:
-            v = float(np.abs(a.v.numpy()).max())
-            if not v < BOX_BLOWN_UP:
-                return math.inf
-            peak = max(peak, v)
-    return peak
+    return _peak_speed(model, dt, int(round(seconds / dt)), BOX_BLOWN_UP, state=state, max_condition=max_condition)
 
 
 @pytest.mark.parametrize(("pressure_force", "blew_up"), [("spiky", 0), ("energy", 1)])
@@ -193,11 +181,11 @@ def _shaken_block(n=8):
     return model, state
 
 
-def _peak_speed(model, dt, steps, limit, hourglass=0.0, state=None):
+def _peak_speed(model, dt, steps, limit, hourglass=0.0, state=None, max_condition=None):
     """Largest speed over ``steps`` steps (checked every 20) of a solver with ``hourglass``
-    from ``state`` (default the model's start), inf once it is non-finite or above ``limit``
-    (blown up)."""
-    solver = we.Solver(model, hourglass=hourglass)
+    (and the fit guard ``max_condition``, None: the default) from ``state`` (default the
+    model's start), inf once it is non-finite or above ``limit`` (blown up)."""
+    solver = we.Solver(model, hourglass=hourglass, **({} if max_condition is None else {"max_condition": max_condition}))
     a, c = model.state(), model.state()
     if state is not None:
         a.assign(state)
