@@ -636,9 +636,9 @@ def _merging_layers_push(pressure_force, separations):
         "energy pressure force')"))),
 ])
 def test_pressure_pushes_merging_layers_apart_harder_the_closer_they_come(pressure_force):
-    """Two neighbouring particle layers moving towards each other (the layer-pairing,
-    hourglass mode of the fit, docs/physics.md "Hourglass modes": neither elastic force
-    resists it in the interior) are held apart by the SPH pressure alone. Müller et al.'s
+    """Two neighbouring particle layers moving towards each other (close to the fit's
+    layer-pairing, hourglass mode, docs/physics.md "Hourglass modes", to which the elastic
+    forces give little stiffness) are held apart by the SPH pressure. Müller et al.'s
     spiky gradient does not vanish at ``r = 0``, so its push grows all the way as they meet;
     the energy force's poly6 gradient does, so its push peaks and falls to 0, and two layers
     pressed past that point merge. That is what collapses the elastic rest-configuration cube of
