@@ -607,6 +607,50 @@ def test_default_pressure_stiffness_adds_the_same_bulk_stiffness_with_either_for
     assert bulk == pytest.approx(0.23, abs=0.015), bulk
 
 
+def _merging_layers_push(pressure_force, separations):
+    """The pressure force pushing the two middle layers of an 8^3 block apart (mean over the
+    inner particles of one layer, along the layers' normal, N), the block compressed by 10 %
+    across them and along one more axis (as the Fig. 8 field squeezes its cubes), the two
+    layers moved towards each other to each ``separation`` (in spacings). Float64."""
+    mat = we.Material.from_young(5.0e4, 0.3, density=1000.0, pressure_force=pressure_force)
+    model = _block_model(n=(8, 8, 8), material=mat)
+    dx = model.spacing
+    x0 = model.particle_x0 - model.particle_x0.mean(0)
+    left, right = np.isclose(x0[:, 0], -0.5 * dx), np.isclose(x0[:, 0], 0.5 * dx)
+    inner = left & (np.abs(x0[:, 1]) < 2 * dx) & (np.abs(x0[:, 2]) < 2 * dx)
+    push = []
+    for d in separations:
+        x = x0 * np.array([0.9, 1.0, 0.9])
+        x[left, 0] += 0.5 * (0.9 - d) * dx
+        x[right, 0] -= 0.5 * (0.9 - d) * dx
+        _, f = _pressure_energy_and_forces(pressure_force, x, model)
+        push.append(-float(f[inner, 0].mean()))
+    return np.array(push)
+
+
+@pytest.mark.parametrize("pressure_force", [
+    "spiky",
+    pytest.param("energy", marks=pytest.mark.xfail(strict=True, reason=(
+        "the poly6 gradient vanishes at r = 0: the energy force's push peaks near half a spacing and "
+        "falls to 0 as the layers meet (docs/physics.md, 'The Fig. 8 rest-configuration cube and the "
+        "energy pressure force')"))),
+])
+def test_pressure_pushes_merging_layers_apart_harder_the_closer_they_come(pressure_force):
+    """Two neighbouring particle layers moving towards each other (close to the fit's
+    layer-pairing, hourglass mode, docs/physics.md "Hourglass modes", to which the elastic
+    forces give little stiffness) are held apart by the SPH pressure. Müller et al.'s
+    spiky gradient does not vanish at ``r = 0``, so its push grows all the way as they meet;
+    the energy force's poly6 gradient does, so its push peaks and falls to 0, and two layers
+    pressed past that point merge. That is what collapses the elastic rest-configuration cube of
+    Fig. 8 with the energy force (its scene runs the spiky force). Measured here (push per
+    particle at 0.8 / 0.5 / 0.3 / 0.1 / 0.05 spacings): spiky 0.072 / 0.273 / 0.359 / 0.397
+    / 0.402 N, energy 0.037 / 0.102 / 0.087 / 0.034 / 0.017 N."""
+    separations = (0.8, 0.6, 0.5, 0.4, 0.3, 0.2, 0.1, 0.05)
+    push = _merging_layers_push(pressure_force, separations)
+    assert (push > 0.0).all(), push
+    assert (np.diff(push) > 0.0).all(), dict(zip(separations, push))
+
+
 def test_a_default_pressure_stiffness_follows_the_pressure_force():
     """Switching the force (``replace``, a preset override) keeps the added bulk stiffness
     (the default ``k_p`` of the new force); an explicit ``k_p`` is kept."""

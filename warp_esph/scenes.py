@@ -371,7 +371,10 @@ def fig8_comparison(scale: float = 1.0, only=None) -> Scene:
                 center = (0.6 * (k - 1), 0.3, rows[row])
                 # The paper's spiky pressure force, as the paper's figure: with the energy force
                 # (the default) the elastic rest-configuration cube diverges from 0.45 s at
-                # scale 0.8 (either fit guard), where the paper's shows it returning (docs/gallery.md).
+                # scale 0.8 (either fit guard), where the paper's shows it returning: its two
+                # middle layers merge, since the energy force's push between two layers fades
+                # to 0 as they meet and the spiky one's does not (docs/physics.md, "The Fig. 8
+                # rest-configuration cube and the energy pressure force").
                 b.add_box(center, (0.2, 0.2, 0.2), mat.replace(deformation=deformation, pressure_force="spiky"), name=name,
                           angular_velocity=(FIG8_SPIN, 0.0, 0.0))
                 b.add_compression_field(center, FIG8_STRENGTH, 0.0, FIG8_RELEASE, body=name)
