@@ -39,8 +39,12 @@ ELASTIC_FORCE_IDS = {name: k for k, name in enumerate(ELASTIC_FORCES)}
 #: (the poly6 density's own kernel gradient, ``p / rho^2`` pair weights), which does no net
 #: work on a closed path of the particles; ``spiky``, Müller et al.'s ``(p_i + p_j) / 2``
 #: along the spiky kernel's gradient (the paper's), the gradient of no energy, which keeps
-#: the 16-across S = 0.5 slump creeping (docs/physics.md, the SPH pressure).
-PRESSURE_FORCES = ("energy", "spiky")
+#: the 16-across S = 0.5 slump creeping (docs/physics.md, the SPH pressure); ``energy_spiky``,
+#: the exact negative gradient of the same energy of a density summed with the spiky kernel,
+#: whose gradient does not vanish as two particles meet, so it holds merging particle layers
+#: apart where the poly6 one lets them merge (docs/physics.md, "The Fig. 8
+#: rest-configuration cube and the energy pressure force").
+PRESSURE_FORCES = ("energy", "spiky", "energy_spiky")
 PRESSURE_FORCE_IDS = {name: k for k, name in enumerate(PRESSURE_FORCES)}
 
 #: The default ``k_p = share * K / rho0`` of each pressure force (``K`` the bulk modulus).
@@ -50,7 +54,11 @@ PRESSURE_FORCE_IDS = {name: k for k, name in enumerate(PRESSURE_FORCES)}
 #: continuum ``(p_i + p_j) / 2`` weights give half of ``grad p``), so ``K / (2 rho0)``, the
 #: spiky force's default since it was the only one, adds 0.23 K through it
 #: (docs/physics.md, the SPH pressure).
-PRESSURE_BULK_SHARE = {"energy": 0.25, "spiky": 0.5}
+#: ``energy_spiky``'s 0.46 gives the energy force's small-strain bulk stiffness: the pressure
+#: energy's curvature is ``k_p rho0 c^2`` with ``c = -(d rho / d eps_v) / rho`` of the SPH
+#: density on a lattice (``h = 2 dx``), 1.055 for poly6 and 0.774 for the spiky density, so
+#: ``0.25 (1.055 / 0.774)^2 = 0.464`` (docs/physics.md, "A pressure energy of a spiky density").
+PRESSURE_BULK_SHARE = {"energy": 0.25, "spiky": 0.5, "energy_spiky": 0.46}
 
 
 def p_wave_speed(mu, lam, density, pressure_stiffness):
