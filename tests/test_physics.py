@@ -488,7 +488,8 @@ def _one_step(model, start, fused):
 
 @pytest.mark.parametrize("model_name,elastic_force,pressure_force", [
     ("linear", "paper", "spiky"), ("non_newtonian", "paper", "spiky"), ("hyperelastic", "paper", "spiky"),
-    ("linear", "variational", "spiky"), ("stvk", "variational", "spiky"), ("linear", "variational", "energy")])
+    ("linear", "variational", "spiky"), ("stvk", "variational", "spiky"), ("linear", "variational", "energy"),
+    ("linear", "variational", "energy_spiky")])
 def test_fused_step_matches_the_differentiable_step(model_name, elastic_force, pressure_force):
     """The forward-only fused kernels (one SVD, one pair loop) compute what the
     differentiable kernels do, to round-off, from a deformed and yielding state: in

@@ -107,15 +107,20 @@ class Material:
 
     ``yield_stress = inf`` (or ``flow_rate = 0``) gives a purely elastic material.
     ``pressure_stiffness = None`` picks ``k_p = K / (4 rho0)`` (``K = lam + 2 mu / 3`` the
-    bulk modulus) for the energy force and ``K / (2 rho0)`` for the spiky one
-    (``PRESSURE_BULK_SHARE``): either way SPH pressure adds about a quarter of the bulk
+    bulk modulus) for the energy force, ``K / (2 rho0)`` for the spiky one and ``0.46 K /
+    rho0`` for ``energy_spiky`` (``PRESSURE_BULK_SHARE``): either way SPH pressure adds about a quarter of the bulk
     stiffness again, the "additional stability" of the paper's §4. Use ``0`` to switch
     pressure off.
 
     ``pressure_force`` picks the SPH pressure pair force (``PRESSURE_FORCES``): ``"energy"``
     (default), minus the gradient of the pressure's energy ``sum_i m_i e_i(rho_i)`` with
     ``de/drho = p / rho^2``, or ``"spiky"``, Müller et al.'s symmetrised pressure along the
-    spiky kernel's gradient (the paper's). The spiky force is the gradient of no energy; at
+    spiky kernel's gradient (the paper's), or ``"energy_spiky"``, minus the gradient of the
+    same energy of a density summed with the spiky kernel (its rest value per particle from
+    the initial configuration, as for the others), whose push between two particles grows
+    until they meet where the energy force's fades (two particle layers pressed closer than
+    half a spacing merge with the energy force, not with this one; its viscous force is
+    about 0.67 x the others' at the same ``viscosity``: docs/method.md §6). The spiky force is the gradient of no energy; at
     16 particles across it keeps a slumped yield-stress pile creeping at a flat rate, where
     the energy force lets it come to rest. ``Model.stable_dt()`` bounds either force (the
     toothpaste preset without viscosity rests at 0.5 and 1.0 ``stable_dt`` with either, since

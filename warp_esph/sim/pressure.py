@@ -6,7 +6,10 @@ kernels of Müller et al. 2003).
     f_i   = -sum_j V_i V_j (p_i + p_j)/2 grad W_spiky(x_i - x_j)
             + sum_j 5 eta_ij V_i V_j ((u_j - u_i) . e_ij) e_ij lap W_visc(|x_i - x_j|)
 
-with ``V = m / rho`` and ``e_ij`` the unit vector between the pair. The viscous force is
+with ``V = m / rho`` and ``e_ij`` the unit vector between the pair. That ``f_i`` is the
+paper's pressure (``pressure_force = "spiky"``); the ``energy`` force is minus the gradient
+of ``sum_k m_k e_k(rho_k)``, ``de/drho = p / rho^2``, and ``energy_spiky`` the same of a
+density summed with the spiky kernel instead of poly6 (``density_weight``; docs/method.md §6). The viscous force is
 Müller's ``eta V_i V_j (u_j - u_i) lap W`` projected onto the line between the particles:
 a central force, so it conserves angular momentum and leaves a rigid rotation alone (the
 unprojected form stops a spinning body). The factor 5 (``d + 2``) keeps ``eta`` the shear
