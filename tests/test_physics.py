@@ -674,7 +674,8 @@ def test_pressure_pushes_merging_layers_apart_harder_the_closer_they_come(pressu
     pressed past that point merge. That is what collapses the elastic rest-configuration cube of
     Fig. 8 with the energy force (its scene runs the spiky force). Measured here (push per
     particle at 0.8 / 0.5 / 0.3 / 0.1 / 0.05 spacings): spiky 0.072 / 0.273 / 0.359 / 0.397
-    / 0.402 N, energy 0.037 / 0.102 / 0.087 / 0.034 / 0.017 N."""
+    / 0.402 N, energy 0.037 / 0.102 / 0.087 / 0.034 / 0.017 N, ``energy_spiky`` (the energy
+    of a spiky-kernel density, at its default ``k_p``) 0.099 / 0.427 / 0.588 / 0.661 / 0.669 N."""
     separations = (0.8, 0.6, 0.5, 0.4, 0.3, 0.2, 0.1, 0.05)
     push = _merging_layers_push(pressure_force, separations)
     assert (push > 0.0).all(), push
@@ -689,6 +690,7 @@ def test_a_default_pressure_stiffness_follows_the_pressure_force():
     assert s.pressure_stiffness == pytest.approx(2.0 * m.pressure_stiffness)
     assert s.replace(pressure_force="energy").pressure_stiffness == pytest.approx(m.pressure_stiffness)
     assert m.replace(pressure_stiffness=3.0).replace(pressure_force="spiky").pressure_stiffness == 3.0
+    assert m.replace(pressure_force="energy_spiky").pressure_stiffness == pytest.approx(0.46 / 0.25 * m.pressure_stiffness)
     rubber = we.Material.preset("rubber", pressure_force="spiky")
     assert rubber.pressure_stiffness == pytest.approx(rubber.bulk_modulus / (2.0 * rubber.density))
     assert we.Material.preset("rubber").pressure_stiffness == pytest.approx(rubber.pressure_stiffness / 2.0)
@@ -696,7 +698,7 @@ def test_a_default_pressure_stiffness_follows_the_pressure_force():
 
 def test_pressure_force_choice_is_validated_and_energy_by_default():
     assert we.Material(mu=1.0, lam=1.0).pressure_force == "energy"
-    with pytest.raises(ValueError, match=r"Material\.pressure_force = 'exact' is not allowed"):
+    with pytest.raises(ValueError, match=r"Material\.pressure_force = 'exact' is not allowed: must be one of 'energy', 'spiky', 'energy_spiky'"):
         we.Material(mu=1.0, lam=1.0, pressure_force="exact")
 
 
