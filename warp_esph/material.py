@@ -120,8 +120,8 @@ class Material:
     the initial configuration, as for the others), whose push between two particles grows
     until they meet where the energy force's fades (two particle layers pressed closer than
     half a spacing merge with the energy force, not with this one; its viscous force is
-    about 0.67 x the others' at the same ``viscosity``: docs/method.md §6). The spiky force is the gradient of no energy; at
-    16 particles across it keeps a slumped yield-stress pile creeping at a flat rate, where
+    about 0.67 x the others' at the same ``viscosity``: docs/method.md §6). The spiky force
+    is the gradient of no energy; at 16 particles across it keeps a slumped yield-stress pile creeping at a flat rate, where
     the energy force lets it come to rest. ``Model.stable_dt()`` bounds either force (the
     toothpaste preset without viscosity rests at 0.5 and 1.0 ``stable_dt`` with either, since
     the fit guard ``cond(A) > 20``: docs/physics.md, "The step bound of undamped fast plastic

@@ -185,6 +185,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         poly6_coef=poly6_coef, w_poly6_c=w_poly6_c, w_poly6_inside=w_poly6_inside, elastic_coef=elastic_coef,
         grad_w_elastic_c=grad_w_elastic_c,
         grad_w_elastic_adjoint=grad_w_elastic_adjoint, elastic_cos_dr2=elastic_cos_dr2,
-        elastic_cos=elastic_cos, spiky_coef=spiky_coef, w_spiky_coef=w_spiky_coef, w_spiky_c=w_spiky_c, grad_w_spiky_c=grad_w_spiky_c, grad_w_spiky_at=grad_w_spiky_at,
+        elastic_cos=elastic_cos, spiky_coef=spiky_coef, w_spiky_coef=w_spiky_coef, w_spiky_c=w_spiky_c,
+        grad_w_spiky_c=grad_w_spiky_c, grad_w_spiky_at=grad_w_spiky_at,
         viscosity_coef=viscosity_coef, lap_w_viscosity_c=lap_w_viscosity_c, lap_w_viscosity_at=lap_w_viscosity_at,
     )
