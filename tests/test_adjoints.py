@@ -229,9 +229,11 @@ def test_hand_written_constitutive_adjoint_other_branches(model_name, flow_rate)
     _assert_hand_matches_generated(wp.float64, 1e-10, model_name=model_name, flow_rate=flow_rate)
 
 
+@pytest.mark.parametrize("pressure_force", ["energy", "energy_spiky"])
 @pytest.mark.parametrize("scalar,tol", [(wp.float64, 1e-10), (wp.float32, 2e-4)])
-def test_hand_written_energy_pressure_adjoint(scalar, tol):
-    """``pressure.pressure_forces_adjoint`` on the energy pressure force
-    (``pressure_force = "energy"``, the default; the spiky one is in the test above)
-    against Warp's generated adjoints."""
-    _assert_hand_matches_generated(scalar, tol, pressure_force="energy")
+def test_hand_written_energy_pressure_adjoint(scalar, tol, pressure_force):
+    """``pressure.pressure_forces_adjoint`` and ``density_adjoint`` on the energy pressure
+    forces (``pressure_force = "energy"``, the default, and ``"energy_spiky"``, its energy of
+    the spiky-kernel density; the spiky one is in the test above) against Warp's generated
+    adjoints."""
+    _assert_hand_matches_generated(scalar, tol, pressure_force=pressure_force)

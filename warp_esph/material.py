@@ -39,8 +39,12 @@ ELASTIC_FORCE_IDS = {name: k for k, name in enumerate(ELASTIC_FORCES)}
 #: (the poly6 density's own kernel gradient, ``p / rho^2`` pair weights), which does no net
 #: work on a closed path of the particles; ``spiky``, Müller et al.'s ``(p_i + p_j) / 2``
 #: along the spiky kernel's gradient (the paper's), the gradient of no energy, which keeps
-#: the 16-across S = 0.5 slump creeping (docs/physics.md, the SPH pressure).
-PRESSURE_FORCES = ("energy", "spiky")
+#: the 16-across S = 0.5 slump creeping (docs/physics.md, the SPH pressure); ``energy_spiky``,
+#: the exact negative gradient of the same energy of a density summed with the spiky kernel,
+#: whose gradient does not vanish as two particles meet, so it holds merging particle layers
+#: apart where the poly6 one lets them merge (docs/physics.md, "The Fig. 8
+#: rest-configuration cube and the energy pressure force").
+PRESSURE_FORCES = ("energy", "spiky", "energy_spiky")
 PRESSURE_FORCE_IDS = {name: k for k, name in enumerate(PRESSURE_FORCES)}
 
 #: The default ``k_p = share * K / rho0`` of each pressure force (``K`` the bulk modulus).
@@ -50,7 +54,11 @@ PRESSURE_FORCE_IDS = {name: k for k, name in enumerate(PRESSURE_FORCES)}
 #: continuum ``(p_i + p_j) / 2`` weights give half of ``grad p``), so ``K / (2 rho0)``, the
 #: spiky force's default since it was the only one, adds 0.23 K through it
 #: (docs/physics.md, the SPH pressure).
-PRESSURE_BULK_SHARE = {"energy": 0.25, "spiky": 0.5}
+#: ``energy_spiky``'s 0.46 gives the energy force's small-strain bulk stiffness: the pressure
+#: energy's curvature is ``k_p rho0 c^2`` with ``c = -(d rho / d eps_v) / rho`` of the SPH
+#: density on a lattice (``h = 2 dx``), 1.055 for poly6 and 0.774 for the spiky density, so
+#: ``0.25 (1.055 / 0.774)^2 = 0.464`` (docs/physics.md, "A pressure energy of a spiky density").
+PRESSURE_BULK_SHARE = {"energy": 0.25, "spiky": 0.5, "energy_spiky": 0.46}
 
 
 def p_wave_speed(mu, lam, density, pressure_stiffness):
@@ -99,16 +107,21 @@ class Material:
 
     ``yield_stress = inf`` (or ``flow_rate = 0``) gives a purely elastic material.
     ``pressure_stiffness = None`` picks ``k_p = K / (4 rho0)`` (``K = lam + 2 mu / 3`` the
-    bulk modulus) for the energy force and ``K / (2 rho0)`` for the spiky one
-    (``PRESSURE_BULK_SHARE``): either way SPH pressure adds about a quarter of the bulk
+    bulk modulus) for the energy force, ``K / (2 rho0)`` for the spiky one and ``0.46 K /
+    rho0`` for ``energy_spiky`` (``PRESSURE_BULK_SHARE``): either way SPH pressure adds about a quarter of the bulk
     stiffness again, the "additional stability" of the paper's §4. Use ``0`` to switch
     pressure off.
 
     ``pressure_force`` picks the SPH pressure pair force (``PRESSURE_FORCES``): ``"energy"``
     (default), minus the gradient of the pressure's energy ``sum_i m_i e_i(rho_i)`` with
     ``de/drho = p / rho^2``, or ``"spiky"``, Müller et al.'s symmetrised pressure along the
-    spiky kernel's gradient (the paper's). The spiky force is the gradient of no energy; at
-    16 particles across it keeps a slumped yield-stress pile creeping at a flat rate, where
+    spiky kernel's gradient (the paper's), or ``"energy_spiky"``, minus the gradient of the
+    same energy of a density summed with the spiky kernel (its rest value per particle from
+    the initial configuration, as for the others), whose push between two particles grows
+    until they meet where the energy force's fades (two particle layers pressed closer than
+    half a spacing merge with the energy force, not with this one; its viscous force is
+    about 0.67 x the others' at the same ``viscosity``: docs/method.md §6). The spiky force
+    is the gradient of no energy; at 16 particles across it keeps a slumped yield-stress pile creeping at a flat rate, where
     the energy force lets it come to rest. ``Model.stable_dt()`` bounds either force (the
     toothpaste preset without viscosity rests at 0.5 and 1.0 ``stable_dt`` with either, since
     the fit guard ``cond(A) > 20``: docs/physics.md, "The step bound of undamped fast plastic

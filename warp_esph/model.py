@@ -451,7 +451,11 @@ class Model:
         with it the toothpaste preset without viscosity, whose plastic flow spreads it into
         a thin layer, rests at 0.5 and 1.0 x this step (with the old threshold 1e3 it blew
         up at 0.3-0.5 x; docs/physics.md, "The step bound of undamped fast plastic flow").
-        No flow-rate term is needed.
+        No flow-rate term is needed. The SPH pressure enters ``c_P`` as ``rho0 k_p`` whatever its
+        force (``material.p_wave_speed``): that is 1 / 0.95 of what the energy force adds to
+        the bulk stiffness, 2 x the spiky force's and 1.7-2 x ``energy_spiky``'s, whose spiky
+        core needs no shorter step (an undamped elastic box rests at 1.0 and 2.5 x, blows up at
+        3.5 x, as with the energy force: ``tests/test_adaptive_dt.py``).
 
         ``hourglass``: the strength ``c`` of the hourglass control the step runs (None: this
         model's ``hourglass``, what a ``Solver(model)`` runs; ``Solver.check_dt`` passes its

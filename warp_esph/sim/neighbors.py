@@ -116,6 +116,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     vec3, mat33 = T.vec3, T.mat33
     sm = smoothing.funcs(scalar)
     pressure_of = pressure.funcs(scalar).pressure
+    density_weight = pressure.funcs(scalar).density_weight
     Materials = materials.struct(scalar)
 
     @wp.func
@@ -396,16 +397,22 @@ def kernels(scalar) -> types.SimpleNamespace:
         # SPH density (pressure.density) and the guards of paper §4 on the same-body
         # neighbourhood used by the MLS fit.
         c6 = sm.poly6_coef(h)
+        c_ws = sm.w_spiky_coef(h)
         r = scalar(0.0)
+        form = int(0)
         if with_density != 0:
-            r = mass[i] * sm.w_poly6_c(scalar(0.0), h, c6)
+            form = mat.pressure_force[material[i]]
+            r = mass[i] * density_weight(scalar(0.0), h, c6, c_ws, form)
         A = mat33()
         same = int(0)
         for k in range(n):
             j = nbr[i, k]
             w = sm.w_poly6_c(nbr_d2[i, k], h, c6)
             if with_density != 0:
-                r += mass[j] * w
+                if form == 2:
+                    r += mass[j] * density_weight(nbr_d2[i, k], h, c6, c_ws, form)
+                else:
+                    r += mass[j] * w
             if with_guard != 0:
                 # Only neighbours of non-zero weight count for the guard (rows reach
                 # beyond h with with_stretch).

@@ -6,7 +6,10 @@ kernels of Müller et al. 2003).
     f_i   = -sum_j V_i V_j (p_i + p_j)/2 grad W_spiky(x_i - x_j)
             + sum_j 5 eta_ij V_i V_j ((u_j - u_i) . e_ij) e_ij lap W_visc(|x_i - x_j|)
 
-with ``V = m / rho`` and ``e_ij`` the unit vector between the pair. The viscous force is
+with ``V = m / rho`` and ``e_ij`` the unit vector between the pair. That ``f_i`` is the
+paper's pressure (``pressure_force = "spiky"``); the ``energy`` force is minus the gradient
+of ``sum_k m_k e_k(rho_k)``, ``de/drho = p / rho^2``, and ``energy_spiky`` the same of a
+density summed with the spiky kernel instead of poly6 (``density_weight``; docs/method.md §6). The viscous force is
 Müller's ``eta V_i V_j (u_j - u_i) lap W`` projected onto the line between the particles:
 a central force, so it conserves angular momentum and leaves a rigid rotation alone (the
 unprojected form stops a spinning body). The factor 5 (``d + 2``) keeps ``eta`` the shear
@@ -63,6 +66,30 @@ def funcs(scalar) -> types.SimpleNamespace:
         return (scalar(6.0) * c6 * w * e * e) * rij
 
     @wp.func
+    def density_weight(r2: scalar, h: scalar, c6: scalar, c_ws: scalar, form: int) -> scalar:
+        """The kernel a particle's SPH density sums (docs/method.md §6): poly6 (eq. 7) for the
+        ``energy`` and ``spiky`` forces, the spiky kernel for ``energy_spiky`` (``form`` 2),
+        whose slope does not vanish as two particles meet."""
+        if form == 2:
+            return sm.w_spiky_c(r2, h, c_ws)
+        return sm.w_poly6_c(r2, h, c6)
+
+    @wp.func
+    def energy_spiky_pair_force(
+        VV: scalar, p_i: scalar, p_j: scalar, rho_i: scalar, rho_j: scalar, rij: vec3, rl: scalar, h: scalar,
+        c_spiky: scalar
+    ) -> vec3:
+        """``-m_i m_j (p_i / rho_i^2 + p_j / rho_j^2) grad W_spiky(x_i - x_j)`` on ``i``, the
+        pair's share of ``-grad sum_k m_k e_k(rho_k)`` with ``de/drho = p / rho^2`` and ``rho``
+        the spiky-kernel density (``pressure_force = "energy_spiky"``, docs/method.md §6):
+        the ``energy`` force's pressure energy on a density whose kernel slope ``-45/(pi h^6)
+        (h - |r|)^2`` stays finite at ``r = 0``, so the push between two particles grows until
+        they meet. ``VV = m_i m_j / (rho_i rho_j)``, ``rij = x_i - x_j``, ``rl = |rij|`` in
+        (0, h)."""
+        w = VV * (p_i * rho_j * rho_j + p_j * rho_i * rho_i) / (rho_i * rho_j)
+        return -w * sm.grad_w_spiky_at(rij, rl, h, c_spiky)
+
+    @wp.func
     def viscous_pair_force(eta_VV: scalar, rij: vec3, r2: scalar, lap_w: scalar, vji: vec3) -> vec3:
         """``5 eta V_i V_j ((u_j - u_i) . e_ij) e_ij lap W`` on ``i`` (``eta_VV = eta_ij V_i V_j``,
         ``rij = x_i - x_j``, ``r2 = |rij|^2``, ``vji = u_j - u_i``)."""
@@ -75,8 +102,9 @@ def funcs(scalar) -> types.SimpleNamespace:
         VV: scalar, p_i: scalar, p_j: scalar, rho_i: scalar, rho_j: scalar, form: int, eta: scalar, rij: vec3,
         vji: vec3, h: scalar, c6: scalar, c_spiky: scalar, c_visc: scalar
     ) -> vec3:
-        """Pressure (``form``: 0 ``energy_pressure_pair_force``, 1 ``pressure_pair_force``)
-        plus viscous force of the pair on ``i``, the kernels sharing one ``|rij|``."""
+        """Pressure (``form``: 0 ``energy_pressure_pair_force``, 1 ``pressure_pair_force``, 2
+        ``energy_spiky_pair_force``) plus viscous force of the pair on ``i``, the kernels
+        sharing one ``|rij|``."""
         r2 = wp.dot(rij, rij)
         f = vec3()
         if r2 < h * h:
@@ -84,13 +112,17 @@ def funcs(scalar) -> types.SimpleNamespace:
             if form == 0:
                 f = energy_pressure_pair_force(VV, p_i, p_j, rho_i, rho_j, rij, r2, h, c6)
             elif r2 > scalar(1.0e-24) * h * h:
-                f = pressure_pair_force(VV, p_i, p_j, rij, rl, h, c_spiky)
+                if form == 1:
+                    f = pressure_pair_force(VV, p_i, p_j, rij, rl, h, c_spiky)
+                else:
+                    f = energy_spiky_pair_force(VV, p_i, p_j, rho_i, rho_j, rij, rl, h, c_spiky)
             f += viscous_pair_force(eta * VV, rij, r2, sm.lap_w_viscosity_at(rl, h, c_visc), vji)
         return f
 
     return types.SimpleNamespace(
         pressure=pressure, pressure_pair_force=pressure_pair_force,
         energy_pressure_pair_force=energy_pressure_pair_force, viscous_pair_force=viscous_pair_force,
+        density_weight=density_weight, energy_spiky_pair_force=energy_spiky_pair_force,
         sph_pair_force=sph_pair_force,
     )
 
@@ -107,6 +139,8 @@ def kernels(scalar) -> types.SimpleNamespace:
     def density(
         x: wp.array(dtype=vec3),
         mass: wp.array(dtype=scalar),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         h: scalar,
@@ -115,11 +149,13 @@ def kernels(scalar) -> types.SimpleNamespace:
         i = wp.tid()
         xi = x[i]
         c6 = sm.poly6_coef(h)
-        r = mass[i] * sm.w_poly6_c(scalar(0.0), h, c6)
+        c_ws = sm.w_spiky_coef(h)
+        form = mat.pressure_force[material[i]]
+        r = mass[i] * fn.density_weight(scalar(0.0), h, c6, c_ws, form)
         for k in range(count[i]):
             j = nbr[i, k]
             d = x[j] - xi
-            r += mass[j] * sm.w_poly6_c(wp.dot(d, d), h, c6)
+            r += mass[j] * fn.density_weight(wp.dot(d, d), h, c6, c_ws, form)
         rho[i] = r
 
     @wp.kernel
@@ -164,6 +200,8 @@ def kernels(scalar) -> types.SimpleNamespace:
     def density_adjoint(
         x: wp.array(dtype=vec3),
         mass: wp.array(dtype=scalar),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         h: scalar,
@@ -171,11 +209,15 @@ def kernels(scalar) -> types.SimpleNamespace:
         adj_x: wp.array(dtype=vec3),
     ):
         """Hand-written adjoint of ``density``: ``d rho_i / d x_j = 2 m_j W'(r2) d``,
-        ``W' = -3 c6 (h^2 - r2)^2`` the poly6 slope in ``r2 = |d|^2``, ``d = x_j - x_i``."""
+        ``W' = -3 c6 (h^2 - r2)^2`` the poly6 slope in ``r2 = |d|^2``, ``d = x_j - x_i``;
+        for the spiky density (``energy_spiky``) ``m_j c_s (h - |d|)^2 d / |d|``, ``c_s =
+        -45/(pi h^6)`` (0 at ``d = 0``, where the direction is undefined)."""
         i = wp.tid()
         a = adj_rho[i]
         xi = x[i]
         c6 = sm.poly6_coef(h)
+        c_spiky = sm.spiky_coef(h)
+        form = mat.pressure_force[material[i]]
         hh = h * h
         gx_i = vec3()
         for k in range(count[i]):
@@ -183,8 +225,15 @@ def kernels(scalar) -> types.SimpleNamespace:
             d = x[j] - xi
             r2 = wp.dot(d, d)
             if r2 < hh:
-                e = hh - r2
-                g = (a * mass[j] * scalar(-6.0) * c6 * e * e) * d
+                g = vec3()
+                if form == 2:
+                    if r2 > scalar(1.0e-24) * hh:
+                        rl = wp.sqrt(r2)
+                        q = h - rl
+                        g = (a * mass[j] * c_spiky * q * q / rl) * d
+                else:
+                    e = hh - r2
+                    g = (a * mass[j] * scalar(-6.0) * c6 * e * e) * d
                 wp.atomic_add(adj_x, j, g)
                 gx_i -= g
         wp.atomic_add(adj_x, i, gx_i)
@@ -262,6 +311,8 @@ def kernels(scalar) -> types.SimpleNamespace:
                 adj_r = vec3()
                 adj_VV = scalar(0.0)
                 adj_rl = scalar(0.0)
+                energy_like = int(0)
+                adj_A = scalar(0.0)
                 if form == 0:
                     # energy_pressure_pair_force: G = C w e^2 r, w = m_i m_j (A_i + A_j).
                     e = hh - r2
@@ -269,14 +320,20 @@ def kernels(scalar) -> types.SimpleNamespace:
                     mm = mass[i] * mass[j]
                     w = mm * (pi / (rho_i * rho_i) + pj / (rho_j * rho_j))
                     adj_A = scalar(6.0) * c6 * mm * e * e * ar
-                    adj_Ai += adj_A
-                    adj_pj = adj_A / (rho_j * rho_j)
-                    wp.atomic_add(adj_rho, j, scalar(-2.0) * adj_A * pj / (rho_j * rho_j * rho_j))
-                    adj_pj *= pressure_slope(rho_j, rest_density[j], k_j, mat.clamp_pressure[mj])
-                    wp.atomic_add(adj_rho, j, adj_pj * k_j)
-                    wp.atomic_add(adj_k, mj, adj_pj * (rho_j - rest_density[j]))
+                    energy_like = 1
                     adj_r += (scalar(6.0) * c6 * w * e) * (e * a - scalar(4.0) * ar * r)
-                elif r2 > scalar(1.0e-24) * hh:
+                elif form == 2 and r2 > scalar(1.0e-24) * hh:
+                    # energy_spiky_pair_force: G = -w psi(|r|) r, w = m_i m_j (A_i + A_j).
+                    d = h - rl
+                    psi = c_spiky * d * d / rl
+                    mm = mass[i] * mass[j]
+                    w = mm * (pi / (rho_i * rho_i) + pj / (rho_j * rho_j))
+                    adj_A = -psi * mm * wp.dot(a, r)
+                    energy_like = 1
+                    b = -w * a
+                    adj_r += psi * b
+                    adj_rl += -c_spiky * d * (scalar(2.0) * rl + d) / r2 * wp.dot(r, b)
+                elif form == 1 and r2 > scalar(1.0e-24) * hh:
                     d = h - rl
                     psi = c_spiky * d * d / rl
                     q = psi * wp.dot(a, r)
@@ -289,6 +346,14 @@ def kernels(scalar) -> types.SimpleNamespace:
                     b = scalar(-0.5) * VV * (pi + pj) * a
                     adj_r += psi * b
                     adj_rl += -c_spiky * d * (scalar(2.0) * rl + d) / r2 * wp.dot(r, b)
+                if energy_like != 0:
+                    # A = p / rho^2 of both particles (i's summed over the pairs, below).
+                    adj_Ai += adj_A
+                    adj_pj = adj_A / (rho_j * rho_j)
+                    wp.atomic_add(adj_rho, j, scalar(-2.0) * adj_A * pj / (rho_j * rho_j * rho_j))
+                    adj_pj *= pressure_slope(rho_j, rest_density[j], k_j, mat.clamp_pressure[mj])
+                    wp.atomic_add(adj_rho, j, adj_pj * k_j)
+                    wp.atomic_add(adj_k, mj, adj_pj * (rho_j - rest_density[j]))
                 if r2 > scalar(1.0e-30):
                     vji = v[j] - vi
                     lap = sm.lap_w_viscosity_at(rl, h, c_visc)
@@ -331,7 +396,8 @@ def launch_density(model, x, neighbors, neighbor_count, rho, hand_adjoint: bool 
     """SPH density at ``x`` over the given neighbour lists into ``rho``; under a ``wp.Tape``
     the backward runs ``density_adjoint`` (``hand_adjoint=False``: Warp's generated adjoint)."""
     k = kernels(model.scalar)
-    inputs = [x, model.particle_mass, neighbors, neighbor_count, model.scalar(model.support_radius)]
+    inputs = [x, model.particle_mass, model.particle_material, model.material_arrays(), neighbors, neighbor_count,
+              model.scalar(model.support_radius)]
     tape = deformation.recording_tape()
     if tape is None or not hand_adjoint or x.grad is None or rho.grad is None:
         wp.launch(k.density, model.particle_count, inputs, [rho], device=model.device)
@@ -345,7 +411,8 @@ def launch_density_adjoint(model, x, neighbors, neighbor_count, rho):
     """``density_adjoint``: ``rho.grad`` into ``x.grad``."""
     wp.launch(
         kernels(model.scalar).density_adjoint, model.particle_count,
-        [x, model.particle_mass, neighbors, neighbor_count, model.scalar(model.support_radius), rho.grad, x.grad],
+        [x, model.particle_mass, model.particle_material, model.material_arrays(), neighbors, neighbor_count,
+         model.scalar(model.support_radius), rho.grad, x.grad],
         device=model.device, record_tape=False,
     )
 

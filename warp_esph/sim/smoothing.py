@@ -148,6 +148,20 @@ def funcs(scalar) -> types.SimpleNamespace:
         return grad_w_spiky_c(r, h, spiky_coef(h))
 
     @wp.func
+    def w_spiky_coef(h: scalar) -> scalar:
+        return scalar(15.0) / (PI * wp.pow(h, scalar(6.0)))
+
+    @wp.func
+    def w_spiky_c(r2: scalar, h: scalar, coef: scalar) -> scalar:
+        """The spiky kernel 15/(pi h^6) (h - |r|)^3 (Müller et al. 2003) on the squared
+        distance: its slope ``-3 coef (h - |r|)^2`` does not vanish at ``r = 0``, so a density
+        summed with it keeps growing as two particles meet (the ``energy_spiky`` pressure)."""
+        if r2 >= h * h:
+            return scalar(0.0)
+        d = h - wp.sqrt(r2)
+        return coef * d * d * d
+
+    @wp.func
     def viscosity_coef(h: scalar) -> scalar:
         return scalar(45.0) / (PI * wp.pow(h, scalar(6.0)))
 
@@ -171,6 +185,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         poly6_coef=poly6_coef, w_poly6_c=w_poly6_c, w_poly6_inside=w_poly6_inside, elastic_coef=elastic_coef,
         grad_w_elastic_c=grad_w_elastic_c,
         grad_w_elastic_adjoint=grad_w_elastic_adjoint, elastic_cos_dr2=elastic_cos_dr2,
-        elastic_cos=elastic_cos, spiky_coef=spiky_coef, grad_w_spiky_c=grad_w_spiky_c, grad_w_spiky_at=grad_w_spiky_at,
+        elastic_cos=elastic_cos, spiky_coef=spiky_coef, w_spiky_coef=w_spiky_coef, w_spiky_c=w_spiky_c,
+        grad_w_spiky_c=grad_w_spiky_c, grad_w_spiky_at=grad_w_spiky_at,
         viscosity_coef=viscosity_coef, lap_w_viscosity_c=lap_w_viscosity_c, lap_w_viscosity_at=lap_w_viscosity_at,
     )
