@@ -300,20 +300,24 @@ def test_three_point_bending_supports_carry_the_pin_load_in_a_static_state(bent)
 
 @pytest.fixture(scope="module")
 def indented():
-    """8 across, with the opt-in hourglass control ``Solver(hourglass=0.1)`` (docs/physics.md,
-    "Hourglass modes")."""
-    return validation.sphere_indentation(resolution=8, hourglass=0.1)
+    """8 across, the default solver: for this elastic block the curvature-corrected fit with
+    the hourglass control at 0.05 (docs/physics.md, "The default: the fit by material")."""
+    return validation.sphere_indentation(resolution=8)
 
 
-def test_sphere_indentation_at_2_mm_within_3_percent_of_the_bonded_layer(indented):
+def test_sphere_indentation_at_2_mm_within_5_percent_of_the_bonded_layer(indented):
     """The 4 cm block on its held base is a layer bonded to a rigid base, not a half-space:
     at 2 mm (contact radius 1.8 dx, chi = a / h = 0.26) the layer correction of Dimitriadis et
-    al. (2002) makes it 28 % stiffer than Hertz. Measured at 8 across: 0.993 x the bonded
-    layer (1.271 x Hertz) at 2 mm, 0.869 x at 1 mm (contact radius 1.3 dx: under-resolved),
-    exponent 1.80 for the layer's 1.61; 12 and 16 across: 0.984 and 0.969 x at 2 mm, 1.011
-    and 0.995 x at 1 mm, exponent 1.56 (docs/validation.md)."""
+    al. (2002) makes it 28 % stiffer than Hertz. Measured with the default solver: 1.042 x
+    the bonded layer (1.334 x Hertz) at 2 mm, 0.917 x at 1 mm (contact radius 1.3 dx:
+    under-resolved), exponent 1.79 for the layer's 1.61; at 12 across 1.015 and 1.052 x,
+    exponent 1.55 (docs/validation.md). The bound is 5 %, not the 3 % the linear fit was
+    held to: at 8 across the two fits bracket the layer theory and differ by 5 % (the paper's
+    linear fit with the control at 0.1: 0.991 at 2 mm; 0.984 and 0.969 at 12 and 16 across),
+    the discretisation error of a contact 1.8 spacings wide; both move towards it with
+    resolution."""
     r = indented
-    assert r["ratios"][1] == pytest.approx(1.0, abs=0.03), r["ratios"]
+    assert r["ratios"][1] == pytest.approx(1.0, abs=0.05), r["ratios"]
     assert r["ratios_hertz"][1] > 1.15, r["ratios_hertz"]  # the half-space misses the layer's stiffening
     assert 0.8 < r["ratios"][0] < 1.05, r["ratios"]
     assert r["exponent"] == pytest.approx(r["theory_exponent"], abs=0.25), (r["exponent"], r["theory_exponent"])
@@ -321,7 +325,7 @@ def test_sphere_indentation_at_2_mm_within_3_percent_of_the_bonded_layer(indente
 
 def test_sphere_indentation_base_is_bonded_and_carries_the_load(indented):
     """The bonded-layer theory holds the base: the plane tool's friction (mu = 2) keeps the
-    base layer in place (measured: largest sideways motion 0.7 % of the depth, rise 0.03 %),
+    base layer in place (measured: largest sideways motion 0.9 % of the depth, rise 0.08 %),
     and the base carries the sphere's load (static: measured 1.001 x)."""
     r = indented
     assert r["base_slip"] < 0.02, r["base_slip"]
@@ -330,7 +334,7 @@ def test_sphere_indentation_base_is_bonded_and_carries_the_load(indented):
 
 
 def test_sphere_indentation_force_holds_while_the_sphere_is_held(indented):
-    """Held 0.1 s longer at 2 mm: measured 0.989 x the bonded layer against 0.993 x at the
+    """Held 0.1 s longer at 2 mm: measured 1.039 x the bonded layer against 1.042 x at the
     first reading (without the control it fell to half, next test)."""
     assert indented["late_ratio"] == pytest.approx(indented["ratios"][-1], rel=0.01)
 
