@@ -300,7 +300,7 @@ class Model:
         unless its ``hourglass=`` says otherwise (``sim/hourglass.py``; docs/physics.md,
         "Hourglass modes"); None (default): by the fit, ``AUTO_HOURGLASS`` where ``fit="auto"``
         chose the curvature-corrected fit, else 0 (off; ``solver_choice``). For elastic solids
-        only: it measures ``F`` against the rest positions. Scene files set it in ``[solver]``
+        only: it measures the motion against the rest positions. Scene files set it in ``[solver]``
         (docs/scene_format.md)."""
         return self._hourglass
 

@@ -106,8 +106,8 @@ class Solver:
     the fit ``"auto"`` made curvature-corrected and 0 otherwise: off, not launched) is the
     strength ``c`` of the control of the fit's zero-energy modes (``hourglass.py``;
     docs/physics.md, "Hourglass modes"): for elastic solids (a held sphere indenter keeps its
-    force with ``c = 0.1``); it measures ``F`` against the rest positions, so it would pull a
-    plastically flowed body back towards its rest shape.
+    force with ``c = 0.1``); it measures the motion against the rest positions, so it would
+    pull a plastically flowed body back towards its rest shape.
     """
 
     def __init__(
