@@ -31,8 +31,8 @@ FITS = ("auto", "linear", "curvature_corrected")
 DEFAULT_FIT = "auto"
 #: Strength ``c`` of the hourglass control (``sim/hourglass.py``) that ``fit="auto"`` runs with
 #: the curvature-corrected fit when no strength is chosen (docs/physics.md, "The default:
-#: the fit by material"): lifts every zero-energy mode of the lattice cube above the
-#: lowest physical ones' neighbourhood while moving the 6-thick beam by < 1 %.
+#: the fit by material"): statically it lifts every zero-energy mode of a free lattice cube
+#: above 0.03 (lowest physical pair 0.076), and it moves the 6-thick beam by 0.1 %.
 AUTO_HOURGLASS = 0.05
 #: The contact laws by name (scene files' ``[solver] contact``, the CLI's ``--contact``):
 #: name -> ``Model.contact_ramp``.
@@ -326,8 +326,8 @@ class Model:
         ``fit="auto"`` is ``"curvature_corrected"`` where ``elastic_only`` (a beam 6 particles
         thick bends within 3 % of Timoshenko instead of 16 % too far) and ``"linear"``, the
         paper's fit and its fused fast path, bit-identical to choosing it, wherever a material
-        can flow or uses the paper's force or a comparison model (the control measures
-        ``F`` against the rest positions, which plastic flow leaves behind; docs/physics.md,
+        can flow or uses the paper's force or a comparison model (the control measures the
+        motion against the rest positions, which plastic flow leaves behind; docs/physics.md,
         "The default: the fit by material"). A strength of None is ``AUTO_HOURGLASS`` with the
         fit that ``"auto"`` made curvature-corrected, else 0: an explicit ``fit`` or ``c``
         runs as given."""
