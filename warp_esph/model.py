@@ -31,8 +31,9 @@ FITS = ("auto", "linear", "curvature_corrected")
 DEFAULT_FIT = "auto"
 #: Strength ``c`` of the hourglass control (``sim/hourglass.py``) that ``fit="auto"`` runs with
 #: the curvature-corrected fit when no strength is chosen (docs/physics.md, "The default:
-#: the fit by material"): statically it lifts every zero-energy mode of a free lattice cube
-#: above 0.03 (lowest physical pair 0.076), and it moves the 6-thick beam by 0.1 %.
+#: the fit by material"): the static residual penalty of that strength lifted every
+#: zero-energy mode of a free lattice cube above 0.03 (docs/physics.md, "Where the surface
+#: noise comes from"), and the control moves the 6-thick beam by 0.1 % (measured).
 AUTO_HOURGLASS = 0.05
 #: The contact laws by name (scene files' ``[solver] contact``, the CLI's ``--contact``):
 #: name -> ``Model.contact_ramp``.
