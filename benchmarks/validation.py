@@ -462,7 +462,7 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
 
 # ---------------------------------------------------------------------- bar
 def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slenderness: int = 10,
-                  periods: float = 3.2, strain: float = 1.0e-3, E: float = 1.0e5, nu: float = 0.3) -> dict:
+                  periods: float = 3.2, strain: float = 1.0e-3, E: float = 1.0e5, nu: float = 0.3, fit: str | None = None, hourglass: float | None = None) -> dict:
     """Free-free bar, ``resolution`` x ``resolution`` particles across, ``slenderness`` times
     as long, pressure off, no gravity, started in its first longitudinal mode
     (``v = strain c cos(pi X / L)``). The frequency is read from the upward zero crossings
@@ -486,8 +486,8 @@ def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slend
     a.v.assign(v)
     left = x0[:, 0] < x0[:, 0].min() + 0.5 * dx
     right = x0[:, 0] > x0[:, 0].max() - 0.5 * dx
-    solver = we.Solver(model)
-    dt = model.stable_dt()
+    solver = we.Solver(model, fit=fit, hourglass=hourglass)
+    dt = model.stable_dt(hourglass=solver.hourglass)
     steps = int(periods / f_theory / dt)
     lengths = []
 
@@ -508,9 +508,11 @@ def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slend
 # --------------------------------------------------------------------- beam
 def beam_deflection(resolution: int = 6, elastic_force: str = "variational", span_over_thickness: int = 10,
                     periods: float = 3.0, nu: float = 0.3, deflection_over_thickness: float = 0.03,
-                    kappa: float = 0.85, dtype: str = "float32", fit: str = "linear") -> dict:
+                    kappa: float = 0.85, dtype: str = "float32", fit: str | None = None,
+                    hourglass: float | None = None) -> dict:
     """A square beam ``resolution`` particles thick on two supports under its own weight
-    (``fit``: the solver's incremental fit, ``Solver(fit=...)``).
+    (``fit``, ``hourglass``: the solver's incremental fit and hourglass control,
+    ``Solver(fit=..., hourglass=...)``; None: the default, ``Model.solver_choice``).
 
     The supports are two frictionless box colliders one particle column wide under the end
     columns (span L between their centres: a simply supported beam with dx/2 overhangs).
@@ -544,8 +546,8 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
     ends = np.abs(np.abs(x0[:, 0]) - L / 2.0) < 0.25 * dx
     omega1 = (math.pi / L) ** 2 * math.sqrt(E * I / (RHO * A))
     damping = 1.4 * omega1
-    solver = we.Solver(model, fit=fit)
-    dt = model.stable_dt()
+    solver = we.Solver(model, fit=fit, hourglass=hourglass)
+    dt = model.stable_dt(hourglass=solver.hourglass)
     steps = int(periods * 2.0 * math.pi / omega1 / dt)
     factor = math.exp(-damping * dt)
     hist_t, hist_d = [], []
@@ -568,7 +570,7 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
     ke = _kinetic(model, a)
     # Relaxed, the kinetic energy is round-off; a beam that broke up keeps moving.
     blew_up = bool(not math.isfinite(ke) or ke > 1e-3 * float(model.particle_mass.numpy().sum()) * G * theory)
-    return {"case": "beam", "resolution": n, "elastic_force": elastic_force, "fit": fit,
+    return {"case": "beam", "resolution": n, "elastic_force": elastic_force, "fit": solver.fit, "hourglass": solver.hourglass,
             "particles": model.particle_count, "span_over_thickness": span_over_thickness, "deflection": hd[-1], "theory": theory,
             "theory_euler_bernoulli": theory_eb, "ratio": hd[-1] / theory,
             "residual_rate_pct_per_s": 100.0 * rate / theory, "kinetic_energy": ke, "blew_up": blew_up,
@@ -577,7 +579,7 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
 
 # ------------------------------------------------------------------- column
 def column_settlement(resolution: int = 6, elastic_force: str = "variational", aspect: int = 5,
-                      E: float = 1.5e5, nu: float = 0.3, periods: float = 4.0) -> dict:
+                      E: float = 1.5e5, nu: float = 0.3, periods: float = 4.0, fit: str | None = None, hourglass: float | None = None) -> dict:
     """A free-standing square column, ``resolution`` particles across and ``aspect`` times as
     tall, on a frictionless floor (laterally free), pressure off, relaxed dynamically. The
     shortening between the centres of the top and bottom layers, against
@@ -598,8 +600,8 @@ def column_settlement(resolution: int = 6, elastic_force: str = "variational", a
     L0 = x0[top, 1].mean() - x0[bottom, 1].mean()
     theory = RHO * G * H * (H - dx) / (2.0 * E)
     omega = 0.5 * math.pi * math.sqrt(E / RHO) / H  # fixed-free axial mode
-    solver = we.Solver(model)
-    dt = model.stable_dt()
+    solver = we.Solver(model, fit=fit, hourglass=hourglass)
+    dt = model.stable_dt(hourglass=solver.hourglass)
     steps = int(periods * 2.0 * math.pi / omega / dt)
     factor = math.exp(-1.4 * omega * dt)
     hist = []
@@ -621,7 +623,7 @@ def column_settlement(resolution: int = 6, elastic_force: str = "variational", a
 
 # ------------------------------------------------------------------ poisson
 def poisson_compression(resolution: int = 6, elastic_force: str = "variational", strain: float = 1.0e-3,
-                        E: float = 1.0e5, nu: float = 0.3, aspect: int = 2, periods: float = 20.0) -> dict:
+                        E: float = 1.0e5, nu: float = 0.3, aspect: int = 2, periods: float = 20.0, fit: str | None = None, hourglass: float | None = None) -> dict:
     """A block ``resolution`` particles across and ``aspect`` times as long, compressed along
     x by ``strain`` (positions and F together) and held between two frictionless planes
     at its end layers; no gravity, pressure off, relaxed dynamically. Measured: the lateral
@@ -650,8 +652,8 @@ def poisson_compression(resolution: int = 6, elastic_force: str = "variational",
     end = x0[:, 0] > x0[:, 0].max() - 0.5 * dx
     c_p = mat.p_wave_speed
     omega = math.pi * c_p / (n * dx)
-    solver = we.Solver(model)
-    dt = model.stable_dt()
+    solver = we.Solver(model, fit=fit, hourglass=hourglass)
+    dt = model.stable_dt(hourglass=solver.hourglass)
     steps = int(periods * 2.0 * math.pi / omega / dt)
     factor = math.exp(-omega * dt)
     hist = []
@@ -779,8 +781,8 @@ def layer_factor(nu: float, chi: float, bonded: bool = True) -> float:
 
 
 def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.0e5, nu: float = 0.3,
-                       R: float = 0.04, hold: float = 0.015, late: float = 0.1, hourglass: float = 0.0,
-                       width: float = 0.10, height: float = 0.04) -> dict:
+                       R: float = 0.04, hold: float = 0.015, late: float = 0.1, hourglass: float | None = None,
+                       width: float = 0.10, height: float = 0.04, fit: str | None = None) -> dict:
     """A frictionless rigid sphere (R = 4 cm) pressed into a block ``width`` x ``height`` x
     ``width`` (default 10 x 4 x 10 cm; ``resolution`` particles across its height) standing on a plane tool that holds its
     base (mu = 2); no gravity, pressure off, variational force. The sphere starts touching
@@ -790,7 +792,9 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
     again: the point-based contact under a sphere is not stable for long without the
     hourglass control (the particle columns under the apex slide sideways between their
     neighbours and the force decays, docs/validation.md), so the first reading is the
-    elastic response before that.
+    elastic response before that. ``fit``, ``hourglass``: ``Solver(fit=..., hourglass=...)``
+    (None: the default, ``Model.solver_choice``: for this elastic block the curvature-corrected
+    fit with the control at ``AUTO_HOURGLASS``).
 
     Theory: Hertz for a half-space (``hertz_force``) times the correction of a layer bonded
     to a rigid base (``layer_factor``), whose thickness is that of the lattice between the
@@ -820,7 +824,7 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
     b.add_tool("sphere", radius=R, name="indenter",
                motion=tools.Keyframes(times, [(0.0, h, 0.0) for h in heights]))
     model = b.finalize()
-    solver = we.Solver(model, hourglass=hourglass)
+    solver = we.Solver(model, hourglass=hourglass, fit=fit)
     x0 = model.particle_x0.astype(np.float64)
     base = x0[:, 1] < ylo + 0.5 * dx
     a = c = None
@@ -843,7 +847,8 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
     theory_exponent = (math.log(theory[1] / theory[0]) / math.log(depths[1] / depths[0]) if len(depths) > 1
                        else float("nan"))
     late_force = -f["indenter"][1]
-    return {"case": "indentation", "resolution": resolution, "hourglass": hourglass, "particles": model.particle_count, "R": R,
+    return {"case": "indentation", "resolution": resolution, "hourglass": solver.hourglass, "fit": solver.fit,
+            "particles": model.particle_count, "R": R,
             "width": Wd, "height": H, "thickness": h, "depths": list(depths), "forces": forces, "base_forces": base_forces,
             "hertz": hertz, "theory": theory, "ratios": [f / t for f, t in zip(forces, theory)],
             "ratios_hertz": [f / t for f, t in zip(forces, hertz)],
@@ -939,7 +944,7 @@ def _stvk_energy(model, F: np.ndarray, mu: float, lam: float) -> float:
 
 
 def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", resolution: int = 6,
-                 periods: float = 50.0, dt_factor: float = 1.0, E: float = 2.0e5, nu: float = 0.3) -> dict:
+                 periods: float = 50.0, dt_factor: float = 1.0, E: float = 2.0e5, nu: float = 0.3, fit: str | None = None, hourglass: float | None = None) -> dict:
     """An undamped elastic cube (``resolution``^3 particles, St. Venant-Kirchhoff, pressure
     off, no gravity, no viscosity) set breathing with ``v = a (x - c)`` so that its peak
     strain is about ``amplitude``. The total energy (kinetic + sum V psi(F), psi the
@@ -961,8 +966,8 @@ def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", r
     a.v.assign(rate * (x0 - x0.mean(axis=0)))
     mu, lam = mat.mu, mat.lam
     e0 = _kinetic(model, a) + _stvk_energy(model, a.F.numpy(), mu, lam)
-    solver = we.Solver(model)
-    dt = dt_factor * model.stable_dt()
+    solver = we.Solver(model, fit=fit, hourglass=hourglass)
+    dt = dt_factor * model.stable_dt(hourglass=solver.hourglass)
     steps = int(periods * 2.0 * math.pi / omega / dt)
     every = max(1, steps // 400)
     hist = []
@@ -1058,8 +1063,8 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
         # The lab tests with tools (variational force only: the default).
         runs.append(("plate_compression", {"resolution": 4}))
         runs.append(("three_point_bending", {"resolution": 4}))
+        runs.append(("sphere_indentation", {"resolution": 8, "fit": "linear", "hourglass": 0.0}))
         runs.append(("sphere_indentation", {"resolution": 8}))
-        runs.append(("sphere_indentation", {"resolution": 8, "hourglass": 0.1}))
         for label, _ in _stability_materials():
             for f in FORCES:
                 runs.append(("stability", {"label": label, "elastic_force": f, "duration": 0.3}))
@@ -1079,10 +1084,13 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     # A particle column over each support needs 9 cm to be a multiple of the spacing.
     runs.append(("three_point_bending", {"resolution": 4}))
     runs.append(("three_point_bending", {"resolution": 8, "hold": 0.6}))
+    # The paper's linear fit without and with the control, and the default (for this elastic
+    # block the curvature-corrected fit with the control at 0.05).
     for res in (8, 12):
         for hg in (0.0, 0.1):
-            runs.append(("sphere_indentation", {"resolution": res, "hourglass": hg}))
-    runs.append(("sphere_indentation", {"resolution": 16, "hourglass": 0.1}))
+            runs.append(("sphere_indentation", {"resolution": res, "fit": "linear", "hourglass": hg}))
+        runs.append(("sphere_indentation", {"resolution": res}))
+    runs.append(("sphere_indentation", {"resolution": 16, "fit": "linear", "hourglass": 0.1}))
     for res in (8, 12):
         for S in SLUMP_S:
             for f in FORCES:

@@ -272,13 +272,15 @@ def _lab_tests(results) -> str:
                    + _table(["across", "particles", "force (N)", "E A eps (N)", "ratio", "lateral strain", "nu eps", "ratio"],
                             [[r["resolution"], r["particles"], r["force"], r["force_theory"], r["force_ratio"],
                               r["lateral_strain"], r["lateral_theory"], r["lateral_ratio"]] for r in pl]))
-    ind = sorted((r for r in results if r["case"] == "indentation"), key=lambda r: (r["resolution"], r.get("hourglass", 0.0)))
+    ind = sorted((r for r in results if r["case"] == "indentation"),
+                 key=lambda r: (r["resolution"], r.get("fit", "linear"), r.get("hourglass", 0.0)))
     if ind:
         rows = []
         for r in ind:
             last = len(r["depths"]) - 1
             for k, d in enumerate(r["depths"]):
-                rows.append([r["resolution"], r.get("hourglass", 0.0), r["particles"], 1e3 * d, r["contact_radius_over_dx"][k],
+                rows.append([r["resolution"], r.get("fit", "linear"), r.get("hourglass", 0.0), r["particles"], 1e3 * d,
+                             r["contact_radius_over_dx"][k],
                              r["chi"][k], r["forces"][k], r["hertz"][k], r["ratios_hertz"][k], r["theory"][k], r["ratios"][k],
                              f"{r['exponent']:.3g} ({r['theory_exponent']:.3g})" if k == last and k > 0 else "",
                              r["late_ratio"] if k == last else "", r["base_slip"] if k == last else ""])
@@ -291,8 +293,10 @@ def _lab_tests(results) -> str:
                    "top layer's; the ratio is against it. Exponent: log(F2/F1) / log(d2/d1), the layer's in brackets "
                    "(Hertz: 1.5). Late: force / layer after a further 0.1 s at the deepest (see Notes: the columns under "
                    "the apex give way without the hourglass control). Base slip: the base layer's largest sideways "
-                   "motion over the depth. hourglass: `Solver(hourglass=c)`, docs/physics.md, \"Hourglass modes\".\n\n"
-                   + _table(["across", "hourglass", "particles", "depth (mm)", "contact radius / dx", "chi", "force (N)",
+                   "motion over the depth. fit, hourglass: the fit and the control's strength the solver ran "
+                   "(`Solver(fit=..., hourglass=c)`; the default `fit=\"auto\"` runs the curvature-corrected fit with "
+                   "c = 0.05 for this elastic block), docs/physics.md, \"Hourglass modes\".\n\n"
+                   + _table(["across", "fit", "hourglass", "particles", "depth (mm)", "contact radius / dx", "chi", "force (N)",
                              "Hertz (N)", "ratio", "layer (N)", "ratio", "exponent (layer)", "late ratio", "base slip"], rows))
     be = sorted((r for r in results if r["case"] == "bending"), key=lambda r: r["resolution"])
     if be:

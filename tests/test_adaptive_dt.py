@@ -65,10 +65,14 @@ def test_adaptive_step_is_smaller_in_flight_than_at_rest_and_matches_a_small_fix
     assert np.abs(flying["auto"] - flying["fixed"]).max() < 0.05 * DX
     # After the bounce the particles' arrangement depends on the step (two fixed steps,
     # 100 and 200 per frame, end up to 2.7 spacings apart particle by particle and 0.17
-    # spacings apart in the centroid), so the resting ball is compared by its centroid.
+    # spacings apart in the centroid), so the resting ball is compared by its centroid, and
+    # by its extents within a spacing: those of two fixed steps differ by up to 0.63 dx
+    # (100 vs 200 per frame; 0.52 at 200 vs 300) with the paper's linear fit and 0.55 dx
+    # with the default for this elastic ball (curvature-corrected fit, hourglass control);
+    # adaptive against fixed measured 0.39 dx (linear) and 0.71 dx (default).
     xa, xf = auto.x.numpy(), fixed.x.numpy()
     assert np.abs(xa.mean(axis=0) - xf.mean(axis=0)).max() < 0.5 * DX, (xa.mean(axis=0) - xf.mean(axis=0)) / DX
-    assert np.abs(np.ptp(xa, axis=0) - np.ptp(xf, axis=0)).max() < 0.5 * DX
+    assert np.abs(np.ptp(xa, axis=0) - np.ptp(xf, axis=0)).max() < 1.0 * DX, (np.ptp(xa, axis=0) - np.ptp(xf, axis=0)) / DX
 
 
 def test_adaptive_step_rejects_bad_input():
@@ -219,9 +223,12 @@ def test_stable_dt_includes_the_hourglass_control_and_holds():
     while the same 3 x step without the control is stable (it is below the wave limit).
     ``Model.hourglass`` is the default, the solver's warning and ``simulate``'s steps (fixed
     and adaptive) follow the solver's ``c``."""
+    from warp_esph.model import AUTO_HOURGLASS
+
     model, state = _shaken_block()
-    plain = model.stable_dt()
-    assert model.stable_dt(hourglass=0.0) == plain
+    plain = model.stable_dt(hourglass=0.0)
+    # The default for this elastic block (fit "auto") runs the control at AUTO_HOURGLASS.
+    assert model.stable_dt() == model.stable_dt(hourglass=AUTO_HOURGLASS) < plain
     mild, stiff = model.stable_dt(hourglass=3.0), model.stable_dt(hourglass=1000.0)
     print(f"stable_dt: c = 0 {plain:.4e}, c = 3 {mild:.4e} ({mild / plain:.4f} x), c = 1000 {stiff:.4e} ({stiff / plain:.4f} x)")
     assert 0.95 * plain < mild < plain and stiff < plain / 3.0

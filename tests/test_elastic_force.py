@@ -32,12 +32,15 @@ def _stvk_energy(model, F):
     return float((model.particle_volume.numpy() * psi).sum())
 
 
-@pytest.mark.parametrize("fused", [True, False])
-def test_variational_force_is_minus_the_gradient_of_the_fit_energy(fused):
+@pytest.mark.parametrize("fused, fit", [(True, "linear"), (False, "linear"), (False, "curvature_corrected")])
+def test_variational_force_is_minus_the_gradient_of_the_fit_energy(fused, fit):
     """At a deformed state (F up to 15 % from I, jittered positions), the force of every
     coordinate equals the central difference of ``E = sum V psi(dF(y) F)``, with ``dF``
-    the step's own fit (read back from the solver) and psi St. Venant-Kirchhoff. The
-    paper's force at the same state is far from it: it is not the gradient of an energy."""
+    the step's own fit (read back from the solver) and psi St. Venant-Kirchhoff, for either
+    fit. The paper's force at the same state is far from it: it is not the gradient of an
+    energy. The hourglass control is off (``hourglass=0``): its energy is not the fit's (the
+    default for this elastic cube, ``fit="auto"``, adds it; measured 0.58 % of the largest
+    force here)."""
     errors = {}
     for elastic_force in ("variational", "paper"):
         model = _cube((4, 4, 3), elastic_force, model="stvk")
@@ -45,7 +48,7 @@ def test_variational_force_is_minus_the_gradient_of_the_fit_energy(fused):
         rng = np.random.default_rng(2)
         x0 = model.particle_x0 + rng.normal(scale=0.02 * SPACING, size=(n, 3))
         F0 = np.eye(3) + rng.uniform(-0.15, 0.15, size=(n, 3, 3))
-        solver = we.Solver(model, fused=fused)
+        solver = we.Solver(model, fused=fused, fit=fit, hourglass=0.0)
         a, b = model.state(), model.state()
         a.x.assign(x0)
         a.F.assign(F0)
@@ -70,10 +73,10 @@ def test_variational_force_is_minus_the_gradient_of_the_fit_energy(fused):
     assert errors["paper"] > 0.05, errors
 
 
-def _linear_stiffness(model, fused):
+def _linear_stiffness(model, fused, fit=None):
     """K = -df/du at rest, with F the solver's own fit of the displacement u."""
     n = model.particle_count
-    solver = we.Solver(model, fused=fused)
+    solver = we.Solver(model, fused=fused, fit=fit)
     a, b, c = model.state(), model.state(), model.state()
     dt, eps = 1.0e-9, 1.0e-7
 
@@ -112,9 +115,10 @@ def test_linear_stiffness_is_symmetric_only_for_the_variational_force(fused):
     assert rates["paper"] > 1.0, rates
 
 
-def _vibrate(elastic_force, dt_factor, duration, stop_at=None):
+def _vibrate(elastic_force, dt_factor, duration, stop_at=None, fit=None):
     """A 6^3 cube set breathing (v = 5 (x - c)), undamped; the largest kinetic energy
-    reached over ``duration``, relative to the initial one, and when it passed ``stop_at``."""
+    reached over ``duration``, relative to the initial one, and when it passed ``stop_at``
+    (``fit``: ``Solver(fit=...)``, None the default)."""
     mat = we.Material.from_young(2.0e5, 0.3, elastic_force=elastic_force)  # default SPH pressure
     b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
     b.add_box((0.0, 0.0, 0.0), (6 * SPACING,) * 3, mat)
@@ -125,8 +129,8 @@ def _vibrate(elastic_force, dt_factor, duration, stop_at=None):
     a.v.assign(v0)
     mass = model.particle_mass.numpy()[:, None]
     ke0 = 0.5 * (mass * v0**2).sum()
-    solver = we.Solver(model)
-    dt = model.stable_dt() * dt_factor
+    solver = we.Solver(model, fit=fit)
+    dt = model.stable_dt(hourglass=solver.hourglass) * dt_factor
     peak = 0.0
     for k in range(int(duration / dt)):
         solver.step(a, c, dt)
@@ -149,8 +153,18 @@ def test_undamped_elastic_body_keeps_its_energy_only_with_the_variational_force(
     nearest it was 1.74 s and 1.59 s; the wide rows that reach h sigma_max(F) give each
     particle every neighbour inside its support and move it to the spread above. So the test
     asks only that halving the step does not postpone it (by more than the scatter between
-    step sizes)."""
-    peak, _ = _vibrate("variational", 1.0, 1.5)
+    step sizes).
+
+    The variational force's own gain is a time-stepping error (docs/physics.md, "The default:
+    the fit by material"): it goes with the step, with either fit. Measured peaks over 1.5 /
+    3 s at the stable step: the paper's linear fit 1.002 / 1.21 (pressure off: 1.27 / 1.79),
+    the default for this elastic cube (``fit="auto"``: curvature-corrected fit, hourglass
+    control 0.05) 1.07 / 1.52 (pressure off: 1.09 / 1.52); at half the step 1.00000 and
+    1.00001 over 3 s. So the linear fit is held to the stable step over 1.5 s, as before, and
+    the default to half of it."""
+    peak, _ = _vibrate("variational", 1.0, 1.5, fit="linear")
+    assert peak < 1.01
+    peak, _ = _vibrate("variational", 0.5, 1.5)
     assert peak < 1.01
     _, t_full = _vibrate("paper", 1.0, 3.0, stop_at=10.0)
     _, t_half = _vibrate("paper", 0.5, 3.0, stop_at=10.0)

@@ -264,7 +264,11 @@ friction = 0.6
 def test_cli_fits_the_modulus_to_the_grounds_force_curve(tmp_path, capsys):
     """``warp-esph run`` a block thrown onto the ground (no tools), then ``warp-esph fit`` its
     shear modulus from a 2x guess to the ground's force curve (``--target-tool plane0``, the
-    rows the run wrote for the static collider) in ``<output>_tools.csv``."""
+    rows the run wrote for the static collider) in ``<output>_tools.csv``. The gel is purely
+    elastic, so the default solver runs the curvature-corrected fit with the hourglass
+    control (docs/physics.md, "The default: the fit by material"): from the same guess it
+    recovers mu to 1e-5 in 15 iterations (10: 959, 4 % short; the paper's linear fit: 1000.03
+    in 10), so it is given 15."""
     from warp_esph.cli import main
     from warp_esph.fit import load_target
 
@@ -278,7 +282,7 @@ def test_cli_fits_the_modulus_to_the_grounds_force_curve(tmp_path, capsys):
     out = tmp_path / "fit"
     capsys.readouterr()
     status = main(["fit", str(guess), "--target", str(csv), "--target-tool", "plane0", "--params", "mu",
-                   "--iterations", "10", "--output-dir", str(out), "--no-progress", "--no-usd"])
+                   "--iterations", "15", "--output-dir", str(out), "--no-progress", "--no-usd"])
     captured = capsys.readouterr()
     assert status == 0, captured.err
     doc = json.loads((out / "fit.json").read_text())

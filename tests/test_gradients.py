@@ -302,3 +302,37 @@ def test_energy_spiky_pressure_gradients_match_central_differences(weights, case
           - _rollout_loss(_energy_spiky_model(case, {name: base - eps}), weights)[0]) / (2 * eps)
     assert abs(fd) > 1e-9, "the loss does not reach " + name
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+
+
+def _elastic_model(params=None):
+    """The hourglass block made purely elastic (no yield, no flow): the default solver
+    (``fit="auto"``) then runs the curvature-corrected fit with the hourglass control."""
+    return _hourglass_model({"yield_stress": float("inf"), "flow_rate": 0.0, "hardening": 0.0, **(params or {})})
+
+
+@pytest.mark.parametrize("name", ["mu", "lam", "v0"])
+def test_default_solver_of_an_elastic_model_gradients_match_central_differences(weights, name):
+    """What the default solver runs for a purely elastic model under a tape (the corrected
+    fit's hand-written adjoints and the control's generated one, together) against central
+    differences."""
+    _, solver = _rollout_loss(_elastic_model(), weights, fit=None, hourglass=None)
+    assert solver.fit == "curvature_corrected" and solver.hourglass > 0.0, (solver.fit, solver.hourglass)
+    _, grads = _rollout_loss(_elastic_model(), weights, grad_of=(name,), fit=None, hourglass=None)
+    if name == "v0":
+        i, comp, eps = 7, 1, 1e-6
+
+        def loss_with(delta):
+            m = _elastic_model()
+            m.particle_v0[i, comp] += delta
+            return _rollout_loss(m, weights, fit=None, hourglass=None)[0]
+
+        fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
+        assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
+        return
+    base = getattr(_elastic_model().materials[0], name)
+    eps = 1e-5 * base
+    plus = _rollout_loss(_elastic_model({name: base + eps}), weights, fit=None, hourglass=None)[0]
+    minus = _rollout_loss(_elastic_model({name: base - eps}), weights, fit=None, hourglass=None)[0]
+    fd = (plus - minus) / (2 * eps)
+    assert abs(fd) > 1e-11, f"the loss does not reach {name}"
+    assert grads[name][0] == pytest.approx(fd, rel=1e-4)

@@ -106,14 +106,42 @@ def test_corrected_fit_returns_the_gradient_of_a_bending_field_at_surface_partic
     assert errors[deformation] > 0.03, errors
 
 
-def test_solver_fit_option_is_validated_and_defaults_to_the_linear_fit():
-    model = _block_model(n=(3, 3, 3))
-    assert we.Solver(model).fit == "linear"
-    assert we.Solver(model, fit="curvature_corrected").fit == "curvature_corrected"
-    with pytest.raises(ValueError, match=r"fit = 'quadratic' is not allowed: must be one of 'linear', 'curvature_corrected'"):
-        we.Solver(model, fit="quadratic")
+def test_solver_fit_option_is_validated_and_the_default_chooses_by_material():
+    """``fit="auto"`` (the default, ``Model.solver_choice``): the curvature-corrected fit with
+    the hourglass control at ``AUTO_HOURGLASS`` for a purely elastic model of the variational
+    force, the paper's linear fit without the control where a material can flow (following
+    the parameter arrays at each step) or uses the paper's force; explicit choices run as
+    given, and ``stable_dt`` follows the choice."""
+    from warp_esph.model import AUTO_HOURGLASS
+
+    elastic = _block_model(n=(3, 3, 3))
+    solver = we.Solver(elastic)
+    assert elastic.fit == "auto" and elastic.hourglass is None
+    assert (solver.fit, solver.hourglass) == ("curvature_corrected", AUTO_HOURGLASS)
+    assert elastic.stable_dt() == elastic.stable_dt(hourglass=AUTO_HOURGLASS) < elastic.stable_dt(hourglass=0.0)
+    assert (we.Solver(elastic, fit="linear").fit, we.Solver(elastic, fit="linear").hourglass) == ("linear", 0.0)
+    explicit = we.Solver(elastic, fit="curvature_corrected")
+    assert (explicit.fit, explicit.hourglass) == ("curvature_corrected", 0.0)
+    assert we.Solver(elastic, hourglass=0.0).hourglass == 0.0
+    plastic = _block_model(n=(3, 3, 3), yield_stress=50.0, flow_rate=10.0)
+    assert (we.Solver(plastic).fit, we.Solver(plastic).hourglass) == ("linear", 0.0)
+    assert plastic.stable_dt() == plastic.stable_dt(hourglass=0.0)
+    paper = _block_model(n=(3, 3, 3), elastic_force="paper")
+    assert we.Solver(paper).fit == "linear"
+    # A flow rate set on the parameter array (as a fit or warp_esph.torch would) turns the
+    # choice at the next step; an infinite yield stress keeps it elastic.
+    follows = _block_model(n=(3, 3, 3), yield_stress=50.0)
+    solver = we.Solver(follows)
+    assert solver.fit == "curvature_corrected"
+    follows.flow_rate.assign(np.array([10.0]))
+    a, b = follows.state(), follows.state()
+    solver.step(a, b, 1e-5)
+    assert (solver.fit, solver.hourglass) == ("linear", 0.0)
+    with pytest.raises(ValueError, match=r"fit = 'quadratic' is not allowed: must be one of 'auto', 'linear', 'curvature_corrected'"):
+        we.Solver(elastic, fit="quadratic")
     with pytest.raises(ValueError, match="fit = 'curvature_corrected' is not allowed with a comparison deformation model"):
         we.Solver(_block_model(n=(3, 3, 3), deformation="rest"), fit="curvature_corrected")
+    assert we.Solver(_block_model(n=(3, 3, 3), deformation="rest")).fit == "linear"
 
 
 def test_rigid_motion_gives_no_force_and_f_stays_a_rotation():

@@ -137,7 +137,7 @@ BASE = textwrap.dedent(
         ("spacing = 0.05", "spacing = 0.05\nframes = 0", r"\[scene\]: frames = 0 is not allowed"),
         ("spacing = 0.05", "spacing = = 0.05", r"invalid TOML"),
         ("[scene]", '[solver]\nfit = "quadratic"\n[scene]',
-         r"fit = 'quadratic' in \[solver\] is not allowed \(allowed: linear, curvature_corrected\)"),
+         r"fit = 'quadratic' in \[solver\] is not allowed \(allowed: auto, linear, curvature_corrected\)"),
         ("[scene]", '[solver]\ncontact = "contiuous"\n[scene]',
          r"contact = 'contiuous' in \[solver\] is not allowed; did you mean 'continuous'\? \(allowed: instant, continuous\)"),
         ("[scene]", '[solver]\nfitt = "linear"\n[scene]', r"unknown key 'fitt' in \[solver\]; did you mean 'fit'"),
@@ -214,8 +214,9 @@ def test_solver_table_sets_the_fit_and_contact_of_the_model_and_its_solver(tmp_p
     m = load_scene_file(chosen).builder.finalize()
     base = load_scene_file(plain).builder.finalize()
     assert (m.fit, m.contact_ramp) == ("curvature_corrected", CONTINUOUS_CONTACT_RAMP)
-    assert (base.fit, base.contact_ramp) == (DEFAULT_FIT, CONTACT_RAMP) and DEFAULT_FIT == "linear"
-    assert Solver(m).fit == "curvature_corrected" and Solver(base).fit == DEFAULT_FIT
+    assert (base.fit, base.contact_ramp) == (DEFAULT_FIT, CONTACT_RAMP) and DEFAULT_FIT == "auto"
+    # The default chooses by material: this dough can flow, so the paper's linear fit.
+    assert Solver(m).fit == "curvature_corrected" and Solver(base).fit == "linear"
 
     def run(model, **kw):
         return simulate(model, 2, progress=False, solver=Solver(model, **kw)).x.numpy()
@@ -240,12 +241,12 @@ def test_solver_table_sets_the_hourglass_control_of_the_model_and_its_solver(tmp
     chosen.write_text("[solver]\nhourglass = 0.1\n" + text)
     m = load_scene_file(chosen).builder.finalize()
     base = load_scene_file(plain).builder.finalize()
-    assert (m.hourglass, base.hourglass) == (0.1, 0.0)
+    assert (m.hourglass, base.hourglass) == (0.1, None)  # None: by the fit (0 for this dough)
     assert Solver(m).hourglass == 0.1 and Solver(base).hourglass == 0.0 and Solver(m, hourglass=0).hourglass == 0.0
     assert replicate_worlds(m, 2).hourglass == 0.1
     b0, b1 = load_scene_file(chosen).builder, load_scene_file(plain).builder
     assert finalize_worlds([b0, b0]).hourglass == 0.1
-    with pytest.raises(ValueError, match=r"builders\[1\]\.hourglass = 0\.0 is not allowed: every world must have the hourglass"):
+    with pytest.raises(ValueError, match=r"builders\[1\]\.hourglass = None is not allowed: every world must have the hourglass"):
         finalize_worlds([b0, b1])
 
     def run(model, **kw):
@@ -282,7 +283,7 @@ def test_solver_options_refuse_bad_names_in_python():
     from warp_esph import SceneBuilder, Solver
     from warp_esph.model import DEFAULT_FIT
 
-    with pytest.raises(ValueError, match=r"fit = 'quad' is not allowed: must be one of 'linear', 'curvature_corrected'"):
+    with pytest.raises(ValueError, match=r"fit = 'quad' is not allowed: must be one of 'auto', 'linear', 'curvature_corrected'"):
         SceneBuilder(fit="quad")
     with pytest.raises(ValueError, match=r"contact = 'soft' is not allowed: must be one of 'instant', 'continuous'"):
         SceneBuilder(contact="soft")

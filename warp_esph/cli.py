@@ -137,8 +137,10 @@ def _build_parser() -> _Parser:
 def _add_solver_arguments(parser) -> None:
     """``--solver-fit``, ``--contact`` and ``--hourglass``: the scene's ``[solver]`` options, overridden."""
     parser.add_argument("--solver-fit", metavar="NAME",
-                        help="incremental fit of the solver: linear (the paper's) or curvature_corrected (stiffer in bending "
-                             "near free surfaces); default: the scene's [solver] fit, else linear")
+                        help="incremental fit of the solver: auto (curvature_corrected with the hourglass control where no "
+                             "material can flow and all use the variational force, else linear), linear (the paper's) or "
+                             "curvature_corrected (stiffer in bending near free surfaces); default: the scene's [solver] fit, "
+                             "else auto")
     parser.add_argument("--contact", metavar="NAME",
                         help="contact law of colliders and tools: instant (the whole inward velocity removed) or continuous "
                              "(continuous in the state, so a loss is continuous through contact); default: the scene's "
@@ -146,7 +148,7 @@ def _add_solver_arguments(parser) -> None:
     parser.add_argument("--hourglass", metavar="C",
                         help="strength (>= 0) of the hourglass control of the fit's zero-energy modes, for elastic solids "
                              "under concentrated loads (0.1 holds a pressed sphere indenter); 0: off; default: the scene's "
-                             "[solver] hourglass, else 0")
+                             "[solver] hourglass, else 0.05 where the auto fit chose curvature_corrected and 0 otherwise")
 
 
 def _solver_options(args) -> dict:
@@ -430,7 +432,7 @@ def _check_run_record(path, run: dict) -> None:
             checks.choice("fit", run["fit"], FITS)
         if "contact_ramp" in run:
             checks.non_negative("contact_ramp", run["contact_ramp"])
-        if "hourglass" in run:
+        if run.get("hourglass") is not None:  # None: by the fit (Model.solver_choice)
             checks.non_negative("hourglass", run["hourglass"])
     except ValueError as e:
         raise ValueError(f"{where} {e}") from None

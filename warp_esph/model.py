@@ -23,11 +23,18 @@ from .sim import integrate
 from .sim import materials as material_struct
 
 
-#: The incremental fits a ``Solver`` offers (docs/method.md §2): the paper's affine one and
-#: the curvature-corrected one (``sim/curvature.py``). ``Model.fit`` picks a model's.
-FITS = ("linear", "curvature_corrected")
+#: The incremental fits a ``Solver`` offers (docs/method.md §2): the paper's affine one,
+#: the curvature-corrected one (``sim/curvature.py``), and ``"auto"``, which picks between
+#: them by the materials (``Model.solver_choice``). ``Model.fit`` picks a model's.
+FITS = ("auto", "linear", "curvature_corrected")
 #: ``Model.fit`` of a new model.
-DEFAULT_FIT = "linear"
+DEFAULT_FIT = "auto"
+#: Strength ``c`` of the hourglass control (``sim/hourglass.py``) that ``fit="auto"`` runs with
+#: the curvature-corrected fit when no strength is chosen (docs/physics.md, "The default:
+#: the fit by material"): the static residual penalty of that strength lifted every
+#: zero-energy mode of a free lattice cube above 0.03 (docs/physics.md, "Where the surface
+#: noise comes from"), and the control moves the 6-thick beam by 0.1 % (measured).
+AUTO_HOURGLASS = 0.05
 #: The contact laws by name (scene files' ``[solver] contact``, the CLI's ``--contact``):
 #: name -> ``Model.contact_ramp``.
 CONTACTS = {"instant": CONTACT_RAMP, "continuous": CONTINUOUS_CONTACT_RAMP}
@@ -160,7 +167,7 @@ class Model:
         self.planes, self.spheres, self.boxes = list(planes), list(spheres), list(boxes)
         self.contact_ramp = CONTACT_RAMP
         self._fit = None  # the default (``fit``), until one is chosen
-        self.hourglass = 0.0
+        self.hourglass = None  # by the fit (``solver_choice``), until one is chosen
         self.particle_count = int(positions.shape[0])
         npf = self.types.np_dtype
         self.particle_x0 = np.ascontiguousarray(positions, dtype=npf)
@@ -273,9 +280,10 @@ class Model:
         """The incremental fit (``FITS``) a ``Solver`` of this model runs unless its ``fit=``
         says otherwise: ``"linear"``, the paper's eqs. 5-6; ``"curvature_corrected"``, the fit
         that also carries the mixed quadratic terms (``sim/curvature.py``; docs/physics.md,
-        "Bending stiffness"). Until one is set: ``DEFAULT_FIT``, or ``"linear"`` for a model
-        with a Fig. 8 comparison deformation model (the only fit those have). Scene files set
-        it in ``[solver]`` (docs/scene_format.md)."""
+        "Bending stiffness"); ``"auto"``, one of the two by the materials (``solver_choice``).
+        Until one is set: ``DEFAULT_FIT`` (``"auto"``), or ``"linear"`` for a model with a
+        Fig. 8 comparison deformation model (the only fit those have). Scene files set it in
+        ``[solver]`` (docs/scene_format.md)."""
         if self._fit is not None:
             return self._fit
         return "linear" if self.uses_comparison_models else DEFAULT_FIT
@@ -288,16 +296,52 @@ class Model:
         self._fit = value
 
     @property
-    def hourglass(self) -> float:
+    def hourglass(self) -> float | None:
         """Strength ``c`` (>= 0) of the hourglass control a ``Solver`` of this model runs
         unless its ``hourglass=`` says otherwise (``sim/hourglass.py``; docs/physics.md,
-        "Hourglass modes"): 0 (default) off. For elastic solids only: it measures ``F``
-        against the rest positions. Scene files set it in ``[solver]`` (docs/scene_format.md)."""
+        "Hourglass modes"); None (default): by the fit, ``AUTO_HOURGLASS`` where ``fit="auto"``
+        chose the curvature-corrected fit, else 0 (off; ``solver_choice``). For elastic solids
+        only: it measures the motion against the rest positions. Scene files set it in ``[solver]``
+        (docs/scene_format.md)."""
         return self._hourglass
 
     @hourglass.setter
-    def hourglass(self, value: float):
-        self._hourglass = checks.non_negative("hourglass", value)
+    def hourglass(self, value: float | None):
+        self._hourglass = None if value is None else checks.non_negative("hourglass", value)
+
+    @property
+    def elastic_only(self) -> bool:
+        """Whether no material can flow plastically now (every one has ``yield_stress = inf`` or
+        ``flow_rate = 0`` in the current parameter arrays, ``parameter_values``), each has the
+        variational elastic force and the incremental deformation model: the models
+        ``fit="auto"`` runs with the curvature-corrected fit and the hourglass control."""
+        if self.uses_comparison_models or any(m.elastic_force != "variational" for m in self.materials):
+            return False
+        y, rate = self.yield_stress.numpy(), self.flow_rate.numpy()
+        return bool(np.all(~np.isfinite(y) | (rate <= 0.0)))
+
+    def solver_choice(self, fit: str | None = None, hourglass: float | None = None) -> tuple[str, float]:
+        """``(fit, c)``: the incremental fit and the hourglass strength a ``Solver(model, fit=fit,
+        hourglass=hourglass)`` runs now (None: this model's ``fit``, ``hourglass``).
+
+        ``fit="auto"`` is ``"curvature_corrected"`` where ``elastic_only`` (a beam 6 particles
+        thick bends within 3 % of Timoshenko instead of 16 % too far) and ``"linear"``, the
+        paper's fit and its fused fast path, bit-identical to choosing it, wherever a material
+        can flow or uses the paper's force or a comparison model (the control measures the
+        motion against the rest positions, which plastic flow leaves behind; docs/physics.md,
+        "The default: the fit by material"). A strength of None is ``AUTO_HOURGLASS`` with the
+        fit that ``"auto"`` made curvature-corrected, else 0: an explicit ``fit`` or ``c``
+        runs as given."""
+        asked = self.fit if fit is None else fit
+        if not isinstance(asked, str) or asked not in FITS:
+            raise ValueError(f"fit = {asked!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
+        chosen = asked
+        if asked == "auto":
+            chosen = "curvature_corrected" if self.elastic_only else "linear"
+        strength = self.hourglass if hourglass is None else hourglass
+        if strength is None:
+            strength = AUTO_HOURGLASS if asked == "auto" and chosen == "curvature_corrected" else 0.0
+        return chosen, checks.non_negative("hourglass", strength)
 
     def _collider_array(self, values, dtype) -> wp.array:
         # Zero colliders of a kind still pass a (never read) one-element array.
@@ -457,9 +501,8 @@ class Model:
         core needs no shorter step (an undamped elastic box rests at 1.0 and 2.5 x, blows up at
         3.5 x, as with the energy force: ``tests/test_adaptive_dt.py``).
 
-        ``hourglass``: the strength ``c`` of the hourglass control the step runs (None: this
-        model's ``hourglass``, what a ``Solver(model)`` runs; ``Solver.check_dt`` passes its
-        own). Its springs add to the elastic stiffness, so with ``c > 0`` the wave limit
+        ``hourglass``: the strength ``c`` of the hourglass control the step runs (None: what a
+        ``Solver(model)`` runs now, ``solver_choice()``; ``Solver.check_dt`` passes its own). Its springs add to the elastic stiffness, so with ``c > 0`` the wave limit
         ``dt_w`` combines with the control's own limit ``dt_c = 0.8 (C / 0.3) sqrt(rho S / (c mu
         W))`` as ``1 / dt^2 = 1 / dt_w^2 + 1 / dt_c^2`` (the squared frequencies of two
         stiffnesses add at most). ``sqrt(...)`` is ``2 / omega`` for the largest frequency its
@@ -473,7 +516,7 @@ class Model:
         rho = np.array([m.density for m in self.materials], dtype=np.float64)
         c = p_wave_speed(p["mu"], p["lam"], rho, p["pressure_stiffness"])
         dt = courant * self.spacing / float(np.max(c))
-        strength = self.hourglass if hourglass is None else checks.non_negative("hourglass", hourglass)
+        strength = self.solver_choice()[1] if hourglass is None else checks.non_negative("hourglass", hourglass)
         if strength > 0.0:
             from .sim import hourglass as hg  # noqa: PLC0415 (model data first, kernels on demand)
 

@@ -408,7 +408,7 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
     contact = solver.get("contact")
     if contact is not None:
         _choice(file, "[solver]", "contact", contact, tuple(CONTACTS))
-    hourglass = solver.get("hourglass", 0.0)
+    hourglass = solver.get("hourglass")
     materials_table = data.get("materials", {})
     if not isinstance(materials_table, dict):
         raise ValueError(f"{file}: 'materials' must be a table of [materials.NAME] tables, not {materials_table!r}")

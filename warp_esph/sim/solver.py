@@ -87,19 +87,27 @@ class Solver:
 
     ``fit`` chooses the incremental fit of the deformation update and of the variational
     elastic force (docs/method.md §2; ``FITS``; None: the model's ``Model.fit``, which a scene
-    file's ``[solver] fit`` sets): ``"linear"`` (default), the paper's affine fit (eqs. 5-6); ``"curvature_corrected"``, the fit that also carries the mixed quadratic terms and
-    keeps only the gradient (``curvature.py``; docs/physics.md, "Bending stiffness": a bent
-    beam within a few % of Timoshenko instead of 1.16x too soft at 6 particles thick). The
-    corrected fit runs the non-fused kernels (under a tape with hand-written adjoints for its
-    elastic force, ``curvature.variational_forces_adjoint``, and its deformation update) and
-    cannot be combined with a comparison deformation model. The model's force fields
-    (``fields.CompressionField``) act while active at ``state_in.time``.
+    file's ``[solver] fit`` sets): ``"auto"`` (default) picks one of the next two by the
+    materials (``Model.solver_choice``): the curvature-corrected fit with the hourglass
+    control at ``model.AUTO_HOURGLASS`` where no material can flow and all use the variational
+    force, else the paper's linear fit; ``"linear"``, the paper's affine fit (eqs. 5-6), with
+    the fused fast path; ``"curvature_corrected"``, the fit that also carries the mixed
+    quadratic terms and keeps only the gradient (``curvature.py``; docs/physics.md, "Bending
+    stiffness": a bent beam within a few % of Timoshenko instead of 1.16x too soft at 6
+    particles thick). The corrected fit runs the non-fused kernels (under a tape with
+    hand-written adjoints for its elastic force, ``curvature.variational_forces_adjoint``, and
+    its deformation update) and cannot be combined with a comparison deformation model. With
+    ``"auto"`` the choice follows the model's parameter arrays at every step (a fit that makes
+    ``flow_rate`` positive turns it to the linear fit, without the control); ``fit`` and
+    ``hourglass`` hold what runs now. The model's force fields (``fields.CompressionField``)
+    act while active at ``state_in.time``.
 
-    ``hourglass`` (>= 0; None: ``Model.hourglass``, default 0: off, not launched) is the strength ``c`` of the opt-in
-    control of the fit's zero-energy modes (``hourglass.py``; docs/physics.md, "Hourglass
-    modes"): for elastic solids under concentrated loads (a held sphere indenter keeps its
-    force with ``c = 0.1``); it measures ``F`` against the rest positions, so it would pull
-    a plastically flowed body back towards its rest shape.
+    ``hourglass`` (>= 0; None: ``Model.hourglass``, which by default is ``AUTO_HOURGLASS`` with
+    the fit ``"auto"`` made curvature-corrected and 0 otherwise: off, not launched) is the
+    strength ``c`` of the control of the fit's zero-energy modes (``hourglass.py``;
+    docs/physics.md, "Hourglass modes"): for elastic solids (a held sphere indenter keeps its
+    force with ``c = 0.1``); it measures the motion against the rest positions, so it would
+    pull a plastically flowed body back towards its rest shape.
     """
 
     def __init__(
@@ -114,25 +122,24 @@ class Solver:
         hourglass: float | None = None,
     ):
         self.model = model
-        #: Strength ``c`` of the opt-in hourglass control (``hourglass.py``); 0: off.
-        self.hourglass = checks.non_negative("hourglass", model.hourglass if hourglass is None else hourglass)
-        self._rest = (wp.array(model.particle_x0, dtype=model.types.vec3, device=model.device)
-                      if self.hourglass > 0.0 else None)
+        if fit is not None and (not isinstance(fit, str) or fit not in FITS):
+            raise ValueError(f"fit = {fit!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
+        if hourglass is not None:
+            checks.non_negative("hourglass", hourglass)
         self.min_neighbors = checks.positive_int("min_neighbors", min_neighbors)
         self.max_condition = checks.greater_than("max_condition", max_condition, 1.0, "1")
         skin = DEFAULT_SKIN if neighbor_skin is None else checks.in_range("neighbor_skin", neighbor_skin, 0.0, 1.0)
         if not isinstance(fused, bool):
             raise ValueError(f"fused = {fused!r} is not allowed: must be True or False")
-        if fit is None:
-            fit = model.fit
-        if not isinstance(fit, str) or fit not in FITS:
-            raise ValueError(f"fit = {fit!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
-        if fit == "curvature_corrected" and model.uses_comparison_models:
-            raise ValueError(f"fit = {fit!r} is not allowed with a comparison deformation model "
+        asked = model.fit if fit is None else fit
+        if asked == "curvature_corrected" and model.uses_comparison_models:
+            raise ValueError(f"fit = {asked!r} is not allowed with a comparison deformation model "
                              f"(Material.deformation 'rest' or 'additive'): only 'linear'")
-        #: The incremental fit (``FITS``); the corrected one runs the non-fused kernels.
-        self.fit = fit
-        self._curved = fit == "curvature_corrected"
+        self._asked = (fit, hourglass)
+        # Whether the fit (and with it a strength of None) follows the parameters.
+        self._auto = asked == "auto"
+        self._rest = None
+        self._choose()
         self.neighbor_skin = skin
         self.search = neighbors.NeighborSearch(
             model.particle_count, model.scalar, model.device, model.support_radius,
@@ -156,6 +163,19 @@ class Solver:
         #: ``(impulse, angular impulse)`` arrays of the static colliders' rows that untaped
         #: steps add ``dt`` times their reaction to (``tools.ReactionLog`` sets them); None: off.
         self.collider_impulse = None
+
+    def _choose(self):
+        """Set ``fit`` and ``hourglass`` to what the step runs now (``Model.solver_choice``)."""
+        fit, c = self.model.solver_choice(*self._asked)
+        #: The incremental fit the step runs (``"linear"`` or ``"curvature_corrected"``); the
+        #: corrected one runs the non-fused kernels.
+        self.fit = fit
+        self._curved = fit == "curvature_corrected"
+        #: Strength ``c`` of the hourglass control the step runs (``hourglass.py``); 0: off.
+        self.hourglass = c
+        if c > 0.0 and self._rest is None:
+            m = self.model
+            self._rest = wp.array(m.particle_x0, dtype=m.types.vec3, device=m.device)
 
     def fast_under_tape(self) -> bool:
         """Whether a taped step runs the fused forward kernels (not recorded) and records the
@@ -246,6 +266,8 @@ class Solver:
     def step(self, state_in: State, state_out: State, dt: float):
         """One step of the method, stage by stage (docs/physics.md has the table)."""
         checks.step_states(self.model, state_in, state_out)
+        if self._auto:
+            self._choose()
         dt = self.check_dt(dt)
         m = self.model
         scratch = self.scratch
