@@ -134,14 +134,17 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
           H0: float = 0.1, flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0,
           dt_factor: float = 0.9, samples: int = 200, pressure_force: str = "energy", floor: str = "particles",
           floor_radius: float = 3.2, pressure_stiffness: float | None = None, support_radius: float = 2.0,
-          stiffness: float = 10.0, gravity_ramp: float = 0.0, floor_layers: int = FLOOR_LAYERS) -> dict:
+          stiffness: float = 10.0, gravity_ramp: float = 0.0, floor_layers: int = FLOOR_LAYERS,
+          aspect: float = 1.0) -> dict:
     """A cylinder H0 = 2 R0 of a yield-stress material slumps on a rough floor.
 
     ``S = sigma_y / (rho g H0)`` with sigma_y the uniaxial yield stress: ``yield_stress = Y
     = sigma_y sqrt(2/3)`` (the code compares the Frobenius norm of the deviatoric stress with
     Y; under uniaxial stress it is sqrt(2/3) sigma). mu = 10 rho g H0, nu = 0.3, default SPH
     pressure, ``viscosity`` Pa s (a little, so that an unyielded body's ringing decays).
-    ``resolution`` is particles across H0 (and across the diameter). The height is the top
+    ``resolution`` is particles across the diameter (and across H0 at the default ``aspect``
+    1; ``aspect`` = H0 / (2 R0), H0 kept: a taller, narrower cylinder of the same S, whose
+    slumped pile is taller against its radius, as the 1-D analysis assumes). The height is the top
     of the particles within R0/2 of the axis (plus dx/2: each stands for a cell).
     ``pressure_force``: ``Material.pressure_force`` (docs/physics.md, the SPH pressure).
     ``floor``: ``"particles"`` (the default: pinned layers of the same body under a disc of
@@ -160,8 +163,10 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     _check_floor(floor)
     if not gravity_ramp >= 0.0:
         raise ValueError(f"gravity_ramp = {gravity_ramp!r} is not allowed: must be >= 0 (seconds)")
-    dx = H0 / resolution
-    R0 = H0 / 2.0
+    if not aspect > 0.0:
+        raise ValueError(f"aspect = {aspect!r} is not allowed: must be > 0 (H0 / (2 R0))")
+    R0 = H0 / (2.0 * aspect)
+    dx = 2.0 * R0 / resolution
     sigma_y = S * RHO * G * H0
     Y = sigma_y * math.sqrt(2.0 / 3.0)
     mu = stiffness * RHO * G * H0
@@ -229,7 +234,8 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     R_rc = spread_radius_theory(volume, tau_y)
     weight_scale = float(model.particle_mass.numpy()[free].sum()) * G * H0
     return {
-        "case": "slump", "S": S, "resolution": resolution, "elastic_force": elastic_force, "pressure_force": pressure_force,
+        "case": "slump", "S": S, "resolution": resolution, "aspect": aspect, "elastic_force": elastic_force,
+        "pressure_force": pressure_force,
         "floor": floor, "particles": n, "dt": dt, "duration": float(t[-1]), "steps": steps,
         "h_over_H0": h[-1] / H0, "theory_h_over_H0": slump_theory(S),
         "ratio_to_theory": (1.0 - h[-1] / H0) / (1.0 - slump_theory(S)),

@@ -233,6 +233,12 @@ def test_slump_refuses_a_negative_gravity_ramp_by_name():
         validation.slump(0.1, gravity_ramp=-1.0)
 
 
+@pytest.mark.parametrize("aspect", [0.0, -2.0, float("nan")])
+def test_slump_refuses_an_aspect_that_is_not_positive_by_name(aspect):
+    with pytest.raises(ValueError, match=f"aspect = {aspect!r}"):
+        validation.slump(0.1, aspect=aspect)
+
+
 @pytest.mark.xfail(strict=True, reason="a layer 3 particles thick on the rough ground collider stops at 1.3 tau_y of "
                    "basal shear (measured -0.09 mm/s at 0.6 s; it flows only from about 2.5 tau_y, 2.2 at 6 "
                    "thick): the ground's bottom layer is held and its one-sided fit doubles its share "
