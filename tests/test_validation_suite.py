@@ -233,7 +233,7 @@ def test_an_unknown_floor_is_refused_by_name(case):
         strict=True, reason="the energy pressure force follows the poly6 gradient, which vanishes as two particles "
         "meet: in the flowing S = 0.1 pile the particles pair up (mean nearest neighbour 0.535 dx at 1.5 s, "
         "0.54 dx at rest at 12 across), a packing of pairs that interlocks under pressure and holds the pile "
-        "about 6 % of H0 taller than the spiky force or no pressure (docs/physics.md, the S = 0.1 slump under "
+        "about 6 % taller than the spiky force or no pressure (docs/physics.md, the S = 0.1 slump under "
         "the energy pressure force)")),
     "spiky",
 ])
