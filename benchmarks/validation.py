@@ -134,14 +134,17 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
           H0: float = 0.1, flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0,
           dt_factor: float = 0.9, samples: int = 200, pressure_force: str = "energy", floor: str = "particles",
           floor_radius: float = 3.2, pressure_stiffness: float | None = None, support_radius: float = 2.0,
-          stiffness: float = 10.0, gravity_ramp: float = 0.0, floor_layers: int = FLOOR_LAYERS) -> dict:
+          stiffness: float = 10.0, gravity_ramp: float = 0.0, floor_layers: int = FLOOR_LAYERS,
+          aspect: float = 1.0) -> dict:
     """A cylinder H0 = 2 R0 of a yield-stress material slumps on a rough floor.
 
     ``S = sigma_y / (rho g H0)`` with sigma_y the uniaxial yield stress: ``yield_stress = Y
     = sigma_y sqrt(2/3)`` (the code compares the Frobenius norm of the deviatoric stress with
     Y; under uniaxial stress it is sqrt(2/3) sigma). mu = 10 rho g H0, nu = 0.3, default SPH
     pressure, ``viscosity`` Pa s (a little, so that an unyielded body's ringing decays).
-    ``resolution`` is particles across H0 (and across the diameter). The height is the top
+    ``resolution`` is particles across the diameter (and across H0 at the default ``aspect``
+    1; ``aspect`` = H0 / (2 R0), H0 kept: a taller, narrower cylinder of the same S, whose
+    slumped pile is taller against its radius, as the 1-D analysis assumes). The height is the top
     of the particles within R0/2 of the axis (plus dx/2: each stands for a cell).
     ``pressure_force``: ``Material.pressure_force`` (docs/physics.md, the SPH pressure).
     ``floor``: ``"particles"`` (the default: pinned layers of the same body under a disc of
@@ -150,18 +153,22 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     gives a thin layer its continuum shear strength, the ground collider makes a layer 3
     particles thick about 2.5 x too strong (docs/physics.md, the spread regime, thin layers
     in shear). ``floor_radius`` must reach past the resting pile (``radius_over_R0``) by a
-    support radius or more: the S = 0.1 pile rests within 2.2 R0 at 8-16 across (S = 0.2 within
+    support radius or more: the S = 0.1 pile rests within 2.2 R0 at 8-16 across (2.6 R0 at aspect 2; S = 0.2 within
     1.8). Every measure is over the free particles. One change at a time
     (docs/physics.md, the spread regime): ``pressure_stiffness`` (``Material``'s; 0: the SPH
     pressure off), ``support_radius`` (h in dx), ``stiffness`` (mu in rho g H0),
     ``gravity_ramp`` (s: gravity rises linearly from 0 over that time instead of acting at
-    once; 0: at once), ``floor_layers`` (pinned layers of a particle floor)."""
+    once; 0: at once), ``floor_layers`` (pinned layers of a particle floor).
+    ``nearest_neighbor_mean`` / ``_p05``: the free particles' nearest-neighbour distance in
+    dx at the end (mean, 5th percentile; uncorrelated points of the same density: 0.554)."""
     wp, we = _we()
     _check_floor(floor)
     if not gravity_ramp >= 0.0:
         raise ValueError(f"gravity_ramp = {gravity_ramp!r} is not allowed: must be >= 0 (seconds)")
-    dx = H0 / resolution
-    R0 = H0 / 2.0
+    if not aspect > 0.0:
+        raise ValueError(f"aspect = {aspect!r} is not allowed: must be > 0 (H0 / (2 R0))")
+    R0 = H0 / (2.0 * aspect)
+    dx = 2.0 * R0 / resolution
     sigma_y = S * RHO * G * H0
     Y = sigma_y * math.sqrt(2.0 / 3.0)
     mu = stiffness * RHO * G * H0
@@ -224,12 +231,21 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     ratio = _deviatoric_norm(a.F.numpy()[free], mu) / Y
     alpha = a.alpha.numpy().astype(np.float64)[free]
     yield_strain = Y / (2.0 * mu)
+    # Nearest neighbour of each free particle (floor included) from the last step's rows,
+    # which hold every particle within h: near-coincident pairs are what a pressure force
+    # without a repulsive core lets form (docs/physics.md, the S = 0.1 slump under the energy
+    # pressure force).
+    d2 = solver.scratch.neighbor_d2.numpy().astype(np.float64)[free]
+    cnt = a.neighbor_count.numpy()[free]
+    d2 = np.where(np.arange(d2.shape[1])[None, :] < cnt[:, None], d2, np.inf)
+    nearest = np.sqrt(d2.min(axis=1)) / dx
     volume = n * dx**3
     tau_y = Y / math.sqrt(2.0)
     R_rc = spread_radius_theory(volume, tau_y)
     weight_scale = float(model.particle_mass.numpy()[free].sum()) * G * H0
     return {
-        "case": "slump", "S": S, "resolution": resolution, "elastic_force": elastic_force, "pressure_force": pressure_force,
+        "case": "slump", "S": S, "resolution": resolution, "aspect": aspect, "elastic_force": elastic_force,
+        "pressure_force": pressure_force,
         "floor": floor, "particles": n, "dt": dt, "duration": float(t[-1]), "steps": steps,
         "h_over_H0": h[-1] / H0, "theory_h_over_H0": slump_theory(S),
         "ratio_to_theory": (1.0 - h[-1] / H0) / (1.0 - slump_theory(S)),
@@ -247,6 +263,8 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
         "plug_plastic_strain": float(alpha[plug].mean() / yield_strain) if plug.any() else float("nan"),
         "plug_plastic_strain_max": float(alpha[plug].max() / yield_strain) if plug.any() else float("nan"),
         "flowed_plastic_strain": float(alpha[flowed].mean() / yield_strain) if flowed.any() else float("nan"),
+        "nearest_neighbor_mean": float(nearest[np.isfinite(nearest)].mean()),
+        "nearest_neighbor_p05": float(np.percentile(nearest, 5)),
         "radius_over_R0": radii[-1] / R0, "spread_theory_radius_over_R0": R_rc / R0,
         "radius_over_spread_theory": radii[-1] / R_rc,
         "spread_theory_h_over_H0": spread_height_theory(R_rc, tau_y) / H0,
