@@ -228,9 +228,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 g = vec3()
                 if form == 2:
                     if r2 > scalar(1.0e-24) * hh:
-                        rl = wp.sqrt(r2)
-                        q = h - rl
-                        g = (a * mass[j] * c_spiky * q * q / rl) * d
+                        g = (a * mass[j]) * sm.grad_w_spiky_at(d, wp.sqrt(r2), h, c_spiky)
                 else:
                     e = hh - r2
                     g = (a * mass[j] * scalar(-6.0) * c6 * e * e) * d
