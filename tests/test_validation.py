@@ -31,8 +31,8 @@ DOUGH = we.Material.preset("dough")
         ({"mu": 1.0, "lam": 1.0, "hardening": float("nan")}, r"Material\.hardening = nan .* finite"),
         ({"mu": True, "lam": 1.0}, r"Material\.mu = True .* number"),
         ({"mu": 1.0, "lam": 1.0, "elastic_force": "exact"}, r"Material\.elastic_force = 'exact' .* one of 'paper', 'variational'"),
-        ({"mu": 1.0, "lam": 1.0, "elastic_force": "variational", "deformation": "rest"},
-         r"Material\.elastic_force = 'variational' is not allowed with deformation = 'rest': .* use deformation = 'incremental'"),
+        ({"mu": 1.0, "lam": 1.0, "elastic_force": "variational", "deformation": "additive"},
+         r"Material\.elastic_force = 'variational' is not allowed with deformation = 'additive': .* use deformation = 'incremental' or 'rest'"),
     ],
 )
 def test_material_rejects(kwargs, match):

@@ -164,10 +164,10 @@ class Material:
         checks.choice("Material.model", self.model, MODELS)
         checks.choice("Material.deformation", self.deformation, DEFORMATIONS)
         checks.choice("Material.elastic_force", self.elastic_force, ELASTIC_FORCES)
-        if self.elastic_force == "variational" and self.deformation != "incremental":
+        if self.elastic_force == "variational" and self.deformation == "additive":
             raise ValueError(
                 f"Material.elastic_force = 'variational' is not allowed with deformation = {self.deformation!r}: "
-                "it is the gradient of the incremental fit's energy; use deformation = 'incremental', or elastic_force = 'paper'"
+                "it is the gradient of a fit's energy; use deformation = 'incremental' or 'rest', or elastic_force = 'paper'"
             )
         if not isinstance(self.clamp_pressure, bool):
             raise ValueError(f"Material.clamp_pressure = {self.clamp_pressure!r} is not allowed: must be True or False")

@@ -134,7 +134,43 @@ def kernels(scalar) -> types.SimpleNamespace:
                 F = unless_inverted(dF * F, F, counters)
         F_out[i] = F
 
-    return types.SimpleNamespace(constitutive_update=constitutive_update, update_deformation=update_deformation)
+    fn = forces.funcs(scalar)
+
+    @wp.kernel
+    def rest_variational_forces(
+        rest_x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        rest_nbr: wp.array2d(dtype=wp.int32),
+        rest_count: wp.array(dtype=wp.int32),
+        volume: wp.array(dtype=scalar),
+        stress: wp.array(dtype=mat33),
+        Fp: wp.array(dtype=mat33),
+        h: scalar,
+        f: wp.array(dtype=vec3),
+    ):
+        """The variational force of a rest-configuration material (``Material(deformation="rest",
+        elastic_force="variational")``): minus the gradient of ``E = sum_i V_i psi(G_i F_p,i^-1)``
+        with ``G_i = (sum_j w_ij yb_j Xb_j^T) A_i^-1`` the total fit of the end positions ``y``
+        against the rest ones (weights and ``A_i`` of the rest neighbourhood, fixed). ``G_i`` is
+        linear in ``y``, so ``g_ij = w_ij V_i P*_i F_p,i^-T A_i^-1 Xb_ij`` is the exact gradient
+        of an energy of the positions alone: a conservative force, where the incremental
+        composition ``F <- dF F`` is path dependent (docs/physics.md, "The energy of undamped
+        elastic bodies"). The same ``variational_map`` and pair force as the incremental one,
+        with ``F_p^-1`` in place of ``F`` and the rest offsets in place of the current ones."""
+        i = wp.tid()
+        m = material[i]
+        if mat.deformation[m] == 1 and mat.elastic_force[m] == 1:
+            # A from its own function: its inverse must not see a loop accumulator
+            # (docs/method.md, Warp pitfall 1).
+            A, B, same = moment_sums(i, rest_x, rest_x, body, rest_nbr, rest_count[i], h)
+            M = fn.variational_map(volume[i], stress[i], wp.inverse(Fp[i]), wp.inverse(A))
+            fi = fn.variational_forces(i, rest_x, body, rest_nbr, rest_count[i], M, h, f)
+            wp.atomic_add(f, i, fi)
+
+    return types.SimpleNamespace(constitutive_update=constitutive_update, update_deformation=update_deformation,
+                                 rest_variational_forces=rest_variational_forces)
 
 
 def launch_constitutive_update(model, state_in, state_out, dt, counters):
@@ -160,5 +196,19 @@ def launch_update_deformation(model, state_in, state_out, counters):
             state_out.F_p, model.scalar(model.support_radius),
         ],
         [state_out.F, counters],
+        device=model.device,
+    )
+
+
+def launch_rest_variational_forces(model, state_out):
+    """``rest_variational_forces`` into ``state_out.force``, from the stress and ``F_p`` the
+    constitutive update wrote (launched only when a material asks for it)."""
+    rest_x, rest_nbr, rest_count = model.rest_neighbors()
+    wp.launch(
+        kernels(model.scalar).rest_variational_forces,
+        model.particle_count,
+        [rest_x, model.particle_body, model.particle_material, model.material_arrays(), rest_nbr, rest_count,
+         model.particle_volume, state_out.stress, state_out.F_p, model.scalar(model.support_radius)],
+        [state_out.force],
         device=model.device,
     )

@@ -189,7 +189,8 @@ def kernels(scalar) -> types.SimpleNamespace:
         fi = vec3()
         if mat.elastic_force[material[i]] == 0:
             fi = fn.paper_forces(i, x, body, nbr, count[i], volume, stress[i], F_inv[i], h, f)
-        elif guard[i] == 0:
+        elif guard[i] == 0 and mat.deformation[material[i]] == 0:
+            # (A rest-configuration material's variational force is comparison.py's.)
             # A from its own function: its inverse must not see a loop accumulator
             # (docs/method.md, Warp pitfall 1).
             A, B, same = moment_sums(i, x, x, body, nbr, count[i], h)

@@ -152,6 +152,9 @@ class Solver:
         #: Seconds per phase, summed over steps while ``profile_phases`` is on, else None.
         self.phase_times: dict[str, float] | None = None
         self._cmp = model.uses_comparison_models
+        # Whether a material runs the conservative rest-configuration variational force.
+        self._rest_variational = any(mt.deformation == "rest" and mt.elastic_force == "variational"
+                                     for mt in model.materials)
         if self._cmp:
             model.rest_neighbors()
         self._warned_dt = set()
@@ -314,6 +317,8 @@ class Solver:
                     curvature.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
                 else:
                     forces.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
+                if self._rest_variational:
+                    comparison.launch_rest_variational_forces(m, state_out)
             if sph:
                 with phase("pressure"):
                     pressure.launch_pressure_forces(m, state_in, state_out, self.hand_adjoints)
