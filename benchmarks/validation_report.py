@@ -20,6 +20,12 @@ FORCE_COLOR = {"paper": "tab:blue", "variational": "tab:orange"}
 COLOR = {8: "tab:blue", 12: "tab:orange", 16: "tab:green", 4: "tab:blue", 6: "tab:orange"}
 
 
+
+def _energy_force(r: dict) -> str:
+    """The energy run's force, with the deformation model where it is not the incremental one."""
+    d = r.get("deformation", "incremental")
+    return r["elastic_force"] if d == "incremental" else f"{r['elastic_force']} ({d})"
+
 def _f(x, digits=3):
     if x is None:
         return "–"
@@ -127,7 +133,7 @@ def _plots(results, img: pathlib.Path) -> list[str]:
         for r in energies:
             ls = "-" if r["elastic_force"] == "variational" else "--"
             ax.plot(r["t"], np.abs(np.array(r["relative_energy"])) + 1e-12, ls,
-                    label=f"{r['elastic_force']}, strain {r['peak_strain']:.2g}, dt x {r['dt_factor']}")
+                    label=f"{_energy_force(r)}, strain {r['peak_strain']:.2g}, dt x {r['dt_factor']}")
         ax.set_yscale("log")
         ax.set_xlabel("t (s)")
         ax.set_ylabel("|E - E0| / E0")
@@ -416,7 +422,7 @@ def write(results, out: pathlib.Path, meta: dict):
         parts.append(lab)
     en = [r for r in results if r["case"] == "energy"]
     if en:
-        en.sort(key=lambda r: (r["amplitude"], r["elastic_force"], -r["dt_factor"]))
+        en.sort(key=lambda r: (r["amplitude"], _energy_force(r), -r["dt_factor"]))
         parts.append(
             "## Undamped elastic energy\n\n"
             "`energy_drift`: a 6^3 cube (2 cm spacing, E = 2e5 Pa, nu = 0.3, St. Venant-Kirchhoff, pressure off, "
@@ -424,7 +430,7 @@ def write(results, out: pathlib.Path, meta: dict):
             "the St. Venant-Kirchhoff psi of the stored F (the energy the variational force is the gradient of). "
             "Drift: (E_end - E0) / E0; max: largest |E - E0| / E0; a run stops when E passes 100 E0.\n\n"
             + _table(["force", "dt / stable", "peak strain", "periods", "drift", "max deviation", "blew up"],
-                     [[r["elastic_force"], r["dt_factor"], r["peak_strain"], r["periods"], r["drift"], r["max_deviation"], r["blew_up"]] for r in en])
+                     [[_energy_force(r), r["dt_factor"], r["peak_strain"], r["periods"], r["drift"], r["max_deviation"], r["blew_up"]] for r in en])
             + "\n\n![energy](images/validation/energy.png)\n")
     st = [r for r in results if r["case"] == "stability"]
     if st:

@@ -73,6 +73,46 @@ def test_variational_force_is_minus_the_gradient_of_the_fit_energy(fused, fit):
     assert errors["paper"] > 0.05, errors
 
 
+def test_rest_variational_force_is_minus_the_gradient_of_an_energy_of_the_positions():
+    """``Material(deformation="rest", elastic_force="variational")``: at a deformed,
+    jittered state the force equals the central difference of ``E(x) = sum V psi(G(x))``,
+    ``G`` the total fit against the rest neighbourhood (read back from the solver: the rest
+    model's stored F) and psi St. Venant-Kirchhoff. Unlike the incremental force's energy
+    (``dF(y) F`` with the stored, path-dependent F), this one is a function of the positions
+    alone: the force is conservative (docs/physics.md, "The energy of undamped elastic
+    bodies")."""
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, model="stvk", elastic_force="variational",
+                                 deformation="rest")
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (4 * SPACING, 4 * SPACING, 3 * SPACING), mat)
+    model = b.finalize(dtype=wp.float64)
+    n = model.particle_count
+    rng = np.random.default_rng(2)
+    X = model.particle_x0
+    x0 = X + 0.1 * X @ rng.uniform(-1.0, 1.0, size=(3, 3)).T + rng.normal(scale=0.05 * SPACING, size=(n, 3))
+    solver = we.Solver(model)
+    a, b_, c = model.state(), model.state(), model.state()
+    dt = 1.0e-9
+    a.x.assign(x0)
+    solver.step(a, b_, dt)  # b_: at x0 (to 1e-9), with F = G(x0)
+    assert np.abs(b_.F.numpy() - np.eye(3)).max() > 0.05
+
+    def moved(k, delta):
+        v = np.zeros((n, 3))
+        v.flat[k] = delta / dt
+        b_.v.assign(v)
+        solver.step(b_, c, dt)
+        return c
+
+    force = moved(0, 0.0).force.numpy().ravel().copy()
+    delta = 1.0e-7
+    dEdx = np.array([
+        (_stvk_energy(model, moved(k, delta).F.numpy()) - _stvk_energy(model, moved(k, -delta).F.numpy())) / (2 * delta)
+        for k in range(3 * n)
+    ])
+    assert np.abs(force + dEdx).max() < 1e-6 * np.abs(dEdx).max()
+
+
 def _linear_stiffness(model, fused, fit=None):
     """K = -df/du at rest, with F the solver's own fit of the displacement u."""
     n = model.particle_count
