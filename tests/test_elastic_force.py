@@ -195,8 +195,10 @@ def test_undamped_elastic_body_keeps_its_energy_only_with_the_variational_force(
     asks only that halving the step does not postpone it (by more than the scatter between
     step sizes).
 
-    The variational force's own gain is a time-stepping error (docs/physics.md, "The default:
-    the fit by material"): it goes with the step, with either fit. Measured peaks over 1.5 /
+    The variational force's own gain is the drift of the incremental composition F <- dF F
+    (docs/physics.md, "The energy of undamped elastic bodies"): it goes as dt^2, with either
+    fit; the rest-configuration variational force keeps the energy at the stable step
+    (tests/test_validation_suite.py). Measured peaks over 1.5 /
     3 s at the stable step: the paper's linear fit 1.002 / 1.21 (pressure off: 1.27 / 1.79),
     the default for this elastic cube (``fit="auto"``: curvature-corrected fit, hourglass
     control 0.05) 1.07 / 1.52 (pressure off: 1.09 / 1.52); at half the step 1.00000 and

@@ -80,10 +80,14 @@ class Material:
     (docs/validation.md): a free-free bar rings at 0.999 / 1.000 of its frequency at 4 / 6
     particles across (paper: 0.88 / 0.92) and a near-yield column holds; the paper's force
     has a non-symmetric stiffness, so an undamped elastic body gains energy at a rate that
-    does not shrink with the time step (docs/physics.md) and a bent beam flutters. The
-    variational force needs ``deformation="incremental"``; with the Fig. 8 comparison
-    models (``"rest"``, ``"additive"``) the default is ``"paper"``. Scenes that reproduce
-    the paper's figures ask for ``"paper"`` explicitly.
+    does not shrink with the time step (docs/physics.md) and a bent beam flutters. With the
+    Fig. 8 comparison models (``"rest"``, ``"additive"``) the default is ``"paper"``; the
+    variational force is defined for ``"incremental"`` and ``"rest"``. With ``"rest"`` it is
+    the gradient of the total fit's energy against the rest neighbourhood, a function of the
+    positions alone, so an undamped purely elastic body keeps its energy at the stable step
+    (the incremental ``F <- dF F`` is path dependent and gains energy as ``dt^2``:
+    docs/physics.md, "The energy of undamped elastic bodies"); it is not for plastic flow.
+    Scenes that reproduce the paper's figures ask for ``"paper"`` explicitly.
 
     **What ``yield_stress`` and ``flow_rate`` mean.** The flow rule compares the Frobenius
     norm of the deviatoric stress, ``|s| = 2 mu |sigma - mean(sigma)|`` (``sigma`` the
