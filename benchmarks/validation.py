@@ -527,7 +527,7 @@ def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slend
 def beam_deflection(resolution: int = 6, elastic_force: str = "variational", span_over_thickness: int = 10,
                     periods: float = 3.0, nu: float = 0.3, deflection_over_thickness: float = 0.03,
                     kappa: float = 0.85, dtype: str = "float32", fit: str | None = None,
-                    hourglass: float | None = None) -> dict:
+                    hourglass: float | None = None, deformation: str = "incremental") -> dict:
     """A square beam ``resolution`` particles thick on two supports under its own weight
     (``fit``, ``hourglass``: the solver's incremental fit and hourglass control,
     ``Solver(fit=..., hourglass=...)``; None: the default, ``Model.solver_choice``).
@@ -549,7 +549,8 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
     A, I = t * t, t**4 / 12.0
     q = RHO * G * A
     E = 5.0 * q * L**4 / (384.0 * I) / (deflection_over_thickness * t)
-    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force=elastic_force)
+    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force=elastic_force,
+                                 deformation=deformation)
     Gs = mat.mu
     theory_eb = 5.0 * q * L**4 / (384.0 * E * I)
     theory = theory_eb + q * L**2 / (8.0 * kappa * Gs * A)
@@ -1019,7 +1020,8 @@ def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", r
     _swap_run(model, solver, a, c, dt, steps, after)
     h = np.array(hist)
     blew = bool(not np.isfinite(h[-1, 1]) or h[-1, 1] > 99.0)
-    return {"case": "energy", "amplitude": amplitude, "elastic_force": elastic_force, "deformation": deformation, "resolution": n,
+    return {"case": "energy", "amplitude": amplitude, "elastic_force": elastic_force, "deformation": deformation,
+            "fit": solver.fit, "hourglass": solver.hourglass, "resolution": n,
             "dt_factor": dt_factor, "periods": float(h[-1, 0] * omega / (2.0 * math.pi)),
             "peak_strain": peak_strain[0], "drift": float(h[-1, 1]), "max_deviation": float(np.nanmax(np.abs(h[:, 1]))),
             "blew_up": blew, "t": h[:, 0].tolist(), "relative_energy": h[:, 1].tolist()}
@@ -1116,6 +1118,8 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     # neighbourhood (docs/physics.md, "The energy of undamped elastic bodies").
     for amp in (SMALL, LARGE):
         runs.append(("energy_drift", {"amplitude": amp, "deformation": "rest", "periods": 50.0}))
+        runs.append(("energy_drift", {"amplitude": amp, "deformation": "rest", "periods": 50.0,
+                                      "fit": "curvature_corrected", "hourglass": 0.05}))
     for res in (4, 8):
         runs.append(("plate_compression", {"resolution": res}))
     # A particle column over each support needs 9 cm to be a multiple of the spacing.

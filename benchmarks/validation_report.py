@@ -24,7 +24,9 @@ COLOR = {8: "tab:blue", 12: "tab:orange", 16: "tab:green", 4: "tab:blue", 6: "ta
 def _energy_force(r: dict) -> str:
     """The energy run's force, with the deformation model where it is not the incremental one."""
     d = r.get("deformation", "incremental")
-    return r["elastic_force"] if d == "incremental" else f"{r['elastic_force']} ({d})"
+    if d == "incremental":
+        return r["elastic_force"]
+    return f"{r['elastic_force']} ({d}, {r.get('fit', 'linear')} fit, control {r.get('hourglass', 0.0):g})"
 
 def _f(x, digits=3):
     if x is None:

@@ -73,11 +73,12 @@ def test_variational_force_is_minus_the_gradient_of_the_fit_energy(fused, fit):
     assert errors["paper"] > 0.05, errors
 
 
-def test_rest_variational_force_is_minus_the_gradient_of_an_energy_of_the_positions():
+@pytest.mark.parametrize("fit", ["linear", "curvature_corrected"])
+def test_rest_variational_force_is_minus_the_gradient_of_an_energy_of_the_positions(fit):
     """``Material(deformation="rest", elastic_force="variational")``: at a deformed,
     jittered state the force equals the central difference of ``E(x) = sum V psi(G(x))``,
     ``G`` the total fit against the rest neighbourhood (read back from the solver: the rest
-    model's stored F) and psi St. Venant-Kirchhoff. Unlike the incremental force's energy
+    model's stored F), the paper's or the curvature-corrected one, and psi St. Venant-Kirchhoff. Unlike the incremental force's energy
     (``dF(y) F`` with the stored, path-dependent F), this one is a function of the positions
     alone: the force is conservative (docs/physics.md, "The energy of undamped elastic
     bodies")."""
@@ -90,7 +91,8 @@ def test_rest_variational_force_is_minus_the_gradient_of_an_energy_of_the_positi
     rng = np.random.default_rng(2)
     X = model.particle_x0
     x0 = X + 0.1 * X @ rng.uniform(-1.0, 1.0, size=(3, 3)).T + rng.normal(scale=0.05 * SPACING, size=(n, 3))
-    solver = we.Solver(model)
+    solver = we.Solver(model, fit=fit)
+    assert solver.fit == fit and solver.hourglass == 0.0
     a, b_, c = model.state(), model.state(), model.state()
     dt = 1.0e-9
     a.x.assign(x0)

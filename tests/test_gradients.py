@@ -83,18 +83,22 @@ def test_material_gradient_matches_central_differences(weights, name, rel_step):
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
 
 
-@pytest.mark.parametrize("deformation", ["rest", "additive", "rest_variational"])
+@pytest.mark.parametrize("deformation", ["rest", "additive", "rest_variational", "rest_variational_corrected"])
 @pytest.mark.parametrize("name", ["mu", "yield_stress", "flow_rate"])
 def test_comparison_models_gradients_match_central_differences(weights, deformation, name):
     """The Fig. 8 comparison kernels (``comparison.py``) are differentiable too, and so is the
-    rest model's variational force (``rest_variational``: Warp's generated adjoint)."""
-    p = {"deformation": "rest", "elastic_force": "variational"} if deformation == "rest_variational" else {"deformation": deformation}
+    rest model's variational force (``rest_variational``: Warp's generated adjoint), also
+    with the curvature-corrected total fit (``..._corrected``)."""
+    p = {"deformation": deformation}
+    if deformation.startswith("rest_variational"):
+        p = {"deformation": "rest", "elastic_force": "variational"}
+    fit = "curvature_corrected" if deformation.endswith("corrected") else "linear"
     model = _model(p)
-    _, grads = _rollout_loss(model, weights, grad_of=(name,))
+    _, grads = _rollout_loss(model, weights, grad_of=(name,), fit=fit)
     base = getattr(model.materials[0], name)
     eps = 1e-5 * abs(base)
-    plus = _rollout_loss(_model({name: base + eps, **p}), weights)[0]
-    minus = _rollout_loss(_model({name: base - eps, **p}), weights)[0]
+    plus = _rollout_loss(_model({name: base + eps, **p}), weights, fit=fit)[0]
+    minus = _rollout_loss(_model({name: base - eps, **p}), weights, fit=fit)[0]
     fd = (plus - minus) / (2 * eps)
     assert abs(fd) > 1e-11, f"the loss does not reach {name}"
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)

@@ -140,8 +140,10 @@ def test_solver_fit_option_is_validated_and_the_default_chooses_by_material():
     with pytest.raises(ValueError, match=r"fit = 'quadratic' is not allowed: must be one of 'auto', 'linear', 'curvature_corrected'"):
         we.Solver(elastic, fit="quadratic")
     with pytest.raises(ValueError, match="fit = 'curvature_corrected' is not allowed with a comparison deformation model"):
-        we.Solver(_block_model(n=(3, 3, 3), deformation="rest"), fit="curvature_corrected")
+        we.Solver(_block_model(n=(3, 3, 3), deformation="additive"), fit="curvature_corrected")
     assert we.Solver(_block_model(n=(3, 3, 3), deformation="rest")).fit == "linear"
+    # Where every material is 'rest', the corrected fit is that of its total fit.
+    assert we.Solver(_block_model(n=(3, 3, 3), deformation="rest"), fit="curvature_corrected").fit == "curvature_corrected"
 
 
 def test_rigid_motion_gives_no_force_and_f_stays_a_rotation():

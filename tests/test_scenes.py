@@ -297,10 +297,10 @@ def test_solver_options_refuse_bad_names_in_python():
     with pytest.raises(ValueError, match=r"fit = 'quad' is not allowed"):
         model.fit = "quad"
     assert model.fit == DEFAULT_FIT
-    # A Fig. 8 comparison model has only the linear fit: its default, and a chosen corrected
-    # fit is refused by the solver before any kernel runs.
+    # A Fig. 8 comparison model has the linear fit by default, and the additive one only
+    # that: a chosen corrected fit is refused by the solver before any kernel runs.
     b = SceneBuilder(spacing=0.05)
-    b.add_box(center=(0, 0, 0), size=(0.1, 0.1, 0.1), material=dataclasses.replace(PRESETS["rubber"], deformation="rest",
+    b.add_box(center=(0, 0, 0), size=(0.1, 0.1, 0.1), material=dataclasses.replace(PRESETS["rubber"], deformation="additive",
                                                                                    elastic_force="paper"))
     model = b.finalize()
     assert model.fit == "linear" and Solver(model).fit == "linear"

@@ -37,12 +37,15 @@ def test_undamped_energy_is_kept_by_the_conservative_rest_fit_at_the_stable_step
     """Undamped breathing 6^3 cube at large amplitude (peak strain 0.15-0.24), 10 periods at
     ``Model.stable_dt()``. Measured: the variational force of the total fit against the rest
     neighbourhood (``deformation="rest"``, an energy of the positions alone) drift +0.80 %,
-    largest deviation 1.3 % (the O(dt^2) offset of the sampled energy); the default
+    largest deviation 1.3 % (the O(dt^2) offset of the sampled energy); with the
+    curvature-corrected total fit and the hourglass control at 0.05 (whose energy the
+    measure leaves out) +0.10 %, largest deviation 2.3 %; the default
     (incremental ``F <- dF F``, path dependent) +37.7 %, a gain that goes as dt^2 and
     does not stop (docs/physics.md, "The energy of undamped elastic bodies")."""
-    rest = validation.energy_drift(amplitude=validation.LARGE, periods=10.0, deformation="rest")
-    assert not rest["blew_up"]
-    assert abs(rest["drift"]) < 0.02 and rest["max_deviation"] < 0.03, rest["max_deviation"]
+    for fit, c in (("linear", 0.0), ("curvature_corrected", 0.05)):
+        rest = validation.energy_drift(amplitude=validation.LARGE, periods=10.0, deformation="rest", fit=fit, hourglass=c)
+        assert not rest["blew_up"]
+        assert abs(rest["drift"]) < 0.02 and rest["max_deviation"] < 0.03, (fit, rest["drift"], rest["max_deviation"])
     default = validation.energy_drift(amplitude=validation.LARGE, periods=10.0)
     assert default["drift"] > 0.2, default["drift"]
 

@@ -22,7 +22,7 @@ import types
 import warp as wp
 
 from .._types import type_set
-from . import deformation, forces, materials, plasticity
+from . import curvature, deformation, forces, materials, plasticity
 
 
 @functools.cache
@@ -36,6 +36,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     moment_sums, step_gradient, unless_inverted = df.moment_sums, df.step_gradient, df.unless_inverted
     Materials = materials.struct(scalar)
     third = scalar(1.0 / 3.0)
+    cf = curvature.funcs(scalar)
 
     @wp.kernel
     def constitutive_update(
@@ -112,18 +113,26 @@ def kernels(scalar) -> types.SimpleNamespace:
         F_prev: wp.array(dtype=mat33),
         Fp: wp.array(dtype=mat33),
         h: scalar,
+        curved: int,
         F_out: wp.array(dtype=mat33),
         counters: wp.array(dtype=wp.int32),
     ):
-        """``deformation.update_deformation`` for every deformation model."""
+        """``deformation.update_deformation`` for every deformation model (``curved``: the rest
+        model's total fit is the curvature-corrected one, ``curvature.corrected_fit``)."""
         i = wp.tid()
         F = F_prev[i]
         d = mat.deformation[material[i]]
         I = wp.identity(n=3, dtype=scalar)
         if d == 1:
             # Rest configuration: the total F against X, always with the initial lists.
-            A, B, same = moment_sums(i, rest_x, y, body, rest_nbr, rest_count[i], h)
-            F = unless_inverted(df.affine_fit(A, B) * wp.inverse(Fp[i]), F, counters)
+            G = mat33()
+            if curved != 0:
+                A, B, C, D, E, same = cf.moment_sums(i, rest_x, y, body, rest_nbr, rest_count[i], h)
+                G = cf.corrected_fit(A, B, C, D, E)
+            else:
+                A, B, same = moment_sums(i, rest_x, y, body, rest_nbr, rest_count[i], h)
+                G = df.affine_fit(A, B)
+            F = unless_inverted(G * wp.inverse(Fp[i]), F, counters)
         else:
             A, B, same = moment_sums(i, x, y, body, nbr, count[i], h)
             dF = step_gradient(A, B, guard[i], counters)
@@ -148,6 +157,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         stress: wp.array(dtype=mat33),
         Fp: wp.array(dtype=mat33),
         h: scalar,
+        curved: int,
         f: wp.array(dtype=vec3),
     ):
         """The variational force of a rest-configuration material (``Material(deformation="rest",
@@ -158,15 +168,24 @@ def kernels(scalar) -> types.SimpleNamespace:
         of an energy of the positions alone: a conservative force, where the incremental
         composition ``F <- dF F`` is path dependent (docs/physics.md, "The energy of undamped
         elastic bodies"). The same ``variational_map`` and pair force as the incremental one,
-        with ``F_p^-1`` in place of ``F`` and the rest offsets in place of the current ones."""
+        with ``F_p^-1`` in place of ``F`` and the rest offsets in place of the current ones.
+        ``curved``: with the curvature-corrected total fit, ``A~_i`` and ``Xb - K_i^T q(Xb)`` in
+        place of ``A_i`` and ``Xb`` (``curvature.py``), also of the rest positions alone."""
         i = wp.tid()
         m = material[i]
         if mat.deformation[m] == 1 and mat.elastic_force[m] == 1:
-            # A from its own function: its inverse must not see a loop accumulator
-            # (docs/method.md, Warp pitfall 1).
-            A, B, same = moment_sums(i, rest_x, rest_x, body, rest_nbr, rest_count[i], h)
-            M = fn.variational_map(volume[i], stress[i], wp.inverse(Fp[i]), wp.inverse(A))
-            fi = fn.variational_forces(i, rest_x, body, rest_nbr, rest_count[i], M, h, f)
+            fi = vec3()
+            # The moments from their own functions: an inverse must not see a loop
+            # accumulator (docs/method.md, Warp pitfall 1).
+            if curved != 0:
+                A, B, C, D, E, same = cf.moment_sums(i, rest_x, rest_x, body, rest_nbr, rest_count[i], h)
+                K = cf.curvature_projection(A, C, D)
+                M = fn.variational_map(volume[i], stress[i], wp.inverse(Fp[i]), wp.inverse(cf.corrected_moment(A, C, K)))
+                fi = cf.variational_forces(i, rest_x, body, rest_nbr, rest_count[i], M, K, h, f)
+            else:
+                A, B, same = moment_sums(i, rest_x, rest_x, body, rest_nbr, rest_count[i], h)
+                M = fn.variational_map(volume[i], stress[i], wp.inverse(Fp[i]), wp.inverse(A))
+                fi = fn.variational_forces(i, rest_x, body, rest_nbr, rest_count[i], M, h, f)
             wp.atomic_add(f, i, fi)
 
     return types.SimpleNamespace(constitutive_update=constitutive_update, update_deformation=update_deformation,
@@ -184,8 +203,9 @@ def launch_constitutive_update(model, state_in, state_out, dt, counters):
     )
 
 
-def launch_update_deformation(model, state_in, state_out, counters):
-    """``deformation.launch_update_deformation`` for models with a Fig. 8 comparison material."""
+def launch_update_deformation(model, state_in, state_out, counters, curved: bool = False):
+    """``deformation.launch_update_deformation`` for models with a Fig. 8 comparison material
+    (``curved``: the rest model's total fit is the curvature-corrected one)."""
     rest_x, rest_nbr, rest_count = model.rest_neighbors()
     wp.launch(
         kernels(model.scalar).update_deformation,
@@ -193,22 +213,23 @@ def launch_update_deformation(model, state_in, state_out, counters):
         [
             state_in.x, state_out.x, rest_x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
             rest_nbr, rest_count, state_out.guard, model.particle_material, model.material_arrays(), state_out.F_flowed,
-            state_out.F_p, model.scalar(model.support_radius),
+            state_out.F_p, model.scalar(model.support_radius), int(curved),
         ],
         [state_out.F, counters],
         device=model.device,
     )
 
 
-def launch_rest_variational_forces(model, state_out):
+def launch_rest_variational_forces(model, state_out, curved: bool = False):
     """``rest_variational_forces`` into ``state_out.force``, from the stress and ``F_p`` the
-    constitutive update wrote (launched only when a material asks for it)."""
+    constitutive update wrote (launched only when a material asks for it; ``curved``: of the
+    curvature-corrected total fit)."""
     rest_x, rest_nbr, rest_count = model.rest_neighbors()
     wp.launch(
         kernels(model.scalar).rest_variational_forces,
         model.particle_count,
         [rest_x, model.particle_body, model.particle_material, model.material_arrays(), rest_nbr, rest_count,
-         model.particle_volume, state_out.stress, state_out.F_p, model.scalar(model.support_radius)],
+         model.particle_volume, state_out.stress, state_out.F_p, model.scalar(model.support_radius), int(curved)],
         [state_out.force],
         device=model.device,
     )

@@ -96,7 +96,10 @@ class Solver:
     stiffness": a bent beam within a few % of Timoshenko instead of 1.16x too soft at 6
     particles thick). The corrected fit runs the non-fused kernels (under a tape with
     hand-written adjoints for its elastic force, ``curvature.variational_forces_adjoint``, and
-    its deformation update) and cannot be combined with a comparison deformation model. With
+    its deformation update) and cannot be combined with a comparison deformation model, except
+    where every material is ``"rest"``: then it is the rest model's total fit that is corrected
+    (with ``elastic_force="variational"`` a conservative elastic force, docs/physics.md, "The
+    energy of undamped elastic bodies"). With
     ``"auto"`` the choice follows the model's parameter arrays at every step (a fit that makes
     ``flow_rate`` positive turns it to the linear fit, without the control); ``fit`` and
     ``hourglass`` hold what runs now. The model's force fields (``fields.CompressionField``)
@@ -132,9 +135,11 @@ class Solver:
         if not isinstance(fused, bool):
             raise ValueError(f"fused = {fused!r} is not allowed: must be True or False")
         asked = model.fit if fit is None else fit
-        if asked == "curvature_corrected" and model.uses_comparison_models:
+        if asked == "curvature_corrected" and model.uses_comparison_models and any(
+                mt.deformation != "rest" for mt in model.materials):
             raise ValueError(f"fit = {asked!r} is not allowed with a comparison deformation model "
-                             f"(Material.deformation 'rest' or 'additive'): only 'linear'")
+                             f"(Material.deformation 'rest' or 'additive') unless every material is 'rest' "
+                             f"(whose total fit it then corrects): only 'linear'")
         self._asked = (fit, hourglass)
         # Whether the fit (and with it a strength of None) follows the parameters.
         self._auto = asked == "auto"
@@ -277,6 +282,8 @@ class Solver:
         sph = m.sph_active
         tape = recording_tape()
         fast = self.fused and not self._cmp and not self._curved and (tape is None or self._fast_under_tape(state_in, state_out))
+        # With comparison models the corrected fit is the rest model's total fit (every material 'rest').
+        curved_rest = self._cmp and self._curved
         fast_tape = tape if fast else None
         phase = self._phase
 
@@ -313,12 +320,12 @@ class Solver:
                     plasticity.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters)
             # 4. Elastic pair forces, pressure and viscosity.
             with phase("forces"):
-                if self._curved:
+                if self._curved and not self._cmp:
                     curvature.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
                 else:
                     forces.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
                 if self._rest_variational:
-                    comparison.launch_rest_variational_forces(m, state_out)
+                    comparison.launch_rest_variational_forces(m, state_out, curved_rest)
             if sph:
                 with phase("pressure"):
                     pressure.launch_pressure_forces(m, state_in, state_out, self.hand_adjoints)
@@ -347,7 +354,7 @@ class Solver:
             if fast:
                 fused.launch_update_deformation(m, state_in, state_out, scratch, fast_tape)
             elif self._cmp:
-                comparison.launch_update_deformation(m, state_in, state_out, scratch.counters)
+                comparison.launch_update_deformation(m, state_in, state_out, scratch.counters, curved_rest)
             elif self._curved:
                 curvature.launch_update_deformation(m, state_in, state_out, scratch.counters, self.hand_adjoints)
             else:
