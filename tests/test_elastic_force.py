@@ -235,6 +235,29 @@ def test_guarded_particles_apply_no_variational_force(fused):
     assert forces["paper"] > 0.0
 
 
+@pytest.mark.parametrize("elastic_force", ["variational", "paper"])
+def test_guarded_rest_neighbourhoods_keep_their_f(elastic_force):
+    """The rest model on a one-layer sheet: every rest neighbourhood is ill-conditioned, so
+    its F is kept (counted) instead of a singular fit, and the variational force, which has
+    no energy gradient there, is zero."""
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, elastic_force=elastic_force, deformation="rest")
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (5 * SPACING, 5 * SPACING, SPACING), mat)
+    model = b.finalize(dtype=wp.float64)
+    solver = we.Solver(model)
+    a, c = model.state(), model.state()
+    F0 = np.tile(np.diag([1.1, 0.95, 1.0]), (model.particle_count, 1, 1))
+    a.F.assign(F0)
+    a.v.assign(np.random.default_rng(0).normal(scale=0.01, size=(model.particle_count, 3)))
+    solver.step(a, c, 1.0e-5)
+    counts = solver.guard_counts()
+    assert counts["ill_conditioned"] + counts["few_neighbors"] == model.particle_count
+    assert np.isfinite(c.x.numpy()).all()
+    assert np.array_equal(c.F.numpy(), F0)
+    if elastic_force == "variational":
+        assert np.abs(c.force.numpy()).max() == 0.0
+
+
 def test_elastic_force_is_read_from_scene_files_and_presets(tmp_path):
     from warp_esph import scenes
 

@@ -240,6 +240,9 @@ class Model:
         self.rest_x = None
         self.rest_nbr = None
         self.rest_count = None
+        #: The neighbourhood guard (``neighbors.GUARD_*``) of each particle's rest neighbourhood,
+        #: with the default thresholds (6 neighbours, ``cond(A) <= 20``); ``rest_neighbors()`` fills it.
+        self.rest_guard = None
 
         V, S = self.types.vec3, scalar
         self.plane_normal = self._collider_array([p.normal for p in planes], V)
@@ -563,6 +566,7 @@ class Model:
             )
             search.build(state.x, self.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count, state.guard)
             self.rest_x, self.rest_nbr, self.rest_count = state.x, state.neighbors, state.neighbor_count
+            self.rest_guard = state.guard
         return self.rest_x, self.rest_nbr, self.rest_count
 
     def compute_rest_density(self):

@@ -24,6 +24,9 @@ import warp as wp
 from .._types import type_set
 from . import curvature, deformation, forces, materials, plasticity
 
+COUNT_FEW_NEIGHBORS = deformation.COUNT_FEW_NEIGHBORS
+COUNT_ILL_CONDITIONED = deformation.COUNT_ILL_CONDITIONED
+
 
 @functools.cache
 def kernels(scalar) -> types.SimpleNamespace:
@@ -107,6 +110,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         count: wp.array(dtype=wp.int32),
         rest_nbr: wp.array2d(dtype=wp.int32),
         rest_count: wp.array(dtype=wp.int32),
+        rest_guard: wp.array(dtype=wp.int32),
         guard: wp.array(dtype=wp.int32),
         material: wp.array(dtype=wp.int32),
         mat: Materials,
@@ -124,15 +128,22 @@ def kernels(scalar) -> types.SimpleNamespace:
         d = mat.deformation[material[i]]
         I = wp.identity(n=3, dtype=scalar)
         if d == 1:
-            # Rest configuration: the total F against X, always with the initial lists.
-            G = mat33()
-            if curved != 0:
-                A, B, C, D, E, same = cf.moment_sums(i, rest_x, y, body, rest_nbr, rest_count[i], h)
-                G = cf.corrected_fit(A, B, C, D, E)
+            # Rest configuration: the total F against X, always with the initial lists; F kept
+            # (and counted) where the rest neighbourhood's guard holds (a singular A there).
+            code = rest_guard[i]
+            if code == 1:
+                wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
+            elif code == 2:
+                wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
             else:
-                A, B, same = moment_sums(i, rest_x, y, body, rest_nbr, rest_count[i], h)
-                G = df.affine_fit(A, B)
-            F = unless_inverted(G * wp.inverse(Fp[i]), F, counters)
+                G = mat33()
+                if curved != 0:
+                    A, B, C, D, E, same = cf.moment_sums(i, rest_x, y, body, rest_nbr, rest_count[i], h)
+                    G = cf.corrected_fit(A, B, C, D, E)
+                else:
+                    A, B, same = moment_sums(i, rest_x, y, body, rest_nbr, rest_count[i], h)
+                    G = df.affine_fit(A, B)
+                F = unless_inverted(G * wp.inverse(Fp[i]), F, counters)
         else:
             A, B, same = moment_sums(i, x, y, body, nbr, count[i], h)
             dF = step_gradient(A, B, guard[i], counters)
@@ -153,6 +164,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         mat: Materials,
         rest_nbr: wp.array2d(dtype=wp.int32),
         rest_count: wp.array(dtype=wp.int32),
+        rest_guard: wp.array(dtype=wp.int32),
         volume: wp.array(dtype=scalar),
         stress: wp.array(dtype=mat33),
         Fp: wp.array(dtype=mat33),
@@ -173,7 +185,9 @@ def kernels(scalar) -> types.SimpleNamespace:
         place of ``A_i`` and ``Xb`` (``curvature.py``), also of the rest positions alone."""
         i = wp.tid()
         m = material[i]
-        if mat.deformation[m] == 1 and mat.elastic_force[m] == 1:
+        # A guarded rest neighbourhood keeps its F whatever the positions do: no energy
+        # gradient, no force (as the incremental fit's guard).
+        if mat.deformation[m] == 1 and mat.elastic_force[m] == 1 and rest_guard[i] == 0:
             fi = vec3()
             # The moments from their own functions: an inverse must not see a loop
             # accumulator (docs/method.md, Warp pitfall 1).
@@ -212,7 +226,7 @@ def launch_update_deformation(model, state_in, state_out, counters, curved: bool
         model.particle_count,
         [
             state_in.x, state_out.x, rest_x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
-            rest_nbr, rest_count, state_out.guard, model.particle_material, model.material_arrays(), state_out.F_flowed,
+            rest_nbr, rest_count, model.rest_guard, state_out.guard, model.particle_material, model.material_arrays(), state_out.F_flowed,
             state_out.F_p, model.scalar(model.support_radius), int(curved),
         ],
         [state_out.F, counters],
@@ -229,7 +243,7 @@ def launch_rest_variational_forces(model, state_out, curved: bool = False):
         kernels(model.scalar).rest_variational_forces,
         model.particle_count,
         [rest_x, model.particle_body, model.particle_material, model.material_arrays(), rest_nbr, rest_count,
-         model.particle_volume, state_out.stress, state_out.F_p, model.scalar(model.support_radius), int(curved)],
+         model.rest_guard, model.particle_volume, state_out.stress, state_out.F_p, model.scalar(model.support_radius), int(curved)],
         [state_out.force],
         device=model.device,
     )
