@@ -480,7 +480,8 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
 
 # ---------------------------------------------------------------------- bar
 def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slenderness: int = 10,
-                  periods: float = 3.2, strain: float = 1.0e-3, E: float = 1.0e5, nu: float = 0.3, fit: str | None = None, hourglass: float | None = None) -> dict:
+                  periods: float = 3.2, strain: float = 1.0e-3, E: float = 1.0e5, nu: float = 0.3, fit: str | None = None, hourglass: float | None = None,
+                  deformation: str = "incremental") -> dict:
     """Free-free bar, ``resolution`` x ``resolution`` particles across, ``slenderness`` times
     as long, pressure off, no gravity, started in its first longitudinal mode
     (``v = strain c cos(pi X / L)``). The frequency is read from the upward zero crossings
@@ -489,7 +490,8 @@ def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slend
     wp, we = _we()
     dx = 0.01
     n, nl = resolution, resolution * slenderness
-    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force=elastic_force)
+    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force=elastic_force,
+                                 deformation=deformation)
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
     L = nl * dx
     b.add_box((L / 2, 0.0, 0.0), (L, n * dx, n * dx), mat)
@@ -598,7 +600,8 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
 
 # ------------------------------------------------------------------- column
 def column_settlement(resolution: int = 6, elastic_force: str = "variational", aspect: int = 5,
-                      E: float = 1.5e5, nu: float = 0.3, periods: float = 4.0, fit: str | None = None, hourglass: float | None = None) -> dict:
+                      E: float = 1.5e5, nu: float = 0.3, periods: float = 4.0, fit: str | None = None, hourglass: float | None = None,
+                  deformation: str = "incremental") -> dict:
     """A free-standing square column, ``resolution`` particles across and ``aspect`` times as
     tall, on a frictionless floor (laterally free), pressure off, relaxed dynamically. The
     shortening between the centres of the top and bottom layers, against
@@ -608,7 +611,8 @@ def column_settlement(resolution: int = 6, elastic_force: str = "variational", a
     dx = 0.01
     n, nh = resolution, resolution * aspect
     H = nh * dx
-    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force=elastic_force)
+    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force=elastic_force,
+                                 deformation=deformation)
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
     b.add_box((0.0, H / 2.0, 0.0), (n * dx, H, n * dx), mat)
     b.add_ground(0.0, friction=0.0)
@@ -642,7 +646,8 @@ def column_settlement(resolution: int = 6, elastic_force: str = "variational", a
 
 # ------------------------------------------------------------------ poisson
 def poisson_compression(resolution: int = 6, elastic_force: str = "variational", strain: float = 1.0e-3,
-                        E: float = 1.0e5, nu: float = 0.3, aspect: int = 2, periods: float = 20.0, fit: str | None = None, hourglass: float | None = None) -> dict:
+                        E: float = 1.0e5, nu: float = 0.3, aspect: int = 2, periods: float = 20.0, fit: str | None = None, hourglass: float | None = None,
+                  deformation: str = "incremental") -> dict:
     """A block ``resolution`` particles across and ``aspect`` times as long, compressed along
     x by ``strain`` (positions and F together) and held between two frictionless planes
     at its end layers; no gravity, pressure off, relaxed dynamically. Measured: the lateral
@@ -651,7 +656,8 @@ def poisson_compression(resolution: int = 6, elastic_force: str = "variational",
     wp, we = _we()
     dx = 0.01
     n, nl = resolution, resolution * aspect
-    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force=elastic_force)
+    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force=elastic_force,
+                                 deformation=deformation)
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
     b.add_box((0.0, 0.0, 0.0), (nl * dx, n * dx, n * dx), mat)
     model = b.finalize()
@@ -801,7 +807,8 @@ def layer_factor(nu: float, chi: float, bonded: bool = True) -> float:
 
 def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.0e5, nu: float = 0.3,
                        R: float = 0.04, hold: float = 0.015, late: float = 0.1, hourglass: float | None = None,
-                       width: float = 0.10, height: float = 0.04, fit: str | None = None) -> dict:
+                       width: float = 0.10, height: float = 0.04, fit: str | None = None,
+                       deformation: str = "incremental") -> dict:
     """A frictionless rigid sphere (R = 4 cm) pressed into a block ``width`` x ``height`` x
     ``width`` (default 10 x 4 x 10 cm; ``resolution`` particles across its height) standing on a plane tool that holds its
     base (mu = 2); no gravity, pressure off, variational force. The sphere starts touching
@@ -829,7 +836,8 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
 
     H, Wd = height, width
     dx = H / resolution
-    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force="variational")
+    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force="variational",
+                                 deformation=deformation)
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
     b.add_box((0.0, H / 2, 0.0), (Wd, H, Wd), mat, name="block")
     pts = np.concatenate(b._points)
