@@ -429,7 +429,10 @@ def write(results, out: pathlib.Path, meta: dict):
             "## Undamped elastic energy\n\n"
             "`energy_drift`: a 6^3 cube (2 cm spacing, E = 2e5 Pa, nu = 0.3, St. Venant-Kirchhoff, pressure off, "
             "no gravity, no viscosity) set breathing, `v = a (x - c)`. Total energy = kinetic + sum V psi(F) with "
-            "the St. Venant-Kirchhoff psi of the stored F (the energy the variational force is the gradient of). "
+            "the St. Venant-Kirchhoff psi of the stored F (the energy the variational force is the gradient of), "
+            "each sample at x_k with the mean of the half-step velocities around it (the hourglass control's energy "
+            "not counted); `variational (rest, ...)`: `Material(deformation=\"rest\")`, the total fit against the "
+            "rest neighbourhood (docs/physics.md, \"The energy of undamped elastic bodies\"). "
             "Drift: (E_end - E0) / E0; max: largest |E - E0| / E0; a run stops when E passes 100 E0.\n\n"
             + _table(["force", "dt / stable", "peak strain", "periods", "drift", "max deviation", "blew up"],
                      [[_energy_force(r), r["dt_factor"], r["peak_strain"], r["periods"], r["drift"], r["max_deviation"], r["blew_up"]] for r in en])
