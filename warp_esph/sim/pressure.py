@@ -9,11 +9,13 @@ kernels of Müller et al. 2003).
 with ``V = m / rho`` and ``e_ij`` the unit vector between the pair. That ``f_i`` is the
 paper's pressure (``pressure_force = "spiky"``); the ``energy`` force is minus the gradient
 of ``sum_k m_k e_k(rho_k)``, ``de/drho = p / rho^2``, and ``energy_spiky`` the same of a
-density summed with the spiky kernel instead of poly6 (``density_weight``; docs/method.md §6). The viscous force is
+density summed with the spiky kernel instead of poly6 (``density_weight``; docs/method.md §6),
+which only its pressure reads (``State.pressure_density``): ``rho`` and the volumes ``V``
+stay the poly6 ones for every material. The viscous force is
 Müller's ``eta V_i V_j (u_j - u_i) lap W`` projected onto the line between the particles:
 a central force, so it conserves angular momentum and leaves a rigid rotation alone (the
 unprojected form stops a spinning body). The factor 5 (``d + 2``) keeps ``eta`` the shear
-viscosity: for a divergence-free flow the projection averages to 1/5 of the full sum. ``rho0_i`` is each particle's SPH density in the initial
+viscosity: for a divergence-free flow the projection averages to 1/5 of the full sum. ``rho0_i`` is each particle's pressure density in the initial
 configuration, so a body starts pressure-free even at its surface, where the SPH sum is
 short of neighbours. Rows reach ``h sigma_max(F_i)`` (and may be capped) and so are not symmetric: as for the elastic
 force each directed pair applies half its force to both particles, equal and opposite,
