@@ -214,7 +214,7 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
     compute from the same outputs: SPH pressure and viscosity, elastic forces (eqs. 10-13 and
     the variational force, each for its own particles), the constitutive update (hand-written
     for the linear and non-Newtonian models, Warp's generated adjoint for the polynomial ones)
-    and the SPH density the neighbour pass summed."""
+    and the densities the neighbour pass summed (``pressure.launch_state_densities_adjoint``)."""
     S = model.scalar
     own = sph and model.separate_pressure_density
     wp.launch(
