@@ -168,9 +168,11 @@ def test_rotation_variant_svd_reconstructs_and_flags_inversion(scalar, tol):
 
 
 def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_force: str = "variational",
-                               model_name: str = "linear", flow_rate: float = 50.0, pressure_force: str = "spiky"):
+                               model_name: str = "linear", flow_rate: float = 50.0, pressure_force: str = "spiky",
+                               second_pressure_force: str | None = None):
     """Gradients of a weighted sum of final positions through a yielding, stretching block,
-    with the solver's hand-written adjoints (``hand``) or Warp's generated ones."""
+    with the solver's hand-written adjoints (``hand``) or Warp's generated ones; with
+    ``second_pressure_force`` a second block of that force touches the first."""
     import warp_esph as we  # noqa: PLC0415
 
     mat = we.Material(density=1000.0, mu=1.0e3, lam=1.5e3, yield_stress=10.0, flow_rate=flow_rate, hardening=200.0,
@@ -178,6 +180,8 @@ def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_for
                       pressure_force=pressure_force)
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
     b.add_box((0.0, 0.0, 0.0), (0.1, 0.08, 0.08), mat)
+    if second_pressure_force is not None:
+        b.add_box((0.0, 0.08, 0.0), (0.1, 0.08, 0.08), mat.replace(pressure_force=second_pressure_force, viscosity=3.0))
     model = b.finalize(dtype=scalar, requires_grad=True)
     model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * 0.02, size=model.particle_x0.shape)
     model.particle_v0 = 20.0 * model.particle_x0 * np.array([1.0, -0.5, 0.0])
@@ -237,3 +241,12 @@ def test_hand_written_energy_pressure_adjoint(scalar, tol, pressure_force):
     the spiky-kernel density; the spiky one is in the test above) against Warp's generated
     adjoints."""
     _assert_hand_matches_generated(scalar, tol, pressure_force=pressure_force)
+
+
+@pytest.mark.parametrize("scalar,tol", [(wp.float64, 1e-10), (wp.float32, 2e-4)])
+def test_hand_written_pressure_adjoints_between_energy_spiky_and_energy_bodies(scalar, tol):
+    """Two touching blocks, ``energy_spiky`` on the energy force: the pressure density is the
+    spiky sum in one body and the SPH density in the other, and pairs across the contact read
+    both (``State.pressure_density`` beside ``State.density``); hand-written adjoints against
+    the generated ones."""
+    _assert_hand_matches_generated(scalar, tol, pressure_force="energy_spiky", second_pressure_force="energy")

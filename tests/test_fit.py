@@ -133,9 +133,12 @@ def test_gradients_with_repeated_singular_values_mid_run():
 
 
 # -------------------------------------------------------------- checkpointing
-@pytest.mark.parametrize("segment", [1, 3, 4])
-def test_checkpointed_gradients_equal_full_tape(segment):
-    model = _block()
+@pytest.mark.parametrize("segment,pressure_force", [(1, "energy"), (3, "energy"), (4, "energy"), (3, "energy_spiky")])
+def test_checkpointed_gradients_equal_full_tape(segment, pressure_force):
+    """Gradients of a rollout re-run from checkpoints equal the full tape's; with
+    ``energy_spiky`` too, whose pressure density (``State.pressure_density``) each step
+    writes besides the SPH density."""
+    model = _block({"pressure_force": pressure_force})
     steps, frames = 10, [0, 3, 4, 7, 10]
     g = np.random.default_rng(0).normal(size=(len(frames), model.particle_count, 3))
     full = Rollout(model, steps, DT, frames=frames)

@@ -288,7 +288,10 @@ def _energy_spiky_model(case, params=None):
 def test_energy_spiky_pressure_gradients_match_central_differences(weights, case, name):
     """``pressure_force = "energy_spiky"``: the hand-written adjoints of the spiky density
     and of its energy pair force (``pressure.density_adjoint``, ``pressure_forces_adjoint``)
-    against float64 central differences, at rest and with two particle layers merging."""
+    against float64 central differences, at rest and with two particle layers merging, with
+    viscosity on: its volumes come from the poly6 SPH density (``State.density``), the
+    pressure from the spiky one (``State.pressure_density``), so both densities' adjoints
+    carry the gradient."""
     model = _energy_spiky_model(case)
     loss, grads = _rollout_loss(model, weights, grad_of=(name,))
     if name == "v0":

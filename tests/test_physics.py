@@ -513,7 +513,9 @@ def _one_step(model, start, fused):
     solver = we.Solver(model, fused=fused)
     out = model.state()
     solver.step(start, out, 1e-4)
-    return {name: getattr(out, name).numpy().astype(np.float64) for name in _STEP_FIELDS + ("guard", "neighbor_count")}, solver
+    # pressure_density: only where a material is energy_spiky (None otherwise).
+    names = _STEP_FIELDS + ("guard", "neighbor_count") + (("pressure_density",) if model.separate_pressure_density else ())
+    return {name: getattr(out, name).numpy().astype(np.float64) for name in names}, solver
 
 
 @pytest.mark.parametrize("model_name,elastic_force,pressure_force", [
@@ -529,14 +531,15 @@ def test_fused_step_matches_the_differentiable_step(model_name, elastic_force, p
     (a, sa), (b_, sb) = _one_step(model, start, True), _one_step(model, start, False)
     assert sa.guard_counts() == sb.guard_counts()
     assert (b_["alpha"] > start.alpha.numpy()).any(), "some particles flow"
-    for name in _STEP_FIELDS:
+    fields = _STEP_FIELDS + (("pressure_density",) if pressure_force == "energy_spiky" else ())
+    for name in fields:
         assert np.abs(a[name] - b_[name]).max() <= 1e-11 * np.abs(b_[name]).max(), name
     for name in ("guard", "neighbor_count"):
         np.testing.assert_array_equal(a[name], b_[name])
 
     model32, start32 = _deformed_start(wp.float32, model_name, elastic_force, pressure_force)
     f32, u32 = _one_step(model32, start32, True)[0], _one_step(model32, start32, False)[0]
-    for name in _STEP_FIELDS:
+    for name in fields:
         err_fused = np.abs(f32[name] - b_[name]).max()
         err_unfused = np.abs(u32[name] - b_[name]).max()
         assert err_fused <= 3.0 * err_unfused + 1e-6 * np.abs(b_[name]).max(), (name, err_fused, err_unfused)
@@ -578,11 +581,12 @@ def _pressure_energy_and_forces(pressure_force, x, model):
     k = pressure.kernels(wp.float64)
     xa = wp.array(x, dtype=wp.vec3d)
     args = (wp.array(nbr, dtype=wp.int32), wp.array(count, dtype=wp.int32), h)
-    rho = wp.zeros(len(x), dtype=wp.float64)
-    wp.launch(k.density, len(x), [xa, model.particle_mass, model.particle_material, model.material_arrays(), *args],
-              [rho])
+    rho, rho_p = wp.zeros(len(x), dtype=wp.float64), wp.zeros(len(x), dtype=wp.float64)
+    for of_pressure, out in ((0, rho), (1, rho_p)):
+        wp.launch(k.density, len(x), [xa, model.particle_mass, model.particle_material, model.material_arrays(), *args,
+                                      of_pressure], [out])
     f = wp.zeros(len(x), dtype=wp.vec3d)
-    wp.launch(k.pressure_forces, len(x), [xa, wp.zeros(len(x), dtype=wp.vec3d), model.particle_mass, rho,
+    wp.launch(k.pressure_forces, len(x), [xa, wp.zeros(len(x), dtype=wp.vec3d), model.particle_mass, rho, rho_p,
                                            model.particle_rest_density, model.particle_material,
                                            model.material_arrays(), *args], [f])
     return energy, f.numpy()
@@ -617,6 +621,76 @@ def test_pressure_force_is_minus_the_gradient_of_the_pressure_energy(pressure_fo
         assert err < 1e-6, err
     else:
         assert err > 0.1, err
+
+
+def _viscous_start(dtype, pressure_force, viscosity=5.0):
+    """A jittered, moving block of the energy force or ``energy_spiky`` with the pressure off
+    (``k_p = 0``), so the SPH part of the step's force is the viscous force alone."""
+    rng = np.random.default_rng(8)
+    mat = we.Material.from_young(1.0e5, 0.3, density=1000.0, viscosity=viscosity, pressure_stiffness=0.0,
+                                 pressure_force=pressure_force, elastic_force="variational")
+    model = _block_model(n=(6, 5, 4), material=mat, dtype=dtype)
+    n = model.particle_count
+    start = model.state()
+    start.x.assign(model.particle_x0 + 1e-3 * rng.normal(size=(n, 3)))
+    start.v.assign(0.3 * rng.normal(size=(n, 3)))
+    return model, start
+
+
+@pytest.mark.parametrize("fused", [True, False])
+@pytest.mark.parametrize("dtype,tol", [(wp.float64, 1e-12), (wp.float32, 1e-5)])
+def test_energy_spiky_keeps_the_sph_density_and_its_viscous_volumes(dtype, tol, fused):
+    """``energy_spiky`` sums its pressure's density with the spiky kernel into an array of its
+    own (``State.pressure_density``; docs/method.md §6): ``State.density`` stays the poly6 SPH
+    density, the same as the energy force's from the same state, and the viscous force's
+    volumes ``m / rho`` with it, so with the pressure off the step's forces are the energy
+    force's (with the spiky sum's volumes, 0.82 x in bulk, the viscous force was about 0.67 x).
+    The pressure density is the spiky sum (1.24 rho0 in bulk), on either path."""
+    out = {}
+    for pf in ("energy", "energy_spiky"):
+        model, start = _viscous_start(dtype, pf)
+        state = model.state()
+        solver = we.Solver(model, fused=fused, fit="linear")
+        solver.step(start, state, 1e-4)
+        assert solver.guard_counts()["neighbors_cut"] == 0
+        out[pf] = state
+    e, es = out["energy"], out["energy_spiky"]
+    assert e.pressure_density is None and es.pressure_density is not None
+    x = start.x.numpy().astype(np.float64)
+    m, h = model.particle_mass.numpy().astype(np.float64), model.support_radius
+    poly6, spiky = _sph_density("energy", x, m, h), _sph_density("energy_spiky", x, m, h)
+    for rho in (e.density.numpy(), es.density.numpy()):
+        assert np.abs(rho - poly6).max() <= tol * poly6.max()
+    assert np.abs(es.pressure_density.numpy() - spiky).max() <= tol * spiky.max()
+    assert spiky.max() > 1.2 * poly6.max()  # the two sums differ: the check above can fail
+    f_e, f_es = e.force.numpy().astype(np.float64), es.force.numpy().astype(np.float64)
+    # The viscous force's share of it, from the same step without viscosity.
+    model0, start0 = _viscous_start(dtype, "energy", viscosity=0.0)
+    no_visc = model0.state()
+    we.Solver(model0, fused=fused, fit="linear").step(start0, no_visc, 1e-4)
+    f_visc = f_e - no_visc.force.numpy()
+    assert np.abs(f_visc).max() > 0.1 * np.abs(f_e).max()
+    assert np.abs(f_es - f_e).max() <= 10 * tol * np.abs(f_visc).max()
+
+
+def test_set_material_to_energy_spiky_gives_its_rest_density_and_pressure_density():
+    """``Model.set_material`` that makes a material ``energy_spiky`` recomputes the rest
+    density (now the spiky sum's) and a state made before gets its pressure density: the step
+    is that of a model built with it."""
+    energy = we.Material.from_young(1.0e5, 0.3, density=1000.0, viscosity=2.0)
+    spiky = energy.replace(pressure_force="energy_spiky", pressure_stiffness=energy.pressure_stiffness)
+    built = _block_model(n=(5, 4, 4), material=spiky, gravity=(0.0, -9.81, 0.0))
+    changed = _block_model(n=(5, 4, 4), material=energy, gravity=(0.0, -9.81, 0.0))
+    early = changed.state()
+    changed.set_material(0, spiky)
+    np.testing.assert_allclose(changed.particle_rest_density.numpy(), built.particle_rest_density.numpy(), rtol=1e-14)
+    outs = []
+    for model, start in ((built, built.state()), (changed, early)):
+        out = model.state()
+        we.Solver(model).step(start, out, 1e-4)
+        outs.append(out)
+    for name in ("x", "v", "force", "density", "pressure_density"):
+        np.testing.assert_allclose(getattr(outs[1], name).numpy(), getattr(outs[0], name).numpy(), rtol=1e-13, atol=1e-15)
 
 
 @pytest.mark.parametrize("pressure_force", ["energy", "spiky"])

@@ -153,7 +153,9 @@ def same_state(model, name: str, state) -> None:
         "F_flowed": ((n,), T.mat33), "stress": ((n,), T.mat33), "F_inv": ((n,), T.mat33), "force": ((n,), T.vec3),
     }
     # (Not neighbor_d2: the step keeps it in the solver's scratch, and reading it here would
-    # allocate the state's own copy.)
+    # allocate the state's own copy.) pressure_density: None unless a material is energy_spiky.
+    if getattr(state, "pressure_density", None) is not None:
+        want["pressure_density"] = ((n,), T.scalar)
     for field, (shape, dtype) in want.items():
         arr = getattr(state, field, None)
         where = f"{name}.{field}"

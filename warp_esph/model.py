@@ -79,7 +79,15 @@ class State:
         self._d2_spec = ((n, K), T.scalar, dev)
         self.neighbor_count = wp.zeros(n, dtype=wp.int32, device=dev)
         self.guard = wp.zeros(n, dtype=wp.int32, device=dev)
+        #: The SPH (poly6) density of every particle, whatever its pressure force: the volumes
+        #: ``m / rho`` of the viscous force, what diagnostics and exports read.
         self.density = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad)
+        #: The density the pressure of an ``energy_spiky`` material reads, each material's own
+        #: (docs/method.md §6: the spiky sum there, the poly6 sum elsewhere), written by the step
+        #: where the model has such a material (``Model.separate_pressure_density``); None
+        #: otherwise (the pressure reads ``density``; ``pressure.pressure_density``).
+        self.pressure_density = (wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad)
+                                 if model.separate_pressure_density else None)
         self.F_flowed = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
         self.stress = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
         self.F_inv = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
@@ -367,6 +375,9 @@ class Model:
             raise ValueError(f"index = {index!r} is not allowed: must be in [0, {len(self.materials) - 1}]")
         if not isinstance(material, Material):
             raise ValueError(f"material = {material!r} is not allowed: must be a warp_esph.Material")
+        # The rest density is the pressure density's: its kernel may change with the force.
+        new_density_kernel = (self.materials[index].pressure_force == "energy_spiky") != (
+            material.pressure_force == "energy_spiky")
         self.materials[index] = material
         for name in self.MATERIAL_FIELDS:
             arr = getattr(self, name)
@@ -383,6 +394,14 @@ class Model:
             values = arr.numpy()
             values[index] = value
             arr.assign(values)
+        if new_density_kernel:
+            # Only this material's particles: the others keep theirs (a copied or edited one).
+            kept = self.particle_rest_density.numpy()
+            self.compute_rest_density()
+            fresh = self.particle_rest_density.numpy()
+            others = self.particle_material_np != index
+            fresh[others] = kept[others]
+            self.particle_rest_density.assign(fresh)
 
     # ----------------------------------------------------------------- worlds
     def _check_worlds(self):
@@ -569,8 +588,15 @@ class Model:
             self.rest_guard = state.guard
         return self.rest_x, self.rest_nbr, self.rest_count
 
+    @property
+    def separate_pressure_density(self) -> bool:
+        """Whether a material's pressure reads a density of its own (``energy_spiky``: the spiky
+        sum, ``State.pressure_density``); otherwise the pressure reads the SPH density."""
+        return any(m.pressure_force == "energy_spiky" for m in self.materials)
+
     def compute_rest_density(self):
-        """SPH density of the initial configuration: each particle's pressure-free density."""
+        """The pressure density of the initial configuration (``particle_rest_density``): each
+        particle's pressure-free density (the poly6 sum; the spiky sum for ``energy_spiky``)."""
         from .sim import neighbors, pressure  # noqa: PLC0415 (model data first, kernels on demand)
 
         state = State(self, requires_grad=False)
@@ -579,4 +605,5 @@ class Model:
             **self.neighbor_options(),
         )
         search.build(state.x, self.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count, state.guard)
-        pressure.launch_density(self, state.x, state.neighbors, state.neighbor_count, self.particle_rest_density)
+        pressure.launch_density(self, state.x, state.neighbors, state.neighbor_count, self.particle_rest_density,
+                                of_pressure=True)

@@ -61,7 +61,8 @@ def kernels(scalar) -> types.SimpleNamespace:
         volume: wp.array(dtype=scalar),
         p: wp.array(dtype=scalar),
         vol: wp.array(dtype=scalar),
-        rho: wp.array(dtype=scalar),
+        rho_p: wp.array(dtype=scalar),
+        vol_p: wp.array(dtype=scalar),
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         h: scalar,
@@ -116,21 +117,26 @@ def kernels(scalar) -> types.SimpleNamespace:
         F_inv_out[i] = Finv
 
         # 3. Pair forces: elastic (forces.elastic_forces), then pressure and viscosity
-        # (pressure.pressure_forces) with the pressure p and volume m / rho of every
-        # particle from the neighbour pass, each pair's share applied equal and opposite.
+        # (pressure.pressure_forces) with the pressure p, volume m / rho and pressure
+        # density rho_p (sph 2: with its own m / rho_p, else rho_p is rho) of every particle
+        # from the neighbour pass, each pair's share applied equal and opposite.
         xi = x[i]
         bi = body[i]
         Vol_i = volume[i]
         vi = v[i]
         Vi = scalar(0.0)
+        Vpi = scalar(0.0)
         pi = scalar(0.0)
         rho_i = scalar(0.0)
         visc_i = mat.viscosity[m]
         form = mat.pressure_force[m]
         if sph != 0:
             Vi = vol[i]
+            Vpi = Vi
+            if sph == 2:
+                Vpi = vol_p[i]
             pi = p[i]
-            rho_i = rho[i]
+            rho_i = rho_p[i]
         c_el = sm.elastic_coef(h)
         # Elastic force: 0 the paper's (eqs. 10-13), 1 variational, 2 none (a guarded
         # particle of the variational force).
@@ -160,8 +166,12 @@ def kernels(scalar) -> types.SimpleNamespace:
                 fi -= g
             if sph != 0:
                 eta = scalar(0.5) * (visc_i + mat.viscosity[material[j]])
-                half = scalar(0.5) * sph_pair_force(Vi * vol[j], pi, p[j], rho_i, rho[j], form, eta, xi - xj, v[j] - vi, h, c6,
-                                                   c_spiky, c_visc)
+                VV = Vi * vol[j]
+                VVp = VV
+                if sph == 2:
+                    VVp = Vpi * vol_p[j]
+                half = scalar(0.5) * sph_pair_force(VV, VVp, pi, p[j], rho_i, rho_p[j], form, eta, xi - xj, v[j] - vi, h,
+                                                   c6, c_spiky, c_visc)
                 fj -= half
                 fi += half
             wp.atomic_add(f, j, fj)
@@ -195,22 +205,27 @@ def kernels(scalar) -> types.SimpleNamespace:
 
 def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: bool, tape=None):
     """Plastic flow, stress, ``F^-1`` and every pair force in one launch; with ``sph`` the
-    SPH pressure and volume ``scratch.pressure``, ``scratch.sph_volume`` of the neighbour pass.
+    SPH pressure and volume ``scratch.pressure``, ``scratch.sph_volume`` of the neighbour pass
+    (and, where a material is ``energy_spiky``, the pressure density ``state_out.pressure_density``
+    with its volume ``scratch.pressure_volume()``).
 
     With ``tape`` (a recording ``wp.Tape``, the states with gradients) the launch is not
     recorded; the tape gets, in its place, the adjoints of what the differentiable kernels
     compute from the same outputs: SPH pressure and viscosity, elastic forces (eqs. 10-13 and
     the variational force, each for its own particles), the constitutive update (hand-written
     for the linear and non-Newtonian models, Warp's generated adjoint for the polynomial ones)
-    and the SPH density the neighbour pass summed."""
+    and the densities the neighbour pass summed (``pressure.launch_state_densities_adjoint``)."""
     S = model.scalar
+    own = sph and model.separate_pressure_density
     wp.launch(
         kernels(S).constitutive_forces,
         model.particle_count,
         [
             state_in.x, state_in.v, state_in.F, state_in.alpha, model.particle_material, model.material_arrays(),
-            model.particle_body, model.particle_volume, scratch.pressure, scratch.sph_volume, state_out.density, state_out.neighbors,
-            state_out.neighbor_count, S(model.support_radius), S(dt), int(sph), scratch.min_neighbors,
+            model.particle_body, model.particle_volume, scratch.pressure, scratch.sph_volume,
+            pressure.pressure_density(model, state_out), scratch.pressure_volume() if own else scratch.sph_volume,
+            state_out.neighbors, state_out.neighbor_count, S(model.support_radius), S(dt), 2 if own else int(sph),
+            scratch.min_neighbors,
             S(scratch.max_condition),
         ],
         [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, state_out.force, scratch.counters],
@@ -232,11 +247,12 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
                                                      scratch.max_condition)
         plasticity.launch_constitutive_update_adjoint(model, state_in, state_out, dt, scratch.counters, tape)
         if sph:
-            pressure.launch_density_adjoint(model, state_in.x, state_out.neighbors, state_out.neighbor_count,
-                                            state_out.density)
+            pressure.launch_state_densities_adjoint(model, state_in.x, state_out)
 
     arrays = [state_in.x, state_in.v, state_in.F, state_in.alpha, state_out.F_flowed, state_out.alpha, state_out.stress,
               state_out.F_inv, state_out.force, state_out.density]
+    if model.separate_pressure_density:
+        arrays.append(pressure.pressure_density(model, state_out))
     arrays += [getattr(model, name) for name in model.MATERIAL_FIELDS]
     tape.record_func(backward, arrays)
 

@@ -317,10 +317,14 @@ def kernels(scalar) -> types.SimpleNamespace:
         rho: wp.array(dtype=scalar),
         p: wp.array(dtype=scalar),
         vol: wp.array(dtype=scalar),
+        rho_p: wp.array(dtype=scalar),
+        vol_p: wp.array(dtype=scalar),
         counters: wp.array(dtype=wp.int32),
     ):
         """The neighbour rows at ``x``; with ``with_guard`` the guards of paper §4; with
-        ``with_density`` the SPH density ``rho``, pressure ``p`` and volume ``m / rho``.
+        ``with_density`` the SPH density ``rho`` (poly6), volume ``m / rho`` and pressure
+        ``p``, of ``rho`` (``with_density`` 1) or (2) of each material's pressure density
+        ``rho_p`` (``pressure.density``), written with its ``vol_p = m / rho_p``.
 
         With ``with_stretch`` the rows hold every particle within ``h sigma_max(F_i)``
         (at most ``cand_stretch[i] h``, the candidates' reach), so a pair enters or leaves a row only where every
@@ -399,20 +403,23 @@ def kernels(scalar) -> types.SimpleNamespace:
         c6 = sm.poly6_coef(h)
         c_ws = sm.w_spiky_coef(h)
         r = scalar(0.0)
+        rp = scalar(0.0)
+        # Whether the pressure density is a sum of its own (else it is the poly6 one).
         form = int(0)
         if with_density != 0:
-            form = mat.pressure_force[material[i]]
-            r = mass[i] * density_weight(scalar(0.0), h, c6, c_ws, form)
+            r = mass[i] * sm.w_poly6_c(scalar(0.0), h, c6)
+            if with_density == 2:
+                form = mat.pressure_force[material[i]]
+                rp = mass[i] * density_weight(scalar(0.0), h, c6, c_ws, form)
         A = mat33()
         same = int(0)
         for k in range(n):
             j = nbr[i, k]
             w = sm.w_poly6_c(nbr_d2[i, k], h, c6)
             if with_density != 0:
+                r += mass[j] * w
                 if form == 2:
-                    r += mass[j] * density_weight(nbr_d2[i, k], h, c6, c_ws, form)
-                else:
-                    r += mass[j] * w
+                    rp += mass[j] * density_weight(nbr_d2[i, k], h, c6, c_ws, form)
             if with_guard != 0:
                 # Only neighbours of non-zero weight count for the guard (rows reach
                 # beyond h with with_stretch).
@@ -422,9 +429,16 @@ def kernels(scalar) -> types.SimpleNamespace:
                     same += 1
         if with_density != 0:
             rho[i] = r
-            m = material[i]
-            p[i] = pressure_of(r, rest_density[i], mat.pressure_stiffness[m], mat.clamp_pressure[m])
             vol[i] = mass[i] / r
+            if with_density == 2:
+                if form != 2:
+                    rp = r
+                rho_p[i] = rp
+                vol_p[i] = mass[i] / rp
+            else:
+                rp = r
+            m = material[i]
+            p[i] = pressure_of(rp, rest_density[i], mat.pressure_stiffness[m], mat.clamp_pressure[m])
         if with_guard != 0:
             guard[i] = guard_code(A, same, min_neighbors, max_condition)
 
@@ -610,24 +624,28 @@ class NeighborSearch:
         return spread < SKIN_SAFETY * self.skin
 
     def _select(self, x, body, nbr, nbr_d2, count, guard, sph=None, F=None, counters=None, cut_index=0):
-        """``sph``: None, or (mass, material, rest_density, materials, rho, p, vol); ``F``:
+        """``sph``: None, or (mass, material, rest_density, materials, rho, p, vol, rho_p, vol_p)
+        (``rho_p``, ``vol_p`` None: the pressure reads ``rho``); ``F``:
         None (rows within h) or the deformation gradients the rows must cover
         (``select_neighbors``); ``counters[cut_index]`` counts the rows that may be short."""
         d = self._dummy_arrays()
         if sph is None:
             mass, material, rest_density, mats, rho, p, vol = d["s"], d["i"], d["s"], d["mat"], d["s"], d["s"], d["s"]
+            rho_p = vol_p = None
         else:
-            mass, material, rest_density, mats, rho, p, vol = sph
+            mass, material, rest_density, mats, rho, p, vol, rho_p, vol_p = sph
+        with_density = 0 if sph is None else (1 if rho_p is None else 2)
         with_guard = guard is not None
         wp.launch(
             self.kernels.select_neighbors,
             x.shape[0],
             [
                 x, body, mass, self.candidates, self.candidate_count, self.scalar(self.h), self.min_neighbors,
-                self.scalar(self.max_condition), int(with_guard), int(sph is not None), material, rest_density, mats,
+                self.scalar(self.max_condition), int(with_guard), with_density, material, rest_density, mats,
                 d["F"] if F is None else F, int(F is not None), self._cand_stretch, int(cut_index),
             ],
-            [nbr, nbr_d2, count, guard if with_guard else d["i"], rho, p, vol, d["c"] if counters is None else counters],
+            [nbr, nbr_d2, count, guard if with_guard else d["i"], rho, p, vol, d["s"] if rho_p is None else rho_p,
+             d["s"] if vol_p is None else vol_p, d["c"] if counters is None else counters],
             device=self.device,
             record_tape=False,
         )
@@ -653,9 +671,11 @@ class NeighborSearch:
     def update(self, x: wp.array, body: wp.array, nbr, nbr_d2, count, guard, sph=None, **stretch):
         """The same lists as ``build``, reusing the candidates while they are complete.
 
-        With ``sph = (mass, material, rest_density, materials, rho, p, vol)`` (``materials``:
-        the ``sim.materials`` struct), also writes the SPH density ``rho`` over the new lists, the pressure
-        ``p`` and the volume ``vol = mass / rho`` (not recorded on a tape). With ``F=`` (the
+        With ``sph = (mass, material, rest_density, materials, rho, p, vol, rho_p, vol_p)``
+        (``materials``: the ``sim.materials`` struct), also writes the SPH density ``rho`` over
+        the new lists, the volume ``vol = mass / rho``, the pressure density ``rho_p`` and its
+        ``vol_p = mass / rho_p`` (both None: the pressure reads ``rho``) and the pressure ``p``
+        (not recorded on a tape). With ``F=`` (the
         deformation gradients at ``x``) the rows reach ``h sigma_max(F)``; with
         ``counters=, cut_index=`` rows that may be short are counted (``select_neighbors``)."""
         self.updates += 1

@@ -9,11 +9,13 @@ kernels of Müller et al. 2003).
 with ``V = m / rho`` and ``e_ij`` the unit vector between the pair. That ``f_i`` is the
 paper's pressure (``pressure_force = "spiky"``); the ``energy`` force is minus the gradient
 of ``sum_k m_k e_k(rho_k)``, ``de/drho = p / rho^2``, and ``energy_spiky`` the same of a
-density summed with the spiky kernel instead of poly6 (``density_weight``; docs/method.md §6). The viscous force is
+density summed with the spiky kernel instead of poly6 (``density_weight``; docs/method.md §6),
+which only its pressure reads (``State.pressure_density``): ``rho`` and the volumes ``V``
+stay the poly6 ones for every material. The viscous force is
 Müller's ``eta V_i V_j (u_j - u_i) lap W`` projected onto the line between the particles:
 a central force, so it conserves angular momentum and leaves a rigid rotation alone (the
 unprojected form stops a spinning body). The factor 5 (``d + 2``) keeps ``eta`` the shear
-viscosity: for a divergence-free flow the projection averages to 1/5 of the full sum. ``rho0_i`` is each particle's SPH density in the initial
+viscosity: for a divergence-free flow the projection averages to 1/5 of the full sum. ``rho0_i`` is each particle's pressure density in the initial
 configuration, so a body starts pressure-free even at its surface, where the SPH sum is
 short of neighbours. Rows reach ``h sigma_max(F_i)`` (and may be capped) and so are not symmetric: as for the elastic
 force each directed pair applies half its force to both particles, equal and opposite,
@@ -67,9 +69,10 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     @wp.func
     def density_weight(r2: scalar, h: scalar, c6: scalar, c_ws: scalar, form: int) -> scalar:
-        """The kernel a particle's SPH density sums (docs/method.md §6): poly6 (eq. 7) for the
-        ``energy`` and ``spiky`` forces, the spiky kernel for ``energy_spiky`` (``form`` 2),
-        whose slope does not vanish as two particles meet."""
+        """The kernel a particle's pressure density sums (docs/method.md §6): poly6 (eq. 7) for
+        the ``energy`` and ``spiky`` forces (and for the SPH density of every material), the
+        spiky kernel for ``energy_spiky`` (``form`` 2), whose slope does not vanish as two
+        particles meet."""
         if form == 2:
             return sm.w_spiky_c(r2, h, c_ws)
         return sm.w_poly6_c(r2, h, c6)
@@ -99,23 +102,26 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     @wp.func
     def sph_pair_force(
-        VV: scalar, p_i: scalar, p_j: scalar, rho_i: scalar, rho_j: scalar, form: int, eta: scalar, rij: vec3,
-        vji: vec3, h: scalar, c6: scalar, c_spiky: scalar, c_visc: scalar
+        VV: scalar, VVp: scalar, p_i: scalar, p_j: scalar, rho_i: scalar, rho_j: scalar, form: int, eta: scalar,
+        rij: vec3, vji: vec3, h: scalar, c6: scalar, c_spiky: scalar, c_visc: scalar
     ) -> vec3:
         """Pressure (``form``: 0 ``energy_pressure_pair_force``, 1 ``pressure_pair_force``, 2
         ``energy_spiky_pair_force``) plus viscous force of the pair on ``i``, the kernels
-        sharing one ``|rij|``."""
+        sharing one ``|rij|``. ``VV = V_i V_j`` with the SPH (poly6) density's volumes ``m /
+        rho`` (viscosity, the spiky force); ``rho_i, rho_j`` are the pressure densities and
+        ``VVp = m_i m_j / (rho_i rho_j)`` (the energy forces): the same as the SPH density but
+        for an ``energy_spiky`` particle (``State.pressure_density``)."""
         r2 = wp.dot(rij, rij)
         f = vec3()
         if r2 < h * h:
             rl = wp.sqrt(r2)
             if form == 0:
-                f = energy_pressure_pair_force(VV, p_i, p_j, rho_i, rho_j, rij, r2, h, c6)
+                f = energy_pressure_pair_force(VVp, p_i, p_j, rho_i, rho_j, rij, r2, h, c6)
             elif r2 > scalar(1.0e-24) * h * h:
                 if form == 1:
                     f = pressure_pair_force(VV, p_i, p_j, rij, rl, h, c_spiky)
                 else:
-                    f = energy_spiky_pair_force(VV, p_i, p_j, rho_i, rho_j, rij, rl, h, c_spiky)
+                    f = energy_spiky_pair_force(VVp, p_i, p_j, rho_i, rho_j, rij, rl, h, c_spiky)
             f += viscous_pair_force(eta * VV, rij, r2, sm.lap_w_viscosity_at(rl, h, c_visc), vji)
         return f
 
@@ -144,13 +150,18 @@ def kernels(scalar) -> types.SimpleNamespace:
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         h: scalar,
+        of_pressure: int,
         rho: wp.array(dtype=scalar),
     ):
+        """The SPH density (poly6, every material), or with ``of_pressure`` each material's
+        pressure density (``density_weight``: the spiky sum for ``energy_spiky``)."""
         i = wp.tid()
         xi = x[i]
         c6 = sm.poly6_coef(h)
         c_ws = sm.w_spiky_coef(h)
-        form = mat.pressure_force[material[i]]
+        form = int(0)
+        if of_pressure != 0:
+            form = mat.pressure_force[material[i]]
         r = mass[i] * fn.density_weight(scalar(0.0), h, c6, c_ws, form)
         for k in range(count[i]):
             j = nbr[i, k]
@@ -164,6 +175,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         v: wp.array(dtype=vec3),
         mass: wp.array(dtype=scalar),
         rho: wp.array(dtype=scalar),
+        rho_p: wp.array(dtype=scalar),
         rest_density: wp.array(dtype=scalar),
         material: wp.array(dtype=wp.int32),
         mat: Materials,
@@ -172,12 +184,16 @@ def kernels(scalar) -> types.SimpleNamespace:
         h: scalar,
         f: wp.array(dtype=vec3),
     ):
+        """``rho``: the SPH density (the volumes ``m / rho``); ``rho_p``: the pressure density
+        (``rest_density`` its initial value), the same array unless a material is
+        ``energy_spiky``."""
         i = wp.tid()
         mi = material[i]
         xi = x[i]
         vi = v[i]
         Vi = mass[i] / rho[i]
-        pi = fn.pressure(rho[i], rest_density[i], mat.pressure_stiffness[mi], mat.clamp_pressure[mi])
+        Vpi = mass[i] / rho_p[i]
+        pi = fn.pressure(rho_p[i], rest_density[i], mat.pressure_stiffness[mi], mat.clamp_pressure[mi])
         visc_i = mat.viscosity[mi]
         form = mat.pressure_force[mi]
         c6 = sm.poly6_coef(h)
@@ -187,11 +203,12 @@ def kernels(scalar) -> types.SimpleNamespace:
         for k in range(count[i]):
             j = nbr[i, k]
             mj = material[j]
-            pj = fn.pressure(rho[j], rest_density[j], mat.pressure_stiffness[mj], mat.clamp_pressure[mj])
+            pj = fn.pressure(rho_p[j], rest_density[j], mat.pressure_stiffness[mj], mat.clamp_pressure[mj])
             VV = Vi * mass[j] / rho[j]
+            VVp = Vpi * mass[j] / rho_p[j]
             eta = scalar(0.5) * (visc_i + mat.viscosity[mj])
-            half = scalar(0.5) * fn.sph_pair_force(VV, pi, pj, rho[i], rho[j], form, eta, xi - x[j], v[j] - vi, h, c6,
-                                                   c_spiky, c_visc)
+            half = scalar(0.5) * fn.sph_pair_force(VV, VVp, pi, pj, rho_p[i], rho_p[j], form, eta, xi - x[j], v[j] - vi,
+                                                   h, c6, c_spiky, c_visc)
             wp.atomic_add(f, j, -half)
             fi += half
         wp.atomic_add(f, i, fi)
@@ -205,19 +222,23 @@ def kernels(scalar) -> types.SimpleNamespace:
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         h: scalar,
+        of_pressure: int,
         adj_rho: wp.array(dtype=scalar),
         adj_x: wp.array(dtype=vec3),
     ):
         """Hand-written adjoint of ``density``: ``d rho_i / d x_j = 2 m_j W'(r2) d``,
         ``W' = -3 c6 (h^2 - r2)^2`` the poly6 slope in ``r2 = |d|^2``, ``d = x_j - x_i``;
-        for the spiky density (``energy_spiky``) ``m_j c_s (h - |d|)^2 d / |d|``, ``c_s =
-        -45/(pi h^6)`` (0 at ``d = 0``, where the direction is undefined)."""
+        for the spiky pressure density (``of_pressure``, ``energy_spiky``) ``m_j c_s (h -
+        |d|)^2 d / |d|``, ``c_s = -45/(pi h^6)`` (0 at ``d = 0``, where the direction is
+        undefined)."""
         i = wp.tid()
         a = adj_rho[i]
         xi = x[i]
         c6 = sm.poly6_coef(h)
         c_spiky = sm.spiky_coef(h)
-        form = mat.pressure_force[material[i]]
+        form = int(0)
+        if of_pressure != 0:
+            form = mat.pressure_force[material[i]]
         hh = h * h
         gx_i = vec3()
         for k in range(count[i]):
@@ -252,6 +273,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         v: wp.array(dtype=vec3),
         mass: wp.array(dtype=scalar),
         rho: wp.array(dtype=scalar),
+        rho_p: wp.array(dtype=scalar),
         rest_density: wp.array(dtype=scalar),
         material: wp.array(dtype=wp.int32),
         mat: Materials,
@@ -262,24 +284,27 @@ def kernels(scalar) -> types.SimpleNamespace:
         adj_x: wp.array(dtype=vec3),
         adj_v: wp.array(dtype=vec3),
         adj_rho: wp.array(dtype=scalar),
+        adj_rho_p: wp.array(dtype=scalar),
         adj_k: wp.array(dtype=scalar),
         adj_visc: wp.array(dtype=scalar),
     ):
         """Hand-written adjoint of ``pressure_forces``: per pair, with ``a = (adj f_i -
         adj f_j) / 2`` against the pair's force on ``i`` (pressure, ``energy``: ``6 c6 m_i m_j
-        (A_i + A_j) (h^2 - |r|^2)^2 r`` with ``A = p / rho^2``; ``spiky``: ``-VV (p_i + p_j)/2
+        (A_i + A_j) (h^2 - |r|^2)^2 r`` with ``A = p / rho_p^2``; ``spiky``: ``-VV (p_i + p_j)/2
         psi(|r|) r``, ``psi = c_s (h - |r|)^2 / |r|``; viscosity ``s (v_ji . r) r``,
         ``s = 5 eta VV c_v (h - |r|) / |r|^2``), the chain rule to ``r = x_i - x_j``,
-        ``v_ji``, ``VV = m_i m_j / (rho_i rho_j)``, ``A`` and ``p`` (then ``rho`` and ``k_p``)
-        and ``eta``."""
+        ``v_ji``, ``VV = m_i m_j / (rho_i rho_j)`` (then the SPH density ``rho``), ``A`` and
+        ``p`` (then the pressure density ``rho_p`` and ``k_p``) and
+        ``eta``. ``adj_rho`` and ``adj_rho_p`` may be one array (``rho_p`` is ``rho``)."""
         i = wp.tid()
         mi = material[i]
         xi = x[i]
         vi = v[i]
         rho_i = rho[i]
         Vi = mass[i] / rho_i
+        rp_i = rho_p[i]
         k_i = mat.pressure_stiffness[mi]
-        pi = fn.pressure(rho_i, rest_density[i], k_i, mat.clamp_pressure[mi])
+        pi = fn.pressure(rp_i, rest_density[i], k_i, mat.clamp_pressure[mi])
         visc_i = mat.viscosity[mi]
         form = mat.pressure_force[mi]
         c6 = sm.poly6_coef(h)
@@ -290,6 +315,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         adj_pi = scalar(0.0)
         adj_Ai = scalar(0.0)
         adj_rho_i = scalar(0.0)
+        adj_rp_i = scalar(0.0)
         adj_visc_i = scalar(0.0)
         gx_i = vec3()
         gv_i = vec3()
@@ -300,8 +326,9 @@ def kernels(scalar) -> types.SimpleNamespace:
             if r2 < hh:
                 mj = material[j]
                 rho_j = rho[j]
+                rp_j = rho_p[j]
                 k_j = mat.pressure_stiffness[mj]
-                pj = fn.pressure(rho_j, rest_density[j], k_j, mat.clamp_pressure[mj])
+                pj = fn.pressure(rp_j, rest_density[j], k_j, mat.clamp_pressure[mj])
                 VV = Vi * mass[j] / rho_j
                 eta = scalar(0.5) * (visc_i + mat.viscosity[mj])
                 a = scalar(0.5) * (afi - adj_f[j])
@@ -316,7 +343,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                     e = hh - r2
                     ar = wp.dot(a, r)
                     mm = mass[i] * mass[j]
-                    w = mm * (pi / (rho_i * rho_i) + pj / (rho_j * rho_j))
+                    w = mm * (pi / (rp_i * rp_i) + pj / (rp_j * rp_j))
                     adj_A = scalar(6.0) * c6 * mm * e * e * ar
                     energy_like = 1
                     adj_r += (scalar(6.0) * c6 * w * e) * (e * a - scalar(4.0) * ar * r)
@@ -325,7 +352,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                     d = h - rl
                     psi = c_spiky * d * d / rl
                     mm = mass[i] * mass[j]
-                    w = mm * (pi / (rho_i * rho_i) + pj / (rho_j * rho_j))
+                    w = mm * (pi / (rp_i * rp_i) + pj / (rp_j * rp_j))
                     adj_A = -psi * mm * wp.dot(a, r)
                     energy_like = 1
                     b = -w * a
@@ -338,20 +365,19 @@ def kernels(scalar) -> types.SimpleNamespace:
                     adj_VV -= scalar(0.5) * (pi + pj) * q
                     adj_p = scalar(-0.5) * VV * q
                     adj_pi += adj_p
-                    adj_pj = adj_p * pressure_slope(rho_j, rest_density[j], k_j, mat.clamp_pressure[mj])
-                    wp.atomic_add(adj_rho, j, adj_pj * k_j)
-                    wp.atomic_add(adj_k, mj, adj_pj * (rho_j - rest_density[j]))
+                    adj_pj = adj_p * pressure_slope(rp_j, rest_density[j], k_j, mat.clamp_pressure[mj])
+                    wp.atomic_add(adj_rho_p, j, adj_pj * k_j)
+                    wp.atomic_add(adj_k, mj, adj_pj * (rp_j - rest_density[j]))
                     b = scalar(-0.5) * VV * (pi + pj) * a
                     adj_r += psi * b
                     adj_rl += -c_spiky * d * (scalar(2.0) * rl + d) / r2 * wp.dot(r, b)
                 if energy_like != 0:
-                    # A = p / rho^2 of both particles (i's summed over the pairs, below).
+                    # A = p / rho_p^2 of both particles (i's summed over the pairs, below).
                     adj_Ai += adj_A
-                    adj_pj = adj_A / (rho_j * rho_j)
-                    wp.atomic_add(adj_rho, j, scalar(-2.0) * adj_A * pj / (rho_j * rho_j * rho_j))
-                    adj_pj *= pressure_slope(rho_j, rest_density[j], k_j, mat.clamp_pressure[mj])
-                    wp.atomic_add(adj_rho, j, adj_pj * k_j)
-                    wp.atomic_add(adj_k, mj, adj_pj * (rho_j - rest_density[j]))
+                    adj_pj = adj_A / (rp_j * rp_j)
+                    adj_pj *= pressure_slope(rp_j, rest_density[j], k_j, mat.clamp_pressure[mj])
+                    wp.atomic_add(adj_rho_p, j, scalar(-2.0) * adj_A * pj / (rp_j * rp_j * rp_j) + adj_pj * k_j)
+                    wp.atomic_add(adj_k, mj, adj_pj * (rp_j - rest_density[j]))
                 if r2 > scalar(1.0e-30):
                     vji = v[j] - vi
                     lap = sm.lap_w_viscosity_at(rl, h, c_visc)
@@ -379,54 +405,89 @@ def kernels(scalar) -> types.SimpleNamespace:
                 wp.atomic_add(adj_x, j, -adj_r)
         wp.atomic_add(adj_x, i, gx_i)
         wp.atomic_add(adj_v, i, gv_i)
-        adj_pi += adj_Ai / (rho_i * rho_i)
-        adj_rho_i -= scalar(2.0) * adj_Ai * pi / (rho_i * rho_i * rho_i)
-        adj_pi *= pressure_slope(rho_i, rest_density[i], k_i, mat.clamp_pressure[mi])
-        wp.atomic_add(adj_rho, i, adj_rho_i + adj_pi * k_i)
-        wp.atomic_add(adj_k, mi, adj_pi * (rho_i - rest_density[i]))
+        adj_pi += adj_Ai / (rp_i * rp_i)
+        adj_rp_i -= scalar(2.0) * adj_Ai * pi / (rp_i * rp_i * rp_i)
+        adj_pi *= pressure_slope(rp_i, rest_density[i], k_i, mat.clamp_pressure[mi])
+        wp.atomic_add(adj_rho, i, adj_rho_i)
+        wp.atomic_add(adj_rho_p, i, adj_rp_i + adj_pi * k_i)
+        wp.atomic_add(adj_k, mi, adj_pi * (rp_i - rest_density[i]))
         wp.atomic_add(adj_visc, mi, adj_visc_i)
 
     return types.SimpleNamespace(density=density, pressure_forces=pressure_forces,
                                  pressure_forces_adjoint=pressure_forces_adjoint, density_adjoint=density_adjoint)
 
 
-def launch_density(model, x, neighbors, neighbor_count, rho, hand_adjoint: bool = True):
-    """SPH density at ``x`` over the given neighbour lists into ``rho``; under a ``wp.Tape``
-    the backward runs ``density_adjoint`` (``hand_adjoint=False``: Warp's generated adjoint)."""
+def launch_density(model, x, neighbors, neighbor_count, rho, hand_adjoint: bool = True, of_pressure: bool = False):
+    """SPH density at ``x`` over the given neighbour lists into ``rho`` (``of_pressure``: each
+    material's pressure density, ``density_weight``); under a ``wp.Tape`` the backward runs
+    ``density_adjoint`` (``hand_adjoint=False``: Warp's generated adjoint)."""
     k = kernels(model.scalar)
     inputs = [x, model.particle_mass, model.particle_material, model.material_arrays(), neighbors, neighbor_count,
-              model.scalar(model.support_radius)]
+              model.scalar(model.support_radius), int(of_pressure)]
     tape = deformation.recording_tape()
     if tape is None or not hand_adjoint or x.grad is None or rho.grad is None:
         wp.launch(k.density, model.particle_count, inputs, [rho], device=model.device)
         return
     wp.launch(k.density, model.particle_count, inputs, [rho], device=model.device, record_tape=False)
 
-    tape.record_func(lambda: launch_density_adjoint(model, x, neighbors, neighbor_count, rho), [x, rho])
+    tape.record_func(lambda: launch_density_adjoint(model, x, neighbors, neighbor_count, rho, of_pressure), [x, rho])
 
 
-def launch_density_adjoint(model, x, neighbors, neighbor_count, rho):
+def launch_density_adjoint(model, x, neighbors, neighbor_count, rho, of_pressure: bool = False):
     """``density_adjoint``: ``rho.grad`` into ``x.grad``."""
     wp.launch(
         kernels(model.scalar).density_adjoint, model.particle_count,
         [x, model.particle_mass, model.particle_material, model.material_arrays(), neighbors, neighbor_count,
-         model.scalar(model.support_radius), rho.grad, x.grad],
+         model.scalar(model.support_radius), int(of_pressure), rho.grad, x.grad],
         device=model.device, record_tape=False,
     )
 
 
+def pressure_density(model, state):
+    """The array the pressure reads as its density in ``state``: ``state.pressure_density``
+    where a material is ``energy_spiky`` (``Model.separate_pressure_density``; allocated here
+    for a state made before ``Model.set_material`` made one so), else ``state.density``."""
+    if not model.separate_pressure_density:
+        return state.density
+    if state.pressure_density is None:
+        d = state.density
+        state.pressure_density = wp.zeros(d.shape[0], dtype=d.dtype, device=d.device, requires_grad=d.requires_grad)
+    return state.pressure_density
+
+
+def launch_state_densities(model, x, state_out, hand_adjoint: bool = True):
+    """The SPH density into ``state_out.density`` and, where a material is ``energy_spiky``
+    (``Model.separate_pressure_density``), the pressure density into
+    ``state_out.pressure_density``."""
+    launch_density(model, x, state_out.neighbors, state_out.neighbor_count, state_out.density, hand_adjoint)
+    if model.separate_pressure_density:
+        launch_density(model, x, state_out.neighbors, state_out.neighbor_count, pressure_density(model, state_out),
+                       hand_adjoint, of_pressure=True)
+
+
+def launch_state_densities_adjoint(model, x, state_out):
+    """The hand-written adjoints of ``launch_state_densities``."""
+    launch_density_adjoint(model, x, state_out.neighbors, state_out.neighbor_count, state_out.density)
+    if model.separate_pressure_density:
+        launch_density_adjoint(model, x, state_out.neighbors, state_out.neighbor_count, pressure_density(model, state_out),
+                               of_pressure=True)
+
+
 def launch_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True):
-    """SPH pressure and viscosity forces into ``state_out.force`` (density in ``state_out.density``).
+    """SPH pressure and viscosity forces into ``state_out.force`` (the SPH density in
+    ``state_out.density``, the pressure density in ``state_out.pressure_density``).
     Under a ``wp.Tape`` the backward runs ``pressure_forces_adjoint`` (``hand_adjoint=False``:
     Warp's generated adjoint)."""
     k = kernels(model.scalar)
+    rho_p = pressure_density(model, state_out)
     inputs = [
-        state_in.x, state_in.v, model.particle_mass, state_out.density, model.particle_rest_density,
-        model.particle_material, model.material_arrays(), state_out.neighbors, state_out.neighbor_count,
-        model.scalar(model.support_radius),
+        state_in.x, state_in.v, model.particle_mass, state_out.density, rho_p,
+        model.particle_rest_density, model.particle_material, model.material_arrays(), state_out.neighbors,
+        state_out.neighbor_count, model.scalar(model.support_radius),
     ]
     tape = deformation.recording_tape()
-    grads = (state_in.x, state_in.v, state_out.density, model.pressure_stiffness, model.viscosity, state_out.force)
+    grads = (state_in.x, state_in.v, state_out.density, rho_p, model.pressure_stiffness,
+             model.viscosity, state_out.force)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
         wp.launch(k.pressure_forces, model.particle_count, inputs, [state_out.force], device=model.device)
         return
@@ -437,14 +498,17 @@ def launch_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True
 
 def launch_pressure_forces_adjoint(model, state_in, state_out):
     """``pressure_forces_adjoint``: ``state_out.force.grad`` into the gradients of ``state_in.x,
-    v``, ``state_out.density`` and the model's ``pressure_stiffness`` and ``viscosity``."""
+    v``, ``state_out.density``, ``state_out.pressure_density`` and the model's
+    ``pressure_stiffness`` and ``viscosity``."""
+    rho_p = pressure_density(model, state_out)
     wp.launch(
         kernels(model.scalar).pressure_forces_adjoint, model.particle_count,
         [
-            state_in.x, state_in.v, model.particle_mass, state_out.density, model.particle_rest_density,
-            model.particle_material, model.material_arrays(), state_out.neighbors, state_out.neighbor_count,
-            model.scalar(model.support_radius), state_out.force.grad, state_in.x.grad, state_in.v.grad,
-            state_out.density.grad, model.pressure_stiffness.grad, model.viscosity.grad,
+            state_in.x, state_in.v, model.particle_mass, state_out.density, rho_p,
+            model.particle_rest_density, model.particle_material, model.material_arrays(), state_out.neighbors,
+            state_out.neighbor_count, model.scalar(model.support_radius), state_out.force.grad, state_in.x.grad,
+            state_in.v.grad, state_out.density.grad, rho_p.grad, model.pressure_stiffness.grad,
+            model.viscosity.grad,
         ],
         device=model.device, record_tape=False,
     )

@@ -44,18 +44,25 @@ def tape_recording() -> bool:
 
 class StepScratch:
     """What the launches of one step share besides the model and the two states: the
-    guard counters, the fast path's per-particle SPH pressure and volume ``m / rho``
-    (written and read within one step), and the guard thresholds."""
+    guard counters, the fast path's per-particle SPH pressure and volume ``m / rho`` (and
+    ``m / rho_p`` of the pressure density, ``pressure_volume``, allocated where a material
+    is ``energy_spiky``; all written and read within one step), and the guard thresholds."""
 
     def __init__(self, model: Model, min_neighbors: int, max_condition: float):
         n, dev = model.particle_count, model.device
         self.counters = wp.zeros(len(GUARD_NAMES), dtype=wp.int32, device=dev)
         self.pressure = wp.zeros(n, dtype=model.scalar, device=dev)
         self.sph_volume = wp.zeros(n, dtype=model.scalar, device=dev)
+        self._pressure_volume = None
         # The neighbour selection's squared distances: read only within the search.
         self.neighbor_d2 = wp.zeros((n, model.max_neighbors), dtype=model.scalar, device=dev)
         self.min_neighbors = min_neighbors
         self.max_condition = max_condition
+
+    def pressure_volume(self) -> wp.array:
+        if self._pressure_volume is None:
+            self._pressure_volume = wp.zeros_like(self.sph_volume)
+        return self._pressure_volume
 
 
 class Solver:
@@ -288,14 +295,17 @@ class Solver:
         phase = self._phase
 
         # 1. Neighbour lists and neighbourhood guards (integers, not taped). The fast
-        # path also sums the SPH density there (docs/method.md, Warp pitfall 1: it is
-        # finished before any pressure uses it).
+        # path also sums the SPH density (and an energy_spiky material's pressure density)
+        # there (docs/method.md, Warp pitfall 1: it is finished before any pressure uses it).
+        own = fast and sph and m.separate_pressure_density
         with phase("neighbors"):
             self.search.update(
                 state_in.x, m.particle_body, state_out.neighbors, scratch.neighbor_d2, state_out.neighbor_count,
                 None if fast else state_out.guard,
                 (m.particle_mass, m.particle_material, m.particle_rest_density, m.material_arrays(),
-                 state_out.density, scratch.pressure, scratch.sph_volume) if fast and sph else None,
+                 state_out.density, scratch.pressure, scratch.sph_volume,
+                 pressure.pressure_density(m, state_out) if own else None,
+                 scratch.pressure_volume() if own else None) if fast and sph else None,
                 F=state_in.F, counters=scratch.counters, cut_index=COUNT_NEIGHBORS_CUT,
             )
             if not self._warned_cut:
@@ -307,11 +317,11 @@ class Solver:
             with phase("fused"):
                 fused.launch_constitutive_forces(m, state_in, state_out, dt, scratch, sph, fast_tape)
         else:
-            # 2. SPH density, finished before any pressure uses it (docs/method.md, Warp pitfall 1).
+            # 2. SPH density (and pressure density), finished before any pressure uses it
+            # (docs/method.md, Warp pitfall 1).
             if sph:
                 with phase("density"):
-                    pressure.launch_density(m, state_in.x, state_out.neighbors, state_out.neighbor_count, state_out.density,
-                                            self.hand_adjoints)
+                    pressure.launch_state_densities(m, state_in.x, state_out, self.hand_adjoints)
             # 3. Plastic flow of the stored F, stress, F^-1.
             with phase("constitutive"):
                 if self._cmp:
