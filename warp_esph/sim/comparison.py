@@ -85,7 +85,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             stress_out[i] = scalar(2.0) * mu * eps + lam * tr * I
             F_inv_out[i] = I
         else:
-            Fe, a_new = flow(F, a, mu, mat.yield_stress[m], mat.flow_rate[m], mat.hardening[m], kind, dt, counters)
+            Fe, Fe_lo, a_new = flow(F, mat33(), a, mu, mat.yield_stress[m], mat.flow_rate[m], mat.hardening[m], kind, dt, counters)
             Fe_inv = wp.inverse(Fe)
             if d == 1:
                 # Rest configuration: F_total = F_e F_p is kept, F_p <- F_e_new^-1 F_total.
@@ -123,7 +123,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         if d == 1:
             # Rest configuration: the total F against X, always with the initial lists.
             A, B, same = moment_sums(i, rest_x, y, body, rest_nbr, rest_count[i], h)
-            F = unless_inverted(df.affine_fit(A, B) * wp.inverse(Fp[i]), F, counters)
+            F = unless_inverted((I + df.affine_fit(A, B)) * wp.inverse(Fp[i]), F, counters)
         else:
             A, B, same = moment_sums(i, x, y, body, nbr, count[i], h)
             dF = step_gradient(A, B, guard[i], counters)

@@ -54,6 +54,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         x: wp.array(dtype=vec3),
         v: wp.array(dtype=vec3),
         F_in: wp.array(dtype=mat33),
+        F_lo_in: wp.array(dtype=mat33),
         alpha_in: wp.array(dtype=scalar),
         material: wp.array(dtype=wp.int32),
         mat: Materials,
@@ -70,6 +71,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         min_neighbors: int,
         max_condition: scalar,
         F_out: wp.array(dtype=mat33),
+        F_lo_out: wp.array(dtype=mat33),
         alpha_out: wp.array(dtype=scalar),
         stress_out: wp.array(dtype=mat33),
         F_inv_out: wp.array(dtype=mat33),
@@ -85,6 +87,7 @@ def kernels(scalar) -> types.SimpleNamespace:
 
         # 1. Plastic flow (plasticity.flow) with a single SVD.
         Fe = F
+        Fe_lo = F_lo_in[i]
         a_new = alpha_in[i]
         U = mat33()
         s = vec3()
@@ -97,7 +100,8 @@ def kernels(scalar) -> types.SimpleNamespace:
                 s, mu, mat.yield_stress[m], mat.flow_rate[m], mat.hardening[m], a_new, dt, kind, counters
             )
             if flowed != 0:
-                Fe = iso.from_principal(U, g, V)
+                # As plasticity.flow: F + F_lo plus the flow's change, compensated.
+                Fe, Fe_lo = iso.compensated_sum(F, Fe_lo + iso.from_principal(U, g - s, V))
                 s = g
                 a_new = a_flow
 
@@ -111,6 +115,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             P = iso.from_principal(U, fo.principal_stress(s, mu, lam), V)
         Finv = wp.inverse(Fe)
         F_out[i] = Fe
+        F_lo_out[i] = Fe_lo
         alpha_out[i] = a_new
         stress_out[i] = P
         F_inv_out[i] = Finv
@@ -175,10 +180,12 @@ def kernels(scalar) -> types.SimpleNamespace:
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         F_prev: wp.array(dtype=mat33),
+        F_prev_lo: wp.array(dtype=mat33),
         h: scalar,
         min_neighbors: int,
         max_condition: scalar,
         F_out: wp.array(dtype=mat33),
+        F_out_lo: wp.array(dtype=mat33),
         guard: wp.array(dtype=wp.int32),
         counters: wp.array(dtype=wp.int32),
     ):
@@ -188,7 +195,9 @@ def kernels(scalar) -> types.SimpleNamespace:
         A, B, same = df.moment_sums(i, x, y, body, nbr, count[i], h)
         code = guard_code(A, same, min_neighbors, max_condition)
         guard[i] = code
-        F_out[i] = df.deformation_update(A, B, code, F_prev[i], counters)
+        F_new, F_new_lo = df.deformation_update(A, B, code, F_prev[i], F_prev_lo[i], counters)
+        F_out[i] = F_new
+        F_out_lo[i] = F_new_lo
 
     return types.SimpleNamespace(constitutive_forces=constitutive_forces, update_deformation=update_deformation)
 
@@ -208,12 +217,13 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
         kernels(S).constitutive_forces,
         model.particle_count,
         [
-            state_in.x, state_in.v, state_in.F, state_in.alpha, model.particle_material, model.material_arrays(),
+            state_in.x, state_in.v, state_in.F, state_in.F_lo, state_in.alpha, model.particle_material, model.material_arrays(),
             model.particle_body, model.particle_volume, scratch.pressure, scratch.sph_volume, state_out.density, state_out.neighbors,
             state_out.neighbor_count, S(model.support_radius), S(dt), int(sph), scratch.min_neighbors,
             S(scratch.max_condition),
         ],
-        [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, state_out.force, scratch.counters],
+        [state_out.F_flowed, state_out.F_flowed_lo, state_out.alpha, state_out.stress, state_out.F_inv, state_out.force,
+         scratch.counters],
         device=model.device,
         record_tape=tape is None,
     )
@@ -251,9 +261,10 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
         model.particle_count,
         [
             state_in.x, state_out.x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
-            state_out.F_flowed, S(model.support_radius), scratch.min_neighbors, S(scratch.max_condition),
+            state_out.F_flowed, state_out.F_flowed_lo, S(model.support_radius), scratch.min_neighbors,
+            S(scratch.max_condition),
         ],
-        [state_out.F, state_out.guard, scratch.counters],
+        [state_out.F, state_out.F_lo, state_out.guard, scratch.counters],
         device=model.device,
         record_tape=tape is None,
     )

@@ -70,14 +70,14 @@ def funcs(scalar) -> types.SimpleNamespace:
             den = wp.where(den < scalar(0.0), -eps, eps)
         return (gi + gj) / den
 
-    @wp.func_grad(isotropic_map)
-    def adj_isotropic_map(F: mat33, g: vec3, d1: vec3, adj_ret: mat33):
+    @wp.func
+    def isotropic_map_adjoint(F: mat33, g: vec3, d1: vec3, adj_ret: mat33):
+        """The adjoints ``(adj F, adj g)`` of ``isotropic_map`` (module doc)."""
         U = mat33()
         s = vec3()
         V = mat33()
         wp.svd3(F, U, s, V)
         C = wp.transpose(U) * adj_ret * V
-        wp.adjoint[g] += vec3(C[0, 0], C[1, 1], C[2, 2])
         M = mat33()
         # pair (0, 1)
         sym = scalar(0.5) * (C[0, 1] + C[1, 0])
@@ -97,6 +97,44 @@ def funcs(scalar) -> types.SimpleNamespace:
         d2 = _d2(g[1], g[2], s[1], s[2])
         M[1, 2] = d1[2] * sym + d2 * skw
         M[2, 1] = d1[2] * sym - d2 * skw
-        wp.adjoint[F] += U * M * wp.transpose(V)
+        return U * M * wp.transpose(V), vec3(C[0, 0], C[1, 1], C[2, 2])
 
-    return types.SimpleNamespace(singular_values=singular_values, isotropic_map=isotropic_map, from_principal=from_principal)
+    @wp.func_grad(isotropic_map)
+    def adj_isotropic_map(F: mat33, g: vec3, d1: vec3, adj_ret: mat33):
+        aF, ag = isotropic_map_adjoint(F, g, d1, adj_ret)
+        wp.adjoint[F] += aF
+        wp.adjoint[g] += ag
+
+    @wp.func
+    def isotropic_change(F: mat33, g: vec3, d1: vec3) -> mat33:
+        """``isotropic_map(F, g, d1) - F = U diag(g - sigma) V^T``: where ``g`` is close to
+        ``sigma`` (a small plastic flow) the change alone, added to ``F`` by the caller, keeps
+        ``F`` to the last bit, where ``U diag(g) V^T`` rebuilds ``F`` with the SVD's error,
+        units in the last place every step (docs/physics.md, the float32 creep floor). Its
+        adjoint is ``isotropic_map``'s less the identity."""
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        return from_principal(U, g - s, V)
+
+    @wp.func_grad(isotropic_change)
+    def adj_isotropic_change(F: mat33, g: vec3, d1: vec3, adj_ret: mat33):
+        aF, ag = isotropic_map_adjoint(F, g, d1, adj_ret)
+        wp.adjoint[F] += aF - adj_ret
+        wp.adjoint[g] += ag
+
+    @wp.func
+    def compensated_sum(a: mat33, b: mat33):
+        """``(s, e)`` with ``s = fl(a + b)`` and ``s + e = a + b`` exactly, entry by entry
+        (Knuth's TwoSum): ``e`` is the round-off ``s`` lost, carried to the next sum. In
+        exact arithmetic ``e = 0`` identically, so its adjoint is 0 and that of ``s`` is the
+        sum's."""
+        s = a + b
+        bb = s - a
+        e = (a - (s - bb)) + (b - bb)
+        return s, e
+
+    return types.SimpleNamespace(singular_values=singular_values, isotropic_map=isotropic_map,
+                                 isotropic_change=isotropic_change, compensated_sum=compensated_sum,
+                                 from_principal=from_principal)
