@@ -41,11 +41,13 @@ def _run(model, steps, dt, state=None, solver=None):
 
 def _launch_fit(fit, model, state, x, y, Fp, F_out, counters):
     """``fit.update_deformation`` from ``x`` to ``y`` of ``Fp`` into ``F_out`` (the linear fit
-    also carries ``F``'s round-off, ``State.F_lo``: 0 in, discarded out)."""
+    also carries the round-off of the positions and of ``F``, ``State.x_lo``, ``F_lo``: 0 in,
+    discarded out)."""
     S = model.scalar
     ins = [x, y, model.particle_body, state.neighbors, state.neighbor_count, state.guard, Fp]
     outs = [F_out]
     if fit is deformation:
+        ins[2:2] = [wp.zeros_like(x), wp.zeros_like(x)]
         ins.append(wp.zeros_like(Fp))
         outs.append(wp.zeros_like(Fp))
     wp.launch(fit.kernels(S).update_deformation, model.particle_count, ins + [S(model.support_radius)], outs + [counters])
@@ -334,8 +336,9 @@ def test_yield_onset_under_uniaxial_stretch_and_volume_kept(model_name):
             assert np.allclose(np.linalg.det(F_flowed), np.linalg.det(Fin), rtol=1e-12)
         F_new = wp.zeros_like(F)
         F_lo_new = wp.zeros_like(F)
-        wp.launch(kd, n, [xa, xb, model.particle_body, state.neighbors, state.neighbor_count, state.guard, scratch[0],
-                          F_lo_flowed, S(model.support_radius)], [F_new, F_lo_new, counters])
+        zero = wp.zeros_like(xa)
+        wp.launch(kd, n, [xa, xb, zero, zero, model.particle_body, state.neighbors, state.neighbor_count, state.guard,
+                          scratch[0], F_lo_flowed, S(model.support_radius)], [F_new, F_lo_new, counters])
         F, F_lo, alpha = F_new, F_lo_new, wp.clone(scratch[1])
     e_yield = Y / (2 * mu * math.sqrt(2.0 / 3.0))
     assert onset is not None

@@ -124,6 +124,7 @@ class _Checkpoint:
         self.alpha = wp.zeros(n, dtype=T.scalar, device=dev)
         self.F_p = wp.zeros(n, dtype=T.mat33, device=dev)
         self.F_lo = wp.zeros(n, dtype=T.mat33, device=dev)
+        self.x_lo = wp.zeros(n, dtype=T.vec3, device=dev)
         self.time = 0.0
 
     def save(self, state):
@@ -270,6 +271,7 @@ class Rollout:
             eye = np.tile(np.eye(3, dtype=m.types.np_dtype), (m.particle_count, 1, 1))
             init.F.assign(eye)
             init.F_lo.zero_()
+            init.x_lo.zero_()
             init.F_p.assign(eye)
             init.alpha.zero_()
             init.time = 0.0
@@ -286,8 +288,8 @@ class Rollout:
                 else:
                     raise ValueError(f"{name} with shape {v.shape} is not allowed: must be {(m.particle_count, *shape)}")
             arr.assign(v)
-            if name == "F0":
-                init.F_lo.zero_()  # F0 is the whole F
+            if name in ("x0", "F0"):
+                getattr(init, STATE_GRADIENTS[name] + "_lo").zero_()  # the whole value is given
 
     def _taped_states(self, count: int) -> list[State]:
         if self._states is None or len(self._states) < count:

@@ -122,10 +122,11 @@ def kernels(scalar) -> types.SimpleNamespace:
         I = wp.identity(n=3, dtype=scalar)
         if d == 1:
             # Rest configuration: the total F against X, always with the initial lists.
-            A, B, same = moment_sums(i, rest_x, y, body, rest_nbr, rest_count[i], h)
+            # (Round-off arrays y, y: the positions' round-off is not carried here.)
+            A, B, same = moment_sums(i, rest_x, y, y, y, body, rest_nbr, rest_count[i], h)
             F = unless_inverted((I + df.affine_fit(A, B)) * wp.inverse(Fp[i]), F, counters)
         else:
-            A, B, same = moment_sums(i, x, y, body, nbr, count[i], h)
+            A, B, same = moment_sums(i, x, y, y, y, body, nbr, count[i], h)
             dF = step_gradient(A, B, guard[i], counters)
             if d == 2:
                 # Additive: F = I + eps, eps <- eps + (dF^T dF - I) / 2.

@@ -20,7 +20,8 @@ import types
 import warp as wp
 
 from .._types import type_set
-from . import isotropic, smoothing
+from . import smoothing
+from .roundoff import compensated_sum
 
 #: Indices into the solver's guard counters.
 COUNT_FEW_NEIGHBORS = 0
@@ -33,13 +34,14 @@ def funcs(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     sm = smoothing.funcs(scalar)
-    compensated_sum = isotropic.funcs(scalar).compensated_sum
 
     @wp.func
     def moment_sums(
         i: int,
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
         nbr: wp.array2d(dtype=wp.int32),
         n: int,
@@ -49,12 +51,13 @@ def funcs(scalar) -> types.SimpleNamespace:
         as ``B``; ``ub = yb - xb``, the step's relative displacement) and the number of
         same-body neighbours closer than ``h`` (the guard's).
 
-        ``ub = (y_j - x_j) - (y_i - x_i)`` rather than ``y_j - y_i``: each particle's
-        displacement is exact in floating point (its two positions are close), so the fit's
-        increment ``dF - I`` is exactly 0 at rest and otherwise as precise as the motion,
-        where ``B A^-1`` minus ``I`` would carry the round-off of the absolute positions and
-        of the inverse, units in the last place of ``F`` every step (docs/physics.md, the
-        float32 creep floor).
+        ``ub = u_j - u_i`` with each particle's displacement ``u = (y - x) + (y_lo - x_lo)``
+        (``x_lo``, ``y_lo``: the positions' round-off, ``State.x_lo``) rather than ``y_j -
+        y_i``: ``y - x`` is exact in floating point (the two positions are close), so the
+        fit's increment ``dF - I`` is exactly 0 at rest and otherwise as precise as the
+        motion, where ``B A^-1`` minus ``I`` would carry the round-off of the absolute
+        positions and of the inverse, units in the last place of ``F`` every step
+        (docs/physics.md, the float32 creep floor).
 
         Only the raw sums live in this loop: the caller's inverse must not see a loop
         accumulator, whose adjoint Warp would not replay (docs/method.md, Warp pitfall 1).
@@ -62,7 +65,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         A = mat33()
         B = mat33()
         xi = x[i]
-        ui = y[i] - xi
+        ui = (y[i] - xi) + (y_lo[i] - x_lo[i])
         bi = body[i]
         c6 = sm.poly6_coef(h)
         same = int(0)
@@ -70,7 +73,7 @@ def funcs(scalar) -> types.SimpleNamespace:
             j = nbr[i, k]
             if body[j] == bi:
                 xb = x[j] - xi
-                ub = (y[j] - x[j]) - ui
+                ub = ((y[j] - x[j]) + (y_lo[j] - x_lo[j])) - ui
                 r2 = wp.dot(xb, xb)
                 w = sm.w_poly6_c(r2, h, c6)
                 A += w * wp.outer(xb, xb)
@@ -150,6 +153,8 @@ def kernels(scalar) -> types.SimpleNamespace:
     def update_deformation(
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
@@ -162,7 +167,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         counters: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
-        A, B, same = fn.moment_sums(i, x, y, body, nbr, count[i], h)
+        A, B, same = fn.moment_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h)
         F_new, F_new_lo = fn.deformation_update(A, B, guard[i], F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
@@ -171,6 +176,8 @@ def kernels(scalar) -> types.SimpleNamespace:
     def update_deformation_adjoint(
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
@@ -194,7 +201,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         G = adj_F_out[i]
         Fp = F_prev[i]
         code = guard[i]
-        A, B, same = fn.moment_sums(i, x, y, body, nbr, count[i], h)
+        A, B, same = fn.moment_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h)
         if code == 1 or code == 2:
             adj_F_prev[i] = adj_F_prev[i] + G
             return
@@ -252,8 +259,9 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     adjoint, which tests compare it against)."""
     k = kernels(model.scalar)
     inputs = [
-        state_in.x, state_out.x, model.particle_body, state_out.neighbors, state_out.neighbor_count, state_out.guard,
-        state_out.F_flowed, state_out.F_flowed_lo, model.scalar(model.support_radius),
+        state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
+        state_out.neighbor_count, state_out.guard, state_out.F_flowed, state_out.F_flowed_lo,
+        model.scalar(model.support_radius),
     ]
     outputs = [state_out.F, state_out.F_lo, counters]
     tape = recording_tape()
@@ -273,8 +281,8 @@ def launch_update_deformation_adjoint(model, state_in, state_out):
     wp.launch(
         kernels(model.scalar).update_deformation_adjoint, model.particle_count,
         [
-            state_in.x, state_out.x, model.particle_body, state_out.neighbors, state_out.neighbor_count, state_out.guard,
-            state_out.F_flowed, model.scalar(model.support_radius), state_out.F.grad, state_in.x.grad, state_out.x.grad,
+            state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
+            state_out.neighbor_count, state_out.guard, state_out.F_flowed, model.scalar(model.support_radius), state_out.F.grad, state_in.x.grad, state_out.x.grad,
             state_out.F_flowed.grad,
         ],
         device=model.device, record_tape=False,

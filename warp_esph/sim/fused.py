@@ -34,6 +34,7 @@ import warp as wp
 
 from .._types import type_set
 from . import deformation, forces, isotropic, materials, neighbors, plasticity, pressure, smoothing
+from .roundoff import compensated_sum
 
 
 @functools.cache
@@ -101,7 +102,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             )
             if flowed != 0:
                 # As plasticity.flow: F + F_lo plus the flow's change, compensated.
-                Fe, Fe_lo = iso.compensated_sum(F, Fe_lo + iso.from_principal(U, g - s, V))
+                Fe, Fe_lo = compensated_sum(F, Fe_lo + iso.from_principal(U, g - s, V))
                 s = g
                 a_new = a_flow
 
@@ -142,7 +143,8 @@ def kernels(scalar) -> types.SimpleNamespace:
         kind_el = mat.elastic_force[m]
         M = mat33()
         if kind_el == 1:
-            A, B, same = df.moment_sums(i, x, x, body, nbr, count[i], h)
+            # The moments of x alone (y = x and the same round-off: B - A = 0).
+            A, B, same = df.moment_sums(i, x, x, x, x, body, nbr, count[i], h)
             if guard_code(A, same, min_neighbors, max_condition) == 0:
                 M = fo.variational_map(Vol_i, P, Fe, wp.inverse(A))
             else:
@@ -176,6 +178,8 @@ def kernels(scalar) -> types.SimpleNamespace:
     def update_deformation(
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
@@ -192,7 +196,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         """deformation.update_deformation with the neighbourhood guard of
         neighbors.select_neighbors evaluated here, on the moment matrix A of the fit."""
         i = wp.tid()
-        A, B, same = df.moment_sums(i, x, y, body, nbr, count[i], h)
+        A, B, same = df.moment_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h)
         code = guard_code(A, same, min_neighbors, max_condition)
         guard[i] = code
         F_new, F_new_lo = df.deformation_update(A, B, code, F_prev[i], F_prev_lo[i], counters)
@@ -260,8 +264,8 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
         kernels(S).update_deformation,
         model.particle_count,
         [
-            state_in.x, state_out.x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
-            state_out.F_flowed, state_out.F_flowed_lo, S(model.support_radius), scratch.min_neighbors,
+            state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
+            state_out.neighbor_count, state_out.F_flowed, state_out.F_flowed_lo, S(model.support_radius), scratch.min_neighbors,
             S(scratch.max_condition),
         ],
         [state_out.F, state_out.F_lo, state_out.guard, scratch.counters],

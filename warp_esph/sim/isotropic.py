@@ -124,17 +124,6 @@ def funcs(scalar) -> types.SimpleNamespace:
         wp.adjoint[F] += aF - adj_ret
         wp.adjoint[g] += ag
 
-    @wp.func
-    def compensated_sum(a: mat33, b: mat33):
-        """``(s, e)`` with ``s = fl(a + b)`` and ``s + e = a + b`` exactly, entry by entry
-        (Knuth's TwoSum): ``e`` is the round-off ``s`` lost, carried to the next sum. In
-        exact arithmetic ``e = 0`` identically, so its adjoint is 0 and that of ``s`` is the
-        sum's."""
-        s = a + b
-        bb = s - a
-        e = (a - (s - bb)) + (b - bb)
-        return s, e
 
     return types.SimpleNamespace(singular_values=singular_values, isotropic_map=isotropic_map,
-                                 isotropic_change=isotropic_change, compensated_sum=compensated_sum,
-                                 from_principal=from_principal)
+                                 isotropic_change=isotropic_change, from_principal=from_principal)

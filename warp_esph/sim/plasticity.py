@@ -24,6 +24,7 @@ import warp as wp
 
 from .._types import type_set
 from . import forces, isotropic, materials
+from .roundoff import compensated_sum
 
 #: Index into the solver's guard counters: plastic flow skipped because min sigma < 0.01.
 COUNT_PLASTICITY_SKIPPED = 3
@@ -169,7 +170,7 @@ def funcs(scalar) -> types.SimpleNamespace:
                     power_difference(s[1], s[2], p, c),
                 )
                 # F + F_lo plus the flow's change, compensated (State.F_lo).
-                Fe, Fe_lo = iso.compensated_sum(F, F_lo + iso.isotropic_change(F, g, d1))
+                Fe, Fe_lo = compensated_sum(F, F_lo + iso.isotropic_change(F, g, d1))
                 a_new = a_flow
         return Fe, Fe_lo, a_new
 
