@@ -6,8 +6,9 @@ the same functions for every formula (``plasticity.guarded_flow_step``,
 ``forces.principal_stress`` / ``polynomial_stress``, ``forces.elastic_pair_force`` /
 ``variational_pair_force``, ``pressure.sph_pair_force``). What it saves:
 
-* one SVD of ``F`` instead of four: the plastic flow ``F_e = U diag(g) V^T`` keeps the
-  singular vectors, so the stress reuses ``U, g, V`` instead of decomposing ``F_e``
+* one SVD of ``F`` instead of four: the plastic flow ``F_e = F + U diag(g - sigma) V^T``
+  (``isotropic.isotropic_change``, compensated into ``F_lo``) keeps the singular vectors,
+  so the stress reuses ``U, g, V`` instead of decomposing ``F_e``
   again (and the SVD maps' own decompositions, there for their adjoints, are gone);
   the stress is an isotropic function of ``F_e``, so the result is the same up to
   round-off (in float32 closer to a float64 step than the differentiable kernels:

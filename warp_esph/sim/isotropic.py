@@ -5,7 +5,7 @@
 go negative for an inverted ``F``: that is Irving et al.'s rotation-variant SVD.
 
 Its built-in adjoint is wrong where singular values repeat, which is every particle at
-rest (``F = I``). The two functions here carry their own adjoints instead:
+rest (``F = I``). The functions here carry their own adjoints instead:
 
 * ``singular_values(F)``: ``dsigma_i = u_i^T dF v_i``, exact everywhere.
 * ``isotropic_map(F, g, d1) = U diag(g) V^T`` for ``g = f(sigma)`` computed by the caller
@@ -15,6 +15,8 @@ rest (``F = I``). The two functions here carry their own adjoints instead:
   ``F``. ``D2 = (g_i + g_j)/(sigma_i + sigma_j)`` follows from ``g``; the divided
   difference ``D1 = (g_i - g_j)/(sigma_i - sigma_j)`` must be passed in as ``d1``
   (pairs 01, 02, 12) because only the caller knows its limit where ``sigma_i = sigma_j``.
+* ``isotropic_change(F, g, d1) = U diag(g - sigma) V^T``, ``isotropic_map`` less ``F``: the
+  plastic flow's change, added to ``F`` so that a small flow keeps ``F`` to the last bit.
 """
 
 import functools
