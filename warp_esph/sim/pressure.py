@@ -119,7 +119,58 @@ def funcs(scalar) -> types.SimpleNamespace:
             f += viscous_pair_force(eta * VV, rij, r2, sm.lap_w_viscosity_at(rl, h, c_visc), vji)
         return f
 
+    floor_image = deformation.funcs(scalar).floor_image
+
+    @wp.func
+    def image_density(i: int, x: wp.array(dtype=vec3), mass: wp.array(dtype=scalar), nbr: wp.array2d(dtype=wp.int32),
+                      n: int, h: scalar, c6: scalar, c_ws: scalar, form: int, gn: vec3, goff: scalar, gmin: scalar) -> scalar:
+        """The rough floor's part of particle ``i``'s SPH density: ``sum_k m_k W(|x_i - g_k|)``
+        over the mirror images ``g_k`` of ``i`` and of its row (``deformation.floor_image``;
+        an image is at least as far as its particle, so the row holds every one within
+        ``h``). A particle near the floor then has an interior density, as on a floor of
+        particles (docs/physics.md, "The ground collider's thin-layer strength")."""
+        xi = x[i]
+        r = scalar(0.0)
+        for k in range(n + 1):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            d = xi - floor_image(x[j], gn, goff, gmin)
+            r += mass[j] * density_weight(wp.dot(d, d), h, c6, c_ws, form)
+        return r
+
+    Materials = materials.struct(scalar)
+
+    @wp.func
+    def image_pressure_forces(i: int, x: wp.array(dtype=vec3), nbr: wp.array2d(dtype=wp.int32), n: int, Vi: scalar,
+                              pi: scalar, rho_i: scalar, vi: vec3, mass: wp.array(dtype=scalar),
+                              rho: wp.array(dtype=scalar), rest_density: wp.array(dtype=scalar),
+                              material: wp.array(dtype=wp.int32), mat: Materials, h: scalar, c6: scalar,
+                              c_spiky: scalar, c_visc: scalar, gn: vec3, goff: scalar, gmin: scalar) -> vec3:
+        """The SPH force on ``i`` (velocity ``vi``, volume ``Vi = m_i / rho_i``, pressure
+        ``pi``) of the floor images in its density (``image_density``): for each image pair
+        ``(i, g_k)`` the whole pair force, pressure and viscosity (the floor at rest), the floor
+        taking the reaction. For the energy forms it is minus the gradient of the pressure
+        energy: the pair ``(i, g_k)`` is as far apart as ``(k, g_i)`` (where neither is
+        nearer the plane than ``min_depth``), so ``rho_i`` and ``rho_k`` each hold it once and
+        ``i`` gets both halves."""
+        xi = x[i]
+        mi = material[i]
+        form = mat.pressure_force[mi]
+        fi = vec3()
+        for k in range(n + 1):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            mj = material[j]
+            pj = pressure(rho[j], rest_density[j], mat.pressure_stiffness[mj], mat.clamp_pressure[mj])
+            eta = scalar(0.5) * (mat.viscosity[mi] + mat.viscosity[mj])
+            fi += sph_pair_force(Vi * mass[j] / rho[j], pi, pj, rho_i, rho[j], form, eta,
+                                 xi - floor_image(x[j], gn, goff, gmin), -vi, h, c6, c_spiky, c_visc)
+        return fi
+
     return types.SimpleNamespace(
+        image_density=image_density, image_pressure_forces=image_pressure_forces,
         pressure=pressure, pressure_pair_force=pressure_pair_force,
         energy_pressure_pair_force=energy_pressure_pair_force, viscous_pair_force=viscous_pair_force,
         density_weight=density_weight, energy_spiky_pair_force=energy_spiky_pair_force,
@@ -144,6 +195,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         rho: wp.array(dtype=scalar),
     ):
         i = wp.tid()
@@ -156,6 +211,8 @@ def kernels(scalar) -> types.SimpleNamespace:
             j = nbr[i, k]
             d = x[j] - xi
             r += mass[j] * fn.density_weight(wp.dot(d, d), h, c6, c_ws, form)
+        if images != 0:
+            r += fn.image_density(i, x, mass, nbr, count[i], h, c6, c_ws, form, gn, goff, gmin)
         rho[i] = r
 
     @wp.kernel
@@ -170,6 +227,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         f: wp.array(dtype=vec3),
     ):
         i = wp.tid()
@@ -194,6 +255,9 @@ def kernels(scalar) -> types.SimpleNamespace:
                                                    c_spiky, c_visc)
             wp.atomic_add(f, j, -half)
             fi += half
+        if images != 0:
+            fi += fn.image_pressure_forces(i, x, nbr, count[i], Vi, pi, rho[i], vi, mass, rho, rest_density, material, mat,
+                                           h, c6, c_spiky, c_visc, gn, goff, gmin)
         wp.atomic_add(f, i, fi)
 
     @wp.kernel(enable_backward=False)
@@ -395,7 +459,7 @@ def launch_density(model, x, neighbors, neighbor_count, rho, hand_adjoint: bool 
     the backward runs ``density_adjoint`` (``hand_adjoint=False``: Warp's generated adjoint)."""
     k = kernels(model.scalar)
     inputs = [x, model.particle_mass, model.particle_material, model.material_arrays(), neighbors, neighbor_count,
-              model.scalar(model.support_radius)]
+              model.scalar(model.support_radius), *model.image_args()]
     tape = deformation.recording_tape()
     if tape is None or not hand_adjoint or x.grad is None or rho.grad is None:
         wp.launch(k.density, model.particle_count, inputs, [rho], device=model.device)
@@ -423,7 +487,7 @@ def launch_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True
     inputs = [
         state_in.x, state_in.v, model.particle_mass, state_out.density, model.particle_rest_density,
         model.particle_material, model.material_arrays(), state_out.neighbors, state_out.neighbor_count,
-        model.scalar(model.support_radius),
+        model.scalar(model.support_radius), *model.image_args(),
     ]
     tape = deformation.recording_tape()
     grads = (state_in.x, state_in.v, state_out.density, model.pressure_stiffness, model.viscosity, state_out.force)

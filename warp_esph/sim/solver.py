@@ -58,6 +58,22 @@ class StepScratch:
         self.max_condition = max_condition
 
 
+def _check_images(model: Model, fit: str):
+    """What ``SceneBuilder.add_ground(images=True)`` supports so far: the forward step of the
+    linear fit with the variational elastic force (docs/physics.md, "The ground collider's
+    thin-layer strength"). Refused before any kernel runs."""
+    if model.requires_grad:
+        raise ValueError("requires_grad = True is not allowed with add_ground(images=True): the floor images' adjoints "
+                         "are not written yet (forward steps only)")
+    if fit == "curvature_corrected":
+        raise ValueError("fit = 'curvature_corrected' is not allowed with add_ground(images=True): the floor's images "
+                         "enter the linear fit only; pass fit='linear'")
+    kinds = sorted({m.elastic_force for m in model.materials} | {m.deformation for m in model.materials} - {"incremental"})
+    if kinds != ["variational"]:
+        raise ValueError(f"Material.elastic_force / deformation = {kinds!r} is not allowed with add_ground(images=True): "
+                         f"the images enter the variational force of the incremental fit only ('variational')")
+
+
 class Solver:
     """Explicit elastoplastic step of Gerszewski et al. 2009.
 
@@ -135,6 +151,8 @@ class Solver:
         if asked == "curvature_corrected" and model.uses_comparison_models:
             raise ValueError(f"fit = {asked!r} is not allowed with a comparison deformation model "
                              f"(Material.deformation 'rest' or 'additive'): only 'linear'")
+        if model.image_plane is not None:
+            _check_images(model, asked)
         self._asked = (fit, hourglass)
         # Whether the fit (and with it a strength of None) follows the parameters.
         self._auto = asked == "auto"
@@ -147,6 +165,7 @@ class Solver:
             skin=skin * model.support_radius, spacing=model.spacing, bodies_interact=model.bodies_interact,
             **model.neighbor_options(),
         )
+        self.search.image_args = model.image_args() if model.image_plane is not None else None
         self.fused = bool(fused)
         self.scratch = StepScratch(model, self.min_neighbors, self.max_condition)
         #: Seconds per phase, summed over steps while ``profile_phases`` is on, else None.
@@ -167,6 +186,9 @@ class Solver:
     def _choose(self):
         """Set ``fit`` and ``hourglass`` to what the step runs now (``Model.solver_choice``)."""
         fit, c = self.model.solver_choice(*self._asked)
+        if fit == "curvature_corrected" and self.model.image_plane is not None:
+            raise ValueError("fit = 'curvature_corrected' is not allowed with add_ground(images=True): the floor's images "
+                             "enter the linear fit only; pass fit='linear' (or give the material a flow_rate)")
         #: The incremental fit the step runs (``"linear"`` or ``"curvature_corrected"``); the
         #: corrected one runs the non-fused kernels.
         self.fit = fit
