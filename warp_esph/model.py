@@ -126,6 +126,11 @@ class State:
         return self.x.shape[0]
 
 
+#: The least depth below the plane of a floor image (``deformation.floor_image``), in
+#: spacings: half a spacing, where a floor of particles has its top layer.
+IMAGE_MIN_DEPTH = 0.5
+
+
 class Model:
     """Particles, materials, bodies and colliders of a scene; built by ``SceneBuilder.finalize``."""
 
@@ -259,7 +264,7 @@ class Model:
     def image_args(self) -> list:
         """The kernels' arguments of the image plane: normal, offset and whether it is on."""
         n, off = self.image_plane if self.image_plane is not None else ((0.0, 1.0, 0.0), 0.0)
-        return [self.types.vec3(*n), self.scalar(off), self.scalar(0.5 * self.spacing), int(self.image_plane is not None)]
+        return [self.types.vec3(*n), self.scalar(off), self.scalar(IMAGE_MIN_DEPTH * self.spacing), int(self.image_plane is not None)]
 
     MATERIAL_FIELDS = ("mu", "lam", "yield_stress", "flow_rate", "hardening", "pressure_stiffness", "viscosity")
 
