@@ -92,7 +92,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         h: scalar,
         gn: vec3,
         goff: scalar,
-    gmin: scalar,
+        gmin: scalar,
     ):
         """Eqs. 5-7 over the floor's images ``g_j = floor_image(x_j)`` of ``i`` and of its
         same-body neighbours: ``A = sum w xb xb^T``, ``B = sum w yb xb^T`` with ``xb = g_j - x_i``,
@@ -106,7 +106,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         bi = body[i]
         c6 = sm.poly6_coef(h)
         same = int(0)
-        for k in range(n + 1):
+        # Every image is at least as far from x_i as x_i is from the plane.
+        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
             j = i
             if k < n:
                 j = nbr[i, k]

@@ -178,7 +178,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         c6 = sm.poly6_coef(h)
         gi = floor_image(xi, gn, goff, gmin)
         fi = vec3()
-        for k in range(n + 1):
+        # Every image is at least as far from x_i as x_i is from the plane.
+        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
             j = i
             if k < n:
                 j = nbr[i, k]

@@ -131,7 +131,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         particles (docs/physics.md, "The ground collider's thin-layer strength")."""
         xi = x[i]
         r = scalar(0.0)
-        for k in range(n + 1):
+        # Every image is at least as far from x_i as x_i is from the plane.
+        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
             j = i
             if k < n:
                 j = nbr[i, k]
@@ -158,7 +159,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         mi = material[i]
         form = mat.pressure_force[mi]
         fi = vec3()
-        for k in range(n + 1):
+        # Every image is at least as far from x_i as x_i is from the plane.
+        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
             j = i
             if k < n:
                 j = nbr[i, k]
