@@ -59,7 +59,8 @@ def test_incremental_gradient_reproduces_affine_motion(dtype, tol, fit):
     F_out = wp.zeros_like(Fp)
     counters = wp.zeros(4, dtype=wp.int32)
     wp.launch(fit.kernels(model.scalar).update_deformation, model.particle_count,
-              [x, y, model.particle_body, state.neighbors, state.neighbor_count, state.guard, Fp, model.scalar(model.support_radius)],
+              [x, y, model.particle_body, state.neighbors, state.neighbor_count, state.guard, Fp, model.scalar(model.support_radius),
+               *(model.image_args() if fit is deformation else [])],
               [F_out, counters])
     guard = state.guard.numpy()
     assert (guard == 0).all(), "every particle of a 6^3 lattice has a usable neighbourhood"
@@ -98,7 +99,7 @@ def test_corrected_fit_returns_the_gradient_of_a_bending_field_at_surface_partic
         counters = wp.zeros(4, dtype=wp.int32)
         wp.launch(fit.kernels(model.scalar).update_deformation, model.particle_count,
                   [x, y, model.particle_body, state.neighbors, state.neighbor_count, state.guard, Fp,
-                   model.scalar(model.support_radius)],
+                   model.scalar(model.support_radius), *(model.image_args() if fit is deformation else [])],
                   [F_out, counters])
         errors[fit] = np.abs(F_out.numpy() - np.eye(3) - G).max() / scale
     assert (state.guard.numpy() == 0).all()
@@ -325,7 +326,7 @@ def test_yield_onset_under_uniaxial_stretch_and_volume_kept(model_name):
             assert np.allclose(np.linalg.det(F_flowed), np.linalg.det(Fin), rtol=1e-12)
         F_new = wp.zeros_like(F)
         wp.launch(kd, n, [xa, xb, model.particle_body, state.neighbors, state.neighbor_count, state.guard, scratch[0],
-                          S(model.support_radius)], [F_new, counters])
+                          S(model.support_radius), *model.image_args()], [F_new, counters])
         F, alpha = F_new, wp.clone(scratch[1])
     e_yield = Y / (2 * mu * math.sqrt(2.0 / 3.0))
     assert onset is not None
@@ -575,7 +576,7 @@ def _pressure_energy_and_forces(pressure_force, x, model):
         nbr[i, : count[i]] = np.flatnonzero(within[i])
     k = pressure.kernels(wp.float64)
     xa = wp.array(x, dtype=wp.vec3d)
-    args = (wp.array(nbr, dtype=wp.int32), wp.array(count, dtype=wp.int32), h)
+    args = (wp.array(nbr, dtype=wp.int32), wp.array(count, dtype=wp.int32), h, *model.image_args())
     rho = wp.zeros(len(x), dtype=wp.float64)
     wp.launch(k.density, len(x), [xa, model.particle_mass, model.particle_material, model.material_arrays(), *args],
               [rho])
