@@ -363,7 +363,6 @@ def test_floor_images_agree_on_the_fused_and_the_differentiable_step():
 
 
 @pytest.mark.parametrize("case, match", [
-    ("grad", "requires_grad = True is not allowed with add_ground"),
     ("paper", "elastic_force / deformation"),
     ("curvature", "fit = 'curvature_corrected' is not allowed with add_ground"),
 ])
@@ -373,7 +372,7 @@ def test_floor_images_refuse_what_they_do_not_support_yet(case, match):
     b = we.SceneBuilder(spacing=0.005)
     b.add_box((0.0, 0.0075, 0.0), (0.02, 0.015, 0.01), mat)
     b.add_ground(images=True)
-    model = b.finalize(requires_grad=case == "grad")
+    model = b.finalize()
     with pytest.raises(ValueError, match=match):
         we.Solver(model, fit="curvature_corrected" if case == "curvature" else None)
 

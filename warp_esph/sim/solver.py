@@ -59,12 +59,10 @@ class StepScratch:
 
 
 def _check_images(model: Model, fit: str):
-    """What ``SceneBuilder.add_ground(images=True)`` supports so far: the forward step of the
-    linear fit with the variational elastic force (docs/physics.md, "The ground collider's
-    thin-layer strength"). Refused before any kernel runs."""
-    if model.requires_grad:
-        raise ValueError("requires_grad = True is not allowed with add_ground(images=True): the floor images' adjoints "
-                         "are not written yet (forward steps only)")
+    """What ``SceneBuilder.add_ground(images=True)`` supports so far: the linear fit with the
+    variational elastic force (docs/physics.md, "The ground collider's thin-layer strength";
+    under a tape through Warp's generated adjoints, ``Solver._hand``). Refused before any
+    kernel runs."""
     if fit == "curvature_corrected":
         raise ValueError("fit = 'curvature_corrected' is not allowed with add_ground(images=True): the floor's images "
                          "enter the linear fit only; pass fit='linear'")
@@ -207,7 +205,14 @@ class Solver:
         ``forces.variational_forces_adjoint`` for the variational one). Otherwise the
         differentiable kernels run."""
         m = self.model
-        return self.fused and self.hand_adjoints and m.requires_grad and not self._cmp and not self._curved
+        return self.fused and self._hand() and m.requires_grad and not self._cmp and not self._curved
+
+    def _hand(self) -> bool:
+        """Whether the taped step records the hand-written adjoints: ``hand_adjoints``, except
+        with floor images (``add_ground(images=True)``), whose terms only Warp's generated
+        adjoints of the differentiable kernels carry (docs/physics.md, "The ground collider's
+        thin-layer strength")."""
+        return self.hand_adjoints and self.model.image_plane is None
 
     def _fast_under_tape(self, state_in, state_out) -> bool:
         return (self.fast_under_tape() and state_in.x.grad is not None and state_out.x.grad is not None
@@ -295,6 +300,7 @@ class Solver:
         scratch = self.scratch
         sph = m.sph_active
         tape = recording_tape()
+        hand = self._hand()
         fast = self.fused and not self._cmp and not self._curved and (tape is None or self._fast_under_tape(state_in, state_out))
         fast_tape = tape if fast else None
         phase = self._phase
@@ -323,7 +329,7 @@ class Solver:
             if sph:
                 with phase("density"):
                     pressure.launch_density(m, state_in.x, state_out.neighbors, state_out.neighbor_count, state_out.density,
-                                            self.hand_adjoints)
+                                            hand)
             # 3. Plastic flow of the stored F, stress, F^-1.
             with phase("constitutive"):
                 if self._cmp:
@@ -333,12 +339,12 @@ class Solver:
             # 4. Elastic pair forces, pressure and viscosity.
             with phase("forces"):
                 if self._curved:
-                    curvature.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
+                    curvature.launch_elastic_forces(m, state_in, state_out, hand)
                 else:
-                    forces.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
+                    forces.launch_elastic_forces(m, state_in, state_out, hand)
             if sph:
                 with phase("pressure"):
-                    pressure.launch_pressure_forces(m, state_in, state_out, self.hand_adjoints)
+                    pressure.launch_pressure_forces(m, state_in, state_out, hand)
 
         # Opt-in control of the fit's zero-energy modes (hourglass.py), on either path.
         if self.hourglass > 0.0:
@@ -366,8 +372,8 @@ class Solver:
             elif self._cmp:
                 comparison.launch_update_deformation(m, state_in, state_out, scratch.counters)
             elif self._curved:
-                curvature.launch_update_deformation(m, state_in, state_out, scratch.counters, self.hand_adjoints)
+                curvature.launch_update_deformation(m, state_in, state_out, scratch.counters, hand)
             else:
-                deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, self.hand_adjoints)
+                deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, hand)
         state_out.time = state_in.time + dt
         self.step_count += 1
