@@ -149,26 +149,32 @@ def funcs(scalar) -> types.SimpleNamespace:
                               material: wp.array(dtype=wp.int32), mat: Materials, h: scalar, c6: scalar,
                               c_spiky: scalar, c_visc: scalar, gn: vec3, goff: scalar, gmin: scalar) -> vec3:
         """The SPH force on ``i`` (velocity ``vi``, volume ``Vi = m_i / rho_i``, pressure
-        ``pi``) of the floor images in its density (``image_density``): for each image pair
-        ``(i, g_k)`` the whole pair force, pressure and viscosity (the floor at rest), the floor
-        taking the reaction. For the energy forms it is minus the gradient of the pressure
-        energy: the pair ``(i, g_k)`` is as far apart as ``(k, g_i)`` (where neither is
-        nearer the plane than ``min_depth``), so ``rho_i`` and ``rho_k`` each hold it once and
-        ``i`` gets both halves."""
+        ``pi``) of the floor images in the densities (``image_density``), the floor taking
+        the reaction: for each neighbour ``k`` (and ``i`` itself), the pair ``(i, g_k)`` in
+        ``rho_i`` and the pair ``(k, g_i)`` in ``rho_k``, the second through ``d g_i / d x_i``
+        (``R = I - 2 n n^T`` while ``i`` is above ``min_depth``, the tangential projector
+        ``I - n n^T`` below, where its image stays put); and the viscous force of the floor
+        at rest on ``i``. For the energy forms it is minus the gradient of the pressure energy."""
         xi = x[i]
         mi = material[i]
         form = mat.pressure_force[mi]
+        gi = floor_image(xi, gn, goff, gmin)
+        di = wp.dot(gn, xi) - goff
+        J = wp.identity(n=3, dtype=scalar) - wp.where(di > gmin, scalar(2.0), scalar(1.0)) * wp.outer(gn, gn)
         fi = vec3()
+        zero = scalar(0.0)
         # Every image is at least as far from x_i as x_i is from the plane.
-        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
+        for k in range(wp.where(di < h, n + 1, 0)):
             j = i
             if k < n:
                 j = nbr[i, k]
             mj = material[j]
             pj = pressure(rho[j], rest_density[j], mat.pressure_stiffness[mj], mat.clamp_pressure[mj])
             eta = scalar(0.5) * (mat.viscosity[mi] + mat.viscosity[mj])
-            fi += sph_pair_force(Vi * mass[j] / rho[j], pi, pj, rho_i, rho[j], form, eta,
-                                 xi - floor_image(x[j], gn, goff, gmin), -vi, h, c6, c_spiky, c_visc)
+            VV = Vi * mass[j] / rho[j]
+            fi += sph_pair_force(VV, pi, zero, rho_i, rho[j], form, eta, xi - floor_image(x[j], gn, goff, gmin), -vi, h,
+                                 c6, c_spiky, c_visc)
+            fi += J * sph_pair_force(VV, zero, pj, rho_i, rho[j], form, zero, gi - x[j], vec3(), h, c6, c_spiky, c_visc)
         return fi
 
     return types.SimpleNamespace(
