@@ -619,22 +619,24 @@ def test_pressure_force_is_minus_the_gradient_of_the_pressure_energy(pressure_fo
 
 
 @pytest.mark.parametrize("pressure_force", ["energy", "energy_spiky"])
-def test_pressure_force_with_floor_images_is_minus_the_gradient_of_the_pressure_energy(pressure_force):
-    """With ``add_ground(images=True)`` the density also sums the mirror images of a
-    particle's neighbours and of itself in the plane (``pressure.image_density``), and the
-    energy pressure force on a particle takes the whole pair force of each image pair
-    (``pressure.image_pressure_forces``): where every particle is more than half a spacing
-    above the plane (the images are then exact mirrors) that is minus the gradient of the
-    pressure energy of the positions, the floor taking the reaction. A block 5^3 standing
-    one spacing above the plane, compressed by 10 % and jittered by 0.1 dx, float64, against
-    central differences of the energy with the images in numpy: measured 2.4e-8 (energy) and
-    2.8e-8 (energy_spiky) relative, on the 12 particles nearest the plane."""
+@pytest.mark.parametrize("base", [1.0, 0.3])
+def test_pressure_force_with_floor_images_is_minus_the_gradient_of_the_pressure_energy(pressure_force, base):
+    """With ``add_ground(images=True)`` the density also sums the images of a particle's
+    neighbours and of itself (``pressure.image_density``: mirrors, at least half a spacing
+    deep), and the pressure force takes each image pair twice, as ``(i, g_k)`` in ``rho_i`` and
+    as ``(k, g_i)`` in ``rho_k`` through ``d g_i / d x_i`` (``pressure.image_pressure_forces``):
+    minus the gradient of the pressure energy of the positions, the floor taking the
+    reaction. A block 5^3 whose bottom layer stands ``base`` spacings above the plane (0.3:
+    pressed below half a spacing, where the images stay put), compressed by 10 % and
+    jittered by 0.1 dx, float64, against central differences of the energy with the images
+    in numpy, on the 12 particles nearest the plane: measured 2.4e-8 / 3.5e-8 relative
+    (energy / energy_spiky) at 1.0, 3.9e-8 / 5.3e-8 at 0.3."""
     from warp_esph.sim import pressure  # noqa: PLC0415
 
     mat = we.Material.from_young(1.0e5, 0.3, density=1000.0, pressure_force=pressure_force)
     dx = 0.01
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
-    b.add_box((0.025, 0.035, 0.025), (0.05, 0.05, 0.05), mat)
+    b.add_box((0.025, (base + 2.0) * dx, 0.025), (0.05, 0.05, 0.05), mat)
     b.add_ground(0.0, images=True)
     model = b.finalize(dtype=wp.float64)
     h = model.support_radius
@@ -642,13 +644,15 @@ def test_pressure_force_with_floor_images_is_minus_the_gradient_of_the_pressure_
     x0 = model.particle_x0
     c = x0.mean(0)
     x = c + 0.9 * (x0 - c) + 0.1 * dx * rng.normal(size=x0.shape)
-    assert x[:, 1].min() > 0.5 * dx
+    x[:, 1] += x0[:, 1].min() - x[:, 1].min() + 0.05 * dx  # the bottom a little above base
+    assert (x[:, 1].min() > 0.5 * dx) == (base > 0.5)
     m = model.particle_mass.numpy()
     rho0 = model.particle_rest_density.numpy()
     k_p = mat.pressure_stiffness
 
     def density(y):
-        mirror = y * [1.0, -1.0, 1.0]
+        mirror = y * [1.0, 0.0, 1.0]
+        mirror[:, 1] = -np.maximum(y[:, 1], 0.5 * dx)
         return _sph_density(pressure_force, np.vstack([y, mirror]), np.concatenate([m, m]), h)[: len(y)]
 
     def energy(y):
