@@ -123,6 +123,38 @@ def funcs(scalar) -> types.SimpleNamespace:
         return A, B, same
 
     @wp.func
+    def floor_image_moment(
+        i: int,
+        x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+    ) -> mat33:
+        """Eq. 5 of particle ``i``'s own image ``g_i``: ``A = sum w xb xb^T`` over ``i`` and its
+        same-body neighbours, ``xb = x_r - g_i``, and over their images, ``xb = g_r - g_i``
+        (the mirror ``R A_i R`` of ``i``'s where every image is a mirror)."""
+        A = mat33()
+        xi = x[i]
+        bi = body[i]
+        gi = floor_image(xi, gn, goff, gmin)
+        c6 = sm.poly6_coef(h)
+        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            if body[j] == bi:
+                xb = x[j] - gi
+                A += sm.w_poly6_c(wp.dot(xb, xb), h, c6) * wp.outer(xb, xb)
+                if j != i:
+                    gb = floor_image(x[j], gn, goff, gmin) - gi
+                    A += sm.w_poly6_c(wp.dot(gb, gb), h, c6) * wp.outer(gb, gb)
+        return A
+
+    @wp.func
     def fit_sums(
         i: int,
         x: wp.array(dtype=vec3),
@@ -181,6 +213,7 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(
         moment_sums=moment_sums, floor_image=floor_image, floor_image_sums=floor_image_sums, fit_sums=fit_sums,
+        floor_image_moment=floor_image_moment,
         affine_fit=affine_fit, step_gradient=step_gradient, unless_inverted=unless_inverted,
         deformation_update=deformation_update,
     )

@@ -155,14 +155,12 @@ def funcs(scalar) -> types.SimpleNamespace:
     floor_image = deformation.funcs(scalar).floor_image
 
     @wp.func
-    def image_map(volume: scalar, P: mat33, F: mat33, A_inv: mat33, n: vec3) -> mat33:
+    def image_map(volume: scalar, P: mat33, F: mat33, A_image: mat33) -> mat33:
         """``M`` of a particle's floor image: ``variational_map`` with the particle's stress and
-        the mirrored moment matrix ``R A R`` (``R = I - 2 n n^T``; the image's neighbourhood is
-        the mirror of the particle's, images and particles swapped). The image carries its
-        particle's stress, as a rough floor's top layer carries the shear it transmits to the
-        layer above (docs/physics.md, "The ground collider's thin-layer strength")."""
-        R = wp.identity(n=3, dtype=scalar) - scalar(2.0) * wp.outer(n, n)
-        return variational_map(volume, P, F, R * A_inv * R)
+        the image's own moment matrix (``deformation.floor_image_moment``). The image carries
+        its particle's stress, as a rough floor's top layer carries the shear it transmits to
+        the layer above (docs/physics.md, "The ground collider's thin-layer strength")."""
+        return variational_map(volume, P, F, wp.inverse(A_image))
 
     @wp.func
     def floor_image_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
@@ -210,6 +208,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     fn = funcs(scalar)
     moment_sums = deformation.funcs(scalar).moment_sums
     fit_sums = deformation.funcs(scalar).fit_sums
+    image_moment = deformation.funcs(scalar).floor_image_moment
     Materials = materials.struct(scalar)
 
     @wp.kernel
@@ -244,7 +243,8 @@ def kernels(scalar) -> types.SimpleNamespace:
             M = fn.variational_map(volume[i], stress[i], F[i], A_inv)
             fi = fn.variational_forces(i, x, body, nbr, count[i], M, h, f)
             if images != 0:
-                Mg = fn.image_map(volume[i], stress[i], F[i], A_inv, gn)
+                Mg = fn.image_map(volume[i], stress[i], F[i],
+                                  image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin))
                 fi += fn.floor_image_forces(i, x, body, nbr, count[i], M, Mg, h, gn, goff, gmin, f)
         wp.atomic_add(f, i, fi)
 

@@ -150,7 +150,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 A_inv = wp.inverse(A)
                 M = fo.variational_map(Vol_i, P, Fe, A_inv)
                 if images != 0:
-                    Mg = fo.image_map(Vol_i, P, Fe, A_inv, gn)
+                    Mg = fo.image_map(Vol_i, P, Fe, df.floor_image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin))
                     fi = fo.floor_image_forces(i, x, body, nbr, count[i], M, Mg, h, gn, goff, gmin, f)
             else:
                 kind_el = 2
