@@ -285,8 +285,8 @@ def test_thin_layer_on_the_ground_with_floor_images_stops_below_and_flows_above_
     is an interior one (docs/physics.md, "The ground collider's thin-layer strength").
     Walls through the outer rows' centres (the strip cannot widen, which with the walls at
     the faces stops a layer on either floor after about a spacing of slip). Measured, 3
-    through, 8 h long, 0.6 s: at 0.6 tau_y the top stops (0.074 mm/s; particle floor
-    -0.019); at 1.3 tau_y it flows at 17.7 mm/s (particle floor 9.3; Bingham 3.67). The plain
+    through, 8 h long, 0.6 s: at 0.6 tau_y the top stops (0.060 mm/s; particle floor
+    -0.019); at 1.3 tau_y it flows at 16.4 mm/s (particle floor 9.3; Bingham 3.67). The plain
     ground collider stops at 1.3 and at 2.0 tau_y and creeps at 2.5 (1.6 mm/s against 47.7;
     12 h long, 1.5 s)."""
     below = validation.incline(load=0.6, floor="ground_images", walls="centres", **THIN_LAYER)
