@@ -81,7 +81,7 @@ def _deviatoric_norm(F: np.ndarray, mu: float) -> np.ndarray:
 
 
 # --------------------------------------------------------------------- floors
-FLOORS = ("ground", "particles")
+FLOORS = ("ground", "particles", "ground_images")
 #: Layers of pinned particles under a body on a ``floor="particles"`` (two: a particle's fit
 #: reaches one spacing below it at the default support radius 2 dx, and so sees an interior
 #: neighbourhood at the base).
@@ -104,8 +104,8 @@ def _add_on_floor(b, points: np.ndarray, material, floor: str, radius: float, fr
     material has an interior neighbourhood. Returns the mask of the free particles (all of
     them on the ground)."""
     b.add_particles(points, material, name=name)
-    if floor == "ground":
-        b.add_ground(0.0, friction=friction)
+    if floor in ("ground", "ground_images"):
+        b.add_ground(0.0, friction=friction, images=floor == "ground_images")
         return np.ones(len(points), dtype=bool)
     # A margin of radius + dx reaches the whole disc from the column nearest the axis.
     b.add_particle_floor(name, margin=radius + b.spacing, layers=layers, name="floor",
@@ -415,7 +415,9 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     read on the top layer of the middle quarter of the strip (away from its free ends).
 
     ``floor``: ``"ground"``, the static ground collider with Coulomb ``friction`` at the
-    layer's base (the floor of ``slump`` and ``spread``); ``"particles"``, FLOOR_LAYERS
+    layer's base (the floor of ``slump`` and ``spread``); ``"ground_images"``, the same with
+    ``add_ground(images=True)``, the plane a rough floor of the fits (docs/physics.md, "The
+    ground collider's thin-layer strength"); ``"particles"``, FLOOR_LAYERS
     layers of the same body below the base, pinned (``SceneBuilder.add_particle_floor``): a floor that is
     part of every fit, as the material's own interior would be. mu = Y / (2 yield_strain), nu = 0.3.
     Gravity grows linearly from 0 over the first ``ramp`` seconds (``Model.gravity`` is read
@@ -449,7 +451,7 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
         # Under the strip only (margin 0): the walls normal to z bound it, its ends are free.
         b.add_particle_floor("layer", margin=0.0, layers=FLOOR_LAYERS, name="floor")
     else:
-        b.add_ground(0.0, friction=friction)
+        b.add_ground(0.0, friction=friction, images=floor == "ground_images")
     inset = 0.5 * dx if walls == "centres" else 0.0
     b.add_plane((0.0, 0.0, 1.0), inset, 0.0)
     b.add_plane((0.0, 0.0, -1.0), -(W - inset), 0.0)

@@ -50,7 +50,10 @@ def _launch_fit(fit, model, state, x, y, Fp, F_out, counters):
         ins[2:2] = [wp.zeros_like(x), wp.zeros_like(x)]
         ins.append(wp.zeros_like(Fp))
         outs.append(wp.zeros_like(Fp))
-    wp.launch(fit.kernels(S).update_deformation, model.particle_count, ins + [S(model.support_radius)], outs + [counters])
+    ins.append(S(model.support_radius))
+    if fit is deformation:
+        ins += model.image_args()
+    wp.launch(fit.kernels(S).update_deformation, model.particle_count, ins, outs + [counters])
 
 
 @pytest.mark.parametrize("fit", [deformation, curvature])
@@ -340,7 +343,8 @@ def test_yield_onset_under_uniaxial_stretch_and_volume_kept(model_name):
         F_lo_new = wp.zeros_like(F)
         zero = wp.zeros_like(xa)
         wp.launch(kd, n, [xa, xb, zero, zero, model.particle_body, state.neighbors, state.neighbor_count, state.guard,
-                          scratch[0], F_lo_flowed, S(model.support_radius)], [F_new, F_lo_new, counters])
+                          scratch[0], F_lo_flowed, S(model.support_radius),
+                          *model.image_args()], [F_new, F_lo_new, counters])
         F, F_lo, alpha = F_new, F_lo_new, wp.clone(scratch[1])
     e_yield = Y / (2 * mu * math.sqrt(2.0 / 3.0))
     assert onset is not None
@@ -597,11 +601,11 @@ def _pressure_energy_and_forces(pressure_force, x, model):
     rho, rho_p = wp.zeros(len(x), dtype=wp.float64), wp.zeros(len(x), dtype=wp.float64)
     for of_pressure, out in ((0, rho), (1, rho_p)):
         wp.launch(k.density, len(x), [xa, model.particle_mass, model.particle_material, model.material_arrays(), *args,
-                                      of_pressure], [out])
+                                      of_pressure, *model.image_args()], [out])
     f = wp.zeros(len(x), dtype=wp.vec3d)
     wp.launch(k.pressure_forces, len(x), [xa, wp.zeros(len(x), dtype=wp.vec3d), model.particle_mass, rho, rho_p,
                                            model.particle_rest_density, model.particle_material,
-                                           model.material_arrays(), *args], [f])
+                                           model.material_arrays(), *args, *model.image_args()], [f])
     return energy, f.numpy()
 
 
@@ -704,6 +708,86 @@ def test_set_material_to_energy_spiky_gives_its_rest_density_and_pressure_densit
         outs.append(out)
     for name in ("x", "v", "force", "density", "pressure_density"):
         np.testing.assert_allclose(getattr(outs[1], name).numpy(), getattr(outs[0], name).numpy(), rtol=1e-13, atol=1e-15)
+
+
+@pytest.mark.parametrize("pressure_force", ["energy", "energy_spiky"])
+@pytest.mark.parametrize("base", [1.0, 0.3])
+def test_pressure_force_with_floor_images_is_minus_the_gradient_of_the_pressure_energy(pressure_force, base):
+    """With ``add_ground(images=True)`` the density also sums the images of a particle's
+    neighbours and of itself (``pressure.image_density``: mirrors, at least half a spacing
+    deep), and the pressure force takes each image pair twice, as ``(i, g_k)`` in ``rho_i`` and
+    as ``(k, g_i)`` in ``rho_k`` through ``d g_i / d x_i`` (``pressure.image_pressure_forces``):
+    minus the gradient of the pressure energy of the positions, the floor taking the
+    reaction. A block 5^3 whose bottom layer stands ``base`` spacings above the plane (0.3:
+    pressed below half a spacing, where the images stay put), compressed by 10 % and
+    jittered by 0.1 dx, float64, against central differences of the energy with the images
+    in numpy, on the 12 particles nearest the plane: measured 2.4e-8 / 3.5e-8 relative
+    (energy / energy_spiky) at 1.0, 3.9e-8 / 5.3e-8 at 0.3."""
+    from warp_esph.sim import pressure  # noqa: PLC0415
+
+    mat = we.Material.from_young(1.0e5, 0.3, density=1000.0, pressure_force=pressure_force)
+    dx = 0.01
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.025, (base + 2.0) * dx, 0.025), (0.05, 0.05, 0.05), mat)
+    b.add_ground(0.0, images=True)
+    model = b.finalize(dtype=wp.float64)
+    h = model.support_radius
+    rng = np.random.default_rng(5)
+    x0 = model.particle_x0
+    c = x0.mean(0)
+    x = c + 0.9 * (x0 - c) + 0.1 * dx * rng.normal(size=x0.shape)
+    x[:, 1] += x0[:, 1].min() - x[:, 1].min() + 0.05 * dx  # the bottom a little above base
+    assert (x[:, 1].min() > 0.5 * dx) == (base > 0.5)
+    m = model.particle_mass.numpy()
+    rho0 = model.particle_rest_density.numpy()
+    k_p = mat.pressure_stiffness
+
+    def density(y, form=pressure_force):
+        mirror = y * [1.0, 0.0, 1.0]
+        mirror[:, 1] = -np.maximum(y[:, 1], 0.5 * dx)
+        return _sph_density(form, np.vstack([y, mirror]), np.concatenate([m, m]), h)[: len(y)]
+
+    def energy(y):
+        rho = density(y)
+        e = np.where(rho > rho0, k_p * (np.log(rho / rho0) + rho0 / rho - 1.0), 0.0)
+        return float((m * e).sum())
+
+    # the rest density counts the images of the block as placed
+    assert rho0 == pytest.approx(density(x0), rel=1e-12)
+    d2 = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)
+    within = (d2 < h * h) & ~np.eye(len(x), dtype=bool)
+    count = within.sum(1).astype(np.int32)
+    nbr = np.zeros((len(x), count.max()), dtype=np.int32)
+    for i in range(len(x)):
+        nbr[i, : count[i]] = np.flatnonzero(within[i])
+    k = pressure.kernels(wp.float64)
+    xa = wp.array(x, dtype=wp.vec3d)
+    args = (wp.array(nbr, dtype=wp.int32), wp.array(count, dtype=wp.int32), h)
+    # The images enter both densities, each with its own kernel: the SPH (poly6) one
+    # (of_pressure 0, the volumes) and the pressure density (1: the spiky sum for energy_spiky).
+    rho, rho_p = wp.zeros(len(x), dtype=wp.float64), wp.zeros(len(x), dtype=wp.float64)
+    for of_pressure, out in ((0, rho), (1, rho_p)):
+        wp.launch(k.density, len(x), [xa, model.particle_mass, model.particle_material, model.material_arrays(), *args,
+                                      of_pressure, *model.image_args()], [out])
+    np.testing.assert_allclose(rho.numpy(), density(x, "energy"), rtol=1e-12)
+    np.testing.assert_allclose(rho_p.numpy(), density(x), rtol=1e-12)
+    f = wp.zeros(len(x), dtype=wp.vec3d)
+    wp.launch(k.pressure_forces, len(x), [xa, wp.zeros(len(x), dtype=wp.vec3d), model.particle_mass, rho, rho_p,
+                                           model.particle_rest_density, model.particle_material,
+                                           model.material_arrays(), *args, *model.image_args()], [f])
+    f = f.numpy()
+    eps = 1e-7 * dx
+    picks = np.argsort(x[:, 1])[:12]  # the bottom layer, nearest the images
+    g = np.zeros((len(picks), 3))
+    for a, i in enumerate(picks):
+        for cc in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[i, cc] += eps
+            xm[i, cc] -= eps
+            g[a, cc] = (energy(xp) - energy(xm)) / (2.0 * eps)
+    assert np.abs(g).max() > 0.0
+    err = np.abs(f[picks] + g).max() / np.abs(g).max()
+    assert err < 1e-6, err
 
 
 @pytest.mark.parametrize("pressure_force", ["energy", "spiky"])

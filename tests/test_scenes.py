@@ -344,3 +344,17 @@ def test_lab_tools_start_touching_the_outer_particle_layers(scale):
         assert pose(model, side)[1] + 0.01 == pytest.approx(lo, abs=1e-7)
         assert np.abs(x0[:, 0] - x).min() < 1e-7  # a column over the support's axis
     assert np.abs(x0[:, 0]).min() < 1e-7  # and one under the pin
+
+
+def test_ground_images_key_builds_the_ground_as_a_rough_floor(tmp_path):
+    """``images = true`` on a ``ground`` collider is ``SceneBuilder.add_ground(images=True)``;
+    a non-boolean is refused by name."""
+    text = BASE.replace('type = "plane"\nnormal = [0, 1, 0]\noffset = 0.0', 'type = "ground"\nheight = 0.01\nimages = true')
+    assert "images = true" in text
+    path = tmp_path / "images.toml"
+    path.write_text(text)
+    model = load_scene_file(path).builder.finalize()
+    assert model.image_plane == ((0.0, 1.0, 0.0), 0.01)
+    path.write_text(text.replace("images = true", "images = 1"))
+    with pytest.raises(ValueError, match=r"key 'images' in \[\[colliders\]\] #1 \(type 'ground'\) must be true or false"):
+        load_scene_file(path)

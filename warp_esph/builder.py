@@ -360,9 +360,21 @@ class SceneBuilder:
             raise ValueError(f"{kind} colliders = {len(lst) + 1} is not allowed: at most {MAX_PER_KIND} per kind")
         lst.append(item)
 
-    def add_ground(self, height: float = 0.0, friction: float = 0.5):
-        """The plane y = ``height``, solid below; Coulomb ``friction`` >= 0."""
-        self.add_plane((0.0, 1.0, 0.0), checks.number("height", height), friction)
+    def add_ground(self, height: float = 0.0, friction: float = 0.5, *, images: bool = False):
+        """The plane y = ``height``, solid below; Coulomb ``friction`` >= 0.
+
+        ``images=True``: the ground is also a rough floor of the material's fits: each
+        particle within the support radius of it has, in its incremental fit and in the
+        variational elastic energy, the mirror images of its neighbours below the plane,
+        static over a step and carrying their particle's stress (docs/physics.md, "The ground
+        collider's thin-layer strength"). Without it a layer's bottom particles are held on
+        the plane with a one-sided fit, and a thin layer is 2.25 x too strong in shear."""
+        if not isinstance(images, bool):
+            raise ValueError(f"images = {images!r} is not allowed: must be True or False")
+        if images and any(p.images for p in self.planes):
+            raise ValueError("images = True is not allowed twice: one ground may be a rough floor of the fits")
+        self._add_collider(self.planes, Plane((0.0, 1.0, 0.0), checks.number("height", height),
+                                              checks.non_negative("friction", friction), images), "plane")
 
     def add_plane(self, normal, offset: float, friction: float = 0.5):
         """The half-space dot(normal, x) < offset is solid."""

@@ -145,6 +145,11 @@ class State:
         return self.x.shape[0]
 
 
+#: The least depth below the plane of a floor image (``deformation.floor_image``), in
+#: spacings: half a spacing, where a floor of particles has its top layer.
+IMAGE_MIN_DEPTH = 0.5
+
+
 class Model:
     """Particles, materials, bodies and colliders of a scene; built by ``SceneBuilder.finalize``."""
 
@@ -273,6 +278,15 @@ class Model:
         self.box_center = self._collider_array([b.center for b in boxes], V)
         self.box_half = self._collider_array([b.half_extents for b in boxes], V)
         self.box_friction = self._collider_array([b.friction for b in boxes], S)
+        imaged = [p for p in planes if getattr(p, "images", False)]
+        #: ``(normal, offset)`` of the plane whose mirror images enter the fits (a rough floor,
+        #: ``SceneBuilder.add_ground(images=True)``); None: none.
+        self.image_plane = (tuple(imaged[0].normal), float(imaged[0].offset)) if imaged else None
+
+    def image_args(self) -> list:
+        """The kernels' arguments of the image plane: normal, offset and whether it is on."""
+        n, off = self.image_plane if self.image_plane is not None else ((0.0, 1.0, 0.0), 0.0)
+        return [self.types.vec3(*n), self.scalar(off), self.scalar(IMAGE_MIN_DEPTH * self.spacing), int(self.image_plane is not None)]
 
     MATERIAL_FIELDS = ("mu", "lam", "yield_stress", "flow_rate", "hardening", "pressure_stiffness", "viscosity")
 
@@ -615,6 +629,7 @@ class Model:
             self.particle_count, self.scalar, self.device, self.support_radius, bodies_interact=self.bodies_interact,
             **self.neighbor_options(),
         )
+        search.image_args = self.image_args() if self.image_plane is not None else None
         search.build(state.x, self.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count, state.guard)
         pressure.launch_density(self, state.x, state.neighbors, state.neighbor_count, self.particle_rest_density,
                                 of_pressure=True)

@@ -37,6 +37,10 @@ class Plane:
     normal: tuple[float, float, float]
     offset: float  # the plane is dot(normal, x) = offset; the solid side is below it
     friction: float
+    #: Whether the plane's mirror images of the particles near it enter their fits and the
+    #: elastic energy as a rough floor (``SceneBuilder.add_ground(images=True)``,
+    #: docs/physics.md, "The ground collider's thin-layer strength").
+    images: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

@@ -84,6 +84,116 @@ def funcs(scalar) -> types.SimpleNamespace:
         return A, B, same
 
     @wp.func
+    def floor_image(x: vec3, n: vec3, offset: scalar, min_depth: scalar) -> vec3:
+        """The image of ``x`` in the rough floor ``dot(n, x) = offset``: below its foot on the
+        plane, as deep as ``x`` is high but at least ``min_depth`` (half a spacing: the
+        floor's top layer of a floor of particles), so that a particle pressed towards the
+        plane closes on its image as on a floor particle (docs/physics.md, "The ground
+        collider's thin-layer strength")."""
+        d = wp.dot(n, x) - offset
+        return x - (d + wp.max(d, min_depth)) * n
+
+    @wp.func
+    def floor_image_sums(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+    ):
+        """Eqs. 5-7 over the floor's images ``g_j = floor_image(x_j)`` of ``i`` and of its
+        same-body neighbours: ``A = sum w xb xb^T`` and, as ``moment_sums``, the displacement
+        moment ``sum w ub xb^T`` with ``xb = g_j - x_i`` and ``ub = -u_i`` (the floor is at
+        rest: an image does not move over the step; ``u_i`` with its round-off), and
+        how many are closer than ``h``. An image is at least as far from ``x_i`` as its
+        particle, so the row holds every image within ``h``."""
+        A = mat33()
+        B = mat33()
+        xi = x[i]
+        ui = (y[i] - xi) + (y_lo[i] - x_lo[i])
+        bi = body[i]
+        c6 = sm.poly6_coef(h)
+        same = int(0)
+        # Every image is at least as far from x_i as x_i is from the plane.
+        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            if body[j] == bi:
+                g = floor_image(x[j], gn, goff, gmin)
+                xb = g - xi
+                r2 = wp.dot(xb, xb)
+                w = sm.w_poly6_c(r2, h, c6)
+                A += w * wp.outer(xb, xb)
+                B -= w * wp.outer(ui, xb)
+                same += wp.where(r2 < h * h, 1, 0)
+        return A, B, same
+
+    @wp.func
+    def floor_image_moment(
+        i: int,
+        x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+    ) -> mat33:
+        """Eq. 5 of particle ``i``'s own image ``g_i``: ``A = sum w xb xb^T`` over ``i`` and its
+        same-body neighbours, ``xb = x_r - g_i``, and over their images, ``xb = g_r - g_i``
+        (the mirror ``R A_i R`` of ``i``'s where every image is a mirror)."""
+        A = mat33()
+        xi = x[i]
+        bi = body[i]
+        gi = floor_image(xi, gn, goff, gmin)
+        c6 = sm.poly6_coef(h)
+        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            if body[j] == bi:
+                xb = x[j] - gi
+                A += sm.w_poly6_c(wp.dot(xb, xb), h, c6) * wp.outer(xb, xb)
+                if j != i:
+                    gb = floor_image(x[j], gn, goff, gmin) - gi
+                    A += sm.w_poly6_c(wp.dot(gb, gb), h, c6) * wp.outer(gb, gb)
+        return A
+
+    @wp.func
+    def fit_sums(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
+    ):
+        """``moment_sums``, plus ``floor_image_sums`` where the model has an image plane."""
+        A, B, same = moment_sums(i, x, y, x_lo, y_lo, body, nbr, n, h)
+        if images != 0:
+            Ag, Bg, sg = floor_image_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
+            A = A + Ag
+            B = B + Bg
+            same = same + sg
+        return A, B, same
+
+    @wp.func
     def affine_fit(A: mat33, B: mat33) -> mat33:
         """Eqs. 5-6: the least-squares affine map ``B A^-1`` of the weighted moments; of the
         displacement moment ``B - A`` (``moment_sums``) it is ``dF - I``."""
@@ -136,7 +246,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         return out, out_lo
 
     return types.SimpleNamespace(
-        moment_sums=moment_sums, affine_fit=affine_fit, step_increment=step_increment,
+        moment_sums=moment_sums, floor_image=floor_image, floor_image_sums=floor_image_sums, fit_sums=fit_sums,
+        floor_image_moment=floor_image_moment, affine_fit=affine_fit, step_increment=step_increment,
         step_gradient=step_gradient, unless_inverted=unless_inverted,
         deformation_update=deformation_update,
     )
@@ -162,12 +273,16 @@ def kernels(scalar) -> types.SimpleNamespace:
         F_prev: wp.array(dtype=mat33),
         F_prev_lo: wp.array(dtype=mat33),
         h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         F_out: wp.array(dtype=mat33),
         F_out_lo: wp.array(dtype=mat33),
         counters: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
-        A, B, same = fn.moment_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h)
+        A, B, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
         F_new, F_new_lo = fn.deformation_update(A, B, guard[i], F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
@@ -261,7 +376,7 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     inputs = [
         state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
         state_out.neighbor_count, state_out.guard, state_out.F_flowed, state_out.F_flowed_lo,
-        model.scalar(model.support_radius),
+        model.scalar(model.support_radius), *model.image_args(),
     ]
     outputs = [state_out.F, state_out.F_lo, counters]
     tape = recording_tape()

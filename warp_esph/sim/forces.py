@@ -152,7 +152,47 @@ def funcs(scalar) -> types.SimpleNamespace:
                 fi += g
         return fi
 
+    floor_image = deformation.funcs(scalar).floor_image
+
+    @wp.func
+    def image_map(volume: scalar, P: mat33, F: mat33, A_image: mat33) -> mat33:
+        """``M`` of a particle's floor image: ``variational_map`` with the particle's stress and
+        the image's own moment matrix (``deformation.floor_image_moment``). The image carries
+        its particle's stress, as a rough floor's top layer carries the shear it transmits to
+        the layer above (docs/physics.md, "The ground collider's thin-layer strength")."""
+        return variational_map(volume, P, F, wp.inverse(A_image))
+
+    @wp.func
+    def floor_image_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                           nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, Mg: mat33, h: scalar,
+                           gn: vec3, goff: scalar, gmin: scalar, f: wp.array(dtype=vec3)) -> vec3:
+        """The variational force of the floor images (``deformation.floor_image_sums``):
+        through ``i``'s own energy (``M``), ``w M (g_j - x_i)`` for each image ``g_j`` in its
+        fit (the floor takes the reaction), returned; and through the energy of ``i``'s own
+        image ``g_i`` (``Mg = image_map``), ``-w Mg (x_r - g_i)`` on ``i`` and on each same-body
+        neighbour ``r`` within ``h`` of it."""
+        xi = x[i]
+        bi = body[i]
+        c6 = sm.poly6_coef(h)
+        gi = floor_image(xi, gn, goff, gmin)
+        fi = vec3()
+        # Every image is at least as far from x_i as x_i is from the plane.
+        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            if body[j] == bi:
+                xj = x[j]
+                fi += variational_pair_force(M, floor_image(xj, gn, goff, gmin) - xi, h, c6)
+                gr = variational_pair_force(Mg, xj - gi, h, c6)
+                if j == i:
+                    fi -= gr
+                else:
+                    wp.atomic_sub(f, j, gr)
+        return fi
+
     return types.SimpleNamespace(
+        image_map=image_map, floor_image_forces=floor_image_forces,
         stress=stress, principal_stress=principal_stress, principal_stress_differences=principal_stress_differences,
         polynomial_stress=polynomial_stress, elastic_pair_force=elastic_pair_force, paper_forces=paper_forces,
         variational_map=variational_map, variational_map_adjoint=variational_map_adjoint,
@@ -167,6 +207,8 @@ def kernels(scalar) -> types.SimpleNamespace:
     sm = smoothing.funcs(scalar)
     fn = funcs(scalar)
     moment_sums = deformation.funcs(scalar).moment_sums
+    fit_sums = deformation.funcs(scalar).fit_sums
+    image_moment = deformation.funcs(scalar).floor_image_moment
     Materials = materials.struct(scalar)
 
     @wp.kernel
@@ -183,6 +225,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         F: wp.array(dtype=mat33),
         F_inv: wp.array(dtype=mat33),
         h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         f: wp.array(dtype=vec3),
     ):
         i = wp.tid()
@@ -194,9 +240,14 @@ def kernels(scalar) -> types.SimpleNamespace:
             # A from its own function: its inverse must not see a loop accumulator
             # (docs/method.md, Warp pitfall 1).
             # The moments of x alone (y = x and the same round-off: B - A = 0).
-            A, B, same = moment_sums(i, x, x, x, x, body, nbr, count[i], h)
-            M = fn.variational_map(volume[i], stress[i], F[i], wp.inverse(A))
+            A, B, same = fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
+            A_inv = wp.inverse(A)
+            M = fn.variational_map(volume[i], stress[i], F[i], A_inv)
             fi = fn.variational_forces(i, x, body, nbr, count[i], M, h, f)
+            if images != 0:
+                Mg = fn.image_map(volume[i], stress[i], F[i],
+                                  image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin))
+                fi += fn.floor_image_forces(i, x, body, nbr, count[i], M, Mg, h, gn, goff, gmin, f)
         wp.atomic_add(f, i, fi)
 
     @wp.kernel(enable_backward=False)
@@ -348,7 +399,7 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True)
     inputs = [
         state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
         state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
-        state_out.F_inv, S(model.support_radius),
+        state_out.F_inv, S(model.support_radius), *model.image_args(),
     ]
     tape = deformation.recording_tape()
     grads = (state_in.x, state_out.stress, state_out.F_inv, state_out.force)

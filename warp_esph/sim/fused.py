@@ -46,6 +46,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     iso = isotropic.funcs(scalar)
     fo = forces.funcs(scalar)
     sph_pair_force = pressure.funcs(scalar).sph_pair_force
+    image_pressure_forces = pressure.funcs(scalar).image_pressure_forces
     guarded_flow_step = plasticity.funcs(scalar).guarded_flow_step
     guard_code = neighbors.kernels(scalar).guard_code
     df = deformation.funcs(scalar)
@@ -64,6 +65,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         volume: wp.array(dtype=scalar),
         p: wp.array(dtype=scalar),
         vol: wp.array(dtype=scalar),
+        rho: wp.array(dtype=scalar),
         rho_p: wp.array(dtype=scalar),
         vol_p: wp.array(dtype=scalar),
         nbr: wp.array2d(dtype=wp.int32),
@@ -73,6 +75,12 @@ def kernels(scalar) -> types.SimpleNamespace:
         sph: int,
         min_neighbors: int,
         max_condition: scalar,
+        mass: wp.array(dtype=scalar),
+        rest_density: wp.array(dtype=scalar),
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         F_out: wp.array(dtype=mat33),
         F_lo_out: wp.array(dtype=mat33),
         alpha_out: wp.array(dtype=scalar),
@@ -149,17 +157,21 @@ def kernels(scalar) -> types.SimpleNamespace:
         # particle of the variational force).
         kind_el = mat.elastic_force[m]
         M = mat33()
+        fi = vec3()
         if kind_el == 1:
             # The moments of x alone (y = x and the same round-off: B - A = 0).
-            A, B, same = df.moment_sums(i, x, x, x, x, body, nbr, count[i], h)
+            A, B, same = df.fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
             if guard_code(A, same, min_neighbors, max_condition) == 0:
-                M = fo.variational_map(Vol_i, P, Fe, wp.inverse(A))
+                A_inv = wp.inverse(A)
+                M = fo.variational_map(Vol_i, P, Fe, A_inv)
+                if images != 0:
+                    Mg = fo.image_map(Vol_i, P, Fe, df.floor_image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin))
+                    fi = fo.floor_image_forces(i, x, body, nbr, count[i], M, Mg, h, gn, goff, gmin, f)
             else:
                 kind_el = 2
         c6 = sm.poly6_coef(h)
         c_spiky = sm.spiky_coef(h)
         c_visc = sm.viscosity_coef(h)
-        fi = vec3()
         for k in range(count[i]):
             j = nbr[i, k]
             xj = x[j]
@@ -183,6 +195,9 @@ def kernels(scalar) -> types.SimpleNamespace:
                 fj -= half
                 fi += half
             wp.atomic_add(f, j, fj)
+        if sph != 0 and images != 0:
+            fi += image_pressure_forces(i, x, nbr, count[i], Vi, Vpi, pi, rho_i, vi, mass, rho, rho_p, rest_density, material,
+                                        mat, h, c6, c_spiky, c_visc, gn, goff, gmin)
         wp.atomic_add(f, i, fi)
 
     @wp.kernel(enable_backward=False)
@@ -199,6 +214,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         h: scalar,
         min_neighbors: int,
         max_condition: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         F_out: wp.array(dtype=mat33),
         F_out_lo: wp.array(dtype=mat33),
         guard: wp.array(dtype=wp.int32),
@@ -207,7 +226,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         """deformation.update_deformation with the neighbourhood guard of
         neighbors.select_neighbors evaluated here, on the moment matrix A of the fit."""
         i = wp.tid()
-        A, B, same = df.moment_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h)
+        A, B, same = df.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
         code = guard_code(A, same, min_neighbors, max_condition)
         guard[i] = code
         F_new, F_new_lo = df.deformation_update(A, B, code, F_prev[i], F_prev_lo[i], counters)
@@ -236,11 +255,11 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
         model.particle_count,
         [
             state_in.x, state_in.v, state_in.F, state_in.F_lo, state_in.alpha, model.particle_material, model.material_arrays(),
-            model.particle_body, model.particle_volume, scratch.pressure, scratch.sph_volume,
+            model.particle_body, model.particle_volume, scratch.pressure, scratch.sph_volume, state_out.density,
             pressure.pressure_density(model, state_out), scratch.pressure_volume() if own else scratch.sph_volume,
             state_out.neighbors, state_out.neighbor_count, S(model.support_radius), S(dt), 2 if own else int(sph),
-            scratch.min_neighbors,
-            S(scratch.max_condition),
+            scratch.min_neighbors, S(scratch.max_condition), model.particle_mass, model.particle_rest_density,
+            *model.image_args(),
         ],
         [state_out.F_flowed, state_out.F_flowed_lo, state_out.alpha, state_out.stress, state_out.F_inv, state_out.force,
          scratch.counters],
@@ -283,7 +302,7 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
         [
             state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
             state_out.neighbor_count, state_out.F_flowed, state_out.F_flowed_lo, S(model.support_radius), scratch.min_neighbors,
-            S(scratch.max_condition),
+            S(scratch.max_condition), *model.image_args(),
         ],
         [state_out.F, state_out.F_lo, state_out.guard, scratch.counters],
         device=model.device,

@@ -117,6 +117,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     sm = smoothing.funcs(scalar)
     pressure_of = pressure.funcs(scalar).pressure
     density_weight = pressure.funcs(scalar).density_weight
+    image_density = pressure.funcs(scalar).image_density
     Materials = materials.struct(scalar)
 
     @wp.func
@@ -310,6 +311,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         with_stretch: int,
         cand_stretch: wp.array(dtype=scalar),
         cut_index: int,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         nbr: wp.array2d(dtype=wp.int32),
         nbr_d2: wp.array2d(dtype=scalar),
         count: wp.array(dtype=wp.int32),
@@ -428,6 +433,11 @@ def kernels(scalar) -> types.SimpleNamespace:
                     A += w * wp.outer(d, d)
                     same += 1
         if with_density != 0:
+            if images != 0:
+                # The floor images enter both densities, each with its own kernel.
+                r += image_density(i, x, mass, nbr, n, h, c6, c_ws, 0, gn, goff, gmin)
+                if form == 2:
+                    rp += image_density(i, x, mass, nbr, n, h, c6, c_ws, form, gn, goff, gmin)
             rho[i] = r
             vol[i] = mass[i] / r
             if with_density == 2:
@@ -484,6 +494,9 @@ class NeighborSearch:
         self._world_stride = 0.0
         self.device = device
         self.h = float(h)
+        #: The kernels' image-plane arguments (``Model.image_args``) for the density the
+        #: selection sums; None: no image plane.
+        self.image_args = None
         self.skin = float(skin)
         self.min_neighbors = int(min_neighbors)
         self.max_condition = float(max_condition)
@@ -643,6 +656,8 @@ class NeighborSearch:
                 x, body, mass, self.candidates, self.candidate_count, self.scalar(self.h), self.min_neighbors,
                 self.scalar(self.max_condition), int(with_guard), with_density, material, rest_density, mats,
                 d["F"] if F is None else F, int(F is not None), self._cand_stretch, int(cut_index),
+                *(self.image_args if self.image_args is not None else
+                  (type_set(self.scalar).vec3(0.0, 1.0, 0.0), self.scalar(0.0), self.scalar(0.0), 0)),
             ],
             [nbr, nbr_d2, count, guard if with_guard else d["i"], rho, p, vol, d["s"] if rho_p is None else rho_p,
              d["s"] if vol_p is None else vol_p, d["c"] if counters is None else counters],

@@ -125,7 +125,73 @@ def funcs(scalar) -> types.SimpleNamespace:
             f += viscous_pair_force(eta * VV, rij, r2, sm.lap_w_viscosity_at(rl, h, c_visc), vji)
         return f
 
+    floor_image = deformation.funcs(scalar).floor_image
+
+    @wp.func
+    def image_density(i: int, x: wp.array(dtype=vec3), mass: wp.array(dtype=scalar), nbr: wp.array2d(dtype=wp.int32),
+                      n: int, h: scalar, c6: scalar, c_ws: scalar, form: int, gn: vec3, goff: scalar, gmin: scalar) -> scalar:
+        """The rough floor's part of particle ``i``'s density: ``sum_k m_k W(|x_i - g_k|)``,
+        ``W`` the kernel of ``form`` (``density_weight``: poly6 for the SPH density, the
+        pressure density's for ``energy_spiky``), over the mirror images ``g_k`` of ``i`` and of its row (``deformation.floor_image``;
+        an image is at least as far as its particle, so the row holds every one within
+        ``h``). A particle near the floor then has an interior density, as on a floor of
+        particles (docs/physics.md, "The ground collider's thin-layer strength")."""
+        xi = x[i]
+        r = scalar(0.0)
+        # Every image is at least as far from x_i as x_i is from the plane.
+        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            d = xi - floor_image(x[j], gn, goff, gmin)
+            r += mass[j] * density_weight(wp.dot(d, d), h, c6, c_ws, form)
+        return r
+
+    Materials = materials.struct(scalar)
+
+    @wp.func
+    def image_pressure_forces(i: int, x: wp.array(dtype=vec3), nbr: wp.array2d(dtype=wp.int32), n: int, Vi: scalar,
+                              Vpi: scalar, pi: scalar, rho_pi: scalar, vi: vec3, mass: wp.array(dtype=scalar),
+                              rho: wp.array(dtype=scalar), rho_p: wp.array(dtype=scalar),
+                              rest_density: wp.array(dtype=scalar), material: wp.array(dtype=wp.int32), mat: Materials,
+                              h: scalar, c6: scalar, c_spiky: scalar, c_visc: scalar, gn: vec3, goff: scalar,
+                              gmin: scalar) -> vec3:
+        """The SPH force on ``i`` (velocity ``vi``, volume ``Vi = m_i / rho_i`` of the SPH
+        density, ``Vpi = m_i / rho_pi`` of the pressure density ``rho_pi``, pressure ``pi``)
+        of the floor images in the densities (``image_density``), the floor taking the
+        reaction: for each neighbour ``k`` (and ``i`` itself), the pair ``(i, g_k)`` in
+        ``rho_i`` and the pair ``(k, g_i)`` in ``rho_k``, the second through ``d g_i / d x_i``
+        (``R = I - 2 n n^T`` while ``i`` is above ``min_depth``, the tangential projector
+        ``I - n n^T`` below, where its image stays put); and the viscous force of the floor
+        at rest on ``i``. As for the particle pairs (``sph_pair_force``) the pressure and the
+        energy forms read the pressure density ``rho_p`` and the volumes the SPH density
+        ``rho``. For the energy forms it is minus the gradient of the pressure energy."""
+        xi = x[i]
+        mi = material[i]
+        form = mat.pressure_force[mi]
+        gi = floor_image(xi, gn, goff, gmin)
+        di = wp.dot(gn, xi) - goff
+        J = wp.identity(n=3, dtype=scalar) - wp.where(di > gmin, scalar(2.0), scalar(1.0)) * wp.outer(gn, gn)
+        fi = vec3()
+        zero = scalar(0.0)
+        # Every image is at least as far from x_i as x_i is from the plane.
+        for k in range(wp.where(di < h, n + 1, 0)):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            mj = material[j]
+            pj = pressure(rho_p[j], rest_density[j], mat.pressure_stiffness[mj], mat.clamp_pressure[mj])
+            eta = scalar(0.5) * (mat.viscosity[mi] + mat.viscosity[mj])
+            VV = Vi * mass[j] / rho[j]
+            VVp = Vpi * mass[j] / rho_p[j]
+            fi += sph_pair_force(VV, VVp, pi, zero, rho_pi, rho_p[j], form, eta, xi - floor_image(x[j], gn, goff, gmin),
+                                 -vi, h, c6, c_spiky, c_visc)
+            fi += J * sph_pair_force(VV, VVp, zero, pj, rho_pi, rho_p[j], form, zero, gi - x[j], vec3(), h, c6, c_spiky,
+                                     c_visc)
+        return fi
+
     return types.SimpleNamespace(
+        image_density=image_density, image_pressure_forces=image_pressure_forces,
         pressure=pressure, pressure_pair_force=pressure_pair_force,
         energy_pressure_pair_force=energy_pressure_pair_force, viscous_pair_force=viscous_pair_force,
         density_weight=density_weight, energy_spiky_pair_force=energy_spiky_pair_force,
@@ -151,10 +217,15 @@ def kernels(scalar) -> types.SimpleNamespace:
         count: wp.array(dtype=wp.int32),
         h: scalar,
         of_pressure: int,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         rho: wp.array(dtype=scalar),
     ):
         """The SPH density (poly6, every material), or with ``of_pressure`` each material's
-        pressure density (``density_weight``: the spiky sum for ``energy_spiky``)."""
+        pressure density (``density_weight``: the spiky sum for ``energy_spiky``); with
+        ``images`` the floor images' part (``image_density``) in the same kernel."""
         i = wp.tid()
         xi = x[i]
         c6 = sm.poly6_coef(h)
@@ -167,6 +238,8 @@ def kernels(scalar) -> types.SimpleNamespace:
             j = nbr[i, k]
             d = x[j] - xi
             r += mass[j] * fn.density_weight(wp.dot(d, d), h, c6, c_ws, form)
+        if images != 0:
+            r += fn.image_density(i, x, mass, nbr, count[i], h, c6, c_ws, form, gn, goff, gmin)
         rho[i] = r
 
     @wp.kernel
@@ -182,6 +255,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         f: wp.array(dtype=vec3),
     ):
         """``rho``: the SPH density (the volumes ``m / rho``); ``rho_p``: the pressure density
@@ -211,6 +288,9 @@ def kernels(scalar) -> types.SimpleNamespace:
                                                    h, c6, c_spiky, c_visc)
             wp.atomic_add(f, j, -half)
             fi += half
+        if images != 0:
+            fi += fn.image_pressure_forces(i, x, nbr, count[i], Vi, Vpi, pi, rho_p[i], vi, mass, rho, rho_p, rest_density,
+                                           material, mat, h, c6, c_spiky, c_visc, gn, goff, gmin)
         wp.atomic_add(f, i, fi)
 
     @wp.kernel(enable_backward=False)
@@ -423,7 +503,7 @@ def launch_density(model, x, neighbors, neighbor_count, rho, hand_adjoint: bool 
     ``density_adjoint`` (``hand_adjoint=False``: Warp's generated adjoint)."""
     k = kernels(model.scalar)
     inputs = [x, model.particle_mass, model.particle_material, model.material_arrays(), neighbors, neighbor_count,
-              model.scalar(model.support_radius), int(of_pressure)]
+              model.scalar(model.support_radius), int(of_pressure), *model.image_args()]
     tape = deformation.recording_tape()
     if tape is None or not hand_adjoint or x.grad is None or rho.grad is None:
         wp.launch(k.density, model.particle_count, inputs, [rho], device=model.device)
@@ -483,7 +563,7 @@ def launch_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True
     inputs = [
         state_in.x, state_in.v, model.particle_mass, state_out.density, rho_p,
         model.particle_rest_density, model.particle_material, model.material_arrays(), state_out.neighbors,
-        state_out.neighbor_count, model.scalar(model.support_radius),
+        state_out.neighbor_count, model.scalar(model.support_radius), *model.image_args(),
     ]
     tape = deformation.recording_tape()
     grads = (state_in.x, state_in.v, state_out.density, rho_p, model.pressure_stiffness,

@@ -65,6 +65,20 @@ class StepScratch:
         return self._pressure_volume
 
 
+def _check_images(model: Model, fit: str):
+    """What ``SceneBuilder.add_ground(images=True)`` supports so far: the linear fit with the
+    variational elastic force (docs/physics.md, "The ground collider's thin-layer strength";
+    under a tape through Warp's generated adjoints, ``Solver._hand``). Refused before any
+    kernel runs."""
+    if fit == "curvature_corrected":
+        raise ValueError("fit = 'curvature_corrected' is not allowed with add_ground(images=True): the floor's images "
+                         "enter the linear fit only; pass fit='linear'")
+    kinds = sorted({m.elastic_force for m in model.materials} | {m.deformation for m in model.materials} - {"incremental"})
+    if kinds != ["variational"]:
+        raise ValueError(f"Material.elastic_force / deformation = {kinds!r} is not allowed with add_ground(images=True): "
+                         f"the images enter the variational force of the incremental fit only ('variational')")
+
+
 class Solver:
     """Explicit elastoplastic step of Gerszewski et al. 2009.
 
@@ -147,6 +161,8 @@ class Solver:
             raise ValueError(f"fit = {asked!r} is not allowed with a comparison deformation model "
                              f"(Material.deformation 'rest' or 'additive') unless every material is 'rest' "
                              f"(whose total fit it then corrects): only 'linear'")
+        if model.image_plane is not None:
+            _check_images(model, asked)
         self._asked = (fit, hourglass)
         # Whether the fit (and with it a strength of None) follows the parameters.
         self._auto = asked == "auto"
@@ -159,6 +175,7 @@ class Solver:
             skin=skin * model.support_radius, spacing=model.spacing, bodies_interact=model.bodies_interact,
             **model.neighbor_options(),
         )
+        self.search.image_args = model.image_args() if model.image_plane is not None else None
         self.fused = bool(fused)
         self.scratch = StepScratch(model, self.min_neighbors, self.max_condition)
         #: Seconds per phase, summed over steps while ``profile_phases`` is on, else None.
@@ -174,6 +191,7 @@ class Solver:
         self.step_count = 0
         #: Under a tape, run the hand-written adjoints (``deformation.update_deformation_adjoint``)
         #: in place of Warp's generated ones; False: the generated ones (the tests' reference).
+        #: With floor images the generated ones run either way (``_hand``).
         self.hand_adjoints = True
         #: ``(impulse, angular impulse)`` arrays of the static colliders' rows that untaped
         #: steps add ``dt`` times their reaction to (``tools.ReactionLog`` sets them); None: off.
@@ -182,6 +200,9 @@ class Solver:
     def _choose(self):
         """Set ``fit`` and ``hourglass`` to what the step runs now (``Model.solver_choice``)."""
         fit, c = self.model.solver_choice(*self._asked)
+        if fit == "curvature_corrected" and self.model.image_plane is not None:
+            raise ValueError("fit = 'curvature_corrected' is not allowed with add_ground(images=True): the floor's images "
+                             "enter the linear fit only; pass fit='linear' (or give the material a flow_rate)")
         #: The incremental fit the step runs (``"linear"`` or ``"curvature_corrected"``); the
         #: corrected one runs the non-fused kernels.
         self.fit = fit
@@ -200,7 +221,14 @@ class Solver:
         ``forces.variational_forces_adjoint`` for the variational one). Otherwise the
         differentiable kernels run."""
         m = self.model
-        return self.fused and self.hand_adjoints and m.requires_grad and not self._cmp and not self._curved
+        return self.fused and self._hand() and m.requires_grad and not self._cmp and not self._curved
+
+    def _hand(self) -> bool:
+        """Whether the taped step records the hand-written adjoints: ``hand_adjoints``, except
+        with floor images (``add_ground(images=True)``), whose terms only Warp's generated
+        adjoints of the differentiable kernels carry (docs/physics.md, "The ground collider's
+        thin-layer strength")."""
+        return self.hand_adjoints and self.model.image_plane is None
 
     def _fast_under_tape(self, state_in, state_out) -> bool:
         return (self.fast_under_tape() and state_in.x.grad is not None and state_out.x.grad is not None
@@ -288,6 +316,7 @@ class Solver:
         scratch = self.scratch
         sph = m.sph_active
         tape = recording_tape()
+        hand = self._hand()
         fast = self.fused and not self._cmp and not self._curved and (tape is None or self._fast_under_tape(state_in, state_out))
         # With comparison models the corrected fit is the rest model's total fit (every material 'rest').
         curved_rest = self._cmp and self._curved
@@ -321,7 +350,7 @@ class Solver:
             # (docs/method.md, Warp pitfall 1).
             if sph:
                 with phase("density"):
-                    pressure.launch_state_densities(m, state_in.x, state_out, self.hand_adjoints)
+                    pressure.launch_state_densities(m, state_in.x, state_out, hand)
             # 3. Plastic flow of the stored F, stress, F^-1.
             with phase("constitutive"):
                 if self._cmp:
@@ -331,14 +360,14 @@ class Solver:
             # 4. Elastic pair forces, pressure and viscosity.
             with phase("forces"):
                 if self._curved and not self._cmp:
-                    curvature.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
+                    curvature.launch_elastic_forces(m, state_in, state_out, hand)
                 else:
-                    forces.launch_elastic_forces(m, state_in, state_out, self.hand_adjoints)
+                    forces.launch_elastic_forces(m, state_in, state_out, hand)
                 if self._rest_variational:
                     comparison.launch_rest_variational_forces(m, state_out, curved_rest)
             if sph:
                 with phase("pressure"):
-                    pressure.launch_pressure_forces(m, state_in, state_out, self.hand_adjoints)
+                    pressure.launch_pressure_forces(m, state_in, state_out, hand)
 
         # Opt-in control of the fit's zero-energy modes (hourglass.py), on either path.
         if self.hourglass > 0.0:
@@ -366,9 +395,9 @@ class Solver:
             elif self._cmp:
                 comparison.launch_update_deformation(m, state_in, state_out, scratch.counters, curved_rest)
             elif self._curved:
-                curvature.launch_update_deformation(m, state_in, state_out, scratch.counters, self.hand_adjoints)
+                curvature.launch_update_deformation(m, state_in, state_out, scratch.counters, hand)
             else:
-                deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, self.hand_adjoints)
+                deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, hand)
             if not fast and (self._cmp or self._curved):
                 # Their updates rebuild F without carrying its round-off (State.F_lo).
                 state_out.F_lo.zero_()
