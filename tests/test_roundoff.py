@@ -68,7 +68,7 @@ def test_fit_at_rest_is_exactly_no_change_of_F():
     counters = wp.zeros(4, dtype=wp.int32)
     wp.launch(deformation.kernels(model.scalar).update_deformation, n,
               [state.x, state.x, lo, lo, model.particle_body, state.neighbors, state.neighbor_count, state.guard, Fa, F_lo_a,
-               model.scalar(model.support_radius)], [F_out, F_lo_out, counters])
+               model.scalar(model.support_radius), *model.image_args()], [F_out, F_lo_out, counters])
     assert (state.guard.numpy() == 0).all()
     np.testing.assert_array_equal(F_out.numpy(), Fa.numpy())
     np.testing.assert_array_equal(F_lo_out.numpy(), F_lo)
