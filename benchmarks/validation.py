@@ -296,7 +296,8 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
 def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0, elastic_force: str = "variational",
            flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, dt_factor: float = 0.9,
            pressure_stiffness: float | None = None, support_radius: float = 2.0, initial_height: float = 2.0,
-           samples: int = 200, floor: str = "particles", floor_radius: float = 1.2) -> dict:
+           samples: int = 200, floor: str = "particles", floor_radius: float = 1.2,
+           pressure_force: str = "energy") -> dict:
     """The spread limit of Roussel & Coussot (2005): a wide, low cylinder of a yield-stress
     material spreads on a rough floor into a pile much wider than tall.
 
@@ -318,7 +319,8 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
     dx/2; height: the top of the particles within R_RC / 8 of the axis + dx/2 (as in
     ``slump``); profile: the top of each radial band R_RC / 8 wide (+ dx/2) over the theory
     at the band's middle. ``floor``: as in ``slump`` (``"particles"``, the default: pinned
-    layers of the same body under a disc of ``floor_radius`` R_RC)."""
+    layers of the same body under a disc of ``floor_radius`` R_RC). ``pressure_force``: as in
+    ``slump``."""
     wp, we = _we()
     _check_floor(floor)
     h_rc = 0.025
@@ -332,7 +334,8 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
     dx = h_rc / resolution
     mu = 20.0 * RHO * G * h_rc
     mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity,
-                      elastic_force=elastic_force, pressure_stiffness=pressure_stiffness)
+                      elastic_force=elastic_force, pressure_force=pressure_force,
+                      pressure_stiffness=pressure_stiffness)
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0), support_radius=support_radius * dx)
     from warp_esph.meshes import lattice_points
 
@@ -380,7 +383,7 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
     weight_scale = float(model.particle_mass.numpy()[free].sum()) * G * h_rc
     return {
         "case": "spread", "shallowness": shallowness, "resolution": resolution, "elastic_force": elastic_force,
-        "floor": floor,
+        "pressure_force": pressure_force, "floor": floor,
         "flow_rate": flow_rate, "particles": n, "dt": dt, "duration": float(t[-1]), "steps": steps,
         "initial_height": H_i, "initial_radius": R_i, "yield_length": ell,
         "volume_over_theory": n * dx**3 / volume,
