@@ -132,7 +132,7 @@ def spread_height_theory(radius: float, tau_y: float, rho: float = RHO, g: float
 
 def slump(S: float, resolution: int = 12, elastic_force: str = "variational", duration: float = 4.0,
           H0: float = 0.1, flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0,
-          dt_factor: float = 0.9, samples: int = 200, pressure_force: str = "energy", floor: str = "particles",
+          dt_factor: float = 0.9, samples: int = 200, pressure_force: str = "energy_spiky", floor: str = "particles",
           floor_radius: float = 3.2, pressure_stiffness: float | None = None, support_radius: float = 2.0,
           stiffness: float = 10.0, gravity_ramp: float = 0.0, floor_layers: int = FLOOR_LAYERS,
           aspect: float = 1.0) -> dict:
