@@ -130,6 +130,33 @@ def spread_height_theory(radius: float, tau_y: float, rho: float = RHO, g: float
     return math.sqrt(2.0 * tau_y * radius / (rho * g))
 
 
+def slump_model(S: float, resolution: int = 12, elastic_force: str = "variational", H0: float = 0.1,
+                flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, pressure_force: str = "energy",
+                floor: str = "particles", floor_radius: float = 3.2, pressure_stiffness: float | None = None,
+                support_radius: float = 2.0, stiffness: float = 10.0, floor_layers: int = FLOOR_LAYERS,
+                aspect: float = 1.0, dtype=None):
+    """``slump``'s scene (its arguments, its docstring): ``(model, free, mu, Y)``, the model in
+    ``dtype`` (default float32), the mask of its free particles, the shear modulus and the
+    yield stress."""
+    wp, we = _we()
+    _check_floor(floor)
+    R0 = H0 / (2.0 * aspect)
+    dx = 2.0 * R0 / resolution
+    sigma_y = S * RHO * G * H0
+    Y = sigma_y * math.sqrt(2.0 / 3.0)
+    mu = stiffness * RHO * G * H0
+    mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity,
+                      elastic_force=elastic_force, pressure_force=pressure_force, pressure_stiffness=pressure_stiffness)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0), support_radius=support_radius * dx)
+    from warp_esph.meshes import lattice_points
+
+    pts = lattice_points(np.array([-R0, 0.0, -R0]), np.array([R0, H0, R0]), dx)
+    pts = pts[np.hypot(pts[:, 0], pts[:, 2]) <= R0]  # what add_cylinder places
+    free = _add_on_floor(b, pts, mat, floor, floor_radius * R0, friction, "cylinder0", layers=floor_layers)
+    model = b.finalize(dtype=wp.float32 if dtype is None else dtype)
+    return model, free, mu, Y
+
+
 def slump(S: float, resolution: int = 12, elastic_force: str = "variational", duration: float = 4.0,
           H0: float = 0.1, flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0,
           dt_factor: float = 0.9, samples: int = 200, pressure_force: str = "energy_spiky", floor: str = "particles",
@@ -169,18 +196,11 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
         raise ValueError(f"aspect = {aspect!r} is not allowed: must be > 0 (H0 / (2 R0))")
     R0 = H0 / (2.0 * aspect)
     dx = 2.0 * R0 / resolution
-    sigma_y = S * RHO * G * H0
-    Y = sigma_y * math.sqrt(2.0 / 3.0)
-    mu = stiffness * RHO * G * H0
-    mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity,
-                      elastic_force=elastic_force, pressure_force=pressure_force, pressure_stiffness=pressure_stiffness)
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0), support_radius=support_radius * dx)
-    from warp_esph.meshes import lattice_points
-
-    pts = lattice_points(np.array([-R0, 0.0, -R0]), np.array([R0, H0, R0]), dx)
-    pts = pts[np.hypot(pts[:, 0], pts[:, 2]) <= R0]  # what add_cylinder places
-    free = _add_on_floor(b, pts, mat, floor, floor_radius * R0, friction, "cylinder0", layers=floor_layers)
-    model = b.finalize()
+    model, free, mu, Y = slump_model(S, resolution, H0=H0, flow_rate=flow_rate, viscosity=viscosity, friction=friction,
+                                     elastic_force=elastic_force, pressure_force=pressure_force, floor=floor,
+                                     floor_radius=floor_radius, pressure_stiffness=pressure_stiffness,
+                                     support_radius=support_radius, stiffness=stiffness, floor_layers=floor_layers,
+                                     aspect=aspect)
     n = int(free.sum())
     x0 = model.particle_x0.astype(np.float64)[free]
     r0 = np.hypot(x0[:, 0], x0[:, 2])

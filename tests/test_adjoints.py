@@ -118,7 +118,8 @@ def test_plastic_flow_adjoint(case, yield_stress, flow_rate, non_newtonian):
         tape = wp.Tape()
         with tape:
             mats = materials.make(S, lam=lam, model=wp.array([non_newtonian], dtype=wp.int32), **arrays)
-            wp.launch(kern, 1, [F, alpha, wp.zeros(1, dtype=wp.int32), mats, S(dt)], outs + [counters])
+            wp.launch(kern, 1, [F, wp.zeros(1, dtype=T.mat33), alpha, wp.zeros(1, dtype=wp.int32), mats, S(dt)],
+                      [outs[0], wp.zeros(1, dtype=T.mat33), *outs[1:], counters])
             wp.launch(_weighted_sum, 1, [outs[0], outs[2], outs[1], Wa, Wb], [out])
         if not grad:
             return out.numpy()[0]

@@ -39,6 +39,20 @@ def _run(model, steps, dt, state=None, solver=None):
     return a, solver
 
 
+def _launch_fit(fit, model, state, x, y, Fp, F_out, counters):
+    """``fit.update_deformation`` from ``x`` to ``y`` of ``Fp`` into ``F_out`` (the linear fit
+    also carries the round-off of the positions and of ``F``, ``State.x_lo``, ``F_lo``: 0 in,
+    discarded out)."""
+    S = model.scalar
+    ins = [x, y, model.particle_body, state.neighbors, state.neighbor_count, state.guard, Fp]
+    outs = [F_out]
+    if fit is deformation:
+        ins[2:2] = [wp.zeros_like(x), wp.zeros_like(x)]
+        ins.append(wp.zeros_like(Fp))
+        outs.append(wp.zeros_like(Fp))
+    wp.launch(fit.kernels(S).update_deformation, model.particle_count, ins + [S(model.support_radius)], outs + [counters])
+
+
 @pytest.mark.parametrize("fit", [deformation, curvature])
 @pytest.mark.parametrize("dtype,tol", [(wp.float64, 1e-11), (wp.float32, 2e-5)])
 def test_incremental_gradient_reproduces_affine_motion(dtype, tol, fit):
@@ -58,9 +72,7 @@ def test_incremental_gradient_reproduces_affine_motion(dtype, tol, fit):
     Fp = wp.array(np.tile(F_prev, (model.particle_count, 1, 1)), dtype=T.mat33)
     F_out = wp.zeros_like(Fp)
     counters = wp.zeros(4, dtype=wp.int32)
-    wp.launch(fit.kernels(model.scalar).update_deformation, model.particle_count,
-              [x, y, model.particle_body, state.neighbors, state.neighbor_count, state.guard, Fp, model.scalar(model.support_radius)],
-              [F_out, counters])
+    _launch_fit(fit, model, state, x, y, Fp, F_out, counters)
     guard = state.guard.numpy()
     assert (guard == 0).all(), "every particle of a 6^3 lattice has a usable neighbourhood"
     assert np.abs(F_out.numpy() - M @ F_prev).max() < tol
@@ -96,10 +108,7 @@ def test_corrected_fit_returns_the_gradient_of_a_bending_field_at_surface_partic
     for fit in (curvature, deformation):
         F_out = wp.zeros_like(Fp)
         counters = wp.zeros(4, dtype=wp.int32)
-        wp.launch(fit.kernels(model.scalar).update_deformation, model.particle_count,
-                  [x, y, model.particle_body, state.neighbors, state.neighbor_count, state.guard, Fp,
-                   model.scalar(model.support_radius)],
-                  [F_out, counters])
+        _launch_fit(fit, model, state, x, y, Fp, F_out, counters)
         errors[fit] = np.abs(F_out.numpy() - np.eye(3) - G).max() / scale
     assert (state.guard.numpy() == 0).all()
     assert errors[curvature] < 1e-3, errors
@@ -311,6 +320,7 @@ def test_yield_onset_under_uniaxial_stretch_and_volume_kept(model_name):
     alpha = state.alpha
     counters = wp.zeros(4, dtype=wp.int32)
     scratch = [wp.zeros(n, dtype=T.mat33), wp.zeros(n, dtype=S), wp.zeros(n, dtype=T.mat33), wp.zeros(n, dtype=T.mat33)]
+    F_lo, F_lo_flowed = wp.zeros(n, dtype=T.mat33), wp.zeros(n, dtype=T.mat33)
     x0 = model.particle_x0
     de = 2e-4
     onset = None
@@ -319,16 +329,19 @@ def test_yield_onset_under_uniaxial_stretch_and_volume_kept(model_name):
         e0, e1 = k * de, (k + 1) * de
         xa = wp.array(x0 * [1 + e0, 1, 1], dtype=T.vec3)
         xb = wp.array(x0 * [1 + e1, 1, 1], dtype=T.vec3)
-        wp.launch(kc, n, [F, alpha, model.particle_material, model.material_arrays(), S(dt)], scratch + [counters])
+        wp.launch(kc, n, [F, F_lo, alpha, model.particle_material, model.material_arrays(), S(dt)],
+                  [scratch[0], F_lo_flowed, *scratch[1:], counters])
         F_flowed = scratch[0].numpy()
         if onset is None and scratch[1].numpy().max() > 0.0:
             onset = e0  # the strain carried by F when the flow first ran
             Fin = F.numpy()
             assert np.allclose(np.linalg.det(F_flowed), np.linalg.det(Fin), rtol=1e-12)
         F_new = wp.zeros_like(F)
-        wp.launch(kd, n, [xa, xb, model.particle_body, state.neighbors, state.neighbor_count, state.guard, scratch[0],
-                          S(model.support_radius)], [F_new, counters])
-        F, alpha = F_new, wp.clone(scratch[1])
+        F_lo_new = wp.zeros_like(F)
+        zero = wp.zeros_like(xa)
+        wp.launch(kd, n, [xa, xb, zero, zero, model.particle_body, state.neighbors, state.neighbor_count, state.guard,
+                          scratch[0], F_lo_flowed, S(model.support_radius)], [F_new, F_lo_new, counters])
+        F, F_lo, alpha = F_new, F_lo_new, wp.clone(scratch[1])
     e_yield = Y / (2 * mu * math.sqrt(2.0 / 3.0))
     assert onset is not None
     assert onset == pytest.approx(e_yield, rel=0.05)

@@ -51,7 +51,7 @@ def _shear_kernel():
         P = mat33()
         for _ in range(steps):
             F = step * F
-            F, a = flow(F, a, mu, yield_stress, flow_rate, S(0.0), 0, dt, counters)
+            F, F_lo, a = flow(F, mat33(), a, mu, yield_stress, flow_rate, S(0.0), 0, dt, counters)
             P = stress(F, mu, lam, 0)
         # The spatial (Kirchhoff) stress P* F^T = U diag(sigma^2 P^) U^T: P* alone carries
         # the elastic rotation the shear's spin has accumulated.

@@ -1,7 +1,8 @@
 """Checkpoints: the full simulation state in one ``.npz`` file, written atomically.
 
 A checkpoint holds every array a step reads (``State.STATE_FIELDS``: ``x, v, F, alpha`` and
-the rest-configuration model's ``F_p``; an older checkpoint without it loads it as ``I``),
+the rest-configuration model's ``F_p`` and the round-off ``x_lo``, ``F_lo`` of ``x`` and ``F``;
+an older checkpoint without them loads them as ``I`` and 0),
 the simulated time, the current values of
 the per-material parameters (they may have been fitted or edited since the scene was
 built), the step and frame counters, and a free-form ``run`` record (the CLI stores the
@@ -142,7 +143,8 @@ def load_state(path, model: Model) -> tuple[State, dict]:
             f"{model_fingerprint(model)!r}: particles, bodies, colliders, fields or materials differ; was the scene edited?)"
         )
     n, np_dtype = model.particle_count, model.types.np_dtype
-    shapes = {"x": (n, 3), "v": (n, 3), "F": (n, 3, 3), "alpha": (n,), "F_p": (n, 3, 3)}
+    shapes = {"x": (n, 3), "v": (n, 3), "F": (n, 3, 3), "alpha": (n,), "F_p": (n, 3, 3), "x_lo": (n, 3),
+              "F_lo": (n, 3, 3)}
     shapes.update({f"material_{name}": (len(model.materials),) for name in Model.MATERIAL_FIELDS})
     for key, shape in shapes.items():
         if key not in arrays:

@@ -148,7 +148,7 @@ def same_state(model, name: str, state) -> None:
     n, K, T, dev = model.particle_count, model.max_neighbors, model.types, model.device
     want = {
         "x": ((n,), T.vec3), "v": ((n,), T.vec3), "F": ((n,), T.mat33), "alpha": ((n,), T.scalar),
-        "F_p": ((n,), T.mat33), "neighbors": ((n, K), wp.int32),
+        "F_p": ((n,), T.mat33), "x_lo": ((n,), T.vec3), "F_lo": ((n,), T.mat33), "F_flowed_lo": ((n,), T.mat33), "neighbors": ((n, K), wp.int32),
         "neighbor_count": ((n,), wp.int32), "guard": ((n,), wp.int32), "density": ((n,), T.scalar),
         "F_flowed": ((n,), T.mat33), "stress": ((n,), T.mat33), "F_inv": ((n,), T.mat33), "force": ((n,), T.vec3),
     }

@@ -61,8 +61,17 @@ class State:
         n, K, dev = model.particle_count, model.max_neighbors, model.device
         T = model.types
         self.x = wp.array(model.particle_x0, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+        # The positions' round-off (warp_esph/sim/roundoff.py), as F_lo for F below.
+        self.x_lo = wp.zeros(n, dtype=T.vec3, device=dev)
         self.v = wp.array(model.particle_v0, dtype=T.vec3, device=dev, requires_grad=requires_grad)
         self.F = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev, requires_grad=requires_grad)
+        # F's round-off, F + F_lo being the stored gradient to about twice the precision:
+        # the per-step changes of F near rest are a few units in F's last place, and
+        # rounding them away every step makes a pile at yield creep (docs/physics.md, the
+        # float32 creep floor; warp_esph/sim/roundoff.py). Not differentiated (it is below
+        # F's round-off; the adjoints treat F + F_lo as F). A state edited by hand keeps its
+        # round-off arrays: an error of half a unit in the last place of the old value.
+        self.F_lo = wp.zeros(n, dtype=T.mat33, device=dev)
         self.alpha = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad)
         # The plastic F_p of the rest-configuration comparison model (docs/method.md §7; I elsewhere).
         # The additive model's strain needs no field of its own: F holds I + eps there.
@@ -89,6 +98,7 @@ class State:
         self.pressure_density = (wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad)
                                  if model.separate_pressure_density else None)
         self.F_flowed = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
+        self.F_flowed_lo = wp.zeros(n, dtype=T.mat33, device=dev)
         self.stress = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
         self.F_inv = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
         self.force = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
@@ -104,9 +114,10 @@ class State:
         return self._neighbor_d2
 
     #: The arrays that define the simulation state (what a checkpoint must hold).
-    STATE_FIELDS = ("x", "v", "F", "alpha", "F_p")
-    #: Fields a checkpoint written before the comparison models lacks (then: initial values).
-    OPTIONAL_FIELDS = ("F_p",)
+    STATE_FIELDS = ("x", "v", "F", "alpha", "F_p", "x_lo", "F_lo")
+    #: Fields a checkpoint written before the comparison models (``F_p``) or the compensated
+    #: state (``x_lo``, ``F_lo``) lacks (then: initial values, I and 0).
+    OPTIONAL_FIELDS = ("F_p", "x_lo", "F_lo")
 
     def __setattr__(self, name, value):
         # A replaced array may not fit the model any more: ``checks.same_state`` checks again.

@@ -123,6 +123,8 @@ class _Checkpoint:
         self.F = wp.zeros(n, dtype=T.mat33, device=dev)
         self.alpha = wp.zeros(n, dtype=T.scalar, device=dev)
         self.F_p = wp.zeros(n, dtype=T.mat33, device=dev)
+        self.F_lo = wp.zeros(n, dtype=T.mat33, device=dev)
+        self.x_lo = wp.zeros(n, dtype=T.vec3, device=dev)
         self.time = 0.0
 
     def save(self, state):
@@ -268,6 +270,8 @@ class Rollout:
             init.v.assign(m.particle_v0)
             eye = np.tile(np.eye(3, dtype=m.types.np_dtype), (m.particle_count, 1, 1))
             init.F.assign(eye)
+            init.F_lo.zero_()
+            init.x_lo.zero_()
             init.F_p.assign(eye)
             init.alpha.zero_()
             init.time = 0.0
@@ -284,6 +288,8 @@ class Rollout:
                 else:
                     raise ValueError(f"{name} with shape {v.shape} is not allowed: must be {(m.particle_count, *shape)}")
             arr.assign(v)
+            if name in ("x0", "F0"):
+                getattr(init, STATE_GRADIENTS[name] + "_lo").zero_()  # the whole value is given
 
     def _taped_states(self, count: int) -> list[State]:
         if self._states is None or len(self._states) < count:

@@ -624,6 +624,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
     @wp.kernel(module="unique")
     def integrate(
         x_in: wp.array(dtype=vec3),
+        x_lo_in: wp.array(dtype=vec3),
         v_in: wp.array(dtype=vec3),
         f: wp.array(dtype=vec3),
         mass: wp.array(dtype=scalar),
@@ -649,6 +650,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         world: wp.array(dtype=wp.int32),
         n_tools: int,
         x_out: wp.array(dtype=vec3),
+        x_lo_out: wp.array(dtype=vec3),
         v_out: wp.array(dtype=vec3),
         rforce: wp.array(dtype=vec3),
         rtorque: wp.array(dtype=vec3),
@@ -659,8 +661,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         m = mass[i]
         # Every world meets the same tools; each reports its own reaction rows.
         base = world[i] * n_tools
-        x, v = kin.symplectic_euler(x_in[i], v_in[i], f[i], m, gravity, dt)
-        x, v = kin.static_colliders(x, v, dt, sc, m, world[i] * wp.static(n_planes + n_spheres + n_boxes), cforce, ctorque)
+        xe, x_lo, v = kin.symplectic_euler(x_in[i], x_lo_in[i], v_in[i], f[i], m, gravity, dt)
+        x, v = kin.static_colliders(xe, v, dt, sc, m, world[i] * wp.static(n_planes + n_spheres + n_boxes), cforce, ctorque)
         for c in range(wp.static(counts[0])):
             k = wp.static(offsets[0]) + c
             hit, xc, nl = shape_plane(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
@@ -698,6 +700,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
                 x = x1
                 v = v1
         x_out[i] = x
+        x_lo_out[i] = kin.placed_round_off(x, xe, x_lo)
         v_out[i] = v
 
     pk = pose_kernels(scalar)
@@ -947,14 +950,14 @@ class ToolSet:
             self.kernels.integrate,
             m.particle_count,
             [
-                state_in.x, state_in.v, state_out.force, m.particle_mass, T.vec3(*m.gravity), S(dt),
+                state_in.x, state_in.x_lo, state_in.v, state_out.force, m.particle_mass, T.vec3(*m.gravity), S(dt),
                 static_collider_struct(m),
                 state_out.tool_pose_p, state_out.tool_pose_q, self.param, self.static_friction, self.friction,
                 self.mesh_id, self.mesh_lo, self.mesh_hi, self.mesh_verts, self.mesh_tris, self.mesh_vofs, self.mesh_fofs,
                 S(self.margin),
                 self.pin, self.rest_x, self.pin_center, m.particle_world, int(n),
             ],
-            [state_out.x, state_out.v, state_out.reaction_force, state_out.reaction_torque,
+            [state_out.x, state_out.x_lo, state_out.v, state_out.reaction_force, state_out.reaction_torque,
              state_out.collider_force, state_out.collider_torque],
             device=dev,
         )

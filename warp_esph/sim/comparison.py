@@ -89,7 +89,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             stress_out[i] = scalar(2.0) * mu * eps + lam * tr * I
             F_inv_out[i] = I
         else:
-            Fe, a_new = flow(F, a, mu, mat.yield_stress[m], mat.flow_rate[m], mat.hardening[m], kind, dt, counters)
+            Fe, Fe_lo, a_new = flow(F, mat33(), a, mu, mat.yield_stress[m], mat.flow_rate[m], mat.hardening[m], kind, dt, counters)
             Fe_inv = wp.inverse(Fe)
             if d == 1:
                 # Rest configuration: F_total = F_e F_p is kept, F_p <- F_e_new^-1 F_total.
@@ -129,7 +129,8 @@ def kernels(scalar) -> types.SimpleNamespace:
         I = wp.identity(n=3, dtype=scalar)
         if d == 1:
             # Rest configuration: the total F against X, always with the initial lists; F kept
-            # (and counted) where the rest neighbourhood's guard holds (a singular A there).
+            # (and counted) where the rest neighbourhood's guard holds (a singular A there). The
+            # positions' round-off is not carried here (round-off arrays y, y).
             code = rest_guard[i]
             if code == 1:
                 wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
@@ -141,11 +142,11 @@ def kernels(scalar) -> types.SimpleNamespace:
                     A, B, C, D, E, same = cf.moment_sums(i, rest_x, y, body, rest_nbr, rest_count[i], h)
                     G = cf.corrected_fit(A, B, C, D, E)
                 else:
-                    A, B, same = moment_sums(i, rest_x, y, body, rest_nbr, rest_count[i], h)
-                    G = df.affine_fit(A, B)
+                    A, B, same = moment_sums(i, rest_x, y, y, y, body, rest_nbr, rest_count[i], h)
+                    G = I + df.affine_fit(A, B)
                 F = unless_inverted(G * wp.inverse(Fp[i]), F, counters)
         else:
-            A, B, same = moment_sums(i, x, y, body, nbr, count[i], h)
+            A, B, same = moment_sums(i, x, y, y, y, body, nbr, count[i], h)
             dF = step_gradient(A, B, guard[i], counters)
             if d == 2:
                 # Additive: F = I + eps, eps <- eps + (dF^T dF - I) / 2.
@@ -197,7 +198,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 M = fn.variational_map(volume[i], stress[i], wp.inverse(Fp[i]), wp.inverse(cf.corrected_moment(A, C, K)))
                 fi = cf.variational_forces(i, rest_x, body, rest_nbr, rest_count[i], M, K, h, f)
             else:
-                A, B, same = moment_sums(i, rest_x, rest_x, body, rest_nbr, rest_count[i], h)
+                A, B, same = moment_sums(i, rest_x, rest_x, rest_x, rest_x, body, rest_nbr, rest_count[i], h)
                 M = fn.variational_map(volume[i], stress[i], wp.inverse(Fp[i]), wp.inverse(A))
                 fi = fn.variational_forces(i, rest_x, body, rest_nbr, rest_count[i], M, h, f)
             wp.atomic_add(f, i, fi)

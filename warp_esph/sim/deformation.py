@@ -21,6 +21,7 @@ import warp as wp
 
 from .._types import type_set
 from . import smoothing
+from .roundoff import compensated_sum
 
 #: Indices into the solver's guard counters.
 COUNT_FEW_NEIGHBORS = 0
@@ -39,13 +40,24 @@ def funcs(scalar) -> types.SimpleNamespace:
         i: int,
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
         nbr: wp.array2d(dtype=wp.int32),
         n: int,
         h: scalar,
     ):
-        """Eqs. 5-7: the fit's moments ``A = sum w xb xb^T``, ``B = sum w yb xb^T`` and the
-        number of same-body neighbours closer than ``h`` (the guard's).
+        """Eqs. 5-7: the fit's moments ``A = sum w xb xb^T``, ``B - A = sum w ub xb^T`` (returned
+        as ``B``; ``ub = yb - xb``, the step's relative displacement) and the number of
+        same-body neighbours closer than ``h`` (the guard's).
+
+        ``ub = u_j - u_i`` with each particle's displacement ``u = (y - x) + (y_lo - x_lo)``
+        (``x_lo``, ``y_lo``: the positions' round-off, ``State.x_lo``) rather than ``y_j -
+        y_i``: ``y - x`` is exact in floating point (the two positions are close), so the
+        fit's increment ``dF - I`` is exactly 0 at rest and otherwise as precise as the
+        motion, where ``B A^-1`` minus ``I`` would carry the round-off of the absolute
+        positions and of the inverse, units in the last place of ``F`` every step
+        (docs/physics.md, the float32 creep floor).
 
         Only the raw sums live in this loop: the caller's inverse must not see a loop
         accumulator, whose adjoint Warp would not replay (docs/method.md, Warp pitfall 1).
@@ -53,7 +65,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         A = mat33()
         B = mat33()
         xi = x[i]
-        yi = y[i]
+        ui = (y[i] - xi) + (y_lo[i] - x_lo[i])
         bi = body[i]
         c6 = sm.poly6_coef(h)
         same = int(0)
@@ -61,11 +73,11 @@ def funcs(scalar) -> types.SimpleNamespace:
             j = nbr[i, k]
             if body[j] == bi:
                 xb = x[j] - xi
-                yb = y[j] - yi
+                ub = ((y[j] - x[j]) + (y_lo[j] - x_lo[j])) - ui
                 r2 = wp.dot(xb, xb)
                 w = sm.w_poly6_c(r2, h, c6)
                 A += w * wp.outer(xb, xb)
-                B += w * wp.outer(yb, xb)
+                B += w * wp.outer(ub, xb)
                 # Rows may reach beyond h (neighbors.select_neighbors): only neighbours
                 # of non-zero weight count for the guard.
                 same += wp.where(r2 < h * h, 1, 0)
@@ -73,21 +85,28 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     @wp.func
     def affine_fit(A: mat33, B: mat33) -> mat33:
-        """Eqs. 5-6: the least-squares affine map ``B A^-1`` of the weighted moments."""
+        """Eqs. 5-6: the least-squares affine map ``B A^-1`` of the weighted moments; of the
+        displacement moment ``B - A`` (``moment_sums``) it is ``dF - I``."""
         return B * wp.inverse(A)
 
     @wp.func
-    def step_gradient(A: mat33, B: mat33, code: int, counters: wp.array(dtype=wp.int32)) -> mat33:
-        """This step's ``dF = B A^-1`` (eqs. 4-6); ``I``, counted, where a guard of paper §4
-        holds (``code``: ``neighbors.GUARD_*``)."""
-        dF = wp.identity(n=3, dtype=scalar)
+    def step_increment(A: mat33, Bu: mat33, code: int, counters: wp.array(dtype=wp.int32)) -> mat33:
+        """This step's ``dF - I`` (eqs. 4-6); 0, counted, where a guard of paper §4 holds
+        (``code``: ``neighbors.GUARD_*``)."""
+        D = mat33()
         if code == 1:
             wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
         elif code == 2:
             wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
         else:
-            dF = affine_fit(A, B)
-        return dF
+            D = affine_fit(A, Bu)
+        return D
+
+    @wp.func
+    def step_gradient(A: mat33, Bu: mat33, code: int, counters: wp.array(dtype=wp.int32)) -> mat33:
+        """This step's ``dF = B A^-1`` (eqs. 4-6); ``I``, counted, where a guard of paper §4
+        holds (``code``: ``neighbors.GUARD_*``)."""
+        return wp.identity(n=3, dtype=scalar) + step_increment(A, Bu, code, counters)
 
     @wp.func
     def unless_inverted(candidate: mat33, F: mat33, counters: wp.array(dtype=wp.int32)) -> mat33:
@@ -100,13 +119,25 @@ def funcs(scalar) -> types.SimpleNamespace:
         return out
 
     @wp.func
-    def deformation_update(A: mat33, B: mat33, code: int, F: mat33, counters: wp.array(dtype=wp.int32)) -> mat33:
-        """Eq. 8 with the guards of paper §4: ``F <- dF F`` unless guarded or inverted."""
-        # A guarded particle gets dF = I: I F = F exactly, and det F > 0 always holds.
-        return unless_inverted(step_gradient(A, B, code, counters) * F, F, counters)
+    def deformation_update(A: mat33, Bu: mat33, code: int, F: mat33, F_lo: mat33, counters: wp.array(dtype=wp.int32)):
+        """Eq. 8 with the guards of paper §4: ``F <- dF F`` unless guarded or inverted, of the
+        compensated ``F + F_lo`` (``State.F_lo``); returns the new ``(F, F_lo)``."""
+        # As F + (dF - I) F with F's round-off carried: the step's increment, a few units in
+        # F's last place near rest, is not rounded away (docs/physics.md, the float32 creep
+        # floor). A guarded particle gets dF - I = 0 and keeps F + F_lo, whose det > 0.
+        F_new, F_new_lo = compensated_sum(F, F_lo + step_increment(A, Bu, code, counters) * F)
+        out = F
+        out_lo = F_lo
+        if wp.determinant(F_new) > scalar(0.0):
+            out = F_new
+            out_lo = F_new_lo
+        else:
+            wp.atomic_add(counters, COUNT_INVERTED, 1)
+        return out, out_lo
 
     return types.SimpleNamespace(
-        moment_sums=moment_sums, affine_fit=affine_fit, step_gradient=step_gradient, unless_inverted=unless_inverted,
+        moment_sums=moment_sums, affine_fit=affine_fit, step_increment=step_increment,
+        step_gradient=step_gradient, unless_inverted=unless_inverted,
         deformation_update=deformation_update,
     )
 
@@ -122,23 +153,31 @@ def kernels(scalar) -> types.SimpleNamespace:
     def update_deformation(
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         guard: wp.array(dtype=wp.int32),
         F_prev: wp.array(dtype=mat33),
+        F_prev_lo: wp.array(dtype=mat33),
         h: scalar,
         F_out: wp.array(dtype=mat33),
+        F_out_lo: wp.array(dtype=mat33),
         counters: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
-        A, B, same = fn.moment_sums(i, x, y, body, nbr, count[i], h)
-        F_out[i] = fn.deformation_update(A, B, guard[i], F_prev[i], counters)
+        A, B, same = fn.moment_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h)
+        F_new, F_new_lo = fn.deformation_update(A, B, guard[i], F_prev[i], F_prev_lo[i], counters)
+        F_out[i] = F_new
+        F_out_lo[i] = F_new_lo
 
     @wp.kernel(enable_backward=False)
     def update_deformation_adjoint(
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
@@ -162,13 +201,14 @@ def kernels(scalar) -> types.SimpleNamespace:
         G = adj_F_out[i]
         Fp = F_prev[i]
         code = guard[i]
-        A, B, same = fn.moment_sums(i, x, y, body, nbr, count[i], h)
+        A, B, same = fn.moment_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h)
         if code == 1 or code == 2:
             adj_F_prev[i] = adj_F_prev[i] + G
             return
         Ainv = wp.inverse(A)
-        dF = B * Ainv
-        if wp.determinant(dF * Fp) <= scalar(0.0):
+        D = B * Ainv
+        dF = wp.identity(n=3, dtype=scalar) + D
+        if wp.determinant(Fp + D * Fp) <= scalar(0.0):
             adj_F_prev[i] = adj_F_prev[i] + G
             return
         adj_F_prev[i] = adj_F_prev[i] + wp.transpose(dF) * G
@@ -219,17 +259,18 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     adjoint, which tests compare it against)."""
     k = kernels(model.scalar)
     inputs = [
-        state_in.x, state_out.x, model.particle_body, state_out.neighbors, state_out.neighbor_count, state_out.guard,
-        state_out.F_flowed, model.scalar(model.support_radius),
+        state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
+        state_out.neighbor_count, state_out.guard, state_out.F_flowed, state_out.F_flowed_lo,
+        model.scalar(model.support_radius),
     ]
+    outputs = [state_out.F, state_out.F_lo, counters]
     tape = recording_tape()
     grads = (state_in.x, state_out.x, state_out.F_flowed, state_out.F)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
-        wp.launch(k.update_deformation, model.particle_count, inputs, [state_out.F, counters], device=model.device)
+        wp.launch(k.update_deformation, model.particle_count, inputs, outputs, device=model.device)
         return
     # Under a tape: the forward unrecorded, and the hand-written adjoint in its place.
-    wp.launch(k.update_deformation, model.particle_count, inputs, [state_out.F, counters], device=model.device,
-              record_tape=False)
+    wp.launch(k.update_deformation, model.particle_count, inputs, outputs, device=model.device, record_tape=False)
 
     tape.record_func(lambda: launch_update_deformation_adjoint(model, state_in, state_out), list(grads))
 
@@ -240,8 +281,8 @@ def launch_update_deformation_adjoint(model, state_in, state_out):
     wp.launch(
         kernels(model.scalar).update_deformation_adjoint, model.particle_count,
         [
-            state_in.x, state_out.x, model.particle_body, state_out.neighbors, state_out.neighbor_count, state_out.guard,
-            state_out.F_flowed, model.scalar(model.support_radius), state_out.F.grad, state_in.x.grad, state_out.x.grad,
+            state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
+            state_out.neighbor_count, state_out.guard, state_out.F_flowed, model.scalar(model.support_radius), state_out.F.grad, state_in.x.grad, state_out.x.grad,
             state_out.F_flowed.grad,
         ],
         device=model.device, record_tape=False,

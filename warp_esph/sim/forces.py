@@ -193,7 +193,8 @@ def kernels(scalar) -> types.SimpleNamespace:
             # (A rest-configuration material's variational force is comparison.py's.)
             # A from its own function: its inverse must not see a loop accumulator
             # (docs/method.md, Warp pitfall 1).
-            A, B, same = moment_sums(i, x, x, body, nbr, count[i], h)
+            # The moments of x alone (y = x and the same round-off: B - A = 0).
+            A, B, same = moment_sums(i, x, x, x, x, body, nbr, count[i], h)
             M = fn.variational_map(volume[i], stress[i], F[i], wp.inverse(A))
             fi = fn.variational_forces(i, x, body, nbr, count[i], M, h, f)
         wp.atomic_add(f, i, fi)

@@ -6,8 +6,9 @@ the same functions for every formula (``plasticity.guarded_flow_step``,
 ``forces.principal_stress`` / ``polynomial_stress``, ``forces.elastic_pair_force`` /
 ``variational_pair_force``, ``pressure.sph_pair_force``). What it saves:
 
-* one SVD of ``F`` instead of four: the plastic flow ``F_e = U diag(g) V^T`` keeps the
-  singular vectors, so the stress reuses ``U, g, V`` instead of decomposing ``F_e``
+* one SVD of ``F`` instead of four: the plastic flow ``F_e = F + U diag(g - sigma) V^T``
+  (``isotropic.isotropic_change``, compensated into ``F_lo``) keeps the singular vectors,
+  so the stress reuses ``U, g, V`` instead of decomposing ``F_e``
   again (and the SVD maps' own decompositions, there for their adjoints, are gone);
   the stress is an isotropic function of ``F_e``, so the result is the same up to
   round-off (in float32 closer to a float64 step than the differentiable kernels:
@@ -34,6 +35,7 @@ import warp as wp
 
 from .._types import type_set
 from . import deformation, forces, isotropic, materials, neighbors, plasticity, pressure, smoothing
+from .roundoff import compensated_sum
 
 
 @functools.cache
@@ -54,6 +56,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         x: wp.array(dtype=vec3),
         v: wp.array(dtype=vec3),
         F_in: wp.array(dtype=mat33),
+        F_lo_in: wp.array(dtype=mat33),
         alpha_in: wp.array(dtype=scalar),
         material: wp.array(dtype=wp.int32),
         mat: Materials,
@@ -71,6 +74,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         min_neighbors: int,
         max_condition: scalar,
         F_out: wp.array(dtype=mat33),
+        F_lo_out: wp.array(dtype=mat33),
         alpha_out: wp.array(dtype=scalar),
         stress_out: wp.array(dtype=mat33),
         F_inv_out: wp.array(dtype=mat33),
@@ -86,6 +90,7 @@ def kernels(scalar) -> types.SimpleNamespace:
 
         # 1. Plastic flow (plasticity.flow) with a single SVD.
         Fe = F
+        Fe_lo = F_lo_in[i]
         a_new = alpha_in[i]
         U = mat33()
         s = vec3()
@@ -98,7 +103,8 @@ def kernels(scalar) -> types.SimpleNamespace:
                 s, mu, mat.yield_stress[m], mat.flow_rate[m], mat.hardening[m], a_new, dt, kind, counters
             )
             if flowed != 0:
-                Fe = iso.from_principal(U, g, V)
+                # As plasticity.flow: F + F_lo plus the flow's change, compensated.
+                Fe, Fe_lo = compensated_sum(F, Fe_lo + iso.from_principal(U, g - s, V))
                 s = g
                 a_new = a_flow
 
@@ -112,6 +118,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             P = iso.from_principal(U, fo.principal_stress(s, mu, lam), V)
         Finv = wp.inverse(Fe)
         F_out[i] = Fe
+        F_lo_out[i] = Fe_lo
         alpha_out[i] = a_new
         stress_out[i] = P
         F_inv_out[i] = Finv
@@ -143,7 +150,8 @@ def kernels(scalar) -> types.SimpleNamespace:
         kind_el = mat.elastic_force[m]
         M = mat33()
         if kind_el == 1:
-            A, B, same = df.moment_sums(i, x, x, body, nbr, count[i], h)
+            # The moments of x alone (y = x and the same round-off: B - A = 0).
+            A, B, same = df.moment_sums(i, x, x, x, x, body, nbr, count[i], h)
             if guard_code(A, same, min_neighbors, max_condition) == 0:
                 M = fo.variational_map(Vol_i, P, Fe, wp.inverse(A))
             else:
@@ -181,24 +189,30 @@ def kernels(scalar) -> types.SimpleNamespace:
     def update_deformation(
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         F_prev: wp.array(dtype=mat33),
+        F_prev_lo: wp.array(dtype=mat33),
         h: scalar,
         min_neighbors: int,
         max_condition: scalar,
         F_out: wp.array(dtype=mat33),
+        F_out_lo: wp.array(dtype=mat33),
         guard: wp.array(dtype=wp.int32),
         counters: wp.array(dtype=wp.int32),
     ):
         """deformation.update_deformation with the neighbourhood guard of
         neighbors.select_neighbors evaluated here, on the moment matrix A of the fit."""
         i = wp.tid()
-        A, B, same = df.moment_sums(i, x, y, body, nbr, count[i], h)
+        A, B, same = df.moment_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h)
         code = guard_code(A, same, min_neighbors, max_condition)
         guard[i] = code
-        F_out[i] = df.deformation_update(A, B, code, F_prev[i], counters)
+        F_new, F_new_lo = df.deformation_update(A, B, code, F_prev[i], F_prev_lo[i], counters)
+        F_out[i] = F_new
+        F_out_lo[i] = F_new_lo
 
     return types.SimpleNamespace(constitutive_forces=constitutive_forces, update_deformation=update_deformation)
 
@@ -221,14 +235,15 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
         kernels(S).constitutive_forces,
         model.particle_count,
         [
-            state_in.x, state_in.v, state_in.F, state_in.alpha, model.particle_material, model.material_arrays(),
+            state_in.x, state_in.v, state_in.F, state_in.F_lo, state_in.alpha, model.particle_material, model.material_arrays(),
             model.particle_body, model.particle_volume, scratch.pressure, scratch.sph_volume,
             pressure.pressure_density(model, state_out), scratch.pressure_volume() if own else scratch.sph_volume,
             state_out.neighbors, state_out.neighbor_count, S(model.support_radius), S(dt), 2 if own else int(sph),
             scratch.min_neighbors,
             S(scratch.max_condition),
         ],
-        [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, state_out.force, scratch.counters],
+        [state_out.F_flowed, state_out.F_flowed_lo, state_out.alpha, state_out.stress, state_out.F_inv, state_out.force,
+         scratch.counters],
         device=model.device,
         record_tape=tape is None,
     )
@@ -266,10 +281,11 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
         kernels(S).update_deformation,
         model.particle_count,
         [
-            state_in.x, state_out.x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
-            state_out.F_flowed, S(model.support_radius), scratch.min_neighbors, S(scratch.max_condition),
+            state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
+            state_out.neighbor_count, state_out.F_flowed, state_out.F_flowed_lo, S(model.support_radius), scratch.min_neighbors,
+            S(scratch.max_condition),
         ],
-        [state_out.F, state_out.guard, scratch.counters],
+        [state_out.F, state_out.F_lo, state_out.guard, scratch.counters],
         device=model.device,
         record_tape=tape is None,
     )

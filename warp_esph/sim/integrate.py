@@ -18,6 +18,7 @@ import warp as wp
 
 from .._types import type_set
 from . import colliders
+from .roundoff import compensated_sum
 
 
 @functools.cache
@@ -54,10 +55,22 @@ def funcs(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.SimpleNa
     StaticColliders = struct(scalar)
 
     @wp.func
-    def symplectic_euler(x: vec3, v: vec3, f: vec3, mass: scalar, gravity: vec3, dt: scalar):
-        """``u <- u + dt (f / m + g)``, then ``x <- x + dt u`` (docs/method.md §1.5)."""
+    def symplectic_euler(x: vec3, x_lo: vec3, v: vec3, f: vec3, mass: scalar, gravity: vec3, dt: scalar):
+        """``u <- u + dt (f / m + g)``, then ``x <- x + dt u`` (docs/method.md §1.5), of the
+        position ``x + x_lo`` with its round-off carried (``roundoff.py``, ``State.x_lo``);
+        returns the new ``x, x_lo, u``."""
         v_new = v + dt * (f / mass + gravity)
-        return x + dt * v_new, v_new
+        x_new, x_new_lo = compensated_sum(x, x_lo + dt * v_new)
+        return x_new, x_new_lo, v_new
+
+    @wp.func
+    def placed_round_off(x: vec3, x_moved: vec3, x_lo: vec3) -> vec3:
+        """``x_lo`` of a particle whose integrated position ``x_moved`` a collider, tool or
+        pin may have replaced by ``x``: 0 where it did (``x`` is then the position)."""
+        out = x_lo
+        if wp.length_sq(x - x_moved) > scalar(0.0):
+            out = vec3()
+        return out
 
     @wp.func
     def react(x: vec3, v: vec3, v0: vec3, mass: scalar, dt: scalar, ref: vec3, row: int,
@@ -90,7 +103,8 @@ def funcs(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.SimpleNa
             react(x, v, v0, mass, dt, sc.box_center[c], row + wp.static(n_planes + n_spheres) + c, cforce, ctorque)
         return x, v
 
-    return types.SimpleNamespace(symplectic_euler=symplectic_euler, static_colliders=static_colliders)
+    return types.SimpleNamespace(symplectic_euler=symplectic_euler, placed_round_off=placed_round_off,
+                                 static_colliders=static_colliders)
 
 
 @functools.cache
@@ -103,6 +117,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
     @wp.kernel
     def integrate(
         x_in: wp.array(dtype=vec3),
+        x_lo_in: wp.array(dtype=vec3),
         v_in: wp.array(dtype=vec3),
         f: wp.array(dtype=vec3),
         mass: wp.array(dtype=scalar),
@@ -111,15 +126,17 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
         sc: StaticColliders,
         world: wp.array(dtype=wp.int32),
         x_out: wp.array(dtype=vec3),
+        x_lo_out: wp.array(dtype=vec3),
         v_out: wp.array(dtype=vec3),
         cforce: wp.array(dtype=vec3),
         ctorque: wp.array(dtype=vec3),
     ):
         i = wp.tid()
         m = mass[i]
-        x, v = fn.symplectic_euler(x_in[i], v_in[i], f[i], m, gravity, dt)
-        x, v = fn.static_colliders(x, v, dt, sc, m, world[i] * wp.static(n_planes + n_spheres + n_boxes), cforce, ctorque)
+        xe, x_lo, v = fn.symplectic_euler(x_in[i], x_lo_in[i], v_in[i], f[i], m, gravity, dt)
+        x, v = fn.static_colliders(xe, v, dt, sc, m, world[i] * wp.static(n_planes + n_spheres + n_boxes), cforce, ctorque)
         x_out[i] = x
+        x_lo_out[i] = fn.placed_round_off(x, xe, x_lo)
         v_out[i] = v
 
     @wp.kernel
@@ -152,9 +169,9 @@ def launch_integrate(model, state_in, state_out, dt):
     wp.launch(
         kernels(S, len(m.planes), len(m.spheres), len(m.boxes)).integrate,
         m.particle_count,
-        [state_in.x, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt), static_collider_struct(m),
-         m.particle_world],
-        [state_out.x, state_out.v, state_out.collider_force, state_out.collider_torque],
+        [state_in.x, state_in.x_lo, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt),
+         static_collider_struct(m), m.particle_world],
+        [state_out.x, state_out.x_lo, state_out.v, state_out.collider_force, state_out.collider_torque],
         device=m.device,
     )
 

@@ -5,7 +5,7 @@
 go negative for an inverted ``F``: that is Irving et al.'s rotation-variant SVD.
 
 Its built-in adjoint is wrong where singular values repeat, which is every particle at
-rest (``F = I``). The two functions here carry their own adjoints instead:
+rest (``F = I``). The functions here carry their own adjoints instead:
 
 * ``singular_values(F)``: ``dsigma_i = u_i^T dF v_i``, exact everywhere.
 * ``isotropic_map(F, g, d1) = U diag(g) V^T`` for ``g = f(sigma)`` computed by the caller
@@ -15,6 +15,8 @@ rest (``F = I``). The two functions here carry their own adjoints instead:
   ``F``. ``D2 = (g_i + g_j)/(sigma_i + sigma_j)`` follows from ``g``; the divided
   difference ``D1 = (g_i - g_j)/(sigma_i - sigma_j)`` must be passed in as ``d1``
   (pairs 01, 02, 12) because only the caller knows its limit where ``sigma_i = sigma_j``.
+* ``isotropic_change(F, g, d1) = U diag(g - sigma) V^T``, ``isotropic_map`` less ``F``: the
+  plastic flow's change, added to ``F`` so that a small flow keeps ``F`` to the last bit.
 """
 
 import functools
@@ -70,14 +72,14 @@ def funcs(scalar) -> types.SimpleNamespace:
             den = wp.where(den < scalar(0.0), -eps, eps)
         return (gi + gj) / den
 
-    @wp.func_grad(isotropic_map)
-    def adj_isotropic_map(F: mat33, g: vec3, d1: vec3, adj_ret: mat33):
+    @wp.func
+    def isotropic_map_adjoint(F: mat33, g: vec3, d1: vec3, adj_ret: mat33):
+        """The adjoints ``(adj F, adj g)`` of ``isotropic_map`` (module doc)."""
         U = mat33()
         s = vec3()
         V = mat33()
         wp.svd3(F, U, s, V)
         C = wp.transpose(U) * adj_ret * V
-        wp.adjoint[g] += vec3(C[0, 0], C[1, 1], C[2, 2])
         M = mat33()
         # pair (0, 1)
         sym = scalar(0.5) * (C[0, 1] + C[1, 0])
@@ -97,6 +99,33 @@ def funcs(scalar) -> types.SimpleNamespace:
         d2 = _d2(g[1], g[2], s[1], s[2])
         M[1, 2] = d1[2] * sym + d2 * skw
         M[2, 1] = d1[2] * sym - d2 * skw
-        wp.adjoint[F] += U * M * wp.transpose(V)
+        return U * M * wp.transpose(V), vec3(C[0, 0], C[1, 1], C[2, 2])
 
-    return types.SimpleNamespace(singular_values=singular_values, isotropic_map=isotropic_map, from_principal=from_principal)
+    @wp.func_grad(isotropic_map)
+    def adj_isotropic_map(F: mat33, g: vec3, d1: vec3, adj_ret: mat33):
+        aF, ag = isotropic_map_adjoint(F, g, d1, adj_ret)
+        wp.adjoint[F] += aF
+        wp.adjoint[g] += ag
+
+    @wp.func
+    def isotropic_change(F: mat33, g: vec3, d1: vec3) -> mat33:
+        """``isotropic_map(F, g, d1) - F = U diag(g - sigma) V^T``: where ``g`` is close to
+        ``sigma`` (a small plastic flow) the change alone, added to ``F`` by the caller, keeps
+        ``F`` to the last bit, where ``U diag(g) V^T`` rebuilds ``F`` with the SVD's error,
+        units in the last place every step (docs/physics.md, the float32 creep floor). Its
+        adjoint is ``isotropic_map``'s less the identity."""
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        return from_principal(U, g - s, V)
+
+    @wp.func_grad(isotropic_change)
+    def adj_isotropic_change(F: mat33, g: vec3, d1: vec3, adj_ret: mat33):
+        aF, ag = isotropic_map_adjoint(F, g, d1, adj_ret)
+        wp.adjoint[F] += aF - adj_ret
+        wp.adjoint[g] += ag
+
+
+    return types.SimpleNamespace(singular_values=singular_values, isotropic_map=isotropic_map,
+                                 isotropic_change=isotropic_change, from_principal=from_principal)

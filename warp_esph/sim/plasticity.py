@@ -24,6 +24,7 @@ import warp as wp
 
 from .._types import type_set
 from . import forces, isotropic, materials
+from .roundoff import compensated_sum
 
 #: Index into the solver's guard counters: plastic flow skipped because min sigma < 0.01.
 COUNT_PLASTICITY_SKIPPED = 3
@@ -142,6 +143,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     @wp.func
     def flow(
         F: mat33,
+        F_lo: mat33,
         a: scalar,
         mu: scalar,
         yield_stress: scalar,
@@ -151,10 +153,12 @@ def funcs(scalar) -> types.SimpleNamespace:
         dt: scalar,
         counters: wp.array(dtype=wp.int32),
     ):
-        """``(F_e, alpha)`` after this step's plastic flow of ``F``, differentiable: the new
-        singular values through ``isotropic_map`` with the divided differences of
-        ``g = c s^p`` its adjoint needs."""
+        """``(F_e, F_e_lo, alpha)`` after this step's plastic flow of ``F + F_lo`` (``F_lo``:
+        ``F``'s round-off, ``State.F_lo``), differentiable: the new singular values through
+        ``isotropic_change`` with the divided differences of ``g = c s^p`` its adjoint needs.
+        The decomposition is ``F``'s: ``F_lo`` is below its round-off."""
         Fe = F
+        Fe_lo = F_lo
         a_new = a
         if flow_rate > scalar(0.0):
             s = iso.singular_values(F)
@@ -165,9 +169,10 @@ def funcs(scalar) -> types.SimpleNamespace:
                     power_difference(s[0], s[2], p, c),
                     power_difference(s[1], s[2], p, c),
                 )
-                Fe = iso.isotropic_map(F, g, d1)
+                # F + F_lo plus the flow's change, compensated (State.F_lo).
+                Fe, Fe_lo = compensated_sum(F, F_lo + iso.isotropic_change(F, g, d1))
                 a_new = a_flow
-        return Fe, a_new
+        return Fe, Fe_lo, a_new
 
     return types.SimpleNamespace(
         flow=flow, flow_step=flow_step, guarded_flow_step=guarded_flow_step, flow_fraction=flow_fraction,
@@ -186,11 +191,13 @@ def kernels(scalar) -> types.SimpleNamespace:
     @wp.kernel
     def constitutive_update(
         F_in: wp.array(dtype=mat33),
+        F_lo_in: wp.array(dtype=mat33),
         alpha_in: wp.array(dtype=scalar),
         material: wp.array(dtype=wp.int32),
         mat: Materials,
         dt: scalar,
         F_out: wp.array(dtype=mat33),
+        F_lo_out: wp.array(dtype=mat33),
         alpha_out: wp.array(dtype=scalar),
         stress_out: wp.array(dtype=mat33),
         F_inv_out: wp.array(dtype=mat33),
@@ -201,8 +208,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         m = material[i]
         kind = mat.model[m]
         mu = mat.mu[m]
-        Fe, a_new = flow(F_in[i], alpha_in[i], mu, mat.yield_stress[m], mat.flow_rate[m], mat.hardening[m], kind, dt, counters)
+        Fe, Fe_lo, a_new = flow(F_in[i], F_lo_in[i], alpha_in[i], mu, mat.yield_stress[m], mat.flow_rate[m], mat.hardening[m],
+                                kind, dt, counters)
         F_out[i] = Fe
+        F_lo_out[i] = Fe_lo
         alpha_out[i] = a_new
         stress_out[i] = stress(Fe, mu, mat.lam[m], kind)
         F_inv_out[i] = wp.inverse(Fe)
@@ -424,8 +433,8 @@ def launch_constitutive_update(model, state_in, state_out, dt, counters):
     wp.launch(
         kernels(model.scalar).constitutive_update,
         model.particle_count,
-        [state_in.F, state_in.alpha, model.particle_material, model.material_arrays(), model.scalar(dt)],
-        [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, counters],
+        [state_in.F, state_in.F_lo, state_in.alpha, model.particle_material, model.material_arrays(), model.scalar(dt)],
+        [state_out.F_flowed, state_out.F_flowed_lo, state_out.alpha, state_out.stress, state_out.F_inv, counters],
         device=model.device,
     )
 
@@ -448,8 +457,8 @@ def launch_constitutive_update_adjoint(model, state_in, state_out, dt, counters,
         )
         return
     mats = model.material_arrays()
-    inputs = [state_in.F, state_in.alpha, model.particle_material, mats, model.scalar(dt)]
-    outputs = [state_out.F_flowed, state_out.alpha, state_out.stress, state_out.F_inv, counters]
+    inputs = [state_in.F, state_in.F_lo, state_in.alpha, model.particle_material, mats, model.scalar(dt)]
+    outputs = [state_out.F_flowed, state_out.F_flowed_lo, state_out.alpha, state_out.stress, state_out.F_inv, counters]
     wp.launch(
         kernels(model.scalar).constitutive_update, model.particle_count, inputs, outputs,
         adj_inputs=[tape.get_adjoint(a) for a in inputs], adj_outputs=[tape.get_adjoint(a) for a in outputs],

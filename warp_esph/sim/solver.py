@@ -369,5 +369,8 @@ class Solver:
                 curvature.launch_update_deformation(m, state_in, state_out, scratch.counters, self.hand_adjoints)
             else:
                 deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, self.hand_adjoints)
+            if not fast and (self._cmp or self._curved):
+                # Their updates rebuild F without carrying its round-off (State.F_lo).
+                state_out.F_lo.zero_()
         state_out.time = state_in.time + dt
         self.step_count += 1
