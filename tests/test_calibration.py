@@ -125,7 +125,14 @@ def test_diagnostics_flag_an_unobservable_yield_stress(yield_stress, flagged, dr
     """With a yield stress far below the stresses of the impact, the flow rule's
     ``(|s| - Y) / |s|`` hardly depends on it: the diagnostics must say the data do not
     determine it (and still determine the flow rate). At a yield stress the stresses are
-    comparable to, they must not."""
+    comparable to, the data depend on it as much as on the flow rate and fix it to 2 %.
+
+    With the default pressure force (energy_spiky) the drop at 300 Pa fixes both to 1.6 %
+    and 0.40 % (sensitivity 307 against 1259), but the two are correlated (|r| = 0.980,
+    measured; 0.929 with the energy force, which left both determined), so the diagnostics
+    flag the pair as a combination, and only that. Measured |r| at 100, 150, 200, 250, 400,
+    500 Pa: 0.956, 0.669, 0.943, 0.983, 0.987, 0.988: the drop mostly fixes a combination of
+    yield stress and flow rate once Y is within reach of its stresses."""
     model = dropped_cube(yield_stress, 10.0)
     dt = model.stable_dt()
     steps = 100
@@ -133,7 +140,6 @@ def test_diagnostics_flag_an_unobservable_yield_stress(yield_stress, flagged, dr
     target = Rollout(model, steps, dt, frames=frames).forward()
     d = diagnose(model, PositionLoss(target, frames=frames), ["yield_stress", "flow_rate"], steps=steps, dt=dt, noise=1e-3)
     assert d.method == "gauss-newton" and d.labels == ["yield_stress", "flow_rate"]
-    assert "flow_rate" not in d.undetermined
     assert d.relative_error[1] < 0.01
     if flagged:
         assert d.undetermined == ["yield_stress"], d.summary()
@@ -143,8 +149,10 @@ def test_diagnostics_flag_an_unobservable_yield_stress(yield_stress, flagged, dr
         assert d.relative_error[0] > 0.25 and d.sensitivity[0] < 2e-3 * d.sensitivity[1]
         assert any(w.startswith("yield_stress is not determined") for w in d.warnings)
     else:
-        assert d.undetermined == [] and d.warnings == [], d.summary()
-        assert d.relative_error[0] < 0.01
+        assert d.relative_error[0] < 0.02 and d.sensitivity[0] > 0.1 * d.sensitivity[1], d.summary()
+        # Flagged for their correlation alone (energy_spiky, above), not for either's error.
+        assert abs(d.correlation[0, 1]) > 0.95 and d.undetermined == ["yield_stress", "flow_rate"], d.summary()
+        assert len(d.warnings) == 2 and all("correlated" in w for w in d.warnings), d.warnings
     assert np.allclose(d.correlation, d.correlation.T) and np.allclose(np.diag(d.correlation), 1.0)
 
 
