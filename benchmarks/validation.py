@@ -401,7 +401,7 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
 def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration: float = 1.5, spacing: float = 0.005,
             critical_angle: float = 10.0, length: float = 12.0, width: int = 2, yield_strain: float = 0.005,
             flow_rate: float = 1000.0, viscosity: float = 0.5, friction: float = 5.0, dt_factor: float = 0.9,
-            ramp: float = 0.15, samples: int = 40, walls: str = "faces") -> dict:
+            ramp: float = 0.15, samples: int = 40, walls: str = "faces", pressure_force: str = "energy_spiky") -> dict:
     """The shear strength of a thin layer: ``layers`` particles thick (h = layers x spacing),
     ``length`` h long, on an incline (gravity tilted by theta in the x-y plane), plane strain
     (``width`` particles between frictionless walls normal to z).
@@ -426,7 +426,8 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     faces (z = 0 and ``width`` x spacing); a plane collider acts on particle centres, so the
     outer rows, half a spacing inside, may move out to it and the strip widen by one
     spacing. ``"centres"``, through the outer rows' centres: the strip cannot widen
-    (docs/physics.md, thin layers in shear: widening lets the layers close up and stop)."""
+    (docs/physics.md, thin layers in shear: widening lets the layers close up and stop).
+    ``pressure_force``: the material's (``Material.pressure_force``), its default k_p."""
     wp, we = _we()
     _check_floor(floor)
     if walls not in INCLINE_WALLS:
@@ -440,7 +441,8 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     if not 0.0 < s < 1.0:
         raise ValueError(f"load = {load!r} is not allowed: sin(theta) = load sin(critical_angle) must be in (0, 1)")
     theta = math.asin(s)
-    mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity)
+    mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity,
+                      pressure_force=pressure_force)
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0) if ramp > 0.0 else (G * s, -G * math.cos(theta), 0.0))
     L = length * h
     W = width * dx
