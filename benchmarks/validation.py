@@ -131,7 +131,7 @@ def spread_height_theory(radius: float, tau_y: float, rho: float = RHO, g: float
 
 
 def slump_model(S: float, resolution: int = 12, elastic_force: str = "variational", H0: float = 0.1,
-                flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, pressure_force: str = "energy_spiky",
+                flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, pressure_force: str = "energy",
                 floor: str = "particles", floor_radius: float = 3.2, pressure_stiffness: float | None = None,
                 support_radius: float = 2.0, stiffness: float = 10.0, floor_layers: int = FLOOR_LAYERS,
                 aspect: float = 1.0, dtype=None):
@@ -297,7 +297,7 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
            flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, dt_factor: float = 0.9,
            pressure_stiffness: float | None = None, support_radius: float = 2.0, initial_height: float = 2.0,
            samples: int = 200, floor: str = "particles", floor_radius: float = 1.2,
-           pressure_force: str = "energy_spiky") -> dict:
+           pressure_force: str = "energy") -> dict:
     """The spread limit of Roussel & Coussot (2005): a wide, low cylinder of a yield-stress
     material spreads on a rough floor into a pile much wider than tall.
 
