@@ -576,8 +576,16 @@ class _Signals:
         self.armed = False
         self.received: list[int] = []
         self.previous = {}
+        #: A copy of the process's standard error taken at install: start-up sends descriptor 2
+        #: to a temporary file while Warp and pxr print their native notes
+        #: (``startup.init_warp``, ``usd._native_stderr``), and the one line must not land there.
+        self.stderr_fd: int | None = None
 
     def install(self) -> "_Signals":
+        try:
+            self.stderr_fd = os.dup(2)
+        except OSError:  # no descriptor 2 (some embedded interpreters)
+            self.stderr_fd = None
         for sig in (signal.SIGINT, signal.SIGTERM):
             try:
                 if signal.getsignal(sig) is signal.SIG_IGN:
@@ -591,6 +599,9 @@ class _Signals:
         for sig, handler in self.previous.items():
             signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
         self.previous = {}
+        if self.stderr_fd is not None:
+            os.close(self.stderr_fd)
+            self.stderr_fd = None
 
     def arm(self):
         self.armed = True
@@ -602,17 +613,18 @@ class _Signals:
         self.received.append(signum)
         if self.armed or not self.exit_at_once:
             raise KeyboardInterrupt
-        _exit_now(signum)
+        _exit_now(signum, self.stderr_fd)
 
 
-def _exit_now(signum) -> None:
-    """One line, then leave at once (no cleanup runs, and none is needed)."""
+def _exit_now(signum, stderr_fd: int | None = None) -> None:
+    """One line on ``stderr_fd`` (default: descriptor 2), then leave at once (no cleanup
+    runs, and none is needed)."""
     try:
         sys.stdout.flush()
     except Exception:  # noqa: BLE001 (a reentrant flush in a signal handler)
         pass
     what = "terminated" if signum == signal.SIGTERM else "interrupted"
-    os.write(2, f"{PROG}: {what}\n".encode())
+    os.write(2 if stderr_fd is None else stderr_fd, f"{PROG}: {what}\n".encode())
     os._exit(EXIT_TERMINATED if signum == signal.SIGTERM else EXIT_INTERRUPTED)
 
 
