@@ -376,6 +376,7 @@ def test_sigint_while_start_up_holds_back_native_output_still_prints_its_line(tm
     script.write_text(
         "import os, signal, tempfile, time\n"
         "from warp_esph import cli\n"
+        "signal.signal(signal.SIGINT, signal.SIG_DFL)  # as in a terminal: a test runner may start it ignored\n"
         "cli._Signals().install()\n"
         "with tempfile.TemporaryFile() as tmp:\n"
         "    os.dup2(tmp.fileno(), 2)\n"
