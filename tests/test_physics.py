@@ -40,17 +40,13 @@ def _run(model, steps, dt, state=None, solver=None):
 
 
 def _launch_fit(fit, model, state, x, y, Fp, F_out, counters):
-    """``fit.update_deformation`` from ``x`` to ``y`` of ``Fp`` into ``F_out`` (the linear fit
-    also carries the round-off of the positions and of ``F``, ``State.x_lo``, ``F_lo``: 0 in,
+    """``fit.update_deformation`` from ``x`` to ``y`` of ``Fp`` into ``F_out`` (both fits also
+    carry the round-off of the positions and of ``F``, ``State.x_lo``, ``F_lo``: 0 in,
     discarded out)."""
     S = model.scalar
-    ins = [x, y, model.particle_body, state.neighbors, state.neighbor_count, state.guard, Fp]
-    outs = [F_out]
-    if fit is deformation:
-        ins[2:2] = [wp.zeros_like(x), wp.zeros_like(x)]
-        ins.append(wp.zeros_like(Fp))
-        outs.append(wp.zeros_like(Fp))
-    ins.append(S(model.support_radius))
+    ins = [x, y, wp.zeros_like(x), wp.zeros_like(x), model.particle_body, state.neighbors, state.neighbor_count,
+           state.guard, Fp, wp.zeros_like(Fp), S(model.support_radius)]
+    outs = [F_out, wp.zeros_like(Fp)]
     if fit is deformation:
         ins += model.image_args()
     wp.launch(fit.kernels(S).update_deformation, model.particle_count, ins, outs + [counters])

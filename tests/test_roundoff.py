@@ -5,11 +5,12 @@ last place, and rounding it away every step made a pile at yield creep in float3
 import pathlib
 
 import numpy as np
+import pytest
 import warp as wp
 
 import warp_esph as we
 from warp_esph._types import type_set
-from warp_esph.sim import deformation
+from warp_esph.sim import curvature, deformation
 
 
 def _block(center, dtype=wp.float32, velocity=(0.0, 0.0, 0.0)):
@@ -72,6 +73,43 @@ def test_fit_at_rest_is_exactly_no_change_of_F():
     assert (state.guard.numpy() == 0).all()
     np.testing.assert_array_equal(F_out.numpy(), Fa.numpy())
     np.testing.assert_array_equal(F_lo_out.numpy(), F_lo)
+
+
+@pytest.mark.parametrize("fit", [deformation, curvature])
+def test_slow_strain_below_half_a_unit_per_step_accumulates_in_F(fit):
+    """A block 1 m from the origin strained by ``D`` (entries 1-3e-8) per step: less than half
+    a unit in the last place of ``F``'s diagonal near 1 (6e-8), so ``F <- dF F`` rounded to
+    float32 never changes it. With ``F_lo`` carried, ``F + F_lo`` after 300 steps must be
+    ``(I + D)^300`` to 1e-3 of the strain (measured: 3.2e-7 linear, 3.6e-7 corrected; the
+    corrected fit rounding ``F`` as it did before: 0.99, nothing accumulated), for
+    the linear fit and the curvature-corrected one (the default fit of elastic bodies; it
+    rounded ``F`` until its three-point bending read 3 % softer in float32 than in float64,
+    docs/physics.md, "Three-point bending in float32"). The displacement is
+    given in the positions' round-off (``y = x``, ``y_lo = D (x - c)``)."""
+    model = _block((1.0, 1.0, 1.0))
+    T = type_set(model.scalar)
+    n, steps = model.particle_count, 300
+    D = np.array([[2.0e-8, 1.0e-8, 0.0], [0.0, -3.0e-8, 0.5e-8], [1.0e-8, 0.0, 2.5e-8]])
+    state = model.state()
+    solver = we.Solver(model)
+    solver.search.build(state.x, model.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count, state.guard)
+    assert (state.guard.numpy() == 0).all()
+    x = state.x.numpy().astype(np.float64)
+    y_lo = wp.array(((x - x.mean(axis=0)) @ D.T).astype(np.float32), dtype=T.vec3)
+    lo = wp.zeros_like(state.x)
+    F = [wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=T.mat33), wp.zeros(n, dtype=T.mat33)]
+    F_lo = [wp.zeros(n, dtype=T.mat33), wp.zeros(n, dtype=T.mat33)]
+    counters = wp.zeros(4, dtype=wp.int32)
+    images = list(model.image_args()) if fit is deformation else []
+    for k in range(steps):
+        a, b = k % 2, 1 - k % 2
+        wp.launch(fit.kernels(model.scalar).update_deformation, n,
+                  [state.x, state.x, lo, y_lo, model.particle_body, state.neighbors, state.neighbor_count, state.guard,
+                   F[a], F_lo[a], model.scalar(model.support_radius), *images], [F[b], F_lo[b], counters])
+    full = F[steps % 2].numpy().astype(np.float64) + F_lo[steps % 2].numpy()
+    want = np.linalg.matrix_power(np.eye(3) + D, steps)
+    assert np.abs(full - want).max() < 1e-3 * steps * np.abs(D).max(), np.abs(full - want).max() / (steps * np.abs(D).max())
+    assert (F[steps % 2].numpy().diagonal(axis1=1, axis2=2) != 1.0).all(), "the change reached F itself"
 
 
 def test_settled_float32_pile_keeps_coming_to_rest():

@@ -139,7 +139,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             else:
                 G = mat33()
                 if curved != 0:
-                    A, B, C, D, E, same = cf.moment_sums(i, rest_x, y, body, rest_nbr, rest_count[i], h)
+                    A, B, C, D, E, same = cf.moment_sums(i, rest_x, y, y, y, body, rest_nbr, rest_count[i], h)
                     G = cf.corrected_fit(A, B, C, D, E)
                 else:
                     A, B, same = moment_sums(i, rest_x, y, y, y, body, rest_nbr, rest_count[i], h)
@@ -193,7 +193,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             # The moments from their own functions: an inverse must not see a loop
             # accumulator (docs/method.md, Warp pitfall 1).
             if curved != 0:
-                A, B, C, D, E, same = cf.moment_sums(i, rest_x, rest_x, body, rest_nbr, rest_count[i], h)
+                A, B, C, D, E, same = cf.moment_sums(i, rest_x, rest_x, rest_x, rest_x, body, rest_nbr, rest_count[i], h)
                 K = cf.curvature_projection(A, C, D)
                 M = fn.variational_map(volume[i], stress[i], wp.inverse(Fp[i]), wp.inverse(cf.corrected_moment(A, C, K)))
                 fi = cf.variational_forces(i, rest_x, body, rest_nbr, rest_count[i], M, K, h, f)

@@ -72,22 +72,27 @@ def funcs(scalar) -> types.SimpleNamespace:
         i: int,
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
         nbr: wp.array2d(dtype=wp.int32),
         n: int,
         h: scalar,
     ):
-        """Eqs. 5-7 with the curvature terms: ``A = sum w xb xb^T``, ``B = sum w yb xb^T``,
-        ``C = sum w xb q^T``, ``D = sum w q q^T``, ``E = sum w yb q^T`` and the number of
-        same-body neighbours closer than ``h``. Only the raw sums live in this loop: the caller's inverse must
-        not see a loop accumulator (docs/method.md, Warp pitfall 1)."""
+        """Eqs. 5-7 with the curvature terms: ``A = sum w xb xb^T``, ``C = sum w xb q^T``,
+        ``D = sum w q q^T``, the displacement moments ``B - A = sum w ub xb^T`` and ``E - C =
+        sum w ub q^T`` (``ub = u_j - u_i``, ``u = (y - x) + (y_lo - x_lo)`` with the positions'
+        round-off, as ``deformation.moment_sums``: exact at rest, docs/physics.md, the float32
+        creep floor) and the number of same-body neighbours closer than ``h``. Only the raw
+        sums live in this loop: the caller's inverse must not see a loop accumulator
+        (docs/method.md, Warp pitfall 1)."""
         A = mat33()
         B = mat33()
         C = mat33()
         D = mat33()
         E = mat33()
         xi = x[i]
-        yi = y[i]
+        ui = (y[i] - xi) + (y_lo[i] - x_lo[i])
         bi = body[i]
         c6 = sm.poly6_coef(h)
         same = int(0)
@@ -95,17 +100,17 @@ def funcs(scalar) -> types.SimpleNamespace:
             j = nbr[i, k]
             if body[j] == bi:
                 xb = x[j] - xi
-                yb = y[j] - yi
+                ub = ((y[j] - x[j]) + (y_lo[j] - x_lo[j])) - ui
                 r2 = wp.dot(xb, xb)
                 w = sm.w_poly6_c(r2, h, c6)
                 q = curvature_basis(xb, h)
                 wxb = w * xb
                 wq = w * q
                 A += wp.outer(wxb, xb)
-                B += wp.outer(yb, wxb)
+                B += wp.outer(ub, wxb)
                 C += wp.outer(wxb, q)
                 D += wp.outer(wq, q)
-                E += wp.outer(yb, wq)
+                E += wp.outer(ub, wq)
                 # Only neighbours of non-zero weight count (rows may reach beyond h).
                 same += wp.where(r2 < h * h, 1, 0)
         return A, B, C, D, E, same
@@ -176,24 +181,30 @@ def funcs(scalar) -> types.SimpleNamespace:
         return d - wp.transpose(K) * curvature_basis(d, h)
 
     @wp.func
-    def corrected_fit(A: mat33, B: mat33, C: mat33, D: mat33, E: mat33) -> mat33:
-        """Eqs. 5-6 with the curvature correction: ``B~ A~^-1``."""
+    def corrected_increment(A: mat33, Bu: mat33, C: mat33, D: mat33, Eu: mat33) -> mat33:
+        """Eqs. 5-6 with the curvature correction, of the displacement moments ``Bu = B - A``,
+        ``Eu = E - C`` (``moment_sums``): ``B~ A~^-1 - I = (Bu - Eu K) A~^-1``."""
         K = curvature_projection(A, C, D)
-        return df.affine_fit(corrected_moment(A, C, K), corrected_moment(B, E, K))
+        return df.affine_fit(corrected_moment(A, C, K), corrected_moment(Bu, Eu, K))
 
     @wp.func
-    def step_gradient(A: mat33, B: mat33, C: mat33, D: mat33, E: mat33, code: int,
-                      counters: wp.array(dtype=wp.int32)) -> mat33:
-        """This step's ``dF = B~ A~^-1``; ``I``, counted, where a guard of paper §4 holds
+    def corrected_fit(A: mat33, Bu: mat33, C: mat33, D: mat33, Eu: mat33) -> mat33:
+        """Eqs. 5-6 with the curvature correction: ``B~ A~^-1``."""
+        return wp.identity(n=3, dtype=scalar) + corrected_increment(A, Bu, C, D, Eu)
+
+    @wp.func
+    def step_increment(A: mat33, Bu: mat33, C: mat33, D: mat33, Eu: mat33, code: int,
+                       counters: wp.array(dtype=wp.int32)) -> mat33:
+        """This step's ``dF - I = B~ A~^-1 - I``; 0, counted, where a guard of paper §4 holds
         (``code``: ``neighbors.GUARD_*``)."""
-        dF = wp.identity(n=3, dtype=scalar)
+        inc = mat33()
         if code == 1:
             wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
         elif code == 2:
             wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
         else:
-            dF = corrected_fit(A, B, C, D, E)
-        return dF
+            inc = corrected_increment(A, Bu, C, D, Eu)
+        return inc
 
     @wp.func
     def variational_pair_force(M: mat33, K: mat33, d: vec3, h: scalar, c6: scalar) -> vec3:
@@ -222,8 +233,9 @@ def funcs(scalar) -> types.SimpleNamespace:
         curvature_basis=curvature_basis, curvature_basis_adjoint=curvature_basis_adjoint, moment_sums=moment_sums,
         curvature_kept=curvature_kept, ridge_inverse=ridge_inverse, projection_terms=projection_terms,
         curvature_projection=curvature_projection, projection_adjoint=projection_adjoint,
-        corrected_moment=corrected_moment, corrected_offset=corrected_offset, corrected_fit=corrected_fit,
-        step_gradient=step_gradient, variational_pair_force=variational_pair_force,
+        corrected_moment=corrected_moment, corrected_offset=corrected_offset, corrected_increment=corrected_increment,
+        corrected_fit=corrected_fit,
+        step_increment=step_increment, variational_pair_force=variational_pair_force,
         variational_forces=variational_forces,
     )
 
@@ -242,26 +254,34 @@ def kernels(scalar) -> types.SimpleNamespace:
     def update_deformation(
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
         guard: wp.array(dtype=wp.int32),
         F_prev: wp.array(dtype=mat33),
+        F_prev_lo: wp.array(dtype=mat33),
         h: scalar,
         F_out: wp.array(dtype=mat33),
+        F_out_lo: wp.array(dtype=mat33),
         counters: wp.array(dtype=wp.int32),
     ):
         """``deformation.update_deformation`` with the corrected fit (eq. 8: ``F <- dF F``
-        unless guarded or inverted)."""
+        unless guarded or inverted, ``F``'s round-off carried in ``F_lo`` as there)."""
         i = wp.tid()
-        A, B, C, D, E, same = fn.moment_sums(i, x, y, body, nbr, count[i], h)
-        Fp = F_prev[i]
-        F_out[i] = df.unless_inverted(fn.step_gradient(A, B, C, D, E, guard[i], counters) * Fp, Fp, counters)
+        A, Bu, C, D, Eu, same = fn.moment_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h)
+        inc = fn.step_increment(A, Bu, C, D, Eu, guard[i], counters)
+        F_new, F_new_lo = df.carried_update(inc, F_prev[i], F_prev_lo[i], counters)
+        F_out[i] = F_new
+        F_out_lo[i] = F_new_lo
 
     @wp.kernel(enable_backward=False)
     def update_deformation_adjoint(
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
@@ -288,16 +308,19 @@ def kernels(scalar) -> types.SimpleNamespace:
         G = adj_F_out[i]
         Fp = F_prev[i]
         code = guard[i]
-        A, B, C, D, E, same = fn.moment_sums(i, x, y, body, nbr, count[i], h)
+        A, Bu, C, D, Eu, same = fn.moment_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h)
         if code == 1 or code == 2:
             adj_F_prev[i] = adj_F_prev[i] + G
             return
         K, D_inv, kept = fn.projection_terms(A, C, D)
         At = fn.corrected_moment(A, C, K)
-        Bt = fn.corrected_moment(B, E, K)
+        # The adjoint of dF F in the moments of the positions (B = Bu + A, E = Eu + C): the
+        # same function; the round-off arrays are not differentiated (roundoff.py).
+        E = Eu + C
         At_inv = wp.inverse(At)
-        dF = Bt * At_inv
-        if wp.determinant(dF * Fp) <= scalar(0.0):
+        inc = fn.corrected_moment(Bu, Eu, K) * At_inv
+        dF = wp.identity(n=3, dtype=scalar) + inc
+        if wp.determinant(Fp + inc * Fp) <= scalar(0.0):
             adj_F_prev[i] = adj_F_prev[i] + G
             return
         adj_F_prev[i] = adj_F_prev[i] + wp.transpose(dF) * G
@@ -369,7 +392,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         elif guard[i] == 0:
             # The moments from their own function: the inverses must not see a loop
             # accumulator (docs/method.md, Warp pitfall 1).
-            A, B, C, D, E, same = fn.moment_sums(i, x, x, body, nbr, count[i], h)
+            A, Bu, C, D, Eu, same = fn.moment_sums(i, x, x, x, x, body, nbr, count[i], h)
             K = fn.curvature_projection(A, C, D)
             M = fo.variational_map(volume[i], stress[i], F[i], wp.inverse(fn.corrected_moment(A, C, K)))
             fi = fn.variational_forces(i, x, body, nbr, count[i], M, K, h, f)
@@ -514,22 +537,22 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     """``deformation.launch_update_deformation`` with the corrected fit; under a tape the
     backward runs ``update_deformation_adjoint`` (``hand_adjoint=False``: Warp's generated one)."""
     k = kernels(model.scalar)
-    inputs = [
-        state_in.x, state_out.x, model.particle_body, state_out.neighbors, state_out.neighbor_count, state_out.guard,
-        state_out.F_flowed, model.scalar(model.support_radius),
-    ]
+    pos = [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
+           state_out.neighbor_count, state_out.guard]
+    h = model.scalar(model.support_radius)
+    inputs = pos + [state_out.F_flowed, state_out.F_flowed_lo, h]
+    outputs = [state_out.F, state_out.F_lo, counters]
     tape = deformation.recording_tape()
     grads = (state_in.x, state_out.x, state_out.F_flowed, state_out.F)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
-        wp.launch(k.update_deformation, model.particle_count, inputs, [state_out.F, counters], device=model.device)
+        wp.launch(k.update_deformation, model.particle_count, inputs, outputs, device=model.device)
         return
-    wp.launch(k.update_deformation, model.particle_count, inputs, [state_out.F, counters], device=model.device,
-              record_tape=False)
+    wp.launch(k.update_deformation, model.particle_count, inputs, outputs, device=model.device, record_tape=False)
 
     def adjoint():
         wp.launch(
             k.update_deformation_adjoint, model.particle_count,
-            inputs + [state_out.F.grad, state_in.x.grad, state_out.x.grad, state_out.F_flowed.grad],
+            pos + [state_out.F_flowed, h, state_out.F.grad, state_in.x.grad, state_out.x.grad, state_out.F_flowed.grad],
             device=model.device, record_tape=False,
         )
 

@@ -229,13 +229,13 @@ def funcs(scalar) -> types.SimpleNamespace:
         return out
 
     @wp.func
-    def deformation_update(A: mat33, Bu: mat33, code: int, F: mat33, F_lo: mat33, counters: wp.array(dtype=wp.int32)):
-        """Eq. 8 with the guards of paper §4: ``F <- dF F`` unless guarded or inverted, of the
-        compensated ``F + F_lo`` (``State.F_lo``); returns the new ``(F, F_lo)``."""
+    def carried_update(D: mat33, F: mat33, F_lo: mat33, counters: wp.array(dtype=wp.int32)):
+        """Eq. 8 of this step's ``D = dF - I`` (of either fit): ``F <- dF F`` of the compensated
+        ``F + F_lo`` (``State.F_lo``) unless it inverts; returns the new ``(F, F_lo)``."""
         # As F + (dF - I) F with F's round-off carried: the step's increment, a few units in
         # F's last place near rest, is not rounded away (docs/physics.md, the float32 creep
         # floor). A guarded particle gets dF - I = 0 and keeps F + F_lo, whose det > 0.
-        F_new, F_new_lo = compensated_sum(F, F_lo + step_increment(A, Bu, code, counters) * F)
+        F_new, F_new_lo = compensated_sum(F, F_lo + D * F)
         out = F
         out_lo = F_lo
         if wp.determinant(F_new) > scalar(0.0):
@@ -245,11 +245,17 @@ def funcs(scalar) -> types.SimpleNamespace:
             wp.atomic_add(counters, COUNT_INVERTED, 1)
         return out, out_lo
 
+    @wp.func
+    def deformation_update(A: mat33, Bu: mat33, code: int, F: mat33, F_lo: mat33, counters: wp.array(dtype=wp.int32)):
+        """Eq. 8 with the guards of paper §4: ``F <- dF F`` unless guarded or inverted, of the
+        compensated ``F + F_lo``; returns the new ``(F, F_lo)``."""
+        return carried_update(step_increment(A, Bu, code, counters), F, F_lo, counters)
+
     return types.SimpleNamespace(
         moment_sums=moment_sums, floor_image=floor_image, floor_image_sums=floor_image_sums, fit_sums=fit_sums,
         floor_image_moment=floor_image_moment, affine_fit=affine_fit, step_increment=step_increment,
         step_gradient=step_gradient, unless_inverted=unless_inverted,
-        deformation_update=deformation_update,
+        carried_update=carried_update, deformation_update=deformation_update,
     )
 
 

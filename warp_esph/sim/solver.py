@@ -398,7 +398,7 @@ class Solver:
                 curvature.launch_update_deformation(m, state_in, state_out, scratch.counters, hand)
             else:
                 deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, hand)
-            if not fast and (self._cmp or self._curved):
+            if not fast and self._cmp:
                 # Their updates rebuild F without carrying its round-off (State.F_lo).
                 state_out.F_lo.zero_()
         state_out.time = state_in.time + dt
