@@ -135,6 +135,15 @@ def funcs(scalar) -> types.SimpleNamespace:
         return sm.w_poly6_c(wp.dot(d, d), h, c6) * (M * d)
 
     @wp.func
+    def variational_pair_adjoint(M: mat33, adj_A: mat33, adj_A_sym: mat33, a: vec3, d: vec3, w: scalar, dw: scalar) -> vec3:
+        """Adjoint in ``d = xb`` of one pair of the variational force: its force ``g = w M d``
+        (``variational_pair_force``, against ``a = adj`` of the particle it is added to minus
+        that of the one it is taken from) and its term ``w d d^T`` in the moment matrix ``A``
+        of ``M`` (``adj_A``, ``adj_A_sym = adj_A + adj_A^T``; ``dw = d w / d |d|^2``):
+        ``w (M^T a + adj_A_sym d) + 2 dw (a . M d + d . adj_A d) d``."""
+        return w * (wp.transpose(M) * a + adj_A_sym * d) + scalar(2.0) * dw * (wp.dot(a, M * d) + wp.dot(d, adj_A * d)) * d
+
+    @wp.func
     def variational_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
                            nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, h: scalar,
                            f: wp.array(dtype=vec3)) -> vec3:
@@ -197,6 +206,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         polynomial_stress=polynomial_stress, elastic_pair_force=elastic_pair_force, paper_forces=paper_forces,
         variational_map=variational_map, variational_map_adjoint=variational_map_adjoint,
         variational_pair_force=variational_pair_force, variational_forces=variational_forces,
+        variational_pair_adjoint=variational_pair_adjoint,
     )
 
 
@@ -209,6 +219,8 @@ def kernels(scalar) -> types.SimpleNamespace:
     moment_sums = deformation.funcs(scalar).moment_sums
     fit_sums = deformation.funcs(scalar).fit_sums
     image_moment = deformation.funcs(scalar).floor_image_moment
+    floor_image = deformation.funcs(scalar).floor_image
+    floor_image_jacobian = deformation.funcs(scalar).floor_image_jacobian
     Materials = materials.struct(scalar)
 
     @wp.kernel
@@ -320,6 +332,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         h: scalar,
         min_neighbors: int,
         max_condition: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         adj_f: wp.array(dtype=vec3),
         adj_x: wp.array(dtype=vec3),
         adj_stress: wp.array(dtype=mat33),
@@ -332,58 +348,117 @@ def kernels(scalar) -> types.SimpleNamespace:
         With ``a_j = adj f_i - adj f_j`` (``g_j = w_j M xb_j`` is added to ``i``, taken from
         ``j``) and ``M = V P F^T A^-1``: ``adj M = sum_j w_j a_j xb_j^T``;
         ``adj P = V adj M A^-T F``, ``adj F = V A^-1 adj M^T P``,
-        ``adj A = -A^-T (V F P^T adj M) A^-T``; per pair
-        ``adj xb_j = w_j (M^T a_j + (adj A + adj A^T) xb_j)
-        + 2 w'_j (a_j . M xb_j + xb_j . adj A xb_j) xb_j`` (``w' = dw / d|xb|^2``), scattered
-        to ``j`` and taken from ``i``. Recomputes ``A`` and ``M`` (two passes over the row:
-        ``A`` with ``adj M``, then the scatter) instead of storing them."""
+        ``adj A = -A^-T (V F P^T adj M) A^-T`` (``variational_map_adjoint``); per pair
+        ``adj xb_j`` is ``variational_pair_adjoint``, scattered to ``j`` and taken from ``i``.
+        Recomputes ``A`` and ``M`` (two passes over the row: ``A`` with ``adj M``, then the
+        scatter) instead of storing them.
+
+        With ``images`` (``floor_image_forces``): the image pairs of ``i``'s fit, ``xb = g_j -
+        x_i`` with ``a = adj f_i`` (the floor takes the reaction); the energy of ``i``'s own
+        image, ``Mg = image_map`` on the image's moment matrix ``A_g``
+        (``deformation.floor_image_moment``), its pairs ``d = x_r - g_i`` with ``a = -adj f_r``
+        and the image-image terms ``d = g_r - g_i`` of ``A_g`` with ``a = 0``; an image's
+        ``adj`` goes to its particle through ``deformation.floor_image_jacobian``."""
         i = wp.tid()
         if elastic_force[material[i]] != 1:
             return
         xi = x[i]
         bi = body[i]
         ai = adj_f[i]
+        n = count[i]
         c6 = sm.poly6_coef(h)
         hh = h * h
-        # One pass: the moment matrix A (as deformation.moment_sums) and adj M, which does
-        # not depend on A. (No generated adjoint here, so loop accumulators may feed the
-        # inverse: docs/method.md, Warp pitfall 1, concerns generated adjoints only.)
-        A = mat33()
+        # The fit's moment matrix and guard as the forward's (images included).
+        A, B, same = fit_sums(i, x, x, x, x, body, nbr, n, h, gn, goff, gmin, images)
+        if guard_code(A, same, min_neighbors, max_condition) != 0:
+            return
+        # adj M (and, with images, adj Mg), which do not depend on A.
         adj_M = mat33()
-        same = int(0)
-        for k in range(count[i]):
+        for k in range(n):
             j = nbr[i, k]
             if body[j] == bi:
                 d = x[j] - xi
-                w = sm.w_poly6_c(wp.dot(d, d), h, c6)
-                A += w * wp.outer(d, d)
-                adj_M += w * wp.outer(ai - adj_f[j], d)
-                same += 1
-        if guard_code(A, same, min_neighbors, max_condition) != 0:
-            return
+                adj_M += sm.w_poly6_c(wp.dot(d, d), h, c6) * wp.outer(ai - adj_f[j], d)
+        n_img = int(0)
+        if images != 0:
+            # Every image is at least as far from x_i as x_i is from the plane.
+            n_img = wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)
+        gi = floor_image(xi, gn, goff, gmin)
+        adj_Mg = mat33()
+        for k in range(n_img):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            if body[j] == bi:
+                xj = x[j]
+                d = floor_image(xj, gn, goff, gmin) - xi
+                adj_M += sm.w_poly6_c(wp.dot(d, d), h, c6) * wp.outer(ai, d)
+                dr = xj - gi
+                adj_Mg -= sm.w_poly6_c(wp.dot(dr, dr), h, c6) * wp.outer(adj_f[j], dr)
         Vi = volume[i]
         P = stress[i]
         Fi = F[i]
         Ainv = wp.inverse(A)
         M = fn.variational_map(Vi, P, Fi, Ainv)
-        MT = wp.transpose(M)
         adj_P, adj_Fi, adj_A = fn.variational_map_adjoint(Vi, P, Fi, Ainv, adj_M)
+        adj_A_sym = adj_A + wp.transpose(adj_A)
+        Mg = mat33()
+        adj_Ag = mat33()
+        if n_img > 0:
+            Ag_inv = wp.inverse(image_moment(i, x, body, nbr, n, h, gn, goff, gmin))
+            Mg = fn.variational_map(Vi, P, Fi, Ag_inv)
+            adj_Pg, adj_Fg, adj_Ag_ = fn.variational_map_adjoint(Vi, P, Fi, Ag_inv, adj_Mg)
+            adj_P += adj_Pg
+            adj_Fi += adj_Fg
+            adj_Ag = adj_Ag_
+        adj_Ag_sym = adj_Ag + wp.transpose(adj_Ag)
         adj_stress[i] = adj_stress[i] + adj_P
         adj_F[i] = adj_F[i] + adj_Fi
-        adj_A_sym = adj_A + wp.transpose(adj_A)
         gx_i = vec3()
-        for k in range(count[i]):
+        for k in range(n):
             j = nbr[i, k]
             if body[j] == bi:
                 d = x[j] - xi
                 r2 = wp.dot(d, d)
                 if r2 < hh:
                     w, dw = sm.w_poly6_inside(r2, hh, c6)
-                    a = ai - adj_f[j]
-                    gx = w * (MT * a + adj_A_sym * d) + scalar(2.0) * dw * (wp.dot(a, M * d) + wp.dot(d, adj_A * d)) * d
+                    gx = fn.variational_pair_adjoint(M, adj_A, adj_A_sym, ai - adj_f[j], d, w, dw)
                     wp.atomic_add(adj_x, j, gx)
                     gx_i -= gx
-        wp.atomic_add(adj_x, i, gx_i)
+        # Through g_i (summed, then by d g_i / d x_i).
+        gg_i = vec3()
+        zero = vec3()
+        for k in range(n_img):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            if body[j] == bi:
+                xj = x[j]
+                gj = floor_image(xj, gn, goff, gmin)
+                Jj = floor_image_jacobian(xj, gn, goff, gmin)
+                d = gj - xi
+                r2 = wp.dot(d, d)
+                if r2 < hh:
+                    w, dw = sm.w_poly6_inside(r2, hh, c6)
+                    gx = fn.variational_pair_adjoint(M, adj_A, adj_A_sym, ai, d, w, dw)
+                    wp.atomic_add(adj_x, j, Jj * gx)
+                    gx_i -= gx
+                d = xj - gi
+                r2 = wp.dot(d, d)
+                if r2 < hh:
+                    w, dw = sm.w_poly6_inside(r2, hh, c6)
+                    gx = fn.variational_pair_adjoint(Mg, adj_Ag, adj_Ag_sym, -adj_f[j], d, w, dw)
+                    wp.atomic_add(adj_x, j, gx)
+                    gg_i -= gx
+                if j != i:
+                    d = gj - gi
+                    r2 = wp.dot(d, d)
+                    if r2 < hh:
+                        w, dw = sm.w_poly6_inside(r2, hh, c6)
+                        gx = fn.variational_pair_adjoint(Mg, adj_Ag, adj_Ag_sym, zero, d, w, dw)
+                        wp.atomic_add(adj_x, j, Jj * gx)
+                        gg_i -= gx
+        wp.atomic_add(adj_x, i, gx_i + floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
 
     return types.SimpleNamespace(elastic_forces=elastic_forces, elastic_forces_adjoint=elastic_forces_adjoint,
                                  variational_forces_adjoint=variational_forces_adjoint)
@@ -434,7 +509,7 @@ def launch_variational_forces_adjoint(model, state_in, state_out, min_neighbors:
         kernels(S).variational_forces_adjoint, model.particle_count,
         [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force, state_out.neighbors,
          state_out.neighbor_count, model.particle_volume, state_out.stress, state_out.F_flowed, S(model.support_radius),
-         int(min_neighbors), S(max_condition), state_out.force.grad, state_in.x.grad, state_out.stress.grad,
+         int(min_neighbors), S(max_condition), *model.image_args(), state_out.force.grad, state_in.x.grad, state_out.stress.grad,
          state_out.F_flowed.grad],
         device=model.device, record_tape=False,
     )

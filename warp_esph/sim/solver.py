@@ -191,7 +191,6 @@ class Solver:
         self.step_count = 0
         #: Under a tape, run the hand-written adjoints (``deformation.update_deformation_adjoint``)
         #: in place of Warp's generated ones; False: the generated ones (the tests' reference).
-        #: With floor images the generated ones run either way (``_hand``).
         self.hand_adjoints = True
         #: ``(impulse, angular impulse)`` arrays of the static colliders' rows that untaped
         #: steps add ``dt`` times their reaction to (``tools.ReactionLog`` sets them); None: off.
@@ -224,11 +223,10 @@ class Solver:
         return self.fused and self._hand() and m.requires_grad and not self._cmp and not self._curved
 
     def _hand(self) -> bool:
-        """Whether the taped step records the hand-written adjoints: ``hand_adjoints``, except
-        with floor images (``add_ground(images=True)``), whose terms only Warp's generated
-        adjoints of the differentiable kernels carry (docs/physics.md, "The ground collider's
-        thin-layer strength")."""
-        return self.hand_adjoints and self.model.image_plane is None
+        """Whether the taped step records the hand-written adjoints: ``hand_adjoints`` (with
+        floor images, ``add_ground(images=True)``, their image terms too; docs/physics.md,
+        "The ground collider's thin-layer strength")."""
+        return self.hand_adjoints
 
     def _fast_under_tape(self, state_in, state_out) -> bool:
         return (self.fast_under_tape() and state_in.x.grad is not None and state_out.x.grad is not None
