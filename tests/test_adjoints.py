@@ -257,11 +257,12 @@ def test_hand_written_pressure_adjoints_between_energy_spiky_and_energy_bodies(s
     _assert_hand_matches_generated(scalar, tol, pressure_force="energy_spiky", second_pressure_force="energy")
 
 
-@pytest.mark.parametrize("pressure_force,ground", [("energy", -0.045), ("energy_spiky", -0.045), ("spiky", -0.045),
-                                                   ("energy", -0.031)],
-                         ids=["energy", "energy_spiky", "spiky", "energy-contact"])
+@pytest.mark.parametrize("pressure_force,ground,elastic_force", [
+    ("energy", -0.045, "variational"), ("energy_spiky", -0.045, "variational"), ("spiky", -0.045, "variational"),
+    ("energy", -0.031, "variational"), ("energy", -0.045, "paper"), ("energy", -0.031, "paper")],
+    ids=["energy", "energy_spiky", "spiky", "energy-contact", "paper", "paper-contact"])
 @pytest.mark.parametrize("scalar,tol", [(wp.float64, 1e-10), (wp.float32, 2e-4)])
-def test_hand_written_adjoints_carry_the_floor_images(scalar, tol, pressure_force, ground):
+def test_hand_written_adjoints_carry_the_floor_images(scalar, tol, pressure_force, ground, elastic_force):
     """With ``add_ground(images=True)`` the hand-written adjoints carry the image terms (the
     fit's image pairs, the images' energy through their own moment matrices, the image
     densities; the images' pressure forces through the generated adjoint of
@@ -269,5 +270,11 @@ def test_hand_written_adjoints_carry_the_floor_images(scalar, tol, pressure_forc
     the plane 0.75 dx under the bottom layer (the images mirrors), or 0.05 dx under it
     (below half a spacing, the images held, and the collider's contact within the rollout).
     Leaving any one of the four image parts out moves some gradient by 1e-3 to 0.6 of its
-    scale (measured)."""
-    _assert_hand_matches_generated(scalar, tol, pressure_force=pressure_force, ground=ground)
+    scale (measured). With the paper's force (eqs. 10-13) its image pairs
+    (``forces.elastic_forces_adjoint``); through its contact in float32 the two schedules'
+    forwards (one SVD against two) part by round-off that moves the viscosity gradient by
+    1.0e-3 of its scale, yield_stress 1.2e-4 (measured; 1e-10 in float64)."""
+    if scalar == wp.float32 and elastic_force == "paper" and ground > -0.04:
+        tol = 2e-3
+    _assert_hand_matches_generated(scalar, tol, pressure_force=pressure_force, ground=ground,
+                                   elastic_force=elastic_force)

@@ -450,6 +450,25 @@ def test_floor_images_gradients_at_rest_and_through_contact(weights, scene, name
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
 
 
+@pytest.mark.parametrize("scene", sorted(IMAGE_SCENES) + ["squeezed"])
+@pytest.mark.parametrize("name", ["mu", "lam"])
+def test_floor_images_gradients_of_the_paper_force_match_central_differences(weights, scene, name):
+    """The paper's force (eqs. 10-13) over the floor images (``forces.paper_image_forces``,
+    its hand-written adjoint ``forces.elastic_forces_adjoint``): the taped rollout against
+    float64 central differences at rest, through contact and squeezed."""
+    kw = IMAGE_SCENES.get(scene, {})
+    paper = {"elastic_force": "paper"}
+    model = _images_model(paper, **kw)
+    assert we.Solver(model).fast_under_tape()
+    _, grads = _rollout_loss(model, weights, grad_of=(name,))
+    base = getattr(model.materials[0], name)
+    eps = 1e-5 * base
+    fd = (_rollout_loss(_images_model({**paper, name: base + eps}, **kw), weights)[0]
+          - _rollout_loss(_images_model({**paper, name: base - eps}, **kw), weights)[0]) / (2 * eps)
+    assert abs(fd) > 1e-11, "the loss does not reach " + name  # at rest lam: 6.6e-10
+    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+
+
 @pytest.mark.parametrize("name", ["pressure_stiffness", "viscosity"])
 def test_floor_images_gradients_of_energy_spiky_match_central_differences(weights, name):
     """``energy_spiky`` over the floor images: the images enter its spiky pressure density

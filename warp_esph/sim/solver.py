@@ -66,17 +66,16 @@ class StepScratch:
 
 
 def _check_images(model: Model, fit: str):
-    """What ``SceneBuilder.add_ground(images=True)`` supports so far: the linear fit with the
-    variational elastic force (docs/physics.md, "The ground collider's thin-layer strength";
-    under a tape through Warp's generated adjoints, ``Solver._hand``). Refused before any
-    kernel runs."""
+    """What ``SceneBuilder.add_ground(images=True)`` supports so far: the linear incremental fit
+    with either elastic force (docs/physics.md, "The ground collider's thin-layer strength").
+    Refused before any kernel runs."""
     if fit == "curvature_corrected":
         raise ValueError("fit = 'curvature_corrected' is not allowed with add_ground(images=True): the floor's images "
                          "enter the linear fit only; pass fit='linear'")
-    kinds = sorted({m.elastic_force for m in model.materials} | {m.deformation for m in model.materials} - {"incremental"})
-    if kinds != ["variational"]:
-        raise ValueError(f"Material.elastic_force / deformation = {kinds!r} is not allowed with add_ground(images=True): "
-                         f"the images enter the variational force of the incremental fit only ('variational')")
+    kinds = sorted({m.deformation for m in model.materials} - {"incremental"})
+    if kinds:
+        raise ValueError(f"Material.deformation = {kinds!r} is not allowed with add_ground(images=True): "
+                         f"the images enter the incremental fit only ('incremental')")
 
 
 class Solver:
