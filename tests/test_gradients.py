@@ -469,6 +469,39 @@ def test_floor_images_gradients_of_the_paper_force_match_central_differences(wei
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
 
 
+@pytest.mark.parametrize("scene", sorted(IMAGE_SCENES) + ["squeezed"])
+@pytest.mark.parametrize("name, elastic_force", [("mu", "variational"), ("v0", "variational"), ("lam", "paper")])
+def test_floor_images_gradients_of_the_corrected_fit_match_central_differences(weights, scene, name, elastic_force):
+    """``fit="curvature_corrected"`` over the floor images (``curvature.floor_image_sums``,
+    ``floor_image_moment``, ``floor_image_forces``; the paper's force's image pairs): its
+    hand-written adjoints against Warp's generated ones and against float64 central
+    differences, at rest, through contact and squeezed."""
+    kw = IMAGE_SCENES.get(scene, {})
+    params = {"elastic_force": elastic_force}
+    fit = "curvature_corrected"
+    model = _images_model(params, **kw)
+    _, grads = _rollout_loss(model, weights, grad_of=(name,), fit=fit)
+    _, generated = _rollout_loss(_images_model(params, **kw), weights, grad_of=(name,), fit=fit, hand_adjoints=False)
+    np.testing.assert_allclose(grads[name], generated[name], rtol=1e-8, atol=1e-12 * np.abs(generated[name]).max())
+    if name == "v0":
+        i = int(np.argmin(model.particle_x0[:, 1]))
+        for comp in (0, 1):
+            def loss_with(delta):
+                m = _images_model(params, **kw)
+                m.particle_v0[i, comp] += delta
+                return _rollout_loss(m, weights, fit=fit)[0]
+
+            fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
+            assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
+        return
+    base = getattr(model.materials[0], name)
+    eps = 1e-5 * base
+    fd = (_rollout_loss(_images_model({**params, name: base + eps}, **kw), weights, fit=fit)[0]
+          - _rollout_loss(_images_model({**params, name: base - eps}, **kw), weights, fit=fit)[0]) / (2 * eps)
+    assert abs(fd) > 1e-11, "the loss does not reach " + name
+    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+
+
 @pytest.mark.parametrize("name", ["pressure_stiffness", "viscosity"])
 def test_floor_images_gradients_of_energy_spiky_match_central_differences(weights, name):
     """``energy_spiky`` over the floor images: the images enter its spiky pressure density

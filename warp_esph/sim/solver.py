@@ -65,13 +65,10 @@ class StepScratch:
         return self._pressure_volume
 
 
-def _check_images(model: Model, fit: str):
-    """What ``SceneBuilder.add_ground(images=True)`` supports so far: the linear incremental fit
-    with either elastic force (docs/physics.md, "The ground collider's thin-layer strength").
-    Refused before any kernel runs."""
-    if fit == "curvature_corrected":
-        raise ValueError("fit = 'curvature_corrected' is not allowed with add_ground(images=True): the floor's images "
-                         "enter the linear fit only; pass fit='linear'")
+def _check_images(model: Model):
+    """What ``SceneBuilder.add_ground(images=True)`` supports so far: the incremental fit
+    (linear or curvature-corrected) with either elastic force (docs/physics.md, "The ground
+    collider's thin-layer strength"). Refused before any kernel runs."""
     kinds = sorted({m.deformation for m in model.materials} - {"incremental"})
     if kinds:
         raise ValueError(f"Material.deformation = {kinds!r} is not allowed with add_ground(images=True): "
@@ -161,7 +158,7 @@ class Solver:
                              f"(Material.deformation 'rest' or 'additive') unless every material is 'rest' "
                              f"(whose total fit it then corrects): only 'linear'")
         if model.image_plane is not None:
-            _check_images(model, asked)
+            _check_images(model)
         self._asked = (fit, hourglass)
         # Whether the fit (and with it a strength of None) follows the parameters.
         self._auto = asked == "auto"
@@ -198,9 +195,6 @@ class Solver:
     def _choose(self):
         """Set ``fit`` and ``hourglass`` to what the step runs now (``Model.solver_choice``)."""
         fit, c = self.model.solver_choice(*self._asked)
-        if fit == "curvature_corrected" and self.model.image_plane is not None:
-            raise ValueError("fit = 'curvature_corrected' is not allowed with add_ground(images=True): the floor's images "
-                             "enter the linear fit only; pass fit='linear' (or give the material a flow_rate)")
         #: The incremental fit the step runs (``"linear"`` or ``"curvature_corrected"``); the
         #: corrected one runs the non-fused kernels.
         self.fit = fit
