@@ -367,7 +367,7 @@ class SceneBuilder:
         particle within the support radius of it has, in its incremental fit and in the
         elastic force (the variational energy, or the paper's pairs), the mirror images of its
         neighbours below the plane, static over a step and carrying their particle's stress
-        (the linear fit only; docs/physics.md, "The ground
+        (the incremental fit; docs/physics.md, "The ground
         collider's thin-layer strength"). Without it a layer's bottom particles are held on
         the plane with a one-sided fit, and a thin layer is 2.25 x too strong in shear."""
         if not isinstance(images, bool):

@@ -33,6 +33,11 @@ hand-written adjoints: the deformation update's ``update_deformation_adjoint``, 
 variational force's ``variational_forces_adjoint`` (eqs. 10-13's particles use
 ``forces.elastic_forces_adjoint``); ``Solver.hand_adjoints = False`` runs Warp's generated
 ones, which the tests compare them with in float64.
+
+With ``SceneBuilder.add_ground(images=True)`` the floor's images enter the moments as the
+linear fit's do (``floor_image_sums``) and each image's energy is that of its own corrected
+fit (``floor_image_moment``, ``image_map``, ``floor_image_forces``; docs/physics.md, "The
+ground collider's thin-layer strength").
 """
 
 import functools
