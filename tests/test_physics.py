@@ -51,8 +51,7 @@ def _launch_fit(fit, model, state, x, y, Fp, F_out, counters):
         ins.append(wp.zeros_like(Fp))
         outs.append(wp.zeros_like(Fp))
     ins.append(S(model.support_radius))
-    if fit is deformation:
-        ins += model.image_args()
+    ins += model.image_args()
     wp.launch(fit.kernels(S).update_deformation, model.particle_count, ins, outs + [counters])
 
 
