@@ -350,29 +350,33 @@ def test_default_solver_of_an_elastic_model_gradients_match_central_differences(
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
 
 
-def _images_model(params=None):
-    """The block over the ground with floor images (``add_ground(images=True)``): the plane
-    three quarters of a spacing under its bottom layer, so every particle's fit, energy and
-    density hold images; squeezed along y towards the plane (its bottom layer sinks 0.07 dx
-    in the rollout, staying above half a spacing, where the images are mirrors)."""
+def _images_model(params=None, ground=-0.045, v0=None):
+    """The block over the ground with floor images (``add_ground(images=True)``): by default
+    the plane three quarters of a spacing under its bottom layer, so every particle's fit,
+    energy and density hold images; squeezed along y towards the plane (its bottom layer sinks 0.07 dx
+    in the rollout, staying above half a spacing, where the images are mirrors). ``ground``
+    moves the plane, ``v0`` replaces the squeeze by a uniform velocity."""
     p = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "hardening": 200.0, "pressure_stiffness": 1.0,
          "viscosity": 2.0}
     p.update(params or {})
     mat = we.Material(density=1000.0, **p)
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
     b.add_box((0.0, 0.0, 0.0), (0.1, 0.08, 0.08), mat)
-    b.add_ground(-0.045, friction=0.5, images=True)
+    b.add_ground(ground, friction=0.5, images=True)
     model = b.finalize(dtype=wp.float64, requires_grad=True)
     model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * 0.02, size=model.particle_x0.shape)
-    model.particle_v0 = -20.0 * model.particle_x0 * np.array([1.0, -0.5, 0.0])
+    if v0 is None:
+        model.particle_v0 = -20.0 * model.particle_x0 * np.array([1.0, -0.5, 0.0])
+    else:
+        model.particle_v0[:] = v0
     return model
 
 
 @pytest.mark.parametrize("name", ["mu", "yield_stress", "pressure_stiffness", "viscosity", "v0"])
 def test_floor_images_gradients_match_central_differences(weights, name):
     """Through the ground's floor images (fit, variational energy, SPH density, pressure and
-    viscosity against the floor): the taped rollout (the differentiable kernels with Warp's
-    generated adjoints, ``Solver._hand``) against float64 central differences."""
+    viscosity against the floor): the taped rollout (the fused forward with the hand-written
+    adjoints, which carry the image terms) against float64 central differences."""
     model = _images_model()
     loss, grads = _rollout_loss(model, weights, grad_of=(name,))
     if name == "v0":
@@ -391,6 +395,110 @@ def test_floor_images_gradients_match_central_differences(weights, name):
     fd = (_rollout_loss(_images_model({name: base + eps}), weights)[0]
           - _rollout_loss(_images_model({name: base - eps}), weights)[0]) / (2 * eps)
     assert abs(fd) > 1e-9, "the loss does not reach " + name
+    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+
+
+#: The block's bottom layer is at y = -0.03 (spacing 0.02). "rest": at rest (F = I, v = 0)
+#: 0.3 dx over the plane, below half a spacing (the images stay put: d g / d x is the
+#: tangential projector), under gravity; "contact": falling at 5 cm/s from 0.01 dx over it,
+#: so the bottom layer reaches the plane within the rollout.
+IMAGE_SCENES = {"rest": {"ground": -0.036, "v0": (0.0, 0.0, 0.0)},
+                "contact": {"ground": -0.0302, "v0": (0.0, -0.05, 0.0)}}
+
+
+def _lowest_height(scene: str) -> float:
+    """The bottom layer's least height over the plane at the end of the untaped rollout."""
+    model = _images_model(**IMAGE_SCENES[scene])
+    solver = we.Solver(model)
+    a, b = model.state(), model.state()
+    for _ in range(STEPS):
+        solver.step(a, b, DT)
+        a, b = b, a
+    return float(a.x.numpy()[:, 1].min() - IMAGE_SCENES[scene]["ground"])
+
+
+@pytest.mark.parametrize("scene", sorted(IMAGE_SCENES))
+@pytest.mark.parametrize("name", ["mu", "pressure_stiffness", "viscosity", "v0"])
+def test_floor_images_gradients_at_rest_and_through_contact(weights, scene, name):
+    """The hand-written adjoints with the floor images (the fused forward under the tape,
+    ``Solver.fast_under_tape``) against float64 central differences: a block at rest on
+    the imaged ground (F = I, every singular value repeated), and one landing on it (the
+    collider's contact within the rollout)."""
+    kw = IMAGE_SCENES[scene]
+    model = _images_model(**kw)
+    assert we.Solver(model).fast_under_tape()
+    if name == "mu":  # once per scene: the scene does what its name says
+        low = _lowest_height(scene)
+        assert (low <= 1e-9) if scene == "contact" else (0.0 < low < 0.5 * 0.02)
+    _, grads = _rollout_loss(model, weights, grad_of=(name,))
+    if name == "v0":
+        i = int(np.argmin(model.particle_x0[:, 1]))
+        for comp in (0, 1):
+            def loss_with(delta):
+                m = _images_model(**kw)
+                m.particle_v0[i, comp] += delta
+                return _rollout_loss(m, weights)[0]
+
+            fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
+            assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
+        return
+    base = getattr(model.materials[0], name)
+    eps = 1e-5 * base
+    fd = (_rollout_loss(_images_model({name: base + eps}, **kw), weights)[0]
+          - _rollout_loss(_images_model({name: base - eps}, **kw), weights)[0]) / (2 * eps)
+    assert abs(fd) > 1e-9, "the loss does not reach " + name
+    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+
+
+@pytest.mark.parametrize("scene", sorted(IMAGE_SCENES) + ["squeezed"])
+@pytest.mark.parametrize("name", ["mu", "lam"])
+def test_floor_images_gradients_of_the_paper_force_match_central_differences(weights, scene, name):
+    """The paper's force (eqs. 10-13) over the floor images (``forces.paper_image_forces``,
+    its hand-written adjoint ``forces.elastic_forces_adjoint``): the taped rollout against
+    float64 central differences at rest, through contact and squeezed."""
+    kw = IMAGE_SCENES.get(scene, {})
+    paper = {"elastic_force": "paper"}
+    model = _images_model(paper, **kw)
+    assert we.Solver(model).fast_under_tape()
+    _, grads = _rollout_loss(model, weights, grad_of=(name,))
+    base = getattr(model.materials[0], name)
+    eps = 1e-5 * base
+    fd = (_rollout_loss(_images_model({**paper, name: base + eps}, **kw), weights)[0]
+          - _rollout_loss(_images_model({**paper, name: base - eps}, **kw), weights)[0]) / (2 * eps)
+    assert abs(fd) > 1e-11, "the loss does not reach " + name  # at rest lam: 6.6e-10
+    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+
+
+@pytest.mark.parametrize("scene", sorted(IMAGE_SCENES) + ["squeezed"])
+@pytest.mark.parametrize("name, elastic_force", [("mu", "variational"), ("v0", "variational"), ("lam", "paper")])
+def test_floor_images_gradients_of_the_corrected_fit_match_central_differences(weights, scene, name, elastic_force):
+    """``fit="curvature_corrected"`` over the floor images (``curvature.floor_image_sums``,
+    ``floor_image_moment``, ``floor_image_forces``; the paper's force's image pairs): its
+    hand-written adjoints against Warp's generated ones and against float64 central
+    differences, at rest, through contact and squeezed."""
+    kw = IMAGE_SCENES.get(scene, {})
+    params = {"elastic_force": elastic_force}
+    fit = "curvature_corrected"
+    model = _images_model(params, **kw)
+    _, grads = _rollout_loss(model, weights, grad_of=(name,), fit=fit)
+    _, generated = _rollout_loss(_images_model(params, **kw), weights, grad_of=(name,), fit=fit, hand_adjoints=False)
+    np.testing.assert_allclose(grads[name], generated[name], rtol=1e-8, atol=1e-12 * np.abs(generated[name]).max())
+    if name == "v0":
+        i = int(np.argmin(model.particle_x0[:, 1]))
+        for comp in (0, 1):
+            def loss_with(delta):
+                m = _images_model(params, **kw)
+                m.particle_v0[i, comp] += delta
+                return _rollout_loss(m, weights, fit=fit)[0]
+
+            fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
+            assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
+        return
+    base = getattr(model.materials[0], name)
+    eps = 1e-5 * base
+    fd = (_rollout_loss(_images_model({**params, name: base + eps}, **kw), weights, fit=fit)[0]
+          - _rollout_loss(_images_model({**params, name: base - eps}, **kw), weights, fit=fit)[0]) / (2 * eps)
+    assert abs(fd) > 1e-11, "the loss does not reach " + name
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
 
 

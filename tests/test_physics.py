@@ -45,10 +45,8 @@ def _launch_fit(fit, model, state, x, y, Fp, F_out, counters):
     discarded out)."""
     S = model.scalar
     ins = [x, y, wp.zeros_like(x), wp.zeros_like(x), model.particle_body, state.neighbors, state.neighbor_count,
-           state.guard, Fp, wp.zeros_like(Fp), S(model.support_radius)]
+           state.guard, Fp, wp.zeros_like(Fp), S(model.support_radius), *model.image_args()]
     outs = [F_out, wp.zeros_like(Fp)]
-    if fit is deformation:
-        ins += model.image_args()
     wp.launch(fit.kernels(S).update_deformation, model.particle_count, ins, outs + [counters])
 
 

@@ -365,8 +365,9 @@ class SceneBuilder:
 
         ``images=True``: the ground is also a rough floor of the material's fits: each
         particle within the support radius of it has, in its incremental fit and in the
-        variational elastic energy, the mirror images of its neighbours below the plane,
-        static over a step and carrying their particle's stress (docs/physics.md, "The ground
+        elastic force (the variational energy, or the paper's pairs), the mirror images of its
+        neighbours below the plane, static over a step and carrying their particle's stress
+        (the incremental fit; docs/physics.md, "The ground
         collider's thin-layer strength"). Without it a layer's bottom particles are held on
         the plane with a one-sided fit, and a thin layer is 2.25 x too strong in shear."""
         if not isinstance(images, bool):

@@ -33,6 +33,11 @@ hand-written adjoints: the deformation update's ``update_deformation_adjoint``, 
 variational force's ``variational_forces_adjoint`` (eqs. 10-13's particles use
 ``forces.elastic_forces_adjoint``); ``Solver.hand_adjoints = False`` runs Warp's generated
 ones, which the tests compare them with in float64.
+
+With ``SceneBuilder.add_ground(images=True)`` the floor's images enter the moments as the
+linear fit's do (``floor_image_sums``) and each image's energy is that of its own corrected
+fit (``floor_image_moment``, ``image_map``, ``floor_image_forces``; docs/physics.md, "The
+ground collider's thin-layer strength").
 """
 
 import functools
@@ -60,12 +65,22 @@ def funcs(scalar) -> types.SimpleNamespace:
     vec3, mat33 = T.vec3, T.mat33
     sm = smoothing.funcs(scalar)
     df = deformation.funcs(scalar)
+    variational_map = forces.funcs(scalar).variational_map
 
     @wp.func
     def curvature_basis(d: vec3, h: scalar) -> vec3:
         """``q(xb) = (xb_x xb_y, xb_x xb_z, xb_y xb_z) / h``: the mixed quadratic terms the fit
         carries beside the gradient (module docstring)."""
         return vec3(d[0] * d[1], d[0] * d[2], d[1] * d[2]) / h
+
+    @wp.func
+    def pair_moments(xb: vec3, yb: vec3, w: scalar, h: scalar):
+        """One pair's terms of ``moment_sums``: ``w xb xb^T``, ``w yb xb^T``, ``w xb q^T``,
+        ``w q q^T``, ``w yb q^T`` (``q = curvature_basis(xb)``)."""
+        q = curvature_basis(xb, h)
+        wxb = w * xb
+        wq = w * q
+        return wp.outer(wxb, xb), wp.outer(yb, wxb), wp.outer(wxb, q), wp.outer(wq, q), wp.outer(yb, wq)
 
     @wp.func
     def moment_sums(
@@ -100,20 +115,132 @@ def funcs(scalar) -> types.SimpleNamespace:
             j = nbr[i, k]
             if body[j] == bi:
                 xb = x[j] - xi
-                ub = ((y[j] - x[j]) + (y_lo[j] - x_lo[j])) - ui
                 r2 = wp.dot(xb, xb)
-                w = sm.w_poly6_c(r2, h, c6)
-                q = curvature_basis(xb, h)
-                wxb = w * xb
-                wq = w * q
-                A += wp.outer(wxb, xb)
-                B += wp.outer(ub, wxb)
-                C += wp.outer(wxb, q)
-                D += wp.outer(wq, q)
-                E += wp.outer(ub, wq)
+                ub = ((y[j] - x[j]) + (y_lo[j] - x_lo[j])) - ui
+                dA, dB, dC, dD, dE = pair_moments(xb, ub, sm.w_poly6_c(r2, h, c6), h)
+                A += dA
+                B += dB
+                C += dC
+                D += dD
+                E += dE
                 # Only neighbours of non-zero weight count (rows may reach beyond h).
                 same += wp.where(r2 < h * h, 1, 0)
         return A, B, C, D, E, same
+
+    @wp.func
+    def floor_image_sums(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+    ):
+        """``moment_sums`` over the floor's images ``g_j`` of ``i`` and of its same-body
+        neighbours (``deformation.floor_image_sums``: ``xb = g_j - x_i``, ``ub = -u_i``, the
+        floor at rest over the step)."""
+        A = mat33()
+        B = mat33()
+        C = mat33()
+        D = mat33()
+        E = mat33()
+        xi = x[i]
+        ui = (y[i] - xi) + (y_lo[i] - x_lo[i])
+        bi = body[i]
+        c6 = sm.poly6_coef(h)
+        same = int(0)
+        # Every image is at least as far from x_i as x_i is from the plane.
+        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            if body[j] == bi:
+                g = df.floor_image(x[j], gn, goff, gmin)
+                xb = g - xi
+                r2 = wp.dot(xb, xb)
+                dA, dB, dC, dD, dE = pair_moments(xb, -ui, sm.w_poly6_c(r2, h, c6), h)
+                A += dA
+                B += dB
+                C += dC
+                D += dD
+                E += dE
+                same += wp.where(r2 < h * h, 1, 0)
+        return A, B, C, D, E, same
+
+    @wp.func
+    def fit_sums(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
+    ):
+        """``moment_sums``, plus ``floor_image_sums`` where the model has an image plane."""
+        A, B, C, D, E, same = moment_sums(i, x, y, x_lo, y_lo, body, nbr, n, h)
+        if images != 0:
+            Ag, Bg, Cg, Dg, Eg, sg = floor_image_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
+            A = A + Ag
+            B = B + Bg
+            C = C + Cg
+            D = D + Dg
+            E = E + Eg
+            same = same + sg
+        return A, B, C, D, E, same
+
+    @wp.func
+    def floor_image_moment(
+        i: int,
+        x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+    ):
+        """``deformation.floor_image_moment`` with the curvature terms: ``A``, ``C``, ``D`` of
+        ``i``'s own image ``g_i`` over ``i`` and its same-body neighbours (``xb = x_r - g_i``)
+        and their images (``xb = g_r - g_i``)."""
+        A = mat33()
+        C = mat33()
+        D = mat33()
+        xi = x[i]
+        bi = body[i]
+        gi = df.floor_image(xi, gn, goff, gmin)
+        c6 = sm.poly6_coef(h)
+        zero = vec3()
+        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            if body[j] == bi:
+                xb = x[j] - gi
+                dA, dB, dC, dD, dE = pair_moments(xb, zero, sm.w_poly6_c(wp.dot(xb, xb), h, c6), h)
+                A += dA
+                C += dC
+                D += dD
+                if j != i:
+                    gb = df.floor_image(x[j], gn, goff, gmin) - gi
+                    dA, dB, dC, dD, dE = pair_moments(gb, zero, sm.w_poly6_c(wp.dot(gb, gb), h, c6), h)
+                    A += dA
+                    C += dC
+                    D += dD
+        return A, C, D
 
     @wp.func
     def curvature_kept(A: mat33, C: mat33, K: mat33) -> bool:
@@ -229,13 +356,83 @@ def funcs(scalar) -> types.SimpleNamespace:
                 fi += g
         return fi
 
+    @wp.func
+    def image_map(volume: scalar, P: mat33, F: mat33, A: mat33, C: mat33, D: mat33):
+        """``forces.image_map`` of the corrected fit: ``M_g = V P F^T A~_g^-1`` and ``K_g`` of the
+        image's own moments (``floor_image_moment``)."""
+        K = curvature_projection(A, C, D)
+        return variational_map(volume, P, F, wp.inverse(corrected_moment(A, C, K))), K
+
+    @wp.func
+    def floor_image_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                           nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, K: mat33, Mg: mat33, Kg: mat33,
+                           h: scalar, gn: vec3, goff: scalar, gmin: scalar, f: wp.array(dtype=vec3)) -> vec3:
+        """``forces.floor_image_forces`` with the corrected fit's pair force: ``w M o(g_j - x_i)``
+        on ``i`` for each image in its fit, and ``-w Mg o_g(x_r - g_i)`` of its own image's
+        energy on ``i`` and on each same-body neighbour ``r`` (``o = xb - K^T q(xb)``)."""
+        xi = x[i]
+        bi = body[i]
+        c6 = sm.poly6_coef(h)
+        gi = df.floor_image(xi, gn, goff, gmin)
+        fi = vec3()
+        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            if body[j] == bi:
+                xj = x[j]
+                fi += variational_pair_force(M, K, df.floor_image(xj, gn, goff, gmin) - xi, h, c6)
+                gr = variational_pair_force(Mg, Kg, xj - gi, h, c6)
+                if j == i:
+                    fi -= gr
+                else:
+                    wp.atomic_sub(f, j, gr)
+        return fi
+
+    @wp.func
+    def moment_pair_adjoint(xb: vec3, yb: vec3, w: scalar, dw: scalar, h: scalar, adj_A: mat33, adj_A_sym: mat33,
+                            adj_B: mat33, adj_C: mat33, adj_D: mat33, adj_D_sym: mat33, adj_E: mat33):
+        """Adjoint of one pair's ``pair_moments`` given the moments' adjoints
+        (``adj_A_sym = adj_A + adj_A^T``, likewise ``D``): returns ``(adj xb, adj yb)``; the
+        pair depends on ``xb`` through ``w(|xb|^2)`` (``dw = dw / d|xb|^2``), ``xb`` and ``q(xb)``,
+        on ``yb`` linearly."""
+        q = curvature_basis(xb, h)
+        Bx = adj_B * xb
+        Eq = adj_E * q
+        Cq = adj_C * q
+        s = wp.dot(xb, adj_A * xb) + wp.dot(yb, Bx) + wp.dot(xb, Cq) + wp.dot(q, adj_D * q) + wp.dot(yb, Eq)
+        # d s / d q (through C, D, E), carried back through q(xb) = (xy, xz, yz) / h.
+        aq = wp.transpose(adj_C) * xb + adj_D_sym * q + wp.transpose(adj_E) * yb
+        jq = curvature_basis_adjoint(xb, aq, h)
+        gx = w * (adj_A_sym * xb + wp.transpose(adj_B) * yb + Cq + jq) + scalar(2.0) * dw * s * xb
+        return gx, w * (Bx + Eq)
+
+    @wp.func
+    def variational_pair_adjoint(d: vec3, a: vec3, w: scalar, dw: scalar, h: scalar, M: mat33, K: mat33,
+                                 adj_A: mat33, adj_A_sym: mat33, adj_C: mat33, adj_D: mat33, adj_D_sym: mat33) -> vec3:
+        """Adjoint in ``d = xb`` of one pair of the corrected variational force: its force
+        ``w M o``, ``o = d - K^T q(d)`` (against ``a``, as ``forces.variational_pair_adjoint``)
+        and its terms in ``A``, ``C``, ``D`` (``adj_A``, ``adj_C``, ``adj_D``; ``a = 0``: the
+        moments only)."""
+        q = curvature_basis(d, h)
+        o = d - wp.transpose(K) * q
+        adj_o = w * (wp.transpose(M) * a)
+        Cq = adj_C * q
+        s = wp.dot(d, adj_A * d) + wp.dot(d, Cq) + wp.dot(q, adj_D * q) + wp.dot(a, M * o)
+        # d / d q (the moments C, D and the offset o), carried back through q(xb).
+        aq = w * (wp.transpose(adj_C) * d + adj_D_sym * q) - K * adj_o
+        jq = curvature_basis_adjoint(d, aq, h)
+        return w * (adj_A_sym * d + Cq) + jq + adj_o + scalar(2.0) * dw * s * d
+
     return types.SimpleNamespace(
+        pair_moments=pair_moments, floor_image_sums=floor_image_sums, fit_sums=fit_sums,
+        floor_image_moment=floor_image_moment, image_map=image_map, floor_image_forces=floor_image_forces,
+        moment_pair_adjoint=moment_pair_adjoint, variational_pair_adjoint=variational_pair_adjoint,
         curvature_basis=curvature_basis, curvature_basis_adjoint=curvature_basis_adjoint, moment_sums=moment_sums,
         curvature_kept=curvature_kept, ridge_inverse=ridge_inverse, projection_terms=projection_terms,
         curvature_projection=curvature_projection, projection_adjoint=projection_adjoint,
         corrected_moment=corrected_moment, corrected_offset=corrected_offset, corrected_increment=corrected_increment,
-        corrected_fit=corrected_fit,
-        step_increment=step_increment, variational_pair_force=variational_pair_force,
+        corrected_fit=corrected_fit, step_increment=step_increment, variational_pair_force=variational_pair_force,
         variational_forces=variational_forces,
     )
 
@@ -263,6 +460,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         F_prev: wp.array(dtype=mat33),
         F_prev_lo: wp.array(dtype=mat33),
         h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         F_out: wp.array(dtype=mat33),
         F_out_lo: wp.array(dtype=mat33),
         counters: wp.array(dtype=wp.int32),
@@ -270,7 +471,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         """``deformation.update_deformation`` with the corrected fit (eq. 8: ``F <- dF F``
         unless guarded or inverted, ``F``'s round-off carried in ``F_lo`` as there)."""
         i = wp.tid()
-        A, Bu, C, D, Eu, same = fn.moment_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h)
+        A, Bu, C, D, Eu, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
         inc = fn.step_increment(A, Bu, C, D, Eu, guard[i], counters)
         F_new, F_new_lo = df.carried_update(inc, F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
@@ -288,6 +489,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         guard: wp.array(dtype=wp.int32),
         F_prev: wp.array(dtype=mat33),
         h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         adj_F_out: wp.array(dtype=mat33),
         adj_x: wp.array(dtype=vec3),
         adj_y: wp.array(dtype=vec3),
@@ -303,12 +508,14 @@ def kernels(scalar) -> types.SimpleNamespace:
         ``adj C = -adj A~ K^T + adj K^T Dr^-1``, ``adj D = -Dr^-T adj K K^T`` (``Dr = D + eps I``;
         where the correction is dropped, ``K = 0`` does not depend on ``C`` or ``D``).
         Per pair the sums depend on ``xb`` through ``w(|xb|^2)``, ``xb`` and ``q(xb)``, and on
-        ``yb`` linearly. Guarded or inverted particles keep ``F``: all of ``G`` goes to ``F``."""
+        ``yb`` linearly (``moment_pair_adjoint``). Guarded or inverted particles keep ``F``: all
+        of ``G`` goes to ``F``. With ``images`` the image pairs (``floor_image_sums``) scatter to
+        their particles through ``deformation.floor_image_jacobian``."""
         i = wp.tid()
         G = adj_F_out[i]
         Fp = F_prev[i]
         code = guard[i]
-        A, Bu, C, D, Eu, same = fn.moment_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h)
+        A, Bu, C, D, Eu, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
         if code == 1 or code == 2:
             adj_F_prev[i] = adj_F_prev[i] + G
             return
@@ -332,36 +539,45 @@ def kernels(scalar) -> types.SimpleNamespace:
         adj_A, adj_C, adj_D = fn.projection_adjoint(adj_At, -(wp.transpose(E) * adj_Bt), C, K, D_inv, kept)
         adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_D_sym = adj_D + wp.transpose(adj_D)
-        adj_BT = wp.transpose(adj_B)
-        adj_CT = wp.transpose(adj_C)
-        adj_ET = wp.transpose(adj_E)
         xi = x[i]
         yi = y[i]
         bi = body[i]
         c6 = sm.poly6_coef(h)
         hh = h * h
+        n = count[i]
         gx_i = vec3()
         gy_i = vec3()
-        for k in range(count[i]):
+        for k in range(n):
             j = nbr[i, k]
             if body[j] == bi:
                 xb = x[j] - xi
                 r2 = wp.dot(xb, xb)
                 if r2 < hh:
-                    yb = y[j] - yi
                     w, dw = sm.w_poly6_inside(r2, hh, c6)
-                    q = fn.curvature_basis(xb, h)
-                    Bx = adj_B * xb
-                    Eq = adj_E * q
-                    Cq = adj_C * q
-                    s = wp.dot(xb, adj_A * xb) + wp.dot(yb, Bx) + wp.dot(xb, Cq) + wp.dot(q, adj_D * q) + wp.dot(yb, Eq)
-                    # d s / d q (through C, D, E), carried back through q(xb) = (xy, xz, yz) / h.
-                    aq = adj_CT * xb + adj_D_sym * q + adj_ET * yb
-                    jq = fn.curvature_basis_adjoint(xb, aq, h)
-                    gx = w * (adj_A_sym * xb + adj_BT * yb + Cq + jq) + scalar(2.0) * dw * s * xb
-                    gy = w * (Bx + Eq)
+                    gx, gy = fn.moment_pair_adjoint(xb, y[j] - yi, w, dw, h, adj_A, adj_A_sym, adj_B, adj_C, adj_D,
+                                                    adj_D_sym, adj_E)
                     wp.atomic_add(adj_x, j, gx)
                     wp.atomic_add(adj_y, j, gy)
+                    gx_i -= gx
+                    gy_i -= gy
+        n_img = int(0)
+        if images != 0:
+            # Every image is at least as far from x_i as x_i is from the plane.
+            n_img = wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)
+        for k in range(n_img):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            if body[j] == bi:
+                xj = x[j]
+                g = df.floor_image(xj, gn, goff, gmin)
+                xb = g - xi
+                r2 = wp.dot(xb, xb)
+                if r2 < hh:
+                    w, dw = sm.w_poly6_inside(r2, hh, c6)
+                    gx, gy = fn.moment_pair_adjoint(xb, g - yi, w, dw, h, adj_A, adj_A_sym, adj_B, adj_C, adj_D,
+                                                    adj_D_sym, adj_E)
+                    wp.atomic_add(adj_x, j, df.floor_image_jacobian(xj, gn, goff, gmin) * (gx + gy))
                     gx_i -= gx
                     gy_i -= gy
         wp.atomic_add(adj_x, i, gx_i)
@@ -381,21 +597,32 @@ def kernels(scalar) -> types.SimpleNamespace:
         F: wp.array(dtype=mat33),
         F_inv: wp.array(dtype=mat33),
         h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         f: wp.array(dtype=vec3),
     ):
         """``forces.elastic_forces`` with the variational force of the corrected fit
-        (eqs. 10-13 unchanged)."""
+        (eqs. 10-13 unchanged), with ``images`` its floor images' terms."""
         i = wp.tid()
         fi = vec3()
         if mat.elastic_force[material[i]] == 0:
             fi = fo.paper_forces(i, x, body, nbr, count[i], volume, stress[i], F_inv[i], h, f)
+            if images != 0:
+                fi += fo.paper_image_forces(i, x, body, nbr, count[i], volume, stress[i], F[i], F_inv[i], h, gn, goff,
+                                            gmin, f)
         elif guard[i] == 0:
             # The moments from their own function: the inverses must not see a loop
             # accumulator (docs/method.md, Warp pitfall 1).
-            A, Bu, C, D, Eu, same = fn.moment_sums(i, x, x, x, x, body, nbr, count[i], h)
+            A, B, C, D, E, same = fn.fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
             K = fn.curvature_projection(A, C, D)
             M = fo.variational_map(volume[i], stress[i], F[i], wp.inverse(fn.corrected_moment(A, C, K)))
             fi = fn.variational_forces(i, x, body, nbr, count[i], M, K, h, f)
+            if images != 0:
+                Ag, Cg, Dg = fn.floor_image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin)
+                Mg, Kg = fn.image_map(volume[i], stress[i], F[i], Ag, Cg, Dg)
+                fi += fn.floor_image_forces(i, x, body, nbr, count[i], M, K, Mg, Kg, h, gn, goff, gmin, f)
         wp.atomic_add(f, i, fi)
 
     @wp.kernel(enable_backward=False)
@@ -411,6 +638,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         stress: wp.array(dtype=mat33),
         F: wp.array(dtype=mat33),
         h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         adj_f: wp.array(dtype=vec3),
         adj_x: wp.array(dtype=vec3),
         adj_stress: wp.array(dtype=mat33),
@@ -426,77 +657,136 @@ def kernels(scalar) -> types.SimpleNamespace:
         ``adj F = V A~^-1 adj M^T P``, ``adj A~ = -A~^-T (V F P^T adj M) A~^-T``; then through
         ``A~ = A - C K`` and ``K = (D + eps I)^-1 C^T`` as ``update_deformation_adjoint``.
         Per pair ``A``, ``C``, ``D`` depend on ``xb`` through ``w(|xb|^2)``, ``xb`` and
-        ``q(xb)``; ``o_j`` through ``xb`` and ``q``. Guarded particles apply no force."""
+        ``q(xb)``; ``o_j`` through ``xb`` and ``q`` (``variational_pair_adjoint``). Guarded
+        particles apply no force. With ``images`` (``floor_image_forces``) as the linear fit's
+        (``forces.variational_forces_adjoint``): the image pairs of the fit with ``a = adj f_i``,
+        the own image's energy (``Mg``, ``Kg`` of ``floor_image_moment``) with ``a = -adj f_r``
+        on ``d = x_r - g_i`` and ``a = 0`` on the image-image terms ``d = g_r - g_i``."""
         i = wp.tid()
         if elastic_force[material[i]] != 1 or guard[i] != 0:
             return
         xi = x[i]
         bi = body[i]
         ai = adj_f[i]
+        n = count[i]
         c6 = sm.poly6_coef(h)
         hh = h * h
-        # One pass: the moments A, C, D and, for adj M = S1 - S2 K and adj K = -S2^T M (which
-        # need K and M, known only after the pass), S1 = sum w a xb^T and S2 = sum w a q^T.
-        # (No generated adjoint here, so loop accumulators may feed the inverses:
-        # docs/method.md, Warp pitfall 1, concerns generated adjoints only.)
-        A = mat33()
-        C = mat33()
-        D = mat33()
+        A, B, C, D, E, same = fn.fit_sums(i, x, x, x, x, body, nbr, n, h, gn, goff, gmin, images)
+        # adj M = S1 - S2 K and adj K = -S2^T M (which need K and M), S1 = sum w a xb^T and
+        # S2 = sum w a q^T; the same for the own image's Mg, Kg (S1g, S2g).
         S1 = mat33()
         S2 = mat33()
-        for k in range(count[i]):
+        for k in range(n):
             j = nbr[i, k]
             if body[j] == bi:
                 d = x[j] - xi
-                r2 = wp.dot(d, d)
-                if r2 < hh:
-                    w, dw = sm.w_poly6_inside(r2, hh, c6)
-                    q = fn.curvature_basis(d, h)
-                    wd = w * d
-                    A += wp.outer(wd, d)
-                    C += wp.outer(wd, q)
-                    D += w * wp.outer(q, q)
-                    wa = w * (ai - adj_f[j])
-                    S1 += wp.outer(wa, d)
-                    S2 += wp.outer(wa, q)
+                wa = sm.w_poly6_c(wp.dot(d, d), h, c6) * (ai - adj_f[j])
+                S1 += wp.outer(wa, d)
+                S2 += wp.outer(wa, fn.curvature_basis(d, h))
+        n_img = int(0)
+        if images != 0:
+            # Every image is at least as far from x_i as x_i is from the plane.
+            n_img = wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)
+        gi = df.floor_image(xi, gn, goff, gmin)
+        S1g = mat33()
+        S2g = mat33()
+        for k in range(n_img):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            if body[j] == bi:
+                xj = x[j]
+                d = df.floor_image(xj, gn, goff, gmin) - xi
+                wa = sm.w_poly6_c(wp.dot(d, d), h, c6) * ai
+                S1 += wp.outer(wa, d)
+                S2 += wp.outer(wa, fn.curvature_basis(d, h))
+                d = xj - gi
+                wa = -sm.w_poly6_c(wp.dot(d, d), h, c6) * adj_f[j]
+                S1g += wp.outer(wa, d)
+                S2g += wp.outer(wa, fn.curvature_basis(d, h))
         K, D_inv, kept = fn.projection_terms(A, C, D)
-        KT = wp.transpose(K)
         Ainv = wp.inverse(fn.corrected_moment(A, C, K))
         Vi = volume[i]
         P = stress[i]
         Fi = F[i]
         M = fo.variational_map(Vi, P, Fi, Ainv)
-        MT = wp.transpose(M)
-        adj_M = S1 - S2 * K
-        adj_P, adj_Fi, adj_At = fo.variational_map_adjoint(Vi, P, Fi, Ainv, adj_M)
-        adj_stress[i] = adj_stress[i] + adj_P
-        adj_F[i] = adj_F[i] + adj_Fi
+        adj_P, adj_Fi, adj_At = fo.variational_map_adjoint(Vi, P, Fi, Ainv, S1 - S2 * K)
         adj_A, adj_C, adj_D = fn.projection_adjoint(adj_At, -(wp.transpose(S2) * M), C, K, D_inv, kept)
         adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_D_sym = adj_D + wp.transpose(adj_D)
-        adj_CT = wp.transpose(adj_C)
-        # Second pass: the scatter to the positions.
+        Mg = mat33()
+        Kg = mat33()
+        adj_Ag = mat33()
+        adj_Cg = mat33()
+        adj_Dg = mat33()
+        if n_img > 0:
+            Ag, Cg, Dg = fn.floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
+            Kg_, Dg_inv, kept_g = fn.projection_terms(Ag, Cg, Dg)
+            Ag_inv = wp.inverse(fn.corrected_moment(Ag, Cg, Kg_))
+            Mg_ = fo.variational_map(Vi, P, Fi, Ag_inv)
+            adj_Pg, adj_Fg, adj_Agt = fo.variational_map_adjoint(Vi, P, Fi, Ag_inv, S1g - S2g * Kg_)
+            adj_P += adj_Pg
+            adj_Fi += adj_Fg
+            adj_Ag_, adj_Cg_, adj_Dg_ = fn.projection_adjoint(adj_Agt, -(wp.transpose(S2g) * Mg_), Cg, Kg_, Dg_inv,
+                                                              kept_g)
+            Mg = Mg_
+            Kg = Kg_
+            adj_Ag = adj_Ag_
+            adj_Cg = adj_Cg_
+            adj_Dg = adj_Dg_
+        adj_Ag_sym = adj_Ag + wp.transpose(adj_Ag)
+        adj_Dg_sym = adj_Dg + wp.transpose(adj_Dg)
+        adj_stress[i] = adj_stress[i] + adj_P
+        adj_F[i] = adj_F[i] + adj_Fi
+        # The scatter to the positions.
         gx_i = vec3()
-        for k in range(count[i]):
+        for k in range(n):
             j = nbr[i, k]
             if body[j] == bi:
                 d = x[j] - xi
                 r2 = wp.dot(d, d)
                 if r2 < hh:
                     w, dw = sm.w_poly6_inside(r2, hh, c6)
-                    a = ai - adj_f[j]
-                    q = fn.curvature_basis(d, h)
-                    o = d - KT * q
-                    adj_o = w * (MT * a)
-                    Cq = adj_C * q
-                    s = wp.dot(d, adj_A * d) + wp.dot(d, Cq) + wp.dot(q, adj_D * q) + wp.dot(a, M * o)
-                    # d / d q (the moments C, D and the offset o), carried back through q(xb).
-                    aq = w * (adj_CT * d + adj_D_sym * q) - K * adj_o
-                    jq = fn.curvature_basis_adjoint(d, aq, h)
-                    gx = w * (adj_A_sym * d + Cq) + jq + adj_o + scalar(2.0) * dw * s * d
+                    gx = fn.variational_pair_adjoint(d, ai - adj_f[j], w, dw, h, M, K, adj_A, adj_A_sym, adj_C, adj_D,
+                                                     adj_D_sym)
                     wp.atomic_add(adj_x, j, gx)
                     gx_i -= gx
-        wp.atomic_add(adj_x, i, gx_i)
+        # Through g_i (summed, then by d g_i / d x_i).
+        gg_i = vec3()
+        zero = vec3()
+        for k in range(n_img):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            if body[j] == bi:
+                xj = x[j]
+                gj = df.floor_image(xj, gn, goff, gmin)
+                Jj = df.floor_image_jacobian(xj, gn, goff, gmin)
+                d = gj - xi
+                r2 = wp.dot(d, d)
+                if r2 < hh:
+                    w, dw = sm.w_poly6_inside(r2, hh, c6)
+                    gx = fn.variational_pair_adjoint(d, ai, w, dw, h, M, K, adj_A, adj_A_sym, adj_C, adj_D, adj_D_sym)
+                    wp.atomic_add(adj_x, j, Jj * gx)
+                    gx_i -= gx
+                d = xj - gi
+                r2 = wp.dot(d, d)
+                if r2 < hh:
+                    w, dw = sm.w_poly6_inside(r2, hh, c6)
+                    gx = fn.variational_pair_adjoint(d, -adj_f[j], w, dw, h, Mg, Kg, adj_Ag, adj_Ag_sym, adj_Cg, adj_Dg,
+                                                     adj_Dg_sym)
+                    wp.atomic_add(adj_x, j, gx)
+                    gg_i -= gx
+                if j != i:
+                    d = gj - gi
+                    r2 = wp.dot(d, d)
+                    if r2 < hh:
+                        w, dw = sm.w_poly6_inside(r2, hh, c6)
+                        gx = fn.variational_pair_adjoint(d, zero, w, dw, h, Mg, Kg, adj_Ag, adj_Ag_sym, adj_Cg, adj_Dg,
+                                                         adj_Dg_sym)
+                        wp.atomic_add(adj_x, j, Jj * gx)
+                        gg_i -= gx
+        wp.atomic_add(adj_x, i, gx_i + df.floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
 
     return types.SimpleNamespace(update_deformation=update_deformation,
                                  update_deformation_adjoint=update_deformation_adjoint, elastic_forces=elastic_forces,
@@ -510,7 +800,7 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True)
     S = model.scalar
     inputs = [state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
               state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
-              state_out.F_inv, S(model.support_radius)]
+              state_out.F_inv, S(model.support_radius), *model.image_args()]
     tape = deformation.recording_tape()
     grads = (state_in.x, state_out.stress, state_out.F_flowed, state_out.F_inv, state_out.force)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
@@ -524,8 +814,8 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True)
             kernels(S).variational_forces_adjoint, model.particle_count,
             [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force,
              state_out.neighbors, state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress,
-             state_out.F_flowed, S(model.support_radius), state_out.force.grad, state_in.x.grad, state_out.stress.grad,
-             state_out.F_flowed.grad],
+             state_out.F_flowed, S(model.support_radius), *model.image_args(), state_out.force.grad, state_in.x.grad,
+             state_out.stress.grad, state_out.F_flowed.grad],
             device=model.device, record_tape=False,
         )
         forces.launch_elastic_forces_adjoint(model, state_in, state_out)
@@ -540,7 +830,8 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     pos = [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
            state_out.neighbor_count, state_out.guard]
     h = model.scalar(model.support_radius)
-    inputs = pos + [state_out.F_flowed, state_out.F_flowed_lo, h]
+    plane = model.image_args()
+    inputs = pos + [state_out.F_flowed, state_out.F_flowed_lo, h, *plane]
     outputs = [state_out.F, state_out.F_lo, counters]
     tape = deformation.recording_tape()
     grads = (state_in.x, state_out.x, state_out.F_flowed, state_out.F)
@@ -552,7 +843,8 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     def adjoint():
         wp.launch(
             k.update_deformation_adjoint, model.particle_count,
-            pos + [state_out.F_flowed, h, state_out.F.grad, state_in.x.grad, state_out.x.grad, state_out.F_flowed.grad],
+            pos + [state_out.F_flowed, h, *plane, state_out.F.grad, state_in.x.grad, state_out.x.grad,
+                   state_out.F_flowed.grad],
             device=model.device, record_tape=False,
         )
 

@@ -94,6 +94,23 @@ def funcs(scalar) -> types.SimpleNamespace:
         return x - (d + wp.max(d, min_depth)) * n
 
     @wp.func
+    def floor_image_jacobian(x: vec3, n: vec3, offset: scalar, min_depth: scalar) -> mat33:
+        """``d floor_image / d x`` (symmetric): the mirror ``R = I - 2 n n^T`` while ``x`` is
+        higher than ``min_depth``, the tangential projector ``I - n n^T`` below, where the
+        image stays at ``min_depth`` under the plane."""
+        d = wp.dot(n, x) - offset
+        return wp.identity(n=3, dtype=scalar) - wp.where(d > min_depth, scalar(2.0), scalar(1.0)) * wp.outer(n, n)
+
+    @wp.func
+    def fit_pair_adjoint(w: scalar, dw: scalar, xb: vec3, yb: vec3, adj_A: mat33, adj_A_sym: mat33, adj_B: mat33):
+        """Adjoint of one pair's terms ``w(|xb|^2) xb xb^T`` in ``A`` and ``w yb xb^T`` in ``B``
+        (eqs. 5-7; ``dw = d w / d |xb|^2``, ``adj_A_sym = adj_A + adj_A^T``): returns
+        ``(adj xb, adj yb)``."""
+        Bx = adj_B * xb
+        s = wp.dot(xb, adj_A * xb) + wp.dot(yb, Bx)
+        return w * (adj_A_sym * xb + wp.transpose(adj_B) * yb) + scalar(2.0) * dw * s * xb, w * Bx
+
+    @wp.func
     def floor_image_sums(
         i: int,
         x: wp.array(dtype=vec3),
@@ -253,6 +270,7 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(
         moment_sums=moment_sums, floor_image=floor_image, floor_image_sums=floor_image_sums, fit_sums=fit_sums,
+        floor_image_jacobian=floor_image_jacobian, fit_pair_adjoint=fit_pair_adjoint,
         floor_image_moment=floor_image_moment, affine_fit=affine_fit, step_increment=step_increment,
         step_gradient=step_gradient, unless_inverted=unless_inverted,
         carried_update=carried_update, deformation_update=deformation_update,
@@ -305,6 +323,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         guard: wp.array(dtype=wp.int32),
         F_prev: wp.array(dtype=mat33),
         h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         adj_F_out: wp.array(dtype=mat33),
         adj_x: wp.array(dtype=vec3),
         adj_y: wp.array(dtype=vec3),
@@ -316,13 +338,15 @@ def kernels(scalar) -> types.SimpleNamespace:
 
         With ``dF = B A^-1`` and ``F_out = dF F``: ``adj F = dF^T G``, ``adj dF = G F^T``,
         ``adj B = adj dF A^-T``, ``adj A = -dF^T adj B``; per pair, ``A`` and ``B`` depend on
-        ``xb`` through ``w(|xb|^2) xb xb^T`` and ``w yb xb^T``. Guarded or inverted
-        particles keep ``F``: all of ``G`` goes to ``F``."""
+        ``xb`` through ``w(|xb|^2) xb xb^T`` and ``w yb xb^T`` (``fit_pair_adjoint``). Guarded
+        or inverted particles keep ``F``: all of ``G`` goes to ``F``. With ``images`` the
+        floor's image pairs (``floor_image_sums``: ``xb = g_j - x_i``, ``yb = g_j - y_i``,
+        ``g_j`` at rest over the step) scatter to ``x_j`` through ``floor_image_jacobian``."""
         i = wp.tid()
         G = adj_F_out[i]
         Fp = F_prev[i]
         code = guard[i]
-        A, B, same = fn.moment_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h)
+        A, B, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
         if code == 1 or code == 2:
             adj_F_prev[i] = adj_F_prev[i] + G
             return
@@ -349,14 +373,30 @@ def kernels(scalar) -> types.SimpleNamespace:
                 xb = x[j] - xi
                 r2 = wp.dot(xb, xb)
                 if r2 < hh:
-                    yb = y[j] - yi
                     w, dw = sm.w_poly6_inside(r2, hh, c6)
-                    Bx = adj_B * xb
-                    s = wp.dot(xb, adj_A * xb) + wp.dot(yb, Bx)
-                    gx = w * (adj_A_sym * xb + wp.transpose(adj_B) * yb) + scalar(2.0) * dw * s * xb
-                    gy = w * Bx
+                    gx, gy = fn.fit_pair_adjoint(w, dw, xb, y[j] - yi, adj_A, adj_A_sym, adj_B)
                     wp.atomic_add(adj_x, j, gx)
                     wp.atomic_add(adj_y, j, gy)
+                    gx_i -= gx
+                    gy_i -= gy
+        # The image pairs (as floor_image_sums: every image is at least as far from x_i as
+        # x_i is from the plane).
+        n_img = int(0)
+        if images != 0:
+            n_img = wp.where(wp.dot(gn, xi) - goff < h, count[i] + 1, 0)
+        for k in range(n_img):
+            j = i
+            if k < count[i]:
+                j = nbr[i, k]
+            if body[j] == bi:
+                xj = x[j]
+                g = fn.floor_image(xj, gn, goff, gmin)
+                xb = g - xi
+                r2 = wp.dot(xb, xb)
+                if r2 < hh:
+                    w, dw = sm.w_poly6_inside(r2, hh, c6)
+                    gx, gy = fn.fit_pair_adjoint(w, dw, xb, g - yi, adj_A, adj_A_sym, adj_B)
+                    wp.atomic_add(adj_x, j, fn.floor_image_jacobian(xj, gn, goff, gmin) * (gx + gy))
                     gx_i -= gx
                     gy_i -= gy
         wp.atomic_add(adj_x, i, gx_i)
@@ -403,8 +443,8 @@ def launch_update_deformation_adjoint(model, state_in, state_out):
         kernels(model.scalar).update_deformation_adjoint, model.particle_count,
         [
             state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
-            state_out.neighbor_count, state_out.guard, state_out.F_flowed, model.scalar(model.support_radius), state_out.F.grad, state_in.x.grad, state_out.x.grad,
-            state_out.F_flowed.grad,
+            state_out.neighbor_count, state_out.guard, state_out.F_flowed, model.scalar(model.support_radius),
+            *model.image_args(), state_out.F.grad, state_in.x.grad, state_out.x.grad, state_out.F_flowed.grad,
         ],
         device=model.device, record_tape=False,
     )

@@ -49,6 +49,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     vec3, mat33 = T.vec3, T.mat33
     iso = isotropic.funcs(scalar)
     sm = smoothing.funcs(scalar)
+    floor_image = deformation.funcs(scalar).floor_image
 
     @wp.func
     def principal_stress(s: vec3, mu: scalar, lam: scalar) -> vec3:
@@ -116,6 +117,55 @@ def funcs(scalar) -> types.SimpleNamespace:
         return fi
 
     @wp.func
+    def elastic_pair_adjoint(VV: scalar, adj_g: vec3, P: mat33, F_inv: mat33, d: vec3, h: scalar, c_el: scalar):
+        """Adjoint of ``elastic_pair_force`` (``g = VV P gradW(F^-1 d)``) given ``adj_g``: returns
+        ``(adj P, adj F^-1, adj d)`` = ``(a gradW^T, adj_r d^T, F^-T adj_r)`` with ``a = VV adj_g``,
+        ``adj_r = J^T P^T a`` (``smoothing.grad_w_elastic_adjoint``)."""
+        a = VV * adj_g
+        gw, ar = sm.grad_w_elastic_adjoint(F_inv * d, h, c_el, wp.transpose(P) * a)
+        return wp.outer(a, gw), wp.outer(ar, d), wp.transpose(F_inv) * ar
+
+    @wp.func
+    def paper_image_count(xi: vec3, F: mat33, n: int, h: scalar, gn: vec3, goff: scalar) -> int:
+        """How many of ``i``'s row (and ``i``) ``paper_image_forces`` visits: all ``n + 1`` where
+        an image may be within the kernel's reach, ``|F^-1 d| < h`` (``|d| < h sigma_max(F)
+        <= h |F|_F``; every image is at least as far from ``x_i`` as ``x_i`` is from the plane),
+        else none."""
+        return wp.where(wp.dot(gn, xi) - goff < h * wp.sqrt(wp.ddot(F, F)), n + 1, 0)
+
+    @wp.func
+    def paper_image_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                           nbr: wp.array2d(dtype=wp.int32), n: int, volume: wp.array(dtype=scalar), P: mat33,
+                           F: mat33, F_inv: mat33, h: scalar, gn: vec3, goff: scalar, gmin: scalar,
+                           f: wp.array(dtype=vec3)) -> vec3:
+        """Eqs. 10-13 with the floor images (``deformation.floor_image``), as a particle floor at
+        the images whose particles carry their mirror particle's stress, ``F`` and volume
+        (the variational force's ``floor_image_forces`` likewise): ``i``'s pairs with the
+        images ``g_j`` of its row and of itself, ``-½ g(g_j - x_i)`` on ``i`` (the floor takes
+        the other half), and the pairs of ``i``'s own image ``g_i`` (``i``'s stress and
+        ``F^-1``), ``+½ g(x_r - g_i)`` on ``r`` in the row and on ``i``; returns ``i``'s share."""
+        xi = x[i]
+        bi = body[i]
+        Vi = volume[i]
+        c_el = sm.elastic_coef(h)
+        gi = floor_image(xi, gn, goff, gmin)
+        fi = vec3()
+        for k in range(paper_image_count(xi, F, n, h, gn, goff)):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            if body[j] == bi:
+                xj = x[j]
+                VV = Vi * volume[j]
+                fi -= elastic_pair_force(VV, P, F_inv, floor_image(xj, gn, goff, gmin) - xi, h, c_el)
+                g = elastic_pair_force(VV, P, F_inv, xj - gi, h, c_el)
+                if j == i:
+                    fi += g
+                else:
+                    wp.atomic_add(f, j, g)
+        return fi
+
+    @wp.func
     def variational_map(volume: scalar, P: mat33, F: mat33, A_inv: mat33) -> mat33:
         """``M = V P* F^T A^-1`` (given ``A^-1``): the variational force on neighbour ``j``
         is ``-w_ij M xb_ij``."""
@@ -135,6 +185,15 @@ def funcs(scalar) -> types.SimpleNamespace:
         return sm.w_poly6_c(wp.dot(d, d), h, c6) * (M * d)
 
     @wp.func
+    def variational_pair_adjoint(M: mat33, adj_A: mat33, adj_A_sym: mat33, a: vec3, d: vec3, w: scalar, dw: scalar) -> vec3:
+        """Adjoint in ``d = xb`` of one pair of the variational force: its force ``g = w M d``
+        (``variational_pair_force``, against ``a = adj`` of the particle it is added to minus
+        that of the one it is taken from) and its term ``w d d^T`` in the moment matrix ``A``
+        of ``M`` (``adj_A``, ``adj_A_sym = adj_A + adj_A^T``; ``dw = d w / d |d|^2``):
+        ``w (M^T a + adj_A_sym d) + 2 dw (a . M d + d . adj_A d) d``."""
+        return w * (wp.transpose(M) * a + adj_A_sym * d) + scalar(2.0) * dw * (wp.dot(a, M * d) + wp.dot(d, adj_A * d)) * d
+
+    @wp.func
     def variational_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
                            nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, h: scalar,
                            f: wp.array(dtype=vec3)) -> vec3:
@@ -151,8 +210,6 @@ def funcs(scalar) -> types.SimpleNamespace:
                 wp.atomic_sub(f, j, g)
                 fi += g
         return fi
-
-    floor_image = deformation.funcs(scalar).floor_image
 
     @wp.func
     def image_map(volume: scalar, P: mat33, F: mat33, A_image: mat33) -> mat33:
@@ -195,8 +252,11 @@ def funcs(scalar) -> types.SimpleNamespace:
         image_map=image_map, floor_image_forces=floor_image_forces,
         stress=stress, principal_stress=principal_stress, principal_stress_differences=principal_stress_differences,
         polynomial_stress=polynomial_stress, elastic_pair_force=elastic_pair_force, paper_forces=paper_forces,
+        elastic_pair_adjoint=elastic_pair_adjoint, paper_image_count=paper_image_count,
+        paper_image_forces=paper_image_forces,
         variational_map=variational_map, variational_map_adjoint=variational_map_adjoint,
         variational_pair_force=variational_pair_force, variational_forces=variational_forces,
+        variational_pair_adjoint=variational_pair_adjoint,
     )
 
 
@@ -209,6 +269,8 @@ def kernels(scalar) -> types.SimpleNamespace:
     moment_sums = deformation.funcs(scalar).moment_sums
     fit_sums = deformation.funcs(scalar).fit_sums
     image_moment = deformation.funcs(scalar).floor_image_moment
+    floor_image = deformation.funcs(scalar).floor_image
+    floor_image_jacobian = deformation.funcs(scalar).floor_image_jacobian
     Materials = materials.struct(scalar)
 
     @wp.kernel
@@ -235,6 +297,9 @@ def kernels(scalar) -> types.SimpleNamespace:
         fi = vec3()
         if mat.elastic_force[material[i]] == 0:
             fi = fn.paper_forces(i, x, body, nbr, count[i], volume, stress[i], F_inv[i], h, f)
+            if images != 0:
+                fi += fn.paper_image_forces(i, x, body, nbr, count[i], volume, stress[i], F[i], F_inv[i], h, gn, goff,
+                                            gmin, f)
         elif guard[i] == 0 and mat.deformation[material[i]] == 0:
             # (A rest-configuration material's variational force is comparison.py's.)
             # A from its own function: its inverse must not see a loop accumulator
@@ -260,8 +325,13 @@ def kernels(scalar) -> types.SimpleNamespace:
         count: wp.array(dtype=wp.int32),
         volume: wp.array(dtype=scalar),
         stress: wp.array(dtype=mat33),
+        F: wp.array(dtype=mat33),
         F_inv: wp.array(dtype=mat33),
         h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         adj_f: wp.array(dtype=vec3),
         adj_x: wp.array(dtype=vec3),
         adj_stress: wp.array(dtype=mat33),
@@ -270,37 +340,58 @@ def kernels(scalar) -> types.SimpleNamespace:
         """Hand-written adjoint of ``elastic_forces`` for eqs. 10-13 (every material
         ``elastic_force="paper"``): per pair, with ``a = adj f_j - adj f_i``, ``r = F_i^-1 d``
         and ``g = V_i V_j P_i gradW(r)``: ``adj P_i += V_i V_j a gradW^T``,
-        ``adj r = J^T V_i V_j P_i^T a``, ``adj F_i^-1 += adj r d^T``, ``adj d = F_i^-T adj r``.
-        Particles of the variational force are ``variational_forces_adjoint``'s."""
+        ``adj r = J^T V_i V_j P_i^T a``, ``adj F_i^-1 += adj r d^T``, ``adj d = F_i^-T adj r``
+        (``elastic_pair_adjoint``). With ``images`` (``paper_image_forces``) the image pairs
+        likewise, ``a = -adj f_i`` for ``i``'s own (``d = g_j - x_i``), ``a = adj f_r`` for its
+        image's (``d = x_r - g_i``), an image's ``adj`` going to its particle through
+        ``deformation.floor_image_jacobian``. Particles of the variational force are
+        ``variational_forces_adjoint``'s."""
         i = wp.tid()
         if elastic_force[material[i]] != 0:
             return
         xi = x[i]
         bi = body[i]
         P = stress[i]
-        PT = wp.transpose(P)
         Vi = volume[i]
         Finv = F_inv[i]
-        FinvT = wp.transpose(Finv)
         ai = adj_f[i]
         c_el = sm.elastic_coef(h)
+        n = count[i]
         aP = mat33()
         aFinv = mat33()
         gx_i = vec3()
-        for k in range(count[i]):
+        for k in range(n):
             j = nbr[i, k]
             if body[j] == bi:
                 d = x[j] - xi
-                r = Finv * d
-                VV = Vi * volume[j]
-                a = VV * (adj_f[j] - ai)
-                gw, ar = sm.grad_w_elastic_adjoint(r, h, c_el, PT * a)
-                aP += wp.outer(a, gw)
-                aFinv += wp.outer(ar, d)
-                ad = FinvT * ar
+                dP, dFinv, ad = fn.elastic_pair_adjoint(Vi * volume[j], adj_f[j] - ai, P, Finv, d, h, c_el)
+                aP += dP
+                aFinv += dFinv
                 wp.atomic_add(adj_x, j, ad)
                 gx_i -= ad
-        wp.atomic_add(adj_x, i, gx_i)
+        n_img = int(0)
+        if images != 0:
+            n_img = fn.paper_image_count(xi, F[i], n, h, gn, goff)
+        gi = floor_image(xi, gn, goff, gmin)
+        gg_i = vec3()
+        for k in range(n_img):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            if body[j] == bi:
+                xj = x[j]
+                VV = Vi * volume[j]
+                dP, dFinv, ad = fn.elastic_pair_adjoint(VV, -ai, P, Finv, floor_image(xj, gn, goff, gmin) - xi, h, c_el)
+                aP += dP
+                aFinv += dFinv
+                wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * ad)
+                gx_i -= ad
+                dP, dFinv, ad = fn.elastic_pair_adjoint(VV, adj_f[j], P, Finv, xj - gi, h, c_el)
+                aP += dP
+                aFinv += dFinv
+                wp.atomic_add(adj_x, j, ad)
+                gg_i -= ad
+        wp.atomic_add(adj_x, i, gx_i + floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
         adj_stress[i] = adj_stress[i] + aP
         adj_F_inv[i] = adj_F_inv[i] + aFinv
 
@@ -320,6 +411,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         h: scalar,
         min_neighbors: int,
         max_condition: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         adj_f: wp.array(dtype=vec3),
         adj_x: wp.array(dtype=vec3),
         adj_stress: wp.array(dtype=mat33),
@@ -332,58 +427,117 @@ def kernels(scalar) -> types.SimpleNamespace:
         With ``a_j = adj f_i - adj f_j`` (``g_j = w_j M xb_j`` is added to ``i``, taken from
         ``j``) and ``M = V P F^T A^-1``: ``adj M = sum_j w_j a_j xb_j^T``;
         ``adj P = V adj M A^-T F``, ``adj F = V A^-1 adj M^T P``,
-        ``adj A = -A^-T (V F P^T adj M) A^-T``; per pair
-        ``adj xb_j = w_j (M^T a_j + (adj A + adj A^T) xb_j)
-        + 2 w'_j (a_j . M xb_j + xb_j . adj A xb_j) xb_j`` (``w' = dw / d|xb|^2``), scattered
-        to ``j`` and taken from ``i``. Recomputes ``A`` and ``M`` (two passes over the row:
-        ``A`` with ``adj M``, then the scatter) instead of storing them."""
+        ``adj A = -A^-T (V F P^T adj M) A^-T`` (``variational_map_adjoint``); per pair
+        ``adj xb_j`` is ``variational_pair_adjoint``, scattered to ``j`` and taken from ``i``.
+        Recomputes ``A`` and ``M`` (two passes over the row: ``A`` with ``adj M``, then the
+        scatter) instead of storing them.
+
+        With ``images`` (``floor_image_forces``): the image pairs of ``i``'s fit, ``xb = g_j -
+        x_i`` with ``a = adj f_i`` (the floor takes the reaction); the energy of ``i``'s own
+        image, ``Mg = image_map`` on the image's moment matrix ``A_g``
+        (``deformation.floor_image_moment``), its pairs ``d = x_r - g_i`` with ``a = -adj f_r``
+        and the image-image terms ``d = g_r - g_i`` of ``A_g`` with ``a = 0``; an image's
+        ``adj`` goes to its particle through ``deformation.floor_image_jacobian``."""
         i = wp.tid()
         if elastic_force[material[i]] != 1:
             return
         xi = x[i]
         bi = body[i]
         ai = adj_f[i]
+        n = count[i]
         c6 = sm.poly6_coef(h)
         hh = h * h
-        # One pass: the moment matrix A (as deformation.moment_sums) and adj M, which does
-        # not depend on A. (No generated adjoint here, so loop accumulators may feed the
-        # inverse: docs/method.md, Warp pitfall 1, concerns generated adjoints only.)
-        A = mat33()
+        # The fit's moment matrix and guard as the forward's (images included).
+        A, B, same = fit_sums(i, x, x, x, x, body, nbr, n, h, gn, goff, gmin, images)
+        if guard_code(A, same, min_neighbors, max_condition) != 0:
+            return
+        # adj M (and, with images, adj Mg), which do not depend on A.
         adj_M = mat33()
-        same = int(0)
-        for k in range(count[i]):
+        for k in range(n):
             j = nbr[i, k]
             if body[j] == bi:
                 d = x[j] - xi
-                w = sm.w_poly6_c(wp.dot(d, d), h, c6)
-                A += w * wp.outer(d, d)
-                adj_M += w * wp.outer(ai - adj_f[j], d)
-                same += 1
-        if guard_code(A, same, min_neighbors, max_condition) != 0:
-            return
+                adj_M += sm.w_poly6_c(wp.dot(d, d), h, c6) * wp.outer(ai - adj_f[j], d)
+        n_img = int(0)
+        if images != 0:
+            # Every image is at least as far from x_i as x_i is from the plane.
+            n_img = wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)
+        gi = floor_image(xi, gn, goff, gmin)
+        adj_Mg = mat33()
+        for k in range(n_img):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            if body[j] == bi:
+                xj = x[j]
+                d = floor_image(xj, gn, goff, gmin) - xi
+                adj_M += sm.w_poly6_c(wp.dot(d, d), h, c6) * wp.outer(ai, d)
+                dr = xj - gi
+                adj_Mg -= sm.w_poly6_c(wp.dot(dr, dr), h, c6) * wp.outer(adj_f[j], dr)
         Vi = volume[i]
         P = stress[i]
         Fi = F[i]
         Ainv = wp.inverse(A)
         M = fn.variational_map(Vi, P, Fi, Ainv)
-        MT = wp.transpose(M)
         adj_P, adj_Fi, adj_A = fn.variational_map_adjoint(Vi, P, Fi, Ainv, adj_M)
+        adj_A_sym = adj_A + wp.transpose(adj_A)
+        Mg = mat33()
+        adj_Ag = mat33()
+        if n_img > 0:
+            Ag_inv = wp.inverse(image_moment(i, x, body, nbr, n, h, gn, goff, gmin))
+            Mg = fn.variational_map(Vi, P, Fi, Ag_inv)
+            adj_Pg, adj_Fg, adj_Ag_ = fn.variational_map_adjoint(Vi, P, Fi, Ag_inv, adj_Mg)
+            adj_P += adj_Pg
+            adj_Fi += adj_Fg
+            adj_Ag = adj_Ag_
+        adj_Ag_sym = adj_Ag + wp.transpose(adj_Ag)
         adj_stress[i] = adj_stress[i] + adj_P
         adj_F[i] = adj_F[i] + adj_Fi
-        adj_A_sym = adj_A + wp.transpose(adj_A)
         gx_i = vec3()
-        for k in range(count[i]):
+        for k in range(n):
             j = nbr[i, k]
             if body[j] == bi:
                 d = x[j] - xi
                 r2 = wp.dot(d, d)
                 if r2 < hh:
                     w, dw = sm.w_poly6_inside(r2, hh, c6)
-                    a = ai - adj_f[j]
-                    gx = w * (MT * a + adj_A_sym * d) + scalar(2.0) * dw * (wp.dot(a, M * d) + wp.dot(d, adj_A * d)) * d
+                    gx = fn.variational_pair_adjoint(M, adj_A, adj_A_sym, ai - adj_f[j], d, w, dw)
                     wp.atomic_add(adj_x, j, gx)
                     gx_i -= gx
-        wp.atomic_add(adj_x, i, gx_i)
+        # Through g_i (summed, then by d g_i / d x_i).
+        gg_i = vec3()
+        zero = vec3()
+        for k in range(n_img):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            if body[j] == bi:
+                xj = x[j]
+                gj = floor_image(xj, gn, goff, gmin)
+                Jj = floor_image_jacobian(xj, gn, goff, gmin)
+                d = gj - xi
+                r2 = wp.dot(d, d)
+                if r2 < hh:
+                    w, dw = sm.w_poly6_inside(r2, hh, c6)
+                    gx = fn.variational_pair_adjoint(M, adj_A, adj_A_sym, ai, d, w, dw)
+                    wp.atomic_add(adj_x, j, Jj * gx)
+                    gx_i -= gx
+                d = xj - gi
+                r2 = wp.dot(d, d)
+                if r2 < hh:
+                    w, dw = sm.w_poly6_inside(r2, hh, c6)
+                    gx = fn.variational_pair_adjoint(Mg, adj_Ag, adj_Ag_sym, -adj_f[j], d, w, dw)
+                    wp.atomic_add(adj_x, j, gx)
+                    gg_i -= gx
+                if j != i:
+                    d = gj - gi
+                    r2 = wp.dot(d, d)
+                    if r2 < hh:
+                        w, dw = sm.w_poly6_inside(r2, hh, c6)
+                        gx = fn.variational_pair_adjoint(Mg, adj_Ag, adj_Ag_sym, zero, d, w, dw)
+                        wp.atomic_add(adj_x, j, Jj * gx)
+                        gg_i -= gx
+        wp.atomic_add(adj_x, i, gx_i + floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
 
     return types.SimpleNamespace(elastic_forces=elastic_forces, elastic_forces_adjoint=elastic_forces_adjoint,
                                  variational_forces_adjoint=variational_forces_adjoint)
@@ -419,8 +573,9 @@ def launch_elastic_forces_adjoint(model, state_in, state_out):
     wp.launch(
         kernels(S).elastic_forces_adjoint, model.particle_count,
         [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force, state_out.neighbors,
-         state_out.neighbor_count, model.particle_volume, state_out.stress, state_out.F_inv, S(model.support_radius),
-         state_out.force.grad, state_in.x.grad, state_out.stress.grad, state_out.F_inv.grad],
+         state_out.neighbor_count, model.particle_volume, state_out.stress, state_out.F_flowed, state_out.F_inv,
+         S(model.support_radius), *model.image_args(), state_out.force.grad, state_in.x.grad, state_out.stress.grad,
+         state_out.F_inv.grad],
         device=model.device, record_tape=False,
     )
 
@@ -434,7 +589,7 @@ def launch_variational_forces_adjoint(model, state_in, state_out, min_neighbors:
         kernels(S).variational_forces_adjoint, model.particle_count,
         [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force, state_out.neighbors,
          state_out.neighbor_count, model.particle_volume, state_out.stress, state_out.F_flowed, S(model.support_radius),
-         int(min_neighbors), S(max_condition), state_out.force.grad, state_in.x.grad, state_out.stress.grad,
+         int(min_neighbors), S(max_condition), *model.image_args(), state_out.force.grad, state_in.x.grad, state_out.stress.grad,
          state_out.F_flowed.grad],
         device=model.device, record_tape=False,
     )

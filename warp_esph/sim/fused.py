@@ -169,6 +169,8 @@ def kernels(scalar) -> types.SimpleNamespace:
                     fi = fo.floor_image_forces(i, x, body, nbr, count[i], M, Mg, h, gn, goff, gmin, f)
             else:
                 kind_el = 2
+        elif kind_el == 0 and images != 0:
+            fi = fo.paper_image_forces(i, x, body, nbr, count[i], volume, P, Fe, Finv, h, gn, goff, gmin, f)
         c6 = sm.poly6_coef(h)
         c_spiky = sm.spiky_coef(h)
         c_visc = sm.viscosity_coef(h)

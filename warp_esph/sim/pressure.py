@@ -78,6 +78,20 @@ def funcs(scalar) -> types.SimpleNamespace:
         return sm.w_poly6_c(r2, h, c6)
 
     @wp.func
+    def density_weight_gradient(d: vec3, r2: scalar, h: scalar, c6: scalar, c_spiky: scalar, form: int) -> vec3:
+        """``d W / d d`` of ``density_weight`` at ``d`` (``r2 = |d|^2 < h^2``): poly6 ``-6 c6
+        (h^2 - r2)^2 d``; for ``form`` 2 the spiky kernel's ``grad_w_spiky_at`` (0 at ``d = 0``,
+        where the direction is undefined)."""
+        g = vec3()
+        if form == 2:
+            if r2 > scalar(1.0e-24) * h * h:
+                g = sm.grad_w_spiky_at(d, wp.sqrt(r2), h, c_spiky)
+        else:
+            e = h * h - r2
+            g = (scalar(-6.0) * c6 * e * e) * d
+        return g
+
+    @wp.func
     def energy_spiky_pair_force(
         VV: scalar, p_i: scalar, p_j: scalar, rho_i: scalar, rho_j: scalar, rij: vec3, rl: scalar, h: scalar,
         c_spiky: scalar
@@ -126,6 +140,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         return f
 
     floor_image = deformation.funcs(scalar).floor_image
+    floor_image_jacobian = deformation.funcs(scalar).floor_image_jacobian
 
     @wp.func
     def image_density(i: int, x: wp.array(dtype=vec3), mass: wp.array(dtype=scalar), nbr: wp.array2d(dtype=wp.int32),
@@ -171,7 +186,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         form = mat.pressure_force[mi]
         gi = floor_image(xi, gn, goff, gmin)
         di = wp.dot(gn, xi) - goff
-        J = wp.identity(n=3, dtype=scalar) - wp.where(di > gmin, scalar(2.0), scalar(1.0)) * wp.outer(gn, gn)
+        J = floor_image_jacobian(xi, gn, goff, gmin)
         fi = vec3()
         zero = scalar(0.0)
         # Every image is at least as far from x_i as x_i is from the plane.
@@ -191,10 +206,12 @@ def funcs(scalar) -> types.SimpleNamespace:
         return fi
 
     return types.SimpleNamespace(
-        image_density=image_density, image_pressure_forces=image_pressure_forces,
+        image_density=image_density, image_pressure_forces=image_pressure_forces, floor_image=floor_image,
+        floor_image_jacobian=floor_image_jacobian,
         pressure=pressure, pressure_pair_force=pressure_pair_force,
         energy_pressure_pair_force=energy_pressure_pair_force, viscous_pair_force=viscous_pair_force,
         density_weight=density_weight, energy_spiky_pair_force=energy_spiky_pair_force,
+        density_weight_gradient=density_weight_gradient,
         sph_pair_force=sph_pair_force,
     )
 
@@ -293,6 +310,36 @@ def kernels(scalar) -> types.SimpleNamespace:
                                            material, mat, h, c6, c_spiky, c_visc, gn, goff, gmin)
         wp.atomic_add(f, i, fi)
 
+    @wp.kernel
+    def image_pressure_forces_kernel(
+        x: wp.array(dtype=vec3),
+        v: wp.array(dtype=vec3),
+        mass: wp.array(dtype=scalar),
+        rho: wp.array(dtype=scalar),
+        rho_p: wp.array(dtype=scalar),
+        rest_density: wp.array(dtype=scalar),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        f: wp.array(dtype=vec3),
+    ):
+        """The floor images' part of ``pressure_forces`` alone (``image_pressure_forces``, the
+        same arguments), written to ``f``: launched only for its generated adjoint, the image
+        part of ``pressure_forces_adjoint`` (its force adds to the pairs' in the forward)."""
+        i = wp.tid()
+        mi = material[i]
+        Vi = mass[i] / rho[i]
+        Vpi = mass[i] / rho_p[i]
+        pi = fn.pressure(rho_p[i], rest_density[i], mat.pressure_stiffness[mi], mat.clamp_pressure[mi])
+        f[i] = fn.image_pressure_forces(i, x, nbr, count[i], Vi, Vpi, pi, rho_p[i], v[i], mass, rho, rho_p, rest_density,
+                                        material, mat, h, sm.poly6_coef(h), sm.spiky_coef(h), sm.viscosity_coef(h),
+                                        gn, goff, gmin)
+
     @wp.kernel(enable_backward=False)
     def density_adjoint(
         x: wp.array(dtype=vec3),
@@ -303,14 +350,17 @@ def kernels(scalar) -> types.SimpleNamespace:
         count: wp.array(dtype=wp.int32),
         h: scalar,
         of_pressure: int,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
         adj_rho: wp.array(dtype=scalar),
         adj_x: wp.array(dtype=vec3),
     ):
-        """Hand-written adjoint of ``density``: ``d rho_i / d x_j = 2 m_j W'(r2) d``,
-        ``W' = -3 c6 (h^2 - r2)^2`` the poly6 slope in ``r2 = |d|^2``, ``d = x_j - x_i``;
-        for the spiky pressure density (``of_pressure``, ``energy_spiky``) ``m_j c_s (h -
-        |d|)^2 d / |d|``, ``c_s = -45/(pi h^6)`` (0 at ``d = 0``, where the direction is
-        undefined)."""
+        """Hand-written adjoint of ``density``: ``d rho_i / d x_j = m_j grad W(d)``,
+        ``d = x_j - x_i`` (``density_weight_gradient``); with ``images`` the same for each
+        image ``g_j`` of ``image_density`` in place of ``x_j``, scattered to ``x_j`` through
+        ``deformation.floor_image_jacobian``."""
         i = wp.tid()
         a = adj_rho[i]
         xi = x[i]
@@ -320,20 +370,30 @@ def kernels(scalar) -> types.SimpleNamespace:
         if of_pressure != 0:
             form = mat.pressure_force[material[i]]
         hh = h * h
+        n = count[i]
         gx_i = vec3()
-        for k in range(count[i]):
+        for k in range(n):
             j = nbr[i, k]
             d = x[j] - xi
             r2 = wp.dot(d, d)
             if r2 < hh:
-                g = vec3()
-                if form == 2:
-                    if r2 > scalar(1.0e-24) * hh:
-                        g = (a * mass[j]) * sm.grad_w_spiky_at(d, wp.sqrt(r2), h, c_spiky)
-                else:
-                    e = hh - r2
-                    g = (a * mass[j] * scalar(-6.0) * c6 * e * e) * d
+                g = (a * mass[j]) * fn.density_weight_gradient(d, r2, h, c6, c_spiky, form)
                 wp.atomic_add(adj_x, j, g)
+                gx_i -= g
+        n_img = int(0)
+        if images != 0:
+            # Every image is at least as far from x_i as x_i is from the plane.
+            n_img = wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)
+        for k in range(n_img):
+            j = i
+            if k < n:
+                j = nbr[i, k]
+            xj = x[j]
+            d = fn.floor_image(xj, gn, goff, gmin) - xi
+            r2 = wp.dot(d, d)
+            if r2 < hh:
+                g = (a * mass[j]) * fn.density_weight_gradient(d, r2, h, c6, c_spiky, form)
+                wp.atomic_add(adj_x, j, fn.floor_image_jacobian(xj, gn, goff, gmin) * g)
                 gx_i -= g
         wp.atomic_add(adj_x, i, gx_i)
 
@@ -494,6 +554,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         wp.atomic_add(adj_visc, mi, adj_visc_i)
 
     return types.SimpleNamespace(density=density, pressure_forces=pressure_forces,
+                                 image_pressure_forces_kernel=image_pressure_forces_kernel,
                                  pressure_forces_adjoint=pressure_forces_adjoint, density_adjoint=density_adjoint)
 
 
@@ -518,7 +579,7 @@ def launch_density_adjoint(model, x, neighbors, neighbor_count, rho, of_pressure
     wp.launch(
         kernels(model.scalar).density_adjoint, model.particle_count,
         [x, model.particle_mass, model.particle_material, model.material_arrays(), neighbors, neighbor_count,
-         model.scalar(model.support_radius), int(of_pressure), rho.grad, x.grad],
+         model.scalar(model.support_radius), int(of_pressure), *model.image_args(), rho.grad, x.grad],
         device=model.device, record_tape=False,
     )
 
@@ -592,3 +653,18 @@ def launch_pressure_forces_adjoint(model, state_in, state_out):
         ],
         device=model.device, record_tape=False,
     )
+    if model.image_plane is not None:
+        # The images' part: the generated adjoint of image_pressure_forces (the forward adds
+        # it to the pairs' force). Its replayed forward writes a scratch array, not the force;
+        # as the pairs' hand-written adjoint, none to the masses and rest densities.
+        inputs = [
+            state_in.x, state_in.v, model.particle_mass, state_out.density, rho_p, model.particle_rest_density,
+            model.particle_material, model.material_arrays(), state_out.neighbors, state_out.neighbor_count,
+            model.scalar(model.support_radius), *model.image_args()[:3],
+        ]
+        adjoint = wp.Tape().get_adjoint
+        scratch = wp.zeros_like(state_out.force, requires_grad=False)
+        wp.launch(kernels(model.scalar).image_pressure_forces_kernel, model.particle_count, inputs, [scratch],
+                  adj_inputs=[None if a is model.particle_mass or a is model.particle_rest_density else adjoint(a)
+                              for a in inputs], adj_outputs=[state_out.force.grad],
+                  adjoint=True, device=model.device, record_tape=False)

@@ -65,18 +65,14 @@ class StepScratch:
         return self._pressure_volume
 
 
-def _check_images(model: Model, fit: str):
-    """What ``SceneBuilder.add_ground(images=True)`` supports so far: the linear fit with the
-    variational elastic force (docs/physics.md, "The ground collider's thin-layer strength";
-    under a tape through Warp's generated adjoints, ``Solver._hand``). Refused before any
-    kernel runs."""
-    if fit == "curvature_corrected":
-        raise ValueError("fit = 'curvature_corrected' is not allowed with add_ground(images=True): the floor's images "
-                         "enter the linear fit only; pass fit='linear'")
-    kinds = sorted({m.elastic_force for m in model.materials} | {m.deformation for m in model.materials} - {"incremental"})
-    if kinds != ["variational"]:
-        raise ValueError(f"Material.elastic_force / deformation = {kinds!r} is not allowed with add_ground(images=True): "
-                         f"the images enter the variational force of the incremental fit only ('variational')")
+def _check_images(model: Model):
+    """What ``SceneBuilder.add_ground(images=True)`` supports so far: the incremental fit
+    (linear or curvature-corrected) with either elastic force (docs/physics.md, "The ground
+    collider's thin-layer strength"). Refused before any kernel runs."""
+    kinds = sorted({m.deformation for m in model.materials} - {"incremental"})
+    if kinds:
+        raise ValueError(f"Material.deformation = {kinds!r} is not allowed with add_ground(images=True): "
+                         f"the images enter the incremental fit only ('incremental')")
 
 
 class Solver:
@@ -162,7 +158,7 @@ class Solver:
                              f"(Material.deformation 'rest' or 'additive') unless every material is 'rest' "
                              f"(whose total fit it then corrects): only 'linear'")
         if model.image_plane is not None:
-            _check_images(model, asked)
+            _check_images(model)
         self._asked = (fit, hourglass)
         # Whether the fit (and with it a strength of None) follows the parameters.
         self._auto = asked == "auto"
@@ -191,7 +187,6 @@ class Solver:
         self.step_count = 0
         #: Under a tape, run the hand-written adjoints (``deformation.update_deformation_adjoint``)
         #: in place of Warp's generated ones; False: the generated ones (the tests' reference).
-        #: With floor images the generated ones run either way (``_hand``).
         self.hand_adjoints = True
         #: ``(impulse, angular impulse)`` arrays of the static colliders' rows that untaped
         #: steps add ``dt`` times their reaction to (``tools.ReactionLog`` sets them); None: off.
@@ -200,9 +195,6 @@ class Solver:
     def _choose(self):
         """Set ``fit`` and ``hourglass`` to what the step runs now (``Model.solver_choice``)."""
         fit, c = self.model.solver_choice(*self._asked)
-        if fit == "curvature_corrected" and self.model.image_plane is not None:
-            raise ValueError("fit = 'curvature_corrected' is not allowed with add_ground(images=True): the floor's images "
-                             "enter the linear fit only; pass fit='linear' (or give the material a flow_rate)")
         #: The incremental fit the step runs (``"linear"`` or ``"curvature_corrected"``); the
         #: corrected one runs the non-fused kernels.
         self.fit = fit
@@ -224,11 +216,10 @@ class Solver:
         return self.fused and self._hand() and m.requires_grad and not self._cmp and not self._curved
 
     def _hand(self) -> bool:
-        """Whether the taped step records the hand-written adjoints: ``hand_adjoints``, except
-        with floor images (``add_ground(images=True)``), whose terms only Warp's generated
-        adjoints of the differentiable kernels carry (docs/physics.md, "The ground collider's
-        thin-layer strength")."""
-        return self.hand_adjoints and self.model.image_plane is None
+        """Whether the taped step records the hand-written adjoints: ``hand_adjoints`` (with
+        floor images, ``add_ground(images=True)``, their image terms too; docs/physics.md,
+        "The ground collider's thin-layer strength")."""
+        return self.hand_adjoints
 
     def _fast_under_tape(self, state_in, state_out) -> bool:
         return (self.fast_under_tape() and state_in.x.grad is not None and state_out.x.grad is not None
