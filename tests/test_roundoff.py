@@ -100,12 +100,11 @@ def test_slow_strain_below_half_a_unit_per_step_accumulates_in_F(fit):
     F = [wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=T.mat33), wp.zeros(n, dtype=T.mat33)]
     F_lo = [wp.zeros(n, dtype=T.mat33), wp.zeros(n, dtype=T.mat33)]
     counters = wp.zeros(4, dtype=wp.int32)
-    images = list(model.image_args()) if fit is deformation else []
     for k in range(steps):
         a, b = k % 2, 1 - k % 2
         wp.launch(fit.kernels(model.scalar).update_deformation, n,
                   [state.x, state.x, lo, y_lo, model.particle_body, state.neighbors, state.neighbor_count, state.guard,
-                   F[a], F_lo[a], model.scalar(model.support_radius), *images], [F[b], F_lo[b], counters])
+                   F[a], F_lo[a], model.scalar(model.support_radius), *model.image_args()], [F[b], F_lo[b], counters])
     full = F[steps % 2].numpy().astype(np.float64) + F_lo[steps % 2].numpy()
     want = np.linalg.matrix_power(np.eye(3) + D, steps)
     assert np.abs(full - want).max() < 1e-3 * steps * np.abs(D).max(), np.abs(full - want).max() / (steps * np.abs(D).max())
