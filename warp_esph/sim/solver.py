@@ -53,6 +53,8 @@ class StepScratch:
         self.counters = wp.zeros(len(GUARD_NAMES), dtype=wp.int32, device=dev)
         self.pressure = wp.zeros(n, dtype=model.scalar, device=dev)
         self.sph_volume = wp.zeros(n, dtype=model.scalar, device=dev)
+        # Each particle's displacement over the step (fused.displacements), read by the fit.
+        self.displacement = wp.zeros(n, dtype=model.types.vec3, device=dev)
         self._pressure_volume = None
         # The neighbour selection's squared distances: read only within the search.
         self.neighbor_d2 = wp.zeros((n, model.max_neighbors), dtype=model.scalar, device=dev)
