@@ -77,12 +77,12 @@ def box_side(n: int) -> int:
 
 # ------------------------------------------------------------------ warp_esph
 def build_model(we, n: int, device, requires_grad: bool = False, elastic_force: str | None = None,
-                pressure_force: str | None = None):
+                pressure_force: str | None = None, max_neighbors: int | str | None = None):
     import warp as wp
 
     side = box_side(n)
     L = side * DX
-    b = we.SceneBuilder(spacing=DX)
+    b = we.SceneBuilder(spacing=DX) if max_neighbors is None else we.SceneBuilder(spacing=DX, max_neighbors=max_neighbors)
     mat = we.Material.preset("dough")
     if elastic_force is not None:
         mat = mat.replace(elastic_force=elastic_force)
@@ -384,6 +384,74 @@ def _interleaved_rates(n: int, device, args, field: str, choices) -> dict:
     return out
 
 
+#: The sides of ``baseline_rates``: label, which package (None: this one, else a baseline's
+#: commit), and the ``build_model`` options. A side whose package lacks an option (the paper's
+#: 30-wide rows or the pressure force at an old commit, which had only those) is left out.
+BASELINE_SIDES = (
+    ("{c} default", "baseline", {}),
+    ("{c} variational", "baseline", {"elastic_force": "variational"}),
+    ("this tree, default", None, {}),
+    ("this tree, paper force, spiky pressure", None, {"elastic_force": "paper", "pressure_force": "spiky"}),
+    ("this tree, paper force, spiky pressure, 30-wide rows", None,
+     {"elastic_force": "paper", "pressure_force": "spiky", "max_neighbors": "paper"}),
+    ("this tree, variational, spiky pressure, 30-wide rows", None,
+     {"pressure_force": "spiky", "max_neighbors": "paper"}),
+)
+
+
+def _supports(mod, options: dict) -> bool:
+    fields = getattr(mod.Material, "__dataclass_fields__", {})
+    if "pressure_force" in options and "pressure_force" not in fields:
+        return False
+    if options.get("max_neighbors") is not None:
+        import inspect
+
+        return "max_neighbors" in inspect.signature(mod.SceneBuilder).parameters
+    return True
+
+
+def baseline_rates(n: int, device, args, commits) -> dict:
+    """This tree's default step against each baseline commit's default (what a user sees),
+    and like for like (the same elastic force, pressure force and row width where a side
+    offers them): ``BASELINE_SIDES``, the timed blocks interleaved over all sides, so that a
+    drifting machine load hits each alike. Per side: thread CPU time per step (Warp's CPU
+    kernels run on the calling thread; on a shared machine wall clock mostly measures the
+    other jobs), best block and median, and the rate ratios against the first commit's
+    default."""
+    import warp_esph as we
+
+    mods = {c: load_baseline(c) for c in commits}
+    sides = []
+    for label, which, options in BASELINE_SIDES:
+        for c in (commits if which == "baseline" else [None]):
+            mod = we if c is None else mods[c]
+            if options.get("elastic_force") == mod.Material.preset("dough").elastic_force and c is not None:
+                continue  # the commit's default already
+            if _supports(mod, options):
+                sides.append((label.format(c=c), mod, options))
+    prepared = []
+    for name, mod, options in sides:
+        model = build_model(mod, n, device, **options)
+        solver = mod.Solver(model)
+        prepared.append((name, solver, warmed_states(model, solver, args.warmup), []))
+    time_interleaved(prepared, device, args)
+    out = {}
+    ref = None
+    for name, solver, _states, times in prepared:
+        cpu = [c for _, c in times]
+        wall = [w for w, _ in times]
+        r = {"particles": solver.model.particle_count,
+             "cpu_ms_per_step_best_block": 1e3 * min(cpu), "cpu_ms_per_step_median": 1e3 * float(np.median(cpu)),
+             "wall_ms_per_step_best_block": 1e3 * min(wall), "wall_ms_per_step_median": 1e3 * float(np.median(wall))}
+        if hasattr(solver, "guard_counts"):
+            r["neighbors_cut"] = solver.guard_counts().get("neighbors_cut")
+        ref = ref or r
+        for k in ("cpu_ms_per_step_best_block", "cpu_ms_per_step_median"):
+            r["rate_ratio_" + k.replace("_ms_per_step", "")] = ref[k] / r[k]
+        out[name] = r
+    return out
+
+
 def compare_with_cpu(we, device, n: int = 4000, steps: int = 20) -> dict:
     """The same run on ``device`` and on the CPU: neighbour rows and trajectories agree."""
     out = {}
@@ -418,16 +486,22 @@ def compare_with_cpu(we, device, n: int = 4000, steps: int = 20) -> dict:
 
 
 def load_baseline(commit: str):
-    """The warp_esph package of a git commit, importable as ``warp_esph_baseline``."""
+    """The warp_esph package of a git commit, importable as ``warp_esph_<commit>`` (one name
+    per commit, so several baselines load beside this package and each other)."""
     import importlib
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    sha = subprocess.run(["git", "-C", root, "rev-parse", "--short=7", commit], capture_output=True, check=True,
+                         text=True).stdout.strip()
+    name = f"warp_esph_{sha}"
+    if name in sys.modules:
+        return sys.modules[name]
     tmp = tempfile.mkdtemp(prefix="warp_esph_baseline_")
     archive = subprocess.run(["git", "-C", root, "archive", commit, "warp_esph"], capture_output=True, check=True).stdout
     subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
-    os.rename(os.path.join(tmp, "warp_esph"), os.path.join(tmp, "warp_esph_baseline"))
+    os.rename(os.path.join(tmp, "warp_esph"), os.path.join(tmp, name))
     sys.path.insert(0, tmp)
-    return importlib.import_module("warp_esph_baseline")
+    return importlib.import_module(name)
 
 
 # ---------------------------------------------------------------------- main
@@ -468,6 +542,8 @@ def print_report(report: dict):
           f"warp {report['machine']['warp']}, python {report['machine']['python']}")
     sph = report.get("splishsplash", {})
     for dev, per_size in report["warp_esph"].items():
+        if not per_size:
+            continue
         print(f"\n== warp_esph on {dev}: particle-steps/s (dt {DT * 1e3:g} ms, float32, dough, pressure on)")
         print(f"{'particles':>10} {'best blk':>10} {'mean':>10} {'cpu-time':>10} {'fwd+bwd':>10} "
               f"{'B/particle':>11} {'B/p/taped':>10} {'rebuilds':>9}")
@@ -537,6 +613,12 @@ def main(argv=None):
     p.add_argument("--splishsplash-sizes", default=None, help="particle counts for SPlisHSPlasH (default: --sizes)")
     p.add_argument("--variants", action="store_true", help="also time each optimisation off/on (CPU sizes)")
     p.add_argument("--baseline-commit", default=None, help="with --variants: also time warp_esph at this git commit")
+    p.add_argument("--baselines", default=None,
+                   help="comma list of git commits: time this tree's default step against each commit's default and "
+                        "like for like, blocks interleaved, thread CPU time (CPU sizes)")
+    p.add_argument("--comparisons-only", action="store_true",
+                   help="skip the full benchmark (phases, taped window, memory) and SPlisHSPlasH; run only the "
+                        "comparisons asked for (--variants, --baselines, --elastic-forces, --pressure-forces)")
     p.add_argument("--compare-cpu", action="store_true", help="check a short run on each CUDA device against the CPU")
     p.add_argument("--elastic-forces", action="store_true",
                    help="also time the dough with the variational (default) and the paper's elastic force, interleaved")
@@ -573,6 +655,8 @@ def main(argv=None):
         device = wp.get_device(dev_name)
         sizes = _sizes(args.sizes if device.is_cpu else args.cuda_sizes)
         report["warp_esph"][dev_name] = {}
+        if args.comparisons_only:
+            continue
         report.setdefault("compile_seconds", {})[dev_name] = compile_kernels(we, device)
         for n in sizes:
             print(f"warp_esph {dev_name} {n} ...", flush=True)
@@ -592,6 +676,19 @@ def main(argv=None):
             for n in _sizes(args.sizes if device.is_cpu else args.cuda_sizes):
                 print(f"variants {dev_name} {n} ...", flush=True)
                 report["variants"][dev_name][str(n)] = variant_rates(n, device, args, baseline)
+    if args.baselines:
+        commits = [c.strip() for c in args.baselines.split(",") if c.strip()]
+        report["baselines"] = {}
+        for dev_name in devices:
+            device = wp.get_device(dev_name)
+            report["baselines"][dev_name] = {}
+            for n in _sizes(args.sizes if device.is_cpu else args.cuda_sizes):
+                print(f"baselines {dev_name} {n} ...", flush=True)
+                rows = report["baselines"][dev_name][str(n)] = baseline_rates(n, device, args, commits)
+                for name, r in rows.items():
+                    print(f"  {name:55s} CPU ms/step {r['cpu_ms_per_step_best_block']:7.1f} best, "
+                          f"{r['cpu_ms_per_step_median']:7.1f} median; rate ratio {r['rate_ratio_cpu_best_block']:.3f} "
+                          f"best, {r['rate_ratio_cpu_median']:.3f} median", flush=True)
     # Each choice of one Material field, blocks interleaved (the ratio against its first).
     for flag, key, label, rates, choices in (
             ("elastic_forces", "elastic_forces", "elastic forces", elastic_force_rates, ("paper", "variational")),
@@ -611,7 +708,7 @@ def main(argv=None):
                                        for f in choices)
                       + f"; {choices[-1]} / {choices[0]}: " + ", ".join(f"{v:.3f}" for v in r[ratio].values()),
                       flush=True)
-    if args.no_splishsplash:
+    if args.no_splishsplash or args.comparisons_only:
         report["splishsplash"] = {"available": False, "message": "SPlisHSPlasH skipped (--no-splishsplash)"}
     else:
         sph_sizes = _sizes(args.splishsplash_sizes or args.sizes)

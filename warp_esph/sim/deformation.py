@@ -36,7 +36,13 @@ def funcs(scalar) -> types.SimpleNamespace:
     sm = smoothing.funcs(scalar)
 
     @wp.func
-    def moment_sums(
+    def displacement(x: vec3, y: vec3, x_lo: vec3, y_lo: vec3) -> vec3:
+        """A particle's displacement over the step from ``x + x_lo`` to ``y + y_lo``
+        (``fit_moments``): ``y - x`` is exact, the round-offs' difference added to it."""
+        return (y - x) + (y_lo - x_lo)
+
+    @wp.func
+    def fit_moments(
         i: int,
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
@@ -46,6 +52,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         nbr: wp.array2d(dtype=wp.int32),
         n: int,
         h: scalar,
+        given: int,
     ):
         """Eqs. 5-7: the fit's moments ``A = sum w xb xb^T``, ``B - A = sum w ub xb^T`` (returned
         as ``B``; ``ub = yb - xb``, the step's relative displacement) and the number of
@@ -61,11 +68,16 @@ def funcs(scalar) -> types.SimpleNamespace:
 
         Only the raw sums live in this loop: the caller's inverse must not see a loop
         accumulator, whose adjoint Warp would not replay (docs/method.md, Warp pitfall 1).
-        (Summing only A's six distinct entries measured 9 % slower: the matrix form vectorises.)"""
+        (Summing only A's six distinct entries measured 9 % slower: the matrix form vectorises.)
+
+        ``given`` 1: ``y`` holds each particle's ``displacement`` already (``x_lo``, ``y_lo``
+        unread; the fused step's, one load per neighbour instead of three)."""
         A = mat33()
         B = mat33()
         xi = x[i]
-        ui = (y[i] - xi) + (y_lo[i] - x_lo[i])
+        ui = y[i]
+        if given == 0:
+            ui = displacement(xi, y[i], x_lo[i], y_lo[i])
         bi = body[i]
         c6 = sm.poly6_coef(h)
         same = int(0)
@@ -73,7 +85,10 @@ def funcs(scalar) -> types.SimpleNamespace:
             j = nbr[i, k]
             if body[j] == bi:
                 xb = x[j] - xi
-                ub = ((y[j] - x[j]) + (y_lo[j] - x_lo[j])) - ui
+                uj = y[j]
+                if given == 0:
+                    uj = displacement(x[j], uj, x_lo[j], y_lo[j])
+                ub = uj - ui
                 r2 = wp.dot(xb, xb)
                 w = sm.w_poly6_c(r2, h, c6)
                 A += w * wp.outer(xb, xb)
@@ -81,6 +96,22 @@ def funcs(scalar) -> types.SimpleNamespace:
                 # Rows may reach beyond h (neighbors.select_neighbors): only neighbours
                 # of non-zero weight count for the guard.
                 same += wp.where(r2 < h * h, 1, 0)
+        return A, B, same
+
+    @wp.func
+    def moment_sums(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+    ):
+        """Eqs. 5-7 from the positions at the step's start and end (``fit_moments``)."""
+        A, B, same = fit_moments(i, x, y, x_lo, y_lo, body, nbr, n, h, 0)
         return A, B, same
 
     @wp.func
@@ -269,7 +300,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         return carried_update(step_increment(A, Bu, code, counters), F, F_lo, counters)
 
     return types.SimpleNamespace(
-        moment_sums=moment_sums, floor_image=floor_image, floor_image_sums=floor_image_sums, fit_sums=fit_sums,
+        displacement=displacement, fit_moments=fit_moments, moment_sums=moment_sums, floor_image=floor_image,
+        floor_image_sums=floor_image_sums, fit_sums=fit_sums,
         floor_image_jacobian=floor_image_jacobian, fit_pair_adjoint=fit_pair_adjoint,
         floor_image_moment=floor_image_moment, affine_fit=affine_fit, step_increment=step_increment,
         step_gradient=step_gradient, unless_inverted=unless_inverted,

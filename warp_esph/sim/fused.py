@@ -208,6 +208,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         y: wp.array(dtype=vec3),
         x_lo: wp.array(dtype=vec3),
         y_lo: wp.array(dtype=vec3),
+        u: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
         nbr: wp.array2d(dtype=wp.int32),
         count: wp.array(dtype=wp.int32),
@@ -228,14 +229,30 @@ def kernels(scalar) -> types.SimpleNamespace:
         """deformation.update_deformation with the neighbourhood guard of
         neighbors.select_neighbors evaluated here, on the moment matrix A of the fit."""
         i = wp.tid()
-        A, B, same = df.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
+        A = mat33()
+        B = mat33()
+        same = int(0)
+        if images != 0:
+            A, B, same = df.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
+        else:
+            # Each particle's displacement from the launch before (u): one load per
+            # neighbour instead of y, x_lo and y_lo, the same sums bit for bit.
+            A, B, same = df.fit_moments(i, x, u, u, u, body, nbr, count[i], h, 1)
         code = guard_code(A, same, min_neighbors, max_condition)
         guard[i] = code
         F_new, F_new_lo = df.deformation_update(A, B, code, F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
 
-    return types.SimpleNamespace(constitutive_forces=constitutive_forces, update_deformation=update_deformation)
+    @wp.kernel(enable_backward=False)
+    def displacements(x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
+                      y_lo: wp.array(dtype=vec3), u: wp.array(dtype=vec3)):
+        """Each particle's ``deformation.displacement`` over the step, for ``update_deformation``."""
+        i = wp.tid()
+        u[i] = df.displacement(x[i], y[i], x_lo[i], y_lo[i])
+
+    return types.SimpleNamespace(constitutive_forces=constitutive_forces, update_deformation=update_deformation,
+                                 displacements=displacements)
 
 
 def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: bool, tape=None):
@@ -298,11 +315,16 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
     guards (into ``state_out.guard``) on the fit's own moment matrix. With ``tape``: not
     recorded, ``deformation.update_deformation_adjoint`` recorded in its place."""
     S = model.scalar
+    images = model.image_plane is not None
+    u = scratch.displacement
+    if not images:
+        wp.launch(kernels(S).displacements, model.particle_count, [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo],
+                  [u], device=model.device, record_tape=False)
     wp.launch(
         kernels(S).update_deformation,
         model.particle_count,
         [
-            state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
+            state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, u, model.particle_body, state_out.neighbors,
             state_out.neighbor_count, state_out.F_flowed, state_out.F_flowed_lo, S(model.support_radius), scratch.min_neighbors,
             S(scratch.max_condition), *model.image_args(),
         ],

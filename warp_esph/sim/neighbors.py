@@ -1,10 +1,12 @@
 """Neighbour lists (paper §4, docs/method.md §1): the particles ``j != i`` with
-``|x_j - x_i| < h sigma_max(F_i)``, the nearest ``max_neighbors`` of them where there are
-more, stored as a fixed-width int32 row plus a count.
+``|x_j - x_i| < h sigma_max(F_i)`` (with ``F``; else ``< h``), the nearest ``max_neighbors``
+of them where there are more, stored as a fixed-width int32 row plus a count.
 
-Rows reach ``h sigma_max(F_i)`` (an upper bound of it) because the elastic kernel is
+Rows reach ``h sigma_max(F_i)`` (an upper bound of it) where the paper's elastic kernel is
 evaluated at ``F_i^-1 (x_j - x_i)`` (eq. 11): a pair then enters or leaves a row only
 where every kernel of the step is zero, and the loss is continuous in the parameters.
+Without that force every weight of the step ends at ``h`` and the solver asks for rows
+within ``h`` (``Solver._stretch_rows``).
 The default width (``default_max_neighbors``) leaves room for compression, so rows are
 not cut in practice; a row that may be short of a weighted neighbour is counted
 (``Solver.guard_counts()["neighbors_cut"]``). The paper's "up to 30 neighbours" is

@@ -17,7 +17,7 @@ a central force, so it conserves angular momentum and leaves a rigid rotation al
 unprojected form stops a spinning body). The factor 5 (``d + 2``) keeps ``eta`` the shear
 viscosity: for a divergence-free flow the projection averages to 1/5 of the full sum. ``rho0_i`` is each particle's pressure density in the initial
 configuration, so a body starts pressure-free even at its surface, where the SPH sum is
-short of neighbours. Rows reach ``h sigma_max(F_i)`` (and may be capped) and so are not symmetric: as for the elastic
+short of neighbours. Rows may reach ``h sigma_max(F_i)`` and may be capped, and so are not symmetric: as for the elastic
 force each directed pair applies half its force to both particles, equal and opposite,
 which keeps linear momentum exact. Pressure acts between bodies too: it is what keeps
 them apart.

@@ -53,6 +53,8 @@ class StepScratch:
         self.counters = wp.zeros(len(GUARD_NAMES), dtype=wp.int32, device=dev)
         self.pressure = wp.zeros(n, dtype=model.scalar, device=dev)
         self.sph_volume = wp.zeros(n, dtype=model.scalar, device=dev)
+        # Each particle's displacement over the step (fused.displacements), read by the fit.
+        self.displacement = wp.zeros(n, dtype=model.types.vec3, device=dev)
         self._pressure_volume = None
         # The neighbour selection's squared distances: read only within the search.
         self.neighbor_d2 = wp.zeros((n, model.max_neighbors), dtype=model.scalar, device=dev)
@@ -86,7 +88,8 @@ class Solver:
     ``neighbor_skin`` (in units of the support radius ``h``, in [0, 1]; default
     ``DEFAULT_SKIN``) is the Verlet margin of the neighbour candidates: they are rebuilt only when two
     particles may have moved by more than it relative to each other, and the rows
-    (every particle within ``h sigma_max(F)``, the nearest ``Model.max_neighbors`` where
+    (every particle within ``h sigma_max(F)`` where a material uses the paper's elastic
+    force, else within ``h``; the nearest ``Model.max_neighbors`` where
     there are more) are selected from them every step, so the lists are those of a fresh
     search (``0``: search afresh every step). ``guard_counts()["neighbors_cut"]`` counts
     the particle-steps whose row may lack a neighbour of non-zero weight (docs/method.md §1);
@@ -204,6 +207,18 @@ class Solver:
         if c > 0.0 and self._rest is None:
             m = self.model
             self._rest = wp.array(m.particle_x0, dtype=m.types.vec3, device=m.device)
+
+    def _stretch_rows(self) -> bool:
+        """Whether the neighbour rows reach ``h sigma_max(F)`` (``neighbors.select_neighbors``):
+        where a term weighs a pair by more than its current distance, the paper's elastic
+        force (its kernel at ``F^-1 (x_j - x_i)``, eq. 11), the hourglass control and the
+        comparison models (rest distances). The variational force, the incremental fit and
+        the SPH terms weigh the current distance, each weight 0 from ``h`` on with its
+        derivatives, so rows within ``h`` hold every pair of non-zero weight: the step, its
+        gradients and the loss's smoothness are those of the wider rows, which only added
+        zero terms (docs/performance.md, "The 50k forward rate against the issue's baseline")."""
+        return self.hourglass > 0.0 or any(mt.elastic_force == "paper" or mt.deformation != "incremental"
+                                           for mt in self.model.materials)
 
     def fast_under_tape(self) -> bool:
         """Whether a taped step runs the fused forward kernels (not recorded) and records the
@@ -326,7 +341,7 @@ class Solver:
                  state_out.density, scratch.pressure, scratch.sph_volume,
                  pressure.pressure_density(m, state_out) if own else None,
                  scratch.pressure_volume() if own else None) if fast and sph else None,
-                F=state_in.F, counters=scratch.counters, cut_index=COUNT_NEIGHBORS_CUT,
+                F=state_in.F if self._stretch_rows() else None, counters=scratch.counters, cut_index=COUNT_NEIGHBORS_CUT,
             )
             if not self._warned_cut:
                 self._warn_cut()
