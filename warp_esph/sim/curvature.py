@@ -107,7 +107,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         D = mat33()
         E = mat33()
         xi = x[i]
-        ui = (y[i] - xi) + (y_lo[i] - x_lo[i])
+        ui = df.displacement(xi, y[i], x_lo[i], y_lo[i])
         bi = body[i]
         c6 = sm.poly6_coef(h)
         same = int(0)
@@ -116,7 +116,7 @@ def funcs(scalar) -> types.SimpleNamespace:
             if body[j] == bi:
                 xb = x[j] - xi
                 r2 = wp.dot(xb, xb)
-                ub = ((y[j] - x[j]) + (y_lo[j] - x_lo[j])) - ui
+                ub = df.displacement(x[j], y[j], x_lo[j], y_lo[j]) - ui
                 dA, dB, dC, dD, dE = pair_moments(xb, ub, sm.w_poly6_c(r2, h, c6), h)
                 A += dA
                 B += dB
@@ -151,7 +151,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         D = mat33()
         E = mat33()
         xi = x[i]
-        ui = (y[i] - xi) + (y_lo[i] - x_lo[i])
+        ui = df.displacement(xi, y[i], x_lo[i], y_lo[i])
         bi = body[i]
         c6 = sm.poly6_coef(h)
         same = int(0)

@@ -165,7 +165,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         A = mat33()
         B = mat33()
         xi = x[i]
-        ui = (y[i] - xi) + (y_lo[i] - x_lo[i])
+        ui = displacement(xi, y[i], x_lo[i], y_lo[i])
         bi = body[i]
         c6 = sm.poly6_coef(h)
         same = int(0)
