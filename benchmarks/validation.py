@@ -249,6 +249,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     last = t >= t[-1] - 0.25 * duration
     rate = -np.polyfit(t[last], h[last], 1)[0] if last.sum() > 2 else float("nan")
     ratio = _deviatoric_norm(a.F.numpy()[free], mu) / Y
+    x_end = a.x.numpy().astype(np.float64)[free]
     alpha = a.alpha.numpy().astype(np.float64)[free]
     yield_strain = Y / (2.0 * mu)
     # Nearest neighbour of each free particle (floor included) from the last step's rows,
@@ -268,6 +269,9 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
         "pressure_force": pressure_force,
         "floor": floor, "particles": n, "dt": dt, "duration": float(t[-1]), "steps": steps,
         "h_over_H0": h[-1] / H0, "theory_h_over_H0": slump_theory(S),
+        # The top of the whole pile (+ dx/2): above h where the top is a bowl, as the S <= 0.3
+        # piles' is (docs/physics.md, the S = 0.2 pile below the 1-D height); h reads its centre.
+        "top_max_over_H0": (float(x_end[:, 1].max()) + 0.5 * dx) / H0,
         "ratio_to_theory": (1.0 - h[-1] / H0) / (1.0 - slump_theory(S)),
         "top_rate_pct_H0_per_s": 100.0 * rate / H0,
         "kinetic_energy": ke[-1], "kinetic_over_MgH0": ke[-1] / weight_scale,

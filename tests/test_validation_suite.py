@@ -157,6 +157,16 @@ def test_slumped_cylinder_keeps_an_unyielded_plug(slumped_stiff):
     assert r["plug_unyielded_fraction"] > 0.9, r["plug_unyielded_fraction"]
 
 
+def test_slumped_plug_keeps_a_flat_top(slumped_stiff):
+    """A plug that does not flow descends whole: its top stays flat, the highest particle of
+    the pile no more than a spacing above the centre's (dx = H0 / 8). Measured: 0.877 against
+    0.865 H0 (0.1 dx). The thin S = 0.2 plug, which flows, sags into a bowl instead
+    (docs/physics.md, the S = 0.2 pile below the 1-D height: rim 0.14-0.16 H0 above the
+    centre at 8 / 12 across with `energy_spiky`)."""
+    r = slumped_stiff
+    assert r["top_max_over_H0"] - r["h_over_H0"] < 1.0 / 8.0, (r["top_max_over_H0"], r["h_over_H0"])
+
+
 def test_slump_height_within_10_percent_of_the_1d_theory(slumped):
     """Measured on the particle floor: h/H0 0.504 against the 1-D 0.522 (-3.4 %) at 8 across
     with the defaults (spiky force and old fit guard 0.476, -8.9 %; on the ground collider
