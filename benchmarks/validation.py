@@ -131,7 +131,7 @@ def spread_height_theory(radius: float, tau_y: float, rho: float = RHO, g: float
 
 
 def slump_model(S: float, resolution: int = 12, elastic_force: str = "variational", H0: float = 0.1,
-                flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, pressure_force: str = "energy",
+                flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, pressure_force: str = "energy_spiky",
                 floor: str = "particles", floor_radius: float = 3.2, pressure_stiffness: float | None = None,
                 support_radius: float = 2.0, stiffness: float = 10.0, floor_layers: int = FLOOR_LAYERS,
                 aspect: float = 1.0, dtype=None):
@@ -159,7 +159,7 @@ def slump_model(S: float, resolution: int = 12, elastic_force: str = "variationa
 
 def slump(S: float, resolution: int = 12, elastic_force: str = "variational", duration: float = 4.0,
           H0: float = 0.1, flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0,
-          dt_factor: float = 0.9, samples: int = 200, pressure_force: str = "energy", floor: str = "particles",
+          dt_factor: float = 0.9, samples: int = 200, pressure_force: str = "energy_spiky", floor: str = "particles",
           floor_radius: float = 3.2, pressure_stiffness: float | None = None, support_radius: float = 2.0,
           stiffness: float = 10.0, gravity_ramp: float = 0.0, floor_layers: int = FLOOR_LAYERS,
           aspect: float = 1.0) -> dict:
@@ -301,7 +301,7 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
            flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, dt_factor: float = 0.9,
            pressure_stiffness: float | None = None, support_radius: float = 2.0, initial_height: float = 2.0,
            samples: int = 200, floor: str = "particles", floor_radius: float = 1.2,
-           pressure_force: str = "energy") -> dict:
+           pressure_force: str = "energy_spiky") -> dict:
     """The spread limit of Roussel & Coussot (2005): a wide, low cylinder of a yield-stress
     material spreads on a rough floor into a pile much wider than tall.
 
@@ -408,7 +408,7 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
 def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration: float = 1.5, spacing: float = 0.005,
             critical_angle: float = 10.0, length: float = 12.0, width: int = 2, yield_strain: float = 0.005,
             flow_rate: float = 1000.0, viscosity: float = 0.5, friction: float = 5.0, dt_factor: float = 0.9,
-            ramp: float = 0.15, samples: int = 40, walls: str = "faces") -> dict:
+            ramp: float = 0.15, samples: int = 40, walls: str = "faces", pressure_force: str = "energy_spiky") -> dict:
     """The shear strength of a thin layer: ``layers`` particles thick (h = layers x spacing),
     ``length`` h long, on an incline (gravity tilted by theta in the x-y plane), plane strain
     (``width`` particles between frictionless walls normal to z).
@@ -435,7 +435,8 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     faces (z = 0 and ``width`` x spacing); a plane collider acts on particle centres, so the
     outer rows, half a spacing inside, may move out to it and the strip widen by one
     spacing. ``"centres"``, through the outer rows' centres: the strip cannot widen
-    (docs/physics.md, thin layers in shear: widening lets the layers close up and stop)."""
+    (docs/physics.md, thin layers in shear: widening lets the layers close up and stop).
+    ``pressure_force``: the material's (``Material.pressure_force``), its default k_p."""
     wp, we = _we()
     _check_floor(floor)
     if walls not in INCLINE_WALLS:
@@ -449,7 +450,8 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     if not 0.0 < s < 1.0:
         raise ValueError(f"load = {load!r} is not allowed: sin(theta) = load sin(critical_angle) must be in (0, 1)")
     theta = math.asin(s)
-    mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity)
+    mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity,
+                      pressure_force=pressure_force)
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0) if ramp > 0.0 else (G * s, -G * math.cos(theta), 0.0))
     L = length * h
     W = width * dx

@@ -29,7 +29,15 @@ def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys, dough_scene):
     ``warp-esph fit`` a copy that starts 2x off in yield stress and flow rate, with the
     run's USD (one body, frames 2, 4, 6) as the target. From the 2x guess alone L-BFGS
     stops in a valley at yield_stress 217, flow_rate 10.8 (loss 4.9e-8, reported as not
-    converged); the sampled first stage (``--samples``) starts it in the right one."""
+    converged); the sampled first stage (``--samples``) starts it in the right one.
+
+    With the default pressure force (energy_spiky) there is a second valley near the truth:
+    from the best of 4, 6 or 10 samples L-BFGS converges at yield_stress 111.7, flow_rate
+    10.10 (loss 8.0e-10, 7.5e-5 of the initial; 1.4e-18 at the truth; a minimum along each
+    parameter at +-1e-4, and the loss rises smoothly from it towards the truth, 8.4e-10 a
+    quarter of the way, before it falls: measured), also with ``--starts 2`` from 6
+    samples; from the best of 8 or 12 it reaches the truth (100.00003, 10.0000; loss
+    1.3e-18). So 8 samples, the number docs/fitting.md's silhouette fit uses."""
     from warp_esph.cli import main
 
     truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
@@ -40,7 +48,7 @@ def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys, dough_scene):
     out = tmp_path / "calibration"
     capsys.readouterr()
     status = main(["fit", str(guess), "--target", str(run), "--target-body", "dough", "--target-frames", "2,4,6",
-                   "--iterations", "30", "--samples", "6", "--output-dir", str(out), "--no-progress", "--no-usd",
+                   "--iterations", "30", "--samples", "8", "--output-dir", str(out), "--no-progress", "--no-usd",
                    "--noise", "1e-4"])
     captured = capsys.readouterr()
     assert status == 0, captured.err
@@ -125,7 +133,14 @@ def test_diagnostics_flag_an_unobservable_yield_stress(yield_stress, flagged, dr
     """With a yield stress far below the stresses of the impact, the flow rule's
     ``(|s| - Y) / |s|`` hardly depends on it: the diagnostics must say the data do not
     determine it (and still determine the flow rate). At a yield stress the stresses are
-    comparable to, they must not."""
+    comparable to, the data depend on it as much as on the flow rate and fix it to 2 %.
+
+    With the default pressure force (energy_spiky) the drop at 300 Pa fixes both to 1.6 %
+    and 0.40 % (sensitivity 307 against 1259), but the two are correlated (|r| = 0.980,
+    measured; 0.929 with the energy force, which left both determined), so the diagnostics
+    flag the pair as a combination, and only that. Measured |r| at 100, 150, 200, 250, 400,
+    500 Pa: 0.956, 0.669, 0.943, 0.983, 0.987, 0.988: the drop mostly fixes a combination of
+    yield stress and flow rate once Y is within reach of its stresses."""
     model = dropped_cube(yield_stress, 10.0)
     dt = model.stable_dt()
     steps = 100
@@ -133,7 +148,6 @@ def test_diagnostics_flag_an_unobservable_yield_stress(yield_stress, flagged, dr
     target = Rollout(model, steps, dt, frames=frames).forward()
     d = diagnose(model, PositionLoss(target, frames=frames), ["yield_stress", "flow_rate"], steps=steps, dt=dt, noise=1e-3)
     assert d.method == "gauss-newton" and d.labels == ["yield_stress", "flow_rate"]
-    assert "flow_rate" not in d.undetermined
     assert d.relative_error[1] < 0.01
     if flagged:
         assert d.undetermined == ["yield_stress"], d.summary()
@@ -143,8 +157,10 @@ def test_diagnostics_flag_an_unobservable_yield_stress(yield_stress, flagged, dr
         assert d.relative_error[0] > 0.25 and d.sensitivity[0] < 2e-3 * d.sensitivity[1]
         assert any(w.startswith("yield_stress is not determined") for w in d.warnings)
     else:
-        assert d.undetermined == [] and d.warnings == [], d.summary()
-        assert d.relative_error[0] < 0.01
+        assert d.relative_error[0] < 0.02 and d.sensitivity[0] > 0.1 * d.sensitivity[1], d.summary()
+        # Flagged for their correlation alone (energy_spiky, above), not for either's error.
+        assert abs(d.correlation[0, 1]) > 0.95 and d.undetermined == ["yield_stress", "flow_rate"], d.summary()
+        assert len(d.warnings) == 2 and all("correlated" in w for w in d.warnings), d.warnings
     assert np.allclose(d.correlation, d.correlation.T) and np.allclose(np.diag(d.correlation), 1.0)
 
 
@@ -280,12 +296,18 @@ def test_silhouette_gradient_through_a_rollout():
 
 def test_silhouette_only_diagnostics_flag_the_yield_stress(dropped_cube):
     """Silhouettes alone do not determine the yield stress of the drop (docs/fitting.md: a
-    fit from 2x ended at Y = 188 Pa, +88 %, flow rate within 2 %). Two 48 x 48 cameras
-    (front, top), masks of the true run (Y = 100 Pa, flow rate 10/s) at steps 50 and 100.
-    At the fit's end point the loss is curved in Y (the Gauss-Newton error alone said 1.5 %
-    before silhouette pixels were counted per splat area), but moving Y by a factor 1.5
-    changes the chi-square by less than 1 (measured 0.34): the diagnostics must say Y is
-    not determined, and the flow rate is. (Measured at splat opacity 0.5, the default then.)"""
+    fit from 2x ended at Y = 188 Pa, +88 %, flow rate within 2 %, with the energy pressure
+    force). Two 48 x 48 cameras (front, top), masks of the true run (Y = 100 Pa, flow rate
+    10/s) at steps 50 and 100. The diagnostics are taken where the same fit ends with the
+    default pressure force (energy_spiky; L-BFGS from 2x, 8 samples first, 30 iterations,
+    measured): at its iteration cap, Y = 294.8 Pa (+195 %), flow rate 10.80/s (+8 %); there
+    the standard errors are 10 % and 7.7 % (273 observations), but moving Y by a factor 1.5
+    does not raise the chi-square by 1 (measured: it falls, by 0.11): the diagnostics must
+    say Y is not determined, and the flow rate is. At the energy force's end point (188,
+    9.82) the energy_spiky run's flow-rate error is 27.7 %, at the truth 21.4 %, and both
+    are flagged there. (With the energy force the loss was curved in Y at 188 Pa, the
+    Gauss-Newton error alone 1.5 % before silhouette pixels were counted per splat area,
+    and Y by 1.5 raised the chi-square by 0.34. Measured at splat opacity 0.5.)"""
     front = PinholeCamera(48, 48, 80.0, 80.0, 23.5, 23.5, np.diag([1.0, -1.0, -1.0]), [0.0, 0.05, 0.5], "front")
     top = PinholeCamera(48, 48, 80.0, 80.0, 23.5, 23.5, [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]],
                         [0.0, 0.0, 0.5], "top")
@@ -295,7 +317,7 @@ def test_silhouette_only_diagnostics_flag_the_yield_stress(dropped_cube):
     xs = Rollout(model, steps, dt, frames=frames).forward()
     masks = {f: [(soft_silhouette(np.asarray(x, dtype=np.float64), c, 0.01, 0.5) > 0.5).astype(float) for c in cams]
              for f, x in zip(frames, xs)}
-    d = diagnose(dropped_cube(188.0, 9.82), SilhouetteLoss(masks, cams, radius=0.01, opacity=0.5), ["yield_stress", "flow_rate"],
+    d = diagnose(dropped_cube(294.8, 10.80), SilhouetteLoss(masks, cams, radius=0.01, opacity=0.5), ["yield_stress", "flow_rate"],
                  steps=steps, dt=dt)
     assert d.undetermined == ["yield_stress"], d.summary()
     assert any("factor 1.5 changes the chi-square by only" in w for w in d.warnings)

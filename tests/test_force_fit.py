@@ -222,13 +222,15 @@ def test_cli_fits_modulus_and_yield_stress_to_a_compression_force_curve(tmp_path
         load_target(csv)
 
 
-# pressure_stiffness = 0.5: about K / (4 rho0) = 0.54 of the gel, the energy pressure force's
-# (the default's) default, so the SPH pressure adds about 0.23 K to the bulk stiffness as
-# 1.0 (about the spiky force's K / (2 rho0) = 1.08) did with the spiky force, whose pair
-# forces carry about half of grad p (material.PRESSURE_BULK_SHARE; docs/physics.md, the SPH
-# pressure). With the energy force at 1.0 the block is twice as stiff in bulk, and 10
-# iterations reach only mu 1008 (loss 2.3e-4 of the initial; measured at 0.5: mu 1000.03,
-# 2e-9; spiky at 1.0: mu 1000.007, 2e-10).
+# The default pressure force (energy_spiky) at its default k_p = 0.46 K / rho0 = 1.0, which
+# adds about 0.23-0.25 K to the bulk stiffness as the energy force's K / (4 rho0) = 0.54 and
+# the spiky force's K / (2 rho0) = 1.08 did (material.PRESSURE_BULK_SHARE; docs/physics.md,
+# the SPH pressure). Measured, 15 iterations from mu = 2000: energy_spiky at 1.0, mu
+# 1000.0000 (loss 8.5e-17 of the initial, converged in 10 evaluations); energy_spiky at the
+# energy force's 0.5, half its bulk share, stops at mu 1319 (converged, loss 0.07 of the
+# initial: a local minimum); the energy force at 0.5, mu 1000.009 (4.8e-10; spiky at 1.0:
+# mu 1000.007, 2e-10). With the energy force at 1.0 the block was twice as stiff in bulk,
+# and 10 iterations reached only mu 1008 (loss 2.3e-4 of the initial).
 LANDING = """
 [scene]
 name = "landing"
@@ -245,7 +247,6 @@ mu = {mu}
 lam = 1500.0
 density = 1000.0
 viscosity = 2.0
-pressure_stiffness = 0.5
 
 [[bodies]]
 shape = "box"

@@ -881,20 +881,22 @@ def test_pressure_pushes_merging_layers_apart_harder_the_closer_they_come(pressu
 def test_a_default_pressure_stiffness_follows_the_pressure_force():
     """Switching the force (``replace``, a preset override) keeps the added bulk stiffness
     (the default ``k_p`` of the new force); an explicit ``k_p`` is kept."""
-    m = we.Material.from_young(1.0e5, 0.3, density=1000.0)  # the energy force, the default
-    s = m.replace(pressure_force="spiky")
-    assert s.pressure_stiffness == pytest.approx(2.0 * m.pressure_stiffness)
-    assert s.replace(pressure_force="energy").pressure_stiffness == pytest.approx(m.pressure_stiffness)
+    m = we.Material.from_young(1.0e5, 0.3, density=1000.0)  # energy_spiky, the default
+    assert m.pressure_stiffness == pytest.approx(0.46 * m.bulk_modulus / m.density)
+    e = m.replace(pressure_force="energy")
+    assert e.pressure_stiffness == pytest.approx(0.25 / 0.46 * m.pressure_stiffness)
+    s = e.replace(pressure_force="spiky")
+    assert s.pressure_stiffness == pytest.approx(2.0 * e.pressure_stiffness)
+    assert s.replace(pressure_force="energy").pressure_stiffness == pytest.approx(e.pressure_stiffness)
     assert m.replace(pressure_stiffness=3.0).replace(pressure_force="spiky").pressure_stiffness == 3.0
-    es = m.replace(pressure_force="energy_spiky")
-    assert es.pressure_stiffness == pytest.approx(0.46 / 0.25 * m.pressure_stiffness)
+    assert s.replace(pressure_force="energy_spiky").pressure_stiffness == pytest.approx(m.pressure_stiffness)
     rubber = we.Material.preset("rubber", pressure_force="spiky")
     assert rubber.pressure_stiffness == pytest.approx(rubber.bulk_modulus / (2.0 * rubber.density))
-    assert we.Material.preset("rubber").pressure_stiffness == pytest.approx(rubber.pressure_stiffness / 2.0)
+    assert we.Material.preset("rubber").pressure_stiffness == pytest.approx(0.46 / 0.5 * rubber.pressure_stiffness)
 
 
-def test_pressure_force_choice_is_validated_and_energy_by_default():
-    assert we.Material(mu=1.0, lam=1.0).pressure_force == "energy"
+def test_pressure_force_choice_is_validated_and_energy_spiky_by_default():
+    assert we.Material(mu=1.0, lam=1.0).pressure_force == "energy_spiky"
     allowed = "must be one of 'energy', 'spiky', 'energy_spiky'"
     with pytest.raises(ValueError, match=r"Material\.pressure_force = 'exact' is not allowed: " + allowed):
         we.Material(mu=1.0, lam=1.0, pressure_force="exact")

@@ -87,7 +87,8 @@ def test_documented_example_loads(tmp_path):
     # preset + E/nu: the preset's plastic settings, the new stiffness, pressure from the new bulk modulus.
     soft = b._materials[0]
     assert soft.youngs_modulus == pytest.approx(1.5e4) and soft.yield_stress == PRESETS["dough"].yield_stress
-    assert soft.pressure_stiffness == pytest.approx(soft.bulk_modulus / (4 * soft.density))  # the energy force's default
+    assert soft.pressure_force == "energy_spiky"  # the default force, and its default k_p share
+    assert soft.pressure_stiffness == pytest.approx(0.46 * soft.bulk_modulus / soft.density)
     assert math.isinf(b._materials[1].yield_stress)
 
 
@@ -270,7 +271,7 @@ def test_material_table_sets_the_pressure_force(tmp_path):
     plain.write_text(text)
     spiky.write_text(text.replace('preset = "dough"', 'preset = "dough"\npressure_force = "spiky"', 1))
     a, b = load_scene_file(plain).builder.finalize(), load_scene_file(spiky).builder.finalize()
-    assert [mat.pressure_force for mat in a.materials] == ["energy"]
+    assert [mat.pressure_force for mat in a.materials] == ["energy_spiky"]
     assert [mat.pressure_force for mat in b.materials] == ["spiky"]
     xa = simulate(a, 2, progress=False).x.numpy()
     xb = simulate(b, 2, progress=False).x.numpy()

@@ -34,8 +34,8 @@ DEFORMATION_IDS = {name: k for k, name in enumerate(DEFORMATIONS)}
 ELASTIC_FORCES = ("paper", "variational")
 ELASTIC_FORCE_IDS = {name: k for k, name in enumerate(ELASTIC_FORCES)}
 
-#: SPH pressure pair forces (``warp_esph/sim/pressure.py``, docs/method.md §6): ``energy``
-#: (default), the exact negative gradient of the SPH pressure energy ``sum_i m_i e_i(rho_i)``
+#: SPH pressure pair forces (``warp_esph/sim/pressure.py``, docs/method.md §6): ``energy``,
+#: the exact negative gradient of the SPH pressure energy ``sum_i m_i e_i(rho_i)``
 #: (the poly6 density's own kernel gradient, ``p / rho^2`` pair weights), which does no net
 #: work on a closed path of the particles; ``spiky``, Müller et al.'s ``(p_i + p_j) / 2``
 #: along the spiky kernel's gradient (the paper's), the gradient of no energy, which keeps
@@ -43,7 +43,9 @@ ELASTIC_FORCE_IDS = {name: k for k, name in enumerate(ELASTIC_FORCES)}
 #: the exact negative gradient of the same energy of a density summed with the spiky kernel,
 #: whose gradient does not vanish as two particles meet, so it holds merging particle layers
 #: apart where the poly6 one lets them merge (docs/physics.md, "The Fig. 8
-#: rest-configuration cube and the energy pressure force").
+#: rest-configuration cube and the energy pressure force"): the default, since the poly6
+#: energy's pairing gives a flowed pile a spurious strength (docs/physics.md, "The default
+#: pressure force: energy_spiky").
 PRESSURE_FORCES = ("energy", "spiky", "energy_spiky")
 PRESSURE_FORCE_IDS = {name: k for k, name in enumerate(PRESSURE_FORCES)}
 
@@ -116,21 +118,19 @@ class Material:
     stiffness again, the "additional stability" of the paper's §4. Use ``0`` to switch
     pressure off.
 
-    ``pressure_force`` picks the SPH pressure pair force (``PRESSURE_FORCES``): ``"energy"``
-    (default), minus the gradient of the pressure's energy ``sum_i m_i e_i(rho_i)`` with
-    ``de/drho = p / rho^2``, or ``"spiky"``, Müller et al.'s symmetrised pressure along the
-    spiky kernel's gradient (the paper's), or ``"energy_spiky"``, minus the gradient of the
-    same energy of a density summed with the spiky kernel (its rest value per particle from
-    the initial configuration, as for the others), whose push between two particles grows
-    until they meet where the energy force's fades (two particle layers pressed closer than
-    half a spacing merge with the energy force, not with this one; its viscous force is
-    about 0.67 x the others' at the same ``viscosity``: docs/method.md §6). The spiky force
-    is the gradient of no energy; at 16 particles across it keeps a slumped yield-stress pile creeping at a flat rate, where
-    the energy force lets it come to rest. ``Model.stable_dt()`` bounds either force (the
-    toothpaste preset without viscosity rests at 0.5 and 1.0 ``stable_dt`` with either, since
-    the fit guard ``cond(A) > 20``: docs/physics.md, "The step bound of undamped fast plastic
-    flow"), and a loss through ground contact bends a little more with the energy force
-    (docs/physics.md, the SPH pressure).
+    ``pressure_force`` picks the SPH pressure pair force (``PRESSURE_FORCES``):
+    ``"energy_spiky"`` (default), minus the gradient of the pressure's energy ``sum_i m_i
+    e_i(rho~_i)`` with ``de/drho~ = p / rho~^2`` of a density ``rho~`` summed with the spiky
+    kernel (its rest value per particle from the initial configuration; kept in
+    ``State.pressure_density``, while ``State.density`` and the viscous volumes stay the
+    poly6 SPH density for every force), whose push between two particles grows until they
+    meet; ``"energy"``, the same energy of the poly6 density, whose push fades as two
+    particles meet, so particle layers pressed closer than half a spacing merge and a flowed
+    pile pairs its particles and stands taller; or ``"spiky"``, Müller et al.'s symmetrised
+    pressure along the spiky kernel's gradient (the paper's), the gradient of no energy, which
+    keeps a 16-across slumped yield-stress pile creeping at a flat rate where either energy
+    force lets it come to rest (docs/method.md §6). ``Model.stable_dt()`` bounds each force
+    (docs/physics.md, "The step bound of undamped fast plastic flow").
     """
 
     mu: float
@@ -145,7 +145,7 @@ class Material:
     clamp_pressure: bool = True
     deformation: str = "incremental"
     elastic_force: str | None = None
-    pressure_force: str = "energy"
+    pressure_force: str = "energy_spiky"
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
