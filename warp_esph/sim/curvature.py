@@ -155,8 +155,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         bi = body[i]
         c6 = sm.poly6_coef(h)
         same = int(0)
-        # Every image is at least as far from x_i as x_i is from the plane.
-        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
+        for k in range(df.image_row_length(xi, n, h, gn, goff)):
             j = i
             if k < n:
                 j = nbr[i, k]
@@ -224,7 +223,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         gi = df.floor_image(xi, gn, goff, gmin)
         c6 = sm.poly6_coef(h)
         zero = vec3()
-        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
+        for k in range(df.image_row_length(xi, n, h, gn, goff)):
             j = i
             if k < n:
                 j = nbr[i, k]
@@ -375,7 +374,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         c6 = sm.poly6_coef(h)
         gi = df.floor_image(xi, gn, goff, gmin)
         fi = vec3()
-        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
+        for k in range(df.image_row_length(xi, n, h, gn, goff)):
             j = i
             if k < n:
                 j = nbr[i, k]
@@ -562,8 +561,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                     gy_i -= gy
         n_img = int(0)
         if images != 0:
-            # Every image is at least as far from x_i as x_i is from the plane.
-            n_img = wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)
+            n_img = df.image_row_length(xi, n, h, gn, goff)
         for k in range(n_img):
             j = i
             if k < n:
@@ -685,8 +683,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 S2 += wp.outer(wa, fn.curvature_basis(d, h))
         n_img = int(0)
         if images != 0:
-            # Every image is at least as far from x_i as x_i is from the plane.
-            n_img = wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)
+            n_img = df.image_row_length(xi, n, h, gn, goff)
         gi = df.floor_image(xi, gn, goff, gmin)
         S1g = mat33()
         S2g = mat33()

@@ -50,6 +50,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     iso = isotropic.funcs(scalar)
     sm = smoothing.funcs(scalar)
     floor_image = deformation.funcs(scalar).floor_image
+    image_row_length = deformation.funcs(scalar).image_row_length
 
     @wp.func
     def principal_stress(s: vec3, mu: scalar, lam: scalar) -> vec3:
@@ -131,7 +132,9 @@ def funcs(scalar) -> types.SimpleNamespace:
         an image may be within the kernel's reach, ``|F^-1 d| < h`` (``|d| < h sigma_max(F)
         <= h |F|_F``; every image is at least as far from ``x_i`` as ``x_i`` is from the plane),
         else none."""
-        return wp.where(wp.dot(gn, xi) - goff < h * wp.sqrt(wp.ddot(F, F)), n + 1, 0)
+        # Kept apart from the other image loops' reach h: eqs. 10-13 weigh the
+        # back-projected F^-1 d, so a stretched particle reaches images beyond h.
+        return image_row_length(xi, n, h * wp.sqrt(wp.ddot(F, F)), gn, goff)
 
     @wp.func
     def paper_image_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
@@ -233,8 +236,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         c6 = sm.poly6_coef(h)
         gi = floor_image(xi, gn, goff, gmin)
         fi = vec3()
-        # Every image is at least as far from x_i as x_i is from the plane.
-        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
+        for k in range(image_row_length(xi, n, h, gn, goff)):
             j = i
             if k < n:
                 j = nbr[i, k]
@@ -270,6 +272,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     fit_sums = deformation.funcs(scalar).fit_sums
     image_moment = deformation.funcs(scalar).floor_image_moment
     floor_image = deformation.funcs(scalar).floor_image
+    image_row_length = deformation.funcs(scalar).image_row_length
     floor_image_jacobian = deformation.funcs(scalar).floor_image_jacobian
     Materials = materials.struct(scalar)
 
@@ -460,8 +463,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 adj_M += sm.w_poly6_c(wp.dot(d, d), h, c6) * wp.outer(ai - adj_f[j], d)
         n_img = int(0)
         if images != 0:
-            # Every image is at least as far from x_i as x_i is from the plane.
-            n_img = wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)
+            n_img = image_row_length(xi, n, h, gn, goff)
         gi = floor_image(xi, gn, goff, gmin)
         adj_Mg = mat33()
         for k in range(n_img):
