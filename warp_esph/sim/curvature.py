@@ -156,9 +156,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         c6 = sm.poly6_coef(h)
         same = int(0)
         for k in range(df.image_row_length(xi, n, h, gn, goff)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 g = df.floor_image(x[j], gn, goff, gmin)
                 xb = g - xi
@@ -224,9 +222,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         c6 = sm.poly6_coef(h)
         zero = vec3()
         for k in range(df.image_row_length(xi, n, h, gn, goff)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xb = x[j] - gi
                 dA, dB, dC, dD, dE = pair_moments(xb, zero, sm.w_poly6_c(wp.dot(xb, xb), h, c6), h)
@@ -375,9 +371,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         gi = df.floor_image(xi, gn, goff, gmin)
         fi = vec3()
         for k in range(df.image_row_length(xi, n, h, gn, goff)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 fi += variational_pair_force(M, K, df.floor_image(xj, gn, goff, gmin) - xi, h, c6)
@@ -563,9 +557,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         if images != 0:
             n_img = df.image_row_length(xi, n, h, gn, goff)
         for k in range(n_img):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 g = df.floor_image(xj, gn, goff, gmin)
@@ -688,9 +680,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         S1g = mat33()
         S2g = mat33()
         for k in range(n_img):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 d = df.floor_image(xj, gn, goff, gmin) - xi
@@ -752,9 +742,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         gg_i = vec3()
         zero = vec3()
         for k in range(n_img):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 gj = df.floor_image(xj, gn, goff, gmin)

@@ -29,6 +29,20 @@ COUNT_ILL_CONDITIONED = 1
 COUNT_INVERTED = 2
 
 
+@wp.func
+def image_row_particle(i: int, k: int, n: int, nbr: wp.array2d(dtype=wp.int32)) -> int:
+    """The particle whose floor image stands at slot ``k`` of particle ``i``'s image loop
+    (``image_row_length`` slots): row neighbour ``nbr[i, k]`` for ``k < n``, ``i`` itself at
+    slot ``n``, since a particle's own image counts like any other but ``i`` is not in its
+    own row. ``nbr[i, n]`` is never read: a full row has no slot ``n``. Integers only, so
+    nothing to differentiate; outside ``funcs`` because it has no scalar type, one function
+    for both precisions' kernels."""
+    j = i
+    if k < n:
+        j = nbr[i, k]
+    return j
+
+
 @functools.cache
 def funcs(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
@@ -127,7 +141,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     @wp.func
     def image_row_length(x: vec3, n: int, reach: scalar, gn: vec3, goff: scalar) -> int:
         """How many slots the floor-image loop of a particle at ``x`` with ``n`` row
-        neighbours visits: all ``n + 1`` (the row and the particle
+        neighbours visits (``image_row_particle``): all ``n + 1`` (the row and the particle
         itself) while ``x`` is less than ``reach`` above the plane ``dot(gn, x) = goff``, else
         none. Every image lies under the plane, so it is at least as far from ``x`` as ``x``
         is from the plane: at ``reach`` or higher no image is within the kernel's reach and
@@ -182,9 +196,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         c6 = sm.poly6_coef(h)
         same = int(0)
         for k in range(image_row_length(xi, n, h, gn, goff)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 g = floor_image(x[j], gn, goff, gmin)
                 xb = g - xi
@@ -216,9 +228,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         gi = floor_image(xi, gn, goff, gmin)
         c6 = sm.poly6_coef(h)
         for k in range(image_row_length(xi, n, h, gn, goff)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xb = x[j] - gi
                 A += sm.w_poly6_c(wp.dot(xb, xb), h, c6) * wp.outer(xb, xb)
@@ -312,7 +322,7 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(
         displacement=displacement, fit_moments=fit_moments, moment_sums=moment_sums, floor_image=floor_image,
-        image_row_length=image_row_length,
+        image_row_length=image_row_length, image_row_particle=image_row_particle,
         floor_image_sums=floor_image_sums, fit_sums=fit_sums,
         floor_image_jacobian=floor_image_jacobian, fit_pair_adjoint=fit_pair_adjoint,
         floor_image_moment=floor_image_moment, affine_fit=affine_fit, step_increment=step_increment,
@@ -428,9 +438,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         if images != 0:
             n_img = fn.image_row_length(xi, count[i], h, gn, goff)
         for k in range(n_img):
-            j = i
-            if k < count[i]:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, count[i], nbr)
             if body[j] == bi:
                 xj = x[j]
                 g = fn.floor_image(xj, gn, goff, gmin)

@@ -51,6 +51,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     sm = smoothing.funcs(scalar)
     floor_image = deformation.funcs(scalar).floor_image
     image_row_length = deformation.funcs(scalar).image_row_length
+    image_row_particle = deformation.image_row_particle
 
     @wp.func
     def principal_stress(s: vec3, mu: scalar, lam: scalar) -> vec3:
@@ -154,9 +155,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         gi = floor_image(xi, gn, goff, gmin)
         fi = vec3()
         for k in range(paper_image_count(xi, F, n, h, gn, goff)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 VV = Vi * volume[j]
@@ -237,9 +236,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         gi = floor_image(xi, gn, goff, gmin)
         fi = vec3()
         for k in range(image_row_length(xi, n, h, gn, goff)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 fi += variational_pair_force(M, floor_image(xj, gn, goff, gmin) - xi, h, c6)
@@ -273,6 +270,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     image_moment = deformation.funcs(scalar).floor_image_moment
     floor_image = deformation.funcs(scalar).floor_image
     image_row_length = deformation.funcs(scalar).image_row_length
+    image_row_particle = deformation.image_row_particle
     floor_image_jacobian = deformation.funcs(scalar).floor_image_jacobian
     Materials = materials.struct(scalar)
 
@@ -378,9 +376,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         gi = floor_image(xi, gn, goff, gmin)
         gg_i = vec3()
         for k in range(n_img):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 VV = Vi * volume[j]
@@ -467,9 +463,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         gi = floor_image(xi, gn, goff, gmin)
         adj_Mg = mat33()
         for k in range(n_img):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 d = floor_image(xj, gn, goff, gmin) - xi
@@ -510,9 +504,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         gg_i = vec3()
         zero = vec3()
         for k in range(n_img):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 gj = floor_image(xj, gn, goff, gmin)

@@ -142,6 +142,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     floor_image = deformation.funcs(scalar).floor_image
     floor_image_jacobian = deformation.funcs(scalar).floor_image_jacobian
     image_row_length = deformation.funcs(scalar).image_row_length
+    image_row_particle = deformation.image_row_particle
 
     @wp.func
     def image_density(i: int, x: wp.array(dtype=vec3), mass: wp.array(dtype=scalar), nbr: wp.array2d(dtype=wp.int32),
@@ -155,9 +156,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         xi = x[i]
         r = scalar(0.0)
         for k in range(image_row_length(xi, n, h, gn, goff)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, n, nbr)
             d = xi - floor_image(x[j], gn, goff, gmin)
             r += mass[j] * density_weight(wp.dot(d, d), h, c6, c_ws, form)
         return r
@@ -189,9 +188,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         fi = vec3()
         zero = scalar(0.0)
         for k in range(image_row_length(xi, n, h, gn, goff)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, n, nbr)
             mj = material[j]
             pj = pressure(rho_p[j], rest_density[j], mat.pressure_stiffness[mj], mat.clamp_pressure[mj])
             eta = scalar(0.5) * (mat.viscosity[mi] + mat.viscosity[mj])
@@ -221,6 +218,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     sm = smoothing.funcs(scalar)
     fn = funcs(scalar)
     image_row_length = deformation.funcs(scalar).image_row_length
+    image_row_particle = deformation.image_row_particle
     Materials = materials.struct(scalar)
 
     @wp.kernel
@@ -383,9 +381,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         if images != 0:
             n_img = image_row_length(xi, n, h, gn, goff)
         for k in range(n_img):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, n, nbr)
             xj = x[j]
             d = fn.floor_image(xj, gn, goff, gmin) - xi
             r2 = wp.dot(d, d)
