@@ -155,11 +155,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         bi = body[i]
         c6 = sm.poly6_coef(h)
         same = int(0)
-        # Every image is at least as far from x_i as x_i is from the plane.
-        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+        for k in range(df.image_row_length(xi, n, h, gn, goff)):
+            j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 g = df.floor_image(x[j], gn, goff, gmin)
                 xb = g - xi
@@ -224,10 +221,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         gi = df.floor_image(xi, gn, goff, gmin)
         c6 = sm.poly6_coef(h)
         zero = vec3()
-        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+        for k in range(df.image_row_length(xi, n, h, gn, goff)):
+            j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xb = x[j] - gi
                 dA, dB, dC, dD, dE = pair_moments(xb, zero, sm.w_poly6_c(wp.dot(xb, xb), h, c6), h)
@@ -375,10 +370,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         c6 = sm.poly6_coef(h)
         gi = df.floor_image(xi, gn, goff, gmin)
         fi = vec3()
-        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+        for k in range(df.image_row_length(xi, n, h, gn, goff)):
+            j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 fi += variational_pair_force(M, K, df.floor_image(xj, gn, goff, gmin) - xi, h, c6)
@@ -562,12 +555,9 @@ def kernels(scalar) -> types.SimpleNamespace:
                     gy_i -= gy
         n_img = int(0)
         if images != 0:
-            # Every image is at least as far from x_i as x_i is from the plane.
-            n_img = wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)
+            n_img = df.image_row_length(xi, n, h, gn, goff)
         for k in range(n_img):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 g = df.floor_image(xj, gn, goff, gmin)
@@ -685,15 +675,12 @@ def kernels(scalar) -> types.SimpleNamespace:
                 S2 += wp.outer(wa, fn.curvature_basis(d, h))
         n_img = int(0)
         if images != 0:
-            # Every image is at least as far from x_i as x_i is from the plane.
-            n_img = wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)
+            n_img = df.image_row_length(xi, n, h, gn, goff)
         gi = df.floor_image(xi, gn, goff, gmin)
         S1g = mat33()
         S2g = mat33()
         for k in range(n_img):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 d = df.floor_image(xj, gn, goff, gmin) - xi
@@ -755,9 +742,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         gg_i = vec3()
         zero = vec3()
         for k in range(n_img):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 gj = df.floor_image(xj, gn, goff, gmin)

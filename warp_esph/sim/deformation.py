@@ -29,6 +29,20 @@ COUNT_ILL_CONDITIONED = 1
 COUNT_INVERTED = 2
 
 
+@wp.func
+def image_row_particle(i: int, k: int, n: int, nbr: wp.array2d(dtype=wp.int32)) -> int:
+    """The particle whose floor image stands at slot ``k`` of particle ``i``'s image loop
+    (``image_row_length`` slots): row neighbour ``nbr[i, k]`` for ``k < n``, ``i`` itself at
+    slot ``n``, since a particle's own image counts like any other but ``i`` is not in its
+    own row. ``nbr[i, n]`` is never read: a full row has no slot ``n``. Integers only, so
+    nothing to differentiate; outside ``funcs`` because it has no scalar type, one function
+    for both precisions' kernels."""
+    j = i
+    if k < n:
+        j = nbr[i, k]
+    return j
+
+
 @functools.cache
 def funcs(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
@@ -125,6 +139,18 @@ def funcs(scalar) -> types.SimpleNamespace:
         return x - (d + wp.max(d, min_depth)) * n
 
     @wp.func
+    def image_row_length(x: vec3, n: int, reach: scalar, gn: vec3, goff: scalar) -> int:
+        """How many slots the floor-image loop of a particle at ``x`` with ``n`` row
+        neighbours visits (``image_row_particle``): all ``n + 1`` (the row and the particle
+        itself) while ``x`` is less than ``reach`` above the plane ``dot(gn, x) = goff``, else
+        none. Every image lies under the plane, so it is at least as far from ``x`` as ``x``
+        is from the plane: at ``reach`` or higher no image is within the kernel's reach and
+        the loop can be skipped whole. ``reach`` is ``h`` for the fit, the variational force
+        and SPH; eqs. 10-13 back-project by ``F^-1`` and pass a wider one
+        (``forces.paper_image_count``)."""
+        return wp.where(wp.dot(gn, x) - goff < reach, n + 1, 0)
+
+    @wp.func
     def floor_image_jacobian(x: vec3, n: vec3, offset: scalar, min_depth: scalar) -> mat33:
         """``d floor_image / d x`` (symmetric): the mirror ``R = I - 2 n n^T`` while ``x`` is
         higher than ``min_depth``, the tangential projector ``I - n n^T`` below, where the
@@ -169,11 +195,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         bi = body[i]
         c6 = sm.poly6_coef(h)
         same = int(0)
-        # Every image is at least as far from x_i as x_i is from the plane.
-        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+        for k in range(image_row_length(xi, n, h, gn, goff)):
+            j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 g = floor_image(x[j], gn, goff, gmin)
                 xb = g - xi
@@ -204,10 +227,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         bi = body[i]
         gi = floor_image(xi, gn, goff, gmin)
         c6 = sm.poly6_coef(h)
-        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+        for k in range(image_row_length(xi, n, h, gn, goff)):
+            j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xb = x[j] - gi
                 A += sm.w_poly6_c(wp.dot(xb, xb), h, c6) * wp.outer(xb, xb)
@@ -301,6 +322,7 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(
         displacement=displacement, fit_moments=fit_moments, moment_sums=moment_sums, floor_image=floor_image,
+        image_row_length=image_row_length, image_row_particle=image_row_particle,
         floor_image_sums=floor_image_sums, fit_sums=fit_sums,
         floor_image_jacobian=floor_image_jacobian, fit_pair_adjoint=fit_pair_adjoint,
         floor_image_moment=floor_image_moment, affine_fit=affine_fit, step_increment=step_increment,
@@ -411,15 +433,12 @@ def kernels(scalar) -> types.SimpleNamespace:
                     wp.atomic_add(adj_y, j, gy)
                     gx_i -= gx
                     gy_i -= gy
-        # The image pairs (as floor_image_sums: every image is at least as far from x_i as
-        # x_i is from the plane).
+        # The image pairs (as floor_image_sums).
         n_img = int(0)
         if images != 0:
-            n_img = wp.where(wp.dot(gn, xi) - goff < h, count[i] + 1, 0)
+            n_img = fn.image_row_length(xi, count[i], h, gn, goff)
         for k in range(n_img):
-            j = i
-            if k < count[i]:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, count[i], nbr)
             if body[j] == bi:
                 xj = x[j]
                 g = fn.floor_image(xj, gn, goff, gmin)

@@ -50,6 +50,8 @@ def funcs(scalar) -> types.SimpleNamespace:
     iso = isotropic.funcs(scalar)
     sm = smoothing.funcs(scalar)
     floor_image = deformation.funcs(scalar).floor_image
+    image_row_length = deformation.funcs(scalar).image_row_length
+    image_row_particle = deformation.image_row_particle
 
     @wp.func
     def principal_stress(s: vec3, mu: scalar, lam: scalar) -> vec3:
@@ -131,7 +133,9 @@ def funcs(scalar) -> types.SimpleNamespace:
         an image may be within the kernel's reach, ``|F^-1 d| < h`` (``|d| < h sigma_max(F)
         <= h |F|_F``; every image is at least as far from ``x_i`` as ``x_i`` is from the plane),
         else none."""
-        return wp.where(wp.dot(gn, xi) - goff < h * wp.sqrt(wp.ddot(F, F)), n + 1, 0)
+        # Kept apart from the other image loops' reach h: eqs. 10-13 weigh the
+        # back-projected F^-1 d, so a stretched particle reaches images beyond h.
+        return image_row_length(xi, n, h * wp.sqrt(wp.ddot(F, F)), gn, goff)
 
     @wp.func
     def paper_image_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
@@ -151,9 +155,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         gi = floor_image(xi, gn, goff, gmin)
         fi = vec3()
         for k in range(paper_image_count(xi, F, n, h, gn, goff)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 VV = Vi * volume[j]
@@ -233,11 +235,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         c6 = sm.poly6_coef(h)
         gi = floor_image(xi, gn, goff, gmin)
         fi = vec3()
-        # Every image is at least as far from x_i as x_i is from the plane.
-        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+        for k in range(image_row_length(xi, n, h, gn, goff)):
+            j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 fi += variational_pair_force(M, floor_image(xj, gn, goff, gmin) - xi, h, c6)
@@ -270,6 +269,8 @@ def kernels(scalar) -> types.SimpleNamespace:
     fit_sums = deformation.funcs(scalar).fit_sums
     image_moment = deformation.funcs(scalar).floor_image_moment
     floor_image = deformation.funcs(scalar).floor_image
+    image_row_length = deformation.funcs(scalar).image_row_length
+    image_row_particle = deformation.image_row_particle
     floor_image_jacobian = deformation.funcs(scalar).floor_image_jacobian
     Materials = materials.struct(scalar)
 
@@ -375,9 +376,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         gi = floor_image(xi, gn, goff, gmin)
         gg_i = vec3()
         for k in range(n_img):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 VV = Vi * volume[j]
@@ -460,14 +459,11 @@ def kernels(scalar) -> types.SimpleNamespace:
                 adj_M += sm.w_poly6_c(wp.dot(d, d), h, c6) * wp.outer(ai - adj_f[j], d)
         n_img = int(0)
         if images != 0:
-            # Every image is at least as far from x_i as x_i is from the plane.
-            n_img = wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)
+            n_img = image_row_length(xi, n, h, gn, goff)
         gi = floor_image(xi, gn, goff, gmin)
         adj_Mg = mat33()
         for k in range(n_img):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 d = floor_image(xj, gn, goff, gmin) - xi
@@ -508,9 +504,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         gg_i = vec3()
         zero = vec3()
         for k in range(n_img):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
                 gj = floor_image(xj, gn, goff, gmin)

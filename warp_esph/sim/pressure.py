@@ -141,6 +141,8 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     floor_image = deformation.funcs(scalar).floor_image
     floor_image_jacobian = deformation.funcs(scalar).floor_image_jacobian
+    image_row_length = deformation.funcs(scalar).image_row_length
+    image_row_particle = deformation.image_row_particle
 
     @wp.func
     def image_density(i: int, x: wp.array(dtype=vec3), mass: wp.array(dtype=scalar), nbr: wp.array2d(dtype=wp.int32),
@@ -153,11 +155,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         particles (docs/physics.md, "The ground collider's thin-layer strength")."""
         xi = x[i]
         r = scalar(0.0)
-        # Every image is at least as far from x_i as x_i is from the plane.
-        for k in range(wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+        for k in range(image_row_length(xi, n, h, gn, goff)):
+            j = image_row_particle(i, k, n, nbr)
             d = xi - floor_image(x[j], gn, goff, gmin)
             r += mass[j] * density_weight(wp.dot(d, d), h, c6, c_ws, form)
         return r
@@ -185,15 +184,11 @@ def funcs(scalar) -> types.SimpleNamespace:
         mi = material[i]
         form = mat.pressure_force[mi]
         gi = floor_image(xi, gn, goff, gmin)
-        di = wp.dot(gn, xi) - goff
         J = floor_image_jacobian(xi, gn, goff, gmin)
         fi = vec3()
         zero = scalar(0.0)
-        # Every image is at least as far from x_i as x_i is from the plane.
-        for k in range(wp.where(di < h, n + 1, 0)):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+        for k in range(image_row_length(xi, n, h, gn, goff)):
+            j = image_row_particle(i, k, n, nbr)
             mj = material[j]
             pj = pressure(rho_p[j], rest_density[j], mat.pressure_stiffness[mj], mat.clamp_pressure[mj])
             eta = scalar(0.5) * (mat.viscosity[mi] + mat.viscosity[mj])
@@ -222,6 +217,8 @@ def kernels(scalar) -> types.SimpleNamespace:
     vec3 = T.vec3
     sm = smoothing.funcs(scalar)
     fn = funcs(scalar)
+    image_row_length = deformation.funcs(scalar).image_row_length
+    image_row_particle = deformation.image_row_particle
     Materials = materials.struct(scalar)
 
     @wp.kernel
@@ -382,12 +379,9 @@ def kernels(scalar) -> types.SimpleNamespace:
                 gx_i -= g
         n_img = int(0)
         if images != 0:
-            # Every image is at least as far from x_i as x_i is from the plane.
-            n_img = wp.where(wp.dot(gn, xi) - goff < h, n + 1, 0)
+            n_img = image_row_length(xi, n, h, gn, goff)
         for k in range(n_img):
-            j = i
-            if k < n:
-                j = nbr[i, k]
+            j = image_row_particle(i, k, n, nbr)
             xj = x[j]
             d = fn.floor_image(xj, gn, goff, gmin) - xi
             r2 = wp.dot(d, d)
