@@ -807,6 +807,60 @@ def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e
             "kinetic_energy": _kinetic(model, a)}
 
 
+def plastic_compression(resolution: int = 8, squeeze: float = 0.25, S: float = 0.2, H0: float = 0.1,
+                        load_time: float = 0.5, hold_time: float = 0.2, pressure_stiffness: float | None = None) -> dict:
+    """The slump's material in homogeneous uniaxial flow: a cube ``resolution`` particles across
+    (side H0) between two frictionless plane tools, no gravity, the top one lowered by
+    ``squeeze`` of the lattice height in ``load_time``, then held ``hold_time`` with
+    mass-proportional damping (50 /s) until at rest. The material is ``slump_model``'s at
+    ``S`` (mu = 10 rho g H0, lam = 1.5 mu, Y = sqrt(2/3) S rho g H0, flow rate 200 /s,
+    viscosity 2, ``pressure_stiffness`` None: the default SPH pressure, 0: off). Measured:
+    the plates' mean reaction over the current area (the rest face over 1 - squeeze: the flow
+    keeps volume) against the uniaxial yield stress sigma_y = S rho g H0 (docs/physics.md,
+    "The S = 0.2 gap, part by part": the method's flow stress after plastic flow, without
+    the slump's geometry), and the interior particles' mean elastic deviator along the
+    uniaxial pattern (y less the mean of x and z) in sigma_y."""
+    wp, we = _we()
+    from warp_esph import tools
+
+    if not 0.0 < squeeze < 1.0:
+        raise ValueError(f"squeeze = {squeeze!r} is not allowed: must be in (0, 1)")
+    dx = H0 / resolution
+    sigma_y = S * RHO * G * H0
+    Y = sigma_y * math.sqrt(2.0 / 3.0)
+    mu = 10.0 * RHO * G * H0
+    mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=200.0, density=RHO, viscosity=2.0,
+                      elastic_force="variational", pressure_stiffness=pressure_stiffness)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0), support_radius=2.0 * dx)
+    b.add_box((0.0, H0 / 2, 0.0), (H0, H0, H0), mat, name="sample")
+    pts = np.concatenate(b._points)
+    ylo, yhi = pts[:, 1].min(), pts[:, 1].max()
+    d = squeeze * (yhi - ylo)
+    b.add_tool("plane", normal=(0, 1, 0), position=(0, ylo, 0), name="bottom")
+    b.add_tool("plane", normal=(0, -1, 0), motion=tools.Keyframes([0.0, load_time], [(0, yhi, 0), (0, yhi - d, 0)]),
+               name="top")
+    model = b.finalize()
+    solver = we.Solver(model)
+    a, c, f = _relaxed_reaction(model, solver, ["top", "bottom"], load_time, hold_time, viscous=50.0)
+    force = 0.5 * (-f["top"][1] + f["bottom"][1])
+    area = H0 * H0 / (1.0 - squeeze)
+    x = a.x.numpy().astype(np.float64)
+    F = a.F.numpy().astype(np.float64)
+    U, s, _ = np.linalg.svd(F)
+    ls = np.log(s)
+    dev = np.einsum("nij,nj,nkj->nik", U, ls - ls.mean(axis=1, keepdims=True), U)
+    half = 0.5 * np.abs(x[:, [0, 2]]).max(axis=0)
+    inner = np.all(np.abs(x[:, [0, 2]]) < half, axis=1)
+    axial = 2.0 * mu * (dev[inner, 1, 1] - 0.5 * (dev[inner, 0, 0] + dev[inner, 2, 2])) / sigma_y
+    d2 = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)
+    np.fill_diagonal(d2, np.inf)
+    return {"case": "plastic_compression", "resolution": resolution, "squeeze": squeeze,
+            "log_strain": -math.log(1.0 - squeeze), "pressure_stiffness": pressure_stiffness,
+            "stress_over_sigma_y": float(force / area / sigma_y), "interior_axial_over_sigma_y": float(-axial.mean()),
+            "particle_yield_ratio_mean": float((_deviatoric_norm(F, mu) / Y).mean()),
+            "nearest_neighbor_min": float(np.sqrt(d2.min()) / dx), "kinetic_energy": _kinetic(model, a)}
+
+
 def hertz_force(E: float, nu: float, R: float, depth: float) -> float:
     """Hertz: a rigid sphere of radius R pressed ``depth`` into an elastic half-space,
     F = 4/3 E* sqrt(R) d^1.5 with E* = E / (1 - nu^2)."""

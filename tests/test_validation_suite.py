@@ -354,6 +354,19 @@ def test_plate_compression_force_and_lateral_strain_within_10_percent_at_8_acros
     assert r["lateral_ratio"] == pytest.approx(1.0, abs=0.10), r["lateral_ratio"]
 
 
+def test_uniaxial_flow_between_frictionless_plates_yields_at_the_uniaxial_yield_stress():
+    """The slump material's S = sigma_y / (rho g H0) rests on sigma_y = sqrt(3/2) Y being the
+    uniaxial yield stress of the |s| <= Y criterion. Squeezed 2 % (about 2.6 yield strains)
+    between frictionless plates, pressure off, 6 across: the interior's elastic deviator
+    along the uniaxial pattern measured 0.987 sigma_y (|s|/Y per particle 0.975), the plates'
+    stress 1.111 sigma_y (their contact excess, 1.08-1.22 in the elastic plate test above).
+    A criterion on another norm would put it at 0.82 or 1.22."""
+    r = validation.plastic_compression(resolution=6, squeeze=0.02, pressure_stiffness=0.0)
+    assert r["kinetic_energy"] < 1e-9, r
+    assert r["interior_axial_over_sigma_y"] == pytest.approx(1.0, abs=0.03), r
+    assert 1.0 <= r["stress_over_sigma_y"] <= 1.15, r
+
+
 @pytest.fixture(scope="module")
 def bent():
     return validation.three_point_bending(resolution=4)
