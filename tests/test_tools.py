@@ -118,7 +118,7 @@ def test_clamped_cantilever_bends_like_a_beam_and_the_clamp_carries_its_weight(f
     assert sag < 0.0
     # The fit's bending deficit at 5 across, as the simply supported beam's at the same
     # thickness (static solutions, docs/validation.md: cantilever 1.253 / 1.066, beam 5 thick
-    # 1.217 / 1.040, linear / corrected fit); measured here: 1.262 (900 steps) / 1.067 (1800).
+    # 1.217 / 1.040, linear / corrected fit); measured here: 1.262 (900 steps) / 1.066 (1800).
     if fit == "linear":
         assert 1.15 < ratio < 1.35
     else:
@@ -867,7 +867,7 @@ def test_a_block_sticking_on_a_held_sphere_tool_does_not_creep():
     resting on a tool is stopped where its path enters it (the swept test); before the
     tangential displacement was taken from the start of the path (``tangential_follow``),
     each step moved a sticking particle back by the drift after that entry point, against
-    the tangential force (measured: 25 um sideways in 0.4 s, and growing; now 4 um)."""
+    the tangential force (measured: 25 um sideways in 0.4 s, and growing; 4 um when first measured, 0.7 um now)."""
     m, s = _block_on_tool("sphere", 0.5)
     a = _run(s, m, 2000, 2e-4, relax_after=0.0)
     x1 = a.x.numpy().copy()
