@@ -27,9 +27,9 @@ The "measurements" here are synthetic: runs of a hidden material, with noise add
 3. prints a table: true value, fitted value with the diagnostics' standard error, and the
    closed-form inversions, all as ``yield_stress`` (``Y = sqrt(2/3) sigma_y = sqrt(2) tau_y``).
 
-Run from the repository root: ``python examples/calibrate_from_lab.py`` (measured: 26
-forward runs of both experiments to convergence plus 9 for the diagnostics, 8.8 minutes on
-a shared core, 14-24 s per run; ``--size ci`` is the small version the tests run, about
+Run from the repository root: ``python examples/calibrate_from_lab.py`` (measured: 21
+forward runs of both experiments to convergence plus the diagnostics' runs, on the order of
+ten minutes on a shared core; ``--size ci`` is the small version the tests run, about
 1.5 minutes). ``--out DIR`` keeps the lab
 files and the result (default: a temporary folder).
 """

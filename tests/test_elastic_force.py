@@ -293,9 +293,10 @@ def test_rubber_ball_bounces_and_settles_in_its_shape():
     Since static friction holds (the friction fix of docs/physics.md) the ball keeps
     rocking on its flattened contact patch: the rocking is nearly rigid, which the central
     SPH viscosity leaves alone, and the floor has no rolling resistance. It is physical, not
-    the contact law (docs/tools.md, "Rocking on the contact patch"): nothing feeds it, it
-    decays at the same rate at half the step, and ten times the viscosity damps it 2.3 times
-    faster. How much of it is left at 4 s is chaotic: over the unjittered start and three
+    the contact law (docs/tools.md, "Rocking on the contact patch"): nothing feeds it (on the
+    spiky pressure force it decayed at the same rate at half the step and ten times the
+    viscosity damped it 2.3 times faster; under the default energy_spiky force it decays about
+    7 x more slowly, an e-fold in 9.6 s, not yet explained). How much of it is left at 4 s is chaotic: over the unjittered start and three
     starts jittered by 1e-5 m (0.04 % of the spacing), the internal kinetic energy at 4 s
     (mean ``|v - v_mean|^2 / 2``) is 5.0e-5 to 5.5e-4 J/kg with the spiky pressure force and
     1.2e-4 to 4.5e-4 with the energy force, the centroid's speed 0.012-0.036 / 0.013-0.033 m/s

@@ -110,12 +110,13 @@ def test_cli_starts_as_worlds(tmp_path, capsys, dough_scene):
 @pytest.mark.slow
 def test_multi_start_over_worlds_finds_what_the_guess_alone_misses():
     """A 64-particle block dropped at 1 m/s (yield stress 100 Pa, flow rate 10/s, 102 steps,
-    three observed frames), guessed at 700 Pa and 75/s: L-BFGS from the guess alone climbs to
-    yield stresses where the block barely yields (the loss hardly depends on Y there) and
-    stops far off; three more Latin-hypercube starts, run as worlds of the same model, reach
-    the truth. The guess's descent is start 0 (its evaluations are those of a fit from the
-    guess alone: ``test_worlds_make_the_evaluations_of_separate_starts``). Measured: start 0
-    ends at Y = 1410, flow rate 51 (loss 2.6e-6); the best start at 100.02, 10.001 (1.5e-13)."""
+    three observed frames), guessed at 700 Pa and 75/s: L-BFGS from the guess alone stops in
+    another valley of the loss, far from the truth; seven more Latin-hypercube starts, run as
+    worlds of the same model, reach the truth. The guess's descent is start 0 (its evaluations
+    are those of a fit from the guess alone: ``test_worlds_make_the_evaluations_of_separate_starts``).
+    Measured on this code: start 0 ends at Y = 214.8, flow rate 10.90; with 4 starts the best
+    also stops in a valley (111.7, 10.10); with 8 one start reaches 100.0000, 10.0000. (On the
+    earlier spiky pressure force, start 0 climbed to 1410, 51 and 4 starts sufficed.)"""
 
     def block(yield_stress, flow_rate):
         b = we.SceneBuilder(spacing=0.02, support_radius=0.05)
@@ -128,11 +129,11 @@ def test_multi_start_over_worlds_finds_what_the_guess_alone_misses():
     dt, steps, frames = 1.0 / (30 * 17), 102, [34, 68, 102]
     target = Rollout(block(100.0, 10.0), steps, dt, frames=frames).forward()
     result = fit(block(700.0, 75.0), PositionLoss(target, frames=frames), ["yield_stress", "flow_rate"], steps=steps,
-                 dt=dt, iterations=20, optimizer="lbfgs", progress=False, starts=4, worlds=True, diagnostics=False,
+                 dt=dt, iterations=20, optimizer="lbfgs", progress=False, starts=8, worlds=True, diagnostics=False,
                  seed=0, bounds={"yield_stress": (30.0, 3000.0), "flow_rate": (3.0, 300.0)}, sample_range=10.0)
     assert result.params["yield_stress"][0] == pytest.approx(100.0, rel=0.02)
     assert result.params["flow_rate"][0] == pytest.approx(10.0, rel=0.02)
     guess_alone = [h for h in result.history if h["start"] == 0]
     best_alone = min(guess_alone, key=lambda h: h["loss"])
-    assert best_alone["params"]["yield_stress"][0] > 500.0
+    assert abs(best_alone["params"]["yield_stress"][0] / 100.0 - 1.0) > 0.5
     assert best_alone["loss"] > 1e3 * result.loss
