@@ -1213,8 +1213,13 @@ def main(argv=None) -> int:
     p.add_argument("--merge", default=None, metavar="JSON",
                    help="an earlier validation.json: its results stay in the report, each tagged with the run that "
                         "measured it, except those this run measures again (same case and parameters)")
+    p.add_argument("--drop", default=None, metavar="CASES",
+                   help="with --merge: comma-separated result cases (slump,spread,stability,...) whose earlier rows "
+                        "are not kept, e.g. because they were measured on older defaults")
     p.add_argument("--no-report", action="store_true", help="only write the JSON")
     args = p.parse_args(argv)
+    if args.drop and not args.merge:
+        raise ValueError(f"--drop = {args.drop!r} is not allowed without --merge (it drops rows of the merged JSON)")
     runs = select(plan(args.quick), args.only)
     if not runs:
         raise ValueError(f"--only = {args.only!r} selects no run of the plan")
@@ -1230,7 +1235,7 @@ def main(argv=None) -> int:
         r = run_one(name, kwargs)
         r.setdefault("wall_s", time.perf_counter() - t_run)
         results.append(r)
-        doc = merge(earlier, results, _meta(args, t0))
+        doc = merge(earlier, results, _meta(args, t0), drop=args.drop.split(",") if args.drop else ())
         (out / "validation.json").write_text(json.dumps(doc, indent=1))
     if not args.no_report:
         from benchmarks import validation_report
@@ -1274,20 +1279,21 @@ def same_run(a: dict, b: dict) -> bool:
     return a["case"] == b["case"] and all(a[k] == b[k] for k in IDENTITY if k in a and k in b)
 
 
-def merge(earlier: dict | None, results: list[dict], meta: dict) -> dict:
+def merge(earlier: dict | None, results: list[dict], meta: dict, drop=()) -> dict:
     """The JSON document of this run, merged into ``earlier`` (a validation.json) if given.
 
     ``runs`` lists every run that measured a result kept (command, wall time, machine,
     commit); each result's ``run`` is its index there. Results of ``earlier`` that this run
     measured again (``same_run``) are dropped; the rest keep their run, which is carried over
-    from ``earlier`` (a JSON written before runs were recorded is one run, its ``command``)."""
+    from ``earlier`` (a JSON written before runs were recorded is one run, its ``command``).
+    Results of ``earlier`` whose case is in ``drop`` are not kept at all."""
     runs, kept = [], []
     if earlier is not None:
         old_runs = earlier.get("runs") or [{k: earlier[k] for k in ("command", "machine", "python", "wall_s")
                                            if k in earlier}]
         used = {}
         for r in earlier["results"]:
-            if any(same_run(r, n) for n in results):
+            if r["case"] in drop or any(same_run(r, n) for n in results):
                 continue
             i = r.get("run", 0)
             if i not in used:
@@ -1306,7 +1312,8 @@ def _meta(args, t0) -> dict:
     import subprocess
 
     cmd = "python -m benchmarks.validation" + (" --quick" if args.quick else "") + \
-        (f" --only {args.only}" if args.only else "")
+        (f" --only {args.only}" if args.only else "") + (f" --merge {args.merge}" if args.merge else "") + \
+        (f" --drop {args.drop}" if args.drop else "")
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                                 timeout=10).stdout.strip() or None

@@ -469,3 +469,7 @@ def test_merge_replaces_the_rows_measured_again_and_tags_every_row_with_its_run(
     by = {(r["case"], r["resolution"]): r for r in again["results"]}
     assert by["slump", 12]["run"] == 0 and by["beam", 6]["run"] == 1 and by["slump", 8]["run"] == 2
     assert validation.merge(None, new_rows, meta)["runs"] == [meta]
+    # Rows of a dropped case go, and a run left without rows is not listed.
+    dropped = validation.merge(earlier, new_rows[1:], meta, drop=("slump",))
+    assert [r["case"] for r in dropped["results"]] == ["beam"]
+    assert [r["command"] for r in dropped["runs"]] == [meta["command"]]
