@@ -473,3 +473,24 @@ def test_merge_replaces_the_rows_measured_again_and_tags_every_row_with_its_run(
     dropped = validation.merge(earlier, new_rows[1:], meta, drop=("slump",))
     assert [r["case"] for r in dropped["results"]] == ["beam"]
     assert [r["command"] for r in dropped["runs"]] == [meta["command"]]
+
+
+def test_report_lists_its_runs_and_names_the_run_of_every_row(tmp_path):
+    from benchmarks import validation_report
+
+    bar = {"case": "bar", "elastic_force": "variational", "particles": 640, "frequency": 12.5, "theory": 12.5}
+    old = [bar | {"resolution": 4, "ratio": 0.9992}, bar | {"resolution": 6, "ratio": 1.0003}]
+    stab = {"case": "stability", "label": "preset clay", "elastic_force": "variational", "preset_force": "variational",
+            "dt": 3e-4, "duration": 0.3, "max_speed": 0.5, "blew_up": False, "blew_up_at": None}
+    earlier = {"command": "the earlier run", "machine": "x86_64", "python": "3.11", "wall_s": 9.0, "results": old}
+    meta = {"command": "python -m benchmarks.validation --only bar_frequency:resolution=4", "commit": "abc1234",
+            "date": "2026-11-30", "machine": "x86_64", "python": "3.11", "wall_s": 3.0}
+    doc = validation.merge(earlier, [bar | {"resolution": 4, "ratio": 0.9975}, stab], meta)
+    md, _ = validation_report.write(doc["results"], tmp_path, doc)
+    text = md.read_text()
+    assert "| R1 | `the earlier run` |" in text and f"| R2 | `{meta['command']}` | abc1234 |" in text
+    rows = [line for line in text.splitlines() if line.startswith("| 4 | variational") or line.startswith("| 6 | variational")]
+    assert len(rows) == 2 and rows[0].endswith("| 0.998 | R2 |") and rows[1].endswith("| 1 | R1 |")
+    target = next(line for line in text.splitlines() if line.startswith("| bar frequency within 2 %"))
+    assert "0.9975 x c/(2L)" in target and target.endswith("| yes | R2 |")
+    assert next(line for line in text.splitlines() if line.startswith("| preset clay")).endswith("| R2 |")
