@@ -181,11 +181,11 @@ def _targets(results) -> list[tuple[str, str, str, str]]:
         r = six[-1]
         e = abs(r["ratio"] - 1.0)
         got = ("broke up" if _beam_blew_up(r) else
-               f"{r['ratio']:.3g} x Timoshenko, residual {r['residual_rate_pct_per_s']:.2g} % of it per s")
+               f"{r['ratio']:.4g} x Timoshenko, residual {r['residual_rate_pct_per_s']:.2g} % of it per s")
         coarse = [b for b in beams if b["resolution"] < 6 and not _beam_blew_up(b)]
         converging = bool(coarse) and not _beam_blew_up(r) and abs(coarse[-1]["ratio"] - 1.0) > e
         if coarse:
-            got += f"; {coarse[-1]['resolution']} thick {coarse[-1]['ratio']:.3g} x ({'converging' if converging else 'not converging'})"
+            got += f"; {coarse[-1]['resolution']} thick {coarse[-1]['ratio']:.4g} x ({'converging' if converging else 'not converging'})"
         out.append(("beam deflection within 10 % of Timoshenko at 6 thick (span 10 t), converging", got,
                     "yes" if e < 0.1 and converging else "no", _runs_of(coarse[-1:] + [r])))
     slumps = [r for r in results if r["case"] == "slump" and r["elastic_force"] == default and 0.1 <= r["S"] <= 0.5
