@@ -416,7 +416,7 @@ def write(results, out: pathlib.Path, meta: dict):
         parts.append(
             "## Bingham slump of a cylinder\n\n"
             "`benchmarks.validation.slump`: H0 = 2 R0 = 0.1 m, rho = 1000 kg/m^3, mu = 10 rho g H0, nu = 0.3, "
-            "flow rate 200 /s, default SPH pressure, viscosity 2 Pa s, dt = 0.9 `stable_dt()`. Floor: \"particles\", two "
+            "flow rate 200 /s, default SPH pressure force (`energy_spiky`), viscosity 2 Pa s, dt = 0.9 `stable_dt()`. Floor: \"particles\", two "
             "pinned layers of the body's own lattice under a disc of 3.2 R0 (the default, a no-slip base inside every "
             "fit); \"ground\", the ground collider with friction 1 (docs/physics.md, the spread regime). "
             "h: top of the particles within R0/2 of the axis (+ dx/2), at the end of the run. Slump ratio: "
@@ -441,7 +441,7 @@ def write(results, out: pathlib.Path, meta: dict):
             "## The spread limit (Roussel & Coussot 2005)\n\n"
             "`benchmarks.validation.spread`: a cylinder 2 h_RC tall holding the volume of the shallow no-slip pile "
             "h(r) = sqrt(2 l (R_RC - r)), l = tau_y / (rho g), tau_y = Y / sqrt(2), of aspect a = h_RC / R_RC, "
-            "h_RC = 2.5 cm; mu = 20 rho g h_RC, nu = 0.3, flow rate 200 /s, default SPH pressure, viscosity 2 Pa s, "
+            "h_RC = 2.5 cm; mu = 20 rho g h_RC, nu = 0.3, flow rate 200 /s, default SPH pressure force (`energy_spiky`), viscosity 2 Pa s, "
             "variational force; floor as in the slump (\"particles\" under a disc of 1.2 R_RC). Across: particles through h_RC. R: outermost particle (+ dx/2); "
             "h: top within R_RC / 8 of the axis (+ dx/2); profile: top of each band R_RC / 8 wide over the theory "
             "there (smallest and largest); R rate: growth of R over the last quarter of the run. A static shallow "
