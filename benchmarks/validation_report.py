@@ -159,7 +159,7 @@ def _run(r) -> str:
 
 
 def _runs_of(rs) -> str:
-    return ", ".join(sorted({_run(r) for r in rs}))
+    return ", ".join(sorted({_run(r) for r in rs}, key=lambda s: int(s[1:])))
 
 
 def _targets(results) -> list[tuple[str, str, str, str]]:
