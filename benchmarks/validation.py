@@ -4,6 +4,8 @@ elasticity, at two or more resolutions, for both elastic forces.
     python -m benchmarks.validation            # full run (tens of minutes on one core), writes docs/validation.md
     python -m benchmarks.validation --quick    # CI-sized run (a few minutes)
     python -m benchmarks.validation --quick --out /tmp/v   # write the report elsewhere
+    python -m benchmarks.validation --only slump:resolution=12 --merge docs/validation.json   # re-run a subset
+                                           # into the existing report; every row names the run that measured it
 
 Each case is a function taking its size (``resolution``: particles across the thinnest
 dimension) and returning a dict of what was measured next to the theory. The report is
