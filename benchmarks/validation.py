@@ -4,6 +4,8 @@ elasticity, at two or more resolutions, for both elastic forces.
     python -m benchmarks.validation            # full run (tens of minutes on one core), writes docs/validation.md
     python -m benchmarks.validation --quick    # CI-sized run (a few minutes)
     python -m benchmarks.validation --quick --out /tmp/v   # write the report elsewhere
+    python -m benchmarks.validation --only slump:resolution=12 --merge docs/validation.json   # re-run a subset
+                                           # into the existing report; every row names the run that measured it
 
 Each case is a function taking its size (``resolution``: particles across the thinnest
 dimension) and returning a dict of what was measured next to the theory. The report is
@@ -1261,13 +1263,23 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.validation", description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="CI-sized run (reduced sizes and durations)")
     p.add_argument("--out", default=str(ROOT / "docs"), help="folder for validation.md, validation.json, images/validation/")
-    p.add_argument("--only", default=None, help="comma-separated case functions to run (e.g. slump,bar_frequency)")
+    p.add_argument("--only", default=None,
+                   help="comma-separated runs to keep: a case function (slump), or one with keyword values its "
+                        "plan entries must have (slump:resolution=12:elastic_force=variational)")
+    p.add_argument("--merge", default=None, metavar="JSON",
+                   help="an earlier validation.json: its results stay in the report, each tagged with the run that "
+                        "measured it, except those this run measures again (same case and parameters)")
+    p.add_argument("--drop", default=None, metavar="CASES",
+                   help="with --merge: comma-separated result cases (slump,spread,stability,...) whose earlier rows "
+                        "are not kept, e.g. because they were measured on older defaults")
     p.add_argument("--no-report", action="store_true", help="only write the JSON")
     args = p.parse_args(argv)
-    runs = plan(args.quick)
-    if args.only:
-        keep = set(args.only.split(","))
-        runs = [r for r in runs if r[0] in keep]
+    if args.drop and not args.merge:
+        raise ValueError(f"--drop = {args.drop!r} is not allowed without --merge (it drops rows of the merged JSON)")
+    runs = select(plan(args.quick), args.only)
+    if not runs:
+        raise ValueError(f"--only = {args.only!r} selects no run of the plan")
+    earlier = json.loads(pathlib.Path(args.merge).read_text()) if args.merge else None
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results = []
@@ -1275,20 +1287,95 @@ def main(argv=None) -> int:
     bar = tqdm(runs, desc="validation", unit="run", file=sys.stderr)
     for name, kwargs in bar:
         bar.set_postfix_str((f"{name} " + " ".join(f"{k}={v}" for k, v in kwargs.items()))[:70])
+        t_run = time.perf_counter()
         r = run_one(name, kwargs)
+        r.setdefault("wall_s", time.perf_counter() - t_run)
         results.append(r)
-        (out / "validation.json").write_text(json.dumps(_meta(args, t0) | {"results": results}, indent=1))
+        doc = merge(earlier, results, _meta(args, t0), drop=args.drop.split(",") if args.drop else ())
+        (out / "validation.json").write_text(json.dumps(doc, indent=1))
     if not args.no_report:
         from benchmarks import validation_report
 
-        validation_report.write(results, out, _meta(args, t0))
+        validation_report.write(doc["results"], out, doc)
     return 0
+
+
+def select(runs: list[tuple[str, dict]], only: str | None) -> list[tuple[str, dict]]:
+    """The runs of ``plan`` that ``--only`` keeps: each comma-separated entry is a case function
+    name, optionally followed by ``:key=value`` pairs that the run's keyword arguments must
+    match (compared as written: ``resolution=12``, ``S=0.2``, ``elastic_force=paper``)."""
+    if not only:
+        return list(runs)
+    keep = []
+    for entry in only.split(","):
+        name, *pairs = entry.strip().split(":")
+        want = {}
+        for pair in pairs:
+            if "=" not in pair:
+                raise ValueError(f"--only entry {entry!r} is not allowed: after the case name, key=value pairs "
+                                 "separated by ':'")
+            k, v = pair.split("=", 1)
+            want[k] = v
+        keep.append((name, want))
+
+    def matches(run, name, want):
+        return run[0] == name and all(k in run[1] and str(run[1][k]) == v for k, v in want.items())
+
+    return [r for r in runs if any(matches(r, name, want) for name, want in keep)]
+
+
+#: The result fields that tell one run of a case from another (its parameters, not its outcome).
+IDENTITY = ("S", "resolution", "elastic_force", "shallowness", "amplitude", "dt_factor", "deformation", "fit",
+            "hourglass", "label", "dtype", "span_over_thickness", "aspect", "hold")
+
+
+def same_run(a: dict, b: dict) -> bool:
+    """Whether two results measure the same row: the same case, and equal in every identity
+    field both carry (a result written before a field existed matches on the others)."""
+    return a["case"] == b["case"] and all(a[k] == b[k] for k in IDENTITY if k in a and k in b)
+
+
+def merge(earlier: dict | None, results: list[dict], meta: dict, drop=()) -> dict:
+    """The JSON document of this run, merged into ``earlier`` (a validation.json) if given.
+
+    ``runs`` lists every run that measured a result kept (command, wall time, machine,
+    commit); each result's ``run`` is its index there. Results of ``earlier`` that this run
+    measured again (``same_run``) are dropped; the rest keep their run, which is carried over
+    from ``earlier`` (a JSON written before runs were recorded is one run, its ``command``).
+    Results of ``earlier`` whose case is in ``drop`` are not kept at all."""
+    runs, kept = [], []
+    if earlier is not None:
+        old_runs = earlier.get("runs") or [{k: earlier[k] for k in ("command", "machine", "python", "wall_s")
+                                           if k in earlier}]
+        used = {}
+        for r in earlier["results"]:
+            if r["case"] in drop or any(same_run(r, n) for n in results):
+                continue
+            i = r.get("run", 0)
+            if i not in used:
+                used[i] = len(runs)
+                runs.append(old_runs[i])
+            kept.append(r | {"run": used[i]})
+    new = [r | {"run": len(runs)} for r in results]
+    runs.append(meta)
+    return {"command": "; ".join(r.get("command", "?") for r in runs), "runs": runs,
+            "wall_s": sum(r.get("wall_s") or 0.0 for r in runs), "machine": meta["machine"],
+            "python": meta["python"], "results": kept + new}
 
 
 def _meta(args, t0) -> dict:
     import platform
+    import subprocess
 
-    return {"command": "python -m benchmarks.validation" + (" --quick" if args.quick else ""),
+    cmd = "python -m benchmarks.validation" + (" --quick" if args.quick else "") + \
+        (f" --only {args.only}" if args.only else "") + (f" --merge {args.merge}" if args.merge else "") + \
+        (f" --drop {args.drop}" if args.drop else "")
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                                timeout=10).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        commit = None
+    return {"command": cmd, "commit": commit, "date": time.strftime("%Y-%m-%d", time.gmtime()),
             "machine": platform.machine(), "python": platform.python_version(), "wall_s": time.perf_counter() - t0}
 
 

@@ -444,3 +444,66 @@ def test_without_the_hourglass_control_the_lattice_under_a_held_sphere_gives_way
     r = validation.sphere_indentation(resolution=8, depths=(0.002,), fit="linear", hourglass=0.0)
     print(f"without the control: {r['ratios'][-1]:.3f} then {r['late_ratio']:.3f} x the bonded layer")
     assert r["late_ratio"] < 0.8 * r["ratios"][-1], (r["ratios"], r["late_ratio"])
+
+
+# ------------------------------------------------------- partial runs merged into a report
+def test_only_selects_plan_entries_by_case_and_keyword_values():
+    runs = validation.plan(False)
+    picked = validation.select(runs, "slump:resolution=12:elastic_force=variational,bar_frequency")
+    slumps = [k for n, k in picked if n == "slump"]
+    assert {k["S"] for k in slumps} == set(validation.SLUMP_S)
+    assert all(k["resolution"] == 12 and k["elastic_force"] == "variational" for k in slumps)
+    assert len([n for n, _ in picked if n == "bar_frequency"]) == len([n for n, _ in runs if n == "bar_frequency"])
+    assert validation.select(runs, None) == runs
+    with pytest.raises(ValueError, match="key=value"):
+        validation.select(runs, "slump:resolution")
+
+
+def test_merge_replaces_the_rows_measured_again_and_tags_every_row_with_its_run():
+    old_rows = [{"case": "slump", "S": 0.2, "resolution": 8, "elastic_force": "variational", "h_over_H0": 0.40},
+                {"case": "slump", "S": 0.2, "resolution": 12, "elastic_force": "variational", "h_over_H0": 0.41},
+                # written before the field "dtype" existed: matches a float32 row on the other fields
+                {"case": "beam", "resolution": 6, "elastic_force": "paper", "ratio": 1.9}]
+    earlier = {"command": "an older run", "machine": "x86_64", "python": "3.11", "wall_s": 10.0, "results": old_rows}
+    new_rows = [{"case": "slump", "S": 0.2, "resolution": 8, "elastic_force": "variational", "h_over_H0": 0.50},
+                {"case": "beam", "resolution": 6, "elastic_force": "paper", "dtype": "float32", "ratio": 1.1}]
+    meta = {"command": "python -m benchmarks.validation --only slump", "machine": "x86_64", "python": "3.11",
+            "wall_s": 5.0}
+    doc = validation.merge(earlier, new_rows, meta)
+    assert [r["command"] for r in doc["runs"]] == ["an older run", meta["command"]]
+    by = {(r["case"], r["resolution"]): r for r in doc["results"]}
+    assert len(doc["results"]) == 3
+    assert by["slump", 8]["h_over_H0"] == 0.50 and by["slump", 8]["run"] == 1
+    assert by["slump", 12]["h_over_H0"] == 0.41 and by["slump", 12]["run"] == 0
+    assert by["beam", 6]["ratio"] == 1.1 and by["beam", 6]["run"] == 1
+    # Merging again keeps the first run's surviving rows under their own run.
+    again = validation.merge(doc, [new_rows[0] | {"h_over_H0": 0.51}], meta | {"command": "third"})
+    assert [r["command"] for r in again["runs"]] == ["an older run", meta["command"], "third"]
+    by = {(r["case"], r["resolution"]): r for r in again["results"]}
+    assert by["slump", 12]["run"] == 0 and by["beam", 6]["run"] == 1 and by["slump", 8]["run"] == 2
+    assert validation.merge(None, new_rows, meta)["runs"] == [meta]
+    # Rows of a dropped case go, and a run left without rows is not listed.
+    dropped = validation.merge(earlier, new_rows[1:], meta, drop=("slump",))
+    assert [r["case"] for r in dropped["results"]] == ["beam"]
+    assert [r["command"] for r in dropped["runs"]] == [meta["command"]]
+
+
+def test_report_lists_its_runs_and_names_the_run_of_every_row(tmp_path):
+    from benchmarks import validation_report
+
+    bar = {"case": "bar", "elastic_force": "variational", "particles": 640, "frequency": 12.5, "theory": 12.5}
+    old = [bar | {"resolution": 4, "ratio": 0.9992}, bar | {"resolution": 6, "ratio": 1.0003}]
+    stab = {"case": "stability", "label": "preset clay", "elastic_force": "variational", "preset_force": "variational",
+            "dt": 3e-4, "duration": 0.3, "max_speed": 0.5, "blew_up": False, "blew_up_at": None}
+    earlier = {"command": "the earlier run", "machine": "x86_64", "python": "3.11", "wall_s": 9.0, "results": old}
+    meta = {"command": "python -m benchmarks.validation --only bar_frequency:resolution=4", "commit": "abc1234",
+            "date": "2026-11-30", "machine": "x86_64", "python": "3.11", "wall_s": 3.0}
+    doc = validation.merge(earlier, [bar | {"resolution": 4, "ratio": 0.9975}, stab], meta)
+    md, _ = validation_report.write(doc["results"], tmp_path, doc)
+    text = md.read_text()
+    assert "| R1 | `the earlier run` |" in text and f"| R2 | `{meta['command']}` | abc1234 |" in text
+    rows = [line for line in text.splitlines() if line.startswith("| 4 | variational") or line.startswith("| 6 | variational")]
+    assert len(rows) == 2 and rows[0].endswith("| 0.998 | R2 |") and rows[1].endswith("| 1 | R1 |")
+    target = next(line for line in text.splitlines() if line.startswith("| bar frequency within 2 %"))
+    assert "0.9975 x c/(2L)" in target and target.endswith("| yes | R2 |")
+    assert next(line for line in text.splitlines() if line.startswith("| preset clay")).endswith("| R2 |")
