@@ -632,6 +632,21 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
 
 
 # ------------------------------------------------------------------- column
+def _free_column(we, mat, n: int, aspect: int, dx: float):
+    """A square column of ``mat``, ``n`` particles across and ``aspect`` times as tall, standing
+    on a frictionless ground (laterally free). Returns the model, its height, the initial
+    positions, the masks of its top and bottom layers and the distance between their centres."""
+    H = n * aspect * dx
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
+    b.add_box((0.0, H / 2.0, 0.0), (n * dx, H, n * dx), mat)
+    b.add_ground(0.0, friction=0.0)
+    model = b.finalize()
+    x0 = model.particle_x0.astype(np.float64)
+    top = x0[:, 1] > x0[:, 1].max() - 0.5 * dx
+    bottom = x0[:, 1] < x0[:, 1].min() + 0.5 * dx
+    return model, H, x0, top, bottom, x0[top, 1].mean() - x0[bottom, 1].mean()
+
+
 def column_settlement(resolution: int = 6, elastic_force: str = "variational", aspect: int = 5,
                       E: float = 1.5e5, nu: float = 0.3, periods: float = 4.0, fit: str | None = None, hourglass: float | None = None,
                   deformation: str = "incremental") -> dict:
@@ -642,18 +657,10 @@ def column_settlement(resolution: int = 6, elastic_force: str = "variational", a
     those centres)."""
     wp, we = _we()
     dx = 0.01
-    n, nh = resolution, resolution * aspect
-    H = nh * dx
+    n = resolution
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force=elastic_force,
                                  deformation=deformation)
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
-    b.add_box((0.0, H / 2.0, 0.0), (n * dx, H, n * dx), mat)
-    b.add_ground(0.0, friction=0.0)
-    model = b.finalize()
-    x0 = model.particle_x0.astype(np.float64)
-    top = x0[:, 1] > x0[:, 1].max() - 0.5 * dx
-    bottom = x0[:, 1] < x0[:, 1].min() + 0.5 * dx
-    L0 = x0[top, 1].mean() - x0[bottom, 1].mean()
+    model, H, x0, top, bottom, L0 = _free_column(we, mat, n, aspect, dx)
     theory = RHO * G * H * (H - dx) / (2.0 * E)
     omega = 0.5 * math.pi * math.sqrt(E / RHO) / H  # fixed-free axial mode
     solver = we.Solver(model, fit=fit, hourglass=hourglass)
@@ -709,15 +716,8 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, yield_stress=Y, flow_rate=flow_rate,
                                  elastic_force=elastic_force)
     mu = mat.mu
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
-    b.add_box((0.0, H / 2.0, 0.0), (n * dx, H, n * dx), mat)
-    b.add_ground(0.0, friction=0.0)
-    model = b.finalize()
-    x0 = model.particle_x0.astype(np.float64)
-    top = x0[:, 1] > x0[:, 1].max() - 0.5 * dx
-    bottom = x0[:, 1] < x0[:, 1].min() + 0.5 * dx
+    model, H, x0, top, bottom, L0 = _free_column(we, mat, n, aspect, dx)
     depth = (x0[:, 1].max() + 0.5 * dx - x0[:, 1]) / H  # initial depth of each particle over L
-    L0 = x0[top, 1].mean() - x0[bottom, 1].mean()
     elastic = RHO * G * H * (H - dx) / (2.0 * E)
     plastic = near_yield_column_theory(yield_depth) * (H - dx)
     omega = 0.5 * math.pi * math.sqrt(E / RHO) / H  # fixed-free axial mode
