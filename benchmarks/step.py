@@ -30,6 +30,7 @@ means are in the JSON too). Everything also goes to ``--json`` (see docs/perform
 
 import argparse
 import json
+import math
 import os
 import platform
 import subprocess
@@ -463,21 +464,37 @@ def compare_with_cpu(we, device, n: int = 4000, steps: int = 20) -> dict:
         rows = []
         for _ in range(steps):
             solver.step(a, b, DT)
-            rows.append((b.neighbors.numpy(), b.neighbor_count.numpy()))
+            rows.append((b.neighbors.numpy(), b.neighbor_count.numpy(), b.x.numpy()))
             a, b = b, a
         runs[str(dev)] = (model, a, rows)
     (m0, a0, r0), (_, a1, r1) = runs["cpu"], runs[str(device)]
-    same_rows = []
-    for (n0, c0), (n1, c1) in zip(r0, r1):
+    same_rows, same_sets, nearest_differing = [], [], math.inf
+    h = float(m0.support_radius)
+    for (n0, c0, x), (n1, c1, _) in zip(r0, r1):
         mask = np.arange(n0.shape[1])[None, :] < c0[:, None]
         same = (c0 == c1) & np.all(np.where(mask, n0 == n1, True), axis=1)
         same_rows.append(float(same.mean()))
+        # Rows that differ: in order only, or in members? A member in one row and not the
+        # other matters only if it carries weight, i.e. if it is well inside the support radius.
+        sets = 0
+        for i in np.flatnonzero(~same):
+            a, b = set(n0[i, :c0[i]].tolist()), set(n1[i, :c1[i]].tolist())
+            if a == b:
+                sets += 1
+                continue
+            d = np.linalg.norm(x[list(a ^ b)] - x[i], axis=1).min() / h
+            nearest_differing = min(nearest_differing, float(d))
+        same_sets.append(float(same.mean()) + sets / len(same))
     x0, x1 = a0.x.numpy(), a1.x.numpy()
     disp = np.abs(x0 - m0.particle_x0).max()
     out = {
         "particles": m0.particle_count,
         "steps": steps,
         "fraction_identical_neighbor_rows_min_over_steps": min(same_rows),
+        "fraction_same_neighbor_sets_min_over_steps": min(same_sets),
+        # Of the neighbours in one device's row and not the other's, the nearest (CPU
+        # positions), in support radii; inf where every row holds the same members.
+        "nearest_differing_neighbor_over_h": nearest_differing,
         "max_position_difference": float(np.abs(x0 - x1).max()),
         "max_displacement": float(disp),
         "finite": bool(np.isfinite(x1).all()),
