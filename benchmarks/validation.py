@@ -39,6 +39,16 @@ FORCES = ("paper", "variational")
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 #: Dimensionless uniaxial yield stresses of the slump runs (0.05: the spread regime).
 SLUMP_S = (0.05, 0.1, 0.2, 0.3, 0.5)
+#: A slump is at rest when, over the last quarter of its run, the top's height moves less than
+#: ``REST_RATE`` % H0/s (the linear fit's slope, either sign) and the kinetic energy stays below
+#: ``REST_KINETIC`` M g H0 (M: the free particles' mass). The rate is the issue's target; the
+#: energy bound catches a pile that rings or slides with a still top: a pile whose every particle
+#: moved at the rate bound, 1e-4 m/s at H0 = 0.1 m, holds 5e-9 M g H0.
+REST_RATE, REST_KINETIC = 0.1, 1.0e-7
+#: The slump's duration in the full plan: long enough that a pile which will stop has stopped
+#: (under the variational force and energy_spiky pressure the S = 0.3 and 0.05 piles at 8 across
+#: still sink at 0.56 and 0.67 % H0/s at 4 s).
+SLUMP_DURATION = 8.0
 #: Nominal strain amplitudes of the energy runs (the measured peak strain is reported).
 SMALL, LARGE = 0.002, 0.05
 
@@ -119,6 +129,13 @@ def _add_on_floor(b, points: np.ndarray, material, floor: str, radius: float, fr
 def slump_theory(S: float) -> float:
     """h / H0 = S (1 - ln S) of the 1-D static analysis (Murata 1984, Pashias et al. 1996)."""
     return S * (1.0 - math.log(S)) if S < 1.0 else 1.0
+
+
+def slump_at_rest(rate_pct_H0_per_s: float, kinetic_over_MgH0: float) -> bool:
+    """The rest verdict of a slump (``REST_RATE``, ``REST_KINETIC``): over the last quarter of
+    the run the top's rate below ``REST_RATE`` % H0/s in magnitude and the kinetic energy below
+    ``REST_KINETIC`` M g H0. A nan (a run too short to fit a rate) is not at rest."""
+    return bool(abs(rate_pct_H0_per_s) < REST_RATE and kinetic_over_MgH0 < REST_KINETIC)
 
 
 def spread_radius_theory(volume: float, tau_y: float, rho: float = RHO, g: float = G) -> float:
@@ -250,6 +267,8 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     t, h, ke = np.array(times), np.array(heights), np.array(kes)
     last = t >= t[-1] - 0.25 * duration
     rate = -np.polyfit(t[last], h[last], 1)[0] if last.sum() > 2 else float("nan")
+    weight_scale = float(model.particle_mass.numpy()[free].sum()) * G * H0
+    ke_last = float(ke[last].max() / weight_scale)
     ratio = _deviatoric_norm(a.F.numpy()[free], mu) / Y
     x_end = a.x.numpy().astype(np.float64)[free]
     alpha = a.alpha.numpy().astype(np.float64)[free]
@@ -265,7 +284,6 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     volume = n * dx**3
     tau_y = Y / math.sqrt(2.0)
     R_rc = spread_radius_theory(volume, tau_y)
-    weight_scale = float(model.particle_mass.numpy()[free].sum()) * G * H0
     return {
         "case": "slump", "S": S, "resolution": resolution, "aspect": aspect, "elastic_force": elastic_force,
         "pressure_force": pressure_force,
@@ -277,6 +295,10 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
         "ratio_to_theory": (1.0 - h[-1] / H0) / (1.0 - slump_theory(S)),
         "top_rate_pct_H0_per_s": 100.0 * rate / H0,
         "kinetic_energy": ke[-1], "kinetic_over_MgH0": ke[-1] / weight_scale,
+        # The largest sampled kinetic energy over the last quarter, the rate's window.
+        "kinetic_last_quarter_over_MgH0": ke_last,
+        "at_rest": slump_at_rest(100.0 * rate / H0, ke_last),
+        "rest_rate_pct_H0_per_s": REST_RATE, "rest_kinetic_over_MgH0": REST_KINETIC,
         "fraction_at_yield": float((ratio >= 0.99).mean()),
         "fraction_above_0p9_yield": float((ratio >= 0.9).mean()),
         "plug_particles": int(plug.sum()),
@@ -1316,7 +1338,7 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     for res in (8, 12):
         for S in SLUMP_S:
             for f in FORCES:
-                runs.append(("slump", {"S": S, "resolution": res, "elastic_force": f, "duration": 4.0}))
+                runs.append(("slump", {"S": S, "resolution": res, "elastic_force": f, "duration": SLUMP_DURATION}))
     for label, _ in _stability_materials():
         for f in FORCES:
             runs.append(("stability", {"label": label, "elastic_force": f, "duration": 1.0}))
@@ -1325,7 +1347,7 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
         runs.append(("spread", {"resolution": res, "shallowness": 0.25, "duration": 14.0}))
     runs.append(("spread", {"resolution": 3, "shallowness": 0.18, "duration": 8.0}))
     for S in (0.1, 0.2, 0.3, 0.5):
-        runs.append(("slump", {"S": S, "resolution": 16, "elastic_force": "variational", "duration": 4.0}))
+        runs.append(("slump", {"S": S, "resolution": 16, "elastic_force": "variational", "duration": SLUMP_DURATION}))
     return runs
 
 
