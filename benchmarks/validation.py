@@ -1379,26 +1379,36 @@ def main(argv=None) -> int:
     p.add_argument("--drop", default=None, metavar="CASES",
                    help="with --merge: comma-separated result cases (slump,spread,stability,...) whose earlier rows "
                         "are not kept, e.g. because they were measured on older defaults")
-    p.add_argument("--no-report", action="store_true", help="only write the JSON")
+    p.add_argument("--add", default=None, metavar="JSON",
+                   help="rows measured elsewhere (a list of results of the case functions, e.g. slump(...) on a "
+                        "GPU, each with an optional 'device', or a validation.json): merged as one run, replacing "
+                        "the rows they measure again; without --only nothing else is run")
     args = p.parse_args(argv)
     if args.drop and not args.merge:
         raise ValueError(f"--drop = {args.drop!r} is not allowed without --merge (it drops rows of the merged JSON)")
-    runs = select(plan(args.quick), args.only)
-    if not runs:
+    runs = select(plan(args.quick), args.only) if args.only or not args.add else []
+    if not runs and not args.add:
         raise ValueError(f"--only = {args.only!r} selects no run of the plan")
     earlier = json.loads(pathlib.Path(args.merge).read_text()) if args.merge else None
+    if args.drop and earlier is not None:
+        earlier = earlier | {"results": [r for r in earlier["results"] if r["case"] not in args.drop.split(",")]}
+    if args.add:
+        earlier = added_rows(earlier, pathlib.Path(args.add))
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results = []
     t0 = time.perf_counter()
     bar = tqdm(runs, desc="validation", unit="run", file=sys.stderr)
+    doc = earlier
     for name, kwargs in bar:
         bar.set_postfix_str((f"{name} " + " ".join(f"{k}={v}" for k, v in kwargs.items()))[:70])
         t_run = time.perf_counter()
         r = run_one(name, kwargs)
         r.setdefault("wall_s", time.perf_counter() - t_run)
         results.append(r)
-        doc = merge(earlier, results, _meta(args, t0), drop=args.drop.split(",") if args.drop else ())
+        doc = merge(earlier, results, _meta(args, t0))
+        (out / "validation.json").write_text(json.dumps(doc, indent=1))
+    if not runs:
         (out / "validation.json").write_text(json.dumps(doc, indent=1))
     if not args.no_report:
         from benchmarks import validation_report
@@ -1470,13 +1480,33 @@ def merge(earlier: dict | None, results: list[dict], meta: dict, drop=()) -> dic
             "python": meta["python"], "results": kept + new}
 
 
+def added_rows(earlier: dict | None, path: pathlib.Path) -> dict:
+    """``earlier`` (a validation.json, or None) with the rows of ``path`` merged in as one run
+    (``merge``): ``path`` holds a list of results of the case functions (as ``slump(...)``
+    returns them, optionally with a ``device``), or a document with ``results`` (and maybe a
+    ``command``, ``commit``, ``date``, ``machine``)."""
+    data = json.loads(pathlib.Path(path).read_text())
+    rows = data["results"] if isinstance(data, dict) else data
+    if not isinstance(rows, list) or not all(isinstance(r, dict) and "case" in r for r in rows):
+        raise ValueError(f"{path} is not allowed: it must hold a list of results, each a dict with a 'case'")
+    doc = data if isinstance(data, dict) else {}
+    devices = sorted({str(r["device"]) for r in rows if r.get("device")})
+    machine = doc.get("machine") or "?"
+    if devices:
+        machine += " (" + ", ".join(devices) + ")"
+    meta = {"command": doc.get("command") or f"rows of {pathlib.Path(path).name}, measured elsewhere",
+            "commit": doc.get("commit"), "date": doc.get("date"), "machine": machine, "python": doc.get("python", "?"),
+            "wall_s": float(sum(r.get("wall_s") or 0.0 for r in rows))}
+    return merge(earlier, [{k: v for k, v in r.items() if k != "run"} for r in rows], meta)
+
+
 def _meta(args, t0) -> dict:
     import platform
     import subprocess
 
     cmd = "python -m benchmarks.validation" + (" --quick" if args.quick else "") + \
         (f" --only {args.only}" if args.only else "") + (f" --merge {args.merge}" if args.merge else "") + \
-        (f" --drop {args.drop}" if args.drop else "")
+        (f" --drop {args.drop}" if args.drop else "") + (f" --add {args.add}" if args.add else "")
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                                 timeout=10).stdout.strip() or None
