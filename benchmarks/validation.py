@@ -6,6 +6,8 @@ elasticity, at two or more resolutions, for both elastic forces.
     python -m benchmarks.validation --quick --out /tmp/v   # write the report elsewhere
     python -m benchmarks.validation --only slump:resolution=12 --merge docs/validation.json   # re-run a subset
                                            # into the existing report; every row names the run that measured it
+    python -m benchmarks.validation --merge docs/validation.json --add gpu_rows.json   # rows measured elsewhere
+                                           # (a JSON list of slump(...) results, each maybe with a "device")
 
 Each case is a function taking its size (``resolution``: particles across the thinnest
 dimension) and returning a dict of what was measured next to the theory. The report is

@@ -275,8 +275,15 @@ def _targets(results) -> list[tuple[str, str, str, str]]:
                       key=lambda r: r["S"])
         rate = max(fine, key=lambda r: abs(r["top_rate_pct_H0_per_s"]))
         ke = max(fine, key=lambda r: r.get("kinetic_last_quarter_over_MgH0", r["kinetic_over_MgH0"]))
-        moving = [f"S = {r['S']:g}" for r in fine if not _at_rest(r)]
-        coarse_moving = [f"S = {r['S']:g} at {r['resolution']}" for r in every
+        def why(r):
+            """What keeps ``r`` from rest: its top's rate, its kinetic energy, or both."""
+            k = r.get("kinetic_last_quarter_over_MgH0", r["kinetic_over_MgH0"])
+            parts = ([f"top {r['top_rate_pct_H0_per_s']:.2g} % H0/s"] if not abs(r["top_rate_pct_H0_per_s"]) < REST_RATE
+                     else []) + ([f"KE {k:.2g}"] if not k < REST_KINETIC else [])
+            return ", ".join(parts) or "its own verdict"
+
+        moving = [f"S = {r['S']:g}: {why(r)}" for r in fine if not _at_rest(r)]
+        coarse_moving = [f"S = {r['S']:g} at {r['resolution']} ({why(r)})" for r in every
                          if r["resolution"] < finest and r.get("aspect", 1.0) == 1.0 and not _at_rest(r)]
         durations = sorted({round(r["duration"], 2) for r in fine})
         got = (f"{finest} across, {'/'.join(f'{d:g}' for d in durations)} s: {len(fine) - len(moving)} of {len(fine)} at rest; "
@@ -287,7 +294,7 @@ def _targets(results) -> list[tuple[str, str, str, str]]:
             got += "; not at rest at coarser resolutions: " + ", ".join(coarse_moving)
         out.append((f"every slumped top at rest at the finer resolution: over the last quarter of the run the top "
                     f"moves below {REST_RATE:g} % H0/s and the kinetic energy stays below {REST_KINETIC:g} M g H0",
-                    got, "yes" if not moving else "no (" + ", ".join(moving) + ")", _runs_of(fine)))
+                    got, "yes" if not moving else "no (" + "; ".join(moving) + ")", _runs_of(fine)))
         resolved = [r for r in every if r.get("plug_particles", 0) > 0
                     and r.get("plug_plastic_strain", float("nan")) == r.get("plug_plastic_strain", float("nan"))]
         if resolved:

@@ -566,7 +566,7 @@ def test_report_judges_rest_at_the_finer_resolution_and_takes_gpu_rows_at_any_re
     doc = validation.merge(None, cpu, meta)
     md, made = validation_report.write(doc["results"], tmp_path, doc)
     target = _rest_target(md.read_text())
-    assert "12 across" in target and "S = 0.3 at 8" in target and target.endswith("| no (S = 0.2) | R1 |"), target
+    assert "12 across" in target and "S = 0.3 at 8" in target and target.endswith("| no (S = 0.2: top 0.3 % H0/s) | R1 |"), target
     assert "slump_resolution.png" in made
 
     gpu = [_slump_row(s, res, 0.0, device="NVIDIA H200") for res in (24, 32) for s in S]
