@@ -42,11 +42,14 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 #: Dimensionless uniaxial yield stresses of the slump runs (0.05: the spread regime).
 SLUMP_S = (0.05, 0.1, 0.2, 0.3, 0.5)
 #: A slump is at rest when, over the last quarter of its run, the top's height moves less than
-#: ``REST_RATE`` % H0/s (the linear fit's slope, either sign) and the kinetic energy stays below
-#: ``REST_KINETIC`` M g H0 (M: the free particles' mass). The rate is the issue's target; the
-#: energy bound catches a pile that rings or slides with a still top: a pile whose every particle
-#: moved at the rate bound, 1e-4 m/s at H0 = 0.1 m, holds 5e-9 M g H0.
-REST_RATE, REST_KINETIC = 0.1, 1.0e-7
+#: ``REST_RATE`` % H0/s (the linear fit's slope, either sign) and the largest sampled kinetic
+#: energy stays below ``REST_KINETIC`` M g H0 (M: the free particles' mass). The rate is the
+#: issue's target; the energy bound catches a pile that still spreads at its rim or rings under a
+#: still top. 1e-8 is twice the energy of the whole pile moving at the rate bound (1e-4 m/s at
+#: H0 = 0.1 m: 5.1e-9 M g H0). Measured over 6-8 s at 8 across (docs/validation.md): the piles
+#: that had stopped held at most 4e-11, those still settling (top creeping, rim spreading)
+#: 8e-8 to 3e-6, so the bound sits in that gap with a decade or more to either side.
+REST_RATE, REST_KINETIC = 0.1, 1.0e-8
 #: The slump's duration in the full plan: long enough that a pile which will stop has stopped
 #: (under the variational force and energy_spiky pressure the S = 0.3 and 0.05 piles at 8 across
 #: still sink at 0.56 and 0.67 % H0/s at 4 s).

@@ -290,6 +290,8 @@ def _targets(results) -> list[tuple[str, str, str, str]]:
                f"fastest top {rate['top_rate_pct_H0_per_s']:.2g} % H0/s (S = {rate['S']:g}), largest KE over the last "
                f"quarter {ke.get('kinetic_last_quarter_over_MgH0', ke['kinetic_over_MgH0']):.2g} M g H0 "
                f"(S = {ke['S']:g})")
+        if any("kinetic_last_quarter_over_MgH0" not in r for r in fine):
+            got += " (at the end where a row did not record the quarter's)"
         if coarse_moving:
             got += "; not at rest at coarser resolutions: " + ", ".join(coarse_moving)
         out.append((f"every slumped top at rest at the finer resolution: over the last quarter of the run the top "
