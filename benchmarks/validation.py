@@ -1384,6 +1384,7 @@ def main(argv=None) -> int:
     p.add_argument("--drop", default=None, metavar="CASES",
                    help="with --merge: comma-separated result cases (slump,spread,stability,...) whose earlier rows "
                         "are not kept, e.g. because they were measured on older defaults")
+    p.add_argument("--no-report", action="store_true", help="only write the JSON")
     p.add_argument("--add", default=None, metavar="JSON",
                    help="rows measured elsewhere (a list of results of the case functions, e.g. slump(...) on a "
                         "GPU, each with an optional 'device', or a validation.json): merged as one run, replacing "

@@ -579,3 +579,23 @@ def test_report_judges_rest_at_the_finer_resolution_and_takes_gpu_rows_at_any_re
     gpu_rows = [line for line in text.splitlines() if line.startswith("| 0.2 | 32 | variational")]
     assert len(gpu_rows) == 1 and gpu_rows[0].endswith("| NVIDIA H200 | R2 |"), gpu_rows
     assert (tmp_path / "images" / "validation" / "slump_resolution.png").stat().st_size > 0
+
+
+def test_the_command_line_merges_rows_measured_elsewhere_without_running_the_plan(tmp_path):
+    """``python -m benchmarks.validation --merge A --add B``: B's rows (a GPU's) replace the rows
+    of A they measure again, under a run of their own, and no case of the plan is run."""
+    import json
+
+    meta = {"command": "an earlier run", "machine": "x86_64", "python": "3.11", "wall_s": 1.0}
+    earlier = validation.merge(None, [_slump_row(0.2, 12, 0.5), _slump_row(0.3, 12, 0.0)], meta)
+    (tmp_path / "earlier.json").write_text(json.dumps(earlier))
+    (tmp_path / "gpu.json").write_text(json.dumps([_slump_row(0.2, 12, 0.01, device="gpu", wall_s=3.0)]))
+    out = tmp_path / "out"
+    assert validation.main(["--merge", str(tmp_path / "earlier.json"), "--add", str(tmp_path / "gpu.json"),
+                            "--out", str(out), "--no-report"]) == 0
+    doc = json.loads((out / "validation.json").read_text())
+    by = {r["S"]: r for r in doc["results"]}
+    assert len(doc["results"]) == 2 and by[0.2]["device"] == "gpu" and by[0.2]["run"] == 1 and by[0.3]["run"] == 0
+    assert by[0.2]["at_rest"] and not earlier["results"][0]["at_rest"]
+    assert doc["runs"][1]["wall_s"] == 3.0 and "gpu" in doc["runs"][1]["machine"]
+    assert not (out / "validation.md").exists()
