@@ -123,6 +123,8 @@ def test_slumped_cylinder_comes_to_rest(slumped):
     assert abs(slumped["top_rate_pct_H0_per_s"]) < 0.1, slumped["top_rate_pct_H0_per_s"]
     assert slumped["kinetic_over_MgH0"] < 1e-8, slumped["kinetic_over_MgH0"]
     assert slumped["radius_over_R0"] < SLUMP_FLOOR["floor_radius"] - 0.5, slumped["radius_over_R0"]
+    # The report's verdict (rate and the largest kinetic energy over the last quarter) agrees.
+    assert slumped["at_rest"], (slumped["top_rate_pct_H0_per_s"], slumped["kinetic_last_quarter_over_MgH0"])
 
 
 def test_the_plug_is_not_judged_where_the_run_cannot_resolve_it(slumped):
@@ -507,3 +509,93 @@ def test_report_lists_its_runs_and_names_the_run_of_every_row(tmp_path):
     target = next(line for line in text.splitlines() if line.startswith("| bar frequency within 2 %"))
     assert "0.9975 x c/(2L)" in target and target.endswith("| yes | R2 |")
     assert next(line for line in text.splitlines() if line.startswith("| preset clay")).endswith("| R2 |")
+
+
+# ------------------------------------------------------- the rest verdict of the slumps
+def test_the_full_plan_reads_every_slump_at_its_rest_duration_and_the_quick_plan_stays_short():
+    """Every slump of the full plan runs ``SLUMP_DURATION`` (8 s: at 4 s the S = 0.3 and 0.05
+    piles at 8 across still sank 0.56 / 0.67 % H0/s); the CI-sized plan keeps its short runs."""
+    full = [k for n, k in validation.plan(False) if n == "slump"]
+    assert {k["resolution"] for k in full} == {8, 12, 16}
+    assert all(k["duration"] == validation.SLUMP_DURATION == 8.0 for k in full)
+    quick = [k for n, k in validation.plan(True) if n == "slump"]
+    assert quick and all(k["duration"] <= 5.0 for k in quick)
+
+
+def test_slump_at_rest_needs_both_a_still_top_and_a_still_pile():
+    rate, ke = validation.REST_RATE, validation.REST_KINETIC
+    assert validation.slump_at_rest(0.5 * rate, 0.5 * ke)
+    assert validation.slump_at_rest(-0.5 * rate, 0.5 * ke)  # a top rising as slowly is as still
+    assert not validation.slump_at_rest(1.5 * rate, 0.5 * ke)
+    assert not validation.slump_at_rest(-1.5 * rate, 0.5 * ke)
+    assert not validation.slump_at_rest(0.5 * rate, 1.5 * ke)  # a still top on a ringing pile
+    assert not validation.slump_at_rest(float("nan"), 0.5 * ke)
+
+
+def _slump_row(S, resolution, rate, ke=1e-10, force="variational", **extra):
+    h = validation.slump_theory(S)
+    row = {"case": "slump", "S": S, "resolution": resolution, "aspect": 1.0, "elastic_force": force,
+           "floor": "particles", "particles": 100, "duration": 8.0, "h_over_H0": h, "theory_h_over_H0": h,
+           "ratio_to_theory": 1.0, "top_rate_pct_H0_per_s": rate, "kinetic_over_MgH0": ke,
+           "kinetic_last_quarter_over_MgH0": ke, "at_rest": validation.slump_at_rest(rate, ke),
+           "fraction_at_yield": 0.9, "plug_particles": 0, "plug_unyielded_fraction": float("nan"),
+           "plug_plastic_strain": float("nan"), "flowed_plastic_strain": 10.0, "radius_over_R0": 1.5,
+           "radius_over_spread_theory": 0.8, "spread_theory_h_over_H0": 0.5,
+           "height_history": [0.0, 8.0], "h_history": [1.0, h]}
+    return row | extra
+
+
+def _rest_target(text):
+    return next(line for line in text.splitlines() if line.startswith("| every slumped top at rest"))
+
+
+def test_report_judges_rest_at_the_finer_resolution_and_takes_gpu_rows_at_any_resolution(tmp_path):
+    """The rest target is met only if every slump at the finest resolution that has every S is
+    at rest, and names those that are not; a coarser row still moving is named but not judged.
+    Rows measured elsewhere (``--add``: a GPU's, at 24 and 32 across, with a ``device``) join
+    the table, the plot against resolution and the targets, under a run of their own."""
+    import json
+
+    from benchmarks import validation_report
+
+    S = (0.1, 0.2, 0.3, 0.5)
+    moving = 3.0 * validation.REST_RATE
+    cpu = [_slump_row(s, 8, moving if s == 0.3 else 0.0) for s in S]
+    cpu += [_slump_row(s, 12, moving if s == 0.2 else 0.0) for s in S]
+    meta = {"command": "python -m benchmarks.validation --only slump", "machine": "x86_64", "python": "3.11", "wall_s": 1.0}
+    doc = validation.merge(None, cpu, meta)
+    md, made = validation_report.write(doc["results"], tmp_path, doc)
+    target = _rest_target(md.read_text())
+    assert "12 across" in target and "S = 0.3 at 8" in target and target.endswith("| no (S = 0.2: top 0.3 % H0/s) | R1 |"), target
+    assert "slump_resolution.png" in made
+
+    gpu = [_slump_row(s, res, 0.0, device="NVIDIA H200") for res in (24, 32) for s in S]
+    (tmp_path / "gpu.json").write_text(json.dumps(gpu))
+    doc = validation.added_rows(doc, tmp_path / "gpu.json")
+    assert [r["machine"] for r in doc["runs"]] == ["x86_64", "? (NVIDIA H200)"]
+    md, made = validation_report.write(doc["results"], tmp_path, doc)
+    text = md.read_text()
+    assert "32 across" in _rest_target(text) and _rest_target(text).endswith("| yes | R2 |"), _rest_target(text)
+    gpu_rows = [line for line in text.splitlines() if line.startswith("| 0.2 | 32 | variational")]
+    assert len(gpu_rows) == 1 and gpu_rows[0].endswith("| NVIDIA H200 | R2 |"), gpu_rows
+    assert (tmp_path / "images" / "validation" / "slump_resolution.png").stat().st_size > 0
+
+
+def test_the_command_line_merges_rows_measured_elsewhere_without_running_the_plan(tmp_path):
+    """``python -m benchmarks.validation --merge A --add B``: B's rows (a GPU's) replace the rows
+    of A they measure again, under a run of their own, and no case of the plan is run."""
+    import json
+
+    meta = {"command": "an earlier run", "machine": "x86_64", "python": "3.11", "wall_s": 1.0}
+    earlier = validation.merge(None, [_slump_row(0.2, 12, 0.5), _slump_row(0.3, 12, 0.0)], meta)
+    (tmp_path / "earlier.json").write_text(json.dumps(earlier))
+    (tmp_path / "gpu.json").write_text(json.dumps([_slump_row(0.2, 12, 0.01, device="gpu", wall_s=3.0)]))
+    out = tmp_path / "out"
+    assert validation.main(["--merge", str(tmp_path / "earlier.json"), "--add", str(tmp_path / "gpu.json"),
+                            "--out", str(out), "--no-report"]) == 0
+    doc = json.loads((out / "validation.json").read_text())
+    by = {r["S"]: r for r in doc["results"]}
+    assert len(doc["results"]) == 2 and by[0.2]["device"] == "gpu" and by[0.2]["run"] == 1 and by[0.3]["run"] == 0
+    assert by[0.2]["at_rest"] and not earlier["results"][0]["at_rest"]
+    assert doc["runs"][1]["wall_s"] == 3.0 and "gpu" in doc["runs"][1]["machine"]
+    assert not (out / "validation.md").exists()
