@@ -52,7 +52,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     @wp.func
     def displacement(x: vec3, y: vec3, x_lo: vec3, y_lo: vec3) -> vec3:
         """A particle's displacement over the step from ``x + x_lo`` to ``y + y_lo``
-        (``fit_moments``): ``y - x`` is exact, the round-offs' difference added to it."""
+        (``fit_pair_sums``): ``y - x`` is exact, the round-offs' difference added to it."""
         return (y - x) + (y_lo - x_lo)
 
     @wp.func
@@ -78,12 +78,20 @@ def funcs(scalar) -> types.SimpleNamespace:
         return wp.where(wp.dot(gn, x) - goff < reach, n + 1, 0)
 
     @wp.func
+    def image_slots(x: vec3, n: int, reach: scalar, gn: vec3, goff: scalar, images: int) -> int:
+        """``image_row_length`` where the model has an image plane (``images``), else 0."""
+        slots = int(0)
+        if images != 0:
+            slots = image_row_length(x, n, reach, gn, goff)
+        return slots
+
+    @wp.func
     def pair_slots(xi: vec3, n: int, h: scalar, gn: vec3, goff: scalar, image: int) -> int:
         """How many slots a loop over ``i``'s pairs visits (``pair_partner``): the ``n`` row
         neighbours, or for the floor images (``image`` 1) ``image_row_length``'s."""
         slots = n
         if image != 0:
-            slots = image_row_length(xi, n, h, gn, goff)
+            slots = image_slots(xi, n, h, gn, goff, image)
         return slots
 
     @wp.func
@@ -96,6 +104,17 @@ def funcs(scalar) -> types.SimpleNamespace:
         if image != 0:
             p = floor_image(p, gn, goff, gmin)
         return j, p
+
+    @wp.func
+    def pair_ends(i: int, k: int, n: int, nbr: wp.array2d(dtype=wp.int32), x: wp.array(dtype=vec3),
+                  y: wp.array(dtype=vec3), gn: vec3, goff: scalar, gmin: scalar, image: int):
+        """``pair_partner`` with the partner's position at the step's end: ``(j, x_j, y_j)``, or
+        for a floor image ``(j, g_j, g_j)`` (the floor is at rest over the step)."""
+        j, p = pair_partner(i, k, n, nbr, x, gn, goff, gmin, image)
+        q = p
+        if image == 0:
+            q = y[j]
+        return j, p, q
 
     @wp.func
     def fit_pair_sums(
@@ -165,23 +184,6 @@ def funcs(scalar) -> types.SimpleNamespace:
         return A, B, same
 
     @wp.func
-    def fit_moments(
-        i: int,
-        x: wp.array(dtype=vec3),
-        y: wp.array(dtype=vec3),
-        x_lo: wp.array(dtype=vec3),
-        y_lo: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        nbr: wp.array2d(dtype=wp.int32),
-        n: int,
-        h: scalar,
-        given: int,
-    ):
-        """``fit_pair_sums`` over ``i``'s row neighbours (``given`` as there)."""
-        A, B, same = fit_pair_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, given, vec3(), scalar(0.0), scalar(0.0), 0)
-        return A, B, same
-
-    @wp.func
     def moment_sums(
         i: int,
         x: wp.array(dtype=vec3),
@@ -193,8 +195,9 @@ def funcs(scalar) -> types.SimpleNamespace:
         n: int,
         h: scalar,
     ):
-        """Eqs. 5-7 from the positions at the step's start and end (``fit_moments``)."""
-        A, B, same = fit_moments(i, x, y, x_lo, y_lo, body, nbr, n, h, 0)
+        """Eqs. 5-7 from the positions at the step's start and end over ``i``'s row neighbours
+        (``fit_pair_sums``)."""
+        A, B, same = fit_pair_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, 0, vec3(), scalar(0.0), scalar(0.0), 0)
         return A, B, same
 
     @wp.func
@@ -241,12 +244,9 @@ def funcs(scalar) -> types.SimpleNamespace:
         c6 = sm.poly6_coef(h)
         hh = h * h
         for k in range(pair_slots(xi, n, h, gn, goff, image)):
-            j, p = pair_partner(i, k, n, nbr, x, gn, goff, gmin, image)
+            j, p, q = pair_ends(i, k, n, nbr, x, y, gn, goff, gmin, image)
             if body[j] == bi:
                 xb = p - xi
-                q = y[j]
-                if image != 0:
-                    q = p
                 r2 = wp.dot(xb, xb)
                 if r2 < hh:
                     w, dw = sm.w_poly6_inside(r2, hh, c6)
@@ -255,27 +255,6 @@ def funcs(scalar) -> types.SimpleNamespace:
                     gx_i -= gx
                     gy_i -= gy
         return gx_i, gy_i
-
-    @wp.func
-    def floor_image_sums(
-        i: int,
-        x: wp.array(dtype=vec3),
-        y: wp.array(dtype=vec3),
-        x_lo: wp.array(dtype=vec3),
-        y_lo: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        nbr: wp.array2d(dtype=wp.int32),
-        n: int,
-        h: scalar,
-        gn: vec3,
-        goff: scalar,
-        gmin: scalar,
-    ):
-        """Eqs. 5-7 over the floor's images ``g_j = floor_image(x_j)`` of ``i`` and of its
-        same-body neighbours (``fit_pair_sums`` with ``image`` 1: ``xb = g_j - x_i``,
-        ``ub = -u_i``)."""
-        A, B, same = fit_pair_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, 0, gn, goff, gmin, 1)
-        return A, B, same
 
     @wp.func
     def floor_image_moment(
@@ -323,10 +302,11 @@ def funcs(scalar) -> types.SimpleNamespace:
         gmin: scalar,
         images: int,
     ):
-        """``moment_sums``, plus ``floor_image_sums`` where the model has an image plane."""
+        """``moment_sums``, plus ``fit_pair_sums`` over the floor's images where the model has
+        an image plane (``images``)."""
         A, B, same = moment_sums(i, x, y, x_lo, y_lo, body, nbr, n, h)
         if images != 0:
-            Ag, Bg, sg = floor_image_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
+            Ag, Bg, sg = fit_pair_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, 0, gn, goff, gmin, 1)
             A = A + Ag
             B = B + Bg
             same = same + sg
@@ -391,10 +371,11 @@ def funcs(scalar) -> types.SimpleNamespace:
         return carried_update(step_increment(A, Bu, code, counters), F, F_lo, counters)
 
     return types.SimpleNamespace(
-        displacement=displacement, pair_slots=pair_slots, pair_partner=pair_partner, fit_pair_sums=fit_pair_sums,
-        fit_moments=fit_moments, moment_sums=moment_sums, floor_image=floor_image,
-        image_row_length=image_row_length, image_row_particle=image_row_particle,
-        floor_image_sums=floor_image_sums, fit_sums=fit_sums,
+        displacement=displacement, pair_slots=pair_slots, pair_partner=pair_partner, pair_ends=pair_ends,
+        fit_pair_sums=fit_pair_sums,
+        moment_sums=moment_sums, floor_image=floor_image,
+        image_row_length=image_row_length, image_slots=image_slots, image_row_particle=image_row_particle,
+        fit_sums=fit_sums,
         floor_image_jacobian=floor_image_jacobian, fit_pair_adjoint=fit_pair_adjoint,
         scatter_pair_adjoint=scatter_pair_adjoint, fit_pairs_adjoint=fit_pairs_adjoint,
         floor_image_moment=floor_image_moment, affine_fit=affine_fit, step_increment=step_increment,
@@ -408,7 +389,6 @@ def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     fn = funcs(scalar)
-    sm = smoothing.funcs(scalar)
 
     @wp.kernel
     def update_deformation(
@@ -466,7 +446,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         ``adj B = adj dF A^-T``, ``adj A = -dF^T adj B``; per pair, ``A`` and ``B`` depend on
         ``xb`` through ``w(|xb|^2) xb xb^T`` and ``w yb xb^T`` (``fit_pair_adjoint``, over the
         row in ``fit_pairs_adjoint``). Guarded or inverted particles keep ``F``: all of ``G``
-        goes to ``F``. With ``images`` the floor's image pairs (``floor_image_sums``: ``xb =
+        goes to ``F``. With ``images`` the floor's image pairs (``fit_pair_sums``: ``xb =
         g_j - x_i``, ``yb = g_j - y_i``, ``g_j`` at rest over the step) likewise, scattered to
         ``x_j`` through ``floor_image_jacobian`` (``scatter_pair_adjoint``)."""
         i = wp.tid()
@@ -488,11 +468,11 @@ def kernels(scalar) -> types.SimpleNamespace:
         adj_A = -(wp.transpose(dF) * adj_B)
         adj_A_sym = adj_A + wp.transpose(adj_A)
         n = count[i]
-        gx_i, gy_i = fn.fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 0, adj_A, adj_A_sym, adj_B, adj_x,
-                                          adj_y, vec3(), vec3())
+        gx_i, gy_i = fn.fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 0, adj_A, adj_A_sym, adj_B,
+                                          adj_x, adj_y, vec3(), vec3())
         if images != 0:
-            gx_i, gy_i = fn.fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 1, adj_A, adj_A_sym, adj_B, adj_x,
-                                              adj_y, gx_i, gy_i)
+            gx_i, gy_i = fn.fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 1, adj_A, adj_A_sym, adj_B,
+                                              adj_x, adj_y, gx_i, gy_i)
         wp.atomic_add(adj_x, i, gx_i)
         wp.atomic_add(adj_y, i, gy_i)
 
