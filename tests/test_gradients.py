@@ -472,7 +472,7 @@ def test_floor_images_gradients_of_the_paper_force_match_central_differences(wei
 @pytest.mark.parametrize("scene", sorted(IMAGE_SCENES) + ["squeezed"])
 @pytest.mark.parametrize("name, elastic_force", [("mu", "variational"), ("v0", "variational"), ("lam", "paper")])
 def test_floor_images_gradients_of_the_corrected_fit_match_central_differences(weights, scene, name, elastic_force):
-    """``fit="curvature_corrected"`` over the floor images (``curvature.floor_image_sums``,
+    """``fit="curvature_corrected"`` over the floor images (``curvature.moment_pair_sums``,
     ``floor_image_moment``, ``floor_image_forces``; the paper's force's image pairs): its
     hand-written adjoints against Warp's generated ones and against float64 central
     differences, at rest, through contact and squeezed."""

@@ -599,7 +599,7 @@ def _pressure_energy_and_forces(pressure_force, x, model):
     f = wp.zeros(len(x), dtype=wp.vec3d)
     wp.launch(k.pressure_forces, len(x), [xa, wp.zeros(len(x), dtype=wp.vec3d), model.particle_mass, rho, rho_p,
                                            model.particle_rest_density, model.particle_material,
-                                           model.material_arrays(), *args, *model.image_args()], [f])
+                                           model.material_arrays(), *args, *model.image_args(), 1], [f])
     return energy, f.numpy()
 
 
@@ -768,7 +768,7 @@ def test_pressure_force_with_floor_images_is_minus_the_gradient_of_the_pressure_
     f = wp.zeros(len(x), dtype=wp.vec3d)
     wp.launch(k.pressure_forces, len(x), [xa, wp.zeros(len(x), dtype=wp.vec3d), model.particle_mass, rho, rho_p,
                                            model.particle_rest_density, model.particle_material,
-                                           model.material_arrays(), *args, *model.image_args()], [f])
+                                           model.material_arrays(), *args, *model.image_args(), 1], [f])
     f = f.numpy()
     eps = 1e-7 * dx
     picks = np.argsort(x[:, 1])[:12]  # the bottom layer, nearest the images

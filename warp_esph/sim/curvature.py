@@ -35,7 +35,7 @@ variational force's ``variational_forces_adjoint`` (eqs. 10-13's particles use
 ones, which the tests compare them with in float64.
 
 With ``SceneBuilder.add_ground(images=True)`` the floor's images enter the moments as the
-linear fit's do (``floor_image_sums``) and each image's energy is that of its own corrected
+linear fit's do (``moment_pair_sums``) and each image's energy is that of its own corrected
 fit (``floor_image_moment``, ``image_map``, ``floor_image_forces``; docs/physics.md, "The
 ground collider's thin-layer strength").
 """
@@ -83,52 +83,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         return wp.outer(wxb, xb), wp.outer(yb, wxb), wp.outer(wxb, q), wp.outer(wq, q), wp.outer(yb, wq)
 
     @wp.func
-    def moment_sums(
-        i: int,
-        x: wp.array(dtype=vec3),
-        y: wp.array(dtype=vec3),
-        x_lo: wp.array(dtype=vec3),
-        y_lo: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        nbr: wp.array2d(dtype=wp.int32),
-        n: int,
-        h: scalar,
-    ):
-        """Eqs. 5-7 with the curvature terms: ``A = sum w xb xb^T``, ``C = sum w xb q^T``,
-        ``D = sum w q q^T``, the displacement moments ``B - A = sum w ub xb^T`` and ``E - C =
-        sum w ub q^T`` (``ub = u_j - u_i``, ``u = (y - x) + (y_lo - x_lo)`` with the positions'
-        round-off, as ``deformation.moment_sums``: exact at rest, docs/physics.md, the float32
-        creep floor) and the number of same-body neighbours closer than ``h``. Only the raw
-        sums live in this loop: the caller's inverse must not see a loop accumulator
-        (docs/method.md, Warp pitfall 1)."""
-        A = mat33()
-        B = mat33()
-        C = mat33()
-        D = mat33()
-        E = mat33()
-        xi = x[i]
-        ui = df.displacement(xi, y[i], x_lo[i], y_lo[i])
-        bi = body[i]
-        c6 = sm.poly6_coef(h)
-        same = int(0)
-        for k in range(n):
-            j = nbr[i, k]
-            if body[j] == bi:
-                xb = x[j] - xi
-                r2 = wp.dot(xb, xb)
-                ub = df.displacement(x[j], y[j], x_lo[j], y_lo[j]) - ui
-                dA, dB, dC, dD, dE = pair_moments(xb, ub, sm.w_poly6_c(r2, h, c6), h)
-                A += dA
-                B += dB
-                C += dC
-                D += dD
-                E += dE
-                # Only neighbours of non-zero weight count (rows may reach beyond h).
-                same += wp.where(r2 < h * h, 1, 0)
-        return A, B, C, D, E, same
-
-    @wp.func
-    def floor_image_sums(
+    def moment_pair_sums(
         i: int,
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
@@ -141,10 +96,17 @@ def funcs(scalar) -> types.SimpleNamespace:
         gn: vec3,
         goff: scalar,
         gmin: scalar,
+        image: int,
     ):
-        """``moment_sums`` over the floor's images ``g_j`` of ``i`` and of its same-body
-        neighbours (``deformation.floor_image_sums``: ``xb = g_j - x_i``, ``ub = -u_i``, the
-        floor at rest over the step)."""
+        """Eqs. 5-7 with the curvature terms: ``A = sum w xb xb^T``, ``C = sum w xb q^T``,
+        ``D = sum w q q^T``, the displacement moments ``B - A = sum w ub xb^T`` and ``E - C =
+        sum w ub q^T`` and the number of same-body partners closer than ``h``, over ``i``'s
+        row neighbours (``image`` 0: ``xb = x_j - x_i``, ``ub = u_j - u_i``, ``u = (y - x) +
+        (y_lo - x_lo)`` with the positions' round-off, as ``deformation.fit_pair_sums``: exact
+        at rest, docs/physics.md, the float32 creep floor) or over the floor's images ``g_j``
+        of ``i`` and of its same-body neighbours (``image`` 1: ``xb = g_j - x_i``, ``ub =
+        -u_i``, the floor at rest over the step). Only the raw sums live in this loop: the
+        caller's inverse must not see a loop accumulator (docs/method.md, Warp pitfall 1)."""
         A = mat33()
         B = mat33()
         C = mat33()
@@ -155,19 +117,39 @@ def funcs(scalar) -> types.SimpleNamespace:
         bi = body[i]
         c6 = sm.poly6_coef(h)
         same = int(0)
-        for k in range(df.image_row_length(xi, n, h, gn, goff)):
-            j = df.image_row_particle(i, k, n, nbr)
+        for k in range(df.pair_slots(xi, n, h, gn, goff, image)):
+            j, p = df.pair_partner(i, k, n, nbr, x, gn, goff, gmin, image)
             if body[j] == bi:
-                g = df.floor_image(x[j], gn, goff, gmin)
-                xb = g - xi
+                xb = p - xi
                 r2 = wp.dot(xb, xb)
-                dA, dB, dC, dD, dE = pair_moments(xb, -ui, sm.w_poly6_c(r2, h, c6), h)
+                ub = -ui
+                if image == 0:
+                    ub = df.displacement(x[j], y[j], x_lo[j], y_lo[j]) - ui
+                dA, dB, dC, dD, dE = pair_moments(xb, ub, sm.w_poly6_c(r2, h, c6), h)
                 A += dA
                 B += dB
                 C += dC
                 D += dD
                 E += dE
+                # Only partners of non-zero weight count (rows may reach beyond h).
                 same += wp.where(r2 < h * h, 1, 0)
+        return A, B, C, D, E, same
+
+    @wp.func
+    def moment_sums(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+    ):
+        """``moment_pair_sums`` over ``i``'s row neighbours."""
+        A, B, C, D, E, same = moment_pair_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, vec3(), scalar(0.0), scalar(0.0),
+                                               0)
         return A, B, C, D, E, same
 
     @wp.func
@@ -186,10 +168,11 @@ def funcs(scalar) -> types.SimpleNamespace:
         gmin: scalar,
         images: int,
     ):
-        """``moment_sums``, plus ``floor_image_sums`` where the model has an image plane."""
+        """``moment_sums``, plus ``moment_pair_sums`` over the floor's images where the model
+        has an image plane (``images``)."""
         A, B, C, D, E, same = moment_sums(i, x, y, x_lo, y_lo, body, nbr, n, h)
         if images != 0:
-            Ag, Bg, Cg, Dg, Eg, sg = floor_image_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
+            Ag, Bg, Cg, Dg, Eg, sg = moment_pair_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, 1)
             A = A + Ag
             B = B + Bg
             C = C + Cg
@@ -401,6 +384,35 @@ def funcs(scalar) -> types.SimpleNamespace:
         return gx, w * (Bx + Eq)
 
     @wp.func
+    def moment_pairs_adjoint(i: int, x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                             nbr: wp.array2d(dtype=wp.int32), n: int, h: scalar, gn: vec3, goff: scalar, gmin: scalar,
+                             image: int, adj_A: mat33, adj_A_sym: mat33, adj_B: mat33, adj_C: mat33, adj_D: mat33,
+                             adj_D_sym: mat33, adj_E: mat33, adj_x: wp.array(dtype=vec3), adj_y: wp.array(dtype=vec3),
+                             gx_i: vec3, gy_i: vec3):
+        """Adjoint of ``moment_pair_sums``' pairs (``image`` as there; ``yb = y_j - y_i``, or
+        ``g_j - y_i`` for an image) given the moments' adjoints: each pair's
+        ``moment_pair_adjoint`` scattered to its partner (``deformation.scatter_pair_adjoint``)
+        and taken from ``i``'s, ``gx_i``, ``gy_i``, which it returns."""
+        xi = x[i]
+        yi = y[i]
+        bi = body[i]
+        c6 = sm.poly6_coef(h)
+        hh = h * h
+        for k in range(df.pair_slots(xi, n, h, gn, goff, image)):
+            j, p, q = df.pair_ends(i, k, n, nbr, x, y, gn, goff, gmin, image)
+            if body[j] == bi:
+                xb = p - xi
+                r2 = wp.dot(xb, xb)
+                if r2 < hh:
+                    w, dw = sm.w_poly6_inside(r2, hh, c6)
+                    gx, gy = moment_pair_adjoint(xb, q - yi, w, dw, h, adj_A, adj_A_sym, adj_B, adj_C, adj_D, adj_D_sym,
+                                                 adj_E)
+                    df.scatter_pair_adjoint(adj_x, adj_y, j, x[j], gx, gy, gn, goff, gmin, image)
+                    gx_i -= gx
+                    gy_i -= gy
+        return gx_i, gy_i
+
+    @wp.func
     def variational_pair_adjoint(d: vec3, a: vec3, w: scalar, dw: scalar, h: scalar, M: mat33, K: mat33,
                                  adj_A: mat33, adj_A_sym: mat33, adj_C: mat33, adj_D: mat33, adj_D_sym: mat33) -> vec3:
         """Adjoint in ``d = xb`` of one pair of the corrected variational force: its force
@@ -417,10 +429,31 @@ def funcs(scalar) -> types.SimpleNamespace:
         jq = curvature_basis_adjoint(d, aq, h)
         return w * (adj_A_sym * d + Cq) + jq + adj_o + scalar(2.0) * dw * s * d
 
+    @wp.func
+    def scatter_variational_pair_adjoint(d: vec3, a: vec3, hh: scalar, c6: scalar, h: scalar, M: mat33, K: mat33,
+                                         adj_A: mat33, adj_A_sym: mat33, adj_C: mat33, adj_D: mat33, adj_D_sym: mat33,
+                                         adj_x: wp.array(dtype=vec3), j: int, xj: vec3, gn: vec3, goff: scalar,
+                                         gmin: scalar, image: int) -> vec3:
+        """``variational_pair_adjoint`` of the pair at ``d`` (0 at ``|d|^2 >= hh``, beyond the
+        kernel's support), added to ``adj x_j`` as ``forces.scatter_variational_pair_adjoint``
+        (``image`` 1: through ``deformation.floor_image_jacobian``); returned, for the near end."""
+        g = vec3()
+        r2 = wp.dot(d, d)
+        if r2 < hh:
+            w, dw = sm.w_poly6_inside(r2, hh, c6)
+            g = variational_pair_adjoint(d, a, w, dw, h, M, K, adj_A, adj_A_sym, adj_C, adj_D, adj_D_sym)
+            if image != 0:
+                wp.atomic_add(adj_x, j, df.floor_image_jacobian(xj, gn, goff, gmin) * g)
+            else:
+                wp.atomic_add(adj_x, j, g)
+        return g
+
     return types.SimpleNamespace(
-        pair_moments=pair_moments, floor_image_sums=floor_image_sums, fit_sums=fit_sums,
+        pair_moments=pair_moments, moment_pair_sums=moment_pair_sums, fit_sums=fit_sums,
+        moment_pairs_adjoint=moment_pairs_adjoint,
         floor_image_moment=floor_image_moment, image_map=image_map, floor_image_forces=floor_image_forces,
         moment_pair_adjoint=moment_pair_adjoint, variational_pair_adjoint=variational_pair_adjoint,
+        scatter_variational_pair_adjoint=scatter_variational_pair_adjoint,
         curvature_basis=curvature_basis, curvature_basis_adjoint=curvature_basis_adjoint, moment_sums=moment_sums,
         curvature_kept=curvature_kept, ridge_inverse=ridge_inverse, projection_terms=projection_terms,
         curvature_projection=curvature_projection, projection_adjoint=projection_adjoint,
@@ -501,9 +534,10 @@ def kernels(scalar) -> types.SimpleNamespace:
         ``adj C = -adj A~ K^T + adj K^T Dr^-1``, ``adj D = -Dr^-T adj K K^T`` (``Dr = D + eps I``;
         where the correction is dropped, ``K = 0`` does not depend on ``C`` or ``D``).
         Per pair the sums depend on ``xb`` through ``w(|xb|^2)``, ``xb`` and ``q(xb)``, and on
-        ``yb`` linearly (``moment_pair_adjoint``). Guarded or inverted particles keep ``F``: all
-        of ``G`` goes to ``F``. With ``images`` the image pairs (``floor_image_sums``) scatter to
-        their particles through ``deformation.floor_image_jacobian``."""
+        ``yb`` linearly (``moment_pair_adjoint``, over the row in ``moment_pairs_adjoint``).
+        Guarded or inverted particles keep ``F``: all of ``G`` goes to ``F``. With ``images`` the
+        image pairs (``moment_pair_sums``) likewise, scattered to their particles through
+        ``deformation.floor_image_jacobian`` (``deformation.scatter_pair_adjoint``)."""
         i = wp.tid()
         G = adj_F_out[i]
         Fp = F_prev[i]
@@ -532,44 +566,12 @@ def kernels(scalar) -> types.SimpleNamespace:
         adj_A, adj_C, adj_D = fn.projection_adjoint(adj_At, -(wp.transpose(E) * adj_Bt), C, K, D_inv, kept)
         adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_D_sym = adj_D + wp.transpose(adj_D)
-        xi = x[i]
-        yi = y[i]
-        bi = body[i]
-        c6 = sm.poly6_coef(h)
-        hh = h * h
         n = count[i]
-        gx_i = vec3()
-        gy_i = vec3()
-        for k in range(n):
-            j = nbr[i, k]
-            if body[j] == bi:
-                xb = x[j] - xi
-                r2 = wp.dot(xb, xb)
-                if r2 < hh:
-                    w, dw = sm.w_poly6_inside(r2, hh, c6)
-                    gx, gy = fn.moment_pair_adjoint(xb, y[j] - yi, w, dw, h, adj_A, adj_A_sym, adj_B, adj_C, adj_D,
-                                                    adj_D_sym, adj_E)
-                    wp.atomic_add(adj_x, j, gx)
-                    wp.atomic_add(adj_y, j, gy)
-                    gx_i -= gx
-                    gy_i -= gy
-        n_img = int(0)
+        gx_i, gy_i = fn.moment_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 0, adj_A, adj_A_sym, adj_B,
+                                             adj_C, adj_D, adj_D_sym, adj_E, adj_x, adj_y, vec3(), vec3())
         if images != 0:
-            n_img = df.image_row_length(xi, n, h, gn, goff)
-        for k in range(n_img):
-            j = df.image_row_particle(i, k, n, nbr)
-            if body[j] == bi:
-                xj = x[j]
-                g = df.floor_image(xj, gn, goff, gmin)
-                xb = g - xi
-                r2 = wp.dot(xb, xb)
-                if r2 < hh:
-                    w, dw = sm.w_poly6_inside(r2, hh, c6)
-                    gx, gy = fn.moment_pair_adjoint(xb, g - yi, w, dw, h, adj_A, adj_A_sym, adj_B, adj_C, adj_D,
-                                                    adj_D_sym, adj_E)
-                    wp.atomic_add(adj_x, j, df.floor_image_jacobian(xj, gn, goff, gmin) * (gx + gy))
-                    gx_i -= gx
-                    gy_i -= gy
+            gx_i, gy_i = fn.moment_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 1, adj_A, adj_A_sym, adj_B,
+                                                 adj_C, adj_D, adj_D_sym, adj_E, adj_x, adj_y, gx_i, gy_i)
         wp.atomic_add(adj_x, i, gx_i)
         wp.atomic_add(adj_y, i, gy_i)
 
@@ -673,9 +675,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 wa = sm.w_poly6_c(wp.dot(d, d), h, c6) * (ai - adj_f[j])
                 S1 += wp.outer(wa, d)
                 S2 += wp.outer(wa, fn.curvature_basis(d, h))
-        n_img = int(0)
-        if images != 0:
-            n_img = df.image_row_length(xi, n, h, gn, goff)
+        n_img = df.image_slots(xi, n, h, gn, goff, images)
         gi = df.floor_image(xi, gn, goff, gmin)
         S1g = mat33()
         S2g = mat33()
@@ -730,14 +730,9 @@ def kernels(scalar) -> types.SimpleNamespace:
         for k in range(n):
             j = nbr[i, k]
             if body[j] == bi:
-                d = x[j] - xi
-                r2 = wp.dot(d, d)
-                if r2 < hh:
-                    w, dw = sm.w_poly6_inside(r2, hh, c6)
-                    gx = fn.variational_pair_adjoint(d, ai - adj_f[j], w, dw, h, M, K, adj_A, adj_A_sym, adj_C, adj_D,
-                                                     adj_D_sym)
-                    wp.atomic_add(adj_x, j, gx)
-                    gx_i -= gx
+                xj = x[j]
+                gx_i -= fn.scatter_variational_pair_adjoint(xj - xi, ai - adj_f[j], hh, c6, h, M, K, adj_A, adj_A_sym,
+                                                            adj_C, adj_D, adj_D_sym, adj_x, j, xj, gn, goff, gmin, 0)
         # Through g_i (summed, then by d g_i / d x_i).
         gg_i = vec3()
         zero = vec3()
@@ -746,31 +741,14 @@ def kernels(scalar) -> types.SimpleNamespace:
             if body[j] == bi:
                 xj = x[j]
                 gj = df.floor_image(xj, gn, goff, gmin)
-                Jj = df.floor_image_jacobian(xj, gn, goff, gmin)
-                d = gj - xi
-                r2 = wp.dot(d, d)
-                if r2 < hh:
-                    w, dw = sm.w_poly6_inside(r2, hh, c6)
-                    gx = fn.variational_pair_adjoint(d, ai, w, dw, h, M, K, adj_A, adj_A_sym, adj_C, adj_D, adj_D_sym)
-                    wp.atomic_add(adj_x, j, Jj * gx)
-                    gx_i -= gx
-                d = xj - gi
-                r2 = wp.dot(d, d)
-                if r2 < hh:
-                    w, dw = sm.w_poly6_inside(r2, hh, c6)
-                    gx = fn.variational_pair_adjoint(d, -adj_f[j], w, dw, h, Mg, Kg, adj_Ag, adj_Ag_sym, adj_Cg, adj_Dg,
-                                                     adj_Dg_sym)
-                    wp.atomic_add(adj_x, j, gx)
-                    gg_i -= gx
+                gx_i -= fn.scatter_variational_pair_adjoint(gj - xi, ai, hh, c6, h, M, K, adj_A, adj_A_sym, adj_C,
+                                                            adj_D, adj_D_sym, adj_x, j, xj, gn, goff, gmin, 1)
+                gg_i -= fn.scatter_variational_pair_adjoint(xj - gi, -adj_f[j], hh, c6, h, Mg, Kg, adj_Ag, adj_Ag_sym,
+                                                            adj_Cg, adj_Dg, adj_Dg_sym, adj_x, j, xj, gn, goff, gmin, 0)
                 if j != i:
-                    d = gj - gi
-                    r2 = wp.dot(d, d)
-                    if r2 < hh:
-                        w, dw = sm.w_poly6_inside(r2, hh, c6)
-                        gx = fn.variational_pair_adjoint(d, zero, w, dw, h, Mg, Kg, adj_Ag, adj_Ag_sym, adj_Cg, adj_Dg,
-                                                         adj_Dg_sym)
-                        wp.atomic_add(adj_x, j, Jj * gx)
-                        gg_i -= gx
+                    gg_i -= fn.scatter_variational_pair_adjoint(gj - gi, zero, hh, c6, h, Mg, Kg, adj_Ag, adj_Ag_sym,
+                                                                adj_Cg, adj_Dg, adj_Dg_sym, adj_x, j, xj, gn, goff,
+                                                                gmin, 1)
         wp.atomic_add(adj_x, i, gx_i + df.floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
 
     return types.SimpleNamespace(update_deformation=update_deformation,

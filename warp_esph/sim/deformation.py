@@ -52,81 +52,8 @@ def funcs(scalar) -> types.SimpleNamespace:
     @wp.func
     def displacement(x: vec3, y: vec3, x_lo: vec3, y_lo: vec3) -> vec3:
         """A particle's displacement over the step from ``x + x_lo`` to ``y + y_lo``
-        (``fit_moments``): ``y - x`` is exact, the round-offs' difference added to it."""
+        (``fit_pair_sums``): ``y - x`` is exact, the round-offs' difference added to it."""
         return (y - x) + (y_lo - x_lo)
-
-    @wp.func
-    def fit_moments(
-        i: int,
-        x: wp.array(dtype=vec3),
-        y: wp.array(dtype=vec3),
-        x_lo: wp.array(dtype=vec3),
-        y_lo: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        nbr: wp.array2d(dtype=wp.int32),
-        n: int,
-        h: scalar,
-        given: int,
-    ):
-        """Eqs. 5-7: the fit's moments ``A = sum w xb xb^T``, ``B - A = sum w ub xb^T`` (returned
-        as ``B``; ``ub = yb - xb``, the step's relative displacement) and the number of
-        same-body neighbours closer than ``h`` (the guard's).
-
-        ``ub = u_j - u_i`` with each particle's displacement ``u = (y - x) + (y_lo - x_lo)``
-        (``x_lo``, ``y_lo``: the positions' round-off, ``State.x_lo``) rather than ``y_j -
-        y_i``: ``y - x`` is exact in floating point (the two positions are close), so the
-        fit's increment ``dF - I`` is exactly 0 at rest and otherwise as precise as the
-        motion, where ``B A^-1`` minus ``I`` would carry the round-off of the absolute
-        positions and of the inverse, units in the last place of ``F`` every step
-        (docs/physics.md, the float32 creep floor).
-
-        Only the raw sums live in this loop: the caller's inverse must not see a loop
-        accumulator, whose adjoint Warp would not replay (docs/method.md, Warp pitfall 1).
-        (Summing only A's six distinct entries measured 9 % slower: the matrix form vectorises.)
-
-        ``given`` 1: ``y`` holds each particle's ``displacement`` already (``x_lo``, ``y_lo``
-        unread; the fused step's, one load per neighbour instead of three)."""
-        A = mat33()
-        B = mat33()
-        xi = x[i]
-        ui = y[i]
-        if given == 0:
-            ui = displacement(xi, y[i], x_lo[i], y_lo[i])
-        bi = body[i]
-        c6 = sm.poly6_coef(h)
-        same = int(0)
-        for k in range(n):
-            j = nbr[i, k]
-            if body[j] == bi:
-                xb = x[j] - xi
-                uj = y[j]
-                if given == 0:
-                    uj = displacement(x[j], uj, x_lo[j], y_lo[j])
-                ub = uj - ui
-                r2 = wp.dot(xb, xb)
-                w = sm.w_poly6_c(r2, h, c6)
-                A += w * wp.outer(xb, xb)
-                B += w * wp.outer(ub, xb)
-                # Rows may reach beyond h (neighbors.select_neighbors): only neighbours
-                # of non-zero weight count for the guard.
-                same += wp.where(r2 < h * h, 1, 0)
-        return A, B, same
-
-    @wp.func
-    def moment_sums(
-        i: int,
-        x: wp.array(dtype=vec3),
-        y: wp.array(dtype=vec3),
-        x_lo: wp.array(dtype=vec3),
-        y_lo: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        nbr: wp.array2d(dtype=wp.int32),
-        n: int,
-        h: scalar,
-    ):
-        """Eqs. 5-7 from the positions at the step's start and end (``fit_moments``)."""
-        A, B, same = fit_moments(i, x, y, x_lo, y_lo, body, nbr, n, h, 0)
-        return A, B, same
 
     @wp.func
     def floor_image(x: vec3, n: vec3, offset: scalar, min_depth: scalar) -> vec3:
@@ -151,6 +78,129 @@ def funcs(scalar) -> types.SimpleNamespace:
         return wp.where(wp.dot(gn, x) - goff < reach, n + 1, 0)
 
     @wp.func
+    def image_slots(x: vec3, n: int, reach: scalar, gn: vec3, goff: scalar, images: int) -> int:
+        """``image_row_length`` where the model has an image plane (``images``), else 0."""
+        slots = int(0)
+        if images != 0:
+            slots = image_row_length(x, n, reach, gn, goff)
+        return slots
+
+    @wp.func
+    def pair_slots(xi: vec3, n: int, h: scalar, gn: vec3, goff: scalar, image: int) -> int:
+        """How many slots a loop over ``i``'s pairs visits (``pair_partner``): the ``n`` row
+        neighbours, or for the floor images (``image`` 1) ``image_row_length``'s."""
+        slots = n
+        if image != 0:
+            slots = image_slots(xi, n, h, gn, goff, image)
+        return slots
+
+    @wp.func
+    def pair_partner(i: int, k: int, n: int, nbr: wp.array2d(dtype=wp.int32), x: wp.array(dtype=vec3), gn: vec3,
+                     goff: scalar, gmin: scalar, image: int):
+        """Slot ``k`` of ``i``'s pairs (``pair_slots``): the particle ``j`` (``image_row_particle``)
+        and the position the pair weighs, ``x_j``, or its ``floor_image`` ``g_j`` (``image`` 1)."""
+        j = image_row_particle(i, k, n, nbr)
+        p = x[j]
+        if image != 0:
+            p = floor_image(p, gn, goff, gmin)
+        return j, p
+
+    @wp.func
+    def pair_ends(i: int, k: int, n: int, nbr: wp.array2d(dtype=wp.int32), x: wp.array(dtype=vec3),
+                  y: wp.array(dtype=vec3), gn: vec3, goff: scalar, gmin: scalar, image: int):
+        """``pair_partner`` with the partner's position at the step's end: ``(j, x_j, y_j)``, or
+        for a floor image ``(j, g_j, g_j)`` (the floor is at rest over the step)."""
+        j, p = pair_partner(i, k, n, nbr, x, gn, goff, gmin, image)
+        q = p
+        if image == 0:
+            q = y[j]
+        return j, p, q
+
+    @wp.func
+    def fit_pair_sums(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        given: int,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        image: int,
+    ):
+        """Eqs. 5-7: the fit's moments ``A = sum w xb xb^T``, ``B - A = sum w ub xb^T`` (returned
+        as ``B``; ``ub = yb - xb``, the step's relative displacement) and the number of
+        same-body partners closer than ``h`` (the guard's), over ``i``'s row neighbours
+        (``image`` 0: ``xb = x_j - x_i``, ``ub = u_j - u_i``) or over the floor's images ``g_j``
+        of ``i`` and of its same-body neighbours (``image`` 1: ``xb = g_j - x_i``, ``ub = -u_i``:
+        the floor is at rest, an image does not move over the step; an image is at least as
+        far from ``x_i`` as its particle, so the row holds every image within ``h``).
+
+        ``ub`` from each particle's displacement ``u = (y - x) + (y_lo - x_lo)`` (``x_lo``,
+        ``y_lo``: the positions' round-off, ``State.x_lo``) rather than ``y_j - y_i``: ``y - x``
+        is exact in floating point (the two positions are close), so the fit's increment
+        ``dF - I`` is exactly 0 at rest and otherwise as precise as the motion, where
+        ``B A^-1`` minus ``I`` would carry the round-off of the absolute positions and of the
+        inverse, units in the last place of ``F`` every step (docs/physics.md, the float32
+        creep floor).
+
+        Only the raw sums live in this loop: the caller's inverse must not see a loop
+        accumulator, whose adjoint Warp would not replay (docs/method.md, Warp pitfall 1).
+        (Summing only A's six distinct entries measured 9 % slower: the matrix form vectorises.)
+
+        ``given`` 1: ``y`` holds each particle's ``displacement`` already (``x_lo``, ``y_lo``
+        unread; the fused step's, one load per neighbour instead of three)."""
+        A = mat33()
+        B = mat33()
+        xi = x[i]
+        ui = y[i]
+        if given == 0:
+            ui = displacement(xi, y[i], x_lo[i], y_lo[i])
+        bi = body[i]
+        c6 = sm.poly6_coef(h)
+        same = int(0)
+        for k in range(pair_slots(xi, n, h, gn, goff, image)):
+            j, p = pair_partner(i, k, n, nbr, x, gn, goff, gmin, image)
+            if body[j] == bi:
+                xb = p - xi
+                ub = -ui
+                if image == 0:
+                    uj = y[j]
+                    if given == 0:
+                        uj = displacement(x[j], uj, x_lo[j], y_lo[j])
+                    ub = uj - ui
+                r2 = wp.dot(xb, xb)
+                w = sm.w_poly6_c(r2, h, c6)
+                A += w * wp.outer(xb, xb)
+                B += w * wp.outer(ub, xb)
+                # Rows may reach beyond h (neighbors.select_neighbors): only partners of
+                # non-zero weight count for the guard.
+                same += wp.where(r2 < h * h, 1, 0)
+        return A, B, same
+
+    @wp.func
+    def moment_sums(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+    ):
+        """Eqs. 5-7 from the positions at the step's start and end over ``i``'s row neighbours
+        (``fit_pair_sums``)."""
+        A, B, same = fit_pair_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, 0, vec3(), scalar(0.0), scalar(0.0), 0)
+        return A, B, same
+
+    @wp.func
     def floor_image_jacobian(x: vec3, n: vec3, offset: scalar, min_depth: scalar) -> mat33:
         """``d floor_image / d x`` (symmetric): the mirror ``R = I - 2 n n^T`` while ``x`` is
         higher than ``min_depth``, the tangential projector ``I - n n^T`` below, where the
@@ -168,44 +218,43 @@ def funcs(scalar) -> types.SimpleNamespace:
         return w * (adj_A_sym * xb + wp.transpose(adj_B) * yb) + scalar(2.0) * dw * s * xb, w * Bx
 
     @wp.func
-    def floor_image_sums(
-        i: int,
-        x: wp.array(dtype=vec3),
-        y: wp.array(dtype=vec3),
-        x_lo: wp.array(dtype=vec3),
-        y_lo: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        nbr: wp.array2d(dtype=wp.int32),
-        n: int,
-        h: scalar,
-        gn: vec3,
-        goff: scalar,
-        gmin: scalar,
-    ):
-        """Eqs. 5-7 over the floor's images ``g_j = floor_image(x_j)`` of ``i`` and of its
-        same-body neighbours: ``A = sum w xb xb^T`` and, as ``moment_sums``, the displacement
-        moment ``sum w ub xb^T`` with ``xb = g_j - x_i`` and ``ub = -u_i`` (the floor is at
-        rest: an image does not move over the step; ``u_i`` with its round-off), and
-        how many are closer than ``h``. An image is at least as far from ``x_i`` as its
-        particle, so the row holds every image within ``h``."""
-        A = mat33()
-        B = mat33()
+    def scatter_pair_adjoint(adj_x: wp.array(dtype=vec3), adj_y: wp.array(dtype=vec3), j: int, xj: vec3, gx: vec3,
+                             gy: vec3, gn: vec3, goff: scalar, gmin: scalar, image: int):
+        """Adds a fit pair's ``(adj xb, adj yb)`` to its partner ``j`` (``pair_partner``):
+        to ``x_j`` and ``y_j``, or for a floor image (``image`` 1), which stands at ``g_j`` at
+        the step's start and end, their sum to ``x_j`` through ``floor_image_jacobian``."""
+        if image != 0:
+            wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * (gx + gy))
+        else:
+            wp.atomic_add(adj_x, j, gx)
+            wp.atomic_add(adj_y, j, gy)
+
+    @wp.func
+    def fit_pairs_adjoint(i: int, x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                          nbr: wp.array2d(dtype=wp.int32), n: int, h: scalar, gn: vec3, goff: scalar, gmin: scalar,
+                          image: int, adj_A: mat33, adj_A_sym: mat33, adj_B: mat33, adj_x: wp.array(dtype=vec3),
+                          adj_y: wp.array(dtype=vec3), gx_i: vec3, gy_i: vec3):
+        """Adjoint of ``fit_pair_sums``' pairs (``image`` as there; ``yb = y_j - y_i``, or
+        ``g_j - y_i`` for an image) given ``adj A``, ``adj B``: each pair's
+        ``fit_pair_adjoint`` scattered to its partner (``scatter_pair_adjoint``) and taken from
+        ``i``'s, ``gx_i``, ``gy_i``, which it returns."""
         xi = x[i]
-        ui = displacement(xi, y[i], x_lo[i], y_lo[i])
+        yi = y[i]
         bi = body[i]
         c6 = sm.poly6_coef(h)
-        same = int(0)
-        for k in range(image_row_length(xi, n, h, gn, goff)):
-            j = image_row_particle(i, k, n, nbr)
+        hh = h * h
+        for k in range(pair_slots(xi, n, h, gn, goff, image)):
+            j, p, q = pair_ends(i, k, n, nbr, x, y, gn, goff, gmin, image)
             if body[j] == bi:
-                g = floor_image(x[j], gn, goff, gmin)
-                xb = g - xi
+                xb = p - xi
                 r2 = wp.dot(xb, xb)
-                w = sm.w_poly6_c(r2, h, c6)
-                A += w * wp.outer(xb, xb)
-                B -= w * wp.outer(ui, xb)
-                same += wp.where(r2 < h * h, 1, 0)
-        return A, B, same
+                if r2 < hh:
+                    w, dw = sm.w_poly6_inside(r2, hh, c6)
+                    gx, gy = fit_pair_adjoint(w, dw, xb, q - yi, adj_A, adj_A_sym, adj_B)
+                    scatter_pair_adjoint(adj_x, adj_y, j, x[j], gx, gy, gn, goff, gmin, image)
+                    gx_i -= gx
+                    gy_i -= gy
+        return gx_i, gy_i
 
     @wp.func
     def floor_image_moment(
@@ -253,10 +302,11 @@ def funcs(scalar) -> types.SimpleNamespace:
         gmin: scalar,
         images: int,
     ):
-        """``moment_sums``, plus ``floor_image_sums`` where the model has an image plane."""
+        """``moment_sums``, plus ``fit_pair_sums`` over the floor's images where the model has
+        an image plane (``images``)."""
         A, B, same = moment_sums(i, x, y, x_lo, y_lo, body, nbr, n, h)
         if images != 0:
-            Ag, Bg, sg = floor_image_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
+            Ag, Bg, sg = fit_pair_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, 0, gn, goff, gmin, 1)
             A = A + Ag
             B = B + Bg
             same = same + sg
@@ -321,10 +371,13 @@ def funcs(scalar) -> types.SimpleNamespace:
         return carried_update(step_increment(A, Bu, code, counters), F, F_lo, counters)
 
     return types.SimpleNamespace(
-        displacement=displacement, fit_moments=fit_moments, moment_sums=moment_sums, floor_image=floor_image,
-        image_row_length=image_row_length, image_row_particle=image_row_particle,
-        floor_image_sums=floor_image_sums, fit_sums=fit_sums,
+        displacement=displacement, pair_slots=pair_slots, pair_partner=pair_partner, pair_ends=pair_ends,
+        fit_pair_sums=fit_pair_sums,
+        moment_sums=moment_sums, floor_image=floor_image,
+        image_row_length=image_row_length, image_slots=image_slots, image_row_particle=image_row_particle,
+        fit_sums=fit_sums,
         floor_image_jacobian=floor_image_jacobian, fit_pair_adjoint=fit_pair_adjoint,
+        scatter_pair_adjoint=scatter_pair_adjoint, fit_pairs_adjoint=fit_pairs_adjoint,
         floor_image_moment=floor_image_moment, affine_fit=affine_fit, step_increment=step_increment,
         step_gradient=step_gradient, unless_inverted=unless_inverted,
         carried_update=carried_update, deformation_update=deformation_update,
@@ -336,7 +389,6 @@ def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     fn = funcs(scalar)
-    sm = smoothing.funcs(scalar)
 
     @wp.kernel
     def update_deformation(
@@ -392,10 +444,11 @@ def kernels(scalar) -> types.SimpleNamespace:
 
         With ``dF = B A^-1`` and ``F_out = dF F``: ``adj F = dF^T G``, ``adj dF = G F^T``,
         ``adj B = adj dF A^-T``, ``adj A = -dF^T adj B``; per pair, ``A`` and ``B`` depend on
-        ``xb`` through ``w(|xb|^2) xb xb^T`` and ``w yb xb^T`` (``fit_pair_adjoint``). Guarded
-        or inverted particles keep ``F``: all of ``G`` goes to ``F``. With ``images`` the
-        floor's image pairs (``floor_image_sums``: ``xb = g_j - x_i``, ``yb = g_j - y_i``,
-        ``g_j`` at rest over the step) scatter to ``x_j`` through ``floor_image_jacobian``."""
+        ``xb`` through ``w(|xb|^2) xb xb^T`` and ``w yb xb^T`` (``fit_pair_adjoint``, over the
+        row in ``fit_pairs_adjoint``). Guarded or inverted particles keep ``F``: all of ``G``
+        goes to ``F``. With ``images`` the floor's image pairs (``fit_pair_sums``: ``xb =
+        g_j - x_i``, ``yb = g_j - y_i``, ``g_j`` at rest over the step) likewise, scattered to
+        ``x_j`` through ``floor_image_jacobian`` (``scatter_pair_adjoint``)."""
         i = wp.tid()
         G = adj_F_out[i]
         Fp = F_prev[i]
@@ -414,42 +467,12 @@ def kernels(scalar) -> types.SimpleNamespace:
         adj_B = G * wp.transpose(Fp) * wp.transpose(Ainv)
         adj_A = -(wp.transpose(dF) * adj_B)
         adj_A_sym = adj_A + wp.transpose(adj_A)
-        xi = x[i]
-        yi = y[i]
-        bi = body[i]
-        c6 = sm.poly6_coef(h)
-        hh = h * h
-        gx_i = vec3()
-        gy_i = vec3()
-        for k in range(count[i]):
-            j = nbr[i, k]
-            if body[j] == bi:
-                xb = x[j] - xi
-                r2 = wp.dot(xb, xb)
-                if r2 < hh:
-                    w, dw = sm.w_poly6_inside(r2, hh, c6)
-                    gx, gy = fn.fit_pair_adjoint(w, dw, xb, y[j] - yi, adj_A, adj_A_sym, adj_B)
-                    wp.atomic_add(adj_x, j, gx)
-                    wp.atomic_add(adj_y, j, gy)
-                    gx_i -= gx
-                    gy_i -= gy
-        # The image pairs (as floor_image_sums).
-        n_img = int(0)
+        n = count[i]
+        gx_i, gy_i = fn.fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 0, adj_A, adj_A_sym, adj_B,
+                                          adj_x, adj_y, vec3(), vec3())
         if images != 0:
-            n_img = fn.image_row_length(xi, count[i], h, gn, goff)
-        for k in range(n_img):
-            j = image_row_particle(i, k, count[i], nbr)
-            if body[j] == bi:
-                xj = x[j]
-                g = fn.floor_image(xj, gn, goff, gmin)
-                xb = g - xi
-                r2 = wp.dot(xb, xb)
-                if r2 < hh:
-                    w, dw = sm.w_poly6_inside(r2, hh, c6)
-                    gx, gy = fn.fit_pair_adjoint(w, dw, xb, g - yi, adj_A, adj_A_sym, adj_B)
-                    wp.atomic_add(adj_x, j, fn.floor_image_jacobian(xj, gn, goff, gmin) * (gx + gy))
-                    gx_i -= gx
-                    gy_i -= gy
+            gx_i, gy_i = fn.fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 1, adj_A, adj_A_sym, adj_B,
+                                              adj_x, adj_y, gx_i, gy_i)
         wp.atomic_add(adj_x, i, gx_i)
         wp.atomic_add(adj_y, i, gy_i)
 

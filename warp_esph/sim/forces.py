@@ -50,7 +50,9 @@ def funcs(scalar) -> types.SimpleNamespace:
     iso = isotropic.funcs(scalar)
     sm = smoothing.funcs(scalar)
     floor_image = deformation.funcs(scalar).floor_image
+    floor_image_jacobian = deformation.funcs(scalar).floor_image_jacobian
     image_row_length = deformation.funcs(scalar).image_row_length
+    image_slots = deformation.funcs(scalar).image_slots
     image_row_particle = deformation.image_row_particle
 
     @wp.func
@@ -128,14 +130,14 @@ def funcs(scalar) -> types.SimpleNamespace:
         return wp.outer(a, gw), wp.outer(ar, d), wp.transpose(F_inv) * ar
 
     @wp.func
-    def paper_image_count(xi: vec3, F: mat33, n: int, h: scalar, gn: vec3, goff: scalar) -> int:
+    def paper_image_count(xi: vec3, F: mat33, n: int, h: scalar, gn: vec3, goff: scalar, images: int) -> int:
         """How many of ``i``'s row (and ``i``) ``paper_image_forces`` visits: all ``n + 1`` where
         an image may be within the kernel's reach, ``|F^-1 d| < h`` (``|d| < h sigma_max(F)
         <= h |F|_F``; every image is at least as far from ``x_i`` as ``x_i`` is from the plane),
-        else none."""
+        else (or without an image plane, ``images`` 0) none."""
         # Kept apart from the other image loops' reach h: eqs. 10-13 weigh the
         # back-projected F^-1 d, so a stretched particle reaches images beyond h.
-        return image_row_length(xi, n, h * wp.sqrt(wp.ddot(F, F)), gn, goff)
+        return image_slots(xi, n, h * wp.sqrt(wp.ddot(F, F)), gn, goff, images)
 
     @wp.func
     def paper_image_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
@@ -154,7 +156,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         c_el = sm.elastic_coef(h)
         gi = floor_image(xi, gn, goff, gmin)
         fi = vec3()
-        for k in range(paper_image_count(xi, F, n, h, gn, goff)):
+        for k in range(paper_image_count(xi, F, n, h, gn, goff, 1)):
             j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xj = x[j]
@@ -196,6 +198,25 @@ def funcs(scalar) -> types.SimpleNamespace:
         return w * (wp.transpose(M) * a + adj_A_sym * d) + scalar(2.0) * dw * (wp.dot(a, M * d) + wp.dot(d, adj_A * d)) * d
 
     @wp.func
+    def scatter_variational_pair_adjoint(M: mat33, adj_A: mat33, adj_A_sym: mat33, a: vec3, d: vec3, hh: scalar,
+                                         c6: scalar, adj_x: wp.array(dtype=vec3), j: int, xj: vec3, gn: vec3,
+                                         goff: scalar, gmin: scalar, image: int) -> vec3:
+        """``variational_pair_adjoint`` of the pair at ``d`` (0 at ``|d|^2 >= hh``, beyond the
+        kernel's support), added to ``adj x_j`` of the particle ``j`` at ``x_j`` whose position
+        or, with ``image`` 1, floor image (through ``deformation.floor_image_jacobian``) is the
+        pair's far end; returned, for the near end."""
+        g = vec3()
+        r2 = wp.dot(d, d)
+        if r2 < hh:
+            w, dw = sm.w_poly6_inside(r2, hh, c6)
+            g = variational_pair_adjoint(M, adj_A, adj_A_sym, a, d, w, dw)
+            if image != 0:
+                wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * g)
+            else:
+                wp.atomic_add(adj_x, j, g)
+        return g
+
+    @wp.func
     def variational_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
                            nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, h: scalar,
                            f: wp.array(dtype=vec3)) -> vec3:
@@ -225,7 +246,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     def floor_image_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
                            nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, Mg: mat33, h: scalar,
                            gn: vec3, goff: scalar, gmin: scalar, f: wp.array(dtype=vec3)) -> vec3:
-        """The variational force of the floor images (``deformation.floor_image_sums``):
+        """The variational force of the floor images (``deformation.fit_pair_sums``):
         through ``i``'s own energy (``M``), ``w M (g_j - x_i)`` for each image ``g_j`` in its
         fit (the floor takes the reaction), returned; and through the energy of ``i``'s own
         image ``g_i`` (``Mg = image_map``), ``-w Mg (x_r - g_i)`` on ``i`` and on each same-body
@@ -256,6 +277,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         variational_map=variational_map, variational_map_adjoint=variational_map_adjoint,
         variational_pair_force=variational_pair_force, variational_forces=variational_forces,
         variational_pair_adjoint=variational_pair_adjoint,
+        scatter_variational_pair_adjoint=scatter_variational_pair_adjoint,
     )
 
 
@@ -265,11 +287,10 @@ def kernels(scalar) -> types.SimpleNamespace:
     vec3, mat33 = T.vec3, T.mat33
     sm = smoothing.funcs(scalar)
     fn = funcs(scalar)
-    moment_sums = deformation.funcs(scalar).moment_sums
     fit_sums = deformation.funcs(scalar).fit_sums
     image_moment = deformation.funcs(scalar).floor_image_moment
     floor_image = deformation.funcs(scalar).floor_image
-    image_row_length = deformation.funcs(scalar).image_row_length
+    image_slots = deformation.funcs(scalar).image_slots
     image_row_particle = deformation.image_row_particle
     floor_image_jacobian = deformation.funcs(scalar).floor_image_jacobian
     Materials = materials.struct(scalar)
@@ -370,9 +391,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 aFinv += dFinv
                 wp.atomic_add(adj_x, j, ad)
                 gx_i -= ad
-        n_img = int(0)
-        if images != 0:
-            n_img = fn.paper_image_count(xi, F[i], n, h, gn, goff)
+        n_img = fn.paper_image_count(xi, F[i], n, h, gn, goff, images)
         gi = floor_image(xi, gn, goff, gmin)
         gg_i = vec3()
         for k in range(n_img):
@@ -457,9 +476,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             if body[j] == bi:
                 d = x[j] - xi
                 adj_M += sm.w_poly6_c(wp.dot(d, d), h, c6) * wp.outer(ai - adj_f[j], d)
-        n_img = int(0)
-        if images != 0:
-            n_img = image_row_length(xi, n, h, gn, goff)
+        n_img = image_slots(xi, n, h, gn, goff, images)
         gi = floor_image(xi, gn, goff, gmin)
         adj_Mg = mat33()
         for k in range(n_img):
@@ -493,13 +510,9 @@ def kernels(scalar) -> types.SimpleNamespace:
         for k in range(n):
             j = nbr[i, k]
             if body[j] == bi:
-                d = x[j] - xi
-                r2 = wp.dot(d, d)
-                if r2 < hh:
-                    w, dw = sm.w_poly6_inside(r2, hh, c6)
-                    gx = fn.variational_pair_adjoint(M, adj_A, adj_A_sym, ai - adj_f[j], d, w, dw)
-                    wp.atomic_add(adj_x, j, gx)
-                    gx_i -= gx
+                xj = x[j]
+                gx_i -= fn.scatter_variational_pair_adjoint(M, adj_A, adj_A_sym, ai - adj_f[j], xj - xi, hh, c6, adj_x,
+                                                            j, xj, gn, goff, gmin, 0)
         # Through g_i (summed, then by d g_i / d x_i).
         gg_i = vec3()
         zero = vec3()
@@ -508,29 +521,13 @@ def kernels(scalar) -> types.SimpleNamespace:
             if body[j] == bi:
                 xj = x[j]
                 gj = floor_image(xj, gn, goff, gmin)
-                Jj = floor_image_jacobian(xj, gn, goff, gmin)
-                d = gj - xi
-                r2 = wp.dot(d, d)
-                if r2 < hh:
-                    w, dw = sm.w_poly6_inside(r2, hh, c6)
-                    gx = fn.variational_pair_adjoint(M, adj_A, adj_A_sym, ai, d, w, dw)
-                    wp.atomic_add(adj_x, j, Jj * gx)
-                    gx_i -= gx
-                d = xj - gi
-                r2 = wp.dot(d, d)
-                if r2 < hh:
-                    w, dw = sm.w_poly6_inside(r2, hh, c6)
-                    gx = fn.variational_pair_adjoint(Mg, adj_Ag, adj_Ag_sym, -adj_f[j], d, w, dw)
-                    wp.atomic_add(adj_x, j, gx)
-                    gg_i -= gx
+                gx_i -= fn.scatter_variational_pair_adjoint(M, adj_A, adj_A_sym, ai, gj - xi, hh, c6, adj_x, j, xj, gn,
+                                                            goff, gmin, 1)
+                gg_i -= fn.scatter_variational_pair_adjoint(Mg, adj_Ag, adj_Ag_sym, -adj_f[j], xj - gi, hh, c6, adj_x,
+                                                            j, xj, gn, goff, gmin, 0)
                 if j != i:
-                    d = gj - gi
-                    r2 = wp.dot(d, d)
-                    if r2 < hh:
-                        w, dw = sm.w_poly6_inside(r2, hh, c6)
-                        gx = fn.variational_pair_adjoint(Mg, adj_Ag, adj_Ag_sym, zero, d, w, dw)
-                        wp.atomic_add(adj_x, j, Jj * gx)
-                        gg_i -= gx
+                    gg_i -= fn.scatter_variational_pair_adjoint(Mg, adj_Ag, adj_Ag_sym, zero, gj - gi, hh, c6, adj_x, j,
+                                                                xj, gn, goff, gmin, 1)
         wp.atomic_add(adj_x, i, gx_i + floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
 
     return types.SimpleNamespace(elastic_forces=elastic_forces, elastic_forces_adjoint=elastic_forces_adjoint,

@@ -237,7 +237,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         else:
             # Each particle's displacement from the launch before (u): one load per
             # neighbour instead of y, x_lo and y_lo, the same sums bit for bit.
-            A, B, same = df.fit_moments(i, x, u, u, u, body, nbr, count[i], h, 1)
+            A, B, same = df.fit_pair_sums(i, x, u, u, u, body, nbr, count[i], h, 1, gn, goff, gmin, 0)
         code = guard_code(A, same, min_neighbors, max_condition)
         guard[i] = code
         F_new, F_new_lo = df.deformation_update(A, B, code, F_prev[i], F_prev_lo[i], counters)

@@ -139,6 +139,33 @@ def funcs(scalar) -> types.SimpleNamespace:
             f += viscous_pair_force(eta * VV, rij, r2, sm.lap_w_viscosity_at(rl, h, c_visc), vji)
         return f
 
+    Materials = materials.struct(scalar)
+
+    @wp.func
+    def particle_terms(i: int, mass: wp.array(dtype=scalar), rho: wp.array(dtype=scalar), rho_p: wp.array(dtype=scalar),
+                       rest_density: wp.array(dtype=scalar), material: wp.array(dtype=wp.int32), mat: Materials):
+        """Particle ``i``'s terms of its SPH pairs: its volume ``V_i = m_i / rho_i`` of the SPH
+        density, ``Vp_i = m_i / rho_p_i`` of the pressure density and its ``pressure`` (of the
+        pressure density)."""
+        mi = material[i]
+        return (mass[i] / rho[i], mass[i] / rho_p[i],
+                pressure(rho_p[i], rest_density[i], mat.pressure_stiffness[mi], mat.clamp_pressure[mi]))
+
+    @wp.func
+    def partner_terms(j: int, Vi: scalar, Vpi: scalar, visc_i: scalar, mass: wp.array(dtype=scalar),
+                      rho: wp.array(dtype=scalar), rho_p: wp.array(dtype=scalar), rest_density: wp.array(dtype=scalar),
+                      material: wp.array(dtype=wp.int32), mat: Materials):
+        """A pair's terms from its partner ``j`` (``sph_pair_force``'s arguments): ``j``'s
+        ``pressure`` ``p_j``, ``VV = V_i V_j`` of the SPH density, ``VVp = m_i m_j / (rho_p_i
+        rho_p_j)`` of the pressure density (``Vi``, ``Vpi``: ``i``'s, ``particle_terms``) and
+        the pair's viscosity ``eta = (eta_i + eta_j) / 2``."""
+        mj = material[j]
+        pj = pressure(rho_p[j], rest_density[j], mat.pressure_stiffness[mj], mat.clamp_pressure[mj])
+        VV = Vi * mass[j] / rho[j]
+        VVp = Vpi * mass[j] / rho_p[j]
+        eta = scalar(0.5) * (visc_i + mat.viscosity[mj])
+        return pj, VV, VVp, eta
+
     floor_image = deformation.funcs(scalar).floor_image
     floor_image_jacobian = deformation.funcs(scalar).floor_image_jacobian
     image_row_length = deformation.funcs(scalar).image_row_length
@@ -160,8 +187,6 @@ def funcs(scalar) -> types.SimpleNamespace:
             d = xi - floor_image(x[j], gn, goff, gmin)
             r += mass[j] * density_weight(wp.dot(d, d), h, c6, c_ws, form)
         return r
-
-    Materials = materials.struct(scalar)
 
     @wp.func
     def image_pressure_forces(i: int, x: wp.array(dtype=vec3), nbr: wp.array2d(dtype=wp.int32), n: int, Vi: scalar,
@@ -189,11 +214,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         zero = scalar(0.0)
         for k in range(image_row_length(xi, n, h, gn, goff)):
             j = image_row_particle(i, k, n, nbr)
-            mj = material[j]
-            pj = pressure(rho_p[j], rest_density[j], mat.pressure_stiffness[mj], mat.clamp_pressure[mj])
-            eta = scalar(0.5) * (mat.viscosity[mi] + mat.viscosity[mj])
-            VV = Vi * mass[j] / rho[j]
-            VVp = Vpi * mass[j] / rho_p[j]
+            pj, VV, VVp, eta = partner_terms(j, Vi, Vpi, mat.viscosity[mi], mass, rho, rho_p, rest_density, material,
+                                             mat)
             fi += sph_pair_force(VV, VVp, pi, zero, rho_pi, rho_p[j], form, eta, xi - floor_image(x[j], gn, goff, gmin),
                                  -vi, h, c6, c_spiky, c_visc)
             fi += J * sph_pair_force(VV, VVp, zero, pj, rho_pi, rho_p[j], form, zero, gi - x[j], vec3(), h, c6, c_spiky,
@@ -202,6 +224,7 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(
         image_density=image_density, image_pressure_forces=image_pressure_forces, floor_image=floor_image,
+        particle_terms=particle_terms, partner_terms=partner_terms,
         floor_image_jacobian=floor_image_jacobian,
         pressure=pressure, pressure_pair_force=pressure_pair_force,
         energy_pressure_pair_force=energy_pressure_pair_force, viscous_pair_force=viscous_pair_force,
@@ -217,7 +240,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     vec3 = T.vec3
     sm = smoothing.funcs(scalar)
     fn = funcs(scalar)
-    image_row_length = deformation.funcs(scalar).image_row_length
+    image_slots = deformation.funcs(scalar).image_slots
     image_row_particle = deformation.image_row_particle
     Materials = materials.struct(scalar)
 
@@ -273,31 +296,30 @@ def kernels(scalar) -> types.SimpleNamespace:
         goff: scalar,
         gmin: scalar,
         images: int,
+        pairs: int,
         f: wp.array(dtype=vec3),
     ):
         """``rho``: the SPH density (the volumes ``m / rho``); ``rho_p``: the pressure density
         (``rest_density`` its initial value), the same array unless a material is
-        ``energy_spiky``."""
+        ``energy_spiky``. ``pairs`` 0: the floor images' part alone (``image_pressure_forces``),
+        launched only for its generated adjoint, the image part of ``pressure_forces_adjoint``."""
         i = wp.tid()
         mi = material[i]
         xi = x[i]
         vi = v[i]
-        Vi = mass[i] / rho[i]
-        Vpi = mass[i] / rho_p[i]
-        pi = fn.pressure(rho_p[i], rest_density[i], mat.pressure_stiffness[mi], mat.clamp_pressure[mi])
+        Vi, Vpi, pi = fn.particle_terms(i, mass, rho, rho_p, rest_density, material, mat)
         visc_i = mat.viscosity[mi]
         form = mat.pressure_force[mi]
         c6 = sm.poly6_coef(h)
         c_spiky = sm.spiky_coef(h)
         c_visc = sm.viscosity_coef(h)
         fi = vec3()
-        for k in range(count[i]):
+        n = count[i]
+        if pairs == 0:
+            n = 0
+        for k in range(n):
             j = nbr[i, k]
-            mj = material[j]
-            pj = fn.pressure(rho_p[j], rest_density[j], mat.pressure_stiffness[mj], mat.clamp_pressure[mj])
-            VV = Vi * mass[j] / rho[j]
-            VVp = Vpi * mass[j] / rho_p[j]
-            eta = scalar(0.5) * (visc_i + mat.viscosity[mj])
+            pj, VV, VVp, eta = fn.partner_terms(j, Vi, Vpi, visc_i, mass, rho, rho_p, rest_density, material, mat)
             half = scalar(0.5) * fn.sph_pair_force(VV, VVp, pi, pj, rho_p[i], rho_p[j], form, eta, xi - x[j], v[j] - vi,
                                                    h, c6, c_spiky, c_visc)
             wp.atomic_add(f, j, -half)
@@ -306,36 +328,6 @@ def kernels(scalar) -> types.SimpleNamespace:
             fi += fn.image_pressure_forces(i, x, nbr, count[i], Vi, Vpi, pi, rho_p[i], vi, mass, rho, rho_p, rest_density,
                                            material, mat, h, c6, c_spiky, c_visc, gn, goff, gmin)
         wp.atomic_add(f, i, fi)
-
-    @wp.kernel
-    def image_pressure_forces_kernel(
-        x: wp.array(dtype=vec3),
-        v: wp.array(dtype=vec3),
-        mass: wp.array(dtype=scalar),
-        rho: wp.array(dtype=scalar),
-        rho_p: wp.array(dtype=scalar),
-        rest_density: wp.array(dtype=scalar),
-        material: wp.array(dtype=wp.int32),
-        mat: Materials,
-        nbr: wp.array2d(dtype=wp.int32),
-        count: wp.array(dtype=wp.int32),
-        h: scalar,
-        gn: vec3,
-        goff: scalar,
-        gmin: scalar,
-        f: wp.array(dtype=vec3),
-    ):
-        """The floor images' part of ``pressure_forces`` alone (``image_pressure_forces``, the
-        same arguments), written to ``f``: launched only for its generated adjoint, the image
-        part of ``pressure_forces_adjoint`` (its force adds to the pairs' in the forward)."""
-        i = wp.tid()
-        mi = material[i]
-        Vi = mass[i] / rho[i]
-        Vpi = mass[i] / rho_p[i]
-        pi = fn.pressure(rho_p[i], rest_density[i], mat.pressure_stiffness[mi], mat.clamp_pressure[mi])
-        f[i] = fn.image_pressure_forces(i, x, nbr, count[i], Vi, Vpi, pi, rho_p[i], v[i], mass, rho, rho_p, rest_density,
-                                        material, mat, h, sm.poly6_coef(h), sm.spiky_coef(h), sm.viscosity_coef(h),
-                                        gn, goff, gmin)
 
     @wp.kernel(enable_backward=False)
     def density_adjoint(
@@ -377,9 +369,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 g = (a * mass[j]) * fn.density_weight_gradient(d, r2, h, c6, c_spiky, form)
                 wp.atomic_add(adj_x, j, g)
                 gx_i -= g
-        n_img = int(0)
-        if images != 0:
-            n_img = image_row_length(xi, n, h, gn, goff)
+        n_img = image_slots(xi, n, h, gn, goff, images)
         for k in range(n_img):
             j = image_row_particle(i, k, n, nbr)
             xj = x[j]
@@ -548,7 +538,6 @@ def kernels(scalar) -> types.SimpleNamespace:
         wp.atomic_add(adj_visc, mi, adj_visc_i)
 
     return types.SimpleNamespace(density=density, pressure_forces=pressure_forces,
-                                 image_pressure_forces_kernel=image_pressure_forces_kernel,
                                  pressure_forces_adjoint=pressure_forces_adjoint, density_adjoint=density_adjoint)
 
 
@@ -618,7 +607,7 @@ def launch_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True
     inputs = [
         state_in.x, state_in.v, model.particle_mass, state_out.density, rho_p,
         model.particle_rest_density, model.particle_material, model.material_arrays(), state_out.neighbors,
-        state_out.neighbor_count, model.scalar(model.support_radius), *model.image_args(),
+        state_out.neighbor_count, model.scalar(model.support_radius), *model.image_args(), 1,
     ]
     tape = deformation.recording_tape()
     grads = (state_in.x, state_in.v, state_out.density, rho_p, model.pressure_stiffness,
@@ -648,17 +637,18 @@ def launch_pressure_forces_adjoint(model, state_in, state_out):
         device=model.device, record_tape=False,
     )
     if model.image_plane is not None:
-        # The images' part: the generated adjoint of image_pressure_forces (the forward adds
-        # it to the pairs' force). Its replayed forward writes a scratch array, not the force;
-        # as the pairs' hand-written adjoint, none to the masses and rest densities.
+        # The images' part: the generated adjoint of pressure_forces without its pairs
+        # (pairs = 0: image_pressure_forces alone, which the forward adds to the pairs'
+        # force). Its replayed forward writes a scratch array, not the force; as the pairs'
+        # hand-written adjoint, none to the masses and rest densities.
         inputs = [
             state_in.x, state_in.v, model.particle_mass, state_out.density, rho_p, model.particle_rest_density,
             model.particle_material, model.material_arrays(), state_out.neighbors, state_out.neighbor_count,
-            model.scalar(model.support_radius), *model.image_args()[:3],
+            model.scalar(model.support_radius), *model.image_args(), 0,
         ]
         adjoint = wp.Tape().get_adjoint
         scratch = wp.zeros_like(state_out.force, requires_grad=False)
-        wp.launch(kernels(model.scalar).image_pressure_forces_kernel, model.particle_count, inputs, [scratch],
+        wp.launch(kernels(model.scalar).pressure_forces, model.particle_count, inputs, [scratch],
                   adj_inputs=[None if a is model.particle_mass or a is model.particle_rest_density else adjoint(a)
                               for a in inputs], adj_outputs=[state_out.force.grad],
                   adjoint=True, device=model.device, record_tape=False)
