@@ -702,7 +702,7 @@ def near_yield_column_theory(yield_depth: float) -> float:
 def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float = 0.8, E: float = 1.5e5,
                       nu: float = 0.3, flow_rate: float = 200.0, periods: float = 12.0, ramp: float = 4.0,
                       elastic_force: str = "variational", pressure_stiffness: float | None = None,
-                      dtype: str = "float32") -> dict:
+                      dtype: str = "float32", elastic_periods: float = 8.0) -> dict:
     """A free-standing square column (as ``column_settlement``: ``resolution`` across,
     ``aspect`` times as tall, frictionless ground collider, relaxed dynamically) of a
     yield-stress material whose uniaxial yield stress is the weight above the depth
@@ -718,7 +718,7 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     weight's uniaxial ``depth / yield_depth`` (1: the unyielded part carries exactly its
     weight); the shortening between the top and bottom layers' centres, its elastic part
     measured on the same column with the yield off (``column_settlement`` with the same
-    pressure and the plastic run's fit), and the plastic rest against
+    pressure and the plastic run's fit, over ``elastic_periods``), and the plastic rest against
     ``near_yield_column_theory`` (layers that spread freely, an upper bound: a base held in
     shrinks it); the top's residual rate over the last tenth, the kinetic energy, and the
     smallest neighbour distance at the end (particle pairing). Gravity rises linearly over
@@ -772,13 +772,14 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     d2 = np.where(np.arange(d2.shape[1])[None, :] < cnt[:, None], d2, np.inf)
     # The same column with the yield off: the elastic part the scene's pressure and fit give.
     ref = column_settlement(n, elastic_force, aspect=aspect, E=E, nu=nu, fit=solver.fit, hourglass=solver.hourglass,
-                            pressure_stiffness=mat.pressure_stiffness)
+                            pressure_stiffness=mat.pressure_stiffness, periods=elastic_periods)
     plastic_measured = h[-1, 1] - ref["shortening"]
     return {"case": "near_yield_column", "resolution": n, "elastic_force": elastic_force, "particles": model.particle_count,
             "pressure_stiffness": mat.pressure_stiffness, "dtype": dtype, "fit": solver.fit,
             "yield_depth": yield_depth, "shortening": h[-1, 1], "theory": elastic + plastic,
             "theory_elastic": elastic, "theory_plastic": plastic, "ratio": h[-1, 1] / (elastic + plastic),
-            "elastic_measured": ref["shortening"], "plastic_measured": plastic_measured,
+            "elastic_measured": ref["shortening"], "elastic_residual_rate_pct_per_s": ref["residual_rate_pct_per_s"],
+            "plastic_measured": plastic_measured,
             "plastic_over_theory": plastic_measured / plastic,
             "highest_yielded_depth": float(depth[yielded].min()) if yielded.any() else float("nan"),
             "fraction_yielded": float(yielded.mean()),

@@ -346,22 +346,24 @@ def test_no_preset_or_default_material_blows_up_at_half_the_stable_dt(label):
 
 
 def test_near_yield_column_holds_with_only_its_bottom_yielding():
-    """The near-yield column (uniaxial yield stress the weight above 0.8 L), 4 across, the
-    default SPH pressure, gravity ramped, 24 axial periods. Measured: at rest (kinetic energy
-    2.5e-10 M g x the theory's shortening, top 0.10 % of it per s); no particle above
-    0.775 L deep reached the yield stress (the 1-D analysis: 0.8 L; the tolerance is two
-    spacings, 0.1 L, the yield front's surface particles pulled out by the base below); the
-    unyielded part between 0.1 and 0.5 L deep peaked at 0.999 x its weight's uniaxial stress
-    over sigma_y; nearest neighbours 0.97 dx apart. Its plastic shortening (total less the
-    same column's with the yield off) is 0.064 x the 1-D analysis's, whose layers spread
-    freely: the bottom layer on the ground collider, fitted one-sided, keeps about half the
-    weight's stress in its F, never yields and holds the base in (docs/physics.md, "The
-    near-yield column"), so only the bracket is asserted: more than the elastic column,
-    no more than the free 1-D spreading."""
+    """The near-yield column (uniaxial yield stress the weight above 0.8 L), 4 across, 5 x
+    as tall, the default SPH pressure, gravity ramped, 24 axial periods. Measured: at rest
+    (kinetic energy 2.5e-10 M g x the theory's shortening, top 0.10 % of it per s); the
+    yield front 0.775 L deep (6 / 8 across: 0.717 / 0.69 L; the 1-D analysis: 0.8 L; bound:
+    one width above it, where the base's spreading, which drags the layers above outward,
+    may reach by Saint-Venant); the unyielded part 0.1-0.5 L deep peaked at 0.999 x the
+    uniaxial stress of its weight over sigma_y (6 across: 1.009); nearest neighbours 0.97
+    dx apart (without the pressure, at 6 / 8 across, they pair in the yielded base and the
+    core collapses: docs/physics.md, "The near-yield column"). Its plastic shortening (total
+    less the same column's with the yield off) is 0.064 x the 1-D analysis's (6 across:
+    0.29), whose layers spread freely: the bottom layer on the ground collider, fitted
+    one-sided, keeps about half the weight's stress in its F, never yields and holds the
+    base in, less so as the spacing falls; so only the bracket is asserted: more than the
+    elastic column, no more than free 1-D spreading."""
     r = validation.near_yield_column(resolution=4, periods=24.0)
     assert r["kinetic_over_weight"] < 1e-8, r
     assert abs(r["residual_rate_pct_per_s"]) < 1.0, r
-    assert r["highest_yielded_depth"] >= r["yield_depth"] - 0.1, r
+    assert r["highest_yielded_depth"] >= r["yield_depth"] - 1.0 / 5.0, r
     assert r["upper_peak_over_weight"] == pytest.approx(1.0, abs=0.05), r
     assert r["nearest_neighbour_min"] > 0.5, r
     assert 0.0 < r["plastic_over_theory"] <= 1.0, r
