@@ -719,8 +719,8 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     weight); the shortening between the top and bottom layers' centres, its elastic part
     measured on the same column with the yield off (``column_settlement`` with the same
     pressure and the plastic run's fit, over ``elastic_periods``), and the plastic rest against
-    ``near_yield_column_theory`` (layers that spread freely, an upper bound: a base held in
-    shrinks it); the top's residual rate over the last tenth, the kinetic energy, and the
+    ``near_yield_column_theory`` (layers that spread freely and do not restrain each other,
+    taken as the upper bound: a base held in, or layers held by the column above, spread less); the top's residual rate over the last tenth, the kinetic energy, and the
     smallest neighbour distance at the end (particle pairing). Gravity rises linearly over
     ``ramp`` periods of the column's axial mode: applied at once, its stress wave doubles the
     weight's stress at the base and yields the column far above ``yield_depth``, which the
