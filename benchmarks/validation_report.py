@@ -309,10 +309,12 @@ def _targets(results) -> list[tuple[str, str, str, str]]:
         else:
             out.append(("an unyielded plug where the run resolves one", "no run resolves a plug", "–", _runs_of(every)))
     out.append(("a near-yield column holds with only its bottom yielding",
-                "not in the plan; `near_yield_column` run on its own (Notes): shortening 0.78 / 1.02 x the 1-D "
-                "theory at 6 / 8 across (paper force 1.84 x), but yielding reaches 0.58 / 0.46 L deep "
-                "instead of 0.8 L and the top still moves 13-39 % of the theory per s at 1.2-1.6 s",
-                "no", "–"))
+                "not in the plan; `near_yield_column` run on its own (Notes), default pressure: at rest at 4 / 6 / 8 "
+                "across (top 0.10 / 0.09 / 0.17 % of the theory's shortening per s), yield front 0.775 / 0.717 / "
+                "0.69 L deep (1-D: 0.8 L), the part 0.1-0.5 L deep at 1.00 / 1.01 / 1.18 x its weight's stress; "
+                "plastic shortening 0.064 / 0.29 / 0.55 x the 1-D analysis's free spreading (the collider's bottom "
+                "layer holds the base in)",
+                "holds, base only yielding (within a width): yes; the 1-D spreading: no", "–"))
     spreads = [r for r in results if r["case"] == "spread" and r.get("elastic_force", default) == default]
     if spreads:
         rs = sorted(spreads, key=lambda r: (-r["shallowness"], r["resolution"]))

@@ -347,6 +347,42 @@ def test_no_preset_or_default_material_blows_up_at_half_the_stable_dt(label):
     assert not r["blew_up"], r
 
 
+@pytest.fixture(scope="module")
+def near_yield4():
+    return validation.near_yield_column(resolution=4, periods=24.0)
+
+
+def test_near_yield_column_holds_with_only_its_bottom_yielding(near_yield4):
+    """The near-yield column (uniaxial yield stress the weight above 0.8 L), 4 across, 5 x
+    as tall, the default SPH pressure, gravity ramped, 24 axial periods. Measured: at rest
+    (kinetic energy 2.5e-10 M g x the theory's shortening, top 0.10 % of it per s); the
+    yield front 0.775 L deep (6 / 8 across: 0.717 / 0.69 L; the 1-D analysis: 0.8 L; bound:
+    one width above it, where the base's spreading, which drags the layers above outward,
+    may reach by Saint-Venant); the unyielded part 0.1-0.5 L deep peaked at 0.999 x the
+    uniaxial stress of its weight over sigma_y (6 across: 1.009); nearest neighbours 0.97
+    dx apart (without the pressure, at 6 / 8 across, they pair in the yielded base and the
+    core collapses: docs/physics.md, "The near-yield column"). Its plastic shortening (total
+    less the same column's with the yield off) is 0.064 x the 1-D analysis's (6 across:
+    0.29), whose layers spread freely: the bottom layer on the ground collider, fitted
+    one-sided, keeps about half the weight's stress in its F, never yields and holds the
+    base in, less so as the spacing falls; so only the bracket is asserted: more than the
+    elastic column, no more than free 1-D spreading."""
+    r = near_yield4
+    assert r["kinetic_over_weight"] < 1e-8, r
+    assert abs(r["residual_rate_pct_per_s"]) < 1.0, r
+    assert r["highest_yielded_depth"] >= r["yield_depth"] - 1.0 / 5.0, r
+    assert r["upper_peak_over_weight"] == pytest.approx(1.0, abs=0.05), r
+    assert r["nearest_neighbour_min"] > 0.5, r
+    assert 0.0 < r["plastic_over_theory"] <= 1.0, r
+
+
+@pytest.mark.xfail(strict=True, reason="near-yield column, 4 across: plastic shortening 0.064 x the 1-D analysis's "
+                   "free spreading (6 / 8 across: 0.29 / 0.55); the ground collider's bottom layer, fitted one-sided, "
+                   "ties the base in (docs/physics.md, 'The near-yield column')")
+def test_near_yield_column_base_spreads_as_the_1d_analysis(near_yield4):
+    assert near_yield4["plastic_over_theory"] == pytest.approx(1.0, abs=0.2), near_yield4
+
+
 # ------------------------------------------------------------- lab tests with tools
 def test_plate_compression_force_and_lateral_strain_within_10_percent_at_8_across():
     """Frictionless plane tools, 1 % strain: measured force 1.080 x E A eps and lateral

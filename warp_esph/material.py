@@ -80,8 +80,8 @@ class Material:
     (default), the exact negative gradient of the fit's elastic energy, or ``"paper"``, the
     paper's eqs. 10-13. The default is the one that passes the validation suite
     (docs/validation.md): a free-free bar rings at 0.999 / 1.000 of its frequency at 4 / 6
-    particles across (paper: 0.88 / 0.92) and a near-yield column settles 0.78 / 1.02 x the
-    1-D theory at 6 / 8 across (paper: 1.84 x; neither at rest by 1.6 s, docs/validation.md,
+    particles across (paper: 0.88 / 0.92) and a near-yield column holds at 6 across, at rest
+    with only its base yielding (paper: 2.86 x the 1-D theory, still moving; docs/validation.md,
     Notes); the paper's force
     has a non-symmetric stiffness, so an undamped elastic body gains energy at a rate that
     does not shrink with the time step (docs/physics.md) and a bent beam flutters. With the
