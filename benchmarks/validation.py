@@ -14,7 +14,9 @@ dimension) and returning a dict of what was measured next to the theory. The rep
 ``docs/validation.md`` (a table per case), ``docs/images/validation/*.png`` (measured vs
 theory and vs resolution) and ``docs/validation.json`` (every number).
 
-Only ``warp_esph``'s public API is used: ``SceneBuilder``, ``Material``, ``Solver``,
+Every case builds its scene on Warp's current device (``wp.get_device()``; the command line's
+``--device``, default the CPU, sets it for its runs), so a case called from Python on a machine
+with a GPU runs there. Only ``warp_esph``'s public API is used: ``SceneBuilder``, ``Material``, ``Solver``,
 ``Model.stable_dt`` and the ``State`` arrays. Quasi-static results are read only after
 the kinetic energy has decayed, and the residual rate of change is reported with them.
 Where a case needs a static equilibrium of an elastic body (beam, column, plates) it is
@@ -200,7 +202,7 @@ def slump_model(S: float, resolution: int = 12, elastic_force: str = "variationa
     pts = lattice_points(np.array([-R0, 0.0, -R0]), np.array([R0, H0, R0]), dx)
     pts = pts[np.hypot(pts[:, 0], pts[:, 2]) <= R0]  # what add_cylinder places
     free = _add_on_floor(b, pts, mat, floor, floor_radius * R0, friction, "cylinder0", layers=floor_layers)
-    model = b.finalize(dtype=wp.float32 if dtype is None else dtype)
+    model = b.finalize(device=wp.get_device(), dtype=wp.float32 if dtype is None else dtype)
     return model, free, mu, Y
 
 
@@ -410,7 +412,7 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
     pts = lattice_points(np.array([-R_i, 0.0, -R_i]), np.array([R_i, H_i, R_i]), dx)
     pts = pts[np.hypot(pts[:, 0], pts[:, 2]) <= R_i]  # what add_cylinder places
     free = _add_on_floor(b, pts, mat, floor, floor_radius * R_rc, friction, "cylinder0")
-    model = b.finalize()
+    model = b.finalize(device=wp.get_device())
     n = int(free.sum())
     solver = we.Solver(model)
     dt = dt_factor * model.stable_dt()
@@ -528,7 +530,7 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     inset = 0.5 * dx if walls == "centres" else 0.0
     b.add_plane((0.0, 0.0, 1.0), inset, 0.0)
     b.add_plane((0.0, 0.0, -1.0), -(W - inset), 0.0)
-    model = b.finalize()
+    model = b.finalize(device=wp.get_device())
     solver = we.Solver(model)
     dt = dt_factor * model.stable_dt()
     steps = int(round(duration / dt))
@@ -590,7 +592,7 @@ def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slend
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
     L = nl * dx
     b.add_box((L / 2, 0.0, 0.0), (L, n * dx, n * dx), mat)
-    model = b.finalize()
+    model = b.finalize(device=wp.get_device())
     x0 = model.particle_x0.astype(np.float64)
     X = x0[:, 0] - x0[:, 0].min() + 0.5 * dx
     c_bar = math.sqrt(E / RHO)
@@ -656,7 +658,7 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
     b.add_box((0.0, t / 2.0 - dx / 2.0, 0.0), ((cols + 1) * dx, t, t), mat)
     for xs in (-L / 2.0, L / 2.0):
         b.add_box_collider((xs, -0.5, 0.0), (0.5 * dx * 0.999, 0.5, 1.0), friction=0.0)
-    model = b.finalize(dtype=getattr(wp, dtype))
+    model = b.finalize(device=wp.get_device(), dtype=getattr(wp, dtype))
     x0 = model.particle_x0.astype(np.float64)
     mid = np.abs(x0[:, 0]) < 0.25 * dx
     ends = np.abs(np.abs(x0[:, 0]) - L / 2.0) < 0.25 * dx
@@ -707,7 +709,8 @@ def _free_column(we, mat, n: int, aspect: int, dx: float, dtype: str = "float32"
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
     b.add_box((0.0, H / 2.0, 0.0), (n * dx, H, n * dx), mat)
     b.add_ground(0.5 * dx, friction=0.0)
-    model = b.finalize(dtype=getattr(_we()[0], dtype))
+    wp = _we()[0]
+    model = b.finalize(device=wp.get_device(), dtype=getattr(wp, dtype))
     x0 = model.particle_x0.astype(np.float64)
     top = x0[:, 1] > x0[:, 1].max() - 0.5 * dx
     bottom = x0[:, 1] < x0[:, 1].min() + 0.5 * dx
@@ -875,14 +878,14 @@ def poisson_compression(resolution: int = 6, elastic_force: str = "variational",
                                  deformation=deformation)
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
     b.add_box((0.0, 0.0, 0.0), (nl * dx, n * dx, n * dx), mat)
-    model = b.finalize()
+    model = b.finalize(device=wp.get_device())
     x0 = model.particle_x0.astype(np.float64)
     S = np.diag([1.0 - strain, 1.0, 1.0])
     xs = x0 @ S.T
     a_end = xs[:, 0].max()
     b.add_plane((1.0, 0.0, 0.0), -a_end, friction=0.0)
     b.add_plane((-1.0, 0.0, 0.0), -a_end, friction=0.0)
-    model = b.finalize()
+    model = b.finalize(device=wp.get_device())
     a, c = model.state(), model.state()
     a.x.assign(xs)
     a.F.assign(np.tile(S, (model.particle_count, 1, 1)))
@@ -976,7 +979,7 @@ def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e
     d = strain * (yhi - ylo)  # strain of the particle lattice between the plates
     b.add_tool("plane", normal=(0, 1, 0), position=(0, ylo, 0), name="bottom")
     b.add_tool("plane", normal=(0, -1, 0), motion=tools.Keyframes([0.0, 0.05], [(0, yhi, 0), (0, yhi - d, 0)]), name="top")
-    model = b.finalize()
+    model = b.finalize(device=wp.get_device())
     solver = we.Solver(model)
     a, c, f = _relaxed_reaction(model, solver, ["top", "bottom"], 0.05, 0.10)
     force = 0.5 * (-f["top"][1] + f["bottom"][1])
@@ -1023,7 +1026,7 @@ def plastic_compression(resolution: int = 8, squeeze: float = 0.25, S: float = 0
     b.add_tool("plane", normal=(0, 1, 0), position=(0, ylo, 0), name="bottom")
     b.add_tool("plane", normal=(0, -1, 0), motion=tools.Keyframes([0.0, load_time], [(0, yhi, 0), (0, yhi - d, 0)]),
                name="top")
-    model = b.finalize()
+    model = b.finalize(device=wp.get_device())
     solver = we.Solver(model)
     a, c, f = _relaxed_reaction(model, solver, ["top", "bottom"], load_time, hold_time, viscous=50.0)
     force = 0.5 * (-f["top"][1] + f["bottom"][1])
@@ -1119,7 +1122,7 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
         heights += [ytop + R - dep] * 2
     b.add_tool("sphere", radius=R, name="indenter",
                motion=tools.Keyframes(times, [(0.0, h, 0.0) for h in heights]))
-    model = b.finalize()
+    model = b.finalize(device=wp.get_device())
     solver = we.Solver(model, hourglass=hourglass, fit=fit)
     x0 = model.particle_x0.astype(np.float64)
     base = x0[:, 1] < ylo + 0.5 * dx
@@ -1200,7 +1203,7 @@ def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, 
     top = (0.0, yhi + r, 0.0)
     b.add_tool("cylinder", radius=r, half_height=t, name="pin", orientation=along_z,
                motion=tools.Keyframes([0.0, 0.1], [top, (0.0, yhi + r - deflection, 0.0)], [along_z, along_z]))
-    model = b.finalize()
+    model = b.finalize(device=wp.get_device())
     solver = we.Solver(model, hourglass=hourglass, fit=fit)
     x0 = model.particle_x0.astype(np.float64)
     core = np.abs(x0[:, 1] - 0.5 * (ylo + yhi)) < 0.5 * t - 0.75 * dx  # away from the loaded faces
@@ -1258,7 +1261,7 @@ def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", r
                                  deformation=deformation)
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
     b.add_box((0.0, 0.0, 0.0), (n * dx,) * 3, mat)
-    model = b.finalize()
+    model = b.finalize(device=wp.get_device())
     x0 = model.particle_x0.astype(np.float64)
     # Breathing mode of a free cube: omega ~ pi c_p / side; strain amplitude a / omega.
     omega = math.pi * mat.p_wave_speed / (n * dx)
@@ -1331,7 +1334,7 @@ def stability(material, duration: float = 1.0, resolution: int = 6, dt_factor: f
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
     b.add_box((0.0, n * dx / 2.0, 0.0), (n * dx,) * 3, material)
     b.add_ground(0.0, friction=0.5)
-    model = b.finalize()
+    model = b.finalize(device=wp.get_device())
     solver = we.Solver(model)
     dt = dt_factor * model.stable_dt()
     steps = int(duration / dt)
@@ -1444,6 +1447,8 @@ def main(argv=None) -> int:
 
     p = argparse.ArgumentParser(prog="python -m benchmarks.validation", description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="CI-sized run (reduced sizes and durations)")
+    p.add_argument("--device", default="cpu",
+                   help="Warp device the scenes are built and run on (cpu, cuda:0, ...); each row records it")
     p.add_argument("--out", default=str(ROOT / "docs"), help="folder for validation.md, validation.json, images/validation/")
     p.add_argument("--only", default=None,
                    help="comma-separated runs to keep: a case function (slump), or one with keyword values its "
@@ -1460,6 +1465,11 @@ def main(argv=None) -> int:
                         "GPU, each with an optional 'device', or a validation.json): merged as one run, replacing "
                         "the rows they measure again; without --only nothing else is run")
     args = p.parse_args(argv)
+    wp, _ = _we()
+    try:
+        wp.get_device(args.device)
+    except (RuntimeError, ValueError) as e:
+        raise ValueError(f"--device = {args.device!r} is not allowed: {e}") from None
     if args.drop and not args.merge:
         raise ValueError(f"--drop = {args.drop!r} is not allowed without --merge (it drops rows of the merged JSON)")
     runs = select(plan(args.quick), args.only) if args.only or not args.add else []
@@ -1479,7 +1489,9 @@ def main(argv=None) -> int:
     for name, kwargs in bar:
         bar.set_postfix_str((f"{name} " + " ".join(f"{k}={v}" for k, v in kwargs.items()))[:70])
         t_run = time.perf_counter()
-        r = run_one(name, kwargs)
+        with wp.ScopedDevice(args.device):
+            r = run_one(name, kwargs)
+        r.setdefault("device", str(wp.get_device(args.device)))
         r.setdefault("wall_s", time.perf_counter() - t_run)
         results.append(r)
         doc = merge(earlier, results, _meta(args, t0))
@@ -1593,4 +1605,8 @@ def _meta(args, t0) -> dict:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except ValueError as e:  # bad arguments: one line, no traceback
+        print(f"python -m benchmarks.validation: error: {e}", file=sys.stderr)
+        sys.exit(2)

@@ -689,3 +689,18 @@ def test_the_command_line_merges_rows_measured_elsewhere_without_running_the_pla
     assert by[0.2]["at_rest"] and not earlier["results"][0]["at_rest"]
     assert doc["runs"][1]["wall_s"] == 3.0 and "gpu" in doc["runs"][1]["machine"]
     assert not (out / "validation.md").exists()
+
+
+def test_the_command_line_refuses_an_unknown_device_by_name_before_any_run(tmp_path):
+    with pytest.raises(ValueError, match="--device = 'gpu9'"):
+        validation.main(["--device", "gpu9", "--only", "bar_frequency", "--no-report", "--out", str(tmp_path)])
+    assert not (tmp_path / "validation.json").exists()
+
+
+def test_the_command_line_records_the_device_of_each_row(tmp_path):
+    import json
+
+    validation.main(["--device", "cpu", "--only", "poisson_compression:resolution=4:elastic_force=variational",
+                     "--no-report", "--out", str(tmp_path)])
+    rows = json.loads((tmp_path / "validation.json").read_text())["results"]
+    assert [r["device"] for r in rows] == ["cpu"]
