@@ -338,7 +338,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     fn = funcs(scalar)
     sm = smoothing.funcs(scalar)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def update_deformation(
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
@@ -365,7 +365,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def update_deformation_adjoint(
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
