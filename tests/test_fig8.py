@@ -54,9 +54,12 @@ def _deformation_ke(x, v, m):
     return 0.5 * float((m[:, None] * u**2).sum())
 
 
-def _run_one(name, spin=True):
+def _run_one(name, spin=True, blown_above=None):
     """One cube of the figure on its own (as in the paper: the plastic rest-configuration
-    cube blows up, and its debris would otherwise hit the other cubes)."""
+    cube blows up, and its debris would otherwise hit the other cubes). ``blown_above``: stop
+    at the first sample that is not finite or whose kinetic energy exceeds it (the blow-up
+    ``test_plastic_rest_configuration_cube_degrades`` looks for; the debris then flies
+    freely, measured 1.45e6 J from 0.35 s to 1 s, and its steps show nothing more)."""
     model = SCENES["fig8_comparison"](scale=SCALE, only=(name,)).builder.finalize()
     solver = we.Solver(model)
     a, b = model.state(), model.state()
@@ -75,13 +78,21 @@ def _run_one(name, spin=True):
             r["finite"].append(finite)
             r["shape"].append(_shape_error(x, x0) if finite else np.inf)
             r["ke"].append(_deformation_ke(x, v, mass) if finite else np.inf)
+            if blown_above is not None and not r["ke"][-1] <= blown_above:
+                break
     r["guards"] = solver.guard_counts()
     return r
 
 
 @pytest.fixture(scope="module")
 def fig8_run():
-    record = {name: _run_one(name) for name in FIG8_BODIES}
+    record = {}
+    for name in FIG8_BODIES:
+        # The plastic rest-configuration cube stops once blown up by the test's own measure
+        # (1e3 x the plastic incremental cube's largest kinetic energy), which runs before it.
+        inc = record.get("plastic_incremental")
+        above = 1e3 * max(inc["ke"]) if name == "plastic_rest" and inc is not None else None
+        record[name] = _run_one(name, blown_above=above)
     for name in ("elastic_incremental", "elastic_additive"):
         record[name + "_still"] = _run_one(name, spin=False)
     print()

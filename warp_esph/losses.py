@@ -53,28 +53,28 @@ def _kernels(scalar):
     T = type_set(scalar)
     vec3 = T.vec3
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def gather(x: wp.array(dtype=vec3), idx: wp.array(dtype=wp.int32), out: wp.array(dtype=vec3)):
         k = wp.tid()
         out[k] = x[idx[k]]
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def add_scalar(src: wp.array(dtype=scalar), dst: wp.array(dtype=scalar)):
         wp.atomic_add(dst, 0, src[0])
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def to_float32(x: wp.array(dtype=vec3), out: wp.array(dtype=wp.vec3f)):
         i = wp.tid()
         p = x[i]
         out[i] = wp.vec3f(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def squared_distance(x: wp.array(dtype=vec3), target: wp.array(dtype=vec3), w: scalar, out: wp.array(dtype=scalar)):
         i = wp.tid()
         d = x[i] - target[i]
         wp.atomic_add(out, 0, w * wp.dot(d, d))
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def nearest(
         grid: wp.uint64,
         query32: wp.array(dtype=wp.vec3f),
@@ -101,7 +101,7 @@ def _kernels(scalar):
         if found < 0:
             wp.atomic_add(unmatched, 0, 1)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def nearest_term(
         src: wp.array(dtype=vec3),
         dst: wp.array(dtype=vec3),
@@ -151,7 +151,7 @@ def _kernels(scalar):
         denom = scalar(1.0) / (va + vb + vc)
         return a + ab * (vb * denom) + ac * (vc * denom)
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def closest_on_mesh(
         mesh: wp.uint64,
         x: wp.array(dtype=vec3),
@@ -188,7 +188,7 @@ def _kernels(scalar):
             closest[i] = c
             code[i] = wp.where(inside != 0, 0, 1)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def mesh_term(
         x: wp.array(dtype=vec3),
         closest: wp.array(dtype=vec3),

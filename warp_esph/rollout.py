@@ -96,7 +96,7 @@ def _kernels(scalar):
     T = type_set(scalar)
     vec3 = T.vec3
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def add_vec3(src: wp.array(dtype=vec3), dst: wp.array(dtype=vec3)):
         i = wp.tid()
         dst[i] = dst[i] + src[i]

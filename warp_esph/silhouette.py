@@ -212,7 +212,7 @@ def _kernels(scalar):
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def splat(
         x: wp.array(dtype=vec3),
         R: mat33,
@@ -253,7 +253,7 @@ def _kernels(scalar):
         a = opacity * wp.exp(-(du * du + dv * dv) / (scalar(2.0) * s * s))
         wp.atomic_add(log_t, qj * width + qi, wp.log(scalar(1.0) - a))
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def compare(log_t: wp.array(dtype=scalar), mask: wp.array(dtype=scalar), w: scalar, out: wp.array(dtype=scalar)):
         q = wp.tid()
         r = scalar(1.0) - wp.exp(log_t[q]) - mask[q]

@@ -41,7 +41,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     third = scalar(1.0 / 3.0)
     cf = curvature.funcs(scalar)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def constitutive_update(
         F_in: wp.array(dtype=mat33),
         alpha_in: wp.array(dtype=scalar),
@@ -100,7 +100,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             stress_out[i] = stress(Fe, mu, lam, kind)
             F_inv_out[i] = Fe_inv
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def update_deformation(
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
@@ -157,7 +157,7 @@ def kernels(scalar) -> types.SimpleNamespace:
 
     fn = forces.funcs(scalar)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def rest_variational_forces(
         rest_x: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),

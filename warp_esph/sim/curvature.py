@@ -473,7 +473,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     fn = funcs(scalar)
     Materials = materials.struct(scalar)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def update_deformation(
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
@@ -503,7 +503,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def update_deformation_adjoint(
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
@@ -575,7 +575,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         wp.atomic_add(adj_x, i, gx_i)
         wp.atomic_add(adj_y, i, gy_i)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def elastic_forces(
         x: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
@@ -617,7 +617,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 fi += fn.floor_image_forces(i, x, body, nbr, count[i], M, K, Mg, Kg, h, gn, goff, gmin, f)
         wp.atomic_add(f, i, fi)
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def variational_forces_adjoint(
         x: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),

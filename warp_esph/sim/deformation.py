@@ -390,7 +390,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     vec3, mat33 = T.vec3, T.mat33
     fn = funcs(scalar)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def update_deformation(
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
@@ -417,7 +417,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def update_deformation_adjoint(
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),

@@ -49,7 +49,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3 = T.vec3
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def add_compression(
         x: wp.array(dtype=vec3),
         mass: wp.array(dtype=scalar),

@@ -295,7 +295,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     floor_image_jacobian = deformation.funcs(scalar).floor_image_jacobian
     Materials = materials.struct(scalar)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def elastic_forces(
         x: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
@@ -337,7 +337,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 fi += fn.floor_image_forces(i, x, body, nbr, count[i], M, Mg, h, gn, goff, gmin, f)
         wp.atomic_add(f, i, fi)
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def elastic_forces_adjoint(
         x: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
@@ -415,7 +415,7 @@ def kernels(scalar) -> types.SimpleNamespace:
 
     guard_code = neighbors.kernels(scalar).guard_code
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def variational_forces_adjoint(
         x: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),

@@ -52,7 +52,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     df = deformation.funcs(scalar)
     Materials = materials.struct(scalar)
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def constitutive_forces(
         x: wp.array(dtype=vec3),
         v: wp.array(dtype=vec3),
@@ -202,7 +202,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                                         mat, h, c6, c_spiky, c_visc, gn, goff, gmin)
         wp.atomic_add(f, i, fi)
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def update_deformation(
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
@@ -244,7 +244,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def displacements(x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
                       y_lo: wp.array(dtype=vec3), u: wp.array(dtype=vec3)):
         """Each particle's ``deformation.displacement`` over the step, for ``update_deformation``."""

@@ -111,7 +111,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         derivative through ``G_i`` vanishes)."""
         return coef * sm.w_poly6_c(wp.dot(Xb, Xb), h, c6) * (xb - G * Xb)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def hourglass_forces(
         x: wp.array(dtype=vec3),
         rest: wp.array(dtype=vec3),

@@ -114,7 +114,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
     fn = funcs(scalar, n_planes, n_spheres, n_boxes)
     StaticColliders = struct(scalar)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def integrate(
         x_in: wp.array(dtype=vec3),
         x_lo_in: wp.array(dtype=vec3),
@@ -139,7 +139,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
         x_lo_out[i] = fn.placed_round_off(x, xe, x_lo)
         v_out[i] = v
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def accumulate(src: wp.array(dtype=vec3), scale: scalar, dst: wp.array(dtype=vec3)):
         k = wp.tid()
         dst[k] = dst[k] + scale * src[k]

@@ -186,7 +186,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             else:
                 child = n
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def grid_points(x: wp.array(dtype=vec3), world: wp.array(dtype=wp.int32), stride: wp.float32, out: wp.array(dtype=wp.vec3f)):
         """float32 points for the hash grid with x and z swapped: its query visits cells
         with the first coordinate fastest, so bodies sampled in lattice order (z fastest,
@@ -201,7 +201,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             shift = wp.float32(world[i]) * stride
         out[i] = wp.vec3f(wp.float32(p[2]), wp.float32(p[1]), wp.float32(p[0]) + shift)
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def build_candidates(
         grid: wp.uint64,
         grid_points: wp.array(dtype=wp.vec3f),
@@ -264,7 +264,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             cand[i, b] = v
         x_ref[i] = xi
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def displacement_bounds(
         x: wp.array(dtype=vec3),
         x_ref: wp.array(dtype=vec3),
@@ -294,7 +294,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         if e2 > out[6]:
             wp.atomic_max(out, 6, e2)
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def select_neighbors(
         x: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),

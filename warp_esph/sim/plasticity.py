@@ -188,7 +188,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     stress = forces.funcs(scalar).stress
     Materials = materials.struct(scalar)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def constitutive_update(
         F_in: wp.array(dtype=mat33),
         F_lo_in: wp.array(dtype=mat33),
@@ -256,7 +256,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         return vec3(skew_coefficient(g[0], g[1], s[0], s[1]), skew_coefficient(g[0], g[2], s[0], s[2]),
                     skew_coefficient(g[1], g[2], s[1], s[2]))
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def constitutive_update_adjoint(
         F_in: wp.array(dtype=mat33),
         alpha_in: wp.array(dtype=scalar),

@@ -244,7 +244,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     image_row_particle = deformation.image_row_particle
     Materials = materials.struct(scalar)
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def density(
         x: wp.array(dtype=vec3),
         mass: wp.array(dtype=scalar),
@@ -279,7 +279,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             r += fn.image_density(i, x, mass, nbr, count[i], h, c6, c_ws, form, gn, goff, gmin)
         rho[i] = r
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def pressure_forces(
         x: wp.array(dtype=vec3),
         v: wp.array(dtype=vec3),
@@ -329,7 +329,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                                            material, mat, h, c6, c_spiky, c_visc, gn, goff, gmin)
         wp.atomic_add(f, i, fi)
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def density_adjoint(
         x: wp.array(dtype=vec3),
         mass: wp.array(dtype=scalar),
@@ -391,7 +391,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 out = scalar(0.0)
         return out
 
-    @wp.kernel(enable_backward=False)
+    @wp.kernel(enable_backward=False, module="unique")
     def pressure_forces_adjoint(
         x: wp.array(dtype=vec3),
         v: wp.array(dtype=vec3),
