@@ -351,7 +351,10 @@ def test_sigint_during_start_up_exits_130_without_traceback(tmp_path, delay):
     pxr was importing, and the run went on.)"""
     env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
     proc = subprocess.Popen(
-        [sys.executable, "-m", "warp_esph", "run", "-o", str(tmp_path / "x.usdc"), "--frames", "30", *SMALL],
+        # 600 frames: the run must still be going when the signal lands. With 30 it ended in
+        # about 1 s on a warm kernel cache, and the 1.0 s case then hit the interpreter's
+        # shutdown, which puts the default handlers back (killed by SIGINT: -2).
+        [sys.executable, "-m", "warp_esph", "run", "-o", str(tmp_path / "x.usdc"), "--frames", "600", *SMALL],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal, also under a background runner
     )
