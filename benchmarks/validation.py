@@ -56,6 +56,10 @@ REST_RATE, REST_KINETIC = 0.1, 1.0e-8
 #: (under the variational force and energy_spiky pressure the S = 0.3 and 0.05 piles at 8 across
 #: still sink at 0.56 and 0.67 % H0/s at 4 s).
 SLUMP_DURATION = 8.0
+#: The 16-across slumps run longer: the finer pile settles more slowly (S = 0.1 at 16 across:
+#: the top still below the rate bound, but the largest kinetic energy 3.6e-8 M g H0 over
+#: 6-8 s, 1.7e-9 over 10-12 s; docs/validation.md).
+SLUMP_DURATION_FINE = 12.0
 #: Nominal strain amplitudes of the energy runs (the measured peak strain is reported).
 SMALL, LARGE = 0.002, 0.05
 
@@ -1425,7 +1429,7 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
         runs.append(("spread", {"resolution": res, "shallowness": 0.25, "duration": 14.0}))
     runs.append(("spread", {"resolution": 3, "shallowness": 0.18, "duration": 8.0}))
     for S in (0.1, 0.2, 0.3, 0.5):
-        runs.append(("slump", {"S": S, "resolution": 16, "elastic_force": "variational", "duration": SLUMP_DURATION}))
+        runs.append(("slump", {"S": S, "resolution": 16, "elastic_force": "variational", "duration": SLUMP_DURATION_FINE}))
     return runs
 
 
