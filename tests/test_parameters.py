@@ -61,3 +61,35 @@ def test_stable_dt_follows_the_parameter_arrays():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         solver.check_dt(0.5 * viscous)
+
+
+def test_a_step_reads_the_parameter_arrays_back_once_and_still_sees_every_write(monkeypatch):
+    """The start of a step asks three questions of the parameter arrays (the fit and control
+    by material, the stable step, whether SPH runs): one read-back answers them (each read of
+    a device array waits for the device; it was 9 of a step's 12). A write between steps,
+    as a fit or torch makes in place, is still seen by the next step."""
+    mat = we.Material(mu=1.0e3, lam=1.5e3, density=1000.0, yield_stress=50.0, flow_rate=10.0, viscosity=0.0,
+                      pressure_stiffness=0.0, elastic_force="variational")
+    b = we.SceneBuilder(spacing=0.02, support_radius=0.05)
+    b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), mat)
+    model = b.finalize()
+    solver = we.Solver(model)
+    a, c = model.state(), model.state()
+    dt = 0.5 * model.stable_dt()
+    solver.step(a, c, dt)
+    assert solver.fit == "linear" and not model.sph_active  # it can flow; no SPH
+    reads = []
+    original = wp.array.numpy
+    monkeypatch.setattr(wp.array, "numpy", lambda self: reads.append(self.shape) or original(self))
+    solver.step(c, a, dt)
+    monkeypatch.setattr(wp.array, "numpy", original)
+    parameter_reads = [s for s in reads if s == (len(model.MATERIAL_FIELDS) * len(model.materials),)]
+    assert len(parameter_reads) == 1 and len(reads) <= 3, reads
+    # In place, between steps: viscosity on (SPH runs, the step limit falls), flow off (the
+    # material is elastic only: "auto" picks the curvature-corrected fit).
+    model.viscosity.assign(np.array([100.0], dtype=np.float32))
+    model.flow_rate.assign(np.array([0.0], dtype=np.float32))
+    with pytest.warns(RuntimeWarning, match="stability limit"):
+        solver.step(a, c, dt)
+    assert model.sph_active and solver.fit == "curvature_corrected"
+    assert model.stable_dt() < dt

@@ -9,6 +9,7 @@ nothing is allocated inside the step.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from collections.abc import Sequence
 
@@ -189,6 +190,8 @@ class Model:
         self.materials = list(materials)
         self._material_struct = None  # material_arrays' struct and what it was built from
         self._stable_dt = None  # stable_dt's last answer and what it was computed from
+        self._parameter_stage = None  # _read_parameters's one buffer (allocated on first use)
+        self._held_parameters = None  # _read_parameters's answer inside _parameters_read_once
         self.bodies = list(bodies)
         self.planes, self.spheres, self.boxes = list(planes), list(spheres), list(boxes)
         self.contact_ramp = CONTACT_RAMP
@@ -355,8 +358,8 @@ class Model:
         ``fit="auto"`` runs with the curvature-corrected fit and the hourglass control."""
         if self.uses_comparison_models or any(m.elastic_force != "variational" for m in self.materials):
             return False
-        y, rate = self.yield_stress.numpy(), self.flow_rate.numpy()
-        return bool(np.all(~np.isfinite(y) | (rate <= 0.0)))
+        rows = dict(zip(self.MATERIAL_FIELDS, self._read_parameters()))
+        return bool(np.all(~np.isfinite(rows["yield_stress"]) | (rows["flow_rate"] <= 0.0)))
 
     def solver_choice(self, fit: str | None = None, hourglass: float | None = None) -> tuple[str, float]:
         """``(fit, c)``: the incremental fit and the hourglass strength a ``Solver(model, fit=fit,
@@ -519,13 +522,46 @@ class Model:
                     spheres=self.spheres, boxes=self.boxes, max_neighbors=self.max_neighbors,
                     bodies_interact=self.bodies_interact, device=self.device, scalar=self.scalar)
 
+    def _read_parameters(self) -> np.ndarray:
+        """The ``MATERIAL_FIELDS`` arrays as one host array (a row each), read in one
+        transfer: they are copied on the device into one buffer first, since each read of a
+        device array waits for the device and the step asks every step (``stable_dt``,
+        ``sph_active``). The buffer has no gradient, so a recording tape takes no note of the
+        copies."""
+        if self._held_parameters is not None:
+            return self._held_parameters.copy()
+        arrays = [getattr(self, name) for name in self.MATERIAL_FIELDS]
+        n = arrays[0].shape[0]
+        stage = self._parameter_stage
+        if stage is None or stage.shape[0] != len(arrays) * n or stage.dtype != arrays[0].dtype:
+            stage = self._parameter_stage = wp.empty(len(arrays) * n, dtype=arrays[0].dtype, device=self.device)
+        for k, arr in enumerate(arrays):
+            wp.copy(stage, arr, dest_offset=k * n, count=n)
+        return stage.numpy().reshape(len(arrays), n).copy()
+
+    @contextlib.contextmanager
+    def _parameters_read_once(self):
+        """Inside, every question about the parameter arrays (``elastic_only``,
+        ``sph_active``, ``stable_dt``, ``parameter_values``) is answered from one read made on
+        entry: the start of ``Solver.step`` asks all three, and nothing writes the arrays
+        there."""
+        self._held_parameters = None
+        self._held_parameters = self._read_parameters()
+        try:
+            yield
+        finally:
+            self._held_parameters = None
+
     def parameter_values(self) -> dict[str, np.ndarray]:
         """The current per-material parameters (``MATERIAL_FIELDS``), read from the arrays
         the kernels use: after a fit or ``warp_esph.torch`` wrote them, these differ from
         ``materials`` (which ``set_material`` keeps in step)."""
+        return self._parameter_values(self._read_parameters())
+
+    def _parameter_values(self, rows: np.ndarray) -> dict[str, np.ndarray]:
         out = {}
-        for name in self.MATERIAL_FIELDS:
-            current = getattr(self, name).numpy().astype(np.float64)
+        for name, row in zip(self.MATERIAL_FIELDS, rows):
+            current = row.astype(np.float64)
             declared = np.array([getattr(m, name) for m in self.materials], dtype=np.float64)
             # Where the array still holds the material's value (rounded to the model's
             # precision), the material's exact float: stable_dt then does not depend on
@@ -537,7 +573,8 @@ class Model:
     @property
     def sph_active(self) -> bool:
         """Whether any material has SPH pressure or viscosity now (``parameter_values``)."""
-        return bool((self.pressure_stiffness.numpy() > 0.0).any() or (self.viscosity.numpy() > 0.0).any())
+        rows = dict(zip(self.MATERIAL_FIELDS, self._read_parameters()))
+        return bool((rows["pressure_stiffness"] > 0.0).any() or (rows["viscosity"] > 0.0).any())
 
     def stable_dt(self, courant: float = 0.3, hourglass: float | None = None) -> float:
         """Explicit limit over all materials, from the current parameters
@@ -574,17 +611,18 @@ class Model:
         # Solver.check_dt asks every step; the answer is kept while the parameter arrays hold
         # the same values (a fit or torch writes them in place) and the materials and settings
         # are the same.
-        key = (tuple(getattr(self, name).numpy().tobytes() for name in self.MATERIAL_FIELDS), tuple(self.materials),
+        rows = self._read_parameters()
+        key = (rows.tobytes(), tuple(self.materials),
                self.fit, self._hourglass, self.spacing, self.support_radius, courant, hourglass)
         cached = self._stable_dt
         if cached is not None and cached[0] == key:
             return cached[1]
-        dt = self._stable_dt_now(courant, hourglass)
+        dt = self._stable_dt_now(courant, hourglass, rows)
         self._stable_dt = (key, dt)
         return dt
 
-    def _stable_dt_now(self, courant: float, hourglass: float | None) -> float:
-        p = self.parameter_values()
+    def _stable_dt_now(self, courant: float, hourglass: float | None, rows: np.ndarray) -> float:
+        p = self._parameter_values(rows)
         rho = np.array([m.density for m in self.materials], dtype=np.float64)
         c = p_wave_speed(p["mu"], p["lam"], rho, p["pressure_stiffness"])
         dt = courant * self.spacing / float(np.max(c))

@@ -315,12 +315,13 @@ class Solver:
     def step(self, state_in: State, state_out: State, dt: float):
         """One step of the method, stage by stage (docs/physics.md has the table)."""
         checks.step_states(self.model, state_in, state_out)
-        if self._auto:
-            self._choose()
-        dt = self.check_dt(dt)
         m = self.model
+        with m._parameters_read_once():  # one read-back of the parameter arrays for the three
+            if self._auto:
+                self._choose()
+            dt = self.check_dt(dt)
+            sph = m.sph_active
         scratch = self.scratch
-        sph = m.sph_active
         tape = recording_tape()
         hand = self._hand()
         fast = self.fused and not self._cmp and not self._curved and (tape is None or self._fast_under_tape(state_in, state_out))
