@@ -500,6 +500,31 @@ def squeeze(res=8, L=0.05, S=0.2, H0=0.1, strain=0.06, rate=0.25, cfl=0.3):
             "wall_s": wall}
 
 
+#: The particle solver's slump (docs/validation.md, variational force, particle floor, 8 s; by
+#: thickness against the 1-D height, %) at 12 and 16 particles across the diameter.
+PARTICLE_SOLVER_PCT = {0.1: (1.0, -0.3), 0.2: (-15.6, -14.5), 0.3: (-4.0, -10.1), 0.5: (3.9, 0.3)}
+
+
+def table(rows):
+    """The markdown table of docs/validation.md's "An independent reference: MPM" from slump rows."""
+    head = ("| S | aspect | plasticity | dx | particles | t (s) | MPM thickness/H0 | vs 1-D | top on axis/H0 | "
+            "R/R0 | top rate (% H0/s) | KE (M g H0) | at rest | 1-D h/H0 | particle solver 12 / 16 across | wall (s) |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for r in sorted(rows, key=lambda r: (r["aspect"], r["S"], r["flow_rate"] == 0, r.get("gravity_ramp_s", 0),
+                                         r["res_cells_per_H0"])):
+        ps = PARTICLE_SOLVER_PCT.get(r["S"]) if r["aspect"] == 1.0 else None
+        plast = "Bingham, flow rate %g /s" % r["flow_rate"] if r["flow_rate"] > 0 else "rate-independent"
+        if r.get("gravity_ramp_s", 0) > 0:
+            plast += ", g ramped over %g s" % r["gravity_ramp_s"]
+        lines.append(
+            f"| {r['S']} | {r['aspect']:g} | {plast} | H0/{r['res_cells_per_H0']} | {r['particles']} | "
+            f"{r['duration']:.1f} | {r['thickness_over_H0']:.4f} | {r['thickness_vs_theory_pct']:+.1f} % | "
+            f"{r['top_on_axis_over_H0']:.4f} | {r['radius_over_R0']:.2f} | {r['top_rate_pct_H0_per_s']:.3f} | "
+            f"{r['kinetic_last_quarter_over_MgH0']:.1e} | {'yes' if r['at_rest'] else 'no'} | "
+            f"{r['theory_h_over_H0']:.4f} | {'%+.1f / %+.1f %%' % ps if ps else '–'} | {r['wall_s']:.0f} |")
+    return "\n".join(lines)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--S", type=float, nargs="*", default=[])
@@ -515,7 +540,13 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="the closed-form checks at CI size")
     ap.add_argument("--json", help="append the results to this JSON list")
     ap.add_argument("--save", help="save the final particles of each slump (npz) to this prefix")
+    ap.add_argument("--table", help="print the markdown table of the slump rows in this JSON and exit")
     args = ap.parse_args(argv)
+    if args.table:
+        data = json.loads(pathlib.Path(args.table).read_text())
+        rows = data["slumps"] if isinstance(data, dict) else data
+        print(table([r for r in rows if r.get("method") == "MLS-MPM"]))
+        return rows
     wp.config.quiet = True
     wp.init()
     rows = []
