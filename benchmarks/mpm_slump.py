@@ -54,8 +54,8 @@ so particles across are ``2 res``).
 
 **Time step.** ``dt = cfl dx / c`` with ``c = sqrt((lam + 2 mu) / rho)`` the P-wave speed and
 ``cfl`` = 0.3, and at most half the viscous limit ``rho dx^2 / (6 eta)`` (far above it here).
-The particle speed is not checked against the step (the slumps' peak speeds, below 1 m/s, move a
-particle less than 0.1 dx per step at these steps).
+The particle speed is not checked against the step: in the slump it is bounded by the free-fall
+speed sqrt(2 g H0) = 1.4 m/s, 0.07 dx per step at any ``res`` (dt is proportional to dx).
 
 **Measures** (every 0.05 s): the kinetic energy of the particles, the top on the axis (the
 highest particle within ``R0 / 2`` of it plus half a particle spacing), the material's thickness
