@@ -132,17 +132,24 @@ def von_mises_return(eps: wp.vec3, mu: float, Y: float, relax: float):
     return eps, 0.0
 
 
+@wp.func
+def stencil_base(xp: wp.vec3, lo: wp.vec3, inv_dx: float):
+    """The lowest node of a particle's 3x3x3 stencil and its position from that node, in cells."""
+    X = (xp - lo) * inv_dx
+    base = wp.vec3i(int(X[0] - 0.5), int(X[1] - 0.5), int(X[2] - 0.5))
+    return base, X - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+
+
 @wp.kernel
 def p2g(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
         tau: wp.array(dtype=wp.mat33), J: wp.array(dtype=float), mp: float, vp0: float, eta: float,
         dt: float, dx: float, lo: wp.vec3, gm: wp.array3d(dtype=float), gmv: wp.array3d(dtype=wp.vec3)):
     p = wp.tid()
     inv_dx = 1.0 / dx
-    X = (x[p] - lo) * inv_dx
-    bi = int(X[0] - 0.5)
-    bj = int(X[1] - 0.5)
-    bk = int(X[2] - 0.5)
-    fx = X - wp.vec3(float(bi), float(bj), float(bk))
+    base, fx = stencil_base(x[p], lo, inv_dx)
+    bi = base[0]
+    bj = base[1]
+    bk = base[2]
     W = bspline_weights(fx)
     Cp = C[p]
     viscous = (eta * J[p]) * (Cp + wp.transpose(Cp))  # Kirchhoff form of 2 eta D
@@ -200,11 +207,10 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
         mu: float, lam: float, Y: float, relax: float, dt: float, dx: float, lo: wp.vec3):
     p = wp.tid()
     inv_dx = 1.0 / dx
-    X = (x[p] - lo) * inv_dx
-    bi = int(X[0] - 0.5)
-    bj = int(X[1] - 0.5)
-    bk = int(X[2] - 0.5)
-    fx = X - wp.vec3(float(bi), float(bj), float(bk))
+    base, fx = stencil_base(x[p], lo, inv_dx)
+    bi = base[0]
+    bj = base[1]
+    bk = base[2]
     W = bspline_weights(fx)
     nv = wp.vec3(0.0)
     nC = wp.mat33(0.0)
