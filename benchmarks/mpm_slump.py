@@ -19,7 +19,8 @@ quadratic B-spline weights on a uniform grid of spacing ``dx``:
   tau_p) (x_i - x_p)`` (``tau_p`` the total Kirchhoff stress, ``C_p`` the APIC affine velocity
   matrix, which is the particle's velocity gradient);
 * grid: ``v_i = p_i / m_i + dt g``; nodes at ``y <= 0`` are the floor: no-slip (all velocity
-  set to zero, "sticky", the slump) or slip (``v_y = 0`` only, the column check); the domain's
+  set to zero, "sticky", the slump's default), slip (``v_y = 0`` only, the column check) or
+  Coulomb (``--floor-friction``); the domain's
   side and top walls are sticky (the material never reaches them: the run stops if it does);
 * G2P: ``v_p = sum w v_i``, ``C_p = (4/dx^2) sum w v_i (x_i - x_p)^T``, ``x_p += dt v_p``,
   ``F_p <- (I + dt C_p) F_p``, then the return mapping below.
@@ -166,7 +167,7 @@ def p2g(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
 
 @wp.kernel
 def grid_update(gm: wp.array3d(dtype=float), gmv: wp.array3d(dtype=wp.vec3), gravity: wp.vec3, dt: float,
-                damping: float, sticky_floor: int, wall: int):
+                damping: float, floor_friction: float, wall: int):
     i, j, k = wp.tid()
     m = gm[i, j, k]
     if m <= 0.0:
@@ -177,10 +178,16 @@ def grid_update(gm: wp.array3d(dtype=float), gmv: wp.array3d(dtype=wp.vec3), gra
     nj = gm.shape[1]
     nk = gm.shape[2]
     if j <= FLOOR_PAD:
-        if sticky_floor != 0:
+        if floor_friction < 0.0:
             vel = wp.vec3(0.0)
         else:
-            vel = wp.vec3(vel[0], 0.0, vel[2])
+            # Coulomb: the floor takes the normal velocity and, with it, at most friction x that
+            # much of the tangential one (the impulse ratio is the force ratio).
+            tangential = wp.vec3(vel[0], 0.0, vel[2])
+            speed = wp.length(tangential)
+            if vel[1] < 0.0 and speed > 0.0:
+                tangential = tangential * (wp.max(0.0, speed + floor_friction * vel[1]) / speed)
+            vel = tangential
     if i < wall or i >= ni - wall or k < wall or k >= nk - wall or j >= nj - wall:
         vel = wp.vec3(0.0)
     gmv[i, j, k] = vel
@@ -246,8 +253,9 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
 class MPM:
     """A minimal MLS-MPM of one material on a box grid [lo, lo + n dx] with the floor at y = 0."""
 
-    def __init__(self, points, spacing, dx, mu, lam, Y, eta, half_width, height, sticky_floor=True,
+    def __init__(self, points, spacing, dx, mu, lam, Y, eta, half_width, height, floor_friction=-1.0,
                  cfl=0.3, damping=0.0, flow_rate=0.0, device="cpu"):
+        # floor_friction < 0: sticky (no-slip) floor nodes; 0: slip; > 0: Coulomb friction.
         self.device = device
         self.dx, self.mu, self.lam, self.Y, self.eta = float(dx), float(mu), float(lam), float(Y), float(eta)
         self.vp0 = float(spacing) ** 3
@@ -265,7 +273,7 @@ class MPM:
         self.relax = float(flow_rate) * self.dt  # 0: rate-independent plasticity
         self.damping_rate = float(damping)
         self.damping = math.exp(-damping * self.dt)
-        self.sticky = 1 if sticky_floor else 0
+        self.floor_friction = float(floor_friction)
         n = len(points)
         self.n = n
         z3 = np.zeros((n, 3), np.float32)
@@ -297,7 +305,7 @@ class MPM:
         if self.ramp > 0.0:
             g = g * min(1.0, (self.t + self.dt) / self.ramp)
         wp.launch(grid_update, self.shape, inputs=[self.gm, self.gmv, g, self.dt, self.damping,
-                                                   self.sticky, 3], device=d)
+                                                   self.floor_friction, 3], device=d)
         if self.plate is not None:
             self.plate_force.zero_()
             wp.launch(plate_update, self.shape, inputs=[self.gm, self.gmv, self.plate[0], self.plate[1],
@@ -325,7 +333,7 @@ def material(S, H0=0.1, stiffness=10.0):
 
 # --------------------------------------------------------------------------- the slump
 def slump(S, res=16, aspect=1.0, H0=0.1, duration=8.0, max_duration=16.0, eta=2.0, flow_rate=0.0, ramp=0.0, cfl=0.3, sample_dt=0.05,
-          half_width=None, save=None, log=None):
+          half_width=None, save=None, log=None, floor_friction=-1.0):
     """The slump of ``benchmarks.validation.slump``'s cylinder in the MPM: a dict of measures."""
     R0 = H0 / (2.0 * aspect)
     dx = H0 / res
@@ -337,7 +345,7 @@ def slump(S, res=16, aspect=1.0, H0=0.1, duration=8.0, max_duration=16.0, eta=2.
     mu, lam, Y = material(S, H0)
     if half_width is None:
         half_width = max(3.2 * R0, 0.16)
-    sim = MPM(pts, s, dx, mu, lam, Y, eta, half_width, H0 + 2 * dx, sticky_floor=True, cfl=cfl,
+    sim = MPM(pts, s, dx, mu, lam, Y, eta, half_width, H0 + 2 * dx, floor_friction=floor_friction, cfl=cfl,
               flow_rate=flow_rate)
     sim.ramp = float(ramp)
     vol0 = np.full(len(pts), sim.vp0)
@@ -424,7 +432,9 @@ def slump(S, res=16, aspect=1.0, H0=0.1, duration=8.0, max_duration=16.0, eta=2.
         "method": "MLS-MPM", "S": S, "aspect": aspect, "res_cells_per_H0": res, "dx": dx,
         "particles_across": int(round(2 * R0 / s)), "particles": int(len(pts)), "particles_per_cell": 8,
         "dt": sim.dt, "duration": sim.t, "steps": int(round(sim.t / sim.dt)), "eta": eta, "cfl": cfl,
-        "flow_rate": flow_rate, "gravity_ramp_s": ramp, "plasticity": "Bingham (Perzyna)" if flow_rate > 0 else "rate-independent",
+        "flow_rate": flow_rate, "gravity_ramp_s": ramp,
+        "floor": "sticky" if floor_friction < 0 else ("slip" if floor_friction == 0 else "Coulomb %g" % floor_friction),
+        "plasticity": "Bingham (Perzyna)" if flow_rate > 0 else "rate-independent",
         "thickness_over_H0": th, "theory_h_over_H0": theory, "thickness_vs_theory_pct": 100.0 * (th / theory - 1.0),
         "top_on_axis_over_H0": TOP[-1] / H0, "top_vs_theory_pct": 100.0 * (TOP[-1] / H0 / theory - 1.0),
         "top_per_quarter_R0_band_over_H0": bands,
@@ -459,7 +469,7 @@ def column(res=16, L=0.1, width=0.04, stiffness=10.0, duration=0.6, damping=60.0
     mu = stiffness * RHO * G * L
     lam = 1.5 * mu
     E = mu * (3 * lam + 2 * mu) / (lam + mu)
-    sim = MPM(pts, s, dx, mu, lam, 1e30, 0.0, width, L + 2 * dx, sticky_floor=False, cfl=cfl, damping=damping)
+    sim = MPM(pts, s, dx, mu, lam, 1e30, 0.0, width, L + 2 * dx, floor_friction=0.0, cfl=cfl, damping=damping)
     t0 = time.perf_counter()
     while sim.t < duration:
         sim.step()
@@ -489,7 +499,7 @@ def squeeze(res=8, L=0.05, S=0.2, H0=0.1, strain=0.06, rate=0.25, cfl=0.3):
     n = int(round(L / s))
     pts = _lattice(n, n, n, s, (-0.5 * L, 0.0, -0.5 * L))
     mu, lam, Y = material(S, H0)
-    sim = MPM(pts, s, dx, mu, lam, Y, 0.0, 1.5 * L, L + 2 * dx, sticky_floor=False, cfl=cfl)
+    sim = MPM(pts, s, dx, mu, lam, Y, 0.0, 1.5 * L, L + 2 * dx, floor_friction=0.0, cfl=cfl)
     sim.gravity = wp.vec3(0.0, 0.0, 0.0)
     # The plate: its nodes are those at or above the cube's top node row; it moves with them.
     j_top = int(round(L / dx)) + FLOOR_PAD
@@ -531,11 +541,13 @@ def table(rows):
             "R/R0 | top rate (% H0/s) | KE (M g H0) | at rest | 1-D h/H0 | particle solver 12 / 16 across | wall (s) |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in sorted(rows, key=lambda r: (r["aspect"], r["S"], r["flow_rate"] == 0, r.get("gravity_ramp_s", 0),
-                                         r["res_cells_per_H0"])):
+                                         r.get("floor", "sticky") != "sticky", r["res_cells_per_H0"])):
         ps = PARTICLE_SOLVER_PCT.get(r["S"]) if r["aspect"] == 1.0 else None
         plast = "Bingham, flow rate %g /s" % r["flow_rate"] if r["flow_rate"] > 0 else "rate-independent"
         if r.get("gravity_ramp_s", 0) > 0:
             plast += ", g ramped over %g s" % r["gravity_ramp_s"]
+        if r.get("floor", "sticky") != "sticky":
+            plast += ", %s floor" % r["floor"]
         lines.append(
             f"| {r['S']} | {r['aspect']:g} | {plast} | H0/{r['res_cells_per_H0']} | {r['particles']} | "
             f"{r['duration']:.1f} | {r['thickness_over_H0']:.4f} | {r['thickness_vs_theory_pct']:+.1f} % | "
@@ -555,6 +567,8 @@ def main(argv=None):
     ap.add_argument("--flow-rate", type=float, default=0.0,
                     help="0: rate-independent plasticity; else the Bingham relaxation rate (1/s)")
     ap.add_argument("--ramp", type=float, default=0.0, help="gravity ramped from 0 over this time (s); 0: at once")
+    ap.add_argument("--floor-friction", type=float, default=-1.0,
+                    help="the slump's floor: < 0 sticky (no-slip, the default), 0 slip, > 0 Coulomb friction")
     ap.add_argument("--column", action="store_true")
     ap.add_argument("--squeeze", action="store_true")
     ap.add_argument("--quick", action="store_true", help="the closed-form checks at CI size")
@@ -567,7 +581,7 @@ def main(argv=None):
         rows = data["slumps"] if isinstance(data, dict) else data
         print(table([r for r in rows if r.get("method") == "MLS-MPM"]))
         return rows
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING
     wp.init()
     rows = []
     if args.quick or args.column:
@@ -580,9 +594,10 @@ def main(argv=None):
         rows.append(r)
     for S in args.S:
         for res in args.res:
-            save = f"{args.save}_S{S}_a{args.aspect}_r{res}_f{args.flow_rate:g}_g{args.ramp:g}.npz" if args.save else None
+            save = f"{args.save}_S{S}_a{args.aspect}_r{res}_f{args.flow_rate:g}_g{args.ramp:g}_m{args.floor_friction:g}.npz" if args.save else None
             r = slump(S, res, aspect=args.aspect, duration=args.duration, max_duration=args.max_duration,
-                      flow_rate=args.flow_rate, ramp=args.ramp, save=save, log=sys.stdout)
+                      flow_rate=args.flow_rate, ramp=args.ramp, save=save, log=sys.stdout,
+                      floor_friction=args.floor_friction)
             print(json.dumps({k: v for k, v in r.items() if k not in ("history", "axis_layers")}), flush=True)
             rows.append(r)
             if args.json:

@@ -30,3 +30,31 @@ def test_squeezed_block_flows_at_the_uniaxial_yield_stress():
     # and reads a few percent low: the layer of cells at each plate is held (docs/validation.md).
     assert 0.8 < r["plate_stress_over_sigma_y"] < 1.1
     assert math.isfinite(r["wall_s"])
+
+
+def test_coulomb_floor_decelerates_a_sliding_block_at_friction_times_g():
+    """The slump's floor options (docs/validation.md, the MPM note: slip against no-slip): a
+    stiff block sliding on the floor keeps its speed on a slip floor and loses friction x g per
+    second on a Coulomb one (the floor nodes' tangential impulse is capped by friction x their
+    normal one)."""
+    import numpy as np
+    import warp as wp
+
+    def slide(friction, v0=0.2, duration=0.02):
+        dx = 0.005
+        s = 0.5 * dx
+        pts = mpm_slump._lattice(8, 4, 8, s, (-0.01, 0.0, -0.01))
+        mu = 2000.0 * mpm_slump.RHO * mpm_slump.G * 0.01
+        sim = mpm_slump.MPM(pts, s, dx, mu, 1.5 * mu, 1e30, 0.0, 0.04, 0.01 + 2 * dx, floor_friction=friction)
+        v = np.zeros((len(pts), 3), np.float32)
+        v[:, 0] = v0
+        sim.v = wp.array(v, dtype=wp.vec3)
+        while sim.t < duration:
+            sim.step()
+        return float(sim.v.numpy()[:, 0].mean()), sim.t
+
+    v, _ = slide(0.0)
+    assert v == pytest.approx(0.2, rel=1e-4)
+    v, t = slide(0.25)
+    lost = 0.2 - v
+    assert lost == pytest.approx(0.25 * mpm_slump.G * t, rel=0.03)
