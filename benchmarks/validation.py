@@ -104,7 +104,7 @@ def _deviatoric_norm(F: np.ndarray, mu: float) -> np.ndarray:
 
 
 # --------------------------------------------------------------------- floors
-FLOORS = ("ground", "particles", "ground_images")
+FLOORS = ("ground", "particles", "ground_images", "elastic_particles")
 #: Layers of pinned particles under a body on a ``floor="particles"`` (two: a particle's fit
 #: reaches one spacing below it at the default support radius 2 dx, and so sees an interior
 #: neighbourhood at the base).
@@ -124,15 +124,17 @@ def _add_on_floor(b, points: np.ndarray, material, floor: str, radius: float, fr
     ground collider with Coulomb ``friction``; ``"particles"``, FLOOR_LAYERS layers of pinned
     particles of the same body (so in every fit) under a disc of ``radius`` on the body's
     lattice (``SceneBuilder.add_particle_floor``): a rough floor whose first layer of
-    material has an interior neighbourhood. Returns the mask of the free particles (all of
-    them on the ground)."""
+    material has an interior neighbourhood; ``"elastic_particles"``, the same floor made
+    elastic (``add_particle_floor(elastic=True)``: it holds the material within a support
+    radius of it, docs/physics.md, "The floor's plasticity"). Returns the mask of the free
+    particles (all of them on the ground)."""
     b.add_particles(points, material, name=name)
     if floor in ("ground", "ground_images"):
         b.add_ground(0.0, friction=friction, images=floor == "ground_images")
         return np.ones(len(points), dtype=bool)
     # A margin of radius + dx reaches the whole disc from the column nearest the axis.
     b.add_particle_floor(name, margin=radius + b.spacing, layers=layers, name="floor",
-                         where=lambda p: np.hypot(p[:, 0], p[:, 2]) <= radius)
+                         where=lambda p: np.hypot(p[:, 0], p[:, 2]) <= radius, elastic=floor == "elastic_particles")
     return np.arange(b.particle_count) < len(points)
 
 
@@ -496,7 +498,8 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     ``add_ground(images=True)``, the plane a rough floor of the fits (docs/physics.md, "The
     ground collider's thin-layer strength"); ``"particles"``, FLOOR_LAYERS
     layers of the same body below the base, pinned (``SceneBuilder.add_particle_floor``): a floor that is
-    part of every fit, as the material's own interior would be. mu = Y / (2 yield_strain), nu = 0.3.
+    part of every fit, as the material's own interior would be; ``"elastic_particles"``, the
+    same floor made elastic (``add_particle_floor(elastic=True)``). mu = Y / (2 yield_strain), nu = 0.3.
     Gravity grows linearly from 0 over the first ``ramp`` seconds (``Model.gravity`` is read
     at every step), so that the load is applied without the dynamic overshoot of a sudden
     release (up to twice the static stress).
@@ -526,9 +529,9 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     L = length * h
     W = width * dx
     b.add_box((L / 2.0, h / 2.0, W / 2.0), (L, h, W), mat, name="layer")
-    if floor == "particles":
+    if floor in ("particles", "elastic_particles"):
         # Under the strip only (margin 0): the walls normal to z bound it, its ends are free.
-        b.add_particle_floor("layer", margin=0.0, layers=FLOOR_LAYERS, name="floor")
+        b.add_particle_floor("layer", margin=0.0, layers=FLOOR_LAYERS, name="floor", elastic=floor == "elastic_particles")
     else:
         b.add_ground(0.0, friction=friction, images=floor == "ground_images")
     inset = 0.5 * dx if walls == "centres" else 0.0

@@ -155,6 +155,7 @@ BASE = textwrap.dedent(
         ("radius = 0.1", "radius = 0.1\nfloor_margin = 0.1\nfloor_layers = 9",
          r"floor_layers = 9 is not allowed: must be an integer in \[1, 8\]"),
         ("radius = 0.1", "radius = 0.1\nfloor_layers = 2", r"floor_layers = 2 is not allowed without floor_margin"),
+        ("radius = 0.1", "radius = 0.1\nfloor_elastic = true", r"floor_elastic = True is not allowed without floor_margin"),
         ("radius = 0.1", "radius = 0.1\nfloor_margin = 100.0", r"\(shape 'sphere'\): floor_margin = 100\.0 is not allowed: .*2000 spacings"),
         ("radius = 0.1", 'radius = 0.1\nfloor_margin = "wide"', r"key 'floor_margin' in \[\[bodies\]\] #1 .* must be a number, not str"),
         ("radius = 0.1", "radius = 0.1\nfloor = 2", r"unknown key 'floor' in \[\[bodies\]\] #1"),
@@ -172,19 +173,22 @@ def test_scene_file_errors_name_file_table_and_key(tmp_path, old, new, pattern):
 
 
 def test_floor_keys_build_the_same_model_as_add_particle_floor(tmp_path):
-    """``floor_margin`` / ``floor_layers`` on a body are ``SceneBuilder.add_particle_floor``:
-    the same particles, velocities, bodies and pinned set."""
+    """``floor_margin`` / ``floor_layers`` / ``floor_elastic`` on a body are
+    ``SceneBuilder.add_particle_floor``: the same particles, velocities, bodies, materials
+    and pinned set."""
     from warp_esph import SceneBuilder  # noqa: PLC0415
 
     path = tmp_path / "floor.toml"
-    path.write_text(BASE.replace("radius = 0.1", "radius = 0.1\nfloor_margin = 0.12\nfloor_layers = 3", 1)
+    path.write_text(BASE.replace("radius = 0.1", "radius = 0.1\nfloor_margin = 0.12\nfloor_layers = 3\nfloor_elastic = true", 1)
                     + '\n[[bodies]]\nshape = "box"\nmaterial = "m"\ncenter = [0.5, 0.2, 0]\nsize = [0.2, 0.1, 0.2]\n')
     b = load_scene_file(path).builder
     ref = SceneBuilder(spacing=0.05)
     mat = PRESETS["dough"]
     ref.add_sphere((0, 0.2, 0), 0.1, mat)
-    assert ref.add_particle_floor(0, margin=0.12, layers=3) == "sphere0_floor"
+    assert ref.add_particle_floor(0, margin=0.12, layers=3, elastic=True) == "sphere0_floor"
     ref.add_box((0.5, 0.2, 0), (0.2, 0.1, 0.2), mat)
+    assert b._materials == ref._materials and len(b._materials) == 2
+    np.testing.assert_array_equal(np.concatenate(b._material_ids), np.concatenate(ref._material_ids))
     assert [(x.name, x.start, x.count) for x in b._bodies] == [(x.name, x.start, x.count) for x in ref._bodies]
     np.testing.assert_array_equal(np.concatenate(b._points), np.concatenate(ref._points))
     np.testing.assert_array_equal(np.concatenate(b._velocities), np.concatenate(ref._velocities))

@@ -2,6 +2,7 @@
 reaction forces, and their gradients against float64 central differences."""
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -225,6 +226,7 @@ def test_particle_floor_is_pinned_and_holds_a_resting_block_its_pin_reaction_is_
     (lambda b: (b.pin(indices=[0]), b.add_particle_floor("e", margin=0.0, name="pin0")), r"name = 'pin0' is not allowed"),
     (lambda b: (b.add_particle_floor("e", margin=0.0), b.add_particle_floor("e", margin=0.0, name="f2")),
      r"body = 'e' is not allowed: it has a particle floor already"),
+    (lambda b: b.add_particle_floor("e", margin=0.0, elastic=1), r"elastic = 1 is not allowed: must be True or False"),
 ])
 def test_bad_particle_floor_input_is_refused_by_name_and_leaves_the_builder_unchanged(call, match):
     b = we.SceneBuilder(spacing=0.02)
@@ -234,6 +236,27 @@ def test_bad_particle_floor_input_is_refused_by_name_and_leaves_the_builder_unch
         call(b)
     floors = len([p for p in b.pins if p.name.endswith("floor")])
     assert b.particle_count == 250 + 2 * 25 * floors and sum(x.count for x in b._bodies) == b.particle_count
+    assert len(b._materials) == 2
+
+
+def test_elastic_particle_floor_is_the_bodys_material_without_yield_and_leaves_the_bodys_own():
+    """``add_particle_floor(elastic=True)``: the floor particles get the body's material with
+    ``yield_stress = inf`` and every other field the same, as a material of their own after
+    the body's; the body keeps its material; an elastic body's floor shares its material; the
+    default floor is of the body's own material."""
+    dough = we.Material.preset("dough")
+    for elastic, mat, n_materials in ((True, dough, 2), (False, dough, 1), (True, _elastic(2e5), 1)):
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.05, 0.0), (0.1, 0.1, 0.1), mat, name="d")
+        n_body = b.particle_count
+        b.add_particle_floor("d", margin=0.0, elastic=elastic)
+        m = b.finalize()
+        ids = m.particle_material_np
+        assert len(m.materials) == n_materials
+        assert (ids[:n_body] == 0).all() and (ids[n_body:] == n_materials - 1).all()
+        assert m.materials[0] == mat
+        assert m.materials[-1] == (dataclasses.replace(mat, yield_stress=math.inf) if elastic else mat)
+        assert m.yield_stress.numpy()[-1] == (np.inf if elastic else mat.yield_stress)
 
 
 # ------------------------------------------------------------------ plates and meshes

@@ -299,6 +299,16 @@ def test_thin_layer_on_a_floor_of_its_own_particles_stops_below_and_flows_above_
     assert above["top_speed"] > 0.5 * scale, (above["top_speed"], scale)
 
 
+def test_thin_layer_on_an_elastic_particle_floor_is_held_where_the_plastic_floor_lets_it_flow():
+    """``add_particle_floor(elastic=True)``: a floor that does not flow holds the material
+    within a support radius of it (two of the strip's three layers at h = 2 dx), so the strip
+    that flows on the plastic floor at 1.3 tau_y (test above: 7.7 mm/s, Bingham 3.7) does not
+    slide on it. Measured: 0.000 mm/s at 1.3 tau_y (0.004 at 1.1)."""
+    held = validation.incline(load=1.3, floor="elastic_particles", walls="centres", **THIN_LAYER)
+    assert held["finite"]
+    assert abs(held["top_speed"]) < 0.03 * held["bingham_surface_speed"], held["top_speed"]
+
+
 def test_thin_layer_on_a_particle_floor_stops_after_sliding_only_when_it_widens_between_its_walls():
     """The layer's flow stops after about one spacing of slip (docs/physics.md, thin layers
     in shear) because the strip widens: its walls normal to z act on particle centres, half a

@@ -262,7 +262,8 @@ class SceneBuilder:
         kind_name = name if name is not None else (meshes.mesh_name(source) if isinstance(source, (str, bytes)) or hasattr(source, "__fspath__") else None)
         return self.add_particles(inside, material, velocity, kind_name, "mesh", angular_velocity)
 
-    def add_particle_floor(self, body, *, margin: float, layers: int | None = None, where=None, name: str | None = None) -> str:
+    def add_particle_floor(self, body, *, margin: float, layers: int | None = None, where=None, name: str | None = None,
+                           elastic: bool = False) -> str:
         """A rough floor that enters the fits: ``layers`` lattice layers of ``body``'s own
         particles under it, pinned (``pin``); returns the pin's name (default ``"<body>_floor"``).
 
@@ -276,7 +277,18 @@ class SceneBuilder:
         margin wide enough for the material to spread on. ``layers`` defaults to
         ``ceil(support_radius / spacing)`` (2 at the default h = 2 dx): the floor's top layer
         then has a full neighbourhood too. ``where``, a predicate on the floor positions
-        ``(N, 3) -> bool (N,)``, keeps only some of them (e.g. a disc)."""
+        ``(N, 3) -> bool (N,)``, keeps only some of them (e.g. a disc).
+
+        The floor's particles are of the body's material, so they flow plastically with the
+        material sheared over them, and the base yields as the material's interior would.
+        ``elastic=True`` makes them of the body's material made elastic (``yield_stress =
+        inf``, otherwise the same; added to the model's materials after the body's, so a fit
+        or ``Model.set_material`` of the body's material leaves it as built): a floor the
+        material sticks to. It holds the material within a support radius of it, about two
+        layers at the default h = 2 dx: a strip three particles thick on a slope at 1.3 x
+        its shear yield stress does not slide on it (on the plastic floor it flows), and a
+        slumping cylinder rests higher than on the plastic floor, as a continuum pile does
+        on a no-slip floor at a coarse grid (docs/physics.md, "The floor's plasticity")."""
         names = [b.name for b in self._bodies]
         if isinstance(body, str):
             if body not in names:
@@ -299,6 +311,8 @@ class SceneBuilder:
         layers = checks.positive_int("layers", layers, maximum=MAX_FLOOR_LAYERS)
         if where is not None and not callable(where):
             raise ValueError(f"where = {where!r} is not allowed: must be callable as where(floor_positions) -> bool array")
+        if not isinstance(elastic, bool):
+            raise ValueError(f"elastic = {elastic!r} is not allowed: must be True or False")
         name = f"{bd.name}_floor" if name is None else name
         self._check_tool_name(name)
         pts = self._points[-1]
@@ -346,9 +360,13 @@ class SceneBuilder:
         if len(floor) == 0:
             raise ValueError(f"where = {where!r} is not allowed: it keeps none of the floor's positions")
         start = self._count
+        own = self._materials[bd.material]
+        floor_material = bd.material
+        if elastic and own.yield_stress != math.inf:
+            floor_material = self._material_index(dataclasses.replace(own, yield_stress=math.inf))
         self._points[-1] = np.vstack([pts, floor])
         self._velocities[-1] = np.vstack([self._velocities[-1], np.zeros_like(floor)])
-        self._material_ids[-1] = np.concatenate([self._material_ids[-1], np.full(len(floor), bd.material, dtype=np.int32)])
+        self._material_ids[-1] = np.concatenate([self._material_ids[-1], np.full(len(floor), floor_material, dtype=np.int32)])
         self._bodies[-1] = dataclasses.replace(bd, count=bd.count + len(floor))
         self._count += len(floor)
         self._floors.add(bd.name)

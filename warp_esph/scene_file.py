@@ -149,9 +149,12 @@ MATERIAL_KEYS = {
     "deformation": (STR, False), "elastic_force": (STR, False), "pressure_force": (STR, False),
 }
 #: ``floor_margin`` puts a particle floor under the body (``SceneBuilder.add_particle_floor``;
-#: ``floor_layers`` its layers, default ceil(support_radius / spacing)).
+#: ``floor_layers`` its layers, default ceil(support_radius / spacing); ``floor_elastic`` its
+#: ``elastic``, default false).
 BODY_COMMON = {"shape": (STR, True), "material": (STR, True), "name": (STR, False), "velocity": (VEC3, False),
-               "angular_velocity": (VEC3, False), "floor_margin": (NUM, False), "floor_layers": (INT, False)}
+               "angular_velocity": (VEC3, False), "floor_margin": (NUM, False), "floor_layers": (INT, False),
+               "floor_elastic": (BOOL, False)}
+FLOOR_KEYS = ("floor_margin", "floor_layers", "floor_elastic")
 BODY_SHAPES = {
     "box": {"center": (VEC3, True), "size": (VEC3, True)},
     "sphere": {"center": (VEC3, True), "radius": (NUM, True)},
@@ -278,11 +281,12 @@ def _body(file: str, k: int, table: dict, builder: SceneBuilder, materials: dict
             f"{file}: material = {mat_name!r} in {where} is not allowed: no [materials.{mat_name}] table and no preset "
             f"of that name{_did_you_mean(mat_name, known)} (known: {', '.join(known)})"
         )
-    args = {k: v for k, v in table.items() if k not in ("shape", "material", "floor_margin", "floor_layers")}
+    args = {k: v for k, v in table.items() if k not in ("shape", "material") + FLOOR_KEYS}
     try:
-        if "floor_layers" in table and "floor_margin" not in table:
-            raise ValueError(f"floor_layers = {table['floor_layers']!r} is not allowed without floor_margin: "
-                             f"give floor_margin (m) to put a particle floor under the body")
+        for key in FLOOR_KEYS[1:]:
+            if key in table and "floor_margin" not in table:
+                raise ValueError(f"{key} = {table[key]!r} is not allowed without floor_margin: "
+                                 f"give floor_margin (m) to put a particle floor under the body")
         if shape == "box":
             index = builder.add_box(material=material, **args)
         elif shape == "sphere":
@@ -303,11 +307,11 @@ def _body(file: str, k: int, table: dict, builder: SceneBuilder, materials: dict
             if layers is not None:
                 layers = checks.positive_int("floor_layers", layers, maximum=MAX_FLOOR_LAYERS)
             try:
-                builder.add_particle_floor(index, margin=margin, layers=layers)
+                builder.add_particle_floor(index, margin=margin, layers=layers, elastic=table.get("floor_elastic", False))
             except ValueError as e:
                 # The method names its arguments; the file's keys are floor_<argument>.
                 msg = str(e)
-                raise ValueError("floor_" + msg if msg.startswith(("margin = ", "layers = ")) else msg) from None
+                raise ValueError("floor_" + msg if msg.startswith(("margin = ", "layers = ", "elastic = ")) else msg) from None
     except ValueError as e:
         raise ValueError(f"{file}: {where}: {e}") from None
 
