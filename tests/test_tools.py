@@ -257,6 +257,28 @@ def test_elastic_particle_floor_is_the_bodys_material_without_yield_and_leaves_t
         assert m.materials[0] == mat
         assert m.materials[-1] == (dataclasses.replace(mat, yield_stress=math.inf) if elastic else mat)
         assert m.yield_stress.numpy()[-1] == (np.inf if elastic else mat.yield_stress)
+        assert m.bodies[0].floor_material == (1 if n_materials == 2 else -1)
+
+
+def test_fits_leave_an_elastic_particle_floors_material_as_built():
+    """The elastic floor's material is a wall's: a fit of every material or of the body's
+    (by name) leaves it out, an explicit index still selects it, and ``split_materials``
+    gives the body's particles a material each but keeps the floor's one, still marked."""
+    from warp_esph.fit import _material_indices  # noqa: PLC0415
+    from warp_esph.rollout import split_materials  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="d")
+    n_body = b.particle_count
+    b.add_particle_floor("d", margin=0.0, elastic=True)
+    m = b.finalize()
+    assert _material_indices(m, None) == [0] and _material_indices(m, "d") == [0] and _material_indices(m, 1) == [1]
+    sm = split_materials(m)
+    wall = sm.bodies[0].floor_material
+    assert len(sm.materials) == n_body + 1 and sm.materials[wall].yield_stress == math.inf
+    assert (sm.particle_material_np[n_body:] == wall).all()
+    assert len(set(sm.particle_material_np[:n_body].tolist())) == n_body
+    assert sorted(_material_indices(sm, "d")) == sorted(set(range(n_body + 1)) - {wall})
 
 
 # ------------------------------------------------------------------ plates and meshes

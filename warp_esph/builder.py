@@ -367,7 +367,8 @@ class SceneBuilder:
         self._points[-1] = np.vstack([pts, floor])
         self._velocities[-1] = np.vstack([self._velocities[-1], np.zeros_like(floor)])
         self._material_ids[-1] = np.concatenate([self._material_ids[-1], np.full(len(floor), floor_material, dtype=np.int32)])
-        self._bodies[-1] = dataclasses.replace(bd, count=bd.count + len(floor))
+        self._bodies[-1] = dataclasses.replace(bd, count=bd.count + len(floor),
+                                               floor_material=floor_material if floor_material != bd.material else -1)
         self._count += len(floor)
         self._floors.add(bd.name)
         return self.pin(indices=np.arange(start, self._count), name=name)
@@ -638,7 +639,8 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
         mat_ids += [ids + m0 for ids in b._material_ids]
         for k, body in enumerate(b._bodies):
             name = f"w{w}/{body.name}" if several else body.name
-            bodies.append(Body(name=name, start=count, count=body.count, material=body.material + m0, kind=body.kind, world=w))
+            bodies.append(Body(name=name, start=count, count=body.count, material=body.material + m0, kind=body.kind, world=w,
+                               floor_material=body.floor_material + m0 if body.floor_material >= 0 else -1))
             body_ids.append(np.full(body.count, b0 + k, dtype=np.int32))
             world_ids.append(np.full(body.count, w, dtype=np.int32))
             count += body.count
@@ -702,7 +704,8 @@ def replicate_worlds(model: Model, worlds: int, requires_grad: bool | None = Non
     for w in range(W):
         for b in model.bodies:
             bodies.append(dataclasses.replace(b, name=f"w{w}/{b.name}" if several else b.name, start=b.start + w * n,
-                                              material=b.material + w * M, world=w))
+                                              material=b.material + w * M, world=w,
+                                              floor_material=b.floor_material + w * M if b.floor_material >= 0 else -1))
     out = Model(
         positions=np.tile(model.particle_x0, (W, 1)),
         velocities=np.tile(model.particle_v0, (W, 1)),

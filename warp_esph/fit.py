@@ -185,8 +185,10 @@ def _as_model(model_or_factory, dtype) -> Model:
 
 
 def _material_indices(model: Model, materials) -> list[int]:
+    # An elastic particle floor's material is a wall's: no selection but its index fits it.
+    walls = {b.floor_material for b in model.bodies if b.floor_material >= 0}
     if materials is None:
-        return list(range(len(model.materials)))
+        return [k for k in range(len(model.materials)) if k not in walls]
     if isinstance(materials, (int, str)):
         materials = [materials]
     out = []
@@ -198,7 +200,7 @@ def _material_indices(model: Model, materials) -> list[int]:
             # Every material the body's particles use (one per particle after split_materials).
             b = model.bodies[names.index(m)]
             for k in np.unique(model.particle_material_np[b.start: b.start + b.count]):
-                if int(k) not in out:
+                if int(k) not in out and int(k) not in walls:
                     out.append(int(k))
             continue
         if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or not 0 <= m < len(model.materials):

@@ -52,6 +52,9 @@ class Body:
     kind: str
     #: The world it belongs to (``SceneBuilder.finalize(worlds=W)``; 0 without worlds).
     world: int = 0
+    #: The material of its elastic particle floor (``add_particle_floor(elastic=True)``), a
+    #: wall's, which a fit leaves as built; -1: none.
+    floor_material: int = -1
 
 
 class State:

@@ -612,7 +612,10 @@ def split_materials(model: Model, bodies: Sequence[int | str] | None = None) -> 
     materials = []
     source = []  # the model's material each new material copies
     new_index = np.empty(model.particle_count, dtype=np.int32)
-    per_particle = np.isin(body_of, sorted(chosen))
+    # An elastic particle floor keeps its one material (a wall's, never fitted).
+    walls = sorted({b.floor_material for b in model.bodies if b.floor_material >= 0})
+    per_particle = np.isin(body_of, sorted(chosen)) & ~np.isin(old, walls)
+    wall_index = {}
     world_material_start = [0]
     # World by world, so each world's materials stay contiguous (``Model.world_materials``).
     for w in range(model.world_count):
@@ -630,8 +633,10 @@ def split_materials(model: Model, bodies: Sequence[int | str] | None = None) -> 
                 materials.append(model.materials[k])
                 source.append(k)
             new_index[i] = shared[k]
+        wall_index.update({k: v for k, v in shared.items() if k in walls})
         world_material_start.append(len(materials))
-    new_bodies = [dataclasses.replace(b, material=int(new_index[b.start])) for b in model.bodies]
+    new_bodies = [dataclasses.replace(b, material=int(new_index[b.start]), floor_material=wall_index.get(b.floor_material, -1))
+                  for b in model.bodies]
     out = Model(
         positions=model.particle_x0.copy(),
         velocities=model.particle_v0.copy(),
