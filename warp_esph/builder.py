@@ -282,8 +282,9 @@ class SceneBuilder:
         The floor's particles are of the body's material, so they flow plastically with the
         material sheared over them, and the base yields as the material's interior would.
         ``elastic=True`` makes them of the body's material made elastic (``yield_stress =
-        inf``, otherwise the same; added to the model's materials after the body's, so a fit
-        or ``Model.set_material`` of the body's material leaves it as built): a floor the
+        inf``, otherwise the same; added to the model's materials after the body's and named
+        in ``Body.floor_material``; a fit of every material or of the body's, and
+        ``Model.set_material`` of the body's material, leave it as built): a floor the
         material sticks to. It holds the material within a support radius of it, about two
         layers at the default h = 2 dx: a strip three particles thick on a slope at 1.3 x
         its shear yield stress does not slide on it (on the plastic floor it flows), and a
