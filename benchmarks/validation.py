@@ -237,7 +237,10 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     ``friction``). Both theories assume a no-slip base; the particle floor is the one that
     gives a thin layer its continuum shear strength, the ground collider makes a layer 3
     particles thick about 2.5 x too strong (docs/physics.md, the spread regime, thin layers
-    in shear). ``floor_radius`` must reach past the resting pile (``radius_over_R0``) by a
+    in shear); on it the pile rests where a continuum on a slip floor does, and on
+    ``"elastic_particles"`` (the same floor made elastic, which holds a band a support radius
+    thick) where one on a no-slip floor does (docs/physics.md, "The floor's plasticity").
+    ``floor_radius`` must reach past the resting pile (``radius_over_R0``) by a
     support radius or more: the S = 0.1 pile rests within 2.2 R0 at 8-16 across (2.6 R0 at aspect 2; S = 0.2 within
     1.8). Every measure is over the free particles. One change at a time
     (docs/physics.md, the spread regime): ``pressure_stiffness`` (``Material``'s; 0: the SPH
