@@ -107,7 +107,7 @@ def run_fit(args, out=None, err=None) -> int:
     import warp as wp  # noqa: PLC0415
 
     from .cli import _parse_bounds  # noqa: PLC0415
-    from .fit import Experiment, fit, load_target  # noqa: PLC0415
+    from .fit import Experiment, _material_indices, fit, load_target  # noqa: PLC0415
     from .scenes import load_scene  # noqa: PLC0415
     from .simulate import resolve_timestep  # noqa: PLC0415
 
@@ -138,7 +138,7 @@ def run_fit(args, out=None, err=None) -> int:
 
     for e in exps:
         e.loss = loss_scale * e.loss if loss_scale != 1.0 else e.loss
-    n_values = len(params) * (len(exps[0].materials) if exps[0].materials else len(exps[0].model.materials))
+    n_values = len(params) * len(_material_indices(exps[0].model, exps[0].materials or None))
     optimizer = _arg(args, "optimizer") or default_optimizer(n_values)
     for e in exps:
         log(f"{e.scene.name}: {e.model.particle_count} particles, {e.frames} frames at {e.fps:g} fps, dt = {e.dt:.4g} s "
