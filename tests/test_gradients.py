@@ -9,6 +9,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
+from taped_loss import random_weights, taped_rollout_loss
 
 STEPS = 5
 DT = 1.0e-3
@@ -40,12 +41,7 @@ def _rollout_loss(model, weights, grad_of=(), fit="linear", hand_adjoints=True, 
     states = [model.state() for _ in range(STEPS + 1)]
     # A pre-worked material (alpha > 0), so the loss reaches the hardening modulus.
     states[0].alpha.fill_(ALPHA0)
-    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
-    tape = wp.Tape()
-    with tape:
-        for k in range(STEPS):
-            solver.step(states[k], states[k + 1], DT)
-        wp.launch(_dot_loss, model.particle_count, [states[-1].x, weights], [loss])
+    loss, tape = taped_rollout_loss(solver, states, DT, weights)
     if not grad_of:
         return loss.numpy()[0], solver
     tape.backward(loss)
@@ -56,16 +52,10 @@ def _rollout_loss(model, weights, grad_of=(), fit="linear", hand_adjoints=True, 
     return loss.numpy()[0], grads
 
 
-@wp.kernel
-def _dot_loss(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
-    i = wp.tid()
-    wp.atomic_add(loss, 0, wp.dot(x[i], w[i]))
-
-
 @pytest.fixture(scope="module")
 def weights():
     n = _model().particle_count
-    return wp.array(np.random.default_rng(0).normal(size=(n, 3)), dtype=wp.vec3d)
+    return random_weights(n, 0)
 
 
 @pytest.mark.parametrize("name,rel_step", [("mu", 1e-5), ("yield_stress", 1e-5), ("lam", 1e-5),

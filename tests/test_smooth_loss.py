@@ -16,6 +16,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
+from taped_loss import random_weights, taped_rollout_loss
 from warp_esph.sim.colliders import CONTINUOUS_CONTACT_RAMP
 
 STEPS = 50
@@ -43,22 +44,10 @@ def _model(h_over_dx, params=None, **builder):
     return model
 
 
-@wp.kernel
-def _dot_loss(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
-    i = wp.tid()
-    wp.atomic_add(loss, 0, wp.dot(x[i], w[i]))
-
-
 def _loss(model, grad_of=None):
     solver = we.Solver(model)
     states = [model.state() for _ in range(STEPS + 1)]
-    w = wp.array(np.random.default_rng(0).normal(size=(model.particle_count, 3)), dtype=wp.vec3d)
-    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
-    tape = wp.Tape()
-    with tape:
-        for k in range(STEPS):
-            solver.step(states[k], states[k + 1], DT)
-        wp.launch(_dot_loss, model.particle_count, [states[-1].x, w], [loss])
+    loss, tape = taped_rollout_loss(solver, states, DT, random_weights(model.particle_count, 0))
     grad = None
     if grad_of is not None:
         tape.backward(loss)

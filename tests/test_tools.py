@@ -9,6 +9,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
+from taped_loss import random_weights, taped_rollout_loss
 from warp_esph import tools
 from warp_esph.builder import finalize_worlds
 
@@ -540,22 +541,10 @@ def _floor_grad_model(mu=None, yield_stress=None):
     return m
 
 
-@wp.kernel
-def _position_loss_kernel(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
-    i = wp.tid()
-    wp.atomic_add(loss, 0, wp.dot(x[i], w[i]))
-
-
 def _floor_loss(model, grad=False):
     s = we.Solver(model)
     states = [model.state() for _ in range(STEPS + 1)]
-    w = wp.array(np.random.default_rng(7).normal(size=(model.particle_count, 3)), dtype=wp.vec3d)
-    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
-    tape = wp.Tape()
-    with tape:
-        for k in range(STEPS):
-            s.step(states[k], states[k + 1], DT)
-        wp.launch(_position_loss_kernel, model.particle_count, [states[-1].x, w], [loss])
+    loss, tape = taped_rollout_loss(s, states, DT, random_weights(model.particle_count, 7))
     if not grad:
         return loss.numpy()[0]
     tape.backward(loss)

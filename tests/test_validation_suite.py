@@ -261,27 +261,28 @@ def test_slump_shallow_theory_holds_the_cylinder_volume_and_falls_with_its_aspec
 def spread_pile():
     """The spread limit at its smallest size: a = h_RC / R_RC = 0.25, 3 particles through h_RC
     (720 particles), on the default particle floor under a disc of 1.0 R_RC (it rests at 0.85),
-    14 s: with the default pressure force (energy_spiky) the pile creeps until a rearrangement
-    at its rim (about 7.5-10 s) lets it spread by 1 % of R_RC, and rests after it
-    (docs/physics.md, "The thin spread pile under energy_spiky: a late rearrangement, then
-    rest")."""
-    return validation.spread(resolution=3, shallowness=0.25, duration=14.0, floor="particles", floor_radius=1.0)
+    read at 5 s. Whether it comes to rest takes 14 s to see (a rearrangement at its rim at
+    about 7.5-10 s spreads it by 1 % of R_RC, then it rests: docs/physics.md, "The thin
+    spread pile under energy_spiky: a late rearrangement, then rest"), over 3 minutes of
+    this suite's CPU time, so the 14 s run is the validation benchmark's
+    (``python -m benchmarks.validation --quick --only spread``, docs/validation.md)."""
+    return validation.spread(resolution=3, shallowness=0.25, duration=5.0, floor="particles", floor_radius=1.0)
 
 
-def test_spread_pile_holds_the_theory_volume_and_comes_to_rest(spread_pile):
-    """Measured with the defaults (energy_spiky, the fit guard cond(A) > 20): R grows
-    0.017 % R_RC/s over 10.5-14 s, kinetic energy 2.0e-11 M g h_RC at 14 s (read at 8 s, in the
-    middle of the rim's rearrangement, 0.106 % R_RC/s and 5e-7 would fail; the energy force
-    read 0.067 % R_RC/s and 2.5e-8 at 8 s); the particles hold the theory volume to 0.5 %."""
+def test_spread_pile_holds_the_theory_volume_and_slows_to_a_creep(spread_pile):
+    """Measured with the defaults (energy_spiky, the fit guard cond(A) > 20) at 5 s: R 0.841
+    R_RC growing 0.118 % R_RC/s, kinetic energy 2.5e-8 M g h_RC (down from 5e-5 in the
+    release), the theory volume held to 0.5 %; at 14 s (the benchmark) 0.017 % R_RC/s and
+    2.0e-11."""
     r = spread_pile
     assert r["finite"]
     assert r["volume_over_theory"] == pytest.approx(1.0, abs=0.03), r["volume_over_theory"]
-    assert abs(r["radius_rate_pct_per_s"]) < 0.1, r["radius_rate_pct_per_s"]
-    assert r["kinetic_over_Mgh"] < 5e-8, r["kinetic_over_Mgh"]
+    assert 0.0 <= r["radius_rate_pct_per_s"] < 0.25, r["radius_rate_pct_per_s"]
+    assert r["kinetic_over_Mgh"] < 1e-7, r["kinetic_over_Mgh"]
 
 
-@pytest.mark.xfail(strict=True, reason="spread limit, a = 0.25, 3 through h_RC, particle floor: measured R = 0.854 "
-                   "R_RC at 14 s (energy pressure force 0.857 at 8 s, spiky 0.869, ground collider 0.834); at 3 through the yield length l is 0.375 dx and the pile a "
+@pytest.mark.xfail(strict=True, reason="spread limit, a = 0.25, 3 through h_RC, particle floor: measured R = 0.841 "
+                   "R_RC at 5 s, 0.854 at rest at 14 s (energy pressure force 0.857 at 8 s, spiky 0.869, ground collider 0.834); at 3 through the yield length l is 0.375 dx and the pile a "
                    "disc 3 particles thick with a rim 6 l tall (docs/physics.md, the spread regime)")
 def test_spread_radius_within_10_percent_of_roussel_coussot(spread_pile):
     assert spread_pile["radius_over_theory"] == pytest.approx(1.0, abs=0.10), spread_pile["radius_over_theory"]

@@ -1,0 +1,30 @@
+"""The float64 loss the gradient tests differentiate: ``sum_i dot(x_i, w_i)`` over the last
+state of a taped rollout, with fixed random weights ``w`` (every particle and every direction
+reaches the loss, with no symmetry that could hide a wrong adjoint)."""
+
+import numpy as np
+import warp as wp
+
+
+@wp.kernel
+def dot_loss(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    wp.atomic_add(loss, 0, wp.dot(x[i], w[i]))
+
+
+def random_weights(count: int, seed: int) -> wp.array:
+    """Normal weights for ``count`` particles, the same for a given seed."""
+    return wp.array(np.random.default_rng(seed).normal(size=(count, 3)), dtype=wp.vec3d)
+
+
+def taped_rollout_loss(solver, states, dt: float, weights: wp.array):
+    """Steps ``solver`` through ``states`` (``len(states) - 1`` steps of ``dt``) under a tape
+    and adds the loss on the last state; returns ``(loss, tape)``, ``loss`` a 1-element
+    float64 array, for the caller's ``tape.backward(loss)``."""
+    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        for a, b in zip(states[:-1], states[1:]):
+            solver.step(a, b, dt)
+        wp.launch(dot_loss, len(weights), [states[-1].x, weights], [loss])
+    return loss, tape
