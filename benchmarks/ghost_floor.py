@@ -21,8 +21,8 @@ front reaches a floor particle its ghost then switches on with the front's weigh
 once (a lone particle's weight normalised to 1 gave the S = 0.3 pile a late rearrangement). So the fits near the floor see the odd
 continuation of the material's motion, which vanishes on that plane: an affine motion that
 is zero on the plane is reproduced exactly by every fit next to the floor
-(``tests/test_validation_suite.py``), where the plain particle floor's static particles halve
-the shear that the first layer sees. The floor particles are then a kinematic extension of
+(``tests/test_validation_suite.py``), where the plain particle floor's static particles leave
+the first layer's fitted shear at 0.75 of it. Float32 models only (Warp's hash grid). The floor particles are then a kinematic extension of
 the material, not material: their stress is set to zero before the elastic forces, so only
 the free particles' energies act, each of them also through its ghosts. Since
 ``y_k = x_k - sum_j s_kj (y_j - x_j)``, the force that those energies put on a floor particle
@@ -114,9 +114,11 @@ class _Ghosts:
     must come first, as ``add_particle_floor`` appends the floor), the mirror plane and the
     stencil arrays."""
 
-    def __init__(self, model, rs: float, below: float, min_total: float = 0.0):
+    def __init__(self, model, rs: float, below: float, min_total: float):
         import warp as wp
 
+        if model.scalar is not wp.float32:
+            raise ValueError(f"ghost_floor needs a float32 model, not {model.scalar.__name__}: its stencil uses Warp's hash grid")
         x0 = model.particle_x0.astype(np.float64)
         free = x0[:, 1] > below
         n_free = int(free.sum())
