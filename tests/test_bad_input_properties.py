@@ -106,7 +106,7 @@ TOML_VALUES = st.one_of(
     st.integers(10**12, 10**500),  # a count or a size that overflows or cannot be allocated
 )
 SCENE_KEYS = ["spacing", "gravity", "frames", "fps", "dt", "support_radius", "max_neighbors", "name", "sapcing", "fsp"]
-BODY_KEYS = ["shape", "center", "size", "radius", "material", "velocity", "name", "colour", "floor_margin", "floor_layers", "floor_elastic"]
+BODY_KEYS = ["shape", "center", "size", "radius", "material", "velocity", "name", "colour", "floor_margin", "floor_layers", "floor_elastic", "floor_ghost"]
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])

@@ -263,7 +263,7 @@ class SceneBuilder:
         return self.add_particles(inside, material, velocity, kind_name, "mesh", angular_velocity)
 
     def add_particle_floor(self, body, *, margin: float, layers: int | None = None, where=None, name: str | None = None,
-                           elastic: bool = False) -> str:
+                           elastic: bool = False, ghost: bool = False) -> str:
         """A rough floor that enters the fits: ``layers`` lattice layers of ``body``'s own
         particles under it, pinned (``pin``); returns the pin's name (default ``"<body>_floor"``).
 
@@ -289,7 +289,14 @@ class SceneBuilder:
         layers at the default h = 2 dx: a strip three particles thick on a slope at 1.3 x
         its shear yield stress does not slide on it (on the plastic floor it flows), and a
         slumping cylinder rests higher than on the plastic floor, as a continuum pile does
-        on a no-slip floor at a coarse grid (docs/physics.md, "The floor's plasticity")."""
+        on a no-slip floor at a coarse grid (docs/physics.md, "The floor's plasticity").
+
+        ``ghost=True`` makes it a no-slip wall on the plane halfway between the floor's top
+        layer and the body's lowest layer, holding no layer of material: in the fits the
+        floor's particles move as the odd continuation of the material's motion across
+        that plane, and they carry no energy of their own (``warp_esph/sim/ghost_floor.py``;
+        docs/physics.md, "The no-slip ghost floor"). The solver then runs the non-fused
+        kernels, with the paper's linear fit and the variational elastic force only."""
         names = [b.name for b in self._bodies]
         if isinstance(body, str):
             if body not in names:
@@ -314,6 +321,11 @@ class SceneBuilder:
             raise ValueError(f"where = {where!r} is not allowed: must be callable as where(floor_positions) -> bool array")
         if not isinstance(elastic, bool):
             raise ValueError(f"elastic = {elastic!r} is not allowed: must be True or False")
+        if not isinstance(ghost, bool):
+            raise ValueError(f"ghost = {ghost!r} is not allowed: must be True or False")
+        if ghost and elastic:
+            raise ValueError("elastic = True is not allowed with ghost = True: a ghost floor carries no energy of its own, "
+                             "so it has no material to make elastic")
         name = f"{bd.name}_floor" if name is None else name
         self._check_tool_name(name)
         pts = self._points[-1]
@@ -369,7 +381,9 @@ class SceneBuilder:
         self._velocities[-1] = np.vstack([self._velocities[-1], np.zeros_like(floor)])
         self._material_ids[-1] = np.concatenate([self._material_ids[-1], np.full(len(floor), floor_material, dtype=np.int32)])
         self._bodies[-1] = dataclasses.replace(bd, count=bd.count + len(floor),
-                                               floor_material=floor_material if floor_material != bd.material else -1)
+                                               floor_material=floor_material if floor_material != bd.material else -1,
+                                               ghost_floor=len(floor) if ghost else 0,
+                                               ghost_plane=float(ref[1] - 0.5 * dx) if ghost else 0.0)
         self._count += len(floor)
         self._floors.add(bd.name)
         return self.pin(indices=np.arange(start, self._count), name=name)
@@ -641,7 +655,8 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
         for k, body in enumerate(b._bodies):
             name = f"w{w}/{body.name}" if several else body.name
             bodies.append(Body(name=name, start=count, count=body.count, material=body.material + m0, kind=body.kind, world=w,
-                               floor_material=body.floor_material + m0 if body.floor_material >= 0 else -1))
+                               floor_material=body.floor_material + m0 if body.floor_material >= 0 else -1,
+                               ghost_floor=body.ghost_floor, ghost_plane=body.ghost_plane))
             body_ids.append(np.full(body.count, b0 + k, dtype=np.int32))
             world_ids.append(np.full(body.count, w, dtype=np.int32))
             count += body.count

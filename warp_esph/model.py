@@ -20,7 +20,7 @@ from . import checks, tools
 from ._types import type_set
 from .sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP, Box, Plane, Sphere
 from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, PRESSURE_FORCE_IDS, Material, p_wave_speed
-from .sim import integrate
+from .sim import ghost_floor, integrate
 from .sim import materials as material_struct
 
 
@@ -55,6 +55,10 @@ class Body:
     #: The material of its elastic particle floor (``add_particle_floor(elastic=True)``), a
     #: wall's, which a fit leaves as built; -1: none.
     floor_material: int = -1
+    #: How many of its last particles are a no-slip ghost floor (``add_particle_floor(ghost=True)``,
+    #: ``sim/ghost_floor.py``), and the height of that floor's wall plane (m); 0: none.
+    ghost_floor: int = 0
+    ghost_plane: float = 0.0
 
 
 class State:
@@ -108,6 +112,7 @@ class State:
         self.force = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
         tools.allocate_state(model, self, requires_grad)
         integrate.allocate_state(model, self, requires_grad)
+        ghost_floor.allocate_state(model, self, requires_grad)
 
     @property
     def neighbor_d2(self) -> wp.array:
@@ -240,7 +245,13 @@ class Model:
         # evaluated in reference space, so the rest volume is the right one).
         volume = np.full(self.particle_count, self.spacing**3, dtype=npf)
         density = np.array([m.density for m in materials], dtype=npf)[self.particle_material_np]
-        self.particle_volume = wp.array(volume, dtype=scalar, device=dev)
+        ghosts = [(b.start + b.count - b.ghost_floor, b.start + b.count, b.ghost_plane) for b in bodies if b.ghost_floor > 0]
+        # The volume that weighs each particle's elastic energy: none for a ghost floor's
+        # (sim/ghost_floor.py), whose mass still enters the SPH density.
+        energy_volume = volume.copy()
+        for a, b, _ in ghosts:
+            energy_volume[a:b] = 0.0
+        self.particle_volume = wp.array(energy_volume, dtype=scalar, device=dev)
         self.particle_mass = wp.array(volume * density, dtype=scalar, device=dev)
         self.particle_rest_density = wp.zeros(self.particle_count, dtype=scalar, device=dev)
 
@@ -290,6 +301,8 @@ class Model:
         #: ``(normal, offset)`` of the plane whose mirror images enter the fits (a rough floor,
         #: ``SceneBuilder.add_ground(images=True)``); None: none.
         self.image_plane = (tuple(imaged[0].normal), float(imaged[0].offset)) if imaged else None
+        #: The no-slip ghost floors (``sim.ghost_floor.GhostFloor``), None: none.
+        self.ghost_floor = ghost_floor.build(self, ghosts)
 
     def image_args(self) -> list:
         """The kernels' arguments of the image plane: normal, offset and whether it is on."""
@@ -381,7 +394,8 @@ class Model:
             raise ValueError(f"fit = {asked!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
         chosen = asked
         if asked == "auto":
-            chosen = "curvature_corrected" if self.elastic_only else "linear"
+            # A ghost floor (sim/ghost_floor.py) enters the linear fit only.
+            chosen = "curvature_corrected" if self.elastic_only and self.ghost_floor is None else "linear"
         strength = self.hourglass if hourglass is None else hourglass
         if strength is None:
             strength = AUTO_HOURGLASS if asked == "auto" and chosen == "curvature_corrected" else 0.0

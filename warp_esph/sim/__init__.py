@@ -4,5 +4,6 @@ One module per stage of the step (docs/physics.md has the table of which equatio
 where): ``smoothing`` (kernels W), ``neighbors``, ``materials`` (the per-material arrays
 as one struct), ``plasticity``, ``forces`` (stress, elastic pair forces), ``pressure``
 (SPH), ``deformation``, ``integrate`` with ``colliders``, ``fields``, ``comparison`` (the
-Fig. 8 deformation models), ``fused`` (the forward-only schedule), ``solver``.
+Fig. 8 deformation models), ``ghost_floor`` (the no-slip floor of odd ghosts), ``fused``
+(the forward-only schedule), ``solver``.
 """

@@ -487,38 +487,43 @@ def recording_tape():
     return getattr(runtime, "tape", None)
 
 
-def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint: bool = True):
-    """Eqs. 1-8 over the step from ``state_in.x`` to ``state_out.x``, with the neighbourhood
-    guards the neighbour search wrote to ``state_out.guard``. Under a ``wp.Tape`` the
-    backward runs ``update_deformation_adjoint`` (``hand_adjoint=False``: Warp's generated
-    adjoint, which tests compare it against)."""
+def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint: bool = True, y=None, y_lo=None):
+    """Eqs. 1-8 over the step from ``state_in.x`` to ``state_out.x`` (or to ``y``, ``y_lo``
+    where given: a ghost floor's fit positions, ``ghost_floor.launch_fit_positions``), with
+    the neighbourhood guards the neighbour search wrote to ``state_out.guard``. Under a
+    ``wp.Tape`` the backward runs ``update_deformation_adjoint`` (``hand_adjoint=False``:
+    Warp's generated adjoint, which tests compare it against)."""
     k = kernels(model.scalar)
+    y = state_out.x if y is None else y
+    y_lo = state_out.x_lo if y_lo is None else y_lo
     inputs = [
-        state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
+        state_in.x, y, state_in.x_lo, y_lo, model.particle_body, state_out.neighbors,
         state_out.neighbor_count, state_out.guard, state_out.F_flowed, state_out.F_flowed_lo,
         model.scalar(model.support_radius), *model.image_args(),
     ]
     outputs = [state_out.F, state_out.F_lo, counters]
     tape = recording_tape()
-    grads = (state_in.x, state_out.x, state_out.F_flowed, state_out.F)
+    grads = (state_in.x, y, state_out.F_flowed, state_out.F)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
         wp.launch(k.update_deformation, model.particle_count, inputs, outputs, device=model.device)
         return
     # Under a tape: the forward unrecorded, and the hand-written adjoint in its place.
     wp.launch(k.update_deformation, model.particle_count, inputs, outputs, device=model.device, record_tape=False)
 
-    tape.record_func(lambda: launch_update_deformation_adjoint(model, state_in, state_out), list(grads))
+    tape.record_func(lambda: launch_update_deformation_adjoint(model, state_in, state_out, y, y_lo), list(grads))
 
 
-def launch_update_deformation_adjoint(model, state_in, state_out):
+def launch_update_deformation_adjoint(model, state_in, state_out, y=None, y_lo=None):
     """``update_deformation_adjoint``: ``state_out.F.grad`` into the gradients of ``state_in.x``,
-    ``state_out.x`` and ``state_out.F_flowed``, with the guards in ``state_out.guard``."""
+    ``state_out.x`` (or ``y``) and ``state_out.F_flowed``, with the guards in ``state_out.guard``."""
+    y = state_out.x if y is None else y
+    y_lo = state_out.x_lo if y_lo is None else y_lo
     wp.launch(
         kernels(model.scalar).update_deformation_adjoint, model.particle_count,
         [
-            state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
+            state_in.x, y, state_in.x_lo, y_lo, model.particle_body, state_out.neighbors,
             state_out.neighbor_count, state_out.guard, state_out.F_flowed, model.scalar(model.support_radius),
-            *model.image_args(), state_out.F.grad, state_in.x.grad, state_out.x.grad, state_out.F_flowed.grad,
+            *model.image_args(), state_out.F.grad, state_in.x.grad, y.grad, state_out.F_flowed.grad,
         ],
         device=model.device, record_tape=False,
     )

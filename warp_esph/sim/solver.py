@@ -16,7 +16,8 @@ import warp as wp
 from .. import checks
 from ..model import FITS, Model, State  # noqa: F401 (FITS: re-exported)
 from .deformation import recording_tape
-from . import comparison, curvature, deformation, fields, forces, fused, hourglass, integrate, neighbors, plasticity, pressure
+from . import (comparison, curvature, deformation, fields, forces, fused, ghost_floor, hourglass, integrate, neighbors,
+               plasticity, pressure)
 
 GUARD_NAMES = ("few_neighbors", "ill_conditioned", "inverted", "plasticity_skipped", "neighbors_cut")
 #: Index of ``neighbors_cut``: particle-steps whose neighbour row may lack a neighbour of
@@ -65,6 +66,22 @@ class StepScratch:
         if self._pressure_volume is None:
             self._pressure_volume = wp.zeros_like(self.sph_volume)
         return self._pressure_volume
+
+
+def _check_ghost_floor(model: Model, fit: str):
+    """What ``add_particle_floor(ghost=True)`` supports: the linear incremental fit with the
+    variational elastic force, on the non-fused kernels (``sim/ghost_floor.py``)."""
+    if fit != "linear":
+        raise ValueError(f"fit = {fit!r} is not allowed with a ghost floor (add_particle_floor(ghost=True)): "
+                         f"its ghosts enter the linear fit only ('linear' or 'auto')")
+    kinds = sorted({m.elastic_force for m in model.materials} - {"variational"})
+    if kinds:
+        raise ValueError(f"Material.elastic_force = {kinds!r} is not allowed with a ghost floor: only 'variational' "
+                         f"(its ghosts hand on the forces of the fit energy)")
+    if model.uses_comparison_models:
+        raise ValueError("Material.deformation 'rest' or 'additive' is not allowed with a ghost floor: only 'incremental'")
+    if model.image_plane is not None:
+        raise ValueError("add_ground(images=True) is not allowed with a ghost floor: one floor in the fits")
 
 
 def _check_images(model: Model):
@@ -167,6 +184,8 @@ class Solver:
         self._auto = asked == "auto"
         self._rest = None
         self._choose()
+        if model.ghost_floor is not None:
+            _check_ghost_floor(model, self.fit)
         self.neighbor_skin = skin
         self.search = neighbors.NeighborSearch(
             model.particle_count, model.scalar, model.device, model.support_radius,
@@ -175,6 +194,8 @@ class Solver:
             **model.neighbor_options(),
         )
         self.search.image_args = model.image_args() if model.image_plane is not None else None
+        #: The ghost floor's stencil search (``sim/ghost_floor.py``); None without one.
+        self.ghost_search = ghost_floor.StencilSearch(model) if model.ghost_floor is not None else None
         self.fused = bool(fused)
         self.scratch = StepScratch(model, self.min_neighbors, self.max_condition)
         #: Seconds per phase, summed over steps while ``profile_phases`` is on, else None.
@@ -228,7 +249,8 @@ class Solver:
         ``forces.variational_forces_adjoint`` for the variational one). Otherwise the
         differentiable kernels run."""
         m = self.model
-        return self.fused and self._hand() and m.requires_grad and not self._cmp and not self._curved
+        return (self.fused and self._hand() and m.requires_grad and not self._cmp and not self._curved
+                and self.ghost_search is None)
 
     def _hand(self) -> bool:
         """Whether the taped step records the hand-written adjoints: ``hand_adjoints`` (with
@@ -324,7 +346,9 @@ class Solver:
         scratch = self.scratch
         tape = recording_tape()
         hand = self._hand()
-        fast = self.fused and not self._cmp and not self._curved and (tape is None or self._fast_under_tape(state_in, state_out))
+        ghosts = self.ghost_search
+        fast = (self.fused and not self._cmp and not self._curved and ghosts is None
+                and (tape is None or self._fast_under_tape(state_in, state_out)))
         # With comparison models the corrected fit is the rest model's total fit (every material 'rest').
         curved_rest = self._cmp and self._curved
         fast_tape = tape if fast else None
@@ -344,6 +368,9 @@ class Solver:
                  scratch.pressure_volume() if own else None) if fast and sph else None,
                 F=state_in.F if self._stretch_rows() else None, counters=scratch.counters, cut_index=COUNT_NEIGHBORS_CUT,
             )
+            if ghosts is not None:
+                # The ghost floor's stencils and weights at the step's start.
+                ghosts.update(state_in, state_out, scratch.counters, COUNT_NEIGHBORS_CUT)
             if not self._warned_cut:
                 self._warn_cut()
         state_out.force.zero_()
@@ -372,6 +399,9 @@ class Solver:
                     forces.launch_elastic_forces(m, state_in, state_out, hand)
                 if self._rest_variational:
                     comparison.launch_rest_variational_forces(m, state_out, curved_rest)
+                if ghosts is not None:
+                    # The energies' forces on the ghosts go to their stencils.
+                    ghost_floor.launch_hand_over(m, state_out)
             if sph:
                 with phase("pressure"):
                     pressure.launch_pressure_forces(m, state_in, state_out, hand)
@@ -403,6 +433,10 @@ class Solver:
                 comparison.launch_update_deformation(m, state_in, state_out, scratch.counters, curved_rest)
             elif self._curved:
                 curvature.launch_update_deformation(m, state_in, state_out, scratch.counters, hand)
+            elif ghosts is not None:
+                ghost_floor.launch_fit_positions(m, state_in, state_out)
+                deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, hand,
+                                                      state_out.ghost_y, state_out.ghost_y_lo)
             else:
                 deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, hand)
             if not fast and self._cmp:

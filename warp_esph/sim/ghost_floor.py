@@ -1,0 +1,321 @@
+"""A no-slip floor of odd ghosts (``SceneBuilder.add_particle_floor(ghost=True)``;
+docs/physics.md, "The no-slip ghost floor").
+
+The floor's particles stay pinned where they are for the neighbour search, the SPH
+density, pressure and viscosity. In the incremental fit (eqs. 5-6) they are not material
+but a continuation of it: floor particle ``k`` moves over the step by minus the material's
+displacement at its mirror point ``p_k`` across the wall plane (halfway between the floor's
+top layer and the body's lowest layer),
+
+    y_k = x_k - sum_j s_kj u_j,     s_kj = W(|x_j - p_k|) / N(sum_j W),     (ghost_displacement)
+
+a Shepard average over the body's free particles within ``GHOST_RADIUS`` spacings of
+``p_k``, ``W`` the poly6 shape of eq. 7 normalised to 1 at ``p_k``. The motion the fits
+near the floor see is then continued oddly across the plane, where it vanishes: a shear or
+stretch that is zero on the plane is fitted exactly next to the floor.
+
+``N`` (``stencil_normaliser``) is the stencil's total weight where it holds at least
+``MIN_TOTAL + SWITCH`` (a particle's weight at ``p_k`` is 1), and switches smoothly (C1) to
+``MIN_TOTAL`` below it, so a ghost that a spreading front reaches follows its few particles
+in part and comes on gradually instead of at once.
+
+The floor particles carry no energy (their ``Model.particle_volume`` is 0): only the free
+particles' energies act, each also through its ghosts. Since ``y_k`` is linear in the free
+particles' end positions, the force the energies put on ghost ``k`` goes to its stencil,
+``f_j -= s_kj f_k`` (``hand_over``); floor particle ``k`` keeps the opposite, ``sum_j s_kj f_k``
+more, so every hand-over is a pair of equal and opposite forces and the pinned floor's
+reaction (``tools``) is what the wall puts on the material.
+
+Every step: ``launch_stencil`` (after the neighbour search; the candidates from a hash
+grid, untaped integers, the weights differentiable), ``launch_hand_over`` (after the
+elastic forces) and ``launch_fit_positions`` (before the deformation update, into
+``State.ghost_y``: the fit reads those, so no state array is overwritten under a tape).
+"""
+
+
+import dataclasses
+import functools
+import types
+
+import numpy as np
+import warp as wp
+
+from .._types import type_set
+from . import smoothing
+
+#: The stencil's radius around the mirror point, in spacings (1: exact for affine motions
+#: on a lattice whose layers mirror each other; 1.2 keeps a ghost's stencil from emptying
+#: between lattice sites as the material shears; docs/physics.md).
+GHOST_RADIUS = 1.2
+#: Stencil rows per floor particle; a fuller stencil counts as a cut neighbour row.
+STENCIL = 24
+#: The least stencil weight normalised to 1, and the half-width of the smooth switch to it
+#: (``stencil_normaliser``), in units of one particle's weight at the mirror point.
+MIN_TOTAL = 0.5
+SWITCH = 0.25
+
+
+@dataclasses.dataclass
+class GhostFloor:
+    """A model's ghost floors (``Model.ghost_floor``): ``floor`` the floor particles'
+    indices, ``slot`` each particle's row in them (-1: not a floor particle), the wall
+    plane ``y = offset`` of each floor particle, and the stencil radius (m)."""
+
+    floor: wp.array
+    slot: wp.array
+    offset: wp.array
+    radius: float
+
+    @property
+    def count(self) -> int:
+        return self.floor.shape[0]
+
+
+def build(model, ranges) -> "GhostFloor | None":
+    """``GhostFloor`` of ``ranges``, a ``(start, stop, plane height)`` per ghost floor."""
+    if not ranges:
+        return None
+    idx = np.concatenate([np.arange(a, b, dtype=np.int32) for a, b, _ in ranges])
+    off = np.concatenate([np.full(b - a, y) for a, b, y in ranges]).astype(model.types.np_dtype)
+    slot = np.full(model.particle_count, -1, dtype=np.int32)
+    slot[idx] = np.arange(len(idx), dtype=np.int32)
+    dev = model.device
+    return GhostFloor(floor=wp.array(idx, dtype=wp.int32, device=dev), slot=wp.array(slot, dtype=wp.int32, device=dev),
+                      offset=wp.array(off, dtype=model.scalar, device=dev), radius=GHOST_RADIUS * model.spacing)
+
+
+@functools.cache
+def funcs(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3 = T.vec3
+    sm = smoothing.funcs(scalar)
+
+    @wp.func
+    def mirror_point(x: vec3, offset: scalar) -> vec3:
+        """``x`` mirrored across the wall plane ``y = offset``."""
+        return vec3(x[0], scalar(2.0) * offset - x[1], x[2])
+
+    @wp.func
+    def stencil_weight(x: vec3, p: vec3, rs: scalar) -> scalar:
+        """Eq. 7's poly6 shape around the mirror point ``p``, 1 at ``p`` and 0 from ``rs`` on
+        with its slope."""
+        return sm.w_poly6_c(wp.length_sq(x - p), rs, scalar(1.0) / wp.pow(rs, scalar(6.0)))
+
+    @wp.func
+    def stencil_normaliser(total: scalar) -> scalar:
+        """``max(total, MIN_TOTAL)`` made C1: a quadratic over ``MIN_TOTAL +- SWITCH``."""
+        m = scalar(MIN_TOTAL)
+        d = scalar(SWITCH)
+        out = total
+        if total <= m - d:
+            out = m
+        elif total < m + d:
+            e = total - m + d
+            out = m + e * e / (scalar(4.0) * d)
+        return out
+
+    @wp.func
+    def stencil_total(t: int, x: wp.array(dtype=vec3), p: vec3, rs: scalar, cj: wp.array2d(dtype=wp.int32),
+                      count: int) -> scalar:
+        """The raw sum of the stencil's weights (a func of its own, so the caller's
+        non-linear use of it is differentiated right: docs/method.md, Warp pitfall 1)."""
+        total = scalar(0.0)
+        for c in range(count):
+            total += stencil_weight(x[cj[t, c]], p, rs)
+        return total
+
+    @wp.func
+    def ghost_displacement(t: int, x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
+                           y_lo: wp.array(dtype=vec3), cj: wp.array2d(dtype=wp.int32), gw: wp.array2d(dtype=scalar),
+                           count: int) -> vec3:
+        """``-sum_j s_kj u_j``: the odd continuation of the material's displacement."""
+        u = vec3()
+        for c in range(count):
+            j = cj[t, c]
+            u += gw[t, c] * ((y[j] - x[j]) + (y_lo[j] - x_lo[j]))
+        return -u
+
+    return types.SimpleNamespace(mirror_point=mirror_point, stencil_weight=stencil_weight,
+                                 stencil_normaliser=stencil_normaliser, stencil_total=stencil_total,
+                                 ghost_displacement=ghost_displacement)
+
+
+@functools.cache
+def kernels(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3 = T.vec3
+    fn = funcs(scalar)
+    rows = wp.constant(STENCIL)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def grid_points(x: wp.array(dtype=vec3), out: wp.array(dtype=wp.vec3f)):
+        i = wp.tid()
+        p = x[i]
+        out[i] = wp.vec3f(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def stencil_candidates(
+        grid: wp.uint64,
+        x: wp.array(dtype=vec3),
+        floor: wp.array(dtype=wp.int32),
+        offset: wp.array(dtype=scalar),
+        slot: wp.array(dtype=wp.int32),
+        body: wp.array(dtype=wp.int32),
+        rs: scalar,
+        cj: wp.array2d(dtype=wp.int32),
+        cc: wp.array(dtype=wp.int32),
+        counters: wp.array(dtype=wp.int32),
+        cut_index: int,
+    ):
+        """The free particles of floor particle ``floor[t]``'s body within ``rs`` of its mirror
+        point (integers: the tape never sees the grid; docs/method.md, Warp pitfall 3)."""
+        t = wp.tid()
+        k = floor[t]
+        p = fn.mirror_point(x[k], offset[t])
+        pf = wp.vec3f(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
+        big = wp.max(wp.max(wp.abs(pf[0]), wp.abs(pf[1])), wp.abs(pf[2])) + wp.float32(rs)
+        q = wp.hash_grid_query(grid, pf, wp.float32(rs) * wp.float32(1.0001) + wp.float32(5.0e-7) * big)
+        j = int(0)
+        c = int(0)
+        cut = int(0)
+        while wp.hash_grid_query_next(q, j):
+            if slot[j] < 0 and body[j] == body[k] and wp.length_sq(x[j] - p) < rs * rs:
+                if c < rows:
+                    cj[t, c] = j
+                    c += 1
+                else:
+                    cut = 1
+        cc[t] = c
+        if cut != 0:
+            wp.atomic_add(counters, cut_index, 1)
+
+    @wp.kernel(module="unique")
+    def stencil_weights(
+        x: wp.array(dtype=vec3),
+        floor: wp.array(dtype=wp.int32),
+        offset: wp.array(dtype=scalar),
+        rs: scalar,
+        cj: wp.array2d(dtype=wp.int32),
+        cc: wp.array(dtype=wp.int32),
+        gw: wp.array2d(dtype=scalar),
+    ):
+        """``s_kj`` (module docstring)."""
+        t = wp.tid()
+        p = fn.mirror_point(x[floor[t]], offset[t])
+        n = cc[t]
+        inv = scalar(1.0) / fn.stencil_normaliser(fn.stencil_total(t, x, p, rs, cj, n))
+        for c in range(n):
+            gw[t, c] = fn.stencil_weight(x[cj[t, c]], p, rs) * inv
+
+    @wp.kernel(module="unique")
+    def fit_positions(
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        slot: wp.array(dtype=wp.int32),
+        cj: wp.array2d(dtype=wp.int32),
+        cc: wp.array(dtype=wp.int32),
+        gw: wp.array2d(dtype=scalar),
+        y_fit: wp.array(dtype=vec3),
+        y_fit_lo: wp.array(dtype=vec3),
+    ):
+        """The end positions the fit reads: the particles' own, the ghosts' ``y_k``."""
+        i = wp.tid()
+        t = slot[i]
+        if t < 0:
+            y_fit[i] = y[i]
+            y_fit_lo[i] = y_lo[i]
+        else:
+            y_fit[i] = x[i] + fn.ghost_displacement(t, x, y, x_lo, y_lo, cj, gw, cc[t])
+            y_fit_lo[i] = x_lo[i]
+
+    @wp.kernel(module="unique")
+    def copy_floor_forces(f: wp.array(dtype=vec3), floor: wp.array(dtype=wp.int32), gf: wp.array(dtype=vec3)):
+        # A copy, so the hand-over's adjoint does not read forces the pressure adds later.
+        t = wp.tid()
+        gf[t] = f[floor[t]]
+
+    @wp.kernel(module="unique")
+    def hand_over(
+        gf: wp.array(dtype=vec3),
+        floor: wp.array(dtype=wp.int32),
+        cj: wp.array2d(dtype=wp.int32),
+        cc: wp.array(dtype=wp.int32),
+        gw: wp.array2d(dtype=scalar),
+        f: wp.array(dtype=vec3),
+    ):
+        """``f_j -= s_kj f_k`` and ``f_k += s_kj f_k``: equal and opposite."""
+        t = wp.tid()
+        fk = gf[t]
+        kept = vec3()
+        for c in range(cc[t]):
+            g = gw[t, c] * fk
+            wp.atomic_sub(f, cj[t, c], g)
+            kept += g
+        wp.atomic_add(f, floor[t], kept)
+
+    return types.SimpleNamespace(grid_points=grid_points, stencil_candidates=stencil_candidates,
+                                 stencil_weights=stencil_weights, fit_positions=fit_positions,
+                                 copy_floor_forces=copy_floor_forces, hand_over=hand_over)
+
+
+def allocate_state(model, state, requires_grad: bool):
+    """A state's ghost arrays (written by the step that produces it); None without a ghost floor."""
+    g = model.ghost_floor
+    if g is None:
+        state.ghost_y = state.ghost_y_lo = state.ghost_weights = state.ghost_rows = state.ghost_count = None
+        state.ghost_force = None
+        return
+    T, dev, n, nf = model.types, model.device, model.particle_count, g.count
+    state.ghost_y = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+    state.ghost_y_lo = wp.zeros(n, dtype=T.vec3, device=dev)
+    state.ghost_weights = wp.zeros((nf, STENCIL), dtype=T.scalar, device=dev, requires_grad=requires_grad)
+    state.ghost_rows = wp.zeros((nf, STENCIL), dtype=wp.int32, device=dev)
+    state.ghost_count = wp.zeros(nf, dtype=wp.int32, device=dev)
+    state.ghost_force = wp.zeros(nf, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+
+
+class StencilSearch:
+    """The hash grid of the ghosts' stencils (one per solver, kept alive while a tape may
+    replay the step: docs/method.md, Warp pitfall 3)."""
+
+    def __init__(self, model):
+        self.model = model
+        self.points = wp.zeros(model.particle_count, dtype=wp.vec3f, device=model.device)
+        self.grid = None
+
+    def update(self, state_in, state_out, counters, cut_index: int):
+        m, g = self.model, self.model.ghost_floor
+        k = kernels(m.scalar)
+        if self.grid is None:
+            x0 = m.particle_x0
+            cell = g.radius
+            dims = [int(min(128, max(1, np.ceil((x0[:, a].max() - x0[:, a].min()) / cell) + 8))) for a in range(3)]
+            self.grid = wp.HashGrid(*dims, device=m.device)
+        wp.launch(k.grid_points, m.particle_count, [state_in.x], [self.points], device=m.device, record_tape=False)
+        self.grid.build(self.points, g.radius)
+        wp.launch(k.stencil_candidates, g.count,
+                  [self.grid.id, state_in.x, g.floor, g.offset, g.slot, m.particle_body, m.scalar(g.radius)],
+                  [state_out.ghost_rows, state_out.ghost_count, counters, cut_index], device=m.device, record_tape=False)
+        wp.launch(k.stencil_weights, g.count,
+                  [state_in.x, g.floor, g.offset, m.scalar(g.radius), state_out.ghost_rows, state_out.ghost_count],
+                  [state_out.ghost_weights], device=m.device)
+
+
+def launch_hand_over(model, state_out):
+    """The elastic forces on the ghosts handed to their stencils (after the elastic forces,
+    before anything else adds to ``state_out.force``)."""
+    g, k = model.ghost_floor, kernels(model.scalar)
+    wp.launch(k.copy_floor_forces, g.count, [state_out.force, g.floor], [state_out.ghost_force], device=model.device)
+    wp.launch(k.hand_over, g.count, [state_out.ghost_force, g.floor, state_out.ghost_rows, state_out.ghost_count,
+                                     state_out.ghost_weights], [state_out.force], device=model.device)
+
+
+def launch_fit_positions(model, state_in, state_out):
+    """``State.ghost_y``: what the deformation update fits to (after the integration)."""
+    g, k = model.ghost_floor, kernels(model.scalar)
+    wp.launch(k.fit_positions, model.particle_count,
+              [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, g.slot, state_out.ghost_rows,
+               state_out.ghost_count, state_out.ghost_weights], [state_out.ghost_y, state_out.ghost_y_lo],
+              device=model.device)
