@@ -11,6 +11,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
+from energy_fd import central_gradient, mover, stvk_energy, stvk_psi
 
 SPACING = 0.02
 
@@ -21,15 +22,6 @@ def _cube(shape, elastic_force, model="linear", dtype=wp.float64):
     b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
     b.add_box((0.0, 0.0, 0.0), tuple(SPACING * k for k in shape), mat)
     return b.finalize(dtype=dtype)
-
-
-def _stvk_energy(model, F):
-    C = np.einsum("nki,nkj->nij", F, F)
-    E = 0.5 * (C - np.eye(3))
-    tr = np.trace(E, axis1=1, axis2=2)
-    mu, lam = model.materials[0].mu, model.materials[0].lam
-    psi = mu * np.einsum("nij,nij->n", E, E) + 0.5 * lam * tr**2
-    return float((model.particle_volume.numpy() * psi).sum())
 
 
 @pytest.mark.parametrize("fused, fit", [(True, "linear"), (False, "linear"), (False, "curvature_corrected")])
@@ -52,21 +44,9 @@ def test_variational_force_is_minus_the_gradient_of_the_fit_energy(fused, fit):
         a, b = model.state(), model.state()
         a.x.assign(x0)
         a.F.assign(F0)
-        dt = 1.0e-9
-
-        def moved(k, delta):
-            v = np.zeros((n, 3))
-            v.flat[k] = delta / dt
-            a.v.assign(v)
-            solver.step(a, b, dt)
-            return b
-
+        moved = mover(solver, a, b)
         force = moved(0, 0.0).force.numpy().ravel().copy()
-        delta = 1.0e-7
-        dEdx = np.array([
-            (_stvk_energy(model, moved(k, delta).F.numpy()) - _stvk_energy(model, moved(k, -delta).F.numpy())) / (2 * delta)
-            for k in range(3 * n)
-        ])
+        dEdx = central_gradient(lambda k, d: stvk_energy(model, moved(k, d).F.numpy()), range(3 * n))
         assert sum(solver.guard_counts().values()) == 0
         errors[elastic_force] = np.abs(force + dEdx).max() / np.abs(dEdx).max()
     assert errors["variational"] < 1e-6, errors
@@ -99,19 +79,9 @@ def test_rest_variational_force_is_minus_the_gradient_of_an_energy_of_the_positi
     solver.step(a, b_, dt)  # b_: at x0 (to 1e-9), with F = G(x0)
     assert np.abs(b_.F.numpy() - np.eye(3)).max() > 0.05
 
-    def moved(k, delta):
-        v = np.zeros((n, 3))
-        v.flat[k] = delta / dt
-        b_.v.assign(v)
-        solver.step(b_, c, dt)
-        return c
-
+    moved = mover(solver, b_, c, dt)
     force = moved(0, 0.0).force.numpy().ravel().copy()
-    delta = 1.0e-7
-    dEdx = np.array([
-        (_stvk_energy(model, moved(k, delta).F.numpy()) - _stvk_energy(model, moved(k, -delta).F.numpy())) / (2 * delta)
-        for k in range(3 * n)
-    ])
+    dEdx = central_gradient(lambda k, d: stvk_energy(model, moved(k, d).F.numpy()), range(3 * n))
     assert np.abs(force + dEdx).max() < 1e-6 * np.abs(dEdx).max()
 
 
@@ -337,14 +307,6 @@ def test_rubber_ball_bounces_and_settles_in_its_shape():
     assert x[:, 1].min() > -0.005
 
 
-def _stvk_psi(model, F):
-    C = np.einsum("nki,nkj->nij", F, F)
-    E = 0.5 * (C - np.eye(3))
-    tr = np.trace(E, axis1=1, axis2=2)
-    mu, lam = model.materials[0].mu, model.materials[0].lam
-    return mu * np.einsum("nij,nij->n", E, E) + 0.5 * lam * tr**2
-
-
 def _image_energy(model, x, y, F, rows, fit="linear"):
     """``sum_i V psi(dF_g(y) F_i)`` over the floor images ``g_i`` (plane y = 0; mirrors at
     least half a spacing deep) of the particles within ``h`` of the plane: each image's fit over
@@ -375,7 +337,7 @@ def _image_energy(model, x, y, F, rows, fit="linear"):
             if np.linalg.det(A - C @ K) > 0.1 * np.linalg.det(A):
                 A, B = A - C @ K, B - E @ K
         Fg[i] = B @ np.linalg.inv(A) @ F[i]
-    psi = _stvk_psi(model, Fg)
+    psi = stvk_psi(model, Fg)
     return float((model.particle_volume.numpy() * np.where(x[:, 1] < h, psi, 0.0)).sum())
 
 
@@ -405,28 +367,20 @@ def test_variational_force_with_floor_images_is_minus_the_gradient_of_the_fit_en
     a, c = model.state(), model.state()
     a.x.assign(x0)
     a.F.assign(F0)
-    dt = 1.0e-9
-
-    def moved(k, delta):
-        v = np.zeros((n, 3))
-        v.flat[k] = delta / dt
-        a.v.assign(v)
-        solver.step(a, c, dt)
-        return c
+    moved = mover(solver, a, c)
 
     def energy(k, delta):
         s = moved(k, delta)
         y = x0.copy()
         y.flat[k] += delta
         V = model.particle_volume.numpy()
-        return float((V * _stvk_psi(model, s.F.numpy())).sum()) + _image_energy(model, x0, y, F0, rows, fit)
+        return float((V * stvk_psi(model, s.F.numpy())).sum()) + _image_energy(model, x0, y, F0, rows, fit)
 
     first = moved(0, 0.0)
     force = first.force.numpy().ravel().copy()
     nbr, count = first.neighbors.numpy(), first.neighbor_count.numpy()
     rows = [nbr[i, : count[i]] for i in range(n)]
-    delta = 1.0e-7
-    dEdx = np.array([(energy(k, delta) - energy(k, -delta)) / (2 * delta) for k in range(3 * n)])
+    dEdx = central_gradient(energy, range(3 * n))
     assert sum(solver.guard_counts().values()) == 0
     err = np.abs(force + dEdx).max() / np.abs(dEdx).max()
     assert err < 1e-6, err

@@ -7,6 +7,7 @@ import warp as wp
 
 import warp_esph as we
 from warp_esph.sim import forces
+from energy_fd import central_gradient, mover, stvk_energy
 from taped_loss import random_weights, taped_rollout_loss
 
 STEPS = 5
@@ -14,10 +15,12 @@ DT = 1.0e-3
 SPACING = 0.02
 
 
-def _model(params=None, velocity=None, dtype=wp.float64, requires_grad=True):
+def _model(params=None, velocity=None, dtype=wp.float64, requires_grad=True, slide=0.0):
     """A jittered block on a ghost floor, moving in shear over the floor (zero on the wall
-    plane y = -dx/2 ... the body's base at y = 0) plus a stretch, so it yields within a
-    few steps and every ghost's stencil moves."""
+    plane, half a spacing below the body's base) plus a stretch, so it yields within a few
+    steps and every ghost's stencil moves; ``slide`` (m/s) adds a slide along x, fast
+    enough that the stencils at the block's rim pass through the normaliser's switch
+    (``ghost_floor.stencil_normaliser``: 4 / 8 / 12 of them at steps 3 / 4 / 5 at 2 m/s)."""
     p = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "pressure_stiffness": 1.0,
          "viscosity": 2.0, "elastic_force": "variational"}
     p.update(params or {})
@@ -31,7 +34,7 @@ def _model(params=None, velocity=None, dtype=wp.float64, requires_grad=True):
     v = np.zeros_like(x0)
     plane = model.bodies[0].ghost_plane
     v[free] = (20.0 * (x0[free, 1:2] - plane) * np.array([1.0, 0.0, 0.3])
-               + 10.0 * x0[free] * np.array([1.0, -0.5, 0.0]))
+               + 10.0 * x0[free] * np.array([1.0, -0.5, 0.0]) + np.array([slide, 0.0, 0.0]))
     model.particle_v0 = v if velocity is None else velocity(model)
     return model
 
@@ -55,17 +58,20 @@ def weights():
 NAMES = ("mu", "lam", "yield_stress", "flow_rate", "viscosity", "pressure_stiffness")
 
 
-def test_ghost_floor_gradients_match_central_differences(weights):
+@pytest.mark.parametrize("slide", [0.0, 2.0])
+def test_ghost_floor_gradients_match_central_differences(weights, slide):
     """float64 central differences of a rollout in shear over the ghost floor (from F = I),
     for every material parameter, with the hand-written adjoints of the fit and force and
-    with Warp's generated ones (the ghosts' own kernels are Warp's in both)."""
-    model = _model()
+    with Warp's generated ones (the ghosts' own kernels are Warp's in both); also sliding,
+    with stencils switching on at the rim."""
+    model = _model(slide=slide)
     _, grads = _loss(model, weights, NAMES)
-    _, generated = _loss(_model(), weights, NAMES, hand_adjoints=False)
+    _, generated = _loss(_model(slide=slide), weights, NAMES, hand_adjoints=False)
     for name in NAMES:
         base = getattr(model.materials[0], name)
         eps = 1e-5 * abs(base)
-        fd = (_loss(_model({name: base + eps}), weights) - _loss(_model({name: base - eps}), weights)) / (2 * eps)
+        fd = (_loss(_model({name: base + eps}, slide=slide), weights)
+              - _loss(_model({name: base - eps}, slide=slide), weights)) / (2 * eps)
         assert abs(fd) > 1e-11, f"the loss does not reach {name}"
         assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
         assert generated[name][0] == pytest.approx(grads[name][0], rel=1e-8), name
@@ -87,15 +93,6 @@ def test_ghost_floor_initial_velocity_gradient(weights):
             return _loss(_model(velocity=velocity), weights)
         fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
         assert grads["v0"][i, c] == pytest.approx(fd, rel=1e-4, abs=1e-9)
-
-
-def _stvk_energy(model, F):
-    C = np.einsum("nki,nkj->nij", F, F)
-    E = 0.5 * (C - np.eye(3))
-    tr = np.trace(E, axis1=1, axis2=2)
-    mu, lam = model.materials[0].mu, model.materials[0].lam
-    psi = mu * np.einsum("nij,nij->n", E, E) + 0.5 * lam * tr**2
-    return float((model.particle_volume.numpy() * psi).sum())
 
 
 def test_ghost_floor_force_is_minus_the_gradient_of_the_free_particles_fit_energy():
@@ -122,15 +119,7 @@ def test_ghost_floor_force_is_minus_the_gradient_of_the_free_particles_fit_energ
     a, c = model.state(), model.state()
     a.x.assign(x0)
     a.F.assign(F0)
-    dt = 1.0e-9
-
-    def moved(k, delta):
-        v = np.zeros((n, 3))
-        v.flat[k] = delta / dt
-        a.v.assign(v)
-        solver.step(a, c, dt)
-        return c
-
+    moved = mover(solver, a, c)
     force = moved(0, 0.0).force.numpy().copy()
     assert c.ghost_count.numpy().max() > 0
     # The same stage without the hand-over: the free particles' own fit forces only.
@@ -138,10 +127,8 @@ def test_ghost_floor_force_is_minus_the_gradient_of_the_free_particles_fit_energ
     forces.launch_elastic_forces(model, a, c, False)
     bare = c.force.numpy().ravel().copy()
     assert np.abs(force.sum(axis=0)).max() < 1e-9 * np.abs(force).max()
-    delta = 1.0e-7
     coords = np.flatnonzero(np.repeat(free, 3))
-    dEdx = np.array([(_stvk_energy(model, moved(k, delta).F.numpy()) - _stvk_energy(model, moved(k, -delta).F.numpy()))
-                     / (2 * delta) for k in coords])
+    dEdx = central_gradient(lambda k, d: stvk_energy(model, moved(k, d).F.numpy()), coords)
     assert sum(solver.guard_counts().values()) == 0
     err = np.abs(force.ravel()[coords] + dEdx).max() / np.abs(dEdx).max()
     assert err < 1e-6, err
