@@ -192,10 +192,10 @@ def slump_model(S: float, resolution: int = 12, elastic_force: str = "variationa
                 flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, pressure_force: str = "energy_spiky",
                 floor: str = "particles", floor_radius: float = 3.2, pressure_stiffness: float | None = None,
                 support_radius: float = 2.0, stiffness: float = 10.0, floor_layers: int = FLOOR_LAYERS,
-                aspect: float = 1.0, dtype=None):
+                aspect: float = 1.0, dtype=None, requires_grad: bool = False):
     """``slump``'s scene (its arguments, its docstring): ``(model, free, mu, Y)``, the model in
-    ``dtype`` (default float32), the mask of its free particles, the shear modulus and the
-    yield stress."""
+    ``dtype`` (default float32; ``requires_grad`` for a taped run), the mask of its free
+    particles, the shear modulus and the yield stress."""
     wp, we = _we()
     _check_floor(floor)
     R0 = H0 / (2.0 * aspect)
@@ -211,7 +211,7 @@ def slump_model(S: float, resolution: int = 12, elastic_force: str = "variationa
     pts = lattice_points(np.array([-R0, 0.0, -R0]), np.array([R0, H0, R0]), dx)
     pts = pts[np.hypot(pts[:, 0], pts[:, 2]) <= R0]  # what add_cylinder places
     free = _add_on_floor(b, pts, mat, floor, floor_radius * R0, friction, "cylinder0", layers=floor_layers)
-    model = b.finalize(device=wp.get_device(), dtype=wp.float32 if dtype is None else dtype)
+    model = b.finalize(device=wp.get_device(), dtype=wp.float32 if dtype is None else dtype, requires_grad=requires_grad)
     return model, free, mu, Y
 
 
@@ -1440,6 +1440,13 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     runs.append(("spread", {"resolution": 3, "shallowness": 0.18, "duration": 8.0}))
     for S in (0.1, 0.2, 0.3, 0.5):
         runs.append(("slump", {"S": S, "resolution": 16, "elastic_force": "variational", "duration": SLUMP_DURATION_FINE}))
+    # The same piles on the no-slip ghost floor, a wall that holds no layer (docs/physics.md,
+    # "The no-slip ghost floor"); they rest by about 4 s.
+    for res in (8, 12):
+        for S in (0.1, 0.2, 0.3, 0.5):
+            runs.append(("slump", {"S": S, "resolution": res, "floor": "ghost_particles", "duration": SLUMP_DURATION}))
+    for S in (0.2, 0.3):
+        runs.append(("slump", {"S": S, "resolution": 16, "floor": "ghost_particles", "duration": SLUMP_DURATION}))
     return runs
 
 
@@ -1545,7 +1552,7 @@ def select(runs: list[tuple[str, dict]], only: str | None) -> list[tuple[str, di
 
 #: The result fields that tell one run of a case from another (its parameters, not its outcome).
 IDENTITY = ("S", "resolution", "elastic_force", "shallowness", "amplitude", "dt_factor", "deformation", "fit",
-            "hourglass", "label", "dtype", "span_over_thickness", "aspect", "hold")
+            "hourglass", "label", "dtype", "span_over_thickness", "aspect", "hold", "floor")
 
 
 def same_run(a: dict, b: dict) -> bool:

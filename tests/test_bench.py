@@ -35,3 +35,20 @@ def test_tiny_benchmark_writes_the_expected_json(tmp_path):
     paper = report["paper"]
     assert 35e3 < paper["fig1"]["particle_steps_per_second"] < 37e3
     assert 45e3 < paper["fig5"]["particle_steps_per_second"] < 47e3
+
+
+def test_floors_benchmark_times_every_floor_against_the_particle_floor(tmp_path):
+    """``benchmarks.floors`` at a tiny size: every floor of the validation suite (and the
+    particle floor's non-fused step) as a ratio to the particle floor's fused step, and the
+    taped float64 window of the particle and ghost floors."""
+    from benchmarks import floors, validation
+
+    out = tmp_path / "floors.json"
+    report = floors.main(["--resolution", "4", "--steps", "2", "--warmup", "1", "--repeat", "1", "--taped",
+                          "--taped-steps", "1", "--json", str(out)])
+    assert json.loads(out.read_text()) == report
+    assert set(report["forward"]) == set(validation.FLOORS) | {"particles (non-fused)"}
+    assert report["forward"]["particles"]["ratio"] == 1.0
+    assert all(r["s_per_step"] > 0 for r in report["forward"].values())
+    assert set(report["taped"]) == {"particles", "ghost_particles"}
+    assert all(v > 0 for r in report["taped"].values() for v in r.values())

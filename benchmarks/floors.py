@@ -1,0 +1,122 @@
+"""What each floor costs: the step on the slump scene (``validation.slump_model``) on every
+floor of ``validation.FLOORS``, as a ratio to the plain particle floor's default (fused) step
+timed in the same run.
+
+    python -m benchmarks.floors                          # S = 0.2, 12 across, float32 forward
+    python -m benchmarks.floors --resolution 8 --taped --json out.json
+
+Each floor's forward step is timed over ``--steps`` steps after ``--warmup`` (kernel
+loading, the pile starting to fall), the best of ``--repeat``; the particle floor also
+with the non-fused kernels, which a ghost floor (``add_particle_floor(ghost=True)``) runs.
+``--taped`` also times a float64 taped window of ``--taped-steps`` steps, forward and
+backward, for the particle and ghost floors. Not a test.
+"""
+
+import argparse
+import json
+import platform
+import sys
+import time
+
+import numpy as np
+
+
+def _forward(floor: str, fused: bool, resolution: int, steps: int, warmup: int) -> tuple[float, int]:
+    import warp as wp
+
+    import warp_esph as we
+    from benchmarks import validation as V
+
+    model, _, _, _ = V.slump_model(0.2, resolution, floor=floor)
+    solver = we.Solver(model, fused=fused)
+    a, b = model.state(), model.state()
+    dt = 0.5 * model.stable_dt()
+    for _ in range(warmup):
+        solver.step(a, b, dt)
+        a, b = b, a
+    wp.synchronize()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        solver.step(a, b, dt)
+        a, b = b, a
+    wp.synchronize()
+    return (time.perf_counter() - t0) / steps, model.particle_count
+
+
+def _taped(floor: str, resolution: int, steps: int) -> tuple[float, float]:
+    import warp as wp
+
+    import warp_esph as we
+    from benchmarks import validation as V
+
+    model, _, _, _ = V.slump_model(0.2, resolution, floor=floor, dtype=wp.float64, requires_grad=True)
+    solver = we.Solver(model)
+    states = [model.state() for _ in range(steps + 1)]
+    dt = 0.5 * model.stable_dt()
+    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+    weights = wp.array(np.random.default_rng(0).normal(size=(model.particle_count, 3)), dtype=wp.vec3d)
+
+    @wp.kernel
+    def dot(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
+        i = wp.tid()
+        wp.atomic_add(out, 0, wp.dot(x[i], w[i]))
+
+    tape = wp.Tape()
+    t0 = time.perf_counter()
+    with tape:
+        for a, b in zip(states[:-1], states[1:]):
+            solver.step(a, b, dt)
+        wp.launch(dot, model.particle_count, [states[-1].x, weights], [loss])
+    wp.synchronize()
+    t1 = time.perf_counter()
+    tape.backward(loss)
+    wp.synchronize()
+    return (t1 - t0) / steps, (time.perf_counter() - t1) / steps
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.floors", description=__doc__.split("\n\n")[0])
+    p.add_argument("--resolution", type=int, default=12, help="particles across the slump's cylinder")
+    p.add_argument("--steps", type=int, default=60)
+    p.add_argument("--warmup", type=int, default=5)
+    p.add_argument("--repeat", type=int, default=2)
+    p.add_argument("--taped", action="store_true", help="also time a float64 taped window, forward and backward")
+    p.add_argument("--taped-steps", type=int, default=3)
+    p.add_argument("--json", default=None, help="where the results go")
+    args = p.parse_args(argv)
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING
+    from benchmarks import validation as V
+
+    runs = [(f, True) for f in V.FLOORS] + [("particles", False)]
+    best: dict[str, float] = {}
+    counts: dict[str, int] = {}
+    for _ in range(args.repeat):  # interleaved, so a slow spell of the machine hits every floor
+        for floor, fused in runs:
+            key = floor + ("" if fused else " (non-fused)")
+            t, n = _forward(floor, fused, args.resolution, args.steps, args.warmup)
+            best[key] = min(best.get(key, np.inf), t)
+            counts[key] = n
+    base = best["particles"]
+    out = {"resolution": args.resolution, "steps": args.steps, "machine": platform.machine(),
+           "forward": {k: {"s_per_step": v, "ratio": v / base, "particles": counts[k]} for k, v in best.items()}}
+    for k, v in out["forward"].items():
+        print(f"{k:28s} {v['particles']:6d} particles  {1e3 * v['s_per_step']:8.2f} ms/step  {v['ratio']:.2f} x", flush=True)
+    if args.taped:
+        floors = ("particles", "ghost_particles")
+        for f in floors:  # kernel loading (float64, taped) before any timing
+            _taped(f, args.resolution, 1)
+        taped = {f: _taped(f, args.resolution, args.taped_steps) for f in floors}
+        fb = taped["particles"]
+        out["taped"] = {f: {"forward_ratio": t[0] / fb[0], "backward_ratio": t[1] / fb[1]} for f, t in taped.items()}
+        for f, t in out["taped"].items():
+            print(f"taped float64 {f:16s} forward {t['forward_ratio']:.2f} x  backward {t['backward_ratio']:.2f} x", flush=True)
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(out, fh, indent=1)
+    return out
+
+
+if __name__ == "__main__":
+    sys.exit(0 if main() else 1)
