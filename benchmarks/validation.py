@@ -370,7 +370,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
         "radius_over_R0": radii[-1] / R0, "spread_theory_radius_over_R0": R_rc / R0,
         "radius_over_spread_theory": radii[-1] / R_rc,
         "spread_theory_h_over_H0": spread_height_theory(R_rc, tau_y) / H0,
-        "height_history": (t / 1.0).tolist(), "h_history": (h / H0).tolist(), "ke_history": (ke / weight_scale).tolist(),
+        "time_history": t.tolist(), "h_history": (h / H0).tolist(), "ke_history": (ke / weight_scale).tolist(),
         "finite": bool(np.isfinite(h).all()), "wall_s": wall,
     }
 

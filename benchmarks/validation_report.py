@@ -115,7 +115,7 @@ def _plots(results, img: pathlib.Path) -> list[str]:
         for r in slumps:
             if r["S"] in pick:
                 ls = "-" if r["elastic_force"] == "variational" else "--"
-                ax.plot(r["height_history"], r["h_history"], ls, color=COLOR.get(r["resolution"], "k"),
+                ax.plot(r["time_history"], r["h_history"], ls, color=COLOR.get(r["resolution"], "k"),
                         label=f"{r['elastic_force']}, {r['resolution']} across")
         ax.axhline(slump_theory(pick[0]), color="k", lw=0.8, label="1-D theory")
         ax.set_xlabel("t (s)")

@@ -724,7 +724,7 @@ def _slump_row(S, resolution, rate, ke=1e-10, force="variational", **extra):
            "fraction_at_yield": 0.9, "plug_particles": 0, "plug_unyielded_fraction": float("nan"),
            "plug_plastic_strain": float("nan"), "flowed_plastic_strain": 10.0, "radius_over_R0": 1.5,
            "radius_over_spread_theory": 0.8, "spread_theory_h_over_H0": 0.5,
-           "height_history": [0.0, 8.0], "h_history": [1.0, h]}
+           "time_history": [0.0, 8.0], "h_history": [1.0, h]}
     return row | extra
 
 
