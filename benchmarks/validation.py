@@ -104,7 +104,7 @@ def _deviatoric_norm(F: np.ndarray, mu: float) -> np.ndarray:
 
 
 # --------------------------------------------------------------------- floors
-FLOORS = ("ground", "particles", "ground_images", "elastic_particles", "ghost_particles")
+FLOORS = ("ground", "particles", "ground_images", "elastic_particles", "ghost_particles", "slip_ghost_particles")
 #: Layers of pinned particles under a body on a ``floor="particles"`` (two: a particle's fit
 #: reaches one spacing below it at the default support radius 2 dx, and so sees an interior
 #: neighbourhood at the base).
@@ -128,7 +128,8 @@ def _add_on_floor(b, points: np.ndarray, material, floor: str, radius: float, fr
     elastic (``add_particle_floor(elastic=True)``: it holds the material within a support
     radius of it, docs/physics.md, "The floor's plasticity"); ``"ghost_particles"``, the same
     floor as a no-slip wall of odd ghosts (``add_particle_floor(ghost=True)``, holding no
-    layer: docs/physics.md, "The no-slip ghost floor"). Returns the mask of the free
+    layer: docs/physics.md, "The no-slip ghost floor"); ``"slip_ghost_particles"``, the
+    frictionless ghost floor (``ghost=True, slip=True``). Returns the mask of the free
     particles (all of them on the ground)."""
     b.add_particles(points, material, name=name)
     if floor in ("ground", "ground_images"):
@@ -137,7 +138,7 @@ def _add_on_floor(b, points: np.ndarray, material, floor: str, radius: float, fr
     # A margin of radius + dx reaches the whole disc from the column nearest the axis.
     b.add_particle_floor(name, margin=radius + b.spacing, layers=layers, name="floor",
                          where=lambda p: np.hypot(p[:, 0], p[:, 2]) <= radius, elastic=floor == "elastic_particles",
-                         ghost=floor == "ghost_particles")
+                         ghost=floor in ("ghost_particles", "slip_ghost_particles"), slip=floor == "slip_ghost_particles")
     return np.arange(b.particle_count) < len(points)
 
 
@@ -535,10 +536,10 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     L = length * h
     W = width * dx
     b.add_box((L / 2.0, h / 2.0, W / 2.0), (L, h, W), mat, name="layer")
-    if floor in ("particles", "elastic_particles", "ghost_particles"):
+    if floor in ("particles", "elastic_particles", "ghost_particles", "slip_ghost_particles"):
         # Under the strip only (margin 0): the walls normal to z bound it, its ends are free.
         b.add_particle_floor("layer", margin=0.0, layers=FLOOR_LAYERS, name="floor", elastic=floor == "elastic_particles",
-                             ghost=floor == "ghost_particles")
+                             ghost=floor in ("ghost_particles", "slip_ghost_particles"), slip=floor == "slip_ghost_particles")
     else:
         b.add_ground(0.0, friction=friction, images=floor == "ground_images")
     inset = 0.5 * dx if walls == "centres" else 0.0

@@ -15,18 +15,19 @@ DT = 1.0e-3
 SPACING = 0.02
 
 
-def _model(params=None, velocity=None, dtype=wp.float64, requires_grad=True, slide=0.0):
+def _model(params=None, velocity=None, dtype=wp.float64, requires_grad=True, slide=0.0, slip=False):
     """A jittered block on a ghost floor, moving in shear over the floor (zero on the wall
     plane, half a spacing below the body's base) plus a stretch, so it yields within a few
     steps and every ghost's stencil moves; ``slide`` (m/s) adds a slide along x, fast
     enough that the stencils at the block's rim pass through the normaliser's switch
-    (``ghost_floor.stencil_normaliser``: 4 / 8 / 12 of them at steps 3 / 4 / 5 at 2 m/s)."""
+    (``ghost_floor.stencil_normaliser``: 4 / 8 / 12 of them at steps 3 / 4 / 5 at 2 m/s);
+    ``slip``: the frictionless ghost floor."""
     p = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "pressure_stiffness": 1.0,
          "viscosity": 2.0, "elastic_force": "variational"}
     p.update(params or {})
     b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, -9.81, 0.0))
     b.add_box((0.0, 0.03, 0.0), (0.1, 0.06, 0.08), we.Material(density=1000.0, **p), name="block")
-    b.add_particle_floor("block", margin=SPACING, ghost=True)
+    b.add_particle_floor("block", margin=SPACING, ghost=True, slip=slip)
     model = b.finalize(dtype=dtype, requires_grad=requires_grad)
     model.particle_x0[:] += np.random.default_rng(5).normal(scale=1e-3 * SPACING, size=model.particle_x0.shape)
     x0 = model.particle_x0
@@ -58,20 +59,20 @@ def weights():
 NAMES = ("mu", "lam", "yield_stress", "flow_rate", "viscosity", "pressure_stiffness")
 
 
-@pytest.mark.parametrize("slide", [0.0, 2.0])
-def test_ghost_floor_gradients_match_central_differences(weights, slide):
+@pytest.mark.parametrize("slide, slip", [(0.0, False), (2.0, False), (2.0, True)])
+def test_ghost_floor_gradients_match_central_differences(weights, slide, slip):
     """float64 central differences of a rollout in shear over the ghost floor (from F = I),
     for every material parameter, with the hand-written adjoints of the fit and force and
     with Warp's generated ones (the ghosts' own kernels are Warp's in both); also sliding,
-    with stencils switching on at the rim."""
-    model = _model(slide=slide)
+    with stencils switching on at the rim, and on the slip floor."""
+    model = _model(slide=slide, slip=slip)
     _, grads = _loss(model, weights, NAMES)
-    _, generated = _loss(_model(slide=slide), weights, NAMES, hand_adjoints=False)
+    _, generated = _loss(_model(slide=slide, slip=slip), weights, NAMES, hand_adjoints=False)
     for name in NAMES:
         base = getattr(model.materials[0], name)
         eps = 1e-5 * abs(base)
-        fd = (_loss(_model({name: base + eps}, slide=slide), weights)
-              - _loss(_model({name: base - eps}, slide=slide), weights)) / (2 * eps)
+        fd = (_loss(_model({name: base + eps}, slide=slide, slip=slip), weights)
+              - _loss(_model({name: base - eps}, slide=slide, slip=slip), weights)) / (2 * eps)
         assert abs(fd) > 1e-11, f"the loss does not reach {name}"
         assert grads[name][0] == pytest.approx(fd, rel=1e-4), name
         assert generated[name][0] == pytest.approx(grads[name][0], rel=1e-8), name
@@ -95,7 +96,8 @@ def test_ghost_floor_initial_velocity_gradient(weights):
         assert grads["v0"][i, c] == pytest.approx(fd, rel=1e-4, abs=1e-9)
 
 
-def test_ghost_floor_force_is_minus_the_gradient_of_the_free_particles_fit_energy():
+@pytest.mark.parametrize("slip", [False, True])
+def test_ghost_floor_force_is_minus_the_gradient_of_the_free_particles_fit_energy(slip):
     """At a deformed state (F up to 15 % from I, jittered positions) on a ghost floor, the
     force on every coordinate of every free particle equals the central difference of
     ``E = sum V psi(dF(y) F)`` over the free particles (the floor's volume is 0), the fits
@@ -103,11 +105,11 @@ def test_ghost_floor_force_is_minus_the_gradient_of_the_free_particles_fit_energ
     the solver): the hand-over is the ghosts' share of the gradient. Without it the force is
     far off. The hand-over is a set of equal and opposite pairs: the forces of all particles,
     floor included, sum to zero, so the pinned floor's reaction is the force the wall puts
-    on the material."""
+    on the material. The same on the slip floor."""
     b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
     mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, model="stvk", elastic_force="variational")
     b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), mat, name="block")
-    b.add_particle_floor("block", margin=0.0, ghost=True)
+    b.add_particle_floor("block", margin=0.0, ghost=True, slip=slip)
     model = b.finalize(dtype=wp.float64)
     n, nf = model.particle_count, model.ghost_floor.count
     free = np.arange(n) < n - nf
@@ -163,6 +165,8 @@ def test_ghost_floor_builder_refuses_an_elastic_ghost_and_a_non_bool():
         b.add_particle_floor("block", margin=0.0, ghost=True, elastic=True)
     with pytest.raises(ValueError, match=r"ghost = 'yes' is not allowed: must be True or False"):
         b.add_particle_floor("block", margin=0.0, ghost="yes")
+    with pytest.raises(ValueError, match=r"slip = True is not allowed without ghost = True"):
+        b.add_particle_floor("block", margin=0.0, slip=True)
 
 
 def test_ghost_floor_elastic_block_at_rest_stays_at_rest_and_auto_fit_is_linear():
@@ -182,3 +186,79 @@ def test_ghost_floor_elastic_block_at_rest_stays_at_rest_and_auto_fit_is_linear(
         a, c = c, a
     assert np.abs(a.v.numpy()).max() < 1e-12
     assert np.abs(a.F.numpy() - np.eye(3)).max() < 1e-12
+
+
+def _first_step_F(floor: str, L: np.ndarray, rs: float | None = None):
+    """The S = 0.2 slump scene at 8 across made force-free (no gravity, pressure or
+    viscosity, a vanishing modulus), its free particles moved for one step by the velocity
+    gradient ``L`` about the wall plane (between the floor and the body's lowest layer), on
+    ``floor`` (``validation.FLOORS``; ``rs``: the ghosts' stencil radius in spacings, None: the
+    default): ``(F after the step, dt, the free particles more than h inside the rim, those of
+    them in the lowest layer)``. At the rim a fit also sees floor particles whose mirror point
+    lies outside the body."""
+    from benchmarks import validation
+
+    model, free, _, _ = validation.slump_model(0.2, 8, viscosity=0.0, pressure_stiffness=0.0, stiffness=1e-9,
+                                               floor_radius=1.5, floor=floor)
+    if rs is not None:
+        model.ghost_floor.radius = rs * model.spacing
+    model.gravity = (0.0, 0.0, 0.0)
+    x0 = model.particle_x0.astype(np.float64)
+    plane = 0.5 * (x0[free, 1].min() + x0[~free, 1].max())
+    v = np.zeros_like(x0)
+    v[free] = (x0[free] - [0.0, plane, 0.0]) @ L.T
+    model.particle_v0 = v
+    solver = we.Solver(model, fused=False)
+    a, b = model.state(), model.state()
+    dt = 1e-3
+    solver.step(a, b, dt)
+    inside = free & (np.hypot(x0[:, 0], x0[:, 2]) < 0.05 - model.support_radius)
+    lowest = inside & (x0[:, 1] < x0[free, 1].min() + 0.5 * model.spacing)
+    return b.F.numpy().astype(np.float64), dt, inside, lowest
+
+
+#: A shear and stretch that vanish on the wall plane (only d/dy), and a motion that slides
+#: along it and compresses against it (normal velocity odd, tangential even about the plane).
+NO_SLIP_L = np.outer([2.0, -0.5, 1.0], [0.0, 1.0, 0.0])
+SLIP_L = np.diag([0.5, -1.0, 0.5]) + np.outer([0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
+
+
+def test_ghost_floor_fits_reproduce_an_affine_motion_that_vanishes_on_the_wall():
+    """The no-slip ghost floor: every fit next to the floor reproduces an affine motion that
+    vanishes on the wall's plane, F = I + dt L (measured: to 1.2e-5 of |dt L| in float32),
+    where the plain particle floor's static particles leave the lowest layer's fitted shear
+    at 0.75 of it. Exact with a ghost stencil of one spacing (on the lattice each ghost has
+    one partner); the Shepard average of the default 1.2-spacing stencil reproduces
+    constants only, and misses the lowest layer's shear by 1.25 % (the partner's neighbour
+    above has no mirror below)."""
+    L = NO_SLIP_L
+    F, dt, inside, lowest = _first_step_F("ghost_particles", L, rs=1.0)
+    assert lowest.sum() >= 12
+    exact = np.eye(3) + dt * L
+    err = np.abs(F[inside] - exact).max() / np.abs(dt * L).max()
+    assert err < 1e-3, err
+    F_wide, *_ = _first_step_F("ghost_particles", L)
+    assert np.abs(F_wide[inside] - exact).max() / np.abs(dt * L).max() < 0.02
+    F_plain, *_ = _first_step_F("particles", L)
+    shear = F_plain[lowest, 0, 1] / (dt * L[0, 1])
+    assert np.all(np.abs(shear - 0.75) < 0.01), shear
+
+
+def test_slip_ghost_floor_fits_reproduce_a_motion_that_slides_along_the_wall():
+    """The slip ghost floor: a motion continued evenly along the plane and oddly across it (a
+    compression against the plane, a lateral stretch and shear) is fitted next to the floor
+    as in the interior (measured: to 3.6e-5 of |dt L| with a stencil of one spacing, 1.25 %
+    with the default), where the no-slip ghosts, which reverse its tangential part, and the
+    plain floor's static particles do not (the lowest layer off by 1.75 and 0.875 of it)."""
+    L = SLIP_L
+    exact = np.eye(3) + 1e-3 * L
+    F, dt, inside, lowest = _first_step_F("slip_ghost_particles", L, rs=1.0)
+    assert lowest.sum() >= 12
+    errs = {}
+    errs["slip, rs 1"] = np.abs(F[inside] - exact).max() / np.abs(dt * L).max()
+    for floor, rs in (("slip_ghost_particles", None), ("ghost_particles", 1.0), ("particles", None)):
+        F, *_ = _first_step_F(floor, L, rs=rs)
+        errs[f"{floor}, rs {rs}"] = np.abs(F[lowest] - exact).max() / np.abs(dt * L).max()
+    assert errs["slip, rs 1"] < 1e-3, errs
+    assert errs["slip_ghost_particles, rs None"] < 0.02, errs
+    assert errs["ghost_particles, rs 1.0"] > 0.2 and errs["particles, rs None"] > 0.1, errs

@@ -215,57 +215,6 @@ def test_slump_on_an_elastic_particle_floor_rests_higher_than_on_the_plastic_one
     assert held["thickness_over_H0"] > slumped["thickness_over_H0"] + 0.04, (held["thickness_over_H0"], slumped["thickness_over_H0"])
 
 
-def _first_step_F(ghosts: bool, rs: float | None = None):
-    """The S = 0.2 slump scene at 8 across made force-free (no gravity, pressure or
-    viscosity, a vanishing modulus), its free particles moved for one step by an affine
-    velocity field that vanishes on the plane between the floor and the body's lowest layer,
-    on the ghost floor (``ghosts``, its stencil radius ``rs`` spacings; None: the default) or
-    the plain particle floor: ``(F after the step, dt, velocity gradient L, the free
-    particles more than h inside the rim, those of them in the lowest layer)``. At the rim a
-    fit also sees floor particles whose mirror point lies outside the body, which stay put."""
-    import warp_esph as we
-
-    model, free, _, _ = validation.slump_model(0.2, 8, viscosity=0.0, pressure_stiffness=0.0, stiffness=1e-9,
-                                               floor_radius=1.5, floor="ghost_particles" if ghosts else "particles")
-    if rs is not None:
-        model.ghost_floor.radius = rs * model.spacing
-    model.gravity = (0.0, 0.0, 0.0)
-    x0 = model.particle_x0.astype(np.float64)
-    plane = 0.5 * (x0[free, 1].min() + x0[~free, 1].max())
-    L = np.outer([2.0, -0.5, 1.0], [0.0, 1.0, 0.0])  # only d/dy: zero on the plane y = plane
-    v = np.zeros_like(x0)
-    v[free] = (x0[free] - [0.0, plane, 0.0]) @ L.T
-    model.particle_v0 = v
-    solver = we.Solver(model, fused=False)
-    a, b = model.state(), model.state()
-    dt = 1e-3
-    solver.step(a, b, dt)
-    inside = free & (np.hypot(x0[:, 0], x0[:, 2]) < 0.05 - model.support_radius)
-    lowest = inside & (x0[:, 1] < x0[free, 1].min() + 0.5 * model.spacing)
-    return b.F.numpy().astype(np.float64), dt, L, inside, lowest
-
-
-def test_ghost_floor_fits_reproduce_an_affine_motion_that_vanishes_on_the_wall():
-    """The no-slip ghost floor (``add_particle_floor(ghost=True)``; docs/physics.md, "The
-    no-slip ghost floor"): every fit next to the floor reproduces an affine motion that
-    vanishes on the wall's plane, F = I + dt L (measured: to 1.2e-5 of |dt L| in float32),
-    where the plain particle floor's static particles leave the lowest layer's fitted shear
-    at 0.75 of it. Exact with a ghost stencil of one spacing (on the lattice each ghost has
-    one partner); the Shepard average of the default 1.2-spacing stencil reproduces
-    constants only, and misses the lowest layer's shear by 1.25 % (the partner's neighbour
-    above has no mirror below)."""
-    F, dt, L, inside, lowest = _first_step_F(ghosts=True, rs=1.0)
-    assert lowest.sum() >= 12
-    exact = np.eye(3) + dt * L
-    err = np.abs(F[inside] - exact).max() / np.abs(dt * L).max()
-    assert err < 1e-3, err
-    F_wide, *_ = _first_step_F(ghosts=True)
-    assert np.abs(F_wide[inside] - exact).max() / np.abs(dt * L).max() < 0.02
-    F_plain, *_ = _first_step_F(ghosts=False)
-    shear = F_plain[lowest, 0, 1] / (dt * L[0, 1])
-    assert np.all(np.abs(shear - 0.75) < 0.01), shear
-
-
 @pytest.mark.parametrize("resolution", [8, 12, 16])
 def test_centre_thickness_reads_the_cylinder_height_on_its_lattice(resolution):
     """The slump's height as a volume (``centre_thickness`` over R0 / 2) of the cylinder

@@ -263,7 +263,7 @@ class SceneBuilder:
         return self.add_particles(inside, material, velocity, kind_name, "mesh", angular_velocity)
 
     def add_particle_floor(self, body, *, margin: float, layers: int | None = None, where=None, name: str | None = None,
-                           elastic: bool = False, ghost: bool = False) -> str:
+                           elastic: bool = False, ghost: bool = False, slip: bool = False) -> str:
         """A rough floor that enters the fits: ``layers`` lattice layers of ``body``'s own
         particles under it, pinned (``pin``); returns the pin's name (default ``"<body>_floor"``).
 
@@ -295,8 +295,11 @@ class SceneBuilder:
         layer and the body's lowest layer, holding no layer of material: in the fits the
         floor's particles move as the odd continuation of the material's motion across
         that plane, and they carry no energy of their own (``warp_esph/sim/ghost_floor.py``;
-        docs/physics.md, "The no-slip ghost floor"). The solver then runs the non-fused
-        kernels, with the paper's linear fit and the variational elastic force only."""
+        docs/physics.md, "The no-slip ghost floor"). With ``slip=True`` (ghost floors only) the
+        ghosts continue the motion evenly along the plane and oddly across it: a frictionless
+        wall that the material slides on without crossing (the SPH viscosity against the floor's
+        particles still acts). The solver then runs the non-fused kernels, with the paper's
+        linear fit and the variational elastic force only."""
         names = [b.name for b in self._bodies]
         if isinstance(body, str):
             if body not in names:
@@ -323,6 +326,10 @@ class SceneBuilder:
             raise ValueError(f"elastic = {elastic!r} is not allowed: must be True or False")
         if not isinstance(ghost, bool):
             raise ValueError(f"ghost = {ghost!r} is not allowed: must be True or False")
+        if not isinstance(slip, bool):
+            raise ValueError(f"slip = {slip!r} is not allowed: must be True or False")
+        if slip and not ghost:
+            raise ValueError("slip = True is not allowed without ghost = True: only a ghost floor can let the material slide")
         if ghost and elastic:
             raise ValueError("elastic = True is not allowed with ghost = True: a ghost floor carries no energy of its own, "
                              "so it has no material to make elastic")
@@ -383,7 +390,7 @@ class SceneBuilder:
         self._bodies[-1] = dataclasses.replace(bd, count=bd.count + len(floor),
                                                floor_material=floor_material if floor_material != bd.material else -1,
                                                ghost_floor=len(floor) if ghost else 0,
-                                               ghost_plane=float(ref[1] - 0.5 * dx) if ghost else 0.0)
+                                               ghost_plane=float(ref[1] - 0.5 * dx) if ghost else 0.0, ghost_slip=slip)
         self._count += len(floor)
         self._floors.add(bd.name)
         return self.pin(indices=np.arange(start, self._count), name=name)
@@ -656,7 +663,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
             name = f"w{w}/{body.name}" if several else body.name
             bodies.append(Body(name=name, start=count, count=body.count, material=body.material + m0, kind=body.kind, world=w,
                                floor_material=body.floor_material + m0 if body.floor_material >= 0 else -1,
-                               ghost_floor=body.ghost_floor, ghost_plane=body.ghost_plane))
+                               ghost_floor=body.ghost_floor, ghost_plane=body.ghost_plane, ghost_slip=body.ghost_slip))
             body_ids.append(np.full(body.count, b0 + k, dtype=np.int32))
             world_ids.append(np.full(body.count, w, dtype=np.int32))
             count += body.count

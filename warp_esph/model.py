@@ -55,10 +55,12 @@ class Body:
     #: The material of its elastic particle floor (``add_particle_floor(elastic=True)``), a
     #: wall's, which a fit leaves as built; -1: none.
     floor_material: int = -1
-    #: How many of its last particles are a no-slip ghost floor (``add_particle_floor(ghost=True)``,
-    #: ``sim/ghost_floor.py``), and the height of that floor's wall plane (m); 0: none.
+    #: How many of its last particles are a ghost floor (``add_particle_floor(ghost=True)``,
+    #: ``sim/ghost_floor.py``; 0: none), the height of that floor's wall plane (m), and whether
+    #: the wall lets the material slide (``slip=True``) rather than holding it (no slip).
     ghost_floor: int = 0
     ghost_plane: float = 0.0
+    ghost_slip: bool = False
 
 
 class State:
@@ -245,11 +247,12 @@ class Model:
         # evaluated in reference space, so the rest volume is the right one).
         volume = np.full(self.particle_count, self.spacing**3, dtype=npf)
         density = np.array([m.density for m in materials], dtype=npf)[self.particle_material_np]
-        ghosts = [(b.start + b.count - b.ghost_floor, b.start + b.count, b.ghost_plane) for b in bodies if b.ghost_floor > 0]
+        ghosts = [(b.start + b.count - b.ghost_floor, b.start + b.count, b.ghost_plane, b.ghost_slip)
+                  for b in bodies if b.ghost_floor > 0]
         # The volume that weighs each particle's elastic energy: none for a ghost floor's
         # (sim/ghost_floor.py), whose mass still enters the SPH density.
         energy_volume = volume.copy()
-        for a, b, _ in ghosts:
+        for a, b, _, _ in ghosts:
             energy_volume[a:b] = 0.0
         self.particle_volume = wp.array(energy_volume, dtype=scalar, device=dev)
         self.particle_mass = wp.array(volume * density, dtype=scalar, device=dev)

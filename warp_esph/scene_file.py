@@ -150,11 +150,12 @@ MATERIAL_KEYS = {
 }
 #: ``floor_margin`` puts a particle floor under the body (``SceneBuilder.add_particle_floor``;
 #: ``floor_layers`` its layers, default ceil(support_radius / spacing); ``floor_elastic`` its
-#: ``elastic``, default false; ``floor_ghost`` its ``ghost``, default false).
+#: ``elastic``, default false; ``floor_ghost`` its ``ghost`` and ``floor_slip`` its ``slip``,
+#: default false).
 BODY_COMMON = {"shape": (STR, True), "material": (STR, True), "name": (STR, False), "velocity": (VEC3, False),
                "angular_velocity": (VEC3, False), "floor_margin": (NUM, False), "floor_layers": (INT, False),
-               "floor_elastic": (BOOL, False), "floor_ghost": (BOOL, False)}
-FLOOR_KEYS = ("floor_margin", "floor_layers", "floor_elastic", "floor_ghost")
+               "floor_elastic": (BOOL, False), "floor_ghost": (BOOL, False), "floor_slip": (BOOL, False)}
+FLOOR_KEYS = ("floor_margin", "floor_layers", "floor_elastic", "floor_ghost", "floor_slip")
 BODY_SHAPES = {
     "box": {"center": (VEC3, True), "size": (VEC3, True)},
     "sphere": {"center": (VEC3, True), "radius": (NUM, True)},
@@ -308,11 +309,11 @@ def _body(file: str, k: int, table: dict, builder: SceneBuilder, materials: dict
                 layers = checks.positive_int("floor_layers", layers, maximum=MAX_FLOOR_LAYERS)
             try:
                 builder.add_particle_floor(index, margin=margin, layers=layers, elastic=table.get("floor_elastic", False),
-                                           ghost=table.get("floor_ghost", False))
+                                           ghost=table.get("floor_ghost", False), slip=table.get("floor_slip", False))
             except ValueError as e:
                 # The method names its arguments; the file's keys are floor_<argument>.
                 msg = str(e)
-                raise ValueError("floor_" + msg if msg.startswith(("margin = ", "layers = ", "elastic = ", "ghost = ")) else msg) from None
+                raise ValueError("floor_" + msg if msg.startswith(("margin = ", "layers = ", "elastic = ", "ghost = ", "slip = ")) else msg) from None
     except ValueError as e:
         raise ValueError(f"{file}: {where}: {e}") from None
 

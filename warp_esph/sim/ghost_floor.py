@@ -1,5 +1,5 @@
-"""A no-slip floor of odd ghosts (``SceneBuilder.add_particle_floor(ghost=True)``;
-docs/physics.md, "The no-slip ghost floor").
+"""A floor of ghosts (``SceneBuilder.add_particle_floor(ghost=True)``; docs/physics.md, "The
+no-slip ghost floor"): a no-slip wall, or with ``slip=True`` a frictionless one.
 
 The floor's particles stay pinned where they are for the neighbour search, the SPH
 density, pressure and viscosity. In the incremental fit (eqs. 5-6) they are not material
@@ -12,7 +12,11 @@ top layer and the body's lowest layer),
 a Shepard average over the body's free particles within ``GHOST_RADIUS`` spacings of
 ``p_k``, ``W`` the poly6 shape of eq. 7 normalised to 1 at ``p_k``. The motion the fits
 near the floor see is then continued oddly across the plane, where it vanishes: a shear or
-stretch that is zero on the plane is fitted exactly next to the floor.
+stretch that is zero on the plane is fitted exactly next to the floor. On a slip floor the
+ghost moves by ``R sum_j s_kj u_j`` instead, ``R`` the mirror (``ghost_map``): the motion is
+continued evenly along the plane and oddly across it, so the material slides freely on the
+plane but does not cross it, and a motion with that symmetry (a lateral stretch, a
+compression against the plane) is fitted exactly next to the floor.
 
 ``N`` (``stencil_normaliser``) is the stencil's total weight where it holds at least
 ``MIN_TOTAL + SWITCH`` (a particle's weight at ``p_k`` is 1), and switches smoothly (C1) to
@@ -22,9 +26,10 @@ in part and comes on gradually instead of at once.
 The floor particles carry no energy (their ``Model.particle_volume`` is 0): only the free
 particles' energies act, each also through its ghosts. Since ``y_k`` is linear in the free
 particles' end positions, the force the energies put on ghost ``k`` goes to its stencil,
-``f_j -= s_kj f_k`` (``hand_over``); floor particle ``k`` keeps the opposite, ``sum_j s_kj f_k``
-more, so every hand-over is a pair of equal and opposite forces and the pinned floor's
-reaction (``tools``) is what the wall puts on the material.
+``f_j += s_kj M f_k`` with ``M`` the ghost's map (``-I``, or ``R`` on a slip floor; each its
+own transpose; ``hand_over``); floor particle ``k`` keeps the opposite, so every hand-over is
+a pair of equal and opposite forces and the pinned floor's reaction (``tools``) is what the
+wall puts on the material.
 
 Every step: ``launch_stencil`` (after the neighbour search; the candidates from a hash
 grid, untaped integers, the weights differentiable), ``launch_hand_over`` (after the
@@ -59,11 +64,13 @@ SWITCH = 0.25
 class GhostFloor:
     """A model's ghost floors (``Model.ghost_floor``): ``floor`` the floor particles'
     indices, ``slot`` each particle's row in them (-1: not a floor particle), the wall
-    plane ``y = offset`` of each floor particle, and the stencil radius (m)."""
+    plane ``y = offset`` of each floor particle, whether it is a slip floor's (``slip``, 1),
+    and the stencil radius (m)."""
 
     floor: wp.array
     slot: wp.array
     offset: wp.array
+    slip: wp.array
     radius: float
 
     @property
@@ -72,16 +79,18 @@ class GhostFloor:
 
 
 def build(model, ranges) -> "GhostFloor | None":
-    """``GhostFloor`` of ``ranges``, a ``(start, stop, plane height)`` per ghost floor."""
+    """``GhostFloor`` of ``ranges``, a ``(start, stop, plane height, slip)`` per ghost floor."""
     if not ranges:
         return None
-    idx = np.concatenate([np.arange(a, b, dtype=np.int32) for a, b, _ in ranges])
-    off = np.concatenate([np.full(b - a, y) for a, b, y in ranges]).astype(model.types.np_dtype)
+    idx = np.concatenate([np.arange(a, b, dtype=np.int32) for a, b, _, _ in ranges])
+    off = np.concatenate([np.full(b - a, y) for a, b, y, _ in ranges]).astype(model.types.np_dtype)
+    slip = np.concatenate([np.full(b - a, int(sl)) for a, b, _, sl in ranges]).astype(np.int32)
     slot = np.full(model.particle_count, -1, dtype=np.int32)
     slot[idx] = np.arange(len(idx), dtype=np.int32)
     dev = model.device
     return GhostFloor(floor=wp.array(idx, dtype=wp.int32, device=dev), slot=wp.array(slot, dtype=wp.int32, device=dev),
-                      offset=wp.array(off, dtype=model.scalar, device=dev), radius=GHOST_RADIUS * model.spacing)
+                      offset=wp.array(off, dtype=model.scalar, device=dev),
+                      slip=wp.array(slip, dtype=wp.int32, device=dev), radius=GHOST_RADIUS * model.spacing)
 
 
 @functools.cache
@@ -94,6 +103,16 @@ def funcs(scalar) -> types.SimpleNamespace:
     def mirror_point(x: vec3, offset: scalar) -> vec3:
         """``x`` mirrored across the wall plane ``y = offset``."""
         return vec3(x[0], scalar(2.0) * offset - x[1], x[2])
+
+    @wp.func
+    def ghost_map(u: vec3, slip: int) -> vec3:
+        """How a ghost moves against the material's motion ``u`` at its mirror point: ``-u``
+        (no slip: the motion vanishes on the plane), or on a slip floor ``R u``, the mirror of
+        ``u`` (its normal part vanishes on the plane, its tangential part slides)."""
+        out = -u
+        if slip != 0:
+            out = vec3(u[0], -u[1], u[2])
+        return out
 
     @wp.func
     def stencil_weight(x: vec3, p: vec3, rs: scalar) -> scalar:
@@ -127,15 +146,15 @@ def funcs(scalar) -> types.SimpleNamespace:
     @wp.func
     def ghost_displacement(t: int, x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
                            y_lo: wp.array(dtype=vec3), cj: wp.array2d(dtype=wp.int32), gw: wp.array2d(dtype=scalar),
-                           count: int) -> vec3:
-        """``-sum_j s_kj u_j``: the odd continuation of the material's displacement."""
+                           count: int, slip: int) -> vec3:
+        """``ghost_map(sum_j s_kj u_j)``: the continuation of the material's displacement."""
         u = vec3()
         for c in range(count):
             j = cj[t, c]
             u += gw[t, c] * ((y[j] - x[j]) + (y_lo[j] - x_lo[j]))
-        return -u
+        return ghost_map(u, slip)
 
-    return types.SimpleNamespace(mirror_point=mirror_point, stencil_weight=stencil_weight,
+    return types.SimpleNamespace(mirror_point=mirror_point, ghost_map=ghost_map, stencil_weight=stencil_weight,
                                  stencil_normaliser=stencil_normaliser, stencil_total=stencil_total,
                                  ghost_displacement=ghost_displacement)
 
@@ -214,6 +233,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         x_lo: wp.array(dtype=vec3),
         y_lo: wp.array(dtype=vec3),
         slot: wp.array(dtype=wp.int32),
+        slip: wp.array(dtype=wp.int32),
         cj: wp.array2d(dtype=wp.int32),
         cc: wp.array(dtype=wp.int32),
         gw: wp.array2d(dtype=scalar),
@@ -227,7 +247,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             y_fit[i] = y[i]
             y_fit_lo[i] = y_lo[i]
         else:
-            y_fit[i] = x[i] + fn.ghost_displacement(t, x, y, x_lo, y_lo, cj, gw, cc[t])
+            y_fit[i] = x[i] + fn.ghost_displacement(t, x, y, x_lo, y_lo, cj, gw, cc[t], slip[t])
             y_fit_lo[i] = x_lo[i]
 
     @wp.kernel(module="unique")
@@ -240,19 +260,20 @@ def kernels(scalar) -> types.SimpleNamespace:
     def hand_over(
         gf: wp.array(dtype=vec3),
         floor: wp.array(dtype=wp.int32),
+        slip: wp.array(dtype=wp.int32),
         cj: wp.array2d(dtype=wp.int32),
         cc: wp.array(dtype=wp.int32),
         gw: wp.array2d(dtype=scalar),
         f: wp.array(dtype=vec3),
     ):
-        """``f_j -= s_kj f_k`` and ``f_k += s_kj f_k``: equal and opposite."""
+        """``f_j += s_kj M f_k`` and ``f_k -= s_kj M f_k``: equal and opposite."""
         t = wp.tid()
-        fk = gf[t]
+        mf = fn.ghost_map(gf[t], slip[t])
         kept = vec3()
         for c in range(cc[t]):
-            g = gw[t, c] * fk
-            wp.atomic_sub(f, cj[t, c], g)
-            kept += g
+            g = gw[t, c] * mf
+            wp.atomic_add(f, cj[t, c], g)
+            kept -= g
         wp.atomic_add(f, floor[t], kept)
 
     return types.SimpleNamespace(grid_points=grid_points, stencil_candidates=stencil_candidates,
@@ -308,14 +329,14 @@ def launch_hand_over(model, state_out):
     before anything else adds to ``state_out.force``)."""
     g, k = model.ghost_floor, kernels(model.scalar)
     wp.launch(k.copy_floor_forces, g.count, [state_out.force, g.floor], [state_out.ghost_force], device=model.device)
-    wp.launch(k.hand_over, g.count, [state_out.ghost_force, g.floor, state_out.ghost_rows, state_out.ghost_count,
-                                     state_out.ghost_weights], [state_out.force], device=model.device)
+    wp.launch(k.hand_over, g.count, [state_out.ghost_force, g.floor, g.slip, state_out.ghost_rows,
+                                     state_out.ghost_count, state_out.ghost_weights], [state_out.force], device=model.device)
 
 
 def launch_fit_positions(model, state_in, state_out):
     """``State.ghost_y``: what the deformation update fits to (after the integration)."""
     g, k = model.ghost_floor, kernels(model.scalar)
     wp.launch(k.fit_positions, model.particle_count,
-              [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, g.slot, state_out.ghost_rows,
+              [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, g.slot, g.slip, state_out.ghost_rows,
                state_out.ghost_count, state_out.ghost_weights], [state_out.ghost_y, state_out.ghost_y_lo],
               device=model.device)
