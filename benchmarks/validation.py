@@ -711,33 +711,48 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
 
 
 # ------------------------------------------------------------------- column
-def _free_column(we, mat, n: int, aspect: int, dx: float, dtype: str = "float32"):
-    """A square column of ``mat``, ``n`` particles across and ``aspect`` times as tall, standing
-    on a frictionless ground (laterally free). Returns the model, its height, the initial
-    positions, the masks of its top and bottom layers and the distance between their centres.
+#: The floors a free-standing column stands on (``_free_column``).
+COLUMN_FLOORS = ("ground", "slip_ghost_particles")
 
-    The ground is at the bottom layer's centres (y = dx / 2), where the collider holds a
-    particle: a ground at the box's face (y = 0) let the column fall half a spacing first,
-    rigidly, and land with its weight applied at once (with gravity ramped over 4 axial
-    periods, at 4 across it landed as the ramp ended)."""
+
+def _free_column(we, mat, n: int, aspect: int, dx: float, dtype: str = "float32", floor: str = "ground"):
+    """A square column of ``mat``, ``n`` particles across and ``aspect`` times as tall, standing
+    on a frictionless floor (laterally free). Returns the model, its height, the initial
+    positions, the masks of its top and bottom layers and of its particles (not the floor's)
+    and the distance between the top and bottom layers' centres.
+
+    ``floor="ground"``: the frictionless ground collider at the bottom layer's centres
+    (y = dx / 2), where the collider holds a particle: a ground at the box's face (y = 0) let
+    the column fall half a spacing first, rigidly, and land with its weight applied at once
+    (with gravity ramped over 4 axial periods, at 4 across it landed as the ramp ended).
+    ``"slip_ghost_particles"``: the slip ghost floor (``add_particle_floor(ghost=True,
+    slip=True)``, two spacings wider than the column), whose wall plane is the box's face:
+    the bottom layer is fitted two-sided and slides freely."""
+    if floor not in COLUMN_FLOORS:
+        raise ValueError(f"floor = {floor!r} is not allowed: must be one of {', '.join(map(repr, COLUMN_FLOORS))}")
     H = n * aspect * dx
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
-    b.add_box((0.0, H / 2.0, 0.0), (n * dx, H, n * dx), mat)
-    b.add_ground(0.5 * dx, friction=0.0)
+    b.add_box((0.0, H / 2.0, 0.0), (n * dx, H, n * dx), mat, name="column")
+    count = b.particle_count
+    if floor == "ground":
+        b.add_ground(0.5 * dx, friction=0.0)
+    else:
+        b.add_particle_floor("column", margin=2.0 * dx, layers=FLOOR_LAYERS, ghost=True, slip=True)
     wp = _we()[0]
     model = b.finalize(device=wp.get_device(), dtype=getattr(wp, dtype))
     x0 = model.particle_x0.astype(np.float64)
-    top = x0[:, 1] > x0[:, 1].max() - 0.5 * dx
-    bottom = x0[:, 1] < x0[:, 1].min() + 0.5 * dx
-    return model, H, x0, top, bottom, x0[top, 1].mean() - x0[bottom, 1].mean()
+    free = np.arange(model.particle_count) < count
+    top = free & (x0[:, 1] > x0[free, 1].max() - 0.5 * dx)
+    bottom = free & (x0[:, 1] < x0[free, 1].min() + 0.5 * dx)
+    return model, H, x0, top, bottom, free, x0[top, 1].mean() - x0[bottom, 1].mean()
 
 
 def column_settlement(resolution: int = 6, elastic_force: str = "variational", aspect: int = 5,
                       E: float = 1.5e5, nu: float = 0.3, periods: float = 4.0, fit: str | None = None, hourglass: float | None = None,
-                  deformation: str = "incremental", pressure_stiffness: float | None = 0.0) -> dict:
+                  deformation: str = "incremental", pressure_stiffness: float | None = 0.0, floor: str = "ground") -> dict:
     """A free-standing square column, ``resolution`` particles across and ``aspect`` times as
-    tall, on a frictionless floor (laterally free), pressure off (``pressure_stiffness``;
-    None: the material's default SPH pressure, which stiffens it), relaxed dynamically. The
+    tall, on a frictionless floor (laterally free; ``floor``: ``_free_column``'s), pressure off
+    (``pressure_stiffness``; None: the material's default SPH pressure, which stiffens it), relaxed dynamically. The
     shortening between the centres of the top and bottom layers, against
     ``rho g L (L - dx) / (2 E)`` (the continuum ``rho g L^2 / (2 E)`` integrated between
     those centres)."""
@@ -746,7 +761,7 @@ def column_settlement(resolution: int = 6, elastic_force: str = "variational", a
     n = resolution
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=pressure_stiffness, elastic_force=elastic_force,
                                  deformation=deformation)
-    model, H, x0, top, bottom, L0 = _free_column(we, mat, n, aspect, dx)
+    model, H, x0, top, bottom, _, L0 = _free_column(we, mat, n, aspect, dx, floor=floor)
     theory = RHO * G * H * (H - dx) / (2.0 * E)
     omega = 0.5 * math.pi * math.sqrt(E / RHO) / H  # fixed-free axial mode
     solver = we.Solver(model, fit=fit, hourglass=hourglass)
@@ -782,11 +797,14 @@ def near_yield_column_theory(yield_depth: float) -> float:
 def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float = 0.8, E: float = 1.5e5,
                       nu: float = 0.3, flow_rate: float = 200.0, periods: float = 36.0, ramp: float = 4.0,
                       elastic_force: str = "variational", pressure_stiffness: float | None = None,
-                      dtype: str = "float32", elastic_periods: float = 8.0) -> dict:
+                      dtype: str = "float32", elastic_periods: float = 8.0, floor: str = "ground") -> dict:
     """A free-standing square column (as ``column_settlement``: ``resolution`` across,
     ``aspect`` times as tall, frictionless ground collider, relaxed dynamically) of a
     yield-stress material whose uniaxial yield stress is the weight above the depth
     ``yield_depth`` L: by the 1-D analysis only the bottom ``1 - yield_depth`` of it yields.
+    ``floor``: ``"ground"`` (the collider; its one-sided bottom layer holds the base in,
+    docs/physics.md, "The near-yield column") or ``"slip_ghost_particles"`` (a frictionless
+    floor the bottom layer is fitted against two-sided; ``_free_column``).
     ``pressure_stiffness``: None, the material's default SPH pressure (the pressure does not
     change the yield condition in uniaxial stress: the sides are free, so the difference of
     the vertical and lateral stresses of ``F`` is the weight's stress either way); 0 switches
@@ -816,8 +834,9 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=pressure_stiffness, yield_stress=Y,
                                  flow_rate=flow_rate, elastic_force=elastic_force)
     mu = mat.mu
-    model, H, x0, top, bottom, L0 = _free_column(we, mat, n, aspect, dx, dtype=dtype)
-    depth = (x0[:, 1].max() + 0.5 * dx - x0[:, 1]) / H  # initial depth of each particle over L
+    model, H, x0, top, bottom, free, L0 = _free_column(we, mat, n, aspect, dx, dtype=dtype, floor=floor)
+    # Initial depth of each particle over L (a floor's particles: below 1, never yielded).
+    depth = (x0[:, 1].max() + 0.5 * dx - x0[:, 1]) / H
     elastic = RHO * G * H * (H - dx) / (2.0 * E)
     plastic = near_yield_column_theory(yield_depth) * (H - dx)
     omega = 0.5 * math.pi * math.sqrt(E / RHO) / H  # fixed-free axial mode
@@ -846,7 +865,7 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     a, c = _swap_run(model, solver, a, c, dt, steps, after)
     h = np.array(hist)
     rate = np.polyfit(h[:, 0], h[:, 1], 1)[0]
-    yielded = peak >= 0.99
+    yielded = (peak >= 0.99) & free
     ratio_end = _deviatoric_norm(a.F.numpy(), mu) / Y
     upper = (depth >= 0.1) & (depth < 0.5)
     d2 = solver.scratch.neighbor_d2.numpy().astype(np.float64)
@@ -854,7 +873,7 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     d2 = np.where(np.arange(d2.shape[1])[None, :] < cnt[:, None], d2, np.inf)
     # The same column with the yield off: the elastic part the scene's pressure and fit give.
     ref = column_settlement(n, elastic_force, aspect=aspect, E=E, nu=nu, fit=solver.fit, hourglass=solver.hourglass,
-                            pressure_stiffness=mat.pressure_stiffness, periods=elastic_periods)
+                            pressure_stiffness=mat.pressure_stiffness, periods=elastic_periods, floor=floor)
     plastic_measured = h[-1, 1] - ref["shortening"]
     return {"case": "near_yield_column", "resolution": n, "elastic_force": elastic_force, "particles": model.particle_count,
             "pressure_stiffness": mat.pressure_stiffness, "dtype": dtype, "fit": solver.fit,
@@ -864,7 +883,7 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
             "plastic_measured": plastic_measured,
             "plastic_over_theory": plastic_measured / plastic,
             "highest_yielded_depth": float(depth[yielded].min()) if yielded.any() else float("nan"),
-            "fraction_yielded": float(yielded.mean()),
+            "fraction_yielded": float(yielded[free].mean()), "floor": floor,
             "top_half_max_ratio": float(ratio_end[depth < 0.5].max()),
             "upper_peak_over_weight": float((peak[upper] / (depth[upper] / yield_depth)).max()),
             "nearest_neighbour_min": float(np.sqrt(d2.min())) / dx,
