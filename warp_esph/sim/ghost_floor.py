@@ -46,7 +46,7 @@ import numpy as np
 import warp as wp
 
 from .._types import type_set
-from . import smoothing
+from . import neighbors, smoothing
 
 #: The stencil's radius around the mirror point, in spacings (1: exact for affine motions
 #: on a lattice whose layers mirror each other; 1.2 keeps a ghost's stencil from emptying
@@ -192,8 +192,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         k = floor[t]
         p = fn.mirror_point(x[k], offset[t])
         pf = wp.vec3f(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
-        big = wp.max(wp.max(wp.abs(pf[0]), wp.abs(pf[1])), wp.abs(pf[2])) + wp.float32(rs)
-        q = wp.hash_grid_query(grid, pf, wp.float32(rs) * wp.float32(1.0001) + wp.float32(5.0e-7) * big)
+        q = wp.hash_grid_query(grid, pf, neighbors.padded_query_radius(pf, wp.float32(rs)))
         j = int(0)
         c = int(0)
         cut = int(0)

@@ -112,6 +112,15 @@ def default_max_neighbors(support_over_spacing: float) -> int:
     return int(8 * math.ceil(n / 8))
 
 
+@wp.func
+def padded_query_radius(p: wp.vec3f, radius: wp.float32) -> wp.float32:
+    """The radius of a float32 hash-grid query around ``p`` that misses no point within
+    ``radius``: padded by more than the float32 rounding of the (possibly world-shifted)
+    grid points; an exact test of each point returned decides."""
+    big = wp.max(wp.max(wp.abs(p[0]), wp.abs(p[1])), wp.abs(p[2])) + radius
+    return radius * wp.float32(1.0001) + wp.float32(5.0e-7) * big
+
+
 @functools.cache
 def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
@@ -234,11 +243,9 @@ def kernels(scalar) -> types.SimpleNamespace:
         radius = h * st + skin
         r2 = radius * radius
         n = int(0)
-        # The float32 query box is padded a little, by more than the float32 rounding of
-        # the (possibly world-shifted) grid points: the exact test below decides.
+        # The float32 query box is padded (the exact test below decides).
         gp = grid_points[i]
-        big = wp.max(wp.max(wp.abs(gp[0]), wp.abs(gp[1])), wp.abs(gp[2])) + wp.float32(radius)
-        query = wp.hash_grid_query(grid, gp, wp.float32(radius) * wp.float32(1.0001) + wp.float32(5.0e-7) * big)
+        query = wp.hash_grid_query(grid, gp, padded_query_radius(gp, wp.float32(radius)))
         j = int(0)
         while wp.hash_grid_query_next(query, j):
             if j == i or (same_group != 0 and group[j] != bi):
