@@ -12,11 +12,12 @@ top layer and the body's lowest layer),
 a Shepard average over the body's free particles within ``GHOST_RADIUS`` spacings of
 ``p_k``, ``W`` the poly6 shape of eq. 7 normalised to 1 at ``p_k``. The motion the fits
 near the floor see is then continued oddly across the plane, where it vanishes: a shear or
-stretch that is zero on the plane is fitted exactly next to the floor. On a slip floor the
+stretch that is zero on the plane is fitted next to the floor as in the interior (exactly
+with a stencil of one spacing on a lattice, to about 1 % with the default). On a slip floor the
 ghost moves by ``R sum_j s_kj u_j`` instead, ``R`` the mirror (``ghost_map``): the motion is
 continued evenly along the plane and oddly across it, so the material slides freely on the
 plane but does not cross it, and a motion with that symmetry (a lateral stretch, a
-compression against the plane) is fitted exactly next to the floor.
+compression against the plane) is fitted next to the floor as in the interior.
 
 ``N`` (``stencil_normaliser``) is the stencil's total weight where it holds at least
 ``MIN_TOTAL + SWITCH`` (a particle's weight at ``p_k`` is 1), and switches smoothly (C1) to
@@ -31,8 +32,8 @@ own transpose; ``hand_over``); floor particle ``k`` keeps the opposite, so every
 a pair of equal and opposite forces and the pinned floor's reaction (``tools``) is what the
 wall puts on the material.
 
-Every step: ``launch_stencil`` (after the neighbour search; the candidates from a hash
-grid, untaped integers, the weights differentiable), ``launch_hand_over`` (after the
+Every step: ``StencilSearch.update`` (after the neighbour search; the candidates from a
+hash grid, untaped integers, the weights differentiable), ``launch_hand_over`` (after the
 elastic forces) and ``launch_fit_positions`` (before the deformation update, into
 ``State.ghost_y``: the fit reads those, so no state array is overwritten under a tape).
 """
