@@ -293,6 +293,18 @@ def test_spread_radius_within_10_percent_of_roussel_coussot(spread_pile):
 THIN_LAYER = {"layers": 3, "duration": 0.6, "length": 8.0}
 
 
+def _stops_below_and_flows_above(floor: str):
+    """The strip on ``floor`` (walls through the outer rows' centres): at 0.6 tau_y its top
+    stops (below 3 % of the Bingham surface speed at 1.3), at 1.3 tau_y it flows at more
+    than half that speed."""
+    below = validation.incline(load=0.6, floor=floor, walls="centres", **THIN_LAYER)
+    above = validation.incline(load=1.3, floor=floor, walls="centres", **THIN_LAYER)
+    assert below["finite"] and above["finite"]
+    scale = above["bingham_surface_speed"]
+    assert abs(below["top_speed"]) < 0.03 * scale, (below["top_speed"], scale)
+    assert above["top_speed"] > 0.5 * scale, (above["top_speed"], scale)
+
+
 def test_thin_layer_on_a_floor_of_its_own_particles_stops_below_and_flows_above_the_shear_yield_stress():
     """Floor: two pinned layers of the layer's own body, so every particle's fit is that of
     an interior one at the base. The walls normal to z go through the outer rows' centres,
@@ -306,12 +318,7 @@ def test_thin_layer_on_a_floor_of_its_own_particles_stops_below_and_flows_above_
     mm/s (widened 1.26 x). Earlier, with the energy force and the walls at the faces:
     longer runs stopped at 0.9 and flowed at 1.1 tau_y (0.34 against 0.48 mm/s). At 0.6 s
     the speed is not yet the steady one: energy_spiky, centres, 1.1 tau_y: 8.5 mm/s."""
-    below = validation.incline(load=0.6, floor="particles", walls="centres", **THIN_LAYER)
-    above = validation.incline(load=1.3, floor="particles", walls="centres", **THIN_LAYER)
-    assert below["finite"] and above["finite"]
-    scale = above["bingham_surface_speed"]
-    assert abs(below["top_speed"]) < 0.03 * scale, (below["top_speed"], scale)
-    assert above["top_speed"] > 0.5 * scale, (above["top_speed"], scale)
+    _stops_below_and_flows_above("particles")
 
 
 def test_thin_layer_on_an_elastic_particle_floor_is_held_where_the_plastic_floor_lets_it_flow():
@@ -330,12 +337,7 @@ def test_thin_layer_on_the_ghost_floor_stops_below_and_flows_above_the_shear_yie
     stops. Measured (0.6 s): -0.07 mm/s at 0.6 tau_y; 0.59 / 4.2 / 9.1 mm/s at 0.9 / 1.1 /
     1.3 tau_y (Bingham 0 / 0.48 / 3.67; at 0.9 the short strip's free ends still move it:
     the default 12 h long strip, 0.13 mm/s)."""
-    below = validation.incline(load=0.6, floor="ghost_particles", walls="centres", **THIN_LAYER)
-    above = validation.incline(load=1.3, floor="ghost_particles", walls="centres", **THIN_LAYER)
-    assert below["finite"] and above["finite"]
-    scale = above["bingham_surface_speed"]
-    assert abs(below["top_speed"]) < 0.03 * scale, (below["top_speed"], scale)
-    assert above["top_speed"] > 0.5 * scale, (above["top_speed"], scale)
+    _stops_below_and_flows_above("ghost_particles")
 
 
 def test_thin_layer_on_a_particle_floor_stops_after_sliding_only_when_it_widens_between_its_walls():
@@ -421,12 +423,7 @@ def test_thin_layer_on_the_ground_with_floor_images_stops_below_and_flows_above_
     -0.019); at 1.3 tau_y it flows at 16.4 mm/s (particle floor 9.3; Bingham 3.67). The plain
     ground collider stops at 1.3 and at 2.0 tau_y and creeps at 2.5 (1.6 mm/s against 47.7;
     12 h long, 1.5 s)."""
-    below = validation.incline(load=0.6, floor="ground_images", walls="centres", **THIN_LAYER)
-    above = validation.incline(load=1.3, floor="ground_images", walls="centres", **THIN_LAYER)
-    assert below["finite"] and above["finite"]
-    scale = above["bingham_surface_speed"]
-    assert abs(below["top_speed"]) < 0.03 * scale, (below["top_speed"], scale)
-    assert above["top_speed"] > 0.5 * scale, (above["top_speed"], scale)
+    _stops_below_and_flows_above("ground_images")
 
 
 @pytest.mark.parametrize("label", [label for label, _ in validation._stability_materials()])
