@@ -262,3 +262,14 @@ def test_slip_ghost_floor_fits_reproduce_a_motion_that_slides_along_the_wall():
     assert errs["slip, rs 1"] < 1e-3, errs
     assert errs["slip_ghost_particles, rs None"] < 0.02, errs
     assert errs["ghost_particles, rs 1.0"] > 0.2 and errs["particles, rs None"] > 0.1, errs
+
+
+def test_ghost_floor_refuses_a_material_changed_to_the_paper_force_at_the_next_step():
+    """``Model.set_material`` after the solver was made: the step refuses by name."""
+    model = _model(requires_grad=False)
+    solver = we.Solver(model)
+    a, c = model.state(), model.state()
+    solver.step(a, c, DT)
+    model.set_material(0, model.materials[0].replace(elastic_force="paper"))
+    with pytest.raises(ValueError, match=r"Material.elastic_force = \['paper'\] is not allowed with a ghost floor"):
+        solver.step(c, a, DT)

@@ -304,7 +304,7 @@ class Model:
         #: ``(normal, offset)`` of the plane whose mirror images enter the fits (a rough floor,
         #: ``SceneBuilder.add_ground(images=True)``); None: none.
         self.image_plane = (tuple(imaged[0].normal), float(imaged[0].offset)) if imaged else None
-        #: The no-slip ghost floors (``sim.ghost_floor.GhostFloor``), None: none.
+        #: The ghost floors, no-slip or slip (``sim.ghost_floor.GhostFloor``); None: none.
         self.ghost_floor = ghost_floor.build(self, ghosts)
 
     def image_args(self) -> list:

@@ -142,6 +142,10 @@ class Solver:
     ``hourglass`` hold what runs now. The model's force fields (``fields.CompressionField``)
     act while active at ``state_in.time``.
 
+    A model with a ghost floor (``add_particle_floor(ghost=True)``, ``ghost_floor.py``) runs the
+    non-fused kernels with the ghosts' three launches, the linear fit and the variational
+    force only (anything else is refused when the solver is made and at every step).
+
     ``hourglass`` (>= 0; None: ``Model.hourglass``, which by default is ``AUTO_HOURGLASS`` with
     the fit ``"auto"`` made curvature-corrected and 0 otherwise: off, not launched) is the
     strength ``c`` of the control of the fit's zero-energy modes (``hourglass.py``;
@@ -347,6 +351,9 @@ class Solver:
         tape = recording_tape()
         hand = self._hand()
         ghosts = self.ghost_search
+        if ghosts is not None:
+            # Again each step: Model.set_material may have changed a material's force since.
+            _check_ghost_floor(m, self.fit)
         fast = (self.fused and not self._cmp and not self._curved and ghosts is None
                 and (tape is None or self._fast_under_tape(state_in, state_out)))
         # With comparison models the corrected fit is the rest model's total fit (every material 'rest').
