@@ -225,9 +225,9 @@ SLIP_L = np.diag([0.5, -1.0, 0.5]) + np.outer([0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
 
 def test_ghost_floor_fits_reproduce_an_affine_motion_that_vanishes_on_the_wall():
     """The no-slip ghost floor: every fit next to the floor reproduces an affine motion that
-    vanishes on the wall's plane, F = I + dt L (measured: to 1.2e-5 of |dt L| in float32),
-    where the plain particle floor's static particles leave the lowest layer's fitted shear
-    at 0.75 of it. Exact with a ghost stencil of one spacing (on the lattice each ghost has
+    vanishes on the wall's plane, F = I + dt L (measured: to 1.4e-5 of |dt L| in float32
+    with a one-spacing stencil), where the plain particle floor's static particles leave the
+    lowest layer's fitted shear at 0.75 of it. Exact with a ghost stencil of one spacing (on the lattice each ghost has
     one partner); the Shepard average of the default 1.2-spacing stencil reproduces
     constants only, and misses the lowest layer's shear by 1.25 % (the partner's neighbour
     above has no mirror below)."""
