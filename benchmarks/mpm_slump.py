@@ -88,7 +88,7 @@ import time
 import numpy as np
 import warp as wp
 
-from benchmarks.validation import G, RHO, centre_thickness, slump_theory
+from benchmarks.validation import G, RHO, bingham_uniaxial_stress, centre_thickness, slump_theory
 
 REST_RATE, REST_KINETIC = 0.1, 1.0e-8  # % H0/s, M g H0: the suite's rest bounds
 FLOOR_PAD = wp.constant(3)  # grid nodes below y = 0 (node index FLOOR_PAD is at y = 0)
@@ -488,24 +488,34 @@ def column(res=16, L=0.1, width=0.04, stiffness=10.0, duration=0.6, damping=60.0
             "kinetic": sim.kinetic(), "duration": sim.t, "wall_s": wall}
 
 
-def squeeze(res=8, L=0.05, S=0.2, H0=0.1, strain=0.06, rate=0.25, cfl=0.3):
+def squeeze(res=8, L=0.05, S=0.2, H0=0.1, strain=0.06, rate=0.25, cfl=0.3, flow_rate=0.0, eta=0.0, samples=0):
     """A cube of side ``L`` of the slump's material (``S``), no gravity, on a slip floor, squeezed by
     a slip plate (grid nodes at or above it move down at ``rate L`` /s) by ``strain``: the plate's
     force over the current area (the cube's, volume kept by the isochoric flow) against the
     uniaxial yield stress ``sqrt(3/2) Y`` = sigma_y. The median over the second half of the squeeze
-    (the force jumps for a step when the plate moves onto the next row of nodes)."""
+    (the force jumps for a step when the plate moves onto the next row of nodes).
+
+    ``flow_rate`` and ``eta``: the slump's Bingham flow rule and viscous stress (0: rate-independent,
+    inviscid). ``samples`` > 0 adds ``history``: that many rows of the log strain of the cube's
+    height, the volume-mean vertical stress over the steps since the last row and the Bingham
+    stress at the current strain rate (``benchmarks.validation.bingham_uniaxial_stress``), both
+    in sigma_y: the reference for ``benchmarks.validation.uniaxial_flow`` (docs/physics.md, "The
+    flow stress in sustained uniaxial flow")."""
     dx = L / res
     s = 0.5 * dx
     n = int(round(L / s))
     pts = _lattice(n, n, n, s, (-0.5 * L, 0.0, -0.5 * L))
     mu, lam, Y = material(S, H0)
-    sim = MPM(pts, s, dx, mu, lam, Y, 0.0, 1.5 * L, L + 2 * dx, floor_friction=0.0, cfl=cfl)
+    sim = MPM(pts, s, dx, mu, lam, Y, eta, 1.5 * L, L + 2 * dx, floor_friction=0.0, cfl=cfl, flow_rate=flow_rate)
     sim.gravity = wp.vec3(0.0, 0.0, 0.0)
     # The plate: its nodes are those at or above the cube's top node row; it moves with them.
     j_top = int(round(L / dx)) + FLOOR_PAD
     v_plate = rate * L
     T = strain / rate
     forces, hs = [], []  # the plate's force, the mean vertical compressive stress
+    sigma_y = math.sqrt(1.5) * Y
+    history, last = [], 0
+    every = max(1, int(round(T / sim.dt / samples))) if samples > 0 else 0
     t0 = time.perf_counter()
     y_plate = L
     while sim.t < T:
@@ -515,6 +525,12 @@ def squeeze(res=8, L=0.05, S=0.2, H0=0.1, strain=0.06, rate=0.25, cfl=0.3):
         y_plate -= v_plate * sim.dt
         forces.append(float(sim.plate_force.numpy()[0]))
         hs.append(float(-(sim.tau.numpy()[:, 1, 1].sum()) / sim.J.numpy().sum()))
+        if every and len(hs) % every == 0:
+            h = float(sim.x.numpy()[:, 1].max()) + 0.5 * s
+            history.append({"log_strain": -math.log(h / L), "stress_over_sigma_y": float(np.mean(hs[last:])) / sigma_y,
+                            "bingham_over_sigma_y": bingham_uniaxial_stress(S, v_plate / h, H0, flow_rate=flow_rate)
+                            / sigma_y if flow_rate > 0 else 1.0})
+            last = len(hs)
     wall = time.perf_counter() - t0
     x = sim.x.numpy().astype(np.float64)
     h = x[:, 1].max() + 0.5 * s  # the cube's current height
@@ -523,11 +539,13 @@ def squeeze(res=8, L=0.05, S=0.2, H0=0.1, strain=0.06, rate=0.25, cfl=0.3):
     area = L ** 3 / h
     # The vertical stress averaged over the current volume, sum V0 tau_yy / sum V0 J: by
     # equilibrium (the mean stress theorem) the load over the area, whatever its distribution.
-    sigma_y = math.sqrt(1.5) * Y
-    return {"case": "squeeze", "res_cells_per_L": res, "particles": len(pts), "strain": 1.0 - h / L,
-            "mean_stress_over_sigma_y": float(np.mean(hs[-k:])) / sigma_y,
-            "plate_stress_over_sigma_y": f / area / sigma_y, "fraction_at_yield": float((sim.ratio.numpy() >= 0.99).mean()),
-            "wall_s": wall}
+    out = {"case": "squeeze", "res_cells_per_L": res, "particles": len(pts), "strain": 1.0 - h / L,
+           "mean_stress_over_sigma_y": float(np.mean(hs[-k:])) / sigma_y,
+           "plate_stress_over_sigma_y": f / area / sigma_y, "fraction_at_yield": float((sim.ratio.numpy() >= 0.99).mean()),
+           "flow_rate": flow_rate, "eta": eta, "wall_s": wall}
+    if samples > 0:
+        out["history"] = history
+    return out
 
 
 #: The particle solver's slump (docs/validation.md, variational force, particle floor, 8 s; by

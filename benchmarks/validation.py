@@ -1082,6 +1082,93 @@ def plastic_compression(resolution: int = 8, squeeze: float = 0.25, S: float = 0
             "nearest_neighbor_min": float(np.sqrt(d2.min()) / dx), "kinetic_energy": _kinetic(model, a)}
 
 
+def bingham_uniaxial_stress(S: float, strain_rate: float, H0: float = 0.1, stiffness: float = 10.0,
+                            flow_rate: float = 200.0) -> float:
+    """The uniaxial stress of the slump's material flowing at ``strain_rate`` (1/s): the uniaxial
+    yield stress ``S rho g H0`` plus the extensional viscous stress ``3 eta_p strain_rate``, with
+    ``eta_p = mu / flow_rate`` the plastic viscosity of ``Material``'s flow rule (its docstring)."""
+    mu = stiffness * RHO * G * H0
+    return S * RHO * G * H0 + 3.0 * mu / flow_rate * abs(strain_rate)
+
+
+def uniaxial_flow(resolution: int = 8, strain: float = 0.75, duration: float = 4.0, S: float = 0.2, H0: float = 0.1,
+                  pressure_stiffness: float | None = None, support_radius: float = 2.0, samples: int = 40) -> dict:
+    """The slump's material in sustained uniaxial flow to large strain: a cube ``resolution``
+    particles across (side H0), no gravity, between two frictionless plane tools, the top one
+    lowered at a constant speed by ``strain`` of the span between the plates' rows in
+    ``duration``. The material is ``plastic_compression``'s (flow rate 200 /s, viscosity 2,
+    ``pressure_stiffness`` None: the default SPH pressure, 0: off).
+
+    Per sample (the means over the steps since the last one): the log strain of the plates'
+    span, the body's mean axial stress by the mean stress theorem (the plates' mean reaction
+    times their gap over the body's volume H0^3: exact for the total stress, pressure and
+    viscosity included, whatever its distribution, and free of the question where a particle
+    body's face lies), the Bingham stress at the span's true strain rate
+    (``bingham_uniaxial_stress``), the interior particles' coherent elastic stress (their mean
+    deviator's uniaxial pattern, y less the mean of x and z, in sigma_y), their mean yield
+    ratio |s| / Y (what each particle's flow rule sees) and the nearest neighbour (min, mean,
+    in dx). A continuum carries the Bingham stress throughout; docs/physics.md, "The flow
+    stress in sustained uniaxial flow", has what this method carries."""
+    wp, we = _we()
+    from warp_esph import tools
+
+    if not 0.0 < strain < 1.0:
+        raise ValueError(f"strain = {strain!r} is not allowed: must be in (0, 1)")
+    if not duration > 0.0:
+        raise ValueError(f"duration = {duration!r} is not allowed: must be > 0 (seconds)")
+    dx = H0 / resolution
+    sigma_y = S * RHO * G * H0
+    Y = sigma_y * math.sqrt(2.0 / 3.0)
+    mu = 10.0 * RHO * G * H0
+    mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=200.0, density=RHO, viscosity=2.0,
+                      elastic_force="variational", pressure_stiffness=pressure_stiffness)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0), support_radius=support_radius * dx)
+    b.add_box((0.0, H0 / 2, 0.0), (H0, H0, H0), mat, name="sample")
+    pts = np.concatenate(b._points)
+    ylo, yhi = pts[:, 1].min(), pts[:, 1].max()
+    span = yhi - ylo
+    speed = strain * span / duration
+    b.add_tool("plane", normal=(0, 1, 0), position=(0, ylo, 0), name="bottom")
+    b.add_tool("plane", normal=(0, -1, 0),
+               motion=tools.Keyframes([0.0, duration], [(0, yhi, 0), (0, yhi - strain * span, 0)]), name="top")
+    model = b.finalize(device=wp.get_device())
+    solver = we.Solver(model)
+    dt = model.stable_dt()
+    steps = int(round(duration / dt))
+    every = max(1, steps // samples)
+    volume = H0**3
+    rows, acc = [], []
+    a, c = model.state(), model.state()
+    for k in range(1, steps + 1):
+        solver.step(a, c, dt)
+        a, c = c, a
+        r = solver.reaction_forces(a)
+        gap = span - speed * min(a.time, duration)
+        acc.append(0.5 * (-r["top"][0][1] + r["bottom"][0][1]) * gap / volume)
+        if k % every and k != steps:
+            continue
+        x = a.x.numpy().astype(np.float64)
+        F = a.F.numpy().astype(np.float64)
+        U, s, _ = np.linalg.svd(F)
+        ls = np.log(s)
+        dev = np.einsum("nij,nj,nkj->nik", U, ls - ls.mean(axis=1, keepdims=True), U)
+        half = 0.5 * np.abs(x[:, [0, 2]]).max(axis=0)
+        inner = np.all(np.abs(x[:, [0, 2]]) < half, axis=1)
+        axial = 2.0 * mu * (dev[inner, 1, 1] - 0.5 * (dev[inner, 0, 0] + dev[inner, 2, 2])) / sigma_y
+        d2 = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)
+        np.fill_diagonal(d2, np.inf)
+        nn = np.sqrt(d2.min(axis=1)) / dx
+        rows.append({"time": a.time, "log_strain": -math.log(gap / span),
+                     "stress_over_sigma_y": float(np.mean(acc)) / sigma_y,
+                     "bingham_over_sigma_y": bingham_uniaxial_stress(S, speed / gap, H0) / sigma_y,
+                     "interior_axial_over_sigma_y": float(-axial.mean()),
+                     "particle_yield_ratio_mean": float((_deviatoric_norm(F, mu) / Y)[inner].mean()),
+                     "nearest_neighbor_min": float(nn.min()), "nearest_neighbor_mean": float(nn.mean())})
+        acc = []
+    return {"case": "uniaxial_flow", "resolution": resolution, "strain": strain, "duration": duration,
+            "pressure_stiffness": pressure_stiffness, "support_radius": support_radius, "dt": dt, "history": rows}
+
+
 def hertz_force(E: float, nu: float, R: float, depth: float) -> float:
     """Hertz: a rigid sphere of radius R pressed ``depth`` into an elastic half-space,
     F = 4/3 E* sqrt(R) d^1.5 with E* = E / (1 - nu^2)."""
