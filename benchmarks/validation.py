@@ -1502,6 +1502,7 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
         runs.append(("three_point_bending", {"resolution": 4}))
         runs.append(("sphere_indentation", {"resolution": 8, "fit": "linear", "hourglass": 0.0}))
         runs.append(("sphere_indentation", {"resolution": 8}))
+        runs.append(("uniaxial_flow", {"resolution": 6, "strain": 0.6, "duration": 2.0}))
         for label, _ in _stability_materials():
             for f in FORCES:
                 runs.append(("stability", {"label": label, "elastic_force": f, "duration": 0.3}))
@@ -1534,6 +1535,10 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
             runs.append(("sphere_indentation", {"resolution": res, "fit": "linear", "hourglass": hg}))
         runs.append(("sphere_indentation", {"resolution": res}))
     runs.append(("sphere_indentation", {"resolution": 16, "fit": "linear", "hourglass": 0.1}))
+    # The flow stress past the particles' rearrangement (docs/physics.md, "The flow stress in
+    # sustained uniaxial flow"): the same log strains at three resolutions.
+    for res in (6, 8, 12):
+        runs.append(("uniaxial_flow", {"resolution": res, "strain": 0.75, "duration": 4.0}))
     for res in (8, 12):
         for S in SLUMP_S:
             for f in FORCES:
@@ -1659,7 +1664,7 @@ def select(runs: list[tuple[str, dict]], only: str | None) -> list[tuple[str, di
 
 #: The result fields that tell one run of a case from another (its parameters, not its outcome).
 IDENTITY = ("S", "resolution", "elastic_force", "shallowness", "amplitude", "dt_factor", "deformation", "fit",
-            "hourglass", "label", "dtype", "span_over_thickness", "aspect", "hold", "floor")
+            "hourglass", "label", "dtype", "span_over_thickness", "aspect", "hold", "floor", "strain")
 
 
 def same_run(a: dict, b: dict) -> bool:

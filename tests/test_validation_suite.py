@@ -700,6 +700,22 @@ def _rest_target(text):
     return next(line for line in text.splitlines() if line.startswith("| every slumped top at rest"))
 
 
+def test_report_gives_the_uniaxial_flow_against_bingham_by_band_of_log_strain(tmp_path):
+    from benchmarks import validation_report
+
+    hist = [{"log_strain": e, "stress_over_sigma_y": s, "bingham_over_sigma_y": 1.2}
+            for e, s in ((0.02, 0.6), (0.1, 1.2), (0.4, 1.32), (0.6, 0.9), (0.8, 0.84), (1.2, 0.78))]
+    rows = [{"case": "uniaxial_flow", "resolution": 8, "strain": 0.75, "duration": 4.0, "history": hist, "run": 0}]
+    doc = {"runs": [{"command": "python -m benchmarks.validation --only uniaxial_flow"}], "results": rows}
+    md, made = validation_report.write(rows, tmp_path, doc)
+    text = md.read_text()
+    assert "| 8 | 0.75 | 4 | 1.00-1.10 | 0.75-0.75 | 0.70-0.70 | 0.65-0.65 | R1 |" in text, text
+    assert "uniaxial_flow.png" in made
+    # Flows at another strain are other rows, not the same one measured again.
+    other = rows[0] | {"strain": 0.6}
+    assert not validation.same_run(rows[0], other)
+
+
 def test_report_judges_rest_at_the_finer_resolution_and_takes_gpu_rows_at_any_resolution(tmp_path):
     """The rest target is met only if every slump at the finest resolution that has every S is
     at rest, and names those that are not; a coarser row still moving is named but not judged.
