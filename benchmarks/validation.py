@@ -1028,6 +1028,46 @@ def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e
             "kinetic_energy": _kinetic(model, a)}
 
 
+def _plastic_cube(resolution: int, S: float, H0: float, pressure_stiffness, support_radius: float, squeeze: float,
+                  load_time: float):
+    """The slump's material (``plastic_compression``'s docstring) as a cube ``resolution``
+    across between two frictionless plane tools, the top one lowered by ``squeeze`` of the span
+    between the plates in ``load_time``: ``(model, span, dx, mu, Y, sigma_y)``."""
+    wp, we = _we()
+    from warp_esph import tools
+
+    dx = H0 / resolution
+    sigma_y = S * RHO * G * H0
+    Y = sigma_y * math.sqrt(2.0 / 3.0)
+    mu = 10.0 * RHO * G * H0
+    mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=200.0, density=RHO, viscosity=2.0,
+                      elastic_force="variational", pressure_stiffness=pressure_stiffness)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0), support_radius=support_radius * dx)
+    b.add_box((0.0, H0 / 2, 0.0), (H0, H0, H0), mat, name="sample")
+    pts = np.concatenate(b._points)
+    ylo, yhi = pts[:, 1].min(), pts[:, 1].max()
+    span = yhi - ylo
+    b.add_tool("plane", normal=(0, 1, 0), position=(0, ylo, 0), name="bottom")
+    b.add_tool("plane", normal=(0, -1, 0),
+               motion=tools.Keyframes([0.0, load_time], [(0, yhi, 0), (0, yhi - squeeze * span, 0)]), name="top")
+    return b.finalize(device=wp.get_device()), span, dx, mu, Y, sigma_y
+
+
+def _interior_axial_and_spacing(x: np.ndarray, F: np.ndarray, mu: float, sigma_y: float):
+    """The particles away from the cube's side faces (within half its half-width of the axis),
+    their mean elastic deviator's uniaxial pattern (2 mu times its y component less the mean of
+    x and z, compressive positive, in sigma_y), and every particle's nearest-neighbour distance."""
+    U, s, _ = np.linalg.svd(F)
+    ls = np.log(s)
+    dev = np.einsum("nij,nj,nkj->nik", U, ls - ls.mean(axis=1, keepdims=True), U)
+    half = 0.5 * np.abs(x[:, [0, 2]]).max(axis=0)
+    inner = np.all(np.abs(x[:, [0, 2]]) < half, axis=1)
+    axial = -2.0 * mu * (dev[inner, 1, 1] - 0.5 * (dev[inner, 0, 0] + dev[inner, 2, 2])).mean() / sigma_y
+    d2 = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)
+    np.fill_diagonal(d2, np.inf)
+    return inner, float(axial), np.sqrt(d2.min(axis=1))
+
+
 def plastic_compression(resolution: int = 8, squeeze: float = 0.25, S: float = 0.2, H0: float = 0.1,
                         load_time: float = 0.5, hold_time: float = 0.2, pressure_stiffness: float | None = None) -> dict:
     """The slump's material in homogeneous uniaxial flow: a cube ``resolution`` particles across
@@ -1041,45 +1081,22 @@ def plastic_compression(resolution: int = 8, squeeze: float = 0.25, S: float = 0
     "The S = 0.2 gap, part by part": the method's flow stress after plastic flow, without
     the slump's geometry), and the interior particles' mean elastic deviator along the
     uniaxial pattern (y less the mean of x and z) in sigma_y."""
-    wp, we = _we()
-    from warp_esph import tools
-
     if not 0.0 < squeeze < 1.0:
         raise ValueError(f"squeeze = {squeeze!r} is not allowed: must be in (0, 1)")
-    dx = H0 / resolution
-    sigma_y = S * RHO * G * H0
-    Y = sigma_y * math.sqrt(2.0 / 3.0)
-    mu = 10.0 * RHO * G * H0
-    mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=200.0, density=RHO, viscosity=2.0,
-                      elastic_force="variational", pressure_stiffness=pressure_stiffness)
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0), support_radius=2.0 * dx)
-    b.add_box((0.0, H0 / 2, 0.0), (H0, H0, H0), mat, name="sample")
-    pts = np.concatenate(b._points)
-    ylo, yhi = pts[:, 1].min(), pts[:, 1].max()
-    d = squeeze * (yhi - ylo)
-    b.add_tool("plane", normal=(0, 1, 0), position=(0, ylo, 0), name="bottom")
-    b.add_tool("plane", normal=(0, -1, 0), motion=tools.Keyframes([0.0, load_time], [(0, yhi, 0), (0, yhi - d, 0)]),
-               name="top")
-    model = b.finalize(device=wp.get_device())
+    wp, we = _we()
+    model, _, dx, mu, Y, sigma_y = _plastic_cube(resolution, S, H0, pressure_stiffness, 2.0, squeeze, load_time)
     solver = we.Solver(model)
     a, c, f = _relaxed_reaction(model, solver, ["top", "bottom"], load_time, hold_time, viscous=50.0)
     force = 0.5 * (-f["top"][1] + f["bottom"][1])
     area = H0 * H0 / (1.0 - squeeze)
     x = a.x.numpy().astype(np.float64)
     F = a.F.numpy().astype(np.float64)
-    U, s, _ = np.linalg.svd(F)
-    ls = np.log(s)
-    dev = np.einsum("nij,nj,nkj->nik", U, ls - ls.mean(axis=1, keepdims=True), U)
-    half = 0.5 * np.abs(x[:, [0, 2]]).max(axis=0)
-    inner = np.all(np.abs(x[:, [0, 2]]) < half, axis=1)
-    axial = 2.0 * mu * (dev[inner, 1, 1] - 0.5 * (dev[inner, 0, 0] + dev[inner, 2, 2])) / sigma_y
-    d2 = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)
-    np.fill_diagonal(d2, np.inf)
+    _, axial, nn = _interior_axial_and_spacing(x, F, mu, sigma_y)
     return {"case": "plastic_compression", "resolution": resolution, "squeeze": squeeze,
             "log_strain": -math.log(1.0 - squeeze), "pressure_stiffness": pressure_stiffness,
-            "stress_over_sigma_y": float(force / area / sigma_y), "interior_axial_over_sigma_y": float(-axial.mean()),
+            "stress_over_sigma_y": float(force / area / sigma_y), "interior_axial_over_sigma_y": axial,
             "particle_yield_ratio_mean": float((_deviatoric_norm(F, mu) / Y).mean()),
-            "nearest_neighbor_min": float(np.sqrt(d2.min()) / dx), "kinetic_energy": _kinetic(model, a)}
+            "nearest_neighbor_min": float(nn.min() / dx), "kinetic_energy": _kinetic(model, a)}
 
 
 def bingham_uniaxial_stress(S: float, strain_rate: float, H0: float = 0.1, stiffness: float = 10.0,
@@ -1109,29 +1126,14 @@ def uniaxial_flow(resolution: int = 8, strain: float = 0.75, duration: float = 4
     ratio |s| / Y (what each particle's flow rule sees) and the nearest neighbour (min, mean,
     in dx). A continuum carries the Bingham stress throughout; docs/physics.md, "The flow
     stress in sustained uniaxial flow", has what this method carries."""
-    wp, we = _we()
-    from warp_esph import tools
-
     if not 0.0 < strain < 1.0:
         raise ValueError(f"strain = {strain!r} is not allowed: must be in (0, 1)")
     if not duration > 0.0:
         raise ValueError(f"duration = {duration!r} is not allowed: must be > 0 (seconds)")
-    dx = H0 / resolution
-    sigma_y = S * RHO * G * H0
-    Y = sigma_y * math.sqrt(2.0 / 3.0)
-    mu = 10.0 * RHO * G * H0
-    mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=200.0, density=RHO, viscosity=2.0,
-                      elastic_force="variational", pressure_stiffness=pressure_stiffness)
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0), support_radius=support_radius * dx)
-    b.add_box((0.0, H0 / 2, 0.0), (H0, H0, H0), mat, name="sample")
-    pts = np.concatenate(b._points)
-    ylo, yhi = pts[:, 1].min(), pts[:, 1].max()
-    span = yhi - ylo
+    wp, we = _we()
+    model, span, dx, mu, Y, sigma_y = _plastic_cube(resolution, S, H0, pressure_stiffness, support_radius, strain,
+                                                    duration)
     speed = strain * span / duration
-    b.add_tool("plane", normal=(0, 1, 0), position=(0, ylo, 0), name="bottom")
-    b.add_tool("plane", normal=(0, -1, 0),
-               motion=tools.Keyframes([0.0, duration], [(0, yhi, 0), (0, yhi - strain * span, 0)]), name="top")
-    model = b.finalize(device=wp.get_device())
     solver = we.Solver(model)
     dt = model.stable_dt()
     steps = int(round(duration / dt))
@@ -1149,19 +1151,12 @@ def uniaxial_flow(resolution: int = 8, strain: float = 0.75, duration: float = 4
             continue
         x = a.x.numpy().astype(np.float64)
         F = a.F.numpy().astype(np.float64)
-        U, s, _ = np.linalg.svd(F)
-        ls = np.log(s)
-        dev = np.einsum("nij,nj,nkj->nik", U, ls - ls.mean(axis=1, keepdims=True), U)
-        half = 0.5 * np.abs(x[:, [0, 2]]).max(axis=0)
-        inner = np.all(np.abs(x[:, [0, 2]]) < half, axis=1)
-        axial = 2.0 * mu * (dev[inner, 1, 1] - 0.5 * (dev[inner, 0, 0] + dev[inner, 2, 2])) / sigma_y
-        d2 = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)
-        np.fill_diagonal(d2, np.inf)
-        nn = np.sqrt(d2.min(axis=1)) / dx
+        inner, axial, nn = _interior_axial_and_spacing(x, F, mu, sigma_y)
+        nn = nn / dx
         rows.append({"time": a.time, "log_strain": -math.log(gap / span),
                      "stress_over_sigma_y": float(np.mean(acc)) / sigma_y,
                      "bingham_over_sigma_y": bingham_uniaxial_stress(S, speed / gap, H0) / sigma_y,
-                     "interior_axial_over_sigma_y": float(-axial.mean()),
+                     "interior_axial_over_sigma_y": axial,
                      "particle_yield_ratio_mean": float((_deviatoric_norm(F, mu) / Y)[inner].mean()),
                      "nearest_neighbor_min": float(nn.min()), "nearest_neighbor_mean": float(nn.mean())})
         acc = []
