@@ -1083,7 +1083,7 @@ def plastic_compression(resolution: int = 8, squeeze: float = 0.25, S: float = 0
     uniaxial pattern (y less the mean of x and z) in sigma_y."""
     if not 0.0 < squeeze < 1.0:
         raise ValueError(f"squeeze = {squeeze!r} is not allowed: must be in (0, 1)")
-    wp, we = _we()
+    _, we = _we()
     model, _, dx, mu, Y, sigma_y = _plastic_cube(resolution, S, H0, pressure_stiffness, 2.0, squeeze, load_time)
     solver = we.Solver(model)
     a, c, f = _relaxed_reaction(model, solver, ["top", "bottom"], load_time, hold_time, viscous=50.0)
@@ -1130,7 +1130,7 @@ def uniaxial_flow(resolution: int = 8, strain: float = 0.75, duration: float = 4
         raise ValueError(f"strain = {strain!r} is not allowed: must be in (0, 1)")
     if not duration > 0.0:
         raise ValueError(f"duration = {duration!r} is not allowed: must be > 0 (seconds)")
-    wp, we = _we()
+    _, we = _we()
     model, span, dx, mu, Y, sigma_y = _plastic_cube(resolution, S, H0, pressure_stiffness, support_radius, strain,
                                                     duration)
     speed = strain * span / duration
