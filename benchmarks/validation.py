@@ -1532,7 +1532,7 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     runs.append(("sphere_indentation", {"resolution": 16, "fit": "linear", "hourglass": 0.1}))
     # The flow stress past the particles' rearrangement (docs/physics.md, "The flow stress in
     # sustained uniaxial flow"): the same log strains at three resolutions.
-    for res in (6, 8, 12):
+    for res in (6, 8, 12, 16):
         runs.append(("uniaxial_flow", {"resolution": res, "strain": 0.75, "duration": 4.0}))
     for res in (8, 12):
         for S in SLUMP_S:
