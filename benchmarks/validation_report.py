@@ -72,6 +72,16 @@ def _table(header, rows) -> str:
     return "\n".join(out)
 
 
+def _save(fig, img: pathlib.Path, name: str, made: list[str]):
+    """Lay out, write ``img / name`` and close ``fig``; ``name`` joins ``made``."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(img / name, dpi=110)
+    plt.close(fig)
+    made.append(name)
+
+
 def _plots(results, img: pathlib.Path) -> list[str]:
     import matplotlib
 
@@ -104,10 +114,7 @@ def _plots(results, img: pathlib.Path) -> list[str]:
         ax[1].set_xlabel("S")
         ax[1].set_ylabel("R / R (Roussel & Coussot 2005)")
         ax[1].set_title("Spread radius against the shallow-layer theory")
-        fig.tight_layout()
-        fig.savefig(img / "slump_height.png", dpi=110)
-        plt.close(fig)
-        made.append("slump_height.png")
+        _save(fig, img, "slump_height.png", made)
 
         fig, ax = plt.subplots(figsize=(6, 4))
         pick = sorted({r["S"] for r in slumps})
@@ -122,10 +129,7 @@ def _plots(results, img: pathlib.Path) -> list[str]:
         ax.set_ylabel("h / H0")
         ax.set_title(f"Slump height over time, S = {pick[0]}")
         ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(img / "slump_history.png", dpi=110)
-        plt.close(fig)
-        made.append("slump_history.png")
+        _save(fig, img, "slump_history.png", made)
 
         # Against resolution: h / H0 over the theory for each S and force; a filled marker is a
         # row at rest, a hollow one a pile still moving at the end of its run.
@@ -160,10 +164,7 @@ def _plots(results, img: pathlib.Path) -> list[str]:
         ax.set_ylabel("h / H0 over S (1 - ln S)")
         ax.set_title("Slump height against resolution (filled: at rest)")
         ax.legend(fontsize=6, ncol=2)
-        fig.tight_layout()
-        fig.savefig(img / "slump_resolution.png", dpi=110)
-        plt.close(fig)
-        made.append("slump_resolution.png")
+        _save(fig, img, "slump_resolution.png", made)
 
     elastic = [(c, key, label) for c, key, label in (
         ("bar", "ratio", "bar frequency / c(2L)"),
@@ -188,10 +189,7 @@ def _plots(results, img: pathlib.Path) -> list[str]:
             ax.set_xlabel("particles across")
             ax.set_title(label, fontsize=9)
             ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(img / "elastic_resolution.png", dpi=110)
-        plt.close(fig)
-        made.append("elastic_resolution.png")
+        _save(fig, img, "elastic_resolution.png", made)
 
     energies = [r for r in results if r["case"] == "energy"]
     if energies:
@@ -205,10 +203,7 @@ def _plots(results, img: pathlib.Path) -> list[str]:
         ax.set_ylabel("|E - E0| / E0")
         ax.set_title("Undamped breathing cube: total energy")
         ax.legend(fontsize=6)
-        fig.tight_layout()
-        fig.savefig(img / "energy.png", dpi=110)
-        plt.close(fig)
-        made.append("energy.png")
+        _save(fig, img, "energy.png", made)
     flows = sorted((r for r in results if r["case"] == "uniaxial_flow"), key=lambda r: r["resolution"])
     if flows:
         fig, ax = plt.subplots(figsize=(6.5, 4))
@@ -226,10 +221,7 @@ def _plots(results, img: pathlib.Path) -> list[str]:
         ax.set_ylabel("mean axial stress / Bingham")
         ax.set_title("Sustained uniaxial flow between frictionless plates")
         ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(img / "uniaxial_flow.png", dpi=110)
-        plt.close(fig)
-        made.append("uniaxial_flow.png")
+        _save(fig, img, "uniaxial_flow.png", made)
     return made
 
 
