@@ -1,8 +1,14 @@
-"""Two runs with the same inputs on the CPU give identical output files."""
+"""Two runs with the same inputs on the CPU give identical output files and states."""
 
+import dataclasses
 import hashlib
 
+import numpy as np
+import pytest
+import warp as wp
+
 import warp_esph as we
+from warp_esph import tools
 from warp_esph.scenes import get_scene
 
 
@@ -17,3 +23,46 @@ def _run(path):
 def test_two_runs_write_identical_files(tmp_path):
     assert _run(tmp_path / "a.usda") == _run(tmp_path / "b.usda")
     assert _run(tmp_path / "a.usdc") == _run(tmp_path / "b.usdc")
+
+
+def _replay_run(replayed: bool, dtype, hourglass: float):
+    """A plastic block pressed by a keyframed box tool onto a pinned floor of its own
+    particles, next to a second block on the ground; the step shortened after 10 steps, the
+    yield stress changed in place after 20, and a third state joining the two that swap
+    every step after 30."""
+    b = we.SceneBuilder(spacing=0.02, support_radius=0.05)
+    mat = we.Material(mu=2e4, lam=3e4, density=1000.0, yield_stress=400.0, flow_rate=50.0, viscosity=1.0)
+    block = b.add_box((0.0, 0.05, 0.0), (0.1, 0.1, 0.1), mat, name="block")
+    b.add_particle_floor(block, margin=0.04)
+    b.add_box((0.3, 0.05, 0.0), (0.06, 0.06, 0.06), mat, velocity=(0.0, -0.5, 0.0), name="second")
+    b.add_ground(friction=0.5)
+    b.add_tool("box", half_extents=(0.08, 0.01, 0.08), name="press",
+               motion=tools.Keyframes([0.0, 0.005], [(0.0, 0.097, 0.0), (0.0, 0.085, 0.0)]))
+    m = b.finalize(dtype=dtype)
+    s = we.Solver(m, hourglass=hourglass)
+    m.launches.enabled = s.search.launches.enabled = replayed
+    states = [m.state(), m.state(), m.state()]
+    dt = 0.5 * m.stable_dt()
+    press = []
+    for k in range(40):
+        if k == 20:
+            m.set_material(0, dataclasses.replace(mat, yield_stress=200.0))
+        i, o = (k % 2, 1 - k % 2) if k < 30 else (k % 3, (k + 1) % 3)
+        s.step(states[i], states[o], dt if k < 10 else 0.7 * dt)
+        press.append(s.reaction_forces(states[o])["press"][0])
+    out = states[o]
+    return [a.numpy() for a in (out.x, out.v, out.F)], np.array(press), s.guard_counts()
+
+
+@pytest.mark.parametrize("dtype,hourglass", [(wp.float32, 0.0), (wp.float64, 0.1)])
+def test_replayed_launches_give_the_very_states_of_plain_launches(dtype, hourglass):
+    """``Model.launches`` (sim/replay.py) repacks only the arguments that changed since the
+    launch it replays: whatever the step passes (states swapping roles, a third state, a
+    new dt, a material changed in place, a moving tool's poses, pinned particles), the
+    states are the bits ``wp.launch`` gives."""
+    (x1, v1, F1), r1, g1 = _replay_run(True, dtype, hourglass)
+    (x0, v0, F0), r0, g0 = _replay_run(False, dtype, hourglass)
+    assert np.abs(v0).max() > 0.1  # the scene moved
+    assert np.array_equal(x1, x0) and np.array_equal(v1, v0) and np.array_equal(F1, F0)
+    assert np.array_equal(r1, r0) and np.abs(r0[:, 1]).max() > 10.0  # the press pressed
+    assert g1 == g0

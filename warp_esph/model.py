@@ -21,6 +21,7 @@ from ._types import type_set
 from .sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP, Box, Plane, Sphere
 from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, PRESSURE_FORCE_IDS, Material, p_wave_speed
 from .sim import ghost_floor, integrate
+from .sim.replay import Launches
 from .sim import materials as material_struct
 
 
@@ -190,6 +191,8 @@ class Model:
         self.device = wp.get_device(device)
         self.types = type_set(scalar)
         self.scalar = scalar
+        #: The step's launches on this model, replayed (``sim/replay.py``).
+        self.launches = Launches()
         self.requires_grad = bool(requires_grad)
         self.spacing = float(spacing)
         self.support_radius = float(support_radius)

@@ -840,6 +840,7 @@ class ToolSet:
         self.kernels = k_
         self.model = model
         self._warned_scripted = False
+        self._held_samples = None
 
     def _times_now(self) -> np.ndarray:
         """The keyframe times as they are now (an optimiser may have changed the array)."""
@@ -921,23 +922,37 @@ class ToolSet:
                     sp[s], sq[s] = motion.pose(t)
         return i0, i1, w, ts, direct, sp, sq
 
+    def _sample_arrays(self, host, fresh: bool):
+        """``_samples`` on the device: new arrays on a tape (it reads them again in the
+        backward pass), otherwise the same arrays every step, refilled (an array made each
+        step cost more than the pose kernel at small particle counts)."""
+        m = self.model
+        T = m.types
+        dtypes = (wp.int32, wp.int32, m.scalar, m.scalar, wp.int32, T.vec3, self.quat)
+        host = [h if d is wp.int32 else h.astype(T.np_dtype) for h, d in zip(host, dtypes)]
+        if fresh or self._held_samples is None:
+            arrays = tuple(wp.array(h, dtype=d, device=m.device) for h, d in zip(host, dtypes))
+            if not fresh:
+                self._held_samples = arrays
+            return arrays
+        for a, h in zip(self._held_samples, host):
+            if a.device.is_cpu:
+                a.numpy()[...] = h  # a view of the array's memory
+            else:
+                a.assign(h)
+        return self._held_samples
+
     def integrate(self, solver, state_in, state_out, dt: float):
         """Poses at the step's start and end, then the integrate kernel (see module doc)."""
         m = self.model
         S, dev, T = m.scalar, m.device, m.types
         n = self.count
-        i0, i1, w, ts, direct, sp, sq = self._samples(state_in.time, state_in.time + dt)
-        npf = T.np_dtype
-        samples = (
-            wp.array(i0, dtype=wp.int32, device=dev), wp.array(i1, dtype=wp.int32, device=dev),
-            wp.array(w.astype(npf), dtype=S, device=dev), wp.array(ts.astype(npf), dtype=S, device=dev),
-            wp.array(direct, dtype=wp.int32, device=dev), wp.array(sp.astype(npf), dtype=T.vec3, device=dev),
-            wp.array(sq.astype(npf), dtype=self.quat, device=dev),
-        )
-        state_out.tool_samples = samples  # referenced until a backward pass has read them
-        if _taping():
+        taping = _taping()
+        samples = self._sample_arrays(self._samples(state_in.time, state_in.time + dt), fresh=taping)
+        if taping:
+            state_out.tool_samples = samples  # referenced until a backward pass has read them
             self._warn_scripted_on_tape()
-        wp.launch(
+        self.model.launches(
             self.kernels.poses, 2 * n,
             [self.keyframe_times, self.keyframe_positions, self.keyframe_orientations, self.velocity, self.angular_velocity, *samples],
             [state_out.tool_pose_p, state_out.tool_pose_q], device=dev,
@@ -946,7 +961,7 @@ class ToolSet:
         state_out.reaction_torque.zero_()
         state_out.collider_force.zero_()
         state_out.collider_torque.zero_()
-        wp.launch(
+        self.model.launches(
             self.kernels.integrate,
             m.particle_count,
             [
@@ -964,8 +979,8 @@ class ToolSet:
         acc = getattr(solver, "tool_impulse", None)
         if acc is not None and not _taping():
             rows = n * self.world_count
-            wp.launch(self.kernels.accumulate, rows, [state_out.reaction_force, S(dt)], [acc[0]], device=dev)
-            wp.launch(self.kernels.accumulate, rows, [state_out.reaction_torque, S(dt)], [acc[1]], device=dev)
+            self.model.launches(self.kernels.accumulate, rows, [state_out.reaction_force, S(dt)], [acc[0]], device=dev)
+            self.model.launches(self.kernels.accumulate, rows, [state_out.reaction_torque, S(dt)], [acc[1]], device=dev)
 
     # ----------------------------------------------------------------- queries
     def reaction(self, state) -> dict[str, tuple[np.ndarray, np.ndarray]]:

@@ -209,7 +209,7 @@ def kernels(scalar) -> types.SimpleNamespace:
 
 def launch_constitutive_update(model, state_in, state_out, dt, counters):
     """``plasticity.launch_constitutive_update`` for models with a Fig. 8 comparison material."""
-    wp.launch(
+    model.launches(
         kernels(model.scalar).constitutive_update,
         model.particle_count,
         [state_in.F, state_in.alpha, state_in.F_p, model.particle_material, model.material_arrays(), model.scalar(dt)],
@@ -222,7 +222,7 @@ def launch_update_deformation(model, state_in, state_out, counters, curved: bool
     """``deformation.launch_update_deformation`` for models with a Fig. 8 comparison material
     (``curved``: the rest model's total fit is the curvature-corrected one)."""
     rest_x, rest_nbr, rest_count = model.rest_neighbors()
-    wp.launch(
+    model.launches(
         kernels(model.scalar).update_deformation,
         model.particle_count,
         [
@@ -240,7 +240,7 @@ def launch_rest_variational_forces(model, state_out, curved: bool = False):
     constitutive update wrote (launched only when a material asks for it; ``curved``: of the
     curvature-corrected total fit)."""
     rest_x, rest_nbr, rest_count = model.rest_neighbors()
-    wp.launch(
+    model.launches(
         kernels(model.scalar).rest_variational_forces,
         model.particle_count,
         [rest_x, model.particle_body, model.particle_material, model.material_arrays(), rest_nbr, rest_count,

@@ -47,6 +47,7 @@ import warp as wp
 
 from .._types import type_set
 from . import deformation, forces, materials, smoothing
+from .replay import recording_tape
 
 #: The curvature correction is dropped (the paper's fit kept) where it would leave
 #: ``det A~`` below this fraction of ``det A`` (on a lattice it is above 0.4 everywhere).
@@ -764,16 +765,16 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True)
     inputs = [state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
               state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
               state_out.F_inv, S(model.support_radius), *model.image_args()]
-    tape = deformation.recording_tape()
+    tape = recording_tape()
     grads = (state_in.x, state_out.stress, state_out.F_flowed, state_out.F_inv, state_out.force)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
-        wp.launch(kernels(S).elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device)
+        model.launches(kernels(S).elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device)
         return
-    wp.launch(kernels(S).elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device,
+    model.launches(kernels(S).elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device,
               record_tape=False)
 
     def adjoint():
-        wp.launch(
+        model.launches(
             kernels(S).variational_forces_adjoint, model.particle_count,
             [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force,
              state_out.neighbors, state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress,
@@ -796,15 +797,15 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     plane = model.image_args()
     inputs = pos + [state_out.F_flowed, state_out.F_flowed_lo, h, *plane]
     outputs = [state_out.F, state_out.F_lo, counters]
-    tape = deformation.recording_tape()
+    tape = recording_tape()
     grads = (state_in.x, state_out.x, state_out.F_flowed, state_out.F)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
-        wp.launch(k.update_deformation, model.particle_count, inputs, outputs, device=model.device)
+        model.launches(k.update_deformation, model.particle_count, inputs, outputs, device=model.device)
         return
-    wp.launch(k.update_deformation, model.particle_count, inputs, outputs, device=model.device, record_tape=False)
+    model.launches(k.update_deformation, model.particle_count, inputs, outputs, device=model.device, record_tape=False)
 
     def adjoint():
-        wp.launch(
+        model.launches(
             k.update_deformation_adjoint, model.particle_count,
             pos + [state_out.F_flowed, h, *plane, state_out.F.grad, state_in.x.grad, state_out.x.grad,
                    state_out.F_flowed.grad],

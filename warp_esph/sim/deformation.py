@@ -21,6 +21,7 @@ import warp as wp
 
 from .._types import type_set
 from . import smoothing
+from .replay import recording_tape
 from .roundoff import compensated_sum
 
 #: Indices into the solver's guard counters.
@@ -479,14 +480,6 @@ def kernels(scalar) -> types.SimpleNamespace:
     return types.SimpleNamespace(update_deformation=update_deformation, update_deformation_adjoint=update_deformation_adjoint)
 
 
-def recording_tape():
-    """The ``wp.Tape`` recording launches now, or None."""
-    runtime = getattr(getattr(getattr(wp, "_src", None), "context", None), "runtime", None)
-    if runtime is None:  # pragma: no cover (older layout)
-        runtime = wp.context.runtime
-    return getattr(runtime, "tape", None)
-
-
 def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint: bool = True, y=None, y_lo=None):
     """Eqs. 1-8 over the step from ``state_in.x`` to ``state_out.x`` (or to ``y``, ``y_lo``
     where given: a ghost floor's fit positions, ``ghost_floor.launch_fit_positions``), with
@@ -505,10 +498,10 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     tape = recording_tape()
     grads = (state_in.x, y, state_out.F_flowed, state_out.F)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
-        wp.launch(k.update_deformation, model.particle_count, inputs, outputs, device=model.device)
+        model.launches(k.update_deformation, model.particle_count, inputs, outputs, device=model.device)
         return
     # Under a tape: the forward unrecorded, and the hand-written adjoint in its place.
-    wp.launch(k.update_deformation, model.particle_count, inputs, outputs, device=model.device, record_tape=False)
+    model.launches(k.update_deformation, model.particle_count, inputs, outputs, device=model.device, record_tape=False)
 
     tape.record_func(lambda: launch_update_deformation_adjoint(model, state_in, state_out, y, y_lo), list(grads))
 
@@ -518,7 +511,7 @@ def launch_update_deformation_adjoint(model, state_in, state_out, y=None, y_lo=N
     ``state_out.x`` (or ``y``) and ``state_out.F_flowed``, with the guards in ``state_out.guard``."""
     y = state_out.x if y is None else y
     y_lo = state_out.x_lo if y_lo is None else y_lo
-    wp.launch(
+    model.launches(
         kernels(model.scalar).update_deformation_adjoint, model.particle_count,
         [
             state_in.x, y, state_in.x_lo, y_lo, model.particle_body, state_out.neighbors,

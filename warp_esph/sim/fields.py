@@ -73,7 +73,7 @@ def launch_force_fields(model, state_in, state_out):
     S = model.scalar
     for fld in model.force_fields:
         if fld.active(state_in.time):
-            wp.launch(
+            model.launches(
                 kernels(S).add_compression,
                 model.particle_count,
                 [state_in.x, model.particle_mass, model.particle_body, int(fld.body), model.types.vec3(*fld.center), S(fld.strength)],

@@ -41,6 +41,7 @@ import warp as wp
 
 from .._types import type_set
 from . import deformation, isotropic, materials, neighbors, smoothing
+from .replay import recording_tape
 
 
 @functools.cache
@@ -546,13 +547,13 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True)
         state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
         state_out.F_inv, S(model.support_radius), *model.image_args(),
     ]
-    tape = deformation.recording_tape()
+    tape = recording_tape()
     grads = (state_in.x, state_out.stress, state_out.F_inv, state_out.force)
     if (tape is None or not hand_adjoint or any(a.grad is None for a in grads)
             or model.material_elastic_force.numpy().any()):  # 0: eqs. 10-13 ("paper")
-        wp.launch(k.elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device)
+        model.launches(k.elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device)
         return
-    wp.launch(k.elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
+    model.launches(k.elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
 
     tape.record_func(lambda: launch_elastic_forces_adjoint(model, state_in, state_out), list(grads))
 
@@ -561,7 +562,7 @@ def launch_elastic_forces_adjoint(model, state_in, state_out):
     """``elastic_forces_adjoint``: ``state_out.force.grad`` into the gradients of ``state_in.x``,
     ``state_out.stress`` and ``state_out.F_inv`` (eqs. 10-13 only)."""
     S = model.scalar
-    wp.launch(
+    model.launches(
         kernels(S).elastic_forces_adjoint, model.particle_count,
         [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force, state_out.neighbors,
          state_out.neighbor_count, model.particle_volume, state_out.stress, state_out.F_flowed, state_out.F_inv,
@@ -576,7 +577,7 @@ def launch_variational_forces_adjoint(model, state_in, state_out, min_neighbors:
     ``state_in.x``, ``state_out.stress`` and ``state_out.F_flowed`` (the particles of the
     variational force only; the guard as the fused step evaluates it)."""
     S = model.scalar
-    wp.launch(
+    model.launches(
         kernels(S).variational_forces_adjoint, model.particle_count,
         [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force, state_out.neighbors,
          state_out.neighbor_count, model.particle_volume, state_out.stress, state_out.F_flowed, S(model.support_radius),

@@ -269,7 +269,7 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
     and the densities the neighbour pass summed (``pressure.launch_state_densities_adjoint``)."""
     S = model.scalar
     own = sph and model.separate_pressure_density
-    wp.launch(
+    model.launches(
         kernels(S).constitutive_forces,
         model.particle_count,
         [
@@ -318,9 +318,9 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
     images = model.image_plane is not None
     u = scratch.displacement
     if not images:
-        wp.launch(kernels(S).displacements, model.particle_count, [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo],
+        model.launches(kernels(S).displacements, model.particle_count, [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo],
                   [u], device=model.device, record_tape=False)
-    wp.launch(
+    model.launches(
         kernels(S).update_deformation,
         model.particle_count,
         [

@@ -314,12 +314,12 @@ class StencilSearch:
             cell = g.radius
             dims = [int(min(128, max(1, np.ceil((x0[:, a].max() - x0[:, a].min()) / cell) + 8))) for a in range(3)]
             self.grid = wp.HashGrid(*dims, device=m.device)
-        wp.launch(k.grid_points, m.particle_count, [state_in.x], [self.points], device=m.device, record_tape=False)
+        m.launches(k.grid_points, m.particle_count, [state_in.x], [self.points], device=m.device, record_tape=False)
         self.grid.build(self.points, g.radius)
-        wp.launch(k.stencil_candidates, g.count,
+        m.launches(k.stencil_candidates, g.count,
                   [self.grid.id, state_in.x, g.floor, g.offset, g.slot, m.particle_body, m.scalar(g.radius)],
                   [state_out.ghost_rows, state_out.ghost_count, counters, cut_index], device=m.device, record_tape=False)
-        wp.launch(k.stencil_weights, g.count,
+        m.launches(k.stencil_weights, g.count,
                   [state_in.x, g.floor, g.offset, m.scalar(g.radius), state_out.ghost_rows, state_out.ghost_count],
                   [state_out.ghost_weights], device=m.device)
 
@@ -328,15 +328,15 @@ def launch_hand_over(model, state_out):
     """The elastic forces on the ghosts handed to their stencils (after the elastic forces,
     before anything else adds to ``state_out.force``)."""
     g, k = model.ghost_floor, kernels(model.scalar)
-    wp.launch(k.copy_floor_forces, g.count, [state_out.force, g.floor], [state_out.ghost_force], device=model.device)
-    wp.launch(k.hand_over, g.count, [state_out.ghost_force, g.floor, g.slip, state_out.ghost_rows,
+    model.launches(k.copy_floor_forces, g.count, [state_out.force, g.floor], [state_out.ghost_force], device=model.device)
+    model.launches(k.hand_over, g.count, [state_out.ghost_force, g.floor, g.slip, state_out.ghost_rows,
                                      state_out.ghost_count, state_out.ghost_weights], [state_out.force], device=model.device)
 
 
 def launch_fit_positions(model, state_in, state_out):
     """``State.ghost_y``: what the deformation update fits to (after the integration)."""
     g, k = model.ghost_floor, kernels(model.scalar)
-    wp.launch(k.fit_positions, model.particle_count,
+    model.launches(k.fit_positions, model.particle_count,
               [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, g.slot, g.slip, state_out.ghost_rows,
                state_out.ghost_count, state_out.ghost_weights], [state_out.ghost_y, state_out.ghost_y_lo],
               device=model.device)

@@ -169,7 +169,7 @@ def launch_hourglass_forces(model, state_in, state_out, rest, c: float):
     """Add the control's forces (module doc) into ``state_out.force``; ``rest``: the rest
     positions as a device array."""
     S = model.scalar
-    wp.launch(
+    model.launches(
         kernels(S).hourglass_forces, model.particle_count,
         [state_in.x, rest, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
          state_out.neighbor_count, model.particle_volume, S(model.support_radius), S(c)],

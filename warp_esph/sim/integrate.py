@@ -166,7 +166,7 @@ def launch_integrate(model, state_in, state_out, dt):
     m = model
     state_out.collider_force.zero_()
     state_out.collider_torque.zero_()
-    wp.launch(
+    model.launches(
         kernels(S, len(m.planes), len(m.spheres), len(m.boxes)).integrate,
         m.particle_count,
         [state_in.x, state_in.x_lo, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt),
@@ -182,7 +182,7 @@ def accumulate_impulse(model, state_out, dt, impulse):
     k = kernels(model.scalar, len(model.planes), len(model.spheres), len(model.boxes)).accumulate
     S = model.scalar
     for src, dst in zip((state_out.collider_force, state_out.collider_torque), impulse):
-        wp.launch(k, src.shape[0], [src, S(dt)], [dst], device=model.device)
+        model.launches(k, src.shape[0], [src, S(dt)], [dst], device=model.device)
 
 
 def static_collider_references(model) -> list:

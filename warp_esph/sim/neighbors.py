@@ -53,6 +53,7 @@ import warp as wp
 
 from .._types import type_set
 from . import materials, pressure, smoothing
+from .replay import Launches
 
 #: Guard codes written per particle (0 = the MLS update may run).
 GUARD_OK = 0
@@ -502,6 +503,7 @@ class NeighborSearch:
         self.world = world
         self._world_stride = 0.0
         self.device = device
+        self.launches = Launches()
         self.h = float(h)
         #: The kernels' image-plane arguments (``Model.image_args``) for the density the
         #: selection sums; None: no image plane.
@@ -573,7 +575,7 @@ class NeighborSearch:
         self._ensure_grid(x)
         n = x.shape[0]
         world = self.world if self.world is not None else self._dummy_arrays()["i"]
-        wp.launch(
+        self.launches(
             self.kernels.grid_points, n, [x, world, wp.float32(self._world_stride)], [self._points],
             device=self.device, record_tape=False,
         )
@@ -583,7 +585,7 @@ class NeighborSearch:
             if self.candidates is None or self.candidates.shape[1] != self._capacity:
                 self.candidates = wp.empty((n, self._capacity), dtype=wp.int32, device=self.device)
             self._overflow.zero_()
-            wp.launch(
+            self.launches(
                 self.kernels.build_candidates,
                 n,
                 [
@@ -625,7 +627,7 @@ class NeighborSearch:
             return False
         self._bounds.fill_(-np.inf)
         c = self._centre
-        wp.launch(
+        self.launches(
             self.kernels.displacement_bounds, x.shape[0],
             [
                 x, self._x_ref, type_set(self.scalar).vec3(*c), self._dummy_arrays()["F"] if F is None else F,
@@ -658,7 +660,7 @@ class NeighborSearch:
             mass, material, rest_density, mats, rho, p, vol, rho_p, vol_p = sph
         with_density = 0 if sph is None else (1 if rho_p is None else 2)
         with_guard = guard is not None
-        wp.launch(
+        self.launches(
             self.kernels.select_neighbors,
             x.shape[0],
             [

@@ -430,7 +430,7 @@ def kernels(scalar) -> types.SimpleNamespace:
 
 def launch_constitutive_update(model, state_in, state_out, dt, counters):
     """Plastic flow of ``state_in.F`` (paper §3), stress and ``F^-1`` into ``state_out``."""
-    wp.launch(
+    model.launches(
         kernels(model.scalar).constitutive_update,
         model.particle_count,
         [state_in.F, state_in.F_lo, state_in.alpha, model.particle_material, model.material_arrays(), model.scalar(dt)],
@@ -447,7 +447,7 @@ def launch_constitutive_update_adjoint(model, state_in, state_out, dt, counters,
     non-Newtonian (and ``hand``), else Warp's generated adjoint, launched by hand."""
     if hand and model.material_model.numpy().max() <= 1:
         S = model.scalar
-        wp.launch(
+        model.launches(
             kernels(S).constitutive_update_adjoint, model.particle_count,
             [state_in.F, state_in.alpha, model.particle_material, model.material_arrays(), S(dt), state_out.F_flowed,
              state_out.F_inv, state_out.F_flowed.grad, state_out.alpha.grad, state_out.stress.grad, state_out.F_inv.grad,
@@ -459,7 +459,7 @@ def launch_constitutive_update_adjoint(model, state_in, state_out, dt, counters,
     mats = model.material_arrays()
     inputs = [state_in.F, state_in.F_lo, state_in.alpha, model.particle_material, mats, model.scalar(dt)]
     outputs = [state_out.F_flowed, state_out.F_flowed_lo, state_out.alpha, state_out.stress, state_out.F_inv, counters]
-    wp.launch(
+    model.launches(
         kernels(model.scalar).constitutive_update, model.particle_count, inputs, outputs,
         adj_inputs=[tape.get_adjoint(a) for a in inputs], adj_outputs=[tape.get_adjoint(a) for a in outputs],
         device=model.device, adjoint=True, record_tape=False,

@@ -30,6 +30,7 @@ import warp as wp
 
 from .._types import type_set
 from . import deformation, materials, smoothing
+from .replay import recording_tape
 
 
 @functools.cache
@@ -548,18 +549,18 @@ def launch_density(model, x, neighbors, neighbor_count, rho, hand_adjoint: bool 
     k = kernels(model.scalar)
     inputs = [x, model.particle_mass, model.particle_material, model.material_arrays(), neighbors, neighbor_count,
               model.scalar(model.support_radius), int(of_pressure), *model.image_args()]
-    tape = deformation.recording_tape()
+    tape = recording_tape()
     if tape is None or not hand_adjoint or x.grad is None or rho.grad is None:
-        wp.launch(k.density, model.particle_count, inputs, [rho], device=model.device)
+        model.launches(k.density, model.particle_count, inputs, [rho], device=model.device)
         return
-    wp.launch(k.density, model.particle_count, inputs, [rho], device=model.device, record_tape=False)
+    model.launches(k.density, model.particle_count, inputs, [rho], device=model.device, record_tape=False)
 
     tape.record_func(lambda: launch_density_adjoint(model, x, neighbors, neighbor_count, rho, of_pressure), [x, rho])
 
 
 def launch_density_adjoint(model, x, neighbors, neighbor_count, rho, of_pressure: bool = False):
     """``density_adjoint``: ``rho.grad`` into ``x.grad``."""
-    wp.launch(
+    model.launches(
         kernels(model.scalar).density_adjoint, model.particle_count,
         [x, model.particle_mass, model.particle_material, model.material_arrays(), neighbors, neighbor_count,
          model.scalar(model.support_radius), int(of_pressure), *model.image_args(), rho.grad, x.grad],
@@ -609,13 +610,13 @@ def launch_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True
         model.particle_rest_density, model.particle_material, model.material_arrays(), state_out.neighbors,
         state_out.neighbor_count, model.scalar(model.support_radius), *model.image_args(), 1,
     ]
-    tape = deformation.recording_tape()
+    tape = recording_tape()
     grads = (state_in.x, state_in.v, state_out.density, rho_p, model.pressure_stiffness,
              model.viscosity, state_out.force)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
-        wp.launch(k.pressure_forces, model.particle_count, inputs, [state_out.force], device=model.device)
+        model.launches(k.pressure_forces, model.particle_count, inputs, [state_out.force], device=model.device)
         return
-    wp.launch(k.pressure_forces, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
+    model.launches(k.pressure_forces, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
 
     tape.record_func(lambda: launch_pressure_forces_adjoint(model, state_in, state_out), list(grads))
 
@@ -625,7 +626,7 @@ def launch_pressure_forces_adjoint(model, state_in, state_out):
     v``, ``state_out.density``, ``state_out.pressure_density`` and the model's
     ``pressure_stiffness`` and ``viscosity``."""
     rho_p = pressure_density(model, state_out)
-    wp.launch(
+    model.launches(
         kernels(model.scalar).pressure_forces_adjoint, model.particle_count,
         [
             state_in.x, state_in.v, model.particle_mass, state_out.density, rho_p,
@@ -648,7 +649,7 @@ def launch_pressure_forces_adjoint(model, state_in, state_out):
         ]
         adjoint = wp.Tape().get_adjoint
         scratch = wp.zeros_like(state_out.force, requires_grad=False)
-        wp.launch(kernels(model.scalar).pressure_forces, model.particle_count, inputs, [scratch],
+        model.launches(kernels(model.scalar).pressure_forces, model.particle_count, inputs, [scratch],
                   adj_inputs=[None if a is model.particle_mass or a is model.particle_rest_density else adjoint(a)
                               for a in inputs], adj_outputs=[state_out.force.grad],
                   adjoint=True, device=model.device, record_tape=False)

@@ -15,7 +15,7 @@ import warp as wp
 
 from .. import checks
 from ..model import FITS, Model, State  # noqa: F401 (FITS: re-exported)
-from .deformation import recording_tape
+from .replay import recording_tape
 from . import (comparison, curvature, deformation, fields, forces, fused, ghost_floor, hourglass, integrate, neighbors,
                plasticity, pressure)
 

@@ -1,0 +1,99 @@
+"""What replaying the step's launches saves (``warp_esph/sim/replay.py``): the forward step
+with the replayed launches against every launch through ``wp.launch``, timed in the same run
+on the same states, in interleaved blocks (the ratio, not the seconds, is the result: these
+machines are shared).
+
+    python -m benchmarks.launches                         # 216, 1000, 8000 particles
+    python -m benchmarks.launches --sizes 512,4096 --json out.json
+
+Two scenes per size: an elastoplastic cube dropped on the ground collider (the plain
+integrator) and the same cube on a pinned particle floor (the tool integrator, as the
+validation slumps run). Also counts how many arguments each launch packs afterwards. Not a
+test.
+"""
+
+import argparse
+import json
+import platform
+import time
+
+
+def _scene(n: int, floor: bool):
+    import warp_esph as we
+
+    side = max(2, round(n ** (1.0 / 3.0)))
+    dx = 0.01
+    b = we.SceneBuilder(spacing=dx, support_radius=2.0 * dx)
+    mat = we.Material(mu=2e4, lam=3e4, density=1000.0, yield_stress=300.0, flow_rate=50.0, viscosity=1.0)
+    body = b.add_box(center=(0.0, 0.5 * side * dx + 0.5 * dx, 0.0), size=(side * dx,) * 3, material=mat)
+    if floor:
+        b.add_particle_floor(body, margin=0.5 * side * dx)
+    else:
+        b.add_ground(friction=0.5)
+    return b.finalize()
+
+
+def _time(solver, states, steps: int, dt: float) -> float:
+    import warp as wp
+
+    a, b = states
+    wp.synchronize()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        solver.step(a, b, dt)
+        a, b = b, a
+    wp.synchronize()
+    return (time.perf_counter() - t0) / steps
+
+
+def measure(n: int, floor: bool, steps: int, blocks: int, warmup: int) -> dict:
+    import warp_esph as we
+
+    model = _scene(n, floor)
+    solver = we.Solver(model)
+    states = (model.state(), model.state())
+    dt = 0.5 * model.stable_dt()
+    owners = (model.launches, solver.search.launches)
+    for _ in range(warmup // 2):
+        for on in (True, False):
+            for o in owners:
+                o.enabled = on
+            _time(solver, states, 2, dt)
+    times = {True: [], False: []}
+    for _ in range(blocks):
+        for on in (True, False):
+            for o in owners:
+                o.enabled = on
+            times[on].append(_time(solver, states, steps, dt))
+    replayed, plain = min(times[True]), min(times[False])
+    return {"particles": model.particle_count, "scene": "particle floor" if floor else "ground",
+            "plain_ms": 1e3 * plain, "replayed_ms": 1e3 * replayed, "speedup": plain / replayed}
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog="python -m benchmarks.launches", description=__doc__.split("\n\n")[0])
+    p.add_argument("--sizes", default="216,1000,8000", help="particle counts of the cube (rounded to a cube)")
+    p.add_argument("--steps", type=int, default=40, help="steps per timed block")
+    p.add_argument("--blocks", type=int, default=5, help="timed blocks per setting, interleaved; the best is kept")
+    p.add_argument("--warmup", type=int, default=20, help="untimed steps first (kernel loading)")
+    p.add_argument("--json", default=None, help="also write the rows here")
+    args = p.parse_args(argv)
+    from warp_esph.startup import init_warp
+
+    init_warp()
+    rows = []
+    for n in (int(s) for s in args.sizes.split(",")):
+        for floor in (False, True):
+            r = measure(n, floor, args.steps, args.blocks, args.warmup)
+            rows.append(r)
+            print(f"{r['particles']:>7d}  {r['scene']:<15s} wp.launch {r['plain_ms']:8.2f} ms/step   "
+                  f"replayed {r['replayed_ms']:8.2f} ms/step   {r['speedup']:.2f} x", flush=True)
+    report = {"machine": platform.processor() or platform.machine(), "rows": rows}
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(report, fh, indent=1)
+    return report
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,101 @@
+"""Replayed launches: the step's Python cost at small particle counts.
+
+``wp.launch`` packs every argument into a C struct on every call, 5-10 us each on the CPU,
+and the step's kernels take 10-35 arguments, most of them the same arrays step after step.
+At a few thousand particles that packing costs more than the kernels themselves
+(docs/performance.md, "Launch overhead"). ``Launches`` records a kernel's launch the first
+time (``wp.launch(..., record_cmd=True)``) and afterwards repacks only the arguments that
+are not the very objects of the launch it replays, then replays it.
+
+What counts as unchanged: the same array object (an array's data and shape never move), or
+an equal number, Warp scalar, vector or matrix of the same type. Structs are packed again at
+every call, so a struct changed in place is never replayed stale. A few recorded launches
+per kernel (``SLOTS``) keep double-buffered states (``state_in`` and ``state_out``
+swapping roles every step) from repacking every step.
+
+It steps aside, calling ``wp.launch`` itself, wherever replaying could change what Warp
+does: while a ``wp.Tape`` records the launch, for adjoint launches, and under
+``wp.config.verify_fp``. The replayed launches hold their last arguments, so the owner keeps
+up to ``SLOTS`` sets of the arrays it launched on alive until it is itself released.
+"""
+
+from __future__ import annotations
+
+import ctypes
+
+import warp as wp
+
+
+def recording_tape():
+    """The ``wp.Tape`` recording launches now, or None."""
+    runtime = getattr(getattr(getattr(wp, "_src", None), "context", None), "runtime", None)
+    if runtime is None:  # pragma: no cover (older layout)
+        runtime = wp.context.runtime
+    return getattr(runtime, "tape", None)
+
+#: Recorded launches kept per kernel and launch size: two for the states' double buffer,
+#: two more for the arrays of an occasional other state (a rollout's, a fit's).
+SLOTS = 4
+
+_NUMBERS = (int, float, bool)
+_WARP_SCALARS = (wp.int8, wp.uint8, wp.int16, wp.uint16, wp.int32, wp.uint32, wp.int64, wp.uint64, wp.float16,
+                 wp.float32, wp.float64)
+
+
+def _same(a, b) -> bool:
+    """Whether ``b`` packs to the bytes ``a`` packed to (``a is not b``)."""
+    t = type(a)
+    if t is not type(b):
+        return False
+    if t in _NUMBERS:
+        return a == b
+    if t in _WARP_SCALARS:
+        return a.value == b.value
+    if issubclass(t, ctypes.Array):  # Warp's vectors and matrices
+        return bytes(a) == bytes(b)
+    return False
+
+
+class Launches:
+    """Call as ``wp.launch`` (same arguments); one per owner of launches (a ``Model``, a
+    neighbour search), never shared between threads."""
+
+    def __init__(self):
+        #: False: every launch through ``wp.launch`` (the baseline ``benchmarks.launches`` times).
+        self.enabled = True
+        self._recorded: dict = {}
+
+    def __call__(self, kernel, dim, inputs=(), outputs=(), adj_inputs=(), adj_outputs=(), device=None, stream=None,
+                 adjoint=False, record_tape=True, max_blocks=0, block_dim=None):
+        if (not self.enabled or adjoint or adj_inputs or adj_outputs or stream is not None or wp.config.verify_fp
+                or (record_tape and recording_tape() is not None)):
+            wp.launch(kernel, dim, inputs, outputs, adj_inputs, adj_outputs, device=device, stream=stream,
+                      adjoint=adjoint, record_tape=record_tape, max_blocks=max_blocks, block_dim=block_dim)
+            return
+        args = [*inputs, *outputs]
+        key = (kernel, dim if isinstance(dim, int) else tuple(dim), str(device), max_blocks, block_dim, len(args))
+        slots = self._recorded.setdefault(key, [])
+        best, changed = None, None
+        # Least recently used first: with double-buffered states the launch before last
+        # was on the same objects, so the first slot usually matches and ends the search.
+        for slot in slots:
+            diff = [i for i, (a, b) in enumerate(zip(args, slot[1])) if a is not b and not _same(a, b)]
+            if changed is None or len(diff) < len(changed):
+                best, changed = slot, diff
+                if not diff:
+                    break
+        if best is None or (changed and len(slots) < SLOTS):
+            # Record it beside the others: the next launch on these objects replays it as is.
+            cmd = wp.launch(kernel, dim, inputs, outputs, device=device, max_blocks=max_blocks, block_dim=block_dim,
+                            record_cmd=True)
+            slots.append([cmd, args])
+            cmd.launch()
+            return
+        cmd, held = best
+        for i in changed:
+            cmd.set_param_at_index(i, args[i])
+            held[i] = args[i]
+        if best is not slots[-1]:
+            slots.remove(best)
+            slots.append(best)
+        cmd.launch()
