@@ -66,3 +66,18 @@ def test_replayed_launches_give_the_very_states_of_plain_launches(dtype, hourgla
     assert np.array_equal(x1, x0) and np.array_equal(v1, v0) and np.array_equal(F1, F0)
     assert np.array_equal(r1, r0) and np.abs(r0[:, 1]).max() > 10.0  # the press pressed
     assert g1 == g0
+
+
+def test_the_reused_static_collider_struct_follows_the_contact_ramp():
+    """``static_collider_struct`` is filled once per model and reused; a new contact ramp
+    (``Model.contact_ramp``) must reach the next step, not the struct of the last one."""
+    from warp_esph.sim.integrate import static_collider_struct
+
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.03, 0.0), (0.04, 0.04, 0.04), we.Material(mu=1e4, lam=1e4))
+    b.add_ground()
+    m = b.finalize()
+    first = static_collider_struct(m)
+    assert static_collider_struct(m) is first
+    m.contact_ramp = 0.5 * m.contact_ramp
+    assert float(static_collider_struct(m).ramp) == pytest.approx(m.contact_ramp, rel=1e-6)

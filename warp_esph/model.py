@@ -205,6 +205,7 @@ class Model:
         self._stable_dt = None  # stable_dt's last answer and what it was computed from
         self._parameter_stage = None  # _read_parameters's one buffer (allocated on first use)
         self._held_parameters = None  # _read_parameters's answer inside _parameters_read_once
+        self._static_collider_struct = None  # sim.integrate.static_collider_struct's (key, struct, arrays)
         self.bodies = list(bodies)
         self.planes, self.spheres, self.boxes = list(planes), list(spheres), list(boxes)
         self.contact_ramp = CONTACT_RAMP
