@@ -22,25 +22,16 @@ import numpy as np
 
 
 def _forward(floor: str, fused: bool, resolution: int, steps: int, warmup: int) -> tuple[float, int]:
-    import warp as wp
-
     import warp_esph as we
     from benchmarks import validation as V
+    from benchmarks.step import time_block
 
     model, _, _, _ = V.slump_model(0.2, resolution, floor=floor)
     solver = we.Solver(model, fused=fused)
-    a, b = model.state(), model.state()
+    states = [model.state(), model.state()]
     dt = 0.5 * model.stable_dt()
-    for _ in range(warmup):
-        solver.step(a, b, dt)
-        a, b = b, a
-    wp.synchronize()
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        solver.step(a, b, dt)
-        a, b = b, a
-    wp.synchronize()
-    return (time.perf_counter() - t0) / steps, model.particle_count
+    time_block(solver, states, warmup, model.device, dt)
+    return time_block(solver, states, steps, model.device, dt)[0], model.particle_count
 
 
 def _taped(floor: str, resolution: int, steps: int) -> tuple[float, float]:

@@ -15,7 +15,6 @@ test.
 import argparse
 import json
 import platform
-import time
 
 
 def _scene(n: int, floor: bool):
@@ -33,38 +32,26 @@ def _scene(n: int, floor: bool):
     return b.finalize()
 
 
-def _time(solver, states, steps: int, dt: float) -> float:
-    import warp as wp
-
-    a, b = states
-    wp.synchronize()
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        solver.step(a, b, dt)
-        a, b = b, a
-    wp.synchronize()
-    return (time.perf_counter() - t0) / steps
-
-
 def measure(n: int, floor: bool, steps: int, blocks: int, warmup: int) -> dict:
     import warp_esph as we
+    from benchmarks.step import time_block
 
     model = _scene(n, floor)
     solver = we.Solver(model)
-    states = (model.state(), model.state())
+    states = [model.state(), model.state()]
     dt = 0.5 * model.stable_dt()
     owners = (model.launches, solver.search.launches)
     for _ in range(warmup // 2):
         for on in (True, False):
             for o in owners:
                 o.enabled = on
-            _time(solver, states, 2, dt)
+            time_block(solver, states, 2, model.device, dt)
     times = {True: [], False: []}
     for _ in range(blocks):
         for on in (True, False):
             for o in owners:
                 o.enabled = on
-            times[on].append(_time(solver, states, steps, dt))
+            times[on].append(time_block(solver, states, steps, model.device, dt)[0])
     replayed, plain = min(times[True]), min(times[False])
     return {"particles": model.particle_count, "scene": "particle floor" if floor else "ground",
             "plain_ms": 1e3 * plain, "replayed_ms": 1e3 * replayed, "speedup": plain / replayed}

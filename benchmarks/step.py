@@ -161,14 +161,14 @@ def warmed_states(model, solver, warmup: int) -> list:
     return states
 
 
-def time_block(solver, states, k: int, device) -> tuple[float, float]:
-    """Wall and CPU seconds per step over ``k`` steps from ``states[0]`` (left holding the
-    latest state first)."""
+def time_block(solver, states, k: int, device, dt: float = DT) -> tuple[float, float]:
+    """Wall and CPU seconds per step over ``k`` steps of ``dt`` from ``states[0]`` (a list,
+    left holding the latest state first)."""
     a, b = states
     _sync(device)
     t0, c0 = time.perf_counter(), time.thread_time()
     for _ in range(k):
-        solver.step(a, b, DT)
+        solver.step(a, b, dt)
         a, b = b, a
     _sync(device)
     states[0], states[1] = a, b
