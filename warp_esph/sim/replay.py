@@ -33,6 +33,7 @@ def recording_tape():
         runtime = wp.context.runtime
     return getattr(runtime, "tape", None)
 
+
 #: Recorded launches kept per kernel and launch size: two for the states' double buffer,
 #: two more for the arrays of an occasional other state (a rollout's, a fit's).
 SLOTS = 4
