@@ -21,7 +21,7 @@ from ._types import type_set
 from .sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP, Box, Plane, Sphere
 from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, PRESSURE_FORCE_IDS, Material, p_wave_speed
 from .sim import ghost_floor, integrate
-from .sim.replay import Launches
+from .sim.replay import Launches, pointer_key
 from .sim import materials as material_struct
 
 
@@ -532,7 +532,7 @@ class Model:
         # reused only while every array and its gradient are the very same allocations: a
         # gradient attached later (requires_grad) or an array replaced (set_material) builds
         # a new one. Building it costs about as much as a small model's kernel, once per stage.
-        key = tuple((id(a), a.ptr, id(a.grad), None if a.grad is None else a.grad.ptr) for a in arrays.values())
+        key = pointer_key(arrays.values())
         cached = self._material_struct
         if cached is None or cached[0] != key:
             cached = (key, material_struct.make(self.scalar, self.device, **arrays), tuple(arrays.values()))

@@ -317,11 +317,11 @@ class StencilSearch:
         m.launches(k.grid_points, m.particle_count, [state_in.x], [self.points], device=m.device, record_tape=False)
         self.grid.build(self.points, g.radius)
         m.launches(k.stencil_candidates, g.count,
-                  [self.grid.id, state_in.x, g.floor, g.offset, g.slot, m.particle_body, m.scalar(g.radius)],
-                  [state_out.ghost_rows, state_out.ghost_count, counters, cut_index], device=m.device, record_tape=False)
+                   [self.grid.id, state_in.x, g.floor, g.offset, g.slot, m.particle_body, m.scalar(g.radius)],
+                   [state_out.ghost_rows, state_out.ghost_count, counters, cut_index], device=m.device, record_tape=False)
         m.launches(k.stencil_weights, g.count,
-                  [state_in.x, g.floor, g.offset, m.scalar(g.radius), state_out.ghost_rows, state_out.ghost_count],
-                  [state_out.ghost_weights], device=m.device)
+                   [state_in.x, g.floor, g.offset, m.scalar(g.radius), state_out.ghost_rows, state_out.ghost_count],
+                   [state_out.ghost_weights], device=m.device)
 
 
 def launch_hand_over(model, state_out):
@@ -330,13 +330,13 @@ def launch_hand_over(model, state_out):
     g, k = model.ghost_floor, kernels(model.scalar)
     model.launches(k.copy_floor_forces, g.count, [state_out.force, g.floor], [state_out.ghost_force], device=model.device)
     model.launches(k.hand_over, g.count, [state_out.ghost_force, g.floor, g.slip, state_out.ghost_rows,
-                                     state_out.ghost_count, state_out.ghost_weights], [state_out.force], device=model.device)
+                                          state_out.ghost_count, state_out.ghost_weights], [state_out.force], device=model.device)
 
 
 def launch_fit_positions(model, state_in, state_out):
     """``State.ghost_y``: what the deformation update fits to (after the integration)."""
     g, k = model.ghost_floor, kernels(model.scalar)
     model.launches(k.fit_positions, model.particle_count,
-              [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, g.slot, g.slip, state_out.ghost_rows,
-               state_out.ghost_count, state_out.ghost_weights], [state_out.ghost_y, state_out.ghost_y_lo],
-              device=model.device)
+                   [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, g.slot, g.slip, state_out.ghost_rows,
+                    state_out.ghost_count, state_out.ghost_weights], [state_out.ghost_y, state_out.ghost_y_lo],
+                   device=model.device)

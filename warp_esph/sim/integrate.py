@@ -18,6 +18,7 @@ import warp as wp
 
 from .._types import type_set
 from . import colliders
+from .replay import pointer_key
 from .roundoff import compensated_sum
 
 
@@ -154,8 +155,7 @@ def static_collider_struct(model):
     ``Model.material_arrays``): filling it cost a tenth of a small model's step."""
     names = [name for name in struct(model.scalar).vars if name != "ramp"]
     arrays = [getattr(model, name) for name in names]
-    key = (tuple((id(a), a.ptr, id(a.grad), None if a.grad is None else a.grad.ptr) for a in arrays),
-           float(model.contact_ramp))
+    key = (pointer_key(arrays), float(model.contact_ramp))
     cached = model._static_collider_struct
     if cached is None or cached[0] != key:
         out = struct(model.scalar)()

@@ -57,6 +57,13 @@ def _same(a, b) -> bool:
     return False
 
 
+def pointer_key(arrays) -> tuple:
+    """What a ``wp.struct`` copies of each of ``arrays`` when it is filled: the array and its
+    gradient, and their data pointers. A filled struct may be reused while this key holds
+    (``Model.material_arrays``, ``integrate.static_collider_struct``)."""
+    return tuple((id(a), a.ptr, id(a.grad), None if a.grad is None else a.grad.ptr) for a in arrays)
+
+
 class Launches:
     """Call as ``wp.launch`` (same arguments); one per owner of launches (a ``Model``, a
     neighbour search), never shared between threads."""
