@@ -68,6 +68,46 @@ def test_replayed_launches_give_the_very_states_of_plain_launches(dtype, hourgla
     assert g1 == g0
 
 
+def _taped_replay_run(replayed: bool, again: bool):
+    """The pressed block of ``_replay_run`` in float64 on a tape, then backward from a loss
+    on the positions; ``again``: run first with a longer step into the same states (the
+    second tape then refills the tool samples the first left in them)."""
+    b = we.SceneBuilder(spacing=0.02, support_radius=0.05)
+    mat = we.Material(mu=2e4, lam=3e4, density=1000.0, yield_stress=400.0, flow_rate=50.0, viscosity=1.0)
+    block = b.add_box((0.0, 0.05, 0.0), (0.1, 0.1, 0.1), mat, name="block")
+    b.add_particle_floor(block, margin=0.04)
+    b.add_tool("box", half_extents=(0.08, 0.01, 0.08), name="press",
+               motion=tools.Keyframes([0.0, 0.005], [(0.0, 0.097, 0.0), (0.0, 0.085, 0.0)]))
+    m = b.finalize(dtype=wp.float64, requires_grad=True)
+    s = we.Solver(m)
+    m.launches.enabled = s.search.launches.enabled = replayed
+    states = [m.state(requires_grad=True) for _ in range(31)]
+    dt = 0.5 * m.stable_dt()
+    for step in ((dt, 0.8 * dt) if again else (0.8 * dt,)):
+        tape = wp.Tape()
+        with tape:
+            for k in range(30):
+                s.step(states[k], states[k + 1], step)
+    x = states[30].x.numpy()
+    states[30].x.grad.assign(np.cos(40.0 * x))
+    tape.backward()
+    t = m.tools
+    grads = [m.mu.grad, m.yield_stress.grad, states[0].x.grad, t.keyframe_positions.grad]
+    return x, [st.reaction_force.numpy() for st in states[1:]], [g.numpy().copy() for g in grads]
+
+
+def test_replayed_launches_on_a_tape_give_the_very_gradients_of_plain_launches():
+    """Under a recording tape the replayed launches are recorded as ``wp.launch`` records
+    them, and a run again into the same states refills their tool samples: the positions,
+    reaction forces and every gradient are the bits of plain ``wp.launch`` on new states."""
+    x1, f1, g1 = _taped_replay_run(True, again=True)
+    x0, f0, g0 = _taped_replay_run(False, again=False)
+    assert np.array_equal(x1, x0) and np.array_equal(f1, f0) and np.abs(np.array(f0)[:, 0, 1]).max() > 1.0
+    for name, a, b in zip(("mu", "yield_stress", "x0", "press keyframes"), g1, g0):
+        assert np.array_equal(a, b), name
+        assert np.abs(b).max() > 0.0, name  # the gradient reaches it
+
+
 def test_the_reused_static_collider_struct_follows_the_contact_ramp():
     """``static_collider_struct`` is filled once per model and reused; a new contact ramp
     (``Model.contact_ramp``) must reach the next step, not the struct of the last one."""

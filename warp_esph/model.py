@@ -204,6 +204,7 @@ class Model:
         self._material_struct = None  # material_arrays' struct and what it was built from
         self._stable_dt = None  # stable_dt's last answer and what it was computed from
         self._parameter_stage = None  # _read_parameters's one buffer (allocated on first use)
+        self._parameter_views = None  # on the CPU, _read_parameters's views of the arrays, with their key
         self._held_parameters = None  # _read_parameters's answer inside _parameters_read_once
         self._static_collider_struct = None  # sim.integrate.static_collider_struct's (key, struct, arrays)
         self.bodies = list(bodies)
@@ -555,6 +556,13 @@ class Model:
         if self._held_parameters is not None:
             return self._held_parameters.copy()
         arrays = [getattr(self, name) for name in self.MATERIAL_FIELDS]
+        if self.device.is_cpu:
+            # A CPU array's numpy() is a view of its memory: nothing to transfer, and views
+            # kept while the arrays are the same ones cost less than the copies below.
+            key = tuple((id(a), a.ptr) for a in arrays)
+            if self._parameter_views is None or self._parameter_views[0] != key:
+                self._parameter_views = (key, [a.numpy() for a in arrays])
+            return np.stack(self._parameter_views[1])
         n = arrays[0].shape[0]
         stage = self._parameter_stage
         if stage is None or stage.shape[0] != len(arrays) * n or stage.dtype != arrays[0].dtype:

@@ -922,25 +922,22 @@ class ToolSet:
                     sp[s], sq[s] = motion.pose(t)
         return i0, i1, w, ts, direct, sp, sq
 
-    def _sample_arrays(self, host, fresh: bool):
-        """``_samples`` on the device: new arrays on a tape (it reads them again in the
-        backward pass), otherwise the same arrays every step, refilled (an array made each
-        step cost more than the pose kernel at small particle counts)."""
+    def _sample_arrays(self, host, held):
+        """``_samples`` on the device, refilled into ``held`` (the arrays of an earlier
+        call) where they match, else in new arrays (an array made each step cost more than
+        the pose kernel at small particle counts)."""
         m = self.model
         T = m.types
         dtypes = (wp.int32, wp.int32, m.scalar, m.scalar, wp.int32, T.vec3, self.quat)
         host = [h if d is wp.int32 else h.astype(T.np_dtype) for h, d in zip(host, dtypes)]
-        if fresh or self._held_samples is None:
-            arrays = tuple(wp.array(h, dtype=d, device=m.device) for h, d in zip(host, dtypes))
-            if not fresh:
-                self._held_samples = arrays
-            return arrays
-        for a, h in zip(self._held_samples, host):
+        if held is None or any(a.shape[0] != h.shape[0] or a.dtype != d for a, h, d in zip(held, host, dtypes)):
+            return tuple(wp.array(h, dtype=d, device=m.device) for h, d in zip(host, dtypes))
+        for a, h in zip(held, host):
             if a.device.is_cpu:
                 a.numpy()[...] = h  # a view of the array's memory
             else:
                 a.assign(h)
-        return self._held_samples
+        return held
 
     def integrate(self, solver, state_in, state_out, dt: float):
         """Poses at the step's start and end, then the integrate kernel (see module doc)."""
@@ -948,10 +945,16 @@ class ToolSet:
         S, dev, T = m.scalar, m.device, m.types
         n = self.count
         taping = _taping()
-        samples = self._sample_arrays(self._samples(state_in.time, state_in.time + dt), fresh=taping)
+        # A tape reads the samples again in its backward pass: each output state keeps its
+        # own, refilled when a later step writes that state again (which overwrites what an
+        # earlier tape recorded into it anyway); untaped steps share one set.
+        held = getattr(state_out, "tool_samples", None) if taping else self._held_samples
+        samples = self._sample_arrays(self._samples(state_in.time, state_in.time + dt), held)
         if taping:
-            state_out.tool_samples = samples  # referenced until a backward pass has read them
+            state_out.tool_samples = samples
             self._warn_scripted_on_tape()
+        else:
+            self._held_samples = samples
         self.model.launches(
             self.kernels.poses, 2 * n,
             [self.keyframe_times, self.keyframe_positions, self.keyframe_orientations, self.velocity, self.angular_velocity, *samples],

@@ -13,15 +13,19 @@ every call, so a struct changed in place is never replayed stale. A few recorded
 per kernel (``SLOTS``) keep double-buffered states (``state_in`` and ``state_out``
 swapping roles every step) from repacking every step.
 
-It steps aside, calling ``wp.launch`` itself, wherever replaying could change what Warp
-does: while a ``wp.Tape`` records the launch, for adjoint launches, and under
-``wp.config.verify_fp``. The replayed launches hold their last arguments, so the owner keeps
-up to ``SLOTS`` sets of the arrays it launched on alive until it is itself released.
+Under a recording ``wp.Tape`` a replayed launch is recorded on the tape as ``wp.launch``
+records it (kernel, launch size, inputs, outputs), so the backward pass launches the same
+adjoints. It steps aside, calling ``wp.launch`` itself, wherever replaying could change what
+Warp does: for adjoint launches, on a stream, under ``wp.config.verify_fp``, and under a tape
+with ``wp.config.verify_autograd_array_access``. The replayed launches hold their last
+arguments, so the owner keeps up to ``SLOTS`` sets of the arrays it launched on alive until
+it is itself released.
 """
 
 from __future__ import annotations
 
 import ctypes
+import sys
 
 import warp as wp
 
@@ -38,15 +42,17 @@ def recording_tape():
 #: two more for the arrays of an occasional other state (a rollout's, a fit's).
 SLOTS = 4
 
-_NUMBERS = (int, float, bool)
-_WARP_SCALARS = (wp.int8, wp.uint8, wp.int16, wp.uint16, wp.int32, wp.uint32, wp.int64, wp.uint64, wp.float16,
-                 wp.float32, wp.float64)
+_NUMBERS = frozenset((int, float, bool))
+_WARP_SCALARS = frozenset((wp.int8, wp.uint8, wp.int16, wp.uint16, wp.int32, wp.uint32, wp.int64, wp.uint64, wp.float16,
+                           wp.float32, wp.float64))
 
 
 def _same(a, b) -> bool:
     """Whether ``b`` packs to the bytes ``a`` packed to (``a is not b``)."""
     t = type(a)
-    if t is not type(b):
+    # Two array objects are different arrays: the common case, answered first (a rollout's
+    # states are new arrays at every step).
+    if t is wp.array or t is not type(b):
         return False
     if t in _NUMBERS:
         return a == b
@@ -75,11 +81,20 @@ class Launches:
 
     def __call__(self, kernel, dim, inputs=(), outputs=(), adj_inputs=(), adj_outputs=(), device=None, stream=None,
                  adjoint=False, record_tape=True, max_blocks=0, block_dim=None):
+        tape = recording_tape() if record_tape else None
         if (not self.enabled or adjoint or adj_inputs or adj_outputs or stream is not None or wp.config.verify_fp
-                or (record_tape and recording_tape() is not None)):
+                or (tape is not None and wp.config.verify_autograd_array_access)):
             wp.launch(kernel, dim, inputs, outputs, adj_inputs, adj_outputs, device=device, stream=stream,
                       adjoint=adjoint, record_tape=record_tape, max_blocks=max_blocks, block_dim=block_dim)
             return
+        self._replay(kernel, dim, inputs, outputs, device, max_blocks, block_dim)
+        if tape is not None:
+            f = sys._getframe(1)  # the launcher, as wp.launch names its caller
+            tape.record_launch(kernel, dim, max_blocks, inputs, outputs, device, block_dim,
+                               metadata={"caller": {"file": f.f_code.co_filename, "lineno": f.f_lineno,
+                                                    "func": f.f_code.co_name}})
+
+    def _replay(self, kernel, dim, inputs, outputs, device, max_blocks, block_dim):
         args = [*inputs, *outputs]
         key = (kernel, dim if isinstance(dim, int) else tuple(dim), str(device), max_blocks, block_dim, len(args))
         slots = self._recorded.setdefault(key, [])
