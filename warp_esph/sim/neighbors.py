@@ -525,6 +525,7 @@ class NeighborSearch:
         self._x_ref = wp.zeros(particle_count, dtype=type_set(scalar).vec3, device=device)
         self._overflow = wp.zeros(1, dtype=wp.int32, device=device)
         self._bounds = wp.zeros(8, dtype=scalar, device=device)
+        self._bounds_view = self._bounds.numpy() if self._bounds.device.is_cpu else None
         self._centre = (0.0, 0.0, 0.0)
         self._have_candidates = False
         # Per particle: the stretch its candidates cover (candidate_stretch).
@@ -625,7 +626,13 @@ class NeighborSearch:
             return False
         if F is not None and not self._cand_with_stretch:
             return False
-        self._bounds.fill_(-np.inf)
+        # On the CPU through one kept view of the bounds' memory: numpy() and fill_() each
+        # cost about as much as the check's kernel at small particle counts.
+        view = self._bounds_view
+        if view is not None:
+            view[...] = -np.inf
+        else:
+            self._bounds.fill_(-np.inf)
         c = self._centre
         self.launches(
             self.kernels.displacement_bounds, x.shape[0],
@@ -635,7 +642,7 @@ class NeighborSearch:
             ],
             [self._bounds], device=self.device, record_tape=False,
         )
-        b = self._bounds.numpy().astype(np.float64)
+        b = (view if view is not None else self._bounds.numpy()).astype(np.float64)
         if b[7] > 0.0:
             return False
         b = b[:7]
