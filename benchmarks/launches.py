@@ -6,10 +6,11 @@ machines are shared).
     python -m benchmarks.launches                         # 216, 1000, 8000 particles
     python -m benchmarks.launches --sizes 512,4096 --json out.json
 
-Two scenes per size: an elastoplastic cube dropped on the ground collider (the plain
-integrator) and the same cube on a pinned particle floor (the tool integrator, as the
-validation slumps run). Also counts how many arguments each launch packs afterwards. Not a
-test.
+Three scenes per size: an elastoplastic cube dropped on the ground collider (the plain
+integrator), the same cube on a pinned particle floor (the tool integrator, as the
+validation slumps run), and that cube under a keyframed press in float64 run as a fit runs
+it, a ``Rollout`` forward on a ``wp.Tape`` (every step into new states; the replayed
+launches are recorded on the tape). Not a test.
 """
 
 import argparse
@@ -17,8 +18,11 @@ import json
 import platform
 
 
-def _scene(n: int, floor: bool):
+def _scene(n: int, floor: bool, press: bool = False):
+    import warp as wp
+
     import warp_esph as we
+    from warp_esph import tools
 
     side = max(2, round(n ** (1.0 / 3.0)))
     dx = 0.01
@@ -29,6 +33,11 @@ def _scene(n: int, floor: bool):
         b.add_particle_floor(body, margin=0.5 * side * dx)
     else:
         b.add_ground(friction=0.5)
+    if press:
+        top = (side + 1) * dx
+        b.add_tool("box", half_extents=(side * dx, 0.5 * dx, side * dx), name="press",
+                   motion=tools.Keyframes([0.0, 1.0], [(0.0, top, 0.0), (0.0, top - 0.2 * side * dx, 0.0)]))
+        return b.finalize(dtype=wp.float64, requires_grad=True)
     return b.finalize()
 
 
@@ -57,6 +66,29 @@ def measure(n: int, floor: bool, steps: int, blocks: int, warmup: int) -> dict:
             "plain_ms": 1e3 * plain, "replayed_ms": 1e3 * replayed, "speedup": plain / replayed}
 
 
+def measure_taped(n: int, steps: int, blocks: int) -> dict:
+    """ms per step of ``Rollout.forward`` (taped) over ``steps`` steps, replay on and off."""
+    import time
+
+    from warp_esph.rollout import Rollout
+
+    model = _scene(n, True, press=True)
+    rollout = Rollout(model, steps, 0.5 * model.stable_dt())
+    owners = (model.launches, rollout.solver.search.launches)
+    times = {True: [], False: []}
+    for k in range(blocks + 1):
+        for on in (True, False):
+            for o in owners:
+                o.enabled = on
+            t0 = time.perf_counter()
+            rollout.forward()
+            if k > 0:  # the first block loads the kernels and makes the states
+                times[on].append((time.perf_counter() - t0) / steps)
+    replayed, plain = min(times[True]), min(times[False])
+    return {"particles": model.particle_count, "scene": "taped press (float64)",
+            "plain_ms": 1e3 * plain, "replayed_ms": 1e3 * replayed, "speedup": plain / replayed}
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m benchmarks.launches", description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", default="216,1000,8000", help="particle counts of the cube (rounded to a cube)")
@@ -70,10 +102,11 @@ def main(argv=None):
     init_warp()
     rows = []
     for n in (int(s) for s in args.sizes.split(",")):
-        for floor in (False, True):
-            r = measure(n, floor, args.steps, args.blocks, args.warmup)
+        for floor in (False, True, "taped"):
+            r = (measure_taped(n, args.steps, args.blocks) if floor == "taped"
+                 else measure(n, floor, args.steps, args.blocks, args.warmup))
             rows.append(r)
-            print(f"{r['particles']:>7d}  {r['scene']:<15s} wp.launch {r['plain_ms']:8.2f} ms/step   "
+            print(f"{r['particles']:>7d}  {r['scene']:<22s} wp.launch {r['plain_ms']:8.2f} ms/step   "
                   f"replayed {r['replayed_ms']:8.2f} ms/step   {r['speedup']:.2f} x", flush=True)
     report = {"machine": platform.processor() or platform.machine(), "rows": rows}
     if args.json:
