@@ -945,23 +945,22 @@ class ToolSet:
         S, dev, T = m.scalar, m.device, m.types
         n = self.count
         taping = _taping()
-        if n > 0:  # pinned particles alone have no poses
-            # A tape reads the samples again in its backward pass: each output state keeps
-            # its own, refilled when a later step writes that state again (which overwrites
-            # what an earlier tape recorded into it anyway); untaped steps share one set.
-            held = getattr(state_out, "tool_samples", None) if taping else self._held_samples
-            samples = self._sample_arrays(self._samples(state_in.time, state_in.time + dt), held)
-            if taping:
+        # A tape reads the samples again in its backward pass: each output state keeps its
+        # own, refilled when a later step writes that state again (which overwrites what an
+        # earlier tape recorded into it anyway); untaped steps share one set.
+        held = getattr(state_out, "tool_samples", None) if taping else self._held_samples
+        samples = self._sample_arrays(self._samples(state_in.time, state_in.time + dt), held)
+        if taping:
+            if samples is not held:  # setting a State attribute makes the next step check it again
                 state_out.tool_samples = samples
-                self._warn_scripted_on_tape()
-            else:
-                self._held_samples = samples
-            self.model.launches(
-                self.kernels.poses, 2 * n,
-                [self.keyframe_times, self.keyframe_positions, self.keyframe_orientations, self.velocity, self.angular_velocity,
-                 *samples],
-                [state_out.tool_pose_p, state_out.tool_pose_q], device=dev,
-            )
+            self._warn_scripted_on_tape()
+        else:
+            self._held_samples = samples
+        self.model.launches(
+            self.kernels.poses, 2 * n,
+            [self.keyframe_times, self.keyframe_positions, self.keyframe_orientations, self.velocity, self.angular_velocity, *samples],
+            [state_out.tool_pose_p, state_out.tool_pose_q], device=dev,
+        )
         state_out.reaction_force.zero_()
         state_out.reaction_torque.zero_()
         state_out.collider_force.zero_()

@@ -16,10 +16,11 @@ swapping roles every step) from repacking every step.
 Under a recording ``wp.Tape`` a replayed launch is recorded on the tape as ``wp.launch``
 records it (kernel, launch size, inputs, outputs), so the backward pass launches the same
 adjoints. It steps aside, calling ``wp.launch`` itself, wherever replaying could change what
-Warp does: for adjoint launches, on a stream, under ``wp.config.verify_fp``, and under a tape
-with ``wp.config.verify_autograd_array_access``. The replayed launches hold their last
-arguments, so the owner keeps up to ``SLOTS`` sets of the arrays it launched on alive until
-it is itself released.
+Warp does: for adjoint launches, on a stream, under ``wp.config.verify_fp``, ``verify_cuda``
+or ``print_launches``, and under a tape with ``wp.config.verify_autograd_array_access``. An
+empty launch (size 0) runs nothing and is only recorded on the tape. The replayed launches
+hold their last arguments, so the owner keeps up to ``SLOTS`` sets of the arrays it launched
+on alive until it is itself released.
 """
 
 from __future__ import annotations
@@ -83,6 +84,7 @@ class Launches:
                  adjoint=False, record_tape=True, max_blocks=0, block_dim=None):
         tape = recording_tape() if record_tape else None
         if (not self.enabled or adjoint or adj_inputs or adj_outputs or stream is not None or wp.config.verify_fp
+                or wp.config.verify_cuda or wp.config.print_launches
                 or (tape is not None and wp.config.verify_autograd_array_access)):
             wp.launch(kernel, dim, inputs, outputs, adj_inputs, adj_outputs, device=device, stream=stream,
                       adjoint=adjoint, record_tape=record_tape, max_blocks=max_blocks, block_dim=block_dim)
@@ -110,7 +112,9 @@ class Launches:
         if best is None or (changed and len(slots) < SLOTS):
             # Record it beside the others: the next launch on these objects replays it as is.
             cmd = wp.launch(kernel, dim, inputs, outputs, device=device, max_blocks=max_blocks, block_dim=block_dim,
-                            record_cmd=True)
+                            record_tape=False, record_cmd=True)
+            if cmd is None:  # an empty launch: nothing to run or replay (a tape is told by the caller)
+                return
             slots.append([cmd, args])
             cmd.launch()
             return
