@@ -1549,11 +1549,9 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
         runs.append(("slump", {"S": S, "resolution": 16, "elastic_force": "variational", "duration": SLUMP_DURATION_FINE}))
     # The same piles on the no-slip ghost floor, a wall that holds no layer (docs/physics.md,
     # "The no-slip ghost floor"); they rest by about 4 s.
-    for res in (8, 12):
+    for res in (8, 12, 16):
         for S in (0.1, 0.2, 0.3, 0.5):
             runs.append(("slump", {"S": S, "resolution": res, "floor": "ghost_particles", "duration": SLUMP_DURATION}))
-    for S in (0.2, 0.3):
-        runs.append(("slump", {"S": S, "resolution": 16, "floor": "ghost_particles", "duration": SLUMP_DURATION}))
     return runs
 
 
