@@ -549,10 +549,10 @@ class Model:
 
     def _read_parameters(self) -> np.ndarray:
         """The ``MATERIAL_FIELDS`` arrays as one host array (a row each), read in one
-        transfer: they are copied on the device into one buffer first, since each read of a
-        device array waits for the device and the step asks every step (``stable_dt``,
-        ``sph_active``). The buffer has no gradient, so a recording tape takes no note of the
-        copies."""
+        transfer: on a GPU they are copied on the device into one buffer first, since each
+        read of a device array waits for the device and the step asks every step
+        (``stable_dt``, ``sph_active``); the buffer has no gradient, so a recording tape takes
+        no note of the copies. On the CPU the arrays' own memory is read through views."""
         if self._held_parameters is not None:
             return self._held_parameters.copy()
         arrays = [getattr(self, name) for name in self.MATERIAL_FIELDS]
