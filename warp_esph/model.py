@@ -559,7 +559,7 @@ class Model:
         if self.device.is_cpu:
             # A CPU array's numpy() is a view of its memory: nothing to transfer, and views
             # kept while the arrays are the same ones cost less than the copies below.
-            key = tuple((id(a), a.ptr) for a in arrays)
+            key = pointer_key(arrays)
             if self._parameter_views is None or self._parameter_views[0] != key:
                 self._parameter_views = (key, [a.numpy() for a in arrays])
             return np.stack(self._parameter_views[1])
