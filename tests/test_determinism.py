@@ -25,11 +25,12 @@ def test_two_runs_write_identical_files(tmp_path):
     assert _run(tmp_path / "a.usdc") == _run(tmp_path / "b.usdc")
 
 
-def _replay_run(replayed: bool, dtype, hourglass: float):
+def _replay_run(replayed: bool, dtype, hourglass: float, forward_only: bool = True):
     """A plastic block pressed by a keyframed box tool onto a pinned floor of its own
     particles, next to a second block on the ground; the step shortened after 10 steps, the
     yield stress changed in place after 20, and a third state joining the two that swap
-    every step after 30."""
+    every step after 30. ``forward_only``: untaped launches run the kernels' forward-only
+    twins (sim/replay.py)."""
     b = we.SceneBuilder(spacing=0.02, support_radius=0.05)
     mat = we.Material(mu=2e4, lam=3e4, density=1000.0, yield_stress=400.0, flow_rate=50.0, viscosity=1.0)
     block = b.add_box((0.0, 0.05, 0.0), (0.1, 0.1, 0.1), mat, name="block")
@@ -41,6 +42,7 @@ def _replay_run(replayed: bool, dtype, hourglass: float):
     m = b.finalize(dtype=dtype)
     s = we.Solver(m, hourglass=hourglass)
     m.launches.enabled = s.search.launches.enabled = replayed
+    m.launches.forward_only = s.search.launches.forward_only = forward_only
     states = [m.state(), m.state(), m.state()]
     dt = 0.5 * m.stable_dt()
     press = []
@@ -66,6 +68,25 @@ def test_replayed_launches_give_the_very_states_of_plain_launches(dtype, hourgla
     assert np.array_equal(x1, x0) and np.array_equal(v1, v0) and np.array_equal(F1, F0)
     assert np.array_equal(r1, r0) and np.abs(r0[:, 1]).max() > 10.0  # the press pressed
     assert g1 == g0
+
+
+@pytest.mark.parametrize("dtype,hourglass", [(wp.float32, 0.0), (wp.float64, 0.1)])
+def test_forward_only_kernels_give_the_very_states_of_the_kernels_with_adjoints(dtype, hourglass):
+    """An untaped launch runs the kernel compiled without its adjoint (``replay.forward_only``):
+    the same states to the bit as the kernel with it, on the fused step (float32) and on the
+    differentiable kernels launched untaped (float64 with the hourglass control), the tool
+    integrator of a pressing tool and a pinned floor in both."""
+    from warp_esph.sim import integrate, replay
+
+    (x1, v1, F1), r1, g1 = _replay_run(True, dtype, hourglass, forward_only=True)
+    (x0, v0, F0), r0, g0 = _replay_run(True, dtype, hourglass, forward_only=False)
+    assert np.abs(v0).max() > 0.1 and np.abs(r0[:, 1]).max() > 10.0  # the scene moved, the press pressed
+    assert np.array_equal(x1, x0) and np.array_equal(v1, v0) and np.array_equal(F1, F0)
+    assert np.array_equal(r1, r0) and g1 == g0
+    k = integrate.kernels(dtype, 1, 0, 0).integrate
+    twin = replay.forward_only(k)
+    assert twin is not k and twin.options["enable_backward"] is False and replay.forward_only(k) is twin
+    assert replay.forward_only(twin) is twin
 
 
 def _taped_replay_run(replayed: bool, again: bool):

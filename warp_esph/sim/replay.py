@@ -21,11 +21,19 @@ or ``print_launches``, and under a tape with ``wp.config.verify_autograd_array_a
 empty launch (size 0) runs nothing and is only recorded on the tape. The replayed launches
 hold their last arguments, so the owner keeps up to ``SLOTS`` sets of the arrays it launched
 on alive until it is itself released.
+
+A launch no tape records runs the kernel's forward-only twin (``forward_only``): the same
+function compiled without its generated adjoint, which Warp otherwise compiles with every
+kernel. The forward code is the same, so is every bit it computes
+(``tests/test_determinism.py``); it compiles in about a third of the time
+(docs/performance.md, "Where a cold run's time goes"), and a run that records no tape never
+compiles an adjoint.
 """
 
 from __future__ import annotations
 
 import ctypes
+import functools
 import sys
 
 import warp as wp
@@ -71,6 +79,15 @@ def pointer_key(arrays) -> tuple:
     return tuple((id(a), a.ptr, id(a.grad), None if a.grad is None else a.grad.ptr) for a in arrays)
 
 
+@functools.cache
+def forward_only(kernel):
+    """``kernel`` itself where it has no generated adjoint, else the same function as a kernel
+    without one (its own module), made once per kernel. Generic kernels are returned as they are."""
+    if kernel.is_generic or kernel.options.get("enable_backward", wp.config.enable_backward) is False:
+        return kernel
+    return wp.kernel(enable_backward=False, module="unique")(kernel.func)
+
+
 class Launches:
     """Call as ``wp.launch`` (same arguments); one per owner of launches (a ``Model``, a
     neighbour search), never shared between threads."""
@@ -78,11 +95,15 @@ class Launches:
     def __init__(self):
         #: False: every launch through ``wp.launch`` (the baseline ``benchmarks.launches`` times).
         self.enabled = True
+        #: False: untaped launches run the kernel as given, with its adjoint compiled.
+        self.forward_only = True
         self._recorded: dict = {}
 
     def __call__(self, kernel, dim, inputs=(), outputs=(), adj_inputs=(), adj_outputs=(), device=None, stream=None,
                  adjoint=False, record_tape=True, max_blocks=0, block_dim=None):
         tape = recording_tape() if record_tape else None
+        if tape is None and self.forward_only and not adjoint:
+            kernel = forward_only(kernel)
         if (not self.enabled or adjoint or adj_inputs or adj_outputs or stream is not None or wp.config.verify_fp
                 or wp.config.verify_cuda or wp.config.print_launches
                 or (tape is not None and wp.config.verify_autograd_array_access)):
