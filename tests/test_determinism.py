@@ -89,6 +89,25 @@ def test_forward_only_kernels_give_the_very_states_of_the_kernels_with_adjoints(
     assert replay.forward_only(twin) is twin
 
 
+def test_replayed_cpu_launches_call_the_kernel_with_their_kept_argument_struct():
+    """On the CPU a replayed launch calls the kernel with the argument struct it keeps filled
+    (sim/replay.py) instead of ``Launch.launch``, which fills a new one at every call: every
+    launch replayed in a few steps of a block on the ground takes that path (a Warp whose
+    layout differs would send them all through ``cmd.launch()``, correct but slower)."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.08, 0.08, 0.08), we.Material(mu=2e4, lam=3e4, yield_stress=400.0, flow_rate=50.0))
+    b.add_ground(friction=0.5)
+    m = b.finalize()
+    s = we.Solver(m)
+    x, y = m.state(), m.state()
+    for _ in range(4):
+        s.step(x, y, 1e-4)
+        x, y = y, x
+    packed = [slot[2] for launches in (m.launches, s.search.launches) for slots in launches._recorded.values()
+              for slot in slots if slot[2] is not None]
+    assert len(packed) >= 5 and all(packed), packed
+
+
 def _taped_replay_run(replayed: bool, again: bool):
     """The pressed block of ``_replay_run`` in float64 on a tape, then backward from a loss
     on the positions; ``again``: run first with a longer step into the same states (the

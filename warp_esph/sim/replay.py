@@ -7,6 +7,13 @@ At a few thousand particles that packing costs more than the kernels themselves
 time (``wp.launch(..., record_cmd=True)``) and afterwards repacks only the arguments that
 are not the very objects of the launch it replays, then replays it.
 
+On the CPU, ``Launch.launch`` itself builds the kernel's argument struct again, field by
+field, at every call (about 20 us at 20 arguments). A replayed launch keeps that struct filled
+(``_packed_arguments``), updates the fields of the arguments it repacks, and calls the
+kernel's forward entry point with it, as ``Launch.launch`` would; where Warp's layout is not
+the one this was written against, or a command capture records, it calls ``cmd.launch()``.
+``tests/test_determinism.py`` compares the states with ``wp.launch``'s, bit for bit.
+
 What counts as unchanged: the same array object (an array's data and shape never move), or
 an equal number, Warp scalar, vector or matrix of the same type. Structs are packed again at
 every call, so a struct changed in place is never replayed stale. A few recorded launches
@@ -136,14 +143,52 @@ class Launches:
                             record_tape=False, record_cmd=True)
             if cmd is None:  # an empty launch: nothing to run or replay (a tape is told by the caller)
                 return
-            slots.append([cmd, args])
+            slots.append([cmd, args, None])
             cmd.launch()
             return
-        cmd, held = best
+        cmd, held, packed = best
+        if packed is None:
+            packed = best[2] = _packed_arguments(cmd)
         for i in changed:
             cmd.set_param_at_index(i, args[i])
             held[i] = args[i]
+            if packed:
+                setattr(packed[0], packed[1][i], cmd.params[1 + i])
         if best is not slots[-1]:
             slots.remove(best)
             slots.append(best)
-        cmd.launch()
+        if packed and _no_capture():
+            packed[2](ctypes.byref(cmd.params[0]), ctypes.byref(packed[0]))
+        else:
+            cmd.launch()
+
+
+def _packed_arguments(cmd):
+    """What ``Launch.launch`` builds again at every call on the CPU (``invoke``: the kernel's
+    argument struct filled field by field, about 20 us at 20 arguments), built once for
+    this recorded launch: ``(struct, field names, forward entry point)``, kept in step with
+    ``cmd.params`` by the caller. False where the launch does not take that path (a device,
+    an adjoint, tiles) or Warp's layout is not the one this was written against: the launch
+    then goes through ``cmd.launch()``."""
+    try:
+        if not cmd.device.is_cpu or cmd.adjoint or cmd.block_dim > 1:
+            return False
+        cached = cmd.kernel._invoke_cache.get((tuple(type(p) for p in cmd.params[1:]), False))
+        if cached is None or len(cached) != 2:
+            return False
+        struct_type, fields = cached
+        names = [name for name, _ in fields]
+        if len(names) != len(cmd.params) - 1:
+            return False
+        packed = struct_type()
+        for name, value in zip(names, cmd.params[1:]):
+            setattr(packed, name, value)
+        return packed, names, cmd.hooks.forward
+    except (AttributeError, TypeError):  # pragma: no cover (another Warp)
+        return False
+
+
+def _no_capture() -> bool:
+    """No CPU command capture is recording (``Launch.launch`` records into one)."""
+    runtime = wp._src.context.runtime
+    return getattr(runtime, "_apic_capture", None) is None
