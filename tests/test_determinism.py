@@ -108,6 +108,31 @@ def test_replayed_cpu_launches_call_the_kernel_with_their_kept_argument_struct()
     assert len(packed) >= 5 and all(packed), packed
 
 
+@wp.struct
+class _Scale:
+    factor: float
+
+
+@wp.kernel(module="unique")
+def _scaled(s: _Scale, v: wp.vec3, out: wp.array(dtype=float)):
+    out[wp.tid()] = out[wp.tid()] + s.factor * v[0]
+
+
+def test_replayed_launches_see_a_struct_and_a_vector_changed_in_place():
+    """The same struct and vector objects, changed in place between launches, are read anew
+    by every replayed launch (the kept argument struct copies them at every call)."""
+    from warp_esph.sim.replay import Launches
+
+    launches = Launches()
+    s, v = _Scale(), wp.vec3(0.0, 0.0, 0.0)
+    out = wp.zeros(1, dtype=float, device="cpu")
+    for k in range(1, 5):
+        s.factor = float(k)
+        v[0] = 10.0 * k
+        launches(_scaled, 1, [s, v], [out], device="cpu")
+    assert out.numpy()[0] == sum(10.0 * k * k for k in range(1, 5))
+
+
 def _taped_replay_run(replayed: bool, again: bool):
     """The pressed block of ``_replay_run`` in float64 on a tape, then backward from a loss
     on the positions; ``again``: run first with a longer step into the same states (the

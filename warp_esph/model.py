@@ -206,6 +206,7 @@ class Model:
         self._parameter_stage = None  # _read_parameters's one buffer (allocated on first use)
         self._parameter_views = None  # on the CPU, _read_parameters's views of the arrays, with their key
         self._held_parameters = None  # _read_parameters's answer inside _parameters_read_once
+        self._image_args = None  # image_args' list, made once: the plane and spacing are fixed
         self._static_collider_struct = None  # sim.integrate.static_collider_struct's (key, struct, arrays)
         self.bodies = list(bodies)
         self.planes, self.spheres, self.boxes = list(planes), list(spheres), list(boxes)
@@ -313,9 +314,13 @@ class Model:
         self.ghost_floor = ghost_floor.build(self, ghosts)
 
     def image_args(self) -> list:
-        """The kernels' arguments of the image plane: normal, offset and whether it is on."""
-        n, off = self.image_plane if self.image_plane is not None else ((0.0, 1.0, 0.0), 0.0)
-        return [self.types.vec3(*n), self.scalar(off), self.scalar(IMAGE_MIN_DEPTH * self.spacing), int(self.image_plane is not None)]
+        """The kernels' arguments of the image plane: normal, offset and whether it is on (the
+        same list every call: a replayed launch then finds the very objects it packed)."""
+        if self._image_args is None:
+            n, off = self.image_plane if self.image_plane is not None else ((0.0, 1.0, 0.0), 0.0)
+            self._image_args = [self.types.vec3(*n), self.scalar(off), self.scalar(IMAGE_MIN_DEPTH * self.spacing),
+                                int(self.image_plane is not None)]
+        return self._image_args
 
     MATERIAL_FIELDS = ("mu", "lam", "yield_stress", "flow_rate", "hardening", "pressure_stiffness", "viscosity")
 

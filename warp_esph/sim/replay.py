@@ -15,8 +15,9 @@ the one this was written against, or a command capture records, it calls ``cmd.l
 ``tests/test_determinism.py`` compares the states with ``wp.launch``'s, bit for bit.
 
 What counts as unchanged: the same array object (an array's data and shape never move), or
-an equal number, Warp scalar, vector or matrix of the same type. Structs are packed again at
-every call, so a struct changed in place is never replayed stale. A few recorded launches
+an equal number, Warp scalar, vector or matrix of the same type. A struct, vector or matrix
+passed again as the same object is copied again at every call, so one changed in place is
+never replayed stale. A few recorded launches
 per kernel (``SLOTS``) keep double-buffered states (``state_in`` and ``state_out``
 swapping roles every step) from repacking every step.
 
@@ -89,10 +90,18 @@ def pointer_key(arrays) -> tuple:
 @functools.cache
 def forward_only(kernel):
     """``kernel`` itself where it has no generated adjoint, else the same function as a kernel
-    without one (its own module), made once per kernel. Generic kernels are returned as they are."""
-    if kernel.is_generic or kernel.options.get("enable_backward", wp.config.enable_backward) is False:
+    without one (its own module), made once per kernel. Returned as they are: generic kernels
+    and their overloads, and kernels with any other option of their own or of their module (a
+    twin would not carry it)."""
+    if (kernel.is_generic or getattr(kernel, "generic_parent", None) is not None
+            or set(kernel.options) - {"enable_backward"}
+            or kernel.options.get("enable_backward", wp.config.enable_backward) is False):
         return kernel
-    return wp.kernel(enable_backward=False, module="unique")(kernel.func)
+    twin = wp.kernel(enable_backward=False, module="unique")(kernel.func)
+    theirs, ours = dict(kernel.module.options), dict(twin.module.options)
+    theirs.pop("enable_backward", None)
+    ours.pop("enable_backward", None)
+    return twin if theirs == ours else kernel
 
 
 class Launches:
@@ -158,6 +167,10 @@ class Launches:
             slots.remove(best)
             slots.append(best)
         if packed and _no_capture():
+            for i in packed[3]:
+                # A struct, vector or matrix passed again as the same object may have
+                # changed in place: copied at every call, as Launch.launch copies it.
+                setattr(packed[0], packed[1][i], cmd.params[1 + i])
             packed[2](ctypes.byref(cmd.params[0]), ctypes.byref(packed[0]))
         else:
             cmd.launch()
@@ -166,10 +179,13 @@ class Launches:
 def _packed_arguments(cmd):
     """What ``Launch.launch`` builds again at every call on the CPU (``invoke``: the kernel's
     argument struct filled field by field, about 20 us at 20 arguments), built once for
-    this recorded launch: ``(struct, field names, forward entry point)``, kept in step with
-    ``cmd.params`` by the caller. False where the launch does not take that path (a device,
-    an adjoint, tiles) or Warp's layout is not the one this was written against: the launch
-    then goes through ``cmd.launch()``."""
+    this recorded launch: ``(struct, field names, forward entry point, the indices of the
+    arguments copied at every call)``, kept in step with ``cmd.params`` by the caller: a
+    repacked argument's field is updated when it is repacked, and a struct, vector or matrix
+    argument (packed as the caller's live object, which may change in place) at every call.
+    False where the launch does not take that path (a device, an adjoint, tiles) or Warp's
+    layout is not the one this was written against: the launch then goes through
+    ``cmd.launch()``."""
     try:
         if not cmd.device.is_cpu or cmd.adjoint or cmd.block_dim > 1:
             return False
@@ -183,7 +199,11 @@ def _packed_arguments(cmd):
         packed = struct_type()
         for name, value in zip(names, cmd.params[1:]):
             setattr(packed, name, value)
-        return packed, names, cmd.hooks.forward
+        arrays = tuple(t for t in (getattr(wp._src.types, n, None) for n in ("array_t", "indexedarray_t", "fabricarray_t",
+                                                                              "indexedfabricarray_t")) if t is not None)
+        live = tuple(i for i, value in enumerate(cmd.params[1:])
+                     if isinstance(value, (ctypes.Structure, ctypes.Array)) and not isinstance(value, arrays))
+        return packed, names, cmd.hooks.forward, live
     except (AttributeError, TypeError):  # pragma: no cover (another Warp)
         return False
 
