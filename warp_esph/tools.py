@@ -841,6 +841,7 @@ class ToolSet:
         self.model = model
         self._warned_scripted = False
         self._held_samples = None
+        self._held_views = None  # numpy views of _held_samples' memory on the CPU, kept with it
 
     def _times_now(self) -> np.ndarray:
         """The keyframe times as they are now (an optimiser may have changed the array)."""
@@ -932,9 +933,18 @@ class ToolSet:
         host = [h if d is wp.int32 else h.astype(T.np_dtype) for h, d in zip(host, dtypes)]
         if held is None or any(a.shape[0] != h.shape[0] or a.dtype != d for a, h, d in zip(held, host, dtypes)):
             return tuple(wp.array(h, dtype=d, device=m.device) for h, d in zip(host, dtypes))
-        for a, h in zip(held, host):
-            if a.device.is_cpu:
-                a.numpy()[...] = h  # a view of the array's memory
+        views = None
+        if held[0].device.is_cpu:
+            # Views of the arrays' memory; those of the untaped set are kept (a view made per
+            # array and step cost about as much as the pose kernel at small particle counts).
+            views = self._held_views[1] if self._held_views is not None and self._held_views[0] is held else None
+            if views is None:
+                views = [a.numpy() for a in held]
+                if held is self._held_samples:
+                    self._held_views = (held, views)
+        for k, (a, h) in enumerate(zip(held, host)):
+            if views is not None:
+                views[k][...] = h
             else:
                 a.assign(h)
         return held
