@@ -81,10 +81,14 @@ def _same(a, b) -> bool:
 
 
 def pointer_key(arrays) -> tuple:
-    """What a ``wp.struct`` copies of each of ``arrays`` when it is filled: the array and its
-    gradient, and their data pointers. A filled struct may be reused while this key holds
-    (``Model.material_arrays``, ``integrate.static_collider_struct``)."""
-    return tuple((id(a), a.ptr, id(a.grad), None if a.grad is None else a.grad.ptr) for a in arrays)
+    """What a ``wp.struct`` copies of each of ``arrays`` when it is filled, the data pointers of
+    the array and of its gradient, as the array and gradient objects themselves: an array's
+    data never moves, and the key keeps them alive, so an equal key (compared by identity:
+    a ``wp.array`` has no ``__eq__``) is the same allocations. A filled struct may be reused
+    while this key holds (``Model.material_arrays``, ``integrate.static_collider_struct``, and
+    ``Model._read_parameters``' views); it costs half of a key of ids and pointers."""
+    arrays = tuple(arrays)
+    return arrays + tuple(a.grad for a in arrays)
 
 
 @functools.cache
