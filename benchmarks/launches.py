@@ -1,7 +1,8 @@
 """What replaying the step's launches saves (``warp_esph/sim/replay.py``): the forward step
-with the replayed launches against every launch through ``wp.launch``, timed in the same run
-on the same states, in interleaved blocks (the ratio, not the seconds, is the result: these
-machines are shared).
+with the replayed launches against every launch through ``wp.launch``, and against replayed
+launches that go through ``cmd.launch()`` (which fills the kernel's argument struct again at
+every call, where the replay keeps it filled), timed in the same run on the same states, in
+interleaved blocks (the ratio, not the seconds, is the result: these machines are shared).
 
     python -m benchmarks.launches                         # 216, 1000, 8000 particles
     python -m benchmarks.launches --sizes 512,4096 --json out.json
@@ -50,20 +51,33 @@ def measure(n: int, floor: bool, steps: int, blocks: int, warmup: int) -> dict:
     states = [model.state(), model.state()]
     dt = 0.5 * model.stable_dt()
     owners = (model.launches, solver.search.launches)
-    for _ in range(warmup // 2):
-        for on in (True, False):
-            for o in owners:
-                o.enabled = on
+    for _ in range(warmup // 3):
+        for setting in SETTINGS:
+            _set(owners, setting)
             time_block(solver, states, 2, model.device, dt)
-    times = {True: [], False: []}
+    times = {setting: [] for setting in SETTINGS}
     for _ in range(blocks):
-        for on in (True, False):
-            for o in owners:
-                o.enabled = on
-            times[on].append(time_block(solver, states, steps, model.device, dt)[0])
-    replayed, plain = min(times[True]), min(times[False])
-    return {"particles": model.particle_count, "scene": "particle floor" if floor else "ground",
-            "plain_ms": 1e3 * plain, "replayed_ms": 1e3 * replayed, "speedup": plain / replayed}
+        for setting in SETTINGS:
+            _set(owners, setting)
+            times[setting].append(time_block(solver, states, steps, model.device, dt)[0])
+    _set(owners, "replayed")
+    return _row(model, "particle floor" if floor else "ground", times)
+
+
+#: Replayed (the default), replayed with the struct filled again at every call, ``wp.launch``.
+SETTINGS = ("replayed", "rebuilt", "plain")
+
+
+def _set(owners, setting: str):
+    for o in owners:
+        o.enabled = setting != "plain"
+        o.keep_struct = setting == "replayed"
+
+
+def _row(model, scene: str, times: dict) -> dict:
+    replayed, rebuilt, plain = (min(times[s]) for s in SETTINGS)
+    return {"particles": model.particle_count, "scene": scene, "plain_ms": 1e3 * plain, "rebuilt_ms": 1e3 * rebuilt,
+            "replayed_ms": 1e3 * replayed, "speedup": plain / replayed, "kept_struct_speedup": rebuilt / replayed}
 
 
 def measure_taped(n: int, steps: int, blocks: int) -> dict:
@@ -75,18 +89,16 @@ def measure_taped(n: int, steps: int, blocks: int) -> dict:
     model = _scene(n, True, press=True)
     rollout = Rollout(model, steps, 0.5 * model.stable_dt())
     owners = (model.launches, rollout.solver.search.launches)
-    times = {True: [], False: []}
+    times = {setting: [] for setting in SETTINGS}
     for k in range(blocks + 1):
-        for on in (True, False):
-            for o in owners:
-                o.enabled = on
+        for setting in SETTINGS:
+            _set(owners, setting)
             t0 = time.perf_counter()
             rollout.forward()
             if k > 0:  # the first block loads the kernels and makes the states
-                times[on].append((time.perf_counter() - t0) / steps)
-    replayed, plain = min(times[True]), min(times[False])
-    return {"particles": model.particle_count, "scene": "taped press (float64)",
-            "plain_ms": 1e3 * plain, "replayed_ms": 1e3 * replayed, "speedup": plain / replayed}
+                times[setting].append((time.perf_counter() - t0) / steps)
+    _set(owners, "replayed")
+    return _row(model, "taped press (float64)", times)
 
 
 def main(argv=None):
@@ -107,7 +119,8 @@ def main(argv=None):
                  else measure(n, floor, args.steps, args.blocks, args.warmup))
             rows.append(r)
             print(f"{r['particles']:>7d}  {r['scene']:<22s} wp.launch {r['plain_ms']:8.2f} ms/step   "
-                  f"replayed {r['replayed_ms']:8.2f} ms/step   {r['speedup']:.2f} x", flush=True)
+                  f"struct refilled {r['rebuilt_ms']:8.2f}   replayed {r['replayed_ms']:8.2f} ms/step   "
+                  f"{r['speedup']:.2f} x ({r['kept_struct_speedup']:.2f} x of it the kept struct)", flush=True)
     report = {"machine": platform.processor() or platform.machine(), "rows": rows}
     if args.json:
         with open(args.json, "w") as fh:

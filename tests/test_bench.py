@@ -4,6 +4,8 @@ import json
 import pathlib
 import sys
 
+import pytest
+
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
@@ -56,11 +58,13 @@ def test_floors_benchmark_times_every_floor_against_the_particle_floor(tmp_path)
 
 def test_launches_benchmark_times_the_replayed_step_against_plain_launches(tmp_path):
     """``benchmarks.launches`` at a tiny size: the three scenes, each step timed with the
-    launches replayed and through ``wp.launch``."""
+    launches replayed, replayed with the argument struct filled again at every call, and
+    through ``wp.launch``."""
     from benchmarks import launches
 
     out = tmp_path / "launches.json"
     report = launches.main(["--sizes", "27", "--steps", "2", "--blocks", "1", "--warmup", "2", "--json", str(out)])
     assert json.loads(out.read_text()) == report
     assert [r["scene"] for r in report["rows"]] == ["ground", "particle floor", "taped press (float64)"]
-    assert all(r["plain_ms"] > 0 and r["replayed_ms"] > 0 for r in report["rows"])
+    assert all(r["plain_ms"] > 0 and r["rebuilt_ms"] > 0 and r["replayed_ms"] > 0 for r in report["rows"])
+    assert all(r["kept_struct_speedup"] == pytest.approx(r["rebuilt_ms"] / r["replayed_ms"]) for r in report["rows"])

@@ -117,6 +117,9 @@ class Launches:
         self.enabled = True
         #: False: untaped launches run the kernel as given, with its adjoint compiled.
         self.forward_only = True
+        #: False: a replayed CPU launch goes through ``cmd.launch()``, which fills the kernel's
+        #: argument struct again (the other baseline ``benchmarks.launches`` times).
+        self.keep_struct = True
         self._recorded: dict = {}
 
     def __call__(self, kernel, dim, inputs=(), outputs=(), adj_inputs=(), adj_outputs=(), device=None, stream=None,
@@ -170,7 +173,7 @@ class Launches:
         if best is not slots[-1]:
             slots.remove(best)
             slots.append(best)
-        if packed and _no_capture():
+        if packed and self.keep_struct and _no_capture():
             for i in packed[3]:
                 # A struct, vector or matrix passed again as the same object may have
                 # changed in place: copied at every call, as Launch.launch copies it.
