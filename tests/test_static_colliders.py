@@ -372,6 +372,33 @@ def test_floor_images_agree_on_the_fused_and_the_differentiable_step(pressure_fo
         assert out[0][4].max() > 1.1 * out[0][3].max()  # two different sums
 
 
+def test_a_layer_one_particle_thick_on_the_imaged_ground_is_a_full_neighbourhood_on_both_schedules():
+    """A layer one particle thick: its rows are flat, so without the images every fit is
+    degenerate, but the images below the plane complete each neighbourhood. The guard of
+    paper §4 counts them on both schedules (the fused step's on the fit's own moments, the
+    other's in the neighbour pass), so neither freezes a fit and the two agree to round-off
+    (measured 7e-18 m; before the neighbour pass counted the images it flagged every
+    particle, and the schedules parted by 2.5 mm in 200 steps)."""
+    mat = we.Material(mu=3600.0, lam=5400.0, yield_stress=36.0, flow_rate=1000.0, viscosity=0.5)
+    b = we.SceneBuilder(spacing=0.005, gravity=(2.0, -9.0, 0.0))
+    b.add_box((0.03, 0.0025, 0.005), (0.06, 0.005, 0.01), mat, name="layer")
+    b.add_ground(0.0, friction=5.0, images=True)
+    model = b.finalize(dtype=wp.float64)
+    out = []
+    for fused in (True, False):
+        solver = we.Solver(model, fused=fused)
+        a, c = model.state(), model.state()
+        for _ in range(200):
+            solver.step(a, c, 2.0e-4)
+            a, c = c, a
+        counts = solver.guard_counts()
+        assert counts["few_neighbors"] == 0 and counts["ill_conditioned"] == 0, (fused, counts)
+        out.append((a.x.numpy(), a.F.numpy(), a.v.numpy()))
+    assert np.abs(out[0][2]).max() > 1e-3  # it moved
+    np.testing.assert_allclose(out[0][0], out[1][0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(out[0][1], out[1][1], rtol=0, atol=1e-10)
+
+
 @pytest.mark.parametrize("deformation", ["rest", "additive"])
 def test_floor_images_refuse_what_they_do_not_support_yet(deformation):
     mat = we.Material(mu=3600.0, lam=5400.0, yield_stress=36.0, flow_rate=1000.0, deformation=deformation)

@@ -52,7 +52,7 @@ import numpy as np
 import warp as wp
 
 from .._types import type_set
-from . import materials, pressure, smoothing
+from . import deformation, materials, pressure, smoothing
 from .replay import Launches
 
 #: Guard codes written per particle (0 = the MLS update may run).
@@ -130,6 +130,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     pressure_of = pressure.funcs(scalar).pressure
     density_weight = pressure.funcs(scalar).density_weight
     image_density = pressure.funcs(scalar).image_density
+    fit_pair_sums = deformation.funcs(scalar).fit_pair_sums
     Materials = materials.struct(scalar)
 
     @wp.func
@@ -460,6 +461,14 @@ def kernels(scalar) -> types.SimpleNamespace:
             m = material[i]
             p[i] = pressure_of(rp, rest_density[i], mat.pressure_stiffness[m], mat.clamp_pressure[m])
         if with_guard != 0:
+            if images != 0:
+                # The floor images are partners of the fit (deformation.fit_sums): the guard
+                # counts them, as the fused step's guard on the fit's own moments does (a
+                # layer one particle thick on the imaged ground is a full neighbourhood).
+                # Only A and the count are read; the displacements passed are not used.
+                Ag, Bg, sg = fit_pair_sums(i, x, x, x, x, body, nbr, n, h, 1, gn, goff, gmin, 1)
+                A = A + Ag
+                same = same + sg
             guard[i] = guard_code(A, same, min_neighbors, max_condition)
 
     return types.SimpleNamespace(
