@@ -78,7 +78,7 @@ def box_side(n: int) -> int:
 
 # ------------------------------------------------------------------ warp_esph
 def build_model(we, n: int, device, requires_grad: bool = False, elastic_force: str | None = None,
-                pressure_force: str | None = None, max_neighbors: int | str | None = None):
+                pressure_force: str | None = None, max_neighbors: int | str | None = None, images: bool = False):
     import warp as wp
 
     side = box_side(n)
@@ -90,7 +90,7 @@ def build_model(we, n: int, device, requires_grad: bool = False, elastic_force: 
     if pressure_force is not None:
         mat = mat.replace(pressure_force=pressure_force)
     b.add_box((0.0, L / 2 + 0.25 * DX, 0.0), (L, L, L), mat, velocity=(0.0, -1.0, 0.0))
-    b.add_ground(0.0, friction=0.5)
+    b.add_ground(0.0, friction=0.5, images=images) if images else b.add_ground(0.0, friction=0.5)
     return b.finalize(device=device, dtype=wp.float32, requires_grad=requires_grad)
 
 
@@ -358,15 +358,24 @@ def pressure_force_rates(n: int, device, args) -> dict:
     return _interleaved_rates(n, device, args, "pressure_force", ("spiky", "energy"))
 
 
+def ground_image_rates(n: int, device, args) -> dict:
+    """Forward rate of the dough on the plain ground and on the ground with floor images
+    (``add_ground(images=True)``: the bottom layers' fits, energy and densities take the
+    images in, docs/physics.md), blocks interleaved in one run; the ratio images / plain."""
+    return _interleaved_rates(n, device, args, "images", (("plain", False), ("images", True)))
+
+
 def _interleaved_rates(n: int, device, args, field: str, choices) -> dict:
-    """Forward rates of the dough with ``Material(field=choice)`` for each choice, the timed
-    blocks interleaved so that a drifting machine load affects each alike; the ratios
+    """Forward rates of the dough with ``build_model(field=choice)`` (a Material field, or
+    the ground's ``images``) for each choice (a value, or a pair ``(label, value)``), the
+    timed blocks interleaved so that a drifting machine load affects each alike; the ratios
     ``"<last>_over_<first>"``."""
     import warp_esph as we
 
     prepared = []
-    for choice in choices:
-        model = build_model(we, n, device, **{field: choice})
+    choices = [c if isinstance(c, tuple) else (c, c) for c in choices]
+    for choice, value in choices:
+        model = build_model(we, n, device, **{field: value})
         solver = we.Solver(model)
         prepared.append((choice, solver, warmed_states(model, solver, args.warmup), []))
     time_interleaved(prepared, device, args)
@@ -378,10 +387,11 @@ def _interleaved_rates(n: int, device, args, field: str, choices) -> dict:
             "particle_steps_per_second_mean": n_p / float(np.mean([t for t, _ in times])),
             "particle_steps_per_second_cpu_time_best_block": n_p / min(c for _, c in times),
         }
-    ratio = f"{choices[-1]}_over_{choices[0]}"
+    last, first = choices[-1][0], choices[0][0]
+    ratio = f"{last}_over_{first}"
     for key in ("particle_steps_per_second_best_block", "particle_steps_per_second_mean",
                 "particle_steps_per_second_cpu_time_best_block"):
-        out.setdefault(ratio, {})[key] = out[choices[-1]][key] / out[choices[0]][key]
+        out.setdefault(ratio, {})[key] = out[last][key] / out[first][key]
     return out
 
 
@@ -639,6 +649,8 @@ def main(argv=None):
     p.add_argument("--compare-cpu", action="store_true", help="check a short run on each CUDA device against the CPU")
     p.add_argument("--elastic-forces", action="store_true",
                    help="also time the dough with the variational (default) and the paper's elastic force, interleaved")
+    p.add_argument("--ground-images", action="store_true",
+                   help="also time the dough on the ground with floor images against the plain ground (interleaved)")
     p.add_argument("--pressure-forces", action="store_true",
                    help="also time the dough with the paper's spiky and the energy (default) SPH pressure force, interleaved")
     p.add_argument("--json", default="benchmark_step.json", help="where the results go")
@@ -709,7 +721,8 @@ def main(argv=None):
     # Each choice of one Material field, blocks interleaved (the ratio against its first).
     for flag, key, label, rates, choices in (
             ("elastic_forces", "elastic_forces", "elastic forces", elastic_force_rates, ("paper", "variational")),
-            ("pressure_forces", "pressure_forces", "pressure forces", pressure_force_rates, ("spiky", "energy"))):
+            ("pressure_forces", "pressure_forces", "pressure forces", pressure_force_rates, ("spiky", "energy")),
+            ("ground_images", "ground_images", "ground images", ground_image_rates, ("plain", "images"))):
         if not getattr(args, flag):
             continue
         report[key] = {}

@@ -16,7 +16,8 @@ from benchmarks import step  # noqa: E402
 def test_tiny_benchmark_writes_the_expected_json(tmp_path):
     out = tmp_path / "bench.json"
     argv = ["--sizes", "500", "--devices", "cpu", "--steps", "2", "--warmup", "1", "--blocks", "1",
-            "--phase-steps", "1", "--taped-steps", "2", "--taped-repeats", "1", "--no-splishsplash", "--json", str(out)]
+            "--phase-steps", "1", "--taped-steps", "2", "--taped-repeats", "1", "--no-splishsplash", "--ground-images",
+            "--json", str(out)]
     assert step.main(argv) == 0
     report = json.loads(out.read_text())
     for key in ("command", "machine", "config", "paper", "warp_esph", "splishsplash", "ratios"):
@@ -34,6 +35,10 @@ def test_tiny_benchmark_writes_the_expected_json(tmp_path):
         assert r["memory"][key] > 0
     ratio = report["ratios"]["cpu"]["500"]
     assert ratio["vs_splishsplash"] is None and ratio["vs_paper_fig1"] > 0 and ratio["vs_paper_fig5"] > 0
+    images = report["ground_images"]["cpu"]["500"]
+    assert images["plain"]["particle_steps_per_second_best_block"] > 0
+    assert images["images_over_plain"]["particle_steps_per_second_best_block"] == pytest.approx(
+        images["images"]["particle_steps_per_second_best_block"] / images["plain"]["particle_steps_per_second_best_block"])
     paper = report["paper"]
     assert 35e3 < paper["fig1"]["particle_steps_per_second"] < 37e3
     assert 45e3 < paper["fig5"]["particle_steps_per_second"] < 47e3
