@@ -35,19 +35,20 @@ def _block(friction, collider="box", fused=True):
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
     mat = we.Material.from_young(1e5, 0.3, density=1000.0, pressure_stiffness=0.0, elastic_force="variational",
                                  viscosity=1.0)
-    b.add_box(GROUND_AT if collider == "ground" else (0.0, 0.03, 0.0), (0.06, 0.06, 0.06), mat, name="block")
+    b.add_box(GROUND_AT if collider.startswith("ground") else (0.0, 0.03, 0.0), (0.06, 0.06, 0.06), mat, name="block")
     if collider == "box":
         b.add_box_collider((0.0, TOP - 0.05, 0.0), (0.5, 0.05, 0.5), friction=friction)
     elif collider == "sphere":
         b.add_sphere_collider((0.0, TOP - 0.5, 0.0), 0.5, friction=friction)
     else:
-        b.add_ground(TOP, friction=friction)
+        b.add_ground(TOP, friction=friction, images=collider == "ground_images")
     m = b.finalize()
     return m, we.Solver(m, fused=fused)
 
 
 #: Each collider's reference point for its torque (docs/tools.md).
-REFERENCE = {"box": (0.0, TOP - 0.05, 0.0), "sphere": (0.0, TOP - 0.5, 0.0), "ground": (0.0, TOP, 0.0)}
+REFERENCE = {"box": (0.0, TOP - 0.05, 0.0), "sphere": (0.0, TOP - 0.5, 0.0), "ground": (0.0, TOP, 0.0),
+             "ground_images": (0.0, TOP, 0.0)}
 
 
 def _settle(m, s, steps=1500, relax=False):
@@ -148,18 +149,21 @@ def test_block_on_a_tilted_box_slides_below_tan_phi_and_stays_above(mu):
     assert a.x.numpy()[:, 1].min() > TOP - 1e-6
 
 
-@pytest.mark.parametrize("collider", ["box", "sphere", "ground"])
+@pytest.mark.parametrize("collider", ["box", "sphere", "ground", "ground_images"])
 def test_resting_block_carries_its_weight_without_penetration(collider):
     """Settled (with kinetic damping) on a box top, on a sphere's apex or off the origin on
     the ground, then left alone for 0.1 s: it stays at rest, the colliders' force over that
     time is the weight, straight up, both from the momentum balance and as the collider
     reports it, the reported torque about the collider's reference point balances the
-    weight's (``(c - ref) x M g`` up, ``c`` the centroid), and no particle is inside."""
+    weight's (``(c - ref) x M g`` up, ``c`` the centroid), and no particle is inside. On the
+    ground with floor images the images carry the weight (the bottom layer rests 4e-6 m above
+    the plane, out of the collider's contact): the row reports their force too (before it
+    did, it read 0)."""
     m, s = _block(0.5, collider)
     a, c = _settle(m, s, 2500, relax=True)
     p0 = _momentum(m, a)
     n = 500
-    name = {"box": "box0", "sphere": "sphere0", "ground": "plane0"}[collider]
+    name = {"box": "box0", "sphere": "sphere0", "ground": "plane0", "ground_images": "plane0"}[collider]
     reported = np.zeros((2, 3))
     for _ in range(n):
         s.step(a, c, DT)
@@ -177,7 +181,7 @@ def test_resting_block_carries_its_weight_without_penetration(collider):
     np.testing.assert_allclose(reported[0], weight_up, atol=1e-3 * M * G)
     lever = x.mean(axis=0) - np.array(REFERENCE[collider])
     np.testing.assert_allclose(reported[1], np.cross(lever, weight_up), atol=1e-3 * M * G * np.linalg.norm(lever))
-    if collider == "ground":
+    if collider.startswith("ground"):
         assert abs(reported[1][0]) > 0.05 * M * G and abs(reported[1][2]) > 0.1 * M * G  # not a vacuous check
     assert np.abs(a.v.numpy()).max() < 1e-3
     if collider != "sphere":
@@ -228,20 +232,50 @@ def test_reaction_is_the_same_on_both_schedules_and_with_tools():
         np.testing.assert_allclose(other["plane0"][1], tq, rtol=1e-4, atol=1e-6 * M * G)
 
 
+@pytest.mark.parametrize("fused", [True, False])
+def test_imaged_ground_reports_the_force_of_its_images_without_the_force_fields(fused):
+    """One step of a block on the ground with floor images, pushed sideways by a compression
+    field centred off the block (its net force is not zero): the ground's row is the momentum
+    balance less gravity and the field, ``sum m dv / dt - M g - F_field`` (float64), on both
+    schedules, though the body's internal forces and the field share one force array."""
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
+    mat = we.Material.from_young(1e5, 0.3, density=1000.0, viscosity=1.0)
+    b.add_box(GROUND_AT, (0.06, 0.06, 0.06), mat, name="block")
+    b.add_ground(TOP, friction=0.5, images=True)
+    centre, strength = (GROUND_AT[0] - 0.1, 0.0, GROUND_AT[2] + 0.05), 20.0
+    b.add_compression_field(centre, strength)
+    m = b.finalize(dtype=wp.float64)
+    s = we.Solver(m, fused=fused)
+    a, c = m.state(), m.state()
+    for _ in range(50):
+        s.step(a, c, DT)
+        a, c = c, a
+    p0 = _momentum(m, a)
+    x = a.x.numpy()
+    s.step(a, c, DT)
+    mass = m.particle_mass.numpy()
+    field = -strength * (mass[:, None] * (x - np.array(centre)) * np.array([1.0, 0.0, 1.0])).sum(axis=0)
+    expected = (_momentum(m, c) - p0) / DT - mass.sum() * np.array(m.gravity) - field
+    reported = s.collider_reactions(c)["plane0"][0]
+    assert np.abs(field).max() > 0.1 * mass.sum() * G  # the field's share is not negligible
+    np.testing.assert_allclose(reported, expected, rtol=0, atol=1e-9 * mass.sum() * G)
+
+
 @wp.kernel
 def _reaction_loss(f: wp.array(dtype=wp.vec3d), tq: wp.array(dtype=wp.vec3d), w: wp.vec3d, wt: wp.vec3d,
                    loss: wp.array(dtype=wp.float64)):
     wp.atomic_add(loss, 0, wp.dot(f[0], w) + wp.dot(tq[0], wt))
 
 
-def _landing_reaction_loss(viscosity, mu, grad=False):
+def _landing_reaction_loss(viscosity, mu, grad=False, images=False):
     """A small viscous block lands on a rough ground (continuous contact law) while moving
-    sideways; the loss weighs the ground's force and torque summed over every step."""
+    sideways; the loss weighs the ground's force and torque summed over every step
+    (``images``: the ground with floor images, whose force joins the row)."""
     dx = 0.02
     b = we.SceneBuilder(spacing=dx, support_radius=2.0 * dx, gravity=(0.0, -G, 0.0))
     b.add_box((0.0, 0.045, 0.0), (5 * dx, 4 * dx, 4 * dx),
               we.Material(density=1000.0, mu=mu, lam=1.5e3, pressure_stiffness=1.0, viscosity=viscosity))
-    b.add_ground(friction=0.6)
+    b.add_ground(friction=0.6, images=images)
     m = b.finalize(dtype=wp.float64, requires_grad=True)
     m.contact_ramp = CONTINUOUS_CONTACT_RAMP
     m.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * dx, size=m.particle_x0.shape)
@@ -262,14 +296,16 @@ def _landing_reaction_loss(viscosity, mu, grad=False):
     return loss.numpy()[0], touching, m.viscosity.grad.numpy()[0], m.mu.grad.numpy()[0]
 
 
-def test_reaction_gradient_matches_central_differences():
+@pytest.mark.parametrize("images", [False, True])
+def test_reaction_gradient_matches_central_differences(images):
     """A loss on the ground's reported force and torque: the tape's gradient in the
-    viscosity and the shear modulus against float64 central differences."""
-    loss, touching, g_visc, g_mu = _landing_reaction_loss(2.0, 1.0e3, grad=True)
+    viscosity and the shear modulus against float64 central differences; on the ground
+    with floor images too, whose row adds the sum of the step's forces."""
+    loss, touching, g_visc, g_mu = _landing_reaction_loss(2.0, 1.0e3, grad=True, images=images)
     assert touching > 10, "the block lands during the rollout"
     for name, base, g in (("viscosity", 2.0, g_visc), ("mu", 1.0e3, g_mu)):
         eps = 1e-4 * base
-        args = {"viscosity": 2.0, "mu": 1.0e3}
+        args = {"viscosity": 2.0, "mu": 1.0e3, "images": images}
         hi = _landing_reaction_loss(**dict(args, **{name: base + eps}))[0]
         lo = _landing_reaction_loss(**dict(args, **{name: base - eps}))[0]
         fd = (hi - lo) / (2 * eps)

@@ -45,9 +45,25 @@ class CompressionField:
 
 
 @functools.cache
+def funcs(scalar) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3 = T.vec3
+
+    @wp.func
+    def compression_force(x: vec3, mass: scalar, center: vec3, strength: scalar) -> vec3:
+        """A ``CompressionField``'s force on a particle of ``mass`` at ``x``: ``-strength m (x -
+        center)`` in X and Z."""
+        r = x - center
+        return -strength * mass * vec3(r[0], scalar(0.0), r[2])
+
+    return types.SimpleNamespace(compression_force=compression_force)
+
+
+@functools.cache
 def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3 = T.vec3
+    compression_force = funcs(scalar).compression_force
 
     @wp.kernel(module="unique")
     def add_compression(
@@ -62,8 +78,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         i = wp.tid()
         if body >= 0 and particle_body[i] != body:
             return
-        r = x[i] - center
-        wp.atomic_add(f, i, -strength * mass[i] * vec3(r[0], scalar(0.0), r[2]))
+        wp.atomic_add(f, i, compression_force(x[i], mass[i], center, strength))
 
     return types.SimpleNamespace(add_compression=add_compression)
 

@@ -9,6 +9,14 @@ the particles it responded to (``v^before``: the velocity entering that collider
 response), and its torque about the collider's reference point (a plane's point
 ``offset * normal`` nearest the origin, a sphere's or box's centre), ``(x_i^after - ref) x
 f_i``. The same definition as the moving tools' rows (``warp_esph/tools.py``).
+
+The ground with floor images (``SceneBuilder.add_ground(images=True)``) also acts on the
+material through its images, in the elastic, pressure and viscous forces, and a body at rest
+on it may not touch the plane at all. Its row adds that force: the sum of the step's internal
+forces ``state_out.force`` over the world's particles, which without the images is zero to
+round-off (every internal force comes in equal and opposite parts), less the force fields'
+share, and its torque ``(x_i - ref) x f_i`` at the step's start positions, where those forces
+act (``launch_floor_image_reaction``).
 """
 
 import functools
@@ -17,7 +25,7 @@ import types
 import warp as wp
 
 from .._types import type_set
-from . import colliders
+from . import colliders, fields
 from .replay import pointer_key
 from .roundoff import compensated_sum
 
@@ -146,6 +154,63 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int) -> types.Simple
         dst[k] = dst[k] + scale * src[k]
 
     return types.SimpleNamespace(integrate=integrate, accumulate=accumulate)
+
+
+@functools.cache
+def reaction_kernels(scalar) -> types.SimpleNamespace:
+    """The image floor's reaction (module doc): the sum of the internal forces, and the force
+    fields' share taken out of it."""
+    T = type_set(scalar)
+    vec3 = T.vec3
+    compression_force = fields.funcs(scalar).compression_force
+
+    @wp.kernel(module="unique")
+    def floor_image_reaction(force: wp.array(dtype=vec3), x: wp.array(dtype=vec3), world: wp.array(dtype=wp.int32),
+                             ref: vec3, row0: int, n_static: int, cforce: wp.array(dtype=vec3),
+                             ctorque: wp.array(dtype=vec3)):
+        i = wp.tid()
+        f = force[i]
+        row = world[i] * n_static + row0
+        wp.atomic_add(cforce, row, f)
+        wp.atomic_add(ctorque, row, wp.cross(x[i] - ref, f))
+
+    @wp.kernel(module="unique")
+    def compression_out_of_floor_reaction(x: wp.array(dtype=vec3), mass: wp.array(dtype=scalar),
+                                          particle_body: wp.array(dtype=wp.int32), body: int, center: vec3,
+                                          strength: scalar, world: wp.array(dtype=wp.int32), ref: vec3, row0: int,
+                                          n_static: int, cforce: wp.array(dtype=vec3), ctorque: wp.array(dtype=vec3)):
+        i = wp.tid()
+        if body >= 0 and particle_body[i] != body:
+            return
+        f = compression_force(x[i], mass[i], center, strength)
+        row = world[i] * n_static + row0
+        wp.atomic_sub(cforce, row, f)
+        wp.atomic_sub(ctorque, row, wp.cross(x[i] - ref, f))
+
+    return types.SimpleNamespace(floor_image_reaction=floor_image_reaction,
+                                 compression_out_of_floor_reaction=compression_out_of_floor_reaction)
+
+
+def launch_floor_image_reaction(model, state_in, state_out):
+    """Add the image floor's force on the material to its reaction row (module doc): run after
+    the integration, when ``state_out.force`` holds every force of the step and the rows
+    the colliders' contact."""
+    m = model
+    k = reaction_kernels(m.scalar)
+    plane = next(c for c, p in enumerate(m.planes) if getattr(p, "images", False))
+    n_static = len(m.planes) + len(m.spheres) + len(m.boxes)
+    p = m.planes[plane]
+    ref = m.types.vec3(*(p.offset * float(c) for c in p.normal))
+    rows = [m.particle_world, ref, plane, n_static]
+    m.launches(k.floor_image_reaction, m.particle_count, [state_out.force, state_in.x, *rows],
+               [state_out.collider_force, state_out.collider_torque], device=m.device)
+    S = m.scalar
+    for fld in m.force_fields:
+        if fld.active(state_in.time):
+            m.launches(k.compression_out_of_floor_reaction, m.particle_count,
+                       [state_in.x, m.particle_mass, m.particle_body, int(fld.body), m.types.vec3(*fld.center),
+                        S(fld.strength), *rows],
+                       [state_out.collider_force, state_out.collider_torque], device=m.device)
 
 
 def static_collider_struct(model):

@@ -428,6 +428,9 @@ class Solver:
                 m.tools.integrate(self, state_in, state_out, dt)
             else:
                 integrate.launch_integrate(m, state_in, state_out, dt)
+            if m.image_plane is not None:
+                # The ground's images act on the material too: their force joins its row.
+                integrate.launch_floor_image_reaction(m, state_in, state_out)
             if self.collider_impulse is not None and tape is None:
                 integrate.accumulate_impulse(m, state_out, dt, self.collider_impulse)
 
