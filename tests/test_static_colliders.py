@@ -352,14 +352,29 @@ def test_each_world_reports_its_own_collider_rows():
 
 
 # ------------------------------------------------- the ground as a rough floor of the fits
-def _layer_on_images_ground(dtype=wp.float32, images=True, **material):
-    """A 3-layer strip 12 x 2 particles on the ground (a plastic material: the linear fit)."""
+def _layer_on_images_ground(dtype=wp.float32, images=True, layers=3, **material):
+    """A strip of ``layers`` layers of 12 x 2 particles on the ground (a plastic material: the
+    linear fit)."""
     mat = we.Material(**{"mu": 3600.0, "lam": 5400.0, "yield_stress": 36.0, "flow_rate": 1000.0, "viscosity": 0.5,
                          **material})
     b = we.SceneBuilder(spacing=0.005, gravity=(2.0, -9.0, 0.0))
-    b.add_box((0.03, 0.0075, 0.005), (0.06, 0.015, 0.01), mat, name="layer")
+    b.add_box((0.03, 0.0025 * layers, 0.005), (0.06, 0.005 * layers, 0.01), mat, name="layer")
     b.add_ground(0.0, friction=5.0, images=images)
     return b.finalize(dtype=dtype)
+
+
+def _on_both_schedules(model, steps=200):
+    """``(solver, last state)`` of ``steps`` steps of 2e-4 s from the model's start on the
+    fused schedule, then on the other."""
+    out = []
+    for fused in (True, False):
+        solver = we.Solver(model, fused=fused)
+        a, c = model.state(), model.state()
+        for _ in range(steps):
+            solver.step(a, c, 2.0e-4)
+            a, c = c, a
+        out.append((solver, a))
+    return out
 
 
 @pytest.mark.parametrize("pressure_force", ["energy", "energy_spiky"])
@@ -391,12 +406,7 @@ def test_floor_images_agree_on_the_fused_and_the_differentiable_step(pressure_fo
     the paper's force (eqs. 10-13) its image pairs (``forces.paper_image_forces``)."""
     model = _layer_on_images_ground(dtype=wp.float64, pressure_force=pressure_force, elastic_force=elastic_force)
     out = []
-    for fused in (True, False):
-        solver = we.Solver(model, fused=fused)
-        a, c = model.state(), model.state()
-        for _ in range(200):
-            solver.step(a, c, 2.0e-4)
-            a, c = c, a
+    for _, a in _on_both_schedules(model):
         rho_p = a.density if a.pressure_density is None else a.pressure_density
         out.append((a.x.numpy(), a.F.numpy(), a.v.numpy(), a.density.numpy(), rho_p.numpy()))
     assert np.abs(out[0][2]).max() > 1e-3  # it moved
@@ -415,20 +425,11 @@ def test_a_layer_one_particle_thick_on_the_imaged_ground_is_a_full_neighbourhood
     other's in the neighbour pass), so neither freezes a fit and the two agree to round-off
     (measured 7e-18 m; before the neighbour pass counted the images it flagged every
     particle, and the schedules parted by 2.5 mm in 200 steps)."""
-    mat = we.Material(mu=3600.0, lam=5400.0, yield_stress=36.0, flow_rate=1000.0, viscosity=0.5)
-    b = we.SceneBuilder(spacing=0.005, gravity=(2.0, -9.0, 0.0))
-    b.add_box((0.03, 0.0025, 0.005), (0.06, 0.005, 0.01), mat, name="layer")
-    b.add_ground(0.0, friction=5.0, images=True)
-    model = b.finalize(dtype=wp.float64)
+    model = _layer_on_images_ground(dtype=wp.float64, layers=1)
     out = []
-    for fused in (True, False):
-        solver = we.Solver(model, fused=fused)
-        a, c = model.state(), model.state()
-        for _ in range(200):
-            solver.step(a, c, 2.0e-4)
-            a, c = c, a
+    for solver, a in _on_both_schedules(model):
         counts = solver.guard_counts()
-        assert counts["few_neighbors"] == 0 and counts["ill_conditioned"] == 0, (fused, counts)
+        assert counts["few_neighbors"] == 0 and counts["ill_conditioned"] == 0, (solver.fused, counts)
         out.append((a.x.numpy(), a.F.numpy(), a.v.numpy()))
     assert np.abs(out[0][2]).max() > 1e-3  # it moved
     np.testing.assert_allclose(out[0][0], out[1][0], rtol=0, atol=1e-12)
