@@ -393,7 +393,8 @@ def _targets(results) -> list[tuple[str, str, str, str]]:
                 "plastic shortening 0.064 / 0.29 / 0.55 x the 1-D analysis's free spreading (the collider's bottom "
                 "layer holds the base in)",
                 "holds, base only yielding (within a width): yes; the 1-D spreading: no", "–"))
-    spreads = [r for r in results if r["case"] == "spread" and r.get("elastic_force", default) == default]
+    spreads = [r for r in results if r["case"] == "spread" and r.get("elastic_force", default) == default
+               and r.get("floor", "particles") == "particles"]
     if spreads:
         rs = sorted(spreads, key=lambda r: (-r["shallowness"], r["resolution"]))
         # As the slump's target: at the finest resolution of each shallowness, and converging
