@@ -207,6 +207,7 @@ class Model:
         self._parameter_views = None  # on the CPU, _read_parameters's views of the arrays, with their key
         self._held_parameters = None  # _read_parameters's answer inside _parameters_read_once
         self._image_args = None  # image_args' list, made once: the plane and spacing are fixed
+        self._image_reaction_rows = None  # integrate.launch_floor_image_reaction's row arguments, made once
         self._static_collider_struct = None  # sim.integrate.static_collider_struct's (key, struct, arrays)
         self.bodies = list(bodies)
         self.planes, self.spheres, self.boxes = list(planes), list(spheres), list(boxes)

@@ -197,11 +197,12 @@ def launch_floor_image_reaction(model, state_in, state_out):
     the colliders' contact."""
     m = model
     k = reaction_kernels(m.scalar)
-    plane = next(c for c, p in enumerate(m.planes) if getattr(p, "images", False))
-    n_static = len(m.planes) + len(m.spheres) + len(m.boxes)
-    p = m.planes[plane]
-    ref = m.types.vec3(*(p.offset * float(c) for c in p.normal))
-    rows = [m.particle_world, ref, plane, n_static]
+    rows = m._image_reaction_rows
+    if rows is None:
+        # The imaged plane's row and reference point (static_collider_references), made once.
+        plane = next(c for c, p in enumerate(m.planes) if getattr(p, "images", False))
+        ref = m.types.vec3(*static_collider_references(m)[plane])
+        rows = m._image_reaction_rows = [m.particle_world, ref, plane, len(m.planes) + len(m.spheres) + len(m.boxes)]
     m.launches(k.floor_image_reaction, m.particle_count, [state_out.force, state_in.x, *rows],
                [state_out.collider_force, state_out.collider_torque], device=m.device)
     S = m.scalar
