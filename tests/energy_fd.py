@@ -36,3 +36,14 @@ def mover(solver, a, b, dt: float = 1.0e-9):
 def central_gradient(energy, coords, delta: float = 1.0e-7) -> np.ndarray:
     """``(energy(k, delta) - energy(k, -delta)) / (2 delta)`` for each coordinate ``k``."""
     return np.array([(energy(k, delta) - energy(k, -delta)) / (2 * delta) for k in coords])
+
+
+def image_heights(y, spacing: float) -> np.ndarray:
+    """Heights of the floor images of points at heights ``y`` over the plane y = 0
+    (``deformation.image_depth``, written again here): mirrors from half a spacing up, half a
+    spacing deep below a quarter spacing, and between them the cubic that joins the two with
+    a continuous slope."""
+    m = 0.5 * spacing
+    w = 0.5 * m
+    t = np.clip(1.0 + (y - m) / w, 0.0, 1.0)
+    return -np.where(y >= m, y, m + w * t * t * (t - 1.0))

@@ -11,7 +11,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from energy_fd import central_gradient, mover, stvk_energy, stvk_psi
+from energy_fd import central_gradient, image_heights, mover, stvk_energy, stvk_psi
 
 SPACING = 0.02
 
@@ -308,8 +308,8 @@ def test_rubber_ball_bounces_and_settles_in_its_shape():
 
 
 def _image_energy(model, x, y, F, rows, fit="linear"):
-    """``sum_i V psi(dF_g(y) F_i)`` over the floor images ``g_i`` (plane y = 0; mirrors at
-    least half a spacing deep) of the particles within ``h`` of the plane: each image's fit over
+    """``sum_i V psi(dF_g(y) F_i)`` over the floor images ``g_i`` (plane y = 0; mirrors, about
+    half a spacing deep near the plane, ``image_heights``) of the particles within ``h`` of the plane: each image's fit over
     the particles near it (end positions ``y``) and the images of ``i``'s row ``rows[i]`` (at
     rest), with the particle's ``F`` (docs/physics.md, "The ground collider's thin-layer
     strength"); ``fit="curvature_corrected"``: the image's fit with the mixed quadratic terms
@@ -318,7 +318,7 @@ def _image_energy(model, x, y, F, rows, fit="linear"):
     h = model.support_radius
     c6 = 315.0 / (64.0 * np.pi * h**9)
     g = x.copy()
-    g[:, 1] = -np.maximum(x[:, 1], 0.5 * model.spacing)
+    g[:, 1] = image_heights(x[:, 1], model.spacing)
     Fg = np.tile(np.eye(3), (len(x), 1, 1))
     for i in np.flatnonzero(x[:, 1] < h):
         A, B, C, D, E = (np.zeros((3, 3)) for _ in range(5))

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import warp as wp
 
+from energy_fd import image_heights
 import warp_esph as we
 from warp_esph.sim import curvature, deformation, plasticity, smoothing
 from warp_esph._types import type_set
@@ -708,8 +709,8 @@ def test_set_material_to_energy_spiky_gives_its_rest_density_and_pressure_densit
 @pytest.mark.parametrize("base", [1.0, 0.3])
 def test_pressure_force_with_floor_images_is_minus_the_gradient_of_the_pressure_energy(pressure_force, base):
     """With ``add_ground(images=True)`` the density also sums the images of a particle's
-    neighbours and of itself (``pressure.image_density``: mirrors, at least half a spacing
-    deep), and the pressure force takes each image pair twice, as ``(i, g_k)`` in ``rho_i`` and
+    neighbours and of itself (``pressure.image_density``: mirrors, about half a spacing
+    deep near the plane, ``image_heights``), and the pressure force takes each image pair twice, as ``(i, g_k)`` in ``rho_i`` and
     as ``(k, g_i)`` in ``rho_k`` through ``d g_i / d x_i`` (``pressure.image_pressure_forces``):
     minus the gradient of the pressure energy of the positions, the floor taking the
     reaction. A block 5^3 whose bottom layer stands ``base`` spacings above the plane (0.3:
@@ -738,7 +739,7 @@ def test_pressure_force_with_floor_images_is_minus_the_gradient_of_the_pressure_
 
     def density(y, form=pressure_force):
         mirror = y * [1.0, 0.0, 1.0]
-        mirror[:, 1] = -np.maximum(y[:, 1], 0.5 * dx)
+        mirror[:, 1] = image_heights(y[:, 1], dx)
         return _sph_density(form, np.vstack([y, mirror]), np.concatenate([m, m]), h)[: len(y)]
 
     def energy(y):

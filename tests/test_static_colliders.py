@@ -15,6 +15,7 @@ import pytest
 
 import warp as wp
 
+from energy_fd import image_heights
 import warp_esph as we
 from warp_esph.sim.colliders import CONTINUOUS_CONTACT_RAMP
 
@@ -436,6 +437,59 @@ def test_a_layer_one_particle_thick_on_the_imaged_ground_is_a_full_neighbourhood
     np.testing.assert_allclose(out[0][1], out[1][1], rtol=0, atol=1e-10)
 
 
+def test_floor_image_depth_is_continuous_in_value_and_slope():
+    """``deformation.floor_image`` of points at heights ``d`` over a tilted plane: the mirror
+    from half a spacing up, held half a spacing deep below a quarter spacing, and between them
+    a cubic (``deformation.image_depth``) that joins the two with value and slope continuous
+    (the plain ``max(d, dx/2)`` it replaced kinked the loss through contact, docs/physics.md,
+    "The imaged ground's contact is smooth"). ``floor_image_jacobian`` is its derivative
+    (central differences, float64) at every height, in the blend too; the tests' reference
+    ``image_heights`` agrees."""
+    from warp_esph._types import type_set
+    from warp_esph.sim import deformation
+
+    T = type_set(wp.float64)
+    fn = deformation.funcs(wp.float64)
+
+    @wp.kernel
+    def images(x: wp.array(dtype=T.vec3), n: T.vec3, off: wp.float64, m: wp.float64, g: wp.array(dtype=T.vec3),
+               J: wp.array(dtype=T.mat33)):
+        i = wp.tid()
+        g[i] = fn.floor_image(x[i], n, off, m)
+        J[i] = fn.floor_image_jacobian(x[i], n, off, m)
+
+    dx, off = 0.02, 0.3
+    n = np.array([0.3, 0.9, -0.2])
+    n /= np.linalg.norm(n)
+    d = np.concatenate([np.linspace(-0.2 * dx, 0.8 * dx, 201), [0.25 * dx, 0.5 * dx]])
+    t = np.cross(n, [1.0, 0.0, 0.0])
+    x = (off + d)[:, None] * n + 0.7 * t
+
+    def run(pts):
+        g, J = wp.zeros(len(pts), dtype=T.vec3), wp.zeros(len(pts), dtype=T.mat33)
+        wp.launch(images, len(pts), [wp.array(pts, dtype=T.vec3), T.vec3(*n), off, 0.5 * dx], [g, J])
+        return g.numpy(), J.numpy()
+
+    g, J = run(x)
+    depth = off - g @ n  # the image's depth under the plane
+    np.testing.assert_allclose(depth, -image_heights(d, dx), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(g - np.outer(g @ n, n), x - np.outer(x @ n, n), rtol=0, atol=1e-15)  # below its foot
+    above, below = d >= 0.5 * dx, d <= 0.25 * dx
+    np.testing.assert_allclose(depth[above], d[above], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(depth[below], 0.5 * dx, rtol=0, atol=1e-15)
+    slope = np.einsum("i,kij,j->k", n, J, n)  # d(image height over the plane) / d(height): -s'
+    eps = 1e-6 * dx  # at the blend's ends a difference straddles the curvature's jump: 1e-5 off there
+    gp, _ = run(x + eps * n)
+    gm, _ = run(x - eps * n)
+    np.testing.assert_allclose((gp - gm) / (2 * eps), np.einsum("kij,j->ki", J, n), rtol=0, atol=1e-4)
+    assert np.allclose(slope[above], -1.0, rtol=0, atol=1e-15) and np.allclose(slope[below], 0.0, rtol=0, atol=1e-12)
+    # continuous: neighbouring heights' slopes differ by at most the cubic's curvature times the step
+    step = d[1] - d[0]
+    assert np.abs(np.diff(slope[:201])).max() < 1.01 * 4.0 / (0.25 * dx) * step
+    assert depth.min() == pytest.approx(0.5 * dx - 4.0 / 27.0 * 0.25 * dx, rel=1e-3)  # the cubic's dip
+    assert np.all(np.diff(depth[:201] + d[:201]) > 0), "the image moves down as the point moves up"
+
+
 @pytest.mark.parametrize("deformation", ["rest", "additive"])
 def test_floor_images_refuse_what_they_do_not_support_yet(deformation):
     mat = we.Material(mu=3600.0, lam=5400.0, yield_stress=36.0, flow_rate=1000.0, deformation=deformation)
@@ -450,9 +504,9 @@ def test_floor_images_refuse_what_they_do_not_support_yet(deformation):
 def test_paper_force_of_the_floor_images_is_that_of_a_particle_floor_at_the_images():
     """Eqs. 10-13 with ``add_ground(images=True)``: the elastic force on every particle of a
     strip over the plane equals the force on it in a body that also holds, as particles, the
-    images (``deformation.floor_image``: mirrors, or half a spacing deep for the bottom layer
-    pressed to 0.3 dx over the plane) each with its mirror particle's ``F`` (sheared and
-    stretched, varying along the strip) and volume: the image of a particle enters the
+    images (``deformation.floor_image``: mirrors, or on the cubic between a mirror and half a
+    spacing deep for the bottom layer pressed to 0.3 dx over the plane, ``image_heights``) each
+    with its mirror particle's ``F`` (sheared and stretched, varying along the strip) and volume: the image of a particle enters the
     paper's pairs as a neighbour carrying that particle's stress. float64, one step without
     gravity, pressure or viscosity (the elastic force alone); measured to round-off."""
     dx = 0.005
@@ -472,7 +526,7 @@ def test_paper_force_of_the_floor_images_is_that_of_a_particle_floor_at_the_imag
     F[:, 0, 0] += 0.1 * s
     F[:, 1, 1] -= 0.05
     images = x.copy()
-    images[:, 1] = -np.maximum(x[:, 1], 0.5 * dx)
+    images[:, 1] = image_heights(x[:, 1], dx)
 
     def elastic_force(positions, Fs, imaged):
         bb = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))

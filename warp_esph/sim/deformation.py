@@ -57,14 +57,34 @@ def funcs(scalar) -> types.SimpleNamespace:
         return (y - x) + (y_lo - x_lo)
 
     @wp.func
+    def image_depth(d: scalar, min_depth: scalar):
+        """How deep under the plane the floor image of a point ``d`` above it lies, and its
+        slope in ``d``: ``d`` from ``min_depth`` up, ``min_depth`` below ``min_depth - w``
+        (``w = min_depth / 2``), and between them the cubic ``min_depth + w t^2 (t - 1)``,
+        ``t = 1 + (d - min_depth) / w``, which joins the two with value and slope continuous
+        (a plain ``max(d, min_depth)`` has a kink, and a loss through contact jumps in its slope
+        where a particle crosses it; docs/physics.md, "The imaged ground's contact is smooth").
+        The cubic dips at most ``4 w / 27`` below ``min_depth``; the image's own depth ``d + s``
+        still grows with ``d`` (slope >= 2/3)."""
+        s = d
+        ds = scalar(1.0)
+        if d < min_depth:
+            w = scalar(0.5) * min_depth
+            t = wp.max(scalar(1.0) + (d - min_depth) / w, scalar(0.0))
+            s = min_depth + w * t * t * (t - scalar(1.0))
+            ds = t * (scalar(3.0) * t - scalar(2.0))
+        return s, ds
+
+    @wp.func
     def floor_image(x: vec3, n: vec3, offset: scalar, min_depth: scalar) -> vec3:
         """The image of ``x`` in the rough floor ``dot(n, x) = offset``: below its foot on the
         plane, as deep as ``x`` is high but at least ``min_depth`` (half a spacing: the
-        floor's top layer of a floor of particles), so that a particle pressed towards the
-        plane closes on its image as on a floor particle (docs/physics.md, "The ground
-        collider's thin-layer strength")."""
+        floor's top layer of a floor of particles; ``image_depth``), so that a particle
+        pressed towards the plane closes on its image as on a floor particle (docs/physics.md,
+        "The ground collider's thin-layer strength")."""
         d = wp.dot(n, x) - offset
-        return x - (d + wp.max(d, min_depth)) * n
+        s, ds = image_depth(d, min_depth)
+        return x - (d + s) * n
 
     @wp.func
     def image_row_length(x: vec3, n: int, reach: scalar, gn: vec3, goff: scalar) -> int:
@@ -203,11 +223,12 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     @wp.func
     def floor_image_jacobian(x: vec3, n: vec3, offset: scalar, min_depth: scalar) -> mat33:
-        """``d floor_image / d x`` (symmetric): the mirror ``R = I - 2 n n^T`` while ``x`` is
-        higher than ``min_depth``, the tangential projector ``I - n n^T`` below, where the
-        image stays at ``min_depth`` under the plane."""
-        d = wp.dot(n, x) - offset
-        return wp.identity(n=3, dtype=scalar) - wp.where(d > min_depth, scalar(2.0), scalar(1.0)) * wp.outer(n, n)
+        """``d floor_image / d x`` (symmetric): ``I - (1 + s') n n^T`` for the slope ``s'`` of
+        ``image_depth``: the mirror ``R = I - 2 n n^T`` while ``x`` is higher than
+        ``min_depth``, the tangential projector ``I - n n^T`` below ``min_depth - w``, where the
+        image stays at ``min_depth`` under the plane, and between them a blend of the two."""
+        s, ds = image_depth(wp.dot(n, x) - offset, min_depth)
+        return wp.identity(n=3, dtype=scalar) - (scalar(1.0) + ds) * wp.outer(n, n)
 
     @wp.func
     def fit_pair_adjoint(w: scalar, dw: scalar, xb: vec3, yb: vec3, adj_A: mat33, adj_A_sym: mat33, adj_B: mat33):

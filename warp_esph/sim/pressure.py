@@ -201,8 +201,9 @@ def funcs(scalar) -> types.SimpleNamespace:
         of the floor images in the densities (``image_density``), the floor taking the
         reaction: for each neighbour ``k`` (and ``i`` itself), the pair ``(i, g_k)`` in
         ``rho_i`` and the pair ``(k, g_i)`` in ``rho_k``, the second through ``d g_i / d x_i``
-        (``R = I - 2 n n^T`` while ``i`` is above ``min_depth``, the tangential projector
-        ``I - n n^T`` below, where its image stays put); and the viscous force of the floor
+        (``floor_image_jacobian``: the mirror ``R = I - 2 n n^T`` while ``i`` is above
+        ``min_depth``, the tangential projector ``I - n n^T`` where its image stays put); and
+        the viscous force of the floor
         at rest on ``i``. As for the particle pairs (``sph_pair_force``) the pressure and the
         energy forms read the pressure density ``rho_p`` and the volumes the SPH density
         ``rho``. For the energy forms it is minus the gradient of the pressure energy."""
