@@ -311,9 +311,9 @@ def _image_energy(model, x, y, F, rows, fit="linear"):
     """``sum_i V psi(dF_g(y) F_i)`` over the floor images ``g_i`` (plane y = 0; mirrors, about
     half a spacing deep near the plane, ``image_heights``) of the particles within ``h`` of the plane: each image's fit over
     the particles near it (end positions ``y``) and the images of ``i``'s row ``rows[i]`` (at
-    rest), with the particle's ``F`` (docs/physics.md, "The ground collider's thin-layer
-    strength"); ``fit="curvature_corrected"``: the image's fit with the mixed quadratic terms
-    projected out (``curvature.py``: ``dF = B~ A~^-1``, ``A~ = A - C K``, ``B~ = B - E K``,
+    rest; each weighed as the pair of its particle and ``i``), with the particle's ``F``
+    (docs/physics.md, "The ground collider's thin-layer strength");
+    ``fit="curvature_corrected"``: the image's fit with the mixed quadratic terms projected out (``curvature.py``: ``dF = B~ A~^-1``, ``A~ = A - C K``, ``B~ = B - E K``,
     ``K = (D + eps I)^-1 C^T``, dropped where ``det A~ <= 0.1 det A``)."""
     h = model.support_radius
     c6 = 315.0 / (64.0 * np.pi * h**9)
@@ -322,9 +322,9 @@ def _image_energy(model, x, y, F, rows, fit="linear"):
     Fg = np.tile(np.eye(3), (len(x), 1, 1))
     for i in np.flatnonzero(x[:, 1] < h):
         A, B, C, D, E = (np.zeros((3, 3)) for _ in range(5))
-        for pts, ends in ((x, y), (g[rows[i]], g[rows[i]])):
+        for pts, ends, pair in ((x, y, x - g[i]), (g[rows[i]], g[rows[i]], x[rows[i]] - x[i])):
             d = pts - g[i]
-            r2 = (d * d).sum(1)
+            r2 = (pair * pair).sum(1)  # an image pair weighs as its particles' pair
             w = c6 * np.clip(h * h - r2, 0.0, None) ** 3
             q = np.stack([d[:, 0] * d[:, 1], d[:, 0] * d[:, 2], d[:, 1] * d[:, 2]], axis=1) / h
             A += np.einsum("n,ni,nj->ij", w, d, d)

@@ -215,7 +215,8 @@ def funcs(scalar) -> types.SimpleNamespace:
                 D += dD
                 if j != i:
                     gb = df.floor_image(x[j], gn, goff, gmin) - gi
-                    dA, dB, dC, dD, dE = pair_moments(gb, zero, sm.w_poly6_c(wp.dot(gb, gb), h, c6), h)
+                    pb = x[j] - xi  # weighed as its particles' pair (deformation.floor_image_moment)
+                    dA, dB, dC, dD, dE = pair_moments(gb, zero, sm.w_poly6_c(wp.dot(pb, pb), h, c6), h)
                     A += dA
                     C += dC
                     D += dD
@@ -449,8 +450,31 @@ def funcs(scalar) -> types.SimpleNamespace:
                 wp.atomic_add(adj_x, j, g)
         return g
 
+    @wp.func
+    def scatter_image_pair_adjoint(gb: vec3, pb: vec3, hh: scalar, c6: scalar, h: scalar, K: mat33, adj_A: mat33,
+                                   adj_A_sym: mat33, adj_C: mat33, adj_D: mat33, adj_D_sym: mat33,
+                                   adj_x: wp.array(dtype=vec3), j: int, xj: vec3, gn: vec3, goff: scalar,
+                                   gmin: scalar):
+        """Adjoint of an image-image pair's terms in an image's moments (``floor_image_moment``:
+        ``gb = g_j - g_i`` weighed by ``w(|pb|^2)``, ``pb = x_j - x_i``), as
+        ``forces.scatter_image_pair_adjoint`` with the ``C``, ``D`` terms; returned for ``i``:
+        ``(adj g_i, adj x_i)``."""
+        gg = vec3()
+        gp = vec3()
+        r2 = wp.dot(pb, pb)
+        if r2 < hh:
+            w, dw = sm.w_poly6_inside(r2, hh, c6)
+            q = curvature_basis(gb, h)
+            gg = variational_pair_adjoint(gb, vec3(), w, scalar(0.0), h, mat33(), K, adj_A, adj_A_sym, adj_C, adj_D,
+                                          adj_D_sym)
+            s = wp.dot(gb, adj_A * gb) + wp.dot(gb, adj_C * q) + wp.dot(q, adj_D * q)
+            gp = scalar(2.0) * dw * s * pb
+            wp.atomic_add(adj_x, j, df.floor_image_jacobian(xj, gn, goff, gmin) * gg + gp)
+        return gg, gp
+
     return types.SimpleNamespace(
         pair_moments=pair_moments, moment_pair_sums=moment_pair_sums, fit_sums=fit_sums,
+        scatter_image_pair_adjoint=scatter_image_pair_adjoint,
         moment_pairs_adjoint=moment_pairs_adjoint,
         floor_image_moment=floor_image_moment, image_map=image_map, floor_image_forces=floor_image_forces,
         moment_pair_adjoint=moment_pair_adjoint, variational_pair_adjoint=variational_pair_adjoint,
@@ -654,7 +678,8 @@ def kernels(scalar) -> types.SimpleNamespace:
         particles apply no force. With ``images`` (``floor_image_forces``) as the linear fit's
         (``forces.variational_forces_adjoint``): the image pairs of the fit with ``a = adj f_i``,
         the own image's energy (``Mg``, ``Kg`` of ``floor_image_moment``) with ``a = -adj f_r``
-        on ``d = x_r - g_i`` and ``a = 0`` on the image-image terms ``d = g_r - g_i``."""
+        on ``d = x_r - g_i`` and the image-image terms ``d = g_r - g_i``, weighed by their
+        particles' pair (``scatter_image_pair_adjoint``)."""
         i = wp.tid()
         if elastic_force[material[i]] != 1 or guard[i] != 0:
             return
@@ -736,7 +761,6 @@ def kernels(scalar) -> types.SimpleNamespace:
                                                             adj_C, adj_D, adj_D_sym, adj_x, j, xj, gn, goff, gmin, 0)
         # Through g_i (summed, then by d g_i / d x_i).
         gg_i = vec3()
-        zero = vec3()
         for k in range(n_img):
             j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
@@ -747,9 +771,10 @@ def kernels(scalar) -> types.SimpleNamespace:
                 gg_i -= fn.scatter_variational_pair_adjoint(xj - gi, -adj_f[j], hh, c6, h, Mg, Kg, adj_Ag, adj_Ag_sym,
                                                             adj_Cg, adj_Dg, adj_Dg_sym, adj_x, j, xj, gn, goff, gmin, 0)
                 if j != i:
-                    gg_i -= fn.scatter_variational_pair_adjoint(gj - gi, zero, hh, c6, h, Mg, Kg, adj_Ag, adj_Ag_sym,
-                                                                adj_Cg, adj_Dg, adj_Dg_sym, adj_x, j, xj, gn, goff,
-                                                                gmin, 1)
+                    gg, gp = fn.scatter_image_pair_adjoint(gj - gi, xj - xi, hh, c6, h, Kg, adj_Ag, adj_Ag_sym, adj_Cg,
+                                                           adj_Dg, adj_Dg_sym, adj_x, j, xj, gn, goff, gmin)
+                    gg_i -= gg
+                    gx_i -= gp
         wp.atomic_add(adj_x, i, gx_i + df.floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
 
     return types.SimpleNamespace(update_deformation=update_deformation,

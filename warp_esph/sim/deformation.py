@@ -292,7 +292,12 @@ def funcs(scalar) -> types.SimpleNamespace:
     ) -> mat33:
         """Eq. 5 of particle ``i``'s own image ``g_i``: ``A = sum w xb xb^T`` over ``i`` and its
         same-body neighbours, ``xb = x_r - g_i``, and over their images, ``xb = g_r - g_i``
-        (the mirror ``R A_i R`` of ``i``'s where every image is a mirror)."""
+        (the mirror ``R A_i R`` of ``i``'s where every image is a mirror). An image pair weighs
+        as its particles' pair, ``w(|x_r - x_i|)``: the row holds every ``r`` within ``h`` of
+        ``x_i``, but near the plane, where the images are held half a spacing deep, ``g_r`` may
+        be within ``h`` of ``g_i`` while ``x_r`` is not, and such a pair would enter and leave
+        the sum at a non-zero weight as ``r`` crosses the row's edge (a jump of the step;
+        docs/physics.md, "The imaged ground's contact is smooth")."""
         A = mat33()
         xi = x[i]
         bi = body[i]
@@ -305,7 +310,8 @@ def funcs(scalar) -> types.SimpleNamespace:
                 A += sm.w_poly6_c(wp.dot(xb, xb), h, c6) * wp.outer(xb, xb)
                 if j != i:
                     gb = floor_image(x[j], gn, goff, gmin) - gi
-                    A += sm.w_poly6_c(wp.dot(gb, gb), h, c6) * wp.outer(gb, gb)
+                    pb = x[j] - xi
+                    A += sm.w_poly6_c(wp.dot(pb, pb), h, c6) * wp.outer(gb, gb)
         return A
 
     @wp.func

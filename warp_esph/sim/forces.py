@@ -218,6 +218,24 @@ def funcs(scalar) -> types.SimpleNamespace:
         return g
 
     @wp.func
+    def scatter_image_pair_adjoint(adj_A: mat33, adj_A_sym: mat33, gb: vec3, pb: vec3, hh: scalar, c6: scalar,
+                                   adj_x: wp.array(dtype=vec3), j: int, xj: vec3, gn: vec3, goff: scalar, gmin: scalar):
+        """Adjoint of an image-image term ``w(|pb|^2) gb gb^T`` of an image's moment matrix
+        (``deformation.floor_image_moment``: ``gb = g_j - g_i``, weighed as its particles' pair
+        ``pb = x_j - x_i``): ``adj gb = w adj_A_sym gb``, ``adj pb = 2 dw (gb . adj_A gb) pb``,
+        added to ``j`` (``gb``'s through ``deformation.floor_image_jacobian``); returned for
+        ``i``: ``(adj g_i, adj x_i)``."""
+        gg = vec3()
+        gp = vec3()
+        r2 = wp.dot(pb, pb)
+        if r2 < hh:
+            w, dw = sm.w_poly6_inside(r2, hh, c6)
+            gg = w * (adj_A_sym * gb)
+            gp = scalar(2.0) * dw * wp.dot(gb, adj_A * gb) * pb
+            wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * gg + gp)
+        return gg, gp
+
+    @wp.func
     def variational_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
                            nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, h: scalar,
                            f: wp.array(dtype=vec3)) -> vec3:
@@ -274,6 +292,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         stress=stress, principal_stress=principal_stress, principal_stress_differences=principal_stress_differences,
         polynomial_stress=polynomial_stress, elastic_pair_force=elastic_pair_force, paper_forces=paper_forces,
         elastic_pair_adjoint=elastic_pair_adjoint, paper_image_count=paper_image_count,
+        scatter_image_pair_adjoint=scatter_image_pair_adjoint,
         paper_image_forces=paper_image_forces,
         variational_map=variational_map, variational_map_adjoint=variational_map_adjoint,
         variational_pair_force=variational_pair_force, variational_forces=variational_forces,
@@ -455,8 +474,9 @@ def kernels(scalar) -> types.SimpleNamespace:
         x_i`` with ``a = adj f_i`` (the floor takes the reaction); the energy of ``i``'s own
         image, ``Mg = image_map`` on the image's moment matrix ``A_g``
         (``deformation.floor_image_moment``), its pairs ``d = x_r - g_i`` with ``a = -adj f_r``
-        and the image-image terms ``d = g_r - g_i`` of ``A_g`` with ``a = 0``; an image's
-        ``adj`` goes to its particle through ``deformation.floor_image_jacobian``."""
+        and the image-image terms ``d = g_r - g_i`` of ``A_g``, weighed by their particles' pair
+        (``scatter_image_pair_adjoint``); an image's ``adj`` goes to its particle through
+        ``deformation.floor_image_jacobian``."""
         i = wp.tid()
         if elastic_force[material[i]] != 1:
             return
@@ -516,7 +536,6 @@ def kernels(scalar) -> types.SimpleNamespace:
                                                             j, xj, gn, goff, gmin, 0)
         # Through g_i (summed, then by d g_i / d x_i).
         gg_i = vec3()
-        zero = vec3()
         for k in range(n_img):
             j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
@@ -527,8 +546,10 @@ def kernels(scalar) -> types.SimpleNamespace:
                 gg_i -= fn.scatter_variational_pair_adjoint(Mg, adj_Ag, adj_Ag_sym, -adj_f[j], xj - gi, hh, c6, adj_x,
                                                             j, xj, gn, goff, gmin, 0)
                 if j != i:
-                    gg_i -= fn.scatter_variational_pair_adjoint(Mg, adj_Ag, adj_Ag_sym, zero, gj - gi, hh, c6, adj_x, j,
-                                                                xj, gn, goff, gmin, 1)
+                    gg, gp = fn.scatter_image_pair_adjoint(adj_Ag, adj_Ag_sym, gj - gi, xj - xi, hh, c6, adj_x, j, xj, gn,
+                                                           goff, gmin)
+                    gg_i -= gg
+                    gx_i -= gp
         wp.atomic_add(adj_x, i, gx_i + floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
 
     return types.SimpleNamespace(elastic_forces=elastic_forces, elastic_forces_adjoint=elastic_forces_adjoint,
