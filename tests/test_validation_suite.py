@@ -50,6 +50,18 @@ def test_undamped_energy_is_kept_by_the_conservative_rest_fit_at_the_stable_step
     assert default["drift"] > 0.2, default["drift"]
 
 
+def test_column_settles_by_rho_g_l2_over_2e():
+    """A free-standing column 4 across and 20 tall on a frictionless ground, pressure off,
+    relaxed dynamically (``validation.column_settlement``): the top settles by the continuum
+    ``rho g L (L - dx) / (2 E)`` between the end layers' centres. Measured 0.978 x, residual
+    -8e-4 % of it per s (6 across: 0.993; the paper's force 1.31 / 1.21, docs/validation.md).
+    An earlier form of this test ran the column damped by viscosity alone for 3000 steps
+    (0.95 x over the second half, ringing 0.72-1.20 x): seven times the cost."""
+    r = validation.column_settlement(resolution=4)
+    assert abs(r["residual_rate_pct_per_s"]) < 1.0, r["residual_rate_pct_per_s"]
+    assert r["ratio"] == pytest.approx(1.0, abs=0.05), r["ratio"]
+
+
 BEAM = {"elastic_force": "variational", "span_over_thickness": 5, "dtype": "float64"}
 
 
@@ -65,7 +77,7 @@ def test_beam_deflection_within_10_percent_at_6_thick_variational(beam6):
     """Float64: in float32 the loaded elastic beam creeps (round-off in the stored F), so the
     static deflection is read in float64, where it settles. Measured with the default solver
     1.033 x Timoshenko, residual -0.043 % of it per s (the paper's linear fit, before the
-    default chose by material: 1.159, next test)."""
+    default chose by material: 1.159; the next test runs it at 4 thick)."""
     r = beam6
     assert r["fit"] == "curvature_corrected" and r["hourglass"] > 0.0, (r["fit"], r["hourglass"])
     assert not r["blew_up"]
@@ -73,19 +85,26 @@ def test_beam_deflection_within_10_percent_at_6_thick_variational(beam6):
     assert r["ratio"] == pytest.approx(1.0, abs=0.10), r["ratio"]
 
 
-def test_beam_with_the_papers_linear_fit_is_too_soft_at_6_thick():
-    """``Solver(fit="linear")``, the fit plastic models run: measured 1.159 x Timoshenko
-    (docs/physics.md, "Bending stiffness": the one-sided fits at the free surfaces)."""
-    r = validation.beam_deflection(resolution=6, fit="linear", **BEAM)
-    assert not r["blew_up"]
-    assert r["ratio"] > 1.12, r["ratio"]
+@pytest.fixture(scope="module")
+def beam4():
+    """The default solver, 4 thick."""
+    return validation.beam_deflection(resolution=4, **BEAM)
 
 
-def test_beam_deflection_converges_with_thickness_variational(beam6):
+def test_beam_with_the_papers_linear_fit_is_too_soft(beam4):
+    """``Solver(fit="linear")``, the fit plastic models run: measured 1.357 x Timoshenko at 4
+    thick against the default's 1.057 (6 thick: 1.159 against 1.033; docs/physics.md,
+    "Bending stiffness": the one-sided fits at the free surfaces)."""
+    r = validation.beam_deflection(resolution=4, fit="linear", **BEAM)
+    assert not r["blew_up"] and r["fit"] == "linear"
+    assert r["ratio"] > 1.25, r["ratio"]
+    assert r["ratio"] > beam4["ratio"] + 0.2, (r["ratio"], beam4["ratio"])
+
+
+def test_beam_deflection_converges_with_thickness_variational(beam4, beam6):
     """4 and 6 particles thick, span 5 t, float64, the default solver: the error shrinks with
-    resolution, both within 10 % (measured 1.058 and 1.033; the linear fit 1.35 and 1.159)."""
-    r4 = validation.beam_deflection(resolution=4, **BEAM)
-    r6 = beam6
+    resolution, both within 10 % (measured 1.057 and 1.033; the linear fit 1.357 and 1.159)."""
+    r4, r6 = beam4, beam6
     assert not r4["blew_up"] and not r6["blew_up"]
     assert r4["ratio"] == pytest.approx(1.0, abs=0.10), r4["ratio"]
     assert abs(r6["ratio"] - 1.0) < abs(r4["ratio"] - 1.0), (r4["ratio"], r6["ratio"])
