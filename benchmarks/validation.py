@@ -403,7 +403,9 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
     ``slump``); profile: the top of each radial band R_RC / 8 wide (+ dx/2) over the theory
     at the band's middle. ``floor``: as in ``slump`` (``"particles"``, the default: pinned
     layers of the same body under a disc of ``floor_radius`` R_RC). ``pressure_force``: as in
-    ``slump``."""
+    ``slump``. Volumes over the theory's: ``volume_over_theory`` the scene's as built (its
+    particles times dx^3), ``end_volume_over_theory`` the material's at the end (each free
+    particle's rest volume times det F)."""
     wp, we = _we()
     _check_floor(floor)
     h_rc = 0.025
@@ -462,14 +464,17 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
         sel = (r >= k * R_rc / 8.0) & (r < (k + 1) * R_rc / 8.0)
         mid = (k + 0.5) * R_rc / 8.0
         bands.append(float(x[sel, 1].max() + 0.5 * dx) / math.sqrt(2.0 * ell * (R_rc - mid)) if sel.any() else 0.0)
-    ratio = _deviatoric_norm(a.F.numpy()[free], mu) / Y
+    Fe = a.F.numpy().astype(np.float64)[free]
+    ratio = _deviatoric_norm(Fe, mu) / Y
+    # The material's volume at the end (rest volumes times det F), against the theory's.
+    end_volume = float((model.particle_volume.numpy().astype(np.float64)[free] * np.linalg.det(Fe)).sum())
     weight_scale = float(model.particle_mass.numpy()[free].sum()) * G * h_rc
     return {
         "case": "spread", "shallowness": shallowness, "resolution": resolution, "elastic_force": elastic_force,
         "pressure_force": pressure_force, "floor": floor,
         "flow_rate": flow_rate, "particles": n, "dt": dt, "duration": float(t[-1]), "steps": steps,
         "initial_height": H_i, "initial_radius": R_i, "yield_length": ell,
-        "volume_over_theory": n * dx**3 / volume,
+        "volume_over_theory": n * dx**3 / volume, "end_volume_over_theory": end_volume / volume,
         "S_initial": math.sqrt(3.0) * tau_y / (RHO * G * H_i),
         "theory_radius": R_rc, "theory_height": h_rc,
         "radius_over_theory": R[-1] / R_rc, "height_over_theory": h[-1] / h_rc,

@@ -8,6 +8,7 @@ wrong types), scene-file keys, states of another model or precision given to
 configurations that would need an absurd number of steps."""
 
 import math
+import re
 import string
 import time
 
@@ -77,13 +78,48 @@ def test_builder_argument_is_valid_or_named(call, arg, value):
     params[name] = value
     b = we.SceneBuilder(spacing=0.02)
     fn = getattr(b, call)
+    collider = "collider" in call or call == "add_ground"
     try:
-        if call.startswith("add_") and "collider" not in call and call != "add_ground":
-            fn(material=DOUGH, **params)
-        else:
+        if collider:
             fn(**params)
+            b.add_box((0.0, 0.3, 0.0), (0.06, 0.06, 0.06), DOUGH)
+            # Accepted: the model the collider enters is built and steps to finite positions.
+            model = b.finalize()
+            a, c = model.state(), model.state()
+            we.Solver(model).step(a, c, 1e-4)
+            assert np.isfinite(c.x.numpy()).all(), (call, name, value)
+        else:
+            fn(material=DOUGH, **params)
     except ValueError as e:
-        assert name in str(e) or "has no particles" in str(e) or "inner_radius" in str(e), str(e)
+        msg = str(e)
+        assert "is not allowed" in msg or "has no particles" in msg, msg
+        assert name in msg or "has no particles" in msg or "inner_radius" in msg, msg
+
+
+@pytest.mark.parametrize("call, kwargs, message", [
+    ("add_ground", {"height": 1e40}, "add_ground height (add_plane offset) = 1e+40 is not allowed in float32"),
+    ("add_sphere_collider", {"center": (0.0, 0.0, 0.0), "radius": 1e300}, "add_sphere_collider radius = 1e+300 is not allowed"),
+    ("add_box_collider", {"center": (0.0, -2.0, 0.0), "half_extents": (1e300, 1.0, 1.0)},
+     "add_box_collider half_extents = (1e+300, 1.0, 1.0) is not allowed"),
+    ("add_ground", {"height": 0.0, "friction": 1e300}, "add_ground friction = 1e+300 is not allowed in float32"),
+])
+def test_a_collider_the_precision_cannot_hold_is_refused_at_finalize(call, kwargs, message):
+    """Sizes and places of static colliders enter the contact squared: accepted, these made
+    every position NaN in the first step (float32). ``finalize`` names them instead."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.3, 0.0), (0.06, 0.06, 0.06), DOUGH)
+    getattr(b, call)(**kwargs)
+    with pytest.raises(ValueError, match=re.escape(message)):
+        b.finalize()
+
+
+def test_a_body_centre_float64_cannot_resolve_is_named():
+    """A centre at 1e300 collapsed the lattice onto one point and was reported as a body
+    smaller than the spacing."""
+    b = we.SceneBuilder(spacing=0.02)
+    with pytest.raises(ValueError, match=r"center = \(1e\+300, 0.0, 0.0\) is not allowed: must be within 9.01e\+10 of the origin"):
+        b.add_box((1e300, 0.0, 0.0), (0.1, 0.1, 0.1), DOUGH)
+    b.add_box((1e9, 0.0, 0.0), (0.1, 0.1, 0.1), DOUGH)  # far, but resolved
 
 
 def _toml_value(v):

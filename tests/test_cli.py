@@ -457,3 +457,10 @@ def test_init_warp_holds_back_only_the_native_cuda_note(capfd):
     held = int(quiet.stdout.split()[0])
     # Whatever a bare start prints natively is what init_warp held back (none on a GPU machine).
     assert held == len([line for line in bare.stderr.splitlines() if line.strip()])
+    # Of the notes a start prints, only the CUDA-driver one is held back: the rest are echoed.
+    echo = ("import warp_esph.startup as s; real = s._native_notes; "
+            "s._native_notes = lambda f: (real(f), ['native note A', 'Warp CUDA warning: no driver'])[1]; "
+            "print(len(s.init_warp()))")
+    echoed = subprocess.run([sys.executable, "-c", echo], capture_output=True, text=True, timeout=120)
+    assert echoed.returncode == 0, echoed.stderr
+    assert echoed.stdout.split() == ["2"] and echoed.stderr.splitlines() == ["native note A"], echoed.stderr

@@ -184,5 +184,8 @@ def test_the_reused_static_collider_struct_follows_the_contact_ramp():
     m = b.finalize()
     first = static_collider_struct(m)
     assert static_collider_struct(m) is first
-    m.contact_ramp = 0.5 * m.contact_ramp
-    assert float(static_collider_struct(m).ramp) == pytest.approx(m.contact_ramp, rel=1e-6)
+    assert float(first.ramp) == m.contact_ramp == 0.0  # the earlier contact law, the default
+    m.contact_ramp = 1.0  # colliders.CONTINUOUS_CONTACT_RAMP
+    second = static_collider_struct(m)
+    assert second is not first and float(second.ramp) == 1.0
+    assert static_collider_struct(m) is second

@@ -365,7 +365,8 @@ def _images_model(params=None, ground=-0.045, v0=None):
 @pytest.mark.parametrize("name", ["mu", "yield_stress", "pressure_stiffness", "viscosity", "v0"])
 def test_floor_images_gradients_match_central_differences(weights, name):
     """Through the ground's floor images (fit, variational energy, SPH density, pressure and
-    viscosity against the floor): the taped rollout (the fused forward with the hand-written
+    viscosity against the floor; the default pressure force, ``energy_spiky``, whose spiky
+    pressure density and poly6 SPH density both hold the images): the taped rollout (the fused forward with the hand-written
     adjoints, which carry the image terms) against float64 central differences."""
     model = _images_model()
     loss, grads = _rollout_loss(model, weights, grad_of=(name,))
@@ -493,16 +494,16 @@ def test_floor_images_gradients_of_the_corrected_fit_match_central_differences(w
 
 
 @pytest.mark.parametrize("name", ["pressure_stiffness", "viscosity"])
-def test_floor_images_gradients_of_energy_spiky_match_central_differences(weights, name):
-    """``energy_spiky`` over the floor images: the images enter its spiky pressure density
-    (the pressure) and the poly6 SPH density (the viscous volumes), both on the tape; the
-    taped rollout against float64 central differences."""
-    spiky = {"pressure_force": "energy_spiky"}
-    model = _images_model(spiky)
+def test_floor_images_gradients_of_the_energy_pressure_force_match_central_differences(weights, name):
+    """The ``energy`` pressure force over the floor images (the images in its poly6 density,
+    which sets both the pressure and the viscous volumes); the default ``energy_spiky`` is the
+    test above. The taped rollout against float64 central differences."""
+    energy = {"pressure_force": "energy"}
+    model = _images_model(energy)
     _, grads = _rollout_loss(model, weights, grad_of=(name,))
     base = getattr(model.materials[0], name)
     eps = 1e-5 * base
-    fd = (_rollout_loss(_images_model({**spiky, name: base + eps}), weights)[0]
-          - _rollout_loss(_images_model({**spiky, name: base - eps}), weights)[0]) / (2 * eps)
+    fd = (_rollout_loss(_images_model({**energy, name: base + eps}), weights)[0]
+          - _rollout_loss(_images_model({**energy, name: base - eps}), weights)[0]) / (2 * eps)
     assert abs(fd) > 1e-9, "the loss does not reach " + name
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)

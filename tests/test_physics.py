@@ -257,7 +257,7 @@ def test_viscosity_leaves_a_rigid_spin_alone_and_damps_deformation():
     ke0, L0 = 0.5 * (m * spin**2).sum(), (m * np.cross(x0 - c, spin)).sum(axis=0)
     ke1, L1 = run(spin)
     assert abs(ke1 / ke0 - 1.0) < 2e-3, ke1 / ke0
-    assert np.linalg.norm(L1 - L0) < 5e-3 * np.linalg.norm(L0)
+    assert np.linalg.norm(L1 - L0) < 1e-4 * np.linalg.norm(L0), np.linalg.norm(L1 - L0) / np.linalg.norm(L0)
 
     breathing = 2.0 * (x0 - c)
     ke_b0 = 0.5 * (m * breathing**2).sum()
@@ -266,7 +266,7 @@ def test_viscosity_leaves_a_rigid_spin_alone_and_damps_deformation():
     ke_free, _ = run(breathing)
     model.viscosity.assign(np.full(1, 50.0))
     # Without viscosity the energy only sloshes between kinetic and elastic; with it, it goes.
-    assert ke_visc < 0.3 * ke_free and ke_visc < 0.1 * ke_b0, (ke_visc, ke_free, ke_b0)
+    assert ke_visc < 1e-5 * ke_b0 and ke_free > 0.1 * ke_b0, (ke_visc, ke_free, ke_b0)
 
 
 def _length_after_release(material, steps=1500, dt=1e-4):

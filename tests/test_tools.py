@@ -284,44 +284,6 @@ def test_fits_leave_an_elastic_particle_floors_material_as_built():
 
 
 # ------------------------------------------------------------------ plates and meshes
-def test_compression_between_frictionless_plates_gives_E_A_eps_and_minus_nu_eps():
-    n, dx, E, nu, eps = 8, 0.01, 1.0e5, 0.3, 0.01
-    H = n * dx
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
-    b.add_box((0.0, H / 2, 0.0), (H, H, H), _elastic(E, nu), name="sample")
-    pts = np.concatenate(b._points)
-    ylo, yhi = pts[:, 1].min(), pts[:, 1].max()
-    d = eps * (yhi - ylo)  # strain of the particle lattice between the plates
-    b.add_tool("plane", normal=(0, 1, 0), position=(0, ylo, 0), name="bottom")
-    b.add_tool("plane", normal=(0, -1, 0), motion=tools.Keyframes([0.0, 0.05], [(0, yhi, 0), (0, yhi - d, 0)]), name="top")
-    m = b.finalize()
-    s = we.Solver(m)
-    dt = m.stable_dt()
-    a, c = m.state(), m.state()
-    mass = m.particle_mass.numpy()[:, None]
-    forces, ke_prev = [], 0.0
-    for k in range(int(0.15 / dt)):
-        s.step(a, c, dt)
-        a, c = c, a
-        if a.time > 0.05 and k % 10 == 0:
-            v = a.v.numpy()
-            ke = 0.5 * float((mass * v * v).sum())
-            if ke < ke_prev:
-                a.v.zero_()
-                ke = 0.0
-            ke_prev = ke
-        r = s.reaction_forces(a)
-        forces.append((-r["top"][0][1], r["bottom"][0][1]))
-    f = np.array(forces[-100:]).mean()
-    xs = pts[:, 0]
-    right, left = xs > xs.max() - 0.5 * dx, xs < xs.min() + 0.5 * dx
-    x = a.x.numpy()
-    lateral = (x[right, 0].mean() - x[left, 0].mean()) / (xs[right].mean() - xs[left].mean()) - 1.0
-    print(f"plate force / (E A eps) = {f / (E * H * H * eps):.3f}, lateral strain / (nu eps) = {lateral / (nu * eps):.3f}")
-    assert f == pytest.approx(E * H * H * eps, rel=0.10)
-    assert lateral == pytest.approx(nu * eps, rel=0.10)  # axial strain -eps: lateral -nu (-eps)
-
-
 @pytest.mark.parametrize("shape", ["mesh", "box"])
 def test_fast_blade_does_not_tunnel_and_momentum_balances_the_impulse(shape):
     """A 2 mm blade (a closed box mesh, or a box) sweeps at 20 m/s through a block: it moves
@@ -955,7 +917,7 @@ def _block_on_tool(shape, friction, velocity=(0.0, 0.0, 0.0)):
 
 def test_a_block_sticking_on_a_held_sphere_tool_does_not_creep():
     """Friction 0.5 on the apex of a held sphere tool: relaxed, then 0.4 s left alone, no
-    particle moves sideways by more than 10 um, and the tool carries the weight. A particle
+    particle moves sideways by more than 2 um, and the tool carries the weight. A particle
     resting on a tool is stopped where its path enters it (the swept test); before the
     tangential displacement was taken from the start of the path (``tangential_follow``),
     each step moved a sticking particle back by the drift after that entry point, against
@@ -974,5 +936,5 @@ def test_a_block_sticking_on_a_held_sphere_tool_does_not_creep():
     force = np.mean(forces, axis=0)
     weight = m.particle_mass.numpy().sum() * G
     print(f"largest sideways displacement over 0.4 s: {sideways:.2e} m; support force {force} N, weight {weight:.4f} N")
-    assert sideways < 1e-5
+    assert sideways < 2e-6, sideways  # measured 0.7 um: a return to the first 4 um fails
     np.testing.assert_allclose(force, [0.0, weight, 0.0], atol=1e-2 * weight)

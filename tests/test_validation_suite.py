@@ -58,7 +58,7 @@ def test_column_settles_by_rho_g_l2_over_2e():
     An earlier form of this test ran the column damped by viscosity alone for 3000 steps
     (0.95 x over the second half, ringing 0.72-1.20 x): seven times the cost."""
     r = validation.column_settlement(resolution=4)
-    assert abs(r["residual_rate_pct_per_s"]) < 1.0, r["residual_rate_pct_per_s"]
+    assert abs(r["residual_rate_pct_per_s"]) < 0.2, r["residual_rate_pct_per_s"]
     assert r["ratio"] == pytest.approx(1.0, abs=0.05), r["ratio"]
 
 
@@ -81,7 +81,7 @@ def test_beam_deflection_within_10_percent_at_6_thick_variational(beam6):
     r = beam6
     assert r["fit"] == "curvature_corrected" and r["hourglass"] > 0.0, (r["fit"], r["hourglass"])
     assert not r["blew_up"]
-    assert abs(r["residual_rate_pct_per_s"]) < 1.0, r["residual_rate_pct_per_s"]
+    assert abs(r["residual_rate_pct_per_s"]) < 0.2, r["residual_rate_pct_per_s"]
     assert r["ratio"] == pytest.approx(1.0, abs=0.10), r["ratio"]
 
 
@@ -291,11 +291,13 @@ def spread_pile():
 def test_spread_pile_holds_the_theory_volume_and_slows_to_a_creep(spread_pile):
     """Measured with the defaults (energy_spiky, the fit guard cond(A) > 20) at 5 s: R 0.841
     R_RC growing 0.118 % R_RC/s, kinetic energy 2.5e-8 M g h_RC (down from 5e-5 in the
-    release), the theory volume held to 0.5 %; at 14 s (the benchmark) 0.017 % R_RC/s and
+    release); the lattice holds the theory volume to 0.53 % and the material at the end
+    (rest volumes times det F) that to 0.05 %; at 14 s (the benchmark) 0.017 % R_RC/s and
     2.0e-11."""
     r = spread_pile
     assert r["finite"]
-    assert r["volume_over_theory"] == pytest.approx(1.0, abs=0.03), r["volume_over_theory"]
+    assert r["volume_over_theory"] == pytest.approx(1.0, abs=0.01), r["volume_over_theory"]
+    assert r["end_volume_over_theory"] == pytest.approx(r["volume_over_theory"], rel=0.01), r["end_volume_over_theory"]
     assert 0.0 <= r["radius_rate_pct_per_s"] < 0.25, r["radius_rate_pct_per_s"]
     assert r["kinetic_over_Mgh"] < 1e-7, r["kinetic_over_Mgh"]
 
@@ -452,12 +454,14 @@ def test_thin_layer_on_the_ground_with_floor_images_stops_below_and_flows_above_
 @pytest.mark.parametrize("label", [label for label, _ in validation._stability_materials()])
 def test_no_preset_or_default_material_blows_up_at_half_the_stable_dt(label):
     """Each preset and ``Material(mu=1e5, lam=1e5)`` (paper force, pressure on), with and
-    without viscosity, a 6^3 box at rest on the ground for 0.3 s at 0.5 stable_dt: no
-    particle ever faster than 5 m/s (measured: all below 1 m/s, the default material too,
+    without viscosity, a 6^3 box at rest on the ground for 0.3 s at 0.5 stable_dt: not blown
+    up (no particle ever faster than 5 m/s) and no particle faster than 2 m/s (measured: all
+    below 1 m/s, the default material too,
     also over 1.5 s; the explosion issue 12 reports for it was not reproduced in this scene)."""
     material = dict(validation._stability_materials())[label]
     r = validation.stability(material, duration=0.3)
     assert not r["blew_up"], r
+    assert r["max_speed"] < 2.0, r  # a start of a blow-up shows well before the 5 m/s limit
 
 
 @pytest.fixture(scope="module")

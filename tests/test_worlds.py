@@ -70,15 +70,16 @@ def test_two_worlds_match_two_separate_runs(dtype, tol, b_pressure):
     so the same sums; the tolerance allows for the order of floating-point sums). With
     world 1 of ``energy_spiky`` the model sums a pressure density of its own (and world 1's
     rest density is recomputed as the spiky sum's) while world 0 keeps the energy force's."""
+    mat_a = MAT_A.replace(pressure_force="energy")
     mat_b = MAT_B.replace(pressure_force=b_pressure)
-    model = _builder(MAT_A).finalize(dtype=dtype, worlds=2)
+    model = _builder(mat_a).finalize(dtype=dtype, worlds=2)
     model.set_material(0, mat_b, world=1)
     _perturb(model)
     assert model.world_count == 2 and model.body_names == ["w0/block", "w1/block"]
     # The worlds occupy the same space (finalize's overlap check must not refuse them).
     np.testing.assert_allclose(model.particle_x0[model.world_particles(0)], model.particle_x0[model.world_particles(1)], atol=1e-4)
     x, state = _run(model)
-    xa, _ = _run(_separate(_builder(MAT_A), dtype))
+    xa, _ = _run(_separate(_builder(mat_a), dtype))
     xb, _ = _run(_separate(_builder(mat_b), dtype))
     scale = np.abs(xa).max()
     assert np.abs(x[model.world_particles(0)] - xa).max() <= tol * scale

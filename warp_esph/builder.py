@@ -144,6 +144,17 @@ class SceneBuilder:
         self._floors: set[str] = set()
 
     # ----------------------------------------------------------------- bodies
+    def _center(self, center) -> np.ndarray:
+        """A body's centre, near enough to the origin that float64 still resolves the lattice
+        there (a thousandth of the spacing): a centre at 1e300 collapsed every lattice point
+        onto one and was reported as a body smaller than the spacing."""
+        c = np.array(checks.vector("center", center))
+        far = self.spacing * 1e-3 / np.finfo(np.float64).eps
+        if np.abs(c).max() > far:
+            raise ValueError(f"center = {tuple(center)!r} is not allowed: must be within {far:.3g} of the origin "
+                             f"(farther out float64 does not resolve the spacing {self.spacing:g})")
+        return c
+
     def _lattice(self, lo, hi, name: str, value) -> np.ndarray:
         self._check_lattice_size(lo, hi, name, value)
         return lattice_points(lo, hi, self.spacing)
@@ -207,12 +218,12 @@ class SceneBuilder:
 
     def add_box(self, center, size, material: Material, velocity=(0.0, 0.0, 0.0), name: str | None = None, angular_velocity=(0.0, 0.0, 0.0)) -> int:
         """A solid box of full edge lengths ``size`` centred at ``center``."""
-        c = np.array(checks.vector("center", center))
+        c = self._center(center)
         s = np.array(checks.positive_vector("size", size))
         return self.add_particles(self._lattice(c - s / 2, c + s / 2, "size", size), material, velocity, name, "box", angular_velocity)
 
     def add_sphere(self, center, radius: float, material: Material, velocity=(0.0, 0.0, 0.0), name: str | None = None, angular_velocity=(0.0, 0.0, 0.0)) -> int:
-        c = np.array(checks.vector("center", center))
+        c = self._center(center)
         r = checks.positive("radius", radius)
         p = self._lattice(c - r, c + r, "radius", radius)
         return self.add_particles(p[np.linalg.norm(p - c, axis=1) <= r], material, velocity, name, "sphere", angular_velocity)
@@ -220,7 +231,7 @@ class SceneBuilder:
     def add_cylinder(self, center, radius: float, height: float, material: Material, axis: str = "y",
                      velocity=(0.0, 0.0, 0.0), name: str | None = None, angular_velocity=(0.0, 0.0, 0.0)) -> int:
         """A solid cylinder of ``radius`` and ``height`` along ``axis`` ('x', 'y' or 'z')."""
-        c = np.array(checks.vector("center", center))
+        c = self._center(center)
         r = checks.positive("radius", radius)
         hgt = checks.positive("height", height)
         a = _AXES[checks.choice("axis", axis, tuple(_AXES))]
@@ -233,7 +244,7 @@ class SceneBuilder:
     def add_star(self, center, outer_radius: float, inner_radius: float, thickness: float, material: Material,
                  points: int = 5, velocity=(0.0, 0.0, 0.0), name: str | None = None, angular_velocity=(0.0, 0.0, 0.0)) -> int:
         """An extruded star lying flat (extruded along y), the paper's dough shape (Fig. 6)."""
-        c = np.array(checks.vector("center", center))
+        c = self._center(center)
         ro = checks.positive("outer_radius", outer_radius)
         ri = checks.positive("inner_radius", inner_radius)
         if ri >= ro:
@@ -571,6 +582,22 @@ class SceneBuilder:
                     )
         if self._points and np.abs(np.concatenate(self._points)).max() > big:
             raise ValueError(f"positions beyond {big:.3g} m are not allowed in {scalar.__name__}")
+        # The static colliders' sizes and places enter the contact squared: 1e300 m (or 1e40 m
+        # in float32) turned every particle's position into NaN in the first step.
+        far = math.sqrt(big)
+        kinds = (("add_ground", self.planes, (("height (add_plane offset)", "offset"),)),
+                 ("add_sphere_collider", self.spheres, (("center", "center"), ("radius", "radius"))),
+                 ("add_box_collider", self.boxes, (("center", "center"), ("half_extents", "half_extents"))))
+        for call, items, fields in kinds:
+            for item in items:
+                for label, field in fields:
+                    v = getattr(item, field)
+                    if np.abs(np.asarray(v, dtype=np.float64)).max() > far:
+                        raise ValueError(f"{call} {label} = {v!r} is not allowed in {scalar.__name__}: must be at most "
+                                         f"{far:.3g} in size; use dtype=float64 or a smaller value")
+                if item.friction > big:
+                    raise ValueError(f"{call} friction = {item.friction!r} is not allowed in {scalar.__name__}: must be at "
+                                     f"most {big:.3g}")
 
     def finalize(self, device="cpu", dtype=wp.float32, requires_grad: bool = False, worlds: int = 1) -> Model:
         """Builds the ``Model`` on ``device`` in precision ``dtype`` (float32 or float64).
