@@ -591,19 +591,19 @@ def test_gradients_of_a_mesh_tool_and_of_keyframe_times_and_orientations_match_c
 
 # ------------------------------------------------------------------------- bad input
 @pytest.mark.parametrize("call,match", [
-    (lambda b: b.add_tool("cone"), "shape"),
-    (lambda b: b.add_tool("sphere"), "radius"),
-    (lambda b: b.add_tool("box", half_extents=(1, -1, 1)), "half_extents"),
-    (lambda b: b.add_tool("plane", friction=0.5, static_friction=0.2), "static_friction"),
-    (lambda b: b.add_tool("plane", motion="up"), "motion"),
-    (lambda b: b.add_tool("mesh"), "mesh"),
-    (lambda b: b.pin(), "selection"),
-    (lambda b: b.pin(region=((1, 1, 1), (2, 2, 2))), "no particle"),
-    (lambda b: b.pin(body="nope"), "body"),
-    (lambda b: b.pin(indices=[0, 10_000]), "indices"),
-    (lambda b: (b.pin(indices=[0, 1]), b.pin(indices=[1, 2])), "shares"),
-    (lambda b: tools.Keyframes([0.0, 0.0], [(0, 0, 0), (1, 0, 0)]), "times"),
-    (lambda b: tools.Keyframes([0.0, 1.0], [(0, 0, 0)]), "positions"),
+    (lambda b: b.add_tool("cone"), "shape = 'cone' is not allowed: must be one of 'plane', 'box'"),
+    (lambda b: b.add_tool("sphere"), "radius = None is not allowed: must be a number"),
+    (lambda b: b.add_tool("box", half_extents=(1, -1, 1)), r"half_extents = \(1, -1, 1\) is not allowed: every component must be > 0"),
+    (lambda b: b.add_tool("plane", friction=0.5, static_friction=0.2), r"static_friction = 0\.2 is not allowed: must be >= friction = 0\.5"),
+    (lambda b: b.add_tool("plane", motion="up"), r"motion = 'up' is not allowed: must be tools\.Keyframes"),
+    (lambda b: b.add_tool("mesh"), "mesh = None is not allowed: a mesh tool needs a mesh file"),
+    (lambda b: b.pin(), "pin 'pin0': no selection is not allowed: give indices, body, region"),
+    (lambda b: b.pin(region=((1, 1, 1), (2, 2, 2))), "pin 'pin0' is not allowed: the selection holds no particle"),
+    (lambda b: b.pin(body="nope"), r"body = 'nope' is not allowed: must be one of \['d'\]"),
+    (lambda b: b.pin(indices=[0, 10_000]), r"indices = \[0, 10000\] is not allowed: must be integers in \[0, 124\]"),
+    (lambda b: (b.pin(indices=[0, 1]), b.pin(indices=[1, 2])), "pin 'pin1' is not allowed: it shares particles with pin 'pin0'"),
+    (lambda b: tools.Keyframes([0.0, 0.0], [(0, 0, 0), (1, 0, 0)]), r"times = \[0\.0, 0\.0\] is not allowed: must be one or more finite, increasing"),
+    (lambda b: tools.Keyframes([0.0, 1.0], [(0, 0, 0)]), r"positions with shape \(1, 3\) is not allowed: must be \(2, 3\) finite numbers"),
 ])
 def test_bad_tool_input_is_a_value_error_naming_it(call, match):
     b = we.SceneBuilder(spacing=0.02)

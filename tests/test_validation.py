@@ -6,7 +6,6 @@ import warnings
 
 import numpy as np
 import pytest
-import warp as wp
 
 import warp_esph as we
 
@@ -56,7 +55,7 @@ def test_material_accepts_inf_yield_and_converts_young():
     [
         (lambda: we.SceneBuilder(spacing=0.0), r"spacing = 0\.0 .* > 0"),
         (lambda: we.SceneBuilder(spacing=0.01, support_radius=0.05), r"support_radius = 0\.05 .* \[1\.5 \* spacing, 3\.0 \* spacing\]"),
-        (lambda: we.SceneBuilder(spacing=0.01, support_radius=0.01), r"support_radius = 0\.01"),
+        (lambda: we.SceneBuilder(spacing=0.01, support_radius=0.01), r"support_radius = 0\.01 is not allowed: must be in \[1\.5 \* spacing, 3\.0 \* spacing\] = \[0\.015, 0\.03\]"),
         (lambda: we.SceneBuilder(gravity=(0.0, -9.81)), r"gravity = \(0\.0, -9\.81\) .* 3 numbers"),
         (lambda: we.SceneBuilder().add_box((0, 0, 0), (0.1, -0.1, 0.1), DOUGH), r"size = \(0\.1, -0\.1, 0\.1\) .* every component must be > 0"),
         (lambda: we.SceneBuilder().add_box((0, float("nan"), 0), (0.1, 0.1, 0.1), DOUGH), r"center\[1\] = nan .* finite"),
@@ -73,7 +72,7 @@ def test_material_accepts_inf_yield_and_converts_young():
         (lambda: _one_box().finalize(device="tpu"), r"device = 'tpu' is not allowed"),
         (lambda: _one_box(name="a").add_box((1, 0, 0), (0.1, 0.1, 0.1), DOUGH, name="a"), r"name = 'a' .* exists already"),
         (lambda: we.SceneBuilder().add_particles(np.zeros((4, 2)), DOUGH), r"positions with shape \(4, 2\) .* \(N, 3\)"),
-        (lambda: we.SceneBuilder().add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, velocity=(1, 2)), r"velocity"),
+        (lambda: we.SceneBuilder().add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, velocity=(1, 2)), r"velocity with shape \(2,\) is not allowed: must be 3 finite numbers or one per particle"),
         (lambda: we.SceneBuilder().add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, angular_velocity=(1, float("nan"), 0)), r"angular_velocity\[1\] = nan .* finite"),
     ],
 )
@@ -103,14 +102,15 @@ def test_solver_rejects_bad_dt_and_warns_above_stability_limit():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         solver.step(a, b, 0.5 * limit)
-    with pytest.raises(ValueError, match=r"min_neighbors = 0"):
+    with pytest.raises(ValueError, match=r"min_neighbors = 0 is not allowed: must be an integer >= 1"):
         we.Solver(model, min_neighbors=0)
 
 
 def test_solver_rejects_bad_neighbor_skin_and_fused():
     model = _one_box().finalize()
-    for bad in (-0.1, 1.5, float("nan")):
-        with pytest.raises(ValueError, match=r"neighbor_skin = .* is not allowed"):
+    for bad, allowed in ((-0.1, r"must be in \[0\.0, 1\.0\]"), (1.5, r"must be in \[0\.0, 1\.0\]"),
+                         (float("nan"), "must be a finite number")):
+        with pytest.raises(ValueError, match=rf"neighbor_skin = {bad!r} is not allowed: {allowed}"):
             we.Solver(model, neighbor_skin=bad)
     with pytest.raises(ValueError, match=r"fused = 1 is not allowed: must be True or False"):
         we.Solver(model, fused=1)
