@@ -1,5 +1,6 @@
 """The ``warp-esph`` command line, in-process through ``main`` and as a subprocess."""
 
+import json
 import os
 import subprocess
 import sys
@@ -331,6 +332,18 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         (["run", "--hourglass", "strong"], ["--hourglass = 'strong'", ">= 0"]),
         (["run", "--hourglass", "inf"], ["--hourglass = 'inf'", "finite number >= 0"]),
         (["fit", "dough_drop", "--target", "t.npz", "--hourglass", "-1"], ["--hourglass = '-1'", ">= 0"]),
+        # fit's options are checked before its scene and targets are read (here neither exists):
+        # --lr 0 and -0.1 used to run the whole L-BFGS fit and exit 0.
+        (["fit", "nothing.toml", "--target", "t.npz", "--lr", "0"], ["--lr = 0.0 is not allowed: must be > 0"]),
+        (["fit", "nothing.toml", "--target", "t.npz", "--lr", "-0.1"], ["--lr = -0.1 is not allowed: must be > 0"]),
+        (["fit", "nothing.toml", "--target", "t.npz", "--lr", "nan"], ["--lr = nan is not allowed: must be a finite number"]),
+        (["fit", "nothing.toml", "--target", "t.npz", "--seed", "-1"], ["--seed = -1 is not allowed: must be an integer >= 0"]),
+        (["fit", "nothing.toml", "--target", "t.npz", "--bounds", "yield_stress=10:1"],
+         ["--bounds['yield_stress'] = (10.0, 1.0) is not allowed: need lo < hi"]),
+        (["fit", "nothing.toml", "--target", "t.npz", "--starts", "0"], ["--starts = 0 is not allowed: must be an integer >= 1"]),
+        (["fit", "nothing.toml", "--target", "t.npz", "--sample-range", "0.5"], ["--sample-range = 0.5 is not allowed: must be > 1"]),
+        (["fit", "nothing.toml", "--target", "t.npz", "--checkpoint-every", "0"], ["--checkpoint-every = 0 is not allowed"]),
+        (["fit", "nothing.toml", "--target", "t.npz", "--params", "mu,mu"], ["names must be distinct"]),
     ],
 )
 def test_bad_input_is_one_line_exit_2(tmp_path, monkeypatch, capsys, args, needles):
@@ -339,6 +352,43 @@ def test_bad_input_is_one_line_exit_2(tmp_path, monkeypatch, capsys, args, needl
     out, err = capsys.readouterr()
     assert_one_line_error(err, *needles)
     assert list(tmp_path.iterdir()) == []  # nothing written
+
+
+@pytest.mark.parametrize("in_the_way, options, needle", [
+    ("t.usdc_tools.csv", [], "the reaction log = "),
+    ("t.usdc.checkpoint.npz", ["--checkpoint-every", "1"], "--checkpoint-every's checkpoint = "),
+    ("t.usdc.png", ["--preview"], "--preview's picture = "),
+])
+def test_a_folder_where_run_writes_a_file_is_refused_before_the_run(tmp_path, capsys, in_the_way, options, needle):
+    """Found only after the whole run before (the USD written, then a raw [Errno 21])."""
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    (tmp_path / in_the_way).mkdir()
+    out = tmp_path / "t.usdc"
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(out), "--no-progress", *options]) == 2
+    assert_one_line_error(capsys.readouterr().err, needle, "is not allowed: it is a folder; a file is written there")
+    assert not out.exists()  # nothing ran
+
+
+def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experiments_file(tmp_path, capsys):
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    run = tmp_path / "truth.usdc"
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(run), "--no-progress", "--dtype", "float64"]) == 0
+    capsys.readouterr()
+    fit = ["fit", str(tmp_path / "s.toml"), "--target", str(run), "--no-progress", "--iterations", "1"]
+    (tmp_path / "fo" / "fitted.usdc").mkdir(parents=True)
+    assert main([*fit, "--output-dir", str(tmp_path / "fo")]) == 2
+    assert_one_line_error(capsys.readouterr().err, "--output-dir = ", "fitted.usdc in it is a folder")
+    assert main([*fit, "-o", str(tmp_path / "no" / "dir" / "fit.json")]) == 2
+    assert_one_line_error(capsys.readouterr().err, "--output = ", "does not exist or is not a folder")
+    # A damaged --experiments file is named as itself, not as the --target.
+    (tmp_path / "exp.json").write_bytes(b"\xda\x00\xff garbage")
+    assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
+    assert_one_line_error(capsys.readouterr().err, f"--experiments {tmp_path / 'exp.json'} is not valid JSON")
+    # A negative weight would maximise that experiment's loss.
+    (tmp_path / "exp.json").write_text(json.dumps([{"scene": "s.toml", "target": "truth.usdc", "weight": -1}]))
+    assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
+    assert_one_line_error(capsys.readouterr().err, "experiment #1: weight = -1 is not allowed: must be > 0")
+    assert not (tmp_path / "fit_tiny").exists()
 
 
 def _fail_after(monkeypatch, steps: int, action):

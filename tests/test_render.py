@@ -192,6 +192,13 @@ def test_bad_outputs(tmp_path, monkeypatch):
     with pytest.raises(FileNotFoundError):
         render_usd(tmp_path / "missing.usdc", tmp_path / "x.png")
     assert not (tmp_path / "x.png").exists()
+    # A rate no GIF holds (1e-9 fps ended in an OverflowError in the GIF writer) and a
+    # folder in the way of the picture: refused before any frame is drawn.
+    with pytest.raises(ValueError, match=r"fps = 1e-09 is not allowed: must be in \[0\.01, 1000\.0\]"):
+        render_usd(path, tmp_path / "x.gif", fps=1e-9)
+    (tmp_path / "d.png").mkdir()
+    with pytest.raises(ValueError, match=r"output = .*d\.png' is not allowed: it is a folder; a file is written there"):
+        render_usd(path, tmp_path / "d.png")
 
 
 def test_render_command(tmp_path, capsys):

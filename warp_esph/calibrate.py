@@ -26,7 +26,6 @@ import sys
 import numpy as np
 
 from . import checks
-from .rollout import PARAMETERS
 
 __all__ = ["add_calibration_arguments", "run_fit", "write_outputs", "jitter_model", "default_optimizer"]
 
@@ -107,22 +106,25 @@ def run_fit(args, out=None, err=None) -> int:
     import warp as wp  # noqa: PLC0415
 
     from .cli import _parse_bounds  # noqa: PLC0415
-    from .fit import Experiment, _material_indices, fit, load_target  # noqa: PLC0415
+    from .fit import Experiment, _material_indices, check_options, fit, load_target  # noqa: PLC0415
     from .scenes import load_scene  # noqa: PLC0415
     from .simulate import resolve_timestep  # noqa: PLC0415
 
-    params = [p.strip() for p in str(args.params).split(",") if p.strip()]
-    for p in params:
-        if p not in PARAMETERS:
-            raise ValueError(f"--params entry {p!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
-    if args.iterations < 0:
-        raise ValueError(f"--iterations = {args.iterations!r} is not allowed: must be >= 0")
     jitter = checks.non_negative("--jitter", _arg(args, "jitter", 0.0))
     loss_scale = checks.positive("--loss-scale", _arg(args, "loss_scale", 1.0))
     memory_limit = checks.positive("--memory-limit", _arg(args, "memory_limit", 1024.0)) * 2**20
     bounds = _parse_bounds(args.bounds)
+    # Every option that needs no scene, checked before the scene is built and the targets read.
+    opts = check_options(params=str(args.params), iterations=args.iterations, lr=args.lr, clip=args.clip, bounds=bounds,
+                         optimizer=_arg(args, "optimizer") or "adam", patience=_arg(args, "patience", 20),
+                         samples=_arg(args, "samples", 0), starts=_arg(args, "starts", 1),
+                         sample_range=_arg(args, "sample_range", 4.0), seed=_arg(args, "seed", 5), noise=_arg(args, "noise"),
+                         memory_limit=memory_limit, flag=lambda name: "--" + name.replace("_", "-"))
+    params = opts["params"]
     dtype = {"float32": wp.float32, "float64": wp.float64}[args.dtype]
     ck = args.checkpoint_every if args.checkpoint_every is not None else "auto"
+    if ck != "auto":
+        ck = checks.positive_int("--checkpoint-every", ck)
 
     main_spec = {"scene": args.scene, "target": args.target, "target_frames": _arg(args, "target_frames"),
                  "target_body": _arg(args, "target_body"), "target_tool": _arg(args, "target_tool"), "cameras": _arg(args, "cameras"), "scale": args.scale,
@@ -132,6 +134,17 @@ def run_fit(args, out=None, err=None) -> int:
     if _arg(args, "experiments"):
         specs += _read_experiments(args.experiments)
     exps = [_experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep) for where, spec in specs]
+
+    # Where the results go, checked before the fit (a folder in the way was found after it).
+    folder = _arg(args, "output_dir") or f"fit_{exps[0].scene.name}"
+    checks.output_place("--output-dir", folder, folder=True)
+    names = ["history.csv", "loss.png", "params.png"] + ([] if args.no_usd else ["fitted.usdc"])
+    names += [] if _arg(args, "output") else ["fit.json"]
+    for name in names:
+        if os.path.isdir(os.path.join(folder, name)):
+            raise ValueError(f"--output-dir = {folder!r} is not allowed: {name} in it is a folder; the fit writes a file there")
+    if _arg(args, "output"):
+        checks.output_place("--output", args.output)
 
     def log(message):
         print(f"warp-esph fit: {message}", file=err, flush=True)
@@ -156,7 +169,6 @@ def run_fit(args, out=None, err=None) -> int:
     scale = exps[0].scale
     targets = exps[0].targets
 
-    folder = _arg(args, "output_dir") or f"fit_{scene.name}"
     meta = {"scene": scene.name, "scale": scale, "targets": [os.path.abspath(str(p)) for p in targets], "fps": fps, "dt": dt,
             "frames": frames, "params_fitted": params, "optimizer": optimizer, "jitter": jitter, "loss_scale": loss_scale,
             "support_radius": model.support_radius,
@@ -208,6 +220,7 @@ def _read_experiments(path) -> list[tuple[str, dict]]:
             if key not in spec:
                 raise ValueError(f"{where}missing key {key!r}")
         spec = {"scale": 1.0, "weight": 1.0, **spec}
+        checks.positive(f"{where}weight", spec["weight"])  # negative: its loss maximised; checked before any scene
 
         def rel(x):
             return x if os.path.isabs(str(x)) else os.path.join(base, str(x))
@@ -295,7 +308,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     noise = spec.get("noise")
     return types.SimpleNamespace(scene=scene, model=model, loss=loss, frames=frames, fps=fps, dt=dt, substeps=substeps,
                                  materials=materials, kinds=kinds, targets=targets, scale=scale,
-                                 weight=checks.number(f"{where}weight", spec.get("weight", 1.0)),
+                                 weight=checks.positive(f"{where}weight", spec.get("weight", 1.0)),
                                  noise=None if noise is None else checks.positive(f"{where}noise", noise))
 
 

@@ -91,7 +91,9 @@ def in_range(name: str, value, lo: float, hi: float) -> float:
 def greater_than(name: str, value, bound: float, bound_text: str) -> float:
     v = number(name, value)
     if not v > bound:
-        _fail(name, value, f"must be > {bound_text} = {bound:g}")
+        # "> -2 mu / 3 = -6.67e+03"; a bare number is not written twice ("> 1").
+        same = bound_text.strip() == f"{bound:g}"
+        _fail(name, value, f"must be > {bound_text}" if same else f"must be > {bound_text} = {bound:g}")
     return v
 
 
@@ -106,7 +108,7 @@ def vector(name: str, value, length: int = 3) -> tuple[float, ...]:
 def positive_vector(name: str, value, length: int = 3) -> tuple[float, ...]:
     v = vector(name, value, length)
     if not all(c > 0.0 for c in v):
-        _fail(name, value, f"every component must be > 0")
+        _fail(name, value, "every component must be > 0")
     return v
 
 
@@ -234,6 +236,31 @@ def json_file(what: str, path):
         raise ValueError(f"{what} {p} cannot be read: {e}") from None
     except json.JSONDecodeError as e:
         raise ValueError(f"{what} {p} is not valid JSON: {e}") from None
+    except UnicodeDecodeError:  # bytes that are not text: not the JSON file asked for
+        raise ValueError(f"{what} {p} is not valid JSON: it is not text (a damaged or foreign file?)") from None
+
+
+def output_place(what: str, path, folder: bool = False) -> str:
+    """``path`` where a command will write a file (``folder``: a folder of files), checked
+    before the work that fills it: a ``ValueError`` naming ``what`` where something of the
+    other kind is in the way or its folder cannot take a new file. Creates nothing."""
+    p = os.fspath(path)
+    if os.path.exists(p) and os.path.isdir(p) != folder:
+        raise ValueError(f"{what} = {p!r} is not allowed: it is {'a file' if folder else 'a folder'}; "
+                         f"a {'folder' if folder else 'file'} is written there")
+    parent = p if folder and os.path.isdir(p) else (os.path.dirname(os.path.abspath(p)) or ".")
+    while folder and not os.path.exists(parent):  # a folder to create: its nearest existing parent takes it
+        parent = os.path.dirname(parent)
+    if not os.path.isdir(parent):
+        raise ValueError(f"{what} = {p!r} is not allowed: its folder {parent!r} does not exist or is not a folder")
+    try:  # the one reliable test that a file can be created there
+        import tempfile  # noqa: PLC0415
+
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as e:
+        raise ValueError(f"{what} = {p!r} is not allowed: {parent!r} cannot take a new file ({e.strerror or e})") from None
+    return p
 
 
 def file_error(path, exc: BaseException, verb: str = "read") -> ValueError:

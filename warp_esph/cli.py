@@ -116,7 +116,7 @@ def _build_parser() -> _Parser:
     ren.add_argument("--fit", choices=("all", "each"), default="all",
                      help="frame the bounds of all chosen frames with one camera (default), or each picture on its own")
     ren.add_argument("--columns", type=int, metavar="N", help="frames per row when several go into one .png (default up to 4)")
-    ren.add_argument("--fps", type=float, help="playback rate of a .gif/.mp4 (default: the file's)")
+    ren.add_argument("--fps", type=float, help="playback rate of a .gif/.mp4, 0.01 to 1000 (default: the file's)")
     ren.add_argument("--no-label", action="store_true", help="no time label in the corner")
     ren.add_argument("--no-shadows", action="store_true", help="no shadows (faster)")
     ren.add_argument("--particles", "--no-surface", dest="particles", action="store_true",
@@ -318,6 +318,20 @@ def _cmd_run(args) -> int:
     check_step_count(frames, substeps)
     solver = Solver(model)
     solver.check_dt(dt_shown)  # the stability warning, once, before the run
+    # Every file the run writes, checked before the run (a folder in the way of the reaction
+    # log was found only after the whole run); named after the whole output path, as the writer does.
+    stem = os.path.abspath(os.fspath(output))
+    if args.resume is None:
+        checks.output_place("--output", stem)
+    if model.tools is not None or model.planes or model.spheres or model.boxes:
+        for log_file in (stem + "_tools.csv", stem + "_tools.json"):
+            checks.output_place("the reaction log", log_file)
+    if every is not None:
+        checks.output_place("--checkpoint-every's checkpoint", stem + ".checkpoint.npz")
+    if args.export:
+        checks.output_place(f"--export {args.export}'s folder", f"{stem}_{args.export}", folder=True)
+    if args.preview:
+        checks.output_place("--preview's picture", stem + ".png")
     _arm(args)  # from here an interrupt unwinds through the writer
     writer = UsdWriter(output, model, fps, surface=args.surface, view=getattr(scene, "view", None), append=args.resume is not None)
     # The whole output name: a.usdc and a.usda in one folder must not share a checkpoint.
@@ -548,7 +562,10 @@ def _cmd_render(args) -> int:
 def _cmd_export(args) -> int:
     from .export import export_frames  # noqa: PLC0415
 
+    from . import checks  # noqa: PLC0415
+
     folder = args.output or f"{os.path.abspath(args.usd)}_{args.format}"
+    checks.output_place("--output", folder, folder=True)
     _arm(args)
     files = export_frames(args.usd, args.format, folder, frames=args.frames)
     frames = len(files) - (1 if args.format == "vtu" else 0)

@@ -312,7 +312,7 @@ class _Run:
         self.rollout = Rollout(self.model, self.steps, self.dt, frames=loss.frames, checkpoint_every=ck)
         self.memory = memory_estimate(self.model, self.steps, self.rollout.segment if self.rollout.checkpointing else None)
         self.initial = dict(exp.initial or {})
-        self.weight = checks.number("weight", exp.weight)
+        self.weight = checks.positive("weight", exp.weight)  # a negative weight would maximise its loss
         self.noise = None if exp.noise is None else checks.positive("noise", exp.noise)
         self.values = self.rollout.get_parameters()
         self.rho = np.array([m.density for m in self.model.materials])
@@ -461,6 +461,58 @@ class _Problem:
         return total
 
 
+def _count(name: str, value) -> int:
+    """An integer >= 0 (an integral float too, as ``int()`` took it before)."""
+    try:
+        v = int(value)
+        ok = not isinstance(value, bool) and v == value and v >= 0
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
+        raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be an integer >= 0")
+    return v
+
+
+def check_options(*, params, iterations, lr, lr_end=None, clip=None, bounds=None, optimizer="adam", patience=20,
+                  samples=0, starts=1, sample_range=4.0, seed=0, noise=None, memory_limit=MEMORY_LIMIT,
+                  flag=lambda name: name) -> dict:
+    """``fit``'s options that need no model, checked (as ``fit`` checks them, before any
+    rollout): a dict of the validated values. ``flag(name)`` is how a message names an
+    option (the command line passes ``--lr`` for ``lr``). Bounds are checked here for their
+    form (``lo < hi``, a fitted parameter); ``fit`` checks ``lo > 0`` of a positive one."""
+    if isinstance(params, str):
+        params = [p.strip() for p in params.split(",") if p.strip()]
+    params = list(params)
+    if not params:
+        raise ValueError(f"{flag('params')} = [] is not allowed: name at least one parameter")
+    for p in params:
+        if p not in PARAMETERS:
+            raise ValueError(f"{flag('params')} entry {p!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
+    if len(set(params)) != len(params):
+        raise ValueError(f"{flag('params')} = {params!r} is not allowed: names must be distinct")
+    out = {"params": params, "iterations": _count(flag("iterations"), iterations), "lr": checks.positive(flag("lr"), lr),
+           "lr_end": None if lr_end is None else checks.positive(flag("lr_end"), lr_end),
+           "clip": None if clip is None else checks.positive(flag("clip"), clip),
+           "optimizer": checks.choice(flag("optimizer"), optimizer, ("adam", "lbfgs", "gauss-newton")),
+           "patience": checks.positive_int(flag("patience"), patience),
+           "starts": checks.positive_int(flag("starts"), starts),
+           "sample_range": checks.greater_than(flag("sample_range"), sample_range, 1.0, "1"),
+           "noise": None if noise is None else checks.positive(flag("noise"), noise),
+           "memory_limit": checks.positive(flag("memory_limit"), memory_limit)}
+    out["samples"] = _count(flag("samples"), samples)
+    out["seed"] = _count(flag("seed"), seed)
+    for name, rng in (bounds or {}).items():
+        if name not in params:
+            raise ValueError(f"{flag('bounds')} for {name!r} are not allowed: {name} is not fitted (params = {params})")
+        try:
+            lo, hi = (float(v) for v in rng)
+        except (TypeError, ValueError):
+            raise ValueError(f"{flag('bounds')}[{name!r}] = {rng!r} is not allowed: must be (lo, hi) numbers") from None
+        if math.isnan(lo) or math.isnan(hi) or not lo < hi:
+            raise ValueError(f"{flag('bounds')}[{name!r}] = ({lo}, {hi}) is not allowed: need lo < hi")
+    return out
+
+
 def fit(
     model,
     target=None,
@@ -553,39 +605,18 @@ def fit(
     - ``callback(evaluation, loss, params)``: after each evaluation; return ``True`` to
       stop. ``log``: called with one-line messages (memory, time per evaluation, stages).
     """
-    if isinstance(params, str):
-        params = [p.strip() for p in params.split(",") if p.strip()]
-    params = list(params)
-    if not params:
-        raise ValueError("params = [] is not allowed: name at least one parameter")
-    for p in params:
-        if p not in PARAMETERS:
-            raise ValueError(f"params entry {p!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
-    if len(set(params)) != len(params):
-        raise ValueError(f"params = {params!r} is not allowed: names must be distinct")
-    iterations = int(iterations)
-    if iterations < 0:
-        raise ValueError(f"iterations = {iterations!r} is not allowed: must be >= 0")
-    if clip is not None:
-        clip = checks.positive("clip", clip)
-    optimizer = checks.choice("optimizer", optimizer, ("adam", "lbfgs", "gauss-newton"))
+    o = check_options(params=params, iterations=iterations, lr=lr, lr_end=lr_end, clip=clip, bounds=bounds,
+                      optimizer=optimizer, patience=patience, samples=samples, starts=starts, sample_range=sample_range,
+                      seed=seed, noise=noise, memory_limit=memory_limit)
+    params, iterations, lr, lr_end, clip, optimizer = o["params"], o["iterations"], o["lr"], o["lr_end"], o["clip"], o["optimizer"]
+    patience, samples, starts, sample_range, seed = o["patience"], o["samples"], o["starts"], o["sample_range"], o["seed"]
+    noise, memory_limit = o["noise"], o["memory_limit"]
     max_step = checks.positive("max_step", max_step)
     lbfgs_memory = checks.positive_int("lbfgs_memory", lbfgs_memory)
     xtol = checks.positive("xtol", xtol)
     gtol = checks.non_negative("gtol", gtol)
-    patience = checks.positive_int("patience", patience)
-    samples = int(samples)
-    if samples < 0:
-        raise ValueError(f"samples = {samples!r} is not allowed: must be >= 0")
-    starts = checks.positive_int("starts", starts)
     worlds = checks.boolean("worlds", worlds)
-    sample_range = checks.greater_than("sample_range", sample_range, 1.0, "1")
-    memory_limit = checks.positive("memory_limit", memory_limit)
     fd_step = checks.positive("fd_step", fd_step)
-    if noise is not None:
-        noise = checks.positive("noise", noise)
-    if lr_end is not None:
-        lr_end = checks.positive("lr_end", lr_end)
     if callback is not None and not callable(callback):
         raise ValueError(f"callback = {callback!r} is not allowed: must be callable")
     say = log or (lambda message: None)

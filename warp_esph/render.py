@@ -1019,6 +1019,10 @@ class RenderResult:
         return self.seconds / max(len(self.frames), 1)
 
 
+#: Playback rates a GIF or MP4 can hold (``render_usd(fps=...)``, ``warp-esph render --fps``).
+FPS_RANGE = (0.01, 1000.0)
+
+
 def render_usd(path, output=None, frames=None, *, color: str = "body", width: int = 800, height: int = 600,
                supersample: int = 2, radius_scale: float = 1.0, azimuth: float | None = None,
                elevation: float | None = None, zoom: float = 1.0, fov: float = 30.0, label: bool = True,
@@ -1052,12 +1056,13 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     options = RenderOptions(width=width, height=height, color=color, supersample=supersample, radius_scale=radius_scale,
                             azimuth=azimuth, elevation=elevation, zoom=zoom, fov=fov, label=label, shadows=shadows,
                             surfaces=surfaces)
-    playback = checks.positive("fps", fps) if fps is not None else data.fps
-    parent = out if kind == "dir" else (os.path.dirname(os.path.abspath(out)) or ".")
+    # A GIF frame lasts at most 655.35 s and an MP4's rate must be one ffmpeg can hold:
+    # 1e-9 fps ended in an OverflowError inside the GIF writer.
+    playback = checks.in_range("fps", fps, FPS_RANGE[0], FPS_RANGE[1]) if fps is not None else data.fps
+    # Before any frame is drawn: a folder in the way, or a place that takes no file.
+    checks.output_place("output", out, folder=kind == "dir")
     if kind == "dir":
         os.makedirs(out, exist_ok=True)
-    elif not os.path.isdir(parent):
-        raise FileNotFoundError(f"cannot write {out}: the folder {parent} does not exist")
 
     checks.choice("fit", fit, ("all", "each"))
     t0 = time.perf_counter()

@@ -901,6 +901,7 @@ def sweep_cli(args, out=None) -> int:
     # Every task holds this scene: its builder's [solver] options, overridden, reach each sample's Solver(model).
     _apply_solver_options(sc.builder, options)
     folder = args.output or f"sweep_{sc.name}"
+    checks.output_place("--output", folder, folder=True)  # before the first sample, not after
     where = f"Ray at {args.ray}" if args.ray else f"{min(args.workers or _cores(), len(points))} worker(s)"
     print(f"{PROG} sweep: {sc.name}: {len(points)} samples ({args.sample}) of {', '.join(p.name for p in plist)} "
           f"on {where} -> {folder}", file=sys.stderr, flush=True)
