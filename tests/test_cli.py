@@ -192,6 +192,10 @@ def test_hourglass_from_scene_file_cli_and_resume(tmp_path, capsys):
     assert main(["run", "--resume", ckpt, "--frames", "4", "--no-progress"]) == 0
     assert all(np.array_equal(a, b) for a, b in zip(frames(part), x_chosen))
     capsys.readouterr()
+    # What the checkpoint's run decides is refused beside --resume, not ignored.
+    for extra, named in ((["--hourglass", "0"], "--hourglass = '0'"), ([str(plain)], "SCENE = "), (["--dt", "0.007"], "--dt = 0.007")):
+        assert main(["run", *extra, "--resume", ckpt, "--frames", "6", "--no-progress"]) == 2
+        assert_one_line_error(capsys.readouterr().err, named, "is not allowed with --resume: the checkpoint's run decides it")
 
 
 RESTING_TOML = textwrap.dedent(
@@ -380,6 +384,11 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
     assert_one_line_error(capsys.readouterr().err, "--output-dir = ", "fitted.usdc in it is a folder")
     assert main([*fit, "-o", str(tmp_path / "no" / "dir" / "fit.json")]) == 2
     assert_one_line_error(capsys.readouterr().err, "--output = ", "does not exist or is not a folder")
+    # Options of another kind of target are refused, not ignored (both ran the fit and exited 0).
+    assert main([*fit, "--radius", "0.01"]) == 2
+    assert_one_line_error(capsys.readouterr().err, "--radius = 0.01 is not allowed: it is the search radius of point-cloud")
+    assert main([*fit, "--target-tool", "ground"]) == 2
+    assert_one_line_error(capsys.readouterr().err, "--target-tool = 'ground' is not allowed: it picks the tool of a force-curve")
     # A damaged --experiments file is named as itself, not as the --target.
     (tmp_path / "exp.json").write_bytes(b"\xda\x00\xff garbage")
     assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2

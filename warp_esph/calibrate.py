@@ -305,6 +305,14 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     if materials:
         materials = [int(m) if str(m).isdigit() else m for m in materials]
     kinds = ", ".join(sorted({("silhouettes" if kind == "silhouette" else t.kind) for kind, _, t in loaded}))
+    # Options of a kind of target none of these is: refused, not ignored.
+    file_kinds = {t.kind for kind, _, t in loaded if kind == "file"}
+    if _arg(args, "radius") is not None and "points" not in file_kinds:
+        raise ValueError(f"{where}--radius = {args.radius!r} is not allowed: it is the search radius of point-cloud "
+                         f"targets, and the targets are {kinds}")
+    if spec.get("target_tool") is not None and "forces" not in file_kinds:
+        raise ValueError(f"{where}--target-tool = {spec['target_tool']!r} is not allowed: it picks the tool of a "
+                         f"force-curve target (<output>_tools.csv), and the targets are {kinds}")
     noise = spec.get("noise")
     return types.SimpleNamespace(scene=scene, model=model, loss=loss, frames=frames, fps=fps, dt=dt, substeps=substeps,
                                  materials=materials, kinds=kinds, targets=targets, scale=scale,

@@ -131,6 +131,7 @@ def _build_parser() -> _Parser:
     exp.add_argument("-o", "--output", metavar="DIR", help="output folder (default: <OUT>_<format>/ beside the file, e.g. a.usdc_vtu/)")
     exp.add_argument("--frames", metavar="SELECTION", help="frames, as for render (default: all)")
     _add_sweep_parser(sub)
+    p.commands = tuple(sub.choices)  # named when none is given
     return p
 
 
@@ -285,7 +286,15 @@ def _cmd_run(args) -> int:
     options = _solver_options(args)
     start_frame, state = 0, None
     if args.resume is not None:
-        # The run record of the checkpoint decides everything the results depend on.
+        # The run record of the checkpoint decides everything the results depend on: a scene,
+        # step, rate or scale given beside it would be ignored, so it is refused.
+        given = [f"{name} = {value!r}" for name, value, default in
+                 (("SCENE", args.scene, None), ("--dt", args.dt, None), ("--fps", args.fps, None), ("--scale", args.scale, 1.0),
+                  ("-o", args.output, None), ("--solver-fit", args.solver_fit, None), ("--contact", args.contact, None),
+                  ("--hourglass", args.hourglass, None)) if value != default]
+        if given:
+            raise ValueError(f"{given[0]} is not allowed with --resume: the checkpoint's run decides it "
+                             f"(give --resume, and --frames to extend the run)")
         meta, _ = read_checkpoint(args.resume)
         run = meta.get("run", {})
         if not isinstance(run, dict) or not {"scene", "scale", "fps", "dt", "frames", "output", "dtype"} <= run.keys():
@@ -667,7 +676,7 @@ def main(argv=None, *, restore_signals: bool = True) -> int:
             _err(e)
             return EXIT_BAD_INPUT
         if args.command is None:
-            parser.print_help(sys.stderr)
+            _err(f"a command is required: one of {', '.join(parser.commands)} (warp-esph --help for each)")
             return EXIT_BAD_INPUT
         args.signals = signals
         try:
