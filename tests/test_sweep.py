@@ -158,6 +158,19 @@ def test_ray_gives_the_same_table(serial):
     assert _rows(remote) == _rows(serial)
 
 
+def test_a_ray_address_where_nothing_answers_is_refused_at_once(capsys, tmp_path):
+    """``ray.init`` retried such an address for minutes, printing as it went; the command
+    line now refuses it in one line, before the plan's."""
+    from warp_esph.cli import main
+
+    for address, reason in (("127.0.0.1:1", "nothing answers at 127.0.0.1:1"), ("nonsense", "give 'auto', HOST:PORT")):
+        status = main(["sweep", "dough_drop", "--param", "yield_stress=100:1000:log:2", "--ray", address, "--no-progress",
+                       "-o", str(tmp_path / "sw")])
+        err = capsys.readouterr().err
+        assert status == 2 and err.count("\n") == 1 and reason in err, err
+    assert not (tmp_path / "sw").exists()
+
+
 # ------------------------------------------------------------------ the command
 def test_energy_blow_up_check_is_ten_times_the_energy_scale():
     """``_blew_up`` on an end state: at rest and in place, the energy grew by 0.5 M u^2 for

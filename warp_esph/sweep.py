@@ -624,6 +624,24 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
     return results
 
 
+def _check_reachable(address: str, timeout: float = 5.0) -> None:
+    """A ``host:port`` (or ``ray://host:port``) address must answer within ``timeout`` s:
+    ``ray.init`` retries an address where nothing listens for minutes, printing as it goes."""
+    text = str(address)
+    if text in ("auto", "local"):
+        return
+    hostport = text.split("://", 1)[1] if "://" in text else text
+    host, _, port = hostport.rpartition(":")
+    if not host or not port.isdigit():
+        raise ValueError(f"--ray = {text!r} is not allowed: give 'auto', HOST:PORT or ray://HOST:PORT")
+    import socket  # noqa: PLC0415
+
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except OSError as e:
+        raise ValueError(f"--ray = {text!r} is not allowed: nothing answers at {host}:{port} ({e.strerror or e})") from None
+
+
 def _ray_map(fn, items, address, on_result, on_error, resources):
     try:
         import ray  # noqa: PLC0415
@@ -631,6 +649,7 @@ def _ray_map(fn, items, address, on_result, on_error, resources):
         raise ValueError(f"--ray {address} is not allowed: Ray is not installed; pip install 'warp-esph[ray]'") from None
     started = False
     if not ray.is_initialized():
+        _check_reachable(address)
         try:
             ray.init(address=address, include_dashboard=False, log_to_driver=False)
         except (ConnectionError, ValueError, RuntimeError) as e:
@@ -902,6 +921,8 @@ def sweep_cli(args, out=None) -> int:
     _apply_solver_options(sc.builder, options)
     folder = args.output or f"sweep_{sc.name}"
     checks.output_place("--output", folder, folder=True)  # before the first sample, not after
+    if args.ray:
+        _check_reachable(args.ray)  # before the plan's line: one line for a wrong address
     where = f"Ray at {args.ray}" if args.ray else f"{min(args.workers or _cores(), len(points))} worker(s)"
     print(f"{PROG} sweep: {sc.name}: {len(points)} samples ({args.sample}) of {', '.join(p.name for p in plist)} "
           f"on {where} -> {folder}", file=sys.stderr, flush=True)
