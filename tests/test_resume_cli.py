@@ -26,7 +26,7 @@ def _points(path):
     return out
 
 
-def test_resume_writes_what_the_uninterrupted_run_writes(tmp_path):
+def test_resume_writes_what_the_uninterrupted_run_writes(tmp_path, capsys):
     """A run stopped after frame 4 (its last checkpoint) and resumed to frame 6 writes
     the same file, bit for bit, as a run of 6 frames."""
     full = tmp_path / "full.usdc"
@@ -44,6 +44,9 @@ def test_resume_writes_what_the_uninterrupted_run_writes(tmp_path):
         for t in a[prim]:
             np.testing.assert_array_equal(a[prim][t], b[prim][t])
     assert main(["run", "--resume", str(ckpt), "--no-progress"]) == 2  # nothing left to run
+    # --frames at or below the checkpoint's frame: the message names --frames and the frame.
+    assert main(["run", "--resume", str(ckpt), "--frames", "5", "--no-progress"]) == 2
+    assert "--frames = 5 is not allowed with --resume" in capsys.readouterr().err
 
 
 def test_resume_of_a_bad_checkpoint_is_one_line(tmp_path, capsys):

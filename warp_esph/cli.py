@@ -319,6 +319,9 @@ def _cmd_run(args) -> int:
         start_frame = meta["frame"]
     frames = frames_total - start_frame
     if frames < 1:
+        if args.frames is not None:
+            raise ValueError(f"--frames = {args.frames} is not allowed with --resume = {args.resume!r}: the checkpoint is at "
+                             f"frame {start_frame}; give more frames than that to extend the run")
         raise ValueError(f"--resume = {args.resume!r} is not allowed: that run finished all {frames_total} frames")
     adaptive = dt == "auto"
     substeps, dt_shown = resolve_timestep(model, fps) if adaptive else resolve_timestep(model, fps, dt=dt)

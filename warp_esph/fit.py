@@ -1314,7 +1314,10 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         try:
             data = read_arrays(p)
         except Exception as e:  # noqa: BLE001
-            raise ValueError(f"target {p} cannot be read: {e}") from None
+            # numpy reads bytes that are no array file as pickled data and advises loading
+            # them unsafely: not the advice to give about a damaged or foreign file.
+            why = "not a numpy .npz/.npy file" if "pickle" in str(e) else str(e)
+            raise ValueError(f"target {p} cannot be read: {why} (a damaged or foreign file?)") from None
         frames, fps = None, None
         if ext == ".npz":
             if "positions" not in data:

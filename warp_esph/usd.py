@@ -695,7 +695,8 @@ class UsdFrames:
     def __init__(self, path):
         self.path = os.fspath(path)
         if not os.path.isfile(self.path):
-            raise FileNotFoundError(f"cannot read {self.path}: no such file")
+            why = "it is a folder" if os.path.isdir(self.path) else "no such file"
+            raise FileNotFoundError(f"cannot read {self.path}: {why}")
         # Anonymous: a file rewritten in this process (run, then render) is read afresh.
         layer = open_layer_checked(self.path)
         self._layer = layer
