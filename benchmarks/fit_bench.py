@@ -18,7 +18,6 @@ checkpointing (``checkpoint_every = ceil(sqrt(steps))`` by default), it measures
 It prints a table and writes JSON (``--json``, default ``fit_bench.json``). Not a test.
 """
 
-import argparse
 import gc
 import json
 import math
@@ -38,6 +37,7 @@ except ImportError:  # run from a checkout without installing the package
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import warp_esph as we
 
+from benchmarks import _cli
 from benchmarks.blocks import block_model
 from warp_esph.losses import PositionLoss
 from warp_esph.rollout import PARAMETERS, Rollout
@@ -97,26 +97,42 @@ def measure(model: we.Model, steps: int, checkpoint_every: int | None, repeats: 
     }
 
 
+def _checkpoint(text, name):
+    """'sqrt' or a segment length >= 1."""
+    if str(text).strip() == "sqrt":
+        return "sqrt"
+    return _cli.as_int(text, name, 1, "must be 'sqrt' or an integer >= 1")
+
+
+PROG = "python -m benchmarks.fit_bench"
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--particles", default="250,1000,4000", help="comma-separated particle counts (approximate)")
-    ap.add_argument("--steps", default="50,200", help="comma-separated step counts")
-    ap.add_argument("--checkpoint", default="sqrt", help="segment length for the checkpointed runs: an integer or 'sqrt'")
-    ap.add_argument("--repeats", type=int, default=1, help="timed repeats per configuration (the fastest is kept)")
-    ap.add_argument("--quick", action="store_true", help="a tiny run: 125 particles, 20 steps")
-    ap.add_argument("--json", default="fit_bench.json", help="output JSON path")
+    ap = _cli.Parser(prog=PROG, description=__doc__.split("\n\n")[0])
+    ap.add_argument("--particles", default=None, type=_cli.positive_int_list,
+                    help="comma-separated particle counts (approximate; default 250,1000,4000)")
+    ap.add_argument("--steps", default=None, type=_cli.positive_int_list, help="comma-separated step counts (default 50,200)")
+    ap.add_argument("--checkpoint", default="sqrt", type=_cli.Check(_checkpoint),
+                    help="segment length for the checkpointed runs: an integer or 'sqrt'")
+    ap.add_argument("--repeats", type=_cli.positive_int, default=1, help="timed repeats per configuration (the fastest is kept)")
+    ap.add_argument("--quick", action="store_true", help="a tiny run: 125 particles, 20 steps (not with --particles, --steps)")
+    ap.add_argument("--json", default="fit_bench.json", type=_cli.output_file, help="output JSON path")
     a = ap.parse_args(argv)
+    if a.quick:
+        for option, value in (("--particles", a.particles), ("--steps", a.steps)):
+            if value is not None:
+                ap.error(f"{option} is not allowed with --quick (it runs 125 particles, 20 steps)")
     from warp_esph.startup import init_warp  # noqa: PLC0415 (log_level, no native CUDA note)
 
     init_warp()
-    sizes = [125] if a.quick else [int(s) for s in a.particles.split(",")]
-    step_counts = [20] if a.quick else [int(s) for s in a.steps.split(",")]
+    sizes = [125] if a.quick else (a.particles or [250, 1000, 4000])
+    step_counts = [20] if a.quick else (a.steps or [50, 200])
 
     rows = []
     for n in sizes:
         model = block_model(n, wp.float64)
         for steps in step_counts:
-            seg = math.ceil(math.sqrt(steps)) if a.checkpoint == "sqrt" else int(a.checkpoint)
+            seg = math.ceil(math.sqrt(steps)) if a.checkpoint == "sqrt" else a.checkpoint
             full = measure(model, steps, None, a.repeats)
             ck = measure(model, steps, seg, a.repeats)
             worst = 0.0
@@ -150,4 +166,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(_cli.run(main, PROG))

@@ -12,13 +12,16 @@ with the non-fused kernels, which a ghost floor (``add_particle_floor(ghost=True
 backward, for the particle and ghost floors. Not a test.
 """
 
-import argparse
 import json
 import platform
 import sys
 import time
 
 import numpy as np
+
+from benchmarks import _cli
+
+PROG = "python -m benchmarks.floors"
 
 
 def _forward(floor: str, fused: bool, resolution: int, steps: int, warmup: int) -> tuple[float, int]:
@@ -66,14 +69,14 @@ def _taped(floor: str, resolution: int, steps: int) -> tuple[float, float]:
 
 
 def main(argv=None) -> dict:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.floors", description=__doc__.split("\n\n")[0])
-    p.add_argument("--resolution", type=int, default=12, help="particles across the slump's cylinder")
-    p.add_argument("--steps", type=int, default=60)
-    p.add_argument("--warmup", type=int, default=5)
-    p.add_argument("--repeat", type=int, default=2)
+    p = _cli.Parser(prog=PROG, description=__doc__.split("\n\n")[0])
+    p.add_argument("--resolution", type=_cli.positive_int, default=12, help="particles across the slump's cylinder")
+    p.add_argument("--steps", type=_cli.positive_int, default=60)
+    p.add_argument("--warmup", type=_cli.positive_int, default=5)
+    p.add_argument("--repeat", type=_cli.positive_int, default=2)
     p.add_argument("--taped", action="store_true", help="also time a float64 taped window, forward and backward")
-    p.add_argument("--taped-steps", type=int, default=3)
-    p.add_argument("--json", default=None, help="where the results go")
+    p.add_argument("--taped-steps", type=_cli.positive_int, default=3)
+    p.add_argument("--json", default=None, type=_cli.output_file, help="where the results go")
     args = p.parse_args(argv)
     import warp as wp
 
@@ -110,4 +113,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    sys.exit(0 if main() else 1)
+    sys.exit(0 if _cli.run(main, PROG) else 1)

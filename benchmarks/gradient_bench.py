@@ -24,7 +24,6 @@ hand-written adjoints), for a before/after in one run. Ratios are printed in wal
 Not a test.
 """
 
-import argparse
 import collections
 import json
 import os
@@ -40,6 +39,7 @@ except ImportError:  # run from a checkout without installing the package
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import warp_esph as we
 
+from benchmarks import _cli
 from benchmarks.blocks import block_model
 from warp_esph.losses import PositionLoss
 from warp_esph.rollout import Rollout, state_nbytes
@@ -177,29 +177,49 @@ def report(r: dict, profile: bool):
             print(f"    {label} launches, ms/step: " + ", ".join(f"{k} {v:.2f}" for k, v in r[key].items()))
 
 
+def _sizes(text, name):
+    """A comma-separated list of block particle counts (integers >= 1) and 'star': the entries as text."""
+    parts = [p.strip() for p in str(text).split(",")]
+    for part in parts:
+        if part == "star":
+            continue
+        try:
+            ok = int(part) >= 1
+        except ValueError:
+            ok = False
+        if not ok:
+            raise _cli.refuse(name, text, "must be a comma-separated list of particle counts (integers >= 1) or "
+                                          f"'star' ({part!r} is not one)")
+    return parts
+
+
+PROG = "python -m benchmarks.gradient_bench"
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--sizes", default="10000,star", help="comma-separated: particle counts of a block, or 'star'")
-    ap.add_argument("--dtypes", default="float32,float64")
-    ap.add_argument("--steps", type=int, default=20)
-    ap.add_argument("--star-steps", type=int, default=150,
+    ap = _cli.Parser(prog=PROG, description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", default="10000,star", type=_cli.Check(_sizes),
+                    help="comma-separated: particle counts of a block, or 'star'")
+    ap.add_argument("--dtypes", default="float32,float64", type=_cli.choice_list(("float32", "float64")))
+    ap.add_argument("--steps", type=_cli.positive_int, default=20)
+    ap.add_argument("--star-steps", type=_cli.positive_int, default=150,
                     help="steps of the star (it must reach the ground for the material to matter)")
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=_cli.positive_int, default=3)
     ap.add_argument("--profile", action="store_true", help="time each kernel's adjoint launch")
     ap.add_argument("--generated", action="store_true",
                     help="also time the rollout with Warp's generated adjoints only (Solver.hand_adjoints = False)")
     ap.add_argument("--differentiable", action="store_true",
                     help="also time the rollout with the taped forward on the differentiable kernels (Solver.fused = "
                          "False; hand-written adjoints where they exist for them)")
-    ap.add_argument("--json", default=None, help="write the results here")
+    ap.add_argument("--json", default=None, type=_cli.output_file, help="write the results here")
     a = ap.parse_args(argv)
     from warp_esph.startup import init_warp  # noqa: PLC0415 (log_level, no native CUDA note)
 
     init_warp()
     rows = []
-    for size in a.sizes.split(","):
+    for size in a.sizes:
         by_dtype = {}
-        for name in a.dtypes.split(","):
+        for name in a.dtypes:
             dtype = getattr(wp, name)
             model = star_model(dtype) if size == "star" else block_model(int(size), dtype)
             steps = a.star_steps if size == "star" else a.steps
@@ -237,4 +257,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(_cli.run(main, PROG))

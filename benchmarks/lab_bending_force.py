@@ -10,7 +10,8 @@ step and its mean over the frame (``ReactionLog``, the CLI's force log), then th
 frame-mean force and the deflection of the beam's inner layers at mid-span relative to those
 over the supports for the last ten frames and their means (docs/physics.md, "The lab
 three-point bending scene's pin force"). Written to run on older trees too (used to find the
-commit that moved the force), so it uses only long-standing API.
+commit that moved the force), so it uses only long-standing API (and ``benchmarks/_cli.py``,
+its command line's checks: copy both).
 """
 
 import os
@@ -20,10 +21,16 @@ import time
 import numpy as np
 import warp as wp
 
+from benchmarks import _cli
 from warp_esph.scenes import load_scene
 from warp_esph.sim.solver import Solver
 from warp_esph.simulate import resolve_timestep, simulate
 from warp_esph.tools import ReactionLog
+
+try:  # the fits FIT may name; an older tree without the list checks FIT when the model is built
+    from warp_esph.model import FITS
+except ImportError:
+    FITS = None
 
 
 def _inner_layers_y(x, column_x, rest):
@@ -35,22 +42,45 @@ def _inner_layers_y(x, column_x, rest):
     return x[col][inner, 1].mean()
 
 
+PROG = "python -m benchmarks.lab_bending_force"
+
+
 def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    scale = float(argv[0]) if argv else 0.5
-    frames = int(argv[1]) if len(argv) > 1 else 60
+    fits = ", ".join(FITS) if FITS is not None else "the fits"
+    p = _cli.Parser(prog=PROG, description=__doc__.split("\n\n")[0],
+                    epilog=f"Environment: FIT (one of {fits}) and HOURGLASS (a number >= 0) set the scene builder's "
+                           "fit and hourglass control, as warp-esph run's --solver-fit and --hourglass.")
+    p.add_argument("scale", nargs="?", default=0.5, type=_cli.positive_float, metavar="SCALE",
+                   help="the scene's resolution scale (default 0.5)")
+    p.add_argument("frames", nargs="?", default=60, type=_cli.int_at_least(9), metavar="FRAMES",
+                   help="frames to run (default 60; at least 9: the last ten frames, the initial one counted, are reported)")
+    args = p.parse_args(argv)
+    scale, frames = args.scale, args.frames
+    fit, hourglass = os.environ.get("FIT"), os.environ.get("HOURGLASS")
+    if fit and FITS is not None and fit not in FITS:
+        p.error(f"FIT = {fit!r} is not allowed: must be one of {', '.join(FITS)} (or unset)")
+    if hourglass:
+        try:
+            hourglass = _cli.nonnegative_float(hourglass, "HOURGLASS")
+        except _cli.Refused as e:
+            p.error(e)
     wp.config.quiet = True
     t0 = time.perf_counter()
     scene = load_scene("lab_three_point_bending", scale=scale)
-    if os.environ.get("FIT"):
-        scene.builder.fit = os.environ["FIT"]
+    if fit:
+        scene.builder.fit = fit
     if os.environ.get("HOURGLASS"):
-        scene.builder.hourglass = float(os.environ["HOURGLASS"])
+        scene.builder.hourglass = hourglass
     model = scene.builder.finalize(device="cpu", dtype="float32")
     substeps, dt = resolve_timestep(model, scene.fps, dt=scene.dt)
     solver = Solver(model)
     log = ReactionLog(solver)
     rest = np.asarray(model.particle_x0, dtype=np.float64)
+    for c in (0.0, -0.09, 0.09):  # the deflection reads these columns' inner layers
+        ys = rest[np.abs(rest[:, 0] - c) < 1e-4, 1]
+        if len(ys) == 0 or not ((ys > ys.min() + 1e-4) & (ys < ys.max() - 1e-4)).any():
+            p.error(f"SCALE = {scale:g} is not allowed: at this scale the beam's lattice has no particle column with inner "
+                    f"layers at x = {c:+.2f} m (mid-span, over the supports), which the deflection reads; scale 0.5 and 1 have them")
     deflection, last = {}, {}
 
     def on_frame(frame, state):
@@ -78,4 +108,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(_cli.run(main, PROG))

@@ -14,9 +14,12 @@ it, a ``Rollout`` forward on a ``wp.Tape`` (every step into new states; the repl
 launches are recorded on the tape). Not a test.
 """
 
-import argparse
 import json
 import platform
+
+from benchmarks import _cli
+
+PROG = "python -m benchmarks.launches"
 
 
 def _scene(n: int, floor: bool, press: bool = False):
@@ -102,18 +105,19 @@ def measure_taped(n: int, steps: int, blocks: int) -> dict:
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(prog="python -m benchmarks.launches", description=__doc__.split("\n\n")[0])
-    p.add_argument("--sizes", default="216,1000,8000", help="particle counts of the cube (rounded to a cube)")
-    p.add_argument("--steps", type=int, default=40, help="steps per timed block")
-    p.add_argument("--blocks", type=int, default=5, help="timed blocks per setting, interleaved; the best is kept")
-    p.add_argument("--warmup", type=int, default=20, help="untimed steps first (kernel loading)")
-    p.add_argument("--json", default=None, help="also write the rows here")
+    p = _cli.Parser(prog=PROG, description=__doc__.split("\n\n")[0])
+    p.add_argument("--sizes", default="216,1000,8000", type=_cli.positive_int_list,
+                   help="particle counts of the cube (rounded to a cube)")
+    p.add_argument("--steps", type=_cli.positive_int, default=40, help="steps per timed block")
+    p.add_argument("--blocks", type=_cli.positive_int, default=5, help="timed blocks per setting, interleaved; the best is kept")
+    p.add_argument("--warmup", type=_cli.nonnegative_int, default=20, help="untimed steps first (kernel loading)")
+    p.add_argument("--json", default=None, type=_cli.output_file, help="also write the rows here")
     args = p.parse_args(argv)
     from warp_esph.startup import init_warp
 
     init_warp()
     rows = []
-    for n in (int(s) for s in args.sizes.split(",")):
+    for n in args.sizes:
         for floor in (False, True, "taped"):
             r = (measure_taped(n, args.steps, args.blocks) if floor == "taped"
                  else measure(n, floor, args.steps, args.blocks, args.warmup))
@@ -129,4 +133,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main, PROG)

@@ -78,9 +78,9 @@ dt 3.2e-4 s), 200 s at 24 (87k), 12 s at 12; about 630 s at 32 (estimated).
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
+import os
 import pathlib
 import sys
 import time
@@ -88,6 +88,7 @@ import time
 import numpy as np
 import warp as wp
 
+from benchmarks import _cli
 from benchmarks.validation import G, RHO, bingham_uniaxial_stress, centre_thickness, slump_theory
 
 REST_RATE, REST_KINETIC = 0.1, 1.0e-8  # % H0/s, M g H0: the suite's rest bounds
@@ -509,7 +510,6 @@ def squeeze(res=8, L=0.05, S=0.2, H0=0.1, strain=0.06, rate=0.25, cfl=0.3, flow_
     sim = MPM(pts, s, dx, mu, lam, Y, eta, 1.5 * L, L + 2 * dx, floor_friction=0.0, cfl=cfl, flow_rate=flow_rate)
     sim.gravity = wp.vec3(0.0, 0.0, 0.0)
     # The plate: its nodes are those at or above the cube's top node row; it moves with them.
-    j_top = int(round(L / dx)) + FLOOR_PAD
     v_plate = rate * L
     T = strain / rate
     forces, hs = [], []  # the plate's force, the mean vertical compressive stress
@@ -575,30 +575,78 @@ def table(rows):
     return "\n".join(lines)
 
 
+#: The fields of a slump row that ``table`` reads.
+TABLE_FIELDS = ("S", "aspect", "flow_rate", "res_cells_per_H0", "particles", "duration", "thickness_over_H0",
+                "thickness_vs_theory_pct", "top_on_axis_over_H0", "radius_over_R0", "top_rate_pct_H0_per_s",
+                "kinetic_last_quarter_over_MgH0", "at_rest", "theory_h_over_H0", "wall_s")
+
+PROG = "python -m benchmarks.mpm_slump"
+
+
+def table_rows(data, name: str = "--table", path: str = "?") -> list:
+    """The rows of a results JSON (a list, or an object with ``slumps``) that ``table`` can read:
+    ``ValueError`` naming the file and the row otherwise."""
+    where = f"{name} = {path!r} is not allowed"
+    if isinstance(data, dict):
+        if not isinstance(data.get("slumps"), list):
+            raise ValueError(f"{where}: a JSON object must have 'slumps', a list of rows")
+        data = data["slumps"]
+    for i, r in enumerate(data):
+        if not isinstance(r, dict):
+            raise ValueError(f"{where}: row {i} is {type(r).__name__}, not an object")
+        if r.get("method") == "MLS-MPM":
+            missing = [k for k in TABLE_FIELDS if k not in r]
+            if missing:
+                raise ValueError(f"{where}: row {i} (an MLS-MPM row) has no {', '.join(repr(k) for k in missing)}")
+            bad = [k for k in TABLE_FIELDS if k != "at_rest" and (isinstance(r[k], bool) or not isinstance(r[k], (int, float)))]
+            if bad:
+                raise ValueError(f"{where}: row {i} (an MLS-MPM row) has {bad[0]} = {r[bad[0]]!r}, not a number")
+    if not any(r.get("method") == "MLS-MPM" for r in data):
+        raise ValueError(f"{where}: it holds no slump row (one with \"method\": \"MLS-MPM\"), so no table")
+    return data
+
+
+def _save_prefix(text, name):
+    """A path prefix of the .npz files: its folder exists and is writable."""
+    folder = pathlib.Path(str(text) + "_").parent
+    if not str(text).strip() or not folder.is_dir():
+        raise _cli.refuse(name, text, f"must be a path prefix in a folder that exists ('{folder}' is not one)")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise _cli.refuse(name, text, f"its folder '{folder}' is not writable")
+    return text
+
+
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--S", type=float, nargs="*", default=[])
-    ap.add_argument("--res", type=int, nargs="*", default=[16])
-    ap.add_argument("--aspect", type=float, default=1.0)
-    ap.add_argument("--duration", type=float, default=8.0)
-    ap.add_argument("--max-duration", type=float, default=16.0)
-    ap.add_argument("--flow-rate", type=float, default=0.0,
+    ap = _cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
+    ap.add_argument("--S", type=_cli.positive_float, nargs="*", default=[])
+    ap.add_argument("--res", type=_cli.positive_int, nargs="*", default=[16])
+    ap.add_argument("--aspect", type=_cli.positive_float, default=1.0)
+    ap.add_argument("--duration", type=_cli.positive_float, default=8.0)
+    ap.add_argument("--max-duration", type=_cli.positive_float, default=16.0)
+    ap.add_argument("--flow-rate", type=_cli.nonnegative_float, default=0.0,
                     help="0: rate-independent plasticity; else the Bingham relaxation rate (1/s)")
-    ap.add_argument("--ramp", type=float, default=0.0, help="gravity ramped from 0 over this time (s); 0: at once")
-    ap.add_argument("--floor-friction", type=float, default=-1.0,
+    ap.add_argument("--ramp", type=_cli.nonnegative_float, default=0.0, help="gravity ramped from 0 over this time (s); 0: at once")
+    ap.add_argument("--floor-friction", type=_cli.finite_float, default=-1.0,
                     help="the slump's floor: < 0 sticky (no-slip, the default), 0 slip, > 0 Coulomb friction")
     ap.add_argument("--column", action="store_true")
     ap.add_argument("--squeeze", action="store_true")
     ap.add_argument("--quick", action="store_true", help="the closed-form checks at CI size")
-    ap.add_argument("--json", help="append the results to this JSON list")
-    ap.add_argument("--save", help="save the final particles of each slump (npz) to this prefix")
-    ap.add_argument("--table", help="print the markdown table of the slump rows in this JSON and exit")
+    ap.add_argument("--json", type=_cli.output_file, help="append the results to this JSON list")
+    ap.add_argument("--save", type=_cli.Check(_save_prefix), help="save the final particles of each slump (npz) to this prefix")
+    ap.add_argument("--table", type=_cli.json_file, help="print the markdown table of the slump rows in this JSON and exit")
     args = ap.parse_args(argv)
     if args.table:
-        data = json.loads(pathlib.Path(args.table).read_text())
-        rows = data["slumps"] if isinstance(data, dict) else data
+        rows = table_rows(_cli.load_json(args.table, "--table"), "--table", args.table)
         print(table([r for r in rows if r.get("method") == "MLS-MPM"]))
         return rows
+    for res in args.res if args.S else ():
+        if round(2 * res / args.aspect) < 1:
+            ap.error(f"--aspect = {args.aspect:g} is not allowed with --res {res}: the cylinder would have no particle "
+                     "across (2 res / aspect must be above 0.5)")
+    if args.json and pathlib.Path(args.json).exists():
+        old = _cli.load_json(args.json, "--json")
+        if not isinstance(old, list):
+            ap.error(f"--json = {args.json!r} is not allowed: the results are appended to a JSON list, and it holds an object")
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
     rows = []
@@ -626,4 +674,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main, PROG)

@@ -7,7 +7,6 @@ subprocess (``python -m benchmarks.splishsplash --side S --dx DX --dt DT --out F
 ``LD_PRELOAD`` of libGLdispatch, which its import needs on Debian.
 """
 
-import argparse
 import json
 import os
 import shutil
@@ -18,6 +17,9 @@ import time
 
 import numpy as np
 
+from benchmarks import _cli
+
+PROG = "python -m benchmarks.splishsplash"
 GLDISPATCH = "/lib/x86_64-linux-gnu/libGLdispatch.so.0"
 
 _UNIT_BOX_OBJ = """v -0.5 -0.5 -0.5
@@ -159,18 +161,23 @@ def bench_splishsplash(sizes: list[int], *, side_of, dx: float, dt: float, warmu
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.splishsplash",
-                                description="One SPlisHSPlasH run (the worker that benchmarks.step starts).")
-    p.add_argument("--side", type=int, required=True, help="particles per edge of the cube")
-    p.add_argument("--dx", type=float, required=True, help="particle spacing (m)")
-    p.add_argument("--dt", type=float, required=True, help="time step (s)")
-    p.add_argument("--out", required=True, help="JSON file for the result")
-    p.add_argument("--warmup", type=int, default=40, help="untimed steps first")
-    p.add_argument("--steps", type=int, default=40, help="timed steps")
-    p.add_argument("--blocks", type=int, default=4, help="the timed steps are split into this many blocks")
-    worker(p.parse_args(argv))
+    p = _cli.Parser(prog=PROG, description="One SPlisHSPlasH run (the worker that benchmarks.step starts).")
+    p.add_argument("--side", type=_cli.positive_int, required=True, help="particles per edge of the cube")
+    p.add_argument("--dx", type=_cli.positive_float, required=True, help="particle spacing (m)")
+    p.add_argument("--dt", type=_cli.positive_float, required=True, help="time step (s)")
+    p.add_argument("--out", type=_cli.output_file, required=True, help="JSON file for the result")
+    p.add_argument("--warmup", type=_cli.nonnegative_int, default=40, help="untimed steps first")
+    p.add_argument("--steps", type=_cli.positive_int, default=40, help="timed steps")
+    p.add_argument("--blocks", type=_cli.positive_int, default=4, help="the timed steps are split into this many blocks")
+    args = p.parse_args(argv)
+    try:
+        import pysplishsplash  # noqa: F401, PLC0415 (optional: only this worker needs it)
+    except ImportError as e:
+        p.error(f"the optional package pysplishsplash (SPlisHSPlasH) does not import ({e}); install it with "
+                "`pip install pysplishsplash` (it is optional: benchmarks.step skips SPlisHSPlasH without it)")
+    worker(args)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(_cli.run(main, PROG))

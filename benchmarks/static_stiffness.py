@@ -22,6 +22,8 @@ the solver: the remedy docs/physics.md, "Side effects of the corrected fit", mea
 
 import numpy as np
 
+from benchmarks import _cli
+
 EPS = 1.0e-4  # curvature.CURVATURE_RIDGE: the ridge of curvature_projection, relative to tr(A) / 3
 DET_RATIO = 0.1  # curvature.CURVATURE_DET_RATIO: the correction is dropped below det A~ / det A
 
@@ -177,12 +179,17 @@ def _modes_table():
                   f"highest {w2[-1]:.3f}; beam 6 thick static {b:.4f}", flush=True)
 
 
-if __name__ == "__main__":
-    import sys
+PROG = "python -m benchmarks.static_stiffness"
 
-    if "--modes" in sys.argv:
+
+def main(argv=None) -> int:
+    p = _cli.Parser(prog=PROG, description=__doc__.split("\n\n")[0])
+    p.add_argument("--modes", action="store_true",
+                   help="the free cube's modes, the ridge and the residual penalty (instead of the table)")
+    args = p.parse_args(argv)
+    if args.modes:
         _modes_table()
-        raise SystemExit(0)
+        return 0
     for fit in ("paper", "corrected"):
         for n in (4, 6, 8):
             print(f"{fit:9s} beam {n} thick, span 5 t, h 2 dx: {beam(n, 5, 2.0, fit):.4f}", flush=True)
@@ -194,3 +201,10 @@ if __name__ == "__main__":
                 print(f"{fit:9s} cantilever {n} across, clamp line {line:+.1f} dx: {cantilever(n, 3, 2.0, fit, clamp_line=line):.4f}",
                       flush=True)
     print(f"centroid  beam 6 thick, span 5 t: {beam(6, 5, 2.0, 'centroid'):.4f}")
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(_cli.run(main, PROG))

@@ -28,7 +28,6 @@ rate. Ratios compare best blocks (on a shared machine the fastest block is the l
 means are in the JSON too). Everything also goes to ``--json`` (see docs/performance.md).
 """
 
-import argparse
 import json
 import math
 import os
@@ -40,7 +39,10 @@ import time
 
 import numpy as np
 
+from benchmarks import _cli
 from benchmarks.splishsplash import bench_splishsplash
+
+PROG = "python -m benchmarks.step"
 
 #: Paper (Gerszewski et al. 2009, Table 1; one core of a 2008 Xeon), assuming 30 frames/s.
 PAPER = {
@@ -70,6 +72,46 @@ def _sizes(text: str) -> list[int]:
             part, scale = part[:-1], 1_000_000
         out.append(int(float(part) * scale))
     return out
+
+
+def _size_list(text, name):
+    """``text`` if ``_sizes`` reads it as one or more particle counts >= 1."""
+    what = "must be a comma-separated list of particle counts >= 1 (as 500, 10k, 1.5m)"
+    try:
+        sizes = _sizes(text)
+    except (ValueError, OverflowError):
+        raise _cli.refuse(name, text, what) from None
+    if not sizes or min(sizes) < 1:
+        raise _cli.refuse(name, text, what)
+    return text
+
+
+def _device_list(text, name):
+    """``text`` if it is 'auto' or a comma list of Warp devices there are here."""
+    if text == "auto":
+        return text
+    names = [d.strip() for d in str(text).split(",") if d.strip()]
+    if not names:
+        raise _cli.refuse(name, text, "must be 'auto' or a comma list of Warp devices (cpu, cuda:0, ...)")
+    for d in names:
+        problem = _cli.device_problem(d)
+        if problem:
+            raise _cli.refuse(name, text, f"{d!r} is not a device here: {problem}")
+    return text
+
+
+def _check_commit(commit: str, name: str) -> None:
+    """``ValueError`` unless ``commit`` names a commit of this repository."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    ok = False
+    if commit and not commit.startswith("-"):
+        try:
+            ok = subprocess.run(["git", "-C", root, "rev-parse", "--verify", "--quiet", f"{commit}^{{commit}}"],
+                                capture_output=True, text=True).returncode == 0
+        except OSError:
+            pass
+    if not ok:
+        raise _cli.refuse(name, commit, f"not a commit of the repository at {root}")
 
 
 def box_side(n: int) -> int:
@@ -626,18 +668,18 @@ def print_report(report: dict):
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(prog="python -m benchmarks.step", description=__doc__.split("\n\n")[0])
-    p.add_argument("--sizes", default="10000,50000,200000", help="particle counts on the CPU (cubes of round(n^(1/3))^3)")
-    p.add_argument("--cuda-sizes", default="10000,50000,200000,1000000", help="particle counts on CUDA devices")
-    p.add_argument("--devices", default="auto", help="'auto' (cpu, and cuda:0 if present) or a comma list")
-    p.add_argument("--steps", type=int, default=40, help="timed forward steps")
-    p.add_argument("--warmup", type=int, default=40, help="untimed steps first (compilation, impact)")
-    p.add_argument("--blocks", type=int, default=4, help="the timed steps are split into this many blocks")
-    p.add_argument("--phase-steps", type=int, default=5, help="instrumented steps for the phase split")
-    p.add_argument("--taped-steps", type=int, default=4, help="steps of the taped forward+backward window")
-    p.add_argument("--taped-repeats", type=int, default=2)
+    p = _cli.Parser(prog=PROG, description=__doc__.split("\n\n")[0])
+    p.add_argument("--sizes", default="10000,50000,200000", type=_cli.Check(_size_list), help="particle counts on the CPU (cubes of round(n^(1/3))^3)")
+    p.add_argument("--cuda-sizes", default="10000,50000,200000,1000000", type=_cli.Check(_size_list), help="particle counts on CUDA devices")
+    p.add_argument("--devices", default="auto", type=_cli.Check(_device_list), help="'auto' (cpu, and cuda:0 if present) or a comma list")
+    p.add_argument("--steps", type=_cli.positive_int, default=40, help="timed forward steps")
+    p.add_argument("--warmup", type=_cli.nonnegative_int, default=40, help="untimed steps first (compilation, impact)")
+    p.add_argument("--blocks", type=_cli.positive_int, default=4, help="the timed steps are split into this many blocks")
+    p.add_argument("--phase-steps", type=_cli.positive_int, default=5, help="instrumented steps for the phase split")
+    p.add_argument("--taped-steps", type=_cli.positive_int, default=4, help="steps of the taped forward+backward window")
+    p.add_argument("--taped-repeats", type=_cli.positive_int, default=2)
     p.add_argument("--no-splishsplash", action="store_true", help="skip SPlisHSPlasH")
-    p.add_argument("--splishsplash-sizes", default=None, help="particle counts for SPlisHSPlasH (default: --sizes)")
+    p.add_argument("--splishsplash-sizes", default=None, type=_cli.Check(_size_list), help="particle counts for SPlisHSPlasH (default: --sizes)")
     p.add_argument("--variants", action="store_true", help="also time each optimisation off/on (CPU sizes)")
     p.add_argument("--baseline-commit", default=None, help="with --variants: also time warp_esph at this git commit")
     p.add_argument("--baselines", default=None,
@@ -653,8 +695,12 @@ def main(argv=None):
                    help="also time the dough on the ground with floor images against the plain ground (interleaved)")
     p.add_argument("--pressure-forces", action="store_true",
                    help="also time the dough with the paper's spiky and the energy (default) SPH pressure force, interleaved")
-    p.add_argument("--json", default="benchmark_step.json", help="where the results go")
+    p.add_argument("--json", default="benchmark_step.json", type=_cli.output_file, help="where the results go")
     args = p.parse_args(argv)
+    for option, commits in (("--baseline-commit", [args.baseline_commit] if args.baseline_commit else []),
+                            ("--baselines", [c.strip() for c in (args.baselines or "").split(",") if c.strip()])):
+        for commit in commits:
+            _check_commit(commit, option)
 
     import warp as wp
 
@@ -776,4 +822,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(_cli.run(main, PROG))

@@ -16,7 +16,6 @@ Prints the ratio (target on 2 cores: >= 1.8) and writes JSON (``--json``, defaul
 ``sweep_bench.json``). Not a test.
 """
 
-import argparse
 import csv
 import json
 import os
@@ -27,7 +26,10 @@ import sys
 import tempfile
 import time
 
+from benchmarks import _cli
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PROG = "python -m benchmarks.sweep_bench"
 
 
 def _children_cpu() -> float:
@@ -45,7 +47,8 @@ def run_sweep(args, workers: int, folder: str) -> tuple[float, float]:
     proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
     seconds, cpu = time.perf_counter() - t0, _children_cpu() - cpu0
     if proc.returncode not in (0, 3):
-        raise SystemExit(f"sweep with {workers} workers failed ({proc.returncode}): {proc.stderr.strip()}")
+        lines = (proc.stderr or proc.stdout).strip().splitlines()
+        _cli.fail(PROG, f"sweep with {workers} workers failed ({proc.returncode}): {lines[-1] if lines else 'no output'}")
     return seconds, cpu
 
 
@@ -54,15 +57,25 @@ def read_table(folder: str) -> list[dict]:
         return [{k: v for k, v in row.items() if k != "wall_s"} for row in csv.DictReader(f)]
 
 
+def _scene(text, name):
+    """A built-in scene's name or the path of a .toml scene file that exists."""
+    from warp_esph.scenes import SCENES  # noqa: PLC0415
+
+    if text in SCENES or (str(text).lower().endswith(".toml") and os.path.isfile(text)):
+        return text
+    raise _cli.refuse(name, text, f"must be a built-in scene ({', '.join(SCENES)}) or the path of a .toml scene file")
+
+
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--scene", default="dough_drop")
-    p.add_argument("--scale", type=float, default=0.5, help="scene resolution scale (default 0.5: ~500 particles)")
-    p.add_argument("--samples", type=int, default=8, help="grid levels of yield_stress (default 8)")
-    p.add_argument("--frames", type=int, default=60, help="frames per sample (default 60)")
-    p.add_argument("--workers", type=int, default=2, help="workers of the parallel run (default 2)")
-    p.add_argument("--repeats", type=int, default=2, help="alternating rounds; the fastest of each is kept (default 2)")
-    p.add_argument("--json", default="sweep_bench.json")
+    p = _cli.Parser(prog=PROG, description=__doc__.splitlines()[0])
+    p.add_argument("--scene", default="dough_drop", type=_cli.Check(_scene))
+    p.add_argument("--scale", type=_cli.positive_float, default=0.5, help="scene resolution scale (default 0.5: ~500 particles)")
+    p.add_argument("--samples", type=_cli.positive_int, default=8, help="grid levels of yield_stress (default 8)")
+    p.add_argument("--frames", type=_cli.positive_int, default=60, help="frames per sample (default 60)")
+    p.add_argument("--workers", type=_cli.positive_int, default=2, help="workers of the parallel run (default 2)")
+    p.add_argument("--repeats", type=_cli.positive_int, default=2,
+                   help="alternating rounds; the fastest of each is kept (default 2)")
+    p.add_argument("--json", default="sweep_bench.json", type=_cli.output_file)
     args = p.parse_args(argv)
 
     load_before = os.getloadavg()
@@ -106,4 +119,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(_cli.run(main, PROG))

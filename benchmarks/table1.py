@@ -21,14 +21,16 @@ cost per step depends little on the motion (neighbour search and the per-particl
 kernels dominate), which ``--warmup`` can check (e.g. 2000 steps: past the impact).
 """
 
-import argparse
 import json
 import os
 import platform
 import sys
 import time
 
+from benchmarks import _cli
+
 FPS = 30.0
+PROG = "python -m benchmarks.table1"
 
 
 def _cpu_name() -> str:
@@ -93,14 +95,14 @@ def markdown(rows: list[dict], device: str) -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = _cli.Parser(prog=PROG, description=__doc__.splitlines()[0])
     p.add_argument("--rows", default=None, help="comma list of row labels or their prefixes, e.g. 'Fig. 1,Fig. 5' (default all)")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", help="Warp device (cpu, cuda, cuda:0, ...)")
     p.add_argument("--dtype", default="float32", choices=("float32", "float64"))
-    p.add_argument("--warmup", type=int, default=5)
-    p.add_argument("--steps", type=int, default=20, help="at least this many timed steps (in blocks of 10)")
-    p.add_argument("--min-seconds", type=float, default=2.0, help="and at least this much wall time")
-    p.add_argument("--json", default=None, help="also write the measurements here")
+    p.add_argument("--warmup", type=_cli.nonnegative_int, default=5)
+    p.add_argument("--steps", type=_cli.positive_int, default=20, help="at least this many timed steps (in blocks of 10)")
+    p.add_argument("--min-seconds", type=_cli.nonnegative_float, default=2.0, help="and at least this much wall time")
+    p.add_argument("--json", default=None, type=_cli.output_file, help="also write the measurements here")
     args = p.parse_args(argv)
 
     os.environ.setdefault("WARP_CACHE_PATH", os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".warp_cache"))
@@ -111,7 +113,15 @@ def main(argv=None) -> int:
     init_warp()
     from warp_esph.scenes import TABLE1
 
+    # Checked once Warp starts here (the kernel cache above): the device, and that every row asked for is one.
+    problem = _cli.device_problem(args.device)
+    if problem:
+        p.error(f"--device = {args.device!r} is not allowed: {problem}")
     wanted = None if args.rows is None else [w.strip() for w in args.rows.split(",") if w.strip()]
+    unknown = [w for w in wanted or () if not any(run.label.startswith(w) for run in TABLE1)]
+    if wanted is not None and (unknown or not wanted):
+        p.error(f"--rows = {args.rows!r} is not allowed: {repr(unknown[0]) + ' is' if unknown else 'it names'} no row "
+                f"(nor a prefix of one) of Table 1; its rows: {', '.join(run.label for run in TABLE1)}")
     rows = []
     for run in TABLE1:
         if wanted is not None and not any(run.label.startswith(w) for w in wanted):
@@ -132,4 +142,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(_cli.run(main, PROG))

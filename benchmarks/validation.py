@@ -27,10 +27,8 @@ viscosity cannot damp a bending mode within its explicit step limit).
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import os
 import pathlib
 import sys
 import time
@@ -1560,6 +1558,64 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     return runs
 
 
+#: The case functions and the ``case`` of the results they return.
+RESULT_CASES = {"slump": "slump", "spread": "spread", "incline": "incline", "bar_frequency": "bar",
+                "beam_deflection": "beam", "column_settlement": "column", "near_yield_column": "near_yield_column",
+                "poisson_compression": "poisson", "plate_compression": "plates",
+                "plastic_compression": "plastic_compression", "uniaxial_flow": "uniaxial_flow",
+                "sphere_indentation": "indentation", "three_point_bending": "bending", "energy_drift": "energy",
+                "stability": "stability"}
+#: Identity fields (``IDENTITY``) that are numbers, and of those the integers.
+NUMERIC_IDENTITY = ("S", "resolution", "shallowness", "amplitude", "dt_factor", "hourglass", "span_over_thickness",
+                    "aspect", "hold", "strain")
+INTEGER_IDENTITY = ("resolution", "span_over_thickness")
+
+
+def result_rows(data, source: str, *, need_results: bool = False) -> list[dict]:
+    """The results of a JSON document of the suite (an object with ``results``, as
+    validation.json; or, unless ``need_results``, a list of results), checked: each row an
+    object with a ``case`` of ``RESULT_CASES`` and numbers in its numeric identity fields.
+    Else ``ValueError("<source> is not allowed: ...")`` naming the row."""
+    where = f"{source} is not allowed"
+    if isinstance(data, dict):
+        if "results" not in data:
+            keys = ", ".join(repr(k) for k in list(data)[:5]) or "none"
+            raise ValueError(f"{where}: a JSON object must have 'results' (a list of results); its keys: {keys}")
+        rows = data["results"]
+    elif need_results:
+        raise ValueError(f"{where}: it must be a validation.json, a JSON object with 'results', not a {type(data).__name__}")
+    else:
+        rows = data
+    if not isinstance(rows, list):
+        raise ValueError(f"{where}: 'results' must be a list of results, not {type(rows).__name__}")
+    known = sorted(set(RESULT_CASES.values()))
+    for i, r in enumerate(rows):
+        if not isinstance(r, dict):
+            raise ValueError(f"{where}: result {i} ({json.dumps(r)[:60]}) is not an object")
+        if r.get("case") not in known:
+            what = f"has case = {r['case']!r}" if "case" in r else "has no 'case'"
+            raise ValueError(f"{where}: result {i} {what}; the cases of the suite: {', '.join(known)}")
+        for k in NUMERIC_IDENTITY:
+            v = r.get(k)
+            if k in r and (isinstance(v, bool) or not isinstance(v, int if k in INTEGER_IDENTITY else (int, float))):
+                kind = "an integer" if k in INTEGER_IDENTITY else "a number"
+                raise ValueError(f"{where}: result {i} ({r['case']}) has {k} = {v!r}, not {kind}")
+    return rows
+
+
+def check_runs(doc: dict, source: str) -> None:
+    """``ValueError`` unless ``doc``'s ``runs`` (if any) is a list of objects that every result's
+    ``run`` indexes."""
+    runs = doc.get("runs")
+    if runs is not None and (not isinstance(runs, list) or not all(isinstance(m, dict) for m in runs)):
+        raise ValueError(f"{source} is not allowed: 'runs' must be a list of objects (the runs that measured the results)")
+    n = len(runs) if runs else 1
+    for i, r in enumerate(doc["results"]):
+        k = r.get("run", 0)
+        if isinstance(k, bool) or not isinstance(k, int) or not 0 <= k < n:
+            raise ValueError(f"{source} is not allowed: result {i} has run = {k!r}, not one of its {n} runs")
+
+
 def run_one(name: str, kwargs: dict) -> dict:
     kwargs = dict(kwargs)
     if name == "stability":
@@ -1573,49 +1629,76 @@ def run_one(name: str, kwargs: dict) -> dict:
     return globals()[name](**kwargs)
 
 
+PROG = "python -m benchmarks.validation"
+
+
 def main(argv=None) -> int:
     from tqdm import tqdm
 
-    p = argparse.ArgumentParser(prog="python -m benchmarks.validation", description=__doc__.split("\n\n")[0])
+    from benchmarks import _cli
+
+    p = _cli.Parser(prog=PROG, description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="CI-sized run (reduced sizes and durations)")
     p.add_argument("--device", default="cpu",
                    help="Warp device the scenes are built and run on (cpu, cuda:0, ...); each row records it")
-    p.add_argument("--out", default=str(ROOT / "docs"), help="folder for validation.md, validation.json, images/validation/")
+    p.add_argument("--out", default=str(ROOT / "docs"), type=_cli.output_folder,
+                   help="folder for validation.md, validation.json, images/validation/")
     p.add_argument("--only", default=None,
                    help="comma-separated runs to keep: a case function (slump), or one with keyword values its "
                         "plan entries must have (slump:resolution=12:elastic_force=variational)")
-    p.add_argument("--merge", default=None, metavar="JSON",
+    p.add_argument("--merge", default=None, metavar="JSON", type=_cli.json_file,
                    help="an earlier validation.json: its results stay in the report, each tagged with the run that "
                         "measured it, except those this run measures again (same case and parameters)")
     p.add_argument("--drop", default=None, metavar="CASES",
                    help="with --merge: comma-separated result cases (slump,spread,stability,...) whose earlier rows "
                         "are not kept, e.g. because they were measured on older defaults")
     p.add_argument("--no-report", action="store_true", help="only write the JSON")
-    p.add_argument("--add", default=None, metavar="JSON",
+    p.add_argument("--add", default=None, metavar="JSON", type=_cli.json_file,
                    help="rows measured elsewhere (a list of results of the case functions, e.g. slump(...) on a "
                         "GPU, each with an optional 'device', or a validation.json): merged as one run, replacing "
                         "the rows they measure again; without --only nothing else is run")
     args = p.parse_args(argv)
     wp, _ = _we()
-    try:
-        wp.get_device(args.device)
-    except (RuntimeError, ValueError) as e:
-        raise ValueError(f"--device = {args.device!r} is not allowed: {e}") from None
+    problem = _cli.device_problem(args.device)  # (Warp's native notes of a missing CUDA driver held back)
+    if problem:
+        raise ValueError(f"--device = {args.device!r} is not allowed: {problem}")
     if args.drop and not args.merge:
         raise ValueError(f"--drop = {args.drop!r} is not allowed without --merge (it drops rows of the merged JSON)")
-    runs = select(plan(args.quick), args.only) if args.only or not args.add else []
+    known = sorted(set(RESULT_CASES.values()))
+    for case in args.drop.split(",") if args.drop else ():
+        if case not in known:
+            raise ValueError(f"--drop = {args.drop!r} is not allowed: {case!r} is not a case of the results; "
+                             f"the cases: {', '.join(known)}")
+    the_plan = plan(args.quick)
+    if args.only:
+        names = list(dict.fromkeys(n for n, _ in the_plan))
+        for entry in args.only.split(","):
+            if not select(the_plan, entry):
+                raise ValueError(f"--only = {args.only!r} is not allowed: {entry.strip()!r} selects no run of the "
+                                 f"{'quick ' if args.quick else ''}plan; its cases: {', '.join(names)}")
+    runs = select(the_plan, args.only) if args.only or not args.add else []
     if not runs and not args.add:
-        raise ValueError(f"--only = {args.only!r} selects no run of the plan")
-    earlier = json.loads(pathlib.Path(args.merge).read_text()) if args.merge else None
+        raise ValueError(f"--only = {args.only!r} selects no run of the plan; its cases: "
+                         + ", ".join(dict.fromkeys(n for n, _ in the_plan)))
+    earlier = None
+    if args.merge:
+        source = f"--merge = {args.merge!r}"
+        earlier = _cli.load_json(args.merge, "--merge")
+        result_rows(earlier, source, need_results=True)
+        check_runs(earlier, source)
     if args.drop and earlier is not None:
         earlier = earlier | {"results": [r for r in earlier["results"] if r["case"] not in args.drop.split(",")]}
     if args.add:
-        earlier = added_rows(earlier, pathlib.Path(args.add))
+        earlier = added_rows(earlier, pathlib.Path(args.add), source=f"--add = {args.add!r}")
     out = pathlib.Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"--out = {args.out!r} is not allowed: the folder cannot be made ({e.strerror or e})") from None
     results = []
     t0 = time.perf_counter()
-    bar = tqdm(runs, desc="validation", unit="run", file=sys.stderr)
+    # No bar for rows added without runs (its empty line would stand before any error of the report).
+    bar = tqdm(runs, desc="validation", unit="run", file=sys.stderr, disable=not runs)
     doc = earlier
     for name, kwargs in bar:
         bar.set_postfix_str((f"{name} " + " ".join(f"{k}={v}" for k, v in kwargs.items()))[:70])
@@ -1632,7 +1715,7 @@ def main(argv=None) -> int:
     if not args.no_report:
         from benchmarks import validation_report
 
-        validation_report.write(doc["results"], out, doc)
+        validation_report.write_checked(doc["results"], out, doc)
     return 0
 
 
@@ -1699,15 +1782,17 @@ def merge(earlier: dict | None, results: list[dict], meta: dict, drop=()) -> dic
             "python": meta["python"], "results": kept + new}
 
 
-def added_rows(earlier: dict | None, path: pathlib.Path) -> dict:
+def added_rows(earlier: dict | None, path: pathlib.Path, source: str | None = None) -> dict:
     """``earlier`` (a validation.json, or None) with the rows of ``path`` merged in as one run
     (``merge``): ``path`` holds a list of results of the case functions (as ``slump(...)``
     returns them, optionally with a ``device``), or a document with ``results`` (and maybe a
-    ``command``, ``commit``, ``date``, ``machine``)."""
+    ``command``, ``commit``, ``date``, ``machine``). Rows that ``result_rows`` refuses, or none,
+    are a ``ValueError`` that names ``source`` (default: the path)."""
+    source = source or str(path)
     data = json.loads(pathlib.Path(path).read_text())
-    rows = data["results"] if isinstance(data, dict) else data
-    if not isinstance(rows, list) or not all(isinstance(r, dict) and "case" in r for r in rows):
-        raise ValueError(f"{path} is not allowed: it must hold a list of results, each a dict with a 'case'")
+    rows = result_rows(data, source)
+    if not rows:
+        raise ValueError(f"{source} is not allowed: it holds no results, so there is nothing to add")
     doc = data if isinstance(data, dict) else {}
     devices = sorted({str(r["device"]) for r in rows if r.get("device")})
     machine = doc.get("machine") or "?"
@@ -1736,8 +1821,6 @@ def _meta(args, t0) -> dict:
 
 
 if __name__ == "__main__":
-    try:
-        sys.exit(main())
-    except ValueError as e:  # bad arguments: one line, no traceback
-        print(f"python -m benchmarks.validation: error: {e}", file=sys.stderr)
-        sys.exit(2)
+    from benchmarks import _cli
+
+    sys.exit(_cli.run(main, PROG))  # bad arguments (ValueError, OSError): one line, exit status 2

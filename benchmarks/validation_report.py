@@ -7,7 +7,6 @@ The text between ``<!-- notes -->`` and ``<!-- /notes -->`` of an existing repor
 
 from __future__ import annotations
 
-import json
 import math
 import pathlib
 import sys
@@ -690,7 +689,38 @@ def write(results, out: pathlib.Path, meta: dict):
     return md, made
 
 
+def write_checked(results, out: pathlib.Path, meta: dict):
+    """``write``, where a result that lacks a field the report reads is a ``ValueError`` that
+    names the field (not a ``KeyError`` out of the table that reads it)."""
+    try:
+        return write(results, out, meta)
+    except KeyError as e:
+        raise ValueError(f"the report cannot be written: a result lacks the field {e.args[0]!r} that it reads "
+                         "(rows added by hand must be complete results of the case functions)") from None
+
+
+PROG = "python -m benchmarks.validation_report"
+
+
+def main(argv=None) -> int:
+    from benchmarks import _cli
+    from benchmarks.validation import check_runs, result_rows
+
+    p = _cli.Parser(prog=PROG, description=__doc__.split("\n\n")[0] + " (validation.md and images/validation/ "
+                                                                        "are written next to the JSON)")
+    p.add_argument("json", nargs="?", default="docs/validation.json", type=_cli.json_file, metavar="JSON",
+                   help="the results of benchmarks.validation (default docs/validation.json)")
+    args = p.parse_args(argv)
+    path = pathlib.Path(args.json)
+    data = _cli.load_json(path, "JSON")
+    source = f"JSON = {args.json!r}"
+    rows = result_rows(data, source, need_results=True)
+    check_runs(data, source)
+    write_checked(rows, path.parent, data)
+    return 0
+
+
 if __name__ == "__main__":
-    path = pathlib.Path(sys.argv[1] if len(sys.argv) > 1 else "docs/validation.json")
-    data = json.loads(path.read_text())
-    write(data["results"], path.parent, data)
+    from benchmarks import _cli
+
+    sys.exit(_cli.run(main, PROG))

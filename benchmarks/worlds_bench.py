@@ -19,7 +19,6 @@ against W separate rollouts.
 Not a test.
 """
 
-import argparse
 import json
 import os
 import platform
@@ -35,6 +34,7 @@ except ImportError:  # run from a checkout without installing the package
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import warp_esph as we
 
+from benchmarks import _cli
 from benchmarks.blocks import block_builder
 from warp_esph import losses
 from warp_esph.rollout import Rollout
@@ -148,17 +148,20 @@ def gradient_case(particles, worlds, steps, repeat, device="cpu"):
     }
 
 
+PROG = "python -m benchmarks.worlds_bench"
+
+
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--worlds", type=int, default=16)
-    ap.add_argument("--particles", type=int, default=500, help="particles per world (about)")
-    ap.add_argument("--steps", type=int, default=100)
-    ap.add_argument("--repeat", type=int, default=5)
+    ap = _cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
+    ap.add_argument("--worlds", type=_cli.positive_int, default=16)
+    ap.add_argument("--particles", type=_cli.positive_int, default=500, help="particles per world (about)")
+    ap.add_argument("--steps", type=_cli.positive_int, default=100)
+    ap.add_argument("--repeat", type=_cli.positive_int, default=5)
     ap.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     ap.add_argument("--gradient", action="store_true", help="also time Rollout forward + backward (float64)")
-    ap.add_argument("--gradient-steps", type=int, default=10)
-    ap.add_argument("--device", default="cpu", help="Warp device, e.g. cuda:0")
-    ap.add_argument("--json", default="worlds_bench.json")
+    ap.add_argument("--gradient-steps", type=_cli.positive_int, default=10)
+    ap.add_argument("--device", default="cpu", type=_cli.device, help="Warp device, e.g. cuda:0")
+    ap.add_argument("--json", default="worlds_bench.json", type=_cli.output_file)
     args = ap.parse_args(argv)
     from warp_esph.startup import init_warp  # noqa: PLC0415 (log_level, no native CUDA note)
 
@@ -180,4 +183,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main, PROG)
