@@ -358,6 +358,18 @@ def test_bad_input_is_one_line_exit_2(tmp_path, monkeypatch, capsys, args, needl
     assert list(tmp_path.iterdir()) == []  # nothing written
 
 
+def test_cuda_asked_for_where_there_is_none_is_one_line(tmp_path, capsys):
+    """Warp's driver note is the reason, in the one line (it was a warning line and then the
+    error); on a machine with CUDA the run goes on."""
+    import warp as wp
+
+    if wp.is_cuda_available():
+        pytest.skip("CUDA is available here: nothing to refuse (the CPU machines of CI run this check)")
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(tmp_path / "t.usdc"), "--device", "cuda", "--no-progress"]) == 2
+    assert_one_line_error(capsys.readouterr().err, "--device = 'cuda' is not allowed: ", "(use --device cpu)")
+
+
 @pytest.mark.parametrize("in_the_way, options, needle", [
     ("t.usdc_tools.csv", [], "the reaction log = "),
     ("t.usdc.checkpoint.npz", ["--checkpoint-every", "1"], "--checkpoint-every's checkpoint = "),

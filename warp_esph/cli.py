@@ -216,7 +216,15 @@ def _init_warp(device: str) -> None:
     (``warp_esph.startup.init_warp``)."""
     from .startup import init_warp  # noqa: PLC0415
 
-    for note in init_warp(device, echo=False):
+    notes = init_warp(device, echo=False)
+    if device != "cpu":
+        import warp as wp  # noqa: PLC0415
+
+        if not wp.is_cuda_available():
+            # The driver's note is the reason: one line, not the note and then the error.
+            why = next((_one_line(n) for n in notes if "CUDA" in n), "Warp finds no CUDA device on this machine")
+            raise ValueError(f"--device = {device!r} is not allowed: {why} (use --device cpu)")
+    for note in notes:
         if device != "cpu" or "CUDA" not in note:
             print(f"{PROG}: warning: {_one_line(note)}", file=sys.stderr)
 
@@ -269,12 +277,7 @@ def _cmd_run(args) -> int:
         if os.path.splitext(args.output)[1].lower() not in USD_EXTENSIONS:
             raise ValueError(f"--output = {args.output!r} is not allowed: the extension must be one of {', '.join(USD_EXTENSIONS)}")
 
-    _init_warp(args.device)
-    if args.device == "cuda":
-        import warp as wp  # noqa: PLC0415
-
-        if not wp.is_cuda_available():
-            raise ValueError("--device = 'cuda' is not allowed: Warp finds no CUDA device on this machine (use --device cpu)")
+    _init_warp(args.device)  # refuses --device cuda where Warp finds none
     from .scenes import load_scene  # noqa: PLC0415
     from .simulate import SimulationError, check_step_count, resolve_timestep, simulate  # noqa: PLC0415
     from .sim.solver import Solver  # noqa: PLC0415
