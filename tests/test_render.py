@@ -179,6 +179,9 @@ def test_parse_frames():
     for bad in ("11", "x", "0:10:0", "", "1:2:3:4"):
         with pytest.raises(ValueError, match="frames"):
             parse_frames(bad, have)
+    with pytest.raises(ValueError, match=r"frames = '-99' is not allowed: it counts back past the first frame "
+                                         r"\(the file holds 0\.\.10, so -1 to -11\)"):
+        parse_frames("-99", have)
 
 
 def test_bad_outputs(tmp_path, monkeypatch):

@@ -955,6 +955,9 @@ def parse_frames(spec, available: list[int]) -> list[int]:
                 f"frames = {spec!r} is not allowed: {part!r} is not 'all', 'first', 'last', N, -N, A:B or A:B:STEP"
             ) from None
     missing = [f for f in out if f not in have]
+    if missing and missing[0] < 0:  # -N counted back past the first frame
+        raise ValueError(f"frames = {spec!r} is not allowed: it counts back past the first frame (the file holds "
+                         f"{first}..{last}, so -1 to -{last + 1 - first})")
     if missing:
         raise ValueError(f"frames = {spec!r} is not allowed: frame {missing[0]} is not in the file (it holds {first}..{last})")
     if not out:
