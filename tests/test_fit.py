@@ -400,3 +400,17 @@ def test_fit_cli_writes_json_and_usd(tmp_path):
     bad = parser.parse_args(["dough_drop", "--target", str(target), "--params", "youngs"])
     with pytest.raises(ValueError, match="--params"):
         fit_cli(bad)
+
+
+def test_an_empty_or_nan_positions_file_is_refused_by_its_name(tmp_path):
+    """An (n, 3) array that was empty or held NaN was refused later, as "targets[62]" (the
+    step it was compared at); it is refused where it is read, naming the file."""
+    np.save(tmp_path / "empty.npy", np.zeros((0, 3)))
+    np.save(tmp_path / "nan.npy", np.full((5, 3), np.nan))
+    with pytest.raises(ValueError, match=r"target .*empty\.npy with shape \(0, 3\) is not allowed: positions must be"):
+        load_target(tmp_path / "empty.npy")
+    with pytest.raises(ValueError, match=r"target .*nan\.npy is not allowed: it has non-finite positions"):
+        load_target(tmp_path / "nan.npy")
+    np.save(tmp_path / "one.npy", np.zeros((5, 3)))
+    t = load_target(tmp_path / "one.npy")  # (n, 3): the last frame, as before
+    assert t.kind == "positions" and t.frames is None and np.asarray(t.data).shape == (1, 5, 3)

@@ -1329,14 +1329,19 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
                 fps = float(data["fps"])
         else:
             pos = np.asarray(data, dtype=np.float64)
-        if pos.ndim == 2:
+        shape = pos.shape
+        one_frame = pos.ndim == 2
+        if one_frame:
             pos = pos[None]
-            if frames is None:
-                return Target("positions", pos, None, fps, p)
-        if pos.ndim != 3 or pos.shape[2] != 3:
-            raise ValueError(f"target {p} with shape {pos.shape} is not allowed: positions must be (K, n, 3) or (n, 3)")
+        # Checked here, with the file's name: an empty or NaN (n, 3) array was refused later as
+        # "targets[62]", by the step it was compared at.
+        if pos.ndim != 3 or pos.shape[2] != 3 or pos.shape[0] == 0 or pos.shape[1] == 0:
+            raise ValueError(f"target {p} with shape {shape} is not allowed: positions must be (K, n, 3) or (n, 3) "
+                             f"with K, n >= 1")
         if not np.isfinite(pos).all():
             raise ValueError(f"target {p} is not allowed: it has non-finite positions")
+        if one_frame and frames is None:
+            return Target("positions", pos, None, fps, p)  # (n, 3): the last frame
         if frames is None:
             frames = list(range(pos.shape[0]))
         if len(frames) != pos.shape[0] or min(frames) < 0 or len(set(frames)) != len(frames):
