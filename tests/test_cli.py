@@ -299,6 +299,9 @@ BAD_TOML = {
     "bad_material": (GOOD_TOML.replace('material = "soft"', 'material = "sofft"'), ["'sofft'", "did you mean 'soft'"]),
     "bad_fit": ('[solver]\nfit = "quadratic"\n' + GOOD_TOML, ["fit = 'quadratic' in [solver]", "linear, curvature_corrected"]),
     "bad_hourglass": ("[solver]\nhourglass = -0.1\n" + GOOD_TOML, ["'hourglass' in [solver]", "-0.1", ">= 0"]),
+    # A dt that does not divide the frame is the file's: named with it (it was the bare message).
+    "dt_not_dividing": (GOOD_TOML.replace("frames = 2", "frames = 2\nfps = 30\ndt = 0.007"),
+                        ["[scene] dt = 0.007 is not allowed", "whole number of steps"]),
 }
 
 

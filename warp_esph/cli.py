@@ -327,7 +327,12 @@ def _cmd_run(args) -> int:
                              f"frame {start_frame}; give more frames than that to extend the run")
         raise ValueError(f"--resume = {args.resume!r} is not allowed: that run finished all {frames_total} frames")
     adaptive = dt == "auto"
-    substeps, dt_shown = resolve_timestep(model, fps) if adaptive else resolve_timestep(model, fps, dt=dt)
+    try:
+        substeps, dt_shown = resolve_timestep(model, fps) if adaptive else resolve_timestep(model, fps, dt=dt)
+    except ValueError as e:
+        if args.dt is None and args.resume is None and str(args.scene).lower().endswith(".toml"):
+            raise ValueError(f"{args.scene}: [scene] {e}") from None  # the file's dt and fps: name the file
+        raise
     if not adaptive:
         dt = dt_shown
     check_step_count(frames, substeps)
