@@ -390,12 +390,10 @@ class _Problem:
                 self.spaces[name] = "linear"
                 self.scales[name] = max(float(np.abs(v).max()), 1.0)
         self.bounds = {}
-        for name, (lo, hi) in (bounds or {}).items():
-            if name not in params:
-                raise ValueError(f"bounds for {name!r} are not allowed: {name} is not fitted (params = {params})")
+        for name, (lo, hi) in (bounds or {}).items():  # their form checked by check_options
             lo, hi = float(lo), float(hi)
-            if not lo < hi or (self.spaces[name] == "log" and lo <= 0.0 and lo != -math.inf):
-                raise ValueError(f"bounds[{name!r}] = ({lo}, {hi}) is not allowed: need lo < hi (and lo > 0 for a positive parameter)")
+            if self.spaces[name] == "log" and lo <= 0.0 and lo != -math.inf:
+                raise ValueError(f"bounds[{name!r}] = ({lo}, {hi}) is not allowed: need lo > 0 for a positive parameter")
             self.bounds[name] = (lo, hi)
         self.z0 = self.project(self.to_z({name: values[name][first.idx] for name in params}))
         #: One label per entry of z: ``name`` or ``name[k]`` with several materials.
