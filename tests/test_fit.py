@@ -414,3 +414,14 @@ def test_an_empty_or_nan_positions_file_is_refused_by_its_name(tmp_path):
     np.save(tmp_path / "one.npy", np.zeros((5, 3)))
     t = load_target(tmp_path / "one.npy")  # (n, 3): the last frame, as before
     assert t.kind == "positions" and t.frames is None and np.asarray(t.data).shape == (1, 5, 3)
+
+
+def test_a_damaged_usd_target_is_named_as_damaged_not_read_as_a_mesh(tmp_path):
+    """A .usdc that does not open was tried next as a mesh and refused as "mesh ... is not
+    allowed"; it is a damaged file, said so by its name. A USD that opens but holds no run's
+    particles is still read as a mesh (tests/test_meshes.py)."""
+    bad = tmp_path / "run.usdc"
+    bad.write_bytes(bytes(range(256)) * 2)
+    with pytest.raises(ValueError, match=r"cannot read .*run\.usdc.*\(a damaged or foreign file\?\)") as e:
+        load_target(bad)
+    assert "mesh" not in str(e.value)

@@ -1408,10 +1408,14 @@ def _usd_run_target(path: str, body, frames) -> Target | None:
         from .render import UsdFrames, parse_frames  # noqa: PLC0415
     except ImportError:
         return None
+    from .usd import NotAnOutput  # noqa: PLC0415
+
     try:
         data = UsdFrames(path)
-    except ValueError:
+    except NotAnOutput:
         return None  # no particles: a mesh file
+    except ValueError as e:  # it does not open: a damaged file, not a mesh to try next
+        raise ValueError(f"{e} (a damaged or foreign file?)") from None
     names = [n for n, _ in data.bodies]
     if body is not None and body not in names:
         raise ValueError(f"--target-body {body!r} is not allowed: {path} holds bodies {', '.join(names)}")

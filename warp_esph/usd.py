@@ -688,6 +688,10 @@ def _held_stderr(method):
     return held
 
 
+class NotAnOutput(ValueError):
+    """A USD file that opens but holds no ``warp-esph run`` particles (a mesh file, say)."""
+
+
 class UsdFrames:
     """The particles, surfaces, colliders and tools of a ``UsdWriter`` file, frame by frame."""
 
@@ -710,7 +714,7 @@ class UsdFrames:
             if prim.IsA(UsdGeom.Points):
                 self.bodies.append((prim.GetName(), prim))
         if not self.bodies:
-            raise ValueError(f"cannot read {self.path}: it has no UsdGeom.Points under {_ROOT} (not a warp-esph output?)")
+            raise NotAnOutput(f"cannot read {self.path}: it has no UsdGeom.Points under {_ROOT} (not a warp-esph output?)")
         times = set()
         for _, prim in self.bodies:
             times.update(UsdGeom.Points(prim).GetPointsAttr().GetTimeSamples())
