@@ -64,7 +64,11 @@ def main(argv=None) -> int:
             hourglass = _cli.nonnegative_float(hourglass, "HOURGLASS")
         except _cli.Refused as e:
             p.error(e)
-    wp.config.quiet = True
+    try:  # Warp's start-up, module-load and missing-driver lines held back; an older tree: quiet
+        from warp_esph.startup import init_warp
+        init_warp()
+    except ImportError:
+        wp.config.quiet = True
     t0 = time.perf_counter()
     scene = load_scene("lab_three_point_bending", scale=scale)
     if fit:

@@ -283,6 +283,8 @@ def test_validation_report(refused, files, capsys):
     (["step", "--steps", "0"], "--steps = 0"),
     (["splishsplash", "--side", "0", "--dx", "1", "--dt", "1", "--out", "x.json"], "--side = 0"),
     (["validation_report", "--bogus"], "--bogus"),
+    # refused after the scene is built (its lattice is read): Warp must have started quietly
+    (["lab_bending_force", "0.3", "9"], "SCALE = 0.3"),
 ])
 def test_the_commands_exit_2_with_one_line(argv, option):
     proc = subprocess.run([sys.executable, "-m", f"benchmarks.{argv[0]}", *argv[1:]], cwd=ROOT, capture_output=True,
