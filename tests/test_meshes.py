@@ -12,7 +12,7 @@ import warp.examples
 from hypothesis import given, settings
 
 import warp_esph
-from warp_esph import builder, meshes
+from warp_esph import meshes
 
 ASSETS = pathlib.Path(warp.examples.get_asset_directory())
 BUNNY = ASSETS / "bunny.usd"

@@ -19,7 +19,7 @@ import warp_esph as we
 from warp_esph.checkpoint import read_checkpoint, save_state
 from warp_esph.cli import main
 from warp_esph.scenes import get_scene
-from warp_esph.simulate import DivergenceMonitor, SimulationError, resolve_timestep
+from warp_esph.simulate import DivergenceMonitor, resolve_timestep
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SMALL = ["--scale", "0.3", "--no-progress"]

@@ -491,7 +491,6 @@ def _add_moving_tool(kind):
 
 @pytest.mark.parametrize("kind", ["box", "sphere", "cylinder", "capsule", "mesh"])
 def test_a_moving_tool_is_drawn_where_its_pose_puts_it(tmp_path, kind):
-    from warp_esph import tools
     path = tmp_path / f"{kind}.usdc"
     model = _write_tool_file(path, _add_moving_tool(kind))
     data = UsdFrames(path)

@@ -8,13 +8,12 @@ variant (the paper: "some of our examples ran successfully with 10x larger times
 reports which scenes survive instead of failing.
 """
 
-import math
 
 import numpy as np
 import pytest
 
 import warp_esph as we
-from warp_esph.scenes import FIGURE_SCENES, SCENES, get_scene
+from warp_esph.scenes import SCENES, get_scene
 from warp_esph.simulate import SimulationError, resolve_timestep
 
 SOAK_SCALE = 0.3

@@ -292,7 +292,6 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
     StaticColliders = static_struct(scalar)
     col = colliders.funcs(scalar)
     offsets = [int(sum(counts[:k])) for k in range(len(counts))]
-    n_col = int(sum(counts))
     ONE, ZERO = scalar(1.0), scalar(0.0)
 
     @wp.func
