@@ -38,6 +38,9 @@ import numpy as np
 G = 9.81
 RHO = 1000.0
 FORCES = ("paper", "variational")
+#: The fit's weights (``warp_esph.sim.smoothing.FIT_WEIGHTS``, which imports Warp: this module
+#: must not; tests/test_validation_suite.py checks the two agree).
+FIT_WEIGHTS = ("poly6", "biweight")
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 #: Dimensionless uniaxial yield stresses of the slump runs (0.05: the spread regime).
 SLUMP_S = (0.05, 0.1, 0.2, 0.3, 0.5)
@@ -1032,7 +1035,7 @@ def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e
 
 
 def _plastic_cube(resolution: int, S: float, H0: float, pressure_stiffness, support_radius: float, squeeze: float,
-                  load_time: float):
+                  load_time: float, fit_weight: str = "poly6"):
     """The slump's material (``plastic_compression``'s docstring) as a cube ``resolution``
     across between two frictionless plane tools, the top one lowered by ``squeeze`` of the span
     between the plates in ``load_time``: ``(model, span, dx, mu, Y, sigma_y)``."""
@@ -1045,7 +1048,7 @@ def _plastic_cube(resolution: int, S: float, H0: float, pressure_stiffness, supp
     mu = 10.0 * RHO * G * H0
     mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=200.0, density=RHO, viscosity=2.0,
                       elastic_force="variational", pressure_stiffness=pressure_stiffness)
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0), support_radius=support_radius * dx)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0), support_radius=support_radius * dx, fit_weight=fit_weight)
     b.add_box((0.0, H0 / 2, 0.0), (H0, H0, H0), mat, name="sample")
     pts = np.concatenate(b._points)
     ylo, yhi = pts[:, 1].min(), pts[:, 1].max()
@@ -1112,12 +1115,14 @@ def bingham_uniaxial_stress(S: float, strain_rate: float, H0: float = 0.1, stiff
 
 
 def uniaxial_flow(resolution: int = 8, strain: float = 0.75, duration: float = 4.0, S: float = 0.2, H0: float = 0.1,
-                  pressure_stiffness: float | None = None, support_radius: float = 2.0, samples: int = 40) -> dict:
+                  pressure_stiffness: float | None = None, support_radius: float = 2.0, samples: int = 40,
+                  fit_weight: str = "poly6") -> dict:
     """The slump's material in sustained uniaxial flow to large strain: a cube ``resolution``
     particles across (side H0), no gravity, between two frictionless plane tools, the top one
     lowered at a constant speed by ``strain`` of the span between the plates' rows in
     ``duration``. The material is ``plastic_compression``'s (flow rate 200 /s, viscosity 2,
-    ``pressure_stiffness`` None: the default SPH pressure, 0: off).
+    ``pressure_stiffness`` None: the default SPH pressure, 0: off); ``fit_weight`` the model's
+    (``SceneBuilder(fit_weight=)``).
 
     Per sample (the means over the steps since the last one): the log strain of the plates'
     span, the body's mean axial stress by the mean stress theorem (the plates' mean reaction
@@ -1135,7 +1140,7 @@ def uniaxial_flow(resolution: int = 8, strain: float = 0.75, duration: float = 4
         raise ValueError(f"duration = {duration!r} is not allowed: must be > 0 (seconds)")
     _, we = _we()
     model, span, dx, mu, Y, sigma_y = _plastic_cube(resolution, S, H0, pressure_stiffness, support_radius, strain,
-                                                    duration)
+                                                    duration, fit_weight)
     speed = strain * span / duration
     solver = we.Solver(model)
     dt = model.stable_dt()
@@ -1164,7 +1169,8 @@ def uniaxial_flow(resolution: int = 8, strain: float = 0.75, duration: float = 4
                      "nearest_neighbor_min": float(nn.min()), "nearest_neighbor_mean": float(nn.mean())})
         acc = []
     return {"case": "uniaxial_flow", "resolution": resolution, "strain": strain, "duration": duration,
-            "pressure_stiffness": pressure_stiffness, "support_radius": support_radius, "dt": dt, "history": rows}
+            "pressure_stiffness": pressure_stiffness, "support_radius": support_radius, "fit_weight": fit_weight, "dt": dt,
+            "history": rows}
 
 
 def hertz_force(E: float, nu: float, R: float, depth: float) -> float:
@@ -1534,9 +1540,10 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
         runs.append(("sphere_indentation", {"resolution": res}))
     runs.append(("sphere_indentation", {"resolution": 16, "fit": "linear", "hourglass": 0.1}))
     # The flow stress past the particles' rearrangement (docs/physics.md, "The flow stress in
-    # sustained uniaxial flow"): the same log strains at three resolutions.
-    for res in (6, 8, 12, 16):
-        runs.append(("uniaxial_flow", {"resolution": res, "strain": 0.75, "duration": 4.0}))
+    # sustained uniaxial flow"): the same log strains at four resolutions, with each fit weight.
+    for weight in FIT_WEIGHTS:
+        for res in (6, 8, 12, 16):
+            runs.append(("uniaxial_flow", {"resolution": res, "strain": 0.75, "duration": 4.0, "fit_weight": weight}))
     for res in (8, 12):
         for S in SLUMP_S:
             for f in FORCES:
@@ -1745,7 +1752,7 @@ def select(runs: list[tuple[str, dict]], only: str | None) -> list[tuple[str, di
 
 #: The result fields that tell one run of a case from another (its parameters, not its outcome).
 IDENTITY = ("S", "resolution", "elastic_force", "shallowness", "amplitude", "dt_factor", "deformation", "fit",
-            "hourglass", "label", "dtype", "span_over_thickness", "aspect", "hold", "floor", "strain")
+            "hourglass", "label", "dtype", "span_over_thickness", "aspect", "hold", "floor", "strain", "fit_weight")
 
 
 def same_run(a: dict, b: dict) -> bool:

@@ -203,16 +203,20 @@ def _plots(results, img: pathlib.Path) -> list[str]:
         ax.set_title("Undamped breathing cube: total energy")
         ax.legend(fontsize=6)
         _save(fig, img, "energy.png", made)
-    flows = sorted((r for r in results if r["case"] == "uniaxial_flow"), key=lambda r: r["resolution"])
+    flows = sorted((r for r in results if r["case"] == "uniaxial_flow"), key=_flow_order)
     if flows:
         fig, ax = plt.subplots(figsize=(6.5, 4))
-        for k, r in enumerate(flows):
-            # Solid while the cube is at least three particle layers thick, dotted after.
+        resolutions = sorted({r["resolution"] for r in flows})
+        for r in flows:
+            # Solid while the cube is at least three particle layers thick, dotted after; one
+            # colour per resolution, one marker per fit weight.
             thin = math.log(r["resolution"] / 3.0)
             e = np.array([x["log_strain"] for x in r["history"]])
             q = np.array([x["stress_over_sigma_y"] / x["bingham_over_sigma_y"] for x in r["history"]])
-            c = f"C{k}"
-            ax.plot(e[e <= thin], q[e <= thin], "-o", ms=3, color=c, label=f"{r['resolution']} across")
+            c = f"C{resolutions.index(r['resolution'])}"
+            weight = _fit_weight(r)
+            marker = "-o" if weight == "poly6" else "-^"
+            ax.plot(e[e <= thin], q[e <= thin], marker, ms=3, color=c, label=f"{r['resolution']} across, {weight}")
             late = max(0, int((e <= thin).sum()) - 1)
             ax.plot(e[late:], q[late:], ":", color=c)
         ax.axhline(1.0, color="k", lw=0.8, label="Bingham: sigma_y + 3 eta_p rate")
@@ -222,6 +226,15 @@ def _plots(results, img: pathlib.Path) -> list[str]:
         ax.legend(fontsize=7)
         _save(fig, img, "uniaxial_flow.png", made)
     return made
+
+
+def _fit_weight(r) -> str:
+    """The fit weight a result ran with (rows written before the option: the paper's poly6)."""
+    return r.get("fit_weight", "poly6")
+
+
+def _flow_order(r):
+    return (_fit_weight(r) != "poly6", r["resolution"])
 
 
 #: Log-strain bands of the uniaxial flow's table.
@@ -235,11 +248,11 @@ def _flow_band(r, lo, hi) -> str:
 
 def _uniaxial_flow(results) -> str:
     """``uniaxial_flow``: the body's stress against the Bingham stress, by band of log strain."""
-    flows = sorted((r for r in results if r["case"] == "uniaxial_flow"), key=lambda r: r["resolution"])
+    flows = sorted((r for r in results if r["case"] == "uniaxial_flow"), key=_flow_order)
     if not flows:
         return ""
-    rows = [[r["resolution"], r["strain"], r["duration"]] + [_flow_band(r, lo, hi) for lo, hi in FLOW_BANDS] + [_run(r)]
-            for r in flows]
+    rows = [[r["resolution"], _fit_weight(r), r["strain"], r["duration"]] + [_flow_band(r, lo, hi) for lo, hi in FLOW_BANDS]
+            + [_run(r)] for r in flows]
     return ("## Sustained uniaxial flow: stress against Bingham\n\n"
             "`uniaxial_flow`: a cube of the slump's S = 0.2 material (mu = 10 rho g H0, flow rate 200 /s, viscosity 2 "
             "Pa s, default pressure) between two frictionless plane tools, no gravity, the top one lowered at a "
@@ -249,9 +262,11 @@ def _uniaxial_flow(results) -> str:
             "has no sample). Past a log strain of ln(n / 3) the cube is under three particle layers thick and "
             "tests no material (0.69 / 0.98 / 1.39 at n = 6 / 8 / 12 across). "
             "The independent MPM carries 0.88-0.99 of it to log strain 1.0 "
-            "(`mpm_slump.squeeze`, `tests/test_mpm_reference.py`); why this method falls below it past a log strain "
-            "of about 0.55 is in docs/physics.md, \"The flow stress in sustained uniaxial flow\".\n\n"
-            + _table(["across", "strain", "t (s)"] + [f"log strain {lo:g}-{hi:g}" for lo, hi in FLOW_BANDS] + ["run"], rows)
+            "(`mpm_slump.squeeze`, `tests/test_mpm_reference.py`); why this method with the paper's poly6 fit weight "
+            "falls below it past a log strain of about 0.55, and how the biweight (`SceneBuilder(fit_weight=\"biweight\")`) "
+            "keeps it, is in docs/physics.md, \"The flow stress in sustained uniaxial flow\" and \"The fit's weight\".\n\n"
+            + _table(["across", "fit weight", "strain", "t (s)"] + [f"log strain {lo:g}-{hi:g}" for lo, hi in FLOW_BANDS]
+                     + ["run"], rows)
             + "\n\n![uniaxial flow](images/validation/uniaxial_flow.png)\n")
 
 

@@ -11,7 +11,7 @@ from warp_esph._types import type_set
 
 S = wp.float64
 T = type_set(S)
-_stress = forces.funcs(S).stress
+_stress = forces.funcs(S, "poly6").stress
 
 
 @wp.kernel

@@ -176,7 +176,7 @@ def _interior(model, margin):
 
 def test_rest_model_fits_the_total_deformation_exactly():
     model = _kernel_case("rest")
-    k = comparison.kernels(wp.float64)
+    k = comparison.kernels(wp.float64, "poly6")
     rng = np.random.default_rng(3)
     A = np.eye(3) + 0.3 * rng.standard_normal((3, 3))
     X, nbr, count = model.rest_neighbors()
@@ -198,7 +198,7 @@ def test_rest_model_fits_the_total_deformation_exactly():
 
 def test_additive_model_adds_the_green_strain_of_the_step():
     model = _kernel_case("additive")
-    k = comparison.kernels(wp.float64)
+    k = comparison.kernels(wp.float64, "poly6")
     rng = np.random.default_rng(4)
     dF = np.eye(3) + 0.05 * rng.standard_normal((3, 3))
     n = model.particle_count
@@ -223,7 +223,7 @@ def test_additive_model_adds_the_green_strain_of_the_step():
 
 
 def _constitutive(model, F, Fp, dt=1e-3):
-    k = comparison.kernels(wp.float64)
+    k = comparison.kernels(wp.float64, "poly6")
     n = len(F)
     m = model
     outs = [wp.zeros(n, dtype=wp.mat33d), wp.zeros(n, dtype=wp.float64), wp.zeros(n, dtype=wp.mat33d),

@@ -16,14 +16,14 @@ DT = 1.0e-3
 ALPHA0 = 0.02
 
 
-def _model(params=None, velocity_scale=20.0):
+def _model(params=None, velocity_scale=20.0, fit_weight="poly6"):
     # pressure_stiffness fixed: its default follows mu and lam, which would make the
     # finite difference in mu also move the pressure.
     p = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "hardening": 200.0, "pressure_stiffness": 1.0,
          "viscosity": 2.0}
     p.update(params or {})
     mat = we.Material(density=1000.0, **p)
-    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0), fit_weight=fit_weight)
     b.add_box((0.0, 0.0, 0.0), (0.1, 0.08, 0.08), mat)
     model = b.finalize(dtype=wp.float64, requires_grad=True)
     # A slightly jittered lattice: exact distance ties make the 30-nearest selection (a
@@ -340,7 +340,7 @@ def test_default_solver_of_an_elastic_model_gradients_match_central_differences(
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
 
 
-def _images_model(params=None, ground=-0.045, v0=None):
+def _images_model(params=None, ground=-0.045, v0=None, fit_weight="poly6"):
     """The block over the ground with floor images (``add_ground(images=True)``): by default
     the plane three quarters of a spacing under its bottom layer, so every particle's fit,
     energy and density hold images; squeezed along y towards the plane (its bottom layer sinks 0.07 dx
@@ -350,7 +350,7 @@ def _images_model(params=None, ground=-0.045, v0=None):
          "viscosity": 2.0}
     p.update(params or {})
     mat = we.Material(density=1000.0, **p)
-    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0), fit_weight=fit_weight)
     b.add_box((0.0, 0.0, 0.0), (0.1, 0.08, 0.08), mat)
     b.add_ground(ground, friction=0.5, images=True)
     model = b.finalize(dtype=wp.float64, requires_grad=True)
@@ -506,4 +506,59 @@ def test_floor_images_gradients_of_the_energy_pressure_force_match_central_diffe
     fd = (_rollout_loss(_images_model({**energy, name: base + eps}), weights)[0]
           - _rollout_loss(_images_model({**energy, name: base - eps}), weights)[0]) / (2 * eps)
     assert abs(fd) > 1e-9, "the loss does not reach " + name
+    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+
+
+#: The biweight fit (``SceneBuilder(fit_weight="biweight")``) on each path its weight enters:
+#: the fused linear fit with the variational force or the paper's (eqs. 10-13), the
+#: curvature-corrected fit, and the floor images at rest (F = I, 0.3 dx over the plane) and
+#: through contact.
+BIWEIGHT_CASES = {
+    "linear-mu": ("block", "variational", "linear", "mu"),
+    "linear-yield_stress": ("block", "variational", "linear", "yield_stress"),
+    "linear-flow_rate": ("block", "variational", "linear", "flow_rate"),
+    "linear-v0": ("block", "variational", "linear", "v0"),
+    "paper-lam": ("block", "paper", "linear", "lam"),
+    "corrected-mu": ("block", "variational", "curvature_corrected", "mu"),
+    "images-rest-mu": ("rest", "variational", "linear", "mu"),
+    "images-contact-v0": ("contact", "variational", "linear", "v0"),
+}
+
+
+def _biweight_model(scene, elastic_force, params=None):
+    p = {"elastic_force": elastic_force, **(params or {})}
+    if scene == "block":
+        return _model(p, fit_weight="biweight")
+    return _images_model(p, fit_weight="biweight", **IMAGE_SCENES[scene])
+
+
+@pytest.mark.parametrize("case", sorted(BIWEIGHT_CASES))
+def test_biweight_fit_gradients_match_central_differences(weights, case):
+    """The biweight's hand-written adjoints (its weight and slope in the fit's, the
+    variational force's and the corrected fit's pair adjoints) against float64 central
+    differences at a relative step of 1e-5, and against Warp's generated adjoints."""
+    scene, elastic_force, fit, name = BIWEIGHT_CASES[case]
+    model = _biweight_model(scene, elastic_force)
+    assert model.fit_weight == "biweight"
+    _, grads = _rollout_loss(model, weights, grad_of=(name,), fit=fit)
+    _, generated = _rollout_loss(_biweight_model(scene, elastic_force), weights, grad_of=(name,), fit=fit,
+                                 hand_adjoints=False)
+    np.testing.assert_allclose(grads[name], generated[name], rtol=1e-8, atol=1e-12 * np.abs(generated[name]).max())
+    if name == "v0":
+        i = int(np.argmin(model.particle_x0[:, 1]))
+        for comp in (0, 1):
+            def loss_with(delta):
+                m = _biweight_model(scene, elastic_force)
+                m.particle_v0[i, comp] += delta
+                return _rollout_loss(m, weights, fit=fit)[0]
+
+            fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
+            assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
+        return
+    base = getattr(model.materials[0], name)
+    eps = 1e-5 * abs(base)
+    plus = _rollout_loss(_biweight_model(scene, elastic_force, {name: base + eps}), weights, fit=fit)[0]
+    minus = _rollout_loss(_biweight_model(scene, elastic_force, {name: base - eps}), weights, fit=fit)[0]
+    fd = (plus - minus) / (2 * eps)
+    assert abs(fd) > 1e-11, f"the loss does not reach {name}"
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)

@@ -308,7 +308,7 @@ def test_yield_onset_under_uniaxial_stretch_and_volume_kept(model_name):
     model = _block_model(material=mat)
     S = model.scalar
     T = type_set(S)
-    kd = deformation.kernels(S).update_deformation
+    kd = deformation.kernels(S, "poly6").update_deformation
     kc = plasticity.kernels(S).constitutive_update
     state = model.state()
     solver = we.Solver(model)

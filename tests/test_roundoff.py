@@ -67,7 +67,7 @@ def test_fit_at_rest_is_exactly_no_change_of_F():
     F_out, F_lo_out = wp.zeros_like(Fa), wp.zeros_like(Fa)
     lo = wp.zeros_like(state.x)
     counters = wp.zeros(4, dtype=wp.int32)
-    wp.launch(deformation.kernels(model.scalar).update_deformation, n,
+    wp.launch(deformation.kernels(model.scalar, model.fit_weight).update_deformation, n,
               [state.x, state.x, lo, lo, model.particle_body, state.neighbors, state.neighbor_count, state.guard, Fa, F_lo_a,
                model.scalar(model.support_radius), *model.image_args()], [F_out, F_lo_out, counters])
     assert (state.guard.numpy() == 0).all()

@@ -449,7 +449,7 @@ def test_floor_image_depth_is_continuous_in_value_and_slope():
     from warp_esph.sim import deformation
 
     T = type_set(wp.float64)
-    fn = deformation.funcs(wp.float64)
+    fn = deformation.funcs(wp.float64, "poly6")
 
     @wp.kernel
     def images(x: wp.array(dtype=T.vec3), n: T.vec3, off: wp.float64, m: wp.float64, g: wp.array(dtype=T.vec3),

@@ -23,7 +23,7 @@ from warp_esph.sim import forces, plasticity
 def _shear_kernel():
     S = wp.float64
     flow = plasticity.kernels(S).flow
-    stress = forces.funcs(S).stress
+    stress = forces.funcs(S, "poly6").stress
     mat33 = wp.types.matrix(shape=(3, 3), dtype=S)
     vec3 = wp.types.vector(length=3, dtype=S)
 

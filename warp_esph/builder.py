@@ -18,6 +18,7 @@ from . import checks, meshes, tools
 from ._types import scalar_type
 from .sim.colliders import CONTACT_RAMP, MAX_PER_KIND, Box, Plane, Sphere
 from .sim.neighbors import PAPER_MAX_NEIGHBORS, default_max_neighbors
+from .sim.smoothing import FIT_WEIGHTS
 from .material import Material
 from .meshes import lattice_points
 from .model import CONTACTS, FITS, Body, Model
@@ -81,6 +82,11 @@ class SceneBuilder:
     ``model.CONTACTS``, "instant" or "continuous"); ``hourglass`` the model's
     ``Model.hourglass`` (the strength of the hourglass control a ``Solver`` runs by default; 0:
     off; None: by the fit, ``Model.solver_choice``). Scene files set them in ``[solver]``.
+
+    ``fit_weight`` is the model's ``Model.fit_weight``, the weights of the incremental fit
+    (``smoothing.FIT_WEIGHTS``): ``"poly6"``, the paper's eq. 7 (the default), or
+    ``"biweight"``, which keeps a flowing material's stress through large strain nearer the
+    continuum's (docs/physics.md, "The fit's weight").
     """
 
     def __init__(
@@ -95,8 +101,11 @@ class SceneBuilder:
         contact: str | None = None,
         contact_ramp: float = CONTACT_RAMP,
         hourglass: float | None = None,
+        fit_weight: str = "poly6",
     ):
         self.spacing = checks.positive("spacing", spacing)
+        #: ``Model.fit_weight`` of the model ``finalize`` makes.
+        self.fit_weight = checks.choice("fit_weight", fit_weight, FIT_WEIGHTS)
         #: ``Model.fit`` of the model ``finalize`` makes (None: the model's default).
         self.fit = None if fit is None else checks.choice("fit", fit, FITS)
         if contact is not None:
@@ -613,7 +622,7 @@ class SceneBuilder:
 
 #: What every world of a model must share (``finalize_worlds``).
 _SHARED = ("spacing", "support_radius", "gravity", "max_neighbors", "bodies_interact", "planes", "spheres", "boxes",
-           "fit", "contact_ramp", "hourglass")
+           "fit", "contact_ramp", "hourglass", "fit_weight")
 
 
 def _tool_signature(b: SceneBuilder) -> tuple:
@@ -723,6 +732,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
         requires_grad=requires_grad,
         particle_world=np.concatenate(world_ids),
         world_material_start=mat_start,
+        fit_weight=first.fit_weight,
     )
     model.force_fields = fields
     model.fit, model.contact_ramp, model.hourglass = first.fit, first.contact_ramp, first.hourglass

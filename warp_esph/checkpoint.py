@@ -50,6 +50,8 @@ def model_fingerprint(model: Model) -> str:
         "colliders": [repr(c) for c in (*model.planes, *model.spheres, *model.boxes)],
         "fields": [repr(f) for f in model.force_fields],
     }
+    if model.fit_weight != "poly6":  # only where set: checkpoints written before the option still match
+        record["fit_weight"] = model.fit_weight
     h.update(repr(record).encode())
     return h.hexdigest()[:32]
 

@@ -136,7 +136,7 @@ def _build_parser() -> _Parser:
 
 
 def _add_solver_arguments(parser) -> None:
-    """``--solver-fit``, ``--contact`` and ``--hourglass``: the scene's ``[solver]`` options, overridden."""
+    """``--solver-fit``, ``--contact``, ``--hourglass`` and ``--fit-weight``: the scene's ``[solver]`` options, overridden."""
     parser.add_argument("--solver-fit", metavar="NAME",
                         help="incremental fit of the solver: auto (curvature_corrected with the hourglass control where no "
                              "material can flow and all use the variational force, else linear), linear (the paper's) or "
@@ -150,12 +150,18 @@ def _add_solver_arguments(parser) -> None:
                         help="strength (>= 0) of the hourglass control of the fit's zero-energy modes, for elastic solids "
                              "under concentrated loads (0.1 holds a pressed sphere indenter); 0: off; default: the scene's "
                              "[solver] hourglass, else 0.05 where the auto fit chose curvature_corrected and 0 otherwise")
+    parser.add_argument("--fit-weight", metavar="NAME",
+                        help="weights of the incremental fit: poly6 (the paper's eq. 7) or biweight (keeps a flowing "
+                             "material's stress through large strain nearer the continuum's); default: the scene's "
+                             "[solver] fit_weight, else poly6")
 
 
 def _solver_options(args) -> dict:
-    """The checked ``--solver-fit`` / ``--contact`` / ``--hourglass`` as ``Model`` attribute values (only those given)."""
+    """The checked ``--solver-fit`` / ``--contact`` / ``--hourglass`` / ``--fit-weight`` as ``Model`` attribute values
+    (only those given)."""
     from . import checks  # noqa: PLC0415
     from .model import CONTACTS, FITS  # noqa: PLC0415
+    from .sim.smoothing import FIT_WEIGHTS  # noqa: PLC0415
 
     out = {}
     if getattr(args, "solver_fit", None) is not None:
@@ -164,6 +170,8 @@ def _solver_options(args) -> dict:
         out["contact_ramp"] = CONTACTS[checks.choice("--contact", args.contact, tuple(CONTACTS))]
     if getattr(args, "hourglass", None) is not None:
         out["hourglass"] = _hourglass_arg(args.hourglass)
+    if getattr(args, "fit_weight", None) is not None:
+        out["fit_weight"] = checks.choice("--fit-weight", args.fit_weight, FIT_WEIGHTS)
     return out
 
 
@@ -294,7 +302,7 @@ def _cmd_run(args) -> int:
         given = [f"{name} = {value!r}" for name, value, default in
                  (("SCENE", args.scene, None), ("--dt", args.dt, None), ("--fps", args.fps, None), ("--scale", args.scale, 1.0),
                   ("-o", args.output, None), ("--solver-fit", args.solver_fit, None), ("--contact", args.contact, None),
-                  ("--hourglass", args.hourglass, None)) if value != default]
+                  ("--hourglass", args.hourglass, None), ("--fit-weight", args.fit_weight, None)) if value != default]
         if given:
             raise ValueError(f"{given[0]} is not allowed with --resume: the checkpoint's run decides it "
                              f"(give --resume, and --frames to extend the run)")
@@ -307,7 +315,8 @@ def _cmd_run(args) -> int:
         args.fps, args.dt, args.output, args.surface = run["fps"], run["dt"], run["output"], run.get("surface", False)
         frames_total = args.frames if args.frames is not None else run["frames"]  # --frames extends a run
         every = every or run.get("checkpoint_every")
-        options = {k: run[k] for k in ("fit", "contact_ramp", "hourglass") if k in run}  # the run's own, not the scene's now
+        # the run's own, not the scene's now
+        options = {k: run[k] for k in ("fit", "contact_ramp", "hourglass", "fit_weight") if k in run}
     scene = load_scene(args.scene, scale=scale)
     _apply_solver_options(scene.builder, options)
     fps = args.fps if args.fps is not None else scene.fps
@@ -359,7 +368,7 @@ def _cmd_run(args) -> int:
     run_record = {"scene": args.scene if args.scene is not None else scene.name, "scale": scale, "fps": fps, "dt": dt,
                   "frames": frames_total, "output": os.path.abspath(writer.path), "dtype": args.dtype,
                   "surface": bool(args.surface), "checkpoint_every": every, "fit": model.fit, "contact_ramp": model.contact_ramp,
-                  "hourglass": model.hourglass}
+                  "hourglass": model.hourglass, "fit_weight": model.fit_weight}
     if args.scene is not None and os.path.exists(str(args.scene)):
         run_record["scene"] = os.path.abspath(args.scene)
 
@@ -468,6 +477,10 @@ def _check_run_record(path, run: dict) -> None:
             checks.non_negative("contact_ramp", run["contact_ramp"])
         if run.get("hourglass") is not None:  # None: by the fit (Model.solver_choice)
             checks.non_negative("hourglass", run["hourglass"])
+        if "fit_weight" in run:
+            from .sim.smoothing import FIT_WEIGHTS  # noqa: PLC0415
+
+            checks.choice("fit_weight", run["fit_weight"], FIT_WEIGHTS)
     except ValueError as e:
         raise ValueError(f"{where} {e}") from None
 

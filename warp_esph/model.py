@@ -22,6 +22,7 @@ from .sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP, Box, Plane, Sp
 from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, PRESSURE_FORCE_IDS, Material, p_wave_speed
 from .sim import ghost_floor, integrate
 from .sim.replay import Launches, pointer_key
+from .sim.smoothing import FIT_WEIGHTS
 from .sim import materials as material_struct
 
 
@@ -187,6 +188,7 @@ class Model:
         bodies_interact: bool = True,
         particle_world: np.ndarray | None = None,
         world_material_start: Sequence[int] | None = None,
+        fit_weight: str = "poly6",
     ):
         self.device = wp.get_device(device)
         self.types = type_set(scalar)
@@ -196,6 +198,10 @@ class Model:
         self.requires_grad = bool(requires_grad)
         self.spacing = float(spacing)
         self.support_radius = float(support_radius)
+        #: The weights of the incremental fit and the sums that share them
+        #: (``smoothing.FIT_WEIGHTS``: ``"poly6"``, the paper's eq. 7; ``"biweight"``;
+        #: ``SceneBuilder(fit_weight=)``, docs/physics.md, "The fit's weight").
+        self.fit_weight = checks.choice("fit_weight", fit_weight, FIT_WEIGHTS)
         self.max_neighbors = int(max_neighbors)
         #: Whether neighbour lists (so SPH pressure and viscosity) reach into other bodies.
         self.bodies_interact = bool(bodies_interact)
@@ -551,7 +557,8 @@ class Model:
         static colliders, neighbour rows, device, precision), for a model made from it."""
         return dict(spacing=self.spacing, support_radius=self.support_radius, gravity=self.gravity, planes=self.planes,
                     spheres=self.spheres, boxes=self.boxes, max_neighbors=self.max_neighbors,
-                    bodies_interact=self.bodies_interact, device=self.device, scalar=self.scalar)
+                    bodies_interact=self.bodies_interact, device=self.device, scalar=self.scalar,
+                    fit_weight=self.fit_weight)
 
     def _read_parameters(self) -> np.ndarray:
         """The ``MATERIAL_FIELDS`` arrays as one host array (a row each), read in one
@@ -678,10 +685,11 @@ class Model:
 
     def neighbor_options(self, bodies: bool = True) -> dict:
         """The ``NeighborSearch`` keywords that keep worlds (and, without body
-        interaction and with ``bodies``, bodies) out of each other's neighbour lists."""
+        interaction and with ``bodies``, bodies) out of each other's neighbour lists, and the
+        fit's weight (the guard's moment matrix sums it)."""
         worlds = self.world_count > 1
         group = self.neighbor_group if bodies else (self.particle_world if worlds else None)
-        return {"group": group, "world": self.particle_world if worlds else None}
+        return {"group": group, "world": self.particle_world if worlds else None, "fit_weight": self.fit_weight}
 
     @property
     def body_names(self) -> list[str]:

@@ -25,6 +25,7 @@ from . import checks
 from .builder import MAX_FLOOR_LAYERS, SceneBuilder
 from .material import PRESETS, Material
 from .model import CONTACTS, FITS
+from .sim.smoothing import FIT_WEIGHTS
 
 __all__ = [
     "Scene", "load_scene_file", "SCENE_KEYS", "MATERIAL_KEYS", "BODY_COMMON", "BODY_SHAPES", "COLLIDER_TYPES", "TOP_KEYS",
@@ -181,8 +182,10 @@ TOOL_KEYS = {
 }
 PIN_KEYS = {"name": (STR, False), "body": (STR, False), "region": (REGION, False), "indices": (INTS, False), **MOTION_KEYS}
 #: ``[solver]``: the numerical options of ``Model`` a scene may choose (``Model.fit``, the
-#: contact law ``Model.contact_ramp`` by name: ``model.CONTACTS``, ``Model.hourglass``).
-SOLVER_KEYS = {"fit": (STR, False), "contact": (STR, False), "hourglass": (_NonNegative(), False)}
+#: contact law ``Model.contact_ramp`` by name: ``model.CONTACTS``, ``Model.hourglass``,
+#: ``Model.fit_weight``).
+SOLVER_KEYS = {"fit": (STR, False), "contact": (STR, False), "hourglass": (_NonNegative(), False),
+               "fit_weight": (STR, False)}
 TOP_KEYS = ("scene", "solver", "materials", "bodies", "colliders", "tools", "pins")
 
 
@@ -415,6 +418,8 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
     if contact is not None:
         _choice(file, "[solver]", "contact", contact, tuple(CONTACTS))
     hourglass = solver.get("hourglass")
+    fit_weight = solver.get("fit_weight", "poly6")
+    _choice(file, "[solver]", "fit_weight", fit_weight, FIT_WEIGHTS)
     materials_table = data.get("materials", {})
     if not isinstance(materials_table, dict):
         raise ValueError(f"{file}: 'materials' must be a table of [materials.NAME] tables, not {materials_table!r}")
@@ -438,6 +443,7 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
             fit=fit,
             contact=contact,
             hourglass=hourglass,
+            fit_weight=fit_weight,
         )
         frames = checks.positive_int("frames", scene.get("frames", 60))
         fps = checks.positive("fps", scene.get("fps", 30.0))

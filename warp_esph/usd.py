@@ -305,6 +305,7 @@ class UsdWriter:
             f"{_KEY}:particle_count": m.particle_count,
             f"{_KEY}:spacing": m.spacing,
             f"{_KEY}:support_radius": m.support_radius,
+            f"{_KEY}:fit_weight": m.fit_weight,
             f"{_KEY}:gravity": Gf.Vec3d(*m.gravity),
             f"{_KEY}:dtype": m.scalar.__name__,
         }

@@ -29,17 +29,17 @@ COUNT_ILL_CONDITIONED = deformation.COUNT_ILL_CONDITIONED
 
 
 @functools.cache
-def kernels(scalar) -> types.SimpleNamespace:
+def kernels(scalar, weight: str) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     pf = plasticity.funcs(scalar)
     flow, flow_fraction = pf.flow, pf.flow_fraction
-    stress = forces.funcs(scalar).stress
-    df = deformation.funcs(scalar)
+    stress = forces.funcs(scalar, weight).stress
+    df = deformation.funcs(scalar, weight)
     moment_sums, step_gradient, unless_inverted = df.moment_sums, df.step_gradient, df.unless_inverted
     Materials = materials.struct(scalar)
     third = scalar(1.0 / 3.0)
-    cf = curvature.funcs(scalar)
+    cf = curvature.funcs(scalar, weight)
 
     @wp.kernel(module="unique")
     def constitutive_update(
@@ -155,7 +155,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 F = unless_inverted(dF * F, F, counters)
         F_out[i] = F
 
-    fn = forces.funcs(scalar)
+    fn = forces.funcs(scalar, weight)
 
     @wp.kernel(module="unique")
     def rest_variational_forces(
@@ -210,7 +210,7 @@ def kernels(scalar) -> types.SimpleNamespace:
 def launch_constitutive_update(model, state_in, state_out, dt, counters):
     """``plasticity.launch_constitutive_update`` for models with a Fig. 8 comparison material."""
     model.launches(
-        kernels(model.scalar).constitutive_update,
+        kernels(model.scalar, model.fit_weight).constitutive_update,
         model.particle_count,
         [state_in.F, state_in.alpha, state_in.F_p, model.particle_material, model.material_arrays(), model.scalar(dt)],
         [state_out.F_flowed, state_out.alpha, state_out.F_p, state_out.stress, state_out.F_inv, counters],
@@ -223,7 +223,7 @@ def launch_update_deformation(model, state_in, state_out, counters, curved: bool
     (``curved``: the rest model's total fit is the curvature-corrected one)."""
     rest_x, rest_nbr, rest_count = model.rest_neighbors()
     model.launches(
-        kernels(model.scalar).update_deformation,
+        kernels(model.scalar, model.fit_weight).update_deformation,
         model.particle_count,
         [
             state_in.x, state_out.x, rest_x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
@@ -241,7 +241,7 @@ def launch_rest_variational_forces(model, state_out, curved: bool = False):
     curvature-corrected total fit)."""
     rest_x, rest_nbr, rest_count = model.rest_neighbors()
     model.launches(
-        kernels(model.scalar).rest_variational_forces,
+        kernels(model.scalar, model.fit_weight).rest_variational_forces,
         model.particle_count,
         [rest_x, model.particle_body, model.particle_material, model.material_arrays(), rest_nbr, rest_count,
          model.rest_guard, model.particle_volume, state_out.stress, state_out.F_p, model.scalar(model.support_radius), int(curved)],

@@ -61,12 +61,12 @@ COUNT_ILL_CONDITIONED = deformation.COUNT_ILL_CONDITIONED
 
 
 @functools.cache
-def funcs(scalar) -> types.SimpleNamespace:
+def funcs(scalar, weight: str) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
-    sm = smoothing.funcs(scalar)
-    df = deformation.funcs(scalar)
-    variational_map = forces.funcs(scalar).variational_map
+    fw = smoothing.fit_weight_funcs(scalar, weight)
+    df = deformation.funcs(scalar, weight)
+    variational_map = forces.funcs(scalar, weight).variational_map
 
     @wp.func
     def curvature_basis(d: vec3, h: scalar) -> vec3:
@@ -116,7 +116,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         xi = x[i]
         ui = df.displacement(xi, y[i], x_lo[i], y_lo[i])
         bi = body[i]
-        c6 = sm.poly6_coef(h)
+        c6 = fw.coef(h)
         same = int(0)
         for k in range(df.pair_slots(xi, n, h, gn, goff, image)):
             j, p = df.pair_partner(i, k, n, nbr, x, gn, goff, gmin, image)
@@ -126,7 +126,7 @@ def funcs(scalar) -> types.SimpleNamespace:
                 ub = -ui
                 if image == 0:
                     ub = df.displacement(x[j], y[j], x_lo[j], y_lo[j]) - ui
-                dA, dB, dC, dD, dE = pair_moments(xb, ub, sm.w_poly6_c(r2, h, c6), h)
+                dA, dB, dC, dD, dE = pair_moments(xb, ub, fw.w_c(r2, h, c6), h)
                 A += dA
                 B += dB
                 C += dC
@@ -203,20 +203,20 @@ def funcs(scalar) -> types.SimpleNamespace:
         xi = x[i]
         bi = body[i]
         gi = df.floor_image(xi, gn, goff, gmin)
-        c6 = sm.poly6_coef(h)
+        c6 = fw.coef(h)
         zero = vec3()
         for k in range(df.image_row_length(xi, n, h, gn, goff)):
             j = df.image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xb = x[j] - gi
-                dA, dB, dC, dD, dE = pair_moments(xb, zero, sm.w_poly6_c(wp.dot(xb, xb), h, c6), h)
+                dA, dB, dC, dD, dE = pair_moments(xb, zero, fw.w_c(wp.dot(xb, xb), h, c6), h)
                 A += dA
                 C += dC
                 D += dD
                 if j != i:
                     gb = df.floor_image(x[j], gn, goff, gmin) - gi
                     pb = x[j] - xi  # weighed as its particles' pair (deformation.floor_image_moment)
-                    dA, dB, dC, dD, dE = pair_moments(gb, zero, sm.w_poly6_c(wp.dot(pb, pb), h, c6), h)
+                    dA, dB, dC, dD, dE = pair_moments(gb, zero, fw.w_c(wp.dot(pb, pb), h, c6), h)
                     A += dA
                     C += dC
                     D += dD
@@ -317,7 +317,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     def variational_pair_force(M: mat33, K: mat33, d: vec3, h: scalar, c6: scalar) -> vec3:
         """``g_ij = w_ij M_i (xb_ij - K_i^T q(xb_ij))`` (``d = xb_ij``, ``M = V P* F^T A~^-1``);
         taken from ``j``, added to ``i``."""
-        return sm.w_poly6_c(wp.dot(d, d), h, c6) * (M * corrected_offset(K, d, h))
+        return fw.w_c(wp.dot(d, d), h, c6) * (M * corrected_offset(K, d, h))
 
     @wp.func
     def variational_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
@@ -326,7 +326,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         """``forces.variational_forces`` with the corrected fit's pair force."""
         xi = x[i]
         bi = body[i]
-        c6 = sm.poly6_coef(h)
+        c6 = fw.coef(h)
         fi = vec3()
         for k in range(n):
             j = nbr[i, k]
@@ -352,7 +352,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         energy on ``i`` and on each same-body neighbour ``r`` (``o = xb - K^T q(xb)``)."""
         xi = x[i]
         bi = body[i]
-        c6 = sm.poly6_coef(h)
+        c6 = fw.coef(h)
         gi = df.floor_image(xi, gn, goff, gmin)
         fi = vec3()
         for k in range(df.image_row_length(xi, n, h, gn, goff)):
@@ -398,7 +398,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         xi = x[i]
         yi = y[i]
         bi = body[i]
-        c6 = sm.poly6_coef(h)
+        c6 = fw.coef(h)
         hh = h * h
         for k in range(df.pair_slots(xi, n, h, gn, goff, image)):
             j, p, q = df.pair_ends(i, k, n, nbr, x, y, gn, goff, gmin, image)
@@ -406,7 +406,7 @@ def funcs(scalar) -> types.SimpleNamespace:
                 xb = p - xi
                 r2 = wp.dot(xb, xb)
                 if r2 < hh:
-                    w, dw = sm.w_poly6_inside(r2, hh, c6)
+                    w, dw = fw.w_inside(r2, hh, c6)
                     gx, gy = moment_pair_adjoint(xb, q - yi, w, dw, h, adj_A, adj_A_sym, adj_B, adj_C, adj_D, adj_D_sym,
                                                  adj_E)
                     df.scatter_pair_adjoint(adj_x, adj_y, j, x[j], gx, gy, gn, goff, gmin, image)
@@ -442,7 +442,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         g = vec3()
         r2 = wp.dot(d, d)
         if r2 < hh:
-            w, dw = sm.w_poly6_inside(r2, hh, c6)
+            w, dw = fw.w_inside(r2, hh, c6)
             g = variational_pair_adjoint(d, a, w, dw, h, M, K, adj_A, adj_A_sym, adj_C, adj_D, adj_D_sym)
             if image != 0:
                 wp.atomic_add(adj_x, j, df.floor_image_jacobian(xj, gn, goff, gmin) * g)
@@ -463,7 +463,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         gp = vec3()
         r2 = wp.dot(pb, pb)
         if r2 < hh:
-            w, dw = sm.w_poly6_inside(r2, hh, c6)
+            w, dw = fw.w_inside(r2, hh, c6)
             q = curvature_basis(gb, h)
             gg = variational_pair_adjoint(gb, vec3(), w, scalar(0.0), h, mat33(), K, adj_A, adj_A_sym, adj_C, adj_D,
                                           adj_D_sym)
@@ -489,13 +489,13 @@ def funcs(scalar) -> types.SimpleNamespace:
 
 
 @functools.cache
-def kernels(scalar) -> types.SimpleNamespace:
+def kernels(scalar, weight: str) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
-    sm = smoothing.funcs(scalar)
-    df = deformation.funcs(scalar)
-    fo = forces.funcs(scalar)
-    fn = funcs(scalar)
+    fw = smoothing.fit_weight_funcs(scalar, weight)
+    df = deformation.funcs(scalar, weight)
+    fo = forces.funcs(scalar, weight)
+    fn = funcs(scalar, weight)
     Materials = materials.struct(scalar)
 
     @wp.kernel(module="unique")
@@ -687,7 +687,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         bi = body[i]
         ai = adj_f[i]
         n = count[i]
-        c6 = sm.poly6_coef(h)
+        c6 = fw.coef(h)
         hh = h * h
         A, B, C, D, E, same = fn.fit_sums(i, x, x, x, x, body, nbr, n, h, gn, goff, gmin, images)
         # adj M = S1 - S2 K and adj K = -S2^T M (which need K and M), S1 = sum w a xb^T and
@@ -698,7 +698,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             j = nbr[i, k]
             if body[j] == bi:
                 d = x[j] - xi
-                wa = sm.w_poly6_c(wp.dot(d, d), h, c6) * (ai - adj_f[j])
+                wa = fw.w_c(wp.dot(d, d), h, c6) * (ai - adj_f[j])
                 S1 += wp.outer(wa, d)
                 S2 += wp.outer(wa, fn.curvature_basis(d, h))
         n_img = df.image_slots(xi, n, h, gn, goff, images)
@@ -710,11 +710,11 @@ def kernels(scalar) -> types.SimpleNamespace:
             if body[j] == bi:
                 xj = x[j]
                 d = df.floor_image(xj, gn, goff, gmin) - xi
-                wa = sm.w_poly6_c(wp.dot(d, d), h, c6) * ai
+                wa = fw.w_c(wp.dot(d, d), h, c6) * ai
                 S1 += wp.outer(wa, d)
                 S2 += wp.outer(wa, fn.curvature_basis(d, h))
                 d = xj - gi
-                wa = -sm.w_poly6_c(wp.dot(d, d), h, c6) * adj_f[j]
+                wa = -fw.w_c(wp.dot(d, d), h, c6) * adj_f[j]
                 S1g += wp.outer(wa, d)
                 S2g += wp.outer(wa, fn.curvature_basis(d, h))
         K, D_inv, kept = fn.projection_terms(A, C, D)
@@ -793,14 +793,14 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True)
     tape = recording_tape()
     grads = (state_in.x, state_out.stress, state_out.F_flowed, state_out.F_inv, state_out.force)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
-        model.launches(kernels(S).elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device)
+        model.launches(kernels(S, model.fit_weight).elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device)
         return
-    model.launches(kernels(S).elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device,
+    model.launches(kernels(S, model.fit_weight).elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device,
               record_tape=False)
 
     def adjoint():
         model.launches(
-            kernels(S).variational_forces_adjoint, model.particle_count,
+            kernels(S, model.fit_weight).variational_forces_adjoint, model.particle_count,
             [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force,
              state_out.neighbors, state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress,
              state_out.F_flowed, S(model.support_radius), *model.image_args(), state_out.force.grad, state_in.x.grad,
@@ -815,7 +815,7 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True)
 def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint: bool = True):
     """``deformation.launch_update_deformation`` with the corrected fit; under a tape the
     backward runs ``update_deformation_adjoint`` (``hand_adjoint=False``: Warp's generated one)."""
-    k = kernels(model.scalar)
+    k = kernels(model.scalar, model.fit_weight)
     pos = [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
            state_out.neighbor_count, state_out.guard]
     h = model.scalar(model.support_radius)

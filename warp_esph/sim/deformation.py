@@ -45,10 +45,11 @@ def image_row_particle(i: int, k: int, n: int, nbr: wp.array2d(dtype=wp.int32)) 
 
 
 @functools.cache
-def funcs(scalar) -> types.SimpleNamespace:
+def funcs(scalar, weight: str) -> types.SimpleNamespace:
+    """The fit's functions for ``scalar`` and the fit ``weight`` (``smoothing.FIT_WEIGHTS``)."""
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
-    sm = smoothing.funcs(scalar)
+    fw = smoothing.fit_weight_funcs(scalar, weight)
 
     @wp.func
     def displacement(x: vec3, y: vec3, x_lo: vec3, y_lo: vec3) -> vec3:
@@ -183,7 +184,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         if given == 0:
             ui = displacement(xi, y[i], x_lo[i], y_lo[i])
         bi = body[i]
-        c6 = sm.poly6_coef(h)
+        c6 = fw.coef(h)
         same = int(0)
         for k in range(pair_slots(xi, n, h, gn, goff, image)):
             j, p = pair_partner(i, k, n, nbr, x, gn, goff, gmin, image)
@@ -196,7 +197,7 @@ def funcs(scalar) -> types.SimpleNamespace:
                         uj = displacement(x[j], uj, x_lo[j], y_lo[j])
                     ub = uj - ui
                 r2 = wp.dot(xb, xb)
-                w = sm.w_poly6_c(r2, h, c6)
+                w = fw.w_c(r2, h, c6)
                 A += w * wp.outer(xb, xb)
                 B += w * wp.outer(ub, xb)
                 # Rows may reach beyond h (neighbors.select_neighbors): only partners of
@@ -263,7 +264,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         xi = x[i]
         yi = y[i]
         bi = body[i]
-        c6 = sm.poly6_coef(h)
+        c6 = fw.coef(h)
         hh = h * h
         for k in range(pair_slots(xi, n, h, gn, goff, image)):
             j, p, q = pair_ends(i, k, n, nbr, x, y, gn, goff, gmin, image)
@@ -271,7 +272,7 @@ def funcs(scalar) -> types.SimpleNamespace:
                 xb = p - xi
                 r2 = wp.dot(xb, xb)
                 if r2 < hh:
-                    w, dw = sm.w_poly6_inside(r2, hh, c6)
+                    w, dw = fw.w_inside(r2, hh, c6)
                     gx, gy = fit_pair_adjoint(w, dw, xb, q - yi, adj_A, adj_A_sym, adj_B)
                     scatter_pair_adjoint(adj_x, adj_y, j, x[j], gx, gy, gn, goff, gmin, image)
                     gx_i -= gx
@@ -302,16 +303,16 @@ def funcs(scalar) -> types.SimpleNamespace:
         xi = x[i]
         bi = body[i]
         gi = floor_image(xi, gn, goff, gmin)
-        c6 = sm.poly6_coef(h)
+        c6 = fw.coef(h)
         for k in range(image_row_length(xi, n, h, gn, goff)):
             j = image_row_particle(i, k, n, nbr)
             if body[j] == bi:
                 xb = x[j] - gi
-                A += sm.w_poly6_c(wp.dot(xb, xb), h, c6) * wp.outer(xb, xb)
+                A += fw.w_c(wp.dot(xb, xb), h, c6) * wp.outer(xb, xb)
                 if j != i:
                     gb = floor_image(x[j], gn, goff, gmin) - gi
                     pb = x[j] - xi
-                    A += sm.w_poly6_c(wp.dot(pb, pb), h, c6) * wp.outer(gb, gb)
+                    A += fw.w_c(wp.dot(pb, pb), h, c6) * wp.outer(gb, gb)
         return A
 
     @wp.func
@@ -413,10 +414,10 @@ def funcs(scalar) -> types.SimpleNamespace:
 
 
 @functools.cache
-def kernels(scalar) -> types.SimpleNamespace:
+def kernels(scalar, weight: str) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
-    fn = funcs(scalar)
+    fn = funcs(scalar, weight)
 
     @wp.kernel(module="unique")
     def update_deformation(
@@ -513,7 +514,7 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     the neighbourhood guards the neighbour search wrote to ``state_out.guard``. Under a
     ``wp.Tape`` the backward runs ``update_deformation_adjoint`` (``hand_adjoint=False``:
     Warp's generated adjoint, which tests compare it against)."""
-    k = kernels(model.scalar)
+    k = kernels(model.scalar, model.fit_weight)
     y = state_out.x if y is None else y
     y_lo = state_out.x_lo if y_lo is None else y_lo
     inputs = [
@@ -539,7 +540,7 @@ def launch_update_deformation_adjoint(model, state_in, state_out, y=None, y_lo=N
     y = state_out.x if y is None else y
     y_lo = state_out.x_lo if y_lo is None else y_lo
     model.launches(
-        kernels(model.scalar).update_deformation_adjoint, model.particle_count,
+        kernels(model.scalar, model.fit_weight).update_deformation_adjoint, model.particle_count,
         [
             state_in.x, y, state_in.x_lo, y_lo, model.particle_body, state_out.neighbors,
             state_out.neighbor_count, state_out.guard, state_out.F_flowed, model.scalar(model.support_radius),

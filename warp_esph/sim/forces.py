@@ -45,15 +45,16 @@ from .replay import recording_tape
 
 
 @functools.cache
-def funcs(scalar) -> types.SimpleNamespace:
+def funcs(scalar, weight: str) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     iso = isotropic.funcs(scalar)
     sm = smoothing.funcs(scalar)
-    floor_image = deformation.funcs(scalar).floor_image
-    floor_image_jacobian = deformation.funcs(scalar).floor_image_jacobian
-    image_row_length = deformation.funcs(scalar).image_row_length
-    image_slots = deformation.funcs(scalar).image_slots
+    fw = smoothing.fit_weight_funcs(scalar, weight)
+    floor_image = deformation.funcs(scalar, weight).floor_image
+    floor_image_jacobian = deformation.funcs(scalar, weight).floor_image_jacobian
+    image_row_length = deformation.funcs(scalar, weight).image_row_length
+    image_slots = deformation.funcs(scalar, weight).image_slots
     image_row_particle = deformation.image_row_particle
 
     @wp.func
@@ -187,7 +188,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     @wp.func
     def variational_pair_force(M: mat33, d: vec3, h: scalar, c6: scalar) -> vec3:
         """``g_ij = w_ij M_i xb_ij`` (``d = xb_ij``, ``c6 = poly6_coef(h)``); taken from ``j``, added to ``i``."""
-        return sm.w_poly6_c(wp.dot(d, d), h, c6) * (M * d)
+        return fw.w_c(wp.dot(d, d), h, c6) * (M * d)
 
     @wp.func
     def variational_pair_adjoint(M: mat33, adj_A: mat33, adj_A_sym: mat33, a: vec3, d: vec3, w: scalar, dw: scalar) -> vec3:
@@ -209,7 +210,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         g = vec3()
         r2 = wp.dot(d, d)
         if r2 < hh:
-            w, dw = sm.w_poly6_inside(r2, hh, c6)
+            w, dw = fw.w_inside(r2, hh, c6)
             g = variational_pair_adjoint(M, adj_A, adj_A_sym, a, d, w, dw)
             if image != 0:
                 wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * g)
@@ -229,7 +230,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         gp = vec3()
         r2 = wp.dot(pb, pb)
         if r2 < hh:
-            w, dw = sm.w_poly6_inside(r2, hh, c6)
+            w, dw = fw.w_inside(r2, hh, c6)
             gg = w * (adj_A_sym * gb)
             gp = scalar(2.0) * dw * wp.dot(gb, adj_A * gb) * pb
             wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * gg + gp)
@@ -243,7 +244,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         returns ``i``'s share, ``sum_j g_ij``."""
         xi = x[i]
         bi = body[i]
-        c6 = sm.poly6_coef(h)
+        c6 = fw.coef(h)
         fi = vec3()
         for k in range(n):
             j = nbr[i, k]
@@ -272,7 +273,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         neighbour ``r`` within ``h`` of it."""
         xi = x[i]
         bi = body[i]
-        c6 = sm.poly6_coef(h)
+        c6 = fw.coef(h)
         gi = floor_image(xi, gn, goff, gmin)
         fi = vec3()
         for k in range(image_row_length(xi, n, h, gn, goff)):
@@ -302,17 +303,18 @@ def funcs(scalar) -> types.SimpleNamespace:
 
 
 @functools.cache
-def kernels(scalar) -> types.SimpleNamespace:
+def kernels(scalar, weight: str) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     sm = smoothing.funcs(scalar)
-    fn = funcs(scalar)
-    fit_sums = deformation.funcs(scalar).fit_sums
-    image_moment = deformation.funcs(scalar).floor_image_moment
-    floor_image = deformation.funcs(scalar).floor_image
-    image_slots = deformation.funcs(scalar).image_slots
+    fw = smoothing.fit_weight_funcs(scalar, weight)
+    fn = funcs(scalar, weight)
+    fit_sums = deformation.funcs(scalar, weight).fit_sums
+    image_moment = deformation.funcs(scalar, weight).floor_image_moment
+    floor_image = deformation.funcs(scalar, weight).floor_image
+    image_slots = deformation.funcs(scalar, weight).image_slots
     image_row_particle = deformation.image_row_particle
-    floor_image_jacobian = deformation.funcs(scalar).floor_image_jacobian
+    floor_image_jacobian = deformation.funcs(scalar, weight).floor_image_jacobian
     Materials = materials.struct(scalar)
 
     @wp.kernel(module="unique")
@@ -433,7 +435,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         adj_stress[i] = adj_stress[i] + aP
         adj_F_inv[i] = adj_F_inv[i] + aFinv
 
-    guard_code = neighbors.kernels(scalar).guard_code
+    guard_code = neighbors.guard_funcs(scalar).guard_code
 
     @wp.kernel(enable_backward=False, module="unique")
     def variational_forces_adjoint(
@@ -484,7 +486,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         bi = body[i]
         ai = adj_f[i]
         n = count[i]
-        c6 = sm.poly6_coef(h)
+        c6 = fw.coef(h)
         hh = h * h
         # The fit's moment matrix and guard as the forward's (images included).
         A, B, same = fit_sums(i, x, x, x, x, body, nbr, n, h, gn, goff, gmin, images)
@@ -496,7 +498,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             j = nbr[i, k]
             if body[j] == bi:
                 d = x[j] - xi
-                adj_M += sm.w_poly6_c(wp.dot(d, d), h, c6) * wp.outer(ai - adj_f[j], d)
+                adj_M += fw.w_c(wp.dot(d, d), h, c6) * wp.outer(ai - adj_f[j], d)
         n_img = image_slots(xi, n, h, gn, goff, images)
         gi = floor_image(xi, gn, goff, gmin)
         adj_Mg = mat33()
@@ -505,9 +507,9 @@ def kernels(scalar) -> types.SimpleNamespace:
             if body[j] == bi:
                 xj = x[j]
                 d = floor_image(xj, gn, goff, gmin) - xi
-                adj_M += sm.w_poly6_c(wp.dot(d, d), h, c6) * wp.outer(ai, d)
+                adj_M += fw.w_c(wp.dot(d, d), h, c6) * wp.outer(ai, d)
                 dr = xj - gi
-                adj_Mg -= sm.w_poly6_c(wp.dot(dr, dr), h, c6) * wp.outer(adj_f[j], dr)
+                adj_Mg -= fw.w_c(wp.dot(dr, dr), h, c6) * wp.outer(adj_f[j], dr)
         Vi = volume[i]
         P = stress[i]
         Fi = F[i]
@@ -562,7 +564,7 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True)
     Under a ``wp.Tape``, when every material uses eqs. 10-13, the backward runs
     ``elastic_forces_adjoint`` (``hand_adjoint=False``: Warp's generated adjoint)."""
     S = model.scalar
-    k = kernels(S)
+    k = kernels(S, model.fit_weight)
     inputs = [
         state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
         state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
@@ -584,7 +586,7 @@ def launch_elastic_forces_adjoint(model, state_in, state_out):
     ``state_out.stress`` and ``state_out.F_inv`` (eqs. 10-13 only)."""
     S = model.scalar
     model.launches(
-        kernels(S).elastic_forces_adjoint, model.particle_count,
+        kernels(S, model.fit_weight).elastic_forces_adjoint, model.particle_count,
         [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force, state_out.neighbors,
          state_out.neighbor_count, model.particle_volume, state_out.stress, state_out.F_flowed, state_out.F_inv,
          S(model.support_radius), *model.image_args(), state_out.force.grad, state_in.x.grad, state_out.stress.grad,
@@ -599,7 +601,7 @@ def launch_variational_forces_adjoint(model, state_in, state_out, min_neighbors:
     variational force only; the guard as the fused step evaluates it)."""
     S = model.scalar
     model.launches(
-        kernels(S).variational_forces_adjoint, model.particle_count,
+        kernels(S, model.fit_weight).variational_forces_adjoint, model.particle_count,
         [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force, state_out.neighbors,
          state_out.neighbor_count, model.particle_volume, state_out.stress, state_out.F_flowed, S(model.support_radius),
          int(min_neighbors), S(max_condition), *model.image_args(), state_out.force.grad, state_in.x.grad, state_out.stress.grad,

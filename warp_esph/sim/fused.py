@@ -39,17 +39,18 @@ from .roundoff import compensated_sum
 
 
 @functools.cache
-def kernels(scalar) -> types.SimpleNamespace:
+def kernels(scalar, weight: str) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     sm = smoothing.funcs(scalar)
     iso = isotropic.funcs(scalar)
-    fo = forces.funcs(scalar)
+    fo = forces.funcs(scalar, weight)
+    fw = smoothing.fit_weight_funcs(scalar, weight)
     sph_pair_force = pressure.funcs(scalar).sph_pair_force
     image_pressure_forces = pressure.funcs(scalar).image_pressure_forces
     guarded_flow_step = plasticity.funcs(scalar).guarded_flow_step
-    guard_code = neighbors.kernels(scalar).guard_code
-    df = deformation.funcs(scalar)
+    guard_code = neighbors.guard_funcs(scalar).guard_code
+    df = deformation.funcs(scalar, weight)
     Materials = materials.struct(scalar)
 
     @wp.kernel(enable_backward=False, module="unique")
@@ -172,6 +173,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         elif kind_el == 0 and images != 0:
             fi = fo.paper_image_forces(i, x, body, nbr, count[i], volume, P, Fe, Finv, h, gn, goff, gmin, f)
         c6 = sm.poly6_coef(h)
+        cf = fw.coef(h)
         c_spiky = sm.spiky_coef(h)
         c_visc = sm.viscosity_coef(h)
         for k in range(count[i]):
@@ -179,7 +181,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             xj = x[j]
             fj = vec3()
             if body[j] == bi and kind_el == 1:
-                g = fo.variational_pair_force(M, xj - xi, h, c6)
+                g = fo.variational_pair_force(M, xj - xi, h, cf)
                 fj = -g
                 fi += g
             elif body[j] == bi and kind_el == 0:
@@ -270,7 +272,7 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
     S = model.scalar
     own = sph and model.separate_pressure_density
     model.launches(
-        kernels(S).constitutive_forces,
+        kernels(S, model.fit_weight).constitutive_forces,
         model.particle_count,
         [
             state_in.x, state_in.v, state_in.F, state_in.F_lo, state_in.alpha, model.particle_material, model.material_arrays(),
@@ -318,10 +320,10 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
     images = model.image_plane is not None
     u = scratch.displacement
     if not images:
-        model.launches(kernels(S).displacements, model.particle_count, [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo],
+        model.launches(kernels(S, model.fit_weight).displacements, model.particle_count, [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo],
                   [u], device=model.device, record_tape=False)
     model.launches(
-        kernels(S).update_deformation,
+        kernels(S, model.fit_weight).update_deformation,
         model.particle_count,
         [
             state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, u, model.particle_body, state_out.neighbors,

@@ -123,15 +123,11 @@ def padded_query_radius(p: wp.vec3f, radius: wp.float32) -> wp.float32:
 
 
 @functools.cache
-def kernels(scalar) -> types.SimpleNamespace:
+def guard_funcs(scalar) -> types.SimpleNamespace:
+    """The neighbourhood guard of paper §4 on a moment matrix (``guard_code``), shared by the
+    neighbour pass and the fused step."""
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
-    sm = smoothing.funcs(scalar)
-    pressure_of = pressure.funcs(scalar).pressure
-    density_weight = pressure.funcs(scalar).density_weight
-    image_density = pressure.funcs(scalar).image_density
-    fit_pair_sums = deformation.funcs(scalar).fit_pair_sums
-    Materials = materials.struct(scalar)
 
     @wp.func
     def guard_code(A: mat33, same: int, min_neighbors: int, max_condition: scalar) -> int:
@@ -154,6 +150,24 @@ def kernels(scalar) -> types.SimpleNamespace:
                 if lmin <= scalar(0.0) or lmax > max_condition * lmin:
                     code = 2
         return code
+
+    return types.SimpleNamespace(guard_code=guard_code)
+
+
+@functools.cache
+def kernels(scalar, weight: str) -> types.SimpleNamespace:
+    """The neighbour search's kernels; ``weight`` (``smoothing.FIT_WEIGHTS``) the fit's, which
+    the guard's moment matrix sums (the SPH density sums poly6)."""
+    T = type_set(scalar)
+    vec3, mat33 = T.vec3, T.mat33
+    sm = smoothing.funcs(scalar)
+    fw = smoothing.fit_weight_funcs(scalar, weight)
+    pressure_of = pressure.funcs(scalar).pressure
+    density_weight = pressure.funcs(scalar).density_weight
+    image_density = pressure.funcs(scalar).image_density
+    fit_pair_sums = deformation.funcs(scalar, weight).fit_pair_sums
+    guard_code = guard_funcs(scalar).guard_code
+    Materials = materials.struct(scalar)
 
     @wp.func
     def stretch_bound2(F: mat33) -> scalar:
@@ -417,6 +431,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         # SPH density (pressure.density) and the guards of paper §4 on the same-body
         # neighbourhood used by the MLS fit.
         c6 = sm.poly6_coef(h)
+        cf = fw.coef(h)
         c_ws = sm.w_spiky_coef(h)
         r = scalar(0.0)
         rp = scalar(0.0)
@@ -431,9 +446,8 @@ def kernels(scalar) -> types.SimpleNamespace:
         same = int(0)
         for k in range(n):
             j = nbr[i, k]
-            w = sm.w_poly6_c(nbr_d2[i, k], h, c6)
             if with_density != 0:
-                r += mass[j] * w
+                r += mass[j] * sm.w_poly6_c(nbr_d2[i, k], h, c6)
                 if form == 2:
                     rp += mass[j] * density_weight(nbr_d2[i, k], h, c6, c_ws, form)
             if with_guard != 0:
@@ -441,7 +455,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 # beyond h with with_stretch).
                 if body[j] == bi and nbr_d2[i, k] < h_fit2:
                     d = x[j] - xi
-                    A += w * wp.outer(d, d)
+                    A += fw.w_c(nbr_d2[i, k], h, cf) * wp.outer(d, d)
                     same += 1
         if with_density != 0:
             if images != 0:
@@ -485,7 +499,8 @@ class NeighborSearch:
 
     ``skin`` (a length, >= 0) is the Verlet margin of the candidate lists; ``build``
     always searches afresh, ``update`` reuses the candidates while they are complete.
-    ``rebuilds`` counts the candidate builds.
+    ``rebuilds`` counts the candidate builds. ``fit_weight`` (``smoothing.FIT_WEIGHTS``): the
+    weights of the guard's moment matrix, the fit's.
     """
 
     def __init__(
@@ -502,6 +517,7 @@ class NeighborSearch:
         bodies_interact: bool = True,
         group: wp.array | None = None,
         world: wp.array | None = None,
+        fit_weight: str = "poly6",
     ):
         self.scalar = scalar
         self.bodies_interact = bool(bodies_interact)
@@ -520,7 +536,7 @@ class NeighborSearch:
         self.skin = float(skin)
         self.min_neighbors = int(min_neighbors)
         self.max_condition = float(max_condition)
-        self.kernels = kernels(scalar)
+        self.kernels = kernels(scalar, fit_weight)
         self.particle_count = int(particle_count)
         self._grid_dims = None
         self.grid = None

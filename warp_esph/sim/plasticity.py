@@ -185,7 +185,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     mat33 = T.mat33
     flow = funcs(scalar).flow
-    stress = forces.funcs(scalar).stress
+    stress = forces.funcs(scalar, "poly6").stress
     Materials = materials.struct(scalar)
 
     @wp.kernel(module="unique")
@@ -218,7 +218,7 @@ def kernels(scalar) -> types.SimpleNamespace:
 
     vec3 = T.vec3
     fl = funcs(scalar)
-    fo = forces.funcs(scalar)
+    fo = forces.funcs(scalar, "poly6")  # the stress only: no fit weight in it
     min_sigma = scalar(MIN_SINGULAR_VALUE)
     j_lo = scalar(VOLUME_PRESERVING_RANGE[0])
     j_hi = scalar(VOLUME_PRESERVING_RANGE[1])

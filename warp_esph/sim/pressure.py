@@ -167,9 +167,10 @@ def funcs(scalar) -> types.SimpleNamespace:
         eta = scalar(0.5) * (visc_i + mat.viscosity[mj])
         return pj, VV, VVp, eta
 
-    floor_image = deformation.funcs(scalar).floor_image
-    floor_image_jacobian = deformation.funcs(scalar).floor_image_jacobian
-    image_row_length = deformation.funcs(scalar).image_row_length
+    # The images' geometry only (no fit weight in it): any weight's namespace serves.
+    floor_image = deformation.funcs(scalar, "poly6").floor_image
+    floor_image_jacobian = deformation.funcs(scalar, "poly6").floor_image_jacobian
+    image_row_length = deformation.funcs(scalar, "poly6").image_row_length
     image_row_particle = deformation.image_row_particle
 
     @wp.func
@@ -242,7 +243,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     vec3 = T.vec3
     sm = smoothing.funcs(scalar)
     fn = funcs(scalar)
-    image_slots = deformation.funcs(scalar).image_slots
+    image_slots = deformation.funcs(scalar, "poly6").image_slots
     image_row_particle = deformation.image_row_particle
     Materials = materials.struct(scalar)
 

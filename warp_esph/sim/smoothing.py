@@ -189,3 +189,47 @@ def funcs(scalar) -> types.SimpleNamespace:
         grad_w_spiky_c=grad_w_spiky_c, grad_w_spiky_at=grad_w_spiky_at,
         viscosity_coef=viscosity_coef, lap_w_viscosity_c=lap_w_viscosity_c, lap_w_viscosity_at=lap_w_viscosity_at,
     )
+
+
+#: The weights of the incremental fit (eq. 7) and of every sum that shares them (the
+#: variational force's pairs, the curvature-corrected fit's moments, the neighbourhood guard's
+#: moment matrix): ``"poly6"``, the paper's ``(h^2 - r^2)^3``; ``"biweight"``, ``(h^2 - r^2)^2``,
+#: which gives the second neighbours more weight against the first, so that a particle's fitted
+#: increment shares more of its neighbours' (docs/physics.md, "The flow stress in sustained
+#: uniaxial flow"). The SPH density, the hourglass control and the ghost floor's stencil keep poly6.
+FIT_WEIGHTS = ("poly6", "biweight")
+
+
+@functools.cache
+def fit_weight_funcs(scalar, weight: str = "poly6") -> types.SimpleNamespace:
+    """``coef(h)``, ``w_c(r2, h, coef)`` and ``w_inside(r2, hh, coef)`` (the weight and its
+    slope on ``r2`` inside the support) of the fit's ``weight`` (``FIT_WEIGHTS``). Their constant
+    cancels wherever they enter (``A^-1 B``, and ``w A^-1`` in the forces), so the biweight's
+    is ``1 / h^4``, a weight of order 1."""
+    if weight not in FIT_WEIGHTS:
+        raise ValueError(f"fit_weight = {weight!r} is not allowed: must be one of {', '.join(map(repr, FIT_WEIGHTS))}")
+    sm = funcs(scalar)
+    if weight == "poly6":
+        return types.SimpleNamespace(coef=sm.poly6_coef, w_c=sm.w_poly6_c, w_inside=sm.w_poly6_inside)
+
+    @wp.func
+    def biweight_coef(h: scalar) -> scalar:
+        hh = h * h
+        return scalar(1.0) / (hh * hh)
+
+    @wp.func
+    def w_biweight_c(r2: scalar, h: scalar, coef: scalar) -> scalar:
+        """``coef (h^2 - r^2)^2``: zero with zero slope at r = h."""
+        if r2 >= h * h:
+            return scalar(0.0)
+        d = h * h - r2
+        return coef * d * d
+
+    @wp.func
+    def w_biweight_inside(r2: scalar, hh: scalar, coef: scalar):
+        """The biweight and its slope on ``r2``, ``coef e^2`` and ``-2 coef e``, ``e = h^2 - r2``,
+        for ``r2 < hh``."""
+        e = hh - r2
+        return coef * e * e, scalar(-2.0) * coef * e
+
+    return types.SimpleNamespace(coef=biweight_coef, w_c=w_biweight_c, w_inside=w_biweight_inside)
