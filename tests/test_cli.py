@@ -1,5 +1,6 @@
 """The ``warp-esph`` command line, in-process through ``main`` and as a subprocess."""
 
+import functools
 import json
 import os
 import subprocess
@@ -157,6 +158,29 @@ def test_solver_options_from_scene_file_and_cli(tmp_path, capsys):
     capsys.readouterr()
 
 
+def _falling_scenes(tmp_path, solver_table: str):
+    """``GOOD_TOML``'s box falling at 3 m/s, as ``plain.toml`` and, with ``solver_table`` before
+    it, ``chosen.toml``: ``(plain, chosen, text of plain)``."""
+    falling = GOOD_TOML.replace('material = "soft"', 'material = "soft"\nvelocity = [0.0, -3.0, 0.0]')
+    plain, chosen = tmp_path / "plain.toml", tmp_path / "chosen.toml"
+    plain.write_text(falling)
+    chosen.write_text(solver_table + falling)
+    return plain, chosen, falling
+
+
+def _box_frames(out):
+    """The box's particle positions in the first five frames of the run written to ``out``."""
+    stage = open_fresh(out)
+    return [np.array(stage.GetPrimAtPath("/World/box0").GetAttribute("points").Get(float(t))) for t in range(5)]
+
+
+def _run_four_frames(tmp_path, scene, name, *extra):
+    """``warp-esph run SCENE`` for 4 frames (``extra`` after it) into ``tmp_path/name.usdc``."""
+    out = tmp_path / f"{name}.usdc"
+    assert main(["run", str(scene), "-o", str(out), "--no-progress", "--frames", "4", *extra]) == 0
+    return out
+
+
 def test_hourglass_from_scene_file_cli_and_resume(tmp_path, capsys):
     """``[solver] hourglass = 0.1`` runs the control (other frames than without it);
     ``--hourglass 0`` overrides it (the frames of the file without ``[solver]``); the run
@@ -164,19 +188,8 @@ def test_hourglass_from_scene_file_cli_and_resume(tmp_path, capsys):
     no longer has it: the resumed run writes the frames of the uninterrupted one."""
     from warp_esph.checkpoint import read_checkpoint
 
-    falling = GOOD_TOML.replace('material = "soft"', 'material = "soft"\nvelocity = [0.0, -3.0, 0.0]')
-    plain, chosen = tmp_path / "plain.toml", tmp_path / "chosen.toml"
-    plain.write_text(falling)
-    chosen.write_text("[solver]\nhourglass = 0.1\n" + falling)
-
-    def frames(out):
-        stage = open_fresh(out)
-        return [np.array(stage.GetPrimAtPath("/World/box0").GetAttribute("points").Get(float(t))) for t in range(5)]
-
-    def run(scene, name, *extra):
-        out = tmp_path / f"{name}.usdc"
-        assert main(["run", str(scene), "-o", str(out), "--no-progress", "--frames", "4", *extra]) == 0
-        return out
+    plain, chosen, falling = _falling_scenes(tmp_path, "[solver]\nhourglass = 0.1\n")
+    frames, run = _box_frames, functools.partial(_run_four_frames, tmp_path)
 
     x_plain = frames(run(plain, "plain"))
     x_chosen = frames(run(chosen, "chosen"))
@@ -196,6 +209,33 @@ def test_hourglass_from_scene_file_cli_and_resume(tmp_path, capsys):
     for extra, named in ((["--hourglass", "0"], "--hourglass = '0'"), ([str(plain)], "SCENE = "), (["--dt", "0.007"], "--dt = 0.007")):
         assert main(["run", *extra, "--resume", ckpt, "--frames", "6", "--no-progress"]) == 2
         assert_one_line_error(capsys.readouterr().err, named, "is not allowed with --resume: the checkpoint's run decides it")
+
+
+def test_fit_weight_from_scene_file_cli_and_resume(tmp_path, capsys):
+    """``[solver] fit_weight = "biweight"`` changes the frames of a deforming run; ``--fit-weight
+    poly6`` over it gives the frames of the file without it, bit for bit; the run record and the
+    USD metadata keep the weight, ``--resume`` keeps the run's, and refuses it given again."""
+    from warp_esph.checkpoint import read_checkpoint
+
+    plain, chosen, falling = _falling_scenes(tmp_path, '[solver]\nfit_weight = "biweight"\n')
+    frames, run = _box_frames, functools.partial(_run_four_frames, tmp_path)
+
+    x_plain = frames(run(plain, "plain"))
+    chosen_out = run(chosen, "chosen")
+    x_chosen = frames(chosen_out)
+    assert open_fresh(chosen_out).GetRootLayer().customLayerData["warp_esph:fit_weight"] == "biweight"
+    x_back = frames(run(chosen, "back", "--fit-weight", "poly6"))
+    assert all(np.array_equal(a, b) for a, b in zip(x_back, x_plain))
+    assert np.abs(x_chosen[-1] - x_plain[-1]).max() > 1e-6
+    part = run(chosen, "part", "--frames", "2", "--checkpoint-every", "2")
+    ckpt = str(part) + ".checkpoint.npz"
+    assert read_checkpoint(ckpt)[0]["run"]["fit_weight"] == "biweight"
+    chosen.write_text(falling)  # the scene now says poly6: the resumed run keeps the biweight
+    assert main(["run", "--resume", ckpt, "--frames", "4", "--no-progress"]) == 0
+    assert all(np.array_equal(a, b) for a, b in zip(frames(part), x_chosen))
+    capsys.readouterr()
+    assert main(["run", "--fit-weight", "poly6", "--resume", ckpt, "--frames", "6", "--no-progress"]) == 2
+    assert_one_line_error(capsys.readouterr().err, "--fit-weight = 'poly6'", "is not allowed with --resume")
 
 
 RESTING_TOML = textwrap.dedent(
@@ -299,6 +339,7 @@ BAD_TOML = {
     "bad_material": (GOOD_TOML.replace('material = "soft"', 'material = "sofft"'), ["'sofft'", "did you mean 'soft'"]),
     "bad_fit": ('[solver]\nfit = "quadratic"\n' + GOOD_TOML, ["fit = 'quadratic' in [solver]", "linear, curvature_corrected"]),
     "bad_hourglass": ("[solver]\nhourglass = -0.1\n" + GOOD_TOML, ["'hourglass' in [solver]", "-0.1", ">= 0"]),
+    "bad_fit_weight": ('[solver]\nfit_weight = "gauss"\n' + GOOD_TOML, ["fit_weight = 'gauss' in [solver]", "poly6, biweight"]),
     # A dt that does not divide the frame is the file's: named with it (it was the bare message).
     "dt_not_dividing": (GOOD_TOML.replace("frames = 2", "frames = 2\nfps = 30\ndt = 0.007"),
                         ["[scene] dt = 0.007 is not allowed", "whole number of steps"]),
@@ -339,6 +380,8 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         (["run", "--hourglass", "strong"], ["--hourglass = 'strong'", ">= 0"]),
         (["run", "--hourglass", "inf"], ["--hourglass = 'inf'", "finite number >= 0"]),
         (["fit", "dough_drop", "--target", "t.npz", "--hourglass", "-1"], ["--hourglass = '-1'", ">= 0"]),
+        (["run", "--fit-weight", "gauss"], ["--fit-weight = 'gauss'", "'poly6', 'biweight'"]),
+        (["sweep", "dough_drop", "--param", "mu=1:2:linear:2", "--fit-weight", "cubic"], ["--fit-weight = 'cubic'"]),
         # fit's options are checked before its scene and targets are read (here neither exists):
         # --lr 0 and -0.1 used to run the whole L-BFGS fit and exit 0.
         (["fit", "nothing.toml", "--target", "t.npz", "--lr", "0"], ["--lr = 0.0 is not allowed: must be > 0"]),

@@ -389,6 +389,20 @@ def test_floor_images_gradients_match_central_differences(weights, name):
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
 
 
+def _assert_lowest_v0_gradient(make, grads, weights, fit="linear"):
+    """``grads["v0"]`` of the lowest particle of ``make()``'s model, along x and y, against
+    central differences of the rollout loss at a step of 1e-6 m/s."""
+    i = int(np.argmin(make().particle_x0[:, 1]))
+    for comp in (0, 1):
+        def loss_with(delta):
+            m = make()
+            m.particle_v0[i, comp] += delta
+            return _rollout_loss(m, weights, fit=fit)[0]
+
+        fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
+        assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
+
+
 #: The block's bottom layer is at y = -0.03 (spacing 0.02). "rest": at rest (F = I, v = 0)
 #: 0.3 dx over the plane, below half a spacing (the images stay put: d g / d x is the
 #: tangential projector), under gravity; "contact": falling at 5 cm/s from 0.01 dx over it,
@@ -475,15 +489,7 @@ def test_floor_images_gradients_of_the_corrected_fit_match_central_differences(w
     _, generated = _rollout_loss(_images_model(params, **kw), weights, grad_of=(name,), fit=fit, hand_adjoints=False)
     np.testing.assert_allclose(grads[name], generated[name], rtol=1e-8, atol=1e-12 * np.abs(generated[name]).max())
     if name == "v0":
-        i = int(np.argmin(model.particle_x0[:, 1]))
-        for comp in (0, 1):
-            def loss_with(delta):
-                m = _images_model(params, **kw)
-                m.particle_v0[i, comp] += delta
-                return _rollout_loss(m, weights, fit=fit)[0]
-
-            fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
-            assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
+        _assert_lowest_v0_gradient(lambda: _images_model(params, **kw), grads, weights, fit)
         return
     base = getattr(model.materials[0], name)
     eps = 1e-5 * base
@@ -545,15 +551,7 @@ def test_biweight_fit_gradients_match_central_differences(weights, case):
                                  hand_adjoints=False)
     np.testing.assert_allclose(grads[name], generated[name], rtol=1e-8, atol=1e-12 * np.abs(generated[name]).max())
     if name == "v0":
-        i = int(np.argmin(model.particle_x0[:, 1]))
-        for comp in (0, 1):
-            def loss_with(delta):
-                m = _biweight_model(scene, elastic_force)
-                m.particle_v0[i, comp] += delta
-                return _rollout_loss(m, weights, fit=fit)[0]
-
-            fd = (loss_with(1e-6) - loss_with(-1e-6)) / 2e-6
-            assert grads["v0"][i, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)
+        _assert_lowest_v0_gradient(lambda: _biweight_model(scene, elastic_force), grads, weights, fit)
         return
     base = getattr(model.materials[0], name)
     eps = 1e-5 * abs(base)

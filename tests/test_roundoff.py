@@ -102,7 +102,7 @@ def test_slow_strain_below_half_a_unit_per_step_accumulates_in_F(fit):
     counters = wp.zeros(4, dtype=wp.int32)
     for k in range(steps):
         a, b = k % 2, 1 - k % 2
-        wp.launch(fit.kernels(model.scalar).update_deformation, n,
+        wp.launch(fit.kernels(model.scalar, model.fit_weight).update_deformation, n,
                   [state.x, state.x, lo, y_lo, model.particle_body, state.neighbors, state.neighbor_count, state.guard,
                    F[a], F_lo[a], model.scalar(model.support_radius), *model.image_args()], [F[b], F_lo[b], counters])
     full = F[steps % 2].numpy().astype(np.float64) + F_lo[steps % 2].numpy()

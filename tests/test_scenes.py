@@ -237,6 +237,25 @@ def test_solver_table_sets_the_fit_and_contact_of_the_model_and_its_solver(tmp_p
     assert np.abs(x - run(base)).max() > 1e-6
 
 
+def test_solver_table_sets_the_fit_weight_of_the_model_and_its_worlds(tmp_path):
+    """``[solver] fit_weight = "biweight"`` reaches ``Model.fit_weight``, the worlds copied from
+    the model and those made from builders; worlds of different weights are refused by name."""
+    from warp_esph import SceneBuilder, finalize_worlds, replicate_worlds
+
+    plain, chosen = tmp_path / "plain.toml", tmp_path / "chosen.toml"
+    plain.write_text(BASE)
+    chosen.write_text('[solver]\nfit_weight = "biweight"\n' + BASE)
+    m = load_scene_file(chosen).builder.finalize()
+    assert (m.fit_weight, load_scene_file(plain).builder.finalize().fit_weight) == ("biweight", "poly6")
+    assert replicate_worlds(m, 2).fit_weight == "biweight"
+    b0, b1 = load_scene_file(chosen).builder, load_scene_file(plain).builder
+    assert finalize_worlds([b0, b0]).fit_weight == "biweight"
+    with pytest.raises(ValueError, match=r"builders\[1\]\.fit_weight = 'poly6' is not allowed: every world must have the fit_weight"):
+        finalize_worlds([b0, b1])
+    with pytest.raises(ValueError, match=r"fit_weight = 'cubic' is not allowed: must be one of 'poly6', 'biweight'"):
+        SceneBuilder(fit_weight="cubic")
+
+
 def test_solver_table_sets_the_hourglass_control_of_the_model_and_its_solver(tmp_path):
     """``[solver] hourglass = 0.1`` reaches ``Solver(model)`` and the worlds copied from the
     model: a step is, bit for bit, that of ``Solver(model, hourglass=0.1)`` on the scene

@@ -942,7 +942,8 @@ def sweep_cli(args, out=None) -> int:
             "scale": args.scale, "params": [dataclasses.asdict(p) for p in plist], "sample": args.sample,
             "samples": len(points), "seed": args.seed, "frames": args.frames, "duration": args.duration, "fps": args.fps,
             "dt": args.dt, "dtype": args.dtype, "workers": args.workers, "ray": args.ray,
-            "fit": sc.builder.fit, "contact_ramp": sc.builder.contact_ramp, "hourglass": sc.builder.hourglass}
+            "fit": sc.builder.fit, "contact_ramp": sc.builder.contact_ramp, "hourglass": sc.builder.hourglass,
+            "fit_weight": sc.builder.fit_weight}
     if args.scene and os.path.exists(str(args.scene)):
         meta["scene"] = os.path.abspath(args.scene)
     log_params = [p.name for p in plist if p.values is None and p.scale == "log"]
