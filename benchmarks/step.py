@@ -120,12 +120,15 @@ def box_side(n: int) -> int:
 
 # ------------------------------------------------------------------ warp_esph
 def build_model(we, n: int, device, requires_grad: bool = False, elastic_force: str | None = None,
-                pressure_force: str | None = None, max_neighbors: int | str | None = None, images: bool = False):
+                pressure_force: str | None = None, max_neighbors: int | str | None = None, images: bool = False,
+                fit_weight: str | None = None):
     import warp as wp
 
     side = box_side(n)
     L = side * DX
-    b = we.SceneBuilder(spacing=DX) if max_neighbors is None else we.SceneBuilder(spacing=DX, max_neighbors=max_neighbors)
+    # Options only where given: a baseline commit's builder may not have them.
+    options = {k: v for k, v in (("max_neighbors", max_neighbors), ("fit_weight", fit_weight)) if v is not None}
+    b = we.SceneBuilder(spacing=DX, **options)
     mat = we.Material.preset("dough")
     if elastic_force is not None:
         mat = mat.replace(elastic_force=elastic_force)
@@ -407,9 +410,16 @@ def ground_image_rates(n: int, device, args) -> dict:
     return _interleaved_rates(n, device, args, "images", (("plain", False), ("images", True)))
 
 
+def fit_weight_rates(n: int, device, args) -> dict:
+    """Forward rate of the dough with the paper's poly6 fit weight (the default) and the
+    biweight (``SceneBuilder(fit_weight="biweight")``), blocks interleaved in one run; the
+    ratio biweight / poly6."""
+    return _interleaved_rates(n, device, args, "fit_weight", ("poly6", "biweight"))
+
+
 def _interleaved_rates(n: int, device, args, field: str, choices) -> dict:
-    """Forward rates of the dough with ``build_model(field=choice)`` (a Material field, or
-    the ground's ``images``) for each choice (a value, or a pair ``(label, value)``), the
+    """Forward rates of the dough with ``build_model(field=choice)`` (a Material field, the
+    ground's ``images`` or the builder's ``fit_weight``) for each choice (a value, or a pair ``(label, value)``), the
     timed blocks interleaved so that a drifting machine load affects each alike; the ratios
     ``"<last>_over_<first>"``."""
     import warp_esph as we
@@ -687,12 +697,15 @@ def main(argv=None):
                         "like for like, blocks interleaved, thread CPU time (CPU sizes)")
     p.add_argument("--comparisons-only", action="store_true",
                    help="skip the full benchmark (phases, taped window, memory) and SPlisHSPlasH; run only the "
-                        "comparisons asked for (--variants, --baselines, --elastic-forces, --pressure-forces)")
+                        "comparisons asked for (--variants, --baselines, --elastic-forces, --pressure-forces, "
+                        "--ground-images, --fit-weights)")
     p.add_argument("--compare-cpu", action="store_true", help="check a short run on each CUDA device against the CPU")
     p.add_argument("--elastic-forces", action="store_true",
                    help="also time the dough with the variational (default) and the paper's elastic force, interleaved")
     p.add_argument("--ground-images", action="store_true",
                    help="also time the dough on the ground with floor images against the plain ground (interleaved)")
+    p.add_argument("--fit-weights", action="store_true",
+                   help="also time the dough with the poly6 (default) and the biweight fit weight, interleaved")
     p.add_argument("--pressure-forces", action="store_true",
                    help="also time the dough with the paper's spiky and the energy (default) SPH pressure force, interleaved")
     p.add_argument("--json", default="benchmark_step.json", type=_cli.output_file, help="where the results go")
@@ -768,7 +781,8 @@ def main(argv=None):
     for flag, key, label, rates, choices in (
             ("elastic_forces", "elastic_forces", "elastic forces", elastic_force_rates, ("paper", "variational")),
             ("pressure_forces", "pressure_forces", "pressure forces", pressure_force_rates, ("spiky", "energy")),
-            ("ground_images", "ground_images", "ground images", ground_image_rates, ("plain", "images"))):
+            ("ground_images", "ground_images", "ground images", ground_image_rates, ("plain", "images")),
+            ("fit_weights", "fit_weights", "fit weights", fit_weight_rates, ("poly6", "biweight"))):
         if not getattr(args, flag):
             continue
         report[key] = {}
