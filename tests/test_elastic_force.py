@@ -16,26 +16,28 @@ from energy_fd import central_gradient, image_heights, mover, stvk_energy, stvk_
 SPACING = 0.02
 
 
-def _cube(shape, elastic_force, model="linear", dtype=wp.float64):
+def _cube(shape, elastic_force, model="linear", dtype=wp.float64, fit_weight="poly6"):
     # No pressure, viscosity or gravity: the elastic force alone.
     mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, model=model, elastic_force=elastic_force)
-    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0), fit_weight=fit_weight)
     b.add_box((0.0, 0.0, 0.0), tuple(SPACING * k for k in shape), mat)
     return b.finalize(dtype=dtype)
 
 
-@pytest.mark.parametrize("fused, fit", [(True, "linear"), (False, "linear"), (False, "curvature_corrected")])
-def test_variational_force_is_minus_the_gradient_of_the_fit_energy(fused, fit):
+@pytest.mark.parametrize("fused, fit, fit_weight", [(True, "linear", "poly6"), (False, "linear", "poly6"),
+                                                  (False, "curvature_corrected", "poly6"), (True, "linear", "biweight"),
+                                                  (False, "curvature_corrected", "biweight")])
+def test_variational_force_is_minus_the_gradient_of_the_fit_energy(fused, fit, fit_weight):
     """At a deformed state (F up to 15 % from I, jittered positions), the force of every
     coordinate equals the central difference of ``E = sum V psi(dF(y) F)``, with ``dF``
     the step's own fit (read back from the solver) and psi St. Venant-Kirchhoff, for either
     fit. The paper's force at the same state is far from it: it is not the gradient of an
     energy. The hourglass control is off (``hourglass=0``): its energy is not the fit's (the
     default for this elastic cube, ``fit="auto"``, adds it; measured 0.58 % of the largest
-    force here)."""
+    force here). With either fit weight (``SceneBuilder(fit_weight=)``)."""
     errors = {}
     for elastic_force in ("variational", "paper"):
-        model = _cube((4, 4, 3), elastic_force, model="stvk")
+        model = _cube((4, 4, 3), elastic_force, model="stvk", fit_weight=fit_weight)
         n = model.particle_count
         rng = np.random.default_rng(2)
         x0 = model.particle_x0 + rng.normal(scale=0.02 * SPACING, size=(n, 3))
@@ -317,6 +319,7 @@ def _image_energy(model, x, y, F, rows, fit="linear"):
     ``K = (D + eps I)^-1 C^T``, dropped where ``det A~ <= 0.1 det A``)."""
     h = model.support_radius
     c6 = 315.0 / (64.0 * np.pi * h**9)
+    power = {"poly6": 3, "biweight": 2}[model.fit_weight]  # the fit's weight (its constant cancels)
     g = x.copy()
     g[:, 1] = image_heights(x[:, 1], model.spacing)
     Fg = np.tile(np.eye(3), (len(x), 1, 1))
@@ -325,7 +328,7 @@ def _image_energy(model, x, y, F, rows, fit="linear"):
         for pts, ends, pair in ((x, y, x - g[i]), (g[rows[i]], g[rows[i]], x[rows[i]] - x[i])):
             d = pts - g[i]
             r2 = (pair * pair).sum(1)  # an image pair weighs as its particles' pair
-            w = c6 * np.clip(h * h - r2, 0.0, None) ** 3
+            w = c6 * np.clip(h * h - r2, 0.0, None) ** power
             q = np.stack([d[:, 0] * d[:, 1], d[:, 0] * d[:, 2], d[:, 1] * d[:, 2]], axis=1) / h
             A += np.einsum("n,ni,nj->ij", w, d, d)
             B += np.einsum("n,ni,nj->ij", w, ends - g[i], d)
@@ -341,9 +344,11 @@ def _image_energy(model, x, y, F, rows, fit="linear"):
     return float((model.particle_volume.numpy() * np.where(x[:, 1] < h, psi, 0.0)).sum())
 
 
-@pytest.mark.parametrize("fused, base, fit", [(True, 0.6, "linear"), (False, 0.6, "linear"), (True, 0.2, "linear"),
-                                             (False, 0.6, "curvature_corrected"), (False, 0.2, "curvature_corrected")])
-def test_variational_force_with_floor_images_is_minus_the_gradient_of_the_fit_energy(fused, base, fit):
+@pytest.mark.parametrize("fused, base, fit, fit_weight", [
+    (True, 0.6, "linear", "poly6"), (False, 0.6, "linear", "poly6"), (True, 0.2, "linear", "poly6"),
+    (False, 0.6, "curvature_corrected", "poly6"), (False, 0.2, "curvature_corrected", "poly6"),
+    (True, 0.2, "linear", "biweight"), (False, 0.2, "curvature_corrected", "biweight")])
+def test_variational_force_with_floor_images_is_minus_the_gradient_of_the_fit_energy(fused, base, fit, fit_weight):
     """``add_ground(images=True)``: a cube whose bottom layer stands ``base`` spacings above the
     plane (0.2: below half a spacing, where the images stop being mirrors), ``F`` up to 15 %
     from I, jittered. Its elastic force equals the central difference of ``sum V
@@ -352,9 +357,10 @@ def test_variational_force_with_floor_images_is_minus_the_gradient_of_the_fit_en
     with its particle's ``F`` and its own fit (in numpy). Measured 1.7e-10 relative on either
     schedule, 1.4e-10 with the bottom layer below half a spacing (0.15 with the images' energy
     left out of the sum). The same with the curvature-corrected fit (``curvature.py``), whose
-    images enter its moments and the images' energy likewise."""
+    images enter its moments and the images' energy likewise; and with the biweight fit weight
+    (``SceneBuilder(fit_weight="biweight")``) in the fits, the particles' and the images'."""
     mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, model="stvk")
-    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0), fit_weight=fit_weight)
     b.add_box((0.0, (base + 1.5) * SPACING, 0.0), (4 * SPACING, 4 * SPACING, 3 * SPACING), mat)
     b.add_ground(0.0, images=True)
     model = b.finalize(dtype=wp.float64)
