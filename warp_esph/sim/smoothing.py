@@ -195,13 +195,13 @@ def funcs(scalar) -> types.SimpleNamespace:
 #: variational force's pairs, the curvature-corrected fit's moments, the neighbourhood guard's
 #: moment matrix): ``"poly6"``, the paper's ``(h^2 - r^2)^3``; ``"biweight"``, ``(h^2 - r^2)^2``,
 #: which gives the second neighbours more weight against the first, so that a particle's fitted
-#: increment shares more of its neighbours' (docs/physics.md, "The flow stress in sustained
-#: uniaxial flow"). The SPH density, the hourglass control and the ghost floor's stencil keep poly6.
+#: increment shares more of its neighbours' (docs/physics.md, "The fit's weight"). The SPH
+#: density, the hourglass control and the ghost floor's stencil keep poly6.
 FIT_WEIGHTS = ("poly6", "biweight")
 
 
 @functools.cache
-def fit_weight_funcs(scalar, weight: str = "poly6") -> types.SimpleNamespace:
+def fit_weight_funcs(scalar, weight: str) -> types.SimpleNamespace:
     """``coef(h)``, ``w_c(r2, h, coef)`` and ``w_inside(r2, hh, coef)`` (the weight and its
     slope on ``r2`` inside the support) of the fit's ``weight`` (``FIT_WEIGHTS``). Their constant
     cancels wherever they enter (``A^-1 B``, and ``w A^-1`` in the forces), so the biweight's
