@@ -446,8 +446,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         same = int(0)
         for k in range(n):
             j = nbr[i, k]
+            w = sm.w_poly6_c(nbr_d2[i, k], h, c6)
             if with_density != 0:
-                r += mass[j] * sm.w_poly6_c(nbr_d2[i, k], h, c6)
+                r += mass[j] * w
                 if form == 2:
                     rp += mass[j] * density_weight(nbr_d2[i, k], h, c6, c_ws, form)
             if with_guard != 0:
@@ -455,7 +456,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 # beyond h with with_stretch).
                 if body[j] == bi and nbr_d2[i, k] < h_fit2:
                     d = x[j] - xi
-                    A += fw.w_c(nbr_d2[i, k], h, cf) * wp.outer(d, d)
+                    if wp.static(weight != "poly6"):
+                        w = fw.w_c(nbr_d2[i, k], h, cf)  # the fit's weight (the density's w otherwise)
+                    A += w * wp.outer(d, d)
                     same += 1
         if with_density != 0:
             if images != 0:
