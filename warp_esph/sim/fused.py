@@ -173,7 +173,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         elif kind_el == 0 and images != 0:
             fi = fo.paper_image_forces(i, x, body, nbr, count[i], volume, P, Fe, Finv, h, gn, goff, gmin, f)
         c6 = sm.poly6_coef(h)
-        cf = fw.coef(h)
+        cf = c6  # the fit's weight constant: poly6's unless the model chose another
+        if wp.static(weight != "poly6"):
+            cf = fw.coef(h)
         c_spiky = sm.spiky_coef(h)
         c_visc = sm.viscosity_coef(h)
         for k in range(count[i]):
