@@ -194,7 +194,7 @@ def slump_model(S: float, resolution: int = 12, elastic_force: str = "variationa
                 flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, pressure_force: str = "energy_spiky",
                 floor: str = "particles", floor_radius: float = 3.2, pressure_stiffness: float | None = None,
                 support_radius: float = 2.0, stiffness: float = 10.0, floor_layers: int = FLOOR_LAYERS,
-                aspect: float = 1.0, dtype=None, requires_grad: bool = False):
+                aspect: float = 1.0, dtype=None, requires_grad: bool = False, fit_weight: str = "poly6"):
     """``slump``'s scene (its arguments, its docstring): ``(model, free, mu, Y)``, the model in
     ``dtype`` (default float32; ``requires_grad`` for a taped run), the mask of its free
     particles, the shear modulus and the yield stress."""
@@ -207,7 +207,7 @@ def slump_model(S: float, resolution: int = 12, elastic_force: str = "variationa
     mu = stiffness * RHO * G * H0
     mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity,
                       elastic_force=elastic_force, pressure_force=pressure_force, pressure_stiffness=pressure_stiffness)
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0), support_radius=support_radius * dx)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0), support_radius=support_radius * dx, fit_weight=fit_weight)
     from warp_esph.meshes import lattice_points
 
     pts = lattice_points(np.array([-R0, 0.0, -R0]), np.array([R0, H0, R0]), dx)
@@ -222,7 +222,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
           dt_factor: float = 0.9, samples: int = 200, pressure_force: str = "energy_spiky", floor: str = "particles",
           floor_radius: float = 3.2, pressure_stiffness: float | None = None, support_radius: float = 2.0,
           stiffness: float = 10.0, gravity_ramp: float = 0.0, floor_layers: int = FLOOR_LAYERS,
-          aspect: float = 1.0) -> dict:
+          aspect: float = 1.0, fit_weight: str = "poly6") -> dict:
     """A cylinder H0 = 2 R0 of a yield-stress material slumps on a rough floor.
 
     ``S = sigma_y / (rho g H0)`` with sigma_y the uniaxial yield stress: ``yield_stress = Y
@@ -251,7 +251,8 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     (docs/physics.md, the spread regime): ``pressure_stiffness`` (``Material``'s; 0: the SPH
     pressure off), ``support_radius`` (h in dx), ``stiffness`` (mu in rho g H0),
     ``gravity_ramp`` (s: gravity rises linearly from 0 over that time instead of acting at
-    once; 0: at once), ``floor_layers`` (pinned layers of a particle floor).
+    once; 0: at once), ``floor_layers`` (pinned layers of a particle floor), ``fit_weight``
+    (``SceneBuilder(fit_weight=)``: the weight of the incremental fit).
     ``nearest_neighbor_mean`` / ``_p05``: the free particles' nearest-neighbour distance in
     dx at the end (mean, 5th percentile; uncorrelated points of the same density: 0.554)."""
     wp, we = _we()
@@ -266,7 +267,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
                                      elastic_force=elastic_force, pressure_force=pressure_force, floor=floor,
                                      floor_radius=floor_radius, pressure_stiffness=pressure_stiffness,
                                      support_radius=support_radius, stiffness=stiffness, floor_layers=floor_layers,
-                                     aspect=aspect)
+                                     aspect=aspect, fit_weight=fit_weight)
     n = int(free.sum())
     x0 = model.particle_x0.astype(np.float64)[free]
     r0 = np.hypot(x0[:, 0], x0[:, 2])
@@ -336,7 +337,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     R_rc = spread_radius_theory(volume, tau_y)
     return {
         "case": "slump", "S": S, "resolution": resolution, "aspect": aspect, "elastic_force": elastic_force,
-        "pressure_force": pressure_force,
+        "pressure_force": pressure_force, "fit_weight": fit_weight,
         "floor": floor, "particles": n, "dt": dt, "duration": float(t[-1]), "steps": steps,
         "h_over_H0": h[-1] / H0, "theory_h_over_H0": slump_theory(S),
         # The top of the whole pile (+ dx/2): above h where the top is a bowl, as the S <= 0.3
@@ -381,7 +382,7 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
            flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, dt_factor: float = 0.9,
            pressure_stiffness: float | None = None, support_radius: float = 2.0, initial_height: float = 2.0,
            samples: int = 200, floor: str = "particles", floor_radius: float = 1.2,
-           pressure_force: str = "energy_spiky") -> dict:
+           pressure_force: str = "energy_spiky", fit_weight: str = "poly6") -> dict:
     """The spread limit of Roussel & Coussot (2005): a wide, low cylinder of a yield-stress
     material spreads on a rough floor into a pile much wider than tall.
 
@@ -404,7 +405,7 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
     ``slump``); profile: the top of each radial band R_RC / 8 wide (+ dx/2) over the theory
     at the band's middle. ``floor``: as in ``slump`` (``"particles"``, the default: pinned
     layers of the same body under a disc of ``floor_radius`` R_RC). ``pressure_force``: as in
-    ``slump``. Volumes over the theory's: ``volume_over_theory`` the scene's as built (its
+    ``slump``, and so is ``fit_weight``. Volumes over the theory's: ``volume_over_theory`` the scene's as built (its
     particles times dx^3), ``end_volume_over_theory`` the material's at the end (each free
     particle's rest volume times det F)."""
     wp, we = _we()
@@ -422,7 +423,7 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
     mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity,
                       elastic_force=elastic_force, pressure_force=pressure_force,
                       pressure_stiffness=pressure_stiffness)
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0), support_radius=support_radius * dx)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0), support_radius=support_radius * dx, fit_weight=fit_weight)
     from warp_esph.meshes import lattice_points
 
     pts = lattice_points(np.array([-R_i, 0.0, -R_i]), np.array([R_i, H_i, R_i]), dx)
@@ -472,7 +473,7 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
     weight_scale = float(model.particle_mass.numpy()[free].sum()) * G * h_rc
     return {
         "case": "spread", "shallowness": shallowness, "resolution": resolution, "elastic_force": elastic_force,
-        "pressure_force": pressure_force, "floor": floor,
+        "pressure_force": pressure_force, "floor": floor, "fit_weight": fit_weight,
         "flow_rate": flow_rate, "particles": n, "dt": dt, "duration": float(t[-1]), "steps": steps,
         "initial_height": H_i, "initial_radius": R_i, "yield_length": ell,
         "volume_over_theory": n * dx**3 / volume, "end_volume_over_theory": end_volume / volume,
@@ -1557,6 +1558,13 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     runs.append(("spread", {"resolution": 3, "shallowness": 0.18, "duration": 8.0}))
     for S in (0.1, 0.2, 0.3, 0.5):
         runs.append(("slump", {"S": S, "resolution": 16, "elastic_force": "variational", "duration": SLUMP_DURATION_FINE}))
+    # The biweight fit weight (docs/physics.md, "The fit's weight") where the targets read:
+    # the finer slumps and the two finer spread piles.
+    for S in (0.1, 0.2, 0.3, 0.5):
+        runs.append(("slump", {"S": S, "resolution": 16, "elastic_force": "variational", "duration": SLUMP_DURATION_FINE,
+                               "fit_weight": "biweight"}))
+    for res in (4, 5):
+        runs.append(("spread", {"resolution": res, "shallowness": 0.25, "duration": 14.0, "fit_weight": "biweight"}))
     # The same piles on the no-slip ghost floor, a wall that holds no layer (docs/physics.md,
     # "The no-slip ghost floor"); they rest by about 4 s.
     for res in (8, 12, 16):
@@ -1755,10 +1763,20 @@ IDENTITY = ("S", "resolution", "elastic_force", "shallowness", "amplitude", "dt_
             "hourglass", "label", "dtype", "span_over_thickness", "aspect", "hold", "floor", "strain", "fit_weight")
 
 
+#: Identity fields whose absence means a value: a row written before the field existed
+#: ran the solver's default then (the fit weight was poly6 before it was an option).
+IDENTITY_DEFAULTS = {"fit_weight": "poly6"}
+
+
 def same_run(a: dict, b: dict) -> bool:
     """Whether two results measure the same row: the same case, and equal in every identity
-    field both carry (a result written before a field existed matches on the others)."""
-    return a["case"] == b["case"] and all(a[k] == b[k] for k in IDENTITY if k in a and k in b)
+    field both carry (a result written before a field existed matches on the others, or on
+    the field's value then, ``IDENTITY_DEFAULTS``)."""
+    if a["case"] != b["case"]:
+        return False
+    a = IDENTITY_DEFAULTS | a
+    b = IDENTITY_DEFAULTS | b
+    return all(a[k] == b[k] for k in IDENTITY if k in a and k in b)
 
 
 def merge(earlier: dict | None, results: list[dict], meta: dict, drop=()) -> dict:

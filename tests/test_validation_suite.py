@@ -783,6 +783,10 @@ def test_report_gives_the_uniaxial_flow_against_bingham_by_band_of_log_strain(tm
     # Flows at another strain or with another fit weight are other rows, not the same one measured again.
     assert not validation.same_run(rows[0], rows[0] | {"strain": 0.6})
     assert not validation.same_run(rows[0] | {"fit_weight": "poly6"}, rows[1])
+    # A row written before the field existed ran poly6: the biweight row does not replace it.
+    assert not validation.same_run(rows[0], rows[1]) and validation.same_run(rows[0], rows[0] | {"fit_weight": "poly6"})
+    merged = validation.merge(doc, rows[1:], {"command": "again", "machine": "x86_64", "python": "3.11"})
+    assert sorted(r.get("fit_weight", "-") for r in merged["results"]) == ["-", "biweight"]
 
 
 def test_report_judges_rest_at_the_finer_resolution_and_takes_gpu_rows_at_any_resolution(tmp_path):
