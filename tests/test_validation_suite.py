@@ -854,3 +854,25 @@ def test_the_command_line_records_the_device_of_each_row(tmp_path):
                      "--no-report", "--out", str(tmp_path)])
     rows = json.loads((tmp_path / "validation.json").read_text())["results"]
     assert [r["device"] for r in rows] == ["cpu"]
+
+
+def test_report_judges_the_default_fit_weight_and_gives_the_biweight_targets_of_their_own(tmp_path):
+    """Rows measured with the biweight fit weight (``fit_weight="biweight"``) are listed with
+    their weight and judged in target rows named for it; the default's target rows read only
+    the rows of poly6 (those written before the field existed included)."""
+    from benchmarks import validation_report
+
+    S = (0.1, 0.2, 0.3, 0.5)
+    rows = [_slump_row(s, 16, 0.0) for s in S]
+    rows += [_slump_row(s, 16, 0.0, fit_weight="biweight", thickness_over_H0=0.8 * validation.slump_theory(s)) for s in S]
+    meta = {"command": "python -m benchmarks.validation --only slump", "machine": "x86_64", "python": "3.11", "wall_s": 1.0}
+    doc = validation.merge(None, rows, meta)
+    assert len(doc["results"]) == 8
+    md, _ = validation_report.write(doc["results"], tmp_path, doc)
+    text = md.read_text()
+    height = [line for line in text.splitlines() if line.startswith("| slump height within 10 %")]
+    assert len(height) == 2, height
+    assert "with the biweight" not in height[0] and "| within 10 %: yes;" in height[0], height[0]
+    assert "with the biweight fit weight" in height[1] and "S = 0.1 -20.0 %" in height[1], height[1]
+    assert "| within 10 %: no (S = 0.1, S = 0.2, S = 0.3, S = 0.5);" in height[1], height[1]
+    assert len([line for line in text.splitlines() if line.startswith("| 0.2 | 16 | variational | particles | biweight |")]) == 1
