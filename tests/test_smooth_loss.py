@@ -197,13 +197,30 @@ def test_no_jump_in_the_loss_through_ground_contact(name):
     all inward velocity of a particle once it crossed the surface: increments of -20 to 4
     times the slope; with the flow's volume factor jumping where J left [0.8, 1.25]: 0.71 and
     1.25. The biweight fit weight fails it (docs/physics.md, "The fit's weight")."""
+    ratios, grads = _scan_against_trapezoid(name)
+    assert np.abs(ratios - 1.0).max() < 0.02, np.round(ratios, 4)
+    assert np.abs(grads - 1.0).max() < 0.1, np.round(grads, 3)
+
+
+def _scan_against_trapezoid(name, images=False):
+    """The landing loss at 11 values over +-1 % of ``name``: each interval's increment over
+    the mean of the tape's gradients at its ends, and the gradients over the centre's."""
     base = PARAMS[name]
     values = base * (1.0 + np.linspace(-1e-2, 1e-2, 11))
-    losses, grads = np.array([_landing_loss(_landing_model({name: v}), grad_of=name)[:2] for v in values]).T
+    losses, grads = np.array([_landing_loss(_landing_model({name: v}, images=images), grad_of=name)[:2]
+                              for v in values]).T
     secants = np.diff(losses) / np.diff(values)
-    trapezoid = 0.5 * (grads[1:] + grads[:-1])
-    assert np.abs(secants / trapezoid - 1.0).max() < 0.02, np.round(secants / trapezoid, 4)
-    assert np.abs(grads / grads[5] - 1.0).max() < 0.1, np.round(grads / grads[5], 3)
+    return secants / (0.5 * (grads[1:] + grads[:-1])), grads / grads[5]
+
+
+@pytest.mark.xfail(strict=True, reason="the imaged ground's landing loss is continuous but steep in places: over "
+                   "+-1 % of viscosity, increments up to 15 % off the trapezoid of the tape's gradients and gradients "
+                   "down to 0.45 of the centre's (jitter seed 5; 29 % and up to 4.0 x at seed 7), where the plain "
+                   "ground's are within 0.7 % (docs/physics.md, \"The fit's weight\", the landing loss)")
+def test_no_jump_in_the_loss_through_the_imaged_ground():
+    ratios, grads = _scan_against_trapezoid("viscosity", images=True)
+    assert np.abs(ratios - 1.0).max() < 0.02, np.round(ratios, 4)
+    assert np.abs(grads - 1.0).max() < 0.1, np.round(grads, 3)
 
 
 def test_default_contact_is_the_earlier_law_and_jumps():
