@@ -79,6 +79,15 @@ class Adam:
         return z - self.lr * mh / (np.sqrt(vh) + self.eps)
 
 
+#: The guards of paper §4 that switch a particle's fit off (``Solver.guard_counts``).
+GUARDS = ("few_neighbors", "ill_conditioned")
+
+
+def _guarded(runs) -> int:
+    """Particle-steps the guards held in the runs' solvers since they were built."""
+    return sum(r.rollout.solver.guard_counts()[k] for r in runs for k in GUARDS)
+
+
 @dataclasses.dataclass
 class FitResult:
     """What ``fit`` returns.
@@ -94,7 +103,11 @@ class FitResult:
     exactly zero), ``tol``, ``callback``;
     ``converged`` is True only for ``converged`` and ``tol``. ``diagnostics``: a
     ``warp_esph.diagnostics.Diagnostics`` at the optimum (None when not asked for).
-    ``models``/``experiment_materials``: per experiment of a joint fit.
+    ``models``/``experiment_materials``: per experiment of a joint fit. ``guard_note``: set
+    when the neighbourhood guards of paper §4 held a different number of particle-steps in
+    different evaluations (each history entry's ``guarded``; not recorded for a worlds
+    fit): the guards are switches, so the loss jumps where one changes (docs/fitting.md,
+    "Making the loss smooth enough to fit"); None otherwise.
     """
 
     params: dict[str, np.ndarray]
@@ -110,6 +123,7 @@ class FitResult:
     experiment_materials: list = dataclasses.field(default_factory=list)
     starts: list = dataclasses.field(default_factory=list)
     evaluations: int = 0
+    guard_note: str | None = None
 
     TERMINATION = {
         "converged": "converged: the last step (or the gradient) fell below its tolerance",
@@ -154,6 +168,7 @@ class FitResult:
             "termination": self.termination,
             "starts": list(self.starts),
             "diagnostics": None if self.diagnostics is None else self.diagnostics.to_dict(),
+            "guard_note": self.guard_note,
             "history": self.history,
         })
 
@@ -665,6 +680,11 @@ def fit(
         entry = {"iteration": len(history), "stage": state["stage"], "loss": value,
                  "params": {k: [float(x) for x in v] for k, v in p.items()},
                  "grad": None if gz is None else [float(x) for x in gz], "seconds": seconds}
+        if not use_worlds:
+            # The guards' particle-steps of this evaluation (the solvers count since built).
+            total = _guarded(runs)
+            entry["guarded"] = total - state.get("guarded", 0)
+            state["guarded"] = total
         if track_count > 1:
             entry["start"] = track.index
         history.append(entry)
@@ -783,6 +803,7 @@ def fit(
     if use_worlds:
         say(f"multi-start: {track_count} starts as {track_count} worlds of one model per experiment")
     tracks = [_Track(k) for k in range(track_count)]
+    state["guarded"] = _guarded(runs)  # the global stage's forward runs counted too
 
     stops = []
     if progress:
@@ -823,6 +844,13 @@ def fit(
     result.experiment_materials = fitted
     result.starts = stops
     result.evaluations = sum(1 for h in history if h["stage"] == "descent")
+    guarded = [h["guarded"] for h in history if h["stage"] == "descent" and "guarded" in h]
+    if len(set(guarded)) > 1:
+        result.guard_note = (f"the neighbourhood guards of paper §4 held {min(guarded)} to {max(guarded)} particle-steps "
+                             f"per evaluation: a guard is a switch, so the loss jumps where one changes and a line search "
+                             "can stall there (a larger support radius keeps thin parts' fits full; docs/fitting.md, "
+                             "'Making the loss smooth enough to fit')")
+        say(result.guard_note)
     # A worlds model fits W hypotheses at once: one Fisher matrix of their summed loss
     # would describe none of them, so the diagnostics are left to one world at a time.
     worlds = any(isinstance(r.loss, WorldLoss) for r in runs)
