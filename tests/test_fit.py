@@ -373,7 +373,8 @@ def _thin_star(mu):
 def test_fit_says_when_the_guards_switch_between_evaluations():
     """Each evaluation records the particle-steps the guards held (``guarded``); where they
     differ between evaluations the loss jumps there, and the result says so
-    (``guard_note``, printed by the command line's fit). Measured: 3189-3196 per evaluation."""
+    (``guard_note``, printed by the command line's fit). Measured: 2995-3008 per evaluation (too few
+    neighbours: the one guard left a switch, docs/method.md §2)."""
     mu = we.Material.preset("dough").mu
     truth = _thin_star(mu)
     dt = 0.5 * _thin_star(2.0 * mu).stable_dt()

@@ -560,3 +560,69 @@ def test_biweight_fit_gradients_match_central_differences(weights, case):
     fd = (plus - minus) / (2 * eps)
     assert abs(fd) > 1e-11, f"the loss does not reach {name}"
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+
+
+# A single layer 6 x 6 of particles, every other one raised 0.08 dx (a checkerboard): its
+# 16 inner fits have cond(A) = 31.4, in the band where the fit's increment and the
+# variational force fade out (guards.py); the rim's have too few neighbours.
+def _sheet_model(params=None):
+    p = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "pressure_stiffness": 1.0, "viscosity": 2.0}
+    p.update(params or {})
+    dx = 0.02
+    pts = np.array([((i - 2.5) * dx, 0.08 * dx * (1 - 2 * ((i + j) % 2)), (j - 2.5) * dx)
+                    for i in range(6) for j in range(6)])
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+    b.add_particles(pts, we.Material(density=1000.0, **p), name="sheet")
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    model.particle_v0 = 5.0 * model.particle_x0 * np.array([1.0, 0.0, -0.5]) + np.random.default_rng(3).normal(
+        scale=0.02, size=model.particle_x0.shape)
+    return model
+
+
+def _fit_conditions(model) -> np.ndarray:
+    """cond(A) of each particle's fit at rest with 6 or more neighbours (poly6, h = 2 dx)."""
+    x = model.particle_x0
+    h = model.support_radius
+    out = []
+    for xi in x:
+        d = x - xi
+        r2 = (d * d).sum(axis=1)
+        m = (r2 < h * h) & (r2 > 0.0)
+        if m.sum() >= 6:
+            A = ((h * h - r2[m])[:, None, None] ** 3 * d[m][:, :, None] * d[m][:, None, :]).sum(axis=0)
+            lam = np.linalg.eigvalsh(A)
+            out.append(lam[-1] / lam[0])
+    return np.array(out)
+
+
+@pytest.mark.parametrize("fit", ["linear", "curvature_corrected"])
+@pytest.mark.parametrize("name", ["mu", "v0"])
+def test_faded_ill_conditioned_fits_have_the_gradients_of_central_differences(fit, name):
+    """Fits in the fade of the ill-conditioned guard (``guards.guard_scale``: whole up to
+    ``cond(A) = 20``, zero from 40): the hand-written adjoints of the deformation update and
+    the variational force (the fade's slope through the eigenvalues of ``A``) against Warp's
+    generated ones, and both against central differences in float64."""
+    model = _sheet_model()
+    cond = _fit_conditions(model)
+    assert ((cond > 25.0) & (cond < 35.0)).sum() == 16, np.round(cond, 1)
+    w = random_weights(model.particle_count, 1)
+    _, grads = _rollout_loss(model, w, grad_of=(name,), fit=fit)
+    _, generated = _rollout_loss(_sheet_model(), w, grad_of=(name,), fit=fit, hand_adjoints=False)
+    np.testing.assert_allclose(grads[name], generated[name], rtol=1e-7, atol=1e-10 * np.abs(generated[name]).max())
+    if name == "v0":
+        i, c, eps = 14, 1, 1e-6  # an inner particle, across the sheet
+
+        def loss_with(delta):
+            m = _sheet_model()
+            m.particle_v0[i, c] += delta
+            return _rollout_loss(m, w, fit=fit)[0]
+
+        fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
+        assert abs(fd) > 1e-9
+        assert grads["v0"][i, c] == pytest.approx(fd, rel=1e-4, abs=1e-9)
+        return
+    eps = 1e-5 * model.materials[0].mu
+    fd = (_rollout_loss(_sheet_model({"mu": model.materials[0].mu + eps}), w, fit=fit)[0]
+          - _rollout_loss(_sheet_model({"mu": model.materials[0].mu - eps}), w, fit=fit)[0]) / (2 * eps)
+    assert abs(fd) > 1e-11
+    assert grads["mu"][0] == pytest.approx(fd, rel=1e-4)

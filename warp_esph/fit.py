@@ -79,8 +79,10 @@ class Adam:
         return z - self.lr * mh / (np.sqrt(vh) + self.eps)
 
 
-#: The guards of paper §4 that switch a particle's fit off (``Solver.guard_counts``).
-GUARDS = ("few_neighbors", "ill_conditioned")
+#: The guard of paper §4 that switches a particle's fit off at once (``Solver.guard_counts``):
+#: too few neighbours. The ill-conditioned fit's guard fades the fit out before it holds
+#: (``sim/guards.py``), so its count changing makes no jump.
+GUARDS = ("few_neighbors",)
 
 
 def _guarded(runs) -> int:
@@ -104,9 +106,9 @@ class FitResult:
     ``converged`` is True only for ``converged`` and ``tol``. ``diagnostics``: a
     ``warp_esph.diagnostics.Diagnostics`` at the optimum (None when not asked for).
     ``models``/``experiment_materials``: per experiment of a joint fit. ``guard_note``: set
-    when the neighbourhood guards of paper §4 held a different number of particle-steps in
+    when the few-neighbours guard of paper §4 held a different number of particle-steps in
     different evaluations (each history entry's ``guarded``; not recorded for a worlds
-    fit): the guards are switches, so the loss jumps where one changes (docs/fitting.md,
+    fit): the guard is a switch, so the loss jumps where it changes (docs/fitting.md,
     "Making the loss smooth enough to fit"); None otherwise.
     """
 
@@ -846,8 +848,8 @@ def fit(
     result.evaluations = sum(1 for h in history if h["stage"] == "descent")
     guarded = [h["guarded"] for h in history if h["stage"] == "descent" and "guarded" in h]
     if len(set(guarded)) > 1:
-        result.guard_note = (f"the neighbourhood guards of paper §4 held {min(guarded)} to {max(guarded)} particle-steps "
-                             f"per evaluation: a guard is a switch, so the loss jumps where one changes and a line search "
+        result.guard_note = (f"the few-neighbours guard of paper §4 held {min(guarded)} to {max(guarded)} particle-steps "
+                             f"per evaluation: it is a switch, so the loss jumps where it changes and a line search "
                              "can stall there (a larger support radius keeps thin parts' fits full; docs/fitting.md, "
                              "'Making the loss smooth enough to fit')")
         say(result.guard_note)

@@ -46,7 +46,7 @@ import types
 import warp as wp
 
 from .._types import type_set
-from . import deformation, forces, materials, smoothing
+from . import deformation, forces, guards, materials, smoothing
 from .replay import recording_tape
 
 #: The curvature correction is dropped (the paper's fit kept) where it would leave
@@ -66,6 +66,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     vec3, mat33 = T.vec3, T.mat33
     fw = smoothing.fit_weight_funcs(scalar, weight)
     df = deformation.funcs(scalar, weight)
+    gf = guards.guard_funcs(scalar)
     variational_map = forces.funcs(scalar, weight).variational_map
 
     @wp.func
@@ -300,17 +301,18 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return wp.identity(n=3, dtype=scalar) + corrected_increment(A, Bu, C, D, Eu)
 
     @wp.func
-    def step_increment(A: mat33, Bu: mat33, C: mat33, D: mat33, Eu: mat33, code: int,
+    def step_increment(A: mat33, Bu: mat33, C: mat33, D: mat33, Eu: mat33, code: int, max_condition: scalar,
                        counters: wp.array(dtype=wp.int32)) -> mat33:
-        """This step's ``dF - I = B~ A~^-1 - I``; 0, counted, where a guard of paper §4 holds
-        (``code``: ``neighbors.GUARD_*``)."""
+        """This step's ``dF - I = B~ A~^-1 - I``, faded where ``cond(A)`` passes
+        ``max_condition`` (``guards.guard_scale``, on the plain moment matrix ``A`` the guard
+        reads); 0, counted, where a guard of paper §4 holds (``code``: ``neighbors.GUARD_*``)."""
         inc = mat33()
         if code == 1:
             wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
         elif code == 2:
             wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
         else:
-            inc = corrected_increment(A, Bu, C, D, Eu)
+            inc = gf.guard_scale(A, max_condition) * corrected_increment(A, Bu, C, D, Eu)
         return inc
 
     @wp.func
@@ -496,6 +498,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     df = deformation.funcs(scalar, weight)
     fo = forces.funcs(scalar, weight)
     fn = funcs(scalar, weight)
+    gf = guards.guard_funcs(scalar)
     Materials = materials.struct(scalar)
 
     @wp.kernel(module="unique")
@@ -511,6 +514,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F_prev: wp.array(dtype=mat33),
         F_prev_lo: wp.array(dtype=mat33),
         h: scalar,
+        max_condition: scalar,
         gn: vec3,
         goff: scalar,
         gmin: scalar,
@@ -523,7 +527,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         unless guarded or inverted, ``F``'s round-off carried in ``F_lo`` as there)."""
         i = wp.tid()
         A, Bu, C, D, Eu, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
-        inc = fn.step_increment(A, Bu, C, D, Eu, guard[i], counters)
+        inc = fn.step_increment(A, Bu, C, D, Eu, guard[i], max_condition, counters)
         F_new, F_new_lo = df.carried_update(inc, F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
@@ -540,6 +544,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         guard: wp.array(dtype=wp.int32),
         F_prev: wp.array(dtype=mat33),
         h: scalar,
+        max_condition: scalar,
         gn: vec3,
         goff: scalar,
         gmin: scalar,
@@ -577,18 +582,23 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         # same function; the round-off arrays are not differentiated (roundoff.py).
         E = Eu + C
         At_inv = wp.inverse(At)
-        inc = fn.corrected_moment(Bu, Eu, K) * At_inv
+        inc0 = fn.corrected_moment(Bu, Eu, K) * At_inv
+        # The fade s(A) on the plain moment matrix (guards.guard_scale_gradient): inc = s inc0.
+        s, ds_dA = gf.guard_scale_gradient(A, max_condition)
+        inc = s * inc0
         dF = wp.identity(n=3, dtype=scalar) + inc
         if wp.determinant(Fp + inc * Fp) <= scalar(0.0):
             adj_F_prev[i] = adj_F_prev[i] + G
             return
         adj_F_prev[i] = adj_F_prev[i] + wp.transpose(dF) * G
-        adj_Bt = G * wp.transpose(Fp) * wp.transpose(At_inv)
-        adj_At = -(wp.transpose(dF) * adj_Bt)
+        adj_inc = G * wp.transpose(Fp)
+        adj_Bt = s * adj_inc * wp.transpose(At_inv)
+        adj_At = -((wp.identity(n=3, dtype=scalar) + wp.transpose(inc0)) * adj_Bt)
         KT = wp.transpose(K)
         adj_B = adj_Bt
         adj_E = -(adj_Bt * KT)
         adj_A, adj_C, adj_D = fn.projection_adjoint(adj_At, -(wp.transpose(E) * adj_Bt), C, K, D_inv, kept)
+        adj_A = adj_A + wp.ddot(adj_inc, inc0) * ds_dA
         adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_D_sym = adj_D + wp.transpose(adj_D)
         n = count[i]
@@ -614,6 +624,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F: wp.array(dtype=mat33),
         F_inv: wp.array(dtype=mat33),
         h: scalar,
+        max_condition: scalar,
         gn: vec3,
         goff: scalar,
         gmin: scalar,
@@ -634,11 +645,14 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             # accumulator (docs/method.md, Warp pitfall 1).
             A, B, C, D, E, same = fn.fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
             K = fn.curvature_projection(A, C, D)
-            M = fo.variational_map(volume[i], stress[i], F[i], wp.inverse(fn.corrected_moment(A, C, K)))
+            # Faded where cond(A) passes max_condition (guards.guard_scale).
+            s_fit = gf.guard_scale(A, max_condition)
+            M = s_fit * fo.variational_map(volume[i], stress[i], F[i], wp.inverse(fn.corrected_moment(A, C, K)))
             fi = fn.variational_forces(i, x, body, nbr, count[i], M, K, h, f)
             if images != 0:
                 Ag, Cg, Dg = fn.floor_image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin)
-                Mg, Kg = fn.image_map(volume[i], stress[i], F[i], Ag, Cg, Dg)
+                Mg0, Kg = fn.image_map(volume[i], stress[i], F[i], Ag, Cg, Dg)
+                Mg = s_fit * Mg0
                 fi += fn.floor_image_forces(i, x, body, nbr, count[i], M, K, Mg, Kg, h, gn, goff, gmin, f)
         wp.atomic_add(f, i, fi)
 
@@ -655,6 +669,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         stress: wp.array(dtype=mat33),
         F: wp.array(dtype=mat33),
         h: scalar,
+        max_condition: scalar,
         gn: vec3,
         goff: scalar,
         gmin: scalar,
@@ -722,10 +737,14 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         Vi = volume[i]
         P = stress[i]
         Fi = F[i]
-        M = fo.variational_map(Vi, P, Fi, Ainv)
-        adj_P, adj_Fi, adj_At = fo.variational_map_adjoint(Vi, P, Fi, Ainv, S1 - S2 * K)
+        # The fade s(A) of both maps (guards.guard_scale_gradient): M = s M0, Mg = s Mg0.
+        s, ds_dA = gf.guard_scale_gradient(A, max_condition)
+        M0 = fo.variational_map(Vi, P, Fi, Ainv)
+        M = s * M0
+        adj_M = S1 - S2 * K
+        adj_P, adj_Fi, adj_At = fo.variational_map_adjoint(Vi, P, Fi, Ainv, s * adj_M)
+        adj_s = wp.ddot(adj_M, M0)
         adj_A, adj_C, adj_D = fn.projection_adjoint(adj_At, -(wp.transpose(S2) * M), C, K, D_inv, kept)
-        adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_D_sym = adj_D + wp.transpose(adj_D)
         Mg = mat33()
         Kg = mat33()
@@ -736,10 +755,13 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             Ag, Cg, Dg = fn.floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
             Kg_, Dg_inv, kept_g = fn.projection_terms(Ag, Cg, Dg)
             Ag_inv = wp.inverse(fn.corrected_moment(Ag, Cg, Kg_))
-            Mg_ = fo.variational_map(Vi, P, Fi, Ag_inv)
-            adj_Pg, adj_Fg, adj_Agt = fo.variational_map_adjoint(Vi, P, Fi, Ag_inv, S1g - S2g * Kg_)
+            Mg0 = fo.variational_map(Vi, P, Fi, Ag_inv)
+            Mg_ = s * Mg0
+            adj_Mg = S1g - S2g * Kg_
+            adj_Pg, adj_Fg, adj_Agt = fo.variational_map_adjoint(Vi, P, Fi, Ag_inv, s * adj_Mg)
             adj_P += adj_Pg
             adj_Fi += adj_Fg
+            adj_s += wp.ddot(adj_Mg, Mg0)
             adj_Ag_, adj_Cg_, adj_Dg_ = fn.projection_adjoint(adj_Agt, -(wp.transpose(S2g) * Mg_), Cg, Kg_, Dg_inv,
                                                               kept_g)
             Mg = Mg_
@@ -747,6 +769,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             adj_Ag = adj_Ag_
             adj_Cg = adj_Cg_
             adj_Dg = adj_Dg_
+        adj_A = adj_A + adj_s * ds_dA
+        adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_Ag_sym = adj_Ag + wp.transpose(adj_Ag)
         adj_Dg_sym = adj_Dg + wp.transpose(adj_Dg)
         adj_stress[i] = adj_stress[i] + adj_P
@@ -782,14 +806,15 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                                  variational_forces_adjoint=variational_forces_adjoint)
 
 
-def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True):
+def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
+                          max_condition: float = guards.MAX_CONDITION):
     """``forces.launch_elastic_forces`` with the corrected fit's variational force. Under a
     tape the backward runs ``variational_forces_adjoint`` and, for the particles of eqs.
     10-13, ``forces.elastic_forces_adjoint`` (``hand_adjoint=False``: Warp's generated one)."""
     S = model.scalar
     inputs = [state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
               state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
-              state_out.F_inv, S(model.support_radius), *model.image_args()]
+              state_out.F_inv, S(model.support_radius), S(max_condition), *model.image_args()]
     tape = recording_tape()
     grads = (state_in.x, state_out.stress, state_out.F_flowed, state_out.F_inv, state_out.force)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
@@ -803,7 +828,8 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True)
             kernels(S, model.fit_weight).variational_forces_adjoint, model.particle_count,
             [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force,
              state_out.neighbors, state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress,
-             state_out.F_flowed, S(model.support_radius), *model.image_args(), state_out.force.grad, state_in.x.grad,
+             state_out.F_flowed, S(model.support_radius), S(max_condition), *model.image_args(), state_out.force.grad,
+             state_in.x.grad,
              state_out.stress.grad, state_out.F_flowed.grad],
             device=model.device, record_tape=False,
         )
@@ -812,14 +838,15 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True)
     tape.record_func(adjoint, list(grads))
 
 
-def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint: bool = True):
+def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint: bool = True,
+                              max_condition: float = guards.MAX_CONDITION):
     """``deformation.launch_update_deformation`` with the corrected fit; under a tape the
     backward runs ``update_deformation_adjoint`` (``hand_adjoint=False``: Warp's generated one)."""
     k = kernels(model.scalar, model.fit_weight)
     pos = [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
            state_out.neighbor_count, state_out.guard]
     h = model.scalar(model.support_radius)
-    plane = model.image_args()
+    plane = [model.scalar(max_condition), *model.image_args()]
     inputs = pos + [state_out.F_flowed, state_out.F_flowed_lo, h, *plane]
     outputs = [state_out.F, state_out.F_lo, counters]
     tape = recording_tape()

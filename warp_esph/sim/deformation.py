@@ -21,7 +21,7 @@ import types
 import warp as wp
 
 from .._types import type_set
-from . import smoothing
+from . import guards, smoothing
 from .replay import recording_tape
 from .roundoff import compensated_sum
 
@@ -51,6 +51,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     fw = smoothing.fit_weight_funcs(scalar, weight)
+    gf = guards.guard_funcs(scalar)
 
     @wp.func
     def displacement(x: vec3, y: vec3, x_lo: vec3, y_lo: vec3) -> vec3:
@@ -349,23 +350,26 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return B * wp.inverse(A)
 
     @wp.func
-    def step_increment(A: mat33, Bu: mat33, code: int, counters: wp.array(dtype=wp.int32)) -> mat33:
-        """This step's ``dF - I`` (eqs. 4-6); 0, counted, where a guard of paper §4 holds
-        (``code``: ``neighbors.GUARD_*``)."""
+    def step_increment(A: mat33, Bu: mat33, code: int, max_condition: scalar,
+                       counters: wp.array(dtype=wp.int32)) -> mat33:
+        """This step's ``dF - I`` (eqs. 4-6), faded where ``cond(A)`` passes ``max_condition``
+        (``guards.guard_scale``); 0, counted, where a guard of paper §4 holds (``code``:
+        ``neighbors.GUARD_*``)."""
         D = mat33()
         if code == 1:
             wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
         elif code == 2:
             wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
         else:
-            D = affine_fit(A, Bu)
+            D = gf.guard_scale(A, max_condition) * affine_fit(A, Bu)
         return D
 
     @wp.func
-    def step_gradient(A: mat33, Bu: mat33, code: int, counters: wp.array(dtype=wp.int32)) -> mat33:
-        """This step's ``dF = B A^-1`` (eqs. 4-6); ``I``, counted, where a guard of paper §4
-        holds (``code``: ``neighbors.GUARD_*``)."""
-        return wp.identity(n=3, dtype=scalar) + step_increment(A, Bu, code, counters)
+    def step_gradient(A: mat33, Bu: mat33, code: int, max_condition: scalar,
+                      counters: wp.array(dtype=wp.int32)) -> mat33:
+        """This step's ``dF = B A^-1`` (eqs. 4-6, ``step_increment``); ``I``, counted, where a
+        guard of paper §4 holds (``code``: ``neighbors.GUARD_*``)."""
+        return wp.identity(n=3, dtype=scalar) + step_increment(A, Bu, code, max_condition, counters)
 
     @wp.func
     def unless_inverted(candidate: mat33, F: mat33, counters: wp.array(dtype=wp.int32)) -> mat33:
@@ -395,10 +399,11 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return out, out_lo
 
     @wp.func
-    def deformation_update(A: mat33, Bu: mat33, code: int, F: mat33, F_lo: mat33, counters: wp.array(dtype=wp.int32)):
+    def deformation_update(A: mat33, Bu: mat33, code: int, max_condition: scalar, F: mat33, F_lo: mat33,
+                           counters: wp.array(dtype=wp.int32)):
         """Eq. 8 with the guards of paper §4: ``F <- dF F`` unless guarded or inverted, of the
         compensated ``F + F_lo``; returns the new ``(F, F_lo)``."""
-        return carried_update(step_increment(A, Bu, code, counters), F, F_lo, counters)
+        return carried_update(step_increment(A, Bu, code, max_condition, counters), F, F_lo, counters)
 
     return types.SimpleNamespace(
         displacement=displacement, pair_slots=pair_slots, pair_partner=pair_partner, pair_ends=pair_ends,
@@ -419,6 +424,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     fn = funcs(scalar, weight)
+    gf = guards.guard_funcs(scalar)
 
     @wp.kernel(module="unique")
     def update_deformation(
@@ -433,6 +439,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F_prev: wp.array(dtype=mat33),
         F_prev_lo: wp.array(dtype=mat33),
         h: scalar,
+        max_condition: scalar,
         gn: vec3,
         goff: scalar,
         gmin: scalar,
@@ -443,7 +450,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     ):
         i = wp.tid()
         A, B, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
-        F_new, F_new_lo = fn.deformation_update(A, B, guard[i], F_prev[i], F_prev_lo[i], counters)
+        F_new, F_new_lo = fn.deformation_update(A, B, guard[i], max_condition, F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
 
@@ -459,6 +466,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         guard: wp.array(dtype=wp.int32),
         F_prev: wp.array(dtype=mat33),
         h: scalar,
+        max_condition: scalar,
         gn: vec3,
         goff: scalar,
         gmin: scalar,
@@ -478,7 +486,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         row in ``fit_pairs_adjoint``). Guarded or inverted particles keep ``F``: all of ``G``
         goes to ``F``. With ``images`` the floor's image pairs (``fit_pair_sums``: ``xb =
         g_j - x_i``, ``yb = g_j - y_i``, ``g_j`` at rest over the step) likewise, scattered to
-        ``x_j`` through ``floor_image_jacobian`` (``scatter_pair_adjoint``)."""
+        ``x_j`` through ``floor_image_jacobian`` (``scatter_pair_adjoint``). The fade
+        ``dF - I = s(A) (B A^-1 - I)`` (``guards.guard_scale_gradient``) scales ``adj B`` and
+        adds ``(adj dF : (B A^-1 - I)) ds/dA`` to ``adj A``."""
         i = wp.tid()
         G = adj_F_out[i]
         Fp = F_prev[i]
@@ -488,14 +498,17 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             adj_F_prev[i] = adj_F_prev[i] + G
             return
         Ainv = wp.inverse(A)
-        D = B * Ainv
+        D0 = B * Ainv
+        s, ds_dA = gf.guard_scale_gradient(A, max_condition)
+        D = s * D0
         dF = wp.identity(n=3, dtype=scalar) + D
         if wp.determinant(Fp + D * Fp) <= scalar(0.0):
             adj_F_prev[i] = adj_F_prev[i] + G
             return
         adj_F_prev[i] = adj_F_prev[i] + wp.transpose(dF) * G
-        adj_B = G * wp.transpose(Fp) * wp.transpose(Ainv)
-        adj_A = -(wp.transpose(dF) * adj_B)
+        adj_D = G * wp.transpose(Fp)
+        adj_B = s * adj_D * wp.transpose(Ainv)
+        adj_A = -((wp.identity(n=3, dtype=scalar) + wp.transpose(D0)) * adj_B) + wp.ddot(adj_D, D0) * ds_dA
         adj_A_sym = adj_A + wp.transpose(adj_A)
         n = count[i]
         gx_i, gy_i = fn.fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 0, adj_A, adj_A_sym, adj_B,
@@ -509,10 +522,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     return types.SimpleNamespace(update_deformation=update_deformation, update_deformation_adjoint=update_deformation_adjoint)
 
 
-def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint: bool = True, y=None, y_lo=None):
+def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint: bool = True, y=None, y_lo=None,
+                              max_condition: float = guards.MAX_CONDITION):
     """Eqs. 1-8 over the step from ``state_in.x`` to ``state_out.x`` (or to ``y``, ``y_lo``
     where given: a ghost floor's fit positions, ``ghost_floor.launch_fit_positions``), with
-    the neighbourhood guards the neighbour search wrote to ``state_out.guard``. Under a
+    the neighbourhood guards the neighbour search wrote to ``state_out.guard`` and the fade
+    from ``max_condition`` (the solver's; ``guards``). Under a
     ``wp.Tape`` the backward runs ``update_deformation_adjoint`` (``hand_adjoint=False``:
     Warp's generated adjoint, which tests compare it against)."""
     k = kernels(model.scalar, model.fit_weight)
@@ -521,7 +536,7 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     inputs = [
         state_in.x, y, state_in.x_lo, y_lo, model.particle_body, state_out.neighbors,
         state_out.neighbor_count, state_out.guard, state_out.F_flowed, state_out.F_flowed_lo,
-        model.scalar(model.support_radius), *model.image_args(),
+        model.scalar(model.support_radius), model.scalar(max_condition), *model.image_args(),
     ]
     outputs = [state_out.F, state_out.F_lo, counters]
     tape = recording_tape()
@@ -532,10 +547,12 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     # Under a tape: the forward unrecorded, and the hand-written adjoint in its place.
     model.launches(k.update_deformation, model.particle_count, inputs, outputs, device=model.device, record_tape=False)
 
-    tape.record_func(lambda: launch_update_deformation_adjoint(model, state_in, state_out, y, y_lo), list(grads))
+    tape.record_func(lambda: launch_update_deformation_adjoint(model, state_in, state_out, y, y_lo, max_condition),
+                     list(grads))
 
 
-def launch_update_deformation_adjoint(model, state_in, state_out, y=None, y_lo=None):
+def launch_update_deformation_adjoint(model, state_in, state_out, y=None, y_lo=None,
+                                      max_condition: float = guards.MAX_CONDITION):
     """``update_deformation_adjoint``: ``state_out.F.grad`` into the gradients of ``state_in.x``,
     ``state_out.x`` (or ``y``) and ``state_out.F_flowed``, with the guards in ``state_out.guard``."""
     y = state_out.x if y is None else y
@@ -545,6 +562,7 @@ def launch_update_deformation_adjoint(model, state_in, state_out, y=None, y_lo=N
         [
             state_in.x, y, state_in.x_lo, y_lo, model.particle_body, state_out.neighbors,
             state_out.neighbor_count, state_out.guard, state_out.F_flowed, model.scalar(model.support_radius),
+            model.scalar(max_condition),
             *model.image_args(), state_out.F.grad, state_in.x.grad, y.grad, state_out.F_flowed.grad,
         ],
         device=model.device, record_tape=False,

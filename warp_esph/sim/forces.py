@@ -315,6 +315,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     image_slots = deformation.funcs(scalar, weight).image_slots
     image_row_particle = deformation.image_row_particle
     floor_image_jacobian = deformation.funcs(scalar, weight).floor_image_jacobian
+    guard_scale = neighbors.guard_funcs(scalar).guard_scale
     Materials = materials.struct(scalar)
 
     @wp.kernel(module="unique")
@@ -331,6 +332,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F: wp.array(dtype=mat33),
         F_inv: wp.array(dtype=mat33),
         h: scalar,
+        max_condition: scalar,
         gn: vec3,
         goff: scalar,
         gmin: scalar,
@@ -351,11 +353,13 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             # The moments of x alone (y = x and the same round-off: B - A = 0).
             A, B, same = fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
             A_inv = wp.inverse(A)
-            M = fn.variational_map(volume[i], stress[i], F[i], A_inv)
+            # Faded where cond(A) passes max_condition (guards.guard_scale).
+            s_fit = guard_scale(A, max_condition)
+            M = s_fit * fn.variational_map(volume[i], stress[i], F[i], A_inv)
             fi = fn.variational_forces(i, x, body, nbr, count[i], M, h, f)
             if images != 0:
-                Mg = fn.image_map(volume[i], stress[i], F[i],
-                                  image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin))
+                Mg = s_fit * fn.image_map(volume[i], stress[i], F[i],
+                                          image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin))
                 fi += fn.floor_image_forces(i, x, body, nbr, count[i], M, Mg, h, gn, goff, gmin, f)
         wp.atomic_add(f, i, fi)
 
@@ -436,6 +440,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         adj_F_inv[i] = adj_F_inv[i] + aFinv
 
     guard_code = neighbors.guard_funcs(scalar).guard_code
+    guard_scale_gradient = neighbors.guard_funcs(scalar).guard_scale_gradient
 
     @wp.kernel(enable_backward=False, module="unique")
     def variational_forces_adjoint(
@@ -514,18 +519,25 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         P = stress[i]
         Fi = F[i]
         Ainv = wp.inverse(A)
-        M = fn.variational_map(Vi, P, Fi, Ainv)
-        adj_P, adj_Fi, adj_A = fn.variational_map_adjoint(Vi, P, Fi, Ainv, adj_M)
-        adj_A_sym = adj_A + wp.transpose(adj_A)
+        # The fade s(A) of both maps (guards.guard_scale_gradient): M = s M0, Mg = s Mg0.
+        s, ds_dA = guard_scale_gradient(A, max_condition)
+        M0 = fn.variational_map(Vi, P, Fi, Ainv)
+        M = s * M0
+        adj_P, adj_Fi, adj_A = fn.variational_map_adjoint(Vi, P, Fi, Ainv, s * adj_M)
+        adj_s = wp.ddot(adj_M, M0)
         Mg = mat33()
         adj_Ag = mat33()
         if n_img > 0:
             Ag_inv = wp.inverse(image_moment(i, x, body, nbr, n, h, gn, goff, gmin))
-            Mg = fn.variational_map(Vi, P, Fi, Ag_inv)
-            adj_Pg, adj_Fg, adj_Ag_ = fn.variational_map_adjoint(Vi, P, Fi, Ag_inv, adj_Mg)
+            Mg0 = fn.variational_map(Vi, P, Fi, Ag_inv)
+            Mg = s * Mg0
+            adj_Pg, adj_Fg, adj_Ag_ = fn.variational_map_adjoint(Vi, P, Fi, Ag_inv, s * adj_Mg)
             adj_P += adj_Pg
             adj_Fi += adj_Fg
             adj_Ag = adj_Ag_
+            adj_s += wp.ddot(adj_Mg, Mg0)
+        adj_A = adj_A + adj_s * ds_dA
+        adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_Ag_sym = adj_Ag + wp.transpose(adj_Ag)
         adj_stress[i] = adj_stress[i] + adj_P
         adj_F[i] = adj_F[i] + adj_Fi
@@ -558,7 +570,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                                  variational_forces_adjoint=variational_forces_adjoint)
 
 
-def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True):
+def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
+                          max_condition: float = neighbors.MAX_CONDITION):
     """Elastic pair forces (eqs. 10-13, or the variational force) into ``state_out.force``,
     from the stress, ``F`` and ``F^-1`` the constitutive update wrote to ``state_out``.
     Under a ``wp.Tape``, when every material uses eqs. 10-13, the backward runs
@@ -568,7 +581,7 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True)
     inputs = [
         state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
         state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
-        state_out.F_inv, S(model.support_radius), *model.image_args(),
+        state_out.F_inv, S(model.support_radius), S(max_condition), *model.image_args(),
     ]
     tape = recording_tape()
     grads = (state_in.x, state_out.stress, state_out.F_inv, state_out.force)

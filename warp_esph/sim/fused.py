@@ -50,6 +50,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     image_pressure_forces = pressure.funcs(scalar).image_pressure_forces
     guarded_flow_step = plasticity.funcs(scalar).guarded_flow_step
     guard_code = neighbors.guard_funcs(scalar).guard_code
+    guard_scale = neighbors.guard_funcs(scalar).guard_scale
     df = deformation.funcs(scalar, weight)
     Materials = materials.struct(scalar)
 
@@ -164,9 +165,11 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             A, B, same = df.fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
             if guard_code(A, same, min_neighbors, max_condition) == 0:
                 A_inv = wp.inverse(A)
-                M = fo.variational_map(Vol_i, P, Fe, A_inv)
+                # Faded where cond(A) passes max_condition (guards.guard_scale).
+                s_fit = guard_scale(A, max_condition)
+                M = s_fit * fo.variational_map(Vol_i, P, Fe, A_inv)
                 if images != 0:
-                    Mg = fo.image_map(Vol_i, P, Fe, df.floor_image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin))
+                    Mg = s_fit * fo.image_map(Vol_i, P, Fe, df.floor_image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin))
                     fi = fo.floor_image_forces(i, x, body, nbr, count[i], M, Mg, h, gn, goff, gmin, f)
             else:
                 kind_el = 2
@@ -244,7 +247,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             A, B, same = df.fit_pair_sums(i, x, u, u, u, body, nbr, count[i], h, 1, gn, goff, gmin, 0)
         code = guard_code(A, same, min_neighbors, max_condition)
         guard[i] = code
-        F_new, F_new_lo = df.deformation_update(A, B, code, F_prev[i], F_prev_lo[i], counters)
+        F_new, F_new_lo = df.deformation_update(A, B, code, max_condition, F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
 
@@ -337,5 +340,6 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
         record_tape=tape is None,
     )
     if tape is not None:
-        tape.record_func(lambda: deformation.launch_update_deformation_adjoint(model, state_in, state_out),
+        tape.record_func(lambda: deformation.launch_update_deformation_adjoint(model, state_in, state_out,
+                                                                               max_condition=scratch.max_condition),
                          [state_in.x, state_out.x, state_out.F_flowed, state_out.F])

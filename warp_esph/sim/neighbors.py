@@ -52,7 +52,7 @@ import numpy as np
 import warp as wp
 
 from .._types import type_set
-from . import deformation, materials, pressure, smoothing
+from . import deformation, guards, materials, pressure, smoothing
 from .replay import Launches
 
 #: Guard codes written per particle (0 = the MLS update may run).
@@ -84,16 +84,10 @@ TYPICAL_STRETCH = 1.1
 DEFAULT_CAP_FACTOR = 3.0
 #: The paper's neighbour count ("up to 30 neighbours", paper §4).
 PAPER_MAX_NEIGHBORS = 30
-#: Default guard of paper §4 on the fit's moment matrix: ``cond(A) = lmax / lmin`` above it
-#: keeps the old ``F`` and drops the particle's variational force. A fit whose neighbours
-#: leave a direction nearly unsampled turns a small displacement of the particle along it
-#: into a large ``dF`` (``dF - I`` grows as ``A^-1``), a local stiffness far above the wave
-#: limit of ``Model.stable_dt``: plastic flow spreading a body into a thin layer on the
-#: ground makes such fits (``cond`` 200-500 where the toothpaste preset without viscosity
-#: blew up at 0.5 ``stable_dt``). Lattices (up to 2.05 at ``h = 2 dx``), lattices jittered by
-#: 0.3 dx (5-7.4) and every preset's drop and the ``test_creep`` pile (at most 9.9) stay below
-#: it (docs/method.md §2, docs/physics.md "The step bound of undamped fast plastic flow").
-MAX_CONDITION = 20.0
+#: Default ``Solver(max_condition=)``: where the fade of an ill-conditioned fit starts (``guards``).
+MAX_CONDITION = guards.MAX_CONDITION
+#: The guards on a moment matrix (``guards.guard_funcs``), shared by the neighbour pass and the fused step.
+guard_funcs = guards.guard_funcs
 
 
 def lattice_neighbor_count(radius_over_spacing: float) -> int:
@@ -120,38 +114,6 @@ def padded_query_radius(p: wp.vec3f, radius: wp.float32) -> wp.float32:
     grid points; an exact test of each point returned decides."""
     big = wp.max(wp.max(wp.abs(p[0]), wp.abs(p[1])), wp.abs(p[2])) + radius
     return radius * wp.float32(1.0001) + wp.float32(5.0e-7) * big
-
-
-@functools.cache
-def guard_funcs(scalar) -> types.SimpleNamespace:
-    """The neighbourhood guard of paper §4 on a moment matrix (``guard_code``), shared by the
-    neighbour pass and the fused step."""
-    T = type_set(scalar)
-    vec3, mat33 = T.vec3, T.mat33
-
-    @wp.func
-    def guard_code(A: mat33, same: int, min_neighbors: int, max_condition: scalar) -> int:
-        """Guard of paper §4 from the moment matrix ``A`` of ``same`` same-body neighbours."""
-        code = int(0)
-        if same < min_neighbors:
-            code = 1
-        else:
-            # cond(A) <= tr(A)^3 / (4 det A) for a positive semi-definite A (lmax <= tr,
-            # l1 l2 <= (tr / 2)^2): below half the limit, A is certainly well conditioned
-            # and the eigen-decomposition is skipped.
-            tr = A[0, 0] + A[1, 1] + A[2, 2]
-            det = wp.determinant(A)
-            if not (det > scalar(0.0) and tr * tr * tr < scalar(2.0) * max_condition * det):
-                Q = mat33()
-                lam = vec3()
-                wp.eig3(A, Q, lam)
-                lmin = wp.min(wp.min(lam[0], lam[1]), lam[2])
-                lmax = wp.max(wp.max(lam[0], lam[1]), lam[2])
-                if lmin <= scalar(0.0) or lmax > max_condition * lmin:
-                    code = 2
-        return code
-
-    return types.SimpleNamespace(guard_code=guard_code)
 
 
 @functools.cache

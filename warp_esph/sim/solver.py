@@ -98,9 +98,11 @@ class Solver:
     """Explicit elastoplastic step of Gerszewski et al. 2009.
 
     ``min_neighbors`` and ``max_condition`` are the guards of paper §4 on the
-    deformation update; ``guard_counts()`` says how often each fired. ``max_condition``
-    (default ``neighbors.MAX_CONDITION`` = 20) also bounds the local stiffness of a fit
-    that ``Model.stable_dt`` does not see (docs/method.md §2 and §8).
+    deformation update; ``guard_counts()`` says how often each fired. From ``cond(A) =
+    max_condition`` (default ``neighbors.MAX_CONDITION`` = 20) to twice it a fit's increment
+    and its variational force fade out, and beyond the guard holds (``guards.py``): it
+    bounds the local stiffness of a fit that ``Model.stable_dt`` does not see, without a
+    jump in the step (docs/method.md §2 and §8).
 
     ``neighbor_skin`` (in units of the support radius ``h``, in [0, 1]; default
     ``DEFAULT_SKIN``) is the Verlet margin of the neighbour candidates: they are rebuilt only when two
@@ -401,9 +403,9 @@ class Solver:
             # 4. Elastic pair forces, pressure and viscosity.
             with phase("forces"):
                 if self._curved and not self._cmp:
-                    curvature.launch_elastic_forces(m, state_in, state_out, hand)
+                    curvature.launch_elastic_forces(m, state_in, state_out, hand, scratch.max_condition)
                 else:
-                    forces.launch_elastic_forces(m, state_in, state_out, hand)
+                    forces.launch_elastic_forces(m, state_in, state_out, hand, scratch.max_condition)
                 if self._rest_variational:
                     comparison.launch_rest_variational_forces(m, state_out, curved_rest)
                 if ghosts is not None:
@@ -440,15 +442,17 @@ class Solver:
             if fast:
                 fused.launch_update_deformation(m, state_in, state_out, scratch, fast_tape)
             elif self._cmp:
-                comparison.launch_update_deformation(m, state_in, state_out, scratch.counters, curved_rest)
+                comparison.launch_update_deformation(m, state_in, state_out, scratch.counters, curved_rest,
+                                                     scratch.max_condition)
             elif self._curved:
-                curvature.launch_update_deformation(m, state_in, state_out, scratch.counters, hand)
+                curvature.launch_update_deformation(m, state_in, state_out, scratch.counters, hand, scratch.max_condition)
             elif ghosts is not None:
                 ghost_floor.launch_fit_positions(m, state_in, state_out)
                 deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, hand,
-                                                      state_out.ghost_y, state_out.ghost_y_lo)
+                                                      state_out.ghost_y, state_out.ghost_y_lo, scratch.max_condition)
             else:
-                deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, hand)
+                deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, hand,
+                                                      max_condition=scratch.max_condition)
             if not fast and self._cmp:
                 # Their updates rebuild F without carrying its round-off (State.F_lo).
                 state_out.F_lo.zero_()
