@@ -4,6 +4,8 @@ A small block starts at rest in F (F = I: every singular value repeated) with a
 stretching velocity field, yields during the rollout, and the loss is a weighted sum
 of final positions, which reaches every material parameter."""
 
+import functools
+
 import numpy as np
 import pytest
 import warp as wp
@@ -565,14 +567,23 @@ def test_biweight_fit_gradients_match_central_differences(weights, case):
 # A single layer 6 x 6 of particles, every other one raised 0.08 dx (a checkerboard): its
 # 16 inner fits have cond(A) = 31.4, in the band where the fit's increment and the
 # variational force fade out (guards.py); the rim's have too few neighbours.
-def _sheet_model(params=None):
+def _sheet_model(params=None, standing=False):
+    """``standing``: the sheet upright on the imaged ground (``add_ground(images=True)``), its
+    bottom row half a spacing over the plane and its heights 0.09 dx: the fits of the two
+    rows nearest the ground take the images in, at ``cond(A)`` 25-34 (numpy, images mirrored)."""
     p = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "pressure_stiffness": 1.0, "viscosity": 2.0}
     p.update(params or {})
     dx = 0.02
-    pts = np.array([((i - 2.5) * dx, 0.08 * dx * (1 - 2 * ((i + j) % 2)), (j - 2.5) * dx)
-                    for i in range(6) for j in range(6)])
+    if standing:
+        pts = np.array([((i - 2.5) * dx, (j + 0.5) * dx, 0.09 * dx * (1 - 2 * ((i + j) % 2)))
+                        for i in range(6) for j in range(6)])
+    else:
+        pts = np.array([((i - 2.5) * dx, 0.08 * dx * (1 - 2 * ((i + j) % 2)), (j - 2.5) * dx)
+                        for i in range(6) for j in range(6)])
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
     b.add_particles(pts, we.Material(density=1000.0, **p), name="sheet")
+    if standing:
+        b.add_ground(0.0, images=True)
     model = b.finalize(dtype=wp.float64, requires_grad=True)
     model.particle_v0 = 5.0 * model.particle_x0 * np.array([1.0, 0.0, -0.5]) + np.random.default_rng(3).normal(
         scale=0.02, size=model.particle_x0.shape)
@@ -595,25 +606,29 @@ def _fit_conditions(model) -> np.ndarray:
     return np.array(out)
 
 
+@pytest.mark.parametrize("standing", [False, True], ids=["flat", "standing_on_images"])
 @pytest.mark.parametrize("fit", ["linear", "curvature_corrected"])
 @pytest.mark.parametrize("name", ["mu", "v0"])
-def test_faded_ill_conditioned_fits_have_the_gradients_of_central_differences(fit, name):
+def test_faded_ill_conditioned_fits_have_the_gradients_of_central_differences(fit, name, standing):
     """Fits in the fade of the ill-conditioned guard (``guards.guard_scale``: whole up to
     ``cond(A) = 20``, zero from 40): the hand-written adjoints of the deformation update and
-    the variational force (the fade's slope through the eigenvalues of ``A``) against Warp's
-    generated ones, and both against central differences in float64."""
-    model = _sheet_model()
-    cond = _fit_conditions(model)
-    assert ((cond > 25.0) & (cond < 35.0)).sum() == 16, np.round(cond, 1)
+    the variational force (the fade's slope through the eigenvalues of ``A``; standing on
+    the imaged ground, the images' terms too) against Warp's generated ones, and both against
+    central differences in float64."""
+    model = _sheet_model(standing=standing)
+    if not standing:
+        cond = _fit_conditions(model)
+        assert ((cond > 25.0) & (cond < 35.0)).sum() == 16, np.round(cond, 1)
+    sheet = functools.partial(_sheet_model, standing=standing)
     w = random_weights(model.particle_count, 1)
     _, grads = _rollout_loss(model, w, grad_of=(name,), fit=fit)
-    _, generated = _rollout_loss(_sheet_model(), w, grad_of=(name,), fit=fit, hand_adjoints=False)
+    _, generated = _rollout_loss(sheet(), w, grad_of=(name,), fit=fit, hand_adjoints=False)
     np.testing.assert_allclose(grads[name], generated[name], rtol=1e-7, atol=1e-10 * np.abs(generated[name]).max())
     if name == "v0":
         i, c, eps = 14, 1, 1e-6  # an inner particle, across the sheet
 
         def loss_with(delta):
-            m = _sheet_model()
+            m = sheet()
             m.particle_v0[i, c] += delta
             return _rollout_loss(m, w, fit=fit)[0]
 
@@ -622,8 +637,8 @@ def test_faded_ill_conditioned_fits_have_the_gradients_of_central_differences(fi
         assert grads["v0"][i, c] == pytest.approx(fd, rel=1e-4, abs=1e-9)
         return
     eps = 1e-5 * model.materials[0].mu
-    fd = (_rollout_loss(_sheet_model({"mu": model.materials[0].mu + eps}), w, fit=fit)[0]
-          - _rollout_loss(_sheet_model({"mu": model.materials[0].mu - eps}), w, fit=fit)[0]) / (2 * eps)
+    fd = (_rollout_loss(sheet({"mu": model.materials[0].mu + eps}), w, fit=fit)[0]
+          - _rollout_loss(sheet({"mu": model.materials[0].mu - eps}), w, fit=fit)[0]) / (2 * eps)
     assert abs(fd) > 1e-11
     assert grads["mu"][0] == pytest.approx(fd, rel=1e-4)
 
