@@ -30,7 +30,7 @@ from warp_esph.sim import neighbors
 from warp_esph.sim import comparison
 from warp_esph.material import DEFORMATIONS
 from warp_esph.scenes import FIG8_BODIES, FIG8_RELEASE, SCENES
-from warp_esph.sim.guards import MAX_CONDITION
+from warp_esph.sim.guards import MAX_CONDITION, MIN_NEIGHBORS
 
 SCALE = 0.6  # 6^3 particles per cube
 DT = 5.0e-4  # about half the stable step at scale 0.6
@@ -190,7 +190,7 @@ def test_rest_model_fits_the_total_deformation_exactly():
     wp.launch(k.update_deformation, n, [X, y, X, model.particle_body, nbr, count, nbr, count, wp.zeros(n, dtype=wp.int32),
                                         wp.zeros(n, dtype=wp.int32), model.particle_material, model.material_arrays(),
                                         wp.array(eye, dtype=wp.mat33d), wp.array(Fp, dtype=wp.mat33d), model.support_radius,
-                                        MAX_CONDITION, 0], [F_out, counters])
+                                        MIN_NEIGHBORS, MAX_CONDITION, 0], [F_out, counters])
     inner = _interior(model, model.support_radius)
     assert inner.sum() > 10
     got = F_out.numpy()[inner] @ Fp[inner]
@@ -217,7 +217,7 @@ def test_additive_model_adds_the_green_strain_of_the_step():
                                         state.neighbor_count, wp.zeros(n, dtype=wp.int32), state.guard,
                                         model.particle_material, model.material_arrays(),
                                         wp.array(eye + eps0, dtype=wp.mat33d), wp.array(eye, dtype=wp.mat33d),
-                                        model.support_radius, MAX_CONDITION, 0], [F_out, counters])
+                                        model.support_radius, MIN_NEIGHBORS, MAX_CONDITION, 0], [F_out, counters])
     inner = _interior(model, model.support_radius)
     expected = eps0 + 0.5 * (dF.T @ dF - np.eye(3))
     np.testing.assert_allclose(F_out.numpy()[inner] - np.eye(3), expected[inner], atol=1e-10)

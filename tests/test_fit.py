@@ -350,9 +350,8 @@ def test_small_fit_recovers_two_parameters(dough_target):
     # The model is left holding the fitted material.
     assert model.materials[0].flow_rate == result.params["flow_rate"][0]
     assert model.flow_rate.numpy()[0] == pytest.approx(result.params["flow_rate"][0])
-    # No guard of paper §4 switched between the evaluations (a thick block, h = 2.5 dx).
-    assert len({h["guarded"] for h in result.history if h["stage"] == "descent"}) == 1
-    assert result.guard_note is None
+    # No fit lacked neighbours in any evaluation (a thick block, h = 2.5 dx).
+    assert {h["guarded"] for h in result.history if h["stage"] == "descent"} == {0}
     json.dumps(result.to_dict())
 
 
@@ -370,22 +369,31 @@ def _thin_star(mu):
     return model
 
 
-def test_fit_says_when_the_guards_switch_between_evaluations():
-    """Each evaluation records the particle-steps the guards held (``guarded``); where they
-    differ between evaluations the loss jumps there, and the result says so
-    (``guard_note``, printed by the command line's fit). Measured: 2995-3008 per evaluation (too few
-    neighbours: the one guard left a switch, docs/method.md §2)."""
+@pytest.mark.parametrize("factor", [1.5, 1.8])
+def test_thin_star_loss_matches_central_differences_where_fits_lack_neighbours(factor):
+    """The thin star's tips have fits at the few-neighbours guard of paper §4 (about 3000
+    particle-steps of 300 without one). The guard fades (``sim/guards.py``, a smooth
+    neighbour count), so the loss of a fit of ``mu`` from ``factor`` times the truth matches
+    central differences at a relative step of 1e-4 within 1e-3. Measured at 1.2-1.8 times the
+    truth: within 1.1e-4; with the count a switch (``guards.COUNT_FADE`` 0.99999) 1.8e-3 at
+    1.5 and 2.8e-3 at 1.8 times, where a fit's neighbour crossed the support radius between
+    the two runs."""
     mu = we.Material.preset("dough").mu
-    truth = _thin_star(mu)
     dt = 0.5 * _thin_star(2.0 * mu).stable_dt()
     steps, frames = 300, [100, 200, 300]
-    target = Rollout(truth, steps, dt, frames=frames).forward()
-    result = fit(_thin_star(1.5 * mu), target, ["mu"], steps=steps, dt=dt, frames=frames, iterations=3, progress=False,
-                 diagnostics=False)
-    guarded = [h["guarded"] for h in result.history]
-    assert min(guarded) > 0 and len(set(guarded)) > 1, guarded
-    assert f"held {min(guarded)} to {max(guarded)} particle-steps" in result.guard_note
-    assert result.to_dict()["guard_note"] == result.guard_note
+    target = Rollout(_thin_star(mu), steps, dt, frames=frames).forward()
+
+    def value_and_grad(m):
+        rollout = Rollout(_thin_star(m), steps, dt, frames=frames)
+        value, grads = rollout.value_and_grad(PositionLoss(target, frames=frames))
+        return value, grads["mu"][0], rollout.solver.guard_counts()["few_neighbors"]
+
+    m = factor * mu
+    _, slope, guarded = value_and_grad(m)
+    assert guarded > 1000, guarded
+    eps = 1e-4 * m
+    fd = (value_and_grad(m + eps)[0] - value_and_grad(m - eps)[0]) / (2.0 * eps)
+    assert slope == pytest.approx(fd, rel=1e-3)
 
 
 def test_adam_fit_with_bounds_clip_and_callback(dough_target):

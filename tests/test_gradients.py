@@ -37,8 +37,8 @@ def _model(params=None, velocity_scale=20.0, fit_weight="poly6"):
     return model
 
 
-def _rollout_loss(model, weights, grad_of=(), fit="linear", hand_adjoints=True, hourglass=0.0):
-    solver = we.Solver(model, fit=fit, hourglass=hourglass)
+def _rollout_loss(model, weights, grad_of=(), fit="linear", hand_adjoints=True, hourglass=0.0, min_neighbors=6):
+    solver = we.Solver(model, fit=fit, hourglass=hourglass, min_neighbors=min_neighbors)
     solver.hand_adjoints = hand_adjoints
     states = [model.state() for _ in range(STEPS + 1)]
     # A pre-worked material (alpha > 0), so the loss reaches the hardening modulus.
@@ -571,8 +571,6 @@ def _sheet_model(params=None, standing=False):
     """``standing``: the sheet upright on the imaged ground (``add_ground(images=True)``), its
     bottom row half a spacing over the plane and its heights 0.09 dx: the fits of the two
     rows nearest the ground take the images in, at ``cond(A)`` 25-34 (numpy, images mirrored)."""
-    p = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "pressure_stiffness": 1.0, "viscosity": 2.0}
-    p.update(params or {})
     dx = 0.02
     if standing:
         pts = np.array([((i - 2.5) * dx, (j + 0.5) * dx, 0.09 * dx * (1 - 2 * ((i + j) % 2)))
@@ -580,8 +578,16 @@ def _sheet_model(params=None, standing=False):
     else:
         pts = np.array([((i - 2.5) * dx, 0.08 * dx * (1 - 2 * ((i + j) % 2)), (j - 2.5) * dx)
                         for i in range(6) for j in range(6)])
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
-    b.add_particles(pts, we.Material(density=1000.0, **p), name="sheet")
+    return _few_particles(pts, params, standing)
+
+
+def _few_particles(pts, params=None, standing=False):
+    """A body of the points ``pts`` (spacing 0.02, no gravity), on the imaged ground with
+    ``standing``, moving with a stretching velocity field plus noise."""
+    p = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "pressure_stiffness": 1.0, "viscosity": 2.0}
+    p.update(params or {})
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+    b.add_particles(pts, we.Material(density=1000.0, **p), name="body")
     if standing:
         b.add_ground(0.0, images=True)
     model = b.finalize(dtype=wp.float64, requires_grad=True)
@@ -664,5 +670,119 @@ def test_the_loss_has_no_jump_where_fits_enter_and_leave_the_fade():
         slopes.append(float((grads["x0"] * pattern).sum()))
     losses, slopes = np.array(losses), np.array(slopes)
     increments = np.diff(losses) / np.diff(heights)
+    trapezoid = 0.5 * (slopes[1:] + slopes[:-1])
+    assert np.abs(increments / trapezoid - 1.0).max() < 0.02, np.round(increments / trapezoid, 4)
+
+
+# A cluster of 2 x 2 x 2 particles, spaced dx along x and y and 1.27 dx along z, its body
+# diagonal at 0.95 h: each particle's seven neighbours are six inside
+# 0.81 h and the diagonal one in the band where a neighbour's count for the few-neighbours
+# guard fades (guards.count_weight, 0.9-1.0 h), so its smooth count is 6.52. With
+# min_neighbors = 7 every fit sits in the count's fade (guards.count_scale: 0.53).
+CLUSTER_DIAGONAL = 0.95
+
+
+def _cluster_model(params=None, standing=False, dz_shift=0.0):
+    """``standing``: the cluster on the imaged ground (``add_ground(images=True)``), its
+    bottom layer 0.66 dx over the plane: the bottom particles' smooth counts, images
+    included, are 9.46 (some images in the band), the top ones' 6.52. ``dz_shift`` moves the
+    layers along z apart (the diagonal through the band)."""
+    dx = 0.02
+    h = 2.0 * dx
+    dz = np.sqrt((CLUSTER_DIAGONAL * h) ** 2 - 2.0 * dx * dx)
+    lift = 0.66 if standing else -0.5
+    pts = np.array([((i - 0.5) * dx, (j + lift) * dx, (k - 0.5) * dz) for i in range(2) for j in range(2) for k in range(2)])
+    model = _few_particles(pts, params, standing)
+    model.particle_x0 = model.particle_x0 + dz_shift * _cluster_pattern(model)
+    return model
+
+
+def _cluster_pattern(model) -> np.ndarray:
+    """The layers' motion along z per unit of ``dz_shift``."""
+    pattern = np.zeros_like(model.particle_x0)
+    pattern[:, 2] = np.sign(model.particle_x0[:, 2]) * 0.5
+    return pattern
+
+
+def _smooth_counts(x, h, ground=None) -> np.ndarray:
+    """Each particle's count for the few-neighbours guard (guards.count_weight), numpy, with
+    the images mirrored in the plane ``y = ground``."""
+    def weight(r2):
+        q = np.clip((r2 / (h * h) - 0.81) / 0.19, 0.0, 1.0)
+        return np.where(r2 < h * h, 1.0 - q * q * (3.0 - 2.0 * q), 0.0)
+    out = []
+    for i, xi in enumerate(x):
+        r2 = ((x - xi) ** 2).sum(axis=1)
+        n = weight(np.delete(r2, i)).sum()
+        if ground is not None:
+            g = x * np.array([1.0, -1.0, 1.0]) + np.array([0.0, 2.0 * ground, 0.0])
+            n += weight(((g - xi) ** 2).sum(axis=1)).sum()
+        out.append(n)
+    return np.array(out)
+
+
+@pytest.mark.parametrize("standing", [False, True], ids=["free", "standing_on_images"])
+@pytest.mark.parametrize("fit", ["linear", "curvature_corrected"])
+@pytest.mark.parametrize("name", ["mu", "v0"])
+def test_fits_in_the_few_neighbours_fade_have_the_gradients_of_central_differences(fit, name, standing):
+    """Fits in the fade of the few-neighbours guard (``guards.count_scale`` on the smooth
+    count of ``guards.count_weight``): the hand-written adjoints of the deformation update
+    and the variational force (the count's slope through each pair's distance; standing on
+    the imaged ground, the images' too) against Warp's generated ones, and both against
+    central differences in float64. Dropping the count's term from any of the four
+    adjoints fails the generated comparison (rtol 1e-7) by 2e-4 or more."""
+    model = _cluster_model(standing=standing)
+    min_neighbors = 10 if standing else 7
+    counts = _smooth_counts(model.particle_x0, model.support_radius, 0.0 if standing else None)
+    inside = (counts > min_neighbors - 1) & (counts < min_neighbors)
+    assert inside.sum() == (4 if standing else 8), np.round(counts, 3)
+    cluster = functools.partial(_cluster_model, standing=standing)
+    roll = functools.partial(_rollout_loss, fit=fit, min_neighbors=min_neighbors)
+    w = random_weights(model.particle_count, 1)
+    _, grads = roll(model, w, grad_of=(name,))
+    _, generated = roll(cluster(), w, grad_of=(name,), hand_adjoints=False)
+    np.testing.assert_allclose(grads[name], generated[name], rtol=1e-7, atol=1e-10 * np.abs(generated[name]).max())
+    if name == "v0":
+        i, c, eps = 3, 2, 1e-6
+
+        def loss_with(delta):
+            m = cluster()
+            m.particle_v0[i, c] += delta
+            return roll(m, w)[0]
+
+        fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
+        assert abs(fd) > 1e-9
+        assert grads["v0"][i, c] == pytest.approx(fd, rel=1e-4, abs=1e-9)
+        return
+    mu = model.materials[0].mu
+    eps = 1e-5 * mu
+    fd = (roll(cluster({"mu": mu + eps}), w)[0] - roll(cluster({"mu": mu - eps}), w)[0]) / (2 * eps)
+    assert abs(fd) > 1e-11
+    assert grads["mu"][0] == pytest.approx(fd, rel=1e-4)
+
+
+def test_the_loss_has_no_jump_where_a_neighbour_leaves_the_count():
+    """The cluster's layers drawn apart along z take each particle's diagonal neighbour from
+    0.88 h through the count's band (0.9-1.0 h) to 1.02 h: the smooth counts go from 7 to 6
+    together, and with ``min_neighbors = 7`` all eight fits fade out. The loss's increment
+    over each interval of the scan is the mean of the tape's slopes at its ends within 2 %.
+    With the count a switch (a neighbour counting whole up to ``h``), the eight fits went
+    off together where the diagonal crossed ``h``: a jump. Measured: within 0.26 %; with the
+    band narrowed to 0.999-1.0 h (``guards.COUNT_FADE = 0.999``, nearly the switch) the
+    interval across ``h`` reads 1.22 times the trapezoid."""
+    dx, h = 0.02, 0.04
+    dz0 = np.sqrt((CLUSTER_DIAGONAL * h) ** 2 - 2.0 * dx * dx)
+    shifts = np.linspace(np.sqrt((0.88 * h) ** 2 - 2 * dx * dx), np.sqrt((1.02 * h) ** 2 - 2 * dx * dx), 17) - dz0
+    w = random_weights(8, 1)
+    losses, slopes, counts = [], [], []
+    for a in shifts:
+        model = _cluster_model({"mu": 8.0e3, "lam": 1.2e4}, dz_shift=a)  # stiff: the fit's share of the loss shows
+        counts.append(_smooth_counts(model.particle_x0, h).mean())
+        loss, grads = _rollout_loss(model, w, grad_of=("x0",), min_neighbors=7)
+        losses.append(loss)
+        slopes.append(float((grads["x0"] * _cluster_pattern(model)).sum()))
+    assert counts[0] == 7.0 and counts[-1] == 6.0, counts
+    losses, slopes = np.array(losses), np.array(slopes)
+    increments = np.diff(losses) / np.diff(shifts)
     trapezoid = 0.5 * (slopes[1:] + slopes[:-1])
     assert np.abs(increments / trapezoid - 1.0).max() < 0.02, np.round(increments / trapezoid, 4)

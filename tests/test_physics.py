@@ -13,7 +13,7 @@ import warp_esph as we
 from warp_esph.sim import curvature, deformation, plasticity, smoothing
 from warp_esph._types import type_set
 from warp_esph.material import PRESSURE_BULK_SHARE
-from warp_esph.sim.guards import MAX_CONDITION
+from warp_esph.sim.guards import MAX_CONDITION, MIN_NEIGHBORS
 
 
 def _rotation(rng):
@@ -48,7 +48,7 @@ def _launch_fit(fit, model, state, x, y, Fp, F_out, counters):
     discarded out)."""
     S = model.scalar
     ins = [x, y, wp.zeros_like(x), wp.zeros_like(x), model.particle_body, state.neighbors, state.neighbor_count,
-           state.guard, Fp, wp.zeros_like(Fp), S(model.support_radius), S(MAX_CONDITION), *model.image_args()]
+           state.guard, Fp, wp.zeros_like(Fp), S(model.support_radius), MIN_NEIGHBORS, S(MAX_CONDITION), *model.image_args()]
     outs = [F_out, wp.zeros_like(Fp)]
     wp.launch(fit.kernels(S, model.fit_weight).update_deformation, model.particle_count, ins, outs + [counters])
 
@@ -342,7 +342,7 @@ def test_yield_onset_under_uniaxial_stretch_and_volume_kept(model_name):
         F_lo_new = wp.zeros_like(F)
         zero = wp.zeros_like(xa)
         wp.launch(kd, n, [xa, xb, zero, zero, model.particle_body, state.neighbors, state.neighbor_count, state.guard,
-                          scratch[0], F_lo_flowed, S(model.support_radius), S(MAX_CONDITION),
+                          scratch[0], F_lo_flowed, S(model.support_radius), MIN_NEIGHBORS, S(MAX_CONDITION),
                           *model.image_args()], [F_new, F_lo_new, counters])
         F, F_lo, alpha = F_new, F_lo_new, wp.clone(scratch[1])
     e_yield = Y / (2 * mu * math.sqrt(2.0 / 3.0))

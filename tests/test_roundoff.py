@@ -11,7 +11,7 @@ import warp as wp
 import warp_esph as we
 from warp_esph._types import type_set
 from warp_esph.sim import curvature, deformation
-from warp_esph.sim.guards import MAX_CONDITION
+from warp_esph.sim.guards import MAX_CONDITION, MIN_NEIGHBORS
 
 
 def _block(center, dtype=wp.float32, velocity=(0.0, 0.0, 0.0)):
@@ -70,7 +70,7 @@ def test_fit_at_rest_is_exactly_no_change_of_F():
     counters = wp.zeros(4, dtype=wp.int32)
     wp.launch(deformation.kernels(model.scalar, model.fit_weight).update_deformation, n,
               [state.x, state.x, lo, lo, model.particle_body, state.neighbors, state.neighbor_count, state.guard, Fa, F_lo_a,
-               model.scalar(model.support_radius), model.scalar(MAX_CONDITION), *model.image_args()],
+               model.scalar(model.support_radius), MIN_NEIGHBORS, model.scalar(MAX_CONDITION), *model.image_args()],
               [F_out, F_lo_out, counters])
     assert (state.guard.numpy() == 0).all()
     np.testing.assert_array_equal(F_out.numpy(), Fa.numpy())
@@ -106,7 +106,7 @@ def test_slow_strain_below_half_a_unit_per_step_accumulates_in_F(fit):
         a, b = k % 2, 1 - k % 2
         wp.launch(fit.kernels(model.scalar, model.fit_weight).update_deformation, n,
                   [state.x, state.x, lo, y_lo, model.particle_body, state.neighbors, state.neighbor_count, state.guard,
-                   F[a], F_lo[a], model.scalar(model.support_radius), model.scalar(MAX_CONDITION), *model.image_args()],
+                   F[a], F_lo[a], model.scalar(model.support_radius), MIN_NEIGHBORS, model.scalar(MAX_CONDITION), *model.image_args()],
                   [F[b], F_lo[b], counters])
     full = F[steps % 2].numpy().astype(np.float64) + F_lo[steps % 2].numpy()
     want = np.linalg.matrix_power(np.eye(3) + D, steps)

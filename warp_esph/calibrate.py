@@ -177,8 +177,6 @@ def run_fit(args, out=None, err=None) -> int:
                             for e in exps]}
     written = write_outputs(result, folder, meta, json_path=_arg(args, "output"))
     print(f"fit {result.termination}", file=out)
-    if result.guard_note:
-        print(f"note: {result.guard_note}", file=out)
     print(f"loss {result.initial_loss:.4g} -> {result.loss:.4g} in {result.evaluations} evaluations", file=out)
     for name, v in result.params.items():
         print(f"  {name} = {', '.join(f'{x:.6g}' for x in v)}", file=out)

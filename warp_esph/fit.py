@@ -79,9 +79,9 @@ class Adam:
         return z - self.lr * mh / (np.sqrt(vh) + self.eps)
 
 
-#: The guard of paper §4 that switches a particle's fit off at once (``Solver.guard_counts``):
-#: too few neighbours. The ill-conditioned fit's guard fades the fit out before it holds
-#: (``sim/guards.py``), so its count changing makes no jump.
+#: The guard of paper §4 a fit's history counts (``Solver.guard_counts``): too few neighbours,
+#: particle-steps whose fit has faded out wholly (``sim/guards.py``: both guards fade the fit
+#: out before they hold, so their counts changing between evaluations makes no jump).
 GUARDS = ("few_neighbors",)
 
 
@@ -105,11 +105,9 @@ class FitResult:
     exactly zero), ``tol``, ``callback``;
     ``converged`` is True only for ``converged`` and ``tol``. ``diagnostics``: a
     ``warp_esph.diagnostics.Diagnostics`` at the optimum (None when not asked for).
-    ``models``/``experiment_materials``: per experiment of a joint fit. ``guard_note``: set
-    when the few-neighbours guard of paper §4 held a different number of particle-steps in
-    different evaluations (each history entry's ``guarded``; not recorded for a worlds
-    fit): the guard is a switch, so the loss jumps where it changes (docs/fitting.md,
-    "Making the loss smooth enough to fit"); None otherwise.
+    ``models``/``experiment_materials``: per experiment of a joint fit. Each descent
+    entry of the history records ``guarded``: the particle-steps without a fit for too few
+    neighbours in that evaluation (paper §4; not recorded for a worlds fit).
     """
 
     params: dict[str, np.ndarray]
@@ -125,7 +123,6 @@ class FitResult:
     experiment_materials: list = dataclasses.field(default_factory=list)
     starts: list = dataclasses.field(default_factory=list)
     evaluations: int = 0
-    guard_note: str | None = None
 
     TERMINATION = {
         "converged": "converged: the last step (or the gradient) fell below its tolerance",
@@ -170,7 +167,6 @@ class FitResult:
             "termination": self.termination,
             "starts": list(self.starts),
             "diagnostics": None if self.diagnostics is None else self.diagnostics.to_dict(),
-            "guard_note": self.guard_note,
             "history": self.history,
         })
 
@@ -846,13 +842,6 @@ def fit(
     result.experiment_materials = fitted
     result.starts = stops
     result.evaluations = sum(1 for h in history if h["stage"] == "descent")
-    guarded = [h["guarded"] for h in history if h["stage"] == "descent" and "guarded" in h]
-    if len(set(guarded)) > 1:
-        result.guard_note = (f"the few-neighbours guard of paper §4 held {min(guarded)} to {max(guarded)} particle-steps "
-                             f"per evaluation: it is a switch, so the loss jumps where it changes and a line search "
-                             "can stall there (a larger support radius keeps thin parts' fits full; docs/fitting.md, "
-                             "'Making the loss smooth enough to fit')")
-        say(result.guard_note)
     # A worlds model fits W hypotheses at once: one Fisher matrix of their summed loss
     # would describe none of them, so the diagnostics are left to one world at a time.
     worlds = any(isinstance(r.loss, WorldLoss) for r in runs)

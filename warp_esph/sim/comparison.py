@@ -117,6 +117,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F_prev: wp.array(dtype=mat33),
         Fp: wp.array(dtype=mat33),
         h: scalar,
+        min_neighbors: int,
         max_condition: scalar,
         curved: int,
         F_out: wp.array(dtype=mat33),
@@ -148,7 +149,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 F = unless_inverted(G * wp.inverse(Fp[i]), F, counters)
         else:
             A, B, same = moment_sums(i, x, y, y, y, body, nbr, count[i], h)
-            dF = step_gradient(A, B, guard[i], max_condition, counters)
+            dF = step_gradient(A, B, guard[i], same, min_neighbors, max_condition, counters)
             if d == 2:
                 # Additive: F = I + eps, eps <- eps + (dF^T dF - I) / 2.
                 F = F + scalar(0.5) * (wp.transpose(dF) * dF - I)
@@ -220,7 +221,8 @@ def launch_constitutive_update(model, state_in, state_out, dt, counters):
 
 
 def launch_update_deformation(model, state_in, state_out, counters, curved: bool = False,
-                              max_condition: float = deformation.guards.MAX_CONDITION):
+                              max_condition: float = deformation.guards.MAX_CONDITION,
+                              min_neighbors: int = deformation.guards.MIN_NEIGHBORS):
     """``deformation.launch_update_deformation`` for models with a Fig. 8 comparison material
     (``curved``: the rest model's total fit is the curvature-corrected one)."""
     rest_x, rest_nbr, rest_count = model.rest_neighbors()
@@ -230,7 +232,7 @@ def launch_update_deformation(model, state_in, state_out, counters, curved: bool
         [
             state_in.x, state_out.x, rest_x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
             rest_nbr, rest_count, model.rest_guard, state_out.guard, model.particle_material, model.material_arrays(), state_out.F_flowed,
-            state_out.F_p, model.scalar(model.support_radius), model.scalar(max_condition), int(curved),
+            state_out.F_p, model.scalar(model.support_radius), int(min_neighbors), model.scalar(max_condition), int(curved),
         ],
         [state_out.F, counters],
         device=model.device,

@@ -102,7 +102,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     ):
         """Eqs. 5-7 with the curvature terms: ``A = sum w xb xb^T``, ``C = sum w xb q^T``,
         ``D = sum w q q^T``, the displacement moments ``B - A = sum w ub xb^T`` and ``E - C =
-        sum w ub q^T`` and the number of same-body partners closer than ``h``, over ``i``'s
+        sum w ub q^T`` and the smooth count of same-body partners (the guard's,
+        ``guards.count_weight``), over ``i``'s
         row neighbours (``image`` 0: ``xb = x_j - x_i``, ``ub = u_j - u_i``, ``u = (y - x) +
         (y_lo - x_lo)`` with the positions' round-off, as ``deformation.fit_pair_sums``: exact
         at rest, docs/physics.md, the float32 creep floor) or over the floor's images ``g_j``
@@ -118,7 +119,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         ui = df.displacement(xi, y[i], x_lo[i], y_lo[i])
         bi = body[i]
         c6 = fw.coef(h)
-        same = int(0)
+        hh = h * h
+        same = scalar(0.0)
         for k in range(df.pair_slots(xi, n, h, gn, goff, image)):
             j, p = df.pair_partner(i, k, n, nbr, x, gn, goff, gmin, image)
             if body[j] == bi:
@@ -134,7 +136,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                 D += dD
                 E += dE
                 # Only partners of non-zero weight count (rows may reach beyond h).
-                same += wp.where(r2 < h * h, 1, 0)
+                c, dc = gf.count_weight(r2, hh)
+                same += c
         return A, B, C, D, E, same
 
     @wp.func
@@ -301,18 +304,18 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return wp.identity(n=3, dtype=scalar) + corrected_increment(A, Bu, C, D, Eu)
 
     @wp.func
-    def step_increment(A: mat33, Bu: mat33, C: mat33, D: mat33, Eu: mat33, code: int, max_condition: scalar,
-                       counters: wp.array(dtype=wp.int32)) -> mat33:
+    def step_increment(A: mat33, Bu: mat33, C: mat33, D: mat33, Eu: mat33, code: int, same: scalar,
+                       min_neighbors: int, max_condition: scalar, counters: wp.array(dtype=wp.int32)) -> mat33:
         """This step's ``dF - I = B~ A~^-1 - I``, faded where ``cond(A)`` passes
-        ``max_condition`` (``guards.guard_scale``, on the plain moment matrix ``A`` the guard
-        reads); 0, counted, where a guard of paper §4 holds (``code``: ``neighbors.GUARD_*``)."""
+        ``max_condition`` or the smooth count ``same`` falls towards ``min_neighbors - 1``
+        (``guards.guard_scale``, on the plain moment matrix ``A`` the guard reads); 0, counted, where a guard of paper §4 holds (``code``: ``neighbors.GUARD_*``)."""
         inc = mat33()
         if code == 1:
             wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
         elif code == 2:
             wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
         else:
-            inc = gf.guard_scale(A, max_condition) * corrected_increment(A, Bu, C, D, Eu)
+            inc = gf.guard_scale(A, same, min_neighbors, max_condition) * corrected_increment(A, Bu, C, D, Eu)
         return inc
 
     @wp.func
@@ -371,9 +374,10 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
 
     @wp.func
     def moment_pair_adjoint(xb: vec3, yb: vec3, w: scalar, dw: scalar, h: scalar, adj_A: mat33, adj_A_sym: mat33,
-                            adj_B: mat33, adj_C: mat33, adj_D: mat33, adj_D_sym: mat33, adj_E: mat33):
+                            adj_B: mat33, adj_C: mat33, adj_D: mat33, adj_D_sym: mat33, adj_E: mat33, adj_r2: scalar):
         """Adjoint of one pair's ``pair_moments`` given the moments' adjoints
-        (``adj_A_sym = adj_A + adj_A^T``, likewise ``D``): returns ``(adj xb, adj yb)``; the
+        (``adj_A_sym = adj_A + adj_A^T``, likewise ``D``) and of whatever else depends on
+        ``|xb|^2`` (``adj_r2``: the guard's count): returns ``(adj xb, adj yb)``; the
         pair depends on ``xb`` through ``w(|xb|^2)`` (``dw = dw / d|xb|^2``), ``xb`` and ``q(xb)``,
         on ``yb`` linearly."""
         q = curvature_basis(xb, h)
@@ -384,17 +388,18 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         # d s / d q (through C, D, E), carried back through q(xb) = (xy, xz, yz) / h.
         aq = wp.transpose(adj_C) * xb + adj_D_sym * q + wp.transpose(adj_E) * yb
         jq = curvature_basis_adjoint(xb, aq, h)
-        gx = w * (adj_A_sym * xb + wp.transpose(adj_B) * yb + Cq + jq) + scalar(2.0) * dw * s * xb
+        gx = w * (adj_A_sym * xb + wp.transpose(adj_B) * yb + Cq + jq) + scalar(2.0) * (dw * s + adj_r2) * xb
         return gx, w * (Bx + Eq)
 
     @wp.func
     def moment_pairs_adjoint(i: int, x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
                              nbr: wp.array2d(dtype=wp.int32), n: int, h: scalar, gn: vec3, goff: scalar, gmin: scalar,
                              image: int, adj_A: mat33, adj_A_sym: mat33, adj_B: mat33, adj_C: mat33, adj_D: mat33,
-                             adj_D_sym: mat33, adj_E: mat33, adj_x: wp.array(dtype=vec3), adj_y: wp.array(dtype=vec3),
-                             gx_i: vec3, gy_i: vec3):
+                             adj_D_sym: mat33, adj_E: mat33, adj_same: scalar, adj_x: wp.array(dtype=vec3),
+                             adj_y: wp.array(dtype=vec3), gx_i: vec3, gy_i: vec3):
         """Adjoint of ``moment_pair_sums``' pairs (``image`` as there; ``yb = y_j - y_i``, or
-        ``g_j - y_i`` for an image) given the moments' adjoints: each pair's
+        ``g_j - y_i`` for an image) given the moments' adjoints and the smooth count's
+        (``adj_same``, ``guards.count_weight``): each pair's
         ``moment_pair_adjoint`` scattered to its partner (``deformation.scatter_pair_adjoint``)
         and taken from ``i``'s, ``gx_i``, ``gy_i``, which it returns."""
         xi = x[i]
@@ -409,8 +414,9 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                 r2 = wp.dot(xb, xb)
                 if r2 < hh:
                     w, dw = fw.w_inside(r2, hh, c6)
+                    c, dc = gf.count_weight(r2, hh)
                     gx, gy = moment_pair_adjoint(xb, q - yi, w, dw, h, adj_A, adj_A_sym, adj_B, adj_C, adj_D, adj_D_sym,
-                                                 adj_E)
+                                                 adj_E, adj_same * dc)
                     df.scatter_pair_adjoint(adj_x, adj_y, j, x[j], gx, gy, gn, goff, gmin, image)
                     gx_i -= gx
                     gy_i -= gy
@@ -418,11 +424,12 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
 
     @wp.func
     def variational_pair_adjoint(d: vec3, a: vec3, w: scalar, dw: scalar, h: scalar, M: mat33, K: mat33,
-                                 adj_A: mat33, adj_A_sym: mat33, adj_C: mat33, adj_D: mat33, adj_D_sym: mat33) -> vec3:
+                                 adj_A: mat33, adj_A_sym: mat33, adj_C: mat33, adj_D: mat33, adj_D_sym: mat33,
+                                 adj_r2: scalar) -> vec3:
         """Adjoint in ``d = xb`` of one pair of the corrected variational force: its force
-        ``w M o``, ``o = d - K^T q(d)`` (against ``a``, as ``forces.variational_pair_adjoint``)
-        and its terms in ``A``, ``C``, ``D`` (``adj_A``, ``adj_C``, ``adj_D``; ``a = 0``: the
-        moments only)."""
+        ``w M o``, ``o = d - K^T q(d)`` (against ``a``, as ``forces.variational_pair_adjoint``),
+        its terms in ``A``, ``C``, ``D`` (``adj_A``, ``adj_C``, ``adj_D``; ``a = 0``: the
+        moments only) and whatever else depends on ``|d|^2`` (``adj_r2``: the guard's count)."""
         q = curvature_basis(d, h)
         o = d - wp.transpose(K) * q
         adj_o = w * (wp.transpose(M) * a)
@@ -431,21 +438,23 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         # d / d q (the moments C, D and the offset o), carried back through q(xb).
         aq = w * (wp.transpose(adj_C) * d + adj_D_sym * q) - K * adj_o
         jq = curvature_basis_adjoint(d, aq, h)
-        return w * (adj_A_sym * d + Cq) + jq + adj_o + scalar(2.0) * dw * s * d
+        return w * (adj_A_sym * d + Cq) + jq + adj_o + scalar(2.0) * (dw * s + adj_r2) * d
 
     @wp.func
     def scatter_variational_pair_adjoint(d: vec3, a: vec3, hh: scalar, c6: scalar, h: scalar, M: mat33, K: mat33,
                                          adj_A: mat33, adj_A_sym: mat33, adj_C: mat33, adj_D: mat33, adj_D_sym: mat33,
-                                         adj_x: wp.array(dtype=vec3), j: int, xj: vec3, gn: vec3, goff: scalar,
-                                         gmin: scalar, image: int) -> vec3:
+                                         adj_same: scalar, adj_x: wp.array(dtype=vec3), j: int, xj: vec3, gn: vec3,
+                                         goff: scalar, gmin: scalar, image: int) -> vec3:
         """``variational_pair_adjoint`` of the pair at ``d`` (0 at ``|d|^2 >= hh``, beyond the
-        kernel's support), added to ``adj x_j`` as ``forces.scatter_variational_pair_adjoint``
+        kernel's support; ``adj_same`` the guard's smooth count's, ``guards.count_weight``),
+        added to ``adj x_j`` as ``forces.scatter_variational_pair_adjoint``
         (``image`` 1: through ``deformation.floor_image_jacobian``); returned, for the near end."""
         g = vec3()
         r2 = wp.dot(d, d)
         if r2 < hh:
             w, dw = fw.w_inside(r2, hh, c6)
-            g = variational_pair_adjoint(d, a, w, dw, h, M, K, adj_A, adj_A_sym, adj_C, adj_D, adj_D_sym)
+            c, dc = gf.count_weight(r2, hh)
+            g = variational_pair_adjoint(d, a, w, dw, h, M, K, adj_A, adj_A_sym, adj_C, adj_D, adj_D_sym, adj_same * dc)
             if image != 0:
                 wp.atomic_add(adj_x, j, df.floor_image_jacobian(xj, gn, goff, gmin) * g)
             else:
@@ -468,7 +477,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
             w, dw = fw.w_inside(r2, hh, c6)
             q = curvature_basis(gb, h)
             gg = variational_pair_adjoint(gb, vec3(), w, scalar(0.0), h, mat33(), K, adj_A, adj_A_sym, adj_C, adj_D,
-                                          adj_D_sym)
+                                          adj_D_sym, scalar(0.0))
             s = wp.dot(gb, adj_A * gb) + wp.dot(gb, adj_C * q) + wp.dot(q, adj_D * q)
             gp = scalar(2.0) * dw * s * pb
             wp.atomic_add(adj_x, j, df.floor_image_jacobian(xj, gn, goff, gmin) * gg + gp)
@@ -514,6 +523,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F_prev: wp.array(dtype=mat33),
         F_prev_lo: wp.array(dtype=mat33),
         h: scalar,
+        min_neighbors: int,
         max_condition: scalar,
         gn: vec3,
         goff: scalar,
@@ -527,7 +537,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         unless guarded or inverted, ``F``'s round-off carried in ``F_lo`` as there)."""
         i = wp.tid()
         A, Bu, C, D, Eu, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
-        inc = fn.step_increment(A, Bu, C, D, Eu, guard[i], max_condition, counters)
+        inc = fn.step_increment(A, Bu, C, D, Eu, guard[i], same, min_neighbors, max_condition, counters)
         F_new, F_new_lo = df.carried_update(inc, F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
@@ -544,6 +554,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         guard: wp.array(dtype=wp.int32),
         F_prev: wp.array(dtype=mat33),
         h: scalar,
+        min_neighbors: int,
         max_condition: scalar,
         gn: vec3,
         goff: scalar,
@@ -584,7 +595,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         At_inv = wp.inverse(At)
         inc0 = fn.corrected_moment(Bu, Eu, K) * At_inv
         # The fade s(A) on the plain moment matrix (guards.guard_scale_gradient): inc = s inc0.
-        s, ds_dA = gf.guard_scale_gradient(A, max_condition)
+        s, ds_dA, ds_dn = gf.guard_scale_gradient(A, same, min_neighbors, max_condition)
         inc = s * inc0
         dF = wp.identity(n=3, dtype=scalar) + inc
         if wp.determinant(Fp + inc * Fp) <= scalar(0.0):
@@ -598,15 +609,17 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         adj_B = adj_Bt
         adj_E = -(adj_Bt * KT)
         adj_A, adj_C, adj_D = fn.projection_adjoint(adj_At, -(wp.transpose(E) * adj_Bt), C, K, D_inv, kept)
-        adj_A = adj_A + wp.ddot(adj_inc, inc0) * ds_dA
+        adj_s = wp.ddot(adj_inc, inc0)
+        adj_A = adj_A + adj_s * ds_dA
         adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_D_sym = adj_D + wp.transpose(adj_D)
+        adj_same = adj_s * ds_dn
         n = count[i]
         gx_i, gy_i = fn.moment_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 0, adj_A, adj_A_sym, adj_B,
-                                             adj_C, adj_D, adj_D_sym, adj_E, adj_x, adj_y, vec3(), vec3())
+                                             adj_C, adj_D, adj_D_sym, adj_E, adj_same, adj_x, adj_y, vec3(), vec3())
         if images != 0:
             gx_i, gy_i = fn.moment_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 1, adj_A, adj_A_sym, adj_B,
-                                                 adj_C, adj_D, adj_D_sym, adj_E, adj_x, adj_y, gx_i, gy_i)
+                                                 adj_C, adj_D, adj_D_sym, adj_E, adj_same, adj_x, adj_y, gx_i, gy_i)
         wp.atomic_add(adj_x, i, gx_i)
         wp.atomic_add(adj_y, i, gy_i)
 
@@ -624,6 +637,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F: wp.array(dtype=mat33),
         F_inv: wp.array(dtype=mat33),
         h: scalar,
+        min_neighbors: int,
         max_condition: scalar,
         gn: vec3,
         goff: scalar,
@@ -645,8 +659,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             # accumulator (docs/method.md, Warp pitfall 1).
             A, B, C, D, E, same = fn.fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
             K = fn.curvature_projection(A, C, D)
-            # Faded where cond(A) passes max_condition (guards.guard_scale).
-            s_fit = gf.guard_scale(A, max_condition)
+            # Faded where cond(A) passes max_condition or the count falls towards
+            # min_neighbors - 1 (guards.guard_scale).
+            s_fit = gf.guard_scale(A, same, min_neighbors, max_condition)
             M = s_fit * fo.variational_map(volume[i], stress[i], F[i], wp.inverse(fn.corrected_moment(A, C, K)))
             fi = fn.variational_forces(i, x, body, nbr, count[i], M, K, h, f)
             if images != 0:
@@ -669,6 +684,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         stress: wp.array(dtype=mat33),
         F: wp.array(dtype=mat33),
         h: scalar,
+        min_neighbors: int,
         max_condition: scalar,
         gn: vec3,
         goff: scalar,
@@ -738,7 +754,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         P = stress[i]
         Fi = F[i]
         # The fade s(A) of both maps (guards.guard_scale_gradient): M = s M0, Mg = s Mg0.
-        s, ds_dA = gf.guard_scale_gradient(A, max_condition)
+        s, ds_dA, ds_dn = gf.guard_scale_gradient(A, same, min_neighbors, max_condition)
         M0 = fo.variational_map(Vi, P, Fi, Ainv)
         M = s * M0
         adj_M = S1 - S2 * K
@@ -773,6 +789,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_Ag_sym = adj_Ag + wp.transpose(adj_Ag)
         adj_Dg_sym = adj_Dg + wp.transpose(adj_Dg)
+        adj_same = adj_s * ds_dn
         adj_stress[i] = adj_stress[i] + adj_P
         adj_F[i] = adj_F[i] + adj_Fi
         # The scatter to the positions.
@@ -782,7 +799,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             if body[j] == bi:
                 xj = x[j]
                 gx_i -= fn.scatter_variational_pair_adjoint(xj - xi, ai - adj_f[j], hh, c6, h, M, K, adj_A, adj_A_sym,
-                                                            adj_C, adj_D, adj_D_sym, adj_x, j, xj, gn, goff, gmin, 0)
+                                                            adj_C, adj_D, adj_D_sym, adj_same, adj_x, j, xj, gn, goff,
+                                                            gmin, 0)
         # Through g_i (summed, then by d g_i / d x_i).
         gg_i = vec3()
         for k in range(n_img):
@@ -791,9 +809,11 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 xj = x[j]
                 gj = df.floor_image(xj, gn, goff, gmin)
                 gx_i -= fn.scatter_variational_pair_adjoint(gj - xi, ai, hh, c6, h, M, K, adj_A, adj_A_sym, adj_C,
-                                                            adj_D, adj_D_sym, adj_x, j, xj, gn, goff, gmin, 1)
+                                                            adj_D, adj_D_sym, adj_same, adj_x, j, xj, gn, goff, gmin, 1)
+                # (The own image's moments are not the fit's: they do not count.)
                 gg_i -= fn.scatter_variational_pair_adjoint(xj - gi, -adj_f[j], hh, c6, h, Mg, Kg, adj_Ag, adj_Ag_sym,
-                                                            adj_Cg, adj_Dg, adj_Dg_sym, adj_x, j, xj, gn, goff, gmin, 0)
+                                                            adj_Cg, adj_Dg, adj_Dg_sym, scalar(0.0), adj_x, j, xj, gn,
+                                                            goff, gmin, 0)
                 if j != i:
                     gg, gp = fn.scatter_image_pair_adjoint(gj - gi, xj - xi, hh, c6, h, Kg, adj_Ag, adj_Ag_sym, adj_Cg,
                                                            adj_Dg, adj_Dg_sym, adj_x, j, xj, gn, goff, gmin)
@@ -807,14 +827,14 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
 
 
 def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
-                          max_condition: float = guards.MAX_CONDITION):
+                          max_condition: float = guards.MAX_CONDITION, min_neighbors: int = guards.MIN_NEIGHBORS):
     """``forces.launch_elastic_forces`` with the corrected fit's variational force. Under a
     tape the backward runs ``variational_forces_adjoint`` and, for the particles of eqs.
     10-13, ``forces.elastic_forces_adjoint`` (``hand_adjoint=False``: Warp's generated one)."""
     S = model.scalar
     inputs = [state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
               state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
-              state_out.F_inv, S(model.support_radius), S(max_condition), *model.image_args()]
+              state_out.F_inv, S(model.support_radius), int(min_neighbors), S(max_condition), *model.image_args()]
     tape = recording_tape()
     grads = (state_in.x, state_out.stress, state_out.F_flowed, state_out.F_inv, state_out.force)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
@@ -828,7 +848,8 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
             kernels(S, model.fit_weight).variational_forces_adjoint, model.particle_count,
             [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force,
              state_out.neighbors, state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress,
-             state_out.F_flowed, S(model.support_radius), S(max_condition), *model.image_args(), state_out.force.grad,
+             state_out.F_flowed, S(model.support_radius), int(min_neighbors), S(max_condition), *model.image_args(),
+             state_out.force.grad,
              state_in.x.grad,
              state_out.stress.grad, state_out.F_flowed.grad],
             device=model.device, record_tape=False,
@@ -839,14 +860,14 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
 
 
 def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint: bool = True,
-                              max_condition: float = guards.MAX_CONDITION):
+                              max_condition: float = guards.MAX_CONDITION, min_neighbors: int = guards.MIN_NEIGHBORS):
     """``deformation.launch_update_deformation`` with the corrected fit; under a tape the
     backward runs ``update_deformation_adjoint`` (``hand_adjoint=False``: Warp's generated one)."""
     k = kernels(model.scalar, model.fit_weight)
     pos = [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
            state_out.neighbor_count, state_out.guard]
     h = model.scalar(model.support_radius)
-    plane = [model.scalar(max_condition), *model.image_args()]
+    plane = [int(min_neighbors), model.scalar(max_condition), *model.image_args()]
     inputs = pos + [state_out.F_flowed, state_out.F_flowed_lo, h, *plane]
     outputs = [state_out.F, state_out.F_lo, counters]
     tape = recording_tape()

@@ -158,8 +158,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         image: int,
     ):
         """Eqs. 5-7: the fit's moments ``A = sum w xb xb^T``, ``B - A = sum w ub xb^T`` (returned
-        as ``B``; ``ub = yb - xb``, the step's relative displacement) and the number of
-        same-body partners closer than ``h`` (the guard's), over ``i``'s row neighbours
+        as ``B``; ``ub = yb - xb``, the step's relative displacement) and the smooth count of
+        same-body partners (the guard's, ``guards.count_weight``), over ``i``'s row neighbours
         (``image`` 0: ``xb = x_j - x_i``, ``ub = u_j - u_i``) or over the floor's images ``g_j``
         of ``i`` and of its same-body neighbours (``image`` 1: ``xb = g_j - x_i``, ``ub = -u_i``:
         the floor is at rest, an image does not move over the step; an image is at least as
@@ -187,7 +187,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
             ui = displacement(xi, y[i], x_lo[i], y_lo[i])
         bi = body[i]
         c6 = fw.coef(h)
-        same = int(0)
+        hh = h * h
+        same = scalar(0.0)
         for k in range(pair_slots(xi, n, h, gn, goff, image)):
             j, p = pair_partner(i, k, n, nbr, x, gn, goff, gmin, image)
             if body[j] == bi:
@@ -204,7 +205,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                 B += w * wp.outer(ub, xb)
                 # Rows may reach beyond h (neighbors.select_neighbors): only partners of
                 # non-zero weight count for the guard.
-                same += wp.where(r2 < h * h, 1, 0)
+                c, dc = gf.count_weight(r2, hh)
+                same += c
         return A, B, same
 
     @wp.func
@@ -234,13 +236,15 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return wp.identity(n=3, dtype=scalar) - (scalar(1.0) + ds) * wp.outer(n, n)
 
     @wp.func
-    def fit_pair_adjoint(w: scalar, dw: scalar, xb: vec3, yb: vec3, adj_A: mat33, adj_A_sym: mat33, adj_B: mat33):
+    def fit_pair_adjoint(w: scalar, dw: scalar, xb: vec3, yb: vec3, adj_A: mat33, adj_A_sym: mat33, adj_B: mat33,
+                         adj_r2: scalar):
         """Adjoint of one pair's terms ``w(|xb|^2) xb xb^T`` in ``A`` and ``w yb xb^T`` in ``B``
-        (eqs. 5-7; ``dw = d w / d |xb|^2``, ``adj_A_sym = adj_A + adj_A^T``): returns
+        (eqs. 5-7; ``dw = d w / d |xb|^2``, ``adj_A_sym = adj_A + adj_A^T``) and of whatever
+        else depends on ``|xb|^2`` (``adj_r2``: the guard's count): returns
         ``(adj xb, adj yb)``."""
         Bx = adj_B * xb
         s = wp.dot(xb, adj_A * xb) + wp.dot(yb, Bx)
-        return w * (adj_A_sym * xb + wp.transpose(adj_B) * yb) + scalar(2.0) * dw * s * xb, w * Bx
+        return w * (adj_A_sym * xb + wp.transpose(adj_B) * yb) + scalar(2.0) * (dw * s + adj_r2) * xb, w * Bx
 
     @wp.func
     def scatter_pair_adjoint(adj_x: wp.array(dtype=vec3), adj_y: wp.array(dtype=vec3), j: int, xj: vec3, gx: vec3,
@@ -257,10 +261,11 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     @wp.func
     def fit_pairs_adjoint(i: int, x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
                           nbr: wp.array2d(dtype=wp.int32), n: int, h: scalar, gn: vec3, goff: scalar, gmin: scalar,
-                          image: int, adj_A: mat33, adj_A_sym: mat33, adj_B: mat33, adj_x: wp.array(dtype=vec3),
-                          adj_y: wp.array(dtype=vec3), gx_i: vec3, gy_i: vec3):
+                          image: int, adj_A: mat33, adj_A_sym: mat33, adj_B: mat33, adj_same: scalar,
+                          adj_x: wp.array(dtype=vec3), adj_y: wp.array(dtype=vec3), gx_i: vec3, gy_i: vec3):
         """Adjoint of ``fit_pair_sums``' pairs (``image`` as there; ``yb = y_j - y_i``, or
-        ``g_j - y_i`` for an image) given ``adj A``, ``adj B``: each pair's
+        ``g_j - y_i`` for an image) given ``adj A``, ``adj B`` and ``adj same`` (the smooth
+        count's, ``guards.count_weight``): each pair's
         ``fit_pair_adjoint`` scattered to its partner (``scatter_pair_adjoint``) and taken from
         ``i``'s, ``gx_i``, ``gy_i``, which it returns."""
         xi = x[i]
@@ -275,7 +280,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                 r2 = wp.dot(xb, xb)
                 if r2 < hh:
                     w, dw = fw.w_inside(r2, hh, c6)
-                    gx, gy = fit_pair_adjoint(w, dw, xb, q - yi, adj_A, adj_A_sym, adj_B)
+                    c, dc = gf.count_weight(r2, hh)
+                    gx, gy = fit_pair_adjoint(w, dw, xb, q - yi, adj_A, adj_A_sym, adj_B, adj_same * dc)
                     scatter_pair_adjoint(adj_x, adj_y, j, x[j], gx, gy, gn, goff, gmin, image)
                     gx_i -= gx
                     gy_i -= gy
@@ -350,9 +356,10 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return B * wp.inverse(A)
 
     @wp.func
-    def step_increment(A: mat33, Bu: mat33, code: int, max_condition: scalar,
+    def step_increment(A: mat33, Bu: mat33, code: int, same: scalar, min_neighbors: int, max_condition: scalar,
                        counters: wp.array(dtype=wp.int32)) -> mat33:
         """This step's ``dF - I`` (eqs. 4-6), faded where ``cond(A)`` passes ``max_condition``
+        or the smooth count ``same`` falls towards ``min_neighbors - 1``
         (``guards.guard_scale``); 0, counted, where a guard of paper §4 holds (``code``:
         ``neighbors.GUARD_*``)."""
         D = mat33()
@@ -361,15 +368,15 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         elif code == 2:
             wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
         else:
-            D = gf.guard_scale(A, max_condition) * affine_fit(A, Bu)
+            D = gf.guard_scale(A, same, min_neighbors, max_condition) * affine_fit(A, Bu)
         return D
 
     @wp.func
-    def step_gradient(A: mat33, Bu: mat33, code: int, max_condition: scalar,
+    def step_gradient(A: mat33, Bu: mat33, code: int, same: scalar, min_neighbors: int, max_condition: scalar,
                       counters: wp.array(dtype=wp.int32)) -> mat33:
         """This step's ``dF = B A^-1`` (eqs. 4-6, ``step_increment``); ``I``, counted, where a
         guard of paper §4 holds (``code``: ``neighbors.GUARD_*``)."""
-        return wp.identity(n=3, dtype=scalar) + step_increment(A, Bu, code, max_condition, counters)
+        return wp.identity(n=3, dtype=scalar) + step_increment(A, Bu, code, same, min_neighbors, max_condition, counters)
 
     @wp.func
     def unless_inverted(candidate: mat33, F: mat33, counters: wp.array(dtype=wp.int32)) -> mat33:
@@ -399,11 +406,12 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return out, out_lo
 
     @wp.func
-    def deformation_update(A: mat33, Bu: mat33, code: int, max_condition: scalar, F: mat33, F_lo: mat33,
-                           counters: wp.array(dtype=wp.int32)):
+    def deformation_update(A: mat33, Bu: mat33, code: int, same: scalar, min_neighbors: int, max_condition: scalar,
+                           F: mat33, F_lo: mat33, counters: wp.array(dtype=wp.int32)):
         """Eq. 8 with the guards of paper §4: ``F <- dF F`` unless guarded or inverted, of the
         compensated ``F + F_lo``; returns the new ``(F, F_lo)``."""
-        return carried_update(step_increment(A, Bu, code, max_condition, counters), F, F_lo, counters)
+        return carried_update(step_increment(A, Bu, code, same, min_neighbors, max_condition, counters), F, F_lo,
+                              counters)
 
     return types.SimpleNamespace(
         displacement=displacement, pair_slots=pair_slots, pair_partner=pair_partner, pair_ends=pair_ends,
@@ -439,6 +447,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F_prev: wp.array(dtype=mat33),
         F_prev_lo: wp.array(dtype=mat33),
         h: scalar,
+        min_neighbors: int,
         max_condition: scalar,
         gn: vec3,
         goff: scalar,
@@ -450,7 +459,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     ):
         i = wp.tid()
         A, B, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
-        F_new, F_new_lo = fn.deformation_update(A, B, guard[i], max_condition, F_prev[i], F_prev_lo[i], counters)
+        F_new, F_new_lo = fn.deformation_update(A, B, guard[i], same, min_neighbors, max_condition, F_prev[i],
+                                                F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
 
@@ -466,6 +476,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         guard: wp.array(dtype=wp.int32),
         F_prev: wp.array(dtype=mat33),
         h: scalar,
+        min_neighbors: int,
         max_condition: scalar,
         gn: vec3,
         goff: scalar,
@@ -487,8 +498,10 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         goes to ``F``. With ``images`` the floor's image pairs (``fit_pair_sums``: ``xb =
         g_j - x_i``, ``yb = g_j - y_i``, ``g_j`` at rest over the step) likewise, scattered to
         ``x_j`` through ``floor_image_jacobian`` (``scatter_pair_adjoint``). The fade
-        ``dF - I = s(A) (B A^-1 - I)`` (``guards.guard_scale_gradient``) scales ``adj B`` and
-        adds ``(adj dF : (B A^-1 - I)) ds/dA`` to ``adj A``."""
+        ``dF - I = s(A, same) (B A^-1 - I)`` (``guards.guard_scale_gradient``) scales ``adj B``,
+        adds ``(adj dF : (B A^-1 - I)) ds/dA`` to ``adj A`` and gives the smooth count ``same``
+        its adjoint ``(adj dF : (B A^-1 - I)) ds/dsame``, spread over the pairs by the slope of
+        ``guards.count_weight``."""
         i = wp.tid()
         G = adj_F_out[i]
         Fp = F_prev[i]
@@ -499,7 +512,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             return
         Ainv = wp.inverse(A)
         D0 = B * Ainv
-        s, ds_dA = gf.guard_scale_gradient(A, max_condition)
+        s, ds_dA, ds_dn = gf.guard_scale_gradient(A, same, min_neighbors, max_condition)
         D = s * D0
         dF = wp.identity(n=3, dtype=scalar) + D
         if wp.determinant(Fp + D * Fp) <= scalar(0.0):
@@ -508,14 +521,16 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         adj_F_prev[i] = adj_F_prev[i] + wp.transpose(dF) * G
         adj_D = G * wp.transpose(Fp)
         adj_B = s * adj_D * wp.transpose(Ainv)
-        adj_A = -((wp.identity(n=3, dtype=scalar) + wp.transpose(D0)) * adj_B) + wp.ddot(adj_D, D0) * ds_dA
+        adj_s = wp.ddot(adj_D, D0)
+        adj_A = -((wp.identity(n=3, dtype=scalar) + wp.transpose(D0)) * adj_B) + adj_s * ds_dA
         adj_A_sym = adj_A + wp.transpose(adj_A)
+        adj_same = adj_s * ds_dn
         n = count[i]
         gx_i, gy_i = fn.fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 0, adj_A, adj_A_sym, adj_B,
-                                          adj_x, adj_y, vec3(), vec3())
+                                          adj_same, adj_x, adj_y, vec3(), vec3())
         if images != 0:
             gx_i, gy_i = fn.fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 1, adj_A, adj_A_sym, adj_B,
-                                              adj_x, adj_y, gx_i, gy_i)
+                                              adj_same, adj_x, adj_y, gx_i, gy_i)
         wp.atomic_add(adj_x, i, gx_i)
         wp.atomic_add(adj_y, i, gy_i)
 
@@ -523,11 +538,11 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
 
 
 def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint: bool = True, y=None, y_lo=None,
-                              max_condition: float = guards.MAX_CONDITION):
+                              max_condition: float = guards.MAX_CONDITION, min_neighbors: int = guards.MIN_NEIGHBORS):
     """Eqs. 1-8 over the step from ``state_in.x`` to ``state_out.x`` (or to ``y``, ``y_lo``
     where given: a ghost floor's fit positions, ``ghost_floor.launch_fit_positions``), with
-    the neighbourhood guards the neighbour search wrote to ``state_out.guard`` and the fade
-    from ``max_condition`` (the solver's; ``guards``). Under a
+    the neighbourhood guards the neighbour search wrote to ``state_out.guard`` and the fades
+    from ``max_condition`` and ``min_neighbors`` (the solver's; ``guards``). Under a
     ``wp.Tape`` the backward runs ``update_deformation_adjoint`` (``hand_adjoint=False``:
     Warp's generated adjoint, which tests compare it against)."""
     k = kernels(model.scalar, model.fit_weight)
@@ -536,7 +551,7 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     inputs = [
         state_in.x, y, state_in.x_lo, y_lo, model.particle_body, state_out.neighbors,
         state_out.neighbor_count, state_out.guard, state_out.F_flowed, state_out.F_flowed_lo,
-        model.scalar(model.support_radius), model.scalar(max_condition), *model.image_args(),
+        model.scalar(model.support_radius), int(min_neighbors), model.scalar(max_condition), *model.image_args(),
     ]
     outputs = [state_out.F, state_out.F_lo, counters]
     tape = recording_tape()
@@ -547,12 +562,14 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     # Under a tape: the forward unrecorded, and the hand-written adjoint in its place.
     model.launches(k.update_deformation, model.particle_count, inputs, outputs, device=model.device, record_tape=False)
 
-    tape.record_func(lambda: launch_update_deformation_adjoint(model, state_in, state_out, y, y_lo, max_condition),
+    tape.record_func(lambda: launch_update_deformation_adjoint(model, state_in, state_out, y, y_lo, max_condition,
+                                                               min_neighbors),
                      list(grads))
 
 
 def launch_update_deformation_adjoint(model, state_in, state_out, y=None, y_lo=None,
-                                      max_condition: float = guards.MAX_CONDITION):
+                                      max_condition: float = guards.MAX_CONDITION,
+                                      min_neighbors: int = guards.MIN_NEIGHBORS):
     """``update_deformation_adjoint``: ``state_out.F.grad`` into the gradients of ``state_in.x``,
     ``state_out.x`` (or ``y``) and ``state_out.F_flowed``, with the guards in ``state_out.guard``."""
     y = state_out.x if y is None else y
@@ -562,7 +579,7 @@ def launch_update_deformation_adjoint(model, state_in, state_out, y=None, y_lo=N
         [
             state_in.x, y, state_in.x_lo, y_lo, model.particle_body, state_out.neighbors,
             state_out.neighbor_count, state_out.guard, state_out.F_flowed, model.scalar(model.support_radius),
-            model.scalar(max_condition),
+            int(min_neighbors), model.scalar(max_condition),
             *model.image_args(), state_out.F.grad, state_in.x.grad, y.grad, state_out.F_flowed.grad,
         ],
         device=model.device, record_tape=False,

@@ -40,7 +40,7 @@ import types
 import warp as wp
 
 from .._types import type_set
-from . import deformation, isotropic, materials, neighbors, smoothing
+from . import deformation, guards, isotropic, materials, neighbors, smoothing
 from .replay import recording_tape
 
 
@@ -51,6 +51,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     iso = isotropic.funcs(scalar)
     sm = smoothing.funcs(scalar)
     fw = smoothing.fit_weight_funcs(scalar, weight)
+    gf = guards.guard_funcs(scalar)
     floor_image = deformation.funcs(scalar, weight).floor_image
     floor_image_jacobian = deformation.funcs(scalar, weight).floor_image_jacobian
     image_row_length = deformation.funcs(scalar, weight).image_row_length
@@ -191,27 +192,32 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return fw.w_c(wp.dot(d, d), h, c6) * (M * d)
 
     @wp.func
-    def variational_pair_adjoint(M: mat33, adj_A: mat33, adj_A_sym: mat33, a: vec3, d: vec3, w: scalar, dw: scalar) -> vec3:
+    def variational_pair_adjoint(M: mat33, adj_A: mat33, adj_A_sym: mat33, a: vec3, d: vec3, w: scalar, dw: scalar,
+                                 adj_r2: scalar) -> vec3:
         """Adjoint in ``d = xb`` of one pair of the variational force: its force ``g = w M d``
         (``variational_pair_force``, against ``a = adj`` of the particle it is added to minus
-        that of the one it is taken from) and its term ``w d d^T`` in the moment matrix ``A``
-        of ``M`` (``adj_A``, ``adj_A_sym = adj_A + adj_A^T``; ``dw = d w / d |d|^2``):
-        ``w (M^T a + adj_A_sym d) + 2 dw (a . M d + d . adj_A d) d``."""
-        return w * (wp.transpose(M) * a + adj_A_sym * d) + scalar(2.0) * dw * (wp.dot(a, M * d) + wp.dot(d, adj_A * d)) * d
+        that of the one it is taken from), its term ``w d d^T`` in the moment matrix ``A``
+        of ``M`` (``adj_A``, ``adj_A_sym = adj_A + adj_A^T``; ``dw = d w / d |d|^2``) and
+        whatever else depends on ``|d|^2`` (``adj_r2``: the guard's count):
+        ``w (M^T a + adj_A_sym d) + 2 (dw (a . M d + d . adj_A d) + adj_r2) d``."""
+        return w * (wp.transpose(M) * a + adj_A_sym * d) + scalar(2.0) * (
+            dw * (wp.dot(a, M * d) + wp.dot(d, adj_A * d)) + adj_r2) * d
 
     @wp.func
-    def scatter_variational_pair_adjoint(M: mat33, adj_A: mat33, adj_A_sym: mat33, a: vec3, d: vec3, hh: scalar,
-                                         c6: scalar, adj_x: wp.array(dtype=vec3), j: int, xj: vec3, gn: vec3,
-                                         goff: scalar, gmin: scalar, image: int) -> vec3:
+    def scatter_variational_pair_adjoint(M: mat33, adj_A: mat33, adj_A_sym: mat33, adj_same: scalar, a: vec3, d: vec3,
+                                         hh: scalar, c6: scalar, adj_x: wp.array(dtype=vec3), j: int, xj: vec3,
+                                         gn: vec3, goff: scalar, gmin: scalar, image: int) -> vec3:
         """``variational_pair_adjoint`` of the pair at ``d`` (0 at ``|d|^2 >= hh``, beyond the
-        kernel's support), added to ``adj x_j`` of the particle ``j`` at ``x_j`` whose position
-        or, with ``image`` 1, floor image (through ``deformation.floor_image_jacobian``) is the
-        pair's far end; returned, for the near end."""
+        kernel's support; ``adj_same``: the adjoint of the guard's smooth count, which the
+        pair enters by ``guards.count_weight``), added to ``adj x_j`` of the particle ``j`` at
+        ``x_j`` whose position or, with ``image`` 1, floor image (through
+        ``deformation.floor_image_jacobian``) is the pair's far end; returned, for the near end."""
         g = vec3()
         r2 = wp.dot(d, d)
         if r2 < hh:
             w, dw = fw.w_inside(r2, hh, c6)
-            g = variational_pair_adjoint(M, adj_A, adj_A_sym, a, d, w, dw)
+            c, dc = gf.count_weight(r2, hh)
+            g = variational_pair_adjoint(M, adj_A, adj_A_sym, a, d, w, dw, adj_same * dc)
             if image != 0:
                 wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * g)
             else:
@@ -332,6 +338,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F: wp.array(dtype=mat33),
         F_inv: wp.array(dtype=mat33),
         h: scalar,
+        min_neighbors: int,
         max_condition: scalar,
         gn: vec3,
         goff: scalar,
@@ -353,8 +360,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             # The moments of x alone (y = x and the same round-off: B - A = 0).
             A, B, same = fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
             A_inv = wp.inverse(A)
-            # Faded where cond(A) passes max_condition (guards.guard_scale).
-            s_fit = guard_scale(A, max_condition)
+            # Faded where cond(A) passes max_condition or the count falls towards
+            # min_neighbors - 1 (guards.guard_scale).
+            s_fit = guard_scale(A, same, min_neighbors, max_condition)
             M = s_fit * fn.variational_map(volume[i], stress[i], F[i], A_inv)
             fi = fn.variational_forces(i, x, body, nbr, count[i], M, h, f)
             if images != 0:
@@ -520,7 +528,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         Fi = F[i]
         Ainv = wp.inverse(A)
         # The fade s(A) of both maps (guards.guard_scale_gradient): M = s M0, Mg = s Mg0.
-        s, ds_dA = guard_scale_gradient(A, max_condition)
+        s, ds_dA, ds_dn = guard_scale_gradient(A, same, min_neighbors, max_condition)
         M0 = fn.variational_map(Vi, P, Fi, Ainv)
         M = s * M0
         adj_P, adj_Fi, adj_A = fn.variational_map_adjoint(Vi, P, Fi, Ainv, s * adj_M)
@@ -539,6 +547,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         adj_A = adj_A + adj_s * ds_dA
         adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_Ag_sym = adj_Ag + wp.transpose(adj_Ag)
+        adj_same = adj_s * ds_dn
         adj_stress[i] = adj_stress[i] + adj_P
         adj_F[i] = adj_F[i] + adj_Fi
         gx_i = vec3()
@@ -546,8 +555,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             j = nbr[i, k]
             if body[j] == bi:
                 xj = x[j]
-                gx_i -= fn.scatter_variational_pair_adjoint(M, adj_A, adj_A_sym, ai - adj_f[j], xj - xi, hh, c6, adj_x,
-                                                            j, xj, gn, goff, gmin, 0)
+                gx_i -= fn.scatter_variational_pair_adjoint(M, adj_A, adj_A_sym, adj_same, ai - adj_f[j], xj - xi, hh, c6,
+                                                            adj_x, j, xj, gn, goff, gmin, 0)
         # Through g_i (summed, then by d g_i / d x_i).
         gg_i = vec3()
         for k in range(n_img):
@@ -555,10 +564,11 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             if body[j] == bi:
                 xj = x[j]
                 gj = floor_image(xj, gn, goff, gmin)
-                gx_i -= fn.scatter_variational_pair_adjoint(M, adj_A, adj_A_sym, ai, gj - xi, hh, c6, adj_x, j, xj, gn,
-                                                            goff, gmin, 1)
-                gg_i -= fn.scatter_variational_pair_adjoint(Mg, adj_Ag, adj_Ag_sym, -adj_f[j], xj - gi, hh, c6, adj_x,
-                                                            j, xj, gn, goff, gmin, 0)
+                gx_i -= fn.scatter_variational_pair_adjoint(M, adj_A, adj_A_sym, adj_same, ai, gj - xi, hh, c6, adj_x, j,
+                                                            xj, gn, goff, gmin, 1)
+                # (The own image's moments are not the fit's: they do not count.)
+                gg_i -= fn.scatter_variational_pair_adjoint(Mg, adj_Ag, adj_Ag_sym, scalar(0.0), -adj_f[j], xj - gi, hh,
+                                                            c6, adj_x, j, xj, gn, goff, gmin, 0)
                 if j != i:
                     gg, gp = fn.scatter_image_pair_adjoint(adj_Ag, adj_Ag_sym, gj - gi, xj - xi, hh, c6, adj_x, j, xj, gn,
                                                            goff, gmin)
@@ -571,7 +581,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
 
 
 def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
-                          max_condition: float = neighbors.MAX_CONDITION):
+                          max_condition: float = neighbors.MAX_CONDITION, min_neighbors: int = neighbors.MIN_NEIGHBORS):
     """Elastic pair forces (eqs. 10-13, or the variational force) into ``state_out.force``,
     from the stress, ``F`` and ``F^-1`` the constitutive update wrote to ``state_out``.
     Under a ``wp.Tape``, when every material uses eqs. 10-13, the backward runs
@@ -581,7 +591,7 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
     inputs = [
         state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
         state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
-        state_out.F_inv, S(model.support_radius), S(max_condition), *model.image_args(),
+        state_out.F_inv, S(model.support_radius), int(min_neighbors), S(max_condition), *model.image_args(),
     ]
     tape = recording_tape()
     grads = (state_in.x, state_out.stress, state_out.F_inv, state_out.force)

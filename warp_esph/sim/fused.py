@@ -165,8 +165,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             A, B, same = df.fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
             if guard_code(A, same, min_neighbors, max_condition) == 0:
                 A_inv = wp.inverse(A)
-                # Faded where cond(A) passes max_condition (guards.guard_scale).
-                s_fit = guard_scale(A, max_condition)
+                # Faded where cond(A) passes max_condition or the count falls towards
+                # min_neighbors - 1 (guards.guard_scale).
+                s_fit = guard_scale(A, same, min_neighbors, max_condition)
                 M = s_fit * fo.variational_map(Vol_i, P, Fe, A_inv)
                 if images != 0:
                     Mg = s_fit * fo.image_map(Vol_i, P, Fe, df.floor_image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin))
@@ -238,7 +239,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         i = wp.tid()
         A = mat33()
         B = mat33()
-        same = int(0)
+        same = scalar(0.0)
         if images != 0:
             A, B, same = df.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
         else:
@@ -247,7 +248,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             A, B, same = df.fit_pair_sums(i, x, u, u, u, body, nbr, count[i], h, 1, gn, goff, gmin, 0)
         code = guard_code(A, same, min_neighbors, max_condition)
         guard[i] = code
-        F_new, F_new_lo = df.deformation_update(A, B, code, max_condition, F_prev[i], F_prev_lo[i], counters)
+        F_new, F_new_lo = df.deformation_update(A, B, code, same, min_neighbors, max_condition, F_prev[i], F_prev_lo[i],
+                                                counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
 
@@ -341,5 +343,6 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
     )
     if tape is not None:
         tape.record_func(lambda: deformation.launch_update_deformation_adjoint(model, state_in, state_out,
-                                                                               max_condition=scratch.max_condition),
+                                                                               max_condition=scratch.max_condition,
+                                                                               min_neighbors=scratch.min_neighbors),
                          [state_in.x, state_out.x, state_out.F_flowed, state_out.F])

@@ -86,6 +86,7 @@ DEFAULT_CAP_FACTOR = 3.0
 PAPER_MAX_NEIGHBORS = 30
 #: Default ``Solver(max_condition=)``: where the fade of an ill-conditioned fit starts (``guards``).
 MAX_CONDITION = guards.MAX_CONDITION
+MIN_NEIGHBORS = guards.MIN_NEIGHBORS
 #: The guards on a moment matrix (``guards.guard_funcs``), shared by the neighbour pass and the fused step.
 guard_funcs = guards.guard_funcs
 
@@ -129,6 +130,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     image_density = pressure.funcs(scalar).image_density
     fit_pair_sums = deformation.funcs(scalar, weight).fit_pair_sums
     guard_code = guard_funcs(scalar).guard_code
+    count_weight = guard_funcs(scalar).count_weight
     Materials = materials.struct(scalar)
 
     @wp.func
@@ -405,7 +407,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 form = mat.pressure_force[material[i]]
                 rp = mass[i] * density_weight(scalar(0.0), h, c6, c_ws, form)
         A = mat33()
-        same = int(0)
+        same = scalar(0.0)
         for k in range(n):
             j = nbr[i, k]
             w = sm.w_poly6_c(nbr_d2[i, k], h, c6)
@@ -421,7 +423,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                     if wp.static(weight != "poly6"):
                         w = fw.w_c(nbr_d2[i, k], h, cf)  # the fit's weight (the density's w otherwise)
                     A += w * wp.outer(d, d)
-                    same += 1
+                    cw, dcw = count_weight(nbr_d2[i, k], h_fit2)
+                    same += cw
         if with_density != 0:
             if images != 0:
                 # The floor images enter both densities, each with its own kernel.
@@ -475,7 +478,7 @@ class NeighborSearch:
         device,
         h: float,
         *,
-        min_neighbors: int = 6,
+        min_neighbors: int = MIN_NEIGHBORS,
         max_condition: float = MAX_CONDITION,
         skin: float = 0.0,
         spacing: float | None = None,

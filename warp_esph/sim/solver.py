@@ -160,7 +160,7 @@ class Solver:
         self,
         model: Model,
         *,
-        min_neighbors: int = 6,
+        min_neighbors: int = neighbors.MIN_NEIGHBORS,
         max_condition: float = neighbors.MAX_CONDITION,
         neighbor_skin: float | None = None,
         fused: bool = True,
@@ -403,9 +403,10 @@ class Solver:
             # 4. Elastic pair forces, pressure and viscosity.
             with phase("forces"):
                 if self._curved and not self._cmp:
-                    curvature.launch_elastic_forces(m, state_in, state_out, hand, scratch.max_condition)
+                    curvature.launch_elastic_forces(m, state_in, state_out, hand, scratch.max_condition,
+                                                    scratch.min_neighbors)
                 else:
-                    forces.launch_elastic_forces(m, state_in, state_out, hand, scratch.max_condition)
+                    forces.launch_elastic_forces(m, state_in, state_out, hand, scratch.max_condition, scratch.min_neighbors)
                 if self._rest_variational:
                     comparison.launch_rest_variational_forces(m, state_out, curved_rest)
                 if ghosts is not None:
@@ -443,16 +444,19 @@ class Solver:
                 fused.launch_update_deformation(m, state_in, state_out, scratch, fast_tape)
             elif self._cmp:
                 comparison.launch_update_deformation(m, state_in, state_out, scratch.counters, curved_rest,
-                                                     scratch.max_condition)
+                                                     scratch.max_condition, scratch.min_neighbors)
             elif self._curved:
-                curvature.launch_update_deformation(m, state_in, state_out, scratch.counters, hand, scratch.max_condition)
+                curvature.launch_update_deformation(m, state_in, state_out, scratch.counters, hand, scratch.max_condition,
+                                                    scratch.min_neighbors)
             elif ghosts is not None:
                 ghost_floor.launch_fit_positions(m, state_in, state_out)
                 deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, hand,
-                                                      state_out.ghost_y, state_out.ghost_y_lo, scratch.max_condition)
+                                                      state_out.ghost_y, state_out.ghost_y_lo, scratch.max_condition,
+                                                      scratch.min_neighbors)
             else:
                 deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, hand,
-                                                      max_condition=scratch.max_condition)
+                                                      max_condition=scratch.max_condition,
+                                                      min_neighbors=scratch.min_neighbors)
             if not fast and self._cmp:
                 # Their updates rebuild F without carrying its round-off (State.F_lo).
                 state_out.F_lo.zero_()
