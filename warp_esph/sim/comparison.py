@@ -36,6 +36,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     flow, flow_fraction = pf.flow, pf.flow_fraction
     stress = forces.funcs(scalar, weight).stress
     df = deformation.funcs(scalar, weight)
+    gf = deformation.guards.guard_funcs(scalar)
     moment_sums, step_gradient, unless_inverted = df.moment_sums, df.step_gradient, df.unless_inverted
     Materials = materials.struct(scalar)
     third = scalar(1.0 / 3.0)
@@ -149,7 +150,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 F = unless_inverted(G * wp.inverse(Fp[i]), F, counters)
         else:
             A, B, same = moment_sums(i, x, y, y, y, body, nbr, count[i], h)
-            dF = step_gradient(A, B, guard[i], same, min_neighbors, max_condition, counters)
+            dF = step_gradient(A, B, guard[i], gf.guard_scale(A, same, min_neighbors, max_condition), counters)
             if d == 2:
                 # Additive: F = I + eps, eps <- eps + (dF^T dF - I) / 2.
                 F = F + scalar(0.5) * (wp.transpose(dF) * dF - I)

@@ -304,18 +304,18 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return wp.identity(n=3, dtype=scalar) + corrected_increment(A, Bu, C, D, Eu)
 
     @wp.func
-    def step_increment(A: mat33, Bu: mat33, C: mat33, D: mat33, Eu: mat33, code: int, same: scalar,
-                       min_neighbors: int, max_condition: scalar, counters: wp.array(dtype=wp.int32)) -> mat33:
-        """This step's ``dF - I = B~ A~^-1 - I``, faded where ``cond(A)`` passes
-        ``max_condition`` or the smooth count ``same`` falls towards ``min_neighbors - 1``
-        (``guards.guard_scale``, on the plain moment matrix ``A`` the guard reads); 0, counted, where a guard of paper §4 holds (``code``: ``neighbors.GUARD_*``)."""
+    def step_increment(A: mat33, Bu: mat33, C: mat33, D: mat33, Eu: mat33, code: int, scale: scalar,
+                       counters: wp.array(dtype=wp.int32)) -> mat33:
+        """This step's ``dF - I = B~ A~^-1 - I`` times the guards' fade ``scale``
+        (``guards.guard_scale``, on the plain moment matrix ``A`` the guard reads); 0, counted,
+        where a guard of paper §4 holds (``code``: ``neighbors.GUARD_*``)."""
         inc = mat33()
         if code == 1:
             wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
         elif code == 2:
             wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
         else:
-            inc = gf.guard_scale(A, same, min_neighbors, max_condition) * corrected_increment(A, Bu, C, D, Eu)
+            inc = scale * corrected_increment(A, Bu, C, D, Eu)
         return inc
 
     @wp.func
@@ -537,7 +537,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         unless guarded or inverted, ``F``'s round-off carried in ``F_lo`` as there)."""
         i = wp.tid()
         A, Bu, C, D, Eu, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
-        inc = fn.step_increment(A, Bu, C, D, Eu, guard[i], same, min_neighbors, max_condition, counters)
+        inc = fn.step_increment(A, Bu, C, D, Eu, guard[i], gf.guard_scale(A, same, min_neighbors, max_condition),
+                                counters)
         F_new, F_new_lo = df.carried_update(inc, F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
@@ -594,8 +595,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         E = Eu + C
         At_inv = wp.inverse(At)
         inc0 = fn.corrected_moment(Bu, Eu, K) * At_inv
-        # The fade s(A) on the plain moment matrix (guards.guard_scale_gradient): inc = s inc0.
-        s, ds_dA, ds_dn = gf.guard_scale_gradient(A, same, min_neighbors, max_condition)
+        # The fade s(A, same) on the plain moment matrix (guards.guard): inc = s inc0.
+        code_, s, ds_dA, ds_dn = gf.guard(A, same, min_neighbors, max_condition)
         inc = s * inc0
         dF = wp.identity(n=3, dtype=scalar) + inc
         if wp.determinant(Fp + inc * Fp) <= scalar(0.0):
@@ -753,8 +754,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         Vi = volume[i]
         P = stress[i]
         Fi = F[i]
-        # The fade s(A) of both maps (guards.guard_scale_gradient): M = s M0, Mg = s Mg0.
-        s, ds_dA, ds_dn = gf.guard_scale_gradient(A, same, min_neighbors, max_condition)
+        # The fade s(A, same) of both maps (guards.guard): M = s M0, Mg = s Mg0.
+        code_, s, ds_dA, ds_dn = gf.guard(A, same, min_neighbors, max_condition)
         M0 = fo.variational_map(Vi, P, Fi, Ainv)
         M = s * M0
         adj_M = S1 - S2 * K

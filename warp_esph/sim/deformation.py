@@ -356,27 +356,25 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return B * wp.inverse(A)
 
     @wp.func
-    def step_increment(A: mat33, Bu: mat33, code: int, same: scalar, min_neighbors: int, max_condition: scalar,
-                       counters: wp.array(dtype=wp.int32)) -> mat33:
-        """This step's ``dF - I`` (eqs. 4-6), faded where ``cond(A)`` passes ``max_condition``
-        or the smooth count ``same`` falls towards ``min_neighbors - 1``
-        (``guards.guard_scale``); 0, counted, where a guard of paper §4 holds (``code``:
-        ``neighbors.GUARD_*``)."""
+    def step_increment(A: mat33, Bu: mat33, code: int, scale: scalar, counters: wp.array(dtype=wp.int32)) -> mat33:
+        """This step's ``dF - I`` (eqs. 4-6) times the guards' fade ``scale``
+        (``guards.guard_scale``: below 1 where ``cond(A)`` passes ``max_condition`` or the smooth
+        neighbour count falls towards ``min_neighbors - 1``); 0, counted, where a guard of
+        paper §4 holds (``code``: ``neighbors.GUARD_*``)."""
         D = mat33()
         if code == 1:
             wp.atomic_add(counters, COUNT_FEW_NEIGHBORS, 1)
         elif code == 2:
             wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
         else:
-            D = gf.guard_scale(A, same, min_neighbors, max_condition) * affine_fit(A, Bu)
+            D = scale * affine_fit(A, Bu)
         return D
 
     @wp.func
-    def step_gradient(A: mat33, Bu: mat33, code: int, same: scalar, min_neighbors: int, max_condition: scalar,
-                      counters: wp.array(dtype=wp.int32)) -> mat33:
+    def step_gradient(A: mat33, Bu: mat33, code: int, scale: scalar, counters: wp.array(dtype=wp.int32)) -> mat33:
         """This step's ``dF = B A^-1`` (eqs. 4-6, ``step_increment``); ``I``, counted, where a
         guard of paper §4 holds (``code``: ``neighbors.GUARD_*``)."""
-        return wp.identity(n=3, dtype=scalar) + step_increment(A, Bu, code, same, min_neighbors, max_condition, counters)
+        return wp.identity(n=3, dtype=scalar) + step_increment(A, Bu, code, scale, counters)
 
     @wp.func
     def unless_inverted(candidate: mat33, F: mat33, counters: wp.array(dtype=wp.int32)) -> mat33:
@@ -406,12 +404,11 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return out, out_lo
 
     @wp.func
-    def deformation_update(A: mat33, Bu: mat33, code: int, same: scalar, min_neighbors: int, max_condition: scalar,
-                           F: mat33, F_lo: mat33, counters: wp.array(dtype=wp.int32)):
-        """Eq. 8 with the guards of paper §4: ``F <- dF F`` unless guarded or inverted, of the
-        compensated ``F + F_lo``; returns the new ``(F, F_lo)``."""
-        return carried_update(step_increment(A, Bu, code, same, min_neighbors, max_condition, counters), F, F_lo,
-                              counters)
+    def deformation_update(A: mat33, Bu: mat33, code: int, scale: scalar, F: mat33, F_lo: mat33,
+                           counters: wp.array(dtype=wp.int32)):
+        """Eq. 8 with the guards of paper §4 (``code``, and their fade ``scale``): ``F <- dF F``
+        unless guarded or inverted, of the compensated ``F + F_lo``; returns the new ``(F, F_lo)``."""
+        return carried_update(step_increment(A, Bu, code, scale, counters), F, F_lo, counters)
 
     return types.SimpleNamespace(
         displacement=displacement, pair_slots=pair_slots, pair_partner=pair_partner, pair_ends=pair_ends,
@@ -459,8 +456,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     ):
         i = wp.tid()
         A, B, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
-        F_new, F_new_lo = fn.deformation_update(A, B, guard[i], same, min_neighbors, max_condition, F_prev[i],
-                                                F_prev_lo[i], counters)
+        F_new, F_new_lo = fn.deformation_update(A, B, guard[i], gf.guard_scale(A, same, min_neighbors, max_condition),
+                                                F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
 
@@ -498,7 +495,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         goes to ``F``. With ``images`` the floor's image pairs (``fit_pair_sums``: ``xb =
         g_j - x_i``, ``yb = g_j - y_i``, ``g_j`` at rest over the step) likewise, scattered to
         ``x_j`` through ``floor_image_jacobian`` (``scatter_pair_adjoint``). The fade
-        ``dF - I = s(A, same) (B A^-1 - I)`` (``guards.guard_scale_gradient``) scales ``adj B``,
+        ``dF - I = s(A, same) (B A^-1 - I)`` (``guards.guard``) scales ``adj B``,
         adds ``(adj dF : (B A^-1 - I)) ds/dA`` to ``adj A`` and gives the smooth count ``same``
         its adjoint ``(adj dF : (B A^-1 - I)) ds/dsame``, spread over the pairs by the slope of
         ``guards.count_weight``."""
@@ -512,7 +509,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             return
         Ainv = wp.inverse(A)
         D0 = B * Ainv
-        s, ds_dA, ds_dn = gf.guard_scale_gradient(A, same, min_neighbors, max_condition)
+        code_, s, ds_dA, ds_dn = gf.guard(A, same, min_neighbors, max_condition)
         D = s * D0
         dF = wp.identity(n=3, dtype=scalar) + D
         if wp.determinant(Fp + D * Fp) <= scalar(0.0):

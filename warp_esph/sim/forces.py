@@ -447,8 +447,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         adj_stress[i] = adj_stress[i] + aP
         adj_F_inv[i] = adj_F_inv[i] + aFinv
 
-    guard_code = neighbors.guard_funcs(scalar).guard_code
-    guard_scale_gradient = neighbors.guard_funcs(scalar).guard_scale_gradient
+    guard_state = neighbors.guard_funcs(scalar).guard
 
     @wp.kernel(enable_backward=False, module="unique")
     def variational_forces_adjoint(
@@ -503,7 +502,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         hh = h * h
         # The fit's moment matrix and guard as the forward's (images included).
         A, B, same = fit_sums(i, x, x, x, x, body, nbr, n, h, gn, goff, gmin, images)
-        if guard_code(A, same, min_neighbors, max_condition) != 0:
+        # The guards and the fade s(A, same) of both maps (guards.guard): M = s M0, Mg = s Mg0.
+        code, s, ds_dA, ds_dn = guard_state(A, same, min_neighbors, max_condition)
+        if code != 0:
             return
         # adj M (and, with images, adj Mg), which do not depend on A.
         adj_M = mat33()
@@ -527,8 +528,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         P = stress[i]
         Fi = F[i]
         Ainv = wp.inverse(A)
-        # The fade s(A) of both maps (guards.guard_scale_gradient): M = s M0, Mg = s Mg0.
-        s, ds_dA, ds_dn = guard_scale_gradient(A, same, min_neighbors, max_condition)
         M0 = fn.variational_map(Vi, P, Fi, Ainv)
         M = s * M0
         adj_P, adj_Fi, adj_A = fn.variational_map_adjoint(Vi, P, Fi, Ainv, s * adj_M)

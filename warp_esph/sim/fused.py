@@ -49,8 +49,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     sph_pair_force = pressure.funcs(scalar).sph_pair_force
     image_pressure_forces = pressure.funcs(scalar).image_pressure_forces
     guarded_flow_step = plasticity.funcs(scalar).guarded_flow_step
-    guard_code = neighbors.guard_funcs(scalar).guard_code
-    guard_scale = neighbors.guard_funcs(scalar).guard_scale
+    guard_state = neighbors.guard_funcs(scalar).guard
     df = deformation.funcs(scalar, weight)
     Materials = materials.struct(scalar)
 
@@ -163,11 +162,11 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         if kind_el == 1:
             # The moments of x alone (y = x and the same round-off: B - A = 0).
             A, B, same = df.fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
-            if guard_code(A, same, min_neighbors, max_condition) == 0:
+            # Faded where cond(A) passes max_condition or the count falls towards
+            # min_neighbors - 1 (guards.guard).
+            code, s_fit, ds_dA, ds_dn = guard_state(A, same, min_neighbors, max_condition)
+            if code == 0:
                 A_inv = wp.inverse(A)
-                # Faded where cond(A) passes max_condition or the count falls towards
-                # min_neighbors - 1 (guards.guard_scale).
-                s_fit = guard_scale(A, same, min_neighbors, max_condition)
                 M = s_fit * fo.variational_map(Vol_i, P, Fe, A_inv)
                 if images != 0:
                     Mg = s_fit * fo.image_map(Vol_i, P, Fe, df.floor_image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin))
@@ -246,10 +245,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             # Each particle's displacement from the launch before (u): one load per
             # neighbour instead of y, x_lo and y_lo, the same sums bit for bit.
             A, B, same = df.fit_pair_sums(i, x, u, u, u, body, nbr, count[i], h, 1, gn, goff, gmin, 0)
-        code = guard_code(A, same, min_neighbors, max_condition)
+        code, s, ds_dA, ds_dn = guard_state(A, same, min_neighbors, max_condition)
         guard[i] = code
-        F_new, F_new_lo = df.deformation_update(A, B, code, same, min_neighbors, max_condition, F_prev[i], F_prev_lo[i],
-                                                counters)
+        F_new, F_new_lo = df.deformation_update(A, B, code, s, F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
 

@@ -54,9 +54,9 @@ COUNT_FADE = 0.9
 @functools.cache
 def guard_funcs(scalar) -> types.SimpleNamespace:
     """The guards on a moment matrix and a smooth neighbour count: ``count_weight`` (a
-    partner's share of the count), ``guard_code`` (the switch, shared by the neighbour pass and
-    the fused step), ``guard_scale`` (the fade) and ``guard_scale_gradient`` (its slopes in
-    ``A`` and the count, for the hand-written adjoints)."""
+    partner's share of the count), ``guard`` (the switch, the fade and the fade's slopes in
+    ``A`` and the count, for the hand-written adjoints, all at once), and its parts
+    ``guard_code`` (the switch, for the neighbour pass) and ``guard_scale`` (the fade)."""
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
 
@@ -119,64 +119,59 @@ def guard_funcs(scalar) -> types.SimpleNamespace:
         return s, ds
 
     @wp.func
-    def guard_code(A: mat33, same: scalar, min_neighbors: int, max_condition: scalar) -> int:
-        """Guard of paper §4 from the moment matrix ``A`` and the smooth count ``same`` of the
-        same-body neighbours (``count_weight``): 1 too few of them (the count's fade is zero),
-        2 ``cond(A)`` beyond the fade (``FADE * max_condition``), else 0."""
-        code = int(0)
-        limit = scalar(FADE) * max_condition
-        if same <= scalar(min_neighbors - 1):
-            code = 1
-        elif not well_conditioned(A, limit):
-            lmin, lmax, qmin, qmax = extreme_eigen(A)
-            if lmin <= scalar(0.0) or lmax > limit * lmin:
-                code = 2
-        return code
+    def guard(A: mat33, same: scalar, min_neighbors: int, max_condition: scalar):
+        """Both guards of paper §4 at once, the bound and the eigen-decomposition of ``A``
+        computed at most once: ``(code, s, ds/dA, ds/dsame)`` for the moment matrix ``A`` and
+        the smooth count ``same`` of the same-body neighbours (``count_weight``).
 
-    @wp.func
-    def condition_scale_gradient(A: mat33, max_condition: scalar):
-        """``(s, ds/dA)``: the condition number's fade ``s`` of a fit with moment matrix ``A``
-        (1 where ``cond(A) <= max_condition``, 0 from ``FADE`` times it, ``1 - smoothstep``
-        between) and its slope, ``s'(c) (q_max q_max^T - c q_min q_min^T) / l_min`` with
-        ``c = cond(A)`` and ``q`` the eigenvectors of ``l_max``, ``l_min``."""
-        s = scalar(1.0)
+        ``code`` (the switch): 1 too few neighbours (the count's fade is zero), 2 ``cond(A)``
+        beyond the fade (``FADE * max_condition``), else 0. ``s``: the fade of the fit's
+        increment and of the variational force, the count's (``count_scale``) times the
+        condition number's (1 up to ``max_condition``, 0 from ``FADE`` times it, ``1 -
+        smoothstep`` between); its slope in ``A`` is ``s_n s_c'(c) (q_max q_max^T - c q_min
+        q_min^T) / l_min`` with ``c = cond(A)`` and ``q`` the eigenvectors of ``l_max``,
+        ``l_min`` (``d lambda = q^T dA q``), in the count ``s_c s_n'``."""
+        sn, dsn = count_scale(same, min_neighbors)
+        code = int(0)
+        s = scalar(0.0)
         G = mat33()
-        if not well_conditioned(A, max_condition):
+        dn = scalar(0.0)
+        if sn <= scalar(0.0):
+            code = 1
+        elif well_conditioned(A, max_condition):
+            s = sn
+            dn = dsn
+        else:
             lmin, lmax, qmin, qmax = extreme_eigen(A)
-            if lmin <= scalar(0.0):
-                s = scalar(0.0)
+            if lmin <= scalar(0.0) or lmax > scalar(FADE) * max_condition * lmin:
+                code = 2
             else:
                 c = lmax / lmin
                 band = (scalar(FADE) - scalar(1.0)) * max_condition
                 t = (c - max_condition) / band
+                sc = scalar(1.0)
                 if t >= scalar(1.0):
-                    s = scalar(0.0)
+                    sc = scalar(0.0)
                 elif t > scalar(0.0):
-                    s = scalar(1.0) - t * t * (scalar(3.0) - scalar(2.0) * t)
-                    ds = -scalar(6.0) * t * (scalar(1.0) - t) / band
-                    G = (ds / lmin) * (wp.outer(qmax, qmax) - c * wp.outer(qmin, qmin))
-        return s, G
+                    sc = scalar(1.0) - t * t * (scalar(3.0) - scalar(2.0) * t)
+                    dsc = -scalar(6.0) * t * (scalar(1.0) - t) / band
+                    G = (sn * dsc / lmin) * (wp.outer(qmax, qmax) - c * wp.outer(qmin, qmin))
+                s = sc * sn
+                dn = sc * dsn
+        return code, s, G, dn
 
     @wp.func
-    def guard_scale_gradient(A: mat33, same: scalar, min_neighbors: int, max_condition: scalar):
-        """``(s, ds/dA, ds/dsame)``: the fade of the fit's increment and of the variational
-        force, the condition number's (``condition_scale_gradient``) times the count's
-        (``count_scale``), and its slopes in ``A`` and in the smooth count ``same``."""
-        sn, dsn = count_scale(same, min_neighbors)
-        s = scalar(0.0)
-        G = mat33()
-        if sn > scalar(0.0):
-            sc, Gc = condition_scale_gradient(A, max_condition)
-            s = sc * sn
-            G = sn * Gc
-            dsn = sc * dsn
-        return s, G, dsn
+    def guard_code(A: mat33, same: scalar, min_neighbors: int, max_condition: scalar) -> int:
+        """The switch of ``guard``: 0 (the fit taken, faded by ``guard_scale``), 1 too few
+        neighbours, 2 ill-conditioned."""
+        code, s, G, dn = guard(A, same, min_neighbors, max_condition)
+        return code
 
     @wp.func
     def guard_scale(A: mat33, same: scalar, min_neighbors: int, max_condition: scalar) -> scalar:
-        """The fade of the fit's increment and of the variational force (``guard_scale_gradient``)."""
-        s, G, dn = guard_scale_gradient(A, same, min_neighbors, max_condition)
+        """The fade of the fit's increment and of the variational force (``guard``)."""
+        code, s, G, dn = guard(A, same, min_neighbors, max_condition)
         return s
 
-    return types.SimpleNamespace(guard_code=guard_code, guard_scale=guard_scale, guard_scale_gradient=guard_scale_gradient,
-                                 count_weight=count_weight, count_scale=count_scale)
+    return types.SimpleNamespace(guard=guard, guard_code=guard_code, guard_scale=guard_scale, count_weight=count_weight,
+                                 count_scale=count_scale)
