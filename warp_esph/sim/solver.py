@@ -102,7 +102,9 @@ class Solver:
     max_condition`` (default ``neighbors.MAX_CONDITION`` = 20) to twice it a fit's increment
     and its variational force fade out, and beyond the guard holds (``guards.py``): it
     bounds the local stiffness of a fit that ``Model.stable_dt`` does not see, without a
-    jump in the step (docs/method.md §2 and §8).
+    jump in the step (docs/method.md §2 and §8). Likewise from ``min_neighbors`` (default 6)
+    same-body neighbours down to one fewer, counted smoothly (each neighbour fades from 0.9
+    ``h`` to ``h``, where its fit weight ends), so no neighbour crossing ``h`` makes a jump.
 
     ``neighbor_skin`` (in units of the support radius ``h``, in [0, 1]; default
     ``DEFAULT_SKIN``) is the Verlet margin of the neighbour candidates: they are rebuilt only when two
