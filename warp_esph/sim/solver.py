@@ -103,7 +103,7 @@ class Solver:
     and its variational force fade out, and beyond the guard holds (``guards.py``): it
     bounds the local stiffness of a fit that ``Model.stable_dt`` does not see, without a
     jump in the step (docs/method.md §2 and §8). Likewise from ``min_neighbors`` (default 6)
-    same-body neighbours down to one fewer, counted smoothly (each neighbour fades from 0.9
+    same-body neighbours down to one fewer, counted smoothly (each neighbour fades from 0.95
     ``h`` to ``h``, where its fit weight ends), so no neighbour crossing ``h`` makes a jump.
 
     ``neighbor_skin`` (in units of the support radius ``h``, in [0, 1]; default
