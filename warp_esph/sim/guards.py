@@ -121,6 +121,12 @@ def guard_funcs(scalar) -> types.SimpleNamespace:
         return s, ds
 
     @wp.func
+    def beyond_fade(lmin: scalar, lmax: scalar, max_condition: scalar) -> bool:
+        """Whether the extreme eigenvalues put ``cond(A)`` beyond the fade's end, ``FADE *
+        max_condition`` (or ``A`` is singular): the ill-conditioned switch."""
+        return lmin <= scalar(0.0) or lmax > scalar(FADE) * max_condition * lmin
+
+    @wp.func
     def guard(A: mat33, same: scalar, min_neighbors: int, max_condition: scalar):
         """Both guards of paper §4 at once, the bound and the eigen-decomposition of ``A``
         computed at most once: ``(code, s, ds/dA, ds/dsame)`` for the moment matrix ``A`` and
@@ -145,7 +151,7 @@ def guard_funcs(scalar) -> types.SimpleNamespace:
             dn = dsn
         else:
             lmin, lmax, qmin, qmax = extreme_eigen(A)
-            if lmin <= scalar(0.0) or lmax > scalar(FADE) * max_condition * lmin:
+            if beyond_fade(lmin, lmax, max_condition):
                 code = 2
             else:
                 c = lmax / lmin
@@ -164,9 +170,16 @@ def guard_funcs(scalar) -> types.SimpleNamespace:
 
     @wp.func
     def guard_code(A: mat33, same: scalar, min_neighbors: int, max_condition: scalar) -> int:
-        """The switch of ``guard``: 0 (the fit taken, faded by ``guard_scale``), 1 too few
-        neighbours, 2 ill-conditioned."""
-        code, s, G, dn = guard(A, same, min_neighbors, max_condition)
+        """The switch of ``guard`` alone (the neighbour pass's): 0 (the fit taken, faded by
+        ``guard_scale``), 1 too few neighbours, 2 ill-conditioned. Its cheap bound is taken at
+        the fade's end, so the eigen-decomposition runs only where ``cond(A)`` may pass it."""
+        code = int(0)
+        if same <= scalar(min_neighbors - 1):
+            code = 1
+        elif not well_conditioned(A, scalar(FADE) * max_condition):
+            lmin, lmax, qmin, qmax = extreme_eigen(A)
+            if beyond_fade(lmin, lmax, max_condition):
+                code = 2
         return code
 
     @wp.func
