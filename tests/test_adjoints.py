@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warp_esph.sim import forces, materials, plasticity
+from warp_esph.sim import forces, guards, materials, plasticity
 from warp_esph._types import type_set
 
 S = wp.float64
@@ -278,3 +278,80 @@ def test_hand_written_adjoints_carry_the_floor_images(scalar, tol, pressure_forc
         tol = 2e-3
     _assert_hand_matches_generated(scalar, tol, pressure_force=pressure_force, ground=ground,
                                    elastic_force=elastic_force)
+
+
+_gf = guards.guard_funcs(S)
+
+
+@wp.kernel
+def _guard_parts(A: wp.array(dtype=T.mat33), same: wp.array(dtype=S), r2: wp.array(dtype=S), hh: S, min_neighbors: int,
+                 max_condition: S, code: wp.array(dtype=wp.int32), code_alone: wp.array(dtype=wp.int32),
+                 scale: wp.array(dtype=S), scale_alone: wp.array(dtype=S), dA: wp.array(dtype=T.mat33),
+                 dn: wp.array(dtype=S), c: wp.array(dtype=S), dc: wp.array(dtype=S)):
+    i = wp.tid()
+    k, s, G, d = _gf.guard(A[i], same[i], min_neighbors, max_condition)
+    code[i] = k
+    scale[i] = s
+    dA[i] = G
+    dn[i] = d
+    code_alone[i] = _gf.guard_code(A[i], same[i], min_neighbors, max_condition)
+    scale_alone[i] = _gf.guard_scale(A[i], same[i], min_neighbors, max_condition)
+    w, dw = _gf.count_weight(r2[i], hh)
+    c[i] = w
+    dc[i] = dw
+
+
+def _guard_parts_of(A, same, r2, hh=1.0, min_neighbors=6, max_condition=20.0):
+    n = len(A)
+    outs = dict(code=wp.zeros(n, dtype=wp.int32), code_alone=wp.zeros(n, dtype=wp.int32), scale=wp.zeros(n, dtype=S),
+                scale_alone=wp.zeros(n, dtype=S), dA=wp.zeros(n, dtype=T.mat33), dn=wp.zeros(n, dtype=S),
+                c=wp.zeros(n, dtype=S), dc=wp.zeros(n, dtype=S))
+    wp.launch(_guard_parts, n, [wp.array(A, dtype=T.mat33), wp.array(same, dtype=S), wp.array(r2, dtype=S), hh,
+                                min_neighbors, max_condition], list(outs.values()))
+    return {k: v.numpy() for k, v in outs.items()}
+
+
+def test_the_guards_fade_with_their_slopes_and_switch_only_where_the_fade_is_zero():
+    """``guards.guard`` (the switch, the fade and its slopes at once) against its parts and
+    central differences: the fade's slopes in the moment matrix (through the eigenvalues) and
+    in the smooth neighbour count, the count weight's slope in ``r^2``, both continuous with
+    their slopes at the ends of their bands (``count_weight``: 1 up to 0.95 h, 0 from h), and
+    the switch set only where the fade is zero."""
+    rng = np.random.default_rng(11)
+    conds = np.concatenate([rng.uniform(1.0, 60.0, 40), [19.0, 21.0, 39.0, 41.0]])
+    # Positive definite, as every moment matrix (a weighted sum of outer products) is.
+    Q = [_rotation(rng) for _ in conds]
+    A = np.array([q @ np.diag([1.0, rng.uniform(1.0, c), c]) @ q.T * 0.3 for q, c in zip(Q, conds)])
+    same = rng.uniform(4.0, 8.0, len(A))
+    same[:4] = [5.0, 6.0, 5.5, 4.9]
+    q0 = guards.COUNT_FADE**2
+    r2 = np.concatenate([rng.uniform(0.8, 1.05, len(A) - 4), [q0, 1.0, 0.5 * (q0 + 1.0), 1.2]])
+    out = _guard_parts_of(A, same, r2)
+    np.testing.assert_array_equal(out["code"], out["code_alone"])
+    np.testing.assert_array_equal(out["scale"], out["scale_alone"])
+    assert (out["scale"][out["code"] != 0] == 0.0).all()
+    assert set(out["code"]) == {0, 1, 2}, out["code"]
+    faded = (out["scale"] > 0.0) & (out["scale"] < 1.0)
+    assert faded.sum() > 5
+    eps = 1e-6
+    for i in np.flatnonzero(out["code"] == 0):
+        # d s / d A along a random symmetric direction, and d s / d same.
+        E = rng.normal(size=(3, 3))
+        E = 0.5 * (E + E.T)
+        up = _guard_parts_of(np.array([A[i] + eps * E, A[i] - eps * E]), np.full(2, same[i]), np.ones(2))["scale"]
+        assert (up[0] - up[1]) / (2 * eps) == pytest.approx(np.sum(out["dA"][i] * E), rel=1e-5, abs=1e-8), i
+        up = _guard_parts_of(np.array([A[i], A[i]]), same[i] + np.array([eps, -eps]), np.ones(2))["scale"]
+        assert (up[0] - up[1]) / (2 * eps) == pytest.approx(out["dn"][i], rel=1e-5, abs=1e-5), i
+    # The count weight: 1 inside the band, 0 from h, its slope the central difference's, and
+    # the fade's value and slope continuous at the ends of both bands.
+    w = _guard_parts_of(np.tile(np.eye(3), (5, 1, 1)), np.full(5, 6.0),
+                        np.array([q0 - eps, q0 + eps, 1.0 - eps, 1.0 + eps, 0.9]))
+    np.testing.assert_allclose(w["c"][:4], [1.0, 1.0, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(w["dc"][:4], 0.0, atol=1e-3)  # the largest slope is 15
+    mid = 0.5 * (q0 + 1.0)
+    side = _guard_parts_of(np.tile(np.eye(3), (2, 1, 1)), np.full(2, 6.0), np.array([mid + eps, mid - eps]))["c"]
+    assert (side[0] - side[1]) / (2 * eps) == pytest.approx(out["dc"][-2], rel=1e-6)
+    ends = _guard_parts_of(np.tile(np.eye(3), (4, 1, 1)), np.array([5.0 - eps, 5.0 + eps, 6.0 - eps, 6.0 + eps]),
+                           np.ones(4))
+    np.testing.assert_allclose(ends["scale"], [0.0, 0.0, 1.0, 1.0], atol=1e-9)
+    np.testing.assert_allclose(ends["dn"], 0.0, atol=1e-4)
