@@ -270,7 +270,10 @@ def pose_kernels(scalar) -> types.SimpleNamespace:
             if i1 != i0:
                 w = (t - kf_t[i0]) / (kf_t[i1] - kf_t[i0])
             p = kf_p[i0] * (ONE - w) + kf_p[i1] * w + lin_v[c] * t
-            q = quat_exp(ang_v[c] * t) * interp_quat(kf_q[i0], kf_q[i1], w)
+            # Normalised: a keyframe quaternion a descent moved off the unit sphere would
+            # otherwise scale the tool (quat_rotate by |q|^2) and its local frame by the
+            # inverse, so a particle placed on its surface would not be on it a step later.
+            q = wp.normalize(quat_exp(ang_v[c] * t) * interp_quat(kf_q[i0], kf_q[i1], w))
             pose_p[s] = p
             pose_q[s] = q
 
