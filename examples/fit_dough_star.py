@@ -21,8 +21,8 @@ by 1e-3 spacing (exact distance ties on a perfect lattice make neighbour decisio
 depend on round-off), and the support radius is 2.5 spacings (at 2 spacings the tips of
 a coarse star hover around the 6-neighbour guard, which switches their deformation
 update on and off: a jump in the loss that stalls any line search). The ground's contact
-is the continuous law (``contact="continuous"``): with the default law the landing makes
-the loss jump, and with the energy SPH pressure force (the default) the CI-size fit
+is the continuous law (``contact="continuous"``, the default, named here): with the instant
+law the landing makes the loss jump, and with the energy SPH pressure force the CI-size fit
 stalled on such a jump (docs/fitting.md).
 """
 

@@ -297,19 +297,16 @@ def test_silhouette_gradient_through_a_rollout():
 
 
 def test_silhouette_only_diagnostics_flag_the_yield_stress(dropped_cube):
-    """Silhouettes alone do not determine the yield stress of the drop (docs/fitting.md: a
-    fit from 2x ended at Y = 188 Pa, +88 %, flow rate within 2 %, with the energy pressure
-    force). Two 48 x 48 cameras (front, top), masks of the true run (Y = 100 Pa, flow rate
-    10/s) at steps 50 and 100. The diagnostics are taken where the same fit ends with the
-    default pressure force (energy_spiky; L-BFGS from 2x, 8 samples first, 30 iterations,
-    measured): at its iteration cap, Y = 294.8 Pa (+195 %), flow rate 10.80/s (+8 %); there
-    the standard errors are 10 % and 7.7 % (273 observations), but moving Y by a factor 1.5
-    does not raise the chi-square by 1 (measured: it falls, by 0.11): the diagnostics must
-    say Y is not determined, and the flow rate is. At the energy force's end point (188,
-    9.82) the energy_spiky run's flow-rate error is 27.7 %, at the truth 21.4 %, and both
-    are flagged there. (With the energy force the loss was curved in Y at 188 Pa, the
-    Gauss-Newton error alone 1.5 % before silhouette pixels were counted per splat area,
-    and Y by 1.5 raised the chi-square by 0.34. Measured at splat opacity 0.5.)"""
+    """Silhouettes alone do not determine the yield stress of the drop (docs/fitting.md,
+    "Silhouettes"). Two 48 x 48 cameras (front, top), masks of the true run (Y = 100 Pa,
+    flow rate 10/s) at steps 50 and 100. The diagnostics are taken where the fit of
+    docs/fitting.md ends with the defaults (energy_spiky pressure force, continuous contact;
+    L-BFGS from 2x, 8 samples first, 30 iterations, measured): at its iteration cap,
+    Y = 512.6 Pa (+413 %), flow rate 13.28/s (+33 %), loss 0.008670 from 0.01236. There the
+    standard errors are 34.8 % and 12.5 % (271 observations): Y is flagged, the flow rate is
+    not. (Under the instant contact law, the default before, the same fit ended at 294.8 Pa,
+    10.80/s, where a factor 1.5 in Y did not raise the chi-square: the command-line test
+    above checks that warning.)"""
     front = PinholeCamera(48, 48, 80.0, 80.0, 23.5, 23.5, np.diag([1.0, -1.0, -1.0]), [0.0, 0.05, 0.5], "front")
     top = PinholeCamera(48, 48, 80.0, 80.0, 23.5, 23.5, [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]],
                         [0.0, 0.0, 0.5], "top")
@@ -319,12 +316,10 @@ def test_silhouette_only_diagnostics_flag_the_yield_stress(dropped_cube):
     xs = Rollout(model, steps, dt, frames=frames).forward()
     masks = {f: [(soft_silhouette(np.asarray(x, dtype=np.float64), c, 0.01, 0.5) > 0.5).astype(float) for c in cams]
              for f, x in zip(frames, xs)}
-    d = diagnose(dropped_cube(294.8, 10.80), SilhouetteLoss(masks, cams, radius=0.01, opacity=0.5), ["yield_stress", "flow_rate"],
+    d = diagnose(dropped_cube(512.6, 13.28), SilhouetteLoss(masks, cams, radius=0.01, opacity=0.5), ["yield_stress", "flow_rate"],
                  steps=steps, dt=dt)
     assert d.undetermined == ["yield_stress"], d.summary()
-    assert any("factor 1.5 changes the chi-square by only" in w for w in d.warnings)
-    assert np.nanmin(d.range_rise[0]) < 1.0 < np.nanmin(d.range_rise[1])
-    assert d.relative_error[1] < 0.25
+    assert d.relative_error[0] > 0.25 > d.relative_error[1], d.summary()
     # One observation per splat area: pi (2 * 0.01 m * 80 px / ~0.45 m)^2 ~ 40 pixels.
     assert 2 * 2 * 48 * 48 / 60 < d.observations < 2 * 2 * 48 * 48 / 20
 

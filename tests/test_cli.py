@@ -136,7 +136,7 @@ def test_solver_options_from_scene_file_and_cli(tmp_path, capsys):
     falling = GOOD_TOML.replace('material = "soft"', 'material = "soft"\nvelocity = [0.0, -3.0, 0.0]')
     plain, chosen = tmp_path / "plain.toml", tmp_path / "chosen.toml"
     plain.write_text(falling)
-    chosen.write_text('[solver]\nfit = "curvature_corrected"\ncontact = "continuous"\n' + falling)
+    chosen.write_text('[solver]\nfit = "curvature_corrected"\ncontact = "instant"\n' + falling)
 
     def last_frame(scene, name, *extra):
         out = tmp_path / f"{name}.usdc"
@@ -147,12 +147,12 @@ def test_solver_options_from_scene_file_and_cli(tmp_path, capsys):
 
     x_plain, run_plain = last_frame(plain, "plain")
     x_chosen, run_chosen = last_frame(chosen, "chosen")
-    x_back, run_back = last_frame(chosen, "back", "--solver-fit", "linear", "--contact", "instant")
+    x_back, run_back = last_frame(chosen, "back", "--solver-fit", "linear", "--contact", "continuous")
     # The record keeps the choice as asked: "auto", which runs the linear fit for this dough
     # (a material that can flow), bit for bit as --solver-fit linear (below).
-    assert (run_plain["fit"], run_plain["contact_ramp"]) == ("auto", 0.0)
-    assert (run_chosen["fit"], run_chosen["contact_ramp"]) == ("curvature_corrected", 1.0)
-    assert (run_back["fit"], run_back["contact_ramp"]) == ("linear", 0.0)
+    assert (run_plain["fit"], run_plain["contact_ramp"]) == ("auto", 1.0)  # the continuous contact, the default
+    assert (run_chosen["fit"], run_chosen["contact_ramp"]) == ("curvature_corrected", 0.0)
+    assert (run_back["fit"], run_back["contact_ramp"]) == ("linear", 1.0)
     assert np.array_equal(x_back, x_plain)
     assert np.abs(x_chosen - x_plain).max() > 1e-4  # the impact bends the surface: the fits differ there
     capsys.readouterr()

@@ -184,8 +184,8 @@ def test_the_reused_static_collider_struct_follows_the_contact_ramp():
     m = b.finalize()
     first = static_collider_struct(m)
     assert static_collider_struct(m) is first
-    assert float(first.ramp) == m.contact_ramp == 0.0  # the earlier contact law, the default
-    m.contact_ramp = 1.0  # colliders.CONTINUOUS_CONTACT_RAMP
+    assert float(first.ramp) == m.contact_ramp == 1.0  # the continuous contact, the default
+    m.contact_ramp = 0.0  # colliders.INSTANT_CONTACT_RAMP
     second = static_collider_struct(m)
-    assert second is not first and float(second.ramp) == 1.0
+    assert second is not first and float(second.ramp) == 0.0
     assert static_collider_struct(m) is second

@@ -109,8 +109,9 @@ def test_the_paper_cap_is_counted_and_warned():
 
 
 # Through ground contact: a block flowing as it lands on a rough ground (friction 0.6); the
-# first particles touch at step 20 of 60. The continuous contact is opt-in
-# (``model.contact_ramp = CONTINUOUS_CONTACT_RAMP``): by default the earlier law runs.
+# first particles touch at step 20 of 60. The continuous contact
+# (``model.contact_ramp = CONTINUOUS_CONTACT_RAMP``) is the default; the instant law is
+# selectable by name (``contact="instant"``).
 CONTACT_STEPS = 60
 
 
@@ -225,11 +226,11 @@ def test_no_jump_in_the_loss_through_the_imaged_ground():
     assert np.abs(grads - 1.0).max() < 0.1, np.round(grads, 3)
 
 
-def test_default_contact_is_the_earlier_law_and_jumps():
-    """The default ``contact_ramp = 0`` keeps the earlier contact law, whose loss jumps
-    through contact: the scan above is far off with it (measured: 0.49 off for mu with the
-    energy force at k_p = 0.5). So the opt-in is what makes the loss smooth through contact,
-    and the test above can fail.
+def test_the_instant_contact_law_jumps_and_is_not_the_default():
+    """The instant contact law (``contact_ramp = 0``, the first one, selectable by name)
+    makes the loss jump through contact: the scan above is far off with it (measured: 0.49
+    off for mu with the energy force at k_p = 0.5). So the continuous contact, the default,
+    is what makes the loss smooth through contact, and the test above can fail.
 
     Run with the default pressure force (energy_spiky) at its default ``k_p = 0.46 K / rho0``
     (1.0 here), the same added bulk stiffness as the energy force at the scene's k_p = 0.5
@@ -241,7 +242,7 @@ def test_default_contact_is_the_earlier_law_and_jumps():
     base = PARAMS[name]
     force = {"pressure_force": "energy_spiky", "pressure_stiffness": None}
     model = _landing_model(force, contact_ramp=0.0)
-    assert model.contact_ramp == 0.0 and _model(2.0).contact_ramp == 0.0
+    assert model.contact_ramp == 0.0 and _model(2.0).contact_ramp == CONTINUOUS_CONTACT_RAMP
     assert model.materials[0].pressure_stiffness == pytest.approx(0.46 * (1.5e3 + 2.0e3 / 3.0) / 1000.0)
     _, grad, _, _ = _landing_loss(model, grad_of=name)
     values = base * (1.0 + np.linspace(-1e-2, 1e-2, 21))

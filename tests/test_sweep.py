@@ -231,7 +231,7 @@ def test_cli_solver_options_override_the_scene_files(scene_file, tmp_path, capsy
     import json
 
     chosen = tmp_path / "chosen.toml"
-    chosen.write_text('[solver]\nhourglass = 0.1\nfit = "curvature_corrected"\ncontact = "continuous"\n' + SCENE_TOML)
+    chosen.write_text('[solver]\nhourglass = 0.1\nfit = "curvature_corrected"\ncontact = "instant"\n' + SCENE_TOML)
 
     def rows(scene, name, *extra):
         out = tmp_path / name
@@ -243,15 +243,15 @@ def test_cli_solver_options_override_the_scene_files(scene_file, tmp_path, capsy
     plain, meta_plain = rows(scene_file, "plain")
     by_file, meta_file = rows(chosen, "file")
     by_flags, meta_flags = rows(scene_file, "flags", "--hourglass", "0.1", "--solver-fit", "curvature_corrected",
-                                "--contact", "continuous")
-    back, _ = rows(chosen, "back", "--hourglass", "0", "--solver-fit", "linear", "--contact", "instant")
+                                "--contact", "instant")
+    back, _ = rows(chosen, "back", "--hourglass", "0", "--solver-fit", "linear", "--contact", "continuous")
     assert by_flags == by_file and back == plain
     hourglass_only, _ = rows(scene_file, "hourglass", "--hourglass", "0.1")
     assert by_file[0]["max_height"] != plain[0]["max_height"]
     assert hourglass_only[0]["kinetic_energy"] != plain[0]["kinetic_energy"]  # the control alone reaches the samples
     # None: by the fit ("auto" runs no control for this paste, a material that can flow).
-    assert (meta_plain["hourglass"], meta_plain["fit"], meta_plain["contact_ramp"]) == (None, None, 0.0)
-    assert (meta_flags["hourglass"], meta_flags["fit"], meta_flags["contact_ramp"]) == (0.1, "curvature_corrected", 1.0)
+    assert (meta_plain["hourglass"], meta_plain["fit"], meta_plain["contact_ramp"]) == (None, None, 1.0)
+    assert (meta_flags["hourglass"], meta_flags["fit"], meta_flags["contact_ramp"]) == (0.1, "curvature_corrected", 0.0)
     assert (meta_file["hourglass"], meta_file["fit"]) == (0.1, "curvature_corrected")
     capsys.readouterr()
 

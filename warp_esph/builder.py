@@ -79,7 +79,7 @@ class SceneBuilder:
 
     ``fit`` and ``contact_ramp`` become the model's ``Model.fit`` (the incremental fit a
     ``Solver`` runs by default; None: ``Model.fit``'s default) and ``Model.contact_ramp`` (``contact=`` names it: one of
-    ``model.CONTACTS``, "instant" or "continuous"); ``hourglass`` the model's
+    ``model.CONTACTS``, "continuous", the default, or "instant"); ``hourglass`` the model's
     ``Model.hourglass`` (the strength of the hourglass control a ``Solver`` runs by default; 0:
     off; None: by the fit, ``Model.solver_choice``). Scene files set them in ``[solver]``.
 

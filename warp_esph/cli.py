@@ -143,9 +143,9 @@ def _add_solver_arguments(parser) -> None:
                              "curvature_corrected (stiffer in bending near free surfaces); default: the scene's [solver] fit, "
                              "else auto")
     parser.add_argument("--contact", metavar="NAME",
-                        help="contact law of colliders and tools: instant (the whole inward velocity removed) or continuous "
-                             "(continuous in the state, so a loss is continuous through contact); default: the scene's "
-                             "[solver] contact, else instant")
+                        help="contact law of colliders and tools: continuous (continuous in the state, so a loss is continuous "
+                             "through contact) or instant (the whole inward velocity removed, the first law); default: the "
+                             "scene's [solver] contact, else continuous")
     parser.add_argument("--hourglass", metavar="C",
                         help="strength (>= 0) of the hourglass control of the fit's zero-energy modes, for elastic solids "
                              "under concentrated loads (0.1 holds a pressed sphere indenter); 0: off; default: the scene's "

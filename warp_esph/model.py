@@ -18,7 +18,7 @@ import warp as wp
 
 from . import checks, tools
 from ._types import type_set
-from .sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP, Box, Plane, Sphere
+from .sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP, INSTANT_CONTACT_RAMP, Box, Plane, Sphere
 from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, PRESSURE_FORCE_IDS, Material, p_wave_speed
 from .sim import ghost_floor, integrate
 from .sim.replay import Launches, pointer_key
@@ -40,7 +40,7 @@ DEFAULT_FIT = "auto"
 AUTO_HOURGLASS = 0.05
 #: The contact laws by name (scene files' ``[solver] contact``, the CLI's ``--contact``):
 #: name -> ``Model.contact_ramp``.
-CONTACTS = {"instant": CONTACT_RAMP, "continuous": CONTINUOUS_CONTACT_RAMP}
+CONTACTS = {"instant": INSTANT_CONTACT_RAMP, "continuous": CONTINUOUS_CONTACT_RAMP}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -337,11 +337,12 @@ class Model:
 
     @property
     def contact_ramp(self) -> float:
-        """The contact law of the colliders and tools (``colliders.coulomb_response``): 0
-        (default) removes the whole inward normal velocity of a particle found inside; ``r > 0``
-        at most ``depth / (r dt)`` of it, with the stick-slip transition rounded, which is
-        continuous in the state, so a loss is continuous in the parameters through contact
-        (1: ``colliders.CONTINUOUS_CONTACT_RAMP``; docs/method.md §1, "Contact")."""
+        """The contact law of the colliders and tools (``colliders.coulomb_response``): ``r > 0``
+        removes at most ``depth / (r dt)`` of the inward normal velocity of a particle found
+        inside, with the stick-slip transition rounded, which is continuous in the state, so a
+        loss is continuous in the parameters through contact (1, the default:
+        ``colliders.CONTINUOUS_CONTACT_RAMP``); 0 (``colliders.INSTANT_CONTACT_RAMP``, "instant")
+        removes all of it, the first law, whose loss jumps (docs/method.md §1, "Contact")."""
         return self._contact_ramp
 
     @contact_ramp.setter

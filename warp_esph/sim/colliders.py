@@ -3,10 +3,10 @@
 A particle found inside a collider after the position update is moved to its surface;
 the inward normal velocity is removed and the tangential velocity loses ``friction`` times
 it (Coulomb friction; it stops when that exceeds it). With ``Model.contact_ramp > 0``
-(opt-in, ``CONTINUOUS_CONTACT_RAMP``) at most ``depth / (ramp dt)`` of the normal velocity
+(the default, ``CONTINUOUS_CONTACT_RAMP``) at most ``depth / (ramp dt)`` of the normal velocity
 is removed and the stick-slip transition is rounded, which keeps the step continuous in the
 state, so a loss is continuous in the parameters through contact (docs/method.md §1,
-"Contact").
+"Contact"); ``contact_ramp = 0`` (``INSTANT_CONTACT_RAMP``) is the first law.
 The position is corrected by ``dt`` times the velocity friction removed: the drift moved the
 particle with the velocity before friction, so without it a particle that friction holds
 still slides ``a_t dt^2`` per step, a creep at speed ``a_t dt`` that kept slumped plastic
@@ -24,12 +24,16 @@ from .._types import type_set
 #: Collider loops are unrolled at compile time (a dynamic loop that carries positions
 #: through non-linear projections would get a wrong adjoint, docs/method.md, Warp pitfall 1).
 MAX_PER_KIND = 16
-#: Default ``Model.contact_ramp``: 0, the whole inward normal velocity of a particle found
-#: inside is removed (the earlier law, discontinuous where a particle crosses the surface).
-#: ``model.contact_ramp = CONTINUOUS_CONTACT_RAMP`` removes at most ``depth / dt`` of it and
-#: rounds the stick-slip transition: continuous in the state (docs/method.md §1, "Contact").
-CONTACT_RAMP = 0.0
+#: ``Model.contact_ramp`` of the continuous contact: at most ``depth / dt`` of the inward
+#: normal velocity of a particle found inside is removed and the stick-slip transition is
+#: rounded, so the step is continuous in the state (docs/method.md §1, "Contact").
 CONTINUOUS_CONTACT_RAMP = 1.0
+#: ``Model.contact_ramp`` of the instant contact, the first law: the whole inward normal
+#: velocity is removed, discontinuous where a particle crosses the surface.
+INSTANT_CONTACT_RAMP = 0.0
+#: Default ``Model.contact_ramp``: the continuous contact. A loss through the instant one
+#: jumps wherever a particle's first contact moves from one step to the next.
+CONTACT_RAMP = CONTINUOUS_CONTACT_RAMP
 
 
 @dataclasses.dataclass(frozen=True)
