@@ -43,6 +43,10 @@ MATERIAL_FIELDS = ["mu", "lam", "yield_stress", "flow_rate", "hardening", "densi
 
 @settings(max_examples=150, deadline=None)
 @given(field=st.sampled_from(MATERIAL_FIELDS), value=ANY_VALUE)
+# Found by this test: a finite modulus whose bulk modulus overflows made the derived pressure
+# stiffness inf, and the error named pressure_stiffness, which the user had not given.
+@example(field="mu", value=8.98846567431158e307)
+@example(field="density", value=1e-310)
 def test_material_field_is_valid_or_named(field, value):
     kwargs = {"mu": 1.0e4, "lam": 1.0e4, field: value}
     try:

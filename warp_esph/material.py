@@ -164,7 +164,13 @@ class Material:
         set_("density", checks.positive("Material.density", self.density))
         checks.choice("Material.pressure_force", self.pressure_force, PRESSURE_FORCES)
         if self.pressure_stiffness is None:
-            set_("pressure_stiffness", self.default_pressure_stiffness)
+            derived = self.default_pressure_stiffness
+            if not math.isfinite(derived):
+                raise ValueError(
+                    f"Material.mu = {self.mu!r}, Material.lam = {self.lam!r} and Material.density = {self.density!r} "
+                    f"are not allowed together: the default pressure_stiffness they give, "
+                    f"{PRESSURE_BULK_SHARE[self.pressure_force]} K / density, is not a finite number")
+            set_("pressure_stiffness", derived)
         set_("pressure_stiffness", checks.non_negative("Material.pressure_stiffness", self.pressure_stiffness))
         set_("viscosity", checks.non_negative("Material.viscosity", self.viscosity))
         checks.choice("Material.model", self.model, MODELS)
