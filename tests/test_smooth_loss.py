@@ -194,7 +194,7 @@ def test_no_jump_in_the_loss_through_ground_contact(name):
     of the centre's. A jump, or a slope far steeper than at the ends, anywhere in the range
     shows as one interval far off; a smooth bend does not. Measured: increments within 0.55 %
     (mu) and 0.66 % (viscosity; 0.58-0.66 % over four jitters of the lattice) of the
-    trapezoid, gradients 0.95-1.00 (mu) and 0.93-1.03 (viscosity) of the centre's. Measured with the earlier contact law, which removed
+    trapezoid, gradients 0.95-1.00 (mu) and 0.93-1.03 (viscosity) of the centre's. Measured with the instant contact law, which removed
     all inward velocity of a particle once it crossed the surface: increments of -20 to 4
     times the slope; with the flow's volume factor jumping where J left [0.8, 1.25]: 0.71 and
     1.25. The biweight fit weight fails it (docs/physics.md, "The fit's weight")."""

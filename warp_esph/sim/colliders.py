@@ -96,7 +96,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         none (docs/method.md §1, "Contact"). A particle that starts the step on the surface (resting,
         sticking, or pressed by a moving tool) has ``depth = -vn dt`` and loses all of it, as
         before. ``ramp`` (``Model.contact_ramp``) scales the cap to ``depth / (ramp dt)``;
-        ``ramp = 0`` is the earlier law (all of it, friction not rounded)."""
+        ``ramp = 0`` is the instant law (all of it, friction not rounded)."""
         vr = v - vs
         vn = wp.dot(vr, n)
         if vn < scalar(0.0) and depth > scalar(0.0):
@@ -109,7 +109,7 @@ def funcs(scalar) -> types.SimpleNamespace:
                     return vs + vn_left
                 slip = slip_speed(vt_len - mu_k * dvn, mu_k * dvn)
                 return vs + vn_left + vt * (slip / vt_len)
-            # The earlier law, as it was computed (a float32 run of the rubber ball settles
+            # The instant law, as it was computed (a float32 run of the rubber ball settles
             # differently under a rounding-level change of this expression).
             dvn = -vn
             if vt_len <= mu_s * dvn:
