@@ -128,6 +128,7 @@ def test_cli_fits_yield_stress_to_masks_from_calibrated_cameras(tmp_path, capsys
     assert result["diagnostics"]["labels"] == ["yield_stress"]
     assert result["diagnostics"]["undetermined"] == ["yield_stress"]
     assert min(result["diagnostics"]["range_rise"][0]) < 1.0
+    assert any("factor 1.5 changes the chi-square by only" in w for w in result["diagnostics"]["warnings"])
 
 
 @pytest.mark.parametrize("yield_stress, flagged", [(1.0, True), (300.0, False)])
