@@ -76,11 +76,14 @@ def test_cli_fits_yield_stress_to_masks_from_calibrated_cameras(tmp_path, capsys
     """End to end from the command line with ``--cameras``: a dough block dropped on the
     ground (64 particles) seen by two calibrated cameras (front and side, intrinsics ``K``
     and extrinsics ``R, t`` in a JSON file), binary masks of the true run at frames 2, 4, 6,
-    and ``warp-esph fit`` from 4x the true yield stress. The loss has its minimum near the
-    truth, and the fit must go most of the way there (measured: 400 -> 93.3 Pa; earlier, on
-    the spiky pressure force, 400 -> 122 Pa in 9 evaluations, the loss sampled at 0.02569 at
-    400 Pa, 0.02485 at 100 Pa, 0.02493 at 200 Pa), and its
-    diagnostics must still say the masks do not determine the yield stress.
+    and ``warp-esph fit`` from 4x the true yield stress. The masks are binary, so the
+    loss's minimum need not be at the truth; it lies in a flat bottom that the fit must
+    reach, and the diagnostics must say the masks do not determine the yield stress.
+    Measured with the contact's touchdown share: the loss 0.026319 at 400 Pa, 0.025514 at
+    150, 0.025449 at 100, 0.025427 at 50, 0.025435 at 25 (the minimum near 50 Pa, 0.09 %
+    below the truth's loss); the fit 400 -> 49.7 Pa in 8 iterations, loss 0.966 of the
+    initial. With the share's first form the minimum was near the truth (400 -> 93.3 Pa);
+    earlier, on the spiky pressure force, 400 -> 122 Pa in 9 evaluations.
 
     The splat opacity is 0.9: with 0.5 a body a few particles thick never reaches O = 1
     inside, and the loss fell monotonically towards ever lower yield stresses (a softer,
@@ -118,13 +121,13 @@ def test_cli_fits_yield_stress_to_masks_from_calibrated_cameras(tmp_path, capsys
     assert "to silhouettes from" in captured.err
     result = json.loads((out / "fit.json").read_text())
     fitted = result["params"]["yield_stress"][0]
-    assert abs(fitted - 100.0) < 0.15 * (400.0 - 100.0), fitted  # at least 85 % of the way to the truth
+    assert 25.0 < fitted < 150.0, fitted  # into the flat bottom (loss within 0.35 % of its minimum)
     assert result["loss"] < 0.98 * result["initial_loss"]
     rows = (out / "history.csv").read_text().strip().splitlines()
     assert rows[0].startswith("evaluation,stage,loss,yield_stress") and len(rows) == len(result["history"]) + 1
     assert (out / "loss.png").stat().st_size > 0 and (out / "params.png").stat().st_size > 0
     # Silhouettes alone barely see the yield stress (a factor 1.5 changes the chi-square by
-    # 0.16 here): however close the fit came, the diagnostics must not call it determined.
+    # 0.03 here): wherever the fit stopped, the diagnostics must not call it determined.
     assert result["diagnostics"]["labels"] == ["yield_stress"]
     assert result["diagnostics"]["undetermined"] == ["yield_stress"]
     assert min(result["diagnostics"]["range_rise"][0]) < 1.0
@@ -135,15 +138,19 @@ def test_cli_fits_yield_stress_to_masks_from_calibrated_cameras(tmp_path, capsys
 def test_diagnostics_flag_an_unobservable_yield_stress(yield_stress, flagged, dropped_cube):
     """With a yield stress far below the stresses of the impact, the flow rule's
     ``(|s| - Y) / |s|`` hardly depends on it: the diagnostics must say the data do not
-    determine it (and still determine the flow rate). At a yield stress the stresses are
-    comparable to, the data depend on it as much as on the flow rate and fix it to 2 %.
+    determine it, for that reason (and still fix the flow rate to 1 %). At a yield stress
+    the stresses are comparable to, the data depend on it a quarter as much as on the flow
+    rate and fix it to 3 %.
 
-    With the default pressure force (energy_spiky) the drop at 300 Pa fixes both to 1.6 %
-    and 0.40 % (sensitivity 307 against 1259), but the two are correlated (|r| = 0.980,
-    measured; 0.929 with the energy force, which left both determined), so the diagnostics
-    flag the pair as a combination, and only that. Measured |r| at 100, 150, 200, 250, 400,
-    500 Pa: 0.956, 0.669, 0.943, 0.983, 0.987, 0.988: the drop mostly fixes a combination of
-    yield stress and flow rate once Y is within reach of its stresses."""
+    Measured with the default pressure force (energy_spiky) and the contact's touchdown
+    share: at 1 Pa, the yield stress 955 % (sensitivity 0.81e-3 of the flow rate's), the
+    flow rate 0.77 %; at 300 Pa, 2.5 % and 0.64 % (sensitivity 420 against 1629). Either
+    way the two are correlated (|r| = 0.995), so the diagnostics also flag the pair as a
+    combination: at 1 Pa the flow rate is flagged for that alone, at 300 Pa both are. (With
+    the share's first form |r| was 0.980 at 300 Pa and below 0.95 at 1 Pa; measured |r| at
+    100, 150, 200, 250, 400, 500 Pa then: 0.956, 0.669, 0.943, 0.983, 0.987, 0.988: the drop
+    mostly fixes a combination of yield stress and flow rate once Y is within reach of its
+    stresses.)"""
     model = dropped_cube(yield_stress, 10.0)
     dt = model.stable_dt()
     steps = 100
@@ -153,14 +160,17 @@ def test_diagnostics_flag_an_unobservable_yield_stress(yield_stress, flagged, dr
     assert d.method == "gauss-newton" and d.labels == ["yield_stress", "flow_rate"]
     assert d.relative_error[1] < 0.01
     if flagged:
-        assert d.undetermined == ["yield_stress"], d.summary()
+        assert "yield_stress" in d.undetermined, d.summary()
         # Sensitivity ratio measured 0.85e-3 with the paper's 30-wide rows and the earlier
-        # contact law, 1.1e-3 with the wide rows and the continuous contact (docs/method.md §1):
-        # three orders below the flow rate's either way.
+        # contact law, 0.81e-3 to 1.1e-3 with the wide rows and the continuous contact
+        # (docs/method.md §1): three orders below the flow rate's either way.
         assert d.relative_error[0] > 0.25 and d.sensitivity[0] < 2e-3 * d.sensitivity[1]
-        assert any(w.startswith("yield_stress is not determined") for w in d.warnings)
+        assert any(w.startswith("yield_stress is not determined by the data: the data barely depend on it")
+                   for w in d.warnings), d.warnings
+        # The flow rate, determined on its own, is flagged for the correlation alone if at all.
+        assert all("correlated" in w and "standard error" not in w for w in d.warnings if w.startswith("flow_rate")), d.warnings
     else:
-        assert d.relative_error[0] < 0.02 and d.sensitivity[0] > 0.1 * d.sensitivity[1], d.summary()
+        assert d.relative_error[0] < 0.03 and d.sensitivity[0] > 0.1 * d.sensitivity[1], d.summary()
         # Flagged for their correlation alone (energy_spiky, above), not for either's error.
         assert abs(d.correlation[0, 1]) > 0.95 and d.undetermined == ["yield_stress", "flow_rate"], d.summary()
         assert len(d.warnings) == 2 and all("correlated" in w for w in d.warnings), d.warnings

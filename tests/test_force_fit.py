@@ -230,7 +230,9 @@ def test_cli_fits_modulus_and_yield_stress_to_a_compression_force_curve(tmp_path
 # energy force's 0.5, half its bulk share, stops at mu 1319 (converged, loss 0.07 of the
 # initial: a local minimum); the energy force at 0.5, mu 1000.009 (4.8e-10; spiky at 1.0:
 # mu 1000.007, 2e-10). With the energy force at 1.0 the block was twice as stiff in bulk,
-# and 10 iterations reached only mu 1008 (loss 2.3e-4 of the initial).
+# and 10 iterations reached only mu 1008 (loss 2.3e-4 of the initial). All of these with the
+# contact's first form; with its touchdown share a descent from 2000 alone stops at 1296 (the
+# test below starts with the global stage).
 LANDING = """
 [scene]
 name = "landing"
@@ -267,9 +269,16 @@ def test_cli_fits_the_modulus_to_the_grounds_force_curve(tmp_path, capsys):
     shear modulus from a 2x guess to the ground's force curve (``--target-tool plane0``, the
     rows the run wrote for the static collider) in ``<output>_tools.csv``. The gel is purely
     elastic, so the default solver runs the curvature-corrected fit with the hourglass
-    control (docs/physics.md, "The default: the fit by material"): from the same guess it
-    recovers mu to 1e-5 in 15 iterations (10: 959, 4 % short; the paper's linear fit: 1000.03
-    in 10), so it is given 15."""
+    control (docs/physics.md, "The default: the fit by material").
+
+    The loss is not convex between the guess and the truth: a stiffer block leaves the
+    ground differently, and the last frames' forces drop (frame 6: 17.5 N at the true 1000,
+    16.2 N at 1150), so the loss has a plateau with shallow minima near 1300-1400. From 2x a
+    descent alone stops there (measured: mu 1296 after 15 iterations, loss 0.11 of the
+    initial; with the contact's first form, linear at touchdown, the same descent happened
+    to reach the truth). So the fit starts with the global stage, ``--samples 8`` in a
+    factor 4 of the guess: the best sample (936, seed 5) is in the basin, and the descent
+    from it recovers mu to 1e-7 in 5 evaluations (measured; 6 and 12 samples do too)."""
     from warp_esph.cli import main
     from warp_esph.fit import load_target
 
@@ -283,10 +292,12 @@ def test_cli_fits_the_modulus_to_the_grounds_force_curve(tmp_path, capsys):
     out = tmp_path / "fit"
     capsys.readouterr()
     status = main(["fit", str(guess), "--target", str(csv), "--target-tool", "plane0", "--params", "mu",
-                   "--iterations", "15", "--output-dir", str(out), "--no-progress", "--no-usd"])
+                   "--iterations", "15", "--samples", "8", "--output-dir", str(out), "--no-progress", "--no-usd"])
     captured = capsys.readouterr()
     assert status == 0, captured.err
     doc = json.loads((out / "fit.json").read_text())
+    stages = [h["stage"] for h in doc["history"]]
+    assert stages[:9] == ["sample"] * 9 and set(stages[9:]) == {"descent"}  # the guess and 8 samples, then one descent
     assert doc["params"]["mu"][0] == pytest.approx(1000.0, rel=0.01)
     assert doc["loss"] < 1e-6 * doc["initial_loss"]
     with pytest.raises(ValueError, match="--target-tool = 'plane1' is not allowed: .* holds the forces of plane0"):

@@ -54,11 +54,13 @@ def test_committed_notebook_is_executed_with_inline_plots():
 def test_fit_notebook_executes(tmp_path, monkeypatch):
     pytest.importorskip("matplotlib")
     out = tmp_path / "out"
-    # Reduced size for CI: 142 particles, 0.3 s of motion, 13 gradient evaluations (measured:
-    # loss 6.6e-7 -> 8.8e-11, mu, yield stress and flow rate 0.7 / 3.4 / 3.4 % off).
+    # Reduced size for CI: 142 particles, 0.3 s of motion, 21 gradient evaluations (measured
+    # with the contact's touchdown share: loss 7.0e-7 -> 1.5e-21, converged, all three at the
+    # truth; after 13 evaluations the yield stress was still 21 % off, mu and the flow rate
+    # 0.8 / 2.4 %, on a path that first lowers mu; with the share's first form 13 sufficed).
     monkeypatch.setenv("FIT_SCALE", "0.5")
     monkeypatch.setenv("FIT_FRAMES", "9")
-    monkeypatch.setenv("FIT_ITERATIONS", "12")
+    monkeypatch.setenv("FIT_ITERATIONS", "20")
     monkeypatch.setenv("FIT_OUT", str(out))
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
     monkeypatch.setenv("MPLBACKEND", "Agg")

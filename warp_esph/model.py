@@ -338,8 +338,10 @@ class Model:
     @property
     def contact_ramp(self) -> float:
         """The contact law of the colliders and tools (``colliders.coulomb_response``): ``r > 0``
-        removes at most ``depth / (r dt)`` of the inward normal velocity of a particle found
-        inside, with the stick-slip transition rounded, which is continuous in the state, so a
+        removes, in a touchdown step, the share ``smoothstep(depth / (r (-v_n) dt))`` of the
+        inward normal velocity of a particle found inside (``colliders.touchdown_share``;
+        all of it once the particle started the step on the surface), with the stick-slip
+        transition rounded, which is continuous in the state, so a
         loss is continuous in the parameters through contact (1, the default:
         ``colliders.CONTINUOUS_CONTACT_RAMP``); 0 (``colliders.INSTANT_CONTACT_RAMP``, "instant")
         removes all of it, the first law, whose loss jumps (docs/method.md §1, "Contact")."""

@@ -340,6 +340,9 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         x_s = world(p1, q1, xc)
         vs = (x_s - world(p0, q0, xc)) / dt
         n = wp.quat_rotate(q1, nl)
+        # The whole depth is undone (a particle left inside a moving tool could be passed by
+        # it: a thin blade's nearest face may be its back); the touchdown share acts on the
+        # velocity alone.
         v_new = col.coulomb_response(v, vs, n, wp.dot(x_s - x, n), dt, ramp, mu_s[c], mu_k[c])
         x_new = x_s + tangential_follow(x_start, x_s, v_new, vs, n, p0, q0, p1, q1, dt)
         f = m * (v_new - v) / dt

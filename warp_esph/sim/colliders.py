@@ -3,10 +3,12 @@
 A particle found inside a collider after the position update is moved to its surface;
 the inward normal velocity is removed and the tangential velocity loses ``friction`` times
 it (Coulomb friction; it stops when that exceeds it). With ``Model.contact_ramp > 0``
-(the default, ``CONTINUOUS_CONTACT_RAMP``) at most ``depth / (ramp dt)`` of the normal velocity
-is removed and the stick-slip transition is rounded, which keeps the step continuous in the
-state, so a loss is continuous in the parameters through contact (docs/method.md §1,
-"Contact"); ``contact_ramp = 0`` (``INSTANT_CONTACT_RAMP``) is the first law.
+(the default, ``CONTINUOUS_CONTACT_RAMP``) a touchdown step moves the particle out by, and
+removes, only the share ``touchdown_share`` of the depth and of the normal velocity, smooth
+in how far past the surface the step's drift went, and the stick-slip transition is rounded,
+which keeps the step C1 in the state where a particle lands, so a loss is smooth in the
+parameters through contact (docs/method.md §1, "Contact"); ``contact_ramp = 0``
+(``INSTANT_CONTACT_RAMP``) is the first law.
 The position is corrected by ``dt`` times the velocity friction removed: the drift moved the
 particle with the velocity before friction, so without it a particle that friction holds
 still slides ``a_t dt^2`` per step, a creep at speed ``a_t dt`` that kept slumped plastic
@@ -24,9 +26,10 @@ from .._types import type_set
 #: Collider loops are unrolled at compile time (a dynamic loop that carries positions
 #: through non-linear projections would get a wrong adjoint, docs/method.md, Warp pitfall 1).
 MAX_PER_KIND = 16
-#: ``Model.contact_ramp`` of the continuous contact: at most ``depth / dt`` of the inward
-#: normal velocity of a particle found inside is removed and the stick-slip transition is
-#: rounded, so the step is continuous in the state (docs/method.md §1, "Contact").
+#: ``Model.contact_ramp`` of the continuous contact: a touchdown step removes only the share
+#: ``touchdown_share`` of the inward normal velocity of a particle found inside, and the
+#: stick-slip transition is rounded, so the step is C1 in the state where a particle lands
+#: (docs/method.md §1, "Contact").
 CONTINUOUS_CONTACT_RAMP = 1.0
 #: ``Model.contact_ramp`` of the instant contact, the first law: the whole inward normal
 #: velocity is removed, discontinuous where a particle crosses the surface.
@@ -80,30 +83,45 @@ def funcs(scalar) -> types.SimpleNamespace:
         return r
 
     @wp.func
+    def touchdown_share(vn: scalar, depth: scalar, dt: scalar, ramp: scalar) -> scalar:
+        """Share of the inward normal velocity ``-vn`` removed, and of the depth undone, for
+        a particle found ``depth`` inside after the drift: 1 for the instant law
+        (``ramp = 0``), for one moving outward and for one whose whole drift of the step
+        went past the surface (``q >= 1``, ``q = depth / (ramp (-vn) dt)``: it started the
+        step on or inside the surface: resting, sticking, pressed), else ``smoothstep(q)``.
+        ``q`` is the share of the step after the touchdown; the smoothstep's zero slope at
+        both ends makes the response C1 where a touchdown moves across a step's end and
+        where a landing particle becomes a resting one."""
+        if ramp <= scalar(0.0) or vn >= scalar(0.0):
+            return scalar(1.0)
+        reach = ramp * (-vn) * dt
+        if depth >= reach:
+            return scalar(1.0)
+        q = depth / reach
+        return q * q * (scalar(3.0) - scalar(2.0) * q)
+
+    @wp.func
     def coulomb_response(v: vec3, vs: vec3, n: vec3, depth: scalar, dt: scalar, ramp: scalar, mu_s: scalar, mu_k: scalar):
         """Velocity after contact with a surface moving at ``vs`` (outward normal ``n``) of a
-        particle found ``depth`` inside it after the drift: the inward relative normal
-        velocity ``-vn`` is removed up to ``depth / dt``, the normal speed the particle had
-        in excess of what keeps it out (the speculative-contact form of the constraint);
-        Coulomb friction on the relative tangential velocity, sticking while it is at most
-        ``mu_s`` times the normal velocity removed, else reduced by ``mu_k`` times it. The
-        one contact law of the static colliders and the moving tools
-        (``warp_esph/tools.py``).
+        particle found ``depth`` inside it after the drift: the share ``touchdown_share`` of
+        the inward relative normal velocity ``-vn`` is removed; Coulomb friction on the
+        relative tangential velocity, sticking while it is at most ``mu_s`` times the normal
+        velocity removed, else reduced by ``mu_k`` times it. The one contact law of the
+        static colliders and the moving tools (``warp_esph/tools.py``).
 
-        Removing only ``depth / dt`` makes the response continuous in the state: a particle
-        that barely crosses the surface in a step loses barely any normal velocity and gets
-        barely any friction, and the rest one step later, instead of all of it at once or
-        none (docs/method.md §1, "Contact"). A particle that starts the step on the surface (resting,
-        sticking, or pressed by a moving tool) has ``depth = -vn dt`` and loses all of it, as
-        before. ``ramp`` (``Model.contact_ramp``) scales the cap to ``depth / (ramp dt)``;
-        ``ramp = 0`` is the instant law (all of it, friction not rounded)."""
+        A particle that barely crosses the surface in a step loses barely any normal
+        velocity and gets barely any friction, and the rest one step later, instead of all
+        of it at once or none (docs/method.md §1, "Contact"). One that starts the step on
+        the surface (resting, sticking, or pressed by a moving tool) has ``depth = -vn dt``
+        and loses all of it, as before. ``ramp = 0`` is the instant law (all of it,
+        friction not rounded)."""
         vr = v - vs
         vn = wp.dot(vr, n)
         if vn < scalar(0.0) and depth > scalar(0.0):
             vt = vr - vn * n
             vt_len = wp.length(vt)
             if ramp > scalar(0.0):
-                dvn = wp.min(-vn, depth / (ramp * dt))
+                dvn = -vn * touchdown_share(vn, depth, dt, ramp)
                 vn_left = (vn + dvn) * n
                 if vt_len <= mu_s * dvn:
                     return vs + vn_left
@@ -119,13 +137,15 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     @wp.func
     def respond(x: vec3, v: vec3, depth: scalar, n: vec3, friction: scalar, dt: scalar, ramp: scalar):
-        """Project a particle ``depth`` inside along outward normal ``n`` of a static
-        collider; friction over the step ``dt``."""
+        """Move a particle ``depth`` inside along outward normal ``n`` of a static collider
+        out by ``touchdown_share`` of it (all of it but in a touchdown step); friction over
+        the step ``dt``."""
         v_new = coulomb_response(v, vec3(), n, depth, dt, ramp, friction, friction)
         # The drift moved x by dt times the tangential velocity; friction takes back what it
         # removed from it, so a particle that sticks stays where it was.
         dv = v_new - v
-        return x + depth * n + dt * (dv - wp.dot(dv, n) * n), v_new
+        share = touchdown_share(wp.dot(v, n), depth, dt, ramp)
+        return x + (share * depth) * n + dt * (dv - wp.dot(dv, n) * n), v_new
 
     @wp.func
     def collide_plane(x: vec3, v: vec3, n: vec3, offset: scalar, friction: scalar, dt: scalar, ramp: scalar):
@@ -160,5 +180,5 @@ def funcs(scalar) -> types.SimpleNamespace:
         return x, v
 
     return types.SimpleNamespace(
-        coulomb_response=coulomb_response, slip_speed=slip_speed, respond=respond, collide_plane=collide_plane, collide_sphere=collide_sphere, collide_box=collide_box
+        coulomb_response=coulomb_response, slip_speed=slip_speed, touchdown_share=touchdown_share, respond=respond, collide_plane=collide_plane, collide_sphere=collide_sphere, collide_box=collide_box
     )
