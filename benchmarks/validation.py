@@ -1782,24 +1782,26 @@ def same_run(a: dict, b: dict) -> bool:
 def merge(earlier: dict | None, results: list[dict], meta: dict, drop=()) -> dict:
     """The JSON document of this run, merged into ``earlier`` (a validation.json) if given.
 
-    ``runs`` lists every run that measured a result kept (command, wall time, machine,
-    commit); each result's ``run`` is its index there. Results of ``earlier`` that this run
+    ``runs`` lists every run merged so far (command, wall time, machine, commit), this one
+    last; each result's ``run`` is its index there. Results of ``earlier`` that this run
     measured again (``same_run``) are dropped; the rest keep their run, which is carried over
     from ``earlier`` (a JSON written before runs were recorded is one run, its ``command``).
-    Results of ``earlier`` whose case is in ``drop`` are not kept at all."""
+    Results of ``earlier`` whose case is in ``drop`` are not kept at all. A run left without
+    results stays listed, marked ``"superseded": True``: the report's notes cite runs by
+    number (R7), and dropping one would renumber every later run under them."""
     runs, kept = [], []
     if earlier is not None:
         old_runs = earlier.get("runs") or [{k: earlier[k] for k in ("command", "machine", "python", "wall_s")
                                            if k in earlier}]
-        used = {}
+        runs = [dict(r) for r in old_runs]
         for r in earlier["results"]:
             if r["case"] in drop or any(same_run(r, n) for n in results):
                 continue
-            i = r.get("run", 0)
-            if i not in used:
-                used[i] = len(runs)
-                runs.append(old_runs[i])
-            kept.append(r | {"run": used[i]})
+            kept.append(r | {"run": r.get("run", 0)})
+        holding = {r["run"] for r in kept}
+        for i, run in enumerate(runs):
+            if i not in holding:
+                run["superseded"] = True
     new = [r | {"run": len(runs)} for r in results]
     runs.append(meta)
     return {"command": "; ".join(r.get("command", "?") for r in runs), "runs": runs,

@@ -598,7 +598,10 @@ def write(results, out: pathlib.Path, meta: dict):
             notes = old[old.index(NOTES[0]) + len(NOTES[0]):old.index(NOTES[1])]
     runs = meta.get("runs") or [meta]
     listed = _table(["run", "command", "commit", "date", "wall (s)", "machine"],
-                    [[f"R{i + 1}", f"`{m.get('command', '?')}`", m.get("commit") or "–", m.get("date") or "–",
+                    [[f"R{i + 1}", f"`{m.get('command', '?')}`" + (" (superseded: none of its rows is left, each measured "
+                                                               "again or dropped by a later run)"
+                                                               if m.get("superseded") else ""),
+                      m.get("commit") or "–", m.get("date") or "–",
                       f"{m.get('wall_s', 0.0):.0f}", m.get("machine", "?")] for i, m in enumerate(runs)])
     parts = [INTRO.format(runs=listed)]
     tg = _targets(results)

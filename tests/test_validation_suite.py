@@ -673,10 +673,17 @@ def test_merge_replaces_the_rows_measured_again_and_tags_every_row_with_its_run(
     by = {(r["case"], r["resolution"]): r for r in again["results"]}
     assert by["slump", 12]["run"] == 0 and by["beam", 6]["run"] == 1 and by["slump", 8]["run"] == 2
     assert validation.merge(None, new_rows, meta)["runs"] == [meta]
-    # Rows of a dropped case go, and a run left without rows is not listed.
+    # Rows of a dropped case go; a run left without rows stays listed, marked, so that the
+    # numbers of the runs after it (which the report's notes cite) do not move.
     dropped = validation.merge(earlier, new_rows[1:], meta, drop=("slump",))
     assert [r["case"] for r in dropped["results"]] == ["beam"]
-    assert [r["command"] for r in dropped["runs"]] == [meta["command"]]
+    assert [r["command"] for r in dropped["runs"]] == ["an older run", meta["command"]]
+    assert dropped["runs"][0]["superseded"] and "superseded" not in dropped["runs"][1]
+    assert dropped["results"][0]["run"] == 1
+    assert "superseded" not in again["runs"][0]
+    # Marking a run leaves the merged document it came from as it was.
+    validation.merge(doc, [], meta, drop=("slump", "beam"))
+    assert not any("superseded" in r for r in doc["runs"])
 
 
 @pytest.mark.parametrize("radii,verdict", [((0.854, 0.898, 0.937), "within 10 %: yes; converging: yes"),
