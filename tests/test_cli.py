@@ -212,30 +212,33 @@ def test_hourglass_from_scene_file_cli_and_resume(tmp_path, capsys):
 
 
 def test_fit_weight_from_scene_file_cli_and_resume(tmp_path, capsys):
-    """``[solver] fit_weight = "biweight"`` changes the frames of a deforming run; ``--fit-weight
-    poly6`` over it gives the frames of the file without it, bit for bit; the run record and the
-    USD metadata keep the weight, ``--resume`` keeps the run's, and refuses it given again."""
+    """``[solver] fit_weight`` naming the weight that is not the default changes the frames of a
+    deforming run; ``--fit-weight`` naming the default over it gives the frames of the file
+    without it, bit for bit; the run record and the USD metadata keep the weight, ``--resume``
+    keeps the run's, and refuses it given again."""
     from warp_esph.checkpoint import read_checkpoint
+    from warp_esph.sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 
-    plain, chosen, falling = _falling_scenes(tmp_path, '[solver]\nfit_weight = "biweight"\n')
+    other = next(w for w in FIT_WEIGHTS if w != DEFAULT_FIT_WEIGHT)
+    plain, chosen, falling = _falling_scenes(tmp_path, f'[solver]\nfit_weight = "{other}"\n')
     frames, run = _box_frames, functools.partial(_run_four_frames, tmp_path)
 
     x_plain = frames(run(plain, "plain"))
     chosen_out = run(chosen, "chosen")
     x_chosen = frames(chosen_out)
-    assert open_fresh(chosen_out).GetRootLayer().customLayerData["warp_esph:fit_weight"] == "biweight"
-    x_back = frames(run(chosen, "back", "--fit-weight", "poly6"))
+    assert open_fresh(chosen_out).GetRootLayer().customLayerData["warp_esph:fit_weight"] == other
+    x_back = frames(run(chosen, "back", "--fit-weight", DEFAULT_FIT_WEIGHT))
     assert all(np.array_equal(a, b) for a, b in zip(x_back, x_plain))
     assert np.abs(x_chosen[-1] - x_plain[-1]).max() > 1e-6
     part = run(chosen, "part", "--frames", "2", "--checkpoint-every", "2")
     ckpt = str(part) + ".checkpoint.npz"
-    assert read_checkpoint(ckpt)[0]["run"]["fit_weight"] == "biweight"
-    chosen.write_text(falling)  # the scene now says poly6: the resumed run keeps the biweight
+    assert read_checkpoint(ckpt)[0]["run"]["fit_weight"] == other
+    chosen.write_text(falling)  # the scene now names no weight: the resumed run keeps its own
     assert main(["run", "--resume", ckpt, "--frames", "4", "--no-progress"]) == 0
     assert all(np.array_equal(a, b) for a, b in zip(frames(part), x_chosen))
     capsys.readouterr()
-    assert main(["run", "--fit-weight", "poly6", "--resume", ckpt, "--frames", "6", "--no-progress"]) == 2
-    assert_one_line_error(capsys.readouterr().err, "--fit-weight = 'poly6'", "is not allowed with --resume")
+    assert main(["run", "--fit-weight", DEFAULT_FIT_WEIGHT, "--resume", ckpt, "--frames", "6", "--no-progress"]) == 2
+    assert_one_line_error(capsys.readouterr().err, f"--fit-weight = '{DEFAULT_FIT_WEIGHT}'", "is not allowed with --resume")
 
 
 RESTING_TOML = textwrap.dedent(

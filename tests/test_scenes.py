@@ -238,19 +238,23 @@ def test_solver_table_sets_the_fit_and_contact_of_the_model_and_its_solver(tmp_p
 
 
 def test_solver_table_sets_the_fit_weight_of_the_model_and_its_worlds(tmp_path):
-    """``[solver] fit_weight = "biweight"`` reaches ``Model.fit_weight``, the worlds copied from
-    the model and those made from builders; worlds of different weights are refused by name."""
+    """``[solver] fit_weight`` naming the weight that is not the default reaches
+    ``Model.fit_weight``, the worlds copied from the model and those made from builders; worlds
+    of different weights are refused by name."""
     from warp_esph import SceneBuilder, finalize_worlds, replicate_worlds
+    from warp_esph.sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 
+    other = next(w for w in FIT_WEIGHTS if w != DEFAULT_FIT_WEIGHT)
     plain, chosen = tmp_path / "plain.toml", tmp_path / "chosen.toml"
     plain.write_text(BASE)
-    chosen.write_text('[solver]\nfit_weight = "biweight"\n' + BASE)
+    chosen.write_text(f'[solver]\nfit_weight = "{other}"\n' + BASE)
     m = load_scene_file(chosen).builder.finalize()
-    assert (m.fit_weight, load_scene_file(plain).builder.finalize().fit_weight) == ("biweight", "poly6")
-    assert replicate_worlds(m, 2).fit_weight == "biweight"
+    assert (m.fit_weight, load_scene_file(plain).builder.finalize().fit_weight) == (other, DEFAULT_FIT_WEIGHT)
+    assert replicate_worlds(m, 2).fit_weight == other
     b0, b1 = load_scene_file(chosen).builder, load_scene_file(plain).builder
-    assert finalize_worlds([b0, b0]).fit_weight == "biweight"
-    with pytest.raises(ValueError, match=r"builders\[1\]\.fit_weight = 'poly6' is not allowed: every world must have the fit_weight"):
+    assert finalize_worlds([b0, b0]).fit_weight == other
+    with pytest.raises(ValueError, match=rf"builders\[1\]\.fit_weight = '{DEFAULT_FIT_WEIGHT}' is not allowed: every world must "
+                                         "have the fit_weight"):
         finalize_worlds([b0, b1])
     with pytest.raises(ValueError, match=r"fit_weight = 'cubic' is not allowed: must be one of 'poly6', 'biweight'"):
         SceneBuilder(fit_weight="cubic")

@@ -18,7 +18,7 @@ from . import checks, meshes, tools
 from ._types import scalar_type
 from .sim.colliders import CONTACT_RAMP, MAX_PER_KIND, Box, Plane, Sphere
 from .sim.neighbors import PAPER_MAX_NEIGHBORS, default_max_neighbors
-from .sim.smoothing import FIT_WEIGHTS
+from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 from .material import Material
 from .meshes import lattice_points
 from .model import CONTACTS, FITS, Body, Model
@@ -101,7 +101,7 @@ class SceneBuilder:
         contact: str | None = None,
         contact_ramp: float = CONTACT_RAMP,
         hourglass: float | None = None,
-        fit_weight: str = "poly6",
+        fit_weight: str = DEFAULT_FIT_WEIGHT,
     ):
         self.spacing = checks.positive("spacing", spacing)
         #: ``Model.fit_weight`` of the model ``finalize`` makes.

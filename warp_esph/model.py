@@ -22,7 +22,7 @@ from .sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP, INSTANT_CONTAC
 from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, PRESSURE_FORCE_IDS, Material, p_wave_speed
 from .sim import ghost_floor, integrate
 from .sim.replay import Launches, pointer_key
-from .sim.smoothing import FIT_WEIGHTS
+from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 from .sim import materials as material_struct
 
 
@@ -188,7 +188,7 @@ class Model:
         bodies_interact: bool = True,
         particle_world: np.ndarray | None = None,
         world_material_start: Sequence[int] | None = None,
-        fit_weight: str = "poly6",
+        fit_weight: str = DEFAULT_FIT_WEIGHT,
     ):
         self.device = wp.get_device(device)
         self.types = type_set(scalar)

@@ -25,7 +25,7 @@ from . import checks
 from .builder import MAX_FLOOR_LAYERS, SceneBuilder
 from .material import PRESETS, Material
 from .model import CONTACTS, FITS
-from .sim.smoothing import FIT_WEIGHTS
+from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 
 __all__ = [
     "Scene", "load_scene_file", "SCENE_KEYS", "MATERIAL_KEYS", "BODY_COMMON", "BODY_SHAPES", "COLLIDER_TYPES", "TOP_KEYS",
@@ -418,7 +418,7 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
     if contact is not None:
         _choice(file, "[solver]", "contact", contact, tuple(CONTACTS))
     hourglass = solver.get("hourglass")
-    fit_weight = solver.get("fit_weight", "poly6")
+    fit_weight = solver.get("fit_weight", DEFAULT_FIT_WEIGHT)
     _choice(file, "[solver]", "fit_weight", fit_weight, FIT_WEIGHTS)
     materials_table = data.get("materials", {})
     if not isinstance(materials_table, dict):

@@ -485,7 +485,7 @@ class NeighborSearch:
         bodies_interact: bool = True,
         group: wp.array | None = None,
         world: wp.array | None = None,
-        fit_weight: str = "poly6",
+        fit_weight: str = smoothing.DEFAULT_FIT_WEIGHT,
     ):
         self.scalar = scalar
         self.bodies_interact = bool(bodies_interact)

@@ -198,6 +198,10 @@ def funcs(scalar) -> types.SimpleNamespace:
 #: increment shares more of its neighbours' (docs/physics.md, "The fit's weight"). The SPH
 #: density, the hourglass control and the ghost floor's stencil keep poly6.
 FIT_WEIGHTS = ("poly6", "biweight")
+#: The weight a model gets unless it names one (``SceneBuilder``, ``Model``, a scene file's
+#: ``[solver]``, the neighbour search): every bound of the test suite and every row of
+#: docs/validation.md without a ``fit_weight`` was measured with it.
+DEFAULT_FIT_WEIGHT = "poly6"
 
 
 @functools.cache
