@@ -600,18 +600,19 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
 # ---------------------------------------------------------------------- bar
 def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slenderness: int = 10,
                   periods: float = 3.2, strain: float = 1.0e-3, E: float = 1.0e5, nu: float = 0.3, fit: str | None = None, hourglass: float | None = None,
-                  deformation: str = "incremental") -> dict:
+                  deformation: str = "incremental", fit_weight: str = "poly6") -> dict:
     """Free-free bar, ``resolution`` x ``resolution`` particles across, ``slenderness`` times
     as long, pressure off, no gravity, started in its first longitudinal mode
     (``v = strain c cos(pi X / L)``). The frequency is read from the upward zero crossings
     of the end-to-end length; theory f = c / (2 L), c = sqrt(E / rho), L = the bar's
-    material length (particles x dx)."""
+    material length (particles x dx). ``fit_weight``: ``SceneBuilder(fit_weight=)``, as in
+    every elastic case."""
     wp, we = _we()
     dx = 0.01
     n, nl = resolution, resolution * slenderness
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force=elastic_force,
                                  deformation=deformation)
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0), fit_weight=fit_weight)
     L = nl * dx
     b.add_box((L / 2, 0.0, 0.0), (L, n * dx, n * dx), mat)
     model = b.finalize(device=wp.get_device())
@@ -640,7 +641,8 @@ def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slend
     # Linear interpolation of each crossing between its two samples.
     tc = (up + s[up] / (s[up] - s[up + 1]) + 1.0) * dt
     f = (len(tc) - 1) / (tc[-1] - tc[0]) if len(tc) >= 2 else float("nan")
-    return {"case": "bar", "resolution": n, "elastic_force": elastic_force, "particles": model.particle_count,
+    return {"case": "bar", "resolution": n, "elastic_force": elastic_force, "fit_weight": fit_weight,
+            "particles": model.particle_count,
             "frequency": f, "theory": f_theory, "ratio": f / f_theory, "periods_measured": len(tc) - 1}
 
 
@@ -648,7 +650,7 @@ def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slend
 def beam_deflection(resolution: int = 6, elastic_force: str = "variational", span_over_thickness: int = 10,
                     periods: float = 3.0, nu: float = 0.3, deflection_over_thickness: float = 0.03,
                     kappa: float = 0.85, dtype: str = "float32", fit: str | None = None,
-                    hourglass: float | None = None, deformation: str = "incremental") -> dict:
+                    hourglass: float | None = None, deformation: str = "incremental", fit_weight: str = "poly6") -> dict:
     """A square beam ``resolution`` particles thick on two supports under its own weight
     (``fit``, ``hourglass``: the solver's incremental fit and hourglass control,
     ``Solver(fit=..., hourglass=...)``; None: the default, ``Model.solver_choice``).
@@ -675,7 +677,7 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
     Gs = mat.mu
     theory_eb = 5.0 * q * L**4 / (384.0 * E * I)
     theory = theory_eb + q * L**2 / (8.0 * kappa * Gs * A)
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0), fit_weight=fit_weight)
     # The bottom layer starts on the supports' top faces (y = 0).
     b.add_box((0.0, t / 2.0 - dx / 2.0, 0.0), ((cols + 1) * dx, t, t), mat)
     for xs in (-L / 2.0, L / 2.0):
@@ -710,7 +712,8 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
     ke = _kinetic(model, a)
     # Relaxed, the kinetic energy is round-off; a beam that broke up keeps moving.
     blew_up = bool(not math.isfinite(ke) or ke > 1e-3 * float(model.particle_mass.numpy().sum()) * G * theory)
-    return {"case": "beam", "resolution": n, "elastic_force": elastic_force, "fit": solver.fit, "hourglass": solver.hourglass,
+    return {"case": "beam", "resolution": n, "elastic_force": elastic_force, "fit_weight": fit_weight, "fit": solver.fit,
+            "hourglass": solver.hourglass,
             "particles": model.particle_count, "span_over_thickness": span_over_thickness, "deflection": hd[-1], "theory": theory,
             "theory_euler_bernoulli": theory_eb, "ratio": hd[-1] / theory,
             "residual_rate_pct_per_s": 100.0 * rate / theory, "kinetic_energy": ke, "blew_up": blew_up,
@@ -722,7 +725,8 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
 COLUMN_FLOORS = ("ground", "slip_ghost_particles")
 
 
-def _free_column(we, mat, n: int, aspect: int, dx: float, dtype: str = "float32", floor: str = "ground"):
+def _free_column(we, mat, n: int, aspect: int, dx: float, dtype: str = "float32", floor: str = "ground",
+                 fit_weight: str = "poly6"):
     """A square column of ``mat``, ``n`` particles across and ``aspect`` times as tall, standing
     on a frictionless floor (laterally free). Returns the model, its height, the initial
     positions, the masks of its top and bottom layers and of its particles (not the floor's)
@@ -738,7 +742,7 @@ def _free_column(we, mat, n: int, aspect: int, dx: float, dtype: str = "float32"
     if floor not in COLUMN_FLOORS:
         raise ValueError(f"floor = {floor!r} is not allowed: must be one of {', '.join(map(repr, COLUMN_FLOORS))}")
     H = n * aspect * dx
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0), fit_weight=fit_weight)
     b.add_box((0.0, H / 2.0, 0.0), (n * dx, H, n * dx), mat, name="column")
     count = b.particle_count
     if floor == "ground":
@@ -756,7 +760,8 @@ def _free_column(we, mat, n: int, aspect: int, dx: float, dtype: str = "float32"
 
 def column_settlement(resolution: int = 6, elastic_force: str = "variational", aspect: int = 5,
                       E: float = 1.5e5, nu: float = 0.3, periods: float = 4.0, fit: str | None = None, hourglass: float | None = None,
-                  deformation: str = "incremental", pressure_stiffness: float | None = 0.0, floor: str = "ground") -> dict:
+                  deformation: str = "incremental", pressure_stiffness: float | None = 0.0, floor: str = "ground",
+                  fit_weight: str = "poly6") -> dict:
     """A free-standing square column, ``resolution`` particles across and ``aspect`` times as
     tall, on a frictionless floor (laterally free; ``floor``: ``_free_column``'s), pressure off
     (``pressure_stiffness``; None: the material's default SPH pressure, which stiffens it), relaxed dynamically. The
@@ -768,7 +773,7 @@ def column_settlement(resolution: int = 6, elastic_force: str = "variational", a
     n = resolution
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=pressure_stiffness, elastic_force=elastic_force,
                                  deformation=deformation)
-    model, H, x0, top, bottom, _, L0 = _free_column(we, mat, n, aspect, dx, floor=floor)
+    model, H, x0, top, bottom, _, L0 = _free_column(we, mat, n, aspect, dx, floor=floor, fit_weight=fit_weight)
     theory = RHO * G * H * (H - dx) / (2.0 * E)
     omega = 0.5 * math.pi * math.sqrt(E / RHO) / H  # fixed-free axial mode
     solver = we.Solver(model, fit=fit, hourglass=hourglass)
@@ -787,7 +792,8 @@ def column_settlement(resolution: int = 6, elastic_force: str = "variational", a
     a, c = _swap_run(model, solver, a, c, dt, steps, after)
     h = np.array(hist)
     rate = np.polyfit(h[:, 0], h[:, 1], 1)[0]
-    return {"case": "column", "resolution": n, "elastic_force": elastic_force, "particles": model.particle_count,
+    return {"case": "column", "resolution": n, "elastic_force": elastic_force, "fit_weight": fit_weight,
+            "particles": model.particle_count,
             "shortening": h[-1, 1], "theory": theory, "ratio": h[-1, 1] / theory,
             "residual_rate_pct_per_s": 100.0 * rate / theory, "kinetic_energy": _kinetic(model, a)}
 
@@ -906,7 +912,7 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
 # ------------------------------------------------------------------ poisson
 def poisson_compression(resolution: int = 6, elastic_force: str = "variational", strain: float = 1.0e-3,
                         E: float = 1.0e5, nu: float = 0.3, aspect: int = 2, periods: float = 20.0, fit: str | None = None, hourglass: float | None = None,
-                  deformation: str = "incremental") -> dict:
+                  deformation: str = "incremental", fit_weight: str = "poly6") -> dict:
     """A block ``resolution`` particles across and ``aspect`` times as long, compressed along
     x by ``strain`` (positions and F together) and held between two frictionless planes
     at its end layers; no gravity, pressure off, relaxed dynamically. Measured: the lateral
@@ -917,7 +923,7 @@ def poisson_compression(resolution: int = 6, elastic_force: str = "variational",
     n, nl = resolution, resolution * aspect
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force=elastic_force,
                                  deformation=deformation)
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0), fit_weight=fit_weight)
     b.add_box((0.0, 0.0, 0.0), (nl * dx, n * dx, n * dx), mat)
     model = b.finalize(device=wp.get_device())
     x0 = model.particle_x0.astype(np.float64)
@@ -953,7 +959,8 @@ def poisson_compression(resolution: int = 6, elastic_force: str = "variational",
     h = np.array(hist)
     lat, force = h[-1, 1], h[-1, 2]
     area = (n * dx) ** 2
-    return {"case": "poisson", "resolution": n, "elastic_force": elastic_force, "particles": model.particle_count,
+    return {"case": "poisson", "resolution": n, "elastic_force": elastic_force, "fit_weight": fit_weight,
+            "particles": model.particle_count,
             "lateral_strain": lat, "poisson_measured": lat / strain, "poisson_theory": nu,
             "poisson_ratio": lat / strain / nu, "force": force, "force_theory": E * area * strain,
             "young_ratio": force / (E * area * strain),
@@ -1449,15 +1456,16 @@ def _stability_materials():
     return out
 
 
-def stability(material, duration: float = 1.0, resolution: int = 6, dt_factor: float = 0.5, limit: float = 5.0) -> dict:
+def stability(material, duration: float = 1.0, resolution: int = 6, dt_factor: float = 0.5, limit: float = 5.0,
+              fit_weight: str = "poly6") -> dict:
     """A ``resolution``^3 box of ``material`` (2 cm spacing) resting on the ground (friction
     0.5), run at ``dt_factor`` x ``Model.stable_dt()`` for ``duration`` s. It blew up if a
     particle ever moved faster than ``limit`` m/s (a body at rest under gravity: well below
-    it) or any value went non-finite."""
+    it) or any value went non-finite. ``fit_weight``: ``SceneBuilder(fit_weight=)``."""
     wp, we = _we()
     dx = 0.02
     n = resolution
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0), fit_weight=fit_weight)
     b.add_box((0.0, n * dx / 2.0, 0.0), (n * dx,) * 3, material)
     b.add_ground(0.0, friction=0.5)
     model = b.finalize(device=wp.get_device())
@@ -1477,7 +1485,8 @@ def stability(material, duration: float = 1.0, resolution: int = 6, dt_factor: f
 
     a, c = model.state(), model.state()
     a, c = _swap_run(model, solver, a, c, dt, steps, after)
-    return {"case": "stability", "elastic_force": material.elastic_force, "dt": dt, "duration": duration,
+    return {"case": "stability", "elastic_force": material.elastic_force, "fit_weight": fit_weight, "dt": dt,
+            "duration": duration,
             "max_speed": peak[0], "blew_up": peak[1] is not None, "blew_up_at": peak[1],
             "final_speed": float(np.abs(a.v.numpy()).max()) if peak[1] is None else None}
 
@@ -1552,6 +1561,14 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     for label, _ in _stability_materials():
         for f in FORCES:
             runs.append(("stability", {"label": label, "elastic_force": f, "duration": 1.0}))
+    # The biweight fit weight (docs/physics.md, "The fit's weight") on the elastic references
+    # and the step bound, with the default elastic force.
+    for res in (4, 6):
+        for case in ("bar_frequency", "beam_deflection", "column_settlement", "poisson_compression"):
+            runs.append((case, {"resolution": res, "elastic_force": "variational", "fit_weight": "biweight"}))
+    for label, _ in _stability_materials():
+        for f in FORCES:
+            runs.append(("stability", {"label": label, "elastic_force": f, "duration": 1.0, "fit_weight": "biweight"}))
     # The spread limit: three resolutions at a = h_RC / R_RC = 0.25, and a shallower pile.
     for res in (3, 4, 5):
         runs.append(("spread", {"resolution": res, "shallowness": 0.25, "duration": 14.0}))

@@ -184,13 +184,15 @@ def _plots(results, img: pathlib.Path) -> list[str]:
         axes = np.atleast_1d(axes)
         for ax, (c, key, label) in zip(axes, elastic):
             for f in MARK:
-                for prec in ("float32", "float64"):
+                for prec, weight, line in (("float32", "poly6", "-"), ("float64", "poly6", ":"), ("float32", "biweight", "--")):
                     rs = sorted((r for r in results if r["case"] == c and r["elastic_force"] == f and r.get("dtype", "float32") == prec
-                                 and r.get("span_over_thickness", 10) == 10 and not (c == "beam" and _beam_blew_up(r))),
+                                 and _fit_weight(r) == weight and r.get("span_over_thickness", 10) == 10
+                                 and not (c == "beam" and _beam_blew_up(r))),
                                 key=lambda r: r["resolution"])
                     if rs:
-                        ax.plot([r["resolution"] for r in rs], [r[key] for r in rs], MARK[f] + ("-" if prec == "float32" else ":"),
-                                color=FORCE_COLOR[f], label=f if prec == "float32" else f"{f}, float64")
+                        name = f + (", float64" if prec == "float64" else "") + (f", {weight}" if weight != "poly6" else "")
+                        ax.plot([r["resolution"] for r in rs], [r[key] for r in rs], MARK[f] + line,
+                                color=FORCE_COLOR[f], label=name)
             ax.axhline(1.0, color="k", lw=0.8)
             ax.set_xlabel("particles across")
             ax.set_title(label, fontsize=9)
@@ -412,16 +414,18 @@ def _spread_target(results, weight: str) -> list[tuple[str, str, str, str]]:
     return out
 
 
-def _targets(results) -> list[tuple[str, str, str, str]]:
-    """(target of issue 12, measured, met?, runs): one row per target, on the default elastic
-    force (variational) and the default fit, the suite's plan sizes."""
+def _elastic_targets(results, weight: str) -> list[tuple[str, str, str, str]]:
+    """The bar's and the beam's targets over the rows with the fit ``weight`` (the default's,
+    poly6, unnamed), on the default elastic force (variational)."""
     out = []
     default = "variational"
+    on = "" if weight == "poly6" else f", with the {weight} fit weight"
+    results = [r for r in results if _fit_weight(r) == weight]
     bars = [r for r in results if r["case"] == "bar" and r["resolution"] == 4 and r["elastic_force"] == default]
     if bars:
         r = bars[-1]
         e = abs(r["ratio"] - 1.0)
-        out.append(("bar frequency within 2 % of c/(2L) at 4 across", f"{r['ratio']:.4f} x c/(2L) ({100 * e:.2g} % off)",
+        out.append((f"bar frequency within 2 % of c/(2L) at 4 across{on}", f"{r['ratio']:.4f} x c/(2L) ({100 * e:.2g} % off)",
                     "yes" if e < 0.02 else "no", _run(r)))
     beams = sorted((r for r in results if r["case"] == "beam" and r["elastic_force"] == default
                     and r.get("dtype", "float32") == "float32" and r.get("span_over_thickness", 10) == 10),
@@ -436,8 +440,33 @@ def _targets(results) -> list[tuple[str, str, str, str]]:
         converging = bool(coarse) and not _beam_blew_up(r) and abs(coarse[-1]["ratio"] - 1.0) > e
         if coarse:
             got += f"; {coarse[-1]['resolution']} thick {coarse[-1]['ratio']:.4g} x ({'converging' if converging else 'not converging'})"
-        out.append(("beam deflection within 10 % of Timoshenko at 6 thick (span 10 t), converging", got,
+        out.append((f"beam deflection within 10 % of Timoshenko at 6 thick (span 10 t), converging{on}", got,
                     "yes" if e < 0.1 and converging else "no", _runs_of(coarse[-1:] + [r])))
+    return out
+
+
+def _stability_target(results, weight: str) -> list[tuple[str, str, str, str]]:
+    """The step bound's target over the stability rows with the fit ``weight``."""
+    on = "" if weight == "poly6" else f", with the {weight} fit weight"
+    stab = [r for r in results if r["case"] == "stability" and _fit_weight(r) == weight]
+    if not stab:
+        return []
+    blown = [f"{r['label']} ({r['elastic_force']})" for r in stab if r["blew_up"]]
+    peak = max(r["max_speed"] for r in stab if not r["blew_up"]) if len(blown) < len(stab) else float("nan")
+    dur = sorted({r["duration"] for r in stab})
+    return [(f"no preset or default material blows up at half `stable_dt()`, with or without viscosity{on}",
+             ("blew up: " + ", ".join(blown)) if blown else
+             f"none of {len(stab)} runs ({', '.join(f'{d:.3g}' for d in dur)} s; both elastic forces) blew up, "
+             f"peak speed {peak:.2g} m/s", "no" if blown else "yes", _runs_of(stab))]
+
+
+def _targets(results) -> list[tuple[str, str, str, str]]:
+    """(target of issue 12, measured, met?, runs): one row per target, on the default elastic
+    force (variational) and the default fit, the suite's plan sizes; the biweight fit weight's
+    rows after the default's where it was measured."""
+    out = []
+    for weight in FIT_WEIGHT_ORDER:
+        out += _elastic_targets(results, weight)
     out += _slump_targets(results, "particles")
     out += _slump_targets(results, "ghost_particles")
     out += _slump_targets(results, "particles", "biweight")
@@ -450,15 +479,8 @@ def _targets(results) -> list[tuple[str, str, str, str]]:
                 "holds, base only yielding (within a width): yes; the 1-D spreading: no", "–"))
     for weight in FIT_WEIGHT_ORDER:
         out += _spread_target(results, weight)
-    stab = [r for r in results if r["case"] == "stability"]
-    if stab:
-        blown = [f"{r['label']} ({r['elastic_force']})" for r in stab if r["blew_up"]]
-        peak = max(r["max_speed"] for r in stab if not r["blew_up"]) if len(blown) < len(stab) else float("nan")
-        dur = sorted({r["duration"] for r in stab})
-        out.append(("no preset or default material blows up at half `stable_dt()`, with or without viscosity",
-                    ("blew up: " + ", ".join(blown)) if blown else
-                    f"none of {len(stab)} runs ({', '.join(f'{d:.3g}' for d in dur)} s; both elastic forces) blew up, "
-                    f"peak speed {peak:.2g} m/s", "no" if blown else "yes", _runs_of(stab)))
+    for weight in FIT_WEIGHT_ORDER:
+        out += _stability_target(results, weight)
     return out
 
 
@@ -675,16 +697,17 @@ def write(results, out: pathlib.Path, meta: dict):
         ("poisson", "Uniaxial compression between frictionless plates (strain 1e-3): Poisson contraction and stiffness",
          [("poisson_measured", "lateral / axial strain"), ("poisson_theory", "nu"), ("poisson_ratio", "ratio"), ("young_ratio", "force / (E A eps)"), ("lateral_rate_per_s", "residual rate (nu/s)")]),
     ):
-        rs = sorted((r for r in results if r["case"] == case), key=lambda r: (r["resolution"], r["elastic_force"]))
+        rs = sorted((r for r in results if r["case"] == case),
+                    key=lambda r: (r["resolution"], r["elastic_force"], FIT_WEIGHT_ORDER.index(_fit_weight(r))))
         if case == "beam":
             rs = [r | {"ratio": "broke up", "deflection": "–", "residual_rate_pct_per_s": "–"} if _beam_blew_up(r) else r for r in rs]
         if rs:
             if case == "beam":
                 cols = [("dtype", "precision"), ("span_over_thickness", "span / t")] + cols
                 rs = [r | {"dtype": r.get("dtype", "float32")} for r in rs]
-            ela.append(f"### {title}\n\n" + _table(["across", "force", "particles"] + [c[1] for c in cols] + ["run"],
-                                                  [[r["resolution"], r["elastic_force"], r["particles"]] + [r[c[0]] for c in cols]
-                                                   + [_run(r)] for r in rs]))
+            ela.append(f"### {title}\n\n" + _table(["across", "force", "fit weight", "particles"] + [c[1] for c in cols] + ["run"],
+                                                  [[r["resolution"], r["elastic_force"], _fit_weight(r), r["particles"]]
+                                                   + [r[c[0]] for c in cols] + [_run(r)] for r in rs]))
     if ela:
         parts.append(
             "## Elastic references\n\n"
@@ -726,9 +749,10 @@ def write(results, out: pathlib.Path, meta: dict):
             "`stability`: a 6^3 box (2 cm spacing) resting on the ground (friction 0.5), each preset with its own "
             "viscosity and with none, and `Material(mu=1e5, lam=1e5)` (defaults: pressure on, no viscosity), each with "
             "both elastic forces, for the stated time at 0.5 `stable_dt()`. Blew up: a particle faster than 5 m/s.\n\n"
-            + _table(["material", "force", "preset's force", "dt (s)", "t (s)", "max speed (m/s)", "blew up", "at (s)", "run"],
-                     [[r["label"], r["elastic_force"], r["preset_force"], r["dt"], r["duration"], r["max_speed"], r["blew_up"], r["blew_up_at"],
-                       _run(r)] for r in st])
+            + _table(["material", "force", "preset's force", "fit weight", "dt (s)", "t (s)", "max speed (m/s)", "blew up", "at (s)",
+                      "run"],
+                     [[r["label"], r["elastic_force"], r["preset_force"], _fit_weight(r), r["dt"], r["duration"], r["max_speed"],
+                       r["blew_up"], r["blew_up_at"], _run(r)] for r in st])
             + "\n")
     md.write_text("\n".join(parts))
     return md, made

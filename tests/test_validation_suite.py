@@ -727,6 +727,34 @@ def test_report_lists_its_runs_and_names_the_run_of_every_row(tmp_path):
     assert next(line for line in text.splitlines() if line.startswith("| preset clay")).endswith("| R2 |")
 
 
+def test_report_judges_the_elastic_references_and_the_step_bound_per_fit_weight(tmp_path):
+    """Bar and stability rows of the biweight are listed with their weight and judged in
+    target rows named for it; the default's targets read only poly6's rows, whatever the
+    order of the rows."""
+    from benchmarks import validation_report
+
+    bar = {"case": "bar", "elastic_force": "variational", "particles": 640, "frequency": 12.5, "theory": 12.5,
+           "resolution": 4}
+    stab = {"case": "stability", "label": "preset clay", "elastic_force": "variational", "preset_force": "variational",
+            "dt": 3e-4, "duration": 1.0, "max_speed": 0.5, "blew_up": False, "blew_up_at": None}
+    rows = [bar | {"ratio": 0.9975}, bar | {"ratio": 0.95, "fit_weight": "biweight"}, stab,
+            stab | {"fit_weight": "biweight", "max_speed": 7.0, "blew_up": True, "blew_up_at": 0.4}]
+    meta = {"command": "python -m benchmarks.validation", "machine": "x86_64", "python": "3.11", "wall_s": 1.0}
+    doc = validation.merge(None, rows[::-1], meta)
+    md, _ = validation_report.write(doc["results"], tmp_path, doc)
+    lines = md.read_text().splitlines()
+    bars = [line for line in lines if line.startswith("| bar frequency within 2 %")]
+    assert len(bars) == 2 and "0.9975 x c/(2L)" in bars[0] and bars[0].endswith("| yes | R1 |"), bars
+    assert "with the biweight fit weight" in bars[1] and "0.9500 x c/(2L)" in bars[1] and "| no |" in bars[1], bars
+    steps = [line for line in lines if line.startswith("| no preset or default material blows up")]
+    assert len(steps) == 2 and "none of 1 runs" in steps[0] and steps[0].endswith("| yes | R1 |"), steps
+    assert "with the biweight fit weight" in steps[1] and "blew up: preset clay (variational)" in steps[1], steps
+    assert [line for line in lines if line.startswith("| 4 | variational |")] == [
+        line for line in lines if line.startswith("| 4 | variational | poly6 |")
+        or line.startswith("| 4 | variational | biweight |")]
+    assert len([line for line in lines if line.startswith("| preset clay | variational | variational | biweight |")]) == 1
+
+
 # ------------------------------------------------------- the rest verdict of the slumps
 def test_the_full_plan_reads_every_slump_at_its_rest_duration_and_the_quick_plan_stays_short():
     """Every slump of the full plan runs ``SLUMP_DURATION`` (8 s: at 4 s the S = 0.3 and 0.05
