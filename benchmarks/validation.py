@@ -1576,10 +1576,13 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     for S in (0.1, 0.2, 0.3, 0.5):
         runs.append(("slump", {"S": S, "resolution": 16, "elastic_force": "variational", "duration": SLUMP_DURATION_FINE}))
     # The biweight fit weight (docs/physics.md, "The fit's weight") where the targets read:
-    # the finer slumps and the two finer spread piles.
-    for S in (0.1, 0.2, 0.3, 0.5):
-        runs.append(("slump", {"S": S, "resolution": 16, "elastic_force": "variational", "duration": SLUMP_DURATION_FINE,
-                               "fit_weight": "biweight"}))
+    # the slumps at the three resolutions of the convergence verdict and the two finer spread
+    # piles.
+    for res in (8, 12, 16):
+        for S in (0.1, 0.2, 0.3, 0.5):
+            runs.append(("slump", {"S": S, "resolution": res, "elastic_force": "variational",
+                                   "duration": SLUMP_DURATION_FINE if res == 16 else SLUMP_DURATION,
+                                   "fit_weight": "biweight"}))
     for res in (4, 5):
         runs.append(("spread", {"resolution": res, "shallowness": 0.25, "duration": 14.0, "fit_weight": "biweight"}))
     # The same piles on the no-slip ghost floor, a wall that holds no layer (docs/physics.md,
