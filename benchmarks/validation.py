@@ -494,7 +494,8 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
 def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration: float = 1.5, spacing: float = 0.005,
             critical_angle: float = 10.0, length: float = 12.0, width: int = 2, yield_strain: float = 0.005,
             flow_rate: float = 1000.0, viscosity: float = 0.5, friction: float = 5.0, dt_factor: float = 0.9,
-            ramp: float = 0.15, samples: int = 40, walls: str = "faces", pressure_force: str = "energy_spiky") -> dict:
+            ramp: float = 0.15, samples: int = 40, walls: str = "faces", pressure_force: str = "energy_spiky",
+            fit_weight: str = "poly6") -> dict:
     """The shear strength of a thin layer: ``layers`` particles thick (h = layers x spacing),
     ``length`` h long, on an incline (gravity tilted by theta in the x-y plane), plane strain
     (``width`` particles between frictionless walls normal to z).
@@ -523,7 +524,8 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     outer rows, half a spacing inside, may move out to it and the strip widen by one
     spacing. ``"centres"``, through the outer rows' centres: the strip cannot widen
     (docs/physics.md, thin layers in shear: widening lets the layers close up and stop).
-    ``pressure_force``: the material's (``Material.pressure_force``), its default k_p."""
+    ``pressure_force``: the material's (``Material.pressure_force``), its default k_p.
+    ``fit_weight``: ``SceneBuilder(fit_weight=)``."""
     wp, we = _we()
     _check_floor(floor)
     if walls not in INCLINE_WALLS:
@@ -539,7 +541,8 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     theta = math.asin(s)
     mat = we.Material(mu=mu, lam=1.5 * mu, yield_stress=Y, flow_rate=flow_rate, density=RHO, viscosity=viscosity,
                       pressure_force=pressure_force)
-    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0) if ramp > 0.0 else (G * s, -G * math.cos(theta), 0.0))
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0) if ramp > 0.0 else (G * s, -G * math.cos(theta), 0.0),
+                        fit_weight=fit_weight)
     L = length * h
     W = width * dx
     b.add_box((L / 2.0, h / 2.0, W / 2.0), (L, h, W), mat, name="layer")
@@ -582,7 +585,8 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     v = np.array(speeds)
     k23 = (2 * len(v)) // 3
     return {
-        "case": "incline", "layers": layers, "load": load, "floor": floor, "theta_deg": math.degrees(theta),
+        "case": "incline", "layers": layers, "load": load, "floor": floor, "fit_weight": fit_weight,
+        "theta_deg": math.degrees(theta),
         "particles": model.particle_count, "dt": dt, "steps": steps, "duration": float(times[-1]),
         "tau_y": tau_y, "bingham_surface_speed": bingham,
         # The top's speed at the end and at two thirds of the run (mean of 3 samples each):
@@ -1757,7 +1761,9 @@ def main(argv=None) -> int:
 def select(runs: list[tuple[str, dict]], only: str | None) -> list[tuple[str, dict]]:
     """The runs of ``plan`` that ``--only`` keeps: each comma-separated entry is a case function
     name, optionally followed by ``:key=value`` pairs that the run's keyword arguments must
-    match (compared as written: ``resolution=12``, ``S=0.2``, ``elastic_force=paper``)."""
+    match (compared as written: ``resolution=12``, ``S=0.2``, ``elastic_force=paper``); an entry
+    without the key matches its value in ``IDENTITY_DEFAULTS`` (``fit_weight=poly6`` keeps the
+    runs that do not name a weight)."""
     if not only:
         return list(runs)
     keep = []
@@ -1773,7 +1779,8 @@ def select(runs: list[tuple[str, dict]], only: str | None) -> list[tuple[str, di
         keep.append((name, want))
 
     def matches(run, name, want):
-        return run[0] == name and all(k in run[1] and str(run[1][k]) == v for k, v in want.items())
+        args = IDENTITY_DEFAULTS | run[1]
+        return run[0] == name and all(k in args and str(args[k]) == v for k, v in want.items())
 
     return [r for r in runs if any(matches(r, name, want) for name, want in keep)]
 

@@ -646,6 +646,11 @@ def test_only_selects_plan_entries_by_case_and_keyword_values():
     assert all(k["resolution"] == 12 and k["elastic_force"] == "variational" for k in slumps)
     assert len([n for n, _ in picked if n == "bar_frequency"]) == len([n for n, _ in runs if n == "bar_frequency"])
     assert validation.select(runs, None) == runs
+    # A run that names no fit weight runs the default's, and is selected by it.
+    bars = validation.select(runs, "bar_frequency:resolution=4:elastic_force=variational")
+    assert [k.get("fit_weight") for _, k in bars] == [None, "biweight"]
+    assert validation.select(runs, "bar_frequency:resolution=4:elastic_force=variational:fit_weight=poly6") == bars[:1]
+    assert validation.select(runs, "bar_frequency:resolution=4:elastic_force=variational:fit_weight=biweight") == bars[1:]
     with pytest.raises(ValueError, match="key=value"):
         validation.select(runs, "slump:resolution")
 
@@ -885,7 +890,7 @@ def test_the_command_line_refuses_an_unknown_device_by_name_before_any_run(tmp_p
 def test_the_command_line_records_the_device_of_each_row(tmp_path):
     import json
 
-    validation.main(["--device", "cpu", "--only", "poisson_compression:resolution=4:elastic_force=variational",
+    validation.main(["--device", "cpu", "--only", "poisson_compression:resolution=4:elastic_force=variational:fit_weight=poly6",
                      "--no-report", "--out", str(tmp_path)])
     rows = json.loads((tmp_path / "validation.json").read_text())["results"]
     assert [r["device"] for r in rows] == ["cpu"]
