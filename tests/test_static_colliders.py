@@ -594,3 +594,62 @@ def test_add_ground_refuses_bad_images_by_name():
     b.add_ground(images=True)
     with pytest.raises(ValueError, match="images = True is not allowed twice"):
         b.add_ground(1.0, images=True)
+
+
+_plane64 = we.sim.colliders.funcs(wp.float64).collide_plane
+
+
+@wp.kernel
+def _plane_exit(x: wp.array(dtype=wp.vec3d), v: wp.array(dtype=wp.vec3d), ramp: wp.float64,
+                x_out: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    xn, vn = _plane64(x[i], v[i], wp.vec3d(0.0, 1.0, 0.0), wp.float64(0.0), wp.float64(0.6), wp.float64(1.0e-3), ramp)
+    x_out[i] = xn
+
+
+def _exit_heights(start_depths, vn=1.0, ramp=CONTINUOUS_CONTACT_RAMP):
+    """Height after one step's contact of particles that started ``start_depths`` inside the
+    ground plane (negative: above it) and drifted outward at ``vn`` m/s for 1 ms."""
+    d0 = np.asarray(start_depths, dtype=np.float64)
+    x = np.zeros((len(d0), 3))
+    x[:, 1] = -d0 + vn * 1.0e-3
+    xa = wp.array(x, dtype=wp.vec3d, requires_grad=True)
+    va = wp.array(np.tile([0.3, vn, 0.0], (len(d0), 1)), dtype=wp.vec3d)
+    out = wp.zeros(len(d0), dtype=wp.vec3d, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        wp.launch(_plane_exit, len(d0), [xa, va, wp.float64(ramp)], [out])
+    tape.backward(grads={out: wp.array(np.tile([0.0, 1.0, 0.0], (len(d0), 1)), dtype=wp.vec3d)})
+    return out.numpy()[:, 1], xa.grad.numpy()[:, 1]
+
+
+def test_a_particle_leaving_the_plane_from_inside_has_a_c1_height_and_its_adjoint():
+    """A particle the touchdown share left inside the plane and that leaves it the next step
+    (``colliders.exit_correction``): its height after the step is the plain projection where
+    it ends inside (0) or started on or above the plane (its drift), and between them C1 in
+    where it started (the plain ``max(vn dt - d0, 0)`` had a kink where the drift reaches the
+    plane: docs/physics.md, "The touchdown share's exit kink"), never below the plane and never
+    above where its drift took it; the tape's derivative in the drifted height matches central
+    differences across the band. The instant law keeps the plain projection."""
+    drift = 1.0e-3
+    d0 = np.linspace(-0.5 * drift, 1.5 * drift, 201)
+    y, _ = _exit_heights(d0)
+    plain = np.maximum(drift - d0, 0.0)
+    assert np.all(y >= 0.0) and np.all(y <= plain + 1e-15)
+    assert np.allclose(y[d0 <= 0.0], plain[d0 <= 0.0], rtol=0, atol=1e-15)
+    assert np.allclose(y[d0 >= drift], 0.0, atol=1e-15)
+    assert (plain - y).max() == pytest.approx(4.0 / 27.0 * drift, rel=1e-3)
+    # C1: one-sided slopes at both ends of the band agree (the plain projection's jump by 1).
+    h = 1e-4 * drift
+    for end in (0.0, drift):
+        left = (_exit_heights([end])[0] - _exit_heights([end - h])[0]) / h
+        right = (_exit_heights([end + h])[0] - _exit_heights([end])[0]) / h
+        assert left == pytest.approx(right, abs=1e-3), end
+    inst, _ = _exit_heights(d0, ramp=0.0)
+    assert np.allclose(inst, plain, atol=1e-15)
+    # The adjoint of the height in the drifted position, inside the band.
+    inside = np.linspace(0.1 * drift, 0.9 * drift, 5)
+    _, g = _exit_heights(inside)
+    fd = (_exit_heights(inside - 1e-7 * drift)[0] - _exit_heights(inside + 1e-7 * drift)[0]) / (2e-7 * drift)
+    np.testing.assert_allclose(g, fd, rtol=1e-6)
+    assert np.all(np.abs(g - 1.0) > 1e-3)  # the band moves the slope off the plain drift's 1

@@ -6,8 +6,9 @@ it (Coulomb friction; it stops when that exceeds it). With ``Model.contact_ramp 
 (the default, ``CONTINUOUS_CONTACT_RAMP``) a touchdown step moves the particle out by, and
 removes, only the share ``touchdown_share`` of the depth and of the normal velocity, smooth
 in how far past the surface the step's drift went, and the stick-slip transition is rounded,
-which keeps the step C1 in the state where a particle lands, so a loss is smooth in the
-parameters through contact (docs/method.md §1, "Contact"); ``contact_ramp = 0``
+which keeps the step C1 in the state where a particle lands, and a particle so left inside
+that leaves the next step is let out smoothly (``exit_correction``), so a loss is smooth in
+the parameters through contact (docs/method.md §1, "Contact"); ``contact_ramp = 0``
 (``INSTANT_CONTACT_RAMP``) is the first law.
 The position is corrected by ``dt`` times the velocity friction removed: the drift moved the
 particle with the velocity before friction, so without it a particle that friction holds
@@ -101,6 +102,32 @@ def funcs(scalar) -> types.SimpleNamespace:
         return q * q * (scalar(3.0) - scalar(2.0) * q)
 
     @wp.func
+    def exit_correction(vn: scalar, depth: scalar, dt: scalar, ramp: scalar) -> scalar:
+        """Distance along the outward normal by which a particle moving outward (``vn > 0``)
+        is moved after the drift, ``depth`` inside (negative: outside) the surface: the whole
+        depth while it is still inside, nothing if it started the step on or outside the
+        surface (``u >= 1``, ``u = -depth / (ramp vn dt)``, its drift's share past the
+        surface), and between, for one that started inside (a touchdown share left it there)
+        and leaves within the step, ``ramp vn dt (u^2 (2 - u) - u)``: it holds the leaving
+        particle back by at most 4/27 of its drift, so that its position is C1 where the
+        drift just reaches the surface (plain projection: ``max(vn dt - d0, 0)``, a kink)."""
+        if ramp <= scalar(0.0):
+            return wp.max(depth, scalar(0.0))
+        reach = ramp * vn * dt
+        if depth >= scalar(0.0):
+            return depth
+        if -depth >= reach:
+            return scalar(0.0)
+        u = -depth / reach
+        return reach * (u * u * (scalar(2.0) - u) - u)
+
+    @wp.func
+    def in_reach(vn: scalar, depth: scalar, dt: scalar, ramp: scalar) -> bool:
+        """Whether a static collider moves a particle ``depth`` inside its surface after the
+        drift: inside, or outside but leaving from inside within the step (``exit_correction``)."""
+        return depth > scalar(0.0) or (ramp > scalar(0.0) and vn > scalar(0.0) and -depth < ramp * vn * dt)
+
+    @wp.func
     def coulomb_response(v: vec3, vs: vec3, n: vec3, depth: scalar, dt: scalar, ramp: scalar, mu_s: scalar, mu_k: scalar):
         """Velocity after contact with a surface moving at ``vs`` (outward normal ``n``) of a
         particle found ``depth`` inside it after the drift: the share ``touchdown_share`` of
@@ -138,19 +165,22 @@ def funcs(scalar) -> types.SimpleNamespace:
     @wp.func
     def respond(x: vec3, v: vec3, depth: scalar, n: vec3, friction: scalar, dt: scalar, ramp: scalar):
         """Move a particle ``depth`` inside along outward normal ``n`` of a static collider
-        out by ``touchdown_share`` of it (all of it but in a touchdown step); friction over
-        the step ``dt``."""
+        out by ``touchdown_share`` of it (all of it but in a touchdown step); one moving
+        outward by ``exit_correction``; friction over the step ``dt``."""
         v_new = coulomb_response(v, vec3(), n, depth, dt, ramp, friction, friction)
         # The drift moved x by dt times the tangential velocity; friction takes back what it
         # removed from it, so a particle that sticks stays where it was.
         dv = v_new - v
-        share = touchdown_share(wp.dot(v, n), depth, dt, ramp)
-        return x + (share * depth) * n + dt * (dv - wp.dot(dv, n) * n), v_new
+        vn = wp.dot(v, n)
+        moved = touchdown_share(vn, depth, dt, ramp) * depth
+        if vn > scalar(0.0):
+            moved = exit_correction(vn, depth, dt, ramp)
+        return x + moved * n + dt * (dv - wp.dot(dv, n) * n), v_new
 
     @wp.func
     def collide_plane(x: vec3, v: vec3, n: vec3, offset: scalar, friction: scalar, dt: scalar, ramp: scalar):
         depth = offset - wp.dot(n, x)
-        if depth > scalar(0.0):
+        if in_reach(wp.dot(v, n), depth, dt, ramp):
             return respond(x, v, depth, n, friction, dt, ramp)
         return x, v
 
@@ -158,27 +188,38 @@ def funcs(scalar) -> types.SimpleNamespace:
     def collide_sphere(x: vec3, v: vec3, c: vec3, radius: scalar, friction: scalar, dt: scalar, ramp: scalar):
         d = x - c
         r2 = wp.dot(d, d)
-        if r2 < radius * radius and r2 > scalar(0.0):
+        if r2 > scalar(0.0):
             r = wp.sqrt(r2)
-            return respond(x, v, radius - r, d / r, friction, dt, ramp)
+            n = d / r
+            if in_reach(wp.dot(v, n), radius - r, dt, ramp):
+                return respond(x, v, radius - r, n, friction, dt, ramp)
         return x, v
 
     @wp.func
     def collide_box(x: vec3, v: vec3, c: vec3, half: vec3, friction: scalar, dt: scalar, ramp: scalar):
         d = x - c
         gap = vec3(wp.abs(d[0]) - half[0], wp.abs(d[1]) - half[1], wp.abs(d[2]) - half[2])
-        if gap[0] < scalar(0.0) and gap[1] < scalar(0.0) and gap[2] < scalar(0.0):
-            # Leave through the nearest face.
-            axis = int(0)
-            if gap[1] > gap[axis]:
-                axis = 1
-            if gap[2] > gap[axis]:
-                axis = 2
+        # The nearest face from inside; from outside the face it is past, if only one.
+        axis = int(0)
+        if gap[1] > gap[axis]:
+            axis = 1
+        if gap[2] > gap[axis]:
+            axis = 2
+        past = int(0)
+        for k in range(3):
+            if gap[k] >= scalar(0.0):
+                past += 1
+        if past <= 1:
             n = vec3()
             n[axis] = wp.where(d[axis] < scalar(0.0), scalar(-1.0), scalar(1.0))
-            return respond(x, v, -gap[axis], n, friction, dt, ramp)
+            # Inside: leave through the nearest face. Just outside one face (past neither of
+            # its edges): a particle leaving through it (exit_correction); at edges and
+            # corners the exit is not rounded.
+            if in_reach(wp.dot(v, n), -gap[axis], dt, ramp):
+                return respond(x, v, -gap[axis], n, friction, dt, ramp)
         return x, v
 
     return types.SimpleNamespace(
-        coulomb_response=coulomb_response, slip_speed=slip_speed, touchdown_share=touchdown_share, respond=respond, collide_plane=collide_plane, collide_sphere=collide_sphere, collide_box=collide_box
+        coulomb_response=coulomb_response, slip_speed=slip_speed, touchdown_share=touchdown_share,
+        exit_correction=exit_correction, respond=respond, collide_plane=collide_plane, collide_sphere=collide_sphere, collide_box=collide_box
     )
