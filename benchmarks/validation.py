@@ -1579,6 +1579,10 @@ def plan(quick: bool) -> list[tuple[str, dict]]:
     runs.append(("spread", {"resolution": 3, "shallowness": 0.18, "duration": 8.0}))
     for S in (0.1, 0.2, 0.3, 0.5):
         runs.append(("slump", {"S": S, "resolution": 16, "elastic_force": "variational", "duration": SLUMP_DURATION_FINE}))
+    # A third resolution for the convergence verdict (about 11k particles, 40-50 minutes a
+    # pile on one CPU core).
+    for S in (0.2, 0.3, 0.1, 0.5):
+        runs.append(("slump", {"S": S, "resolution": 24, "elastic_force": "variational", "duration": SLUMP_DURATION_FINE}))
     # The biweight fit weight (docs/physics.md, "The fit's weight") where the targets read:
     # the slumps at the three resolutions of the convergence verdict and the two finer spread
     # piles.

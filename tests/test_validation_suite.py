@@ -26,6 +26,25 @@ def test_slump_theory_is_the_1d_analysis():
     assert validation.slump_theory(1e-6) < 2e-5
 
 
+def test_the_convergence_verdict_recovers_a_power_law_and_refuses_what_is_not_one():
+    # The report's "converging" (docs/validation.md): h(n) = h_inf + C n^-p through the last
+    # three resolutions, 12/16/24 being equal steps in the spacing.
+    from benchmarks.validation_report import convergence
+
+    for p in (0.5, 1.0, 2.0, 3.0):
+        for c in (0.7, -0.4):
+            ns = [8, 12, 16, 24]
+            law = convergence(ns, [0.5 + c * n ** -p for n in ns])
+            assert law[0] == pytest.approx(p, rel=1e-6) and law[1] == pytest.approx(0.5, abs=1e-9)
+    # Changes of alternating sign, or a last change larger than any converging law allows.
+    assert convergence([12, 16, 24], [0.44, 0.45, 0.44]) is None
+    assert convergence([12, 16, 24], [0.44, 0.45, 0.47]) is None
+    # A last change too small for any order up to 6: settled at the last value.
+    assert convergence([8, 12, 16], [1.0, 0.5, 0.5001]) == (math.inf, 0.5001)
+    with pytest.raises(ValueError, match="increasing"):
+        convergence([16, 12, 24], [1.0, 0.9, 0.8])
+
+
 def test_bar_frequency_within_2_percent_at_4_across_variational():
     """Measured 0.9992 x c/(2L) (the paper's force: 0.879 x)."""
     r = validation.bar_frequency(resolution=4, elastic_force="variational")
