@@ -786,16 +786,18 @@ def test_report_judges_the_elastic_references_and_the_step_bound_per_fit_weight(
 def test_the_full_plan_reads_every_slump_at_its_rest_duration_and_the_quick_plan_stays_short():
     """Every slump of the full plan runs ``SLUMP_DURATION`` (8 s: at 4 s the S = 0.3 and 0.05
     piles at 8 across still sank 0.56 / 0.67 % H0/s), the 16-across ones
-    ``SLUMP_DURATION_FINE`` (12 s: the 16-across S = 0.1 pile still rang at 8 s); the CI-sized
+    ``SLUMP_DURATION_FINE`` (12 s: the 16-across S = 0.1 pile still rang at 8 s), as do the
+    24-across ones of the particle floor (the convergence verdict's third resolution); the CI-sized
     plan keeps its short runs. The ghost floor's piles rest by about 4 s at every resolution
     (8 s each)."""
     full = [k for n, k in validation.plan(False) if n == "slump"]
-    assert {k["resolution"] for k in full} == {8, 12, 16}
+    assert {k["resolution"] for k in full} == {8, 12, 16, 24}
     ghost = [k for k in full if k.get("floor") == "ghost_particles"]
     assert ghost and all(k["duration"] == validation.SLUMP_DURATION for k in ghost)
     full = [k for k in full if k.get("floor", "particles") == "particles"]
     assert all(k["duration"] == validation.SLUMP_DURATION == 8.0 for k in full if k["resolution"] < 16)
-    assert all(k["duration"] == validation.SLUMP_DURATION_FINE == 12.0 for k in full if k["resolution"] == 16)
+    assert all(k["duration"] == validation.SLUMP_DURATION_FINE == 12.0 for k in full if k["resolution"] >= 16)
+    assert {k["S"] for k in full if k["resolution"] == 24} == {0.1, 0.2, 0.3, 0.5}
     quick = [k for n, k in validation.plan(True) if n == "slump"]
     assert quick and all(k["duration"] <= 5.0 for k in quick)
 
