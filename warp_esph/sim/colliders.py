@@ -128,27 +128,17 @@ def funcs(scalar) -> types.SimpleNamespace:
         return depth > scalar(0.0) or (ramp > scalar(0.0) and vn > scalar(0.0) and -depth < ramp * vn * dt)
 
     @wp.func
-    def coulomb_response(v: vec3, vs: vec3, n: vec3, depth: scalar, dt: scalar, ramp: scalar, mu_s: scalar, mu_k: scalar):
-        """Velocity after contact with a surface moving at ``vs`` (outward normal ``n``) of a
-        particle found ``depth`` inside it after the drift: the share ``touchdown_share`` of
-        the inward relative normal velocity ``-vn`` is removed; Coulomb friction on the
-        relative tangential velocity, sticking while it is at most ``mu_s`` times the normal
-        velocity removed, else reduced by ``mu_k`` times it. The one contact law of the
-        static colliders and the moving tools (``warp_esph/tools.py``).
-
-        A particle that barely crosses the surface in a step loses barely any normal
-        velocity and gets barely any friction, and the rest one step later, instead of all
-        of it at once or none (docs/method.md §1, "Contact"). One that starts the step on
-        the surface (resting, sticking, or pressed by a moving tool) has ``depth = -vn dt``
-        and loses all of it, as before. ``ramp = 0`` is the instant law (all of it,
-        friction not rounded)."""
+    def coulomb_velocity(v: vec3, vs: vec3, n: vec3, depth: scalar, share: scalar, ramp: scalar, mu_s: scalar,
+                         mu_k: scalar):
+        """``coulomb_response`` given the particle's ``touchdown_share``, for a caller that
+        also moves the particle by it (``respond``: one evaluation of the share)."""
         vr = v - vs
         vn = wp.dot(vr, n)
         if vn < scalar(0.0) and depth > scalar(0.0):
             vt = vr - vn * n
             vt_len = wp.length(vt)
             if ramp > scalar(0.0):
-                dvn = -vn * touchdown_share(vn, depth, dt, ramp)
+                dvn = -vn * share
                 vn_left = (vn + dvn) * n
                 if vt_len <= mu_s * dvn:
                     return vs + vn_left
@@ -163,16 +153,38 @@ def funcs(scalar) -> types.SimpleNamespace:
         return v
 
     @wp.func
+    def coulomb_response(v: vec3, vs: vec3, n: vec3, depth: scalar, dt: scalar, ramp: scalar, mu_s: scalar, mu_k: scalar):
+        """Velocity after contact with a surface moving at ``vs`` (outward normal ``n``) of a
+        particle found ``depth`` inside it after the drift: the share ``touchdown_share`` of
+        the inward relative normal velocity ``-vn`` is removed; Coulomb friction on the
+        relative tangential velocity, sticking while it is at most ``mu_s`` times the normal
+        velocity removed, else reduced by ``mu_k`` times it. The one contact law of the
+        static colliders and the moving tools (``warp_esph/tools.py``).
+
+        A particle that barely crosses the surface in a step loses barely any normal
+        velocity and gets barely any friction, and the rest one step later, instead of all
+        of it at once or none (docs/method.md §1, "Contact"). One that starts the step on
+        the surface (resting, sticking, or pressed by a moving tool) has ``depth = -vn dt``
+        and loses all of it, as before. ``ramp = 0`` is the instant law (all of it,
+        friction not rounded)."""
+        vn = wp.dot(v - vs, n)
+        share = scalar(1.0)
+        if vn < scalar(0.0) and depth > scalar(0.0):  # where it is used: elsewhere q may overflow
+            share = touchdown_share(vn, depth, dt, ramp)
+        return coulomb_velocity(v, vs, n, depth, share, ramp, mu_s, mu_k)
+
+    @wp.func
     def respond(x: vec3, v: vec3, depth: scalar, n: vec3, friction: scalar, dt: scalar, ramp: scalar):
         """Move a particle ``depth`` inside along outward normal ``n`` of a static collider
         out by ``touchdown_share`` of it (all of it but in a touchdown step); one moving
         outward by ``exit_correction``; friction over the step ``dt``."""
-        v_new = coulomb_response(v, vec3(), n, depth, dt, ramp, friction, friction)
+        vn = wp.dot(v, n)
+        share = touchdown_share(vn, depth, dt, ramp)
+        v_new = coulomb_velocity(v, vec3(), n, depth, share, ramp, friction, friction)
         # The drift moved x by dt times the tangential velocity; friction takes back what it
         # removed from it, so a particle that sticks stays where it was.
         dv = v_new - v
-        vn = wp.dot(v, n)
-        moved = touchdown_share(vn, depth, dt, ramp) * depth
+        moved = share * depth
         if vn > scalar(0.0):
             moved = exit_correction(vn, depth, dt, ramp)
         return x + moved * n + dt * (dv - wp.dot(dv, n) * n), v_new
@@ -220,6 +232,6 @@ def funcs(scalar) -> types.SimpleNamespace:
         return x, v
 
     return types.SimpleNamespace(
-        coulomb_response=coulomb_response, slip_speed=slip_speed, touchdown_share=touchdown_share,
+        coulomb_response=coulomb_response, coulomb_velocity=coulomb_velocity, slip_speed=slip_speed, touchdown_share=touchdown_share,
         exit_correction=exit_correction, respond=respond, collide_plane=collide_plane, collide_sphere=collide_sphere, collide_box=collide_box
     )
