@@ -242,6 +242,11 @@ def _fit_weight(r) -> str:
     return r.get("fit_weight", "poly6")
 
 
+def _with_weight(weight: str, lead: str = ", with") -> str:
+    """What a target's name adds for the fit ``weight``: nothing for the default (poly6)."""
+    return "" if weight == "poly6" else f"{lead} the {weight} fit weight"
+
+
 def _flow_order(r):
     return (_fit_weight(r) != "poly6", r["resolution"])
 
@@ -334,8 +339,7 @@ def _slump_targets(results, floor: str, weight: str = "poly6") -> list[tuple[str
     out = []
     default = "variational"
     on = " on the no-slip ghost floor" if floor == "ghost_particles" else ""
-    if weight != "poly6":
-        on += f" with the {weight} fit weight"
+    on += _with_weight(weight, " with")
     results = [r for r in results if r["case"] != "slump" or (_floor(r) == floor and _fit_weight(r) == weight)]
     slumps = [r for r in results if r["case"] == "slump" and r["elastic_force"] == default and 0.1 <= r["S"] <= 0.5
               and r.get("aspect", 1.0) == 1.0]
@@ -463,7 +467,7 @@ def _spread_target(results, weight: str) -> list[tuple[str, str, str, str]]:
             errs = [abs(r["radius_over_theory"] - 1.0) for r in rs if r["shallowness"] == a]
             within = within and errs[-1] <= 0.10
             converging = converging and all(e1 <= e0 for e0, e1 in zip(errs, errs[1:]))
-        with_weight = "" if weight == "poly6" else f", with the {weight} fit weight"
+        with_weight = _with_weight(weight)
         out.append(("spread limit: radius within 10 % of Roussel & Coussot at the finest resolution, converging "
                     f"(the suite's own target){with_weight}",
                     "; ".join(f"a = {r['shallowness']:g}, {r['resolution']} through: {r['radius_over_theory']:.3f} R_RC "
@@ -478,7 +482,7 @@ def _elastic_targets(results, weight: str) -> list[tuple[str, str, str, str]]:
     poly6, unnamed), on the default elastic force (variational)."""
     out = []
     default = "variational"
-    on = "" if weight == "poly6" else f", with the {weight} fit weight"
+    on = _with_weight(weight)
     results = [r for r in results if _fit_weight(r) == weight]
     bars = [r for r in results if r["case"] == "bar" and r["resolution"] == 4 and r["elastic_force"] == default]
     if bars:
@@ -506,7 +510,7 @@ def _elastic_targets(results, weight: str) -> list[tuple[str, str, str, str]]:
 
 def _stability_target(results, weight: str) -> list[tuple[str, str, str, str]]:
     """The step bound's target over the stability rows with the fit ``weight``."""
-    on = "" if weight == "poly6" else f", with the {weight} fit weight"
+    on = _with_weight(weight)
     stab = [r for r in results if r["case"] == "stability" and _fit_weight(r) == weight]
     if not stab:
         return []
