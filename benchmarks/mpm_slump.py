@@ -89,7 +89,7 @@ import numpy as np
 import warp as wp
 
 from benchmarks import _cli
-from benchmarks.validation import G, RHO, bingham_uniaxial_stress, centre_thickness, slump_theory
+from benchmarks.validation import G, RHO, bingham_uniaxial_stress, centre_thickness, pile_profile, slump_theory
 
 REST_RATE, REST_KINETIC = 0.1, 1.0e-8  # % H0/s, M g H0: the suite's rest bounds
 FLOOR_PAD = wp.constant(3)  # grid nodes below y = 0 (node index FLOOR_PAD is at y = 0)
@@ -400,18 +400,8 @@ def slump(S, res=16, aspect=1.0, H0=0.1, duration=8.0, max_duration=16.0, eta=2.
     plastic = sim.plastic.numpy().astype(np.float64) / (Y / (2.0 * mu))  # in yield strains
     ratio = sim.ratio.numpy().astype(np.float64)
     x0 = sim.x0
-    r0 = np.hypot(x0[:, 0], x0[:, 2])
     depth0 = H0 - x0[:, 1]
-    # Per initial particle layer on the axis (r0 < R0/4): mean plastic strain (yield strains),
-    # fraction that never yielded, final thickness ratio.
-    layers = []
-    axis = r0 < 0.25 * R0
-    for d in np.unique(np.round(depth0[axis] / s, 6)):
-        sel = axis & (np.abs(depth0 / s - d) < 1e-3)
-        layers.append({"depth0_over_H0": float(d * s / H0), "y_over_H0": float(x[sel, 1].mean() / H0),
-                       "plastic_mean_yield_strains": float(plastic[sel].mean()),
-                       "never_yielded_fraction": float((plastic[sel] == 0.0).mean()),
-                       "stress_ratio_mean": float(ratio[sel].mean())})
+    bands, layers = pile_profile(x0, x, depth0, plastic, ratio, R0, s, H0)
     # The unyielded plug on the axis: the top run of layers where most particles never yielded.
     plug = 0.0
     for L in layers:
@@ -420,13 +410,6 @@ def slump(S, res=16, aspect=1.0, H0=0.1, duration=8.0, max_duration=16.0, eta=2.
         else:
             break
     rate, rate_th, ke_last = verdict()
-    r = np.hypot(x[:, 0], x[:, 2])
-    # The top per band of R0/4 from the axis (bowl or flat).
-    bands = []
-    for b in range(8):
-        sel = (r >= b * 0.25 * R0) & (r < (b + 1) * 0.25 * R0)
-        if sel.any():
-            bands.append(float((x[sel, 1].max() + 0.5 * s) / H0))
     th = TH[-1] / H0
     theory = slump_theory(S)
     out = {

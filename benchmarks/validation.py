@@ -190,6 +190,34 @@ def centre_thickness(x: np.ndarray, volume: np.ndarray, J: np.ndarray, radius: f
     return float((volume * J * q * q).sum() / (math.pi * radius**2 / 3.0))
 
 
+def pile_profile(x0: np.ndarray, x: np.ndarray, depth0: np.ndarray, plastic: np.ndarray, ratio: np.ndarray,
+                 R0: float, spacing: float, H0: float) -> tuple[list, list]:
+    """A slumped pile's shape, as both slump solvers report it (``slump`` here, the MPM's in
+    ``benchmarks/mpm_slump.py``), from its particles' initial and final positions ``x0``, ``x``,
+    initial depths ``depth0``, accumulated plastic strains ``plastic`` (in yield strains) and
+    stress ratios ``ratio`` (|s| / Y), on a lattice of ``spacing``: the top (+ spacing / 2) per
+    band R0 / 4 wide from the axis (a bowl or a flat top; None for a band no particle is in,
+    up to the outermost that has one), and per initial layer on the axis
+    (initial radius below R0 / 4) its mean height, plastic strain, stress ratio and the
+    fraction of it that never yielded."""
+    r = np.hypot(x[:, 0], x[:, 2])
+    bands = []
+    for b in range(8):
+        sel = (r >= b * 0.25 * R0) & (r < (b + 1) * 0.25 * R0)
+        bands.append(float((x[sel, 1].max() + 0.5 * spacing) / H0) if sel.any() else None)
+    while bands and bands[-1] is None:
+        bands.pop()
+    layers = []
+    axis = np.hypot(x0[:, 0], x0[:, 2]) < 0.25 * R0
+    for d in np.unique(np.round(depth0[axis] / spacing, 6)):
+        sel = axis & (np.abs(depth0 / spacing - d) < 1e-3)
+        layers.append({"depth0_over_H0": float(d * spacing / H0), "y_over_H0": float(x[sel, 1].mean() / H0),
+                       "plastic_mean_yield_strains": float(plastic[sel].mean()),
+                       "never_yielded_fraction": float((plastic[sel] == 0.0).mean()),
+                       "stress_ratio_mean": float(ratio[sel].mean())})
+    return bands, layers
+
+
 def slump_model(S: float, resolution: int = 12, elastic_force: str = "variational", H0: float = 0.1,
                 flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, pressure_force: str = "energy_spiky",
                 floor: str = "particles", floor_radius: float = 3.2, pressure_stiffness: float | None = None,
@@ -335,6 +363,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     volume = n * dx**3
     tau_y = Y / math.sqrt(2.0)
     R_rc = spread_radius_theory(volume, tau_y)
+    bands, layers = pile_profile(x0, x_end, depth0, alpha / yield_strain, ratio, R0, dx, H0)
     return {
         "case": "slump", "S": S, "resolution": resolution, "aspect": aspect, "elastic_force": elastic_force,
         "pressure_force": pressure_force, "fit_weight": fit_weight,
@@ -343,6 +372,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
         # The top of the whole pile (+ dx/2): above h where the top is a bowl, as the S <= 0.3
         # piles' is (docs/physics.md, the S = 0.2 pile below the 1-D height); h reads its centre.
         "top_max_over_H0": (float(x_end[:, 1].max()) + 0.5 * dx) / H0,
+        "top_per_quarter_R0_band_over_H0": bands, "axis_layers": layers,
         "ratio_to_theory": (1.0 - h[-1] / H0) / (1.0 - slump_theory(S)),
         # The material's thickness on the axis (centre_thickness over R0 / 2): the pile's
         # height as a volume, not as its highest particle near the axis (h above), which

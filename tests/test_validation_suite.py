@@ -26,6 +26,36 @@ def test_slump_theory_is_the_1d_analysis():
     assert validation.slump_theory(1e-6) < 2e-5
 
 
+def test_the_pile_profile_reads_a_lattice_cylinder_and_a_uniform_squash_exactly():
+    # A cylinder on the lattice: every band's top and every axis layer where it was built;
+    # squashed to 0.6 of its height (volume kept, radius x 1/sqrt(0.6)), the tops read the
+    # new height and each layer sits at 0.6 of its initial height.
+    from warp_esph.meshes import lattice_points
+
+    H0, R0, n = 0.1, 0.05, 8
+    dx = 2 * R0 / n
+    x0 = lattice_points(np.array([-R0, 0.0, -R0]), np.array([R0, H0, R0]), dx)
+    x0 = x0[np.hypot(x0[:, 0], x0[:, 2]) <= R0]
+    depth0 = H0 - x0[:, 1]
+    plastic = np.where(depth0 > 0.5 * H0, 2.0, 0.0)
+    ratio = np.full(len(x0), 0.5)
+    bands, layers = validation.pile_profile(x0, x0, depth0, plastic, ratio, R0, dx, H0)
+    assert len(bands) == 4 and np.allclose(bands, 1.0)
+    assert len(layers) == n
+    assert np.allclose([L["y_over_H0"] for L in layers], [1.0 - L["depth0_over_H0"] for L in layers])
+    assert [L["never_yielded_fraction"] for L in layers] == [1.0] * (n // 2) + [0.0] * (n // 2)
+    assert np.allclose([L["plastic_mean_yield_strains"] for L in layers], [0.0] * (n // 2) + [2.0] * (n // 2))
+    q = 0.6
+    x = x0 * np.array([q**-0.5, q, q**-0.5])
+    bands, layers = validation.pile_profile(x0, x, depth0, plastic, ratio, R0, q * dx, H0)
+    # Wider by 1/sqrt(0.6) = 1.29: the outermost columns (0.95 R0 out) reach the fifth band,
+    # and no column lands in the second (the innermost four move from 0.18 to 0.23 R0, the
+    # next from 0.40 to 0.51 R0).
+    assert bands[1] is None and len(bands) == 5
+    assert np.allclose([b for b in bands if b is not None], q)
+    assert np.allclose([L["y_over_H0"] for L in layers], [q * (1.0 - L["depth0_over_H0"]) for L in layers])
+
+
 def test_the_convergence_verdict_recovers_a_power_law_and_refuses_what_is_not_one():
     # The report's "converging" (docs/validation.md): h(n) = h_inf + C n^-p through the last
     # three resolutions, 12/16/24 being equal steps in the spacing.
