@@ -653,3 +653,59 @@ def test_a_particle_leaving_the_plane_from_inside_has_a_c1_height_and_its_adjoin
     fd = (_exit_heights(inside - 1e-7 * drift)[0] - _exit_heights(inside + 1e-7 * drift)[0]) / (2e-7 * drift)
     np.testing.assert_allclose(g, fd, rtol=1e-6)
     assert np.all(np.abs(g - 1.0) > 1e-3)  # the band moves the slope off the plain drift's 1
+
+
+def _undamped_strip_kinetic_energy(floor: str, duration: float = 0.5, ramp: float = 0.15):
+    """A soft elastic strip (mu 3.6 kPa, no viscosity, the default pressure) 3 particles
+    thick, 24 long and 2 wide between frictionless walls through its outer rows' centres,
+    on ``floor``; gravity grows from 0 over ``ramp`` s and then holds. Returns the times and
+    the kinetic energy of the strip's particles after each step."""
+    dx = 0.005
+    mat = we.Material(mu=3.6e3, lam=5.4e3, density=1000.0)
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+    L, h, W = 24 * dx, 3 * dx, 2 * dx
+    b.add_box((L / 2, h / 2, W / 2), (L, h, W), mat, name="strip")
+    if floor == "particles":
+        b.add_particle_floor("strip", margin=0.0, layers=2)
+    else:
+        b.add_ground(0.0, friction=5.0, images=floor == "ground_images")
+    b.add_plane((0.0, 0.0, 1.0), 0.5 * dx, 0.0)
+    b.add_plane((0.0, 0.0, -1.0), -(W - 0.5 * dx), 0.0)
+    m = b.finalize()
+    s = we.Solver(m)
+    dt = 0.9 * m.stable_dt()
+    strip = m.particle_x0[:, 1] > 0.0
+    mass = m.particle_mass.numpy()[strip, None]
+    a, c = m.state(), m.state()
+    times, energy = [], []
+    for k in range(1, int(round(duration / dt)) + 1):
+        m.gravity = (0.0, -G * min(k * dt / ramp, 1.0), 0.0)
+        s.step(a, c, dt)
+        a, c = c, a
+        v = a.v.numpy()[strip].astype(np.float64)
+        times.append(k * dt)
+        energy.append(0.5 * float((mass * v * v).sum()))
+    return np.array(times), np.array(energy)
+
+
+@pytest.mark.parametrize("floor", [
+    "particles", "ground",
+    pytest.param("ground_images", marks=pytest.mark.xfail(
+        strict=True, reason="the floor images' energy is not stored: each image carries its particle's F, which "
+        "moves by the particle's own fitted increment, not by the image's, so the work its force does has no "
+        "stored counterpart and an undamped layer on the imaged ground gains energy (measured here: 4.9e-5 J "
+        "just after the load ramp, 1.4e-3 J at 0.5 s; docs/physics.md, \"The floor images' energy is not stored\")")),
+])
+def test_an_undamped_elastic_layer_on_a_floor_does_not_gain_energy(floor):
+    """Once gravity has been applied, an elastic layer with no viscosity on a floor that
+    stores the work done on it keeps its kinetic energy bounded by the ringing the load
+    left: the largest kinetic energy over the last 0.1 s is at most twice that over the
+    0.1 s after the ramp. Measured: particle floor 4.5e-9 / 4.9e-9 J, plain ground (Coulomb
+    friction at the bottom layer) 4.0e-6 / 1.7e-6 J; the imaged ground 4.9e-5 / 1.4e-3 J
+    (strict xfail)."""
+    t, ke = _undamped_strip_kinetic_energy(floor)
+    early = ke[(t > 0.15) & (t <= 0.25)].max()
+    late = ke[t > 0.4].max()
+    print(f"{floor}: kinetic energy after the ramp {early:.2e} J, at the end {late:.2e} J")
+    assert np.isfinite(ke).all()
+    assert late < 2.0 * early, (early, late)

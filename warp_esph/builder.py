@@ -430,7 +430,11 @@ class SceneBuilder:
         neighbours below the plane, static over a step and carrying their particle's stress
         (the incremental fit; docs/physics.md, "The ground
         collider's thin-layer strength"). Without it a layer's bottom particles are held on
-        the plane with a one-sided fit, and a thin layer is 2.25 x too strong in shear."""
+        the plane with a one-sided fit, and a thin layer is 2.25 x too strong in shear.
+        Each image carries its particle's ``F`` rather than a stored one of its own, so the
+        work its energy does is not all stored: a layer on it with no viscosity can gain
+        energy (an elastic one rings up a thousandfold within a second); give the materials
+        on it viscosity (docs/physics.md, "The floor images' energy is not stored")."""
         if not isinstance(images, bool):
             raise ValueError(f"images = {images!r} is not allowed: must be True or False")
         if images and any(p.images for p in self.planes):
