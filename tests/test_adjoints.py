@@ -202,7 +202,9 @@ def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_for
             solver.step(states[k], states[k + 1], 1.0e-3)
     states[-1].x.grad.assign(w)
     tape.backward()
-    out = {name: getattr(states[0], name).grad.numpy().copy() for name in ("x", "v", "F", "alpha")}
+    # The images' own F too, which the variational force's images read (the paper's carry their particle's).
+    fields = ("x", "v", "F", "alpha") + (("F_image",) if ground is not None and elastic_force == "variational" else ())
+    out = {name: getattr(states[0], name).grad.numpy().copy() for name in fields}
     for name in ("mu", "lam", "yield_stress", "flow_rate", "hardening", "pressure_stiffness", "viscosity"):
         out[name] = getattr(model, name).grad.numpy().copy()
     return out

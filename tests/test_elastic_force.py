@@ -373,6 +373,7 @@ def test_variational_force_with_floor_images_is_minus_the_gradient_of_the_fit_en
     a, c = model.state(), model.state()
     a.x.assign(x0)
     a.F.assign(F0)
+    a.F_image.assign(F0)  # each image's own F (State.F_image): its particle's, as the numpy energy has it
     moved = mover(solver, a, c)
 
     def energy(k, delta):

@@ -49,8 +49,11 @@ def _launch_fit(fit, model, state, x, y, Fp, F_out, counters):
     S = model.scalar
     ins = [x, y, wp.zeros_like(x), wp.zeros_like(x), model.particle_body, state.neighbors, state.neighbor_count,
            state.guard, Fp, wp.zeros_like(Fp), S(model.support_radius), MIN_NEIGHBORS, S(MAX_CONDITION), *model.image_args()]
-    outs = [F_out, wp.zeros_like(Fp)]
-    wp.launch(fit.kernels(S, model.fit_weight).update_deformation, model.particle_count, ins, outs + [counters])
+    outs = [F_out, wp.zeros_like(Fp), counters]
+    if fit is deformation:
+        # The images' own F (State.F_image): in and out, unread without an image plane.
+        ins, outs = ins + [Fp], outs + [wp.zeros_like(Fp)]
+    wp.launch(fit.kernels(S, model.fit_weight).update_deformation, model.particle_count, ins, outs)
 
 
 @pytest.mark.parametrize("fit_weight", ["poly6", "biweight"])
@@ -343,7 +346,7 @@ def test_yield_onset_under_uniaxial_stretch_and_volume_kept(model_name):
         zero = wp.zeros_like(xa)
         wp.launch(kd, n, [xa, xb, zero, zero, model.particle_body, state.neighbors, state.neighbor_count, state.guard,
                           scratch[0], F_lo_flowed, S(model.support_radius), MIN_NEIGHBORS, S(MAX_CONDITION),
-                          *model.image_args()], [F_new, F_lo_new, counters])
+                          *model.image_args(), scratch[0]], [F_new, F_lo_new, counters, wp.zeros_like(F_new)])
         F, F_lo, alpha = F_new, F_lo_new, wp.clone(scratch[1])
     e_yield = Y / (2 * mu * math.sqrt(2.0 / 3.0))
     assert onset is not None

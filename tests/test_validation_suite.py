@@ -496,11 +496,27 @@ def test_thin_layer_on_the_ground_with_floor_images_stops_below_and_flows_above_
     is an interior one (docs/physics.md, "The ground collider's thin-layer strength").
     Walls through the outer rows' centres (the strip cannot widen, which with the walls at
     the faces stops a layer on either floor after about a spacing of slip). Measured, 3
-    through, 8 h long, 0.6 s: at 0.6 tau_y the top stops (-0.081 mm/s; particle floor
-    -0.013); at 1.3 tau_y it flows at 6.39 mm/s (particle floor 7.74; Bingham 3.67). The plain
-    ground collider stops at 1.3 and at 2.0 tau_y and creeps at 2.5 (1.6 mm/s against 47.7;
-    12 h long, 1.5 s)."""
+    through, 8 h long, 0.6 s: at 0.6 tau_y the top stops (0.004 mm/s; particle floor
+    -0.013); at 1.3 tau_y it flows at 12.3 mm/s (particle floor 7.74; Bingham 3.67). Before
+    the images had their own F (``State.F_image``): -0.081 and 6.39 mm/s. The plain ground
+    collider stops at 1.3 and at 2.0 tau_y and creeps at 2.5 (1.6 mm/s against 47.7; 12 h
+    long, 1.5 s)."""
     _stops_below_and_flows_above("ground_images")
+
+
+@pytest.mark.parametrize("fit_weight", ["poly6", "biweight"])
+def test_thin_layer_on_the_imaged_ground_rests_below_yield_without_viscosity(fit_weight):
+    """The same strip at 0.6 tau_y with no viscosity: the images' energy works on their own
+    F (``State.F_image``), so nothing feeds the layer and its top rests: mean speed over the
+    last third of 0.6 s 0.004 / -0.004 mm/s (poly6 / biweight), against 3 % of the Bingham
+    surface speed at 1.3 tau_y (3.67 mm/s). Before, with each image carrying its particle's F,
+    the undamped strip slid at about 5 mm/s (docs/physics.md, "The floor images' energy is not
+    stored")."""
+    r = validation.incline(load=0.6, floor="ground_images", walls="centres", viscosity=0.0, samples=200,
+                           fit_weight=fit_weight, **THIN_LAYER)
+    v = np.array(r["speed_history"])
+    assert r["finite"]
+    assert abs(v[2 * len(v) // 3:].mean()) < 0.03 * 3.67e-3, v[2 * len(v) // 3:].mean()
 
 
 @pytest.mark.parametrize("label", [label for label, _ in validation._stability_materials()])

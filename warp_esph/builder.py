@@ -427,14 +427,17 @@ class SceneBuilder:
         ``images=True``: the ground is also a rough floor of the material's fits: each
         particle within the support radius of it has, in its incremental fit and in the
         elastic force (the variational energy, or the paper's pairs), the mirror images of its
-        neighbours below the plane, static over a step and carrying their particle's stress
+        neighbours below the plane, static over a step and carrying a stress (their own, below)
         (the incremental fit; docs/physics.md, "The ground
         collider's thin-layer strength"). Without it a layer's bottom particles are held on
         the plane with a one-sided fit, and a thin layer is 2.25 x too strong in shear.
-        Each image carries its particle's ``F`` rather than a stored one of its own, so the
-        work its energy does is not all stored: a layer on it with no viscosity can gain
-        energy (an elastic one rings up a thousandfold within a second); give the materials
-        on it viscosity (docs/physics.md, "The floor images' energy is not stored")."""
+        With the linear fit each image has an elastic F of its own (``State.F_image``), which
+        its own fit over the particles near it updates and which flows plastically as theirs
+        does, so the work its energy does is stored. With the curvature-corrected fit (an
+        elastic material's by default) the images still carry their particle's F, and a layer
+        with no viscosity on it can gain energy (an elastic one rings up a thousandfold
+        within a second): give its material viscosity, or ``Solver(fit="linear")``
+        (docs/physics.md, "The floor images' energy is not stored")."""
         if not isinstance(images, bool):
             raise ValueError(f"images = {images!r} is not allowed: must be True or False")
         if images and any(p.images for p in self.planes):

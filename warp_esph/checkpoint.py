@@ -1,8 +1,9 @@
 """Checkpoints: the full simulation state in one ``.npz`` file, written atomically.
 
 A checkpoint holds every array a step reads (``State.STATE_FIELDS``: ``x, v, F, alpha`` and
-the rest-configuration model's ``F_p`` and the round-off ``x_lo``, ``F_lo`` of ``x`` and ``F``;
-an older checkpoint without them loads them as ``I`` and 0),
+the rest-configuration model's ``F_p``, the round-off ``x_lo``, ``F_lo`` of ``x`` and ``F``,
+and the floor images' own ``F_image``; an older checkpoint without them loads them as ``I``
+and 0, ``F_image`` as ``F``),
 the simulated time, the current values of
 the per-material parameters (they may have been fitted or edited since the scene was
 built), the step and frame counters, and a free-form ``run`` record (the CLI stores the
@@ -146,7 +147,7 @@ def load_state(path, model: Model) -> tuple[State, dict]:
         )
     n, np_dtype = model.particle_count, model.types.np_dtype
     shapes = {"x": (n, 3), "v": (n, 3), "F": (n, 3, 3), "alpha": (n,), "F_p": (n, 3, 3), "x_lo": (n, 3),
-              "F_lo": (n, 3, 3)}
+              "F_lo": (n, 3, 3), "F_image": (n, 3, 3)}
     shapes.update({f"material_{name}": (len(model.materials),) for name in Model.MATERIAL_FIELDS})
     for key, shape in shapes.items():
         if key not in arrays:
@@ -163,6 +164,9 @@ def load_state(path, model: Model) -> tuple[State, dict]:
     for name in State.STATE_FIELDS:
         if name in arrays:
             getattr(state, name).assign(arrays[name])
+    if "F_image" not in arrays:
+        # Written before the images had an F of their own: theirs was their particle's.
+        state.F_image.assign(arrays["F"])
     state.time = float(meta.get("time", 0.0))
     for name in Model.MATERIAL_FIELDS:
         key = f"material_{name}"

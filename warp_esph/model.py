@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import types
 from collections.abc import Sequence
 
 import numpy as np
@@ -67,7 +68,8 @@ class Body:
 
 class State:
     """Positions ``x``, velocities ``v``, elastic deformation gradient ``F`` (docs/method.md: the only
-    deformation state stored) and hardening accumulator ``alpha`` of every particle."""
+    deformation state stored) and hardening accumulator ``alpha`` of every particle; with
+    ``add_ground(images=True)`` also ``F_image``, the elastic F of each particle's floor image."""
 
     def __init__(self, model: "Model", requires_grad: bool):
         n, K, dev = model.particle_count, model.max_neighbors, model.device
@@ -90,6 +92,15 @@ class State:
         # Its gradient only where a comparison model reads it (a taped step's memory).
         self.F_p = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev,
                             requires_grad=requires_grad and model.uses_comparison_models)
+        # Each floor image's own elastic F (``SceneBuilder.add_ground(images=True)``): the image
+        # of a particle near the plane is a floor particle at rest over the step whose energy
+        # works on its own fit, so its F is stored as a particle's is, or that work would have
+        # no stored counterpart (docs/physics.md, "The floor images' energy is not stored").
+        # I in a new state (an undeformed floor; set it with F when F is set by hand), kept while
+        # the image has no particle within the support; unread without an image plane.
+        images = model.image_plane is not None
+        self.F_image = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev,
+                                requires_grad=requires_grad and images)
         #: Simulated time (s) of this state: the step that writes it sets ``time_in + dt``.
         self.time = 0.0
         # Written by the step that produced this state.
@@ -114,6 +125,16 @@ class State:
         self.stress = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
         self.F_inv = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad)
         self.force = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+        # The images' plastic flow and stress, written by the step (with an image plane only).
+        self.F_image_flowed = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad) if images else None
+        self.image_stress = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad) if images else None
+        # What else the constitutive update of the images writes (unread) and its round-off input (0).
+        self._image_scratch = None
+        if images:
+            self._image_scratch = types.SimpleNamespace(
+                F_lo=wp.zeros(n, dtype=T.mat33, device=dev), F_flowed_lo=wp.zeros(n, dtype=T.mat33, device=dev),
+                alpha=wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad),
+                F_inv=wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad))
         tools.allocate_state(model, self, requires_grad)
         integrate.allocate_state(model, self, requires_grad)
         ghost_floor.allocate_state(model, self, requires_grad)
@@ -127,10 +148,11 @@ class State:
         return self._neighbor_d2
 
     #: The arrays that define the simulation state (what a checkpoint must hold).
-    STATE_FIELDS = ("x", "v", "F", "alpha", "F_p", "x_lo", "F_lo")
-    #: Fields a checkpoint written before the comparison models (``F_p``) or the compensated
-    #: state (``x_lo``, ``F_lo``) lacks (then: initial values, I and 0).
-    OPTIONAL_FIELDS = ("F_p", "x_lo", "F_lo")
+    STATE_FIELDS = ("x", "v", "F", "alpha", "F_p", "x_lo", "F_lo", "F_image")
+    #: Fields a checkpoint written before the comparison models (``F_p``), the compensated
+    #: state (``x_lo``, ``F_lo``) or the images' own F (``F_image``) lacks (then: initial
+    #: values, I and 0).
+    OPTIONAL_FIELDS = ("F_p", "x_lo", "F_lo", "F_image")
 
     def __setattr__(self, name, value):
         # A replaced array may not fit the model any more: ``checks.same_state`` checks again.

@@ -324,6 +324,208 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return A
 
     @wp.func
+    def scatter_image_pair_adjoint(adj_A: mat33, adj_A_sym: mat33, gb: vec3, pb: vec3, hh: scalar, c6: scalar,
+                                   adj_x: wp.array(dtype=vec3), j: int, xj: vec3, gn: vec3, goff: scalar, gmin: scalar):
+        """Adjoint of an image-image term ``w(|pb|^2) gb gb^T`` of an image's moment matrix
+        (``floor_image_moment``: ``gb = g_j - g_i``, weighed as its particles' pair
+        ``pb = x_j - x_i``): ``adj gb = w adj_A_sym gb``, ``adj pb = 2 dw (gb . adj_A gb) pb``,
+        added to ``j`` (``gb``'s through ``floor_image_jacobian``); returned for
+        ``i``: ``(adj g_i, adj x_i)``."""
+        gg = vec3()
+        gp = vec3()
+        r2 = wp.dot(pb, pb)
+        if r2 < hh:
+            w, dw = fw.w_inside(r2, hh, c6)
+            gg = w * (adj_A_sym * gb)
+            gp = scalar(2.0) * dw * wp.dot(gb, adj_A * gb) * pb
+            wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * gg + gp)
+        return gg, gp
+
+    @wp.func
+    def floor_image_displacement_sums(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+    ):
+        """Eq. 6 of particle ``i``'s own image ``g_i``, at rest over the step: ``B - A = sum w
+        ub xb^T`` over ``i`` and its same-body neighbours, ``xb = x_r - g_i``, ``ub = u_r`` (their
+        displacements, ``displacement``); its image pairs do not move. Also returns the sum of
+        those pairs' weights: 0 where no particle is within ``h`` of the image."""
+        B = mat33()
+        wsum = scalar(0.0)
+        xi = x[i]
+        bi = body[i]
+        gi = floor_image(xi, gn, goff, gmin)
+        c6 = fw.coef(h)
+        for k in range(image_row_length(xi, n, h, gn, goff)):
+            j = image_row_particle(i, k, n, nbr)
+            if body[j] == bi:
+                xb = x[j] - gi
+                w = fw.w_c(wp.dot(xb, xb), h, c6)
+                B += w * wp.outer(displacement(x[j], y[j], x_lo[j], y_lo[j]), xb)
+                wsum += w
+        return B, wsum
+
+    @wp.func
+    def floor_image_share(wsum: scalar, h: scalar):
+        """How much of a floor image's F is its own (``floor_image_update``) and the slope of
+        that share in ``wsum``, the weights of the particles within ``h`` of the image:
+        ``t^2 (3 - 2 t)``, ``t = min(wsum / w(h / 2), 1)``. 0 with zero slope for an image with
+        no particle near it, 1 once its pairs weigh as one at half the support (a resting
+        bottom layer's image has its own particle there)."""
+        w_ref = fw.w_c(scalar(0.25) * h * h, h, fw.coef(h))
+        t = wsum / w_ref
+        c = scalar(1.0)
+        dc = scalar(0.0)
+        if t < scalar(1.0):
+            c = t * t * (scalar(3.0) - scalar(2.0) * t)
+            dc = scalar(6.0) * t * (scalar(1.0) - t) / w_ref
+        return c, dc
+
+    @wp.func
+    def floor_image_own_update(
+        i: int,
+        x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        code: int,
+        scale: scalar,
+        Bg: mat33,
+        wsum: scalar,
+        Fg: mat33,
+    ):
+        """The image's own eq. 8 (``floor_image_update``): ``Fg + scale B_g A_g^-1 Fg`` and 1,
+        or ``Fg`` and 0 where its fit is empty, ``i``'s is guarded (``code``) or the update
+        would invert."""
+        out = Fg
+        applied = int(0)
+        if code == 0 and wsum > scalar(0.0):
+            Ag = floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
+            cand = Fg + scale * (Bg * wp.inverse(Ag)) * Fg
+            if wp.determinant(cand) > scalar(0.0):
+                out = cand
+                applied = 1
+        return out, applied
+
+    @wp.func
+    def floor_image_update(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        code: int,
+        scale: scalar,
+        Fg: mat33,
+        F_new: mat33,
+    ) -> mat33:
+        """Eq. 8 of particle ``i``'s floor image (``State.F_image``). The image is a floor
+        particle at rest over the step: its own fit over the particles near it
+        (``floor_image_displacement_sums``, ``floor_image_moment``), faded as ``i``'s
+        (``scale``), updates its own flowed ``Fg``, so that the work of its energy
+        (``forces.image_map``) is stored as a particle's is (docs/physics.md, "The floor
+        images' energy is not stored"). An image with no particle near it does no work and
+        carries its particle's new F, ``F_new``; between the two, by ``floor_image_share``
+        of its pairs' weights, smooth as they enter its support."""
+        Bg, wsum = floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
+        own, applied = floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, Bg, wsum, Fg)
+        c, dc = floor_image_share(wsum, h)
+        return F_new + c * (own - F_new)
+
+    @wp.func
+    def floor_image_update_adjoint(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        scale: scalar,
+        Bg: mat33,
+        Fg: mat33,
+        Gg: mat33,
+        applied: int,
+        adj_wsum: scalar,
+        adj_x: wp.array(dtype=vec3),
+        adj_y: wp.array(dtype=vec3),
+    ):
+        """Adjoint of ``floor_image_own_update`` where the image's own fit applies (``Bg``,
+        ``Ag`` its sums at ``x``, ``y``; ``Gg`` the gradient of its output) and of the weight
+        sum ``floor_image_share`` reads (``adj_wsum``): scatters the pairs' adjoints (``B``'s
+        ``w u xb^T`` with ``u = y_r - x_r``, ``xb = x_r - g_i``, ``w`` itself, and
+        ``floor_image_moment``'s two kinds of term) to ``x`` and ``y``, ``g_i``'s to ``x_i``
+        through ``floor_image_jacobian``; returns ``(adj Fg, adj scale)``. ``applied`` 0: the
+        weight sum's alone."""
+        D0 = mat33()
+        adj_B = mat33()
+        adj_A = mat33()
+        if applied != 0:
+            Ag_inv = wp.inverse(floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin))
+            D0 = Bg * Ag_inv
+            adj_D = scale * (Gg * wp.transpose(Fg))
+            adj_B = adj_D * Ag_inv
+            adj_A = -(wp.transpose(D0) * adj_B)
+        adj_A_sym = adj_A + wp.transpose(adj_A)
+        xi = x[i]
+        bi = body[i]
+        gi = floor_image(xi, gn, goff, gmin)
+        c6 = fw.coef(h)
+        hh = h * h
+        gg_i = vec3()
+        gx_i = vec3()
+        for k in range(image_row_length(xi, n, h, gn, goff)):
+            j = image_row_particle(i, k, n, nbr)
+            if body[j] == bi:
+                xj = x[j]
+                xb = xj - gi
+                r2 = wp.dot(xb, xb)
+                if r2 < hh:
+                    w, dw = fw.w_inside(r2, hh, c6)
+                    u = y[j] - xj
+                    Bx = adj_B * xb
+                    adj_u = w * Bx
+                    adj_xb = (w * (adj_A_sym * xb + wp.transpose(adj_B) * u)
+                              + scalar(2.0) * dw * (wp.dot(xb, adj_A * xb) + wp.dot(u, Bx) + adj_wsum) * xb)
+                    wp.atomic_add(adj_y, j, adj_u)
+                    wp.atomic_add(adj_x, j, adj_xb - adj_u)
+                    gg_i -= adj_xb
+                if j != i and applied != 0:
+                    gg, gp = scatter_image_pair_adjoint(adj_A, adj_A_sym, floor_image(xj, gn, goff, gmin) - gi, xj - xi,
+                                                        hh, c6, adj_x, j, xj, gn, goff, gmin)
+                    gg_i -= gg
+                    gx_i -= gp
+        wp.atomic_add(adj_x, i, gx_i + floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
+        adj_Fg = Gg
+        if applied != 0:
+            adj_Fg = wp.transpose(wp.identity(n=3, dtype=scalar) + scale * D0) * Gg
+        return adj_Fg, wp.ddot(Gg * wp.transpose(Fg), D0)
+
+    @wp.func
     def fit_sums(
         i: int,
         x: wp.array(dtype=vec3),
@@ -418,7 +620,10 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         fit_sums=fit_sums,
         floor_image_jacobian=floor_image_jacobian, fit_pair_adjoint=fit_pair_adjoint,
         scatter_pair_adjoint=scatter_pair_adjoint, fit_pairs_adjoint=fit_pairs_adjoint,
-        floor_image_moment=floor_image_moment, affine_fit=affine_fit, step_increment=step_increment,
+        floor_image_moment=floor_image_moment, scatter_image_pair_adjoint=scatter_image_pair_adjoint,
+        floor_image_displacement_sums=floor_image_displacement_sums, floor_image_share=floor_image_share,
+        floor_image_own_update=floor_image_own_update, floor_image_update=floor_image_update,
+        floor_image_update_adjoint=floor_image_update_adjoint, affine_fit=affine_fit, step_increment=step_increment,
         step_gradient=step_gradient, unless_inverted=unless_inverted,
         carried_update=carried_update, deformation_update=deformation_update,
     )
@@ -450,16 +655,24 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         goff: scalar,
         gmin: scalar,
         images: int,
+        Fg_prev: wp.array(dtype=mat33),
         F_out: wp.array(dtype=mat33),
         F_out_lo: wp.array(dtype=mat33),
         counters: wp.array(dtype=wp.int32),
+        Fg_out: wp.array(dtype=mat33),
     ):
         i = wp.tid()
         A, B, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
-        F_new, F_new_lo = fn.deformation_update(A, B, guard[i], gf.guard_scale(A, same, min_neighbors, max_condition),
-                                                F_prev[i], F_prev_lo[i], counters)
+        scale = gf.guard_scale(A, same, min_neighbors, max_condition)
+        F_new, F_new_lo = fn.deformation_update(A, B, guard[i], scale, F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
+        # The floor image's own F (State.F_image); without images, its particle's.
+        Fg_new = F_new
+        if images != 0:
+            Fg_new = fn.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, guard[i], scale,
+                                           Fg_prev[i], F_new)
+        Fg_out[i] = Fg_new
 
     @wp.kernel(enable_backward=False, module="unique")
     def update_deformation_adjoint(
@@ -479,10 +692,13 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         goff: scalar,
         gmin: scalar,
         images: int,
+        Fg_prev: wp.array(dtype=mat33),
         adj_F_out: wp.array(dtype=mat33),
+        adj_Fg_out: wp.array(dtype=mat33),
         adj_x: wp.array(dtype=vec3),
         adj_y: wp.array(dtype=vec3),
         adj_F_prev: wp.array(dtype=mat33),
+        adj_Fg_prev: wp.array(dtype=mat33),
     ):
         """Hand-written adjoint of ``update_deformation`` (eqs. 5-8 differentiated): the
         tape's generated one spends 15-20x the forward on per-neighbour matrix selects and
@@ -498,31 +714,62 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         ``dF - I = s(A, same) (B A^-1 - I)`` (``guards.guard``) scales ``adj B``,
         adds ``(adj dF : (B A^-1 - I)) ds/dA`` to ``adj A`` and gives the smooth count ``same``
         its adjoint ``(adj dF : (B A^-1 - I)) ds/dsame``, spread over the pairs by the slope of
-        ``guards.count_weight``."""
+        ``guards.count_weight``.
+
+        With ``images`` the image's own update (``floor_image_update``) too: where it keeps
+        its F, its gradient passes to the image's flowed F; where its own fit applies,
+        ``floor_image_update_adjoint``, its fade's share joining ``adj s``."""
         i = wp.tid()
         G = adj_F_out[i]
         Fp = F_prev[i]
         code = guard[i]
         A, B, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
-        if code == 1 or code == 2:
-            adj_F_prev[i] = adj_F_prev[i] + G
-            return
+        n = count[i]
         Ainv = wp.inverse(A)
         D0 = B * Ainv
         code_, s, ds_dA, ds_dn = gf.guard(A, same, min_neighbors, max_condition)
+        # The image's update (floor_image_update): F_new + c (own - F_new).
+        adj_s = scalar(0.0)
+        if images != 0:
+            Gg = adj_Fg_out[i]
+            Fg = Fg_prev[i]
+            Bg, wsum = fn.floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
+            own, applied = fn.floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, s, Bg, wsum, Fg)
+            c, dc = fn.floor_image_share(wsum, h)
+            # F_new is this kernel's F_out: its share of the gradient joins G.
+            G = G + (scalar(1.0) - c) * Gg
+            # (Its F_new as the forward's, to round-off: the guarded or inverted keep F.)
+            F_new = Fp
+            if code == 0:
+                if wp.determinant(Fp + (s * D0) * Fp) > scalar(0.0):
+                    F_new = Fp + (s * D0) * Fp
+            adj_wsum = wp.ddot(Gg, own - F_new) * dc
+            if applied != 0 or adj_wsum != scalar(0.0):
+                adj_Fg, adj_sg = fn.floor_image_update_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, s, Bg, Fg, c * Gg,
+                                                               applied, adj_wsum, adj_x, adj_y)
+                adj_Fg_prev[i] = adj_Fg_prev[i] + adj_Fg
+                adj_s = adj_sg
+            else:
+                adj_Fg_prev[i] = adj_Fg_prev[i] + c * Gg
+        if code == 1 or code == 2:
+            adj_F_prev[i] = adj_F_prev[i] + G
+            return
         D = s * D0
         dF = wp.identity(n=3, dtype=scalar) + D
         if wp.determinant(Fp + D * Fp) <= scalar(0.0):
+            # F is kept; the image's fade (adj s) still reaches A through the guard.
             adj_F_prev[i] = adj_F_prev[i] + G
-            return
-        adj_F_prev[i] = adj_F_prev[i] + wp.transpose(dF) * G
+            if adj_s == scalar(0.0):
+                return
+            G = mat33()
+        else:
+            adj_F_prev[i] = adj_F_prev[i] + wp.transpose(dF) * G
         adj_D = G * wp.transpose(Fp)
         adj_B = s * adj_D * wp.transpose(Ainv)
-        adj_s = wp.ddot(adj_D, D0)
+        adj_s += wp.ddot(adj_D, D0)
         adj_A = -((wp.identity(n=3, dtype=scalar) + wp.transpose(D0)) * adj_B) + adj_s * ds_dA
         adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_same = adj_s * ds_dn
-        n = count[i]
         gx_i, gy_i = fn.fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 0, adj_A, adj_A_sym, adj_B,
                                           adj_same, adj_x, adj_y, vec3(), vec3())
         if images != 0:
@@ -532,6 +779,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         wp.atomic_add(adj_y, i, gy_i)
 
     return types.SimpleNamespace(update_deformation=update_deformation, update_deformation_adjoint=update_deformation_adjoint)
+
+
+def image_F_flowed(model, state_out):
+    """The images' flowed F the update reads (``State.F_image_flowed``); without an image
+    plane, an array of the right shape that it does not read."""
+    return state_out.F_image_flowed if model.image_plane is not None else state_out.F_flowed
 
 
 def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint: bool = True, y=None, y_lo=None,
@@ -549,10 +802,13 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
         state_in.x, y, state_in.x_lo, y_lo, model.particle_body, state_out.neighbors,
         state_out.neighbor_count, state_out.guard, state_out.F_flowed, state_out.F_flowed_lo,
         model.scalar(model.support_radius), int(min_neighbors), model.scalar(max_condition), *model.image_args(),
+        image_F_flowed(model, state_out),
     ]
-    outputs = [state_out.F, state_out.F_lo, counters]
+    outputs = [state_out.F, state_out.F_lo, counters, state_out.F_image]
     tape = recording_tape()
     grads = (state_in.x, y, state_out.F_flowed, state_out.F)
+    if model.image_plane is not None:
+        grads += (state_out.F_image_flowed, state_out.F_image)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
         model.launches(k.update_deformation, model.particle_count, inputs, outputs, device=model.device)
         return
@@ -567,17 +823,21 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
 def launch_update_deformation_adjoint(model, state_in, state_out, y=None, y_lo=None,
                                       max_condition: float = guards.MAX_CONDITION,
                                       min_neighbors: int = guards.MIN_NEIGHBORS):
-    """``update_deformation_adjoint``: ``state_out.F.grad`` into the gradients of ``state_in.x``,
-    ``state_out.x`` (or ``y``) and ``state_out.F_flowed``, with the guards in ``state_out.guard``."""
+    """``update_deformation_adjoint``: ``state_out.F.grad`` (and ``F_image.grad``) into the
+    gradients of ``state_in.x``, ``state_out.x`` (or ``y``) and ``state_out.F_flowed`` (and
+    ``F_image_flowed``), with the guards in ``state_out.guard``."""
     y = state_out.x if y is None else y
     y_lo = state_out.x_lo if y_lo is None else y_lo
+    images = model.image_plane is not None
     model.launches(
         kernels(model.scalar, model.fit_weight).update_deformation_adjoint, model.particle_count,
         [
             state_in.x, y, state_in.x_lo, y_lo, model.particle_body, state_out.neighbors,
             state_out.neighbor_count, state_out.guard, state_out.F_flowed, model.scalar(model.support_radius),
             int(min_neighbors), model.scalar(max_condition),
-            *model.image_args(), state_out.F.grad, state_in.x.grad, y.grad, state_out.F_flowed.grad,
+            *model.image_args(), image_F_flowed(model, state_out), state_out.F.grad,
+            state_out.F_image.grad if images else state_out.F.grad, state_in.x.grad, y.grad, state_out.F_flowed.grad,
+            state_out.F_image_flowed.grad if images else state_out.F_flowed.grad,
         ],
         device=model.device, record_tape=False,
     )

@@ -225,24 +225,6 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return g
 
     @wp.func
-    def scatter_image_pair_adjoint(adj_A: mat33, adj_A_sym: mat33, gb: vec3, pb: vec3, hh: scalar, c6: scalar,
-                                   adj_x: wp.array(dtype=vec3), j: int, xj: vec3, gn: vec3, goff: scalar, gmin: scalar):
-        """Adjoint of an image-image term ``w(|pb|^2) gb gb^T`` of an image's moment matrix
-        (``deformation.floor_image_moment``: ``gb = g_j - g_i``, weighed as its particles' pair
-        ``pb = x_j - x_i``): ``adj gb = w adj_A_sym gb``, ``adj pb = 2 dw (gb . adj_A gb) pb``,
-        added to ``j`` (``gb``'s through ``deformation.floor_image_jacobian``); returned for
-        ``i``: ``(adj g_i, adj x_i)``."""
-        gg = vec3()
-        gp = vec3()
-        r2 = wp.dot(pb, pb)
-        if r2 < hh:
-            w, dw = fw.w_inside(r2, hh, c6)
-            gg = w * (adj_A_sym * gb)
-            gp = scalar(2.0) * dw * wp.dot(gb, adj_A * gb) * pb
-            wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * gg + gp)
-        return gg, gp
-
-    @wp.func
     def variational_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
                            nbr: wp.array2d(dtype=wp.int32), n: int, M: mat33, h: scalar,
                            f: wp.array(dtype=vec3)) -> vec3:
@@ -299,7 +281,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         stress=stress, principal_stress=principal_stress, principal_stress_differences=principal_stress_differences,
         polynomial_stress=polynomial_stress, elastic_pair_force=elastic_pair_force, paper_forces=paper_forces,
         elastic_pair_adjoint=elastic_pair_adjoint, paper_image_count=paper_image_count,
-        scatter_image_pair_adjoint=scatter_image_pair_adjoint,
+        scatter_image_pair_adjoint=deformation.funcs(scalar, weight).scatter_image_pair_adjoint,
         paper_image_forces=paper_image_forces,
         variational_map=variational_map, variational_map_adjoint=variational_map_adjoint,
         variational_pair_force=variational_pair_force, variational_forces=variational_forces,
@@ -344,6 +326,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         goff: scalar,
         gmin: scalar,
         images: int,
+        image_stress: wp.array(dtype=mat33),
+        F_image: wp.array(dtype=mat33),
         f: wp.array(dtype=vec3),
     ):
         i = wp.tid()
@@ -366,7 +350,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             M = s_fit * fn.variational_map(volume[i], stress[i], F[i], A_inv)
             fi = fn.variational_forces(i, x, body, nbr, count[i], M, h, f)
             if images != 0:
-                Mg = s_fit * fn.image_map(volume[i], stress[i], F[i],
+                # The image's own stress and F (State.F_image): its energy's work is stored there.
+                Mg = s_fit * fn.image_map(volume[i], image_stress[i], F_image[i],
                                           image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin))
                 fi += fn.floor_image_forces(i, x, body, nbr, count[i], M, Mg, h, gn, goff, gmin, f)
         wp.atomic_add(f, i, fi)
@@ -467,10 +452,14 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         goff: scalar,
         gmin: scalar,
         images: int,
+        image_stress: wp.array(dtype=mat33),
+        F_image: wp.array(dtype=mat33),
         adj_f: wp.array(dtype=vec3),
         adj_x: wp.array(dtype=vec3),
         adj_stress: wp.array(dtype=mat33),
         adj_F: wp.array(dtype=mat33),
+        adj_image_stress: wp.array(dtype=mat33),
+        adj_F_image: wp.array(dtype=mat33),
     ):
         """Hand-written adjoint of the variational elastic force (``variational_map``,
         ``variational_pair_force``) as the fused step applies it: the guard evaluated on the
@@ -536,11 +525,13 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         adj_Ag = mat33()
         if n_img > 0:
             Ag_inv = wp.inverse(image_moment(i, x, body, nbr, n, h, gn, goff, gmin))
-            Mg0 = fn.variational_map(Vi, P, Fi, Ag_inv)
+            Pg = image_stress[i]
+            Fg = F_image[i]
+            Mg0 = fn.variational_map(Vi, Pg, Fg, Ag_inv)
             Mg = s * Mg0
-            adj_Pg, adj_Fg, adj_Ag_ = fn.variational_map_adjoint(Vi, P, Fi, Ag_inv, s * adj_Mg)
-            adj_P += adj_Pg
-            adj_Fi += adj_Fg
+            adj_Pg, adj_Fg, adj_Ag_ = fn.variational_map_adjoint(Vi, Pg, Fg, Ag_inv, s * adj_Mg)
+            adj_image_stress[i] = adj_image_stress[i] + adj_Pg
+            adj_F_image[i] = adj_F_image[i] + adj_Fg
             adj_Ag = adj_Ag_
             adj_s += wp.ddot(adj_Mg, Mg0)
         adj_A = adj_A + adj_s * ds_dA
@@ -579,6 +570,15 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                                  variational_forces_adjoint=variational_forces_adjoint)
 
 
+def image_constitutive(model, state_out):
+    """The images' stress and flowed F the variational force reads (``State.image_stress``,
+    ``State.F_image_flowed``, written by ``plasticity.launch_image_constitutive_update``);
+    without an image plane, arrays of the right shape that it does not read."""
+    if model.image_plane is None:
+        return state_out.stress, state_out.F_flowed
+    return state_out.image_stress, state_out.F_image_flowed
+
+
 def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
                           max_condition: float = neighbors.MAX_CONDITION, min_neighbors: int = neighbors.MIN_NEIGHBORS):
     """Elastic pair forces (eqs. 10-13, or the variational force) into ``state_out.force``,
@@ -591,6 +591,7 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
         state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
         state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
         state_out.F_inv, S(model.support_radius), int(min_neighbors), S(max_condition), *model.image_args(),
+        *image_constitutive(model, state_out),
     ]
     tape = recording_tape()
     grads = (state_in.x, state_out.stress, state_out.F_inv, state_out.force)
@@ -626,7 +627,8 @@ def launch_variational_forces_adjoint(model, state_in, state_out, min_neighbors:
         kernels(S, model.fit_weight).variational_forces_adjoint, model.particle_count,
         [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force, state_out.neighbors,
          state_out.neighbor_count, model.particle_volume, state_out.stress, state_out.F_flowed, S(model.support_radius),
-         int(min_neighbors), S(max_condition), *model.image_args(), state_out.force.grad, state_in.x.grad, state_out.stress.grad,
-         state_out.F_flowed.grad],
+         int(min_neighbors), S(max_condition), *model.image_args(), *image_constitutive(model, state_out),
+         state_out.force.grad, state_in.x.grad, state_out.stress.grad, state_out.F_flowed.grad,
+         *(a.grad for a in image_constitutive(model, state_out))],
         device=model.device, record_tape=False,
     )

@@ -82,6 +82,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         goff: scalar,
         gmin: scalar,
         images: int,
+        image_stress: wp.array(dtype=mat33),
+        F_image: wp.array(dtype=mat33),
         F_out: wp.array(dtype=mat33),
         F_lo_out: wp.array(dtype=mat33),
         alpha_out: wp.array(dtype=scalar),
@@ -169,7 +171,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 A_inv = wp.inverse(A)
                 M = s_fit * fo.variational_map(Vol_i, P, Fe, A_inv)
                 if images != 0:
-                    Mg = s_fit * fo.image_map(Vol_i, P, Fe, df.floor_image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin))
+                    Mg = s_fit * fo.image_map(Vol_i, image_stress[i], F_image[i], df.floor_image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin))
                     fi = fo.floor_image_forces(i, x, body, nbr, count[i], M, Mg, h, gn, goff, gmin, f)
             else:
                 kind_el = 2
@@ -228,10 +230,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         goff: scalar,
         gmin: scalar,
         images: int,
+        Fg_prev: wp.array(dtype=mat33),
         F_out: wp.array(dtype=mat33),
         F_out_lo: wp.array(dtype=mat33),
         guard: wp.array(dtype=wp.int32),
         counters: wp.array(dtype=wp.int32),
+        Fg_out: wp.array(dtype=mat33),
     ):
         """deformation.update_deformation with the neighbourhood guard of
         neighbors.select_neighbors evaluated here, on the moment matrix A of the fit."""
@@ -250,6 +254,11 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F_new, F_new_lo = df.deformation_update(A, B, code, s, F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
+        Fg_new = F_new
+        if images != 0:
+            Fg_new = df.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, code, s,
+                                           Fg_prev[i], F_new)
+        Fg_out[i] = Fg_new
 
     @wp.kernel(enable_backward=False, module="unique")
     def displacements(x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
@@ -285,7 +294,7 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
             pressure.pressure_density(model, state_out), scratch.pressure_volume() if own else scratch.sph_volume,
             state_out.neighbors, state_out.neighbor_count, S(model.support_radius), S(dt), 2 if own else int(sph),
             scratch.min_neighbors, S(scratch.max_condition), model.particle_mass, model.particle_rest_density,
-            *model.image_args(),
+            *model.image_args(), *forces.image_constitutive(model, state_out),
         ],
         [state_out.F_flowed, state_out.F_flowed_lo, state_out.alpha, state_out.stress, state_out.F_inv, state_out.force,
          scratch.counters],
@@ -313,6 +322,8 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
               state_out.F_inv, state_out.force, state_out.density]
     if model.separate_pressure_density:
         arrays.append(pressure.pressure_density(model, state_out))
+    if model.image_plane is not None:
+        arrays += [state_out.image_stress, state_out.F_image_flowed]
     arrays += [getattr(model, name) for name in model.MATERIAL_FIELDS]
     tape.record_func(backward, arrays)
 
@@ -333,9 +344,9 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
         [
             state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, u, model.particle_body, state_out.neighbors,
             state_out.neighbor_count, state_out.F_flowed, state_out.F_flowed_lo, S(model.support_radius), scratch.min_neighbors,
-            S(scratch.max_condition), *model.image_args(),
+            S(scratch.max_condition), *model.image_args(), deformation.image_F_flowed(model, state_out),
         ],
-        [state_out.F, state_out.F_lo, state_out.guard, scratch.counters],
+        [state_out.F, state_out.F_lo, state_out.guard, scratch.counters, state_out.F_image],
         device=model.device,
         record_tape=tape is None,
     )
@@ -343,4 +354,5 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
         tape.record_func(lambda: deformation.launch_update_deformation_adjoint(model, state_in, state_out,
                                                                                max_condition=scratch.max_condition,
                                                                                min_neighbors=scratch.min_neighbors),
-                         [state_in.x, state_out.x, state_out.F_flowed, state_out.F])
+                         [state_in.x, state_out.x, state_out.F_flowed, state_out.F]
+                         + ([state_out.F_image_flowed, state_out.F_image] if images else []))

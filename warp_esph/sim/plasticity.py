@@ -439,6 +439,22 @@ def launch_constitutive_update(model, state_in, state_out, dt, counters):
     )
 
 
+def launch_image_constitutive_update(model, state_in, state_out, dt, counters):
+    """The same plastic flow and stress for each floor image's own ``F``
+    (``State.F_image``, ``add_ground(images=True)``) into ``state_out.F_image_flowed`` and
+    ``state_out.image_stress``; recorded on a tape as any launch (Warp's generated adjoint).
+    An image flows with its particle's hardening ``alpha``, which it does not advance."""
+    scratch = state_out._image_scratch
+    model.launches(
+        kernels(model.scalar).constitutive_update,
+        model.particle_count,
+        [state_in.F_image, scratch.F_lo, state_in.alpha, model.particle_material, model.material_arrays(),
+         model.scalar(dt)],
+        [state_out.F_image_flowed, scratch.F_flowed_lo, scratch.alpha, state_out.image_stress, scratch.F_inv, counters],
+        device=model.device,
+    )
+
+
 def launch_constitutive_update_adjoint(model, state_in, state_out, dt, counters, tape, hand: bool = True):
     """The adjoint of ``constitutive_update`` (for the fused step under a tape, which writes
     the same outputs in its own kernel): the gradients of ``state_out.F_flowed, alpha,

@@ -385,10 +385,16 @@ class Solver:
             if not self._warned_cut:
                 self._warn_cut()
         state_out.force.zero_()
+        # The floor images' own F flows as the particles' does (State.F_image); the
+        # curvature-corrected fit's images still carry their particle's (docs/physics.md, "The
+        # floor images' energy is not stored").
+        own_images = m.image_plane is not None and not self._curved
 
         if fast:
             # 2-4 fused: plastic flow, stress, F^-1 and every pair force in one launch.
             with phase("fused"):
+                if own_images:
+                    plasticity.launch_image_constitutive_update(m, state_in, state_out, dt, scratch.counters)
                 fused.launch_constitutive_forces(m, state_in, state_out, dt, scratch, sph, fast_tape)
         else:
             # 2. SPH density (and pressure density), finished before any pressure uses it
@@ -402,6 +408,8 @@ class Solver:
                     comparison.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters)
                 else:
                     plasticity.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters)
+                if own_images:
+                    plasticity.launch_image_constitutive_update(m, state_in, state_out, dt, scratch.counters)
             # 4. Elastic pair forces, pressure and viscosity.
             with phase("forces"):
                 if self._curved and not self._cmp:
@@ -462,5 +470,8 @@ class Solver:
             if not fast and self._cmp:
                 # Their updates rebuild F without carrying its round-off (State.F_lo).
                 state_out.F_lo.zero_()
+            if m.image_plane is not None and self._curved:
+                # Its images carry their particle's F (curvature.py): so does the state.
+                wp.copy(state_out.F_image, state_out.F)
         state_out.time = state_in.time + dt
         self.step_count += 1
