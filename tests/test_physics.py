@@ -50,9 +50,8 @@ def _launch_fit(fit, model, state, x, y, Fp, F_out, counters):
     ins = [x, y, wp.zeros_like(x), wp.zeros_like(x), model.particle_body, state.neighbors, state.neighbor_count,
            state.guard, Fp, wp.zeros_like(Fp), S(model.support_radius), MIN_NEIGHBORS, S(MAX_CONDITION), *model.image_args()]
     outs = [F_out, wp.zeros_like(Fp), counters]
-    if fit is deformation:
-        # The images' own F (State.F_image): in and out, unread without an image plane.
-        ins, outs = ins + [Fp], outs + [wp.zeros_like(Fp)]
+    # The images' own F (State.F_image): in and out, unread without an image plane.
+    ins, outs = ins + [Fp], outs + [wp.zeros_like(Fp)]
     wp.launch(fit.kernels(S, model.fit_weight).update_deformation, model.particle_count, ins, outs)
 
 

@@ -106,9 +106,9 @@ def test_slow_strain_below_half_a_unit_per_step_accumulates_in_F(fit):
         a, b = k % 2, 1 - k % 2
         wp.launch(fit.kernels(model.scalar, model.fit_weight).update_deformation, n,
                   [state.x, state.x, lo, y_lo, model.particle_body, state.neighbors, state.neighbor_count, state.guard,
-                   F[a], F_lo[a], model.scalar(model.support_radius), MIN_NEIGHBORS, model.scalar(MAX_CONDITION), *model.image_args()]
-                  + ([F[a]] if fit is deformation else []),  # (the images' F: unread without an image plane)
-                  [F[b], F_lo[b], counters] + ([wp.zeros_like(F[b])] if fit is deformation else []))
+                   F[a], F_lo[a], model.scalar(model.support_radius), MIN_NEIGHBORS, model.scalar(MAX_CONDITION), *model.image_args(),
+                   F[a]],  # (the images' F: unread without an image plane)
+                  [F[b], F_lo[b], counters, wp.zeros_like(F[b])])
     full = F[steps % 2].numpy().astype(np.float64) + F_lo[steps % 2].numpy()
     want = np.linalg.matrix_power(np.eye(3) + D, steps)
     assert np.abs(full - want).max() < 1e-3 * steps * np.abs(D).max(), np.abs(full - want).max() / (steps * np.abs(D).max())

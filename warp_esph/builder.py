@@ -431,12 +431,9 @@ class SceneBuilder:
         (the incremental fit; docs/physics.md, "The ground
         collider's thin-layer strength"). Without it a layer's bottom particles are held on
         the plane with a one-sided fit, and a thin layer is 2.25 x too strong in shear.
-        With the linear fit each image has an elastic F of its own (``State.F_image``), which
-        its own fit over the particles near it updates and which flows plastically as theirs
-        does, so the work its energy does is stored. With the curvature-corrected fit (an
-        elastic material's by default) the images still carry their particle's F, and a layer
-        with no viscosity on it can gain energy (an elastic one rings up a thousandfold
-        within a second): give its material viscosity, or ``Solver(fit="linear")``
+        Each image has an elastic F of its own (``State.F_image``), which its own fit over
+        the particles near it updates and which flows plastically as theirs does, so the work
+        its energy does is stored and an undamped layer on it keeps its energy
         (docs/physics.md, "The floor images' energy is not stored")."""
         if not isinstance(images, bool):
             raise ValueError(f"images = {images!r} is not allowed: must be True or False")

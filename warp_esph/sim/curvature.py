@@ -529,19 +529,28 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         goff: scalar,
         gmin: scalar,
         images: int,
+        Fg_prev: wp.array(dtype=mat33),
         F_out: wp.array(dtype=mat33),
         F_out_lo: wp.array(dtype=mat33),
         counters: wp.array(dtype=wp.int32),
+        Fg_out: wp.array(dtype=mat33),
     ):
         """``deformation.update_deformation`` with the corrected fit (eq. 8: ``F <- dF F``
         unless guarded or inverted, ``F``'s round-off carried in ``F_lo`` as there)."""
         i = wp.tid()
         A, Bu, C, D, Eu, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
-        inc = fn.step_increment(A, Bu, C, D, Eu, guard[i], gf.guard_scale(A, same, min_neighbors, max_condition),
-                                counters)
+        scale = gf.guard_scale(A, same, min_neighbors, max_condition)
+        inc = fn.step_increment(A, Bu, C, D, Eu, guard[i], scale, counters)
         F_new, F_new_lo = df.carried_update(inc, F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
+        # The floor image's own F (State.F_image), by the image's linear fit
+        # (deformation.floor_image_update); without images, its particle's.
+        Fg_new = F_new
+        if images != 0:
+            Fg_new = df.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, guard[i], scale,
+                                           Fg_prev[i], F_new)
+        Fg_out[i] = Fg_new
 
     @wp.kernel(enable_backward=False, module="unique")
     def update_deformation_adjoint(
@@ -561,10 +570,13 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         goff: scalar,
         gmin: scalar,
         images: int,
+        Fg_prev: wp.array(dtype=mat33),
         adj_F_out: wp.array(dtype=mat33),
+        adj_Fg_out: wp.array(dtype=mat33),
         adj_x: wp.array(dtype=vec3),
         adj_y: wp.array(dtype=vec3),
         adj_F_prev: wp.array(dtype=mat33),
+        adj_Fg_prev: wp.array(dtype=mat33),
     ):
         """Hand-written adjoint of ``update_deformation`` (as ``deformation.update_deformation_adjoint``
         for the linear fit: the generated one spends many times the forward).
@@ -579,15 +591,15 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         ``yb`` linearly (``moment_pair_adjoint``, over the row in ``moment_pairs_adjoint``).
         Guarded or inverted particles keep ``F``: all of ``G`` goes to ``F``. With ``images`` the
         image pairs (``moment_pair_sums``) likewise, scattered to their particles through
-        ``deformation.floor_image_jacobian`` (``deformation.scatter_pair_adjoint``)."""
+        ``deformation.floor_image_jacobian`` (``deformation.scatter_pair_adjoint``), and the
+        image's own update (``deformation.floor_image_update``, the image's linear fit) as in
+        ``deformation.update_deformation_adjoint``."""
         i = wp.tid()
         G = adj_F_out[i]
         Fp = F_prev[i]
         code = guard[i]
-        A, Bu, C, D, Eu, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
-        if code == 1 or code == 2:
-            adj_F_prev[i] = adj_F_prev[i] + G
-            return
+        n = count[i]
+        A, Bu, C, D, Eu, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
         K, D_inv, kept = fn.projection_terms(A, C, D)
         At = fn.corrected_moment(A, C, K)
         # The adjoint of dF F in the moments of the positions (B = Bu + A, E = Eu + C): the
@@ -597,12 +609,41 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         inc0 = fn.corrected_moment(Bu, Eu, K) * At_inv
         # The fade s(A, same) on the plain moment matrix (guards.guard): inc = s inc0.
         code_, s, ds_dA, ds_dn = gf.guard(A, same, min_neighbors, max_condition)
+        # The image's update (deformation.floor_image_update): F_new + c (own - F_new).
+        adj_s = scalar(0.0)
+        if images != 0:
+            Gg = adj_Fg_out[i]
+            Fg = Fg_prev[i]
+            Bg, wsum = df.floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
+            own, applied = df.floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, s, Bg, wsum, Fg)
+            c, dc = df.floor_image_share(wsum, h)
+            G = G + (scalar(1.0) - c) * Gg
+            # (Its F_new as the forward's, to round-off: the guarded or inverted keep F.)
+            F_new = Fp
+            if code == 0:
+                if wp.determinant(Fp + (s * inc0) * Fp) > scalar(0.0):
+                    F_new = Fp + (s * inc0) * Fp
+            adj_wsum = wp.ddot(Gg, own - F_new) * dc
+            if applied != 0 or adj_wsum != scalar(0.0):
+                adj_Fg, adj_sg = df.floor_image_update_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, s, Bg, Fg, c * Gg,
+                                                               applied, adj_wsum, adj_x, adj_y)
+                adj_Fg_prev[i] = adj_Fg_prev[i] + adj_Fg
+                adj_s = adj_sg
+            else:
+                adj_Fg_prev[i] = adj_Fg_prev[i] + c * Gg
+        if code == 1 or code == 2:
+            adj_F_prev[i] = adj_F_prev[i] + G
+            return
         inc = s * inc0
         dF = wp.identity(n=3, dtype=scalar) + inc
         if wp.determinant(Fp + inc * Fp) <= scalar(0.0):
+            # F is kept; the image's fade (adj s) still reaches A through the guard.
             adj_F_prev[i] = adj_F_prev[i] + G
-            return
-        adj_F_prev[i] = adj_F_prev[i] + wp.transpose(dF) * G
+            if adj_s == scalar(0.0):
+                return
+            G = mat33()
+        else:
+            adj_F_prev[i] = adj_F_prev[i] + wp.transpose(dF) * G
         adj_inc = G * wp.transpose(Fp)
         adj_Bt = s * adj_inc * wp.transpose(At_inv)
         adj_At = -((wp.identity(n=3, dtype=scalar) + wp.transpose(inc0)) * adj_Bt)
@@ -610,12 +651,11 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         adj_B = adj_Bt
         adj_E = -(adj_Bt * KT)
         adj_A, adj_C, adj_D = fn.projection_adjoint(adj_At, -(wp.transpose(E) * adj_Bt), C, K, D_inv, kept)
-        adj_s = wp.ddot(adj_inc, inc0)
+        adj_s += wp.ddot(adj_inc, inc0)
         adj_A = adj_A + adj_s * ds_dA
         adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_D_sym = adj_D + wp.transpose(adj_D)
         adj_same = adj_s * ds_dn
-        n = count[i]
         gx_i, gy_i = fn.moment_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 0, adj_A, adj_A_sym, adj_B,
                                              adj_C, adj_D, adj_D_sym, adj_E, adj_same, adj_x, adj_y, vec3(), vec3())
         if images != 0:
@@ -644,6 +684,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         goff: scalar,
         gmin: scalar,
         images: int,
+        image_stress: wp.array(dtype=mat33),
+        F_image: wp.array(dtype=mat33),
         f: wp.array(dtype=vec3),
     ):
         """``forces.elastic_forces`` with the variational force of the corrected fit
@@ -667,7 +709,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             fi = fn.variational_forces(i, x, body, nbr, count[i], M, K, h, f)
             if images != 0:
                 Ag, Cg, Dg = fn.floor_image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin)
-                Mg0, Kg = fn.image_map(volume[i], stress[i], F[i], Ag, Cg, Dg)
+                # The image's own stress and F (State.F_image): its energy's work is stored there.
+                Mg0, Kg = fn.image_map(volume[i], image_stress[i], F_image[i], Ag, Cg, Dg)
                 Mg = s_fit * Mg0
                 fi += fn.floor_image_forces(i, x, body, nbr, count[i], M, K, Mg, Kg, h, gn, goff, gmin, f)
         wp.atomic_add(f, i, fi)
@@ -691,10 +734,14 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         goff: scalar,
         gmin: scalar,
         images: int,
+        image_stress: wp.array(dtype=mat33),
+        F_image: wp.array(dtype=mat33),
         adj_f: wp.array(dtype=vec3),
         adj_x: wp.array(dtype=vec3),
         adj_stress: wp.array(dtype=mat33),
         adj_F: wp.array(dtype=mat33),
+        adj_image_stress: wp.array(dtype=mat33),
+        adj_F_image: wp.array(dtype=mat33),
     ):
         """Hand-written adjoint of ``elastic_forces``' variational force (as
         ``forces.variational_forces_adjoint`` for the linear fit; eqs. 10-13's particles are
@@ -772,12 +819,14 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             Ag, Cg, Dg = fn.floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
             Kg_, Dg_inv, kept_g = fn.projection_terms(Ag, Cg, Dg)
             Ag_inv = wp.inverse(fn.corrected_moment(Ag, Cg, Kg_))
-            Mg0 = fo.variational_map(Vi, P, Fi, Ag_inv)
+            Pg = image_stress[i]
+            Fg = F_image[i]
+            Mg0 = fo.variational_map(Vi, Pg, Fg, Ag_inv)
             Mg_ = s * Mg0
             adj_Mg = S1g - S2g * Kg_
-            adj_Pg, adj_Fg, adj_Agt = fo.variational_map_adjoint(Vi, P, Fi, Ag_inv, s * adj_Mg)
-            adj_P += adj_Pg
-            adj_Fi += adj_Fg
+            adj_Pg, adj_Fg, adj_Agt = fo.variational_map_adjoint(Vi, Pg, Fg, Ag_inv, s * adj_Mg)
+            adj_image_stress[i] = adj_image_stress[i] + adj_Pg
+            adj_F_image[i] = adj_F_image[i] + adj_Fg
             adj_s += wp.ddot(adj_Mg, Mg0)
             adj_Ag_, adj_Cg_, adj_Dg_ = fn.projection_adjoint(adj_Agt, -(wp.transpose(S2g) * Mg_), Cg, Kg_, Dg_inv,
                                                               kept_g)
@@ -835,9 +884,12 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
     S = model.scalar
     inputs = [state_in.x, model.particle_body, model.particle_material, model.material_arrays(), state_out.neighbors,
               state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress, state_out.F_flowed,
-              state_out.F_inv, S(model.support_radius), int(min_neighbors), S(max_condition), *model.image_args()]
+              state_out.F_inv, S(model.support_radius), int(min_neighbors), S(max_condition), *model.image_args(),
+              *forces.image_constitutive(model, state_out)]
     tape = recording_tape()
     grads = (state_in.x, state_out.stress, state_out.F_flowed, state_out.F_inv, state_out.force)
+    if model.image_plane is not None:
+        grads += (state_out.image_stress, state_out.F_image_flowed)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
         model.launches(kernels(S, model.fit_weight).elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device)
         return
@@ -850,9 +902,9 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
             [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force,
              state_out.neighbors, state_out.neighbor_count, state_out.guard, model.particle_volume, state_out.stress,
              state_out.F_flowed, S(model.support_radius), int(min_neighbors), S(max_condition), *model.image_args(),
-             state_out.force.grad,
-             state_in.x.grad,
-             state_out.stress.grad, state_out.F_flowed.grad],
+             *forces.image_constitutive(model, state_out), state_out.force.grad, state_in.x.grad,
+             state_out.stress.grad, state_out.F_flowed.grad,
+             *(a.grad for a in forces.image_constitutive(model, state_out))],
             device=model.device, record_tape=False,
         )
         forces.launch_elastic_forces_adjoint(model, state_in, state_out)
@@ -869,10 +921,13 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
            state_out.neighbor_count, state_out.guard]
     h = model.scalar(model.support_radius)
     plane = [int(min_neighbors), model.scalar(max_condition), *model.image_args()]
-    inputs = pos + [state_out.F_flowed, state_out.F_flowed_lo, h, *plane]
-    outputs = [state_out.F, state_out.F_lo, counters]
+    inputs = pos + [state_out.F_flowed, state_out.F_flowed_lo, h, *plane, deformation.image_F_flowed(model, state_out)]
+    outputs = [state_out.F, state_out.F_lo, counters, state_out.F_image]
     tape = recording_tape()
+    images = model.image_plane is not None
     grads = (state_in.x, state_out.x, state_out.F_flowed, state_out.F)
+    if images:
+        grads += (state_out.F_image_flowed, state_out.F_image)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
         model.launches(k.update_deformation, model.particle_count, inputs, outputs, device=model.device)
         return
@@ -881,8 +936,9 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     def adjoint():
         model.launches(
             k.update_deformation_adjoint, model.particle_count,
-            pos + [state_out.F_flowed, h, *plane, state_out.F.grad, state_in.x.grad, state_out.x.grad,
-                   state_out.F_flowed.grad],
+            pos + [state_out.F_flowed, h, *plane, deformation.image_F_flowed(model, state_out), state_out.F.grad,
+                   state_out.F_image.grad if images else state_out.F.grad, state_in.x.grad, state_out.x.grad,
+                   state_out.F_flowed.grad, state_out.F_image_flowed.grad if images else state_out.F_flowed.grad],
             device=model.device, record_tape=False,
         )
 

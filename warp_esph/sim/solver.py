@@ -385,10 +385,9 @@ class Solver:
             if not self._warned_cut:
                 self._warn_cut()
         state_out.force.zero_()
-        # The floor images' own F flows as the particles' does (State.F_image); the
-        # curvature-corrected fit's images still carry their particle's (docs/physics.md, "The
-        # floor images' energy is not stored").
-        own_images = m.image_plane is not None and not self._curved
+        # The floor images' own F flows as the particles' does (State.F_image; docs/physics.md,
+        # "The floor images' energy is not stored").
+        own_images = m.image_plane is not None
 
         if fast:
             # 2-4 fused: plastic flow, stress, F^-1 and every pair force in one launch.
@@ -470,8 +469,5 @@ class Solver:
             if not fast and self._cmp:
                 # Their updates rebuild F without carrying its round-off (State.F_lo).
                 state_out.F_lo.zero_()
-            if m.image_plane is not None and self._curved:
-                # Its images carry their particle's F (curvature.py): so does the state.
-                wp.copy(state_out.F_image, state_out.F)
         state_out.time = state_in.time + dt
         self.step_count += 1
