@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import types
 from collections.abc import Sequence
 
 import numpy as np
@@ -128,13 +127,6 @@ class State:
         # The images' plastic flow and stress, written by the step (with an image plane only).
         self.F_image_flowed = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad) if images else None
         self.image_stress = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad) if images else None
-        # What else the constitutive update of the images writes (unread) and its round-off input (0).
-        self._image_scratch = None
-        if images:
-            self._image_scratch = types.SimpleNamespace(
-                F_lo=wp.zeros(n, dtype=T.mat33, device=dev), F_flowed_lo=wp.zeros(n, dtype=T.mat33, device=dev),
-                alpha=wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad),
-                F_inv=wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad))
         tools.allocate_state(model, self, requires_grad)
         integrate.allocate_state(model, self, requires_grad)
         ghost_floor.allocate_state(model, self, requires_grad)

@@ -216,6 +216,40 @@ def kernels(scalar) -> types.SimpleNamespace:
         stress_out[i] = stress(Fe, mu, mat.lam[m], kind)
         F_inv_out[i] = wp.inverse(Fe)
 
+    @wp.kernel(module="unique")
+    def image_constitutive_update(
+        x: wp.array(dtype=T.vec3),
+        F_in: wp.array(dtype=mat33),
+        alpha_in: wp.array(dtype=scalar),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        dt: scalar,
+        gn: T.vec3,
+        goff: scalar,
+        h: scalar,
+        F_out: wp.array(dtype=mat33),
+        stress_out: wp.array(dtype=mat33),
+        counters: wp.array(dtype=wp.int32),
+    ):
+        """``constitutive_update`` of each floor image's own F (``State.F_image``) where the
+        image can reach a particle (its particle within ``h`` of the plane ``dot(gn, x) =
+        goff``); elsewhere nothing reads it (``deformation.floor_image_update`` gives such an
+        image its particle's F): kept, and no stress. The image flows with its particle's
+        hardening ``alpha``, which it does not advance."""
+        i = wp.tid()
+        Fg = F_in[i]
+        P = mat33()
+        if wp.dot(gn, x[i]) - goff < h:
+            m = material[i]
+            kind = mat.model[m]
+            mu = mat.mu[m]
+            Fe, Fe_lo, a_new = flow(Fg, mat33(), alpha_in[i], mu, mat.yield_stress[m], mat.flow_rate[m],
+                                    mat.hardening[m], kind, dt, counters)
+            Fg = Fe + Fe_lo
+            P = stress(Fg, mu, mat.lam[m], kind)
+        F_out[i] = Fg
+        stress_out[i] = P
+
     vec3 = T.vec3
     fl = funcs(scalar)
     fo = forces.funcs(scalar, "poly6")  # the stress only: no fit weight in it
@@ -424,7 +458,8 @@ def kernels(scalar) -> types.SimpleNamespace:
         wp.atomic_add(adj_rate, m, a_nu)
         wp.atomic_add(adj_hardening, m, a_K)
 
-    return types.SimpleNamespace(constitutive_update=constitutive_update, flow=flow,
+    return types.SimpleNamespace(constitutive_update=constitutive_update, image_constitutive_update=image_constitutive_update,
+                                 flow=flow,
                                  constitutive_update_adjoint=constitutive_update_adjoint)
 
 
@@ -440,17 +475,16 @@ def launch_constitutive_update(model, state_in, state_out, dt, counters):
 
 
 def launch_image_constitutive_update(model, state_in, state_out, dt, counters):
-    """The same plastic flow and stress for each floor image's own ``F``
-    (``State.F_image``, ``add_ground(images=True)``) into ``state_out.F_image_flowed`` and
-    ``state_out.image_stress``; recorded on a tape as any launch (Warp's generated adjoint).
-    An image flows with its particle's hardening ``alpha``, which it does not advance."""
-    scratch = state_out._image_scratch
+    """``image_constitutive_update``: the plastic flow and stress of each floor image's own
+    ``F`` (``State.F_image``, ``add_ground(images=True)``) into ``state_out.F_image_flowed``
+    and ``state_out.image_stress``; recorded on a tape as any launch (Warp's generated adjoint)."""
+    gn, goff, _gmin, _images = model.image_args()
     model.launches(
-        kernels(model.scalar).constitutive_update,
+        kernels(model.scalar).image_constitutive_update,
         model.particle_count,
-        [state_in.F_image, scratch.F_lo, state_in.alpha, model.particle_material, model.material_arrays(),
-         model.scalar(dt)],
-        [state_out.F_image_flowed, scratch.F_flowed_lo, scratch.alpha, state_out.image_stress, scratch.F_inv, counters],
+        [state_in.x, state_in.F_image, state_in.alpha, model.particle_material, model.material_arrays(),
+         model.scalar(dt), gn, goff, model.scalar(model.support_radius)],
+        [state_out.F_image_flowed, state_out.image_stress, counters],
         device=model.device,
     )
 
