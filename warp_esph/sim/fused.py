@@ -171,7 +171,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 A_inv = wp.inverse(A)
                 M = s_fit * fo.variational_map(Vol_i, P, Fe, A_inv)
                 if images != 0:
-                    Mg = s_fit * fo.image_map(Vol_i, image_stress[i], F_image[i], df.floor_image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin))
+                    # The image's own stress and F (State.F_image): its energy's work is stored there.
+                    Ag = df.floor_image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin)
+                    Mg = s_fit * fo.image_map(Vol_i, image_stress[i], F_image[i], Ag)
                     fi = fo.floor_image_forces(i, x, body, nbr, count[i], M, Mg, h, gn, goff, gmin, f)
             else:
                 kind_el = 2

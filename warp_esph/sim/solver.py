@@ -385,14 +385,14 @@ class Solver:
             if not self._warned_cut:
                 self._warn_cut()
         state_out.force.zero_()
-        # The floor images' own F flows as the particles' does (State.F_image; docs/physics.md,
+        # Each floor image's own F flows as the particles' does (State.F_image; docs/physics.md,
         # "The floor images' energy is not stored").
-        own_images = m.image_plane is not None
+        images = m.image_plane is not None
 
         if fast:
             # 2-4 fused: plastic flow, stress, F^-1 and every pair force in one launch.
             with phase("fused"):
-                if own_images:
+                if images:
                     plasticity.launch_image_constitutive_update(m, state_in, state_out, dt, scratch.counters)
                 fused.launch_constitutive_forces(m, state_in, state_out, dt, scratch, sph, fast_tape)
         else:
@@ -407,7 +407,7 @@ class Solver:
                     comparison.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters)
                 else:
                     plasticity.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters)
-                if own_images:
+                if images:
                     plasticity.launch_image_constitutive_update(m, state_in, state_out, dt, scratch.counters)
             # 4. Elastic pair forces, pressure and viscosity.
             with phase("forces"):
