@@ -609,28 +609,16 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         inc0 = fn.corrected_moment(Bu, Eu, K) * At_inv
         # The fade s(A, same) on the plain moment matrix (guards.guard): inc = s inc0.
         code_, s, ds_dA, ds_dn = gf.guard(A, same, min_neighbors, max_condition)
-        # The image's update (deformation.floor_image_update): F_new + c (own - F_new).
+        # The image's update (deformation.floor_image_update): its share of the gradient of
+        # F_new joins G.
         adj_s = scalar(0.0)
         if images != 0:
-            Gg = adj_Fg_out[i]
-            Fg = Fg_prev[i]
-            Bg, wsum = df.floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
-            own, applied = df.floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, s, Bg, wsum, Fg)
-            c, dc = df.floor_image_share(wsum, h)
-            G = G + (scalar(1.0) - c) * Gg
-            # (Its F_new as the forward's, to round-off: the guarded or inverted keep F.)
-            F_new = Fp
-            if code == 0:
-                if wp.determinant(Fp + (s * inc0) * Fp) > scalar(0.0):
-                    F_new = Fp + (s * inc0) * Fp
-            adj_wsum = wp.ddot(Gg, own - F_new) * dc
-            if applied != 0 or adj_wsum != scalar(0.0):
-                adj_Fg, adj_sg = df.floor_image_update_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, s, Bg, Fg, c * Gg,
-                                                               applied, adj_wsum, adj_x, adj_y)
-                adj_Fg_prev[i] = adj_Fg_prev[i] + adj_Fg
-                adj_s = adj_sg
-            else:
-                adj_Fg_prev[i] = adj_Fg_prev[i] + c * Gg
+            G_share, adj_Fg, adj_sg = df.floor_image_update_adjoint(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin,
+                                                                    code, s, inc0, Fp, Fg_prev[i], adj_Fg_out[i], adj_x,
+                                                                    adj_y)
+            G = G + G_share
+            adj_Fg_prev[i] = adj_Fg_prev[i] + adj_Fg
+            adj_s = adj_sg
         if code == 1 or code == 2:
             adj_F_prev[i] = adj_F_prev[i] + G
             return

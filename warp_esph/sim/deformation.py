@@ -454,7 +454,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return F_new + c * (own - F_new)
 
     @wp.func
-    def floor_image_update_adjoint(
+    def floor_image_own_update_adjoint(
         i: int,
         x: wp.array(dtype=vec3),
         y: wp.array(dtype=vec3),
@@ -524,6 +524,51 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         if applied != 0:
             adj_Fg = wp.transpose(wp.identity(n=3, dtype=scalar) + scale * D0) * Gg
         return adj_Fg, wp.ddot(Gg * wp.transpose(Fg), D0)
+
+    @wp.func
+    def floor_image_update_adjoint(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        code: int,
+        scale: scalar,
+        D0: mat33,
+        Fp: mat33,
+        Fg: mat33,
+        Gg: mat33,
+        adj_x: wp.array(dtype=vec3),
+        adj_y: wp.array(dtype=vec3),
+    ):
+        """Adjoint of ``floor_image_update`` inside a fit's ``update_deformation_adjoint``
+        (``D0`` the particle's unfaded increment of either fit, ``Fp`` its flowed F, ``Gg`` the
+        gradient of the image's new F): the pairs' adjoints scattered to ``x`` and ``y``
+        (``floor_image_own_update_adjoint``); returns the share of ``Gg`` that joins the
+        gradient of the particle's new F, and the adjoints of the image's flowed F and of the
+        fade ``scale``."""
+        Bg, wsum = floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
+        own, applied = floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, Bg, wsum, Fg)
+        c, dc = floor_image_share(wsum, h)
+        # The particle's new F as the forward's, to round-off (the guarded or inverted keep F).
+        F_new = Fp
+        if code == 0:
+            if wp.determinant(Fp + (scale * D0) * Fp) > scalar(0.0):
+                F_new = Fp + (scale * D0) * Fp
+        adj_wsum = wp.ddot(Gg, own - F_new) * dc
+        adj_Fg = c * Gg
+        adj_s = scalar(0.0)
+        if applied != 0 or adj_wsum != scalar(0.0):
+            adj_Fg, adj_s = floor_image_own_update_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, scale, Bg, Fg, c * Gg,
+                                                           applied, adj_wsum, adj_x, adj_y)
+        return (scalar(1.0) - c) * Gg, adj_Fg, adj_s
 
     @wp.func
     def fit_sums(
@@ -623,6 +668,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         floor_image_moment=floor_image_moment, scatter_image_pair_adjoint=scatter_image_pair_adjoint,
         floor_image_displacement_sums=floor_image_displacement_sums, floor_image_share=floor_image_share,
         floor_image_own_update=floor_image_own_update, floor_image_update=floor_image_update,
+        floor_image_own_update_adjoint=floor_image_own_update_adjoint,
         floor_image_update_adjoint=floor_image_update_adjoint, affine_fit=affine_fit, step_increment=step_increment,
         step_gradient=step_gradient, unless_inverted=unless_inverted,
         carried_update=carried_update, deformation_update=deformation_update,
@@ -716,9 +762,10 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         its adjoint ``(adj dF : (B A^-1 - I)) ds/dsame``, spread over the pairs by the slope of
         ``guards.count_weight``.
 
-        With ``images`` the image's own update (``floor_image_update``) too: where it keeps
-        its F, its gradient passes to the image's flowed F; where its own fit applies,
-        ``floor_image_update_adjoint``, its fade's share joining ``adj s``."""
+        With ``images`` the image's own update (``floor_image_update``) too
+        (``floor_image_update_adjoint``): its share of the gradient of ``F_new`` joins ``G``,
+        the rest goes to the image's flowed F and, through its fit, to the positions, and its
+        fade's share joins ``adj s``."""
         i = wp.tid()
         G = adj_F_out[i]
         Fp = F_prev[i]
@@ -728,29 +775,15 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         Ainv = wp.inverse(A)
         D0 = B * Ainv
         code_, s, ds_dA, ds_dn = gf.guard(A, same, min_neighbors, max_condition)
-        # The image's update (floor_image_update): F_new + c (own - F_new).
+        # The image's update (floor_image_update): its share of the gradient of F_new joins G.
         adj_s = scalar(0.0)
         if images != 0:
-            Gg = adj_Fg_out[i]
-            Fg = Fg_prev[i]
-            Bg, wsum = fn.floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
-            own, applied = fn.floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, s, Bg, wsum, Fg)
-            c, dc = fn.floor_image_share(wsum, h)
-            # F_new is this kernel's F_out: its share of the gradient joins G.
-            G = G + (scalar(1.0) - c) * Gg
-            # (Its F_new as the forward's, to round-off: the guarded or inverted keep F.)
-            F_new = Fp
-            if code == 0:
-                if wp.determinant(Fp + (s * D0) * Fp) > scalar(0.0):
-                    F_new = Fp + (s * D0) * Fp
-            adj_wsum = wp.ddot(Gg, own - F_new) * dc
-            if applied != 0 or adj_wsum != scalar(0.0):
-                adj_Fg, adj_sg = fn.floor_image_update_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, s, Bg, Fg, c * Gg,
-                                                               applied, adj_wsum, adj_x, adj_y)
-                adj_Fg_prev[i] = adj_Fg_prev[i] + adj_Fg
-                adj_s = adj_sg
-            else:
-                adj_Fg_prev[i] = adj_Fg_prev[i] + c * Gg
+            G_share, adj_Fg, adj_sg = fn.floor_image_update_adjoint(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin,
+                                                                    code, s, D0, Fp, Fg_prev[i], adj_Fg_out[i], adj_x,
+                                                                    adj_y)
+            G = G + G_share
+            adj_Fg_prev[i] = adj_Fg_prev[i] + adj_Fg
+            adj_s = adj_sg
         if code == 1 or code == 2:
             adj_F_prev[i] = adj_F_prev[i] + G
             return
