@@ -602,10 +602,11 @@ _plane64 = we.sim.colliders.funcs(wp.float64).collide_plane
 
 @wp.kernel
 def _plane_exit(x: wp.array(dtype=wp.vec3d), v: wp.array(dtype=wp.vec3d), ramp: wp.float64,
-                x_out: wp.array(dtype=wp.vec3d)):
+                x_out: wp.array(dtype=wp.vec3d), v_out: wp.array(dtype=wp.vec3d)):
     i = wp.tid()
     xn, vn = _plane64(x[i], v[i], wp.vec3d(0.0, 1.0, 0.0), wp.float64(0.0), wp.float64(0.6), wp.float64(1.0e-3), ramp)
     x_out[i] = xn
+    v_out[i] = vn
 
 
 def _exit_heights(start_depths, vn=1.0, ramp=CONTINUOUS_CONTACT_RAMP):
@@ -619,7 +620,7 @@ def _exit_heights(start_depths, vn=1.0, ramp=CONTINUOUS_CONTACT_RAMP):
     out = wp.zeros(len(d0), dtype=wp.vec3d, requires_grad=True)
     tape = wp.Tape()
     with tape:
-        wp.launch(_plane_exit, len(d0), [xa, va, wp.float64(ramp)], [out])
+        wp.launch(_plane_exit, len(d0), [xa, va, wp.float64(ramp)], [out, wp.zeros_like(out)])
     tape.backward(grads={out: wp.array(np.tile([0.0, 1.0, 0.0], (len(d0), 1)), dtype=wp.vec3d)})
     return out.numpy()[:, 1], xa.grad.numpy()[:, 1]
 
@@ -654,6 +655,83 @@ def test_a_particle_leaving_the_plane_from_inside_has_a_c1_height_and_its_adjoin
     fd = (_exit_heights(inside - 1e-7 * drift)[0] - _exit_heights(inside + 1e-7 * drift)[0]) / (2e-7 * drift)
     np.testing.assert_allclose(g, fd, rtol=1e-6)
     assert np.all(np.abs(g - 1.0) > 1e-3)  # the band moves the slope off the plain drift's 1
+
+
+def _exit_speeds(start_depth, vn, vt=0.0, ramp=CONTINUOUS_CONTACT_RAMP, component=1):
+    """Velocity component ``component`` (1: normal, 0: tangential) after one step's contact
+    with the ground plane (friction 0.6) of particles that started ``start_depth`` inside it
+    and drifted at normal speeds ``vn`` and tangential speed ``vt`` for 1 ms, and the tape's
+    derivative of it in ``vn``."""
+    vn = np.asarray(vn, dtype=np.float64)
+    x = np.zeros((len(vn), 3))
+    x[:, 1] = -start_depth + vn * 1.0e-3
+    v = np.zeros((len(vn), 3))
+    v[:, 0] = vt
+    v[:, 1] = vn
+    xa = wp.array(x, dtype=wp.vec3d, requires_grad=True)
+    va = wp.array(v, dtype=wp.vec3d, requires_grad=True)
+    out = wp.zeros(len(vn), dtype=wp.vec3d, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        wp.launch(_plane_exit, len(vn), [xa, va, wp.float64(ramp)], [wp.zeros_like(out), out])
+    seed = np.zeros((len(vn), 3))
+    seed[:, component] = 1.0
+    tape.backward(grads={out: wp.array(seed, dtype=wp.vec3d)})
+    # x moved with v over the drift: d/dvn = d/dv + dt d/dx.
+    return out.numpy()[:, component], va.grad.numpy()[:, 1] + 1.0e-3 * xa.grad.numpy()[:, 1]
+
+
+def _one_sided_slopes(f, at, h):
+    return (f([at]) - f([at - h])) / h, (f([at + h]) - f([at])) / h
+
+
+def test_a_particle_left_inside_the_plane_has_a_c1_speed_and_its_adjoint():
+    """A particle the touchdown share left ``d0`` inside the plane, whose next step's force
+    just cancels its inward speed: moving in (``vn <= 0``) it loses all of it, moving out past
+    the plane (``vn >= d0 / dt``) none, and between them it keeps ``slip_speed(vn, d0 / dt)``
+    (``colliders.inside_band``), C1 at both ends (the plain ``max(vn, 0)`` kinked at 0 and put
+    a kink in the imaged landing's loss: docs/physics.md, "The exit speed of a particle left
+    inside"), never more than ``vn``; sliding, its friction's normal impulse is rounded over
+    the same band, so its tangential speed is C1 at ``vn = 0`` too (plain: slope 0.6 inside,
+    0 outside). A particle that started on the plane (a resting one, ``d0 = 0``) keeps the
+    plain law, as does the instant law; the tape's derivatives match central differences."""
+    d0 = 2.0e-5
+    band = d0 / 1.0e-3
+    vn = np.linspace(-1.5 * band, 1.5 * band, 301)
+    v, _ = _exit_speeds(d0, vn)
+    assert np.all(v >= 0.0) and np.all(v <= np.maximum(vn, 0.0) + 1e-15)
+    assert np.allclose(v[vn <= 0.0], 0.0, atol=1e-15)
+    assert np.allclose(v[vn >= band], vn[vn >= band], rtol=1e-12, atol=1e-15)
+    assert np.all(v[(vn > 0.0) & (vn < 0.99 * band)] < vn[(vn > 0.0) & (vn < 0.99 * band)])
+    # Sliding at 0.3 m/s: friction takes at most the plain 0.6 (-vn), all of it from -vn = band on.
+    vt, _ = _exit_speeds(d0, vn, vt=0.3, component=0)
+    plain_vt = 0.3 - 0.6 * np.maximum(-vn, 0.0)
+    assert np.all(vt >= plain_vt - 1e-15) and np.all(vt <= 0.3 + 1e-15)
+    assert np.allclose(vt[vn <= -band], plain_vt[vn <= -band], rtol=1e-12, atol=1e-15)
+    assert np.allclose(vt[vn >= 0.0], 0.3, rtol=1e-12)
+    assert np.all(vt[(vn < 0.0) & (vn > -0.99 * band)] > plain_vt[(vn < 0.0) & (vn > -0.99 * band)])
+    # C1: one-sided slopes agree at both ends of the band (the plain law jumps by 1 / 0.6 at 0).
+    h = 1e-5 * band
+    for end in (0.0, band):
+        left, right = _one_sided_slopes(lambda u: _exit_speeds(d0, u)[0], end, h)
+        assert left == pytest.approx(right, abs=1e-3), end
+    for end in (0.0, -band):
+        left, right = _one_sided_slopes(lambda u: _exit_speeds(d0, u, vt=0.3, component=0)[0], end, h)
+        assert left == pytest.approx(right, abs=1e-3), end
+    # A resting particle and the instant law: the plain laws.
+    for start, ramp in ((0.0, CONTINUOUS_CONTACT_RAMP), (d0, 0.0)):
+        plain, _ = _exit_speeds(start, vn, ramp=ramp)
+        assert np.allclose(plain, np.maximum(vn, 0.0), rtol=1e-12, atol=1e-15), (start, ramp)
+        plain_t, _ = _exit_speeds(start, vn, vt=0.3, ramp=ramp, component=0)
+        assert np.allclose(plain_t, plain_vt, rtol=1e-12, atol=1e-15), (start, ramp)
+    # The adjoints in the band.
+    eps = 1e-7 * band
+    for inside, vt0, c in ((np.linspace(0.1, 0.9, 5) * band, 0.0, 1), (-np.linspace(0.1, 0.9, 5) * band, 0.3, 0)):
+        _, g = _exit_speeds(d0, inside, vt=vt0, component=c)
+        fd = (_exit_speeds(d0, inside + eps, vt=vt0, component=c)[0]
+              - _exit_speeds(d0, inside - eps, vt=vt0, component=c)[0]) / (2 * eps)
+        np.testing.assert_allclose(g, fd, rtol=1e-6)
+        assert np.all(np.abs(g - (1.0 if c == 1 else 0.6)) > 1e-3)  # off the plain slope
 
 
 def _undamped_strip_kinetic_energy(floor: str, fit: str = "auto", duration: float = 0.5, ramp: float = 0.15):

@@ -122,6 +122,25 @@ def funcs(scalar) -> types.SimpleNamespace:
         return reach * (u * u * (scalar(2.0) - u) - u)
 
     @wp.func
+    def inside_band(vn: scalar, depth: scalar, dt: scalar, ramp: scalar) -> scalar:
+        """``d0 / dt`` for a particle that started the step ``d0 = depth + vn dt > 0`` inside a
+        static collider (a touchdown share left it there), else 0: the band of normal speed
+        over which its contact is rounded where the step's force just cancels its inward
+        speed. The plain law kinks there: moving in, it loses all of ``-vn`` and gets friction
+        in proportion; moving out, it keeps all of ``vn`` and gets none (``max(vn, 0)``).
+        Rounded, it keeps ``slip_speed(vn, band)`` of an outward speed while the drift leaves
+        it inside, and its friction takes ``slip_speed(-vn, band)`` of an inward one: C1 in
+        ``vn`` at 0, in the depth where the outward drift just reaches the surface (band
+        ``vn``) and where ``d0`` crosses 0 (band 0: the plain law, which a particle resting on
+        the surface keeps); it never adds speed (docs/physics.md, "The exit speed of a
+        particle left inside")."""
+        band = scalar(0.0)
+        d0 = depth + vn * dt
+        if ramp > scalar(0.0) and d0 > scalar(0.0):
+            band = d0 / dt
+        return band
+
+    @wp.func
     def in_reach(vn: scalar, depth: scalar, dt: scalar, ramp: scalar) -> bool:
         """Whether a static collider moves a particle ``depth`` inside its surface after the
         drift: inside, or outside but leaving from inside within the step (``exit_correction``)."""
@@ -129,9 +148,11 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     @wp.func
     def coulomb_velocity(v: vec3, vs: vec3, n: vec3, depth: scalar, share: scalar, ramp: scalar, mu_s: scalar,
-                         mu_k: scalar):
+                         mu_k: scalar, band: scalar):
         """``coulomb_response`` given the particle's ``touchdown_share``, for a caller that
-        also moves the particle by it (``respond``: one evaluation of the share)."""
+        also moves the particle by it (``respond``: one evaluation of the share). ``band``:
+        the ``inside_band`` of a particle that started the step inside a static collider
+        (else 0), over which the friction's normal impulse is rounded off to zero."""
         vr = v - vs
         vn = wp.dot(vr, n)
         if vn < scalar(0.0) and depth > scalar(0.0):
@@ -140,9 +161,12 @@ def funcs(scalar) -> types.SimpleNamespace:
             if ramp > scalar(0.0):
                 dvn = -vn * share
                 vn_left = (vn + dvn) * n
-                if vt_len <= mu_s * dvn:
+                dvn_f = dvn
+                if band > scalar(0.0):
+                    dvn_f = slip_speed(dvn, band)
+                if vt_len <= mu_s * dvn_f:
                     return vs + vn_left
-                slip = slip_speed(vt_len - mu_k * dvn, mu_k * dvn)
+                slip = slip_speed(vt_len - mu_k * dvn_f, mu_k * dvn_f)
                 return vs + vn_left + vt * (slip / vt_len)
             # The instant law, as it was computed (a float32 run of the rubber ball settles
             # differently under a rounding-level change of this expression).
@@ -171,7 +195,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         share = scalar(1.0)
         if vn < scalar(0.0) and depth > scalar(0.0):  # where it is used: elsewhere q may overflow
             share = touchdown_share(vn, depth, dt, ramp)
-        return coulomb_velocity(v, vs, n, depth, share, ramp, mu_s, mu_k)
+        return coulomb_velocity(v, vs, n, depth, share, ramp, mu_s, mu_k, scalar(0.0))
 
     @wp.func
     def respond(x: vec3, v: vec3, depth: scalar, n: vec3, friction: scalar, dt: scalar, ramp: scalar):
@@ -180,7 +204,11 @@ def funcs(scalar) -> types.SimpleNamespace:
         outward by ``exit_correction``; friction over the step ``dt``."""
         vn = wp.dot(v, n)
         share = touchdown_share(vn, depth, dt, ramp)
-        v_new = coulomb_velocity(v, vec3(), n, depth, share, ramp, friction, friction)
+        band = inside_band(vn, depth, dt, ramp)
+        v_new = coulomb_velocity(v, vec3(), n, depth, share, ramp, friction, friction, band)
+        if band > scalar(0.0) and vn > scalar(0.0) and depth > scalar(0.0):
+            # Leaving from inside and still inside after the drift: the rounded exit speed.
+            v_new = v_new + (slip_speed(vn, band) - vn) * n
         # The drift moved x by dt times the tangential velocity; friction takes back what it
         # removed from it, so a particle that sticks stays where it was.
         dv = v_new - v
@@ -233,5 +261,5 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(
         coulomb_response=coulomb_response, coulomb_velocity=coulomb_velocity, slip_speed=slip_speed, touchdown_share=touchdown_share,
-        exit_correction=exit_correction, respond=respond, collide_plane=collide_plane, collide_sphere=collide_sphere, collide_box=collide_box
+        exit_correction=exit_correction, inside_band=inside_band, respond=respond, collide_plane=collide_plane, collide_sphere=collide_sphere, collide_box=collide_box
     )
