@@ -195,6 +195,7 @@ def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_for
     assert solver.fast_under_tape() == hand  # the fused forward with the hand-written adjoints, or neither
     states = [model.state() for _ in range(steps + 1)]
     states[0].alpha.fill_(0.02)
+    states[0].alpha_image.fill_(0.02)  # the images' hardening as their particles'
     w = wp.array(np.random.default_rng(0).normal(size=(model.particle_count, 3)), dtype=type_set(scalar).vec3)
     tape = wp.Tape()
     with tape:
@@ -202,8 +203,10 @@ def _hand_vs_generated_rollout(hand: bool, scalar=S, steps: int = 4, elastic_for
             solver.step(states[k], states[k + 1], 1.0e-3)
     states[-1].x.grad.assign(w)
     tape.backward()
-    # The images' own F too, which the variational force's images read (the paper's carry their particle's).
-    fields = ("x", "v", "F", "alpha") + (("F_image",) if ground is not None and elastic_force == "variational" else ())
+    # The images' own F and hardening too, which the variational force's images read (the paper's carry
+    # their particle's).
+    fields = ("x", "v", "F", "alpha") + (("F_image", "alpha_image") if ground is not None and elastic_force == "variational"
+                                         else ())
     out = {name: getattr(states[0], name).grad.numpy().copy() for name in fields}
     for name in ("mu", "lam", "yield_stress", "flow_rate", "hardening", "pressure_stiffness", "viscosity"):
         out[name] = getattr(model, name).grad.numpy().copy()

@@ -8,11 +8,14 @@ import warp_esph as we
 from warp_esph.checkpoint import load_state, read_checkpoint, save_state
 
 
-def _model():
+def _model(images=False):
     b = we.SceneBuilder(spacing=0.02)
     b.add_box((0.0, 0.15, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), velocity=(0.5, -1.0, 0.0))
-    b.add_sphere((0.25, 0.1, 0.0), 0.05, we.Material.preset("clay"))
-    b.add_ground(0.0, friction=0.5)
+    if images:  # the clay lands at once, and flows and hardens on the images
+        b.add_sphere((0.25, 0.05, 0.0), 0.05, we.Material.preset("clay"), velocity=(0.0, -1.0, 0.0))
+    else:
+        b.add_sphere((0.25, 0.1, 0.0), 0.05, we.Material.preset("clay"))
+    b.add_ground(0.0, friction=0.5, images=images)
     return b.finalize()
 
 
@@ -25,18 +28,40 @@ def _advance(model, state, steps, dt=4e-4):
     return a
 
 
-def test_resume_matches_uninterrupted_run_bit_for_bit(tmp_path):
-    model = _model()
+@pytest.mark.parametrize("images", [False, True])
+def test_resume_matches_uninterrupted_run_bit_for_bit(tmp_path, images):
+    """With floor images too, whose own F and hardening (the clay hardens) are state."""
+    model = _model(images)
     straight = _advance(model, model.state(), 120)
+    if images:
+        assert np.abs(straight.alpha_image.numpy() - straight.alpha.numpy()).max() > 0.0
 
     first = _advance(model, model.state(), 50)
     path = save_state(tmp_path / "run.npz", model, first, step=50, frame=5, run={"scene": "test"})
-    fresh = _model()  # a new process would rebuild the scene
+    fresh = _model(images)  # a new process would rebuild the scene
     resumed, meta = load_state(path, fresh)
     assert meta["step"] == 50 and meta["frame"] == 5 and meta["run"] == {"scene": "test"}
     resumed = _advance(fresh, resumed, 70)
     for name in we.State.STATE_FIELDS:
         np.testing.assert_array_equal(getattr(resumed, name).numpy(), getattr(straight, name).numpy())
+
+
+def test_an_older_checkpoint_loads_the_fields_it_lacks(tmp_path):
+    """A checkpoint written before the compensated state and the images' own F and hardening
+    loads ``x_lo``, ``F_lo`` as 0 and the images' ``F_image``, ``alpha_image`` as their
+    particles' (what the images carried then)."""
+    model = _model(images=True)
+    state = _advance(model, model.state(), 60)
+    path = save_state(tmp_path / "new.npz", model, state, step=60, frame=6)
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files if k not in ("x_lo", "F_lo", "F_image", "alpha_image")}
+    old = tmp_path / "old.npz"
+    np.savez(old, **arrays)
+    loaded, _ = load_state(old, _model(images=True))
+    np.testing.assert_array_equal(loaded.F_image.numpy(), state.F.numpy())
+    np.testing.assert_array_equal(loaded.alpha_image.numpy(), state.alpha.numpy())
+    assert not loaded.x_lo.numpy().any() and not loaded.F_lo.numpy().any()
+    np.testing.assert_array_equal(loaded.alpha.numpy(), state.alpha.numpy())
 
 
 def test_checkpoint_keeps_edited_material_parameters(tmp_path):

@@ -50,8 +50,8 @@ def _launch_fit(fit, model, state, x, y, Fp, F_out, counters):
     ins = [x, y, wp.zeros_like(x), wp.zeros_like(x), model.particle_body, state.neighbors, state.neighbor_count,
            state.guard, Fp, wp.zeros_like(Fp), S(model.support_radius), MIN_NEIGHBORS, S(MAX_CONDITION), *model.image_args()]
     outs = [F_out, wp.zeros_like(Fp), counters]
-    # The images' own F (State.F_image): in and out, unread without an image plane.
-    ins, outs = ins + [Fp], outs + [wp.zeros_like(Fp)]
+    # The images' own F (State.F_image): in and out, and their share: unread without an image plane.
+    ins, outs = ins + [Fp], outs + [wp.zeros_like(Fp), wp.zeros(model.particle_count, dtype=S)]
     wp.launch(fit.kernels(S, model.fit_weight).update_deformation, model.particle_count, ins, outs)
 
 
@@ -345,7 +345,8 @@ def test_yield_onset_under_uniaxial_stretch_and_volume_kept(model_name):
         zero = wp.zeros_like(xa)
         wp.launch(kd, n, [xa, xb, zero, zero, model.particle_body, state.neighbors, state.neighbor_count, state.guard,
                           scratch[0], F_lo_flowed, S(model.support_radius), MIN_NEIGHBORS, S(MAX_CONDITION),
-                          *model.image_args(), scratch[0]], [F_new, F_lo_new, counters, wp.zeros_like(F_new)])
+                          *model.image_args(), scratch[0]],
+                  [F_new, F_lo_new, counters, wp.zeros_like(F_new), wp.zeros(n, dtype=S)])
         F, F_lo, alpha = F_new, F_lo_new, wp.clone(scratch[1])
     e_yield = Y / (2 * mu * math.sqrt(2.0 / 3.0))
     assert onset is not None

@@ -71,7 +71,8 @@ def test_fit_at_rest_is_exactly_no_change_of_F():
     wp.launch(deformation.kernels(model.scalar, model.fit_weight).update_deformation, n,
               [state.x, state.x, lo, lo, model.particle_body, state.neighbors, state.neighbor_count, state.guard, Fa, F_lo_a,
                model.scalar(model.support_radius), MIN_NEIGHBORS, model.scalar(MAX_CONDITION), *model.image_args(), Fa],
-              [F_out, F_lo_out, counters, wp.zeros_like(Fa)])  # (the images' F: unread without an image plane)
+              [F_out, F_lo_out, counters, wp.zeros_like(Fa),  # (the images' F and share: unread without an image plane)
+               wp.zeros(n, dtype=model.scalar)])
     assert (state.guard.numpy() == 0).all()
     np.testing.assert_array_equal(F_out.numpy(), Fa.numpy())
     np.testing.assert_array_equal(F_lo_out.numpy(), F_lo)
@@ -108,7 +109,7 @@ def test_slow_strain_below_half_a_unit_per_step_accumulates_in_F(fit):
                   [state.x, state.x, lo, y_lo, model.particle_body, state.neighbors, state.neighbor_count, state.guard,
                    F[a], F_lo[a], model.scalar(model.support_radius), MIN_NEIGHBORS, model.scalar(MAX_CONDITION), *model.image_args(),
                    F[a]],  # (the images' F: unread without an image plane)
-                  [F[b], F_lo[b], counters, wp.zeros_like(F[b])])
+                  [F[b], F_lo[b], counters, wp.zeros_like(F[b]), wp.zeros(n, dtype=model.scalar)])
     full = F[steps % 2].numpy().astype(np.float64) + F_lo[steps % 2].numpy()
     want = np.linalg.matrix_power(np.eye(3) + D, steps)
     assert np.abs(full - want).max() < 1e-3 * steps * np.abs(D).max(), np.abs(full - want).max() / (steps * np.abs(D).max())

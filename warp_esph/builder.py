@@ -431,8 +431,9 @@ class SceneBuilder:
         (the incremental fit; docs/physics.md, "The ground
         collider's thin-layer strength"). Without it a layer's bottom particles are held on
         the plane with a one-sided fit, and a thin layer is 2.25 x too strong in shear.
-        Each image has an elastic F of its own (``State.F_image``), which its own fit over
-        the particles near it updates and which flows plastically as theirs does, so the work
+        Each image has an elastic F and a hardening of its own (``State.F_image``,
+        ``alpha_image``): its own fit over the particles near it updates the F, which flows
+        plastically as theirs does and advances its own hardening, so the work
         its energy does is stored and an undamped layer on it keeps its energy
         (docs/physics.md, "The floor images' energy is not stored")."""
         if not isinstance(images, bool):

@@ -2,8 +2,8 @@
 
 A checkpoint holds every array a step reads (``State.STATE_FIELDS``: ``x, v, F, alpha`` and
 the rest-configuration model's ``F_p``, the round-off ``x_lo``, ``F_lo`` of ``x`` and ``F``,
-and the floor images' own ``F_image``; an older checkpoint without them loads them as ``I``
-and 0, ``F_image`` as ``F``),
+and the floor images' own ``F_image`` and ``alpha_image``; an older checkpoint without them
+loads them as ``I`` and 0, ``F_image`` as ``F``, ``alpha_image`` as ``alpha``),
 the simulated time, the current values of
 the per-material parameters (they may have been fitted or edited since the scene was
 built), the step and frame counters, and a free-form ``run`` record (the CLI stores the
@@ -147,7 +147,7 @@ def load_state(path, model: Model) -> tuple[State, dict]:
         )
     n, np_dtype = model.particle_count, model.types.np_dtype
     shapes = {"x": (n, 3), "v": (n, 3), "F": (n, 3, 3), "alpha": (n,), "F_p": (n, 3, 3), "x_lo": (n, 3),
-              "F_lo": (n, 3, 3), "F_image": (n, 3, 3)}
+              "F_lo": (n, 3, 3), "F_image": (n, 3, 3), "alpha_image": (n,)}
     shapes.update({f"material_{name}": (len(model.materials),) for name in Model.MATERIAL_FIELDS})
     for key, shape in shapes.items():
         if key not in arrays:
@@ -167,6 +167,9 @@ def load_state(path, model: Model) -> tuple[State, dict]:
     if "F_image" not in arrays:
         # Written before the images had an F of their own: theirs was their particle's.
         state.F_image.assign(arrays["F"])
+    if "alpha_image" not in arrays:
+        # Written before the images had a hardening of their own: they flowed with their particle's.
+        state.alpha_image.assign(arrays["alpha"])
     state.time = float(meta.get("time", 0.0))
     for name in Model.MATERIAL_FIELDS:
         key = f"material_{name}"

@@ -153,10 +153,11 @@ def same_state(model, name: str, state) -> None:
         "F_p": ((n,), T.mat33), "x_lo": ((n,), T.vec3), "F_lo": ((n,), T.mat33), "F_flowed_lo": ((n,), T.mat33), "neighbors": ((n, K), wp.int32),
         "neighbor_count": ((n,), wp.int32), "guard": ((n,), wp.int32), "density": ((n,), T.scalar),
         "F_flowed": ((n,), T.mat33), "stress": ((n,), T.mat33), "F_inv": ((n,), T.mat33), "force": ((n,), T.vec3),
-        "F_image": ((n,), T.mat33),
+        "F_image": ((n,), T.mat33), "alpha_image": ((n,), T.scalar), "image_share": ((n,), T.scalar),
     }
     if model.image_plane is not None:
         want["F_image_flowed"] = ((n,), T.mat33)
+        want["alpha_image_flowed"] = ((n,), T.scalar)
         want["image_stress"] = ((n,), T.mat33)
     # (Not neighbor_d2: the step keeps it in the solver's scratch, and reading it here would
     # allocate the state's own copy.) pressure_density: None unless a material is energy_spiky.

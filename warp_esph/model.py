@@ -68,7 +68,8 @@ class Body:
 class State:
     """Positions ``x``, velocities ``v``, elastic deformation gradient ``F`` (docs/method.md: the only
     deformation state stored) and hardening accumulator ``alpha`` of every particle; with
-    ``add_ground(images=True)`` also ``F_image``, the elastic F of each particle's floor image."""
+    ``add_ground(images=True)`` also ``F_image`` and ``alpha_image``, the elastic F and the
+    hardening of each particle's floor image."""
 
     def __init__(self, model: "Model", requires_grad: bool):
         n, K, dev = model.particle_count, model.max_neighbors, model.device
@@ -100,6 +101,9 @@ class State:
         images = model.image_plane is not None
         self.F_image = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev,
                                 requires_grad=requires_grad and images)
+        # And its own hardening, advanced by its own flow as a floor particle's is (0 in a new
+        # state; with F_image, blended with its particle's by the share below).
+        self.alpha_image = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad and images)
         #: Simulated time (s) of this state: the step that writes it sets ``time_in + dt``.
         self.time = 0.0
         # Written by the step that produced this state.
@@ -126,7 +130,11 @@ class State:
         self.force = wp.zeros(n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
         # The images' plastic flow and stress, written by the step (with an image plane only).
         self.F_image_flowed = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad) if images else None
+        self.alpha_image_flowed = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad) if images else None
         self.image_stress = wp.zeros(n, dtype=T.mat33, device=dev, requires_grad=requires_grad) if images else None
+        #: How much of each image's state is its own rather than its particle's
+        #: (``deformation.floor_image_share``, written by the fit's update; 0 without images).
+        self.image_share = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad and images)
         tools.allocate_state(model, self, requires_grad)
         integrate.allocate_state(model, self, requires_grad)
         ghost_floor.allocate_state(model, self, requires_grad)
@@ -140,11 +148,11 @@ class State:
         return self._neighbor_d2
 
     #: The arrays that define the simulation state (what a checkpoint must hold).
-    STATE_FIELDS = ("x", "v", "F", "alpha", "F_p", "x_lo", "F_lo", "F_image")
+    STATE_FIELDS = ("x", "v", "F", "alpha", "F_p", "x_lo", "F_lo", "F_image", "alpha_image")
     #: Fields a checkpoint written before the comparison models (``F_p``), the compensated
-    #: state (``x_lo``, ``F_lo``) or the images' own F (``F_image``) lacks (then: initial
-    #: values, I and 0).
-    OPTIONAL_FIELDS = ("F_p", "x_lo", "F_lo", "F_image")
+    #: state (``x_lo``, ``F_lo``) or the images' own F and hardening (``F_image``,
+    #: ``alpha_image``) lacks (then: initial values, I and 0; the images' their particles').
+    OPTIONAL_FIELDS = ("F_p", "x_lo", "F_lo", "F_image", "alpha_image")
 
     def __setattr__(self, name, value):
         # A replaced array may not fit the model any more: ``checks.same_state`` checks again.

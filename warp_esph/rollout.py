@@ -126,6 +126,7 @@ class _Checkpoint:
         self.F_lo = wp.zeros(n, dtype=T.mat33, device=dev)
         self.x_lo = wp.zeros(n, dtype=T.vec3, device=dev)
         self.F_image = wp.zeros(n, dtype=T.mat33, device=dev)
+        self.alpha_image = wp.zeros(n, dtype=T.scalar, device=dev)
         self.time = 0.0
 
     def save(self, state):

@@ -534,6 +534,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F_out_lo: wp.array(dtype=mat33),
         counters: wp.array(dtype=wp.int32),
         Fg_out: wp.array(dtype=mat33),
+        share_out: wp.array(dtype=scalar),
     ):
         """``deformation.update_deformation`` with the corrected fit (eq. 8: ``F <- dF F``
         unless guarded or inverted, ``F``'s round-off carried in ``F_lo`` as there)."""
@@ -547,10 +548,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         # The floor image's own F (State.F_image), by the image's linear fit
         # (deformation.floor_image_update); without images, its particle's.
         Fg_new = F_new
+        c = scalar(0.0)
         if images != 0:
-            Fg_new = df.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, guard[i], scale,
-                                           Fg_prev[i], F_new)
+            Fg_new, c = df.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, guard[i],
+                                              scale, Fg_prev[i], F_new)
         Fg_out[i] = Fg_new
+        share_out[i] = c
 
     @wp.kernel(enable_backward=False, module="unique")
     def update_deformation_adjoint(
@@ -573,6 +576,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         Fg_prev: wp.array(dtype=mat33),
         adj_F_out: wp.array(dtype=mat33),
         adj_Fg_out: wp.array(dtype=mat33),
+        adj_share: wp.array(dtype=scalar),
         adj_x: wp.array(dtype=vec3),
         adj_y: wp.array(dtype=vec3),
         adj_F_prev: wp.array(dtype=mat33),
@@ -614,8 +618,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         adj_s = scalar(0.0)
         if images != 0:
             G_share, adj_Fg, adj_sg = df.floor_image_update_adjoint(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin,
-                                                                    code, s, inc0, Fp, Fg_prev[i], adj_Fg_out[i], adj_x,
-                                                                    adj_y)
+                                                                    code, s, inc0, Fp, Fg_prev[i], adj_Fg_out[i],
+                                                                    adj_share[i], adj_x, adj_y)
             G = G + G_share
             adj_Fg_prev[i] = adj_Fg_prev[i] + adj_Fg
             adj_s = adj_sg
@@ -910,12 +914,12 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     h = model.scalar(model.support_radius)
     plane = [int(min_neighbors), model.scalar(max_condition), *model.image_args()]
     inputs = pos + [state_out.F_flowed, state_out.F_flowed_lo, h, *plane, deformation.image_F_flowed(model, state_out)]
-    outputs = [state_out.F, state_out.F_lo, counters, state_out.F_image]
+    outputs = [state_out.F, state_out.F_lo, counters, state_out.F_image, state_out.image_share]
     tape = recording_tape()
     images = model.image_plane is not None
     grads = (state_in.x, state_out.x, state_out.F_flowed, state_out.F)
     if images:
-        grads += (state_out.F_image_flowed, state_out.F_image)
+        grads += (state_out.F_image_flowed, state_out.F_image, state_out.image_share)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
         model.launches(k.update_deformation, model.particle_count, inputs, outputs, device=model.device)
         return
@@ -925,8 +929,9 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
         model.launches(
             k.update_deformation_adjoint, model.particle_count,
             pos + [state_out.F_flowed, h, *plane, deformation.image_F_flowed(model, state_out), state_out.F.grad,
-                   state_out.F_image.grad if images else state_out.F.grad, state_in.x.grad, state_out.x.grad,
-                   state_out.F_flowed.grad, state_out.F_image_flowed.grad if images else state_out.F_flowed.grad],
+                   state_out.F_image.grad if images else state_out.F.grad, deformation.image_share_grad(state_out),
+                   state_in.x.grad, state_out.x.grad, state_out.F_flowed.grad,
+                   state_out.F_image_flowed.grad if images else state_out.F_flowed.grad],
             device=model.device, record_tape=False,
         )
 

@@ -439,7 +439,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         scale: scalar,
         Fg: mat33,
         F_new: mat33,
-    ) -> mat33:
+    ):
         """Eq. 8 of particle ``i``'s floor image (``State.F_image``). The image is a floor
         particle at rest over the step: its own fit over the particles near it
         (``floor_image_displacement_sums``, ``floor_image_moment``), faded as ``i``'s
@@ -447,11 +447,13 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         (``forces.image_map``) is stored as a particle's is (docs/physics.md, "The floor
         images' energy is not stored"). An image with no particle near it does no work and
         carries its particle's new F, ``F_new``; between the two, by ``floor_image_share``
-        of its pairs' weights, smooth as they enter its support."""
+        of its pairs' weights, smooth as they enter its support. Returns the image's new F and
+        that share (``State.image_share``: the image's hardening is blended by it too,
+        ``plasticity.image_hardening_update``)."""
         Bg, wsum = floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
         own, applied = floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, Bg, wsum, Fg)
         c, dc = floor_image_share(wsum, h)
-        return F_new + c * (own - F_new)
+        return F_new + c * (own - F_new), c
 
     @wp.func
     def floor_image_own_update_adjoint(
@@ -545,12 +547,13 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         Fp: mat33,
         Fg: mat33,
         Gg: mat33,
+        adj_c: scalar,
         adj_x: wp.array(dtype=vec3),
         adj_y: wp.array(dtype=vec3),
     ):
         """Adjoint of ``floor_image_update`` inside a fit's ``update_deformation_adjoint``
         (``D0`` the particle's unfaded increment of either fit, ``Fp`` its flowed F, ``Gg`` the
-        gradient of the image's new F): the pairs' adjoints scattered to ``x`` and ``y``
+        gradient of the image's new F, ``adj_c`` that of its share): the pairs' adjoints scattered to ``x`` and ``y``
         (``floor_image_own_update_adjoint``); returns the share of ``Gg`` that joins the
         gradient of the particle's new F, and the adjoints of the image's flowed F and of the
         fade ``scale``."""
@@ -562,7 +565,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         if code == 0:
             if wp.determinant(Fp + (scale * D0) * Fp) > scalar(0.0):
                 F_new = Fp + (scale * D0) * Fp
-        adj_wsum = wp.ddot(Gg, own - F_new) * dc
+        adj_wsum = (wp.ddot(Gg, own - F_new) + adj_c) * dc
         adj_Fg = c * Gg
         adj_s = scalar(0.0)
         if applied != 0 or adj_wsum != scalar(0.0):
@@ -706,6 +709,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F_out_lo: wp.array(dtype=mat33),
         counters: wp.array(dtype=wp.int32),
         Fg_out: wp.array(dtype=mat33),
+        share_out: wp.array(dtype=scalar),
     ):
         i = wp.tid()
         A, B, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
@@ -713,12 +717,14 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F_new, F_new_lo = fn.deformation_update(A, B, guard[i], scale, F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
-        # The floor image's own F (State.F_image); without images, its particle's.
+        # The floor image's own F (State.F_image) and its share; without images, its particle's.
         Fg_new = F_new
+        c = scalar(0.0)
         if images != 0:
-            Fg_new = fn.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, guard[i], scale,
-                                           Fg_prev[i], F_new)
+            Fg_new, c = fn.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, guard[i],
+                                              scale, Fg_prev[i], F_new)
         Fg_out[i] = Fg_new
+        share_out[i] = c
 
     @wp.kernel(enable_backward=False, module="unique")
     def update_deformation_adjoint(
@@ -741,6 +747,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         Fg_prev: wp.array(dtype=mat33),
         adj_F_out: wp.array(dtype=mat33),
         adj_Fg_out: wp.array(dtype=mat33),
+        adj_share: wp.array(dtype=scalar),
         adj_x: wp.array(dtype=vec3),
         adj_y: wp.array(dtype=vec3),
         adj_F_prev: wp.array(dtype=mat33),
@@ -779,8 +786,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         adj_s = scalar(0.0)
         if images != 0:
             G_share, adj_Fg, adj_sg = fn.floor_image_update_adjoint(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin,
-                                                                    code, s, D0, Fp, Fg_prev[i], adj_Fg_out[i], adj_x,
-                                                                    adj_y)
+                                                                    code, s, D0, Fp, Fg_prev[i], adj_Fg_out[i],
+                                                                    adj_share[i], adj_x, adj_y)
             G = G + G_share
             adj_Fg_prev[i] = adj_Fg_prev[i] + adj_Fg
             adj_s = adj_sg
@@ -820,6 +827,13 @@ def image_F_flowed(model, state_out):
     return state_out.F_image_flowed if model.image_plane is not None else state_out.F_flowed
 
 
+def image_share_grad(state_out):
+    """The gradient of the images' share (``State.image_share``) the update adjoints read;
+    without images (no gradient kept), the share itself, which they do not read."""
+    g = state_out.image_share.grad
+    return state_out.image_share if g is None else g
+
+
 def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint: bool = True, y=None, y_lo=None,
                               max_condition: float = guards.MAX_CONDITION, min_neighbors: int = guards.MIN_NEIGHBORS):
     """Eqs. 1-8 over the step from ``state_in.x`` to ``state_out.x`` (or to ``y``, ``y_lo``
@@ -837,11 +851,11 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
         model.scalar(model.support_radius), int(min_neighbors), model.scalar(max_condition), *model.image_args(),
         image_F_flowed(model, state_out),
     ]
-    outputs = [state_out.F, state_out.F_lo, counters, state_out.F_image]
+    outputs = [state_out.F, state_out.F_lo, counters, state_out.F_image, state_out.image_share]
     tape = recording_tape()
     grads = (state_in.x, y, state_out.F_flowed, state_out.F)
     if model.image_plane is not None:
-        grads += (state_out.F_image_flowed, state_out.F_image)
+        grads += (state_out.F_image_flowed, state_out.F_image, state_out.image_share)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
         model.launches(k.update_deformation, model.particle_count, inputs, outputs, device=model.device)
         return
@@ -869,8 +883,8 @@ def launch_update_deformation_adjoint(model, state_in, state_out, y=None, y_lo=N
             state_out.neighbor_count, state_out.guard, state_out.F_flowed, model.scalar(model.support_radius),
             int(min_neighbors), model.scalar(max_condition),
             *model.image_args(), image_F_flowed(model, state_out), state_out.F.grad,
-            state_out.F_image.grad if images else state_out.F.grad, state_in.x.grad, y.grad, state_out.F_flowed.grad,
-            state_out.F_image_flowed.grad if images else state_out.F_flowed.grad,
+            state_out.F_image.grad if images else state_out.F.grad, image_share_grad(state_out), state_in.x.grad,
+            y.grad, state_out.F_flowed.grad, state_out.F_image_flowed.grad if images else state_out.F_flowed.grad,
         ],
         device=model.device, record_tape=False,
     )

@@ -238,6 +238,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         guard: wp.array(dtype=wp.int32),
         counters: wp.array(dtype=wp.int32),
         Fg_out: wp.array(dtype=mat33),
+        share_out: wp.array(dtype=scalar),
     ):
         """deformation.update_deformation with the neighbourhood guard of
         neighbors.select_neighbors evaluated here, on the moment matrix A of the fit."""
@@ -257,10 +258,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
         Fg_new = F_new
+        c = scalar(0.0)
         if images != 0:
-            Fg_new = df.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, code, s,
-                                           Fg_prev[i], F_new)
+            Fg_new, c = df.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, code, s,
+                                              Fg_prev[i], F_new)
         Fg_out[i] = Fg_new
+        share_out[i] = c
 
     @wp.kernel(enable_backward=False, module="unique")
     def displacements(x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
@@ -348,7 +351,7 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
             state_out.neighbor_count, state_out.F_flowed, state_out.F_flowed_lo, S(model.support_radius), scratch.min_neighbors,
             S(scratch.max_condition), *model.image_args(), deformation.image_F_flowed(model, state_out),
         ],
-        [state_out.F, state_out.F_lo, state_out.guard, scratch.counters, state_out.F_image],
+        [state_out.F, state_out.F_lo, state_out.guard, scratch.counters, state_out.F_image, state_out.image_share],
         device=model.device,
         record_tape=tape is None,
     )
@@ -357,4 +360,4 @@ def launch_update_deformation(model, state_in, state_out, scratch, tape=None):
                                                                                max_condition=scratch.max_condition,
                                                                                min_neighbors=scratch.min_neighbors),
                          [state_in.x, state_out.x, state_out.F_flowed, state_out.F]
-                         + ([state_out.F_image_flowed, state_out.F_image] if images else []))
+                         + ([state_out.F_image_flowed, state_out.F_image, state_out.image_share] if images else []))

@@ -228,27 +228,44 @@ def kernels(scalar) -> types.SimpleNamespace:
         goff: scalar,
         h: scalar,
         F_out: wp.array(dtype=mat33),
+        alpha_out: wp.array(dtype=scalar),
         stress_out: wp.array(dtype=mat33),
         counters: wp.array(dtype=wp.int32),
     ):
-        """``constitutive_update`` of each floor image's own F (``State.F_image``) where the
-        image can reach a particle (its particle within ``h`` of the plane ``dot(gn, x) =
-        goff``); elsewhere nothing reads it (``deformation.floor_image_update`` gives such an
-        image its particle's F): kept, and no stress. The image flows with its particle's
-        hardening ``alpha``, which it does not advance."""
+        """``constitutive_update`` of each floor image's own F and hardening
+        (``State.F_image``, ``State.alpha_image``) where the image can reach a particle (its
+        particle within ``h`` of the plane ``dot(gn, x) = goff``); elsewhere nothing reads them
+        (the fit's update and ``image_hardening_update`` give such an image its particle's):
+        kept, and no stress."""
         i = wp.tid()
         Fg = F_in[i]
+        a = alpha_in[i]
         P = mat33()
         if wp.dot(gn, x[i]) - goff < h:
             m = material[i]
             kind = mat.model[m]
             mu = mat.mu[m]
-            Fe, Fe_lo, a_new = flow(Fg, mat33(), alpha_in[i], mu, mat.yield_stress[m], mat.flow_rate[m],
-                                    mat.hardening[m], kind, dt, counters)
+            Fe, Fe_lo, a = flow(Fg, mat33(), a, mu, mat.yield_stress[m], mat.flow_rate[m], mat.hardening[m], kind, dt,
+                                counters)
             Fg = Fe + Fe_lo
             P = stress(Fg, mu, mat.lam[m], kind)
         F_out[i] = Fg
+        alpha_out[i] = a
         stress_out[i] = P
+
+    @wp.kernel(module="unique")
+    def image_hardening_update(
+        alpha: wp.array(dtype=scalar),
+        alpha_image_flowed: wp.array(dtype=scalar),
+        share: wp.array(dtype=scalar),
+        alpha_image_out: wp.array(dtype=scalar),
+    ):
+        """Each floor image's hardening after the step: its own flowed one where the image is
+        its own (``State.image_share`` 1), its particle's where it has no particle near it
+        (0), blended between, as the fit's update blends its F."""
+        i = wp.tid()
+        a = alpha[i]
+        alpha_image_out[i] = a + share[i] * (alpha_image_flowed[i] - a)
 
     vec3 = T.vec3
     fl = funcs(scalar)
@@ -459,6 +476,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         wp.atomic_add(adj_hardening, m, a_K)
 
     return types.SimpleNamespace(constitutive_update=constitutive_update, image_constitutive_update=image_constitutive_update,
+                                 image_hardening_update=image_hardening_update,
                                  flow=flow,
                                  constitutive_update_adjoint=constitutive_update_adjoint)
 
@@ -476,15 +494,29 @@ def launch_constitutive_update(model, state_in, state_out, dt, counters):
 
 def launch_image_constitutive_update(model, state_in, state_out, dt, counters):
     """``image_constitutive_update``: the plastic flow and stress of each floor image's own
-    ``F`` (``State.F_image``, ``add_ground(images=True)``) into ``state_out.F_image_flowed``
-    and ``state_out.image_stress``; recorded on a tape as any launch (Warp's generated adjoint)."""
+    ``F`` and hardening (``State.F_image``, ``alpha_image``; ``add_ground(images=True)``) into
+    ``state_out.F_image_flowed``, ``alpha_image_flowed`` and ``image_stress``; recorded on a
+    tape as any launch (Warp's generated adjoint)."""
     gn, goff, _gmin, _images = model.image_args()
     model.launches(
         kernels(model.scalar).image_constitutive_update,
         model.particle_count,
-        [state_in.x, state_in.F_image, state_in.alpha, model.particle_material, model.material_arrays(),
+        [state_in.x, state_in.F_image, state_in.alpha_image, model.particle_material, model.material_arrays(),
          model.scalar(dt), gn, goff, model.scalar(model.support_radius)],
-        [state_out.F_image_flowed, state_out.image_stress, counters],
+        [state_out.F_image_flowed, state_out.alpha_image_flowed, state_out.image_stress, counters],
+        device=model.device,
+    )
+
+
+def launch_image_hardening_update(model, state_out):
+    """``image_hardening_update``: ``state_out.alpha_image`` from the particles' and the
+    images' flowed hardening and the share the fit's update wrote (``state_out.image_share``);
+    after that update. Warp's generated adjoint."""
+    model.launches(
+        kernels(model.scalar).image_hardening_update,
+        model.particle_count,
+        [state_out.alpha, state_out.alpha_image_flowed, state_out.image_share],
+        [state_out.alpha_image],
         device=model.device,
     )
 

@@ -469,5 +469,8 @@ class Solver:
             if not fast and self._cmp:
                 # Their updates rebuild F without carrying its round-off (State.F_lo).
                 state_out.F_lo.zero_()
+            if images:
+                # Each image's hardening, blended by the share the update just wrote.
+                plasticity.launch_image_hardening_update(m, state_out)
         state_out.time = state_in.time + dt
         self.step_count += 1
