@@ -102,7 +102,8 @@ class State:
         self.F_image = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev,
                                 requires_grad=requires_grad and images)
         # And its own hardening, advanced by its own flow as a floor particle's is (0 in a new
-        # state; with F_image, blended with its particle's by the share below).
+        # state; set it with alpha when alpha is set by hand; blended with its particle's by
+        # the share below, as F_image with F).
         self.alpha_image = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad and images)
         #: Simulated time (s) of this state: the step that writes it sets ``time_in + dt``.
         self.time = 0.0
