@@ -227,6 +227,99 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return A, C, D
 
     @wp.func
+    def floor_image_displacement_sums(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+    ):
+        """``deformation.floor_image_displacement_sums`` with the curvature terms: ``Bu = sum
+        w ub xb^T``, ``Eu = sum w ub q^T`` of ``i``'s own image ``g_i`` at rest over ``i`` and its
+        same-body neighbours (``xb = x_r - g_i``, ``ub = u_r``), and the sum of their weights."""
+        B = mat33()
+        E = mat33()
+        wsum = scalar(0.0)
+        xi = x[i]
+        bi = body[i]
+        gi = df.floor_image(xi, gn, goff, gmin)
+        c6 = fw.coef(h)
+        for k in range(df.image_row_length(xi, n, h, gn, goff)):
+            j = df.image_row_particle(i, k, n, nbr)
+            if body[j] == bi:
+                xb = x[j] - gi
+                w = fw.w_c(wp.dot(xb, xb), h, c6)
+                dA, dB, dC, dD, dE = pair_moments(xb, df.displacement(x[j], y[j], x_lo[j], y_lo[j]), w, h)
+                B += dB
+                E += dE
+                wsum += w
+        return B, E, wsum
+
+    @wp.func
+    def floor_image_own_update(
+        i: int,
+        x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        code: int,
+        scale: scalar,
+        Bg: mat33,
+        Eg: mat33,
+        wsum: scalar,
+        Fg: mat33,
+    ):
+        """The image's own eq. 8 by its corrected fit (``deformation.floor_image_own_update``
+        with ``corrected_increment`` of its moments ``floor_image_moment`` and displacement
+        moments ``Bg``, ``Eg``): ``Fg + scale inc Fg`` and 1, or ``Fg`` and 0."""
+        out = Fg
+        applied = int(0)
+        if code == 0 and wsum > scalar(0.0):
+            Ag, Cg, Dg = floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
+            cand = Fg + scale * corrected_increment(Ag, Bg, Cg, Dg, Eg) * Fg
+            if wp.determinant(cand) > scalar(0.0):
+                out = cand
+                applied = 1
+        return out, applied
+
+    @wp.func
+    def floor_image_update(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        code: int,
+        scale: scalar,
+        Fg: mat33,
+        F_new: mat33,
+    ):
+        """``deformation.floor_image_update`` by the image's corrected fit (the fit its energy
+        is of, ``image_map``), so the work of that energy is stored where the next step reads
+        it; blended with its particle's new F by the same ``floor_image_share``."""
+        Bg, Eg, wsum = floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
+        own, applied = floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, Bg, Eg, wsum, Fg)
+        return df.floor_image_blend(own, F_new, wsum, h)
+
+    @wp.func
     def curvature_kept(A: mat33, C: mat33, K: mat33) -> bool:
         """Whether the correction ``K`` is kept: where the curvature terms nearly repeat the
         linear ones (few, one-sided neighbours: a sharp tip), ``A~ = A - C K`` is near
@@ -483,8 +576,130 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
             wp.atomic_add(adj_x, j, df.floor_image_jacobian(xj, gn, goff, gmin) * gg + gp)
         return gg, gp
 
+    @wp.func
+    def floor_image_own_update_adjoint(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        scale: scalar,
+        Bg: mat33,
+        Eg: mat33,
+        Fg: mat33,
+        Gg: mat33,
+        applied: int,
+        adj_wsum: scalar,
+        adj_x: wp.array(dtype=vec3),
+        adj_y: wp.array(dtype=vec3),
+    ):
+        """Adjoint of ``floor_image_own_update`` (``Gg`` the gradient of its output) and of
+        the weight sum the share reads (``adj_wsum``), as
+        ``deformation.floor_image_own_update_adjoint`` for the corrected fit: ``inc0 = (Bu - Eu
+        K) A~^-1`` back into the image's moments (``projection_adjoint``), each pair's
+        ``moment_pair_adjoint`` (``xb = x_r - g_i``, ``yb = u_r``) scattered to ``x``, ``y``,
+        the image pairs' ``scatter_image_pair_adjoint``, ``g_i``'s to ``x_i`` through
+        ``deformation.floor_image_jacobian``; returns ``(adj Fg, adj scale)``."""
+        inc0 = mat33()
+        K = mat33()
+        adj_A = mat33()
+        adj_Bu = mat33()
+        adj_C = mat33()
+        adj_D = mat33()
+        adj_Eu = mat33()
+        if applied != 0:
+            Ag, Cg, Dg = floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
+            K, D_inv, kept = projection_terms(Ag, Cg, Dg)
+            At_inv = wp.inverse(corrected_moment(Ag, Cg, K))
+            inc0 = corrected_moment(Bg, Eg, K) * At_inv
+            adj_Bt = scale * (Gg * wp.transpose(Fg)) * wp.transpose(At_inv)
+            adj_Bu = adj_Bt
+            adj_Eu = -(adj_Bt * wp.transpose(K))
+            adj_A, adj_C, adj_D = projection_adjoint(-(wp.transpose(inc0) * adj_Bt), -(wp.transpose(Eg) * adj_Bt), Cg,
+                                                     K, D_inv, kept)
+        adj_A_sym = adj_A + wp.transpose(adj_A)
+        adj_D_sym = adj_D + wp.transpose(adj_D)
+        xi = x[i]
+        bi = body[i]
+        gi = df.floor_image(xi, gn, goff, gmin)
+        c6 = fw.coef(h)
+        hh = h * h
+        gg_i = vec3()
+        gx_i = vec3()
+        for k in range(df.image_row_length(xi, n, h, gn, goff)):
+            j = df.image_row_particle(i, k, n, nbr)
+            if body[j] == bi:
+                xj = x[j]
+                xb = xj - gi
+                r2 = wp.dot(xb, xb)
+                if r2 < hh:
+                    w, dw = fw.w_inside(r2, hh, c6)
+                    gx, gu = moment_pair_adjoint(xb, y[j] - xj, w, dw, h, adj_A, adj_A_sym, adj_Bu, adj_C, adj_D,
+                                                 adj_D_sym, adj_Eu, adj_wsum * dw)
+                    wp.atomic_add(adj_y, j, gu)
+                    wp.atomic_add(adj_x, j, gx - gu)
+                    gg_i -= gx
+                if j != i and applied != 0:
+                    gg, gp = scatter_image_pair_adjoint(df.floor_image(xj, gn, goff, gmin) - gi, xj - xi, hh, c6, h, K,
+                                                        adj_A, adj_A_sym, adj_C, adj_D, adj_D_sym, adj_x, j, xj, gn,
+                                                        goff, gmin)
+                    gg_i -= gg
+                    gx_i -= gp
+        wp.atomic_add(adj_x, i, gx_i + df.floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
+        adj_Fg = Gg
+        if applied != 0:
+            adj_Fg = wp.transpose(wp.identity(n=3, dtype=scalar) + scale * inc0) * Gg
+        return adj_Fg, wp.ddot(Gg * wp.transpose(Fg), inc0)
+
+    @wp.func
+    def floor_image_update_adjoint(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        code: int,
+        scale: scalar,
+        D0: mat33,
+        Fp: mat33,
+        Fg: mat33,
+        Gg: mat33,
+        adj_c: scalar,
+        adj_x: wp.array(dtype=vec3),
+        adj_y: wp.array(dtype=vec3),
+    ):
+        """``deformation.floor_image_update_adjoint`` of the corrected image fit's
+        ``floor_image_update`` (``D0`` the particle's unfaded increment): returns the share of
+        ``Gg`` that joins the gradient of the particle's new F, and the adjoints of the image's
+        flowed F and of the fade ``scale``."""
+        Bg, Eg, wsum = floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
+        own, applied = floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, Bg, Eg, wsum, Fg)
+        c, dc = df.floor_image_share(wsum, h)
+        adj_wsum = (wp.ddot(Gg, own - df.updated_or_kept(code, scale, D0, Fp)) + adj_c) * dc
+        adj_Fg = c * Gg
+        adj_s = scalar(0.0)
+        if applied != 0 or adj_wsum != scalar(0.0):
+            adj_Fg, adj_s = floor_image_own_update_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, scale, Bg, Eg, Fg,
+                                                           c * Gg, applied, adj_wsum, adj_x, adj_y)
+        return (scalar(1.0) - c) * Gg, adj_Fg, adj_s
+
     return types.SimpleNamespace(
         pair_moments=pair_moments, moment_pair_sums=moment_pair_sums, fit_sums=fit_sums,
+        floor_image_displacement_sums=floor_image_displacement_sums, floor_image_own_update=floor_image_own_update,
+        floor_image_update=floor_image_update, floor_image_own_update_adjoint=floor_image_own_update_adjoint,
+        floor_image_update_adjoint=floor_image_update_adjoint,
         scatter_image_pair_adjoint=scatter_image_pair_adjoint,
         moment_pairs_adjoint=moment_pairs_adjoint,
         floor_image_moment=floor_image_moment, image_map=image_map, floor_image_forces=floor_image_forces,
@@ -545,12 +760,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F_new, F_new_lo = df.carried_update(inc, F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
-        # The floor image's own F (State.F_image), by the image's linear fit
-        # (deformation.floor_image_update); without images, its particle's.
+        # The floor image's own F (State.F_image), by the image's corrected fit
+        # (floor_image_update); without images, its particle's.
         Fg_new = F_new
         c = scalar(0.0)
         if images != 0:
-            Fg_new, c = df.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, guard[i],
+            Fg_new, c = fn.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, guard[i],
                                               scale, Fg_prev[i], F_new)
         Fg_out[i] = Fg_new
         share_out[i] = c
@@ -596,7 +811,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         Guarded or inverted particles keep ``F``: all of ``G`` goes to ``F``. With ``images`` the
         image pairs (``moment_pair_sums``) likewise, scattered to their particles through
         ``deformation.floor_image_jacobian`` (``deformation.scatter_pair_adjoint``), and the
-        image's own update (``deformation.floor_image_update``, the image's linear fit) as in
+        image's own update (``floor_image_update``, the image's corrected fit) as in
         ``deformation.update_deformation_adjoint``."""
         i = wp.tid()
         G = adj_F_out[i]
@@ -613,11 +828,10 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         inc0 = fn.corrected_moment(Bu, Eu, K) * At_inv
         # The fade s(A, same) on the plain moment matrix (guards.guard): inc = s inc0.
         code_, s, ds_dA, ds_dn = gf.guard(A, same, min_neighbors, max_condition)
-        # The image's update (deformation.floor_image_update): its share of the gradient of
-        # F_new joins G.
+        # The image's update (floor_image_update): its share of the gradient of F_new joins G.
         adj_s = scalar(0.0)
         if images != 0:
-            G_share, adj_Fg, adj_sg = df.floor_image_update_adjoint(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin,
+            G_share, adj_Fg, adj_sg = fn.floor_image_update_adjoint(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin,
                                                                     code, s, inc0, Fp, Fg_prev[i], adj_Fg_out[i],
                                                                     adj_share[i], adj_x, adj_y)
             G = G + G_share

@@ -422,6 +422,13 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return out, applied
 
     @wp.func
+    def floor_image_blend(own: mat33, F_new: mat33, wsum: scalar, h: scalar):
+        """The image's new F, its own updated ``own`` and its particle's new ``F_new`` blended
+        by ``floor_image_share`` of its pairs' weights ``wsum``, and that share."""
+        c, dc = floor_image_share(wsum, h)
+        return F_new + c * (own - F_new), c
+
+    @wp.func
     def floor_image_update(
         i: int,
         x: wp.array(dtype=vec3),
@@ -452,8 +459,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         ``plasticity.image_hardening_update``)."""
         Bg, wsum = floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
         own, applied = floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, Bg, wsum, Fg)
-        c, dc = floor_image_share(wsum, h)
-        return F_new + c * (own - F_new), c
+        return floor_image_blend(own, F_new, wsum, h)
 
     @wp.func
     def floor_image_own_update_adjoint(
@@ -528,6 +534,17 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return adj_Fg, wp.ddot(Gg * wp.transpose(Fg), D0)
 
     @wp.func
+    def updated_or_kept(code: int, scale: scalar, D0: mat33, Fp: mat33) -> mat33:
+        """A particle's new F as the update's forward has it, to round-off, from its unfaded
+        increment ``D0`` and fade ``scale``: ``Fp + scale D0 Fp``, or ``Fp`` where guarded
+        (``code``) or where that would invert."""
+        F_new = Fp
+        if code == 0:
+            if wp.determinant(Fp + (scale * D0) * Fp) > scalar(0.0):
+                F_new = Fp + (scale * D0) * Fp
+        return F_new
+
+    @wp.func
     def floor_image_update_adjoint(
         i: int,
         x: wp.array(dtype=vec3),
@@ -560,12 +577,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         Bg, wsum = floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
         own, applied = floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, Bg, wsum, Fg)
         c, dc = floor_image_share(wsum, h)
-        # The particle's new F as the forward's, to round-off (the guarded or inverted keep F).
-        F_new = Fp
-        if code == 0:
-            if wp.determinant(Fp + (scale * D0) * Fp) > scalar(0.0):
-                F_new = Fp + (scale * D0) * Fp
-        adj_wsum = (wp.ddot(Gg, own - F_new) + adj_c) * dc
+        adj_wsum = (wp.ddot(Gg, own - updated_or_kept(code, scale, D0, Fp)) + adj_c) * dc
         adj_Fg = c * Gg
         adj_s = scalar(0.0)
         if applied != 0 or adj_wsum != scalar(0.0):
@@ -671,6 +683,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         floor_image_moment=floor_image_moment, scatter_image_pair_adjoint=scatter_image_pair_adjoint,
         floor_image_displacement_sums=floor_image_displacement_sums, floor_image_share=floor_image_share,
         floor_image_own_update=floor_image_own_update, floor_image_update=floor_image_update,
+        floor_image_blend=floor_image_blend, updated_or_kept=updated_or_kept,
         floor_image_own_update_adjoint=floor_image_own_update_adjoint,
         floor_image_update_adjoint=floor_image_update_adjoint, affine_fit=affine_fit, step_increment=step_increment,
         step_gradient=step_gradient, unless_inverted=unless_inverted,
