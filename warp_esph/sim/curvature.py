@@ -256,9 +256,9 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
             if body[j] == bi:
                 xb = x[j] - gi
                 w = fw.w_c(wp.dot(xb, xb), h, c6)
-                dA, dB, dC, dD, dE = pair_moments(xb, df.displacement(x[j], y[j], x_lo[j], y_lo[j]), w, h)
-                B += dB
-                E += dE
+                wu = w * df.displacement(x[j], y[j], x_lo[j], y_lo[j])
+                B += wp.outer(wu, xb)
+                E += wp.outer(wu, curvature_basis(xb, h))
                 wsum += w
         return B, E, wsum
 
@@ -686,8 +686,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         flowed F and of the fade ``scale``."""
         Bg, Eg, wsum = floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
         own, applied = floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, Bg, Eg, wsum, Fg)
-        c, dc = df.floor_image_share(wsum, h)
-        adj_wsum = (wp.ddot(Gg, own - df.updated_or_kept(code, scale, D0, Fp)) + adj_c) * dc
+        c, adj_wsum = df.floor_image_blend_adjoint(Gg, own, code, scale, D0, Fp, adj_c, wsum, h)
         adj_Fg = c * Gg
         adj_s = scalar(0.0)
         if applied != 0 or adj_wsum != scalar(0.0):

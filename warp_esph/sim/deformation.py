@@ -429,6 +429,26 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return F_new + c * (own - F_new), c
 
     @wp.func
+    def updated_or_kept(code: int, scale: scalar, D0: mat33, Fp: mat33) -> mat33:
+        """A particle's new F as the update's forward has it, to round-off, from its unfaded
+        increment ``D0`` and fade ``scale``: ``Fp + scale D0 Fp``, or ``Fp`` where guarded
+        (``code``) or where that would invert."""
+        F_new = Fp
+        if code == 0:
+            if wp.determinant(Fp + (scale * D0) * Fp) > scalar(0.0):
+                F_new = Fp + (scale * D0) * Fp
+        return F_new
+
+    @wp.func
+    def floor_image_blend_adjoint(Gg: mat33, own: mat33, code: int, scale: scalar, D0: mat33, Fp: mat33,
+                                  adj_c: scalar, wsum: scalar, h: scalar):
+        """Adjoint of ``floor_image_blend`` in the weight sum ``wsum`` (``Gg`` the gradient of
+        the blend, ``adj_c`` that of the share; the particle's new F as its update had it,
+        ``updated_or_kept``) and the share ``c``: returns ``(c, adj_wsum)``."""
+        c, dc = floor_image_share(wsum, h)
+        return c, (wp.ddot(Gg, own - updated_or_kept(code, scale, D0, Fp)) + adj_c) * dc
+
+    @wp.func
     def floor_image_update(
         i: int,
         x: wp.array(dtype=vec3),
@@ -534,17 +554,6 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return adj_Fg, wp.ddot(Gg * wp.transpose(Fg), D0)
 
     @wp.func
-    def updated_or_kept(code: int, scale: scalar, D0: mat33, Fp: mat33) -> mat33:
-        """A particle's new F as the update's forward has it, to round-off, from its unfaded
-        increment ``D0`` and fade ``scale``: ``Fp + scale D0 Fp``, or ``Fp`` where guarded
-        (``code``) or where that would invert."""
-        F_new = Fp
-        if code == 0:
-            if wp.determinant(Fp + (scale * D0) * Fp) > scalar(0.0):
-                F_new = Fp + (scale * D0) * Fp
-        return F_new
-
-    @wp.func
     def floor_image_update_adjoint(
         i: int,
         x: wp.array(dtype=vec3),
@@ -576,8 +585,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         fade ``scale``."""
         Bg, wsum = floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
         own, applied = floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, Bg, wsum, Fg)
-        c, dc = floor_image_share(wsum, h)
-        adj_wsum = (wp.ddot(Gg, own - updated_or_kept(code, scale, D0, Fp)) + adj_c) * dc
+        c, adj_wsum = floor_image_blend_adjoint(Gg, own, code, scale, D0, Fp, adj_c, wsum, h)
         adj_Fg = c * Gg
         adj_s = scalar(0.0)
         if applied != 0 or adj_wsum != scalar(0.0):
@@ -683,7 +691,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         floor_image_moment=floor_image_moment, scatter_image_pair_adjoint=scatter_image_pair_adjoint,
         floor_image_displacement_sums=floor_image_displacement_sums, floor_image_share=floor_image_share,
         floor_image_own_update=floor_image_own_update, floor_image_update=floor_image_update,
-        floor_image_blend=floor_image_blend, updated_or_kept=updated_or_kept,
+        floor_image_blend=floor_image_blend, floor_image_blend_adjoint=floor_image_blend_adjoint,
         floor_image_own_update_adjoint=floor_image_own_update_adjoint,
         floor_image_update_adjoint=floor_image_update_adjoint, affine_fit=affine_fit, step_increment=step_increment,
         step_gradient=step_gradient, unless_inverted=unless_inverted,
