@@ -56,6 +56,28 @@ def test_the_pile_profile_reads_a_lattice_cylinder_and_a_uniform_squash_exactly(
     assert np.allclose([L["y_over_H0"] for L in layers], [q * (1.0 - L["depth0_over_H0"]) for L in layers])
 
 
+def _plug_row(plugs):
+    """The report's plug target over made slump rows ``{(S, resolution): (fraction below
+    0.99 Y, plastic strain in yield strains)}``, the other fields those of a pile at rest."""
+    from benchmarks.validation_report import _slump_targets
+
+    rows = [{"case": "slump", "S": S, "resolution": n, "elastic_force": "variational", "floor": "particles",
+             "theory_h_over_H0": 0.5, "thickness_over_H0": 0.5, "top_rate_pct_H0_per_s": 0.0, "kinetic_over_MgH0": 0.0,
+             "at_rest": True, "duration": 8.0, "plug_particles": 24, "plug_unyielded_fraction": f,
+             "plug_plastic_strain": e, "run": 0} for (S, n), (f, e) in plugs.items()]
+    return next(t for t in _slump_targets(rows, "particles") if t[0].startswith("an unyielded plug"))
+
+
+def test_the_plug_target_is_read_for_each_yield_stress_on_its_own():
+    # A 3-D pile keeps the 1-D plug only above S = 0.29 (docs/validation.md, the plug): the
+    # report says for which S it holds rather than one verdict over all.
+    _, got, verdict, _ = _plug_row({(0.3, 16): (0.48, 2.9), (0.5, 16): (1.0, 0.0), (0.5, 24): (0.94, 0.03)})
+    assert verdict == "no (S = 0.3; held: S = 0.5)", verdict
+    assert "S = 0.5 at 16/24: 94-100 % of it below 0.99 Y, 0-0.03 yield strains" in got, got
+    assert _plug_row({(0.5, 16): (1.0, 0.0), (0.5, 24): (0.95, 0.5)})[2] == "yes"
+    assert _plug_row({(0.5, 16): (0.95, 1.2)})[2] == "no (S = 0.5; held: none)"
+
+
 def test_the_convergence_verdict_recovers_a_power_law_and_refuses_what_is_not_one():
     # The report's "converging" (docs/validation.md): h(n) = h_inf + C n^-p through the last
     # three resolutions, 12/16/24 being equal steps in the spacing.
