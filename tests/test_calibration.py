@@ -523,3 +523,32 @@ def test_mesh_residuals_match_the_loss(mode):
     r = loss.residuals({2: x})
     assert loss.unmatched[2] == 3
     assert np.sum(r**2) == pytest.approx(loss.residual_scale() * value, rel=1e-10)
+
+
+def _summary_with_range_rises(rises):
+    """The diagnostics' summary of a made two-parameter fit (log space, well curved at the
+    optimum), given the range check's chi-square changes ``rises`` (per parameter: down, up)."""
+    from types import SimpleNamespace
+
+    from warp_esph.diagnostics import _summarise
+
+    names = ["mu", "yield_stress"]
+    prob = SimpleNamespace(labels=names, params=names, k=1, spaces=dict.fromkeys(names, "log"), scales={},
+                           from_z=lambda z: {"mu": np.exp(z[:1]), "yield_stress": np.exp(z[1:])})
+    return _summarise(prob, np.log([1e3, 100.0]), np.diag([1e4, 1e4]), np.zeros(2), [0.1], [0.1], 100, 4, 1e-3,
+                      max_relative_error=0.5, min_sensitivity=1e-3, max_correlation=0.99, rises=np.array(rises))
+
+
+def test_a_range_check_that_finds_a_lower_chi_square_says_the_fit_stopped_short():
+    """Moving a value alone by the range factor rose the chi-square by less than 1 either
+    way: the data cannot tell the values apart. Lowered it by more than 1: the data do tell
+    them apart; the fit stopped short of the minimum, which is what the warning must say."""
+    short = _summary_with_range_rises([[50.0, 60.0], [-31.6, 40.0]])
+    assert short.undetermined == []
+    assert any(w.startswith("yield_stress is not at the data's best value") and "lowers the chi-square by 31.6" in w
+               for w in short.warnings), short.warnings
+    flat = _summary_with_range_rises([[50.0, 60.0], [-0.2, 0.5]])
+    assert flat.undetermined == ["yield_stress"]
+    assert any("changes the chi-square by only -0.2" in w for w in flat.warnings), flat.warnings
+    assert not any("best value" in w for w in flat.warnings)
+    assert _summary_with_range_rises([[50.0, 60.0], [2.0, 3.0]]).warnings == []

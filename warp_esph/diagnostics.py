@@ -30,9 +30,10 @@ fix a combination of the two, e.g. yield stress and flow rate along a valley).
 
 The Fisher matrix describes the loss near the optimum only. A **range check** therefore
 also moves each log-space parameter alone by a factor ``RANGE_FACTOR`` (1.5) both ways
-(``2 P`` forward runs): if the chi-square rises by less than 1 on either side, the data
+(``2 P`` forward runs): if the chi-square changes by less than 1 on either side, the data
 cannot tell these values apart and the parameter is reported as not determined, whatever
-the local curvature says (a silhouette fit stopped at 1.88 x the true yield stress, where
+the local curvature says (if it falls by 1 or more, the fit stopped short of the minimum
+along it, which a warning says) (a silhouette fit stopped at 1.88 x the true yield stress, where
 the loss is curved but 0.15 % below its value at 1.5 x less).
 
 Silhouette residuals are pixels, and the pixels within a particle's splat rise and fall
@@ -383,13 +384,18 @@ def _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations
             r = max(abs(corr[k, labels.index(q)]) for q in partners)
             reasons.append(f"it is correlated with {', '.join(partners)} (|r| = {r:.3f} > {max_correlation:g}): "
                            f"the data fix a combination, not each")
-        if rises is not None and np.isfinite(rises[k]).any() and not np.nanmin(rises[k]) >= 1.0:
-            lowest = float(np.nanmin(rises[k]))
+        lowest = float(np.nanmin(rises[k])) if rises is not None and np.isfinite(rises[k]).any() else math.inf
+        if -1.0 < lowest < 1.0:
             reasons.append(f"moving it alone by a factor {RANGE_FACTOR:g} changes the chi-square by only {lowest:.3g} "
-                           f"(less than 1: the data cannot tell these values apart)")
+                           f"(less than 1 either way: the data cannot tell these values apart)")
         if reasons:
             undetermined.append(label)
             warnings.append(f"{label} is not determined by the data: " + "; ".join(reasons))
+        if lowest <= -1.0:
+            # Not a flat loss: a lower one along this parameter alone, so the fit stopped short.
+            warnings.append(f"{label} is not at the data's best value: moving it alone by a factor {RANGE_FACTOR:g} "
+                            f"lowers the chi-square by {-lowest:.3g}; the fit stopped short of the minimum "
+                            "(more iterations, or a start nearer it)")
     return Diagnostics(
         labels=labels, values=values, spaces=spaces, standard_error=se, relative_error=rel, sensitivity=sens,
         gradient=gradient, fisher=fisher, covariance=cov, correlation=corr, noise=list(sigmas), residual_rms=list(rms),
