@@ -50,7 +50,8 @@ def frame_arrays_to_mesh(arrays: dict, fmt: str):
             vec = data.pop(name)
             for k, s in enumerate(suffixes):
                 data[f"{name}_{s}"] = np.ascontiguousarray(vec[:, k])
-    cells = [("vertex", np.arange(n, dtype=np.int64).reshape(-1, 1))] if n else []
+    # PLY has no 64-bit integers (meshio casts them down, warning once per file).
+    cells = [("vertex", np.arange(n, dtype=np.int32 if fmt == "ply" else np.int64).reshape(-1, 1))] if n else []
     return meshio.Mesh(pts, cells, point_data=data)
 
 
