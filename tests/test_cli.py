@@ -345,7 +345,7 @@ BAD_TOML = {
     "bad_fit_weight": ('[solver]\nfit_weight = "gauss"\n' + GOOD_TOML, ["fit_weight = 'gauss' in [solver]", "poly6, biweight"]),
     # A dt that does not divide the frame is the file's: named with it (it was the bare message).
     "dt_not_dividing": (GOOD_TOML.replace("frames = 2", "frames = 2\nfps = 30\ndt = 0.007"),
-                        ["[scene] dt = 0.007 is not allowed", "whole number of steps"]),
+                        ["[scene] dt = 0.007 is not allowed", "whole number of steps", "or leave dt out"]),
 }
 
 

@@ -199,7 +199,7 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
         hint = f"dt = {frame_dt / lo:.6g}" if n < 1 else f"dt = {frame_dt / math.ceil(ratio):.6g} or {frame_dt / lo:.6g}"
         raise ValueError(
             f"dt = {dt!r} is not allowed: a frame (1/fps = {frame_dt:.6g} s) must be a whole number of steps, "
-            f"but 1/fps / dt = {ratio:.6g}; use e.g. {hint}, or give substeps instead"
+            f"but 1/fps / dt = {ratio:.6g}; use e.g. {hint}, or leave dt out (the stable step, rounded to fill a frame)"
         )
     return n, frame_dt / n
 
