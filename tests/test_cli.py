@@ -325,7 +325,10 @@ def test_resumed_run_keeps_and_continues_the_force_log(tmp_path, capsys):
     assert main(["run", str(scene), "-o", str(whole), "--no-progress"]) == 0
     assert main(["run", str(scene), "-o", str(part), "--no-progress", "--frames", "3", "--checkpoint-every", "2"]) == 0
     assert log_frames(part) == {"plane0": [0, 1, 2, 3]}
+    capsys.readouterr()
     assert main(["run", "--resume", f"{part}.checkpoint.npz", "--frames", "6", "--no-progress"]) == 0
+    # The file's frames, and those this run wrote (from the checkpoint's frame on).
+    assert f"wrote {part}: frames 0..6 (2..6 by this run)," in capsys.readouterr().out
     assert log_frames(part) == {"plane0": list(range(7))}
     assert open(f"{part}_tools.csv").read() == open(f"{whole}_tools.csv").read()
     capsys.readouterr()

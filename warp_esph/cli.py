@@ -264,6 +264,14 @@ def _dt_arg(text: str):
         raise argparse.ArgumentTypeError(f"--dt = {text!r} is not allowed: must be a number of seconds or 'auto'") from None
 
 
+def _kept(writer, start_frame: int) -> str:
+    """What an interrupted or failed run's file holds: the frames this run finished, and on a
+    resumed run those of the run it continues too (from frame 0)."""
+    if not start_frame:
+        return f"the {writer.frames_written} frames finished"
+    return f"frames 0..{writer.last_frame} finished" if writer.last_frame is not None else f"the frames before {start_frame}"
+
+
 def _cmd_run(args) -> int:
     from . import checks  # noqa: PLC0415
 
@@ -403,17 +411,17 @@ def _cmd_run(args) -> int:
                  monitor_exempt=getattr(scene, "diverges", ()))
     except KeyboardInterrupt:
         writer.close()
-        print(f"{PROG}: interrupted: {writer.path} keeps the {writer.frames_written} frames finished", file=sys.stderr)
+        print(f"{PROG}: interrupted: {writer.path} keeps {_kept(writer, start_frame)}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except SimulationError as e:
         writer.close()
-        _err(f"{e} ({writer.path} keeps the {writer.frames_written} frames finished)")
+        _err(f"{e} ({writer.path} keeps {_kept(writer, start_frame)})")
         return EXIT_DIVERGED
     except OSError as e:
         # A full disk or a vanished folder mid-run: the file keeps the last published frame.
         writer.close()
         why = e.strerror or str(e)
-        _err(f"cannot write {writer.path}: {why} (it keeps the {writer.frames_written} frames finished)")
+        _err(f"cannot write {writer.path}: {why} (it keeps {_kept(writer, start_frame)})")
         return EXIT_WRITE_FAILED
     finally:
         writer.close()
@@ -423,8 +431,9 @@ def _cmd_run(args) -> int:
             tool_files = log.write(writer.path)
     guards = ", ".join(f"{k}={v}" for k, v in solver.guard_counts().items())
     per_frame = 1e3 * writer.save_seconds / max(writer.frames_written, 1)
-    print(f"wrote {writer.path}: {writer.frames_written} frames (0..{writer.last_frame}), "
-          f"{model.particle_count} particles; USD save {per_frame:.2f} ms/frame")
+    written = (f"{writer.frames_written} frames (0..{writer.last_frame})" if not start_frame else
+               f"frames 0..{writer.last_frame} ({start_frame}..{writer.last_frame} by this run)")
+    print(f"wrote {writer.path}: {written}, {model.particle_count} particles; USD save {per_frame:.2f} ms/frame")
     print(f"guard counts (particle-steps skipped): {guards}")
     if log is not None:
         print(f"reaction forces ({', '.join(_log_kinds(model))}): {tool_files[0]}, {tool_files[1]}")
