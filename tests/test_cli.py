@@ -545,6 +545,19 @@ def _run_subprocess(*args, cwd):
     return subprocess.run([sys.executable, "-m", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
 
 
+def test_a_reader_that_leaves_is_not_bad_input_and_leaves_no_traceback(tmp_path):
+    """``warp-esph scenes | head -1``: the reader closed the pipe before the listing was
+    written. Not exit 2 (bad input) with 'Broken pipe', not a traceback from the flush at
+    exit: 141, as a shell reports a writer stopped by SIGPIPE, and nothing on stderr."""
+    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    p = subprocess.Popen([sys.executable, "-m", "warp_esph", "scenes"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    p.stdout.close()  # before the child, still importing, writes its first line
+    err = p.stderr.read()
+    assert p.wait(timeout=120) == 141, err
+    assert err == "", err
+
+
 def test_subprocess_run_and_bad_input(tmp_path):
     done = _run_subprocess("warp_esph.cli", "run", "three_cylinders", "-o", "cyl.usdc", *TINY, cwd=tmp_path)
     assert done.returncode == 0, done.stderr

@@ -29,6 +29,7 @@ EXIT_DIVERGED = 3
 EXIT_WRITE_FAILED = 4
 EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143  # 128 + SIGTERM
+EXIT_PIPE_CLOSED = 141  # 128 + SIGPIPE: what a shell reports for a writer whose reader left
 
 
 class _UsageError(Exception):
@@ -264,6 +265,17 @@ def _dt_arg(text: str):
         raise argparse.ArgumentTypeError(f"--dt = {text!r} is not allowed: must be a number of seconds or 'auto'") from None
 
 
+def _drop_stdout():
+    """Point stdout at the null device, so that flushing it at exit does not fail again on a
+    closed pipe (a second 'Broken pipe' from the interpreter)."""
+    try:
+        fd = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(fd, sys.stdout.fileno())
+        os.close(fd)
+    except (OSError, ValueError, AttributeError):  # a stdout without a file descriptor (captured)
+        pass
+
+
 def _kept(writer, start_frame: int) -> str:
     """What an interrupted or failed run's file holds: the frames this run finished, and on a
     resumed run those of the run it continues too (from frame 0)."""
@@ -420,6 +432,8 @@ def _cmd_run(args) -> int:
     except OSError as e:
         # A full disk or a vanished folder mid-run: the file keeps the last published frame.
         writer.close()
+        if isinstance(e, BrokenPipeError):  # stdout's reader left, not the output file (main)
+            raise
         why = e.strerror or str(e)
         _err(f"cannot write {writer.path}: {why} (it keeps {_kept(writer, start_frame)})")
         return EXIT_WRITE_FAILED
@@ -747,6 +761,11 @@ def _dispatch(args) -> int:
         except KeyboardInterrupt:
             print(f"{PROG}: interrupted", file=sys.stderr)
             return EXIT_INTERRUPTED
+        except BrokenPipeError:
+            # The reader of the output left (`warp-esph scenes | head -1`): not bad input, and
+            # nothing to tell a pipe that is gone. Not 0 either: a run may have stopped here.
+            _drop_stdout()
+            return EXIT_PIPE_CLOSED
         except (ValueError, OSError) as e:
             # UnicodeDecodeError is a ValueError: a reader met bytes that are not text.
             _err(_read_failure(args, e) if _is_read_error(e) else e)
