@@ -556,6 +556,13 @@ def test_a_reader_that_leaves_is_not_bad_input_and_leaves_no_traceback(tmp_path)
     err = p.stderr.read()
     assert p.wait(timeout=120) == 141, err
     assert err == "", err
+    # A run whose reader left: not a write failure of its output file (exit 4).
+    p = subprocess.Popen([sys.executable, "-m", "warp_esph", "run", "three_cylinders", "-o", "c.usdc", *TINY], cwd=tmp_path,
+                         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p.stdout.close()
+    err = p.stderr.read()
+    assert p.wait(timeout=120) == 141, err
+    assert "Traceback" not in err and "cannot write" not in err, err
 
 
 def test_subprocess_run_and_bad_input(tmp_path):
