@@ -324,3 +324,25 @@ def test_a_failing_sample_is_a_row_and_the_sweep_goes_on():
     assert [r["sample"] for r in table.rows] == [0, 1]
     assert table.rows[0]["status"] == "failed" and "worker process died" in table.rows[0]["reason"]
     assert table.rows[0]["yield_stress"] == 10.0 and table.rows[1]["status"] == "failed"
+
+
+def test_workers_started_from_a_script_without_a_main_guard_say_so(tmp_path):
+    """Spawned workers start by importing the script that runs: one without an
+    ``if __name__ == "__main__":`` guard runs its parallel call again there and every worker
+    dies starting. The failure says that, not 'a crash in native code or out of memory'."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "unguarded.py"
+    script.write_text("import math\nfrom warp_esph.sweep import parallel_map\n"
+                      "print(parallel_map(math.sqrt, [(4.0,), (9.0,)], workers=2, on_error=lambda i, why: why))\n")
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=repo + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    done = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "could not start" in done.stdout and "unguarded.py" in done.stdout and "__main__" in done.stdout, done.stdout
+    guarded = tmp_path / "guarded.py"
+    guarded.write_text("import math\nfrom warp_esph.sweep import parallel_map\n\nif __name__ == '__main__':\n"
+                       "    print(parallel_map(math.sqrt, [(4.0,), (9.0,)], workers=2, on_error=lambda i, why: why))\n")
+    done = subprocess.run([sys.executable, str(guarded)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.strip() == "[2.0, 3.0]", (done.stdout, done.stderr)

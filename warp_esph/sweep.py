@@ -545,6 +545,21 @@ def _call_star(fn, *args):
 
 
 # ------------------------------------------------------------------ executors
+def _unguarded_main_script() -> str | None:
+    """The path of the script this process runs when its source has no ``__main__`` guard,
+    else None. A spawned worker starts by importing that script (``multiprocessing``'s spawn),
+    so without the guard it runs the script's parallel call again and dies starting."""
+    path = getattr(sys.modules.get("__main__"), "__file__", None)
+    if not path or not str(path).endswith(".py"):
+        return None
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            source = f.read()
+    except OSError:
+        return None
+    return None if "__main__" in source else str(path)
+
+
 def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = None, ray: str | None = None,
                  on_result: Callable | None = None, on_error: Callable | None = None,
                  ray_resources: Mapping | None = None) -> list:
@@ -605,6 +620,11 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
                 except BrokenProcessPool:
                     why = ("a worker process died before this item finished (a crash in native code or out of "
                            "memory, in this item or another one running at the time); run it again")
+                    script = _unguarded_main_script()
+                    if script is not None:
+                        why = (f"the worker processes could not start: each one first imports the script {script}, "
+                               "which runs its parallel call again at import; put the script's top-level code under "
+                               "'if __name__ == \"__main__\":'")
                     if on_error is None:
                         raise RuntimeError(f"item {i}: {why}") from None
                     results[i] = on_error(i, why)
