@@ -273,7 +273,7 @@ def main(argv=None) -> int:
     ap.add_argument("--size", choices=sorted(SETUPS), default="full")
     ap.add_argument("--out", help="folder for the lab files and result.json (default: a temporary folder)")
     args = ap.parse_args(argv)
-    wp.config.log_level = wp.LOG_WARNING
+    we.init_warp()  # log_level WARNING, no native note about a missing CUDA driver on a CPU machine
     s = SETUPS[args.size]
     folder = args.out or tempfile.mkdtemp(prefix="lab_")
     t0 = time.perf_counter()
