@@ -334,6 +334,26 @@ def test_resumed_run_keeps_and_continues_the_force_log(tmp_path, capsys):
     capsys.readouterr()
 
 
+def test_resuming_beside_a_damaged_force_log_refuses_before_it_loses_the_rows(tmp_path, capsys):
+    """The force log of the run to resume is damaged: resuming would rewrite it with the
+    resumed frames only. Refused by name before anything is written; the USD keeps its
+    frames. Deleted, the log is not there to lose: the run resumes."""
+    scene = tmp_path / "resting.toml"
+    scene.write_text(RESTING_TOML.replace("frames = 20", "frames = 6"))
+    part = tmp_path / "part.usdc"
+    assert main(["run", str(scene), "-o", str(part), "--no-progress", "--frames", "3", "--checkpoint-every", "2"]) == 0
+    log = tmp_path / "part.usdc_tools.json"
+    log.write_text('{"rows": [')
+    before = part.read_bytes()
+    capsys.readouterr()
+    assert main(["run", "--resume", f"{part}.checkpoint.npz", "--frames", "6", "--no-progress"]) == 2
+    assert_one_line_error(capsys.readouterr().err, "part.usdc_tools.json", "cannot be read", "move it away")
+    assert log.read_text() == '{"rows": [' and part.read_bytes() == before
+    log.unlink()
+    assert main(["run", "--resume", f"{part}.checkpoint.npz", "--frames", "6", "--no-progress"]) == 0
+    assert log_frames(part) == {"plane0": list(range(2, 7))}
+
+
 BAD_TOML = {
     "unknown_key": (GOOD_TOML.replace('shape = "box"', 'shape = "box"\ncolour = "red"'), ["'colour'", "[[bodies]] #1"]),
     "typo_key": (GOOD_TOML.replace("spacing = 0.05", "spaceing = 0.05"), ["'spaceing'", "[scene]", "did you mean 'spacing'"]),

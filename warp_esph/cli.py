@@ -381,6 +381,15 @@ def _cmd_run(args) -> int:
         checks.output_place(f"--export {args.export}'s folder", f"{stem}_{args.export}", folder=True)
     if args.preview:
         checks.output_place("--preview's picture", stem + ".png")
+    # Tools (moving colliders, pinned sets) and static colliders: pose and mean reaction per
+    # frame, beside the USD; a resumed run's earlier rows are read before anything is written.
+    log = None
+    if model.tools is not None or model.planes or model.spheres or model.boxes:
+        from .tools import ReactionLog  # noqa: PLC0415
+
+        log = ReactionLog(solver)
+        if args.resume is not None:
+            log.resume(os.path.abspath(os.fspath(output)), start_frame)  # the finished frames of the run it continues
     _arm(args)  # from here an interrupt unwinds through the writer
     writer = UsdWriter(output, model, fps, surface=args.surface, view=getattr(scene, "view", None), append=args.resume is not None)
     # The whole output name: a.usdc and a.usda in one folder must not share a checkpoint.
@@ -397,15 +406,6 @@ def _cmd_run(args) -> int:
             # With the adaptive step the step count is not a function of the frame: -1.
             save_state(checkpoint_path, model, current, step=-1 if adaptive else frame * substeps, frame=frame, run=run_record)
 
-    # Tools (moving colliders, pinned sets) and static colliders: pose and mean reaction per
-    # frame, beside the USD.
-    log = None
-    if model.tools is not None or model.planes or model.spheres or model.boxes:
-        from .tools import ReactionLog  # noqa: PLC0415
-
-        log = ReactionLog(solver)
-        if args.resume is not None:
-            log.resume(writer.path, start_frame)  # the finished frames of the run it continues
 
     def on_frame(frame, current):
         if log is not None:

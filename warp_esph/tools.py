@@ -1287,11 +1287,19 @@ class ReactionLog:
         preceding frame and only sets the start)."""
         import json  # noqa: PLC0415
 
+        path = f"{stem}_tools.json"
         try:
-            with open(f"{stem}_tools.json") as fh:
+            with open(path) as fh:
                 rows = json.load(fh)["rows"]
-        except (OSError, ValueError, KeyError, TypeError):
-            return  # no earlier log (or not one of ours): the resumed frames only
+            if not isinstance(rows, list):
+                raise TypeError("its 'rows' is not a list")
+        except FileNotFoundError:
+            return  # no earlier log: the resumed frames only
+        except (OSError, ValueError, KeyError, TypeError, RecursionError) as e:
+            # Rewriting it with the resumed frames only would lose the finished run's rows.
+            why = f"no {e}" if isinstance(e, KeyError) else str(e) or type(e).__name__
+            raise ValueError(f"the force log {path} of the run to resume cannot be read ({why}): resuming would replace "
+                             "its rows of the finished frames; move it away to resume without them") from None
         self.rows = [r for r in rows if isinstance(r, dict) and isinstance(r.get("frame"), int) and r["frame"] <= frame]
         self._kept = frame if any(r["frame"] == frame for r in self.rows) else None
 
