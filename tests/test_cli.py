@@ -334,6 +334,15 @@ def test_resumed_run_keeps_and_continues_the_force_log(tmp_path, capsys):
     capsys.readouterr()
 
 
+def test_json_nested_too_deeply_is_refused_by_name(tmp_path):
+    from warp_esph import checks
+
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 100000 + "]" * 100000)
+    with pytest.raises(ValueError, match=r"--experiments .*deep\.json cannot be read: arrays or objects nested too deeply"):
+        checks.json_file("--experiments", deep)
+
+
 def test_resuming_beside_a_damaged_force_log_refuses_before_it_loses_the_rows(tmp_path, capsys):
     """The force log of the run to resume is damaged: resuming would rewrite it with the
     resumed frames only. Refused by name before anything is written; the USD keeps its
@@ -355,6 +364,7 @@ def test_resuming_beside_a_damaged_force_log_refuses_before_it_loses_the_rows(tm
 
 
 BAD_TOML = {
+    "nested_too_deep": ("a = " + "[" * 3000 + "]" * 3000 + "\n" + GOOD_TOML, ["nested too deeply"]),
     "unknown_key": (GOOD_TOML.replace('shape = "box"', 'shape = "box"\ncolour = "red"'), ["'colour'", "[[bodies]] #1"]),
     "typo_key": (GOOD_TOML.replace("spacing = 0.05", "spaceing = 0.05"), ["'spaceing'", "[scene]", "did you mean 'spacing'"]),
     "typo_table": (GOOD_TOML.replace("[[colliders]]", "[[colliderz]]"), ["'colliderz'", "did you mean 'colliders'"]),

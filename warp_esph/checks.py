@@ -243,6 +243,8 @@ def json_file(what: str, path):
         raise ValueError(f"{what} {p} is not valid JSON: {e}") from None
     except UnicodeDecodeError:  # bytes that are not text: not the JSON file asked for
         raise ValueError(f"{what} {p} is not valid JSON: it is not text (a damaged or foreign file?)") from None
+    except RecursionError:
+        raise ValueError(f"{what} {p} cannot be read: arrays or objects nested too deeply") from None
 
 
 def output_place(what: str, path, folder: bool = False) -> str:

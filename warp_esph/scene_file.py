@@ -404,6 +404,8 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
         raise ValueError(f"{file}: invalid TOML: {e}") from None
     except UnicodeDecodeError as e:
         raise ValueError(f"{file}: invalid TOML: not UTF-8 text (byte {e.start})") from None
+    except RecursionError:
+        raise ValueError(f"{file}: invalid scene file: arrays or tables nested too deeply to read") from None
     except OSError as e:
         raise ValueError(f"cannot read scene file {file!r}: {e.strerror or e}") from None
     for key in data:
