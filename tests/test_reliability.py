@@ -390,3 +390,20 @@ def test_sigint_while_start_up_holds_back_native_output_still_prints_its_line(tm
     proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=60)
     assert proc.returncode == 130, (proc.returncode, proc.stderr)
     assert proc.stderr.strip() == "warp-esph: interrupted", proc.stderr
+
+
+def test_directions_near_the_float_range_are_normalised_not_overflowed():
+    """A plane's normal or a tool's orientation given with components near the float range:
+    its norm overflowed to infinity (a zero normal, a division by zero in the run) or its
+    check for a zero vector passed. Scaled first, each is the unit direction it names."""
+    from warp_esph import tools
+
+    big = 1e308
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_plane((big, big, 0.0), 0.0)
+    np.testing.assert_allclose(b.planes[0].normal, (0.5**0.5, 0.5**0.5, 0.0), rtol=1e-15)
+    k = tools.Keyframes([0.0, 1.0], [(0, 0, 0), (0, 1, 0)], [(big, big, 0.0, 0.0), (0.0, 0.0, 0.0, 2.0)])
+    np.testing.assert_allclose(k.orientations[0], (0.5**0.5, 0.5**0.5, 0.0, 0.0), rtol=1e-15)
+    assert tools.shape_param("plane", normal=(0.0, -big, 0.0)) == (0.0, -1.0, 0.0)
+    with pytest.raises(ValueError, match=r"normal = \(0\.0, 0\.0, 0\.0\) is not allowed: must be a non-zero vector"):
+        b.add_plane((0.0, 0.0, 0.0), 0.0)

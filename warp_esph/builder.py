@@ -445,11 +445,8 @@ class SceneBuilder:
 
     def add_plane(self, normal, offset: float, friction: float = 0.5):
         """The half-space dot(normal, x) < offset is solid."""
-        n = np.array(checks.vector("normal", normal))
-        ln = np.linalg.norm(n)
-        if ln == 0.0:
-            raise ValueError(f"normal = {normal!r} is not allowed: must be a non-zero vector")
-        self._add_collider(self.planes, Plane(tuple(n / ln), checks.number("offset", offset), checks.non_negative("friction", friction)), "plane")
+        n = checks.unit_vector("normal", normal)
+        self._add_collider(self.planes, Plane(n, checks.number("offset", offset), checks.non_negative("friction", friction)), "plane")
 
     def add_sphere_collider(self, center, radius: float, friction: float = 0.5):
         self._add_collider(

@@ -105,6 +105,18 @@ def vector(name: str, value, length: int = 3) -> tuple[float, ...]:
     return tuple(number(f"{name}[{k}]", c) for k, c in enumerate(value))
 
 
+def unit_vector(name: str, value, length: int = 3, what: str = "vector") -> tuple[float, ...]:
+    """``value`` (``length`` finite numbers, not all zero) scaled to length 1; scaled by its
+    largest component first, so that components near the float range do not overflow its
+    norm (which would read as a zero vector, or divide by infinity)."""
+    v = np.array(vector(name, value, length))
+    big = float(np.abs(v).max())
+    if big == 0.0:
+        _fail(name, value, f"must be a non-zero {what}")
+    v = v / big
+    return tuple(float(c) for c in v / np.linalg.norm(v))
+
+
 def positive_vector(name: str, value, length: int = 3) -> tuple[float, ...]:
     v = vector(name, value, length)
     if not all(c > 0.0 for c in v):

@@ -64,11 +64,7 @@ IDENTITY = (0.0, 0.0, 0.0, 1.0)
 
 # --------------------------------------------------------------------------- motions
 def _quat(name: str, value) -> tuple[float, float, float, float]:
-    q = np.array(checks.vector(name, value, 4))
-    n = np.linalg.norm(q)
-    if n == 0.0:
-        raise ValueError(f"{name} = {value!r} is not allowed: must be a non-zero quaternion (x, y, z, w)")
-    return tuple(q / n)
+    return checks.unit_vector(name, value, 4, "quaternion (x, y, z, w)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,9 +90,9 @@ class Keyframes:
             q = np.tile(np.array(IDENTITY), (t.size, 1))
         else:
             q = np.asarray(self.orientations, dtype=np.float64)
-            if q.shape != (t.size, 4) or not np.isfinite(q).all() or np.any(np.linalg.norm(q, axis=1) == 0.0):
+            if q.shape != (t.size, 4) or not np.isfinite(q).all() or np.any(np.abs(q).max(axis=1) == 0.0):
                 raise ValueError(f"orientations with shape {q.shape} is not allowed: must be ({t.size}, 4) non-zero quaternions")
-            q = q / np.linalg.norm(q, axis=1, keepdims=True)
+            q = np.array([checks.unit_vector(f"orientations[{k}]", row, 4, "quaternion") for k, row in enumerate(q)])
             # Shortest arcs: consecutive keyframes in the same hemisphere.
             for k in range(1, len(q)):
                 if np.dot(q[k], q[k - 1]) < 0.0:
@@ -189,10 +185,7 @@ def shape_param(kind: str, *, normal=None, half_extents=None, radius=None, half_
     """The local-frame shape parameter of a collider kind, checked."""
     kind = checks.choice("shape", kind, KINDS)
     if kind == "plane":
-        n = np.array(checks.vector("normal", (0.0, 1.0, 0.0) if normal is None else normal))
-        if np.linalg.norm(n) == 0.0:
-            raise ValueError(f"normal = {normal!r} is not allowed: must be a non-zero vector")
-        return tuple(n / np.linalg.norm(n))
+        return checks.unit_vector("normal", (0.0, 1.0, 0.0) if normal is None else normal)
     if kind == "box":
         if half_extents is None:
             raise ValueError("half_extents = None is not allowed: a box collider needs 3 positive half extents")
