@@ -407,3 +407,29 @@ def test_directions_near_the_float_range_are_normalised_not_overflowed():
     assert tools.shape_param("plane", normal=(0.0, -big, 0.0)) == (0.0, -1.0, 0.0)
     with pytest.raises(ValueError, match=r"normal = \(0\.0, 0\.0, 0\.0\) is not allowed: must be a non-zero vector"):
         b.add_plane((0.0, 0.0, 0.0), 0.0)
+
+
+@pytest.mark.parametrize("where", ["builder", "cli", "scene"])
+def test_an_hourglass_strength_beyond_its_measured_step_bound_is_refused_by_name(tmp_path, capsys, where):
+    """The step bound of the hourglass control is measured up to 1000: a larger strength
+    made the chosen step diverge (1e10) or divided by a step that underflowed to 0 (1e308)."""
+    from warp_esph.checks import MAX_HOURGLASS
+
+    if where == "builder":
+        with pytest.raises(ValueError, match="hourglass = 1e\\+308 is not allowed: must be at most 1000"):
+            we.SceneBuilder(spacing=0.05, hourglass=1e308)
+        we.SceneBuilder(spacing=0.05, hourglass=MAX_HOURGLASS)
+        return
+    args = ["run", "dough_drop", "--scale", "0.3", "--frames", "1", "--no-progress", "-o", str(tmp_path / "o.usdc")]
+    if where == "cli":
+        assert main([*args, "--hourglass", "1e10"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "--hourglass = '1e10' is not allowed: must be at most 1000" in err, err
+    else:
+        scene = tmp_path / "s.toml"
+        scene.write_text('[solver]\nhourglass = 1e308\n[scene]\nspacing = 0.05\nframes = 1\n'
+                         '[materials.m]\npreset = "dough"\n[[bodies]]\nshape = "box"\ncenter = [0, 0.2, 0]\n'
+                         'size = [0.2, 0.2, 0.2]\nmaterial = "m"\n')
+        assert main(["run", str(scene), "--no-progress", "-o", str(tmp_path / "o.usdc")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "'hourglass'" in err and "<= 1000" in err, err

@@ -115,7 +115,7 @@ class SceneBuilder:
         #: ``Model.contact_ramp`` of the model ``finalize`` makes.
         self.contact_ramp = checks.non_negative("contact_ramp", contact_ramp)
         #: ``Model.hourglass`` of the model ``finalize`` makes.
-        self.hourglass = None if hourglass is None else checks.non_negative("hourglass", hourglass)
+        self.hourglass = None if hourglass is None else checks.hourglass("hourglass", hourglass)
         if not isinstance(bodies_interact, bool):
             raise ValueError(f"bodies_interact = {bodies_interact!r} is not allowed: must be True or False")
         #: Whether SPH pressure and viscosity act between bodies (contact between bodies).

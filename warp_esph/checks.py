@@ -105,6 +105,19 @@ def vector(name: str, value, length: int = 3) -> tuple[float, ...]:
     return tuple(number(f"{name}[{k}]", c) for k, c in enumerate(value))
 
 
+#: The largest hourglass-control strength (``Solver(hourglass=)``): ``Model.stable_dt``'s
+#: bound for the control is measured up to it (docs/physics.md, "Hourglass modes").
+MAX_HOURGLASS = 1000.0
+
+
+def hourglass(name: str, value) -> float:
+    """An hourglass-control strength: a number in [0, ``MAX_HOURGLASS``] (0: off)."""
+    c = non_negative(name, value)
+    if not c <= MAX_HOURGLASS:
+        _fail(name, value, f"must be at most {MAX_HOURGLASS:g} (0: off; the step bound is measured up to it)")
+    return c
+
+
 def unit_vector(name: str, value, length: int = 3, what: str = "vector") -> tuple[float, ...]:
     """``value`` (``length`` finite numbers, not all zero) scaled to length 1; scaled by its
     largest component first, so that components near the float range do not overflow its

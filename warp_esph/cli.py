@@ -182,8 +182,13 @@ def _hourglass_arg(text) -> float:
         value = float(text)
     except (TypeError, ValueError):
         value = float("nan")
+    from .checks import MAX_HOURGLASS  # noqa: PLC0415
+
     if not 0.0 <= value < float("inf"):
         raise ValueError(f"--hourglass = {text!r} is not allowed: must be a finite number >= 0 (0: off)")
+    if not value <= MAX_HOURGLASS:
+        raise ValueError(f"--hourglass = {text!r} is not allowed: must be at most {MAX_HOURGLASS:g} "
+                         "(0: off; the step bound is measured up to it)")
     return value
 
 
@@ -499,7 +504,7 @@ def _check_run_record(path, run: dict) -> None:
         if "contact_ramp" in run:
             checks.non_negative("contact_ramp", run["contact_ramp"])
         if run.get("hourglass") is not None:  # None: by the fit (Model.solver_choice)
-            checks.non_negative("hourglass", run["hourglass"])
+            checks.hourglass("hourglass", run["hourglass"])
         if "fit_weight" in run:
             from .sim.smoothing import FIT_WEIGHTS  # noqa: PLC0415
 

@@ -410,7 +410,7 @@ class Model:
 
     @hourglass.setter
     def hourglass(self, value: float | None):
-        self._hourglass = None if value is None else checks.non_negative("hourglass", value)
+        self._hourglass = None if value is None else checks.hourglass("hourglass", value)
 
     @property
     def elastic_only(self) -> bool:
@@ -445,7 +445,7 @@ class Model:
         strength = self.hourglass if hourglass is None else hourglass
         if strength is None:
             strength = AUTO_HOURGLASS if asked == "auto" and chosen == "curvature_corrected" else 0.0
-        return chosen, checks.non_negative("hourglass", strength)
+        return chosen, checks.hourglass("hourglass", strength)
 
     def _collider_array(self, values, dtype) -> wp.array:
         # Zero colliders of a kind still pass a (never read) one-element array.
@@ -697,7 +697,7 @@ class Model:
         rho = np.array([m.density for m in self.materials], dtype=np.float64)
         c = p_wave_speed(p["mu"], p["lam"], rho, p["pressure_stiffness"])
         dt = courant * self.spacing / float(np.max(c))
-        strength = self.solver_choice()[1] if hourglass is None else checks.non_negative("hourglass", hourglass)
+        strength = self.solver_choice()[1] if hourglass is None else checks.hourglass("hourglass", hourglass)
         if strength > 0.0:
             from .sim import hourglass as hg  # noqa: PLC0415 (model data first, kernels on demand)
 

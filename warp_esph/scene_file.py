@@ -76,13 +76,13 @@ _FLOAT_MAX = int(sys.float_info.max)
 
 
 class _NonNegative(_Num):
-    """Schema type: a finite number >= 0 (``[solver] hourglass``; 0: off)."""
+    """Schema type: a finite number in [0, ``checks.MAX_HOURGLASS``] (``[solver] hourglass``; 0: off)."""
 
     def check(self, value) -> bool:
-        return super().check(value) and value >= 0
+        return super().check(value) and 0 <= value <= checks.MAX_HOURGLASS
 
     def describe(self) -> str:
-        return "a number >= 0 (0: off)"
+        return f"a number >= 0 and <= {checks.MAX_HOURGLASS:g} (0: off)"
 
 
 class _Int:

@@ -173,7 +173,7 @@ class Solver:
         if fit is not None and (not isinstance(fit, str) or fit not in FITS):
             raise ValueError(f"fit = {fit!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
         if hourglass is not None:
-            checks.non_negative("hourglass", hourglass)
+            checks.hourglass("hourglass", hourglass)
         self.min_neighbors = checks.positive_int("min_neighbors", min_neighbors)
         self.max_condition = checks.greater_than("max_condition", max_condition, 1.0, "1")
         skin = DEFAULT_SKIN if neighbor_skin is None else checks.in_range("neighbor_skin", neighbor_skin, 0.0, 1.0)
