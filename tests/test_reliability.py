@@ -6,6 +6,7 @@ Ctrl-C at any moment of start-up exits 130 without a traceback."""
 
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -13,6 +14,7 @@ import time
 
 import numpy as np
 import pytest
+import warp as wp
 from pxr import Sdf, Usd
 
 import warp_esph as we
@@ -433,3 +435,38 @@ def test_an_hourglass_strength_beyond_its_measured_step_bound_is_refused_by_name
         assert main(["run", str(scene), "--no-progress", "-o", str(tmp_path / "o.usdc")]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "'hourglass'" in err and "<= 1000" in err, err
+
+
+@pytest.mark.parametrize("case,needle", [
+    ("gravity", "gravity = (0.0, -1e+39, 0.0) is not allowed in float32"),
+    ("velocity", "body velocities beyond 3.4e+38 m/s are not allowed in float32"),
+    ("tool_position", "tool 'press': Velocity position = (0.0, 1e+39, 0.0) is not allowed in float32"),
+    ("tool_velocity", "tool 'press': Velocity velocity = (0.0, -1e+39, 0.0) is not allowed in float32"),
+    ("keyframes", "tool 'press': Keyframes positions"),
+    ("pin", "tool 'grip': Velocity angular_velocity"),
+    ("far", "positions 1e+07 m from the origin are not allowed in float32"),
+])
+def test_numbers_beyond_float32_are_refused_by_name_before_a_kernel_runs(case, needle):
+    """Each entered the step as inf (gravity), wrote NaN tool poses and exited 0 (a tool's
+    place or motion), or put a float32 lattice 5 cm apart onto 16 points (a scene 1e7 m out);
+    float64 takes them."""
+    from warp_esph import tools
+
+    def build(dtype):
+        b = we.SceneBuilder(spacing=0.05, gravity=(0.0, -1e39, 0.0) if case == "gravity" else (0.0, -9.81, 0.0))
+        centre = (1e7, 0.2, 0.0) if case == "far" else (0.0, 0.2, 0.0)
+        b.add_box(centre, (0.2, 0.2, 0.2), we.Material.preset("dough"), name="d",
+                  velocity=(1e39, 0.0, 0.0) if case == "velocity" else (0.0, 0.0, 0.0))
+        motion = {"tool_position": tools.Velocity(position=(0.0, 1e39, 0.0)),
+                  "tool_velocity": tools.Velocity((0.0, -1e39, 0.0), position=(0.0, 0.5, 0.0)),
+                  "keyframes": tools.Keyframes([0.0, 1.0], [(0.0, 0.5, 0.0), (0.0, 1e39, 0.0)])}.get(case)
+        if motion is not None:
+            b.add_tool("sphere", radius=0.05, motion=motion, name="press")
+        if case == "pin":
+            b.pin(body="d", region=((-1, -1, -1), (-0.05, 1, 1)), motion=tools.Velocity(angular_velocity=(0, 1e39, 0)),
+                  name="grip")
+        return b.finalize(dtype=dtype)
+
+    with pytest.raises(ValueError, match=re.escape(needle)):
+        build(wp.float32)
+    build(wp.float64)

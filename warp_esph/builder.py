@@ -609,6 +609,38 @@ class SceneBuilder:
                 if item.friction > big:
                     raise ValueError(f"{call} friction = {item.friction!r} is not allowed in {scalar.__name__}: must be at "
                                      f"most {big:.3g}")
+        # Positions must also resolve the spacing: at 1e7 m a float32 lattice 5 cm apart fell
+        # onto 16 points and every fit was ill-conditioned, without a word.
+        if self._points:
+            reach = float(np.abs(np.concatenate(self._points)).max())
+            eps = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).eps)
+            if reach * eps > 1e-2 * self.spacing:
+                raise ValueError(f"positions {reach:.3g} m from the origin are not allowed in {scalar.__name__}: it resolves "
+                                 f"{reach * eps:.2g} m there, more than a hundredth of the spacing {self.spacing:g}; move "
+                                 "the scene nearer the origin or use dtype=float64")
+        # Gravity, the bodies' velocities and the tools' poses, sizes and motions are numbers of
+        # this precision in the step too (gravity 1e39 in float32 was inf in the first kernel, a
+        # tool at 1e39 m wrote NaN poses and the run exited 0).
+        if np.abs(self.gravity).max() > big:
+            raise ValueError(f"gravity = {self.gravity!r} is not allowed in {scalar.__name__}: must be at most {big:.3g}")
+        if self._velocities and np.abs(np.concatenate(self._velocities)).max() > big:
+            raise ValueError(f"body velocities beyond {big:.3g} m/s are not allowed in {scalar.__name__}")
+        for t in [*self.tools, *self.pins]:
+            m = t.motion
+            for field in ("velocity", "angular_velocity", "position", "positions", "times"):
+                v = getattr(m, field, None)
+                if v is not None and np.abs(np.asarray(v, dtype=np.float64)).max() > far:
+                    raise ValueError(f"tool {t.name!r}: {type(m).__name__} {field} = {v!r} is not allowed in "
+                                     f"{scalar.__name__}: must be at most {far:.3g} in size; use dtype=float64 or a smaller value")
+            param = getattr(t, "param", None)
+            if param is not None and np.abs(np.asarray(param, dtype=np.float64)).max() > far:
+                raise ValueError(f"tool {t.name!r}: a size of {np.abs(np.asarray(param)).max():.3g} m is not allowed in "
+                                 f"{scalar.__name__}: must be at most {far:.3g}")
+            for label in ("friction", "static_friction"):
+                mu = getattr(t, label, None)
+                if mu is not None and mu > big:
+                    raise ValueError(f"tool {t.name!r}: {label} = {mu!r} is not allowed in {scalar.__name__}: must be at "
+                                     f"most {big:.3g}")
 
     def finalize(self, device="cpu", dtype=wp.float32, requires_grad: bool = False, worlds: int = 1) -> Model:
         """Builds the ``Model`` on ``device`` in precision ``dtype`` (float32 or float64).
