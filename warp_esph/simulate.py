@@ -25,6 +25,9 @@ __all__ = [
     "MAX_STEPS_PER_FRAME", "MAX_STEPS",
 ]
 
+#: The most frames a second ``resolve_timestep`` takes: shorter frames would need steps near
+#: or below what float32 resolves in time.
+MAX_FPS = 1.0e6
 #: Most steps one frame may take. The stiffest useful material at a fine spacing (steel,
 #: c_P ~ 6 km/s, at 5 mm) needs about 1e5 at 30 fps; more is a mistake that would run for
 #: days (``--dt 1e-300`` asks for 3e298).
@@ -168,6 +171,9 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
     (to 1e-6 relative).
     """
     fps = checks.positive("fps", fps)
+    if fps > MAX_FPS:
+        # 1e300 frames a second ran with dt = 1e-300 s, 0 in float32, and exited 0.
+        raise ValueError(f"fps = {fps!r} is not allowed: must be at most {MAX_FPS:g} (frames of a microsecond and longer)")
     frame_dt = 1.0 / fps
     if substeps is not None and dt is not None:
         raise ValueError(f"substeps = {substeps!r} and dt = {dt!r} are not allowed together: give one of them (or neither)")
