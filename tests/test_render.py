@@ -202,6 +202,17 @@ def test_bad_outputs(tmp_path, monkeypatch):
     (tmp_path / "d.png").mkdir()
     with pytest.raises(ValueError, match=r"output = .*d\.png' is not allowed: it is a folder; a file is written there"):
         render_usd(path, tmp_path / "d.png")
+    # A zoom that overflowed the camera's distance, and a contact sheet too large to hold
+    # (a million columns): refused by name before drawing, not a NaN or a MemoryError.
+    with pytest.raises(ValueError, match=r"zoom = 1e\+308 is not allowed: must be in \[0\.001, 1000\.0\]"):
+        render_usd(path, tmp_path / "z.png", zoom=1e308)
+    many = tmp_path / "many.usdc"
+    write_clusters(many, [(0.0, 0.0, 0.0)], frames=40)
+    with pytest.raises(ValueError, match=r"40 frames of 8192 x 8192 in 4 columns .* more than 2e\+08 pixels"):
+        render_usd(many, tmp_path / "s.png", frames="all", width=8192, height=8192)
+    assert not (tmp_path / "z.png").exists() and not (tmp_path / "s.png").exists()
+    render_usd(many, tmp_path / "s.png", frames="0,1", width=64, height=48, columns=10**6)
+    assert Image.open(tmp_path / "s.png").size == (128, 48)  # two columns: no more than there are frames
 
 
 def test_render_command(tmp_path, capsys):

@@ -460,7 +460,9 @@ class RenderOptions:
         if self.supersample > 4:
             raise ValueError(f"supersample = {self.supersample!r} is not allowed: must be 1, 2, 3 or 4")
         self.radius_scale = checks.positive("radius_scale", self.radius_scale)
-        self.zoom = checks.positive("zoom", self.zoom)
+        # Beyond these the camera stands inside the scene or so far that it is one pixel, and
+        # its distance overflowed (1e308) or its picture's size did (1e-308).
+        self.zoom = checks.in_range("zoom", self.zoom, 1e-3, 1e3)
         if not isinstance(self.surfaces, bool):
             raise ValueError(f"surfaces = {self.surfaces!r} is not allowed: must be True or False")
         self.fov = checks.positive("fov", self.fov)
@@ -1021,6 +1023,8 @@ class RenderResult:
 
 #: Playback rates a GIF or MP4 can hold (``render_usd(fps=...)``, ``warp-esph render --fps``).
 FPS_RANGE = (0.01, 1000.0)
+#: The largest contact sheet (a .png of several frames) in pixels: 6e8 bytes of RGB.
+MAX_SHEET_PIXELS = 2.0e8
 
 
 def render_usd(path, output=None, frames=None, *, color: str = "body", width: int = 800, height: int = 600,
@@ -1059,6 +1063,18 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     # A GIF frame lasts at most 655.35 s and an MP4's rate must be one ffmpeg can hold:
     # 1e-9 fps ended in an OverflowError inside the GIF writer.
     playback = checks.in_range("fps", fps, FPS_RANGE[0], FPS_RANGE[1]) if fps is not None else data.fps
+    if columns is not None:
+        columns = checks.positive_int("columns", columns)
+    sheet_columns = min(columns or 4, len(chosen))
+    if kind == "png" and len(chosen) > 1:
+        # One picture holds them all: refused before drawing where it would not fit in memory
+        # (a million columns asked for a sheet of 8e8 x 600 pixels).
+        rows = math.ceil(len(chosen) / sheet_columns)
+        size = (sheet_columns * options.width, rows * options.height)
+        if size[0] * size[1] > MAX_SHEET_PIXELS:
+            raise ValueError(f"frames = {frames!r} is not allowed in one .png: {len(chosen)} frames of {options.width} x "
+                             f"{options.height} in {sheet_columns} columns make a {size[0]} x {size[1]} picture, more than "
+                             f"{MAX_SHEET_PIXELS:.0e} pixels; choose fewer frames, or write a folder, a .gif or an .mp4")
     # Before any frame is drawn: a folder in the way, or a place that takes no file.
     checks.output_place("output", out, folder=kind == "dir")
     if kind == "dir":
@@ -1097,7 +1113,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
         if writer is not None:
             writer.close()
     if kind == "png":
-        img = images[0] if len(images) == 1 else _sheet(images, columns or min(len(images), 4))
+        img = images[0] if len(images) == 1 else _sheet(images, sheet_columns)
         img.save(out, optimize=True)
         files.append(out)
     elif kind == "gif":
