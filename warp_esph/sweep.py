@@ -176,6 +176,10 @@ def parse_param(spec) -> Param:
             raise ValueError(f"--param {p.name}: LO = {p.lo!r}, HI = {p.hi!r} is not allowed: need LO < HI")
         if p.scale == "log" and p.lo <= 0.0:
             raise ValueError(f"--param {p.name}: LO = {p.lo!r} is not allowed on a log scale: need LO > 0 (or use lin)")
+        if not (math.isfinite(p.lo) and math.isfinite(p.hi)) or (p.scale == "log" and p.lo < sys.float_info.min):
+            # 1e-320 ran every sample, then its log axis failed to draw (and no table was kept).
+            raise ValueError(f"--param {p.name}: LO = {p.lo!r}, HI = {p.hi!r} is not allowed: need finite bounds, and on a "
+                             f"log scale LO >= {sys.float_info.min:.3g}")
         if p.n is not None and (isinstance(p.n, bool) or not isinstance(p.n, (int, np.integer)) or p.n < 1):
             raise ValueError(f"--param {p.name}: N = {p.n!r} is not allowed: must be an integer >= 1")
         lows = [p.lo]
@@ -821,6 +825,12 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
     sc = _load(scene, scale)
     fps = fps if fps is not None else sc.fps
     if duration is not None:
+        from .simulate import MAX_STEPS  # noqa: PLC0415
+
+        # Checked here, before any sample runs: 1e300 s failed every sample and then the table.
+        if not duration * fps <= MAX_STEPS:
+            raise ValueError(f"--duration = {duration!r} is not allowed: at {fps:g} fps it is {duration * fps:.3g} frames, "
+                             f"more than the {MAX_STEPS:.0e} steps a run may take")
         frames = max(1, round(duration * fps))
     frames = frames if frames is not None else sc.frames
     dt = dt if dt is not None else sc.dt
