@@ -552,3 +552,15 @@ def test_a_range_check_that_finds_a_lower_chi_square_says_the_fit_stopped_short(
     assert any("changes the chi-square by only -0.2" in w for w in flat.warnings), flat.warnings
     assert not any("best value" in w for w in flat.warnings)
     assert _summary_with_range_rises([[50.0, 60.0], [2.0, 3.0]]).warnings == []
+
+
+def test_a_target_whose_fps_is_not_one_number_is_refused_by_name(tmp_path):
+    """An array of frame rates in a .npz target ended in a numpy TypeError traceback."""
+    from warp_esph.fit import load_target
+
+    path = tmp_path / "t.npz"
+    np.savez(path, positions=np.zeros((2, 4, 3)), fps=np.array([30.0, 60.0]))
+    with pytest.raises(ValueError, match=r"t\.npz is not allowed: its 'fps' must be one number, not an array of shape \(2,\)"):
+        load_target(path)
+    np.savez(path, positions=np.zeros((2, 4, 3)), fps=np.array(30.0))
+    load_target(path)

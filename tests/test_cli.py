@@ -430,6 +430,11 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         (["fit", "nothing.toml", "--target", "t.npz", "--sample-range", "0.5"], ["--sample-range = 0.5 is not allowed: must be > 1"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--checkpoint-every", "0"], ["--checkpoint-every = 0 is not allowed"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--params", "mu,mu"], ["names must be distinct"]),
+        # Sizes that exhausted memory (the sample hypercube, the starts' worlds) or a jitter
+        # that made the first loss non-finite:
+        (["fit", "nothing.toml", "--target", "t.npz", "--samples", "99999999999"], ["--samples = 99999999999", "at most 10000"]),
+        (["fit", "nothing.toml", "--target", "t.npz", "--starts", "1000000"], ["--starts = 1000000", "[1, 1000]"]),
+        (["fit", "nothing.toml", "--target", "t.npz", "--jitter", "1e300"], ["--jitter = 1e+300", "[0.0, 0.5]"]),
     ],
 )
 def test_bad_input_is_one_line_exit_2(tmp_path, monkeypatch, capsys, args, needles):

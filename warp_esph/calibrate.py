@@ -110,7 +110,7 @@ def run_fit(args, out=None, err=None) -> int:
     from .scenes import load_scene  # noqa: PLC0415
     from .simulate import resolve_timestep  # noqa: PLC0415
 
-    jitter = checks.non_negative("--jitter", _arg(args, "jitter", 0.0))
+    jitter = checks.in_range("--jitter", _arg(args, "jitter", 0.0), 0.0, 0.5)  # a fraction of the spacing
     loss_scale = checks.positive("--loss-scale", _arg(args, "loss_scale", 1.0))
     memory_limit = checks.positive("--memory-limit", _arg(args, "memory_limit", 1024.0)) * 2**20
     bounds = _parse_bounds(args.bounds)

@@ -472,6 +472,11 @@ class _Problem:
         return total
 
 
+#: The most samples of a fit's global stage and local starts from them (each a forward run).
+MAX_SAMPLES = 10_000
+MAX_STARTS = 1_000
+
+
 def _count(name: str, value) -> int:
     """An integer >= 0 (an integral float too, as ``int()`` took it before)."""
     try:
@@ -506,11 +511,14 @@ def check_options(*, params, iterations, lr, lr_end=None, clip=None, bounds=None
            "clip": None if clip is None else checks.positive(flag("clip"), clip),
            "optimizer": checks.choice(flag("optimizer"), optimizer, ("adam", "lbfgs", "gauss-newton")),
            "patience": checks.positive_int(flag("patience"), patience),
-           "starts": checks.positive_int(flag("starts"), starts),
+           "starts": checks.positive_int(flag("starts"), starts, maximum=MAX_STARTS),
            "sample_range": checks.greater_than(flag("sample_range"), sample_range, 1.0, "1"),
            "noise": None if noise is None else checks.positive(flag("noise"), noise),
            "memory_limit": checks.positive(flag("memory_limit"), memory_limit)}
     out["samples"] = _count(flag("samples"), samples)
+    if out["samples"] > MAX_SAMPLES:
+        # Each is a forward run, and the hypercube is drawn at once: 1e11 asked for 745 GiB.
+        raise ValueError(f"{flag('samples')} = {out['samples']} is not allowed: must be at most {MAX_SAMPLES}")
     out["seed"] = _count(flag("seed"), seed)
     for name, rng in (bounds or {}).items():
         if name not in params:
@@ -1343,7 +1351,11 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
             if "frames" in data:
                 frames = [int(f) for f in np.atleast_1d(data["frames"])]
             if "fps" in data:
-                fps = float(data["fps"])
+                rate = np.asarray(data["fps"])
+                if rate.size != 1 or rate.dtype.kind not in "iuf":
+                    raise ValueError(f"target {p} is not allowed: its 'fps' must be one number, not an array of shape "
+                                     f"{rate.shape} ({rate.dtype})")
+                fps = float(rate.reshape(()))
         else:
             pos = np.asarray(data, dtype=np.float64)
         shape = pos.shape
