@@ -471,3 +471,22 @@ def test_numbers_beyond_float32_are_refused_by_name_before_a_kernel_runs(case, n
     with pytest.raises(ValueError, match=re.escape(needle)):
         build(wp.float32)
     build(wp.float64)
+
+
+@pytest.mark.parametrize("argv,needles", [
+    (["run", "dough_drop", "-o", "x" * 250 + ".usdc"], ["--output = ", "bytes long, more than the"]),
+    (["run", "dough_drop", "-o", "a\0b.usdc"], ["--output = ", "no NUL character"]),
+    (["export", "IN", "-o", "y" * 300], ["--output = ", "bytes long"]),
+])
+def test_output_names_a_file_system_cannot_hold_are_refused_by_name(tmp_path, monkeypatch, capsys, argv, needles):
+    """A name too long for the folder (with the writer's working copies beside it), a NUL
+    character: each failed with a bare OS message naming no option ('File name too long',
+    'embedded null byte'), the run's after its scene was built."""
+    monkeypatch.chdir(tmp_path)
+    if "IN" in argv:
+        assert main(["run", "dough_drop", "--scale", "0.3", "--frames", "1", "--no-progress", "-o", "in.usdc"]) == 0
+        argv = [a if a != "IN" else "in.usdc" for a in argv]
+        capsys.readouterr()
+    assert main([*argv, "--no-progress"] if argv[0] == "run" else argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("warp-esph: error: ") and all(n in err for n in needles), err

@@ -272,11 +272,38 @@ def json_file(what: str, path):
         raise ValueError(f"{what} {p} cannot be read: arrays or objects nested too deeply") from None
 
 
+#: Bytes a writer adds to an output's name for its working copies and side files
+#: (``.NAME.wa.usdc``, ``.NAME.<pid>.publish.usdc``, ``NAME.checkpoint.npz``, ``NAME_tools.json``).
+OUTPUT_NAME_SLACK = 40
+
+
+def _name_max(folder: str) -> int:
+    """The longest file name ``folder``'s file system takes (255 where it does not say)."""
+    while folder and not os.path.isdir(folder):
+        folder = os.path.dirname(folder)
+    try:
+        return int(os.pathconf(folder or ".", "PC_NAME_MAX"))
+    except (OSError, ValueError, AttributeError):
+        return 255
+
+
 def output_place(what: str, path, folder: bool = False) -> str:
     """``path`` where a command will write a file (``folder``: a folder of files), checked
     before the work that fills it: a ``ValueError`` naming ``what`` where something of the
     other kind is in the way or its folder cannot take a new file. Creates nothing."""
     p = os.fspath(path)
+    if not p or "\0" in p:
+        raise ValueError(f"{what} = {p!r} is not allowed: must be a path (not empty, no NUL character)")
+    try:
+        name = os.fsencode(os.path.basename(os.path.normpath(p)))
+    except UnicodeError:
+        raise ValueError(f"{what} = {p!r} is not allowed: it is not a name this file system can hold") from None
+    # The writers keep a working copy beside the file, its name the file's and up to
+    # OUTPUT_NAME_SLACK more bytes: a longer name failed mid-run with a bare 'File name too long'.
+    longest = _name_max(os.path.dirname(os.path.abspath(p)) or ".") - OUTPUT_NAME_SLACK
+    if len(name) > longest:
+        raise ValueError(f"{what} = {p!r} is not allowed: its name is {len(name)} bytes long, more than the {longest} "
+                         "this folder's file names leave room for")
     if os.path.exists(p) and os.path.isdir(p) != folder:
         raise ValueError(f"{what} = {p!r} is not allowed: it is {'a file' if folder else 'a folder'}; "
                          f"a {'folder' if folder else 'file'} is written there")
