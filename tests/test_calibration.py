@@ -564,3 +564,19 @@ def test_a_target_whose_fps_is_not_one_number_is_refused_by_name(tmp_path):
         load_target(path)
     np.savez(path, positions=np.zeros((2, 4, 3)), fps=np.array(30.0))
     load_target(path)
+
+
+def test_a_target_body_or_a_force_log_the_target_cannot_serve_is_refused_by_name(tmp_path):
+    """``--target-body`` with a target that holds no bodies was ignored (every position was
+    the target); a reaction-force log that lost a column was read as a point cloud and
+    refused as one."""
+    from warp_esph.fit import load_target
+
+    npz = tmp_path / "t.npz"
+    np.savez(npz, positions=np.zeros((2, 4, 3)))
+    with pytest.raises(ValueError, match=r"--target-body 'dough' is not allowed with the target .*t\.npz: only the USD"):
+        load_target(npz, body="dough")
+    log = tmp_path / "run_tools.csv"
+    log.write_text("frame,time,tool,fx,fz\n1,0.1,plane0,0.0,0.0\n")
+    with pytest.raises(ValueError, match=r"run_tools\.csv is not allowed: a reaction-force log needs the columns .*; it lacks fy"):
+        load_target(log)

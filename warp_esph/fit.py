@@ -1335,6 +1335,10 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
     if not os.path.isfile(p):
         raise FileNotFoundError(f"target file {p} does not exist")
     ext = os.path.splitext(p)[1].lower()
+    if body is not None and ext not in (".usd", ".usda", ".usdc"):
+        # It was ignored: every position of the file was the target.
+        raise ValueError(f"--target-body {body!r} is not allowed with the target {p}: only the USD of a run holds bodies "
+                         "to choose from")
     if ext in (".npz", ".npy"):
         try:
             data = read_arrays(p)
@@ -1378,6 +1382,15 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         return Target("positions", pos, frames, fps, p)
     if ext == ".csv" and is_tools_csv(p):
         return _forces_target(p, tool)
+    if ext == ".csv":
+        with open(p, newline="", errors="replace") as fh:
+            head = [c.strip() for c in fh.readline().split(",")]
+        if "tool" in head:  # a reaction-force log with columns lost: not a point cloud
+            from .losses import TOOLS_CSV_COLUMNS  # noqa: PLC0415
+
+            missing = [c for c in TOOLS_CSV_COLUMNS if c not in head]
+            raise ValueError(f"target {p} is not allowed: a reaction-force log needs the columns "
+                             f"{', '.join(TOOLS_CSV_COLUMNS)}; it lacks {', '.join(missing)}")
     if ext in _CLOUD_TEXT:
         try:
             pts = np.loadtxt(p, delimiter="," if ext == ".csv" else None, ndmin=2)[:, :3]
@@ -1388,6 +1401,9 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         run = _usd_run_target(p, body, frames)
         if run is not None:
             return run
+        if body is not None:
+            raise ValueError(f"--target-body {body!r} is not allowed with the target {p}: it is a mesh, not the USD of a "
+                             "run, and holds no bodies to choose from")
         from .meshes import load_mesh  # noqa: PLC0415
 
         return Target("mesh", load_mesh(p), None, None, p)
