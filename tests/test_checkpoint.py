@@ -108,3 +108,25 @@ def test_interrupted_save_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
         save_state(path, model, model.state(), step=2, frame=2)
     assert read_checkpoint(path)[0]["step"] == 1
     assert [p.name for p in tmp_path.iterdir()] == ["c.npz"]
+
+
+@pytest.mark.parametrize("edit,needle", [
+    ("mu", r"its material 0: Material\.mu = -100\.0 is not allowed: must be > 0"),
+    ("flow_rate", r"its material 1: Material\.flow_rate = -100\.0 is not allowed: must be >= 0"),
+    ("F", r"its F at particle 0 has determinant 0: not a deformation"),
+])
+def test_a_checkpoint_with_values_no_material_or_deformation_takes_is_refused_by_name(tmp_path, edit, needle):
+    """Finite but impossible values (a hand-edited or foreign file): a negative shear modulus
+    diverged, a negative flow rate or a zero F ran on and exited 0."""
+    model = _model()
+    state = model.state()
+    if edit == "F":
+        state.F.zero_()
+    else:
+        arr = getattr(model, edit)
+        values = arr.numpy()
+        values[0 if edit == "mu" else 1] = -100.0
+        arr.assign(values)
+    path = save_state(tmp_path / "c.npz", model, state, step=0, frame=0)
+    with pytest.raises(ValueError, match=r"checkpoint = '.*c\.npz' is not allowed: " + needle):
+        load_state(path, _model())

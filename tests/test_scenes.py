@@ -324,6 +324,9 @@ def test_solver_options_refuse_bad_names_in_python():
         SceneBuilder(contact="continuous", contact_ramp=0.5)
     with pytest.raises(ValueError, match=r"contact_ramp = -1 is not allowed: must be >= 0"):
         SceneBuilder(contact_ramp=-1)
+    # A touchdown spread over 1e300 steps' drift let every particle fall through.
+    with pytest.raises(ValueError, match=r"contact_ramp = 1e\+300 is not allowed: must be at most 10"):
+        SceneBuilder(contact_ramp=1e300)
     b = SceneBuilder(spacing=0.05)
     b.add_box(center=(0, 0, 0), size=(0.1, 0.1, 0.1), material=PRESETS["rubber"])
     model = b.finalize()

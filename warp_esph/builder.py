@@ -21,7 +21,7 @@ from .sim.neighbors import PAPER_MAX_NEIGHBORS, default_max_neighbors
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 from .material import Material
 from .meshes import lattice_points
-from .model import CONTACTS, FITS, Body, Model
+from .model import CONTACTS, FITS, Body, Model, check_contact_ramp
 
 #: Allowed support radius, in units of the spacing. Below 1.5 dx an interior particle
 #: sees only its 6 face neighbours; above 3 dx a particle has more than 120 neighbours
@@ -113,7 +113,7 @@ class SceneBuilder:
                 raise ValueError(f"contact = {contact!r} and contact_ramp = {contact_ramp!r} are not allowed together: give one")
             contact_ramp = CONTACTS[checks.choice("contact", contact, tuple(CONTACTS))]
         #: ``Model.contact_ramp`` of the model ``finalize`` makes.
-        self.contact_ramp = checks.non_negative("contact_ramp", contact_ramp)
+        self.contact_ramp = check_contact_ramp("contact_ramp", contact_ramp)
         #: ``Model.hourglass`` of the model ``finalize`` makes.
         self.hourglass = None if hourglass is None else checks.hourglass("hourglass", hourglass)
         if not isinstance(bodies_interact, bool):

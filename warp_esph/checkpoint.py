@@ -160,6 +160,19 @@ def load_state(path, model: Model) -> tuple[State, dict]:
         if not ok.all():
             bad = int(np.argmax(~ok.reshape(a.shape[0], -1).all(axis=1)))
             raise ValueError(f"{where}: its {key} has non-finite values (first at index {bad})")
+    # Finite is not enough: a negative shear modulus or viscosity diverged, a negative flow
+    # rate or a zero modulus ran on and exited 0. Each material's values pass Material's own
+    # checks, and F is a deformation (positive determinant).
+    for k, m in enumerate(model.materials):
+        values = {name: float(arrays[f"material_{name}"][k]) for name in Model.MATERIAL_FIELDS if f"material_{name}" in arrays}
+        try:
+            m.replace(**values)
+        except ValueError as e:
+            raise ValueError(f"{where}: its material {k}: {e}") from None
+    det = np.linalg.det(arrays["F"].astype(np.float64))
+    if not (det > 0.0).all():
+        bad = int(np.argmax(~(det > 0.0)))
+        raise ValueError(f"{where}: its F at particle {bad} has determinant {det[bad]:.3g}: not a deformation (must be > 0)")
     state = model.state()
     for name in State.STATE_FIELDS:
         if name in arrays:

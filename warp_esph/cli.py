@@ -502,7 +502,9 @@ def _check_run_record(path, run: dict) -> None:
 
             checks.choice("fit", run["fit"], FITS)
         if "contact_ramp" in run:
-            checks.non_negative("contact_ramp", run["contact_ramp"])
+            from .model import check_contact_ramp  # noqa: PLC0415
+
+            check_contact_ramp("contact_ramp", run["contact_ramp"])
         if run.get("hourglass") is not None:  # None: by the fit (Model.solver_choice)
             checks.hourglass("hourglass", run["hourglass"])
         if "fit_weight" in run:

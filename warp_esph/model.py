@@ -41,6 +41,18 @@ AUTO_HOURGLASS = 0.05
 #: The contact laws by name (scene files' ``[solver] contact``, the CLI's ``--contact``):
 #: name -> ``Model.contact_ramp``.
 CONTACTS = {"instant": INSTANT_CONTACT_RAMP, "continuous": CONTINUOUS_CONTACT_RAMP}
+#: The largest ``Model.contact_ramp``: a touchdown spread over more than ten steps' drift lets
+#: a particle sink that far into a collider (1e300 let every particle fall through).
+MAX_CONTACT_RAMP = 10.0
+
+
+def check_contact_ramp(name: str, value) -> float:
+    """A contact ramp: a number in [0, ``MAX_CONTACT_RAMP``] (0: the instant law; 1: the continuous one)."""
+    v = checks.non_negative(name, value)
+    if not v <= MAX_CONTACT_RAMP:
+        raise ValueError(f"{name} = {value!r} is not allowed: must be at most {MAX_CONTACT_RAMP:g} "
+                         "(0: the whole inward velocity removed; 1: the continuous contact)")
+    return v
 
 
 @dataclasses.dataclass(frozen=True)
@@ -372,11 +384,7 @@ class Model:
 
     @contact_ramp.setter
     def contact_ramp(self, value: float):
-        v = float(value)
-        if not (v >= 0.0 and v < float("inf")):
-            raise ValueError(f"contact_ramp = {value!r} is not allowed: must be a finite number >= 0 "
-                             f"(0: the whole inward velocity removed; 1: the continuous contact)")
-        self._contact_ramp = v
+        self._contact_ramp = check_contact_ramp("contact_ramp", value)
 
     @property
     def fit(self) -> str:
