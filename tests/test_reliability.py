@@ -490,3 +490,19 @@ def test_output_names_a_file_system_cannot_hold_are_refused_by_name(tmp_path, mo
     assert main([*argv, "--no-progress"] if argv[0] == "run" else argv) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("warp-esph: error: ") and all(n in err for n in needles), err
+
+
+def test_a_model_larger_than_the_machine_is_refused_before_it_is_allocated(monkeypatch):
+    """A body under the lattice cap can still need more memory than the machine has (2e7
+    particles of about 3 kB): the process was killed. The estimate, measured on the CPU at
+    3.2-3.4 kB a particle with 96 neighbours, refuses it by name; here made to fit a small
+    scene by pretending each particle takes a terabyte."""
+    from warp_esph import builder as builder_module
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))
+    b.finalize()
+    monkeypatch.setattr(builder_module, "BYTES_PER_PARTICLE", 2**40)
+    with pytest.raises(ValueError, match=r"particles = 64 is not allowed on cpu: a model and two states of them need about "
+                                         r"6.55e\+04 GiB .* more than its .* GiB; use a larger spacing"):
+        b.finalize()
