@@ -698,6 +698,36 @@ def _check_memory(count: int, max_neighbors: int, dev) -> None:
                          f"than its {have / 2**30:.3g} GiB; use a larger spacing or smaller bodies")
 
 
+def _check_outside_colliders(builder) -> None:
+    """Refuse a body that starts more than half a spacing inside a static collider (pinned
+    particles aside: a particle floor may lie under the ground): the contact pushed it out
+    within a step, at a speed the run reported as a divergence (exit 3 after the kernels
+    ran) or, inside a box or sphere, left it there."""
+    if not builder._points or not (builder.planes or builder.spheres or builder.boxes):
+        return
+    x = np.concatenate(builder._points)
+    free = np.ones(len(x), dtype=bool)
+    for p in builder.pins:
+        free[np.asarray(p.indices, dtype=np.int64)] = False
+    starts = np.cumsum([0] + [b.count for b in builder._bodies])
+    tol = 0.5 * builder.spacing
+    depths = [(f"plane{k}" if p.normal != (0.0, 1.0, 0.0) or k else "the ground", p.offset - x @ np.array(p.normal))
+              for k, p in enumerate(builder.planes)]
+    depths += [(f"sphere collider {k}", s.radius - np.linalg.norm(x - np.array(s.center), axis=1))
+               for k, s in enumerate(builder.spheres)]
+    depths += [(f"box collider {k}", (np.array(b.half_extents) - np.abs(x - np.array(b.center))).min(axis=1))
+               for k, b in enumerate(builder.boxes)]
+    for name, d in depths:
+        d = np.where(free, d, -np.inf)
+        inside = d > tol
+        if inside.any():
+            i = int(np.argmax(d))
+            body = builder._bodies[int(np.searchsorted(starts, i, side="right")) - 1]
+            raise ValueError(f"body {body.name!r} is not allowed where it is: {int(inside.sum())} of its particles start "
+                             f"inside {name}, up to {d[i]:.3g} m deep (at {np.round(x[i], 4).tolist()}); move it out, "
+                             f"or the collider")
+
+
 def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.float32, requires_grad: bool = False) -> Model:
     """One ``Model`` of ``len(builders)`` worlds: world ``w`` is ``builders[w]``'s scene.
 
@@ -775,6 +805,8 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
                 # it; a world's own such field acts on each of its bodies.
                 fields += [fld] if same_fields else [dataclasses.replace(fld, body=b0 + k) for k in range(len(b._bodies))]
     _check_memory(count, first.max_neighbors, dev)
+    for b in builders:
+        _check_outside_colliders(b)
     model = Model(
         positions=np.concatenate(points),
         velocities=np.concatenate(velocities),
