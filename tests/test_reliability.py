@@ -524,3 +524,24 @@ def test_a_body_that_starts_inside_a_static_collider_is_refused_by_name(collider
     ok.add_particle_floor(body, margin=0.02)  # its pinned layers lie under the ground
     ok.add_ground(0.03)
     ok.finalize()
+
+
+@pytest.mark.parametrize("case", ["spacing", "empty_cloud"])
+def test_an_extreme_input_gets_its_one_line_and_no_numpy_notes_before_it(tmp_path, monkeypatch, capsys, case):
+    """A spacing of 1e300 printed numpy's 'overflow encountered in scalar divide' before the
+    error line; an empty point-cloud target, numpy's 'input contained no data' and then an
+    error about 'targets[39] with shape (0, 1)'."""
+    monkeypatch.chdir(tmp_path)
+    scene = tmp_path / "s.toml"
+    spacing = "1e300" if case == "spacing" else "0.05"
+    scene.write_text(f'[scene]\nspacing = {spacing}\nframes = 2\n[materials.m]\npreset = "dough"\n'
+                     '[[bodies]]\nshape = "box"\ncenter = [0, 0.2, 0]\nsize = [0.2, 0.2, 0.2]\nmaterial = "m"\n')
+    if case == "spacing":
+        assert main(["run", str(scene), "--no-progress"]) == 2
+        needle = "has no particles"
+    else:
+        (tmp_path / "empty.xyz").write_text("")
+        assert main(["fit", str(scene), "--target", "empty.xyz", "--no-progress"]) == 2
+        needle = "empty.xyz is not allowed as a point cloud: it holds 0 rows"
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("warp-esph: error: ") and needle in err, err

@@ -1392,10 +1392,18 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
             raise ValueError(f"target {p} is not allowed: a reaction-force log needs the columns "
                              f"{', '.join(TOOLS_CSV_COLUMNS)}; it lacks {', '.join(missing)}")
     if ext in _CLOUD_TEXT:
+        import warnings  # noqa: PLC0415
+
         try:
-            pts = np.loadtxt(p, delimiter="," if ext == ".csv" else None, ndmin=2)[:, :3]
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # 'input contained no data': refused below, by name
+                pts = np.loadtxt(p, delimiter="," if ext == ".csv" else None, ndmin=2)
         except Exception as e:  # noqa: BLE001
             raise ValueError(f"target {p} cannot be read as a point cloud: {e}") from None
+        if pts.shape[0] == 0 or pts.shape[1] < 3:
+            raise ValueError(f"target {p} is not allowed as a point cloud: it holds {pts.shape[0]} rows of {pts.shape[1]} "
+                             "numbers; it needs one or more rows of three (x y z)")
+        pts = pts[:, :3]
         return Target("points", pts, None, None, p)
     if ext in (".usd", ".usda", ".usdc"):
         run = _usd_run_target(p, body, frames)
