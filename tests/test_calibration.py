@@ -580,3 +580,18 @@ def test_a_target_body_or_a_force_log_the_target_cannot_serve_is_refused_by_name
     log.write_text("frame,time,tool,fx,fz\n1,0.1,plane0,0.0,0.0\n")
     with pytest.raises(ValueError, match=r"run_tools\.csv is not allowed: a reaction-force log needs the columns .*; it lacks fy"):
         load_target(log)
+
+
+def test_fit_frames_beyond_a_rollout_are_refused_by_the_option(tmp_path, capsys, dough_scene):
+    """A frame count whose steps no rollout can take was refused as 'steps = ...', an
+    option the command does not have."""
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
+    np.savez(tmp_path / "t.npz", positions=np.zeros((64, 3)))
+    capsys.readouterr()
+    assert main(["fit", str(guess), "--target", str(tmp_path / "t.npz"), "--frames", "2147483647", "--no-progress",
+                 "--output-dir", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--frames = 2147483647 is not allowed" in err, err

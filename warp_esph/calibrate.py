@@ -286,6 +286,9 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     shown = [f for t in file_targets for f in (t.frames or [])]
     frames = spec.get("frames")
     frames = checks.positive_int(f"{where}--frames", frames if frames is not None else (max(shown) if shown else scene.frames))
+    if frames * substeps > checks.MAX_INT:  # a rollout's step count (Rollout's steps), named by the option that sets it
+        raise ValueError(f"{where}--frames = {frames} is not allowed: at {substeps} steps a frame the fit's rollout would "
+                         f"take {frames * substeps} steps, more than {checks.MAX_INT}")
 
     loss = None
     for kind, path, t in loaded:
