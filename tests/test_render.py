@@ -556,3 +556,22 @@ def test_a_plane_tool_is_drawn_as_the_plane_collider_at_its_pose(tmp_path):
     both = Renderer(UsdFrames(tmp_path / "tool.usdc"), [0, 8], opts, camera=cam)
     assert np.array_equal(np.asarray(both.render(0), dtype=np.int64), low)
     assert np.array_equal(np.asarray(both.render(8), dtype=np.int64), high)
+
+
+def test_an_ffmpeg_that_stops_early_is_its_error_not_a_closed_output(tmp_path, monkeypatch, capsys):
+    """An ffmpeg that exits before taking the frames (no H.264 encoder): writing the small
+    frames still buffered for its pipe raised BrokenPipeError, which the command read as its
+    own output's reader gone (exit 141, no message) and which pointed the caller's stdout at
+    /dev/null. Now ffmpeg's own message, exit 2, and the caller's stdout as it was."""
+    fake = tmp_path / "ffmpeg"
+    fake.write_text("#!/bin/sh\necho 'Unknown encoder libx264' >&2\nexit 1\n")
+    fake.chmod(0o755)
+    monkeypatch.setattr(render_module, "ffmpeg_path", lambda: str(fake))
+    path = tmp_path / "m.usdc"
+    write_clusters(path, [(0.0, 0.0, 0.0)], frames=3)
+    status = main(["render", str(path), "-o", str(tmp_path / "m.mp4"), "--frames", "all", "--width", "32", "--height", "24"])
+    out, err = capsys.readouterr()
+    assert status == 2, err
+    assert err.count("\n") == 1 and "ffmpeg failed: Unknown encoder libx264" in err, err
+    print("still here")
+    assert capsys.readouterr().out == "still here\n"

@@ -270,9 +270,23 @@ def _dt_arg(text: str):
         raise argparse.ArgumentTypeError(f"--dt = {text!r} is not allowed: must be a number of seconds or 'auto'") from None
 
 
+def _stdout_closed() -> bool:
+    """Whether this process's stdout is a pipe whose reader has left (writing to it fails):
+    the kernel reports an error condition on its write end."""
+    import select  # noqa: PLC0415
+
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(ev & (select.POLLERR | select.POLLHUP) for _, ev in poller.poll(0))
+    except (OSError, ValueError, AttributeError):  # no descriptor (a captured stdout), no poll
+        return False
+
+
 def _drop_stdout():
     """Point stdout at the null device, so that flushing it at exit does not fail again on a
-    closed pipe (a second 'Broken pipe' from the interpreter)."""
+    closed pipe (a second 'Broken pipe' from the interpreter). For the installed command only:
+    a caller of ``main`` keeps its own stdout."""
     try:
         fd = os.open(os.devnull, os.O_WRONLY)
         os.dup2(fd, sys.stdout.fileno())
@@ -711,7 +725,10 @@ def _exit_now(signum, stderr_fd: int | None = None) -> None:
 def console_main() -> int:
     """The ``warp-esph`` console script and ``python -m warp_esph``: ``main`` with the
     signal handlers kept until the process ends (interpreter shutdown included)."""
-    return main(restore_signals=False)
+    status = main(restore_signals=False)
+    if status == EXIT_PIPE_CLOSED:
+        _drop_stdout()  # the interpreter's flush at exit would fail on the closed pipe again
+    return status
 
 
 def main(argv=None, *, restore_signals: bool = True) -> int:
@@ -773,10 +790,13 @@ def _dispatch(args) -> int:
         except KeyboardInterrupt:
             print(f"{PROG}: interrupted", file=sys.stderr)
             return EXIT_INTERRUPTED
-        except BrokenPipeError:
+        except BrokenPipeError as e:
+            if not _stdout_closed():
+                # Another pipe (ffmpeg's, a worker's): an error like any other write's.
+                _err(e)
+                return EXIT_BAD_INPUT
             # The reader of the output left (`warp-esph scenes | head -1`): not bad input, and
             # nothing to tell a pipe that is gone. Not 0 either: a run may have stopped here.
-            _drop_stdout()
             return EXIT_PIPE_CLOSED
         except (ValueError, OSError) as e:
             # UnicodeDecodeError is a ValueError: a reader met bytes that are not text.

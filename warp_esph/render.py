@@ -1139,11 +1139,31 @@ class _Mp4Writer:
     def write(self, img: Image.Image):
         if img.size != self.size:
             img = img.crop((0, 0, *self.size))
-        self.proc.stdin.write(img.tobytes())
+        try:
+            self.proc.stdin.write(img.tobytes())
+        except BrokenPipeError:  # ffmpeg stopped: its own message says why (close)
+            self._failed()
 
     def close(self):
-        self.proc.stdin.close()
+        if self.proc.stderr.closed:  # closed already (_failed)
+            return
+        try:
+            self.proc.stdin.close()
+        except BrokenPipeError:
+            self._failed()
         err = self.proc.stderr.read().decode(errors="replace")
         self.proc.stderr.close()
         if self.proc.wait() != 0:
             raise OSError(f"ffmpeg failed: {' '.join(err.split())[:300]}")
+
+    def _failed(self):
+        """ffmpeg left before taking every frame: its error, not the pipe's (which would read
+        as the command's own output closed)."""
+        try:
+            self.proc.stdin.close()
+        except OSError:  # the frames still buffered for the pipe that is gone
+            pass
+        err = self.proc.stderr.read().decode(errors="replace")
+        self.proc.stderr.close()
+        code = self.proc.wait()
+        raise OSError(f"ffmpeg failed: {' '.join(err.split())[:300] or f'it exited {code}'}")
