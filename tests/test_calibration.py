@@ -595,3 +595,23 @@ def test_fit_frames_beyond_a_rollout_are_refused_by_the_option(tmp_path, capsys,
                  "--output-dir", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--frames = 2147483647 is not allowed" in err, err
+
+
+def test_target_body_picks_the_run_usd_and_leaves_a_force_log_beside_it_alone(tmp_path, capsys, dough_scene):
+    """``--target-body`` with a run's USD and its force log as two targets: the body is the
+    USD's; the log takes none (it was refused, as if the body had been meant for it). With a
+    force log alone it is refused by name."""
+    from warp_esph.cli import main
+
+    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0, frames=2))
+    guess.write_text(dough_scene(yield_stress=120.0, flow_rate=12.0, frames=2))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(truth), "-o", str(run), "--no-progress"]) == 0
+    common = ["--iterations", "1", "--no-progress", "--no-usd", "--output-dir", str(tmp_path / "fit")]
+    assert main(["fit", str(guess), "--target", str(run), "--target", f"{run}_tools.csv", "--target-tool", "plane0",
+                 "--target-body", "dough", *common]) == 0
+    capsys.readouterr()
+    assert main(["fit", str(guess), "--target", f"{run}_tools.csv", "--target-body", "dough", *common]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--target-body = 'dough' is not allowed: it picks a body of a run's USD target" in err, err

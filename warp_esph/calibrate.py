@@ -261,14 +261,19 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
 
     cameras = spec.get("cameras")
     loaded = []
+    any_usd = False
     for k, path in enumerate(targets):
         fspec = tframes[k] if len(tframes) > 1 else (tframes[0] if tframes else None)
         if cameras:
             loaded.append(("silhouette", path, fspec))
             continue
         ext = os.path.splitext(str(path))[1].lower()
-        usd_spec = fspec if ext in (".usd", ".usda", ".usdc") else None
-        t = load_target(path, body=spec.get("target_body"), frames=usd_spec, tool=spec.get("target_tool"))
+        usd = ext in (".usd", ".usda", ".usdc")
+        usd_spec = fspec if usd else None
+        # --target-body picks a body of a run's USD; the other targets of the experiment (a force
+        # log beside it) take none (refused below where no target is such a USD).
+        t = load_target(path, body=spec.get("target_body") if usd else None, frames=usd_spec, tool=spec.get("target_tool"))
+        any_usd = any_usd or usd
         if fspec is not None and usd_spec is None:
             try:
                 t.frames = [int(f) for f in str(fspec).split(",")]
@@ -286,8 +291,10 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     shown = [f for t in file_targets for f in (t.frames or [])]
     frames = spec.get("frames")
     frames = checks.positive_int(f"{where}--frames", frames if frames is not None else (max(shown) if shown else scene.frames))
-    if frames * substeps > checks.MAX_INT:  # a rollout's step count (Rollout's steps), named by the option that sets it
-        raise ValueError(f"{where}--frames = {frames} is not allowed: at {substeps} steps a frame the fit's rollout would "
+    if frames * substeps > checks.MAX_INT:  # a rollout's step count (Rollout's steps), named by what set it
+        source = (f"{where}--frames = {frames}" if spec.get("frames") is not None else
+                  f"the targets' last frame, {frames}," if shown else f"the scene's frames = {frames}")
+        raise ValueError(f"{source} is not allowed: at {substeps} steps a frame the fit's rollout would "
                          f"take {frames * substeps} steps, more than {checks.MAX_INT}")
 
     loss = None
@@ -313,6 +320,9 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     if _arg(args, "radius") is not None and "points" not in file_kinds:
         raise ValueError(f"{where}--radius = {args.radius!r} is not allowed: it is the search radius of point-cloud "
                          f"targets, and the targets are {kinds}")
+    if spec.get("target_body") is not None and not any_usd:
+        raise ValueError(f"{where}--target-body = {spec['target_body']!r} is not allowed: it picks a body of a run's USD "
+                         f"target, and the targets are {kinds}")
     if spec.get("target_tool") is not None and "forces" not in file_kinds:
         raise ValueError(f"{where}--target-tool = {spec['target_tool']!r} is not allowed: it picks the tool of a "
                          f"force-curve target (<output>_tools.csv), and the targets are {kinds}")
