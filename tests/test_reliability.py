@@ -444,7 +444,7 @@ def test_an_hourglass_strength_beyond_its_measured_step_bound_is_refused_by_name
     ("tool_position", "tool 'press': Velocity position = (0.0, 1e+39, 0.0) is not allowed in float32"),
     ("tool_velocity", "tool 'press': Velocity velocity = (0.0, -1e+39, 0.0) is not allowed in float32"),
     ("keyframes", "tool 'press': Keyframes positions"),
-    ("pin", "tool 'grip': Velocity angular_velocity"),
+    ("pin", "pinned set 'grip': Velocity angular_velocity"),
     ("far", "positions 1e+07 m from the origin are not allowed in float32"),
 ])
 def test_numbers_beyond_float32_are_refused_by_name_before_a_kernel_runs(case, needle):

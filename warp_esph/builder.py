@@ -628,10 +628,11 @@ class SceneBuilder:
             raise ValueError(f"body velocities beyond {big:.3g} m/s are not allowed in {scalar.__name__}")
         for t in [*self.tools, *self.pins]:
             m = t.motion
+            kind = "tool" if t in self.tools else "pinned set"
             for field in ("velocity", "angular_velocity", "position", "positions", "times"):
                 v = getattr(m, field, None)
                 if v is not None and np.abs(np.asarray(v, dtype=np.float64)).max() > far:
-                    raise ValueError(f"tool {t.name!r}: {type(m).__name__} {field} = {v!r} is not allowed in "
+                    raise ValueError(f"{kind} {t.name!r}: {type(m).__name__} {field} = {v!r} is not allowed in "
                                      f"{scalar.__name__}: must be at most {far:.3g} in size; use dtype=float64 or a smaller value")
             param = getattr(t, "param", None)
             if param is not None and np.abs(np.asarray(param, dtype=np.float64)).max() > far:
@@ -711,11 +712,10 @@ def _check_outside_colliders(builder) -> None:
         free[np.asarray(p.indices, dtype=np.int64)] = False
     starts = np.cumsum([0] + [b.count for b in builder._bodies])
     tol = 0.5 * builder.spacing
-    depths = [(f"plane{k}" if p.normal != (0.0, 1.0, 0.0) or k else "the ground", p.offset - x @ np.array(p.normal))
-              for k, p in enumerate(builder.planes)]
-    depths += [(f"sphere collider {k}", s.radius - np.linalg.norm(x - np.array(s.center), axis=1))
-               for k, s in enumerate(builder.spheres)]
-    depths += [(f"box collider {k}", (np.array(b.half_extents) - np.abs(x - np.array(b.center))).min(axis=1))
+    # Named as the reaction rows and the force log name them (plane0, sphere0, box0).
+    depths = [(f"plane{k}", p.offset - x @ np.array(p.normal)) for k, p in enumerate(builder.planes)]
+    depths += [(f"sphere{k}", s.radius - np.linalg.norm(x - np.array(s.center), axis=1)) for k, s in enumerate(builder.spheres)]
+    depths += [(f"box{k}", (np.array(b.half_extents) - np.abs(x - np.array(b.center))).min(axis=1))
                for k, b in enumerate(builder.boxes)]
     for name, d in depths:
         d = np.where(free, d, -np.inf)
@@ -805,7 +805,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
                 # it; a world's own such field acts on each of its bodies.
                 fields += [fld] if same_fields else [dataclasses.replace(fld, body=b0 + k) for k in range(len(b._bodies))]
     _check_memory(count, first.max_neighbors, dev)
-    for b in builders:
+    for b in {id(b): b for b in builders}.values():  # finalize(worlds=W) repeats one builder W times
         _check_outside_colliders(b)
     model = Model(
         positions=np.concatenate(points),

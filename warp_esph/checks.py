@@ -114,8 +114,12 @@ def hourglass(name: str, value) -> float:
     """An hourglass-control strength: a number in [0, ``MAX_HOURGLASS``] (0: off)."""
     c = non_negative(name, value)
     if not c <= MAX_HOURGLASS:
-        _fail(name, value, f"must be at most {MAX_HOURGLASS:g} (0: off; the step bound is measured up to it)")
+        _fail(name, value, HOURGLASS_LIMIT)
     return c
+
+
+#: What ``hourglass`` says of a strength above ``MAX_HOURGLASS``.
+HOURGLASS_LIMIT = f"must be at most {MAX_HOURGLASS:g} (0: off; the step bound is measured up to it)"
 
 
 def unit_vector(name: str, value, length: int = 3, what: str = "vector") -> tuple[float, ...]:
@@ -278,13 +282,15 @@ OUTPUT_NAME_SLACK = 40
 
 
 def _name_max(folder: str) -> int:
-    """The longest file name ``folder``'s file system takes (255 where it does not say)."""
+    """The longest file name ``folder``'s file system takes (255 where it does not say, or
+    says no limit)."""
     while folder and not os.path.isdir(folder):
         folder = os.path.dirname(folder)
     try:
-        return int(os.pathconf(folder or ".", "PC_NAME_MAX"))
+        n = int(os.pathconf(folder or ".", "PC_NAME_MAX"))
     except (OSError, ValueError, AttributeError):
-        return 255
+        n = -1
+    return n if n > 0 else 255
 
 
 def output_place(what: str, path, folder: bool = False) -> str:

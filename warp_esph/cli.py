@@ -182,13 +182,12 @@ def _hourglass_arg(text) -> float:
         value = float(text)
     except (TypeError, ValueError):
         value = float("nan")
-    from .checks import MAX_HOURGLASS  # noqa: PLC0415
+    from .checks import HOURGLASS_LIMIT, MAX_HOURGLASS  # noqa: PLC0415
 
     if not 0.0 <= value < float("inf"):
         raise ValueError(f"--hourglass = {text!r} is not allowed: must be a finite number >= 0 (0: off)")
     if not value <= MAX_HOURGLASS:
-        raise ValueError(f"--hourglass = {text!r} is not allowed: must be at most {MAX_HOURGLASS:g} "
-                         "(0: off; the step bound is measured up to it)")
+        raise ValueError(f"--hourglass = {text!r} is not allowed: {HOURGLASS_LIMIT}")
     return value
 
 

@@ -75,7 +75,7 @@ class _Num:
 _FLOAT_MAX = int(sys.float_info.max)
 
 
-class _NonNegative(_Num):
+class _Hourglass(_Num):
     """Schema type: a finite number in [0, ``checks.MAX_HOURGLASS``] (``[solver] hourglass``; 0: off)."""
 
     def check(self, value) -> bool:
@@ -184,7 +184,7 @@ PIN_KEYS = {"name": (STR, False), "body": (STR, False), "region": (REGION, False
 #: ``[solver]``: the numerical options of ``Model`` a scene may choose (``Model.fit``, the
 #: contact law ``Model.contact_ramp`` by name: ``model.CONTACTS``, ``Model.hourglass``,
 #: ``Model.fit_weight``).
-SOLVER_KEYS = {"fit": (STR, False), "contact": (STR, False), "hourglass": (_NonNegative(), False),
+SOLVER_KEYS = {"fit": (STR, False), "contact": (STR, False), "hourglass": (_Hourglass(), False),
                "fit_weight": (STR, False)}
 TOP_KEYS = ("scene", "solver", "materials", "bodies", "colliders", "tools", "pins")
 

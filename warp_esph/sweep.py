@@ -813,7 +813,11 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
     if duration is not None:
         duration = checks.positive("--duration", duration)
     if fps is not None:
+        from .simulate import MAX_FPS  # noqa: PLC0415
+
         fps = checks.positive("--fps", fps)
+        if fps > MAX_FPS:  # before --duration is read in frames of it, and before any sample is built
+            raise ValueError(f"--fps = {fps!r} is not allowed: must be at most {MAX_FPS:g}")
     if dt is not None:
         dt = checks.positive("--dt", dt)
     dtype = checks.choice("--dtype", str(getattr(dtype, "__name__", dtype)), ("float32", "float64"))
