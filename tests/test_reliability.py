@@ -545,3 +545,26 @@ def test_an_extreme_input_gets_its_one_line_and_no_numpy_notes_before_it(tmp_pat
         needle = "empty.xyz is not allowed as a point cloud: it holds 0 rows"
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("warp-esph: error: ") and needle in err, err
+
+
+def test_a_state_without_the_models_collider_or_tool_rows_is_refused_before_the_step():
+    """A state of a model with fewer static colliders (one collider row) passed the state
+    check of a model with two, and the step wrote its second row past the array; a state of a
+    model without tools met an AttributeError in the tools' stage."""
+    from warp_esph import tools
+
+    def model(grounds, tool=False):
+        b = we.SceneBuilder(spacing=0.05)
+        b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))
+        for k in range(grounds):
+            b.add_ground(-1.0 - k)
+        if tool:
+            b.add_tool("sphere", radius=0.05, motion=tools.Velocity(position=(0.0, 0.5, 0.0)))
+        return b.finalize()
+
+    two, one = model(2), model(0)
+    with pytest.raises(ValueError, match=r"state_out does not belong to this model: collider_force has shape \(1,\), "
+                                         r"the model needs \(2,\)"):
+        we.Solver(two).step(two.state(), one.state(), 1e-3)
+    with pytest.raises(ValueError, match=r"state_in.tool_pose_p = None is not allowed"):
+        we.Solver(model(0, tool=True)).step(one.state(), one.state(), 1e-3)

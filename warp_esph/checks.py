@@ -192,6 +192,21 @@ def same_state(model, name: str, state) -> None:
     # allocate the state's own copy.) pressure_density: None unless a material is energy_spiky.
     if getattr(state, "pressure_density", None) is not None:
         want["pressure_density"] = ((n,), T.scalar)
+    # The rows of the colliders, tools and ghost floor: a state of a model with fewer static
+    # colliders had the step write past its one-row collider_force.
+    rows = max(1, model.world_count * (len(model.planes) + len(model.spheres) + len(model.boxes)))
+    want["collider_force"] = want["collider_torque"] = ((rows,), T.vec3)
+    tools = getattr(model, "tools", None)
+    if tools is not None:
+        want["tool_pose_p"] = ((2 * tools.count,), T.vec3)
+        want["tool_pose_q"] = ((2 * tools.count,), tools.quat)
+        want["reaction_force"] = want["reaction_torque"] = ((tools.count * tools.world_count,), T.vec3)
+    if getattr(model, "ghost_floor", None) is not None:
+        from .sim.ghost_floor import STENCIL  # noqa: PLC0415
+
+        nf = model.ghost_floor.count
+        want.update({"ghost_y": ((n,), T.vec3), "ghost_y_lo": ((n,), T.vec3), "ghost_weights": ((nf, STENCIL), T.scalar),
+                     "ghost_rows": ((nf, STENCIL), wp.int32), "ghost_count": ((nf,), wp.int32), "ghost_force": ((nf,), T.vec3)})
     for field, (shape, dtype) in want.items():
         arr = getattr(state, field, None)
         where = f"{name}.{field}"
