@@ -568,3 +568,21 @@ def test_a_state_without_the_models_collider_or_tool_rows_is_refused_before_the_
         we.Solver(two).step(two.state(), one.state(), 1e-3)
     with pytest.raises(ValueError, match=r"state_in.tool_pose_p = None is not allowed"):
         we.Solver(model(0, tool=True)).step(one.state(), one.state(), 1e-3)
+
+
+@pytest.mark.parametrize("field,value", [("mu", float("nan")), ("mu", -1e5), ("viscosity", -1e5), ("flow_rate", -10.0)])
+def test_parameter_arrays_written_in_place_with_values_no_material_takes_are_refused_before_the_step(field, value):
+    """A fit, torch or a user writes the parameter arrays in place: a NaN or negative shear
+    modulus gave NaN positions without a word, a negative viscosity flung the body 118 m, a
+    negative flow rate ran on. The next step refuses them by Material's own checks."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))
+    model = b.finalize()
+    solver, a, c = we.Solver(model), model.state(), model.state()
+    solver.step(a, c, 1e-4)
+    arr = getattr(model, field)
+    values = arr.numpy()
+    values[0] = value
+    arr.assign(values)
+    with pytest.raises(ValueError, match=rf"parameter arrays are not allowed as they are: material 0: Material\.{field} = "):
+        solver.step(c, a, 1e-4)

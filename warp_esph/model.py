@@ -696,9 +696,23 @@ class Model:
         cached = self._stable_dt
         if cached is not None and cached[0] == key:
             return cached[1]
+        self._check_parameter_values(rows)
         dt = self._stable_dt_now(courant, hourglass, rows)
         self._stable_dt = (key, dt)
         return dt
+
+    def _check_parameter_values(self, rows: np.ndarray) -> None:
+        """The parameter arrays (a fit, torch or a user writes them in place) hold values each
+        material takes, by ``Material``'s own checks: a NaN or negative shear modulus made the
+        stable step NaN and the positions NaN without a word, a negative viscosity flung the
+        body, a negative flow rate ran on. Runs where ``stable_dt`` reads new values, so before
+        the step that would use them."""
+        for k, m in enumerate(self.materials):
+            values = {name: float(rows[f, k]) for f, name in enumerate(self.MATERIAL_FIELDS)}
+            try:
+                m.replace(**values)
+            except ValueError as e:
+                raise ValueError(f"the model's parameter arrays are not allowed as they are: material {k}: {e}") from None
 
     def _stable_dt_now(self, courant: float, hourglass: float | None, rows: np.ndarray) -> float:
         p = self._parameter_values(rows)
