@@ -586,3 +586,20 @@ def test_parameter_arrays_written_in_place_with_values_no_material_takes_are_ref
     arr.assign(values)
     with pytest.raises(ValueError, match=rf"parameter arrays are not allowed as they are: material 0: Material\.{field} = "):
         solver.step(c, a, 1e-4)
+
+
+def test_a_step_or_a_modulus_float32_cannot_hold_is_refused_by_name():
+    """dt = 1e-50 was 0 in float32 (the step moved nothing while the time advanced) and
+    1e39 inf; a shear modulus of 1e-300 Pa was 0 in float32 and NaN by the third step."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))
+    model = b.finalize()
+    solver, a, c = we.Solver(model), model.state(), model.state()
+    for dt in (1e-50, 1e39):
+        with pytest.raises(ValueError, match=re.escape(f"dt = {dt!r} is not allowed in float32: must be in [1.18e-38, 3.4e+38] s")):
+            solver.step(a, c, dt)
+    soft = we.SceneBuilder(spacing=0.05)
+    soft.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), we.Material(mu=1e-300, lam=1e-300, density=1000.0))
+    with pytest.raises(ValueError, match=r"Material\.mu = 1e-300 \(material 0\) is not allowed in float32: must be 0 or at least"):
+        soft.finalize()
+    soft.finalize(dtype=wp.float64)

@@ -328,6 +328,11 @@ class Solver:
 
     def check_dt(self, dt) -> float:
         dt = checks.positive("dt", dt)
+        info = np.finfo(np.float32 if self.model.scalar is wp.float32 else np.float64)
+        if not float(info.tiny) <= dt <= float(info.max):
+            # 1e-50 was 0 in float32 (a step that moved nothing while the time advanced), 1e39 inf.
+            raise ValueError(f"dt = {dt!r} is not allowed in {self.model.scalar.__name__}: must be in "
+                             f"[{float(info.tiny):.3g}, {float(info.max):.3g}] s")
         stable = self.model.stable_dt(hourglass=self.hourglass)
         if dt > stable and (dt, stable) not in self._warned_dt:
             self._warned_dt.add((dt, stable))
