@@ -85,6 +85,11 @@ def test_inputs_are_checked_and_missing_torch_is_explained(monkeypatch):
         rollout_positions(rollout, {"young": torch.ones(1, dtype=torch.float64)})
     with pytest.raises(ValueError, match="shape"):
         rollout_positions(rollout, x0=torch.zeros(5, 3, dtype=torch.float64))
+    # An integer input gave integer positions, each truncated to 0; log_space="no" read as True.
+    pos = rollout_positions(rollout, {"viscosity": torch.tensor([0])})
+    assert pos.dtype == torch.float64 and float(pos.abs().max()) > 0.0
+    with pytest.raises(ValueError, match="log_space = 'no' is not allowed: must be True or False"):
+        RolloutModule(rollout, ["mu"], log_space="no")
     monkeypatch.setitem(sys.modules, "torch", None)
     with pytest.raises(ImportError, match="pip install torch"):
         require_torch()

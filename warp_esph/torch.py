@@ -75,7 +75,9 @@ def _function():
             out = rollout.forward(x0=ctx.x0, v0=ctx.v0)
             ctx.forward_count = rollout.forward_count
             ref = next((t for t in (x0, v0, *values) if t is not None), None)
-            dtype = ref.dtype if ref is not None else torch.float64
+            # The positions are real numbers: an integer input (a viscosity given as 0, an int64
+            # x0) made them integers, every one truncated to 0.
+            dtype = ref.dtype if ref is not None and ref.is_floating_point() else torch.float64
             device = ref.device if ref is not None else torch.device("cpu")
             ctx.tensor_dtype, ctx.device = dtype, device
             return torch.from_numpy(out).to(dtype=dtype, device=device)
@@ -163,7 +165,9 @@ def _module_class():
                 raise ValueError(f"rollout = {rollout!r} is not allowed: must be a warp_esph.rollout.Rollout")
             self.rollout = rollout
             self.names = [params] if isinstance(params, str) else list(params)
-            self.log_space = bool(log_space)
+            if not isinstance(log_space, bool):  # "no" read as True
+                raise ValueError(f"log_space = {log_space!r} is not allowed: must be True or False")
+            self.log_space = log_space
             current = rollout.get_parameters()
             for name in self.names:
                 if name not in PARAMETERS:
