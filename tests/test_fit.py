@@ -468,3 +468,25 @@ def test_a_damaged_usd_target_is_named_as_damaged_not_read_as_a_mesh(tmp_path):
     with pytest.raises(ValueError, match=r"cannot read .*run\.usdc.*\(a damaged or foreign file\?\)") as e:
         load_target(bad)
     assert "mesh" not in str(e.value)
+
+
+def test_a_rollout_refuses_a_non_finite_or_non_numeric_start_by_name():
+    """x0, v0, F0 or alpha0 with a NaN ran to NaN positions returned as a result; a string
+    start ended in numpy's conversion error."""
+    import warp as wp
+
+    import warp_esph as we
+    from warp_esph.rollout import Rollout
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    r = Rollout(model, 2, 1e-3)
+    n = model.particle_count
+    bad = {"x0": np.full((n, 3), np.nan), "v0": np.full((n, 3), np.inf), "F0": np.full((n, 3, 3), np.nan), "alpha0": np.nan}
+    for name, value in bad.items():
+        with pytest.raises(ValueError, match=rf"{name} is not allowed: it has non-finite values"):
+            r.forward(**{name: value})
+    with pytest.raises(ValueError, match=r"alpha0 = 'x' is not allowed: must be numbers"):
+        r.forward(alpha0="x")
+    assert np.isfinite(r.forward()).all()

@@ -283,7 +283,14 @@ class Rollout:
             arr = getattr(init, STATE_GRADIENTS[name])
             if isinstance(value, wp.array):
                 value = value.numpy()
-            v = np.asarray(value, dtype=m.types.np_dtype)
+            try:
+                v = np.asarray(value, dtype=m.types.np_dtype)
+            except (TypeError, ValueError):
+                raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be numbers of shape "
+                                 f"{(m.particle_count, *shape)}") from None
+            if not np.isfinite(v).all():  # a NaN start ran to NaN positions, returned as a result
+                raise ValueError(f"{name} is not allowed: it has non-finite values (first at index "
+                                 f"{int(np.argmax(~np.isfinite(v).reshape(v.shape[0] if v.ndim else 1, -1).all(axis=1)))})")
             if v.shape != (m.particle_count, *shape):
                 if name == "alpha0" and v.size == 1:
                     v = np.full(m.particle_count, float(v), dtype=m.types.np_dtype)
