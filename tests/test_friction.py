@@ -61,7 +61,11 @@ def test_gradient_through_friction_matches_central_differences(friction):
         solver = we.Solver(model)
         states = [model.state() for _ in range(steps + 1)]
         tape = wp.Tape()
-        with tape:
+        if grad:
+            with tape:
+                for k in range(steps):
+                    solver.step(states[k], states[k + 1], DT)
+        else:  # (the central differences need no tape)
             for k in range(steps):
                 solver.step(states[k], states[k + 1], DT)
         x = states[-1].x

@@ -894,3 +894,25 @@ def test_the_loss_has_no_jump_where_a_neighbour_leaves_the_count():
     increments = np.diff(losses) / np.diff(shifts)
     trapezoid = 0.5 * (slopes[1:] + slopes[:-1])
     assert np.abs(increments / trapezoid - 1.0).max() < 0.02, np.round(increments / trapezoid, 4)
+
+
+def test_a_taped_step_refuses_a_state_the_tape_wrote_and_says_when_no_gradient_can_flow():
+    """Two states swapped under one tape: the second step overwrote what the backward pass
+    of the first reads (the shear modulus's gradient came out 4.5 x the true one, without a
+    word). A state made without gradients under a tape: the gradient stopped there (0 or a
+    part of the rollout's), without a word."""
+    model = _model()
+    solver = we.Solver(model)
+    a, b = model.state(requires_grad=True), model.state(requires_grad=True)
+    with wp.Tape():
+        solver.step(a, b, DT)
+        solver.step(b, a, DT)
+        with pytest.raises(ValueError, match="state_out is not allowed under this wp.Tape: an earlier step of the same "
+                                             "tape wrote it"):
+            solver.step(a, b, DT)
+    with wp.Tape():  # a new tape: the same states may be written again
+        solver.step(a, b, DT)
+    plain = model.state(requires_grad=False)
+    with pytest.warns(RuntimeWarning, match="state_out made without requires_grad: no gradient flows back"):
+        with wp.Tape():
+            solver.step(a, plain, DT)

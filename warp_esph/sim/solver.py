@@ -215,6 +215,8 @@ class Solver:
         if self._cmp:
             model.rest_neighbors()
         self._warned_dt = set()
+        self._tape_seen = None  # (the recording tape, the states its steps wrote): _check_taped_step
+        self._warned_tape = False
         self._warned_cut = False
         self.step_count = 0
         #: Under a tape, run the hand-written adjoints (``deformation.update_deformation_adjoint``)
@@ -265,6 +267,30 @@ class Solver:
         floor images, ``add_ground(images=True)``, their image terms too; docs/physics.md,
         "The ground collider's thin-layer strength")."""
         return self.hand_adjoints
+
+    def _check_taped_step(self, tape, state_in, state_out) -> None:
+        """Under a recording tape: a state an earlier step of the same tape wrote is refused as
+        ``state_out`` (swapping two states under a tape overwrote what the backward pass reads:
+        a gradient 4.5 x the true one, without a word); a model or a state without gradients
+        is said once (nothing flows back through such a step: a gradient of 0, or of part of
+        the rollout, read as the answer)."""
+        import weakref  # noqa: PLC0415
+
+        if self._tape_seen is None or self._tape_seen[0]() is not tape:
+            self._tape_seen = (weakref.ref(tape), weakref.WeakValueDictionary())
+        written = self._tape_seen[1]
+        if written.get(id(state_out)) is state_out:
+            raise ValueError("state_out is not allowed under this wp.Tape: an earlier step of the same tape wrote it, and "
+                             "the tape's backward pass reads what that step wrote; give each taped step a state of its own "
+                             "(as Rollout does)")
+        written[id(state_out)] = state_out
+        missing = [what for what, ok in (("the model", self.model.requires_grad), ("state_in", state_in.x.requires_grad),
+                                         ("state_out", state_out.x.requires_grad)) if not ok]
+        if missing and not self._warned_tape:
+            self._warned_tape = True
+            warnings.warn(f"Solver.step under a recording wp.Tape with {' and '.join(missing)} made without "
+                          "requires_grad: no gradient flows back through this step (finalize(requires_grad=True), "
+                          "model.state(requires_grad=True))", RuntimeWarning, stacklevel=3)
 
     def _fast_under_tape(self, state_in, state_out) -> bool:
         return (self.fast_under_tape() and state_in.x.grad is not None and state_out.x.grad is not None
@@ -358,6 +384,8 @@ class Solver:
             sph = m.sph_active
         scratch = self.scratch
         tape = recording_tape()
+        if tape is not None:
+            self._check_taped_step(tape, state_in, state_out)
         hand = self._hand()
         ghosts = self.ghost_search
         if ghosts is not None:
