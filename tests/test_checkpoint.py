@@ -119,14 +119,36 @@ def test_a_checkpoint_with_values_no_material_or_deformation_takes_is_refused_by
     """Finite but impossible values (a hand-edited or foreign file): a negative shear modulus
     diverged, a negative flow rate or a zero F ran on and exited 0."""
     model = _model()
-    state = model.state()
+    path = save_state(tmp_path / "c.npz", model, model.state(), step=0, frame=0)
+    # Edited in the file (save_state itself refuses such values).
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
     if edit == "F":
-        state.F.zero_()
+        arrays["F"][:] = 0.0
     else:
-        arr = getattr(model, edit)
-        values = arr.numpy()
-        values[0 if edit == "mu" else 1] = -100.0
-        arr.assign(values)
-    path = save_state(tmp_path / "c.npz", model, state, step=0, frame=0)
+        arrays[f"material_{edit}"][0 if edit == "mu" else 1] = -100.0
+    np.savez(path, **arrays)
     with pytest.raises(ValueError, match=r"checkpoint = '.*c\.npz' is not allowed: " + needle):
         load_state(path, _model())
+
+
+def test_save_state_refuses_what_load_state_would_refuse_and_places_that_take_no_file(tmp_path):
+    """It wrote checkpoints load_state then refused (a step of 1.7 stored as 1, a run record
+    that is no table, a shear modulus no material takes), and met a folder named like the
+    file with a bare IsADirectoryError."""
+    model = _model()
+    state = model.state()
+    for kwargs, needle in (({"step": 1.7}, r"step = 1\.7 is not allowed: must be an integer >= -1"),
+                           ({"step": -2}, r"step = -2 is not allowed"), ({"frame": -1}, r"frame = -1 is not allowed"),
+                           ({"run": [1, 2]}, r"run = \[1, 2\] is not allowed: must be a dict")):
+        with pytest.raises(ValueError, match=needle):
+            save_state(tmp_path / "c.npz", model, state, **{"step": 0, "frame": 0, **kwargs})
+    (tmp_path / "d.npz").mkdir()
+    with pytest.raises(ValueError, match=r"checkpoint path = .*d\.npz' is not allowed: it is a folder"):
+        save_state(tmp_path / "d.npz", model, state, step=0, frame=0)
+    mu = model.mu.numpy()
+    mu[0] = -1.0
+    model.mu.assign(mu)
+    with pytest.raises(ValueError, match=r"material 0: Material\.mu = -1\.0 is not allowed"):
+        save_state(tmp_path / "c.npz", model, state, step=0, frame=0)
+    assert not (tmp_path / "c.npz").exists()

@@ -642,3 +642,19 @@ def test_init_warp_holds_back_only_the_native_cuda_note(capfd):
     echoed = subprocess.run([sys.executable, "-c", echo], capture_output=True, text=True, timeout=120)
     assert echoed.returncode == 0, echoed.stderr
     assert echoed.stdout.split() == ["2"] and echoed.stderr.splitlines() == ["native note A"], echoed.stderr
+
+
+def test_a_run_with_the_adaptive_step_resumes_bit_for_bit(tmp_path, capsys):
+    """``--dt auto`` records its dt as "auto" and its checkpoints' step as -1 (the step count
+    is no function of the frame): the resume refused both ("dt = 'auto' is not allowed: must
+    be a number"), so no adaptive run could be resumed."""
+    from warp_esph.usd import UsdFrames
+
+    args = ["run", "dough_drop", "--scale", "0.3", "--dt", "auto", "--no-progress"]
+    assert main([*args, "--frames", "3", "-o", str(tmp_path / "whole.usdc")]) == 0
+    assert main([*args, "--frames", "2", "--checkpoint-every", "1", "-o", str(tmp_path / "part.usdc")]) == 0
+    assert main(["run", "--resume", str(tmp_path / "part.usdc.checkpoint.npz"), "--frames", "3", "--no-progress"]) == 0
+    part, whole = UsdFrames(tmp_path / "part.usdc"), UsdFrames(tmp_path / "whole.usdc")
+    for k in range(4):
+        np.testing.assert_array_equal(part.arrays(k)["points"], whole.arrays(k)["points"])
+    capsys.readouterr()

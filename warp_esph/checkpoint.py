@@ -66,10 +66,24 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     """
     from . import checks  # noqa: PLC0415
 
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"checkpoint path = {path!r} is not allowed: must be a file path ending in .npz")
     path = pathlib.Path(path)
     if path.suffix != ".npz":
         raise ValueError(f"checkpoint path = {str(path)!r} is not allowed: must end in .npz")
+    if not isinstance(model, Model):
+        raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be a warp_esph Model")
+    # What load_state asks of them, asked here: it refused the files this wrote with a step of
+    # -1 or 1.7 (stored as 1), a run record that is no table, or parameters no material takes.
+    for name, value in (("step", step), ("frame", frame)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < -1 or (name == "frame" and value < 0):
+            raise ValueError(f"{name} = {value!r} is not allowed: must be an integer >= {0 if name == 'frame' else -1}"
+                             + (" (-1: not a function of the frame)" if name == "step" else ""))
+    if run is not None and not isinstance(run, dict):
+        raise ValueError(f"run = {checks.shorten(run)!r} is not allowed: must be a dict (the run record) or None")
+    checks.output_place("checkpoint path", path)
     checks.same_state(model, "state", state)
+    model._check_parameter_values(model._read_parameters())
     for name in State.STATE_FIELDS:
         if not np.isfinite(getattr(state, name).numpy()).all():
             raise ValueError(f"state is not allowed: its {name} has non-finite values; a checkpoint must resume a sound run")
@@ -194,13 +208,14 @@ def load_state(path, model: Model) -> tuple[State, dict]:
 def _check_meta(where: str, meta: dict) -> None:
     """The metadata's fields have the types ``save_state`` writes (a hand-edited or foreign
     file must not end in a ``TypeError`` later)."""
-    def is_int(v):
-        return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+    def is_int(v, lowest=0):
+        return isinstance(v, int) and not isinstance(v, bool) and v >= lowest
 
     wrong = []
-    for key in ("step", "frame", "particle_count"):
-        if not is_int(meta.get(key)):
-            wrong.append(f"{key} = {meta.get(key)!r} (must be an integer >= 0)")
+    # step -1: a run with the adaptive step, whose step count is no function of the frame.
+    for key, lowest in (("step", -1), ("frame", 0), ("particle_count", 0)):
+        if not is_int(meta.get(key), lowest):
+            wrong.append(f"{key} = {meta.get(key)!r} (must be an integer >= {lowest})")
     if not isinstance(meta.get("dtype"), str):
         wrong.append(f"dtype = {meta.get('dtype')!r} (must be 'float32' or 'float64')")
     bodies = meta.get("bodies")

@@ -504,7 +504,8 @@ def _check_run_record(path, run: dict) -> None:
             raise ValueError("scene and output must be text")
         checks.positive("scale", run["scale"])
         checks.positive("fps", run["fps"])
-        checks.positive("dt", run["dt"])
+        if run["dt"] != "auto":  # an adaptive (CFL) run records its dt as "auto"
+            checks.positive("dt", run["dt"])
         checks.positive_int("frames", run["frames"])
         checks.choice("dtype", run["dtype"], ("float32", "float64"))
         checks.boolean("surface", run.get("surface", False))
