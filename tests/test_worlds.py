@@ -357,3 +357,18 @@ def test_split_materials_keeps_tools_and_solver_options():
     np.testing.assert_array_equal(x_split, x_model)
     np.testing.assert_array_equal(s_split.reaction_force.numpy(), s_model.reaction_force.numpy())
     assert (np.abs(s_model.reaction_force.numpy()).max(axis=1) > 0.0).all()  # the press touched, the pin held
+
+
+def test_set_material_refuses_another_deformation_model_and_values_the_precision_cannot_hold():
+    """A Solver made before set_material ran a new 'rest' material as the old 'incremental'
+    one (positions 2.4e-3 m off after 20 steps, F_p never updated); 1e300 Pa in a float32
+    model became inf and the steps NaN."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))
+    model = b.finalize()
+    with pytest.raises(ValueError, match=r"material\.deformation = 'rest' is not allowed here: material 0 is 'incremental'"):
+        model.set_material(0, we.Material.preset("dough", deformation="rest"))
+    with pytest.raises(ValueError, match=r"Material\.mu = 1e\+300 is not allowed in float32"):
+        model.set_material(0, we.Material(mu=1e300, lam=1e300, density=1000.0))
+    model.set_material(0, we.Material.preset("clay"))
+    assert model.materials[0] == we.Material.preset("clay")

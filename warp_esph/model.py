@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -476,6 +477,21 @@ class Model:
             raise ValueError(f"index = {index!r} is not allowed: must be in [0, {len(self.materials) - 1}]")
         if not isinstance(material, Material):
             raise ValueError(f"material = {material!r} is not allowed: must be a warp_esph.Material")
+        old = self.materials[index]
+        if material.deformation != old.deformation:
+            # The deformation model decides the solver's stages (a Solver made before ran the
+            # new one as the old) and the rest neighbours, which finalize sets up.
+            raise ValueError(f"material.deformation = {material.deformation!r} is not allowed here: material {index} is "
+                             f"{old.deformation!r}, and a model's deformation models are set when it is built "
+                             "(finalize a model with the new one)")
+        info = np.finfo(np.float32 if self.scalar is wp.float32 else np.float64)
+        tiny, big = float(info.tiny), float(info.max)
+        for name in (*self.MATERIAL_FIELDS, "density"):
+            v = getattr(material, name)
+            if math.isfinite(v) and (abs(v) > big or (v != 0.0 and abs(v) < tiny)):
+                # Cast to the model's precision it became inf (or 0), and the steps NaN.
+                raise ValueError(f"Material.{name} = {v:g} is not allowed in {self.scalar.__name__}: must be 0 or in "
+                                 f"[{tiny:.3g}, {big:.3g}] in size; use a float64 model")
         # The rest density is the pressure density's: its kernel may change with the force.
         new_density_kernel = (self.materials[index].pressure_force == "energy_spiky") != (
             material.pressure_force == "energy_spiky")
