@@ -603,3 +603,36 @@ def test_a_step_or_a_modulus_float32_cannot_hold_is_refused_by_name():
     with pytest.raises(ValueError, match=r"Material\.mu = 1e-300 \(material 0\) is not allowed in float32: must be 0 or at least"):
         soft.finalize()
     soft.finalize(dtype=wp.float64)
+
+
+def test_orderless_vectors_unreadable_velocities_huge_world_and_frame_counts_are_refused_by_name():
+    """A set as a centre came back reordered ((2, 1, 0) as (0, 1, 2)); a dict as a velocity
+    ended in a TypeError; worlds = 1e12 in a MemoryError; frames = 10**400 in an
+    OverflowError formatting its own refusal."""
+    from warp_esph.simulate import check_step_count
+
+    b = we.SceneBuilder(spacing=0.05)
+    with pytest.raises(ValueError, match=r"center = \{.*\} is not allowed: must be a sequence of 3 numbers in order"):
+        b.add_box({0.2, 0.1, 0.0}, (0.2, 0.2, 0.2), we.Material.preset("dough"))
+    with pytest.raises(ValueError, match=r"velocity = \{'x': 1\} is not allowed: must be 3 numbers"):
+        b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"), velocity={"x": 1})
+    b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))
+    with pytest.raises(ValueError, match=r"worlds = 1000000000000 is not allowed: must be at most 100000"):
+        b.finalize(worlds=10**12)
+    with pytest.raises(ValueError, match=r"worlds = 100000 is not allowed: particles = 6400000 is not allowed on cpu"):
+        _worlds_beyond_memory(b)
+    with pytest.raises(ValueError, match=r"the run would take more than 1e300 steps"):
+        check_step_count(10**400, 1)
+
+
+def _worlds_beyond_memory(builder):
+    """finalize with as many worlds as make the model larger than this machine, pretending
+    each particle takes a gigabyte (the estimate is refused before anything is allocated)."""
+    from warp_esph import builder as builder_module
+
+    saved = builder_module.BYTES_PER_PARTICLE
+    builder_module.BYTES_PER_PARTICLE = 2**30
+    try:
+        return builder.finalize(worlds=100_000)
+    finally:
+        builder_module.BYTES_PER_PARTICLE = saved

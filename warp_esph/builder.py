@@ -210,7 +210,11 @@ class SceneBuilder:
             raise ValueError(f"body {name!r} has no particles: it is smaller than the spacing {self.spacing:g}")
         if not np.isfinite(pts).all():
             raise ValueError(f"positions of body {name!r} are not allowed: they must be finite")
-        vel = np.asarray(velocity, dtype=np.float64)
+        try:
+            vel = np.asarray(velocity, dtype=np.float64)
+        except (TypeError, ValueError):  # a dict, a generator, text: not numbers
+            raise ValueError(f"velocity = {checks.shorten(velocity)!r} is not allowed: must be 3 numbers or one row of "
+                             f"3 per particle") from None
         if vel.shape == (3,):
             vel = np.broadcast_to(checks.vector("velocity", velocity), pts.shape)
         elif vel.shape != pts.shape or not np.isfinite(vel).all():
@@ -659,6 +663,17 @@ class SceneBuilder:
         (each world reports its own tool reactions, ``tools.ToolSet``)."""
         if isinstance(worlds, bool) or not isinstance(worlds, (int, np.integer)) or worlds < 1:
             raise ValueError(f"worlds = {worlds!r} is not allowed: must be an integer >= 1")
+        if worlds > MAX_WORLDS:  # 1e12 ended in a MemoryError building the list of copies
+            raise ValueError(f"worlds = {checks.shorten(worlds)!r} is not allowed: must be at most {MAX_WORLDS}")
+        try:
+            dev = wp.get_device(device)
+        except Exception:  # noqa: BLE001 (a bad device: finalize_worlds names it)
+            dev = None
+        if dev is not None and worlds > 1:  # (one world: finalize_worlds checks it)
+            try:
+                _check_memory(self.particle_count * int(worlds), self.max_neighbors, dev)
+            except ValueError as e:
+                raise ValueError(f"worlds = {worlds!r} is not allowed: {e}") from None
         return finalize_worlds([self] * int(worlds), device=device, dtype=dtype, requires_grad=requires_grad)
 
 
@@ -678,6 +693,8 @@ def _tool_signature(b: SceneBuilder) -> tuple:
     return cols, tuple((p.name, repr(p.motion), len(p.indices)) for p in b.pins)
 
 
+#: The most copies of a scene ``finalize(worlds=)`` makes.
+MAX_WORLDS = 100_000
 #: What a particle takes in a model, two states and a step, besides its neighbour rows, and
 #: what each entry of its rows takes (measured on the CPU: 3.2-3.4 kB a particle at 96).
 BYTES_PER_PARTICLE = 1000

@@ -13,7 +13,7 @@ import re
 import struct
 import zipfile
 import zlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -100,6 +100,8 @@ def greater_than(name: str, value, bound: float, bound_text: str) -> float:
 def vector(name: str, value, length: int = 3) -> tuple[float, ...]:
     if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) and not hasattr(value, "__len__"):
         _fail(name, value, f"must be a sequence of {length} numbers")
+    if isinstance(value, (set, frozenset, Mapping)):  # no order: a set of (2, 1, 0) came back as (0, 1, 2)
+        _fail(name, value, f"must be a sequence of {length} numbers in order (not a set or a mapping)")
     if len(value) != length:
         _fail(name, value, f"must be a sequence of {length} numbers")
     return tuple(number(f"{name}[{k}]", c) for k, c in enumerate(value))

@@ -213,9 +213,11 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
 def check_step_count(frames: int, substeps: int) -> None:
     """Refuse a run of more than ``MAX_STEPS`` steps before it starts."""
     if frames * substeps > MAX_STEPS:
+        total = frames * substeps
+        shown = f"{total:.3g}" if total < 1e300 else "more than 1e300"  # (10**400 overflowed the formatting)
         raise ValueError(
-            f"frames = {frames!r} is not allowed: at {substeps} steps per frame the run would take "
-            f"{frames * substeps:.3g} steps, more than {MAX_STEPS:.0e}; use fewer frames or a larger dt"
+            f"frames = {checks.shorten(frames)!r} is not allowed: at {substeps} steps per frame the run would take "
+            f"{shown} steps, more than {MAX_STEPS:.0e}; use fewer frames or a larger dt"
         )
 
 
