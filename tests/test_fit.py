@@ -490,3 +490,23 @@ def test_a_rollout_refuses_a_non_finite_or_non_numeric_start_by_name():
     with pytest.raises(ValueError, match=r"alpha0 = 'x' is not allowed: must be numbers"):
         r.forward(alpha0="x")
     assert np.isfinite(r.forward()).all()
+
+
+def test_rollout_frames_are_whole_step_indices_named_where_not():
+    """1.7 was truncated to step 1, '2' and True were taken as steps; a nested list or a
+    dict ended in numpy's errors naming nothing."""
+    import warp as wp
+
+    import warp_esph as we
+    from warp_esph.rollout import Rollout
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    for frames in ([1.7], ["2"], [True], [[1, 2]]):
+        with pytest.raises(ValueError, match=r"frames entry .* is not allowed: must be an integer step index"):
+            Rollout(model, 3, 1e-3, frames=frames)
+    with pytest.raises(ValueError, match=r"frames = \{'a': 1\} is not allowed: must be step indices"):
+        Rollout(model, 3, 1e-3, frames={"a": 1})
+    assert Rollout(model, 3, 1e-3, frames=np.array([1.0, 3.0])).frames == (1, 3)
+    assert Rollout(model, 3, 1e-3, frames=2).frames == (2,)

@@ -309,3 +309,10 @@ def test_progress_bar_shows_frames_and_steps_per_second(model, capsys, monkeypat
     simulate(model, 2, fps=30, progress=True)
     err = capsys.readouterr().err
     assert "2/2" in err and "steps/s" in err and f"{model.particle_count} particles" in err
+
+
+def test_a_folder_where_the_file_goes_is_refused_by_name(model, tmp_path):
+    """A folder named like the output met an IsADirectoryError at the first frame."""
+    (tmp_path / "d.usda").mkdir()
+    with pytest.raises(ValueError, match=r"path = .*d\.usda' is not allowed: it is a folder; a file is written there"):
+        UsdWriter(tmp_path / "d.usda", model, 30.0)

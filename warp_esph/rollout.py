@@ -60,6 +60,7 @@ of the model, computed once from the model's own initial positions).
 
 import dataclasses
 import functools
+import math
 import types
 from collections.abc import Mapping, Sequence
 
@@ -157,6 +158,22 @@ def state_nbytes(state: State) -> int:
     return total
 
 
+def _step_indices(frames) -> list[int]:
+    """``Rollout``'s ``frames`` as integers: whole numbers only (1.7 was truncated to step 1,
+    '2' and True taken as steps), one level deep, each named where it is not one."""
+    if isinstance(frames, (str, bytes, Mapping)) or not hasattr(frames, "__len__") and not np.isscalar(frames):
+        raise ValueError(f"frames = {checks.shorten(frames)!r} is not allowed: must be step indices (a list of integers)")
+    out = []
+    for f in (np.asarray(frames).ravel().tolist() if isinstance(frames, np.ndarray) else
+              [frames] if np.isscalar(frames) else list(frames)):
+        if isinstance(f, (float, np.floating)) and math.isfinite(f) and float(f).is_integer():
+            f = int(f)  # a whole number held as a float (np.arange(...) * 1.0)
+        if isinstance(f, bool) or not isinstance(f, (int, np.integer)):
+            raise ValueError(f"frames entry {checks.shorten(f)!r} is not allowed: must be an integer step index")
+        out.append(int(f))
+    return out
+
+
 class Rollout:
     """A differentiable run of ``steps`` steps of ``dt`` observing positions at ``frames``.
 
@@ -184,7 +201,7 @@ class Rollout:
         self.dt = checks.positive("dt", dt)
         if frames is None:
             frames = [self.steps]
-        frames = [int(f) for f in np.atleast_1d(np.asarray(frames, dtype=np.int64))]
+        frames = _step_indices(frames)
         if not frames:
             raise ValueError("frames = [] is not allowed: give at least one step index")
         bad = [f for f in frames if not 0 <= f <= self.steps]

@@ -186,6 +186,8 @@ class UsdWriter:
             raise ValueError(f"path = {os.fspath(path)!r} is not allowed: the extension must be one of {', '.join(USD_EXTENSIONS)}")
         if not os.path.isdir(folder):
             raise FileNotFoundError(f"cannot write {self.path}: the folder {folder} does not exist")
+        if os.path.isdir(self.path):  # a folder of that name met an IsADirectoryError at the first frame
+            raise ValueError(f"path = {os.fspath(path)!r} is not allowed: it is a folder; a file is written there")
         self.format = USD_EXTENSIONS[ext]
         self.model = model
         self.fps = checks.positive("fps", fps)
