@@ -510,3 +510,24 @@ def test_rollout_frames_are_whole_step_indices_named_where_not():
         Rollout(model, 3, 1e-3, frames={"a": 1})
     assert Rollout(model, 3, 1e-3, frames=np.array([1.0, 3.0])).frames == (1, 3)
     assert Rollout(model, 3, 1e-3, frames=2).frames == (2,)
+
+
+def test_a_particle_mask_of_the_wrong_length_is_named_not_the_targets():
+    """A boolean mask with one entry too few kept fewer particles than the targets hold, and
+    the refusal blamed the targets' point count."""
+    import warp as wp
+
+    import warp_esph as we
+    from warp_esph.losses import PositionLoss
+    from warp_esph.rollout import Rollout
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    n = model.particle_count
+    mask = np.ones(n - 1, dtype=bool)
+    loss = PositionLoss(model.particle_x0[:n - 1], frames=[2], particles=mask)
+    r = Rollout(model, 2, 1e-3, frames=[2])
+    r.forward()
+    with pytest.raises(ValueError, match=rf"particles is a boolean mask of {n - 1} entries, the positions {n} particles"):
+        r.backward(loss)

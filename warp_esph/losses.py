@@ -287,9 +287,11 @@ class Loss:
     def __init__(self, frames, weight: float = 1.0, particles=None):
         self.frames = _frames(frames)
         self.weight = checks.number("weight", weight)
+        self._mask_size = None
         if particles is not None:
             idx = np.asarray(particles)
             if idx.dtype == bool:
+                self._mask_size = idx.size  # checked against the positions (a wrong length blamed the targets)
                 idx = np.flatnonzero(idx)
             if idx.ndim != 1 or len(idx) == 0 or not np.issubdtype(idx.dtype, np.integer) or idx.min() < 0:
                 raise ValueError("particles is not allowed: give non-negative particle indices or a boolean mask")
@@ -314,6 +316,9 @@ class Loss:
     def _prepare_x(self, frame: int, x: wp.array) -> wp.array:
         if self.particles is None:
             return x
+        if self._mask_size is not None and self._mask_size != x.shape[0]:
+            raise ValueError(f"particles is a boolean mask of {self._mask_size} entries, the positions {x.shape[0]} "
+                             "particles: a mask has one entry per particle")
         if int(self.particles.max()) >= x.shape[0]:
             raise ValueError(f"particles has index {int(self.particles.max())}, the positions only {x.shape[0]} particles")
         key = (frame, x.dtype)
