@@ -132,6 +132,9 @@ def test_a_body_a_scene_shows_blowing_up_is_left_out():
     assert p == other.start + 1 and what.startswith("speed")
     with pytest.raises(ValueError, match="'nope' is not a body"):
         DivergenceMonitor(model, state, ("nope",))
+    for bad in (5, "plastic_incremental"):  # a number ended in a TypeError; a name was read letter by letter
+        with pytest.raises(ValueError, match="monitor_exempt = .* is not allowed: must be a list of body names"):
+            DivergenceMonitor(model, state, bad)
 
 
 def test_monitor_bounds_are_physical():

@@ -88,6 +88,8 @@ class DivergenceMonitor:
 
     def __init__(self, model: Model, state: State, exempt=()):
         names = [b.name for b in model.bodies]
+        if isinstance(exempt, str) or not hasattr(exempt, "__iter__"):  # 5 ended in a TypeError, "ab" in 'a', 'b'
+            raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: must be a list of body names ({names})")
         exempt = tuple(exempt)
         for name in exempt:
             if name not in names:
