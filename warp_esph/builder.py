@@ -22,7 +22,7 @@ from .sim.neighbors import PAPER_MAX_NEIGHBORS, default_max_neighbors
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 from .material import Material
 from .meshes import lattice_points
-from .model import CONTACTS, FITS, Body, Model, check_contact_ramp
+from .model import CONTACTS, FITS, Body, Model, check_contact_ramp, check_material_precision
 
 #: Allowed support radius, in units of the spacing. Below 1.5 dx an interior particle
 #: sees only its 6 face neighbours; above 3 dx a particle has more than 120 neighbours
@@ -588,20 +588,8 @@ class SceneBuilder:
         """Every material parameter and position fits the precision: 1e300 Pa cast to float32
         became inf in the model without a word."""
         big = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).max)
-        tiny = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).tiny)
         for k, m in enumerate(self._materials):
-            for field in (*Model.MATERIAL_FIELDS, "density"):
-                v = getattr(m, field)
-                if math.isfinite(v) and abs(v) > big:
-                    raise ValueError(
-                        f"Material.{field} = {v:g} (material {k}) is not allowed in {scalar.__name__}: "
-                        f"must be at most {big:.3g}; use dtype=float64 or a smaller value"
-                    )
-                if v != 0.0 and abs(v) < tiny:  # 1e-300 Pa was 0 in float32: a modulus of nothing, NaN by step 3
-                    raise ValueError(
-                        f"Material.{field} = {v:g} (material {k}) is not allowed in {scalar.__name__}: must be 0 or at "
-                        f"least {tiny:.3g} in size; use dtype=float64 or a larger value"
-                    )
+            check_material_precision(m, scalar, f" (material {k})")
         if self._points and np.abs(np.concatenate(self._points)).max() > big:
             raise ValueError(f"positions beyond {big:.3g} m are not allowed in {scalar.__name__}")
         # The static colliders' sizes and places enter the contact squared: 1e300 m (or 1e40 m

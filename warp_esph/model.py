@@ -47,6 +47,23 @@ CONTACTS = {"instant": INSTANT_CONTACT_RAMP, "continuous": CONTINUOUS_CONTACT_RA
 MAX_CONTACT_RAMP = 10.0
 
 
+def check_material_precision(material: Material, scalar, where: str = "") -> None:
+    """Every parameter of ``material`` holds in ``scalar``: 1e300 Pa cast to float32 became
+    inf, 1e-300 Pa became 0 (a modulus of nothing, NaN by the third step), without a word.
+    ``where`` follows the field in the message (``" (material 0)"``)."""
+    info = np.finfo(np.float32 if scalar is wp.float32 else np.float64)
+    tiny, big = float(info.tiny), float(info.max)
+    for name in (*Model.MATERIAL_FIELDS, "density"):
+        v = getattr(material, name)
+        if math.isfinite(v) and abs(v) > big:
+            why = f"must be at most {big:.3g}; use dtype=float64 or a smaller value"
+        elif v != 0.0 and abs(v) < tiny:
+            why = f"must be 0 or at least {tiny:.3g} in size; use dtype=float64 or a larger value"
+        else:
+            continue
+        raise ValueError(f"Material.{name} = {v:g}{where} is not allowed in {scalar.__name__}: {why}")
+
+
 def check_contact_ramp(name: str, value) -> float:
     """A contact ramp: a number in [0, ``MAX_CONTACT_RAMP``] (0: the instant law; 1: the continuous one)."""
     v = checks.non_negative(name, value)
@@ -484,14 +501,7 @@ class Model:
             raise ValueError(f"material.deformation = {material.deformation!r} is not allowed here: material {index} is "
                              f"{old.deformation!r}, and a model's deformation models are set when it is built "
                              "(finalize a model with the new one)")
-        info = np.finfo(np.float32 if self.scalar is wp.float32 else np.float64)
-        tiny, big = float(info.tiny), float(info.max)
-        for name in (*self.MATERIAL_FIELDS, "density"):
-            v = getattr(material, name)
-            if math.isfinite(v) and (abs(v) > big or (v != 0.0 and abs(v) < tiny)):
-                # Cast to the model's precision it became inf (or 0), and the steps NaN.
-                raise ValueError(f"Material.{name} = {v:g} is not allowed in {self.scalar.__name__}: must be 0 or in "
-                                 f"[{tiny:.3g}, {big:.3g}] in size; use a float64 model")
+        check_material_precision(material, self.scalar)
         # The rest density is the pressure density's: its kernel may change with the force.
         new_density_kernel = (self.materials[index].pressure_force == "energy_spiky") != (
             material.pressure_force == "energy_spiky")
