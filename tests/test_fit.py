@@ -531,3 +531,40 @@ def test_a_particle_mask_of_the_wrong_length_is_named_not_the_targets():
     r.forward()
     with pytest.raises(ValueError, match=rf"particles is a boolean mask of {n - 1} entries, the positions {n} particles"):
         r.backward(loss)
+
+
+def test_a_step_size_beyond_any_parameter_range_is_refused_before_any_rollout(dough_target):
+    """``lr = 1e300`` stepped the log of a positive parameter past the floats: the fit failed
+    mid-run with the material's refusal of an infinite value. It is refused by name first."""
+    truth, dt, steps, frames, target = dough_target
+    for name in ("lr", "lr_end"):
+        with pytest.raises(ValueError, match=rf"{name} = 1e\+300 is not allowed: must be in \(0, 10\]"):
+            fit(_dough_block(800.0, 60.0), target, ["yield_stress"], steps=steps, dt=dt, frames=frames,
+                **{name: 1e300})
+
+
+def _viscous_block(viscosity):
+    model = _dough_block(100.0, 50.0)
+    model.set_material(0, model.materials[0].replace(viscosity=viscosity))
+    return model
+
+
+@pytest.mark.parametrize("worlds", [False, True])
+def test_trial_values_a_material_refuses_are_failed_trials_not_errors(worlds):
+    """A viscosity fitted from 0 is a linear coordinate, and the multi-start box around the
+    guess (+-4) or the global stage's samples propose negative viscosities, which the
+    material refuses: the fit stopped with that refusal (the global stage, or the worlds'
+    one launch for every start). Each such trial is now a failed one, noted in the history;
+    a start whose first point is refused ends ("failed") and the others go on to the truth."""
+    dt = _viscous_block(5.0).stable_dt()
+    steps, frames = 40, [40]
+    target = Rollout(_viscous_block(5.0), steps, dt, frames=frames).forward()
+    options = dict(starts=3, worlds=True) if worlds else dict(samples=4, starts=2)
+    result = fit(_viscous_block(0.0), PositionLoss(target, frames=frames), ["viscosity"], steps=steps, dt=dt,
+                 iterations=6, lr=1.0, progress=False, diagnostics=False, seed=0, **options)
+    refused = [h for h in result.history if "refused: Material.viscosity" in h.get("note", "")]
+    assert refused, [h.get("note") for h in result.history]
+    assert all(h["params"]["viscosity"][0] < 0 and h["loss"] == float("inf") for h in refused)
+    assert all(h["params"]["viscosity"][0] >= 0 for h in result.history if h not in refused)
+    assert np.isfinite(result.loss) and result.loss < result.history[0]["loss"]
+    assert result.params["viscosity"][0] == pytest.approx(5.0, rel=0.2)

@@ -302,3 +302,11 @@ def test_cli_fits_the_modulus_to_the_grounds_force_curve(tmp_path, capsys):
     assert doc["loss"] < 1e-6 * doc["initial_loss"]
     with pytest.raises(ValueError, match="--target-tool = 'plane1' is not allowed: .* holds the forces of plane0"):
         load_target(csv, tool="plane1")
+    # A refusal the fit finds itself (a host-evaluated force loss cannot run as worlds) is
+    # the run's one line: the experiment's header printed before it made it two.
+    status = main(["fit", str(guess), "--target", str(csv), "--target-tool", "plane0", "--params", "mu",
+                   "--starts", "2", "--worlds", "--output-dir", str(tmp_path / "w"), "--no-progress", "--no-usd"])
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert status == 2 and len(lines) == 1, lines
+    assert lines[0].startswith("warp-esph: error: ") and "worlds=True is not allowed with" in lines[0], lines
+    assert not (tmp_path / "w").exists()

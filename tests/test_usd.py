@@ -204,6 +204,19 @@ def test_append_resumes_and_replaces_later_frames(model, tmp_path):
         UsdWriter(tmp_path / "missing.usdc", model, 30, append=True)
 
 
+def test_a_writer_opened_for_another_model_is_named_not_the_state(model, tmp_path):
+    """A writer of another scene made the run fail at its first frame, blaming the state's
+    shape; it is refused by name before the run, and the file keeps nothing of it."""
+    b = SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), Material.preset("dough"), name="dough_block")
+    other = b.finalize()
+    writer = UsdWriter(tmp_path / "other.usdc", other, 30)
+    with pytest.raises(ValueError, match=r"writer is not allowed: it was opened for another model \(bodies "
+                                         r"\[\('dough_block', 64\)\], this one \[\('dough block', 36\), \('ball', 27\)\]\)"):
+        simulate(model, 2, fps=30, writer=writer, progress=False)
+    assert writer.closed and writer.frames_written == 0
+
+
 def test_writer_rejects_bad_arguments(model, tmp_path):
     with pytest.raises(ValueError, match="extension"):
         UsdWriter(tmp_path / "out.txt", model, 30)

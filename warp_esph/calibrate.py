@@ -146,17 +146,23 @@ def run_fit(args, out=None, err=None) -> int:
     if _arg(args, "output"):
         checks.output_place("--output", args.output)
 
+    # The experiments' lines wait for the fit's first message, which it gives once every
+    # option it checks itself has passed: a refusal stays the run's one line.
+    waiting: list[str] = []
+
     def log(message):
-        print(f"warp-esph fit: {message}", file=err, flush=True)
+        for line in [*waiting, message]:
+            print(f"warp-esph fit: {line}", file=err, flush=True)
+        waiting.clear()
 
     for e in exps:
         e.loss = loss_scale * e.loss if loss_scale != 1.0 else e.loss
     n_values = len(params) * len(_material_indices(exps[0].model, exps[0].materials or None))
     optimizer = _arg(args, "optimizer") or default_optimizer(n_values)
     for e in exps:
-        log(f"{e.scene.name}: {e.model.particle_count} particles, {e.frames} frames at {e.fps:g} fps, dt = {e.dt:.4g} s "
-            f"({e.frames * e.substeps} steps); fitting {', '.join(params)} with {optimizer} to {e.kinds} from "
-            f"{', '.join(str(p) for p in e.targets)}")
+        waiting.append(f"{e.scene.name}: {e.model.particle_count} particles, {e.frames} frames at {e.fps:g} fps, "
+                       f"dt = {e.dt:.4g} s ({e.frames * e.substeps} steps); fitting {', '.join(params)} with "
+                       f"{optimizer} to {e.kinds} from {', '.join(str(p) for p in e.targets)}")
     experiments = [Experiment(e.model, e.loss, steps=e.frames * e.substeps, dt=e.dt, materials=e.materials,
                               checkpoint_every=ck, weight=e.weight, noise=e.noise, name=e.scene.name) for e in exps]
     result = fit(experiments, None, params, iterations=args.iterations,

@@ -49,7 +49,7 @@ from . import checks
 from .builder import SceneBuilder
 from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, SumLoss, WorldLoss, is_tools_csv, read_tools_csv
 from .material import PRESSURE_BULK_SHARE, Material
-from .model import Model
+from .model import Model, check_material_precision
 from .rollout import PARAMETERS, Rollout
 
 __all__ = ["fit", "FitResult", "Experiment", "Adam", "memory_estimate", "choose_checkpointing", "latin_hypercube",
@@ -377,6 +377,11 @@ class _Run:
         return fitted
 
 
+class RefusedPoint(FloatingPointError):
+    """A point of optimiser space whose values the materials refuse; the optimisers treat it
+    as a failed trial (as a rollout that blew up), its reason kept in the history's note."""
+
+
 class _Problem:
     """The shared parameter vector of one or more experiments, in optimiser space.
 
@@ -443,8 +448,25 @@ class _Problem:
     def grad_z(self, p, grads: dict[str, np.ndarray]) -> np.ndarray:
         return np.concatenate([grads[n] * p[n] if self.spaces[n] == "log" else grads[n] * self.scales[n] for n in self.params])
 
+    def refusal(self, p) -> str | None:
+        """Why a material would refuse the values ``p``, or None. An optimiser's step too
+        long for the parameters' range (``exp`` past the floats, a parameter fitted in linear
+        space stepping below its range) is a failed trial, as a rollout that blew up is, and
+        not an error of the fit: it is refused here, before any value reaches the model."""
+        for r in self.runs:
+            for j, k in enumerate(r.idx):
+                try:
+                    m = r.model.materials[k].replace(**{n: float(p[n][j]) for n in self.params})
+                    check_material_precision(m, r.model.scalar)
+                except ValueError as e:
+                    return str(e)
+        return None
+
     def apply(self, z):
         p = self.from_z(z)
+        why = self.refusal(p)
+        if why is not None:
+            raise RefusedPoint(why)
         for r in self.runs:
             r.apply(p)
         return p
@@ -475,6 +497,9 @@ class _Problem:
 #: The most samples of a fit's global stage and local starts from them (each a forward run).
 MAX_SAMPLES = 10_000
 MAX_STARTS = 1_000
+#: The largest step size (``lr``, ``lr_end``): in optimiser space, where a positive
+#: parameter is its log, 10 is a factor e^10 = 2.2e4 in one step.
+MAX_LR = 10.0
 
 
 def _count(name: str, value) -> int:
@@ -486,6 +511,14 @@ def _count(name: str, value) -> int:
         ok = False
     if not ok:
         raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be an integer >= 0")
+    return v
+
+
+def _step_size(name: str, value) -> float:
+    v = checks.positive(name, value)
+    if v > MAX_LR:
+        raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be in (0, {MAX_LR:g}] (a step in "
+                         f"optimiser space, the log of a positive parameter: {MAX_LR:g} is a factor e^{MAX_LR:g})")
     return v
 
 
@@ -506,8 +539,8 @@ def check_options(*, params, iterations, lr, lr_end=None, clip=None, bounds=None
             raise ValueError(f"{flag('params')} entry {p!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
     if len(set(params)) != len(params):
         raise ValueError(f"{flag('params')} = {params!r} is not allowed: names must be distinct")
-    out = {"params": params, "iterations": _count(flag("iterations"), iterations), "lr": checks.positive(flag("lr"), lr),
-           "lr_end": None if lr_end is None else checks.positive(flag("lr_end"), lr_end),
+    out = {"params": params, "iterations": _count(flag("iterations"), iterations), "lr": _step_size(flag("lr"), lr),
+           "lr_end": None if lr_end is None else _step_size(flag("lr_end"), lr_end),
            "clip": None if clip is None else checks.positive(flag("clip"), clip),
            "optimizer": checks.choice(flag("optimizer"), optimizer, ("adam", "lbfgs", "gauss-newton")),
            "patience": checks.positive_int(flag("patience"), patience),
@@ -601,6 +634,8 @@ def fit(
       below ``gtol`` times its initial one; ``"stalled"`` when ``patience`` evaluations
       in a row did not lower the best loss (by 1e-9 relative); ``"iterations"`` at the
       cap; ``"flat"`` when the initial gradient is exactly zero (nothing to follow);
+      ``"failed"`` for a start other than the guess whose first point is not finite (its
+      rollout blew up, or the materials refuse the values: the history's ``note`` says);
       ``"tol"`` once the loss is below ``tol``; ``"callback"``.
     - Global first stage: ``samples = N > 0`` evaluates the loss alone (forward passes)
       at ``N`` Latin-hypercube points of optimiser space, within ``bounds`` or else within
@@ -653,10 +688,6 @@ def fit(
             for k, e in enumerate(exps)]
     for r in runs:
         r.setup_tie(params, tie_pressure)
-        mode = f"checkpoint every {r.rollout.segment} steps" if r.rollout.checkpointing else "full tape"
-        say(f"{r.name}: {r.model.particle_count} particles, {r.steps} steps of {r.dt:.4g} s; {mode}: "
-            f"~{r.memory / 2**20:.1f} MiB of Warp arrays "
-            f"({r.memory / (r.model.particle_count * r.steps):.0f} B per particle per step)")
     prob = _Problem(runs, params, bounds)
     if optimizer == "gauss-newton":
         from .diagnostics import leaf_terms  # noqa: PLC0415
@@ -667,6 +698,16 @@ def fit(
         if worlds:
             raise ValueError("worlds = True is not allowed with optimizer = 'gauss-newton': its starts run one after "
                              "the other (forward runs only)")
+    # The starts' worlds are made (and refused, where they cannot be) before any run and any
+    # message, so a refusal is the one thing a fit says.
+    track_count = min(starts, samples + 1) if samples else starts
+    use_worlds = worlds and track_count > 1
+    worlds_problem = _WorldsProblem(runs, prob, track_count, dtype, memory_limit) if use_worlds else None
+    for r in runs:
+        mode = f"checkpoint every {r.rollout.segment} steps" if r.rollout.checkpointing else "full tape"
+        say(f"{r.name}: {r.model.particle_count} particles, {r.steps} steps of {r.dt:.4g} s; {mode}: "
+            f"~{r.memory / 2**20:.1f} MiB of Warp arrays "
+            f"({r.memory / (r.model.particle_count * r.steps):.0f} B per particle per step)")
     history: list[dict] = []
     state = {"bar": None, "stage": "descent", "stop_all": None}
 
@@ -676,7 +717,7 @@ def fit(
         def __init__(self, index):
             self.index, self.best, self.best_p, self.since_best = index, math.inf, None, 0
 
-    def record(track, z, value, gz, seconds):
+    def record(track, z, value, gz, seconds, note=None):
         """Records one evaluation of ``track``'s start (history, best, callback); raises
         ``_Stop`` where the start ends; returns ``(value, gz, finite)`` for the optimiser."""
         p = prob.from_z(z)
@@ -693,6 +734,8 @@ def fit(
             state["guarded"] = total
         if track_count > 1:
             entry["start"] = track.index
+        if note:
+            entry["note"] = note
         history.append(entry)
         if not state.get("timed"):
             state["timed"] = True
@@ -730,9 +773,9 @@ def fit(
 
         def residuals(z, reset=False):
             t0 = time.perf_counter()
-            prob.apply(z)
-            parts = []
+            parts, note = [], None
             try:
+                prob.apply(z)
                 for r in prob.runs:
                     r.rollout.forward(**r.initial)
                     arrays = r.rollout.observations(numpy=True)
@@ -744,10 +787,11 @@ def fit(
                             leaf.value(r.rollout.observations())  # records the residual counts
                         parts.append(math.sqrt(r.weight * coef / leaf.residual_scale()) * leaf.residuals(arrays))
                 res = np.concatenate(parts)
-            except FloatingPointError:
+            except FloatingPointError as e:
                 res = np.full(1, np.inf)
+                note = _refused_note(e)
             value = float(res @ res) if np.isfinite(res).all() else math.inf
-            _, _, finite = record(track, z, value, None, time.perf_counter() - t0)
+            _, _, finite = record(track, z, value, None, time.perf_counter() - t0, note)
             return res, finite
 
         return residuals
@@ -755,14 +799,26 @@ def fit(
     def sequential_evaluate(track):
         def evaluate(z):
             t0 = time.perf_counter()
+            note = None
             try:
                 value, gz = prob.value_and_grad(z)
-            except FloatingPointError:
-                value, gz = math.inf, np.full(len(z), np.nan)
-            return record(track, z, value, gz, time.perf_counter() - t0)
+            except FloatingPointError as e:
+                value, gz, note = math.inf, np.full(len(z), np.nan), _refused_note(e)
+            return record(track, z, value, gz, time.perf_counter() - t0, note)
         return evaluate
 
     def descend(evaluate, z_start):
+        try:
+            return _descend(evaluate, z_start)
+        except FloatingPointError:
+            # A start of the global stage or the multi-start box whose first point fails
+            # (its rollout blows up, its materials refuse the values) ends alone; at the
+            # user's own guess it is an error.
+            if np.array_equal(z_start, prob.z0):
+                raise
+            return "failed"
+
+    def _descend(evaluate, z_start):
         try:
             if optimizer == "gauss-newton":
                 return _run_gauss_newton(evaluate, prob.project, z_start, iterations, max_step, GN_STEP, xtol)
@@ -788,13 +844,14 @@ def fit(
         scored = []
         t0 = time.perf_counter()
         for z in cands:
+            note = None
             try:
                 v = float(prob.value(z))
-            except FloatingPointError:
-                v = math.inf
+            except FloatingPointError as e:
+                v, note = math.inf, _refused_note(e)
             history.append({"iteration": len(history), "stage": "sample", "loss": v,
                             "params": {k: [float(x) for x in vv] for k, vv in prob.from_z(z).items()},
-                            "grad": None, "seconds": 0.0})
+                            "grad": None, "seconds": 0.0, **({"note": note} if note else {})})
             scored.append((v if math.isfinite(v) else math.inf, len(scored), z))
         say(f"global stage: {len(cands)} forward-only evaluations in {time.perf_counter() - t0:.3g} s; "
             f"best loss {min(s[0] for s in scored):.4g} (guess {scored[0][0]:.4g})")
@@ -804,8 +861,7 @@ def fit(
     elif starts > 1:
         # No sampled stage: the guess and starts - 1 Latin-hypercube points of the same box.
         start_points += [prob.project(lo + u * (hi - lo)) for u in latin_hypercube(starts - 1, len(prob.z0), rng)]
-    track_count = len(start_points)
-    use_worlds = worlds and track_count > 1
+    assert len(start_points) == track_count
     if use_worlds:
         say(f"multi-start: {track_count} starts as {track_count} worlds of one model per experiment")
     tracks = [_Track(k) for k in range(track_count)]
@@ -819,8 +875,7 @@ def fit(
                             dynamic_ncols=True, desc=f"fit ({optimizer})")
     try:
         if use_worlds:
-            stops = _lockstep(tracks, start_points, descend, _WorldsProblem(runs, prob, track_count, dtype, memory_limit),
-                              record)
+            stops = _lockstep(tracks, start_points, descend, worlds_problem, record)
         else:
             for track, z_start in zip(tracks, start_points):
                 stop = descend(residual_evaluate(track) if optimizer == "gauss-newton" else sequential_evaluate(track), z_start)
@@ -912,8 +967,17 @@ class _WorldsProblem:
         (``{world: z}``); the other worlds keep their last parameters."""
         t0 = time.perf_counter()
         prob, W, k = self.prob, self.W, self.prob.k
+        refused = {}
         for w, z in batch.items():
-            self.p[w] = prob.from_z(z)
+            p = prob.from_z(z)
+            why = prob.refusal(p)
+            if why is None:
+                self.p[w] = p
+            else:
+                # That start's trial fails alone; its world reruns its last values.
+                refused[w] = f"refused: {why}"
+                if self.p[w] is None:
+                    self.p[w] = prob.from_z(prob.z0)
         values = np.zeros(W)
         gz = {w: np.zeros(len(prob.z0)) for w in batch}
         try:
@@ -927,8 +991,10 @@ class _WorldsProblem:
         except FloatingPointError:
             values[:] = math.inf
             gz = {w: np.full(len(prob.z0), np.nan) for w in batch}
+        for w in refused:
+            values[w], gz[w] = math.inf, np.full(len(prob.z0), np.nan)
         seconds = time.perf_counter() - t0
-        return {w: (float(values[w]), gz[w], seconds) for w in batch}
+        return {w: (float(values[w]), gz[w], seconds, refused.get(w)) for w in batch}
 
 
 def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record) -> list[str]:
@@ -980,9 +1046,9 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record) -> 
             results = worlds.evaluate(batch)
             out = {}
             for w in sorted(batch):
-                value, gz, seconds = results[w]
+                value, gz, seconds, note = results[w]
                 try:
-                    out[w] = record(tracks[w], batch[w], value, gz, seconds)
+                    out[w] = record(tracks[w], batch[w], value, gz, seconds, note)
                 except BaseException as e:  # noqa: BLE001 (_Stop ends that start, in its thread)
                     out[w] = e
             with cv:
@@ -1018,6 +1084,11 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h"
 
 
+def _refused_note(error: FloatingPointError) -> str | None:
+    """The history's note for a trial the materials refused (None for a blown-up rollout)."""
+    return f"refused: {error}" if isinstance(error, RefusedPoint) else None
+
+
 class _Stop(Exception):
     """Raised inside an evaluation to end the fit (callback, tol or stalled)."""
 
@@ -1043,7 +1114,8 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, history, xtol=
             if good is None:
                 raise FloatingPointError(f"the loss or its gradient is not finite at the initial guess (loss = {value})")
             opt.lr *= 0.5
-            history[-1]["note"] = f"non-finite; back to the last finite point, lr = {opt.lr:g}"
+            why = history[-1].get("note")
+            history[-1]["note"] = (f"{why}; " if why else "non-finite; ") + f"back to the last finite point, lr = {opt.lr:g}"
             z = good
             continue
         good = z.copy()

@@ -302,6 +302,10 @@ def _first_bad(model: Model, state: State, monitor: DivergenceMonitor | None = N
     return None
 
 
+def _body_layout(model: Model) -> list[tuple[str, int]]:
+    return [(b.name, b.count) for b in model.bodies]
+
+
 def simulate(
     model: Model,
     frames: int,
@@ -366,6 +370,11 @@ def simulate(
         if writer is not None:
             if not callable(getattr(writer, "write_frame", None)):
                 raise ValueError(f"writer = {writer!r} is not allowed: it must have a write_frame(frame_index, state) method")
+            wmodel = getattr(writer, "model", None)
+            if isinstance(wmodel, Model) and _body_layout(wmodel) != _body_layout(model):
+                # A UsdWriter holds its model's bodies and their particle counts.
+                raise ValueError(f"writer is not allowed: it was opened for another model (bodies "
+                                 f"{_body_layout(wmodel)}, this one {_body_layout(model)}); open it with this model")
             wfps = getattr(writer, "fps", None)
             if wfps is not None and not math.isclose(float(wfps), fps, rel_tol=1e-9):
                 raise ValueError(f"fps = {fps:g} is not allowed: the writer was opened with fps = {float(wfps):g}")
