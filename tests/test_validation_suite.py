@@ -78,6 +78,63 @@ def test_the_plug_target_is_read_for_each_yield_stress_on_its_own():
     assert _plug_row({(0.5, 16): (0.95, 1.2)})[2] == "no (S = 0.5; held: none)"
 
 
+def test_the_yield_stress_a_slump_fit_recovers_inverts_the_measured_piles():
+    """``slump_yield_ratio``: on piles that rest at a fixed share of the 1-D height the fit of
+    a height recovers the S whose pile has it exactly (bisection to 1e-12), in either
+    interpolation; a height no S in [0.02, 0.95] reaches is nan; a ratio that varies with S
+    is followed between the measured piles."""
+    from benchmarks.validation_report import one_d_height, slump_yield_ratio
+
+    assert one_d_height(0.2) == pytest.approx(0.2 * (1.0 + math.log(5.0)))
+    piles = {S: 0.9 * one_d_height(S) for S in (0.1, 0.2, 0.3, 0.5)}
+    for S, true in ((0.2, 0.2), (0.2, 0.26), (0.3, 0.15), (0.5, 0.45)):
+        for log_s in (False, True):
+            assert slump_yield_ratio(piles, 0.9 * one_d_height(true), S, log_s) == pytest.approx(true / S, rel=1e-9)
+    # Read against the 1-D height itself the fit must ask for a stronger material.
+    assert slump_yield_ratio(piles, one_d_height(0.2), 0.2) > 1.1
+    assert math.isnan(slump_yield_ratio(piles, 1.5, 0.2)) and math.isnan(slump_yield_ratio(piles, 0.01, 0.2))
+    varying = {0.1: 1.0 * one_d_height(0.1), 0.3: 0.8 * one_d_height(0.3)}  # 0.9 at S = 0.2 by interpolation
+    assert slump_yield_ratio(varying, 0.9 * one_d_height(0.2), 0.2) == pytest.approx(1.0, rel=1e-9)
+
+
+def test_the_report_judges_the_recovered_yield_stress_against_the_continuum_on_its_base(tmp_path):
+    """The report's row "a yield stress fitted to a slump is the continuum's": the finest
+    resolution of the particle floor's piles against the MPM's finest grid at rest on the slip
+    base (a finer grid not at rest is passed over), within 10 %; the section lists each
+    floor against its base."""
+    import json
+
+    from benchmarks import validation_report
+    from benchmarks.validation_report import continuum_slumps, one_d_height
+
+    def pile(S, n, share, floor="particles"):
+        return {"case": "slump", "S": S, "resolution": n, "elastic_force": "variational", "floor": floor,
+                "theory_h_over_H0": one_d_height(S), "h_over_H0": share * one_d_height(S),
+                "thickness_over_H0": share * one_d_height(S), "top_rate_pct_H0_per_s": 0.0, "kinetic_over_MgH0": 0.0,
+                "at_rest": True, "duration": 8.0, "particles": 100 * n, "ratio_to_theory": 1.0, "fraction_at_yield": 0.5,
+                "plug_particles": 0, "plug_unyielded_fraction": float("nan"), "radius_over_R0": 2.0,
+                "radius_over_spread_theory": 0.9, "time_history": [0.0, 8.0], "h_history": [1.0, share], "run": 0}
+
+    def mpm(S, cells, share, floor="slip", at_rest=True):
+        return {"S": S, "aspect": 1.0, "plasticity": "Bingham (Perzyna)", "floor": floor, "res_cells_per_H0": cells,
+                "thickness_over_H0": share * one_d_height(S), "at_rest": at_rest, "duration": 8.0}
+
+    continuum = {"slumps": [mpm(S, 16, 0.85) for S in (0.1, 0.2, 0.3)] + [mpm(0.2, 32, 0.5, at_rest=False)]}
+    assert continuum_slumps(continuum)["slip"][0.2] == (16, pytest.approx(0.85 * one_d_height(0.2)), True)
+    (tmp_path / "mpm_slump.json").write_text(json.dumps(continuum))
+    for coarse, fine, verdict in ((0.80, 0.85, "yes"), (0.85, 0.95, "no")):
+        rows = [pile(S, 8, coarse) for S in (0.1, 0.2, 0.3)] + [pile(S, 12, fine) for S in (0.1, 0.2, 0.3)]
+        doc = {"runs": [{"command": "rows", "machine": "x86_64", "python": "3.11", "wall_s": 1.0}], "results": rows}
+        md, _ = validation_report.write(rows, tmp_path, doc)
+        text = md.read_text()
+        target = next(line for line in text.splitlines() if line.startswith("| a yield stress fitted to a slump"))
+        assert f"| {verdict} | R1 |" in target and "S = 0.2 at 12 across" in target, target
+        if verdict == "yes":
+            assert "S = 0.2 at 12 across 1.000" in target, target
+        assert "## The yield stress a slump fit recovers" in text
+        assert "| particles | poly6 | 8 | 0.2 |" in text and "slip, H0 / 16 |" in text
+
+
 def test_the_convergence_verdict_recovers_a_power_law_and_refuses_what_is_not_one():
     # The report's "converging" (docs/validation.md): h(n) = h_inf + C n^-p through the last
     # three resolutions, 12/16/24 being equal steps in the spacing.
