@@ -543,28 +543,54 @@ def test_a_step_size_beyond_any_parameter_range_is_refused_before_any_rollout(do
                 **{name: 1e300})
 
 
-def _viscous_block(viscosity):
+def _block_with(**changes):
     model = _dough_block(100.0, 50.0)
-    model.set_material(0, model.materials[0].replace(viscosity=viscosity))
+    model.set_material(0, model.materials[0].replace(**changes))
     return model
 
 
+@pytest.fixture(scope="module")
+def lam_target():
+    """A target of lam = -3000 Pa (nu = -0.43 at mu = 5000: -2 mu / 3 = -3333 is the least
+    lam a material takes), 40 steps."""
+    dt = 0.5 * _block_with(lam=-3000.0).stable_dt()
+    return dt, Rollout(_block_with(lam=-3000.0), 40, dt, frames=[40]).forward()
+
+
 @pytest.mark.parametrize("worlds", [False, True])
-def test_trial_values_a_material_refuses_are_failed_trials_not_errors(worlds):
-    """A viscosity fitted from 0 is a linear coordinate, and the multi-start box around the
-    guess (+-4) or the global stage's samples propose negative viscosities, which the
-    material refuses: the fit stopped with that refusal (the global stage, or the worlds'
-    one launch for every start). Each such trial is now a failed one, noted in the history;
-    a start whose first point is refused ends ("failed") and the others go on to the truth."""
-    dt = _viscous_block(5.0).stable_dt()
-    steps, frames = 40, [40]
-    target = Rollout(_viscous_block(5.0), steps, dt, frames=frames).forward()
-    options = dict(starts=3, worlds=True) if worlds else dict(samples=4, starts=2)
-    result = fit(_viscous_block(0.0), PositionLoss(target, frames=frames), ["viscosity"], steps=steps, dt=dt,
-                 iterations=6, lr=1.0, progress=False, diagnostics=False, seed=0, **options)
-    refused = [h for h in result.history if "refused: Material.viscosity" in h.get("note", "")]
-    assert refused, [h.get("note") for h in result.history]
-    assert all(h["params"]["viscosity"][0] < 0 and h["loss"] == float("inf") for h in refused)
-    assert all(h["params"]["viscosity"][0] >= 0 for h in result.history if h not in refused)
-    assert np.isfinite(result.loss) and result.loss < result.history[0]["loss"]
-    assert result.params["viscosity"][0] == pytest.approx(5.0, rel=0.2)
+def test_trial_values_a_material_refuses_are_failed_trials_not_errors(lam_target, worlds):
+    """lam fitted from -1000 is a linear coordinate: the multi-start box (+-8 scales) and
+    Adam's long steps propose values below -2 mu / 3, which the material refuses. They
+    stopped the fit with that refusal; each is now a failed trial (loss inf, noted), Adam
+    steps back with half the step on that start alone (with worlds the note lands on the
+    start's own entry, not on the last one recorded), a start whose first point is refused
+    ends "failed", and the others reach the truth. Both schedules give the same history."""
+    dt, target = lam_target
+    result = fit(_block_with(lam=-1000.0), PositionLoss(target, frames=[40]), ["lam"], steps=40, dt=dt, iterations=6,
+                 lr=3.0, optimizer="adam", starts=3, sample_range=8.0, seed=1, worlds=worlds, progress=False,
+                 diagnostics=False)
+    assert result.starts == ["iterations", "failed", "iterations"]
+    refused = [h for h in result.history if h.get("note", "").startswith("refused: Material.lam")]
+    assert all(h["loss"] == float("inf") and h["params"]["lam"][0] < -10000.0 / 3.0 for h in refused)
+    assert [h["start"] for h in refused if "back to the last finite point" in h["note"]] == [0, 0, 2]
+    assert [h["note"].rsplit("lr = ", 1)[1] for h in refused if "back to" in h["note"]] == ["1.5", "0.75", "1.5"]
+    assert all(h["params"]["lam"][0] > -10000.0 / 3.0 for h in result.history if h not in refused)
+    assert result.params["lam"][0] == pytest.approx(-3000.0, rel=0.1)
+
+
+def test_a_value_fitted_from_zero_stays_in_its_range_and_bounds_a_material_refuses_are_errors(lam_target):
+    """A viscosity fitted from 0 (linear) is bounded below by 0 unless bounds say otherwise:
+    the global stage, the starts' box and the diagnostics' differences (which stopped a fit
+    that had run, at -0.001) stay at or above it. A bound a material refuses is refused
+    before any run, as is a guess the bounds clip to a value no material takes."""
+    dt, target = lam_target
+    model = _block_with(lam=-3000.0, viscosity=0.0)
+    result = fit(model, PositionLoss(target, frames=[40]), ["viscosity"], steps=40, dt=dt, iterations=2, samples=3,
+                 starts=2, progress=False)
+    assert min(h["params"]["viscosity"][0] for h in result.history) == 0.0
+    assert result.diagnostics is not None and result.params["viscosity"][0] >= 0.0
+    model = _block_with(lam=-3000.0, viscosity=0.0)  # the fit left its result in the first
+    with pytest.raises(ValueError, match=r"bounds\['viscosity'\] = \(-4, 4\) is not allowed: at -4, Material.viscosity"):
+        fit(model, target, ["viscosity"], steps=40, dt=dt, frames=[40], bounds={"viscosity": (-4.0, 4.0)})
+    with pytest.raises(ValueError, match=r"bounds\['lam'\] = \(-5000, -3500\) is not allowed: at -5000, Material.lam"):
+        fit(model, target, ["lam"], steps=40, dt=dt, frames=[40], bounds={"lam": (-5000.0, -3500.0)})

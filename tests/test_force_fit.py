@@ -295,6 +295,8 @@ def test_cli_fits_the_modulus_to_the_grounds_force_curve(tmp_path, capsys):
                    "--iterations", "15", "--samples", "8", "--output-dir", str(out), "--no-progress", "--no-usd"])
     captured = capsys.readouterr()
     assert status == 0, captured.err
+    # The experiment's line, held until the fit's own checks passed, comes first.
+    assert 0 <= captured.err.find("frames at") < captured.err.find("MiB of Warp arrays"), captured.err
     doc = json.loads((out / "fit.json").read_text())
     stages = [h["stage"] for h in doc["history"]]
     assert stages[:9] == ["sample"] * 9 and set(stages[9:]) == {"descent"}  # the guess and 8 samples, then one descent

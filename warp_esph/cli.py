@@ -546,7 +546,7 @@ def add_fit_arguments(parser):
     parser.add_argument("--iterations", type=int, default=50, metavar="N",
                         help="gradient evaluations after the first, line-search trials included (default 50)")
     parser.add_argument("--lr", type=float, default=0.1, metavar="LR",
-                        help="Adam step size, relative; L-BFGS: its first step (default 0.1)")
+                        help="Adam step size, relative; L-BFGS: its first step (default 0.1, at most 10)")
     parser.add_argument("--bounds", action="append", default=[], metavar="NAME=LO:HI", help="bounds of a parameter; repeatable")
     parser.add_argument("--clip", type=float, metavar="C", help="clip the gradient norm (log space) to C")
     parser.add_argument("--target-frames", action="append", metavar="F,G",

@@ -57,6 +57,8 @@ __all__ = ["fit", "FitResult", "Experiment", "Adam", "memory_estimate", "choose_
 
 #: Parameters that must stay > 0 (log space always).
 _POSITIVE = ("mu", "yield_stress", "flow_rate")
+#: Parameters every material takes from 0 up: bounded below by 0 when fitted in linear space.
+_NON_NEGATIVE = ("viscosity", "pressure_stiffness")
 
 
 class Adam:
@@ -107,7 +109,10 @@ class FitResult:
     ``warp_esph.diagnostics.Diagnostics`` at the optimum (None when not asked for).
     ``models``/``experiment_materials``: per experiment of a joint fit. Each descent
     entry of the history records ``guarded``: the particle-steps without a fit for too few
-    neighbours in that evaluation (paper §4; not recorded for a worlds fit).
+    neighbours in that evaluation (paper §4; not recorded for a worlds fit). ``starts``:
+    each start's ``stopped``, or ``failed`` for a start other than the guess whose first
+    point failed (its rollout blew up, or its materials refuse the values). An entry's
+    ``note`` says why a trial failed (``refused: ...``) and how Adam stepped back.
     """
 
     params: dict[str, np.ndarray]
@@ -340,7 +345,9 @@ class _Run:
             self.tied = list(self.idx) if tie_pressure else []
         self.tie = bool(self.tied) and ("mu" in params or "lam" in params) and "pressure_stiffness" not in params
 
-    def apply(self, p):
+    def written(self, p) -> dict[str, np.ndarray]:
+        """The parameter arrays ``apply`` writes for the fitted values ``p`` (the tied
+        pressure stiffness included)."""
         v = self.values
         full = {name: _full(v[name], self.idx, val) for name, val in p.items()}
         if self.tie:
@@ -349,7 +356,22 @@ class _Run:
             kp = v["pressure_stiffness"].copy()
             kp[self.tied] = self.kp_share[self.tied] * (lam[self.tied] + 2.0 * mu[self.tied] / 3.0) / self.rho[self.tied]
             full["pressure_stiffness"] = kp
-        self.rollout.set_parameters(full)
+        return full
+
+    def refusal(self, p) -> str | None:
+        """Why a fitted material would refuse the values ``p`` (``Material``'s own checks and
+        the model's precision), or None."""
+        full = self.written(p)
+        for k in sorted(set(self.idx) | set(self.tied if self.tie else [])):
+            try:
+                m = self.model.materials[k].replace(**{n: float(a[k]) for n, a in full.items()})
+                check_material_precision(m, self.model.scalar)
+            except ValueError as e:
+                return str(e)
+        return None
+
+    def apply(self, p):
+        self.rollout.set_parameters(self.written(p))
 
     def grads(self, params, grads) -> dict[str, np.ndarray]:
         """Gradients of the fitted values (chain rule through the pressure tie)."""
@@ -413,7 +435,24 @@ class _Problem:
             if self.spaces[name] == "log" and lo <= 0.0 and lo != -math.inf:
                 raise ValueError(f"bounds[{name!r}] = ({lo}, {hi}) is not allowed: need lo > 0 for a positive parameter")
             self.bounds[name] = (lo, hi)
-        self.z0 = self.project(self.to_z({name: values[name][first.idx] for name in params}))
+        for name in params:
+            # A value fitted in linear space whose range starts at 0 (a viscosity, a pressure
+            # stiffness fitted from 0) stays in it: the global stage, the starts and the
+            # diagnostics' differences do not step below what every material takes.
+            if self.spaces[name] == "linear" and name in _NON_NEGATIVE and name not in self.bounds:
+                self.bounds[name] = (0.0, math.inf)
+        guess = {name: values[name][first.idx] for name in params}
+        for name, (lo, hi) in self.bounds.items():
+            # A bound a material refuses would only make refused trials: said at once.
+            for end in (lo, hi):
+                if math.isfinite(end):
+                    why = self.refusal(guess | {name: np.full(self.k, end)})
+                    if why is not None:
+                        raise ValueError(f"bounds[{name!r}] = ({lo:g}, {hi:g}) is not allowed: at {end:g}, {why}")
+        why = self.refusal(self.from_z(self.to_z(guess)))
+        if why is not None:
+            raise ValueError(f"the initial values are not allowed within the bounds: {why}")
+        self.z0 = self.project(self.to_z(guess))
         #: One label per entry of z: ``name`` or ``name[k]`` with several materials.
         self.labels = [name if self.k == 1 else f"{name}[{j}]" for name in params for j in range(self.k)]
 
@@ -450,16 +489,13 @@ class _Problem:
 
     def refusal(self, p) -> str | None:
         """Why a material would refuse the values ``p``, or None. An optimiser's step too
-        long for the parameters' range (``exp`` past the floats, a parameter fitted in linear
-        space stepping below its range) is a failed trial, as a rollout that blew up is, and
+        long for the parameters' range (``exp`` past the floats, ``lam`` fitted in linear
+        space stepping below -2 mu / 3) is a failed trial, as a rollout that blew up is, and
         not an error of the fit: it is refused here, before any value reaches the model."""
         for r in self.runs:
-            for j, k in enumerate(r.idx):
-                try:
-                    m = r.model.materials[k].replace(**{n: float(p[n][j]) for n in self.params})
-                    check_material_precision(m, r.model.scalar)
-                except ValueError as e:
-                    return str(e)
+            why = r.refusal(p)
+            if why is not None:
+                return why
         return None
 
     def apply(self, z):
@@ -634,8 +670,7 @@ def fit(
       below ``gtol`` times its initial one; ``"stalled"`` when ``patience`` evaluations
       in a row did not lower the best loss (by 1e-9 relative); ``"iterations"`` at the
       cap; ``"flat"`` when the initial gradient is exactly zero (nothing to follow);
-      ``"failed"`` for a start other than the guess whose first point is not finite (its
-      rollout blew up, or the materials refuse the values: the history's ``note`` says);
+
       ``"tol"`` once the loss is below ``tol``; ``"callback"``.
     - Global first stage: ``samples = N > 0`` evaluates the loss alone (forward passes)
       at ``N`` Latin-hypercube points of optimiser space, within ``bounds`` or else within
@@ -716,6 +751,7 @@ def fit(
 
         def __init__(self, index):
             self.index, self.best, self.best_p, self.since_best = index, math.inf, None, 0
+            self.entry = None  # its last history entry
 
     def record(track, z, value, gz, seconds, note=None):
         """Records one evaluation of ``track``'s start (history, best, callback); raises
@@ -737,6 +773,7 @@ def fit(
         if note:
             entry["note"] = note
         history.append(entry)
+        track.entry = entry
         if not state.get("timed"):
             state["timed"] = True
             per = "" if not use_worlds else f" for {track_count} worlds at once"
@@ -807,23 +844,31 @@ def fit(
             return record(track, z, value, gz, time.perf_counter() - t0, note)
         return evaluate
 
-    def descend(evaluate, z_start):
+    def descend(evaluate, z_start, track):
         try:
-            return _descend(evaluate, z_start)
-        except FloatingPointError:
+            return _descend(evaluate, z_start, track)
+        except _FirstPointFailed as e:
             # A start of the global stage or the multi-start box whose first point fails
             # (its rollout blows up, its materials refuse the values) ends alone; at the
-            # user's own guess it is an error.
+            # user's own guess it is an error, with the reason the history noted.
             if np.array_equal(z_start, prob.z0):
-                raise
+                why = track.entry.get("note") if track.entry else None
+                raise FloatingPointError(f"{e}: {why}" if why else str(e)) from None
             return "failed"
 
-    def _descend(evaluate, z_start):
+    def _descend(evaluate, z_start, track):
+        def annotate(text):
+            # The note goes on this start's last entry (with worlds, history[-1] may be
+            # another start's).
+            if track.entry is not None:
+                why = track.entry.get("note")
+                track.entry["note"] = (f"{why}; " if why else "non-finite; ") + text
+
         try:
             if optimizer == "gauss-newton":
                 return _run_gauss_newton(evaluate, prob.project, z_start, iterations, max_step, GN_STEP, xtol)
             if optimizer == "adam":
-                return _run_adam(evaluate, prob.project, z_start, iterations, lr, lr_end, clip, history, xtol, gtol)
+                return _run_adam(evaluate, prob.project, z_start, iterations, lr, lr_end, clip, annotate, xtol, gtol)
             return _run_lbfgs(evaluate, prob.project, z_start, iterations, lr, max_step, memory=lbfgs_memory,
                               xtol=xtol, gtol=gtol)
         except _Stop as e:
@@ -878,7 +923,8 @@ def fit(
             stops = _lockstep(tracks, start_points, descend, worlds_problem, record)
         else:
             for track, z_start in zip(tracks, start_points):
-                stop = descend(residual_evaluate(track) if optimizer == "gauss-newton" else sequential_evaluate(track), z_start)
+                stop = descend(residual_evaluate(track) if optimizer == "gauss-newton" else sequential_evaluate(track), z_start,
+                               track)
                 stops.append(stop)
                 if stop == "callback":
                     break
@@ -962,9 +1008,10 @@ class _WorldsProblem:
             self.runs.append(wr)
         self.p = [None] * worlds
 
-    def evaluate(self, batch: dict[int, np.ndarray]) -> dict[int, tuple[float, np.ndarray, float]]:
-        """Loss, optimiser-space gradient and seconds of each start in ``batch``
-        (``{world: z}``); the other worlds keep their last parameters."""
+    def evaluate(self, batch: dict[int, np.ndarray]) -> dict[int, tuple[float, np.ndarray, float, str | None]]:
+        """Loss, optimiser-space gradient, seconds and note (why the materials refused the
+        values, or None) of each start in ``batch`` (``{world: z}``); the other worlds keep
+        their last parameters."""
         t0 = time.perf_counter()
         prob, W, k = self.prob, self.W, self.prob.k
         refused = {}
@@ -1024,7 +1071,7 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record) -> 
             return answer
 
         try:
-            stops[w] = descend(evaluate, start_points[w])
+            stops[w] = descend(evaluate, start_points[w], tracks[w])
         except BaseException as e:  # noqa: BLE001 (handed to the calling thread)
             errors.append(e)
         finally:
@@ -1089,11 +1136,15 @@ def _refused_note(error: FloatingPointError) -> str | None:
     return f"refused: {error}" if isinstance(error, RefusedPoint) else None
 
 
+class _FirstPointFailed(FloatingPointError):
+    """An optimiser's first point is not finite: the start cannot begin."""
+
+
 class _Stop(Exception):
     """Raised inside an evaluation to end the fit (callback, tol or stalled)."""
 
 
-def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, history, xtol=1e-6, gtol=0.0) -> str:
+def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol=1e-6, gtol=0.0) -> str:
     opt = Adam(len(z), lr=lr)
     decay = 1.0 if lr_end is None or iterations <= 1 else (lr_end / lr) ** (1.0 / (iterations - 1))
     good = None
@@ -1112,10 +1163,9 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, history, xtol=
             # The rollout blew up or the gradient is not finite: back to the last good
             # point with half the step size.
             if good is None:
-                raise FloatingPointError(f"the loss or its gradient is not finite at the initial guess (loss = {value})")
+                raise _FirstPointFailed(f"the loss or its gradient is not finite at the initial guess (loss = {value})")
             opt.lr *= 0.5
-            why = history[-1].get("note")
-            history[-1]["note"] = (f"{why}; " if why else "non-finite; ") + f"back to the last finite point, lr = {opt.lr:g}"
+            annotate(f"back to the last finite point, lr = {opt.lr:g}")
             z = good
             continue
         good = z.copy()
@@ -1139,7 +1189,7 @@ def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-
     """
     f, g, finite = evaluate(z)
     if not finite:
-        raise FloatingPointError(f"the loss or its gradient is not finite at the initial guess (loss = {f})")
+        raise _FirstPointFailed(f"the loss or its gradient is not finite at the initial guess (loss = {f})")
     g0 = float(np.abs(g).max())
     if g0 == 0.0:
         return "flat"
@@ -1218,7 +1268,7 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6)
     many steps. ``iterations`` counts runs after the first, Jacobian runs included."""
     r, finite = residuals(z, reset=True)
     if not finite:
-        raise FloatingPointError("the loss is not finite at the initial guess")
+        raise _FirstPointFailed("the loss is not finite at the initial guess")
     f = float(r @ r)
     lam, nu = 1e-3, 2.0
     evals = 0
