@@ -615,3 +615,104 @@ def test_target_body_picks_the_run_usd_and_leaves_a_force_log_beside_it_alone(tm
     assert main(["fit", str(guess), "--target", f"{run}_tools.csv", "--target-body", "dough", *common]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--target-body = 'dough' is not allowed: it picks a body of a run's USD target" in err, err
+
+
+def test_cli_fit_refuses_what_would_lose_data_or_mistime_the_targets(tmp_path, capsys, dough_scene):
+    """From a fuzz of the command: each of these exited 0 (or with a traceback), and each is
+    now one line and exit 2, before the fit, with every input file left as it was.
+
+    - ``-o`` onto the target run, the scene file, or ``--output-dir`` holding the target as
+      ``fitted.usdc``: replaced by the fit's JSON or run;
+    - ``--fps`` other than the rate the run's USD recorded: frame k fitted at k / fps against
+      a frame recorded at k / 30 s;
+    - a ``.npz`` whose frames are not whole (1.5 read as frame 1) or whose one frame holds
+      another number of particles (fitted as a point cloud), complex positions;
+    - ``--target-frames`` with -1 (a KeyError traceback), or only frame 0 (blamed --frames);
+    - an experiments entry whose scene is not a name (a TypeError traceback);
+    - ``--worlds`` without starts, ``--starts`` beyond the samples, one parameter bounded
+      twice, a nameless bound: options the fit would ignore, or silently overrule."""
+    from warp_esph.cli import main
+    from warp_esph.usd import UsdFrames
+
+    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(truth), "-o", str(run), "--frames", "3", "--dtype", "float64", "--no-progress"]) == 0
+    frames = UsdFrames(str(run))
+    x = np.stack([frames.particles(k)["points"] for k in range(1, 4)])
+    np.savez(tmp_path / "float_frames.npz", positions=x, frames=np.array([1.5, 2.0, 3.0]))
+    np.savez(tmp_path / "one_short.npz", positions=x[2:, :-4], frames=[3])
+    np.savez(tmp_path / "complex.npz", positions=x.astype(complex), frames=[1, 2, 3])
+    np.savez(tmp_path / "good.npz", positions=x, frames=[1, 2, 3])
+    (tmp_path / "exps.json").write_text(json.dumps([{"scene": 3, "target": "run.usdc"}]))
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "fitted.usdc").write_bytes(run.read_bytes())
+    before = {p: p.read_bytes() for p in (run, guess, tmp_path / "out" / "fitted.usdc")}
+    common = ["--iterations", "1", "--no-progress", "--no-diagnostics", "--no-usd", "--output-dir", str(tmp_path / "o")]
+    cases = [
+        (["--target", str(run), "-o", str(run)], "run.usdc' is not allowed: it is --target"),
+        (["--target", str(run), "-o", str(guess)], "guess.toml' is not allowed: it is the scene"),
+        (["--target", str(tmp_path / "out" / "fitted.usdc"), "--iterations", "1", "--no-progress", "--no-diagnostics",
+          "--output-dir", str(tmp_path / "out")], "fitted.usdc = .* is not allowed: it is --target"),
+        (["--target", str(run), "--fps", "60"], "run.usdc was recorded at 30 fps; leave --fps out or give 30"),
+        (["--target", str(tmp_path / "float_frames.npz")], "its 'frames' must be whole frame indices, not [1.5, 2.0, 3.0]"),
+        (["--target", str(tmp_path / "one_short.npz")], "has 60 particles per frame, the scene 64"),
+        (["--target", str(tmp_path / "complex.npz")], "its positions must be real numbers, not complex128 values"),
+        (["--target", str(tmp_path / "good.npz"), "--target-frames=-1,2,3"],
+         "--target-frames = '-1,2,3' is not allowed: use comma-separated frame indices >= 0"),
+        (["--target", str(run), "--target-frames", "0"], "--target-frames = '0' is not allowed: the targets hold only frame 0"),
+        (["--target", str(run), "--experiments", str(tmp_path / "exps.json")],
+         "experiment #1: scene = 3 is not allowed: must be a scene name or a .toml path"),
+        (["--target", str(run), "--worlds"], "--worlds is not allowed with --starts = 1"),
+        (["--target", str(run), "--starts", "3", "--samples", "1"], "--starts = 3 is not allowed with --samples = 1"),
+        (["--target", str(run), "--bounds", "yield_stress=1:2", "--bounds", "yield_stress=3:4"],
+         "yield_stress already has bounds 1:2"),
+        (["--target", str(run), "--bounds", "=1:2"], "--bounds '=1:2' is not allowed: use NAME=LO:HI"),
+    ]
+    import re
+
+    for extra, message in cases:
+        capsys.readouterr()
+        args = ["fit", str(guess), *extra] + ([] if "--output-dir" in extra else common)
+        status = main(args)
+        err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert status == 2 and len(err) == 1 and err[0].startswith("warp-esph: error: "), (extra, err)
+        assert re.search(message if ".*" in message else re.escape(message), err[0]), (extra, err)
+    assert all(p.read_bytes() == data for p, data in before.items())
+    assert not (tmp_path / "o").exists()
+
+
+def test_an_interrupted_fit_keeps_its_evaluations_and_the_best_so_far(tmp_path, capsys, dough_scene, monkeypatch):
+    """Ctrl-C during ``warp-esph fit`` kept nothing (no fit.json, no history): the command
+    now writes the evaluations so far and the best of them (``stopped`` "interrupted"),
+    then exits 130 as an interrupted run does. Here the third evaluation is interrupted."""
+    from warp_esph import fit as fit_module
+    from warp_esph.cli import main
+
+    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(truth), "-o", str(run), "--frames", "3", "--dtype", "float64", "--no-progress"]) == 0
+    calls = []
+    original = fit_module._Problem.value_and_grad
+
+    def interrupted_third(self, z, losses=None):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return original(self, z, losses)
+
+    monkeypatch.setattr(fit_module._Problem, "value_and_grad", interrupted_third)
+    out = tmp_path / "fit"
+    capsys.readouterr()
+    status = main(["fit", str(guess), "--target", str(run), "--iterations", "10", "--optimizer", "adam", "--lr", "0.2",
+                   "--no-progress", "--no-usd", "--output-dir", str(out)])
+    err = capsys.readouterr().err
+    assert status == 130, err
+    doc = json.loads((out / "fit.json").read_text())
+    assert doc["stopped"] == "interrupted" and len(doc["history"]) == 2
+    assert doc["loss"] == min(h["loss"] for h in doc["history"]) < doc["initial_loss"]
+    assert len((out / "history.csv").read_text().strip().splitlines()) == 3
+    assert "interrupted after 2 evaluations: wrote the best so far" in err

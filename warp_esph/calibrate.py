@@ -97,6 +97,21 @@ def _arg(args, name, default=None):
     return getattr(args, name, default)
 
 
+def _refuse_overwriting_inputs(outputs, inputs) -> None:
+    """Refuse a file the fit writes that is one it reads (``-o`` onto the target or the scene
+    file, ``--output-dir`` holding the target as fitted.usdc): each was replaced by the
+    fit's JSON or run, and the measurement lost. ``outputs``/``inputs``: ``(what, path)``."""
+    read = {}
+    for what, path in inputs:
+        if os.path.isfile(path):
+            read.setdefault(os.path.realpath(path), (what, path))
+    for what, path in outputs:
+        hit = read.get(os.path.realpath(path))
+        if hit is not None:
+            raise ValueError(f"{what} = {path!r} is not allowed: it is {hit[0]} {hit[1]!r} of this fit, which the fit "
+                             "would overwrite; write the results elsewhere")
+
+
 def run_fit(args, out=None, err=None) -> int:
     """Run ``warp-esph fit`` from parsed ``args``; returns 0. Raises ``ValueError`` on bad input.
     ``out``/``err``: the report and the progress messages (default: the current
@@ -106,7 +121,7 @@ def run_fit(args, out=None, err=None) -> int:
     import warp as wp  # noqa: PLC0415
 
     from .cli import _parse_bounds  # noqa: PLC0415
-    from .fit import Experiment, _material_indices, check_options, fit, load_target  # noqa: PLC0415
+    from .fit import Experiment, FitInterrupted, _material_indices, check_options, fit, load_target  # noqa: PLC0415
     from .scenes import load_scene  # noqa: PLC0415
     from .simulate import resolve_timestep  # noqa: PLC0415
 
@@ -121,6 +136,9 @@ def run_fit(args, out=None, err=None) -> int:
                          sample_range=_arg(args, "sample_range", 4.0), seed=_arg(args, "seed", 5), noise=_arg(args, "noise"),
                          memory_limit=memory_limit, flag=lambda name: "--" + name.replace("_", "-"))
     params = opts["params"]
+    if _arg(args, "worlds", False) and opts["starts"] < 2:
+        raise ValueError(f"--worlds is not allowed with --starts = {opts['starts']}: it runs several starts at once "
+                         "as worlds of one model; give --starts K > 1")
     dtype = {"float32": wp.float32, "float64": wp.float64}[args.dtype]
     ck = args.checkpoint_every if args.checkpoint_every is not None else "auto"
     if ck != "auto":
@@ -133,7 +151,15 @@ def run_fit(args, out=None, err=None) -> int:
     specs = [("", main_spec)]
     if _arg(args, "experiments"):
         specs += _read_experiments(args.experiments)
-    exps = [_experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep) for where, spec in specs]
+    exps = []
+    for where, spec in specs:
+        try:
+            exps.append(_experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep))
+        except ValueError as e:
+            # Every refusal of an experiment of the file names it (fps, dt, a target's).
+            if where and not str(e).startswith(where):
+                raise ValueError(f"{where}{e}") from None
+            raise
 
     # Where the results go, checked before the fit (a folder in the way was found after it).
     folder = _arg(args, "output_dir") or f"fit_{exps[0].scene.name}"
@@ -145,6 +171,14 @@ def run_fit(args, out=None, err=None) -> int:
             raise ValueError(f"--output-dir = {folder!r} is not allowed: {name} in it is a folder; the fit writes a file there")
     if _arg(args, "output"):
         checks.output_place("--output", args.output)
+    _refuse_overwriting_inputs(
+        [(f"--output-dir {folder}: {name}", os.path.join(folder, name)) for name in names]
+        + ([("--output", args.output)] if _arg(args, "output") else []),
+        [("the scene", str(spec["scene"])) for _, spec in specs]
+        + [("--target", str(t)) for _, spec in specs for t in (spec["target"] if isinstance(spec["target"], (list, tuple))
+                                                                else [spec["target"]])]
+        + [("--cameras", str(spec["cameras"])) for _, spec in specs if spec.get("cameras")]
+        + ([("--experiments", str(args.experiments))] if _arg(args, "experiments") else []))
 
     # The experiments' lines wait for the fit's first message, which it gives once every
     # option it checks itself has passed: a refusal stays the run's one line.
@@ -165,22 +199,31 @@ def run_fit(args, out=None, err=None) -> int:
                        f"{optimizer} to {e.kinds} from {', '.join(str(p) for p in e.targets)}")
     experiments = [Experiment(e.model, e.loss, steps=e.frames * e.substeps, dt=e.dt, materials=e.materials,
                               checkpoint_every=ck, weight=e.weight, noise=e.noise, name=e.scene.name) for e in exps]
-    result = fit(experiments, None, params, iterations=args.iterations,
-                 lr=args.lr, bounds=bounds, clip=args.clip, memory_limit=memory_limit,
-                 optimizer=optimizer, progress=not args.no_progress, samples=_arg(args, "samples", 0),
-                 starts=_arg(args, "starts", 1), worlds=_arg(args, "worlds", False), sample_range=_arg(args, "sample_range", 4.0), seed=_arg(args, "seed", 5),
-                 patience=_arg(args, "patience", 20), diagnostics=not _arg(args, "no_diagnostics", False),
-                 noise=_arg(args, "noise"), log=log)
     scene, model, frames, fps, dt = exps[0].scene, exps[0].model, exps[0].frames, exps[0].fps, exps[0].dt
     scale = exps[0].scale
     targets = exps[0].targets
-
     meta = {"scene": scene.name, "scale": scale, "targets": [os.path.abspath(str(p)) for p in targets], "fps": fps, "dt": dt,
             "frames": frames, "params_fitted": params, "optimizer": optimizer, "jitter": jitter, "loss_scale": loss_scale,
             "support_radius": model.support_radius,
             "experiments": [{"scene": e.scene.name, "scale": e.scale, "targets": [os.path.abspath(str(p)) for p in e.targets],
                              "fps": e.fps, "dt": e.dt, "frames": e.frames, "weight": e.weight, "noise": e.noise}
                             for e in exps]}
+    try:
+        result = fit(experiments, None, params, iterations=args.iterations,
+                     lr=args.lr, bounds=bounds, clip=args.clip, memory_limit=memory_limit,
+                     optimizer=optimizer, progress=not args.no_progress, samples=_arg(args, "samples", 0),
+                     starts=_arg(args, "starts", 1), worlds=_arg(args, "worlds", False),
+                     sample_range=_arg(args, "sample_range", 4.0), seed=_arg(args, "seed", 5),
+                     patience=_arg(args, "patience", 20), diagnostics=not _arg(args, "no_diagnostics", False),
+                     noise=_arg(args, "noise"), log=log)
+    except FitInterrupted as e:
+        # Ctrl-C: the evaluations so far and the best of them are kept, as a run keeps its
+        # finished frames; the exit is still the interrupt's.
+        if e.result is not None:
+            written = write_outputs(e.result, folder, meta, json_path=_arg(args, "output"))
+            log(f"interrupted after {len(e.result.history)} evaluations: wrote the best so far (loss "
+                f"{e.result.loss:.4g}) to {', '.join(written)}")
+        raise KeyboardInterrupt from None
     written = write_outputs(result, folder, meta, json_path=_arg(args, "output"))
     print(f"fit {result.termination}", file=out)
     print(f"loss {result.initial_loss:.4g} -> {result.loss:.4g} in {result.evaluations} evaluations", file=out)
@@ -225,6 +268,15 @@ def _read_experiments(path) -> list[tuple[str, dict]]:
         for key in ("scene", "target"):
             if key not in spec:
                 raise ValueError(f"{where}missing key {key!r}")
+        # 3 was a TypeError traceback, null loaded the default scene.
+        if not isinstance(spec["scene"], str) or not spec["scene"].strip():
+            raise ValueError(f"{where}scene = {checks.shorten(spec['scene'])!r} is not allowed: must be a scene name "
+                             "or a .toml path")
+        t = spec["target"]
+        if not (isinstance(t, str) and t.strip()) and not (
+                isinstance(t, list) and t and all(isinstance(x, str) and x.strip() for x in t)):
+            raise ValueError(f"{where}target = {checks.shorten(t)!r} is not allowed: must be a file path or a "
+                             "non-empty list of them")
         spec = {"scale": 1.0, "weight": 1.0, **spec}
         checks.positive(f"{where}weight", spec["weight"])  # negative: its loss maximised; checked before any scene
 
@@ -283,18 +335,35 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         if fspec is not None and usd_spec is None:
             try:
                 t.frames = [int(f) for f in str(fspec).split(",")]
+                if min(t.frames) < 0:
+                    raise ValueError
             except ValueError:
-                raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: use comma-separated integers") from None
+                # -1 ended in a KeyError traceback (.npz) or was dropped (a force log).
+                raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: use comma-separated frame "
+                                 "indices >= 0") from None
             if t.kind == "positions" and len(t.frames) != np.asarray(t.data).shape[0]:
                 raise ValueError(f"{where}--target-frames has {len(t.frames)} entries, the target "
                                  f"{np.asarray(t.data).shape[0]} frames")
         loaded.append(("file", path, t))
     file_targets = [t for kind, _, t in loaded if kind == "file"]
     fps = spec.get("fps")
-    fps = fps if fps is not None else next((t.fps for t in file_targets if t.fps is not None), scene.fps)
+    recorded = [(t.path, t.fps) for t in file_targets if t.fps is not None]
+    if fps is not None and recorded:
+        path, rate = recorded[0]
+        # Frame k of the fit is compared with the target's frame k: another rate fitted them
+        # at other times than they were recorded (and 0.001 planned millions of steps).
+        flag = "fps" if where else "--fps"
+        if not math.isclose(checks.positive(f"{where}{flag}", fps), rate, rel_tol=1e-9):
+            raise ValueError(f"{where}{flag} = {fps!r} is not allowed: the target {path} was recorded at {rate:g} fps; "
+                             f"leave --fps out or give {rate:g}")
+    fps = fps if fps is not None else next((rate for _, rate in recorded), scene.fps)
     dt = spec.get("dt")
     substeps, dt = resolve_timestep(model, fps, dt=dt if dt is not None else scene.dt)
     shown = [f for t in file_targets for f in (t.frames or [])]
+    if spec.get("frames") is None and shown and max(shown) < 1:
+        # It blamed --frames, which was not given.
+        raise ValueError(f"{where}--target-frames = {tframes[0] if tframes else 0!r} is not allowed: the targets hold "
+                         "only frame 0, the initial state, which says nothing about the material")
     frames = spec.get("frames")
     frames = checks.positive_int(f"{where}--frames", frames if frames is not None else (max(shown) if shown else scene.frames))
     if frames * substeps > checks.MAX_INT:  # a rollout's step count (Rollout's steps), named by what set it

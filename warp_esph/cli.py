@@ -589,9 +589,16 @@ def _parse_bounds(items) -> dict:
         try:
             name, rng = item.split("=", 1)
             lo, hi = rng.split(":", 1)
-            out[name.strip()] = (float(lo), float(hi))
+            lo, hi, name = float(lo), float(hi), name.strip()
+            if not name:
+                raise ValueError
         except ValueError:
             raise ValueError(f"--bounds {item!r} is not allowed: use NAME=LO:HI, e.g. flow_rate=1:1000") from None
+        if name in out:
+            # The last one silently won.
+            raise ValueError(f"--bounds {item!r} is not allowed: {name} already has bounds {out[name][0]:g}:{out[name][1]:g}; "
+                             "give one range per parameter")
+        out[name] = (lo, hi)
     return out
 
 

@@ -139,6 +139,7 @@ class FitResult:
         "flat": "stopped at once: the gradient is exactly zero, the loss does not depend on the fitted parameters "
                 "here (e.g. no particle reaches the yield stress); start elsewhere or observe another experiment",
         "callback": "stopped by the callback",
+        "interrupted": "interrupted (Ctrl-C): the best of the evaluations so far, not a minimum",
     }
 
     @property
@@ -588,6 +589,10 @@ def check_options(*, params, iterations, lr, lr_end=None, clip=None, bounds=None
     if out["samples"] > MAX_SAMPLES:
         # Each is a forward run, and the hypercube is drawn at once: 1e11 asked for 745 GiB.
         raise ValueError(f"{flag('samples')} = {out['samples']} is not allowed: must be at most {MAX_SAMPLES}")
+    if out["samples"] and out["starts"] > out["samples"] + 1:
+        # The descents start from the best of the guess and the samples: the rest were dropped.
+        raise ValueError(f"{flag('starts')} = {out['starts']} is not allowed with {flag('samples')} = {out['samples']}: "
+                         f"the starts are the best of the guess and the samples, at most {out['samples'] + 1}")
     out["seed"] = _count(flag("seed"), seed)
     for name, rng in (bounds or {}).items():
         if name not in params:
@@ -888,16 +893,19 @@ def fit(
         cands = [prob.z0] + [lo + u * (hi - lo) for u in cube]
         scored = []
         t0 = time.perf_counter()
-        for z in cands:
-            note = None
-            try:
-                v = float(prob.value(z))
-            except FloatingPointError as e:
-                v, note = math.inf, _refused_note(e)
-            history.append({"iteration": len(history), "stage": "sample", "loss": v,
-                            "params": {k: [float(x) for x in vv] for k, vv in prob.from_z(z).items()},
-                            "grad": None, "seconds": 0.0, **({"note": note} if note else {})})
-            scored.append((v if math.isfinite(v) else math.inf, len(scored), z))
+        try:
+            for z in cands:
+                note = None
+                try:
+                    v = float(prob.value(z))
+                except FloatingPointError as e:
+                    v, note = math.inf, _refused_note(e)
+                history.append({"iteration": len(history), "stage": "sample", "loss": v,
+                                "params": {k: [float(x) for x in vv] for k, vv in prob.from_z(z).items()},
+                                "grad": None, "seconds": 0.0, **({"note": note} if note else {})})
+                scored.append((v if math.isfinite(v) else math.inf, len(scored), z))
+        except KeyboardInterrupt:
+            raise FitInterrupted(_interrupted_result(history, runs, params)) from None
         say(f"global stage: {len(cands)} forward-only evaluations in {time.perf_counter() - t0:.3g} s; "
             f"best loss {min(s[0] for s in scored):.4g} (guess {scored[0][0]:.4g})")
         scored.sort(key=lambda s: (s[0], s[1]))
@@ -928,6 +936,8 @@ def fit(
                 stops.append(stop)
                 if stop == "callback":
                     break
+    except KeyboardInterrupt:
+        raise FitInterrupted(_interrupted_result(history, runs, params)) from None
     finally:
         if state["bar"] is not None:
             state["bar"].close()
@@ -972,8 +982,14 @@ def fit(
 
 
 # ------------------------------------------------------------ multi-start over worlds
+def _host_terms(loss) -> list:
+    """The terms of ``loss`` evaluated on the host (reaction forces, slumps)."""
+    own = [loss] if getattr(loss, "_host", False) else []
+    return own + [h for _, t in getattr(loss, "terms", ()) for h in _host_terms(t)]
+
+
 def _has_host_terms(loss) -> bool:
-    return bool(getattr(loss, "_host", False)) or any(_has_host_terms(t) for _, t in getattr(loss, "terms", ()))
+    return bool(_host_terms(loss))
 
 
 class _WorldsProblem:
@@ -994,9 +1010,12 @@ class _WorldsProblem:
             if isinstance(r.loss, WorldLoss) or r.model.world_count != 1:
                 raise ValueError(f"{r.name}: worlds=True is not allowed with a model of worlds or a WorldLoss: it "
                                  f"makes the worlds itself from a one-world model")
-            if _has_host_terms(r.loss):
-                raise ValueError(f"{r.name}: worlds=True is not allowed with {type(r.loss).__name__}: its terms are "
-                                 f"evaluated on the host for one model (use worlds=False)")
+            host = _host_terms(r.loss)
+            if host:
+                # Named by the term (a force curve), not by the sum that holds it.
+                raise ValueError(f"{r.name}: worlds=True is not allowed with {type(host[0]).__name__} (a "
+                                 f"{'reaction-force' if 'Reaction' in type(host[0]).__name__ else 'host-evaluated'} "
+                                 "target): it is evaluated on the host for one model (use worlds=False)")
             model = replicate_worlds(r.model, worlds)
             exp = Experiment(model, WorldLoss(model, r.loss), steps=r.steps, dt=r.dt,
                              checkpoint_every=r.rollout.segment if r.rollout.checkpointing else None, weight=r.weight)
@@ -1134,6 +1153,31 @@ def _duration(seconds: float) -> str:
 def _refused_note(error: FloatingPointError) -> str | None:
     """The history's note for a trial the materials refused (None for a blown-up rollout)."""
     return f"refused: {error}" if isinstance(error, RefusedPoint) else None
+
+
+class FitInterrupted(KeyboardInterrupt):
+    """Ctrl-C during a fit. ``result``: a ``FitResult`` of the evaluations so far, at the
+    best of them (``stopped`` "interrupted"; the model holds its values), or None before
+    the first finite one. The command line writes it before it exits."""
+
+    def __init__(self, result):
+        super().__init__()
+        self.result = result
+
+
+def _interrupted_result(history, runs, params):
+    finite = [h for h in history if h["loss"] is not None and math.isfinite(h["loss"])]
+    if not finite:
+        return None
+    best = min(finite, key=lambda h: h["loss"])
+    p = {k: np.array(v, dtype=np.float64) for k, v in best["params"].items()}
+    fitted = [r.finish(p, params) for r in runs]
+    result = FitResult(params=p, materials=fitted[0], material_indices=runs[0].idx, loss=best["loss"],
+                       initial_loss=history[0]["loss"], history=history, model=runs[0].model, stopped="interrupted")
+    result.models = [r.model for r in runs]
+    result.experiment_materials = fitted
+    result.evaluations = sum(1 for h in history if h["stage"] == "descent")
+    return result
 
 
 class _FirstPointFailed(FloatingPointError):
@@ -1396,8 +1440,10 @@ class Target:
             if not keep:
                 raise ValueError(f"target {self.path} holds only frame 0 (the initial state), which says nothing about the material")
             return PositionLoss({frame_steps[self.frames[k]]: pos[k] for k in keep}, particles=idx)
-        if self.kind == "positions" and np.asarray(self.data).shape[0] == 1 and np.asarray(self.data).shape[1] != model.particle_count:
-            # One (M, 3) array of another size: a point cloud, not particle positions.
+        if (self.kind == "positions" and str(self.path).lower().endswith(".npy") and np.asarray(self.data).shape[0] == 1
+                and np.asarray(self.data).shape[1] != model.particle_count):
+            # One (M, 3) .npy array of another size: a point cloud, not particle positions (a
+            # .npz holds 'positions', which are the particles' whatever their number).
             self.kind, self.data = "points", np.asarray(self.data)[0]
         if self.kind == "positions":
             pos = np.asarray(self.data)
@@ -1454,6 +1500,8 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
     - anything else ``meshio`` (or ``.usd``) reads: a mesh when it has faces, else a cloud.
     """
     p = os.fspath(path)
+    if os.path.isdir(p):
+        raise ValueError(f"target {p} is not allowed: it is a folder; give a target file")
     if not os.path.isfile(p):
         raise FileNotFoundError(f"target file {p} does not exist")
     ext = os.path.splitext(p)[1].lower()
@@ -1473,9 +1521,15 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         if ext == ".npz":
             if "positions" not in data:
                 raise ValueError(f"target {p} is not allowed: a .npz target needs a 'positions' array (has {list(data.keys())})")
-            pos = np.asarray(data["positions"], dtype=np.float64)
+            pos = _real_array(p, "positions", data["positions"])
             if "frames" in data:
-                frames = [int(f) for f in np.atleast_1d(data["frames"])]
+                given = np.atleast_1d(data["frames"])
+                # 1.5 was truncated to frame 1: a frame is a whole index.
+                if given.dtype.kind not in "iuf" or given.ndim != 1 or (given.dtype.kind == "f" and (
+                        not np.isfinite(given).all() or (given != np.round(given)).any())):
+                    raise ValueError(f"target {p} is not allowed: its 'frames' must be whole frame indices, "
+                                     f"not {checks.shorten(given.tolist())!r}")
+                frames = [int(f) for f in given]
             if "fps" in data:
                 rate = np.asarray(data["fps"])
                 if rate.size != 1 or rate.dtype.kind not in "iuf":
@@ -1483,7 +1537,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
                                      f"{rate.shape} ({rate.dtype})")
                 fps = float(rate.reshape(()))
         else:
-            pos = np.asarray(data, dtype=np.float64)
+            pos = _real_array(p, "positions", data)
         shape = pos.shape
         one_frame = pos.ndim == 2
         if one_frame:
@@ -1546,6 +1600,15 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
 
         return Target("mesh", load_mesh(p), None, None, p)
     return Target("points", np.asarray(m.points, dtype=np.float64)[:, :3], None, None, p)
+
+
+def _real_array(path: str, name: str, a) -> np.ndarray:
+    """``a`` as float64 where it holds real numbers; complex values (numpy dropped their
+    imaginary parts with a warning) and text are refused by the file's name."""
+    a = np.asarray(a)
+    if a.dtype.kind not in "iuf":
+        raise ValueError(f"target {path} is not allowed: its {name} must be real numbers, not {a.dtype} values")
+    return a.astype(np.float64)
 
 
 def read_arrays(path: str):
