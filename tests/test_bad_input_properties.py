@@ -444,3 +444,68 @@ def test_damaged_npz_leaves_no_file_open(good_files, tmp_path, reader):
                 load_target(path) if reader == "target" else load_masks(path, cams)
             gc.collect()
         assert not [w for w in seen if issubclass(w.category, ResourceWarning)], [str(w.message) for w in seen]
+
+
+def _mask_camera():
+    from warp_esph.silhouette import PinholeCamera
+
+    return PinholeCamera(4, 3, 10.0, 10.0, 1.5, 1.0, np.eye(3), (0.0, 0.0, 1.0), name="cam")
+
+
+def test_a_non_finite_or_all_negative_mask_is_refused_by_its_file(tmp_path):
+    """A NaN mask compared False with its threshold everywhere and was read as an empty
+    silhouette, as was a mask of negative values (a signed distance? a [-1, 1] image?
+    its inside cannot be told). Both are refused naming the file (and the array of an
+    .npz); all zeros stays an empty view, which a body out of view legitimately gives."""
+    from warp_esph.silhouette import SilhouetteLoss, load_masks
+
+    cam = _mask_camera()
+    nan = np.ones((3, 4))
+    nan[1, 2] = np.nan
+    np.save(tmp_path / "nan.npy", nan)
+    with pytest.raises(ValueError, match=r"^mask .*nan\.npy is not allowed: it has 1 non-finite values \(first nan at "
+                                         r"row 1, column 2\); must be finite numbers"):
+        load_masks(tmp_path / "nan.npy", [cam], 1)
+    np.savez(tmp_path / "inf.npz", cam_2=np.full((3, 4), np.inf))
+    with pytest.raises(ValueError, match=r"^mask .*inf\.npz:cam_2 is not allowed: it has 12 non-finite values"):
+        load_masks(tmp_path / "inf.npz", [cam])
+    np.save(tmp_path / "negative.npy", -np.ones((3, 4)))
+    with pytest.raises(ValueError, match=r"^mask .*negative\.npy is not allowed: its values are all <= 0 and some "
+                                         r"negative \(max -1\)"):
+        load_masks(tmp_path / "negative.npy", [cam], 1)
+    np.save(tmp_path / "empty.npy", np.zeros((3, 4)))
+    assert load_masks(tmp_path / "empty.npy", [cam], 1)[1][0].max() == 0.0
+    signed = -np.ones((3, 4))
+    signed[0, 0] = 1.0  # a [-1, 1] image with something inside: the threshold rule reads it
+    np.save(tmp_path / "signed.npy", signed)
+    assert load_masks(tmp_path / "signed.npy", [cam], 1)[1][0].sum() == 1.0
+    # Given as arrays, a mask is compared with an occupancy in [0, 1] as it is.
+    for bad, shown in ((np.nan, "nan"), (255.0, "255.0"), (-0.5, "-0.5")):
+        m = np.zeros((3, 4))
+        m[2, 3] = bad
+        with pytest.raises(ValueError, match=rf"^mask of camera 'cam' at step 5 is not allowed: it has 1 values outside "
+                                             rf"\[0, 1\] \(first {shown} at row 2, column 3\)"):
+            SilhouetteLoss({5: [m]}, [cam], radius=0.01)
+    assert SilhouetteLoss({5: [np.zeros((3, 4))]}, [cam], radius=0.01).frames == (5,)
+    for w in (-1.0, 0.0):
+        with pytest.raises(ValueError, match=rf"^weight = {w!r} is not allowed: must be > 0"):
+            SilhouetteLoss({5: [np.zeros((3, 4))]}, [cam], radius=0.01, weight=w)
+
+
+@given(values=st.lists(st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.just(0.0), st.just(-1.0)),
+                       min_size=12, max_size=12))
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+def test_any_npy_mask_is_a_binary_mask_or_refused_by_its_file(tmp_path, values):
+    """Whatever a .npy mask holds, it is read as a 0/1 mask, or refused by the file's name."""
+    from warp_esph.silhouette import load_masks
+
+    path = tmp_path / "m.npy"
+    a = np.array(values).reshape(3, 4)
+    np.save(path, a)
+    try:
+        m = load_masks(path, [_mask_camera()], 1)[1][0]
+    except ValueError as e:
+        assert str(e).startswith(f"mask {path} is not allowed: "), e
+        assert not np.isfinite(a).all() or (a.max() <= 0.0 and a.min() < 0.0)
+    else:
+        assert np.isfinite(a).all() and set(np.unique(m)) <= {0.0, 1.0}

@@ -351,6 +351,17 @@ def test_camera_file_and_masks(tmp_path):
 
     loss = load_silhouette_target(path, tmp_path / "masks.npz", None, frames=6, substeps=10)
     assert loss.frames == (30,) and loss.radius == 0.01 and [c.name for c in loss.cameras] == ["front", "side"]
+    # A misspelt key was ignored; a radius that is no number was a float() error naming nothing;
+    # a mask image given two frames was an int() error.
+    for change, message in (({"cameras": [dict(doc["cameras"][0], fov=60)]}, "camera 'front': key 'fov' is not allowed"),
+                            ({"bar": 2}, "key 'bar' is not allowed: the keys are cameras, radius, opacity"),
+                            ({"radius": "x"}, "radius = 'x' is not allowed: must be a number")):
+        path.write_text(json.dumps(dict(doc, **change)))
+        with pytest.raises(ValueError, match=message):
+            load_cameras(path)
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="--target-frames = '2,3' is not allowed with the mask image"):
+        load_silhouette_target(path, tmp_path / "masks.npz", "2,3", frames=6, substeps=10)
     doc["cameras"][0]["R"] = [[2, 0, 0], [0, 1, 0], [0, 0, 1]]
     path.write_text(json.dumps(doc))
     with pytest.raises(ValueError, match="not a rotation"):

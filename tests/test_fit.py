@@ -594,3 +594,50 @@ def test_a_value_fitted_from_zero_stays_in_its_range_and_bounds_a_material_refus
         fit(model, target, ["viscosity"], steps=40, dt=dt, frames=[40], bounds={"viscosity": (-4.0, 4.0)})
     with pytest.raises(ValueError, match=r"bounds\['lam'\] = \(-5000, -3500\) is not allowed: at -5000, Material.lam"):
         fit(model, target, ["lam"], steps=40, dt=dt, frames=[40], bounds={"lam": (-5000.0, -3500.0)})
+
+
+def test_the_rollout_fit_and_checkpoint_api_refuse_wrong_kinds_by_name(tmp_path):
+    """From a fuzz of the Python API: each of these was a TypeError, AttributeError or
+    KeyError out of the code that met it, or ran on without a word (NaN gradients, an F
+    that is no deformation, a negative plastic strain, a negative shear modulus set and
+    refused only at the next step as "the model's parameter arrays")."""
+    from warp_esph import checkpoint
+
+    model = _dough_block(100.0, 50.0)
+    n = model.particle_count
+    r = Rollout(model, 3, 1e-3, frames=[1, 3])
+    x = r.forward()
+    eye = np.tile(np.eye(3), (n, 1, 1))
+    cases = [
+        (lambda: r.backward(None), "grads = None is not allowed: give a warp_esph.losses.Loss"),
+        (lambda: r.set_parameters(["mu"]), r"values = \['mu'\] is not allowed: must be a mapping"),
+        (lambda: r.set_parameters({"mu": -1.0}), "values are not allowed for material 0: Material.mu = -1.0"),
+        (lambda: r.set_parameters({"mu": "soft"}), "mu = 'soft' is not allowed: must be numbers"),
+        (lambda: fit(model, PositionLoss({3: x[1]}), ["yield_stress"], steps=3, dt=1e-3, bounds=[(1, 2)]),
+         "bounds = .* is not allowed: must be a mapping"),
+        (lambda: fit(model, PositionLoss({3: x[1]}), ["yield_stress"], steps=3, dt=1e-3, log=5),
+         "log = 5 is not allowed: must be callable"),
+        (lambda: checkpoint.load_state(tmp_path / "none.npz", None), "model = None is not allowed"),
+        (lambda: checkpoint.save_state(tmp_path / "c.npz", model, model.state(), step=0, frame=0, run={"a": object()}),
+         "run is not allowed: it must hold JSON values"),
+        (lambda: r.backward([np.full((n, 3), np.nan)] * 2), "gradient for step 1 is not allowed: it has non-finite"),
+        (lambda: r.forward(F0=np.zeros((n, 3, 3))), "F0 is not allowed: particle 0 has det F = 0"),
+        (lambda: r.forward(F0=eye * np.array([1.0, 1.0, -1.0])), "F0 is not allowed: particle 0 has det F = -1"),
+        (lambda: r.forward(alpha0=-np.ones(n)), "alpha0 is not allowed: particle 0 has -1"),
+    ]
+    for call, message in cases:
+        with pytest.raises(ValueError, match=message):
+            call()
+    assert model.mu.numpy()[0] == 5.0e3  # the refused values were not written
+    np.testing.assert_array_equal(r.forward(F0=eye, alpha0=np.zeros(n)), x)
+
+
+def test_a_guess_outside_its_bounds_is_said_where_the_fit_starts(dough_target):
+    """Bounds that exclude the guess move the first evaluation (and the initial loss the fit
+    reports) to the nearest bound without a word; the log now says so."""
+    truth, dt, steps, frames, target = dough_target
+    said = []
+    result = fit(_dough_block(200.0, 60.0), target[:1], ["yield_stress"], steps=50, dt=dt, frames=frames[:1], iterations=0,
+                 bounds={"yield_stress": (300.0, 500.0)}, progress=False, diagnostics=False, log=said.append)
+    assert "the guess yield_stress = 200 lies outside its bounds 300:500: the fit starts at 300" in said, said
+    assert result.history[0]["params"]["yield_stress"] == [pytest.approx(300.0)]

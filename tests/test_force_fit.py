@@ -312,3 +312,130 @@ def test_cli_fits_the_modulus_to_the_grounds_force_curve(tmp_path, capsys):
     assert status == 2 and len(lines) == 1, lines
     assert lines[0].startswith("warp-esph: error: ") and "worlds=True is not allowed with" in lines[0], lines
     assert not (tmp_path / "w").exists()
+
+
+def test_a_loss_weight_or_scale_must_be_finite_and_positive():
+    """``PositionLoss(t, weight=-5)`` and ``-1 * loss`` made a fit maximise the misfit and
+    report it as a result; a zero weight or scale made a term that cannot inform it. Every
+    loss (its base class), ``k * loss`` and ``SumLoss`` refuse them by name."""
+    from warp_esph.losses import ChamferLoss, MeshLoss, SlumpLoss, SumLoss  # noqa: PLC0415
+
+    pts = np.zeros((4, 3))
+    tri = (np.eye(3), np.array([[0, 1, 2]]))
+    make = {
+        "PositionLoss": lambda w: PositionLoss(pts, frames=[1], weight=w),
+        "ChamferLoss": lambda w: ChamferLoss(pts, radius=0.1, frames=[1], weight=w),
+        "MeshLoss": lambda w: MeshLoss(tri, frames=[1], weight=w),
+        "ReactionForceLoss": lambda w: ReactionForceLoss(np.zeros((2, 3)), "plate", [10, 20], window=10, weight=w),
+        "SlumpLoss": lambda w: SlumpLoss(0.05, 0.1, 10, spacing=0.01, weight=w),
+    }
+    for name, new in make.items():
+        assert new(2.5).weight == 2.5, name
+        for w, allowed in ((-5, "must be > 0"), (0, "must be > 0"), (float("nan"), "must be a finite number"),
+                           (float("inf"), "must be a finite number")):
+            with pytest.raises(ValueError, match=rf"^weight = {w!r} is not allowed: {allowed}"):
+                new(w)
+    loss = make["PositionLoss"](1.0)
+    assert (2.0 * loss).terms[0][0] == 2.0 and (loss * 0.5).terms[0][0] == 0.5
+    for bad in (-1, 0, 0.0, -0.5):
+        with pytest.raises(ValueError, match=rf"^loss scale = {bad!r} is not allowed: must be > 0 \(a negative scale "
+                                             "makes a fit maximise the loss"):
+            bad * loss  # noqa: B018
+        with pytest.raises(ValueError, match=rf"^loss scale = {bad!r} is not allowed: must be > 0"):
+            loss * bad  # noqa: B018
+    with pytest.raises(ValueError, match=r"^terms\[1\] scale = -2.0 is not allowed: must be > 0"):
+        SumLoss([(1.0, loss), (-2.0, loss)])
+    with pytest.raises(ValueError, match=r"^terms\[0\] = 3 is not allowed: must be a \(scale, Loss\) pair"):
+        SumLoss([3])
+    with pytest.raises(ValueError, match=r"^terms\[0\] = \(1.0, 'x'\) is not allowed: its second item must be a "
+                                         "warp_esph.losses.Loss"):
+        SumLoss([(1.0, "x")])
+    # Two legal nested scales that overflow together.
+    with pytest.raises(ValueError, match=r"the scale of PositionLoss.* in a sum = inf is not allowed: the nested scales"):
+        1e200 * (1e200 * loss)  # noqa: B018
+
+
+def test_non_finite_position_or_cloud_targets_name_the_step_and_point():
+    """A NaN target point was refused as 'targets[124]', which reads as a point index; the
+    message names the step it is compared at and the first bad point."""
+    from warp_esph.losses import ChamferLoss  # noqa: PLC0415
+
+    cloud = np.zeros((5, 3))
+    cloud[2] = np.nan
+    with pytest.raises(ValueError, match=r"^targets at step 124 is not allowed: it has non-finite values \(first at "
+                                         r"point 2: \[nan, nan, nan\]\)"):
+        ChamferLoss(cloud, radius=0.1, frames=[124])
+    with pytest.raises(ValueError, match=r"^targets at step 7 is not allowed: it has non-finite values \(first at point 2"):
+        PositionLoss({7: cloud})
+
+
+def _tools_csv(path, rows):
+    """A reaction-force log as ``warp-esph run`` writes it (the columns the reader needs)."""
+    path.write_text("frame,time,tool,fx,fy,fz\n" + "".join(f"{r}\n" for r in rows))
+    return path
+
+
+GOOD_ROWS = ["0,0,plane0,0,0,0", "1,0.005,plane0,0,-1.5,0", "2,0.01,plane0,0,-2.5,0"]
+
+
+def test_a_force_log_row_repeated_negative_or_non_finite_is_refused_by_file_row_and_frame(tmp_path):
+    """Two rows of one tool for one frame were accepted (the last won), a negative frame was
+    dropped, and a NaN or 1e400 force was refused as 'targets with shape (2, 3) is not
+    allowed: must be (2, 3) finite newtons' naming no file. Each is refused where the log is
+    read, by the file, the row (line), the frame and the column."""
+    from warp_esph.losses import read_tools_csv  # noqa: PLC0415
+
+    ok = ReactionForceLoss.from_csv(_tools_csv(tmp_path / "ok.csv", GOOD_ROWS), "plane0", {1: 10, 2: 20})
+    assert ok.frames == (10, 20) and ok.targets[:, 1].tolist() == [-1.5, -2.5]
+    cases = {
+        "dup": (GOOD_ROWS + ["2,0.01,plane0,0,-9,0"],
+                r"dup\.csv, row 5: frame 2 of tool 'plane0' is not allowed: row 4 already gives it \(one row per tool "
+                r"and frame\)"),
+        "negative": (["-1,0,plane0,0,0,0"] + GOOD_ROWS,
+                     r"negative\.csv, row 2: frame = -1 is not allowed: frames are rendered frame indices >= 0"),
+        "nan": ([GOOD_ROWS[0], "1,0.005,plane0,0,nan,0", GOOD_ROWS[2]],
+                r"nan\.csv, row 3 \(frame 1, tool 'plane0'\): fy = 'nan' is not allowed: must be a finite number \(N\)"),
+        "huge": ([GOOD_ROWS[0], GOOD_ROWS[1], "2,0.01,plane0,0,-2.5,1e400"],
+                 r"huge\.csv, row 4 \(frame 2, tool 'plane0'\): fz = '1e400' is not allowed: must be a finite number"),
+        "time": ([GOOD_ROWS[0], "1,inf,plane0,0,-1.5,0"],
+                 r"time\.csv, row 3 \(frame 1, tool 'plane0'\): time = 'inf' is not allowed: must be a finite number \(s\)"),
+    }
+    for name, (rows, message) in cases.items():
+        path = _tools_csv(tmp_path / f"{name}.csv", rows)
+        with pytest.raises(ValueError, match=message):
+            ReactionForceLoss.from_csv(path, "plane0", {1: 10, 2: 20})
+        with pytest.raises(ValueError, match=message):
+            read_tools_csv(path)
+    # The same frame of two tools is two measurements, not a repeat.
+    both = _tools_csv(tmp_path / "both.csv", GOOD_ROWS + ["1,0.005,plate,0,1.5,0", "2,0.01,plate,0,2.5,0"])
+    assert len(read_tools_csv(both)) == 5
+    # Given directly, a non-finite target names its window and component, not a shape.
+    with pytest.raises(ValueError, match=r"^targets\[1\]\[2\] = nan is not allowed: must be a finite force \(N\) "
+                                         r"\(window ending at step 20, component z\)"):
+        ReactionForceLoss([[0.0, 0.0, 0.0], [0.0, 0.0, float("nan")]], "plate", [10, 20], window=10)
+
+
+def test_a_force_log_frame_steps_and_path_are_checked_by_name(tmp_path):
+    """``frame_steps`` missing a frame of the file ended in ``KeyError: 2``; a folder given
+    as the log ended in ``IsADirectoryError``."""
+    path = _tools_csv(tmp_path / "log.csv", GOOD_ROWS)
+    with pytest.raises(ValueError, match=r"^frame_steps = \{1: 31\} is not allowed: it has no step for frame 2 of tool "
+                                         r"'plane0' in .*log\.csv"):
+        ReactionForceLoss.from_csv(path, "plane0", {1: 31})
+    with pytest.raises(ValueError, match=r"^frame_steps = \[10, 20\] is not allowed: must map each rendered frame"):
+        ReactionForceLoss.from_csv(path, "plane0", [10, 20])
+    with pytest.raises(ValueError, match=r"^frame_steps\[2\] = 'x' is not allowed: must be an integer >= 1"):
+        ReactionForceLoss.from_csv(path, "plane0", {1: 10, 2: "x"})
+    with pytest.raises(ValueError, match=r"^frames = \[0, 1\] is not allowed: frames are >= 1"):
+        ReactionForceLoss.from_csv(path, "plane0", {0: 0, 1: 10}, frames=[0, 1])
+    folder = tmp_path / "run_tools.csv"
+    folder.mkdir()
+    with pytest.raises(ValueError, match=r"^force log .*run_tools\.csv is not allowed: it is a folder"):
+        ReactionForceLoss.from_csv(folder, "plane0", {1: 10})
+    # A missing file: FileNotFoundError naming it, as fit.load_target and silhouette.load_masks do.
+    with pytest.raises(FileNotFoundError, match=r"^force log .*nope\.csv does not exist"):
+        ReactionForceLoss.from_csv(tmp_path / "nope.csv", "plane0", {1: 10})
+    binary = tmp_path / "binary.csv"
+    binary.write_bytes(b"frame,time,tool,fx,fy,fz\n" + bytes(range(128, 256)))
+    with pytest.raises(ValueError, match=r"^force log .*binary\.csv cannot be read: .*\(a damaged or foreign file\?\)"):
+        ReactionForceLoss.from_csv(binary, "plane0", {1: 10})

@@ -81,6 +81,12 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
                              + (" (-1: not a function of the frame)" if name == "step" else ""))
     if run is not None and not isinstance(run, dict):
         raise ValueError(f"run = {checks.shorten(run)!r} is not allowed: must be a dict (the run record) or None")
+    if run is not None:
+        try:
+            json.dumps(run)
+        except (TypeError, ValueError) as e:
+            # It is stored as JSON: a value JSON cannot hold was a TypeError out of json.
+            raise ValueError(f"run is not allowed: it must hold JSON values (numbers, text, lists, dicts): {e}") from None
     checks.output_place("checkpoint path", path)
     checks.same_state(model, "state", state)
     model._check_parameter_values(model._read_parameters())
@@ -144,6 +150,11 @@ def load_state(path, model: Model) -> tuple[State, dict]:
     The model's material parameters are set to the checkpoint's. The checkpoint must
     come from the same scene: same particle count, bodies and precision.
     """
+    if not isinstance(model, Model):
+        from . import checks  # noqa: PLC0415
+
+        raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be the warp_esph.Model the checkpoint "
+                         "resumes")
     meta, arrays = read_checkpoint(path)
     where = f"checkpoint = {str(path)!r} is not allowed"
     _check_meta(where, meta)

@@ -594,6 +594,9 @@ def check_options(*, params, iterations, lr, lr_end=None, clip=None, bounds=None
         raise ValueError(f"{flag('starts')} = {out['starts']} is not allowed with {flag('samples')} = {out['samples']}: "
                          f"the starts are the best of the guess and the samples, at most {out['samples'] + 1}")
     out["seed"] = _count(flag("seed"), seed)
+    if bounds is not None and not isinstance(bounds, Mapping):
+        raise ValueError(f"{flag('bounds')} = {checks.shorten(bounds)!r} is not allowed: must be a mapping "
+                         "{name: (lo, hi)}")
     for name, rng in (bounds or {}).items():
         if name not in params:
             raise ValueError(f"{flag('bounds')} for {name!r} are not allowed: {name} is not fitted (params = {params})")
@@ -713,6 +716,8 @@ def fit(
     fd_step = checks.positive("fd_step", fd_step)
     if callback is not None and not callable(callback):
         raise ValueError(f"callback = {callback!r} is not allowed: must be callable")
+    if log is not None and not callable(log):
+        raise ValueError(f"log = {log!r} is not allowed: must be callable as log(message)")
     say = log or (lambda message: None)
 
     if isinstance(model, (list, tuple)) and model and all(isinstance(e, Experiment) for e in model):
@@ -748,6 +753,14 @@ def fit(
         say(f"{r.name}: {r.model.particle_count} particles, {r.steps} steps of {r.dt:.4g} s; {mode}: "
             f"~{r.memory / 2**20:.1f} MiB of Warp arrays "
             f"({r.memory / (r.model.particle_count * r.steps):.0f} B per particle per step)")
+    start = prob.from_z(prob.z0)
+    for name in params:
+        guess = runs[0].values[name][runs[0].idx]
+        if not np.allclose(start[name], guess, rtol=1e-9, atol=0.0):
+            # The first evaluation (and the reported initial loss) is not the guess's.
+            say(f"the guess {name} = {', '.join(f'{v:.6g}' for v in guess)} lies outside its bounds "
+                f"{prob.bounds[name][0]:g}:{prob.bounds[name][1]:g}: the fit starts at "
+                f"{', '.join(f'{v:.6g}' for v in start[name])}")
     history: list[dict] = []
     state = {"bar": None, "stage": "descent", "stop_all": None}
 
@@ -1580,6 +1593,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
             raise ValueError(f"target {p} is not allowed as a point cloud: it holds {pts.shape[0]} rows of {pts.shape[1]} "
                              "numbers; it needs one or more rows of three (x y z)")
         pts = pts[:, :3]
+        _finite_cloud(p, pts)
         return Target("points", pts, None, None, p)
     if ext in (".usd", ".usda", ".usdc"):
         run = _usd_run_target(p, body, frames)
@@ -1599,7 +1613,17 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         from .meshes import load_mesh  # noqa: PLC0415
 
         return Target("mesh", load_mesh(p), None, None, p)
-    return Target("points", np.asarray(m.points, dtype=np.float64)[:, :3], None, None, p)
+    return Target("points", _finite_cloud(p, np.asarray(m.points, dtype=np.float64)[:, :3]), None, None, p)
+
+
+def _finite_cloud(path: str, pts: np.ndarray) -> np.ndarray:
+    """``pts`` where every point is finite; else refused by the file's name (it was named
+    by the step it was compared at)."""
+    bad = np.flatnonzero(~np.isfinite(pts).all(axis=1))
+    if bad.size:
+        raise ValueError(f"target {path} is not allowed as a point cloud: point {bad[0]} is {pts[bad[0]].tolist()}; "
+                         "every point must be finite")
+    return pts
 
 
 def _real_array(path: str, name: str, a) -> np.ndarray:

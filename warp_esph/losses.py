@@ -266,7 +266,8 @@ def _points(name: str, p) -> np.ndarray:
     if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0:
         raise ValueError(f"{name} with shape {a.shape} is not allowed: must be (N, 3) with N >= 1")
     if not np.isfinite(a).all():
-        raise ValueError(f"{name} is not allowed: it has non-finite values")
+        i = int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])
+        raise ValueError(f"{name} is not allowed: it has non-finite values (first at point {i}: {a[i].tolist()})")
     return a
 
 
@@ -286,7 +287,9 @@ class Loss:
 
     def __init__(self, frames, weight: float = 1.0, particles=None):
         self.frames = _frames(frames)
-        self.weight = checks.number("weight", weight)
+        # A negative weight makes a fit maximise the misfit and report it as a result; a
+        # zero weight makes a term that cannot inform the fit (and residual_scale divides by it).
+        self.weight = checks.positive("weight", weight)
         self._mask_size = None
         if particles is not None:
             idx = np.asarray(particles)
@@ -407,8 +410,7 @@ class Loss:
         return SumLoss([(1.0, self), (1.0, other)])
 
     def __mul__(self, k):
-        k = checks.number("loss scale", k)
-        return SumLoss([(k, self)])
+        return SumLoss([(_scale("loss scale", k), self)])
 
     __rmul__ = __mul__
 
@@ -426,16 +428,38 @@ def _as_warp_positions(positions) -> dict[int, wp.array]:
     return out
 
 
+def _scale(name: str, k) -> float:
+    """A loss's coefficient in a sum: a finite number > 0 (the ``weight`` rule)."""
+    v = checks.number(name, k)
+    if not v > 0.0:
+        raise ValueError(f"{name} = {checks.shorten(k)!r} is not allowed: must be > 0 (a negative scale makes a fit "
+                         "maximise the loss, a zero one drops it)")
+    return v
+
+
 class SumLoss(Loss):
     """A weighted sum of losses (``a + b``, ``k * a``); its frames are the union."""
 
     def __init__(self, terms):
         flat = []
-        for k, loss in terms:
+        for i, term in enumerate(terms):
+            try:
+                k, loss = term
+            except (TypeError, ValueError):
+                raise ValueError(f"terms[{i}] = {checks.shorten(term)!r} is not allowed: must be a (scale, Loss) pair") from None
+            k = _scale(f"terms[{i}] scale", k)
+            if not isinstance(loss, Loss):
+                raise ValueError(f"terms[{i}] = {checks.shorten(term)!r} is not allowed: its second item must be a "
+                                 "warp_esph.losses.Loss")
             if isinstance(loss, SumLoss):
                 flat.extend((k * kk, ll) for kk, ll in loss.terms)
             else:
                 flat.append((k, loss))
+        for k, loss in flat:
+            # Scales of nested sums multiply: two legal ones can overflow or underflow.
+            if not 0.0 < k < math.inf:
+                raise ValueError(f"the scale of {loss!r} in a sum = {k!r} is not allowed: the nested scales multiply to "
+                                 "it; must be finite and > 0")
         self.terms = flat
         frames = sorted({f for _, loss in flat for f in loss.frames})
         super().__init__(frames)
@@ -547,7 +571,7 @@ class PositionLoss(Loss):
     def __init__(self, targets, frames=None, weight: float = 1.0, particles=None):
         per = _per_frame("targets", targets, frames, 2)
         super().__init__(list(per), weight, particles)
-        self.targets = {f: _points(f"targets[{f}]", t) for f, t in per.items()}
+        self.targets = {f: _points(f"targets at step {f}", t) for f, t in per.items()}
         self._wp_targets = {}
 
     def _check(self, frame, x):
@@ -597,7 +621,7 @@ class ChamferLoss(Loss):
         per = _per_frame("targets", targets, frames, 2)
         super().__init__(list(per), weight, particles)
         self.radius = checks.positive("radius", radius)
-        self.targets = {f: _points(f"targets[{f}]", t) for f, t in per.items()}
+        self.targets = {f: _points(f"targets at step {f}", t) for f, t in per.items()}
         self._target_data = {}
         self._particle_grid = {}
         self._scratch = {}
@@ -926,12 +950,20 @@ class ReactionForceLoss(Loss):
             raise ValueError(f"components = {components!r} is not allowed: give distinct axes among x, y, z (e.g. 'y')")
         self.components = comps
         self._axes = [_AXES[c] for c in comps]
-        t = np.asarray(targets, dtype=np.float64)
+        try:
+            t = np.asarray(targets, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"targets = {checks.shorten(targets)!r} is not allowed: must be numbers (N)") from None
         if t.ndim == 1 and len(comps) == 1:
             t = t[:, None]
-        if t.shape != (len(steps), len(comps)) or not np.isfinite(t).all():
+        if t.shape != (len(steps), len(comps)):
             raise ValueError(f"targets with shape {t.shape} is not allowed: must be ({len(steps)}, {len(comps)}) finite "
                              f"newtons, one row per window, one column per component ({comps})")
+        bad = np.argwhere(~np.isfinite(t))
+        if len(bad):
+            j, c = (int(i) for i in bad[0])
+            raise ValueError(f"targets[{j}][{c}] = {float(t[j, c])!r} is not allowed: must be a finite force (N) (window ending "
+                             f"at step {steps[j]}, component {comps[c]})")
         self.targets = t
         if isinstance(tool, bool) or not isinstance(tool, (str, int, np.integer)):
             raise ValueError(f"tool = {tool!r} is not allowed: give the tool's or static collider's name, or the tool's index")
@@ -1020,12 +1052,23 @@ class ReactionForceLoss(Loss):
         if not mine:
             raise ValueError(f"tool = {tool!r} is not allowed: {path} holds the forces of "
                              f"{', '.join(dict.fromkeys(r['tool'] for r in rows))}")
-        by_frame = {r["frame"]: r for r in mine}
+        by_frame = {r["frame"]: r for r in mine}  # one row per frame: read_tools_csv refuses a repeat
         chosen = sorted(f for f in by_frame if f > 0) if frames is None else [int(f) for f in frames]
+        if any(f < 1 for f in chosen):
+            raise ValueError(f"frames = {chosen!r} is not allowed: frames are >= 1 (frame 0's row has no frame before "
+                             "it to average over)")
         missing = [f for f in chosen if f not in by_frame]
         if missing:
             raise ValueError(f"frames {missing} are not allowed: {path} has no row of tool {tool!r} for them")
-        steps = [int(frame_steps[f]) for f in chosen]
+        if not isinstance(frame_steps, Mapping):
+            raise ValueError(f"frame_steps = {checks.shorten(frame_steps)!r} is not allowed: must map each rendered "
+                             "frame to its step ({frame: step})")
+        missing = [f for f in chosen if f not in frame_steps]
+        if missing:
+            raise ValueError(f"frame_steps = {checks.shorten(dict(frame_steps))!r} is not allowed: it has no step for "
+                             f"frame{'s' if len(missing) > 1 else ''} {', '.join(map(str, missing))} of tool {tool!r} "
+                             f"in {path}")
+        steps = [checks.positive_int(f"frame_steps[{f}]", frame_steps[f]) for f in chosen]
         windows = {round(s / f) for s, f in zip(steps, chosen) if f > 0}
         if len(windows) != 1 or any(s != f * next(iter(windows)) for s, f in zip(steps, chosen)):
             raise ValueError(f"frame_steps = {dict(frame_steps)} is not allowed: every frame must span the same number of steps")
@@ -1050,24 +1093,54 @@ def is_tools_csv(path) -> bool:
 
 
 def read_tools_csv(path) -> list[dict]:
-    """Rows of a reaction-force log: ``{frame, time, tool, force (3,)}``."""
+    """Rows of a reaction-force log: ``{frame, time, tool, force (3,)}``; one row per tool
+    and frame, frames >= 0, finite numbers (a ``ValueError`` naming the file and row
+    otherwise)."""
     import csv  # noqa: PLC0415
 
+    p = os.fspath(path)
+    # The convention of the other target readers (fit.load_target, silhouette.load_masks).
+    if not os.path.exists(p):
+        raise FileNotFoundError(f"force log {p} does not exist")
+    if os.path.isdir(p):
+        raise ValueError(f"force log {p} is not allowed: it is a folder, not a '<output>_tools.csv' file")
     out = []
-    with open(path, newline="") as fh:
-        reader = csv.DictReader(fh)
-        missing = [c for c in TOOLS_CSV_COLUMNS if c not in (reader.fieldnames or [])]
-        if missing:
-            raise ValueError(f"{path} is not allowed as a force target: it lacks the columns {', '.join(missing)} "
-                             f"(a '<output>_tools.csv' of 'warp-esph run' has them)")
-        for k, row in enumerate(reader):
-            try:
-                out.append({"frame": int(row["frame"]), "time": float(row["time"]), "tool": row["tool"],
-                            "force": np.array([float(row["fx"]), float(row["fy"]), float(row["fz"])])})
-            except (TypeError, ValueError):
-                raise ValueError(f"{path}, row {k + 2} is not allowed: frame, time, fx, fy, fz must be numbers") from None
+    seen: dict[tuple[str, int], int] = {}
+    try:
+        with open(p, newline="") as fh:
+            reader = csv.DictReader(fh)
+            missing = [c for c in TOOLS_CSV_COLUMNS if c not in (reader.fieldnames or [])]
+            if missing:
+                raise ValueError(f"{p} is not allowed as a force target: it lacks the columns {', '.join(missing)} "
+                                 f"(a '<output>_tools.csv' of 'warp-esph run' has them)")
+            for k, row in enumerate(reader):
+                line = k + 2
+                try:
+                    frame, tool = int(row["frame"]), row["tool"]
+                    values = {c: float(row[c]) for c in ("time", "fx", "fy", "fz")}
+                except (TypeError, ValueError):
+                    raise ValueError(f"{p}, row {line} is not allowed: frame, time, fx, fy, fz must be numbers") from None
+                if frame < 0:
+                    raise ValueError(f"{p}, row {line}: frame = {frame} is not allowed: frames are rendered frame "
+                                     "indices >= 0")
+                for c, v in values.items():
+                    # float() reads 'nan' and '1e400' (inf) without complaint.
+                    if not math.isfinite(v):
+                        raise ValueError(f"{p}, row {line} (frame {frame}, tool {tool!r}): {c} = {row[c]!r} is not "
+                                         f"allowed: must be a finite number{' (s)' if c == 'time' else ' (N)'}")
+                if (tool, frame) in seen:
+                    # Silently the last row won: which of two measurements is the force is not ours to choose.
+                    raise ValueError(f"{p}, row {line}: frame {frame} of tool {tool!r} is not allowed: row "
+                                     f"{seen[tool, frame]} already gives it (one row per tool and frame)")
+                seen[tool, frame] = line
+                out.append({"frame": frame, "time": values["time"], "tool": tool,
+                            "force": np.array([values["fx"], values["fy"], values["fz"]])})
+    except OSError as e:
+        raise ValueError(f"force log {p} cannot be read: {e.strerror or e}") from None
+    except (UnicodeDecodeError, csv.Error) as e:
+        raise ValueError(f"force log {p} cannot be read: {checks.read_reason(e)} (a damaged or foreign file?)") from None
     if not out:
-        raise ValueError(f"{path} is not allowed as a force target: it has no rows")
+        raise ValueError(f"{p} is not allowed as a force target: it has no rows")
     return out
 
 

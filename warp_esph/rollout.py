@@ -261,18 +261,36 @@ class Rollout:
         """Assign per-material parameter arrays (``{name: array of n_materials}``); the solver
         follows them at its next step (whether SPH runs, the stable ``dt``)."""
         m = self.model
+        if not isinstance(values, Mapping):
+            raise ValueError(f"values = {checks.shorten(values)!r} is not allowed: must be a mapping "
+                             "{parameter name: one value per material}")
+        new = {}
         for name, value in values.items():
             if name not in PARAMETERS:
                 raise ValueError(f"parameter {name!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
             arr = getattr(m, name)
-            v = np.asarray(value, dtype=m.types.np_dtype).reshape(-1)
+            try:
+                v = np.asarray(value, dtype=m.types.np_dtype).reshape(-1)
+            except (TypeError, ValueError):
+                raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be numbers, one per "
+                                 "material") from None
             if v.size == 1 and arr.shape[0] > 1:
                 v = np.full(arr.shape[0], v[0], dtype=v.dtype)
             if v.shape[0] != arr.shape[0]:
                 raise ValueError(f"{name} has {v.shape[0]} values, the model {arr.shape[0]} materials")
             if not np.isfinite(v).all():
                 raise ValueError(f"{name} = {v!r} is not allowed: values must be finite")
-            arr.assign(v)
+            new[name] = v
+        # Each material's checks, now that the values are given (a negative mu was refused
+        # only at the next step, as "the model's parameter arrays").
+        rows = np.stack([new[f] if f in new else getattr(m, f).numpy() for f in m.MATERIAL_FIELDS])
+        for k, mat in enumerate(m.materials):
+            try:
+                mat.replace(**{f: float(rows[i, k]) for i, f in enumerate(m.MATERIAL_FIELDS)})
+            except ValueError as e:
+                raise ValueError(f"values are not allowed for material {k}: {e}") from None
+        for name, v in new.items():
+            getattr(m, name).assign(v)
 
     def get_parameters(self) -> dict[str, np.ndarray]:
         return {name: getattr(self.model, name).numpy().copy() for name in PARAMETERS}
@@ -313,6 +331,15 @@ class Rollout:
                     v = np.full(m.particle_count, float(v), dtype=m.types.np_dtype)
                 else:
                     raise ValueError(f"{name} with shape {v.shape} is not allowed: must be {(m.particle_count, *shape)}")
+            # An F that is no deformation (det <= 0: zero, or a reflection) and a negative
+            # accumulated plastic strain ran without a word.
+            if name == "F0" and not (np.linalg.det(v.astype(np.float64)) > 0.0).all():
+                bad = int(np.argmax(~(np.linalg.det(v.astype(np.float64)) > 0.0)))
+                raise ValueError(f"F0 is not allowed: particle {bad} has det F = {np.linalg.det(v[bad]):.3g}, and a "
+                                 "deformation gradient has det F > 0")
+            if name == "alpha0" and (v < 0).any():
+                raise ValueError(f"alpha0 is not allowed: particle {int(np.argmax(v < 0))} has {float(v[v < 0][0]):g}; "
+                                 "the accumulated plastic strain is >= 0")
             arr.assign(v)
             if name in ("x0", "F0"):
                 getattr(init, STATE_GRADIENTS[name] + "_lo").zero_()  # the whole value is given
@@ -438,6 +465,8 @@ class Rollout:
             a = np.asarray(g, dtype=T.np_dtype)
             if a.shape != shape:
                 raise ValueError(f"gradient for step {f} with shape {a.shape} is not allowed: must be {shape}")
+            if not np.isfinite(a).all():  # NaN gradients came back as a result
+                raise ValueError(f"gradient for step {f} is not allowed: it has non-finite values")
             out[f] = wp.array(a, dtype=T.vec3, device=m.device)
         return out
 
@@ -486,6 +515,9 @@ class Rollout:
         """
         if not self._forward_done:
             raise RuntimeError("backward() before forward(): run forward() first")
+        if grads is None or isinstance(grads, (str, bytes, int, float)):
+            raise ValueError(f"grads = {checks.shorten(grads)!r} is not allowed: give a warp_esph.losses.Loss or the "
+                             "loss's gradients with respect to the positions at the rollout's frames")
         value = None
         self.world_values = None
         if hasattr(grads, "value_and_grad"):

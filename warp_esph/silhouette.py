@@ -30,8 +30,9 @@ Camera file (JSON)::
      "radius": 0.01, "opacity": 0.9}                                 # optional
 
 Masks: an image (PNG, ...) or ``.npy`` ``(height, width)`` for one camera (nonzero or
-> 0.5 of the maximum: inside), or an ``.npz`` with one array per camera and frame named
-``<camera>_<frame>`` (rendered frame index).
+> 0.5 of the maximum: inside; all zeros: an empty view), or an ``.npz`` with one array per
+camera and frame named ``<camera>_<frame>`` (rendered frame index). Non-finite values, and
+negative ones with nothing positive, are refused by file name.
 """
 
 
@@ -91,8 +92,15 @@ class PinholeCamera:
 
     @classmethod
     def from_dict(cls, d: Mapping) -> "PinholeCamera":
+        if not isinstance(d, Mapping):
+            raise ValueError(f"camera {checks.shorten(d)!r} is not allowed: must be an object with keys "
+                             f"{', '.join(CAMERA_KEYS)}")
         d = dict(d)
         name = str(d.get("name", "camera"))
+        unknown = sorted(set(d) - set(CAMERA_KEYS))
+        if unknown:
+            # A misspelt key ("fov", "cx ") was ignored without a word.
+            raise ValueError(f"camera {name!r}: key {unknown[0]!r} is not allowed: the keys are {', '.join(CAMERA_KEYS)}")
         if "K" in d:
             K = np.asarray(d["K"], dtype=np.float64)
             if K.shape != (3, 3):
@@ -112,6 +120,10 @@ class PinholeCamera:
 
 
 
+#: Keys of a camera in a camera file (``K`` may stand for ``fx, fy, cx, cy``).
+CAMERA_KEYS = ("name", "width", "height", "fx", "fy", "cx", "cy", "K", "R", "t")
+
+
 def load_cameras(path) -> tuple[list[PinholeCamera], dict]:
     """Cameras and options (``radius``, ``opacity``) from a JSON camera file."""
     p = os.fspath(path)
@@ -119,6 +131,12 @@ def load_cameras(path) -> tuple[list[PinholeCamera], dict]:
     cams = doc.get("cameras") if isinstance(doc, dict) else None
     if not isinstance(cams, list) or not cams:
         raise ValueError(f"camera file {p} is not allowed: it needs a non-empty 'cameras' list")
+    unknown = sorted(set(doc) - {"cameras", "radius", "opacity"})
+    if unknown:
+        raise ValueError(f"camera file {p}: key {unknown[0]!r} is not allowed: the keys are cameras, radius, opacity")
+    for key in ("radius", "opacity"):
+        if key in doc:
+            checks.positive(f"camera file {p}: {key}", doc[key])  # 'x' was a float() error naming nothing
     cameras = [PinholeCamera.from_dict(c) for c in cams]
     names = [c.name for c in cameras]
     if len(set(names)) != len(names):
@@ -128,12 +146,27 @@ def load_cameras(path) -> tuple[list[PinholeCamera], dict]:
 
 
 def _mask_array(a, where: str) -> np.ndarray:
-    a = np.asarray(a, dtype=np.float64)
+    """The binary mask (1 inside) of an image or array read from ``where``. All zeros is an
+    empty silhouette (the body out of view); NaN, inf, or negative values with nothing
+    positive (whose inside cannot be told: a signed distance? a [-1, 1] image?) are refused."""
+    try:
+        a = np.asarray(a, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"mask {where} is not allowed: it is not an array of numbers") from None
     if a.ndim == 3:
         a = a[..., :3].mean(axis=2)
     if a.ndim != 2 or a.size == 0:
         raise ValueError(f"mask {where} with shape {a.shape} is not allowed: must be (height, width)")
-    top = float(a.max()) if a.size else 0.0
+    bad = ~np.isfinite(a)
+    if bad.any():
+        # NaN compares False with the threshold: the mask was read as empty.
+        j, i = (int(k) for k in np.argwhere(bad)[0])
+        raise ValueError(f"mask {where} is not allowed: it has {int(bad.sum())} non-finite values (first {float(a[j, i])!r} "
+                         f"at row {j}, column {i}); must be finite numbers")
+    top = float(a.max())
+    if top <= 0.0 and float(a.min()) < 0.0:
+        raise ValueError(f"mask {where} is not allowed: its values are all <= 0 and some negative (max {top:g}), so "
+                         "nothing is inside by the rule 'nonzero or > 0.5 of the maximum'; an empty silhouette is all zeros")
     return (a > 0.5 * top).astype(np.float64) if top > 0 else np.zeros_like(a)
 
 
@@ -301,10 +334,22 @@ class SilhouetteLoss(Loss):
                 raise ValueError(f"masks at step {f}: {len(ms)} given for {len(self.cameras)} cameras")
             out = []
             for m, c in zip(ms, self.cameras):
-                m = np.asarray(m, dtype=np.float64)
+                try:
+                    m = np.asarray(m, dtype=np.float64)
+                except (TypeError, ValueError):
+                    raise ValueError(f"mask of camera {c.name!r} at step {f} is not allowed: it is not an array of "
+                                     "numbers") from None
                 if m.shape != (c.height, c.width):
                     raise ValueError(f"mask of camera {c.name!r} at step {f} with shape {m.shape} is not allowed: "
                                      f"the camera is {c.height} x {c.width} (height x width)")
+                # Compared with an occupancy in [0, 1] as given: a NaN made the loss NaN, a raw
+                # 0/255 image a loss that no body can lower (load_masks binarises images).
+                outside = ~((m >= 0.0) & (m <= 1.0))
+                if outside.any():
+                    j, i = (int(k) for k in np.argwhere(outside)[0])
+                    raise ValueError(f"mask of camera {c.name!r} at step {f} is not allowed: it has {int(outside.sum())} "
+                                     f"values outside [0, 1] (first {float(m[j, i])!r} at row {j}, column {i}); a mask is an "
+                                     "occupancy in [0, 1], 1 inside (load_masks binarises an image)")
                 out.append(m)
             self.masks[f] = out
         self._buffers = {}
@@ -397,7 +442,12 @@ def load_silhouette_target(cameras_path, masks_path, frames_spec, frames: int, s
     frame), with ``substeps`` steps per frame. The splat radius is the file's ``radius``
     (required: about half a particle spacing) and the opacity its ``opacity`` (default 0.9)."""
     cameras, options = load_cameras(cameras_path)
-    frame = int(frames_spec) if frames_spec is not None else frames
+    try:
+        frame = int(frames_spec) if frames_spec is not None else frames
+    except (TypeError, ValueError):
+        # '2,3' or 'last' was an int() error: an image is one frame.
+        raise ValueError(f"--target-frames = {frames_spec!r} is not allowed with the mask image {masks_path}: an image "
+                         "is one rendered frame, give one frame index") from None
     masks = load_masks(masks_path, cameras, frame)
     bad = [f for f in masks if f > frames or f <= 0]
     if bad:
