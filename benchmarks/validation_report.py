@@ -627,6 +627,31 @@ def _fitted_yield_rows(results, mpm) -> list[list]:
     return rows
 
 
+def _fitted_yield_plot(rows, img: pathlib.Path, made: list[str]) -> None:
+    """Y fitted / Y against resolution, per S: to the continuum (solid) and to the 1-D height
+    (dashed), the particle floor with the paper's poly6 fit weight."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    img.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    mine = [r for r in rows if r[0] == "particles" and r[1] == "poly6"]
+    for S in sorted({r[3] for r in mine}):
+        rs = sorted((r for r in mine if r[3] == S), key=lambda r: r[2])
+        color = S_COLOR.get(S, "k")
+        ax.plot([r[2] for r in rs], [r[8] for r in rs], "o-", color=color, label=f"S = {S:g}, to the continuum")
+        ax.plot([r[2] for r in rs], [r[5] for r in rs], "x--", color=color, alpha=0.6, label=f"S = {S:g}, to the 1-D height")
+    ax.axhspan(0.9, 1.1, color="0.9", zorder=0)
+    ax.axhline(1.0, color="k", lw=0.8)
+    ax.set_xlabel("particles across H0")
+    ax.set_ylabel("Y fitted / Y")
+    ax.set_title("yield stress a slump fit recovers (particle floor, poly6)")
+    ax.legend(fontsize=7, ncol=2)
+    _save(fig, img, "slump_fitted_yield.png", made)
+
+
 def _fitted_yield_target(results, mpm) -> list[tuple[str, str, str, str]]:
     """The default's (particle floor, poly6) recovered yield stress at its finest resolution
     of each S against the continuum on the matching base, and within 10 % there."""
@@ -887,7 +912,8 @@ def write(results, out: pathlib.Path, meta: dict):
             "on a 3-D pile, is from it.\n\n"
             + _table(["floor", "fit weight", "across", "S", "thickness/H0", "Y fitted / Y (1-D height)",
                       "continuum", "its thickness/H0", "Y fitted / Y (continuum)", "ln S interpolation moves it by"],
-                     fitted) + "\n")
+                     fitted) + "\n\n![yield stress a slump fit recovers](images/validation/slump_fitted_yield.png)\n")
+        _fitted_yield_plot(fitted, out / "images" / "validation", made)
     spreads = sorted((r for r in results if r["case"] == "spread"),
                      key=lambda r: (-r["shallowness"], r["resolution"], _fit_weight(r) != "poly6"))
     if spreads:
