@@ -83,6 +83,8 @@ def test_inputs_are_checked_and_missing_torch_is_explained(monkeypatch):
         rollout_positions(rollout, {"mu": torch.ones(3, dtype=torch.float64)})
     with pytest.raises(ValueError, match="must be one of"):
         rollout_positions(rollout, {"young": torch.ones(1, dtype=torch.float64)})
+    with pytest.raises(ValueError, match=r"params = \['mu'\] is not allowed: must be a mapping"):
+        rollout_positions(rollout, ["mu"])  # was read as character pairs: "parameter 'm'"
     with pytest.raises(ValueError, match="shape"):
         rollout_positions(rollout, x0=torch.zeros(5, 3, dtype=torch.float64))
     # An integer input gave integer positions, each truncated to 0; log_space="no" read as True.

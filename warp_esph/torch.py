@@ -29,8 +29,11 @@ PyTorch is imported only when these functions are used; without it they raise an
 ``ImportError`` that says how to install it.
 """
 
+from collections.abc import Mapping
+
 import numpy as np
 
+from . import checks
 from .rollout import PARAMETERS, Rollout
 
 __all__ = ["rollout_positions", "RolloutModule", "require_torch"]  # noqa: F822 (RolloutModule: module __getattr__)
@@ -119,6 +122,10 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
     torch = require_torch()
     if not isinstance(rollout, Rollout):
         raise ValueError(f"rollout = {rollout!r} is not allowed: must be a warp_esph.rollout.Rollout")
+    if params is not None and not isinstance(params, Mapping):
+        # A list of names was read as pairs of characters ("parameter 'm' is not allowed").
+        raise ValueError(f"params = {checks.shorten(params)!r} is not allowed: must be a mapping {{name: tensor of one "
+                         "value per material}}")
     params = dict(params or {})
     names, values = [], []
     n_mat = len(rollout.model.materials)
