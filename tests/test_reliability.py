@@ -639,3 +639,47 @@ def _worlds_beyond_memory(builder):
         return builder.finalize(worlds=100_000)
     finally:
         builder_module.BYTES_PER_PARTICLE = saved
+
+
+def test_the_builder_refuses_tools_inside_bodies_stray_tool_options_coincident_particles_and_unsafe_fields():
+    """From a fuzz of the builder: a tool starting inside a body moved its particles onto its
+    surface in the first step (a 1000 m sphere flung them 1 km, reported as a divergence
+    after the kernels ran); a box tool's radius, a sphere's mesh and a keyframed tool's
+    position were ignored; two particles at one place never separated; complex positions
+    lost their imaginary parts; a float32 compression field of 1e39 wrote NaN positions;
+    add_particle_floor without margin was a TypeError."""
+    from warp_esph import tools
+
+    def builder():
+        b = we.SceneBuilder(spacing=0.01)
+        b.add_box((0.0, 0.03, 0.0), (0.04, 0.04, 0.04), we.Material.preset("clay"), name="blk")
+        b.add_ground()
+        return b
+
+    for radius in (0.015, 1000.0):
+        b = builder()
+        b.add_tool("sphere", radius=radius, position=(0.0, 0.03, 0.0), name="ball")
+        with pytest.raises(ValueError, match="body 'blk' is not allowed where it is: .* start inside tool 'ball'"):
+            b.finalize()
+    b = builder()  # a plate resting on the top layer, and a pinned body's particles, are fine
+    b.add_tool("box", half_extents=(0.05, 0.01, 0.05), position=(0.0, 0.06, 0.0), name="plate")
+    b.finalize()
+    for kwargs, message in (
+            (dict(shape="box", half_extents=(1, 1, 1), radius=5), "radius = 5 is not allowed for shape 'box'"),
+            (dict(shape="sphere", radius=0.01, mesh="none.obj"), "mesh = 'none.obj' is not allowed for shape 'sphere'"),
+            (dict(shape="plane", position=(1, 2, 3), motion=tools.Keyframes([0.0], [[0.0, 0.0, 0.0]])),
+             "position / orientation are not allowed with a Keyframes motion")):
+        with pytest.raises(ValueError, match=message):
+            builder().add_tool(**kwargs)
+    g = np.stack(np.meshgrid(*[np.arange(4) * 0.01] * 3), -1).reshape(-1, 3) + [0.0, 0.02, 0.0]
+    with pytest.raises(ValueError, match="1 particles coincide with another"):
+        we.SceneBuilder(spacing=0.01).add_particles(np.vstack([g, g[:1]]), we.Material.preset("clay"))
+    with pytest.raises(ValueError, match="complex128 array> is not allowed: must be an .N, 3. array of real numbers"):
+        we.SceneBuilder(spacing=0.01).add_particles(g.astype(complex), we.Material.preset("clay"))
+    b = builder()
+    b.add_compression_field((0.0, 0.0, 0.0), 1e39)
+    with pytest.raises(ValueError, match="CompressionField.strength = 1e[+]39 is not allowed in float32"):
+        b.finalize()
+    b.finalize(dtype=wp.float64)
+    with pytest.raises(ValueError, match="margin is required"):
+        builder().add_particle_floor("blk")

@@ -66,6 +66,12 @@ def _inside_polygon(p: np.ndarray, poly: np.ndarray) -> np.ndarray:
 _AXES = {"x": 0, "y": 1, "z": 2}
 
 
+#: The shape options of each tool shape (``add_tool``); the others are refused.
+_TOOL_SHAPE_OPTIONS = {"plane": ("normal",), "box": ("half_extents",), "sphere": ("radius",),
+                       "capsule": ("radius", "half_height"), "cylinder": ("radius", "half_height"),
+                       "mesh": ("mesh", "scale")}
+
+
 class SceneBuilder:
     """Collects bodies and colliders; ``finalize`` makes the ``Model``.
 
@@ -195,9 +201,14 @@ class SceneBuilder:
         ``velocity + angular_velocity x (x - centroid)``.
         """
         try:
-            pts = np.asarray(positions, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"positions = {positions!r} is not allowed: must be an (N, 3) array of numbers") from None
+            raw = np.asarray(positions)
+        except (TypeError, ValueError):  # ragged rows
+            raw = np.asarray(None)
+        # Complex values lost their imaginary parts (numpy warned); text and objects failed later.
+        if raw.dtype.kind not in "iuf":
+            what = checks.shorten(positions) if raw.dtype.kind == "O" else f"<{raw.dtype} array>"
+            raise ValueError(f"positions = {what!s} is not allowed: must be an (N, 3) array of real numbers")
+        pts = raw.astype(np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f"positions with shape {pts.shape} is not allowed: must be (N, 3)")
         if name is None:
@@ -210,6 +221,16 @@ class SceneBuilder:
             raise ValueError(f"body {name!r} has no particles: it is smaller than the spacing {self.spacing:g}")
         if not np.isfinite(pts).all():
             raise ValueError(f"positions of body {name!r} are not allowed: they must be finite")
+        # Two particles at one place never separate: the pressure's gradient has no direction
+        # at r = 0, and every fit sees a zero offset.
+        cells = np.floor(pts / (1e-6 * self.spacing)).astype(np.int64) if np.abs(pts).max() < 1e12 * self.spacing else None
+        if cells is not None:
+            _, first, counts = np.unique(cells, axis=0, return_index=True, return_counts=True)
+            if (counts > 1).any():
+                i = int(first[np.argmax(counts > 1)])
+                raise ValueError(f"positions of body {name!r} are not allowed: {int((counts - 1).sum())} particles "
+                                 f"coincide with another (first at {np.round(pts[i], 6).tolist()}); each particle needs "
+                                 "a place of its own")
         try:
             vel = np.asarray(velocity, dtype=np.float64)
         except (TypeError, ValueError):  # a dict, a generator, text: not numbers
@@ -287,7 +308,7 @@ class SceneBuilder:
         kind_name = name if name is not None else (meshes.mesh_name(source) if isinstance(source, (str, bytes)) or hasattr(source, "__fspath__") else None)
         return self.add_particles(inside, material, velocity, kind_name, "mesh", angular_velocity)
 
-    def add_particle_floor(self, body, *, margin: float, layers: int | None = None, where=None, name: str | None = None,
+    def add_particle_floor(self, body, *, margin: float | None = None, layers: int | None = None, where=None, name: str | None = None,
                            elastic: bool = False, ghost: bool = False, slip: bool = False) -> str:
         """A rough floor that enters the fits: ``layers`` lattice layers of ``body``'s own
         particles under it, pinned (``pin``); returns the pin's name (default ``"<body>_floor"``).
@@ -341,6 +362,9 @@ class SceneBuilder:
         if bd.name in self._floors:
             raise ValueError(f"body = {body!r} is not allowed: it has a particle floor already")
         dx = self.spacing
+        if margin is None:  # a required keyword: its absence was a TypeError
+            raise ValueError("margin is required: the floor's reach beyond the body's columns (m, horizontally), "
+                             "e.g. margin=2 * spacing")
         m = checks.non_negative("margin", margin) / dx
         if layers is None:
             layers = math.ceil(self.support_radius / dx - 1e-9)
@@ -502,8 +526,23 @@ class SceneBuilder:
         mu_s = mu_k if static_friction is None else checks.non_negative("static_friction", static_friction)
         if mu_s < mu_k:
             raise ValueError(f"static_friction = {static_friction!r} is not allowed: must be >= friction = {mu_k:g}")
+        # Options of another shape, and a place a motion of absolute poses overrides, were
+        # ignored without a word.
+        given = {"normal": normal, "half_extents": half_extents, "radius": radius, "half_height": half_height,
+                 "mesh": mesh}
+        own = _TOOL_SHAPE_OPTIONS[kind]
+        stray = [k for k, v in given.items() if v is not None and k not in own]
+        if kind != "mesh" and scale != 1.0:
+            stray.append("scale")
+        if stray:
+            raise ValueError(f"{stray[0]} = {checks.shorten(given.get(stray[0], scale))!r} is not allowed for shape "
+                             f"{kind!r}: its options are {', '.join(own) or 'none'}")
         pos = checks.vector("position", position)
         ori = tools._quat("orientation", orientation)
+        if isinstance(motion, (tools.Keyframes, tools.Scripted)) and (
+                tuple(pos) != (0.0, 0.0, 0.0) or tuple(ori) != tuple(tools._quat("orientation", tools.IDENTITY))):
+            raise ValueError(f"position / orientation are not allowed with a {type(motion).__name__} motion: its poses "
+                             "are absolute (give them in the motion)")
         if motion is None:
             motion = tools.Velocity(position=pos, orientation=ori)
         elif isinstance(motion, tools.Velocity):
@@ -622,6 +661,17 @@ class SceneBuilder:
         # tool at 1e39 m wrote NaN poses and the run exited 0).
         if np.abs(self.gravity).max() > big:
             raise ValueError(f"gravity = {self.gravity!r} is not allowed in {scalar.__name__}: must be at most {big:.3g}")
+        # A field's acceleration is strength times a distance from its center: 1e39 (or a
+        # center 1e300 m out) wrote NaN positions in the first step.
+        for fld in self.force_fields:
+            for label, v in (("center", fld.center), ("strength", fld.strength)):
+                if np.abs(np.asarray(v, dtype=np.float64)).max() > far:
+                    raise ValueError(f"CompressionField.{label} = {v!r} is not allowed in {scalar.__name__}: must be at "
+                                     f"most {far:.3g} in size; use dtype=float64 or a smaller value")
+            finite_times = [t for t in (fld.t_on, fld.t_off) if math.isfinite(t)]
+            if finite_times and max(abs(t) for t in finite_times) > big:
+                raise ValueError(f"CompressionField times ({fld.t_on!r}, {fld.t_off!r}) are not allowed in "
+                                 f"{scalar.__name__}: must be at most {big:.3g} s")
         if self._velocities and np.abs(np.concatenate(self._velocities)).max() > big:
             raise ValueError(f"body velocities beyond {big:.3g} m/s are not allowed in {scalar.__name__}")
         for t in [*self.tools, *self.pins]:
@@ -739,6 +789,47 @@ def _check_outside_colliders(builder) -> None:
                              f"or the collider")
 
 
+def _tool_depth(kind: str, param, xl: np.ndarray) -> np.ndarray:
+    """How deep each local point ``xl`` lies inside a tool of ``kind`` (negative: outside),
+    as the contact tests of ``tools.py`` see the shapes; a mesh is not measured (0)."""
+    a, b, _ = (float(v) for v in param)
+    if kind == "plane":
+        return -(xl @ np.asarray(param, dtype=np.float64))
+    if kind == "box":
+        return (np.asarray(param, dtype=np.float64) - np.abs(xl)).min(axis=1)
+    if kind == "sphere":
+        return a - np.linalg.norm(xl, axis=1)
+    if kind == "capsule":
+        axis = np.zeros_like(xl)
+        axis[:, 1] = np.clip(xl[:, 1], -b, b)
+        return a - np.linalg.norm(xl - axis, axis=1)
+    if kind == "cylinder":
+        return np.minimum(a - np.hypot(xl[:, 0], xl[:, 2]), b - np.abs(xl[:, 1]))
+    return np.zeros(len(xl))
+
+
+def _check_outside_tools(model) -> None:
+    """Refuse a body that starts more than half a spacing inside a tool at the tool's first
+    pose (pinned particles aside), as ``_check_outside_colliders`` does for the static
+    ones: the first step moved the particles inside onto the tool's surface and reported a
+    force (a sphere tool of 1000 m radius flung them 1 km, reported as a divergence)."""
+    ts = model.tools
+    x = np.asarray(model.particle_x0, dtype=np.float64)
+    free = ts.pin.numpy() < 0
+    tol = 0.5 * model.spacing
+    for k, tool in enumerate(ts.colliders):
+        p, q = ts.pose_at(k, 0.0)
+        xl = (x - np.asarray(p, dtype=np.float64)) @ tools.quat_to_matrix(np.asarray(q, dtype=np.float64))
+        d = np.where(free, _tool_depth(tool.kind, tool.param, xl), -np.inf)
+        inside = d > tol
+        if inside.any():
+            i = int(np.argmax(d))
+            body = model.bodies[int(model.particle_body_np[i])]
+            raise ValueError(f"body {body.name!r} is not allowed where it is: {int(inside.sum())} of its particles start inside tool "
+                             f"{tool.name!r} at its first pose, up to {d[i]:.3g} m deep (at {np.round(x[i], 4).tolist()}); "
+                             "move the body or the tool out")
+
+
 def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.float32, requires_grad: bool = False) -> Model:
     """One ``Model`` of ``len(builders)`` worlds: world ``w`` is ``builders[w]``'s scene.
 
@@ -844,6 +935,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     model.fit, model.contact_ramp, model.hourglass = first.fit, first.contact_ramp, first.hourglass
     if first.tools or first.pins:
         model.tools = tools.ToolSet(model, first.tools, first.pins, world_pins=[[p.indices for p in b.pins] for b in builders])
+        _check_outside_tools(model)
     model.compute_rest_density()
     return model
 

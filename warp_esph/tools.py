@@ -660,27 +660,35 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         # Every world meets the same tools; each reports its own reaction rows.
         base = world[i] * n_tools
         xe, x_lo, v = kin.symplectic_euler(x_in[i], x_lo_in[i], v_in[i], f[i], m, gravity, dt)
-        x, v = kin.static_colliders(xe, v, dt, sc, m, world[i] * wp.static(n_planes + n_spheres + n_boxes), cforce, ctorque)
-        for c in range(wp.static(counts[0])):
-            k = wp.static(offsets[0]) + c
-            hit, xc, nl = shape_plane(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
-            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
-        for c in range(wp.static(len(swept_test))):
-            k = wp.static(offsets[1]) + c
-            # The entry point first (a path from outside), the nearest face only for a
-            # particle that was already inside: the nearest face of a thin plate that moved
-            # past most of a particle could be its back.
-            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
-            hit, xc, nl = wp.static(swept_test[c])(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
-            if hit == 0:
-                hit, xc, nl = wp.static(inside_test[c])(xl, param[k])
-            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
-        for c in range(wp.static(counts[5])):
-            k = wp.static(offsets[5]) + c
-            xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
-            xs = local(pose_p[2 * k], pose_q[2 * k], x_in[i])
-            hit, xc, nl = shape_mesh(xl, xs, mesh_id[k], mesh_lo[k], mesh_hi[k], margin, mesh_verts, mesh_tris, mesh_vofs[k], mesh_fofs[k])
-            x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+        x = xe
+        free = True
+        if wp.static(n_pins > 0):
+            free = pin[i] < 0
+        if free:
+            # A pinned particle's place is its pin's: a collider's or tool's response on it
+            # was overridden below and yet counted in that collider's reaction (a particle
+            # floor under the ground had its weight read twice, once on the ground's row).
+            x, v = kin.static_colliders(xe, v, dt, sc, m, world[i] * wp.static(n_planes + n_spheres + n_boxes), cforce, ctorque)
+            for c in range(wp.static(counts[0])):
+                k = wp.static(offsets[0]) + c
+                hit, xc, nl = shape_plane(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
+                x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            for c in range(wp.static(len(swept_test))):
+                k = wp.static(offsets[1]) + c
+                # The entry point first (a path from outside), the nearest face only for a
+                # particle that was already inside: the nearest face of a thin plate that moved
+                # past most of a particle could be its back.
+                xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
+                hit, xc, nl = wp.static(swept_test[c])(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
+                if hit == 0:
+                    hit, xc, nl = wp.static(inside_test[c])(xl, param[k])
+                x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+            for c in range(wp.static(counts[5])):
+                k = wp.static(offsets[5]) + c
+                xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
+                xs = local(pose_p[2 * k], pose_q[2 * k], x_in[i])
+                hit, xc, nl = shape_mesh(xl, xs, mesh_id[k], mesh_lo[k], mesh_hi[k], margin, mesh_verts, mesh_tris, mesh_vofs[k], mesh_fofs[k])
+                x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         if wp.static(n_pins > 0):
             k = pin[i]
             if k >= 0:
