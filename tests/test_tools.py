@@ -4,6 +4,7 @@ reaction forces, and their gradients against float64 central differences."""
 import dataclasses
 import functools
 import math
+import re
 
 import numpy as np
 import pytest
@@ -224,7 +225,16 @@ def test_particle_floor_is_pinned_and_holds_a_resting_block_its_pin_reaction_is_
     (lambda b: b.add_particle_floor("e", margin=30.0), r"margin = 30\.0 is not allowed: .*1500 spacings .*column operations"),
     (lambda b: b.add_particle_floor("e", margin=0.0, where="disc"), r"where = 'disc' is not allowed: must be callable"),
     (lambda b: b.add_particle_floor("e", margin=0.0, where=lambda p: p[:, 0] > 1e3), r"keeps none of the floor's positions"),
-    (lambda b: b.add_particle_floor("e", margin=0.0, where=lambda p: True), r"where returned shape \(\)"),
+    (lambda b: b.add_particle_floor("e", margin=0.0, where=lambda p: True), r"where is not allowed: it returned shape \(\)"),
+    (lambda b: b.add_particle_floor("e", margin=0.0, where=lambda p: p.foo),
+     r"where is not allowed: where\(floor_positions\) raised AttributeError"),
+    # A float result was cast to bool: every position off x = 0 kept.
+    (lambda b: b.add_particle_floor("e", margin=0.0, where=lambda p: p[:, 0]),
+     r"where is not allowed: it returned float64 values; it must return a bool array"),
+    (lambda b: b.pin(where=lambda p: 1 / 0), r"where is not allowed: where\(rest_positions\) raised ZeroDivisionError"),
+    (lambda b: b.pin(where=lambda p: np.full(len(p), np.nan)), r"it returned float64 values"),
+    (lambda b: b.pin(indices=[]), r"pin 'pin0' is not allowed: indices = \[\] select no particle"),
+    (lambda b: b.pin(region=((-np.inf,) * 3, (np.inf,) * 3)), r"two 3-vectors of finite numbers"),
     (lambda b: b.add_particle_floor("e", margin=0.0, name=""), r"name = '' is not allowed"),
     (lambda b: (b.pin(indices=[0]), b.add_particle_floor("e", margin=0.0, name="pin0")), r"name = 'pin0' is not allowed"),
     (lambda b: (b.add_particle_floor("e", margin=0.0), b.add_particle_floor("e", margin=0.0, name="f2")),
@@ -692,13 +702,111 @@ def test_gradients_of_swept_tools_and_moving_pins_and_their_reaction_torque_matc
     (lambda b: b.pin(indices=[0, 10_000]), r"indices = \[0, 10000\] is not allowed: must be integers in \[0, 124\]"),
     (lambda b: (b.pin(indices=[0, 1]), b.pin(indices=[1, 2])), "pin 'pin1' is not allowed: it shares particles with pin 'pin0'"),
     (lambda b: tools.Keyframes([0.0, 0.0], [(0, 0, 0), (1, 0, 0)]), r"times = \[0\.0, 0\.0\] is not allowed: must be one or more finite, increasing"),
-    (lambda b: tools.Keyframes([0.0, 1.0], [(0, 0, 0)]), r"positions with shape \(1, 3\) is not allowed: must be \(2, 3\) finite numbers"),
+    (lambda b: tools.Keyframes([0.0, 1.0], [(0, 0, 0)]),
+     r"positions = \[\(0, 0, 0\)\] is not allowed: must be \(2, 3\) finite numbers, one row per time \(it has 1 row\)"),
 ])
 def test_bad_tool_input_is_a_value_error_naming_it(call, match):
     b = we.SceneBuilder(spacing=0.02)
     b.add_box((0, 0, 0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="d")
     with pytest.raises(ValueError, match=match):
         call(b)
+
+
+_TIMES = r"must be one or more finite, increasing numbers"
+_ROWS = r"must be \(2, 3\) finite numbers, one row per time"
+_QUATS = r"must be \(2, 4\) quaternions \(x, y, z, w\), none zero, one row per time"
+
+
+@pytest.mark.parametrize("args,match", [
+    (([0, 1], {"a": 1}), rf"^positions = \{{'a': 1\}} is not allowed: {_ROWS} \(it is of type dict, not a list, tuple or array\)$"),
+    (([0, 1j], [[0, 0, 0]] * 2), rf"^times = \[0, 1j\] is not allowed: {_TIMES} \(times\[1\] = 1j: must be a number\)$"),
+    (((x for x in [0, 1]), [[0, 0, 0]] * 2), rf"^times = <generator .*> is not allowed: {_TIMES} \(it is of type generator, not a list"),
+    (([0, 10**400], [[0, 0, 0]] * 2),
+     rf"^times = \[0, 1000.*\.\.\. is not allowed: {_TIMES} \(times\[1\] = 1\.000e\+400: must be a finite number \(it overflows a float\)\)$"),
+    (([0, 1], [[0, 0, 0], [0, 0]]), rf"^positions = \[\[0, 0, 0\], \[0, 0\]\] is not allowed: {_ROWS} \(positions\[1\] = \[0, 0\]: must be a sequence of 3"),
+    (([0, 1], [[0, 0, 0]] * 2, [[0, 0, 0, 1], [0, 0, 1]]), rf"^orientations = .* is not allowed: {_QUATS} \(orientations\[1\] = \[0, 0, 1\]: must be a sequence of 4"),
+    (([0, 1], [[0, 0, 0]] * 2, [[0, 0, 0, 1], [0, 0, 0, 0]]), rf"^orientations = .* is not allowed: {_QUATS} \(orientations\[1\] = \[0, 0, 0, 0\]: must be a non-zero quaternion"),
+    (([0, 1], [[0, 0, 0]] * 2, [[0, 0, 0, 1]]), rf"^orientations = \[\[0, 0, 0, 1\]\] is not allowed: {_QUATS} \(it has 1 row\)$"),
+    (("abc", [[0, 0, 0]]), rf"^times = 'abc' is not allowed: {_TIMES} \(it is of type str, not a list, tuple or array\)$"),
+    (([[0, 1]], [[0, 0, 0]] * 2), rf"^times = \[\[0, 1\]\] is not allowed: {_TIMES} \(times\[0\] = \[0, 1\]: must be a number\)$"),
+    ((np.array([[0.0, 1.0]]), [[0, 0, 0]] * 2), rf"^times = array\(\[\[0\., 1\.\]\]\) is not allowed: {_TIMES} \(its shape is \(1, 2\)\)$"),
+    ((3, [[0, 0, 0]]), rf"^times = 3 is not allowed: {_TIMES} \(it is of type int, not a list, tuple or array\)$"),
+    (({0, 1}, [[0, 0, 0]] * 2), rf"^times = \{{0, 1\}} is not allowed: {_TIMES} \(it is of type set"),
+    (([True, 2], [[0, 0, 0]] * 2), rf"^times = \[True, 2\] is not allowed: {_TIMES} \(times\[0\] = True: must be a number\)$"),
+    ((["0", "1"], [[0, 0, 0]] * 2), rf"^times = \['0', '1'\] is not allowed: {_TIMES} \(times\[0\] = '0': must be a number\)$"),
+    (([1, 0], [[0, 0, 0]] * 2), rf"^times = \[1, 0\] is not allowed: {_TIMES} \(times\[1\] = 0 is not after times\[0\] = 1\)$"),
+    (([0, 1], [[0, 0, 10**400]] * 2), rf"^positions = .* is not allowed: {_ROWS} \(positions\[0\]\[2\] = 1\.000e\+400: must be a finite number"),
+])
+def test_bad_keyframes_are_a_value_error_naming_the_argument_and_what_is_allowed(args, match):
+    """Each was a TypeError, an OverflowError or numpy's own message ('inhomogeneous shape'),
+    or was taken ([[0, 1]] read as [0, 1], '0' as 0, True as 1)."""
+    with pytest.raises(ValueError, match=match):
+        tools.Keyframes(*args)
+
+
+def test_keyframes_take_sequences_and_arrays_and_keep_plain_floats():
+    k = tools.Keyframes(np.array([0, 1]), np.zeros((2, 3)), [tools.IDENTITY, (0, 0, 0, -2)])
+    assert k.times == (0.0, 1.0) and all(type(v) is float for v in k.times + k.positions[0] + k.orientations[1])
+    assert k.orientations[1] == (0.0, 0.0, 0.0, 1.0)  # the shortest arc from the first
+    assert tools.Keyframes(k.times, k.positions, k.orientations) == k
+
+
+def _raise(e):
+    raise e
+
+
+_AT_REST = ((0.0, 0.5, 0.0), tools.IDENTITY)  # clear of the block
+
+
+@pytest.mark.parametrize("fn,match,cause", [
+    (lambda t: 1 / 0, r"^tool 'ball': its scripted motion at t = 0 is not allowed: it raised ZeroDivisionError: division by zero$",
+     ZeroDivisionError),
+    (lambda t: {}["a"], r"^tool 'ball': its scripted motion at t = 0 is not allowed: it raised KeyError: 'a'$", KeyError),
+    (lambda t: _raise(ValueError("no pose yet")) if t > 0 else _AT_REST,
+     r"^tool 'ball': its scripted motion at t = 0\.0001 is not allowed: it raised ValueError: no pose yet$", ValueError),
+    (lambda t: ((float("nan"), 0, 0), (0, 0, 0, 1)),
+     r"^tool 'ball': its scripted motion at t = 0 is not allowed: it returned position\[0\] = nan, which must be a finite number$", None),
+    (lambda t: ((0, 0, 0), (0, 0, 0, 0)) if t > 0 else _AT_REST,
+     r"^tool 'ball': its scripted motion at t = 0\.0001 is not allowed: it returned quaternion = \(0, 0, 0, 0\), which must be a non-zero",
+     None),
+    (lambda t: 5, r"^tool 'ball': its scripted motion at t = 0 is not allowed: it returned 5; must return \(position, quaternion", None),
+    (lambda t: ((0, 1e39, 0), tools.IDENTITY) if t > 0 else _AT_REST,
+     r"^tool 'ball': its scripted motion at t = 0\.0001 is not allowed in float32: it returned position = \(0\.0, 1e\+39, 0\.0\), "
+     r"beyond 1\.84e\+19 m; use dtype=float64", None),
+])
+def test_a_scripted_motion_that_raises_or_returns_a_bad_pose_is_a_value_error_naming_the_tool_and_time(fn, match, cause):
+    """The callable runs on the host in ``finalize`` (the tool's first pose) and deep in
+    ``Solver.step``: its ZeroDivisionError or KeyError came out as it was, and a bad pose said
+    'position[0] = nan' without the tool or the time (a float32 pose at 1e39 m wrote NaN and
+    the run went on)."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="d")
+    b.add_tool("sphere", radius=0.05, name="ball", motion=tools.Scripted(fn))
+    with pytest.raises(ValueError, match=match) as info:
+        m = b.finalize()
+        we.Solver(m).step(m.state(), m.state(), 1e-4)
+    if cause is not None:
+        assert isinstance(info.value.__cause__, cause)
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="d")
+    b.pin(body="d", name="grip", motion=tools.Scripted(fn))
+    with pytest.raises(ValueError, match=match.replace("^tool 'ball'", "^pinned set 'grip'")):
+        m = b.finalize()
+        we.Solver(m).step(m.state(), m.state(), 1e-4)
+
+
+@pytest.mark.parametrize("times,shown", [([1.0, 1.0 + 1e-9], "1.0 and 1.000000001"), ([0.0, 1e-46], "0.0 and 1e-46")])
+def test_keyframe_times_equal_in_float32_are_refused_at_finalize_and_float64_takes_them(times, shown):
+    """Increasing in float64 but equal once packed in float32: the first step refused them as
+    'keyframe_times of tool 'ball' = [1.0, 1.0] ... must be finite and increasing', times the
+    user never gave."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="d")
+    b.add_tool("sphere", radius=0.05, name="ball", motion=tools.Keyframes(times, [(0, 0.5, 0)] * 2))
+    with pytest.raises(ValueError, match=rf"^tool 'ball': Keyframes times = .* is not allowed in float32: {re.escape(shown)} are "
+                                         r"equal in float32; use dtype=float64 or times further apart$"):
+        b.finalize()
+    assert b.finalize(dtype=wp.float64).tools.keyframe_times.numpy().tolist() == times
 
 
 # ------------------------------------------------------------- scene files, CLI, USD
@@ -771,11 +879,39 @@ def test_scene_file_tools_and_pins_run_through_the_cli_to_usd_csv_and_json(tmp_p
     assert (tmp_path / "press.usdc_tools.csv").read_bytes() == before
 
 
+_PLATE = r"\[\[tools\]\] #2 \(shape 'box'\)"
+
+
 @pytest.mark.parametrize("old,new,pattern", [
-    ('name = "plate"', 'name = "plate"\nradus = 1.0', r"unknown key 'radus' in \[\[tools\]\] #2; did you mean 'radius'"),
+    ('name = "plate"', 'name = "plate"\nhalf_extent = 1.0', rf"unknown key 'half_extent' in {_PLATE}; did you mean 'half_extents'"),
     ('shape = "box"\nname = "plate"', 'shape = "cone"\nname = "plate"', r"shape = 'cone' in \[\[tools\]\] #2 is not allowed"),
-    ("keyframe_times = [0.0, 0.04]", "keyframe_times = [0.0, 0.04]\nvelocity = [0, 1, 0]", r"\[\[tools\]\] #2: .*not allowed together"),
+    ("keyframe_times = [0.0, 0.04]", "keyframe_times = [0.0, 0.04]\nvelocity = [0, 1, 0]", rf"{_PLATE}: .*not allowed together"),
     ('body = "block"', 'body = "blok"', r"\[\[pins\]\] #1: body = 'blok' is not allowed"),
+    # The file's keys, not tools.Keyframes' arguments (it said 'times = []', 'positions with shape').
+    ("keyframe_times = [0.0, 0.04]", "keyframe_times = []",
+     rf"{_PLATE}: keyframe_times = \[\] is not allowed: must be one or more finite, increasing numbers$"),
+    ("keyframe_times = [0.0, 0.04]", "keyframe_times = [0.0, 0.04, 0.08]",
+     rf"{_PLATE}: keyframe_positions = .* is not allowed: must be \(3, 3\) finite numbers, one row per time \(it has 2 rows\)$"),
+    ("keyframe_times = [0.0, 0.04]", "keyframe_times = [0.0, 0.04]\nkeyframe_orientations = [[0, 0, 0, 1]]",
+     rf"{_PLATE}: keyframe_orientations = \[\[0, 0, 0, 1\]\] is not allowed: must be \(2, 4\) quaternions .*\(it has 1 row\)$"),
+    ("keyframe_times = [0.0, 0.04]", "keyframe_times = [0.04, 0.0]",
+     rf"{_PLATE}: keyframe_times = .* \(keyframe_times\[1\] = 0\.0 is not after keyframe_times\[0\] = 0\.04\)$"),
+    ('body = "block"', 'body = "block"\nkeyframe_times = [0.0, 1.0]\nkeyframe_positions = [[0, 0, 0]]',
+     r"\[\[pins\]\] #1: keyframe_positions = \[\[0, 0, 0\]\] is not allowed: must be \(2, 3\)"),
+    # Keys that do not belong to the shape or the motion were ignored.
+    ('shape = "plane"\nname = "base"', 'shape = "mesh"\nname = "base"', r"missing key 'file' in \[\[tools\]\] #1 \(shape 'mesh'\)$"),
+    ('half_extents = [0.1, 0.01, 0.1]', 'half_extents = [0.1, 0.01, 0.1]\nradius = 0.3',
+     rf"key 'radius' in {_PLATE} is not allowed: a box tool takes half_extents \(radius is a key of sphere, capsule and "
+     r"cylinder tools\)$"),
+    ('shape = "plane"\nname = "base"', 'shape = "sphere"\nname = "base"\nradius = 0.1\nfile = "x.obj"',
+     r"key 'file' in \[\[tools\]\] #1 \(shape 'sphere'\) is not allowed: a sphere tool takes radius \(file is a key of a mesh tool\)$"),
+    ('shape = "plane"\nname = "base"', 'shape = "sphere"\nname = "base"\nradius = 0.1\nscale = 2.0',
+     r"key 'scale' in \[\[tools\]\] #1 \(shape 'sphere'\) is not allowed: a sphere tool takes radius"),
+    ('shape = "plane"\nname = "base"', 'shape = "sphere"\nname = "base"', r"missing key 'radius' in \[\[tools\]\] #1 \(shape 'sphere'\)$"),
+    ("keyframe_times = [0.0, 0.04]", "keyframe_times = [0.0, 0.04]\nposition = [0, 1, 0]",
+     rf"key 'position' in {_PLATE} is not allowed with keyframe_\*: the keyframes give the tool's pose at every time"),
+    ("keyframe_times = [0.0, 0.04]", "keyframe_times = [0.0, 0.04]\norientation = [0, 0, 0, 1]",
+     rf"key 'orientation' in {_PLATE} is not allowed with keyframe_\*"),
 ])
 def test_scene_file_tool_errors_name_the_table_and_key(tmp_path, old, new, pattern):
     from warp_esph.scenes import load_scene_file  # noqa: PLC0415
@@ -785,6 +921,39 @@ def test_scene_file_tool_errors_name_the_table_and_key(tmp_path, old, new, patte
     path.write_text(SCENE_TOML.replace(old, new))
     with pytest.raises(ValueError, match=pattern):
         load_scene_file(path)
+
+
+def test_scene_file_tool_shapes_are_the_tool_kinds_and_a_velocity_tool_keeps_its_position(tmp_path):
+    from warp_esph.scene_file import TOOL_SHAPES  # noqa: PLC0415
+    from warp_esph.scenes import load_scene_file  # noqa: PLC0415
+
+    assert tuple(TOOL_SHAPES) == tools.KINDS
+    path = tmp_path / "v.toml"
+    path.write_text(SCENE_TOML.replace('name = "base"', 'name = "base"\nposition = [0, 0.01, 0]\nvelocity = [0, 1, 0]'))
+    base = load_scene_file(path).builder.tools[0]
+    assert base.motion == tools.Velocity((0, 1, 0), (0, 0, 0), (0, 0.01, 0), tools.IDENTITY)
+
+
+def test_tool_names_that_clean_to_the_same_usd_prim_get_prims_of_their_own(tmp_path):
+    """'x y' (index 0) and 'tool_0_x_y' both became /World/Tools/tool_0_x_y: the second
+    authored its xformOps again and the run failed reading its own output ('The xformOp
+    ... already exists (a damaged or foreign file?)')."""
+    from warp_esph.cli import main  # noqa: PLC0415
+    from warp_esph.usd import UsdFrames  # noqa: PLC0415
+
+    path = tmp_path / "n2.toml"
+    path.write_text(SCENE_TOML.replace('name = "base"', 'name = "x y"').replace('name = "plate"', 'name = "tool_0_x_y"')
+                    .replace("frames = 2", "frames = 1"))
+    out = tmp_path / "n2.usdc"
+    assert main(["run", str(path), "-o", str(out), "--no-progress"]) == 0
+    data = UsdFrames(out)  # (its stage must outlive the tools' prims)
+    read = {t.name: t for t in data.tools}
+    assert sorted(read) == ["tool_0_x_y", "x y"]
+    assert read["x y"].kind == "plane" and read["tool_0_x_y"].kind == "box"
+    assert read["tool_0_x_y"].pose(1)[0][1] == pytest.approx(0.095, abs=1e-6)  # its own keyframes, at t = 0.02
+    # Valid names keep their prims; a cleaned one takes a suffix where it meets another.
+    assert tools.usd_names(["x y", "tool_0_x_y", "a+", "a-", "tool_0_x_y_1", "ok"]) == [
+        "tool_0_x_y_2", "tool_0_x_y", "tool_2_a_", "tool_3_a_", "tool_0_x_y_1", "ok"]
 
 
 def test_fig8_with_plates_elastic_cube_recovers_and_plastic_cube_keeps_the_squeeze():

@@ -422,10 +422,7 @@ class SceneBuilder:
         order = np.lexsort((np.tile(np.arange(nc), layers), np.repeat(np.arange(layers), nc), np.tile(ix, layers)))
         floor = np.stack([np.tile(cx, layers), np.repeat(ys, nc), np.tile(cz, layers)], axis=1)[order]
         if where is not None:
-            keep = np.asarray(where(floor.copy()), dtype=bool)
-            if keep.shape != (len(floor),):
-                raise ValueError(f"where returned shape {keep.shape}: it must return one bool per floor position ({len(floor)})")
-            floor = floor[keep]
+            floor = floor[checks.selection("where", where, floor, "floor_positions")]
         if len(floor) == 0:
             raise ValueError(f"where = {where!r} is not allowed: it keeps none of the floor's positions")
         start = self._count
@@ -539,10 +536,18 @@ class SceneBuilder:
                              f"{kind!r}: its options are {', '.join(own) or 'none'}")
         pos = checks.vector("position", position)
         ori = tools._quat("orientation", orientation)
-        if isinstance(motion, (tools.Keyframes, tools.Scripted)) and (
-                tuple(pos) != (0.0, 0.0, 0.0) or tuple(ori) != tuple(tools._quat("orientation", tools.IDENTITY))):
-            raise ValueError(f"position / orientation are not allowed with a {type(motion).__name__} motion: its poses "
-                             "are absolute (give them in the motion)")
+        if isinstance(motion, (tools.Keyframes, tools.Scripted)):
+            # Its poses are absolute: a place given beside them was ignored. The same as its
+            # first pose says nothing new and is taken.
+            identity = tools._quat("orientation", tools.IDENTITY)
+            first = ((0.0, 0.0, 0.0), identity)
+            if isinstance(motion, tools.Keyframes):
+                first = (tuple(motion.positions[0]),
+                         tuple(motion.orientations[0]) if motion.orientations is not None else identity)
+            same = lambda a, b: np.allclose(a, b, rtol=0.0, atol=1e-12)  # noqa: E731
+            if not (same(pos, (0.0, 0.0, 0.0)) or same(pos, first[0])) or not (same(ori, identity) or same(ori, first[1])):
+                raise ValueError(f"position / orientation are not allowed with a {type(motion).__name__} motion: its "
+                                 "poses are absolute (give them in the motion)")
         if motion is None:
             motion = tools.Velocity(position=pos, orientation=ori)
         elif isinstance(motion, tools.Velocity):

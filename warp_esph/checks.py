@@ -162,6 +162,27 @@ def boolean(name: str, value) -> bool:
     return bool(value)
 
 
+def selection(name: str, fn, points, what: str = "rest positions"):
+    """The boolean mask a user's predicate ``fn(points) -> bool (N,)`` returns, checked: an
+    exception it raises, a result of another length, or one that is not boolean (floats
+    were cast, ``x[:, 0]`` pinning every particle off x = 0 and NaN every particle) is a
+    ``ValueError`` naming ``name``."""
+    if not callable(fn):
+        raise ValueError(f"{name} = {shorten(fn)!r} is not allowed: must be callable as {name}({what}) -> bool array")
+    try:
+        out = fn(points.copy())
+    except Exception as e:  # noqa: BLE001 (the user's code: its error, named)
+        raise ValueError(f"{name} is not allowed: {name}({what}) raised {type(e).__name__}: {e}") from e
+    a = np.asarray(out)
+    if a.dtype != np.bool_:
+        raise ValueError(f"{name} is not allowed: it returned {a.dtype} values; it must return a bool array, one per "
+                         f"position ({len(points)})")
+    if a.shape != (len(points),):
+        raise ValueError(f"{name} is not allowed: it returned shape {a.shape}; it must return one bool per position "
+                         f"({len(points)})")
+    return a
+
+
 def same_state(model, name: str, state) -> None:
     """``state`` is a ``State`` whose every array fits ``model``: size, precision and device.
 

@@ -29,7 +29,7 @@ from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 
 __all__ = [
     "Scene", "load_scene_file", "SCENE_KEYS", "MATERIAL_KEYS", "BODY_COMMON", "BODY_SHAPES", "COLLIDER_TYPES", "TOP_KEYS",
-    "SOLVER_KEYS",
+    "SOLVER_KEYS", "TOOL_COMMON", "TOOL_SHAPES",
 ]
 
 
@@ -175,11 +175,26 @@ MOTION_KEYS = {
     "velocity": (VEC3, False), "angular_velocity": (VEC3, False), "keyframe_times": (NUMS, False),
     "keyframe_positions": (VEC3S, False), "keyframe_orientations": (QUATS, False),
 }
-TOOL_KEYS = {
+#: Keys of every tool, whatever its shape.
+TOOL_COMMON = {
     "shape": (STR, True), "name": (STR, False), "position": (VEC3, False), "orientation": (QUAT, False),
-    "friction": (NUM, False), "static_friction": (NUM, False), "normal": (VEC3, False), "half_extents": (VEC3, False),
-    "radius": (NUM, False), "half_height": (NUM, False), "file": (STR, False), "scale": (NUM, False), **MOTION_KEYS,
+    "friction": (NUM, False), "static_friction": (NUM, False), **MOTION_KEYS,
 }
+#: Keys of each tool shape (``tools.KINDS``; ``SceneBuilder.add_tool``): a key of another
+#: shape is refused, not ignored (a box given a radius was built without a word about it).
+TOOL_SHAPES = {
+    "plane": {"normal": (VEC3, False)},
+    "box": {"half_extents": (VEC3, True)},
+    "sphere": {"radius": (NUM, True)},
+    "capsule": {"radius": (NUM, True), "half_height": (NUM, True)},
+    "cylinder": {"radius": (NUM, True), "half_height": (NUM, True)},
+    "mesh": {"file": (STR, True), "scale": (NUM, False)},
+}
+#: Every key a tool of some shape may hold.
+TOOL_KEYS = {**TOOL_COMMON, **{key: kind for keys in TOOL_SHAPES.values() for key, kind in keys.items()}}
+#: The keys of a keyframed motion, in the order of ``tools.check_keyframes``' arguments
+#: (passed as its ``names``, so that its messages name the file's keys).
+KEYFRAME_KEYS = ("keyframe_times", "keyframe_positions", "keyframe_orientations")
 PIN_KEYS = {"name": (STR, False), "body": (STR, False), "region": (REGION, False), "indices": (INTS, False), **MOTION_KEYS}
 #: ``[solver]``: the numerical options of ``Model`` a scene may choose (``Model.fit``, the
 #: contact law ``Model.contact_ramp`` by name: ``model.CONTACTS``, ``Model.hourglass``,
@@ -342,13 +357,15 @@ def _motion(args: dict):
     """A ``tools`` motion from the motion keys in ``args`` (removed from it); None: static."""
     from . import tools  # noqa: PLC0415
 
-    kf = {k: args.pop(k) for k in ("keyframe_times", "keyframe_positions", "keyframe_orientations") if k in args}
+    kf = {k: args.pop(k) for k in KEYFRAME_KEYS if k in args}
     vel = {k: args.pop(k) for k in ("velocity", "angular_velocity") if k in args}
     if kf and vel:
         raise ValueError("velocity/angular_velocity and keyframe_* are not allowed together: give one motion")
     if kf:
         if "keyframe_times" not in kf or "keyframe_positions" not in kf:
             raise ValueError("keyframe_times and keyframe_positions are both needed for a keyframed motion")
+        # Checked under the file's names first: tools.Keyframes names its own arguments.
+        tools.check_keyframes(kf["keyframe_times"], kf["keyframe_positions"], kf.get("keyframe_orientations"), KEYFRAME_KEYS)
         return tools.Keyframes(kf["keyframe_times"], kf["keyframe_positions"], kf.get("keyframe_orientations"))
     if vel:
         return tools.Velocity(vel.get("velocity", (0.0, 0.0, 0.0)), vel.get("angular_velocity", (0.0, 0.0, 0.0)))
@@ -356,11 +373,22 @@ def _motion(args: dict):
 
 
 def _tool(file: str, k: int, table: dict, builder: SceneBuilder, base_dir: str):
-    from . import tools  # noqa: PLC0415
-
-    where = f"[[tools]] #{k + 1}"
-    _check_table(file, where, table, TOOL_KEYS)
-    _choice(file, where, "shape", table["shape"], tools.KINDS)
+    where, shape = _tagged(file, f"[[tools]] #{k + 1}", table, "shape", TOOL_SHAPES)
+    schema = {**TOOL_COMMON, **TOOL_SHAPES[shape]}
+    for key in table:
+        if key in TOOL_KEYS and key not in schema:
+            takes = ", ".join(TOOL_SHAPES[shape]) or "no shape keys"
+            owners = [s for s, keys in TOOL_SHAPES.items() if key in keys]
+            owners = f"a {owners[0]} tool" if len(owners) == 1 else f"{', '.join(owners[:-1])} and {owners[-1]} tools"
+            raise ValueError(f"{file}: key {key!r} in {where} is not allowed: a {shape} tool takes {takes} "
+                             f"({key} is a key of {owners})")
+    if any(key in table for key in KEYFRAME_KEYS):
+        for key in ("position", "orientation"):
+            if key in table:
+                # Keyframes are absolute poses: a tool's position would be dropped.
+                raise ValueError(f"{file}: key {key!r} in {where} is not allowed with keyframe_*: the keyframes give "
+                                 "the tool's pose at every time; put it in the first keyframe")
+    _check_table(file, where, table, schema)
     args = dict(table)
     shape = args.pop("shape")
     try:

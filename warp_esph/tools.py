@@ -44,7 +44,7 @@ import functools
 import math
 import types
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import numpy as np
 import warp as wp
@@ -67,6 +67,81 @@ def _quat(name: str, value) -> tuple[float, float, float, float]:
     return checks.unit_vector(name, value, 4, "quaternion (x, y, z, w)")
 
 
+#: The names ``check_keyframes`` gives its three arguments in messages.
+KEYFRAME_NAMES = ("times", "positions", "orientations")
+
+
+def _refuse(name: str, value, allowed: str, detail=None):
+    """``name = value is not allowed: allowed (detail)``; ``detail`` may be the ValueError of
+    the one item at fault, which names that item."""
+    if isinstance(detail, ValueError):
+        detail = str(detail).replace(" is not allowed: ", ": ", 1)
+    more = f" ({detail})" if detail else ""
+    raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: {allowed}{more}") from None
+
+
+def _items(name: str, value, allowed: str) -> list:
+    """The items of ``value``, an ordered sequence whose length is known: an iterator would
+    be used up by the check, and a set or mapping has no order to pair times with poses."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        _refuse(name, value, allowed, "its shape is ()")
+    if isinstance(value, (str, bytes, set, frozenset, Mapping)) or not hasattr(value, "__len__") \
+            or not hasattr(value, "__getitem__"):
+        _refuse(name, value, allowed, f"it is of type {type(value).__name__}, not a list, tuple or array")
+    try:
+        return list(value)
+    except Exception as e:  # noqa: BLE001 (a sequence that cannot be read is refused, whatever it raises)
+        _refuse(name, value, allowed, f"reading it raised {type(e).__name__}: {e}")
+
+
+def check_keyframes(times, positions, orientations=None, names=KEYFRAME_NAMES):
+    """``(times, positions, orientations)`` checked and as tuples of floats: times one or
+    more finite, increasing numbers, one position (3 numbers) and one quaternion (4, not all
+    zero; scaled to unit length, each in the hemisphere of the one before, for the shortest
+    arc) per time; ``orientations=None``: the identity throughout. ``names``: what messages
+    call the three (a scene file's keys)."""
+    tn, pn, qn = names
+    allowed = "must be one or more finite, increasing numbers"
+    if isinstance(times, np.ndarray) and times.ndim != 1:  # [[0, 1]] was read as [0, 1]
+        _refuse(tn, times, allowed, f"its shape is {times.shape}")
+    t_items = _items(tn, times, allowed)
+    if not t_items:
+        _refuse(tn, times, allowed)
+    t = []
+    for k, v in enumerate(t_items):
+        try:
+            t.append(checks.number(f"{tn}[{k}]", v))
+        except ValueError as e:
+            _refuse(tn, times, allowed, e)
+        if k and not t[k] > t[k - 1]:
+            _refuse(tn, times, allowed, f"{tn}[{k}] = {checks.shorten(v)!r} is not after {tn}[{k - 1}] = {checks.shorten(t_items[k - 1])!r}")
+    n = len(t)
+
+    def rows(name, value, width, what, check):
+        allowed = f"must be ({n}, {width}) {what}, one row per time"
+        items = _items(name, value, allowed)
+        if len(items) != n:
+            _refuse(name, value, allowed, f"it has {len(items)} row{'' if len(items) == 1 else 's'}")
+        out = []
+        for k, row in enumerate(items):
+            try:
+                out.append(check(f"{name}[{k}]", row))
+            except ValueError as e:
+                _refuse(name, value, allowed, e)
+        return out
+
+    p = rows(pn, positions, 3, "finite numbers", checks.vector)
+    if orientations is None:
+        q = [IDENTITY] * n
+    else:
+        q = [list(r) for r in rows(qn, orientations, 4, "quaternions (x, y, z, w), none zero", _quat)]
+        # Shortest arcs: consecutive keyframes in the same hemisphere.
+        for k in range(1, n):
+            if np.dot(q[k], q[k - 1]) < 0.0:
+                q[k] = [-c for c in q[k]]
+    return tuple(t), tuple(tuple(r) for r in p), tuple(tuple(float(c) for c in r) for r in q)
+
+
 @dataclasses.dataclass(frozen=True)
 class Keyframes:
     """Piecewise motion through keyframes: position linear, orientation slerp in between;
@@ -80,26 +155,10 @@ class Keyframes:
     orientations: tuple | None = None
 
     def __post_init__(self):
-        t = np.asarray(self.times, dtype=np.float64).ravel()
-        if t.size < 1 or not np.isfinite(t).all() or np.any(np.diff(t) <= 0.0):
-            raise ValueError(f"times = {self.times!r} is not allowed: must be one or more finite, increasing numbers")
-        p = np.asarray(self.positions, dtype=np.float64)
-        if p.shape != (t.size, 3) or not np.isfinite(p).all():
-            raise ValueError(f"positions with shape {p.shape} is not allowed: must be ({t.size}, 3) finite numbers, one per time")
-        if self.orientations is None:
-            q = np.tile(np.array(IDENTITY), (t.size, 1))
-        else:
-            q = np.asarray(self.orientations, dtype=np.float64)
-            if q.shape != (t.size, 4) or not np.isfinite(q).all() or np.any(np.abs(q).max(axis=1) == 0.0):
-                raise ValueError(f"orientations with shape {q.shape} is not allowed: must be ({t.size}, 4) non-zero quaternions")
-            q = np.array([checks.unit_vector(f"orientations[{k}]", row, 4, "quaternion") for k, row in enumerate(q)])
-            # Shortest arcs: consecutive keyframes in the same hemisphere.
-            for k in range(1, len(q)):
-                if np.dot(q[k], q[k - 1]) < 0.0:
-                    q[k] = -q[k]
-        object.__setattr__(self, "times", tuple(t))
-        object.__setattr__(self, "positions", tuple(map(tuple, p)))
-        object.__setattr__(self, "orientations", tuple(map(tuple, q)))
+        t, p, q = check_keyframes(self.times, self.positions, self.orientations)
+        object.__setattr__(self, "times", t)
+        object.__setattr__(self, "positions", p)
+        object.__setattr__(self, "orientations", q)
 
     def sample(self, t: float) -> tuple[int, int, float]:
         return sample_times(self.times, t)
@@ -148,12 +207,26 @@ class Scripted:
         if not callable(self.fn):
             raise ValueError(f"fn = {self.fn!r} is not allowed: must be callable as fn(t) -> (position, quaternion)")
 
-    def pose(self, t: float):
+    def pose(self, t: float, owner: str = "tools.Scripted"):
+        """``fn(t)`` checked; ``owner`` (``"tool 'press'"``) is what messages name: an
+        exception or a bad pose from deep in a step must say whose motion and when."""
+        t = float(t)
+        at = f"{owner}: its scripted motion at t = {t:g} is not allowed"
         try:
-            p, q = self.fn(float(t))
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"fn = {self.fn!r} is not allowed: fn({t:g}) must return (position, quaternion): {e}") from None
-        return checks.vector("position", p), _quat("quaternion", q)
+            r = self.fn(t)
+        except Exception as e:  # noqa: BLE001 (the user's code may raise anything; Ctrl-C still passes)
+            raise ValueError(f"{at}: it raised {type(e).__name__}: {e}") from e
+        must = "must return (position, quaternion (x, y, z, w))"
+        try:
+            p, q = r
+        except Exception:  # noqa: BLE001 (whatever unpacking r raises, r is the fault)
+            raise ValueError(f"{at}: it returned {checks.shorten(r)!r}; {must}") from None
+        try:
+            return checks.vector("position", p), _quat("quaternion", q)
+        except ValueError as e:
+            raise ValueError(f"{at}: it returned {str(e).replace(' is not allowed: ', ', which ', 1)}") from None
+        except Exception:  # noqa: BLE001 (a returned object whose reading raises is the fault)
+            raise ValueError(f"{at}: it returned {checks.shorten(r)!r}; {must}") from None
 
 
 MOTIONS = (Keyframes, Velocity, Scripted)
@@ -795,6 +868,9 @@ class ToolSet:
                 lin.append((0.0,) * 3)
                 ang.append((0.0,) * 3)
         self.keyframe_start = start
+        for k, motion in enumerate(self.motions):
+            if isinstance(motion, Keyframes):
+                self._check_times_fit(k, motion.times, npf)
         rg = model.requires_grad
 
         def arr(values, dtype, grad=False, width=3):
@@ -848,6 +924,35 @@ class ToolSet:
         self._warned_scripted = False
         self._held_samples = None
         self._held_views = None  # numpy views of _held_samples' memory on the CPU, kept with it
+
+    def _owner(self, k: int) -> str:
+        """Tool ``k`` as messages name it."""
+        return f"{'tool' if k < len(self.colliders) else 'pinned set'} {self.names[k]!r}"
+
+    def _check_times_fit(self, k: int, times, npf):
+        """Keyframe times that are increasing in float64 may not be in the model's precision
+        (1.0 and 1.0 + 1e-9 in float32): refused here, naming the user's times, rather than at
+        the first step as 'not increasing' times the user never gave."""
+        cast = np.asarray(times, dtype=np.float64).astype(npf)
+        bad = np.nonzero(~(np.diff(cast) > 0.0))[0]
+        if bad.size or not np.isfinite(cast).all():
+            prec = np.dtype(npf).name
+            why = (f"{times[bad[0]]!r} and {times[bad[0] + 1]!r} are equal in {prec}" if bad.size
+                   else f"they are beyond the {prec} range")
+            raise ValueError(f"{self._owner(k)}: Keyframes times = {checks.shorten(list(times))!r} is not allowed in "
+                             f"{prec}: {why}; use dtype=float64 or times further apart")
+
+    def _scripted_pose(self, k: int, t: float):
+        """Tool ``k``'s ``Scripted`` pose at ``t``, checked against the model's precision (a
+        pose at 1e39 m in float32 wrote NaN poses and the run went on)."""
+        owner = self._owner(k)
+        p, q = self.motions[k].pose(t, owner)
+        far = math.sqrt(float(np.finfo(self.model.types.np_dtype).max))
+        if max(abs(c) for c in p) > far:
+            prec = np.dtype(self.model.types.np_dtype).name
+            raise ValueError(f"{owner}: its scripted motion at t = {t:g} is not allowed in {prec}: it returned position = "
+                             f"{p!r}, beyond {far:.3g} m; use dtype=float64 or a nearer position")
+        return p, q
 
     def _times_now(self) -> np.ndarray:
         """The keyframe times as they are now (an optimiser may have changed the array)."""
@@ -926,7 +1031,7 @@ class ToolSet:
                     i0[s] = i1[s] = base
                 else:
                     direct[s] = 1
-                    sp[s], sq[s] = motion.pose(t)
+                    sp[s], sq[s] = self._scripted_pose(k, t)
         return i0, i1, w, ts, direct, sp, sq
 
     def _sample_arrays(self, host, held):
@@ -1022,7 +1127,7 @@ class ToolSet:
         kp = self.keyframe_positions.numpy().astype(np.float64)
         kq = self.keyframe_orientations.numpy().astype(np.float64)
         if isinstance(motion, Scripted):
-            p, q = motion.pose(t)
+            p, q = self._scripted_pose(k, t)
             return np.array(p), np.array(q)
         if isinstance(motion, Keyframes):
             a, b, w = sample_times(self._times_now()[base:base + len(motion.times)], t)
@@ -1102,6 +1207,8 @@ def select_particles(builder, *, indices=None, body=None, region=None, where=Non
         raise ValueError(f"pin {name!r}: no selection is not allowed: give indices, body, region and/or where")
     if indices is not None:
         idx = np.asarray(indices)
+        if idx.size == 0:  # [] read as floats was "must be integers"; an empty array "holds no particle"
+            raise ValueError(f"pin {name!r} is not allowed: indices = {checks.shorten(indices)!r} select no particle")
         if idx.dtype == bool:
             if idx.shape != (n,):
                 raise ValueError(f"indices with shape {idx.shape} is not allowed: a boolean mask must have one entry per particle ({n})")
@@ -1124,17 +1231,13 @@ def select_particles(builder, *, indices=None, body=None, region=None, where=Non
         try:
             lo, hi = (np.array(checks.vector("region", r)) for r in region)
         except (TypeError, ValueError):
-            raise ValueError(f"region = {region!r} is not allowed: must be (lo, hi), two 3-vectors") from None
+            raise ValueError(f"region = {checks.shorten(region)!r} is not allowed: must be (lo, hi), two 3-vectors of "
+                             "finite numbers") from None
         if np.any(hi < lo):
             raise ValueError(f"region = {region!r} is not allowed: lo must be <= hi in every axis")
         mask &= np.all((points >= lo) & (points <= hi), axis=1)
     if where is not None:
-        if not callable(where):
-            raise ValueError(f"where = {where!r} is not allowed: must be callable as where(rest_positions) -> bool array")
-        sel = np.asarray(where(points.copy()), dtype=bool)
-        if sel.shape != (n,):
-            raise ValueError(f"where returned shape {sel.shape}, which is not allowed: must be ({n},)")
-        mask &= sel
+        mask &= checks.selection("where", where, points, "rest_positions")
     out = np.nonzero(mask)[0]
     if out.size == 0:
         raise ValueError(f"pin {name!r} is not allowed: the selection holds no particle")
@@ -1175,8 +1278,8 @@ def usd_author(stage, model, key: str = "warp_esph", plane_size: float = 1.0):
         return
     UsdGeom.Scope.Define(stage, USD_ROOT)
     steel = Vt.Vec3fArray([Gf.Vec3f(0.62, 0.64, 0.7)])
-    for k, name in enumerate(tools.names):
-        path = f"{USD_ROOT}/{_usd_name(name, k)}"
+    for k, (name, prim_name) in enumerate(zip(tools.names, usd_names(tools.names))):
+        path = f"{USD_ROOT}/{prim_name}"
         xf = UsdGeom.Xform.Define(stage, path)
         xf.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble)
         xf.AddOrientOp(UsdGeom.XformOp.PrecisionDouble)
@@ -1237,8 +1340,8 @@ def usd_write_frame(stage, model, state, time_code, key: str = "warp_esph"):
         return
     f = state.reaction_force.numpy().astype(np.float64)
     tq = state.reaction_torque.numpy().astype(np.float64)
-    for k, name in enumerate(tools.names):
-        prim = stage.GetPrimAtPath(f"{USD_ROOT}/{_usd_name(name, k)}")
+    for k, prim_name in enumerate(usd_names(tools.names)):
+        prim = stage.GetPrimAtPath(f"{USD_ROOT}/{prim_name}")
         p, q = tools.pose_at(k, state.time)  # a pinned set's frame: (centroid, identity) at rest
         prim.GetAttribute("xformOp:translate").Set(Gf.Vec3d(*map(float, p)), time_code)
         prim.GetAttribute("xformOp:orient").Set(Gf.Quatd(float(q[3]), float(q[0]), float(q[1]), float(q[2])), time_code)
@@ -1246,12 +1349,28 @@ def usd_write_frame(stage, model, state, time_code, key: str = "warp_esph"):
         prim.GetAttribute(f"{key}:reaction_torque").Set(Gf.Vec3d(*tq[k]), time_code)
 
 
-def _usd_name(name: str, k: int) -> str:
+def usd_names(names) -> list[str]:
+    """The prim name under ``USD_ROOT`` of each tool, unique: a valid identifier is kept; any
+    other is cleaned and carries the tool's index (so 'a+' and 'a-' stay two prims), and a
+    suffix ``_<j>`` where that still meets another tool's prim ('x y' at index 0 and
+    'tool_0_x_y' both made ``tool_0_x_y``, and the second prim's xformOps were authored twice,
+    which made the run's own output unreadable). Readers find a tool by its
+    ``tool_name`` custom data, not by its prim name."""
     import re  # noqa: PLC0415
 
-    clean = re.sub(r"[^A-Za-z0-9_]", "_", name)
-    # Changed names carry the tool index, so that 'a+' and 'a-' stay two prims.
-    return clean if clean == name and not clean[0].isdigit() else f"tool_{k}_{clean}"
+    out: list[str | None] = []
+    for name in names:  # valid names first: they are their own prims whatever comes before
+        out.append(name if re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name) else None)
+    taken = {n for n in out if n is not None}
+    for k, name in enumerate(names):
+        if out[k] is None:
+            base = f"tool_{k}_{re.sub(r'[^A-Za-z0-9_]', '_', name)}"
+            prim, j = base, 1
+            while prim in taken:
+                prim, j = f"{base}_{j}", j + 1
+            taken.add(prim)
+            out[k] = prim
+    return out
 
 
 # ---------------------------------------------------------------------- reaction log
