@@ -727,18 +727,20 @@ class Model:
         self._stable_dt = (key, dt)
         return dt
 
-    def _check_parameter_values(self, rows: np.ndarray) -> None:
+    def _check_parameter_values(self, rows: np.ndarray,
+                                what: str = "the model's parameter arrays are not allowed as they are") -> None:
         """The parameter arrays (a fit, torch or a user writes them in place) hold values each
         material takes, by ``Material``'s own checks: a NaN or negative shear modulus made the
         stable step NaN and the positions NaN without a word, a negative viscosity flung the
         body, a negative flow rate ran on. Runs where ``stable_dt`` reads new values, so before
-        the step that would use them."""
+        the step that would use them, and where values are given (``Rollout.set_parameters``,
+        ``what``: how the message begins)."""
         for k, m in enumerate(self.materials):
             values = {name: float(rows[f, k]) for f, name in enumerate(self.MATERIAL_FIELDS)}
             try:
                 m.replace(**values)
             except ValueError as e:
-                raise ValueError(f"the model's parameter arrays are not allowed as they are: material {k}: {e}") from None
+                raise ValueError(f"{what}: material {k}: {e}") from None
 
     def _stable_dt_now(self, courant: float, hourglass: float | None, rows: np.ndarray) -> float:
         p = self._parameter_values(rows)

@@ -284,11 +284,7 @@ class Rollout:
         # Each material's checks, now that the values are given (a negative mu was refused
         # only at the next step, as "the model's parameter arrays").
         rows = np.stack([new[f] if f in new else getattr(m, f).numpy() for f in m.MATERIAL_FIELDS])
-        for k, mat in enumerate(m.materials):
-            try:
-                mat.replace(**{f: float(rows[i, k]) for i, f in enumerate(m.MATERIAL_FIELDS)})
-            except ValueError as e:
-                raise ValueError(f"values are not allowed for material {k}: {e}") from None
+        m._check_parameter_values(rows, "values are not allowed")
         for name, v in new.items():
             getattr(m, name).assign(v)
 
