@@ -641,3 +641,22 @@ def test_a_guess_outside_its_bounds_is_said_where_the_fit_starts(dough_target):
                  bounds={"yield_stress": (300.0, 500.0)}, progress=False, diagnostics=False, log=said.append)
     assert "the guess yield_stress = 200 lies outside its bounds 300:500: the fit starts at 300" in said, said
     assert result.history[0]["params"]["yield_stress"] == [pytest.approx(300.0)]
+
+
+def test_ctrl_c_in_the_diagnostics_keeps_the_finished_fit(dough_target, monkeypatch):
+    """An interrupt during the diagnostics (2 P + 1 more rollouts) lost the fit that had
+    finished; ``FitInterrupted.result`` now holds it, without diagnostics."""
+    from warp_esph import diagnostics
+    from warp_esph.fit import FitInterrupted
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(diagnostics, "diagnose_problem", interrupted)
+    truth, dt, steps, frames, target = dough_target
+    with pytest.raises(FitInterrupted) as info:
+        fit(_dough_block(800.0, 60.0), target[:1], ["yield_stress"], steps=50, dt=dt, frames=frames[:1], iterations=2,
+            optimizer="lbfgs", progress=False)
+    result = info.value.result
+    assert result is not None and result.diagnostics is None and result.stopped != "interrupted"
+    assert len(result.history) >= 2 and result.loss <= result.history[0]["loss"]

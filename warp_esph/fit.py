@@ -983,7 +983,13 @@ def fit(
         from .diagnostics import diagnose_problem  # noqa: PLC0415
 
         t0 = time.perf_counter()
-        result.diagnostics = diagnose_problem(prob, prob.to_z(p), noise=noise, step=fd_step)
+        try:
+            result.diagnostics = diagnose_problem(prob, prob.to_z(p), noise=noise, step=fd_step)
+        except KeyboardInterrupt:
+            # The fit itself is finished: kept, without its diagnostics.
+            for r in runs:
+                r.apply(p)
+            raise FitInterrupted(result) from None
         d = result.diagnostics
         say(f"diagnostics ({d.method}): {d.evaluations} evaluations in {time.perf_counter() - t0:.3g} s")
         if iterations > 0 and not result.converged:
@@ -1171,7 +1177,8 @@ def _refused_note(error: FloatingPointError) -> str | None:
 class FitInterrupted(KeyboardInterrupt):
     """Ctrl-C during a fit. ``result``: a ``FitResult`` of the evaluations so far, at the
     best of them (``stopped`` "interrupted"; the model holds its values), or None before
-    the first finite one. The command line writes it before it exits."""
+    the first finite one; during the diagnostics, the finished fit without them. The
+    command line writes it before it exits."""
 
     def __init__(self, result):
         super().__init__()
