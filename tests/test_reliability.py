@@ -683,3 +683,8 @@ def test_the_builder_refuses_tools_inside_bodies_stray_tool_options_coincident_p
     b.finalize(dtype=wp.float64)
     with pytest.raises(ValueError, match="margin is required"):
         builder().add_particle_floor("blk")
+    # A mesh too large at scale 1 blamed a 'scale = 1.0' the user never set.
+    tet = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=float) * 1e20
+    with pytest.raises(ValueError, match=r"the mesh's extent \(scale 1\) = \(1e\+20, 1e\+20, 1e\+20\) is not allowed"):
+        we.SceneBuilder(spacing=0.01).add_mesh((tet, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])),
+                                               we.Material.preset("clay"))

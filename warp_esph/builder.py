@@ -303,7 +303,10 @@ class SceneBuilder:
         s = checks.positive("scale", scale)
         t = np.array(checks.vector("translation", translation))
         points = points * s + t
-        self._check_lattice_size(points.min(axis=0), points.max(axis=0), "scale", scale)
+        # Named by what made the mesh large: the scale given, or the mesh's own extent.
+        extent = tuple(float(v) for v in points.max(axis=0) - points.min(axis=0))
+        self._check_lattice_size(points.min(axis=0), points.max(axis=0), *(
+            ("scale", scale) if scale != 1.0 else ("the mesh's extent (scale 1)", checks.shorten(extent))))
         inside = meshes.sample_inside(points, triangles, self.spacing)
         kind_name = name if name is not None else (meshes.mesh_name(source) if isinstance(source, (str, bytes)) or hasattr(source, "__fspath__") else None)
         return self.add_particles(inside, material, velocity, kind_name, "mesh", angular_velocity)
