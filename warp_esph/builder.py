@@ -782,10 +782,12 @@ def _check_outside_colliders(builder) -> None:
     starts = np.cumsum([0] + [b.count for b in builder._bodies])
     tol = 0.5 * builder.spacing
     # Named as the reaction rows and the force log name them (plane0, sphere0, box0).
-    depths = [(f"plane{k}", p.offset - x @ np.array(p.normal)) for k, p in enumerate(builder.planes)]
-    depths += [(f"sphere{k}", s.radius - np.linalg.norm(x - np.array(s.center), axis=1)) for k, s in enumerate(builder.spheres)]
-    depths += [(f"box{k}", (np.array(b.half_extents) - np.abs(x - np.array(b.center))).min(axis=1))
-               for k, b in enumerate(builder.boxes)]
+    # The shapes' depths are the tools' (``_tool_depth``), in each collider's own frame.
+    depths = [(f"plane{k}", _tool_depth("plane", p.normal, x - p.offset * np.array(p.normal)))
+              for k, p in enumerate(builder.planes)]
+    depths += [(f"sphere{k}", _tool_depth("sphere", (s.radius, 0.0, 0.0), x - np.array(s.center)))
+               for k, s in enumerate(builder.spheres)]
+    depths += [(f"box{k}", _tool_depth("box", b.half_extents, x - np.array(b.center))) for k, b in enumerate(builder.boxes)]
     for name, d in depths:
         d = np.where(free, d, -np.inf)
         inside = d > tol
