@@ -27,10 +27,13 @@ rotation invariant, makes ``A~`` singular at every lattice edge at h = 2 dx).
 The variational elastic force (``forces.py``) follows the same operator:
 ``M_i = V_i P*_i F_i^T A~_i^-1``, ``g_ij = w_ij M_i (xb_ij - K_i^T q(xb_ij))``.
 
-Kept in its own module so that the default (linear) fit's kernels are untouched: the
-solver runs these, non-fused, only when the option is on. Under a tape both have
-hand-written adjoints: the deformation update's ``update_deformation_adjoint``, the
-variational force's ``variational_forces_adjoint`` (eqs. 10-13's particles use
+The deformation update is ``deformation.update_kernels`` on this module's functions
+(``fit_increment``, ``fit_moments``, ``moments_increment``, ``moments_adjoint``): one
+kernel and one adjoint for both fits, so the guards, the carried composition and the
+floor images' share are written once. The solver runs the corrected fit, non-fused, only
+when the option is on. Under a tape both have hand-written adjoints: the deformation
+update's ``update_deformation_adjoint``, the variational force's
+``variational_forces_adjoint`` (eqs. 10-13's particles use
 ``forces.elastic_forces_adjoint``); ``Solver.hand_adjoints = False`` runs Warp's generated
 ones, which the tests compare them with in float64.
 
@@ -694,8 +697,86 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                                                            c * Gg, applied, adj_wsum, adj_x, adj_y)
         return (scalar(1.0) - c) * Gg, adj_Fg, adj_s
 
+    # The fit's side of the update kernels (``deformation.update_kernels``), as
+    # ``deformation.funcs`` has them for the linear fit.
+    @wp.func
+    def fit_increment(i: int, x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
+                      y_lo: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32), nbr: wp.array2d(dtype=wp.int32), n: int,
+                      h: scalar, gn: vec3, goff: scalar, gmin: scalar, images: int, code: int, min_neighbors: int,
+                      max_condition: scalar, counters: wp.array(dtype=wp.int32)):
+        """This step's guarded ``dF - I = B~ A~^-1 - I`` (``step_increment``) of ``i``'s fit and
+        the guards' fade ``scale`` it carries (``guards.guard_scale``, on the plain ``A``)."""
+        A, Bu, C, D, Eu, same = fit_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
+        scale = gf.guard_scale(A, same, min_neighbors, max_condition)
+        return step_increment(A, Bu, C, D, Eu, code, scale, counters), scale
+
+    @wp.struct
+    class FitMoments:
+        """One particle's sums of ``fit_sums``: ``A``, ``B - A``, ``C``, ``D``, ``E - C`` and
+        the smooth same-body count."""
+        A: mat33
+        Bu: mat33
+        C: mat33
+        D: mat33
+        Eu: mat33
+        same: scalar
+
+    @wp.func
+    def fit_moments(i: int, x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
+                    y_lo: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32), nbr: wp.array2d(dtype=wp.int32), n: int,
+                    h: scalar, gn: vec3, goff: scalar, gmin: scalar, images: int) -> FitMoments:
+        """``fit_sums`` as one value, for the adjoint kernel."""
+        A, Bu, C, D, Eu, same = fit_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
+        m = FitMoments()
+        m.A = A
+        m.Bu = Bu
+        m.C = C
+        m.D = D
+        m.Eu = Eu
+        m.same = same
+        return m
+
+    @wp.func
+    def moments_increment(m: FitMoments) -> mat33:
+        """The unguarded ``dF - I`` of the moments (``corrected_increment``)."""
+        return corrected_increment(m.A, m.Bu, m.C, m.D, m.Eu)
+
+    @wp.func
+    def moments_adjoint(i: int, x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                        nbr: wp.array2d(dtype=wp.int32), n: int, h: scalar, gn: vec3, goff: scalar, gmin: scalar,
+                        images: int, m: FitMoments, inc0: mat33, adj_inc0: mat33, adj_A_fade: mat33, adj_same: scalar,
+                        adj_x: wp.array(dtype=vec3), adj_y: wp.array(dtype=vec3)):
+        """Adjoint of ``moments_increment`` and of the sums, given the gradient of ``inc0``
+        and the fade's own ``adj A`` and ``adj same``. With ``K = (D + eps I)^-1 C^T``, ``A~ =
+        A - C K``, ``B~ = B - E K``: ``adj B~ = adj inc0 A~^-T``, ``adj A~ = -(I + inc0)^T
+        adj B~``; ``adj B = adj B~``, ``adj E = -adj B~ K^T``, and ``projection_adjoint`` takes
+        ``adj A~`` and ``adj K = -E^T adj B~`` to ``adj A``, ``adj C``, ``adj D`` (``B = Bu +
+        A``, ``E = Eu + C``, the same functions of the positions). Per pair the sums depend on
+        ``xb`` through ``w(|xb|^2)``, ``xb`` and ``q(xb)``, and on ``yb`` linearly
+        (``moment_pairs_adjoint``), over the row and the floor's images. Returns what goes to
+        ``x_i``, ``y_i``."""
+        K, D_inv, kept = projection_terms(m.A, m.C, m.D)
+        At = corrected_moment(m.A, m.C, K)
+        E = m.Eu + m.C
+        adj_Bt = adj_inc0 * wp.transpose(wp.inverse(At))
+        adj_At = -((wp.identity(n=3, dtype=scalar) + wp.transpose(inc0)) * adj_Bt)
+        adj_B = adj_Bt
+        adj_E = -(adj_Bt * wp.transpose(K))
+        adj_A, adj_C, adj_D = projection_adjoint(adj_At, -(wp.transpose(E) * adj_Bt), m.C, K, D_inv, kept)
+        adj_A = adj_A + adj_A_fade
+        adj_A_sym = adj_A + wp.transpose(adj_A)
+        adj_D_sym = adj_D + wp.transpose(adj_D)
+        gx_i, gy_i = moment_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 0, adj_A, adj_A_sym, adj_B, adj_C,
+                                          adj_D, adj_D_sym, adj_E, adj_same, adj_x, adj_y, vec3(), vec3())
+        if images != 0:
+            gx_i, gy_i = moment_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 1, adj_A, adj_A_sym, adj_B,
+                                              adj_C, adj_D, adj_D_sym, adj_E, adj_same, adj_x, adj_y, gx_i, gy_i)
+        return gx_i, gy_i
+
     return types.SimpleNamespace(
         pair_moments=pair_moments, moment_pair_sums=moment_pair_sums, fit_sums=fit_sums,
+        fit_increment=fit_increment, FitMoments=FitMoments, fit_moments=fit_moments, moments_increment=moments_increment,
+        moments_adjoint=moments_adjoint, carried_update=df.carried_update,
         floor_image_displacement_sums=floor_image_displacement_sums, floor_image_own_update=floor_image_own_update,
         floor_image_update=floor_image_update, floor_image_own_update_adjoint=floor_image_own_update_adjoint,
         floor_image_update_adjoint=floor_image_update_adjoint,
@@ -723,151 +804,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     fn = funcs(scalar, weight)
     gf = guards.guard_funcs(scalar)
     Materials = materials.struct(scalar)
-
-    @wp.kernel(module="unique")
-    def update_deformation(
-        x: wp.array(dtype=vec3),
-        y: wp.array(dtype=vec3),
-        x_lo: wp.array(dtype=vec3),
-        y_lo: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        nbr: wp.array2d(dtype=wp.int32),
-        count: wp.array(dtype=wp.int32),
-        guard: wp.array(dtype=wp.int32),
-        F_prev: wp.array(dtype=mat33),
-        F_prev_lo: wp.array(dtype=mat33),
-        h: scalar,
-        min_neighbors: int,
-        max_condition: scalar,
-        gn: vec3,
-        goff: scalar,
-        gmin: scalar,
-        images: int,
-        Fg_prev: wp.array(dtype=mat33),
-        F_out: wp.array(dtype=mat33),
-        F_out_lo: wp.array(dtype=mat33),
-        counters: wp.array(dtype=wp.int32),
-        Fg_out: wp.array(dtype=mat33),
-        share_out: wp.array(dtype=scalar),
-    ):
-        """``deformation.update_deformation`` with the corrected fit (eq. 8: ``F <- dF F``
-        unless guarded or inverted, ``F``'s round-off carried in ``F_lo`` as there)."""
-        i = wp.tid()
-        A, Bu, C, D, Eu, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
-        scale = gf.guard_scale(A, same, min_neighbors, max_condition)
-        inc = fn.step_increment(A, Bu, C, D, Eu, guard[i], scale, counters)
-        F_new, F_new_lo = df.carried_update(inc, F_prev[i], F_prev_lo[i], counters)
-        F_out[i] = F_new
-        F_out_lo[i] = F_new_lo
-        # The floor image's own F (State.F_image), by the image's corrected fit
-        # (floor_image_update); without images, its particle's.
-        Fg_new = F_new
-        c = scalar(0.0)
-        if images != 0:
-            Fg_new, c = fn.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, guard[i],
-                                              scale, Fg_prev[i], F_new)
-        Fg_out[i] = Fg_new
-        share_out[i] = c
-
-    @wp.kernel(enable_backward=False, module="unique")
-    def update_deformation_adjoint(
-        x: wp.array(dtype=vec3),
-        y: wp.array(dtype=vec3),
-        x_lo: wp.array(dtype=vec3),
-        y_lo: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        nbr: wp.array2d(dtype=wp.int32),
-        count: wp.array(dtype=wp.int32),
-        guard: wp.array(dtype=wp.int32),
-        F_prev: wp.array(dtype=mat33),
-        h: scalar,
-        min_neighbors: int,
-        max_condition: scalar,
-        gn: vec3,
-        goff: scalar,
-        gmin: scalar,
-        images: int,
-        Fg_prev: wp.array(dtype=mat33),
-        adj_F_out: wp.array(dtype=mat33),
-        adj_Fg_out: wp.array(dtype=mat33),
-        adj_share: wp.array(dtype=scalar),
-        adj_x: wp.array(dtype=vec3),
-        adj_y: wp.array(dtype=vec3),
-        adj_F_prev: wp.array(dtype=mat33),
-        adj_Fg_prev: wp.array(dtype=mat33),
-    ):
-        """Hand-written adjoint of ``update_deformation`` (as ``deformation.update_deformation_adjoint``
-        for the linear fit: the generated one spends many times the forward).
-
-        With ``K = (D + eps I)^-1 C^T``, ``A~ = A - C K``, ``B~ = B - E K``, ``dF = B~ A~^-1``
-        and ``F_out = dF F``: ``adj F = dF^T G``, ``adj B~ = G F^T A~^-T``,
-        ``adj A~ = -dF^T adj B~``; ``adj B = adj B~``, ``adj E = -adj B~ K^T``,
-        ``adj A = adj A~ + (eps / tr(A)) tr(adj Dr) I``, ``adj K = -E^T adj B~ - C^T adj A~``,
-        ``adj C = -adj A~ K^T + adj K^T Dr^-1``, ``adj D = -Dr^-T adj K K^T`` (``Dr = D + eps I``;
-        where the correction is dropped, ``K = 0`` does not depend on ``C`` or ``D``).
-        Per pair the sums depend on ``xb`` through ``w(|xb|^2)``, ``xb`` and ``q(xb)``, and on
-        ``yb`` linearly (``moment_pair_adjoint``, over the row in ``moment_pairs_adjoint``).
-        Guarded or inverted particles keep ``F``: all of ``G`` goes to ``F``. With ``images`` the
-        image pairs (``moment_pair_sums``) likewise, scattered to their particles through
-        ``deformation.floor_image_jacobian`` (``deformation.scatter_pair_adjoint``), and the
-        image's own update (``floor_image_update``, the image's corrected fit) as in
-        ``deformation.update_deformation_adjoint``."""
-        i = wp.tid()
-        G = adj_F_out[i]
-        Fp = F_prev[i]
-        code = guard[i]
-        n = count[i]
-        A, Bu, C, D, Eu, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
-        K, D_inv, kept = fn.projection_terms(A, C, D)
-        At = fn.corrected_moment(A, C, K)
-        # The adjoint of dF F in the moments of the positions (B = Bu + A, E = Eu + C): the
-        # same function; the round-off arrays are not differentiated (roundoff.py).
-        E = Eu + C
-        At_inv = wp.inverse(At)
-        inc0 = fn.corrected_moment(Bu, Eu, K) * At_inv
-        # The fade s(A, same) on the plain moment matrix (guards.guard): inc = s inc0.
-        code_, s, ds_dA, ds_dn = gf.guard(A, same, min_neighbors, max_condition)
-        # The image's update (floor_image_update): its share of the gradient of F_new joins G.
-        adj_s = scalar(0.0)
-        if images != 0:
-            G_share, adj_Fg, adj_sg = fn.floor_image_update_adjoint(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin,
-                                                                    code, s, inc0, Fp, Fg_prev[i], adj_Fg_out[i],
-                                                                    adj_share[i], adj_x, adj_y)
-            G = G + G_share
-            adj_Fg_prev[i] = adj_Fg_prev[i] + adj_Fg
-            adj_s = adj_sg
-        if code == 1 or code == 2:
-            adj_F_prev[i] = adj_F_prev[i] + G
-            return
-        inc = s * inc0
-        dF = wp.identity(n=3, dtype=scalar) + inc
-        if wp.determinant(Fp + inc * Fp) <= scalar(0.0):
-            # F is kept; the image's fade (adj s) still reaches A through the guard.
-            adj_F_prev[i] = adj_F_prev[i] + G
-            if adj_s == scalar(0.0):
-                return
-            G = mat33()
-        else:
-            adj_F_prev[i] = adj_F_prev[i] + wp.transpose(dF) * G
-        adj_inc = G * wp.transpose(Fp)
-        adj_Bt = s * adj_inc * wp.transpose(At_inv)
-        adj_At = -((wp.identity(n=3, dtype=scalar) + wp.transpose(inc0)) * adj_Bt)
-        KT = wp.transpose(K)
-        adj_B = adj_Bt
-        adj_E = -(adj_Bt * KT)
-        adj_A, adj_C, adj_D = fn.projection_adjoint(adj_At, -(wp.transpose(E) * adj_Bt), C, K, D_inv, kept)
-        adj_s += wp.ddot(adj_inc, inc0)
-        adj_A = adj_A + adj_s * ds_dA
-        adj_A_sym = adj_A + wp.transpose(adj_A)
-        adj_D_sym = adj_D + wp.transpose(adj_D)
-        adj_same = adj_s * ds_dn
-        gx_i, gy_i = fn.moment_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 0, adj_A, adj_A_sym, adj_B,
-                                             adj_C, adj_D, adj_D_sym, adj_E, adj_same, adj_x, adj_y, vec3(), vec3())
-        if images != 0:
-            gx_i, gy_i = fn.moment_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 1, adj_A, adj_A_sym, adj_B,
-                                                 adj_C, adj_D, adj_D_sym, adj_E, adj_same, adj_x, adj_y, gx_i, gy_i)
-        wp.atomic_add(adj_x, i, gx_i)
-        wp.atomic_add(adj_y, i, gy_i)
 
     @wp.kernel(module="unique")
     def elastic_forces(
@@ -1076,8 +1012,10 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                     gx_i -= gp
         wp.atomic_add(adj_x, i, gx_i + df.floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
 
-    return types.SimpleNamespace(update_deformation=update_deformation,
-                                 update_deformation_adjoint=update_deformation_adjoint, elastic_forces=elastic_forces,
+    # Eq. 8's update and its adjoint are the linear fit's kernels on this fit's functions.
+    update = deformation.update_kernels(scalar, weight, "curvature_corrected")
+    return types.SimpleNamespace(update_deformation=update.update_deformation,
+                                 update_deformation_adjoint=update.update_deformation_adjoint, elastic_forces=elastic_forces,
                                  variational_forces_adjoint=variational_forces_adjoint)
 
 
@@ -1113,39 +1051,5 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
             device=model.device, record_tape=False,
         )
         forces.launch_elastic_forces_adjoint(model, state_in, state_out)
-
-    tape.record_func(adjoint, list(grads))
-
-
-def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint: bool = True,
-                              max_condition: float = guards.MAX_CONDITION, min_neighbors: int = guards.MIN_NEIGHBORS):
-    """``deformation.launch_update_deformation`` with the corrected fit; under a tape the
-    backward runs ``update_deformation_adjoint`` (``hand_adjoint=False``: Warp's generated one)."""
-    k = kernels(model.scalar, model.fit_weight)
-    pos = [state_in.x, state_out.x, state_in.x_lo, state_out.x_lo, model.particle_body, state_out.neighbors,
-           state_out.neighbor_count, state_out.guard]
-    h = model.scalar(model.support_radius)
-    plane = [int(min_neighbors), model.scalar(max_condition), *model.image_args()]
-    inputs = pos + [state_out.F_flowed, state_out.F_flowed_lo, h, *plane, deformation.image_F_flowed(model, state_out)]
-    outputs = [state_out.F, state_out.F_lo, counters, state_out.F_image, state_out.image_share]
-    tape = recording_tape()
-    images = model.image_plane is not None
-    grads = (state_in.x, state_out.x, state_out.F_flowed, state_out.F)
-    if images:
-        grads += (state_out.F_image_flowed, state_out.F_image, state_out.image_share)
-    if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
-        model.launches(k.update_deformation, model.particle_count, inputs, outputs, device=model.device)
-        return
-    model.launches(k.update_deformation, model.particle_count, inputs, outputs, device=model.device, record_tape=False)
-
-    def adjoint():
-        model.launches(
-            k.update_deformation_adjoint, model.particle_count,
-            pos + [state_out.F_flowed, h, *plane, deformation.image_F_flowed(model, state_out), state_out.F.grad,
-                   state_out.F_image.grad if images else state_out.F.grad, deformation.image_share_grad(state_out),
-                   state_in.x.grad, state_out.x.grad, state_out.F_flowed.grad,
-                   state_out.F_image_flowed.grad if images else state_out.F_flowed.grad],
-            device=model.device, record_tape=False,
-        )
 
     tape.record_func(adjoint, list(grads))

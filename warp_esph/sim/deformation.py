@@ -680,6 +680,64 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         unless guarded or inverted, of the compensated ``F + F_lo``; returns the new ``(F, F_lo)``."""
         return carried_update(step_increment(A, Bu, code, scale, counters), F, F_lo, counters)
 
+    # The fit's side of the update kernels (``update_kernels``); ``curvature.funcs`` has the
+    # same four for the corrected fit.
+    @wp.func
+    def fit_increment(i: int, x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
+                      y_lo: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32), nbr: wp.array2d(dtype=wp.int32), n: int,
+                      h: scalar, gn: vec3, goff: scalar, gmin: scalar, images: int, code: int, min_neighbors: int,
+                      max_condition: scalar, counters: wp.array(dtype=wp.int32)):
+        """This step's guarded ``dF - I`` (``step_increment``) of ``i``'s fit and the guards'
+        fade ``scale`` it carries (``guards.guard_scale``)."""
+        A, B, same = fit_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
+        scale = gf.guard_scale(A, same, min_neighbors, max_condition)
+        return step_increment(A, B, code, scale, counters), scale
+
+    @wp.struct
+    class FitMoments:
+        """One particle's sums of ``fit_sums``: the moment matrix ``A``, the displacement
+        moment ``B - A`` and the smooth same-body count."""
+        A: mat33
+        Bu: mat33
+        same: scalar
+
+    @wp.func
+    def fit_moments(i: int, x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), x_lo: wp.array(dtype=vec3),
+                    y_lo: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32), nbr: wp.array2d(dtype=wp.int32), n: int,
+                    h: scalar, gn: vec3, goff: scalar, gmin: scalar, images: int) -> FitMoments:
+        """``fit_sums`` as one value, for the adjoint kernel."""
+        A, Bu, same = fit_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
+        m = FitMoments()
+        m.A = A
+        m.Bu = Bu
+        m.same = same
+        return m
+
+    @wp.func
+    def moments_increment(m: FitMoments) -> mat33:
+        """The unguarded ``dF - I`` of the moments (``affine_fit``)."""
+        return affine_fit(m.A, m.Bu)
+
+    @wp.func
+    def moments_adjoint(i: int, x: wp.array(dtype=vec3), y: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                        nbr: wp.array2d(dtype=wp.int32), n: int, h: scalar, gn: vec3, goff: scalar, gmin: scalar,
+                        images: int, m: FitMoments, inc0: mat33, adj_inc0: mat33, adj_A_fade: mat33, adj_same: scalar,
+                        adj_x: wp.array(dtype=vec3), adj_y: wp.array(dtype=vec3)):
+        """Adjoint of ``moments_increment`` (``inc0 = Bu A^-1``) and of the sums, given the
+        gradient of ``inc0`` and the fade's own ``adj A`` and ``adj same``: ``adj Bu = adj inc0
+        A^-T``, ``adj A = -(I + inc0)^T adj Bu`` (``B = Bu + A``, the same function of the
+        positions) plus the fade's, scattered over the row's pairs and the floor's images
+        (``fit_pairs_adjoint``). Returns what goes to ``x_i``, ``y_i``."""
+        adj_B = adj_inc0 * wp.transpose(wp.inverse(m.A))
+        adj_A = -((wp.identity(n=3, dtype=scalar) + wp.transpose(inc0)) * adj_B) + adj_A_fade
+        adj_A_sym = adj_A + wp.transpose(adj_A)
+        gx_i, gy_i = fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 0, adj_A, adj_A_sym, adj_B, adj_same,
+                                       adj_x, adj_y, vec3(), vec3())
+        if images != 0:
+            gx_i, gy_i = fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 1, adj_A, adj_A_sym, adj_B, adj_same,
+                                           adj_x, adj_y, gx_i, gy_i)
+        return gx_i, gy_i
+
     return types.SimpleNamespace(
         displacement=displacement, pair_slots=pair_slots, pair_partner=pair_partner, pair_ends=pair_ends,
         fit_pair_sums=fit_pair_sums,
@@ -695,16 +753,34 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         floor_image_own_update_adjoint=floor_image_own_update_adjoint,
         floor_image_update_adjoint=floor_image_update_adjoint, affine_fit=affine_fit, step_increment=step_increment,
         step_gradient=step_gradient, unless_inverted=unless_inverted,
-        carried_update=carried_update, deformation_update=deformation_update,
+        carried_update=carried_update, deformation_update=deformation_update, fit_increment=fit_increment,
+        FitMoments=FitMoments, fit_moments=fit_moments, moments_increment=moments_increment, moments_adjoint=moments_adjoint,
     )
 
 
 @functools.cache
 def kernels(scalar, weight: str) -> types.SimpleNamespace:
+    """The update kernels of the linear fit (``update_kernels``)."""
+    return update_kernels(scalar, weight, "linear")
+
+
+@functools.cache
+def update_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
+    """Eq. 8's update and its hand-written adjoint for ``fit`` ("linear": this module's
+    ``funcs``; "curvature_corrected": ``curvature.funcs``, whose functions build on these),
+    whose functions supply
+    ``fit_increment``, ``fit_moments``, ``moments_increment``, ``moments_adjoint``, the
+    floor image's ``floor_image_update`` and its adjoint, and eq. 8's ``carried_update`` (the
+    same for both, as are the guards)."""
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
-    fn = funcs(scalar, weight)
     gf = guards.guard_funcs(scalar)
+    if fit == "linear":
+        fn = funcs(scalar, weight)
+    else:
+        from . import curvature  # imports this module
+
+        fn = curvature.funcs(scalar, weight)
 
     @wp.kernel(module="unique")
     def update_deformation(
@@ -733,9 +809,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         share_out: wp.array(dtype=scalar),
     ):
         i = wp.tid()
-        A, B, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
-        scale = gf.guard_scale(A, same, min_neighbors, max_condition)
-        F_new, F_new_lo = fn.deformation_update(A, B, guard[i], scale, F_prev[i], F_prev_lo[i], counters)
+        inc, scale = fn.fit_increment(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images, guard[i],
+                                      min_neighbors, max_condition, counters)
+        F_new, F_new_lo = fn.carried_update(inc, F_prev[i], F_prev_lo[i], counters)
         F_out[i] = F_new
         F_out_lo[i] = F_new_lo
         # The floor image's own F (State.F_image) and its share; without images, its particle's.
@@ -778,17 +854,16 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         tape's generated one spends 15-20x the forward on per-neighbour matrix selects and
         zeroing; this one recomputes the sums once and scatters one vector per pair.
 
-        With ``dF = B A^-1`` and ``F_out = dF F``: ``adj F = dF^T G``, ``adj dF = G F^T``,
-        ``adj B = adj dF A^-T``, ``adj A = -dF^T adj B``; per pair, ``A`` and ``B`` depend on
-        ``xb`` through ``w(|xb|^2) xb xb^T`` and ``w yb xb^T`` (``fit_pair_adjoint``, over the
-        row in ``fit_pairs_adjoint``). Guarded or inverted particles keep ``F``: all of ``G``
-        goes to ``F``. With ``images`` the floor's image pairs (``fit_pair_sums``: ``xb =
-        g_j - x_i``, ``yb = g_j - y_i``, ``g_j`` at rest over the step) likewise, scattered to
-        ``x_j`` through ``floor_image_jacobian`` (``scatter_pair_adjoint``). The fade
-        ``dF - I = s(A, same) (B A^-1 - I)`` (``guards.guard``) scales ``adj B``,
-        adds ``(adj dF : (B A^-1 - I)) ds/dA`` to ``adj A`` and gives the smooth count ``same``
-        its adjoint ``(adj dF : (B A^-1 - I)) ds/dsame``, spread over the pairs by the slope of
-        ``guards.count_weight``.
+        With ``inc0`` the fit's unguarded ``dF - I`` (``moments_increment``), ``dF = I + s
+        inc0`` and ``F_out = dF F``: ``adj F = dF^T G``, ``adj inc0 = s G F^T``, and the fit
+        takes it back to its moments and their pairs (``moments_adjoint``: for the linear fit
+        ``adj B = adj inc0 A^-T``, ``adj A = -dF0^T adj B``, per pair ``A`` and ``B`` depend on
+        ``xb`` through ``w(|xb|^2) xb xb^T`` and ``w yb xb^T``; with ``images`` the floor's
+        image pairs likewise, scattered to ``x_j`` through ``floor_image_jacobian``). Guarded
+        or inverted particles keep ``F``: all of ``G`` goes to ``F``. The fade ``s(A, same)``
+        (``guards.guard``) adds ``(adj dF : inc0) ds/dA`` to ``adj A`` and gives the smooth
+        count ``same`` its adjoint ``(adj dF : inc0) ds/dsame``, spread over the pairs by the
+        slope of ``guards.count_weight``.
 
         With ``images`` the image's own update (``floor_image_update``) too
         (``floor_image_update_adjoint``): its share of the gradient of ``F_new`` joins ``G``,
@@ -798,16 +873,17 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         G = adj_F_out[i]
         Fp = F_prev[i]
         code = guard[i]
-        A, B, same = fn.fit_sums(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, images)
         n = count[i]
-        Ainv = wp.inverse(A)
-        D0 = B * Ainv
-        code_, s, ds_dA, ds_dn = gf.guard(A, same, min_neighbors, max_condition)
+        # The round-off arrays enter the sums but are not differentiated (roundoff.py).
+        m = fn.fit_moments(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin, images)
+        inc0 = fn.moments_increment(m)
+        # The fade s(A, same) on the plain moment matrix (guards.guard): inc = s inc0.
+        code_, s, ds_dA, ds_dn = gf.guard(m.A, m.same, min_neighbors, max_condition)
         # The image's update (floor_image_update): its share of the gradient of F_new joins G.
         adj_s = scalar(0.0)
         if images != 0:
             G_share, adj_Fg, adj_sg = fn.floor_image_update_adjoint(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin,
-                                                                    code, s, D0, Fp, Fg_prev[i], adj_Fg_out[i],
+                                                                    code, s, inc0, Fp, Fg_prev[i], adj_Fg_out[i],
                                                                     adj_share[i], adj_x, adj_y)
             G = G + G_share
             adj_Fg_prev[i] = adj_Fg_prev[i] + adj_Fg
@@ -815,9 +891,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         if code == 1 or code == 2:
             adj_F_prev[i] = adj_F_prev[i] + G
             return
-        D = s * D0
-        dF = wp.identity(n=3, dtype=scalar) + D
-        if wp.determinant(Fp + D * Fp) <= scalar(0.0):
+        inc = s * inc0
+        dF = wp.identity(n=3, dtype=scalar) + inc
+        if wp.determinant(Fp + inc * Fp) <= scalar(0.0):
             # F is kept; the image's fade (adj s) still reaches A through the guard.
             adj_F_prev[i] = adj_F_prev[i] + G
             if adj_s == scalar(0.0):
@@ -825,17 +901,10 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             G = mat33()
         else:
             adj_F_prev[i] = adj_F_prev[i] + wp.transpose(dF) * G
-        adj_D = G * wp.transpose(Fp)
-        adj_B = s * adj_D * wp.transpose(Ainv)
-        adj_s += wp.ddot(adj_D, D0)
-        adj_A = -((wp.identity(n=3, dtype=scalar) + wp.transpose(D0)) * adj_B) + adj_s * ds_dA
-        adj_A_sym = adj_A + wp.transpose(adj_A)
-        adj_same = adj_s * ds_dn
-        gx_i, gy_i = fn.fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 0, adj_A, adj_A_sym, adj_B,
-                                          adj_same, adj_x, adj_y, vec3(), vec3())
-        if images != 0:
-            gx_i, gy_i = fn.fit_pairs_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, 1, adj_A, adj_A_sym, adj_B,
-                                              adj_same, adj_x, adj_y, gx_i, gy_i)
+        adj_inc = G * wp.transpose(Fp)
+        adj_s += wp.ddot(adj_inc, inc0)
+        gx_i, gy_i = fn.moments_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, images, m, inc0, s * adj_inc,
+                                        adj_s * ds_dA, adj_s * ds_dn, adj_x, adj_y)
         wp.atomic_add(adj_x, i, gx_i)
         wp.atomic_add(adj_y, i, gy_i)
 
@@ -855,15 +924,23 @@ def image_share_grad(state_out):
     return state_out.image_share if g is None else g
 
 
+def fit_kernels(model, fit: str = "linear") -> types.SimpleNamespace:
+    """The update kernels of ``fit`` ("linear" or "curvature_corrected", ``model.FITS``) for
+    the model's precision and fit weight."""
+    return update_kernels(model.scalar, model.fit_weight, fit)
+
+
 def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint: bool = True, y=None, y_lo=None,
-                              max_condition: float = guards.MAX_CONDITION, min_neighbors: int = guards.MIN_NEIGHBORS):
+                              max_condition: float = guards.MAX_CONDITION, min_neighbors: int = guards.MIN_NEIGHBORS,
+                              fit: str = "linear"):
     """Eqs. 1-8 over the step from ``state_in.x`` to ``state_out.x`` (or to ``y``, ``y_lo``
     where given: a ghost floor's fit positions, ``ghost_floor.launch_fit_positions``), with
     the neighbourhood guards the neighbour search wrote to ``state_out.guard`` and the fades
-    from ``max_condition`` and ``min_neighbors`` (the solver's; ``guards``). Under a
-    ``wp.Tape`` the backward runs ``update_deformation_adjoint`` (``hand_adjoint=False``:
-    Warp's generated adjoint, which tests compare it against)."""
-    k = kernels(model.scalar, model.fit_weight)
+    from ``max_condition`` and ``min_neighbors`` (the solver's; ``guards``), by the linear
+    fit or the curvature-corrected one (``fit``, ``fit_kernels``). Under a ``wp.Tape`` the
+    backward runs ``update_deformation_adjoint`` (``hand_adjoint=False``: Warp's generated
+    adjoint, which tests compare it against)."""
+    k = fit_kernels(model, fit)
     y = state_out.x if y is None else y
     y_lo = state_out.x_lo if y_lo is None else y_lo
     inputs = [
@@ -884,21 +961,21 @@ def launch_update_deformation(model, state_in, state_out, counters, hand_adjoint
     model.launches(k.update_deformation, model.particle_count, inputs, outputs, device=model.device, record_tape=False)
 
     tape.record_func(lambda: launch_update_deformation_adjoint(model, state_in, state_out, y, y_lo, max_condition,
-                                                               min_neighbors),
+                                                               min_neighbors, fit),
                      list(grads))
 
 
 def launch_update_deformation_adjoint(model, state_in, state_out, y=None, y_lo=None,
                                       max_condition: float = guards.MAX_CONDITION,
-                                      min_neighbors: int = guards.MIN_NEIGHBORS):
-    """``update_deformation_adjoint``: ``state_out.F.grad`` (and ``F_image.grad``) into the
-    gradients of ``state_in.x``, ``state_out.x`` (or ``y``) and ``state_out.F_flowed`` (and
-    ``F_image_flowed``), with the guards in ``state_out.guard``."""
+                                      min_neighbors: int = guards.MIN_NEIGHBORS, fit: str = "linear"):
+    """``update_deformation_adjoint`` of ``fit``: ``state_out.F.grad`` (and ``F_image.grad``)
+    into the gradients of ``state_in.x``, ``state_out.x`` (or ``y``) and
+    ``state_out.F_flowed`` (and ``F_image_flowed``), with the guards in ``state_out.guard``."""
     y = state_out.x if y is None else y
     y_lo = state_out.x_lo if y_lo is None else y_lo
     images = model.image_plane is not None
     model.launches(
-        kernels(model.scalar, model.fit_weight).update_deformation_adjoint, model.particle_count,
+        fit_kernels(model, fit).update_deformation_adjoint, model.particle_count,
         [
             state_in.x, y, state_in.x_lo, y_lo, model.particle_body, state_out.neighbors,
             state_out.neighbor_count, state_out.guard, state_out.F_flowed, model.scalar(model.support_radius),

@@ -488,8 +488,9 @@ class Solver:
                 comparison.launch_update_deformation(m, state_in, state_out, scratch.counters, curved_rest,
                                                      scratch.max_condition, scratch.min_neighbors)
             elif self._curved:
-                curvature.launch_update_deformation(m, state_in, state_out, scratch.counters, hand, scratch.max_condition,
-                                                    scratch.min_neighbors)
+                deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, hand,
+                                                      max_condition=scratch.max_condition,
+                                                      min_neighbors=scratch.min_neighbors, fit="curvature_corrected")
             elif ghosts is not None:
                 ghost_floor.launch_fit_positions(m, state_in, state_out)
                 deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, hand,
