@@ -49,7 +49,7 @@ import types
 import warp as wp
 
 from .._types import type_set
-from . import deformation, forces, guards, materials, smoothing
+from . import deformation, forces, guards, smoothing
 from .replay import recording_tape
 
 #: The curvature correction is dropped (the paper's fit kept) where it would leave
@@ -697,6 +697,28 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                                                            c * Gg, applied, adj_wsum, adj_x, adj_y)
         return (scalar(1.0) - c) * Gg, adj_Fg, adj_s
 
+    @wp.func
+    def fit_variational_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                               nbr: wp.array2d(dtype=wp.int32), n: int, volume: scalar, P: mat33, F: mat33, Pg: mat33,
+                               Fg: mat33, h: scalar, min_neighbors: int, max_condition: scalar, gn: vec3, goff: scalar,
+                               gmin: scalar, images: int, f: wp.array(dtype=vec3)) -> vec3:
+        """``forces.fit_variational_forces`` with the corrected fit: ``M = V P F^T A~^-1``,
+        ``g_ij = w_ij M (xb_ij - K^T q(xb_ij))``; with ``images`` the floor images' terms of the
+        corrected fit and its own image's energy (``Mg``, ``Kg`` of ``floor_image_moment``)."""
+        # The moments from their own function: the inverses must not see a loop
+        # accumulator (docs/method.md, Warp pitfall 1).
+        A, B, C, D, E, same = fit_sums(i, x, x, x, x, body, nbr, n, h, gn, goff, gmin, images)
+        K = curvature_projection(A, C, D)
+        s_fit = gf.guard_scale(A, same, min_neighbors, max_condition)
+        M = s_fit * variational_map(volume, P, F, wp.inverse(corrected_moment(A, C, K)))
+        fi = variational_forces(i, x, body, nbr, n, M, K, h, f)
+        if images != 0:
+            Ag, Cg, Dg = floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
+            Mg0, Kg = image_map(volume, Pg, Fg, Ag, Cg, Dg)
+            Mg = s_fit * Mg0
+            fi += floor_image_forces(i, x, body, nbr, n, M, K, Mg, Kg, h, gn, goff, gmin, f)
+        return fi
+
     # The fit's side of the update kernels (``deformation.update_kernels``), as
     # ``deformation.funcs`` has them for the linear fit.
     @wp.func
@@ -775,7 +797,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(
         pair_moments=pair_moments, moment_pair_sums=moment_pair_sums, fit_sums=fit_sums,
-        fit_increment=fit_increment, FitMoments=FitMoments, fit_moments=fit_moments, moments_increment=moments_increment,
+        fit_variational_forces=fit_variational_forces, fit_increment=fit_increment, FitMoments=FitMoments, fit_moments=fit_moments, moments_increment=moments_increment,
         moments_adjoint=moments_adjoint, carried_update=df.carried_update,
         floor_image_displacement_sums=floor_image_displacement_sums, floor_image_own_update=floor_image_own_update,
         floor_image_update=floor_image_update, floor_image_own_update_adjoint=floor_image_own_update_adjoint,
@@ -803,58 +825,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     fo = forces.funcs(scalar, weight)
     fn = funcs(scalar, weight)
     gf = guards.guard_funcs(scalar)
-    Materials = materials.struct(scalar)
-
-    @wp.kernel(module="unique")
-    def elastic_forces(
-        x: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        material: wp.array(dtype=wp.int32),
-        mat: Materials,
-        nbr: wp.array2d(dtype=wp.int32),
-        count: wp.array(dtype=wp.int32),
-        guard: wp.array(dtype=wp.int32),
-        volume: wp.array(dtype=scalar),
-        stress: wp.array(dtype=mat33),
-        F: wp.array(dtype=mat33),
-        F_inv: wp.array(dtype=mat33),
-        h: scalar,
-        min_neighbors: int,
-        max_condition: scalar,
-        gn: vec3,
-        goff: scalar,
-        gmin: scalar,
-        images: int,
-        image_stress: wp.array(dtype=mat33),
-        F_image: wp.array(dtype=mat33),
-        f: wp.array(dtype=vec3),
-    ):
-        """``forces.elastic_forces`` with the variational force of the corrected fit
-        (eqs. 10-13 unchanged), with ``images`` its floor images' terms."""
-        i = wp.tid()
-        fi = vec3()
-        if mat.elastic_force[material[i]] == 0:
-            fi = fo.paper_forces(i, x, body, nbr, count[i], volume, stress[i], F_inv[i], h, f)
-            if images != 0:
-                fi += fo.paper_image_forces(i, x, body, nbr, count[i], volume, stress[i], F[i], F_inv[i], h, gn, goff,
-                                            gmin, f)
-        elif guard[i] == 0:
-            # The moments from their own function: the inverses must not see a loop
-            # accumulator (docs/method.md, Warp pitfall 1).
-            A, B, C, D, E, same = fn.fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
-            K = fn.curvature_projection(A, C, D)
-            # Faded where cond(A) passes max_condition or the count falls towards
-            # min_neighbors - 1 (guards.guard_scale).
-            s_fit = gf.guard_scale(A, same, min_neighbors, max_condition)
-            M = s_fit * fo.variational_map(volume[i], stress[i], F[i], wp.inverse(fn.corrected_moment(A, C, K)))
-            fi = fn.variational_forces(i, x, body, nbr, count[i], M, K, h, f)
-            if images != 0:
-                Ag, Cg, Dg = fn.floor_image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin)
-                # The image's own stress and F (State.F_image): its energy's work is stored there.
-                Mg0, Kg = fn.image_map(volume[i], image_stress[i], F_image[i], Ag, Cg, Dg)
-                Mg = s_fit * Mg0
-                fi += fn.floor_image_forces(i, x, body, nbr, count[i], M, K, Mg, Kg, h, gn, goff, gmin, f)
-        wp.atomic_add(f, i, fi)
 
     @wp.kernel(enable_backward=False, module="unique")
     def variational_forces_adjoint(
@@ -1012,10 +982,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                     gx_i -= gp
         wp.atomic_add(adj_x, i, gx_i + df.floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
 
-    # Eq. 8's update and its adjoint are the linear fit's kernels on this fit's functions.
+    # Eq. 8's update, its adjoint and the elastic forces are the linear fit's kernels on
+    # this fit's functions.
     update = deformation.update_kernels(scalar, weight, "curvature_corrected")
     return types.SimpleNamespace(update_deformation=update.update_deformation,
-                                 update_deformation_adjoint=update.update_deformation_adjoint, elastic_forces=elastic_forces,
+                                 update_deformation_adjoint=update.update_deformation_adjoint,
+                                 elastic_forces=forces.elastic_kernels(scalar, weight, "curvature_corrected").elastic_forces,
                                  variational_forces_adjoint=variational_forces_adjoint)
 
 

@@ -276,7 +276,34 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                     wp.atomic_sub(f, j, gr)
         return fi
 
+    fit_sums = deformation.funcs(scalar, weight).fit_sums
+    floor_image_moment = deformation.funcs(scalar, weight).floor_image_moment
+
+    @wp.func
+    def fit_variational_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                               nbr: wp.array2d(dtype=wp.int32), n: int, volume: scalar, P: mat33, F: mat33, Pg: mat33,
+                               Fg: mat33, h: scalar, min_neighbors: int, max_condition: scalar, gn: vec3, goff: scalar,
+                               gmin: scalar, images: int, f: wp.array(dtype=vec3)) -> vec3:
+        """The variational force of particle ``i``'s energy (stress ``P``, ``F``) over its row,
+        taken from its neighbours and returned for ``i``, faded where ``cond(A)`` passes
+        ``max_condition`` or the count falls towards ``min_neighbors - 1``
+        (``guards.guard_scale``); with ``images`` its floor images' terms and its own image's
+        energy (stress ``Pg``, ``Fg``: ``State.F_image``, where its work is stored). The
+        elastic kernels' side of the linear fit; ``curvature.funcs`` has the corrected one's."""
+        # The moments of x alone (y = x and the same round-off: B - A = 0), from their own
+        # function: an inverse must not see a loop accumulator (docs/method.md, Warp pitfall 1).
+        A, B, same = fit_sums(i, x, x, x, x, body, nbr, n, h, gn, goff, gmin, images)
+        A_inv = wp.inverse(A)
+        s_fit = gf.guard_scale(A, same, min_neighbors, max_condition)
+        M = s_fit * variational_map(volume, P, F, A_inv)
+        fi = variational_forces(i, x, body, nbr, n, M, h, f)
+        if images != 0:
+            Mg = s_fit * image_map(volume, Pg, Fg, floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin))
+            fi += floor_image_forces(i, x, body, nbr, n, M, Mg, h, gn, goff, gmin, f)
+        return fi
+
     return types.SimpleNamespace(
+        fit_variational_forces=fit_variational_forces,
         image_map=image_map, floor_image_forces=floor_image_forces,
         stress=stress, principal_stress=principal_stress, principal_stress_differences=principal_stress_differences,
         polynomial_stress=polynomial_stress, elastic_pair_force=elastic_pair_force, paper_forces=paper_forces,
@@ -291,19 +318,19 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
 
 
 @functools.cache
-def kernels(scalar, weight: str) -> types.SimpleNamespace:
+def elastic_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
+    """The elastic pair forces of every particle (eqs. 10-13, or the variational force of
+    ``fit``: "linear", this module's ``fit_variational_forces``, or "curvature_corrected",
+    ``curvature.funcs``' of the same name)."""
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
-    sm = smoothing.funcs(scalar)
-    fw = smoothing.fit_weight_funcs(scalar, weight)
-    fn = funcs(scalar, weight)
-    fit_sums = deformation.funcs(scalar, weight).fit_sums
-    image_moment = deformation.funcs(scalar, weight).floor_image_moment
-    floor_image = deformation.funcs(scalar, weight).floor_image
-    image_slots = deformation.funcs(scalar, weight).image_slots
-    image_row_particle = deformation.image_row_particle
-    floor_image_jacobian = deformation.funcs(scalar, weight).floor_image_jacobian
-    guard_scale = neighbors.guard_funcs(scalar).guard_scale
+    fo = funcs(scalar, weight)
+    if fit == "linear":
+        fn = fo
+    else:
+        from . import curvature  # imports this module
+
+        fn = curvature.funcs(scalar, weight)
     Materials = materials.struct(scalar)
 
     @wp.kernel(module="unique")
@@ -333,28 +360,32 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         i = wp.tid()
         fi = vec3()
         if mat.elastic_force[material[i]] == 0:
-            fi = fn.paper_forces(i, x, body, nbr, count[i], volume, stress[i], F_inv[i], h, f)
+            fi = fo.paper_forces(i, x, body, nbr, count[i], volume, stress[i], F_inv[i], h, f)
             if images != 0:
-                fi += fn.paper_image_forces(i, x, body, nbr, count[i], volume, stress[i], F[i], F_inv[i], h, gn, goff,
+                fi += fo.paper_image_forces(i, x, body, nbr, count[i], volume, stress[i], F[i], F_inv[i], h, gn, goff,
                                             gmin, f)
         elif guard[i] == 0 and mat.deformation[material[i]] == 0:
             # (A rest-configuration material's variational force is comparison.py's.)
-            # A from its own function: its inverse must not see a loop accumulator
-            # (docs/method.md, Warp pitfall 1).
-            # The moments of x alone (y = x and the same round-off: B - A = 0).
-            A, B, same = fit_sums(i, x, x, x, x, body, nbr, count[i], h, gn, goff, gmin, images)
-            A_inv = wp.inverse(A)
-            # Faded where cond(A) passes max_condition or the count falls towards
-            # min_neighbors - 1 (guards.guard_scale).
-            s_fit = guard_scale(A, same, min_neighbors, max_condition)
-            M = s_fit * fn.variational_map(volume[i], stress[i], F[i], A_inv)
-            fi = fn.variational_forces(i, x, body, nbr, count[i], M, h, f)
-            if images != 0:
-                # The image's own stress and F (State.F_image): its energy's work is stored there.
-                Mg = s_fit * fn.image_map(volume[i], image_stress[i], F_image[i],
-                                          image_moment(i, x, body, nbr, count[i], h, gn, goff, gmin))
-                fi += fn.floor_image_forces(i, x, body, nbr, count[i], M, Mg, h, gn, goff, gmin, f)
+            fi = fn.fit_variational_forces(i, x, body, nbr, count[i], volume[i], stress[i], F[i], image_stress[i],
+                                           F_image[i], h, min_neighbors, max_condition, gn, goff, gmin, images, f)
         wp.atomic_add(f, i, fi)
+
+    return types.SimpleNamespace(elastic_forces=elastic_forces)
+
+
+@functools.cache
+def kernels(scalar, weight: str) -> types.SimpleNamespace:
+    T = type_set(scalar)
+    vec3, mat33 = T.vec3, T.mat33
+    sm = smoothing.funcs(scalar)
+    fw = smoothing.fit_weight_funcs(scalar, weight)
+    fn = funcs(scalar, weight)
+    fit_sums = deformation.funcs(scalar, weight).fit_sums
+    image_moment = deformation.funcs(scalar, weight).floor_image_moment
+    floor_image = deformation.funcs(scalar, weight).floor_image
+    image_slots = deformation.funcs(scalar, weight).image_slots
+    image_row_particle = deformation.image_row_particle
+    floor_image_jacobian = deformation.funcs(scalar, weight).floor_image_jacobian
 
     @wp.kernel(enable_backward=False, module="unique")
     def elastic_forces_adjoint(
@@ -566,7 +597,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                     gx_i -= gp
         wp.atomic_add(adj_x, i, gx_i + floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
 
-    return types.SimpleNamespace(elastic_forces=elastic_forces, elastic_forces_adjoint=elastic_forces_adjoint,
+    return types.SimpleNamespace(elastic_forces=elastic_kernels(scalar, weight, "linear").elastic_forces,
+                                 elastic_forces_adjoint=elastic_forces_adjoint,
                                  variational_forces_adjoint=variational_forces_adjoint)
 
 
