@@ -97,7 +97,7 @@ def _damp(state, factor: float):
 
 
 def _deviatoric_norm(F: np.ndarray, mu: float) -> np.ndarray:
-    """|s| = 2 mu |sigma - mean(sigma)| of the yield test (warp_esph/plasticity.py), sigma
+    """|s| = 2 mu |sigma - mean(sigma)| of the yield test (warp_esph/sim/plasticity.py), sigma
     the singular values of the stored elastic F."""
     s = np.linalg.svd(F.astype(np.float64), compute_uv=False)
     dev = s - s.mean(axis=1, keepdims=True)

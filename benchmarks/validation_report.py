@@ -719,7 +719,7 @@ plasticity and a small SPH viscosity, 2 Pa s).
 
 ## The yield stress of this project, and the slump theory for it
 
-The flow test (`warp_esph/plasticity.py`) compares the Frobenius norm of the deviatoric stress
+The flow test (`warp_esph/sim/plasticity.py`) compares the Frobenius norm of the deviatoric stress
 `|s|` with `Y = yield_stress`. Under uniaxial stress `sigma` the deviator is
 `sigma (2/3, -1/3, -1/3)`, of norm `sqrt(4/9 + 1/9 + 1/9) sigma = sqrt(2/3) sigma`, so the
 uniaxial yield stress is `sigma_y = sqrt(3/2) Y`. Under simple shear `tau` the deviator has

@@ -178,3 +178,44 @@ def test_two_outputs_with_one_stem_keep_their_own_pictures_and_frames(tmp_path, 
     # The export and render commands' defaults follow the same rule.
     assert main(["export", str(tmp_path / "a.usda"), "--format", "vtu", "--frames", "1"]) == 0
     assert os.listdir(tmp_path / "a.usda_vtu") and not (tmp_path / "a.usdc_vtu").exists()
+
+
+def test_an_interrupted_export_keeps_its_finished_frames_whole_and_listed(tmp_path, monkeypatch):
+    """Each frame is written beside its name and renamed over it, and ``frames.pvd`` lists
+    the frames finished also when the export stops: Ctrl-C inside a write left a truncated
+    ``.vtu`` (over an earlier export's frame too) and no ``frames.pvd``. A frame asked for
+    twice is written once (it was counted twice and listed twice)."""
+    import meshio
+
+    from test_render import write_clusters
+    from warp_esph.export import export_frames
+
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=3)
+    out = tmp_path / "vtu"
+    files = export_frames(path, "vtu", out, frames="0,0,1")
+    assert [os.path.basename(f) for f in files] == ["frame_00000.vtu", "frame_00001.vtu", "frames.pvd"]
+    assert (out / "frames.pvd").read_text().count("<DataSet") == 2
+    real = meshio.write
+
+    def interrupted(name, mesh, *a, **k):
+        if "frame_00001" in str(name):
+            with open(name, "w") as f:
+                f.write("<VTKFile")  # a few bytes, then Ctrl-C
+            raise KeyboardInterrupt
+        return real(name, mesh, *a, **k)
+
+    monkeypatch.setattr(meshio, "write", interrupted)
+    before = (out / "frame_00001.vtu").read_bytes()
+    with pytest.raises(KeyboardInterrupt):
+        export_frames(path, "vtu", out)
+    assert sorted(os.listdir(out)) == ["frame_00000.vtu", "frame_00001.vtu", "frames.pvd"]
+    assert (out / "frame_00001.vtu").read_bytes() == before
+    pvd = (out / "frames.pvd").read_text()
+    assert pvd.count("<DataSet") == 1 and "frame_00000.vtu" in pvd
+    monkeypatch.setattr(meshio, "write", real)
+    assert len(meshio.read(out / "frame_00001.vtu").points) == 125
+    for bad, needle in ((None, "output = None is not allowed: must be a path"),
+                        ("", "output = '' is not allowed: must be a path")):
+        with pytest.raises(ValueError, match=needle):
+            export_frames(path, "vtu", bad)

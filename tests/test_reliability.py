@@ -688,3 +688,157 @@ def test_the_builder_refuses_tools_inside_bodies_stray_tool_options_coincident_p
     with pytest.raises(ValueError, match=r"the mesh's extent \(scale 1\) = \(1e\+20, 1e\+20, 1e\+20\) is not allowed"):
         we.SceneBuilder(spacing=0.01).add_mesh((tet, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])),
                                                we.Material.preset("clay"))
+
+
+# ------------------------------------------------------------------ fuzz round of session 52
+def test_a_plane_normal_of_any_length_bounds_the_half_space_it_names():
+    """``add_plane(normal, offset)``: the solid is ``dot(normal, x) < offset`` whatever the
+    normal's length. With the normal (0, 2, 0) the plane stood at y = offset, twice as high
+    as named: a body above y = offset / 2 was refused as starting inside it."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.08, 0.0), (0.06, 0.04, 0.06), we.Material.preset("dough"))
+    b.add_plane((0.0, 2.0, 0.0), 0.1)
+    model = b.finalize()
+    plane = model.planes[0]
+    assert plane.normal == pytest.approx((0.0, 1.0, 0.0)) and plane.offset == pytest.approx(0.05)
+    assert model.particle_x0[:, 1].min() < 0.1  # below y = offset: outside dot(n, x) < offset
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.08, 0.0), (0.06, 0.04, 0.06), we.Material.preset("dough"))
+    b.add_plane((0.0, 3.0, 0.0), 0.3)  # solid below y = 0.1: the body starts inside
+    with pytest.raises(ValueError, match="start inside plane0"):
+        b.finalize()
+
+
+def _tool_scene(variant):
+    from warp_esph import tools
+
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.08, 0.06, 0.08), we.Material.preset("dough"), name="blk")
+    if variant.startswith("floor"):
+        b.add_particle_floor("blk", margin=0.02, ghost=variant == "floor_ghost")
+        return b.finalize()
+    b.add_ground()
+    if variant == "tool_slow":
+        b.add_tool("sphere", radius=0.03, name="ind", motion=tools.Velocity((0.0, -0.1, 0.0), position=(0.0, 0.15, 0.0)))
+    elif variant == "tool_fast":
+        b.add_tool("sphere", radius=0.03, name="ind", motion=tools.Velocity((0.0, -5.0, 0.0), position=(0.0, 0.15, 0.0)))
+    elif variant == "pin":
+        b.pin(body="blk", region=((-1.0, 0.0, -1.0), (1.0, 0.04, 1.0)), name="clamp")
+    elif variant == "scripted":
+        b.add_tool("sphere", radius=0.03, name="ind", motion=tools.Scripted(_hover))
+    return b.finalize()
+
+
+def _hover(t):
+    return (0.0, 0.15 + 0.01 * t, 0.0), (0.0, 0.0, 0.0, 1.0)
+
+
+def test_a_checkpoint_is_refused_by_a_scene_whose_tools_pins_or_floor_kind_differ(tmp_path):
+    """The fingerprint a checkpoint carries covers the moving tools (here a speed), the pinned
+    sets and whether a particle floor is a ghost floor: each pair below loaded without a
+    word. The same scene built twice, a scripted tool's callable included, matches."""
+    from warp_esph.checkpoint import load_state, model_fingerprint
+
+    for a, b in (("tool_slow", "tool_fast"), ("pin", "plain"), ("floor", "floor_ghost")):
+        ma, mb = _tool_scene(a), _tool_scene(b)
+        assert model_fingerprint(ma) != model_fingerprint(mb), (a, b)
+        path = save_state(tmp_path / f"{a}.npz", ma, ma.state(), step=0, frame=0)
+        with pytest.raises(ValueError, match="written for another scene"):
+            load_state(path, mb)
+        load_state(path, _tool_scene(a))
+    assert model_fingerprint(_tool_scene("scripted")) == model_fingerprint(_tool_scene("scripted"))
+
+
+def test_the_monitor_counts_the_work_of_moving_tools_and_pins():
+    """A rubber bar dragged at 2 m/s by a pinned end, and a block a box tool pushes at 3 m/s,
+    move as fast as what drives them (measured by hand at 0.5 and 0.25 of the stable step:
+    the same kinetic energy, about 3.1-3.7 J for the bar): ``simulate`` stopped both after
+    the first frame as blow-ups ("no work is done on the bodies"). Their driven speed now
+    joins the bounds, and a runaway beyond it is still caught; a scripted motion, whose speed
+    is not known, leaves only the non-finite check."""
+    from warp_esph import tools
+    from warp_esph.simulate import simulate
+
+    rubber = we.Material.preset("rubber")
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.3, 0.0), (0.2, 0.06, 0.06), rubber, name="bar")
+    b.pin(body="bar", region=((-0.2, 0.0, -1.0), (-0.07, 1.0, 1.0)), motion=tools.Velocity((2.0, 0.0, 0.0)), name="grip")
+    bar = b.finalize()
+    out = simulate(bar, frames=4, fps=30, progress=False)
+    assert out.x.numpy()[:, 0].mean() > 0.2  # dragged about 2 m/s x 0.13 s
+    mon = DivergenceMonitor(bar, bar.state())
+    assert mon.driven_speed(0.0) == pytest.approx(2.0) and mon.speed_bound(0.0) > 2.0
+    x0 = bar.state().x.numpy()
+    assert mon.check(x0, np.tile([2.0, 0.0, 0.0], (bar.particle_count, 1)), 0.1) is None
+    what, _ = mon.check(x0, np.tile([9.0 * mon.speed_bound(0.1), 0.0, 0.0], (bar.particle_count, 1)), 0.1)
+    assert what.startswith("kinetic energy")
+
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.08, 0.08, 0.08), rubber, name="blk")
+    b.add_ground(friction=0.0)
+    b.add_tool("box", half_extents=(0.02, 0.1, 0.1), name="pusher",
+               motion=tools.Velocity((3.0, 0.0, 0.0), position=(-0.07, 0.1, 0.0)))
+    simulate(b.finalize(), frames=3, fps=30, progress=False)
+    scripted = _tool_scene("scripted")
+    assert not DivergenceMonitor(scripted, scripted.state()).enabled
+
+
+def test_a_support_radius_whose_kernel_constants_float32_cannot_hold_is_refused():
+    """Poly6's 1 / h^9 left float32's normal range below h = 6.1e-5 m: a 1e-5 m lattice wrote
+    NaN positions in its first step, and ``simulate`` blamed the time step. Refused by name
+    at finalize; float64 holds it."""
+    b = we.SceneBuilder(spacing=1e-5, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (4e-5, 4e-5, 4e-5), we.Material.preset("dough"))
+    with pytest.raises(ValueError, match=r"support_radius = 2e-05 is not allowed in float32: .*use dtype=float64"):
+        b.finalize()
+    model = b.finalize(dtype=wp.float64)
+    s0, s1 = model.state(), model.state()
+    we.Solver(model).step(s0, s1, 0.5 * model.stable_dt())
+    assert np.abs(s1.x.numpy() - s0.x.numpy()).max() == 0.0  # at rest, finite
+
+
+def test_api_values_python_would_have_taken_are_refused_by_name():
+    """Each of these ran on or failed deep inside: a negative or NaN Courant number gave a
+    negative step, a bool shear modulus ran as 1 Pa, Solver(None) an AttributeError,
+    misspelt or derived Material fields Python's TypeError, a string requires_grad was
+    taken, spacing and support_radius written after finalize were read by the next step
+    against a lattice built on the old ones, gravity NaN and a state's time NaN ran on."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.0, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    model = b.finalize()
+    for courant, needle in ((-1.0, "must be > 0"), (float("nan"), "must be a finite number"), ("x", "must be a number")):
+        with pytest.raises(ValueError, match=f"courant = .* is not allowed: {needle}"):
+            model.stable_dt(courant=courant)
+    from warp_esph.rollout import Rollout
+
+    rollout = Rollout(b.finalize(requires_grad=True), steps=1, dt=1e-4)
+    for value in (True, "5", [1 + 1j]):
+        with pytest.raises(ValueError, match="mu = .* is not allowed: must be numbers, one per material"):
+            rollout.set_parameters({"mu": value})
+    with pytest.raises(ValueError, match="model = None is not allowed: must be a warp_esph.Model"):
+        we.Solver(None)
+    with pytest.raises(ValueError, match="lam is not allowed in Material.from_young: mu and lam are derived"):
+        we.Material.from_young(1e5, 0.3, lam=5.0)
+    with pytest.raises(ValueError, match="mu is not allowed in Material.from_rheology"):
+        we.Material.from_rheology(1e5, 0.3, shear_yield_stress=10.0, mu=5.0)
+    for call in (lambda: we.Material.preset("dough", foo=1), lambda: we.Material.preset("dough").replace(foo=1)):
+        with pytest.raises(ValueError, match=r"'foo' is not allowed in Material\.(preset|replace): must be one of mu, lam"):
+            call()
+    with pytest.raises(ValueError, match="requires_grad = 'yes' is not allowed: must be True or False"):
+        model.state(requires_grad="yes")
+    with pytest.raises(ValueError, match=r"Model.spacing = 0.0 is not allowed: .* built on 0.05"):
+        model.spacing = 0.0
+    with pytest.raises(ValueError, match=r"Model.support_radius = 1.0 is not allowed: .* built on 0.1"):
+        model.support_radius = 1.0
+    assert (model.spacing, model.support_radius) == (0.05, 0.1)
+    with pytest.raises(ValueError, match=r"gravity\[1\] = nan is not allowed: must be a finite number"):
+        model.gravity = (0.0, float("nan"), 0.0)
+    with pytest.raises(ValueError, match="gravity = .* is not allowed in float32: must be at most"):
+        model.gravity = (0.0, -1e39, 0.0)
+    model.gravity = (0.0, -1.0, 0.0)  # a ramp or a tilt sets it between steps
+    assert model.gravity == (0.0, -1.0, 0.0)
+    s0, s1 = model.state(), model.state()
+    for t, needle in ((float("nan"), "must be a finite number"), ("abc", "must be a number")):
+        s0.time = t
+        with pytest.raises(ValueError, match=f"state_in.time = .* is not allowed: {needle}"):
+            we.Solver(model).step(s0, s1, 1e-4)

@@ -575,3 +575,58 @@ def test_an_ffmpeg_that_stops_early_is_its_error_not_a_closed_output(tmp_path, m
     assert err.count("\n") == 1 and "ffmpeg failed: Unknown encoder libx264" in err, err
     print("still here")
     assert capsys.readouterr().out == "still here\n"
+
+
+def test_an_interrupted_save_keeps_the_earlier_picture_and_leaves_no_part_file(tmp_path, monkeypatch):
+    """Each picture is written beside its name and renamed over it: Ctrl-C inside a save left
+    a truncated PNG, over the same frame of an earlier render too."""
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=3)
+    folder = tmp_path / "frames"
+    render_usd(path, folder, width=W, height=H, supersample=1)
+    before = {name: (folder / name).read_bytes() for name in os.listdir(folder)}
+    real = Image.Image.save
+
+    def interrupted(self, fp, *a, **k):
+        if "frame_00001" in str(fp):
+            with open(fp, "wb") as f:
+                f.write(b"\x89PNG\r\n")  # a few bytes, then Ctrl-C
+            raise KeyboardInterrupt
+        return real(self, fp, *a, **k)
+
+    monkeypatch.setattr(Image.Image, "save", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        render_usd(path, folder, width=W, height=H, supersample=1, azimuth=90.0)
+    assert sorted(os.listdir(folder)) == sorted(before)  # no working file left
+    assert (folder / "frame_00001.png").read_bytes() == before["frame_00001.png"]
+    assert (folder / "frame_00000.png").read_bytes() != before["frame_00000.png"]  # redrawn from another side
+    with Image.open(folder / "frame_00001.png") as im:
+        im.load()
+
+
+def test_a_damaged_file_is_named_not_drawn_empty(tmp_path):
+    """A frame whose every point is NaN rendered as an empty picture and exited 0, and a NaN
+    width failed inside the renderer ('cannot convert float NaN to integer')."""
+    from pxr import Usd, UsdGeom
+
+    from warp_esph.export import export_frames
+
+    for name, points, widths in (("nan_points", [(np.nan, 0.0, 0.0)] * 2, [0.02, 0.02]),
+                                 ("bad_widths", [(0.0, 0.0, 0.0), (0.1, 0.0, 0.0)], [-1.0, np.nan])):
+        path = tmp_path / f"{name}.usda"
+        write_clusters(path, [(0.0, 0.2, 0.0)], frames=1)
+        stage = Usd.Stage.Open(str(path))
+        prim = next(p for p in stage.GetPrimAtPath("/World").GetChildren() if p.IsA(UsdGeom.Points))
+        geom = UsdGeom.Points(prim)
+        geom.GetPointsAttr().Set(points, Usd.TimeCode(0.0))
+        geom.GetWidthsAttr().Set(widths, Usd.TimeCode(0.0))
+        stage.GetRootLayer().Save()
+        for call in (lambda: render_usd(path, tmp_path / f"{name}.png", width=W, height=H),
+                     lambda: export_frames(path, "vtu", tmp_path / f"{name}_vtu")):
+            with pytest.raises(ValueError, match=f"cannot read .*{name}.usda.*: (frame 0 has no particle with a finite "
+                                                 "position|body .* at frame 0 has widths that are not finite and > 0)"):
+                call()
+    with pytest.raises(ValueError, match="path = None is not allowed"):
+        render_usd(None)
+    with pytest.raises(ValueError, match="output = 123 is not allowed: must be a path"):
+        render_usd(tmp_path / "nan_points.usda", 123)

@@ -349,3 +349,107 @@ def test_workers_started_from_a_script_without_a_main_guard_say_so(tmp_path):
                        "    print(parallel_map(math.sqrt, [(4.0,), (9.0,)], workers=2, on_error=lambda i, why: why))\n")
     done = subprocess.run([sys.executable, str(guarded)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and done.stdout.strip() == "[2.0, 3.0]", (done.stdout, done.stderr)
+
+
+# ------------------------------------------------------------------ fuzz round of session 52
+@pytest.mark.parametrize("args, words", [
+    # N = 1e9 levels were allocated (7.5 GiB) before the count was compared.
+    (["--param", "yield_stress=1:2:lin:1000000000"], ["1000000000 (yield_stress)", "--max-samples = 10000"]),
+    (["--param", "yield_stress=1:2:lin:99999999999999999999"], ["99999999999999999999 (yield_stress)", "--max-samples"]),
+    # '' was taken as no address: the plan's line came first, then Ray's own error.
+    (["--param", "yield_stress=10,100", "--ray", ""], ["--ray = ''", "HOST:PORT"]),
+])
+def test_sweep_refuses_before_the_plan_line(scene_file, capsys, args, words, tmp_path):
+    rc = cli.main(["sweep", scene_file, *args, "-o", str(tmp_path / "never"), "--no-progress"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("warp-esph: error:"), err
+    for w in words:
+        assert w in err[0], (w, err[0])
+
+
+def test_what_the_scene_or_the_output_refuses_is_bad_input_before_any_sample(scene_file, capsys, tmp_path):
+    """A scene that ``run`` refuses (its box starts inside the ground) ran every sample to the
+    same refusal and exited 3; a folder in the way of ``sweep.csv`` was found after every
+    sample had run, with a raw ``[Errno 21]``; a body named ``1`` next to material 1 took
+    ``--param 1.mu`` as the material's, silently."""
+    inside = tmp_path / "inside.toml"
+    inside.write_text(SCENE_TOML.replace("center = [0.0, 0.06, 0.0]", "center = [0.0, 0.0, 0.0]"))
+    (tmp_path / "taken" / "sweep.csv").mkdir(parents=True)
+    two = tmp_path / "two.toml"
+    two.write_text('''
+[scene]
+name = "two"
+spacing = 0.02
+frames = 2
+
+[materials.a]
+preset = "toothpaste"
+
+[materials.b]
+preset = "dough"
+
+[[bodies]]
+shape = "box"
+name = "1"
+material = "a"
+center = [0.0, 0.06, 0.0]
+size = [0.06, 0.06, 0.06]
+
+[[bodies]]
+shape = "box"
+name = "0"
+material = "b"
+center = [0.3, 0.06, 0.0]
+size = [0.06, 0.06, 0.06]
+''')
+    cases = [
+        ([str(inside), "--param", "yield_stress=10,100", "-o", str(tmp_path / "a")], ["start inside plane0"]),
+        ([scene_file, "--param", "yield_stress=10,100", "-o", str(tmp_path / "taken")], ["sweep.csv' is a folder"]),
+        ([str(two), "--param", "1.mu=12345", "-o", str(tmp_path / "b")], ["'1' names both material 1 and body '1'"]),
+    ]
+    for argv, words in cases:
+        rc = cli.main(["sweep", *argv, "--no-progress"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 2 and len(err) == 1, err
+        for w in words:
+            assert w in err[0], (w, err[0])
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    assert not (tmp_path / "taken" / "sweep.json").exists()
+
+
+def _extra_taking_a_column(model, state, seed):
+    return {"status": "hacked", "top": 1.0}
+
+
+def test_python_sweep_inputs_are_value_errors_and_extra_cannot_overwrite_the_row():
+    for params, needle in ((None, "params = None is not allowed"), (123, "params = 123 is not allowed"),
+                           ({"yield_stress": None}, "value None is not allowed: must be a finite number"),
+                           ({"yield_stress": ["x"]}, "value 'x' is not allowed"),
+                           ({"yield_stress": [10.0, float("nan")]}, "value nan is not allowed")):
+        with pytest.raises(ValueError, match=needle):
+            sweep(_box(), params, frames=1, workers=1)
+    table = sweep(_box(), {"yield_stress": [100.0]}, frames=1, workers=1, extra=_extra_taking_a_column)
+    row = table.rows[0]
+    assert row["status"] == "failed" and "['status'] (the table's own)" in row["reason"]
+
+
+def test_a_sweep_keeps_the_samples_finished_while_it_runs(scene_file, tmp_path, monkeypatch):
+    """The table is rewritten as samples finish (here after each one), so a sweep killed
+    outright (SIGKILL, out of memory) keeps what it had; before, nothing was written until
+    the end."""
+    from warp_esph import sweep as sweep_module
+
+    seen = []
+    real = sweep_module.write_outputs
+
+    def spy(table, folder, meta=None, *a, **k):
+        seen.append((len(table), bool(meta and meta.get("partial"))))
+        return real(table, folder, meta, *a, **k)
+
+    monkeypatch.setattr(sweep_module, "PARTIAL_EVERY_S", 0.0)
+    monkeypatch.setattr(sweep_module, "write_outputs", spy)
+    out = tmp_path / "sw"
+    assert cli.main(["sweep", scene_file, "--param", "yield_stress=10,100,1000", "--frames", "1", "--workers", "1",
+                     "-o", str(out), "--no-progress"]) == 0
+    assert seen == [(1, True), (2, True), (3, True), (3, False)]
+    assert len(SweepTable.read_csv(out / "sweep.csv")) == 3

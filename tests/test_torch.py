@@ -85,6 +85,10 @@ def test_inputs_are_checked_and_missing_torch_is_explained(monkeypatch):
         rollout_positions(rollout, {"young": torch.ones(1, dtype=torch.float64)})
     with pytest.raises(ValueError, match=r"params = \['mu'\] is not allowed: must be a mapping"):
         rollout_positions(rollout, ["mu"])  # was read as character pairs: "parameter 'm'"
+    # A bool tensor or value ran as a shear modulus of 1 Pa (Material refuses it).
+    for value in (torch.tensor([True]), True, torch.tensor([1.0 + 0j])):
+        with pytest.raises(ValueError, match="mu = .* is not allowed: must be numbers, one per material"):
+            rollout_positions(rollout, {"mu": value})
     with pytest.raises(ValueError, match="shape"):
         rollout_positions(rollout, x0=torch.zeros(5, 3, dtype=torch.float64))
     # An integer input gave integer positions, each truncated to 0; log_space="no" read as True.

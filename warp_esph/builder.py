@@ -473,9 +473,14 @@ class SceneBuilder:
                                               checks.non_negative("friction", friction), images), "plane")
 
     def add_plane(self, normal, offset: float, friction: float = 0.5):
-        """The half-space dot(normal, x) < offset is solid."""
+        """The half-space dot(normal, x) < offset is solid. ``normal`` need not be of unit
+        length: both sides are divided by its length, so the plane stands ``offset / |normal|``
+        from the origin (stored as a unit normal and that distance)."""
         n = checks.unit_vector("normal", normal)
-        self._add_collider(self.planes, Plane(n, checks.number("offset", offset), checks.non_negative("friction", friction)), "plane")
+        raw = np.array(checks.vector("normal", normal))
+        big = float(np.abs(raw).max())  # scaled first, as unit_vector does: no overflow in the norm
+        distance = checks.number("offset", offset) / big / float(np.linalg.norm(raw / big))
+        self._add_collider(self.planes, Plane(n, distance, checks.non_negative("friction", friction)), "plane")
 
     def add_sphere_collider(self, center, radius: float, friction: float = 0.5):
         self._add_collider(
@@ -639,6 +644,14 @@ class SceneBuilder:
             check_material_precision(m, scalar, f" (material {k})")
         if self._points and np.abs(np.concatenate(self._points)).max() > big:
             raise ValueError(f"positions beyond {big:.3g} m are not allowed in {scalar.__name__}")
+        # The kernels' constants are powers of the support radius (poly6's 1 / h^9): below
+        # h = 5.7e-5 m h^9 left float32's normal range and the first step wrote NaN positions.
+        tiny = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).tiny)
+        h = float(self.support_radius)
+        if not tiny <= h ** 9 <= big:
+            raise ValueError(f"support_radius = {h!r} is not allowed in {scalar.__name__}: the kernels' constants "
+                             f"(1 / h^9) must fit the precision, so it must be in [{tiny ** (1 / 9):.3g}, "
+                             f"{big ** (1 / 9):.3g}] m; use dtype=float64 (or larger units)")
         # The static colliders' sizes and places enter the contact squared: 1e300 m (or 1e40 m
         # in float32) turned every particle's position into NaN in the first step.
         far = math.sqrt(big)

@@ -29,10 +29,17 @@ from .model import Model, State
 FORMAT = "warp_esph.checkpoint/1"
 
 
-def model_fingerprint(model: Model) -> str:
+#: The fingerprint's version a checkpoint records (``fingerprint_version``): 2 covers the
+#: moving tools, pinned sets and ghost floors; a checkpoint without it (written before) is
+#: compared with the fingerprint of version 1, which left them out.
+FINGERPRINT_VERSION = 2
+
+
+def model_fingerprint(model: Model, version: int = FINGERPRINT_VERSION) -> str:
     """A hash of everything a step depends on that a checkpoint does not carry: the initial
-    particles, bodies, lattice, colliders, force fields, gravity and each material's kind and
-    density (the fitted parameters ``Model.MATERIAL_FIELDS`` are in the checkpoint itself).
+    particles, bodies, lattice, colliders, force fields, gravity, each material's kind and
+    density (the fitted parameters ``Model.MATERIAL_FIELDS`` are in the checkpoint itself),
+    the ghost floors and the moving tools and pinned sets (shape, motion, friction, particles).
 
     A checkpoint resumed into a model with another fingerprint would continue a different
     scene from this one's state, so ``load_state`` refuses it.
@@ -53,8 +60,37 @@ def model_fingerprint(model: Model) -> str:
     }
     if model.fit_weight != "poly6":  # only where set: checkpoints written before the option still match
         record["fit_weight"] = model.fit_weight
+    # Likewise only where the model has them: ghost floors and the moving tools and pinned sets.
+    ghosts = [(b.name, b.ghost_floor, b.ghost_plane, b.ghost_slip) for b in model.bodies if b.ghost_floor > 0]
+    if version < 2:
+        ghosts, tools = [], None
+    else:
+        tools = model.tools
+    if ghosts:
+        record["ghost_floors"] = ghosts
+    if tools is not None:
+        record["tools"] = [(c.name, c.kind, c.param, _motion_key(c.motion), c.friction, c.static_friction,
+                            _array_key(c.mesh_points), _array_key(c.mesh_triangles)) for c in tools.colliders]
+        record["pins"] = [(p.name, _array_key(p.indices), _motion_key(p.motion)) for p in tools.pins]
     h.update(repr(record).encode())
     return h.hexdigest()[:32]
+
+
+def _array_key(a) -> str | None:
+    """A short stable hash of an array's shape and values (None stays None)."""
+    if a is None:
+        return None
+    a = np.ascontiguousarray(a)
+    return hashlib.sha256(repr((a.shape, a.dtype.str)).encode() + a.tobytes()).hexdigest()[:16]
+
+
+def _motion_key(motion):
+    """A tool's or pinned set's motion as the same text in every process: its values, or for
+    a Python callable (``tools.Scripted``) its qualified name (its address changes per run)."""
+    fn = getattr(motion, "fn", None)
+    if fn is not None:
+        return (type(motion).__name__, getattr(fn, "__module__", None), getattr(fn, "__qualname__", type(fn).__name__))
+    return repr(motion)
 
 
 def save_state(path, model: Model, state: State, *, step: int, frame: int, run: dict | None = None) -> pathlib.Path:
@@ -103,6 +139,7 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
         "run": run or {},
         "time": float(getattr(state, "time", 0.0)),
         "fingerprint": model_fingerprint(model),
+        "fingerprint_version": FINGERPRINT_VERSION,
     }
     arrays = {name: getattr(state, name).numpy() for name in State.STATE_FIELDS}
     arrays.update({f"material_{name}": getattr(model, name).numpy() for name in Model.MATERIAL_FIELDS})
@@ -165,10 +202,12 @@ def load_state(path, model: Model) -> tuple[State, dict]:
         )
     if meta["dtype"] != model.scalar.__name__:
         raise ValueError(f"{where}: it is {meta['dtype']}, the model {model.scalar.__name__}")
-    if "fingerprint" in meta and meta["fingerprint"] != model_fingerprint(model):
+    version = meta.get("fingerprint_version", 1)
+    if "fingerprint" in meta and meta["fingerprint"] != model_fingerprint(model, version):
         raise ValueError(
             f"{where}: it was written for another scene (its fingerprint {meta['fingerprint']!r} is not this model's "
-            f"{model_fingerprint(model)!r}: particles, bodies, colliders, fields or materials differ; was the scene edited?)"
+            f"{model_fingerprint(model, version)!r}: particles, bodies, colliders, tools, pins, fields or materials differ; "
+            "was the scene edited?)"
         )
     n, np_dtype = model.particle_count, model.types.np_dtype
     shapes = {"x": (n, 3), "v": (n, 3), "F": (n, 3, 3), "alpha": (n,), "F_p": (n, 3, 3), "x_lo": (n, 3),
@@ -239,5 +278,8 @@ def _check_meta(where: str, meta: dict) -> None:
         wrong.append(f"time = {t!r} (must be a finite number >= 0)")
     if "fingerprint" in meta and not isinstance(meta["fingerprint"], str):
         wrong.append(f"fingerprint = {meta['fingerprint']!r} (must be a string)")
+    version = meta.get("fingerprint_version", 1)
+    if isinstance(version, bool) or version not in range(1, FINGERPRINT_VERSION + 1):
+        wrong.append(f"fingerprint_version = {version!r} (must be an integer in [1, {FINGERPRINT_VERSION}])")
     if wrong:
         raise ValueError(f"{where}: its metadata has " + "; ".join(wrong))

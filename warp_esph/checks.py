@@ -7,6 +7,7 @@ and what is allowed, so a user can fix the input without reading code.
 from __future__ import annotations
 
 import json
+import contextlib
 import math
 import os
 import re
@@ -257,6 +258,7 @@ def step_states(model, state_in, state_out) -> None:
     same_state(model, "state_out", state_out)
     if state_in is state_out:
         raise ValueError("state_out is state_in: the step reads state_in and writes state_out, pass two states")
+    number("state_in.time", state_in.time)  # NaN ran on, a string failed deep in the step
 
 
 def choice(name: str, value, allowed: Sequence[str]) -> str:
@@ -331,10 +333,32 @@ def _name_max(folder: str) -> int:
     return n if n > 0 else 255
 
 
+@contextlib.contextmanager
+def replaced_atomically(path):
+    """Yields a working name beside ``path`` for a writer to fill; once it returns, that file
+    is renamed over ``path`` (``os.replace``: the file appears whole or not at all, and an
+    older ``path`` stays intact until then). On an error or an interrupt the working file is
+    removed and ``path`` is as it was. The working name keeps ``path``'s extension, so
+    writers that read the format from it still can."""
+    p = os.fspath(path)
+    head, name = os.path.split(p)
+    stem, ext = os.path.splitext(name)
+    tmp = os.path.join(head, f".{stem}.part{ext}")
+    try:
+        yield tmp
+        os.replace(tmp, p)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
 def output_place(what: str, path, folder: bool = False) -> str:
     """``path`` where a command will write a file (``folder``: a folder of files), checked
     before the work that fills it: a ``ValueError`` naming ``what`` where something of the
     other kind is in the way or its folder cannot take a new file. Creates nothing."""
+    if not isinstance(path, (str, os.PathLike)):  # None, 123: a TypeError from os.fspath before
+        raise ValueError(f"{what} = {path!r} is not allowed: must be a path")
     p = os.fspath(path)
     if not p or "\0" in p:
         raise ValueError(f"{what} = {p!r} is not allowed: must be a path (not empty, no NUL character)")

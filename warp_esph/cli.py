@@ -638,7 +638,10 @@ def _cmd_render(args) -> int:
     what = {"dir": f"{len(result.files)} PNG files in {result.output}", "png": result.output,
             "gif": f"{result.output} ({len(result.frames)} frames)", "mp4": f"{result.output} ({len(result.frames)} frames)"}
     drawn = f"{result.particles} particles" + (f" ({result.surface_bodies} bodies as surfaces)" if result.surface_bodies else "")
-    print(f"wrote {what[result.kind]}: {args.width}x{args.height}, {drawn}, "
+    size = f"{args.width}x{args.height}"
+    if result.kind == "png" and len(result.frames) > 1:  # it said 64x48 of a 256 x 96 sheet
+        size = f"a sheet of {len(result.frames)} frames of {size}"
+    print(f"wrote {what[result.kind]}: {size}, {drawn}, "
           f"{result.seconds:.1f} s ({result.seconds_per_frame:.2f} s/frame)")
     return 0
 
@@ -648,7 +651,7 @@ def _cmd_export(args) -> int:
 
     from . import checks  # noqa: PLC0415
 
-    folder = args.output or f"{os.path.abspath(args.usd)}_{args.format}"
+    folder = args.output if args.output is not None else f"{os.path.abspath(args.usd)}_{args.format}"
     checks.output_place("--output", folder, folder=True)
     _arm(args)
     files = export_frames(args.usd, args.format, folder, frames=args.frames)

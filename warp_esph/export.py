@@ -64,30 +64,34 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None) ->
     from .usd import UsdFrames, parse_frames  # noqa: PLC0415
 
     fmt = checks.choice("format", fmt, EXPORT_FORMATS)
+    if progress is not None and not callable(progress):  # 5 failed after the first frame was written
+        raise ValueError(f"progress = {progress!r} is not allowed: must be callable as progress(k, n)")
+    out = checks.output_place("output", output_dir, folder=True)
     data = UsdFrames(usd_path)
-    chosen = parse_frames(frames, data.frames)
-    out = os.fspath(output_dir)
-    if os.path.exists(out) and not os.path.isdir(out):
-        raise ValueError(f"output = {out!r} is not allowed: it is a file; give a folder for the {fmt} frames")
+    # One file per frame: a frame asked for twice was written once and counted twice.
+    chosen = list(dict.fromkeys(parse_frames(frames, data.frames)))
     os.makedirs(out, exist_ok=True)
     files = []
-    for k, f in enumerate(chosen):
-        file = os.path.join(out, f"frame_{f:05d}.{fmt}")
-        mesh = frame_arrays_to_mesh(data.arrays(f), fmt)
-        if fmt == "ply":
-            meshio.write(file, mesh, file_format="ply", binary=True)
-        else:
-            meshio.write(file, mesh, file_format="vtu", binary=True)
-        files.append(file)
-        if progress is not None:
-            progress(k + 1, len(chosen))
-    if fmt == "vtu":
-        lines = ['<?xml version="1.0"?>', '<VTKFile type="Collection" version="0.1">', "  <Collection>"]
-        for f, file in zip(chosen, files):
-            lines.append(f"    <DataSet timestep=\"{f / data.fps:.9g}\" file={quoteattr(os.path.basename(file))}/>")
-        lines += ["  </Collection>", "</VTKFile>", ""]
-        pvd = os.path.join(out, "frames.pvd")
-        with open(pvd, "w") as fh:
-            fh.write("\n".join(lines))
-        files.append(pvd)
+    try:
+        for k, f in enumerate(chosen):
+            file = os.path.join(out, f"frame_{f:05d}.{fmt}")
+            mesh = frame_arrays_to_mesh(data.arrays(f), fmt)
+            # Whole or not at all: Ctrl-C inside a write left a truncated file, over the same
+            # frame of an earlier export too.
+            with checks.replaced_atomically(file) as part:
+                meshio.write(part, mesh, file_format=fmt, binary=True)
+            files.append(file)
+            if progress is not None:
+                progress(k + 1, len(chosen))
+    finally:
+        # The collection lists the frames written, also when the export stops early.
+        if fmt == "vtu" and files:
+            lines = ['<?xml version="1.0"?>', '<VTKFile type="Collection" version="0.1">', "  <Collection>"]
+            for f, file in zip(chosen, files):
+                lines.append(f"    <DataSet timestep=\"{f / data.fps:.9g}\" file={quoteattr(os.path.basename(file))}/>")
+            lines += ["  </Collection>", "</VTKFile>", ""]
+            pvd = os.path.join(out, "frames.pvd")
+            with checks.replaced_atomically(pvd) as part, open(part, "w") as fh:
+                fh.write("\n".join(lines))
+            files.append(pvd)
     return files

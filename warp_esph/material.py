@@ -191,6 +191,10 @@ class Material:
         nu = checks.number("nu", nu)
         if not -1.0 < nu < 0.5:
             raise ValueError(f"nu = {nu!r} is not allowed: must be in (-1, 0.5)")
+        _check_fields("Material.from_young", kwargs)
+        if {"mu", "lam"} & kwargs.keys():
+            raise ValueError(f"{', '.join(sorted({'mu', 'lam'} & kwargs.keys()))} is not allowed in Material.from_young: "
+                             "mu and lam are derived from E and nu")
         mu = E / (2.0 * (1.0 + nu))
         lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
         return cls(mu=mu, lam=lam, **kwargs)
@@ -219,6 +223,10 @@ class Material:
                 f"shear_yield_stress = {shear_yield_stress!r} and uniaxial_yield_stress = {uniaxial_yield_stress!r} "
                 "are not allowed together or both missing: give exactly one of them"
             )
+        _check_fields("Material.from_rheology", kwargs)
+        if {"mu", "lam"} & kwargs.keys():
+            raise ValueError(f"{', '.join(sorted({'mu', 'lam'} & kwargs.keys()))} is not allowed in "
+                             "Material.from_rheology: mu and lam are derived from E and nu")
         if "yield_stress" in kwargs or "flow_rate" in kwargs:
             raise ValueError(
                 "yield_stress and flow_rate are not allowed in Material.from_rheology: they are derived from "
@@ -236,6 +244,7 @@ class Material:
     def preset(cls, name: str, **overrides) -> "Material":
         """A named preset (see ``PRESETS``), with any field overridden."""
         checks.choice("preset", name, tuple(PRESETS))
+        _check_fields("Material.preset", overrides)
         if {"mu", "lam", "density", "pressure_force"} & overrides.keys() and "pressure_stiffness" not in overrides:
             overrides["pressure_stiffness"] = None  # re-derive it from the new moduli / force
         return dataclasses.replace(PRESETS[name], **overrides)
@@ -244,6 +253,7 @@ class Material:
         """A copy with ``changes``. A ``pressure_stiffness`` at its default follows a new
         ``pressure_force`` (each force's default adds the same bulk stiffness) unless
         ``changes`` sets it; new moduli keep the old value."""
+        _check_fields("Material.replace", changes)
         if "pressure_force" in changes and "pressure_stiffness" not in changes and self.has_default_pressure_stiffness:
             changes["pressure_stiffness"] = None
         return dataclasses.replace(self, **changes)
@@ -301,6 +311,15 @@ class Material:
 # and chosen so each one shows its character in a drop onto the ground. The explicit
 # step dissipates nothing by itself: an undamped body rings after an impact for as
 # long as the run lasts, so each preset carries some viscosity (Pa s) to settle.
+def _check_fields(where: str, given) -> None:
+    """Every name in ``given`` is a ``Material`` field: a misspelt one raised Python's
+    TypeError from the dataclass."""
+    fields = [f.name for f in dataclasses.fields(Material)]
+    unknown = sorted(set(given) - set(fields))
+    if unknown:
+        raise ValueError(f"{', '.join(map(repr, unknown))} is not allowed in {where}: must be one of {', '.join(fields)}")
+
+
 PRESETS: dict[str, Material] = {
     # Flows under its own weight, slowly, and keeps the new shape (the paper's Fig. 6).
     "dough": Material.from_young(2.0e4, 0.3, yield_stress=150.0, flow_rate=20.0, hardening=0.0, density=1150.0, viscosity=10.0),
@@ -315,3 +334,4 @@ PRESETS: dict[str, Material] = {
     # Low yield, fast flow: slumps into a puddle.
     "toothpaste": Material.from_young(1.0e4, 0.3, yield_stress=50.0, flow_rate=200.0, density=1300.0, viscosity=5.0),
 }
+

@@ -249,8 +249,8 @@ class Model:
         #: The step's launches on this model, replayed (``sim/replay.py``).
         self.launches = Launches()
         self.requires_grad = bool(requires_grad)
-        self.spacing = float(spacing)
-        self.support_radius = float(support_radius)
+        self._spacing = float(spacing)
+        self._support_radius = float(support_radius)
         #: The weights of the incremental fit and the sums that share them
         #: (``smoothing.FIT_WEIGHTS``: ``"poly6"``, the paper's eq. 7; ``"biweight"``;
         #: ``SceneBuilder(fit_weight=)``, docs/physics.md, "The fit's weight").
@@ -258,7 +258,7 @@ class Model:
         self.max_neighbors = int(max_neighbors)
         #: Whether neighbour lists (so SPH pressure and viscosity) reach into other bodies.
         self.bodies_interact = bool(bodies_interact)
-        self.gravity = tuple(float(g) for g in gravity)
+        self._gravity = tuple(float(g) for g in gravity)
         self.materials = list(materials)
         self._material_struct = None  # material_arrays' struct and what it was built from
         self._stable_dt = None  # stable_dt's last answer and what it was computed from
@@ -590,7 +590,7 @@ class Model:
 
     def state(self, requires_grad: bool | None = None) -> State:
         """A new state at the initial configuration (F = I, alpha = 0)."""
-        return State(self, self.requires_grad if requires_grad is None else requires_grad)
+        return State(self, self.requires_grad if requires_grad is None else checks.boolean("requires_grad", requires_grad))
 
     def material_arrays(self):
         """The per-material arrays as one ``sim.materials`` struct, holding these very
@@ -681,6 +681,40 @@ class Model:
         rows = dict(zip(self.MATERIAL_FIELDS, self._read_parameters()))
         return bool((rows["pressure_stiffness"] > 0.0).any() or (rows["viscosity"] > 0.0).any())
 
+    @property
+    def spacing(self) -> float:
+        """The lattice spacing (m) the model was built with; fixed once built."""
+        return self._spacing
+
+    @spacing.setter
+    def spacing(self, value):
+        raise ValueError(f"Model.spacing = {value!r} is not allowed: the particles, their masses and the neighbour grid "
+                         f"were built on {self._spacing!r}; set SceneBuilder(spacing=...) and finalize again")
+
+    @property
+    def support_radius(self) -> float:
+        """The kernels' support radius ``h`` (m) the model was built with; fixed once built."""
+        return self._support_radius
+
+    @support_radius.setter
+    def support_radius(self, value):
+        raise ValueError(f"Model.support_radius = {value!r} is not allowed: the volumes, densities and neighbour rows "
+                         f"were built on {self._support_radius!r}; set SceneBuilder(support_radius=...) and finalize again")
+
+    @property
+    def gravity(self) -> tuple[float, float, float]:
+        """The acceleration of gravity (m/s^2) every step reads; may be set between steps (a
+        ramp, a tilted ground) to three finite numbers the model's precision holds."""
+        return self._gravity
+
+    @gravity.setter
+    def gravity(self, value):
+        g = checks.vector("gravity", value)
+        big = float(np.finfo(self.types.np_dtype).max)
+        if max(abs(c) for c in g) > big:
+            raise ValueError(f"gravity = {value!r} is not allowed in {self.scalar.__name__}: must be at most {big:.3g}")
+        self._gravity = g
+
     def stable_dt(self, courant: float = 0.3, hourglass: float | None = None) -> float:
         """Explicit limit over all materials, from the current parameters
         (``parameter_values``): the wave limit ``C dx / c_P`` of docs/method.md §8, and the
@@ -713,6 +747,7 @@ class Model:
         shorter at ``c = 0.1``, 4.0 % at 3; the control rules from ``c`` of about 100.
         (Measured, 512 particles shaken at random, ``tests/test_adaptive_dt.py``: at ``c = 1000``
         stable at 1.45 x the returned step, blown up at 1.6 x; at ``c = 300``, 1.6 and 1.8 x.)"""
+        courant = checks.positive("courant", courant)
         # Solver.check_dt asks every step; the answer is kept while the parameter arrays hold
         # the same values (a fit or torch writes them in place) and the materials and settings
         # are the same.

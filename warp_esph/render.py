@@ -1048,7 +1048,11 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     data = UsdFrames(path)
     if output is None:
         output = data.path + ".png"  # the whole name: a.usdc and a.usda must not share a.png
+    if not isinstance(output, (str, os.PathLike)):  # 123: a TypeError before
+        raise ValueError(f"output = {output!r} is not allowed: must be a path")
     out = os.fspath(output)
+    if progress is not None and not callable(progress):  # 5 failed after the first frame was written
+        raise ValueError(f"progress = {progress!r} is not allowed: must be callable as progress(k, n)")
     kind = output_kind(out)
     if kind == "mp4" and ffmpeg_path() is None:
         raise ValueError(f"output = {out!r} is not allowed: writing .mp4 needs the ffmpeg program, which is not on "
@@ -1098,8 +1102,11 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
                 count = len(data.particles(f)["points"])
                 surface_bodies = len(renderer.surfaces(f))
             if kind == "dir":
+                # Each picture whole or not at all: Ctrl-C inside a save left a truncated PNG,
+                # over the same frame of an earlier render too.
                 file = os.path.join(out, f"frame_{f:05d}.png")
-                img.save(file, optimize=True)
+                with checks.replaced_atomically(file) as part:
+                    img.save(part, format="PNG", optimize=True)
                 files.append(file)
             elif kind == "mp4":
                 if writer is None:
@@ -1114,12 +1121,14 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
             writer.close()
     if kind == "png":
         img = images[0] if len(images) == 1 else _sheet(images, sheet_columns)
-        img.save(out, optimize=True)
+        with checks.replaced_atomically(out) as part:
+            img.save(part, format="PNG", optimize=True)
         files.append(out)
     elif kind == "gif":
         pal = [im.quantize(colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE) for im in images]
-        pal[0].save(out, save_all=True, append_images=pal[1:], duration=max(20, round(1000.0 / playback)), loop=0,
-                    optimize=False, disposal=1)
+        with checks.replaced_atomically(out) as part:
+            pal[0].save(part, format="GIF", save_all=True, append_images=pal[1:], duration=max(20, round(1000.0 / playback)),
+                        loop=0, optimize=False, disposal=1)
         files.append(out)
     elif kind == "mp4":
         files.append(out)

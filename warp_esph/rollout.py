@@ -270,6 +270,8 @@ class Rollout:
                 raise ValueError(f"parameter {name!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
             arr = getattr(m, name)
             try:
+                if np.asarray(value).dtype.kind not in "iuf":  # True read as 1 Pa, "5" as 5 Pa
+                    raise TypeError
                 v = np.asarray(value, dtype=m.types.np_dtype).reshape(-1)
             except (TypeError, ValueError):
                 raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be numbers, one per "
@@ -297,6 +299,7 @@ class Rollout:
         if initial_state is not None:
             if not isinstance(initial_state, State) or initial_state.particle_count != m.particle_count:
                 raise ValueError("initial_state is not allowed: it must be a warp_esph.State of this model")
+            checks.same_state(m, "initial_state", initial_state)  # its precision and device too
             init.assign(initial_state)
         else:
             init.x.assign(m.particle_x0)

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from . import checks
+from . import checks, tools
 from .model import Model, State
 from .sim.solver import Solver
 
@@ -76,8 +76,13 @@ class DivergenceMonitor:
     - reach: a particle farther from the scene's box (particles and colliders) than
       ``REACH_FACTOR`` times (its diagonal + the speed bound x ``t``) is a blow-up.
 
-    A repelling field (``strength < 0``) can add energy without bound: then only the
-    non-finite check runs.
+    Moving tools and pinned sets (``model.tools``) do work on the bodies: their fastest
+    point, ``|v| + |omega| (D + |v| t)`` over their motions (``D`` the diagonal of the box
+    of the particles, colliders and the tools' poses), joins the speed bound and the kinetic
+    energy of every particle moving that fast joins the energy bound.
+
+    A repelling field (``strength < 0``) can add energy without bound, and a scripted motion
+    (``tools.Scripted``) has no speed known beforehand: then only the non-finite check runs.
     """
 
     SPEED_FACTOR = 10.0
@@ -100,8 +105,10 @@ class DivergenceMonitor:
         v0 = state.v.numpy().astype(np.float64)[self.keep]
         self.mass = model.particle_mass.numpy().astype(np.float64)[self.keep]
         self.index = np.flatnonzero(self.keep)
+        motions = [] if model.tools is None else [c.motion for c in model.tools.colliders] + [p.motion for p in model.tools.pins]
+        driven = [_driven_motion(m) for m in motions]
         self.enabled = (all(f.strength >= 0.0 for f in model.force_fields) and self.keep.any()
-                        and np.isfinite(x0).all() and np.isfinite(v0).all())
+                        and np.isfinite(x0).all() and np.isfinite(v0).all() and all(d is not None for d in driven))
         g = np.array(model.gravity, dtype=np.float64)
         self.g = float(np.linalg.norm(g))
         self.up = -g / self.g if self.g > 0.0 else np.array([0.0, 1.0, 0.0])
@@ -117,7 +124,12 @@ class DivergenceMonitor:
         for box in model.boxes:
             lo, hi = np.minimum(lo, np.subtract(box.center, box.half_extents)), np.maximum(hi, np.add(box.center, box.half_extents))
         self.lo, self.hi = lo, hi
+        poses = [p for d in driven if d is not None for p in d[2]]
+        if poses:  # the tools' poses widen only the box their rotations sweep, not the reach check's
+            lo, hi = np.minimum(lo, np.min(poses, axis=0)), np.maximum(hi, np.max(poses, axis=0))
         self.diagonal = float(np.linalg.norm(hi - lo)) + 2.0 * model.support_radius
+        self.v_tools = max((d[0] for d in driven if d is not None), default=0.0)
+        self.w_tools = max((d[1] for d in driven if d is not None), default=0.0)
         self.v0 = float(np.sqrt((v0 * v0).sum(axis=1).max()))
         self.wave = max(m.p_wave_speed for m in model.materials)
         self.v_fields, self.e_fields = 0.0, 0.0
@@ -128,9 +140,13 @@ class DivergenceMonitor:
         self.ke0 = 0.5 * float((self.mass * (v0 * v0).sum(axis=1)).sum())
         self.e_floor = 0.5 * float(self.mass.sum()) * (0.1 * self.wave) ** 2
 
+    def driven_speed(self, t: float) -> float:
+        """The fastest point of a moving tool or pinned set by time ``t`` (0 without them)."""
+        return self.v_tools + self.w_tools * (self.diagonal + self.v_tools * t)
+
     def speed_bound(self, t: float) -> float:
         fall = self.g * t if self.fall_height is None else min(self.g * t, math.sqrt(2.0 * self.g * self.fall_height))
-        return self.v0 + fall + self.wave + self.v_fields
+        return self.v0 + fall + self.wave + self.v_fields + self.driven_speed(t)
 
     def check(self, x: np.ndarray, v: np.ndarray, t: float):
         """``None``, or ``(why, particle)`` for the first bound exceeded."""
@@ -149,10 +165,13 @@ class DivergenceMonitor:
                     f"the scene can produce (fall + p-wave + initial speed)"), int(self.index[p])
         ke = 0.5 * self.mass * speed2
         released = float((self.mass * self.g * (self.h0 - x @ self.up)).sum())
-        budget = max(self.ke0 + released + self.e_fields, 0.0)
+        driven = 0.5 * float(self.mass.sum()) * self.driven_speed(t) ** 2
+        budget = max(self.ke0 + released + self.e_fields + driven, 0.0)
         if ke.sum() > self.ENERGY_FACTOR * budget + self.e_floor:
+            what = ("and potential energy released, and every particle at the tools' speed" if driven > 0.0
+                    else "and potential energy released (no work is done on the bodies)")
             return (f"kinetic energy {ke.sum():.3g} J, more than {self.ENERGY_FACTOR:g} x the {budget:.3g} J of initial "
-                    f"kinetic energy and potential energy released (no work is done on the bodies)"), int(self.index[np.argmax(ke)])
+                    f"kinetic energy {what}"), int(self.index[np.argmax(ke)])
         reach = self.REACH_FACTOR * (self.diagonal + bound * t)
         outside = np.maximum(np.maximum(self.lo - x, x - self.hi), 0.0)
         d2 = (outside * outside).sum(axis=1)
@@ -161,6 +180,27 @@ class DivergenceMonitor:
             return (f"a particle {math.sqrt(d2[p]):.3g} m outside the scene, more than {reach:.3g} m "
                     f"({self.REACH_FACTOR:g} x its size plus the speed bound x time)"), int(self.index[p])
         return None
+
+
+def _driven_motion(motion):
+    """``(linear speed, angular speed, poses)`` of a tool's or pinned set's motion
+    (``tools.Velocity``, ``tools.Keyframes``): the fastest over its motion, and the positions
+    it passes through that it names; None for a scripted one, whose speed is not known."""
+    if isinstance(motion, tools.Velocity):
+        poses = [] if motion.position is None else [np.asarray(motion.position, dtype=np.float64)]
+        return float(np.linalg.norm(motion.velocity)), float(np.linalg.norm(motion.angular_velocity)), poses
+    if isinstance(motion, tools.Keyframes):
+        t = np.asarray(motion.times, dtype=np.float64)
+        p = np.asarray(motion.positions, dtype=np.float64).reshape(len(t), 3)
+        dt = np.diff(t)
+        lin = float((np.linalg.norm(np.diff(p, axis=0), axis=1) / dt).max()) if len(t) > 1 else 0.0
+        ang = 0.0
+        if motion.orientations is not None and len(t) > 1:
+            q = np.asarray(motion.orientations, dtype=np.float64).reshape(len(t), 4)
+            cos = np.clip(np.abs((q[1:] * q[:-1]).sum(axis=1)), 0.0, 1.0)
+            ang = float((2.0 * np.arccos(cos) / dt).max())
+        return lin, ang, list(p)
+    return None
 
 
 def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = None, dt: float | None = None,

@@ -168,6 +168,9 @@ def parse_param(spec) -> Param:
     if p.values is not None:
         if not p.values:
             raise ValueError(f"--param {p.name}: values = () is not allowed: give at least one value")
+        for v in p.values:  # None, 'x' and NaN failed in numpy or ran as failed samples
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(v):
+                raise ValueError(f"--param {p.name}: value {v!r} is not allowed: must be a finite number")
         lows = list(p.values)
     else:
         if p.scale not in SCALES:
@@ -195,9 +198,12 @@ def parse_param(spec) -> Param:
 def _as_params(params) -> list[Param]:
     if isinstance(params, (str, Param)):
         params = [params]
+    if params is None or not hasattr(params, "__iter__"):  # None, 123: a TypeError before
+        raise ValueError(f"params = {params!r} is not allowed: give specs ('yield_stress=100:1000:log:8'), Params "
+                         "or a mapping {name: values}")
     if isinstance(params, Mapping):
-        params = [Param(k, values=tuple(float(x) for x in np.atleast_1d(v))) if not isinstance(v, str) else f"{k}={v}"
-                  for k, v in params.items()]
+        params = [Param(k, values=tuple(np.atleast_1d(np.asarray(v, dtype=object)).tolist())) if not isinstance(v, str)
+                  else f"{k}={v}" for k, v in params.items()]
     out = [parse_param(p) for p in params]
     if not out:
         raise ValueError("params = [] is not allowed: give at least one --param NAME=LO:HI:SCALE:N")
@@ -227,12 +233,15 @@ def sample_points(params, sample: str = "grid", samples: int | None = None, seed
         if samples is not None:
             raise ValueError(f"--samples = {samples!r} is not allowed with --sample grid: the grid has the product of "
                              f"the levels of each --param; use --sample random or lhs to choose the count")
-        levels = [p.levels() for p in params]
-        total = math.prod(len(v) for v in levels)
+        # The count before the levels: N = 1e9 allocated 7.5 GiB before it was compared.
+        counts = [len(p.values) if p.values is not None else p.n if p.n is not None else len(p.levels())
+                  for p in params]
+        total = math.prod(counts)
         if total > max_samples:
-            sizes = " x ".join(f"{len(v)} ({p.name})" for p, v in zip(params, levels))
+            sizes = " x ".join(f"{n} ({p.name})" for p, n in zip(params, counts))
             raise ValueError(f"the grid has {sizes} = {total} samples, more than --max-samples = {max_samples} allows: "
                              f"use fewer levels, --sample lhs --samples N, or raise --max-samples")
+        levels = [p.levels() for p in params]
         return [dict(zip(names, (float(x) for x in combo))) for combo in itertools.product(*levels)]
     if samples is None:
         raise ValueError(f"--samples is required with --sample {sample}: the number of samples to draw")
@@ -377,6 +386,10 @@ def _assignments(scene, params: list[Param]) -> list[tuple[str, str, list[int]]]
         if target is None:
             idx = list(range(len(view.materials)))
         else:
+            if target.isdigit() and target in [body.name for body in view.bodies]:
+                # It set material 1 while body '1' is of material 0, without a word.
+                raise ValueError(f"--param {p.name} is not allowed: {target!r} names both material {target} and body "
+                                 f"{target!r}; rename the body")
             key = int(target) if target.isdigit() else target
             try:
                 idx = _material_indices(view, [key])
@@ -505,13 +518,21 @@ def _run_sample(scene, task: _Task) -> dict:
             substeps, dt = resolve_timestep(model, task.fps, dt=task.dt)
             row.update({"particles": model.particle_count, "steps": task.frames * substeps, "dt": dt})
             solver = Solver(model)
-            state = simulate(model, task.frames, fps=task.fps, dt=dt, progress=False, solver=solver)
+            # The bodies a scene shows blowing up are left out of the monitor, as in warp-esph run.
+            state = simulate(model, task.frames, fps=task.fps, dt=dt, progress=False, solver=solver,
+                             monitor_exempt=getattr(scene, "diverges", ()))
             row.update(_summary(model, state, solver))
             why = _blew_up(model, state)
             if why is not None:
                 row.update(status="failed", reason=why)
             if task.extra is not None:
-                row.update(task.extra(model, state, task.seed))
+                more = task.extra(model, state, task.seed)
+                taken = sorted(set(more) & (set(row) | {"wall_s", "reason", "warnings"})) if isinstance(more, Mapping) \
+                    else None
+                if taken is None or taken:  # a key 'status' or a parameter's name overwrote the row's own
+                    raise ValueError(f"extra returned {checks.shorten(more)!r}: it must return a dict of new columns"
+                                     + (f", not {taken} (the table's own)" if taken else ""))
+                row.update(more)
     except SimulationError as e:
         row.update(status="failed", reason=_one_line(e))
     except (ValueError, ArithmeticError, RuntimeError) as e:
@@ -843,6 +864,9 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
 
         resolve_timestep(None, fps, dt=dt)  # with dt given only its ratio to 1/fps is checked
     assignments = _assignments(sc, plist)
+    # Built once here, so that what the scene itself refuses (a body inside a collider, a device
+    # this machine lacks) is bad input before any sample, not the same failure in every row.
+    sc.builder.finalize(device=device, dtype=dtype)
     tasks = [(sc, _Task(i, _sample_seed(seed, i), values, assignments, frames, fps, dt, dtype, device, extra))
              for i, values in enumerate(points)]
     return _Plan(sc, plist, tasks)
@@ -935,6 +959,11 @@ def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_pa
 
 #: Exit status of ``warp-esph sweep`` when at least one sample failed (the table has them).
 EXIT_SOME_FAILED = 3
+#: The files ``write_outputs`` writes into the output folder.
+OUTPUT_FILES = ("sweep.csv", "sweep.parquet", "sweep.png", "sweep.json")
+#: Seconds between the CLI's rewrites of the table while samples finish (a killed sweep
+#: keeps what it had written; the last rewrite, at the end, is the whole table).
+PARTIAL_EVERY_S = 2.0
 
 
 def sweep_cli(args, out=None) -> int:
@@ -953,9 +982,13 @@ def sweep_cli(args, out=None) -> int:
     sc, plist, points = plan.scene, plan.params, plan.tasks
     # Every task holds this scene: its builder's [solver] options, overridden, reach each sample's Solver(model).
     _apply_solver_options(sc.builder, options)
-    folder = args.output or f"sweep_{sc.name}"
+    folder = args.output if args.output is not None else f"sweep_{sc.name}"  # '' fell back to the default
     checks.output_place("--output", folder, folder=True)  # before the first sample, not after
-    if args.ray:
+    for name in OUTPUT_FILES:  # a folder in the way of one was found after every sample had run
+        if os.path.isdir(os.path.join(folder, name)):
+            raise ValueError(f"--output = {folder!r} is not allowed: {os.path.join(folder, name)!r} is a folder; the "
+                             f"sweep writes its {name} there")
+    if args.ray is not None:
         _check_reachable(args.ray)  # before the plan's line: one line for a wrong address
     where = f"Ray at {args.ray}" if args.ray else f"{min(args.workers or _cores(), len(points))} worker(s)"
     print(f"{PROG} sweep: {sc.name}: {len(points)} samples ({args.sample}) of {', '.join(p.name for p in plist)} "
@@ -967,10 +1000,18 @@ def sweep_cli(args, out=None) -> int:
 
         bar = _progress_bar(len(points), "samples")
 
+    written = [0.0]
+
     def record(row):
         done.append(row)
         if bar is not None:
             bar.update(1)
+        # The samples finished so far, on disk as they come (at most every PARTIAL_EVERY_S): a
+        # killed sweep (SIGKILL, out of memory) kept none of them.
+        if time.perf_counter() - written[0] >= PARTIAL_EVERY_S:
+            write_outputs(_table(done, [p.name for p in plist]), folder,
+                          {**meta, "partial": True, "samples_done": len(done)}, log_params, plot_figure=False)
+            written[0] = time.perf_counter()
 
     meta = {"command": "sweep", "version": __version__, "scene": args.scene if args.scene else sc.name,
             "scale": args.scale, "params": [dataclasses.asdict(p) for p in plist], "sample": args.sample,

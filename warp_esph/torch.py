@@ -133,6 +133,10 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
     for name, value in params.items():
         if name not in PARAMETERS:
             raise ValueError(f"parameter {name!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
+        kind = ("b" if value.dtype == torch.bool else "c" if value.is_complex() else "f") if isinstance(value, torch.Tensor) \
+            else np.asarray(value).dtype.kind
+        if kind not in "iuf":  # a bool ran as 1 Pa
+            raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be numbers, one per material")
         if not isinstance(value, torch.Tensor):
             value = torch.as_tensor(value, dtype=torch.float64)
         if value.dim() == 0:

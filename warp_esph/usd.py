@@ -700,6 +700,8 @@ class UsdFrames:
 
     @_held_stderr
     def __init__(self, path):
+        if not isinstance(path, (str, os.PathLike)):  # None, 123: a TypeError from os.fspath before
+            raise ValueError(f"path = {path!r} is not allowed: must be the path of a warp-esph USD file")
         self.path = os.fspath(path)
         if not os.path.isfile(self.path):
             why = "it is a folder" if os.path.isdir(self.path) else "no such file"
@@ -860,11 +862,20 @@ class UsdFrames:
 
             cols["points"].append(np.asarray(p, dtype=np.float32))
             cols["velocities"].append(get(geom.GetVelocitiesAttr(), (n, 3), 0.0))
-            cols["widths"].append(get(geom.GetWidthsAttr(), (n,), 0.02))
+            widths = get(geom.GetWidthsAttr(), (n,), 0.02)
+            if not (np.isfinite(widths) & (widths > 0.0)).all():  # a NaN width failed inside the renderer
+                raise ValueError(f"cannot read {self.path!r}: body {self.bodies[k][0]!r} at frame {frame} has widths that are "
+                                 "not finite and > 0 (not a warp-esph output, or damaged)")
+            cols["widths"].append(widths)
             cols["alpha"].append(get(prim.GetAttribute(_PRIMVAR_ALPHA), (n,), 0.0))
             cols["singular_values"].append(get(prim.GetAttribute(_PRIMVAR_SINGULAR_VALUES), (n, 3), 1.0))
             cols["body"].append(np.full(n, k, np.int32))
             cols["material_id"].append(np.full(n, self.material_ids[k], np.int32))
+        if cols["points"] and not np.isfinite(np.concatenate(cols["points"])).all(axis=1).any():
+            # The writer never writes a non-finite particle: a frame without one finite is damaged
+            # (it rendered as an empty picture and exported NaN, both exiting 0).
+            raise ValueError(f"cannot read {self.path!r}: frame {frame} has no particle with a finite position "
+                             "(not a warp-esph output, or damaged)")
         shapes = {"points": (0, 3), "velocities": (0, 3), "singular_values": (0, 3)}
         return {k: (np.concatenate(v) if v else np.zeros(shapes.get(k, (0,)), np.int32 if k in ("body", "material_id") else np.float32))
                 for k, v in cols.items()}

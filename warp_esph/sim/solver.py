@@ -169,6 +169,9 @@ class Solver:
         fit: str | None = None,
         hourglass: float | None = None,
     ):
+        if not isinstance(model, Model):
+            raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be a warp_esph.Model "
+                             "(SceneBuilder.finalize())")
         self.model = model
         if fit is not None and (not isinstance(fit, str) or fit not in FITS):
             raise ValueError(f"fit = {fit!r} is not allowed: must be one of {', '.join(map(repr, FITS))}")
