@@ -245,6 +245,7 @@ class Rollout:
         self.segments = [(s, min(self.segment, self.steps - s)) for s in range(0, self.steps, self.segment)]
         self._initial = model.state(requires_grad=False)
         self._states: list[State] | None = None  # taped states: whole run, or one segment
+        self._final: State | None = None  # the latest forward's last state (final_state)
         self._pair: list[State] | None = None  # untaped ping-pong pair (checkpointed forward)
         self._checkpoints: list[_Checkpoint] = []
         self._tape: wp.Tape | None = None
@@ -371,6 +372,7 @@ class Rollout:
                 wp.copy(out, states[f].x)
             for k in range(self.steps):
                 self._store_forces(k, states[k + 1])
+            self._final = states[self.steps]
         self._forward_done = True
         self.forward_count += 1
         return self.positions()
@@ -393,6 +395,7 @@ class Rollout:
                 self.solver.step(cur, nxt, self.dt)
                 self._store_forces(k, nxt)
                 cur, nxt = nxt, cur
+        self._final = cur
 
     def _store_forces(self, k: int, state):
         if self.forces is not None:
@@ -416,6 +419,13 @@ class Rollout:
             raise ValueError("step_collider_forces is not allowed: the model has no static colliders (ground, planes, "
                              "spheres, boxes)")
         return self.collider_forces.numpy().astype(np.float64).reshape(self.steps, len(self.collider_names), 3)
+
+    def final_state(self) -> State:
+        """The state after the last step of the latest ``forward`` (the rollout's own: valid
+        until the next ``forward``; read it, do not step from it)."""
+        if not self._forward_done or self._final is None:
+            raise ValueError("final_state is not allowed before forward(): there is no run to read")
+        return self._final
 
     def observations(self, numpy: bool = False) -> dict:
         """What a loss may observe after ``forward``: ``{step: positions}`` at ``frames``, and
@@ -633,6 +643,7 @@ class Rollout:
         self._pair = None
         self._checkpoints = []
         self._tape = None
+        self._final = None
         self._forward_done = False
 
     def __repr__(self):
