@@ -26,27 +26,42 @@ def _points(path):
     return out
 
 
+def _time_samples(path):
+    """Every time-sampled attribute value of the file, ``{(prim, attribute, time): value}``."""
+    stage = Usd.Stage.Open(str(path))
+    return {(str(prim.GetPath()), attr.GetName(), t): np.array(attr.Get(t))
+            for prim in stage.Traverse() for attr in prim.GetAttributes() for t in attr.GetTimeSamples()}
+
+
 def test_resume_writes_what_the_uninterrupted_run_writes(tmp_path, capsys):
-    """A run stopped after frame 4 (its last checkpoint) and resumed to frame 6 writes
-    the same file, bit for bit, as a run of 6 frames."""
+    """A run stopped after frame 6 (its last checkpoint) and resumed to frame 8 writes
+    the same file, bit for bit, as a run of 8 frames: every time sample of every attribute,
+    the ground's reaction at the resume frame too (a checkpoint carries the reactions of the
+    step that produced its state, ``State.STEP_REPORTS``; they were written as zero there)."""
     full = tmp_path / "full.usdc"
-    assert main(ARGS + ["--frames", "6", "-o", str(full)]) == 0
+    assert main(ARGS + ["--frames", "8", "-o", str(full)]) == 0
     part = tmp_path / "part.usdc"
-    assert main(ARGS + ["--frames", "4", "-o", str(part), "--checkpoint-every", "2"]) == 0
+    assert main(ARGS + ["--frames", "6", "-o", str(part), "--checkpoint-every", "2"]) == 0
     ckpt = tmp_path / "part.usdc.checkpoint.npz"
-    assert read_checkpoint(ckpt)[0]["frame"] == 4
-    assert main(["run", "--resume", str(ckpt), "--frames", "6", "--no-progress"]) == 0
     assert read_checkpoint(ckpt)[0]["frame"] == 6
+    assert main(["run", "--resume", str(ckpt), "--frames", "8", "--no-progress"]) == 0
+    assert read_checkpoint(ckpt)[0]["frame"] == 8
     a, b = _points(full), _points(part)
     assert a.keys() == b.keys()
     for prim in a:
-        assert sorted(a[prim]) == sorted(b[prim]) == list(range(7))
+        assert sorted(a[prim]) == sorted(b[prim]) == list(range(9))
         for t in a[prim]:
             np.testing.assert_array_equal(a[prim][t], b[prim][t])
+    sa, sb = _time_samples(full), _time_samples(part)
+    assert sa.keys() == sb.keys()
+    ground = [k for k in sa if k[1] == "warp_esph:reaction_force" and k[2] == 6.0]
+    assert ground and all(np.abs(sa[k]).max() > 0.0 for k in ground)  # landed by the resume frame
+    for key in sa:
+        np.testing.assert_array_equal(sa[key], sb[key], err_msg=str(key))
     assert main(["run", "--resume", str(ckpt), "--no-progress"]) == 2  # nothing left to run
     # --frames at or below the checkpoint's frame: the message names --frames and the frame.
-    assert main(["run", "--resume", str(ckpt), "--frames", "5", "--no-progress"]) == 2
-    assert "--frames = 5 is not allowed with --resume" in capsys.readouterr().err
+    assert main(["run", "--resume", str(ckpt), "--frames", "7", "--no-progress"]) == 2
+    assert "--frames = 7 is not allowed with --resume" in capsys.readouterr().err
 
 
 def test_resume_of_a_bad_checkpoint_is_one_line(tmp_path, capsys):

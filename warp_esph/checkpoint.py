@@ -142,6 +142,7 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
         "fingerprint_version": FINGERPRINT_VERSION,
     }
     arrays = {name: getattr(state, name).numpy() for name in State.STATE_FIELDS}
+    arrays.update({name: getattr(state, name).numpy() for name in State.STEP_REPORTS if hasattr(state, name)})
     arrays.update({f"material_{name}": getattr(model, name).numpy() for name in Model.MATERIAL_FIELDS})
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
@@ -247,6 +248,14 @@ def load_state(path, model: Model) -> tuple[State, dict]:
     if "alpha_image" not in arrays:
         # Written before the images had a hardening of their own: they flowed with their particle's.
         state.alpha_image.assign(arrays["alpha"])
+    for name in State.STEP_REPORTS:  # written since they were carried; zero before (as a fresh state's)
+        a = getattr(state, name, None)
+        if name in arrays and a is not None:
+            b = arrays[name]
+            if b.shape != (a.shape[0], 3) or b.dtype != np_dtype or not np.isfinite(b).all():
+                raise ValueError(f"{where}: its {name} is {b.dtype} {b.shape}, the model needs {np.dtype(np_dtype)} "
+                                 f"{(a.shape[0], 3)} finite values")
+            a.assign(b)
     state.time = float(meta.get("time", 0.0))
     for name in Model.MATERIAL_FIELDS:
         key = f"material_{name}"

@@ -29,6 +29,7 @@ Normalisation: each loss is the mean over its frames of its per-frame value, tim
 ``weight``.
 """
 
+import copy
 import functools
 import math
 import os
@@ -403,6 +404,18 @@ class Loss:
         """``value`` of ``{step: positions}`` (Warp arrays or numpy ``(n, 3)`` arrays)."""
         return self.value(_as_warp_positions(positions))
 
+    def copy_for_world(self) -> "Loss":
+        """This loss with buffers of its own (``WorldLoss``): the same targets, frames and
+        weight, but every cache a launch fills and its adjoint reads (the ``particles``
+        subset, a Chamfer or mesh loss's scratch) new. Those are kept per frame, not per
+        world: one object evaluated on every world let the last world's values overwrite
+        what the earlier worlds' adjoints read, and their gradients were 9-42 % off."""
+        new = copy.copy(self)
+        for name, value in vars(self).items():
+            if name.startswith("_") and isinstance(value, (dict, list)):
+                setattr(new, name, type(value)())
+        return new
+
     # ------------------------------------------------------------- combining
     def __add__(self, other):
         if not isinstance(other, Loss):
@@ -464,6 +477,11 @@ class SumLoss(Loss):
         frames = sorted({f for _, loss in flat for f in loss.frames})
         super().__init__(frames)
 
+    def copy_for_world(self) -> "SumLoss":
+        new = super().copy_for_world()
+        new.terms = [(k, loss.copy_for_world()) for k, loss in self.terms]
+        return new
+
     def launch(self, frame, x, out, scale: float = 1.0):
         for k, loss in self.terms:
             loss.launch(frame, x, out, scale * k)
@@ -520,7 +538,8 @@ class WorldLoss(Loss):
         losses = list(losses)
         if len(losses) != W or not all(isinstance(loss, Loss) for loss in losses):
             raise ValueError(f"losses is not allowed: must be one warp_esph.losses.Loss or a list of {W} (one per world), got {len(losses)} items")
-        self.losses = losses
+        # Each world's own copy (Loss.copy_for_world): one object's buffers served every world.
+        self.losses = [loss.copy_for_world() for loss in losses]
         self.world_start = np.asarray(starts, dtype=np.int64)
         super().__init__(sorted({f for loss in losses for f in loss.frames}))
         self._world_x = {}

@@ -184,6 +184,11 @@ class State:
     #: state (``x_lo``, ``F_lo``) or the images' own F and hardening (``F_image``,
     #: ``alpha_image``) lacks (then: initial values, I and 0; the images' their particles').
     OPTIONAL_FIELDS = ("F_p", "x_lo", "F_lo", "F_image", "alpha_image")
+    #: What the step that produced a state reported of the tools and static colliders (their
+    #: reaction force and torque, written with its frame): ``assign`` and checkpoints carry
+    #: them where both sides have them, so a resumed run writes its first frame as the
+    #: uninterrupted run did (they were zero there).
+    STEP_REPORTS = ("reaction_force", "reaction_torque", "collider_force", "collider_torque")
 
     def __setattr__(self, name, value):
         # A replaced array may not fit the model any more: ``checks.same_state`` checks again.
@@ -192,7 +197,8 @@ class State:
         object.__setattr__(self, name, value)
 
     def assign(self, other: "State"):
-        """Copy ``other``'s state fields (and time) into this state."""
+        """Copy ``other``'s state fields (and time) into this state, and the reactions the
+        step that produced it reported (``STEP_REPORTS``) where both have them alike."""
         for name in self.STATE_FIELDS:
             a, b = getattr(self, name), getattr(other, name, None)
             if not isinstance(b, wp.array):  # a State, or anything holding its fields (rollout checkpoints)
@@ -204,6 +210,10 @@ class State:
                 )
         for name in self.STATE_FIELDS:
             wp.copy(getattr(self, name), getattr(other, name))
+        for name in self.STEP_REPORTS:
+            a, b = getattr(self, name, None), getattr(other, name, None)
+            if isinstance(a, wp.array) and isinstance(b, wp.array) and a.shape == b.shape and a.dtype is b.dtype:
+                wp.copy(a, b)
         self.time = getattr(other, "time", 0.0)
 
     @property
@@ -444,10 +454,25 @@ class Model:
         ``flow_rate = 0`` in the current parameter arrays, ``parameter_values``), each has the
         variational elastic force and the incremental deformation model: the models
         ``fit="auto"`` runs with the curvature-corrected fit and the hourglass control."""
-        if self.uses_comparison_models or any(m.elastic_force != "variational" for m in self.materials):
+        return self._elastic_only(slice(None))
+
+    def _elastic_only(self, materials: slice) -> bool:
+        """``elastic_only`` of the materials ``materials`` (a world's, ``world_materials``)."""
+        chosen = self.materials[materials]
+        if any(m.deformation != "incremental" or m.elastic_force != "variational" for m in chosen):
             return False
-        rows = dict(zip(self.MATERIAL_FIELDS, self._read_parameters()))
+        rows = dict(zip(self.MATERIAL_FIELDS, self._read_parameters()[:, materials]))
         return bool(np.all(~np.isfinite(rows["yield_stress"]) | (rows["flow_rate"] <= 0.0)))
+
+    def worlds_auto_differ(self) -> list[int]:
+        """The worlds that, alone, ``fit="auto"`` would run otherwise than the model of all of
+        them does (all elastic where another world can flow: alone, the curvature-corrected
+        fit and the hourglass control; in the model, the linear fit for every world); empty
+        where the choice is the same for every world or the model's fit is not "auto"."""
+        if self.world_count == 1 or self.fit != "auto" or self.ghost_floor is not None:
+            return []
+        alone = [self._elastic_only(self.world_materials(w)) for w in range(self.world_count)]
+        return [] if self.elastic_only else [w for w, elastic in enumerate(alone) if elastic]
 
     def solver_choice(self, fit: str | None = None, hourglass: float | None = None) -> tuple[str, float]:
         """``(fit, c)``: the incremental fit and the hourglass strength a ``Solver(model, fit=fit,
