@@ -184,20 +184,30 @@ def test_diagnostics_flag_an_unobservable_yield_stress(yield_stress, flagged, dr
 
 
 def test_the_large_strain_bias_is_said_for_the_poly6_weight_past_its_measured_strain():
-    """``large_strain_bias``: more than a tenth of the particles past alpha = 0.65 (the
-    median alpha where the uniaxial flow stress falls, 8 and 12 across) with the poly6 fit
-    weight; not with the biweight, whose packing holds 0.83-0.94 of the Bingham stress."""
+    """``large_strain_bias``: more than a tenth of the particles of materials that can flow
+    past alpha = 0.65 (the median alpha where the uniaxial flow stress falls, 8 and 12
+    across) with the poly6 fit weight; not with the biweight, whose packing holds 0.83-0.94
+    of the Bingham stress. An elastic body's particles (a floor, alpha 0 for ever) do not
+    dilute the share."""
     from types import SimpleNamespace
 
     from warp_esph.diagnostics import large_strain_bias
 
-    poly6, biweight = SimpleNamespace(fit_weight="poly6"), SimpleNamespace(fit_weight="biweight")
+    def model(weight, n, elastic=0):
+        array = SimpleNamespace  # what the function reads: .numpy() of the parameter arrays
+        return SimpleNamespace(fit_weight=weight, particle_material_np=np.r_[np.zeros(n, int), np.ones(elastic, int)],
+                               yield_stress=array(numpy=lambda: np.array([10.0, np.inf])),
+                               flow_rate=array(numpy=lambda: np.array([50.0, 50.0])))
+
     alpha = np.r_[np.full(85, 0.3), np.full(15, 0.9)]
-    said = large_strain_bias(poly6, alpha, "experiment 1: ")
+    said = large_strain_bias(model("poly6", 100), alpha, "experiment 1: ")
     assert said.startswith("experiment 1: 15 % of the particles end past a plastic strain of 0.65") and "biweight" in said
-    assert large_strain_bias(biweight, alpha) is None
-    assert large_strain_bias(poly6, np.r_[np.full(91, 0.3), np.full(9, 0.9)]) is None
-    assert large_strain_bias(poly6, np.full(10, 0.65)) is None  # at the threshold, not past it
+    assert large_strain_bias(model("biweight", 100), alpha) is None
+    assert large_strain_bias(model("poly6", 100), np.r_[np.full(91, 0.3), np.full(9, 0.9)]) is None
+    assert large_strain_bias(model("poly6", 10), np.full(10, 0.65)) is None  # at the threshold, not past it
+    # 15 of 100 flowing particles past it, beside 200 elastic floor particles: still 15 %.
+    floor = large_strain_bias(model("poly6", 100, elastic=200), np.r_[alpha, np.zeros(200)])
+    assert floor is not None and floor.startswith("15 % of the particles")
 
 
 def _stretch(rate, seconds, noise_seed, factor=1.0):

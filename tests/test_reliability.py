@@ -795,6 +795,16 @@ def test_a_support_radius_whose_kernel_constants_float32_cannot_hold_is_refused(
     s0, s1 = model.state(), model.state()
     we.Solver(model).step(s0, s1, 0.5 * model.stable_dt())
     assert np.abs(s1.x.numpy() - s0.x.numpy()).max() == 0.0  # at rest, finite
+    # Beyond float64's h^9 too: a bare OverflowError from h ** 9 before.
+    b = we.SceneBuilder(spacing=1e35, support_radius=2e35, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (4e35, 4e35, 4e35), we.Material.preset("dough"))
+    with pytest.raises(ValueError, match=r"support_radius = 2e\+35 is not allowed in float64"):
+        b.finalize(dtype=wp.float64)
+    from warp_esph.sim import deformation, forces
+
+    for make in (deformation.update_kernels, forces.elastic_kernels):  # "auto" silently meant the corrected fit
+        with pytest.raises(ValueError, match="fit = 'auto' is not allowed: must be one of 'linear', 'curvature_corrected'"):
+            make(wp.float64, "poly6", "auto")
 
 
 def test_api_values_python_would_have_taken_are_refused_by_name():

@@ -189,6 +189,23 @@ def test_one_loss_for_every_world_gives_each_its_own_gradient(kind):
                                        err_msg=f"world {w}: {name}")
 
 
+def test_a_loss_copied_for_a_world_keeps_its_settings_and_gets_new_buffers():
+    """``Loss.copy_for_world`` makes only the classes' declared caches anew (``_CACHES``): a
+    reaction-force loss keeps its force components, a sum its terms (copied) and no built
+    sum of the originals."""
+    force = losses.ReactionForceLoss(np.zeros((2, 1)), "plate", [10, 20], window=10, components="y")
+    target = np.zeros((8, 3))
+    position = losses.PositionLoss(target, frames=[20], particles=np.arange(8))
+    position._subsets[(20, wp.float64)] = "filled"
+    total = position + force
+    total._kernel_sum = "built"
+    copied = total.copy_for_world()
+    (_, p), (_, f) = copied.terms
+    assert p is not position and f is not force and copied._kernel_sum is None
+    assert p._subsets == {} and position._subsets == {(20, wp.float64): "filled"}
+    assert f._axes == force._axes == [1] and p.targets is position.targets and f.frames == force.frames
+
+
 def test_an_elastic_world_beside_a_plastic_one_is_told_its_fit_is_the_models():
     """``fit="auto"`` is one choice for the whole model: with a world that can flow it is the
     linear fit for every world, where an elastic world alone runs the curvature-corrected fit
@@ -198,8 +215,9 @@ def test_an_elastic_world_beside_a_plastic_one_is_told_its_fit_is_the_models():
     model = _builder(MAT_A).finalize(worlds=2)
     model.set_material(0, elastic, world=0)
     assert model.worlds_auto_differ() == [0] and model.solver_choice()[0] == "linear"
-    with pytest.warns(RuntimeWarning, match=r"world\(s\) \[0\], all elastic, alone would run 'curvature_corrected'"):
-        we.Solver(model)
+    for asked in (None, "auto"):
+        with pytest.warns(RuntimeWarning, match=r"world\(s\) \[0\], all elastic, alone would run 'curvature_corrected'"):
+            we.Solver(model, fit=asked)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         we.Solver(model, fit="linear")

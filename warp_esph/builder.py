@@ -648,7 +648,7 @@ class SceneBuilder:
         # h = 5.7e-5 m h^9 left float32's normal range and the first step wrote NaN positions.
         tiny = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).tiny)
         h = float(self.support_radius)
-        if not tiny <= h ** 9 <= big:
+        if not tiny ** (1 / 9) <= h <= big ** (1 / 9):  # h itself: h ** 9 overflowed a float beyond 1e34
             raise ValueError(f"support_radius = {h!r} is not allowed in {scalar.__name__}: the kernels' constants "
                              f"(1 / h^9) must fit the precision, so it must be in [{tiny ** (1 / 9):.3g}, "
                              f"{big ** (1 / 9):.3g}] m; use dtype=float64 (or larger units)")

@@ -6,8 +6,8 @@ and what is allowed, so a user can fix the input without reading code.
 
 from __future__ import annotations
 
-import json
 import contextlib
+import json
 import math
 import os
 import re
@@ -343,7 +343,7 @@ def replaced_atomically(path):
     p = os.fspath(path)
     head, name = os.path.split(p)
     stem, ext = os.path.splitext(name)
-    tmp = os.path.join(head, f".{stem}.part{ext}")
+    tmp = os.path.join(head, f".{stem}.{os.getpid()}.part{ext}")  # two processes writing one name keep apart
     try:
         yield tmp
         os.replace(tmp, p)

@@ -42,11 +42,12 @@ together: each silhouette loss counts one observation per splat area ``pi (2 s)^
 root of that area.
 
 The model's own bias: with the paper's poly6 fit weight the particles of a material that
-has flowed past a log strain of about 0.55 rearrange, and it carries 0.63-0.74 of the
+has flowed past a log strain of about 0.53 rearrange, and it carries 0.63-0.74 of the
 Bingham stress at 8-12 particles across (docs/fitting.md, "Keep the measured flow to
 moderate strains"); a fit to such a flow makes up for it with a larger yield stress or
 flow rate. Where more than ``LARGE_STRAIN_SHARE`` of a run's particles end with a plastic
-strain ``alpha`` above ``LARGE_STRAIN_ALPHA``, ``bias`` says so (``large_strain_bias``).
+strain ``alpha`` above ``LARGE_STRAIN_ALPHA`` (of the particles whose material can flow),
+``bias`` says so (``large_strain_bias``).
 
 Noise: ``noise`` (m) for geometric losses; a loss with its own ``noise`` attribute (the
 silhouette loss, in occupancy units) uses that. With ``noise=None`` the residual RMS at
@@ -61,7 +62,7 @@ import numpy as np
 
 from .losses import Loss, SumLoss
 
-__all__ = ["Diagnostics", "diagnose", "diagnose_problem", "chi_square_loss", "leaf_terms"]
+__all__ = ["Diagnostics", "diagnose", "diagnose_problem", "chi_square_loss", "leaf_terms", "large_strain_bias"]
 
 #: Defaults of the warnings (see the module doc).
 MAX_RELATIVE_ERROR = 0.25
@@ -174,10 +175,18 @@ class Diagnostics:
 
 def large_strain_bias(model, alpha, where: str = "") -> str | None:
     """The sentence ``Diagnostics.bias`` gets where more than ``LARGE_STRAIN_SHARE`` of the
-    particles ``alpha`` (a final ``State.alpha``) are past ``LARGE_STRAIN_ALPHA`` in a model
-    with the poly6 fit weight; else None. ``where`` names the run ("experiment 2: ")."""
+    particles of materials that can flow (finite yield stress, flow rate > 0) end with their
+    ``alpha`` (a final ``State.alpha``, one per particle of ``model``) past
+    ``LARGE_STRAIN_ALPHA``, in a model with the poly6 fit weight; else None. ``where`` names
+    the run ("experiment 2: ")."""
     alpha = np.asarray(alpha, dtype=np.float64)
     if model.fit_weight != "poly6" or alpha.size == 0:
+        return None
+    # Only the particles of materials that can flow: an elastic floor or body (alpha 0 for
+    # ever) would dilute the share of the flowing ones.
+    flows = np.isfinite(model.yield_stress.numpy()) & (model.flow_rate.numpy() > 0.0)
+    alpha = alpha[flows[model.particle_material_np]]
+    if alpha.size == 0:
         return None
     share = float((alpha > LARGE_STRAIN_ALPHA).mean())
     if share <= LARGE_STRAIN_SHARE:

@@ -285,6 +285,9 @@ class Loss:
     frame's value times ``scale`` into ``out[0]`` (untaped helper launches use
     ``record_tape=False``). ``x`` is the frame's positions (or the ``particles`` subset).
     """
+    #: What a launch fills and its adjoint reads, per frame (``copy_for_world`` makes them anew).
+    _CACHES = ("_out", "_copies", "_subsets", "_keep", "_counts")
+
 
     def __init__(self, frames, weight: float = 1.0, particles=None):
         self.frames = _frames(frames)
@@ -411,9 +414,10 @@ class Loss:
         world: one object evaluated on every world let the last world's values overwrite
         what the earlier worlds' adjoints read, and their gradients were 9-42 % off."""
         new = copy.copy(self)
-        for name, value in vars(self).items():
-            if name.startswith("_") and isinstance(value, (dict, list)):
-                setattr(new, name, type(value)())
+        for cls in type(self).__mro__:
+            for name in vars(cls).get("_CACHES", ()):
+                if name in vars(self):
+                    setattr(new, name, type(getattr(self, name))())
         return new
 
     # ------------------------------------------------------------- combining
@@ -480,6 +484,7 @@ class SumLoss(Loss):
     def copy_for_world(self) -> "SumLoss":
         new = super().copy_for_world()
         new.terms = [(k, loss.copy_for_world()) for k, loss in self.terms]
+        new._kernel_sum = None  # built from the terms when needed: the copy's, not these
         return new
 
     def launch(self, frame, x, out, scale: float = 1.0):
@@ -586,6 +591,8 @@ class PositionLoss(Loss):
     or one ``(n, 3)`` array for every frame. ``particles``: use only these particles
     (then targets are ``(len(particles), 3)`` per frame).
     """
+    _CACHES = ("_wp_targets",)
+
 
     def __init__(self, targets, frames=None, weight: float = 1.0, particles=None):
         per = _per_frame("targets", targets, frames, 2)
@@ -635,6 +642,8 @@ class ChamferLoss(Loss):
     pulls. After an evaluation ``unmatched[step] = (particles, targets)`` without a
     match within ``radius``.
     """
+    _CACHES = ("_target_data", "_particle_grid", "_scratch", "_pairs")
+
 
     def __init__(self, targets, radius: float, frames=None, weight: float = 1.0, particles=None):
         per = _per_frame("targets", targets, frames, 2)
@@ -760,6 +769,8 @@ class MeshLoss(Loss):
     search distance; particles with no surface within it contribute ``max_dist**2``
     without gradient. ``unmatched[step]`` counts them after an evaluation.
     """
+    _CACHES = ("_wp", "_scratch", "_planes")
+
 
     MODES = ("surface", "outside")
 

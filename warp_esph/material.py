@@ -305,12 +305,6 @@ class Material:
         return math.isfinite(self.yield_stress) and self.flow_rate > 0.0
 
 
-# Presets: soft, kitchen-scale materials that run stably at 1-2 cm spacing with the
-# default time steps. Moduli are of the order measured for the real materials
-# (bread dough E ~ 10^4 Pa, modelling clay ~ 10^5 Pa, soft rubber ~ 10^5-10^6 Pa)
-# and chosen so each one shows its character in a drop onto the ground. The explicit
-# step dissipates nothing by itself: an undamped body rings after an impact for as
-# long as the run lasts, so each preset carries some viscosity (Pa s) to settle.
 def _check_fields(where: str, given) -> None:
     """Every name in ``given`` is a ``Material`` field: a misspelt one raised Python's
     TypeError from the dataclass."""
@@ -320,6 +314,12 @@ def _check_fields(where: str, given) -> None:
         raise ValueError(f"{', '.join(map(repr, unknown))} is not allowed in {where}: must be one of {', '.join(fields)}")
 
 
+# Presets: soft, kitchen-scale materials that run stably at 1-2 cm spacing with the
+# default time steps. Moduli are of the order measured for the real materials
+# (bread dough E ~ 10^4 Pa, modelling clay ~ 10^5 Pa, soft rubber ~ 10^5-10^6 Pa)
+# and chosen so each one shows its character in a drop onto the ground. The explicit
+# step dissipates nothing by itself: an undamped body rings after an impact for as
+# long as the run lasts, so each preset carries some viscosity (Pa s) to settle.
 PRESETS: dict[str, Material] = {
     # Flows under its own weight, slowly, and keeps the new shape (the paper's Fig. 6).
     "dough": Material.from_young(2.0e4, 0.3, yield_stress=150.0, flow_rate=20.0, hardening=0.0, density=1150.0, viscosity=10.0),
@@ -334,4 +334,3 @@ PRESETS: dict[str, Material] = {
     # Low yield, fast flow: slumps into a puddle.
     "toothpaste": Material.from_young(1.0e4, 0.3, yield_stress=50.0, flow_rate=200.0, density=1300.0, viscosity=5.0),
 }
-

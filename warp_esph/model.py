@@ -464,12 +464,13 @@ class Model:
         rows = dict(zip(self.MATERIAL_FIELDS, self._read_parameters()[:, materials]))
         return bool(np.all(~np.isfinite(rows["yield_stress"]) | (rows["flow_rate"] <= 0.0)))
 
-    def worlds_auto_differ(self) -> list[int]:
+    def worlds_auto_differ(self, fit: str | None = None) -> list[int]:
         """The worlds that, alone, ``fit="auto"`` would run otherwise than the model of all of
         them does (all elastic where another world can flow: alone, the curvature-corrected
         fit and the hourglass control; in the model, the linear fit for every world); empty
-        where the choice is the same for every world or the model's fit is not "auto"."""
-        if self.world_count == 1 or self.fit != "auto" or self.ghost_floor is not None:
+        where the choice is the same for every world or the fit (``fit``; None: the model's)
+        is not "auto"."""
+        if self.world_count == 1 or (self.fit if fit is None else fit) != "auto" or self.ghost_floor is not None:
             return []
         alone = [self._elastic_only(self.world_materials(w)) for w in range(self.world_count)]
         return [] if self.elastic_only else [w for w, elastic in enumerate(alone) if elastic]

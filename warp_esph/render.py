@@ -1061,6 +1061,8 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     if frames is None and kind == "png":
         frames = "last"
     chosen = parse_frames(frames, data.frames)
+    if kind == "dir":  # one picture per frame (a GIF, MP4 or sheet may repeat a frame on purpose)
+        chosen = list(dict.fromkeys(chosen))
     options = RenderOptions(width=width, height=height, color=color, supersample=supersample, radius_scale=radius_scale,
                             azimuth=azimuth, elevation=elevation, zoom=zoom, fov=fov, label=label, shadows=shadows,
                             surfaces=surfaces)

@@ -305,6 +305,8 @@ class SilhouetteLoss(Loss):
     thick never fills its mask, so a softer, wider body always lowers the loss: docs/fitting.md). ``noise``: the residual noise for
     ``warp_esph.diagnostics``, in occupancy units (default 0.1).
     """
+    _CACHES = ("_buffers",)
+
 
     def __init__(self, masks, cameras, radius: float, frames=None, opacity: float = DEFAULT_OPACITY, weight: float = 1.0,
                  particles=None, noise: float = 0.1):

@@ -161,8 +161,9 @@ class DivergenceMonitor:
         limit = self.SPEED_FACTOR * bound
         p = int(np.argmax(speed2))
         if speed2[p] > limit * limit:
+            parts = "fall + p-wave + initial speed" + (" + the tools' speed" if self.driven_speed(t) > 0.0 else "")
             return (f"speed {math.sqrt(speed2[p]):.3g} m/s, more than {self.SPEED_FACTOR:g} x the {bound:.3g} m/s "
-                    f"the scene can produce (fall + p-wave + initial speed)"), int(self.index[p])
+                    f"the scene can produce ({parts})"), int(self.index[p])
         ke = 0.5 * self.mass * speed2
         released = float((self.mass * self.g * (self.h0 - x @ self.up)).sum())
         driven = 0.5 * float(self.mass.sum()) * self.driven_speed(t) ** 2

@@ -809,7 +809,7 @@ def sweep(
     Raises ``ValueError`` for bad input before any sample runs.
     """
     plan = _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale, dtype, device, workers,
-                 max_samples, extra)
+                 max_samples, extra, ray)
     return _execute(plan, workers, ray, on_result)
 
 
@@ -821,7 +821,7 @@ class _Plan:
 
 
 def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale, dtype, device, workers, max_samples,
-          extra) -> _Plan:
+          extra, ray=None) -> _Plan:
     """Every check of ``sweep``'s input, and one task per sample."""
     plist = _as_params(params)
     points = sample_points(plist, sample, samples, seed, max_samples)
@@ -865,8 +865,13 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
         resolve_timestep(None, fps, dt=dt)  # with dt given only its ratio to 1/fps is checked
     assignments = _assignments(sc, plist)
     # Built once here, so that what the scene itself refuses (a body inside a collider, a device
-    # this machine lacks) is bad input before any sample, not the same failure in every row.
-    sc.builder.finalize(device=device, dtype=dtype)
+    # this machine lacks) is bad input before any sample, not the same failure in every row;
+    # on the CPU where the samples run on a Ray cluster, whose nodes have the device.
+    from .startup import init_warp  # noqa: PLC0415 (quiet Warp start, shared with the CLI)
+
+    here = "cpu" if ray is not None else device
+    init_warp(here)
+    sc.builder.finalize(device=here, dtype=dtype)
     tasks = [(sc, _Task(i, _sample_seed(seed, i), values, assignments, frames, fps, dt, dtype, device, extra))
              for i, values in enumerate(points)]
     return _Plan(sc, plist, tasks)
@@ -978,7 +983,7 @@ def sweep_cli(args, out=None) -> int:
 
     options = _solver_options(args)
     plan = _plan(args.scene, args.param or [], args.sample, args.samples, args.seed, args.frames, args.duration, args.fps,
-                 args.dt, args.scale, args.dtype, "cpu", args.workers, args.max_samples, None)
+                 args.dt, args.scale, args.dtype, "cpu", args.workers, args.max_samples, None, args.ray)
     sc, plist, points = plan.scene, plan.params, plan.tasks
     # Every task holds this scene: its builder's [solver] options, overridden, reach each sample's Solver(model).
     _apply_solver_options(sc.builder, options)
@@ -1008,10 +1013,15 @@ def sweep_cli(args, out=None) -> int:
             bar.update(1)
         # The samples finished so far, on disk as they come (at most every PARTIAL_EVERY_S): a
         # killed sweep (SIGKILL, out of memory) kept none of them.
-        if time.perf_counter() - written[0] >= PARTIAL_EVERY_S:
-            write_outputs(_table(done, [p.name for p in plist]), folder,
-                          {**meta, "partial": True, "samples_done": len(done)}, log_params, plot_figure=False)
-            written[0] = time.perf_counter()
+        if written[0] is not None and time.perf_counter() - written[0] >= PARTIAL_EVERY_S:
+            try:
+                write_outputs(_table(done, [p.name for p in plist]), folder,
+                              {**meta, "partial": True, "samples_done": len(done)}, log_params, plot_figure=False)
+                written[0] = time.perf_counter()
+            except (OSError, ValueError, ImportError) as e:  # a convenience: the sweep goes on without it
+                print(f"{PROG}: warning: the table so far could not be written ({e}); the sweep goes on and writes "
+                      "it at its end", file=sys.stderr)
+                written[0] = None
 
     meta = {"command": "sweep", "version": __version__, "scene": args.scene if args.scene else sc.name,
             "scale": args.scale, "params": [dataclasses.asdict(p) for p in plist], "sample": args.sample,

@@ -21,6 +21,7 @@ import types
 import warp as wp
 
 from .._types import type_set
+from .. import checks
 from . import guards, smoothing
 from .replay import recording_tape
 from .roundoff import compensated_sum
@@ -775,6 +776,7 @@ def update_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     gf = guards.guard_funcs(scalar)
+    checks.choice("fit", fit, ("linear", "curvature_corrected"))  # "auto" is resolved before (Model.solver_choice)
     if fit == "linear":
         fn = funcs(scalar, weight)
     else:
@@ -925,8 +927,8 @@ def image_share_grad(state_out):
 
 
 def fit_kernels(model, fit: str = "linear") -> types.SimpleNamespace:
-    """The update kernels of ``fit`` ("linear" or "curvature_corrected", ``model.FITS``) for
-    the model's precision and fit weight."""
+    """The update kernels of ``fit`` ("linear" or "curvature_corrected": a fit the solver
+    resolved, ``Model.solver_choice``) for the model's precision and fit weight."""
     return update_kernels(model.scalar, model.fit_weight, fit)
 
 

@@ -40,6 +40,7 @@ import types
 import warp as wp
 
 from .._types import type_set
+from .. import checks
 from . import deformation, guards, isotropic, materials, neighbors, smoothing
 from .replay import recording_tape
 
@@ -321,10 +322,13 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
 def elastic_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
     """The elastic pair forces of every particle (eqs. 10-13, or the variational force of
     ``fit``: "linear", this module's ``fit_variational_forces``, or "curvature_corrected",
-    ``curvature.funcs``' of the same name)."""
+    ``curvature.funcs``' of the same name). A particle of a comparison deformation model
+    (``Material.deformation`` other than "incremental") gets none here: its variational
+    force is ``comparison.py``'s, and the solver runs the corrected fit without them."""
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     fo = funcs(scalar, weight)
+    checks.choice("fit", fit, ("linear", "curvature_corrected"))  # "auto" is resolved before (Model.solver_choice)
     if fit == "linear":
         fn = fo
     else:

@@ -193,7 +193,7 @@ class Solver:
         self._asked = (fit, hourglass)
         # Whether the fit (and with it a strength of None) follows the parameters.
         self._auto = asked == "auto"
-        differ = model.worlds_auto_differ() if fit is None else []
+        differ = model.worlds_auto_differ(asked)
         if differ:
             # One fit for the whole model: an elastic world next to a plastic one ran the linear
             # fit, 5e-3 m off its separate run's 81-particle ball (0.07 m), without a word.
