@@ -63,7 +63,9 @@ def funcs(scalar) -> types.SimpleNamespace:
         return from_principal(U, g, V)
 
     @wp.func
-    def _d2(gi: scalar, gj: scalar, si: scalar, sj: scalar) -> scalar:
+    def skew_coefficient(gi: scalar, gj: scalar, si: scalar, sj: scalar) -> scalar:
+        """``(g_i + g_j) / (sigma_i + sigma_j)``: the skew part's factor of the map's derivative
+        for the singular-value pair ``(i, j)`` (module doc)."""
         den = si + sj
         # sigma_i + sigma_j >= 0 with the rotation-variant ordering; it reaches 0 only for
         # a degenerate F, where the skew part of the derivative is unbounded anyway.
@@ -73,6 +75,32 @@ def funcs(scalar) -> types.SimpleNamespace:
         return (gi + gj) / den
 
     @wp.func
+    def pair_skew_coefficients(g: vec3, s: vec3) -> vec3:
+        """``skew_coefficient`` of the pairs (0, 1), (0, 2), (1, 2)."""
+        return vec3(skew_coefficient(g[0], g[1], s[0], s[1]), skew_coefficient(g[0], g[2], s[0], s[2]),
+                    skew_coefficient(g[1], g[2], s[1], s[2]))
+
+    @wp.func
+    def off_diagonal(C: mat33, d1: vec3, d2: vec3) -> mat33:
+        """The off-diagonal part ``M`` of the map's adjoint in the SVD frame (``C = U^T adj
+        V``): ``M_ij = d1 (C_ij + C_ji) / 2 +- d2 (C_ij - C_ji) / 2`` for the pairs 01, 02, 12
+        (``d1``: the symmetric part's factors, ``d2``: ``pair_skew_coefficients``)."""
+        M = mat33()
+        sym = scalar(0.5) * (C[0, 1] + C[1, 0])
+        skw = scalar(0.5) * (C[0, 1] - C[1, 0])
+        M[0, 1] = d1[0] * sym + d2[0] * skw
+        M[1, 0] = d1[0] * sym - d2[0] * skw
+        sym = scalar(0.5) * (C[0, 2] + C[2, 0])
+        skw = scalar(0.5) * (C[0, 2] - C[2, 0])
+        M[0, 2] = d1[1] * sym + d2[1] * skw
+        M[2, 0] = d1[1] * sym - d2[1] * skw
+        sym = scalar(0.5) * (C[1, 2] + C[2, 1])
+        skw = scalar(0.5) * (C[1, 2] - C[2, 1])
+        M[1, 2] = d1[2] * sym + d2[2] * skw
+        M[2, 1] = d1[2] * sym - d2[2] * skw
+        return M
+
+    @wp.func
     def isotropic_map_adjoint(F: mat33, g: vec3, d1: vec3, adj_ret: mat33):
         """The adjoints ``(adj F, adj g)`` of ``isotropic_map`` (module doc)."""
         U = mat33()
@@ -80,25 +108,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         V = mat33()
         wp.svd3(F, U, s, V)
         C = wp.transpose(U) * adj_ret * V
-        M = mat33()
-        # pair (0, 1)
-        sym = scalar(0.5) * (C[0, 1] + C[1, 0])
-        skw = scalar(0.5) * (C[0, 1] - C[1, 0])
-        d2 = _d2(g[0], g[1], s[0], s[1])
-        M[0, 1] = d1[0] * sym + d2 * skw
-        M[1, 0] = d1[0] * sym - d2 * skw
-        # pair (0, 2)
-        sym = scalar(0.5) * (C[0, 2] + C[2, 0])
-        skw = scalar(0.5) * (C[0, 2] - C[2, 0])
-        d2 = _d2(g[0], g[2], s[0], s[2])
-        M[0, 2] = d1[1] * sym + d2 * skw
-        M[2, 0] = d1[1] * sym - d2 * skw
-        # pair (1, 2)
-        sym = scalar(0.5) * (C[1, 2] + C[2, 1])
-        skw = scalar(0.5) * (C[1, 2] - C[2, 1])
-        d2 = _d2(g[1], g[2], s[1], s[2])
-        M[1, 2] = d1[2] * sym + d2 * skw
-        M[2, 1] = d1[2] * sym - d2 * skw
+        M = off_diagonal(C, d1, pair_skew_coefficients(g, s))
         return U * M * wp.transpose(V), vec3(C[0, 0], C[1, 1], C[2, 2])
 
     @wp.func_grad(isotropic_map)
@@ -128,4 +138,6 @@ def funcs(scalar) -> types.SimpleNamespace:
 
 
     return types.SimpleNamespace(singular_values=singular_values, isotropic_map=isotropic_map,
-                                 isotropic_change=isotropic_change, from_principal=from_principal)
+                                 isotropic_change=isotropic_change, from_principal=from_principal,
+                                 skew_coefficient=skew_coefficient, pair_skew_coefficients=pair_skew_coefficients,
+                                 off_diagonal=off_diagonal)

@@ -274,38 +274,9 @@ def kernels(scalar) -> types.SimpleNamespace:
     j_lo = scalar(VOLUME_PRESERVING_RANGE[0])
     j_hi = scalar(VOLUME_PRESERVING_RANGE[1])
 
-    @wp.func
-    def skew_coefficient(gi: scalar, gj: scalar, si: scalar, sj: scalar) -> scalar:
-        # (g_i + g_j) / (s_i + s_j), as isotropic.adj_isotropic_map's D2.
-        den = si + sj
-        eps = scalar(1.0e-6)
-        if wp.abs(den) < eps:
-            den = wp.where(den < scalar(0.0), -eps, eps)
-        return (gi + gj) / den
-
-    @wp.func
-    def off_diagonal(C: mat33, d1: vec3, d2: vec3) -> mat33:
-        """The off-diagonal part ``M`` of an isotropic map's adjoint (isotropic.py):
-        ``M_ij = d1 (C_ij + C_ji) / 2 +- d2 (C_ij - C_ji) / 2`` for pairs 01, 02, 12."""
-        M = mat33()
-        sym = scalar(0.5) * (C[0, 1] + C[1, 0])
-        skw = scalar(0.5) * (C[0, 1] - C[1, 0])
-        M[0, 1] = d1[0] * sym + d2[0] * skw
-        M[1, 0] = d1[0] * sym - d2[0] * skw
-        sym = scalar(0.5) * (C[0, 2] + C[2, 0])
-        skw = scalar(0.5) * (C[0, 2] - C[2, 0])
-        M[0, 2] = d1[1] * sym + d2[1] * skw
-        M[2, 0] = d1[1] * sym - d2[1] * skw
-        sym = scalar(0.5) * (C[1, 2] + C[2, 1])
-        skw = scalar(0.5) * (C[1, 2] - C[2, 1])
-        M[1, 2] = d1[2] * sym + d2[2] * skw
-        M[2, 1] = d1[2] * sym - d2[2] * skw
-        return M
-
-    @wp.func
-    def pair_d2(g: vec3, s: vec3) -> vec3:
-        return vec3(skew_coefficient(g[0], g[1], s[0], s[1]), skew_coefficient(g[0], g[2], s[0], s[2]),
-                    skew_coefficient(g[1], g[2], s[1], s[2]))
+    # The isotropic map's adjoint in the SVD frame: its formulas, used step by step here.
+    off_diagonal = isotropic.funcs(scalar).off_diagonal
+    pair_d2 = isotropic.funcs(scalar).pair_skew_coefficients
 
     @wp.kernel(enable_backward=False, module="unique")
     def constitutive_update_adjoint(
