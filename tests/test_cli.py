@@ -376,6 +376,9 @@ BAD_TOML = {
     "bad_fit": ('[solver]\nfit = "quadratic"\n' + GOOD_TOML, ["fit = 'quadratic' in [solver]", "linear, curvature_corrected"]),
     "bad_hourglass": ("[solver]\nhourglass = -0.1\n" + GOOD_TOML, ["'hourglass' in [solver]", "-0.1", ">= 0"]),
     "bad_fit_weight": ('[solver]\nfit_weight = "gauss"\n' + GOOD_TOML, ["fit_weight = 'gauss' in [solver]", "poly6, biweight"]),
+    # The name makes the default output file: '../../x' wrote x.usdc two folders up.
+    "name_a_path": (GOOD_TOML.replace('name = "tiny"', 'name = "../../x"'), ["[scene] name = '../../x'", "a file name"]),
+    "name_empty": (GOOD_TOML.replace('name = "tiny"', 'name = " "'), ["[scene] name = ' '", "not empty"]),
     # A dt that does not divide the frame is the file's: named with it (it was the bare message).
     "dt_not_dividing": (GOOD_TOML.replace("frames = 2", "frames = 2\nfps = 30\ndt = 0.007"),
                         ["[scene] dt = 0.007 is not allowed", "whole number of steps", "or leave dt out"]),

@@ -121,6 +121,29 @@ def test_cube_far_from_origin_and_inverted_still_fills():
     assert len(meshes.sample_inside(p, t, 0.1)) == 1000
 
 
+def test_a_part_wound_inward_is_turned_outward_unless_it_is_a_cavity():
+    """Each separate part of a mesh faces outward, whichever way it was wound, except one
+    inside an outward part, which is a cavity. The whole mesh was oriented by its total
+    volume only: a second cube wound the other way was left facing inward and got no
+    particles, without a word (1000 instead of 1125)."""
+    def join(*parts):
+        points = np.concatenate([p for p, _ in parts])
+        offsets = np.cumsum([0] + [len(p) for p, _ in parts[:-1]])
+        return points, np.concatenate([t + o for (_, t), o in zip(parts, offsets)])
+
+    big, small = cube(), cube(lo=(3.0, 0.0, 0.0), hi=(3.5, 0.5, 0.5))
+    for a, b in ((big, small), ((big[0], big[1][:, ::-1]), small), (big, (small[0], small[1][:, ::-1]))):
+        p, t = meshes.load_mesh(join(a, b))
+        assert meshes.signed_volume(p, t) == pytest.approx(1.125)
+        assert len(meshes.sample_inside(p, t, 0.1)) == 1125
+    hole = cube(lo=(0.3, 0.3, 0.3), hi=(0.7, 0.7, 0.7))
+    for outer in (big, (big[0], big[1][:, ::-1])):  # the cavity wound inward; or the whole mesh inverted
+        inner = (hole[0], hole[1][:, ::-1]) if outer is big else hole
+        p, t = meshes.load_mesh(join(outer, inner))
+        assert meshes.signed_volume(p, t) == pytest.approx(1.0 - 0.4**3)
+        assert len(meshes.sample_inside(p, t, 0.1)) == 1000 - 64  # the cavity's 4^3 cells stay empty
+
+
 @settings(max_examples=25, deadline=None)
 @given(
     lo=st.tuples(*[st.floats(-2.0, 2.0)] * 3),
@@ -284,6 +307,9 @@ def _bad_meshes():
         "open": ((pts, tris[:-1]), r"not closed \(3 edges are not shared by exactly two triangles\)"),
         "non-manifold": ((pts, np.concatenate([tris, tris[:2], tris[:2, ::-1]])), r"not closed \(5 edges"),
         "inconsistent": ((pts, flipped), r"not consistently oriented \(3 edges"),
+        # The imaginary parts were dropped with a numpy warning, strings parsed as numbers.
+        "complex points": ((pts + 0j, tris), r"points must be an \(N, 3\) array of numbers"),
+        "string points": ((pts.astype(str), tris), r"points must be an \(N, 3\) array of numbers"),
     }
 
 

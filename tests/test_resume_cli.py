@@ -62,6 +62,11 @@ def test_resume_writes_what_the_uninterrupted_run_writes(tmp_path, capsys):
     # --frames at or below the checkpoint's frame: the message names --frames and the frame.
     assert main(["run", "--resume", str(ckpt), "--frames", "7", "--no-progress"]) == 2
     assert "--frames = 7 is not allowed with --resume" in capsys.readouterr().err
+    # The checkpoint's run decides the precision and the surfaces too (both were ignored).
+    for extra, needle in ((["--dtype", "float64"], "--dtype = 'float64' is not allowed with --resume"),
+                          (["--surface"], "--surface = True is not allowed with --resume")):
+        assert main(["run", "--resume", str(ckpt), "--frames", "9", "--no-progress", *extra]) == 2
+        assert needle in capsys.readouterr().err
 
 
 def test_resume_of_a_bad_checkpoint_is_one_line(tmp_path, capsys):

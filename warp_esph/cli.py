@@ -74,7 +74,7 @@ def _build_parser() -> _Parser:
     run.add_argument("--scale", type=float, default=1.0, metavar="S",
                      help="resolution scale: spacing / S, particle count ~ S^3 (default 1)")
     run.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="Warp device (default cpu)")
-    run.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="precision (default float32)")
+    run.add_argument("--dtype", choices=("float32", "float64"), default=None, help="precision (default float32)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--preview", action="store_true",
                      help="at the end, render the last frame to <output>.png beside the output (the whole name: a.usdc.png; software renderer; "
@@ -340,7 +340,8 @@ def _cmd_run(args) -> int:
         given = [f"{name} = {value!r}" for name, value, default in
                  (("SCENE", args.scene, None), ("--dt", args.dt, None), ("--fps", args.fps, None), ("--scale", args.scale, 1.0),
                   ("-o", args.output, None), ("--solver-fit", args.solver_fit, None), ("--contact", args.contact, None),
-                  ("--hourglass", args.hourglass, None), ("--fit-weight", args.fit_weight, None)) if value != default]
+                  ("--hourglass", args.hourglass, None), ("--fit-weight", args.fit_weight, None),
+                  ("--dtype", args.dtype, None), ("--surface", args.surface, False)) if value != default]
         if given:
             raise ValueError(f"{given[0]} is not allowed with --resume: the checkpoint's run decides it "
                              f"(give --resume, and --frames to extend the run)")
@@ -355,6 +356,7 @@ def _cmd_run(args) -> int:
         every = every or run.get("checkpoint_every")
         # the run's own, not the scene's now
         options = {k: run[k] for k in ("fit", "contact_ramp", "hourglass", "fit_weight") if k in run}
+    args.dtype = args.dtype or "float32"
     scene = load_scene(args.scene, scale=scale)
     _apply_solver_options(scene.builder, options)
     fps = args.fps if args.fps is not None else scene.fps

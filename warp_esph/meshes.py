@@ -110,6 +110,8 @@ def load_mesh(source, prim_path: str | None = None) -> tuple[np.ndarray, np.ndar
 
 def _as_arrays(label: str, points, triangles) -> tuple[np.ndarray, np.ndarray]:
     try:
+        if np.asarray(points).dtype.kind not in "iuf":  # complex lost its imaginary part, strings were parsed
+            raise TypeError
         pts = np.asarray(points, dtype=np.float64)
     except (TypeError, ValueError):
         _reject(label, "points must be an (N, 3) array of numbers")
@@ -412,12 +414,58 @@ def _clean(label: str, points, triangles) -> tuple[np.ndarray, np.ndarray]:
     if flipped:
         _reject(label, f"it is not consistently oriented ({flipped} edges run the same way in both their triangles)")
 
-    volume = float(np.sum(np.einsum("ij,ij->i", a, np.cross(b, c)))) / 6.0
+    volumes = np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
+    volume = float(np.sum(volumes))
     if abs(volume) <= 1e-9 * diag**3:
         _reject(label, f"it is degenerate: it encloses no volume ({volume:g})")
     if volume < 0.0:
         tri = tri[:, ::-1]  # inward-facing (or mirrored by a transform): turn outward
-    return merged, np.ascontiguousarray(tri, dtype=np.int32)
+        volumes = -volumes
+    return merged, np.ascontiguousarray(_orient_parts(merged, tri, volumes), dtype=np.int32)
+
+
+def _orient_parts(points: np.ndarray, tri: np.ndarray, volumes: np.ndarray) -> np.ndarray:
+    """``tri`` with every separate part that faces inward turned outward, unless it lies inside
+    an outward part (a cavity). The whole mesh's orientation (by its total volume) left a part
+    wound the other way facing inward, and the inside test left it empty without a word."""
+    part = _parts(len(points), tri)
+    labels, per = np.unique(part[tri[:, 0]], return_inverse=True)
+    signed = np.bincount(per.reshape(-1), weights=volumes, minlength=len(labels))
+    outward = signed > 0.0
+    if outward.all():
+        return tri
+    shell = tri[outward[per.reshape(-1)]]
+    out = tri.copy()
+    for k in np.flatnonzero(~outward):
+        mine = per.reshape(-1) == k
+        if _winding_number(points, shell, points[tri[mine][0, 0]]) < 0.5:
+            out[mine] = tri[mine][:, ::-1]
+    return out
+
+
+def _parts(n: int, tri: np.ndarray) -> np.ndarray:
+    """A label per vertex, equal within each connected part of the triangles (the smallest
+    vertex index of the part: min-label propagation with pointer jumping)."""
+    label = np.arange(n)
+    while True:
+        new = label.copy()
+        np.minimum.at(new, tri.reshape(-1), np.repeat(label[tri].min(axis=1), 3))
+        jumped = new[new]
+        while not np.array_equal(jumped, new):
+            new, jumped = jumped, jumped[jumped]
+        if np.array_equal(new, label):
+            return label
+        label = new
+
+
+def _winding_number(points: np.ndarray, tri: np.ndarray, q: np.ndarray) -> float:
+    """The winding number of the closed triangles ``tri`` about ``q`` (solid angles, Van
+    Oosterom and Strackee): 1 inside an outward surface, 0 outside."""
+    a, b, c = (points[tri[:, k]] - q for k in range(3))
+    la, lb, lc = (np.linalg.norm(v, axis=1) for v in (a, b, c))
+    num = np.einsum("ij,ij->i", a, np.cross(b, c))
+    den = la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la + np.einsum("ij,ij->i", c, a) * lb
+    return float(np.sum(2.0 * np.arctan2(num, den)) / (4.0 * np.pi))
 
 
 def signed_volume(points, triangles) -> float:

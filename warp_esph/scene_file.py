@@ -493,6 +493,11 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
         _tool(file, k, table, builder, base_dir)
     for k, table in enumerate(pin_tables):
         _pin(file, k, table, builder)
-    name = scene.get("name") or os.path.splitext(os.path.basename(file))[0]
+    name = scene.get("name")
+    if name is not None and (not name.strip() or name in (".", "..") or any(c in name for c in "/\\\0")):
+        # The name makes the default output <name>.usdc: '../../x' wrote two folders up.
+        raise ValueError(f"{file}: [scene] name = {name!r} is not allowed: it names the default output file, so it "
+                         "must be a file name (not empty, no '/', '\\' or '..')")
+    name = name or os.path.splitext(os.path.basename(file))[0]
     description = scene.get("description") or f"scene file {file}"
     return Scene(name, description, builder, frames=frames, fps=fps, dt=dt)
