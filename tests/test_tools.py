@@ -1196,3 +1196,38 @@ def test_a_block_sticking_on_a_held_sphere_tool_does_not_creep():
     print(f"largest sideways displacement over 0.4 s: {sideways:.2e} m; support force {force} N, weight {weight:.4f} N")
     assert sideways < 2e-6, sideways  # measured 0.7 um: a return to the first 4 um fails
     np.testing.assert_allclose(force, [0.0, weight, 0.0], atol=1e-2 * weight)
+
+
+def test_a_rollouts_backward_leaves_the_tools_gradients_a_plain_tape_gives():
+    """``Rollout.backward`` sums the tools' gradients over its passes and leaves them on
+    ``model.tools`` (``motion_gradient``, ``friction.grad``): the tape's zeroing after each
+    pass had left them 0, with the full tape and with checkpointing, which read as "no
+    sensitivity" (measured since: equal to a plain tape's, and to central differences to 1e-8)."""
+    from warp_esph.rollout import Rollout
+
+    steps, dt = 12, 5e-4
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), we.Material.preset("dough"), name="block")
+    b.add_ground()
+    b.add_tool("box", half_extents=(0.05, 0.01, 0.05), position=(0.0, 0.062, 0.0), friction=0.4, name="press",
+               motion=tools.Velocity((0.3, -0.6, 0.0), (0.0, 0.0, 0.0)))
+    m = b.finalize(dtype=wp.float64, requires_grad=True)
+    weights = np.random.default_rng(0).normal(size=(m.particle_count, 3))
+    # The plain tape's gradient.
+    states = [m.state() for _ in range(steps + 1)]
+    solver = we.Solver(m)
+    tape = wp.Tape()
+    with tape:
+        for a, c in zip(states[:-1], states[1:]):
+            solver.step(a, c, dt)
+    states[-1].x.grad.assign(weights)
+    tape.backward()
+    ref_v, ref_f = m.tools.motion_gradient("press")["velocity"], m.tools.friction.grad.numpy()[0]
+    tape.zero()
+    assert np.abs(ref_v).max() > 0.0 and ref_f != 0.0
+    for every in (None, 4):
+        r = Rollout(m, steps=steps, dt=dt, checkpoint_every=every)
+        r.forward()
+        r.backward({steps: weights})
+        np.testing.assert_allclose(m.tools.motion_gradient("press")["velocity"], ref_v, rtol=1e-10, err_msg=str(every))
+        assert m.tools.friction.grad.numpy()[0] == pytest.approx(ref_f, rel=1e-10)

@@ -206,6 +206,17 @@ def test_a_loss_copied_for_a_world_keeps_its_settings_and_gets_new_buffers():
     assert f._axes == force._axes == [1] and p.targets is position.targets and f.frames == force.frames
 
 
+def test_a_host_evaluated_loss_is_refused_in_a_world_loss():
+    """A ``SlumpLoss`` or ``ReactionForceLoss`` is evaluated on the host from the rollout's
+    observations, not launched on a world's particles: inside a ``WorldLoss`` it read 0 with
+    a gradient of 0 (and a fit of it stopped 'flat' at once). Refused, naming it."""
+    model = _builder(MAT_A).finalize(worlds=2)
+    force = losses.ReactionForceLoss(np.zeros((2, 1)), "plane0", [10, 20], window=10, components="y")
+    for loss in (force, losses.PositionLoss(np.zeros((1, 3)), frames=[20]) + force):
+        with pytest.raises(ValueError, match="a ReactionForceLoss are not allowed in a WorldLoss: it is evaluated on the host"):
+            losses.WorldLoss(model, loss)
+
+
 def test_an_elastic_world_beside_a_plastic_one_is_told_its_fit_is_the_models():
     """``fit="auto"`` is one choice for the whole model: with a world that can flow it is the
     linear fit for every world, where an elastic world alone runs the curvature-corrected fit

@@ -432,6 +432,11 @@ class Loss:
     __rmul__ = __mul__
 
 
+def _leaves(loss):
+    """The terms of a sum, recursively; a loss that is no sum, itself."""
+    return [leaf for _, term in loss.terms for leaf in _leaves(term)] if isinstance(loss, SumLoss) else [loss]
+
+
 def _as_warp_positions(positions) -> dict[int, wp.array]:
     out = {}
     for f, x in positions.items():
@@ -543,6 +548,13 @@ class WorldLoss(Loss):
         losses = list(losses)
         if len(losses) != W or not all(isinstance(loss, Loss) for loss in losses):
             raise ValueError(f"losses is not allowed: must be one warp_esph.losses.Loss or a list of {W} (one per world), got {len(losses)} items")
+        host = [type(leaf).__name__ for loss in losses for leaf in _leaves(loss) if getattr(leaf, "_host", False)]
+        if host:
+            # They are evaluated on the host from the rollout's observations, not launched on a
+            # world's particles: inside a WorldLoss they read 0 with a gradient of 0.
+            raise ValueError(f"losses with a {host[0]} are not allowed in a WorldLoss: it is evaluated on the host, not "
+                             f"on a world's particles; use it on the whole model, beside the WorldLoss in a sum (e.g. a "
+                             f"ReactionForceLoss of tool 'w1/press')")
         # Each world's own copy (Loss.copy_for_world): one object's buffers served every world.
         self.losses = [loss.copy_for_world() for loss in losses]
         self.world_start = np.asarray(starts, dtype=np.int64)

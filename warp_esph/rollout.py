@@ -174,6 +174,12 @@ def _step_indices(frames) -> list[int]:
     return out
 
 
+#: The tools' differentiable arrays (``tools.ToolSet``) whose gradients ``Rollout.backward``
+#: sums over its passes and leaves on them.
+TOOL_GRADIENTS = ("friction", "static_friction", "keyframe_times", "keyframe_positions", "keyframe_orientations",
+                  "velocity", "angular_velocity")
+
+
 class Rollout:
     """A differentiable run of ``steps`` steps of ``dt`` observing positions at ``frames``.
 
@@ -502,13 +508,23 @@ class Rollout:
         if self._collider_grads is not None:
             state.collider_force.grad.assign(self._collider_grads[k])
 
+    def _tool_arrays(self) -> dict[str, wp.array]:
+        """The tools' differentiable arrays (``tools.ToolSet``) that keep gradients."""
+        tools = self.model.tools
+        arrays = {name: getattr(tools, name, None) for name in TOOL_GRADIENTS} if tools is not None else {}
+        return {name: a for name, a in arrays.items() if a is not None and a.grad is not None}
+
     def _zero_parameter_grads(self):
         for name in PARAMETERS:
             getattr(self.model, name).grad.zero_()
+        for a in self._tool_arrays().values():
+            a.grad.zero_()
 
     def _add_parameter_grads(self, acc: dict[str, np.ndarray]):
         for name in PARAMETERS:
             acc[name] += getattr(self.model, name).grad.numpy()
+        for name, a in self._tool_arrays().items():
+            self._tool_acc[name] = self._tool_acc.get(name, 0.0) + a.grad.numpy()
 
     def backward(self, grads) -> tuple[float | None, dict[str, np.ndarray]]:
         """Gradients of a loss through the last ``forward``.
@@ -520,6 +536,8 @@ class Rollout:
 
         Returns ``(loss value or None, gradients)``; gradients are numpy arrays keyed by
         parameter name (one value per material) and ``x0, v0, F0, alpha0`` (per particle).
+        The gradients of the tools' parameters (``TOOL_GRADIENTS``) are left on the arrays of
+        ``model.tools`` (``model.tools.motion_gradient(name)``, ``model.tools.friction.grad``).
         The model's parameter values must not change between ``forward`` and ``backward``.
         """
         if not self._forward_done:
@@ -543,10 +561,15 @@ class Rollout:
         self._force_grads = force_grads
         self._collider_grads = collider_grads
         acc = {name: np.zeros(getattr(self.model, name).shape[0], dtype=self.model.types.np_dtype) for name in PARAMETERS}
+        self._tool_acc = {}
         if self.checkpointing:
             adj = self._backward_checkpointed(frame_grads, acc)
         else:
             adj = self._backward_full(frame_grads, acc)
+        # The tools' gradients stay on their arrays (ToolSet.motion_gradient reads them): the
+        # tape's zeroing after each pass had left them 0.
+        for name, a in self._tool_arrays().items():
+            a.grad.assign(self._tool_acc[name])
         result = dict(acc)
         result.update(adj)
         return value, result
