@@ -229,6 +229,14 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                     D += dD
         return A, C, D
 
+    @wp.struct
+    class ImageSums:
+        """``deformation``'s ``ImageSums`` with the curvature term: ``B - A``, ``E - C`` and
+        the pairs' weight sum."""
+        Bu: mat33
+        Eu: mat33
+        wsum: scalar
+
     @wp.func
     def floor_image_displacement_sums(
         i: int,
@@ -243,7 +251,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         gn: vec3,
         goff: scalar,
         gmin: scalar,
-    ):
+    ) -> ImageSums:
         """``deformation.floor_image_displacement_sums`` with the curvature terms: ``Bu = sum
         w ub xb^T``, ``Eu = sum w ub q^T`` of ``i``'s own image ``g_i`` at rest over ``i`` and its
         same-body neighbours (``xb = x_r - g_i``, ``ub = u_r``), and the sum of their weights."""
@@ -263,7 +271,11 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                 B += wp.outer(wu, xb)
                 E += wp.outer(wu, curvature_basis(xb, h))
                 wsum += w
-        return B, E, wsum
+        sums = ImageSums()
+        sums.Bu = B
+        sums.Eu = E
+        sums.wsum = wsum
+        return sums
 
     @wp.func
     def floor_image_own_update(
@@ -278,49 +290,21 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         gmin: scalar,
         code: int,
         scale: scalar,
-        Bg: mat33,
-        Eg: mat33,
-        wsum: scalar,
+        sums: ImageSums,
         Fg: mat33,
     ):
         """The image's own eq. 8 by its corrected fit (``deformation.floor_image_own_update``
         with ``corrected_increment`` of its moments ``floor_image_moment`` and displacement
-        moments ``Bg``, ``Eg``): ``Fg + scale inc Fg`` and 1, or ``Fg`` and 0."""
+        moments ``sums``): ``Fg + scale inc Fg`` and 1, or ``Fg`` and 0."""
         out = Fg
         applied = int(0)
-        if code == 0 and wsum > scalar(0.0):
+        if code == 0 and sums.wsum > scalar(0.0):
             Ag, Cg, Dg = floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
-            cand = Fg + scale * corrected_increment(Ag, Bg, Cg, Dg, Eg) * Fg
+            cand = Fg + scale * corrected_increment(Ag, sums.Bu, Cg, Dg, sums.Eu) * Fg
             if wp.determinant(cand) > scalar(0.0):
                 out = cand
                 applied = 1
         return out, applied
-
-    @wp.func
-    def floor_image_update(
-        i: int,
-        x: wp.array(dtype=vec3),
-        y: wp.array(dtype=vec3),
-        x_lo: wp.array(dtype=vec3),
-        y_lo: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        nbr: wp.array2d(dtype=wp.int32),
-        n: int,
-        h: scalar,
-        gn: vec3,
-        goff: scalar,
-        gmin: scalar,
-        code: int,
-        scale: scalar,
-        Fg: mat33,
-        F_new: mat33,
-    ):
-        """``deformation.floor_image_update`` by the image's corrected fit (the fit its energy
-        is of, ``image_map``), so the work of that energy is stored where the next step reads
-        it; blended with its particle's new F by the same ``floor_image_share``."""
-        Bg, Eg, wsum = floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
-        own, applied = floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, Bg, Eg, wsum, Fg)
-        return df.floor_image_blend(own, F_new, wsum, h)
 
     @wp.func
     def curvature_kept(A: mat33, C: mat33, K: mat33) -> bool:
@@ -592,8 +576,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         goff: scalar,
         gmin: scalar,
         scale: scalar,
-        Bg: mat33,
-        Eg: mat33,
+        sums: ImageSums,
         Fg: mat33,
         Gg: mat33,
         applied: int,
@@ -619,11 +602,11 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
             Ag, Cg, Dg = floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
             K, D_inv, kept = projection_terms(Ag, Cg, Dg)
             At_inv = wp.inverse(corrected_moment(Ag, Cg, K))
-            inc0 = corrected_moment(Bg, Eg, K) * At_inv
+            inc0 = corrected_moment(sums.Bu, sums.Eu, K) * At_inv
             adj_Bt = scale * (Gg * wp.transpose(Fg)) * wp.transpose(At_inv)
             adj_Bu = adj_Bt
             adj_Eu = -(adj_Bt * wp.transpose(K))
-            adj_A, adj_C, adj_D = projection_adjoint(-(wp.transpose(inc0) * adj_Bt), -(wp.transpose(Eg) * adj_Bt), Cg,
+            adj_A, adj_C, adj_D = projection_adjoint(-(wp.transpose(inc0) * adj_Bt), -(wp.transpose(sums.Eu) * adj_Bt), Cg,
                                                      K, D_inv, kept)
         adj_A_sym = adj_A + wp.transpose(adj_A)
         adj_D_sym = adj_D + wp.transpose(adj_D)
@@ -658,44 +641,6 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         if applied != 0:
             adj_Fg = wp.transpose(wp.identity(n=3, dtype=scalar) + scale * inc0) * Gg
         return adj_Fg, wp.ddot(Gg * wp.transpose(Fg), inc0)
-
-    @wp.func
-    def floor_image_update_adjoint(
-        i: int,
-        x: wp.array(dtype=vec3),
-        y: wp.array(dtype=vec3),
-        x_lo: wp.array(dtype=vec3),
-        y_lo: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        nbr: wp.array2d(dtype=wp.int32),
-        n: int,
-        h: scalar,
-        gn: vec3,
-        goff: scalar,
-        gmin: scalar,
-        code: int,
-        scale: scalar,
-        D0: mat33,
-        Fp: mat33,
-        Fg: mat33,
-        Gg: mat33,
-        adj_c: scalar,
-        adj_x: wp.array(dtype=vec3),
-        adj_y: wp.array(dtype=vec3),
-    ):
-        """``deformation.floor_image_update_adjoint`` of the corrected image fit's
-        ``floor_image_update`` (``D0`` the particle's unfaded increment): returns the share of
-        ``Gg`` that joins the gradient of the particle's new F, and the adjoints of the image's
-        flowed F and of the fade ``scale``."""
-        Bg, Eg, wsum = floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
-        own, applied = floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, Bg, Eg, wsum, Fg)
-        c, adj_wsum = df.floor_image_blend_adjoint(Gg, own, code, scale, D0, Fp, adj_c, wsum, h)
-        adj_Fg = c * Gg
-        adj_s = scalar(0.0)
-        if applied != 0 or adj_wsum != scalar(0.0):
-            adj_Fg, adj_s = floor_image_own_update_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, scale, Bg, Eg, Fg,
-                                                           c * Gg, applied, adj_wsum, adj_x, adj_y)
-        return (scalar(1.0) - c) * Gg, adj_Fg, adj_s
 
     @wp.func
     def fit_variational_forces(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
@@ -799,9 +744,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         pair_moments=pair_moments, moment_pair_sums=moment_pair_sums, fit_sums=fit_sums,
         fit_variational_forces=fit_variational_forces, fit_increment=fit_increment, FitMoments=FitMoments, fit_moments=fit_moments, moments_increment=moments_increment,
         moments_adjoint=moments_adjoint, carried_update=df.carried_update,
-        floor_image_displacement_sums=floor_image_displacement_sums, floor_image_own_update=floor_image_own_update,
-        floor_image_update=floor_image_update, floor_image_own_update_adjoint=floor_image_own_update_adjoint,
-        floor_image_update_adjoint=floor_image_update_adjoint,
+        ImageSums=ImageSums, floor_image_displacement_sums=floor_image_displacement_sums,
+        floor_image_own_update=floor_image_own_update, floor_image_own_update_adjoint=floor_image_own_update_adjoint,
         scatter_image_pair_adjoint=scatter_image_pair_adjoint,
         moment_pairs_adjoint=moment_pairs_adjoint,
         floor_image_moment=floor_image_moment, image_map=image_map, floor_image_forces=floor_image_forces,

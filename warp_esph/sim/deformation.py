@@ -342,6 +342,13 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
             wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * gg + gp)
         return gg, gp
 
+    @wp.struct
+    class ImageSums:
+        """The sums of a floor image's own fit that move with the particles
+        (``floor_image_displacement_sums``): ``B - A`` and the pairs' weight sum."""
+        Bu: mat33
+        wsum: scalar
+
     @wp.func
     def floor_image_displacement_sums(
         i: int,
@@ -356,11 +363,11 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         gn: vec3,
         goff: scalar,
         gmin: scalar,
-    ):
+    ) -> ImageSums:
         """Eq. 6 of particle ``i``'s own image ``g_i``, at rest over the step: ``B - A = sum w
         ub xb^T`` over ``i`` and its same-body neighbours, ``xb = x_r - g_i``, ``ub = u_r`` (their
-        displacements, ``displacement``); its image pairs do not move. Also returns the sum of
-        those pairs' weights: 0 where no particle is within ``h`` of the image."""
+        displacements, ``displacement``); its image pairs do not move. Also the sum of those
+        pairs' weights: 0 where no particle is within ``h`` of the image."""
         B = mat33()
         wsum = scalar(0.0)
         xi = x[i]
@@ -374,7 +381,10 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                 w = fw.w_c(wp.dot(xb, xb), h, c6)
                 B += w * wp.outer(displacement(x[j], y[j], x_lo[j], y_lo[j]), xb)
                 wsum += w
-        return B, wsum
+        sums = ImageSums()
+        sums.Bu = B
+        sums.wsum = wsum
+        return sums
 
     @wp.func
     def floor_image_share(wsum: scalar, h: scalar):
@@ -405,18 +415,17 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         gmin: scalar,
         code: int,
         scale: scalar,
-        Bg: mat33,
-        wsum: scalar,
+        sums: ImageSums,
         Fg: mat33,
     ):
-        """The image's own eq. 8 (``floor_image_update``): ``Fg + scale B_g A_g^-1 Fg`` and 1,
+        """The image's own eq. 8 (``image_update_funcs``): ``Fg + scale B_g A_g^-1 Fg`` and 1,
         or ``Fg`` and 0 where its fit is empty, ``i``'s is guarded (``code``) or the update
         would invert."""
         out = Fg
         applied = int(0)
-        if code == 0 and wsum > scalar(0.0):
+        if code == 0 and sums.wsum > scalar(0.0):
             Ag = floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
-            cand = Fg + scale * (Bg * wp.inverse(Ag)) * Fg
+            cand = Fg + scale * (sums.Bu * wp.inverse(Ag)) * Fg
             if wp.determinant(cand) > scalar(0.0):
                 out = cand
                 applied = 1
@@ -450,39 +459,6 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return c, (wp.ddot(Gg, own - updated_or_kept(code, scale, D0, Fp)) + adj_c) * dc
 
     @wp.func
-    def floor_image_update(
-        i: int,
-        x: wp.array(dtype=vec3),
-        y: wp.array(dtype=vec3),
-        x_lo: wp.array(dtype=vec3),
-        y_lo: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        nbr: wp.array2d(dtype=wp.int32),
-        n: int,
-        h: scalar,
-        gn: vec3,
-        goff: scalar,
-        gmin: scalar,
-        code: int,
-        scale: scalar,
-        Fg: mat33,
-        F_new: mat33,
-    ):
-        """Eq. 8 of particle ``i``'s floor image (``State.F_image``). The image is a floor
-        particle at rest over the step: its own fit over the particles near it
-        (``floor_image_displacement_sums``, ``floor_image_moment``), faded as ``i``'s
-        (``scale``), updates its own flowed ``Fg``, so that the work of its energy
-        (``forces.image_map``) is stored as a particle's is (docs/physics.md, "The floor
-        images' energy is not stored"). An image with no particle near it does no work and
-        carries its particle's new F, ``F_new``; between the two, by ``floor_image_share``
-        of its pairs' weights, smooth as they enter its support. Returns the image's new F and
-        that share (``State.image_share``: the image's hardening is blended by it too,
-        ``plasticity.image_hardening_update``)."""
-        Bg, wsum = floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
-        own, applied = floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, Bg, wsum, Fg)
-        return floor_image_blend(own, F_new, wsum, h)
-
-    @wp.func
     def floor_image_own_update_adjoint(
         i: int,
         x: wp.array(dtype=vec3),
@@ -495,7 +471,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         goff: scalar,
         gmin: scalar,
         scale: scalar,
-        Bg: mat33,
+        sums: ImageSums,
         Fg: mat33,
         Gg: mat33,
         applied: int,
@@ -503,7 +479,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         adj_x: wp.array(dtype=vec3),
         adj_y: wp.array(dtype=vec3),
     ):
-        """Adjoint of ``floor_image_own_update`` where the image's own fit applies (``Bg``,
+        """Adjoint of ``floor_image_own_update`` where the image's own fit applies (``sums``,
         ``Ag`` its sums at ``x``, ``y``; ``Gg`` the gradient of its output) and of the weight
         sum ``floor_image_share`` reads (``adj_wsum``): scatters the pairs' adjoints (``B``'s
         ``w u xb^T`` with ``u = y_r - x_r``, ``xb = x_r - g_i``, ``w`` itself, and
@@ -515,7 +491,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         adj_A = mat33()
         if applied != 0:
             Ag_inv = wp.inverse(floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin))
-            D0 = Bg * Ag_inv
+            D0 = sums.Bu * Ag_inv
             adj_D = scale * (Gg * wp.transpose(Fg))
             adj_B = adj_D * Ag_inv
             adj_A = -(wp.transpose(D0) * adj_B)
@@ -553,46 +529,6 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         if applied != 0:
             adj_Fg = wp.transpose(wp.identity(n=3, dtype=scalar) + scale * D0) * Gg
         return adj_Fg, wp.ddot(Gg * wp.transpose(Fg), D0)
-
-    @wp.func
-    def floor_image_update_adjoint(
-        i: int,
-        x: wp.array(dtype=vec3),
-        y: wp.array(dtype=vec3),
-        x_lo: wp.array(dtype=vec3),
-        y_lo: wp.array(dtype=vec3),
-        body: wp.array(dtype=wp.int32),
-        nbr: wp.array2d(dtype=wp.int32),
-        n: int,
-        h: scalar,
-        gn: vec3,
-        goff: scalar,
-        gmin: scalar,
-        code: int,
-        scale: scalar,
-        D0: mat33,
-        Fp: mat33,
-        Fg: mat33,
-        Gg: mat33,
-        adj_c: scalar,
-        adj_x: wp.array(dtype=vec3),
-        adj_y: wp.array(dtype=vec3),
-    ):
-        """Adjoint of ``floor_image_update`` inside a fit's ``update_deformation_adjoint``
-        (``D0`` the particle's unfaded increment of either fit, ``Fp`` its flowed F, ``Gg`` the
-        gradient of the image's new F, ``adj_c`` that of its share): the pairs' adjoints scattered to ``x`` and ``y``
-        (``floor_image_own_update_adjoint``); returns the share of ``Gg`` that joins the
-        gradient of the particle's new F, and the adjoints of the image's flowed F and of the
-        fade ``scale``."""
-        Bg, wsum = floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
-        own, applied = floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, Bg, wsum, Fg)
-        c, adj_wsum = floor_image_blend_adjoint(Gg, own, code, scale, D0, Fp, adj_c, wsum, h)
-        adj_Fg = c * Gg
-        adj_s = scalar(0.0)
-        if applied != 0 or adj_wsum != scalar(0.0):
-            adj_Fg, adj_s = floor_image_own_update_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, scale, Bg, Fg, c * Gg,
-                                                           applied, adj_wsum, adj_x, adj_y)
-        return (scalar(1.0) - c) * Gg, adj_Fg, adj_s
 
     @wp.func
     def fit_sums(
@@ -749,14 +685,113 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         scatter_pair_adjoint=scatter_pair_adjoint, fit_pairs_adjoint=fit_pairs_adjoint,
         floor_image_moment=floor_image_moment, scatter_image_pair_adjoint=scatter_image_pair_adjoint,
         floor_image_displacement_sums=floor_image_displacement_sums, floor_image_share=floor_image_share,
-        floor_image_own_update=floor_image_own_update, floor_image_update=floor_image_update,
+        ImageSums=ImageSums, floor_image_own_update=floor_image_own_update,
         floor_image_blend=floor_image_blend, floor_image_blend_adjoint=floor_image_blend_adjoint,
-        floor_image_own_update_adjoint=floor_image_own_update_adjoint,
-        floor_image_update_adjoint=floor_image_update_adjoint, affine_fit=affine_fit, step_increment=step_increment,
+        floor_image_own_update_adjoint=floor_image_own_update_adjoint, affine_fit=affine_fit, step_increment=step_increment,
         step_gradient=step_gradient, unless_inverted=unless_inverted,
         carried_update=carried_update, deformation_update=deformation_update, fit_increment=fit_increment,
         FitMoments=FitMoments, fit_moments=fit_moments, moments_increment=moments_increment, moments_adjoint=moments_adjoint,
     )
+
+
+def fit_funcs(scalar, weight: str, fit: str) -> types.SimpleNamespace:
+    """The functions of ``fit`` ("linear": this module's ``funcs``; "curvature_corrected":
+    ``curvature.funcs``, whose functions build on these; "auto" is resolved before,
+    ``Model.solver_choice``)."""
+    checks.choice("fit", fit, ("linear", "curvature_corrected"))
+    if fit == "linear":
+        return funcs(scalar, weight)
+    from . import curvature  # imports this module
+
+    return curvature.funcs(scalar, weight)
+
+
+@functools.cache
+def image_update_funcs(scalar, weight: str, fit: str) -> types.SimpleNamespace:
+    """Eq. 8 of a floor image (``State.F_image``) and its adjoint, written once for both
+    fits: ``fit`` (``fit_funcs``) supplies the image's own sums
+    (``floor_image_displacement_sums``, its ``ImageSums``), its own update and that
+    update's adjoint; the share and the blend are this module's."""
+    T = type_set(scalar)
+    vec3, mat33 = T.vec3, T.mat33
+    df = funcs(scalar, weight)
+    fn = fit_funcs(scalar, weight, fit)
+
+    @wp.func
+    def floor_image_update(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        code: int,
+        scale: scalar,
+        Fg: mat33,
+        F_new: mat33,
+    ):
+        """Eq. 8 of particle ``i``'s floor image (``State.F_image``). The image is a floor
+        particle at rest over the step: its own fit over the particles near it (the fit's
+        ``floor_image_displacement_sums`` and ``floor_image_moment``), faded as ``i``'s
+        (``scale``), updates its own flowed ``Fg``, so that the work of its energy (the
+        fit's ``image_map``) is stored as a particle's is (docs/physics.md, "The floor
+        images' energy is not stored"). An image with no particle near it does no work and
+        carries its particle's new F, ``F_new``; between the two, by ``floor_image_share``
+        of its pairs' weights, smooth as they enter its support. Returns the image's new F and
+        that share (``State.image_share``: the image's hardening is blended by it too,
+        ``plasticity.image_hardening_update``)."""
+        sums = fn.floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
+        own, applied = fn.floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, sums, Fg)
+        return df.floor_image_blend(own, F_new, sums.wsum, h)
+
+    @wp.func
+    def floor_image_update_adjoint(
+        i: int,
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        x_lo: wp.array(dtype=vec3),
+        y_lo: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        code: int,
+        scale: scalar,
+        D0: mat33,
+        Fp: mat33,
+        Fg: mat33,
+        Gg: mat33,
+        adj_c: scalar,
+        adj_x: wp.array(dtype=vec3),
+        adj_y: wp.array(dtype=vec3),
+    ):
+        """Adjoint of ``floor_image_update`` inside ``update_kernels``' adjoint (``D0`` the
+        particle's unfaded increment, ``Fp`` its flowed F, ``Gg`` the gradient of the image's
+        new F, ``adj_c`` that of its share): the pairs' adjoints scattered to ``x`` and ``y``
+        (the fit's ``floor_image_own_update_adjoint``); returns the share of ``Gg`` that joins
+        the gradient of the particle's new F, and the adjoints of the image's flowed F and of
+        the fade ``scale``."""
+        sums = fn.floor_image_displacement_sums(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin)
+        own, applied = fn.floor_image_own_update(i, x, body, nbr, n, h, gn, goff, gmin, code, scale, sums, Fg)
+        c, adj_wsum = df.floor_image_blend_adjoint(Gg, own, code, scale, D0, Fp, adj_c, sums.wsum, h)
+        adj_Fg = c * Gg
+        adj_s = scalar(0.0)
+        if applied != 0 or adj_wsum != scalar(0.0):
+            adj_Fg, adj_s = fn.floor_image_own_update_adjoint(i, x, y, body, nbr, n, h, gn, goff, gmin, scale, sums, Fg,
+                                                              c * Gg, applied, adj_wsum, adj_x, adj_y)
+        return (scalar(1.0) - c) * Gg, adj_Fg, adj_s
+
+    return types.SimpleNamespace(floor_image_update=floor_image_update,
+                                 floor_image_update_adjoint=floor_image_update_adjoint)
 
 
 @functools.cache
@@ -770,19 +805,14 @@ def update_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
     """Eq. 8's update and its hand-written adjoint for ``fit`` ("linear": this module's
     ``funcs``; "curvature_corrected": ``curvature.funcs``, whose functions build on these),
     whose functions supply
-    ``fit_increment``, ``fit_moments``, ``moments_increment``, ``moments_adjoint``, the
-    floor image's ``floor_image_update`` and its adjoint, and eq. 8's ``carried_update`` (the
-    same for both, as are the guards)."""
+    ``fit_increment``, ``fit_moments``, ``moments_increment``, ``moments_adjoint`` and eq.
+    8's ``carried_update`` (the same for both, as are the guards); the floor image's update
+    and its adjoint are ``image_update_funcs``'."""
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     gf = guards.guard_funcs(scalar)
-    checks.choice("fit", fit, ("linear", "curvature_corrected"))  # "auto" is resolved before (Model.solver_choice)
-    if fit == "linear":
-        fn = funcs(scalar, weight)
-    else:
-        from . import curvature  # imports this module
-
-        fn = curvature.funcs(scalar, weight)
+    fn = fit_funcs(scalar, weight, fit)
+    fi = image_update_funcs(scalar, weight, fit)
 
     @wp.kernel(module="unique")
     def update_deformation(
@@ -820,7 +850,7 @@ def update_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         Fg_new = F_new
         c = scalar(0.0)
         if images != 0:
-            Fg_new, c = fn.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, guard[i],
+            Fg_new, c = fi.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, guard[i],
                                               scale, Fg_prev[i], F_new)
         Fg_out[i] = Fg_new
         share_out[i] = c
@@ -884,7 +914,7 @@ def update_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         # The image's update (floor_image_update): its share of the gradient of F_new joins G.
         adj_s = scalar(0.0)
         if images != 0:
-            G_share, adj_Fg, adj_sg = fn.floor_image_update_adjoint(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin,
+            G_share, adj_Fg, adj_sg = fi.floor_image_update_adjoint(i, x, y, x_lo, y_lo, body, nbr, n, h, gn, goff, gmin,
                                                                     code, s, inc0, Fp, Fg_prev[i], adj_Fg_out[i],
                                                                     adj_share[i], adj_x, adj_y)
             G = G + G_share

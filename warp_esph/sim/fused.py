@@ -51,6 +51,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     guarded_flow_step = plasticity.funcs(scalar).guarded_flow_step
     guard_state = neighbors.guard_funcs(scalar).guard
     df = deformation.funcs(scalar, weight)
+    image_update = deformation.image_update_funcs(scalar, weight, "linear").floor_image_update
     Materials = materials.struct(scalar)
 
     @wp.kernel(enable_backward=False, module="unique")
@@ -260,7 +261,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         Fg_new = F_new
         c = scalar(0.0)
         if images != 0:
-            Fg_new, c = df.floor_image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, code, s,
+            Fg_new, c = image_update(i, x, y, x_lo, y_lo, body, nbr, count[i], h, gn, goff, gmin, code, s,
                                               Fg_prev[i], F_new)
         Fg_out[i] = Fg_new
         share_out[i] = c
