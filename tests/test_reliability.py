@@ -852,3 +852,27 @@ def test_api_values_python_would_have_taken_are_refused_by_name():
         s0.time = t
         with pytest.raises(ValueError, match=f"state_in.time = .* is not allowed: {needle}"):
             we.Solver(model).step(s0, s1, 1e-4)
+
+
+def test_a_plain_install_carries_every_package(tmp_path):
+    """A non-editable install (a wheel) holds every package of the source tree: a wheel that
+    left out ``warp_esph.sim`` imported ``warp_esph`` and failed at ``Solver`` with
+    ModuleNotFoundError, which an editable install hides."""
+    import shutil  # noqa: PLC0415
+    import zipfile  # noqa: PLC0415
+
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
+        shutil.copy(os.path.join(REPO, name), src / name)
+    shutil.copytree(os.path.join(REPO, "warp_esph"), src / "warp_esph",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    out = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w",
+                          str(tmp_path / "dist"), str(src)], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    (wheel,) = (tmp_path / "dist").glob("*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    sources = {os.path.relpath(os.path.join(d, f), REPO).replace(os.sep, "/")
+               for d, _, files in os.walk(os.path.join(REPO, "warp_esph")) for f in files if f.endswith(".py")}
+    assert "warp_esph/sim/solver.py" in sources
+    assert sources <= names, sorted(sources - names)
