@@ -67,6 +67,18 @@ def test_resume_writes_what_the_uninterrupted_run_writes(tmp_path, capsys):
                           (["--surface"], "--surface = True is not allowed with --resume")):
         assert main(["run", "--resume", str(ckpt), "--frames", "9", "--no-progress", *extra]) == 2
         assert needle in capsys.readouterr().err
+    # The file rewritten by a shorter run (frames 0..2) under the checkpoint of frame 8: resuming
+    # would leave frames 3..7 unwritten (it wrote 0..2 and 8..9 and exited 0); refused, the file
+    # and its force log untouched.
+    assert main(ARGS + ["--frames", "2", "-o", str(part)]) == 0
+    before = _time_samples(part)
+    log = (tmp_path / "part.usdc_tools.json").read_bytes()
+    capsys.readouterr()
+    assert main(["run", "--resume", str(ckpt), "--frames", "9", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "holds frames 0..2" in err[0] and "frames 3..7 unwritten" in err[0], err
+    after = _time_samples(part)
+    assert before.keys() == after.keys() and (tmp_path / "part.usdc_tools.json").read_bytes() == log
 
 
 def test_resume_of_a_bad_checkpoint_is_one_line(tmp_path, capsys):
