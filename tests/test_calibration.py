@@ -760,3 +760,24 @@ def test_an_interrupted_fit_keeps_its_evaluations_and_the_best_so_far(tmp_path, 
     assert doc["loss"] == min(h["loss"] for h in doc["history"]) < doc["initial_loss"]
     assert len((out / "history.csv").read_text().strip().splitlines()) == 3
     assert "interrupted after 2 evaluations: wrote the best so far" in err
+
+
+def test_cli_fit_at_a_guess_that_blows_up_is_one_line_and_exit_3(tmp_path, capsys, dough_scene):
+    """A guess 1e5 x stiffer at a dt 40 x its stable step: its rollout blows up while
+    staying finite (it had been fitted, exit 0), or its loss is not finite (a
+    FloatingPointError traceback, exit 1). Either is one line and exit 3, as a run that
+    diverges."""
+    from warp_esph.cli import main
+
+    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0).replace("mu = 2000.0", "mu = 2.0e8"))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(truth), "-o", str(run), "--no-progress"]) == 0
+    capsys.readouterr()
+    status = main(["fit", str(guess), "--target", str(run), "--params", "yield_stress", "--iterations", "2",
+                   "--dt", str(1.0 / 3000.0), "--output-dir", str(tmp_path / "out"), "--no-progress", "--no-usd"])
+    err = capsys.readouterr().err
+    assert status == 3, err
+    last = err.strip().splitlines()[-1]
+    assert "Traceback" not in err and last.startswith("warp-esph: error: the rollout at the initial guess diverged: "), err

@@ -8,6 +8,7 @@ distance ties under a finite-difference perturbation.
 import argparse
 import json
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -660,3 +661,32 @@ def test_ctrl_c_in_the_diagnostics_keeps_the_finished_fit(dough_target, monkeypa
     result = info.value.result
     assert result is not None and result.diagnostics is None and result.stopped != "interrupted"
     assert len(result.history) >= 2 and result.loss <= result.history[0]["loss"]
+
+
+@pytest.mark.parametrize("worlds", [False, True])
+def test_a_trial_whose_rollout_blows_up_while_finite_fails(worlds):
+    """Adam's first step of 8 in log mu takes mu from 300 to 8.5e5 Pa, at a dt 5x past that
+    stiffness's stable step: the block gains 190 J of kinetic energy against the 2.4 J the
+    scene can give (measured), finite. That finite loss was taken as a trial's value (a
+    block blown 1 km off scored 1.6e6 m^2 and a fit reported its values); each such trial
+    now fails (loss inf, noted ``diverged: ...`` by the divergence monitor, which reads the
+    trial's own stiffness, not the guess's), Adam steps back, and the start goes on; with
+    worlds the note is the diverged world's own. At a guess that blows up the fit stops,
+    saying so."""
+    m = _block_with()
+    dt = 0.5 * m.stable_dt()
+    target = Rollout(_block_with(), 40, dt, frames=[40]).forward()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the trials' dt past their stable step, said once each
+        result = fit(_block_with(mu=300.0), PositionLoss(target, frames=[40]), ["mu"], steps=40, dt=dt, iterations=3,
+                     optimizer="adam", lr=10.0, starts=2, sample_range=2.0, seed=1, worlds=worlds, progress=False,
+                     diagnostics=False)
+        diverged = [h for h in result.history if h.get("note", "").startswith("diverged: ")]
+        assert sorted(h["start"] for h in diverged) == [0, 1], [(h.get("start"), h.get("note")) for h in result.history]
+        assert all(h["loss"] == math.inf and h["params"]["mu"][0] > 1e6 for h in diverged)
+        assert all("back to the last finite point" in h["note"] for h in diverged)
+        assert all(math.isfinite(h["loss"]) for h in result.history if h not in diverged)
+        assert result.params["mu"][0] < 1e5
+        with pytest.raises(FloatingPointError, match="the rollout at the initial guess diverged: "):
+            fit(_block_with(mu=5e6), PositionLoss(target, frames=[40]), ["mu"], steps=40, dt=dt, iterations=2,
+                progress=False, diagnostics=False)

@@ -298,7 +298,8 @@ def _kept(writer, start_frame: int) -> str:
     """What an interrupted or failed run's file holds: the frames this run finished, and on a
     resumed run those of the run it continues too (from frame 0)."""
     if not start_frame:
-        return f"the {writer.frames_written} frames finished"
+        n = writer.frames_written
+        return "the 1 frame finished" if n == 1 else f"the {n} frames finished"
     return f"frames 0..{writer.last_frame} finished" if writer.last_frame is not None else f"the frames before {start_frame}"
 
 
@@ -822,6 +823,10 @@ def _dispatch(args) -> int:
             # UnicodeDecodeError is a ValueError: a reader met bytes that are not text.
             _err(_read_failure(args, e) if _is_read_error(e) else e)
             return EXIT_BAD_INPUT
+        except FloatingPointError as e:
+            # A fit whose initial guess's rollout blew up or whose loss is not finite there.
+            _err(e)
+            return EXIT_DIVERGED
         except RuntimeError as e:
             from .simulate import SimulationError  # noqa: PLC0415
 

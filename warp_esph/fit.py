@@ -405,6 +405,30 @@ class RefusedPoint(FloatingPointError):
     as a failed trial (as a rollout that blew up), its reason kept in the history's note."""
 
 
+class Diverged(FloatingPointError):
+    """A rollout that blew up while staying finite (``simulate.DivergenceMonitor``'s bounds,
+    which stop ``simulate`` and the CLI's runs, on its last state): a failed trial, as a
+    non-finite one, its reason kept in the history's note. Its loss, finite, had been taken
+    as a result (a block at 1 km scored 1.6e6 m^2 and the fit reported its values)."""
+
+
+def _divergence(model: Model, rollout: Rollout, particles=None) -> str | None:
+    """Why the rollout's last state is a blow-up (``simulate.DivergenceMonitor`` from its
+    initial state, ``particles`` as there), or None."""
+    from .simulate import DivergenceMonitor  # noqa: PLC0415
+
+    monitor = DivergenceMonitor(model, rollout._initial, particles=particles)
+    final = rollout.final_state()
+    hit = monitor.check(final.x.numpy(), final.v.numpy(), rollout.steps * rollout.dt)
+    return None if hit is None else f"diverged: {hit[0]} (particle {hit[1]}, at the rollout's last step)"
+
+
+def _check_diverged(run) -> None:
+    why = _divergence(run.model, run.rollout)
+    if why is not None:
+        raise Diverged(why)
+
+
 class _Problem:
     """The shared parameter vector of one or more experiments, in optimiser space.
 
@@ -517,6 +541,8 @@ class _Problem:
             loss = r.loss if losses is None else losses[k]
             w = r.weight if losses is None else 1.0
             value, grads = r.rollout.value_and_grad(loss, **r.initial)
+            if losses is None:  # the fit's own evaluations (the diagnostics' read the fitted point's neighbourhood)
+                _check_diverged(r)
             total += w * float(value)
             gz += w * self.grad_z(p, r.grads(self.params, grads))
         return total, gz
@@ -527,6 +553,7 @@ class _Problem:
         total = 0.0
         for r in self.runs:
             r.rollout.forward(**r.initial)
+            _check_diverged(r)
             total += r.weight * r.loss.value(r.rollout.observations())
         return total
 
@@ -833,6 +860,7 @@ def fit(
                 prob.apply(z)
                 for r in prob.runs:
                     r.rollout.forward(**r.initial)
+                    _check_diverged(r)
                     arrays = r.rollout.observations(numpy=True)
                     terms = r.loss.terms if isinstance(r.loss, SumLoss) else [(1.0, r.loss)]
                     for coef, leaf in terms:
@@ -871,6 +899,8 @@ def fit(
             # user's own guess it is an error, with the reason the history noted.
             if np.array_equal(z_start, prob.z0):
                 why = track.entry.get("note") if track.entry else None
+                if why is not None and why.startswith("diverged: "):
+                    raise FloatingPointError(f"the rollout at the initial guess {why}") from None
                 raise FloatingPointError(f"{e}: {why}" if why else str(e)) from None
             return "failed"
 
@@ -1069,6 +1099,10 @@ class _WorldsProblem:
             for r in self.runs:
                 r.apply({name: np.concatenate([self.p[w][name] for w in range(W)]) for name in prob.params})
                 _, grads = r.rollout.value_and_grad(r.loss)
+                for w in range(W):  # a world that blew up fails its start alone
+                    why = _divergence(r.model, r.rollout, r.model.world_of_particle == w)
+                    if why is not None and w not in refused:
+                        refused[w] = why
                 values += r.weight * np.asarray(r.loss.world_values, dtype=np.float64)
                 g = r.grads(prob.params, grads)
                 for w in batch:
@@ -1170,7 +1204,10 @@ def _duration(seconds: float) -> str:
 
 
 def _refused_note(error: FloatingPointError) -> str | None:
-    """The history's note for a trial the materials refused (None for a blown-up rollout)."""
+    """The history's note for a trial the materials refused or whose rollout diverged while
+    staying finite (``Diverged``); None for a non-finite rollout."""
+    if isinstance(error, Diverged):
+        return str(error)
     return f"refused: {error}" if isinstance(error, RefusedPoint) else None
 
 

@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from . import checks, tools
+from .material import p_wave_speed
 from .model import Model, State
 from .sim.solver import Solver
 
@@ -91,7 +92,9 @@ class DivergenceMonitor:
     #: An upward-facing plane (its normal within ~8 degrees of up) is a floor that ends a fall.
     FLOOR_COSINE = 0.99
 
-    def __init__(self, model: Model, state: State, exempt=()):
+    def __init__(self, model: Model, state: State, exempt=(), particles=None):
+        """``particles``: a boolean mask of the particles to check (one world of a model of
+        worlds, whose bounds are that world's own), None: all but ``exempt``'s."""
         names = [b.name for b in model.bodies]
         if isinstance(exempt, str) or not hasattr(exempt, "__iter__"):  # 5 ended in a TypeError, "ab" in 'a', 'b'
             raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: must be a list of body names ({names})")
@@ -101,6 +104,8 @@ class DivergenceMonitor:
                 raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: {name!r} is not a body of the model ({names})")
         #: Particles checked: all but those of the exempt bodies (a scene showing a method fail).
         self.keep = ~np.isin(model.particle_body_np, [names.index(n) for n in exempt])
+        if particles is not None:
+            self.keep &= np.asarray(particles, dtype=bool)
         x0 = state.x.numpy().astype(np.float64)[self.keep]
         v0 = state.v.numpy().astype(np.float64)[self.keep]
         self.mass = model.particle_mass.numpy().astype(np.float64)[self.keep]
@@ -131,7 +136,11 @@ class DivergenceMonitor:
         self.v_tools = max((d[0] for d in driven if d is not None), default=0.0)
         self.w_tools = max((d[1] for d in driven if d is not None), default=0.0)
         self.v0 = float(np.sqrt((v0 * v0).sum(axis=1).max()))
-        self.wave = max(m.p_wave_speed for m in model.materials)
+        # From the model's parameter arrays, which a fit or Rollout.set_parameters changes
+        # without changing model.materials (a trial 3000 x stiffer read the guess's speed).
+        p = model.parameter_values()
+        density = np.array([m.density for m in model.materials], dtype=np.float64)
+        self.wave = float(p_wave_speed(p["mu"], p["lam"], density, p["pressure_stiffness"]).max())
         self.v_fields, self.e_fields = 0.0, 0.0
         for f in model.force_fields:
             r = np.linalg.norm((x0 - np.asarray(f.center))[:, [0, 2]], axis=1).max() + self.diagonal
@@ -168,11 +177,13 @@ class DivergenceMonitor:
         released = float((self.mass * self.g * (self.h0 - x @ self.up)).sum())
         driven = 0.5 * float(self.mass.sum()) * self.driven_speed(t) ** 2
         budget = max(self.ke0 + released + self.e_fields + driven, 0.0)
-        if ke.sum() > self.ENERGY_FACTOR * budget + self.e_floor:
+        limit = self.ENERGY_FACTOR * budget + self.e_floor
+        if ke.sum() > limit:
             what = ("and potential energy released, and every particle at the tools' speed" if driven > 0.0
                     else "and potential energy released (no work is done on the bodies)")
-            return (f"kinetic energy {ke.sum():.3g} J, more than {self.ENERGY_FACTOR:g} x the {budget:.3g} J of initial "
-                    f"kinetic energy {what}"), int(self.index[np.argmax(ke)])
+            return (f"kinetic energy {ke.sum():.3g} J, more than the {limit:.3g} J the scene can give: {self.ENERGY_FACTOR:g} "
+                    f"x the {budget:.3g} J of initial kinetic energy {what}, plus {self.e_floor:.3g} J for elastic "
+                    f"energy stored at the start"), int(self.index[np.argmax(ke)])
         reach = self.REACH_FACTOR * (self.diagonal + bound * t)
         outside = np.maximum(np.maximum(self.lo - x, x - self.hi), 0.0)
         d2 = (outside * outside).sum(axis=1)
@@ -285,8 +296,6 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
     stable = model.stable_dt(courant, hourglass=hourglass)
     p = model.parameter_values()
     rho = np.array([m.density for m in model.materials], dtype=np.float64)
-    from .material import p_wave_speed  # noqa: PLC0415
-
     c = float(np.max(p_wave_speed(p["mu"], p["lam"], rho, p["pressure_stiffness"])))
     v = state.v.numpy().astype(np.float64)
     v_max = float(np.sqrt((v * v).sum(axis=1)).max()) if len(v) else 0.0
