@@ -16,6 +16,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
+from warp_esph.material import MODEL_IDS
 from warp_esph.sim import forces, plasticity
 
 
@@ -36,6 +37,7 @@ def _shear_kernel():
         flow_rate: S,
         dt: S,
         steps: int,
+        model: int,
         counters: wp.array(dtype=wp.int32),
         tau_xy: wp.array(dtype=S),
         s_norm: wp.array(dtype=S),
@@ -51,8 +53,8 @@ def _shear_kernel():
         P = mat33()
         for _ in range(steps):
             F = step * F
-            F, F_lo, a = flow(F, mat33(), a, mu, yield_stress, flow_rate, S(0.0), 0, dt, counters)
-            P = stress(F, mu, lam, 0)
+            F, F_lo, a = flow(F, mat33(), a, mu, yield_stress, flow_rate, S(0.0), model, dt, counters)
+            P = stress(F, mu, lam, model)
         # The spatial (Kirchhoff) stress P* F^T = U diag(sigma^2 P^) U^T: P* alone carries
         # the elastic rotation the shear's spin has accumulated.
         K = P * wp.transpose(F)
@@ -78,7 +80,7 @@ def _steady_shear(material: we.Material, rates, dt=2.0e-5, duration=0.06):
         _shear_kernel(),
         n,
         [wp.array(rates, dtype=wp.float64, device="cpu"), material.mu, material.lam, material.yield_stress,
-         material.flow_rate, dt, int(round(duration / dt)), counters],
+         material.flow_rate, dt, int(round(duration / dt)), MODEL_IDS[material.model], counters],
         [tau, s],
         device="cpu",
     )
@@ -111,6 +113,28 @@ def test_rheology_constructor_converts_the_lab_quantities():
 def test_rheology_constructor_names_the_bad_parameter(kwargs, name):
     with pytest.raises(ValueError, match=name):
         we.Material.from_rheology(1.0e5, 0.3, **kwargs)
+
+
+@pytest.mark.parametrize("model", ["hyperelastic", "non_newtonian"])
+def test_models_that_are_no_bingham_fluid_get_no_rheometer_quantities(model):
+    """The simple-shear test of the next test on the same constants with the other flow
+    models: neither is the Bingham fluid ``from_rheology`` promises (hyperelastic: its
+    stresses twice the linear ones; non_newtonian: the rate divided by ``|s|`` once more).
+    ``from_rheology`` built them anyway and the properties reported the values asked for;
+    both now refuse, naming the model."""
+    base = we.Material.from_rheology(1.0e5, 0.3, shear_yield_stress=100.0, plastic_viscosity=50.0)
+    other = base.replace(model=model)
+    rates = [0.5, 1.0, 2.0, 4.0]
+    tau, _ = _steady_shear(other, rates)
+    slope, intercept = np.polyfit(rates, tau, 1)
+    assert abs(slope / 50.0 - 1.0) > 0.5 or abs(intercept / 100.0 - 1.0) > 0.5, (slope, intercept)
+    with pytest.raises(ValueError, match=f"model = '{model}' is not allowed in Material.from_rheology"):
+        we.Material.from_rheology(1.0e5, 0.3, shear_yield_stress=100.0, plastic_viscosity=50.0, model=model)
+    for name in ("shear_yield_stress", "uniaxial_yield_stress", "plastic_viscosity"):
+        with pytest.raises(ValueError, match=f"Material.{name} is not allowed for model = '{model}'"):
+            getattr(other, name)
+    with pytest.raises(ValueError, match="deformation = 'rest' is not allowed in Material.from_rheology"):
+        we.Material.from_rheology(1.0e5, 0.3, shear_yield_stress=100.0, plastic_viscosity=50.0, deformation="rest")
 
 
 def test_steady_simple_shear_is_bingham_with_the_documented_constants():

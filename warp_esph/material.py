@@ -20,6 +20,9 @@ from . import checks
 #: Venant-Kirchhoff stress. ``stvk``: the St. Venant-Kirchhoff stress itself, for
 #: quantitative work (its small-strain stiffness equals the linear model's).
 MODELS = ("linear", "non_newtonian", "hyperelastic", "stvk")
+#: The models whose steady simple shear is a Bingham fluid of ``Material.shear_yield_stress``
+#: and ``Material.plastic_viscosity`` (``Material.from_rheology``).
+BINGHAM_MODELS = ("linear", "stvk")
 MODEL_IDS = {name: k for k, name in enumerate(MODELS)}
 
 #: Deformation models (docs/method.md §7, paper Fig. 8): the paper's ``incremental`` update, and the
@@ -108,9 +111,11 @@ class Material:
     the shear stress is ``tau = tau_y + (mu / flow_rate) gamma_dot``: a Bingham fluid of
     plastic viscosity ``eta_p = mu / flow_rate`` (Pa s) once it flows (``model="linear"``
     and ``"stvk"``; the ``non_newtonian`` rule divides the rate by ``|s|`` once more, and
-    ``hyperelastic`` stresses are twice the linear ones at small strain). The properties
+    ``hyperelastic`` stresses are twice the linear ones at small strain: measured in the
+    same shear, it flows at twice the yield stress and plastic viscosity). The properties
     ``shear_yield_stress``, ``uniaxial_yield_stress`` and ``plastic_viscosity`` give these,
-    and ``Material.from_rheology`` builds a material from them
+    and ``Material.from_rheology`` builds a material from them, for ``BINGHAM_MODELS``
+    only (the others refuse)
     (``tests/test_units.py`` checks the relation in a simulated simple-shear test).
 
     ``yield_stress = inf`` (or ``flow_rate = 0``) gives a purely elastic material.
@@ -237,6 +242,13 @@ class Material:
         else:
             Y = math.sqrt(2.0 / 3.0) * checks.non_negative("uniaxial_yield_stress", uniaxial_yield_stress)
         eta = checks.positive("plastic_viscosity", plastic_viscosity, allow_inf=True) if plastic_viscosity is not None else math.inf
+        model = kwargs.get("model", "linear")
+        if model not in BINGHAM_MODELS or kwargs.get("deformation", "incremental") != "incremental":
+            what = (f"model = {model!r}" if model not in BINGHAM_MODELS
+                    else f"deformation = {kwargs['deformation']!r}")
+            raise ValueError(f"{what} is not allowed in Material.from_rheology: the Bingham relation holds for "
+                             f"model {' or '.join(map(repr, BINGHAM_MODELS))} with deformation 'incremental' only "
+                             "(give yield_stress and flow_rate to Material for the others)")
         probe = cls.from_young(E, nu)
         return cls.from_young(E, nu, yield_stress=Y, flow_rate=probe.mu / eta, **kwargs)
 
@@ -287,18 +299,33 @@ class Material:
 
     @property
     def shear_yield_stress(self) -> float:
-        """``tau_y = yield_stress / sqrt(2)`` (Pa): the yield stress in simple shear."""
+        """``tau_y = yield_stress / sqrt(2)`` (Pa): the yield stress in simple shear
+        (``BINGHAM_MODELS`` only: another model raises ValueError)."""
+        self._check_bingham("shear_yield_stress")
         return self.yield_stress / math.sqrt(2.0)
 
     @property
     def uniaxial_yield_stress(self) -> float:
-        """``sigma_y = sqrt(3/2) yield_stress`` (Pa): the yield stress in uniaxial tension or compression."""
+        """``sigma_y = sqrt(3/2) yield_stress`` (Pa): the yield stress in uniaxial tension or
+        compression (``BINGHAM_MODELS`` only: another model raises ValueError)."""
+        self._check_bingham("uniaxial_yield_stress")
         return math.sqrt(1.5) * self.yield_stress
 
     @property
     def plastic_viscosity(self) -> float:
-        """Bingham plastic viscosity ``eta_p = mu / flow_rate`` (Pa s; ``inf`` without flow)."""
+        """Bingham plastic viscosity ``eta_p = mu / flow_rate`` (Pa s; ``inf`` without flow;
+        ``BINGHAM_MODELS`` only: another model raises ValueError)."""
+        self._check_bingham("plastic_viscosity")
         return math.inf if self.flow_rate == 0.0 else self.mu / self.flow_rate
+
+    def _check_bingham(self, name: str) -> None:
+        # Measured in steady simple shear (tests/test_units.py): hyperelastic flows at twice
+        # the shear yield stress and plastic viscosity these would give, non_newtonian is no
+        # Bingham fluid at all; a property that reported them anyway misled.
+        if self.model not in BINGHAM_MODELS or self.deformation != "incremental":
+            raise ValueError(f"Material.{name} is not allowed for model = {self.model!r}, deformation = "
+                             f"{self.deformation!r}: the Bingham relation holds for model "
+                             f"{' or '.join(map(repr, BINGHAM_MODELS))} with deformation 'incremental' only")
 
     @property
     def plastic(self) -> bool:
