@@ -23,6 +23,7 @@ import warp as wp
 
 from .._types import type_set
 from . import curvature, deformation, forces, materials, plasticity
+from .replay import kept_through_backward
 
 COUNT_FEW_NEIGHBORS = deformation.COUNT_FEW_NEIGHBORS
 COUNT_ILL_CONDITIONED = deformation.COUNT_ILL_CONDITIONED
@@ -245,11 +246,13 @@ def launch_rest_variational_forces(model, state_out, curved: bool = False):
     constitutive update wrote (launched only when a material asks for it; ``curved``: of the
     curvature-corrected total fit)."""
     rest_x, rest_nbr, rest_count = model.rest_neighbors()
-    model.launches(
-        kernels(model.scalar, model.fit_weight).rest_variational_forces,
-        model.particle_count,
-        [rest_x, model.particle_body, model.particle_material, model.material_arrays(), rest_nbr, rest_count,
-         model.rest_guard, model.particle_volume, state_out.stress, state_out.F_p, model.scalar(model.support_radius), int(curved)],
-        [state_out.force],
-        device=model.device,
-    )
+    with kept_through_backward(state_out.force):
+        model.launches(
+            kernels(model.scalar, model.fit_weight).rest_variational_forces,
+            model.particle_count,
+            [rest_x, model.particle_body, model.particle_material, model.material_arrays(), rest_nbr, rest_count,
+             model.rest_guard, model.particle_volume, state_out.stress, state_out.F_p, model.scalar(model.support_radius),
+             int(curved)],
+            [state_out.force],
+            device=model.device,
+        )

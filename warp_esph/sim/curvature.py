@@ -50,7 +50,7 @@ import warp as wp
 
 from .._types import type_set
 from . import deformation, forces, guards, smoothing
-from .replay import recording_tape
+from .replay import kept_through_backward, recording_tape
 
 #: The curvature correction is dropped (the paper's fit kept) where it would leave
 #: ``det A~`` below this fraction of ``det A`` (on a lattice it is above 0.4 everywhere).
@@ -950,7 +950,9 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
     if model.image_plane is not None:
         grads += (state_out.image_stress, state_out.F_image_flowed)
     if tape is None or not hand_adjoint or any(a.grad is None for a in grads):
-        model.launches(kernels(S, model.fit_weight).elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device)
+        with kept_through_backward(state_out.force):
+            model.launches(kernels(S, model.fit_weight).elastic_forces, model.particle_count, inputs, [state_out.force],
+                           device=model.device)
         return
     model.launches(kernels(S, model.fit_weight).elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device,
               record_tape=False)

@@ -42,7 +42,7 @@ import warp as wp
 from .._types import type_set
 from .. import checks
 from . import deformation, guards, isotropic, materials, neighbors, smoothing
-from .replay import recording_tape
+from .replay import kept_through_backward, recording_tape
 
 
 @functools.cache
@@ -633,7 +633,8 @@ def launch_elastic_forces(model, state_in, state_out, hand_adjoint: bool = True,
     grads = (state_in.x, state_out.stress, state_out.F_inv, state_out.force)
     if (tape is None or not hand_adjoint or any(a.grad is None for a in grads)
             or model.material_elastic_force.numpy().any()):  # 0: eqs. 10-13 ("paper")
-        model.launches(k.elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device)
+        with kept_through_backward(state_out.force):
+            model.launches(k.elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device)
         return
     model.launches(k.elastic_forces, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
 

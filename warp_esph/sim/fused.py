@@ -28,6 +28,7 @@ the differentiable kernels.
 ``tests/test_physics.py::test_fused_step_matches_the_differentiable_step`` compares
 the two.
 """
+import contextlib
 import functools
 import types
 
@@ -35,6 +36,7 @@ import warp as wp
 
 from .._types import type_set
 from . import deformation, forces, isotropic, materials, neighbors, plasticity, pressure, smoothing
+from .replay import kept_through_backward
 from .roundoff import compensated_sum
 
 
@@ -291,22 +293,25 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
     and the densities the neighbour pass summed (``pressure.launch_state_densities_adjoint``)."""
     S = model.scalar
     own = sph and model.separate_pressure_density
-    model.launches(
-        kernels(S, model.fit_weight).constitutive_forces,
-        model.particle_count,
-        [
-            state_in.x, state_in.v, state_in.F, state_in.F_lo, state_in.alpha, model.particle_material, model.material_arrays(),
-            model.particle_body, model.particle_volume, scratch.pressure, scratch.sph_volume, state_out.density,
-            pressure.pressure_density(model, state_out), scratch.pressure_volume() if own else scratch.sph_volume,
-            state_out.neighbors, state_out.neighbor_count, S(model.support_radius), S(dt), 2 if own else int(sph),
-            scratch.min_neighbors, S(scratch.max_condition), model.particle_mass, model.particle_rest_density,
-            *model.image_args(), *forces.image_constitutive(model, state_out),
-        ],
-        [state_out.F_flowed, state_out.F_flowed_lo, state_out.alpha, state_out.stress, state_out.F_inv, state_out.force,
-         scratch.counters],
-        device=model.device,
-        record_tape=tape is None,
-    )
+    # Recorded with its generated adjoint (no tape given while one records), which replays
+    # the images' forces' scatter (kept_through_backward).
+    with kept_through_backward(state_out.force) if tape is None else contextlib.nullcontext():
+        model.launches(
+            kernels(S, model.fit_weight).constitutive_forces,
+            model.particle_count,
+            [
+                state_in.x, state_in.v, state_in.F, state_in.F_lo, state_in.alpha, model.particle_material, model.material_arrays(),
+                model.particle_body, model.particle_volume, scratch.pressure, scratch.sph_volume, state_out.density,
+                pressure.pressure_density(model, state_out), scratch.pressure_volume() if own else scratch.sph_volume,
+                state_out.neighbors, state_out.neighbor_count, S(model.support_radius), S(dt), 2 if own else int(sph),
+                scratch.min_neighbors, S(scratch.max_condition), model.particle_mass, model.particle_rest_density,
+                *model.image_args(), *forces.image_constitutive(model, state_out),
+            ],
+            [state_out.F_flowed, state_out.F_flowed_lo, state_out.alpha, state_out.stress, state_out.F_inv, state_out.force,
+             scratch.counters],
+            device=model.device,
+            record_tape=tape is None,
+        )
     if tape is None:
         return
 
