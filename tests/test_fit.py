@@ -690,3 +690,20 @@ def test_a_trial_whose_rollout_blows_up_while_finite_fails(worlds):
         with pytest.raises(FloatingPointError, match="the rollout at the initial guess diverged: "):
             fit(_block_with(mu=5e6), PositionLoss(target, frames=[40]), ["mu"], steps=40, dt=dt, iterations=2,
                 progress=False, diagnostics=False)
+
+
+def test_a_float32_model_is_fitted_from_its_guess():
+    """A float32 model's guess was taken through log in float32 (the arrays' values), so the
+    fit's start missed it by 1e-7, was said to lie outside bounds never given, and that
+    message stopped the fit with KeyError. The start is the material's own value now."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.06, 0.06, 0.06), we.Material(mu=2e3, lam=3e3, yield_stress=40.0, flow_rate=20.0),
+              name="block")
+    b.add_ground()
+    model = b.finalize(dtype=wp.float32, requires_grad=True)
+    loss = PositionLoss({5: model.particle_x0.astype(np.float64) - 0.001})
+    said = []
+    result = fit(model, loss, ["yield_stress"], steps=5, dt=2e-4, iterations=2, progress=False, log=said.append,
+                 diagnostics=False)
+    assert result.history[0]["params"]["yield_stress"] == [40.0]
+    assert said and not any("outside its bounds" in s for s in said)

@@ -333,7 +333,9 @@ class _Run:
         self.initial = dict(exp.initial or {})
         self.weight = checks.positive("weight", exp.weight)  # a negative weight would maximise its loss
         self.noise = None if exp.noise is None else checks.positive("noise", exp.noise)
-        self.values = self.rollout.get_parameters()
+        # In float64 whatever the model's precision, the materials' own values where the arrays
+        # hold them: a float32 guess taken through log in float32 moved the start by 1e-7.
+        self.values = self.model.parameter_values()
         self.rho = np.array([m.density for m in self.model.materials])
         # k_p = share K / rho0 of the tied materials (material.PRESSURE_BULK_SHARE)
         self.kp_share = np.array([PRESSURE_BULK_SHARE[m.pressure_force] for m in self.model.materials])
@@ -785,8 +787,9 @@ def fit(
         guess = runs[0].values[name][runs[0].idx]
         if not np.allclose(start[name], guess, rtol=1e-9, atol=0.0):
             # The first evaluation (and the reported initial loss) is not the guess's.
+            lo, hi = prob.bounds.get(name, (-math.inf, math.inf))
             say(f"the guess {name} = {', '.join(f'{v:.6g}' for v in guess)} lies outside its bounds "
-                f"{prob.bounds[name][0]:g}:{prob.bounds[name][1]:g}: the fit starts at "
+                f"{lo:g}:{hi:g}: the fit starts at "
                 f"{', '.join(f'{v:.6g}' for v in start[name])}")
     history: list[dict] = []
     state = {"bar": None, "stage": "descent", "stop_all": None}
