@@ -240,6 +240,9 @@ def test_stable_dt_includes_the_hourglass_control_and_holds():
 
     model, state = _shaken_block()
     plain = model.stable_dt(hourglass=0.0)
+    # A strength near the float floor is the plain step (its limit's square passed the float
+    # range: OverflowError from the CLI and the API).
+    assert model.stable_dt(hourglass=1e-320) == plain
     # The default for this elastic block (fit "auto") runs the control at AUTO_HOURGLASS.
     assert model.stable_dt() == model.stable_dt(hourglass=AUTO_HOURGLASS) < plain
     mild, stiff = model.stable_dt(hourglass=3.0), model.stable_dt(hourglass=1000.0)

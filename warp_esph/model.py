@@ -813,7 +813,10 @@ class Model:
             from .sim import hourglass as hg  # noqa: PLC0415 (model data first, kernels on demand)
 
             dt_c = 0.8 * courant / 0.3 * hg.stable_dt(strength, float(np.max(p["mu"] / rho)), self.spacing, self.support_radius)
-            dt = 1.0 / float(np.sqrt(1.0 / dt**2 + 1.0 / dt_c**2))
+            # In numpy: dt_c^2 passes the float range for a strength below 1e-155, where Python's
+            # float raised OverflowError; its inverse, 0, is the right limit (dt itself).
+            with np.errstate(over="ignore"):
+                dt = 1.0 / float(np.sqrt(1.0 / dt**2 + 1.0 / np.float64(dt_c) ** 2))
         eta = p["viscosity"]
         viscous = eta > 0.0
         if viscous.any():
