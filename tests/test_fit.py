@@ -458,6 +458,13 @@ def test_an_empty_or_nan_positions_file_is_refused_by_its_name(tmp_path):
     np.save(tmp_path / "one.npy", np.zeros((5, 3)))
     t = load_target(tmp_path / "one.npy")  # (n, 3): the last frame, as before
     assert t.kind == "positions" and t.frames is None and np.asarray(t.data).shape == (1, 5, 3)
+    # Empty mesh files (IndexError before) and a cloud of (x, y) pairs, named by the file.
+    (tmp_path / "e.obj").write_text("")
+    (tmp_path / "e.stl").write_text("")
+    (tmp_path / "flat.obj").write_text("v 0 0\nv 1 0\nv 0 1\n")
+    for name, held in (("e.obj", "no points"), ("e.stl", "no points"), ("flat.obj", r"points of shape \(3, 2\)")):
+        with pytest.raises(ValueError, match=rf"target .*{name} is not allowed as a point cloud: it holds {held}"):
+            load_target(tmp_path / name)
 
 
 def test_a_damaged_usd_target_is_named_as_damaged_not_read_as_a_mesh(tmp_path):

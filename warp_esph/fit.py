@@ -1660,7 +1660,14 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         from .meshes import load_mesh  # noqa: PLC0415
 
         return Target("mesh", load_mesh(p), None, None, p)
-    return Target("points", _finite_cloud(p, np.asarray(m.points, dtype=np.float64)[:, :3]), None, None, p)
+    pts = np.asarray(m.points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[0] == 0 or pts.shape[1] < 3:
+        # An empty .obj or .stl read as no array of rows (IndexError); a cloud of (x, y) pairs
+        # was named by the step it was compared at.
+        shape = "no points" if pts.size == 0 else f"points of shape {pts.shape}"
+        raise ValueError(f"target {p} is not allowed as a point cloud: it holds {shape}; it needs one or more points "
+                         "of three coordinates (x y z)")
+    return Target("points", _finite_cloud(p, pts[:, :3]), None, None, p)
 
 
 def _finite_cloud(path: str, pts: np.ndarray) -> np.ndarray:
