@@ -453,3 +453,21 @@ def test_a_sweep_keeps_the_samples_finished_while_it_runs(scene_file, tmp_path, 
                      "-o", str(out), "--no-progress"]) == 0
     assert seen == [(1, True), (2, True), (3, True), (3, False)]
     assert len(SweepTable.read_csv(out / "sweep.csv")) == 3
+
+
+def test_values_matplotlib_cannot_lay_out_still_leave_the_tables_and_the_record(tmp_path):
+    """A sweep of yield_stress over 1e307..1.7e308 ran every sample, then matplotlib's axes
+    raised 'arange: cannot compute length', exit 2 with no sweep.json. The plot is said to
+    be missing and everything else is written."""
+    pytest.importorskip("matplotlib")
+    from warp_esph.sweep import SUMMARY_COLUMNS, write_outputs
+
+    q = SUMMARY_COLUMNS[0]
+    table = SweepTable(columns=["sample", "yield_stress", "status", q],
+                       rows=[{"sample": 0, "yield_stress": 1e307, "status": "ok", q: 1.0},
+                             {"sample": 1, "yield_stress": 1.7e308, "status": "ok", q: 2.0}],
+                       params=["yield_stress"])
+    lines = write_outputs(table, tmp_path, meta={"partial": False})
+    assert any(line.startswith("no plot: matplotlib could not draw these values") for line in lines), lines
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["sweep.csv", "sweep.json"]
+                                                                + (["sweep.parquet"] if any("parquet" in x and "wrote" in x for x in lines) else []))

@@ -948,17 +948,22 @@ def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_pa
         lines.append(f"wrote {table.to_parquet(os.path.join(folder, 'sweep.parquet'))}")
     except ImportError:
         lines.append("no Parquet table: pyarrow is not installed (pip install pyarrow); the CSV has the same data")
-    if plot_figure:
-        try:
-            lines.append(f"wrote {plot(table, os.path.join(folder, 'sweep.png'), log_params)}")
-        except ImportError:
-            lines.append("no plot: matplotlib is not installed (pip install 'warp-esph[plot]')")
     if meta is not None:
+        # Before the plot: the record of a finished sweep must not wait on a figure.
         path = os.path.join(folder, "sweep.json")
         with open(path + ".tmp", "w") as f:
             json.dump(dict(meta), f, indent=2)
         os.replace(path + ".tmp", path)
         lines.append(f"wrote {path}")
+    if plot_figure:
+        try:
+            lines.append(f"wrote {plot(table, os.path.join(folder, 'sweep.png'), log_params)}")
+        except ImportError:
+            lines.append("no plot: matplotlib is not installed (pip install 'warp-esph[plot]')")
+        except (ValueError, OverflowError, ArithmeticError) as e:
+            # matplotlib cannot lay out axes of values near the float range ('arange: cannot
+            # compute length' at 1e307..1.7e308): the sweep ran and its tables stand.
+            lines.append(f"no plot: matplotlib could not draw these values ({e}); the CSV has the data")
     return lines
 
 
