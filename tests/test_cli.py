@@ -499,6 +499,10 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
     (tmp_path / "exp.json").write_text(json.dumps([{"scene": "s.toml", "target": "truth.usdc", "weight": -1}]))
     assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
     assert_one_line_error(capsys.readouterr().err, "experiment #1: weight = -1 is not allowed: must be > 0")
+    # A key given twice kept the last value without a word (TOML refuses it).
+    (tmp_path / "exp.json").write_text('[{"scene": "s.toml", "target": "truth.usdc", "weight": 1, "weight": 2}]')
+    assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
+    assert_one_line_error(capsys.readouterr().err, "exp.json is not allowed: the key 'weight' appears twice in one object")
     assert not (tmp_path / "fit_tiny").exists()
 
 

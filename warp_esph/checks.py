@@ -303,9 +303,20 @@ def json_file(what: str, path):
     """The parsed JSON document of the file ``path``; a ``ValueError`` naming ``what`` and the
     file where it cannot be read or is not JSON."""
     p = os.fspath(path)
+
+    def unique(pairs):
+        # A key given twice kept its last value without a word (a scene file's repeated key
+        # is refused, as TOML does).
+        seen = set()
+        for key, _ in pairs:
+            if key in seen:
+                raise ValueError(f"{what} {p} is not allowed: the key {key!r} appears twice in one object")
+            seen.add(key)
+        return dict(pairs)
+
     try:
         with open(p) as f:
-            return json.load(f)
+            return json.load(f, object_pairs_hook=unique)
     except OSError as e:
         raise ValueError(f"{what} {p} cannot be read: {e}") from None
     except json.JSONDecodeError as e:
