@@ -289,6 +289,10 @@ def test_run_writes_the_static_colliders_reaction_rows_and_usd_attributes(tmp_pa
     force = np.array([[float(r[k]) for k in ("fx", "fy", "fz")] for r in rows])
     torque = np.array([[float(r[k]) for k in ("tx", "ty", "tz")] for r in rows])
     np.testing.assert_array_equal([[float(r[k]) for k in ("px", "py", "pz")] for r in rows[:1]], [[0.0, 0.01, 0.0]])
+    # A float64 run's CSV holds its values to the last bit, as its JSON does (9 digits rounded them).
+    doc = json.load(open(f"{out}_tools.json"))
+    assert [float(r["time"]) for r in rows] == [r["time"] for r in doc["rows"]]
+    np.testing.assert_array_equal(force, [r["force"] for r in doc["rows"]])
 
     model = load_scene_file(scene).builder.finalize()
     mass = model.particle_mass.numpy().astype(np.float64)

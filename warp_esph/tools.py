@@ -1465,11 +1465,15 @@ class ReactionLog:
         import json  # noqa: PLC0415
 
         csv_path, json_path = f"{stem}_tools.csv", f"{stem}_tools.json"
+        # Every digit the run's precision holds: 9 significant digits round-trip float32, a
+        # float64 run's values need 17 (at 9 its CSV, which `fit --target` reads, rounded them).
+        digits = ".17g" if self.solver.model.scalar == wp.float64 else ".9g"
         with open(csv_path, "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(["frame", "time", "tool", "px", "py", "pz", "qx", "qy", "qz", "qw", "fx", "fy", "fz", "tx", "ty", "tz"])
             for r in self.rows:
-                w.writerow([r["frame"], f"{r['time']:.9g}", r["tool"], *(f"{v:.9g}" for v in r["position"] + r["orientation"] + r["force"] + r["torque"])])
+                w.writerow([r["frame"], format(r["time"], digits), r["tool"],
+                            *(format(v, digits) for v in r["position"] + r["orientation"] + r["force"] + r["torque"])])
         with open(json_path, "w") as fh:
             json.dump({
                 "units": {"time": "s", "position": "m", "force": "N", "torque": "N m"},
