@@ -329,3 +329,35 @@ def test_a_folder_where_the_file_goes_is_refused_by_name(model, tmp_path):
     (tmp_path / "d.usda").mkdir()
     with pytest.raises(ValueError, match=r"path = .*d\.usda' is not allowed: it is a folder; a file is written there"):
         UsdWriter(tmp_path / "d.usda", model, 30.0)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_a_float64_run_reads_back_to_the_last_bit(tmp_path, dtype):
+    """The schema's points and velocities are float: a float64 run's file rounded them to
+    float32 (2e-9 m, measured), and a fit to that run's USD compared its float64 rollout
+    with them. A float64 run also writes its own values (``warp_esph:points_float64``,
+    ``velocities_float64``), which ``UsdFrames.arrays`` (fit targets, export) reads back
+    bit for bit; a float32 run's file is as before."""
+    import warp as wp  # noqa: PLC0415
+
+    from warp_esph.render import UsdFrames  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.06, 0.06, 0.06), Material(mu=2e3, lam=3e3, yield_stress=40.0, flow_rate=20.0))
+    b.add_ground()
+    m = b.finalize(dtype=getattr(wp, dtype))
+    path = tmp_path / "run.usdc"
+    kept = {}
+    with UsdWriter(path, m, fps=50.0) as w:
+        simulate(m, 3, fps=50.0, writer=w, progress=False,
+                 callback=lambda frame, s: kept.update({frame: (s.x.numpy().copy(), s.v.numpy().copy())}))
+    data = UsdFrames(str(path))
+    for frame, (x, v) in kept.items():
+        a = data.arrays(frame)
+        assert a["points"].dtype == x.dtype and a["velocities"].dtype == v.dtype
+        np.testing.assert_array_equal(a["points"], x)
+        np.testing.assert_array_equal(a["velocities"], v)
+    stage = open_fresh(path)
+    prim = stage.GetPrimAtPath("/World/" + m.bodies[0].name)
+    assert bool(prim.GetAttribute("warp_esph:points_float64")) == (dtype == "float64")
+    assert len(kept) == 4  # frames 0..3

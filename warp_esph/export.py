@@ -39,7 +39,7 @@ def frame_arrays_to_mesh(arrays: dict, fmt: str):
     pts = np.asarray(arrays["points"], dtype=np.float64)
     n = len(pts)
     data = {
-        "velocity": np.asarray(arrays["velocities"], dtype=np.float32),
+        "velocity": np.asarray(arrays["velocities"]),  # float64 where a float64 run wrote it
         "alpha": np.asarray(arrays["alpha"], dtype=np.float32),
         "singular_values": np.asarray(arrays["singular_values"], dtype=np.float32),
         "body_id": np.asarray(arrays["body"], dtype=np.int32),

@@ -75,6 +75,10 @@ _VIEW = f"{_KEY}:view"
 _SINGULAR_VALUES, _ALPHA, _MATERIAL_ID = "singular_values", "alpha", "material_id"
 _PRIMVAR_SINGULAR_VALUES = f"primvars:{_SINGULAR_VALUES}"
 _PRIMVAR_ALPHA = f"primvars:{_ALPHA}"
+#: A float64 run's positions and velocities to the last bit, beside the schema's float
+#: ``points`` and ``velocities`` (which round them to float32: 2e-9 m, measured), read back by
+#: ``UsdFrames.arrays`` (fit targets, export).
+_POINTS64, _VELOCITIES64 = f"{_KEY}:points_float64", f"{_KEY}:velocities_float64"
 _PRIMVAR_MATERIAL_ID = f"primvars:{_MATERIAL_ID}"
 
 # One display colour per material (cycled), so bodies are told apart in a viewer.
@@ -471,6 +475,7 @@ class UsdWriter:
         sv = _singular_values(state.F.numpy())
         alpha = state.alpha.numpy()
         x32, v32, a32 = x.astype(np.float32), v.astype(np.float32), alpha.astype(np.float32)
+        doubles = x.dtype == np.float64
 
         if self._truncate_pending:
             for stage in self._stages:
@@ -497,6 +502,8 @@ class UsdWriter:
                 Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]),
                 Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(sv[s])),
                 Vt.FloatArray.FromNumpy(np.ascontiguousarray(a32[s])),
+                (Vt.Vec3dArray.FromNumpy(np.ascontiguousarray(x[s])), Vt.Vec3dArray.FromNumpy(np.ascontiguousarray(v[s])))
+                if doubles else None,
             ))
         surfaces = self._surfaces(x32) if self.surface else None
         self.first_frame = frame if self.first_frame is None else min(self.first_frame, frame)
@@ -509,7 +516,7 @@ class UsdWriter:
                     mesh.GetFaceVertexCountsAttr().Set(counts, t)
                     mesh.GetFaceVertexIndicesAttr().Set(indices, t)
                     mesh.GetExtentAttr().Set(ext, t)
-            for name, (pts, vel, wid, ext, svals, alph) in zip(self._prim_names, samples):
+            for name, (pts, vel, wid, ext, svals, alph, exact) in zip(self._prim_names, samples):
                 prim = stage.GetPrimAtPath(f"{_ROOT}/{name}")
                 geom = UsdGeom.Points(prim)
                 geom.GetPointsAttr().Set(pts, t)
@@ -518,6 +525,10 @@ class UsdWriter:
                 geom.GetExtentAttr().Set(ext, t)
                 prim.GetAttribute(_PRIMVAR_SINGULAR_VALUES).Set(svals, t)
                 prim.GetAttribute(_PRIMVAR_ALPHA).Set(alph, t)
+                if exact is not None:
+                    for key, value in zip((_POINTS64, _VELOCITIES64), exact):
+                        attr = prim.GetAttribute(key) or prim.CreateAttribute(key, Sdf.ValueTypeNames.Double3Array)
+                        attr.Set(value, t)
             tools.usd_write_frame(stage, m, state, t, _KEY)
             self._write_collider_reactions(stage, state, t)
             stage.SetStartTimeCode(float(self.first_frame))
@@ -844,7 +855,8 @@ class UsdFrames:
     @_held_stderr
     def arrays(self, frame: int) -> dict:
         """Every particle at ``frame``, as written: points, velocities, widths, alpha,
-        singular_values (N, 3), body (index into ``bodies``) and material_id."""
+        singular_values (N, 3), body (index into ``bodies``) and material_id. Points and
+        velocities are float64 where a float64 run wrote them (to the last bit), else float32."""
         t = Usd.TimeCode(float(frame))
         cols = {k: [] for k in ("points", "velocities", "widths", "alpha", "singular_values", "body", "material_id")}
         for k, (_, prim) in enumerate(self.bodies):
@@ -860,8 +872,14 @@ class UsdFrames:
                     return np.full(shape, fill, dtype=np.float32)
                 return np.asarray(value, dtype=np.float32).reshape(shape)
 
-            cols["points"].append(np.asarray(p, dtype=np.float32))
-            cols["velocities"].append(get(geom.GetVelocitiesAttr(), (n, 3), 0.0))
+            exact = [prim.GetAttribute(key) for key in (_POINTS64, _VELOCITIES64)]
+            exact = [a.Get(t) if a else None for a in exact]
+            if all(e is not None and len(e) == n for e in exact):  # a float64 run's own values
+                cols["points"].append(np.asarray(exact[0], dtype=np.float64).reshape(n, 3))
+                cols["velocities"].append(np.asarray(exact[1], dtype=np.float64).reshape(n, 3))
+            else:
+                cols["points"].append(np.asarray(p, dtype=np.float32))
+                cols["velocities"].append(get(geom.GetVelocitiesAttr(), (n, 3), 0.0))
             widths = get(geom.GetWidthsAttr(), (n,), 0.02)
             if not (np.isfinite(widths) & (widths > 0.0)).all():  # a NaN width failed inside the renderer
                 raise ValueError(f"cannot read {self.path!r}: body {self.bodies[k][0]!r} at frame {frame} has widths that are "
