@@ -4,10 +4,10 @@ A lab has two measurements of one paste:
 
 - a **slump test**: a cylinder (height H0 = 2 R0) is released on a rough plate; once it has
   come to rest, its height ``h`` and its spread radius ``R`` are measured with a ruler
-  (``lab/slump.json``);
+  (``slump.json`` in ``--out DIR``);
 - a **compression test**: a small cylinder between two frictionless plates, the top one
   descending at constant speed; the texture analyser logs the plate force per frame
-  (``lab/compression_tools.csv``, the format ``warp-esph run`` writes beside its USD).
+  (``compression_tools.csv``, the format ``warp-esph run`` writes beside its USD).
 
 The "measurements" here are synthetic: runs of a hidden material, with noise added
 (0.5 mm on the lengths, 2 % of the peak on the forces). The script then
@@ -30,7 +30,7 @@ The "measurements" here are synthetic: runs of a hidden material, with noise add
 Run from the repository root: ``python examples/calibrate_from_lab.py`` (measured: 21
 forward runs of both experiments to convergence plus the diagnostics' runs, on the order of
 ten minutes on a shared core; ``--size ci`` is the small version the tests run, about
-1.5 minutes). ``--out DIR`` keeps the lab
+15-25 s once Warp has compiled its kernels). ``--out DIR`` keeps the lab
 files and the result (default: a temporary folder).
 """
 

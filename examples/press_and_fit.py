@@ -170,14 +170,14 @@ def force_curve(E, target=None, steps=60, dt=2e-4):
     return curve, float(loss.numpy()[0]), dlogE
 
 
-def fit_stiffness(E_true=2.0e4, E_start=1.0e4, iterations=8):
+def fit_stiffness(E_true=2.0e4, E_start=1.0e4, iterations=10):
     measured = force_curve(E_true)
     print(f"fit: measured plate force {measured[-1]:.3f} N at the end (E = {E_true:g} Pa); start E = {E_start:g} Pa")
     def fun_grad(logE):
         _, loss, g = force_curve(np.exp(logE), measured)
         return loss, g
 
-    logE = minimise_1d(fun_grad, np.log(E_start), 0.25, 10, lambda x: f"E = {np.exp(x):8.1f} Pa",
+    logE = minimise_1d(fun_grad, np.log(E_start), 0.25, iterations, lambda x: f"E = {np.exp(x):8.1f} Pa",
                        tol=1e-8 * float(measured @ measured))
     return float(np.exp(logE))
 
