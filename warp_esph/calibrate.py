@@ -288,8 +288,13 @@ def _read_experiments(path) -> list[tuple[str, dict]]:
             spec["scene"] = rel(spec["scene"])
         if spec.get("cameras"):
             spec["cameras"] = rel(spec["cameras"])
-        if isinstance(spec.get("material"), (str, int)):
-            spec["material"] = [str(spec["material"])]
+        chosen = spec.get("material")
+        if isinstance(chosen, bool) or isinstance(chosen, list) and any(isinstance(m, bool) for m in chosen):
+            # true read as a body named 'True'
+            raise ValueError(f"{where}material = {chosen!r} is not allowed: give a material index or a body name, "
+                             "or a list of them")
+        if isinstance(chosen, (str, int)):
+            spec["material"] = [str(chosen)]
         out.append((where, spec))
     return out
 
@@ -389,6 +394,12 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     materials = spec.get("material")
     if materials:
         materials = [int(m) if str(m).isdigit() else m for m in materials]
+        from .fit import _material_indices  # noqa: PLC0415
+
+        try:  # refused here, by experiment, not later without its name
+            _material_indices(model, materials)
+        except ValueError as e:
+            raise ValueError(f"{where}{e}") from None
     kinds = ", ".join(sorted({("silhouettes" if kind == "silhouette" else t.kind) for kind, _, t in loaded}))
     # Options of a kind of target none of these is: refused, not ignored.
     file_kinds = {t.kind for kind, _, t in loaded if kind == "file"}
