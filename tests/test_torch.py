@@ -96,6 +96,17 @@ def test_inputs_are_checked_and_missing_torch_is_explained(monkeypatch):
     assert pos.dtype == torch.float64 and float(pos.abs().max()) > 0.0
     with pytest.raises(ValueError, match="log_space = 'no' is not allowed: must be True or False"):
         RolloutModule(rollout, ["mu"], log_space="no")
+    # A tensor that carries a gradient given to Material lost it in float() without a word.
+    import warp_esph as we  # noqa: PLC0415
+
+    with pytest.raises(ValueError, match="Material.mu = .* is not allowed: must be a plain number: float\\(\\) would drop"):
+        we.Material(mu=torch.tensor(1.0e3, dtype=torch.float64, requires_grad=True), lam=1.0e3)
+    assert we.Material(mu=torch.tensor(1.0e3, dtype=torch.float64), lam=1.0e3).mu == 1.0e3
+    # None was a TypeError; a name given twice registered one parameter without a word.
+    for params, words in ((None, "params = None is not allowed: give a parameter name"),
+                          ([], "params = \\[\\] is not allowed"), (["mu", "mu"], "a parameter is named twice")):
+        with pytest.raises(ValueError, match=words):
+            RolloutModule(rollout, params)
     monkeypatch.setitem(sys.modules, "torch", None)
     with pytest.raises(ImportError, match="pip install torch"):
         require_torch()

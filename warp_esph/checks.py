@@ -57,6 +57,10 @@ def number(name: str, value, *, allow_inf: bool = False) -> float:
     """A real number (bools, strings and NaN rejected); ``inf`` only when ``allow_inf``."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(value, "__float__"):
         _fail(name, value, "must be a number")
+    if getattr(value, "requires_grad", False):
+        # A torch tensor that carries a gradient: float() cuts it off without a word.
+        _fail(name, shorten(value), "must be a plain number: float() would drop its gradient (to fit a parameter "
+                                    "through torch, use warp_esph.torch)")
     try:
         v = float(value)
     except OverflowError:  # an int like 10**400

@@ -175,7 +175,13 @@ def _module_class():
             if not isinstance(rollout, Rollout):
                 raise ValueError(f"rollout = {rollout!r} is not allowed: must be a warp_esph.rollout.Rollout")
             self.rollout = rollout
+            if not isinstance(params, str) and not (isinstance(params, (list, tuple)) and params
+                                                    and all(isinstance(n, str) for n in params)):
+                raise ValueError(f"params = {params!r} is not allowed: give a parameter name or a non-empty list of "
+                                 f"them ({', '.join(PARAMETERS)})")
             self.names = [params] if isinstance(params, str) else list(params)
+            if len(set(self.names)) != len(self.names):  # registered once, its second entry dropped
+                raise ValueError(f"params = {params!r} is not allowed: a parameter is named twice")
             if not isinstance(log_space, bool):  # "no" read as True
                 raise ValueError(f"log_space = {log_space!r} is not allowed: must be True or False")
             self.log_space = log_space
