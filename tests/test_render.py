@@ -146,6 +146,18 @@ def test_gif_folder_and_single_png_outputs(tmp_path):
     with Image.open(gif) as im:
         assert im.n_frames == 4 and im.size == (W, H)
         assert im.info.get("duration") == 100  # the file's 10 fps
+    # A GIF stores centiseconds: at 30 fps one 33 ms duration was stored as 30 ms and played
+    # 11 % fast; the frames' ends are rounded instead, so the rate holds on average. Above
+    # 50 fps the frames would be shorter than viewers show: 20 ms, said in a warning.
+    result = render_usd(path, gif, width=W, height=H, supersample=1, fps=30.0)
+    with Image.open(gif) as im:
+        durations = []
+        for k in range(im.n_frames):
+            im.seek(k)
+            durations.append(im.info["duration"])
+    assert durations == [30, 40, 30, 30] and abs(sum(durations) - 4 * 1000.0 / 30.0) < 10.0
+    with pytest.warns(RuntimeWarning, match="fps = 60: a GIF's frames last at least 20 ms, so it plays at 50 fps, 0.83 x"):
+        render_usd(path, gif, width=W, height=H, supersample=1, fps=60.0)
     folder = tmp_path / "frames"
     result = render_usd(path, folder, frames="1:3", width=W, height=H, supersample=1)
     assert sorted(os.listdir(folder)) == ["frame_00001.png", "frame_00002.png", "frame_00003.png"]
@@ -176,7 +188,7 @@ def test_parse_frames():
     assert parse_frames("-1", have) == [10] and parse_frames("3", have) == [3]
     assert parse_frames("0:10:5", have) == [0, 5, 10] and parse_frames(":2", have) == [0, 1, 2]
     assert parse_frames("1,4,-2", have) == [1, 4, 9]
-    for bad in ("11", "x", "0:10:0", "", "1:2:3:4"):
+    for bad in ("11", "x", "0:10:0", "", "1:2:3:4", "-0", "-0:5"):  # -0: frame 0 or the end? (read as 0)
         with pytest.raises(ValueError, match="frames"):
             parse_frames(bad, have)
     with pytest.raises(ValueError, match=r"frames = '-99' is not allowed: it counts back past the first frame "

@@ -1005,6 +1005,28 @@ def _sheet(images: list[Image.Image], columns: int) -> Image.Image:
     return sheet
 
 
+#: The shortest GIF frame most viewers show as given (shorter ones are slowed, often to 100 ms).
+GIF_MIN_FRAME_MS = 20
+
+
+def gif_durations(count: int, fps: float) -> list[int]:
+    """Each GIF frame's duration (ms) for playback at ``fps``: a GIF stores centiseconds, so
+    one duration for all (33 ms at 30 fps, stored 30) played 11 % fast; the frames' ends
+    rounded to 10 ms instead keep the rate on average (30, 40, 30, ...). Above 50 fps a
+    frame would be shorter than ``GIF_MIN_FRAME_MS``: it plays at 50 fps, and a warning
+    says so (an .mp4 keeps any rate)."""
+    import warnings  # noqa: PLC0415
+
+    frame_ms = 1000.0 / fps
+    if frame_ms < GIF_MIN_FRAME_MS:
+        warnings.warn(f"fps = {fps:g}: a GIF's frames last at least {GIF_MIN_FRAME_MS} ms, so it plays at "
+                      f"{1000.0 / GIF_MIN_FRAME_MS:g} fps, {1000.0 / GIF_MIN_FRAME_MS / fps:.2f} x the rate asked "
+                      "(write .mp4 to keep it)", RuntimeWarning, stacklevel=3)
+        return [GIF_MIN_FRAME_MS] * count
+    ends = [10 * round(k * frame_ms / 10.0) for k in range(count + 1)]
+    return [max(GIF_MIN_FRAME_MS, b - a) for a, b in zip(ends, ends[1:])]
+
+
 @dataclasses.dataclass
 class RenderResult:
     output: str
@@ -1129,7 +1151,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     elif kind == "gif":
         pal = [im.quantize(colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE) for im in images]
         with checks.replaced_atomically(out) as part:
-            pal[0].save(part, format="GIF", save_all=True, append_images=pal[1:], duration=max(20, round(1000.0 / playback)),
+            pal[0].save(part, format="GIF", save_all=True, append_images=pal[1:], duration=gif_durations(len(pal), playback),
                         loop=0, optimize=False, disposal=1)
         files.append(out)
     elif kind == "mp4":

@@ -962,6 +962,8 @@ def parse_frames(spec, available: list[int]) -> list[int]:
 
     def one(text: str) -> int:
         v = int(text)
+        if v == 0 and text.lstrip().startswith("-"):  # '-0': from the end, or frame 0? neither said
+            raise ValueError
         return last + 1 + v if v < 0 else v
 
     out: list[int] = []
