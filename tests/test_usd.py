@@ -361,3 +361,19 @@ def test_a_float64_run_reads_back_to_the_last_bit(tmp_path, dtype):
     prim = stage.GetPrimAtPath("/World/" + m.bodies[0].name)
     assert bool(prim.GetAttribute("warp_esph:points_float64")) == (dtype == "float64")
     assert len(kept) == 4  # frames 0..3
+    if dtype == "float64":
+        # A file whose early frames lack them (begun before they were written, then resumed):
+        # those frames read their own float points, not the nearest double sample.
+        layer = Sdf.Layer.FindOrOpen(str(path))
+        edit_stage = Usd.Stage.Open(layer)
+        edit = edit_stage.GetPrimAtPath("/World/" + m.bodies[0].name)
+        for key in ("warp_esph:points_float64", "warp_esph:velocities_float64"):
+            for frame in (0, 1):
+                edit.GetAttribute(key).ClearAtTime(float(frame))
+        layer.Save()
+        data = UsdFrames(str(path))
+        for frame in (0, 1):
+            a = data.arrays(frame)
+            assert a["points"].dtype == np.float32
+            np.testing.assert_allclose(a["points"], kept[frame][0], atol=1e-6)
+        np.testing.assert_array_equal(data.arrays(2)["points"], kept[2][0])

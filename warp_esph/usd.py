@@ -872,8 +872,12 @@ class UsdFrames:
                     return np.full(shape, fill, dtype=np.float32)
                 return np.asarray(value, dtype=np.float32).reshape(shape)
 
+            # Only a sample at this very frame: Get(t) answers with the nearest one, and a file a
+            # float64 run began before these attributes existed (then resumed) has them only
+            # from the resume on, so its earlier frames read as the resume frame.
+            here = Gf.Interval(float(frame), float(frame))
             exact = [prim.GetAttribute(key) for key in (_POINTS64, _VELOCITIES64)]
-            exact = [a.Get(t) if a else None for a in exact]
+            exact = [a.Get(t) if a and a.GetTimeSamplesInInterval(here) else None for a in exact]
             if all(e is not None and len(e) == n for e in exact):  # a float64 run's own values
                 cols["points"].append(np.asarray(exact[0], dtype=np.float64).reshape(n, 3))
                 cols["velocities"].append(np.asarray(exact[1], dtype=np.float64).reshape(n, 3))
