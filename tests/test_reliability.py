@@ -545,7 +545,7 @@ def test_an_extreme_input_gets_its_one_line_and_no_numpy_notes_before_it(tmp_pat
     else:
         (tmp_path / "empty.xyz").write_text("")
         assert main(["fit", str(scene), "--target", "empty.xyz", "--no-progress"]) == 2
-        needle = "empty.xyz is not allowed as a point cloud: it holds 0 rows"
+        needle = "empty.xyz is not allowed as a point cloud: it holds no points"
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("warp-esph: error: ") and needle in err, err
 

@@ -7,6 +7,7 @@ to slump visibly and a high one to stay a box.
 
 import math
 import os
+import warnings
 
 import numpy as np
 import pytest
@@ -458,7 +459,8 @@ def test_a_sweep_keeps_the_samples_finished_while_it_runs(scene_file, tmp_path, 
 def test_values_matplotlib_cannot_lay_out_still_leave_the_tables_and_the_record(tmp_path):
     """A sweep of yield_stress over 1e307..1.7e308 ran every sample, then matplotlib's axes
     raised 'arange: cannot compute length', exit 2 with no sweep.json. The plot is said to
-    be missing and everything else is written."""
+    be missing (an earlier sweep's picture removed, the figure closed) and everything else is
+    written."""
     pytest.importorskip("matplotlib")
     from warp_esph.sweep import SUMMARY_COLUMNS, write_outputs
 
@@ -467,7 +469,14 @@ def test_values_matplotlib_cannot_lay_out_still_leave_the_tables_and_the_record(
                        rows=[{"sample": 0, "yield_stress": 1e307, "status": "ok", q: 1.0},
                              {"sample": 1, "yield_stress": 1.7e308, "status": "ok", q: 2.0}],
                        params=["yield_stress"])
-    lines = write_outputs(table, tmp_path, meta={"partial": False})
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    (tmp_path / "sweep.png").write_bytes(b"an earlier sweep's picture")
+    open_before = len(plt.get_fignums())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # matplotlib's overflow note
+        lines = write_outputs(table, tmp_path, meta={"partial": False})
+    assert len(plt.get_fignums()) == open_before  # the failed figure closed
     assert any(line.startswith("no plot: matplotlib could not draw these values") for line in lines), lines
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["sweep.csv", "sweep.json"]
                                                                 + (["sweep.parquet"] if any("parquet" in x and "wrote" in x for x in lines) else []))

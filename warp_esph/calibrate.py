@@ -198,7 +198,8 @@ def run_fit(args, out=None, err=None) -> int:
                        f"dt = {e.dt:.4g} s ({e.frames * e.substeps} steps); fitting {', '.join(params)} with "
                        f"{optimizer} to {e.kinds} from {', '.join(str(p) for p in e.targets)}")
     experiments = [Experiment(e.model, e.loss, steps=e.frames * e.substeps, dt=e.dt, materials=e.materials,
-                              checkpoint_every=ck, weight=e.weight, noise=e.noise, name=e.scene.name) for e in exps]
+                              checkpoint_every=ck, weight=e.weight, noise=e.noise, name=e.scene.name,
+                              monitor_exempt=tuple(getattr(e.scene, "diverges", ()) or ())) for e in exps]
     scene, model, frames, fps, dt = exps[0].scene, exps[0].model, exps[0].frames, exps[0].fps, exps[0].dt
     scale = exps[0].scale
     targets = exps[0].targets

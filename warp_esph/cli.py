@@ -416,11 +416,15 @@ def _cmd_run(args) -> int:
     if args.resume is not None and (writer.last_frame is None or writer.first_frame != 0 or writer.last_frame < start_frame - 1):
         # The resumed frames must follow the file's: a file of a shorter run, written over the
         # one checkpointed, would keep a gap of frames nobody wrote.
-        held = "no frames" if writer.last_frame is None else f"frames {writer.first_frame}..{writer.last_frame}"
+        if writer.last_frame is None:
+            held, gap = "no frames", f"0..{start_frame - 1}"
+        else:
+            held = f"frames {writer.first_frame}..{writer.last_frame}"
+            gap = (f"0..{writer.first_frame - 1}" if writer.first_frame != 0
+                   else f"{writer.last_frame + 1}..{start_frame - 1}")
         writer.close()
         raise ValueError(f"--resume = {args.resume!r} is not allowed with {writer.path}: the file holds {held} and the "
-                         f"checkpoint is at frame {start_frame}; resuming would leave frames "
-                         f"{0 if writer.last_frame is None else writer.last_frame + 1}..{start_frame - 1} unwritten")
+                         f"checkpoint is at frame {start_frame}; resuming would leave frames {gap} unwritten")
     # The whole output name: a.usdc and a.usda in one folder must not share a checkpoint.
     checkpoint_path = writer.path + ".checkpoint.npz"
     run_record = {"scene": args.scene if args.scene is not None else scene.name, "scale": scale, "fps": fps, "dt": dt,

@@ -252,7 +252,9 @@ class Experiment:
     material ``k`` of every other (so each must select the same number of materials), and
     the initial guess is the first experiment's. ``weight`` scales this experiment's loss
     in the joint sum; ``noise`` is its observation noise for the diagnostics (None: the
-    ``noise`` given to ``fit``). ``name`` labels it in messages.
+    ``noise`` given to ``fit``). ``name`` labels it in messages. ``monitor_exempt`` names
+    bodies whose blow-up the divergence check ignores (a scene showing a method fail; a
+    ``scenes.Scene`` given as ``model`` brings its own ``diverges``), as ``simulate``'s.
     """
 
     model: object
@@ -266,6 +268,7 @@ class Experiment:
     weight: float = 1.0
     noise: float | None = None
     name: str | None = None
+    monitor_exempt: Sequence[str] = ()
 
 
 #: Default memory budget (bytes) of ``checkpoint_every="auto"``.
@@ -315,7 +318,17 @@ class _Run:
 
     def __init__(self, exp: Experiment, dtype, memory_limit, name):
         self.name = name
+        exempt = exp.monitor_exempt
+        if isinstance(exempt, str) or not hasattr(exempt, "__iter__"):
+            raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: must be a list of body names")
+        exempt = tuple(exempt) or tuple(getattr(exp.model, "diverges", ()) or ())
         self.model = _as_model(exp.model, dtype)
+        names = [b.name for b in self.model.bodies]
+        for body in exempt:
+            if body not in names:
+                raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: {body!r} is not a body of the model ({names})")
+        #: The particles the divergence check reads (``_divergence``).
+        self.checked = ~np.isin(self.model.particle_body_np, [names.index(b) for b in exempt])
         self.idx = _material_indices(self.model, exp.materials)
         self.loss = _target_loss(exp.target, exp.frames)
         loss = self.loss
@@ -426,7 +439,7 @@ def _divergence(model: Model, rollout: Rollout, particles=None) -> str | None:
 
 
 def _check_diverged(run) -> None:
-    why = _divergence(run.model, run.rollout)
+    why = _divergence(run.model, run.rollout, run.checked)
     if why is not None:
         raise Diverged(why)
 
@@ -1076,6 +1089,7 @@ class _WorldsProblem:
             wr.idx = [w * M + k for w in range(worlds) for k in r.idx]
             wr.tied = [w * M + k for w in range(worlds) for k in getattr(r, "tied", [])]
             wr.tie = r.tie
+            wr.checked = np.tile(r.checked, worlds)  # particles world after world
             self.runs.append(wr)
         self.p = [None] * worlds
 
@@ -1103,7 +1117,7 @@ class _WorldsProblem:
                 r.apply({name: np.concatenate([self.p[w][name] for w in range(W)]) for name in prob.params})
                 _, grads = r.rollout.value_and_grad(r.loss)
                 for w in range(W):  # a world that blew up fails its start alone
-                    why = _divergence(r.model, r.rollout, r.model.world_of_particle == w)
+                    why = _divergence(r.model, r.rollout, r.checked & (r.model.world_of_particle == w))
                     if why is not None and w not in refused:
                         refused[w] = why
                 values += r.weight * np.asarray(r.loss.world_values, dtype=np.float64)
@@ -1636,12 +1650,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
                 pts = np.loadtxt(p, delimiter="," if ext == ".csv" else None, ndmin=2)
         except Exception as e:  # noqa: BLE001
             raise ValueError(f"target {p} cannot be read as a point cloud: {e}") from None
-        if pts.shape[0] == 0 or pts.shape[1] < 3:
-            raise ValueError(f"target {p} is not allowed as a point cloud: it holds {pts.shape[0]} rows of {pts.shape[1]} "
-                             "numbers; it needs one or more rows of three (x y z)")
-        pts = pts[:, :3]
-        _finite_cloud(p, pts)
-        return Target("points", pts, None, None, p)
+        return Target("points", _cloud(p, pts), None, None, p)
     if ext in (".usd", ".usda", ".usdc"):
         run = _usd_run_target(p, body, frames)
         if run is not None:
@@ -1660,19 +1669,18 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         from .meshes import load_mesh  # noqa: PLC0415
 
         return Target("mesh", load_mesh(p), None, None, p)
-    pts = np.asarray(m.points, dtype=np.float64)
+    return Target("points", _cloud(p, np.asarray(m.points, dtype=np.float64)), None, None, p)
+
+
+def _cloud(path: str, pts: np.ndarray) -> np.ndarray:
+    """The first three columns of ``pts``, one or more rows, every point finite; else refused
+    by the file's name (an empty .obj or .stl raised IndexError; a cloud of (x, y) pairs or
+    a NaN point was named by the step it was compared at)."""
     if pts.ndim != 2 or pts.shape[0] == 0 or pts.shape[1] < 3:
-        # An empty .obj or .stl read as no array of rows (IndexError); a cloud of (x, y) pairs
-        # was named by the step it was compared at.
         shape = "no points" if pts.size == 0 else f"points of shape {pts.shape}"
-        raise ValueError(f"target {p} is not allowed as a point cloud: it holds {shape}; it needs one or more points "
+        raise ValueError(f"target {path} is not allowed as a point cloud: it holds {shape}; it needs one or more points "
                          "of three coordinates (x y z)")
-    return Target("points", _finite_cloud(p, pts[:, :3]), None, None, p)
-
-
-def _finite_cloud(path: str, pts: np.ndarray) -> np.ndarray:
-    """``pts`` where every point is finite; else refused by the file's name (it was named
-    by the step it was compared at)."""
+    pts = pts[:, :3]
     bad = np.flatnonzero(~np.isfinite(pts).all(axis=1))
     if bad.size:
         raise ValueError(f"target {path} is not allowed as a point cloud: point {bad[0]} is {pts[bad[0]].tolist()}; "

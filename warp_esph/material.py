@@ -243,6 +243,8 @@ class Material:
             Y = math.sqrt(2.0 / 3.0) * checks.non_negative("uniaxial_yield_stress", uniaxial_yield_stress)
         eta = checks.positive("plastic_viscosity", plastic_viscosity, allow_inf=True) if plastic_viscosity is not None else math.inf
         model = kwargs.get("model", "linear")
+        checks.choice("Material.model", model, MODELS)  # a misspelt model named as such first
+        checks.choice("Material.deformation", kwargs.get("deformation", "incremental"), DEFORMATIONS)
         if model not in BINGHAM_MODELS or kwargs.get("deformation", "incremental") != "incremental":
             what = (f"model = {model!r}" if model not in BINGHAM_MODELS
                     else f"deformation = {kwargs['deformation']!r}")

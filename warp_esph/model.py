@@ -770,7 +770,8 @@ class Model:
         springs can have (``sim/hourglass.py``, worst material ``mu / rho``); the lattice's
         checkerboard mode is at 0.8 of it, and the factor 0.8 leaves it the margin of 1.5 the
         wave limit has at least (docs/method.md §8). E = 1e5 Pa, nu = 0.3: the step is 0.1 %
-        shorter at ``c = 0.1``, 4.0 % at 3; the control rules from ``c`` of about 100.
+        shorter at ``c = 0.1``, 4.0 % at 3 without the SPH pressure (3.1 % with the default
+        pressure force, whose stiffness already shortens the wave limit); the control rules from ``c`` of about 100.
         (Measured, 512 particles shaken at random, ``tests/test_adaptive_dt.py``: at ``c = 1000``
         stable at 1.45 x the returned step, blown up at 1.6 x; at ``c = 300``, 1.6 and 1.8 x.)"""
         courant = checks.positive("courant", courant)
@@ -803,10 +804,18 @@ class Model:
             except ValueError as e:
                 raise ValueError(f"{what}: material {k}: {e}") from None
 
+    def wave_speeds(self, values: dict | None = None) -> np.ndarray:
+        """Each material's p-wave speed (``material.p_wave_speed``, m/s) from its current
+        parameters (``parameter_values()``, or ``values`` of that form): the speed the step,
+        the adaptive step and the divergence monitor must resolve."""
+        p = self.parameter_values() if values is None else values
+        rho = np.array([m.density for m in self.materials], dtype=np.float64)
+        return p_wave_speed(p["mu"], p["lam"], rho, p["pressure_stiffness"])
+
     def _stable_dt_now(self, courant: float, hourglass: float | None, rows: np.ndarray) -> float:
         p = self._parameter_values(rows)
         rho = np.array([m.density for m in self.materials], dtype=np.float64)
-        c = p_wave_speed(p["mu"], p["lam"], rho, p["pressure_stiffness"])
+        c = self.wave_speeds(p)
         dt = courant * self.spacing / float(np.max(c))
         strength = self.solver_choice()[1] if hourglass is None else checks.hourglass("hourglass", hourglass)
         if strength > 0.0:

@@ -17,7 +17,6 @@ import time
 import numpy as np
 
 from . import checks, tools
-from .material import p_wave_speed
 from .model import Model, State
 from .sim.solver import Solver
 
@@ -71,9 +70,14 @@ class DivergenceMonitor:
       can give (``sqrt(strength) R``, a harmonic field over the scene's radius);
       ``SPEED_FACTOR`` times that is a blow-up.
     - energy: with no work done on the bodies, the kinetic energy is at most the initial
-      one plus the potential energy released since (``sum m g (h_0 - h)``) plus the
-      fields' potential energy; ``ENERGY_FACTOR`` times that, plus a floor for the elastic
-      energy a resumed state may hold (``0.5 M (0.1 c_P)^2``), is a blow-up.
+      one plus the elastic energy stored at the start (``(mu + 3/2 lam + 3/2 rho k_p) |F -
+      I|^2 V`` per particle, an upper bound: a prestrained ``F0`` recoils) plus the potential
+      energy released since (``sum m g (h_0 - h)``) plus the fields' potential energy;
+      ``ENERGY_FACTOR`` times that, plus a floor ``0.5 M (0.1 c_P)^2`` (the strain a
+      rest-configuration body's positions may hold), is a blow-up.
+
+    The wave speeds and energies read the parameters the model runs now (a fit's trial
+    writes them without changing ``model.materials``) of the particles checked.
     - reach: a particle farther from the scene's box (particles and colliders) than
       ``REACH_FACTOR`` times (its diagonal + the speed bound x ``t``) is a blow-up.
 
@@ -139,8 +143,15 @@ class DivergenceMonitor:
         # From the model's parameter arrays, which a fit or Rollout.set_parameters changes
         # without changing model.materials (a trial 3000 x stiffer read the guess's speed).
         p = model.parameter_values()
+        material = model.particle_material_np[self.keep]
+        self.wave = float(model.wave_speeds(p)[np.unique(material)].max())  # of the particles checked
+        # Elastic energy stored at the start (a prestrained F0, a resumed state), bounded from
+        # above by (mu + 3/2 lam + 3/2 rho k_p) |F - I|^2 V: its recoil is no blow-up.
         density = np.array([m.density for m in model.materials], dtype=np.float64)
-        self.wave = float(p_wave_speed(p["mu"], p["lam"], density, p["pressure_stiffness"]).max())
+        stiffness = p["mu"] + 1.5 * p["lam"] + 1.5 * density * p["pressure_stiffness"]
+        strain = state.F.numpy().astype(np.float64)[self.keep] - np.eye(3)
+        volume = model.particle_volume.numpy().astype(np.float64)[self.keep]
+        self.e_elastic = float((stiffness[material] * (strain * strain).sum(axis=(1, 2)) * volume).sum())
         self.v_fields, self.e_fields = 0.0, 0.0
         for f in model.force_fields:
             r = np.linalg.norm((x0 - np.asarray(f.center))[:, [0, 2]], axis=1).max() + self.diagonal
@@ -176,14 +187,14 @@ class DivergenceMonitor:
         ke = 0.5 * self.mass * speed2
         released = float((self.mass * self.g * (self.h0 - x @ self.up)).sum())
         driven = 0.5 * float(self.mass.sum()) * self.driven_speed(t) ** 2
-        budget = max(self.ke0 + released + self.e_fields + driven, 0.0)
+        budget = max(self.ke0 + self.e_elastic + released + self.e_fields + driven, 0.0)
         limit = self.ENERGY_FACTOR * budget + self.e_floor
         if ke.sum() > limit:
             what = ("and potential energy released, and every particle at the tools' speed" if driven > 0.0
                     else "and potential energy released (no work is done on the bodies)")
             return (f"kinetic energy {ke.sum():.3g} J, more than the {limit:.3g} J the scene can give: {self.ENERGY_FACTOR:g} "
-                    f"x the {budget:.3g} J of initial kinetic energy {what}, plus {self.e_floor:.3g} J for elastic "
-                    f"energy stored at the start"), int(self.index[np.argmax(ke)])
+                    f"x the {budget:.3g} J of initial kinetic and elastic energy {what}, plus a floor of {self.e_floor:.3g} J "
+                    f"(0.5 M (0.1 c_P)^2)"), int(self.index[np.argmax(ke)])
         reach = self.REACH_FACTOR * (self.diagonal + bound * t)
         outside = np.maximum(np.maximum(self.lo - x, x - self.hi), 0.0)
         d2 = (outside * outside).sum(axis=1)
@@ -294,9 +305,7 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
     courant = checks.positive("courant", courant)
     frame_dt = 1.0 / fps
     stable = model.stable_dt(courant, hourglass=hourglass)
-    p = model.parameter_values()
-    rho = np.array([m.density for m in model.materials], dtype=np.float64)
-    c = float(np.max(p_wave_speed(p["mu"], p["lam"], rho, p["pressure_stiffness"])))
+    c = float(np.max(model.wave_speeds()))
     v = state.v.numpy().astype(np.float64)
     v_max = float(np.sqrt((v * v).sum(axis=1)).max()) if len(v) else 0.0
     if not math.isfinite(v_max):

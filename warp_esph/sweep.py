@@ -906,6 +906,13 @@ def plot(table: SweepTable, path, log_params: Sequence[str] = (), quantities: Se
     ok = table.column("status") == "ok"
     fig, axes = plt.subplots(len(quantities), len(names), figsize=(3.2 * len(names) + 0.6, 2.4 * len(quantities) + 0.6),
                              squeeze=False, sharex="col", constrained_layout=True)
+    try:
+        return _draw(fig, axes, table, names, quantities, ok, log_params, path)
+    finally:
+        plt.close(fig)  # also where drawing fails: a sweep in a loop kept every failed figure open
+
+
+def _draw(fig, axes, table, names, quantities, ok, log_params, path) -> str:
     for j, name in enumerate(names):
         x = table.column(name)
         for i, q in enumerate(quantities):
@@ -932,7 +939,6 @@ def plot(table: SweepTable, path, log_params: Sequence[str] = (), quantities: Se
     fig.suptitle(f"{len(table)} samples, {int(ok.sum())} ok")
     path = os.fspath(path)
     fig.savefig(path, dpi=100)
-    plt.close(fig)
     return path
 
 
@@ -960,9 +966,13 @@ def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_pa
             lines.append(f"wrote {plot(table, os.path.join(folder, 'sweep.png'), log_params)}")
         except ImportError:
             lines.append("no plot: matplotlib is not installed (pip install 'warp-esph[plot]')")
-        except (ValueError, OverflowError, ArithmeticError) as e:
+        except (ValueError, ArithmeticError) as e:
             # matplotlib cannot lay out axes of values near the float range ('arange: cannot
-            # compute length' at 1e307..1.7e308): the sweep ran and its tables stand.
+            # compute length' at 1e307..1.7e308): the sweep ran and its tables stand; an earlier
+            # sweep's picture in the folder would no longer match them.
+            stale = os.path.join(folder, "sweep.png")
+            if os.path.isfile(stale):
+                os.remove(stale)
             lines.append(f"no plot: matplotlib could not draw these values ({e}); the CSV has the data")
     return lines
 
