@@ -509,3 +509,18 @@ def test_any_npy_mask_is_a_binary_mask_or_refused_by_its_file(tmp_path, values):
         assert not np.isfinite(a).all() or (a.max() <= 0.0 and a.min() < 0.0)
     else:
         assert np.isfinite(a).all() and set(np.unique(m)) <= {0.0, 1.0}
+
+
+@pytest.mark.parametrize("value", [np.True_, np.array(False), np.complex128(1.0e3 + 5.0j), np.array(1.0e3 + 0.0j)],
+                         ids=["np_bool", "0d_bool", "np_complex", "0d_complex"])
+def test_numpy_bools_and_complex_numbers_are_not_numbers(value):
+    """Python's True was refused as a number, numpy's read as 1 (a shear modulus of 1 Pa, a
+    time step of 1 s, a tool at 1 m/s); a complex value read as its real part with only a
+    ComplexWarning. Every numeric check refuses both by name."""
+    with pytest.raises(ValueError, match=r"Material\.mu = .* is not allowed: must be a real number \(not a bool or"):
+        we.Material(mu=value, lam=1.0e3)
+    with pytest.raises(ValueError, match=r"spacing = .* is not allowed: must be a real number"):
+        we.SceneBuilder(spacing=value)
+    with pytest.raises(ValueError, match=r"velocity\[0\] = .* is not allowed: must be a real number"):
+        we.tools.Velocity((value, 0.0, 0.0))
+    assert we.Material(mu=np.float32(1.0e3), lam=np.array(1.5e3)).lam == 1.5e3  # real numpy values stay welcome

@@ -110,3 +110,39 @@ def test_inputs_are_checked_and_missing_torch_is_explained(monkeypatch):
     monkeypatch.setitem(sys.modules, "torch", None)
     with pytest.raises(ImportError, match="pip install torch"):
         require_torch()
+
+
+def test_elastic_models_refused_starts_and_input_kinds():
+    """From a fuzz of the torch interface. An elastic material (yield_stress = inf, the
+    default) failed every backward that had to redo its forward (``set_parameters`` refused
+    the inf it restores), so ``gradcheck`` failed on any elastic model; it now matches
+    central differences. A call refused for its ``v0`` left the model running its new
+    parameters; a float16 input made float16 positions (1.7 mm off at 5 m) and bfloat16 a
+    TypeError; bool and complex starts ran as 1 m/s and as their real parts; per-material
+    tensors in a list that require grad were a RuntimeError."""
+    model = _cube(yield_stress=float("inf"))
+    rollout = Rollout(model, 3, 1.0e-3, frames=[3])
+    mu = torch.tensor([1.0e3], dtype=torch.float64, requires_grad=True)
+    rollout_positions(rollout, {"mu": mu * 1.1})  # another forward since: the backward redoes its own
+    assert torch.autograd.gradcheck(lambda m: rollout_positions(rollout, {"mu": m}), (mu,), eps=1e-6, atol=1e-8,
+                                    rtol=1e-5)
+    with pytest.raises(ValueError, match="yield_stress = .* is not allowed in log space: values must be finite and > 0"):
+        RolloutModule(rollout, ["yield_stress"])
+    before = model.mu.numpy().copy()
+    with pytest.raises(ValueError, match="v0"):
+        rollout_positions(rollout, {"mu": torch.tensor([5e3], dtype=torch.float64)},
+                          v0=torch.full((27, 3), float("nan"), dtype=torch.float64))
+    np.testing.assert_array_equal(model.mu.numpy(), before)
+    exact = rollout_positions(rollout, {"mu": torch.tensor([1e3], dtype=torch.float64)})
+    for dtype in (torch.float16, torch.bfloat16, torch.float32):
+        out = rollout_positions(rollout, {"mu": torch.tensor([1e3], dtype=dtype)})
+        assert out.dtype == torch.float64 and torch.equal(out, exact)  # 1e3 is exact in each
+    for bad in (torch.ones((27, 3), dtype=torch.bool), torch.zeros((27, 3), dtype=torch.complex128)):
+        with pytest.raises(ValueError, match=f"v0 of dtype {bad.dtype} is not allowed: must be real numbers"):
+            rollout_positions(rollout, {}, v0=bad)
+    two = _cube()
+    two.set_material(0, two.materials[0])
+    t = torch.tensor(1.0e3, dtype=torch.float64, requires_grad=True)
+    out = rollout_positions(Rollout(two, 2, 1.0e-3), {"mu": [t]})
+    (g,) = torch.autograd.grad(out.square().sum(), t)
+    assert float(g) != 0.0

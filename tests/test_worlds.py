@@ -151,6 +151,24 @@ def test_world_gradients_match_separate_tapes():
             assert np.abs(g_ref).max() > 0.0 or name == "pressure_stiffness", name
             np.testing.assert_allclose(g, g_ref, rtol=1e-9, atol=1e-12 * np.abs(g_ref).max(), err_msg=name)
     assert value == pytest.approx(sum(v for v, _ in ref.values()), rel=1e-12)
+    # Inside a sum (beside a force loss, as docs/fitting.md has it) each world's term: the
+    # WorldLoss's world_values stayed the last direct evaluation's and the rollout's read None.
+    model.set_material(0, MAT_B.replace(mu=2.0 * MAT_B.mu), world=1)
+    r.forward()
+    value2, _ = r.backward(2.0 * loss)
+    assert r.world_values is not None and r.world_values[1] != pytest.approx(2.0 * ref[MAT_B][0], rel=1e-6)
+    np.testing.assert_array_equal(loss.world_values, r.world_values)
+    assert r.world_values[0] == pytest.approx(2.0 * ref[MAT_A][0], rel=1e-12)
+    assert value2 == pytest.approx(r.world_values.sum(), rel=1e-12)
+    # A WorldLoss of another model whose particle total is the same ran and gave its worlds.
+    b = _builder(MAT_A)
+    b.add_box((0.5, 0.0, 0.0), (0.12, 0.1, 0.1), MAT_A, name="second")
+    one_world = b.finalize(dtype=dtype, requires_grad=True)
+    assert one_world.particle_count == model.particle_count and one_world.world_count == 1
+    r1 = _rollout(one_world)
+    r1.forward()
+    with pytest.raises(ValueError, match="is not allowed: it was made for a model of worlds starting at particles"):
+        r1.backward(loss)
 
 
 @pytest.mark.parametrize("kind", ["subset", "chamfer"])

@@ -57,6 +57,12 @@ def number(name: str, value, *, allow_inf: bool = False) -> float:
     """A real number (bools, strings and NaN rejected); ``inf`` only when ``allow_inf``."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(value, "__float__"):
         _fail(name, value, "must be a number")
+    dtype = getattr(value, "dtype", None)
+    if isinstance(value, np.bool_) or getattr(dtype, "kind", None) in ("b", "c") \
+            or str(dtype) in ("torch.bool", "torch.complex64", "torch.complex128"):
+        # numpy's and torch's bools read as 1 and 0 (Python's True is refused above), a complex
+        # value as its real part with only a ComplexWarning.
+        _fail(name, shorten(value), "must be a real number (not a bool or a complex)")
     if getattr(value, "requires_grad", False):
         # A torch tensor that carries a gradient: float() cuts it off without a word.
         _fail(name, shorten(value), "must be a plain number: float() would drop its gradient (to fit a parameter "

@@ -562,8 +562,15 @@ class WorldLoss(Loss):
         self._world_x = {}
         self._world_acc = {}
         self._used: list[dict] = [{} for _ in losses]
-        #: Each world's term at the last evaluation (numpy, one value per world).
-        self.world_values = None
+
+    @property
+    def world_values(self) -> np.ndarray | None:
+        """Each world's term at the last evaluation, scaled as it entered the sum (numpy, one
+        value per world; None before one), also where this loss is a term of a sum (it was
+        set by this loss's own ``value_and_grad`` only, and read stale inside a sum)."""
+        if not any(self._used):
+            return None
+        return np.array([sum(float(a.numpy()[0]) for a in used.values()) for used in self._used])
 
     def launch(self, frame, x, out, scale: float = 1.0):
         if x.shape[0] != self.world_start[-1]:
@@ -588,9 +595,7 @@ class WorldLoss(Loss):
 
     def value_and_grad(self, positions):
         self._used = [{} for _ in self.losses]
-        value, grads = super().value_and_grad(positions)
-        self.world_values = np.array([sum(float(a.numpy()[0]) for a in used.values()) for used in self._used])
-        return value, grads
+        return super().value_and_grad(positions)
 
     def __repr__(self):
         return f"WorldLoss({len(self.losses)} worlds: {self.losses[0]!r}, ...)"

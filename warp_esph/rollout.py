@@ -287,8 +287,11 @@ class Rollout:
                 v = np.full(arr.shape[0], v[0], dtype=v.dtype)
             if v.shape[0] != arr.shape[0]:
                 raise ValueError(f"{name} has {v.shape[0]} values, the model {arr.shape[0]} materials")
-            if not np.isfinite(v).all():
-                raise ValueError(f"{name} = {v!r} is not allowed: values must be finite")
+            if not (np.isfinite(v) | ((v == np.inf) if name == "yield_stress" else False)).all():
+                # yield_stress = inf is an elastic material's (a torch backward restoring every
+                # parameter of one failed on it)
+                raise ValueError(f"{name} = {v!r} is not allowed: values must be finite"
+                                 + (" (or inf: no yield)" if name == "yield_stress" else ""))
             new[name] = v
         # Each material's checks, now that the values are given (a negative mu was refused
         # only at the next step, as "the model's parameter arrays").
@@ -548,9 +551,20 @@ class Rollout:
         value = None
         self.world_values = None
         if hasattr(grads, "value_and_grad"):
+            from .losses import WorldLoss, _leaves  # noqa: PLC0415
+
             loss = grads
+            worlds = list({id(leaf): leaf for leaf in _leaves(loss) if isinstance(leaf, WorldLoss)}.values())
+            for leaf in worlds:
+                if not np.array_equal(leaf.world_start, self.model.world_start):
+                    # Another model's worlds of the same particle total ran and gave its values.
+                    raise ValueError(f"loss {leaf!r} is not allowed: it was made for a model of worlds starting at "
+                                     f"particles {leaf.world_start.tolist()}, this one's start at "
+                                     f"{np.asarray(self.model.world_start).tolist()}")
             value, grads = loss.value_and_grad(self.observations())
-            self.world_values = getattr(loss, "world_values", None)
+            # Each world's terms, also where the WorldLoss is a term of a sum (it read None there).
+            parts = [leaf.world_values for leaf in worlds if leaf.world_values is not None]
+            self.world_values = sum(parts[1:], parts[0]) if parts else None
         force_grads = collider_grads = None
         if isinstance(grads, Mapping) and (FORCES in grads or COLLIDER_FORCES in grads):
             grads = dict(grads)

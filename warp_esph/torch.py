@@ -60,7 +60,8 @@ def _function():
     torch = require_torch()
 
     def _numpy(t, dtype):
-        return t.detach().to("cpu").numpy().astype(dtype, copy=True)
+        # Through float64: numpy has no bfloat16, and float16 would round the values first.
+        return t.detach().to(device="cpu", dtype=torch.float64).numpy().astype(dtype, copy=True)
 
     class RolloutFunction(torch.autograd.Function):
         """``(rollout, names, x0, v0, *values) -> positions (frames, n, 3)``."""
@@ -69,18 +70,27 @@ def _function():
         def forward(ctx, rollout, names, x0, v0, *values):
             np_dtype = rollout.model.types.np_dtype
             given = {name: _numpy(v, np_dtype) for name, v in zip(names, values)}
+            before = rollout.get_parameters()
             rollout.set_parameters(given)
             ctx.rollout = rollout
             ctx.names = names
             ctx.params = rollout.get_parameters()
             ctx.x0 = None if x0 is None else _numpy(x0, np_dtype)
             ctx.v0 = None if v0 is None else _numpy(v0, np_dtype)
-            out = rollout.forward(x0=ctx.x0, v0=ctx.v0)
+            try:
+                out = rollout.forward(x0=ctx.x0, v0=ctx.v0)
+            except BaseException:
+                # A refused start (a NaN v0) left the model running the new values.
+                rollout.set_parameters(before)
+                raise
             ctx.forward_count = rollout.forward_count
             ref = next((t for t in (x0, v0, *values) if t is not None), None)
-            # The positions are real numbers: an integer input (a viscosity given as 0, an int64
-            # x0) made them integers, every one truncated to 0.
-            dtype = ref.dtype if ref is not None and ref.is_floating_point() else torch.float64
+            # Real numbers in at least the model's precision: an integer input (a viscosity given
+            # as 0) made them integers, each truncated to 0; a float16 one rounded them (1.7 mm
+            # at 5 m from the origin).
+            model_dtype = torch.float64 if np_dtype == np.float64 else torch.float32
+            dtype = torch.promote_types(ref.dtype, model_dtype) if ref is not None and ref.is_floating_point() \
+                else torch.float64
             device = ref.device if ref is not None else torch.device("cpu")
             ctx.tensor_dtype, ctx.device = dtype, device
             return torch.from_numpy(out).to(dtype=dtype, device=device)
@@ -133,6 +143,14 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
     for name, value in params.items():
         if name not in PARAMETERS:
             raise ValueError(f"parameter {name!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
+        if isinstance(value, (list, tuple)) and any(isinstance(v, torch.Tensor) for v in value):
+            # One tensor per material: stacked, so each keeps its gradient (numpy refused a
+            # tensor that requires one with a RuntimeError).
+            try:
+                value = torch.stack([torch.as_tensor(v).to(torch.float64).reshape(()) for v in value])
+            except (RuntimeError, TypeError, ValueError):
+                raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be numbers, one per "
+                                 "material") from None
         kind = ("b" if value.dtype == torch.bool else "c" if value.is_complex() else "f") if isinstance(value, torch.Tensor) \
             else np.asarray(value).dtype.kind
         if kind not in "iuf":  # a bool ran as 1 Pa
@@ -148,6 +166,8 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
     for label, t in (("x0", x0), ("v0", v0)):
         if t is not None and (not isinstance(t, torch.Tensor) or tuple(t.shape) != (n, 3)):
             raise ValueError(f"{label} is not allowed: must be a torch tensor of shape ({n}, 3)")
+        if t is not None and (t.dtype == torch.bool or t.is_complex()):  # True ran as 1 m/s, 1j was dropped
+            raise ValueError(f"{label} of dtype {t.dtype} is not allowed: must be real numbers")
     return _function().apply(rollout, tuple(names), x0, v0, *values)
 
 
@@ -191,8 +211,9 @@ def _module_class():
                     raise ValueError(f"parameter {name!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
                 v = torch.tensor(current[name], dtype=torch.float64)
                 if self.log_space:
-                    if not bool((v > 0).all()):
-                        raise ValueError(f"{name} = {current[name].tolist()} is not allowed in log space: values must be > 0")
+                    if not bool((v > 0).all() and torch.isfinite(v).all()):  # log(inf) failed only at forward()
+                        raise ValueError(f"{name} = {current[name].tolist()} is not allowed in log space: values must be "
+                                         "finite and > 0")
                     v = torch.log(v)
                 self.register_parameter(name, torch.nn.Parameter(v))
 
