@@ -524,3 +524,15 @@ def test_numpy_bools_and_complex_numbers_are_not_numbers(value):
     with pytest.raises(ValueError, match=r"velocity\[0\] = .* is not allowed: must be a real number"):
         we.tools.Velocity((value, 0.0, 0.0))
     assert we.Material(mu=np.float32(1.0e3), lam=np.array(1.5e3)).lam == 1.5e3  # real numpy values stay welcome
+
+
+def test_warp_and_torch_bools_and_complex_numbers_are_not_numbers():
+    import warp as wp  # noqa: PLC0415
+
+    from warp_esph import checks  # noqa: PLC0415
+
+    torch = pytest.importorskip("torch")
+    for value in (wp.bool(True), torch.tensor(1 + 0j, dtype=torch.complex32), torch.tensor(True)):
+        with pytest.raises(ValueError, match="must be a real number"):
+            checks.number("x", value)
+    assert checks.number("x", wp.float32(2.0)) == 2.0 and checks.number("x", torch.tensor(3.0)) == 3.0

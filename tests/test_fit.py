@@ -8,6 +8,7 @@ distance ties under a finite-difference perturbation.
 import argparse
 import json
 import math
+import types
 import warnings
 
 import numpy as np
@@ -763,5 +764,17 @@ def test_bodies_a_fit_exempts_from_the_divergence_check():
         result = fit([Experiment(two_blocks(), loss, steps=40, dt=dt, materials=[0], monitor_exempt=["wild"])], None,
                      ["mu"], iterations=1, progress=False, diagnostics=False)
         assert result.params["mu"][0] == pytest.approx(5e3, rel=1e-6)
+        # A Scene, or a factory of one, brings its own diverges (it was read from the factory);
+        # an explicit [] checks every body.
+        from warp_esph.fit import _Run  # noqa: PLC0415
+
+        b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+        b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), we.Material(mu=5e3, lam=5e3), name="calm")
+        b.add_box((1.0, 0.0, 0.0), (0.06, 0.06, 0.06), we.Material(mu=5e5, lam=5e5), name="wild")
+        scene = types.SimpleNamespace(builder=b, diverges=("wild",))
+        for made, exempt, checked in ((scene, None, 27), (lambda: scene, None, 27), (scene, [], 54)):
+            run = _Run(Experiment(made, loss, steps=40, dt=dt, materials=[0], monitor_exempt=exempt), wp.float64,
+                       1 << 30, "e")
+            assert run.checked.sum() == checked
         with pytest.raises(ValueError, match="monitor_exempt = \\('wilde',\\) is not allowed: 'wilde' is not a body"):
             fit([Experiment(two_blocks(), loss, steps=40, dt=dt, materials=[0], monitor_exempt=["wilde"])], None, ["mu"])

@@ -876,3 +876,36 @@ def test_a_plain_install_carries_every_package(tmp_path):
                for d, _, files in os.walk(os.path.join(REPO, "warp_esph")) for f in files if f.endswith(".py")}
     assert "warp_esph/sim/solver.py" in sources
     assert sources <= names, sorted(sources - names)
+
+
+def test_a_turned_or_prestrained_start_keeps_the_energy_bound_honest():
+    """The monitor adds the elastic energy stored at the start (a prestrained F0, a resumed
+    state) to what the scene can give. Read as |F - I|^2, a body turned by 90 degrees held
+    4 units of strain: a stiff cube at 230 x its stable step, caught at step 10 from rest,
+    ran 30 frames from the turned state to 475 m/s (measured by a review). From F's singular
+    values the turn stores nothing and the blow-up is caught; a 20 % stretch with lam near
+    -2 mu / 3 (its shear energy once counted as almost nothing) recoils without a false
+    alarm."""
+    from warp_esph.simulate import SimulationError, simulate  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.1, 0.1, 0.1), we.Material.from_young(1.0e8, 0.3), velocity=(0.0, -3.0, 0.0))
+    stiff = b.finalize(dtype=wp.float64)
+    turned = stiff.state()
+    c, s = 0.0, 1.0  # 90 degrees about z
+    turned.F.assign(np.tile(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), (stiff.particle_count, 1, 1)))
+    assert DivergenceMonitor(stiff, turned).e_elastic < 1e-20
+    with pytest.warns(RuntimeWarning, match="above the explicit stability limit"):
+        with pytest.raises(SimulationError, match="diverged"):
+            simulate(stiff, 30, fps=30.0, dt=1.0 / 300.0, state=turned, progress=False)
+
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.1, 0.1, 0.1), we.Material(density=1000.0, mu=1.0e4, lam=-0.66e4))
+    soft = b.finalize(dtype=wp.float64)
+    stretched = soft.state()
+    stretched.F.assign(np.tile(np.diag([1.2, 1.2 ** -0.5, 1.2 ** -0.5]), (soft.particle_count, 1, 1)))
+    monitor = DivergenceMonitor(soft, stretched)
+    final = simulate(soft, 2, fps=50.0, state=stretched, progress=False)  # at the stable step
+    v = final.v.numpy()
+    assert np.abs(v).max() > 0.1  # it recoils
+    assert monitor.check(final.x.numpy(), v, 0.04) is None

@@ -7,6 +7,7 @@ to slump visibly and a high one to stay a box.
 
 import math
 import os
+import sys
 import warnings
 
 import numpy as np
@@ -456,7 +457,7 @@ def test_a_sweep_keeps_the_samples_finished_while_it_runs(scene_file, tmp_path, 
     assert len(SweepTable.read_csv(out / "sweep.csv")) == 3
 
 
-def test_values_matplotlib_cannot_lay_out_still_leave_the_tables_and_the_record(tmp_path):
+def test_values_matplotlib_cannot_lay_out_still_leave_the_tables_and_the_record(tmp_path, monkeypatch):
     """A sweep of yield_stress over 1e307..1.7e308 ran every sample, then matplotlib's axes
     raised 'arange: cannot compute length', exit 2 with no sweep.json. The plot is said to
     be missing (an earlier sweep's picture removed, the figure closed) and everything else is
@@ -480,3 +481,9 @@ def test_values_matplotlib_cannot_lay_out_still_leave_the_tables_and_the_record(
     assert any(line.startswith("no plot: matplotlib could not draw these values") for line in lines), lines
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["sweep.csv", "sweep.json"]
                                                                 + (["sweep.parquet"] if any("parquet" in x and "wrote" in x for x in lines) else []))
+    # Without matplotlib too, an earlier picture is not left beside tables it does not show.
+    (tmp_path / "sweep.png").write_bytes(b"an earlier sweep's picture")
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    lines = write_outputs(table, tmp_path, meta={"partial": False})
+    assert any(line.startswith("no plot: matplotlib is not installed") for line in lines)
+    assert not (tmp_path / "sweep.png").exists()

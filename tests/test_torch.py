@@ -140,6 +140,9 @@ def test_elastic_models_refused_starts_and_input_kinds():
     for bad in (torch.ones((27, 3), dtype=torch.bool), torch.zeros((27, 3), dtype=torch.complex128)):
         with pytest.raises(ValueError, match=f"v0 of dtype {bad.dtype} is not allowed: must be real numbers"):
             rollout_positions(rollout, {}, v0=bad)
+    for bad in ([torch.tensor(True)], [torch.tensor(1.0e3 + 5.0j)]):  # in a list they ran as 1 Pa / the real part
+        with pytest.raises(ValueError, match="mu = .* is not allowed: must be numbers, one per material"):
+            rollout_positions(rollout, {"mu": bad})
     two = _cube()
     two.set_material(0, two.materials[0])
     t = torch.tensor(1.0e3, dtype=torch.float64, requires_grad=True)

@@ -160,6 +160,14 @@ def test_world_gradients_match_separate_tapes():
     np.testing.assert_array_equal(loss.world_values, r.world_values)
     assert r.world_values[0] == pytest.approx(2.0 * ref[MAT_A][0], rel=1e-12)
     assert value2 == pytest.approx(r.world_values.sum(), rel=1e-12)
+    # The same loss twice in a sum is that loss scaled (its per-frame buffers served both
+    # launches: 3 x the gradient, and world values of one).
+    g2 = r.backward(2.0 * loss)[1]
+    value3, g3 = r.backward(loss + loss)
+    assert value3 == pytest.approx(value2, rel=1e-12)
+    np.testing.assert_allclose(r.world_values, loss.world_values)
+    for name in ("mu", "v0"):
+        np.testing.assert_allclose(g3[name], g2[name], rtol=1e-12, atol=0.0)
     # A WorldLoss of another model whose particle total is the same ran and gave its worlds.
     b = _builder(MAT_A)
     b.add_box((0.5, 0.0, 0.0), (0.12, 0.1, 0.1), MAT_A, name="second")

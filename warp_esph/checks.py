@@ -58,8 +58,9 @@ def number(name: str, value, *, allow_inf: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(value, "__float__"):
         _fail(name, value, "must be a number")
     dtype = getattr(value, "dtype", None)
-    if isinstance(value, np.bool_) or getattr(dtype, "kind", None) in ("b", "c") \
-            or str(dtype) in ("torch.bool", "torch.complex64", "torch.complex128"):
+    is_complex = getattr(value, "is_complex", None)  # torch's tensors, every complex dtype
+    if isinstance(value, np.bool_) or getattr(dtype, "kind", None) in ("b", "c") or str(dtype) == "torch.bool" \
+            or (callable(is_complex) and is_complex()) or type(value).__name__ == "bool" and type(value) is not bool:
         # numpy's and torch's bools read as 1 and 0 (Python's True is refused above), a complex
         # value as its real part with only a ComplexWarning.
         _fail(name, shorten(value), "must be a real number (not a bool or a complex)")

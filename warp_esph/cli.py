@@ -420,8 +420,12 @@ def _cmd_run(args) -> int:
             held, gap = "no frames", f"0..{start_frame - 1}"
         else:
             held = f"frames {writer.first_frame}..{writer.last_frame}"
-            gap = (f"0..{writer.first_frame - 1}" if writer.first_frame != 0
-                   else f"{writer.last_frame + 1}..{start_frame - 1}")
+            gaps = []
+            if writer.first_frame > 0:
+                gaps.append(f"0..{min(writer.first_frame, start_frame) - 1}")
+            if writer.last_frame < start_frame - 1:
+                gaps.append(f"{max(writer.last_frame + 1, writer.first_frame)}..{start_frame - 1}")
+            gap = " and ".join(gaps)
         writer.close()
         raise ValueError(f"--resume = {args.resume!r} is not allowed with {writer.path}: the file holds {held} and the "
                          f"checkpoint is at frame {start_frame}; resuming would leave frames {gap} unwritten")

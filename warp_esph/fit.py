@@ -253,8 +253,9 @@ class Experiment:
     the initial guess is the first experiment's. ``weight`` scales this experiment's loss
     in the joint sum; ``noise`` is its observation noise for the diagnostics (None: the
     ``noise`` given to ``fit``). ``name`` labels it in messages. ``monitor_exempt`` names
-    bodies whose blow-up the divergence check ignores (a scene showing a method fail; a
-    ``scenes.Scene`` given as ``model`` brings its own ``diverges``), as ``simulate``'s.
+    bodies whose blow-up the divergence check ignores (a scene showing a method fail; None:
+    a ``scenes.Scene`` given as ``model``, or made by it, brings its own ``diverges``), as
+    ``simulate``'s.
     """
 
     model: object
@@ -268,7 +269,7 @@ class Experiment:
     weight: float = 1.0
     noise: float | None = None
     name: str | None = None
-    monitor_exempt: Sequence[str] = ()
+    monitor_exempt: Sequence[str] | None = None
 
 
 #: Default memory budget (bytes) of ``checkpoint_every="auto"``.
@@ -319,10 +320,13 @@ class _Run:
     def __init__(self, exp: Experiment, dtype, memory_limit, name):
         self.name = name
         exempt = exp.monitor_exempt
-        if isinstance(exempt, str) or not hasattr(exempt, "__iter__"):
+        if exempt is not None and (isinstance(exempt, str) or not hasattr(exempt, "__iter__")):
             raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: must be a list of body names")
-        exempt = tuple(exempt) or tuple(getattr(exp.model, "diverges", ()) or ())
-        self.model = _as_model(exp.model, dtype)
+        made = exp.model
+        if callable(made) and not isinstance(made, (Model, SceneBuilder)):
+            made = made()  # once: a factory's Scene brings its diverges too
+        exempt = tuple(getattr(made, "diverges", ()) or ()) if exempt is None else tuple(exempt)
+        self.model = _as_model(made, dtype)
         names = [b.name for b in self.model.bodies]
         for body in exempt:
             if body not in names:

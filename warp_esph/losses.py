@@ -477,6 +477,16 @@ class SumLoss(Loss):
                 flat.extend((k * kk, ll) for kk, ll in loss.terms)
             else:
                 flat.append((k, loss))
+        # One term per loss object, its scales added (``a + a`` is ``2 * a``): a loss keeps its
+        # per-frame buffers by frame, so a second launch of the same object in one evaluation
+        # overwrote the first's taped ones (a WorldLoss twice gave 3 x the gradient).
+        merged: dict[int, list] = {}
+        for k, loss in flat:
+            if id(loss) in merged:
+                merged[id(loss)][0] += k
+            else:
+                merged[id(loss)] = [k, loss]
+        flat = [(k, loss) for k, loss in merged.values()]
         for k, loss in flat:
             # Scales of nested sums multiply: two legal ones can overflow or underflow.
             if not 0.0 < k < math.inf:

@@ -70,8 +70,8 @@ class DivergenceMonitor:
       can give (``sqrt(strength) R``, a harmonic field over the scene's radius);
       ``SPEED_FACTOR`` times that is a blow-up.
     - energy: with no work done on the bodies, the kinetic energy is at most the initial
-      one plus the elastic energy stored at the start (``(mu + 3/2 lam + 3/2 rho k_p) |F -
-      I|^2 V`` per particle, an upper bound: a prestrained ``F0`` recoils) plus the potential
+      one plus the elastic energy stored at the start (``_stored_energy_bound``, from F's
+      singular values: a prestrained ``F0`` recoils) plus the potential
       energy released since (``sum m g (h_0 - h)``) plus the fields' potential energy;
       ``ENERGY_FACTOR`` times that, plus a floor ``0.5 M (0.1 c_P)^2`` (the strain a
       rest-configuration body's positions may hold), is a blow-up.
@@ -145,13 +145,7 @@ class DivergenceMonitor:
         p = model.parameter_values()
         material = model.particle_material_np[self.keep]
         self.wave = float(model.wave_speeds(p)[np.unique(material)].max())  # of the particles checked
-        # Elastic energy stored at the start (a prestrained F0, a resumed state), bounded from
-        # above by (mu + 3/2 lam + 3/2 rho k_p) |F - I|^2 V: its recoil is no blow-up.
-        density = np.array([m.density for m in model.materials], dtype=np.float64)
-        stiffness = p["mu"] + 1.5 * p["lam"] + 1.5 * density * p["pressure_stiffness"]
-        strain = state.F.numpy().astype(np.float64)[self.keep] - np.eye(3)
-        volume = model.particle_volume.numpy().astype(np.float64)[self.keep]
-        self.e_elastic = float((stiffness[material] * (strain * strain).sum(axis=(1, 2)) * volume).sum())
+        self.e_elastic = _stored_energy_bound(model, p, state.F.numpy(), self.keep)
         self.v_fields, self.e_fields = 0.0, 0.0
         for f in model.force_fields:
             r = np.linalg.norm((x0 - np.asarray(f.center))[:, [0, 2]], axis=1).max() + self.diagonal
@@ -203,6 +197,26 @@ class DivergenceMonitor:
             return (f"a particle {math.sqrt(d2[p]):.3g} m outside the scene, more than {reach:.3g} m "
                     f"({self.REACH_FACTOR:g} x its size plus the speed bound x time)"), int(self.index[p])
         return None
+
+
+def _stored_energy_bound(model: Model, p: dict, F: np.ndarray, keep: np.ndarray) -> float:
+    """An upper bound (J) of the elastic energy the particles ``keep`` hold at deformation
+    gradients ``F`` (a prestrained ``F0``, a resumed state): its recoil is no blow-up.
+
+    Per particle ``2 (mu + 3/2 max(lam, 0) + 3/2 rho k_p) sum_i max((s_i - 1)^2,
+    ((s_i^2 - 1) / 2)^2) V`` over F's singular values ``s``: rotation-free (``|F - I|^2``
+    read a body turned by 90 degrees as 4 units of strain and so let a blow-up of a resumed
+    tumbling body pass), at least each model's energy (the linear model's in ``s - 1``, St.
+    Venant-Kirchhoff's in Green's strain, the hyperelastic one's twice that), and with lam
+    < 0 (down to -2 mu / 3) the shear energy still counted."""
+    if not keep.any():
+        return 0.0
+    density = np.array([m.density for m in model.materials], dtype=np.float64)
+    stiffness = p["mu"] + 1.5 * np.maximum(p["lam"], 0.0) + 1.5 * density * p["pressure_stiffness"]
+    s = np.linalg.svd(F.astype(np.float64)[keep], compute_uv=False)
+    strain = np.maximum((s - 1.0) ** 2, (0.5 * (s * s - 1.0)) ** 2).sum(axis=1)
+    volume = model.particle_volume.numpy().astype(np.float64)[keep]
+    return float(2.0 * (stiffness[model.particle_material_np[keep]] * strain * volume).sum())
 
 
 def _driven_motion(motion):

@@ -962,18 +962,17 @@ def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_pa
         os.replace(path + ".tmp", path)
         lines.append(f"wrote {path}")
     if plot_figure:
+        picture = os.path.join(folder, "sweep.png")
         try:
-            lines.append(f"wrote {plot(table, os.path.join(folder, 'sweep.png'), log_params)}")
+            lines.append(f"wrote {plot(table, picture, log_params)}")
         except ImportError:
             lines.append("no plot: matplotlib is not installed (pip install 'warp-esph[plot]')")
         except (ValueError, ArithmeticError) as e:
             # matplotlib cannot lay out axes of values near the float range ('arange: cannot
-            # compute length' at 1e307..1.7e308): the sweep ran and its tables stand; an earlier
-            # sweep's picture in the folder would no longer match them.
-            stale = os.path.join(folder, "sweep.png")
-            if os.path.isfile(stale):
-                os.remove(stale)
+            # compute length' at 1e307..1.7e308): the sweep ran and its tables stand.
             lines.append(f"no plot: matplotlib could not draw these values ({e}); the CSV has the data")
+        if lines[-1].startswith("no plot") and os.path.isfile(picture):
+            os.remove(picture)  # an earlier sweep's picture would no longer match the tables
     return lines
 
 

@@ -145,7 +145,10 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
             raise ValueError(f"parameter {name!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
         if isinstance(value, (list, tuple)) and any(isinstance(v, torch.Tensor) for v in value):
             # One tensor per material: stacked, so each keeps its gradient (numpy refused a
-            # tensor that requires one with a RuntimeError).
+            # tensor that requires one with a RuntimeError); each checked as a number first.
+            if any(v.dtype == torch.bool or v.is_complex() if isinstance(v, torch.Tensor)
+                   else np.asarray(v).dtype.kind not in "iuf" for v in value):
+                raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be numbers, one per material")
             try:
                 value = torch.stack([torch.as_tensor(v).to(torch.float64).reshape(()) for v in value])
             except (RuntimeError, TypeError, ValueError):
