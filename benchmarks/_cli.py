@@ -288,7 +288,20 @@ def check_output_file(text, name: str = "--json") -> str:
         raise refuse(name, text, f"its folder '{folder}' is not writable")
     if path.exists() and not os.access(path, os.W_OK):
         raise refuse(name, text, "the file is not writable")
+    _probe(name, text, folder=False)
     return text
+
+
+def _probe(name: str, text, folder: bool) -> None:
+    """Whether a file can really be created there (``warp_esph.checks.output_place``):
+    ``os.access`` says yes to root everywhere, /proc included, and the benchmark then ran to
+    its end and failed writing its result."""
+    from warp_esph import checks  # noqa: PLC0415
+
+    try:
+        checks.output_place(name, text, folder=folder)
+    except ValueError as e:
+        raise refuse(name, text, str(e).split("is not allowed: ", 1)[-1]) from None
 
 
 output_file = Check(check_output_file)
@@ -305,12 +318,14 @@ def check_output_folder(text, name: str = "--out") -> str:
             raise refuse(name, text, "it is a file, not a folder")
         if not os.access(path, os.W_OK | os.X_OK):
             raise refuse(name, text, "the folder is not writable")
+        _probe(name, text, folder=True)
         return text
     anc = _first_existing(path.parent)
     if not anc.is_dir():
         raise refuse(name, text, f"'{anc}' is a file, not a folder")
     if not os.access(anc, os.W_OK | os.X_OK):
         raise refuse(name, text, f"the folder cannot be made: '{anc}' is not writable")
+    _probe(name, text, folder=True)
     return text
 
 

@@ -601,14 +601,14 @@ def _save_prefix(text, name):
 
 def main(argv=None):
     ap = _cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
-    ap.add_argument("--S", type=_cli.positive_float, nargs="*", default=[])
-    ap.add_argument("--res", type=_cli.positive_int, nargs="*", default=[16])
-    ap.add_argument("--aspect", type=_cli.positive_float, default=1.0)
-    ap.add_argument("--duration", type=_cli.positive_float, default=8.0)
-    ap.add_argument("--max-duration", type=_cli.positive_float, default=16.0)
-    ap.add_argument("--flow-rate", type=_cli.nonnegative_float, default=0.0,
+    ap.add_argument("--S", type=_cli.positive_float, nargs="*", default=None)
+    ap.add_argument("--res", type=_cli.positive_int, nargs="*", default=None)
+    ap.add_argument("--aspect", type=_cli.positive_float, default=None)
+    ap.add_argument("--duration", type=_cli.positive_float, default=None)
+    ap.add_argument("--max-duration", type=_cli.positive_float, default=None)
+    ap.add_argument("--flow-rate", type=_cli.nonnegative_float, default=None,
                     help="0: rate-independent plasticity; else the Bingham relaxation rate (1/s)")
-    ap.add_argument("--ramp", type=_cli.nonnegative_float, default=0.0, help="gravity ramped from 0 over this time (s); 0: at once")
+    ap.add_argument("--ramp", type=_cli.nonnegative_float, default=None, help="gravity ramped from 0 over this time (s); 0: at once")
     ap.add_argument("--floor-friction", type=_cli.finite_float, default=-1.0,
                     help="the slump's floor: < 0 sticky (no-slip, the default), 0 slip, > 0 Coulomb friction")
     ap.add_argument("--column", action="store_true")
@@ -618,6 +618,23 @@ def main(argv=None):
     ap.add_argument("--save", type=_cli.Check(_save_prefix), help="save the final particles of each slump (npz) to this prefix")
     ap.add_argument("--table", type=_cli.json_file, help="print the markdown table of the slump rows in this JSON and exit")
     args = ap.parse_args(argv)
+    # The slump's options without --S values ran nothing, said nothing and exited 0.
+    given = [f"--{k.replace('_', '-')}" for k in ("res", "aspect", "duration", "max_duration", "flow_rate", "ramp",
+                                                  "floor_friction", "save") if getattr(args, k) not in (None, -1.0)]
+    if given and not args.S:
+        ap.error(f"{given[0]} is not allowed without --S: it sets the slump runs, and --S gives their yield stresses")
+    for k in ("S", "res"):
+        if getattr(args, k) == []:
+            ap.error(f"--{k} is not allowed without values")
+    args.S = args.S or []
+    if not (args.S or args.quick or args.column or args.squeeze or args.table):
+        ap.error("nothing to run: give --S values, --quick, --column, --squeeze or --table")
+    defaults = {"res": [16], "aspect": 1.0, "duration": 8.0, "max_duration": 16.0, "flow_rate": 0.0, "ramp": 0.0}
+    for k, v in defaults.items():
+        if getattr(args, k) is None:
+            setattr(args, k, v)
+    if args.max_duration < args.duration:
+        ap.error(f"--max-duration = {args.max_duration:g} is not allowed: below --duration = {args.duration:g}")
     if args.table:
         rows = table_rows(_cli.load_json(args.table, "--table"), "--table", args.table)
         print(table([r for r in rows if r.get("method") == "MLS-MPM"]))
@@ -641,6 +658,10 @@ def main(argv=None):
         r = squeeze(res=6 if args.quick else 8)
         print(json.dumps(r), flush=True)
         rows.append(r)
+    if rows and args.json:  # the checks' rows were printed, never written
+        p = pathlib.Path(args.json)
+        old = json.loads(p.read_text()) if p.exists() else []
+        p.write_text(json.dumps(old + rows, indent=1) + "\n")
     for S in args.S:
         for res in args.res:
             save = f"{args.save}_S{S}_a{args.aspect}_r{res}_f{args.flow_rate:g}_g{args.ramp:g}_m{args.floor_friction:g}.npz" if args.save else None

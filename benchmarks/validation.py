@@ -1743,6 +1743,10 @@ def main(argv=None) -> int:
             raise ValueError(f"--drop = {args.drop!r} is not allowed: {case!r} is not a case of the results; "
                              f"the cases: {', '.join(known)}")
     the_plan = plan(args.quick)
+    if args.only is not None and not args.only.strip():
+        # An unset shell variable ran the whole plan (185 runs).
+        raise ValueError(f"--only = {args.only!r} is not allowed: give case names, or leave --only out for the "
+                         "whole plan")
     if args.only:
         names = list(dict.fromkeys(n for n, _ in the_plan))
         for entry in args.only.split(","):

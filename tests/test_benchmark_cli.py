@@ -165,7 +165,11 @@ def test_launches(refused, argv, option):
 
 @pytest.mark.parametrize("argv,option", [(["--S", "-1"], "--S = -1"), (["--S", "0.2", "--res", "0"], "--res = 0"),
                                          (["--S", "0.2", "--duration", "nan"], "--duration = nan"),
-                                         (["--S", "0.2", "--aspect", "100", "--res", "4"], "--aspect = 100")])
+                                         (["--S", "0.2", "--aspect", "100", "--res", "4"], "--aspect = 100"),
+                                         # options that ran nothing and exited 0
+                                         ([], "nothing to run"), (["--res", "4", "--duration", "1"], "--res is not allowed without --S"),
+                                         (["--S"], "--S is not allowed without values"),
+                                         (["--S", "0.2", "--duration", "9", "--max-duration", "8"], "--max-duration = 8")])
 def test_mpm_slump(refused, argv, option):
     refused("mpm_slump", argv, option)
 
@@ -259,6 +263,9 @@ def test_validation_refuses_an_output_folder_it_cannot_make_and_lists_the_cases_
     good.write_text(json.dumps([{"case": "slump", "S": 0.2, "resolution": 8}]))
     refused("validation", ["--add", str(good), "--out", files["under_file"]], f"--out = {files['under_file']!r}")
     refused("validation", ["--only", "nosuch", "--out", str(tmp_path)], "--only = 'nosuch'", "bar_frequency", "slump")
+    # An empty --only (an unset shell variable) ran the whole plan; /proc passed os.access as root.
+    refused("validation", ["--only", "", "--out", str(tmp_path)], "--only = '' is not allowed: give case names")
+    refused("validation", ["--quick", "--only", "bar_frequency", "--out", "/proc"], "--out = '/proc'", "cannot take a new file")
     refused("validation", ["--merge", str(good), "--drop", "nosuch", "--out", str(tmp_path)], "--drop = 'nosuch'")
 
 

@@ -781,3 +781,72 @@ def test_cli_fit_at_a_guess_that_blows_up_is_one_line_and_exit_3(tmp_path, capsy
     assert status == 3, err
     last = err.strip().splitlines()[-1]
     assert "Traceback" not in err and last.startswith("warp-esph: error: the rollout at the initial guess diverged: "), err
+
+
+def test_losses_diagnostics_and_cameras_refuse_what_they_dropped_or_misread(tmp_path, dropped_cube):
+    """From a fuzz of the losses, diagnostics and camera files: each of these crashed, was
+    silently wrong or read a value otherwise than given."""
+    from warp_esph import losses as L  # noqa: PLC0415
+
+    x = np.random.default_rng(0).normal(size=(4, 3))
+    # A particle index past int32 wrapped: 2**31 crashed the process, 2**32 + 1 read particle 1.
+    for big in ([2**31], np.array([0, 2**32 + 1])):
+        with pytest.raises(ValueError, match="particles is not allowed: index .* is beyond any model's particles"):
+            L.ChamferLoss(x, 0.1, frames=[1], particles=big)
+    # A particle listed twice in a SlumpLoss is that particle (the same smooth maximum): it got
+    # half the gradient, the second copy's share overwritten; a mask of the wrong length was used.
+    slump = L.SlumpLoss(0.05, 0.03, 1, spacing=0.01, particles=[1, 1])
+    once = L.SlumpLoss(0.05, 0.03, 1, spacing=0.01, particles=[1])
+    (v2, g2), (v1, g1) = slump.value_and_grad({1: x}), once.value_and_grad({1: x})
+    assert v2 == pytest.approx(v1, rel=1e-12)
+    np.testing.assert_allclose(g2[1], g1[1], rtol=1e-12)
+    with pytest.raises(ValueError, match="particles is a boolean mask of 2 entries, the positions 4"):
+        L.SlumpLoss(0.05, 0.03, 1, spacing=0.01, particles=np.array([True, False])).value_and_grad({1: x})
+    with pytest.raises(ValueError, match="center = 'ab' is not allowed"):
+        L.SlumpLoss(0.05, 0.03, 1, spacing=0.01, center="ab")
+    with pytest.raises(ValueError, match="tau = 5e-324 is not allowed"):
+        L.SlumpLoss(0.05, 0.03, 1, spacing=0.01, tau=5e-324)
+    # Steps and frames are whole numbers (2.7 was step 2, frame 1.5 replaced frame 1), noise
+    # a number whose square is finite, targets and positions real.
+    with pytest.raises(ValueError, match="frame 2.7 is not allowed"):
+        L.ReactionForceLoss(np.zeros((1, 3)), 0, [2.7])
+    with pytest.raises(ValueError, match="positions for frame 1.5 are not allowed"):
+        L.PositionLoss(x, frames=[1])({1: x, 1.5: x})
+    with pytest.raises(ValueError, match="positions of frame 1 with shape \\(4, 2\\) are not allowed"):
+        L.PositionLoss(x, frames=[1])({1: x[:, :2]})
+    with pytest.raises(ValueError, match="targets .* complex"):
+        L.PositionLoss(x + 0j, frames=[1])
+    for bad in (1e-200, 1e200):
+        with pytest.raises(ValueError, match="noise = .* is not allowed: must be in"):
+            L.SlumpLoss(0.05, 0.03, 1, spacing=0.01, noise=bad)
+    with pytest.raises(ValueError, match="max_dist = 1e\\+200 is not allowed"):
+        L.MeshLoss((np.eye(3), np.array([[0, 1, 2]])), frames=[1], max_dist=1e200)
+    # A fit's difference step (0/0 at 1e-17, a NaN Fisher matrix reported as a conclusion), a
+    # diagnose of a WorldLoss (None without a word).
+    model = dropped_cube(100.0, 10.0)
+    target = {5: model.particle_x0.copy()}
+    for step in (1e-17, 14.0):
+        with pytest.raises(ValueError, match="fd_step = .* is not allowed: must be in \\[1e-08, 1"):
+            diagnose(model, PositionLoss(target, frames=[5]), ["yield_stress"], step=step, steps=5)
+    worlds = we.builder.replicate_worlds(model, 2)
+    with pytest.raises(ValueError, match="a WorldLoss has no diagnostics"):
+        diagnose(worlds, L.WorldLoss(worlds, PositionLoss(target, frames=[5])), ["yield_stress"], steps=5)
+    # Cameras: a skew or a bottom row K ignored, K beside fx, a reflection, a width of 16.9.
+    base = {"name": "c", "width": 32, "height": 24, "K": [[60.0, 0.0, 16.0], [0.0, 60.0, 12.0], [0.0, 0.0, 1.0]],
+            "R": np.eye(3).tolist(), "t": [0.0, 0.0, 1.0]}
+    assert PinholeCamera.from_dict(base).fx == 60.0
+    for change, words in (({"K": [[60.0, 1.0, 16.0], [0.0, 60.0, 12.0], [0.0, 0.0, 1.0]]}, "no skew"),
+                          ({"fx": 50.0}, "K and fx are not allowed together"),
+                          ({"R": np.diag([1.0, 1.0, -1.0]).tolist()}, "it is not a rotation"),
+                          ({"width": 16.9}, "width = 16.9 is not allowed"),
+                          ({"K": "abc"}, "K = 'abc' is not allowed")):
+        with pytest.raises(ValueError, match=words):
+            PinholeCamera.from_dict({**base, **change})
+    cam = PinholeCamera.from_dict(base)
+    mask = np.zeros((24, 32))
+    assert list(SilhouetteLoss({2: [mask]}, cam, 0.01).frames) == [2]  # one camera, not a list of them
+    with pytest.raises(ValueError, match="masks are given for steps \\[2\\] but frames = \\[7\\]"):
+        SilhouetteLoss({2: [mask]}, [cam], 0.01, frames=[7])
+    np.savez(tmp_path / "twice.npz", c_1=mask, c_01=mask)
+    with pytest.raises(ValueError, match="camera 'c' already has a mask for frame 1"):
+        load_masks(tmp_path / "twice.npz", [cam])

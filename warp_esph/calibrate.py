@@ -417,7 +417,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     return types.SimpleNamespace(scene=scene, model=model, loss=loss, frames=frames, fps=fps, dt=dt, substeps=substeps,
                                  materials=materials, kinds=kinds, targets=targets, scale=scale,
                                  weight=checks.positive(f"{where}weight", spec.get("weight", 1.0)),
-                                 noise=None if noise is None else checks.positive(f"{where}noise", noise))
+                                 noise=None if noise is None else checks.noise(f"{where}noise", noise))
 
 
 def write_outputs(result, folder, meta: dict | None = None, json_path: str | None = None) -> list[str]:

@@ -93,6 +93,16 @@ def non_negative(name: str, value, **kw) -> float:
     return v
 
 
+#: The range of an observation noise (a standard deviation): its square enters the
+#: chi-square, and 1e-200 divided by zero, 1e200 overflowed, after the whole fit had run.
+NOISE_RANGE = (1e-150, 1e150)
+
+
+def noise(name: str, value) -> float:
+    """An observation noise: a number in ``NOISE_RANGE``."""
+    return in_range(name, value, *NOISE_RANGE)
+
+
 def in_range(name: str, value, lo: float, hi: float) -> float:
     v = number(name, value)
     if not lo <= v <= hi:

@@ -383,7 +383,7 @@ def _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations
     scales = np.array([prob.scales.get(name, 1.0) for name in prob.params for _ in range(prob.k)])
     p = prob.from_z(z)
     values = np.concatenate([p[name] for name in prob.params])
-    lam, V = np.linalg.eigh(fisher)
+    lam, V = np.linalg.eigh(np.where(np.isfinite(fisher), fisher, 0.0))  # a NaN one: flagged below, per value
     top = max(float(lam.max()), 0.0)
     flat = lam <= _FLAT * top if top > 0 else np.ones(P, dtype=bool)
     inv = np.where(flat, 0.0, 1.0 / np.where(flat, 1.0, lam))
@@ -428,7 +428,14 @@ def _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations
         if not sens[k] > min_sensitivity * smax:
             reasons.append(f"the data barely depend on it (sensitivity {sens[k]:.3g}, "
                            f"{sens[k] / smax if smax > 0 else 0.0:.2g} of the largest)")
-        if not rel[k] <= max_relative_error:
+        if not np.isfinite(fisher).all():
+            # Differences of round-off or of blown-up runs: no verdict is drawn from them.
+            reasons.append("its curvature could not be measured (the Fisher matrix is not finite)")
+        elif values[k] == 0.0 and spaces[k] != "log" and math.isfinite(se[k]):
+            # A linear value at 0 (a viscosity fitted to none) has no relative error; its
+            # absolute one is finite ("unbounded of its value" said it was free).
+            pass
+        elif not rel[k] <= max_relative_error:
             shown = "unbounded" if not math.isfinite(rel[k]) else f"{100 * rel[k]:.3g} %"
             reasons.append(f"its standard error is {shown} of its value (limit {100 * max_relative_error:.3g} %)")
         partners = [labels[j] for j in range(P) if j != k and abs(corr[k, j]) > max_correlation]
@@ -461,7 +468,15 @@ def diagnose(model, target, params=("yield_stress", "flow_rate"), *, noise: floa
              **fit_kwargs) -> Diagnostics:
     """Diagnostics at the model's current parameter values (no fitting): ``fit`` with
     ``iterations=0``, so ``model``, ``target`` and ``fit_kwargs`` are ``fit``'s."""
-    from .fit import fit  # noqa: PLC0415
+    from .fit import Experiment, fit  # noqa: PLC0415
+    from .losses import WorldLoss, _leaves  # noqa: PLC0415
 
+    losses = [e.target for e in model] if isinstance(model, (list, tuple)) and model and \
+        all(isinstance(e, Experiment) for e in model) else [target]
+    if any(isinstance(leaf, WorldLoss) for loss in losses if isinstance(loss, Loss) for leaf in _leaves(loss)):
+        # fit skips the diagnostics of worlds (one Fisher matrix of W hypotheses describes
+        # none of them): diagnose returned None without a word.
+        raise ValueError("target is not allowed: a WorldLoss has no diagnostics (diagnose each world's fit on its own "
+                         "model)")
     fit_kwargs.setdefault("progress", False)
     return fit(model, target, params, iterations=0, diagnostics=True, noise=noise, fd_step=step, **fit_kwargs).diagnostics

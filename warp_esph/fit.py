@@ -349,7 +349,7 @@ class _Run:
         self.memory = memory_estimate(self.model, self.steps, self.rollout.segment if self.rollout.checkpointing else None)
         self.initial = dict(exp.initial or {})
         self.weight = checks.positive("weight", exp.weight)  # a negative weight would maximise its loss
-        self.noise = None if exp.noise is None else checks.positive("noise", exp.noise)
+        self.noise = None if exp.noise is None else checks.noise("noise", exp.noise)
         # In float64 whatever the model's precision, the materials' own values where the arrays
         # hold them: a float32 guess taken through log in float32 moved the start by 1e-7.
         self.values = self.model.parameter_values()
@@ -629,7 +629,7 @@ def check_options(*, params, iterations, lr, lr_end=None, clip=None, bounds=None
            "patience": checks.positive_int(flag("patience"), patience),
            "starts": checks.positive_int(flag("starts"), starts, maximum=MAX_STARTS),
            "sample_range": checks.greater_than(flag("sample_range"), sample_range, 1.0, "1"),
-           "noise": None if noise is None else checks.positive(flag("noise"), noise),
+           "noise": None if noise is None else checks.noise(flag("noise"), noise),
            "memory_limit": checks.positive(flag("memory_limit"), memory_limit)}
     out["samples"] = _count(flag("samples"), samples)
     if out["samples"] > MAX_SAMPLES:
@@ -759,7 +759,10 @@ def fit(
     xtol = checks.positive("xtol", xtol)
     gtol = checks.non_negative("gtol", gtol)
     worlds = checks.boolean("worlds", worlds)
-    fd_step = checks.positive("fd_step", fd_step)
+    # In optimiser space (a factor e^step for a log-space value): below 1e-8 the differences
+    # are round-off (0/0 at 1e-17, the Fisher matrix NaN and reported as a conclusion), above
+    # 1 they read the loss a factor e away (1.2e6 x mu at 14).
+    fd_step = checks.in_range("fd_step", fd_step, 1e-8, 1.0)
     if callback is not None and not callable(callback):
         raise ValueError(f"callback = {callback!r} is not allowed: must be callable")
     if log is not None and not callable(log):

@@ -248,6 +248,8 @@ def _per_frame(name: str, data, frames, item_ndim: int) -> dict:
     if isinstance(data, (list, tuple)) and data and all(np.ndim(d) == item_ndim for d in data):
         items = list(data)
     else:
+        if np.iscomplexobj(data):  # numpy kept the real part with only a ComplexWarning
+            raise ValueError(f"{name} is not allowed: it holds complex numbers; positions are real")
         try:
             a = np.asarray(data, dtype=np.float64)
         except (TypeError, ValueError):
@@ -263,6 +265,8 @@ def _per_frame(name: str, data, frames, item_ndim: int) -> dict:
 
 
 def _points(name: str, p) -> np.ndarray:
+    if np.iscomplexobj(p):  # numpy kept the real part with only a ComplexWarning
+        raise ValueError(f"{name} is not allowed: it holds complex numbers; positions are real")
     a = np.asarray(p, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0:
         raise ValueError(f"{name} with shape {a.shape} is not allowed: must be (N, 3) with N >= 1")
@@ -302,6 +306,10 @@ class Loss:
                 idx = np.flatnonzero(idx)
             if idx.ndim != 1 or len(idx) == 0 or not np.issubdtype(idx.dtype, np.integer) or idx.min() < 0:
                 raise ValueError("particles is not allowed: give non-negative particle indices or a boolean mask")
+            if int(idx.max()) > checks.MAX_INT:
+                # int32 wrapped it: 2**31 crashed the process, 2**32 + 1 read particle 1.
+                raise ValueError(f"particles is not allowed: index {int(idx.max())} is beyond any model's particles "
+                                 f"(at most {checks.MAX_INT})")
             particles = idx.astype(np.int32)
         self.particles = particles
         self._out = {}
@@ -320,14 +328,18 @@ class Loss:
     def _check(self, frame: int, x: wp.array):
         """Validate a frame's positions (particle count) before launching."""
 
+    def _check_particles(self, n: int) -> None:
+        """The ``particles`` subset against positions of ``n`` particles."""
+        if self._mask_size is not None and self._mask_size != n:
+            raise ValueError(f"particles is a boolean mask of {self._mask_size} entries, the positions {n} "
+                             "particles: a mask has one entry per particle")
+        if int(self.particles.max()) >= n:
+            raise ValueError(f"particles has index {int(self.particles.max())}, the positions only {n} particles")
+
     def _prepare_x(self, frame: int, x: wp.array) -> wp.array:
         if self.particles is None:
             return x
-        if self._mask_size is not None and self._mask_size != x.shape[0]:
-            raise ValueError(f"particles is a boolean mask of {self._mask_size} entries, the positions {x.shape[0]} "
-                             "particles: a mask has one entry per particle")
-        if int(self.particles.max()) >= x.shape[0]:
-            raise ValueError(f"particles has index {int(self.particles.max())}, the positions only {x.shape[0]} particles")
+        self._check_particles(x.shape[0])
         key = (frame, x.dtype)
         sub = self._subsets.get(key)
         if sub is None or sub[1].device != x.device:
@@ -443,8 +455,15 @@ def _as_warp_positions(positions) -> dict[int, wp.array]:
         if isinstance(f, str):  # not positions: the reaction forces and names of Rollout.observations()
             out[f] = x
             continue
+        if isinstance(f, bool) or not isinstance(f, (int, np.integer)):
+            # int() read frame 1.5 as 1, so its positions replaced frame 1's
+            raise ValueError(f"positions for frame {f!r} are not allowed: frames are step indices (integers)")
         if not isinstance(x, wp.array):
+            if np.iscomplexobj(x):
+                raise ValueError(f"positions of frame {f} are not allowed: they hold complex numbers")
             a = np.asarray(x, dtype=np.float64)
+            if a.ndim != 2 or a.shape[1] != 3:  # Warp's RuntimeError for (n, 2)
+                raise ValueError(f"positions of frame {f} with shape {a.shape} are not allowed: must be (N, 3)")
             x = wp.array(a, dtype=wp.vec3d)
         out[int(f)] = x
     return out
@@ -810,7 +829,8 @@ class MeshLoss(Loss):
             per = {f: mesh for f in _frames(frames)}
         super().__init__(list(per), weight, particles)
         self.mode = checks.choice("mode", mode, self.MODES)
-        self.max_dist = checks.positive("max_dist", max_dist)
+        # Its square is the far particles' value, passed to Warp in float32: 1e200 overflowed.
+        self.max_dist = checks.in_range("max_dist", max_dist, 1e-12, 1e15)
         self.meshes = {f: self._load(m) for f, m in per.items()}
         self._wp = {}
         self._scratch = {}
@@ -994,7 +1014,8 @@ class ReactionForceLoss(Loss):
 
     def __init__(self, targets, tool: str | int, steps, window: int = 1, components: str = "xyz",
                  weight: float = 1.0, noise: float | None = None):
-        steps = [int(s) for s in np.atleast_1d(np.asarray(steps))]
+        # Whole step indices as frames are (int() took 2.7 as 2, "3" as 3 and True as 1).
+        steps = list(_frames(steps if isinstance(steps, (list, tuple, np.ndarray)) else [steps]))
         super().__init__(steps, weight)
         if list(self.frames) != steps:
             raise ValueError(f"steps = {steps!r} is not allowed: window end steps must be distinct and increasing")
@@ -1028,7 +1049,7 @@ class ReactionForceLoss(Loss):
         if noise is None:
             rms = float(np.sqrt(np.mean(t**2)))
             noise = 0.01 * rms if rms > 0 else 1.0
-        self.noise = checks.positive("noise", noise)
+        self.noise = checks.noise("noise", noise)
 
     # The positions of a frame are not observed.
     def launch(self, frame, x, out, scale: float = 1.0):
@@ -1110,7 +1131,7 @@ class ReactionForceLoss(Loss):
             raise ValueError(f"tool = {tool!r} is not allowed: {path} holds the forces of "
                              f"{', '.join(dict.fromkeys(r['tool'] for r in rows))}")
         by_frame = {r["frame"]: r for r in mine}  # one row per frame: read_tools_csv refuses a repeat
-        chosen = sorted(f for f in by_frame if f > 0) if frames is None else [int(f) for f in frames]
+        chosen = sorted(f for f in by_frame if f > 0) if frames is None else list(_frames(frames))
         if any(f < 1 for f in chosen):
             raise ValueError(f"frames = {chosen!r} is not allowed: frames are >= 1 (frame 0's row has no frame before "
                              "it to average over)")
@@ -1240,12 +1261,17 @@ class SlumpLoss(Loss):
         self.spread = None if spread is None else checks.positive("spread", spread)
         self.spacing = checks.positive("spacing", spacing)
         self.floor = checks.number("floor", floor)
-        c = np.asarray(center, dtype=np.float64).ravel()
+        try:
+            c = np.asarray(center, dtype=np.float64).ravel()
+        except (TypeError, ValueError):  # numpy's "could not convert string to float" named no parameter
+            c = np.full(1, np.nan)
         if c.shape != (2,) or not np.isfinite(c).all():
             raise ValueError(f"center = {center!r} is not allowed: give the axis position (x, z)")
         self.center = c
         self.tau = 0.05 * self.spacing if tau is None else checks.positive("tau", tau)
-        self.noise = None if noise is None else checks.positive("noise", noise)
+        if self.tau < 1e-6 * self.spacing:  # the smooth maximum's exponentials overflow: NaN gradients at 5e-324
+            raise ValueError(f"tau = {tau!r} is not allowed: must be at least 1e-6 spacing = {1e-6 * self.spacing:g}")
+        self.noise = None if noise is None else checks.noise("noise", noise)
 
     def launch(self, frame, x, out, scale: float = 1.0):
         return
@@ -1254,7 +1280,10 @@ class SlumpLoss(Loss):
         x = positions[self.frames[0]]
         x = x.numpy() if isinstance(x, wp.array) else np.asarray(x)
         x = np.asarray(x, dtype=np.float64)
-        return x if self.particles is None else x[self.particles]
+        if self.particles is None:
+            return x
+        self._check_particles(x.shape[0])  # a wrong-length mask was used, an index past the end an IndexError
+        return x[self.particles]
 
     def measure(self, positions) -> tuple[float, float, np.ndarray, np.ndarray]:
         """Simulated ``(height, spread)`` and their gradients with respect to the (observed) positions."""
@@ -1294,7 +1323,7 @@ class SlumpLoss(Loss):
         if self.particles is not None:
             x = positions[f]
             full = np.zeros((x.shape[0], 3))
-            full[self.particles] = g
+            np.add.at(full, self.particles, g)  # a particle listed twice gets both shares
             g = full
         self._counts[f] = 1
         return self.weight * value, {f: self.weight * g}

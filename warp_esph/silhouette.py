@@ -85,8 +85,9 @@ class PinholeCamera:
         self.t = np.asarray(self.t, dtype=np.float64).reshape(-1)
         if self.R.shape != (3, 3) or not np.isfinite(self.R).all():
             raise ValueError(f"camera {self.name!r}: R with shape {self.R.shape} is not allowed: must be a finite 3x3 rotation")
-        if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-6):
-            raise ValueError(f"camera {self.name!r}: R is not allowed: it is not a rotation (R R^T != I)")
+        if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-6) or np.linalg.det(self.R) < 0.0:
+            # det -1: a reflection, which mirrors the world (it passed as a rotation)
+            raise ValueError(f"camera {self.name!r}: R is not allowed: it is not a rotation (R R^T != I or det R < 0)")
         if self.t.shape != (3,) or not np.isfinite(self.t).all():
             raise ValueError(f"camera {self.name!r}: t with shape {self.t.shape} is not allowed: must be 3 finite numbers")
 
@@ -102,14 +103,31 @@ class PinholeCamera:
             # A misspelt key ("fov", "cx ") was ignored without a word.
             raise ValueError(f"camera {name!r}: key {unknown[0]!r} is not allowed: the keys are {', '.join(CAMERA_KEYS)}")
         if "K" in d:
-            K = np.asarray(d["K"], dtype=np.float64)
-            if K.shape != (3, 3):
-                raise ValueError(f"camera {name!r}: K with shape {K.shape} is not allowed: must be 3x3")
+            both = [k for k in ("fx", "fy", "cx", "cy") if k in d]
+            if both:  # K won without a word
+                raise ValueError(f"camera {name!r}: K and {', '.join(both)} are not allowed together: give one of them")
+            try:
+                K = np.asarray(d["K"], dtype=np.float64)
+            except (TypeError, ValueError):  # numpy's own message for text or ragged rows
+                K = np.full(1, np.nan)
+            if K.shape != (3, 3) or not np.isfinite(K).all():
+                raise ValueError(f"camera {name!r}: K = {checks.shorten(d['K'])!r} is not allowed: must be 3x3 finite numbers")
+            if K[0, 1] != 0.0 or K[1, 0] != 0.0 or not np.array_equal(K[2], [0.0, 0.0, 1.0]):
+                # the skew and the bottom row were ignored
+                raise ValueError(f"camera {name!r}: K = {K.tolist()} is not allowed: the pinhole model has no skew and "
+                                 "a bottom row (0, 0, 1)")
             d.update(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2])
         missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy", "R", "t") if k not in d]
         if missing:
             raise ValueError(f"camera {name!r} is not allowed: it lacks {', '.join(missing)}")
-        return cls(int(d["width"]), int(d["height"]), d["fx"], d["fy"], d["cx"], d["cy"], d["R"], d["t"], name)
+        for key in ("R", "t"):
+            try:
+                d[key] = np.asarray(d[key], dtype=np.float64)
+            except (TypeError, ValueError):  # numpy's own message named no key
+                raise ValueError(f"camera {name!r}: {key} = {checks.shorten(d[key])!r} is not allowed: must be "
+                                 "numbers") from None
+        # Whole numbers as they are (int() took 16.9 as 16 and true as 1).
+        return cls(d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"], d["R"], d["t"], name)
 
     def project(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Pixel coordinates ``u, v`` and depth ``z`` of world points ``(N, 3)``."""
@@ -190,8 +208,10 @@ def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None)
         names = {c.name for c in cameras}
         for key in data:
             cam, _, f = key.rpartition("_")
-            if cam not in names or not f.isdigit():
+            if cam not in names or not (f.isascii() and f.isdigit()):  # '²' passed isdigit() and failed int()
                 raise ValueError(f"mask {key!r} in {p} is not allowed: name arrays <camera>_<frame> with cameras {sorted(names)}")
+            if cam in out.get(int(f), {}):  # front_1 and front_01: the last read won
+                raise ValueError(f"mask {key!r} in {p} is not allowed: camera {cam!r} already has a mask for frame {int(f)}")
             out.setdefault(int(f), {})[cam] = _mask_array(data[key], f"{p}:{key}")
         result = {}
         for f, by in out.items():
@@ -312,11 +332,15 @@ class SilhouetteLoss(Loss):
                  particles=None, noise: float = 0.1):
         if isinstance(cameras, (str, os.PathLike)):
             cameras, _ = load_cameras(cameras)
-        self.cameras = list(cameras)
+        if isinstance(cameras, PinholeCamera):
+            cameras = [cameras]  # one camera (a TypeError: not iterable)
+        self.cameras = list(cameras) if isinstance(cameras, Sequence) else []
         if not self.cameras or not all(isinstance(c, PinholeCamera) for c in self.cameras):
             raise ValueError("cameras is not allowed: give a list of PinholeCamera (or a camera JSON file)")
         if isinstance(masks, Mapping):
             per = {f: masks[f] for f in _frames(list(masks))}
+            if frames is not None and set(_frames(frames)) != set(per):  # frames was ignored
+                raise ValueError(f"masks are given for steps {sorted(per)} but frames = {list(frames)}")
         else:
             if frames is None:
                 raise ValueError("frames is required: say at which step indices the masks apply")
@@ -328,7 +352,7 @@ class SilhouetteLoss(Loss):
         super().__init__(list(per), weight, particles)
         self.radius = checks.positive("radius", radius)
         self.opacity = checks.in_range("opacity", opacity, 1e-6, 0.999)
-        self.noise = checks.positive("noise", noise)
+        self.noise = checks.noise("noise", noise)
         self.masks = {}
         for f, ms in per.items():
             ms = [ms] if isinstance(ms, np.ndarray) and ms.ndim == 2 else list(ms)
@@ -337,6 +361,8 @@ class SilhouetteLoss(Loss):
             out = []
             for m, c in zip(ms, self.cameras):
                 try:
+                    if np.iscomplexobj(m):  # its real part was taken with a ComplexWarning
+                        raise TypeError
                     m = np.asarray(m, dtype=np.float64)
                 except (TypeError, ValueError):
                     raise ValueError(f"mask of camera {c.name!r} at step {f} is not allowed: it is not an array of "
