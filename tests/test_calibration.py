@@ -850,3 +850,46 @@ def test_losses_diagnostics_and_cameras_refuse_what_they_dropped_or_misread(tmp_
     np.savez(tmp_path / "twice.npz", c_1=mask, c_01=mask)
     with pytest.raises(ValueError, match="camera 'c' already has a mask for frame 1"):
         load_masks(tmp_path / "twice.npz", [cam])
+
+
+def test_second_review_of_the_losses_round(tmp_path, dropped_cube):
+    """A fit of a scaled WorldLoss ran its diagnostics and lost the fit to their error; a
+    linear value at 0 with any finite error read as determined; a NaN F stopped simulate in
+    numpy's SVD; ReactionForceLoss refused a range of steps; cameras of whole-number floats,
+    of a calibration tool's round-off or given as any iterable were refused; ragged targets
+    got numpy's message."""
+    import types  # noqa: PLC0415
+
+    from warp_esph import losses as L  # noqa: PLC0415
+    from warp_esph.diagnostics import _summarise  # noqa: PLC0415
+    from warp_esph.simulate import SimulationError, simulate  # noqa: PLC0415
+
+    model = dropped_cube(100.0, 10.0)
+    worlds = we.builder.replicate_worlds(model, 2)
+    target = {5: model.particle_x0.copy()}
+    result = fit(worlds, 2.0 * L.WorldLoss(worlds, PositionLoss(target, frames=[5])), ["yield_stress"], steps=5,
+                 dt=model.stable_dt(), iterations=1, progress=False)
+    assert result.diagnostics is None
+    # viscosity 0 with a standard error of 1e4 Pa s: undetermined (its own scale, 1)
+    prob = types.SimpleNamespace(params=["viscosity"], k=1, labels=["viscosity"], spaces={"viscosity": "linear"},
+                                 scales={"viscosity": 1.0}, from_z=lambda z: {"viscosity": np.array([0.0])})
+    loose = _summarise(prob, np.zeros(1), np.array([[1e-8]]), np.zeros(1), [1e-3], [1e-3], 100, 3, 1e-3, 0.25, 1e-3,
+                       0.95, None)
+    tight = _summarise(prob, np.zeros(1), np.array([[1e2]]), np.zeros(1), [1e-3], [1e-3], 100, 3, 1e-3, 0.25, 1e-3,
+                       0.95, None)
+    assert loose.undetermined == ["viscosity"] and tight.undetermined == []
+    state = model.state()
+    F = state.F.numpy()
+    F[0, 0, 0] = np.nan
+    state.F.assign(F)
+    with pytest.raises(SimulationError):
+        simulate(model, 1, state=state, progress=False)
+    assert L.ReactionForceLoss(np.zeros((3, 3)), 0, range(10, 31, 10)).frames == (10, 20, 30)
+    cam = {"name": "c", "width": 32.0, "height": 24, "K": [[60.0, 1e-13, 16.0], [0.0, 60.0, 12.0], [0.0, 0.0, 1.0 + 2e-16]],
+           "R": np.eye(3).tolist(), "t": [0.0, 0.0, 1.0]}
+    c = PinholeCamera.from_dict(cam)
+    assert c.width == 32 and list(SilhouetteLoss({2: [np.zeros((24, 32))]}, {"c": c}.values(), 0.01).frames) == [2]
+    with pytest.raises(ValueError, match="masks are given for steps \\[2\\] but frames = \\[7\\]"):
+        SilhouetteLoss({2: [np.zeros((24, 32))]}, [c], 0.01, frames=7)
+    with pytest.raises(ValueError, match="targets is not allowed: give an array"):
+        PositionLoss([[0.0, 0.0, 0.0], [0.0, 0.0]], frames=[1, 2])

@@ -881,11 +881,12 @@ def test_a_plain_install_carries_every_package(tmp_path):
 def test_a_turned_or_prestrained_start_keeps_the_energy_bound_honest():
     """The monitor adds the elastic energy stored at the start (a prestrained F0, a resumed
     state) to what the scene can give. Read as |F - I|^2, a body turned by 90 degrees held
-    4 units of strain: a stiff cube at 230 x its stable step, caught at step 10 from rest,
-    ran 30 frames from the turned state to 475 m/s (measured by a review). From F's singular
-    values the turn stores nothing and the blow-up is caught; a 20 % stretch with lam near
-    -2 mu / 3 (its shear energy once counted as almost nothing) recoils without a false
-    alarm."""
+    4 units of strain (7.3e5 J here), which let a review's resumed tumbling cube run to 475
+    m/s; from F's singular values the turn stores nothing (asserted directly: this cube's
+    blow-up also passes the speed bound, which catches it either way). A 20 % stretch with
+    lam near -2 mu / 3 (its shear energy once counted as almost nothing: a false alarm)
+    recoils without one. The wave speed is the one the model runs now, of the particles
+    checked: after a trial's parameters (``Rollout.set_parameters``) and for one body of two."""
     from warp_esph.simulate import SimulationError, simulate  # noqa: PLC0415
 
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
@@ -909,3 +910,15 @@ def test_a_turned_or_prestrained_start_keeps_the_energy_bound_honest():
     v = final.v.numpy()
     assert np.abs(v).max() > 0.1  # it recoils
     assert monitor.check(final.x.numpy(), v, 0.04) is None
+    from warp_esph.material import p_wave_speed  # noqa: PLC0415
+    from warp_esph.rollout import Rollout  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), we.Material(mu=5e3, lam=5e3), name="calm")
+    b.add_box((1.0, 0.0, 0.0), (0.06, 0.06, 0.06), we.Material(mu=5e5, lam=5e5), name="wild")
+    two = b.finalize(dtype=wp.float64, requires_grad=True)
+    calm = p_wave_speed(5e3, 5e3, 1000.0, two.materials[0].pressure_stiffness)
+    assert DivergenceMonitor(two, two.state(), exempt=["wild"]).wave == pytest.approx(calm, rel=1e-12)
+    Rollout(two, 1, 1e-4).set_parameters({"mu": [1.5e7, 5e5]})  # a fit's trial, 3000 x stiffer
+    stiff = p_wave_speed(1.5e7, 5e3, 1000.0, two.materials[0].pressure_stiffness)
+    assert DivergenceMonitor(two, two.state(), exempt=["wild"]).wave == pytest.approx(stiff, rel=1e-12)

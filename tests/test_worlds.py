@@ -151,7 +151,7 @@ def test_world_gradients_match_separate_tapes():
             assert np.abs(g_ref).max() > 0.0 or name == "pressure_stiffness", name
             np.testing.assert_allclose(g, g_ref, rtol=1e-9, atol=1e-12 * np.abs(g_ref).max(), err_msg=name)
     assert value == pytest.approx(sum(v for v, _ in ref.values()), rel=1e-12)
-    # Inside a sum (beside a force loss, as docs/fitting.md has it) each world's term: the
+    # Inside a sum (a scaled one here; beside a force loss in docs/fitting.md) each world's term: the
     # WorldLoss's world_values stayed the last direct evaluation's and the rollout's read None.
     model.set_material(0, MAT_B.replace(mu=2.0 * MAT_B.mu), world=1)
     r.forward()

@@ -431,10 +431,12 @@ def _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations
         if not np.isfinite(fisher).all():
             # Differences of round-off or of blown-up runs: no verdict is drawn from them.
             reasons.append("its curvature could not be measured (the Fisher matrix is not finite)")
-        elif values[k] == 0.0 and spaces[k] != "log" and math.isfinite(se[k]):
-            # A linear value at 0 (a viscosity fitted to none) has no relative error; its
-            # absolute one is finite ("unbounded of its value" said it was free).
-            pass
+        elif values[k] == 0.0 and spaces[k] != "log":
+            # A linear value at 0 (a viscosity fitted to none) has no relative error ("unbounded
+            # of its value" said a finite error made it free): judged in its own scale.
+            if not se_z[k] <= max_relative_error:
+                reasons.append(f"its standard error is {se[k]:.3g} at a value of 0 (limit {max_relative_error:g} of its "
+                               f"scale {scales[k]:g})")
         elif not rel[k] <= max_relative_error:
             shown = "unbounded" if not math.isfinite(rel[k]) else f"{100 * rel[k]:.3g} %"
             reasons.append(f"its standard error is {shown} of its value (limit {100 * max_relative_error:.3g} %)")

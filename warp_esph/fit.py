@@ -1029,7 +1029,11 @@ def fit(
     result.evaluations = sum(1 for h in history if h["stage"] == "descent")
     # A worlds model fits W hypotheses at once: one Fisher matrix of their summed loss
     # would describe none of them, so the diagnostics are left to one world at a time.
-    worlds = any(isinstance(r.loss, WorldLoss) for r in runs)
+    from .losses import _leaves  # noqa: PLC0415
+
+    # A WorldLoss anywhere in the loss (2 * W, W + a force loss): the diagnostics failed after
+    # the fit and lost it.
+    worlds = any(isinstance(leaf, WorldLoss) for r in runs for leaf in _leaves(r.loss))
     if diagnostics and worlds:
         say("diagnostics: skipped for a WorldLoss (diagnose each world's fit on its own model)")
     if diagnostics and not worlds:

@@ -240,7 +240,7 @@ def _per_frame(name: str, data, frames, item_ndim: int) -> dict:
     if isinstance(data, Mapping):
         keys = _frames(list(data.keys()))
         if frames is not None and set(_frames(frames)) != set(keys):
-            raise ValueError(f"{name} is given for steps {sorted(keys)} but frames = {list(frames)}")
+            raise ValueError(f"{name} is given for steps {sorted(keys)} but frames = {list(_frames(frames))}")
         return {f: data[f] for f in keys}
     if frames is None:
         raise ValueError(f"frames is required: say at which step indices {name} applies")
@@ -248,12 +248,13 @@ def _per_frame(name: str, data, frames, item_ndim: int) -> dict:
     if isinstance(data, (list, tuple)) and data and all(np.ndim(d) == item_ndim for d in data):
         items = list(data)
     else:
-        if np.iscomplexobj(data):  # numpy kept the real part with only a ComplexWarning
-            raise ValueError(f"{name} is not allowed: it holds complex numbers; positions are real")
         try:
+            complex_ = np.iscomplexobj(data)
             a = np.asarray(data, dtype=np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError):  # ragged rows: numpy's own message named no parameter
             raise ValueError(f"{name} is not allowed: give an array, a sequence of arrays or a {{step: array}} mapping") from None
+        if complex_:  # numpy kept the real part with only a ComplexWarning
+            raise ValueError(f"{name} is not allowed: it holds complex numbers; positions are real")
         if a.ndim == item_ndim:
             return {f: a for f in frames}
         if a.ndim != item_ndim + 1:
@@ -1015,7 +1016,7 @@ class ReactionForceLoss(Loss):
     def __init__(self, targets, tool: str | int, steps, window: int = 1, components: str = "xyz",
                  weight: float = 1.0, noise: float | None = None):
         # Whole step indices as frames are (int() took 2.7 as 2, "3" as 3 and True as 1).
-        steps = list(_frames(steps if isinstance(steps, (list, tuple, np.ndarray)) else [steps]))
+        steps = list(_frames(np.ravel(steps).tolist() if isinstance(steps, np.ndarray) else steps))
         super().__init__(steps, weight)
         if list(self.frames) != steps:
             raise ValueError(f"steps = {steps!r} is not allowed: window end steps must be distinct and increasing")

@@ -112,7 +112,8 @@ class PinholeCamera:
                 K = np.full(1, np.nan)
             if K.shape != (3, 3) or not np.isfinite(K).all():
                 raise ValueError(f"camera {name!r}: K = {checks.shorten(d['K'])!r} is not allowed: must be 3x3 finite numbers")
-            if K[0, 1] != 0.0 or K[1, 0] != 0.0 or not np.array_equal(K[2], [0.0, 0.0, 1.0]):
+            tol = 1e-9 * max(abs(K[0, 0]), abs(K[1, 1]), 1.0)  # a calibration tool's round-off passes
+            if abs(K[0, 1]) > tol or abs(K[1, 0]) > tol or not np.allclose(K[2], [0.0, 0.0, 1.0], rtol=0.0, atol=1e-9):
                 # the skew and the bottom row were ignored
                 raise ValueError(f"camera {name!r}: K = {K.tolist()} is not allowed: the pinhole model has no skew and "
                                  "a bottom row (0, 0, 1)")
@@ -126,7 +127,10 @@ class PinholeCamera:
             except (TypeError, ValueError):  # numpy's own message named no key
                 raise ValueError(f"camera {name!r}: {key} = {checks.shorten(d[key])!r} is not allowed: must be "
                                  "numbers") from None
-        # Whole numbers as they are (int() took 16.9 as 16 and true as 1).
+        # Whole numbers as they are (int() took 16.9 as 16 and true as 1); 32.0 is 32.
+        for key in ("width", "height"):
+            if isinstance(d[key], float) and d[key].is_integer():
+                d[key] = int(d[key])
         return cls(d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"], d["R"], d["t"], name)
 
     def project(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -334,13 +338,13 @@ class SilhouetteLoss(Loss):
             cameras, _ = load_cameras(cameras)
         if isinstance(cameras, PinholeCamera):
             cameras = [cameras]  # one camera (a TypeError: not iterable)
-        self.cameras = list(cameras) if isinstance(cameras, Sequence) else []
+        self.cameras = list(cameras) if hasattr(cameras, "__iter__") and not isinstance(cameras, (str, bytes)) else []
         if not self.cameras or not all(isinstance(c, PinholeCamera) for c in self.cameras):
             raise ValueError("cameras is not allowed: give a list of PinholeCamera (or a camera JSON file)")
         if isinstance(masks, Mapping):
             per = {f: masks[f] for f in _frames(list(masks))}
             if frames is not None and set(_frames(frames)) != set(per):  # frames was ignored
-                raise ValueError(f"masks are given for steps {sorted(per)} but frames = {list(frames)}")
+                raise ValueError(f"masks are given for steps {sorted(per)} but frames = {list(_frames(frames))}")
         else:
             if frames is None:
                 raise ValueError("frames is required: say at which step indices the masks apply")

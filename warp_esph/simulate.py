@@ -213,7 +213,10 @@ def _stored_energy_bound(model: Model, p: dict, F: np.ndarray, keep: np.ndarray)
         return 0.0
     density = np.array([m.density for m in model.materials], dtype=np.float64)
     stiffness = p["mu"] + 1.5 * np.maximum(p["lam"], 0.0) + 1.5 * density * p["pressure_stiffness"]
-    s = np.linalg.svd(F.astype(np.float64)[keep], compute_uv=False)
+    F = F.astype(np.float64)[keep]
+    finite = np.isfinite(F).all(axis=(1, 2))  # a NaN F (numpy's SVD fails on it) is the non-finite check's
+    s = np.ones((len(F), 3))
+    s[finite] = np.linalg.svd(F[finite], compute_uv=False)
     strain = np.maximum((s - 1.0) ** 2, (0.5 * (s * s - 1.0)) ** 2).sum(axis=1)
     volume = model.particle_volume.numpy().astype(np.float64)[keep]
     return float(2.0 * (stiffness[model.particle_material_np[keep]] * strain * volume).sum())
