@@ -94,6 +94,17 @@ def test_bad_checkpoints_are_refused_by_name(tmp_path):
         b.add_box((0.0, 0.15, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), velocity=(0.5, -1.0, 0.0))
         b.add_sphere((0.25, 0.1, 0.0), 0.05, we.Material.preset("clay"))
         load_state(path64, b.finalize(dtype=wp.float64))
+    # A time load_state refuses was written (nan, inf, -1; text was numpy's message), and a
+    # path that is no path was a TypeError from pathlib.
+    for bad in (float("nan"), float("inf"), -1.0, "abc"):
+        state = model.state()
+        state.time = bad
+        with pytest.raises(ValueError, match=r"state.time = .* is not allowed: must be a finite number >= 0"):
+            save_state(tmp_path / "t.npz", model, state, step=0, frame=0)
+    assert not (tmp_path / "t.npz").exists()
+    for bad in (None, 123):
+        with pytest.raises(ValueError, match=rf"checkpoint = {bad!r} is not allowed: must be a path"):
+            load_state(bad, model)
 
 
 def test_interrupted_save_keeps_the_previous_checkpoint(tmp_path, monkeypatch):

@@ -126,3 +126,12 @@ def test_overlapping_bodies_are_refused_by_name():
     ok.add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, name="first")
     ok.add_box((0.1, 0, 0), (0.1, 0.1, 0.1), DOUGH, name="touching")  # nearest particles one spacing apart
     assert ok.finalize().particle_count == 250
+    # Two copies of a body offset by less than half a spacing fell in different half-spacing
+    # cells throughout and passed (0.1 dx apart; spheres offset 0.25 dx: 121 of 200 passed).
+    rng = np.random.default_rng(0)
+    for offset in [(0.002, 0.0, 0.0)] + [tuple(0.005 * d / np.linalg.norm(d)) for d in rng.normal(size=(10, 3))]:
+        twin = we.SceneBuilder(spacing=0.02)
+        twin.add_sphere((0.0, 0.3, 0.0), 0.05, DOUGH, name="a")
+        twin.add_sphere(tuple(np.add((0.0, 0.3, 0.0), offset)), 0.05, DOUGH, name="b")
+        with pytest.raises(ValueError, match=r"bodies '[ab]' and '[ab]' are not allowed to overlap"):
+            twin.finalize()

@@ -629,6 +629,13 @@ class SceneBuilder:
         _, first, inverse = np.unique(cells, axis=0, return_index=True, return_inverse=True)
         owner = body[first][inverse.ravel()]
         clash = np.nonzero(owner != body)[0]
+        if not clash.size:
+            # Two bodies offset by less than half a spacing can fall in different cells
+            # throughout (two boxes 0.1 dx apart passed): any two particles of different
+            # bodies closer than half a spacing overlap as well.
+            i, j = _closer_than(points, body, 0.5 * self.spacing)
+            if i is not None:
+                owner, clash = {j: body[i]}, np.array([j])
         if clash.size:
             a, b = self._bodies[owner[clash[0]]].name, self._bodies[body[clash[0]]].name
             raise ValueError(
@@ -851,6 +858,34 @@ def _check_outside_tools(model) -> None:
             raise ValueError(f"body {body.name!r} is not allowed where it is: {int(inside.sum())} of its particles start inside tool "
                              f"{tool.name!r} at its first pose, up to {d[i]:.3g} m deep (at {np.round(x[i], 4).tolist()}); "
                              "move the body or the tool out")
+
+
+def _closer_than(points: np.ndarray, body: np.ndarray, r: float):
+    """``(i, j)``, two particles of different bodies closer than ``r``, or ``(None, None)``:
+    points binned in cells of ``r``, each compared with those of its 27 neighbouring cells."""
+    cells = np.floor(points / r).astype(np.int64)
+    cells -= cells.min(axis=0) - 1
+    dims = cells.max(axis=0) + 2
+    if float(dims[0]) * float(dims[1]) * float(dims[2]) > 2.0**62:  # a scene too wide to key its cells
+        return None, None
+    key = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                near = key + (dx * dims[1] + dy) * dims[2] + dz
+                lo = np.searchsorted(sorted_key, near, "left")
+                hi = np.searchsorted(sorted_key, near, "right")
+                for k in range(int((hi - lo).max(initial=0))):
+                    has = lo + k < hi
+                    i = np.flatnonzero(has)
+                    j = order[lo[has] + k]
+                    d = points[i] - points[j]
+                    hit = np.flatnonzero((body[i] != body[j]) & ((d * d).sum(axis=1) < r * r))
+                    if hit.size:
+                        return int(i[hit[0]]), int(j[hit[0]])
+    return None, None
 
 
 def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.float32, requires_grad: bool = False) -> Model:

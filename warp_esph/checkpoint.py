@@ -125,6 +125,11 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
             raise ValueError(f"run is not allowed: it must hold JSON values (numbers, text, lists, dicts): {e}") from None
     checks.output_place("checkpoint path", path)
     checks.same_state(model, "state", state)
+    time_ = state.time
+    if isinstance(time_, bool) or not isinstance(time_, (int, float, np.integer, np.floating)) \
+            or not (math.isfinite(float(time_)) and float(time_) >= 0.0):
+        # load_state refuses it: the file would hold a run that cannot resume
+        raise ValueError(f"state.time = {checks.shorten(time_)!r} is not allowed: must be a finite number >= 0")
     model._check_parameter_values(model._read_parameters())
     for name in State.STATE_FIELDS:
         if not np.isfinite(getattr(state, name).numpy()).all():
@@ -161,6 +166,10 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
 
 def read_checkpoint(path) -> tuple[dict, dict[str, np.ndarray]]:
     """The metadata and arrays of a checkpoint file; ``ValueError`` if it is not one."""
+    if not isinstance(path, (str, os.PathLike)):  # None, 123: a TypeError from pathlib
+        from . import checks  # noqa: PLC0415
+
+        raise ValueError(f"checkpoint = {checks.shorten(path)!r} is not allowed: must be a path")
     path = pathlib.Path(path)
     try:
         # Our own handle: np.load leaves its file open when the zip is damaged.
