@@ -69,6 +69,7 @@ def test_material_accepts_inf_yield_and_converts_young():
         (lambda: we.SceneBuilder().add_plane((0, 0, 0), 0.0), r"normal = \(0, 0, 0\) .* non-zero"),
         (lambda: we.SceneBuilder().finalize(), r"the scene has no bodies"),
         (lambda: _one_box().finalize(dtype="float16"), r"dtype = 'float16' .* wp\.float32 or wp\.float64"),
+        (lambda: _one_box().finalize(dtype=float), r"dtype = float is not allowed: Warp reads it as float32, numpy as float64"),
         (lambda: _one_box().finalize(device="tpu"), r"device = 'tpu' is not allowed"),
         (lambda: _one_box(name="a").add_box((1, 0, 0), (0.1, 0.1, 0.1), DOUGH, name="a"), r"name = 'a' .* exists already"),
         (lambda: we.SceneBuilder().add_particles(np.zeros((4, 2)), DOUGH), r"positions with shape \(4, 2\) .* \(N, 3\)"),

@@ -19,6 +19,11 @@ def scalar_type(dtype) -> type:
     """Normalise ``dtype`` (a Warp type, numpy dtype or name) to ``wp.float32``/``wp.float64``."""
     if dtype in (wp.float32, wp.float64):
         return dtype
+    if dtype is float:
+        # Warp reads Python's float as float32, numpy (and Python) as 64-bit: a model of either
+        # precision would surprise half the users (it was float32 without a word).
+        raise ValueError("dtype = float is not allowed: Warp reads it as float32, numpy as float64; give wp.float32 or "
+                         "wp.float64")
     name = getattr(dtype, "__name__", None) or str(dtype)
     name = {"float": "float32", "double": "float64"}.get(name, name)
     if name not in _SCALARS:
