@@ -4,6 +4,7 @@ import math
 import os
 import pathlib
 import tempfile
+import warnings
 
 import hypothesis.strategies as st
 import numpy as np
@@ -74,12 +75,14 @@ def open_edges(triangles):
 
 
 def write_usd(path, meshes_by_path, meters_per_unit=1.0, xform=None):
-    """A USD stage with Mesh prims {prim path: (points, faceVertexCounts, faceVertexIndices)}."""
+    """A USD stage with Mesh prims {prim path: (points, faceVertexCounts, faceVertexIndices)};
+    ``meters_per_unit=None`` leaves the stage's metersPerUnit unauthored."""
     from pxr import Gf, Usd, UsdGeom
 
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
+    if meters_per_unit is not None:
+        UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
     root = UsdGeom.Xform.Define(stage, "/root")
     if xform is not None:
         translate, scale = xform
@@ -228,6 +231,31 @@ def test_usd_quads_transform_units_and_prim_path(tmp_path):
     assert len(meshes.sample_inside(p, t, 0.002)) == 1000
     p2, _ = meshes.load_mesh(path, prim_path="/root/small")
     np.testing.assert_allclose(p2.max(axis=0) - p2.min(axis=0), [0.01] * 3, atol=1e-7)
+
+
+def test_usd_without_meters_per_unit_is_read_in_centimetres_with_a_warning(tmp_path):
+    """USD's fallback is 0.01 m per unit; a file modelled in metres without the metadata came
+    in 100 x too small without a word."""
+    plain = tmp_path / "plain.usda"
+    write_usd(plain, {"/root/box": QUAD_CUBE}, meters_per_unit=None)
+    said = r"plain\.usda.*does not author metersPerUnit, so USD's fallback of 0\.01 m per unit \(centimetres\) is " \
+           r"assumed; if the mesh is in metres, author metersPerUnit = 1 .* or scale it by 100"
+    with pytest.warns(UserWarning, match=said):
+        p, _ = meshes.load_mesh(plain)
+    np.testing.assert_allclose(p.max(axis=0) - p.min(axis=0), [0.01] * 3, atol=1e-9)
+    dough = warp_esph.Material.preset("dough")
+    b = warp_esph.SceneBuilder(spacing=0.1)
+    with pytest.warns(UserWarning, match=said):
+        assert b._bodies[b.add_mesh(plain, dough, scale=100.0)].count == 1000  # the advice gives metres
+    # Authored (centimetres too): the file says what it means, so nothing is said.
+    authored = tmp_path / "authored.usda"
+    write_usd(authored, {"/root/box": QUAD_CUBE}, meters_per_unit=0.01)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        p2, _ = meshes.load_mesh(authored)
+        b = warp_esph.SceneBuilder(spacing=0.1)
+        assert b._bodies[b.add_mesh(authored, dough, scale=100.0)].count == 1000
+    np.testing.assert_array_equal(p2, p)
 
 
 # --------------------------------------------------------------------- Warp's assets

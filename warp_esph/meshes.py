@@ -69,7 +69,9 @@ def load_mesh(source, prim_path: str | None = None) -> tuple[np.ndarray, np.ndar
 
     ``source`` is a file meshio reads, a USD file (``prim_path`` picks the Mesh prim,
     else the first one; its local-to-world transform and the stage's metres per unit
-    are applied, the up axis is kept), or a tuple ``(points, triangles)``. Polygons are
+    are applied, the up axis is kept; a stage that does not author ``metersPerUnit`` is
+    read in USD's fallback unit, centimetres, with a ``UserWarning``), or a tuple
+    ``(points, triangles)``. Polygons are
     fan-triangulated and tetrahedral meshes reduced to their surface. Coincident and
     unused vertices are merged or dropped, and the triangles are turned to face outward.
     """
@@ -175,6 +177,7 @@ def _read_usd(label: str, path: str, prim_path: str | None):
         idx = np.array(mesh.GetFaceVertexIndicesAttr().Get(time) or [], dtype=np.int64)
         xform = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), dtype=np.float64)
         meters = float(UsdGeom.GetStageMetersPerUnit(stage))
+        meters_authored = UsdGeom.StageHasAuthoredMetersPerUnit(stage)
     except Exception as e:  # noqa: BLE001
         _reject(where, f"pxr cannot read it ({_short(e)})")
     if len(pts) == 0 or len(counts) == 0:
@@ -183,6 +186,14 @@ def _read_usd(label: str, path: str, prim_path: str | None):
         _reject(where, f"{int(np.sum(counts < 3))} faces have fewer than 3 vertices")
     if counts.sum() != len(idx):
         _reject(where, f"faceVertexCounts sum to {int(counts.sum())} but there are {len(idx)} faceVertexIndices")
+    if not meters_authored:
+        # USD's rule, kept: without the metadata the stage is in centimetres. Most tools author
+        # it, so a file without it was often modelled in metres and came in 100 x too small.
+        warnings.warn(
+            f"mesh {label}: its stage does not author metersPerUnit, so USD's fallback of {meters:g} m per unit "
+            f"(centimetres) is assumed; if the mesh is in metres, author metersPerUnit = 1 in the file "
+            f"(UsdGeom.SetStageMetersPerUnit) or scale it by {1.0 / meters:g} (add_mesh(..., scale={1.0 / meters:g}))",
+            UserWarning, stacklevel=3)
     # USD matrices act on row vectors: p_world = [p, 1] @ M.
     pts = (np.hstack([pts, np.ones((len(pts), 1))]) @ xform)[:, :3] * meters
     return pts, _fan(counts, idx), str(prim.GetPath())
