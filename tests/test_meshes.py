@@ -224,13 +224,65 @@ def test_usd_quads_transform_units_and_prim_path(tmp_path):
     write_usd(path, {"/root/box": QUAD_CUBE, "/root/small": small}, meters_per_unit=0.01,
               xform=((10.0, 0.0, 0.0), (2.0, 2.0, 2.0)))  # fmt: skip
     # Unit cube scaled by 2, moved 10 units along x, in centimetres.
-    p, t = meshes.load_mesh(path)
+    p, t = meshes.load_mesh(path, prim_path="/root/box")
     assert t.shape == (12, 3)
     np.testing.assert_allclose(p.min(axis=0), [0.10, 0.0, 0.0], atol=1e-7)
     np.testing.assert_allclose(p.max(axis=0), [0.12, 0.02, 0.02], atol=1e-7)
     assert len(meshes.sample_inside(p, t, 0.002)) == 1000
     p2, _ = meshes.load_mesh(path, prim_path="/root/small")
     np.testing.assert_allclose(p2.max(axis=0) - p2.min(axis=0), [0.01] * 3, atol=1e-7)
+
+
+def test_usd_without_prim_path_reads_the_one_mesh_the_stage_shows(tmp_path):
+    """The first Mesh prim in file order was read even when the stage does not show it (a
+    hidden stand-in, a guide, a proxy), and of several shown ones the first without a word."""
+    from pxr import Usd, UsdGeom
+
+    path = tmp_path / "kinds.usda"
+    half = (cube()[0] * 0.5, *QUAD_CUBE[1:])
+    write_usd(path, {"/root/a_hidden": half, "/root/b_group/part": half, "/root/c_guide": half,
+                     "/root/d_proxy": half, "/root/e_inactive": half, "/root/f_shown": QUAD_CUBE})
+    stage = Usd.Stage.Open(str(path))
+    UsdGeom.Imageable(stage.GetPrimAtPath("/root/a_hidden")).MakeInvisible()
+    UsdGeom.Xform.Define(stage, "/root/b_group").MakeInvisible()  # hidden by its parent
+    UsdGeom.Imageable(stage.GetPrimAtPath("/root/c_guide")).CreatePurposeAttr(UsdGeom.Tokens.guide)
+    UsdGeom.Imageable(stage.GetPrimAtPath("/root/d_proxy")).CreatePurposeAttr(UsdGeom.Tokens.proxy)
+    stage.GetPrimAtPath("/root/e_inactive").SetActive(False)
+    stage.GetRootLayer().Save()
+    p, _ = meshes.load_mesh(path)
+    np.testing.assert_allclose(p.max(axis=0) - p.min(axis=0), [1.0] * 3, atol=1e-7)
+    # Named, a hidden one is read.
+    p, _ = meshes.load_mesh(path, prim_path="/root/a_hidden")
+    np.testing.assert_allclose(p.max(axis=0) - p.min(axis=0), [0.5] * 3, atol=1e-7)
+
+    # Two shown: refused, naming both (the builder and scene files pass it on).
+    UsdGeom.Imageable(stage.GetPrimAtPath("/root/c_guide")).GetPurposeAttr().Set(UsdGeom.Tokens.default_)
+    stage.GetRootLayer().Save()
+    two = r"^prim_path = None is not allowed: '.*kinds\.usda' has 2 visible Mesh prims \('/root/c_guide', " \
+          r"'/root/f_shown'\); pass prim_path= the one to read \(or make the others invisible\)$"
+    with pytest.raises(ValueError, match=two):
+        meshes.load_mesh(path)
+    with pytest.raises(ValueError, match=two):
+        warp_esph.SceneBuilder(spacing=0.1).add_mesh(path, warp_esph.Material.preset("dough"))
+    b = warp_esph.SceneBuilder(spacing=0.1)
+    assert b._bodies[b.add_mesh(path, warp_esph.Material.preset("dough"), prim_path="/root/f_shown")].count == 1000
+
+    # None shown of several: refused, naming them.
+    for shown in ("/root/c_guide", "/root/f_shown"):
+        UsdGeom.Imageable(stage.GetPrimAtPath(shown)).MakeInvisible()
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"^prim_path = None is not allowed: '.*kinds\.usda' has 5 Mesh prims and none "
+                                         r"is visible \(each is invisible or of purpose guide or proxy: '/root/a_hidden', "
+                                         r"'/root/b_group/part', .*'/root/f_shown'\); pass prim_path= the one to read$"):
+        meshes.load_mesh(path)
+
+    # A stage's only Mesh prim is read whatever it shows (a collision mesh is often a guide).
+    only = tmp_path / "only.usda"
+    write_usd(only, {"/root/collision": QUAD_CUBE})
+    stage = Usd.Stage.Open(str(only))
+    UsdGeom.Imageable(stage.GetPrimAtPath("/root/collision")).CreatePurposeAttr(UsdGeom.Tokens.guide)
+    stage.GetRootLayer().Save()
+    assert meshes.load_mesh(only)[1].shape == (12, 3)
 
 
 def test_usd_without_meters_per_unit_is_read_in_centimetres_with_a_warning(tmp_path):

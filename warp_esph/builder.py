@@ -297,7 +297,9 @@ class SceneBuilder:
         """A closed triangle mesh filled with particles (winding-number inside test).
 
         ``source`` is a file (anything meshio reads, or ``.usd/.usda/.usdc``) or a tuple
-        ``(points, triangles)``. The mesh is scaled by ``scale`` then translated.
+        ``(points, triangles)``; ``prim_path`` names a USD file's Mesh prim (without it, the
+        stage's only one, or the only one it shows: ``meshes.load_mesh``). The mesh is scaled
+        by ``scale`` then translated.
         """
         points, triangles = meshes.load_mesh(source, prim_path=prim_path)
         s = checks.positive("scale", scale)

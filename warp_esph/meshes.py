@@ -67,13 +67,17 @@ def mesh_name(source) -> str:
 def load_mesh(source, prim_path: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A closed triangle mesh as ``(points (N, 3) float64, triangles (M, 3) int32)``.
 
-    ``source`` is a file meshio reads, a USD file (``prim_path`` picks the Mesh prim,
-    else the first one; its local-to-world transform and the stage's metres per unit
-    are applied, the up axis is kept; a stage that does not author ``metersPerUnit`` is
-    read in USD's fallback unit, centimetres, with a ``UserWarning``), or a tuple
-    ``(points, triangles)``. Polygons are
-    fan-triangulated and tetrahedral meshes reduced to their surface. Coincident and
-    unused vertices are merged or dropped, and the triangles are turned to face outward.
+    ``source`` is a file meshio reads, a USD file, or a tuple ``(points, triangles)``.
+    Polygons are fan-triangulated and tetrahedral meshes reduced to their surface.
+    Coincident and unused vertices are merged or dropped, and the triangles are turned to
+    face outward.
+
+    Of a USD file, ``prim_path`` names the Mesh prim to read. Without it the stage's only
+    (active) Mesh prim is read, or else the only one the stage shows: those invisible or of
+    purpose guide or proxy are left out, and several shown are refused, naming them. The
+    prim's local-to-world transform and the stage's metres per unit are applied and the up
+    axis is kept; a stage that does not author ``metersPerUnit`` is read in USD's fallback
+    unit, centimetres, with a ``UserWarning``.
     """
     if prim_path is not None and not isinstance(prim_path, str):
         raise ValueError(f"prim_path = {prim_path!r} is not allowed: must be a string such as '/root/bunny' or None")
@@ -153,10 +157,10 @@ def _read_usd(label: str, path: str, prim_path: str | None):
         _reject(label, f"pxr cannot open it ({_short(e)})")
     if stage is None:
         _reject(label, "pxr cannot open it")
+    # EarliestTime reads the default value, or the first sample of animated points.
+    time = Usd.TimeCode.EarliestTime()
     if prim_path is None:
-        prim = next((p for p in stage.Traverse(Usd.TraverseInstanceProxies()) if p.IsA(UsdGeom.Mesh)), None)
-        if prim is None:
-            _reject(label, "it has no UsdGeom.Mesh prim, so it is not a closed triangle mesh")
+        prim = _only_mesh(label, stage, time)
     else:
         if not Sdf.Path.IsValidPathString(prim_path) or not Sdf.Path(prim_path).IsAbsolutePath():
             raise ValueError(f"prim_path = {prim_path!r} is not allowed: must be an absolute prim path such as '/root/bunny'")
@@ -169,8 +173,6 @@ def _read_usd(label: str, path: str, prim_path: str | None):
             )
     mesh = UsdGeom.Mesh(prim)
     where = f"{label} (prim {str(prim.GetPath())!r})"
-    # EarliestTime reads the default value, or the first sample of animated points.
-    time = Usd.TimeCode.EarliestTime()
     try:
         pts = np.array(mesh.GetPointsAttr().Get(time) or [], dtype=np.float64).reshape(-1, 3)
         counts = np.array(mesh.GetFaceVertexCountsAttr().Get(time) or [], dtype=np.int64)
@@ -197,6 +199,41 @@ def _read_usd(label: str, path: str, prim_path: str | None):
     # USD matrices act on row vectors: p_world = [p, 1] @ M.
     pts = (np.hstack([pts, np.ones((len(pts), 1))]) @ xform)[:, :3] * meters
     return pts, _fan(counts, idx), str(prim.GetPath())
+
+
+def _only_mesh(label: str, stage, time):
+    """The Mesh prim a stage shows, when no prim_path names one.
+
+    The traversal skips inactive prims. A stage's only Mesh prim is taken as it is; of several,
+    those the stage does not show (invisible, or of purpose guide or proxy: helpers and
+    stand-ins) are left out, and one must remain: taking the first in file order read a hidden
+    stand-in, or one part of a model of several, without a word."""
+    from pxr import Usd, UsdGeom  # noqa: PLC0415
+
+    found = [p for p in stage.Traverse(Usd.TraverseInstanceProxies()) if p.IsA(UsdGeom.Mesh)]
+    if not found:
+        _reject(label, "it has no UsdGeom.Mesh prim, so it is not a closed triangle mesh")
+    if len(found) == 1:
+        return found[0]
+
+    def shown(prim) -> bool:
+        img = UsdGeom.Imageable(prim)
+        return img.ComputeVisibility(time) != UsdGeom.Tokens.invisible and \
+            img.ComputePurpose() not in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy)
+
+    visible = [p for p in found if shown(p)]
+    if len(visible) == 1:
+        return visible[0]
+
+    def paths(prims) -> str:
+        named = ", ".join(repr(str(p.GetPath())) for p in prims[:6])
+        return named + (f", ... {len(prims) - 6} more" if len(prims) > 6 else "")
+
+    if visible:
+        raise ValueError(f"prim_path = None is not allowed: {label} has {len(visible)} visible Mesh prims "
+                         f"({paths(visible)}); pass prim_path= the one to read (or make the others invisible)")
+    raise ValueError(f"prim_path = None is not allowed: {label} has {len(found)} Mesh prims and none is visible "
+                     f"(each is invisible or of purpose guide or proxy: {paths(found)}); pass prim_path= the one to read")
 
 
 # ------------------------------------------------------------- bounded reading (meshio)
