@@ -356,6 +356,30 @@ def test_builder_add_mesh_bunny():
     assert b._bodies[k2].name == "mesh1" and b._bodies[k2].count == 1000
 
 
+def test_add_mesh_refuses_a_translation_beyond_float64_naming_it():
+    """A translation that put the mesh beyond float64's reach collapsed its lattice, and the
+    spacing was blamed ('no lattice point falls inside it')."""
+    dough = warp_esph.Material.preset("dough")
+    b = warp_esph.SceneBuilder(spacing=0.1)
+    with pytest.raises(ValueError, match=r"^translation = \(1e\+300, 0\.0, 0\.0\) is not allowed for mesh \(points, "
+                                         r"triangles\): it places the mesh's points up to 1e\+300 m from the origin; they "
+                                         r"must be within 4\.5e\+11 m \(farther out float64 does not resolve the spacing 0\.1\)$"):
+        b.add_mesh(cube(), dough, translation=(1e300, 0, 0))
+    with pytest.raises(ValueError, match=r"^translation = \(1e\+20, 0\.0, 0\.0\) is not allowed for mesh '.*bunny\.usd'"):
+        b.add_mesh(BUNNY, dough, scale=0.1, translation=(1e20, 0, 0))
+    # Checked before the file is read, and refused by name.
+    with pytest.raises(ValueError, match=r"^translation\[1\] = nan is not allowed: must be a finite number$"):
+        b.add_mesh("missing.obj", dough, translation=(0, float("nan"), 0))
+    with pytest.raises(ValueError, match=r"^scale = 1e\+300 is not allowed for mesh \(points, triangles\): it takes the "
+                                         r"mesh's points beyond a float64$"):
+        b.add_mesh(cube((0, 0, 0), (1e10, 1e10, 1e10)), dough, scale=1e300)
+    assert b.particle_count == 0
+    # Where it is placed counts: a mesh modelled far out may be moved back, and within reach
+    # a far translation is the builder's to take (a float32 model refuses it at finalize).
+    assert b._bodies[b.add_mesh(cube((1e13, 0, 0), (1e13 + 1, 1, 1)), dough, translation=(-1e13, 0, 0))].count == 1000
+    assert b._bodies[b.add_mesh(cube(), dough, translation=(4e11, 0, 0))].count == 1000
+
+
 def test_mesh_name():
     assert meshes.mesh_name("/a/b/bunny.usd") == "bunny"
     assert meshes.mesh_name(pathlib.Path("my.model.obj")) == "my.model"

@@ -165,11 +165,15 @@ class SceneBuilder:
         there (a thousandth of the spacing): a centre at 1e300 collapsed every lattice point
         onto one and was reported as a body smaller than the spacing."""
         c = np.array(checks.vector("center", center))
-        far = self.spacing * 1e-3 / np.finfo(np.float64).eps
+        far = self._far()
         if np.abs(c).max() > far:
             raise ValueError(f"center = {tuple(center)!r} is not allowed: must be within {far:.3g} of the origin "
                              f"(farther out float64 does not resolve the spacing {self.spacing:g})")
         return c
+
+    def _far(self) -> float:
+        """How far from the origin float64 still resolves a thousandth of the spacing."""
+        return self.spacing * 1e-3 / np.finfo(np.float64).eps
 
     def _lattice(self, lo, hi, name: str, value) -> np.ndarray:
         self._check_lattice_size(lo, hi, name, value)
@@ -299,18 +303,35 @@ class SceneBuilder:
         ``source`` is a file (anything meshio reads, or ``.usd/.usda/.usdc``) or a tuple
         ``(points, triangles)``; ``prim_path`` names a USD file's Mesh prim (without it, the
         stage's only one, or the only one it shows: ``meshes.load_mesh``). The mesh is scaled
-        by ``scale`` then translated.
+        by ``scale`` then moved by ``translation``; placed, its points must lie as near the
+        origin as a body's ``center`` (float64 resolving a thousandth of the spacing).
         """
-        points, triangles = meshes.load_mesh(source, prim_path=prim_path)
         s = checks.positive("scale", scale)
-        t = np.array(checks.vector("translation", translation))
-        points = points * s + t
-        # Named by what made the mesh large: the scale given, or the mesh's own extent.
+        t = checks.vector("translation", translation)
+        points, triangles = meshes.load_mesh(source, prim_path=prim_path)
+        is_file = meshes._is_path(source)
+        label = repr(os.fsdecode(os.fspath(source))) if is_file else "(points, triangles)"
+        with np.errstate(over="ignore", invalid="ignore"):
+            points = points * s
+        if not np.isfinite(points).all():
+            raise ValueError(f"scale = {checks.shorten(scale)!r} is not allowed for mesh {label}: it takes the mesh's "
+                             f"points beyond a float64")
+        # Named by what made the mesh large: the scale given, or the mesh's own extent. Sized
+        # before it is moved: far out, float64 rounds the extent itself.
         extent = tuple(float(v) for v in points.max(axis=0) - points.min(axis=0))
         self._check_lattice_size(points.min(axis=0), points.max(axis=0), *(
             ("scale", scale) if scale != 1.0 else ("the mesh's extent (scale 1)", checks.shorten(extent))))
+        # Where it is placed, not the translation alone: a mesh modelled far from its origin
+        # may be moved back. Beyond reach the lattice collapsed and the spacing was blamed.
+        with np.errstate(over="ignore", invalid="ignore"):
+            points = points + np.array(t)
+        reach, far = float(np.abs(points).max()), self._far()
+        if not reach <= far:
+            raise ValueError(f"translation = {t!r} is not allowed for mesh {label}: it places the mesh's points up to "
+                             f"{reach:.3g} m from the origin; they must be within {far:.3g} m (farther out float64 does "
+                             f"not resolve the spacing {self.spacing:g})")
         inside = meshes.sample_inside(points, triangles, self.spacing)
-        kind_name = name if name is not None else (meshes.mesh_name(source) if isinstance(source, (str, bytes)) or hasattr(source, "__fspath__") else None)
+        kind_name = name if name is not None else (meshes.mesh_name(source) if is_file else None)
         return self.add_particles(inside, material, velocity, kind_name, "mesh", angular_velocity)
 
     def add_particle_floor(self, body, *, margin: float | None = None, layers: int | None = None, where=None, name: str | None = None,
