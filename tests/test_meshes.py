@@ -380,6 +380,28 @@ def test_add_mesh_refuses_a_translation_beyond_float64_naming_it():
     assert b._bodies[b.add_mesh(cube(), dough, translation=(4e11, 0, 0))].count == 1000
 
 
+def test_add_mesh_of_one_file_twice_gets_unique_default_names(tmp_path):
+    """The default name was the file's name for every body of the file, so the second was
+    refused ('a body of that name exists already'); other default names are unique."""
+    dough = warp_esph.Material.preset("dough")
+    b = warp_esph.SceneBuilder(spacing=0.05)
+    names = [b.add_mesh(BUNNY, dough, scale=0.1, translation=(x, 0.0, 0.0)) for x in (0.0, 0.5)]
+    b.add_box((1.5, 0.05, 0.0), (0.1, 0.1, 0.1), dough, name="bunny_2")
+    names.append(b.add_mesh(BUNNY, dough, scale=0.1, translation=(1.0, 0.0, 0.0)))
+    assert [b._bodies[k].name for k in names] == ["bunny", "bunny_1", "bunny_3"]
+    assert [x.name for x in b.finalize().bodies] == ["bunny", "bunny_1", "bunny_2", "bunny_3"]
+    # A name given is still the caller's: taken, it is refused.
+    with pytest.raises(ValueError, match=r"^name = 'bunny' is not allowed: a body of that name exists already$"):
+        b.add_mesh(BUNNY, dough, scale=0.1, translation=(2.0, 0.0, 0.0), name="bunny")
+    # Scene files pass it on.
+    from warp_esph.scenes import load_scene_file
+
+    meshes.write_mesh(tmp_path / "part.obj", *cube((0.0, 0.0, 0.0), (0.1, 0.1, 0.1)))
+    body = '[[bodies]]\nshape = "mesh"\nmaterial = "dough"\nfile = "part.obj"\ntranslation = [{x}, 0.2, 0.0]\n'
+    (tmp_path / "two.toml").write_text("".join(body.format(x=x) for x in (0.0, 0.5)))
+    assert [x.name for x in load_scene_file(tmp_path / "two.toml").builder._bodies] == ["part", "part_1"]
+
+
 def test_mesh_name():
     assert meshes.mesh_name("/a/b/bunny.usd") == "bunny"
     assert meshes.mesh_name(pathlib.Path("my.model.obj")) == "my.model"

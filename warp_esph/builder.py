@@ -305,6 +305,9 @@ class SceneBuilder:
         stage's only one, or the only one it shows: ``meshes.load_mesh``). The mesh is scaled
         by ``scale`` then moved by ``translation``; placed, its points must lie as near the
         origin as a body's ``center`` (float64 resolving a thousandth of the spacing).
+
+        The body's default name is a file's name without its extension (``'bunny'``; then
+        ``'bunny_1'``, ``'bunny_2'``, ... when it is taken), or ``mesh<index>`` for a tuple.
         """
         s = checks.positive("scale", scale)
         t = checks.vector("translation", translation)
@@ -331,8 +334,15 @@ class SceneBuilder:
                              f"{reach:.3g} m from the origin; they must be within {far:.3g} m (farther out float64 does "
                              f"not resolve the spacing {self.spacing:g})")
         inside = meshes.sample_inside(points, triangles, self.spacing)
-        kind_name = name if name is not None else (meshes.mesh_name(source) if is_file else None)
-        return self.add_particles(inside, material, velocity, kind_name, "mesh", angular_velocity)
+        if name is None and is_file:
+            # Unique as every default name is: a second body of one file was refused for the
+            # first one's name.
+            taken = {b.name for b in self._bodies}
+            stem = name = meshes.mesh_name(source)
+            k = 1
+            while name in taken:
+                name, k = f"{stem}_{k}", k + 1
+        return self.add_particles(inside, material, velocity, name, "mesh", angular_velocity)
 
     def add_particle_floor(self, body, *, margin: float | None = None, layers: int | None = None, where=None, name: str | None = None,
                            elastic: bool = False, ghost: bool = False, slip: bool = False) -> str:
