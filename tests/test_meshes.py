@@ -285,6 +285,27 @@ def test_usd_without_prim_path_reads_the_one_mesh_the_stage_shows(tmp_path):
     assert meshes.load_mesh(only)[1].shape == (12, 3)
 
 
+def test_a_mesh_tool_takes_prim_path_as_add_mesh_does(tmp_path):
+    """A USD file that shows several Mesh prims needs prim_path, which a mesh tool had not."""
+    from warp_esph.scenes import load_scene_file
+
+    path = tmp_path / "two.usda"
+    write_usd(path, {"/root/box": QUAD_CUBE, "/root/small": (cube()[0] * 0.5, *QUAD_CUBE[1:])})
+    b = warp_esph.SceneBuilder(spacing=0.1)
+    with pytest.raises(ValueError, match=r"^prim_path = None is not allowed: '.*two\.usda' has 2 visible Mesh prims"):
+        b.add_tool("mesh", mesh=path)
+    b.add_tool("mesh", mesh=path, prim_path="/root/small", scale=2.0, name="cutter")
+    pts = b.tools[-1].mesh_points
+    np.testing.assert_allclose(pts.max(axis=0) - pts.min(axis=0), [1.0] * 3, atol=1e-7)
+    with pytest.raises(ValueError, match=r"^prim_path = '/root/box' is not allowed for shape 'sphere': its options are radius$"):
+        b.add_tool("sphere", radius=0.1, prim_path="/root/box")
+    (tmp_path / "tool.toml").write_text(
+        '[[bodies]]\nshape = "box"\nmaterial = "dough"\ncenter = [0, 2, 0]\nsize = [0.2, 0.2, 0.2]\n'
+        '[[tools]]\nshape = "mesh"\nfile = "two.usda"\nprim_path = "/root/box"\n')
+    pts = load_scene_file(tmp_path / "tool.toml").builder.tools[0].mesh_points
+    np.testing.assert_allclose(pts.max(axis=0) - pts.min(axis=0), [1.0] * 3, atol=1e-7)
+
+
 def test_usd_without_meters_per_unit_is_read_in_centimetres_with_a_warning(tmp_path):
     """USD's fallback is 0.01 m per unit; a file modelled in metres without the metadata came
     in 100 x too small without a word."""

@@ -69,7 +69,7 @@ _AXES = {"x": 0, "y": 1, "z": 2}
 #: The shape options of each tool shape (``add_tool``); the others are refused.
 _TOOL_SHAPE_OPTIONS = {"plane": ("normal",), "box": ("half_extents",), "sphere": ("radius",),
                        "capsule": ("radius", "half_height"), "cylinder": ("radius", "half_height"),
-                       "mesh": ("mesh", "scale")}
+                       "mesh": ("mesh", "scale", "prim_path")}
 
 
 class SceneBuilder:
@@ -544,14 +544,16 @@ class SceneBuilder:
 
     def add_tool(self, shape: str, *, motion=None, position=(0.0, 0.0, 0.0), orientation=tools.IDENTITY,
                  friction: float = 0.0, static_friction: float | None = None, name: str | None = None,
-                 normal=None, half_extents=None, radius=None, half_height=None, mesh=None, scale: float = 1.0) -> str:
+                 normal=None, half_extents=None, radius=None, half_height=None, mesh=None, scale: float = 1.0,
+                 prim_path: str | None = None) -> str:
         """A moving rigid collider (``tools.py``); returns its name.
 
         ``shape``: ``"plane"`` (through the tool's origin, ``normal`` in its frame; solid
         below), ``"box"`` (``half_extents``), ``"sphere"`` (``radius``), ``"capsule"`` and
         ``"cylinder"`` (``radius``, ``half_height``, along the tool's y axis) or ``"mesh"``
         (``mesh``: a file meshio or USD reads, or ``(points, triangles)``, closed, in the
-        tool's frame, times ``scale``). ``motion``: ``tools.Keyframes``, ``tools.Velocity``
+        tool's frame, times ``scale``; ``prim_path`` names a USD file's Mesh prim, as in
+        ``add_mesh``). ``motion``: ``tools.Keyframes``, ``tools.Velocity``
         or ``tools.Scripted``; ``None``: held at ``position`` / ``orientation`` (x, y, z, w).
         ``friction``: kinetic Coulomb coefficient; ``static_friction`` (>= friction;
         default: ``friction``)."""
@@ -567,7 +569,7 @@ class SceneBuilder:
         # Options of another shape, and a place a motion of absolute poses overrides, were
         # ignored without a word.
         given = {"normal": normal, "half_extents": half_extents, "radius": radius, "half_height": half_height,
-                 "mesh": mesh}
+                 "mesh": mesh, "prim_path": prim_path}
         own = _TOOL_SHAPE_OPTIONS[kind]
         stray = [k for k, v in given.items() if v is not None and k not in own]
         if kind != "mesh" and scale != 1.0:
@@ -602,7 +604,7 @@ class SceneBuilder:
         if kind == "mesh":
             if mesh is None:
                 raise ValueError("mesh = None is not allowed: a mesh tool needs a mesh file or (points, triangles)")
-            points, triangles = meshes.load_mesh(mesh)
+            points, triangles = meshes.load_mesh(mesh, prim_path=prim_path)
             points = points * checks.positive("scale", scale)
         param = tools.shape_param(kind, normal=normal, half_extents=half_extents, radius=radius, half_height=half_height)
         self.tools.append(tools.Collider(name, kind, param, motion, mu_k, mu_s, points, triangles))

@@ -809,7 +809,8 @@ class MeshLoss(Loss):
     """``weight * mean over frames of mean_i min(d(x_i, mesh)^2, max_dist^2)``.
 
     ``mesh``: a mesh file (anything ``warp_esph.meshes.load_mesh`` reads) or
-    ``(points, triangles)``, for every frame, or ``{step: mesh}``. ``mode``:
+    ``(points, triangles)`` (``load_mesh(path, prim_path=...)`` reads one Mesh prim of a USD
+    file that shows several), for every frame, or ``{step: mesh}``. ``mode``:
     ``"surface"`` (unsigned distance: every particle is pulled onto the surface; use
     with ``particles=surface_particles(model)``) or ``"outside"`` (particles inside the
     closed mesh contribute 0: the body is pulled inside the shape). ``max_dist`` (m):

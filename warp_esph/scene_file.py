@@ -188,7 +188,7 @@ TOOL_SHAPES = {
     "sphere": {"radius": (NUM, True)},
     "capsule": {"radius": (NUM, True), "half_height": (NUM, True)},
     "cylinder": {"radius": (NUM, True), "half_height": (NUM, True)},
-    "mesh": {"file": (STR, True), "scale": (NUM, False)},
+    "mesh": {"file": (STR, True), "scale": (NUM, False), "prim_path": (STR, False)},
 }
 #: Every key a tool of some shape may hold.
 TOOL_KEYS = {**TOOL_COMMON, **{key: kind for keys in TOOL_SHAPES.values() for key, kind in keys.items()}}
