@@ -88,6 +88,17 @@ def _one_box(name=None):
     return b
 
 
+def test_default_body_names_skip_a_name_the_caller_took():
+    """An unnamed body's default is ``<kind><index>``, the first one free: a body the caller
+    named ``'box1'`` made the next unnamed box's default a clash (refused as 'exists
+    already', for a name the caller never wrote)."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, name="box1")
+    b.add_box((1, 0, 0), (0.1, 0.1, 0.1), DOUGH)
+    b.add_box((2, 0, 0), (0.1, 0.1, 0.1), DOUGH)
+    assert [bd.name for bd in b.finalize().bodies] == ["box1", "box2", "box3"]
+
+
 def test_solver_rejects_bad_dt_and_warns_above_stability_limit():
     model = _one_box().finalize()
     solver = we.Solver(model)

@@ -216,7 +216,12 @@ class SceneBuilder:
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f"positions with shape {pts.shape} is not allowed: must be (N, 3)")
         if name is None:
-            name = f"{kind}{len(self._bodies)}"
+            # The first free one from the body's index: a body named 'box1' by its caller made
+            # the next unnamed box's default ('box1') a clash the caller never wrote.
+            taken, k = {b.name for b in self._bodies}, len(self._bodies)
+            while f"{kind}{k}" in taken:
+                k += 1
+            name = f"{kind}{k}"
         if not isinstance(name, str) or not name:
             raise ValueError(f"name = {name!r} is not allowed: must be a non-empty string")
         if name in (b.name for b in self._bodies):
