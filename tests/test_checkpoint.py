@@ -1,5 +1,6 @@
 """Checkpoint and resume: a resumed run equals the uninterrupted one bit for bit (CPU)."""
 
+
 import numpy as np
 import pytest
 import warp as wp
@@ -163,3 +164,26 @@ def test_save_state_refuses_what_load_state_would_refuse_and_places_that_take_no
     with pytest.raises(ValueError, match=r"material 0: Material\.mu = -1\.0 is not allowed"):
         save_state(tmp_path / "c.npz", model, state, step=0, frame=0)
     assert not (tmp_path / "c.npz").exists()
+
+
+def test_save_state_refuses_a_state_of_another_scene(tmp_path):
+    """A state of another model of as many particles in the same precision passed the size
+    checks and was filed under this model's fingerprint: a resume then continued the other
+    scene's state in this one. A state of the same scene built twice is this scene's state."""
+    model = _model()
+    b = we.SceneBuilder(spacing=0.02)  # the same particle count, another scene (moved, other material)
+    b.add_box((0.0, 0.35, 0.0), (0.1, 0.1, 0.1), we.Material.preset("clay"))
+    b.add_sphere((0.25, 0.3, 0.0), 0.05, we.Material.preset("clay"))
+    other = b.finalize()
+    assert other.particle_count == model.particle_count
+    foreign = _advance(other, other.state(), 2)
+    with pytest.raises(ValueError, match=r"state is not allowed: it was made by another model, .* of another scene"):
+        save_state(tmp_path / "c.npz", model, foreign, step=2, frame=0)
+    assert not (tmp_path / "c.npz").exists()
+    # A step's output, a copy into this model's state and a state of the same scene built again.
+    stepped = _advance(model, model.state(), 3)
+    copied = model.state()
+    copied.assign(stepped)
+    for state in (stepped, copied, _model().state()):  # the last: of a model built again, and dropped
+        save_state(tmp_path / "c.npz", model, state, step=3, frame=0)
+    load_state(tmp_path / "c.npz", _model())

@@ -98,7 +98,10 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
 
     The file appears complete or not at all: it is written beside ``path`` and renamed
     over it, so an interrupted save leaves the previous checkpoint intact. A state with a
-    non-finite value is refused (``ValueError``): a checkpoint is for resuming.
+    non-finite value is refused (``ValueError``): a checkpoint is for resuming. So is a state
+    of another model (``model.state()`` and ``load_state`` make a model's states; one that
+    ``Solver.step`` wrote or ``State.assign`` copied into stays the state of the model that
+    made it), unless that model is of the same scene (the same ``model_fingerprint``).
     """
     from . import checks  # noqa: PLC0415
 
@@ -125,6 +128,7 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
             raise ValueError(f"run is not allowed: it must hold JSON values (numbers, text, lists, dicts): {e}") from None
     checks.output_place("checkpoint path", path)
     checks.same_state(model, "state", state)
+    _check_state_model(model, state)
     time_ = state.time
     if isinstance(time_, bool) or not isinstance(time_, (int, float, np.integer, np.floating)) \
             or not (math.isfinite(float(time_)) and float(time_) >= 0.0):
@@ -162,6 +166,21 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
             os.unlink(tmp)
         raise
     return path
+
+
+def _check_state_model(model: Model, state: State) -> None:
+    """``state`` is a state of ``model``, or of a model of the same scene (the same
+    fingerprint: ``finalize`` run twice): the checkpoint is filed under ``model``'s
+    fingerprint, and a state of another scene of as many particles would resume there."""
+    owner = getattr(state, "_model", None)
+    if owner is model:
+        return
+    theirs = model_fingerprint(owner) if isinstance(owner, Model) else None
+    if theirs != model_fingerprint(model):
+        raise ValueError(f"state is not allowed: it was made by another model, {owner!r}, of another scene (its "
+                         f"fingerprint {theirs!r} is not this model's {model_fingerprint(model)!r}); a checkpoint of it "
+                         "would resume that scene's state in this one: save a state made by this model (model.state(), "
+                         "load_state(path, model))")
 
 
 def read_checkpoint(path) -> tuple[dict, dict[str, np.ndarray]]:

@@ -104,6 +104,11 @@ class State:
     def __init__(self, model: "Model", requires_grad: bool):
         n, K, dev = model.particle_count, model.max_neighbors, model.device
         T = model.types
+        # The model this state is of: a checkpoint is filed under its model's fingerprint, so
+        # ``save_state`` refuses a state of another scene that merely has as many particles.
+        # Held, not weakly: a state of a model built again and dropped (``finalize()`` twice)
+        # is still told to be of the same scene.
+        self._model = model
         self.x = wp.array(model.particle_x0, dtype=T.vec3, device=dev, requires_grad=requires_grad)
         # The positions' round-off (warp_esph/sim/roundoff.py), as F_lo for F below.
         self.x_lo = wp.zeros(n, dtype=T.vec3, device=dev)
