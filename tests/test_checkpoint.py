@@ -187,3 +187,77 @@ def test_save_state_refuses_a_state_of_another_scene(tmp_path):
     for state in (stepped, copied, _model().state()):  # the last: of a model built again, and dropped
         save_state(tmp_path / "c.npz", model, state, step=3, frame=0)
     load_state(tmp_path / "c.npz", _model())
+
+
+
+def _set(index, value):
+    def edit(a):
+        a[index] = value
+    return edit
+
+
+_REFLECTION = np.diag([-1.0, 1.0, 1.0])  # determinant -1
+_STEP_LEAVES = [
+    ("F_image", _set(3, _REFLECTION), r"has determinant -1: not a deformation \(must be > 0\)"),
+    ("F_p", _set(3, 0.0), r"has determinant 0: not a deformation \(must be > 0\)"),
+    ("alpha", _set(3, -0.1), r"is -0\.1: an accumulated plastic strain, it must be >= 0"),
+    ("alpha_image", _set(3, -0.1), r"is -0\.1: an accumulated plastic strain, it must be >= 0"),
+    ("x_lo", _set((3, 1), 0.01), r"holds 0\.01: the round-off carried beside x must be at most .* there \(float32's "
+                                 r"epsilon times the size of the particle's largest x entry\); set it to 0 where x is set by "
+                                 r"hand"),
+    ("F_lo", _set((3, 0, 0), -1e-3), r"holds -0\.001: the round-off carried beside F must be at most [0-9.e-]+ there"),
+]
+
+
+@pytest.mark.parametrize("name,edit,needle", _STEP_LEAVES, ids=[c[0] for c in _STEP_LEAVES])
+def test_a_checkpoint_whose_state_no_step_leaves_is_refused_by_name(tmp_path, name, edit, needle):
+    """A hand-edited file resumed an inverted image or plastic F, a negative accumulated
+    plastic strain and round-off larger than the value it is the round-off of, without a
+    word; save_state refuses the same state (else it wrote files load_state refused)."""
+    model = _model(images=True)
+    state = _advance(model, model.state(), 60)
+    path = save_state(tmp_path / "c.npz", model, state, step=60, frame=6)
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    edit(arrays[name])
+    np.savez(path, **arrays)
+    with pytest.raises(ValueError, match=rf"checkpoint = '.*c\.npz' is not allowed: its {name} at particle 3 {needle}"):
+        load_state(path, _model(images=True))
+    getattr(state, name).assign(arrays[name])
+    with pytest.raises(ValueError, match=rf"state is not allowed: its {name} at particle 3 {needle}"):
+        save_state(tmp_path / "d.npz", model, state, step=60, frame=6)
+    assert not (tmp_path / "d.npz").exists()
+
+
+def test_a_checkpoint_without_a_material_array_is_refused_by_name(tmp_path):
+    """Every checkpoint of this format was written with every material array; one without
+    its shear moduli resumed with the model's own, without a word."""
+    model = _model()
+    path = save_state(tmp_path / "c.npz", model, model.state(), step=0, frame=0)
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files if k != "material_mu"}
+    np.savez(path, **arrays)
+    fresh = _model()
+    fresh.set_material(0, we.Material.preset("dough", mu=fresh.materials[0].mu * 2.0))
+    with pytest.raises(ValueError, match=r"checkpoint = '.*c\.npz' is not allowed: it lacks material_mu"):
+        load_state(path, fresh)
+
+
+@pytest.mark.parametrize("dtype", [wp.float32, wp.float64], ids=["float32", "float64"])
+@pytest.mark.parametrize("images", [False, True], ids=["ground", "images"])
+def test_checkpoints_of_real_steps_pass_the_value_checks(tmp_path, dtype, images):
+    """The checks above refuse nothing a step leaves: plastic flow (the clay hardens), the
+    round-off of both precisions and the floor images' own F and hardening."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.15, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), velocity=(0.5, -1.0, 0.0))
+    b.add_sphere((0.25, 0.05, 0.0), 0.05, we.Material.preset("clay"), velocity=(0.0, -2.0, 0.0))
+    b.add_ground(0.0, friction=0.5, images=images)
+    model = b.finalize(dtype=dtype)
+    state = _advance(model, model.state(), 150)
+    assert state.alpha.numpy().max() > 0.0 and state.x_lo.numpy().any() and state.F_lo.numpy().any()
+    if images:
+        assert state.alpha_image.numpy().max() > 0.0
+    path = save_state(tmp_path / "c.npz", model, state, step=150, frame=15)
+    loaded, _ = load_state(path, model)
+    for name in we.State.STATE_FIELDS:
+        np.testing.assert_array_equal(getattr(loaded, name).numpy(), getattr(state, name).numpy())

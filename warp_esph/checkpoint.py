@@ -135,9 +135,11 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
         # load_state refuses it: the file would hold a run that cannot resume
         raise ValueError(f"state.time = {checks.shorten(time_)!r} is not allowed: must be a finite number >= 0")
     model._check_parameter_values(model._read_parameters())
-    for name in State.STATE_FIELDS:
-        if not np.isfinite(getattr(state, name).numpy()).all():
+    arrays = {name: getattr(state, name).numpy() for name in State.STATE_FIELDS}
+    for name, a in arrays.items():
+        if not np.isfinite(a).all():
             raise ValueError(f"state is not allowed: its {name} has non-finite values; a checkpoint must resume a sound run")
+    _check_state_values("state is not allowed", arrays, model)
     meta = {
         "format": FORMAT,
         "step": int(step),
@@ -150,7 +152,6 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
         "fingerprint": model_fingerprint(model),
         "fingerprint_version": FINGERPRINT_VERSION,
     }
-    arrays = {name: getattr(state, name).numpy() for name in State.STATE_FIELDS}
     arrays.update({name: getattr(state, name).numpy() for name in State.STEP_REPORTS if hasattr(state, name)})
     arrays.update({f"material_{name}": getattr(model, name).numpy() for name in Model.MATERIAL_FIELDS})
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
@@ -205,6 +206,9 @@ def read_checkpoint(path) -> tuple[dict, dict[str, np.ndarray]]:
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise ValueError(f"checkpoint = {str(path)!r} is not allowed: unknown format {meta.get('format') if isinstance(meta, dict) else None!r}")
     missing = [n for n in State.STATE_FIELDS if n not in arrays and n not in State.OPTIONAL_FIELDS]
+    # Every checkpoint of this format holds every material array (MATERIAL_FIELDS has not
+    # changed since the first): without one, the model's value resumed without a word.
+    missing += [f"material_{n}" for n in Model.MATERIAL_FIELDS if f"material_{n}" not in arrays]
     if missing:
         raise ValueError(f"checkpoint = {str(path)!r} is not allowed: it lacks {', '.join(missing)}")
     return meta, arrays
@@ -214,7 +218,12 @@ def load_state(path, model: Model) -> tuple[State, dict]:
     """A new ``State`` of ``model`` from a checkpoint, and the checkpoint's metadata.
 
     The model's material parameters are set to the checkpoint's. The checkpoint must
-    come from the same scene: same particle count, bodies and precision.
+    come from the same scene: same particle count, bodies and precision. It must hold
+    every material array, and values a step leaves (else ``ValueError``, naming the array
+    and the first bad particle): finite; ``F``, ``F_p``, ``F_image`` of positive
+    determinant; ``alpha``, ``alpha_image`` >= 0; the round-off ``x_lo``, ``F_lo`` at most
+    the precision's epsilon times the particle's largest ``|x|``, ``|F|`` entry (a step leaves
+    at most half that). ``save_state`` refuses a state that breaks these.
     """
     if not isinstance(model, Model):
         from . import checks  # noqa: PLC0415
@@ -255,17 +264,14 @@ def load_state(path, model: Model) -> tuple[State, dict]:
             raise ValueError(f"{where}: its {key} has non-finite values (first at index {bad})")
     # Finite is not enough: a negative shear modulus or viscosity diverged, a negative flow
     # rate or a zero modulus ran on and exited 0. Each material's values pass Material's own
-    # checks, and F is a deformation (positive determinant).
+    # checks, and the state's values are a step's (_check_state_values).
     for k, m in enumerate(model.materials):
-        values = {name: float(arrays[f"material_{name}"][k]) for name in Model.MATERIAL_FIELDS if f"material_{name}" in arrays}
+        values = {name: float(arrays[f"material_{name}"][k]) for name in Model.MATERIAL_FIELDS}
         try:
             m.replace(**values)
         except ValueError as e:
             raise ValueError(f"{where}: its material {k}: {e}") from None
-    det = np.linalg.det(arrays["F"].astype(np.float64))
-    if not (det > 0.0).all():
-        bad = int(np.argmax(~(det > 0.0)))
-        raise ValueError(f"{where}: its F at particle {bad} has determinant {det[bad]:.3g}: not a deformation (must be > 0)")
+    _check_state_values(where, arrays, model)
     state = model.state()
     for name in State.STATE_FIELDS:
         if name in arrays:
@@ -286,10 +292,49 @@ def load_state(path, model: Model) -> tuple[State, dict]:
             a.assign(b)
     state.time = float(meta.get("time", 0.0))
     for name in Model.MATERIAL_FIELDS:
-        key = f"material_{name}"
-        if key in arrays:
-            getattr(model, name).assign(arrays[key])
+        getattr(model, name).assign(arrays[f"material_{name}"])
     return state, meta
+
+
+def _check_state_values(where: str, arrays: dict[str, np.ndarray], model: Model) -> None:
+    """The state arrays in ``arrays`` (finite, of the model's shapes) hold values a step
+    leaves: a hand-edited or foreign file resumed them without a word. ``F``, ``F_p`` and
+    ``F_image`` are deformations (determinant > 0); the hardening ``alpha``, ``alpha_image``
+    is an accumulated plastic strain (>= 0); the round-off ``x_lo``, ``F_lo`` is below the
+    last place of ``x``, ``F`` (``sim/roundoff.py``). Arrays an older checkpoint lacks are skipped."""
+    for name in ("F", "F_p", "F_image"):
+        if name in arrays:
+            det = np.linalg.det(arrays[name].astype(np.float64))
+            if not (det > 0.0).all():
+                bad = int(np.argmax(~(det > 0.0)))
+                raise ValueError(f"{where}: its {name} at particle {bad} has determinant {det[bad]:.3g}: not a deformation "
+                                 "(must be > 0)")
+    for name in ("alpha", "alpha_image"):
+        if name in arrays:
+            a = arrays[name]
+            if not (a >= 0.0).all():
+                bad = int(np.argmax(~(a >= 0.0)))
+                raise ValueError(f"{where}: its {name} at particle {bad} is {float(a[bad]):.3g}: an accumulated plastic "
+                                 "strain, it must be >= 0")
+    # A step's compensated sum leaves |lo| <= half a unit in the last place of its entry
+    # (Knuth's TwoSum, measured so in both precisions), so at most a unit in the last place of
+    # the particle's largest entry: twice the margin there, more on its smaller entries, and
+    # room for a hand-edited state that kept its round-off (State's note).
+    info = np.finfo(model.types.np_dtype)
+    for name, of in (("x_lo", "x"), ("F_lo", "F")):
+        if name not in arrays:
+            continue
+        n = arrays[name].shape[0]
+        lo = arrays[name].astype(np.float64).reshape(n, -1)
+        size = np.abs(lo).max(axis=1, initial=0.0)
+        bound = float(info.eps) * np.abs(arrays[of].astype(np.float64).reshape(n, -1)).max(axis=1, initial=0.0) \
+            + float(info.tiny)
+        if not (size <= bound).all():
+            bad = int(np.argmax(~(size <= bound)))
+            value = float(lo[bad, int(np.argmax(np.abs(lo[bad])))])
+            raise ValueError(f"{where}: its {name} at particle {bad} holds {value:.3g}: the round-off carried beside {of} "
+                             f"must be at most {bound[bad]:.3g} there ({model.scalar.__name__}'s epsilon times the "
+                             f"size of the particle's largest {of} entry); set it to 0 where {of} is set by hand")
 
 
 def _check_meta(where: str, meta: dict) -> None:
