@@ -1,5 +1,6 @@
 """Checkpoint and resume: a resumed run equals the uninterrupted one bit for bit (CPU)."""
 
+import json
 
 import numpy as np
 import pytest
@@ -261,3 +262,44 @@ def test_checkpoints_of_real_steps_pass_the_value_checks(tmp_path, dtype, images
     loaded, _ = load_state(path, model)
     for name in we.State.STATE_FIELDS:
         np.testing.assert_array_equal(getattr(loaded, name).numpy(), getattr(state, name).numpy())
+
+
+@pytest.mark.parametrize("change,needle", [
+    (lambda m: we.Solver(m, fit="linear"), r"had fit = 'auto', this solver fit = 'linear'"),
+    (lambda m: we.Solver(m, hourglass=0.1), r"had hourglass = None, this solver hourglass = 0\.1"),
+    (lambda m: (setattr(m, "contact_ramp", 0.0), we.Solver(m))[1], r"had contact_ramp = 1\.0, this solver contact_ramp = 0\.0"),
+    (lambda m: we.Solver(m, min_neighbors=8), r"had min_neighbors = 6, this solver min_neighbors = 8"),
+    (lambda m: we.Solver(m, fused=False), r"had fused = True, this solver fused = False"),
+], ids=["fit", "hourglass", "contact_ramp", "min_neighbors", "fused"])
+def test_load_state_with_a_solver_refuses_other_settings_than_the_run_had(tmp_path, change, needle):
+    """A resume with a solver set otherwise (another fit, hourglass control, contact law,
+    guard or kernel) continued another run than the one saved, without a word; given the
+    solvers, save_state records the settings and load_state compares them."""
+    model = _model()
+    solver = we.Solver(model)
+    a, b = model.state(), model.state()
+    for _ in range(20):
+        solver.step(a, b, 4e-4)
+        a, b = b, a
+    path = save_state(tmp_path / "c.npz", model, a, step=20, frame=2, solver=solver)
+    other = _model()
+    with pytest.raises(ValueError, match=rf"checkpoint = '.*c\.npz' is not allowed with this solver: the run it continues "
+                                         rf"{needle}; make the Solver \(and set the model\) as that run's"):
+        load_state(path, other, solver=change(other))
+    load_state(path, other)  # without a solver nothing is compared
+    # The same settings resume, bit for bit.
+    fresh = _model()
+    resumed, _ = load_state(path, fresh, solver=we.Solver(fresh))
+    straight = _advance(model, a, 10)
+    np.testing.assert_array_equal(_advance(fresh, resumed, 10).x.numpy(), straight.x.numpy())
+    with pytest.raises(ValueError, match=r"solver = .* is not allowed: it must be None or a warp_esph\.Solver built for this model"):
+        save_state(tmp_path / "c.npz", model, a, step=20, frame=2, solver=we.Solver(fresh))
+    # A record that is no table (a hand-edited file) is named, not a TypeError.
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(arrays["meta"].tobytes())
+    meta["solver"] = [1]
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez(path, **arrays)
+    with pytest.raises(ValueError, match=r"its metadata has solver = \[1\] \(must be a table\)"):
+        load_state(path, _model(), solver=None)

@@ -6,9 +6,11 @@ and the floor images' own ``F_image`` and ``alpha_image``; an older checkpoint w
 loads them as ``I`` and 0, ``F_image`` as ``F``, ``alpha_image`` as ``alpha``),
 the simulated time, the current values of
 the per-material parameters (they may have been fitted or edited since the scene was
-built), the step and frame counters, and a free-form ``run`` record (the CLI stores the
-scene, scale, time step and output there). The step depends on nothing else, so on the
-CPU a run resumed from a checkpoint reproduces the uninterrupted run bit for bit.
+built), the step and frame counters, a free-form ``run`` record (the CLI stores the
+scene, scale, time step, output and solver options there) and, where ``save_state`` is
+given the solver, its settings (``solver_settings``). The step depends on nothing else, so
+on the CPU a run resumed from a checkpoint with the same solver settings reproduces the
+uninterrupted run bit for bit.
 """
 
 from __future__ import annotations
@@ -93,7 +95,8 @@ def _motion_key(motion):
     return repr(motion)
 
 
-def save_state(path, model: Model, state: State, *, step: int, frame: int, run: dict | None = None) -> pathlib.Path:
+def save_state(path, model: Model, state: State, *, step: int, frame: int, run: dict | None = None,
+               solver=None) -> pathlib.Path:
     """Write ``state`` (and ``model``'s material parameters) to ``path`` atomically.
 
     The file appears complete or not at all: it is written beside ``path`` and renamed
@@ -102,6 +105,10 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     of another model (``model.state()`` and ``load_state`` make a model's states; one that
     ``Solver.step`` wrote or ``State.assign`` copied into stays the state of the model that
     made it), unless that model is of the same scene (the same ``model_fingerprint``).
+
+    ``solver`` (a ``Solver`` of ``model``; optional) records the settings of the solver that
+    ran (``solver_settings``: fit, hourglass, contact ramp, guards, fused kernels), which
+    ``load_state(..., solver=)`` compares with the solver that resumes.
     """
     from . import checks  # noqa: PLC0415
 
@@ -126,6 +133,7 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
         except (TypeError, ValueError) as e:
             # It is stored as JSON: a value JSON cannot hold was a TypeError out of json.
             raise ValueError(f"run is not allowed: it must hold JSON values (numbers, text, lists, dicts): {e}") from None
+    _check_solver(model, solver)
     checks.output_place("checkpoint path", path)
     checks.same_state(model, "state", state)
     _check_state_model(model, state)
@@ -152,6 +160,8 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
         "fingerprint": model_fingerprint(model),
         "fingerprint_version": FINGERPRINT_VERSION,
     }
+    if solver is not None:
+        meta["solver"] = solver_settings(solver)
     arrays.update({name: getattr(state, name).numpy() for name in State.STEP_REPORTS if hasattr(state, name)})
     arrays.update({f"material_{name}": getattr(model, name).numpy() for name in Model.MATERIAL_FIELDS})
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
@@ -167,6 +177,31 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
             os.unlink(tmp)
         raise
     return path
+
+
+def solver_settings(solver) -> dict:
+    """What of ``solver`` a step depends on beyond the model's scene and the state: the fit
+    and hourglass strength it was asked for (the model's where the solver names none; with
+    ``"auto"`` the fit then follows the material values, which a checkpoint carries), the
+    model's contact ramp, the neighbourhood guards and whether the fused kernels run (the
+    same equations, another round-off). Not the neighbour skin: it changes the cost only,
+    bit for bit (``Solver``)."""
+    fit, hourglass = solver._asked
+    m = solver.model
+    hourglass = m.hourglass if hourglass is None else hourglass
+    return {"fit": m.fit if fit is None else fit, "hourglass": None if hourglass is None else float(hourglass),
+            "contact_ramp": float(m.contact_ramp), "min_neighbors": int(solver.min_neighbors),
+            "max_condition": float(solver.max_condition), "fused": bool(solver.fused)}
+
+
+def _check_solver(model: Model, solver) -> None:
+    from .sim.solver import Solver  # noqa: PLC0415 (the kernels load on demand)
+
+    if solver is not None and (not isinstance(solver, Solver) or solver.model is not model):
+        from . import checks  # noqa: PLC0415
+
+        raise ValueError(f"solver = {checks.shorten(solver)!r} is not allowed: it must be None or a warp_esph.Solver "
+                         "built for this model")
 
 
 def _check_state_model(model: Model, state: State) -> None:
@@ -214,7 +249,7 @@ def read_checkpoint(path) -> tuple[dict, dict[str, np.ndarray]]:
     return meta, arrays
 
 
-def load_state(path, model: Model) -> tuple[State, dict]:
+def load_state(path, model: Model, solver=None) -> tuple[State, dict]:
     """A new ``State`` of ``model`` from a checkpoint, and the checkpoint's metadata.
 
     The model's material parameters are set to the checkpoint's. The checkpoint must
@@ -224,12 +259,19 @@ def load_state(path, model: Model) -> tuple[State, dict]:
     determinant; ``alpha``, ``alpha_image`` >= 0; the round-off ``x_lo``, ``F_lo`` at most
     the precision's epsilon times the particle's largest ``|x|``, ``|F|`` entry (a step leaves
     at most half that). ``save_state`` refuses a state that breaks these.
+
+    ``solver`` (a ``Solver`` of ``model``; optional): the solver that will continue the run.
+    Where the checkpoint records the settings of the solver that ran (``save_state(...,
+    solver=)``), a setting that differs is refused (``ValueError`` naming it and both values):
+    the continuation would not be the run it continues. A checkpoint saved without
+    ``solver=`` records none, and is not compared.
     """
     if not isinstance(model, Model):
         from . import checks  # noqa: PLC0415
 
         raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be the warp_esph.Model the checkpoint "
                          "resumes")
+    _check_solver(model, solver)
     meta, arrays = read_checkpoint(path)
     where = f"checkpoint = {str(path)!r} is not allowed"
     _check_meta(where, meta)
@@ -247,6 +289,12 @@ def load_state(path, model: Model) -> tuple[State, dict]:
             f"{model_fingerprint(model, version)!r}: particles, bodies, colliders, tools, pins, fields or materials differ; "
             "was the scene edited?)"
         )
+    if solver is not None and "solver" in meta:
+        ours = solver_settings(solver)
+        for key, value in meta["solver"].items():
+            if key in ours and value != ours[key]:
+                raise ValueError(f"{where} with this solver: the run it continues had {key} = {value!r}, this solver "
+                                 f"{key} = {ours[key]!r}; make the Solver (and set the model) as that run's")
     n, np_dtype = model.particle_count, model.types.np_dtype
     shapes = {"x": (n, 3), "v": (n, 3), "F": (n, 3, 3), "alpha": (n,), "F_p": (n, 3, 3), "x_lo": (n, 3),
               "F_lo": (n, 3, 3), "F_image": (n, 3, 3), "alpha_image": (n,)}
@@ -360,6 +408,8 @@ def _check_meta(where: str, meta: dict) -> None:
         wrong.append(f"time = {t!r} (must be a finite number >= 0)")
     if "fingerprint" in meta and not isinstance(meta["fingerprint"], str):
         wrong.append(f"fingerprint = {meta['fingerprint']!r} (must be a string)")
+    if not isinstance(meta.get("solver", {}), dict):
+        wrong.append(f"solver = {meta.get('solver')!r} (must be a table)")
     version = meta.get("fingerprint_version", 1)
     if isinstance(version, bool) or version not in range(1, FINGERPRINT_VERSION + 1):
         wrong.append(f"fingerprint_version = {version!r} (must be an integer in [1, {FINGERPRINT_VERSION}])")
