@@ -348,8 +348,9 @@ def _check_state_values(where: str, arrays: dict[str, np.ndarray], model: Model)
     """The state arrays in ``arrays`` (finite, of the model's shapes) hold values a step
     leaves: a hand-edited or foreign file resumed them without a word. ``F``, ``F_p`` and
     ``F_image`` are deformations (determinant > 0); the hardening ``alpha``, ``alpha_image``
-    is an accumulated plastic strain (>= 0); the round-off ``x_lo``, ``F_lo`` is below the
-    last place of ``x``, ``F`` (``sim/roundoff.py``). Arrays an older checkpoint lacks are skipped."""
+    is an accumulated plastic strain (>= 0); the round-off ``x_lo``, ``F_lo`` of ``x``, ``F``
+    (``sim/roundoff.py``) is within the last place of the particle's largest entry. Arrays an
+    older checkpoint lacks are skipped."""
     for name in ("F", "F_p", "F_image"):
         if name in arrays:
             det = np.linalg.det(arrays[name].astype(np.float64))
