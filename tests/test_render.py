@@ -620,6 +620,39 @@ def test_an_interrupted_save_keeps_the_earlier_picture_and_leaves_no_part_file(t
         im.load()
 
 
+def test_a_file_of_subframe_samples_or_no_rate_is_refused_not_misread(tmp_path):
+    """Another program's samples between frames (0.5, 1.5) were rounded onto frames 0 and 2:
+    render drew those frames twice and export wrote them once, the samples between never read.
+    A time-code rate of 0 read as 30 fps, a negative one went into frames.pvd as negative times."""
+    from pxr import Usd, UsdGeom
+
+    from warp_esph.export import export_frames
+
+    sub = tmp_path / "sub.usda"
+    write_clusters(sub, [(0.0, 0.2, 0.0)], frames=3)
+    stage = Usd.Stage.Open(str(sub))
+    geom = UsdGeom.Points(next(p for p in stage.GetPrimAtPath("/World").GetChildren() if p.IsA(UsdGeom.Points)))
+    geom.GetPointsAttr().Set(geom.GetPointsAttr().Get(Usd.TimeCode(1.0)), Usd.TimeCode(0.5))
+    stage.GetRootLayer().Save()
+    for rate in (0.0, -24.0):
+        path = tmp_path / f"rate{rate:g}.usda"
+        write_clusters(path, [(0.0, 0.2, 0.0)], frames=2)
+        stage = Usd.Stage.Open(str(path))
+        stage.SetTimeCodesPerSecond(rate)
+        stage.GetRootLayer().Save()
+        for call in (lambda: render_usd(path, tmp_path / "r.gif", width=W, height=H),
+                     lambda: export_frames(path, "vtu", tmp_path / "r_vtu")):
+            with pytest.raises(ValueError, match=f"cannot read .*rate{rate:g}.usda.*: timeCodesPerSecond = {rate:g} is not "
+                                                 "allowed: must be a finite number > 0"):
+                call()
+    for call in (lambda: render_usd(sub, tmp_path / "s.gif", width=W, height=H),
+                 lambda: export_frames(sub, "vtu", tmp_path / "s_vtu")):
+        with pytest.raises(ValueError, match=r"cannot read .*sub.usda.*: its points have time samples at time codes that "
+                                             r"are not whole numbers \(0.5\)"):
+            call()
+    assert not (tmp_path / "s_vtu").exists() and not (tmp_path / "r_vtu").exists()
+
+
 def test_a_damaged_file_is_named_not_drawn_empty(tmp_path):
     """A frame whose every point is NaN rendered as an empty picture and exited 0, and a NaN
     width failed inside the renderer ('cannot convert float NaN to integer')."""

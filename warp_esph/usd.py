@@ -721,7 +721,12 @@ class UsdFrames:
         layer = open_layer_checked(self.path)
         self._layer = layer
         self.stage = Usd.Stage.Open(layer)
-        self.fps = float(self.stage.GetTimeCodesPerSecond() or 30.0)
+        rate = float(self.stage.GetTimeCodesPerSecond())
+        if not (math.isfinite(rate) and rate > 0.0):
+            # 0 was read as 30 fps and -24 as -24 (negative times in frames.pvd, a GIF's warning).
+            raise ValueError(f"cannot read {self.path!r}: timeCodesPerSecond = {rate:g} is not allowed: must be a finite "
+                             "number > 0 (the frames per second)")
+        self.fps = rate
         data = dict(self.stage.GetRootLayer().customLayerData or {})
         view = data.get(_VIEW)
         self.view = tuple(float(v) for v in view) if view is not None and len(view) == 2 else None
@@ -734,7 +739,14 @@ class UsdFrames:
         times = set()
         for _, prim in self.bodies:
             times.update(UsdGeom.Points(prim).GetPointsAttr().GetTimeSamples())
-        self.frames = sorted(int(round(t)) for t in times)
+        between = sorted(t for t in times if not float(t).is_integer())
+        if between:
+            # A frame is a whole time code: samples at 0.5 and 1.5 (another program's subframes)
+            # were rounded onto frames 0 and 2, which were then drawn twice and the samples never read.
+            raise ValueError(f"cannot read {self.path!r}: its points have time samples at time codes that are not whole "
+                             f"numbers ({', '.join(f'{t:g}' for t in between[:3])}{', ...' if len(between) > 3 else ''}); "
+                             "a warp-esph output has one per frame, at time code = frame index")
+        self.frames = sorted(int(t) for t in times)
         if not self.frames:
             raise ValueError(f"cannot read {self.path}: it holds no frames")
         self.material_ids = []
