@@ -160,6 +160,16 @@ def test_scattered_particles_get_an_empty_surface_and_one_warning(tmp_path):
     assert len(mesh.GetPointsAttr().Get(1.0)) == 0
 
 
+def test_particles_spread_past_float32_are_refused_not_scattered_past_the_grid():
+    """A spread of 1e37 m overflowed the float32 grid count to inf, cast to a grid of 2 nodes,
+    and the particles were added past its end: a segmentation fault. A count of 3e6 nodes per
+    axis wrapped the int64 product."""
+    for far in (1e37, 3e4):
+        pts = np.array([[0.0, 0.0, 0.0], [far, far, far]], dtype=np.float32)
+        with pytest.raises(ValueError, match=r"cell = 0.01 is not allowed: the grid would have [0-9.e+]+ nodes"):
+            particle_surface(pts, 0.02)
+
+
 def test_two_outputs_with_one_stem_keep_their_own_pictures_and_frames(tmp_path, capsys):
     """-o a.usdc and -o a.usda in one folder: the preview, the exported frames and the
     checkpoint are named from the whole output name, so neither run overwrites the other's."""

@@ -91,12 +91,16 @@ def surface_field(points, spacing: float, *, kernel_radius: float | None = None,
     if len(p) == 0:
         raise ValueError("points = [] is not allowed: a surface needs at least one finite particle position")
     pad = R + 3.0 * h
-    lo = p.min(axis=0) - pad
-    hi = p.max(axis=0) + pad
-    n = np.maximum(np.ceil((hi - lo) / h).astype(int) + 1, 2)
-    if int(np.prod(n)) > 256**3:
-        raise ValueError(f"cell = {h:g} is not allowed: the grid would have {int(np.prod(n))} nodes ({n[0]} x {n[1]} x {n[2]}); "
-                         f"use a larger cell")
+    # In float64 and counted as floats: in float32 a spread of 1e37 m overflowed to inf, whose
+    # integer cast made a grid of 2 nodes that the particles were scattered past (a segmentation
+    # fault), and an int64 product of three counts of millions wraps.
+    lo = p.min(axis=0).astype(np.float64) - pad
+    hi = p.max(axis=0).astype(np.float64) + pad
+    counts = np.maximum(np.ceil((hi - lo) / h) + 1.0, 2.0)
+    if not float(np.prod(counts)) <= 256.0**3:
+        raise ValueError(f"cell = {h:g} is not allowed: the grid would have {float(np.prod(counts)):.4g} nodes "
+                         f"({counts[0]:.4g} x {counts[1]:.4g} x {counts[2]:.4g}); use a larger cell")
+    n = counts.astype(int)
     dev = wp.get_device(device)
     pts = wp.array(p, dtype=wp.vec3f, device=dev)
     shape = tuple(int(v) for v in n)
