@@ -516,6 +516,26 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
     assert not (tmp_path / "fit_tiny").exists()
 
 
+def test_fit_refuses_an_empty_path_instead_of_dropping_it(tmp_path, capsys, monkeypatch):
+    """'' (an unset shell variable) was taken as not given: --experiments '' and --cameras ''
+    ran the fit without them and exited 0, --output-dir '' and -o '' wrote to the defaults."""
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    run = tmp_path / "truth.usdc"
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(run), "--no-progress"]) == 0
+    capsys.readouterr()
+    monkeypatch.chdir(tmp_path)
+    fit = ["fit", str(tmp_path / "s.toml"), "--target", str(run), "--no-progress", "--iterations", "0", "--no-usd",
+           "--no-diagnostics"]
+    for flag in ("--experiments", "--cameras", "--output-dir", "-o"):
+        assert main([*fit, *(["--output-dir", str(tmp_path / "o")] if flag != "--output-dir" else []), flag, ""]) == 2
+        shown = "--output" if flag == "-o" else flag
+        assert_one_line_error(capsys.readouterr().err, f"{shown} = '' is not allowed: must be a path (not empty")
+    (tmp_path / "exp.json").write_text(json.dumps([{"scene": "s.toml", "target": "truth.usdc", "cameras": ""}]))
+    assert main([*fit, "--output-dir", str(tmp_path / "o"), "--experiments", str(tmp_path / "exp.json")]) == 2
+    assert_one_line_error(capsys.readouterr().err, "experiment #1: cameras = '' is not allowed: must be the path of a camera file")
+    assert not (tmp_path / "o").exists() and not (tmp_path / "fit_tiny").exists()
+
+
 def _fail_after(monkeypatch, steps: int, action):
     """Make Solver.step call ``action(state_out)`` once ``steps`` steps have run."""
     original = solver_module.Solver.step

@@ -139,6 +139,13 @@ def run_fit(args, out=None, err=None) -> int:
     if _arg(args, "worlds", False) and opts["starts"] < 2:
         raise ValueError(f"--worlds is not allowed with --starts = {opts['starts']}: it runs several starts at once "
                          "as worlds of one model; give --starts K > 1")
+    for flag, name in (("--output-dir", "output_dir"), ("--output", "output"), ("--experiments", "experiments"),
+                       ("--cameras", "cameras")):
+        value = _arg(args, name)
+        if value is not None and (not isinstance(value, (str, os.PathLike)) or not os.fspath(value) or "\0" in os.fspath(value)):
+            # '' (an unset shell variable) was taken as not given: the experiments or cameras
+            # were dropped and the fit ran without them, the results went to the default place.
+            raise ValueError(f"{flag} = {value!r} is not allowed: must be a path (not empty, no NUL character)")
     dtype = {"float32": wp.float32, "float64": wp.float64}[args.dtype]
     ck = args.checkpoint_every if args.checkpoint_every is not None else "auto"
     if ck != "auto":
@@ -287,8 +294,12 @@ def _read_experiments(path) -> list[tuple[str, dict]]:
         spec["target"] = [rel(t) for t in (spec["target"] if isinstance(spec["target"], list) else [spec["target"]])]
         if os.path.splitext(str(spec["scene"]))[1].lower() == ".toml":
             spec["scene"] = rel(spec["scene"])
-        if spec.get("cameras"):
-            spec["cameras"] = rel(spec["cameras"])
+        cams = spec.get("cameras")
+        if cams is not None and not (isinstance(cams, str) and cams.strip()):
+            # "" was taken as no cameras: the masks were then read as other targets, or refused for another reason.
+            raise ValueError(f"{where}cameras = {checks.shorten(cams)!r} is not allowed: must be the path of a camera file")
+        if cams is not None:
+            spec["cameras"] = rel(cams)
         chosen = spec.get("material")
         if isinstance(chosen, bool) or isinstance(chosen, list) and any(isinstance(m, bool) for m in chosen):
             # true read as a body named 'True'
