@@ -88,6 +88,27 @@ _PALETTE = [
 ]
 
 
+#: The largest elevation (degrees, up or down) of a view: at 90 the camera looks along its up axis.
+VIEW_ELEVATION = 89.0
+
+
+def _read_view(path: str, view) -> tuple[float, float]:
+    """The ``(azimuth, elevation)`` a file suggests, or a ``ValueError`` naming the file: a NaN
+    failed in the renderer as 'cannot convert float NaN to integer', text as float()'s message,
+    inf as 'math domain error', none of them naming the file."""
+    try:
+        az, el = (float(v) for v in view)
+        shown = [az, el]
+    except (TypeError, ValueError):
+        az = el = math.nan
+        shown = view
+    if not (math.isfinite(az) and -VIEW_ELEVATION <= el <= VIEW_ELEVATION):
+        raise ValueError(f"cannot read {path!r}: its {_VIEW} = {checks.shorten(shown)!r} is not allowed: must be (azimuth, "
+                         f"elevation), finite degrees with the elevation in [-{VIEW_ELEVATION:g}, {VIEW_ELEVATION:g}] "
+                         "(not a warp-esph output, or damaged)")
+    return az, el
+
+
 def open_layer_checked(path, action: str = "read") -> Sdf.Layer:
     """``Sdf.Layer.OpenAsAnonymous(path)`` (read afresh, not from pxr's layer cache), or a
     ``ValueError`` naming the file and pxr's reason: a truncated, garbled or foreign file
@@ -205,7 +226,7 @@ class UsdWriter:
                 az, el = (float(v) for v in view)
             except (TypeError, ValueError):
                 raise ValueError(f"view = {view!r} is not allowed: must be (azimuth, elevation) in degrees") from None
-            view = (checks.number("view azimuth", az), checks.number("view elevation", el))
+            view = (checks.number("view azimuth", az), checks.in_range("view elevation", el, -VIEW_ELEVATION, VIEW_ELEVATION))
         self.view = view
         #: Seconds spent building surfaces, over all frames.
         self.surface_seconds = 0.0
@@ -728,8 +749,7 @@ class UsdFrames:
                              "number > 0 (the frames per second)")
         self.fps = rate
         data = dict(self.stage.GetRootLayer().customLayerData or {})
-        view = data.get(_VIEW)
-        self.view = tuple(float(v) for v in view) if view is not None and len(view) == 2 else None
+        self.view = None if data.get(_VIEW) is None else _read_view(self.path, data.get(_VIEW))
         self.bodies = []       # (name, prim)
         for prim in self.stage.GetPrimAtPath(_ROOT).GetChildren() if self.stage.GetPrimAtPath(_ROOT) else []:
             if prim.IsA(UsdGeom.Points):
