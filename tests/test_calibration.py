@@ -481,6 +481,32 @@ def test_targets_from_data(tmp_path):
     assert t.kind == "mesh" and isinstance(t.loss(model, {3: 30}), MeshLoss)
 
 
+
+def test_target_body_is_the_same_body_in_the_file_and_the_loss(tmp_path):
+    """Bodies 'a b' and 'a_b' have the prims a_b and a_b_1: --target-body a_b read the prim a_b
+    (body 'a b') from the file and compared it with body 'a_b''s particles; a name the prim
+    cleaned ('pâte', 'a b') was refused."""
+    from warp_esph.fit import load_target
+    from warp_esph.usd import UsdWriter
+
+    b = we.SceneBuilder(spacing=0.02)
+    for k, name in enumerate(("a b", "a_b", "pâte")):
+        b.add_box((0.3 * k, 0.1, 0.0), (0.06, 0.06, 0.06), we.Material.preset("dough"), name=name)
+    model = b.finalize()
+    state = model.state()
+    path = tmp_path / "run.usdc"
+    with UsdWriter(path, model, 30.0) as writer:
+        writer.write_frame(0, state)
+        writer.write_frame(1, state)
+    for name, body in (("a_b", 1), ("a b", 0), ("a_b_1", 1), ("pâte", 2)):
+        t = load_target(path, body=name)
+        mine = model.bodies[body]
+        assert t.body == mine.name and np.array_equal(t.particles(model), np.arange(mine.start, mine.start + mine.count))
+        assert np.allclose(t.data[0], model.particle_x0[mine.start: mine.start + mine.count], atol=1e-6)
+    with pytest.raises(ValueError, match="holds bodies a b, a_b, pâte"):
+        load_target(path, body="cube")
+
+
 def test_cli_joint_experiments_file(tmp_path, dough_scene):
     """``--experiments`` adds experiments to a fit: the joint loss is the weighted sum of theirs."""
     from warp_esph.cli import main

@@ -1754,8 +1754,19 @@ def _usd_run_target(path: str, body, frames) -> Target | None:
     except ValueError as e:  # it does not open: a damaged file, not a mesh to try next
         raise ValueError(f"{e} (a damaged or foreign file?)") from None
     names = [n for n, _ in data.bodies]
-    if body is not None and body not in names:
-        raise ValueError(f"--target-body {body!r} is not allowed: {path} holds bodies {', '.join(names)}")
+    # A body is named as the scene names it (the prim name is a cleaned copy, '_1' added where two
+    # clean alike): 'a_b' picked the prim of body 'a b' here and body 'a_b''s particles in the
+    # loss (Target.particles), comparing one body's run with another's.
+    given = [prim.GetCustomDataByKey("warp_esph:body_name") for _, prim in data.bodies]
+    given = [g if isinstance(g, str) and g else n for g, n in zip(given, names)]
+    if body is not None:
+        if body in given:
+            index = given.index(body)
+        elif body in names:
+            index = names.index(body)
+        else:
+            raise ValueError(f"--target-body {body!r} is not allowed: {path} holds bodies {', '.join(given)}")
+        body = given[index]
     chosen = parse_frames(frames, data.frames) if frames is not None else [f for f in data.frames if f != data.frames[0]]
     if not chosen:
         raise ValueError(f"target {path} holds only frame {data.frames[0]}, which says nothing about the material")
@@ -1764,7 +1775,7 @@ def _usd_run_target(path: str, body, frames) -> Target | None:
         a = data.arrays(f)
         pts = a["points"].astype(np.float64)
         if body is not None:
-            pts = pts[a["body"] == names.index(body)]
+            pts = pts[a["body"] == index]
         pos.append(pts)
     return Target("positions", np.stack(pos), list(chosen), data.fps, path, body=body)
 
