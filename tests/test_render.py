@@ -590,6 +590,36 @@ def test_an_ffmpeg_that_stops_early_is_its_error_not_a_closed_output(tmp_path, m
     assert capsys.readouterr().out == "still here\n"
 
 
+def test_an_interrupted_movie_keeps_the_earlier_movie_and_leaves_no_part_file(tmp_path, monkeypatch):
+    """An MP4 is written beside its name and renamed over it once ffmpeg has finished: ffmpeg
+    wrote straight onto the output, so an interrupted render left a shorter movie over an
+    earlier one. A stand-in ffmpeg (a shell script copying its input to the file it is given)
+    shows where the frames go."""
+    fake = tmp_path / "ffmpeg"
+    fake.write_text('#!/bin/sh\nfor out; do :; done\ncat > "$out"\n')
+    fake.chmod(0o755)
+    monkeypatch.setattr(render_module, "ffmpeg_path", lambda: str(fake))
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=3)
+    out = tmp_path / "m.mp4"
+    render_usd(path, out, frames="all", width=W, height=H, supersample=1)
+    whole = out.read_bytes()
+    assert len(whole) == 3 * W * H * 3  # the three frames' RGB, as piped
+    real = render_module.Renderer.render
+    calls = []
+
+    def interrupted(self, f):
+        calls.append(f)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(self, f)
+
+    monkeypatch.setattr(render_module.Renderer, "render", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        render_usd(path, out, frames="all", width=W, height=H, supersample=1)
+    assert out.read_bytes() == whole and sorted(os.listdir(tmp_path)) == ["anim.usdc", "ffmpeg", "m.mp4"]
+
+
 def test_an_interrupted_save_keeps_the_earlier_picture_and_leaves_no_part_file(tmp_path, monkeypatch):
     """Each picture is written beside its name and renamed over it: Ctrl-C inside a save left
     a truncated PNG, over the same frame of an earlier render too."""

@@ -40,6 +40,7 @@ side by side when more than one is chosen), an animated GIF, or an MP4 (where th
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
@@ -1117,32 +1118,36 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     count = 0
     surface_bodies = 0
     writer = None
-    try:
-        for k, f in enumerate(chosen):
-            if fit == "each" and len(chosen) > 1:
-                renderer = Renderer(data, [f], options, color_range=shared_range)
-            img = renderer.render(f)
-            if k == 0:
-                count = len(data.particles(f)["points"])
-                surface_bodies = len(renderer.surfaces(f))
-            if kind == "dir":
-                # Each picture whole or not at all: Ctrl-C inside a save left a truncated PNG,
-                # over the same frame of an earlier render too.
-                file = os.path.join(out, f"frame_{f:05d}.png")
-                with checks.replaced_atomically(file) as part:
-                    img.save(part, format="PNG", optimize=True)
-                files.append(file)
-            elif kind == "mp4":
-                if writer is None:
-                    writer = _Mp4Writer(out, img.size, playback)
-                writer.write(img)
-            else:
-                images.append(img)
-            if progress is not None:
-                progress(k + 1, len(chosen))
-    finally:
-        if writer is not None:
-            writer.close()
+    # The movie is written beside its name and renamed over it once ffmpeg has finished (an
+    # error or interrupt removes it): written in place, an interrupted render left a shorter
+    # movie over an earlier one.
+    with contextlib.ExitStack() as movie:
+        try:
+            for k, f in enumerate(chosen):
+                if fit == "each" and len(chosen) > 1:
+                    renderer = Renderer(data, [f], options, color_range=shared_range)
+                img = renderer.render(f)
+                if k == 0:
+                    count = len(data.particles(f)["points"])
+                    surface_bodies = len(renderer.surfaces(f))
+                if kind == "dir":
+                    # Each picture whole or not at all: Ctrl-C inside a save left a truncated PNG,
+                    # over the same frame of an earlier render too.
+                    file = os.path.join(out, f"frame_{f:05d}.png")
+                    with checks.replaced_atomically(file) as part:
+                        img.save(part, format="PNG", optimize=True)
+                    files.append(file)
+                elif kind == "mp4":
+                    if writer is None:
+                        writer = _Mp4Writer(movie.enter_context(checks.replaced_atomically(out)), img.size, playback)
+                    writer.write(img)
+                else:
+                    images.append(img)
+                if progress is not None:
+                    progress(k + 1, len(chosen))
+        finally:
+            if writer is not None:
+                writer.close()
     if kind == "png":
         img = images[0] if len(images) == 1 else _sheet(images, sheet_columns)
         with checks.replaced_atomically(out) as part:
