@@ -312,14 +312,14 @@ def test_usd_without_meters_per_unit_is_read_in_centimetres_with_a_warning(tmp_p
     plain = tmp_path / "plain.usda"
     write_usd(plain, {"/root/box": QUAD_CUBE}, meters_per_unit=None)
     said = r"plain\.usda.*does not author metersPerUnit, so USD's fallback of 0\.01 m per unit \(centimetres\) is " \
-           r"assumed; if the mesh is in metres, author metersPerUnit = 1 .* or scale it by 100"
+           r"assumed \(USD's rule\); if the mesh is in metres, author metersPerUnit = 1 in the file"
     with pytest.warns(UserWarning, match=said):
         p, _ = meshes.load_mesh(plain)
     np.testing.assert_allclose(p.max(axis=0) - p.min(axis=0), [0.01] * 3, atol=1e-9)
     dough = warp_esph.Material.preset("dough")
     b = warp_esph.SceneBuilder(spacing=0.1)
     with pytest.warns(UserWarning, match=said):
-        assert b._bodies[b.add_mesh(plain, dough, scale=100.0)].count == 1000  # the advice gives metres
+        assert b._bodies[b.add_mesh(plain, dough, scale=100.0)].count == 1000  # scaled to metres
     # Authored (centimetres too): the file says what it means, so nothing is said.
     authored = tmp_path / "authored.usda"
     write_usd(authored, {"/root/box": QUAD_CUBE}, meters_per_unit=0.01)
@@ -384,8 +384,13 @@ def test_add_mesh_refuses_a_translation_beyond_float64_naming_it():
     b = warp_esph.SceneBuilder(spacing=0.1)
     with pytest.raises(ValueError, match=r"^translation = \(1e\+300, 0\.0, 0\.0\) is not allowed for mesh \(points, "
                                          r"triangles\): it places the mesh's points up to 1e\+300 m from the origin; they "
-                                         r"must be within 4\.5e\+11 m \(farther out float64 does not resolve the spacing 0\.1\)$"):
+                                         r"must be within 4\.5e\+11 m \(farther out float64 does not resolve the spacing 0\.1\); pass a "
+                                         r"translation that brings them nearer$"):
         b.add_mesh(cube(), dough, translation=(1e300, 0, 0))
+    # Without a translation the mesh's own coordinates are named, not the default (0, 0, 0).
+    with pytest.raises(ValueError, match=r"^mesh \(points, triangles\) is not allowed: its points \(scale 1, no "
+                                         r"translation\) lie up to 1e\+12 m from the origin"):
+        b.add_mesh(cube((1e12, 0, 0), (1e12 + 1, 1, 1)), dough)
     with pytest.raises(ValueError, match=r"^translation = \(1e\+20, 0\.0, 0\.0\) is not allowed for mesh '.*bunny\.usd'"):
         b.add_mesh(BUNNY, dough, scale=0.1, translation=(1e20, 0, 0))
     # Checked before the file is read, and refused by name.

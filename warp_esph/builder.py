@@ -335,9 +335,11 @@ class SceneBuilder:
             points = points + np.array(t)
         reach, far = float(np.abs(points).max()), self._far()
         if not reach <= far:
-            raise ValueError(f"translation = {t!r} is not allowed for mesh {label}: it places the mesh's points up to "
-                             f"{reach:.3g} m from the origin; they must be within {far:.3g} m (farther out float64 does "
-                             f"not resolve the spacing {self.spacing:g})")
+            # Named by what put it there: the translation given, or the mesh's own coordinates.
+            what = (f"translation = {t!r} is not allowed for mesh {label}: it places the mesh's points" if any(t) else
+                    f"mesh {label} is not allowed: its points (scale {s:g}, no translation) lie")
+            raise ValueError(f"{what} up to {reach:.3g} m from the origin; they must be within {far:.3g} m (farther out "
+                             f"float64 does not resolve the spacing {self.spacing:g}); pass a translation that brings them nearer")
         inside = meshes.sample_inside(points, triangles, self.spacing)
         if name is None and is_file:
             # Unique as every default name is: a second body of one file was refused for the

@@ -147,6 +147,7 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     for name, a in arrays.items():
         if not np.isfinite(a).all():
             raise ValueError(f"state is not allowed: its {name} has non-finite values; a checkpoint must resume a sound run")
+    _renormalised_roundoff(arrays, model)
     _check_state_values("state is not allowed", arrays, model)
     meta = {
         "format": FORMAT,
@@ -180,18 +181,19 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
 
 
 def solver_settings(solver) -> dict:
-    """What of ``solver`` a step depends on beyond the model's scene and the state: the fit
-    and hourglass strength it was asked for (the model's where the solver names none; with
-    ``"auto"`` the fit then follows the material values, which a checkpoint carries), the
-    model's contact ramp, the neighbourhood guards and whether the fused kernels run (the
-    same equations, another round-off). Not the neighbour skin: it changes the cost only,
-    bit for bit (``Solver``)."""
-    fit, hourglass = solver._asked
+    """What of ``solver`` a step depends on beyond the model's scene and the state, as the
+    step runs it at the model's current material values: the fit and hourglass strength
+    (``Model.solver_choice``: ``"auto"`` resolved, so ``fit="linear"`` where ``"auto"`` runs
+    the linear fit is the same run), the model's contact ramp, the neighbourhood guards and
+    whether the fused kernels run (the same equations, another round-off; the curvature-
+    corrected fit, comparison models and ghost floors never take them). Not the neighbour
+    skin: it changes the cost only, bit for bit (``Solver``)."""
     m = solver.model
-    hourglass = m.hourglass if hourglass is None else hourglass
-    return {"fit": m.fit if fit is None else fit, "hourglass": None if hourglass is None else float(hourglass),
-            "contact_ramp": float(m.contact_ramp), "min_neighbors": int(solver.min_neighbors),
-            "max_condition": float(solver.max_condition), "fused": bool(solver.fused)}
+    fit, c = m.solver_choice(*solver._asked)
+    fused = solver.fused and not solver._cmp and fit != "curvature_corrected" and solver.ghost_search is None
+    return {"fit": fit, "hourglass": float(c), "contact_ramp": float(m.contact_ramp),
+            "min_neighbors": int(solver.min_neighbors), "max_condition": float(solver.max_condition),
+            "fused": bool(fused)}
 
 
 def _check_solver(model: Model, solver) -> None:
@@ -258,7 +260,8 @@ def load_state(path, model: Model, solver=None) -> tuple[State, dict]:
     and the first bad particle): finite; ``F``, ``F_p``, ``F_image`` of positive
     determinant; ``alpha``, ``alpha_image`` >= 0; the round-off ``x_lo``, ``F_lo`` at most
     the precision's epsilon times the particle's largest ``|x|``, ``|F|`` entry (a step leaves
-    at most half that). ``save_state`` refuses a state that breaks these.
+    at most half that). ``save_state`` refuses a state that breaks the others, and files a
+    state's round-off split again where it exceeds that bound (a state moved by hand).
 
     ``solver`` (a ``Solver`` of ``model``; optional): the solver that will continue the run.
     Where the checkpoint records the settings of the solver that ran (``save_state(...,
@@ -289,12 +292,6 @@ def load_state(path, model: Model, solver=None) -> tuple[State, dict]:
             f"{model_fingerprint(model, version)!r}: particles, bodies, colliders, tools, pins, fields or materials differ; "
             "was the scene edited?)"
         )
-    if solver is not None and "solver" in meta:
-        ours = solver_settings(solver)
-        for key, value in meta["solver"].items():
-            if key in ours and value != ours[key]:
-                raise ValueError(f"{where} with this solver: the run it continues had {key} = {value!r}, this solver "
-                                 f"{key} = {ours[key]!r}; make the Solver (and set the model) as that run's")
     n, np_dtype = model.particle_count, model.types.np_dtype
     shapes = {"x": (n, 3), "v": (n, 3), "F": (n, 3, 3), "alpha": (n,), "F_p": (n, 3, 3), "x_lo": (n, 3),
               "F_lo": (n, 3, 3), "F_image": (n, 3, 3), "alpha_image": (n,)}
@@ -339,8 +336,18 @@ def load_state(path, model: Model, solver=None) -> tuple[State, dict]:
                                  f"{(a.shape[0], 3)} finite values")
             a.assign(b)
     state.time = float(meta.get("time", 0.0))
+    before = {name: getattr(model, name).numpy().copy() for name in Model.MATERIAL_FIELDS}
     for name in Model.MATERIAL_FIELDS:
         getattr(model, name).assign(arrays[f"material_{name}"])
+    if solver is not None and "solver" in meta:
+        # Compared at the checkpoint's material values, which decide what "auto" runs.
+        ours = solver_settings(solver)
+        for key, value in meta["solver"].items():
+            if key in ours and value != ours[key]:
+                for name, a in before.items():  # a refused resume leaves the model as it was
+                    getattr(model, name).assign(a)
+                raise ValueError(f"{where} with this solver: the run it continues had {key} = {value!r}, this solver "
+                                 f"{key} = {ours[key]!r}; make the Solver (and set the model) as that run's")
     return state, meta
 
 
@@ -367,23 +374,46 @@ def _check_state_values(where: str, arrays: dict[str, np.ndarray], model: Model)
                                  "strain, it must be >= 0")
     # A step's compensated sum leaves |lo| <= half a unit in the last place of its entry
     # (Knuth's TwoSum, measured so in both precisions), so at most a unit in the last place of
-    # the particle's largest entry: twice the margin there, more on its smaller entries, and
-    # room for a hand-edited state that kept its round-off (State's note).
-    info = np.finfo(model.types.np_dtype)
+    # the particle's largest entry: twice the margin there, more on its smaller entries.
     for name, of in (("x_lo", "x"), ("F_lo", "F")):
         if name not in arrays:
             continue
-        n = arrays[name].shape[0]
-        lo = arrays[name].astype(np.float64).reshape(n, -1)
-        size = np.abs(lo).max(axis=1, initial=0.0)
-        bound = float(info.eps) * np.abs(arrays[of].astype(np.float64).reshape(n, -1)).max(axis=1, initial=0.0) \
-            + float(info.tiny)
+        size, bound = _roundoff_and_bound(arrays[name], arrays[of], model)
         if not (size <= bound).all():
             bad = int(np.argmax(~(size <= bound)))
+            lo = arrays[name].reshape(len(size), -1)
             value = float(lo[bad, int(np.argmax(np.abs(lo[bad])))])
             raise ValueError(f"{where}: its {name} at particle {bad} holds {value:.3g}: the round-off carried beside {of} "
                              f"must be at most {bound[bad]:.3g} there ({model.scalar.__name__}'s epsilon times the "
                              f"size of the particle's largest {of} entry); set it to 0 where {of} is set by hand")
+
+
+def _roundoff_and_bound(lo: np.ndarray, of: np.ndarray, model: Model) -> tuple[np.ndarray, np.ndarray]:
+    """Per particle: the largest round-off entry ``|lo|`` and its bound, the precision's
+    epsilon times the particle's largest ``|of|`` entry (plus the smallest normal number)."""
+    info, n = np.finfo(model.types.np_dtype), lo.shape[0]
+    size = np.abs(lo.astype(np.float64).reshape(n, -1)).max(axis=1, initial=0.0)
+    bound = float(info.eps) * np.abs(of.astype(np.float64).reshape(n, -1)).max(axis=1, initial=0.0) + float(info.tiny)
+    return size, bound
+
+
+def _renormalised_roundoff(arrays: dict[str, np.ndarray], model: Model) -> None:
+    """Where a state's round-off exceeds its bound, ``x + x_lo`` (``F + F_lo``) is split again
+    into a value and its round-off (``roundoff.compensated_sum``, exactly: the sum the step
+    reads is kept). A state whose ``x`` was set by hand keeps the old round-off (``State``'s
+    note), up to half a unit in the last place of the old value: a body moved nearer the
+    origin holds more than its new values' last place, which ``load_state`` refuses in a file.
+    A state a step left is written as it is, bit for bit."""
+    for name, of in (("x_lo", "x"), ("F_lo", "F")):
+        size, bound = _roundoff_and_bound(arrays[name], arrays[of], model)
+        over = ~(size <= bound)
+        if over.any():
+            a, b = arrays[of][over], arrays[name][over]
+            s = a + b
+            bb = s - a
+            hi, lo = arrays[of].copy(), arrays[name].copy()
+            hi[over], lo[over] = s, (a - (s - bb)) + (b - bb)
+            arrays[of], arrays[name] = hi, lo
 
 
 def _check_meta(where: str, meta: dict) -> None:

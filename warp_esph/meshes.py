@@ -193,8 +193,8 @@ def _read_usd(label: str, path: str, prim_path: str | None):
         # it, so a file without it was often modelled in metres and came in 100 x too small.
         warnings.warn(
             f"mesh {label}: its stage does not author metersPerUnit, so USD's fallback of {meters:g} m per unit "
-            f"(centimetres) is assumed; if the mesh is in metres, author metersPerUnit = 1 in the file "
-            f"(UsdGeom.SetStageMetersPerUnit) or scale it by {1.0 / meters:g} (add_mesh(..., scale={1.0 / meters:g}))",
+            f"(centimetres) is assumed (USD's rule); if the mesh is in metres, author metersPerUnit = 1 in the file "
+            f"(UsdGeom.SetStageMetersPerUnit)",
             UserWarning, stacklevel=3)
     # USD matrices act on row vectors: p_world = [p, 1] @ M.
     pts = (np.hstack([pts, np.ones((len(pts), 1))]) @ xform)[:, :3] * meters

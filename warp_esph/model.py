@@ -119,7 +119,8 @@ class State:
         # rounding them away every step makes a pile at yield creep (docs/physics.md, the
         # float32 creep floor; warp_esph/sim/roundoff.py). Not differentiated (it is below
         # F's round-off; the adjoints treat F + F_lo as F). A state edited by hand keeps its
-        # round-off arrays: an error of half a unit in the last place of the old value.
+        # round-off arrays: an error of half a unit in the last place of the old value
+        # (save_state files x + x_lo split again where that exceeds the new value's last place).
         self.F_lo = wp.zeros(n, dtype=T.mat33, device=dev)
         self.alpha = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad)
         # The plastic F_p of the rest-configuration comparison model (docs/method.md §7; I elsewhere).
