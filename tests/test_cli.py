@@ -596,6 +596,32 @@ def test_full_disk_exit_4_keeps_published_frames(tmp_path, monkeypatch, capsys):
     assert log_frames(out_path) == {"plane0": [0, 1, 2]}
 
 
+def test_a_file_size_limit_reached_by_the_usd_save_is_exit_4_not_a_damaged_input(tmp_path, capsys):
+    """A real full disk: the limit on file size (RLIMIT_FSIZE; Python ignores SIGXFSZ, so the
+    write fails with EFBIG) is met inside pxr's save, which raises its own error. That was
+    taken for a damaged input file: exit 2, `cannot read ... (a damaged or foreign file?)`."""
+    import resource
+
+    args = ["run", "dough_drop", "--scale", "0.6", "--frames", "30", "--no-progress"]
+    assert main([*args[:-2], "1", "--no-progress", "-o", str(tmp_path / "warm.usdc")]) == 0  # kernels in the cache
+    limit = 100 * 1024  # frames 0..2 of 729 particles fit, frame 3 does not
+
+    def small_files():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out_path = tmp_path / "full.usdc"
+    p = subprocess.run([sys.executable, "-m", "warp_esph", *args, "-o", str(out_path)], env=env, capture_output=True,
+                       text=True, timeout=120, preexec_fn=small_files)
+    assert p.returncode == 4, p.stderr
+    assert_one_line_error(p.stderr, f"cannot write {out_path}", "File too large", "keeps the")
+    assert "cannot read" not in p.stderr
+    kept = frames_in(out_path)
+    assert kept and kept == [float(k) for k in range(len(kept))]
+    assert log_frames(out_path) == {"plane0": list(range(len(kept)))}
+    assert not [f for f in os.listdir(tmp_path) if f.startswith(".")]  # no working copies left
+
+
 def test_diverged_run_exit_3_keeps_frames(tmp_path, monkeypatch, capsys):
     def poison(state):
         x = state.x.numpy()

@@ -597,7 +597,13 @@ class UsdWriter:
         t0 = time.perf_counter()
         target = 0 if self._published is None else 1 - self._published
         layer = self._stages[target].GetRootLayer()
-        if not layer.Save(force=True):
+        try:
+            saved = layer.Save(force=True)
+        except Tf.ErrorException as e:
+            # A full disk or a vanished folder reaches here as pxr's error, which the CLI took
+            # for a damaged input file (exit 2, 'cannot read'); it is a failed write.
+            raise OSError(f"USD could not save {self._work[target]}: {checks.read_reason(e)}") from None
+        if not saved:
             raise OSError(f"USD could not save {self._work[target]}")
         self._publish(self._work[target])
         self._published = target
