@@ -622,6 +622,29 @@ def test_a_file_size_limit_reached_by_the_usd_save_is_exit_4_not_a_damaged_input
     assert not [f for f in os.listdir(tmp_path) if f.startswith(".")]  # no working copies left
 
 
+def test_a_checkpoint_that_cannot_be_written_is_named_not_the_usd(tmp_path, monkeypatch, capsys):
+    """The disk fills while the checkpoint of frame 4 is saved: the one line names the
+    checkpoint and what it still holds (it named the USD, which was written)."""
+    import errno
+
+    from warp_esph import checkpoint as checkpoint_module
+
+    real_save = checkpoint_module.save_state
+
+    def save_state(path, model, state, **kwargs):
+        if kwargs["frame"] == 4:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_save(path, model, state, **kwargs)
+
+    monkeypatch.setattr(checkpoint_module, "save_state", save_state)
+    out_path = tmp_path / "c.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "10", "--checkpoint-every", "2",
+                 "--no-progress"]) == 4
+    assert_one_line_error(capsys.readouterr().err, f"cannot write the checkpoint {out_path}.checkpoint.npz",
+                          "No space left on device", "it keeps frame 2", f"{out_path} keeps the 5 frames")
+    assert frames_in(out_path) == [0.0, 1.0, 2.0, 3.0, 4.0]
+
+
 def test_diverged_run_exit_3_keeps_frames(tmp_path, monkeypatch, capsys):
     def poison(state):
         x = state.x.numpy()

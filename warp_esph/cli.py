@@ -438,10 +438,17 @@ def _cmd_run(args) -> int:
     if args.scene is not None and os.path.exists(str(args.scene)):
         run_record["scene"] = os.path.abspath(args.scene)
 
+    checkpointed = [start_frame if args.resume is not None else None]  # the frame the checkpoint file holds
+
     def checkpoint(frame, current):
         if every is not None and frame > start_frame and frame % every == 0:
             # With the adaptive step the step count is not a function of the frame: -1.
-            save_state(checkpoint_path, model, current, step=-1 if adaptive else frame * substeps, frame=frame, run=run_record)
+            try:
+                save_state(checkpoint_path, model, current, step=-1 if adaptive else frame * substeps, frame=frame,
+                           run=run_record)
+            except OSError as e:
+                raise _CheckpointWriteError(e) from None
+            checkpointed[0] = frame
 
 
     def on_frame(frame, current):
@@ -471,6 +478,13 @@ def _cmd_run(args) -> int:
         writer.close()
         if isinstance(e, BrokenPipeError):  # stdout's reader left, not the output file (main)
             raise
+        if isinstance(e, _CheckpointWriteError):
+            # The USD was written; naming it sent the reader to the wrong file.
+            why = e.cause.strerror or str(e.cause)
+            held = "no checkpoint of this run" if checkpointed[0] is None else f"it keeps frame {checkpointed[0]}"
+            _err(f"cannot write the checkpoint {checkpoint_path}: {why} ({held}; {writer.path} keeps "
+                 f"{_kept(writer, start_frame)})")
+            return EXIT_WRITE_FAILED
         why = e.strerror or str(e)
         _err(f"cannot write {writer.path}: {why} (it keeps {_kept(writer, start_frame)})")
         return EXIT_WRITE_FAILED
@@ -505,6 +519,14 @@ def _cmd_run(args) -> int:
         shown = "surfaces" if result.surface_bodies else "particles"
         print(f"preview: {result.output} ({shown}, {result.seconds:.1f} s)")
     return 0
+
+
+class _CheckpointWriteError(OSError):
+    """A checkpoint that could not be saved (``cause``: the write's own error)."""
+
+    def __init__(self, cause: OSError):
+        super().__init__(cause.errno, cause.strerror or str(cause))
+        self.cause = cause
 
 
 def _log_kinds(model) -> list[str]:
