@@ -67,14 +67,16 @@ def test_resume_writes_what_the_uninterrupted_run_writes(tmp_path, capsys):
                           (["--surface"], "--surface = True is not allowed with --resume")):
         assert main(["run", "--resume", str(ckpt), "--frames", "9", "--no-progress", *extra]) == 2
         assert needle in capsys.readouterr().err
-    # The file rewritten by a shorter run (frames 0..2) under the checkpoint of frame 8: resuming
-    # would leave frames 3..7 unwritten (it wrote 0..2 and 8..9 and exited 0); refused, the file
-    # and its force log untouched.
+    # The file rewritten by a shorter run (frames 0..2) under a copy of the checkpoint of frame 8
+    # (the run removes the one beside its output): resuming would leave frames 3..7 unwritten (it
+    # wrote 0..2 and 8..9 and exited 0); refused, the file and its force log untouched.
+    kept = tmp_path / "kept.npz"
+    kept.write_bytes(ckpt.read_bytes())
     assert main(ARGS + ["--frames", "2", "-o", str(part)]) == 0
     before = _time_samples(part)
     log = (tmp_path / "part.usdc_tools.json").read_bytes()
     capsys.readouterr()
-    assert main(["run", "--resume", str(ckpt), "--frames", "9", "--no-progress"]) == 2
+    assert main(["run", "--resume", str(kept), "--frames", "9", "--no-progress"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "holds frames 0..2" in err[0] and "frames 3..7 unwritten" in err[0], err
     after = _time_samples(part)
@@ -122,3 +124,25 @@ def test_fit_subcommand_is_wired_and_reports_bad_input(tmp_path, capsys):
     assert main(["fit", "dough_drop", "--target", str(tmp_path / "nope.npz"), "--no-progress"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "nope.npz" in err[0]
+
+
+def test_a_new_run_over_an_output_retires_the_earlier_runs_checkpoint(tmp_path, capsys):
+    """A run writes a.usdc with checkpoints; a new run (another dt) writes a.usdc again. The
+    first run's checkpoint resumed onto the second run's file: its frames 0..5, then the first
+    run's state from frame 6 on, exit 0. The new run removes it (and the old force log) once it
+    has replaced the file they belong to."""
+    out = tmp_path / "a.usdc"
+    ckpt = tmp_path / "a.usdc.checkpoint.npz"
+    tiny = ["run", "dough_drop", "--scale", "0.3", "--no-progress", "-o", str(out)]
+    assert main(tiny + ["--frames", "6", "--checkpoint-every", "2"]) == 0
+    assert ckpt.exists()
+    assert main(tiny + ["--frames", "8", "--dt", "0.000505051"]) == 0
+    assert not ckpt.exists()
+    before = _time_samples(out)
+    log = (tmp_path / "a.usdc_tools.json").read_bytes()
+    capsys.readouterr()
+    assert main(["run", "--resume", str(ckpt), "--frames", "10", "--no-progress"]) == 2
+    assert "no such file" in capsys.readouterr().err
+    after = _time_samples(out)
+    assert before.keys() == after.keys() and all(np.array_equal(before[k], after[k]) for k in before)
+    assert (tmp_path / "a.usdc_tools.json").read_bytes() == log

@@ -431,6 +431,13 @@ def _cmd_run(args) -> int:
                          f"checkpoint is at frame {start_frame}; resuming would leave frames {gap} unwritten")
     # The whole output name: a.usdc and a.usda in one folder must not share a checkpoint.
     checkpoint_path = writer.path + ".checkpoint.npz"
+    if args.resume is None:
+        # The writer has just replaced the file an earlier run wrote there: that run's checkpoint
+        # resumed onto this run's frames (its state spliced after them, exit 0) and its force log
+        # stood beside this file until this run's was written.
+        for stale in (checkpoint_path, writer.path + "_tools.csv", writer.path + "_tools.json"):
+            if os.path.isfile(stale) or os.path.islink(stale):
+                os.remove(stale)
     run_record = {"scene": args.scene if args.scene is not None else scene.name, "scale": scale, "fps": fps, "dt": dt,
                   "frames": frames_total, "output": os.path.abspath(writer.path), "dtype": args.dtype,
                   "surface": bool(args.surface), "checkpoint_every": every, "fit": model.fit, "contact_ramp": model.contact_ramp,
