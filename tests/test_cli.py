@@ -645,6 +645,41 @@ def test_a_checkpoint_that_cannot_be_written_is_named_not_the_usd(tmp_path, monk
     assert frames_in(out_path) == [0.0, 1.0, 2.0, 3.0, 4.0]
 
 
+def test_a_force_log_that_cannot_be_written_is_exit_4_and_keeps_its_last_whole_version(tmp_path, monkeypatch, capsys):
+    """The disk fills as the force log is written at the end of a finished run: one line naming
+    the log, exit 4 (it was exit 2, 'bad input', naming no file), and the log as its last
+    checkpoint wrote it, whole, the CSV and the JSON agreeing (it was cut where the disk filled)."""
+    import builtins
+    import errno
+
+    from warp_esph import tools as tools_module
+    from warp_esph import usd as usd_module
+
+    ended, real_close = [], usd_module.UsdWriter.close
+
+    def close(self):
+        ended.append(True)  # the run's frames are all written: the log's last write comes next
+        real_close(self)
+
+    def open_(path, mode="r", *args, **kwargs):
+        if ended and "_tools.json" in str(path) and "w" in mode:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return builtins.open(path, mode, *args, **kwargs)
+
+    monkeypatch.setattr(usd_module.UsdWriter, "close", close)
+    monkeypatch.setattr(tools_module, "open", open_, raising=False)
+    out_path = tmp_path / "g.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "5", "--checkpoint-every", "2",
+                 "--no-progress"]) == 4
+    captured = capsys.readouterr()
+    assert_one_line_error(captured.err, f"cannot write the force log {out_path}_tools.csv, .json",
+                          "No space left on device", f"{out_path} keeps the 6 frames")
+    assert "wrote" not in captured.out
+    assert frames_in(out_path) == [float(k) for k in range(6)]
+    assert log_frames(out_path) == {"plane0": [0, 1, 2, 3, 4]}
+    assert sorted(os.listdir(tmp_path)) == ["g.usdc", "g.usdc.checkpoint.npz", "g.usdc_tools.csv", "g.usdc_tools.json"]
+
+
 def test_diverged_run_exit_3_keeps_frames(tmp_path, monkeypatch, capsys):
     def poison(state):
         x = state.x.numpy()

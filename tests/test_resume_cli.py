@@ -146,3 +146,29 @@ def test_a_new_run_over_an_output_retires_the_earlier_runs_checkpoint(tmp_path, 
     after = _time_samples(out)
     assert before.keys() == after.keys() and all(np.array_equal(before[k], after[k]) for k in before)
     assert (tmp_path / "a.usdc_tools.json").read_bytes() == log
+
+
+def test_a_killed_run_resumes_with_its_force_log_whole(tmp_path, capsys):
+    """SIGKILL (out of memory, a preempted job) after a few checkpoints, then --resume: the
+    force log holds every frame, bit for bit the uninterrupted run's. It was written only at the
+    end: the killed run left none, and the resumed one kept only its own frames (exit 0)."""
+    out = tmp_path / "k.usdc"
+    ckpt = tmp_path / "k.usdc.checkpoint.npz"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "warp_esph", "run", "dough_drop", "--scale", "0.3", "--frames", "2000", "-o", str(out),
+         "--checkpoint-every", "2", "--no-progress"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=os.environ.copy())
+    deadline = time.time() + 120
+    while time.time() < deadline and not (ckpt.exists() and read_checkpoint(ckpt)[0]["frame"] >= 4):
+        time.sleep(0.1)
+    proc.kill()
+    proc.communicate(timeout=60)
+    frame = read_checkpoint(ckpt)[0]["frame"]
+    assert frame >= 4
+    assert main(["run", "--resume", str(ckpt), "--frames", str(frame + 2), "--no-progress"]) == 0
+    whole = tmp_path / "whole.usdc"
+    assert main(["run", "dough_drop", "--scale", "0.3", "--frames", str(frame + 2), "-o", str(whole), "--no-progress"]) == 0
+    capsys.readouterr()
+    csv = open(f"{out}_tools.csv").read()
+    assert [int(line.split(",")[0]) for line in csv.splitlines()[1:]] == list(range(frame + 3))
+    assert csv == open(f"{whole}_tools.csv").read()

@@ -446,17 +446,40 @@ def _cmd_run(args) -> int:
         run_record["scene"] = os.path.abspath(args.scene)
 
     checkpointed = [start_frame if args.resume is not None else None]  # the frame the checkpoint file holds
+    log_files = f"{writer.path}_tools.csv, .json"
+    log_failed = [False]
+
+    def write_log():
+        # The whole output name, as for the checkpoint and preview: a.usdc and a.usda in one
+        # folder must not share a force log.
+        try:
+            return log.write(writer.path)
+        except OSError as e:
+            log_failed[0] = True
+            raise _BesideWriteError("the force log", log_files, e) from None
 
     def checkpoint(frame, current):
         if every is not None and frame > start_frame and frame % every == 0:
+            if log is not None:
+                # The rows up to this frame, before the checkpoint that resumes after them: the log
+                # was written only at the end, so a killed run's resume kept none of the rows before
+                # its checkpoint.
+                write_log()
             # With the adaptive step the step count is not a function of the frame: -1.
             try:
                 save_state(checkpoint_path, model, current, step=-1 if adaptive else frame * substeps, frame=frame,
                            run=run_record)
             except OSError as e:
-                raise _CheckpointWriteError(e) from None
+                raise _BesideWriteError("the checkpoint", checkpoint_path, e) from None
             checkpointed[0] = frame
 
+    def beside_failure(e) -> str:
+        why = e.cause.strerror or str(e.cause)
+        if e.what == "the checkpoint":
+            held = "no checkpoint of this run" if checkpointed[0] is None else f"it keeps frame {checkpointed[0]}"
+        else:
+            held = "it is left as it was"  # written by renaming over
+        return f"cannot write {e.what} {e.path}: {why} ({held}; {writer.path} keeps {_kept(writer, start_frame)})"
 
     def on_frame(frame, current):
         if log is not None:
@@ -485,22 +508,24 @@ def _cmd_run(args) -> int:
         writer.close()
         if isinstance(e, BrokenPipeError):  # stdout's reader left, not the output file (main)
             raise
-        if isinstance(e, _CheckpointWriteError):
+        if isinstance(e, _BesideWriteError):
             # The USD was written; naming it sent the reader to the wrong file.
-            why = e.cause.strerror or str(e.cause)
-            held = "no checkpoint of this run" if checkpointed[0] is None else f"it keeps frame {checkpointed[0]}"
-            _err(f"cannot write the checkpoint {checkpoint_path}: {why} ({held}; {writer.path} keeps "
-                 f"{_kept(writer, start_frame)})")
+            _err(beside_failure(e))
             return EXIT_WRITE_FAILED
         why = e.strerror or str(e)
         _err(f"cannot write {writer.path}: {why} (it keeps {_kept(writer, start_frame)})")
         return EXIT_WRITE_FAILED
     finally:
         writer.close()
-        if log is not None and log.rows:
-            # The whole output name, as for the checkpoint and preview: a.usdc and a.usda in one
-            # folder must not share a force log.
-            tool_files = log.write(writer.path)
+        if log is not None and log.rows and not log_failed[0]:
+            try:
+                tool_files = write_log()
+            except _BesideWriteError as e:
+                # Said here, whatever ended the run (its own line stands); a finished run is not a
+                # success without its log (it was exit 2, 'bad input', naming no file).
+                _err(beside_failure(e))
+    if log_failed[0]:
+        return EXIT_WRITE_FAILED
     guards = ", ".join(f"{k}={v}" for k, v in solver.guard_counts().items())
     per_frame = 1e3 * writer.save_seconds / max(writer.frames_written, 1)
     written = (f"{writer.frames_written} frames (0..{writer.last_frame})" if not start_frame else
@@ -528,12 +553,13 @@ def _cmd_run(args) -> int:
     return 0
 
 
-class _CheckpointWriteError(OSError):
-    """A checkpoint that could not be saved (``cause``: the write's own error)."""
+class _BesideWriteError(OSError):
+    """A file the run writes beside its USD (``what``: the checkpoint, the force log) that could
+    not be written (``cause``: the write's own error)."""
 
-    def __init__(self, cause: OSError):
+    def __init__(self, what: str, path: str, cause: OSError):
         super().__init__(cause.errno, cause.strerror or str(cause))
-        self.cause = cause
+        self.what, self.path, self.cause = what, path, cause
 
 
 def _log_kinds(model) -> list[str]:

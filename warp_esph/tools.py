@@ -42,6 +42,7 @@ the tool is minus these.
 import dataclasses
 import functools
 import math
+import os
 import types
 import warnings
 from collections.abc import Callable, Mapping
@@ -1468,13 +1469,15 @@ class ReactionLog:
         # Every digit the run's precision holds: 9 significant digits round-trip float32, a
         # float64 run's values need 17 (at 9 its CSV, which `fit --target` reads, rounded them).
         digits = ".17g" if self.solver.model.scalar == wp.float64 else ".9g"
-        with open(csv_path, "w", newline="") as fh:
+
+        def write_csv(fh):
             w = csv.writer(fh)
             w.writerow(["frame", "time", "tool", "px", "py", "pz", "qx", "qy", "qz", "qw", "fx", "fy", "fz", "tx", "ty", "tz"])
             for r in self.rows:
                 w.writerow([r["frame"], format(r["time"], digits), r["tool"],
                             *(format(v, digits) for v in r["position"] + r["orientation"] + r["force"] + r["torque"])])
-        with open(json_path, "w") as fh:
+
+        def write_json(fh):
             json.dump({
                 "units": {"time": "s", "position": "m", "force": "N", "torque": "N m"},
                 "definition": "mean force and torque each tool or static collider exerted on the material over the "
@@ -1482,4 +1485,20 @@ class ReactionLog:
                               "its reference point); the material exerts minus these on it",
                 "rows": self.rows,
             }, fh, indent=1)
+
+        # Written beside and renamed over: the log is rewritten at every checkpoint and at the
+        # end, and a signal or a full disk in the middle of a write left it cut short (a resume
+        # then refused it; the CSV was read as fewer rows).
+        # Both are written before either is renamed, so a failed write leaves the two agreeing.
+        tmps = [os.path.join(folder, f".{name}.{os.getpid()}.tmp") for folder, name in map(os.path.split, (csv_path, json_path))]
+        try:
+            for tmp, fill, newline in zip(tmps, (write_csv, write_json), ("", None)):
+                with open(tmp, "w", newline=newline) as fh:
+                    fill(fh)
+            for tmp, path in zip(tmps, (csv_path, json_path)):
+                os.replace(tmp, path)
+        finally:
+            for tmp in tmps:
+                if os.path.lexists(tmp):
+                    os.remove(tmp)
         return csv_path, json_path
