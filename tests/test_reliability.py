@@ -79,6 +79,22 @@ def test_finite_runaway_at_18x_the_stable_step_exits_3_keeping_good_frames(tmp_p
         assert np.isfinite(np.array(stage.GetPrimAtPath("/World/dough").GetAttribute("points").Get(t))).all()
 
 
+def test_a_resumed_run_judges_each_frame_as_the_uninterrupted_run(tmp_path, capsys):
+    """The same runaway with a checkpoint every frame, resumed from its last one: the resumed
+    run took its monitor's bounds from the checkpoint's state (the energy gained by then
+    counted as initial), wrote the frame the first run had refused, and stopped a frame
+    later. Now it stops at the same step with the same message, the file as the first run
+    left it."""
+    out = tmp_path / "runaway.usdc"
+    assert main(["run", "-o", str(out), "--frames", "30", "--dt", repr(1 / 30), "--checkpoint-every", "1", *SMALL]) == 3
+    first = one_error_line(capsys.readouterr().err)
+    kept = frames_in(out)
+    assert main(["run", "--resume", str(out) + ".checkpoint.npz", "--no-progress"]) == 3
+    again = one_error_line(capsys.readouterr().err)
+    assert again.split(" (")[0] == first.split(" (")[0]  # the step, frame, bound and particle
+    assert frames_in(out) == kept
+
+
 def test_very_stiff_material_at_a_large_dt_exits_3(tmp_path, capsys):
     """E = 1e9 Pa has a stable step of 1.2e-5 s at 5 cm; at 3.3e-4 s speeds reached 1e9 m/s
     with exit 0."""

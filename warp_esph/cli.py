@@ -494,7 +494,8 @@ def _cmd_run(args) -> int:
               f"-> {writer.path}" + (f" (resumed at frame {start_frame})" if start_frame else ""), flush=True)
         simulate(model, frames, fps=fps, dt=dt, writer=writer, progress=not args.no_progress, solver=solver,
                  state=state, start_frame=start_frame, callback=on_frame if every is not None or log is not None else None,
-                 monitor_exempt=getattr(scene, "diverges", ()))
+                 monitor_exempt=getattr(scene, "diverges", ()),
+                 monitor_origin=model.state(requires_grad=False) if start_frame else None)
     except KeyboardInterrupt:
         writer.close()
         print(f"{PROG}: interrupted: {writer.path} keeps {_kept(writer, start_frame)}", file=sys.stderr)

@@ -397,6 +397,7 @@ def simulate(
     start_frame: int = 0,
     monitor: bool = True,
     monitor_exempt=(),
+    monitor_origin: State | None = None,
 ) -> State:
     """Simulate ``frames`` frames at ``fps``; returns the final state.
 
@@ -417,6 +418,9 @@ def simulate(
     - ``monitor``: stop a run that blows up but stays finite (``DivergenceMonitor``);
       ``False`` keeps only the check for non-finite values. ``monitor_exempt``: names of
       bodies it leaves out (``Scene.diverges``: a body a scene shows blowing up).
+      ``monitor_origin``: the state of frame 0 whose bounds the monitor keeps, the time
+      counted from it (a resumed run: the run's initial state, so that each frame is judged
+      as the uninterrupted run judged it; default: the state this call starts from).
 
     Two states are swapped, so nothing is allocated per step. Raises ``SimulationError``
     when a position or velocity becomes non-finite or the monitor finds a blow-up; the
@@ -470,7 +474,13 @@ def simulate(
         if initial is not None:
             raise ValueError(f"state is not allowed: it has a {initial[0]}")
         spare = model.state(requires_grad=False)
-        monitor = DivergenceMonitor(model, current, monitor_exempt) if monitor else None
+        if monitor_origin is not None:
+            checks.same_state(model, "monitor_origin", monitor_origin)
+        # A resumed run's bounds taken from its checkpoint's state were laxer (the energy it
+        # had gained counted as initial energy): it wrote a frame the uninterrupted run refused.
+        monitor = DivergenceMonitor(model, current if monitor_origin is None else monitor_origin,
+                                    monitor_exempt) if monitor else None
+        t_origin = 0 if monitor_origin is None else start_frame  # frames from the monitor's state to this call's
 
         bar = _progress_bar(frames, f"{model.particle_count} particles") if progress else None
         try:
@@ -488,7 +498,7 @@ def simulate(
                     current, spare = spare, current
                 steps += n_sub
                 frame = start_frame + k
-                bad = _first_bad(model, current, monitor, k / fps)  # simulated time of this run
+                bad = _first_bad(model, current, monitor, (t_origin + k) / fps)  # simulated time since the monitor's state
                 if bad is not None:
                     what, p = bad
                     body = model.bodies[int(model.particle_body_np[p])].name
