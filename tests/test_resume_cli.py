@@ -1,8 +1,10 @@
 """The CLI's checkpoint/resume and signal handling: a resumed run writes the same file
 as an uninterrupted one; SIGINT and SIGTERM leave every finished frame readable."""
 
+import json
 import os
 import signal
+import shutil
 import subprocess
 import sys
 import time
@@ -78,6 +80,17 @@ def test_resume_writes_what_the_uninterrupted_run_writes(tmp_path, capsys):
     capsys.readouterr()
     assert main(["run", "--resume", str(kept), "--frames", "9", "--no-progress"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "holds the frames of another run" in err[0], err  # the file names its run
+    # A checkpoint written before runs were named has no run id: the frames it would leave
+    # unwritten are what refuses it.
+    with np.load(kept) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(arrays["meta"].tobytes())
+    del meta["run"]["run_id"]
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez(kept, **arrays)
+    assert main(["run", "--resume", str(kept), "--frames", "9", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "holds frames 0..2" in err[0] and "frames 3..7 unwritten" in err[0], err
     after = _time_samples(part)
     assert before.keys() == after.keys() and (tmp_path / "part.usdc_tools.json").read_bytes() == log
@@ -146,6 +159,29 @@ def test_a_new_run_over_an_output_retires_the_earlier_runs_checkpoint(tmp_path, 
     after = _time_samples(out)
     assert before.keys() == after.keys() and all(np.array_equal(before[k], after[k]) for k in before)
     assert (tmp_path / "a.usdc_tools.json").read_bytes() == log
+
+
+def test_a_checkpoint_resumes_onto_its_own_runs_frames_only(tmp_path, capsys):
+    """A copy of a run's checkpoint, resumed after another run (another dt) rewrote the output,
+    spliced the first run's state after the second run's frames, exit 0: a new run names itself
+    in its file and its checkpoints (``run_id``), and a resume onto another run's file is refused."""
+    out = tmp_path / "a.usdc"
+    keep = tmp_path / "keep.npz"
+    tiny = ["run", "dough_drop", "--scale", "0.3", "--no-progress", "-o", str(out)]
+    assert main(tiny + ["--frames", "6", "--checkpoint-every", "2"]) == 0
+    shutil.copyfile(tmp_path / "a.usdc.checkpoint.npz", keep)
+    assert main(tiny + ["--frames", "8", "--dt", "0.000505051"]) == 0
+    before = _time_samples(out)
+    capsys.readouterr()
+    assert main(["run", "--resume", str(keep), "--frames", "10", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "it holds the frames of another run (run id '" in err, err
+    after = _time_samples(out)
+    assert before.keys() == after.keys() and all(np.array_equal(before[k], after[k]) for k in before)
+    # Its own run's file resumes.
+    assert main(tiny + ["--frames", "6", "--checkpoint-every", "2"]) == 0
+    capsys.readouterr()
+    assert main(["run", "--resume", str(tmp_path / "a.usdc.checkpoint.npz"), "--frames", "8", "--no-progress"]) == 0
 
 
 def test_a_killed_run_resumes_with_its_force_log_whole(tmp_path, capsys):

@@ -18,6 +18,7 @@ import argparse
 import os
 import signal
 import sys
+import uuid
 import warnings
 
 PROG = "warp-esph"
@@ -412,7 +413,10 @@ def _cmd_run(args) -> int:
         if args.resume is not None:
             log.resume(os.path.abspath(os.fspath(output)), start_frame)  # the finished frames of the run it continues
     _arm(args)  # from here an interrupt unwinds through the writer
-    writer = UsdWriter(output, model, fps, surface=args.surface, view=getattr(scene, "view", None), append=args.resume is not None)
+    # Names the run in its file and its checkpoints: a checkpoint resumes onto its own run's frames only.
+    run_id = run.get("run_id") if args.resume is not None else uuid.uuid4().hex
+    writer = UsdWriter(output, model, fps, surface=args.surface, view=getattr(scene, "view", None), append=args.resume is not None,
+                       run_id=run_id)
     if args.resume is not None and (writer.last_frame is None or writer.first_frame != 0 or writer.last_frame < start_frame - 1):
         # The resumed frames must follow the file's: a file of a shorter run, written over the
         # one checkpointed, would keep a gap of frames nobody wrote.
@@ -442,6 +446,8 @@ def _cmd_run(args) -> int:
                   "frames": frames_total, "output": os.path.abspath(writer.path), "dtype": args.dtype,
                   "surface": bool(args.surface), "checkpoint_every": every, "fit": model.fit, "contact_ramp": model.contact_ramp,
                   "hourglass": model.hourglass, "fit_weight": model.fit_weight}
+    if run_id is not None:  # (a checkpoint written before runs were named has none)
+        run_record["run_id"] = run_id
     if args.scene is not None and os.path.exists(str(args.scene)):
         run_record["scene"] = os.path.abspath(args.scene)
 
@@ -600,6 +606,8 @@ def _check_run_record(path, run: dict) -> None:
             from .sim.smoothing import FIT_WEIGHTS  # noqa: PLC0415
 
             checks.choice("fit_weight", run["fit_weight"], FIT_WEIGHTS)
+        if "run_id" in run and (not isinstance(run["run_id"], str) or not run["run_id"]):
+            raise ValueError(f"run_id = {run['run_id']!r} must be a non-empty text")
     except ValueError as e:
         raise ValueError(f"{where} {e}") from None
 

@@ -71,6 +71,7 @@ _COLLIDERS = f"{_ROOT}/Colliders"
 _SURFACES = f"{_ROOT}/Surfaces"
 _KEY = "warp_esph"
 _VIEW = f"{_KEY}:view"
+_RUN_ID = f"{_KEY}:run_id"  # the run that wrote the file (UsdWriter's run_id; the CLI's run record)
 # Per-particle primvars of a body's Points prim (the writer creates them, the reader reads them).
 _SINGULAR_VALUES, _ALPHA, _MATERIAL_ID = "singular_values", "alpha", "material_id"
 _PRIMVAR_SINGULAR_VALUES = f"primvars:{_SINGULAR_VALUES}"
@@ -194,11 +195,13 @@ class UsdWriter:
     surface per body and frame under ``/World/Surfaces`` (marching cubes of a Zhu-Bridson
     field, ``warp_esph.surface``; costs about 0.15 s per frame per 50k particles on one CPU
     core). ``view``: a suggested camera direction (azimuth, elevation) in degrees for
-    renderers, stored in the layer's custom data.
+    renderers, stored in the layer's custom data. ``run_id``: a text naming the run, stored
+    in the layer's custom data by a new file; appending with one refuses a file that names
+    another run (a checkpoint of one run resumed onto the frames of another).
     """
 
     def __init__(self, path, model: Model, fps: float = 30.0, *, append: bool = False, plane_size: float | None = None,
-                 surface: bool = False, view=None):
+                 surface: bool = False, view=None, run_id: str | None = None):
         if not isinstance(model, Model):
             raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
         try:
@@ -228,6 +231,9 @@ class UsdWriter:
                 raise ValueError(f"view = {view!r} is not allowed: must be (azimuth, elevation) in degrees") from None
             view = (checks.number("view azimuth", az), checks.in_range("view elevation", el, -VIEW_ELEVATION, VIEW_ELEVATION))
         self.view = view
+        if run_id is not None and (not isinstance(run_id, str) or not run_id):
+            raise ValueError(f"run_id = {run_id!r} is not allowed: must be a non-empty string or None")
+        self.run_id = run_id
         #: Seconds spent building surfaces, over all frames.
         self.surface_seconds = 0.0
         self._surface_warned: set[str] = set()
@@ -307,6 +313,12 @@ class UsdWriter:
         tcps = stage.GetTimeCodesPerSecond()
         if not math.isclose(tcps, self.fps, rel_tol=1e-9):
             raise ValueError(f"{where}: it was written at fps = {tcps:g}, not {self.fps:g}")
+        theirs = (stage.GetRootLayer().customLayerData or {}).get(_RUN_ID)
+        if self.run_id is not None and theirs is not None and theirs != self.run_id:
+            # Another run wrote the file since (or the checkpoint was copied from elsewhere): its
+            # frames and the checkpoint's state would be spliced into one file.
+            raise ValueError(f"{where}: it holds the frames of another run (run id {theirs!r}), not those of the run "
+                             f"{self.run_id!r} it would continue")
         for body, name in zip(self.model.bodies, self._prim_names):
             prim = stage.GetPrimAtPath(f"{_ROOT}/{name}")
             if not prim or not prim.IsA(UsdGeom.Points):
@@ -336,9 +348,12 @@ class UsdWriter:
             f"{_KEY}:gravity": Gf.Vec3d(*m.gravity),
             f"{_KEY}:dtype": m.scalar.__name__,
         }
-        if self.view is not None:
+        if self.view is not None or self.run_id is not None:
             data = dict(stage.GetRootLayer().customLayerData)
-            data[_VIEW] = Gf.Vec2d(*self.view)
+            if self.view is not None:
+                data[_VIEW] = Gf.Vec2d(*self.view)
+            if self.run_id is not None:
+                data[_RUN_ID] = self.run_id
             stage.GetRootLayer().customLayerData = data
         for body, name, widths in zip(m.bodies, self._prim_names, self._widths):
             pts = UsdGeom.Points.Define(stage, f"{_ROOT}/{name}")
