@@ -779,3 +779,18 @@ def test_a_run_with_the_adaptive_step_resumes_bit_for_bit(tmp_path, capsys):
     for k in range(4):
         np.testing.assert_array_equal(part.arrays(k)["points"], whole.arrays(k)["points"])
     capsys.readouterr()
+
+
+def test_a_failed_run_whose_file_is_gone_does_not_say_it_keeps_frames(tmp_path):
+    """The output folder removed during a run: the failure said the file 'keeps the 3 frames
+    finished' of a file that no longer existed."""
+    import types
+
+    from warp_esph.cli import _kept
+
+    path = tmp_path / "gone" / "b.usdc"
+    writer = types.SimpleNamespace(path=str(path), frames_written=3, last_frame=2)
+    assert _kept(writer, 0) == "nothing: the file is gone"
+    path.parent.mkdir()
+    path.write_bytes(b"")
+    assert _kept(writer, 0) == "the 3 frames finished" and _kept(writer, 1) == "frames 0..2 finished"

@@ -298,6 +298,8 @@ def _drop_stdout():
 def _kept(writer, start_frame: int) -> str:
     """What an interrupted or failed run's file holds: the frames this run finished, and on a
     resumed run those of the run it continues too (from frame 0)."""
+    if not os.path.isfile(writer.path):  # its folder removed during the run: nothing is kept
+        return "nothing: the file is gone"
     if not start_frame:
         n = writer.frames_written
         return "the 1 frame finished" if n == 1 else f"the {n} frames finished"
