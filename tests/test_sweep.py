@@ -457,6 +457,33 @@ def test_a_sweep_keeps_the_samples_finished_while_it_runs(scene_file, tmp_path, 
     assert len(SweepTable.read_csv(out / "sweep.csv")) == 3
 
 
+def test_a_sweep_whose_tables_cannot_be_written_at_its_end_is_a_failed_write(scene_file, tmp_path, monkeypatch, capsys):
+    """A full disk at the sweep's final tables was exit 2 (bad input) with a bare
+    '[Errno 28] ...': now one line naming the folder, what ran and what is on disk, exit 4."""
+    import errno
+
+    from warp_esph import sweep as sweep_module
+
+    real = sweep_module.write_outputs
+
+    def full(table, folder, meta=None, *a, **k):
+        if meta and meta.get("partial"):
+            return real(table, folder, meta, *a, **k)
+        raise OSError(errno.ENOSPC, "No space left on device", os.path.join(folder, "sweep.csv.tmp"))
+
+    monkeypatch.setattr(sweep_module, "PARTIAL_EVERY_S", 0.0)
+    monkeypatch.setattr(sweep_module, "write_outputs", full)
+    out = tmp_path / "sw"
+    status = cli.main(["sweep", scene_file, "--param", "yield_stress=10,100", "--frames", "1", "--workers", "1",
+                       "-o", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert status == cli.EXIT_WRITE_FAILED, err
+    last = err.strip().splitlines()[-1]  # after the plan line
+    assert last.startswith(f"warp-esph: cannot write the sweep's tables in {out}: [Errno 28] No space left"), err
+    assert last.endswith("(2 samples ran; the last table written during the sweep is partial)") and "Traceback" not in err
+    assert len(SweepTable.read_csv(out / "sweep.csv")) == 2  # the partial table of both samples
+
+
 def test_values_matplotlib_cannot_lay_out_still_leave_the_tables_and_the_record(tmp_path, monkeypatch):
     """A sweep of yield_stress over 1e307..1.7e308 ran every sample, then matplotlib's axes
     raised 'arange: cannot compute length', exit 2 with no sweep.json. The plot is said to

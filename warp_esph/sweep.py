@@ -990,7 +990,7 @@ def sweep_cli(args, out=None) -> int:
     (3) some failed (see the table's ``reason``), 130 interrupted (the finished samples are
     written). Raises ``ValueError`` on bad input (the CLI exits 2)."""
     from . import __version__  # noqa: PLC0415
-    from .cli import EXIT_INTERRUPTED, PROG  # noqa: PLC0415
+    from .cli import EXIT_INTERRUPTED, EXIT_WRITE_FAILED, PROG  # noqa: PLC0415
 
     out = sys.stdout if out is None else out
     from .cli import _apply_solver_options, _solver_options  # noqa: PLC0415
@@ -1063,7 +1063,17 @@ def sweep_cli(args, out=None) -> int:
     if bar is not None:
         bar.close()
     meta["seconds"] = time.perf_counter() - t0
-    for line in write_outputs(table, folder, meta, log_params):
+    try:
+        lines = write_outputs(table, folder, meta, log_params)
+    except OSError as e:
+        # A full disk or a folder gone at the end: a failed write (not bad input, exit 2), and
+        # what is left on disk said.
+        partial = "the last table written during the sweep is partial" if written[0] is not None and len(done) \
+            else "no whole table is there"
+        print(f"{PROG}: cannot write the sweep's tables in {folder}: {e} ({len(table)} samples ran; {partial})",
+              file=sys.stderr)
+        return EXIT_WRITE_FAILED
+    for line in lines:
         print(line, file=out)
     failed = table.failed
     print(f"{len(table)} samples, {len(table) - len(failed)} ok, {len(failed)} failed, {meta['seconds']:.1f} s", file=out)
