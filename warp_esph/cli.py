@@ -149,7 +149,7 @@ def _add_solver_arguments(parser) -> None:
                              "through contact) or instant (the whole inward velocity removed, the first law); default: the "
                              "scene's [solver] contact, else continuous")
     parser.add_argument("--hourglass", metavar="C",
-                        help="strength (>= 0) of the hourglass control of the fit's zero-energy modes, for elastic solids "
+                        help="strength (0 to 1000) of the hourglass control of the fit's zero-energy modes, for elastic solids "
                              "under concentrated loads (0.1 holds a pressed sphere indenter); 0: off; default: the scene's "
                              "[solver] hourglass, else 0.05 where the auto fit chose curvature_corrected and 0 otherwise")
     parser.add_argument("--fit-weight", metavar="NAME",
