@@ -706,7 +706,7 @@ def test_the_builder_refuses_tools_inside_bodies_stray_tool_options_coincident_p
                                                we.Material.preset("clay"))
 
 
-# ------------------------------------------------------------------ fuzz round of session 52
+# ------------------------------------------------------------------ input found misread or refused without a name
 def test_a_plane_normal_of_any_length_bounds_the_half_space_it_names():
     """``add_plane(normal, offset)``: the solid is ``dot(normal, x) < offset`` whatever the
     normal's length. With the normal (0, 2, 0) the plane stood at y = offset, twice as high

@@ -353,7 +353,7 @@ def test_workers_started_from_a_script_without_a_main_guard_say_so(tmp_path):
     assert done.returncode == 0 and done.stdout.strip() == "[2.0, 3.0]", (done.stdout, done.stderr)
 
 
-# ------------------------------------------------------------------ fuzz round of session 52
+# ------------------------------------------------------------------ input found misread or refused without a name
 @pytest.mark.parametrize("args, words", [
     # N = 1e9 levels were allocated (7.5 GiB) before the count was compared.
     (["--param", "yield_stress=1:2:lin:1000000000"], ["1000000000 (yield_stress)", "--max-samples = 10000"]),
