@@ -3,6 +3,7 @@ as an uninterrupted one; SIGINT and SIGTERM leave every finished frame readable.
 
 import json
 import os
+import re
 import signal
 import shutil
 import subprocess
@@ -182,6 +183,7 @@ def test_a_checkpoint_resumes_onto_its_own_runs_frames_only(tmp_path, capsys):
     assert main(tiny + ["--frames", "6", "--checkpoint-every", "2"]) == 0
     capsys.readouterr()
     assert main(["run", "--resume", str(tmp_path / "a.usdc.checkpoint.npz"), "--frames", "8", "--no-progress"]) == 0
+    assert re.search(r"\d+ frames at .* \(resumed at frame (\d+), the run 8 frames\)", capsys.readouterr().out)
 
 
 def test_a_killed_run_resumes_with_its_force_log_whole(tmp_path, capsys):

@@ -499,7 +499,7 @@ def _cmd_run(args) -> int:
               f"{frames} frames at {fps:g} fps, "
               + ("adaptive dt (CFL), at most " if adaptive else "")
               + f"dt = {dt_shown:.4g} s ({substeps} steps/frame), {args.device} {args.dtype} "
-              f"-> {writer.path}" + (f" (resumed at frame {start_frame})" if start_frame else ""), flush=True)
+              f"-> {writer.path}" + (f" (resumed at frame {start_frame}, the run {frames_total} frames)" if start_frame else ""), flush=True)
         simulate(model, frames, fps=fps, dt=dt, writer=writer, progress=not args.no_progress, solver=solver,
                  state=state, start_frame=start_frame, callback=on_frame if every is not None or log is not None else None,
                  monitor_exempt=getattr(scene, "diverges", ()),
