@@ -28,10 +28,10 @@ The "measurements" here are synthetic: runs of a hidden material, with noise add
    closed-form inversions, all as ``yield_stress`` (``Y = sqrt(2/3) sigma_y = sqrt(2) tau_y``).
 
 Run from the repository root: ``python examples/calibrate_from_lab.py`` (measured: 21
-forward runs of both experiments to convergence plus the diagnostics' runs, on the order of
-ten minutes on a shared core; ``--size ci`` is the small version the tests run, about
-15-25 s once Warp has compiled its kernels). ``--out DIR`` keeps the lab
-files and the result (default: a temporary folder).
+forward runs of both experiments to convergence plus the diagnostics' 9, about half a minute
+on a shared core once Warp has compiled its kernels; ``--size ci`` is the small version the
+tests run, 10-25 s). ``--out DIR`` keeps the lab files and the result (default: a temporary
+folder).
 """
 
 import argparse
@@ -127,8 +127,10 @@ def press_scene(mat: we.Material, s: Setup) -> we.SceneBuilder:
     dx = s.press_spacing
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, -G, 0.0))
     b.add_cylinder((0.0, s.press_height / 2.0, 0.0), s.press_radius, s.press_height, mat, name="sample")
-    top = float(b._points[-1][:, 1].max())
-    bottom = float(b._points[-1][:, 1].min())
+    # The outer particle layers: one particle per whole cell of the height, the layers centred in it.
+    layers = math.floor(s.press_height / dx + 1e-9)
+    bottom = 0.5 * (s.press_height - (layers - 1) * dx)
+    top = bottom + (layers - 1) * dx
     # Both plates touch the outer particle layers at t = 0 (frictionless: the closed form's plates).
     b.add_tool("plane", position=(0.0, bottom, 0.0), name="base")
     b.add_tool("box", half_extents=(0.05, 0.005, 0.05), name="plate",
