@@ -11,7 +11,7 @@
    for a true Young's modulus. Starting from half of it, the log-modulus is fitted from the
    gradient of the misfit through the differentiable reaction forces.
 
-    python examples/press_and_fit.py          # about a minute on one CPU core
+    python examples/press_and_fit.py          # about 10 s on one CPU core once Warp has compiled its kernels
 
 Everything is float64 (``finalize(dtype=wp.float64, requires_grad=True)``); see docs/tools.md.
 """
