@@ -415,6 +415,30 @@ def test_a_force_log_row_repeated_negative_or_non_finite_is_refused_by_file_row_
         ReactionForceLoss([[0.0, 0.0, 0.0], [0.0, 0.0, float("nan")]], "plate", [10, 20], window=10)
 
 
+def test_a_force_log_whose_times_are_not_its_frames_is_refused_by_row(tmp_path):
+    """The fit compares frame k at k / fps and read the rate from the first row alone: times
+    out of order, a clock that did not start at 0 or an uneven sampling were fitted at other
+    times than they were measured, exit 0. Every row's time is now held to frame / fps."""
+    from warp_esph.fit import load_target  # noqa: PLC0415
+
+    ok = load_target(_tools_csv(tmp_path / "ok.csv", GOOD_ROWS + ["3,0.015000001,plane0,0,-3,0"]))
+    assert ok.fps == pytest.approx(200.0) and ok.frames == [1, 2, 3]
+    assert load_target(_tools_csv(tmp_path / "untimed.csv", ["0,0,plane0,0,0,0", "1,0,plane0,0,-1,0"])).fps is None
+    cases = {
+        "swapped": (["0,0,plane0,0,0,0", "1,0.01,plane0,0,-1.5,0", "2,0.005,plane0,0,-2.5,0"],
+                    r"swapped\.csv, row 3 \(frame 1, tool 'plane0'\): time = 0\.01 is not allowed: must be frame / fps = "
+                    r"1 / 400 = 0\.0025 s"),
+        "offset": (["0,12.0,plane0,0,0,0", "1,12.005,plane0,0,-1.5,0", "2,12.01,plane0,0,-2.5,0"],
+                   r"offset\.csv, row 2 \(frame 0, tool 'plane0'\): time = 12\.0 is not allowed: must be frame / fps"),
+        "uneven": (GOOD_ROWS + ["3,0.03,plane0,0,-3,0"],
+                   r"uneven\.csv, row 3 \(frame 1, tool 'plane0'\): time = 0\.005 is not allowed: must be frame / fps = "
+                   r"1 / 100 = 0\.01 s"),
+    }
+    for name, (rows, message) in cases.items():
+        with pytest.raises(ValueError, match=message):
+            load_target(_tools_csv(tmp_path / f"{name}.csv", rows))
+
+
 def test_a_force_log_frame_steps_and_path_are_checked_by_name(tmp_path):
     """``frame_steps`` missing a frame of the file ended in ``KeyError: 2``; a folder given
     as the log ended in ``IsADirectoryError``."""

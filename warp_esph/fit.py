@@ -1735,7 +1735,20 @@ def _forces_target(path: str, tool: str | None) -> Target:
     frames = sorted(r["frame"] for r in mine if r["frame"] > 0)
     if not frames:
         raise ValueError(f"target {path} holds only frame 0 of tool {tool!r}, which has no force yet")
-    fps = next((r["frame"] / r["time"] for r in mine if r["frame"] > 0 and r["time"] > 0), None)
+    fps = None
+    if any(r["time"] != 0.0 for r in mine):
+        # The rate from the last frame (the most digits), and every row held to it: frame k is
+        # fitted at k / fps, so a row whose time says otherwise (times out of order, a clock
+        # that did not start at 0, a log sampled unevenly) was compared at another time than
+        # it was measured, and only the first row's time was ever read.
+        last = max(mine, key=lambda r: r["frame"])
+        fps = last["frame"] / last["time"] if last["time"] > 0 else None
+        for r in sorted(mine, key=lambda r: r["row"]):
+            if fps is None or abs(r["time"] * fps - r["frame"]) > 0.1:
+                expected = "a time > 0" if fps is None else f"frame / fps = {r['frame']} / {fps:g} = {r['frame'] / fps:.6g} s"
+                raise ValueError(f"{path}, row {r['row']} (frame {r['frame']}, tool {tool!r}): time = {r['time']!r} is "
+                                 f"not allowed: must be {expected} (the rate its last frame, {last['frame']}, gives; "
+                                 "frame k is fitted at k / fps, so rows are one frame period apart from time 0)")
     return Target("forces", mine, frames, fps, path, tool=tool)
 
 

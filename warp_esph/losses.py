@@ -1213,7 +1213,7 @@ def read_tools_csv(path) -> list[dict]:
                     raise ValueError(f"{p}, row {line}: frame {frame} of tool {tool!r} is not allowed: row "
                                      f"{seen[tool, frame]} already gives it (one row per tool and frame)")
                 seen[tool, frame] = line
-                out.append({"frame": frame, "time": values["time"], "tool": tool,
+                out.append({"frame": frame, "time": values["time"], "tool": tool, "row": line,
                             "force": np.array([values["fx"], values["fy"], values["fz"]])})
     except OSError as e:
         raise ValueError(f"force log {p} cannot be read: {e.strerror or e}") from None
