@@ -509,6 +509,35 @@ def test_target_body_is_the_same_body_in_the_file_and_the_loss(tmp_path):
         load_target(path, body="cube")
 
 
+def test_a_run_target_read_whole_must_hold_the_scenes_bodies_in_order(tmp_path):
+    """A run's USD read without --target-body is compared with the scene particle by
+    particle: a scene listing the run's bodies in another order (same total) compared one
+    body's run with another's, without a word. The bodies are now matched by name and
+    count, in order (the prim names of a file without body names count too)."""
+    from warp_esph.fit import load_target
+    from warp_esph.usd import UsdWriter
+
+    def model(names):
+        b = we.SceneBuilder(spacing=0.02)
+        for k, name in enumerate(names):
+            b.add_box((0.3 * k, 0.1, 0.0), (0.06, 0.06, 0.06), we.Material.preset("dough"), name=name)
+        return b.finalize()
+
+    run = model(["a b", "c"])
+    state = run.state()
+    path = tmp_path / "run.usdc"
+    with UsdWriter(path, run, 30.0) as writer:
+        writer.write_frame(0, state)
+        writer.write_frame(1, state)
+    t = load_target(path)
+    assert t.bodies == [("a b", 27), ("c", 27)]
+    t.loss(model(["a b", "c"]), {1: 10})  # the scene the run was made with
+    for names in (["c", "a b"], ["a b", "d"]):
+        with pytest.raises(ValueError, match=r"run\.usdc is not allowed: it holds the bodies a b \(27 particles\), c \(27 "
+                                             r"particles\) in that order, the scene .*; particles are compared in order"):
+            load_target(path).loss(model(names), {1: 10})
+
+
 def test_cli_joint_experiments_file(tmp_path, dough_scene):
     """``--experiments`` adds experiments to a fit: the joint loss is the weighted sum of theirs."""
     from warp_esph.cli import main

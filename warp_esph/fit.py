@@ -1479,6 +1479,8 @@ class Target:
     body: str | None = None
     #: ``forces`` targets: the tool whose reaction force ``data`` (CSV rows) holds.
     tool: str | None = None
+    #: A run's USD read whole: ``(name, particle count)`` of each body in the file's order, or None.
+    bodies: list | None = None
 
     def particles(self, model: Model) -> np.ndarray | None:
         """Indices of the model's particles this target observes (None: all)."""
@@ -1535,6 +1537,25 @@ class Target:
             if pos.shape[1] != model.particle_count:
                 raise ValueError(f"target {self.path} has {pos.shape[1]} particles per frame, the scene {model.particle_count}: "
                                  f"use the scene and --scale the target was made with")
+            if self.bodies is not None:
+                # Particles are compared by order: a scene listing the run's bodies in another
+                # order (or other bodies of the same total) compared one body's run with another's.
+                try:
+                    from .usd import body_prim_names  # noqa: PLC0415
+
+                    prims = body_prim_names(model)
+                except ImportError:
+                    prims = [b.name for b in model.bodies]
+                same = len(self.bodies) == len(model.bodies) and all(
+                    name in (b.name, prim) and count == b.count
+                    for (name, count), b, prim in zip(self.bodies, model.bodies, prims))
+                if not same:
+                    def listed(bodies):
+                        return ", ".join(f"{name} ({count} particles)" for name, count in bodies)
+
+                    raise ValueError(f"target {self.path} is not allowed: it holds the bodies {listed(self.bodies)} "
+                                     f"in that order, the scene {listed((b.name, b.count) for b in model.bodies)}; particles "
+                                     "are compared in order: use the scene the run was made with, or --target-body NAME")
             keep = [k for k, f in enumerate(self.frames) if f != 0]
             if not keep:
                 raise ValueError(f"target {self.path} holds only frame 0 (the initial state), which says nothing about the material")
@@ -1784,13 +1805,17 @@ def _usd_run_target(path: str, body, frames) -> Target | None:
     if not chosen:
         raise ValueError(f"target {path} holds only frame {data.frames[0]}, which says nothing about the material")
     pos = []
+    counts = None
     for f in chosen:
         a = data.arrays(f)
         pts = a["points"].astype(np.float64)
         if body is not None:
             pts = pts[a["body"] == index]
+        elif counts is None:
+            counts = np.bincount(np.asarray(a["body"], dtype=np.int64), minlength=len(given)).tolist()
         pos.append(pts)
-    return Target("positions", np.stack(pos), list(chosen), data.fps, path, body=body)
+    bodies = None if body is not None else list(zip(given, counts))
+    return Target("positions", np.stack(pos), list(chosen), data.fps, path, body=body, bodies=bodies)
 
 
 def write_fitted_usd(model: Model, path, frames: int, fps: float, dt: float, progress: bool = False) -> str | None:
