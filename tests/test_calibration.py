@@ -784,6 +784,39 @@ def test_cli_fit_refuses_what_would_lose_data_or_mistime_the_targets(tmp_path, c
     assert not (tmp_path / "o").exists()
 
 
+def test_target_frames_choose_among_the_frames_an_npz_stores(tmp_path, capsys, dough_scene):
+    """An .npz that stores its 'frames' had them renumbered by --target-frames: frames 2, 4, 6
+    given '1,2,3' fitted frame 2's positions at frame 1 (and so on), exit 0, while '2,6'
+    was refused for its count. --target-frames now chooses among the stored frames, as it
+    does for a run's USD, and names the ones the file does not hold."""
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
+    rng = np.random.default_rng(0)
+    from warp_esph.scenes import load_scene
+
+    x0 = load_scene(str(guess)).builder.finalize().particle_x0
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.stack([x0 + rng.normal(0, 0.01, x0.shape) for _ in range(3)]), frames=[2, 4, 6], fps=30.0)
+    common = ["--params", "yield_stress", "--iterations", "0", "--no-progress", "--no-usd", "--no-diagnostics"]
+
+    def loss(frames, name):
+        assert main(["fit", str(guess), "--target", str(target), *(["--target-frames", frames] if frames else []),
+                     "--output-dir", str(tmp_path / name), *common]) == 0
+        return json.loads((tmp_path / name / "fit.json").read_text())["initial_loss"]
+
+    assert loss("6,2,4", "shuffled") == pytest.approx(loss(None, "all"), rel=1e-12)
+    assert loss("2,6", "two") != pytest.approx(loss("4", "one"), rel=1e-3)
+    capsys.readouterr()
+    assert main(["fit", str(guess), "--target", str(target), "--target-frames", "1,2,3", "--output-dir",
+                 str(tmp_path / "bad"), *common]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].endswith("--target-frames = '1,2,3' is not allowed: the target " + str(target)
+                            + " holds frames 2, 4, 6 (its 'frames'), not 1, 3"), err
+    assert not (tmp_path / "bad").exists()
+
+
 def test_an_interrupted_fit_keeps_its_evaluations_and_the_best_so_far(tmp_path, capsys, dough_scene, monkeypatch):
     """Ctrl-C during ``warp-esph fit`` kept nothing (no fit.json, no history): the command
     now writes the evaluations so far and the best of them (``stopped`` "interrupted"),

@@ -351,13 +351,22 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         any_usd = any_usd or usd
         if fspec is not None and usd_spec is None:
             try:
-                t.frames = [int(f) for f in str(fspec).split(",")]
-                if min(t.frames) < 0:
+                chosen = [int(f) for f in str(fspec).split(",")]
+                if min(chosen) < 0:
                     raise ValueError
             except ValueError:
                 # -1 ended in a KeyError traceback (.npz) or was dropped (a force log).
                 raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: use comma-separated frame "
                                  "indices >= 0") from None
+            if t.frames_stored:
+                # The file numbers its frames: --target-frames chooses among them, as of a run's
+                # USD (it renumbered them: frame 2's positions were fitted at frame 1, exit 0).
+                missing = [f for f in chosen if f not in t.frames]
+                if missing:
+                    raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: the target {path} holds frames "
+                                     f"{', '.join(map(str, t.frames))} (its 'frames'), not {', '.join(map(str, missing))}")
+                t.data = np.asarray(t.data)[[t.frames.index(f) for f in chosen]]
+            t.frames = chosen
             if t.kind == "positions" and len(t.frames) != np.asarray(t.data).shape[0]:
                 raise ValueError(f"{where}--target-frames has {len(t.frames)} entries, the target "
                                  f"{np.asarray(t.data).shape[0]} frames")

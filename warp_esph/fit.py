@@ -1481,6 +1481,8 @@ class Target:
     tool: str | None = None
     #: A run's USD read whole: ``(name, particle count)`` of each body in the file's order, or None.
     bodies: list | None = None
+    #: Whether ``frames`` are the file's own (an .npz's 'frames'), not numbered 0..K-1 by default.
+    frames_stored: bool = False
 
     def particles(self, model: Model) -> np.ndarray | None:
         """Indices of the model's particles this target observes (None: all)."""
@@ -1661,7 +1663,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
             frames = list(range(pos.shape[0]))
         if len(frames) != pos.shape[0] or min(frames) < 0 or len(set(frames)) != len(frames):
             raise ValueError(f"target {p} is not allowed: 'frames' must be {pos.shape[0]} distinct indices >= 0")
-        return Target("positions", pos, frames, fps, p)
+        return Target("positions", pos, frames, fps, p, frames_stored=ext == ".npz" and "frames" in data)
     if ext == ".csv" and is_tools_csv(p):
         return _forces_target(p, tool)
     if ext == ".csv":
