@@ -852,6 +852,46 @@ def test_an_interrupted_fit_keeps_its_evaluations_and_the_best_so_far(tmp_path, 
     assert "interrupted after 2 evaluations: wrote the best so far" in err
 
 
+def test_an_earlier_fits_run_does_not_stay_beside_a_new_fits_results(tmp_path, capsys, dough_scene, monkeypatch):
+    """A fit into a folder holding an earlier fit rewrote fit.json, history.csv and the plots
+    but left the earlier fitted.usdc when it wrote none (--no-usd, Ctrl-C): the folder then
+    showed another fit's run as this one's. It is removed before this fit's results go there."""
+    from warp_esph import fit as fit_module
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    rng = np.random.default_rng(1)
+    from warp_esph.scenes import load_scene
+
+    x0 = load_scene(str(guess)).builder.finalize().particle_x0
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.stack([x0 + rng.normal(0, 0.005, x0.shape)]), frames=[2])
+    out = tmp_path / "fit"
+    common = ["fit", str(guess), "--target", str(target), "--params", "yield_stress", "--no-progress",
+              "--no-diagnostics", "--output-dir", str(out)]
+    out.mkdir()
+    (out / "fitted.usdc").write_bytes(b"an earlier fit's run")
+    assert main([*common, "--iterations", "0", "--no-usd"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["fit.json", "history.csv", "loss.png", "params.png"]
+
+    (out / "fitted.usdc").write_bytes(b"an earlier fit's run")
+    original = fit_module._Problem.value_and_grad
+    calls = []
+
+    def interrupted_second(self, z, losses=None):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return original(self, z, losses)
+
+    monkeypatch.setattr(fit_module._Problem, "value_and_grad", interrupted_second)
+    capsys.readouterr()
+    assert main([*common, "--iterations", "5", "--optimizer", "adam"]) == 130
+    assert json.loads((out / "fit.json").read_text())["stopped"] == "interrupted"
+    assert not (out / "fitted.usdc").exists()
+
+
 def test_cli_fit_at_a_guess_that_blows_up_is_one_line_and_exit_3(tmp_path, capsys, dough_scene):
     """A guess 1e5 x stiffer at a dt 40 x its stable step: its rollout blows up while
     staying finite (it had been fitted, exit 0), or its loss is not finite (a

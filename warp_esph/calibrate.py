@@ -228,10 +228,12 @@ def run_fit(args, out=None, err=None) -> int:
         # Ctrl-C: the evaluations so far and the best of them are kept, as a run keeps its
         # finished frames; the exit is still the interrupt's.
         if e.result is not None:
+            _remove_earlier_run(folder)
             written = write_outputs(e.result, folder, meta, json_path=_arg(args, "output"))
             log(f"interrupted after {len(e.result.history)} evaluations: wrote the best so far (loss "
                 f"{e.result.loss:.4g}) to {', '.join(written)}")
         raise KeyboardInterrupt from None
+    _remove_earlier_run(folder)
     written = write_outputs(result, folder, meta, json_path=_arg(args, "output"))
     print(f"fit {result.termination}", file=out)
     print(f"loss {result.initial_loss:.4g} -> {result.loss:.4g} in {result.evaluations} evaluations", file=out)
@@ -247,6 +249,15 @@ def run_fit(args, out=None, err=None) -> int:
             written.append(usd_path)
     print("wrote " + ", ".join(written), file=out)
     return 0
+
+
+def _remove_earlier_run(folder) -> None:
+    """Remove an earlier fit's ``fitted.usdc`` from ``folder`` before this fit's results go
+    there: with ``--no-usd``, an interrupt, or a fitted run that fails, it stayed beside this
+    fit's ``fit.json`` as if it were this fit's run (it is written again after the fit)."""
+    path = os.path.join(folder, "fitted.usdc")
+    if os.path.isfile(path) or os.path.islink(path):
+        os.remove(path)
 
 
 #: Keys of an entry of the ``--experiments`` file.
