@@ -850,6 +850,36 @@ def test_an_interrupted_fit_keeps_its_evaluations_and_the_best_so_far(tmp_path, 
     assert doc["loss"] == min(h["loss"] for h in doc["history"]) < doc["initial_loss"]
     assert len((out / "history.csv").read_text().strip().splitlines()) == 3
     assert "interrupted after 2 evaluations: wrote the best so far" in err
+    assert doc["interrupted"] == "the fit"
+
+
+def test_a_fit_interrupted_in_its_diagnostics_says_so_in_fit_json(tmp_path, capsys, dough_scene, monkeypatch):
+    """Ctrl-C in the diagnostics kept the finished fit, but its fit.json (stopped as the fit
+    ended, diagnostics null) read as a complete run with --no-diagnostics, and the log called
+    it the best so far. fit.json now says where the run was interrupted."""
+    from warp_esph import diagnostics
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    from warp_esph.scenes import load_scene
+
+    x0 = load_scene(str(guess)).builder.finalize().particle_x0
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.stack([x0 + np.random.default_rng(2).normal(0, 0.005, x0.shape)]), frames=[2])
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(diagnostics, "diagnose_problem", interrupted)
+    out = tmp_path / "fit"
+    capsys.readouterr()
+    assert main(["fit", str(guess), "--target", str(target), "--params", "yield_stress", "--iterations", "1",
+                 "--no-progress", "--no-usd", "--output-dir", str(out)]) == 130
+    err = capsys.readouterr().err
+    doc = json.loads((out / "fit.json").read_text())
+    assert doc["interrupted"] == "the diagnostics" and doc["diagnostics"] is None and doc["stopped"] == "iterations"
+    assert "interrupted during the diagnostics: wrote the finished fit (iterations, loss" in err
 
 
 def test_an_earlier_fits_run_does_not_stay_beside_a_new_fits_results(tmp_path, capsys, dough_scene, monkeypatch):

@@ -229,9 +229,16 @@ def run_fit(args, out=None, err=None) -> int:
         # finished frames; the exit is still the interrupt's.
         if e.result is not None:
             _remove_earlier_run(folder)
-            written = write_outputs(e.result, folder, meta, json_path=_arg(args, "output"))
-            log(f"interrupted after {len(e.result.history)} evaluations: wrote the best so far (loss "
-                f"{e.result.loss:.4g}) to {', '.join(written)}")
+            # Interrupted in the diagnostics, the fit itself had finished: its fit.json read as
+            # a complete run with --no-diagnostics, and the log called it the best so far.
+            during = "the fit" if e.result.stopped == "interrupted" else "the diagnostics"
+            written = write_outputs(e.result, folder, {**meta, "interrupted": during}, json_path=_arg(args, "output"))
+            if during == "the fit":
+                log(f"interrupted after {len(e.result.history)} evaluations: wrote the best so far (loss "
+                    f"{e.result.loss:.4g}) to {', '.join(written)}")
+            else:
+                log(f"interrupted during the diagnostics: wrote the finished fit ({e.result.stopped}, loss "
+                    f"{e.result.loss:.4g}) without them to {', '.join(written)}")
         raise KeyboardInterrupt from None
     _remove_earlier_run(folder)
     written = write_outputs(result, folder, meta, json_path=_arg(args, "output"))
