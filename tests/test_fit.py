@@ -778,3 +778,27 @@ def test_bodies_a_fit_exempts_from_the_divergence_check():
             assert run.checked.sum() == checked
         with pytest.raises(ValueError, match="monitor_exempt = \\('wilde',\\) is not allowed: 'wilde' is not a body"):
             fit([Experiment(two_blocks(), loss, steps=40, dt=dt, materials=[0], monitor_exempt=["wilde"])], None, ["mu"])
+
+
+def test_a_fit_to_targets_out_of_every_particles_reach_says_so():
+    """A point cloud in millimetres (or a mesh elsewhere) is beyond every particle's search
+    radius: the loss is a constant, the gradient 0 and the fit stops at once. Its termination
+    blamed the material ('no particle reaches the yield stress'); it now names the targets."""
+    model = _block()
+    r = Rollout(model, STEPS, DT, frames=FRAMES)
+    x = r.forward(alpha0=ALPHA0)
+    pts, tris = _box_mesh((5.0, 0.0, 0.0), (0.05, 0.04, 0.04))
+    for loss, needle in (
+            (ChamferLoss(x[-1] * 1000.0, radius=0.03, frames=[FRAMES[-1]]),
+             "no target point of the point clouds lies within radius = 0.03 m of a particle in any frame"),
+            (MeshLoss((pts, tris), frames=FRAMES, max_dist=0.5),
+             "no particle lies within max_dist = 0.5 m of the target mesh in any frame")):
+        result = fit(model, loss, ["mu"], steps=STEPS, dt=DT, frames=FRAMES, iterations=3, progress=False,
+                     diagnostics=False)
+        assert result.stopped == "flat", result.stopped
+        assert result.termination.startswith(f"stopped at once: the gradient is exactly zero: {needle} (")
+        assert "yield stress" not in result.termination and needle in result.to_dict()["termination"]
+    # Within reach, a loss has nothing to say.
+    near = ChamferLoss(x[-1], radius=0.03, frames=[FRAMES[-1]])
+    r.value_and_grad(near, alpha0=ALPHA0)
+    assert near.unmatched and near.out_of_reach() is None

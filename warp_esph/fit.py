@@ -128,6 +128,8 @@ class FitResult:
     experiment_materials: list = dataclasses.field(default_factory=list)
     starts: list = dataclasses.field(default_factory=list)
     evaluations: int = 0
+    #: Why the gradient was zero, where a loss knows (``Loss.out_of_reach``); else "".
+    flat_cause: str = ""
 
     TERMINATION = {
         "converged": "converged: the last step (or the gradient) fell below its tolerance",
@@ -149,6 +151,8 @@ class FitResult:
     @property
     def termination(self) -> str:
         """One sentence: how the fit ended and what it means."""
+        if self.stopped == "flat" and self.flat_cause:
+            return f"stopped at once: the gradient is exactly zero: {self.flat_cause}"
         return self.TERMINATION.get(self.stopped, self.stopped)
 
     @property
@@ -1027,9 +1031,15 @@ def fit(
     result.experiment_materials = fitted
     result.starts = stops
     result.evaluations = sum(1 for h in history if h["stage"] == "descent")
+    from .losses import _leaves  # noqa: PLC0415
+
+    if stopped == "flat":
+        # The generic reason names the material ('no particle reaches the yield stress'): a
+        # target out of every particle's reach (a cloud in mm) was blamed on the yield stress.
+        causes = [c for r in runs for leaf in _leaves(r.loss) if (c := leaf.out_of_reach()) is not None]
+        result.flat_cause = "; ".join(dict.fromkeys(causes))
     # A worlds model fits W hypotheses at once: one Fisher matrix of their summed loss
     # would describe none of them, so the diagnostics are left to one world at a time.
-    from .losses import _leaves  # noqa: PLC0415
 
     # A WorldLoss anywhere in the loss (2 * W, W + a force loss): the diagnostics failed after
     # the fit and lost it.

@@ -326,6 +326,11 @@ class Loss:
     def _launch(self, frame: int, x: wp.array, out: wp.array, scale: float):
         raise NotImplementedError
 
+    def out_of_reach(self) -> str | None:
+        """Why this loss gave no gradient at its last evaluation, where it knows (nothing it
+        compares came within its reach in any frame), else None."""
+        return None
+
     def _check(self, frame: int, x: wp.array):
         """Validate a frame's positions (particle count) before launching."""
 
@@ -701,6 +706,7 @@ class ChamferLoss(Loss):
         self._particle_grid = {}
         self._scratch = {}
         self.unmatched: dict[int, tuple[int, int]] = {}
+        self._sizes: dict[int, tuple[int, int]] = {}  # (particles, target points) per frame, last evaluation
 
     def _target(self, frame, x):
         key = (frame, x.dtype, str(x.device))
@@ -757,6 +763,16 @@ class ChamferLoss(Loss):
         wp.launch(k.nearest_term, m, [y, x, s.idx_y, r2, S(scale / m)], [out], device=dev)
         um = s.unmatched.numpy()
         self.unmatched[frame] = (int(um[0]), int(um[1]))
+        self._sizes[frame] = (n, m)
+
+    def out_of_reach(self) -> str | None:
+        """Where no particle and no target point met within ``radius`` in any frame of the last
+        evaluation: the loss is the constant ``2 radius^2`` and its gradient 0 (a cloud in mm,
+        or far from the body)."""
+        if not self.unmatched or any(self.unmatched[f] != self._sizes.get(f) for f in self.unmatched):
+            return None
+        return (f"no target point of the point clouds lies within radius = {self.radius:g} m of a particle in any "
+                f"frame (targets in other units than metres, or placed elsewhere?)")
 
     def reset_residuals(self):
         """Forget the correspondences ``residuals`` fixed (the next call chooses them anew)."""
@@ -837,6 +853,7 @@ class MeshLoss(Loss):
         self._wp = {}
         self._scratch = {}
         self.unmatched: dict[int, int] = {}
+        self._sizes: dict[int, int] = {}  # particles per frame at the last evaluation
 
     @staticmethod
     def _load(mesh):
@@ -904,6 +921,15 @@ class MeshLoss(Loss):
         n = x.shape[0]
         wp.launch(_kernels(S).mesh_term, n, [x, s.closest, s.code, S(self.max_dist**2), S(scale / n)], [out], device=x.device)
         self.unmatched[frame] = int(s.unmatched.numpy()[0])
+        self._sizes[frame] = n
+
+    def out_of_reach(self) -> str | None:
+        """Where no particle came within ``max_dist`` of the mesh in any frame of the last
+        evaluation: every particle adds the constant ``max_dist^2`` and the gradient is 0."""
+        if not self.unmatched or any(self.unmatched[f] != self._sizes.get(f) for f in self.unmatched):
+            return None
+        return (f"no particle lies within max_dist = {self.max_dist:g} m of the target mesh in any frame (a mesh in "
+                f"other units than metres, or placed elsewhere?)")
 
     def reset_residuals(self):
         """Forget the closest points and normals ``residuals`` fixed."""
