@@ -317,6 +317,27 @@ def test_silhouette_loss_and_gradient_match_reference_and_central_differences():
     assert np.sum(r**2) == pytest.approx(loss.residual_scale() * value, rel=1e-12)
 
 
+def test_a_silhouette_loss_with_every_camera_facing_away_says_so():
+    """Cameras facing away from the body see no particle: the silhouettes are empty whatever the
+    parameters, the gradient 0, and a fit stopped 'flat' blaming the yield stress. The loss
+    now names the cameras (``out_of_reach``); a camera that sees the body has nothing to say."""
+    rng = np.random.default_rng(0)
+    X = rng.normal(scale=0.03, size=(40, 3)) + np.array([0.0, 0.05, 0.0])
+    cams = _cameras()
+    masks = [(soft_silhouette(X, c, 0.01) > 0.3).astype(float) for c in cams]
+    # The same cameras moved to the far side, still looking the same way: the body is behind them.
+    away = [PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy, c.R, np.asarray(c.t) * [1.0, 1.0, -1.0], c.name)
+            for c in cams]
+    loss = SilhouetteLoss({5: masks}, away, radius=0.01)
+    _, grads = loss.value_and_grad({5: wp.array(X, dtype=wp.vec3d)})
+    assert not grads[5].numpy().any()
+    assert loss.out_of_reach() == ("no particle is in view of any camera in any frame (cameras facing away from the "
+                                   "body, or placed in other units than metres?)")
+    seen = SilhouetteLoss({5: masks}, cams, radius=0.01)
+    seen.value({5: wp.array(X, dtype=wp.vec3d)})
+    assert seen.out_of_reach() is None
+
+
 def test_silhouette_gradient_through_a_rollout():
     """d(silhouette loss)/d(mu) through 4 steps of a stretched block, tape vs central differences."""
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))

@@ -417,6 +417,15 @@ class SilhouetteLoss(Loss):
             wp.launch(k.compare, c.width * c.height, [log_t, mask, S(scale / (len(self.cameras) * c.width * c.height))],
                       [out], device=dev)
 
+    def out_of_reach(self) -> str | None:
+        """Where no particle's splat fell on any pixel of any camera in any frame of the last
+        evaluation (cameras facing away, or a body placed elsewhere): the rendered
+        silhouettes are empty whatever the parameters, and the gradient is 0."""
+        if not self._buffers or any(np.any(log_t.numpy()) for log_t, _ in self._buffers.values()):
+            return None
+        return ("no particle is in view of any camera in any frame (cameras facing away from the body, or placed "
+                "in other units than metres?)")
+
     # ------------------------------------------------------------ statistics
     def residual_scale(self) -> float:
         pixels = np.mean([c.width * c.height for c in self.cameras])
