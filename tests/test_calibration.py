@@ -941,6 +941,12 @@ def test_an_earlier_fits_run_does_not_stay_beside_a_new_fits_results(tmp_path, c
     assert main([*common, "--iterations", "5", "--optimizer", "adam"]) == 130
     assert json.loads((out / "fit.json").read_text())["stopped"] == "interrupted"
     assert not (out / "fitted.usdc").exists()
+    # A target read from there is the fit's input: refused, with --no-usd too (it was removed).
+    monkeypatch.setattr(fit_module._Problem, "value_and_grad", original)
+    assert main(["run", str(guess), "-o", str(out / "fitted.usdc"), "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main([*common[:3], str(out / "fitted.usdc"), *common[4:], "--iterations", "0", "--no-usd"]) == 2
+    assert "is --target" in capsys.readouterr().err and (out / "fitted.usdc").exists()
 
 
 def test_cli_fit_at_a_guess_that_blows_up_is_one_line_and_exit_3(tmp_path, capsys, dough_scene):

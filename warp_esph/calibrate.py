@@ -171,7 +171,9 @@ def run_fit(args, out=None, err=None) -> int:
     # Where the results go, checked before the fit (a folder in the way was found after it).
     folder = _arg(args, "output_dir") or f"fit_{exps[0].scene.name}"
     checks.output_place("--output-dir", folder, folder=True)
-    names = ["history.csv", "loss.png", "params.png"] + ([] if args.no_usd else ["fitted.usdc"])
+    # fitted.usdc even with --no-usd: an earlier fit's is removed (_remove_earlier_run), and a
+    # target read from there was deleted.
+    names = ["history.csv", "loss.png", "params.png", "fitted.usdc"]
     names += [] if _arg(args, "output") else ["fit.json"]
     for name in names:
         if os.path.isdir(os.path.join(folder, name)):
