@@ -1558,9 +1558,13 @@ class Target:
                     prims = body_prim_names(model)
                 except ImportError:
                     prims = [b.name for b in model.bodies]
-                same = len(self.bodies) == len(model.bodies) and all(
-                    name in (b.name, prim) and count == b.count
-                    for (name, count), b, prim in zip(self.bodies, model.bodies, prims))
+                counted = len(self.bodies) == len(model.bodies) and all(
+                    count == b.count for (_, count), b in zip(self.bodies, model.bodies))
+                # Names decide only where the file's are all the scene's (the same bodies listed in
+                # another order); a scene that renamed its bodies is matched by the counts.
+                known = {b.name for b in model.bodies} | set(prims)
+                ordered = all(name in (b.name, prim) for (name, _), b, prim in zip(self.bodies, model.bodies, prims))
+                same = counted and (ordered or not all(name in known for name, _ in self.bodies))
                 if not same:
                     def listed(bodies):
                         return ", ".join(f"{name} ({count} particles)" for name, count in bodies)
