@@ -687,20 +687,33 @@ def test_a_file_of_subframe_samples_or_no_rate_is_refused_not_misread(tmp_path):
 def test_a_damaged_suggested_view_is_named_by_the_file(tmp_path):
     """The file's warp_esph:view went to the camera unchecked: NaN failed as 'cannot convert float
     NaN to integer', text as float()'s message, inf as 'math domain error', none naming the file;
-    an elevation of 90 (which --elevation refuses) was drawn looking along the up axis."""
+    an elevation of 90 (which --elevation refuses) was drawn looking along the up axis. The view
+    is a hint: one that is no pair of finite degrees is left out with a warning naming the file,
+    an elevation past 89 degrees (older writers took 90) is brought to 89, and the file is drawn."""
     from pxr import Sdf, Vt
+
+    from warp_esph.usd import UsdFrames
 
     path = tmp_path / "v.usda"
     model = write_clusters(path, [(0.0, 0.2, 0.0)], frames=1)
-    for view, shown in ((Vt.DoubleArray([np.nan, 20.0]), "[nan, 20.0]"), ("ab", "'ab'"),
-                        (Vt.DoubleArray([np.inf, 1e300]), "[inf, 1e+300]"), (Vt.DoubleArray([30.0, 90.0]), "[30.0, 90.0]")):
+
+    def with_view(view):
         layer = Sdf.Layer.FindOrOpen(str(path))
         layer.Reload(force=True)
         layer.customLayerData = {**dict(layer.customLayerData), "warp_esph:view": view}
         layer.Save()
-        with pytest.raises(ValueError, match=rf"cannot read .*v.usda.*: its warp_esph:view = {re.escape(shown)} is not "
-                                             r"allowed: must be \(azimuth, elevation\), finite degrees"):
+
+    for view, shown in ((Vt.DoubleArray([np.nan, 20.0]), "[nan, 20.0]"), ("ab", "'ab'"),
+                        (Vt.DoubleArray([np.inf, 1e300]), "[inf, 1e+300]")):
+        with_view(view)
+        with pytest.warns(UserWarning, match=rf"v.usda: its warp_esph:view = {re.escape(shown)} is no \(azimuth, "
+                                              r"elevation\) in finite degrees; the suggested view is left out"):
+            assert UsdFrames(path).view is None
+        with pytest.warns(UserWarning):
             render_usd(path, tmp_path / "v.png", width=W, height=H)
+    with_view(Vt.DoubleArray([30.0, 90.0]))
+    assert UsdFrames(path).view == (30.0, 89.0)
+    render_usd(path, tmp_path / "v.png", width=W, height=H)
     with pytest.raises(ValueError, match=r"view elevation = 90.0 is not allowed: must be in \[-89.0, 89.0\]"):
         we.UsdWriter(tmp_path / "w.usdc", model, 10.0, view=(30.0, 90.0))
 

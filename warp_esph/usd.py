@@ -93,21 +93,23 @@ _PALETTE = [
 VIEW_ELEVATION = 89.0
 
 
-def _read_view(path: str, view) -> tuple[float, float]:
-    """The ``(azimuth, elevation)`` a file suggests, or a ``ValueError`` naming the file: a NaN
-    failed in the renderer as 'cannot convert float NaN to integer', text as float()'s message,
-    inf as 'math domain error', none of them naming the file."""
+def _read_view(path: str, view) -> tuple[float, float] | None:
+    """The ``(azimuth, elevation)`` a file suggests. A hint only, so it never makes a file
+    unreadable: a value that is no pair of finite degrees (NaN failed in the renderer as 'cannot
+    convert float NaN to integer', naming no file) is left out with a ``UserWarning`` naming the
+    file, and an elevation beyond +-89 degrees (older writers took 90, which looks along the up
+    axis) is brought to the bound."""
     try:
         az, el = (float(v) for v in view)
         shown = [az, el]
     except (TypeError, ValueError):
         az = el = math.nan
         shown = view
-    if not (math.isfinite(az) and -VIEW_ELEVATION <= el <= VIEW_ELEVATION):
-        raise ValueError(f"cannot read {path!r}: its {_VIEW} = {checks.shorten(shown)!r} is not allowed: must be (azimuth, "
-                         f"elevation), finite degrees with the elevation in [-{VIEW_ELEVATION:g}, {VIEW_ELEVATION:g}] "
-                         "(not a warp-esph output, or damaged)")
-    return az, el
+    if not (math.isfinite(az) and math.isfinite(el)):
+        warnings.warn(f"{path}: its {_VIEW} = {checks.shorten(shown)!r} is no (azimuth, elevation) in finite degrees; "
+                      "the suggested view is left out", UserWarning, stacklevel=3)
+        return None
+    return az, min(max(el, -VIEW_ELEVATION), VIEW_ELEVATION)
 
 
 def open_layer_checked(path, action: str = "read") -> Sdf.Layer:
