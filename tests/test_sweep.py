@@ -480,7 +480,21 @@ def test_a_sweep_whose_tables_cannot_be_written_at_its_end_is_a_failed_write(sce
     assert status == cli.EXIT_WRITE_FAILED, err
     last = err.strip().splitlines()[-1]  # after the plan line
     assert last.startswith(f"warp-esph: cannot write the sweep's tables in {out}: [Errno 28] No space left"), err
-    assert last.endswith("(2 samples ran; the last table written during the sweep is partial)") and "Traceback" not in err
+    assert last.endswith("(2 samples ran; " + str(out) + " keeps only what was written while the sweep ran, its "
+                         "sweep.json marked partial)") and "Traceback" not in err
+    # Only the picture failing: the tables stand whole and the sweep is no failed one.
+    monkeypatch.setattr(sweep_module, "write_outputs", real)
+
+    def no_room(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device", "sweep.png")
+
+    monkeypatch.setattr(sweep_module, "plot", no_room)
+    (out / "sweep.png").write_bytes(b"an earlier sweep's picture")
+    capsys.readouterr()
+    assert cli.main(["sweep", scene_file, "--param", "yield_stress=10,100", "--frames", "1", "--workers", "1",
+                     "-o", str(out), "--no-progress"]) == 0
+    assert "no plot: it could not be written ([Errno 28] No space left on device" in capsys.readouterr().out
+    assert len(SweepTable.read_csv(out / "sweep.csv")) == 2 and not (out / "sweep.png").exists()
     assert len(SweepTable.read_csv(out / "sweep.csv")) == 2  # the partial table of both samples
 
 

@@ -971,6 +971,10 @@ def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_pa
             # matplotlib cannot lay out axes of values near the float range ('arange: cannot
             # compute length' at 1e307..1.7e308): the sweep ran and its tables stand.
             lines.append(f"no plot: matplotlib could not draw these values ({e}); the CSV has the data")
+        except OSError as e:
+            # The tables are written whole by now: a picture that cannot be saved (a full disk)
+            # is no failed sweep.
+            lines.append(f"no plot: it could not be written ({e}); the CSV has the data")
         if lines[-1].startswith("no plot") and os.path.isfile(picture):
             os.remove(picture)  # an earlier sweep's picture would no longer match the tables
     return lines
@@ -1068,10 +1072,8 @@ def sweep_cli(args, out=None) -> int:
     except OSError as e:
         # A full disk or a folder gone at the end: a failed write (not bad input, exit 2), and
         # what is left on disk said.
-        partial = "the last table written during the sweep is partial" if written[0] is not None and len(done) \
-            else "no whole table is there"
-        print(f"{PROG}: cannot write the sweep's tables in {folder}: {e} ({len(table)} samples ran; {partial})",
-              file=sys.stderr)
+        print(f"{PROG}: cannot write the sweep's tables in {folder}: {e} ({len(table)} samples ran; {folder} keeps "
+              "only what was written while the sweep ran, its sweep.json marked partial)", file=sys.stderr)
         return EXIT_WRITE_FAILED
     for line in lines:
         print(line, file=out)
