@@ -618,6 +618,13 @@ def test_an_interrupted_movie_keeps_the_earlier_movie_and_leaves_no_part_file(tm
     with pytest.raises(KeyboardInterrupt):
         render_usd(path, out, frames="all", width=W, height=H, supersample=1)
     assert out.read_bytes() == whole and sorted(os.listdir(tmp_path)) == ["anim.usdc", "ffmpeg", "m.mp4"]
+    # ffmpeg takes the terminal's Ctrl-C too, and its close fails: the interrupt is still what
+    # is raised (it read 'ffmpeg failed:', exit 2).
+    fake.write_text('#!/bin/sh\nfor out; do :; done\ncat > "$out"\nexit 255\n')
+    calls.clear()
+    with pytest.raises(KeyboardInterrupt):
+        render_usd(path, out, frames="all", width=W, height=H, supersample=1)
+    assert out.read_bytes() == whole and sorted(os.listdir(tmp_path)) == ["anim.usdc", "ffmpeg", "m.mp4"]
 
 
 def test_an_interrupted_save_keeps_the_earlier_picture_and_leaves_no_part_file(tmp_path, monkeypatch):

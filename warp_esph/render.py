@@ -1145,9 +1145,15 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
                     images.append(img)
                 if progress is not None:
                     progress(k + 1, len(chosen))
-        finally:
+        except BaseException:
+            # ffmpeg gets the terminal's Ctrl-C too and fails its close: the interrupt (or the
+            # first error) is what happened, not 'ffmpeg failed:'.
             if writer is not None:
-                writer.close()
+                with contextlib.suppress(OSError):
+                    writer.close()
+            raise
+        if writer is not None:
+            writer.close()
     if kind == "png":
         img = images[0] if len(images) == 1 else _sheet(images, sheet_columns)
         with checks.replaced_atomically(out) as part:
