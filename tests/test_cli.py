@@ -622,6 +622,23 @@ def test_a_file_size_limit_reached_by_the_usd_save_is_exit_4_not_a_damaged_input
     assert not [f for f in os.listdir(tmp_path) if f.startswith(".")]  # no working copies left
 
 
+def test_a_full_disk_at_the_runs_first_save_is_exit_4(tmp_path, monkeypatch, capsys):
+    """The writer saves its empty stage at once: a full disk there raised out of the run
+    before its failure handling, exit 2 as bad input."""
+    import errno
+
+    from warp_esph import usd as usd_module
+
+    def full(self):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(usd_module.UsdWriter, "_save_and_publish", full)
+    out = tmp_path / "b.usdc"
+    assert main(["run", "dough_drop", "--scale", "0.3", "--frames", "2", "--no-progress", "-o", str(out)]) == 4
+    assert_one_line_error(capsys.readouterr().err, f"cannot write {out}", "No space left on device",
+                          "(no frame of this run was written)")
+
+
 def test_a_checkpoint_that_cannot_be_written_is_named_not_the_usd(tmp_path, monkeypatch, capsys):
     """The disk fills while the checkpoint of frame 4 is saved: the one line names the
     checkpoint and what it still holds (it named the USD, which was written)."""

@@ -417,8 +417,15 @@ def _cmd_run(args) -> int:
     _arm(args)  # from here an interrupt unwinds through the writer
     # Names the run in its file and its checkpoints: a checkpoint resumes onto its own run's frames only.
     run_id = run.get("run_id") if args.resume is not None else uuid.uuid4().hex
-    writer = UsdWriter(output, model, fps, surface=args.surface, view=getattr(scene, "view", None), append=args.resume is not None,
-                       run_id=run_id)
+    try:
+        writer = UsdWriter(output, model, fps, surface=args.surface, view=getattr(scene, "view", None),
+                           append=args.resume is not None, run_id=run_id)
+    except FileNotFoundError:
+        raise  # the file to append to, or its folder, is not there: the input's fault
+    except OSError as e:
+        # The writer saves its first (empty) stage at once: a full disk there was exit 2, as bad input.
+        _err(f"cannot write {output}: {e} (no frame of this run was written)")
+        return EXIT_WRITE_FAILED
     if args.resume is not None and (writer.last_frame is None or writer.first_frame != 0 or writer.last_frame < start_frame - 1):
         # The resumed frames must follow the file's: a file of a shorter run, written over the
         # one checkpointed, would keep a gap of frames nobody wrote.
