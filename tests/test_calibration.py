@@ -832,6 +832,10 @@ def test_target_frames_choose_among_the_frames_an_npz_stores(tmp_path, capsys, d
 
     assert loss("6,2,4", "shuffled") == pytest.approx(loss(None, "all"), rel=1e-12)
     assert loss("2,6", "two") != pytest.approx(loss("4", "one"), rel=1e-3)
+    # The run USD's selections choose among the stored frames too.
+    assert loss("last", "last") == pytest.approx(loss("6", "six"), rel=1e-12)
+    assert loss("4:6", "slice") == pytest.approx(loss("4,6", "pair"), rel=1e-12)
+    assert loss("all", "every") == pytest.approx(loss(None, "all"), rel=1e-12)
     capsys.readouterr()
     assert main(["fit", str(guess), "--target", str(target), "--target-frames", "1,2,3", "--output-dir",
                  str(tmp_path / "bad"), *common]) == 2

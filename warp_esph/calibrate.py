@@ -369,7 +369,29 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         # log beside it) take none (refused below where no target is such a USD).
         t = load_target(path, body=spec.get("target_body") if usd else None, frames=usd_spec, tool=spec.get("target_tool"))
         any_usd = any_usd or usd
-        if fspec is not None and usd_spec is None:
+        if fspec is not None and usd_spec is None and t.frames_stored:
+            # The file numbers its frames: --target-frames chooses among them, as of a run's USD
+            # (all, last, A:B:STEP, ...; it renumbered them: frame 2's positions were fitted at
+            # frame 1, exit 0).
+            from .usd import parse_frames  # noqa: PLC0415
+
+            chosen, missing = [], []
+            for part in str(fspec).split(","):
+                if part.strip().isdigit():
+                    (chosen if int(part) in t.frames else missing).append(int(part))
+                    continue
+                try:
+                    chosen.extend(parse_frames(part, list(t.frames)))
+                except ValueError:
+                    raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: {part.strip()!r} is not 'all', "
+                                     f"'first', 'last', N, -N, A:B or A:B:STEP within the frames {path} holds "
+                                     f"({', '.join(map(str, t.frames))})") from None
+            if missing:
+                raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: the target {path} holds frames "
+                                 f"{', '.join(map(str, t.frames))} (its 'frames'), not {', '.join(map(str, missing))}")
+            t.data = np.asarray(t.data)[[t.frames.index(f) for f in chosen]]
+            t.frames = chosen
+        elif fspec is not None and usd_spec is None:
             try:
                 chosen = [int(f) for f in str(fspec).split(",")]
                 if min(chosen) < 0:
@@ -378,14 +400,6 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                 # -1 ended in a KeyError traceback (.npz) or was dropped (a force log).
                 raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: use comma-separated frame "
                                  "indices >= 0") from None
-            if t.frames_stored:
-                # The file numbers its frames: --target-frames chooses among them, as of a run's
-                # USD (it renumbered them: frame 2's positions were fitted at frame 1, exit 0).
-                missing = [f for f in chosen if f not in t.frames]
-                if missing:
-                    raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: the target {path} holds frames "
-                                     f"{', '.join(map(str, t.frames))} (its 'frames'), not {', '.join(map(str, missing))}")
-                t.data = np.asarray(t.data)[[t.frames.index(f) for f in chosen]]
             t.frames = chosen
             if t.kind == "positions" and len(t.frames) != np.asarray(t.data).shape[0]:
                 raise ValueError(f"{where}--target-frames has {len(t.frames)} entries, the target "
