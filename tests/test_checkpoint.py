@@ -292,6 +292,26 @@ def test_checkpoints_of_real_steps_pass_the_value_checks(tmp_path, dtype, images
         np.testing.assert_array_equal(getattr(loaded, name).numpy(), getattr(state, name).numpy())
 
 
+def test_a_refused_resume_leaves_the_models_materials_as_they_were(tmp_path):
+    """load_state sets the checkpoint's materials before it compares the solver (they decide
+    what 'auto' runs); a refused resume puts the model's own back."""
+    def elastic():
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.15, 0.0), (0.1, 0.1, 0.1), we.Material(mu=1e4, lam=1e4, density=1000.0))
+        b.add_ground(0.0, friction=0.5)
+        return b.finalize()
+
+    model = elastic()
+    solver = we.Solver(model)
+    assert solver.fit == "curvature_corrected"
+    path = save_state(tmp_path / "c.npz", model, model.state(), step=0, frame=0, solver=solver)
+    other = elastic()
+    other.set_material(0, other.materials[0].replace(mu=3e4))
+    with pytest.raises(ValueError, match=r"had fit = 'curvature_corrected', this solver fit = 'linear'"):
+        load_state(path, other, solver=we.Solver(other, fit="linear"))
+    assert other.mu.numpy()[0] == 3e4 and other.materials[0].mu == 3e4
+
+
 @pytest.mark.parametrize("change,needle", [
     (lambda m: we.Solver(m, fit="curvature_corrected"), r"had fit = 'linear', this solver fit = 'curvature_corrected'"),
     (lambda m: we.Solver(m, hourglass=0.1), r"had hourglass = 0\.0, this solver hourglass = 0\.1"),
