@@ -82,8 +82,15 @@ def test_resume_writes_what_the_uninterrupted_run_writes(tmp_path, capsys):
     assert main(["run", "--resume", str(kept), "--frames", "9", "--no-progress"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "holds the frames of another run" in err[0], err  # the file names its run
-    # A checkpoint written before runs were named has no run id: the frames it would leave
-    # unwritten are what refuses it.
+    # A checkpoint and file written before runs were named have no run id: the frames it would
+    # leave unwritten are what refuses it.
+    from pxr import Sdf
+
+    layer = Sdf.Layer.FindOrOpen(str(part))
+    layer.Reload(force=True)
+    layer.customLayerData = {k: v for k, v in dict(layer.customLayerData).items() if k != "warp_esph:run_id"}
+    layer.Save()
+    before = _time_samples(part)
     with np.load(kept) as data:
         arrays = {k: data[k] for k in data.files}
     meta = json.loads(arrays["meta"].tobytes())
@@ -140,26 +147,42 @@ def test_fit_subcommand_is_wired_and_reports_bad_input(tmp_path, capsys):
     assert len(err) == 1 and "nope.npz" in err[0]
 
 
-def test_a_new_run_over_an_output_retires_the_earlier_runs_checkpoint(tmp_path, capsys):
+def test_a_new_run_over_an_output_retires_the_earlier_runs_force_log_and_checkpoint(tmp_path, capsys):
     """A run writes a.usdc with checkpoints; a new run (another dt) writes a.usdc again. The
     first run's checkpoint resumed onto the second run's file: its frames 0..5, then the first
-    run's state from frame 6 on, exit 0. The new run removes it (and the old force log) once it
-    has replaced the file they belong to."""
+    run's state from frame 6 on, exit 0. The new run removes the old force log once it has
+    replaced the file it belongs to; the checkpoint stays (it resumes its own run where that
+    run's file is put back) and is refused on the new run's frames, by the run ids, or where
+    the checkpoint names no run (written before run ids) by the file's naming one."""
     out = tmp_path / "a.usdc"
     ckpt = tmp_path / "a.usdc.checkpoint.npz"
     tiny = ["run", "dough_drop", "--scale", "0.3", "--no-progress", "-o", str(out)]
     assert main(tiny + ["--frames", "6", "--checkpoint-every", "2"]) == 0
+    first = tmp_path / "first.usdc"
+    shutil.copyfile(out, first)
     assert ckpt.exists()
     assert main(tiny + ["--frames", "8", "--dt", "0.000505051"]) == 0
-    assert not ckpt.exists()
+    assert ckpt.exists()
     before = _time_samples(out)
     log = (tmp_path / "a.usdc_tools.json").read_bytes()
     capsys.readouterr()
     assert main(["run", "--resume", str(ckpt), "--frames", "10", "--no-progress"]) == 2
-    assert "no such file" in capsys.readouterr().err
+    assert "holds the frames of another run" in capsys.readouterr().err
+    with np.load(ckpt) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(arrays["meta"].tobytes())
+    del meta["run"]["run_id"]
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    legacy = tmp_path / "legacy.npz"
+    np.savez(legacy, **arrays)
+    assert main(["run", "--resume", str(legacy), "--frames", "10", "--no-progress"]) == 2
+    assert "written after the checkpoint's run" in capsys.readouterr().err
     after = _time_samples(out)
     assert before.keys() == after.keys() and all(np.array_equal(before[k], after[k]) for k in before)
     assert (tmp_path / "a.usdc_tools.json").read_bytes() == log
+    # The earlier run's file put back: its checkpoint resumes it.
+    shutil.copyfile(first, out)
+    assert main(["run", "--resume", str(ckpt), "--frames", "8", "--no-progress"]) == 0
 
 
 def test_a_checkpoint_resumes_onto_its_own_runs_frames_only(tmp_path, capsys):

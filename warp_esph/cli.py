@@ -426,6 +426,11 @@ def _cmd_run(args) -> int:
         # The writer saves its first (empty) stage at once: a full disk there was exit 2, as bad input.
         _err(f"cannot write {output}: {e} (no frame of this run was written)")
         return EXIT_WRITE_FAILED
+    if args.resume is not None and run_id is None and writer.file_run_id is not None:
+        # A checkpoint of a run that named none, resumed onto a file a named run wrote since.
+        writer.close()
+        raise ValueError(f"--resume = {args.resume!r} is not allowed with {writer.path}: the file holds the frames of "
+                         f"another run (run id {writer.file_run_id!r}), written after the checkpoint's run")
     if args.resume is not None and (writer.last_frame is None or writer.first_frame != 0 or writer.last_frame < start_frame - 1):
         # The resumed frames must follow the file's: a file of a shorter run, written over the
         # one checkpointed, would keep a gap of frames nobody wrote.
@@ -445,10 +450,11 @@ def _cmd_run(args) -> int:
     # The whole output name: a.usdc and a.usda in one folder must not share a checkpoint.
     checkpoint_path = writer.path + ".checkpoint.npz"
     if args.resume is None:
-        # The writer has just replaced the file an earlier run wrote there: that run's checkpoint
-        # resumed onto this run's frames (its state spliced after them, exit 0) and its force log
-        # stood beside this file until this run's was written.
-        for stale in (checkpoint_path, writer.path + "_tools.csv", writer.path + "_tools.json"):
+        # The writer has just replaced the file an earlier run wrote there: that run's force log
+        # stood beside this file until this run's was written. (Its checkpoint stays: a resume
+        # of it onto this run's frames is refused by the run ids, and it resumes the earlier
+        # run where that run's file is put back.)
+        for stale in (writer.path + "_tools.csv", writer.path + "_tools.json"):
             if os.path.isfile(stale) or os.path.islink(stale):
                 os.remove(stale)
     run_record = {"scene": args.scene if args.scene is not None else scene.name, "scale": scale, "fps": fps, "dt": dt,

@@ -236,6 +236,7 @@ class UsdWriter:
         if run_id is not None and (not isinstance(run_id, str) or not run_id):
             raise ValueError(f"run_id = {run_id!r} is not allowed: must be a non-empty string or None")
         self.run_id = run_id
+        self.file_run_id = None
         #: Seconds spent building surfaces, over all frames.
         self.surface_seconds = 0.0
         self._surface_warned: set[str] = set()
@@ -316,6 +317,8 @@ class UsdWriter:
         if not math.isclose(tcps, self.fps, rel_tol=1e-9):
             raise ValueError(f"{where}: it was written at fps = {tcps:g}, not {self.fps:g}")
         theirs = (stage.GetRootLayer().customLayerData or {}).get(_RUN_ID)
+        #: The run id the appended file names (None: written without one).
+        self.file_run_id = theirs
         if self.run_id is not None and theirs is not None and theirs != self.run_id:
             # Another run wrote the file since (or the checkpoint was copied from elsewhere): its
             # frames and the checkpoint's state would be spliced into one file.
