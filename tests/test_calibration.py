@@ -784,8 +784,9 @@ def test_cli_fit_refuses_what_would_lose_data_or_mistime_the_targets(tmp_path, c
         (["--target", str(tmp_path / "float_frames.npz")], "its 'frames' must be whole frame indices, not [1.5, 2.0, 3.0]"),
         (["--target", str(tmp_path / "one_short.npz")], "has 60 particles per frame, the scene 64"),
         (["--target", str(tmp_path / "complex.npz")], "its positions must be real numbers, not complex128 values"),
-        (["--target", str(tmp_path / "good.npz"), "--target-frames=-1,2,3"],
-         "--target-frames = '-1,2,3' is not allowed: use comma-separated frame indices >= 0"),
+        (["--target", str(tmp_path / "good.npz"), "--target-frames=-5,2,3"],
+         "--target-frames = '-5,2,3' is not allowed: '-5' is not 'all', 'first', 'last', N, -N, A:B or A:B:STEP within "
+         "the frames"),
         (["--target", str(run), "--target-frames", "0"], "--target-frames = '0' is not allowed: the targets hold only frame 0"),
         (["--target", str(run), "--experiments", str(tmp_path / "exps.json")],
          "experiment #1: scene = 3 is not allowed: must be a scene name or a .toml path"),

@@ -389,6 +389,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             if missing:
                 raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: the target {path} holds frames "
                                  f"{', '.join(map(str, t.frames))} (its 'frames'), not {', '.join(map(str, missing))}")
+            chosen = list(dict.fromkeys(chosen))  # 'last,6' names frame 6 once
             t.data = np.asarray(t.data)[[t.frames.index(f) for f in chosen]]
             t.frames = chosen
         elif fspec is not None and usd_spec is None:
