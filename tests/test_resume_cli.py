@@ -81,7 +81,7 @@ def test_resume_writes_what_the_uninterrupted_run_writes(tmp_path, capsys):
     capsys.readouterr()
     assert main(["run", "--resume", str(kept), "--frames", "9", "--no-progress"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "holds the frames of another run" in err[0], err  # the file names its run
+    assert len(err) == 1 and "another run (run id '" in err[0], err  # the file (and its force log) name their run
     # A checkpoint and file written before runs were named have no run id: the frames it would
     # leave unwritten are what refuses it.
     from pxr import Sdf
@@ -90,6 +90,10 @@ def test_resume_writes_what_the_uninterrupted_run_writes(tmp_path, capsys):
     layer.Reload(force=True)
     layer.customLayerData = {k: v for k, v in dict(layer.customLayerData).items() if k != "warp_esph:run_id"}
     layer.Save()
+    doc = json.loads((tmp_path / "part.usdc_tools.json").read_text())
+    del doc["run_id"]
+    (tmp_path / "part.usdc_tools.json").write_text(json.dumps(doc))
+    log = (tmp_path / "part.usdc_tools.json").read_bytes()
     before = _time_samples(part)
     with np.load(kept) as data:
         arrays = {k: data[k] for k in data.files}
@@ -160,6 +164,8 @@ def test_a_new_run_over_an_output_retires_the_earlier_runs_force_log_and_checkpo
     assert main(tiny + ["--frames", "6", "--checkpoint-every", "2"]) == 0
     first = tmp_path / "first.usdc"
     shutil.copyfile(out, first)
+    for ext in ("csv", "json"):
+        shutil.copyfile(tmp_path / f"a.usdc_tools.{ext}", tmp_path / f"first_tools.{ext}")
     assert ckpt.exists()
     assert main(tiny + ["--frames", "8", "--dt", "0.000505051"]) == 0
     assert ckpt.exists()
@@ -167,7 +173,7 @@ def test_a_new_run_over_an_output_retires_the_earlier_runs_force_log_and_checkpo
     log = (tmp_path / "a.usdc_tools.json").read_bytes()
     capsys.readouterr()
     assert main(["run", "--resume", str(ckpt), "--frames", "10", "--no-progress"]) == 2
-    assert "holds the frames of another run" in capsys.readouterr().err
+    assert "another run (run id '" in capsys.readouterr().err  # the file's, or its force log's
     with np.load(ckpt) as data:
         arrays = {k: data[k] for k in data.files}
     meta = json.loads(arrays["meta"].tobytes())
@@ -176,13 +182,22 @@ def test_a_new_run_over_an_output_retires_the_earlier_runs_force_log_and_checkpo
     legacy = tmp_path / "legacy.npz"
     np.savez(legacy, **arrays)
     assert main(["run", "--resume", str(legacy), "--frames", "10", "--no-progress"]) == 2
-    assert "written after the checkpoint's run" in capsys.readouterr().err
+    assert "another run (run id '" in capsys.readouterr().err
     after = _time_samples(out)
     assert before.keys() == after.keys() and all(np.array_equal(before[k], after[k]) for k in before)
     assert (tmp_path / "a.usdc_tools.json").read_bytes() == log
-    # The earlier run's file put back: its checkpoint resumes it.
+    # The earlier run's file put back: the force log beside it is the later run's, whose rows
+    # were taken as the earlier run's (exit 0); refused. With its own log back, it resumes.
     shutil.copyfile(first, out)
+    capsys.readouterr()
+    assert main(["run", "--resume", str(ckpt), "--frames", "8", "--no-progress"]) == 2
+    assert "a.usdc_tools.json belongs to another run (run id '" in capsys.readouterr().err
+    for ext in ("csv", "json"):
+        shutil.copyfile(tmp_path / f"first_tools.{ext}", tmp_path / f"a.usdc_tools.{ext}")
     assert main(["run", "--resume", str(ckpt), "--frames", "8", "--no-progress"]) == 0
+    rows = json.loads((tmp_path / "a.usdc_tools.json").read_text())["rows"]
+    first_rows = json.loads((tmp_path / "first_tools.json").read_text())["rows"]
+    assert [r for r in rows if r["frame"] <= 4] == [r for r in first_rows if r["frame"] <= 4]
 
 
 def test_a_checkpoint_resumes_onto_its_own_runs_frames_only(tmp_path, capsys):
@@ -199,7 +214,7 @@ def test_a_checkpoint_resumes_onto_its_own_runs_frames_only(tmp_path, capsys):
     capsys.readouterr()
     assert main(["run", "--resume", str(keep), "--frames", "10", "--no-progress"]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "it holds the frames of another run (run id '" in err, err
+    assert err.count("\n") == 1 and "another run (run id '" in err, err
     after = _time_samples(out)
     assert before.keys() == after.keys() and all(np.array_equal(before[k], after[k]) for k in before)
     # Its own run's file resumes.

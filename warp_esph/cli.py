@@ -405,6 +405,8 @@ def _cmd_run(args) -> int:
         checks.output_place(f"--export {args.export}'s folder", f"{stem}_{args.export}", folder=True)
     if args.preview:
         checks.output_place("--preview's picture", stem + ".png")
+    # Names the run in its file, checkpoints and force log: a checkpoint resumes onto its own run's only.
+    run_id = run.get("run_id") if args.resume is not None else uuid.uuid4().hex
     # Tools (moving colliders, pinned sets) and static colliders: pose and mean reaction per
     # frame, beside the USD; a resumed run's earlier rows are read before anything is written.
     log = None
@@ -412,11 +414,10 @@ def _cmd_run(args) -> int:
         from .tools import ReactionLog  # noqa: PLC0415
 
         log = ReactionLog(solver)
+        log.run_id = run_id
         if args.resume is not None:
             log.resume(os.path.abspath(os.fspath(output)), start_frame)  # the finished frames of the run it continues
     _arm(args)  # from here an interrupt unwinds through the writer
-    # Names the run in its file and its checkpoints: a checkpoint resumes onto its own run's frames only.
-    run_id = run.get("run_id") if args.resume is not None else uuid.uuid4().hex
     try:
         writer = UsdWriter(output, model, fps, surface=args.surface, view=getattr(scene, "view", None),
                            append=args.resume is not None, run_id=run_id)

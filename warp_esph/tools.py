@@ -1401,26 +1401,41 @@ class ReactionLog:
         self.rows: list[dict] = []
         self._t_last = None
         self._kept = None
+        #: The run the log belongs to (``warp-esph run``'s ``run_id``), written in the JSON and
+        #: compared by ``resume``; None: not named.
+        self.run_id: str | None = None
 
     def resume(self, stem: str, frame: int):
         """Continue the log ``write(stem)`` wrote before, from ``frame`` (a resumed run): its
         rows up to ``frame`` are kept (the resumed run's first record, at ``frame``, has no
-        preceding frame and only sets the start)."""
+        preceding frame and only sets the start). A log that names another run than
+        ``run_id`` (a later run's, over the same output) is refused: its rows are not this run's."""
         import json  # noqa: PLC0415
 
         path = f"{stem}_tools.json"
         try:
             with open(path) as fh:
-                rows = json.load(fh)["rows"]
+                doc = json.load(fh)
+            rows = doc["rows"]
             if not isinstance(rows, list):
                 raise TypeError("its 'rows' is not a list")
         except FileNotFoundError:
+            if frame > 0:
+                warnings.warn(f"the force log {path} of the run to resume is not there: the resumed log holds the "
+                              f"frames from {frame} on only", UserWarning, stacklevel=2)
             return  # no earlier log: the resumed frames only
         except (OSError, ValueError, KeyError, TypeError, RecursionError) as e:
             # Rewriting it with the resumed frames only would lose the finished run's rows.
             why = f"no {e}" if isinstance(e, KeyError) else str(e) or type(e).__name__
             raise ValueError(f"the force log {path} of the run to resume cannot be read ({why}): resuming would replace "
                              "its rows of the finished frames; move it away to resume without them") from None
+        theirs = doc.get("run_id") if isinstance(doc, dict) else None
+        if theirs != self.run_id and (theirs is not None):
+            # Another run wrote it since (or the checkpoint's run named none): its rows up to the
+            # checkpoint were taken as this run's, exit 0.
+            ours = f"the run {self.run_id!r}" if self.run_id is not None else "the run (which names none)"
+            raise ValueError(f"the force log {path} belongs to another run (run id {theirs!r}), not {ours} to resume: "
+                             "put back that run's own log, or move it away to resume without its rows")
         self.rows = [r for r in rows if isinstance(r, dict) and isinstance(r.get("frame"), int) and r["frame"] <= frame]
         self._kept = frame if any(r["frame"] == frame for r in self.rows) else None
 
@@ -1483,6 +1498,7 @@ class ReactionLog:
                 "definition": "mean force and torque each tool or static collider exerted on the material over the "
                               "frame ending at 'time' (torque about the tool's position; a static collider's position is "
                               "its reference point); the material exerts minus these on it",
+                **({"run_id": self.run_id} if self.run_id is not None else {}),
                 "rows": self.rows,
             }, fh, indent=1)
 
