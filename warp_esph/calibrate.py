@@ -381,14 +381,15 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                     (chosen if int(part) in t.frames else missing).append(int(part))
                     continue
                 try:
-                    chosen.extend(parse_frames(part, list(t.frames)))
-                except ValueError:
-                    raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: {part.strip()!r} is not 'all', "
-                                     f"'first', 'last', N, -N, A:B or A:B:STEP within the frames {path} holds "
-                                     f"({', '.join(map(str, t.frames))})") from None
+                    # In frame order whatever the file's (its 'last' is its largest frame).
+                    chosen.extend(parse_frames(part, sorted(t.frames)))
+                except ValueError as e:
+                    raise ValueError(f"{where}--target-{e}; the target {path} holds frames "
+                                     f"{', '.join(map(str, sorted(t.frames)))} (-N counts frame numbers back from the "
+                                     "last)") from None
             if missing:
                 raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: the target {path} holds frames "
-                                 f"{', '.join(map(str, t.frames))} (its 'frames'), not {', '.join(map(str, missing))}")
+                                 f"{', '.join(map(str, sorted(t.frames)))} (its 'frames'), not {', '.join(map(str, missing))}")
             chosen = list(dict.fromkeys(chosen))  # 'last,6' names frame 6 once
             t.data = np.asarray(t.data)[[t.frames.index(f) for f in chosen]]
             t.frames = chosen
