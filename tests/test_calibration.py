@@ -553,7 +553,8 @@ def test_a_run_target_read_whole_must_hold_the_scenes_bodies_in_order(tmp_path):
     t = load_target(path)
     assert t.bodies == [("a b", 27), ("c", 27)]
     t.loss(model(["a b", "c"]), {1: 10})  # the scene the run was made with
-    for names, sizes in ((["c", "a b"], (0.06, 0.06)), (["a b", "c"], (0.04, 0.08))):
+    for names, sizes in ((["c", "a b"], (0.06, 0.06)), (["a b", "c"], (0.04, 0.08)), (["c", "d"], (0.06, 0.06)),
+                         (["e", "a b"], (0.06, 0.06))):
         with pytest.raises(ValueError, match=r"run\.usdc is not allowed: it holds the bodies a b \(27 particles\), c \(27 "
                                              r"particles\) in that order, the scene .*; particles are compared in order"):
             load_target(path).loss(model(names, sizes), {1: 10})

@@ -1560,11 +1560,14 @@ class Target:
                     prims = [b.name for b in model.bodies]
                 counted = len(self.bodies) == len(model.bodies) and all(
                     count == b.count for (_, count), b in zip(self.bodies, model.bodies))
-                # Names decide only where the file's are all the scene's (the same bodies listed in
-                # another order); a scene that renamed its bodies is matched by the counts.
-                known = {b.name for b in model.bodies} | set(prims)
-                ordered = all(name in (b.name, prim) for (name, _), b, prim in zip(self.bodies, model.bodies, prims))
-                same = counted and (ordered or not all(name in known for name, _ in self.bodies))
+                # A body the scene names too must sit at its index; a scene that renamed its bodies
+                # (its own guess) is matched by the counts.
+                where_named = {}
+                for k, (b, prim) in enumerate(zip(model.bodies, prims)):
+                    where_named.setdefault(b.name, k)
+                    where_named.setdefault(prim, k)
+                moved = any(name in where_named and where_named[name] != k for k, (name, _) in enumerate(self.bodies))
+                same = counted and not moved
                 if not same:
                     def listed(bodies):
                         return ", ".join(f"{name} ({count} particles)" for name, count in bodies)
