@@ -959,6 +959,11 @@ def test_an_earlier_fits_run_does_not_stay_beside_a_new_fits_results(tmp_path, c
     capsys.readouterr()
     assert main([*common[:3], str(out / "fitted.usdc"), *common[4:], "--iterations", "0", "--no-usd"]) == 2
     assert "is --target" in capsys.readouterr().err and (out / "fitted.usdc").exists()
+    # A folder of that name is no fit's run: left alone, and no reason to refuse --no-usd.
+    other = tmp_path / "other"
+    (other / "fitted.usdc").mkdir(parents=True)
+    assert main([*common[:-1], str(other), "--iterations", "0", "--no-usd"]) == 0
+    assert (other / "fitted.usdc").is_dir()
 
 
 def test_cli_fit_at_a_guess_that_blows_up_is_one_line_and_exit_3(tmp_path, capsys, dough_scene):

@@ -176,6 +176,8 @@ def run_fit(args, out=None, err=None) -> int:
     names = ["history.csv", "loss.png", "params.png", "fitted.usdc"]
     names += [] if _arg(args, "output") else ["fit.json"]
     for name in names:
+        if name == "fitted.usdc" and args.no_usd:
+            continue  # not written, and a folder of that name is left alone
         if os.path.isdir(os.path.join(folder, name)):
             raise ValueError(f"--output-dir = {folder!r} is not allowed: {name} in it is a folder; the fit writes a file there")
     if _arg(args, "output"):
