@@ -710,7 +710,7 @@ def test_a_damaged_suggested_view_is_named_by_the_file(tmp_path):
         layer.customLayerData = {**dict(layer.customLayerData), "warp_esph:view": view}
         layer.Save()
 
-    for view, shown in ((Vt.DoubleArray([np.nan, 20.0]), "[nan, 20.0]"), ("ab", "'ab'"),
+    for view, shown in ((Vt.DoubleArray([np.nan, 20.0]), "[nan, 20.0]"), ("ab", "'ab'"), ("12", "'12'"),
                         (Vt.DoubleArray([np.inf, 1e300]), "[inf, 1e+300]")):
         with_view(view)
         with pytest.warns(UserWarning, match=rf"v.usda: its warp_esph:view = {re.escape(shown)} is no \(azimuth, "

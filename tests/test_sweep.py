@@ -480,8 +480,9 @@ def test_a_sweep_whose_tables_cannot_be_written_at_its_end_is_a_failed_write(sce
     assert status == cli.EXIT_WRITE_FAILED, err
     last = err.strip().splitlines()[-1]  # after the plan line
     assert last.startswith(f"warp-esph: cannot write the sweep's tables in {out}: [Errno 28] No space left"), err
-    assert last.endswith("(2 samples ran; " + str(out) + " keeps only what was written while the sweep ran, its "
-                         "sweep.json marked partial)") and "Traceback" not in err
+    assert last.endswith("(2 samples ran; the tables in " + str(out) + " are not this sweep's whole result)") \
+        and "Traceback" not in err
+    assert len(SweepTable.read_csv(out / "sweep.csv")) == 2  # the partial table of both samples
     # Only the picture failing: the tables stand whole and the sweep is no failed one.
     monkeypatch.setattr(sweep_module, "write_outputs", real)
 
@@ -495,7 +496,6 @@ def test_a_sweep_whose_tables_cannot_be_written_at_its_end_is_a_failed_write(sce
                      "-o", str(out), "--no-progress"]) == 0
     assert "no plot: it could not be written ([Errno 28] No space left on device" in capsys.readouterr().out
     assert len(SweepTable.read_csv(out / "sweep.csv")) == 2 and not (out / "sweep.png").exists()
-    assert len(SweepTable.read_csv(out / "sweep.csv")) == 2  # the partial table of both samples
 
 
 def test_values_matplotlib_cannot_lay_out_still_leave_the_tables_and_the_record(tmp_path, monkeypatch):

@@ -100,6 +100,8 @@ def _read_view(path: str, view) -> tuple[float, float] | None:
     file, and an elevation beyond +-89 degrees (older writers took 90, which looks along the up
     axis) is brought to the bound."""
     try:
+        if isinstance(view, (str, bytes)):
+            raise TypeError  # text: '12' read as (1, 2)
         az, el = (float(v) for v in view)
         shown = [az, el]
     except (TypeError, ValueError):
