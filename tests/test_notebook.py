@@ -62,11 +62,7 @@ def test_fit_notebook_executes(tmp_path, monkeypatch):
     monkeypatch.setenv("FIT_FRAMES", "9")
     monkeypatch.setenv("FIT_ITERATIONS", "20")
     monkeypatch.setenv("FIT_OUT", str(out))
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
-    monkeypatch.setenv("MPLBACKEND", "Agg")
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    client = nbclient.NotebookClient(nb, timeout=240, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOK.parent)}})
-    client.execute()
+    nb = _execute(NOTEBOOK, monkeypatch)
 
     text = _stream_text(nb)
     assert "evaluations in" in text
@@ -76,6 +72,16 @@ def test_fit_notebook_executes(tmp_path, monkeypatch):
     assert (out / "target.npz").exists()
     # Even at this size the three parameters come back from the factor-2 guess within 10 %.
     assert "all within 10 %: True" in text
+
+
+def _execute(path, monkeypatch):
+    """``path`` executed top to bottom in its own folder, the repository importable, plots
+    drawn off-screen; the executed notebook."""
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    nb = nbformat.read(path, as_version=4)
+    nbclient.NotebookClient(nb, timeout=240, kernel_name="python3", resources={"metadata": {"path": str(path.parent)}}).execute()
+    return nb
 
 
 PRESS_NOTEBOOK = ROOT / "notebooks" / "press_and_fit.ipynb"
@@ -107,11 +113,7 @@ def test_press_notebook_executes_and_reaches_its_targets(monkeypatch):
     """Executed top to bottom (its own cells too: the plots, the final positions): about 11 s
     on the shared two-core machine (it took about a minute on earlier builds)."""
     pytest.importorskip("matplotlib")
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
-    monkeypatch.setenv("MPLBACKEND", "Agg")
-    nb = nbformat.read(PRESS_NOTEBOOK, as_version=4)
-    client = nbclient.NotebookClient(nb, timeout=240, kernel_name="python3", resources={"metadata": {"path": str(PRESS_NOTEBOOK.parent)}})
-    client.execute()
+    nb = _execute(PRESS_NOTEBOOK, monkeypatch)
 
     text = _stream_text(nb)
     assert _png_count(nb) >= 2
