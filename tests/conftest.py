@@ -58,6 +58,20 @@ friction = 0.5
 
 
 @pytest.fixture
+def load_example():
+    """A function loading ``examples/<name>.py`` as a module (the examples are no package)."""
+    import importlib.util
+
+    def load(name):
+        spec = importlib.util.spec_from_file_location(name, pathlib.Path(__file__).resolve().parent.parent / "examples" / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load
+
+
+@pytest.fixture
 def dough_scene():
     """``dough_scene(yield_stress, flow_rate, frames=6)``: the TOML of a 64-particle dough
     block dropped on the ground at 1 m/s (the command-line fit tests' scene)."""

@@ -4,25 +4,13 @@ evaluations after the first) the example's ``main`` fits mu, yield stress and fl
 the factor-2 guess back within its 10 % (measured: 21 evaluations, loss 7.0e-7 -> 1.0e-21,
 converged, every parameter within 0.00 %; 18 s with the diagnostics and plots)."""
 
-import importlib.util
 import json
-import pathlib
 
 import pytest
 
-EXAMPLE = pathlib.Path(__file__).resolve().parent.parent / "examples" / "fit_dough_star.py"
-
-
-def _example():
-    spec = importlib.util.spec_from_file_location("fit_dough_star", EXAMPLE)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_fit_dough_star_example_recovers_the_three_parameters(tmp_path):
+def test_fit_dough_star_example_recovers_the_three_parameters(tmp_path, load_example):
     pytest.importorskip("matplotlib")
-    ex = _example()
+    ex = load_example("fit_dough_star")
     assert ex.main(["--frames", "9", "--iterations", "20", "--no-usd", "--out", str(tmp_path)]) == 0
     doc = json.loads((tmp_path / "fit.json").read_text())
     assert doc["particles"] == 142 and doc["frames"] == list(range(2, 10))

@@ -3,25 +3,13 @@ forward formulas, and the joint fit of a slump (final height and spread) and a c
 force curve, from synthetic lab files with noise, recovers the hidden yield stress and
 plastic viscosity from 2x guesses (tolerance below)."""
 
-import importlib.util
 import json
 import math
-import pathlib
 
 import pytest
 
-EXAMPLE = pathlib.Path(__file__).resolve().parent.parent / "examples" / "calibrate_from_lab.py"
-
-
-def _example():
-    spec = importlib.util.spec_from_file_location("calibrate_from_lab", EXAMPLE)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_closed_form_inversions_invert_their_formulas():
-    ex = _example()
+def test_closed_form_inversions_invert_their_formulas(load_example):
+    ex = load_example("calibrate_from_lab")
     rho_g = ex.RHO * ex.G
     for S in (0.05, 0.3, 0.8):
         h = 0.1 * S * (1.0 - math.log(S))
@@ -36,11 +24,11 @@ def test_closed_form_inversions_invert_their_formulas():
     assert ex.invert_plateau(rows, press) == pytest.approx(300.0, rel=1e-12)
 
 
-def test_joint_fit_of_slump_and_compression_recovers_yield_stress_and_plastic_viscosity(tmp_path):
+def test_joint_fit_of_slump_and_compression_recovers_yield_stress_and_plastic_viscosity(tmp_path, load_example):
     """48-particle slump (0.3 s) and 48-particle compression (250 steps): within TOL of
     the truth and within 3 of the diagnostics' standard errors."""
     TOL = 0.15
-    ex = _example()
+    ex = load_example("calibrate_from_lab")
     assert ex.main(["--size", "ci", "--out", str(tmp_path)]) == 0
     doc = json.loads((tmp_path / "result.json").read_text())
     assert (tmp_path / "compression_tools.csv").exists() and (tmp_path / "slump.json").exists()

@@ -571,15 +571,20 @@ def test_a_plane_tool_is_drawn_as_the_plane_collider_at_its_pose(tmp_path):
     assert np.array_equal(np.asarray(both.render(8), dtype=np.int64), high)
 
 
+def _fake_ffmpeg(tmp_path, monkeypatch, body):
+    """A stand-in ffmpeg: a shell script of ``body``, taken as the one on the PATH."""
+    fake = tmp_path / "ffmpeg"
+    fake.write_text(f"#!/bin/sh\n{body}\n")
+    fake.chmod(0o755)
+    monkeypatch.setattr(render_module, "ffmpeg_path", lambda: str(fake))
+
+
 def test_an_ffmpeg_that_stops_early_is_its_error_not_a_closed_output(tmp_path, monkeypatch, capsys):
     """An ffmpeg that exits before taking the frames (no H.264 encoder): writing the small
     frames still buffered for its pipe raised BrokenPipeError, which the command read as its
     own output's reader gone (exit 141, no message) and which pointed the caller's stdout at
     /dev/null. Now ffmpeg's own message, exit 2, and the caller's stdout as it was."""
-    fake = tmp_path / "ffmpeg"
-    fake.write_text("#!/bin/sh\necho 'Unknown encoder libx264' >&2\nexit 1\n")
-    fake.chmod(0o755)
-    monkeypatch.setattr(render_module, "ffmpeg_path", lambda: str(fake))
+    _fake_ffmpeg(tmp_path, monkeypatch, "echo 'Unknown encoder libx264' >&2\nexit 1")
     path = tmp_path / "m.usdc"
     write_clusters(path, [(0.0, 0.0, 0.0)], frames=3)
     status = main(["render", str(path), "-o", str(tmp_path / "m.mp4"), "--frames", "all", "--width", "32", "--height", "24"])
@@ -595,10 +600,7 @@ def test_an_interrupted_movie_keeps_the_earlier_movie_and_leaves_no_part_file(tm
     wrote straight onto the output, so an interrupted render left a shorter movie over an
     earlier one. A stand-in ffmpeg (a shell script copying its input to the file it is given)
     shows where the frames go."""
-    fake = tmp_path / "ffmpeg"
-    fake.write_text('#!/bin/sh\nfor out; do :; done\ncat > "$out"\n')
-    fake.chmod(0o755)
-    monkeypatch.setattr(render_module, "ffmpeg_path", lambda: str(fake))
+    _fake_ffmpeg(tmp_path, monkeypatch, 'for out; do :; done\ncat > "$out"')
     path = tmp_path / "anim.usdc"
     write_clusters(path, [(0.0, 0.2, 0.0)], frames=3)
     out = tmp_path / "m.mp4"
@@ -620,7 +622,7 @@ def test_an_interrupted_movie_keeps_the_earlier_movie_and_leaves_no_part_file(tm
     assert out.read_bytes() == whole and sorted(os.listdir(tmp_path)) == ["anim.usdc", "ffmpeg", "m.mp4"]
     # ffmpeg takes the terminal's Ctrl-C too, and its close fails: the interrupt is still what
     # is raised (it read 'ffmpeg failed:', exit 2).
-    fake.write_text('#!/bin/sh\nfor out; do :; done\ncat > "$out"\nexit 255\n')
+    _fake_ffmpeg(tmp_path, monkeypatch, 'for out; do :; done\ncat > "$out"\nexit 255')
     calls.clear()
     with pytest.raises(KeyboardInterrupt):
         render_usd(path, out, frames="all", width=W, height=H, supersample=1)
