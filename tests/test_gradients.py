@@ -896,6 +896,89 @@ def test_the_loss_has_no_jump_where_a_neighbour_leaves_the_count():
     assert np.abs(increments / trapezoid - 1.0).max() < 0.02, np.round(increments / trapezoid, 4)
 
 
+#: Step-path options whose float64 checks above run only in motion or off the ground, checked
+#: here at rest on a floor: (material options, ``Solver`` options, parameters).
+AT_REST = {
+    "stvk": ({"model": "stvk"}, {}, ("lam",)),
+    "hyperelastic": ({"model": "hyperelastic"}, {}, ("lam",)),
+    "non_newtonian": ({"model": "non_newtonian", "flow_rate": 500.0}, {}, ("lam",)),
+    "spiky_pressure": ({"pressure_force": "spiky"}, {}, ("pressure_stiffness",)),
+    "energy_pressure": ({"pressure_force": "energy"}, {}, ("pressure_stiffness",)),
+    "unfused": ({}, {"fused": False}, ("lam", "viscosity")),
+    "hourglass": ({}, {"hourglass": 0.5}, ("lam",)),
+    "corrected": ({}, {"fit": "curvature_corrected"}, ("lam",)),
+    "rest_model": ({"deformation": "rest"}, {}, ("lam",)),
+    "additive_model": ({"deformation": "additive"}, {}, ("lam",)),
+    "ghost_floor": ({"elastic_force": "variational"}, {}, ("lam",)),
+}
+
+
+def _resting_model(case, params=None):
+    """A 4 x 3 x 3 block from rest (F = I, v = 0) on the rough ground under gravity, its
+    bottom layer on the plane (jittered by 1e-3 dx: some particles touch down within the
+    rollout, the others are pressed into it); ``ghost_floor``: on a ghost floor instead."""
+    dx = 0.02
+    p = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "hardening": 200.0, "pressure_stiffness": 1.0,
+         "viscosity": 2.0, **AT_REST[case][0], **(params or {})}
+    b = we.SceneBuilder(spacing=dx, gravity=(0.0, -9.81, 0.0))
+    b.add_box((0.0, 0.03, 0.0), (4 * dx, 3 * dx, 3 * dx), we.Material(density=1000.0, **p), name="block")
+    if case == "ghost_floor":
+        b.add_particle_floor("block", margin=dx, ghost=True)
+    else:
+        b.add_ground(0.01, friction=0.5)
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * dx, size=model.particle_x0.shape)
+    return model
+
+
+def _resting_loss(model, case, w, grad_of=None, steps=8):
+    solver = we.Solver(model, **AT_REST[case][1])
+    states = [model.state() for _ in range(steps + 1)]
+    loss, tape = taped_rollout_loss(solver, states, DT, w)
+    if grad_of is None:
+        return loss.numpy()[0]
+    tape.backward(loss)
+    grads = {name: (states[0].v if name == "v0" else getattr(model, name)).grad.numpy().copy() for name in grad_of}
+    return loss.numpy()[0], grads, states[-1]
+
+
+@pytest.mark.parametrize("case", sorted(AT_REST))
+def test_gradients_at_rest_on_the_ground_match_central_differences(case):
+    """Each option from rest on a floor (F = I with its singular values nearly repeated all
+    along; through the contact law, or the ghost floor's fits): the tape's gradient in a
+    material parameter and in the initial velocity of a bottom particle (along the floor)
+    and of a top one (down) against float64 central differences at two steps a hundred
+    times apart, the larger one large enough that a jump in the loss would show."""
+    names = AT_REST[case][2]
+    model = _resting_model(case)
+    w = random_weights(model.particle_count, 2)
+    _, grads, last = _resting_loss(model, case, w, (*names, "v0"))
+    sv = np.linalg.svd(last.F.numpy(), compute_uv=False)
+    assert np.abs(sv - 1.0).max() < 0.05, "F stays near I"
+    if case != "ghost_floor":
+        assert np.abs(last.collider_force.numpy()).max() > 0.0, "the block rests on the ground"
+    for name in names:
+        base = getattr(model.materials[0], name)
+        for rel in (1e-3, 1e-5):
+            eps = rel * base
+            fd = (_resting_loss(_resting_model(case, {name: base + eps}), case, w)
+                  - _resting_loss(_resting_model(case, {name: base - eps}), case, w)) / (2 * eps)
+            assert abs(fd) > 1e-11, f"the loss does not reach {name}"
+            assert grads[name][0] == pytest.approx(fd, rel=1e-4), (name, rel)
+    # The block's own particles (a ghost floor's follow them).
+    x0 = model.particle_x0[:36]
+    for i, c in ((int(np.argmin(x0[:, 1])), 0), (int(np.argmax(x0[:, 1])), 1)):
+        for eps in (1e-4, 1e-6):
+            def loss_with(delta):
+                m = _resting_model(case)
+                m.particle_v0[i, c] += delta
+                return _resting_loss(m, case, w)
+
+            fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
+            assert abs(fd) > 1e-9, (i, c)
+            assert grads["v0"][i, c] == pytest.approx(fd, rel=1e-4, abs=1e-9), (i, c, eps)
+
+
 def test_a_taped_step_refuses_a_state_the_tape_wrote_and_says_when_no_gradient_can_flow():
     """Two states swapped under one tape: the second step overwrote what the backward pass
     of the first reads (the shear modulus's gradient came out 4.5 x the true one, without a
