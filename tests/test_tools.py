@@ -44,6 +44,33 @@ def _run(solver, model, steps, dt, relax_after=None, every=10, state=None):
 
 
 # ------------------------------------------------------------------------- pinned sets
+@pytest.mark.parametrize("motion,moved", [
+    (tools.Keyframes([0.0, 1.0], [(0.0, 0.0, 0.0), (0.0, 0.01, 0.0)]), "0.135"),
+    (tools.Velocity((0.0, 0.1, 0.0), position=(0.0, 0.0, 0.0)), "0.135"),
+    (tools.Scripted(lambda t: ((-0.09, 0.1 + 0.1 * t, 0.0), (0.0, 0.0, math.sin(0.1), math.cos(0.1)))), "0.00399"),
+])
+def test_a_pinned_set_whose_motion_starts_away_from_its_rest_pose_is_refused(motion, moved):
+    """A pinned particle is placed at ``p(t) + R(t) (X - centroid)``: a clamp keyed from the
+    origin (or given a Velocity position there) jumped 0.135 m in the first step, off its beam,
+    which then fell free, and the run reported nothing. The message gives the centroid to start
+    from; a motion that starts there is taken."""
+    def build(m):
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.1, 0.0), (0.2, 0.06, 0.06), _elastic(2e4), name="beam")
+        b.pin(body="beam", region=((-1, -1, -1), (-0.07, 1, 1)), name="clamp", motion=m)
+        return b.finalize()
+
+    with pytest.raises(ValueError, match=rf"^pinned set 'clamp' is not allowed to start away from its rest pose: its "
+                                         rf"{type(motion).__name__} motion .* up to {moved} m .* its centroid "
+                                         r"\[-0\.09\d*, 0\.\d+, 0\.0\]"):
+        build(motion)
+    m = build(tools.Keyframes([0.0, 1.0], [(-0.09, 0.1, 0.0), (-0.09, 0.11, 0.0)]))
+    s, a, c = we.Solver(m), m.state(), m.state()
+    s.step(a, c, 1e-4)
+    held = m.tools.pins[0].indices
+    np.testing.assert_allclose(c.x.numpy()[held], m.particle_x0[held] + [0.0, 1e-6, 0.0], atol=1e-6)
+
+
 def test_pinned_set_stays_exactly_where_held_and_a_moving_pin_follows_its_motion():
     b = we.SceneBuilder(spacing=0.02)
     b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), _elastic(2e4, viscosity=2.0), name="held")
@@ -789,7 +816,9 @@ def test_a_scripted_motion_that_raises_or_returns_a_bad_pose_is_a_value_error_na
         assert isinstance(info.value.__cause__, cause)
     b = we.SceneBuilder(spacing=0.05)
     b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="d")
-    b.pin(body="d", name="grip", motion=tools.Scripted(fn))
+    # A pinned set starts at its rest pose (the block's centroid), not where the tool does.
+    pin_rest = ((0.0, 0.1, 0.0), tools.IDENTITY)
+    b.pin(body="d", name="grip", motion=tools.Scripted(lambda t: pin_rest if (r := fn(t)) is _AT_REST else r))
     with pytest.raises(ValueError, match=match.replace("^tool 'ball'", "^pinned set 'grip'")):
         m = b.finalize()
         we.Solver(m).step(m.state(), m.state(), 1e-4)

@@ -902,6 +902,32 @@ def _check_outside_tools(model) -> None:
                              "move the body or the tool out")
 
 
+def _check_pins_at_rest(model) -> None:
+    """Refuse a pinned set whose motion does not start at the set's rest pose (its rest
+    centroid, identity orientation): a pinned particle is placed at ``p(t) + R(t) (X - c)``,
+    so a first keyframe (or a ``Velocity`` position, or a scripted pose at t = 0) elsewhere
+    moved the whole set there in the first step. A clamp keyed from the origin jumped 0.1 m
+    off its beam, which then fell free of it, and the run reported nothing."""
+    ts = model.tools
+    x = np.asarray(model.particle_x0, dtype=np.float64)
+    pin_of = ts.pin.numpy()
+    tol = 1e-3 * model.spacing
+    for j, ps in enumerate(ts.pins):
+        k = len(ts.colliders) + j
+        p, q = ts.pose_at(k, 0.0)
+        p, q = np.asarray(p, dtype=np.float64), np.asarray(q, dtype=np.float64)
+        c = x[np.asarray(ps.indices)].mean(axis=0)  # in float64: the model's copy is in its precision
+        xs = x[pin_of == k]
+        moved = np.linalg.norm(p + (xs - c) @ tools.quat_to_matrix(q / np.linalg.norm(q)).T - xs, axis=1)
+        if moved.max() > tol:
+            raise ValueError(
+                f"pinned set {ts.names[k]!r} is not allowed to start away from its rest pose: its "
+                f"{type(ts.motions[k]).__name__} motion puts its frame at position {np.round(p, 9).tolist()}, orientation "
+                f"{np.round(q, 9).tolist()} at t = 0, which moves its particles up to {moved.max():.3g} m from where they "
+                f"were built; its rest pose is its centroid {np.round(c, 9).tolist()} with orientation (0, 0, 0, 1) (a pinned set's "
+                f"frame moves it as x = p(t) + R(t) (X - centroid)): start the motion there")
+
+
 def _closer_than(points: np.ndarray, body: np.ndarray, r: float):
     """``(i, j)``, two particles of different bodies closer than ``r``, or ``(None, None)``:
     points binned in cells of ``r``, each compared with those of its 27 neighbouring cells."""
@@ -1036,6 +1062,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     if first.tools or first.pins:
         model.tools = tools.ToolSet(model, first.tools, first.pins, world_pins=[[p.indices for p in b.pins] for b in builders])
         _check_outside_tools(model)
+        _check_pins_at_rest(model)
     model.compute_rest_density()
     return model
 
