@@ -118,6 +118,26 @@ def test_solver_rejects_bad_dt_and_warns_above_stability_limit():
         we.Solver(model, min_neighbors=0)
 
 
+def test_a_min_neighbors_no_particle_has_is_refused_or_said_after_the_first_step():
+    """``min_neighbors=30`` (the paper's row width) against the 26 lattice neighbours within
+    h = 2 spacings dropped every particle's deformation update at every step: the box never
+    deformed elastically and slumped like a liquid, with only the guard count to say so; above
+    the row width it can never be met, and is refused. The default says nothing."""
+    model = _one_box().finalize()
+    with pytest.raises(ValueError, match=r"^min_neighbors = 97 is not allowed: must be at most the model's "
+                                         r"max_neighbors = 96"):
+        we.Solver(model, min_neighbors=97)
+    solver = we.Solver(model, min_neighbors=30)
+    a, b = model.state(), model.state()
+    with pytest.warns(RuntimeWarning, match=r"^min_neighbors = 30: every particle's deformation update was dropped in "
+                                            r"the first step.*an interior lattice particle has 26 at h = 2 spacings"):
+        solver.step(a, b, 1e-4)
+    assert solver.guard_counts()["few_neighbors"] == model.particle_count
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        we.Solver(model).step(a, b, 1e-4)
+
+
 def test_solver_rejects_bad_neighbor_skin_and_fused():
     model = _one_box().finalize()
     for bad, allowed in ((-0.1, r"must be in \[0\.0, 1\.0\]"), (1.5, r"must be in \[0\.0, 1\.0\]"),

@@ -178,6 +178,11 @@ class Solver:
         if hourglass is not None:
             checks.hourglass("hourglass", hourglass)
         self.min_neighbors = checks.positive_int("min_neighbors", min_neighbors)
+        if self.min_neighbors > model.max_neighbors:
+            # No row holds more: every deformation update would be dropped, every step.
+            raise ValueError(f"min_neighbors = {min_neighbors!r} is not allowed: must be at most the model's max_neighbors = "
+                             f"{model.max_neighbors} (a neighbour row holds no more; the default is "
+                             f"{neighbors.MIN_NEIGHBORS})")
         self.max_condition = checks.greater_than("max_condition", max_condition, 1.0, "1")
         skin = DEFAULT_SKIN if neighbor_skin is None else checks.in_range("neighbor_skin", neighbor_skin, 0.0, 1.0)
         if not isinstance(fused, bool):
@@ -322,6 +327,25 @@ class Solver:
                 RuntimeWarning,
                 stacklevel=3,
             )
+
+    def _warn_all_few(self):
+        """After the first step: every particle's fit dropped by the neighbour-count guard means
+        ``min_neighbors`` is above what any particle has (``min_neighbors=30``, the paper's row
+        width, against the 26 lattice neighbours within h = 2 spacings): the material then
+        never deforms elastically and slumps like a liquid, with only the guard count to say so."""
+        m = self.model
+        if int(self.scratch.counters.numpy()[0]) < m.particle_count:
+            return
+        r = m.support_radius / m.spacing
+        k = int(np.ceil(r))
+        o = np.arange(-k, k + 1)
+        d2 = (o[:, None, None] ** 2 + o[None, :, None] ** 2 + o[None, None, :] ** 2).ravel()
+        lattice = int(((d2 > 0) & (d2 < r * r * (1.0 - 1e-9))).sum())
+        warnings.warn(
+            f"min_neighbors = {self.min_neighbors}: every particle's deformation update was dropped in the first step, "
+            f"none having that many same-body neighbours within the support radius (an interior lattice particle has "
+            f"{lattice} at h = {r:g} spacings); the material does not deform elastically. Lower min_neighbors "
+            f"(default {neighbors.MIN_NEIGHBORS})", RuntimeWarning, stacklevel=3)
 
     def _phase(self, name: str):
         return _NO_PHASE if self.phase_times is None else self._timed_phase(name)
@@ -518,4 +542,6 @@ class Solver:
                 # Each image's hardening, blended by the share the update just wrote.
                 plasticity.launch_image_hardening_update(m, state_out)
         state_out.time = state_in.time + dt
+        if self.step_count == 0:
+            self._warn_all_few()
         self.step_count += 1
