@@ -115,6 +115,16 @@ def test_rheology_constructor_names_the_bad_parameter(kwargs, name):
         we.Material.from_rheology(1.0e5, 0.3, **kwargs)
 
 
+def test_rheology_constructor_needs_the_plastic_viscosity():
+    """Left out, the plastic viscosity was infinite: a flow rate of 0, an elastic material on
+    which the shear yield stress given had no effect. An explicit ``inf`` still says so."""
+    with pytest.raises(ValueError, match=r"^plastic_viscosity = None is not allowed in Material.from_rheology: give the "
+                                         r"Bingham plastic viscosity"):
+        we.Material.from_rheology(1.0e5, 0.3, shear_yield_stress=100.0)
+    rigid = we.Material.from_rheology(1.0e5, 0.3, uniaxial_yield_stress=100.0, plastic_viscosity=math.inf)
+    assert rigid.flow_rate == 0.0 and not rigid.plastic
+
+
 @pytest.mark.parametrize("model", ["hyperelastic", "non_newtonian"])
 def test_models_that_are_no_bingham_fluid_get_no_rheometer_quantities(model):
     """The simple-shear test of the next test on the same constants with the other flow

@@ -220,8 +220,8 @@ class Material:
         ``E`` (Pa) and ``nu`` the elastic part (as ``from_young``); exactly one of
         ``shear_yield_stress`` (Pa, a rheometer's ``tau_y``) and ``uniaxial_yield_stress``
         (Pa, a compression or tensile test's ``sigma_y``); ``plastic_viscosity`` (Pa s,
-        the Bingham ``eta_p``: ``tau = tau_y + eta_p gamma_dot`` in steady shear), which
-        sets ``flow_rate = mu / eta_p``. See the class docstring for the derivation.
+        the Bingham ``eta_p``: ``tau = tau_y + eta_p gamma_dot`` in steady shear; required,
+        ``math.inf`` for a material that never flows), which sets ``flow_rate = mu / eta_p``. See the class docstring for the derivation.
         """
         if (shear_yield_stress is None) == (uniaxial_yield_stress is None):
             raise ValueError(
@@ -241,7 +241,13 @@ class Material:
             Y = math.sqrt(2.0) * checks.non_negative("shear_yield_stress", shear_yield_stress)
         else:
             Y = math.sqrt(2.0 / 3.0) * checks.non_negative("uniaxial_yield_stress", uniaxial_yield_stress)
-        eta = checks.positive("plastic_viscosity", plastic_viscosity, allow_inf=True) if plastic_viscosity is not None else math.inf
+        if plastic_viscosity is None:
+            # Left out it was infinite: flow_rate 0, an elastic material on which the yield
+            # stress given had no effect, without a word.
+            raise ValueError("plastic_viscosity = None is not allowed in Material.from_rheology: give the Bingham plastic "
+                             "viscosity (Pa s; flow_rate = mu / plastic_viscosity), without which the material never flows "
+                             "(math.inf says so explicitly)")
+        eta = checks.positive("plastic_viscosity", plastic_viscosity, allow_inf=True)
         model = kwargs.get("model", "linear")
         checks.choice("Material.model", model, MODELS)  # a misspelt model named as such first
         checks.choice("Material.deformation", kwargs.get("deformation", "incremental"), DEFORMATIONS)
