@@ -44,6 +44,28 @@ def _run(solver, model, steps, dt, relax_after=None, every=10, state=None):
 
 
 # ------------------------------------------------------------------------- pinned sets
+def test_reaction_readings_refuse_a_state_that_is_not_the_models():
+    """``reaction_forces(None)`` and ``collider_reactions(None)`` raised an AttributeError from
+    deep inside; a state of a model without tools did too, and one of a model with another
+    static collider was read as this model's rows without a word."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), _elastic(2e4), name="d")
+    b.add_ground()
+    b.add_tool("sphere", radius=0.05, position=(0.0, 0.6, 0.0), name="ball")
+    s = we.Solver(b.finalize())
+    other = we.SceneBuilder(spacing=0.05)
+    other.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), _elastic(2e4), name="d")
+    other.add_ground()
+    other.add_box_collider((2.0, 0.0, 0.0), (0.1, 0.1, 0.1))
+    foreign = other.finalize().state()
+    for read in (s.reaction_forces, s.collider_reactions):
+        with pytest.raises(ValueError, match=r"^state = None is not allowed: must be a warp_esph.State"):
+            read(None)
+        with pytest.raises(ValueError, match=r"^state(\.tool_pose_p = None)? .*not allowed|^state does not belong to this model"):
+            read(foreign)
+    assert set(s.reaction_forces(s.model.state())) == {"ball"}
+
+
 @pytest.mark.parametrize("motion,moved", [
     (tools.Keyframes([0.0, 1.0], [(0.0, 0.0, 0.0), (0.0, 0.01, 0.0)]), "0.135"),
     (tools.Velocity((0.0, 0.1, 0.0), position=(0.0, 0.0, 0.0)), "0.135"),

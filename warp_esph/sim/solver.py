@@ -371,6 +371,8 @@ class Solver:
     def reaction_forces(self, state: State) -> dict:
         """``{tool name: (force, torque)}`` each moving collider and pinned set exerted on the
         material in the step that produced ``state`` (definitions in ``warp_esph/tools.py``)."""
+        # A state of another model was read as this one's (rows of other tools), None raised an AttributeError.
+        checks.same_state(self.model, "state", state)
         return {} if self.model.tools is None else self.model.tools.reaction(state)
 
     def collider_reactions(self, state: State) -> dict:
@@ -379,6 +381,7 @@ class Solver:
         the step that produced ``state`` (N and N m; torque about a plane's point nearest the
         origin, a sphere's or box's centre). Names ``plane<k>``, ``sphere<k>``, ``box<k>`` by
         the order each kind was added, ``w<w>/...`` with worlds (``warp_esph/sim/integrate.py``)."""
+        checks.same_state(self.model, "state", state)
         f = state.collider_force.numpy()
         tq = state.collider_torque.numpy()
         return {name: (f[r].astype(np.float64), tq[r].astype(np.float64))
