@@ -492,6 +492,47 @@ def test_numbers_beyond_float32_are_refused_by_name_before_a_kernel_runs(case, n
     build(wp.float64)
 
 
+@pytest.mark.parametrize("speed", [1e37, 3e38])
+def test_a_start_faster_than_the_step_can_follow_is_refused_before_a_step(speed, monkeypatch):
+    """A body started at 1e37 m/s (or 3e38, which fits float32) left its neighbourhood in the
+    first step and the run "passed" with guard counts: the monitor's bounds grow with the
+    initial speed. A step may carry a particle at most one spacing; the adaptive step at most
+    1e6 steps a frame. Refused before the solver's first step."""
+    from warp_esph.sim.solver import Solver  # noqa: PLC0415
+    from warp_esph.simulate import simulate  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.05, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.2, 0.0), (0.15, 0.15, 0.15), we.Material.preset("rubber"), name="d", velocity=(0.0, -speed, 0.0))
+    model = b.finalize(dtype=wp.float32)
+    steps = []
+    monkeypatch.setattr(Solver, "step", lambda *a, **k: steps.append(1))
+    with pytest.raises(ValueError, match=r"initial velocity of body 'd': a speed of [0-9.e+]+ m/s \(particle \d+\) is not "
+                                         r"allowed at dt = 0.0005 s: .* at most 100 m/s"):
+        simulate(model, 2, fps=50.0, dt=5e-4, progress=False)
+    with pytest.raises(ValueError, match=r"initial velocity of body 'd' .*with the adaptive step: .* more than 1e\+06"):
+        simulate(model, 2, fps=50.0, dt="auto", progress=False)
+    assert not steps
+    # Up to one spacing a step is allowed: 99 m/s at dt = 0.5 ms.
+    b = we.SceneBuilder(spacing=0.05, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.2, 0.0), (0.15, 0.15, 0.15), we.Material.preset("rubber"), name="d", velocity=(0.0, -99.0, 0.0))
+    simulate(b.finalize(dtype=wp.float32), 1, fps=50.0, dt=5e-4, progress=False)
+    assert len(steps) == 40
+
+
+def test_a_scene_file_body_faster_than_the_step_can_follow_is_one_line_naming_the_file(tmp_path, capsys):
+    """The scene file's velocity = [1e37, 0, 0] ran and exited 0; now exit 2 before the writer
+    replaced the file an earlier run left at the output."""
+    scene = tmp_path / "fast.toml"
+    text = STIFF_TOML.format(E=1e5).replace('material = "hard"', 'material = "hard"\nvelocity = [1e37, 0.0, 0.0]')
+    scene.write_text(text.replace('[[colliders]]\ntype = "ground"\n', ""))  # nothing in the way: it exited 0
+    out = tmp_path / "fast.usdc"
+    out.write_text("kept")
+    assert main(["run", str(scene), "-o", str(out), "--no-progress"]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert f"{scene}: [[bodies]] initial velocity of body 'box0'" in line and "1e+37 m/s" in line and "at most" in line
+    assert out.read_text() == "kept"
+
+
 @pytest.mark.parametrize("argv,needles", [
     (["run", "dough_drop", "-o", "x" * 250 + ".usdc"], ["--output = ", "bytes long, more than the"]),
     (["run", "dough_drop", "-o", "a\0b.usdc"], ["--output = ", "no NUL character"]),

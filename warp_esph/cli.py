@@ -329,7 +329,7 @@ def _cmd_run(args) -> int:
 
     _init_warp(args.device)  # refuses --device cuda where Warp finds none
     from .scenes import load_scene  # noqa: PLC0415
-    from .simulate import SimulationError, check_step_count, resolve_timestep, simulate  # noqa: PLC0415
+    from .simulate import SimulationError, check_start_speed, check_step_count, resolve_timestep, simulate  # noqa: PLC0415
     from .sim.solver import Solver  # noqa: PLC0415
     from .usd import UsdWriter  # noqa: PLC0415
 
@@ -391,6 +391,13 @@ def _cmd_run(args) -> int:
     check_step_count(frames, substeps)
     solver = Solver(model)
     solver.check_dt(dt_shown)  # the stability warning, once, before the run
+    if args.resume is None:  # before the writer replaces an earlier run's file
+        try:
+            check_start_speed(model, model.state(requires_grad=False), fps, dt, hourglass=solver.hourglass)
+        except ValueError as e:
+            if str(args.scene).lower().endswith(".toml"):
+                raise ValueError(f"{args.scene}: [[bodies]] {e}") from None
+            raise
     # Every file the run writes, checked before the run (a folder in the way of the reaction
     # log was found only after the whole run); named after the whole output path, as the writer does.
     stem = os.path.abspath(os.fspath(output))

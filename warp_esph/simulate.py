@@ -21,7 +21,7 @@ from .model import Model, State
 from .sim.solver import Solver
 
 __all__ = [
-    "simulate", "resolve_timestep", "adaptive_timestep", "SimulationError", "DivergenceMonitor", "AUTO",
+    "simulate", "resolve_timestep", "adaptive_timestep", "check_start_speed", "SimulationError", "DivergenceMonitor", "AUTO",
     "MAX_STEPS_PER_FRAME", "MAX_STEPS",
 ]
 
@@ -329,8 +329,49 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
         v_max = 0.0  # the divergence check after the frame reports it
     g = float(np.linalg.norm(model.gravity))
     dt = min(stable, courant * model.spacing / (c + v_max + g * frame_dt))
-    n = max(1, math.ceil(frame_dt / dt * (1.0 - 1e-12)))
+    ratio = frame_dt / dt * (1.0 - 1e-12)
+    if not ratio <= MAX_STEPS_PER_FRAME:
+        # A start at 1e37 m/s asked for a step of 6e-40 s, below what float32 holds, and was
+        # refused as a bad dt the user never gave.
+        fastest = courant * model.spacing * fps * MAX_STEPS_PER_FRAME - c - g * frame_dt
+        raise ValueError(
+            f"a particle speed of {v_max:.3g} m/s is not allowed with the adaptive step: it would take {ratio:.3g} steps "
+            f"a frame, more than {MAX_STEPS_PER_FRAME:.0e} (dt = C dx / (c_P + v_max + |g| / fps)), so at most "
+            f"{max(fastest, 0.0):.3g} m/s at this spacing and fps"
+        )
+    n = max(1, math.ceil(ratio))
     return n, frame_dt / n
+
+
+def check_start_speed(model: Model, state: State, fps: float, dt, hourglass: float | None = None) -> None:
+    """Refuse a start whose fastest particle the step cannot follow, before any step.
+
+    With a fixed ``dt`` a particle may move at most one spacing in a step (``|v| dt <= dx``,
+    the CFL condition of the motion itself; docs/method.md §8): farther, it passes its
+    neighbours and the colliders between two looks at them. A body started at 1e37 m/s
+    (3e38 fits float32) left its neighbourhood in the first step; every fit then failed its
+    guard and the run "passed", because the divergence monitor's bounds grow with the
+    initial speed. ``dt = AUTO``: the adaptive step follows the speed, so it is the step
+    count of the first frame that is bounded (``adaptive_timestep``)."""
+    v = state.v.numpy().astype(np.float64)
+    if not len(v):
+        return
+    speed = np.sqrt((v * v).sum(axis=1))
+    p = int(np.argmax(speed))
+    body = model.bodies[int(model.particle_body_np[p])].name
+    if isinstance(dt, str):
+        try:
+            adaptive_timestep(model, state, fps, hourglass=hourglass)
+        except ValueError as e:
+            raise ValueError(f"initial velocity of body {body!r} (particle {p}): {e}") from None
+        return
+    limit = model.spacing / dt
+    if not speed[p] <= limit:
+        raise ValueError(
+            f"initial velocity of body {body!r}: a speed of {speed[p]:.3g} m/s (particle {p}) is not allowed at "
+            f"dt = {dt:.4g} s: a step may carry a particle at most one spacing ({model.spacing:g} m), |v| dt <= dx, "
+            f"so at most {limit:.3g} m/s; give a smaller velocity (or angular_velocity), a smaller dt, or the adaptive step"
+        )
 
 
 def _frame_count(frames) -> int:
@@ -473,6 +514,8 @@ def simulate(
         initial = _first_bad(model, current)
         if initial is not None:
             raise ValueError(f"state is not allowed: it has a {initial[0]}")
+        if start_frame == 0:  # a resumed run's start was checked when its run began
+            check_start_speed(model, current, fps, AUTO if adaptive else dt, hourglass=hourglass)
         spare = model.state(requires_grad=False)
         if monitor_origin is not None:
             checks.same_state(model, "monitor_origin", monitor_origin)
