@@ -177,6 +177,57 @@ def test_scene_file_errors_name_file_table_and_key(tmp_path, old, new, pattern):
     assert str(path) in str(info.value)
 
 
+_TOOL = '[[tools]]\nshape = "sphere"\nradius = 0.05\n'
+
+
+@pytest.mark.parametrize(
+    "changes, pattern",
+    [
+        ({'preset = "dough"': 'preset = "dough"\nmu = 1e39\nlam = 1e39'},
+         r"\[materials\.m\]: mu = 1e\+39 is not allowed in float32: must be at most 3\.4e\+38"),
+        ({'preset = "dough"': 'preset = "dough"\nviscosity = 1e-39'},
+         r"\[materials\.m\]: viscosity = 1e-39 is not allowed in float32: must be 0 or at least 1\.18e-38"),
+        ({"center = [0, 0.2, 0]": "center = [1e7, 0.2, 0]"},
+         r"\[\[bodies\]\] #1 \(shape 'sphere'\): center puts particles 1e\+07 m from the origin, which is not allowed in float32"),
+        ({"radius = 0.1": "radius = 0.1\nvelocity = [1e39, 0, 0]"},
+         r"\[\[bodies\]\] #1 \(shape 'sphere'\): velocity .* beyond 3\.4e\+38 m/s, which is not allowed in float32"),
+        ({"spacing = 0.05": "spacing = 0.05\ngravity = [0, -1e39, 0]"},
+         r"\[scene\]: gravity = \[0\.0, -1e\+39, 0\.0\] is not allowed in float32"),
+        ({"spacing = 0.05": "spacing = 2e-5", "radius = 0.1": "radius = 4e-5"},
+         r"\[scene\]: support_radius = 4e-05 \(given, or 2 x spacing\) is not allowed in float32"),
+        ({"offset = 0.0": "offset = -1e39"},
+         r"\[\[colliders\]\] #1 \(type 'plane'\): offset = -1e\+39 is not allowed in float32"),
+        ({'type = "plane"\nnormal = [0, 1, 0]\noffset = 0.0': 'type = "ground"\nfriction = 1e39'},
+         r"\[\[colliders\]\] #1 \(type 'ground'\): friction = 1e\+39 is not allowed in float32"),
+        ({'type = "plane"\nnormal = [0, 1, 0]\noffset = 0.0': 'type = "ground"\nheight = -1e39'},
+         r"\[\[colliders\]\] #1 \(type 'ground'\): height = -1e\+39 is not allowed in float32"),
+        ({"[scene]": _TOOL + "position = [0, 1e20, 0]\n[scene]"},
+         r"\[\[tools\]\] #1 \(shape 'sphere'\): position = \[0\.0, 1e\+20, 0\.0\] is not allowed in float32"),
+        ({"[scene]": _TOOL + "keyframe_times = [1.0, 1.000000001]\nkeyframe_positions = [[0, 1, 0], [0, 1, 0]]\n[scene]"},
+         r"\[\[tools\]\] #1 \(shape 'sphere'\): keyframe_times = \[1\.0, 1\.000000001\] is not allowed in float32: "
+         r"1\.0 and 1\.000000001 are equal"),
+        ({"[scene]": '[[pins]]\nbody = "sphere0"\nangular_velocity = [0, 1e20, 0]\n[scene]'},
+         r"\[\[pins\]\] #1: angular_velocity = \[0\.0, 1e\+20, 0\.0\] is not allowed in float32"),
+    ],
+)
+def test_scene_file_numbers_beyond_float32_name_file_table_and_key(tmp_path, changes, pattern):
+    """finalize refuses numbers the model's precision cannot hold; for a scene file its
+    message named neither the file nor the key (``Material.mu = 1e+39 (material 0)``,
+    ``add_ground height (add_plane offset)``, ``body velocities beyond ...``). float64 takes them."""
+    import warp as wp  # noqa: PLC0415
+
+    text = BASE
+    for old, new in changes.items():
+        assert old in text
+        text = text.replace(old, new, 1)
+    path = tmp_path / "big.toml"
+    path.write_text(text)
+    scene = load_scene_file(path)
+    with pytest.raises(ValueError, match="^" + re.escape(f"{path}: ") + pattern):
+        scene.builder.finalize(dtype=wp.float32)
+    scene.builder.finalize(dtype=wp.float64)
+
+
 def test_floor_keys_build_the_same_model_as_add_particle_floor(tmp_path):
     """``floor_margin`` / ``floor_layers`` / ``floor_elastic`` on a body are
     ``SceneBuilder.add_particle_floor``: the same particles, velocities, bodies, materials

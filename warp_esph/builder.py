@@ -22,7 +22,7 @@ from .sim.neighbors import PAPER_MAX_NEIGHBORS, default_max_neighbors
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 from .material import Material
 from .meshes import lattice_points
-from .model import CONTACTS, FITS, Body, Model, check_contact_ramp, check_material_precision
+from .model import CONTACTS, FITS, Body, Model, check_contact_ramp, material_precision_problem
 
 #: Allowed support radius, in units of the spacing. Below 1.5 dx an interior particle
 #: sees only its 6 face neighbours; above 3 dx a particle has more than 120 neighbours
@@ -158,6 +158,13 @@ class SceneBuilder:
         self.pins: list[tools.PinSet] = []
         self._count = 0
         self._floors: set[str] = set()
+        #: The scene file this builder was read from (``load_scene_file``; None: built in
+        #: Python), and where in it each part was given: ``("scene",)``, ``("material", k)``,
+        #: ``("body", k)``, ``("plane" | "sphere" | "box", k)``, ``("tool" | "pin", name)`` ->
+        #: its table (``"[[bodies]] #2 (shape 'box')"``). ``finalize`` checks the precision only
+        #: then, and a refusal names the file and the key, as the loader's own do.
+        self.source: str | None = None
+        self.origins: dict[tuple, str] = {}
 
     # ----------------------------------------------------------------- bodies
     def _center(self, center) -> np.ndarray:
@@ -685,82 +692,136 @@ class SceneBuilder:
                 f"the other (at {np.round(points[clash[0]], 4).tolist()}); move them at least one spacing apart"
             )
 
+    def _refuse(self, origin: tuple, api: str, key: str):
+        """Raise the precision refusal ``api`` (worded for the Python API), or, for a builder read
+        from a scene file, ``key`` (worded for the file's keys) after the file and the table
+        ``origin`` names (a float32 refusal of a file's mu = 1e39 named neither)."""
+        if self.source is None:
+            raise ValueError(api)
+        where = self.origins.get(origin)
+        raise ValueError(f"{self.source}: {where}: {key}" if where is not None else f"{self.source}: {api}")
+
+    def _body_at(self, i: int) -> tuple[int, str]:
+        """``(body index, the file's key that places it)`` of particle ``i``."""
+        for k, b in enumerate(self._bodies):
+            if b.start <= i < b.start + b.count:
+                return k, "translation" if b.kind == "mesh" else "center"
+        return -1, "center"
+
     def _check_precision(self, scalar):
         """Every material parameter and position fits the precision: 1e300 Pa cast to float32
         became inf in the model without a word."""
         big = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).max)
+        T = scalar.__name__
+        hint = "use dtype=float64 (--dtype float64) or a smaller value"
         for k, m in enumerate(self._materials):
-            check_material_precision(m, scalar, f" (material {k})")
-        if self._points and np.abs(np.concatenate(self._points)).max() > big:
-            raise ValueError(f"positions beyond {big:.3g} m are not allowed in {scalar.__name__}")
+            problem = material_precision_problem(m, scalar)
+            if problem is not None:
+                name, v, why = problem
+                self._refuse(("material", k), f"Material.{name} = {v:g} (material {k}) is not allowed in {T}: {why}",
+                             f"{name} = {v:g} is not allowed in {T}: {why}")
+        points = np.concatenate(self._points) if self._points else np.zeros((0, 3))
+        if len(points) and np.abs(points).max() > big:
+            i = int(np.argmax(np.abs(points).max(axis=1)))
+            k, key = self._body_at(i)
+            self._refuse(("body", k), f"positions beyond {big:.3g} m are not allowed in {T}",
+                         f"{key} puts particles beyond {big:.3g} m (one at {tuple(points[i].tolist())!r}), which is not "
+                         f"allowed in {T}: {hint}")
         # The kernels' constants are powers of the support radius (poly6's 1 / h^9): below
         # h = 5.7e-5 m h^9 left float32's normal range and the first step wrote NaN positions.
         tiny = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).tiny)
         h = float(self.support_radius)
         if not tiny ** (1 / 9) <= h <= big ** (1 / 9):  # h itself: h ** 9 overflowed a float beyond 1e34
-            raise ValueError(f"support_radius = {h!r} is not allowed in {scalar.__name__}: the kernels' constants "
-                             f"(1 / h^9) must fit the precision, so it must be in [{tiny ** (1 / 9):.3g}, "
-                             f"{big ** (1 / 9):.3g}] m; use dtype=float64 (or larger units)")
+            why = (f"is not allowed in {T}: the kernels' constants (1 / h^9) must fit the precision, so it must be in "
+                   f"[{tiny ** (1 / 9):.3g}, {big ** (1 / 9):.3g}] m; use dtype=float64")
+            self._refuse(("scene",), f"support_radius = {h!r} {why} (or larger units)",
+                         f"support_radius = {h!r} (given, or 2 x spacing) {why} (--dtype float64) or larger units")
         # The static colliders' sizes and places enter the contact squared: 1e300 m (or 1e40 m
         # in float32) turned every particle's position into NaN in the first step.
         far = math.sqrt(big)
-        kinds = (("add_ground", self.planes, (("height (add_plane offset)", "offset"),)),
-                 ("add_sphere_collider", self.spheres, (("center", "center"), ("radius", "radius"))),
-                 ("add_box_collider", self.boxes, (("center", "center"), ("half_extents", "half_extents"))))
-        for call, items, fields in kinds:
-            for item in items:
-                for label, field in fields:
+        kinds = (("plane", "add_ground", self.planes, (("height (add_plane offset)", "offset", "offset"),)),
+                 ("sphere", "add_sphere_collider", self.spheres, (("center", "center", "center"), ("radius", "radius", "radius"))),
+                 ("box", "add_box_collider", self.boxes, (("center", "center", "center"),
+                                                         ("half_extents", "half_extents", "half_extents"))))
+        for kind, call, items, fields in kinds:
+            for j, item in enumerate(items):
+                for label, key, field in fields:
+                    if kind == "plane" and "(type 'ground')" in self.origins.get((kind, j), ""):
+                        key = "height"  # a ground is the plane y = height
                     v = getattr(item, field)
                     if np.abs(np.asarray(v, dtype=np.float64)).max() > far:
-                        raise ValueError(f"{call} {label} = {v!r} is not allowed in {scalar.__name__}: must be at most "
-                                         f"{far:.3g} in size; use dtype=float64 or a smaller value")
+                        why = f"is not allowed in {T}: must be at most {far:.3g} in size; {hint}"
+                        self._refuse((kind, j), f"{call} {label} = {v!r} {why}", f"{key} = {v!r} {why}")
                 if item.friction > big:
-                    raise ValueError(f"{call} friction = {item.friction!r} is not allowed in {scalar.__name__}: must be at "
-                                     f"most {big:.3g}")
+                    why = f"is not allowed in {T}: must be at most {big:.3g}"
+                    self._refuse((kind, j), f"{call} friction = {item.friction!r} {why}", f"friction = {item.friction!r} {why}")
         # Positions must also resolve the spacing: at 1e7 m a float32 lattice 5 cm apart fell
         # onto 16 points and every fit was ill-conditioned, without a word.
-        if self._points:
-            reach = float(np.abs(np.concatenate(self._points)).max())
+        if len(points):
+            i = int(np.argmax(np.abs(points).max(axis=1)))
+            reach = float(np.abs(points[i]).max())
             eps = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).eps)
             if reach * eps > 1e-2 * self.spacing:
-                raise ValueError(f"positions {reach:.3g} m from the origin are not allowed in {scalar.__name__}: it resolves "
-                                 f"{reach * eps:.2g} m there, more than a hundredth of the spacing {self.spacing:g}; move "
-                                 "the scene nearer the origin or use dtype=float64")
+                why = (f"{T} resolves {reach * eps:.2g} m there, more than a hundredth of the spacing {self.spacing:g}; "
+                       "move the scene nearer the origin or use dtype=float64 (--dtype float64)")
+                k, key = self._body_at(i)
+                self._refuse(("body", k), f"positions {reach:.3g} m from the origin are not allowed in {T}: it resolves "
+                             f"{reach * eps:.2g} m there, more than a hundredth of the spacing {self.spacing:g}; move "
+                             "the scene nearer the origin or use dtype=float64",
+                             f"{key} puts particles {reach:.3g} m from the origin, which is not allowed in {T}: {why}")
         # Gravity, the bodies' velocities and the tools' poses, sizes and motions are numbers of
         # this precision in the step too (gravity 1e39 in float32 was inf in the first kernel, a
         # tool at 1e39 m wrote NaN poses and the run exited 0).
         if np.abs(self.gravity).max() > big:
-            raise ValueError(f"gravity = {self.gravity!r} is not allowed in {scalar.__name__}: must be at most {big:.3g}")
+            why = f"is not allowed in {T}: must be at most {big:.3g}"
+            self._refuse(("scene",), f"gravity = {self.gravity!r} {why}", f"gravity = {list(self.gravity)!r} {why}")
         # A field's acceleration is strength times a distance from its center: 1e39 (or a
         # center 1e300 m out) wrote NaN positions in the first step.
         for fld in self.force_fields:
             for label, v in (("center", fld.center), ("strength", fld.strength)):
                 if np.abs(np.asarray(v, dtype=np.float64)).max() > far:
-                    raise ValueError(f"CompressionField.{label} = {v!r} is not allowed in {scalar.__name__}: must be at "
+                    raise ValueError(f"CompressionField.{label} = {v!r} is not allowed in {T}: must be at "
                                      f"most {far:.3g} in size; use dtype=float64 or a smaller value")
             finite_times = [t for t in (fld.t_on, fld.t_off) if math.isfinite(t)]
             if finite_times and max(abs(t) for t in finite_times) > big:
                 raise ValueError(f"CompressionField times ({fld.t_on!r}, {fld.t_off!r}) are not allowed in "
-                                 f"{scalar.__name__}: must be at most {big:.3g} s")
-        if self._velocities and np.abs(np.concatenate(self._velocities)).max() > big:
-            raise ValueError(f"body velocities beyond {big:.3g} m/s are not allowed in {scalar.__name__}")
+                                 f"{T}: must be at most {big:.3g} s")
+        velocities = np.concatenate(self._velocities) if self._velocities else np.zeros((0, 3))
+        if len(velocities) and np.abs(velocities).max() > big:
+            k, _ = self._body_at(int(np.argmax(np.abs(velocities).max(axis=1))))
+            self._refuse(("body", k), f"body velocities beyond {big:.3g} m/s are not allowed in {T}",
+                         f"velocity (with angular_velocity) gives speeds beyond {big:.3g} m/s, which is not allowed in "
+                         f"{T}: {hint}")
+        keys = {"velocity": "velocity", "angular_velocity": "angular_velocity", "position": "position",
+                "positions": "keyframe_positions", "times": "keyframe_times"}
         for t in [*self.tools, *self.pins]:
             m = t.motion
             kind = "tool" if t in self.tools else "pinned set"
+            origin = ("tool" if t in self.tools else "pin", t.name)
             for field in ("velocity", "angular_velocity", "position", "positions", "times"):
                 v = getattr(m, field, None)
                 if v is not None and np.abs(np.asarray(v, dtype=np.float64)).max() > far:
-                    raise ValueError(f"{kind} {t.name!r}: {type(m).__name__} {field} = {v!r} is not allowed in "
-                                     f"{scalar.__name__}: must be at most {far:.3g} in size; use dtype=float64 or a smaller value")
+                    why = f"is not allowed in {T}: must be at most {far:.3g} in size; {hint}"
+                    self._refuse(origin, f"{kind} {t.name!r}: {type(m).__name__} {field} = {v!r} {why}",
+                                 f"{keys[field]} = {checks.shorten(np.asarray(v).tolist())!r} {why}")
+            if isinstance(m, tools.Keyframes):
+                why = tools.keyframe_times_problem(m.times, np.float32 if scalar is wp.float32 else np.float64)
+                if why is not None:
+                    shown = checks.shorten(list(m.times))
+                    why = f"is not allowed in {T}: {why}; use dtype=float64 or times further apart"
+                    self._refuse(origin, f"{kind} {t.name!r}: Keyframes times = {shown!r} {why}",
+                                 f"keyframe_times = {shown!r} {why}")
             param = getattr(t, "param", None)
             if param is not None and np.abs(np.asarray(param, dtype=np.float64)).max() > far:
-                raise ValueError(f"tool {t.name!r}: a size of {np.abs(np.asarray(param)).max():.3g} m is not allowed in "
-                                 f"{scalar.__name__}: must be at most {far:.3g}")
+                size = np.abs(np.asarray(param)).max()
+                why = f"is not allowed in {T}: must be at most {far:.3g}"
+                self._refuse(origin, f"tool {t.name!r}: a size of {size:.3g} m {why}",
+                             f"a size (radius, half_extents, half_height or scale) of {size:.3g} m {why}")
             for label in ("friction", "static_friction"):
                 mu = getattr(t, label, None)
                 if mu is not None and mu > big:
-                    raise ValueError(f"tool {t.name!r}: {label} = {mu!r} is not allowed in {scalar.__name__}: must be at "
-                                     f"most {big:.3g}")
+                    why = f"is not allowed in {T}: must be at most {big:.3g}"
+                    self._refuse(origin, f"tool {t.name!r}: {label} = {mu!r} {why}", f"{label} = {mu!r} {why}")
 
     def finalize(self, device="cpu", dtype=wp.float32, requires_grad: bool = False, worlds: int = 1) -> Model:
         """Builds the ``Model`` on ``device`` in precision ``dtype`` (float32 or float64).

@@ -47,20 +47,27 @@ CONTACTS = {"instant": INSTANT_CONTACT_RAMP, "continuous": CONTINUOUS_CONTACT_RA
 MAX_CONTACT_RAMP = 10.0
 
 
-def check_material_precision(material: Material, scalar, where: str = "") -> None:
-    """Every parameter of ``material`` holds in ``scalar``: 1e300 Pa cast to float32 became
-    inf, 1e-300 Pa became 0 (a modulus of nothing, NaN by the third step), without a word.
-    ``where`` follows the field in the message (``" (material 0)"``)."""
+def material_precision_problem(material: Material, scalar) -> tuple[str, float, str] | None:
+    """``(field, value, what is allowed)`` of the first parameter of ``material`` that does not
+    hold in ``scalar``, or None (``check_material_precision``)."""
     info = np.finfo(np.float32 if scalar is wp.float32 else np.float64)
     tiny, big = float(info.tiny), float(info.max)
     for name in (*Model.MATERIAL_FIELDS, "density"):
         v = getattr(material, name)
         if math.isfinite(v) and abs(v) > big:
-            why = f"must be at most {big:.3g}; use dtype=float64 or a smaller value"
-        elif v != 0.0 and abs(v) < tiny:
-            why = f"must be 0 or at least {tiny:.3g} in size; use dtype=float64 or a larger value"
-        else:
-            continue
+            return name, v, f"must be at most {big:.3g}; use dtype=float64 or a smaller value"
+        if v != 0.0 and abs(v) < tiny:
+            return name, v, f"must be 0 or at least {tiny:.3g} in size; use dtype=float64 or a larger value"
+    return None
+
+
+def check_material_precision(material: Material, scalar, where: str = "") -> None:
+    """Every parameter of ``material`` holds in ``scalar``: 1e300 Pa cast to float32 became
+    inf, 1e-300 Pa became 0 (a modulus of nothing, NaN by the third step), without a word.
+    ``where`` follows the field in the message (``" (material 0)"``)."""
+    problem = material_precision_problem(material, scalar)
+    if problem is not None:
+        name, v, why = problem
         raise ValueError(f"Material.{name} = {v:g}{where} is not allowed in {scalar.__name__}: {why}")
 
 

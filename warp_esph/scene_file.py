@@ -334,6 +334,7 @@ def _body(file: str, k: int, table: dict, builder: SceneBuilder, materials: dict
                 raise ValueError("floor_" + msg if msg.startswith(("margin = ", "layers = ", "elastic = ", "ghost = ", "slip = ")) else msg) from None
     except ValueError as e:
         raise ValueError(f"{file}: {where}: {e}") from None
+    builder.origins[("body", index)] = where
 
 
 def _collider(file: str, k: int, table: dict, builder: SceneBuilder):
@@ -351,6 +352,8 @@ def _collider(file: str, k: int, table: dict, builder: SceneBuilder):
             builder.add_box_collider(**args)
     except ValueError as e:
         raise ValueError(f"{file}: {where}: {e}") from None
+    kind = {"ground": "plane"}.get(kind, kind)
+    builder.origins[(kind, len({"plane": builder.planes, "sphere": builder.spheres, "box": builder.boxes}[kind]) - 1)] = where
 
 
 def _motion(args: dict):
@@ -401,6 +404,7 @@ def _tool(file: str, k: int, table: dict, builder: SceneBuilder, base_dir: str):
         builder.add_tool(shape, motion=motion, **args)
     except ValueError as e:
         raise ValueError(f"{file}: {where}: {e}") from None
+    builder.origins[("tool", builder.tools[-1].name)] = where
 
 
 def _pin(file: str, k: int, table: dict, builder: SceneBuilder):
@@ -412,6 +416,7 @@ def _pin(file: str, k: int, table: dict, builder: SceneBuilder):
         builder.pin(args.pop("indices", None), motion=motion, **args)
     except ValueError as e:
         raise ValueError(f"{file}: {where}: {e}") from None
+    builder.origins[("pin", builder.pins[-1].name)] = where
 
 
 def load_scene_file(path, scale: float = 1.0) -> Scene:
@@ -482,6 +487,9 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
             dt = checks.positive("dt", dt)
     except ValueError as e:
         raise ValueError(f"{file}: [scene]: {e}") from None
+    # finalize checks the numbers against the model's precision; its refusals name the file too.
+    builder.source = file
+    builder.origins[("scene",)] = "[scene]"
 
     materials = {name: _material(file, name, table) for name, table in materials_table.items()}
     base_dir = os.path.dirname(os.path.abspath(file))
@@ -493,6 +501,10 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
         _tool(file, k, table, builder, base_dir)
     for k, table in enumerate(pin_tables):
         _pin(file, k, table, builder)
+    for name, material in materials.items():
+        for k, used in enumerate(builder._materials):
+            if used is material:
+                builder.origins[("material", k)] = f"[materials.{name}]" if name in materials_table else f"material {name!r}"
     name = scene.get("name")
     if name is not None and (not name.strip() or name in (".", "..") or any(c in name for c in "/\\\0")):
         # The name makes the default output <name>.usdc: '../../x' wrote two folders up.

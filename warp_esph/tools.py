@@ -788,6 +788,19 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
 
 
 # --------------------------------------------------------------------------- tool set
+def keyframe_times_problem(times, npf) -> str | None:
+    """Why keyframe ``times`` (increasing in float64) are not increasing and finite once cast to
+    the numpy type ``npf``, or None."""
+    cast = np.asarray(times, dtype=np.float64).astype(npf)
+    bad = np.nonzero(~(np.diff(cast) > 0.0))[0]
+    prec = np.dtype(npf).name
+    if bad.size:
+        return f"{times[bad[0]]!r} and {times[bad[0] + 1]!r} are equal in {prec}"
+    if not np.isfinite(cast).all():
+        return f"they are beyond the {prec} range"
+    return None
+
+
 class ToolSet:
     """The model's moving colliders and pinned sets (``model.tools``), and their arrays.
 
@@ -934,14 +947,10 @@ class ToolSet:
         """Keyframe times that are increasing in float64 may not be in the model's precision
         (1.0 and 1.0 + 1e-9 in float32): refused here, naming the user's times, rather than at
         the first step as 'not increasing' times the user never gave."""
-        cast = np.asarray(times, dtype=np.float64).astype(npf)
-        bad = np.nonzero(~(np.diff(cast) > 0.0))[0]
-        if bad.size or not np.isfinite(cast).all():
-            prec = np.dtype(npf).name
-            why = (f"{times[bad[0]]!r} and {times[bad[0] + 1]!r} are equal in {prec}" if bad.size
-                   else f"they are beyond the {prec} range")
+        why = keyframe_times_problem(times, npf)
+        if why is not None:
             raise ValueError(f"{self._owner(k)}: Keyframes times = {checks.shorten(list(times))!r} is not allowed in "
-                             f"{prec}: {why}; use dtype=float64 or times further apart")
+                             f"{np.dtype(npf).name}: {why}; use dtype=float64 or times further apart")
 
     def _scripted_pose(self, k: int, t: float):
         """Tool ``k``'s ``Scripted`` pose at ``t``, checked against the model's precision (a
