@@ -229,3 +229,31 @@ def test_an_interrupted_export_keeps_its_finished_frames_whole_and_listed(tmp_pa
                         ("", "output = '' is not allowed: must be a path")):
         with pytest.raises(ValueError, match=needle):
             export_frames(path, "vtu", bad)
+
+
+def test_export_says_nothing_of_a_stored_view_it_does_not_use(tmp_path, capsys):
+    """The run's suggested camera view is render's: export warned that a file's NaN view was
+    'left out' of an export that never reads it. Render still warns (test_render)."""
+    import warnings  # noqa: PLC0415
+
+    from pxr import Vt  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.15, 0.15, 0.15), we.Material.preset("dough"), name="block")
+    model = b.finalize()
+    path = tmp_path / "v.usda"
+    with we.UsdWriter(path, model, 30.0) as writer:
+        writer.write_frame(0, model.state())
+    layer = Sdf.Layer.FindOrOpen(str(path))
+    layer.customLayerData = {**dict(layer.customLayerData), "warp_esph:view": Vt.DoubleArray([np.nan, 20.0])}
+    layer.Save()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        export_frames(path, "ply", tmp_path / "ply")
+    capsys.readouterr()
+    assert main(["export", str(path), "--format", "vtu", "-o", str(tmp_path / "vtu")]) == 0
+    out = capsys.readouterr()
+    assert "warning" not in out.err and "view" not in out.err + out.out
+    assert (tmp_path / "vtu" / "frame_00000.vtu").is_file()
+    with pytest.warns(UserWarning, match=r"v.usda: its warp_esph:view = \[nan, 20.0\] is no"):
+        assert UsdFrames(path).view is None  # read where it is used

@@ -777,7 +777,8 @@ class UsdFrames:
                              "number > 0 (the frames per second)")
         self.fps = rate
         data = dict(self.stage.GetRootLayer().customLayerData or {})
-        self.view = None if data.get(_VIEW) is None else _read_view(self.path, data.get(_VIEW))
+        # Read where it is used (render): export and fit read no view, yet warned about a bad one.
+        self._stored_view = data.get(_VIEW)
         self.bodies = []       # (name, prim)
         for prim in self.stage.GetPrimAtPath(_ROOT).GetChildren() if self.stage.GetPrimAtPath(_ROOT) else []:
             if prim.IsA(UsdGeom.Points):
@@ -820,6 +821,14 @@ class UsdFrames:
         for name, _ in self.bodies:
             prim = self.stage.GetPrimAtPath(surface_prim_path(name))
             self.surface_prims.append(prim if prim and prim.IsA(UsdGeom.Mesh) else None)
+
+    @property
+    def view(self) -> tuple[float, float] | None:
+        """The ``(azimuth, elevation)`` the file suggests (``_read_view``: None, with a warning
+        naming the file, where it holds no pair of finite degrees), read on first use."""
+        if not hasattr(self, "_view"):
+            self._view = None if self._stored_view is None else _read_view(self.path, self._stored_view)
+        return self._view
 
     @property
     def has_surfaces(self) -> bool:
