@@ -9,6 +9,7 @@ checked in float64 against central differences.
 import dataclasses
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -1097,3 +1098,47 @@ def test_second_review_of_the_losses_round(tmp_path, dropped_cube):
         SilhouetteLoss({2: [np.zeros((24, 32))]}, [c], 0.01, frames=7)
     with pytest.raises(ValueError, match="targets is not allowed: give an array"):
         PositionLoss([[0.0, 0.0, 0.0], [0.0, 0.0]], frames=[1, 2])
+
+
+def test_a_target_without_frame_numbers_says_which_frames_it_is_read_as(tmp_path, capsys, dough_scene):
+    """A .npy (or an .npz without 'frames') that leaves out frame 0 was read one frame early,
+    silently: its first entry as frame 0, which is not fitted, every later one a frame before
+    its time, exit 0. The plan now says which frames the entries are read as and how far the
+    one read as frame 0 lies from the scene's start, and ``--target-frames A:B`` names them."""
+    from warp_esph.cli import main
+
+    scene = tmp_path / "truth.toml"
+    scene.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0, frames=3))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(scene), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
+    from warp_esph.fit import load_target
+
+    whole = load_target(run, frames="all")
+    assert whole.frames == [0, 1, 2, 3]
+    np.save(tmp_path / "from1.npy", whole.data[1:])
+    np.save(tmp_path / "all.npy", whole.data)
+
+    def fit_to(*target):
+        out = tmp_path / "fit"
+        capsys.readouterr()
+        assert main(["fit", str(scene), "--target", *target, "--iterations", "0", "--no-diagnostics", "--no-usd",
+                     "--no-progress", "--output-dir", str(out)]) == 0
+        return capsys.readouterr().err, json.loads((out / "fit.json").read_text())
+
+    err, doc = fit_to(str(tmp_path / "from1.npy"))
+    assert "from1.npy: a .npy holds no frame numbers; its 3 entries are read as frames 0 to 2, entry 0 as frame 0" in err, err
+    lies = re.search(r"\(it lies ([0-9.e+-]+) spacings RMS from the scene's initial positions\)", err)
+    assert lies and float(lies.group(1)) > 1.0, err  # a frame later, at 1 m/s: 3.3 cm, 1.7 spacings
+    assert "name them with --target-frames (e.g. 1:3 for frames 1 to 3)" in err, err
+    assert doc["target_frames"] == [[0, 1, 2]] and doc["initial_loss"] > 1e-5
+    err, doc = fit_to(str(tmp_path / "all.npy"))
+    assert "(it lies 0 spacings RMS from the scene's initial positions)" in err, err
+    # Named, the same entries are the run's frames 1 to 3: the truth's own run matches them.
+    err, doc = fit_to(str(tmp_path / "from1.npy"), "--target-frames", "1:3")
+    assert "its 3 entries are read as frames 1, 2, 3 (--target-frames)" in err, err
+    assert doc["target_frames"] == [[1, 2, 3]] and doc["initial_loss"] < 1e-20
+    capsys.readouterr()
+    assert main(["fit", str(scene), "--target", str(tmp_path / "from1.npy"), "--target-frames", "1,1,2",
+                 "--no-progress", "--output-dir", str(tmp_path / "fit")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--target-frames = '1,1,2' is not allowed: it names a frame twice" in err, err

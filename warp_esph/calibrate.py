@@ -208,16 +208,19 @@ def run_fit(args, out=None, err=None) -> int:
         waiting.append(f"{e.scene.name}: {e.model.particle_count} particles, {e.frames} frames at {e.fps:g} fps, "
                        f"dt = {e.dt:.4g} s ({e.frames * e.substeps} steps); fitting {', '.join(params)} with "
                        f"{optimizer} to {e.kinds} from {', '.join(str(p) for p in e.targets)}")
+        waiting.extend(e.readings)
     experiments = [Experiment(e.model, e.loss, steps=e.frames * e.substeps, dt=e.dt, materials=e.materials,
                               checkpoint_every=ck, weight=e.weight, noise=e.noise, name=e.scene.name,
                               monitor_exempt=tuple(getattr(e.scene, "diverges", ()) or ())) for e in exps]
     scene, model, frames, fps, dt = exps[0].scene, exps[0].model, exps[0].frames, exps[0].fps, exps[0].dt
     scale = exps[0].scale
     targets = exps[0].targets
-    meta = {"scene": scene.name, "scale": scale, "targets": [os.path.abspath(str(p)) for p in targets], "fps": fps, "dt": dt,
+    meta = {"scene": scene.name, "scale": scale, "targets": [os.path.abspath(str(p)) for p in targets],
+            "target_frames": exps[0].target_frames, "fps": fps, "dt": dt,
             "frames": frames, "params_fitted": params, "optimizer": optimizer, "jitter": jitter, "loss_scale": loss_scale,
             "support_radius": model.support_radius,
             "experiments": [{"scene": e.scene.name, "scale": e.scale, "targets": [os.path.abspath(str(p)) for p in e.targets],
+                             "target_frames": e.target_frames,
                              "fps": e.fps, "dt": e.dt, "frames": e.frames, "weight": e.weight, "noise": e.noise}
                             for e in exps]}
     try:
@@ -359,6 +362,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     cameras = spec.get("cameras")
     loaded = []
     any_usd = False
+    numbered = set()  # targets without frame numbers of their own that --target-frames numbered
     for k, path in enumerate(targets):
         fspec = tframes[k] if len(tframes) > 1 else (tframes[0] if tframes else None)
         if cameras:
@@ -397,17 +401,35 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             t.frames = chosen
         elif fspec is not None and usd_spec is None:
             try:
-                chosen = [int(f) for f in str(fspec).split(",")]
+                chosen = []
+                for part in str(fspec).split(","):
+                    bits = part.split(":")
+                    if len(bits) == 1:
+                        chosen.append(int(part))
+                    elif len(bits) in (2, 3):
+                        # A:B[:STEP], both ends given (B included): the frames of a file of many
+                        # entries, which stores none of its own, without writing each out.
+                        a, b, step = int(bits[0]), int(bits[1]), int(bits[2]) if len(bits) == 3 else 1
+                        if step < 1 or b < a:
+                            raise ValueError
+                        chosen.extend(range(a, b + 1, step))
+                    else:
+                        raise ValueError
                 if min(chosen) < 0:
                     raise ValueError
             except ValueError:
                 # -1 ended in a KeyError traceback (.npz) or was dropped (a force log).
                 raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: use comma-separated frame "
-                                 "indices >= 0") from None
+                                 "indices >= 0 or ranges A:B[:STEP] (B included)") from None
             t.frames = chosen
+            numbered.add(id(t))
             if t.kind == "positions" and len(t.frames) != np.asarray(t.data).shape[0]:
-                raise ValueError(f"{where}--target-frames has {len(t.frames)} entries, the target "
-                                 f"{np.asarray(t.data).shape[0]} frames")
+                raise ValueError(f"{where}--target-frames = {fspec!r} names {len(t.frames)} frames, the target {path} "
+                                 f"holds {np.asarray(t.data).shape[0]} (one frame number per entry, in order)")
+            if t.kind == "positions" and len(set(t.frames)) != len(t.frames):
+                # Two entries named as one frame: the later one silently replaced the earlier.
+                raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: it names a frame twice, and "
+                                 f"each entry of the target {path} is one frame")
         loaded.append(("file", path, t))
     file_targets = [t for kind, _, t in loaded if kind == "file"]
     fps = spec.get("fps")
@@ -450,6 +472,9 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             frame_steps = {f: f * substeps for f in t.frames if f > 0 or t.kind not in ("positions", "forces")}
             term = t.loss(model, frame_steps, radius=args.radius, mode=args.mesh_mode)
         loss = term if loss is None else loss + term
+    readings = [_frame_reading(path, t, id(t) in numbered, model)
+                for kind, path, t in loaded if kind == "file" and t.kind == "positions" and not t.frames_stored
+                and os.path.splitext(str(path))[1].lower() not in (".usd", ".usda", ".usdc")]
     materials = spec.get("material")
     if materials:
         materials = [int(m) if str(m).isdigit() else m for m in materials]
@@ -474,8 +499,33 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     noise = spec.get("noise")
     return types.SimpleNamespace(scene=scene, model=model, loss=loss, frames=frames, fps=fps, dt=dt, substeps=substeps,
                                  materials=materials, kinds=kinds, targets=targets, scale=scale,
+                                 readings=readings, target_frames=[None if kind == "silhouette" else list(t.frames)
+                                                                   for kind, _, t in loaded],
                                  weight=checks.positive(f"{where}weight", spec.get("weight", 1.0)),
                                  noise=None if noise is None else checks.noise(f"{where}noise", noise))
+
+
+def _frame_reading(path, t, numbered: bool, model) -> str:
+    """The plan's line on which frames a positions target without frame numbers of its own
+    (an ``.npy``, an ``.npz`` without ``frames``) is read as. Such a file that starts at frame
+    1 was read one frame early, silently: its first entry as frame 0, which is not fitted, and
+    every later entry one frame before its time. The entry read as frame 0 is set beside the
+    scene's initial positions, which it should be, so that such a shift shows."""
+    entries = np.asarray(t.data).shape[0]
+    what = "a .npy" if str(path).lower().endswith(".npy") else "an .npz without 'frames'"
+    if numbered:
+        return (f"target {path}: {what} holds no frame numbers; its {entries} entries are read as frames "
+                f"{', '.join(map(str, t.frames))} (--target-frames)")
+    if entries == 1 and t.frames and len(t.frames) == 1 and t.frames[0] != 0:
+        return f"target {path}: {what} holds no frame numbers; its one frame of positions is read as the run's last frame, {t.frames[0]}"
+    line = (f"target {path}: {what} holds no frame numbers; its {entries} entries are read as frames 0 to {entries - 1}, "
+            "entry 0 as frame 0, the initial state, which is not fitted")
+    first = np.asarray(t.data)[0]
+    x0 = np.asarray(model.particle_x0, dtype=np.float64)
+    if first.shape == x0.shape:
+        rms = float(np.sqrt(np.mean(np.sum((first - x0) ** 2, axis=1))))
+        line += f" (it lies {rms / model.spacing:.3g} spacings RMS from the scene's initial positions)"
+    return line + f"; if they are other frames, name them with --target-frames (e.g. 1:{entries} for frames 1 to {entries})"
 
 
 def write_outputs(result, folder, meta: dict | None = None, json_path: str | None = None) -> list[str]:
