@@ -1142,3 +1142,21 @@ def test_a_target_without_frame_numbers_says_which_frames_it_is_read_as(tmp_path
                  "--no-progress", "--output-dir", str(tmp_path / "fit")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--target-frames = '1,1,2' is not allowed: it names a frame twice" in err, err
+
+
+def test_targets_that_record_different_rates_are_refused(tmp_path, capsys, dough_scene):
+    """Two targets recording 30 and 60 fps: the first one's rate was taken for both, and the
+    second was fitted at other times than it was recorded, exit 0."""
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
+    for name, rate in (("a", 30.0), ("b", 60.0)):
+        np.savez(tmp_path / f"{name}.npz", positions=np.zeros((2, 64, 3)), frames=[1, 2], fps=rate)
+    capsys.readouterr()
+    assert main(["fit", str(guess), "--target", str(tmp_path / "a.npz"), "--target", str(tmp_path / "b.npz"),
+                 "--no-progress", "--output-dir", str(tmp_path / "fit")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"target {tmp_path / 'b.npz'} is not allowed beside the target {tmp_path / 'a.npz'}: " \
+                                   "it was recorded at 60 fps, the other at 30 fps" in err, err
+    assert not (tmp_path / "fit").exists()

@@ -463,3 +463,41 @@ def test_a_force_log_frame_steps_and_path_are_checked_by_name(tmp_path):
     binary.write_bytes(b"frame,time,tool,fx,fy,fz\n" + bytes(range(128, 256)))
     with pytest.raises(ValueError, match=r"^force log .*binary\.csv cannot be read: .*\(a damaged or foreign file\?\)"):
         ReactionForceLoss.from_csv(binary, "plane0", {1: 10})
+
+
+def test_a_force_log_whose_times_imply_another_rate_than_the_fit_is_refused_naming_the_column(tmp_path, capsys,
+                                                                                                dough_scene):
+    """A force log timed in milliseconds implied 0.03 fps: the plan line said so and the fit
+    ran, 33 s frames of about 17,000 steps each, exit 0. The rate a log's times imply must now
+    be the fit's: the scene's, the rate another target records, or --fps, which states it."""
+    from warp_esph.cli import main  # noqa: PLC0415
+
+    scene = tmp_path / "guess.toml"
+    scene.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    ms = _tools_csv(tmp_path / "ms.csv", ["0,0,plane0,0,0,0", "1,33.333333333333336,plane0,0,1.5,0",
+                                          "2,66.66666666666667,plane0,0,2.5,0"])
+    at60 = _tools_csv(tmp_path / "at60.csv", ["0,0,plane0,0,0,0", "1,0.016666666666666666,plane0,0,1.5,0",
+                                              "2,0.03333333333333333,plane0,0,2.5,0"])
+    common = ["--iterations", "0", "--no-diagnostics", "--no-usd", "--no-progress"]
+
+    def refused(*argv):
+        capsys.readouterr()
+        out = tmp_path / "fit"
+        assert main(["fit", str(scene), *argv, *common, "--output-dir", str(out)]) == 2
+        assert not out.exists()  # refused before the fit
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1, err
+        return err
+
+    err = refused("--target", str(ms))
+    assert f"target {ms} is not allowed: its column 'time' implies 0.03 fps (frame 2 at time = 66.6667), not the " \
+           "scene's 30 fps; times are seconds, frame / fps (a log timed in milliseconds" in err, err
+    err = refused("--target", str(ms), "--fps", "30")
+    assert f"--fps = 30.0 is not allowed: the force log {ms} says otherwise: its column 'time' implies 0.03 fps" in err, err
+    # A log at another rate than the scene's is read at its rate once --fps states it.
+    err = refused("--target", str(at60))
+    assert "implies 60 fps (frame 2 at time = 0.0333333), not the scene's 30 fps" in err and "give --fps 60" in err, err
+    capsys.readouterr()
+    assert main(["fit", str(scene), "--target", str(at60), "--fps", "60", *common, "--output-dir", str(tmp_path / "fit")]) == 0
+    doc = json.loads((tmp_path / "fit" / "fit.json").read_text())
+    assert doc["fps"] == 60 and doc["target_frames"] == [[1, 2]]

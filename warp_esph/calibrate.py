@@ -433,16 +433,41 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         loaded.append(("file", path, t))
     file_targets = [t for kind, _, t in loaded if kind == "file"]
     fps = spec.get("fps")
-    recorded = [(t.path, t.fps) for t in file_targets if t.fps is not None]
-    if fps is not None and recorded:
-        path, rate = recorded[0]
-        # Frame k of the fit is compared with the target's frame k: another rate fitted them
-        # at other times than they were recorded (and 0.001 planned millions of steps).
-        flag = "fps" if where else "--fps"
-        if not math.isclose(checks.positive(f"{where}{flag}", fps), rate, rel_tol=1e-9):
-            raise ValueError(f"{where}{flag} = {fps!r} is not allowed: the target {path} was recorded at {rate:g} fps; "
-                             f"leave --fps out or give {rate:g}")
-    fps = fps if fps is not None else next((rate for _, rate in recorded), scene.fps)
+    flag = "fps" if where else "--fps"
+    # Frame k of the fit is compared with each target's frame k: a target of another rate was
+    # fitted at other times than it was recorded (and --fps 0.001 planned millions of steps).
+    # A run's USD and an .npz store their rate; a force log's is implied by its time column.
+    stored = [(t.path, t.fps) for t in file_targets if t.fps is not None and t.kind != "forces"]
+    if fps is not None:
+        fps = checks.positive(f"{where}{flag}", fps)
+        for path, rate in stored:
+            if not math.isclose(fps, rate, rel_tol=1e-9):
+                raise ValueError(f"{where}{flag} = {fps!r} is not allowed: the target {path} was recorded at {rate:g} fps; "
+                                 f"leave {flag} out or give {rate:g}")
+    rate = fps if fps is not None else next((r for _, r in stored), scene.fps)
+    for path, other in stored:
+        if not math.isclose(other, rate, rel_tol=1e-9):
+            # The first target's rate was taken for all: this one was fitted at other times.
+            raise ValueError(f"{where}target {path} is not allowed beside the target {stored[0][0]}: it was recorded at "
+                             f"{other:g} fps, the other at {rate:g} fps, and frame k of the fit is one time for both; "
+                             "fit targets of another rate as an experiment of their own (--experiments)")
+    for t in file_targets:
+        if t.kind == "forces" and t.fps is not None and not math.isclose(t.fps, rate, rel_tol=1e-9):
+            # The rate is frame / time: a log timed in milliseconds implied 0.03 fps for a
+            # 30 fps scene, and the fit planned 33 s frames of 16,000 steps each, exit 0.
+            last = max(t.data, key=lambda r: r["frame"])
+            implied = f"its column 'time' implies {t.fps:g} fps (frame {last['frame']} at time = {last['time']:g})"
+            units = ("times are seconds, frame / fps (a log timed in milliseconds implies 1000 times fewer frames a "
+                     "second)")
+            if fps is not None:
+                raise ValueError(f"{where}{flag} = {fps!r} is not allowed: the force log {t.path} says otherwise: "
+                                 f"{implied}; {units}")
+            if stored:
+                raise ValueError(f"{where}target {t.path} is not allowed: {implied}, not the {rate:g} fps the target "
+                                 f"{stored[0][0]} was recorded at; {units}")
+            raise ValueError(f"{where}target {t.path} is not allowed: {implied}, not the scene's {rate:g} fps; {units}; "
+                             f"if the log was recorded at {t.fps:g} fps, give {flag} {t.fps:g}")
+    fps = rate
     dt = spec.get("dt")
     substeps, dt = resolve_timestep(model, fps, dt=dt if dt is not None else scene.dt)
     shown = [f for t in file_targets for f in (t.frames or [])]
