@@ -1160,3 +1160,38 @@ def test_targets_that_record_different_rates_are_refused(tmp_path, capsys, dough
     assert err.count("\n") == 1 and f"target {tmp_path / 'b.npz'} is not allowed beside the target {tmp_path / 'a.npz'}: " \
                                    "it was recorded at 60 fps, the other at 30 fps" in err, err
     assert not (tmp_path / "fit").exists()
+
+
+def test_a_point_cloud_that_repeats_points_counts_each_once(tmp_path, capsys, dough_scene):
+    """A cloud listing its points twice weighed them twice: the diagnostics counted 192
+    observations for 128 and gave standard errors sqrt(1.5) smaller, as if measured more
+    often. Exactly repeated points are now counted once, with a warning naming the file."""
+    from warp_esph.cli import main
+    from warp_esph.losses import ChamferLoss
+
+    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0, frames=2))
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(truth), "-o", str(run), "--dtype", "float64", "--no-progress"]) == 0
+    from warp_esph.fit import load_target
+
+    cloud = load_target(run, frames="last").data[0]
+    np.savetxt(tmp_path / "once.xyz", cloud)
+    np.savetxt(tmp_path / "twice.xyz", np.concatenate([cloud, cloud[::-1]]))
+    docs = {}
+    for name in ("once", "twice"):
+        capsys.readouterr()
+        assert main(["fit", str(guess), "--target", str(tmp_path / f"{name}.xyz"), "--iterations", "0", "--noise", "1e-3",
+                     "--no-usd", "--no-progress", "--output-dir", str(tmp_path / name)]) == 0
+        docs[name] = (json.loads((tmp_path / name / "fit.json").read_text())["diagnostics"], capsys.readouterr().err)
+    (once, quiet), (twice, said) = docs["once"], docs["twice"]
+    assert "warning" not in quiet, quiet
+    assert f"warp-esph: warning: target {tmp_path / 'twice.xyz'}: 64 of its 128 points repeat an earlier point exactly; " \
+           "each point is counted once (64 points)" in said, said
+    assert twice["observations"] == once["observations"] == 128
+    assert twice["standard_error"] == pytest.approx(once["standard_error"], rel=1e-9)
+    # Given to the loss directly, the same: one observation per distinct point.
+    with pytest.warns(UserWarning, match=r"targets at step 5: 3 of its 5 points repeat an earlier point exactly"):
+        loss = ChamferLoss(np.array([[0, 0, 0], [1, 0, 0], [0, 0, 0], [1, 0, 0], [1, 0, 0]], float), radius=0.1, frames=[5])
+    assert loss.targets[5].tolist() == [[0, 0, 0], [1, 0, 0]]

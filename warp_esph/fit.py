@@ -1543,7 +1543,7 @@ class Target:
                 and np.asarray(self.data).shape[1] != model.particle_count):
             # One (M, 3) .npy array of another size: a point cloud, not particle positions (a
             # .npz holds 'positions', which are the particles' whatever their number).
-            self.kind, self.data = "points", np.asarray(self.data)[0]
+            self.kind, self.data = "points", _cloud(self.path, np.asarray(self.data)[0])
         if self.kind == "positions":
             pos = np.asarray(self.data)
             if pos.shape[1] != model.particle_count:
@@ -1736,6 +1736,14 @@ def _cloud(path: str, pts: np.ndarray) -> np.ndarray:
     if bad.size:
         raise ValueError(f"target {path} is not allowed as a point cloud: point {bad[0]} is {pts[bad[0]].tolist()}; "
                          "every point must be finite")
+    from .losses import unique_points  # noqa: PLC0415
+
+    pts, repeats = unique_points(np.asarray(pts, dtype=np.float64))
+    if repeats:
+        import warnings  # noqa: PLC0415
+
+        warnings.warn(f"target {path}: {repeats} of its {len(pts) + repeats} points repeat an earlier point exactly; "
+                      f"each point is counted once ({len(pts)} points)", stacklevel=2)
     return pts
 
 

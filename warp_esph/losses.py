@@ -43,7 +43,7 @@ from . import checks
 from ._types import type_set
 
 __all__ = ["Loss", "PositionLoss", "ChamferLoss", "MeshLoss", "SumLoss", "WorldLoss", "surface_particles",
-           "ReactionForceLoss", "SlumpLoss", "read_tools_csv", "is_tools_csv"]
+           "ReactionForceLoss", "SlumpLoss", "read_tools_csv", "is_tools_csv", "unique_points"]
 
 #: HashGrid resolution cap per axis (the grid is periodic: aliasing beyond costs time only).
 _MAX_GRID_DIM = 128
@@ -275,6 +275,17 @@ def _points(name: str, p) -> np.ndarray:
         i = int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])
         raise ValueError(f"{name} is not allowed: it has non-finite values (first at point {i}: {a[i].tolist()})")
     return a
+
+
+def unique_points(points: np.ndarray) -> tuple[np.ndarray, int]:
+    """``points`` without the rows that repeat an earlier one exactly (the first of each kept,
+    in order), and how many were left out. A cloud's point listed twice (overlapping scans
+    merged, a file concatenated with itself) is one observation: counted twice, it weighed
+    twice in the Chamfer mean and in the diagnostics' observations and standard errors."""
+    _, first = np.unique(points, axis=0, return_index=True)
+    if len(first) == len(points):
+        return points, 0
+    return points[np.sort(first)], len(points) - len(first)
 
 
 def _grid_dims(points: np.ndarray, cell: float) -> tuple[int, int, int]:
@@ -701,7 +712,15 @@ class ChamferLoss(Loss):
         per = _per_frame("targets", targets, frames, 2)
         super().__init__(list(per), weight, particles)
         self.radius = checks.positive("radius", radius)
-        self.targets = {f: _points(f"targets at step {f}", t) for f, t in per.items()}
+        self.targets = {}
+        for f, t in per.items():
+            pts, repeats = unique_points(_points(f"targets at step {f}", t))
+            if repeats:
+                import warnings  # noqa: PLC0415
+
+                warnings.warn(f"targets at step {f}: {repeats} of its {len(pts) + repeats} points repeat an earlier point "
+                              f"exactly; each point is counted once ({len(pts)} points)", stacklevel=2)
+            self.targets[f] = pts
         self._target_data = {}
         self._particle_grid = {}
         self._scratch = {}
