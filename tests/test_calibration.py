@@ -967,6 +967,42 @@ def test_an_earlier_fits_run_does_not_stay_beside_a_new_fits_results(tmp_path, c
     assert (other / "fitted.usdc").is_dir()
 
 
+def test_an_earlier_fits_json_does_not_stay_beside_a_fit_written_with_o_elsewhere(tmp_path, capsys, dough_scene):
+    """``fit --output-dir D`` and then ``fit --output-dir D -o elsewhere.json``: the second fit
+    rewrote D's history.csv and plots and left the first fit's D/fit.json beside them, read
+    as the result of the history it does not belong to. It is removed now, as an earlier
+    fitted.usdc is; an input of that name there is refused instead."""
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    from warp_esph.scenes import load_scene
+
+    x0 = load_scene(str(guess)).builder.finalize().particle_x0
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.stack([x0 + np.random.default_rng(1).normal(0, 0.005, x0.shape)]), frames=[2])
+    out = tmp_path / "fit"
+    common = ["fit", str(guess), "--target", str(target), "--params", "yield_stress", "--no-progress", "--no-usd",
+              "--no-diagnostics", "--output-dir", str(out)]
+    assert main([*common, "--iterations", "0"]) == 0
+    assert json.loads((out / "fit.json").read_text())["iterations"] == 0
+    elsewhere = tmp_path / "elsewhere.json"
+    assert main([*common, "--iterations", "2", "-o", str(elsewhere)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["history.csv", "loss.png", "params.png"]
+    assert json.loads(elsewhere.read_text())["iterations"] == 2
+    # -o naming the folder's own fit.json writes it there, as without -o.
+    assert main([*common, "--iterations", "1", "-o", str(out / "fit.json")]) == 0
+    assert json.loads((out / "fit.json").read_text())["iterations"] == 1
+    # An experiments file of that name in the folder is an input: refused, not removed.
+    (out / "fit.json").write_text(json.dumps([{"scene": str(guess), "target": str(target)}]))
+    before = (out / "fit.json").read_text()
+    capsys.readouterr()
+    assert main([*common, "--iterations", "0", "-o", str(elsewhere), "--experiments", str(out / "fit.json")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "fit.json = " in err and "it is --experiments" in err, err
+    assert (out / "fit.json").read_text() == before
+
+
 def test_cli_fit_at_a_guess_that_blows_up_is_one_line_and_exit_3(tmp_path, capsys, dough_scene):
     """A guess 1e5 x stiffer at a dt 40 x its stable step: its rollout blows up while
     staying finite (it had been fitted, exit 0), or its loss is not finite (a

@@ -182,8 +182,10 @@ def run_fit(args, out=None, err=None) -> int:
             raise ValueError(f"--output-dir = {folder!r} is not allowed: {name} in it is a folder; the fit writes a file there")
     if _arg(args, "output"):
         checks.output_place("--output", args.output)
+    # With -o elsewhere, an earlier fit's fit.json in the folder is removed (_remove_earlier_run):
+    # an input of that name there is refused as one the fit would overwrite.
     _refuse_overwriting_inputs(
-        [(f"--output-dir {folder}: {name}", os.path.join(folder, name)) for name in names]
+        [(f"--output-dir {folder}: {name}", os.path.join(folder, name)) for name in dict.fromkeys([*names, "fit.json"])]
         + ([("--output", args.output)] if _arg(args, "output") else []),
         [("the scene", str(spec["scene"])) for _, spec in specs]
         + [("--target", str(t)) for _, spec in specs for t in (spec["target"] if isinstance(spec["target"], (list, tuple))
@@ -235,7 +237,7 @@ def run_fit(args, out=None, err=None) -> int:
         # Ctrl-C: the evaluations so far and the best of them are kept, as a run keeps its
         # finished frames; the exit is still the interrupt's.
         if e.result is not None:
-            _remove_earlier_run(folder)
+            _remove_earlier_run(folder, _arg(args, "output"))
             # Interrupted in the diagnostics, the fit itself had finished: its fit.json read as
             # a complete run with --no-diagnostics, and the log called it the best so far.
             during = "the fit" if e.result.stopped == "interrupted" else "the diagnostics"
@@ -247,7 +249,7 @@ def run_fit(args, out=None, err=None) -> int:
                 log(f"interrupted during the diagnostics: wrote the finished fit ({e.result.stopped}, loss "
                     f"{e.result.loss:.4g}) without them to {', '.join(written)}")
         raise KeyboardInterrupt from None
-    _remove_earlier_run(folder)
+    _remove_earlier_run(folder, _arg(args, "output"))
     written = write_outputs(result, folder, meta, json_path=_arg(args, "output"))
     print(f"fit {result.termination}", file=out)
     print(f"loss {result.initial_loss:.4g} -> {result.loss:.4g} in {result.evaluations} evaluations", file=out)
@@ -265,13 +267,20 @@ def run_fit(args, out=None, err=None) -> int:
     return 0
 
 
-def _remove_earlier_run(folder) -> None:
-    """Remove an earlier fit's ``fitted.usdc`` from ``folder`` before this fit's results go
-    there: with ``--no-usd``, an interrupt, or a fitted run that fails, it stayed beside this
-    fit's ``fit.json`` as if it were this fit's run (it is written again after the fit)."""
-    path = os.path.join(folder, "fitted.usdc")
-    if os.path.isfile(path) or os.path.islink(path):
-        os.remove(path)
+def _remove_earlier_run(folder, json_path=None) -> None:
+    """Remove an earlier fit's results that this fit does not write again from ``folder``
+    before this fit's go there: its ``fitted.usdc`` (with ``--no-usd``, an interrupt, or a
+    fitted run that fails, it stayed beside this fit's ``fit.json`` as if it were this fit's
+    run; it is written again after the fit), and its ``fit.json`` where ``json_path`` (``-o``)
+    puts this fit's elsewhere (it stayed beside this fit's history and plots, and read as
+    this fit's result)."""
+    stale = [os.path.join(folder, "fitted.usdc")]
+    mine = os.path.join(folder, "fit.json")
+    if json_path is not None and os.path.realpath(json_path) != os.path.realpath(mine):
+        stale.append(mine)
+    for path in stale:
+        if os.path.isfile(path) or os.path.islink(path):
+            os.remove(path)
 
 
 #: Keys of an entry of the ``--experiments`` file.
