@@ -657,10 +657,11 @@ def add_fit_arguments(parser):
     parser.add_argument("--clip", type=float, metavar="C", help="clip the gradient norm (log space) to C")
     parser.add_argument("--target-frames", action="append", metavar="F,G",
                         help="a run's USD: the frames to fit ('2,4,6', '10:60:10', 'last'; default all after the first); "
-                             ".npz/.npy: the rendered frame of each target frame; a cloud, mesh or mask: the frame it "
+                             ".npz with 'frames': which of them; .npy (.npz without 'frames'): the frame of each entry "
+                             "('1,2,3', '1:3'; default 0 to K-1); a cloud, mesh or mask: the frame it "
                              "shows (default: the last); once per --target or once for all")
     parser.add_argument("--frames", type=int, metavar="N", help="frames to simulate (default: the last target frame or the scene's)")
-    parser.add_argument("--fps", type=float, metavar="F", help="frames per second (default: the target's or the scene's)")
+    parser.add_argument("--fps", type=float, metavar="F", help="frames per second (default: the target's or the scene's; a force log's times must give it)")
     parser.add_argument("--dt", type=float, metavar="DT", help="time step in s (default: the stable step)")
     parser.add_argument("--scale", type=float, default=1.0, metavar="S", help="resolution scale of the scene (default 1)")
     parser.add_argument("--radius", type=float, metavar="R", help="Chamfer search radius for point-cloud targets (default 3 spacings)")
