@@ -1178,6 +1178,11 @@ def test_a_target_without_frame_numbers_says_which_frames_it_is_read_as(tmp_path
                  "--no-progress", "--output-dir", str(tmp_path / "fit")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--target-frames = '1,1,2' is not allowed: it names a frame twice" in err, err
+    # A range is counted before it is listed: 0:10**12 would fill the memory first.
+    assert main(["fit", str(scene), "--target", str(tmp_path / "from1.npy"), "--target-frames", f"0:{10**12}",
+                 "--no-progress", "--output-dir", str(tmp_path / "fit")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "it names more than 1000000 frames" in err, err
 
 
 def test_targets_that_record_different_rates_are_refused(tmp_path, capsys, dough_scene):

@@ -31,6 +31,9 @@ __all__ = ["add_calibration_arguments", "run_fit", "write_outputs", "jitter_mode
 
 #: Up to this many fitted values the default optimiser is L-BFGS, above it Adam.
 LBFGS_MAX_VALUES = 4
+#: The most frames ``--target-frames`` may name for one target (a range such as 0:10**12
+#: would otherwise be listed in memory before anything else could refuse it).
+MAX_TARGET_FRAMES = 10**6
 
 
 def add_calibration_arguments(parser):
@@ -421,12 +424,18 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                         a, b, step = int(bits[0]), int(bits[1]), int(bits[2]) if len(bits) == 3 else 1
                         if step < 1 or b < a:
                             raise ValueError
-                        chosen.extend(range(a, b + 1, step))
+                        span = range(a, b + 1, step)
+                        if len(chosen) + len(span) > MAX_TARGET_FRAMES:  # counted before the list is made
+                            raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: it names more than "
+                                             f"{MAX_TARGET_FRAMES} frames")
+                        chosen.extend(span)
                     else:
                         raise ValueError
                 if min(chosen) < 0:
                     raise ValueError
-            except ValueError:
+            except ValueError as e:
+                if str(e).startswith(f"{where}--target-frames"):
+                    raise
                 # -1 ended in a KeyError traceback (.npz) or was dropped (a force log).
                 raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: use comma-separated frame "
                                  "indices >= 0 or ranges A:B[:STEP] (B included)") from None
