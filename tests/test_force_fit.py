@@ -324,7 +324,7 @@ def test_a_loss_weight_or_scale_must_be_finite_and_positive():
     tri = (np.eye(3), np.array([[0, 1, 2]]))
     make = {
         "PositionLoss": lambda w: PositionLoss(pts, frames=[1], weight=w),
-        "ChamferLoss": lambda w: ChamferLoss(pts, radius=0.1, frames=[1], weight=w),
+        "ChamferLoss": lambda w: ChamferLoss(np.arange(12.0).reshape(4, 3), radius=0.1, frames=[1], weight=w),
         "MeshLoss": lambda w: MeshLoss(tri, frames=[1], weight=w),
         "ReactionForceLoss": lambda w: ReactionForceLoss(np.zeros((2, 3)), "plate", [10, 20], window=10, weight=w),
         "SlumpLoss": lambda w: SlumpLoss(0.05, 0.1, 10, spacing=0.01, weight=w),
