@@ -10,6 +10,7 @@ import dataclasses
 import json
 import math
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -1055,7 +1056,8 @@ def test_losses_diagnostics_and_cameras_refuse_what_they_dropped_or_misread(tmp_
         L.PositionLoss(x, frames=[1])({1: x, 1.5: x})
     with pytest.raises(ValueError, match="positions of frame 1 with shape \\(4, 2\\) are not allowed"):
         L.PositionLoss(x, frames=[1])({1: x[:, :2]})
-    with pytest.raises(ValueError, match="targets .* complex"):
+    with pytest.raises(ValueError, match="targets .* complex"), warnings.catch_warnings():
+        warnings.simplefilter("error")  # refused before numpy drops the imaginary part with a warning
         L.PositionLoss(x + 0j, frames=[1])
     for bad in (1e-200, 1e200):
         with pytest.raises(ValueError, match="noise = .* is not allowed: must be in"):

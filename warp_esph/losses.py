@@ -250,10 +250,11 @@ def _per_frame(name: str, data, frames, item_ndim: int) -> dict:
     else:
         try:
             complex_ = np.iscomplexobj(data)
-            a = np.asarray(data, dtype=np.float64)
+            # Refused before numpy keeps the real part with only a ComplexWarning.
+            a = None if complex_ else np.asarray(data, dtype=np.float64)
         except (TypeError, ValueError):  # ragged rows: numpy's own message named no parameter
             raise ValueError(f"{name} is not allowed: give an array, a sequence of arrays or a {{step: array}} mapping") from None
-        if complex_:  # numpy kept the real part with only a ComplexWarning
+        if complex_:
             raise ValueError(f"{name} is not allowed: it holds complex numbers; positions are real")
         if a.ndim == item_ndim:
             return {f: a for f in frames}
