@@ -329,18 +329,19 @@ class Solver:
             )
 
     def _warn_all_few(self):
-        """After the first step: every particle's fit dropped by the neighbour-count guard means
-        ``min_neighbors`` is above what any particle has (``min_neighbors=30``, the paper's row
-        width, against the 26 lattice neighbours within h = 2 spacings): the material then
-        never deforms elastically and slumps like a liquid, with only the guard count to say so."""
+        """After the first step: every particle's fit dropped by the neighbour-count guard, with
+        ``min_neighbors`` above what an interior lattice particle has (``min_neighbors=30``, the
+        paper's row width, against 26 within h = 2 spacings), means the setting, not a sparse
+        scene (a lone particle has no fit either way), keeps the material from ever deforming
+        elastically: it slumps like a liquid, with only the guard count to say so."""
         m = self.model
-        if int(self.scratch.counters.numpy()[0]) < m.particle_count:
-            return
         r = m.support_radius / m.spacing
         k = int(np.ceil(r))
         o = np.arange(-k, k + 1)
         d2 = (o[:, None, None] ** 2 + o[None, :, None] ** 2 + o[None, None, :] ** 2).ravel()
         lattice = int(((d2 > 0) & (d2 < r * r * (1.0 - 1e-9))).sum())
+        if self.min_neighbors <= lattice or int(self.scratch.counters.numpy()[0]) < m.particle_count:
+            return
         warnings.warn(
             f"min_neighbors = {self.min_neighbors}: every particle's deformation update was dropped in the first step, "
             f"none having that many same-body neighbours within the support radius (an interior lattice particle has "
