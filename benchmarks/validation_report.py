@@ -648,7 +648,8 @@ def _fitted_yield_plot(rows, img: pathlib.Path, made: list[str]) -> None:
     ax.set_xlabel("particles across H0")
     ax.set_ylabel("Y fitted / Y")
     ax.set_title("yield stress a slump fit recovers (particle floor, poly6)")
-    ax.legend(fontsize=7, ncol=2)
+    if mine:  # a report without poly6 particle rows has no curve to name
+        ax.legend(fontsize=7, ncol=2)
     _save(fig, img, "slump_fitted_yield.png", made)
 
 
