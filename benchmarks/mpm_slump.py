@@ -3,6 +3,7 @@
     python -m benchmarks.mpm_slump --S 0.2 --res 16                # one slump, aspect 1, dx = H0/16
     python -m benchmarks.mpm_slump --S 0.2 0.3 --res 16 24 --json docs/mpm_slump.json
     python -m benchmarks.mpm_slump --column                        # the elastic column check
+    python -m benchmarks.mpm_slump --near-yield-column --res 6 9   # the near-yield column, 6 and 9 cells across
     python -m benchmarks.mpm_slump --S 0.2 --res 16 --flow-rate 200   # the particle scene's flow rule
     python -m benchmarks.mpm_slump --quick                         # CI-sized: column + squeeze, a few s
     python -m benchmarks.mpm_slump --table docs/mpm_slump.json     # the markdown table of docs/validation.md
@@ -73,7 +74,9 @@ yield stress ``sqrt(3/2) Y`` (``squeeze``; volume-mean stress 0.96-0.99 of it at
 node rows at each plate hold the layer next to it in, so not all of the block flows).
 
 **Cost** (one core, float32): about 41 s per simulated second at ``res`` 16 (26k particles,
-dt 3.2e-4 s), 200 s at 24 (87k), 12 s at 12; about 630 s at 32 (estimated).
+dt 3.2e-4 s), 200 s at 24 (87k), 12 s at 12; about 630 s at 32 (estimated). The near-yield
+column's 36 periods (3.5 s) and its elastic twin: about 29 / 135 / 670 s at 4 / 6 / 9 cells
+across (2.6k / 8.6k / 29k particles; measured with other jobs on the cores).
 """
 
 from __future__ import annotations
@@ -472,6 +475,63 @@ def column(res=16, L=0.1, width=0.04, stiffness=10.0, duration=0.6, damping=60.0
             "kinetic": sim.kinetic(), "duration": sim.t, "wall_s": wall}
 
 
+def near_yield_column(res=6, width=0.06, aspect=5, E=1.5e5, nu=0.3, yield_depth=0.8, flow_rate=200.0, periods=36.0,
+                      ramp=4.0, elastic_periods=8.0, cfl=0.3):
+    """The particle suite's near-yield column (``benchmarks.validation.near_yield_column``) in
+    the continuum: a square column ``width`` across (``res`` cells, ``2 res`` particles) and
+    ``aspect`` times as tall on a slip floor, laterally free, ``E``, ``nu``, its uniaxial yield
+    stress the weight above ``yield_depth`` L (``Y = sqrt(2/3) rho g yield_depth L``), the
+    particle scene's flow rule (``flow_rate``), gravity ramped over ``ramp`` axial periods and
+    the same dynamic relaxation (grid damping 1.4 omega, omega the fixed-free axial mode's),
+    run ``periods`` axial periods. The plastic shortening (the top's drop less that of the
+    same column with the yield off, run ``elastic_periods``) against the 1-D analysis
+    ``benchmarks.validation.near_yield_column_theory``, whose layers spread freely; the
+    depth of the highest yielded particle (the front); the top's rate over the last tenth and
+    its lateral offset (a tilt: the column on its yielded base is unstable to leaning, which
+    grows from round-off some time after the base has come to rest, docs/validation.md)."""
+    L = aspect * width
+    dx = width / res
+    s = 0.5 * dx
+    nw, ny = int(round(width / s)), int(round(L / s))
+    pts = _lattice(nw, ny, nw, s, (-0.5 * width, 0.0, -0.5 * width))
+    mu, lam = E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    omega = 0.5 * math.pi * math.sqrt(E / RHO) / L
+    y0 = pts[:, 1]
+    top = y0 > y0.max() - 1e-9
+    t0 = time.perf_counter()
+
+    def relax(Y, n_periods):
+        sim = MPM(pts, s, dx, mu, lam, Y, 0.0, 1.6 * width, L + 2.0 * dx, floor_friction=0.0, cfl=cfl,
+                  damping=1.4 * omega, flow_rate=flow_rate)
+        sim.ramp = ramp * 2.0 * math.pi / omega
+        end = n_periods * 2.0 * math.pi / omega
+        hist = []
+        while sim.t < end:
+            sim.step()
+            if len(hist) == 0 or sim.t >= hist[-1][0] + 0.01 * end:
+                x = sim.x.numpy()
+                hist.append((sim.t, float(y0[top].mean() - x[top, 1].mean())))
+        return sim, np.array(hist)
+
+    elastic, _ = relax(1.0e30, elastic_periods)
+    x_el = elastic.x.numpy().astype(np.float64)
+    drop_elastic = float(y0[top].mean() - x_el[top, 1].mean())
+    sim, hist = relax(math.sqrt(2.0 / 3.0) * RHO * G * yield_depth * L, periods)
+    x = sim.x.numpy().astype(np.float64)
+    drop = float(y0[top].mean() - x[top, 1].mean())
+    last = hist[hist[:, 0] > 0.9 * hist[-1, 0]]
+    plastic_theory = ((1.0 - yield_depth) + yield_depth * math.log(yield_depth)) * L
+    yielded = (L - y0[sim.plastic.numpy() > 1e-6]) / L
+    return {"case": "near_yield_column", "res_cells_across": res, "particles": len(pts), "E": E, "nu": nu,
+            "yield_depth": yield_depth, "flow_rate": flow_rate, "periods": periods, "duration": sim.t,
+            "elastic_drop": drop_elastic, "elastic_over_theory": drop_elastic / (RHO * G * L * L / (2.0 * E)),
+            "plastic_over_theory": (drop - drop_elastic) / plastic_theory,
+            "top_rate_pct_of_plastic_per_s": 100.0 * float(np.polyfit(last[:, 0], last[:, 1], 1)[0]) / plastic_theory,
+            "front_depth": float(yielded.min()) if len(yielded) else 1.0,
+            "top_offset_over_width": float(np.hypot(x[top, 0].mean(), x[top, 2].mean())) / width,
+            "kinetic_over_MgL": sim.kinetic() / (sim.mp * len(pts) * G * L), "wall_s": time.perf_counter() - t0}
+
+
 def squeeze(res=8, L=0.05, S=0.2, H0=0.1, strain=0.06, rate=0.25, cfl=0.3, flow_rate=0.0, eta=0.0, samples=0):
     """A cube of side ``L`` of the slump's material (``S``), no gravity, on a slip floor, squeezed by
     a slip plate (grid nodes at or above it move down at ``rate L`` /s) by ``strain``: the plate's
@@ -613,6 +673,8 @@ def main(argv=None):
                     help="the slump's floor: < 0 sticky (no-slip, the default), 0 slip, > 0 Coulomb friction")
     ap.add_argument("--column", action="store_true")
     ap.add_argument("--squeeze", action="store_true")
+    ap.add_argument("--near-yield-column", action="store_true",
+                    help="the suite's near-yield column in the continuum, --res cells across (default 6)")
     ap.add_argument("--quick", action="store_true", help="the closed-form checks at CI size")
     ap.add_argument("--json", type=_cli.output_file, help="append the results to this JSON list")
     ap.add_argument("--save", type=_cli.Check(_save_prefix), help="save the final particles of each slump (npz) to this prefix")
@@ -621,14 +683,18 @@ def main(argv=None):
     # The slump's options without --S values ran nothing, said nothing and exited 0.
     given = [f"--{k.replace('_', '-')}" for k in ("res", "aspect", "duration", "max_duration", "flow_rate", "ramp",
                                                   "floor_friction", "save") if getattr(args, k) not in (None, -1.0)]
+    if args.near_yield_column and not args.S:
+        given = [g for g in given if g != "--res"]
     if given and not args.S:
-        ap.error(f"{given[0]} is not allowed without --S: it sets the slump runs, and --S gives their yield stresses")
+        also = " (--res also sets the --near-yield-column runs)" if given[0] == "--res" else ""
+        ap.error(f"{given[0]} is not allowed without --S: it sets the slump runs, and --S gives their yield stresses{also}")
     for k in ("S", "res"):
         if getattr(args, k) == []:
             ap.error(f"--{k} is not allowed without values")
     args.S = args.S or []
-    if not (args.S or args.quick or args.column or args.squeeze or args.table):
-        ap.error("nothing to run: give --S values, --quick, --column, --squeeze or --table")
+    if not (args.S or args.quick or args.column or args.squeeze or args.near_yield_column or args.table):
+        ap.error("nothing to run: give --S values, --quick, --column, --squeeze, --near-yield-column or --table")
+    column_res = args.res or [6]  # the near-yield column's cells across (the slump's default is 16 over H0)
     defaults = {"res": [16], "aspect": 1.0, "duration": 8.0, "max_duration": 16.0, "flow_rate": 0.0, "ramp": 0.0}
     for k, v in defaults.items():
         if getattr(args, k) is None:
@@ -656,6 +722,10 @@ def main(argv=None):
         rows.append(r)
     if args.quick or args.squeeze:
         r = squeeze(res=6 if args.quick else 8)
+        print(json.dumps(r), flush=True)
+        rows.append(r)
+    for res in column_res if args.near_yield_column else ():
+        r = near_yield_column(res=res)
         print(json.dumps(r), flush=True)
         rows.append(r)
     if rows and args.json:  # the checks' rows were printed, never written

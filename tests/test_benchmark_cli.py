@@ -169,6 +169,8 @@ def test_launches(refused, argv, option):
                                          # options that ran nothing and exited 0
                                          ([], "nothing to run"), (["--res", "4", "--duration", "1"], "--res is not allowed without --S"),
                                          (["--S"], "--S is not allowed without values"),
+                                         (["--near-yield-column", "--res", "0"], "--res = 0"),
+                                         (["--near-yield-column", "--duration", "1"], "--duration is not allowed without --S"),
                                          (["--S", "0.2", "--duration", "9", "--max-duration", "8"], "--max-duration = 8")])
 def test_mpm_slump(refused, argv, option):
     refused("mpm_slump", argv, option)
