@@ -75,8 +75,8 @@ node rows at each plate hold the layer next to it in, so not all of the block fl
 
 **Cost** (one core, float32): about 41 s per simulated second at ``res`` 16 (26k particles,
 dt 3.2e-4 s), 200 s at 24 (87k), 12 s at 12; about 630 s at 32 (estimated). The near-yield
-column's 36 periods (3.5 s) and its elastic twin: about 29 / 135 / 670 s at 4 / 6 / 9 cells
-across (2.6k / 8.6k / 29k particles; measured with other jobs on the cores).
+column's 36 periods (3.5 s) and its elastic twin: about 29 / 135 / 670 / 2200 s at 4 / 6 / 9 /
+12 cells across (2.6k / 8.6k / 29k / 69k particles; measured with other jobs on the cores).
 """
 
 from __future__ import annotations
