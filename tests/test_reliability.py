@@ -208,7 +208,7 @@ def test_absurd_step_counts_are_refused_quickly(tmp_path, capsys, args, needles)
         ("[scene]\nspacing = 0.05\nmax_neighbors = 1000000000000\n", ["[scene]", "max_neighbors = 1000000000000", "[1, 1024]"]),
         ("[scene]\nspacing = 0.05\n\n[[bodies]]\nshape = 'star'\nmaterial = 'dough'\ncenter = [0.0, 0.2, 0.0]\n"
          "outer_radius = 0.2\ninner_radius = 0.1\nthickness = 0.1\npoints = 1000000000000\n",
-         ["shape 'star'", "points = 1000000000000", "[1, 1000]"]),
+         ["shape 'star'", "points = 1000000000000", "[3, 1000]"]),
     ],
 )
 def test_counts_beyond_the_machine_name_file_and_key(tmp_path, capsys, extra, needles):
@@ -873,7 +873,8 @@ def test_api_values_python_would_have_taken_are_refused_by_name():
     b = we.SceneBuilder(spacing=0.05)
     b.add_box((0.0, 0.0, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
     model = b.finalize()
-    for courant, needle in ((-1.0, "must be > 0"), (float("nan"), "must be a finite number"), ("x", "must be a number")):
+    for courant, needle in ((-1.0, "must be > 0"), (float("nan"), "must be a finite number"), ("x", "must be a number"),
+                            (100.0, r"must be in \(0, 0.3\]: the step bound is measured to hold up to 0.3")):
         with pytest.raises(ValueError, match=f"courant = .* is not allowed: {needle}"):
             model.stable_dt(courant=courant)
     from warp_esph.rollout import Rollout

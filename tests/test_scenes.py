@@ -8,6 +8,7 @@ import textwrap
 import numpy as np
 import pytest
 
+import warp_esph as we
 from warp_esph import PRESETS
 from warp_esph.scenes import DEFAULT_SCENE, FIGURE_SCENES, SCENES, Scene, get_scene, load_scene, load_scene_file
 from warp_esph.simulate import simulate
@@ -445,3 +446,12 @@ def test_ground_images_key_builds_the_ground_as_a_rough_floor(tmp_path):
     path.write_text(text.replace("images = true", "images = 1"))
     with pytest.raises(ValueError, match=r"key 'images' in \[\[colliders\]\] #1 \(type 'ground'\) must be true or false"):
         load_scene_file(path)
+
+
+@pytest.mark.parametrize("points", [2, 10**9])
+def test_a_star_with_points_out_of_range_is_told_the_true_range(points):
+    """A star needs at least 3 points; a count above the maximum was told "[1, 1000]"."""
+    b = we.SceneBuilder(spacing=0.02)
+    with pytest.raises(ValueError, match=rf"^points = {points} is not allowed: must be an integer in \[3, 1000\]$"):
+        b.add_star((0.0, 0.1, 0.0), 0.1, 0.05, 0.04, we.Material.preset("dough"), points=points)
+

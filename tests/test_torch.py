@@ -83,7 +83,8 @@ def test_inputs_are_checked_and_missing_torch_is_explained(monkeypatch):
         rollout_positions(rollout, {"mu": torch.ones(3, dtype=torch.float64)})
     with pytest.raises(ValueError, match="must be one of"):
         rollout_positions(rollout, {"young": torch.ones(1, dtype=torch.float64)})
-    with pytest.raises(ValueError, match=r"params = \['mu'\] is not allowed: must be a mapping"):
+    with pytest.raises(ValueError, match=r"params = \['mu'\] is not allowed: must be a mapping \{name: tensor of one "
+                                         r"value per material\}$"):
         rollout_positions(rollout, ["mu"])  # was read as character pairs: "parameter 'm'"
     # A bool tensor or value ran as a shear modulus of 1 Pa (Material refuses it).
     for value in (torch.tensor([True]), True, torch.tensor([1.0 + 0j])):

@@ -301,9 +301,7 @@ class SceneBuilder:
         if ri >= ro:
             raise ValueError(f"inner_radius = {inner_radius!r} is not allowed: must be < outer_radius = {ro:g}")
         t = checks.positive("thickness", thickness)
-        npts = checks.positive_int("points", points, maximum=MAX_STAR_POINTS)
-        if npts < 3:
-            raise ValueError(f"points = {points!r} is not allowed: must be an integer in [3, {MAX_STAR_POINTS}]")
+        npts = checks.positive_int("points", points, maximum=MAX_STAR_POINTS, minimum=3)
         p = self._lattice(c - np.array([ro, t / 2, ro]), c + np.array([ro, t / 2, ro]), "outer_radius/thickness", (ro, t))
         inside = _inside_polygon((p - c)[:, [0, 2]], star_polygon(ro, ri, npts))
         return self.add_particles(p[inside], material, velocity, name, "star", angular_velocity)

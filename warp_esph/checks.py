@@ -86,6 +86,20 @@ def positive(name: str, value, **kw) -> float:
     return v
 
 
+#: The largest Courant number the step bound is measured to hold at (docs/method.md §8).
+MAX_COURANT = 0.3
+
+
+def courant(value) -> float:
+    """A Courant number in ``(0, MAX_COURANT]``: above it ``stable_dt`` would return a step
+    the bound was never measured to hold at (some presets blow up from 1.5 x)."""
+    v = positive("courant", value)
+    if v > MAX_COURANT:
+        _fail("courant", value, f"must be in (0, {MAX_COURANT}]: the step bound is measured to hold up to "
+                                f"{MAX_COURANT} (docs/method.md §8); give a longer dt directly to go beyond it")
+    return v
+
+
 def non_negative(name: str, value, **kw) -> float:
     v = number(name, value, **kw)
     if not v >= 0.0:
@@ -165,15 +179,16 @@ def positive_vector(name: str, value, length: int = 3) -> tuple[float, ...]:
     return v
 
 
-def positive_int(name: str, value, maximum: int = MAX_INT) -> int:
-    """An integer in ``[1, maximum]`` (bools and floats rejected)."""
+def positive_int(name: str, value, maximum: int = MAX_INT, minimum: int = 1) -> int:
+    """An integer in ``[minimum, maximum]`` (bools and floats rejected; ``minimum`` >= 1)."""
+    allowed = f"must be an integer >= {minimum}" if maximum == MAX_INT else f"must be an integer in [{minimum}, {maximum}]"
     if isinstance(value, bool) or not isinstance(value, int) and not (hasattr(value, "__index__")):
-        _fail(name, value, "must be an integer >= 1")
+        _fail(name, value, allowed)
     v = int(value.__index__())
-    if v < 1:
-        _fail(name, value, "must be an integer >= 1")
+    if v < minimum:
+        _fail(name, value, allowed)
     if v > maximum:
-        _fail(name, value, f"must be an integer in [1, {maximum}]")
+        _fail(name, value, f"must be an integer in [{minimum}, {maximum}]")
     return v
 
 

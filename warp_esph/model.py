@@ -787,7 +787,7 @@ class Model:
         pressure force, whose stiffness already shortens the wave limit); the control rules from ``c`` of about 100.
         (Measured, 512 particles shaken at random, ``tests/test_adaptive_dt.py``: at ``c = 1000``
         stable at 1.45 x the returned step, blown up at 1.6 x; at ``c = 300``, 1.6 and 1.8 x.)"""
-        courant = checks.positive("courant", courant)
+        courant = checks.courant(courant)
         # Solver.check_dt asks every step; the answer is kept while the parameter arrays hold
         # the same values (a fit or torch writes them in place) and the materials and settings
         # are the same.

@@ -319,7 +319,7 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
     flight or hit hard gets smaller steps. Rounded down to a whole number of steps per frame.
     """
     fps = checks.positive("fps", fps)
-    courant = checks.positive("courant", courant)
+    courant = checks.courant(courant)
     frame_dt = 1.0 / fps
     stable = model.stable_dt(courant, hourglass=hourglass)
     c = float(np.max(model.wave_speeds()))

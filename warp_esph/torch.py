@@ -135,7 +135,7 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
     if params is not None and not isinstance(params, Mapping):
         # A list of names was read as pairs of characters ("parameter 'm' is not allowed").
         raise ValueError(f"params = {checks.shorten(params)!r} is not allowed: must be a mapping {{name: tensor of one "
-                         "value per material}}")
+                         "value per material}")
     params = dict(params or {})
     names, values = [], []
     n_mat = len(rollout.model.materials)
