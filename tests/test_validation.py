@@ -144,6 +144,26 @@ def test_a_min_neighbors_no_particle_has_is_refused_or_said_after_the_first_step
         we.Solver(lone_model, min_neighbors=7).step(lone_model.state(), lone_model.state(), 1e-4)
 
 
+def test_a_states_time_stays_a_python_float_whatever_type_the_user_gave():
+    """``state.time = np.float32(0)`` and a ``np.float32`` dt made the time a float32 (NumPy
+    keeps the array scalar's type over a Python float), so every later step's time was summed
+    in float32: after 2000 steps of 1e-4 s it read 0.2000028 where the steps sum to 0.19999999."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_particles([(0.0, 0.5, 0.0)], DOUGH)
+    model = b.finalize()
+    solver = we.Solver(model)
+    a, c = model.state(), model.state()
+    a.time = np.float32(0.0)
+    dt = np.float32(1e-4)
+    exact = 0.0
+    for _ in range(2000):
+        solver.step(a, c, dt)
+        a, c = c, a
+        exact += float(dt)
+    assert type(a.time) is float
+    assert a.time == exact
+
+
 def test_solver_rejects_bad_neighbor_skin_and_fused():
     model = _one_box().finalize()
     for bad, allowed in ((-0.1, r"must be in \[0\.0, 1\.0\]"), (1.5, r"must be in \[0\.0, 1\.0\]"),

@@ -545,7 +545,8 @@ class Solver:
             if images:
                 # Each image's hardening, blended by the share the update just wrote.
                 plasticity.launch_image_hardening_update(m, state_out)
-        state_out.time = state_in.time + dt
+        # A Python float whatever the user set: a np.float32 time would sum every later step in float32.
+        state_out.time = float(state_in.time) + dt
         if self.step_count == 0:
             self._warn_all_few()
         self.step_count += 1
