@@ -498,6 +498,16 @@ def test_a_rollout_refuses_a_non_finite_or_non_numeric_start_by_name():
             r.forward(**{name: value})
     with pytest.raises(ValueError, match=r"alpha0 = 'x' is not allowed: must be numbers"):
         r.forward(alpha0="x")
+    # Every particle at one point ran and returned zeros (the builder refuses such a body); two at one place too.
+    with pytest.raises(ValueError, match=rf"^x0 is not allowed: {n - 1} particles coincide with another \(first: particle 0"):
+        r.forward(x0=np.zeros((n, 3)))
+    x0 = model.particle_x0.copy()
+    x0[5] = x0[3]
+    with pytest.raises(ValueError, match=r"^x0 is not allowed: 1 particles coincide with another \(first: particle 3"):
+        r.forward(x0=x0)
+    # Worlds share space by design: two worlds of the same start are no coincidence.
+    worlds = b.finalize(dtype=wp.float64, requires_grad=True, worlds=2)
+    assert np.isfinite(Rollout(worlds, 2, 1e-3).forward(x0=worlds.particle_x0.copy())).all()
     assert np.isfinite(r.forward()).all()
 
 

@@ -237,16 +237,11 @@ class SceneBuilder:
             raise ValueError(f"body {name!r} has no particles: it is smaller than the spacing {self.spacing:g}")
         if not np.isfinite(pts).all():
             raise ValueError(f"positions of body {name!r} are not allowed: they must be finite")
-        # Two particles at one place never separate: the pressure's gradient has no direction
-        # at r = 0, and every fit sees a zero offset.
-        cells = np.floor(pts / (1e-6 * self.spacing)).astype(np.int64) if np.abs(pts).max() < 1e12 * self.spacing else None
-        if cells is not None:
-            _, first, counts = np.unique(cells, axis=0, return_index=True, return_counts=True)
-            if (counts > 1).any():
-                i = int(first[np.argmax(counts > 1)])
-                raise ValueError(f"positions of body {name!r} are not allowed: {int((counts - 1).sum())} particles "
-                                 f"coincide with another (first at {np.round(pts[i], 6).tolist()}); each particle needs "
-                                 "a place of its own")
+        count, i = checks.coincident_points(pts, self.spacing)
+        if count:
+            raise ValueError(f"positions of body {name!r} are not allowed: {count} particles "
+                             f"coincide with another (first at {np.round(pts[i], 6).tolist()}); each particle needs "
+                             "a place of its own")
         try:
             vel = np.asarray(velocity, dtype=np.float64)
         except (TypeError, ValueError):  # a dict, a generator, text: not numbers

@@ -220,6 +220,21 @@ def selection(name: str, fn, points, what: str = "rest positions"):
     return a
 
 
+def coincident_points(pts: np.ndarray, spacing: float):
+    """``(count, first)``: how many of the points ``pts`` (n, 3) lie within a millionth of
+    ``spacing`` of an earlier one, and the first such place's index; ``(0, None)`` when none
+    do (or the points spread too far for the cells, beyond 1e12 spacings). Two particles at
+    one place never separate: the pressure's gradient has no direction at r = 0, and every fit
+    sees a zero offset."""
+    if len(pts) == 0 or not np.abs(pts).max() < 1e12 * spacing:
+        return 0, None
+    cells = np.floor(pts / (1e-6 * spacing)).astype(np.int64)
+    _, first, counts = np.unique(cells, axis=0, return_index=True, return_counts=True)
+    if not (counts > 1).any():
+        return 0, None
+    return int((counts - 1).sum()), int(first[np.argmax(counts > 1)])
+
+
 def same_state(model, name: str, state) -> None:
     """``state`` is a ``State`` whose every array fits ``model``: size, precision and device.
 

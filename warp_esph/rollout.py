@@ -346,6 +346,19 @@ class Rollout:
                 bad = int(np.argmax(~(np.linalg.det(v.astype(np.float64)) > 0.0)))
                 raise ValueError(f"F0 is not allowed: particle {bad} has det F = {np.linalg.det(v[bad]):.3g}, and a "
                                  "deformation gradient has det F > 0")
+            if name == "x0":
+                # All particles at one point ran and returned zeros (the builder refuses such bodies).
+                # Worlds share space by design: each is checked alone.
+                for w in range(m.world_count):
+                    lo, hi = int(m.world_start[w]), int(m.world_start[w + 1])
+                    count, i = checks.coincident_points(v[lo:hi].astype(np.float64), m.spacing)
+                    if count:
+                        i += lo
+                        break
+                if count:
+                    raise ValueError(f"x0 is not allowed: {count} particles coincide with another (first: particle {i} "
+                                     f"at {np.round(v[i].astype(np.float64), 6).tolist()}); each particle needs a place "
+                                     "of its own")
             if name == "alpha0" and (v < 0).any():
                 raise ValueError(f"alpha0 is not allowed: particle {int(np.argmax(v < 0))} has {float(v[v < 0][0]):g}; "
                                  "the accumulated plastic strain is >= 0")
