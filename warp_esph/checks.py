@@ -181,7 +181,8 @@ def positive_vector(name: str, value, length: int = 3) -> tuple[float, ...]:
 
 def positive_int(name: str, value, maximum: int = MAX_INT, minimum: int = 1) -> int:
     """An integer in ``[minimum, maximum]`` (bools and floats rejected; ``minimum`` >= 1)."""
-    allowed = f"must be an integer >= {minimum}" if maximum == MAX_INT else f"must be an integer in [{minimum}, {maximum}]"
+    # Below 1 "an integer >= 1" (its maximum is for the rare value above it); a larger minimum is said with the range.
+    allowed = "must be an integer >= 1" if minimum == 1 else f"must be an integer in [{minimum}, {maximum}]"
     if isinstance(value, bool) or not isinstance(value, int) and not (hasattr(value, "__index__")):
         _fail(name, value, allowed)
     v = int(value.__index__())
