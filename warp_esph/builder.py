@@ -188,7 +188,8 @@ class SceneBuilder:
 
     def _check_lattice_size(self, lo, hi, name: str, value):
         # Refuse before allocating: a typo in a size must not exhaust memory.
-        cells = np.prod(np.floor((np.asarray(hi) - np.asarray(lo)) / self.spacing + 1e-9))
+        with np.errstate(over="ignore"):  # a product past the float range is inf: refused below, no numpy warning
+            cells = np.prod(np.floor((np.asarray(hi) - np.asarray(lo)) / self.spacing + 1e-9))
         if cells > MAX_PARTICLES_PER_BODY:
             raise ValueError(
                 f"{name} = {value!r} is not allowed: at spacing {self.spacing:g} the body would need {cells:.3g} "
