@@ -150,3 +150,40 @@ def test_elastic_models_refused_starts_and_input_kinds():
     out = rollout_positions(Rollout(two, 2, 1.0e-3), {"mu": [t]})
     (g,) = torch.autograd.grad(out.square().sum(), t)
     assert float(g) != 0.0
+
+
+def test_a_start_the_builder_would_refuse_is_refused_before_anything_runs():
+    """``x0`` with every particle at one point (which ``SceneBuilder`` refuses) ran and
+    returned the start moved only by gravity; the bridge now refuses it, a non-finite ``x0``
+    or ``v0`` and a start that is no tensor by name, before the parameters are set or any
+    step runs. ``Rollout.forward`` refuses the same starts."""
+    model = _cube()
+    rollout = Rollout(model, 2, 1.0e-3)
+    x = torch.tensor(model.particle_x0, dtype=torch.float64)
+    mu_before, runs = model.mu.numpy().copy(), rollout.forward_count
+    mu = {"mu": torch.tensor([5.0e3], dtype=torch.float64)}
+    with pytest.raises(ValueError, match=r"^x0 is not allowed: 26 particles coincide with another \(first: particle 0 "
+                                         r"at \[0.0, 0.0, 0.0\]\); each particle needs a place of its own"):
+        rollout_positions(rollout, mu, x0=torch.zeros(27, 3, dtype=torch.float64))
+    twice = x.clone()
+    twice[5] = twice[3]
+    with pytest.raises(ValueError, match=r"^x0 is not allowed: 1 particles coincide with another \(first: particle 3 "):
+        rollout_positions(rollout, mu, x0=twice.requires_grad_())
+    for label, bad in (("x0", x.clone().index_fill_(0, torch.tensor([4]), float("nan"))),
+                       ("v0", torch.zeros(27, 3, dtype=torch.float64).index_fill_(0, torch.tensor([7]), float("inf")))):
+        with pytest.raises(ValueError, match=rf"^{label} is not allowed: it has non-finite values \(first at index "
+                                             rf"{4 if label == 'x0' else 7}\)"):
+            rollout_positions(rollout, mu, **{label: bad})
+    with pytest.raises(ValueError, match=r"^x0 = array\(.* is not allowed: must be a torch tensor of shape \(27, 3\)"):
+        rollout_positions(rollout, mu, x0=model.particle_x0)
+    with pytest.raises(ValueError, match=r"^v0 with shape \(27,\) is not allowed: must be a torch tensor of shape"):
+        rollout_positions(rollout, mu, v0=torch.zeros(27, dtype=torch.float64))
+    # Nothing ran and the model keeps its parameters.
+    assert rollout.forward_count == runs
+    np.testing.assert_array_equal(model.mu.numpy(), mu_before)
+    with pytest.raises(ValueError, match=r"^x0 is not allowed: 26 particles coincide"):
+        rollout.forward(x0=np.zeros((27, 3)))
+    assert rollout.forward_count == runs
+    # A start whose particles are apart (the jittered lattice, moved) runs.
+    out = rollout_positions(rollout, mu, x0=x + 0.01)
+    assert out.shape == (1, 27, 3) and bool(torch.isfinite(out).all())

@@ -180,6 +180,59 @@ TOOL_GRADIENTS = ("friction", "static_friction", "keyframe_times", "keyframe_pos
                   "velocity", "angular_velocity")
 
 
+#: The shape of one particle's entry of each initial field (``Rollout.forward``'s keywords).
+_INITIAL_SHAPES = {"x0": (3,), "v0": (3,), "F0": (3, 3), "alpha0": ()}
+
+
+def check_initial(model: Model, name: str, value) -> np.ndarray:
+    """``value`` of the initial field ``name`` (``x0``, ``v0``, ``F0``, ``alpha0``) as an
+    array of ``model``'s precision, or a ``ValueError`` naming it: not numbers, another
+    shape (``alpha0`` may be one number), a non-finite value, an ``F0`` with ``det F <= 0``,
+    a negative ``alpha0``, or ``x0`` with two particles of one world at one place (``checks.coincident_points``,
+    as ``SceneBuilder`` refuses them: all at one point, the step returned the start moved
+    only by gravity)."""
+    shape = _INITIAL_SHAPES[name]
+    if isinstance(value, wp.array):
+        value = value.numpy()
+    try:
+        v = np.asarray(value, dtype=model.types.np_dtype)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be numbers of shape "
+                         f"{(model.particle_count, *shape)}") from None
+    if not np.isfinite(v).all():  # a NaN start ran to NaN positions, returned as a result
+        raise ValueError(f"{name} is not allowed: it has non-finite values (first at index "
+                         f"{int(np.argmax(~np.isfinite(v).reshape(v.shape[0] if v.ndim else 1, -1).all(axis=1)))})")
+    if v.shape != (model.particle_count, *shape):
+        if name == "alpha0" and v.size == 1:
+            v = np.full(model.particle_count, float(v), dtype=model.types.np_dtype)
+        else:
+            raise ValueError(f"{name} with shape {v.shape} is not allowed: must be {(model.particle_count, *shape)}")
+    # An F that is no deformation (det <= 0: zero, or a reflection) and a negative
+    # accumulated plastic strain ran without a word.
+    if name == "F0" and not (np.linalg.det(v.astype(np.float64)) > 0.0).all():
+        bad = int(np.argmax(~(np.linalg.det(v.astype(np.float64)) > 0.0)))
+        raise ValueError(f"F0 is not allowed: particle {bad} has det F = {np.linalg.det(v[bad]):.3g}, and a "
+                         "deformation gradient has det F > 0")
+    if name == "alpha0" and (v < 0).any():
+        raise ValueError(f"alpha0 is not allowed: particle {int(np.argmax(v < 0))} has {float(v[v < 0][0]):g}; "
+                         "the accumulated plastic strain is >= 0")
+    if name == "x0":
+        # In the model's precision: two places float64 tells apart may be one in float32.
+        # Worlds share space by design: each is checked alone.
+        count = 0
+        for w in range(model.world_count):
+            lo, hi = int(model.world_start[w]), int(model.world_start[w + 1])
+            count, i = checks.coincident_points(v[lo:hi].astype(np.float64), model.spacing)
+            if count:
+                i += lo
+                break
+        if count:
+            raise ValueError(f"x0 is not allowed: {count} particles coincide with another (first: particle {i} at "
+                             f"{np.round(v[i].astype(np.float64), 6).tolist()}); each particle needs a place of its "
+                             "own, as SceneBuilder requires")
+    return v
+
+
 class Rollout:
     """A differentiable run of ``steps`` steps of ``dt`` observing positions at ``frames``.
 
@@ -306,6 +359,8 @@ class Rollout:
     def _load_initial(self, initial_state, x0, v0, F0, alpha0):
         init = self._initial
         m = self.model
+        given = {name: check_initial(m, name, value) for name, value in
+                 (("x0", x0), ("v0", v0), ("F0", F0), ("alpha0", alpha0)) if value is not None}
         if initial_state is not None:
             if not isinstance(initial_state, State) or initial_state.particle_count != m.particle_count:
                 raise ValueError("initial_state is not allowed: it must be a warp_esph.State of this model")
@@ -321,48 +376,8 @@ class Rollout:
             init.F_p.assign(eye)
             init.alpha.zero_()
             init.time = 0.0
-        for name, value, shape in (("x0", x0, (3,)), ("v0", v0, (3,)), ("F0", F0, (3, 3)), ("alpha0", alpha0, ())):
-            if value is None:
-                continue
-            arr = getattr(init, STATE_GRADIENTS[name])
-            if isinstance(value, wp.array):
-                value = value.numpy()
-            try:
-                v = np.asarray(value, dtype=m.types.np_dtype)
-            except (TypeError, ValueError):
-                raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be numbers of shape "
-                                 f"{(m.particle_count, *shape)}") from None
-            if not np.isfinite(v).all():  # a NaN start ran to NaN positions, returned as a result
-                raise ValueError(f"{name} is not allowed: it has non-finite values (first at index "
-                                 f"{int(np.argmax(~np.isfinite(v).reshape(v.shape[0] if v.ndim else 1, -1).all(axis=1)))})")
-            if v.shape != (m.particle_count, *shape):
-                if name == "alpha0" and v.size == 1:
-                    v = np.full(m.particle_count, float(v), dtype=m.types.np_dtype)
-                else:
-                    raise ValueError(f"{name} with shape {v.shape} is not allowed: must be {(m.particle_count, *shape)}")
-            # An F that is no deformation (det <= 0: zero, or a reflection) and a negative
-            # accumulated plastic strain ran without a word.
-            if name == "F0" and not (np.linalg.det(v.astype(np.float64)) > 0.0).all():
-                bad = int(np.argmax(~(np.linalg.det(v.astype(np.float64)) > 0.0)))
-                raise ValueError(f"F0 is not allowed: particle {bad} has det F = {np.linalg.det(v[bad]):.3g}, and a "
-                                 "deformation gradient has det F > 0")
-            if name == "x0":
-                # All particles at one point ran and returned zeros (the builder refuses such bodies).
-                # Worlds share space by design: each is checked alone.
-                for w in range(m.world_count):
-                    lo, hi = int(m.world_start[w]), int(m.world_start[w + 1])
-                    count, i = checks.coincident_points(v[lo:hi].astype(np.float64), m.spacing)
-                    if count:
-                        i += lo
-                        break
-                if count:
-                    raise ValueError(f"x0 is not allowed: {count} particles coincide with another (first: particle {i} "
-                                     f"at {np.round(v[i].astype(np.float64), 6).tolist()}); each particle needs a place "
-                                     "of its own")
-            if name == "alpha0" and (v < 0).any():
-                raise ValueError(f"alpha0 is not allowed: particle {int(np.argmax(v < 0))} has {float(v[v < 0][0]):g}; "
-                                 "the accumulated plastic strain is >= 0")
-            arr.assign(v)
+        for name, v in given.items():
+            getattr(init, STATE_GRADIENTS[name]).assign(v)
             if name in ("x0", "F0"):
                 getattr(init, STATE_GRADIENTS[name] + "_lo").zero_()  # the whole value is given
 

@@ -34,7 +34,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from . import checks
-from .rollout import PARAMETERS, Rollout
+from .rollout import PARAMETERS, Rollout, check_initial
 
 __all__ = ["rollout_positions", "RolloutModule", "require_torch"]  # noqa: F822 (RolloutModule: module __getattr__)
 
@@ -127,7 +127,10 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
     """Positions at ``rollout.frames`` as a differentiable torch tensor ``(frames, n, 3)``.
 
     ``params``: ``{name: tensor of one value per material}`` (a scalar tensor is
-    broadcast to every material); ``x0``, ``v0``: ``(n, 3)`` tensors or None.
+    broadcast to every material); ``x0``, ``v0``: ``(n, 3)`` tensors or None. Each is
+    checked before the parameters are set or anything runs (``Rollout.forward``'s checks,
+    ``rollout.check_initial``): finite real numbers, and ``x0`` with no two particles at one
+    place (``SceneBuilder`` refuses those).
     """
     torch = require_torch()
     if not isinstance(rollout, Rollout):
@@ -167,10 +170,18 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
         names.append(name)
         values.append(value)
     for label, t in (("x0", x0), ("v0", v0)):
-        if t is not None and (not isinstance(t, torch.Tensor) or tuple(t.shape) != (n, 3)):
-            raise ValueError(f"{label} is not allowed: must be a torch tensor of shape ({n}, 3)")
-        if t is not None and (t.dtype == torch.bool or t.is_complex()):  # True ran as 1 m/s, 1j was dropped
+        if t is None:
+            continue
+        if not isinstance(t, torch.Tensor):
+            raise ValueError(f"{label} = {checks.shorten(t)!r} is not allowed: must be a torch tensor of shape ({n}, 3)")
+        if tuple(t.shape) != (n, 3):
+            raise ValueError(f"{label} with shape {tuple(t.shape)} is not allowed: must be a torch tensor of shape ({n}, 3)")
+        if t.dtype == torch.bool or t.is_complex():  # True ran as 1 m/s, 1j was dropped
             raise ValueError(f"{label} of dtype {t.dtype} is not allowed: must be real numbers")
+        # Here, before the parameters are set and any kernel runs, by the rollout's own checks:
+        # x0 with every particle at one point (which SceneBuilder refuses) returned the start
+        # moved only by gravity; a NaN ran to NaN positions.
+        check_initial(rollout.model, label, t.detach().to(device="cpu", dtype=torch.float64).numpy())
     return _function().apply(rollout, tuple(names), x0, v0, *values)
 
 
