@@ -501,3 +501,11 @@ def test_a_force_log_whose_times_imply_another_rate_than_the_fit_is_refused_nami
     assert main(["fit", str(scene), "--target", str(at60), "--fps", "60", *common, "--output-dir", str(tmp_path / "fit")]) == 0
     doc = json.loads((tmp_path / "fit" / "fit.json").read_text())
     assert doc["fps"] == 60 and doc["target_frames"] == [[1, 2]]
+    # A float32 run writes its times to 9 digits (frame 2 at 0.0666666701, a rate 5e-8 off 30 fps):
+    # its own log is read at the scene's rate, with or without --fps (it was refused both ways).
+    f32 = _tools_csv(tmp_path / "f32.csv", [f"{k},{np.float32(k / 30.0):.9g},plane0,0,{k},0" for k in range(3)])
+    for extra in ([], ["--fps", "30"]):
+        capsys.readouterr()
+        out = tmp_path / f"fit_f32{len(extra)}"
+        assert main(["fit", str(scene), "--target", str(f32), *extra, *common, "--output-dir", str(out)]) == 0, \
+            capsys.readouterr().err
