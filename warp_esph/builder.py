@@ -966,12 +966,14 @@ def _check_pins_at_rest(model) -> None:
     ts = model.tools
     x = np.asarray(model.particle_x0, dtype=np.float64)
     pin_of = ts.pin.numpy()
-    tol = 1e-3 * model.spacing
     for j, ps in enumerate(ts.pins):
         k = len(ts.colliders) + j
         p, q = ts.pose_at(k, 0.0)
         p, q = np.asarray(p, dtype=np.float64), np.asarray(q, dtype=np.float64)
         c = x[np.asarray(ps.indices)].mean(axis=0)  # in float64: the model's copy is in its precision
+        # A thousandth of a spacing, and the pose's own rounding in the model's precision (a
+        # held set 1 km out: a float32 centroid is 6e-5 m from the float64 one).
+        tol = 1e-3 * model.spacing + 2.0 * float(np.spacing(model.types.np_dtype(np.abs(c).max())))
         xs = x[pin_of == k]
         moved = np.linalg.norm(p + (xs - c) @ tools.quat_to_matrix(q / np.linalg.norm(q)).T - xs, axis=1)
         if moved.max() > tol:

@@ -849,7 +849,7 @@ class ToolSet:
                 if (pin_of[idx] >= 0).any():
                     raise ValueError(f"pin {ps.name!r} is not allowed: it shares particles with pin {self.names[pin_of[idx].max()]!r}")
                 pin_of[idx] = k
-                c = x0[idx].mean(axis=0)
+                c = x0[idx].astype(np.float64).mean(axis=0)  # a float32 sum drifted 0.27 mm at 1000 m
                 if w == 0:
                     centers[k] = c
                 elif np.abs(c - centers[k]).max() > 1e-9 * max(1.0, np.abs(centers[k]).max()):
