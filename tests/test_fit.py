@@ -508,6 +508,12 @@ def test_a_rollout_refuses_a_non_finite_or_non_numeric_start_by_name():
     # Worlds share space by design: two worlds of the same start are no coincidence.
     worlds = b.finalize(dtype=wp.float64, requires_grad=True, worlds=2)
     assert np.isfinite(Rollout(worlds, 2, 1e-3).forward(x0=worlds.particle_x0.copy())).all()
+    # Nor are two bodies that do not see each other (bodies_interact=False) built in one place.
+    apart = we.SceneBuilder(spacing=0.05, bodies_interact=False)
+    for name in "ab":
+        apart.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"), name=name)
+    apart = apart.finalize(dtype=wp.float64, requires_grad=True)
+    assert np.isfinite(Rollout(apart, 2, 1e-3).forward(x0=apart.particle_x0.copy())).all()
     assert np.isfinite(r.forward()).all()
 
 

@@ -188,7 +188,7 @@ def check_initial(model: Model, name: str, value) -> np.ndarray:
     """``value`` of the initial field ``name`` (``x0``, ``v0``, ``F0``, ``alpha0``) as an
     array of ``model``'s precision, or a ``ValueError`` naming it: not numbers, another
     shape (``alpha0`` may be one number), a non-finite value, an ``F0`` with ``det F <= 0``,
-    a negative ``alpha0``, or ``x0`` with two particles of one world at one place (``checks.coincident_points``,
+    a negative ``alpha0``, or ``x0`` with two particles that see each other at one place (``checks.coincident_points``,
     as ``SceneBuilder`` refuses them: all at one point, the step returned the start moved
     only by gravity)."""
     shape = _INITIAL_SHAPES[name]
@@ -218,10 +218,14 @@ def check_initial(model: Model, name: str, value) -> np.ndarray:
                          "the accumulated plastic strain is >= 0")
     if name == "x0":
         # In the model's precision: two places float64 tells apart may be one in float32.
-        # Worlds share space by design: each is checked alone.
+        # Worlds share space by design, and so may bodies that do not interact
+        # (``bodies_interact=False``): each group is checked alone.
+        if model.bodies_interact:
+            groups = [(int(model.world_start[w]), int(model.world_start[w + 1])) for w in range(model.world_count)]
+        else:
+            groups = [(b.start, b.start + b.count) for b in model.bodies]
         count = 0
-        for w in range(model.world_count):
-            lo, hi = int(model.world_start[w]), int(model.world_start[w + 1])
+        for lo, hi in groups:
             count, i = checks.coincident_points(v[lo:hi].astype(np.float64), model.spacing)
             if count:
                 i += lo
