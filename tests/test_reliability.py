@@ -519,6 +519,37 @@ def test_a_start_faster_than_the_step_can_follow_is_refused_before_a_step(speed,
     assert len(steps) == 40
 
 
+def test_an_adaptive_step_too_short_for_the_material_is_not_blamed_on_a_speed(monkeypatch):
+    """A stiff material at rest whose own stable step needs more than 1e6 steps a frame was
+    refused as "initial velocity of body 'box0' ...: a particle speed of 0 m/s is not allowed";
+    the refusal now names the material's step and wave speed. Met later in a run, it is a
+    SimulationError, not a bad input."""
+    from warp_esph.simulate import SimulationError, simulate  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.001)
+    b.add_box((0.0, 0.01, 0.0), (0.004,) * 3, we.Material(mu=1e12, lam=1e12, density=1000.0))
+    model = b.finalize()
+    with pytest.raises(ValueError, match=r"^the adaptive step is not allowed for this model at 30 fps: its stable step, "
+                                         r"[0-9.e-]+ s \(wave speed c_P = [0-9.e+]+ m/s at spacing 0.001 m\), would take "):
+        simulate(model, 1, fps=30.0, dt="auto", progress=False)
+    # The same step met after the start (here a fast start that the frame's check lets through).
+    sim_module = sys.modules["warp_esph.simulate"]  # the package's name "simulate" is the function
+    calls = []
+
+    def adaptive(*args, **kwargs):
+        calls.append(1)
+        if len(calls) > 1:
+            raise ValueError("a particle speed of 1e+30 m/s is not allowed with the adaptive step")
+        return 1, 1e-4
+    soft = we.SceneBuilder(spacing=0.05)
+    soft.add_box((0.0, 0.2, 0.0), (0.15, 0.15, 0.15), we.Material.preset("rubber"))
+    monkeypatch.setattr(sim_module, "check_start_speed", lambda *a, **k: None)
+    monkeypatch.setattr(sim_module, "adaptive_timestep", adaptive)
+    with pytest.raises(SimulationError, match=r"^the simulation ran away before frame 2: a particle speed"):
+        simulate(soft.finalize(), 3, fps=30.0, dt="auto", progress=False)
+    assert len(calls) == 2
+
+
 def test_a_scene_file_body_faster_than_the_step_can_follow_is_one_line_naming_the_file(tmp_path, capsys):
     """The scene file's velocity = [1e37, 0, 0] ran and exited 0; now exit 2 before the writer
     replaced the file an earlier run left at the output."""

@@ -334,10 +334,17 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
         # A start at 1e37 m/s asked for a step of 6e-40 s, below what float32 holds, and was
         # refused as a bad dt the user never gave.
         fastest = courant * model.spacing * fps * MAX_STEPS_PER_FRAME - c - g * frame_dt
+        if fastest > 0.0 and v_max > fastest:
+            raise ValueError(
+                f"a particle speed of {v_max:.3g} m/s is not allowed with the adaptive step: it would take {ratio:.3g} "
+                f"steps a frame, more than {MAX_STEPS_PER_FRAME:.0e} (dt = C dx / (c_P + v_max + |g| / fps)), so at most "
+                f"{fastest:.3g} m/s at this spacing and fps"
+            )
+        # Not the speed: the material's own step (a body at rest was told its speed of 0 m/s was too much).
         raise ValueError(
-            f"a particle speed of {v_max:.3g} m/s is not allowed with the adaptive step: it would take {ratio:.3g} steps "
-            f"a frame, more than {MAX_STEPS_PER_FRAME:.0e} (dt = C dx / (c_P + v_max + |g| / fps)), so at most "
-            f"{max(fastest, 0.0):.3g} m/s at this spacing and fps"
+            f"the adaptive step is not allowed for this model at {fps:g} fps: its stable step, {dt:.3g} s (wave speed "
+            f"c_P = {c:.3g} m/s at spacing {model.spacing:g} m), would take {ratio:.3g} steps a frame, more than "
+            f"{MAX_STEPS_PER_FRAME:.0e}; use a softer material, a larger spacing or a higher fps"
         )
     n = max(1, math.ceil(ratio))
     return n, frame_dt / n
@@ -363,7 +370,9 @@ def check_start_speed(model: Model, state: State, fps: float, dt, hourglass: flo
         try:
             adaptive_timestep(model, state, fps, hourglass=hourglass)
         except ValueError as e:
-            raise ValueError(f"initial velocity of body {body!r} (particle {p}): {e}") from None
+            if str(e).startswith("a particle speed"):
+                raise ValueError(f"initial velocity of body {body!r} (particle {p}): {e}") from None
+            raise
         return
     limit = model.spacing / dt
     if not speed[p] <= limit:
@@ -535,7 +544,13 @@ def simulate(
             t0 = time.perf_counter()
             for k in range(1, frames + 1):
                 if adaptive:
-                    n_sub, dt = adaptive_timestep(model, current, fps, hourglass=hourglass)
+                    try:
+                        n_sub, dt = adaptive_timestep(model, current, fps, hourglass=hourglass)
+                    except ValueError as e:  # the start was checked: a speed the step cannot follow came in the run
+                        p = int(np.argmax((current.v.numpy().astype(np.float64) ** 2).sum(axis=1)))
+                        body = model.bodies[int(model.particle_body_np[p])].name
+                        raise SimulationError(f"the simulation ran away before frame {start_frame + k}: {e}", step=steps,
+                                              particle=p, body=body, frame=start_frame + k) from None
                 for _ in range(n_sub):
                     solver.step(current, spare, dt)
                     current, spare = spare, current
