@@ -122,8 +122,7 @@ def test_a_min_neighbors_no_particle_has_is_refused_or_said_after_the_first_step
     """``min_neighbors=30`` (the paper's row width) against the 26 lattice neighbours within
     h = 2 spacings dropped every particle's deformation update at every step: the box never
     deformed elastically and slumped like a liquid, with only the guard count to say so; above
-    the row width it can never be met, and is refused. The default says nothing, nor a lone
-    particle, which has no fit under any setting an interior particle can meet."""
+    the row width it can never be met, and is refused. The default says nothing."""
     model = _one_box().finalize()
     with pytest.raises(ValueError, match=r"^min_neighbors = 97 is not allowed: must be at most the model's "
                                          r"max_neighbors = 96"):
@@ -137,11 +136,14 @@ def test_a_min_neighbors_no_particle_has_is_refused_or_said_after_the_first_step
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         we.Solver(model).step(a, b, 1e-4)
-        # A lone particle has no fit under any setting within the lattice's count: no warning.
-        lone = we.SceneBuilder(spacing=0.02)
-        lone.add_particles([(0.0, 0.1, 0.0)], DOUGH)
-        lone_model = lone.finalize()
-        we.Solver(lone_model, min_neighbors=7).step(lone_model.state(), lone_model.state(), 1e-4)
+    # A scene whose rows are narrower than the default guard (max_neighbors = 4, which the scene
+    # format allows) was refused naming min_neighbors = 6, which the user never set.
+    narrow = we.SceneBuilder(spacing=0.02, max_neighbors=4)
+    narrow.add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH)
+    narrow = narrow.finalize()
+    with pytest.raises(ValueError, match=r"^max_neighbors = 4 is not allowed with the default min_neighbors = 6: "):
+        we.Solver(narrow)
+    we.Solver(narrow, min_neighbors=4)
 
 
 def test_a_states_time_stays_a_python_float_whatever_type_the_user_gave():

@@ -178,6 +178,12 @@ class Solver:
         if hourglass is not None:
             checks.hourglass("hourglass", hourglass)
         self.min_neighbors = checks.positive_int("min_neighbors", min_neighbors)
+        if self.min_neighbors > model.max_neighbors and self.min_neighbors == neighbors.MIN_NEIGHBORS:
+            # The default guard against a row the scene made too narrow: name what the user set.
+            raise ValueError(f"max_neighbors = {model.max_neighbors} is not allowed with the default min_neighbors = "
+                             f"{neighbors.MIN_NEIGHBORS}: a neighbour row that narrow never holds the neighbours a fit "
+                             f"needs, so every deformation update would be dropped; give max_neighbors >= "
+                             f"{neighbors.MIN_NEIGHBORS} (or Solver(min_neighbors=...) at most {model.max_neighbors})")
         if self.min_neighbors > model.max_neighbors:
             # No row holds more: every deformation update would be dropped, every step.
             raise ValueError(f"min_neighbors = {min_neighbors!r} is not allowed: must be at most the model's max_neighbors = "
