@@ -342,10 +342,7 @@ class Solver:
         elastically: it slumps like a liquid, with only the guard count to say so."""
         m = self.model
         r = m.support_radius / m.spacing
-        k = int(np.ceil(r))
-        o = np.arange(-k, k + 1)
-        d2 = (o[:, None, None] ** 2 + o[None, :, None] ** 2 + o[None, None, :] ** 2).ravel()
-        lattice = int(((d2 > 0) & (d2 < r * r * (1.0 - 1e-9))).sum())
+        lattice = neighbors.lattice_neighbor_count(r)
         if self.min_neighbors <= lattice or int(self.scratch.counters.numpy()[0]) < m.particle_count:
             return
         warnings.warn(
