@@ -776,6 +776,34 @@ def test_bad_tool_input_is_a_value_error_naming_it(call, match):
         call(b)
 
 
+def test_a_body_starting_inside_a_mesh_tool_is_refused_as_inside_the_other_shapes():
+    """A box mesh tool in the middle of a block was not measured at all (only the primitive
+    shapes were): the first steps pushed the particles inside out onto its faces and read
+    69 N on it. Refused as the box tool of the same size is; the same mesh resting on the
+    block's top is taken, turned or not."""
+    def builder():
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.05, 0.0), (0.04, 0.04, 0.04), we.Material.preset("clay"), name="blk")
+        return b
+
+    for shape, geometry in (("mesh", {"mesh": tools.box_mesh((0.03,) * 3)}), ("box", {"half_extents": (0.03,) * 3})):
+        b = builder()
+        b.add_tool(shape, position=(0.0, 0.05, 0.0), name="m", **geometry)
+        with pytest.raises(ValueError, match=r"^body 'blk' is not allowed where it is: 8 of its particles start inside "
+                                             r"tool 'm' at its first pose, up to 0\.02 m deep"):
+            b.finalize()
+    b = builder()
+    b.add_tool("mesh", mesh=tools.box_mesh((0.05, 0.01, 0.05)), position=(0.0, 0.09, 0.0), name="m")
+    b.add_tool("mesh", mesh=tools.box_mesh((0.05, 0.01, 0.05)), name="turned",
+               motion=tools.Velocity(position=(0.0, 0.01, 0.12), orientation=(0.7071068, 0.0, 0.0, 0.7071068)))
+    b.finalize()
+    b = builder()  # turned a quarter about x, the slab stands in the block, 0.03 m thick each side of z = 0
+    b.add_tool("mesh", mesh=tools.box_mesh((0.05, 0.03, 0.05)), name="turned",
+               motion=tools.Velocity(position=(0.0, 0.05, 0.0), orientation=(0.7071068, 0.0, 0.0, 0.7071068)))
+    with pytest.raises(ValueError, match="start inside tool 'turned'"):
+        b.finalize()
+
+
 _TIMES = r"must be one or more finite, increasing numbers"
 _ROWS = r"must be \(2, 3\) finite numbers, one row per time"
 _QUATS = r"must be \(2, 4\) quaternions \(x, y, z, w\), none zero, one row per time"

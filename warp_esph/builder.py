@@ -918,7 +918,7 @@ def _check_outside_colliders(builder) -> None:
 
 def _tool_depth(kind: str, param, xl: np.ndarray) -> np.ndarray:
     """How deep each local point ``xl`` lies inside a tool of ``kind`` (negative: outside),
-    as the contact tests of ``tools.py`` see the shapes; a mesh is not measured (0)."""
+    as the contact tests of ``tools.py`` see the shapes; a mesh is measured by ``ToolSet.mesh_depth`` (0 here)."""
     a, b, _ = (float(v) for v in param)
     if kind == "plane":
         return -(xl @ np.asarray(param, dtype=np.float64))
@@ -939,7 +939,9 @@ def _check_outside_tools(model) -> None:
     """Refuse a body that starts more than half a spacing inside a tool at the tool's first
     pose (pinned particles aside), as ``_check_outside_colliders`` does for the static
     ones: the first step moved the particles inside onto the tool's surface and reported a
-    force (a sphere tool of 1000 m radius flung them 1 km, reported as a divergence)."""
+    force (a sphere tool of 1000 m radius flung them 1 km, reported as a divergence; a box
+    mesh tool in the middle of a block, which was not measured, pushed its particles out
+    and read 69 N in five steps)."""
     ts = model.tools
     x = np.asarray(model.particle_x0, dtype=np.float64)
     free = ts.pin.numpy() < 0
@@ -947,7 +949,8 @@ def _check_outside_tools(model) -> None:
     for k, tool in enumerate(ts.colliders):
         p, q = ts.pose_at(k, 0.0)
         xl = (x - np.asarray(p, dtype=np.float64)) @ tools.quat_to_matrix(np.asarray(q, dtype=np.float64))
-        d = np.where(free, _tool_depth(tool.kind, tool.param, xl), -np.inf)
+        depth = ts.mesh_depth(k, xl) if tool.kind == "mesh" else _tool_depth(tool.kind, tool.param, xl)
+        d = np.where(free, depth, -np.inf)
         inside = d > tol
         if inside.any():
             i = int(np.argmax(d))

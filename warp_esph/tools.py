@@ -787,6 +787,23 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
     return types.SimpleNamespace(poses=pk.poses, integrate=integrate, accumulate=pk.accumulate, quat=quat)
 
 
+@functools.cache
+def _mesh_depth_kernel():
+    @wp.kernel(module="unique")
+    def mesh_depth(mesh: wp.uint64, x: wp.array(dtype=wp.vec3f), far: wp.float32, depth: wp.array(dtype=wp.float32)):
+        """How deep ``x[i]`` (in the mesh's frame) lies inside the closed mesh, as the
+        contact's own query sees it (``shape_mesh``: inside by ``mesh_query_point``'s sign);
+        negative outside."""
+        i = wp.tid()
+        depth[i] = wp.float32(-1.0e30)
+        res = wp.mesh_query_point(mesh, x[i], far)
+        if res.result:
+            d = wp.length(wp.mesh_eval_position(mesh, res.face, res.u, res.v) - x[i])
+            depth[i] = wp.where(res.sign < wp.float32(0.0), d, -d)
+
+    return mesh_depth
+
+
 # --------------------------------------------------------------------------- tool set
 def keyframe_times_problem(times, npf) -> str | None:
     """Why keyframe ``times`` (increasing in float64) are not increasing and finite once cast to
@@ -938,6 +955,20 @@ class ToolSet:
         self._warned_scripted = False
         self._held_samples = None
         self._held_views = None  # numpy views of _held_samples' memory on the CPU, kept with it
+
+    def mesh_depth(self, k: int, xl: np.ndarray) -> np.ndarray:
+        """How deep each point ``xl`` (N, 3), in mesh tool ``k``'s own frame, lies inside it
+        (negative: outside; float32, as the contact's mesh queries)."""
+        c = self.colliders[k]
+        pts = np.asarray(c.mesh_points, dtype=np.float64)
+        far = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+        if not len(xl):
+            return np.zeros(0)
+        dev = self.model.device
+        out = wp.empty(len(xl), dtype=wp.float32, device=dev)
+        wp.launch(_mesh_depth_kernel(), len(xl), [wp.uint64(int(self.mesh_id.numpy()[k])),
+                  wp.array(np.asarray(xl, dtype=np.float32), dtype=wp.vec3f, device=dev), far], [out], device=dev)
+        return out.numpy().astype(np.float64)
 
     def _owner(self, k: int) -> str:
         """Tool ``k`` as messages name it."""
