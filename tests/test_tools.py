@@ -804,6 +804,56 @@ def test_a_body_starting_inside_a_mesh_tool_is_refused_as_inside_the_other_shape
         b.finalize()
 
 
+def test_a_tool_or_pin_moving_more_than_a_spacing_a_step_is_refused_before_the_run(tmp_path):
+    """The swept contact lets no particle through a fast tool, but gives every particle it
+    meets the tool's speed: a box at 3 spacings a step flattened a resting block into a sheet
+    half a millimetre thick and the run exited 0. Refused before the first step as a start
+    faster than a spacing a step is (the speed of the fastest point, |v| + |omega| r, while
+    the run lasts); the adaptive step follows the tool instead."""
+    from warp_esph.cli import main  # noqa: PLC0415
+    from warp_esph.simulate import adaptive_timestep  # noqa: PLC0415
+
+    dt, fps = 1e-4, 1000.0  # at most 0.01 / 1e-4 = 100 m/s
+
+    def model(**tool):
+        b = we.SceneBuilder(spacing=0.01)
+        b.add_box((0.0, 0.03, 0.0), (0.04, 0.04, 0.04), we.Material.preset("clay"), name="blk")
+        b.add_ground()
+        if "pin" in tool:
+            b.pin(body="blk", region=((-1, -1, -1), (1, 0.02, 1)), name="clamp", motion=tool["pin"])
+        else:
+            b.add_tool("box", half_extents=(0.01, 0.05, 0.05), name="hammer", **tool)
+        return b.finalize()
+
+    fast = [
+        (dict(motion=tools.Velocity((-300.0, 0.0, 0.0), position=(0.1, 0.03, 0.0))),
+         r"^tool 'hammer': its Velocity motion moves its points at up to 300 m/s \(|v| \+ |omega| r, r = 0\.0714 m; "
+         r"from t = 0 s\), which is not allowed at dt = 0\.0001 s: a step may carry a tool at most one spacing "
+         r"\(0\.01 m\), so at most 100 m/s; give a slower motion or a smaller dt$"),
+        # 2000 rad/s about its centre: its corners (0.0714 m out) at 143 m/s.
+        (dict(motion=tools.Velocity(angular_velocity=(0.0, 2000.0, 0.0), position=(0.1, 0.03, 0.0))), "up to 143 m/s"),
+        # Keyed to jump 0.1 m in 0.5 ms at t = 2 ms.
+        (dict(motion=tools.Keyframes([0.0, 0.002, 0.0025], [(0.1, 0.03, 0.0), (0.1, 0.03, 0.0), (0.2, 0.03, 0.0)])),
+         r"its Keyframes motion moves its points at up to 200 m/s .*from t = 0\.002 s"),
+        (dict(pin=tools.Velocity((0.0, 0.0, 150.0))), r"^pinned set 'clamp': its Velocity motion .* up to 150 m/s"),
+    ]
+    for tool, match in fast:
+        m = model(**tool)
+        with pytest.raises(ValueError, match=match):
+            we.simulate(m, 5, fps=fps, dt=dt, progress=False)
+        n, step = adaptive_timestep(m, m.state(), fps)
+        assert max(speed for _, speed, _ in m.tools.fastest(0.0, 1.0 / fps)) * step < 0.3 * m.spacing
+    # Slow enough, or fast only after the run: runs.
+    we.simulate(model(motion=tools.Velocity((-90.0, 0.0, 0.0), position=(0.1, 0.03, 0.0))), 1, fps=fps, dt=dt, progress=False)
+    we.simulate(model(**fast[2][0]), 1, fps=fps, dt=dt, progress=False)
+    # The command line: one line, exit 2, nothing written.
+    path = tmp_path / "fast.toml"
+    path.write_text(SCENE_TOML.replace("keyframe_times = [0.0, 0.04]", "keyframe_times = [0.0, 0.0001]"))
+    out = tmp_path / "fast.usdc"
+    assert main(["run", str(path), "-o", str(out), "--no-progress", "--dt", "0.001"]) == 2
+    assert not out.exists() and not (tmp_path / "fast.usdc_tools.csv").exists()
+
+
 _TIMES = r"must be one or more finite, increasing numbers"
 _ROWS = r"must be \(2, 3\) finite numbers, one row per time"
 _QUATS = r"must be \(2, 4\) quaternions \(x, y, z, w\), none zero, one row per time"

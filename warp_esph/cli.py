@@ -398,6 +398,13 @@ def _cmd_run(args) -> int:
             if str(args.scene).lower().endswith(".toml"):
                 raise ValueError(f"{args.scene}: [[bodies]] {e}") from None
             raise
+    if model.tools is not None and not adaptive:  # before the writer replaces an earlier run's file
+        try:
+            model.tools.check_speed(dt, start_frame / fps, frames_total / fps)
+        except ValueError as e:
+            if str(args.scene).lower().endswith(".toml"):
+                raise ValueError(f"{args.scene}: {e}") from None
+            raise
     # Every file the run writes, checked before the run (a folder in the way of the reaction
     # log was found only after the whole run); named after the whole output path, as the writer does.
     stem = os.path.abspath(os.fspath(output))

@@ -312,7 +312,8 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
 
         dt <= C dx / (c_P + v_max + |g| / fps)
 
-    where ``v_max`` is the largest particle speed of ``state`` and ``|g| / fps`` bounds
+    where ``v_max`` is the largest particle speed of ``state`` (or of a tool's points over the
+    frame, ``ToolSet.fastest``: a tool gives the particles it meets its speed) and ``|g| / fps`` bounds
     what gravity adds to it within the frame; and ``dt`` is at most the viscous limit of
     ``Model.stable_dt`` (with the limit of the hourglass control of strength ``hourglass``;
     None: the model's). A body at rest gets ``stable_dt`` (to the gravity term); one in
@@ -327,6 +328,10 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
     v_max = float(np.sqrt((v * v).sum(axis=1)).max()) if len(v) else 0.0
     if not math.isfinite(v_max):
         v_max = 0.0  # the divergence check after the frame reports it
+    if model.tools is not None:
+        # A tool gives the particles it meets its own speed: the step must follow it too (a
+        # box at 3 spacings a step flattened a resting block into a sheet).
+        v_max = max([v_max] + [speed for _, speed, _ in model.tools.fastest(state.time, state.time + frame_dt)])
     g = float(np.linalg.norm(model.gravity))
     dt = min(stable, courant * model.spacing / (c + v_max + g * frame_dt))
     ratio = frame_dt / dt * (1.0 - 1e-12)
@@ -525,6 +530,8 @@ def simulate(
             raise ValueError(f"state is not allowed: it has a {initial[0]}")
         if start_frame == 0:  # a resumed run's start was checked when its run began
             check_start_speed(model, current, fps, AUTO if adaptive else dt, hourglass=hourglass)
+        if model.tools is not None and not adaptive:  # (the adaptive step follows the tools' speed)
+            model.tools.check_speed(dt, current.time, current.time + frames / fps)
         spare = model.state(requires_grad=False)
         if monitor_origin is not None:
             checks.same_state(model, "monitor_origin", monitor_origin)

@@ -1161,6 +1161,77 @@ class ToolSet:
         """``{tool name: (position, quaternion (x, y, z, w))}`` at ``state.time``."""
         return {name: self.pose_at(k, state.time) for k, name in enumerate(self.names)}
 
+    def reach(self, k: int) -> float:
+        """The largest distance from tool ``k``'s origin to a point of it that may meet the
+        material: a shape's farthest surface point, a pinned set's farthest particle from its
+        centroid; a plane's (unbounded) the farthest particle from its first position."""
+        x0 = np.asarray(self.model.particle_x0, dtype=np.float64)
+        if k >= len(self.colliders):
+            idx = np.asarray(self.pins[k - len(self.colliders)].indices)
+            return float(np.linalg.norm(x0[idx] - x0[idx].mean(axis=0), axis=1).max())
+        c = self.colliders[k]
+        a, b, _ = (float(v) for v in c.param)
+        if c.kind == "plane":
+            p, _ = self.pose_at(k, 0.0)
+            return float(np.linalg.norm(x0 - p, axis=1).max()) if len(x0) else 0.0
+        if c.kind == "box":
+            return float(np.linalg.norm(c.param))
+        if c.kind == "capsule":
+            return a + b
+        if c.kind == "cylinder":
+            return math.hypot(a, b)
+        if c.kind == "mesh":
+            return float(np.linalg.norm(np.asarray(c.mesh_points, dtype=np.float64), axis=1).max())
+        return a
+
+    def fastest(self, t0: float, t1: float) -> list[tuple[int, float, float]]:
+        """``(k, speed, t)`` for each tool and pinned set whose motion is known before the run
+        (``Keyframes``, ``Velocity``; a ``Scripted`` one is not sampled): the bound
+        ``|v| + |omega| reach`` on the speed of its points between times ``t0`` and ``t1``, and
+        when it is reached (a keyframe segment's start, or ``t0``)."""
+        out = []
+        vel = self.velocity.numpy().astype(np.float64)
+        ang = self.angular_velocity.numpy().astype(np.float64)
+        for k, motion in enumerate(self.motions):
+            if isinstance(motion, Scripted):
+                continue
+            r = self.reach(k)
+            best, when = float(np.linalg.norm(vel[k]) + np.linalg.norm(ang[k]) * r), t0
+            if isinstance(motion, Keyframes):
+                base = self.keyframe_start[k]
+                ts = self._times_now()[base:base + len(motion.times)]
+                kp = self.keyframe_positions.numpy().astype(np.float64)[base:base + len(ts)]
+                kq = self.keyframe_orientations.numpy().astype(np.float64)[base:base + len(ts)]
+                kq = kq / np.linalg.norm(kq, axis=1, keepdims=True)
+                lin = best
+                for j in range(len(ts) - 1):
+                    if ts[j + 1] <= t0 or ts[j] >= t1:
+                        continue
+                    span = ts[j + 1] - ts[j]
+                    turn = 2.0 * math.acos(min(1.0, abs(float(np.dot(kq[j], kq[j + 1])))))
+                    speed = lin + (np.linalg.norm(kp[j + 1] - kp[j]) + turn * r) / span
+                    if speed > best:
+                        best, when = float(speed), max(float(ts[j]), t0)
+            out.append((k, best, when))
+        return out
+
+    def check_speed(self, dt: float, t0: float, t1: float) -> None:
+        """Refuse a tool or pinned set that moves more than one spacing in a step of ``dt``
+        between ``t0`` and ``t1``, as a start faster than that is refused
+        (``simulate.check_start_speed``): the contact is swept, so such a tool passes no
+        particle, but every particle it meets is given its speed, more than one spacing a step,
+        and the material can no longer follow (a box at 3 spacings a step flattened a block
+        into a sheet half a millimetre thick and the run exited 0)."""
+        limit = self.model.spacing / dt
+        for k, speed, when in self.fastest(t0, t1):
+            if not speed <= limit:
+                motion = type(self.motions[k]).__name__
+                raise ValueError(
+                    f"{self._owner(k)}: its {motion} motion moves its points at up to {speed:.3g} m/s (|v| + |omega| r, "
+                    f"r = {self.reach(k):.3g} m; from t = {when:.4g} s), which is not allowed at dt = {dt:.4g} s: a step may "
+                    f"carry a tool at most one spacing ({self.model.spacing:g} m), so at most {limit:.3g} m/s; give a slower "
+                    f"motion or a smaller dt")
+
     def pose_at(self, k: int, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Pose of tool ``k`` at time ``t`` evaluated on the host (the same formulas as ``poses``)."""
         motion = self.motions[k]
