@@ -804,7 +804,7 @@ def test_a_body_starting_inside_a_mesh_tool_is_refused_as_inside_the_other_shape
         b.finalize()
 
 
-def test_a_tool_or_pin_moving_more_than_a_spacing_a_step_is_refused_before_the_run(tmp_path):
+def test_a_tool_or_pin_moving_more_than_a_spacing_a_step_is_refused_before_the_run(tmp_path, capsys):
     """The swept contact lets no particle through a fast tool, but gives every particle it
     meets the tool's speed: a box at 3 spacings a step flattened a resting block into a sheet
     half a millimetre thick and the run exited 0. Refused before the first step as a start
@@ -846,11 +846,23 @@ def test_a_tool_or_pin_moving_more_than_a_spacing_a_step_is_refused_before_the_r
     # Slow enough, or fast only after the run: runs.
     we.simulate(model(motion=tools.Velocity((-90.0, 0.0, 0.0), position=(0.1, 0.03, 0.0))), 1, fps=fps, dt=dt, progress=False)
     we.simulate(model(**fast[2][0]), 1, fps=fps, dt=dt, progress=False)
+    # A jump the adaptive step cannot follow (0.1 m in 1 ns, 1e8 m/s), in the run's tenth frame:
+    # refused before the first, naming the tool (it was read as the body's initial velocity).
+    jump = model(motion=tools.Keyframes([0.0, 0.0095, 0.0095 + 1e-9], [(0.1, 0.03, 0.0), (0.1, 0.03, 0.0), (0.2, 0.03, 0.0)]))
+    with pytest.raises(ValueError, match=r"^tool 'hammer': its Keyframes motion's speed \(from t = 0\.0095 s\) of 1\.\d+e\+08 m/s "
+                                         r"is not allowed with the adaptive step: it would take .* steps a frame, more than 1e\+06"):
+        we.simulate(jump, 10, fps=fps, dt="auto", progress=False)
+    we.simulate(jump, 9, fps=fps, dt="auto", progress=False)
     # The command line: one line, exit 2, nothing written.
     path = tmp_path / "fast.toml"
     path.write_text(SCENE_TOML.replace("keyframe_times = [0.0, 0.04]", "keyframe_times = [0.0, 0.0001]"))
     out = tmp_path / "fast.usdc"
     assert main(["run", str(path), "-o", str(out), "--no-progress", "--dt", "0.001"]) == 2
+    path.write_text(SCENE_TOML.replace("keyframe_times = [0.0, 0.04]", "keyframe_times = [0.0, 1e-12]"))
+    capsys.readouterr()
+    assert main(["run", str(path), "-o", str(out), "--no-progress", "--dt", "auto"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"warp-esph: error: {path}: tool 'plate': its Keyframes motion's speed"), err
     assert not out.exists() and not (tmp_path / "fast.usdc_tools.csv").exists()
 
 

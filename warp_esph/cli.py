@@ -396,11 +396,20 @@ def _cmd_run(args) -> int:
             check_start_speed(model, model.state(requires_grad=False), fps, dt, hourglass=solver.hourglass)
         except ValueError as e:
             if str(args.scene).lower().endswith(".toml"):
-                raise ValueError(f"{args.scene}: [[bodies]] {e}") from None
+                # (the adaptive step's refusal may be a tool's, which names it)
+                table = "[[bodies]] " if str(e).startswith("initial velocity") else ""
+                raise ValueError(f"{args.scene}: {table}{e}") from None
             raise
-    if model.tools is not None and not adaptive:  # before the writer replaces an earlier run's file
+    if model.tools is not None:  # before the writer replaces an earlier run's file
         try:
-            model.tools.check_speed(dt, start_frame / fps, frames_total / fps)
+            if adaptive:  # it follows the tools' speed, but at most MAX_STEPS_PER_FRAME steps a frame
+                from .simulate import adaptive_timestep  # noqa: PLC0415
+
+                tools_at = model.state(requires_grad=False)
+                tools_at.time = start_frame / fps
+                adaptive_timestep(model, tools_at, fps, hourglass=solver.hourglass, until=frames_total / fps)
+            else:
+                model.tools.check_speed(dt, start_frame / fps, frames_total / fps)
         except ValueError as e:
             if str(args.scene).lower().endswith(".toml"):
                 raise ValueError(f"{args.scene}: {e}") from None

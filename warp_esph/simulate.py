@@ -304,7 +304,7 @@ def check_step_count(frames: int, substeps: int) -> None:
 
 
 def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: float = 0.3,
-                      hourglass: float | None = None) -> tuple[int, float]:
+                      hourglass: float | None = None, until: float | None = None) -> tuple[int, float]:
     """``(substeps, dt)`` for the next frame of ``state``, ``substeps * dt = 1 / fps``.
 
     The CFL limit of docs/method.md §8 with the signal speed measured now: a disturbance
@@ -318,6 +318,8 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
     ``Model.stable_dt`` (with the limit of the hourglass control of strength ``hourglass``;
     None: the model's). A body at rest gets ``stable_dt`` (to the gravity term); one in
     flight or hit hard gets smaller steps. Rounded down to a whole number of steps per frame.
+    ``until``: take the tools' speeds up to that time instead of over the next frame (a run
+    checks its whole span before its first step).
     """
     fps = checks.positive("fps", fps)
     courant = checks.courant(courant)
@@ -328,10 +330,15 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
     v_max = float(np.sqrt((v * v).sum(axis=1)).max()) if len(v) else 0.0
     if not math.isfinite(v_max):
         v_max = 0.0  # the divergence check after the frame reports it
+    who = "a particle speed"
     if model.tools is not None:
         # A tool gives the particles it meets its own speed: the step must follow it too (a
         # box at 3 spacings a step flattened a resting block into a sheet).
-        v_max = max([v_max] + [speed for _, speed, _ in model.tools.fastest(state.time, state.time + frame_dt)])
+        ts = model.tools
+        for k, speed, when in ts.fastest(state.time, state.time + frame_dt if until is None else until):
+            if speed > v_max:
+                v_max = speed
+                who = f"{ts._owner(k)}: its {type(ts.motions[k]).__name__} motion's speed (from t = {when:.4g} s)"
     g = float(np.linalg.norm(model.gravity))
     dt = min(stable, courant * model.spacing / (c + v_max + g * frame_dt))
     ratio = frame_dt / dt * (1.0 - 1e-12)
@@ -341,7 +348,7 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
         fastest = courant * model.spacing * fps * MAX_STEPS_PER_FRAME - c - g * frame_dt
         if fastest > 0.0 and v_max > fastest:
             raise ValueError(
-                f"a particle speed of {v_max:.3g} m/s is not allowed with the adaptive step: it would take {ratio:.3g} "
+                f"{who} of {v_max:.3g} m/s is not allowed with the adaptive step: it would take {ratio:.3g} "
                 f"steps a frame, more than {MAX_STEPS_PER_FRAME:.0e} (dt = C dx / (c_P + v_max + |g| / fps)), so at most "
                 f"{fastest:.3g} m/s at this spacing and fps"
             )
@@ -375,9 +382,9 @@ def check_start_speed(model: Model, state: State, fps: float, dt, hourglass: flo
         try:
             adaptive_timestep(model, state, fps, hourglass=hourglass)
         except ValueError as e:
-            if str(e).startswith("a particle speed"):
-                raise ValueError(f"initial velocity of body {body!r} (particle {p}): {e}") from None
-            raise
+            if not str(e).startswith("a particle speed"):
+                raise  # a tool's, which names it, or the material's own step
+            raise ValueError(f"initial velocity of body {body!r} (particle {p}): {e}") from None
         return
     limit = model.spacing / dt
     if not speed[p] <= limit:
@@ -530,8 +537,11 @@ def simulate(
             raise ValueError(f"state is not allowed: it has a {initial[0]}")
         if start_frame == 0:  # a resumed run's start was checked when its run began
             check_start_speed(model, current, fps, AUTO if adaptive else dt, hourglass=hourglass)
-        if model.tools is not None and not adaptive:  # (the adaptive step follows the tools' speed)
-            model.tools.check_speed(dt, current.time, current.time + frames / fps)
+        if model.tools is not None:
+            if adaptive:  # it follows the tools' speed, but at most MAX_STEPS_PER_FRAME steps a frame
+                adaptive_timestep(model, current, fps, hourglass=hourglass, until=current.time + frames / fps)
+            else:
+                model.tools.check_speed(dt, current.time, current.time + frames / fps)
         spare = model.state(requires_grad=False)
         if monitor_origin is not None:
             checks.same_state(model, "monitor_origin", monitor_origin)
