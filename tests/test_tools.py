@@ -760,6 +760,12 @@ def test_gradients_of_swept_tools_and_moving_pins_and_their_reaction_torque_matc
     (lambda b: b.add_tool("plane", friction=0.5, static_friction=0.2), r"static_friction = 0\.2 is not allowed: must be >= friction = 0\.5"),
     (lambda b: b.add_tool("plane", motion="up"), r"motion = 'up' is not allowed: must be tools\.Keyframes"),
     (lambda b: b.add_tool("mesh"), "mesh = None is not allowed: a mesh tool needs a mesh file"),
+    # The motion's start pose overrode the one beside it without a word.
+    (lambda b: b.add_tool("sphere", radius=0.01, position=(0.5, 0.5, 0.5), motion=tools.Velocity((0, -1, 0), position=(0.3, 0.3, 0.3))),
+     r"^position = \(0\.5, 0\.5, 0\.5\) is not allowed beside a Velocity motion with position = \(0\.3, 0\.3, 0\.3\): give "
+     r"the start pose once \(in the motion, or as add_tool's position with the motion's left None\)$"),
+    (lambda b: b.add_tool("plane", orientation=(0, 1, 0, 1), motion=tools.Velocity(orientation=(1, 0, 0, 1))),
+     r"^orientation = \(0\.0, 0\.7071.*\) is not allowed beside a Velocity motion with orientation = \(0\.7071"),
     (lambda b: b.pin(), "pin 'pin0': no selection is not allowed: give indices, body, region"),
     (lambda b: b.pin(region=((1, 1, 1), (2, 2, 2))), "pin 'pin0' is not allowed: the selection holds no particle"),
     (lambda b: b.pin(body="nope"), r"body = 'nope' is not allowed: must be one of \['d'\]"),

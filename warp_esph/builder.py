@@ -602,6 +602,14 @@ class SceneBuilder:
         if motion is None:
             motion = tools.Velocity(position=pos, orientation=ori)
         elif isinstance(motion, tools.Velocity):
+            # A start pose the motion gives overrode the one given beside it without a word.
+            same = lambda a, b: np.allclose(a, b, rtol=0.0, atol=1e-12)  # noqa: E731
+            for label, given, own, default in (("position", pos, motion.position, (0.0, 0.0, 0.0)),
+                                               ("orientation", ori, motion.orientation, tools._quat("orientation", tools.IDENTITY))):
+                if own is not None and not same(given, default) and not same(given, own):
+                    raise ValueError(f"{label} = {checks.shorten(given)!r} is not allowed beside a Velocity motion with "
+                                     f"{label} = {checks.shorten(own)!r}: give the start pose once (in the motion, or "
+                                     f"as add_tool's {label} with the motion's left None)")
             if motion.position is None or motion.orientation is None:
                 motion = tools.Velocity(motion.velocity, motion.angular_velocity,
                                         motion.position if motion.position is not None else pos,
