@@ -818,3 +818,32 @@ def test_a_fit_to_targets_out_of_every_particles_reach_says_so():
     near = ChamferLoss(x[-1], radius=0.03, frames=[FRAMES[-1]])
     r.value_and_grad(near, alpha0=ALPHA0)
     assert near.unmatched and near.out_of_reach() is None
+
+
+def test_fit_options_that_meant_nothing_or_failed_late_are_refused_before_any_rollout(monkeypatch):
+    """``tol = inf`` stopped the fit at its guess as ``converged`` (nothing fitted, a result
+    reported as a success); ``tol = 'x'``, ``initial={"v": ...}``, ``materials=[]`` and
+    ``params=None`` were a TypeError or numpy's "zero-size array" out of the code that met
+    them, the first two after the rollout had run."""
+    model = _block()
+    n = model.particle_count
+    x = Rollout(model, STEPS, DT, frames=FRAMES).forward()
+    runs = []
+    monkeypatch.setattr(Rollout, "forward", lambda self, *a, **k: runs.append(1))
+    cases = [
+        (dict(tol=math.inf), r"tol = inf is not allowed: must be a finite number"),
+        (dict(tol=float("nan")), r"tol = nan is not allowed: must be a finite number"),
+        (dict(tol=-1.0), r"tol = -1.0 is not allowed: must be > 0"),
+        (dict(tol="x"), r"tol = 'x' is not allowed: must be a number"),
+        (dict(initial={"v": np.zeros((n, 3))}), r"initial\['v'\] is not allowed: the keys are x0, v0, F0, alpha0"),
+        (dict(initial="v0"), r"initial = 'v0' is not allowed: must be a mapping"),
+        (dict(materials=[]), r"materials = \[\] is not allowed: it selects no fitted material"),
+        (dict(params=None), r"params = None is not allowed: must be a list of parameter names"),
+    ]
+    for options, message in cases:
+        kw = dict(params=["mu"], steps=STEPS, dt=DT, frames=FRAMES, iterations=2, progress=False, diagnostics=False)
+        kw.update(options)
+        with pytest.raises(ValueError, match=message):
+            fit(model, x, **kw)
+    assert runs == []
+    assert model.mu.numpy()[0] == BASE["mu"]

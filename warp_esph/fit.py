@@ -230,6 +230,10 @@ def _material_indices(model: Model, materials) -> list[int]:
             raise ValueError(f"material {m!r} is not allowed: indices are 0..{len(model.materials) - 1}")
         if int(m) not in out:
             out.append(int(m))
+    if not out:
+        # An empty selection fitted nothing and failed in numpy ("zero-size array").
+        raise ValueError(f"materials = {checks.shorten(materials)!r} is not allowed: it selects no fitted material; "
+                         f"give material indices 0..{len(model.materials) - 1} or body names ({', '.join(names)})")
     return out
 
 
@@ -318,6 +322,10 @@ def choose_checkpointing(model: Model, steps: int, memory_limit: float = MEMORY_
     return lo
 
 
+#: The keys of ``fit``'s and ``Experiment``'s ``initial`` (``Rollout.forward``'s keywords).
+INITIAL_KEYS = ("x0", "v0", "F0", "alpha0", "initial_state")
+
+
 class _Run:
     """One experiment made ready: its model, rollout, loss and fitted materials."""
 
@@ -351,7 +359,15 @@ class _Run:
             ck = choose_checkpointing(self.model, self.steps, memory_limit)
         self.rollout = Rollout(self.model, self.steps, self.dt, frames=loss.frames, checkpoint_every=ck)
         self.memory = memory_estimate(self.model, self.steps, self.rollout.segment if self.rollout.checkpointing else None)
-        self.initial = dict(exp.initial or {})
+        initial = {} if exp.initial is None else exp.initial
+        if not isinstance(initial, Mapping):
+            raise ValueError(f"initial = {checks.shorten(initial)!r} is not allowed: must be a mapping of "
+                             f"Rollout.forward keywords ({', '.join(INITIAL_KEYS)})")
+        unknown = [k for k in initial if k not in INITIAL_KEYS]
+        if unknown:
+            # A TypeError out of Rollout.forward at the first evaluation, after the set-up.
+            raise ValueError(f"initial[{unknown[0]!r}] is not allowed: the keys are {', '.join(INITIAL_KEYS)}")
+        self.initial = dict(initial)
         self.weight = checks.positive("weight", exp.weight)  # a negative weight would maximise its loss
         self.noise = None if exp.noise is None else checks.noise("noise", exp.noise)
         # In float64 whatever the model's precision, the materials' own values where the arrays
@@ -618,7 +634,11 @@ def check_options(*, params, iterations, lr, lr_end=None, clip=None, bounds=None
     form (``lo < hi``, a fitted parameter); ``fit`` checks ``lo > 0`` of a positive one."""
     if isinstance(params, str):
         params = [p.strip() for p in params.split(",") if p.strip()]
-    params = list(params)
+    try:
+        params = list(params)
+    except TypeError:
+        raise ValueError(f"{flag('params')} = {checks.shorten(params)!r} is not allowed: must be a list of parameter "
+                         f"names ({', '.join(PARAMETERS)})") from None
     if not params:
         raise ValueError(f"{flag('params')} = [] is not allowed: name at least one parameter")
     for p in params:
@@ -762,6 +782,9 @@ def fit(
     lbfgs_memory = checks.positive_int("lbfgs_memory", lbfgs_memory)
     xtol = checks.positive("xtol", xtol)
     gtol = checks.non_negative("gtol", gtol)
+    # A loss is >= 0 and finite where it counts: tol = inf stopped every fit at its guess as
+    # converged, and a string failed only after the first rollout.
+    tol = None if tol is None else checks.positive("tol", tol)
     worlds = checks.boolean("worlds", worlds)
     # In optimiser space (a factor e^step for a log-space value): below 1e-8 the differences
     # are round-off (0/0 at 1e-17, the Fisher matrix NaN and reported as a conclusion), above
