@@ -482,5 +482,24 @@ def test_set_material_refuses_another_deformation_model_and_values_the_precision
         model.set_material(0, we.Material.preset("dough", deformation="rest"))
     with pytest.raises(ValueError, match=r"Material\.mu = 1e\+300 is not allowed in float32"):
         model.set_material(0, we.Material(mu=1e300, lam=1e300, density=1000.0))
-    model.set_material(0, we.Material.preset("clay"))
-    assert model.materials[0] == we.Material.preset("clay")
+    clay = we.Material.preset("clay", density=model.materials[0].density)
+    model.set_material(0, clay)
+    assert model.materials[0] == clay
+
+
+def test_set_material_refuses_another_density_which_the_masses_did_not_follow():
+    """A new density reached the stable step and the wave speeds but not the particle masses
+    (so not the motion), while copies of the model (replicate_worlds for a fit with
+    worlds=True, split_materials) took it: world 0 of a replica ran 3.8 mm from the model."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"), name="block")
+    model = b.finalize(worlds=2)
+    mass = model.particle_mass.numpy().copy()
+    heavy = model.materials[0].replace(density=3450.0)
+    with pytest.raises(ValueError, match=r"material\.density = 3450\.0 is not allowed here: material 1 has density 1150\.0"):
+        model.set_material(0, heavy, world=1)
+    assert model.materials[1].density == 1150.0
+    np.testing.assert_array_equal(model.particle_mass.numpy(), mass)
+    # Its other values still change in place.
+    model.set_material(0, model.materials[0].replace(yield_stress=50.0), world=1)
+    assert model.yield_stress.numpy().tolist() == [150.0, 50.0]

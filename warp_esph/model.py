@@ -541,6 +541,13 @@ class Model:
                              f"{old.deformation!r}, and a model's deformation models are set when it is built "
                              "(finalize a model with the new one)")
         check_material_precision(material, self.scalar)
+        if material.density != old.density:
+            # The particles' masses and rest densities come from it when the model is built:
+            # a new density changed the stable step and the wave speeds but not the motion, and
+            # a copy (replicate_worlds, split_materials, so a fit with worlds=True) ran with it.
+            raise ValueError(f"material.density = {material.density!r} is not allowed here: material {index} has "
+                             f"density {old.density!r}, and a model's particle masses are set when it is built "
+                             "(finalize a model with the new one)")
         # The rest density is the pressure density's: its kernel may change with the force.
         new_density_kernel = (self.materials[index].pressure_force == "energy_spiky") != (
             material.pressure_force == "energy_spiky")
