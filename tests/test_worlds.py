@@ -243,6 +243,25 @@ def test_a_host_evaluated_loss_is_refused_in_a_world_loss():
             losses.WorldLoss(model, loss)
 
 
+def test_a_world_loss_of_no_loss_or_of_world_losses_and_per_world_of_no_gradients_are_refused():
+    """``WorldLoss(model, None)`` was a TypeError ("not iterable") and a string one loss per
+    character; a WorldLoss inside a WorldLoss was taken and failed at the first evaluation,
+    after the rollout had run; ``Rollout.per_world(None)`` was an AttributeError."""
+    model = _builder(MAT_A).finalize(dtype=wp.float64, requires_grad=True, worlds=2)
+    one = losses.PositionLoss(np.zeros((model.particle_count // 2, 3)), frames=[2])
+    for bad in (None, "ab", 3, {0: one}):
+        with pytest.raises(ValueError, match=r"losses = .* is not allowed: must be one warp_esph.losses.Loss or a list of 2"):
+            losses.WorldLoss(model, bad)
+    inner = losses.WorldLoss(model, one)
+    for nested in (inner, [one, inner], [one, one + 2.0 * inner]):
+        with pytest.raises(ValueError, match=r"losses with a WorldLoss\(2 worlds.* are not allowed in a WorldLoss"):
+            losses.WorldLoss(model, nested)
+    r = Rollout(model, 2, DT)
+    for bad in (None, [1.0, 2.0]):
+        with pytest.raises(ValueError, match=r"gradients = .* is not allowed: must be backward's gradients"):
+            r.per_world(bad)
+
+
 def test_an_elastic_world_beside_a_plastic_one_is_told_its_fit_is_the_models():
     """``fit="auto"`` is one choice for the whole model: with a world that can flow it is the
     linear fit for every world, where an elastic world alone runs the curvature-corrected fit

@@ -592,9 +592,19 @@ class WorldLoss(Loss):
         W = len(starts) - 1
         if isinstance(losses, Loss):
             losses = [losses] * W
+        if isinstance(losses, (str, bytes, Mapping)) or not hasattr(losses, "__iter__"):
+            # None was a TypeError ("not iterable"), a string read as one loss per character.
+            raise ValueError(f"losses = {checks.shorten(losses)!r} is not allowed: must be one warp_esph.losses.Loss or "
+                             f"a list of {W} (one per world)")
         losses = list(losses)
         if len(losses) != W or not all(isinstance(loss, Loss) for loss in losses):
             raise ValueError(f"losses is not allowed: must be one warp_esph.losses.Loss or a list of {W} (one per world), got {len(losses)} items")
+        nested = [leaf for loss in losses for leaf in _leaves(loss) if isinstance(leaf, WorldLoss)]
+        if nested:
+            # A world's loss sees that world's particles only: a WorldLoss inside one failed
+            # at the first evaluation, after the rollout had run.
+            raise ValueError(f"losses with a {nested[0]!r} are not allowed in a WorldLoss: a world's loss is "
+                             "evaluated on that world's particles; give each world's own loss (or one for all)")
         host = [type(leaf).__name__ for loss in losses for leaf in _leaves(loss) if getattr(leaf, "_host", False)]
         if host:
             # They are evaluated on the host from the rollout's observations, not launched on a

@@ -648,6 +648,9 @@ class Rollout:
         materials, ``model.world_materials(w)``) and of the initial-state gradients (its
         particles). Worlds never interact, so with a ``losses.WorldLoss`` these are the
         gradients of each world's own loss."""
+        if not isinstance(gradients, Mapping):
+            raise ValueError(f"gradients = {checks.shorten(gradients)!r} is not allowed: must be backward's gradients "
+                             "(a mapping {name: array})")
         parts = {key: self.model.per_world(value, "materials" if key in PARAMETERS else "particles")
                  for key, value in gradients.items()}
         return [{key: p[w] for key, p in parts.items()} for w in range(self.model.world_count)]
