@@ -445,6 +445,12 @@ def test_fit_cli_writes_json_and_usd(tmp_path):
     bad = parser.parse_args(["dough_drop", "--target", str(target), "--params", "youngs"])
     with pytest.raises(ValueError, match="--params"):
         fit_cli(bad)
+    # --clip clips Adam's steps: with one value the default is L-BFGS, which ran unclipped.
+    clipped = parser.parse_args(["dough_drop", "--target", str(target), "--params", "yield_stress", "--scale", "0.25",
+                                 "--clip", "1", "--no-progress", "--output-dir", str(tmp_path / "clip")])
+    with pytest.raises(ValueError, match=r"--clip is not allowed with --optimizer lbfgs \(the default for up to 4"):
+        fit_cli(clipped)
+    assert not (tmp_path / "clip").exists()
 
 
 def test_an_empty_or_nan_positions_file_is_refused_by_its_name(tmp_path):
@@ -839,6 +845,10 @@ def test_fit_options_that_meant_nothing_or_failed_late_are_refused_before_any_ro
         (dict(initial="v0"), r"initial = 'v0' is not allowed: must be a mapping"),
         (dict(materials=[]), r"materials = \[\] is not allowed: it selects no fitted material"),
         (dict(params=None), r"params = None is not allowed: must be a list of parameter names"),
+        # Adam's options and a multi-start's worlds, which the fit never used where given.
+        (dict(optimizer="lbfgs", clip=1.0), r"clip = 1.0 is not allowed with optimizer = 'lbfgs': it is Adam's option"),
+        (dict(optimizer="gauss-newton", lr_end=0.01), r"lr_end = 0.01 is not allowed with optimizer = 'gauss-newton'"),
+        (dict(worlds=True), r"worlds = True is not allowed with starts = 1: it runs several starts at once"),
     ]
     for options, message in cases:
         kw = dict(params=["mu"], steps=STEPS, dt=DT, frames=FRAMES, iterations=2, progress=False, diagnostics=False)

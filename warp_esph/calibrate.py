@@ -209,6 +209,11 @@ def run_fit(args, out=None, err=None) -> int:
         e.loss = loss_scale * e.loss if loss_scale != 1.0 else e.loss
     n_values = len(params) * len(_material_indices(exps[0].model, exps[0].materials or None))
     optimizer = _arg(args, "optimizer") or default_optimizer(n_values)
+    if args.clip is not None and optimizer != "adam":
+        # fit() would refuse it too, under its Python name and without saying the choice was the default.
+        chosen = "" if _arg(args, "optimizer") else f" (the default for up to {LBFGS_MAX_VALUES} fitted values)"
+        raise ValueError(f"--clip is not allowed with --optimizer {optimizer}{chosen}: it clips Adam's steps; give "
+                         "--optimizer adam")
     for e in exps:
         waiting.append(f"{e.scene.name}: {e.model.particle_count} particles, {e.frames} frames at {e.fps:g} fps, "
                        f"dt = {e.dt:.4g} s ({e.frames * e.substeps} steps); fitting {', '.join(params)} with "

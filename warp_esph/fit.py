@@ -786,6 +786,16 @@ def fit(
     # converged, and a string failed only after the first rollout.
     tol = None if tol is None else checks.positive("tol", tol)
     worlds = checks.boolean("worlds", worlds)
+    # Adam's options, which the other optimisers never read: given with them, they were
+    # dropped without a word (a clipped L-BFGS fit ran unclipped).
+    for name, value in (("clip", clip), ("lr_end", lr_end)):
+        if value is not None and optimizer != "adam":
+            raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed with optimizer = {optimizer!r}: it is "
+                             "Adam's option (optimizer='adam')")
+    if worlds and starts < 2:
+        # As the command line's --worlds: one start ran alone on the one-world model.
+        raise ValueError(f"worlds = True is not allowed with starts = {starts}: it runs several starts at once as "
+                         "worlds of one model; give starts = K > 1")
     # In optimiser space (a factor e^step for a log-space value): below 1e-8 the differences
     # are round-off (0/0 at 1e-17, the Fisher matrix NaN and reported as a conclusion), above
     # 1 they read the loss a factor e away (1.2e6 x mu at 14).
