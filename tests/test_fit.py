@@ -849,6 +849,10 @@ def test_fit_options_that_meant_nothing_or_failed_late_are_refused_before_any_ro
         (dict(optimizer="lbfgs", clip=1.0), r"clip = 1.0 is not allowed with optimizer = 'lbfgs': it is Adam's option"),
         (dict(optimizer="gauss-newton", lr_end=0.01), r"lr_end = 0.01 is not allowed with optimizer = 'gauss-newton'"),
         (dict(worlds=True), r"worlds = True is not allowed with starts = 1: it runs several starts at once"),
+        # Tolerances every fit meets at its guess or its first step: reported as converged.
+        (dict(gtol=1.0), r"gtol = 1.0 is not allowed: must be in \[0, 1\)"),
+        (dict(xtol=0.1, lr=0.1), r"xtol = 0.1 is not allowed with lr = 0.1: must be < lr"),
+        (dict(xtol=0.5, optimizer="lbfgs"), r"xtol = 0.5 is not allowed with lr = 0.1: must be < lr"),
     ]
     for options, message in cases:
         kw = dict(params=["mu"], steps=STEPS, dt=DT, frames=FRAMES, iterations=2, progress=False, diagnostics=False)
@@ -885,3 +889,4 @@ def test_backward_refuses_parameters_or_materials_changed_since_forward(segment)
     assert again == value
     for name in PARAMETERS:
         np.testing.assert_array_equal(grads_again[name], grads[name])
+

@@ -782,6 +782,15 @@ def fit(
     lbfgs_memory = checks.positive_int("lbfgs_memory", lbfgs_memory)
     xtol = checks.positive("xtol", xtol)
     gtol = checks.non_negative("gtol", gtol)
+    # Either test passed at the guess or its first step whatever the loss, and the fit
+    # reported the guess as converged: gtol is a fraction of the initial gradient, and the
+    # first step of Adam or L-BFGS moves by lr.
+    if gtol >= 1.0:
+        raise ValueError(f"gtol = {checks.shorten(gtol)!r} is not allowed: must be in [0, 1) (a fraction of the initial "
+                         "gradient: at 1 the guess itself counts as converged)")
+    if optimizer in ("adam", "lbfgs") and xtol >= lr:
+        raise ValueError(f"xtol = {checks.shorten(xtol)!r} is not allowed with lr = {lr:g}: must be < lr (the first "
+                         f"step of {optimizer} moves by lr, so it would count as converged)")
     # A loss is >= 0 and finite where it counts: tol = inf stopped every fit at its guess as
     # converged, and a string failed only after the first rollout.
     tol = None if tol is None else checks.positive("tol", tol)
