@@ -890,3 +890,17 @@ def test_backward_refuses_parameters_or_materials_changed_since_forward(segment)
     for name in PARAMETERS:
         np.testing.assert_array_equal(grads_again[name], grads[name])
 
+
+def test_patience_counts_the_evaluations_after_the_guess():
+    """The guess's own evaluation counted as one without a lower loss (inf - 1e-9 * inf is
+    NaN): ``patience=1`` stopped every fit at its guess as stalled, and every stall came one
+    evaluation early."""
+    model = _block()
+    r = Rollout(model, STEPS, DT, frames=FRAMES)
+    loss = PositionLoss(_targets(r), frames=FRAMES)
+    result = fit(model, loss, ["mu"], steps=STEPS, dt=DT, iterations=3, patience=1, progress=False, diagnostics=False)
+    losses = [h["loss"] for h in result.history]
+    assert len(losses) >= 2
+    # It goes on while each evaluation is lower, and stops at the first that is not.
+    assert all(b < a for a, b in zip(losses[:-2], losses[1:-1]))
+    assert result.stopped == "iterations" or (result.stopped == "stalled" and losses[-1] >= min(losses[:-1]))

@@ -895,7 +895,9 @@ def fit(
             passes = "forward only" if gz is None else "forward + backward"
             say(f"one evaluation ({passes}{per}) took {seconds:.3g} s: "
                 f"up to {iterations + 1} evaluations per start, ~{_duration(seconds * rounds)}")
-        if finite and value < track.best - 1e-9 * abs(track.best):
+        # The first finite value is an improvement: inf - 1e-9 * inf is NaN, which had counted
+        # the guess itself as a stalled evaluation (patience = 1 stopped every fit there).
+        if finite and (track.best == math.inf or value < track.best - 1e-9 * abs(track.best)):
             track.since_best = 0
         else:
             track.since_best += 1
