@@ -830,7 +830,8 @@ def test_fit_options_that_meant_nothing_or_failed_late_are_refused_before_any_ro
     """``tol = inf`` stopped the fit at its guess as ``converged`` (nothing fitted, a result
     reported as a success); ``tol = 'x'``, ``initial={"v": ...}``, ``materials=[]`` and
     ``params=None`` were a TypeError or numpy's "zero-size array" out of the code that met
-    them, the first two after the rollout had run."""
+    them, the first two after the rollout had run; targets only at step 0 without ``steps``
+    were "steps = 0 is not allowed", an option not given."""
     model = _block()
     n = model.particle_count
     x = Rollout(model, STEPS, DT, frames=FRAMES).forward()
@@ -854,11 +855,14 @@ def test_fit_options_that_meant_nothing_or_failed_late_are_refused_before_any_ro
         (dict(xtol=0.1, lr=0.1), r"xtol = 0.1 is not allowed with lr = 0.1: must be < lr"),
         (dict(xtol=0.5, optimizer="lbfgs"), r"xtol = 0.5 is not allowed with lr = 0.1: must be < lr"),
     ]
+    cases.append(((dict(frames=[0], steps=None), x[:1]),
+                  r"the target's frames = \[0\] end at step 0, the initial state, which no material parameter moves"))
     for options, message in cases:
+        options, target = options if isinstance(options, tuple) else (options, x)
         kw = dict(params=["mu"], steps=STEPS, dt=DT, frames=FRAMES, iterations=2, progress=False, diagnostics=False)
         kw.update(options)
         with pytest.raises(ValueError, match=message):
-            fit(model, x, **kw)
+            fit(model, target, **kw)
     assert runs == []
     assert model.mu.numpy()[0] == BASE["mu"]
 

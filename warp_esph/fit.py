@@ -348,6 +348,10 @@ class _Run:
         self.idx = _material_indices(self.model, exp.materials)
         self.loss = _target_loss(exp.target, exp.frames)
         loss = self.loss
+        if exp.steps is None and max(loss.frames) == 0:
+            # "steps = 0 is not allowed" named an option the caller had not given.
+            raise ValueError(f"{name}: the target's frames = {list(loss.frames)} end at step 0, the initial state, which "
+                             "no material parameter moves: give targets at later steps (and steps = the run's length)")
         self.steps = max(loss.frames) if exp.steps is None else checks.positive_int("steps", exp.steps)
         if max(loss.frames) > self.steps:
             raise ValueError(f"{name}: the target has frames up to step {max(loss.frames)}, beyond steps = {self.steps}")
