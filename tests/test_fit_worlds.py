@@ -137,3 +137,19 @@ def test_multi_start_over_worlds_finds_what_the_guess_alone_misses():
     best_alone = min(guess_alone, key=lambda h: h["loss"])
     assert abs(best_alone["params"]["yield_stress"][0] / 100.0 - 1.0) > 0.5
     assert best_alone["loss"] > 1e3 * result.loss
+
+
+def test_a_callback_that_stops_the_fit_stops_every_world_at_once(dropped_cube, target):
+    """A callback's True on one start's evaluation let the other starts run one more round
+    (a forward and backward pass of every world), recorded after the stop and eligible as the
+    result; now the fit ends with that round, as one start after the other does."""
+    seen = []
+
+    def stop_at_third(k, value, params):
+        seen.append(k)
+        return k == 2
+
+    result = _fit(dropped_cube, target, "adam", True, callback=stop_at_third)
+    assert result.stopped == "callback"
+    assert seen == [0, 1, 2] and len(result.history) == 3  # the three starts' first evaluations
+    assert result.loss == min(h["loss"] for h in result.history)

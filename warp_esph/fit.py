@@ -1046,7 +1046,7 @@ def fit(
                             dynamic_ncols=True, desc=f"fit ({optimizer})")
     try:
         if use_worlds:
-            stops = _lockstep(tracks, start_points, descend, worlds_problem, record)
+            stops = _lockstep(tracks, start_points, descend, worlds_problem, record, lambda: state["stop_all"])
         else:
             for track, z_start in zip(tracks, start_points):
                 stop = descend(residual_evaluate(track) if optimizer == "gauss-newton" else sequential_evaluate(track), z_start,
@@ -1202,11 +1202,12 @@ class _WorldsProblem:
         return {w: (float(values[w]), gz[w], seconds, refused.get(w)) for w in batch}
 
 
-def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record) -> list[str]:
+def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record, halted=lambda: None) -> list[str]:
     """Runs one optimiser per start, each in its own thread, in lockstep: every round, each
     start that has not finished asks for one evaluation, and one ``worlds.evaluate`` of all of
     them answers. Only this (the calling) thread launches Warp kernels and records history
-    (in start order); the optimiser threads do host arithmetic only."""
+    (in start order); the optimiser threads do host arithmetic only. ``halted()``: why the
+    whole fit has stopped (a callback's True), or None; then no further round runs."""
     import threading  # noqa: PLC0415
 
     cv = threading.Condition()
@@ -1248,6 +1249,14 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record) -> 
                 if not active:
                     break
                 batch = {w: pending.pop(w) for w in sorted(active)}
+            why = halted()
+            if why is not None:
+                # A callback stopped the fit: the other starts' next round ran and was recorded
+                # after it, and could be returned as the result.
+                with cv:
+                    answers.update({w: _Stop(why) for w in batch})
+                    cv.notify_all()
+                continue
             results = worlds.evaluate(batch)
             out = {}
             for w in sorted(batch):
