@@ -79,6 +79,20 @@ def test_worlds_refuse_what_they_cannot_replicate(dropped_cube, target):
         we.replicate_worlds(model, 0)
 
 
+def test_replicate_worlds_refuses_more_worlds_than_finalize_or_memory_allow(dropped_cube, monkeypatch):
+    """``replicate_worlds(model, 10**9)`` had neither ``finalize(worlds=)``'s cap nor its memory
+    check: it spent minutes building the list of bodies (killed after 2 min)."""
+    from warp_esph import builder
+
+    model = dropped_cube(200.0, 20.0, size=0.06)
+    with pytest.raises(ValueError, match=r"worlds = 1000000000 is not allowed: must be at most 100000"):
+        we.replicate_worlds(model, 10**9)
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 100 * 2**10)  # room for one copy, not two
+    with pytest.raises(ValueError, match=r"worlds = 2 is not allowed: particles = \d+ is not allowed on cpu: .* more than "
+                                         r"its 9.54e-05 GiB"):
+        we.replicate_worlds(model, 2)
+
+
 def test_cli_starts_as_worlds(tmp_path, capsys, dough_scene):
     """``warp-esph fit --starts 3 --worlds``: three starts, one model of three worlds; the
     JSON has one history per start and the best start's result."""

@@ -1146,12 +1146,19 @@ def replicate_worlds(model: Model, worlds: int, requires_grad: bool | None = Non
         raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
     if isinstance(worlds, bool) or not isinstance(worlds, (int, np.integer)) or worlds < 1:
         raise ValueError(f"worlds = {worlds!r} is not allowed: must be an integer >= 1")
+    if worlds > MAX_WORLDS:
+        # As finalize(worlds=): 1e9 spent minutes building the list of bodies before any memory was asked for.
+        raise ValueError(f"worlds = {checks.shorten(worlds)!r} is not allowed: must be at most {MAX_WORLDS}")
     if model.world_count != 1:
         raise ValueError(f"model is not allowed: it already has {model.world_count} worlds; replicate a one-world model")
     if model.tools is not None:
         raise ValueError("model is not allowed: it has moving tools or pinned sets, which act on one world; "
                          "build one model per scene with tools")
     W, n, M, B = int(worlds), model.particle_count, len(model.materials), len(model.bodies)
+    try:
+        _check_memory(n * W, model.max_neighbors, model.device)
+    except ValueError as e:
+        raise ValueError(f"worlds = {W} is not allowed: {e}") from None
     several = W > 1
     bodies = []
     for w in range(W):
