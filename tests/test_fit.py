@@ -195,6 +195,24 @@ def test_split_materials_gives_per_particle_gradients():
     assert np.count_nonzero(g2["yield_stress"]) > model.particle_count // 2
 
 
+def test_split_materials_takes_one_body_by_name_or_index_and_names_what_it_refuses():
+    """``bodies="block"`` was split into its letters ("body 'b' is not allowed") and
+    ``bodies=0`` was a TypeError; one body is taken as ``fit``'s ``materials=`` takes it."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.06, 0.06, 0.06), we.Material.preset("dough"), name="block")
+    b.add_box((0.2, 0.05, 0.0), (0.04, 0.04, 0.04), we.Material.preset("clay"), name="other")
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    n_block = model.bodies[0].count
+    for one in ("block", 0, np.int64(0), ["block"]):
+        split = split_materials(model, bodies=one)
+        assert len(split.materials) == n_block + 1  # one per particle of the block, the other body's shared
+    for bad, message in ((1.5, r"bodies = 1.5 is not allowed: give body names or indices \(the model's bodies are block, other\)"),
+                         ({"block": 1}, r"bodies = \{'block': 1\} is not allowed"),
+                         (True, r"bodies = True is not allowed")):
+        with pytest.raises(ValueError, match=message):
+            split_materials(model, bodies=bad)
+
+
 # --------------------------------------------------------------------- losses
 def _fd_positions(loss, pos, frame, entries, eps=1e-6):
     out = []

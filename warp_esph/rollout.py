@@ -756,6 +756,13 @@ def split_materials(model: Model, bodies: Sequence[int | str] | None = None) -> 
     if not isinstance(model, Model):
         raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
     names = [b.name for b in model.bodies]
+    if isinstance(bodies, (str, int, np.integer)) and not isinstance(bodies, bool):
+        # One body, as fit's materials= takes it: a name was split into its letters
+        # ("body 'b' is not allowed"), an index was a TypeError.
+        bodies = [bodies]
+    if bodies is not None and (isinstance(bodies, (bytes, Mapping)) or not hasattr(bodies, "__iter__")):
+        raise ValueError(f"bodies = {checks.shorten(bodies)!r} is not allowed: give body names or indices "
+                         f"(the model's bodies are {', '.join(names)})")
     if bodies is None:
         chosen = set(range(len(model.bodies)))
     else:
