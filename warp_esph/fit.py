@@ -795,6 +795,11 @@ def fit(
     if optimizer in ("adam", "lbfgs") and xtol >= lr:
         raise ValueError(f"xtol = {checks.shorten(xtol)!r} is not allowed with lr = {lr:g}: must be < lr (the first "
                          f"step of {optimizer} moves by lr, so it would count as converged)")
+    if optimizer in ("lbfgs", "gauss-newton") and max_step <= xtol:
+        # Every step of theirs is at most max_step: the first one, below xtol, ended the fit as
+        # converged (Gauss-Newton at one of its Jacobian's difference points).
+        raise ValueError(f"max_step = {checks.shorten(max_step)!r} is not allowed with xtol = {xtol:g}: must be > xtol "
+                         f"(no step of {optimizer} is longer than max_step, so the first would count as converged)")
     # A loss is >= 0 and finite where it counts: tol = inf stopped every fit at its guess as
     # converged, and a string failed only after the first rollout.
     tol = None if tol is None else checks.positive("tol", tol)
