@@ -872,6 +872,7 @@ def test_fit_options_that_meant_nothing_or_failed_late_are_refused_before_any_ro
         (dict(gtol=1.0), r"gtol = 1.0 is not allowed: must be in \[0, 1\)"),
         (dict(xtol=0.1, lr=0.1), r"xtol = 0.1 is not allowed with lr = 0.1: must be < lr"),
         (dict(xtol=0.5, optimizer="lbfgs"), r"xtol = 0.5 is not allowed with lr = 0.1: must be < lr"),
+        (dict(lr=1e-7), r"lr = 1e-07 is not allowed with xtol = 1e-06: must be > xtol"),
         (dict(max_step=1e-7, optimizer="gauss-newton"), r"max_step = 1e-07 is not allowed with xtol = 1e-06: must be > xtol"),
         (dict(max_step=1e-6, optimizer="lbfgs"), r"max_step = 1e-06 is not allowed with xtol = 1e-06: must be > xtol"),
     ]

@@ -793,6 +793,10 @@ def fit(
         raise ValueError(f"gtol = {checks.shorten(gtol)!r} is not allowed: must be in [0, 1) (a fraction of the initial "
                          "gradient: at 1 the guess itself counts as converged)")
     if optimizer in ("adam", "lbfgs") and xtol >= lr:
+        # Named by lr when xtol is the default: the command line sets lr (--lr) but not xtol.
+        if xtol == 1e-6:
+            raise ValueError(f"lr = {checks.shorten(lr)!r} is not allowed with xtol = {xtol:g}: must be > xtol (the first "
+                             f"step of {optimizer} moves by lr, and a step below xtol counts as converged)")
         raise ValueError(f"xtol = {checks.shorten(xtol)!r} is not allowed with lr = {lr:g}: must be < lr (the first "
                          f"step of {optimizer} moves by lr, so it would count as converged)")
     if optimizer in ("lbfgs", "gauss-newton") and max_step <= xtol:
