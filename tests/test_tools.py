@@ -852,6 +852,22 @@ def test_a_tool_or_pin_moving_more_than_a_spacing_a_step_is_refused_before_the_r
     # Slow enough, or fast only after the run: runs.
     we.simulate(model(motion=tools.Velocity((-90.0, 0.0, 0.0), position=(0.1, 0.03, 0.0))), 1, fps=fps, dt=dt, progress=False)
     we.simulate(model(**fast[2][0]), 1, fps=fps, dt=dt, progress=False)
+    # A scripted motion, sampled at the run's step times (it escaped the check): 0.1 m in the
+    # step from t = 2 ms, 1000 m/s; a slow one runs.
+    jumped = tools.Scripted(lambda t: ((0.1 if t <= 0.002 + 1e-9 else 0.2, 0.03, 0.0), tools.IDENTITY))
+    with pytest.raises(ValueError, match=r"^tool 'hammer': its Scripted motion moves its points at up to 1000 m/s "
+                                         r"\(|v| \+ |omega| r, r = 0\.0714 m; from t = 0\.002 s\), which is not allowed at "
+                                         r"dt = 0\.0001 s: .* so at most 100 m/s; give a slower motion or a smaller dt$"):
+        we.simulate(model(motion=jumped), 5, fps=fps, dt=dt, progress=False)
+    # A pinned set turning about its centroid at 1e4 rad/s: 1 rad a step, its farthest
+    # particles (0.0212 m out) at 212 m/s.
+    c = (0.0, 0.015, 0.0)
+    turning = tools.Scripted(lambda t: (c, (0.0, math.sin(5000.0 * t), 0.0, math.cos(5000.0 * t))))
+    with pytest.raises(ValueError, match=r"^pinned set 'clamp': its Scripted motion moves its points at up to 212 m/s "
+                                         r"\(|v| \+ |omega| r, r = 0\.0212 m; from t = 0 s\)"):
+        we.simulate(model(pin=turning), 5, fps=fps, dt=dt, progress=False)
+    we.simulate(model(motion=tools.Scripted(lambda t: ((0.1 - 90.0 * t, 0.03, 0.0), tools.IDENTITY))), 1, fps=fps, dt=dt,
+                progress=False)
     # A jump the adaptive step cannot follow (0.1 m in 1 ns, 1e8 m/s), in the run's tenth frame:
     # refused before the first, naming the tool (it was read as the body's initial velocity).
     jump = model(motion=tools.Keyframes([0.0, 0.0095, 0.0095 + 1e-9], [(0.1, 0.03, 0.0), (0.1, 0.03, 0.0), (0.2, 0.03, 0.0)]))

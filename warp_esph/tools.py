@@ -1186,7 +1186,8 @@ class ToolSet:
 
     def fastest(self, t0: float, t1: float) -> list[tuple[int, float, float]]:
         """``(k, speed, t)`` for each tool and pinned set whose motion is known before the run
-        (``Keyframes``, ``Velocity``; a ``Scripted`` one is not sampled): the bound
+        (``Keyframes``, ``Velocity``; a ``Scripted`` one is sampled only by ``check_speed``,
+        at its steps' times, which depend on ``dt``): the bound
         ``|v| + |omega| reach`` on the speed of its points between times ``t0`` and ``t1``, and
         when it is reached (a keyframe segment's start, or ``t0``)."""
         out = []
@@ -1217,13 +1218,16 @@ class ToolSet:
 
     def check_speed(self, dt: float, t0: float, t1: float) -> None:
         """Refuse a tool or pinned set that moves more than one spacing in a step of ``dt``
-        between ``t0`` and ``t1``, as a start faster than that is refused
+        between ``t0`` and ``t1`` (a ``Scripted`` one sampled at the run's step times ``t0 +
+        i dt``), as a start faster than that is refused
         (``simulate.check_start_speed``): the contact is swept, so such a tool passes no
         particle, but every particle it meets is given its speed, more than one spacing a step,
         and the material can no longer follow (a box at 3 spacings a step flattened a block
         into a sheet half a millimetre thick and the run exited 0)."""
         limit = self.model.spacing / dt
-        for k, speed, when in self.fastest(t0, t1):
+        speeds = self.fastest(t0, t1) + [self._scripted_fastest(k, dt, t0, t1)
+                                          for k, mo in enumerate(self.motions) if isinstance(mo, Scripted)]
+        for k, speed, when in sorted(speeds, key=lambda s: s[0]):
             if not speed <= limit:
                 motion = type(self.motions[k]).__name__
                 raise ValueError(
@@ -1231,6 +1235,25 @@ class ToolSet:
                     f"r = {self.reach(k):.3g} m; from t = {when:.4g} s), which is not allowed at dt = {dt:.4g} s: a step may "
                     f"carry a tool at most one spacing ({self.model.spacing:g} m), so at most {limit:.3g} m/s; give a slower "
                     f"motion or a smaller dt")
+
+    def _scripted_fastest(self, k: int, dt: float, t0: float, t1: float) -> tuple[int, float, float]:
+        """``(k, speed, t)`` for ``Scripted`` tool ``k``: the fastest of its steps of ``dt``
+        from ``t0`` until ``t1``, sampled at the times the run evaluates it (each step's
+        start and end), as ``|dp| / dt + |d angle| r / dt`` over the step (``fastest``'s bound
+        for a motion known only at those times), and that step's start. The callable may be
+        slow or have side effects, but the run calls it at these times anyway."""
+        r = self.reach(k)
+        steps = max(1, math.ceil((t1 - t0) / dt * (1.0 - 1e-12)))
+        best, when = 0.0, t0
+        p0, q0 = (np.asarray(a, dtype=np.float64) for a in self._scripted_pose(k, t0))
+        for i in range(1, steps + 1):
+            p1, q1 = (np.asarray(a, dtype=np.float64) for a in self._scripted_pose(k, t0 + i * dt))
+            turn = 2.0 * math.acos(min(1.0, abs(float(np.dot(q0, q1)))))
+            speed = (float(np.linalg.norm(p1 - p0)) + turn * r) / dt
+            if speed > best:
+                best, when = speed, t0 + (i - 1) * dt
+            p0, q0 = p1, q1
+        return k, best, when
 
     def pose_at(self, k: int, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Pose of tool ``k`` at time ``t`` evaluated on the host (the same formulas as ``poses``)."""
