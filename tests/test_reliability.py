@@ -919,7 +919,7 @@ def test_api_values_python_would_have_taken_are_refused_by_name():
     with pytest.raises(ValueError, match="lam is not allowed in Material.from_young: mu and lam are derived"):
         we.Material.from_young(1e5, 0.3, lam=5.0)
     with pytest.raises(ValueError, match="mu is not allowed in Material.from_rheology"):
-        we.Material.from_rheology(1e5, 0.3, shear_yield_stress=10.0, mu=5.0)
+        we.Material.from_rheology(1e5, 0.3, shear_yield_stress=10.0, plastic_viscosity=1.0, mu=5.0)
     for call in (lambda: we.Material.preset("dough", foo=1), lambda: we.Material.preset("dough").replace(foo=1)):
         with pytest.raises(ValueError, match=r"'foo' is not allowed in Material\.(preset|replace): must be one of mu, lam"):
             call()

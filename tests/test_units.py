@@ -117,10 +117,18 @@ def test_rheology_constructor_names_the_bad_parameter(kwargs, name):
 
 def test_rheology_constructor_needs_the_plastic_viscosity():
     """Left out, the plastic viscosity was infinite: a flow rate of 0, an elastic material on
-    which the shear yield stress given had no effect. An explicit ``inf`` still says so."""
+    which the shear yield stress given had no effect. An explicit ``inf`` still says so. The
+    signature said so too: ``plastic_viscosity: float | None = None`` showed a default that
+    every call without it was refused for; it is a required keyword."""
+    import inspect  # noqa: PLC0415
+
+    param = inspect.signature(we.Material.from_rheology).parameters["plastic_viscosity"]
+    assert (param.kind, param.default, param.annotation) == (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.empty, "float")
+    with pytest.raises(TypeError, match=r"missing 1 required keyword-only argument: 'plastic_viscosity'"):
+        we.Material.from_rheology(1.0e5, 0.3, shear_yield_stress=100.0)
     with pytest.raises(ValueError, match=r"^plastic_viscosity = None is not allowed in Material.from_rheology: give the "
                                          r"Bingham plastic viscosity"):
-        we.Material.from_rheology(1.0e5, 0.3, shear_yield_stress=100.0)
+        we.Material.from_rheology(1.0e5, 0.3, shear_yield_stress=100.0, plastic_viscosity=None)
     rigid = we.Material.from_rheology(1.0e5, 0.3, uniaxial_yield_stress=100.0, plastic_viscosity=math.inf)
     assert rigid.flow_rate == 0.0 and not rigid.plastic
 

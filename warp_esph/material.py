@@ -212,7 +212,7 @@ class Material:
         *,
         shear_yield_stress: float | None = None,
         uniaxial_yield_stress: float | None = None,
-        plastic_viscosity: float | None = None,
+        plastic_viscosity: float,
         **kwargs,
     ) -> "Material":
         """A Bingham-like material from the quantities a lab measures.
@@ -220,8 +220,8 @@ class Material:
         ``E`` (Pa) and ``nu`` the elastic part (as ``from_young``); exactly one of
         ``shear_yield_stress`` (Pa, a rheometer's ``tau_y``) and ``uniaxial_yield_stress``
         (Pa, a compression or tensile test's ``sigma_y``); ``plastic_viscosity`` (Pa s,
-        the Bingham ``eta_p``: ``tau = tau_y + eta_p gamma_dot`` in steady shear; required,
-        ``math.inf`` for a material that never flows), which sets ``flow_rate = mu / eta_p``. See the class docstring for the derivation.
+        the Bingham ``eta_p``: ``tau = tau_y + eta_p gamma_dot`` in steady shear; a required
+        keyword, ``math.inf`` for a material that never flows), which sets ``flow_rate = mu / eta_p``. See the class docstring for the derivation.
         """
         if (shear_yield_stress is None) == (uniaxial_yield_stress is None):
             raise ValueError(
@@ -242,8 +242,8 @@ class Material:
         else:
             Y = math.sqrt(2.0 / 3.0) * checks.non_negative("uniaxial_yield_stress", uniaxial_yield_stress)
         if plastic_viscosity is None:
-            # Left out it was infinite: flow_rate 0, an elastic material on which the yield
-            # stress given had no effect, without a word.
+            # Once the default, it was infinite: flow_rate 0, an elastic material on which the
+            # yield stress given had no effect, without a word.
             raise ValueError("plastic_viscosity = None is not allowed in Material.from_rheology: give the Bingham plastic "
                              "viscosity (Pa s; flow_rate = mu / plastic_viscosity), without which the material never flows "
                              "(math.inf says so explicitly)")
