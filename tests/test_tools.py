@@ -71,7 +71,7 @@ def test_reaction_readings_refuse_a_state_that_is_not_the_models():
     (tools.Velocity((0.0, 0.1, 0.0), position=(0.0, 0.0, 0.0)), "0.135"),
     (tools.Scripted(lambda t: ((-0.09, 0.1 + 0.1 * t, 0.0), (0.0, 0.0, math.sin(0.1), math.cos(0.1)))), "0.00399"),
 ])
-def test_a_pinned_set_whose_motion_starts_away_from_its_rest_pose_is_refused(motion, moved):
+def test_a_pinned_set_whose_motion_starts_away_from_its_rest_pose_is_refused(motion, moved, tmp_path):
     """A pinned particle is placed at ``p(t) + R(t) (X - centroid)``: a clamp keyed from the
     origin (or given a Velocity position there) jumped 0.135 m in the first step, off its beam,
     which then fell free, and the run reported nothing. The message gives the centroid to start
@@ -86,6 +86,19 @@ def test_a_pinned_set_whose_motion_starts_away_from_its_rest_pose_is_refused(mot
                                          rf"{type(motion).__name__} motion .* up to {moved} m .* its centroid "
                                          r"\[-0\.09\d*, 0\.\d+, 0\.0\]"):
         build(motion)
+    if isinstance(motion, tools.Keyframes):
+        # From a scene file, the refusal names the file and the set's table, as the file's
+        # other refusals do (it named neither).
+        from warp_esph.scenes import load_scene_file  # noqa: PLC0415
+
+        path = tmp_path / "clamp.toml"
+        path.write_text('[[bodies]]\nshape = "box"\nname = "beam"\nmaterial = "dough"\ncenter = [0.0, 0.1, 0.0]\n'
+                        'size = [0.2, 0.06, 0.06]\n[scene]\nspacing = 0.02\n'
+                        '[[pins]]\nbody = "beam"\nname = "clamp"\nregion = [[-1, -1, -1], [-0.07, 1, 1]]\n'
+                        'keyframe_times = [0.0, 1.0]\nkeyframe_positions = [[0, 0, 0], [0, 0.01, 0]]\n')
+        with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: \[\[pins\]\] #1: pinned set 'clamp' is not allowed to "
+                                             rf"start away from its rest pose: its Keyframes motion .* up to {moved} m"):
+            load_scene_file(path).builder.finalize()
     m = build(tools.Keyframes([0.0, 1.0], [(-0.09, 0.1, 0.0), (-0.09, 0.11, 0.0)]))
     s, a, c = we.Solver(m), m.state(), m.state()
     s.step(a, c, 1e-4)

@@ -968,12 +968,13 @@ def _check_outside_tools(model) -> None:
                              "move the body or the tool out")
 
 
-def _check_pins_at_rest(model) -> None:
+def _check_pins_at_rest(model, builder) -> None:
     """Refuse a pinned set whose motion does not start at the set's rest pose (its rest
     centroid, identity orientation): a pinned particle is placed at ``p(t) + R(t) (X - c)``,
     so a first keyframe (or a ``Velocity`` position, or a scripted pose at t = 0) elsewhere
     moved the whole set there in the first step. A clamp keyed from the origin jumped 0.1 m
-    off its beam, which then fell free of it, and the run reported nothing."""
+    off its beam, which then fell free of it, and the run reported nothing. ``builder``
+    (the first world's): one read from a scene file names the file and the set's table."""
     ts = model.tools
     x = np.asarray(model.particle_x0, dtype=np.float64)
     pin_of = ts.pin.numpy()
@@ -988,12 +989,12 @@ def _check_pins_at_rest(model) -> None:
         xs = x[pin_of == k]
         moved = np.linalg.norm(p + (xs - c) @ tools.quat_to_matrix(q / np.linalg.norm(q)).T - xs, axis=1)
         if moved.max() > tol:
-            raise ValueError(
-                f"pinned set {ts.names[k]!r} is not allowed to start away from its rest pose: its "
-                f"{type(ts.motions[k]).__name__} motion puts its frame at position {np.round(p, 9).tolist()}, orientation "
-                f"{np.round(q, 9).tolist()} at t = 0, which moves its particles up to {moved.max():.3g} m from where they "
-                f"were built; its rest pose is its centroid {np.round(c, 9).tolist()} with orientation (0, 0, 0, 1) (a pinned set's "
-                f"frame moves it as x = p(t) + R(t) (X - centroid)): start the motion there")
+            why = (f"pinned set {ts.names[k]!r} is not allowed to start away from its rest pose: its "
+                   f"{type(ts.motions[k]).__name__} motion puts its frame at position {np.round(p, 9).tolist()}, orientation "
+                   f"{np.round(q, 9).tolist()} at t = 0, which moves its particles up to {moved.max():.3g} m from where they "
+                   f"were built; its rest pose is its centroid {np.round(c, 9).tolist()} with orientation (0, 0, 0, 1) (a "
+                   f"pinned set's frame moves it as x = p(t) + R(t) (X - centroid)): start the motion there")
+            builder._refuse(("pin", ps.name), why, why)
 
 
 def _closer_than(points: np.ndarray, body: np.ndarray, r: float):
@@ -1130,7 +1131,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     if first.tools or first.pins:
         model.tools = tools.ToolSet(model, first.tools, first.pins, world_pins=[[p.indices for p in b.pins] for b in builders])
         _check_outside_tools(model)
-        _check_pins_at_rest(model)
+        _check_pins_at_rest(model, first)
     model.compute_rest_density()
     return model
 
