@@ -503,6 +503,35 @@ def test_a_damaged_usd_target_is_named_as_damaged_not_read_as_a_mesh(tmp_path):
     assert "mesh" not in str(e.value)
 
 
+def test_a_rollout_takes_one_particles_v0_F0_or_alpha0_for_every_particle_and_x0_only_per_particle():
+    """``alpha0`` was taken as one number for every particle, but ``v0`` as one (3,) velocity
+    (and ``F0`` as one matrix) was refused: the start's fields now agree, and run exactly as
+    the same value given per particle; ``x0`` stays one position per particle (one for all
+    would put every particle at one point)."""
+    import warp as wp
+
+    import warp_esph as we
+    from warp_esph.rollout import Rollout
+
+    b = we.SceneBuilder(spacing=0.05, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    n = model.particle_count
+    r = Rollout(model, 2, 1e-3)
+    v, F = np.array([0.3, -0.2, 0.1]), np.array([[1.01, 0.02, 0.0], [0.0, 0.99, 0.0], [0.0, 0.0, 1.0]])
+    one = r.forward(v0=v, F0=F, alpha0=0.01)
+    each = r.forward(v0=np.tile(v, (n, 1)), F0=np.tile(F, (n, 1, 1)), alpha0=np.full(n, 0.01))
+    np.testing.assert_array_equal(one, each)
+    assert not np.allclose(one, r.forward())
+    for name, value, shapes in (("x0", model.particle_x0[0], rf"\({n}, 3\)"),
+                                ("v0", np.zeros(2), rf"\({n}, 3\), or \(3,\): one velocity for every particle"),
+                                ("F0", np.eye(2), rf"\({n}, 3, 3\), or \(3, 3\): one for every particle"),
+                                ("alpha0", np.zeros(2), rf"\({n},\), or \(\): one number for every particle")):
+        with pytest.raises(ValueError, match=rf"^{name} with shape \({', '.join(map(str, value.shape))},?\) is not allowed: "
+                                             rf"must be {shapes}$"):
+            r.forward(**{name: value})
+
+
 def test_a_rollout_refuses_a_non_finite_or_non_numeric_start_by_name():
     """x0, v0, F0 or alpha0 with a NaN ran to NaN positions returned as a result; a string
     start ended in numpy's conversion error."""

@@ -52,6 +52,26 @@ def test_gradcheck_parameters_and_initial_state():
     assert torch.autograd.gradcheck(positions, (log_p, x0, v0), eps=1e-6, atol=1e-8, rtol=1e-5)
 
 
+def test_one_v0_for_every_particle_runs_as_the_same_v0_per_particle_and_gets_their_summed_gradient():
+    """``Rollout.forward`` took ``alpha0`` as one number for every particle but refused one
+    ``(3,)`` ``v0``; both it and the bridge now take one velocity for every particle, whose
+    gradient is the sum of the particles' (autograd's, through the expansion)."""
+    model = _cube()
+    rollout = Rollout(model, 3, 1.0e-3, frames=[3])
+    v = torch.tensor([0.2, -0.1, 0.05], dtype=torch.float64, requires_grad=True)
+    each = v.detach().expand(27, 3).clone().requires_grad_()
+    out_one = rollout_positions(rollout, v0=v)
+    (g_one,) = torch.autograd.grad(out_one.square().sum(), v)
+    out_each = rollout_positions(rollout, v0=each)
+    (g_each,) = torch.autograd.grad(out_each.square().sum(), each)
+    assert torch.equal(out_one, out_each)
+    assert g_one.shape == (3,) and bool((g_one.abs() > 0).all())
+    torch.testing.assert_close(g_one, g_each.sum(dim=0), rtol=1e-12, atol=0.0)
+    np.testing.assert_array_equal(rollout.forward(v0=v.detach().numpy()), out_one.detach().numpy())
+    with pytest.raises(ValueError, match=r"^x0 with shape \(3,\) is not allowed: must be a torch tensor of shape \(27, 3\)$"):
+        rollout_positions(rollout, x0=torch.zeros(3, dtype=torch.float64))
+
+
 def test_torch_adam_drives_a_fit():
     """torch.optim.Adam on a RolloutModule (log-space parameter) recovers the flow rate from 2x."""
     steps, frames = 12, [4, 8, 12]

@@ -182,31 +182,44 @@ TOOL_GRADIENTS = ("friction", "static_friction", "keyframe_times", "keyframe_pos
 
 #: The shape of one particle's entry of each initial field (``Rollout.forward``'s keywords).
 _INITIAL_SHAPES = {"x0": (3,), "v0": (3,), "F0": (3, 3), "alpha0": ()}
+#: The fields one particle's entry of which is taken for every particle: all but ``x0``,
+#: which would put every particle at one point (refused below).
+_BROADCAST = {"v0": "one velocity for every particle", "F0": "one for every particle",
+              "alpha0": "one number for every particle"}
+
+
+def initial_shapes(name: str, n: int) -> str:
+    """The shapes ``check_initial`` takes for field ``name`` of ``n`` particles, as its
+    messages say them."""
+    full = (n, *_INITIAL_SHAPES[name])
+    return f"{full}, or {_INITIAL_SHAPES[name]}: {_BROADCAST[name]}" if name in _BROADCAST else f"{full}"
 
 
 def check_initial(model: Model, name: str, value) -> np.ndarray:
     """``value`` of the initial field ``name`` (``x0``, ``v0``, ``F0``, ``alpha0``) as an
-    array of ``model``'s precision, or a ``ValueError`` naming it: not numbers, another
-    shape (``alpha0`` may be one number), a non-finite value, an ``F0`` with ``det F <= 0``,
-    a negative ``alpha0``, or ``x0`` with two particles that see each other at one place (``checks.coincident_points``,
-    as ``SceneBuilder`` refuses them: all at one point, the step returned the start moved
-    only by gravity)."""
+    ``(n, ...)`` array of ``model``'s precision, or a ``ValueError`` naming it: not numbers,
+    another shape, a non-finite value, an ``F0`` with ``det F <= 0``, a negative
+    ``alpha0``, or ``x0`` with two particles that see each other at one place
+    (``checks.coincident_points``, as ``SceneBuilder`` refuses them: all at one point, the
+    step returned the start moved only by gravity). ``v0``, ``F0`` and ``alpha0`` may be one
+    particle's entry (a ``(3,)`` velocity, a ``(3, 3)`` matrix, one number), taken for every
+    particle; ``x0`` is one position per particle."""
     shape = _INITIAL_SHAPES[name]
+    n = model.particle_count
     if isinstance(value, wp.array):
         value = value.numpy()
     try:
         v = np.asarray(value, dtype=model.types.np_dtype)
     except (TypeError, ValueError):
         raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be numbers of shape "
-                         f"{(model.particle_count, *shape)}") from None
+                         f"{initial_shapes(name, n)}") from None
+    if name in _BROADCAST and (v.shape == shape or (name == "alpha0" and v.size == 1)):
+        v = np.broadcast_to(v.reshape(shape), (n, *shape)).copy()
     if not np.isfinite(v).all():  # a NaN start ran to NaN positions, returned as a result
         raise ValueError(f"{name} is not allowed: it has non-finite values (first at index "
                          f"{int(np.argmax(~np.isfinite(v).reshape(v.shape[0] if v.ndim else 1, -1).all(axis=1)))})")
-    if v.shape != (model.particle_count, *shape):
-        if name == "alpha0" and v.size == 1:
-            v = np.full(model.particle_count, float(v), dtype=model.types.np_dtype)
-        else:
-            raise ValueError(f"{name} with shape {v.shape} is not allowed: must be {(model.particle_count, *shape)}")
+    if v.shape != (n, *shape):
+        raise ValueError(f"{name} with shape {v.shape} is not allowed: must be {initial_shapes(name, n)}")
     # An F that is no deformation (det <= 0: zero, or a reflection) and a negative
     # accumulated plastic strain ran without a word.
     if name == "F0" and not (np.linalg.det(v.astype(np.float64)) > 0.0).all():
@@ -395,7 +408,10 @@ class Rollout:
         """Run the rollout; returns the positions at ``frames`` as an ``(frames, n, 3)`` array.
 
         The initial state is the model's (``particle_x0``, ``particle_v0``, F = I, alpha =
-        0), or ``initial_state``'s fields, with ``x0, v0, F0, alpha0`` overriding.
+        0), or ``initial_state``'s fields, with ``x0, v0, F0, alpha0`` overriding: ``x0``
+        ``(n, 3)``; ``v0`` ``(n, 3)`` or one ``(3,)`` velocity for every particle; ``F0``
+        ``(n, 3, 3)`` or one ``(3, 3)``; ``alpha0`` ``(n,)`` or one number. Their gradients
+        (``backward``) are per particle whichever was given (sum them for a shared value).
         """
         self._load_initial(initial_state, x0, v0, F0, alpha0)
         self._tape = None

@@ -13,8 +13,8 @@
     loss.backward()                                                  # mu.grad, v0.grad
 
 Inputs: any of the model's per-material parameter arrays (one value per material, see
-``warp_esph.rollout.PARAMETERS``) and the initial positions ``x0`` and velocities ``v0``
-(``(n, 3)``); inputs left out keep the model's values and get no gradient. Output: the
+``warp_esph.rollout.PARAMETERS``) and the initial positions ``x0`` (``(n, 3)``) and
+velocities ``v0`` (``(n, 3)``, or one ``(3,)`` velocity for every particle); inputs left out keep the model's values and get no gradient. Output: the
 positions at the rollout's ``frames``. The forward pass sets the model's parameter
 arrays to the given values (they keep them afterwards). The backward pass re-runs the
 forward pass first when the rollout has been run with other inputs since (as
@@ -34,7 +34,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from . import checks
-from .rollout import PARAMETERS, Rollout, check_initial
+from .rollout import PARAMETERS, Rollout, check_initial, initial_shapes
 
 __all__ = ["rollout_positions", "RolloutModule", "require_torch"]  # noqa: F822 (RolloutModule: module __getattr__)
 
@@ -127,7 +127,9 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
     """Positions at ``rollout.frames`` as a differentiable torch tensor ``(frames, n, 3)``.
 
     ``params``: ``{name: tensor of one value per material}`` (a scalar tensor is
-    broadcast to every material); ``x0``, ``v0``: ``(n, 3)`` tensors or None. Each is
+    broadcast to every material); ``x0``: an ``(n, 3)`` tensor or None; ``v0``: an ``(n, 3)``
+    tensor, a ``(3,)`` one (one velocity for every particle, its gradient the particles'
+    sum) or None. Each is
     checked before the parameters are set or anything runs (``Rollout.forward``'s checks,
     ``rollout.check_initial``): finite real numbers, and ``x0`` with no two particles at one
     place (``SceneBuilder`` refuses those).
@@ -169,20 +171,26 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
             raise ValueError(f"{name} with shape {tuple(value.shape)} is not allowed: must be ({n_mat},), one value per material")
         names.append(name)
         values.append(value)
-    for label, t in (("x0", x0), ("v0", v0)):
+    start = {"x0": x0, "v0": v0}
+    for label, t in start.items():
         if t is None:
             continue
+        shapes = initial_shapes(label, n)
         if not isinstance(t, torch.Tensor):
-            raise ValueError(f"{label} = {checks.shorten(t)!r} is not allowed: must be a torch tensor of shape ({n}, 3)")
+            raise ValueError(f"{label} = {checks.shorten(t)!r} is not allowed: must be a torch tensor of shape {shapes}")
+        if label == "v0" and tuple(t.shape) == (3,):
+            # One velocity for every particle, as Rollout.forward takes it; expanded here so
+            # autograd sums the particles' gradients into its own.
+            t = start[label] = t.expand(n, 3)
         if tuple(t.shape) != (n, 3):
-            raise ValueError(f"{label} with shape {tuple(t.shape)} is not allowed: must be a torch tensor of shape ({n}, 3)")
+            raise ValueError(f"{label} with shape {tuple(t.shape)} is not allowed: must be a torch tensor of shape {shapes}")
         if t.dtype == torch.bool or t.is_complex():  # True ran as 1 m/s, 1j was dropped
             raise ValueError(f"{label} of dtype {t.dtype} is not allowed: must be real numbers")
         # Here, before the parameters are set and any kernel runs, by the rollout's own checks:
         # x0 with every particle at one point (which SceneBuilder refuses) returned the start
         # moved only by gravity; a NaN ran to NaN positions.
         check_initial(rollout.model, label, t.detach().to(device="cpu", dtype=torch.float64).numpy())
-    return _function().apply(rollout, tuple(names), x0, v0, *values)
+    return _function().apply(rollout, tuple(names), start["x0"], start["v0"], *values)
 
 
 _MODULE = None
