@@ -262,6 +262,41 @@ def test_a_world_loss_of_no_loss_or_of_world_losses_and_per_world_of_no_gradient
             r.per_world(bad)
 
 
+def test_a_loss_sized_for_the_whole_model_or_another_model_is_refused_before_any_rollout(monkeypatch):
+    """A ``WorldLoss`` of a loss sized for the whole model (or a world's ``particles`` past
+    its world) was taken, and refused only at its first evaluation, after the rollout had
+    run, as 'the positions 8 particles' of no named world; a plain loss of the wrong size,
+    given to ``Rollout.value_and_grad`` or ``fit``, likewise. Now refused when the
+    ``WorldLoss`` is made, and before the forward pass."""
+    from warp_esph.fit import fit  # noqa: PLC0415
+
+    model = _builder(MAT_A).finalize(dtype=wp.float64, requires_grad=True, worlds=2)
+    n = model.particle_count
+    half = n // 2
+    with pytest.raises(ValueError, match=rf"^losses is not allowed: world 0's loss is evaluated on that world's {half} "
+                                         rf"particles \(the whole model has {n}\), but targets at step 2 has {n} points, the "
+                                         rf"positions {half} particles; give each world's loss that world's targets"):
+        losses.WorldLoss(model, losses.PositionLoss(np.zeros((n, 3)), frames=[2]))
+    with pytest.raises(ValueError, match=rf"^losses is not allowed: world 1's loss .* but particles has index {half}, the "
+                                         rf"positions only {half} particles"):
+        ok = losses.PositionLoss(np.zeros((1, 3)), frames=[2], particles=[0])
+        losses.WorldLoss(model, [ok, losses.PositionLoss(np.zeros((1, 3)), frames=[2], particles=[half])])
+
+    def no_rollout(*args, **kwargs):
+        raise AssertionError("the rollout ran")
+
+    wrong = losses.PositionLoss(np.zeros((half, 3)), frames=[2])
+    monkeypatch.setattr(Rollout, "forward", no_rollout)
+    with pytest.raises(ValueError, match=rf"^targets at step 2 has {half} points, the positions {n} particles$"):
+        Rollout(model, 2, DT).value_and_grad(wrong)
+    with pytest.raises(ValueError, match=rf"^positions with {half} particles are not allowed: the worlds have {n}$"):
+        one = _builder(MAT_A).finalize(dtype=wp.float64, requires_grad=True)
+        Rollout(one, 2, DT).value_and_grad(losses.WorldLoss(model, losses.PositionLoss(np.zeros((half, 3)), frames=[2])))
+    with pytest.raises(ValueError, match=rf"^the experiment: target is not allowed for this model: targets at step 2 has "
+                                         rf"{half} points, the positions {n} particles$"):
+        fit(model, wrong, ["yield_stress"], steps=2, dt=DT, iterations=1, progress=False, diagnostics=False)
+
+
 def test_an_elastic_world_beside_a_plastic_one_is_told_its_fit_is_the_models():
     """``fit="auto"`` is one choice for the whole model: with a world that can flow it is the
     linear fit for every world, where an elastic world alone runs the curvature-corrected fit

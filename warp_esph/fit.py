@@ -348,6 +348,10 @@ class _Run:
         self.idx = _material_indices(self.model, exp.materials)
         self.loss = _target_loss(exp.target, exp.frames)
         loss = self.loss
+        try:  # here, not at the first evaluation after the first rollout
+            loss.check_positions(self.model.particle_count)
+        except ValueError as e:
+            raise ValueError(f"{name}: target is not allowed for this model: {e}") from None
         if exp.steps is None and max(loss.frames) == 0:
             # "steps = 0 is not allowed" named an option the caller had not given.
             raise ValueError(f"{name}: the target's frames = {list(loss.frames)} end at step 0, the initial state, which "

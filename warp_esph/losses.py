@@ -345,6 +345,19 @@ class Loss:
 
     def _check(self, frame: int, x: wp.array):
         """Validate a frame's positions (particle count) before launching."""
+        self._check_count(x.shape[0])
+
+    def _check_count(self, n: int) -> None:
+        """Refuse positions of ``n`` particles (after the ``particles`` subset)."""
+
+    def check_positions(self, n: int) -> None:
+        """Refuse positions of ``n`` particles that this loss cannot read (a ``particles``
+        subset past them, targets of another count), before a rollout runs: its first
+        evaluation refused them only after the rollout had run."""
+        if self.particles is not None:
+            self._check_particles(n)
+            n = len(self.particles)
+        self._check_count(n)
 
     def _check_particles(self, n: int) -> None:
         """The ``particles`` subset against positions of ``n`` particles."""
@@ -533,6 +546,10 @@ class SumLoss(Loss):
         frames = sorted({f for _, loss in flat for f in loss.frames})
         super().__init__(frames)
 
+    def check_positions(self, n: int) -> None:
+        for _, loss in self.terms:
+            loss.check_positions(n)
+
     def copy_for_world(self) -> "SumLoss":
         new = super().copy_for_world()
         new.terms = [(k, loss.copy_for_world()) for k, loss in self.terms]
@@ -612,9 +629,20 @@ class WorldLoss(Loss):
             raise ValueError(f"losses with a {host[0]} are not allowed in a WorldLoss: it is evaluated on the host, not "
                              f"on a world's particles; use it on the whole model, beside the WorldLoss in a sum (e.g. a "
                              f"ReactionForceLoss of tool 'w1/press')")
+        self.world_start = np.asarray(starts, dtype=np.int64)
+        total = int(self.world_start[-1])
+        for w, loss in enumerate(losses):
+            count = int(self.world_start[w + 1] - self.world_start[w])
+            try:
+                loss.check_positions(count)
+            except ValueError as e:
+                # A loss sized for the whole model was refused only at its first evaluation,
+                # after the rollout had run, as 'the positions 8 particles' of no named world.
+                raise ValueError(f"losses is not allowed: world {w}'s loss is evaluated on that world's {count} particles "
+                                 f"(the whole model has {total}), but {e}; give each world's loss that world's targets "
+                                 "and particle indices") from None
         # Each world's own copy (Loss.copy_for_world): one object's buffers served every world.
         self.losses = [loss.copy_for_world() for loss in losses]
-        self.world_start = np.asarray(starts, dtype=np.int64)
         super().__init__(sorted({f for loss in losses for f in loss.frames}))
         self._world_x = {}
         self._world_acc = {}
@@ -629,9 +657,12 @@ class WorldLoss(Loss):
             return None
         return np.array([sum(float(a.numpy()[0]) for a in used.values()) for used in self._used])
 
+    def check_positions(self, n: int) -> None:
+        if n != self.world_start[-1]:
+            raise ValueError(f"positions with {n} particles are not allowed: the worlds have {int(self.world_start[-1])}")
+
     def launch(self, frame, x, out, scale: float = 1.0):
-        if x.shape[0] != self.world_start[-1]:
-            raise ValueError(f"positions with {x.shape[0]} particles are not allowed: the worlds have {int(self.world_start[-1])}")
+        self.check_positions(x.shape[0])
         k = _kernels(_scalar_of(x))
         for w, loss in enumerate(self.losses):
             if frame not in loss.frames:
@@ -674,10 +705,10 @@ class PositionLoss(Loss):
         self.targets = {f: _points(f"targets at step {f}", t) for f, t in per.items()}
         self._wp_targets = {}
 
-    def _check(self, frame, x):
-        t = self.targets[frame]
-        if t.shape[0] != x.shape[0]:
-            raise ValueError(f"targets at step {frame} has {t.shape[0]} points, the positions {x.shape[0]} particles")
+    def _check_count(self, n):
+        for frame, t in self.targets.items():
+            if t.shape[0] != n:
+                raise ValueError(f"targets at step {frame} has {t.shape[0]} points, the positions {n} particles")
 
     def _launch(self, frame, x, out, scale):
         key = (frame, x.dtype, str(x.device))

@@ -734,6 +734,9 @@ class Rollout:
     # ------------------------------------------------------------- utilities
     def value_and_grad(self, loss, **initial) -> tuple[float, dict[str, np.ndarray]]:
         """``forward(**initial)`` then ``backward(loss)``: the loss value and its gradients."""
+        check = getattr(loss, "check_positions", None)
+        if check is not None:  # a loss of the wrong size was refused only after the forward pass
+            check(self.model.particle_count)
         self.forward(**initial)
         value, grads = self.backward(loss)
         return value, grads
