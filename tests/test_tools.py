@@ -901,6 +901,29 @@ def test_a_tool_or_pin_moving_more_than_a_spacing_a_step_is_refused_before_the_r
     assert not out.exists() and not (tmp_path / "fast.usdc_tools.csv").exists()
 
 
+def test_a_run_with_tools_checks_their_speeds_and_keyframe_times_once_before_its_first_step(monkeypatch):
+    """Redundant work, not wrong results: finalize checked keyframe times against the
+    precision twice (the builder, then the tool set), and an adaptive run with tools called
+    ``adaptive_timestep`` twice before its first step (the start's speed over the first
+    frame, then the tools' over the run), then once per frame. Now once each: the start's
+    check takes the tools' speeds to the run's end."""
+    import importlib  # noqa: PLC0415
+
+    sim = importlib.import_module("warp_esph.simulate")  # the module, not warp_esph.simulate the function
+    times = []
+    monkeypatch.setattr(tools, "keyframe_times_problem", lambda t, npf, f=tools.keyframe_times_problem: times.append(t) or f(t, npf))
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.06, 0.06, 0.06), we.Material.preset("dough"), name="blk")
+    b.add_ground()
+    b.add_tool("sphere", radius=0.03, name="ind", motion=tools.Keyframes([0.0, 1.0], [(0.0, 0.15, 0.0), (0.0, 0.1, 0.0)]))
+    m = b.finalize()
+    assert times == [(0.0, 1.0)]
+    calls = []
+    monkeypatch.setattr(sim, "adaptive_timestep", lambda *a, f=sim.adaptive_timestep, **k: calls.append(k.get("until")) or f(*a, **k))
+    we.simulate(m, 2, fps=100.0, dt="auto", progress=False)
+    assert calls == [pytest.approx(0.02), None, None]  # the whole run's check, then one per frame
+
+
 _TIMES = r"must be one or more finite, increasing numbers"
 _ROWS = r"must be \(2, 3\) finite numbers, one row per time"
 _QUATS = r"must be \(2, 4\) quaternions \(x, y, z, w\), none zero, one row per time"

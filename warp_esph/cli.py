@@ -393,7 +393,9 @@ def _cmd_run(args) -> int:
     solver.check_dt(dt_shown)  # the stability warning, once, before the run
     if args.resume is None:  # before the writer replaces an earlier run's file
         try:
-            check_start_speed(model, model.state(requires_grad=False), fps, dt, hourglass=solver.hourglass)
+            # With the adaptive step this also takes the tools' speeds to the run's end.
+            check_start_speed(model, model.state(requires_grad=False), fps, dt, hourglass=solver.hourglass,
+                              until=frames_total / fps)
         except ValueError as e:
             if str(args.scene).lower().endswith(".toml"):
                 # (the adaptive step's refusal may be a tool's, which names it)
@@ -403,11 +405,12 @@ def _cmd_run(args) -> int:
     if model.tools is not None:  # before the writer replaces an earlier run's file
         try:
             if adaptive:  # it follows the tools' speed, but at most MAX_STEPS_PER_FRAME steps a frame
-                from .simulate import adaptive_timestep  # noqa: PLC0415
+                if args.resume is not None:  # else check_start_speed took them
+                    from .simulate import adaptive_timestep  # noqa: PLC0415
 
-                tools_at = model.state(requires_grad=False)
-                tools_at.time = start_frame / fps
-                adaptive_timestep(model, tools_at, fps, hourglass=solver.hourglass, until=frames_total / fps)
+                    tools_at = model.state(requires_grad=False)
+                    tools_at.time = start_frame / fps
+                    adaptive_timestep(model, tools_at, fps, hourglass=solver.hourglass, until=frames_total / fps)
             else:
                 model.tools.check_speed(dt, start_frame / fps, frames_total / fps)
         except ValueError as e:

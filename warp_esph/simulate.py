@@ -362,7 +362,8 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
     return n, frame_dt / n
 
 
-def check_start_speed(model: Model, state: State, fps: float, dt, hourglass: float | None = None) -> None:
+def check_start_speed(model: Model, state: State, fps: float, dt, hourglass: float | None = None,
+                      until: float | None = None) -> None:
     """Refuse a start whose fastest particle the step cannot follow, before any step.
 
     With a fixed ``dt`` a particle may move at most one spacing in a step (``|v| dt <= dx``,
@@ -371,7 +372,9 @@ def check_start_speed(model: Model, state: State, fps: float, dt, hourglass: flo
     (3e38 fits float32) left its neighbourhood in the first step; every fit then failed its
     guard and the run "passed", because the divergence monitor's bounds grow with the
     initial speed. ``dt = AUTO``: the adaptive step follows the speed, so it is the step
-    count of the first frame that is bounded (``adaptive_timestep``)."""
+    count of the first frame that is bounded (``adaptive_timestep``); ``until``: with it, the
+    tools' speeds up to that time (a run's end) count too, so that one call checks a run's
+    whole span (it was checked again, by a second call, before the same first step)."""
     v = state.v.numpy().astype(np.float64)
     if not len(v):
         return
@@ -380,7 +383,7 @@ def check_start_speed(model: Model, state: State, fps: float, dt, hourglass: flo
     body = model.bodies[int(model.particle_body_np[p])].name
     if isinstance(dt, str):
         try:
-            adaptive_timestep(model, state, fps, hourglass=hourglass)
+            adaptive_timestep(model, state, fps, hourglass=hourglass, until=until)
         except ValueError as e:
             if not str(e).startswith("a particle speed"):
                 raise  # a tool's, which names it, or the material's own step
@@ -535,13 +538,16 @@ def simulate(
         initial = _first_bad(model, current)
         if initial is not None:
             raise ValueError(f"state is not allowed: it has a {initial[0]}")
+        end = current.time + frames / fps
         if start_frame == 0:  # a resumed run's start was checked when its run began
-            check_start_speed(model, current, fps, AUTO if adaptive else dt, hourglass=hourglass)
+            # With the adaptive step this call also takes the tools' speeds to the run's end.
+            check_start_speed(model, current, fps, AUTO if adaptive else dt, hourglass=hourglass, until=end)
         if model.tools is not None:
             if adaptive:  # it follows the tools' speed, but at most MAX_STEPS_PER_FRAME steps a frame
-                adaptive_timestep(model, current, fps, hourglass=hourglass, until=current.time + frames / fps)
+                if start_frame != 0:
+                    adaptive_timestep(model, current, fps, hourglass=hourglass, until=end)
             else:
-                model.tools.check_speed(dt, current.time, current.time + frames / fps)
+                model.tools.check_speed(dt, current.time, end)
         spare = model.state(requires_grad=False)
         if monitor_origin is not None:
             checks.same_state(model, "monitor_origin", monitor_origin)

@@ -898,10 +898,10 @@ class ToolSet:
                 kf_q.append(IDENTITY)
                 lin.append((0.0,) * 3)
                 ang.append((0.0,) * 3)
+        # Keyframe times that collapse in the model's precision were refused by the builder
+        # (SceneBuilder._check_precision, which names a scene file's keys) before the model
+        # was made; a split or replicated model keeps its source's precision.
         self.keyframe_start = start
-        for k, motion in enumerate(self.motions):
-            if isinstance(motion, Keyframes):
-                self._check_times_fit(k, motion.times, npf)
         rg = model.requires_grad
 
         def arr(values, dtype, grad=False, width=3):
@@ -973,15 +973,6 @@ class ToolSet:
     def _owner(self, k: int) -> str:
         """Tool ``k`` as messages name it."""
         return f"{'tool' if k < len(self.colliders) else 'pinned set'} {self.names[k]!r}"
-
-    def _check_times_fit(self, k: int, times, npf):
-        """Keyframe times that are increasing in float64 may not be in the model's precision
-        (1.0 and 1.0 + 1e-9 in float32): refused here, naming the user's times, rather than at
-        the first step as 'not increasing' times the user never gave."""
-        why = keyframe_times_problem(times, npf)
-        if why is not None:
-            raise ValueError(f"{self._owner(k)}: Keyframes times = {checks.shorten(list(times))!r} is not allowed in "
-                             f"{np.dtype(npf).name}: {why}; use dtype=float64 or times further apart")
 
     def _scripted_pose(self, k: int, t: float):
         """Tool ``k``'s ``Scripted`` pose at ``t``, checked against the model's precision (a
