@@ -430,6 +430,9 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         (["fit", "nothing.toml", "--target", "t.npz", "--lr", "0"], ["--lr = 0.0 is not allowed: must be > 0"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--lr", "-0.1"], ["--lr = -0.1 is not allowed: must be > 0"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--lr", "nan"], ["--lr = nan is not allowed: must be a finite number"]),
+        # Levenberg-Marquardt never reads a step size: --lr ran as if it had not been given.
+        (["fit", "nothing.toml", "--target", "t.npz", "--optimizer", "gauss-newton", "--lr", "0.5"],
+         ["--lr = 0.5 is not allowed with --optimizer gauss-newton"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--seed", "-1"], ["--seed = -1 is not allowed: must be an integer >= 0"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--bounds", "yield_stress=10:1"],
          ["--bounds['yield_stress'] = (10.0, 1.0) is not allowed: need lo < hi"]),

@@ -132,13 +132,21 @@ def run_fit(args, out=None, err=None) -> int:
     loss_scale = checks.positive("--loss-scale", _arg(args, "loss_scale", 1.0))
     memory_limit = checks.positive("--memory-limit", _arg(args, "memory_limit", 1024.0)) * 2**20
     bounds = _parse_bounds(args.bounds)
+    given_lr = _arg(args, "lr")  # None: not given (the default, 0.1, is fit's)
+    lr = 0.1 if given_lr is None else given_lr
     # Every option that needs no scene, checked before the scene is built and the targets read.
-    opts = check_options(params=str(args.params), iterations=args.iterations, lr=args.lr, clip=args.clip, bounds=bounds,
+    opts = check_options(params=str(args.params), iterations=args.iterations, lr=lr, clip=args.clip, bounds=bounds,
                          optimizer=_arg(args, "optimizer") or "adam", patience=_arg(args, "patience", 20),
                          samples=_arg(args, "samples", 0), starts=_arg(args, "starts", 1),
                          sample_range=_arg(args, "sample_range", 4.0), seed=_arg(args, "seed", 5), noise=_arg(args, "noise"),
                          memory_limit=memory_limit, flag=lambda name: "--" + name.replace("_", "-"))
     params = opts["params"]
+    if given_lr is not None and _arg(args, "optimizer") == "gauss-newton":
+        # Levenberg-Marquardt sizes its steps by its damping and never reads lr: the fit ran
+        # as if --lr had not been given.
+        raise ValueError(f"--lr = {given_lr!r} is not allowed with --optimizer gauss-newton: its steps are sized by "
+                         "the Levenberg-Marquardt damping, not by a step size; leave --lr out, or give --optimizer "
+                         "lbfgs or adam")
     if _arg(args, "worlds", False) and opts["starts"] < 2:
         raise ValueError(f"--worlds is not allowed with --starts = {opts['starts']}: it runs several starts at once "
                          "as worlds of one model; give --starts K > 1")
@@ -235,7 +243,7 @@ def run_fit(args, out=None, err=None) -> int:
                             for e in exps]}
     try:
         result = fit(experiments, None, params, iterations=args.iterations,
-                     lr=args.lr, bounds=bounds, clip=args.clip, memory_limit=memory_limit,
+                     lr=lr, bounds=bounds, clip=args.clip, memory_limit=memory_limit,
                      optimizer=optimizer, progress=not args.no_progress, samples=_arg(args, "samples", 0),
                      starts=_arg(args, "starts", 1), worlds=_arg(args, "worlds", False),
                      sample_range=_arg(args, "sample_range", 4.0), seed=_arg(args, "seed", 5),

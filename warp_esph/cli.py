@@ -670,8 +670,9 @@ def add_fit_arguments(parser):
                         help="fit only this body's material (name or material index); repeatable; default all")
     parser.add_argument("--iterations", type=int, default=50, metavar="N",
                         help="gradient evaluations after the first, line-search trials included (default 50)")
-    parser.add_argument("--lr", type=float, default=0.1, metavar="LR",
-                        help="Adam step size, relative; L-BFGS: its first step (default 0.1, at most 10)")
+    parser.add_argument("--lr", type=float, metavar="LR",
+                        help="Adam step size, relative; L-BFGS: its first step (default 0.1, at most 10; "
+                             "not with gauss-newton)")
     parser.add_argument("--bounds", action="append", default=[], metavar="NAME=LO:HI", help="bounds of a parameter; repeatable")
     parser.add_argument("--clip", type=float, metavar="C", help="clip the gradient norm (log space) to C")
     parser.add_argument("--target-frames", action="append", metavar="F,G",
