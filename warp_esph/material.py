@@ -355,6 +355,7 @@ def _check_fields(where: str, given) -> None:
 # and chosen so each one shows its character in a drop onto the ground. The explicit
 # step dissipates nothing by itself: an undamped body rings after an impact for as
 # long as the run lasts, so each preset carries some viscosity (Pa s) to settle.
+#: The named materials of ``Material.preset`` and scene files' ``preset`` (the reasons above).
 PRESETS: dict[str, Material] = {
     # Flows under its own weight, slowly, and keeps the new shape (the paper's Fig. 6).
     "dough": Material.from_young(2.0e4, 0.3, yield_stress=150.0, flow_rate=20.0, hardening=0.0, density=1150.0, viscosity=10.0),

@@ -19,6 +19,8 @@ from .replay import recording_tape
 from . import (comparison, curvature, deformation, fields, forces, fused, ghost_floor, hourglass, integrate, neighbors,
                plasticity, pressure)
 
+#: The keys of ``Solver.guard_counts()``: particle-steps each guard of the deformation update skipped
+#: (docs/method.md: the guards of §2, the flow skipped in §4, ``neighbors_cut`` the rows §1's search cut).
 GUARD_NAMES = ("few_neighbors", "ill_conditioned", "inverted", "plasticity_skipped", "neighbors_cut")
 #: Index of ``neighbors_cut``: particle-steps whose neighbour row may lack a neighbour of
 #: non-zero weight (the row width ``Model.max_neighbors`` reached, or an elastic stretch

@@ -1,0 +1,184 @@
+"""The reference pages against the code they describe: docs/cli.md's option lists against the
+argparse parsers, docs/scene_format.md's tables against the scene-file schema, the measured
+messages of docs/errors.md against what the code raises, and the package's public names
+against their docstrings and the pages. Text only, no kernel runs."""
+
+import math
+import pathlib
+import re
+
+import pytest
+
+import warp_esph as we
+from warp_esph import scene_file
+from warp_esph.cli import _build_parser
+from warp_esph.model import CONTACTS, FITS
+from warp_esph.sim.smoothing import FIT_WEIGHTS
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+DOCS = ROOT / "docs"
+
+
+def _subparsers():
+    parser = _build_parser()
+    sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
+    return parser, sub.choices
+
+
+def _synopsis() -> dict:
+    """Each command's lines of the usage block at the top of docs/cli.md."""
+    text = (DOCS / "cli.md").read_text()
+    block = re.search(r"```\n(warp-esph run.*?)```", text, flags=re.S).group(1)
+    commands, current = {}, None
+    for line in block.splitlines():
+        m = re.match(r"warp-esph (\w+)", line)
+        if m:
+            current = m.group(1)
+            commands[current] = ""
+        elif not line.startswith(" "):
+            current = None
+        if current:
+            commands[current] += " " + line
+    return commands
+
+
+#: Options whose values the parser checks itself (no argparse choices): the allowed names.
+CHECKED_CHOICES = {"--solver-fit": FITS, "--contact": tuple(CONTACTS), "--fit-weight": FIT_WEIGHTS}
+
+
+def test_cli_md_lists_every_option_of_every_command_with_its_choices():
+    parser, commands = _subparsers()
+    synopsis = _synopsis()
+    assert sorted(synopsis) == sorted(commands)
+    text = (DOCS / "cli.md").read_text()
+    for name, sub in commands.items():
+        line = synopsis[name]
+        documented = dict(re.findall(r"(?<![\w-])(--?[a-z][a-z0-9-]*)(?: ([\w.-]+(?:\|[\w.-]+)+))?", line))
+        documented.pop("warp-esph", None)
+        actions = {s: a for a in sub._actions for s in a.option_strings if s not in ("-h", "--help")}
+        unknown = sorted(set(documented) - set(actions))
+        assert not unknown, f"docs/cli.md's usage of {name} lists options the parser does not have: {unknown}"
+        # fit's usage ends with '...': the rest of its options are in its section's prose.
+        missing = [a.option_strings for a in set(actions.values())
+                   if not any(s in documented or (line.rstrip().endswith("...") and f"`{s}" in text) for s in a.option_strings)]
+        assert not missing, f"docs/cli.md does not list {name}'s options {missing}"
+        for option, choices in documented.items():
+            if not choices:
+                continue
+            allowed = actions[option].choices or CHECKED_CHOICES.get(option)
+            if allowed is None:
+                continue  # a placeholder such as S|auto
+            assert sorted(choices.split("|")) == sorted(allowed), (name, option)
+    top = {s for a in parser._actions for s in a.option_strings} - {"-h", "--help"}
+    for option in top:
+        assert f"`warp-esph {option}`" in text, f"docs/cli.md does not mention warp-esph {option}"
+
+
+#: Defaults docs/cli.md states in its prose, each as the text that states it.
+DEFAULTS = [
+    ("run", "--scale", 1.0, "`--scale S`: spacing divided by S"),
+    ("run", "--device", "cpu", "--device cpu|cuda"),
+    ("render", "--width", 800, "(default 800 x 600)"),
+    ("render", "--height", 600, "(default 800 x 600)"),
+    ("render", "--supersample", 2, "(K x K samples per pixel,\n  default 2)"),
+    ("render", "--color", "body", "`--color`: `body`"),
+    ("export", "--format", "vtu", "`frame_00012.vtu` (or `.ply`)"),
+    ("fit", "--params", "yield_stress,flow_rate", "default `yield_stress,flow_rate`"),
+    ("fit", "--iterations", 50, "included (default 50)"),
+    ("fit", "--patience", 20, "lower loss (default 20)"),
+    ("fit", "--seed", 5, "`--seed S` (default 5;"),
+    ("fit", "--memory-limit", 1024.0, "`--memory-limit` MB (default 1024)"),
+    ("fit", "--sample-range", 4.0, "a factor F (default 4)"),
+    ("fit", "--dtype", "float64", "`--dtype` (default `float64`"),
+    ("fit", "--jitter", 0.0, "(0 to 0.5; default 0:"),
+    ("sweep", "--sample", "grid", "`--sample grid` (default)"),
+    ("sweep", "--seed", 0, "from `--seed` (default 0)"),
+    ("sweep", "--max-samples", 10000, "`--max-samples` (default 10000)"),
+    ("sweep", "--dtype", "float32", "--dtype float32|float64"),
+]
+
+
+@pytest.mark.parametrize("command, option, value, phrase", DEFAULTS)
+def test_the_defaults_cli_md_states_are_the_parsers(command, option, value, phrase):
+    assert phrase in (DOCS / "cli.md").read_text()
+    _, commands = _subparsers()
+    action = next(a for a in commands[command]._actions if option in a.option_strings)
+    assert action.default == value
+
+
+def _table(text: str, heading: str) -> list[list[str]]:
+    """The rows (cells) of the first table after ``heading``."""
+    lines = text[text.index(heading):].splitlines()
+    rows = []
+    for line in lines if lines[0].startswith("|") else lines[1:]:
+        if line.startswith("|"):
+            rows.append([c.strip() for c in line.strip().strip("|").split("|")])
+        elif rows:
+            break
+    return rows[2:]  # the header and its rule
+
+
+def _keys(cell: str) -> set:
+    return set(re.findall(r"`([A-Za-z_]+)`", cell))
+
+
+def test_scene_format_md_tables_hold_every_key_the_loader_takes():
+    text = (DOCS / "scene_format.md").read_text()
+    assert {r[0].strip("`") for r in _table(text, "### `[scene]`")} == set(scene_file.SCENE_KEYS)
+    assert {r[0].strip("`") for r in _table(text, "### `[solver]`")} == set(scene_file.SOLVER_KEYS)
+    assert set().union(*(_keys(r[0]) for r in _table(text, "### `[materials.NAME]`"))) == set(scene_file.MATERIAL_KEYS)
+    shapes = {r[0].strip("`"): r for r in _table(text, "| shape | required keys")}
+    assert set(shapes) == set(scene_file.BODY_SHAPES)
+    for shape, keys in scene_file.BODY_SHAPES.items():
+        required = {k for k, (_, req) in keys.items() if req}
+        # A shape's row names its own keys (the first cell names the shape; 'center' is shared).
+        assert _keys(shapes[shape][1]) | ({"center"} if shape != "box" else set()) >= required, shape
+        assert set(keys) <= _keys(" ".join(shapes[shape][1:])) | {"center", "radius"}, shape
+    colliders = {r[0].strip("`"): r[1] for r in _table(text, "| type | keys |")}
+    assert set(colliders) == set(scene_file.COLLIDER_TYPES)
+    for kind, keys in scene_file.COLLIDER_TYPES.items():
+        assert set(keys) - {"friction"} <= _keys(colliders[kind]), kind
+    tools = _table(text, "| shape | keys (in the tool's frame) |")
+    by_shape = {}
+    for row in tools:
+        for shape in _keys(row[0]):
+            by_shape[shape] = _keys(row[1])
+    assert set(by_shape) == set(scene_file.TOOL_SHAPES)
+    for shape, keys in scene_file.TOOL_SHAPES.items():
+        assert set(keys) == by_shape[shape], shape
+    # Keys the prose lists: every body's, every tool's and every pinned set's.
+    prose = set(re.findall(r"`([a-z_]+)`", text))
+    for schema in (scene_file.BODY_COMMON, scene_file.TOOL_COMMON, scene_file.PIN_KEYS):
+        assert set(schema) <= prose
+
+
+def _error_rows():
+    """The rows of docs/errors.md's Python table whose input is a call of ``Material`` or
+    ``SceneBuilder`` alone, with the message the page says it raises."""
+    text = (DOCS / "errors.md").read_text()
+    for cells in _table(text, "## Python API (measured messages)"):
+        call = cells[0].strip("`")
+        # A message in backticks may be followed by what the code did before.
+        message = re.match(r"`([^`]*)`", cells[1]).group(1) if cells[1].startswith("`") else cells[1]
+        if re.fullmatch(r"(Material|SceneBuilder)(\.\w+)?\([^`]*\)", call) and "..." not in message:
+            yield call.replace("...,", "mu=1e3, lam=1e3,"), message
+
+
+@pytest.mark.parametrize("call, message", list(_error_rows()), ids=lambda v: v if "(" in v else "")
+def test_the_measured_messages_of_errors_md_are_the_codes(call, message):
+    with pytest.raises(ValueError) as info:
+        eval(call, {"Material": we.Material, "SceneBuilder": we.SceneBuilder, "nan": math.nan})
+    assert str(info.value) == message
+
+
+def test_every_public_name_has_a_docstring_and_is_in_the_docs():
+    pages = "\n".join(p.read_text() for p in [ROOT / "README.md", *sorted(DOCS.glob("*.md"))])
+    sources = {p.stem: p.read_text() for p in (ROOT / "warp_esph").rglob("*.py")}
+    for name in we.__all__:
+        value = getattr(we, name)
+        assert re.search(rf"\b{re.escape(name)}\b", pages), f"{name} is not in README.md or docs/"
+        if callable(value):
+            assert (value.__doc__ or "").strip(), f"{name} has no docstring"
+        elif name != "__version__":
+            # A constant's documentation is a '#:' comment above its assignment.
+            assert any(re.search(rf"#:.*\n(#:.*\n)*{name}\b.*=", src) for src in sources.values()), f"{name} has no #: comment"
