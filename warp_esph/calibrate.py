@@ -40,8 +40,9 @@ def add_calibration_arguments(parser):
     """Declare the calibration options of ``warp-esph fit`` on ``parser``."""
     g = parser.add_argument_group("calibration")
     g.add_argument("--optimizer", choices=("lbfgs", "adam", "gauss-newton"),
-                   help=f"lbfgs (default for <= {LBFGS_MAX_VALUES} fitted values), adam (default above; with --lr, --clip) "
-                        "or gauss-newton (Levenberg-Marquardt from forward runs: least-squares targets, few values)")
+                   help=f"lbfgs (default for <= {LBFGS_MAX_VALUES} fitted values), adam (default above; --clip is its "
+                        "own) or gauss-newton (Levenberg-Marquardt from forward runs: least-squares targets, few values; "
+                        "no --lr)")
     g.add_argument("--output-dir", metavar="DIR",
                    help="folder for fit.json, history.csv, loss.png, params.png, fitted.usdc (default: fit_<scene>/ here)")
     g.add_argument("--target-body", metavar="BODY",
