@@ -498,6 +498,8 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
     assert_one_line_error(capsys.readouterr().err, "--radius = 0.01 is not allowed: it is the search radius of point-cloud")
     assert main([*fit, "--target-tool", "ground"]) == 2
     assert_one_line_error(capsys.readouterr().err, "--target-tool = 'ground' is not allowed: it picks the tool of a force-curve")
+    assert main([*fit, "--mesh-mode", "outside"]) == 2
+    assert_one_line_error(capsys.readouterr().err, "--mesh-mode = 'outside' is not allowed: it is how mesh targets are compared")
     # A damaged --experiments file is named as itself, not as the --target.
     (tmp_path / "exp.json").write_bytes(b"\xda\x00\xff garbage")
     assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2

@@ -529,7 +529,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             if max(t.frames) > frames:
                 raise ValueError(f"{where}the target {path} has frame {max(t.frames)}, beyond --frames = {frames}")
             frame_steps = {f: f * substeps for f in t.frames if f > 0 or t.kind not in ("positions", "forces")}
-            term = t.loss(model, frame_steps, radius=args.radius, mode=args.mesh_mode)
+            term = t.loss(model, frame_steps, radius=args.radius, mode=_arg(args, "mesh_mode") or "surface")
         loss = term if loss is None else loss + term
     readings = [_frame_reading(path, t, id(t) in numbered, model)
                 for kind, path, t in loaded if kind == "file" and t.kind == "positions" and not t.frames_stored
@@ -549,6 +549,9 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     if _arg(args, "radius") is not None and "points" not in file_kinds:
         raise ValueError(f"{where}--radius = {args.radius!r} is not allowed: it is the search radius of point-cloud "
                          f"targets, and the targets are {kinds}")
+    if _arg(args, "mesh_mode") is not None and "mesh" not in file_kinds:
+        raise ValueError(f"{where}--mesh-mode = {args.mesh_mode!r} is not allowed: it is how mesh targets are compared, "
+                         f"and the targets are {kinds}")
     if spec.get("target_body") is not None and not any_usd:
         raise ValueError(f"{where}--target-body = {spec['target_body']!r} is not allowed: it picks a body of a run's USD "
                          f"target, and the targets are {kinds}")

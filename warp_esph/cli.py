@@ -685,7 +685,8 @@ def add_fit_arguments(parser):
     parser.add_argument("--dt", type=float, metavar="DT", help="time step in s (default: the stable step)")
     parser.add_argument("--scale", type=float, default=1.0, metavar="S", help="resolution scale of the scene (default 1)")
     parser.add_argument("--radius", type=float, metavar="R", help="Chamfer search radius for point-cloud targets (default 3 spacings)")
-    parser.add_argument("--mesh-mode", choices=MeshLoss.MODES, default="surface", help="mesh targets: surface or outside")
+    parser.add_argument("--mesh-mode", choices=MeshLoss.MODES,
+                        help="mesh targets: surface (default) or outside")
     parser.add_argument("--checkpoint-every", type=_checkpoint_every, metavar="S|auto",
                         help="checkpoint the rollout every S steps (less memory, one more forward pass); default auto: "
                              "sized from the memory estimate and --memory-limit")
