@@ -226,6 +226,14 @@ def test_bad_outputs(tmp_path, monkeypatch):
     assert not (tmp_path / "z.png").exists() and not (tmp_path / "s.png").exists()
     render_usd(many, tmp_path / "s.png", frames="0,1", width=64, height=48, columns=10**6)
     assert Image.open(tmp_path / "s.png").size == (128, 48)  # two columns: no more than there are frames
+    # A playback rate for pictures, columns for a movie or a folder: each was ignored.
+    with pytest.raises(ValueError, match=r"fps = 10\.0 is not allowed with output = .*p\.png': it is the playback rate"):
+        render_usd(path, tmp_path / "p.png", fps=10.0)
+    with pytest.raises(ValueError, match=r"fps = 10\.0 is not allowed with output = .*': .* a folder of PNG frames has none"):
+        render_usd(path, tmp_path / "frames", fps=10.0)
+    with pytest.raises(ValueError, match=r"columns = 2 is not allowed with output = .*m\.gif': .* a \.gif holds them"):
+        render_usd(path, tmp_path / "m.gif", columns=2)
+    assert not (tmp_path / "p.png").exists() and not (tmp_path / "frames").exists() and not (tmp_path / "m.gif").exists()
 
 
 def test_render_command(tmp_path, capsys):

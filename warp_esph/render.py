@@ -1081,6 +1081,15 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
         raise ValueError(f"output = {out!r} is not allowed: writing .mp4 needs the ffmpeg program, which is not on "
                          f"this machine's PATH (install it, e.g. 'apt-get install ffmpeg', or pip install 'warp-esph[mp4]'); write a .gif or a folder "
                          f"of PNG frames instead")
+    # Options of another kind of output: refused, not ignored (a .png took --fps, a .gif
+    # --columns, and drew as without them).
+    if fps is not None and kind not in ("gif", "mp4"):
+        raise ValueError(f"fps = {fps!r} is not allowed with output = {out!r}: it is the playback rate of a .gif or "
+                         f".mp4, and {'a folder of PNG frames' if kind == 'dir' else 'a .png'} has none")
+    if columns is not None and kind != "png":
+        raise ValueError(f"columns = {columns!r} is not allowed with output = {out!r}: it lays several frames out "
+                         f"side by side in one .png, and a {'folder' if kind == 'dir' else '.' + kind} holds them "
+                         f"one after another")
     if frames is None and kind == "png":
         frames = "last"
     chosen = parse_frames(frames, data.frames)
