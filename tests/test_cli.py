@@ -439,6 +439,9 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         (["fit", "nothing.toml", "--target", "t.npz", "--starts", "0"], ["--starts = 0 is not allowed: must be an integer >= 1"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--sample-range", "0.5"], ["--sample-range = 0.5 is not allowed: must be > 1"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--checkpoint-every", "0"], ["--checkpoint-every = 0 is not allowed"]),
+        # Only the automatic checkpointing reads the limit: with a fixed segment it was ignored.
+        (["fit", "nothing.toml", "--target", "t.npz", "--checkpoint-every", "50", "--memory-limit", "64"],
+         ["--memory-limit = 64.0 is not allowed with --checkpoint-every = 50"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--params", "mu,mu"], ["names must be distinct"]),
         # Sizes that exhausted memory (the sample hypercube, the starts' worlds) or a jitter
         # that made the first loss non-finite:

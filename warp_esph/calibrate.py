@@ -59,7 +59,7 @@ def add_calibration_arguments(parser):
                    help="support radius in spacings (e.g. 2.5: no particle at thin features drops below the neighbour guard)")
     g.add_argument("--loss-scale", type=float, default=1.0, metavar="K",
                    help="multiply the loss by K (e.g. 1e6 to work in mm^2 with Adam); default 1")
-    g.add_argument("--memory-limit", type=float, default=1024.0, metavar="MB",
+    g.add_argument("--memory-limit", type=float, metavar="MB",
                    help="with --checkpoint-every auto: a full tape when it fits in MB, else checkpoint (default 1024)")
     g.add_argument("--samples", type=int, default=0, metavar="N",
                    help="global first stage: N Latin-hypercube points (loss only) before gradient descent (default 0)")
@@ -131,7 +131,8 @@ def run_fit(args, out=None, err=None) -> int:
 
     jitter = checks.in_range("--jitter", _arg(args, "jitter", 0.0), 0.0, 0.5)  # a fraction of the spacing
     loss_scale = checks.positive("--loss-scale", _arg(args, "loss_scale", 1.0))
-    memory_limit = checks.positive("--memory-limit", _arg(args, "memory_limit", 1024.0)) * 2**20
+    given_memory = _arg(args, "memory_limit")  # None: not given (1024 MB)
+    memory_limit = checks.positive("--memory-limit", 1024.0 if given_memory is None else given_memory) * 2**20
     bounds = _parse_bounds(args.bounds)
     given_lr = _arg(args, "lr")  # None: not given (the default, 0.1, is fit's)
     lr = 0.1 if given_lr is None else given_lr
@@ -162,6 +163,10 @@ def run_fit(args, out=None, err=None) -> int:
     ck = args.checkpoint_every if args.checkpoint_every is not None else "auto"
     if ck != "auto":
         ck = checks.positive_int("--checkpoint-every", ck)
+        if given_memory is not None:
+            # Only the automatic choice reads the limit: a fixed segment ran as without it.
+            raise ValueError(f"--memory-limit = {given_memory!r} is not allowed with --checkpoint-every = {ck}: it sizes "
+                             "the automatic checkpointing (--checkpoint-every auto, the default); give one of the two")
 
     main_spec = {"scene": args.scene, "target": args.target, "target_frames": _arg(args, "target_frames"),
                  "target_body": _arg(args, "target_body"), "target_tool": _arg(args, "target_tool"), "cameras": _arg(args, "cameras"), "scale": args.scale,
