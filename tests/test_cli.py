@@ -439,6 +439,11 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         (["fit", "nothing.toml", "--target", "t.npz", "--starts", "0"], ["--starts = 0 is not allowed: must be an integer >= 1"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--sample-range", "0.5"], ["--sample-range = 0.5 is not allowed: must be > 1"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--checkpoint-every", "0"], ["--checkpoint-every = 0 is not allowed"]),
+        # Options nothing reads in that fit: each was ignored.
+        (["fit", "nothing.toml", "--target", "t.npz", "--sample-range", "8"],
+         ["--sample-range = 8.0 is not allowed without --samples or --starts"]),
+        (["fit", "nothing.toml", "--target", "t.npz", "--noise", "1e-4", "--no-diagnostics"],
+         ["--noise = 0.0001 is not allowed with --no-diagnostics"]),
         # Only the automatic checkpointing reads the limit: with a fixed segment it was ignored.
         (["fit", "nothing.toml", "--target", "t.npz", "--checkpoint-every", "50", "--memory-limit", "64"],
          ["--memory-limit = 64.0 is not allowed with --checkpoint-every = 50"]),

@@ -87,7 +87,6 @@ DEFAULTS = [
     ("fit", "--iterations", 50, "included (default 50)"),
     ("fit", "--patience", 20, "lower loss (default 20)"),
     ("fit", "--seed", 5, "`--seed S` (default 5;"),
-    ("fit", "--sample-range", 4.0, "a factor F (default 4)"),
     ("fit", "--dtype", "float64", "`--dtype` (default `float64`"),
     ("fit", "--jitter", 0.0, "(0 to 0.5; default 0:"),
     ("sweep", "--sample", "grid", "`--sample grid` (default)"),

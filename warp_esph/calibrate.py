@@ -68,8 +68,8 @@ def add_calibration_arguments(parser):
                         "Latin-hypercube points (default 1)")
     g.add_argument("--worlds", action="store_true",
                    help="run the --starts at once, as worlds of one model (same evaluations, one launch per kernel for all)")
-    g.add_argument("--sample-range", type=float, default=4.0, metavar="F",
-                   help="samples within a factor F of the guess (or --bounds); default 4")
+    g.add_argument("--sample-range", type=float, metavar="F",
+                   help="samples and extra starts within a factor F of the guess (and within --bounds); default 4")
     g.add_argument("--patience", type=int, default=20, metavar="N",
                    help="stop as stalled after N evaluations without a lower loss (default 20)")
     g.add_argument("--noise", type=float, metavar="SIGMA",
@@ -134,13 +134,15 @@ def run_fit(args, out=None, err=None) -> int:
     given_memory = _arg(args, "memory_limit")  # None: not given (1024 MB)
     memory_limit = checks.positive("--memory-limit", 1024.0 if given_memory is None else given_memory) * 2**20
     bounds = _parse_bounds(args.bounds)
+    given_range = _arg(args, "sample_range")  # None: not given (a factor 4)
+    sample_range = 4.0 if given_range is None else given_range
     given_lr = _arg(args, "lr")  # None: not given (the default, 0.1, is fit's)
     lr = 0.1 if given_lr is None else given_lr
     # Every option that needs no scene, checked before the scene is built and the targets read.
     opts = check_options(params=str(args.params), iterations=args.iterations, lr=lr, clip=args.clip, bounds=bounds,
                          optimizer=_arg(args, "optimizer") or "adam", patience=_arg(args, "patience", 20),
                          samples=_arg(args, "samples", 0), starts=_arg(args, "starts", 1),
-                         sample_range=_arg(args, "sample_range", 4.0), seed=_arg(args, "seed", 5), noise=_arg(args, "noise"),
+                         sample_range=sample_range, seed=_arg(args, "seed", 5), noise=_arg(args, "noise"),
                          memory_limit=memory_limit, flag=lambda name: "--" + name.replace("_", "-"))
     params = opts["params"]
     if given_lr is not None and _arg(args, "optimizer") == "gauss-newton":
@@ -149,6 +151,13 @@ def run_fit(args, out=None, err=None) -> int:
         raise ValueError(f"--lr = {given_lr!r} is not allowed with --optimizer gauss-newton: its steps are sized by "
                          "the Levenberg-Marquardt damping, not by a step size; leave --lr out, or give --optimizer "
                          "lbfgs or adam")
+    # Options nothing would read: refused, not ignored (each ran as without it).
+    if given_range is not None and opts["samples"] == 0 and opts["starts"] == 1:
+        raise ValueError(f"--sample-range = {given_range!r} is not allowed without --samples or --starts: it sizes the "
+                         "box of the global stage's samples and the extra starts, and this fit has neither")
+    if _arg(args, "noise") is not None and _arg(args, "no_diagnostics", False):
+        raise ValueError(f"--noise = {args.noise!r} is not allowed with --no-diagnostics: it is the observation noise "
+                         "the diagnostics assume, and they are skipped")
     if _arg(args, "worlds", False) and opts["starts"] < 2:
         raise ValueError(f"--worlds is not allowed with --starts = {opts['starts']}: it runs several starts at once "
                          "as worlds of one model; give --starts K > 1")
@@ -252,7 +261,7 @@ def run_fit(args, out=None, err=None) -> int:
                      lr=lr, bounds=bounds, clip=args.clip, memory_limit=memory_limit,
                      optimizer=optimizer, progress=not args.no_progress, samples=_arg(args, "samples", 0),
                      starts=_arg(args, "starts", 1), worlds=_arg(args, "worlds", False),
-                     sample_range=_arg(args, "sample_range", 4.0), seed=_arg(args, "seed", 5),
+                     sample_range=sample_range, seed=_arg(args, "seed", 5),
                      patience=_arg(args, "patience", 20), diagnostics=not _arg(args, "no_diagnostics", False),
                      noise=_arg(args, "noise"), log=log)
     except FitInterrupted as e:

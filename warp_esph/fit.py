@@ -759,9 +759,9 @@ def fit(
 
       ``"tol"`` once the loss is below ``tol``; ``"callback"``.
     - Global first stage: ``samples = N > 0`` evaluates the loss alone (forward passes)
-      at ``N`` Latin-hypercube points of optimiser space, within ``bounds`` or else within
-      a factor ``sample_range`` of the guess (log space; linear ones +-``sample_range``
-      times their scale), plus the guess; gradient descent then starts from the best
+      at ``N`` Latin-hypercube points of optimiser space, within a factor ``sample_range``
+      of the guess (log space; linear ones +-``sample_range`` times their scale) and within
+      ``bounds`` where they are narrower, plus the guess; gradient descent then starts from the best
       ``starts`` of them, one after the other, and the lowest loss wins (``seed``: RNG).
       Without ``samples``, ``starts = K > 1`` descends from the guess and ``K - 1``
       Latin-hypercube points of the same box.
