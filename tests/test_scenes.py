@@ -229,6 +229,39 @@ def test_scene_file_numbers_beyond_float32_name_file_table_and_key(tmp_path, cha
     scene.builder.finalize(dtype=wp.float64)
 
 
+@pytest.mark.parametrize(
+    "changes, pattern",
+    [
+        ({"[scene]": _TOOL.replace("0.05", "0.03") + 'name = "ball"\nkeyframe_times = [0.0, 1.0]\n'
+                     "keyframe_positions = [[-0.025, 0.175, -0.025], [0, 0.3, 0]]\n[scene]"},
+         r"\[\[tools\]\] #1 \(shape 'sphere'\): body 'sphere0' is not allowed where it is: 1 of its particles start "
+         r"inside tool 'ball' at its first pose, up to 0\.03 m deep"),
+        ({"offset = 0.0": "offset = 0.25"},
+         r"\[\[colliders\]\] #1 \(type 'plane'\): body 'sphere0' is not allowed where it is: .* start inside plane0"),
+        ({"radius = 0.1": 'radius = 0.1\n[[bodies]]\nshape = "box"\nmaterial = "m"\ncenter = [0, 0.2, 0]\nsize = [0.1, 0.1, 0.1]'},
+         r"\[\[bodies\]\] #2 \(shape 'box'\): bodies 'box1' and 'sphere0' are not allowed to overlap"),
+        ({}, r"\[scene\]: particles = 32 is not allowed on cpu: a model and two states of them need about"),
+    ],
+)
+def test_scene_file_bodies_refused_where_they_start_name_file_and_table(tmp_path, monkeypatch, changes, pattern):
+    """finalize's refusals of where the bodies start (inside a tool at its first pose, inside
+    a static collider, overlapping another body) and of a model too large for the memory named
+    neither the scene file nor its table, as its other refusals do; ``plane0`` and ``sphere0``
+    are no names of the file's."""
+    from warp_esph import builder  # noqa: PLC0415
+
+    if not changes:
+        monkeypatch.setattr(builder, "_device_memory", lambda dev: 1000)
+    text = BASE
+    for old, new in changes.items():
+        assert old in text
+        text = text.replace(old, new, 1)
+    path = tmp_path / "where.toml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match="^" + re.escape(f"{path}: ") + pattern):
+        load_scene_file(path).builder.finalize()
+
+
 def test_floor_keys_build_the_same_model_as_add_particle_floor(tmp_path):
     """``floor_margin`` / ``floor_layers`` / ``floor_elastic`` on a body are
     ``SceneBuilder.add_particle_floor``: the same particles, velocities, bodies, materials

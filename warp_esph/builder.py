@@ -689,15 +689,16 @@ class SceneBuilder:
                 owner, clash = {j: body[i]}, np.array([j])
         if clash.size:
             a, b = self._bodies[owner[clash[0]]].name, self._bodies[body[clash[0]]].name
-            raise ValueError(
-                f"bodies {a!r} and {b!r} are not allowed to overlap: {clash.size} particles of one lie within "
-                f"the other (at {np.round(points[clash[0]], 4).tolist()}); move them at least one spacing apart"
-            )
+            why = (f"bodies {a!r} and {b!r} are not allowed to overlap: {clash.size} particles of one lie within "
+                   f"the other (at {np.round(points[clash[0]], 4).tolist()}); move them at least one spacing apart")
+            # A scene file's: the later body's table, which put it where the other was.
+            self._refuse(("body", max(int(owner[clash[0]]), int(body[clash[0]]))), why, why)
 
     def _refuse(self, origin: tuple, api: str, key: str):
-        """Raise the precision refusal ``api`` (worded for the Python API), or, for a builder read
-        from a scene file, ``key`` (worded for the file's keys) after the file and the table
-        ``origin`` names (a float32 refusal of a file's mu = 1e39 named neither)."""
+        """Raise the refusal ``api`` (worded for the Python API), or, for a builder read from a
+        scene file, ``key`` (worded for the file's keys) after the file and the table ``origin``
+        names (a float32 refusal of a file's mu = 1e39, or a body starting inside a file's tool,
+        named neither)."""
         if self.source is None:
             raise ValueError(api)
         where = self.origins.get(origin)
@@ -908,20 +909,22 @@ def _check_outside_colliders(builder) -> None:
     tol = 0.5 * builder.spacing
     # Named as the reaction rows and the force log name them (plane0, sphere0, box0).
     # The shapes' depths are the tools' (``_tool_depth``), in each collider's own frame.
-    depths = [(f"plane{k}", _tool_depth("plane", p.normal, x - p.offset * np.array(p.normal)))
+    depths = [(f"plane{k}", ("plane", k), _tool_depth("plane", p.normal, x - p.offset * np.array(p.normal)))
               for k, p in enumerate(builder.planes)]
-    depths += [(f"sphere{k}", _tool_depth("sphere", (s.radius, 0.0, 0.0), x - np.array(s.center)))
+    depths += [(f"sphere{k}", ("sphere", k), _tool_depth("sphere", (s.radius, 0.0, 0.0), x - np.array(s.center)))
                for k, s in enumerate(builder.spheres)]
-    depths += [(f"box{k}", _tool_depth("box", b.half_extents, x - np.array(b.center))) for k, b in enumerate(builder.boxes)]
-    for name, d in depths:
+    depths += [(f"box{k}", ("box", k), _tool_depth("box", b.half_extents, x - np.array(b.center)))
+               for k, b in enumerate(builder.boxes)]
+    for name, origin, d in depths:
         d = np.where(free, d, -np.inf)
         inside = d > tol
         if inside.any():
             i = int(np.argmax(d))
             body = builder._bodies[int(np.searchsorted(starts, i, side="right")) - 1]
-            raise ValueError(f"body {body.name!r} is not allowed where it is: {int(inside.sum())} of its particles start "
-                             f"inside {name}, up to {d[i]:.3g} m deep (at {np.round(x[i], 4).tolist()}); move it out, "
-                             f"or the collider")
+            why = (f"body {body.name!r} is not allowed where it is: {int(inside.sum())} of its particles start "
+                   f"inside {name}, up to {d[i]:.3g} m deep (at {np.round(x[i], 4).tolist()}); move it out, or the collider")
+            # A scene file's: the collider's table, which plane0, sphere0, box0 do not name.
+            builder._refuse(origin, why, why)
 
 
 def _tool_depth(kind: str, param, xl: np.ndarray) -> np.ndarray:
@@ -943,13 +946,14 @@ def _tool_depth(kind: str, param, xl: np.ndarray) -> np.ndarray:
     return np.zeros(len(xl))
 
 
-def _check_outside_tools(model) -> None:
+def _check_outside_tools(model, builder) -> None:
     """Refuse a body that starts more than half a spacing inside a tool at the tool's first
     pose (pinned particles aside), as ``_check_outside_colliders`` does for the static
     ones: the first step moved the particles inside onto the tool's surface and reported a
     force (a sphere tool of 1000 m radius flung them 1 km, reported as a divergence; a box
     mesh tool in the middle of a block, which was not measured, pushed its particles out
-    and read 69 N in five steps)."""
+    and read 69 N in five steps). ``builder`` (the first world's): one read from a scene file
+    names the file and the tool's table."""
     ts = model.tools
     x = np.asarray(model.particle_x0, dtype=np.float64)
     free = ts.pin.numpy() < 0
@@ -963,9 +967,10 @@ def _check_outside_tools(model) -> None:
         if inside.any():
             i = int(np.argmax(d))
             body = model.bodies[int(model.particle_body_np[i])]
-            raise ValueError(f"body {body.name!r} is not allowed where it is: {int(inside.sum())} of its particles start inside tool "
-                             f"{tool.name!r} at its first pose, up to {d[i]:.3g} m deep (at {np.round(x[i], 4).tolist()}); "
-                             "move the body or the tool out")
+            why = (f"body {body.name!r} is not allowed where it is: {int(inside.sum())} of its particles start inside tool "
+                   f"{tool.name!r} at its first pose, up to {d[i]:.3g} m deep (at {np.round(x[i], 4).tolist()}); "
+                   "move the body or the tool out")
+            builder._refuse(("tool", tool.name), why, why)
 
 
 def _check_pins_at_rest(model, builder) -> None:
@@ -1101,7 +1106,10 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
                 # A field on every particle acts on all worlds once when the worlds share
                 # it; a world's own such field acts on each of its bodies.
                 fields += [fld] if same_fields else [dataclasses.replace(fld, body=b0 + k) for k in range(len(b._bodies))]
-    _check_memory(count, first.max_neighbors, dev)
+    try:
+        _check_memory(count, first.max_neighbors, dev)
+    except ValueError as e:
+        first._refuse(("scene",), str(e), str(e))  # a scene file's: its spacing and bodies
     for b in {id(b): b for b in builders}.values():  # finalize(worlds=W) repeats one builder W times
         _check_outside_colliders(b)
     model = Model(
@@ -1130,7 +1138,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     model.fit, model.contact_ramp, model.hourglass = first.fit, first.contact_ramp, first.hourglass
     if first.tools or first.pins:
         model.tools = tools.ToolSet(model, first.tools, first.pins, world_pins=[[p.indices for p in b.pins] for b in builders])
-        _check_outside_tools(model)
+        _check_outside_tools(model, first)
         _check_pins_at_rest(model, first)
     model.compute_rest_density()
     return model
