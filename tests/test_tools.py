@@ -924,6 +924,34 @@ def test_a_run_with_tools_checks_their_speeds_and_keyframe_times_once_before_its
     assert calls == [pytest.approx(0.02), None, None]  # the whole run's check, then one per frame
 
 
+def test_warp_esph_run_checks_the_start_and_the_tools_once_before_it_opens_its_output(tmp_path, monkeypatch):
+    """``warp-esph run`` checks the start's speed and the tools' speeds before it opens its
+    output (a refused run writes nothing), then ``simulate`` checked both again before the
+    first step: every tool motion sampled at every step time twice. Now once each, in a new
+    run (fixed and adaptive step) and in a resumed one (whose start is not checked again)."""
+    import importlib  # noqa: PLC0415
+
+    from warp_esph.cli import main  # noqa: PLC0415
+
+    sim = importlib.import_module("warp_esph.simulate")  # the module, not warp_esph.simulate the function
+    calls = []
+    monkeypatch.setattr(sim, "check_start_speed", lambda *a, f=sim.check_start_speed, **k: calls.append("start") or f(*a, **k))
+    monkeypatch.setattr(tools.ToolSet, "check_speed", lambda self, *a, f=tools.ToolSet.check_speed: calls.append("tools") or f(self, *a))
+    monkeypatch.setattr(sim, "adaptive_timestep", lambda *a, f=sim.adaptive_timestep, **k: calls.append(
+        "tools to the end" if k.get("until") is not None else "frame") or f(*a, **k))
+    path = tmp_path / "press.toml"
+    path.write_text(SCENE_TOML)
+    out = str(tmp_path / "press.usda")
+    assert main(["run", str(path), "-o", out, "--no-progress", "--frames", "2", "--dt", "0.001", "--checkpoint-every", "1"]) == 0
+    assert calls == ["start", "tools"]
+    calls.clear()
+    assert main(["run", "--resume", out + ".checkpoint.npz", "--no-progress", "--frames", "3"]) == 0
+    assert calls == ["tools"]
+    calls.clear()
+    assert main(["run", str(path), "-o", out, "--no-progress", "--frames", "1", "--dt", "auto"]) == 0
+    assert calls == ["start", "tools to the end", "frame"]
+
+
 _TIMES = r"must be one or more finite, increasing numbers"
 _ROWS = r"must be \(2, 3\) finite numbers, one row per time"
 _QUATS = r"must be \(2, 4\) quaternions \(x, y, z, w\), none zero, one row per time"

@@ -329,7 +329,7 @@ def _cmd_run(args) -> int:
 
     _init_warp(args.device)  # refuses --device cuda where Warp finds none
     from .scenes import load_scene  # noqa: PLC0415
-    from .simulate import SimulationError, check_start_speed, check_step_count, resolve_timestep, simulate  # noqa: PLC0415
+    from .simulate import SimulationError, _check_run_start, check_step_count, resolve_timestep, simulate  # noqa: PLC0415
     from .sim.solver import Solver  # noqa: PLC0415
     from .usd import UsdWriter  # noqa: PLC0415
 
@@ -391,32 +391,16 @@ def _cmd_run(args) -> int:
     check_step_count(frames, substeps)
     solver = Solver(model)
     solver.check_dt(dt_shown)  # the stability warning, once, before the run
-    if args.resume is None:  # before the writer replaces an earlier run's file
-        try:
-            # With the adaptive step this also takes the tools' speeds to the run's end.
-            check_start_speed(model, model.state(requires_grad=False), fps, dt, hourglass=solver.hourglass,
-                              until=frames_total / fps)
-        except ValueError as e:
-            if str(args.scene).lower().endswith(".toml"):
-                # (the adaptive step's refusal may be a tool's, which names it)
-                table = "[[bodies]] " if str(e).startswith("initial velocity") else ""
-                raise ValueError(f"{args.scene}: {table}{e}") from None
-            raise
-    if model.tools is not None:  # before the writer replaces an earlier run's file
-        try:
-            if adaptive:  # it follows the tools' speed, but at most MAX_STEPS_PER_FRAME steps a frame
-                if args.resume is not None:  # else check_start_speed took them
-                    from .simulate import adaptive_timestep  # noqa: PLC0415
-
-                    tools_at = model.state(requires_grad=False)
-                    tools_at.time = start_frame / fps
-                    adaptive_timestep(model, tools_at, fps, hourglass=solver.hourglass, until=frames_total / fps)
-            else:
-                model.tools.check_speed(dt, start_frame / fps, frames_total / fps)
-        except ValueError as e:
-            if str(args.scene).lower().endswith(".toml"):
-                raise ValueError(f"{args.scene}: {e}") from None
-            raise
+    try:
+        # Before the writer replaces an earlier run's file; simulate does not repeat them.
+        start = state if state is not None else model.state(requires_grad=False)
+        checked = _check_run_start(model, start, frames, fps, dt, hourglass=solver.hourglass, start_frame=start_frame)
+    except ValueError as e:
+        if str(args.scene).lower().endswith(".toml"):
+            # (the adaptive step's refusal may be a tool's, which names it)
+            table = "[[bodies]] " if str(e).startswith("initial velocity") else ""
+            raise ValueError(f"{args.scene}: {table}{e}") from None
+        raise
     # Every file the run writes, checked before the run (a folder in the way of the reaction
     # log was found only after the whole run); named after the whole output path, as the writer does.
     stem = os.path.abspath(os.fspath(output))
@@ -543,7 +527,7 @@ def _cmd_run(args) -> int:
         simulate(model, frames, fps=fps, dt=dt, writer=writer, progress=not args.no_progress, solver=solver,
                  state=state, start_frame=start_frame, callback=on_frame if every is not None or log is not None else None,
                  monitor_exempt=getattr(scene, "diverges", ()),
-                 monitor_origin=model.state(requires_grad=False) if start_frame else None)
+                 monitor_origin=model.state(requires_grad=False) if start_frame else None, _checked=checked)
     except KeyboardInterrupt:
         writer.close()
         print(f"{PROG}: interrupted: {writer.path} keeps {_kept(writer, start_frame)}", file=sys.stderr)

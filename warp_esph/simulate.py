@@ -398,6 +398,26 @@ def check_start_speed(model: Model, state: State, fps: float, dt, hourglass: flo
         )
 
 
+def _check_run_start(model: Model, state: State, frames: int, fps: float, dt, hourglass: float | None = None,
+                     start_frame: int = 0) -> tuple:
+    """The checks of a run before its first step: the start's speed (``check_start_speed``;
+    a resumed run's, ``start_frame > 0``, was checked when its run began) and the tools'
+    speeds up to the run's end. Returns what was checked, for ``simulate(_checked=)``:
+    ``warp-esph run`` checks before it opens its output, and each check ran again in
+    ``simulate`` (the tools' motions sampled at every step time twice)."""
+    end = state.time + frames / fps
+    if start_frame == 0:
+        # With the adaptive step this call also takes the tools' speeds to the run's end.
+        check_start_speed(model, state, fps, dt, hourglass=hourglass, until=end)
+    if model.tools is not None:
+        if isinstance(dt, str):  # it follows the tools' speed, but at most MAX_STEPS_PER_FRAME steps a frame
+            if start_frame != 0:
+                adaptive_timestep(model, state, fps, hourglass=hourglass, until=end)
+        else:
+            model.tools.check_speed(dt, state.time, end)
+    return model, float(state.time), frames, fps, dt, hourglass, start_frame
+
+
 def _frame_count(frames) -> int:
     if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1:
         raise ValueError(f"frames = {frames!r} is not allowed: must be an integer >= 1")
@@ -463,6 +483,7 @@ def simulate(
     monitor: bool = True,
     monitor_exempt=(),
     monitor_origin: State | None = None,
+    _checked: tuple | None = None,
 ) -> State:
     """Simulate ``frames`` frames at ``fps``; returns the final state.
 
@@ -538,16 +559,11 @@ def simulate(
         initial = _first_bad(model, current)
         if initial is not None:
             raise ValueError(f"state is not allowed: it has a {initial[0]}")
-        end = current.time + frames / fps
-        if start_frame == 0:  # a resumed run's start was checked when its run began
-            # With the adaptive step this call also takes the tools' speeds to the run's end.
-            check_start_speed(model, current, fps, AUTO if adaptive else dt, hourglass=hourglass, until=end)
-        if model.tools is not None:
-            if adaptive:  # it follows the tools' speed, but at most MAX_STEPS_PER_FRAME steps a frame
-                if start_frame != 0:
-                    adaptive_timestep(model, current, fps, hourglass=hourglass, until=end)
-            else:
-                model.tools.check_speed(dt, current.time, end)
+        run = (frames, fps, AUTO if adaptive else dt, hourglass, start_frame)
+        # _checked: the caller's _check_run_start of this very run (warp-esph run's, made
+        # before it opened its output); anything else is checked here.
+        if _checked is None or _checked[0] is not model or _checked[1:] != (float(current.time), *run):
+            _check_run_start(model, current, *run)
         spare = model.state(requires_grad=False)
         if monitor_origin is not None:
             checks.same_state(model, "monitor_origin", monitor_origin)
