@@ -7,6 +7,7 @@ to slump visibly and a high one to stay a box.
 
 import math
 import os
+import re
 import sys
 import warnings
 
@@ -300,6 +301,38 @@ def test_bad_input_raises_value_error_in_python():
         sweep(_box(), ["flow_rate=5:5:lin:2"])
     with pytest.raises(ValueError, match="unknown parameter"):
         parse_param("density=1:2:lin:2")
+
+
+def test_a_range_of_numpy_numbers_is_taken_and_one_wider_than_a_float_is_refused():
+    """``Param`` bounds of numpy numbers (a range from ``np.linspace`` or a table) were refused
+    as 'need LO < HI' for LO = 1 < HI = 10; they are the floats they hold. A lin range whose
+    width overflows a float (lam from -1.7e308 to 1.7e308) drew inf for every random sample,
+    and its grid was [nan, inf, 1.7e308], without a word."""
+    from warp_esph.sweep import Param  # noqa: PLC0415
+
+    p = parse_param(Param("yield_stress", np.int64(1), np.float32(10.0), "lin", 2))
+    assert (p.lo, p.hi) == (1.0, 10.0) and p.levels().tolist() == [1.0, 10.0]
+    with pytest.raises(ValueError, match=r"^--param yield_stress: LO = True, HI = 10\.0 is not allowed: LO and HI must be numbers$"):
+        parse_param(Param("yield_stress", True, 10.0, "lin", 2))
+    for spec, sample, samples in (("lam=-1.7e308:1.7e308", "random", 3), ("lam=-1.7e308:1.7e308:lin:3", "grid", None)):
+        with pytest.raises(ValueError, match=r"^--param lam: LO = -1\.7e\+308, HI = 1\.7e\+308 is not allowed: on a lin "
+                                             r"scale HI - LO must be a finite number \(at most 1\.8e\+308\)$"):
+            sample_points([spec], sample, samples)
+    assert [p["lam"] for p in sample_points(["lam=-8e307:8e307:lin:3"])] == [-8e307, 0.0, 8e307]
+
+
+def test_reading_a_file_that_is_no_sweep_table_names_it_and_what_it_must_be(tmp_path, serial):
+    """``SweepTable.read_csv`` of an empty file raised StopIteration, of another CSV
+    "'status' is not in list", of a file that is not text the codec's message: none named
+    the file or what it must be."""
+    wanted = "must be a sweep table written by SweepTable.to_csv"
+    for name, content, why in (("empty.csv", b"", r"its header is \[\]"), ("other.csv", b"a,b\n1,2\n", r"its header is \['a', 'b'\]"),
+                               ("binary.csv", b"\xff\xfe\x00", r"it is not CSV text \('utf-8' codec can't decode")):
+        path = tmp_path / name
+        path.write_bytes(content)
+        with pytest.raises(ValueError, match=rf"^path = {re.escape(repr(str(path)))} is not allowed: {wanted} .*; {why}"):
+            SweepTable.read_csv(path)
+    assert _rows(SweepTable.read_csv(serial.to_csv(tmp_path / "t.csv"))) == _rows(serial)
 
 
 def _extra_that_fails(model, state, seed):

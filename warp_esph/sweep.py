@@ -175,7 +175,12 @@ def parse_param(spec) -> Param:
     else:
         if p.scale not in SCALES:
             raise ValueError(f"--param {p.name}: scale = {p.scale!r} is not allowed: must be lin or log")
-        if not (isinstance(p.lo, (int, float)) and isinstance(p.hi, (int, float))) or not p.lo < p.hi:
+        real = (int, float, np.integer, np.floating)
+        if isinstance(p.lo, bool) or isinstance(p.hi, bool) or not (isinstance(p.lo, real) and isinstance(p.hi, real)):
+            # np.int64(1) and np.float32(10) were refused as 'need LO < HI'.
+            raise ValueError(f"--param {p.name}: LO = {p.lo!r}, HI = {p.hi!r} is not allowed: LO and HI must be numbers")
+        p = dataclasses.replace(p, lo=float(p.lo), hi=float(p.hi))
+        if not p.lo < p.hi:
             raise ValueError(f"--param {p.name}: LO = {p.lo!r}, HI = {p.hi!r} is not allowed: need LO < HI")
         if p.scale == "log" and p.lo <= 0.0:
             raise ValueError(f"--param {p.name}: LO = {p.lo!r} is not allowed on a log scale: need LO > 0 (or use lin)")
@@ -183,6 +188,10 @@ def parse_param(spec) -> Param:
             # 1e-320 ran every sample, then its log axis failed to draw (and no table was kept).
             raise ValueError(f"--param {p.name}: LO = {p.lo!r}, HI = {p.hi!r} is not allowed: need finite bounds, and on a "
                              f"log scale LO >= {sys.float_info.min:.3g}")
+        if p.scale == "lin" and not math.isfinite(p.hi - p.lo):
+            # Every value drawn from -1.7e308:1.7e308 was inf (lo + u (hi - lo)), the grid's nan and inf.
+            raise ValueError(f"--param {p.name}: LO = {p.lo!r}, HI = {p.hi!r} is not allowed: on a lin scale HI - LO must "
+                             f"be a finite number (at most {sys.float_info.max:.3g})")
         if p.n is not None and (isinstance(p.n, bool) or not isinstance(p.n, (int, np.integer)) or p.n < 1):
             raise ValueError(f"--param {p.name}: N = {p.n!r} is not allowed: must be an integer >= 1")
         lows = [p.lo]
@@ -335,10 +344,18 @@ class SweepTable:
     @classmethod
     def read_csv(cls, path) -> "SweepTable":
         """Read a table written by ``to_csv`` (numbers back as floats, empty cells as None)."""
-        with open(os.fspath(path), newline="") as f:
-            reader = csv.reader(f)
-            columns = next(reader)
-            rows = [{c: _parse_cell(c, v) for c, v in zip(columns, line)} for line in reader]
+        path = os.fspath(path)
+        wanted = "must be a sweep table written by SweepTable.to_csv (a header with sample, status, the parameters, seed)"
+        try:
+            with open(path, newline="", encoding="utf-8") as f:
+                reader = csv.reader(f)
+                columns = next(reader, [])
+                rows = [{c: _parse_cell(c, v) for c, v in zip(columns, line)} for line in reader]
+        except (UnicodeDecodeError, csv.Error) as e:
+            raise ValueError(f"path = {path!r} is not allowed: {wanted}; it is not CSV text ({e})") from None
+        # An empty file raised StopIteration; another CSV "'status' is not in list".
+        if columns[:2] != ["sample", "status"] or "seed" not in columns:
+            raise ValueError(f"path = {path!r} is not allowed: {wanted}; its header is {checks.shorten(columns)!r}")
         start, end = columns.index("status") + 1, columns.index("seed")
         return cls(columns, rows, columns[start:end])
 
