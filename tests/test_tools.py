@@ -773,6 +773,15 @@ def test_gradients_of_swept_tools_and_moving_pins_and_their_reaction_torque_matc
     (lambda b: b.add_tool("plane", friction=0.5, static_friction=0.2), r"static_friction = 0\.2 is not allowed: must be >= friction = 0\.5"),
     (lambda b: b.add_tool("plane", motion="up"), r"motion = 'up' is not allowed: must be tools\.Keyframes"),
     (lambda b: b.add_tool("mesh"), "mesh = None is not allowed: a mesh tool needs a mesh file"),
+    # Warp's mesh queries are float32 in either precision: a mesh at scale 1e39 (or 1e300) was a
+    # tool of inf points, with a numpy warning only, and the run went on without it.
+    *((lambda b, s=s: b.add_tool("mesh", mesh=tools.box_mesh((1.0, 1.0, 1.0)), scale=s),
+       rf"^scale = {re.escape(f'{s:g}')} is not allowed for mesh \(points, triangles\): it puts the mesh's points up to "
+       rf"{re.escape(f'{s:.3g}')} m from the "
+       r"tool's origin; a mesh tool's points must be within 1\.84e\+19 m of it \(Warp's mesh queries are float32\); give a "
+       r"smaller scale$") for s in (1e39, 1e300)),
+    (lambda b: b.add_tool("mesh", mesh=tools.box_mesh((1e20, 1e20, 1e20))),
+     r"^mesh \(points, triangles\) is not allowed: its points \(scale 1\) lie up to 1e\+20 m from the tool's origin"),
     # The motion's start pose overrode the one beside it without a word.
     (lambda b: b.add_tool("sphere", radius=0.01, position=(0.5, 0.5, 0.5), motion=tools.Velocity((0, -1, 0), position=(0.3, 0.3, 0.3))),
      r"^position = \(0\.5, 0\.5, 0\.5\) is not allowed beside a Velocity motion with position = \(0\.3, 0\.3, 0\.3\): give "

@@ -621,7 +621,19 @@ class SceneBuilder:
             if mesh is None:
                 raise ValueError("mesh = None is not allowed: a mesh tool needs a mesh file or (points, triangles)")
             points, triangles = meshes.load_mesh(mesh, prim_path=prim_path)
-            points = points * checks.positive("scale", scale)
+            s = checks.positive("scale", scale)
+            with np.errstate(over="ignore", invalid="ignore"):
+                points = points * s
+            # Warp's mesh queries run in float32 whatever the model's precision, and square
+            # distances: a bunny at scale 1e39 became a tool of inf points (a numpy warning
+            # only), and the run went on as if it were not there.
+            reach, far = float(np.abs(points).max()), math.sqrt(float(np.finfo(np.float32).max))
+            if not reach <= far:
+                label = repr(os.fsdecode(os.fspath(mesh))) if meshes._is_path(mesh) else "(points, triangles)"
+                what = (f"scale = {checks.shorten(scale)!r} is not allowed for mesh {label}: it puts the mesh's points"
+                        if s != 1.0 else f"mesh {label} is not allowed: its points (scale 1) lie")
+                raise ValueError(f"{what} up to {reach:.3g} m from the tool's origin; a mesh tool's points must be within "
+                                 f"{far:.3g} m of it (Warp's mesh queries are float32); give a smaller scale")
         param = tools.shape_param(kind, normal=normal, half_extents=half_extents, radius=radius, half_height=half_height)
         self.tools.append(tools.Collider(name, kind, param, motion, mu_k, mu_s, points, triangles))
         return name
