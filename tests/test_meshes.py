@@ -3,6 +3,7 @@
 import math
 import os
 import pathlib
+import re
 import tempfile
 import warnings
 
@@ -510,6 +511,17 @@ def test_bad_files_are_rejected(tmp_path):
     rejects(cube(), "prim_path = '/x'", "only for USD files", prim_path="/x")
     rejects(5, "source = 5", "file path or a (points, triangles) tuple")
     rejects((1, 2, 3), "source with 3 items", "(points, triangles)")
+
+
+def test_a_source_of_arrays_that_is_not_the_pair_is_refused_on_one_line():
+    """A list ``[points, triangles]`` (not the tuple) was refused with numpy's repr of both
+    arrays, a message of twenty lines; it is one line, cut as other values are."""
+    with pytest.raises(ValueError) as info:
+        meshes.load_mesh(list(cube()))
+    text = str(info.value)
+    assert "\n" not in text and len(text) < 200, text
+    assert re.fullmatch(r"source = \[array\(\[\[-?\d.*\.\.\. is not allowed: must be a mesh file path or a \(points, "
+                        r"triangles\) tuple", text), text
 
 
 def test_headers_that_declare_more_than_the_file_holds_are_refused_at_once(tmp_path):

@@ -34,13 +34,16 @@ class _Shown:
 
 
 def shorten(value):
-    """``value`` for a message: a 400-digit int as ``1.234e+399``, long text cut."""
+    """``value`` for a message: a 400-digit int as ``1.234e+399``, long text cut, on one line."""
     if isinstance(value, _Shown):
         return value
     try:
         text = repr(value)
     except Exception:  # noqa: BLE001 (a repr that fails must not hide the real error)
         text = f"<{type(value).__name__}>"
+    # numpy writes an array's rows on lines of their own (a str's repr escapes its newlines):
+    # a list of two arrays was a message of twenty lines.
+    text = re.sub(r"\s*\n\s*", " ", text)
     if len(text) > 60:
         if isinstance(value, int) and not isinstance(value, bool) and value != 0:
             text = f"{'-' if value < 0 else ''}{text.lstrip('-')[0]}.{text.lstrip('-')[1:4]}e+{len(text.lstrip('-')) - 1}"

@@ -109,7 +109,7 @@ def load_mesh(source, prim_path: str | None = None) -> tuple[np.ndarray, np.ndar
             _reject(label, f"unsupported extension {suffix!r}; must be one of {allowed}")
     else:
         raise ValueError(
-            f"source = {source!r} is not allowed: must be a mesh file path or a (points, triangles) tuple"
+            f"source = {checks.shorten(source)!r} is not allowed: must be a mesh file path or a (points, triangles) tuple"
         )
     return _clean(label, points, triangles)
 
