@@ -236,6 +236,64 @@ def test_bad_outputs(tmp_path, monkeypatch):
     assert not (tmp_path / "p.png").exists() and not (tmp_path / "frames").exists() and not (tmp_path / "m.gif").exists()
 
 
+def test_a_picture_or_gif_larger_than_the_memory_is_refused_before_anything_is_written(tmp_path, monkeypatch):
+    """The drawing takes about 185 B a supersampled pixel (measured) and a GIF holds every
+    frame until it is written: 8192 x 8192 at supersample 2 (some 50 GiB) was killed part
+    way, as was a GIF of thousands of frames. Both are refused by name before any drawing,
+    against the machine's memory (made 256 MiB here)."""
+    path = tmp_path / "one.usdc"
+    write_clusters(path, [(0.0, 0.0, 0.0)])
+    monkeypatch.setattr(render_module, "_machine_memory", lambda: 2**28, raising=False)
+    with pytest.raises(ValueError, match=r"^width x height = 1024 x 1024 at supersample = 2 is not allowed on this machine: "
+                                         r"its 4\.19e\+06 pixels \(supersampled\) need about 0\.781 GiB \(200 B a pixel\), "
+                                         r"more than its 0\.25 GiB; use a smaller picture or supersample$"):
+        render_usd(path, tmp_path / "big.png", width=1024, height=1024)
+    with pytest.raises(ValueError, match=r"^width x height = 1024 x 1024 at supersample = 2 is not allowed"):
+        Renderer(UsdFrames(path), None, RenderOptions(width=1024, height=1024))
+    # A GIF may repeat a frame: 100 pictures of frame 0, each 4 MiB held (RGB and palette).
+    with pytest.raises(ValueError, match=r"^frames = '(0,){28}\.\.\. is not allowed in one \.gif: 100 frames of 1024 x 1024 are held "
+                                         r"together until it is written, about 0\.391 GiB, more than this machine's 0\.25 GiB; "
+                                         r"choose fewer frames or a smaller picture, or write a folder or an \.mp4$"):
+        render_usd(path, tmp_path / "long.gif", frames=",".join(["0"] * 100), width=1024, height=1024, supersample=1)
+    assert not (tmp_path / "big.png").exists() and not (tmp_path / "long.gif").exists()
+    render_usd(path, tmp_path / "short.gif", frames="0,0", width=1024, height=1024, supersample=1)
+    assert Image.open(tmp_path / "short.gif").size == (1024, 1024)
+
+
+def test_a_camera_renderer_or_particle_size_that_cannot_draw_is_refused_by_name(tmp_path):
+    """A camera whose eye is its target, with a NaN or a fov of 0, or 1e300 m out, failed at
+    the first frame ('cannot convert float NaN to integer', ZeroDivisionError); a camera
+    that is none an AttributeError; radius_scale = 1e300 overflowed the float32 radii (NaN
+    again). A Renderer of no frames framed the bounds of nothing and drew a picture of it,
+    and one of a frame the file lacks failed only at its render."""
+    path = tmp_path / "one.usdc"
+    write_clusters(path, [(0.0, 0.0, 0.0)])
+    data = UsdFrames(path)
+    for kwargs, message in (
+            (dict(eye=(0, 0, 0)), r"eye = \(0\.0, 0\.0, 0\.0\) is not allowed: it is the target; the camera looks from the "
+                                  r"eye towards the target, so they must differ"),
+            (dict(eye=(float("nan"), 0, 1)), r"eye\[0\] = nan is not allowed: must be a finite number"),
+            (dict(fov=0.0), r"fov = 0\.0 is not allowed: must be > 0"),
+            (dict(fov=170.0), r"fov = 170\.0 is not allowed: must be in \(0, 170\) degrees"),
+            (dict(eye=(0, 0, 1e300)), r"eye = \(0\.0, 0\.0, 1e\+300\), target = \(0\.0, 0\.0, 0\.0\) are not allowed: "
+                                      r"each coordinate must be within 1e\+15 m of the origin"),
+            (dict(width=0), r"width = 0 is not allowed: must be an integer >= 1")):
+        with pytest.raises(ValueError, match=f"^{message}$"):
+            Camera(**{"eye": (0.0, 0.0, 2.0), "target": (0.0, 0.0, 0.0), "width": W, "height": H, **kwargs})
+    o = RenderOptions(width=W, height=H, supersample=1)
+    with pytest.raises(ValueError, match=r"^camera = 'front' is not allowed: must be a warp_esph\.render\.Camera or None$"):
+        Renderer(data, [0], o, camera="front")
+    with pytest.raises(ValueError, match=r"^frames = \[\] is not allowed: give e\.g\. 'all', 'last'"):
+        Renderer(data, [], o)
+    with pytest.raises(ValueError, match=r"^frames = \[5\] is not allowed: frame 5 is not in the file \(it holds 0\.\.0\)$"):
+        Renderer(data, [5], o)
+    with pytest.raises(ValueError, match=r"^radius_scale = 1e\+300 is not allowed: must be in \[0\.001, 1000\.0\]$"):
+        render_usd(path, tmp_path / "r.png", radius_scale=1e300)
+    assert not (tmp_path / "r.png").exists()
+    img = Renderer(data, "all", o, camera=front_camera()).render(0)
+    assert np.asarray(img).std() > 5.0  # the cluster against the background
+
+
 def test_render_command(tmp_path, capsys):
     path = tmp_path / "cli.usdc"
     write_clusters(path, [(0.0, 0.2, 0.0)], frames=2, ground=True)

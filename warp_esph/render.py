@@ -104,6 +104,11 @@ def colormap(values: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- camera
+#: How far from the origin a camera's eye and target may be (m): the projection squares
+#: distances, which overflowed far beyond.
+MAX_CAMERA_REACH = 1e15
+
+
 @dataclasses.dataclass
 class Camera:
     """A perspective pinhole camera; ``fov`` is the vertical field of view in degrees."""
@@ -116,9 +121,23 @@ class Camera:
     up: np.ndarray = dataclasses.field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
 
     def __post_init__(self):
-        self.eye = np.asarray(self.eye, dtype=np.float64)
-        self.target = np.asarray(self.target, dtype=np.float64)
+        # Unchecked, an eye on its target, a NaN or a fov of 0 failed in the first frame
+        # ('cannot convert float NaN to integer', ZeroDivisionError), naming none of them.
+        self.eye = np.asarray(checks.vector("eye", self.eye), dtype=np.float64)
+        self.target = np.asarray(checks.vector("target", self.target), dtype=np.float64)
+        self.width = checks.positive_int("width", self.width)
+        self.height = checks.positive_int("height", self.height)
+        self.fov = checks.positive("fov", self.fov)
+        if not self.fov < 170:
+            raise ValueError(f"fov = {self.fov!r} is not allowed: must be in (0, 170) degrees")
+        far = np.abs(np.concatenate([self.eye, self.target])).max()
+        if not far <= MAX_CAMERA_REACH:  # the projection squares distances: 1e300 m was NaN pixels
+            raise ValueError(f"eye = {tuple(self.eye.tolist())!r}, target = {tuple(self.target.tolist())!r} are not "
+                             f"allowed: each coordinate must be within {MAX_CAMERA_REACH:g} m of the origin")
         f = self.target - self.eye
+        if not np.linalg.norm(f) > 0.0:
+            raise ValueError(f"eye = {tuple(self.eye.tolist())!r} is not allowed: it is the target; the camera looks "
+                             f"from the eye towards the target, so they must differ")
         self.forward = f / np.linalg.norm(f)
         r = np.cross(self.forward, np.asarray(self.up, dtype=np.float64))
         if np.linalg.norm(r) < 1e-9:  # looking straight up or down
@@ -436,6 +455,31 @@ def _tool_plane(tool: Tool, p, q) -> Collider:
 
 
 # ----------------------------------------------------------------------------- renderer
+#: What a supersampled pixel of a picture takes while it is drawn (measured: 185 B).
+BYTES_PER_PIXEL = 200
+
+
+def _machine_memory() -> int | None:
+    """The machine's memory in bytes, or None where not known."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, OSError, ValueError, TypeError):
+        return None
+
+
+def _check_pixels(o: "RenderOptions") -> None:
+    """Refuse a picture whose drawing would not fit in the machine's memory, before it is
+    drawn: measured at about 185 B a supersampled pixel (rays, z-buffers, normals, colours),
+    8192 x 8192 at supersample 2 needed some 50 GiB and was killed part way."""
+    pixels = o.width * o.height * o.supersample**2
+    need, have = pixels * BYTES_PER_PIXEL, _machine_memory()
+    if have is not None and need > have:
+        raise ValueError(f"width x height = {o.width} x {o.height} at supersample = {o.supersample} is not allowed on "
+                         f"this machine: its {pixels:.3g} pixels (supersampled) need about {need / 2**30:.3g} GiB "
+                         f"({BYTES_PER_PIXEL} B a pixel), more than its {have / 2**30:.3g} GiB; use a smaller picture or "
+                         f"supersample")
+
+
 @dataclasses.dataclass
 class RenderOptions:
     width: int = 800
@@ -460,7 +504,9 @@ class RenderOptions:
         self.supersample = checks.positive_int("supersample", self.supersample)
         if self.supersample > 4:
             raise ValueError(f"supersample = {self.supersample!r} is not allowed: must be 1, 2, 3 or 4")
-        self.radius_scale = checks.positive("radius_scale", self.radius_scale)
+        # Beyond these a particle is far below a pixel or covers the picture; 1e300 overflowed
+        # the float32 radii and failed as 'cannot convert float NaN to integer'.
+        self.radius_scale = checks.in_range("radius_scale", self.radius_scale, 1e-3, 1e3)
         # Beyond these the camera stands inside the scene or so far that it is one pixel, and
         # its distance overflowed (1e308) or its picture's size did (1e-308).
         self.zoom = checks.in_range("zoom", self.zoom, 1e-3, 1e3)
@@ -482,13 +528,19 @@ class Renderer:
 
     def __init__(self, data: UsdFrames, frames, options: RenderOptions | None = None, camera: Camera | None = None,
                  color_range: tuple[float, float] | None = None):
-        """``camera``: use this camera (its size must be the picture size times ``supersample``)
+        """``frames``: the frames to frame (and colour-range) together, as ``parse_frames`` takes
+        them (``None``: all). ``camera``: use this camera (its size must be the picture size times ``supersample``)
         instead of framing the bounds of ``frames`` automatically. ``color_range``: the values
         mapped to the ends of the colour map (default: 0 and the 99.5th percentile over ``frames``)."""
         self.data = data
         self.options = options or RenderOptions()
         o = self.options
-        self.frames = list(frames)
+        # The file's frames, at least one: none framed the bounds of nothing (a picture of
+        # whatever an infinite box looked like), and a frame the file lacks failed at its render.
+        self.frames = parse_frames(frames, data.frames)
+        if camera is not None and not isinstance(camera, Camera):
+            raise ValueError(f"camera = {checks.shorten(camera)!r} is not allowed: must be a warp_esph.render.Camera or None")
+        _check_pixels(o)
         lo, hi = data.bounds(self.frames)
         self.particle_bounds = (lo.copy(), hi.copy())
         for c in data.colliders:  # spheres and boxes are part of the picture; planes are not
@@ -1113,6 +1165,16 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
             raise ValueError(f"frames = {frames!r} is not allowed in one .png: {len(chosen)} frames of {options.width} x "
                              f"{options.height} in {sheet_columns} columns make a {size[0]} x {size[1]} picture, more than "
                              f"{MAX_SHEET_PIXELS:.0e} pixels; choose fewer frames, or write a folder, a .gif or an .mp4")
+    _check_pixels(options)
+    if kind == "gif":
+        # Every frame is held until the file is written (RGB, then its palette copy): 10000
+        # frames of 800 x 600 asked 19 GiB, after all of them had been drawn.
+        need, have = len(chosen) * options.width * options.height * 4, _machine_memory()
+        if have is not None and need > have:
+            raise ValueError(f"frames = {checks.shorten(frames)!r} is not allowed in one .gif: {len(chosen)} frames of "
+                             f"{options.width} x {options.height} are held together until it is written, about "
+                             f"{need / 2**30:.3g} GiB, more than this machine's {have / 2**30:.3g} GiB; choose fewer frames "
+                             f"or a smaller picture, or write a folder or an .mp4")
     # Before any frame is drawn: a folder in the way, or a place that takes no file.
     checks.output_place("output", out, folder=kind == "dir")
     if kind == "dir":

@@ -1024,12 +1024,13 @@ def parse_frames(spec, available: list[int]) -> list[int]:
     ``A:B`` or ``A:B:STEP`` (B inclusive, either may be left out), or a comma list of those."""
     if spec is None:
         return list(available)
+    shown = spec  # as given: a list was shown joined ('' for [], '1,x' for [1, 'x'])
     if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
         spec = str(int(spec))
     if isinstance(spec, (list, tuple)):
         spec = ",".join(str(s) for s in spec)
     if not isinstance(spec, str) or not spec.strip():
-        raise ValueError(f"frames = {spec!r} is not allowed: give e.g. 'all', 'last', '10', '0:60:5' or '0,30,60'")
+        raise ValueError(f"frames = {checks.shorten(shown)!r} is not allowed: give e.g. 'all', 'last', '10', '0:60:5' or '0,30,60'")
     first, last = available[0], available[-1]
     have = set(available)
 
@@ -1063,14 +1064,14 @@ def parse_frames(spec, available: list[int]) -> list[int]:
                 out.append(one(p))
         except ValueError:
             raise ValueError(
-                f"frames = {spec!r} is not allowed: {part!r} is not 'all', 'first', 'last', N, -N, A:B or A:B:STEP"
+                f"frames = {checks.shorten(shown)!r} is not allowed: {part!r} is not 'all', 'first', 'last', N, -N, A:B or A:B:STEP"
             ) from None
     missing = [f for f in out if f not in have]
     if missing and missing[0] < 0:  # -N counted back past the first frame
-        raise ValueError(f"frames = {spec!r} is not allowed: it counts back past the first frame (the file holds "
+        raise ValueError(f"frames = {checks.shorten(shown)!r} is not allowed: it counts back past the first frame (the file holds "
                          f"{first}..{last}, so -1 to -{last + 1 - first})")
     if missing:
-        raise ValueError(f"frames = {spec!r} is not allowed: frame {missing[0]} is not in the file (it holds {first}..{last})")
+        raise ValueError(f"frames = {checks.shorten(shown)!r} is not allowed: frame {missing[0]} is not in the file (it holds {first}..{last})")
     if not out:
-        raise ValueError(f"frames = {spec!r} is not allowed: it selects no frame of the file (it holds {first}..{last})")
+        raise ValueError(f"frames = {checks.shorten(shown)!r} is not allowed: it selects no frame of the file (it holds {first}..{last})")
     return out
