@@ -276,6 +276,8 @@ def test_cli_solver_options_override_the_scene_files(scene_file, tmp_path, capsy
     (["--param", "crust.yield_stress=10:100:log:2"], ["crust.yield_stress", "'crust'", "paste"]),
     (["--param", "yield_stress=10:100:log:2", "--param", "paste.yield_stress=1:2:lin:2"], ["paste.yield_stress", "already"]),
     (["--param", "yield_stress=10:100:log:2", "--workers", "0"], ["--workers", "0"]),
+    # Named as the command's other options are (it said 'max_samples = 0').
+    (["--param", "yield_stress=10:100:log:2", "--max-samples", "0"], ["--max-samples = 0 is not allowed: must be an integer >= 1"]),
     (["--param", "yield_stress=10:100:log:2", "--frames", "2", "--duration", "1"], ["--duration", "--frames"]),
     (["--param", "yield_stress=10:100:log:2", "--dt", "0.007"], ["dt = 0.007", "whole number of steps"]),
     (["--param", "yield_stress=10:100:log:2", "--duration", "1e300"], ["--duration = 1e+300", "more than the 1e+10 steps"]),

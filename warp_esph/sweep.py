@@ -236,7 +236,7 @@ def sample_points(params, sample: str = "grid", samples: int | None = None, seed
     """
     params = _as_params(params)
     sample = checks.choice("--sample", sample, SAMPLINGS)
-    max_samples = checks.positive_int("max_samples", max_samples)
+    max_samples = checks.positive_int("--max-samples", max_samples)  # named as the other sweep options are
     names = [p.name for p in params]
     if sample == "grid":
         if samples is not None:
