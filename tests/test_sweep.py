@@ -13,6 +13,7 @@ import warnings
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from warp_esph import cli
 from warp_esph.builder import SceneBuilder
@@ -335,6 +336,48 @@ def test_reading_a_file_that_is_no_sweep_table_names_it_and_what_it_must_be(tmp_
         with pytest.raises(ValueError, match=rf"^path = {re.escape(repr(str(path)))} is not allowed: {wanted} .*; {why}"):
             SweepTable.read_csv(path)
     assert _rows(SweepTable.read_csv(serial.to_csv(tmp_path / "t.csv"))) == _rows(serial)
+
+
+def test_a_plot_names_what_it_cannot_draw_and_is_written_where_it_says(serial, tmp_path):
+    """``plot`` dropped quantities and log_params the table lacks without a word (all of them:
+    matplotlib's 'Number of rows must be a positive integer, not 0'), read a single name
+    letter by letter, and, given a path without an extension, wrote path + '.png' and
+    returned the path it had not written."""
+    pytest.importorskip("matplotlib")
+    from warp_esph.sweep import plot  # noqa: PLC0415
+
+    for kwargs, message in ((dict(quantities=["max_heigth"]), r"quantities = \['max_heigth'\] is not allowed: the table has no "
+                                                              r"column 'max_heigth'; choose from sample, status, yield_stress"),
+                            (dict(quantities=[]), r"quantities = \[\] is not allowed: give at least one; choose from sample"),
+                            (dict(log_params=["flow_rate"]), r"log_params = \['flow_rate'\] is not allowed: the table has no "
+                                                             r"column 'flow_rate'; choose from yield_stress$")):
+        with pytest.raises(ValueError, match=f"^{message}"):
+            plot(serial, tmp_path / "p.png", **kwargs)
+    assert not (tmp_path / "p.png").exists()
+    out = plot(serial, tmp_path / "picture", quantities="max_height", log_params="yield_stress")
+    assert out == str(tmp_path / "picture") and sorted(os.listdir(tmp_path)) == ["picture"]
+    assert Image.open(out).format == "PNG"
+
+
+def test_a_function_the_workers_cannot_be_sent_is_refused_before_any_item(tmp_path):
+    """``parallel_map`` and ``sweep(extra=)`` with a lambda and worker processes failed every
+    item (sample) with pickle's message, as if each had failed on its own; a function that is
+    none, or an item that is no tuple of arguments, was a TypeError from the first worker."""
+    from warp_esph.sweep import parallel_map  # noqa: PLC0415
+
+    with pytest.raises(ValueError, match=r"^fn = <function .* is not allowed with 2 worker processes: it must be "
+                                         r"importable by name \(a module-level function\) to reach them \(Can't pickle"):
+        parallel_map(lambda x: x, [(1,), (2,)], workers=2, on_error=lambda i, why: why)
+    with pytest.raises(ValueError, match=r"^extra = <function .* is not allowed with 2 worker processes"):
+        sweep(_box(), ["yield_stress=10,100"], frames=1, workers=2, extra=lambda model, state, seed: {"q": 1.0})
+    with pytest.raises(ValueError, match=r"^fn = 3 is not allowed: must be callable as fn\(\*item\)$"):
+        parallel_map(3, [(1,)], workers=1)
+    with pytest.raises(ValueError, match=r"^items\[1\] = 4\.0 is not allowed: each item must be a tuple of fn's arguments "
+                                         r"\(e\.g\. \(4\.0,\)\)$"):
+        parallel_map(math.sqrt, [(4.0,), 4.0], workers=1)
+    # In this process a lambda needs no sending.
+    assert parallel_map(lambda x: 2 * x, [(1,), (2,)], workers=1) == [2, 4]
+    assert sweep(_box(), ["yield_stress=10"], frames=1, workers=1, extra=lambda model, state, seed: {"q": 1.0}).rows[0]["q"] == 1.0
 
 
 def _extra_that_fails(model, state, seed):

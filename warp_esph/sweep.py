@@ -616,7 +616,9 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
       process (``ray.init``) is used as it is and left running; one started here is shut
       down at the end. Needs ``pip install warp-esph[ray]`` and warp-esph on every node.
 
-    ``fn`` must be importable by name (a module-level function) and ``items`` picklable.
+    ``fn`` must be importable by name (a module-level function) and ``items`` picklable
+    (with worker processes: one that is not is refused before any item runs); each item is
+    a tuple of ``fn``'s arguments.
     ``on_result(index, result)`` is called in this process as each item finishes.
 
     An item fails when ``fn`` raises, its worker process dies (a crash in native code, out
@@ -625,7 +627,14 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
     and the others go on; without, the first failure raises (``RuntimeError`` for a dead
     worker). Ctrl-C stops the workers and raises ``KeyboardInterrupt``.
     """
+    if not callable(fn):
+        raise ValueError(f"fn = {checks.shorten(fn)!r} is not allowed: must be callable as fn(*item)")
     items = list(items)
+    for i, item in enumerate(items):
+        # fn(*item): an int was a TypeError from the first worker, a string spread into letters.
+        if isinstance(item, (str, bytes)) or not isinstance(item, (tuple, list)):
+            raise ValueError(f"items[{i}] = {checks.shorten(item)!r} is not allowed: each item must be a tuple of "
+                             f"fn's arguments (e.g. ({checks.shorten(item)!r},))")
     if ray is not None:
         return _ray_map(fn, items, ray, on_result, on_error, ray_resources)
     if workers is None:
@@ -646,6 +655,10 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
         return results
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait  # noqa: PLC0415
     from concurrent.futures.process import BrokenProcessPool  # noqa: PLC0415
+
+    # A function the workers cannot be sent (a lambda, a local function) failed every item
+    # with pickle's message, as if each had failed on its own.
+    _check_sendable("fn", fn, workers)
 
     # spawn, not fork: a forked child would inherit this process's Warp runtime (and any
     # threads), which Warp does not support; a spawned one initialises its own.
@@ -684,6 +697,18 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
         raise
     pool.shutdown(wait=True)
     return results
+
+
+def _check_sendable(name: str, value, workers: int) -> None:
+    """Refuse ``value`` (a function the worker processes call) that pickle cannot send them."""
+    import pickle  # noqa: PLC0415
+
+    try:
+        pickle.dumps(value)
+    except Exception as e:  # noqa: BLE001 (pickle raises AttributeError, TypeError, PicklingError)
+        raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed with {workers} worker processes: it must "
+                         f"be importable by name (a module-level function) to reach them ({_one_line(e)}); define it "
+                         f"at the top level of a module, or run with workers=1") from None
 
 
 def _check_reachable(address: str, timeout: float = 5.0) -> None:
@@ -889,6 +914,8 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
     here = "cpu" if ray is not None else device
     init_warp(here)
     sc.builder.finalize(device=here, dtype=dtype)
+    if extra is not None and ray is None and min(workers or _cores(), len(points)) > 1:
+        _check_sendable("extra", extra, min(workers or _cores(), len(points)))
     tasks = [(sc, _Task(i, _sample_seed(seed, i), values, assignments, frames, fps, dt, dtype, device, extra))
              for i, values in enumerate(points)]
     return _Plan(sc, plist, tasks)
@@ -912,14 +939,25 @@ _UNITS = {"centroid_height": "m", "max_height": "m", "radial_spread": "m", "max_
 
 def plot(table: SweepTable, path, log_params: Sequence[str] = (), quantities: Sequence[str] = SUMMARY_COLUMNS) -> str:
     """One panel per (quantity, parameter): the quantity of every sample against the
-    parameter; failed samples are red crosses on the axis. Needs matplotlib."""
+    parameter; failed samples are red crosses on the axis. ``quantities``: columns of the
+    table; ``log_params``: parameters drawn on a log axis (each a name or a list of names).
+    Written at ``path`` in the format of its extension (PNG without one). Needs matplotlib."""
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
     names = table.params
-    quantities = [q for q in quantities if q in table.columns]
+    # A name the table lacks was dropped without a word (all of them: matplotlib's 'Number of
+    # rows must be a positive integer, not 0'), a string read letter by letter.
+    quantities = [quantities] if isinstance(quantities, str) else list(quantities)
+    log_params = [log_params] if isinstance(log_params, str) else list(log_params)
+    for label, given, have in (("quantities", quantities, table.columns), ("log_params", log_params, names)):
+        unknown = [q for q in given if q not in have]
+        if unknown or (label == "quantities" and not given):
+            raise ValueError(f"{label} = {checks.shorten(given)!r} is not allowed: "
+                             + (f"the table has no column {unknown[0]!r}" if unknown else "give at least one")
+                             + f"; choose from {', '.join(have)}")
     ok = table.column("status") == "ok"
     fig, axes = plt.subplots(len(quantities), len(names), figsize=(3.2 * len(names) + 0.6, 2.4 * len(quantities) + 0.6),
                              squeeze=False, sharex="col", constrained_layout=True)
@@ -955,7 +993,9 @@ def _draw(fig, axes, table, names, quantities, ok, log_params, path) -> str:
                 ax.set_xlabel(name)
     fig.suptitle(f"{len(table)} samples, {int(ok.sum())} ok")
     path = os.fspath(path)
-    fig.savefig(path, dpi=100)
+    # Without an extension matplotlib wrote path + '.png', and the path returned was not the file.
+    ext = os.path.splitext(path)[1].lstrip(".").lower()
+    fig.savefig(path, dpi=100, format=ext or "png")
     return path
 
 
