@@ -832,6 +832,73 @@ def test_a_body_starting_inside_a_mesh_tool_is_refused_as_inside_the_other_shape
         b.finalize()
 
 
+def test_a_scripted_motion_moving_more_than_a_spacing_a_step_stops_the_run_at_that_step():
+    """A ``Scripted`` motion is known only as the steps evaluate it: a step that moves it more
+    than a spacing stops the run there (``SimulationError``, the pre-run refusal's message),
+    the frames before it kept, with a fixed dt and with the adaptive step. It is not called
+    ahead of the run: a function reading what the run's callback sets (a controller) was
+    refused before the first step with the KeyError of a frame not yet run."""
+    dt, fps = 1e-4, 1000.0  # 10 steps a frame, at most 0.01 / 1e-4 = 100 m/s
+
+    def model(**tool):
+        b = we.SceneBuilder(spacing=0.01)
+        b.add_box((0.0, 0.03, 0.0), (0.04, 0.04, 0.04), we.Material.preset("clay"), name="blk")
+        b.add_ground()
+        if "pin" in tool:
+            b.pin(body="blk", region=((-1, -1, -1), (1, 0.02, 1)), name="clamp", motion=tool["pin"])
+        else:
+            b.add_tool("box", half_extents=(0.01, 0.05, 0.05), name="hammer", **tool)
+        return b.finalize()
+
+    class Frames:
+        def __init__(self):
+            self.written = []
+
+        def write_frame(self, frame, state):
+            self.written.append(frame)
+
+    # 0.1 m in the step from t = 2 ms (step 21, in frame 3), 1000 m/s.
+    jumped = tools.Scripted(lambda t: ((0.1 if t <= 0.002 + 1e-9 else 0.2, 0.03, 0.0), tools.IDENTITY))
+    for run_dt in (dt, "auto"):
+        m, out = model(motion=jumped), Frames()
+        with pytest.raises(we.SimulationError, match=r"^the simulation stopped in step (\d+), in frame 3: tool 'hammer': its "
+                                                     r"Scripted motion moves its points at up to [\d.e+]+ m/s \(\|v\| \+ \|omega\| "
+                                                     r"r, r = 0\.0714 m; from t = 0\.002 s\), which is not allowed at dt = "
+                                                     r".* so at most [\d.e+]+ m/s; give a slower motion or a smaller dt$") as e:
+            we.simulate(m, 5, fps=fps, dt=run_dt, progress=False, writer=out)
+        assert out.written == [0, 1, 2] and e.value.frame == 3 and e.value.particle is None
+        if run_dt == dt:
+            assert e.value.step == 21 and "up to 1e+03 m/s" in str(e.value) and "at most 100 m/s" in str(e.value)
+    # A pinned set turning about its centroid at 1e4 rad/s: 1 rad a step, its farthest
+    # particles (0.0212 m out) at 212 m/s, from the first step.
+    c = (0.0, 0.015, 0.0)
+    turning = tools.Scripted(lambda t: (c, (0.0, math.sin(5000.0 * t), 0.0, math.cos(5000.0 * t))))
+    with pytest.raises(we.SimulationError, match=r"^the simulation stopped in step 1, in frame 1: pinned set 'clamp': its "
+                                                 r"Scripted motion moves its points at up to 212 m/s \(\|v\| \+ \|omega\| r, "
+                                                 r"r = 0\.0212 m; from t = 0 s\)"):
+        we.simulate(model(pin=turning), 5, fps=fps, dt=dt, progress=False)
+    we.simulate(model(motion=tools.Scripted(lambda t: ((0.1 - 90.0 * t, 0.03, 0.0), tools.IDENTITY))), 2, fps=fps, dt=dt,
+                progress=False)
+    # A controller: each frame's pose set by the callback after the frame before; it runs,
+    # and the tool ends where the plan put it.
+    plan, calls, fps = {0: 0.15}, [], 100.0
+
+    def fn(t):
+        calls.append(t)
+        return (0.0, plan[max(0, math.ceil(t * fps - 1e-6) - 1)], 0.0), tools.IDENTITY
+
+    def callback(frame, state):
+        plan[frame + 1] = plan[frame] - 0.001
+
+    b = we.SceneBuilder(spacing=0.01)
+    b.add_box((0.0, 0.03, 0.0), (0.04, 0.04, 0.04), we.Material.preset("clay"), name="blk")
+    b.add_tool("sphere", radius=0.03, name="ind", motion=tools.Scripted(fn))
+    m = b.finalize()
+    end = we.simulate(m, 3, fps=fps, dt=dt, progress=False, callback=callback)
+    assert min(calls) == 0.0 and max(calls) == pytest.approx(0.03)
+    assert m.tools.pose(end)["ind"][0][1] == pytest.approx(0.148)
+
+
 def test_a_tool_or_pin_moving_more_than_a_spacing_a_step_is_refused_before_the_run(tmp_path, capsys):
     """The swept contact lets no particle through a fast tool, but gives every particle it
     meets the tool's speed: a box at 3 spacings a step flattened a resting block into a sheet
@@ -855,7 +922,7 @@ def test_a_tool_or_pin_moving_more_than_a_spacing_a_step_is_refused_before_the_r
 
     fast = [
         (dict(motion=tools.Velocity((-300.0, 0.0, 0.0), position=(0.1, 0.03, 0.0))),
-         r"^tool 'hammer': its Velocity motion moves its points at up to 300 m/s \(|v| \+ |omega| r, r = 0\.0714 m; "
+         r"^tool 'hammer': its Velocity motion moves its points at up to 300 m/s \(\|v\| \+ \|omega\| r, r = 0\.0714 m; "
          r"from t = 0 s\), which is not allowed at dt = 0\.0001 s: a step may carry a tool at most one spacing "
          r"\(0\.01 m\), so at most 100 m/s; give a slower motion or a smaller dt$"),
         # 2000 rad/s about its centre: its corners (0.0714 m out) at 143 m/s.
@@ -874,22 +941,6 @@ def test_a_tool_or_pin_moving_more_than_a_spacing_a_step_is_refused_before_the_r
     # Slow enough, or fast only after the run: runs.
     we.simulate(model(motion=tools.Velocity((-90.0, 0.0, 0.0), position=(0.1, 0.03, 0.0))), 1, fps=fps, dt=dt, progress=False)
     we.simulate(model(**fast[2][0]), 1, fps=fps, dt=dt, progress=False)
-    # A scripted motion, sampled at the run's step times (it escaped the check): 0.1 m in the
-    # step from t = 2 ms, 1000 m/s; a slow one runs.
-    jumped = tools.Scripted(lambda t: ((0.1 if t <= 0.002 + 1e-9 else 0.2, 0.03, 0.0), tools.IDENTITY))
-    with pytest.raises(ValueError, match=r"^tool 'hammer': its Scripted motion moves its points at up to 1000 m/s "
-                                         r"\(|v| \+ |omega| r, r = 0\.0714 m; from t = 0\.002 s\), which is not allowed at "
-                                         r"dt = 0\.0001 s: .* so at most 100 m/s; give a slower motion or a smaller dt$"):
-        we.simulate(model(motion=jumped), 5, fps=fps, dt=dt, progress=False)
-    # A pinned set turning about its centroid at 1e4 rad/s: 1 rad a step, its farthest
-    # particles (0.0212 m out) at 212 m/s.
-    c = (0.0, 0.015, 0.0)
-    turning = tools.Scripted(lambda t: (c, (0.0, math.sin(5000.0 * t), 0.0, math.cos(5000.0 * t))))
-    with pytest.raises(ValueError, match=r"^pinned set 'clamp': its Scripted motion moves its points at up to 212 m/s "
-                                         r"\(|v| \+ |omega| r, r = 0\.0212 m; from t = 0 s\)"):
-        we.simulate(model(pin=turning), 5, fps=fps, dt=dt, progress=False)
-    we.simulate(model(motion=tools.Scripted(lambda t: ((0.1 - 90.0 * t, 0.03, 0.0), tools.IDENTITY))), 1, fps=fps, dt=dt,
-                progress=False)
     # A jump the adaptive step cannot follow (0.1 m in 1 ns, 1e8 m/s), in the run's tenth frame:
     # refused before the first, naming the tool (it was read as the body's initial velocity).
     jump = model(motion=tools.Keyframes([0.0, 0.0095, 0.0095 + 1e-9], [(0.1, 0.03, 0.0), (0.1, 0.03, 0.0), (0.2, 0.03, 0.0)]))

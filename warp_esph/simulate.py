@@ -41,15 +41,16 @@ AUTO = "auto"
 
 class SimulationError(RuntimeError):
     """The simulation produced a non-finite position or velocity, or blew up while staying
-    finite (``DivergenceMonitor``).
+    finite (``DivergenceMonitor``), or a ``tools.Scripted`` motion moved a tool more than a
+    spacing in a step (``ToolSet.check_scripted_step``).
 
     ``step``: the number of steps taken when it was detected (counted from the start of
     the run; the bad value arose in one of the steps of the last frame). ``particle``:
-    the first bad particle's index; ``body``: its body's name; ``frame``: the frame
-    whose check found it.
+    the first bad particle's index (``None`` where a tool's motion stopped the run);
+    ``body``: its body's name; ``frame``: the frame whose check found it.
     """
 
-    def __init__(self, message: str, *, step: int, particle: int, body: str | None = None, frame: int | None = None):
+    def __init__(self, message: str, *, step: int, particle: int | None, body: str | None = None, frame: int | None = None):
         super().__init__(message)
         self.step = step
         self.particle = particle
@@ -509,8 +510,11 @@ def simulate(
       as the uninterrupted run judged it; default: the state this call starts from).
 
     Two states are swapped, so nothing is allocated per step. Raises ``SimulationError``
-    when a position or velocity becomes non-finite or the monitor finds a blow-up; the
-    frame that shows it is not written.
+    when a position or velocity becomes non-finite, the monitor finds a blow-up, or a step
+    moved a ``tools.Scripted`` tool more than a spacing (checked from the poses each step
+    evaluates, with a fixed ``dt`` and with ``dt="auto"`` alike: the function may read what
+    ``callback`` sets, so it is never called ahead of the run); the frame that shows it is
+    not written.
     """
     try:
         if not isinstance(model, Model):
@@ -580,6 +584,7 @@ def simulate(
             if callback is not None:
                 callback(start_frame, current)
             steps = 0
+            scripted = model.tools is not None
             t0 = time.perf_counter()
             for k in range(1, frames + 1):
                 if adaptive:
@@ -590,9 +595,16 @@ def simulate(
                         body = model.bodies[int(model.particle_body_np[p])].name
                         raise SimulationError(f"the simulation ran away before frame {start_frame + k}: {e}", step=steps,
                                               particle=p, body=body, frame=start_frame + k) from None
-                for _ in range(n_sub):
+                for i in range(n_sub):
                     solver.step(current, spare, dt)
                     current, spare = spare, current
+                    if scripted:
+                        try:
+                            model.tools.check_scripted_step(dt)
+                        except ValueError as e:  # its poses are known only as the steps evaluate them
+                            step = steps + i + 1 if adaptive else start_frame * n_sub + steps + i + 1
+                            raise SimulationError(f"the simulation stopped in step {step}, in frame {start_frame + k}: {e}",
+                                                  step=step, particle=None, frame=start_frame + k) from None
                 steps += n_sub
                 frame = start_frame + k
                 bad = _first_bad(model, current, monitor, (t_origin + k) / fps)  # simulated time since the monitor's state

@@ -955,6 +955,9 @@ class ToolSet:
         self._warned_scripted = False
         self._held_samples = None
         self._held_views = None  # numpy views of _held_samples' memory on the CPU, kept with it
+        self._scripted = [k for k, mo in enumerate(self.motions) if isinstance(mo, Scripted)]
+        self._scripted_last = None  # (t0, positions, quaternions) of the last step's samples
+        self._reach_of = {}
 
     def mesh_depth(self, k: int, xl: np.ndarray) -> np.ndarray:
         """How deep each point ``xl`` (N, 3), in mesh tool ``k``'s own frame, lies inside it
@@ -1064,6 +1067,8 @@ class ToolSet:
                 else:
                     direct[s] = 1
                     sp[s], sq[s] = self._scripted_pose(k, t)
+        if self._scripted:
+            self._scripted_last = (t0, sp, sq)
         return i0, i1, w, ts, direct, sp, sq
 
     def _sample_arrays(self, host, held):
@@ -1177,8 +1182,8 @@ class ToolSet:
 
     def fastest(self, t0: float, t1: float) -> list[tuple[int, float, float]]:
         """``(k, speed, t)`` for each tool and pinned set whose motion is known before the run
-        (``Keyframes``, ``Velocity``; a ``Scripted`` one is sampled only by ``check_speed``,
-        at its steps' times, which depend on ``dt``): the bound
+        (``Keyframes``, ``Velocity``; a ``Scripted`` one is checked at each step of a run,
+        ``check_scripted_step``): the bound
         ``|v| + |omega| reach`` on the speed of its points between times ``t0`` and ``t1``, and
         when it is reached (a keyframe segment's start, or ``t0``)."""
         out = []
@@ -1209,42 +1214,48 @@ class ToolSet:
 
     def check_speed(self, dt: float, t0: float, t1: float) -> None:
         """Refuse a tool or pinned set that moves more than one spacing in a step of ``dt``
-        between ``t0`` and ``t1`` (a ``Scripted`` one sampled at the run's step times ``t0 +
-        i dt``), as a start faster than that is refused
+        between ``t0`` and ``t1``, as a start faster than that is refused
         (``simulate.check_start_speed``): the contact is swept, so such a tool passes no
         particle, but every particle it meets is given its speed, more than one spacing a step,
         and the material can no longer follow (a box at 3 spacings a step flattened a block
-        into a sheet half a millimetre thick and the run exited 0)."""
-        limit = self.model.spacing / dt
-        speeds = self.fastest(t0, t1) + [self._scripted_fastest(k, dt, t0, t1)
-                                          for k, mo in enumerate(self.motions) if isinstance(mo, Scripted)]
-        for k, speed, when in sorted(speeds, key=lambda s: s[0]):
-            if not speed <= limit:
-                motion = type(self.motions[k]).__name__
-                raise ValueError(
-                    f"{self._owner(k)}: its {motion} motion moves its points at up to {speed:.3g} m/s (|v| + |omega| r, "
-                    f"r = {self.reach(k):.3g} m; from t = {when:.4g} s), which is not allowed at dt = {dt:.4g} s: a step may "
-                    f"carry a tool at most one spacing ({self.model.spacing:g} m), so at most {limit:.3g} m/s; give a slower "
-                    f"motion or a smaller dt")
+        into a sheet half a millimetre thick and the run exited 0). A ``Scripted`` motion is
+        not called here: it may read what the run's callback sets, so ``simulate`` checks it
+        at each step, from the poses the step evaluates (``check_scripted_step``)."""
+        for k, speed, when in self.fastest(t0, t1):
+            if not speed <= self.model.spacing / dt:
+                raise ValueError(self._too_fast(k, speed, when, dt))
 
-    def _scripted_fastest(self, k: int, dt: float, t0: float, t1: float) -> tuple[int, float, float]:
-        """``(k, speed, t)`` for ``Scripted`` tool ``k``: the fastest of its steps of ``dt``
-        from ``t0`` until ``t1``, sampled at the times the run evaluates it (each step's
-        start and end), as ``|dp| / dt + |d angle| r / dt`` over the step (``fastest``'s bound
-        for a motion known only at those times), and that step's start. The callable may be
-        slow or have side effects, but the run calls it at these times anyway."""
-        r = self.reach(k)
-        steps = max(1, math.ceil((t1 - t0) / dt * (1.0 - 1e-12)))
-        best, when = 0.0, t0
-        p0, q0 = (np.asarray(a, dtype=np.float64) for a in self._scripted_pose(k, t0))
-        for i in range(1, steps + 1):
-            p1, q1 = (np.asarray(a, dtype=np.float64) for a in self._scripted_pose(k, t0 + i * dt))
+    def _too_fast(self, k: int, speed: float, when: float, dt: float) -> str:
+        limit = self.model.spacing / dt
+        return (f"{self._owner(k)}: its {type(self.motions[k]).__name__} motion moves its points at up to {speed:.3g} m/s "
+                f"(|v| + |omega| r, r = {self.reach(k):.3g} m; from t = {when:.4g} s), which is not allowed at dt = "
+                f"{dt:.4g} s: a step may carry a tool at most one spacing ({self.model.spacing:g} m), so at most "
+                f"{limit:.3g} m/s; give a slower motion or a smaller dt")
+
+    def check_scripted_step(self, dt: float) -> None:
+        """Refuse (``ValueError``, ``check_speed``'s message) a ``Scripted`` tool or pinned set
+        that the last step moved more than one spacing, bounded as ``|dp| / dt + |d angle| r /
+        dt`` from the poses that step evaluated at its start and end (the callable is not
+        called again: it may be slow, have side effects, or read what the run has set since)."""
+        last = self._scripted_last
+        if last is None:
+            return
+        t0, sp, sq = last
+        for k in self._scripted:
+            p0, p1 = sp[2 * k], sp[2 * k + 1]
+            q0, q1 = sq[2 * k], sq[2 * k + 1]
             turn = 2.0 * math.acos(min(1.0, abs(float(np.dot(q0, q1)))))
-            speed = (float(np.linalg.norm(p1 - p0)) + turn * r) / dt
-            if speed > best:
-                best, when = speed, t0 + (i - 1) * dt
-            p0, q0 = p1, q1
-        return k, best, when
+            if turn:
+                turn *= self._scripted_reach(k)
+            speed = (float(np.linalg.norm(p1 - p0)) + turn) / dt
+            if not speed <= self.model.spacing / dt:
+                raise ValueError(self._too_fast(k, speed, t0, dt))
+
+    def _scripted_reach(self, k: int) -> float:
+        # Computed once: a plane's reads its pose at t = 0, which would call the function again.
+        if k not in self._reach_of:
+            self._reach_of[k] = self.reach(k)
+        return self._reach_of[k]
 
     def pose_at(self, k: int, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Pose of tool ``k`` at time ``t`` evaluated on the host (the same formulas as ``poses``)."""
