@@ -8,6 +8,7 @@ distance ties under a finite-difference perturbation.
 import argparse
 import json
 import math
+import re
 import types
 import warnings
 
@@ -530,6 +531,17 @@ def test_a_rollout_takes_one_particles_v0_F0_or_alpha0_for_every_particle_and_x0
         with pytest.raises(ValueError, match=rf"^{name} with shape \({', '.join(map(str, value.shape))},?\) is not allowed: "
                                              rf"must be {shapes}$"):
             r.forward(**{name: value})
+    # A bad value given once for every particle is refused as that one value (it was
+    # "particle 0 has det F = 0", "first at index 0"); one given per particle keeps the index.
+    for name, value, what in (("F0", np.diag([1.01, 1.0, -1.0]), r"has det F = -1\.01, and a deformation gradient has det F > 0"),
+                              ("F0", np.zeros((3, 3)), r"has det F = 0, "),
+                              ("v0", [0.0, np.nan, 0.0], r"has non-finite values$"),
+                              ("alpha0", -0.5, r"is negative; the accumulated plastic strain is >= 0$")):
+        with pytest.raises(ValueError, match=rf"^{name} = {re.escape(repr(np.asarray(value, dtype=float).tolist()))} is not "
+                                             rf"allowed: the one {name} given for every particle {what}"):
+            r.forward(**{name: value})
+    with pytest.raises(ValueError, match=r"^F0 is not allowed: particle 0 has det F = 0, and a deformation gradient"):
+        r.forward(F0=np.zeros((n, 3, 3)))
 
 
 def test_a_rollout_refuses_a_non_finite_or_non_numeric_start_by_name():
@@ -547,7 +559,8 @@ def test_a_rollout_refuses_a_non_finite_or_non_numeric_start_by_name():
     n = model.particle_count
     bad = {"x0": np.full((n, 3), np.nan), "v0": np.full((n, 3), np.inf), "F0": np.full((n, 3, 3), np.nan), "alpha0": np.nan}
     for name, value in bad.items():
-        with pytest.raises(ValueError, match=rf"{name} is not allowed: it has non-finite values"):
+        one = "alpha0 = nan is not allowed: the one alpha0 given for every particle"  # one number for all
+        with pytest.raises(ValueError, match=rf"^{one if name == 'alpha0' else name + ' is not allowed: it'} has non-finite values"):
             r.forward(**{name: value})
     with pytest.raises(ValueError, match=r"alpha0 = 'x' is not allowed: must be numbers"):
         r.forward(alpha0="x")

@@ -70,6 +70,10 @@ def test_one_v0_for_every_particle_runs_as_the_same_v0_per_particle_and_gets_the
     np.testing.assert_array_equal(rollout.forward(v0=v.detach().numpy()), out_one.detach().numpy())
     with pytest.raises(ValueError, match=r"^x0 with shape \(3,\) is not allowed: must be a torch tensor of shape \(27, 3\)$"):
         rollout_positions(rollout, x0=torch.zeros(3, dtype=torch.float64))
+    # A NaN in the one velocity is refused as that velocity (it was "first at index 0").
+    with pytest.raises(ValueError, match=r"^v0 = \[0\.2, nan, 0\.05\] is not allowed: the one v0 given for every "
+                                         r"particle has non-finite values$"):
+        rollout_positions(rollout, v0=torch.tensor([0.2, float("nan"), 0.05], dtype=torch.float64))
 
 
 def test_torch_adam_drives_a_fit():

@@ -203,7 +203,8 @@ def check_initial(model: Model, name: str, value) -> np.ndarray:
     (``checks.coincident_points``, as ``SceneBuilder`` refuses them: all at one point, the
     step returned the start moved only by gravity). ``v0``, ``F0`` and ``alpha0`` may be one
     particle's entry (a ``(3,)`` velocity, a ``(3, 3)`` matrix, one number), taken for every
-    particle; ``x0`` is one position per particle."""
+    particle, and then refused as that one value (``the one F0 given for every particle has
+    det F = 0``), not as particle 0's; ``x0`` is one position per particle."""
     shape = _INITIAL_SHAPES[name]
     n = model.particle_count
     if isinstance(value, wp.array):
@@ -213,9 +214,15 @@ def check_initial(model: Model, name: str, value) -> np.ndarray:
     except (TypeError, ValueError):
         raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be numbers of shape "
                          f"{initial_shapes(name, n)}") from None
+    one = None  # the one entry given for every particle, which its refusals name (not "particle 0")
     if name in _BROADCAST and (v.shape == shape or (name == "alpha0" and v.size == 1)):
-        v = np.broadcast_to(v.reshape(shape), (n, *shape)).copy()
+        one = v.reshape(shape)
+        v = np.broadcast_to(one, (n, *shape)).copy()
+        shown = np.asarray(value, dtype=np.float64).reshape(shape).tolist()  # as given, not rounded to the model's precision
+        given = f"{name} = {shown!r} is not allowed: the one {name} given for every particle"
     if not np.isfinite(v).all():  # a NaN start ran to NaN positions, returned as a result
+        if one is not None:
+            raise ValueError(f"{given} has non-finite values")
         raise ValueError(f"{name} is not allowed: it has non-finite values (first at index "
                          f"{int(np.argmax(~np.isfinite(v).reshape(v.shape[0] if v.ndim else 1, -1).all(axis=1)))})")
     if v.shape != (n, *shape):
@@ -224,9 +231,13 @@ def check_initial(model: Model, name: str, value) -> np.ndarray:
     # accumulated plastic strain ran without a word.
     if name == "F0" and not (np.linalg.det(v.astype(np.float64)) > 0.0).all():
         bad = int(np.argmax(~(np.linalg.det(v.astype(np.float64)) > 0.0)))
-        raise ValueError(f"F0 is not allowed: particle {bad} has det F = {np.linalg.det(v[bad]):.3g}, and a "
-                         "deformation gradient has det F > 0")
+        det = f"det F = {np.linalg.det(v[bad].astype(np.float64)):.3g}, and a deformation gradient has det F > 0"
+        if one is not None:
+            raise ValueError(f"{given} has {det}")
+        raise ValueError(f"F0 is not allowed: particle {bad} has {det}")
     if name == "alpha0" and (v < 0).any():
+        if one is not None:
+            raise ValueError(f"{given} is negative; the accumulated plastic strain is >= 0")
         raise ValueError(f"alpha0 is not allowed: particle {int(np.argmax(v < 0))} has {float(v[v < 0][0]):g}; "
                          "the accumulated plastic strain is >= 0")
     if name == "x0":

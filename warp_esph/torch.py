@@ -178,6 +178,7 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
         shapes = initial_shapes(label, n)
         if not isinstance(t, torch.Tensor):
             raise ValueError(f"{label} = {checks.shorten(t)!r} is not allowed: must be a torch tensor of shape {shapes}")
+        given = t  # checked as given, so that a refusal of one velocity for every particle says so
         if label == "v0" and tuple(t.shape) == (3,):
             # One velocity for every particle, as Rollout.forward takes it; expanded here so
             # autograd sums the particles' gradients into its own.
@@ -189,7 +190,7 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
         # Here, before the parameters are set and any kernel runs, by the rollout's own checks:
         # x0 with every particle at one point (which SceneBuilder refuses) returned the start
         # moved only by gravity; a NaN ran to NaN positions.
-        check_initial(rollout.model, label, t.detach().to(device="cpu", dtype=torch.float64).numpy())
+        check_initial(rollout.model, label, given.detach().to(device="cpu", dtype=torch.float64).numpy())
     return _function().apply(rollout, tuple(names), start["x0"], start["v0"], *values)
 
 
