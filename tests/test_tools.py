@@ -87,17 +87,26 @@ def test_a_pinned_set_whose_motion_starts_away_from_its_rest_pose_is_refused(mot
                                          r"\[-0\.09\d*, 0\.\d+, 0\.0\]"):
         build(motion)
     if isinstance(motion, tools.Keyframes):
-        # From a scene file, the refusal names the file and the set's table, as the file's
-        # other refusals do (it named neither).
+        # From a scene file, the refusal names the file, the set's table and the key the set
+        # starts at, as the file's other refusals do (it named neither, then the Python API's
+        # words: 'its Keyframes motion puts its frame at ...').
         from warp_esph.scenes import load_scene_file  # noqa: PLC0415
 
         path = tmp_path / "clamp.toml"
-        path.write_text('[[bodies]]\nshape = "box"\nname = "beam"\nmaterial = "dough"\ncenter = [0.0, 0.1, 0.0]\n'
-                        'size = [0.2, 0.06, 0.06]\n[scene]\nspacing = 0.02\n'
-                        '[[pins]]\nbody = "beam"\nname = "clamp"\nregion = [[-1, -1, -1], [-0.07, 1, 1]]\n'
-                        'keyframe_times = [0.0, 1.0]\nkeyframe_positions = [[0, 0, 0], [0, 0.01, 0]]\n')
-        with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: \[\[pins\]\] #1: pinned set 'clamp' is not allowed to "
-                                             rf"start away from its rest pose: its Keyframes motion .* up to {moved} m"):
+        head = ('[[bodies]]\nshape = "box"\nname = "beam"\nmaterial = "dough"\ncenter = [0.0, 0.1, 0.0]\n'
+                'size = [0.2, 0.06, 0.06]\n[scene]\nspacing = 0.02\n'
+                '[[pins]]\nbody = "beam"\nname = "clamp"\nregion = [[-1, -1, -1], [-0.07, 1, 1]]\n')
+        path.write_text(head + 'keyframe_times = [0.0, 1.0]\nkeyframe_positions = [[0, 0, 0], [0, 0.01, 0]]\n')
+        with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: \[\[pins\]\] #1: keyframe_positions\[0\] = \[0\.0, 0\.0, "
+                                             rf"0\.0\] is not allowed: pinned set 'clamp' starts there \(keyframe_times\[0\] = 0, "
+                                             rf"its pose at t = 0\), which moves its particles up to {moved} m .*: give "
+                                             r"keyframe_positions\[0\] = \[-0\.09, 0\.1, 0\.0\]$"):
+            load_scene_file(path).builder.finalize()
+        # Turned at its centroid: the orientation is named, not the position.
+        path.write_text(head + 'keyframe_times = [0.0, 1.0]\nkeyframe_positions = [[-0.09, 0.1, 0], [-0.09, 0.1, 0]]\n'
+                               'keyframe_orientations = [[0, 0, 0.0998334, 0.9950042], [0, 0, 0, 1]]\n')
+        with pytest.raises(ValueError, match=r"#1: keyframe_orientations\[0\] = \[0\.0, 0\.0, 0\.0998\d*, 0\.995\d*\] is not "
+                                             r"allowed: .*: give keyframe_orientations\[0\] = \[0, 0, 0, 1\]$"):
             load_scene_file(path).builder.finalize()
     m = build(tools.Keyframes([0.0, 1.0], [(-0.09, 0.1, 0.0), (-0.09, 0.11, 0.0)]))
     s, a, c = we.Solver(m), m.state(), m.state()

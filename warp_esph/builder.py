@@ -1011,7 +1011,38 @@ def _check_pins_at_rest(model, builder) -> None:
                    f"{np.round(q, 9).tolist()} at t = 0, which moves its particles up to {moved.max():.3g} m from where they "
                    f"were built; its rest pose is its centroid {np.round(c, 9).tolist()} with orientation (0, 0, 0, 1) (a "
                    f"pinned set's frame moves it as x = p(t) + R(t) (X - centroid)): start the motion there")
-            builder._refuse(("pin", ps.name), why, why)
+            builder._refuse(("pin", ps.name), why, _pin_rest_key(ts.names[k], ts.motions[k], p, q, c, moved.max(), tol) or why)
+
+
+def _pin_rest_key(name: str, motion, p, q, c, moved: float, tol: float) -> str | None:
+    """``_check_pins_at_rest``'s refusal worded for a scene file's keys (the file's other
+    refusals name the key, ``keyframe_times = [...]``; this one repeated the Python API's
+    text): the keyframe the set starts at and what to give it, or ``None`` where no
+    keyframe is the pose at t = 0 (a file's velocity motion always starts at rest)."""
+    if not isinstance(motion, tools.Keyframes):
+        return None
+    a, b, w = tools.sample_times(motion.times, 0.0)
+    # The centroid to as many decimals as the check resolves: [-0.090000004, 0.099999999] read
+    # as a value to copy digit by digit, where [-0.09, 0.1] is accepted.
+    c = np.round(c, max(0, math.ceil(-math.log10(tol / 10.0)))) + 0.0
+    rest = f"its rest pose, its centroid {c.tolist()} with orientation [0, 0, 0, 1]"
+    tail = (f"which moves its particles up to {moved:.3g} m from where they were built; a pinned set must start at {rest} "
+            "(its frame moves it as x = p(t) + R(t) (X - centroid))")
+    if w != 0.0:  # t = 0 falls between two keyframes
+        return (f"keyframe_times = {checks.shorten(list(motion.times))!r} is not allowed here: keyframes {a} and {b} put the "
+                f"frame of pinned set {name!r} at position {np.round(p, 9).tolist()}, orientation {np.round(q, 9).tolist()} at t = 0, "
+                f"{tail}: start the keyframes there")
+    kp = np.asarray(motion.positions[a], dtype=np.float64)
+    kq = np.asarray(motion.orientations[a], dtype=np.float64)
+    off, fix = [], []
+    if np.linalg.norm(kp - c) > tol or abs(kq[3]) / np.linalg.norm(kq) >= 1.0 - 1e-12:
+        off.append(f"keyframe_positions[{a}] = {np.round(kp, 9).tolist()}")
+        fix.append(f"keyframe_positions[{a}] = {c.tolist()}")
+    if abs(kq[3]) / np.linalg.norm(kq) < 1.0 - 1e-12:
+        off.append(f"keyframe_orientations[{a}] = {np.round(kq, 9).tolist()}")
+        fix.append(f"keyframe_orientations[{a}] = [0, 0, 0, 1]")
+    return (f"{' and '.join(off)} {'is' if len(off) == 1 else 'are'} not allowed: pinned set {name!r} starts there "
+            f"(keyframe_times[{a}] = {motion.times[a]:g}, its pose at t = 0), {tail}: give {' and '.join(fix)}")
 
 
 def _closer_than(points: np.ndarray, body: np.ndarray, r: float):
