@@ -373,9 +373,12 @@ def check_start_speed(model: Model, state: State, fps: float, dt, hourglass: flo
     (3e38 fits float32) left its neighbourhood in the first step; every fit then failed its
     guard and the run "passed", because the divergence monitor's bounds grow with the
     initial speed. ``dt = AUTO``: the adaptive step follows the speed, so it is the step
-    count of the first frame that is bounded (``adaptive_timestep``); ``until``: with it, the
-    tools' speeds up to that time (a run's end) count too, so that one call checks a run's
-    whole span (it was checked again, by a second call, before the same first step)."""
+    count of the first frame that is bounded (``adaptive_timestep``); ``until`` (read only
+    with ``dt = AUTO``): with it, the tools' speeds up to that time (a run's end) count too,
+    so that one call checks a run's whole span (it was checked again, by a second call,
+    before the same first step). With a fixed ``dt`` it has no effect: only the particles'
+    start is checked here, and the tools' speeds over the run by ``ToolSet.check_speed``,
+    which ``simulate`` and ``warp-esph run`` call beside this."""
     v = state.v.numpy().astype(np.float64)
     if not len(v):
         return
