@@ -252,8 +252,10 @@ def calibrate(folder: str, s: Setup, guess: dict, progress: bool = False):
 
     experiments = [Experiment(sm, slump_loss, steps=end, dt=dt_s, name="slump"),
                    Experiment(pm, press_loss, steps=frames * sub_p, dt=dt_p, name="compression")]
-    # lr (L-BFGS only): its first step moves the parameters by up to 50 % (the guesses are far off).
-    return fit(experiments, None, ["yield_stress", "flow_rate"], optimizer=OPTIMIZER, iterations=s.iterations, lr=0.5,
+    # lr (L-BFGS only; Gauss-Newton refuses it): its first step moves the parameters by up to
+    # 50 % (the guesses are far off).
+    lr = {} if OPTIMIZER == "gauss-newton" else {"lr": 0.5}
+    return fit(experiments, None, ["yield_stress", "flow_rate"], optimizer=OPTIMIZER, iterations=s.iterations, **lr,
                xtol=XTOL, progress=progress,
                log=(lambda m: print("  " + m, file=sys.stderr)) if progress else None)
 

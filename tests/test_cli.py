@@ -432,7 +432,12 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         (["fit", "nothing.toml", "--target", "t.npz", "--lr", "nan"], ["--lr = nan is not allowed: must be a finite number"]),
         # Levenberg-Marquardt never reads a step size: --lr ran as if it had not been given.
         (["fit", "nothing.toml", "--target", "t.npz", "--optimizer", "gauss-newton", "--lr", "0.5"],
-         ["--lr = 0.5 is not allowed with --optimizer gauss-newton"]),
+         ["--lr = 0.5 is not allowed with --optimizer gauss-newton", "leave --lr out, or give --optimizer lbfgs or adam"]),
+        # A first step at or below the step tolerance: named by the flag, before the scene is read
+        # (it was refused after, naming lr).
+        (["fit", "nothing.toml", "--target", "t.npz", "--lr", "1e-7"],
+         ["--lr = 1e-07 is not allowed with xtol = 1e-06: must be > xtol (the first step of Adam and of L-BFGS moves "
+          "by --lr, and a step below xtol counts as converged)"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--seed", "-1"], ["--seed = -1 is not allowed: must be an integer >= 0"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--bounds", "yield_stress=10:1"],
          ["--bounds['yield_stress'] = (10.0, 1.0) is not allowed: need lo < hi"]),

@@ -909,6 +909,10 @@ def test_fit_options_that_meant_nothing_or_failed_late_are_refused_before_any_ro
         # Adam's options and a multi-start's worlds, which the fit never used where given.
         (dict(optimizer="lbfgs", clip=1.0), r"clip = 1.0 is not allowed with optimizer = 'lbfgs': it is Adam's option"),
         (dict(optimizer="gauss-newton", lr_end=0.01), r"lr_end = 0.01 is not allowed with optimizer = 'gauss-newton'"),
+        # Levenberg-Marquardt never reads a step size: lr ran as if it had not been given.
+        (dict(optimizer="gauss-newton", lr=0.5), r"^lr = 0\.5 is not allowed with optimizer = 'gauss-newton': its steps are "
+                                                 r"sized by the Levenberg-Marquardt damping, not by a step size; leave lr "
+                                                 r"out, or give optimizer = 'lbfgs' or 'adam'$"),
         (dict(worlds=True), r"worlds = True is not allowed with starts = 1: it runs several starts at once"),
         # Tolerances every fit meets at its guess or its first step: reported as converged.
         (dict(gtol=1.0), r"gtol = 1.0 is not allowed: must be in \[0, 1\)"),

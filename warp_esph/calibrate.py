@@ -136,8 +136,7 @@ def run_fit(args, out=None, err=None) -> int:
     bounds = _parse_bounds(args.bounds)
     given_range = _arg(args, "sample_range")  # None: not given (a factor 4)
     sample_range = 4.0 if given_range is None else given_range
-    given_lr = _arg(args, "lr")  # None: not given (the default, 0.1, is fit's)
-    lr = 0.1 if given_lr is None else given_lr
+    lr = _arg(args, "lr")  # None: not given (fit's default; refused with gauss-newton when given)
     # Every option that needs no scene, checked before the scene is built and the targets read.
     opts = check_options(params=str(args.params), iterations=args.iterations, lr=lr, clip=args.clip, bounds=bounds,
                          optimizer=_arg(args, "optimizer") or "adam", patience=_arg(args, "patience", 20),
@@ -145,12 +144,6 @@ def run_fit(args, out=None, err=None) -> int:
                          sample_range=sample_range, seed=_arg(args, "seed", 5), noise=_arg(args, "noise"),
                          memory_limit=memory_limit, flag=lambda name: "--" + name.replace("_", "-"))
     params = opts["params"]
-    if given_lr is not None and _arg(args, "optimizer") == "gauss-newton":
-        # Levenberg-Marquardt sizes its steps by its damping and never reads lr: the fit ran
-        # as if --lr had not been given.
-        raise ValueError(f"--lr = {given_lr!r} is not allowed with --optimizer gauss-newton: its steps are sized by "
-                         "the Levenberg-Marquardt damping, not by a step size; leave --lr out, or give --optimizer "
-                         "lbfgs or adam")
     # Options nothing would read: refused, not ignored (each ran as without it).
     if given_range is not None and opts["samples"] == 0 and opts["starts"] == 1:
         raise ValueError(f"--sample-range = {given_range!r} is not allowed without --samples or --starts: it sizes the "

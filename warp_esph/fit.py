@@ -611,6 +611,10 @@ MAX_STARTS = 1_000
 #: The largest step size (``lr``, ``lr_end``): in optimiser space, where a positive
 #: parameter is its log, 10 is a factor e^10 = 2.2e4 in one step.
 MAX_LR = 10.0
+#: ``lr`` where none is given (Adam's step size, L-BFGS's first step).
+LR = 0.1
+#: ``xtol`` where none is given: the step (in optimiser space) below which a fit has converged.
+XTOL = 1e-6
 
 
 def _count(name: str, value) -> int:
@@ -633,13 +637,15 @@ def _step_size(name: str, value) -> float:
     return v
 
 
-def check_options(*, params, iterations, lr, lr_end=None, clip=None, bounds=None, optimizer="adam", patience=20,
-                  samples=0, starts=1, sample_range=4.0, seed=0, noise=None, memory_limit=MEMORY_LIMIT,
+def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds=None, optimizer="adam", patience=20,
+                  samples=0, starts=1, sample_range=4.0, seed=0, noise=None, memory_limit=MEMORY_LIMIT, xtol=XTOL,
                   flag=lambda name: name) -> dict:
     """``fit``'s options that need no model, checked (as ``fit`` checks them, before any
     rollout): a dict of the validated values. ``flag(name)`` is how a message names an
-    option (the command line passes ``--lr`` for ``lr``). Bounds are checked here for their
-    form (``lo < hi``, a fitted parameter); ``fit`` checks ``lo > 0`` of a positive one."""
+    option (the command line passes ``--lr`` for ``lr``). ``lr``: ``None`` is ``LR``, and
+    one given is refused with ``optimizer = "gauss-newton"``, which never reads it. Bounds
+    are checked here for their form (``lo < hi``, a fitted parameter); ``fit`` checks
+    ``lo > 0`` of a positive one."""
     if isinstance(params, str):
         params = [p.strip() for p in params.split(",") if p.strip()]
     try:
@@ -654,15 +660,35 @@ def check_options(*, params, iterations, lr, lr_end=None, clip=None, bounds=None
             raise ValueError(f"{flag('params')} entry {p!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
     if len(set(params)) != len(params):
         raise ValueError(f"{flag('params')} = {params!r} is not allowed: names must be distinct")
-    out = {"params": params, "iterations": _count(flag("iterations"), iterations), "lr": _step_size(flag("lr"), lr),
+    out = {"params": params, "iterations": _count(flag("iterations"), iterations),
+           "lr": LR if lr is None else _step_size(flag("lr"), lr),
            "lr_end": None if lr_end is None else _step_size(flag("lr_end"), lr_end),
            "clip": None if clip is None else checks.positive(flag("clip"), clip),
            "optimizer": checks.choice(flag("optimizer"), optimizer, ("adam", "lbfgs", "gauss-newton")),
+           "xtol": checks.positive("xtol", xtol),  # not a command-line option: named as fit's
            "patience": checks.positive_int(flag("patience"), patience),
            "starts": checks.positive_int(flag("starts"), starts, maximum=MAX_STARTS),
            "sample_range": checks.greater_than(flag("sample_range"), sample_range, 1.0, "1"),
            "noise": None if noise is None else checks.noise(flag("noise"), noise),
            "memory_limit": checks.positive(flag("memory_limit"), memory_limit)}
+    if lr is not None and out["optimizer"] == "gauss-newton":
+        # Levenberg-Marquardt sizes its steps by its damping and never reads lr: the fit ran
+        # as if it had not been given.
+        cli = flag("optimizer").startswith("--")
+        gn = f"{flag('optimizer')} gauss-newton" if cli else f"{flag('optimizer')} = 'gauss-newton'"
+        others = f"{flag('optimizer')} lbfgs or adam" if cli else f"{flag('optimizer')} = 'lbfgs' or 'adam'"
+        raise ValueError(f"{flag('lr')} = {checks.shorten(lr)!r} is not allowed with {gn}: its steps are sized by the "
+                         f"Levenberg-Marquardt damping, not by a step size; leave {flag('lr')} out, or give {others}")
+    if out["optimizer"] in ("adam", "lbfgs") and out["xtol"] >= out["lr"]:
+        # Either's first step moves by lr: at or below xtol it counted as converged. Named by
+        # lr when xtol is the default: the command line sets lr (--lr) but not xtol.
+        # (Both named: the command line chooses between them only once the scene is read.)
+        why = f"the first step of Adam and of L-BFGS moves by {flag('lr')}"
+        if out["xtol"] == XTOL:
+            raise ValueError(f"{flag('lr')} = {checks.shorten(out['lr'])!r} is not allowed with xtol = {out['xtol']:g}: must "
+                             f"be > xtol ({why}, and a step below xtol counts as converged)")
+        raise ValueError(f"xtol = {checks.shorten(out['xtol'])!r} is not allowed with {flag('lr')} = {out['lr']:g}: must "
+                         f"be < {flag('lr')} ({why}, so it would count as converged)")
     out["samples"] = _count(flag("samples"), samples)
     if out["samples"] > MAX_SAMPLES:
         # Each is a forward run, and the hypercube is drawn at once: 1e11 asked for 745 GiB.
@@ -697,7 +723,7 @@ def fit(
     frames: Sequence[int] | None = None,
     materials=None,
     iterations: int = 50,
-    lr: float = 0.1,
+    lr: float | None = None,
     lr_end: float | None = None,
     bounds: Mapping[str, tuple[float, float]] | None = None,
     clip: float | None = None,
@@ -706,7 +732,7 @@ def fit(
     tie_pressure: bool | None = None,
     initial: Mapping[str, object] | None = None,
     tol: float | None = None,
-    xtol: float = 1e-6,
+    xtol: float = XTOL,
     gtol: float = 1e-7,
     patience: int = 20,
     callback: Callable | None = None,
@@ -735,7 +761,9 @@ def fit(
       carries its own).
     - ``materials``: indices (or body names) of the materials to fit; default all. With a
       per-particle model (``rollout.split_materials``) this fits a field.
-    - ``iterations``, ``lr``: optimiser steps and step size (relative, in log space);
+    - ``iterations``, ``lr``: optimiser steps and step size (relative, in log space;
+      default ``LR`` = 0.1; Adam's step and L-BFGS's first step, refused with
+      ``"gauss-newton"``, which never reads it);
       ``lr_end``: decay Adam's step size geometrically to this value at the last iteration.
     - ``bounds``: ``{name: (lo, hi)}`` in the parameter's units. ``clip``: gradient norm cap.
     - ``checkpoint_every``: segment length for checkpointed rollouts; ``"auto"``: a full
@@ -782,27 +810,18 @@ def fit(
     """
     o = check_options(params=params, iterations=iterations, lr=lr, lr_end=lr_end, clip=clip, bounds=bounds,
                       optimizer=optimizer, patience=patience, samples=samples, starts=starts, sample_range=sample_range,
-                      seed=seed, noise=noise, memory_limit=memory_limit)
+                      seed=seed, noise=noise, memory_limit=memory_limit, xtol=xtol)
     params, iterations, lr, lr_end, clip, optimizer = o["params"], o["iterations"], o["lr"], o["lr_end"], o["clip"], o["optimizer"]
     patience, samples, starts, sample_range, seed = o["patience"], o["samples"], o["starts"], o["sample_range"], o["seed"]
-    noise, memory_limit = o["noise"], o["memory_limit"]
+    noise, memory_limit, xtol = o["noise"], o["memory_limit"], o["xtol"]
     max_step = checks.positive("max_step", max_step)
     lbfgs_memory = checks.positive_int("lbfgs_memory", lbfgs_memory)
-    xtol = checks.positive("xtol", xtol)
     gtol = checks.non_negative("gtol", gtol)
-    # Either test passed at the guess or its first step whatever the loss, and the fit
-    # reported the guess as converged: gtol is a fraction of the initial gradient, and the
-    # first step of Adam or L-BFGS moves by lr.
+    # That test passed at the guess whatever the loss, and the fit reported the guess as
+    # converged: gtol is a fraction of the initial gradient (xtol against lr: check_options).
     if gtol >= 1.0:
         raise ValueError(f"gtol = {checks.shorten(gtol)!r} is not allowed: must be in [0, 1) (a fraction of the initial "
                          "gradient: at 1 the guess itself counts as converged)")
-    if optimizer in ("adam", "lbfgs") and xtol >= lr:
-        # Named by lr when xtol is the default: the command line sets lr (--lr) but not xtol.
-        if xtol == 1e-6:
-            raise ValueError(f"lr = {checks.shorten(lr)!r} is not allowed with xtol = {xtol:g}: must be > xtol (the first "
-                             f"step of {optimizer} moves by lr, and a step below xtol counts as converged)")
-        raise ValueError(f"xtol = {checks.shorten(xtol)!r} is not allowed with lr = {lr:g}: must be < lr (the first "
-                         f"step of {optimizer} moves by lr, so it would count as converged)")
     if optimizer in ("lbfgs", "gauss-newton") and max_step <= xtol:
         # Every step of theirs is at most max_step: the first one, below xtol, ended the fit as
         # converged (Gauss-Newton at one of its Jacobian's difference points).
