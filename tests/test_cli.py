@@ -383,6 +383,10 @@ BAD_TOML = {
     # The name makes the default output file: '../../x' wrote x.usdc two folders up.
     "name_a_path": (GOOD_TOML.replace('name = "tiny"', 'name = "../../x"'), ["[scene] name = '../../x'", "a file name"]),
     "name_empty": (GOOD_TOML.replace('name = "tiny"', 'name = " "'), ["[scene] name = ' '", "not empty"]),
+    # Rows narrower than the solver's min_neighbors = 6: refused naming the file and table (the
+    # Solver's refusal named neither).
+    "max_neighbors_narrow": (GOOD_TOML.replace("frames = 2", "frames = 2\nmax_neighbors = 4"),
+                             ["[scene]: max_neighbors = 4 is not allowed: must be at least 6"]),
     # A dt that does not divide the frame is the file's: named with it (it was the bare message).
     "dt_not_dividing": (GOOD_TOML.replace("frames = 2", "frames = 2\nfps = 30\ndt = 0.007"),
                         ["[scene] dt = 0.007 is not allowed", "whole number of steps", "or leave dt out"]),

@@ -136,8 +136,9 @@ def test_a_min_neighbors_no_particle_has_is_refused_or_said_after_the_first_step
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         we.Solver(model).step(a, b, 1e-4)
-    # A scene whose rows are narrower than the default guard (max_neighbors = 4, which the scene
-    # format allows) was refused naming min_neighbors = 6, which the user never set.
+    # A scene whose rows are narrower than the default guard (max_neighbors = 4, which
+    # SceneBuilder allows; a scene file is refused when read) was refused naming
+    # min_neighbors = 6, which the user never set.
     narrow = we.SceneBuilder(spacing=0.02, max_neighbors=4)
     narrow.add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH)
     narrow = narrow.finalize()

@@ -25,6 +25,7 @@ from . import checks
 from .builder import MAX_FLOOR_LAYERS, SceneBuilder
 from .material import PRESETS, Material
 from .model import CONTACTS, FITS
+from .sim.neighbors import MIN_NEIGHBORS
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 
 __all__ = [
@@ -480,6 +481,12 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
             hourglass=hourglass,
             fit_weight=fit_weight,
         )
+        if builder.max_neighbors < MIN_NEIGHBORS:
+            # The Solver refuses it (a file cannot lower its min_neighbors), naming neither the
+            # file nor the table: checked here against the Solver's own constant.
+            raise ValueError(f"max_neighbors = {builder.max_neighbors} is not allowed: must be at least {MIN_NEIGHBORS}, the "
+                             "fewest neighbours the solver keeps a deformation update with (its min_neighbors, which a "
+                             "scene file does not set): a row that narrow drops every update")
         frames = checks.positive_int("frames", scene.get("frames", 60))
         fps = checks.positive("fps", scene.get("fps", 30.0))
         dt = scene.get("dt")
