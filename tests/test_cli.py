@@ -592,6 +592,26 @@ def test_keyboard_interrupt_keeps_finished_frames(tmp_path, monkeypatch, capsys)
     assert log_frames(out_path) == {"plane0": [0, 1, 2]}  # the finished frames, as in the USD
 
 
+def test_an_interrupt_between_the_writers_start_and_the_first_frame_leaves_no_working_copy(tmp_path, monkeypatch, capsys):
+    """Ctrl-C after the writer has made its working copies but before the run's frame loop (the
+    earlier run's force log being retired) left the two hidden copies beside the output, each as
+    large as the file."""
+    real_isfile = os.path.isfile
+
+    def isfile(path):
+        if str(path).endswith("_tools.csv") and any(n.startswith(".") for n in os.listdir(tmp_path)):
+            raise KeyboardInterrupt
+        return real_isfile(path)
+
+    monkeypatch.setattr(os.path, "isfile", isfile)
+    out_path = tmp_path / "early.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "2", "--no-progress"]) == 130
+    err = capsys.readouterr().err
+    assert err == "warp-esph: interrupted\n"
+    assert sorted(os.listdir(tmp_path)) == ["early.usdc"]  # no .early.usdc.wa.usdc, .early.usdc.wb.usdc
+    assert frames_in(out_path) == []
+
+
 def test_full_disk_exit_4_keeps_published_frames(tmp_path, monkeypatch, capsys):
     """A write error mid-run (here: ENOSPC when frame 3 is published) keeps frames 0-2."""
     import errno

@@ -155,6 +155,25 @@ def test_interrupted_run_keeps_finished_frames(model, tmp_path, ext):
             assert times == [0.0, 1.0, 2.0, 3.0], name
 
 
+def test_a_close_interrupted_inside_is_finished_by_the_next(model, tmp_path):
+    """A signal inside close() (while the stages are released) left the working copies beside
+    the output, and every later close() returned at once: they stayed."""
+    path = tmp_path / "closing.usdc"
+    writer = UsdWriter(path, model, 30)
+    release = writer._release
+
+    def interrupted():
+        release()
+        raise KeyboardInterrupt
+
+    writer._release = interrupted
+    with pytest.raises(KeyboardInterrupt):
+        writer.close()
+    writer._release = release
+    writer.close()
+    assert writer.closed and sorted(os.listdir(tmp_path)) == [path.name]
+
+
 def test_simulation_error_names_step_particle_body(model, tmp_path):
     path = tmp_path / "nan.usdc"
     bad = model.bodies[1].start + 2  # a particle of "ball"

@@ -437,87 +437,90 @@ def _cmd_run(args) -> int:
         # The writer saves its first (empty) stage at once: a full disk there was exit 2, as bad input.
         _err(f"cannot write {output}: {e} (no frame of this run was written)")
         return EXIT_WRITE_FAILED
-    if args.resume is not None and run_id is None and writer.file_run_id is not None:
-        # A checkpoint of a run that named none, resumed onto a file a named run wrote since.
-        writer.close()
-        raise ValueError(f"--resume = {args.resume!r} is not allowed with {writer.path}: the file holds the frames of "
-                         f"another run (run id {writer.file_run_id!r}), written after the checkpoint's run")
-    if args.resume is not None and (writer.last_frame is None or writer.first_frame != 0 or writer.last_frame < start_frame - 1):
-        # The resumed frames must follow the file's: a file of a shorter run, written over the
-        # one checkpointed, would keep a gap of frames nobody wrote.
-        if writer.last_frame is None:
-            held, gap = "no frames", f"0..{start_frame - 1}"
-        else:
-            held = f"frames {writer.first_frame}..{writer.last_frame}"
-            gaps = []
-            if writer.first_frame > 0:
-                gaps.append(f"0..{min(writer.first_frame, start_frame) - 1}")
-            if writer.last_frame < start_frame - 1:
-                gaps.append(f"{max(writer.last_frame + 1, writer.first_frame)}..{start_frame - 1}")
-            gap = " and ".join(gaps)
-        writer.close()
-        raise ValueError(f"--resume = {args.resume!r} is not allowed with {writer.path}: the file holds {held} and the "
-                         f"checkpoint is at frame {start_frame}; resuming would leave frames {gap} unwritten")
-    # The whole output name: a.usdc and a.usda in one folder must not share a checkpoint.
-    checkpoint_path = writer.path + ".checkpoint.npz"
-    if args.resume is None:
-        # The writer has just replaced the file an earlier run wrote there: that run's force log
-        # stood beside this file until this run's was written. (Its checkpoint stays: a resume
-        # of it onto this run's frames is refused by the run ids, and it resumes the earlier
-        # run where that run's file is put back.)
-        for stale in (writer.path + "_tools.csv", writer.path + "_tools.json"):
-            if os.path.isfile(stale) or os.path.islink(stale):
-                os.remove(stale)
-    run_record = {"scene": args.scene if args.scene is not None else scene.name, "scale": scale, "fps": fps, "dt": dt,
-                  "frames": frames_total, "output": os.path.abspath(writer.path), "dtype": args.dtype,
-                  "surface": bool(args.surface), "checkpoint_every": every, "fit": model.fit, "contact_ramp": model.contact_ramp,
-                  "hourglass": model.hourglass, "fit_weight": model.fit_weight}
-    if run_id is not None:  # (a checkpoint written before runs were named has none)
-        run_record["run_id"] = run_id
-    if args.scene is not None and os.path.exists(str(args.scene)):
-        run_record["scene"] = os.path.abspath(args.scene)
+    # From here the writer's working copies stand beside the output: whatever ends the command
+    # before the run (a refused resume, an interrupt) must remove them, as the run's end does.
+    try:
+        if args.resume is not None and run_id is None and writer.file_run_id is not None:
+            # A checkpoint of a run that named none, resumed onto a file a named run wrote since.
+            raise ValueError(f"--resume = {args.resume!r} is not allowed with {writer.path}: the file holds the frames of "
+                             f"another run (run id {writer.file_run_id!r}), written after the checkpoint's run")
+        if args.resume is not None and (writer.last_frame is None or writer.first_frame != 0 or writer.last_frame < start_frame - 1):
+            # The resumed frames must follow the file's: a file of a shorter run, written over the
+            # one checkpointed, would keep a gap of frames nobody wrote.
+            if writer.last_frame is None:
+                held, gap = "no frames", f"0..{start_frame - 1}"
+            else:
+                held = f"frames {writer.first_frame}..{writer.last_frame}"
+                gaps = []
+                if writer.first_frame > 0:
+                    gaps.append(f"0..{min(writer.first_frame, start_frame) - 1}")
+                if writer.last_frame < start_frame - 1:
+                    gaps.append(f"{max(writer.last_frame + 1, writer.first_frame)}..{start_frame - 1}")
+                gap = " and ".join(gaps)
+            raise ValueError(f"--resume = {args.resume!r} is not allowed with {writer.path}: the file holds {held} and the "
+                             f"checkpoint is at frame {start_frame}; resuming would leave frames {gap} unwritten")
+        # The whole output name: a.usdc and a.usda in one folder must not share a checkpoint.
+        checkpoint_path = writer.path + ".checkpoint.npz"
+        if args.resume is None:
+            # The writer has just replaced the file an earlier run wrote there: that run's force log
+            # stood beside this file until this run's was written. (Its checkpoint stays: a resume
+            # of it onto this run's frames is refused by the run ids, and it resumes the earlier
+            # run where that run's file is put back.)
+            for stale in (writer.path + "_tools.csv", writer.path + "_tools.json"):
+                if os.path.isfile(stale) or os.path.islink(stale):
+                    os.remove(stale)
+        run_record = {"scene": args.scene if args.scene is not None else scene.name, "scale": scale, "fps": fps, "dt": dt,
+                      "frames": frames_total, "output": os.path.abspath(writer.path), "dtype": args.dtype,
+                      "surface": bool(args.surface), "checkpoint_every": every, "fit": model.fit, "contact_ramp": model.contact_ramp,
+                      "hourglass": model.hourglass, "fit_weight": model.fit_weight}
+        if run_id is not None:  # (a checkpoint written before runs were named has none)
+            run_record["run_id"] = run_id
+        if args.scene is not None and os.path.exists(str(args.scene)):
+            run_record["scene"] = os.path.abspath(args.scene)
 
-    checkpointed = [start_frame if args.resume is not None else None]  # the frame the checkpoint file holds
-    log_files = f"{writer.path}_tools.csv, .json"
-    log_failed = [False]
+        checkpointed = [start_frame if args.resume is not None else None]  # the frame the checkpoint file holds
+        log_files = f"{writer.path}_tools.csv, .json"
+        log_failed = [False]
 
-    def write_log():
-        # The whole output name, as for the checkpoint and preview: a.usdc and a.usda in one
-        # folder must not share a force log.
-        try:
-            return log.write(writer.path)
-        except OSError as e:
-            log_failed[0] = True
-            raise _BesideWriteError("the force log", log_files, e) from None
-
-    def checkpoint(frame, current):
-        if every is not None and frame > start_frame and frame % every == 0:
-            if log is not None:
-                # The rows up to this frame, before the checkpoint that resumes after them: the log
-                # was written only at the end, so a killed run's resume kept none of the rows before
-                # its checkpoint.
-                write_log()
-            # With the adaptive step the step count is not a function of the frame: -1.
+        def write_log():
+            # The whole output name, as for the checkpoint and preview: a.usdc and a.usda in one
+            # folder must not share a force log.
             try:
-                save_state(checkpoint_path, model, current, step=-1 if adaptive else frame * substeps, frame=frame,
-                           run=run_record)
+                return log.write(writer.path)
             except OSError as e:
-                raise _BesideWriteError("the checkpoint", checkpoint_path, e) from None
-            checkpointed[0] = frame
+                log_failed[0] = True
+                raise _BesideWriteError("the force log", log_files, e) from None
 
-    def beside_failure(e) -> str:
-        why = e.cause.strerror or str(e.cause)
-        if e.what == "the checkpoint":
-            held = "no checkpoint of this run" if checkpointed[0] is None else f"it keeps frame {checkpointed[0]}"
-        else:
-            held = "it is left as it was"  # written by renaming over
-        return f"cannot write {e.what} {e.path}: {why} ({held}; {writer.path} keeps {_kept(writer, start_frame)})"
+        def checkpoint(frame, current):
+            if every is not None and frame > start_frame and frame % every == 0:
+                if log is not None:
+                    # The rows up to this frame, before the checkpoint that resumes after them: the log
+                    # was written only at the end, so a killed run's resume kept none of the rows before
+                    # its checkpoint.
+                    write_log()
+                # With the adaptive step the step count is not a function of the frame: -1.
+                try:
+                    save_state(checkpoint_path, model, current, step=-1 if adaptive else frame * substeps, frame=frame,
+                               run=run_record)
+                except OSError as e:
+                    raise _BesideWriteError("the checkpoint", checkpoint_path, e) from None
+                checkpointed[0] = frame
 
-    def on_frame(frame, current):
-        if log is not None:
-            log.record(frame, current)
-        checkpoint(frame, current)
+        def beside_failure(e) -> str:
+            why = e.cause.strerror or str(e.cause)
+            if e.what == "the checkpoint":
+                held = "no checkpoint of this run" if checkpointed[0] is None else f"it keeps frame {checkpointed[0]}"
+            else:
+                held = "it is left as it was"  # written by renaming over
+            return f"cannot write {e.what} {e.path}: {why} ({held}; {writer.path} keeps {_kept(writer, start_frame)})"
 
+        def on_frame(frame, current):
+            if log is not None:
+                log.record(frame, current)
+            checkpoint(frame, current)
+    except BaseException:
+        writer.close()
+        raise
     try:
         print(f"{PROG}: {scene.name}: {model.particle_count} particles, {len(model.bodies)} bodies, "
               f"{frames} frames at {fps:g} fps, "

@@ -659,9 +659,12 @@ class UsdWriter:
         """Finish: ``path`` keeps every written frame; the working copies are removed."""
         if self.closed:
             return
-        self.closed = True
+        # Marked closed only once the working copies are gone: an interrupt inside (a signal
+        # while the stages are released) left them beside the output, and every later close()
+        # returned at once.
         self._release()
         self._remove_work_files()
+        self.closed = True
 
     def __enter__(self) -> "UsdWriter":
         return self
