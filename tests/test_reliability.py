@@ -306,6 +306,19 @@ def test_resume_onto_a_damaged_output_is_one_line(tmp_path, capsys, damage):
     assert "cannot append to" in line and "r.usdc" in line, line
 
 
+def test_resume_onto_an_output_that_is_gone_is_one_line(tmp_path, capsys):
+    """The run's output and force log moved away (or the folder removed): the error came after
+    a warning that the log was missing, two lines for one cause."""
+    out = tmp_path / "r.usdc"
+    assert main(["run", "-o", str(out), "--frames", "1", "--checkpoint-every", "1", *SMALL]) == 0
+    for name in ("r.usdc", "r.usdc_tools.csv", "r.usdc_tools.json"):
+        (tmp_path / name).unlink()
+    capsys.readouterr()
+    assert main(["run", "--resume", str(out) + ".checkpoint.npz", "--frames", "2", "--no-progress"]) == 2
+    assert capsys.readouterr().err == f"warp-esph: error: cannot append to {out}: no such file\n"
+    assert sorted(os.listdir(tmp_path)) == ["r.usdc.checkpoint.npz"]
+
+
 def test_resume_refuses_an_edited_scene_file(tmp_path, capsys):
     scene = tmp_path / "box.toml"
     scene.write_text(STIFF_TOML.format(E="1.5e4").replace("frames = 10", "frames = 2"))

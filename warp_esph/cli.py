@@ -406,6 +406,10 @@ def _cmd_run(args) -> int:
     stem = os.path.abspath(os.fspath(output))
     if args.resume is None:
         checks.output_place("--output", stem)
+    elif not os.path.isfile(stem):
+        # The writer refuses it; said here, before the force log's resume warned that the log
+        # beside it was missing too (two lines for one cause, the warning first).
+        raise FileNotFoundError(f"cannot append to {stem}: no such file")
     if model.tools is not None or model.planes or model.spheres or model.boxes:
         for log_file in (stem + "_tools.csv", stem + "_tools.json"):
             checks.output_place("the reaction log", log_file)
