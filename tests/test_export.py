@@ -231,6 +231,43 @@ def test_an_interrupted_export_keeps_its_finished_frames_whole_and_listed(tmp_pa
             export_frames(path, "vtu", bad)
 
 
+@pytest.mark.parametrize("pvd_fails", [False, True])
+def test_a_full_disk_mid_export_is_exit_4_naming_the_file_and_what_is_kept(tmp_path, monkeypatch, capsys, pvd_fails):
+    """A write error while a frame is written (write() on a full disk names no file) was exit 2,
+    as bad input, with the bare '[Errno 28] No space left on device'; where the collection then
+    failed too, its error stood in place of the frame's."""
+    import errno
+
+    from test_render import write_clusters
+    from warp_esph import export as export_module
+
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=3)
+    real = meshio.write
+
+    def full(name, mesh, *a, **k):
+        if "frame_00002" in str(name):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real(name, mesh, *a, **k)
+
+    monkeypatch.setattr(meshio, "write", full)
+    if pvd_fails:
+        def no_room(*a, **k):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        monkeypatch.setattr(export_module, "open", no_room, raising=False)
+    out = tmp_path / "vtu"
+    assert main(["export", str(path), "-o", str(out)]) == 4
+    err = capsys.readouterr().err
+    listed = "" if pvd_fails else "; frames.pvd lists them"
+    assert err == (f"warp-esph: error: cannot write {out / 'frame_00002.vtu'}: No space left on device "
+                   f"(2 of the 3 frames are written whole in {out}{listed})\n")
+    kept = ["frame_00000.vtu", "frame_00001.vtu"]
+    assert sorted(os.listdir(out)) == kept + ([] if pvd_fails else ["frames.pvd"])
+    for name in kept:
+        assert len(meshio.read(out / name).points) == 125
+
+
 def test_export_says_nothing_of_a_stored_view_it_does_not_use(tmp_path, capsys):
     """The run's suggested camera view is render's: export warned that a file's NaN view was
     'left out' of an export that never reads it. Render still warns (test_render)."""

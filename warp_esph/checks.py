@@ -413,9 +413,13 @@ def replaced_atomically(path):
     try:
         yield tmp
         os.replace(tmp, p)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(e, OSError) and e.errno is not None and e.filename in (None, tmp):
+            # A failed write names no file (a full disk met by write() or close()) or the hidden
+            # working name: the one line said '[Errno 28] No space left on device' and no more.
+            raise OSError(e.errno, e.strerror, p) from e
         raise
 
 

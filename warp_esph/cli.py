@@ -4,7 +4,7 @@
 Exit status: 0 success; 2 bad input (unknown scene, bad option value, bad scene file,
 unreadable or unwritable file); 3 the simulation diverged (``SimulationError``; the
 output keeps every frame finished before); 4 the output could not be written mid-run
-(e.g. a full disk; it keeps every frame published before); 130 interrupted (Ctrl-C), 143 terminated
+(e.g. a full disk; it keeps every frame published before; ``export``: the frame files written before); 130 interrupted (Ctrl-C), 143 terminated
 (SIGTERM): in both the output keeps every finished frame, and the last checkpoint
 (``--checkpoint-every``) resumes the run (``--resume``). ``sweep`` exits 3 when at least
 one sample failed (its row says why) and 130 when interrupted (the table keeps the
@@ -577,12 +577,16 @@ def _cmd_run(args) -> int:
     if args.surface:
         print(f"surfaces: {1e3 * writer.surface_seconds / max(writer.frames_written, 1):.0f} ms/frame (/World/Surfaces)")
     if args.export:
-        from .export import export_frames  # noqa: PLC0415
+        from .export import ExportWriteError, export_frames  # noqa: PLC0415
 
         # The whole output name, as the checkpoint's: a.usdc and a.usda in one folder must
         # not share (and overwrite) one folder or picture.
         folder = f"{writer.path}_{args.export}"
-        files = export_frames(writer.path, args.export, folder)
+        try:
+            files = export_frames(writer.path, args.export, folder)
+        except ExportWriteError as e:
+            _err(f"--export {args.export}: {e}; {writer.path} holds the whole run")
+            return EXIT_WRITE_FAILED
         print(f"exported {len(files)} files to {folder}")
     if args.preview:
         from .render import render_usd  # noqa: PLC0415
@@ -928,6 +932,12 @@ def _dispatch(args) -> int:
             # nothing to tell a pipe that is gone. Not 0 either: a run may have stopped here.
             return EXIT_PIPE_CLOSED
         except (ValueError, OSError) as e:
+            from .export import ExportWriteError  # noqa: PLC0415
+
+            if isinstance(e, ExportWriteError):
+                # A full disk mid-export is a failed write, as run's (exit 4), not bad input.
+                _err(e)
+                return EXIT_WRITE_FAILED
             # UnicodeDecodeError is a ValueError: a reader met bytes that are not text.
             _err(_read_failure(args, e) if _is_read_error(e) else e)
             return EXIT_BAD_INPUT

@@ -27,9 +27,25 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-__all__ = ["EXPORT_FORMATS", "export_frames", "frame_arrays_to_mesh"]
+__all__ = ["EXPORT_FORMATS", "ExportWriteError", "export_frames", "frame_arrays_to_mesh"]
 
 EXPORT_FORMATS = ("vtu", "ply")
+
+
+class ExportWriteError(OSError):
+    """A file ``export_frames`` could not write (a full disk, a folder gone); ``files``: those
+    it wrote whole before, which stay. Its text names the file and what is kept."""
+
+    def __init__(self, cause: OSError, files: list[str], chosen: int, folder: str):
+        super().__init__(cause.errno, cause.strerror or str(cause))
+        self.files, self.cause = list(files), cause
+        frames = sum(not f.endswith(".pvd") for f in files)
+        listed = "; frames.pvd lists them" if any(f.endswith(".pvd") for f in files) else ""
+        self.message = (f"cannot write {cause.filename or folder}: {cause.strerror or cause} ({frames} of the {chosen} "
+                        f"frames are written whole in {folder}{listed})")
+
+    def __str__(self):
+        return self.message
 
 
 def frame_arrays_to_mesh(arrays: dict, fmt: str):
@@ -57,7 +73,9 @@ def frame_arrays_to_mesh(arrays: dict, fmt: str):
 
 def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None) -> list[str]:
     """Write ``frames`` (see ``usd.parse_frames``; default all) of ``usd_path`` as ``fmt``
-    (``vtu`` or ``ply``) files into ``output_dir`` (created); returns the files written."""
+    (``vtu`` or ``ply``) files into ``output_dir`` (created); returns the files written. A file
+    that cannot be written raises ``ExportWriteError`` (an ``OSError``) naming it; the files
+    written before stay whole, and ``frames.pvd`` lists them where it can still be written."""
     import meshio  # noqa: PLC0415
 
     from . import checks  # noqa: PLC0415
@@ -72,6 +90,19 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None) ->
     chosen = list(dict.fromkeys(parse_frames(frames, data.frames)))
     os.makedirs(out, exist_ok=True)
     files = []
+
+    def collection():
+        # The collection lists the frames written, also when the export stops early.
+        if fmt == "vtu" and files:
+            lines = ['<?xml version="1.0"?>', '<VTKFile type="Collection" version="0.1">', "  <Collection>"]
+            for f, file in zip(chosen, files):
+                lines.append(f"    <DataSet timestep=\"{f / data.fps:.9g}\" file={quoteattr(os.path.basename(file))}/>")
+            lines += ["  </Collection>", "</VTKFile>", ""]
+            pvd = os.path.join(out, "frames.pvd")
+            with checks.replaced_atomically(pvd) as part, open(part, "w") as fh:
+                fh.write("\n".join(lines))
+            files.append(pvd)
+
     try:
         for k, f in enumerate(chosen):
             file = os.path.join(out, f"frame_{f:05d}.{fmt}")
@@ -83,15 +114,18 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None) ->
             files.append(file)
             if progress is not None:
                 progress(k + 1, len(chosen))
-    finally:
-        # The collection lists the frames written, also when the export stops early.
-        if fmt == "vtu" and files:
-            lines = ['<?xml version="1.0"?>', '<VTKFile type="Collection" version="0.1">', "  <Collection>"]
-            for f, file in zip(chosen, files):
-                lines.append(f"    <DataSet timestep=\"{f / data.fps:.9g}\" file={quoteattr(os.path.basename(file))}/>")
-            lines += ["  </Collection>", "</VTKFile>", ""]
-            pvd = os.path.join(out, "frames.pvd")
-            with checks.replaced_atomically(pvd) as part, open(part, "w") as fh:
-                fh.write("\n".join(lines))
-            files.append(pvd)
+    except BaseException as e:
+        try:
+            collection()
+        except OSError:
+            # On a full disk the collection fails too, and its error stood in place of the
+            # frame's: a bare '[Errno 28] No space left on device', naming no file.
+            pass
+        if isinstance(e, OSError):
+            raise ExportWriteError(e, files, len(chosen), out) from e
+        raise
+    try:
+        collection()
+    except OSError as e:
+        raise ExportWriteError(e, files, len(chosen), out) from e
     return files
