@@ -3,6 +3,7 @@
 import functools
 import json
 import os
+import signal
 import subprocess
 import sys
 import textwrap
@@ -610,6 +611,17 @@ def test_an_interrupt_between_the_writers_start_and_the_first_frame_leaves_no_wo
     assert err == "warp-esph: interrupted\n"
     assert sorted(os.listdir(tmp_path)) == ["early.usdc"]  # no .early.usdc.wa.usdc, .early.usdc.wb.usdc
     assert frames_in(out_path) == []
+
+
+def test_sigterm_mid_run_says_terminated_and_exits_143(tmp_path, monkeypatch, capsys):
+    """SIGTERM after start-up exited 143 but its line said 'interrupted', as for Ctrl-C (before
+    start-up it said 'terminated')."""
+    n = _steps_per_frame()
+    _fail_after(monkeypatch, 2 * n + 1, lambda state: os.kill(os.getpid(), signal.SIGTERM))  # inside frame 3
+    out_path = tmp_path / "stopped.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "10", "--no-progress"]) == 143
+    assert capsys.readouterr().err == f"warp-esph: terminated: {out_path} keeps the 3 frames finished\n"
+    assert frames_in(out_path) == [0.0, 1.0, 2.0]
 
 
 def test_full_disk_exit_4_keeps_published_frames(tmp_path, monkeypatch, capsys):

@@ -243,6 +243,13 @@ def _init_warp(device: str) -> None:
             print(f"{PROG}: warning: {_one_line(note)}", file=sys.stderr)
 
 
+def _stopped(args) -> str:
+    """What stopped the command: 'terminated' for SIGTERM (exit 143), as the line said before the
+    command was armed, else 'interrupted' (a SIGTERM mid-run was reported as Ctrl-C)."""
+    signals = getattr(args, "signals", None)
+    return "terminated" if signals is not None and signal.SIGTERM in signals.received else "interrupted"
+
+
 def _arm(args) -> None:
     signals = getattr(args, "signals", None)
     if signals is not None:
@@ -537,7 +544,7 @@ def _cmd_run(args) -> int:
                  monitor_origin=model.state(requires_grad=False) if start_frame else None, _checked=checked)
     except KeyboardInterrupt:
         writer.close()
-        print(f"{PROG}: interrupted: {writer.path} keeps {_kept(writer, start_frame)}", file=sys.stderr)
+        print(f"{PROG}: {_stopped(args)}: {writer.path} keeps {_kept(writer, start_frame)}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except SimulationError as e:
         writer.close()
@@ -921,7 +928,7 @@ def _dispatch(args) -> int:
                 return fit_cli(args)
             return _cmd_run(args)
         except KeyboardInterrupt:
-            print(f"{PROG}: interrupted", file=sys.stderr)
+            print(f"{PROG}: {_stopped(args)}", file=sys.stderr)
             return EXIT_INTERRUPTED
         except BrokenPipeError as e:
             if not _stdout_closed():
