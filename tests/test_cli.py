@@ -693,6 +693,23 @@ def test_a_full_disk_at_the_runs_first_save_is_exit_4(tmp_path, monkeypatch, cap
                           "(no frame of this run was written)")
 
 
+def test_a_full_disk_when_the_writer_creates_its_layers_is_exit_4_not_a_damaged_input(tmp_path, monkeypatch, capsys):
+    """pxr writes a new layer as it creates it: a full disk there raised pxr's own error, which
+    the command took for a damaged input (exit 2, 'cannot read ... (a damaged or foreign
+    file?)', naming the output)."""
+    from pxr import Sdf, Tf
+
+    def full(*args, **kwargs):
+        raise Tf.ErrorException("Error occurred writing file: No space left on device")
+
+    monkeypatch.setattr(Sdf.Layer, "CreateNew", staticmethod(full))
+    out = tmp_path / "b.usdc"
+    assert main(["run", "dough_drop", "--scale", "0.3", "--frames", "2", "--no-progress", "-o", str(out)]) == 4
+    assert_one_line_error(capsys.readouterr().err, f"cannot write {out}", "No space left on device",
+                          "(no frame of this run was written)")
+    assert os.listdir(tmp_path) == []
+
+
 def test_a_checkpoint_that_cannot_be_written_is_named_not_the_usd(tmp_path, monkeypatch, capsys):
     """The disk fills while the checkpoint of frame 4 is saved: the one line names the
     checkpoint and what it still holds (it named the USD, which was written)."""

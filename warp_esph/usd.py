@@ -284,7 +284,12 @@ class UsdWriter:
 
     def _create_new(self):
         for file in self._work:
-            stage = Usd.Stage.Open(self._new_layer(file))
+            try:
+                stage = Usd.Stage.Open(self._new_layer(file))
+            except Tf.ErrorException as e:
+                # pxr writes the new layer at once: a full disk there reached the CLI as pxr's
+                # error, taken for a damaged input file ('cannot read', exit 2); it is a failed write.
+                raise OSError(f"USD could not create {file}: {checks.read_reason(e)}") from None
             self._author_static(stage)
             self._stages.append(stage)
         # Publish the empty stage (prims, colliders, metadata) at once: the file at
