@@ -9,6 +9,7 @@ checked in float64 against central differences.
 import dataclasses
 import json
 import math
+import os
 import re
 import warnings
 
@@ -886,6 +887,44 @@ def test_an_interrupted_fit_keeps_its_evaluations_and_the_best_so_far(tmp_path, 
     assert len((out / "history.csv").read_text().strip().splitlines()) == 3
     assert "interrupted after 2 evaluations: wrote the best so far" in err
     assert doc["interrupted"] == "the fit"
+
+
+def test_a_fit_whose_results_cannot_be_written_prints_them_and_exits_4(tmp_path, capsys, dough_scene, monkeypatch):
+    """A full disk under the fit's files lost the finished fit: its values were printed only
+    after every file was written, the error was the bare '[Errno 28] No space left on device'
+    (exit 2, as bad input), and the plot being written stayed as an empty loss.png (fit.json
+    as fit.json.tmp). Now the values come first, each file is whole or absent, and the one
+    line names the file and those written before it, exit 4."""
+    import errno
+
+    from matplotlib.figure import Figure
+
+    from warp_esph.cli import main
+
+    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(truth), "-o", str(run), "--frames", "2", "--dtype", "float64", "--no-progress"]) == 0
+    real = Figure.savefig
+
+    def full(self, fname, *args, **kwargs):
+        with open(fname, "wb") as f:
+            f.write(b"\x89PNG")  # a few bytes, then the disk is full
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(Figure, "savefig", full)
+    out = tmp_path / "fit"
+    capsys.readouterr()
+    assert main(["fit", str(guess), "--target", str(run), "--iterations", "0", "--no-progress", "--no-diagnostics",
+                 "--output-dir", str(out)]) == 4
+    printed = capsys.readouterr()
+    assert "fit " in printed.out and "yield_stress = 200" in printed.out
+    errors = [line for line in printed.err.splitlines() if not line.startswith("warp-esph fit: ")]
+    assert errors == [f"warp-esph: error: cannot write {out / 'loss.png'}: No space left on device (the fit's results "
+                      f"are printed above; wrote {out / 'fit.json'}, {out / 'history.csv'} before it)"]
+    assert sorted(os.listdir(out)) == ["fit.json", "history.csv"]
+    monkeypatch.setattr(Figure, "savefig", real)
 
 
 def test_a_fit_interrupted_in_its_diagnostics_says_so_in_fit_json(tmp_path, capsys, dough_scene, monkeypatch):

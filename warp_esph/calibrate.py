@@ -273,20 +273,35 @@ def run_fit(args, out=None, err=None) -> int:
                 log(f"interrupted during the diagnostics: wrote the finished fit ({e.result.stopped}, loss "
                     f"{e.result.loss:.4g}) without them to {', '.join(written)}")
         raise KeyboardInterrupt from None
-    _remove_earlier_run(folder, _arg(args, "output"))
-    written = write_outputs(result, folder, meta, json_path=_arg(args, "output"))
+    # The results first: a file that cannot be written (a full disk) lost them, the values
+    # printed only after every file was written.
     print(f"fit {result.termination}", file=out)
     print(f"loss {result.initial_loss:.4g} -> {result.loss:.4g} in {result.evaluations} evaluations", file=out)
     for name, v in result.params.items():
         print(f"  {name} = {', '.join(f'{x:.6g}' for x in v)}", file=out)
     if result.diagnostics is not None:
         print(result.diagnostics.summary(), file=out)
+    written = []
+
+    def failed(e: OSError, where) -> checks.OutputWriteError:
+        kept = f"wrote {', '.join(map(str, written))} before it" if written else "none of its files was written"
+        return checks.OutputWriteError(f"cannot write {where}: {e.strerror or e} (the fit's results are printed above; "
+                                       f"{kept})", e)
+
+    try:
+        _remove_earlier_run(folder, _arg(args, "output"))
+        write_outputs(result, folder, meta, json_path=_arg(args, "output"), written=written)
+    except OSError as e:
+        raise failed(e, e.filename or folder) from None
     if not args.no_usd:
         from .fit import write_fitted_usd  # noqa: PLC0415
 
-        usd_path = write_fitted_usd(result.model, os.path.join(folder, "fitted.usdc"), frames, fps, dt)
-        if usd_path:
-            written.append(usd_path)
+        usd_path = os.path.join(folder, "fitted.usdc")
+        try:
+            if write_fitted_usd(result.model, usd_path, frames, fps, dt):
+                written.append(usd_path)
+        except OSError as e:
+            raise failed(e, usd_path) from None
     print("wrote " + ", ".join(written), file=out)
     return 0
 
@@ -597,40 +612,44 @@ def _frame_reading(path, t, numbered: bool, model) -> str:
     return line + f"; if they are other frames, name them with --target-frames (e.g. 1:{entries} for frames 1 to {entries})"
 
 
-def write_outputs(result, folder, meta: dict | None = None, json_path: str | None = None) -> list[str]:
+def write_outputs(result, folder, meta: dict | None = None, json_path: str | None = None,
+                  written: list | None = None) -> list[str]:
     """Write ``fit.json`` (or ``json_path``), ``history.csv``, ``loss.png`` and ``params.png``
-    into ``folder`` (created); returns the paths written."""
+    into ``folder`` (created), each whole or not at all; returns the paths written, appended
+    to ``written`` (when given) as each is done, so a caller told of a failed write knows
+    which came before."""
+    written = [] if written is None else written
     os.makedirs(folder, exist_ok=True)
     json_path = json_path or os.path.join(folder, "fit.json")
     doc = {**(meta or {}), **result.to_dict()}
-    tmp = json_path + ".tmp"
-    with open(tmp, "w") as f:
+    # Each file whole or not at all (as every file here): a full disk or a second Ctrl-C left
+    # fit.json.tmp beside it, and an empty or cut history.csv, loss.png or params.png.
+    with checks.replaced_atomically(json_path) as part, open(part, "w") as f:
         json.dump(doc, f, indent=2)
-    os.replace(tmp, json_path)
-    written = [json_path]
+    written.append(json_path)
     names = list(result.params)
     k = len(next(iter(result.params.values())))
     cols = [n if k == 1 else f"{n}[{j}]" for n in names for j in range(k)]
     csv_path = os.path.join(folder, "history.csv")
-    with open(csv_path, "w", newline="") as f:
+    with checks.replaced_atomically(csv_path) as part, open(part, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["evaluation", "stage", "loss", *cols, "seconds"])
         for h in result.history:
             vals = [x for n in names for x in h["params"][n]]
             w.writerow([h["iteration"], h.get("stage", "descent"), repr(h["loss"]), *[repr(v) for v in vals], f"{h['seconds']:.4f}"])
     written.append(csv_path)
-    written += _plots(result, folder, names, cols)
+    _plots(result, folder, names, cols, written)
     return written
 
 
-def _plots(result, folder, names, cols) -> list[str]:
+def _plots(result, folder, names, cols, written: list) -> None:
     try:
         import matplotlib  # noqa: PLC0415
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt  # noqa: PLC0415
     except ImportError:
-        return []
+        return
     hist = result.history
     it = [h["iteration"] for h in hist]
     loss = np.array([h["loss"] if h["loss"] is not None and math.isfinite(h["loss"]) else np.nan for h in hist])
@@ -647,8 +666,12 @@ def _plots(result, folder, names, cols) -> list[str]:
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     loss_png = os.path.join(folder, "loss.png")
-    fig.savefig(loss_png, dpi=100)
-    plt.close(fig)
+    try:
+        with checks.replaced_atomically(loss_png) as part:
+            fig.savefig(part, dpi=100, format="png")
+    finally:
+        plt.close(fig)
+    written.append(loss_png)
     vals = np.array([[x for n in names for x in h["params"][n]] for h in hist])
     fig, axes = plt.subplots(len(cols), 1, figsize=(6, 2.2 * len(cols)), sharex=True, squeeze=False)
     for j, (ax, col) in enumerate(zip(axes[:, 0], cols)):
@@ -662,6 +685,9 @@ def _plots(result, folder, names, cols) -> list[str]:
     axes[-1, 0].set_xlabel("evaluation")
     fig.tight_layout()
     params_png = os.path.join(folder, "params.png")
-    fig.savefig(params_png, dpi=100)
-    plt.close(fig)
-    return [loss_png, params_png]
+    try:
+        with checks.replaced_atomically(params_png) as part:
+            fig.savefig(part, dpi=100, format="png")
+    finally:
+        plt.close(fig)
+    written.append(params_png)

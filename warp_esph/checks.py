@@ -399,6 +399,19 @@ def _name_max(folder: str) -> int:
     return n if n > 0 else 255
 
 
+class OutputWriteError(OSError):
+    """A command's output that could not be written once its work was done or under way (a full
+    disk): the CLI exits 4 with its text, which names the file and what is kept (``cause``: the
+    write's own error)."""
+
+    def __init__(self, message: str, cause: OSError):
+        super().__init__(cause.errno, cause.strerror or str(cause))
+        self.message, self.cause = message, cause
+
+    def __str__(self):
+        return self.message
+
+
 @contextlib.contextmanager
 def replaced_atomically(path):
     """Yields a working name beside ``path`` for a writer to fill; once it returns, that file

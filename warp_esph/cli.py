@@ -939,10 +939,11 @@ def _dispatch(args) -> int:
             # nothing to tell a pipe that is gone. Not 0 either: a run may have stopped here.
             return EXIT_PIPE_CLOSED
         except (ValueError, OSError) as e:
-            from .export import ExportWriteError  # noqa: PLC0415
+            from .checks import OutputWriteError  # noqa: PLC0415
 
-            if isinstance(e, ExportWriteError):
-                # A full disk mid-export is a failed write, as run's (exit 4), not bad input.
+            if isinstance(e, OutputWriteError):
+                # A full disk mid-export or under a fit's results is a failed write, as run's
+                # (exit 4), not bad input.
                 _err(e)
                 return EXIT_WRITE_FAILED
             # UnicodeDecodeError is a ValueError: a reader met bytes that are not text.

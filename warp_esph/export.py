@@ -27,25 +27,23 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from .checks import OutputWriteError
+
 __all__ = ["EXPORT_FORMATS", "ExportWriteError", "export_frames", "frame_arrays_to_mesh"]
 
 EXPORT_FORMATS = ("vtu", "ply")
 
 
-class ExportWriteError(OSError):
+class ExportWriteError(OutputWriteError):
     """A file ``export_frames`` could not write (a full disk, a folder gone); ``files``: those
     it wrote whole before, which stay. Its text names the file and what is kept."""
 
     def __init__(self, cause: OSError, files: list[str], chosen: int, folder: str):
-        super().__init__(cause.errno, cause.strerror or str(cause))
-        self.files, self.cause = list(files), cause
+        self.files = list(files)
         frames = sum(not f.endswith(".pvd") for f in files)
         listed = "; frames.pvd lists them" if any(f.endswith(".pvd") for f in files) else ""
-        self.message = (f"cannot write {cause.filename or folder}: {cause.strerror or cause} ({frames} of the {chosen} "
-                        f"frames are written whole in {folder}{listed})")
-
-    def __str__(self):
-        return self.message
+        super().__init__(f"cannot write {cause.filename or folder}: {cause.strerror or cause} ({frames} of the {chosen} "
+                         f"frames are written whole in {folder}{listed})", cause)
 
 
 def frame_arrays_to_mesh(arrays: dict, fmt: str):
