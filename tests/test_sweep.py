@@ -535,6 +535,50 @@ def test_a_sweep_keeps_the_samples_finished_while_it_runs(scene_file, tmp_path, 
     assert len(SweepTable.read_csv(out / "sweep.csv")) == 3
 
 
+def test_a_table_that_cannot_be_written_leaves_no_working_file_and_the_old_table_whole(tmp_path, monkeypatch):
+    """A full disk while sweep.csv (sweep.json, sweep.parquet) was written left an empty or cut
+    sweep.csv.tmp beside the table; the write failing now removes it, names the table and
+    keeps the earlier table as it was."""
+    import errno
+
+    from warp_esph import sweep as sweep_module
+    from warp_esph.sweep import SUMMARY_COLUMNS, write_outputs
+
+    q = SUMMARY_COLUMNS[0]
+    table = SweepTable(columns=["sample", "yield_stress", "status", q],
+                       rows=[{"sample": k, "yield_stress": 10.0 * (k + 1), "status": "ok", q: 1.0} for k in range(3)],
+                       params=["yield_stress"])
+    (tmp_path / "sweep.csv").write_text("an earlier sweep's table\n")
+    real = sweep_module.csv.writer
+
+    class Full:
+        def __init__(self, f):
+            self.w, self.n = real(f), 0
+
+        def writerow(self, row):
+            self.n += 1
+            if self.n == 3:  # the header and a row written, then the disk is full
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            self.w.writerow(row)
+
+    monkeypatch.setattr(sweep_module.csv, "writer", Full)
+    with pytest.raises(OSError, match="No space left on device") as caught:
+        write_outputs(table, tmp_path, meta={"partial": False}, plot_figure=False)
+    assert caught.value.filename == str(tmp_path / "sweep.csv")
+    assert os.listdir(tmp_path) == ["sweep.csv"]
+    assert (tmp_path / "sweep.csv").read_text() == "an earlier sweep's table\n"
+    monkeypatch.setattr(sweep_module.csv, "writer", real)
+
+    def no_room(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(sweep_module.json, "dump", no_room)
+    with pytest.raises(OSError, match="No space left on device"):
+        write_outputs(table, tmp_path, meta={"partial": False}, plot_figure=False)
+    assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(".") or p.name.endswith(".tmp")]
+    assert len((tmp_path / "sweep.csv").read_text().splitlines()) == 4  # written whole before sweep.json failed
+
+
 def test_a_sweep_whose_tables_cannot_be_written_at_its_end_is_a_failed_write(scene_file, tmp_path, monkeypatch, capsys):
     """A full disk at the sweep's final tables was exit 2 (bad input) with a bare
     '[Errno 28] ...': now one line naming the folder, what ran and what is on disk, exit 4."""

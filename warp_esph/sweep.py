@@ -313,13 +313,13 @@ class SweepTable:
     def to_csv(self, path) -> str:
         """Write the table as CSV (floats round-trip exactly; empty cell = no value)."""
         path = os.fspath(path)
-        tmp = path + ".tmp"
-        with open(tmp, "w", newline="") as f:
+        # Whole or not at all, and no working file left where the write fails: a full disk
+        # left an empty sweep.csv.tmp beside the table (sweep.parquet.tmp, sweep.json.tmp too).
+        with checks.replaced_atomically(path) as tmp, open(tmp, "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(self.columns)
             for r in self.rows:
                 w.writerow([_cell(r.get(c)) for c in self.columns])
-        os.replace(tmp, path)
         return path
 
     def to_parquet(self, path) -> str:
@@ -336,9 +336,8 @@ class SweepTable:
             data[c] = pa.array(col, type=pa.float64()) if col.dtype == np.float64 and c not in _TEXT_COLUMNS else pa.array(
                 [None if v is None else str(v) for v in col], type=pa.string())
         path = os.fspath(path)
-        tmp = path + ".tmp"
-        pq.write_table(pa.table(data), tmp)
-        os.replace(tmp, path)
+        with checks.replaced_atomically(path) as tmp:
+            pq.write_table(pa.table(data), tmp)
         return path
 
     @classmethod
@@ -1014,9 +1013,8 @@ def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_pa
     if meta is not None:
         # Before the plot: the record of a finished sweep must not wait on a figure.
         path = os.path.join(folder, "sweep.json")
-        with open(path + ".tmp", "w") as f:
+        with checks.replaced_atomically(path) as tmp, open(tmp, "w") as f:
             json.dump(dict(meta), f, indent=2)
-        os.replace(path + ".tmp", path)
         lines.append(f"wrote {path}")
     if plot_figure:
         picture = os.path.join(folder, "sweep.png")
