@@ -535,6 +535,31 @@ def test_a_sweep_keeps_the_samples_finished_while_it_runs(scene_file, tmp_path, 
     assert len(SweepTable.read_csv(out / "sweep.csv")) == 3
 
 
+def test_a_terminated_sweep_keeps_its_finished_samples_and_says_terminated(scene_file, tmp_path, monkeypatch, capsys):
+    """SIGTERM in a sweep exits 143 with the table of the samples finished; its line said
+    'interrupted', as for Ctrl-C."""
+    import signal
+
+    from warp_esph import sweep as sweep_module
+
+    real, runs = sweep_module._run_sample, []
+
+    def run_then_terminate(scene, task):
+        runs.append(1)
+        if len(runs) == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real(scene, task)
+
+    monkeypatch.setattr(sweep_module, "_run_sample", run_then_terminate)
+    out = tmp_path / "sw"
+    status = cli.main(["sweep", scene_file, "--param", "yield_stress=10,100,1000", "--frames", "1", "--workers", "1",
+                       "-o", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert status == 143, err
+    assert err.splitlines()[-1] == "warp-esph: terminated: the table keeps the 1 of 3 samples finished"
+    assert len(SweepTable.read_csv(out / "sweep.csv")) == 1
+
+
 def test_a_table_that_cannot_be_written_leaves_no_working_file_and_the_old_table_whole(tmp_path, monkeypatch):
     """A full disk while sweep.csv (sweep.json, sweep.parquet) was written left an empty or cut
     sweep.csv.tmp beside the table; the write failing now removes it, names the table and

@@ -1105,7 +1105,7 @@ def sweep_cli(args, out=None) -> int:
     if args.scene and os.path.exists(str(args.scene)):
         meta["scene"] = os.path.abspath(args.scene)
     log_params = [p.name for p in plist if p.values is None and p.scale == "log"]
-    from .cli import _arm  # noqa: PLC0415
+    from .cli import _arm, _stopped  # noqa: PLC0415
 
     _arm(args)  # from here Ctrl-C unwinds to the except below, which writes the samples finished
     t0 = time.perf_counter()
@@ -1117,7 +1117,7 @@ def sweep_cli(args, out=None) -> int:
         table = _table(done, [p.name for p in plist])
         for line in write_outputs(table, folder, {**meta, "interrupted": True}, log_params):
             print(line, file=out)
-        print(f"{PROG}: interrupted: the table keeps the {len(done)} of {len(points)} samples finished", file=sys.stderr)
+        print(f"{PROG}: {_stopped(args)}: the table keeps the {len(done)} of {len(points)} samples finished", file=sys.stderr)
         return EXIT_INTERRUPTED
     if bar is not None:
         bar.close()
