@@ -624,6 +624,26 @@ def test_sigterm_mid_run_says_terminated_and_exits_143(tmp_path, monkeypatch, ca
     assert frames_in(out_path) == [0.0, 1.0, 2.0]
 
 
+def test_a_ctrl_c_while_the_force_log_is_written_at_the_end_keeps_the_whole_log(tmp_path, monkeypatch, capsys):
+    """The force log of a run without checkpoints is written once, at its end: a Ctrl-C inside
+    that write (a second one, or one as the run ended) lost the whole log, its USD complete.
+    The write now finishes first; the run still does not report success."""
+    from warp_esph import tools
+
+    real = tools.ReactionLog.write
+
+    def interrupted(self, stem):
+        os.kill(os.getpid(), signal.SIGINT)
+        return real(self, stem)
+
+    monkeypatch.setattr(tools.ReactionLog, "write", interrupted)
+    out_path = tmp_path / "late.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "3", "--no-progress"]) == 130
+    assert capsys.readouterr().err == f"warp-esph: interrupted: {out_path} keeps the 4 frames finished\n"
+    assert frames_in(out_path) == [0.0, 1.0, 2.0, 3.0]
+    assert log_frames(out_path) == {"plane0": [0, 1, 2, 3]}
+
+
 def test_full_disk_exit_4_keeps_published_frames(tmp_path, monkeypatch, capsys):
     """A write error mid-run (here: ENOSPC when frame 3 is published) keeps frames 0-2."""
     import errno

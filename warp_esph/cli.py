@@ -563,16 +563,22 @@ def _cmd_run(args) -> int:
         _err(f"cannot write {writer.path}: {why} (it keeps {_kept(writer, start_frame)})")
         return EXIT_WRITE_FAILED
     finally:
-        writer.close()
-        if log is not None and log.rows and not log_failed[0]:
-            try:
-                tool_files = write_log()
-            except _BesideWriteError as e:
-                # Said here, whatever ended the run (its own line stands); a finished run is not a
-                # success without its log (it was exit 2, 'bad input', naming no file).
-                _err(beside_failure(e))
+        # The force log holds every frame's rows only once this last write is done: a Ctrl-C
+        # inside it (a second one, or one as the run ended) lost the whole log of a finished run.
+        with _Deferred(args) as late:
+            writer.close()
+            if log is not None and log.rows and not log_failed[0]:
+                try:
+                    tool_files = write_log()
+                except _BesideWriteError as e:
+                    # Said here, whatever ended the run (its own line stands); a finished run is not a
+                    # success without its log (it was exit 2, 'bad input', naming no file).
+                    _err(beside_failure(e))
     if log_failed[0]:
         return EXIT_WRITE_FAILED
+    if late.received:  # the run and its files are whole, but it was asked to stop: no success
+        print(f"{PROG}: {_stopped(args)}: {writer.path} keeps {_kept(writer, start_frame)}", file=sys.stderr)
+        return EXIT_INTERRUPTED
     guards = ", ".join(f"{k}={v}" for k, v in solver.guard_counts().items())
     per_frame = 1e3 * writer.save_seconds / max(writer.frames_written, 1)
     written = (f"{writer.frames_written} frames (0..{writer.last_frame})" if not start_frame else
@@ -808,6 +814,9 @@ class _Signals:
         #: with ``os._exit``, raise ``KeyboardInterrupt`` throughout.
         self.exit_at_once = exit_at_once
         self.armed = False
+        #: Set while files are written that a signal must not cut short (``_Deferred``): the
+        #: signal is recorded in ``received`` and acted on by the command once they are whole.
+        self.holding = False
         self.received: list[int] = []
         self.previous = {}
         #: A copy of the process's standard error taken at install: start-up sends descriptor 2
@@ -845,9 +854,31 @@ class _Signals:
 
     def _handle(self, signum, frame):
         self.received.append(signum)
+        if self.holding:
+            return
         if self.armed or not self.exit_at_once:
             raise KeyboardInterrupt
         _exit_now(signum, self.stderr_fd)
+
+
+class _Deferred:
+    """``with _Deferred(args):`` a Ctrl-C or SIGTERM inside is recorded, not raised; ``received``
+    says afterwards whether one came."""
+
+    def __init__(self, args):
+        self.signals = getattr(args, "signals", None)
+        self.received = False
+
+    def __enter__(self) -> "_Deferred":
+        if self.signals is not None:
+            self._before, self._was = len(self.signals.received), self.signals.holding
+            self.signals.holding = True
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.signals is not None:
+            self.signals.holding = self._was
+            self.received = len(self.signals.received) > self._before
 
 
 def _exit_now(signum, stderr_fd: int | None = None) -> None:
