@@ -753,6 +753,30 @@ def test_a_checkpoint_that_cannot_be_written_is_named_not_the_usd(tmp_path, monk
     assert frames_in(out_path) == [0.0, 1.0, 2.0, 3.0, 4.0]
 
 
+def test_a_checkpoint_that_cannot_be_written_where_none_is_left_does_not_say_it_keeps_one(tmp_path, monkeypatch, capsys):
+    """A resume from a copy of the checkpoint (none beside the output) whose first save fails
+    said 'it keeps frame 2' of a checkpoint file that was not there."""
+    import errno
+    import shutil
+
+    from warp_esph import checkpoint as checkpoint_module
+
+    out_path = tmp_path / "c.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "2", "--checkpoint-every", "2",
+                 "--no-progress"]) == 0
+    copy = tmp_path / "copy.npz"
+    shutil.move(f"{out_path}.checkpoint.npz", copy)
+
+    def full(path, model, state, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(checkpoint_module, "save_state", full)
+    capsys.readouterr()
+    assert main(["run", "--resume", str(copy), "--frames", "4", "--no-progress"]) == 4
+    assert_one_line_error(capsys.readouterr().err, f"cannot write the checkpoint {out_path}.checkpoint.npz",
+                          "(no checkpoint of this run is left there;", f"{out_path} keeps frames 0..4 finished")
+
+
 def test_a_force_log_that_cannot_be_written_is_exit_4_and_keeps_its_last_whole_version(tmp_path, monkeypatch, capsys):
     """The disk fills as the force log is written at the end of a finished run: one line naming
     the log, exit 4 (it was exit 2, 'bad input', naming no file), and the log as its last

@@ -520,7 +520,10 @@ def _cmd_run(args) -> int:
         def beside_failure(e) -> str:
             why = e.cause.strerror or str(e.cause)
             if e.what == "the checkpoint":
-                held = "no checkpoint of this run" if checkpointed[0] is None else f"it keeps frame {checkpointed[0]}"
+                # Not there (its folder removed; a resume from a copy elsewhere, before its first
+                # save): it said 'it keeps frame N' of a file that did not exist.
+                kept = checkpointed[0] is not None and os.path.isfile(checkpoint_path)
+                held = f"it keeps frame {checkpointed[0]}" if kept else "no checkpoint of this run is left there"
             else:
                 held = "it is left as it was"  # written by renaming over
             return f"cannot write {e.what} {e.path}: {why} ({held}; {writer.path} keeps {_kept(writer, start_frame)})"
