@@ -777,6 +777,31 @@ def test_a_checkpoint_that_cannot_be_written_where_none_is_left_does_not_say_it_
                           "(no checkpoint of this run is left there;", f"{out_path} keeps frames 0..4 finished")
 
 
+@pytest.mark.parametrize("extra", [["--preview"], ["--export", "ply"]])
+def test_a_full_disk_under_the_preview_or_export_of_a_finished_run_is_exit_4(tmp_path, monkeypatch, capsys, extra):
+    """The run is whole; its picture or export files could not be written: exit 2, 'bad input',
+    with the bare '[Errno 28] No space left on device', naming no file."""
+    import errno
+
+    import meshio
+    from PIL import Image
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(Image.Image, "save", full)
+    monkeypatch.setattr(meshio, "write", full)
+    out_path = tmp_path / "p.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "2", "--no-progress", *extra]) == 4
+    if extra == ["--preview"]:
+        needles = (f"--preview: cannot write {out_path}.png: No space left on device; {out_path} holds the whole run",)
+    else:
+        needles = (f"--export ply: cannot write {out_path}_ply/frame_00000.ply: No space left on device (0 of the 3 frames",
+                   f"{out_path} holds the whole run")
+    assert_one_line_error(capsys.readouterr().err, *needles)
+    assert frames_in(out_path) == [0.0, 1.0, 2.0]
+
+
 def test_a_force_log_that_cannot_be_written_is_exit_4_and_keeps_its_last_whole_version(tmp_path, monkeypatch, capsys):
     """The disk fills as the force log is written at the end of a finished run: one line naming
     the log, exit 4 (it was exit 2, 'bad input', naming no file), and the log as its last

@@ -607,7 +607,15 @@ def _cmd_run(args) -> int:
     if args.preview:
         from .render import render_usd  # noqa: PLC0415
 
-        result = render_usd(writer.path, writer.path + ".png", frames="last")
+        try:
+            result = render_usd(writer.path, writer.path + ".png", frames="last")
+        except OSError as e:
+            if isinstance(e, BrokenPipeError):
+                raise
+            # A full disk under the picture of a finished run: exit 2, 'bad input', before.
+            _err(f"--preview: cannot write {e.filename or writer.path + '.png'}: {e.strerror or e}; {writer.path} holds "
+                 "the whole run")
+            return EXIT_WRITE_FAILED
         shown = "surfaces" if result.surface_bodies else "particles"
         print(f"preview: {result.output} ({shown}, {result.seconds:.1f} s)")
     return 0
