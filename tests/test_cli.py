@@ -922,6 +922,28 @@ def test_init_warp_holds_back_only_the_native_cuda_note(capfd):
     assert echoed.stdout.split() == ["2"] and echoed.stderr.splitlines() == ["native note A"], echoed.stderr
 
 
+def test_a_process_started_with_its_standard_error_closed_runs(tmp_path, monkeypatch):
+    """Started with descriptor 2 closed (2>&-), Python leaves sys.stderr None: Warp's start
+    (``sys.stderr.flush()``) and then the progress bar raised AttributeError, exit 1, and the
+    run never ran."""
+    from warp_esph import usd
+    from warp_esph.startup import _native_notes
+
+    monkeypatch.setattr(sys, "stderr", None)
+    assert _native_notes(lambda: None) == []
+    with usd._native_stderr() as notes:
+        pass
+    assert notes == []
+    monkeypatch.undo()
+    out = tmp_path / "quiet.usdc"
+    done = subprocess.run([sys.executable, "-m", "warp_esph", "run", "dough_drop", "--scale", "0.3", "--frames", "2",
+                           "-o", str(out)], stdout=subprocess.PIPE, text=True, timeout=300,
+                          preexec_fn=lambda: os.close(2))
+    assert done.returncode == 0, done.stdout
+    assert f"wrote {out}: 3 frames" in done.stdout
+    assert frames_in(out) == [0.0, 1.0, 2.0]
+
+
 def test_a_run_with_the_adaptive_step_resumes_bit_for_bit(tmp_path, capsys):
     """``--dt auto`` records its dt as "auto" and its checkpoints' step as -1 (the step count
     is no function of the frame): the resume refused both ("dt = 'auto' is not allowed: must

@@ -907,6 +907,11 @@ def _exit_now(signum, stderr_fd: int | None = None) -> None:
 def console_main() -> int:
     """The ``warp-esph`` console script and ``python -m warp_esph``: ``main`` with the
     signal handlers kept until the process ends (interpreter shutdown included)."""
+    if sys.stderr is None:
+        # Started with descriptor 2 closed (2>&-, some service managers): Python leaves
+        # sys.stderr None, and the first progress bar or note raised AttributeError (exit 1,
+        # the run not run). Nobody reads it; the exit status still tells.
+        sys.stderr = open(os.devnull, "w")  # noqa: SIM115 (for the life of the process)
     status = main(restore_signals=False)
     if status == EXIT_PIPE_CLOSED:
         _drop_stdout()  # the interpreter's flush at exit would fail on the closed pipe again

@@ -19,7 +19,8 @@ import tempfile
 def _native_notes(init) -> list[str]:
     """Run ``init()`` with file descriptor 2 sent to a temporary file; return its lines."""
     try:
-        sys.stderr.flush()
+        if sys.stderr is not None:  # None where the process started with descriptor 2 closed (2>&-)
+            sys.stderr.flush()
         saved = os.dup(2)
     except (OSError, ValueError):  # no real stderr (some embedded interpreters)
         init()

@@ -141,7 +141,8 @@ def _native_stderr():
     directly, not through Python) into the yielded list, instead of the terminal."""
     notes: list[str] = []
     try:
-        sys.stderr.flush()
+        if sys.stderr is not None:  # None where the process started with descriptor 2 closed (2>&-)
+            sys.stderr.flush()
         saved = os.dup(2)
     except (OSError, ValueError):  # no descriptor 2: nothing to keep off the terminal
         yield notes
