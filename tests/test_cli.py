@@ -972,4 +972,5 @@ def test_a_failed_run_whose_file_is_gone_does_not_say_it_keeps_frames(tmp_path):
     assert _kept(writer, 0) == "nothing: the file is gone"
     path.parent.mkdir()
     path.write_bytes(b"")
+    assert _kept(types.SimpleNamespace(path=str(path), frames_written=0, last_frame=None), 0) == "no frame: none was finished"
     assert _kept(writer, 0) == "the 3 frames finished" and _kept(writer, 1) == "frames 0..2 finished"

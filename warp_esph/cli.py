@@ -309,6 +309,8 @@ def _kept(writer, start_frame: int) -> str:
         return "nothing: the file is gone"
     if not start_frame:
         n = writer.frames_written
+        if not n:  # stopped before the first frame was saved: it said 'the 0 frames finished'
+            return "no frame: none was finished"
         return "the 1 frame finished" if n == 1 else f"the {n} frames finished"
     return f"frames 0..{writer.last_frame} finished" if writer.last_frame is not None else f"the frames before {start_frame}"
 
