@@ -1,6 +1,8 @@
 """Checkpoint and resume: a resumed run equals the uninterrupted one bit for bit (CPU)."""
 
 import json
+import os
+import stat
 
 import numpy as np
 import pytest
@@ -107,6 +109,18 @@ def test_bad_checkpoints_are_refused_by_name(tmp_path):
     for bad in (None, 123):
         with pytest.raises(ValueError, match=rf"checkpoint = {bad!r} is not allowed: must be a path"):
             load_state(bad, model)
+
+
+def test_a_checkpoint_is_readable_as_the_umask_allows(tmp_path):
+    """mkstemp made every checkpoint private (0600) whatever the umask, unlike the USD file and
+    force log beside it: another account could not resume the run."""
+    model = _model()
+    old = os.umask(0o022)
+    try:
+        path = save_state(tmp_path / "c.npz", model, model.state(), step=0, frame=0)
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(os.stat(path).st_mode) == 0o644
 
 
 def test_interrupted_save_keeps_the_previous_checkpoint(tmp_path, monkeypatch):

@@ -168,6 +168,12 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
     try:
+        # mkstemp makes the file private (0600) whatever the umask: the checkpoint was the one
+        # output another account (a shared project folder, a service running the resume)
+        # could not read, beside a USD file and force log it could.
+        umask = os.umask(0)
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)
         with os.fdopen(fd, "wb") as f:
             np.savez(f, **arrays)
             f.flush()
