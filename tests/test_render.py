@@ -695,6 +695,36 @@ def test_an_interrupted_movie_keeps_the_earlier_movie_and_leaves_no_part_file(tm
     assert out.read_bytes() == whole and sorted(os.listdir(tmp_path)) == ["anim.usdc", "ffmpeg", "m.mp4"]
 
 
+@pytest.mark.parametrize("kind", ["dir", "png"])
+def test_a_full_disk_under_the_pictures_is_exit_4_naming_the_file(tmp_path, monkeypatch, capsys, kind):
+    """A picture that could not be written (a full disk) was exit 2, 'bad input', with the bare
+    '[Errno 28] No space left on device'; now one line names it and what is written, exit 4."""
+    import errno
+
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=3)
+    real, saves = Image.Image.save, []
+
+    def full(self, fp, *args, **kwargs):
+        saves.append(fp)
+        if len(saves) == 2 or kind == "png":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real(self, fp, *args, **kwargs)
+
+    monkeypatch.setattr(Image.Image, "save", full)
+    out = tmp_path / ("pictures" if kind == "dir" else "one.png")
+    assert main(["render", str(path), "-o", str(out) + ("/" if kind == "dir" else ""), "--width", "32", "--height", "24"]) == 4
+    err = capsys.readouterr().err
+    if kind == "dir":
+        assert err == (f"warp-esph: error: cannot write {out / 'frame_00001.png'}: No space left on device (1 of the 3 frames "
+                       f"are written whole in {out}/)\n")
+        assert os.listdir(out) == ["frame_00000.png"]
+    else:
+        assert err == (f"warp-esph: error: cannot write {out}: No space left on device (not written; a file of that name is "
+                       "left as it was)\n")
+        assert os.listdir(tmp_path) == ["anim.usdc"]
+
+
 def test_an_interrupted_save_keeps_the_earlier_picture_and_leaves_no_part_file(tmp_path, monkeypatch):
     """Each picture is written beside its name and renamed over it: Ctrl-C inside a save left
     a truncated PNG, over the same frame of an earlier render too."""

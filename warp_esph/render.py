@@ -1205,8 +1205,13 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
                     # Each picture whole or not at all: Ctrl-C inside a save left a truncated PNG,
                     # over the same frame of an earlier render too.
                     file = os.path.join(out, f"frame_{f:05d}.png")
-                    with checks.replaced_atomically(file) as part:
-                        img.save(part, format="PNG", optimize=True)
+                    try:
+                        with checks.replaced_atomically(file) as part:
+                            img.save(part, format="PNG", optimize=True)
+                    except OSError as e:
+                        # A full disk: exit 2, 'bad input', with the bare errno, before.
+                        raise checks.OutputWriteError(f"cannot write {file}: {e.strerror or e} ({len(files)} of the "
+                                                      f"{len(chosen)} frames are written whole in {out})", e) from e
                     files.append(file)
                 elif kind == "mp4":
                     if writer is None:
@@ -1225,18 +1230,22 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
             raise
         if writer is not None:
             writer.close()
-    if kind == "png":
-        img = images[0] if len(images) == 1 else _sheet(images, sheet_columns)
-        with checks.replaced_atomically(out) as part:
-            img.save(part, format="PNG", optimize=True)
-        files.append(out)
-    elif kind == "gif":
-        pal = [im.quantize(colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE) for im in images]
-        with checks.replaced_atomically(out) as part:
-            pal[0].save(part, format="GIF", save_all=True, append_images=pal[1:], duration=gif_durations(len(pal), playback),
-                        loop=0, optimize=False, disposal=1)
-        files.append(out)
-    elif kind == "mp4":
+    try:
+        if kind == "png":
+            img = images[0] if len(images) == 1 else _sheet(images, sheet_columns)
+            with checks.replaced_atomically(out) as part:
+                img.save(part, format="PNG", optimize=True)
+            files.append(out)
+        elif kind == "gif":
+            pal = [im.quantize(colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE) for im in images]
+            with checks.replaced_atomically(out) as part:
+                pal[0].save(part, format="GIF", save_all=True, append_images=pal[1:], duration=gif_durations(len(pal), playback),
+                            loop=0, optimize=False, disposal=1)
+            files.append(out)
+    except OSError as e:
+        raise checks.OutputWriteError(f"cannot write {out}: {e.strerror or e} (not written; a file of that name is left as "
+                                      "it was)", e) from e
+    if kind == "mp4":
         files.append(out)
     return RenderResult(out, kind, chosen, files, time.perf_counter() - t0, count, surface_bodies)
 
