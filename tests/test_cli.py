@@ -644,6 +644,42 @@ def test_a_ctrl_c_while_the_force_log_is_written_at_the_end_keeps_the_whole_log(
     assert log_frames(out_path) == {"plane0": [0, 1, 2, 3]}
 
 
+def test_a_ctrl_c_in_a_finalizer_or_a_second_one_is_no_traceback_and_no_success(tmp_path, monkeypatch, capsys):
+    """A Ctrl-C that lands in a finalizer (``__del__``, which Python runs between any two
+    steps) was printed as 'Exception ignored in ... Traceback ... KeyboardInterrupt' and
+    dropped: the run went on and exited 0. A second Ctrl-C while the first unwound cut the
+    writer's cleanup short. Now the first is acted on once, the rest are recorded."""
+    from warp_esph import usd as usd_module
+
+    class Finalized:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGINT)
+
+    n = _steps_per_frame()
+    _fail_after(monkeypatch, n + 1, lambda state: Finalized())  # inside frame 2
+    out_path = tmp_path / "late.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "3", "--no-progress"]) == 130
+    assert capsys.readouterr().err == f"warp-esph: interrupted: {out_path} keeps the 4 frames finished\n"
+    assert frames_in(out_path) == [0.0, 1.0, 2.0, 3.0]
+
+    def interrupt(state):
+        raise KeyboardInterrupt
+
+    real_close = usd_module.UsdWriter.close
+
+    def close_interrupted(self):
+        os.kill(os.getpid(), signal.SIGINT)  # the second Ctrl-C, as the first is handled
+        real_close(self)
+
+    _fail_after(monkeypatch, 2 * n + 1, interrupt)  # inside frame 3
+    monkeypatch.setattr(usd_module.UsdWriter, "close", close_interrupted)
+    out_path = tmp_path / "twice.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "10", "--no-progress"]) == 130
+    assert capsys.readouterr().err == f"warp-esph: interrupted: {out_path} keeps the 3 frames finished\n"
+    assert frames_in(out_path) == [0.0, 1.0, 2.0]
+    assert not [name for name in os.listdir(tmp_path) if name.startswith(".")]
+
+
 def test_full_disk_exit_4_keeps_published_frames(tmp_path, monkeypatch, capsys):
     """A write error mid-run (here: ENOSPC when frame 3 is published) keeps frames 0-2."""
     import errno

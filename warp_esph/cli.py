@@ -570,7 +570,7 @@ def _cmd_run(args) -> int:
     finally:
         # The force log holds every frame's rows only once this last write is done: a Ctrl-C
         # inside it (a second one, or one as the run ended) lost the whole log of a finished run.
-        with _Deferred(args) as late:
+        with _Deferred(args):
             writer.close()
             if log is not None and log.rows and not log_failed[0]:
                 try:
@@ -581,7 +581,9 @@ def _cmd_run(args) -> int:
                     _err(beside_failure(e))
     if log_failed[0]:
         return EXIT_WRITE_FAILED
-    if late.received:  # the run and its files are whole, but it was asked to stop: no success
+    if getattr(getattr(args, "signals", None), "received", None):
+        # Asked to stop while its last files were written, or where the signal could not be
+        # raised (a finalizer): the run and its files are whole, but it is no success.
         print(f"{PROG}: {_stopped(args)}: {writer.path} keeps {_kept(writer, start_frame)}", file=sys.stderr)
         return EXIT_INTERRUPTED
     guards = ", ".join(f"{k}={v}" for k, v in solver.guard_counts().items())
@@ -830,6 +832,8 @@ class _Signals:
         #: Set while files are written that a signal must not cut short (``_Deferred``): the
         #: signal is recorded in ``received`` and acted on by the command once they are whole.
         self.holding = False
+        #: Set once a signal has been raised as ``KeyboardInterrupt``: the command is stopping.
+        self.raised = False
         self.received: list[int] = []
         self.previous = {}
         #: A copy of the process's standard error taken at install: start-up sends descriptor 2
@@ -870,28 +874,32 @@ class _Signals:
         if self.holding:
             return
         if self.armed or not self.exit_at_once:
+            # Raised once: a further Ctrl-C while the first unwinds only cut the writers' cleanup
+            # short. And never inside a finalizer, where Python prints it as 'Exception ignored
+            # in ... __del__' with a traceback and drops it: the run went on. A signal left so is
+            # in ``received``, and the command reports it when its work is done (``_cmd_run``).
+            if self.raised or (frame is not None and frame.f_code.co_name == "__del__"):
+                return
+            self.raised = True
             raise KeyboardInterrupt
         _exit_now(signum, self.stderr_fd)
 
 
 class _Deferred:
-    """``with _Deferred(args):`` a Ctrl-C or SIGTERM inside is recorded, not raised; ``received``
-    says afterwards whether one came."""
+    """``with _Deferred(args):`` a Ctrl-C or SIGTERM inside is recorded in ``signals.received``,
+    not raised."""
 
     def __init__(self, args):
         self.signals = getattr(args, "signals", None)
-        self.received = False
 
     def __enter__(self) -> "_Deferred":
         if self.signals is not None:
-            self._before, self._was = len(self.signals.received), self.signals.holding
-            self.signals.holding = True
+            self._was, self.signals.holding = self.signals.holding, True
         return self
 
     def __exit__(self, *exc) -> None:
         if self.signals is not None:
             self.signals.holding = self._was
-            self.received = len(self.signals.received) > self._before
 
 
 def _exit_now(signum, stderr_fd: int | None = None) -> None:
