@@ -268,6 +268,32 @@ def test_a_full_disk_mid_export_is_exit_4_naming_the_file_and_what_is_kept(tmp_p
         assert len(meshio.read(out / name).points) == 125
 
 
+def test_an_export_whose_sigterm_landed_in_a_finalizer_does_not_exit_0(tmp_path, monkeypatch, capsys):
+    """A signal that lands in a finalizer cannot be raised there (Python drops it): the export
+    finished and exited 0 though it was told to stop; it now exits 143 with its files whole."""
+    import signal
+
+    from test_render import write_clusters
+
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=2)
+    real = meshio.write
+
+    class Finalized:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    def write(*args, **kwargs):
+        Finalized()
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(meshio, "write", write)
+    out = tmp_path / "vtu"
+    assert main(["export", str(path), "-o", str(out)]) == 143
+    assert capsys.readouterr().err == "warp-esph: terminated\n"
+    assert sorted(os.listdir(out)) == ["frame_00000.vtu", "frame_00001.vtu", "frames.pvd"]
+
+
 def test_export_says_nothing_of_a_stored_view_it_does_not_use(tmp_path, capsys):
     """The run's suggested camera view is render's: export warned that a file's NaN view was
     'left out' of an export that never reads it. Render still warns (test_render)."""

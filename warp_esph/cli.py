@@ -951,6 +951,11 @@ def main(argv=None, *, restore_signals: bool = True) -> int:
             status = _dispatch(args)
         finally:
             signals.disarm()
+        if status == 0 and signals.received:
+            # A signal the handler could not raise (it landed in a finalizer): the work is done,
+            # but the command was asked to stop, and that is no success.
+            print(f"{PROG}: {_stopped(args)}", file=sys.stderr)
+            status = EXIT_INTERRUPTED
         if status == EXIT_INTERRUPTED and signal.SIGTERM in signals.received:
             return EXIT_TERMINATED
         return status
