@@ -137,6 +137,49 @@ def test_interrupted_save_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["c.npz"]
 
 
+def test_a_save_interrupted_at_any_line_keeps_the_previous_checkpoint_and_no_working_file(tmp_path):
+    """Ctrl-C at each line of save_state in turn: the previous checkpoint stays whole and no
+    working file is left (one made by mkstemp before the guard that removes it began stayed)."""
+    import sys
+
+    from warp_esph import checkpoint as checkpoint_module
+
+    model = _model()
+    path = save_state(tmp_path / "c.npz", model, model.state(), step=1, frame=1)
+    code = checkpoint_module.save_state.__code__
+    k = 0
+    while True:
+        k += 1
+        seen = [0]
+
+        def trace(frame, event, arg):
+            if frame.f_code is not code:
+                return None
+
+            def line(frame, event, arg):
+                if event == "line":
+                    seen[0] += 1
+                    if seen[0] == k:
+                        raise KeyboardInterrupt
+                return line
+            return line
+
+        sys.settrace(trace)
+        try:
+            save_state(path, model, model.state(), step=2, frame=2)
+            finished = True
+        except KeyboardInterrupt:
+            finished = False
+        finally:
+            sys.settrace(None)
+        assert [p.name for p in tmp_path.iterdir()] == ["c.npz"], k
+        assert read_checkpoint(path)[0]["step"] in ((2,) if finished else (1, 2)), k  # the old one or the new, whole
+        if finished:
+            break
+        save_state(path, model, model.state(), step=1, frame=1)
+    assert k > 20  # every line was reached
+
+
 @pytest.mark.parametrize("edit,needle", [
     ("mu", r"its material 0: Material\.mu = -100\.0 is not allowed: must be > 0"),
     ("flow_rate", r"its material 1: Material\.flow_rate = -100\.0 is not allowed: must be >= 0"),

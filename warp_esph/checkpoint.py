@@ -20,7 +20,6 @@ import json
 import math
 import os
 import pathlib
-import tempfile
 import zipfile
 import zlib
 
@@ -166,23 +165,14 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     arrays.update({name: getattr(state, name).numpy() for name in State.STEP_REPORTS if hasattr(state, name)})
     arrays.update({f"material_{name}": getattr(model, name).numpy() for name in Model.MATERIAL_FIELDS})
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-    try:
-        # mkstemp makes the file private (0600) whatever the umask: the checkpoint was the one
-        # output another account (a shared project folder, a service running the resume)
-        # could not read, beside a USD file and force log it could.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    # The working file is made inside replaced_atomically's guard: made by mkstemp before the
+    # guard began, an interrupt between the two left it beside the checkpoint. (mkstemp also
+    # made it private, 0600, whatever the umask; open() gives the umask's permissions, as the
+    # USD file and force log beside it have.)
+    with checks.replaced_atomically(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+        f.flush()
+        os.fsync(f.fileno())
     return path
 
 
