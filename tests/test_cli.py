@@ -680,6 +680,30 @@ def test_a_ctrl_c_in_a_finalizer_or_a_second_one_is_no_traceback_and_no_success(
     assert not [name for name in os.listdir(tmp_path) if name.startswith(".")]
 
 
+def test_a_resume_stopped_before_its_first_frame_leaves_the_force_log_as_the_file(tmp_path, monkeypatch, capsys):
+    """A run stopped in frame 7 keeps frames 0..6 and their log rows; its resume (from the
+    checkpoint of frame 4) stopped before publishing a frame left the USD as it was, but cut
+    the log back to frames 0..4: the rows of frames 5 and 6 were lost, their frames kept."""
+    from warp_esph import usd as usd_module
+
+    def interrupt(state):
+        raise KeyboardInterrupt
+
+    n = _steps_per_frame()
+    _fail_after(monkeypatch, 6 * n + 1, interrupt)  # inside frame 7
+    out_path = tmp_path / "r.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "10", "--checkpoint-every", "4",
+                 "--no-progress"]) == 130
+    assert frames_in(out_path) == [float(f) for f in range(7)] and log_frames(out_path) == {"plane0": list(range(7))}
+    before = (tmp_path / "r.usdc_tools.json").read_bytes()
+    monkeypatch.setattr(usd_module.UsdWriter, "write_frame", lambda self, frame, state: interrupt(state))
+    capsys.readouterr()
+    assert main(["run", "--resume", f"{out_path}.checkpoint.npz", "--no-progress"]) == 130
+    assert capsys.readouterr().err == f"warp-esph: interrupted: {out_path} keeps frames 0..6 finished\n"
+    assert frames_in(out_path) == [float(f) for f in range(7)]
+    assert (tmp_path / "r.usdc_tools.json").read_bytes() == before
+
+
 def test_full_disk_exit_4_keeps_published_frames(tmp_path, monkeypatch, capsys):
     """A write error mid-run (here: ENOSPC when frame 3 is published) keeps frames 0-2."""
     import errno

@@ -572,7 +572,9 @@ def _cmd_run(args) -> int:
         # inside it (a second one, or one as the run ended) lost the whole log of a finished run.
         with _Deferred(args):
             writer.close()
-            if log is not None and log.rows and not log_failed[0]:
+            # A resumed run that published no frame left its file as it was (the frames past the
+            # checkpoint included): its log is left so too, not cut back to the checkpoint's rows.
+            if log is not None and log.rows and not log_failed[0] and (args.resume is None or writer.frames_written):
                 try:
                     tool_files = write_log()
                 except _BesideWriteError as e:
