@@ -4,7 +4,8 @@
 Exit status: 0 success; 2 bad input (unknown scene, bad option value, bad scene file,
 unreadable or unwritable file); 3 the simulation diverged (``SimulationError``; the
 output keeps every frame finished before); 4 the output could not be written mid-run
-(e.g. a full disk; it keeps every frame published before; ``export``: the frame files written before); 130 interrupted (Ctrl-C), 143 terminated
+(e.g. a full disk; it keeps every frame published before; ``export``, ``render``: the files
+written before; ``fit``: its results, printed first); 130 interrupted (Ctrl-C), 143 terminated
 (SIGTERM): in both the output keeps every finished frame, and the last checkpoint
 (``--checkpoint-every``) resumes the run (``--resume``). ``sweep`` exits 3 when at least
 one sample failed (its row says why) and 130 when interrupted (the table keeps the
