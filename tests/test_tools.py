@@ -841,6 +841,19 @@ def test_a_body_starting_inside_a_mesh_tool_is_refused_as_inside_the_other_shape
         b.finalize()
 
 
+def _block_under_a_hammer(**tool):
+    """A clay block on the ground under a box tool 'hammer' (given its motion), or held by a
+    pinned set 'clamp' (``pin=motion``)."""
+    b = we.SceneBuilder(spacing=0.01)
+    b.add_box((0.0, 0.03, 0.0), (0.04, 0.04, 0.04), we.Material.preset("clay"), name="blk")
+    b.add_ground()
+    if "pin" in tool:
+        b.pin(body="blk", region=((-1, -1, -1), (1, 0.02, 1)), name="clamp", motion=tool["pin"])
+    else:
+        b.add_tool("box", half_extents=(0.01, 0.05, 0.05), name="hammer", **tool)
+    return b.finalize()
+
+
 def test_a_scripted_motion_moving_more_than_a_spacing_a_step_stops_the_run_at_that_step():
     """A ``Scripted`` motion is known only as the steps evaluate it: a step that moves it more
     than a spacing stops the run there (``SimulationError``, the pre-run refusal's message),
@@ -849,15 +862,7 @@ def test_a_scripted_motion_moving_more_than_a_spacing_a_step_stops_the_run_at_th
     refused before the first step with the KeyError of a frame not yet run."""
     dt, fps = 1e-4, 1000.0  # 10 steps a frame, at most 0.01 / 1e-4 = 100 m/s
 
-    def model(**tool):
-        b = we.SceneBuilder(spacing=0.01)
-        b.add_box((0.0, 0.03, 0.0), (0.04, 0.04, 0.04), we.Material.preset("clay"), name="blk")
-        b.add_ground()
-        if "pin" in tool:
-            b.pin(body="blk", region=((-1, -1, -1), (1, 0.02, 1)), name="clamp", motion=tool["pin"])
-        else:
-            b.add_tool("box", half_extents=(0.01, 0.05, 0.05), name="hammer", **tool)
-        return b.finalize()
+    model = _block_under_a_hammer
 
     class Frames:
         def __init__(self):
@@ -919,15 +924,7 @@ def test_a_tool_or_pin_moving_more_than_a_spacing_a_step_is_refused_before_the_r
 
     dt, fps = 1e-4, 1000.0  # at most 0.01 / 1e-4 = 100 m/s
 
-    def model(**tool):
-        b = we.SceneBuilder(spacing=0.01)
-        b.add_box((0.0, 0.03, 0.0), (0.04, 0.04, 0.04), we.Material.preset("clay"), name="blk")
-        b.add_ground()
-        if "pin" in tool:
-            b.pin(body="blk", region=((-1, -1, -1), (1, 0.02, 1)), name="clamp", motion=tool["pin"])
-        else:
-            b.add_tool("box", half_extents=(0.01, 0.05, 0.05), name="hammer", **tool)
-        return b.finalize()
+    model = _block_under_a_hammer
 
     fast = [
         (dict(motion=tools.Velocity((-300.0, 0.0, 0.0), position=(0.1, 0.03, 0.0))),

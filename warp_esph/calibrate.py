@@ -642,6 +642,16 @@ def write_outputs(result, folder, meta: dict | None = None, json_path: str | Non
     return written
 
 
+def _save_figure(plt, fig, path: str) -> None:
+    """Write ``fig`` to ``path`` whole or not at all (a full disk leaves no empty picture),
+    and close it either way."""
+    try:
+        with checks.replaced_atomically(path) as part:
+            fig.savefig(part, dpi=100, format="png")
+    finally:
+        plt.close(fig)
+
+
 def _plots(result, folder, names, cols, written: list) -> None:
     try:
         import matplotlib  # noqa: PLC0415
@@ -666,11 +676,7 @@ def _plots(result, folder, names, cols, written: list) -> None:
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     loss_png = os.path.join(folder, "loss.png")
-    try:
-        with checks.replaced_atomically(loss_png) as part:
-            fig.savefig(part, dpi=100, format="png")
-    finally:
-        plt.close(fig)
+    _save_figure(plt, fig, loss_png)
     written.append(loss_png)
     vals = np.array([[x for n in names for x in h["params"][n]] for h in hist])
     fig, axes = plt.subplots(len(cols), 1, figsize=(6, 2.2 * len(cols)), sharex=True, squeeze=False)
@@ -685,9 +691,5 @@ def _plots(result, folder, names, cols, written: list) -> None:
     axes[-1, 0].set_xlabel("evaluation")
     fig.tight_layout()
     params_png = os.path.join(folder, "params.png")
-    try:
-        with checks.replaced_atomically(params_png) as part:
-            fig.savefig(part, dpi=100, format="png")
-    finally:
-        plt.close(fig)
+    _save_figure(plt, fig, params_png)
     written.append(params_png)
