@@ -624,7 +624,17 @@ def test_sigterm_mid_run_says_terminated_and_exits_143(tmp_path, monkeypatch, ca
     assert frames_in(out_path) == [0.0, 1.0, 2.0]
 
 
-def test_a_ctrl_c_while_the_force_log_is_written_at_the_end_keeps_the_whole_log(tmp_path, monkeypatch, capsys):
+@pytest.fixture
+def sigint_as_in_a_terminal():
+    """SIGINT handled as in a terminal: a runner started in the background (``nohup ... &``, some
+    CI services) starts its processes ignoring it, and the command keeps ignoring a signal it
+    started ignoring, so a Ctrl-C these tests send themselves would never arrive."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_a_ctrl_c_while_the_force_log_is_written_at_the_end_keeps_the_whole_log(tmp_path, monkeypatch, capsys, sigint_as_in_a_terminal):
     """The force log of a run without checkpoints is written once, at its end: a Ctrl-C inside
     that write (a second one, or one as the run ended) lost the whole log, its USD complete.
     The write now finishes first; the run still does not report success."""
@@ -644,7 +654,7 @@ def test_a_ctrl_c_while_the_force_log_is_written_at_the_end_keeps_the_whole_log(
     assert log_frames(out_path) == {"plane0": [0, 1, 2, 3]}
 
 
-def test_a_ctrl_c_in_a_finalizer_or_a_second_one_is_no_traceback_and_no_success(tmp_path, monkeypatch, capsys):
+def test_a_ctrl_c_in_a_finalizer_or_a_second_one_is_no_traceback_and_no_success(tmp_path, monkeypatch, capsys, sigint_as_in_a_terminal):
     """A Ctrl-C that lands in a finalizer (``__del__``, which Python runs between any two
     steps) was printed as 'Exception ignored in ... Traceback ... KeyboardInterrupt' and
     dropped: the run went on and exited 0. A second Ctrl-C while the first unwound cut the
