@@ -948,6 +948,29 @@ def test_a_reader_that_leaves_is_not_bad_input_and_leaves_no_traceback(tmp_path)
     assert "Traceback" not in err and "cannot write" not in err, err
 
 
+def test_a_signal_as_the_process_ends_does_not_kill_it_by_the_default_action(tmp_path):
+    """Python's shutdown resets the signal handlers to the default action before it tears
+    the modules down: a Ctrl-C there (here sent by an object of ``__main__`` as it is torn
+    down) killed a finished run by SIGINT (-2, no line). The command now ends with its own
+    status once its work is done, so no shutdown follows it."""
+    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    code = textwrap.dedent("""
+        import os, signal, sys
+        class Probe:
+            def __del__(self):
+                os.kill(os.getpid(), signal.SIGINT)
+        probe = Probe()
+        from warp_esph.cli import console_main
+        sys.argv = ["warp-esph", "run", "three_cylinders", "-o", "c.usdc", "--scale", "0.3", "--frames", "2",
+                    "--no-progress"]
+        sys.exit(console_main())
+    """)
+    p = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, (p.returncode, p.stderr)
+    assert "wrote" in p.stdout and "guard counts" in p.stdout  # the streams flushed before the end
+    assert p.stderr == "", p.stderr
+
+
 def test_subprocess_run_and_bad_input(tmp_path):
     done = _run_subprocess("warp_esph.cli", "run", "three_cylinders", "-o", "cyl.usdc", *TINY, cwd=tmp_path)
     assert done.returncode == 0, done.stderr

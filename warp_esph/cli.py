@@ -21,6 +21,7 @@ import signal
 import sys
 import uuid
 import warnings
+from typing import NoReturn
 
 PROG = "warp-esph"
 # Kept here so the parser is built without importing the renderer (numpy, Pillow, pxr).
@@ -917,9 +918,10 @@ def _exit_now(signum, stderr_fd: int | None = None) -> None:
     os._exit(EXIT_TERMINATED if signum == signal.SIGTERM else EXIT_INTERRUPTED)
 
 
-def console_main() -> int:
+def console_main() -> NoReturn:
     """The ``warp-esph`` console script and ``python -m warp_esph``: ``main`` with the
-    signal handlers kept until the process ends (interpreter shutdown included)."""
+    signal handlers kept until the process ends, which it does at once with the command's
+    status (``_leave``): no interpreter shutdown follows the work."""
     if sys.stderr is None:
         # Started with descriptor 2 closed (2>&-, some service managers): Python leaves
         # sys.stderr None, and the first progress bar or note raised AttributeError (exit 1,
@@ -927,8 +929,31 @@ def console_main() -> int:
         sys.stderr = open(os.devnull, "w")  # noqa: SIM115 (for the life of the process)
     status = main(restore_signals=False)
     if status == EXIT_PIPE_CLOSED:
-        _drop_stdout()  # the interpreter's flush at exit would fail on the closed pipe again
-    return status
+        _drop_stdout()  # the flush at exit would fail on the closed pipe again
+    _leave(status)
+
+
+def _leave(status: int) -> NoReturn:
+    """End the process with ``status`` once the command's work is done: the exit functions
+    run (logging, coverage), the standard streams are flushed, and then ``os._exit``.
+
+    Python's own shutdown resets the signal handlers to the default action before it
+    tears the modules down (a quarter of a second after a run, with Warp and pxr loaded):
+    a Ctrl-C there killed a finished run's process by the signal (status -2, no line),
+    whatever the command had decided. Up to ``os._exit`` the command's handler stands.
+    """
+    import atexit  # noqa: PLC0415
+
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError, AttributeError):
+            # stdout's reader left after the last line was given to it: as a command whose
+            # reader left mid-output (main), not a success; Python exited 120 here.
+            if stream is sys.stdout and status == 0:
+                status = EXIT_PIPE_CLOSED
+    os._exit(status)
 
 
 def main(argv=None, *, restore_signals: bool = True) -> int:
