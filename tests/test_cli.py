@@ -654,7 +654,37 @@ def test_a_ctrl_c_while_the_force_log_is_written_at_the_end_keeps_the_whole_log(
     assert log_frames(out_path) == {"plane0": [0, 1, 2, 3]}
 
 
-def test_a_ctrl_c_in_a_finalizer_or_a_second_one_is_no_traceback_and_no_success(tmp_path, monkeypatch, capsys, sigint_as_in_a_terminal):
+def test_a_ctrl_c_while_the_force_log_is_written_at_a_checkpoint_waits_for_the_log(tmp_path, monkeypatch, capsys,
+                                                                                   sigint_as_in_a_terminal):
+    """The force log is rewritten at every checkpoint; a Ctrl-C just after a working file of
+    that write was opened, before its ``with`` block, left the file object to the garbage
+    collector ('warning: unclosed file <.a.usdc_tools.json.PID.tmp>'). The log write and the
+    checkpoint it belongs to now finish first; then the run stops there."""
+    from warp_esph import tools
+    from warp_esph.checkpoint import read_checkpoint
+
+    sent = []
+
+    def open_interrupted(*args, **kwargs):
+        fh = open(*args, **kwargs)
+        if not sent:
+            sent.append(args[0])
+            os.kill(os.getpid(), signal.SIGINT)  # acted on before the caller's with block
+        return fh
+
+    monkeypatch.setattr(tools, "open", open_interrupted, raising=False)
+    out_path = tmp_path / "c.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "6", "--checkpoint-every", "2",
+                 "--no-progress"]) == 130
+    assert capsys.readouterr().err == f"warp-esph: interrupted: {out_path} keeps the 3 frames finished\n"
+    assert frames_in(out_path) == [0.0, 1.0, 2.0]
+    assert log_frames(out_path) == {"plane0": [0, 1, 2]}
+    assert read_checkpoint(str(out_path) + ".checkpoint.npz")[0]["frame"] == 2
+    assert sorted(os.listdir(tmp_path)) == ["c.usdc", "c.usdc.checkpoint.npz", "c.usdc_tools.csv", "c.usdc_tools.json"]
+
+
+def test_a_ctrl_c_in_a_finalizer_or_a_second_one_is_no_traceback_and_no_success(tmp_path, monkeypatch, capsys,
+                                                                               sigint_as_in_a_terminal):
     """A Ctrl-C that lands in a finalizer (``__del__``, which Python runs between any two
     steps) was printed as 'Exception ignored in ... Traceback ... KeyboardInterrupt' and
     dropped: the run went on and exited 0. A second Ctrl-C while the first unwound cut the

@@ -508,18 +508,23 @@ def _cmd_run(args) -> int:
 
         def checkpoint(frame, current):
             if every is not None and frame > start_frame and frame % every == 0:
-                if log is not None:
-                    # The rows up to this frame, before the checkpoint that resumes after them: the log
-                    # was written only at the end, so a killed run's resume kept none of the rows before
-                    # its checkpoint.
-                    write_log()
-                # With the adaptive step the step count is not a function of the frame: -1.
-                try:
-                    save_state(checkpoint_path, model, current, step=-1 if adaptive else frame * substeps, frame=frame,
-                               run=run_record)
-                except OSError as e:
-                    raise _BesideWriteError("the checkpoint", checkpoint_path, e) from None
-                checkpointed[0] = frame
+                # A Ctrl-C inside these writes waits for them (and then stops the run): one between
+                # a working file's open() and its with block left the file to the garbage collector
+                # ('unclosed file'), and the log and the checkpoint that resumes after its rows are
+                # written together.
+                with _Deferred(args, then_stop=True):
+                    if log is not None:
+                        # The rows up to this frame, before the checkpoint that resumes after them: the
+                        # log was written only at the end, so a killed run's resume kept none of the rows
+                        # before its checkpoint.
+                        write_log()
+                    # With the adaptive step the step count is not a function of the frame: -1.
+                    try:
+                        save_state(checkpoint_path, model, current, step=-1 if adaptive else frame * substeps,
+                                   frame=frame, run=run_record)
+                    except OSError as e:
+                        raise _BesideWriteError("the checkpoint", checkpoint_path, e) from None
+                    checkpointed[0] = frame
 
         def beside_failure(e) -> str:
             why = e.cause.strerror or str(e.cause)
@@ -891,19 +896,31 @@ class _Signals:
 
 class _Deferred:
     """``with _Deferred(args):`` a Ctrl-C or SIGTERM inside is recorded in ``signals.received``,
-    not raised."""
+    not raised. ``then_stop``: one received inside is acted on as the block ends (as the
+    handler would have), for files written mid-run, after which the run must not go on."""
 
-    def __init__(self, args):
+    def __init__(self, args, *, then_stop: bool = False):
         self.signals = getattr(args, "signals", None)
+        self.then_stop = then_stop
 
     def __enter__(self) -> "_Deferred":
         if self.signals is not None:
             self._was, self.signals.holding = self.signals.holding, True
+            self._seen = len(self.signals.received)
         return self
 
-    def __exit__(self, *exc) -> None:
-        if self.signals is not None:
-            self.signals.holding = self._was
+    def __exit__(self, exc_type, *exc) -> None:
+        signals = self.signals
+        if signals is None:
+            return
+        signals.holding = self._was
+        if self.then_stop and exc_type is None and not self._was and len(signals.received) > self._seen:
+            if signals.armed or not signals.exit_at_once:
+                if not signals.raised:
+                    signals.raised = True
+                    raise KeyboardInterrupt
+            else:
+                _exit_now(signals.received[-1], signals.stderr_fd)
 
 
 def _exit_now(signum, stderr_fd: int | None = None) -> None:
