@@ -744,6 +744,33 @@ def test_a_resume_stopped_before_its_first_frame_leaves_the_force_log_as_the_fil
     assert (tmp_path / "r.usdc_tools.json").read_bytes() == before
 
 
+def test_a_resume_finds_its_output_and_scene_file_in_a_moved_folder(tmp_path, monkeypatch, capsys):
+    """A checkpoint records the output's and the scene file's absolute paths: the resume of a
+    run whose folder was moved since said 'cannot append to /old/folder/m.usdc: no such file'.
+    Where the recorded file is gone, the one of its name beside the checkpoint is used."""
+    from warp_esph.scenes import load_scene
+
+    def interrupt(state):
+        raise KeyboardInterrupt
+
+    old, new = tmp_path / "old", tmp_path / "new"
+    old.mkdir()
+    (old / "s.toml").write_text(GOOD_TOML)
+    scene = load_scene(str(old / "s.toml"))
+    n = resolve_timestep(scene.builder.finalize(), scene.fps)[0]
+    _fail_after(monkeypatch, 2 * n + 1, interrupt)  # inside frame 3
+    monkeypatch.chdir(old)
+    assert main(["run", "s.toml", "-o", "m.usdc", "--frames", "4", "--checkpoint-every", "2", "--no-progress"]) == 130
+    monkeypatch.undo()
+    os.rename(old, new)
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    assert main(["run", "--resume", str(new / "m.usdc.checkpoint.npz"), "--no-progress"]) == 0, capsys.readouterr().err
+    assert f"-> {new / 'm.usdc'} (resumed at frame 2" in capsys.readouterr().out
+    assert frames_in(new / "m.usdc", prim="/World/box0") == [0.0, 1.0, 2.0, 3.0, 4.0]
+    assert sorted(os.listdir(tmp_path)) == ["new"]
+
+
 def test_full_disk_exit_4_keeps_published_frames(tmp_path, monkeypatch, capsys):
     """A write error mid-run (here: ENOSPC when frame 3 is published) keeps frames 0-2."""
     import errno

@@ -365,8 +365,9 @@ def _cmd_run(args) -> int:
         if not isinstance(run, dict) or not {"scene", "scale", "fps", "dt", "frames", "output", "dtype"} <= run.keys():
             raise ValueError(f"--resume = {args.resume!r} is not allowed: the checkpoint was not written by 'warp-esph run'")
         _check_run_record(args.resume, run)
-        args.scene, scale, args.dtype = run["scene"], run["scale"], run["dtype"]
-        args.fps, args.dt, args.output, args.surface = run["fps"], run["dt"], run["output"], run.get("surface", False)
+        args.scene, scale, args.dtype = _moved_with(args.resume, run["scene"]), run["scale"], run["dtype"]
+        args.fps, args.dt, args.surface = run["fps"], run["dt"], run.get("surface", False)
+        args.output = _moved_with(args.resume, run["output"])
         frames_total = args.frames if args.frames is not None else run["frames"]  # --frames extends a run
         every = every or run.get("checkpoint_every")
         # the run's own, not the scene's now
@@ -646,6 +647,17 @@ class _BesideWriteError(OSError):
 def _log_kinds(model) -> list[str]:
     kinds = [] if model.tools is None else ["tool poses"]
     return kinds + (["static colliders"] if model.planes or model.spheres or model.boxes else [])
+
+
+def _moved_with(checkpoint, recorded: str) -> str:
+    """A file a checkpoint's run record names by its absolute path (the output, a scene
+    file), or where that is gone, the file of its name beside the checkpoint: the folder
+    was moved or copied whole (it said 'cannot append to /old/folder/a.usdc: no such
+    file'). The run ids and the scene's fingerprint still refuse a file of another run."""
+    if not os.path.isabs(recorded) or os.path.exists(recorded):
+        return recorded  # (a built-in scene's name is no path)
+    beside = os.path.join(os.path.dirname(os.path.abspath(checkpoint)), os.path.basename(recorded))
+    return beside if os.path.isfile(beside) else recorded
 
 
 def _check_run_record(path, run: dict) -> None:
