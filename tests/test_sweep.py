@@ -626,7 +626,7 @@ def test_a_sweep_whose_tables_cannot_be_written_at_its_end_is_a_failed_write(sce
     err = capsys.readouterr().err
     assert status == cli.EXIT_WRITE_FAILED, err
     last = err.strip().splitlines()[-1]  # after the plan line
-    assert last.startswith(f"warp-esph: cannot write the sweep's tables in {out}: [Errno 28] No space left"), err
+    assert last.startswith(f"warp-esph: error: cannot write the sweep's tables in {out}: [Errno 28] No space left"), err
     assert last.endswith("(2 samples ran; the tables in " + str(out) + " are not this sweep's whole result)") \
         and "Traceback" not in err
     assert len(SweepTable.read_csv(out / "sweep.csv")) == 2  # the partial table of both samples

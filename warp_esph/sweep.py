@@ -1127,8 +1127,10 @@ def sweep_cli(args, out=None) -> int:
     except OSError as e:
         # A full disk or a folder gone at the end: a failed write (not bad input, exit 2), and
         # what is left on disk said.
-        print(f"{PROG}: cannot write the sweep's tables in {folder}: {e} ({len(table)} samples ran; the tables in "
-              f"{folder} are not this sweep's whole result)", file=sys.stderr)
+        from .cli import _err  # noqa: PLC0415
+
+        _err(f"cannot write the sweep's tables in {folder}: {e} ({len(table)} samples ran; the tables in "
+             f"{folder} are not this sweep's whole result)")
         return EXIT_WRITE_FAILED
     for line in lines:
         print(line, file=out)
