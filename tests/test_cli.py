@@ -1028,6 +1028,25 @@ def test_a_signal_as_the_process_ends_does_not_kill_it_by_the_default_action(tmp
     assert p.stderr == "", p.stderr
 
 
+def test_a_run_whose_standard_error_reader_left_goes_on_without_its_progress_bar(tmp_path):
+    """``warp-esph run ... 2> >(head -c 1)``: the progress bar's write met a closed pipe
+    (BrokenPipeError), and the run ended with exit 1 after two frames, its traceback written
+    to nobody. The bar now stops drawing and the run finishes its frames, exit 0. (Here the
+    pipe's reader is gone before the run starts: every write to stderr fails.)"""
+    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        p = subprocess.run([sys.executable, "-m", "warp_esph", "run", "dough_drop", "--scale", "0.3", "--frames", "4",
+                            "-o", "e.usdc"], cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=write_end, text=True,
+                           timeout=120)
+    finally:
+        os.close(write_end)
+    assert p.returncode == 0, p.stdout
+    assert f"wrote {tmp_path / 'e.usdc'}: 5 frames" in p.stdout
+    assert frames_in(tmp_path / "e.usdc") == [0.0, 1.0, 2.0, 3.0, 4.0]
+
+
 def test_subprocess_run_and_bad_input(tmp_path):
     done = _run_subprocess("warp_esph.cli", "run", "three_cylinders", "-o", "cyl.usdc", *TINY, cwd=tmp_path)
     assert done.returncode == 0, done.stderr

@@ -943,7 +943,10 @@ def _exit_now(signum, stderr_fd: int | None = None) -> None:
     except Exception:  # noqa: BLE001 (a reentrant flush in a signal handler)
         pass
     what = "terminated" if signum == signal.SIGTERM else "interrupted"
-    os.write(2 if stderr_fd is None else stderr_fd, f"{PROG}: {what}\n".encode())
+    try:
+        os.write(2 if stderr_fd is None else stderr_fd, f"{PROG}: {what}\n".encode())
+    except OSError:  # stderr's reader has left: the status still tells
+        pass
     os._exit(EXIT_TERMINATED if signum == signal.SIGTERM else EXIT_INTERRUPTED)
 
 
@@ -956,6 +959,11 @@ def console_main() -> NoReturn:
         # sys.stderr None, and the first progress bar or note raised AttributeError (exit 1,
         # the run not run). Nobody reads it; the exit status still tells.
         sys.stderr = open(os.devnull, "w")  # noqa: SIM115 (for the life of the process)
+    from .startup import unread_stream  # noqa: PLC0415 (light: no Warp)
+
+    # Its reader may leave mid-run (2> >(head -c 1)): the notes and lines after that are
+    # dropped, and the work goes on to its own status.
+    sys.stderr = unread_stream(sys.stderr)
     status = main(restore_signals=False)
     if status == EXIT_PIPE_CLOSED:
         _drop_stdout()  # the flush at exit would fail on the closed pipe again

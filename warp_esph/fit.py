@@ -1074,7 +1074,10 @@ def fit(
     if progress:
         from tqdm import tqdm  # noqa: PLC0415
 
-        state["bar"] = tqdm(total=(iterations + 1) * track_count, unit="eval", file=sys.stderr,
+        from .startup import unread_stream  # noqa: PLC0415
+
+        # (its drawing stops, the fit going on, once stderr's reader has left)
+        state["bar"] = tqdm(total=(iterations + 1) * track_count, unit="eval", file=unread_stream(sys.stderr),
                             dynamic_ncols=True, desc=f"fit ({optimizer})")
     try:
         if use_worlds:

@@ -432,25 +432,31 @@ class _PlainBar:
     """A minimal stand-in for tqdm (used only where tqdm is not installed)."""
 
     def __init__(self, total: int, desc: str):
+        from .startup import unread_stream  # noqa: PLC0415
+
         self.total, self.desc, self.n, self.postfix = total, desc, 0, ""
+        self.stream = unread_stream(sys.stderr)
 
     def set_postfix_str(self, text: str, refresh: bool = True):
         self.postfix = text
 
     def update(self, n: int = 1):
         self.n += n
-        print(f"\r{self.desc}: {self.n}/{self.total} frames, {self.postfix}", end="", file=sys.stderr, flush=True)
+        print(f"\r{self.desc}: {self.n}/{self.total} frames, {self.postfix}", end="", file=self.stream, flush=True)
 
     def close(self):
-        print(file=sys.stderr, flush=True)
+        print(file=self.stream, flush=True)
 
 
 def _progress_bar(total: int, desc: str):
+    """A bar on stderr that stops drawing, the work going on, once stderr's reader has left."""
+    from .startup import unread_stream  # noqa: PLC0415
+
     try:
         from tqdm import tqdm  # noqa: PLC0415 (only when a bar is wanted)
     except ModuleNotFoundError:
         return _PlainBar(total, desc)
-    return tqdm(total=total, unit="frame", file=sys.stderr, dynamic_ncols=True, leave=True, desc=desc)
+    return tqdm(total=total, unit="frame", file=unread_stream(sys.stderr), dynamic_ncols=True, leave=True, desc=desc)
 
 
 def _first_bad(model: Model, state: State, monitor: DivergenceMonitor | None = None, t: float = 0.0):

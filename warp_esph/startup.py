@@ -37,6 +37,40 @@ def _native_notes(init) -> list[str]:
     return [line for line in text.splitlines() if line.strip()]
 
 
+class UnreadStream:
+    """A text stream (standard error) whose writes are dropped once its reader has left
+    (``BrokenPipeError``: ``2> >(head -c 1)``, a closed log pipe): a progress bar or a note
+    nobody can read any more must not end the work it reports on (a run ended with exit 1
+    after two frames, a traceback written to nobody). Any other error still raises."""
+
+    def __init__(self, stream):
+        self.stream = stream
+        self.gone = False
+
+    def write(self, text):
+        if not self.gone:
+            try:
+                return self.stream.write(text)
+            except BrokenPipeError:
+                self.gone = True
+        return len(text)
+
+    def flush(self):
+        if not self.gone:
+            try:
+                self.stream.flush()
+            except BrokenPipeError:
+                self.gone = True
+
+    def __getattr__(self, name):  # fileno, isatty, encoding: the stream's own
+        return getattr(self.stream, name)
+
+
+def unread_stream(stream):
+    """``stream`` as an ``UnreadStream`` (itself where it already is one, or None)."""
+    return stream if stream is None or isinstance(stream, UnreadStream) else UnreadStream(stream)
+
+
 def init_warp(device: str | None = None, log_level: int | None = None, echo: bool = True) -> list[str]:
     """Initialise Warp without its start-up lines; return the native notes it printed.
 
