@@ -1047,6 +1047,27 @@ def test_a_run_whose_standard_error_reader_left_goes_on_without_its_progress_bar
     assert frames_in(tmp_path / "e.usdc") == [0.0, 1.0, 2.0, 3.0, 4.0]
 
 
+def test_an_absurd_scale_is_refused_naming_scale_not_the_body(tmp_path, capsys):
+    """``--scale 1e-300`` divides the spacing into 5e+298 m: the scene's checks blamed the
+    body ('it is smaller than the spacing 5e+298') or its centre (--scale 1e300), as if the
+    scene file were wrong. Where the scene builds at --scale 1, the refusal names --scale."""
+    path = tmp_path / "s.toml"
+    path.write_text(GOOD_TOML)
+    for scene, scale, why in ((str(path), "1e-300", "smaller than the spacing 5e+298"),
+                              (str(path), "1e300", "center = (0.0, 0.15, 0.0) is not allowed"),
+                              ("dough_drop", "1e-300", "body 'dough' has no particles")):
+        assert main(["run", scene, "--scale", scale, "--frames", "1", "--no-progress", "-o", str(tmp_path / "x.usdc")]) == 2
+        assert_one_line_error(capsys.readouterr().err, f"--scale = {float(scale):g} is not allowed for {scene}: it builds at "
+                              "--scale 1", why, "give a --scale nearer 1")
+    assert not (tmp_path / "x.usdc").exists()
+    # A scene file wrong at any scale keeps its own error, not one blaming --scale.
+    path.write_text(GOOD_TOML.replace("size = [0.2, 0.15, 0.2]", "size = [0.2, -0.15, 0.2]"))
+    assert main(["run", str(path), "--scale", "0.5", "--frames", "1", "--no-progress", "-o", str(tmp_path / "x.usdc")]) == 2
+    err = capsys.readouterr().err
+    assert_one_line_error(err, "size")
+    assert "--scale" not in err
+
+
 def test_subprocess_run_and_bad_input(tmp_path):
     done = _run_subprocess("warp_esph.cli", "run", "three_cylinders", "-o", "cyl.usdc", *TINY, cwd=tmp_path)
     assert done.returncode == 0, done.stderr

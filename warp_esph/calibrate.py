@@ -388,14 +388,17 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     """One experiment of the command: scene, model (jittered), targets, loss, time step."""
     import types  # noqa: PLC0415
 
-    scale = checks.positive(f"{where}--scale" if not where else f"{where}scale", spec["scale"])
+    scale_name = f"{where}--scale" if not where else f"{where}scale"
+    scale = checks.positive(scale_name, spec["scale"])
     targets = spec["target"] if isinstance(spec["target"], (list, tuple)) else [spec["target"]]
     tframes = spec.get("target_frames")
     tframes = tframes if isinstance(tframes, (list, tuple)) else ([tframes] if tframes else [])
     if len(tframes) > 1 and len(tframes) != len(targets):
         raise ValueError(f"{where}--target-frames is given {len(tframes)} times for {len(targets)} --target files: "
                          f"give it once per --target, in the same order, or once for all")
-    scene = load_scene(spec["scene"], scale=scale)
+    from .scenes import load_scaled_scene  # noqa: PLC0415
+
+    scene = load_scene(spec["scene"], scale=scale) if scale == 1.0 else load_scaled_scene(spec["scene"], scale, scale_name)
     from .cli import _apply_solver_options, _solver_options  # noqa: PLC0415
 
     _apply_solver_options(scene.builder, _solver_options(args))  # --solver-fit / --contact over the scene's [solver]

@@ -339,7 +339,7 @@ def _cmd_run(args) -> int:
             raise ValueError(f"--output = {args.output!r} is not allowed: the extension must be one of {', '.join(USD_EXTENSIONS)}")
 
     _init_warp(args.device)  # refuses --device cuda where Warp finds none
-    from .scenes import load_scene  # noqa: PLC0415
+    from .scenes import load_scaled_scene  # noqa: PLC0415
     from .simulate import SimulationError, _check_run_start, check_step_count, resolve_timestep, simulate  # noqa: PLC0415
     from .sim.solver import Solver  # noqa: PLC0415
     from .usd import UsdWriter  # noqa: PLC0415
@@ -373,7 +373,7 @@ def _cmd_run(args) -> int:
         # the run's own, not the scene's now
         options = {k: run[k] for k in ("fit", "contact_ramp", "hourglass", "fit_weight") if k in run}
     args.dtype = args.dtype or "float32"
-    scene = load_scene(args.scene, scale=scale)
+    scene = load_scaled_scene(args.scene, scale)
     _apply_solver_options(scene.builder, options)
     fps = args.fps if args.fps is not None else scene.fps
     dt = args.dt if args.dt is not None else scene.dt

@@ -608,3 +608,25 @@ def load_scene(name_or_path: str | os.PathLike | None = None, scale: float = 1.0
     if text.lower().endswith(".toml") or os.sep in text or (os.altsep and os.altsep in text) or os.path.exists(text):
         return load_scene_file(text, scale)
     return get_scene(text, scale)
+
+
+def load_scaled_scene(name_or_path: str | os.PathLike | None, scale: float, what: str = "--scale") -> Scene:
+    """``load_scene(name_or_path, scale)``, with a refusal that only the scale causes named as
+    ``what``'s (the option or setting that gave it).
+
+    A scale far from 1 makes the spacing absurd (``--scale 1e-300``: a spacing of 5e+298 m),
+    and the scene's own checks then blamed a body ('it is smaller than the spacing 5e+298')
+    or its centre: where the scene builds at scale 1, the fault is the scale's.
+    """
+    try:
+        return load_scene(name_or_path, scale)
+    except ValueError as e:
+        if scale == 1.0:
+            raise
+        try:
+            load_scene(name_or_path, 1.0)
+        except Exception:  # noqa: BLE001 (the scene's own fault: its error, as given at this scale)
+            raise e from None
+        scene = DEFAULT_SCENE if name_or_path is None else os.fspath(name_or_path)
+        raise ValueError(f"{what} = {scale:g} is not allowed for {scene}: it builds at {what} 1, but with its spacing "
+                         f"divided by {scale:g}: {e}; give a {what} nearer 1") from None

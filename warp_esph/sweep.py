@@ -787,14 +787,14 @@ def _ray_map(fn, items, address, on_result, on_error, resources):
 # ------------------------------------------------------------------ the sweep
 def _load(scene, scale):
     from .builder import SceneBuilder  # noqa: PLC0415
-    from .scenes import Scene, load_scene  # noqa: PLC0415
+    from .scenes import Scene, load_scaled_scene  # noqa: PLC0415
 
     if isinstance(scene, Scene):
         return scene
     if isinstance(scene, SceneBuilder):
         return Scene("scene", "a SceneBuilder", scene)
     if isinstance(scene, (str, os.PathLike)) or scene is None:
-        return load_scene(scene, scale=checks.positive("--scale", scale))
+        return load_scaled_scene(scene, checks.positive("--scale", scale))
     raise ValueError(f"scene = {scene!r} is not allowed: give a built-in scene name, a .toml scene file, a Scene or a SceneBuilder")
 
 
