@@ -1068,6 +1068,19 @@ def test_an_absurd_scale_is_refused_naming_scale_not_the_body(tmp_path, capsys):
     assert "--scale" not in err
 
 
+def test_a_too_fast_body_of_a_scene_file_is_named_by_its_table(tmp_path, capsys):
+    """A body too fast for the step said '[[bodies]] initial velocity ...' without its table's
+    number, unlike the file's other refusals ('[[bodies]] #2 (shape 'box'): ...')."""
+    path = tmp_path / "fast.toml"
+    second = GOOD_TOML.split("[[bodies]]")[1].split("[[colliders]]")[0]
+    second = second.replace("center = [0.0, 0.15, 0.0]", "center = [0.6, 0.15, 0.0]\nvelocity = [1e6, 0.0, 0.0]")
+    path.write_text(GOOD_TOML.replace("[[colliders]]", "[[bodies]]" + second + "[[colliders]]"))
+    for dt in ([], ["--dt", "auto"]):
+        assert main(["run", str(path), "--frames", "1", "--no-progress", "-o", str(tmp_path / "f.usdc"), *dt]) == 2
+        assert_one_line_error(capsys.readouterr().err,
+                              f"{path}: [[bodies]] #2 (shape 'box'): initial velocity of body 'box1'", "1e+06 m/s")
+
+
 def test_subprocess_run_and_bad_input(tmp_path):
     done = _run_subprocess("warp_esph.cli", "run", "three_cylinders", "-o", "cyl.usdc", *TINY, cwd=tmp_path)
     assert done.returncode == 0, done.stderr

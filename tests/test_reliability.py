@@ -573,7 +573,7 @@ def test_a_scene_file_body_faster_than_the_step_can_follow_is_one_line_naming_th
     out.write_text("kept")
     assert main(["run", str(scene), "-o", str(out), "--no-progress"]) == 2
     line = one_error_line(capsys.readouterr().err)
-    assert f"{scene}: [[bodies]] initial velocity of body 'box0'" in line and "1e+37 m/s" in line and "at most" in line
+    assert f"{scene}: [[bodies]] #1 (shape 'box'): initial velocity of body 'box0'" in line and "1e+37 m/s" in line and "at most" in line
     assert out.read_text() == "kept"
 
 

@@ -409,8 +409,11 @@ def _cmd_run(args) -> int:
         checked = _check_run_start(model, start, frames, fps, dt, hourglass=solver.hourglass, start_frame=start_frame)
     except ValueError as e:
         if str(args.scene).lower().endswith(".toml"):
-            # (the adaptive step's refusal may be a tool's, which names it)
-            table = "[[bodies]] " if str(e).startswith("initial velocity") else ""
+            # (the adaptive step's refusal may be a tool's, which names it). The body's own table,
+            # as the file's other refusals name it: '[[bodies]]' alone left a reader counting.
+            table = ""
+            if str(e).startswith("initial velocity"):
+                table = f"{scene.builder.origins.get(('body', getattr(e, 'body_index', None)), '[[bodies]]')}: "
             raise ValueError(f"{args.scene}: {table}{e}") from None
         raise
     # Every file the run writes, checked before the run (a folder in the way of the reaction

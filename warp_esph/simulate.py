@@ -384,22 +384,31 @@ def check_start_speed(model: Model, state: State, fps: float, dt, hourglass: flo
         return
     speed = np.sqrt((v * v).sum(axis=1))
     p = int(np.argmax(speed))
-    body = model.bodies[int(model.particle_body_np[p])].name
+    index = int(model.particle_body_np[p])
+    body = model.bodies[index].name
     if isinstance(dt, str):
         try:
             adaptive_timestep(model, state, fps, hourglass=hourglass, until=until)
         except ValueError as e:
             if not str(e).startswith("a particle speed"):
                 raise  # a tool's, which names it, or the material's own step
-            raise ValueError(f"initial velocity of body {body!r} (particle {p}): {e}") from None
+            raise _body_error(f"initial velocity of body {body!r} (particle {p}): {e}", index) from None
         return
     limit = model.spacing / dt
     if not speed[p] <= limit:
-        raise ValueError(
+        raise _body_error(
             f"initial velocity of body {body!r}: a speed of {speed[p]:.3g} m/s (particle {p}) is not allowed at "
             f"dt = {dt:.4g} s: a step may carry a particle at most one spacing ({model.spacing:g} m), |v| dt <= dx, "
-            f"so at most {limit:.3g} m/s; give a smaller velocity (or angular_velocity), a smaller dt, or the adaptive step"
-        )
+            f"so at most {limit:.3g} m/s; give a smaller velocity (or angular_velocity), a smaller dt, or the adaptive step",
+            index)
+
+
+def _body_error(message: str, index: int) -> ValueError:
+    """A ``ValueError`` about body ``index`` (``body_index``: the CLI names the scene file's
+    table of that body by it)."""
+    error = ValueError(message)
+    error.body_index = index
+    return error
 
 
 def _check_run_start(model: Model, state: State, frames: int, fps: float, dt, hourglass: float | None = None,
