@@ -1539,3 +1539,32 @@ def test_a_rollouts_backward_leaves_the_tools_gradients_a_plain_tape_gives():
         r.backward({steps: weights})
         np.testing.assert_allclose(m.tools.motion_gradient("press")["velocity"], ref_v, rtol=1e-10, err_msg=str(every))
         assert m.tools.friction.grad.numpy()[0] == pytest.approx(ref_f, rel=1e-10)
+
+
+def test_a_tool_smaller_than_the_contacts_margin_is_refused_naming_its_size_and_the_spacing(tmp_path, capsys):
+    """A mesh tool at scale 1e-9 (a 2e-10 m box at spacing 0.05) was taken, and the run went
+    on as if it were not there. A tool smaller in every direction than the contact's margin
+    (a thousandth of a spacing) is refused, naming the key that sized it; a tenth of a
+    spacing is still taken (it stops the particles in its path, the test above)."""
+    from warp_esph import meshes
+    from warp_esph.cli import main
+
+    meshes.write_mesh(tmp_path / "cube.obj", *tools.box_mesh((0.1, 0.1, 0.1)))
+    scene = tmp_path / "tool.toml"
+    scene.write_text('[scene]\nspacing = 0.05\nframes = 1\n[[bodies]]\nshape = "box"\nmaterial = "dough"\n'
+                     'center = [0, 0.15, 0]\nsize = [0.2, 0.15, 0.2]\n'
+                     '[[tools]]\nshape = "mesh"\nfile = "cube.obj"\nscale = 1e-9\nposition = [0, 0.5, 0]\n')
+    assert main(["run", str(scene), "--no-progress", "-o", str(tmp_path / "t.usdc")]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"warp-esph: error: {scene}: [[tools]] #1 (shape 'mesh'): scale = 1e-09 is not allowed for mesh tool "
+                   f"'mesh_tool0' of '{tmp_path / 'cube.obj'}': the tool is 2e-10 m across at most, less than 5e-05 m, a "
+                   "thousandth of the spacing 0.05 (the contact's margin): the particles pass it by; give a larger scale or "
+                   "a smaller spacing\n"), err
+    b = we.SceneBuilder(spacing=0.02)
+    with pytest.raises(ValueError, match=r"^radius = 1e-06 is not allowed for sphere tool 'pin': the tool is 2e-06 m across "
+                                         r"at most, less than 2e-05 m"):
+        b.add_tool("sphere", radius=1e-6, name="pin")
+    with pytest.raises(ValueError, match=r"^half_extents = \(1e-06, 1e-06, 1e-06\) is not allowed for box tool"):
+        b.add_tool("box", half_extents=(1e-6, 1e-6, 1e-6))
+    assert b.add_tool("sphere", radius=1e-3) == "sphere_tool0"  # a tenth of a spacing across
+    assert b.add_tool("box", half_extents=(0.1, 1e-6, 0.1)) == "box_tool1"  # a thin plate

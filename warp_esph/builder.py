@@ -635,8 +635,36 @@ class SceneBuilder:
                 raise ValueError(f"{what} up to {reach:.3g} m from the tool's origin; a mesh tool's points must be within "
                                  f"{far:.3g} m of it (Warp's mesh queries are float32); give a smaller scale")
         param = tools.shape_param(kind, normal=normal, half_extents=half_extents, radius=radius, half_height=half_height)
+        self._check_tool_size(name, kind, param, points, mesh, scale)
         self.tools.append(tools.Collider(name, kind, param, motion, mu_k, mu_s, points, triangles))
         return name
+
+    def _check_tool_size(self, name, kind, param, points, mesh, scale) -> None:
+        """Refuse a tool smaller in every direction than the contact's own margin (a particle
+        that meets a tool is put ``tools.CONTACT_MARGIN`` spacings outside it): a bunny at
+        scale 1e-9 was taken, and the run went on as if it were not there. A tool a tenth of
+        a spacing across is taken: it still stops the particles in its path (a 2 mm sphere
+        through a row at spacing 0.02, ``tests/test_tools.py``), as a plate thinner than the
+        spacing does."""
+        if kind == "plane":
+            return
+        if kind == "mesh":
+            across = float((points.max(axis=0) - points.min(axis=0)).max()) if len(points) else 0.0
+            label = repr(os.fsdecode(os.fspath(mesh))) if meshes._is_path(mesh) else "(points, triangles)"
+            what = (f"scale = {checks.shorten(scale)!r} is not allowed for mesh tool {name!r} of {label}" if scale != 1.0
+                    else f"mesh tool {name!r} of {label} is not allowed")
+            fix = "a larger scale or a smaller spacing"
+        else:
+            across = {"box": 2.0 * max(param), "sphere": 2.0 * param[0], "capsule": 2.0 * max(param[0], param[1] + param[0]),
+                      "cylinder": 2.0 * max(param[0], param[1])}[kind]
+            key = {"box": "half_extents", "sphere": "radius"}.get(kind, "radius / half_height")
+            given = {"box": param, "sphere": param[0]}.get(kind, param[:2])
+            what = f"{key} = {checks.shorten(given)!r} is not allowed for {kind} tool {name!r}"
+            fix = f"a larger {key} or a smaller spacing"
+        least = tools.CONTACT_MARGIN * self.spacing
+        if not across >= least:
+            raise ValueError(f"{what}: the tool is {across:.3g} m across at most, less than {least:.3g} m, a thousandth of "
+                             f"the spacing {self.spacing:g} (the contact's margin): the particles pass it by; give {fix}")
 
     def pin(self, indices=None, *, body: str | None = None, region=None, where=None, motion=None, name: str | None = None) -> str:
         """Hold a set of particles fixed, or move it rigidly (``tools.py``); returns its name.

@@ -59,6 +59,8 @@ from ._types import type_set
 #: unrolled, docs/method.md, Warp pitfall 1: a dynamic loop carrying x and v through non-linear
 #: projections gets a wrong adjoint).
 KINDS = ("plane", "box", "sphere", "capsule", "cylinder", "mesh")
+#: How far outside a tool (in spacings) the contact puts a particle that met it.
+CONTACT_MARGIN = 1.0e-3
 MAX_TOOLS = 16
 IDENTITY = (0.0, 0.0, 0.0, 1.0)
 
@@ -852,7 +854,7 @@ class ToolSet:
         self.scalar = S
         k_ = kernels(S, len(model.planes), len(model.spheres), len(model.boxes), self.counts, len(self.pins))
         self.quat = k_.quat
-        self.margin = 1.0e-3 * model.spacing
+        self.margin = CONTACT_MARGIN * model.spacing
 
         x0 = model.particle_x0
         pin_of = np.full(model.particle_count, -1, dtype=np.int32)
