@@ -675,3 +675,22 @@ def test_values_matplotlib_cannot_lay_out_still_leave_the_tables_and_the_record(
     lines = write_outputs(table, tmp_path, meta={"partial": False})
     assert any(line.startswith("no plot: matplotlib is not installed") for line in lines)
     assert not (tmp_path / "sweep.png").exists()
+
+
+def test_write_outputs_into_a_file_is_a_value_error_naming_it(tmp_path):
+    """``write_outputs`` into a path that is a file raised a bare ``FileExistsError`` from
+    ``os.makedirs`` (the CLI checks its --output before the samples; the Python API did not)."""
+    from warp_esph.sweep import SUMMARY_COLUMNS, write_outputs
+
+    q = SUMMARY_COLUMNS[0]
+    table = SweepTable(columns=["sample", "yield_stress", "status", q],
+                       rows=[{"sample": 0, "yield_stress": 10.0, "status": "ok", q: 1.0}], params=["yield_stress"])
+    taken = tmp_path / "results"
+    taken.write_text("a file\n")
+    with pytest.raises(ValueError, match=re.escape(f"folder = {str(taken)!r} is not allowed: it is a file; the sweep's "
+                                                   "tables (sweep.csv, sweep.parquet, sweep.png, sweep.json) are written "
+                                                   "into a folder")):
+        write_outputs(table, taken, plot_figure=False)
+    assert taken.read_text() == "a file\n"
+    assert [os.path.basename(line.split()[-1]) for line in write_outputs(table, tmp_path / "new", plot_figure=False)
+            if line.startswith("wrote")][:1] == ["sweep.csv"]

@@ -1002,8 +1002,12 @@ def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_pa
                   plot_figure: bool = True) -> list[str]:
     """Write ``sweep.csv``, ``sweep.parquet`` (with pyarrow), ``sweep.png`` (with
     matplotlib) and ``sweep.json`` (``meta``) into ``folder``; returns one line per file
-    written or skipped."""
+    written or skipped. ``folder`` is made where it is not there; a file there is refused
+    (``ValueError``: it was a bare ``FileExistsError`` from ``os.makedirs``)."""
     folder = os.fspath(folder)
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise ValueError(f"folder = {folder!r} is not allowed: it is a file; the sweep's tables ({', '.join(OUTPUT_FILES)}) "
+                         "are written into a folder, one that is there or one that is made")
     os.makedirs(folder, exist_ok=True)
     lines = [f"wrote {table.to_csv(os.path.join(folder, 'sweep.csv'))}"]
     try:
