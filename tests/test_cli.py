@@ -452,6 +452,9 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         # Options nothing reads in that fit: each was ignored.
         (["fit", "nothing.toml", "--target", "t.npz", "--sample-range", "8"],
          ["--sample-range = 8.0 is not allowed without --samples or --starts"]),
+        # Nothing is drawn without jitter, samples or extra starts: --seed 3 ran as without it.
+        (["fit", "nothing.toml", "--target", "t.npz", "--seed", "3"],
+         ["--seed = 3 is not allowed without --jitter, --samples or --starts", "this fit draws nothing"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--noise", "1e-4", "--no-diagnostics"],
          ["--noise = 0.0001 is not allowed with --no-diagnostics"]),
         # Only the automatic checkpointing reads the limit: with a fixed segment it was ignored.
@@ -471,6 +474,17 @@ def test_bad_input_is_one_line_exit_2(tmp_path, monkeypatch, capsys, args, needl
     out, err = capsys.readouterr()
     assert_one_line_error(err, *needles)
     assert list(tmp_path.iterdir()) == []  # nothing written
+
+
+def test_fit_seed_is_taken_where_something_is_drawn(tmp_path, monkeypatch, capsys):
+    """--seed is refused only where nothing draws from it: with jitter, samples or extra
+    starts it is read, and the fit goes on (here to its missing scene file)."""
+    monkeypatch.chdir(tmp_path)
+    for more in (["--jitter", "0.001"], ["--samples", "2"], ["--starts", "2"]):
+        assert main(["fit", "nothing.toml", "--target", "t.npz", "--seed", "3", *more]) == 2
+        err = capsys.readouterr().err
+        assert_one_line_error(err, "nothing.toml")
+        assert "--seed" not in err
 
 
 def test_cuda_asked_for_where_there_is_none_is_one_line(tmp_path, capsys):

@@ -17,6 +17,7 @@ the fit converged, stalled or hit the iteration cap, and the diagnostics table.
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import math
@@ -54,7 +55,9 @@ def add_calibration_arguments(parser):
                    help="jitter the lattice by J * spacing (normal) so no neighbour distance is tied at the support "
                         "radius (e.g. 0.001 with a support radius of 2 spacings; default 0: the scene as written, "
                         "as a previous run of it was)")
-    g.add_argument("--seed", type=int, default=5, help="random seed of the jitter and the global stage (default 5)")
+    g.add_argument("--seed", type=int, default=5, metavar="S", action=_Given,
+                   help="random seed of the jitter and the global stage (default 5; only with --jitter, --samples or "
+                        "--starts K > 1, which draw from it)")
     g.add_argument("--support-radius", type=float, metavar="K",
                    help="support radius in spacings (e.g. 2.5: no particle at thin features drops below the neighbour guard)")
     g.add_argument("--loss-scale", type=float, default=1.0, metavar="K",
@@ -81,6 +84,15 @@ def add_calibration_arguments(parser):
     g.add_argument("--cameras", metavar="CAMERAS.json",
                    help="silhouette targets: the cameras (see docs/fitting.md); --target then names mask images")
     return parser
+
+
+class _Given(argparse.Action):
+    """Store the value, and note in ``<dest>_given`` that it was given (a default is no choice
+    to refuse)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+        setattr(namespace, f"{self.dest}_given", True)
 
 
 def default_optimizer(values: int) -> str:
@@ -137,17 +149,23 @@ def run_fit(args, out=None, err=None) -> int:
     given_range = _arg(args, "sample_range")  # None: not given (a factor 4)
     sample_range = 4.0 if given_range is None else given_range
     lr = _arg(args, "lr")  # None: not given (fit's default; refused with gauss-newton when given)
+    seed = _arg(args, "seed", 5)
+    given_seed = seed if _arg(args, "seed_given", False) else None  # None: the default
     # Every option that needs no scene, checked before the scene is built and the targets read.
     opts = check_options(params=str(args.params), iterations=args.iterations, lr=lr, clip=args.clip, bounds=bounds,
                          optimizer=_arg(args, "optimizer") or "adam", patience=_arg(args, "patience", 20),
                          samples=_arg(args, "samples", 0), starts=_arg(args, "starts", 1),
-                         sample_range=sample_range, seed=_arg(args, "seed", 5), noise=_arg(args, "noise"),
+                         sample_range=sample_range, seed=seed, noise=_arg(args, "noise"),
                          memory_limit=memory_limit, flag=lambda name: "--" + name.replace("_", "-"))
     params = opts["params"]
     # Options nothing would read: refused, not ignored (each ran as without it).
     if given_range is not None and opts["samples"] == 0 and opts["starts"] == 1:
         raise ValueError(f"--sample-range = {given_range!r} is not allowed without --samples or --starts: it sizes the "
                          "box of the global stage's samples and the extra starts, and this fit has neither")
+    if given_seed is not None and not jitter and opts["samples"] == 0 and opts["starts"] == 1:
+        # Nothing else draws from it (the diagnostics' noise is a number, not a draw).
+        raise ValueError(f"--seed = {given_seed!r} is not allowed without --jitter, --samples or --starts: it seeds the "
+                         "lattice's jitter and the global stage's draws, and this fit draws nothing")
     if _arg(args, "noise") is not None and _arg(args, "no_diagnostics", False):
         raise ValueError(f"--noise = {args.noise!r} is not allowed with --no-diagnostics: it is the observation noise "
                          "the diagnostics assume, and they are skipped")
@@ -254,7 +272,7 @@ def run_fit(args, out=None, err=None) -> int:
                      lr=lr, bounds=bounds, clip=args.clip, memory_limit=memory_limit,
                      optimizer=optimizer, progress=not args.no_progress, samples=_arg(args, "samples", 0),
                      starts=_arg(args, "starts", 1), worlds=_arg(args, "worlds", False),
-                     sample_range=sample_range, seed=_arg(args, "seed", 5),
+                     sample_range=sample_range, seed=seed,
                      patience=_arg(args, "patience", 20), diagnostics=not _arg(args, "no_diagnostics", False),
                      noise=_arg(args, "noise"), log=log)
     except FitInterrupted as e:
