@@ -694,3 +694,21 @@ def test_write_outputs_into_a_file_is_a_value_error_naming_it(tmp_path):
     assert taken.read_text() == "a file\n"
     assert [os.path.basename(line.split()[-1]) for line in write_outputs(table, tmp_path / "new", plot_figure=False)
             if line.startswith("wrote")][:1] == ["sweep.csv"]
+
+
+def test_ray_a_sample_that_crashes_its_worker_is_a_failed_row_at_once(tmp_path):
+    """Ray retried a task whose worker died (3 more times by default): a sample that crashes
+    its worker every time (a fault in native code, out of memory) ran four times, each dying
+    the same way, before its row said it failed. It now runs once."""
+    ray = pytest.importorskip("ray")
+    from warp_esph.sweep import parallel_map
+
+    note = tmp_path / "attempts"
+    ray.init(num_cpus=1, include_dashboard=False)
+    try:
+        # os.system's shell notes the attempt, then kills its parent: the Ray worker.
+        rows = parallel_map(os.system, [(f"echo x >> {note}; kill -9 $PPID",)], ray="auto", on_error=lambda i, why: why)
+    finally:
+        ray.shutdown()
+    assert note.read_text() == "x\n"
+    assert rows[0].startswith("Ray: ") and "Worker" in rows[0], rows[0]

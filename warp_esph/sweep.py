@@ -622,7 +622,8 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
 
     An item fails when ``fn`` raises, its worker process dies (a crash in native code, out
     of memory: every item not finished in that pool fails with it) or its Ray task or
-    worker fails. With ``on_error(index, message)`` its return value is that item's result
+    worker fails (a Ray task whose worker died is not retried: ``ray_resources`` may set
+    ``max_retries``). With ``on_error(index, message)`` its return value is that item's result
     and the others go on; without, the first failure raises (``RuntimeError`` for a dead
     worker). Ctrl-C stops the workers and raises ``KeyboardInterrupt``.
     """
@@ -743,7 +744,9 @@ def _ray_map(fn, items, address, on_result, on_error, resources):
                              f"{_one_line(e)}") from None
         started = True
     try:
-        remote = ray.remote(num_cpus=1, **dict(resources or {}))(_call_star)
+        # Not retried: Ray ran a sample whose worker died (a crash in native code, out of memory)
+        # three more times, each dying the same way, before its row said it failed.
+        remote = ray.remote(**{"num_cpus": 1, "max_retries": 0, **dict(resources or {})})(_call_star)
         fn_ref = ray.put(fn)
         # Large shared arguments (the scene) are put once, not once per task.
         shared: dict[int, object] = {}
