@@ -1036,7 +1036,9 @@ def test_a_signal_as_the_process_ends_does_not_kill_it_by_the_default_action(tmp
                     "--no-progress"]
         sys.exit(console_main())
     """)
-    p = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    p = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
+                       # as in a terminal: a runner started in the background starts its children ignoring SIGINT
+                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert p.returncode == 0, (p.returncode, p.stderr)
     assert "wrote" in p.stdout and "guard counts" in p.stdout  # the streams flushed before the end
     assert p.stderr == "", p.stderr
