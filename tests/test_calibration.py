@@ -1277,3 +1277,53 @@ def test_a_point_cloud_that_repeats_points_counts_each_once(tmp_path, capsys, do
     with pytest.warns(UserWarning, match=r"targets at step 5: 3 of its 5 points repeat an earlier point exactly"):
         loss = ChamferLoss(np.array([[0, 0, 0], [1, 0, 0], [0, 0, 0], [1, 0, 0], [1, 0, 0]], float), radius=0.1, frames=[5])
     assert loss.targets[5].tolist() == [[0, 0, 0], [1, 0, 0]]
+
+
+def _foreign_points_usd(path, samples, rate=None):
+    """A USD file of another program: one ``UsdGeom.Points`` prim ``/World/cloud`` with
+    ``samples`` ``{time code: (n, 3) positions}``, ``timeCodesPerSecond`` = ``rate`` (None:
+    not authored)."""
+    from pxr import Usd, UsdGeom, Vt
+
+    stage = Usd.Stage.CreateNew(str(path))
+    stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, "/World").GetPrim())
+    if rate is not None:
+        stage.SetTimeCodesPerSecond(rate)
+    points = UsdGeom.Points.Define(stage, "/World/cloud").GetPointsAttr()
+    for t, p in samples.items():
+        points.Set(Vt.Vec3fArray.FromNumpy(np.asarray(p, dtype=np.float32)), float(t))
+    stage.Save()
+    return str(path)
+
+
+def test_a_foreign_usd_target_is_read_by_its_frames_and_rate_or_refused_by_name(tmp_path):
+    """Another program's USD of particles: a particle count that changes from frame to frame
+    (or an empty sample) failed in numpy, 'all input arrays must have the same shape', naming
+    no file; a NaN position was refused later as 'targets at step 34'; samples at negative
+    time codes ended in a KeyError traceback in the fit command; a file that authors no
+    rate was read at USD's fallback of 24 fps as if recorded so, which overrode the scene's
+    rate and refused --fps 30 as 'recorded at 24 fps'."""
+    from warp_esph.fit import load_target
+
+    p = np.random.default_rng(0).uniform(0.0, 0.1, (8, 3))
+    for name, samples, message in (
+        ("fewer", {0: p, 1: p, 2: p[:5]}, r"body 'cloud' has 8 particles at frame 1 and 5 at frame 2; a run's particles "
+                                          r"are the same in every frame"),
+        ("empty", {0: p, 1: p, 2: p[:0]}, r"body 'cloud' has 8 particles at frame 1 and 0 at frame 2"),
+        ("nan", {0: p, 1: p, 2: np.where(np.arange(8)[:, None] == 6, np.nan, p)},
+         r"at frame 2, 1 of its 8 positions are not finite \(first: particle 6, \[nan, nan, nan\]\); every position of a "
+         r"target must be finite"),
+        ("negative", {-2: p, -1: p, 0: p}, r"its points have time samples at negative time codes \(-2, -1\); a warp-esph "
+                                           r"output has one per frame, at time code = frame index >= 0"),
+    ):
+        path = _foreign_points_usd(tmp_path / f"{name}.usda", samples, rate=30)
+        with pytest.raises(ValueError, match=re.escape(path) + r".*" + message):
+            load_target(path)
+    # The same body chosen whole: read, at the file's own rate where it authors one, else
+    # none (the scene's or --fps), not USD's fallback.
+    ok = {0: p, 1: p + 0.01, 2: p + 0.02}
+    t = load_target(_foreign_points_usd(tmp_path / "rate.usda", ok, rate=25))
+    assert t.frames == [1, 2] and t.fps == 25.0 and t.bodies == [("cloud", 8)]
+    np.testing.assert_allclose(t.data[1], (p + 0.02).astype(np.float32))
+    t = load_target(_foreign_points_usd(tmp_path / "norate.usda", ok))
+    assert t.frames == [1, 2] and t.fps is None

@@ -1930,11 +1930,29 @@ def _usd_run_target(path: str, body, frames) -> Target | None:
         pts = a["points"].astype(np.float64)
         if body is not None:
             pts = pts[a["body"] == index]
-        elif counts is None:
-            counts = np.bincount(np.asarray(a["body"], dtype=np.int64), minlength=len(given)).tolist()
+        here = np.bincount(np.asarray(a["body"], dtype=np.int64), minlength=len(given)).tolist()
+        if counts is None:
+            counts, first = here, f
+        elif here != counts and (body is None or here[index] != counts[index]):
+            # Particles are compared by index: another program's file whose particle count
+            # changes from frame to frame (or an empty sample) failed in numpy's stack,
+            # 'all input arrays must have the same shape', naming neither file nor frame.
+            k = index if body is not None else next(k for k in range(len(given)) if here[k] != counts[k])
+            raise ValueError(f"target {path} is not allowed: body {given[k]!r} has {counts[k]} particles at frame {first} "
+                             f"and {here[k]} at frame {f}; a run's particles are the same in every frame")
+        bad = np.flatnonzero(~np.isfinite(pts).all(axis=1))
+        if bad.size:
+            # Refused here, by file and frame: it was named 'targets at step 34', by the step it
+            # was compared at (a particle that blew up in the run, or another program's gap).
+            raise ValueError(f"target {path} is not allowed: at frame {f}, {bad.size} of its {len(pts)} positions are not finite "
+                             f"(first: particle {bad[0]}{'' if body is None else f' of body {body!r}'}, "
+                             f"{pts[bad[0]].tolist()}); every position of a target must be finite")
         pos.append(pts)
     bodies = None if body is not None else list(zip(given, counts))
-    return Target("positions", np.stack(pos), list(chosen), data.fps, path, body=body, bodies=bodies)
+    # A rate the file does not author is USD's fallback (24), not a recorded one: it overrode
+    # the scene's rate and refused --fps as "recorded at 24 fps".
+    fps = data.fps if data.fps_authored else None
+    return Target("positions", np.stack(pos), list(chosen), fps, path, body=body, bodies=bodies)
 
 
 def write_fitted_usd(model: Model, path, frames: int, fps: float, dt: float, progress: bool = False) -> str | None:

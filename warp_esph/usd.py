@@ -785,6 +785,9 @@ class UsdFrames:
             raise ValueError(f"cannot read {self.path!r}: timeCodesPerSecond = {rate:g} is not allowed: must be a finite "
                              "number > 0 (the frames per second)")
         self.fps = rate
+        #: Whether the file authors its rate (``timeCodesPerSecond`` or ``framesPerSecond``);
+        #: else ``fps`` is USD's fallback, 24, which no program recorded.
+        self.fps_authored = any(self.stage.HasAuthoredMetadata(k) for k in ("timeCodesPerSecond", "framesPerSecond"))
         data = dict(self.stage.GetRootLayer().customLayerData or {})
         # Read where it is used (render): export and fit read no view, yet warned about a bad one.
         self._stored_view = data.get(_VIEW)
@@ -805,6 +808,13 @@ class UsdFrames:
                              f"numbers ({', '.join(f'{t:g}' for t in between[:3])}{', ...' if len(between) > 3 else ''}); "
                              "a warp-esph output has one per frame, at time code = frame index")
         self.frames = sorted(int(t) for t in times)
+        if self.frames and self.frames[0] < 0:
+            # A fit target's frame -1 ended in a KeyError traceback, and '-1' of --frames counts
+            # from the end, so a negative frame index cannot even be chosen.
+            before = [f for f in self.frames if f < 0]
+            raise ValueError(f"cannot read {self.path!r}: its points have time samples at negative time codes "
+                             f"({', '.join(map(str, before[:3]))}{', ...' if len(before) > 3 else ''}); "
+                             "a warp-esph output has one per frame, at time code = frame index >= 0")
         if not self.frames:
             raise ValueError(f"cannot read {self.path}: it holds no frames")
         self.material_ids = []
