@@ -1327,3 +1327,38 @@ def test_a_foreign_usd_target_is_read_by_its_frames_and_rate_or_refused_by_name(
     np.testing.assert_allclose(t.data[1], (p + 0.02).astype(np.float32))
     t = load_target(_foreign_points_usd(tmp_path / "norate.usda", ok))
     assert t.frames == [1, 2] and t.fps is None
+
+
+def test_an_image_mask_is_read_by_its_alpha_or_palette_colours_and_must_be_its_cameras_size(tmp_path):
+    """An RGBA cut-out (the silhouette in the alpha channel, its colour one value) was read by
+    its colours alone: all inside for white, empty for black; a palette image by its palette
+    indices, which inverted a mask whose palette put white first; a mask of another size
+    than its camera was refused later as 'the mask at step 34', naming no file."""
+    from PIL import Image
+
+    cam = PinholeCamera(8, 6, 10.0, 10.0, 3.5, 2.5, np.eye(3), [0.0, 0.0, 1.0], "front")
+    inside = np.zeros((6, 8), dtype=np.uint8)
+    inside[2:4, 3:6] = 1
+    images = {}
+    for colour in (0, 255):  # black or white everywhere, the silhouette opaque on a transparent ground
+        rgba = np.full((6, 8, 4), colour, dtype=np.uint8)
+        rgba[..., 3] = 255 * inside
+        images[f"cutout_{colour}"] = Image.fromarray(rgba, "RGBA")
+    palette = Image.fromarray(1 - inside, "P")  # index 0 (white) inside, index 1 (black) outside
+    palette.putpalette([255, 255, 255, 0, 0, 0] + [0] * 762)
+    images["palette"] = palette
+    opaque = np.zeros((6, 8, 4), dtype=np.uint8)  # an alpha of one value: read by the colours, as before
+    opaque[..., :3] = 255 * inside[..., None]
+    opaque[..., 3] = 255
+    images["opaque"] = Image.fromarray(opaque, "RGBA")
+    images["grey"] = Image.fromarray(200 * inside)
+    for name, image in images.items():
+        image.save(tmp_path / f"{name}.png")
+        np.testing.assert_array_equal(load_masks(tmp_path / f"{name}.png", [cam], 2)[2][0], inside, err_msg=name)
+    Image.fromarray(np.zeros((12, 16), dtype=np.uint8)).save(tmp_path / "large.png")
+    with pytest.raises(ValueError, match=r"^mask \S*large\.png with shape \(12, 16\) is not allowed: camera 'front' is "
+                                         r"6 x 8 \(height x width\)$"):
+        load_masks(tmp_path / "large.png", [cam], 2)
+    np.savez(tmp_path / "m.npz", front_2=np.ones((3, 3)))
+    with pytest.raises(ValueError, match=r"^mask \S*m\.npz:front_2 with shape \(3, 3\) is not allowed: camera 'front'"):
+        load_masks(tmp_path / "m.npz", [cam])

@@ -31,8 +31,10 @@ Camera file (JSON)::
 
 Masks: an image (PNG, ...) or ``.npy`` ``(height, width)`` for one camera (nonzero or
 > 0.5 of the maximum: inside; all zeros: an empty view), or an ``.npz`` with one array per
-camera and frame named ``<camera>_<frame>`` (rendered frame index). Non-finite values, and
-negative ones with nothing positive, are refused by file name.
+camera and frame named ``<camera>_<frame>`` (rendered frame index). An image is read by its
+grey level (colours: their mean), or by its alpha channel where that varies (a cut-out on a
+transparent background); a palette image by its colours. Non-finite values, negative ones
+with nothing positive, and a mask of another size than its camera are refused by file name.
 """
 
 
@@ -216,7 +218,8 @@ def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None)
                 raise ValueError(f"mask {key!r} in {p} is not allowed: name arrays <camera>_<frame> with cameras {sorted(names)}")
             if cam in out.get(int(f), {}):  # front_1 and front_01: the last read won
                 raise ValueError(f"mask {key!r} in {p} is not allowed: camera {cam!r} already has a mask for frame {int(f)}")
-            out.setdefault(int(f), {})[cam] = _mask_array(data[key], f"{p}:{key}")
+            out.setdefault(int(f), {})[cam] = _fitting_mask(_mask_array(data[key], f"{p}:{key}"), f"{p}:{key}",
+                                                            cameras[[c.name for c in cameras].index(cam)])
         result = {}
         for f, by in out.items():
             if set(by) != names:
@@ -233,13 +236,41 @@ def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None)
         if isinstance(a, dict):
             raise ValueError(f"mask file {p} is not allowed: it is a zip of arrays, not one .npy image")
     else:
-        from PIL import Image  # noqa: PLC0415
-
         try:
-            a = np.asarray(Image.open(p))
+            a = _image_mask(p)
         except Exception as e:  # noqa: BLE001
             raise ValueError(f"mask {p} cannot be read as an image: {e}") from None
-    return {frame: [_mask_array(a, p)]}
+    return {frame: [_fitting_mask(_mask_array(a, p), p, cameras[0])]}
+
+
+def _fitting_mask(mask: np.ndarray, where: str, camera: PinholeCamera) -> np.ndarray:
+    """``mask``, refused by its file where it is not the camera's size (it was refused later
+    as the mask 'at step 34', by the step it was compared at, naming no file)."""
+    if mask.shape != (camera.height, camera.width):
+        raise ValueError(f"mask {where} with shape {mask.shape} is not allowed: camera {camera.name!r} is "
+                         f"{camera.height} x {camera.width} (height x width)")
+    return mask
+
+
+def _image_mask(path: str) -> np.ndarray:
+    """The values of an image mask whose inside ``_mask_array`` tells: its grey levels or
+    colours, or its alpha channel where that varies (a silhouette cut out on a transparent
+    background, whose colour may be the same everywhere). A palette image is read by its
+    colours: its pixels are palette indices, which read as values inverted a mask whose
+    palette put white first."""
+    from PIL import Image  # noqa: PLC0415
+
+    with Image.open(path) as img:
+        if img.mode not in ("1", "L", "LA", "I", "F", "RGB", "RGBA") and not img.mode.startswith("I;"):
+            img = img.convert("RGBA")  # a palette (its transparency as alpha), CMYK, ...
+        bands = img.getbands()
+        a = np.asarray(img)
+    if "A" not in bands:
+        return a
+    alpha = a[..., bands.index("A")]
+    if alpha.min() != alpha.max():
+        return alpha
+    return np.delete(a, bands.index("A"), axis=2)  # an alpha of one value draws no silhouette
 
 
 def soft_silhouette(X: np.ndarray, camera: PinholeCamera, radius: float, opacity: float = DEFAULT_OPACITY) -> np.ndarray:
