@@ -170,6 +170,20 @@ def test_particles_spread_past_float32_are_refused_not_scattered_past_the_grid()
             particle_surface(pts, 0.02)
 
 
+def test_points_that_are_not_n_by_3_real_numbers_are_refused_not_reshaped():
+    """Points were reshaped to (-1, 3) whatever they were: three (x, y) pairs became two
+    points of mixed coordinates, a (3, 4) array four points, and complex values lost their
+    imaginary parts, each meshed without a word; text failed in numpy, naming nothing."""
+    for points, kind in ((np.zeros((3, 2)), r"float64 values of shape \(3, 2\)"),
+                         (np.zeros((3, 4)), r"float64 values of shape \(3, 4\)"),
+                         (np.zeros((1, 3)) + 1j, r"complex128 values of shape \(1, 3\)"),
+                         ("abc", r"<U3 values of shape \(\)")):
+        with pytest.raises(ValueError, match=rf"^points = .* is not allowed: must be real numbers of shape \(n, 3\), not {kind}$"):
+            particle_surface(points, 0.02)
+    one = particle_surface([0.1, 0.2, 0.3], 0.02)[0]  # one point as (3,): a sphere of radius 0.55 dx around it
+    np.testing.assert_allclose(np.linalg.norm(one - [0.1, 0.2, 0.3], axis=1), 0.011, rtol=0.1)
+
+
 def test_two_outputs_with_one_stem_keep_their_own_pictures_and_frames(tmp_path, capsys):
     """-o a.usdc and -o a.usda in one folder: the preview, the exported frames and the
     checkpoint are named from the whole output name, so neither run overwrites the other's."""

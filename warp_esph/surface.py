@@ -86,7 +86,16 @@ def surface_field(points, spacing: float, *, kernel_radius: float | None = None,
     R = 2.0 * dx if kernel_radius is None else checks.positive("kernel_radius", kernel_radius)
     r = 0.55 * dx if radius is None else checks.positive("radius", radius)
     h = 0.5 * dx if cell is None else checks.positive("cell", cell)
-    p = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    try:
+        p = np.asarray(points)
+    except (TypeError, ValueError):  # ragged rows
+        p = np.asarray(None)
+    if p.dtype.kind not in "iuf" or not (p.shape == (3,) or (p.ndim == 2 and p.shape[1] == 3)):
+        # Reshaped to (-1, 3) whatever it was: (3, 2) x, y pairs became two points of
+        # mixed coordinates and a (3, 4) array four, without a word; text failed in numpy.
+        raise ValueError(f"points = {checks.shorten(points)!r} is not allowed: must be real numbers of shape (n, 3), "
+                         f"not {p.dtype} values of shape {p.shape}")
+    p = p.astype(np.float32).reshape(-1, 3)
     p = p[np.isfinite(p).all(axis=1)]
     if len(p) == 0:
         raise ValueError("points = [] is not allowed: a surface needs at least one finite particle position")
@@ -119,6 +128,7 @@ def particle_surface(points, spacing: float, *, kernel_radius: float | None = No
                      cell: float | None = None, device="cpu") -> tuple[np.ndarray, np.ndarray]:
     """A closed, outward-facing triangle surface around ``points``: ``(vertices (V, 3), triangles (T, 3))``.
 
+    ``points``: ``(n, 3)`` real numbers (or one ``(3,)`` point; non-finite rows are left out);
     ``spacing``: the particle spacing dx; ``kernel_radius`` (default 2 dx), ``radius`` (default
     0.55 dx) and ``cell`` (grid cell, default dx / 2) as in the module notes.
     """
