@@ -76,6 +76,35 @@ def test_one_v0_for_every_particle_runs_as_the_same_v0_per_particle_and_gets_the
         rollout_positions(rollout, v0=torch.tensor([0.2, float("nan"), 0.05], dtype=torch.float64))
 
 
+def test_backward_leaves_the_model_holding_the_values_it_held():
+    """A backward whose forward's values had been replaced since (set_parameters, a later
+    forward, set_material) re-ran that forward, right, but left the model holding them: the
+    user's later values were undone without a word, and the next plain run used the old ones."""
+    model = _cube()
+    rollout = Rollout(model, 3, 1.0e-3, frames=[3])
+
+    def mu():
+        return torch.tensor([1.0e3], dtype=torch.float64, requires_grad=True)
+
+    ref = mu()
+    rollout_positions(rollout, {"mu": ref}).square().sum().backward()
+    assert ref.grad.abs().item() > 0.0
+    for change in ("set_parameters", "later forward", "set_material"):
+        m = mu()
+        loss = rollout_positions(rollout, {"mu": m}).square().sum()
+        if change == "set_parameters":
+            rollout.set_parameters({"mu": np.array([2.0e3])})
+        elif change == "later forward":
+            rollout_positions(rollout, {"mu": torch.tensor([2.0e3], dtype=torch.float64)})
+        else:
+            model.set_material(0, model.materials[0].replace(mu=2.0e3, yield_stress=20.0))
+        loss.backward()
+        assert m.grad.item() == pytest.approx(ref.grad.item(), rel=1e-12), change  # this forward's gradient
+        assert rollout.get_parameters()["mu"].tolist() == [2.0e3], change  # and the model as it was
+        if change == "set_material":
+            assert rollout.get_parameters()["yield_stress"].tolist() == [20.0] and model.materials[0].mu == 2.0e3
+
+
 def test_torch_adam_drives_a_fit():
     """torch.optim.Adam on a RolloutModule (log-space parameter) recovers the flow rate from 2x."""
     steps, frames = 12, [4, 8, 12]

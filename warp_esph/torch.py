@@ -19,8 +19,9 @@ positions at the rollout's ``frames``. The forward pass sets the model's paramet
 arrays to the given values (they keep them afterwards). The backward pass re-runs the
 forward pass first when the rollout has been run with other inputs since (as
 ``torch.autograd.gradcheck`` does), so every output's gradient is taken at its own
-inputs. Tensors are copied to and from the model's device; use a float64 model with
-float64 tensors for ``gradcheck``.
+inputs, and leaves the model holding the parameter values it held before. Tensors are
+copied to and from the model's device; use a float64 model with float64 tensors for
+``gradcheck``.
 
 ``RolloutModule`` holds chosen parameters as ``torch.nn.Parameter`` in log space (for
 positive ones) so ``torch.optim.Adam`` can drive a fit.
@@ -100,15 +101,26 @@ def _function():
         def backward(ctx, grad_out):
             rollout: Rollout = ctx.rollout
             current = rollout.get_parameters()
-            same = rollout.forward_count == ctx.forward_count and all(
-                np.array_equal(current[k], ctx.params[k]) for k in PARAMETERS
-            )
-            if not same:
-                # The rollout ran with other inputs since: redo this forward first.
+            changed = not all(np.array_equal(current[k], ctx.params[k]) for k in PARAMETERS)
+            if changed:
                 rollout.set_parameters(ctx.params)
-                rollout.forward(x0=ctx.x0, v0=ctx.v0)
-                ctx.forward_count = rollout.forward_count
-            _, grads = rollout.backward(_numpy(grad_out, rollout.model.types.np_dtype))
+            try:
+                redo = rollout.forward_count != ctx.forward_count
+                if not redo:
+                    try:  # set_material since: the point is not this forward's, whatever the arrays say
+                        rollout._check_inputs_unchanged()
+                    except RuntimeError:
+                        redo = True
+                if redo:
+                    # The rollout ran with other inputs since: redo this forward first.
+                    rollout.forward(x0=ctx.x0, v0=ctx.v0)
+                    ctx.forward_count = rollout.forward_count
+                _, grads = rollout.backward(_numpy(grad_out, rollout.model.types.np_dtype))
+            finally:
+                if changed:
+                    # The model keeps the values it held (a later forward's, or set_parameters'
+                    # since): this forward's had replaced them without a word.
+                    rollout.set_parameters(current)
 
             def tensor(a):
                 return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=ctx.tensor_dtype, device=ctx.device)
