@@ -129,6 +129,21 @@ def test_torch_adam_drives_a_fit():
     assert module.rollout.model.flow_rate.numpy()[0] == pytest.approx(module.values()["flow_rate"].item(), rel=0.1)
 
 
+def test_a_tensor_without_values_to_read_is_refused_by_name():
+    """A meta tensor (shapes, no values) or a sparse one reached torch's own 'Cannot copy out
+    of meta tensor' or 'can't convert Sparse layout tensor to numpy', naming no input."""
+    model = _cube()
+    rollout = Rollout(model, 2, 1.0e-3)
+    n = model.particle_count
+    for name, t, kw in (("mu", torch.ones(1, device="meta"), "params"),
+                        ("mu", torch.ones(1, dtype=torch.float64).to_sparse(), "params"),
+                        ("x0", torch.ones(n, 3, device="meta"), "x0"),
+                        ("v0", torch.zeros(n, 3, dtype=torch.float64).to_sparse(), "v0")):
+        where = "on the meta device \\(no values\\)" if t.is_meta else "of layout torch.sparse_coo"
+        with pytest.raises(ValueError, match=rf"^{name} {where} is not allowed: must be a dense tensor with values"):
+            rollout_positions(rollout, {name: t} if kw == "params" else None, **({} if kw == "params" else {kw: t}))
+
+
 def test_inputs_are_checked_and_missing_torch_is_explained(monkeypatch):
     model = _cube()
     rollout = Rollout(model, 2, 1.0e-3)

@@ -177,6 +177,7 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
             raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be numbers, one per material")
         if not isinstance(value, torch.Tensor):
             value = torch.as_tensor(value, dtype=torch.float64)
+        _check_dense(torch, name, value)
         if value.dim() == 0:
             value = value.expand(n_mat)
         if value.shape != (n_mat,):
@@ -199,11 +200,21 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
             raise ValueError(f"{label} with shape {tuple(t.shape)} is not allowed: must be a torch tensor of shape {shapes}")
         if t.dtype == torch.bool or t.is_complex():  # True ran as 1 m/s, 1j was dropped
             raise ValueError(f"{label} of dtype {t.dtype} is not allowed: must be real numbers")
+        _check_dense(torch, label, t)
         # Here, before the parameters are set and any kernel runs, by the rollout's own checks:
         # x0 with every particle at one point (which SceneBuilder refuses) returned the start
         # moved only by gravity; a NaN ran to NaN positions.
         check_initial(rollout.model, label, given.detach().to(device="cpu", dtype=torch.float64).numpy())
     return _function().apply(rollout, tuple(names), start["x0"], start["v0"], *values)
+
+
+def _check_dense(torch, name: str, t) -> None:
+    """Refuse a tensor whose values cannot be read (torch's own 'Cannot copy out of meta
+    tensor' or 'can't convert Sparse layout tensor to numpy' named no input)."""
+    if t.is_meta or t.layout != torch.strided:
+        where = "on the meta device (no values)" if t.is_meta else f"of layout {t.layout}"
+        raise ValueError(f"{name} {where} is not allowed: must be a dense tensor with values (.to_dense(), or made on a "
+                         "real device)")
 
 
 _MODULE = None
