@@ -1362,3 +1362,38 @@ def test_an_image_mask_is_read_by_its_alpha_or_palette_colours_and_must_be_its_c
     np.savez(tmp_path / "m.npz", front_2=np.ones((3, 3)))
     with pytest.raises(ValueError, match=r"^mask \S*m\.npz:front_2 with shape \(3, 3\) is not allowed: camera 'front'"):
         load_masks(tmp_path / "m.npz", [cam])
+
+
+def test_a_foreign_usd_targets_frames_and_points_are_named_as_the_command_gives_them(tmp_path, capsys, dough_scene):
+    """Through ``warp-esph fit``: a USD sample at time code 1e12 was refused as '--frames =
+    1000000000000', which was not given; a --target-frames the file does not hold as
+    'frames = ...', which names no option; and particles another program wrote elsewhere
+    than directly under /World (nested in a group, a PointInstancer) as 'mesh ... is not a
+    closed triangle mesh', which they never were."""
+    from pxr import Usd, UsdGeom, Vt
+
+    from warp_esph.cli import main
+
+    scene = tmp_path / "guess.toml"
+    scene.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=3))
+    p = np.random.default_rng(0).uniform(0.0, 0.1, (64, 3))
+    far = _foreign_points_usd(tmp_path / "far.usda", {0: p, 1e12: p}, rate=30)
+    three = _foreign_points_usd(tmp_path / "three.usda", {0: p, 1: p, 2: p}, rate=30)
+    nested = str(tmp_path / "nested.usda")
+    stage = Usd.Stage.CreateNew(nested)
+    UsdGeom.Xform.Define(stage, "/World/group")
+    UsdGeom.Points.Define(stage, "/World/group/cloud").GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(p.astype(np.float32)), 1.0)
+    UsdGeom.PointInstancer.Define(stage, "/World/copies")
+    stage.Save()
+    for target, extra, message in (
+        (far, [], "the targets' last frame, 1000000000000, is not allowed: the fit runs to it, and a run has at most "
+                  "2147483647 frames"),
+        (three, ["--target-frames", "5"], "--target-frames = '5' is not allowed: frame 5 is not in the file (it holds 0..2)"),
+        (nested, [], f"target {nested} is not allowed: it has no mesh, and its points (/World/group/cloud, /World/copies) are "
+                     "not where a run's particles are read from: UsdGeom.Points prims directly under /World"),
+    ):
+        capsys.readouterr()
+        assert main(["fit", str(scene), "--target", target, "--no-usd", "--no-progress",
+                     "--output-dir", str(tmp_path / "out"), *extra]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"warp-esph: error: {message}") and len(err.strip().splitlines()) == 1, err

@@ -442,7 +442,13 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         usd_spec = fspec if usd else None
         # --target-body picks a body of a run's USD; the other targets of the experiment (a force
         # log beside it) take none (refused below where no target is such a USD).
-        t = load_target(path, body=spec.get("target_body") if usd else None, frames=usd_spec, tool=spec.get("target_tool"))
+        try:
+            t = load_target(path, body=spec.get("target_body") if usd else None, frames=usd_spec, tool=spec.get("target_tool"))
+        except ValueError as e:
+            if usd_spec is not None and str(e).startswith("frames = "):
+                # load_target's parameter is the command's --target-frames: 'frames' named no option.
+                raise ValueError(f"{where}--target-{e}") from None
+            raise
         any_usd = any_usd or usd
         if fspec is not None and usd_spec is None and t.frames_stored:
             # The file numbers its frames: --target-frames chooses among them, as of a run's USD
@@ -553,6 +559,10 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         raise ValueError(f"{where}--target-frames = {tframes[0] if tframes else 0!r} is not allowed: the targets hold "
                          "only frame 0, the initial state, which says nothing about the material")
     frames = spec.get("frames")
+    if frames is None and shown and max(shown) > checks.MAX_INT:
+        # It was refused as '--frames = 1000000000000', which was not given (a foreign USD's time code).
+        raise ValueError(f"{where}the targets' last frame, {max(shown)}, is not allowed: the fit runs to it, and a run has at "
+                         f"most {checks.MAX_INT} frames (a target's frames are rendered frame indices)")
     frames = checks.positive_int(f"{where}--frames", frames if frames is not None else (max(shown) if shown else scene.frames))
     if frames * substeps > checks.MAX_INT:  # a rollout's step count (Rollout's steps), named by what set it
         source = (f"{where}--frames = {frames}" if spec.get("frames") is not None else

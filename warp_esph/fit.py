@@ -1803,7 +1803,17 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
                              "run, and holds no bodies to choose from")
         from .meshes import load_mesh  # noqa: PLC0415
 
-        return Target("mesh", load_mesh(p), None, None, p)
+        try:
+            return Target("mesh", load_mesh(p), None, None, p)
+        except ValueError as e:
+            points = _points_elsewhere(p) if "has no UsdGeom.Mesh prim" in str(e) else []
+            if not points:
+                raise
+            # Particles another program wrote elsewhere (a PointInstancer, Points under a group
+            # or another root) were refused as 'not a closed triangle mesh', which they never were.
+            raise ValueError(f"target {p} is not allowed: it has no mesh, and its points ({', '.join(points[:3])}"
+                             f"{', ...' if len(points) > 3 else ''}) are not where a run's particles are read from: "
+                             "UsdGeom.Points prims directly under /World, one per body, one time sample per frame") from None
     from .meshes import read_meshio  # noqa: PLC0415
 
     m = read_meshio(repr(p), p)  # checked or read in a child process: a damaged file cannot hang
@@ -1813,6 +1823,17 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
 
         return Target("mesh", load_mesh(p), None, None, p)
     return Target("points", _cloud(p, np.asarray(m.points, dtype=np.float64)), None, None, p)
+
+
+def _points_elsewhere(path: str) -> list[str]:
+    """The paths of a USD file's Points and PointInstancer prims (a file that ``UsdFrames`` found
+    no run's particles in holds none directly under /World)."""
+    from pxr import Usd, UsdGeom  # noqa: PLC0415
+
+    from .usd import open_layer_checked  # noqa: PLC0415
+
+    stage = Usd.Stage.Open(open_layer_checked(path))
+    return [str(q.GetPath()) for q in stage.Traverse() if q.IsA(UsdGeom.Points) or q.IsA(UsdGeom.PointInstancer)]
 
 
 def _cloud(path: str, pts: np.ndarray) -> np.ndarray:
