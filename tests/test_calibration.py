@@ -1327,6 +1327,20 @@ def test_a_foreign_usd_target_is_read_by_its_frames_and_rate_or_refused_by_name(
     np.testing.assert_allclose(t.data[1], (p + 0.02).astype(np.float32))
     t = load_target(_foreign_points_usd(tmp_path / "norate.usda", ok))
     assert t.frames == [1, 2] and t.fps is None
+    # A body whose samples stop (or skip a frame) was read there as USD answers between samples,
+    # held or interpolated: standing still, or on a straight line, which nothing measured.
+    from pxr import Usd, UsdGeom, Vt
+
+    stops = str(tmp_path / "stops.usda")
+    stage = Usd.Stage.Open(_foreign_points_usd(stops, ok, rate=30))
+    late = UsdGeom.Points.Define(stage, "/World/late").GetPointsAttr()
+    for f in (0, 2):
+        late.Set(Vt.Vec3fArray.FromNumpy(p.astype(np.float32) + f), float(f))
+    stage.Save()
+    with pytest.raises(ValueError, match=re.escape(stops) + r" is not allowed: body 'late' has no sample at frame 1 \(the "
+                                         r"file's frames are those of any body\); a run's file holds every body at every frame"):
+        load_target(stops)
+    assert load_target(stops, body="cloud").data.shape == (2, 8, 3)  # the body observed alone has every frame
 
 
 def test_an_image_mask_is_read_by_its_alpha_or_palette_colours_and_must_be_its_cameras_size(tmp_path):

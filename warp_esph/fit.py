@@ -1944,9 +1944,21 @@ def _usd_run_target(path: str, body, frames) -> Target | None:
     chosen = parse_frames(frames, data.frames) if frames is not None else [f for f in data.frames if f != data.frames[0]]
     if not chosen:
         raise ValueError(f"target {path} holds only frame {data.frames[0]}, which says nothing about the material")
+    from pxr import Gf, UsdGeom  # noqa: PLC0415
+
+    observed = [(given[k], prim) for k, (_, prim) in enumerate(data.bodies) if body is None or k == index]
+    samples = {name: set(UsdGeom.Points(prim).GetPointsAttr().GetTimeSamplesInInterval(Gf.Interval(chosen[0], chosen[-1])))
+               for name, prim in observed}
     pos = []
     counts = None
     for f in chosen:
+        missing = next((name for name, _ in observed if float(f) not in samples[name]), None)
+        if missing is not None:
+            # USD answers between samples with the nearest one held, or interpolated: a body of
+            # another program's file whose samples stopped (or skipped a frame) was fitted as
+            # standing still there, or moving on a straight line, which nothing measured.
+            raise ValueError(f"target {path} is not allowed: body {missing!r} has no sample at frame {f} (the file's "
+                             "frames are those of any body); a run's file holds every body at every frame")
         a = data.arrays(f)
         pts = a["points"].astype(np.float64)
         if body is not None:
