@@ -411,7 +411,8 @@ def test_camera_file_and_masks(tmp_path):
     loss = load_silhouette_target(path, tmp_path / "masks.npz", None, frames=6, substeps=10)
     assert loss.frames == (30,) and loss.radius == 0.01 and [c.name for c in loss.cameras] == ["front", "side"]
     # A misspelt key was ignored; a radius that is no number was a float() error naming nothing;
-    # a mask image given two frames was an int() error.
+    # a mask image given two frames was an int() error (an .npz, which it called an image too,
+    # now has its frames chosen).
     for change, message in (({"cameras": [dict(doc["cameras"][0], fov=60)]}, "camera 'front': key 'fov' is not allowed"),
                             ({"bar": 2}, "key 'bar' is not allowed: the keys are cameras, radius, opacity"),
                             ({"radius": "x"}, "radius = 'x' is not allowed: must be a number")):
@@ -419,8 +420,12 @@ def test_camera_file_and_masks(tmp_path):
         with pytest.raises(ValueError, match=message):
             load_cameras(path)
     path.write_text(json.dumps(doc))
-    with pytest.raises(ValueError, match="--target-frames = '2,3' is not allowed with the mask image"):
+    with pytest.raises(ValueError, match=r"--target-frames = '2,3' is not allowed: frame 2 is not in the file .*; the mask "
+                                         r"file \S*masks\.npz holds frames 3$"):
         load_silhouette_target(path, tmp_path / "masks.npz", "2,3", frames=6, substeps=10)
+    np.save(tmp_path / "front.npy", np.ones((24, 32)))
+    with pytest.raises(ValueError, match="--target-frames = '2,3' is not allowed with the mask image"):
+        load_silhouette_target(path, tmp_path / "front.npy", "2,3", frames=6, substeps=10)
     doc["cameras"][0]["R"] = [[2, 0, 0], [0, 1, 0], [0, 0, 1]]
     path.write_text(json.dumps(doc))
     with pytest.raises(ValueError, match="not a rotation"):
@@ -1411,3 +1416,34 @@ def test_a_foreign_usd_targets_frames_and_points_are_named_as_the_command_gives_
                      "--output-dir", str(tmp_path / "out"), *extra]) == 2
         err = capsys.readouterr().err
         assert err.startswith(f"warp-esph: error: {message}") and len(err.strip().splitlines()) == 1, err
+
+
+def test_the_frames_of_npz_masks_are_chosen_and_a_mask_sequence_image_or_bad_opacity_is_refused(tmp_path):
+    """``--target-frames`` with an ``.npz`` of masks was ignored: every frame of the file was
+    fitted whatever it chose; a GIF or multi-page TIFF of masks was read as its first image
+    alone; a camera file's opacity of 1 was refused by SilhouetteLoss, naming no file."""
+    from PIL import Image
+
+    from warp_esph.silhouette import load_silhouette_target
+
+    cam = {"name": "front", "width": 8, "height": 6, "fx": 10.0, "fy": 10.0, "cx": 3.5, "cy": 2.5,
+           "R": np.eye(3).tolist(), "t": [0.0, 0.0, 1.0]}
+    (tmp_path / "cams.json").write_text(json.dumps({"cameras": [cam], "radius": 0.01}))
+    np.savez(tmp_path / "m.npz", front_2=np.zeros((6, 8)), front_3=np.ones((6, 8)), front_5=np.zeros((6, 8)))
+    loss = load_silhouette_target(tmp_path / "cams.json", tmp_path / "m.npz", "3", 6, 10)
+    assert loss.frames == (30,) and loss.masks[30][0].all()
+    assert load_silhouette_target(tmp_path / "cams.json", tmp_path / "m.npz", "2,last", 6, 10).frames == (20, 50)
+    assert load_silhouette_target(tmp_path / "cams.json", tmp_path / "m.npz", None, 6, 10).frames == (20, 30, 50)
+    with pytest.raises(ValueError, match=r"^--target-frames = '4' is not allowed: frame 4 is not in the file .*; the mask "
+                                         r"file \S*m\.npz holds frames 2, 3, 5$"):
+        load_silhouette_target(tmp_path / "cams.json", tmp_path / "m.npz", "4", 6, 10)
+    pages = [Image.fromarray(np.full((6, 8), 255 * (k % 2), dtype=np.uint8)) for k in range(3)]
+    for ext in ("gif", "tif"):
+        pages[0].save(tmp_path / f"seq.{ext}", save_all=True, append_images=pages[1:])
+        with pytest.raises(ValueError, match=r"^mask \S*seq\.%s cannot be read as an image: it holds 3 images \(an animation "
+                                             r"or a multi-page file\); a mask image is one view at one frame" % ext):
+            load_masks(tmp_path / f"seq.{ext}", [PinholeCamera.from_dict(cam)], 2)
+    (tmp_path / "opaque.json").write_text(json.dumps({"cameras": [cam], "radius": 0.01, "opacity": 1.0}))
+    with pytest.raises(ValueError, match=r"^camera file \S*opaque\.json: opacity = 1\.0 is not allowed: must be in "
+                                         r"\[1e-06, 0\.999\]$"):
+        load_cameras(tmp_path / "opaque.json")

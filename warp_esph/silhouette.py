@@ -161,6 +161,8 @@ def load_cameras(path) -> tuple[list[PinholeCamera], dict]:
     for key in ("radius", "opacity"):
         if key in doc:
             checks.positive(f"camera file {p}: {key}", doc[key])  # 'x' was a float() error naming nothing
+    if "opacity" in doc:  # 1.0 was refused by SilhouetteLoss, naming no file
+        checks.in_range(f"camera file {p}: opacity", doc["opacity"], 1e-6, 0.999)
     cameras = [PinholeCamera.from_dict(c) for c in cams]
     names = [c.name for c in cameras]
     if len(set(names)) != len(names):
@@ -261,6 +263,11 @@ def _image_mask(path: str) -> np.ndarray:
     from PIL import Image  # noqa: PLC0415
 
     with Image.open(path) as img:
+        frames = getattr(img, "n_frames", 1)
+        if frames > 1:
+            # Only the first was read: a GIF or TIFF of a mask sequence fitted its first mask alone.
+            raise ValueError(f"it holds {frames} images (an animation or a multi-page file); a mask image is one "
+                             "view at one frame: give masks of several frames as an .npz of <camera>_<frame> arrays")
         if img.mode not in ("1", "L", "LA", "I", "F", "RGB", "RGBA") and not img.mode.startswith("I;"):
             img = img.convert("RGBA")  # a palette (its transparency as alpha), CMYK, ...
         bands = img.getbands()
@@ -511,16 +518,30 @@ def T_vec(S, t):
 def load_silhouette_target(cameras_path, masks_path, frames_spec, frames: int, substeps: int) -> SilhouetteLoss:
     """The silhouette loss of the ``warp-esph fit`` command: cameras from ``cameras_path``,
     masks from ``masks_path`` at rendered frames (an image: ``frames_spec`` or the last
-    frame), with ``substeps`` steps per frame. The splat radius is the file's ``radius``
-    (required: about half a particle spacing) and the opacity its ``opacity`` (default 0.9)."""
+    frame; an ``.npz``: its own, ``frames_spec`` choosing among them), with ``substeps``
+    steps per frame. The splat radius is the file's ``radius`` (required: about half a
+    particle spacing) and the opacity its ``opacity`` (default 0.9)."""
     cameras, options = load_cameras(cameras_path)
-    try:
-        frame = int(frames_spec) if frames_spec is not None else frames
-    except (TypeError, ValueError):
-        # '2,3' or 'last' was an int() error: an image is one frame.
-        raise ValueError(f"--target-frames = {frames_spec!r} is not allowed with the mask image {masks_path}: an image "
-                         "is one rendered frame, give one frame index") from None
-    masks = load_masks(masks_path, cameras, frame)
+    if str(masks_path).lower().endswith(".npz"):
+        masks = load_masks(masks_path, cameras)
+        if frames_spec is not None:
+            # It was ignored: every frame of the file was fitted, whatever --target-frames said.
+            from .usd import parse_frames  # noqa: PLC0415
+
+            try:
+                chosen = parse_frames(frames_spec, sorted(masks))
+            except ValueError as e:
+                raise ValueError(f"--target-{e}; the mask file {masks_path} holds frames "
+                                 f"{', '.join(map(str, sorted(masks)))}") from None
+            masks = {f: masks[f] for f in dict.fromkeys(chosen)}
+    else:
+        try:
+            frame = int(frames_spec) if frames_spec is not None else frames
+        except (TypeError, ValueError):
+            # '2,3' or 'last' was an int() error: an image is one frame.
+            raise ValueError(f"--target-frames = {frames_spec!r} is not allowed with the mask image {masks_path}: an image "
+                             "is one rendered frame, give one frame index") from None
+        masks = load_masks(masks_path, cameras, frame)
     bad = [f for f in masks if f > frames or f <= 0]
     if bad:
         raise ValueError(f"masks at frame {bad[0]} are not allowed: frames are 1..{frames} (--frames)")
