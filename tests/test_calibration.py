@@ -1284,14 +1284,16 @@ def test_a_point_cloud_that_repeats_points_counts_each_once(tmp_path, capsys, do
     assert loss.targets[5].tolist() == [[0, 0, 0], [1, 0, 0]]
 
 
-def _foreign_points_usd(path, samples, rate=None):
+def _foreign_points_usd(path, samples, rate=None, meters=1.0):
     """A USD file of another program: one ``UsdGeom.Points`` prim ``/World/cloud`` with
-    ``samples`` ``{time code: (n, 3) positions}``, ``timeCodesPerSecond`` = ``rate`` (None:
-    not authored)."""
+    ``samples`` ``{time code: (n, 3) positions}``, ``timeCodesPerSecond`` = ``rate`` and
+    ``metersPerUnit`` = ``meters`` (None: not authored)."""
     from pxr import Usd, UsdGeom, Vt
 
     stage = Usd.Stage.CreateNew(str(path))
     stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, "/World").GetPrim())
+    if meters is not None:
+        UsdGeom.SetStageMetersPerUnit(stage, meters)
     if rate is not None:
         stage.SetTimeCodesPerSecond(rate)
     points = UsdGeom.Points.Define(stage, "/World/cloud").GetPointsAttr()
@@ -1447,3 +1449,32 @@ def test_the_frames_of_npz_masks_are_chosen_and_a_mask_sequence_image_or_bad_opa
     with pytest.raises(ValueError, match=r"^camera file \S*opaque\.json: opacity = 1\.0 is not allowed: must be in "
                                          r"\[1e-06, 0\.999\]$"):
         load_cameras(tmp_path / "opaque.json")
+
+
+def test_a_foreign_usd_targets_particles_are_read_in_metres_and_world_coordinates(tmp_path):
+    """Another program's particles in centimetres (metersPerUnit 0.01), under a moved /World,
+    or with a time-sampled transform of their own were compared with the scene in their
+    local units, 100 x too far or off by the transforms, without a word; a mesh target was
+    already read in metres and world coordinates. A stage that authors no metersPerUnit is
+    in centimetres by USD's rule, with a warning (as a mesh)."""
+    from pxr import Gf, Usd, UsdGeom
+
+    from warp_esph.fit import load_target
+
+    p = np.random.default_rng(0).uniform(0.0, 10.0, (8, 3))  # centimetres
+    ok = {0: p, 1: p + 1.0, 2: p + 2.0}
+    cm = _foreign_points_usd(tmp_path / "cm.usda", ok, rate=30, meters=0.01)
+    np.testing.assert_allclose(load_target(cm).data, 0.01 * np.stack([p + 1.0, p + 2.0]).astype(np.float32), rtol=1e-6)
+    stage = Usd.Stage.Open(cm)
+    UsdGeom.Xformable(stage.GetPrimAtPath("/World")).AddTranslateOp().Set(Gf.Vec3d(0.0, 50.0, 0.0))
+    spin = UsdGeom.Xformable(stage.GetPrimAtPath("/World/cloud")).AddRotateYOp()
+    spin.Set(0.0, 1.0)
+    spin.Set(90.0, 2.0)
+    stage.Save()
+    t = load_target(cm)
+    moved = [p + 1.0, (p + 2.0)[:, [2, 1, 0]] * [1.0, 1.0, -1.0]]  # frame 2 turned 90 degrees about y, then up 50 cm
+    np.testing.assert_allclose(t.data, 0.01 * (np.stack(moved) + [0.0, 50.0, 0.0]), rtol=1e-5, atol=1e-7)
+    plain = _foreign_points_usd(tmp_path / "plain.usda", ok, rate=30, meters=None)
+    with pytest.warns(UserWarning, match=r"plain\.usda: its stage does not author metersPerUnit, so USD's fallback of 0\.01 m "
+                                         r"per unit \(centimetres\) is assumed"):
+        assert load_target(plain).data[0] == pytest.approx(0.01 * (p + 1.0), rel=1e-6)
