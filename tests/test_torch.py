@@ -103,6 +103,12 @@ def test_backward_leaves_the_model_holding_the_values_it_held():
         assert rollout.get_parameters()["mu"].tolist() == [2.0e3], change  # and the model as it was
         if change == "set_material":
             assert rollout.get_parameters()["yield_stress"].tolist() == [20.0] and model.materials[0].mu == 2.0e3
+    # A material change set_parameters cannot put back: refused, as Rollout.backward refuses it.
+    loss = rollout_positions(rollout, {"mu": mu()}).square().sum()
+    model.set_material(0, model.materials[0].replace(clamp_pressure=not model.materials[0].clamp_pressure))
+    with pytest.raises(RuntimeError, match=r"^backward is not allowed: materials\[0\]\.clamp_pressure changed since this "
+                                           r"forward"):
+        loss.backward()
 
 
 def test_torch_adam_drives_a_fit():

@@ -30,6 +30,7 @@ PyTorch is imported only when these functions are used; without it they raise an
 ``ImportError`` that says how to install it.
 """
 
+import dataclasses
 from collections.abc import Mapping
 
 import numpy as np
@@ -85,6 +86,7 @@ def _function():
                 rollout.set_parameters(before)
                 raise
             ctx.forward_count = rollout.forward_count
+            ctx.materials = tuple(rollout.model.materials)
             ref = next((t for t in (x0, v0, *values) if t is not None), None)
             # Real numbers in at least the model's precision: an integer input (a viscosity given
             # as 0) made them integers, each truncated to 0; a float16 one rounded them (1.7 mm
@@ -100,6 +102,14 @@ def _function():
         @torch.autograd.function.once_differentiable
         def backward(ctx, grad_out):
             rollout: Rollout = ctx.rollout
+            # What set_parameters cannot put back (a material's force, clamp or plastic model
+            # set since): the forward's point cannot be re-run, as Rollout.backward refuses it.
+            others = [f"materials[{k}].{field.name}" for k, (a, b) in enumerate(zip(ctx.materials, rollout.model.materials))
+                      for field in dataclasses.fields(a) if field.name not in PARAMETERS
+                      and getattr(a, field.name) != getattr(b, field.name)]
+            if others:
+                raise RuntimeError(f"backward is not allowed: {', '.join(others)} changed since this forward, and the "
+                                   "gradient at its point cannot be taken; run the forward again")
             current = rollout.get_parameters()
             changed = not all(np.array_equal(current[k], ctx.params[k]) for k in PARAMETERS)
             if changed:
