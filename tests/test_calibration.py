@@ -1478,3 +1478,30 @@ def test_a_foreign_usd_targets_particles_are_read_in_metres_and_world_coordinate
     with pytest.warns(UserWarning, match=r"plain\.usda: its stage does not author metersPerUnit, so USD's fallback of 0\.01 m "
                                          r"per unit \(centimetres\) is assumed"):
         assert load_target(plain).data[0] == pytest.approx(0.01 * (p + 1.0), rel=1e-6)
+
+
+def test_a_foreign_usd_target_that_refers_to_other_files_reads_them_beside_it(tmp_path):
+    """A file whose particles come from another by a relative reference ('./cloud.usda') was
+    composed from an anonymous copy, where the path resolved nowhere: pxr printed a warning
+    and the file read as holding no frames. A referenced file that is missing is named."""
+    from pxr import Usd, UsdGeom
+
+    from warp_esph.fit import load_target
+
+    p = np.random.default_rng(0).uniform(0.0, 0.1, (8, 3))
+    _foreign_points_usd(tmp_path / "cloud.usda", {0: p, 1: p + 0.01, 2: p + 0.02}, rate=30)
+    shot = str(tmp_path / "shot.usda")
+    stage = Usd.Stage.CreateNew(shot)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetTimeCodesPerSecond(30)
+    UsdGeom.Xform.Define(stage, "/World")
+    UsdGeom.Points.Define(stage, "/World/dough").GetPrim().GetReferences().AddReference("./cloud.usda", "/World/cloud")
+    stage.Save()
+    del stage  # which holds the referenced layer open
+    t = load_target(shot)
+    assert t.frames == [1, 2] and t.bodies == [("dough", 8)]
+    np.testing.assert_allclose(t.data[1], (p + 0.02).astype(np.float32))
+    os.remove(tmp_path / "cloud.usda")
+    with pytest.raises(ValueError, match=rf"^cannot read '{re.escape(shot)}': the file \S*cloud\.usda it refers to \(at "
+                                         r"/World/dough\) cannot be opened"):
+        load_target(shot)

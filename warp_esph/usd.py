@@ -49,6 +49,7 @@ import functools
 import io
 import math
 import os
+import re
 import shutil
 import sys
 import tempfile
@@ -777,8 +778,26 @@ class UsdFrames:
             raise FileNotFoundError(f"cannot read {self.path}: {why}")
         # Anonymous: a file rewritten in this process (run, then render) is read afresh.
         layer = open_layer_checked(self.path)
+        if layer.GetCompositionAssetDependencies():
+            # Another program's file that references, pays in or sublayers others: composed from
+            # the file itself, so that relative paths ('./parts.usda') resolve beside it (from the
+            # anonymous copy they resolved nowhere, and the file read as holding no frames).
+            # Reloaded, as the anonymous copy is, in case this process holds an older one.
+            layer = Sdf.Layer.FindOrOpen(self.path)
+            layer.Reload(force=True)
         self._layer = layer
-        self.stage = Usd.Stage.Open(layer)
+        with _native_stderr() as notes:
+            self.stage = Usd.Stage.Open(layer)
+        lost = [re.search(r"In <([^>]*)>: Could not open asset @([^@]*)@", n) for n in notes]
+        lost = [m for m in lost if m]
+        if lost:
+            # pxr composes without what it cannot open, printing a warning: the prims it held
+            # were missing, and the file read as holding no frames.
+            raise ValueError(f"cannot read {self.path!r}: the file {lost[0][2]} it refers to (at {lost[0][1]}) cannot be "
+                             f"opened{f', nor {len(lost) - 1} more' if len(lost) > 1 else ''}")
+        for n in notes:  # anything else pxr said, passed on
+            if n.strip():
+                sys.stderr.write(n + "\n")
         rate = float(self.stage.GetTimeCodesPerSecond())
         if not (math.isfinite(rate) and rate > 0.0):
             # 0 was read as 30 fps and -24 as -24 (negative times in frames.pvd, a GIF's warning).
