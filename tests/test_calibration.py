@@ -1348,6 +1348,7 @@ def test_a_foreign_usd_target_is_read_by_its_frames_and_rate_or_refused_by_name(
                                          r"file's frames are those of any body\); a run's file holds every body at every frame"):
         load_target(stops)
     assert load_target(stops, body="cloud").data.shape == (2, 8, 3)  # the body observed alone has every frame
+    assert load_target(stops, body="cloud", frames="2,0").frames == [2, 0]  # frames in any order
 
 
 def test_an_image_mask_is_read_by_its_alpha_or_palette_colours_and_must_be_its_cameras_size(tmp_path):

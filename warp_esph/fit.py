@@ -1957,7 +1957,7 @@ def _usd_run_target(path: str, body, frames) -> Target | None:
         warnings.warn(f"target {path}: its stage does not author metersPerUnit, so USD's fallback of {meters:g} m per unit "
                       "(centimetres) is assumed (USD's rule); if its points are in metres, author metersPerUnit = 1 in the "
                       "file (UsdGeom.SetStageMetersPerUnit)", UserWarning, stacklevel=3)
-    samples = {name: set(UsdGeom.Points(prim).GetPointsAttr().GetTimeSamplesInInterval(Gf.Interval(chosen[0], chosen[-1])))
+    samples = {name: set(UsdGeom.Points(prim).GetPointsAttr().GetTimeSamplesInInterval(Gf.Interval(min(chosen), max(chosen))))
                for name, prim in observed}
     pos = []
     counts = None
