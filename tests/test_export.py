@@ -334,3 +334,57 @@ def test_export_says_nothing_of_a_stored_view_it_does_not_use(tmp_path, capsys):
     assert (tmp_path / "vtu" / "frame_00000.vtu").is_file()
     with pytest.warns(UserWarning, match=r"v.usda: its warp_esph:view = \[nan, 20.0\] is no"):
         assert UsdFrames(path).view is None  # read where it is used
+
+
+def _foreign_cm_usd(path) -> tuple[str, np.ndarray]:
+    """Another program's USD in centimetres: /World moved up 50 cm, a body 'cloud' (8 points at
+    frames 0, 1, 2, 5 cm wide) turned 90 degrees about y at frame 2 by its own transform, and a
+    body 'late' sampled at frames 0 and 2 only. Returns the path and cloud's points (cm)."""
+    from pxr import Gf, Vt
+
+    p = np.random.default_rng(0).uniform(0.0, 10.0, (8, 3))
+    stage = Usd.Stage.CreateNew(str(path))
+    world = UsdGeom.Xform.Define(stage, "/World")
+    stage.SetDefaultPrim(world.GetPrim())
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    stage.SetTimeCodesPerSecond(30)
+    world.AddTranslateOp().Set(Gf.Vec3d(0.0, 50.0, 0.0))
+    cloud = UsdGeom.Points.Define(stage, "/World/cloud")
+    late = UsdGeom.Points.Define(stage, "/World/late")
+    for f in (0, 1, 2):
+        cloud.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy((p + f).astype(np.float32)), float(f))
+    cloud.GetWidthsAttr().Set(Vt.FloatArray([5.0] * 8))
+    for f in (0, 2):
+        late.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy((p[:3] + 100.0 * f).astype(np.float32)), float(f))
+    spin = cloud.AddRotateYOp()
+    spin.Set(0.0, 1.0)
+    spin.Set(90.0, 2.0)
+    stage.Save()
+    return str(path), p
+
+
+def test_render_export_and_fit_targets_read_a_foreign_usd_alike_in_metres_and_world_coordinates(tmp_path):
+    """Fit targets read another program's particles in metres and world coordinates and refuse
+    a body without a sample at a frame; render and export read them in the file's local units
+    (100 x too far for centimetres, off by the transforms) and drew or wrote a body whose
+    samples skipped a frame where USD holds or interpolates it. Now all three read through
+    UsdFrames.arrays: in metres and world coordinates, a body without a sample left out."""
+    from warp_esph.fit import load_target
+
+    path, p = _foreign_cm_usd(tmp_path / "cm.usda")
+    cloud = [p + 0.0, p + 1.0, (p + 2.0)[:, [2, 1, 0]] * [1.0, 1.0, -1.0]]  # frame 2 turned about y
+    cloud = 0.01 * (np.stack(cloud) + [0.0, 50.0, 0.0])
+    files = export_frames(path, "vtu", tmp_path / "out")
+    read = [meshio.read(f) for f in files if f.endswith(".vtu")]
+    np.testing.assert_allclose(read[1].points, cloud[1], rtol=1e-5, atol=1e-7)  # 'late' is not held at frame 1
+    np.testing.assert_allclose(read[2].points[:8], cloud[2], rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(read[2].points[8:], 0.01 * (p[:3] + 200.0 + [0.0, 50.0, 0.0]), rtol=1e-5)
+    data = UsdFrames(path)
+    parts = data.particles(1)
+    np.testing.assert_array_equal(parts["body"], 0)
+    np.testing.assert_allclose(parts["points"], cloud[1], rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(parts["radius"], 0.025, rtol=1e-6)  # 5 cm wide
+    lo, hi = data.bounds([1])
+    assert lo == pytest.approx(cloud[1].min(axis=0), rel=1e-5) and hi == pytest.approx(cloud[1].max(axis=0), rel=1e-5)
+    target = load_target(path, body="cloud")
+    np.testing.assert_array_equal(target.data, np.stack([data.arrays(1)["points"], data.arrays(2)["points"][:8]]))

@@ -1944,40 +1944,21 @@ def _usd_run_target(path: str, body, frames) -> Target | None:
     chosen = parse_frames(frames, data.frames) if frames is not None else [f for f in data.frames if f != data.frames[0]]
     if not chosen:
         raise ValueError(f"target {path} holds only frame {data.frames[0]}, which says nothing about the material")
-    from pxr import Gf, Usd, UsdGeom  # noqa: PLC0415
-
-    observed = [(given[k], prim) for k, (_, prim) in enumerate(data.bodies) if body is None or k == index]
-    # In metres and world coordinates, as a mesh target is read (meshes.load_mesh): another
-    # program's particles under a scaled or moved /World, or in centimetres, were compared
-    # with the scene in their local units (a run's file has neither, so it reads unchanged).
-    meters = float(UsdGeom.GetStageMetersPerUnit(data.stage))
-    if not UsdGeom.StageHasAuthoredMetersPerUnit(data.stage):
-        import warnings  # noqa: PLC0415
-
-        warnings.warn(f"target {path}: its stage does not author metersPerUnit, so USD's fallback of {meters:g} m per unit "
-                      "(centimetres) is assumed (USD's rule); if its points are in metres, author metersPerUnit = 1 in the "
-                      "file (UsdGeom.SetStageMetersPerUnit)", UserWarning, stacklevel=3)
-    samples = {name: set(UsdGeom.Points(prim).GetPointsAttr().GetTimeSamplesInInterval(Gf.Interval(min(chosen), max(chosen))))
-               for name, prim in observed}
+    observed = [(given[k], k) for k in range(len(data.bodies)) if body is None or k == index]
     pos = []
     counts = None
     for f in chosen:
-        missing = next((name for name, _ in observed if float(f) not in samples[name]), None)
+        missing = next((name for name, k in observed if not data.has_sample(k, f)), None)
         if missing is not None:
             # USD answers between samples with the nearest one held, or interpolated: a body of
             # another program's file whose samples stopped (or skipped a frame) was fitted as
             # standing still there, or moving on a straight line, which nothing measured.
             raise ValueError(f"target {path} is not allowed: body {missing!r} has no sample at frame {f} (the file's "
                              "frames are those of any body); a run's file holds every body at every frame")
+        # In metres and world coordinates (UsdFrames.arrays), as render and export read them
+        # and a mesh target is read (meshes.load_mesh).
         a = data.arrays(f)
         pts = a["points"].astype(np.float64)
-        for k, (_, prim) in enumerate(data.bodies):
-            M = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode(float(f))), dtype=np.float64)
-            if not np.array_equal(M, np.eye(4)):
-                rows = a["body"] == k  # USD matrices act on row vectors: p_world = [p, 1] @ M
-                pts[rows] = (np.hstack([pts[rows], np.ones((int(rows.sum()), 1))]) @ M)[:, :3]
-        if meters != 1.0:
-            pts *= meters
         if body is not None:
             pts = pts[a["body"] == index]
         here = np.bincount(np.asarray(a["body"], dtype=np.int64), minlength=len(given)).tolist()

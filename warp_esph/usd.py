@@ -817,8 +817,11 @@ class UsdFrames:
         if not self.bodies:
             raise NotAnOutput(f"cannot read {self.path}: it has no UsdGeom.Points under {_ROOT} (not a warp-esph output?)")
         times = set()
+        #: Each body's sample times (an empty set: a body with a value for all time, no samples).
+        self._samples = []
         for _, prim in self.bodies:
-            times.update(UsdGeom.Points(prim).GetPointsAttr().GetTimeSamples())
+            self._samples.append(set(UsdGeom.Points(prim).GetPointsAttr().GetTimeSamples()))
+            times.update(self._samples[-1])
         between = sorted(t for t in times if not float(t).is_integer())
         if between:
             # A frame is a whole time code: samples at 0.5 and 1.5 (another program's subframes)
@@ -836,6 +839,14 @@ class UsdFrames:
                              "a warp-esph output has one per frame, at time code = frame index >= 0")
         if not self.frames:
             raise ValueError(f"cannot read {self.path}: it holds no frames")
+        #: Metres per unit of the file's coordinates (USD's fallback, centimetres, where not
+        #: authored; a run's file authors 1).
+        self.meters_per_unit = float(UsdGeom.GetStageMetersPerUnit(self.stage))
+        if not UsdGeom.StageHasAuthoredMetersPerUnit(self.stage):
+            warnings.warn(f"{self.path}: its stage does not author metersPerUnit, so USD's fallback of "
+                          f"{self.meters_per_unit:g} m per unit (centimetres) is assumed (USD's rule); if its points are "
+                          "in metres, author metersPerUnit = 1 in the file (UsdGeom.SetStageMetersPerUnit)",
+                          UserWarning, stacklevel=3)
         self.material_ids = []
         self.display_colors = []
         for _, prim in self.bodies:
@@ -954,6 +965,22 @@ class UsdFrames:
             out.append(Tool(name, kind, prim, np.asarray(param, dtype=np.float64), points, tri))
         return out
 
+    def has_sample(self, body: int, frame: int) -> bool:
+        """Whether body ``body`` (index into ``bodies``) has points at ``frame``: a time sample
+        there, or no samples at all (a value for all time)."""
+        return not self._samples[body] or float(frame) in self._samples[body]
+
+    def to_world(self, body: int, frame: int):
+        """``(A (3, 3), b (3,))`` taking body ``body``'s points at ``frame`` to metres and world
+        coordinates as ``p @ A + b`` (its prim's local-to-world transform, then
+        ``meters_per_unit``), or None where that is the identity (a run's own file)."""
+        M = np.array(UsdGeom.Xformable(self.bodies[body][1]).ComputeLocalToWorldTransform(Usd.TimeCode(float(frame))),
+                     dtype=np.float64)
+        if self.meters_per_unit == 1.0 and np.array_equal(M, np.eye(4)):
+            return None  # skipped, not multiplied: a float64 run's positions read to the bit
+        # USD matrices act on row vectors: p_world = [p, 1] @ M.
+        return M[:3, :3] * self.meters_per_unit, M[3, :3] * self.meters_per_unit
+
     def resolve(self, frame: int) -> int:
         if frame not in self.frames:
             raise ValueError(f"frame = {frame!r} is not allowed: {self.path} holds frames {self.frames[0]}..{self.frames[-1]}")
@@ -961,12 +988,19 @@ class UsdFrames:
 
     @_held_stderr
     def arrays(self, frame: int) -> dict:
-        """Every particle at ``frame``, as written: points, velocities, widths, alpha,
-        singular_values (N, 3), body (index into ``bodies``) and material_id. Points and
-        velocities are float64 where a float64 run wrote them (to the last bit), else float32."""
+        """Every particle at ``frame``: points, velocities, widths, alpha, singular_values
+        (N, 3), body (index into ``bodies``) and material_id. Points, velocities and widths are
+        in metres and world coordinates (``to_world``; a run's file is read as written, float64
+        where a float64 run wrote them, to the last bit, else float32). A body without a sample
+        at ``frame`` (``has_sample``) is left out of it."""
         t = Usd.TimeCode(float(frame))
         cols = {k: [] for k in ("points", "velocities", "widths", "alpha", "singular_values", "body", "material_id")}
         for k, (_, prim) in enumerate(self.bodies):
+            if not self.has_sample(k, frame):
+                # USD answers between samples with the last one held, or interpolated: a body of
+                # another program's file whose samples stopped (or skipped a frame) was drawn and
+                # exported there standing still, or on a straight line, which nothing recorded.
+                continue
             geom = UsdGeom.Points(prim)
             p = geom.GetPointsAttr().Get(t)
             if p is None or len(p) == 0:
@@ -995,6 +1029,15 @@ class UsdFrames:
             if not (np.isfinite(widths) & (widths > 0.0)).all():  # a NaN width failed inside the renderer
                 raise ValueError(f"cannot read {self.path!r}: body {self.bodies[k][0]!r} at frame {frame} has widths that are "
                                  "not finite and > 0 (not a warp-esph output, or damaged)")
+            world = self.to_world(k, frame)
+            if world is not None:
+                # Another program's points in centimetres or under a transform: in metres and
+                # world coordinates, as a fit target and a mesh are read (widths by the
+                # transform's mean scale; a velocity by its linear part).
+                A, b = world
+                cols["points"][-1] = cols["points"][-1].astype(np.float64) @ A + b
+                cols["velocities"][-1] = cols["velocities"][-1].astype(np.float64) @ A
+                widths = (widths * abs(np.linalg.det(A)) ** (1.0 / 3.0)).astype(np.float32)
             cols["widths"].append(widths)
             cols["alpha"].append(get(prim.GetAttribute(_PRIMVAR_ALPHA), (n,), 0.0))
             cols["singular_values"].append(get(prim.GetAttribute(_PRIMVAR_SINGULAR_VALUES), (n, 3), 1.0))
@@ -1035,6 +1078,8 @@ class UsdFrames:
         for f in frames:
             t = Usd.TimeCode(float(f))
             for k, (_, prim) in enumerate(self.bodies):
+                if not self.has_sample(k, f):
+                    continue  # not drawn there (arrays)
                 geom = UsdGeom.Points(prim)
                 ext = geom.GetExtentAttr().Get(t)
                 if ext is not None and len(ext) == 2:
@@ -1047,6 +1092,11 @@ class UsdFrames:
                     e = np.stack([np.nanmin(p, axis=0), np.nanmax(p, axis=0)])
                 if not np.isfinite(e).all():
                     continue
+                world = self.to_world(k, f)
+                if world is not None:  # the box's corners, as arrays reads the points
+                    corners = np.array([[e[i, 0], e[j, 1], e[m, 2]] for i in (0, 1) for j in (0, 1) for m in (0, 1)])
+                    corners = corners @ world[0] + world[1]
+                    e = np.stack([corners.min(axis=0), corners.max(axis=0)])
                 size = float((e[1] - e[0]).max())
                 size0 = first_size.setdefault(k, size)
                 if size > self.BLOWN_UP * max(size0, 1e-6):
