@@ -388,3 +388,15 @@ def test_render_export_and_fit_targets_read_a_foreign_usd_alike_in_metres_and_wo
     assert lo == pytest.approx(cloud[1].min(axis=0), rel=1e-5) and hi == pytest.approx(cloud[1].max(axis=0), rel=1e-5)
     target = load_target(path, body="cloud")
     np.testing.assert_array_equal(target.data, np.stack([data.arrays(1)["points"], data.arrays(2)["points"][:8]]))
+
+
+def test_a_kernel_narrower_than_the_grid_cell_is_refused_not_an_empty_surface():
+    """kernel_radius = 1e-6 fell between the grid's nodes: particle_surface returned no
+    triangles without a word. A kernel of one cell still reaches a node (a surface)."""
+    with pytest.raises(ValueError, match=r"^kernel_radius = 1e-06 is not allowed: must be >= the grid cell, 0\.01 \(spacing / 2\), "
+                                         r"else the kernels fall between the grid's nodes and the surface is empty$"):
+        particle_surface(np.zeros((1, 3)), 0.02, kernel_radius=1e-6)
+    with pytest.raises(ValueError, match=r"^kernel_radius = 0\.004 is not allowed: must be >= the grid cell, 0\.005 \(cell\)"):
+        particle_surface(np.zeros((1, 3)), 0.02, kernel_radius=0.004, cell=0.005)
+    v, tri = particle_surface(np.zeros((1, 3)), 0.02, kernel_radius=0.01)
+    assert len(tri) > 0 and np.abs(v).max() < 0.02

@@ -86,6 +86,14 @@ def surface_field(points, spacing: float, *, kernel_radius: float | None = None,
     R = 2.0 * dx if kernel_radius is None else checks.positive("kernel_radius", kernel_radius)
     r = 0.55 * dx if radius is None else checks.positive("radius", radius)
     h = 0.5 * dx if cell is None else checks.positive("cell", cell)
+    if R < h:
+        # A kernel narrower than a cell falls between the grid nodes: the particles' weights
+        # reached no node (or one exactly on the kernel's edge, weight 0), and the surface came
+        # out empty without a word. From R >= h on, every particle's nearest node (at most
+        # sqrt(3) / 2 cells away) lies inside its kernel.
+        raise ValueError(f"kernel_radius = {kernel_radius!r} is not allowed: must be >= the grid cell, {h:g} "
+                         f"({'spacing / 2' if cell is None else 'cell'}), else the kernels fall between the grid's nodes "
+                         "and the surface is empty")
     try:
         p = np.asarray(points)
     except (TypeError, ValueError):  # ragged rows
@@ -129,8 +137,8 @@ def particle_surface(points, spacing: float, *, kernel_radius: float | None = No
     """A closed, outward-facing triangle surface around ``points``: ``(vertices (V, 3), triangles (T, 3))``.
 
     ``points``: ``(n, 3)`` real numbers (or one ``(3,)`` point; non-finite rows are left out);
-    ``spacing``: the particle spacing dx; ``kernel_radius`` (default 2 dx), ``radius`` (default
-    0.55 dx) and ``cell`` (grid cell, default dx / 2) as in the module notes.
+    ``spacing``: the particle spacing dx; ``kernel_radius`` (default 2 dx, at least ``cell``),
+    ``radius`` (default 0.55 dx) and ``cell`` (grid cell, default dx / 2) as in the module notes.
     """
     import warp.geometry  # noqa: PLC0415 (marching cubes)
 
