@@ -1506,3 +1506,26 @@ def test_a_foreign_usd_target_that_refers_to_other_files_reads_them_beside_it(tm
     with pytest.raises(ValueError, match=rf"^cannot read '{re.escape(shot)}': the file \S*cloud\.usda it refers to \(at "
                                          r"/World/dough\) cannot be opened"):
         load_target(shot)
+
+
+def test_silhouette_masks_beyond_the_scenes_frames_extend_the_fit_as_other_targets(tmp_path, capsys, dough_scene):
+    """A mask at frame 3 of a 2-frame scene was refused as 'frames are 1..2 (--frames)' with
+    --frames not given, while USD and .npz targets extend the run to their last frame. Now the
+    masks do too; with --frames given it is still refused, naming --frames."""
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0, frames=2))
+    cam = PinholeCamera(64, 40, 200.0, 200.0, 31.5, 19.5, np.diag([1.0, -1.0, -1.0]), [0.0, 0.03, 0.5], "front")
+    np.savez(tmp_path / "masks.npz", front_3=(np.arange(64)[None, :] < 32).repeat(40, axis=0).astype(np.uint8))
+    doc = {"cameras": [{"name": "front", "width": 64, "height": 40, "K": [[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]],
+                        "R": cam.R.tolist(), "t": cam.t.tolist()}], "radius": 0.01}
+    (tmp_path / "cameras.json").write_text(json.dumps(doc))
+    args = ["fit", str(guess), "--target", str(tmp_path / "masks.npz"), "--cameras", str(tmp_path / "cameras.json"),
+            "--iterations", "0", "--no-progress", "--no-usd", "--no-diagnostics"]
+    capsys.readouterr()
+    assert main([*args, "--output-dir", str(tmp_path / "out")]) == 0, capsys.readouterr().err
+    assert json.loads((tmp_path / "out" / "fit.json").read_text())["frames"] == 3
+    capsys.readouterr()
+    assert main([*args, "--output-dir", str(tmp_path / "out2"), "--frames", "2"]) == 2
+    assert capsys.readouterr().err.strip().endswith("masks at frame 3 are not allowed: frames are 1..2 (--frames)")

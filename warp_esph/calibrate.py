@@ -435,7 +435,11 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     for k, path in enumerate(targets):
         fspec = tframes[k] if len(tframes) > 1 else (tframes[0] if tframes else None)
         if cameras:
-            loaded.append(("silhouette", path, fspec))
+            from .silhouette import read_silhouette_masks  # noqa: PLC0415
+
+            # Read now: the masks' frames extend the run as other targets' do (a mask beyond the
+            # scene's frames was refused as beyond '--frames', which was not given).
+            loaded.append(("silhouette", path, read_silhouette_masks(cameras, path, fspec)))
             continue
         ext = os.path.splitext(str(path))[1].lower()
         usd = ext in (".usd", ".usda", ".usdc")
@@ -554,6 +558,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     dt = spec.get("dt")
     substeps, dt = resolve_timestep(model, fps, dt=dt if dt is not None else scene.dt)
     shown = [f for t in file_targets for f in (t.frames or [])]
+    shown += [f for kind, _, t in loaded if kind == "silhouette" for f in t[2] if f is not None]
     if spec.get("frames") is None and shown and max(shown) < 1:
         # It blamed --frames, which was not given.
         raise ValueError(f"{where}--target-frames = {tframes[0] if tframes else 0!r} is not allowed: the targets hold "
@@ -573,9 +578,11 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     loss = None
     for kind, path, t in loaded:
         if kind == "silhouette":
-            from .silhouette import load_silhouette_target  # noqa: PLC0415
+            from .silhouette import silhouette_target  # noqa: PLC0415
 
-            term = load_silhouette_target(cameras, path, t, frames, substeps)
+            source = ("--frames" if spec.get("frames") is not None else
+                      "the targets' last frame" if shown else "the scene's frames")
+            term = silhouette_target(t, frames, substeps, source)
         else:
             if t.frames is None:
                 t.frames = [frames]

@@ -52,7 +52,8 @@ from . import checks
 from ._types import type_set
 from .losses import Loss, _frames, _scalar_of
 
-__all__ = ["PinholeCamera", "SilhouetteLoss", "load_cameras", "load_masks", "soft_silhouette", "load_silhouette_target"]
+__all__ = ["PinholeCamera", "SilhouetteLoss", "load_cameras", "load_masks", "soft_silhouette", "load_silhouette_target",
+           "read_silhouette_masks", "silhouette_target"]
 
 #: Splat window half-width in splat standard deviations.
 WINDOW_SIGMAS = 4.0
@@ -515,12 +516,12 @@ def T_vec(S, t):
     return (wp.vec3d if S is wp.float64 else wp.vec3f)(*np.asarray(t, dtype=np.float64).tolist())
 
 
-def load_silhouette_target(cameras_path, masks_path, frames_spec, frames: int, substeps: int) -> SilhouetteLoss:
-    """The silhouette loss of the ``warp-esph fit`` command: cameras from ``cameras_path``,
-    masks from ``masks_path`` at rendered frames (an image: ``frames_spec`` or the last
-    frame; an ``.npz``: its own, ``frames_spec`` choosing among them), with ``substeps``
-    steps per frame. The splat radius is the file's ``radius`` (required: about half a
-    particle spacing) and the opacity its ``opacity`` (default 0.9)."""
+def read_silhouette_masks(cameras_path, masks_path, frames_spec) -> tuple[list, dict, dict]:
+    """``(cameras, options, masks)`` of a silhouette target of the ``warp-esph fit`` command:
+    cameras and options from ``cameras_path``, masks ``{rendered frame: [mask per camera]}``
+    from ``masks_path`` (an image: at ``frames_spec``, or at frame None, the run's last frame,
+    where it is not given; an ``.npz``: its own frames, ``frames_spec`` choosing among them).
+    The run's frames are not needed: a fit runs to its targets' last frame, the masks' too."""
     cameras, options = load_cameras(cameras_path)
     if str(masks_path).lower().endswith(".npz"):
         masks = load_masks(masks_path, cameras)
@@ -536,16 +537,35 @@ def load_silhouette_target(cameras_path, masks_path, frames_spec, frames: int, s
             masks = {f: masks[f] for f in dict.fromkeys(chosen)}
     else:
         try:
-            frame = int(frames_spec) if frames_spec is not None else frames
+            frame = int(frames_spec) if frames_spec is not None else None
         except (TypeError, ValueError):
             # '2,3' or 'last' was an int() error: an image is one frame.
             raise ValueError(f"--target-frames = {frames_spec!r} is not allowed with the mask image {masks_path}: an image "
                              "is one rendered frame, give one frame index") from None
         masks = load_masks(masks_path, cameras, frame)
-    bad = [f for f in masks if f > frames or f <= 0]
-    if bad:
-        raise ValueError(f"masks at frame {bad[0]} are not allowed: frames are 1..{frames} (--frames)")
     if "radius" not in options:
         raise ValueError(f"camera file {cameras_path} is not allowed: give the splat 'radius' in m (about half a particle spacing)")
+    return cameras, options, masks
+
+
+def silhouette_target(read, frames: int, substeps: int, source: str = "--frames") -> SilhouetteLoss:
+    """The ``SilhouetteLoss`` of ``read`` (``read_silhouette_masks``) for a run of ``frames``
+    frames (``source`` names what set it) at ``substeps`` steps per frame."""
+    cameras, options, masks = read
+    masks = {frames if f is None else f: m for f, m in masks.items()}
+    bad = [f for f in masks if f > frames or f <= 0]
+    if bad:
+        # It said '(--frames)' also where --frames was not given (the run's frames were the
+        # targets' last frame, or the scene's).
+        raise ValueError(f"masks at frame {bad[0]} are not allowed: frames are 1..{frames} ({source})")
     return SilhouetteLoss({f * substeps: m for f, m in masks.items()}, cameras, radius=float(options["radius"]),
                           opacity=float(options.get("opacity", DEFAULT_OPACITY)))
+
+
+def load_silhouette_target(cameras_path, masks_path, frames_spec, frames: int, substeps: int) -> SilhouetteLoss:
+    """The silhouette loss of the ``warp-esph fit`` command: cameras from ``cameras_path``,
+    masks from ``masks_path`` at rendered frames (an image: ``frames_spec`` or the last
+    frame; an ``.npz``: its own, ``frames_spec`` choosing among them), with ``substeps``
+    steps per frame. The splat radius is the file's ``radius`` (required: about half a
+    particle spacing) and the opacity its ``opacity`` (default 0.9)."""
+    return silhouette_target(read_silhouette_masks(cameras_path, masks_path, frames_spec), frames, substeps)
