@@ -1529,3 +1529,24 @@ def test_silhouette_masks_beyond_the_scenes_frames_extend_the_fit_as_other_targe
     capsys.readouterr()
     assert main([*args, "--output-dir", str(tmp_path / "out2"), "--frames", "2"]) == 2
     assert capsys.readouterr().err.strip().endswith("masks at frame 3 are not allowed: frames are 1..2 (--frames)")
+
+
+def test_a_foreign_usd_target_of_widths_0_is_read_and_render_still_refuses_it(tmp_path):
+    """A foreign USD whose widths are 0 was refused as damaged ('has widths that are not
+    finite and > 0') as a fit target, which never reads widths; export reads none either.
+    The renderer, which draws spheres of those diameters, still refuses it."""
+    from pxr import Usd, UsdGeom, Vt
+
+    from warp_esph.export import export_frames
+    from warp_esph.fit import load_target
+    from warp_esph.render import render_usd
+
+    p = np.random.default_rng(0).uniform(0.0, 0.1, (8, 3))
+    path = _foreign_points_usd(tmp_path / "w0.usda", {0: p, 1: p + 0.01}, rate=30)
+    stage = Usd.Stage.Open(path)
+    UsdGeom.Points(stage.GetPrimAtPath("/World/cloud")).GetWidthsAttr().Set(Vt.FloatArray([0.0] * 8))
+    stage.Save()
+    np.testing.assert_allclose(load_target(path).data, [(p + 0.01).astype(np.float32)])
+    assert len(export_frames(path, "vtu", tmp_path / "vtu")) == 3  # two frames and frames.pvd
+    with pytest.raises(ValueError, match=r"w0\.usda'?: body 'cloud' at frame 1 has widths that are not finite and > 0"):
+        render_usd(path, tmp_path / "w0.png", width=32, height=24)

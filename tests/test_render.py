@@ -840,8 +840,10 @@ def test_a_damaged_file_is_named_not_drawn_empty(tmp_path):
         geom.GetPointsAttr().Set(points, Usd.TimeCode(0.0))
         geom.GetWidthsAttr().Set(widths, Usd.TimeCode(0.0))
         stage.GetRootLayer().Save()
-        for call in (lambda: render_usd(path, tmp_path / f"{name}.png", width=W, height=H),
-                     lambda: export_frames(path, "vtu", tmp_path / f"{name}_vtu")):
+        calls = [lambda: render_usd(path, tmp_path / f"{name}.png", width=W, height=H)]
+        if name == "nan_points":  # export writes no widths, so bad ones are not its to refuse
+            calls.append(lambda: export_frames(path, "vtu", tmp_path / f"{name}_vtu"))
+        for call in calls:
             with pytest.raises(ValueError, match=f"cannot read .*{name}.usda.*: (frame 0 has no particle with a finite "
                                                  "position|body .* at frame 0 has widths that are not finite and > 0)"):
                 call()

@@ -1025,10 +1025,9 @@ class UsdFrames:
             else:
                 cols["points"].append(np.asarray(p, dtype=np.float32))
                 cols["velocities"].append(get(geom.GetVelocitiesAttr(), (n, 3), 0.0))
+            # Checked where they are used (particles: the renderer's radii), not here: export and
+            # fit targets never read them, and refused another program's file of widths 0.
             widths = get(geom.GetWidthsAttr(), (n,), 0.02)
-            if not (np.isfinite(widths) & (widths > 0.0)).all():  # a NaN width failed inside the renderer
-                raise ValueError(f"cannot read {self.path!r}: body {self.bodies[k][0]!r} at frame {frame} has widths that are "
-                                 "not finite and > 0 (not a warp-esph output, or damaged)")
             world = self.to_world(k, frame)
             if world is not None:
                 # Another program's points in centimetres or under a transform: in metres and
@@ -1056,6 +1055,11 @@ class UsdFrames:
         """What the renderer needs at ``frame``: points, radius, body, material, alpha and the
         elastic strain ``max_k |ln sigma_k|`` (as ``singular_values``); non-finite particles dropped."""
         a = self.arrays(frame)
+        bad = ~(np.isfinite(a["widths"]) & (a["widths"] > 0.0))
+        if bad.any():  # a NaN width failed inside the renderer
+            raise ValueError(f"cannot read {self.path!r}: body {self.bodies[int(a['body'][bad.argmax()])][0]!r} at frame {frame} "
+                             "has widths that are not finite and > 0 (not a warp-esph output, or damaged; the particles are "
+                             "drawn as spheres of these diameters)")
         with np.errstate(divide="ignore", invalid="ignore"):
             strain = np.abs(np.log(np.abs(a["singular_values"]))).max(axis=1) if len(a["points"]) else np.zeros(0, np.float32)
         out = {"points": a["points"], "radius": 0.5 * a["widths"], "body": a["body"], "material": a["material_id"],
