@@ -3,6 +3,7 @@
 import functools
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -761,7 +762,8 @@ def test_a_resume_stopped_before_its_first_frame_leaves_the_force_log_as_the_fil
 def test_a_resume_finds_its_output_and_scene_file_in_a_moved_folder(tmp_path, monkeypatch, capsys):
     """A checkpoint records the output's and the scene file's absolute paths: the resume of a
     run whose folder was moved since said 'cannot append to /old/folder/m.usdc: no such file'.
-    Where the recorded file is gone, the one of its name beside the checkpoint is used."""
+    Where the recorded file is gone, the one of its name beside the checkpoint is used; the
+    output beside the checkpoint is used even where the recorded one is still there (a copy)."""
     from warp_esph.scenes import load_scene
 
     def interrupt(state):
@@ -776,9 +778,19 @@ def test_a_resume_finds_its_output_and_scene_file_in_a_moved_folder(tmp_path, mo
     monkeypatch.chdir(old)
     assert main(["run", "s.toml", "-o", "m.usdc", "--frames", "4", "--checkpoint-every", "2", "--no-progress"]) == 130
     monkeypatch.undo()
-    os.rename(old, new)
     monkeypatch.chdir(tmp_path)
     capsys.readouterr()
+    # A copy, the original still there: the resume appended to the original's file and
+    # rewrote its checkpoint and force log, the copy left as it was.
+    copy = tmp_path / "copy"
+    shutil.copytree(old, copy)
+    before = {name: (old / name).read_bytes() for name in os.listdir(old)}
+    assert main(["run", "--resume", str(copy / "m.usdc.checkpoint.npz"), "--no-progress"]) == 0, capsys.readouterr().err
+    assert f"-> {copy / 'm.usdc'} (resumed at frame 2" in capsys.readouterr().out
+    assert frames_in(copy / "m.usdc", prim="/World/box0") == [0.0, 1.0, 2.0, 3.0, 4.0]
+    assert {name: (old / name).read_bytes() for name in os.listdir(old)} == before
+    shutil.rmtree(copy)
+    os.rename(old, new)
     assert main(["run", "--resume", str(new / "m.usdc.checkpoint.npz"), "--no-progress"]) == 0, capsys.readouterr().err
     assert f"-> {new / 'm.usdc'} (resumed at frame 2" in capsys.readouterr().out
     assert frames_in(new / "m.usdc", prim="/World/box0") == [0.0, 1.0, 2.0, 3.0, 4.0]

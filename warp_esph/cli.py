@@ -367,7 +367,7 @@ def _cmd_run(args) -> int:
         _check_run_record(args.resume, run)
         args.scene, scale, args.dtype = _moved_with(args.resume, run["scene"]), run["scale"], run["dtype"]
         args.fps, args.dt, args.surface = run["fps"], run["dt"], run.get("surface", False)
-        args.output = _moved_with(args.resume, run["output"])
+        args.output = _moved_with(args.resume, run["output"], output=True)
         frames_total = args.frames if args.frames is not None else run["frames"]  # --frames extends a run
         every = every or run.get("checkpoint_every")
         # the run's own, not the scene's now
@@ -652,13 +652,20 @@ def _log_kinds(model) -> list[str]:
     return kinds + (["static colliders"] if model.planes or model.spheres or model.boxes else [])
 
 
-def _moved_with(checkpoint, recorded: str) -> str:
+def _moved_with(checkpoint, recorded: str, *, output: bool = False) -> str:
     """A file a checkpoint's run record names by its absolute path (the output, a scene
-    file), or where that is gone, the file of its name beside the checkpoint: the folder
-    was moved or copied whole (it said 'cannot append to /old/folder/a.usdc: no such
-    file'). The run ids and the scene's fingerprint still refuse a file of another run."""
-    if not os.path.isabs(recorded) or os.path.exists(recorded):
+    file), or the file of its name beside the checkpoint: the folder was moved or copied
+    whole (it said 'cannot append to /old/folder/a.usdc: no such file').
+
+    The output (``output``) is the one beside the checkpoint whenever it is there, as the
+    run wrote its checkpoint beside its output: the resume of a copied folder appended to
+    the original's file and rewrote its checkpoint and force log, the copy left as it was.
+    A scene file is only read (its fingerprint checked), so its recorded path stands while
+    it exists. The run ids and the scene's fingerprint still refuse a file of another run."""
+    if not os.path.isabs(recorded):
         return recorded  # (a built-in scene's name is no path)
+    if os.path.exists(recorded) and not output:
+        return recorded
     beside = os.path.join(os.path.dirname(os.path.abspath(checkpoint)), os.path.basename(recorded))
     return beside if os.path.isfile(beside) else recorded
 
