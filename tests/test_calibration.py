@@ -894,6 +894,52 @@ def test_an_interrupted_fit_keeps_its_evaluations_and_the_best_so_far(tmp_path, 
     assert doc["interrupted"] == "the fit"
 
 
+def test_a_ctrl_c_in_a_finalizer_stops_a_fit_after_that_evaluation(tmp_path, capsys, dough_scene, monkeypatch):
+    """A Ctrl-C that landed in a finalizer (``__del__``) could not be raised there: it was
+    recorded and the fit ran all its iterations before the command said 'interrupted'. It
+    now stops the fit once the evaluation it landed in is recorded, the best so far kept."""
+    import os
+    import signal
+
+    from warp_esph import fit as fit_module
+    from warp_esph.cli import main
+
+    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(truth), "-o", str(run), "--frames", "3", "--dtype", "float64", "--no-progress"]) == 0
+
+    class Finalized:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGINT)
+
+    calls = []
+    original = fit_module._Problem.value_and_grad
+
+    def finalizer_in_the_second(self, z, losses=None):
+        calls.append(1)
+        if len(calls) == 2:
+            Finalized()
+        return original(self, z, losses)
+
+    monkeypatch.setattr(fit_module._Problem, "value_and_grad", finalizer_in_the_second)
+    # As in a terminal: a runner started in the background starts ignoring SIGINT.
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        out = tmp_path / "fit"
+        capsys.readouterr()
+        status = main(["fit", str(guess), "--target", str(run), "--iterations", "10", "--optimizer", "adam", "--lr",
+                       "0.2", "--no-progress", "--no-usd", "--no-diagnostics", "--output-dir", str(out)])
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    err = capsys.readouterr().err
+    assert status == 130, err
+    doc = json.loads((out / "fit.json").read_text())
+    assert doc["stopped"] == "interrupted" and len(doc["history"]) == 2
+    assert "interrupted after 2 evaluations: wrote the best so far" in err
+
+
 def test_a_fit_whose_results_cannot_be_written_prints_them_and_exits_4(tmp_path, capsys, dough_scene, monkeypatch):
     """A full disk under the fit's files lost the finished fit: its values were printed only
     after every file was written, the error was the bare '[Errno 28] No space left on device'

@@ -702,8 +702,9 @@ def test_a_ctrl_c_in_a_finalizer_or_a_second_one_is_no_traceback_and_no_success(
                                                                                sigint_as_in_a_terminal):
     """A Ctrl-C that lands in a finalizer (``__del__``, which Python runs between any two
     steps) was printed as 'Exception ignored in ... Traceback ... KeyboardInterrupt' and
-    dropped: the run went on and exited 0. A second Ctrl-C while the first unwound cut the
-    writer's cleanup short. Now the first is acted on once, the rest are recorded."""
+    dropped: the run went on and exited 0; then it was only recorded, and the run went on to
+    its last frame before saying so. It now stops the run at the next frame's end. A second
+    Ctrl-C while the first unwound cut the writer's cleanup short: it is recorded."""
     from warp_esph import usd as usd_module
 
     class Finalized:
@@ -713,9 +714,9 @@ def test_a_ctrl_c_in_a_finalizer_or_a_second_one_is_no_traceback_and_no_success(
     n = _steps_per_frame()
     _fail_after(monkeypatch, n + 1, lambda state: Finalized())  # inside frame 2
     out_path = tmp_path / "late.usdc"
-    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "3", "--no-progress"]) == 130
-    assert capsys.readouterr().err == f"warp-esph: interrupted: {out_path} keeps the 4 frames finished\n"
-    assert frames_in(out_path) == [0.0, 1.0, 2.0, 3.0]
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "10", "--no-progress"]) == 130
+    assert capsys.readouterr().err == f"warp-esph: interrupted: {out_path} keeps the 3 frames finished\n"
+    assert frames_in(out_path) == [0.0, 1.0, 2.0]
 
     def interrupt(state):
         raise KeyboardInterrupt

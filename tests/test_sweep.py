@@ -560,6 +560,36 @@ def test_a_terminated_sweep_keeps_its_finished_samples_and_says_terminated(scene
     assert len(SweepTable.read_csv(out / "sweep.csv")) == 1
 
 
+def test_a_signal_in_a_finalizer_stops_the_sweep_after_that_sample(scene_file, tmp_path, monkeypatch, capsys):
+    """A SIGTERM that landed in a finalizer (``__del__``), where it cannot be raised, was only
+    recorded: the sweep ran every sample before saying 'terminated'. It now stops the sweep
+    once the sample it landed in is finished and kept."""
+    import signal
+
+    from warp_esph import sweep as sweep_module
+
+    class Finalized:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    real, runs = sweep_module._run_sample, []
+
+    def run_with_a_finalizer(scene, task):
+        runs.append(1)
+        if len(runs) == 2:
+            Finalized()
+        return real(scene, task)
+
+    monkeypatch.setattr(sweep_module, "_run_sample", run_with_a_finalizer)
+    out = tmp_path / "sw"
+    status = cli.main(["sweep", scene_file, "--param", "yield_stress=10,100,1000", "--frames", "1", "--workers", "1",
+                       "-o", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert status == 143, err
+    assert err.splitlines()[-1] == "warp-esph: terminated: the table keeps the 2 of 3 samples finished"
+    assert len(SweepTable.read_csv(out / "sweep.csv")) == 2 and len(runs) == 2
+
+
 def test_a_table_that_cannot_be_written_leaves_no_working_file_and_the_old_table_whole(tmp_path, monkeypatch):
     """A full disk while sweep.csv (sweep.json, sweep.parquet) was written left an empty or cut
     sweep.csv.tmp beside the table; the write failing now removes it, names the table and

@@ -136,7 +136,7 @@ def run_fit(args, out=None, err=None) -> int:
     err = sys.stderr if err is None else err
     import warp as wp  # noqa: PLC0415
 
-    from .cli import _parse_bounds  # noqa: PLC0415
+    from .cli import _parse_bounds, _safe_point  # noqa: PLC0415
     from .fit import Experiment, FitInterrupted, _material_indices, check_options, fit, load_target  # noqa: PLC0415
     from .scenes import load_scene  # noqa: PLC0415
     from .simulate import resolve_timestep  # noqa: PLC0415
@@ -274,7 +274,7 @@ def run_fit(args, out=None, err=None) -> int:
                      starts=_arg(args, "starts", 1), worlds=_arg(args, "worlds", False),
                      sample_range=sample_range, seed=seed,
                      patience=_arg(args, "patience", 20), diagnostics=not _arg(args, "no_diagnostics", False),
-                     noise=_arg(args, "noise"), log=log)
+                     noise=_arg(args, "noise"), log=log, callback=lambda *_: _safe_point(args))
     except FitInterrupted as e:
         # Ctrl-C: the evaluations so far and the best of them are kept, as a run keeps its
         # finished frames; the exit is still the interrupt's.

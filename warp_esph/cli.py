@@ -545,6 +545,7 @@ def _cmd_run(args) -> int:
             if log is not None:
                 log.record(frame, current)
             checkpoint(frame, current)
+            _safe_point(args)  # after the frame's rows and checkpoint: they go with the frame kept
     except BaseException:
         writer.close()
         raise
@@ -555,7 +556,7 @@ def _cmd_run(args) -> int:
               + f"dt = {dt_shown:.4g} s ({substeps} steps/frame), {args.device} {args.dtype} "
               f"-> {writer.path}" + (f" (resumed at frame {start_frame}, the run {frames_total} frames)" if start_frame else ""), flush=True)
         simulate(model, frames, fps=fps, dt=dt, writer=writer, progress=not args.no_progress, solver=solver,
-                 state=state, start_frame=start_frame, callback=on_frame if every is not None or log is not None else None,
+                 state=state, start_frame=start_frame, callback=on_frame,
                  monitor_exempt=getattr(scene, "diverges", ()),
                  monitor_origin=model.state(requires_grad=False) if start_frame else None, _checked=checked)
     except KeyboardInterrupt:
@@ -865,6 +866,9 @@ class _Signals:
         self.holding = False
         #: Set once a signal has been raised as ``KeyboardInterrupt``: the command is stopping.
         self.raised = False
+        #: A signal that landed in a finalizer, where it cannot be raised: ``at_safe_point``
+        #: raises it at the next one (a run's frame, a fit's evaluation, a sweep's sample).
+        self.pending = False
         self.received: list[int] = []
         self.previous = {}
         #: A copy of the process's standard error taken at install: start-up sends descriptor 2
@@ -907,13 +911,37 @@ class _Signals:
         if self.armed or not self.exit_at_once:
             # Raised once: a further Ctrl-C while the first unwinds only cut the writers' cleanup
             # short. And never inside a finalizer, where Python prints it as 'Exception ignored
-            # in ... __del__' with a traceback and drops it: the run went on. A signal left so is
-            # in ``received``, and the command reports it when its work is done (``_cmd_run``).
-            if self.raised or (frame is not None and frame.f_code.co_name == "__del__"):
+            # in ... __del__' with a traceback and drops it: it is kept pending, and raised at the
+            # command's next safe point (``at_safe_point``); it was only reported when the whole
+            # command ended, a long run going on to its last frame.
+            if self.raised:
+                return
+            if frame is not None and frame.f_code.co_name == "__del__":
+                self.pending = True
                 return
             self.raised = True
             raise KeyboardInterrupt
         _exit_now(signum, self.stderr_fd)
+
+    def at_safe_point(self):
+        """Act on a signal left pending (it landed in a finalizer): raise it as the handler
+        would have, here, between two pieces of work."""
+        if not self.pending or self.holding:
+            return
+        self.pending = False
+        if self.raised:
+            return
+        if self.armed or not self.exit_at_once:
+            self.raised = True
+            raise KeyboardInterrupt
+        _exit_now(self.received[-1], self.stderr_fd)
+
+
+def _safe_point(args) -> None:
+    """Where the command may stop between two pieces of work (``_Signals.at_safe_point``)."""
+    signals = getattr(args, "signals", None)
+    if signals is not None:
+        signals.at_safe_point()
 
 
 class _Deferred:

@@ -1088,6 +1088,8 @@ def sweep_cli(args, out=None) -> int:
     written = [0.0]
 
     def record(row):
+        from .cli import _safe_point  # noqa: PLC0415
+
         done.append(row)
         if bar is not None:
             bar.update(1)
@@ -1102,6 +1104,7 @@ def sweep_cli(args, out=None) -> int:
                 print(f"{PROG}: warning: the table so far could not be written ({e}); the sweep goes on and writes "
                       "it at its end", file=sys.stderr)
                 written[0] = None
+        _safe_point(args)  # a Ctrl-C that landed in a finalizer stops the sweep here, this sample kept
 
     meta = {"command": "sweep", "version": __version__, "scene": args.scene if args.scene else sc.name,
             "scale": args.scale, "params": [dataclasses.asdict(p) for p in plist], "sample": args.sample,
