@@ -1057,6 +1057,40 @@ def test_a_signal_as_the_process_ends_does_not_kill_it_by_the_default_action(tmp
     assert p.stderr == "", p.stderr
 
 
+def test_a_second_ctrl_c_after_the_first_was_raised_ends_the_command_at_once(tmp_path):
+    """After the first Ctrl-C was raised every further one was ignored until the command
+    ended: a fit writing its pictures or a sweep waiting on its workers could be ended only
+    by SIGKILL. A further one outside a write that must finish now ends the process at once
+    (its one line, 130); the output keeps its finished frames, whole. Here the second comes
+    as the interrupted run says what its file keeps, and the command would go on after it."""
+    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    code = textwrap.dedent("""
+        import os, signal, sys
+        from warp_esph import cli, usd
+        real_write, real_kept = usd.UsdWriter.write_frame, cli._kept
+        def write_frame(self, frame, state):
+            if frame == 3:
+                os.kill(os.getpid(), signal.SIGINT)  # the first: raised, the run stops
+            return real_write(self, frame, state)
+        def kept(writer, start_frame):
+            os.kill(os.getpid(), signal.SIGINT)  # the second, as the command winds up
+            open("went-on", "w").close()
+            return real_kept(writer, start_frame)
+        usd.UsdWriter.write_frame, cli._kept = write_frame, kept
+        sys.argv = ["warp-esph", "run", "three_cylinders", "-o", "c.usdc", "--scale", "0.3", "--frames", "10",
+                    "--no-progress"]
+        sys.exit(cli.console_main())
+    """)
+    p = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
+                       # as in a terminal: a runner started in the background starts its children ignoring SIGINT
+                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert p.returncode == 130, (p.returncode, p.stderr)
+    assert p.stderr == "warp-esph: interrupted\n", p.stderr
+    assert not (tmp_path / "went-on").exists()
+    assert frames_in(tmp_path / "c.usdc", prim="/World/elastic") == [0.0, 1.0, 2.0]
+    assert sorted(os.listdir(tmp_path)) == ["c.usdc"]  # (its force log is written after this line)
+
+
 def test_a_run_whose_standard_error_reader_left_goes_on_without_its_progress_bar(tmp_path):
     """``warp-esph run ... 2> >(head -c 1)``: the progress bar's write met a closed pipe
     (BrokenPipeError), and the run ended with exit 1 after two frames, its traceback written

@@ -560,7 +560,8 @@ def _cmd_run(args) -> int:
                  monitor_exempt=getattr(scene, "diverges", ()),
                  monitor_origin=model.state(requires_grad=False) if start_frame else None, _checked=checked)
     except KeyboardInterrupt:
-        writer.close()
+        with _Deferred(args):  # its working copies removed: a second Ctrl-C here waits for that
+            writer.close()
         print(f"{PROG}: {_stopped(args)}: {writer.path} keeps {_kept(writer, start_frame)}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except SimulationError as e:
@@ -853,7 +854,8 @@ class _Signals:
     print a traceback from whatever module was importing, or be swallowed by native code
     that clears Python errors (it was, once, while pxr imported). Armed (``arm()``: an
     output is being written): the handler raises ``KeyboardInterrupt``, which unwinds
-    through the writer, so the file keeps every finished frame.
+    through the writer, so the file keeps every finished frame; a further signal, outside a
+    write that must finish (``holding``), ends the process at once, as when disarmed.
     """
 
     def __init__(self, exit_at_once: bool = True):
@@ -910,11 +912,18 @@ class _Signals:
             return
         if self.armed or not self.exit_at_once:
             # Raised once: a further Ctrl-C while the first unwinds only cut the writers' cleanup
-            # short. And never inside a finalizer, where Python prints it as 'Exception ignored
-            # in ... __del__' with a traceback and drops it: it is kept pending, and raised at the
-            # command's next safe point (``at_safe_point``); it was only reported when the whole
-            # command ended, a long run going on to its last frame.
+            # short. A further one (outside a write that must finish: ``holding``) ends the
+            # process at once: it was ignored, and a fit writing its pictures or a sweep waiting
+            # on its workers after the first could be ended only by SIGKILL. The files finished
+            # are whole (each is written beside and renamed over). In someone else's process
+            # (``exit_at_once`` False) it is only recorded. And never inside a finalizer, where
+            # Python prints it as 'Exception ignored in ... __del__' with a traceback and drops
+            # it: it is kept pending, and raised at the command's next safe point
+            # (``at_safe_point``); it was only reported when the whole command ended, a long run
+            # going on to its last frame.
             if self.raised:
+                if self.exit_at_once:
+                    _exit_now(signum, self.stderr_fd)
                 return
             if frame is not None and frame.f_code.co_name == "__del__":
                 self.pending = True
