@@ -851,3 +851,18 @@ def test_a_damaged_file_is_named_not_drawn_empty(tmp_path):
         render_usd(None)
     with pytest.raises(ValueError, match="output = 123 is not allowed: must be a path"):
         render_usd(tmp_path / "nan_points.usda", 123)
+
+
+def test_a_renderer_takes_its_frames_as_a_range_a_numpy_array_or_an_iterator(tmp_path):
+    """``Renderer`` took ``frames`` by ``list(frames)``; then only by ``parse_frames``, which
+    refused a range or a numpy array ('frames = range(0, 2) is not allowed'). Any iterable of
+    frame numbers is taken again, and a frame the file lacks is still refused by name."""
+    path = tmp_path / "three.usdc"
+    write_clusters(path, [(0.0, 0.0, 0.0)], frames=3, shift=(0.1, 0.0, 0.0))
+    data = UsdFrames(path)
+    o = RenderOptions(width=W, height=H, supersample=1)
+    assert Renderer(data, range(1, 3), o).frames == [1, 2]
+    assert Renderer(data, np.array([0, 2]), o).frames == [0, 2]
+    assert Renderer(data, iter([2]), o).frames == [2]
+    with pytest.raises(ValueError, match=r"^frames = \[3\] is not allowed: frame 3 is not in the file \(it holds 0\.\.2\)$"):
+        Renderer(data, np.arange(3, 4), o)
