@@ -1091,6 +1091,30 @@ def test_a_second_ctrl_c_after_the_first_was_raised_ends_the_command_at_once(tmp
     assert sorted(os.listdir(tmp_path)) == ["c.usdc"]  # (its force log is written after this line)
 
 
+def test_a_signal_while_the_exit_functions_run_leaves_the_command_s_status(tmp_path):
+    """The handler was disarmed before the exit functions ran (``_leave``): a Ctrl-C there
+    made a finished run exit 130 'interrupted'. It is now recorded, and the process ends with
+    the command's own status. Native output held in the C library's buffer for a redirected
+    stdout (as Warp's and pxr's notes are) is flushed before the end, not lost."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}  # the C library's buffer as by default
+    env["PYTHONPATH"] = REPO + os.pathsep + os.environ.get("PYTHONPATH", "")
+    code = textwrap.dedent("""
+        import atexit, ctypes, os, signal, sys
+        from warp_esph.cli import console_main
+        atexit.register(lambda: os.kill(os.getpid(), signal.SIGINT))
+        atexit.register(lambda: ctypes.CDLL(None).printf(b"a native line\\n"))  # the last native output
+        sys.argv = ["warp-esph", "run", "three_cylinders", "-o", "c.usdc", "--scale", "0.3", "--frames", "2",
+                    "--no-progress"]
+        sys.exit(console_main())
+    """)
+    p = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
+                       # as in a terminal: a runner started in the background starts its children ignoring SIGINT
+                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert p.returncode == 0, (p.returncode, p.stderr)
+    assert "wrote" in p.stdout and p.stderr == "", p.stderr
+    assert "a native line" in p.stdout
+
+
 def test_a_run_whose_standard_error_reader_left_goes_on_without_its_progress_bar(tmp_path):
     """``warp-esph run ... 2> >(head -c 1)``: the progress bar's write met a closed pipe
     (BrokenPipeError), and the run ended with exit 1 after two frames, its traceback written

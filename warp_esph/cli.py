@@ -1024,7 +1024,8 @@ def _leave(status: int) -> NoReturn:
     Python's own shutdown resets the signal handlers to the default action before it
     tears the modules down (a quarter of a second after a run, with Warp and pxr loaded):
     a Ctrl-C there killed a finished run's process by the signal (status -2, no line),
-    whatever the command had decided. Up to ``os._exit`` the command's handler stands.
+    whatever the command had decided. Up to ``os._exit`` the command's handler stands, and
+    only records a signal (``main`` left it holding): the command's status is the exit's.
     """
     import atexit  # noqa: PLC0415
 
@@ -1037,6 +1038,14 @@ def _leave(status: int) -> NoReturn:
             # reader left mid-output (main), not a success; Python exited 120 here.
             if stream is sys.stdout and status == 0:
                 status = EXIT_PIPE_CLOSED
+    try:
+        # The C library's buffers too (native notes of Warp or pxr to a redirected stdout, held
+        # whole until exit()): os._exit does not flush them, and they were lost.
+        import ctypes  # noqa: PLC0415
+
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError, TypeError):  # no C library to load by name (some platforms)
+        pass
     os._exit(status)
 
 
@@ -1074,6 +1083,11 @@ def main(argv=None, *, restore_signals: bool = True) -> int:
     finally:
         if restore_signals:
             signals.restore()
+        else:
+            # The process ends in ``_leave`` with this status: a signal from here on is recorded,
+            # not acted on (it made a finished command exit 130 'interrupted' as the exit
+            # functions ran).
+            signals.holding = True
 
 
 def _dispatch(args) -> int:
