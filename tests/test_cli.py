@@ -1088,7 +1088,39 @@ def test_a_second_ctrl_c_after_the_first_was_raised_ends_the_command_at_once(tmp
     assert p.stderr == "warp-esph: interrupted\n", p.stderr
     assert not (tmp_path / "went-on").exists()
     assert frames_in(tmp_path / "c.usdc", prim="/World/elastic") == [0.0, 1.0, 2.0]
-    assert sorted(os.listdir(tmp_path)) == ["c.usdc"]  # (its force log is written after this line)
+    # Its force log is written before that line (a second Ctrl-C there lost it).
+    assert sorted(os.listdir(tmp_path)) == ["c.usdc", "c.usdc_tools.csv", "c.usdc_tools.json"]
+
+
+def test_a_second_ctrl_c_as_the_interrupted_run_says_what_it_keeps_leaves_its_force_log_whole(tmp_path):
+    """The force log of a run without checkpoints was written only in the run's last cleanup
+    step: a second Ctrl-C while the 'interrupted ... keeps N frames' line was built ended the
+    process with the USD whole and no log. The log is now written (a further signal waiting
+    for it) before that line: it holds the rows of the frames the USD keeps."""
+    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    code = textwrap.dedent("""
+        import os, signal, sys
+        from warp_esph import cli, usd
+        real_write, real_kept = usd.UsdWriter.write_frame, cli._kept
+        def write_frame(self, frame, state):
+            if frame == 3:
+                os.kill(os.getpid(), signal.SIGINT)  # the first: raised, the run stops
+            return real_write(self, frame, state)
+        def kept(writer, start_frame):
+            os.kill(os.getpid(), signal.SIGINT)  # the second, as the line is built
+            return real_kept(writer, start_frame)
+        usd.UsdWriter.write_frame, cli._kept = write_frame, kept
+        sys.argv = ["warp-esph", "run", "-o", "d.usdc", "--scale", "0.3", "--frames", "10", "--no-progress"]
+        sys.exit(cli.console_main())
+    """)
+    p = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
+                       # as in a terminal: a runner started in the background starts its children ignoring SIGINT
+                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert p.returncode == 130, (p.returncode, p.stderr)
+    assert p.stderr == "warp-esph: interrupted\n", p.stderr
+    assert frames_in(tmp_path / "d.usdc") == [0.0, 1.0, 2.0]
+    assert sorted(os.listdir(tmp_path)) == ["d.usdc", "d.usdc_tools.csv", "d.usdc_tools.json"]
+    assert log_frames(tmp_path / "d.usdc") == {"plane0": [0, 1, 2]}  # the finished frames, as in the USD
 
 
 def test_a_signal_while_the_exit_functions_run_leaves_the_command_s_status(tmp_path):

@@ -541,6 +541,27 @@ def _cmd_run(args) -> int:
                 held = "it is left as it was"  # written by renaming over
             return f"cannot write {e.what} {e.path}: {why} ({held}; {writer.path} keeps {_kept(writer, start_frame)})"
 
+        log_done = [False]
+        tool_files = None
+
+        def write_final_log():
+            """The force log's last write, once (the interrupted run's line, or the cleanup step);
+            the failure's line, or None. Called inside ``_Deferred``."""
+            nonlocal tool_files
+            if log_done[0]:
+                return None
+            log_done[0] = True
+            # A resumed run that published no frame left its file as it was (the frames past the
+            # checkpoint included): its log is left so too, not cut back to the checkpoint's rows.
+            if log is not None and log.rows and not log_failed[0] and (args.resume is None or writer.frames_written):
+                try:
+                    tool_files = write_log()
+                except _BesideWriteError as e:
+                    # Said whatever ended the run (its own line stands); a finished run is not a
+                    # success without its log (it was exit 2, 'bad input', naming no file).
+                    return beside_failure(e)
+            return None
+
         def on_frame(frame, current):
             if log is not None:
                 log.record(frame, current)
@@ -560,9 +581,15 @@ def _cmd_run(args) -> int:
                  monitor_exempt=getattr(scene, "diverges", ()),
                  monitor_origin=model.state(requires_grad=False) if start_frame else None, _checked=checked)
     except KeyboardInterrupt:
-        with _Deferred(args):  # its working copies removed: a second Ctrl-C here waits for that
+        # Its working copies removed and its force log written before the line is built: a second
+        # Ctrl-C here waits for them, and one after them ends the process at once (the log was
+        # written only in the cleanup below, which that second one never reached).
+        with _Deferred(args):
             writer.close()
+            log_error = write_final_log()
         print(f"{PROG}: {_stopped(args)}: {writer.path} keeps {_kept(writer, start_frame)}", file=sys.stderr)
+        if log_error is not None:
+            _err(log_error)
         return EXIT_INTERRUPTED
     except SimulationError as e:
         writer.close()
@@ -585,15 +612,9 @@ def _cmd_run(args) -> int:
         # inside it (a second one, or one as the run ended) lost the whole log of a finished run.
         with _Deferred(args):
             writer.close()
-            # A resumed run that published no frame left its file as it was (the frames past the
-            # checkpoint included): its log is left so too, not cut back to the checkpoint's rows.
-            if log is not None and log.rows and not log_failed[0] and (args.resume is None or writer.frames_written):
-                try:
-                    tool_files = write_log()
-                except _BesideWriteError as e:
-                    # Said here, whatever ended the run (its own line stands); a finished run is not a
-                    # success without its log (it was exit 2, 'bad input', naming no file).
-                    _err(beside_failure(e))
+            log_error = write_final_log()
+            if log_error is not None:
+                _err(log_error)
     if log_failed[0]:
         return EXIT_WRITE_FAILED
     if getattr(getattr(args, "signals", None), "received", None):
