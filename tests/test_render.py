@@ -197,6 +197,19 @@ def test_parse_frames():
         parse_frames("-99", have)
 
 
+
+def test_parse_frames_refusal_shows_numpy_integers_as_plain_ints():
+    """Frames picked with numpy (``np.arange``, ``np.where``) were shown in the refusal as numpy
+    writes them, ``frames = [np.int64(3), np.int64(99)]``: they are shown as the ints they are."""
+    have = list(range(11))
+    assert parse_frames([np.int64(3), np.int32(5)], have) == [3, 5]
+    with pytest.raises(ValueError, match=r"^frames = \[3, 99\] is not allowed: frame 99 is not in the file \(it holds 0\.\.10\)$"):
+        parse_frames([np.int64(3), np.int64(99)], have)
+    with pytest.raises(ValueError, match=r"^frames = \(3, 'x'\) is not allowed: 'x' is not "):
+        parse_frames((np.int16(3), "x"), have)
+    with pytest.raises(ValueError, match=r"^frames = 99 is not allowed: frame 99 is not in the file"):
+        parse_frames(np.int64(99), have)
+
 def test_bad_outputs(tmp_path, monkeypatch):
     path = tmp_path / "one.usdc"
     write_clusters(path, [(0.0, 0.0, 0.0)])

@@ -1117,6 +1117,16 @@ def parse_frames(spec, available: list[int]) -> list[int]:
     if spec is None:
         return list(available)
     shown = spec  # as given: a list was shown joined ('' for [], '1,x' for [1, 'x'])
+
+    def plain(v):
+        # Frames picked with numpy were shown as numpy writes them: 'np.int64(3)'.
+        return int(v) if isinstance(v, np.integer) else v
+
+    if isinstance(spec, (list, tuple)):
+        shown = [plain(s) for s in spec]
+        shown = tuple(shown) if isinstance(spec, tuple) else shown
+    else:
+        shown = plain(spec)
     if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
         spec = str(int(spec))
     if isinstance(spec, (list, tuple)):
