@@ -932,10 +932,10 @@ class _Signals:
         if self.holding:
             return
         if self.armed or not self.exit_at_once:
-            # Raised once: a further Ctrl-C while the first unwinds only cut the writers' cleanup
-            # short. A further one (outside a write that must finish: ``holding``) ends the
-            # process at once: it was ignored, and a fit writing its pictures or a sweep waiting
-            # on its workers after the first could be ended only by SIGKILL. The files finished
+            # Raised once: raising it again while the first unwinds cut the writers' cleanup
+            # short. A further one ends the process at once, except inside a write that must
+            # finish (``holding``), where it is recorded: ignored, it left a fit writing its
+            # pictures or a sweep waiting on its workers to SIGKILL. The files finished
             # are whole (each is written beside and renamed over). In someone else's process
             # (``exit_at_once`` False) it is only recorded. And never inside a finalizer, where
             # Python prints it as 'Exception ignored in ... __del__' with a traceback and drops
