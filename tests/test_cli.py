@@ -1032,26 +1032,34 @@ def test_a_reader_that_leaves_is_not_bad_input_and_leaves_no_traceback(tmp_path)
     assert "Traceback" not in err and "cannot write" not in err, err
 
 
-def test_a_signal_as_the_process_ends_does_not_kill_it_by_the_default_action(tmp_path):
-    """Python's shutdown resets the signal handlers to the default action before it tears
-    the modules down: a Ctrl-C there (here sent by an object of ``__main__`` as it is torn
-    down) killed a finished run by SIGINT (-2, no line). The command now ends with its own
-    status once its work is done, so no shutdown follows it."""
-    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    code = textwrap.dedent("""
-        import os, signal, sys
-        class Probe:
-            def __del__(self):
-                os.kill(os.getpid(), signal.SIGINT)
-        probe = Probe()
+def _console_run_in_a_child(tmp_path, prelude: str, env=None):
+    """``console_main`` running a small three_cylinders run in a child Python after ``prelude``
+    (which may set up what sends it signals), its SIGINT handled as in a terminal: a runner
+    started in the background starts its children ignoring it."""
+    env = dict(os.environ if env is None else env)
+    env["PYTHONPATH"] = REPO + os.pathsep + os.environ.get("PYTHONPATH", "")
+    code = textwrap.dedent(prelude) + textwrap.dedent("""
         from warp_esph.cli import console_main
         sys.argv = ["warp-esph", "run", "three_cylinders", "-o", "c.usdc", "--scale", "0.3", "--frames", "2",
                     "--no-progress"]
         sys.exit(console_main())
     """)
-    p = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
-                       # as in a terminal: a runner started in the background starts its children ignoring SIGINT
-                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    return subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+def test_a_signal_as_the_process_ends_does_not_kill_it_by_the_default_action(tmp_path):
+    """Python's shutdown resets the signal handlers to the default action before it tears
+    the modules down: a Ctrl-C there (here sent by an object of ``__main__`` as it is torn
+    down) killed a finished run by SIGINT (-2, no line). The command now ends with its own
+    status once its work is done, so no shutdown follows it."""
+    p = _console_run_in_a_child(tmp_path, """
+        import os, signal, sys
+        class Probe:
+            def __del__(self):
+                os.kill(os.getpid(), signal.SIGINT)
+        probe = Probe()
+    """)
     assert p.returncode == 0, (p.returncode, p.stderr)
     assert "wrote" in p.stdout and "guard counts" in p.stdout  # the streams flushed before the end
     assert p.stderr == "", p.stderr
@@ -1129,19 +1137,11 @@ def test_a_signal_while_the_exit_functions_run_leaves_the_command_s_status(tmp_p
     the command's own status. Native output held in the C library's buffer for a redirected
     stdout (as Warp's and pxr's notes are) is flushed before the end, not lost."""
     env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}  # the C library's buffer as by default
-    env["PYTHONPATH"] = REPO + os.pathsep + os.environ.get("PYTHONPATH", "")
-    code = textwrap.dedent("""
+    p = _console_run_in_a_child(tmp_path, """
         import atexit, ctypes, os, signal, sys
-        from warp_esph.cli import console_main
         atexit.register(lambda: os.kill(os.getpid(), signal.SIGINT))
         atexit.register(lambda: ctypes.CDLL(None).printf(b"a native line\\n"))  # the last native output
-        sys.argv = ["warp-esph", "run", "three_cylinders", "-o", "c.usdc", "--scale", "0.3", "--frames", "2",
-                    "--no-progress"]
-        sys.exit(console_main())
-    """)
-    p = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
-                       # as in a terminal: a runner started in the background starts its children ignoring SIGINT
-                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    """, env)
     assert p.returncode == 0, (p.returncode, p.stderr)
     assert "wrote" in p.stdout and p.stderr == "", p.stderr
     assert "a native line" in p.stdout
