@@ -1032,16 +1032,18 @@ def test_a_reader_that_leaves_is_not_bad_input_and_leaves_no_traceback(tmp_path)
     assert "Traceback" not in err and "cannot write" not in err, err
 
 
-def _console_run_in_a_child(tmp_path, prelude: str, env=None):
-    """``console_main`` running a small three_cylinders run in a child Python after ``prelude``
-    (which may set up what sends it signals), its SIGINT handled as in a terminal: a runner
-    started in the background starts its children ignoring it."""
+_SMALL_RUN = ["run", "three_cylinders", "-o", "c.usdc", "--scale", "0.3", "--frames", "2", "--no-progress"]
+
+
+def _console_run_in_a_child(tmp_path, prelude: str, env=None, argv=_SMALL_RUN):
+    """``console_main`` running ``warp-esph argv`` (a small three_cylinders run) in a child
+    Python after ``prelude`` (which may set up what sends it signals), its SIGINT handled as in
+    a terminal: a runner started in the background starts its children ignoring it."""
     env = dict(os.environ if env is None else env)
     env["PYTHONPATH"] = REPO + os.pathsep + os.environ.get("PYTHONPATH", "")
-    code = textwrap.dedent(prelude) + textwrap.dedent("""
+    code = textwrap.dedent(prelude) + textwrap.dedent(f"""
         from warp_esph.cli import console_main
-        sys.argv = ["warp-esph", "run", "three_cylinders", "-o", "c.usdc", "--scale", "0.3", "--frames", "2",
-                    "--no-progress"]
+        sys.argv = {["warp-esph", *argv]!r}
         sys.exit(console_main())
     """)
     return subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
@@ -1065,33 +1067,30 @@ def test_a_signal_as_the_process_ends_does_not_kill_it_by_the_default_action(tmp
     assert p.stderr == "", p.stderr
 
 
+_SECOND_CTRL_C = """
+    import os, signal, sys
+    from warp_esph import cli, usd
+    real_write, real_kept = usd.UsdWriter.write_frame, cli._kept
+    def write_frame(self, frame, state):
+        if frame == 3:
+            os.kill(os.getpid(), signal.SIGINT)  # the first: raised, the run stops
+        return real_write(self, frame, state)
+    def kept(writer, start_frame):
+        os.kill(os.getpid(), signal.SIGINT)  # the second, as the command says what its file keeps
+        open("went-on", "w").close()
+        return real_kept(writer, start_frame)
+    usd.UsdWriter.write_frame, cli._kept = write_frame, kept
+"""
+
+
 def test_a_second_ctrl_c_after_the_first_was_raised_ends_the_command_at_once(tmp_path):
     """After the first Ctrl-C was raised every further one was ignored until the command
     ended: a fit writing its pictures or a sweep waiting on its workers could be ended only
     by SIGKILL. A further one outside a write that must finish now ends the process at once
     (its one line, 130); the output keeps its finished frames, whole. Here the second comes
     as the interrupted run says what its file keeps, and the command would go on after it."""
-    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    code = textwrap.dedent("""
-        import os, signal, sys
-        from warp_esph import cli, usd
-        real_write, real_kept = usd.UsdWriter.write_frame, cli._kept
-        def write_frame(self, frame, state):
-            if frame == 3:
-                os.kill(os.getpid(), signal.SIGINT)  # the first: raised, the run stops
-            return real_write(self, frame, state)
-        def kept(writer, start_frame):
-            os.kill(os.getpid(), signal.SIGINT)  # the second, as the command winds up
-            open("went-on", "w").close()
-            return real_kept(writer, start_frame)
-        usd.UsdWriter.write_frame, cli._kept = write_frame, kept
-        sys.argv = ["warp-esph", "run", "three_cylinders", "-o", "c.usdc", "--scale", "0.3", "--frames", "10",
-                    "--no-progress"]
-        sys.exit(cli.console_main())
-    """)
-    p = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
-                       # as in a terminal: a runner started in the background starts its children ignoring SIGINT
-                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    p = _console_run_in_a_child(tmp_path, _SECOND_CTRL_C,
+                                argv=["run", "three_cylinders", "-o", "c.usdc", "--scale", "0.3", "--frames", "10", "--no-progress"])
     assert p.returncode == 130, (p.returncode, p.stderr)
     assert p.stderr == "warp-esph: interrupted\n", p.stderr
     assert not (tmp_path / "went-on").exists()
@@ -1105,25 +1104,8 @@ def test_a_second_ctrl_c_as_the_interrupted_run_says_what_it_keeps_leaves_its_fo
     step: a second Ctrl-C while the 'interrupted ... keeps N frames' line was built ended the
     process with the USD whole and no log. The log is now written (a further signal waiting
     for it) before that line: it holds the rows of the frames the USD keeps."""
-    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    code = textwrap.dedent("""
-        import os, signal, sys
-        from warp_esph import cli, usd
-        real_write, real_kept = usd.UsdWriter.write_frame, cli._kept
-        def write_frame(self, frame, state):
-            if frame == 3:
-                os.kill(os.getpid(), signal.SIGINT)  # the first: raised, the run stops
-            return real_write(self, frame, state)
-        def kept(writer, start_frame):
-            os.kill(os.getpid(), signal.SIGINT)  # the second, as the line is built
-            return real_kept(writer, start_frame)
-        usd.UsdWriter.write_frame, cli._kept = write_frame, kept
-        sys.argv = ["warp-esph", "run", "-o", "d.usdc", "--scale", "0.3", "--frames", "10", "--no-progress"]
-        sys.exit(cli.console_main())
-    """)
-    p = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
-                       # as in a terminal: a runner started in the background starts its children ignoring SIGINT
-                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    p = _console_run_in_a_child(tmp_path, _SECOND_CTRL_C,
+                                argv=["run", "-o", "d.usdc", "--scale", "0.3", "--frames", "10", "--no-progress"])
     assert p.returncode == 130, (p.returncode, p.stderr)
     assert p.stderr == "warp-esph: interrupted\n", p.stderr
     assert frames_in(tmp_path / "d.usdc") == [0.0, 1.0, 2.0]
