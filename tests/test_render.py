@@ -210,6 +210,22 @@ def test_parse_frames_refusal_shows_numpy_integers_as_plain_ints():
     with pytest.raises(ValueError, match=r"^frames = 99 is not allowed: frame 99 is not in the file"):
         parse_frames(np.int64(99), have)
 
+
+def test_parse_frames_takes_a_range_a_numpy_array_or_an_iterator_as_the_renderer_does():
+    """Only ``Renderer`` converted a range, a numpy array or an iterator of frame numbers;
+    ``render_usd`` and ``export_frames``, which call ``parse_frames`` directly, refused them
+    ('frames = array([0, 2]) is not allowed'). ``parse_frames`` converts them for every caller."""
+    have = list(range(11))
+    assert parse_frames(np.array([0, 2]), have) == [0, 2]
+    assert parse_frames(range(1, 4), have) == [1, 2, 3]
+    assert parse_frames(iter([10, 3]), have) == [10, 3]
+    assert parse_frames(np.array(4), have) == [4]
+    assert parse_frames(np.arange(0, 11, 5, dtype=np.int32), have) == [0, 5, 10]
+    with pytest.raises(ValueError, match=r"^frames = \[3, 99\] is not allowed: frame 99 is not in the file \(it holds 0\.\.10\)$"):
+        parse_frames(np.array([3, 99]), have)
+    with pytest.raises(ValueError, match=r"^frames = 2\.5 is not allowed: give e\.g\. 'all'"):
+        parse_frames(2.5, have)  # not iterable: refused by its value
+
 def test_bad_outputs(tmp_path, monkeypatch):
     path = tmp_path / "one.usdc"
     write_clusters(path, [(0.0, 0.0, 0.0)])

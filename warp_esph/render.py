@@ -529,7 +529,7 @@ class Renderer:
     def __init__(self, data: UsdFrames, frames, options: RenderOptions | None = None, camera: Camera | None = None,
                  color_range: tuple[float, float] | None = None):
         """``frames``: the frames to frame (and colour-range) together, as ``parse_frames`` takes
-        them, or any iterable of frame numbers (a range, a numpy array; ``None``: all). ``camera``: use this camera (its size must be the picture size times ``supersample``)
+        them (a spec, or any iterable of frame numbers: a range, a numpy array; ``None``: all). ``camera``: use this camera (its size must be the picture size times ``supersample``)
         instead of framing the bounds of ``frames`` automatically. ``color_range``: the values
         mapped to the ends of the colour map (default: 0 and the 99.5th percentile over ``frames``)."""
         self.data = data
@@ -537,13 +537,6 @@ class Renderer:
         o = self.options
         # The file's frames, at least one: none framed the bounds of nothing (a picture of
         # whatever an infinite box looked like), and a frame the file lacks failed at its render.
-        if frames is not None and not isinstance(frames, (str, bytes, list, tuple, int, np.integer)):
-            # A range, a numpy array or an iterator of frame numbers, taken as list(frames) before
-            # parse_frames was used here (which takes a spec text, a number, a list or a tuple).
-            try:
-                frames = [int(f) if isinstance(f, np.integer) else f for f in frames]  # named as numbers
-            except TypeError:
-                pass  # not iterable: parse_frames names it
         self.frames = parse_frames(frames, data.frames)
         if camera is not None and not isinstance(camera, Camera):
             raise ValueError(f"camera = {checks.shorten(camera)!r} is not allowed: must be a warp_esph.render.Camera or None")

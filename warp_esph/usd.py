@@ -1113,9 +1113,20 @@ class UsdFrames:
 
 def parse_frames(spec, available: list[int]) -> list[int]:
     """Frame indices from a spec: ``all``, ``first``, ``last``, ``N``, ``-N`` (from the end),
-    ``A:B`` or ``A:B:STEP`` (B inclusive, either may be left out), or a comma list of those."""
+    ``A:B`` or ``A:B:STEP`` (B inclusive, either may be left out), or a comma list of those;
+    or any other iterable of frame numbers (a range, a numpy array, an iterator)."""
     if spec is None:
         return list(available)
+    if isinstance(spec, np.ndarray) and spec.ndim == 0:
+        spec = spec.item()
+    if not isinstance(spec, (str, bytes, list, tuple, int, np.integer)):
+        # Converted here, once, for every caller: the Renderer converted a range, a numpy array
+        # or an iterator itself, while render_usd, export and the fit targets, which called this
+        # directly, refused them ('frames = array([0, 2]) is not allowed').
+        try:
+            spec = list(spec)
+        except TypeError:
+            pass  # not iterable: refused below by its value
     shown = spec  # as given: a list was shown joined ('' for [], '1,x' for [1, 'x'])
 
     def plain(v):
