@@ -274,6 +274,10 @@ def test_cli_solver_options_override_the_scene_files(scene_file, tmp_path, capsy
     (["--param", "yield_stress=10:100:log:8", "--sample", "lhs", "--samples", "4"], ["N = 8", "--sample lhs"]),
     (["--param", "yield_stress=10:100:log", "--sample", "lhs"], ["--samples is required"]),
     (["--param", "yield_stress=10:100:log", "--sample", "lhs", "--samples", "0"], ["--samples = 0", ">= 1"]),
+    # As fit refuses --seed where nothing is drawn: the grid ran as without it.
+    (["--param", "yield_stress=10:100:log:2", "--seed", "3"],
+     ["--seed = 3 is not allowed with --sample grid: it seeds the draws of --sample random and lhs, and a grid draws nothing"]),
+    (["--param", "yield_stress=10:100:log:2", "--sample", "grid", "--seed", "0"], ["--seed = 0 is not allowed with --sample grid"]),
     (["--param", "crust.yield_stress=10:100:log:2"], ["crust.yield_stress", "'crust'", "paste"]),
     (["--param", "yield_stress=10:100:log:2", "--param", "paste.yield_stress=1:2:lin:2"], ["paste.yield_stress", "already"]),
     (["--param", "yield_stress=10:100:log:2", "--workers", "0"], ["--workers", "0"]),

@@ -210,7 +210,10 @@ def _add_sweep_parser(sub) -> None:
                          "(a body's), 0.mu=... (material 0); LO:HI:SCALE for random/lhs; A,B,C or V; repeatable")
     sw.add_argument("--sample", choices=("grid", "random", "lhs"), default="grid", help="sampling (default grid)")
     sw.add_argument("--samples", type=int, metavar="N", help="number of samples for random and lhs")
-    sw.add_argument("--seed", type=int, default=0, metavar="S", help="seed of random and lhs samples (default 0)")
+    from .calibrate import _Given  # noqa: PLC0415 (imported for the fit parser anyway)
+
+    sw.add_argument("--seed", type=int, default=0, metavar="S", action=_Given,
+                    help="seed of random and lhs samples (default 0; not with grid, which draws nothing)")
     sw.add_argument("--max-samples", type=int, default=10000, metavar="N", help="refuse more samples (default 10000)")
     when = sw.add_mutually_exclusive_group()
     when.add_argument("--frames", type=int, metavar="N", help="frames per sample (default: the scene's)")

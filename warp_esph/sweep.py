@@ -1062,6 +1062,12 @@ def sweep_cli(args, out=None) -> int:
     from .cli import _apply_solver_options, _solver_options  # noqa: PLC0415
 
     options = _solver_options(args)
+    if args.sample == "grid" and getattr(args, "seed_given", False):
+        # Refused, not ignored, as fit refuses it where nothing is drawn: a grid's samples ran
+        # exactly as without it, only the table's seed column differed (the CLI passes no extra
+        # column function, the only user of the samples' seeds).
+        raise ValueError(f"--seed = {args.seed!r} is not allowed with --sample grid: it seeds the draws of --sample "
+                         "random and lhs, and a grid draws nothing")
     plan = _plan(args.scene, args.param or [], args.sample, args.samples, args.seed, args.frames, args.duration, args.fps,
                  args.dt, args.scale, args.dtype, "cpu", args.workers, args.max_samples, None, args.ray)
     sc, plist, points = plan.scene, plan.params, plan.tasks
