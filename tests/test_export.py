@@ -400,3 +400,21 @@ def test_a_kernel_narrower_than_the_grid_cell_is_refused_not_an_empty_surface():
         particle_surface(np.zeros((1, 3)), 0.02, kernel_radius=0.004, cell=0.005)
     v, tri = particle_surface(np.zeros((1, 3)), 0.02, kernel_radius=0.01)
     assert len(tri) > 0 and np.abs(v).max() < 0.02
+
+
+def test_a_radius_below_half_the_cells_diagonal_is_refused_not_a_sparse_set_without_surface():
+    """radius = 1e-6 missed every grid node around particles that sit off the grid: 20
+    particles far apart got no triangle at all, without a word. From half the cell's diagonal
+    on, every lone particle's nearest node is inside, and each gets its own surface."""
+    sparse = np.random.default_rng(0).uniform(0.0, 1.0, (20, 3))
+    with pytest.raises(ValueError, match=r"^radius = 1e-06 is not allowed: must be >= half the grid cell's diagonal, 0\.00866 "
+                                         r"\(sqrt\(3\)/2 x spacing / 2 = 0\.01\), else a particle alone within the kernel "
+                                         r"can fall between the grid's nodes and leave no surface$"):
+        particle_surface(sparse, 0.02, radius=1e-6)
+    with pytest.raises(ValueError, match=r"^cell = 0\.02 is not allowed with the default radius, 0\.011 \(0\.55 x spacing\): "
+                                         r"must be <= 0\.0127 \(2/sqrt\(3\) x radius\)"):
+        particle_surface(sparse, 0.02, cell=0.02)
+    for kw in (dict(radius=0.00866), dict(cell=0.0127)):  # the bounds as the messages give them
+        v, tri = particle_surface(sparse, 0.02, **kw)
+        gap = np.linalg.norm(sparse[:, None, :] - v[None, :, :], axis=2).min(axis=1)
+        assert len(tri) > 0 and gap.max() < 0.012, kw  # a surface around every particle

@@ -25,6 +25,9 @@ from . import checks
 
 __all__ = ["particle_surface", "surface_field"]
 
+#: Half the diagonal of a grid cell, in cells: the farthest any point lies from its nearest node.
+_HALF_DIAGONAL = math.sqrt(3.0) / 2.0
+
 
 @wp.kernel(enable_backward=False)
 def _scatter_weights(
@@ -79,6 +82,12 @@ def _zhu_bridson_field(
         field[i, j, k] = kernel_radius
 
 
+def _down4(x: float) -> float:
+    """``x`` rounded down to 4 significant digits: a largest allowed value, shown so that it is allowed."""
+    unit = 10.0 ** (math.floor(math.log10(x)) - 3)
+    return math.floor(x / unit) * unit
+
+
 def surface_field(points, spacing: float, *, kernel_radius: float | None = None, radius: float | None = None,
                   cell: float | None = None, device="cpu"):
     """The implicit field of ``points`` on a grid: ``(field (nx, ny, nz) float32 warp array, origin, cell)``."""
@@ -94,6 +103,21 @@ def surface_field(points, spacing: float, *, kernel_radius: float | None = None,
         raise ValueError(f"kernel_radius = {kernel_radius!r} is not allowed: must be >= the grid cell, {h:g} "
                          f"({'spacing / 2' if cell is None else 'cell'}), else the kernels fall between the grid's nodes "
                          "and the surface is empty")
+    # A particle alone within its kernel has the field |x - x_j| - r around it, negative only at
+    # nodes within r of it: a smaller radius than half a cell's diagonal (the farthest a point
+    # lies from its nearest node) missed every node wherever the particle sat off the grid, and a
+    # sparse set's surface came out empty, or without some particles, without a word. Compared
+    # with the bound as shown (4 digits), so that the value the message gives is taken.
+    need = _HALF_DIAGONAL * h
+    if r < min(need, float(f"{need:.4g}")):
+        cell_text = "spacing / 2" if cell is None else "cell"
+        if radius is None:  # the default radius (0.55 dx) falls short only of a cell chosen coarser than dx / 2
+            raise ValueError(f"cell = {cell!r} is not allowed with the default radius, {r:g} (0.55 x spacing): must be <= "
+                             f"{_down4(r / _HALF_DIAGONAL):.4g} (2/sqrt(3) x radius), else a particle alone within the kernel can "
+                             "fall between the grid's nodes and leave no surface; give a smaller cell or a radius")
+        raise ValueError(f"radius = {radius!r} is not allowed: must be >= half the grid cell's diagonal, {need:.4g} "
+                         f"(sqrt(3)/2 x {cell_text} = {h:g}), else a particle alone within the kernel can fall between "
+                         "the grid's nodes and leave no surface")
     try:
         p = np.asarray(points)
     except (TypeError, ValueError):  # ragged rows
@@ -138,7 +162,8 @@ def particle_surface(points, spacing: float, *, kernel_radius: float | None = No
 
     ``points``: ``(n, 3)`` real numbers (or one ``(3,)`` point; non-finite rows are left out);
     ``spacing``: the particle spacing dx; ``kernel_radius`` (default 2 dx, at least ``cell``),
-    ``radius`` (default 0.55 dx) and ``cell`` (grid cell, default dx / 2) as in the module notes.
+    ``radius`` (default 0.55 dx, at least sqrt(3)/2 ``cell``) and ``cell`` (grid cell, default
+    dx / 2) as in the module notes.
     """
     import warp.geometry  # noqa: PLC0415 (marching cubes)
 
