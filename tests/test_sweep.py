@@ -19,7 +19,7 @@ from warp_esph import cli
 from warp_esph.builder import SceneBuilder
 from warp_esph.material import Material
 from warp_esph.scenes import Scene
-from warp_esph.sweep import SweepTable, parse_param, sample_points, sweep
+from warp_esph.sweep import SweepTable, _plan, parse_param, sample_points, sweep
 
 FRAMES = 10
 YIELD = "yield_stress=10:10000:log:3"
@@ -278,6 +278,9 @@ def test_cli_solver_options_override_the_scene_files(scene_file, tmp_path, capsy
     (["--param", "yield_stress=10:100:log:2", "--seed", "3"],
      ["--seed = 3 is not allowed with --sample grid: it seeds the draws of --sample random and lhs, and a grid draws nothing"]),
     (["--param", "yield_stress=10:100:log:2", "--sample", "grid", "--seed", "0"], ["--seed = 0 is not allowed with --sample grid"]),
+    # Every sample failed alone at a frame of millions of steps, exit 3.
+    (["--param", "mu=1e3:1e5:log:3", "--fps", "1e-4", "--frames", "1"],
+     ["--fps = 0.0001 is not allowed for this sweep: no sample can run at its own stable step (sample 0, mu = 1000: the stable step"]),
     (["--param", "crust.yield_stress=10:100:log:2"], ["crust.yield_stress", "'crust'", "paste"]),
     (["--param", "yield_stress=10:100:log:2", "--param", "paste.yield_stress=1:2:lin:2"], ["paste.yield_stress", "already"]),
     (["--param", "yield_stress=10:100:log:2", "--workers", "0"], ["--workers", "0"]),
@@ -301,6 +304,21 @@ def test_bad_input_exits_2_with_one_line(scene_file, capsys, args, words, tmp_pa
     for w in words:
         assert w in err[0], (w, err[0])
     assert not os.path.exists(tmp_path / "never")
+
+
+def test_a_sweep_no_sample_of_which_can_step_at_its_fps_is_refused_before_the_first_sample():
+    """At fps 0.01 a frame of the stiff samples needs millions of stable steps: each sample
+    failed alone with that refusal, one after the other, and the sweep ended with a table of
+    failures (the CLI: exit 3). Now it is refused once, before any sample, by the option's
+    name; a sweep one of whose samples can run still runs (the others are its rows)."""
+    with pytest.raises(ValueError, match=r"^--fps = 0\.01 is not allowed for this sweep: no sample can run at its own stable "
+                                         r"step \(sample 0, mu = 1e\+09: the stable step 4\.5e-06 s is not allowed: .*\); "
+                                         r"give a higher --fps$"):
+        sweep(_box(), ["mu=1e9,1e8"], fps=0.01, frames=1, workers=1)
+    with pytest.raises(ValueError, match=r"^--frames = 1000000000 is not allowed for this sweep: no sample can run at its own "
+                                         r"stable step \(sample 0, mu = 1000: frames = 1000000000 is not allowed: at 16 steps"):
+        sweep(_box(), ["mu=1e3"], frames=10**9, workers=1)
+    assert len(_plan(_box(), ["mu=1e9,1e3"], "grid", None, 0, 1, None, 0.01, None, 1.0, "float32", "cpu", 1, 100, None).tasks) == 2
 
 
 def test_bad_input_raises_value_error_in_python():

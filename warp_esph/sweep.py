@@ -865,8 +865,9 @@ class _Plan:
 
 
 def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale, dtype, device, workers, max_samples,
-          extra, ray=None) -> _Plan:
-    """Every check of ``sweep``'s input, and one task per sample."""
+          extra, ray=None, options=None) -> _Plan:
+    """Every check of ``sweep``'s input, and one task per sample. ``options``: solver options
+    (the CLI's ``--hourglass``, ...) set on the scene's builder before anything is built."""
     plist = _as_params(params)
     points = sample_points(plist, sample, samples, seed, max_samples)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -892,6 +893,15 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
     if extra is not None and not callable(extra):
         raise ValueError(f"extra = {extra!r} is not allowed: must be callable as extra(model, state, seed)")
     sc = _load(scene, scale)
+    if options:
+        from .cli import _apply_solver_options  # noqa: PLC0415
+
+        # Before the check of the steps below: the hourglass control shortens the stable step.
+        _apply_solver_options(sc.builder, options)
+    # What the refusals below name: an option given, else the scene's value.
+    rate = f"--fps = {fps:g}" if fps is not None else f"the scene's fps = {sc.fps:g} (--fps)"
+    length = f"--frames = {frames}" if frames is not None else f"--duration = {duration:g}" if duration is not None \
+        else f"the scene's frames = {sc.frames} (--frames)"
     fps = fps if fps is not None else sc.fps
     if duration is not None:
         from .simulate import MAX_STEPS  # noqa: PLC0415
@@ -915,12 +925,47 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
 
     here = "cpu" if ray is not None else device
     init_warp(here)
-    sc.builder.finalize(device=here, dtype=dtype)
+    model = sc.builder.finalize(device=here, dtype=dtype)
+    if dt is None:
+        _check_some_sample_steps(model, assignments, points, frames, fps, rate, length)
     if extra is not None and ray is None and min(workers or _cores(), len(points)) > 1:
         _check_sendable("extra", extra, min(workers or _cores(), len(points)))
     tasks = [(sc, _Task(i, _sample_seed(seed, i), values, assignments, frames, fps, dt, dtype, device, extra))
              for i, values in enumerate(points)]
     return _Plan(sc, plist, tasks)
+
+
+def _check_some_sample_steps(model, assignments, points, frames, fps, rate, length) -> None:
+    """Refuse a sweep none of whose samples can take its own stable step at ``fps`` (a frame
+    of more than ``MAX_STEPS_PER_FRAME`` steps, or a run of more than ``MAX_STEPS``): each
+    failed alone, one after the other, with the same refusal, and the sweep exited 3. A
+    sample that can is enough (the others are rows of the table, as a blown-up sample is).
+    ``rate``, ``length``: the options (or the scene's values) the refusal names."""
+    from .simulate import check_step_count, resolve_timestep  # noqa: PLC0415
+
+    first = None
+    for k, values in enumerate(points):
+        try:
+            _apply(model, assignments, values)
+        except ValueError:
+            continue  # that sample's own refusal, its row's reason
+        try:
+            substeps, _ = resolve_timestep(model, fps)
+        except ValueError as e:
+            first = first or (k, values, str(e), rate, "give a higher --fps")
+            continue
+        try:
+            check_step_count(frames, substeps)
+        except ValueError as e:
+            first = first or (k, values, str(e), length, "give fewer --frames or a shorter --duration")
+            continue
+        return
+    if first is None:
+        return
+    k, values, why, named, hint = first
+    shown = ", ".join(f"{name} = {v:g}" for name, v in values.items())
+    raise ValueError(f"{named} is not allowed for this sweep: no sample can run at its own stable step (sample {k}, "
+                     f"{shown}: {why}); {hint}")
 
 
 def _execute(plan: _Plan, workers, ray, on_result) -> SweepTable:
@@ -1059,7 +1104,7 @@ def sweep_cli(args, out=None) -> int:
     from .cli import EXIT_INTERRUPTED, EXIT_WRITE_FAILED, PROG  # noqa: PLC0415
 
     out = sys.stdout if out is None else out
-    from .cli import _apply_solver_options, _solver_options  # noqa: PLC0415
+    from .cli import _solver_options  # noqa: PLC0415
 
     options = _solver_options(args)
     if args.sample == "grid" and getattr(args, "seed_given", False):
@@ -1068,11 +1113,10 @@ def sweep_cli(args, out=None) -> int:
         # column function, the only user of the samples' seeds).
         raise ValueError(f"--seed = {args.seed!r} is not allowed with --sample grid: it seeds the draws of --sample "
                          "random and lhs, and a grid draws nothing")
+    # Every task holds the plan's scene: its builder's [solver] options, overridden, reach each sample's Solver(model).
     plan = _plan(args.scene, args.param or [], args.sample, args.samples, args.seed, args.frames, args.duration, args.fps,
-                 args.dt, args.scale, args.dtype, "cpu", args.workers, args.max_samples, None, args.ray)
+                 args.dt, args.scale, args.dtype, "cpu", args.workers, args.max_samples, None, args.ray, options)
     sc, plist, points = plan.scene, plan.params, plan.tasks
-    # Every task holds this scene: its builder's [solver] options, overridden, reach each sample's Solver(model).
-    _apply_solver_options(sc.builder, options)
     folder = args.output if args.output is not None else f"sweep_{sc.name}"  # '' fell back to the default
     checks.output_place("--output", folder, folder=True)  # before the first sample, not after
     for name in OUTPUT_FILES:  # a folder in the way of one was found after every sample had run
