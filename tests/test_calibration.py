@@ -341,6 +341,30 @@ def test_a_silhouette_loss_with_every_camera_facing_away_says_so():
     assert seen.out_of_reach() is None
 
 
+def test_a_silhouette_target_that_constrains_nothing_is_refused(tmp_path):
+    """A mask of all ones (every pixel inside) and splats that cover every pixel of a view
+    (radius 0.1 m: splats of 11 pixels and more in a 32 x 24 image) ask only that the
+    particles fill the view, whatever the body's shape: both were taken without a word (the
+    loss 0.76 at any shape, its gradient next to 0). The mask is refused by its file (or its
+    camera and step), the radius at the camera's first evaluation."""
+    rng = np.random.default_rng(0)
+    X = rng.normal(scale=0.03, size=(40, 3)) + np.array([0.0, 0.05, 0.0])
+    cams = _cameras()
+    masks = [(soft_silhouette(X, c, 0.01) > 0.3).astype(float) for c in cams]
+    np.save(tmp_path / "grey.npy", np.full((24, 32), 200.0))
+    with pytest.raises(ValueError, match=r"^mask \S*grey\.npy is not allowed: every pixel is inside \(nonzero, or > 0\.5 of "
+                                         r"its maximum\), so it shows no outline of the body and constrains nothing"):
+        load_masks(tmp_path / "grey.npy", cams[:1], 3)
+    with pytest.raises(ValueError, match=r"^mask of camera 'side' at step 5 is not allowed: every pixel is 1 \(inside\)"):
+        SilhouetteLoss({5: [masks[0], np.ones((24, 24))]}, cams, radius=0.01)
+    x = {5: wp.array(X, dtype=wp.vec3d)}
+    with pytest.raises(ValueError, match=r"^radius = 0\.1 is not allowed with camera 'front': at step 5 the particles' splats "
+                                         r"\(standard deviation 11\.1 pixels and more\) cover every pixel of its 32 x 24 "
+                                         r"image, so the silhouette shows no outline and constrains nothing"):
+        SilhouetteLoss({5: masks}, cams, radius=0.1).value(x)
+    assert 0.0 < SilhouetteLoss({5: masks}, cams, radius=0.03).value(x) < 0.5  # splats of 3-4 pixels leave an outline
+
+
 def test_silhouette_gradient_through_a_rollout():
     """d(silhouette loss)/d(mu) through 4 steps of a stretched block, tape vs central differences."""
     b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
@@ -403,7 +427,8 @@ def test_camera_file_and_masks(tmp_path):
     loaded, options = load_cameras(path)
     assert [c.name for c in loaded] == ["front", "side"] and options == {"radius": 0.01}
     assert loaded[0].fx == 60.0 and np.array_equal(loaded[1].R, cams[1].R)
-    np.savez(tmp_path / "masks.npz", front_3=np.ones((24, 32)), side_3=np.zeros((24, 24)))
+    front = np.pad(np.ones((12, 16)), ((6, 6), (8, 8)))  # the body in the middle of the view
+    np.savez(tmp_path / "masks.npz", front_3=front, side_3=np.zeros((24, 24)))
     masks = load_masks(tmp_path / "masks.npz", loaded)
     assert list(masks) == [3] and masks[3][0].shape == (24, 32)
     from warp_esph.silhouette import load_silhouette_target
@@ -1478,9 +1503,10 @@ def test_the_frames_of_npz_masks_are_chosen_and_a_mask_sequence_image_or_bad_opa
     cam = {"name": "front", "width": 8, "height": 6, "fx": 10.0, "fy": 10.0, "cx": 3.5, "cy": 2.5,
            "R": np.eye(3).tolist(), "t": [0.0, 0.0, 1.0]}
     (tmp_path / "cams.json").write_text(json.dumps({"cameras": [cam], "radius": 0.01}))
-    np.savez(tmp_path / "m.npz", front_2=np.zeros((6, 8)), front_3=np.ones((6, 8)), front_5=np.zeros((6, 8)))
+    body = np.pad(np.ones((2, 4)), ((2, 2), (2, 2)))
+    np.savez(tmp_path / "m.npz", front_2=np.zeros((6, 8)), front_3=body, front_5=np.zeros((6, 8)))
     loss = load_silhouette_target(tmp_path / "cams.json", tmp_path / "m.npz", "3", 6, 10)
-    assert loss.frames == (30,) and loss.masks[30][0].all()
+    assert loss.frames == (30,) and np.array_equal(loss.masks[30][0], body)
     assert load_silhouette_target(tmp_path / "cams.json", tmp_path / "m.npz", "2,last", 6, 10).frames == (20, 50)
     assert load_silhouette_target(tmp_path / "cams.json", tmp_path / "m.npz", None, 6, 10).frames == (20, 30, 50)
     with pytest.raises(ValueError, match=r"^--target-frames = '4' is not allowed: frame 4 is not in the file .*; the mask "

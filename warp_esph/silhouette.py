@@ -34,7 +34,10 @@ Masks: an image (PNG, ...) or ``.npy`` ``(height, width)`` for one camera (nonze
 camera and frame named ``<camera>_<frame>`` (rendered frame index). An image is read by its
 grey level (colours: their mean), or by its alpha channel where that varies (a cut-out on a
 transparent background); a palette image by its colours. Non-finite values, negative ones
-with nothing positive, and a mask of another size than its camera are refused by file name.
+with nothing positive, a mask of another size than its camera and one whose every pixel is
+inside (no outline: it constrains nothing) are refused by file name. Splats that cover every
+pixel of a camera's image at its first evaluation (a radius far above half a particle
+spacing, or a camera that sees only the body) are refused too, naming the radius.
 """
 
 
@@ -248,10 +251,17 @@ def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None)
 
 def _fitting_mask(mask: np.ndarray, where: str, camera: PinholeCamera) -> np.ndarray:
     """``mask``, refused by its file where it is not the camera's size (it was refused later
-    as the mask 'at step 34', by the step it was compared at, naming no file)."""
+    as the mask 'at step 34', by the step it was compared at, naming no file) or where every
+    pixel is inside."""
     if mask.shape != (camera.height, camera.width):
         raise ValueError(f"mask {where} with shape {mask.shape} is not allowed: camera {camera.name!r} is "
                          f"{camera.height} x {camera.width} (height x width)")
+    if mask.all():
+        # It asked only that the particles cover the whole view: a body that fills it (or
+        # splats that blur over it) matched whatever its shape.
+        raise ValueError(f"mask {where} is not allowed: every pixel is inside (nonzero, or > 0.5 of its maximum), so it "
+                         "shows no outline of the body and constrains nothing; a mask is nonzero inside the body's "
+                         "silhouette and zero around it (an empty view is all zeros)")
     return mask
 
 
@@ -368,7 +378,7 @@ class SilhouetteLoss(Loss):
     thick never fills its mask, so a softer, wider body always lowers the loss: docs/fitting.md). ``noise``: the residual noise for
     ``warp_esph.diagnostics``, in occupancy units (default 0.1).
     """
-    _CACHES = ("_buffers",)
+    _CACHES = ("_buffers", "_covered_checked")
 
 
     def __init__(self, masks, cameras, radius: float, frames=None, opacity: float = DEFAULT_OPACITY, weight: float = 1.0,
@@ -421,9 +431,14 @@ class SilhouetteLoss(Loss):
                     raise ValueError(f"mask of camera {c.name!r} at step {f} is not allowed: it has {int(outside.sum())} "
                                      f"values outside [0, 1] (first {float(m[j, i])!r} at row {j}, column {i}); a mask is an "
                                      "occupancy in [0, 1], 1 inside (load_masks binarises an image)")
+                if (m >= 1.0).all():  # refused as a mask file is: it constrains nothing
+                    raise ValueError(f"mask of camera {c.name!r} at step {f} is not allowed: every pixel is 1 (inside), so "
+                                     "it shows no outline of the body and constrains nothing; a mask is the body's "
+                                     "silhouette, 1 inside and 0 around it")
                 out.append(m)
             self.masks[f] = out
         self._buffers = {}
+        self._covered_checked = set()
 
     def _window(self, x: wp.array) -> int:
         X = x.numpy().astype(np.float64)
@@ -453,8 +468,31 @@ class SilhouetteLoss(Loss):
             wp.launch(k.splat, (x.shape[0], side * side),
                       [x, T_mat(S, c.R), T_vec(S, c.t), S(c.fx), S(c.fy), S(c.cx), S(c.cy), c.width, c.height, window,
                        S(self.radius), S(self.opacity)], [log_t], device=dev)
+            if key not in self._covered_checked:
+                self._covered_checked.add(key)
+                self._refuse_covered(frame, ci, x, log_t)
             wp.launch(k.compare, c.width * c.height, [log_t, mask, S(scale / (len(self.cameras) * c.width * c.height))],
                       [out], device=dev)
+
+    #: A view whose every pixel lets through less than this fraction (occupancy above 1 minus
+    #: it) is covered: its silhouette has no outline and next to no gradient.
+    COVERED = 1e-3
+
+    def _refuse_covered(self, frame, ci, x, log_t):
+        """Refuse, at a camera's first evaluation at ``frame``, splats that cover every pixel of
+        its image: the soft silhouette is 1 everywhere whatever the body's shape, and the loss
+        compared the mask with a full frame, its gradient vanishing (a radius in centimetres,
+        or a camera inside the body's outline)."""
+        if not (log_t.numpy() < math.log(self.COVERED)).all():
+            return
+        c = self.cameras[ci]
+        _, _, z = c.project(x.numpy().astype(np.float64))
+        z = z[z > 1e-6]
+        narrowest = self.radius * math.sqrt(c.fx * c.fy) / float(z.max()) if len(z) else math.inf
+        raise ValueError(f"radius = {self.radius:g} is not allowed with camera {c.name!r}: at step {frame} the particles' "
+                         f"splats (standard deviation {narrowest:.3g} pixels and more) cover every pixel of its "
+                         f"{c.width} x {c.height} image, so the silhouette shows no outline and constrains nothing; the "
+                         "radius is in metres, about half a particle spacing (or the camera sees only the body: move it back)")
 
     def out_of_reach(self) -> str | None:
         """Where no particle's splat fell on any pixel of any camera in any frame of the last
