@@ -396,3 +396,52 @@ def test_a_float64_run_reads_back_to_the_last_bit(tmp_path, dtype):
             assert a["points"].dtype == np.float32
             np.testing.assert_allclose(a["points"], kept[frame][0], atol=1e-6)
         np.testing.assert_array_equal(data.arrays(2)["points"], kept[2][0])
+
+
+def test_a_foreign_files_surfaces_colliders_and_tools_are_read_in_metres_and_world_coordinates_as_its_particles(tmp_path):
+    """Another program's copy of a run's file, in centimetres (metersPerUnit 0.01) under a
+    /World moved 50 cm up and turned 90 degrees about y: its particles were read in metres and
+    world coordinates, but its surfaces, colliders and tools in the file's own units and
+    frame (100 x too large, and elsewhere). Every geometry is now read through the same
+    transform."""
+    import shutil
+
+    from pxr import Gf
+
+    from warp_esph.render import tool_mesh
+    from warp_esph.usd import UsdFrames, quat_matrix
+
+    b = SceneBuilder(spacing=0.04)
+    b.add_box((0.0, 0.12, 0.0), (0.16, 0.12, 0.12), Material.preset("dough"), name="dough")
+    b.add_ground()
+    b.add_sphere_collider((0.0, -0.5, 1.0), 0.2)
+    b.add_box_collider((1.0, -0.5, 0.0), (0.1, 0.2, 0.3))
+    b.add_tool("box", half_extents=(0.05, 0.02, 0.03), position=(0.3, 0.6, 0.1), orientation=(0.0, 0.3826834, 0.0, 0.9238795))
+    model = b.finalize()
+    ours, theirs = tmp_path / "run.usda", tmp_path / "cm.usda"
+    simulate(model, 1, fps=30, writer=UsdWriter(ours, model, 30, surface=True), progress=False)
+    shutil.copy(ours, theirs)
+    stage = Usd.Stage.Open(str(theirs))
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    world = UsdGeom.Xformable(stage.GetPrimAtPath("/World"))
+    world.AddTranslateOp().Set(Gf.Vec3d(0.0, 50.0, 0.0))
+    world.AddRotateYOp().Set(90.0)
+    stage.Save()
+    A = 0.01 * np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])  # x_world = 0.01 x R_y(90) + (0, 0.5, 0)
+
+    def moved(x):
+        return np.asarray(x, dtype=np.float64) @ A + [0.0, 0.5, 0.0]
+
+    run, cm = UsdFrames(ours), UsdFrames(theirs)
+    np.testing.assert_allclose(cm.arrays(1)["points"], moved(run.arrays(1)["points"]), atol=1e-12)
+    np.testing.assert_allclose(cm.surface(1, 0)[0], moved(run.surface(1, 0)[0]), atol=1e-7)
+    ground, sphere, box = cm.colliders
+    assert ground.normal == pytest.approx([0.0, 1.0, 0.0]) and ground.offset == pytest.approx(0.5)
+    assert ground.center == pytest.approx(moved(run.colliders[0].center))
+    assert sphere.center == pytest.approx(moved([0.0, -0.5, 1.0]), abs=1e-12) and sphere.size == pytest.approx([0.002] * 3)
+    assert box.center == pytest.approx(moved([1.0, -0.5, 0.0]), abs=1e-12) and box.size == pytest.approx([0.003, 0.002, 0.001])
+    shapes = []
+    for data in (run, cm):
+        p, q = data.tools[0].pose(1)
+        shapes.append(tool_mesh(data.tools[0])[0] @ quat_matrix(q).T + p)
+    np.testing.assert_allclose(shapes[1], moved(shapes[0]), atol=1e-9)

@@ -706,18 +706,31 @@ class Tool:
     param: np.ndarray             # box: half extents; sphere: (r, 0, 0); capsule/cylinder: (r, half height, 0); plane: local normal
     points: np.ndarray | None = None     # plane (the quad) and mesh: vertices in the tool's frame
     triangles: np.ndarray | None = None  # mesh: (T, 3) vertex indices
+    #: ``frame -> (A, b)`` taking the tool prim's parent coordinates to metres and world
+    #: coordinates (``UsdFrames.placement``), or None where that is the identity.
+    placement: object = None
 
     def pose(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(position (3,), quaternion (x, y, z, w))`` at ``frame`` (held outside the samples)."""
+        """``(position (3,), quaternion (x, y, z, w))`` at ``frame`` (held outside the samples),
+        in metres and world coordinates: the prim's translate and orient, then its parent's
+        transform and the stage's metersPerUnit (whose scale ``UsdFrames`` gave the shape)."""
         t = Usd.TimeCode(float(frame))
         p = self.prim.GetAttribute("xformOp:translate").Get(t)
         q = self.prim.GetAttribute("xformOp:orient").Get(t)
         p = np.zeros(3) if p is None else np.array(p, dtype=np.float64)
         if q is None:
-            return p, np.array([0.0, 0.0, 0.0, 1.0])
-        im = q.GetImaginary()
-        q = np.array([im[0], im[1], im[2], q.GetReal()], dtype=np.float64)
-        return p, q / np.linalg.norm(q)
+            q = np.array([0.0, 0.0, 0.0, 1.0])
+        else:
+            im = q.GetImaginary()
+            q = np.array([im[0], im[1], im[2], q.GetReal()], dtype=np.float64)
+            q = q / np.linalg.norm(q)
+        world = None if self.placement is None else self.placement(frame)
+        if world is None:
+            return p, q
+        A, b = world
+        # x_world = (x_tool R^T + p) A + b, with A = s Q (its scale, in the shape already, and
+        # rotation): the pose's rotation becomes Q^T R (column vectors), its position p A + b.
+        return p @ A + b, _matrix_quat(_rotation_part(A).T @ quat_matrix(q))
 
 
 def quat_matrix(q) -> np.ndarray:
@@ -728,6 +741,31 @@ def quat_matrix(q) -> np.ndarray:
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
     ])
+
+
+def _matrix_quat(R) -> np.ndarray:
+    """The unit quaternion ``(x, y, z, w)`` of a rotation matrix (``quat_matrix``'s inverse)."""
+    R = np.asarray(R, dtype=np.float64)
+    w = math.sqrt(max(0.0, 1.0 + R[0, 0] + R[1, 1] + R[2, 2])) / 2.0
+    x = math.copysign(math.sqrt(max(0.0, 1.0 + R[0, 0] - R[1, 1] - R[2, 2])) / 2.0, R[2, 1] - R[1, 2])
+    y = math.copysign(math.sqrt(max(0.0, 1.0 - R[0, 0] + R[1, 1] - R[2, 2])) / 2.0, R[0, 2] - R[2, 0])
+    z = math.copysign(math.sqrt(max(0.0, 1.0 - R[0, 0] - R[1, 1] + R[2, 2])) / 2.0, R[1, 0] - R[0, 1])
+    q = np.array([x, y, z, w])
+    return q / np.linalg.norm(q)
+
+
+def _scale_of(A) -> float:
+    """The mean scale of a linear map (the cube root of its volume ratio)."""
+    return float(abs(np.linalg.det(A)) ** (1.0 / 3.0))
+
+
+def _rotation_part(A) -> np.ndarray:
+    """The rotation nearest to ``A`` (its polar factor): the rotation of a transform that
+    also scales."""
+    u, _, vt = np.linalg.svd(np.asarray(A, dtype=np.float64))
+    if np.linalg.det(u @ vt) < 0.0:  # a mirroring transform: the nearest rotation, not a reflection
+        u[:, -1] = -u[:, -1]
+    return u @ vt
 
 
 def _fan(counts, idx) -> np.ndarray:
@@ -766,7 +804,9 @@ class NotAnOutput(ValueError):
 
 
 class UsdFrames:
-    """The particles, surfaces, colliders and tools of a ``UsdWriter`` file, frame by frame."""
+    """The particles, surfaces, colliders and tools of a ``UsdWriter`` file, frame by frame,
+    all in metres and world coordinates (``placement``: another program's file may be in
+    other units or under transforms)."""
 
     @_held_stderr
     def __init__(self, path):
@@ -903,32 +943,52 @@ class UsdFrames:
         if counts.sum() != len(idx) or (counts < 3).any() or idx.min() < 0 or idx.max() >= len(v):
             raise ValueError(f"cannot read {self.path}: the surface {prim.GetPath()} at frame {frame} is not a valid mesh")
         tri = _fan(counts, idx)
+        world = self.placement(prim, frame)
+        if world is not None:  # in metres and world coordinates, as the particles (arrays)
+            v = (v.astype(np.float64) @ world[0] + world[1]).astype(np.float32)
         keep = np.isfinite(v).all(axis=1)
         if not keep.all():
             tri = tri[keep[tri].all(axis=1)]
         return (v, tri) if len(tri) else None
 
     def _read_colliders(self) -> list[Collider]:
+        """The static colliders in metres and world coordinates, as the particles are read:
+        their geometry (custom data, in the coordinates of the prim's parent, the plane's quad
+        in its own) under the transforms of the first frame and the stage's metersPerUnit (a
+        box turned off the axes by them is held as its axis-aligned bounds)."""
         out = []
         scope = self.stage.GetPrimAtPath(_COLLIDERS)
         if not scope:
             return out
+        first = self.frames[0]
         for prim in scope.GetChildren():
             kind = prim.GetCustomDataByKey(f"{_KEY}:collider")
             get = prim.GetCustomDataByKey
             if kind == "plane":
                 n = np.array(get(f"{_KEY}:normal"), dtype=np.float64)
                 n /= np.linalg.norm(n)
+                offset = float(get(f"{_KEY}:offset"))
                 pts = np.array(UsdGeom.Mesh(prim).GetPointsAttr().Get(), dtype=np.float64)
+                world = self.placement(prim, first)
+                if world is not None:
+                    A, b = world
+                    pts = pts @ A + b
+                    # n . x = offset with x = (x_w - b) A^-1: m . x_w = offset + m . b, m = n A^-T.
+                    m = n @ np.linalg.inv(A).T
+                    n, offset = m / np.linalg.norm(m), (offset + float(m @ b)) / float(np.linalg.norm(m))
                 center = pts.mean(axis=0)
                 half = 0.5 * float(np.linalg.norm(pts[1] - pts[0]))
-                out.append(Collider("plane", center, np.array([half, 0.0, 0.0]), n, float(get(f"{_KEY}:offset"))))
-            elif kind == "sphere":
-                r = float(get(f"{_KEY}:radius"))
-                out.append(Collider("sphere", np.array(get(f"{_KEY}:center"), dtype=np.float64), np.full(3, r)))
-            elif kind == "box":
-                out.append(Collider("box", np.array(get(f"{_KEY}:center"), dtype=np.float64),
-                                    np.array(get(f"{_KEY}:half_extents"), dtype=np.float64)))
+                out.append(Collider("plane", center, np.array([half, 0.0, 0.0]), n, offset))
+            elif kind in ("sphere", "box"):
+                center = np.array(get(f"{_KEY}:center"), dtype=np.float64)
+                size = np.full(3, float(get(f"{_KEY}:radius"))) if kind == "sphere" else \
+                    np.array(get(f"{_KEY}:half_extents"), dtype=np.float64)
+                world = self.placement(prim, first, parent=True)
+                if world is not None:
+                    A, b = world
+                    center = center @ A + b
+                    size = size * _scale_of(A) if kind == "sphere" else size @ np.abs(A)
+                out.append(Collider(kind, center, size))
         return out
 
     def _read_tools(self) -> list[Tool]:
@@ -962,7 +1022,16 @@ class UsdFrames:
                     # The quad faces +n (tools.usd_author: t1 x t2 = n).
                     n = np.cross(points[1] - points[0], points[2] - points[1])
                     param = n / np.linalg.norm(n)
-            out.append(Tool(name, kind, prim, np.asarray(param, dtype=np.float64), points, tri))
+            param = np.asarray(param, dtype=np.float64)
+            world = self.placement(prim, self.frames[0], parent=True)
+            if world is not None:
+                # The shape in metres, by the mean scale of the transforms over the tool (those
+                # of the first frame); its pose takes their rotation and translation per frame.
+                s = _scale_of(world[0])
+                param = param if kind == "plane" else param * s
+                points = None if points is None else points * s
+            out.append(Tool(name, kind, prim, param, points, tri,
+                            placement=functools.partial(self.placement, prim, parent=True)))
         return out
 
     def has_sample(self, body: int, frame: int) -> bool:
@@ -974,8 +1043,16 @@ class UsdFrames:
         """``(A (3, 3), b (3,))`` taking body ``body``'s points at ``frame`` to metres and world
         coordinates as ``p @ A + b`` (its prim's local-to-world transform, then
         ``meters_per_unit``), or None where that is the identity (a run's own file)."""
-        M = np.array(UsdGeom.Xformable(self.bodies[body][1]).ComputeLocalToWorldTransform(Usd.TimeCode(float(frame))),
-                     dtype=np.float64)
+        return self.placement(self.bodies[body][1], frame)
+
+    def placement(self, prim, frame: int, parent: bool = False):
+        """``(A (3, 3), b (3,))`` taking coordinates in ``prim``'s own frame (``parent``: its
+        parent's) at ``frame`` to metres and world coordinates as ``p @ A + b``, or None where
+        that is the identity. Every geometry of the file is read through it: particles
+        (``to_world``), surfaces, colliders and tools alike."""
+        t = Usd.TimeCode(float(frame))
+        xf = UsdGeom.Xformable(prim)
+        M = np.array(xf.ComputeParentToWorldTransform(t) if parent else xf.ComputeLocalToWorldTransform(t), dtype=np.float64)
         if self.meters_per_unit == 1.0 and np.array_equal(M, np.eye(4)):
             return None  # skipped, not multiplied: a float64 run's positions read to the bit
         # USD matrices act on row vectors: p_world = [p, 1] @ M.
