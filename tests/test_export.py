@@ -390,6 +390,34 @@ def test_render_export_and_fit_targets_read_a_foreign_usd_alike_in_metres_and_wo
     np.testing.assert_array_equal(target.data, np.stack([data.arrays(1)["points"], data.arrays(2)["points"][:8]]))
 
 
+def test_exported_velocities_carry_the_motion_of_a_time_sampled_transform(tmp_path):
+    """Another program's body moved by its own time-sampled transform (3 cm a frame at 30 fps
+    along x, after a fixed quarter turn about y), its points and velocities still in its own
+    frame: the positions were exported moving at 0.9 m/s, their velocities as the transform's
+    linear part of the local ones alone (0 here but for the local 10 cm/s), in another frame
+    of motion than the positions. The transform's rate is added, at every frame."""
+    from pxr import Gf, Vt
+
+    p = np.random.default_rng(1).uniform(0.0, 10.0, (6, 3))
+    stage = Usd.Stage.CreateNew(str(tmp_path / "moving.usda"))
+    stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, "/World").GetPrim())
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    stage.SetTimeCodesPerSecond(30)
+    cloud = UsdGeom.Points.Define(stage, "/World/cloud")
+    slide = cloud.AddTranslateOp()
+    cloud.AddRotateYOp().Set(90.0)
+    for f in range(4):
+        cloud.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(p.astype(np.float32)), float(f))
+        cloud.GetVelocitiesAttr().Set(Vt.Vec3fArray([Gf.Vec3f(0.0, 10.0, 0.0)] * 6), float(f))
+        slide.Set(Gf.Vec3d(3.0 * f, 0.0, 0.0), float(f))
+    stage.Save()
+    files = export_frames(tmp_path / "moving.usda", "vtu", tmp_path / "out")
+    for f, file in enumerate(files[:4]):
+        mesh = meshio.read(file)
+        np.testing.assert_allclose(mesh.points[:, 0], 0.01 * (p[:, 2] + 3.0 * f), atol=1e-7)  # the quarter turn: x = z
+        np.testing.assert_allclose(mesh.point_data["velocity"], np.tile([0.9, 0.1, 0.0], (6, 1)), atol=1e-9)
+
+
 def test_a_kernel_narrower_than_the_grid_cell_is_refused_not_an_empty_surface():
     """kernel_radius = 1e-6 fell between the grid's nodes: particle_surface returned no
     triangles without a word. A kernel of one cell still reaches a node (a surface)."""

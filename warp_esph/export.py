@@ -4,15 +4,15 @@ Reads a file ``UsdWriter`` wrote and writes, for every chosen frame, the particl
 points (one ``vertex`` cell each, so ParaView shows them without a filter) with point
 data:
 
-=================  =========  ===========================================================
+=================  =========  =================================================================
 name               shape      meaning
-=================  =========  ===========================================================
-velocity           (N, 3)     m/s
+=================  =========  =================================================================
+velocity           (N, 3)     m/s, in world coordinates (with the motion of a moving transform)
 alpha              (N,)       accumulated plastic strain
 singular_values    (N, 3)     singular values of the elastic deformation gradient
 body_id            (N,)       index of the body (order of the USD prims / the model)
 material_id        (N,)       index of the material
-=================  =========  ===========================================================
+=================  =========  =================================================================
 
 PLY has no vector properties: there ``velocity`` and ``singular_values`` become
 ``velocity_x``/``_y``/``_z`` and ``singular_values_0``/``_1``/``_2``. For ``.vtu`` a

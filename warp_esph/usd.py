@@ -1058,6 +1058,21 @@ class UsdFrames:
         # USD matrices act on row vectors: p_world = [p, 1] @ M.
         return M[:3, :3] * self.meters_per_unit, M[3, :3] * self.meters_per_unit
 
+    def _placement_rate(self, prim, frame: int):
+        """``(dA/dt, db/dt)`` per second of ``placement(prim)`` at ``frame``, or None where it
+        does not change: the difference over half a frame either side (USD interpolates a
+        transform's samples linearly between frames; at a frame where its rate changes, this
+        is the mean of the two), one-sided at the file's first and last frame."""
+        lo = max(frame - 0.5, self.frames[0])
+        hi = min(frame + 0.5, self.frames[-1])
+        if hi <= lo:
+            return None
+        before, after = ((np.eye(3), np.zeros(3)) if w is None else w for w in (self.placement(prim, lo), self.placement(prim, hi)))
+        if all(np.array_equal(x, y) for x, y in zip(before, after)):
+            return None
+        per_second = self.fps / (hi - lo)
+        return (after[0] - before[0]) * per_second, (after[1] - before[1]) * per_second
+
     def resolve(self, frame: int) -> int:
         if frame not in self.frames:
             raise ValueError(f"frame = {frame!r} is not allowed: {self.path} holds frames {self.frames[0]}..{self.frames[-1]}")
@@ -1068,8 +1083,9 @@ class UsdFrames:
         """Every particle at ``frame``: points, velocities, widths, alpha, singular_values
         (N, 3), body (index into ``bodies``) and material_id. Points, velocities and widths are
         in metres and world coordinates (``to_world``; a run's file is read as written, float64
-        where a float64 run wrote them, to the last bit, else float32). A body without a sample
-        at ``frame`` (``has_sample``) is left out of it."""
+        where a float64 run wrote them, to the last bit, else float32); velocities under a
+        time-sampled transform carry its motion too (``_placement_rate``). A body without a
+        sample at ``frame`` (``has_sample``) is left out of it."""
         t = Usd.TimeCode(float(frame))
         cols = {k: [] for k in ("points", "velocities", "widths", "alpha", "singular_values", "body", "material_id")}
         for k, (_, prim) in enumerate(self.bodies):
@@ -1109,10 +1125,15 @@ class UsdFrames:
             if world is not None:
                 # Another program's points in centimetres or under a transform: in metres and
                 # world coordinates, as a fit target and a mesh are read (widths by the
-                # transform's mean scale; a velocity by its linear part).
+                # transform's mean scale; a velocity by its linear part, plus the motion of a
+                # time-sampled transform, so that it is the rate of the positions read).
                 A, b = world
-                cols["points"][-1] = cols["points"][-1].astype(np.float64) @ A + b
+                local = cols["points"][-1].astype(np.float64)
+                cols["points"][-1] = local @ A + b
                 cols["velocities"][-1] = cols["velocities"][-1].astype(np.float64) @ A
+                rate = self._placement_rate(prim, frame)
+                if rate is not None:
+                    cols["velocities"][-1] += local @ rate[0] + rate[1]
                 widths = (widths * abs(np.linalg.det(A)) ** (1.0 / 3.0)).astype(np.float32)
             cols["widths"].append(widths)
             cols["alpha"].append(get(prim.GetAttribute(_PRIMVAR_ALPHA), (n,), 0.0))
