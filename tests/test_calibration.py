@@ -342,11 +342,11 @@ def test_a_silhouette_loss_with_every_camera_facing_away_says_so():
 
 
 def test_a_silhouette_target_that_constrains_nothing_is_refused(tmp_path):
-    """A mask of all ones (every pixel inside) and splats that cover every pixel of a view
-    (radius 0.1 m: splats of 11 pixels and more in a 32 x 24 image) ask only that the
-    particles fill the view, whatever the body's shape: both were taken without a word (the
-    loss 0.76 at any shape, its gradient next to 0). The mask is refused by its file (or its
-    camera and step), the radius at the camera's first evaluation."""
+    """Masks all ones in every view (every pixel inside) and splats that cover every pixel of
+    a view by a radius larger than the particles' spacing (0.1 m: splats of 11 pixels and
+    more in a 32 x 24 image) ask only that the particles fill the view, whatever the body's
+    shape: refused, the masks by their file (or camera and step), the radius at the camera's
+    first evaluation, naming the camera file it came from."""
     rng = np.random.default_rng(0)
     X = rng.normal(scale=0.03, size=(40, 3)) + np.array([0.0, 0.05, 0.0])
     cams = _cameras()
@@ -355,14 +355,48 @@ def test_a_silhouette_target_that_constrains_nothing_is_refused(tmp_path):
     with pytest.raises(ValueError, match=r"^mask \S*grey\.npy is not allowed: every pixel is inside \(nonzero, or > 0\.5 of "
                                          r"its maximum\), so it shows no outline of the body and constrains nothing"):
         load_masks(tmp_path / "grey.npy", cams[:1], 3)
-    with pytest.raises(ValueError, match=r"^mask of camera 'side' at step 5 is not allowed: every pixel is 1 \(inside\)"):
-        SilhouetteLoss({5: [masks[0], np.ones((24, 24))]}, cams, radius=0.01)
+    np.savez(tmp_path / "full.npz", front_3=np.ones((24, 32)), side_3=np.ones((24, 24)))
+    with pytest.raises(ValueError, match=r"^mask \S*full\.npz is not allowed: every pixel of its 2 masks is inside"):
+        load_masks(tmp_path / "full.npz", cams)
+    with pytest.raises(ValueError, match=r"^mask of camera 'front' at step 5 is not allowed: every pixel is 1 \(inside\), as "
+                                         r"in every other view and step, so the masks show no outline"):
+        SilhouetteLoss({5: [np.ones((24, 32)), np.ones((24, 24))]}, cams, radius=0.01)
     x = {5: wp.array(X, dtype=wp.vec3d)}
     with pytest.raises(ValueError, match=r"^radius = 0\.1 is not allowed with camera 'front': at step 5 the particles' splats "
                                          r"\(standard deviation 11\.1 pixels and more\) cover every pixel of its 32 x 24 "
-                                         r"image, so the silhouette shows no outline and constrains nothing"):
+                                         r"image, so the silhouette shows no outline and constrains nothing; the radius is in "
+                                         r"metres, about half a particle spacing, and the particles lie about 0\.0\d+ m apart$"):
         SilhouetteLoss({5: masks}, cams, radius=0.1).value(x)
+    doc = {"cameras": [{"name": c.name, "width": c.width, "height": c.height, "fx": c.fx, "fy": c.fy, "cx": c.cx,
+                        "cy": c.cy, "R": c.R.tolist(), "t": c.t.tolist()} for c in cams], "radius": 0.1}
+    (tmp_path / "cams.json").write_text(json.dumps(doc))
+    np.savez(tmp_path / "m.npz", front_1=masks[0], side_1=masks[1])
+    from warp_esph.silhouette import load_silhouette_target
+
+    with pytest.raises(ValueError, match=r"^camera file \S*cams\.json: radius = 0\.1 is not allowed with camera 'front': "):
+        load_silhouette_target(tmp_path / "cams.json", tmp_path / "m.npz", None, 1, 5).value(x)
+    with pytest.raises(ValueError, match=r"^camera file \S*cams\.json: radius = 0\.1 is not allowed with camera 'front': "):
+        SilhouetteLoss({5: masks}, tmp_path / "cams.json", radius=0.1).value(x)
     assert 0.0 < SilhouetteLoss({5: masks}, cams, radius=0.03).value(x) < 0.5  # splats of 3-4 pixels leave an outline
+
+
+def test_a_view_the_body_fills_with_splats_of_the_right_size_is_a_silhouette_like_any_other(tmp_path):
+    """A camera close enough that the body fills its view sees all ones, and the body's splats
+    (radius half the spacing) cover its image: a fair observation beside another camera that
+    shows the outline. Both were refused (the mask as constraining nothing, the radius as too
+    large); they are taken, and the loss still falls towards the true position."""
+    g = np.arange(-0.05, 0.0501, 0.02)
+    X = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)  # 216 particles, spacing 0.02
+    close = PinholeCamera(16, 12, 40.0, 40.0, 7.5, 5.5, np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 0.15], "close")
+    far = PinholeCamera(24, 24, 50.0, 50.0, 11.5, 11.5, [[0.0, 0.0, -1.0], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0]],
+                        [0.0, 0.0, 0.5], "far")
+    masks = [(soft_silhouette(X, c, 0.01) > 0.5).astype(float) for c in (close, far)]
+    assert masks[0].all() and 0.1 < masks[1].mean() < 0.5
+    np.savez(tmp_path / "m.npz", close_2=masks[0], far_2=masks[1])
+    assert load_masks(tmp_path / "m.npz", [close, far])[2][0].all()
+    loss = SilhouetteLoss({5: masks}, [close, far], radius=0.01)
+    shifted = loss.value({5: wp.array(X + [0.0, 0.03, 0.0], dtype=wp.vec3d)})
+    assert loss.value({5: wp.array(X, dtype=wp.vec3d)}) < 0.2 * shifted  # measured 0.0078 and 0.072
 
 
 def test_silhouette_gradient_through_a_rollout():

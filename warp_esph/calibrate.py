@@ -582,7 +582,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
 
             source = ("--frames" if spec.get("frames") is not None else
                       "the targets' last frame" if shown else "the scene's frames")
-            term = silhouette_target(t, frames, substeps, source)
+            term = silhouette_target(t, frames, substeps, source, camera_file=cameras)
         else:
             if t.frames is None:
                 t.frames = [frames]

@@ -34,10 +34,13 @@ Masks: an image (PNG, ...) or ``.npy`` ``(height, width)`` for one camera (nonze
 camera and frame named ``<camera>_<frame>`` (rendered frame index). An image is read by its
 grey level (colours: their mean), or by its alpha channel where that varies (a cut-out on a
 transparent background); a palette image by its colours. Non-finite values, negative ones
-with nothing positive, a mask of another size than its camera and one whose every pixel is
-inside (no outline: it constrains nothing) are refused by file name. Splats that cover every
-pixel of a camera's image at its first evaluation (a radius far above half a particle
-spacing, or a camera that sees only the body) are refused too, naming the radius.
+with nothing positive, and a mask of another size than its camera are refused by file name;
+so are masks every pixel of which is inside, in every view and frame (no outline anywhere:
+they ask only that the body fill every view, whatever its shape). One view the body fills (a
+camera close to it) beside others that show its outline is a mask like any other. Splats
+that cover every pixel of a camera's image at its first evaluation are refused, naming the
+radius (and its camera file), where the radius exceeds the particles' spacing (it is about
+half of it): a body that fills a close camera's view with splats of the right size is not.
 """
 
 
@@ -231,6 +234,7 @@ def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None)
             if set(by) != names:
                 raise ValueError(f"{p}: frame {f} has masks for {sorted(by)}, the cameras are {sorted(names)}")
             result[f] = [by[c.name] for c in cameras]
+        _refuse_all_inside(p, (m for ms in result.values() for m in ms))
         return result
     if len(cameras) != 1:
         raise ValueError(f"mask file {p} holds one image, for {len(cameras)} cameras: use an .npz with <camera>_<frame> arrays")
@@ -246,23 +250,32 @@ def load_masks(path, cameras: Sequence[PinholeCamera], frame: int | None = None)
             a = _image_mask(p)
         except Exception as e:  # noqa: BLE001
             raise ValueError(f"mask {p} cannot be read as an image: {e}") from None
-    return {frame: [_fitting_mask(_mask_array(a, p), p, cameras[0])]}
+    mask = _fitting_mask(_mask_array(a, p), p, cameras[0])
+    _refuse_all_inside(p, [mask])
+    return {frame: [mask]}
 
 
 def _fitting_mask(mask: np.ndarray, where: str, camera: PinholeCamera) -> np.ndarray:
     """``mask``, refused by its file where it is not the camera's size (it was refused later
-    as the mask 'at step 34', by the step it was compared at, naming no file) or where every
-    pixel is inside."""
+    as the mask 'at step 34', by the step it was compared at, naming no file)."""
     if mask.shape != (camera.height, camera.width):
         raise ValueError(f"mask {where} with shape {mask.shape} is not allowed: camera {camera.name!r} is "
                          f"{camera.height} x {camera.width} (height x width)")
-    if mask.all():
-        # It asked only that the particles cover the whole view: a body that fills it (or
-        # splats that blur over it) matched whatever its shape.
-        raise ValueError(f"mask {where} is not allowed: every pixel is inside (nonzero, or > 0.5 of its maximum), so it "
-                         "shows no outline of the body and constrains nothing; a mask is nonzero inside the body's "
-                         "silhouette and zero around it (an empty view is all zeros)")
     return mask
+
+
+def _refuse_all_inside(where: str, masks) -> None:
+    """Refuse masks every pixel of which is inside, in every view and frame: they ask only that
+    the body fill every view, whatever its shape (a uniform grey image, an all-ones array). One
+    such view beside others is kept: a camera close enough that the body fills its view sees
+    exactly that, and the other views show the outline."""
+    masks = list(masks)
+    if not all(m.all() for m in masks):
+        return
+    what = "every pixel is inside" if len(masks) == 1 else f"every pixel of its {len(masks)} masks is inside"
+    raise ValueError(f"mask {where} is not allowed: {what} (nonzero, or > 0.5 of its maximum), so it shows no outline of "
+                     "the body and constrains nothing but that the body fill every view; a mask is nonzero inside the "
+                     "body's silhouette and zero around it (an empty view is all zeros)")
 
 
 def _image_mask(path: str) -> np.ndarray:
@@ -376,14 +389,18 @@ class SilhouetteLoss(Loss):
     ``PinholeCamera`` list (or a camera JSON file). ``radius`` (m): splat radius, about
     half a particle spacing; ``opacity`` in (0, 1), default 0.9 (with 0.5 a body a few particles
     thick never fills its mask, so a softer, wider body always lowers the loss: docs/fitting.md). ``noise``: the residual noise for
-    ``warp_esph.diagnostics``, in occupancy units (default 0.1).
+    ``warp_esph.diagnostics``, in occupancy units (default 0.1). ``camera_file``: the file
+    the cameras and radius came from (set where ``cameras`` is one), named by the refusals.
     """
     _CACHES = ("_buffers", "_covered_checked")
 
 
     def __init__(self, masks, cameras, radius: float, frames=None, opacity: float = DEFAULT_OPACITY, weight: float = 1.0,
-                 particles=None, noise: float = 0.1):
+                 particles=None, noise: float = 0.1, camera_file=None):
+        #: The file the cameras and radius were read from, named where the radius is refused.
+        self.camera_file = None if camera_file is None else os.fspath(camera_file)
         if isinstance(cameras, (str, os.PathLike)):
+            self.camera_file = os.fspath(cameras)
             cameras, _ = load_cameras(cameras)
         if isinstance(cameras, PinholeCamera):
             cameras = [cameras]  # one camera (a TypeError: not iterable)
@@ -431,12 +448,16 @@ class SilhouetteLoss(Loss):
                     raise ValueError(f"mask of camera {c.name!r} at step {f} is not allowed: it has {int(outside.sum())} "
                                      f"values outside [0, 1] (first {float(m[j, i])!r} at row {j}, column {i}); a mask is an "
                                      "occupancy in [0, 1], 1 inside (load_masks binarises an image)")
-                if (m >= 1.0).all():  # refused as a mask file is: it constrains nothing
-                    raise ValueError(f"mask of camera {c.name!r} at step {f} is not allowed: every pixel is 1 (inside), so "
-                                     "it shows no outline of the body and constrains nothing; a mask is the body's "
-                                     "silhouette, 1 inside and 0 around it")
                 out.append(m)
             self.masks[f] = out
+        full = [(f, c.name) for f, ms in self.masks.items() for m, c in zip(ms, self.cameras) if (m >= 1.0).all()]
+        if len(full) == len(self.masks) * len(self.cameras):
+            # Refused as a mask file is; one full view beside others is a close camera's.
+            f, name = full[0]
+            also = ", as in every other view and step" if len(full) > 1 else ""
+            raise ValueError(f"mask of camera {name!r} at step {f} is not allowed: every pixel is 1 (inside){also}, so the "
+                             "masks show no outline of the body and constrain nothing but that it fill every view; a mask "
+                             "is the body's silhouette, 1 inside and 0 around it")
         self._buffers = {}
         self._covered_checked = set()
 
@@ -480,19 +501,26 @@ class SilhouetteLoss(Loss):
 
     def _refuse_covered(self, frame, ci, x, log_t):
         """Refuse, at a camera's first evaluation at ``frame``, splats that cover every pixel of
-        its image: the soft silhouette is 1 everywhere whatever the body's shape, and the loss
-        compared the mask with a full frame, its gradient vanishing (a radius in centimetres,
-        or a camera inside the body's outline)."""
+        its image where the radius is to blame: larger than the particles' spacing (it is about
+        half of it; a radius in centimetres), the soft silhouette is 1 everywhere whatever the
+        body's shape. A body that fills the view with splats of the right size (a camera close
+        to it, or a guess larger than the view) is not refused: its outline shows as it moves."""
         if not (log_t.numpy() < math.log(self.COVERED)).all():
             return
+        X = x.numpy().astype(np.float64)
+        apart = _spacing(X)
+        if self.radius <= apart:
+            return
         c = self.cameras[ci]
-        _, _, z = c.project(x.numpy().astype(np.float64))
+        _, _, z = c.project(X)
         z = z[z > 1e-6]
         narrowest = self.radius * math.sqrt(c.fx * c.fy) / float(z.max()) if len(z) else math.inf
-        raise ValueError(f"radius = {self.radius:g} is not allowed with camera {c.name!r}: at step {frame} the particles' "
-                         f"splats (standard deviation {narrowest:.3g} pixels and more) cover every pixel of its "
+        where = f"camera file {self.camera_file}: " if self.camera_file is not None else ""
+        apart_text = f"the particles lie about {apart:.3g} m apart" if math.isfinite(apart) else "the body is one particle"
+        raise ValueError(f"{where}radius = {self.radius:g} is not allowed with camera {c.name!r}: at step {frame} the "
+                         f"particles' splats (standard deviation {narrowest:.3g} pixels and more) cover every pixel of its "
                          f"{c.width} x {c.height} image, so the silhouette shows no outline and constrains nothing; the "
-                         "radius is in metres, about half a particle spacing (or the camera sees only the body: move it back)")
+                         f"radius is in metres, about half a particle spacing, and {apart_text}")
 
     def out_of_reach(self) -> str | None:
         """Where no particle's splat fell on any pixel of any camera in any frame of the last
@@ -546,6 +574,20 @@ class SilhouetteLoss(Loss):
                 f"radius={self.radius:g}, weight={self.weight:g})")
 
 
+def _spacing(X: np.ndarray, probes: int = 64) -> float:
+    """The particles' typical spacing: the median distance from up to ``probes`` of them (evenly
+    strided, so the same every call) to their nearest neighbour; inf for a single particle."""
+    X = X[np.isfinite(X).all(axis=1)]
+    if len(X) < 2:
+        return math.inf
+    near = []
+    for i in np.unique(np.linspace(0, len(X) - 1, min(probes, len(X))).astype(np.int64)):
+        d = np.einsum("ij,ij->i", X - X[i], X - X[i])
+        d[i] = np.inf
+        near.append(float(d.min()))
+    return math.sqrt(float(np.median(near)))
+
+
 def T_mat(S, R):
     return (wp.mat33d if S is wp.float64 else wp.mat33f)(*np.asarray(R, dtype=np.float64).ravel().tolist())
 
@@ -586,9 +628,10 @@ def read_silhouette_masks(cameras_path, masks_path, frames_spec) -> tuple[list, 
     return cameras, options, masks
 
 
-def silhouette_target(read, frames: int, substeps: int, source: str = "--frames") -> SilhouetteLoss:
+def silhouette_target(read, frames: int, substeps: int, source: str = "--frames", camera_file=None) -> SilhouetteLoss:
     """The ``SilhouetteLoss`` of ``read`` (``read_silhouette_masks``) for a run of ``frames``
-    frames (``source`` names what set it) at ``substeps`` steps per frame."""
+    frames (``source`` names what set it) at ``substeps`` steps per frame; ``camera_file``:
+    the file ``read`` took the cameras and radius from, named where the radius is refused."""
     cameras, options, masks = read
     masks = {frames if f is None else f: m for f, m in masks.items()}
     bad = [f for f in masks if f > frames or f <= 0]
@@ -597,7 +640,7 @@ def silhouette_target(read, frames: int, substeps: int, source: str = "--frames"
         # targets' last frame, or the scene's).
         raise ValueError(f"masks at frame {bad[0]} are not allowed: frames are 1..{frames} ({source})")
     return SilhouetteLoss({f * substeps: m for f, m in masks.items()}, cameras, radius=float(options["radius"]),
-                          opacity=float(options.get("opacity", DEFAULT_OPACITY)))
+                          opacity=float(options.get("opacity", DEFAULT_OPACITY)), camera_file=camera_file)
 
 
 def load_silhouette_target(cameras_path, masks_path, frames_spec, frames: int, substeps: int) -> SilhouetteLoss:
@@ -606,4 +649,5 @@ def load_silhouette_target(cameras_path, masks_path, frames_spec, frames: int, s
     frame; an ``.npz``: its own, ``frames_spec`` choosing among them), with ``substeps``
     steps per frame. The splat radius is the file's ``radius`` (required: about half a
     particle spacing) and the opacity its ``opacity`` (default 0.9)."""
-    return silhouette_target(read_silhouette_masks(cameras_path, masks_path, frames_spec), frames, substeps)
+    return silhouette_target(read_silhouette_masks(cameras_path, masks_path, frames_spec), frames, substeps,
+                             camera_file=cameras_path)
