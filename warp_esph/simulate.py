@@ -39,6 +39,16 @@ MAX_STEPS = 10**10
 AUTO = "auto"
 
 
+class StepRefusal(ValueError):
+    """A refused time step or step count (``resolve_timestep``, ``check_step_count``): its
+    message is ``reason`` and then the advice of a run; ``reason`` lets a caller with other
+    options (a sweep) give its own advice instead."""
+
+    def __init__(self, reason: str, advice: str = ""):
+        super().__init__(reason + advice)
+        self.reason = reason
+
+
 class SimulationError(RuntimeError):
     """The simulation produced a non-finite position or velocity, or blew up while staying
     finite (``DivergenceMonitor``), or a ``tools.Scripted`` motion moved a tool more than a
@@ -268,10 +278,10 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
         ratio = frame_dt / stable * (1.0 - 1e-12)
         if not ratio <= MAX_STEPS_PER_FRAME:
             stiff = max(model.materials, key=lambda m: m.p_wave_speed)
-            raise ValueError(
+            raise StepRefusal(
                 f"the stable step {stable:.3g} s is not allowed: a frame (1/fps = {frame_dt:.6g} s) would take {ratio:.3g} steps, "
                 f"more than {MAX_STEPS_PER_FRAME:.0e}; the stiffest material (p-wave speed {stiff.p_wave_speed:.3g} m/s) "
-                f"or the most viscous one needs it: use softer materials, a larger spacing, or give dt or substeps"
+                f"or the most viscous one needs it", ": use softer materials, a larger spacing, or give dt or substeps"
             )
         n = max(1, math.ceil(ratio))
         return n, frame_dt / n
@@ -298,9 +308,9 @@ def check_step_count(frames: int, substeps: int) -> None:
     if frames * substeps > MAX_STEPS:
         total = frames * substeps
         shown = f"{total:.3g}" if total < 1e300 else "more than 1e300"  # (10**400 overflowed the formatting)
-        raise ValueError(
+        raise StepRefusal(
             f"frames = {checks.shorten(frames)!r} is not allowed: at {substeps} steps per frame the run would take "
-            f"{shown} steps, more than {MAX_STEPS:.0e}; use fewer frames or a larger dt"
+            f"{shown} steps, more than {MAX_STEPS:.0e}", "; use fewer frames or a larger dt"
         )
 
 

@@ -941,8 +941,11 @@ def _check_some_sample_steps(model, assignments, points, frames, fps, rate, leng
     failed alone, one after the other, with the same refusal, and the sweep exited 3. A
     sample that can is enough (the others are rows of the table, as a blown-up sample is).
     ``rate``, ``length``: the options (or the scene's values) the refusal names."""
-    from .simulate import check_step_count, resolve_timestep  # noqa: PLC0415
+    from .simulate import StepRefusal, check_step_count, resolve_timestep  # noqa: PLC0415
 
+    # The reasons without a run's advice ('give dt or substeps', 'a larger dt'): a sweep has no
+    # substeps, and a --dt above a sample's stable step blows it up; these are its own options.
+    coarser = "a smaller --scale (a larger spacing, whose stable step is longer)"
     first = None
     for k, values in enumerate(points):
         try:
@@ -951,13 +954,14 @@ def _check_some_sample_steps(model, assignments, points, frames, fps, rate, leng
             continue  # that sample's own refusal, its row's reason
         try:
             substeps, _ = resolve_timestep(model, fps)
-        except ValueError as e:
-            first = first or (k, values, str(e), rate, "give a higher --fps")
+        except StepRefusal as e:
+            first = first or (k, values, e.reason, rate,
+                              f"give a higher --fps, {coarser}, or softer or less viscous materials or swept values")
             continue
         try:
             check_step_count(frames, substeps)
-        except ValueError as e:
-            first = first or (k, values, str(e), length, "give fewer --frames or a shorter --duration")
+        except StepRefusal as e:
+            first = first or (k, values, e.reason, length, f"give fewer --frames or a shorter --duration, or {coarser}")
             continue
         return
     if first is None:
