@@ -430,19 +430,36 @@ def test_a_kernel_narrower_than_the_grid_cell_is_refused_not_an_empty_surface():
     assert len(tri) > 0 and np.abs(v).max() < 0.02
 
 
-def test_a_radius_below_half_the_cells_diagonal_is_refused_not_a_sparse_set_without_surface():
+def test_a_radius_below_half_the_cells_diagonal_gets_a_finer_grid_or_is_refused_with_a_cell_given():
     """radius = 1e-6 missed every grid node around particles that sit off the grid: 20
-    particles far apart got no triangle at all, without a word. From half the cell's diagonal
-    on, every lone particle's nearest node is inside, and each gets its own surface."""
+    particles far apart got no triangle at all, without a word. A radius below half the
+    default cell's diagonal (0.3 dx: a tighter surface around a dense body, taken before)
+    now gets a finer cell, 2/sqrt(3) x radius, around every particle, a lone one too; where
+    that grid is too large, or a cell is given, it is refused, naming the bound."""
     sparse = np.random.default_rng(0).uniform(0.0, 1.0, (20, 3))
-    with pytest.raises(ValueError, match=r"^radius = 1e-06 is not allowed: must be >= half the grid cell's diagonal, 0\.00866 "
-                                         r"\(sqrt\(3\)/2 x spacing / 2 = 0\.01\), else a particle alone within the kernel "
-                                         r"can fall between the grid's nodes and leave no surface$"):
+    with pytest.raises(ValueError, match=r"^radius = 1e-06 is not allowed for these points: it needs a grid cell of at most "
+                                         r"1\.155e-06 \(2/sqrt\(3\) x radius, .*\), and the grid would have .* nodes, more than "
+                                         r"256\^3; give a larger radius$"):
         particle_surface(sparse, 0.02, radius=1e-6)
+    with pytest.raises(ValueError, match=r"^radius = 0\.006 is not allowed with cell = 0\.01: must be >= half the grid cell's "
+                                         r"diagonal, 0\.00866 \(sqrt\(3\)/2 x cell\), else a particle alone within the kernel "
+                                         r"can fall between the grid's nodes and leave no surface; give a larger radius, or a "
+                                         r"smaller cell \(or none: it is then fitted to the radius\)$"):
+        particle_surface(sparse, 0.02, radius=0.006, cell=0.01)
     with pytest.raises(ValueError, match=r"^cell = 0\.02 is not allowed with the default radius, 0\.011 \(0\.55 x spacing\): "
                                          r"must be <= 0\.0127 \(2/sqrt\(3\) x radius\)"):
         particle_surface(sparse, 0.02, cell=0.02)
-    for kw in (dict(radius=0.00866), dict(cell=0.0127)):  # the bounds as the messages give them
+    for kw in (dict(radius=0.00866, cell=0.01), dict(cell=0.0127), dict(radius=0.006)):  # the bounds; a fitted cell
         v, tri = particle_surface(sparse, 0.02, **kw)
         gap = np.linalg.norm(sparse[:, None, :] - v[None, :, :], axis=2).min(axis=1)
         assert len(tri) > 0 and gap.max() < 0.012, kw  # a surface around every particle
+    dx = 0.02
+    g = np.arange(6) * dx
+    block = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    lone = np.array([[0.5, 0.5, 0.5]])
+    v, tri = particle_surface(np.vstack([block, lone]), dx, radius=0.3 * dx)
+    near_block = v[np.linalg.norm(v - lone, axis=1) > 0.1]
+    # Faces closer to the outer particles than the default radius's half spacing (measured 0.11 dx).
+    beyond = np.concatenate([near_block.max(axis=0) - g[-1], -near_block.min(axis=0)])
+    assert (beyond > 0.05 * dx).all() and (beyond < 0.2 * dx).all(), beyond / dx
+    assert np.linalg.norm(v - lone, axis=1).min() < 0.3 * dx + 1e-6  # the lone particle has its own surface

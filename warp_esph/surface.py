@@ -11,7 +11,9 @@ kernels; each particle scatters its weights to the grid nodes within ``R``.
 Defaults, checked on lattice blocks (``tests/test_export.py``): ``R = 2 dx`` (the
 support radius) and ``r = 0.55 dx`` put the faces of an n x n x n block of particles
 half a spacing outside its outer particles, where the material ends (enclosed volume
-within 1 % of ``n^3 dx^3`` for n = 24); grid cell ``dx / 2``.
+within 1 % of ``n^3 dx^3`` for n = 24); grid cell ``dx / 2``, or finer where a smaller ``r``
+is given: at most ``2 r / sqrt(3)``, so that a particle alone within its kernel, whose field
+is negative only within ``r`` of it, reaches a node wherever it sits.
 
 Each body gets its own surface (bodies do not merge). Triangles face outward.
 """
@@ -95,29 +97,35 @@ def surface_field(points, spacing: float, *, kernel_radius: float | None = None,
     R = 2.0 * dx if kernel_radius is None else checks.positive("kernel_radius", kernel_radius)
     r = 0.55 * dx if radius is None else checks.positive("radius", radius)
     h = 0.5 * dx if cell is None else checks.positive("cell", cell)
+    # The cell is fitted to a radius given below half its diagonal where the cell is not given:
+    # a tighter surface around a dense body (radius 0.3 dx) is a fair request, which the default
+    # grid served only where particles had neighbours (a lone one fell between the nodes).
+    fitted = cell is None and radius is not None and r < _HALF_DIAGONAL * h
+    if fitted:
+        h = r / _HALF_DIAGONAL * (1.0 - 1e-12)
     if R < h:
         # A kernel narrower than a cell falls between the grid nodes: the particles' weights
         # reached no node (or one exactly on the kernel's edge, weight 0), and the surface came
         # out empty without a word. From R >= h on, every particle's nearest node (at most
         # sqrt(3) / 2 cells away) lies inside its kernel.
-        raise ValueError(f"kernel_radius = {kernel_radius!r} is not allowed: must be >= the grid cell, {h:g} "
-                         f"({'spacing / 2' if cell is None else 'cell'}), else the kernels fall between the grid's nodes "
-                         "and the surface is empty")
+        cell_text = "2/sqrt(3) x radius" if fitted else "spacing / 2" if cell is None else "cell"
+        raise ValueError(f"kernel_radius = {kernel_radius!r} is not allowed: must be >= the grid cell, {h:.4g} "
+                         f"({cell_text}), else the kernels fall between the grid's nodes and the surface is empty")
     # A particle alone within its kernel has the field |x - x_j| - r around it, negative only at
     # nodes within r of it: a smaller radius than half a cell's diagonal (the farthest a point
     # lies from its nearest node) missed every node wherever the particle sat off the grid, and a
     # sparse set's surface came out empty, or without some particles, without a word. Compared
     # with the bound as shown (4 digits), so that the value the message gives is taken.
     need = _HALF_DIAGONAL * h
-    if r < min(need, float(f"{need:.4g}")):
-        cell_text = "spacing / 2" if cell is None else "cell"
+    if r < min(need, float(f"{need:.4g}")):  # only with a cell given: else the cell was fitted to the radius
         if radius is None:  # the default radius (0.55 dx) falls short only of a cell chosen coarser than dx / 2
             raise ValueError(f"cell = {cell!r} is not allowed with the default radius, {r:g} (0.55 x spacing): must be <= "
                              f"{_down4(r / _HALF_DIAGONAL):.4g} (2/sqrt(3) x radius), else a particle alone within the kernel can "
                              "fall between the grid's nodes and leave no surface; give a smaller cell or a radius")
-        raise ValueError(f"radius = {radius!r} is not allowed: must be >= half the grid cell's diagonal, {need:.4g} "
-                         f"(sqrt(3)/2 x {cell_text} = {h:g}), else a particle alone within the kernel can fall between "
-                         "the grid's nodes and leave no surface")
+        raise ValueError(f"radius = {radius!r} is not allowed with cell = {cell!r}: must be >= half the grid cell's "
+                         f"diagonal, {need:.4g} (sqrt(3)/2 x cell), else a particle alone within the kernel can fall "
+                         "between the grid's nodes and leave no surface; give a larger radius, or a smaller cell (or "
+                         "none: it is then fitted to the radius)")
     try:
         p = np.asarray(points)
     except (TypeError, ValueError):  # ragged rows
@@ -139,6 +147,11 @@ def surface_field(points, spacing: float, *, kernel_radius: float | None = None,
     hi = p.max(axis=0).astype(np.float64) + pad
     counts = np.maximum(np.ceil((hi - lo) / h) + 1.0, 2.0)
     if not float(np.prod(counts)) <= 256.0**3:
+        if fitted:
+            raise ValueError(f"radius = {radius!r} is not allowed for these points: it needs a grid cell of at most {h:.4g} "
+                             f"(2/sqrt(3) x radius, else a particle alone within the kernel can fall between the grid's "
+                             f"nodes), and the grid would have {float(np.prod(counts)):.4g} nodes, more than 256^3; give a "
+                             "larger radius")
         raise ValueError(f"cell = {h:g} is not allowed: the grid would have {float(np.prod(counts)):.4g} nodes "
                          f"({counts[0]:.4g} x {counts[1]:.4g} x {counts[2]:.4g}); use a larger cell")
     n = counts.astype(int)
@@ -163,7 +176,7 @@ def particle_surface(points, spacing: float, *, kernel_radius: float | None = No
     ``points``: ``(n, 3)`` real numbers (or one ``(3,)`` point; non-finite rows are left out);
     ``spacing``: the particle spacing dx; ``kernel_radius`` (default 2 dx, at least ``cell``),
     ``radius`` (default 0.55 dx, at least sqrt(3)/2 ``cell``) and ``cell`` (grid cell, default
-    dx / 2) as in the module notes.
+    dx / 2, or 2/sqrt(3) ``radius`` where a smaller radius is given) as in the module notes.
     """
     import warp.geometry  # noqa: PLC0415 (marching cubes)
 
