@@ -225,6 +225,11 @@ def test_parse_frames_takes_a_range_a_numpy_array_or_an_iterator_as_the_renderer
         parse_frames(np.array([3, 99]), have)
     with pytest.raises(ValueError, match=r"^frames = 2\.5 is not allowed: give e\.g\. 'all'"):
         parse_frames(2.5, have)  # not iterable: refused by its value
+    # An array's entries are shown as plain numbers, not numpy's reprs.
+    with pytest.raises(ValueError, match=r"^frames = \[0\.5, 2\.0\] is not allowed: '0\.5' is not 'all'"):
+        parse_frames(np.array([0.5, 2.0]), have)
+    with pytest.raises(ValueError, match=r"^frames = \[\[0, 1\]\] is not allowed: "):
+        parse_frames(np.array([[0, 1]]), have)
 
 def test_bad_outputs(tmp_path, monkeypatch):
     path = tmp_path / "one.usdc"

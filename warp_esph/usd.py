@@ -1222,7 +1222,9 @@ def parse_frames(spec, available: list[int]) -> list[int]:
         # or an iterator itself, while render_usd, export and the fit targets, which called this
         # directly, refused them ('frames = array([0, 2]) is not allowed').
         try:
-            spec = list(spec)
+            # An array as plain numbers: list() kept numpy scalars and rows, which the refusal
+            # showed as 'frames = [np.float64(0.5), ...]' or '[array([0, 1])]'.
+            spec = spec.tolist() if isinstance(spec, np.ndarray) else list(spec)
         except TypeError:
             pass  # not iterable: refused below by its value
     shown = spec  # as given: a list was shown joined ('' for [], '1,x' for [1, 'x'])
