@@ -445,3 +445,46 @@ def test_a_foreign_files_surfaces_colliders_and_tools_are_read_in_metres_and_wor
         p, q = data.tools[0].pose(1)
         shapes.append(tool_mesh(data.tools[0])[0] @ quat_matrix(q).T + p)
     np.testing.assert_allclose(shapes[1], moved(shapes[0]), atol=1e-9)
+
+
+def test_velocities_under_a_time_sampled_rotation_carry_x_dA_dt():
+    """A body turned 5 degrees a frame (24 fps) by its own time-sampled rotateY, its local
+    points at rest: the velocities read are x dA/dt, the rate of the positions read, with the
+    transform's rate over half a frame either side (within 1e-3 of the rotation's derivative)
+    and one-sided at the first and last frame (the secant over half a frame)."""
+    import math
+    import tempfile
+
+    from pxr import Gf, Vt
+
+    from warp_esph.usd import UsdFrames
+
+    p = np.random.default_rng(2).uniform(-10.0, 10.0, (5, 3))
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "turning.usda")
+        stage = Usd.Stage.CreateNew(path)
+        stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, "/World").GetPrim())
+        UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+        stage.SetTimeCodesPerSecond(24)
+        cloud = UsdGeom.Points.Define(stage, "/World/cloud")
+        turn = cloud.AddRotateYOp()
+        for f in range(4):
+            cloud.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(p.astype(np.float32)), float(f))
+            cloud.GetVelocitiesAttr().Set(Vt.Vec3fArray([Gf.Vec3f(0.0, 0.0, 0.0)] * 5), float(f))
+            turn.Set(5.0 * f, float(f))
+        stage.Save()
+        data = UsdFrames(path)
+        arrays = [data.arrays(f) for f in range(4)]
+
+    def turned(deg):  # x_world = 0.01 x R_y(deg)^T, row vectors
+        c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+        return 0.01 * p @ np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
+
+    omega = math.radians(5.0) * 24.0
+    for f in (1, 2):
+        c, s = math.cos(math.radians(5.0 * f)), math.sin(math.radians(5.0 * f))
+        exact = 0.01 * omega * p @ np.array([[-s, 0.0, -c], [0.0, 0.0, 0.0], [c, 0.0, -s]])
+        np.testing.assert_allclose(arrays[f]["points"], turned(5.0 * f), atol=1e-9)
+        np.testing.assert_allclose(arrays[f]["velocities"], exact, rtol=0, atol=1e-3 * np.abs(exact).max())
+    np.testing.assert_allclose(arrays[0]["velocities"], (turned(2.5) - turned(0.0)) * 48.0, atol=1e-9)
+    np.testing.assert_allclose(arrays[3]["velocities"], (turned(15.0) - turned(12.5)) * 48.0, atol=1e-9)
