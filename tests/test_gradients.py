@@ -910,22 +910,53 @@ AT_REST = {
     "rest_model": ({"deformation": "rest"}, {}, ("lam",)),
     "additive_model": ({"deformation": "additive"}, {}, ("lam",)),
     "ghost_floor": ({"elastic_force": "variational"}, {}, ("lam",)),
+    "paper": ({"elastic_force": "paper"}, {}, ("lam",)),
+    "unfused_paper": ({"elastic_force": "paper"}, {"fused": False}, ("lam",)),
+    "rest_variational": ({"deformation": "rest", "elastic_force": "variational"}, {}, ("lam",)),
+    "ghost_floor_slip": ({"elastic_force": "variational"}, {}, ("lam",)),
+    "images": ({}, {}, ("lam", "viscosity")),
+    "sphere_collider": ({}, {}, ("lam",)),
+    "box_collider": ({}, {}, ("lam",)),
+    "held_tools": ({}, {}, ("lam",)),
+    "particle_floor": ({}, {}, ("lam",)),
 }
+
+#: What each case of ``AT_REST`` rests on, where not the rough ground: a ghost floor (no-slip
+#: or slip), the ground with floor images, a static sphere or box collider whose top is the
+#: ground's height, three held tools (a box under the block's first column of particles along x, a
+#: wide sphere under the middle two, a plane tilted by 20 degrees under the last: the floor of
+#: each, friction holding it), or a particle floor (a pinned set) under it.
+REST_FLOOR = {"ghost_floor": "ghost", "ghost_floor_slip": "slip", "images": "images",
+              "sphere_collider": "sphere", "box_collider": "box", "held_tools": "tools", "particle_floor": "pinned"}
 
 
 def _resting_model(case, params=None):
     """A 4 x 3 x 3 block from rest (F = I, v = 0) on the rough ground under gravity, its
     bottom layer on the plane (jittered by 1e-3 dx: some particles touch down within the
-    rollout, the others are pressed into it); ``ghost_floor``: on a ghost floor instead."""
+    rollout, the others are pressed into it); or on the floor ``REST_FLOOR`` gives the case."""
     dx = 0.02
     p = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "hardening": 200.0, "pressure_stiffness": 1.0,
          "viscosity": 2.0, **AT_REST[case][0], **(params or {})}
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, -9.81, 0.0))
     b.add_box((0.0, 0.03, 0.0), (4 * dx, 3 * dx, 3 * dx), we.Material(density=1000.0, **p), name="block")
-    if case == "ghost_floor":
-        b.add_particle_floor("block", margin=dx, ghost=True)
+    floor = REST_FLOOR.get(case, "ground")
+    if floor in ("ghost", "slip"):
+        b.add_particle_floor("block", margin=dx, ghost=True, slip=floor == "slip")
+    elif floor == "pinned":
+        b.add_particle_floor("block", margin=dx)  # of the block's material: one parameter moves both
+    elif floor == "sphere":
+        b.add_sphere_collider((0.0, 0.01 - 0.3, 0.0), 0.3, friction=0.5)
+    elif floor == "box":
+        b.add_box_collider((0.0, 0.01 - 0.05, 0.0), (0.1, 0.05, 0.1), friction=0.5)
+    elif floor == "tools":
+        # Their tops at the bottom layer's height, each under its own columns.
+        b.add_tool("box", half_extents=(0.04, 0.05, 0.1), position=(-0.06, 0.01 - 0.05, 0.0), friction=0.5, name="box")
+        b.add_tool("sphere", radius=10.0, position=(0.0, 0.01 - 10.0, 0.0), friction=0.5, name="ball")
+        tilt = np.radians(20.0)
+        b.add_tool("plane", normal=(-np.sin(tilt), np.cos(tilt), 0.0), position=(0.03, 0.01, 0.0), friction=0.5,
+                   name="ramp")
     else:
-        b.add_ground(0.01, friction=0.5)
+        b.add_ground(0.01, friction=0.5, images=floor == "images")
     model = b.finalize(dtype=wp.float64, requires_grad=True)
     model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * dx, size=model.particle_x0.shape)
     return model
@@ -939,24 +970,34 @@ def _resting_loss(model, case, w, grad_of=None, steps=8):
         return loss.numpy()[0]
     tape.backward(loss)
     grads = {name: (states[0].v if name == "v0" else getattr(model, name)).grad.numpy().copy() for name in grad_of}
-    return loss.numpy()[0], grads, states[-1]
+    return loss.numpy()[0], grads, states
 
 
 @pytest.mark.parametrize("case", sorted(AT_REST))
 def test_gradients_at_rest_on_the_ground_match_central_differences(case):
     """Each option from rest on a floor (F = I with its singular values nearly repeated all
-    along; through the contact law, or the ghost floor's fits): the tape's gradient in a
-    material parameter and in the initial velocity of a bottom particle (along the floor)
-    and of a top one (down) against float64 central differences at two steps a hundred
-    times apart, the larger one large enough that a jump in the loss would show."""
+    along; through the contact law of a static collider or of held tools, or the fits of a
+    ghost or pinned floor): the tape's gradient in a material parameter and in the initial
+    velocity of a bottom particle (along the floor) and of a top one (down) against float64
+    central differences at two steps a hundred times apart, the larger one large enough that
+    a jump in the loss would show. (At rest the stress is nearly zero, so these see the
+    constitutive adjoints and the contact's; a term proportional to the stress, such as
+    the pair forces' slope in the positions, is the moving scenes' above to check.)"""
     names = AT_REST[case][2]
     model = _resting_model(case)
     w = random_weights(model.particle_count, 2)
-    _, grads, last = _resting_loss(model, case, w, (*names, "v0"))
+    _, grads, states = _resting_loss(model, case, w, (*names, "v0"))
+    last = states[-1]
     sv = np.linalg.svd(last.F.numpy(), compute_uv=False)
     assert np.abs(sv - 1.0).max() < 0.05, "F stays near I"
-    if case != "ghost_floor":
-        assert np.abs(last.collider_force.numpy()).max() > 0.0, "the block rests on the ground"
+    floor = REST_FLOOR.get(case, "ground")
+    if floor in ("tools", "pinned"):
+        # (A particle resting on a swept tool meets it every other step: its entry puts it
+        # a thousandth of a spacing outside, which gravity takes two steps to drift back.)
+        rows = np.array([st.reaction_force.numpy() for st in states[-2:]])
+        assert (np.abs(rows).max(axis=(0, 2)) > 0.0).all(), "every tool (the pinned floor) holds the block"
+    elif floor not in ("ghost", "slip"):
+        assert np.abs(last.collider_force.numpy()).max() > 0.0, "the block rests on the collider"
     for name in names:
         base = getattr(model.materials[0], name)
         for rel in (1e-3, 1e-5):
