@@ -144,15 +144,18 @@ def test_other_models_pressure_forces_schedules_and_fields_gradients_match_centr
 
 def _contact_model(case, mu=(1.0e3, 2.0e3)):
     """``"bodies"``: a yielding block thrown against an elastic one (two materials; their
-    SPH pressure and viscosity act across the gap); ``"elastic_on_ground"``: an elastic
+    SPH pressure and viscosity act across the gap); ``"mixed_forces"``: the same with the
+    elastic block under the paper's force (eqs. 10-13), so one taped step runs both elastic
+    forces' adjoints, each for its own particles; ``"elastic_on_ground"``: an elastic
     block landing sideways on the rough ground, which the default solver runs with the
     curvature-corrected fit and the hourglass control."""
     dx = 0.02
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, -9.81, 0.0))
     soft = we.Material(density=1000.0, mu=mu[0], lam=1.5e3, yield_stress=10.0, flow_rate=50.0, pressure_stiffness=1.0,
                        viscosity=2.0)
-    hard = we.Material(density=1000.0, mu=mu[1], lam=3.0e3, pressure_stiffness=1.0, viscosity=2.0)
-    if case == "bodies":
+    hard = we.Material(density=1000.0, mu=mu[1], lam=3.0e3, pressure_stiffness=1.0, viscosity=2.0,
+                       elastic_force="paper" if case == "mixed_forces" else None)
+    if case in ("bodies", "mixed_forces"):
         b.add_box((-0.041, 0.0, 0.0), (3 * dx, 4 * dx, 4 * dx), soft, name="soft", velocity=(1.0, 0.0, 0.1))
         b.add_box((0.041, 0.005, 0.003), (3 * dx, 4 * dx, 4 * dx), hard, name="hard")
     else:
@@ -173,17 +176,17 @@ def _contact_loss(model, weights, steps, grad=False):
     return loss.numpy()[0], model.mu.grad.numpy().copy(), states[-1]
 
 
-@pytest.mark.parametrize("case", ["bodies", "elastic_on_ground"])
+@pytest.mark.parametrize("case", ["bodies", "mixed_forces", "elastic_on_ground"])
 def test_gradients_through_contact_between_bodies_and_of_the_default_elastic_solver_match_central_differences(case):
     """Each material's shear modulus through a rollout in which two bodies of different
-    materials meet, and through an elastic block's landing on the ground under the default
-    solver (the corrected fit and the hourglass control, through the contact law): the tape
-    against float64 central differences."""
-    steps = 20 if case == "bodies" else 30
+    materials meet (also of different elastic forces), and through an elastic block's
+    landing on the ground under the default solver (the corrected fit and the hourglass
+    control, through the contact law): the tape against float64 central differences."""
+    steps = 30 if case == "elastic_on_ground" else 20
     model = _contact_model(case)
     w = random_weights(model.particle_count, 1)
     _, g, last = _contact_loss(model, w, steps, grad=True)
-    if case == "bodies":  # the elastic block was pushed: the bodies met
+    if case != "elastic_on_ground":  # the elastic block was pushed: the bodies met
         hard = model.particle_body.numpy() == 1
         assert last.v.numpy()[hard, 0].mean() > 0.02
     else:  # it landed
@@ -195,7 +198,8 @@ def test_gradients_through_contact_between_bodies_and_of_the_default_elastic_sol
         for sign in (1, -1):
             moved = list(mu)
             moved[k] *= 1.0 + sign * 1e-5
-            vals.append(_contact_loss(_contact_model(case, tuple(moved) if case == "bodies" else (1.0e3, moved[0])), w, steps))
+            vals.append(_contact_loss(_contact_model(case, (1.0e3, moved[0]) if case == "elastic_on_ground" else tuple(moved)),
+                                      w, steps))
         fd = (vals[0] - vals[1]) / (2e-5 * mu[k])
         print(case, k, g[k], fd, abs(g[k] / fd - 1))
         assert abs(fd) > 1e-11, k
