@@ -117,8 +117,10 @@ class Solver:
     search (``0``: search afresh every step). ``guard_counts()["neighbors_cut"]`` counts
     the particle-steps whose row may lack a neighbour of non-zero weight (docs/method.md §1);
     the first one is warned about. ``fused`` (default on) runs the
-    constitutive update and all pair forces in one kernel with one SVD per particle
-    when no ``wp.Tape`` is recording; under a tape the differentiable kernels run.
+    constitutive update and all pair forces in one kernel with one SVD per particle; under
+    a recording ``wp.Tape`` it still does, unrecorded, with the differentiable kernels'
+    hand-written adjoints recorded in its place, where ``fast_under_tape()`` (and the
+    states have gradients), else the differentiable kernels run.
 
     Whether SPH pressure and viscosity run, and the stable time step ``check_dt`` warns
     against, follow the model's parameter arrays at each step (``Model.sph_active``,
