@@ -272,9 +272,10 @@ def _reaction_loss(f: wp.array(dtype=wp.vec3d), tq: wp.array(dtype=wp.vec3d), w:
 def _landing_reaction_loss(viscosity, mu, grad=False, collider="ground"):
     """A small viscous block lands on a rough collider (continuous contact law) while moving
     sideways; the loss weighs the collider's force and torque summed over every step.
-    ``collider``: the ground, the ground with floor images (whose force joins the row), a
-    sphere the block lands on off its top (so on a curved, tilted patch), or a box whose top
-    face it lands on, its edges a spacing and more from the block."""
+    ``collider``: the ground, the ground with floor images (whose force joins the row; with
+    ``_field``, less that of a compression field off the block's centre), a sphere the block
+    lands on off its top (so on a curved, tilted patch), or a box whose top face it lands on,
+    its edges a spacing and more from the block."""
     dx = 0.02
     b = we.SceneBuilder(spacing=dx, support_radius=2.0 * dx, gravity=(0.0, -G, 0.0))
     b.add_box((0.0, 0.045, 0.0), (5 * dx, 4 * dx, 4 * dx),
@@ -284,7 +285,9 @@ def _landing_reaction_loss(viscosity, mu, grad=False, collider="ground"):
     elif collider == "box":
         b.add_box_collider((0.02, -0.05, 0.0), (0.1, 0.05, 0.08), friction=0.6)
     else:
-        b.add_ground(friction=0.6, images=collider == "ground_images")
+        b.add_ground(friction=0.6, images=collider.startswith("ground_images"))
+    if collider.endswith("_field"):
+        b.add_compression_field((0.01, 0.0, 0.005), 400.0)
     m = b.finalize(dtype=wp.float64, requires_grad=True)
     m.contact_ramp = CONTINUOUS_CONTACT_RAMP
     m.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * dx, size=m.particle_x0.shape)
@@ -305,15 +308,16 @@ def _landing_reaction_loss(viscosity, mu, grad=False, collider="ground"):
     return loss.numpy()[0], touching, m.viscosity.grad.numpy()[0], m.mu.grad.numpy()[0]
 
 
-@pytest.mark.parametrize("collider", ["ground", "ground_images", "sphere", "box"])
+@pytest.mark.parametrize("collider", ["ground", "ground_images", "ground_images_field", "sphere", "box"])
 def test_reaction_gradient_matches_central_differences(collider):
     """A loss on a static collider's reported force and torque: the tape's gradient in the
     viscosity and the shear modulus against float64 central differences; on the ground
-    with floor images too, whose row adds the sum of the step's forces, and on a sphere and
-    a box collider (their own contact kernels). Measured (relative differences at a step of
-    1e-4, viscosity / mu): ground 4e-10 / 5e-9, sphere 5e-10 / 2e-9, box 2e-10 / 3e-9, the
-    imaged ground 2e-5 / 4e-7 (its loss bends more steeply, docs/physics.md, "The exit speed
-    of a particle left inside")."""
+    with floor images too, whose row adds the sum of the step's forces (less a force
+    field's, ``_field``), and on a sphere and a box collider (their own contact kernels).
+    Measured (relative differences at a step of 1e-4, viscosity / mu): ground 4e-10 / 5e-9,
+    sphere 5e-10 / 2e-9, box 2e-10 / 3e-9, the imaged ground 2e-5 / 4e-7 and 5e-5 / 2e-7
+    with the field (its loss bends more steeply, docs/physics.md, "The exit speed of a
+    particle left inside": the differences fall a hundredfold at a tenth of the step)."""
     loss, touching, g_visc, g_mu = _landing_reaction_loss(2.0, 1.0e3, grad=True, collider=collider)
     assert touching > 10, "the block lands during the rollout"
     for name, base, g in (("viscosity", 2.0, g_visc), ("mu", 1.0e3, g_mu)):
@@ -324,7 +328,7 @@ def test_reaction_gradient_matches_central_differences(collider):
         fd = (hi - lo) / (2 * eps)
         print(f"{name}: tape {g:.6e}, central differences {fd:.6e}")
         assert abs(fd) > 1e-9, f"the loss does not reach {name}"
-        assert g == pytest.approx(fd, rel=1e-4 if collider == "ground_images" else 1e-6)
+        assert g == pytest.approx(fd, rel=1e-4 if collider.startswith("ground_images") else 1e-6)
 
 
 def _landing_block(collider, ramp, params=None):
