@@ -85,9 +85,10 @@ def test_material_gradient_matches_central_differences(weights, name, rel_step):
 
 
 @pytest.mark.parametrize("deformation", ["rest", "additive", "rest_variational", "rest_variational_corrected"])
-@pytest.mark.parametrize("name", ["mu", "yield_stress", "flow_rate"])
+@pytest.mark.parametrize("name", ["mu", "yield_stress", "flow_rate", "hardening"])
 def test_comparison_models_gradients_match_central_differences(weights, deformation, name):
-    """The Fig. 8 comparison kernels (``comparison.py``) are differentiable too, and so is the
+    """The Fig. 8 comparison kernels (``comparison.py``; the additive model's flow its own,
+    hardening included) are differentiable too, and so is the
     rest model's variational force (``rest_variational``: Warp's generated adjoint), also
     with the curvature-corrected total fit (``..._corrected``): at a relative step of 1e-5
     and at ``LARGE_STEP``."""
