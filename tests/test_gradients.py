@@ -484,7 +484,7 @@ def _images_model(params=None, ground=-0.045, v0=None, fit_weight="poly6"):
     return model
 
 
-@pytest.mark.parametrize("name", ["mu", "yield_stress", "hardening", "pressure_stiffness", "viscosity", "v0"])
+@pytest.mark.parametrize("name", ["mu", "yield_stress", "flow_rate", "hardening", "pressure_stiffness", "viscosity", "v0"])
 def test_floor_images_gradients_match_central_differences(weights, name):
     """Through the ground's floor images (fit, variational energy, SPH density, pressure and
     viscosity against the floor; the default pressure force, ``energy_spiky``, whose spiky
