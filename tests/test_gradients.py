@@ -130,7 +130,7 @@ _OTHER_PATHS = {
     ("stvk", "mu"), ("stvk", "yield_stress"), ("hyperelastic", "mu"), ("hyperelastic", "lam"),
     ("non_newtonian", "yield_stress"), ("non_newtonian", "flow_rate"), ("spiky_pressure", "pressure_stiffness"),
     ("spiky_pressure", "viscosity"), ("unfused_paper", "mu"), ("unfused_variational", "mu"),
-    ("unfused_variational", "flow_rate"), ("compression_field", "mu"),
+    ("unfused_variational", "flow_rate"), ("unfused_variational", "hardening"), ("compression_field", "mu"),
 ])
 def test_other_models_pressure_forces_schedules_and_fields_gradients_match_central_differences(weights, path, name):
     """The other stress models (St. Venant-Kirchhoff, the hyperelastic one, the
