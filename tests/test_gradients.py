@@ -929,6 +929,7 @@ AT_REST = {
     "rest_variational": ({"deformation": "rest", "elastic_force": "variational"}, {}, ("lam",)),
     "ghost_floor_slip": ({"elastic_force": "variational"}, {}, ("lam",)),
     "images": ({}, {}, ("lam", "viscosity")),
+    "unfused_images": ({}, {"fused": False}, ("lam",)),
     "sphere_collider": ({}, {}, ("lam",)),
     "box_collider": ({}, {}, ("lam",)),
     "held_tools": ({}, {}, ("lam",)),
@@ -940,7 +941,7 @@ AT_REST = {
 #: ground's height, three held tools (a box under the block's first column of particles along x, a
 #: wide sphere under the middle two, a plane tilted by 20 degrees under the last: the floor of
 #: each, friction holding it), or a particle floor (a pinned set) under it.
-REST_FLOOR = {"ghost_floor": "ghost", "ghost_floor_slip": "slip", "images": "images",
+REST_FLOOR = {"ghost_floor": "ghost", "ghost_floor_slip": "slip", "images": "images", "unfused_images": "images",
               "sphere_collider": "sphere", "box_collider": "box", "held_tools": "tools", "particle_floor": "pinned"}
 
 
