@@ -6,6 +6,7 @@ import warnings
 
 import numpy as np
 import pytest
+import warp as wp
 
 import warp_esph as we
 
@@ -80,6 +81,17 @@ def test_material_accepts_inf_yield_and_converts_young():
 def test_builder_rejects(call, match):
     with pytest.raises(ValueError, match=match):
         call()
+
+
+@pytest.mark.parametrize("dtype, scalar", [(np.dtype("float64"), wp.float64), (np.dtype("float32"), wp.float32),
+                                           (np.float64, wp.float64), ("float64", wp.float64)])
+def test_finalize_takes_a_numpy_dtype_as_its_precision(dtype, scalar):
+    """``finalize(dtype=np.dtype("float64"))``, a numpy dtype as ``scalar_type`` documents, builds
+    the model in that precision: it compared equal to ``wp.float64``, was kept as the numpy
+    dtype, and finalize failed with an AttributeError on its ``__name__``."""
+    model = _one_box().finalize(dtype=dtype)
+    assert model.scalar is scalar
+    assert model.state().x.dtype is (wp.vec3d if scalar is wp.float64 else wp.vec3f)
 
 
 def _one_box(name=None):

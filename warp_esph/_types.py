@@ -17,7 +17,10 @@ _SCALARS = {"float32": wp.float32, "float64": wp.float64}
 
 def scalar_type(dtype) -> type:
     """Normalise ``dtype`` (a Warp type, numpy dtype or name) to ``wp.float32``/``wp.float64``."""
-    if dtype in (wp.float32, wp.float64):
+    # By identity: numpy's dtype compares equal to Warp's type (np.dtype("f8") == wp.float64), so
+    # a membership test returned the numpy dtype itself, and finalize failed on its missing
+    # __name__ with an AttributeError.
+    if dtype is wp.float32 or dtype is wp.float64:
         return dtype
     if dtype is float:
         # Warp reads Python's float as float32, numpy (and Python) as 64-bit: a model of either
