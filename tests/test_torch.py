@@ -261,3 +261,33 @@ def test_a_start_the_builder_would_refuse_is_refused_before_anything_runs():
     # A start whose particles are apart (the jittered lattice, moved) runs.
     out = rollout_positions(rollout, mu, x0=x + 0.01)
     assert out.shape == (1, 27, 3) and bool(torch.isfinite(out).all())
+
+
+def test_tensors_given_to_the_numpy_side_are_read_or_refused_by_name():
+    """The rollout, the losses and the builder read their arrays with numpy: a torch tensor
+    that requires grad (a target or a start straight out of a torch pipeline) failed there
+    with torch's own RuntimeError, naming no parameter, and a bfloat16 one with a TypeError;
+    an ``(n, 3)`` tensor as the one frame's gradient was split into n frames. Now a tensor
+    is copied to the host (float64; the float32 model takes it as it takes numpy float64),
+    and one that requires grad is refused by name, since reading it would drop its gradient."""
+    from warp_esph.losses import PositionLoss  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.0, 0.0), (0.04, 0.04, 0.04), we.Material(mu=1.0e3, lam=1.5e3))
+    model = b.finalize(dtype=wp.float32, requires_grad=True)
+    n = model.particle_count
+    rollout = Rollout(model, 1, 1.0e-3)
+    target = model.particle_x0.astype(np.float64) + 1e-3
+    want = rollout.value_and_grad(PositionLoss({1: target}))[0]
+    assert rollout.value_and_grad(PositionLoss({1: torch.tensor(target)}))[0] == want
+    rounded = torch.tensor(target, dtype=torch.bfloat16)
+    assert rollout.value_and_grad(PositionLoss({1: rounded}))[0] == rollout.value_and_grad(PositionLoss({1: rounded.double()}))[0]
+    g = np.ones((n, 3))
+    assert np.array_equal(rollout.backward(torch.tensor(g))[1]["v0"], rollout.backward(g)[1]["v0"])
+    grad = "is not allowed: it is a torch tensor that requires grad, and reading its values would drop its gradient"
+    for call in (lambda t: PositionLoss({1: t}), lambda t: rollout.forward(v0=t),
+                 lambda t: rollout.backward([t]), lambda t: we.SceneBuilder(spacing=0.02).add_particles(t, we.Material(mu=1e3, lam=1e3))):
+        with pytest.raises(ValueError, match=grad):
+            call(torch.tensor(target, requires_grad=True))
+    with pytest.raises(ValueError, match=rf"^mu = .* {grad}"):
+        rollout.set_parameters({"mu": torch.tensor([2.0e3], requires_grad=True)})

@@ -212,6 +212,8 @@ class SceneBuilder:
         ``angular_velocity`` (rad/s, about the body's centroid): the body starts with
         ``velocity + angular_velocity x (x - centroid)``.
         """
+        positions = checks.host_values("positions", positions)
+        velocity = checks.host_values("velocity", velocity)
         try:
             raw = np.asarray(positions)
         except (TypeError, ValueError):  # ragged rows

@@ -136,6 +136,20 @@ def greater_than(name: str, value, bound: float, bound_text: str) -> float:
     return v
 
 
+def host_values(name: str, value):
+    """``value`` as numpy reads it: a torch tensor copied to the host (floating point in
+    float64), anything else unchanged. numpy read a tensor that requires a gradient, one on a
+    GPU or a bfloat16 one with torch's own error, naming no parameter; the first is refused
+    here instead, since reading its values cuts the gradient off without a word."""
+    if type(value).__module__.split(".")[0] != "torch" or not callable(getattr(value, "detach", None)):
+        return value
+    if value.requires_grad:
+        _fail(name, value, "it is a torch tensor that requires grad, and reading its values would drop its gradient "
+                           "(pass .detach(), or fit through torch with warp_esph.torch)")
+    t = value.detach().cpu()
+    return (t.double() if t.is_floating_point() else t).numpy()
+
+
 def vector(name: str, value, length: int = 3) -> tuple[float, ...]:
     if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) and not hasattr(value, "__len__"):
         _fail(name, value, f"must be a sequence of {length} numbers")

@@ -245,6 +245,7 @@ def _per_frame(name: str, data, frames, item_ndim: int) -> dict:
     if frames is None:
         raise ValueError(f"frames is required: say at which step indices {name} applies")
     frames = _frames(frames)
+    data = checks.host_values(name, data)
     if isinstance(data, (list, tuple)) and data and all(np.ndim(d) == item_ndim for d in data):
         items = list(data)
     else:
@@ -267,6 +268,7 @@ def _per_frame(name: str, data, frames, item_ndim: int) -> dict:
 
 
 def _points(name: str, p) -> np.ndarray:
+    p = checks.host_values(name, p)
     if np.iscomplexobj(p):  # numpy kept the real part with only a ComplexWarning
         raise ValueError(f"{name} is not allowed: it holds complex numbers; positions are real")
     a = np.asarray(p, dtype=np.float64)

@@ -209,6 +209,7 @@ def check_initial(model: Model, name: str, value) -> np.ndarray:
     n = model.particle_count
     if isinstance(value, wp.array):
         value = value.numpy()
+    value = checks.host_values(name, value)
     try:
         v = np.asarray(value, dtype=model.types.np_dtype)
     except (TypeError, ValueError):
@@ -357,6 +358,7 @@ class Rollout:
             if name not in PARAMETERS:
                 raise ValueError(f"parameter {name!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
             arr = getattr(m, name)
+            value = checks.host_values(name, value)
             try:
                 if np.asarray(value).dtype.kind not in "iuf":  # True read as 1 Pa, "5" as 5 Pa
                     raise TypeError
@@ -542,6 +544,7 @@ class Rollout:
         if isinstance(grads, Mapping):
             items = list(grads.items())
         else:
+            grads = checks.host_values("grads", grads)
             if isinstance(grads, np.ndarray) and grads.ndim == 2 and len(self.frames) == 1:
                 grads = [grads]
             grads = list(grads)
@@ -559,7 +562,7 @@ class Rollout:
                     out[f] = g
                     continue
                 g = g.numpy()
-            a = np.asarray(g, dtype=T.np_dtype)
+            a = np.asarray(checks.host_values(f"gradient for step {f}", g), dtype=T.np_dtype)
             if a.shape != shape:
                 raise ValueError(f"gradient for step {f} with shape {a.shape} is not allowed: must be {shape}")
             if not np.isfinite(a).all():  # NaN gradients came back as a result
