@@ -799,6 +799,28 @@ def test_a_float32_model_is_fitted_from_its_guess():
     assert said and not any("outside its bounds" in s for s in said)
 
 
+def test_a_dtype_asked_of_fit_is_the_precision_it_runs_in_or_refused():
+    """``fit(model, ..., dtype=wp.float64)`` of a float32 model ran the whole fit in float32
+    without a word (the dtype was read only to finalize a builder). A Model keeps its own
+    precision: a dtype of another one is refused before any rollout; a builder is finalized
+    in the dtype asked (float64 when none is), and a dtype left out keeps the model's."""
+    def builder():
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.05, 0.0), (0.06, 0.06, 0.06), we.Material(mu=2e3, lam=3e3, yield_stress=40.0, flow_rate=20.0))
+        return b
+
+    model = builder().finalize(dtype=wp.float32, requires_grad=True)
+    loss = PositionLoss({2: model.particle_x0.astype(np.float64) - 0.001})
+    with pytest.raises(ValueError, match=r"^dtype = float64 is not allowed with a float32 model: a Model keeps the "
+                                         r"precision it was finalized in"):
+        fit(model, loss, ["yield_stress"], steps=2, dt=2e-4, iterations=0, progress=False, dtype=wp.float64)
+    for made, dtype, want in ((lambda: builder().finalize(dtype=wp.float32, requires_grad=True), None, wp.float32),
+                              (builder, "float32", wp.float32), (builder, None, wp.float64)):
+        r = fit(made, loss, ["yield_stress"], steps=2, dt=2e-4, iterations=0, progress=False, diagnostics=False,
+                dtype=dtype)
+        assert r.model.scalar is want
+
+
 def test_a_prestrained_start_that_recoils_is_no_divergence():
     """A block released from a 20 % stretch (``initial={"F0": ...}``) gains 0.27 J of kinetic
     energy from its 0.7 J of stored elastic energy (measured). The divergence check counted

@@ -13,7 +13,8 @@
                                # a joint fit: several experiments sharing one material
 
 ``model`` is a ``Model`` finalized with ``requires_grad=True``, a ``SceneBuilder``, or a
-callable returning either (builders are finalized in ``dtype``, float64 by default). The
+callable returning either (builders are finalized in ``dtype``, float64 by default; a ``Model``
+keeps its own precision, and a ``dtype`` of another one is refused). The
 values the model holds are the initial guess. ``target`` is a ``warp_esph.losses.Loss``,
 or target positions (``(frames, n, 3)``, ``{step: (n, 3)}``) fitted with a
 ``PositionLoss``.
@@ -46,6 +47,7 @@ import numpy as np
 import warp as wp
 
 from . import checks
+from ._types import scalar_type
 from .builder import SceneBuilder
 from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, SumLoss, WorldLoss, is_tools_csv, read_tools_csv
 from .material import PRESSURE_BULK_SHARE, Material
@@ -193,16 +195,24 @@ def _json_safe(obj):
 
 
 def _as_model(model_or_factory, dtype) -> Model:
+    """The experiment's model; ``dtype``: the precision ``fit`` was given (``None``: float64
+    for a builder, a model's own)."""
     obj = model_or_factory
     if callable(obj) and not isinstance(obj, (Model, SceneBuilder)):
         obj = obj()
     if isinstance(getattr(obj, "builder", None), SceneBuilder):  # a scenes.Scene
         obj = obj.builder
     if isinstance(obj, SceneBuilder):
-        return obj.finalize(dtype=dtype, requires_grad=True)
+        return obj.finalize(dtype=wp.float64 if dtype is None else dtype, requires_grad=True)
     if isinstance(obj, Model):
         if not obj.requires_grad:
             raise ValueError("model is not allowed: finalize it with requires_grad=True (or pass the SceneBuilder)")
+        if dtype is not None and obj.scalar is not dtype:
+            # A model keeps the precision it was finalized in: fit(model32, ..., dtype=wp.float64)
+            # ran the whole fit in float32 without a word.
+            raise ValueError(f"dtype = {dtype.__name__} is not allowed with a {obj.scalar.__name__} model: a Model keeps "
+                             f"the precision it was finalized in; finalize it with dtype=wp.{dtype.__name__}, pass "
+                             "the SceneBuilder, or leave dtype out")
         return obj
     raise ValueError(f"model = {model_or_factory!r} is not allowed: give a Model, a SceneBuilder or a callable returning one")
 
@@ -737,7 +747,7 @@ def fit(
     patience: int = 20,
     callback: Callable | None = None,
     progress: bool = True,
-    dtype=wp.float64,
+    dtype=None,
     optimizer: str = "adam",
     max_step: float = 1.0,
     lbfgs_memory: int = 10,
@@ -814,6 +824,8 @@ def fit(
     params, iterations, lr, lr_end, clip, optimizer = o["params"], o["iterations"], o["lr"], o["lr_end"], o["clip"], o["optimizer"]
     patience, samples, starts, sample_range, seed = o["patience"], o["samples"], o["starts"], o["sample_range"], o["seed"]
     noise, memory_limit, xtol = o["noise"], o["memory_limit"], o["xtol"]
+    if dtype is not None:
+        dtype = scalar_type(dtype)
     max_step = checks.positive("max_step", max_step)
     lbfgs_memory = checks.positive_int("lbfgs_memory", lbfgs_memory)
     gtol = checks.non_negative("gtol", gtol)
