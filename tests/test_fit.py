@@ -583,6 +583,36 @@ def test_a_rollout_refuses_a_non_finite_or_non_numeric_start_by_name():
     assert np.isfinite(r.forward()).all()
 
 
+def test_float64_values_a_float32_rollout_cannot_hold_are_refused_as_given():
+    """Values given in float64 were cast to a float32 model's precision before any check: mu
+    = 1e39 (from Python, or a torch tensor) was refused as 'array([inf]) ... must be finite',
+    a viscosity of 1e-50 became 0 without a word, a v0 of 1e39 m/s was 'non-finite', and x0
+    6e37 m out ended in the neighbour search's OverflowError. Each is now refused as given,
+    naming the precision, as Material and SceneBuilder refuse such values."""
+    from warp_esph.torch import rollout_positions  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.04, 0.04, 0.04), we.Material(mu=2e3, lam=3e3))
+    model = b.finalize(dtype=wp.float32, requires_grad=True)
+    r = Rollout(model, 1, 1e-4)
+    big = r"must be at most 3\.4e\+38; use dtype=float64 or a smaller value"
+    with pytest.raises(ValueError, match=rf"^mu = 1e\+39 \(material 0\) is not allowed in float32: {big}"):
+        r.set_parameters({"mu": [1e39]})
+    torch = pytest.importorskip("torch")
+    with pytest.raises(ValueError, match=rf"^mu = 1e\+39 \(material 0\) is not allowed in float32: {big}"):
+        rollout_positions(r, {"mu": torch.tensor([1e39], dtype=torch.float64)})
+    with pytest.raises(ValueError, match=r"^viscosity = 1e-50 \(material 0\) is not allowed in float32: must be 0 or at "
+                                         r"least 1\.18e-38"):
+        r.set_parameters({"viscosity": [1e-50]})
+    with pytest.raises(ValueError, match=rf"^v0 = \[1e\+39, 0\.0, 0\.0\] is not allowed: the one v0 given for every "
+                                         rf"particle exceeds float32: {big}"):
+        r.forward(v0=[1e39, 0.0, 0.0])
+    with pytest.raises(ValueError, match=r"^x0 is not allowed in float32: particle \d+ lies 6e\+37 m from the origin, where "
+                                         r"float32 resolves 7\.2e\+30 m, more than a hundredth of the spacing 0\.02"):
+        r.forward(x0=model.particle_x0.astype(np.float64) * 1e39)
+    assert r.get_parameters()["mu"].tolist() == [2e3] and np.isfinite(r.forward()).all()
+
+
 def test_rollout_frames_are_whole_step_indices_named_where_not():
     """1.7 was truncated to step 1, '2' and True were taken as steps; a nested list or a
     dict ended in numpy's errors naming nothing."""

@@ -47,17 +47,26 @@ CONTACTS = {"instant": INSTANT_CONTACT_RAMP, "continuous": CONTINUOUS_CONTACT_RA
 MAX_CONTACT_RAMP = 10.0
 
 
+def precision_problem(value: float, scalar) -> str | None:
+    """What is allowed, where the finite ``value`` does not hold in ``scalar`` (it would become
+    inf, or 0), or None."""
+    info = np.finfo(np.float32 if scalar is wp.float32 else np.float64)
+    tiny, big = float(info.tiny), float(info.max)
+    if math.isfinite(value) and abs(value) > big:
+        return f"must be at most {big:.3g}; use dtype=float64 or a smaller value"
+    if value != 0.0 and abs(value) < tiny:
+        return f"must be 0 or at least {tiny:.3g} in size; use dtype=float64 or a larger value"
+    return None
+
+
 def material_precision_problem(material: Material, scalar) -> tuple[str, float, str] | None:
     """``(field, value, what is allowed)`` of the first parameter of ``material`` that does not
     hold in ``scalar``, or None (``check_material_precision``)."""
-    info = np.finfo(np.float32 if scalar is wp.float32 else np.float64)
-    tiny, big = float(info.tiny), float(info.max)
     for name in (*Model.MATERIAL_FIELDS, "density"):
         v = getattr(material, name)
-        if math.isfinite(v) and abs(v) > big:
-            return name, v, f"must be at most {big:.3g}; use dtype=float64 or a smaller value"
-        if v != 0.0 and abs(v) < tiny:
-            return name, v, f"must be 0 or at least {tiny:.3g} in size; use dtype=float64 or a larger value"
+        why = precision_problem(v, scalar)
+        if why is not None:
+            return name, v, why
     return None
 
 

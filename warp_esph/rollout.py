@@ -69,7 +69,7 @@ import warp as wp
 
 from . import checks
 from ._types import type_set
-from .model import Model, State
+from .model import Model, State, precision_problem
 from .sim.solver import Solver
 
 __all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS", "FORCES", "TOOL_NAMES", "COLLIDER_FORCES",
@@ -198,7 +198,9 @@ def initial_shapes(name: str, n: int) -> str:
 def check_initial(model: Model, name: str, value) -> np.ndarray:
     """``value`` of the initial field ``name`` (``x0``, ``v0``, ``F0``, ``alpha0``) as an
     ``(n, ...)`` array of ``model``'s precision, or a ``ValueError`` naming it: not numbers,
-    another shape, a non-finite value, an ``F0`` with ``det F <= 0``, a negative
+    another shape, a non-finite value, one the model's precision cannot hold (checked as given,
+    before the cast; an ``x0`` so far out that it does not resolve a hundredth of the spacing,
+    as ``SceneBuilder`` refuses), an ``F0`` with ``det F <= 0``, a negative
     ``alpha0``, or ``x0`` with two particles that see each other at one place
     (``checks.coincident_points``, as ``SceneBuilder`` refuses them: all at one point, the
     step returned the start moved only by gravity). ``v0``, ``F0`` and ``alpha0`` may be one
@@ -211,7 +213,7 @@ def check_initial(model: Model, name: str, value) -> np.ndarray:
         value = value.numpy()
     value = checks.host_values(name, value)
     try:
-        v = np.asarray(value, dtype=model.types.np_dtype)
+        v = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be numbers of shape "
                          f"{initial_shapes(name, n)}") from None
@@ -228,6 +230,26 @@ def check_initial(model: Model, name: str, value) -> np.ndarray:
                          f"{int(np.argmax(~np.isfinite(v).reshape(v.shape[0] if v.ndim else 1, -1).all(axis=1)))})")
     if v.shape != (n, *shape):
         raise ValueError(f"{name} with shape {v.shape} is not allowed: must be {initial_shapes(name, n)}")
+    # Checked as given, before the cast to the model's precision: a float64 v0 of 1e39 m/s
+    # was refused as 'non-finite values' in float32, and x0 of 6e37 m ran into the
+    # neighbour search's OverflowError.
+    T = model.scalar.__name__
+    big = float(np.abs(v).max()) if v.size else 0.0
+    why = precision_problem(big, model.scalar) if big > 1.0 else None
+    if why is not None:
+        if one is not None:
+            raise ValueError(f"{given} exceeds {T}: {why}")
+        raise ValueError(f"{name} is not allowed in {T}: its largest value {big:g} {why}")
+    if name == "x0" and v.size:
+        # As SceneBuilder refuses a scene so far out that the precision does not resolve the
+        # spacing (the lattice falls onto fewer points, every fit ill-conditioned).
+        i = int(np.argmax(np.abs(v).max(axis=1)))
+        eps = float(np.finfo(model.types.np_dtype).eps)
+        if big * eps > 1e-2 * model.spacing:
+            raise ValueError(f"x0 is not allowed in {T}: particle {i} lies {big:.3g} m from the origin, where {T} "
+                             f"resolves {big * eps:.2g} m, more than a hundredth of the spacing {model.spacing:g}; move "
+                             f"the start nearer the origin or use dtype=float64")
+    v = v.astype(model.types.np_dtype)
     # An F that is no deformation (det <= 0: zero, or a reflection) and a negative
     # accumulated plastic strain ran without a word.
     if name == "F0" and not (np.linalg.det(v.astype(np.float64)) > 0.0).all():
@@ -362,7 +384,7 @@ class Rollout:
             try:
                 if np.asarray(value).dtype.kind not in "iuf":  # True read as 1 Pa, "5" as 5 Pa
                     raise TypeError
-                v = np.asarray(value, dtype=m.types.np_dtype).reshape(-1)
+                v = np.asarray(value, dtype=np.float64).reshape(-1)
             except (TypeError, ValueError):
                 raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be numbers, one per "
                                  "material") from None
@@ -375,7 +397,13 @@ class Rollout:
                 # parameter of one failed on it)
                 raise ValueError(f"{name} = {v!r} is not allowed: values must be finite"
                                  + (" (or inf: no yield)" if name == "yield_stress" else ""))
-            new[name] = v
+            # Checked as given: 1e39 Pa cast to float32 first was refused as inf ('values must be
+            # finite'), and 1e-50 became 0 without a word.
+            for k, one in enumerate(v.tolist()):
+                why = precision_problem(one, m.scalar)
+                if why is not None:
+                    raise ValueError(f"{name} = {one:g} (material {k}) is not allowed in {m.scalar.__name__}: {why}")
+            new[name] = v.astype(m.types.np_dtype)
         # Each material's checks, now that the values are given (a negative mu was refused
         # only at the next step, as "the model's parameter arrays").
         rows = np.stack([new[f] if f in new else getattr(m, f).numpy() for f in m.MATERIAL_FIELDS])

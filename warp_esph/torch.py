@@ -71,14 +71,16 @@ def _function():
         @staticmethod
         def forward(ctx, rollout, names, x0, v0, *values):
             np_dtype = rollout.model.types.np_dtype
-            given = {name: _numpy(v, np_dtype) for name, v in zip(names, values)}
+            # In float64: the rollout checks the values as given before it casts them to the
+            # model's precision (1e39 Pa cast to float32 here was refused as inf, 'not finite').
+            given = {name: _numpy(v, np.float64) for name, v in zip(names, values)}
             before = rollout.get_parameters()
             rollout.set_parameters(given)
             ctx.rollout = rollout
             ctx.names = names
             ctx.params = rollout.get_parameters()
-            ctx.x0 = None if x0 is None else _numpy(x0, np_dtype)
-            ctx.v0 = None if v0 is None else _numpy(v0, np_dtype)
+            ctx.x0 = None if x0 is None else _numpy(x0, np.float64)
+            ctx.v0 = None if v0 is None else _numpy(v0, np.float64)
             try:
                 out = rollout.forward(x0=ctx.x0, v0=ctx.v0)
             except BaseException:
