@@ -267,6 +267,30 @@ def test_replacing_an_array_is_checked_again(models):
         a.assign(models["bigger"].state())
 
 
+def test_a_parameter_array_put_in_its_place_is_one_the_kernels_take_or_refused(models):
+    """``model.mu = ...`` in place of the model's array: a float64 array in a float32 model
+    failed in Warp's launch (``Struct field 'mu' expects dtype float32, got float64``), numpy
+    values or a float with an AttributeError in the step, another length in numpy's stack.
+    Each is refused by name; an array of the model's own kind is taken and runs."""
+    import warp as wp
+
+    model = models["own"]
+    original = model.mu
+    try:
+        for value in (wp.array([2e3], dtype=wp.float64), np.array([2e3]), 2e3, wp.zeros(2, dtype=wp.float32)):
+            with pytest.raises(ValueError, match=r"^model\.mu = .* is not allowed: it is .* and the model's is a wp\.array "
+                                                 r"of float32, shape \(1,\) \(one value per material\), on cpu; to change "
+                                                 r"its values use model\.mu\.assign"):
+                model.mu = value
+            assert model.mu is original
+        model.mu = wp.array([2.5e3], dtype=wp.float32)
+        a, b = model.state(), model.state()
+        we.Solver(model).step(a, b, 1e-4)
+        assert model.parameter_values()["mu"].tolist() == [2.5e3] and np.isfinite(b.x.numpy()).all()
+    finally:
+        model.mu = original
+
+
 # ---------------------------------------------------------------------------- damaged files
 DAMAGE = st.one_of(
     st.tuples(st.just("truncate"), st.floats(0.0, 0.999)),

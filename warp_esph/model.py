@@ -416,6 +416,32 @@ class Model:
 
     MATERIAL_FIELDS = ("mu", "lam", "yield_stress", "flow_rate", "hardening", "pressure_stiffness", "viscosity")
 
+    def __setattr__(self, name, value):
+        if name in Model.MATERIAL_FIELDS and name in self.__dict__:
+            self._check_parameter_array(name, value)
+        object.__setattr__(self, name, value)
+
+    def _check_parameter_array(self, name: str, value) -> None:
+        """A parameter array put in place of ``name``'s must be one the kernels take: one of
+        another precision failed in Warp's launch (``Struct field 'mu' expects dtype float32,
+        got float64``), numpy values or a float with an AttributeError, another length in
+        numpy's stack, one without a gradient in the tape's backward."""
+        old = self.__dict__[name]
+        grad = self.requires_grad
+        if (isinstance(value, wp.array) and value.dtype is old.dtype and value.shape == old.shape
+                and value.device == old.device and (value.requires_grad or not grad)):
+            return
+        if isinstance(value, wp.array):
+            kind = getattr(value.dtype, "__name__", str(value.dtype))
+            what = (f"a wp.array of {kind}, shape {value.shape}, on {value.device}"
+                    f"{', without requires_grad' if grad and not value.requires_grad else ''}")
+        else:
+            what = f"a {type(value).__name__}"
+        raise ValueError(f"model.{name} = {checks.shorten(value)!r} is not allowed: it is {what}, and the model's is a "
+                         f"wp.array of {old.dtype.__name__}, shape {old.shape} (one value per material), on {old.device}"
+                         f"{', with requires_grad' if grad else ''}; to change its values use model.{name}.assign(...), "
+                         f"Rollout.set_parameters or model.set_material")
+
     def _material_array(self, name: str) -> wp.array:
         values = [getattr(m, name) for m in self.materials]
         return wp.array(values, dtype=self.scalar, device=self.device, requires_grad=self.requires_grad)
