@@ -223,6 +223,19 @@ def test_parse_frames_takes_a_range_a_numpy_array_or_an_iterator_as_the_renderer
     assert parse_frames(np.arange(0, 11, 5, dtype=np.int32), have) == [0, 5, 10]
     with pytest.raises(ValueError, match=r"^frames = \[3, 99\] is not allowed: frame 99 is not in the file \(it holds 0\.\.10\)$"):
         parse_frames(np.array([3, 99]), have)
+
+
+def test_parse_frames_refuses_a_nested_list_or_a_2d_array_as_such():
+    """A 2-D array or a list of lists was joined into one text and split at its commas, so the
+    refusal named the value but blamed a fragment: ``'[0' is not 'all', ...``. It is refused as a
+    nested entry; a 0-d array entry is still the number it holds."""
+    have = list(range(11))
+    for bad, shown in ((np.array([[0, 1]]), r"\[\[0, 1\]\]"), ([[0, 1], [2, 3]], r"\[\[0, 1\], \[2, 3\]\]"),
+                       ([np.array([0, 1])], r"\[\[0, 1\]\]"), ([3, range(2)], r"\[3, range\(0, 2\)\]")):
+        with pytest.raises(ValueError, match=rf"^frames = {shown} is not allowed: its entry \S.* is itself a sequence "
+                                             r"\(a nested list or a 2-D array\); frames must be frame numbers, a range or 'all'"):
+            parse_frames(bad, have)
+    assert parse_frames([np.array(3), 5], have) == [3, 5]
     with pytest.raises(ValueError, match=r"^frames = 2\.5 is not allowed: give e\.g\. 'all'"):
         parse_frames(2.5, have)  # not iterable: refused by its value
     # An array's entries are shown as plain numbers, not numpy's reprs.

@@ -1212,7 +1212,8 @@ class UsdFrames:
 def parse_frames(spec, available: list[int]) -> list[int]:
     """Frame indices from a spec: ``all``, ``first``, ``last``, ``N``, ``-N`` (from the end),
     ``A:B`` or ``A:B:STEP`` (B inclusive, either may be left out), or a comma list of those;
-    or any other iterable of frame numbers (a range, a numpy array, an iterator)."""
+    or any other iterable of frame numbers (a range, a 1-D numpy array, an iterator; not a
+    nested list or a 2-D array)."""
     if spec is None:
         return list(available)
     if isinstance(spec, np.ndarray) and spec.ndim == 0:
@@ -1231,11 +1232,22 @@ def parse_frames(spec, available: list[int]) -> list[int]:
 
     def plain(v):
         # Frames picked with numpy were shown as numpy writes them: 'np.int64(3)'.
+        if isinstance(v, np.ndarray) and v.ndim == 0:
+            v = v.item()
         return int(v) if isinstance(v, np.integer) else v
 
     if isinstance(spec, (list, tuple)):
-        shown = [plain(s) for s in spec]
+        shown = [s.tolist() if isinstance(s, np.ndarray) and s.ndim else plain(s) for s in spec]
         shown = tuple(shown) if isinstance(spec, tuple) else shown
+        # A 2-D array or a list of lists was joined into one text and split at its commas, so the
+        # refusal blamed a fragment of an entry: "'[0' is not 'all', ...".
+        nested = next((s for s, v in zip(shown, spec)
+                       if not isinstance(v, (str, bytes)) and hasattr(v, "__iter__")
+                       and not (isinstance(v, np.ndarray) and v.ndim == 0)), None)
+        if nested is not None:
+            raise ValueError(f"frames = {checks.shorten(shown)!r} is not allowed: its entry {checks.shorten(nested)!r} is itself "
+                             "a sequence (a nested list or a 2-D array); frames must be frame numbers, a range or 'all', "
+                             "e.g. [0, 30, 60], range(0, 61, 5), '0:60:5' or 'all'")
     else:
         shown = plain(spec)
     if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
