@@ -312,7 +312,8 @@ def test_a_sweep_no_sample_of_which_can_step_at_its_fps_is_refused_before_the_fi
     failures (the CLI: exit 3). Now it is refused once, before any sample, by the option's
     name; a sweep one of whose samples can run still runs (the others are its rows). The advice
     is the sweep's own options: a run's 'give dt or substeps' and 'a larger dt' named a
-    substeps it lacks and a dt that would blow its samples up."""
+    substeps it lacks and a dt that would blow its samples up. The --frames refusal gives the
+    sample's reason without its 'frames = ... is not allowed', which said the refusal twice."""
     with pytest.raises(ValueError, match=r"^--fps = 0\.01 is not allowed for this sweep: no sample can run at its own stable "
                                          r"step \(sample 0, mu = 1e\+09: the stable step 4\.5e-06 s is not allowed: a frame "
                                          r"\(1/fps = 100 s\) would take 2\.2\d*e\+07 steps, more than 1e\+06; the stiffest "
@@ -321,7 +322,7 @@ def test_a_sweep_no_sample_of_which_can_step_at_its_fps_is_refused_before_the_fi
                                          r"or less viscous materials or swept values$"):
         sweep(_box(), ["mu=1e9,1e8"], fps=0.01, frames=1, workers=1)
     with pytest.raises(ValueError, match=r"^--frames = 1000000000 is not allowed for this sweep: no sample can run at its own "
-                                         r"stable step \(sample 0, mu = 1000: frames = 1000000000 is not allowed: at 16 steps "
+                                         r"stable step \(sample 0, mu = 1000: at 16 steps "
                                          r"per frame the run would take 1\.6e\+10 steps, more than 1e\+10\); give fewer "
                                          r"--frames or a shorter --duration, or a smaller --scale \(.*\)$"):
         sweep(_box(), ["mu=1e3"], frames=10**9, workers=1)

@@ -42,11 +42,14 @@ AUTO = "auto"
 class StepRefusal(ValueError):
     """A refused time step or step count (``resolve_timestep``, ``check_step_count``): its
     message is ``reason`` and then the advice of a run; ``reason`` lets a caller with other
-    options (a sweep) give its own advice instead."""
+    options (a sweep) give its own advice instead. ``detail``: the reason without the refused
+    value's name ('frames = ... is not allowed: '), for a caller that refuses its own option
+    by name (default: ``reason``)."""
 
-    def __init__(self, reason: str, advice: str = ""):
+    def __init__(self, reason: str, advice: str = "", detail: str | None = None):
         super().__init__(reason + advice)
         self.reason = reason
+        self.detail = reason if detail is None else detail
 
 
 class SimulationError(RuntimeError):
@@ -308,10 +311,9 @@ def check_step_count(frames: int, substeps: int) -> None:
     if frames * substeps > MAX_STEPS:
         total = frames * substeps
         shown = f"{total:.3g}" if total < 1e300 else "more than 1e300"  # (10**400 overflowed the formatting)
-        raise StepRefusal(
-            f"frames = {checks.shorten(frames)!r} is not allowed: at {substeps} steps per frame the run would take "
-            f"{shown} steps, more than {MAX_STEPS:.0e}", "; use fewer frames or a larger dt"
-        )
+        detail = f"at {substeps} steps per frame the run would take {shown} steps, more than {MAX_STEPS:.0e}"
+        raise StepRefusal(f"frames = {checks.shorten(frames)!r} is not allowed: {detail}", "; use fewer frames or a larger dt",
+                          detail=detail)
 
 
 def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: float = 0.3,

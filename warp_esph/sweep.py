@@ -961,7 +961,9 @@ def _check_some_sample_steps(model, assignments, points, frames, fps, rate, leng
         try:
             check_step_count(frames, substeps)
         except StepRefusal as e:
-            first = first or (k, values, e.reason, length, f"give fewer --frames or a shorter --duration, or {coarser}")
+            # Its detail alone: the reason named 'frames = N is not allowed' inside the sweep's own
+            # '--frames = N is not allowed for this sweep', the refusal said twice.
+            first = first or (k, values, e.detail, length, f"give fewer --frames or a shorter --duration, or {coarser}")
             continue
         return
     if first is None:
