@@ -447,6 +447,35 @@ def test_a_foreign_files_surfaces_colliders_and_tools_are_read_in_metres_and_wor
     np.testing.assert_allclose(shapes[1], moved(shapes[0]), atol=1e-9)
 
 
+def test_a_foreign_plane_colliders_normal_and_offset_are_in_its_parents_frame_as_all_collider_data(tmp_path):
+    """A copy of a run's file whose ground prim was given its own transform (moved 0.3 m up and
+    tilted): the plane's normal and offset, custom data as the sphere's and box's centre, were
+    moved by it too, though all collider data is in the prim's parent's frame (a run writes the
+    plane prim without a transform; the sphere's own translate repeats its centre). The plane
+    stays where its data puts it, and its quad is drawn on it."""
+    import shutil
+
+    from pxr import Gf
+
+    from warp_esph.usd import UsdFrames
+
+    b = SceneBuilder(spacing=0.04)
+    b.add_box((0.0, 0.12, 0.0), (0.08, 0.08, 0.08), Material.preset("dough"), name="dough")
+    b.add_ground(height=0.02)
+    model = b.finalize()
+    ours, theirs = tmp_path / "run.usda", tmp_path / "moved.usda"
+    simulate(model, 1, fps=30, writer=UsdWriter(ours, model, 30), progress=False)
+    shutil.copy(ours, theirs)
+    stage = Usd.Stage.Open(str(theirs))
+    ground = UsdGeom.Xformable(stage.GetPrimAtPath("/World/Colliders/plane_0"))
+    ground.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.3, 0.0))
+    ground.AddRotateXOp().Set(20.0)
+    stage.Save()
+    plane = UsdFrames(theirs).colliders[0]
+    assert plane.normal == pytest.approx([0.0, 1.0, 0.0], abs=1e-12) and plane.offset == pytest.approx(0.02, abs=1e-12)
+    assert float(plane.normal @ plane.center) == pytest.approx(0.02, abs=1e-9)
+
+
 def test_velocities_under_a_time_sampled_rotation_carry_x_dA_dt():
     """A body turned 5 degrees a frame (24 fps) by its own time-sampled rotateY, its local
     points at rest: the velocities read are x dA/dt, the rate of the positions read, with the

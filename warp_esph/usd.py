@@ -953,9 +953,10 @@ class UsdFrames:
 
     def _read_colliders(self) -> list[Collider]:
         """The static colliders in metres and world coordinates, as the particles are read:
-        their geometry (custom data, in the coordinates of the prim's parent, the plane's quad
-        in its own) under the transforms of the first frame and the stage's metersPerUnit (a
-        box turned off the axes by them is held as its axis-aligned bounds)."""
+        their geometry (custom data, in the coordinates of the prim's parent: a plane's normal
+        and offset too, its quad in its own, and drawn where it lies on the plane) under the
+        transforms of the first frame and the stage's metersPerUnit (a box turned off the axes
+        by them is held as its axis-aligned bounds)."""
         out = []
         scope = self.stage.GetPrimAtPath(_COLLIDERS)
         if not scope:
@@ -969,14 +970,21 @@ class UsdFrames:
                 n /= np.linalg.norm(n)
                 offset = float(get(f"{_KEY}:offset"))
                 pts = np.array(UsdGeom.Mesh(prim).GetPointsAttr().Get(), dtype=np.float64)
-                world = self.placement(prim, first)
+                quad = self.placement(prim, first)
+                if quad is not None:
+                    pts = pts @ quad[0] + quad[1]
+                # The normal and offset, as every collider's custom data (the sphere's and box's
+                # centre), in the parent's frame: they were moved by the plane prim's own
+                # transform too, so a foreign file that moved the quad moved the plane it shows.
+                world = self.placement(prim, first, parent=True)
                 if world is not None:
                     A, b = world
-                    pts = pts @ A + b
                     # n . x = offset with x = (x_w - b) A^-1: m . x_w = offset + m . b, m = n A^-T.
                     m = n @ np.linalg.inv(A).T
                     n, offset = m / np.linalg.norm(m), (offset + float(m @ b)) / float(np.linalg.norm(m))
                 center = pts.mean(axis=0)
+                if quad is not None:  # a quad moved off its plane by its own transform is drawn on it
+                    center = center - (float(n @ center) - offset) * n
                 half = 0.5 * float(np.linalg.norm(pts[1] - pts[0]))
                 out.append(Collider("plane", center, np.array([half, 0.0, 0.0]), n, offset))
             elif kind in ("sphere", "box"):
