@@ -111,6 +111,47 @@ def test_backward_leaves_the_model_holding_the_values_it_held():
         loss.backward()
 
 
+def test_each_start_is_checked_once_per_forward_and_backward(monkeypatch):
+    """x0's check (``check_initial``: its search for coincident particles, 17 ms at 64k
+    particles) ran in ``rollout_positions``, again in the forward, and a third time where the
+    backward re-ran that forward: once per start now, and the re-run starts from the values
+    checked, also where the tensor was changed in place since (its gradient is the forward's)."""
+    import warp_esph.rollout as rollout_module
+    import warp_esph.torch as torch_module
+
+    model = _cube()
+    rollout = Rollout(model, 2, 1.0e-3, frames=[2])
+    calls = []
+    real = rollout_module.check_initial
+
+    def counted(m, name, value):
+        calls.append(name)
+        return real(m, name, value)
+
+    monkeypatch.setattr(rollout_module, "check_initial", counted)
+    monkeypatch.setattr(torch_module, "check_initial", counted)
+
+    def start():
+        return torch.tensor(model.particle_x0, dtype=torch.float64, requires_grad=True)
+
+    v0 = torch.tensor(model.particle_v0, dtype=torch.float64)  # stretching: x0 matters within the steps
+    ref = start()
+    rollout_positions(rollout, x0=ref, v0=v0).square().sum().backward()
+    assert calls == ["x0", "v0"]
+    calls.clear()
+    # Two forwards, then one backward through both: the first's re-runs its forward.
+    x, other = start(), start()
+    with torch.no_grad():
+        other[0, 0] += 1.0e-3
+    loss = rollout_positions(rollout, x0=x, v0=v0).square().sum()
+    later = rollout_positions(rollout, x0=other).square().sum()
+    with torch.no_grad():
+        x[0, 0] += 1.0  # in place, after its forward
+    (loss + 0.0 * later).backward()
+    assert calls == ["x0", "v0", "x0"]
+    np.testing.assert_allclose(x.grad.numpy(), ref.grad.numpy(), rtol=1e-12, atol=1e-15)
+
+
 def test_torch_adam_drives_a_fit():
     """torch.optim.Adam on a RolloutModule (log-space parameter) recovers the flow rate from 2x."""
     steps, frames = 12, [4, 8, 12]

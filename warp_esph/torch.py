@@ -66,10 +66,11 @@ def _function():
         return t.detach().to(device="cpu", dtype=torch.float64).numpy().astype(dtype, copy=True)
 
     class RolloutFunction(torch.autograd.Function):
-        """``(rollout, names, x0, v0, *values) -> positions (frames, n, 3)``."""
+        """``(rollout, names, starts, x0, v0, *values) -> positions (frames, n, 3)``; ``starts``:
+        ``{name: array}`` of ``x0``/``v0`` as ``check_initial`` answered them."""
 
         @staticmethod
-        def forward(ctx, rollout, names, x0, v0, *values):
+        def forward(ctx, rollout, names, starts, x0, v0, *values):
             np_dtype = rollout.model.types.np_dtype
             # In float64: the rollout checks the values as given before it casts them to the
             # model's precision (1e39 Pa cast to float32 here was refused as inf, 'not finite').
@@ -79,12 +80,11 @@ def _function():
             ctx.rollout = rollout
             ctx.names = names
             ctx.params = rollout.get_parameters()
-            ctx.x0 = None if x0 is None else _numpy(x0, np.float64)
-            ctx.v0 = None if v0 is None else _numpy(v0, np.float64)
+            ctx.starts = starts
             try:
-                out = rollout.forward(x0=ctx.x0, v0=ctx.v0)
+                out = rollout._forward_checked(starts)
             except BaseException:
-                # A refused start (a NaN v0) left the model running the new values.
+                # A forward that fails (a step's refusal) left the model running the new values.
                 rollout.set_parameters(before)
                 raise
             ctx.forward_count = rollout.forward_count
@@ -125,7 +125,7 @@ def _function():
                         redo = True
                 if redo:
                     # The rollout ran with other inputs since: redo this forward first.
-                    rollout.forward(x0=ctx.x0, v0=ctx.v0)
+                    rollout._forward_checked(ctx.starts)
                     ctx.forward_count = rollout.forward_count
                 _, grads = rollout.backward(_numpy(grad_out, rollout.model.types.np_dtype))
             finally:
@@ -138,10 +138,10 @@ def _function():
                 return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=ctx.tensor_dtype, device=ctx.device)
 
             need = ctx.needs_input_grad
-            gx0 = tensor(grads["x0"]) if need[2] else None
-            gv0 = tensor(grads["v0"]) if need[3] else None
-            gvals = [tensor(grads[name]) if need[4 + k] else None for k, name in enumerate(ctx.names)]
-            return (None, None, gx0, gv0, *gvals)
+            gx0 = tensor(grads["x0"]) if need[3] else None
+            gv0 = tensor(grads["v0"]) if need[4] else None
+            gvals = [tensor(grads[name]) if need[5 + k] else None for k, name in enumerate(ctx.names)]
+            return (None, None, None, gx0, gv0, *gvals)
 
     _FUNCTION = RolloutFunction
     return _FUNCTION
@@ -197,6 +197,7 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
         names.append(name)
         values.append(value)
     start = {"x0": x0, "v0": v0}
+    checked = {}
     for label, t in start.items():
         if t is None:
             continue
@@ -215,9 +216,15 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
         _check_dense(torch, label, t)
         # Here, before the parameters are set and any kernel runs, by the rollout's own checks:
         # x0 with every particle at one point (which SceneBuilder refuses) returned the start
-        # moved only by gravity; a NaN ran to NaN positions.
-        check_initial(rollout.model, label, given.detach().to(device="cpu", dtype=torch.float64).numpy())
-    return _function().apply(rollout, tuple(names), start["x0"], start["v0"], *values)
+        # moved only by gravity; a NaN ran to NaN positions. Its answer, in the model's precision,
+        # is what the forward (and a backward's re-run of it) starts from, not checked again.
+        host = given.detach().to(device="cpu", dtype=torch.float64).numpy()  # numpy has no bfloat16
+        checked[label] = check_initial(rollout.model, label, host)
+        if np.shares_memory(checked[label], host):
+            # A CPU float64 tensor's own memory: changed in place after the forward, it would
+            # change the start of a backward's re-run.
+            checked[label] = checked[label].copy()
+    return _function().apply(rollout, tuple(names), checked, start["x0"], start["v0"], *values)
 
 
 def _check_dense(torch, name: str, t) -> None:
