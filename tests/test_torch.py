@@ -152,6 +152,40 @@ def test_each_start_is_checked_once_per_forward_and_backward(monkeypatch):
     np.testing.assert_allclose(x.grad.numpy(), ref.grad.numpy(), rtol=1e-12, atol=1e-15)
 
 
+def test_a_torch_iteration_reads_the_parameters_whole_and_writes_only_changed_values(monkeypatch):
+    """A forward and backward read each parameter array apart 27 times (``get_parameters`` three
+    times, ``set_parameters`` once; a wait for the device each on a GPU), and wrote every given
+    value, also one the array held. They are read whole now (``Model._read_parameters``), and
+    only a changed value is written; the gradient is the same."""
+    model = _cube()
+    rollout = Rollout(model, 2, 1.0e-3, frames=[2])
+    ref = torch.tensor([1.0e3], dtype=torch.float64, requires_grad=True)  # the material's mu
+    rollout_positions(rollout, {"mu": ref}).square().sum().backward()
+    fields = {id(getattr(model, name)): name for name in model.MATERIAL_FIELDS}
+    reads, writes = [], []
+    real_numpy, real_assign = wp.array.numpy, wp.array.assign
+
+    def numpy(a):
+        if id(a) in fields:
+            reads.append(fields[id(a)])
+        return real_numpy(a)
+
+    def assign(a, src):
+        if id(a) in fields:
+            writes.append(fields[id(a)])
+        return real_assign(a, src)
+
+    monkeypatch.setattr(wp.array, "numpy", numpy)
+    monkeypatch.setattr(wp.array, "assign", assign)
+    same = torch.tensor([1.0e3], dtype=torch.float64, requires_grad=True)
+    rollout_positions(rollout, {"mu": same, "yield_stress": torch.tensor([10.0], dtype=torch.float64)}).square().sum().backward()
+    assert reads == [] and writes == []
+    assert same.grad.item() == ref.grad.item()
+    rollout_positions(rollout, {"mu": torch.tensor([2.0e3], dtype=torch.float64, requires_grad=True)}).square().sum().backward()
+    assert reads == [] and writes == ["mu"]
+    assert rollout.get_parameters()["mu"].tolist() == [2.0e3]
+
+
 def test_torch_adam_drives_a_fit():
     """torch.optim.Adam on a RolloutModule (log-space parameter) recovers the flow rate from 2x."""
     steps, frames = 12, [4, 8, 12]

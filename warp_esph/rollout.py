@@ -371,6 +371,14 @@ class Rollout:
     def set_parameters(self, values: Mapping[str, object]):
         """Assign per-material parameter arrays (``{name: array of n_materials}``); the solver
         follows them at its next step (whether SPH runs, the stable ``dt``)."""
+        self._set_parameters(values)
+
+    def _set_parameters(self, values: Mapping[str, object], current: dict[str, np.ndarray] | None = None
+                        ) -> dict[str, np.ndarray]:
+        """``set_parameters``, given ``current`` (``get_parameters``' answer, as the arrays hold
+        now; default: read here); returns every parameter's values as the arrays then hold
+        them. An array whose values are unchanged is not written: the torch bridge sets every
+        value it is given at each forward, and restores the model's after a backward."""
         m = self.model
         if not isinstance(values, Mapping):
             raise ValueError(f"values = {checks.shorten(values)!r} is not allowed: must be a mapping "
@@ -404,15 +412,22 @@ class Rollout:
                 if why is not None:
                     raise ValueError(f"{name} = {one:g} (material {k}) is not allowed in {m.scalar.__name__}: {why}")
             new[name] = v.astype(m.types.np_dtype)
+        current = self.get_parameters() if current is None else current
+        after = {**current, **new}
         # Each material's checks, now that the values are given (a negative mu was refused
         # only at the next step, as "the model's parameter arrays").
-        rows = np.stack([new[f] if f in new else getattr(m, f).numpy() for f in m.MATERIAL_FIELDS])
-        m._check_parameter_values(rows, "values are not allowed")
+        m._check_parameter_values(np.stack([after[f] for f in m.MATERIAL_FIELDS]), "values are not allowed")
         for name, v in new.items():
-            getattr(m, name).assign(v)
+            if not np.array_equal(v, current[name]):
+                getattr(m, name).assign(v)
+        return after
 
     def get_parameters(self) -> dict[str, np.ndarray]:
-        return {name: getattr(self.model, name).numpy().copy() for name in PARAMETERS}
+        """The per-material parameter arrays' values, ``{name: array of n_materials}`` (copies),
+        read in one transfer (``Model._read_parameters``; one per array had each wait for the
+        device)."""
+        rows = self.model._read_parameters()
+        return {name: rows[k] for k, name in enumerate(self.model.MATERIAL_FIELDS)}
 
     def _load_initial(self, initial_state, given: Mapping[str, np.ndarray]):
         """``given``: the starts ``check_initial`` answered, by name."""
@@ -487,7 +502,7 @@ class Rollout:
     def _inputs(self) -> tuple:
         """What ``backward`` reads from the model besides the taped states: the parameter
         arrays, the materials and the tools' differentiable arrays."""
-        return (self.model._read_parameters().copy(), tuple(self.model.materials),
+        return (self.model._read_parameters(), tuple(self.model.materials),  # a copy already
                 {name: a.numpy().copy() for name, a in self._tool_arrays().items()})
 
     def _check_inputs_unchanged(self):

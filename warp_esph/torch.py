@@ -75,17 +75,18 @@ def _function():
             # In float64: the rollout checks the values as given before it casts them to the
             # model's precision (1e39 Pa cast to float32 here was refused as inf, 'not finite').
             given = {name: _numpy(v, np.float64) for name, v in zip(names, values)}
+            # One read of the arrays, and writes of the values that change only: the values it
+            # held were read again after the writes, and every given value written, changed or not.
             before = rollout.get_parameters()
-            rollout.set_parameters(given)
+            ctx.params = rollout._set_parameters(given, before)
             ctx.rollout = rollout
             ctx.names = names
-            ctx.params = rollout.get_parameters()
             ctx.starts = starts
             try:
                 out = rollout._forward_checked(starts)
             except BaseException:
                 # A forward that fails (a step's refusal) left the model running the new values.
-                rollout.set_parameters(before)
+                rollout._set_parameters(before, ctx.params)
                 raise
             ctx.forward_count = rollout.forward_count
             ctx.materials = tuple(rollout.model.materials)
@@ -115,7 +116,7 @@ def _function():
             current = rollout.get_parameters()
             changed = not all(np.array_equal(current[k], ctx.params[k]) for k in PARAMETERS)
             if changed:
-                rollout.set_parameters(ctx.params)
+                rollout._set_parameters(ctx.params, current)
             try:
                 redo = rollout.forward_count != ctx.forward_count
                 if not redo:
@@ -132,7 +133,7 @@ def _function():
                 if changed:
                     # The model keeps the values it held (a later forward's, or set_parameters'
                     # since): this forward's had replaced them without a word.
-                    rollout.set_parameters(current)
+                    rollout._set_parameters(current, ctx.params)
 
             def tensor(a):
                 return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=ctx.tensor_dtype, device=ctx.device)
