@@ -14,7 +14,8 @@ in the keyframes and velocities), then ``integrate`` does the symplectic Euler u
   path in the collider frame (start in the ``t0`` frame, end in the ``t1`` frame) enters it
   is stopped at the entry point (no tunnelling through a thin or fast tool); otherwise a
   particle found inside is moved to the nearest surface point (a plane, a half-space that
-  no path can cross, always so). The surface point's velocity
+  no path can cross, always so). Both put the particle ``CONTACT_MARGIN`` spacings outside
+  the surface (a plane: on it), so that the next step starts clear of it. The surface point's velocity
   over the step ``(T1(c) - T0(c)) / dt`` is the velocity the contact is measured against: the
   inward relative normal velocity is removed, and Coulomb friction acts on the relative
   tangential velocity (static coefficient: sticks while ``|v_t| <= mu_s |dv_n|``; else
@@ -426,26 +427,31 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             return 1, xl - d * nrm, nrm
         return 0, xl, nrm
 
+    # The inside tests of the swept shapes put a particle ``margin`` outside the nearest
+    # surface point, as their entry tests and the mesh's do: one put exactly on the surface
+    # started the next step there, where round-off alone chose between entering (put the
+    # margin outside) and inside (put back on the surface); a float64 loss jumped by up to
+    # 4e-5 under relative changes of lam below 1e-6 (docs/method.md §1).
     @wp.func
-    def shape_sphere_at(xl: vec3, a: vec3, r: scalar):
+    def shape_sphere_at(xl: vec3, a: vec3, r: scalar, margin: scalar):
         d = xl - a
         r2 = wp.dot(d, d)
         if r2 < r * r and r2 > ZERO:
             nl = d / wp.sqrt(r2)
-            return 1, a + r * nl, nl
+            return 1, a + (r + margin) * nl, nl
         return 0, xl, vec3()
 
     @wp.func
-    def shape_sphere(xl: vec3, param: vec3):
-        return shape_sphere_at(xl, vec3(), param[0])
+    def shape_sphere(xl: vec3, param: vec3, margin: scalar):
+        return shape_sphere_at(xl, vec3(), param[0], margin)
 
     @wp.func
-    def shape_capsule(xl: vec3, param: vec3):
+    def shape_capsule(xl: vec3, param: vec3, margin: scalar):
         y = wp.clamp(xl[1], -param[1], param[1])
-        return shape_sphere_at(xl, vec3(ZERO, y, ZERO), param[0])
+        return shape_sphere_at(xl, vec3(ZERO, y, ZERO), param[0], margin)
 
     @wp.func
-    def shape_box(xl: vec3, half: vec3):
+    def shape_box(xl: vec3, half: vec3, margin: scalar):
         gap = vec3(wp.abs(xl[0]) - half[0], wp.abs(xl[1]) - half[1], wp.abs(xl[2]) - half[2])
         if gap[0] < ZERO and gap[1] < ZERO and gap[2] < ZERO:
             axis = int(0)
@@ -458,7 +464,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             # differences).
             e = vec3(wp.where(axis == 0, ONE, ZERO), wp.where(axis == 1, ONE, ZERO), wp.where(axis == 2, ONE, ZERO))
             sgn = wp.where(xl[axis] < ZERO, scalar(-1.0), ONE)
-            return 1, xl + (sgn * half[axis] - xl[axis]) * e, sgn * e
+            return 1, xl + (sgn * (half[axis] + margin) - xl[axis]) * e, sgn * e
         return 0, xl, vec3()
 
     @wp.func
@@ -592,7 +598,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         return 0, xl, vec3()
 
     @wp.func
-    def shape_cylinder(xl: vec3, param: vec3):
+    def shape_cylinder(xl: vec3, param: vec3, margin: scalar):
         r = param[0]
         hh = param[1]
         rho2 = xl[0] * xl[0] + xl[2] * xl[2]
@@ -600,9 +606,9 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             rho = wp.sqrt(rho2)
             if r - rho < hh - wp.abs(xl[1]) and rho > ZERO:
                 nl = vec3(xl[0] / rho, ZERO, xl[2] / rho)
-                return 1, vec3(r * nl[0], xl[1], r * nl[2]), nl
+                return 1, vec3((r + margin) * nl[0], xl[1], (r + margin) * nl[2]), nl
             sgn = wp.where(xl[1] < ZERO, scalar(-1.0), ONE)
-            return 1, vec3(xl[0], sgn * hh, xl[2]), vec3(ZERO, sgn, ZERO)
+            return 1, vec3(xl[0], sgn * (hh + margin), xl[2]), vec3(ZERO, sgn, ZERO)
         return 0, xl, vec3()
 
     @wp.func
@@ -757,7 +763,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
                 xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
                 hit, xc, nl = wp.static(swept_test[c])(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
                 if hit == 0:
-                    hit, xc, nl = wp.static(inside_test[c])(xl, param[k])
+                    hit, xc, nl = wp.static(inside_test[c])(xl, param[k], margin)
                 x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
             for c in range(wp.static(counts[5])):
                 k = wp.static(offsets[5]) + c
