@@ -1277,7 +1277,7 @@ def test_fig8_with_plates_elastic_cube_recovers_and_plastic_cube_keeps_the_squee
     for b in model.bodies:
         s = slice(b.start, b.start + b.count)
         width[b.name] = (x[s].max(axis=0) - x[s].min(axis=0)) / (x0[s].max(axis=0) - x0[s].min(axis=0))
-    print({k: np.round(v, 3).tolist() for k, v in width.items()})  # measured: elastic 1.003, 1.013; plastic 0.876, 1.446
+    print({k: np.round(v, 3).tolist() for k, v in width.items()})  # measured: elastic 1.004, 1.016; plastic 0.877, 1.432
     # Squeezed 15 % in x and z for 0.3 s, then released.
     assert np.all(np.abs(width["elastic"] - 1.0) < 0.05)
     assert width["plastic"][0] < 0.92 and width["plastic"][2] < 0.92 and width["plastic"][1] > 1.1
