@@ -714,8 +714,8 @@ def bent():
 
 def test_three_point_bending_is_soft_at_4_across(bent):
     """Held 0.5 s with mass-proportional damping and ``Solver(hourglass=0.1)``, measured: mid-span
-    stiffness 0.724 x Timoshenko (0.629 x 48 E I / L^3) at 4 across (0.726 before the tools'
-    inside tests had the contact's margin, float64 then 0.725; 0.699 before F's round-off was
+    stiffness 0.724 x Timoshenko (0.629 x 48 E I / L^3) at 4 across (0.726 where docs/physics.md
+    measured it, float64 then 0.725; 0.699 before F's round-off was
     carried, docs/physics.md, "Three-point bending in float32"),
     0.848 x at 8 across (docs/validation.md, measured then): soft, as the linear fit's beams
     are at these thicknesses, approaching the theory with resolution."""
