@@ -51,16 +51,41 @@ def _loss(model, grad_of=None):
     grad = None
     if grad_of is not None:
         tape.backward(loss)
-        grad = getattr(model, grad_of).grad.numpy()[0]
+        if isinstance(grad_of, str):
+            grad = getattr(model, grad_of).grad.numpy()[0]
+        else:  # one backward pass fills every parameter's gradient
+            grad = {name: getattr(model, name).grad.numpy()[0] for name in grad_of}
     return loss.numpy()[0], grad, solver, states
 
 
+SCANNED = ("mu", "lam", "yield_stress", "flow_rate", "viscosity")
+
+
+@pytest.fixture(scope="module")
+def taped_base():
+    """``taped_base(key, model, loss)``: the taped run of ``model`` (a function making it at
+    ``PARAMS``) through ``loss`` and its one backward pass, made once per ``key`` for the
+    five parameters' tests of a scene: each test reads its parameter's gradient and asserts
+    the same of the run (the neighbour cuts, the flow, the final positions)."""
+    runs = {}
+
+    def get(key, model, loss):
+        if key not in runs:
+            _, grads, solver, states = loss(model(), grad_of=SCANNED)
+            runs[key] = {"grads": grads, "neighbors_cut": solver.guard_counts()["neighbors_cut"],
+                         "alpha_max": states[-1].alpha.numpy().max(), "x": states[-1].x.numpy()}
+        return runs[key]
+
+    return get
+
+
 @pytest.mark.parametrize("h_over_dx", [2.0, 2.5])
-@pytest.mark.parametrize("name", ["mu", "lam", "yield_stress", "flow_rate", "viscosity"])
-def test_loss_is_smooth_in_the_parameters(h_over_dx, name):
-    _, grad, solver, states = _loss(_model(h_over_dx), grad_of=name)
-    assert solver.guard_counts()["neighbors_cut"] == 0
-    assert states[-1].alpha.numpy().max() > 0.2, "the block flows"
+@pytest.mark.parametrize("name", SCANNED)
+def test_loss_is_smooth_in_the_parameters(h_over_dx, name, taped_base):
+    run = taped_base(("block", h_over_dx), lambda: _model(h_over_dx), _loss)
+    grad = run["grads"][name]
+    assert run["neighbors_cut"] == 0
+    assert run["alpha_max"] > 0.2, "the block flows"
     base = PARAMS[name]
     eps = 1e-4 * base
     fd = (_loss(_model(h_over_dx, {name: base + eps}))[0] - _loss(_model(h_over_dx, {name: base - eps}))[0]) / (2 * eps)
@@ -137,8 +162,8 @@ def _landing_loss(model, grad_of=None):
         STEPS = steps
 
 
-@pytest.mark.parametrize("name", ["mu", "lam", "yield_stress", "flow_rate", "viscosity"])
-def test_loss_is_smooth_through_ground_contact(name):
+@pytest.mark.parametrize("name", SCANNED)
+def test_loss_is_smooth_through_ground_contact(name, taped_base):
     """Central differences match the tape in a flowing block that lands on a rough ground:
     a touchdown step removes only a share of the inward normal velocity, smooth in how far
     past the surface the particle drifted (``colliders.touchdown_share``: one that barely
@@ -146,10 +171,11 @@ def test_loss_is_smooth_through_ground_contact(name):
     (``colliders.slip_speed``) and the plastic flow's volume factor is continuous in J.
     Measured before these changes: over +-1 % of viscosity, loss increments of -20 to 4
     times the tape's slope (see the next test)."""
-    _, grad, solver, states = _landing_loss(_landing_model(), grad_of=name)
-    assert solver.guard_counts()["neighbors_cut"] == 0
-    assert states[-1].alpha.numpy().max() > 0.2, "the block flows"
-    on_ground = (states[-1].x.numpy()[:, 1] < 1e-9).sum()
+    run = taped_base("landing", _landing_model, _landing_loss)
+    grad = run["grads"][name]
+    assert run["neighbors_cut"] == 0
+    assert run["alpha_max"] > 0.2, "the block flows"
+    on_ground = (run["x"][:, 1] < 1e-9).sum()
     assert on_ground > 50, "the block lies on the ground"
     base = PARAMS[name]
     eps = 1e-4 * base
@@ -158,8 +184,8 @@ def test_loss_is_smooth_through_ground_contact(name):
     assert grad == pytest.approx(fd, rel=1e-3)
 
 
-@pytest.mark.parametrize("name", ["mu", "lam", "yield_stress", "flow_rate", "viscosity"])
-def test_loss_is_smooth_through_the_imaged_ground(name):
+@pytest.mark.parametrize("name", SCANNED)
+def test_loss_is_smooth_through_the_imaged_ground(name, taped_base):
     """The same landing on the ground with floor images (``add_ground(images=True)``), whose
     bottom layer the images hold at the plane: central differences at a relative step of 1e-4
     match the tape within 1e-3 (measured: 0.99991-1.00000). Two jumps of the step were
@@ -175,10 +201,11 @@ def test_loss_is_smooth_through_the_imaged_ground(name):
       its particles' pair (``deformation.floor_image_moment``). Before: a jump of 0.39 times
       the slope times the step in the loss at -0.55e-4 of the viscosity, tape / difference
       0.981 at 1e-4."""
-    _, grad, solver, states = _landing_loss(_landing_model(images=True), grad_of=name)
-    assert solver.guard_counts()["neighbors_cut"] == 0
-    assert states[-1].alpha.numpy().max() > 0.2, "the block flows"
-    assert (states[-1].x.numpy()[:, 1] < 0.5 * DX).sum() > 50, "the block lies on the ground"
+    run = taped_base("imaged landing", lambda: _landing_model(images=True), _landing_loss)
+    grad = run["grads"][name]
+    assert run["neighbors_cut"] == 0
+    assert run["alpha_max"] > 0.2, "the block flows"
+    assert (run["x"][:, 1] < 0.5 * DX).sum() > 50, "the block lies on the ground"
     base = PARAMS[name]
     eps = 1e-4 * base
     fd = (_landing_loss(_landing_model({name: base + eps}, images=True))[0]
