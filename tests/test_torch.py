@@ -366,3 +366,16 @@ def test_tensors_given_to_the_numpy_side_are_read_or_refused_by_name():
             call(torch.tensor(target, requires_grad=True))
     with pytest.raises(ValueError, match=rf"^mu = .* {grad}"):
         rollout.set_parameters({"mu": torch.tensor([2.0e3], requires_grad=True)})
+    # One tensor per material in a list: numpy read each with torch's own RuntimeError.
+    with pytest.raises(ValueError, match=rf"^mu = .* {grad}"):
+        rollout.set_parameters({"mu": [torch.tensor(2.0e3, requires_grad=True)]})
+    rollout.set_parameters({"mu": [torch.tensor(2.0e3)]})
+    assert rollout.get_parameters()["mu"].tolist() == [2.0e3]
+    # No values to read: torch's 'Cannot copy out of meta tensor' and 'can't convert Sparse
+    # layout tensor to numpy' named no input.
+    for t, where in ((torch.empty(n, 3, device="meta"), r"on the meta device \(no values\)"),
+                     (torch.zeros(n, 3).to_sparse(), r"of layout torch\.sparse_coo")):
+        for name, call in (("x0", lambda t: rollout.forward(x0=t)), ("targets at step 1", lambda t: PositionLoss({1: t}))):
+            with pytest.raises(ValueError, match=rf"^{name} = .* is not allowed: it is a torch tensor {where}; give a "
+                                                 r"dense tensor with values"):
+                call(t)

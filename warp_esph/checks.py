@@ -136,16 +136,32 @@ def greater_than(name: str, value, bound: float, bound_text: str) -> float:
     return v
 
 
+def _is_tensor(value) -> bool:
+    return type(value).__module__.split(".")[0] == "torch" and callable(getattr(value, "detach", None))
+
+
 def host_values(name: str, value):
     """``value`` as numpy reads it: a torch tensor copied to the host (floating point in
-    float64), anything else unchanged. numpy read a tensor that requires a gradient, one on a
-    GPU or a bfloat16 one with torch's own error, naming no parameter; the first is refused
-    here instead, since reading its values cuts the gradient off without a word."""
-    if type(value).__module__.split(".")[0] != "torch" or not callable(getattr(value, "detach", None)):
+    float64), a list or tuple holding tensors as a list of such copies, anything else
+    unchanged. numpy read a tensor that requires a gradient, one on a GPU or a bfloat16 one
+    with torch's own error, naming no parameter; the first is refused here instead, since
+    reading its values cuts the gradient off without a word, and so is a tensor with no values
+    to read (on the meta device, or sparse)."""
+    if isinstance(value, (list, tuple)) and any(_is_tensor(v) for v in value):
+        # One tensor per material or frame: numpy's asarray of the list met each tensor with
+        # torch's own error ('Can't call numpy() on Tensor that requires grad').
+        return [host_values(name, v) for v in value]
+    if not _is_tensor(value):
         return value
     if value.requires_grad:
         _fail(name, value, "it is a torch tensor that requires grad, and reading its values would drop its gradient "
                            "(pass .detach(), or fit through torch with warp_esph.torch)")
+    if value.is_meta or str(value.layout) != "torch.strided":
+        # torch's 'Cannot copy out of meta tensor' and 'can't convert Sparse layout tensor'
+        # named no input (the torch bridge refuses these as well: warp_esph.torch).
+        where = "on the meta device (no values)" if value.is_meta else f"of layout {value.layout}"
+        _fail(name, value, f"it is a torch tensor {where}; give a dense tensor with values (.to_dense(), or made on a "
+                           "real device)")
     t = value.detach().cpu()
     return (t.double() if t.is_floating_point() else t).numpy()
 
