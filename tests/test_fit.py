@@ -871,6 +871,41 @@ def test_a_prestrained_start_that_recoils_is_no_divergence():
     assert result.params["mu"][0] == pytest.approx(1e4, rel=1e-6)
 
 
+def test_an_experiments_starts_are_checked_once_at_set_up(monkeypatch):
+    """Each evaluation ran ``Rollout.forward(**initial)``, which checked the given starts again
+    (x0's search for coincident particles, milliseconds at tens of thousands of particles, every
+    loss evaluation), and a refused start surfaced only at the first evaluation. Now each is
+    checked once, at set-up, and every evaluation (the fit's and its diagnostics') runs from the
+    values checked; the fit is the one it was."""
+    import warp_esph.fit as fit_module  # noqa: PLC0415
+    import warp_esph.rollout as rollout_module  # noqa: PLC0415
+
+    model = _block()
+    x = Rollout(model, 2, DT, frames=[2]).forward(alpha0=ALPHA0)
+    initial = {"x0": model.particle_x0.copy(), "alpha0": ALPHA0}
+    kw = dict(steps=2, dt=DT, frames=[2], iterations=3, progress=False)
+    want = fit(_block(), x * 1.001, ["mu"], initial=initial, diagnostics=False, **kw)
+    calls = []
+    real = rollout_module.check_initial
+
+    def counted(m, name, value):
+        calls.append(name)
+        return real(m, name, value)
+
+    monkeypatch.setattr(rollout_module, "check_initial", counted)
+    monkeypatch.setattr(fit_module, "check_initial", counted, raising=False)
+    got = fit(_block(), x * 1.001, ["mu"], initial=initial, diagnostics=True, **kw)
+    assert len(got.history) >= 3 and got.diagnostics is not None
+    assert calls == ["x0", "alpha0"]
+    assert got.params["mu"][0] == want.params["mu"][0] and got.loss == want.loss
+    # Refused at set-up: no rollout runs.
+    bad = model.particle_x0.copy()
+    bad[1] = bad[0]
+    monkeypatch.setattr(Rollout, "_forward_checked", lambda *a, **k: pytest.fail("a rollout ran"))
+    with pytest.raises(ValueError, match=r"^x0 is not allowed: 1 particles coincide with another \(first: particle 0"):
+        fit(_block(), x, ["mu"], initial={"x0": bad}, diagnostics=False, **kw)
+
+
 def test_bodies_a_fit_exempts_from_the_divergence_check():
     """A scene may show a body blowing up on purpose (``Scene.diverges``; Fig. 8's
     ``plastic_rest``): ``run`` and ``sweep`` leave it out of the divergence check, and a fit
@@ -948,7 +983,7 @@ def test_fit_options_that_meant_nothing_or_failed_late_are_refused_before_any_ro
     n = model.particle_count
     x = Rollout(model, STEPS, DT, frames=FRAMES).forward()
     runs = []
-    monkeypatch.setattr(Rollout, "forward", lambda self, *a, **k: runs.append(1))
+    monkeypatch.setattr(Rollout, "_forward_checked", lambda self, *a, **k: runs.append(1))  # forward's, and fit's
     cases = [
         (dict(tol=math.inf), r"tol = inf is not allowed: must be a finite number"),
         (dict(tol=float("nan")), r"tol = nan is not allowed: must be a finite number"),

@@ -286,7 +286,7 @@ def test_a_loss_sized_for_the_whole_model_or_another_model_is_refused_before_any
         raise AssertionError("the rollout ran")
 
     wrong = losses.PositionLoss(np.zeros((half, 3)), frames=[2])
-    monkeypatch.setattr(Rollout, "forward", no_rollout)
+    monkeypatch.setattr(Rollout, "_forward_checked", no_rollout)  # Rollout.forward's, and fit's
     with pytest.raises(ValueError, match=rf"^targets at step 2 has {half} points, the positions {n} particles$"):
         Rollout(model, 2, DT).value_and_grad(wrong)
     with pytest.raises(ValueError, match=rf"^positions with {half} particles are not allowed: the worlds have {n}$"):

@@ -52,7 +52,7 @@ from .builder import SceneBuilder
 from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, SumLoss, WorldLoss, is_tools_csv, read_tools_csv
 from .material import PRESSURE_BULK_SHARE, Material
 from .model import Model, check_material_precision
-from .rollout import PARAMETERS, Rollout
+from .rollout import PARAMETERS, Rollout, check_initial
 
 __all__ = ["fit", "FitResult", "Experiment", "Adam", "memory_estimate", "choose_checkpointing", "latin_hypercube",
            "load_target", "save_target", "Target", "write_fitted_usd"]
@@ -386,6 +386,11 @@ class _Run:
             # A TypeError out of Rollout.forward at the first evaluation, after the set-up.
             raise ValueError(f"initial[{unknown[0]!r}] is not allowed: the keys are {', '.join(INITIAL_KEYS)}")
         self.initial = dict(initial)
+        # Checked once, here: each evaluation ran Rollout.forward(**initial), which checked the
+        # starts again (x0's search for coincident particles, milliseconds at tens of thousands
+        # of particles, every evaluation), and a refused start surfaced only at the first one.
+        self.starts = {name: check_initial(self.model, name, value) for name, value in self.initial.items()
+                       if name != "initial_state" and value is not None}
         self.weight = checks.positive("weight", exp.weight)  # a negative weight would maximise its loss
         self.noise = None if exp.noise is None else checks.noise("noise", exp.noise)
         # In float64 whatever the model's precision, the materials' own values where the arrays
@@ -394,6 +399,18 @@ class _Run:
         self.rho = np.array([m.density for m in self.model.materials])
         # k_p = share K / rho0 of the tied materials (material.PRESSURE_BULK_SHARE)
         self.kp_share = np.array([PRESSURE_BULK_SHARE[m.pressure_force] for m in self.model.materials])
+
+    def forward(self) -> np.ndarray:
+        """The rollout from this experiment's starts (checked once, at set-up)."""
+        return self.rollout._forward_checked(self.starts, self.initial.get("initial_state"))
+
+    def value_and_grad(self, loss) -> tuple[float, dict[str, np.ndarray]]:
+        """``Rollout.value_and_grad(loss, **initial)`` from the starts checked at set-up."""
+        check = getattr(loss, "check_positions", None)
+        if check is not None:
+            check(self.model.particle_count)
+        self.forward()
+        return self.rollout.backward(loss)
 
     def setup_tie(self, params, tie_pressure):
         m = self.model.materials
@@ -597,7 +614,7 @@ class _Problem:
         for k, r in enumerate(self.runs):
             loss = r.loss if losses is None else losses[k]
             w = r.weight if losses is None else 1.0
-            value, grads = r.rollout.value_and_grad(loss, **r.initial)
+            value, grads = r.value_and_grad(loss)
             if losses is None:  # the fit's own evaluations (the diagnostics' read the fitted point's neighbourhood)
                 _check_diverged(r)
             total += w * float(value)
@@ -609,7 +626,7 @@ class _Problem:
         self.apply(z)
         total = 0.0
         for r in self.runs:
-            r.rollout.forward(**r.initial)
+            r.forward()
             _check_diverged(r)
             total += r.weight * r.loss.value(r.rollout.observations())
         return total
@@ -779,7 +796,9 @@ def fit(
     - ``checkpoint_every``: segment length for checkpointed rollouts; ``"auto"``: a full
       tape when it fits in ``memory_limit`` bytes, else the longest segment that fits
       (``choose_checkpointing``).
-    - ``initial``: ``Rollout.forward`` keywords (``x0, v0, F0, alpha0, initial_state``).
+    - ``initial``: ``Rollout.forward`` keywords (``x0, v0, F0, alpha0, initial_state``),
+      checked once at set-up (``rollout.check_initial``; a refused start before any rollout);
+      every evaluation starts from the values checked.
     - ``optimizer``: ``"adam"`` (default; ``lr``, ``lr_end``, ``clip``), ``"gauss-newton"``
       (Levenberg-Marquardt on the losses' residual vectors from forward runs only, the
       Jacobian by forward differences of ``GN_STEP``: for least-squares losses with few
@@ -978,7 +997,7 @@ def fit(
             try:
                 prob.apply(z)
                 for r in prob.runs:
-                    r.rollout.forward(**r.initial)
+                    r.forward()
                     _check_diverged(r)
                     arrays = r.rollout.observations(numpy=True)
                     terms = r.loss.terms if isinstance(r.loss, SumLoss) else [(1.0, r.loss)]
@@ -1231,7 +1250,7 @@ class _WorldsProblem:
         try:
             for r in self.runs:
                 r.apply({name: np.concatenate([self.p[w][name] for w in range(W)]) for name in prob.params})
-                _, grads = r.rollout.value_and_grad(r.loss)
+                _, grads = r.value_and_grad(r.loss)
                 for w in range(W):  # a world that blew up fails its start alone
                     why = _divergence(r.model, r.rollout, r.checked & (r.model.world_of_particle == w))
                     if why is not None and w not in refused:
