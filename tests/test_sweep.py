@@ -280,7 +280,8 @@ def test_cli_solver_options_override_the_scene_files(scene_file, tmp_path, capsy
     (["--param", "yield_stress=10:100:log:2", "--sample", "grid", "--seed", "0"], ["--seed = 0 is not allowed with --sample grid"]),
     # Every sample failed alone at a frame of millions of steps, exit 3.
     (["--param", "mu=1e3:1e5:log:3", "--fps", "1e-4", "--frames", "1"],
-     ["--fps = 0.0001 is not allowed for this sweep: no sample can run at its own stable step (sample 0, mu = 1000: the stable step"]),
+     ["--fps = 0.0001 is not allowed for this sweep: no sample can run at its own stable step (sample 0, mu = 1000: a frame "
+      "(1/fps = 10000 s) would take 4.79e+06 steps of the stable step 0.00209 s, more than 1e+06"]),
     (["--param", "crust.yield_stress=10:100:log:2"], ["crust.yield_stress", "'crust'", "paste"]),
     (["--param", "yield_stress=10:100:log:2", "--param", "paste.yield_stress=1:2:lin:2"], ["paste.yield_stress", "already"]),
     (["--param", "yield_stress=10:100:log:2", "--workers", "0"], ["--workers", "0"]),
@@ -312,11 +313,12 @@ def test_a_sweep_no_sample_of_which_can_step_at_its_fps_is_refused_before_the_fi
     failures (the CLI: exit 3). Now it is refused once, before any sample, by the option's
     name; a sweep one of whose samples can run still runs (the others are its rows). The advice
     is the sweep's own options: a run's 'give dt or substeps' and 'a larger dt' named a
-    substeps it lacks and a dt that would blow its samples up. The --frames refusal gives the
-    sample's reason without its 'frames = ... is not allowed', which said the refusal twice."""
+    substeps it lacks and a dt that would blow its samples up. The --fps and --frames refusals
+    give the sample's reason without its own 'the stable step ... is not allowed' or 'frames =
+    ... is not allowed', which said the refusal twice."""
     with pytest.raises(ValueError, match=r"^--fps = 0\.01 is not allowed for this sweep: no sample can run at its own stable "
-                                         r"step \(sample 0, mu = 1e\+09: the stable step 4\.5e-06 s is not allowed: a frame "
-                                         r"\(1/fps = 100 s\) would take 2\.2\d*e\+07 steps, more than 1e\+06; the stiffest "
+                                         r"step \(sample 0, mu = 1e\+09: a frame \(1/fps = 100 s\) would take 2\.2\d*e\+07 "
+                                         r"steps of the stable step 4\.5e-06 s, more than 1e\+06; the stiffest "
                                          r"material \(p-wave speed \S+ m/s\) or the most viscous one needs it\); give a higher "
                                          r"--fps, a smaller --scale \(a larger spacing, whose stable step is longer\), or softer "
                                          r"or less viscous materials or swept values$"):

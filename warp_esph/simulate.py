@@ -43,8 +43,8 @@ class StepRefusal(ValueError):
     """A refused time step or step count (``resolve_timestep``, ``check_step_count``): its
     message is ``reason`` and then the advice of a run; ``reason`` lets a caller with other
     options (a sweep) give its own advice instead. ``detail``: the reason without the refused
-    value's name ('frames = ... is not allowed: '), for a caller that refuses its own option
-    by name (default: ``reason``)."""
+    value's name ('frames = ... is not allowed: ', 'the stable step ... is not allowed: '), for
+    a caller that refuses its own option by name (default: ``reason``)."""
 
     def __init__(self, reason: str, advice: str = "", detail: str | None = None):
         super().__init__(reason + advice)
@@ -281,10 +281,12 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
         ratio = frame_dt / stable * (1.0 - 1e-12)
         if not ratio <= MAX_STEPS_PER_FRAME:
             stiff = max(model.materials, key=lambda m: m.p_wave_speed)
+            needs = (f"more than {MAX_STEPS_PER_FRAME:.0e}; the stiffest material (p-wave speed {stiff.p_wave_speed:.3g} "
+                     f"m/s) or the most viscous one needs it")
             raise StepRefusal(
                 f"the stable step {stable:.3g} s is not allowed: a frame (1/fps = {frame_dt:.6g} s) would take {ratio:.3g} steps, "
-                f"more than {MAX_STEPS_PER_FRAME:.0e}; the stiffest material (p-wave speed {stiff.p_wave_speed:.3g} m/s) "
-                f"or the most viscous one needs it", ": use softer materials, a larger spacing, or give dt or substeps"
+                f"{needs}", ": use softer materials, a larger spacing, or give dt or substeps",
+                detail=f"a frame (1/fps = {frame_dt:.6g} s) would take {ratio:.3g} steps of the stable step {stable:.3g} s, {needs}"
             )
         n = max(1, math.ceil(ratio))
         return n, frame_dt / n

@@ -955,7 +955,9 @@ def _check_some_sample_steps(model, assignments, points, frames, fps, rate, leng
         try:
             substeps, _ = resolve_timestep(model, fps)
         except StepRefusal as e:
-            first = first or (k, values, e.reason, rate,
+            # Its detail, as below: its reason's 'the stable step ... is not allowed' inside the
+            # sweep's own '--fps = ... is not allowed for this sweep' said the refusal twice.
+            first = first or (k, values, e.detail, rate,
                               f"give a higher --fps, {coarser}, or softer or less viscous materials or swept values")
             continue
         try:
