@@ -371,6 +371,16 @@ def test_tensors_given_to_the_numpy_side_are_read_or_refused_by_name():
         rollout.set_parameters({"mu": [torch.tensor(2.0e3, requires_grad=True)]})
     rollout.set_parameters({"mu": [torch.tensor(2.0e3)]})
     assert rollout.get_parameters()["mu"].tolist() == [2.0e3]
+    # A lazily negated view (its negative bit set): numpy() refused it with torch's own error.
+    z = torch.tensor([1.0 - 3.0e3j], dtype=torch.complex128).conj()
+    rollout.set_parameters({"mu": z.imag})
+    assert z.imag.is_neg() and rollout.get_parameters()["mu"].tolist() == [3.0e3]
+    with pytest.raises(ValueError, match=r"^mu = .* is not allowed: must be numbers, one per material$"):
+        rollout.set_parameters({"mu": z})  # a conjugated complex one: complex, refused as such
+    v = torch.full((n, 3), 0.1j, dtype=torch.complex128).conj().imag  # -0.1 m/s each, its negative bit set
+    assert v.is_neg()
+    np.testing.assert_array_equal(rollout_positions(rollout, {"mu": z.imag}, v0=v).numpy(),
+                                  rollout_positions(rollout, {"mu": z.imag.resolve_neg()}, v0=v.resolve_neg()).numpy())
     # No values to read: torch's 'Cannot copy out of meta tensor' and 'can't convert Sparse
     # layout tensor to numpy' named no input.
     for t, where in ((torch.empty(n, 3, device="meta"), r"on the meta device \(no values\)"),

@@ -162,7 +162,9 @@ def host_values(name: str, value):
         where = "on the meta device (no values)" if value.is_meta else f"of layout {value.layout}"
         _fail(name, value, f"it is a torch tensor {where}; give a dense tensor with values (.to_dense(), or made on a "
                            "real device)")
-    t = value.detach().cpu()
+    # A lazy negation or conjugation (x.conj().imag is a float64 tensor with its negative bit
+    # set) is made real first: numpy() refused it with torch's own error.
+    t = value.detach().cpu().resolve_conj().resolve_neg()
     return (t.double() if t.is_floating_point() else t).numpy()
 
 

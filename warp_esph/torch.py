@@ -63,7 +63,8 @@ def _function():
 
     def _numpy(t, dtype):
         # Through float64: numpy has no bfloat16, and float16 would round the values first.
-        return t.detach().to(device="cpu", dtype=torch.float64).numpy().astype(dtype, copy=True)
+        # resolve_neg: numpy() refused a lazily negated view (x.conj().imag) with torch's error.
+        return t.detach().to(device="cpu", dtype=torch.float64).resolve_neg().numpy().astype(dtype, copy=True)
 
     class RolloutFunction(torch.autograd.Function):
         """``(rollout, names, starts, x0, v0, *values) -> positions (frames, n, 3)``; ``starts``:
@@ -219,7 +220,7 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
         # x0 with every particle at one point (which SceneBuilder refuses) returned the start
         # moved only by gravity; a NaN ran to NaN positions. Its answer, in the model's precision,
         # is what the forward (and a backward's re-run of it) starts from, not checked again.
-        host = given.detach().to(device="cpu", dtype=torch.float64).numpy()  # numpy has no bfloat16
+        host = given.detach().to(device="cpu", dtype=torch.float64).resolve_neg().numpy()  # numpy has no bfloat16
         checked[label] = check_initial(rollout.model, label, host)
         if np.shares_memory(checked[label], host):
             # A CPU float64 tensor's own memory: changed in place after the forward, it would
