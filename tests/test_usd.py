@@ -356,9 +356,11 @@ def test_a_float64_run_reads_back_to_the_last_bit(tmp_path, dtype):
     float32 (2e-9 m, measured), and a fit to that run's USD compared its float64 rollout
     with them. A float64 run also writes its own values (``warp_esph:points_float64``,
     ``velocities_float64``), which ``UsdFrames.arrays`` (fit targets, export) reads back
-    bit for bit; a float32 run's file is as before."""
+    bit for bit; its alpha and singular values primvars are double (they were float32, and
+    the export wrote them so); a float32 run's file is as before."""
     import warp as wp  # noqa: PLC0415
 
+    from warp_esph.export import frame_arrays_to_mesh  # noqa: PLC0415
     from warp_esph.render import UsdFrames  # noqa: PLC0415
 
     b = SceneBuilder(spacing=0.02)
@@ -369,13 +371,26 @@ def test_a_float64_run_reads_back_to_the_last_bit(tmp_path, dtype):
     kept = {}
     with UsdWriter(path, m, fps=50.0) as w:
         simulate(m, 3, fps=50.0, writer=w, progress=False,
-                 callback=lambda frame, s: kept.update({frame: (s.x.numpy().copy(), s.v.numpy().copy())}))
+                 callback=lambda frame, s: kept.update({frame: (s.x.numpy().copy(), s.v.numpy().copy(),
+                                                                s.alpha.numpy().copy(), s.F.numpy().copy())}))
     data = UsdFrames(str(path))
-    for frame, (x, v) in kept.items():
+    rounded = []
+    for frame, (x, v, alpha, F) in kept.items():
         a = data.arrays(frame)
         assert a["points"].dtype == x.dtype and a["velocities"].dtype == v.dtype
         np.testing.assert_array_equal(a["points"], x)
         np.testing.assert_array_equal(a["velocities"], v)
+        # alpha and the singular values too (they were float32 primvars in a float64 run), and
+        # the exported frame keeps them so.
+        assert a["alpha"].dtype == a["singular_values"].dtype == x.dtype
+        np.testing.assert_array_equal(a["alpha"], alpha)
+        np.testing.assert_array_equal(a["singular_values"],
+                                      np.linalg.svd(F.astype(np.float64), compute_uv=False).astype(x.dtype))
+        mesh = frame_arrays_to_mesh(a, "vtu")
+        assert mesh.point_data["alpha"].dtype == mesh.point_data["singular_values"].dtype == x.dtype
+        rounded.append((a["singular_values"] != a["singular_values"].astype(np.float32)).any())
+    # A float64 run's singular values differ from their float32 rounding: the comparison sees it.
+    assert any(rounded) == (dtype == "float64")
     stage = open_fresh(path)
     prim = stage.GetPrimAtPath("/World/" + m.bodies[0].name)
     assert bool(prim.GetAttribute("warp_esph:points_float64")) == (dtype == "float64")

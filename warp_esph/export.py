@@ -18,6 +18,8 @@ PLY has no vector properties: there ``velocity`` and ``singular_values`` become
 ``velocity_x``/``_y``/``_z`` and ``singular_values_0``/``_1``/``_2``. For ``.vtu`` a
 ``frames.pvd`` collection beside the frames gives ParaView the time of each one (open it
 instead of the single files). File names: ``frame_00012.vtu`` (the frame index).
+Points are float64; velocity, alpha and singular_values are float64 from a float64 run's
+file (``--dtype float64``, to the last bit), float32 from a float32 run's.
 """
 
 from __future__ import annotations
@@ -46,6 +48,11 @@ class ExportWriteError(OutputWriteError):
                          f"frames are written whole in {folder}{listed})", cause)
 
 
+def _real(values) -> np.ndarray:
+    a = np.asarray(values)
+    return a if a.dtype == np.float64 else a.astype(np.float32)
+
+
 def frame_arrays_to_mesh(arrays: dict, fmt: str):
     """A ``meshio.Mesh`` of one frame's particle arrays (``UsdFrames.arrays``)."""
     import meshio  # noqa: PLC0415
@@ -54,8 +61,9 @@ def frame_arrays_to_mesh(arrays: dict, fmt: str):
     n = len(pts)
     data = {
         "velocity": np.asarray(arrays["velocities"]),  # float64 where a float64 run wrote it
-        "alpha": np.asarray(arrays["alpha"], dtype=np.float32),
-        "singular_values": np.asarray(arrays["singular_values"], dtype=np.float32),
+        # As written: float64 where a float64 run wrote them, else float32.
+        "alpha": _real(arrays["alpha"]),
+        "singular_values": _real(arrays["singular_values"]),
         "body_id": np.asarray(arrays["body"], dtype=np.int32),
         "material_id": np.asarray(arrays["material_id"], dtype=np.int32),
     }

@@ -8,8 +8,8 @@ Layout of the written stage (Y up, metres, time code = frame index)::
     /World                      Xform, the default prim
     /World/<body>               Points: points, velocities, widths, extent (time-sampled);
                                 primvars singular_values (float3, vertex), alpha (float,
-                                vertex) per frame; material_id (int, constant) and
-                                displayColor (constant) once
+                                vertex) per frame, double3 and double in a float64 run;
+                                material_id (int, constant) and displayColor (constant) once
     /World/Colliders/plane_<k>  Mesh: a large quad on the plane (solid below it)
     /World/Colliders/sphere_<k> Sphere
     /World/Colliders/box_<k>    Cube scaled to the box's half extents
@@ -180,13 +180,26 @@ def surface_prim_path(body_prim: str) -> str:
 
 
 def _singular_values(F: np.ndarray) -> np.ndarray:
-    """Singular values (descending) of each 3x3 matrix in ``F`` (N, 3, 3)."""
+    """Singular values (descending) of each 3x3 matrix in ``F`` (N, 3, 3), in ``F``'s
+    precision (float32 or float64)."""
     F64 = np.asarray(F, dtype=np.float64)
     finite = np.isfinite(F64).all(axis=(1, 2))
     out = np.full((len(F64), 3), np.nan)
     if finite.any():
         out[finite] = np.linalg.svd(F64[finite], compute_uv=False)
-    return out.astype(np.float32)
+    return out.astype(np.float64 if np.asarray(F).dtype == np.float64 else np.float32)
+
+
+def _set_primvar(attr, values: np.ndarray, t) -> None:
+    """Set a per-particle primvar at ``t`` in the precision the attribute was authored in:
+    a file appended to keeps the type its first run gave it (a float64 run resumed into a
+    file from before the double primvars, or a model of the other precision), where USD
+    would refuse a value of the other type."""
+    double = attr.GetTypeName() in (Sdf.ValueTypeNames.DoubleArray, Sdf.ValueTypeNames.Double3Array)
+    values = np.ascontiguousarray(values, dtype=np.float64 if double else np.float32)
+    vec = values.ndim == 2
+    cls = (Vt.Vec3dArray if vec else Vt.DoubleArray) if double else (Vt.Vec3fArray if vec else Vt.FloatArray)
+    attr.Set(cls.FromNumpy(values), t)
 
 
 class UsdWriter:
@@ -386,8 +399,13 @@ class UsdWriter:
             pts.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
             pts.CreateExtentAttr()
             pv = UsdGeom.PrimvarsAPI(prim)
-            pv.CreatePrimvar(_SINGULAR_VALUES, Sdf.ValueTypeNames.Float3Array, UsdGeom.Tokens.vertex)
-            pv.CreatePrimvar(_ALPHA, Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex)
+            # In the run's precision: a float64 run's alpha and singular values were rounded to
+            # float32 here while its points and velocities were kept to the last bit.
+            doubles = m.scalar.__name__ == "float64"
+            pv.CreatePrimvar(_SINGULAR_VALUES, Sdf.ValueTypeNames.Double3Array if doubles else Sdf.ValueTypeNames.Float3Array,
+                             UsdGeom.Tokens.vertex)
+            pv.CreatePrimvar(_ALPHA, Sdf.ValueTypeNames.DoubleArray if doubles else Sdf.ValueTypeNames.FloatArray,
+                             UsdGeom.Tokens.vertex)
             pv.CreatePrimvar(_MATERIAL_ID, Sdf.ValueTypeNames.Int, UsdGeom.Tokens.constant).Set(int(body.material))
             color = _PALETTE[body.material % len(_PALETTE)]
             pts.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(Vt.Vec3fArray([Gf.Vec3f(*color)]))
@@ -524,7 +542,7 @@ class UsdWriter:
                              f"({int(bad.sum())} particles); frame {frame} is not written")
         sv = _singular_values(state.F.numpy())
         alpha = state.alpha.numpy()
-        x32, v32, a32 = x.astype(np.float32), v.astype(np.float32), alpha.astype(np.float32)
+        x32, v32 = x.astype(np.float32), v.astype(np.float32)
         doubles = x.dtype == np.float64
 
         if self._truncate_pending:
@@ -550,8 +568,8 @@ class UsdWriter:
                 Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(v32[s])),
                 widths,
                 Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]),
-                Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(sv[s])),
-                Vt.FloatArray.FromNumpy(np.ascontiguousarray(a32[s])),
+                sv[s],
+                alpha[s],
                 (Vt.Vec3dArray.FromNumpy(np.ascontiguousarray(x[s])), Vt.Vec3dArray.FromNumpy(np.ascontiguousarray(v[s])))
                 if doubles else None,
             ))
@@ -573,8 +591,8 @@ class UsdWriter:
                 geom.GetVelocitiesAttr().Set(vel, t)
                 geom.GetWidthsAttr().Set(wid, t)
                 geom.GetExtentAttr().Set(ext, t)
-                prim.GetAttribute(_PRIMVAR_SINGULAR_VALUES).Set(svals, t)
-                prim.GetAttribute(_PRIMVAR_ALPHA).Set(alph, t)
+                _set_primvar(prim.GetAttribute(_PRIMVAR_SINGULAR_VALUES), svals, t)
+                _set_primvar(prim.GetAttribute(_PRIMVAR_ALPHA), alph, t)
                 if exact is not None:
                     for key, value in zip((_POINTS64, _VELOCITIES64), exact):
                         attr = prim.GetAttribute(key) or prim.CreateAttribute(key, Sdf.ValueTypeNames.Double3Array)
@@ -1091,7 +1109,8 @@ class UsdFrames:
         """Every particle at ``frame``: points, velocities, widths, alpha, singular_values
         (N, 3), body (index into ``bodies``) and material_id. Points, velocities and widths are
         in metres and world coordinates (``to_world``; a run's file is read as written, float64
-        where a float64 run wrote them, to the last bit, else float32); velocities under a
+        where a float64 run wrote them, to the last bit, else float32; alpha and
+        singular_values likewise); velocities under a
         time-sampled transform carry its motion too (``_placement_rate``). A body without a
         sample at ``frame`` (``has_sample``) is left out of it."""
         t = Usd.TimeCode(float(frame))
@@ -1108,11 +1127,13 @@ class UsdFrames:
                 continue
             n = len(p)
 
-            def get(attr, shape, fill):
+            def get(attr, shape, fill, keep_doubles=False):
                 value = attr.Get(t) if attr else None
                 if value is None or len(value) != n:
                     return np.full(shape, fill, dtype=np.float32)
-                return np.asarray(value, dtype=np.float32).reshape(shape)
+                # A float64 run's primvars are double: read as written, not rounded.
+                double = keep_doubles and attr.GetTypeName() in (Sdf.ValueTypeNames.DoubleArray, Sdf.ValueTypeNames.Double3Array)
+                return np.asarray(value, dtype=np.float64 if double else np.float32).reshape(shape)
 
             # Only a sample at this very frame: Get(t) answers with the nearest one, and a file a
             # float64 run began before these attributes existed (then resumed) has them only
@@ -1144,8 +1165,8 @@ class UsdFrames:
                     cols["velocities"][-1] += local @ rate[0] + rate[1]
                 widths = (widths * abs(np.linalg.det(A)) ** (1.0 / 3.0)).astype(np.float32)
             cols["widths"].append(widths)
-            cols["alpha"].append(get(prim.GetAttribute(_PRIMVAR_ALPHA), (n,), 0.0))
-            cols["singular_values"].append(get(prim.GetAttribute(_PRIMVAR_SINGULAR_VALUES), (n, 3), 1.0))
+            cols["alpha"].append(get(prim.GetAttribute(_PRIMVAR_ALPHA), (n,), 0.0, keep_doubles=True))
+            cols["singular_values"].append(get(prim.GetAttribute(_PRIMVAR_SINGULAR_VALUES), (n, 3), 1.0, keep_doubles=True))
             cols["body"].append(np.full(n, k, np.int32))
             cols["material_id"].append(np.full(n, self.material_ids[k], np.int32))
         if cols["points"] and not np.isfinite(np.concatenate(cols["points"])).all(axis=1).any():
