@@ -389,3 +389,34 @@ def test_tensors_given_to_the_numpy_side_are_read_or_refused_by_name():
             with pytest.raises(ValueError, match=rf"^{name} = .* is not allowed: it is a torch tensor {where}; give a "
                                                  r"dense tensor with values"):
                 call(t)
+
+
+def test_a_tensor_that_requires_grad_is_refused_by_name_at_the_other_numpy_entry_points(tmp_path):
+    """The savers, the fit's target, a loss's particle mask and the slump and force losses'
+    inputs read their arrays with numpy: a tensor that requires grad failed there with
+    torch's own RuntimeError ("Can't call numpy() on Tensor that requires grad"), naming no
+    parameter. Each now refuses it by the parameter's name, as the rollout's inputs do."""
+    from warp_esph.fit import _target_loss, save_target  # noqa: PLC0415
+    from warp_esph.losses import PositionLoss, ReactionForceLoss, SlumpLoss  # noqa: PLC0415
+    from warp_esph.meshes import write_mesh  # noqa: PLC0415
+
+    def t(shape):
+        return torch.zeros(shape, dtype=torch.float64, requires_grad=True)
+
+    grad = "is not allowed: it is a torch tensor that requires grad, and reading its values would drop its gradient"
+    calls = {
+        "positions": lambda: save_target(tmp_path / "t.npz", t((1, 4, 3)), [0]),
+        "points": lambda: write_mesh(tmp_path / "m.obj", t((3, 3)), np.array([[0, 1, 2]])),
+        "target": lambda: _target_loss(t((4, 3)), [1]),
+        "particles": lambda: PositionLoss(np.zeros((2, 3)), frames=[1], particles=t(2)),
+        "center": lambda: SlumpLoss(0.1, None, 3, 0.02, center=t(2)),
+        "positions at step 1": lambda: SlumpLoss(0.1, None, 1, 0.02).value_and_grad({1: t((4, 3))}),
+        "targets": lambda: ReactionForceLoss(t(2), "tool", steps=[5, 10], window=2, components="y"),
+    }
+    for name, call in calls.items():
+        with pytest.raises(ValueError, match=rf"^{name} = tensor\(.* {grad}"):
+            call()
+    assert not (tmp_path / "t.npz").exists() and not (tmp_path / "m.obj").exists()
+    # Without requires grad the same tensors are read as numpy (a detached target is saved).
+    save_target(tmp_path / "t.npz", t((1, 4, 3)).detach() + 1.0, [0])
+    np.testing.assert_array_equal(np.load(tmp_path / "t.npz")["positions"], np.ones((1, 4, 3)))

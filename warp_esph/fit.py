@@ -254,7 +254,7 @@ def _target_loss(target, frames) -> Loss:
         raise ValueError("target is a file: load it with load_target(path).loss(model, ...) first (or use 'warp-esph fit')")
     if isinstance(target, Mapping):
         return PositionLoss(target)
-    a = np.asarray(target, dtype=np.float64)
+    a = np.asarray(checks.host_values("target", target), dtype=np.float64)
     if frames is None:
         raise ValueError("frames is required with target positions: the step index of each target frame")
     return PositionLoss(a, frames=frames)
@@ -1713,7 +1713,7 @@ _CLOUD_TEXT = (".xyz", ".txt", ".csv", ".pts")
 
 def save_target(path, positions, frames: Sequence[int], fps: float | None = None):
     """Write target positions ``(K, n, 3)`` of rendered ``frames`` to ``.npz`` (or ``.npy``)."""
-    positions = np.asarray(positions, dtype=np.float64)
+    positions = np.asarray(checks.host_values("positions", positions), dtype=np.float64)
     if positions.ndim == 2:
         positions = positions[None]
     frames = [int(f) for f in frames]

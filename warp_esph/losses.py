@@ -315,7 +315,7 @@ class Loss:
         self.weight = checks.positive("weight", weight)
         self._mask_size = None
         if particles is not None:
-            idx = np.asarray(particles)
+            idx = np.asarray(checks.host_values("particles", particles))
             if idx.dtype == bool:
                 self._mask_size = idx.size  # checked against the positions (a wrong length blamed the targets)
                 idx = np.flatnonzero(idx)
@@ -1119,6 +1119,7 @@ class ReactionForceLoss(Loss):
             raise ValueError(f"components = {components!r} is not allowed: give distinct axes among x, y, z (e.g. 'y')")
         self.components = comps
         self._axes = [_AXES[c] for c in comps]
+        targets = checks.host_values("targets", targets)
         try:
             t = np.asarray(targets, dtype=np.float64)
         except (TypeError, ValueError):
@@ -1352,6 +1353,7 @@ class SlumpLoss(Loss):
         self.spread = None if spread is None else checks.positive("spread", spread)
         self.spacing = checks.positive("spacing", spacing)
         self.floor = checks.number("floor", floor)
+        center = checks.host_values("center", center)
         try:
             c = np.asarray(center, dtype=np.float64).ravel()
         except (TypeError, ValueError):  # numpy's "could not convert string to float" named no parameter
@@ -1369,7 +1371,7 @@ class SlumpLoss(Loss):
 
     def _x(self, positions) -> np.ndarray:
         x = positions[self.frames[0]]
-        x = x.numpy() if isinstance(x, wp.array) else np.asarray(x)
+        x = x.numpy() if isinstance(x, wp.array) else np.asarray(checks.host_values(f"positions at step {self.frames[0]}", x))
         x = np.asarray(x, dtype=np.float64)
         if self.particles is None:
             return x

@@ -528,6 +528,7 @@ def write_mesh(path, points, triangles) -> None:
     """Writes a triangle mesh with meshio (format from the extension)."""
     import meshio  # noqa: PLC0415
 
+    points, triangles = checks.host_values("points", points), checks.host_values("triangles", triangles)
     meshio.write_points_cells(
         os.fspath(path), np.asarray(points, dtype=np.float64), [("triangle", np.asarray(triangles, dtype=np.int64))]
     )
