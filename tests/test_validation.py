@@ -69,8 +69,11 @@ def test_material_accepts_inf_yield_and_converts_young():
         (lambda: we.SceneBuilder().add_box_collider((0, 0, 0), (1, 0, 1)), r"half_extents = \(1, 0, 1\) .* > 0"),
         (lambda: we.SceneBuilder().add_plane((0, 0, 0), 0.0), r"normal = \(0, 0, 0\) .* non-zero"),
         (lambda: we.SceneBuilder().finalize(), r"the scene has no bodies"),
-        (lambda: _one_box().finalize(dtype="float16"), r"dtype = 'float16' .* wp\.float32 or wp\.float64"),
+        (lambda: _one_box().finalize(dtype="float16"), r"dtype = 'float16' is not allowed: use wp\.float32 or wp\.float64 \(or 'float32'/'float64', numpy's float32/float64 or 'f4'/'f8'\)$"),
+        (lambda: _one_box().finalize(dtype="f2"), r"dtype = 'f2' is not allowed: use wp\.float32 or wp\.float64"),
+        (lambda: _one_box().finalize(dtype=None), r"dtype = None is not allowed: use wp\.float32 or wp\.float64"),
         (lambda: _one_box().finalize(dtype=float), r"dtype = float is not allowed: Warp reads it as float32, numpy as float64"),
+        (lambda: _one_box().finalize(dtype="float"), r"dtype = 'float' is not allowed: Warp reads it as float32, numpy as float64"),
         (lambda: _one_box().finalize(device="tpu"), r"device = 'tpu' is not allowed"),
         (lambda: _one_box(name="a").add_box((1, 0, 0), (0.1, 0.1, 0.1), DOUGH, name="a"), r"name = 'a' .* exists already"),
         (lambda: we.SceneBuilder().add_particles(np.zeros((4, 2)), DOUGH), r"positions with shape \(4, 2\) .* \(N, 3\)"),
@@ -84,11 +87,14 @@ def test_builder_rejects(call, match):
 
 
 @pytest.mark.parametrize("dtype, scalar", [(np.dtype("float64"), wp.float64), (np.dtype("float32"), wp.float32),
-                                           (np.float64, wp.float64), ("float64", wp.float64)])
+                                           (np.float64, wp.float64), ("float64", wp.float64), ("float32", wp.float32),
+                                           ("f8", wp.float64), ("f4", wp.float32)])
 def test_finalize_takes_a_numpy_dtype_as_its_precision(dtype, scalar):
     """``finalize(dtype=np.dtype("float64"))``, a numpy dtype as ``scalar_type`` documents, builds
     the model in that precision: it compared equal to ``wp.float64``, was kept as the numpy
-    dtype, and finalize failed with an AttributeError on its ``__name__``."""
+    dtype, and finalize failed with an AttributeError on its ``__name__``. numpy's names of
+    the two, 'f8' and 'f4', are read as numpy reads them (np.dtype("f8") was taken, "f8"
+    refused)."""
     model = _one_box().finalize(dtype=dtype)
     assert model.scalar is scalar
     assert model.state().x.dtype is (wp.vec3d if scalar is wp.float64 else wp.vec3f)

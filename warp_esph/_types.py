@@ -12,26 +12,34 @@ import types
 import numpy as np
 import warp as wp
 
-_SCALARS = {"float32": wp.float32, "float64": wp.float64}
+#: What ``scalar_type`` takes, for its message.
+DTYPE_ALLOWED = "use wp.float32 or wp.float64 (or 'float32'/'float64', numpy's float32/float64 or 'f4'/'f8')"
 
 
 def scalar_type(dtype) -> type:
-    """Normalise ``dtype`` (a Warp type, numpy dtype or name) to ``wp.float32``/``wp.float64``."""
+    """Normalise ``dtype`` to ``wp.float32``/``wp.float64``: a Warp type, a numpy float32/float64
+    dtype or type, or any name numpy reads as one ('float32'/'float64' as ``--dtype`` takes
+    them, 'f4'/'f8', 'single'/'double')."""
     # By identity: numpy's dtype compares equal to Warp's type (np.dtype("f8") == wp.float64), so
     # a membership test returned the numpy dtype itself, and finalize failed on its missing
     # __name__ with an AttributeError.
     if dtype is wp.float32 or dtype is wp.float64:
         return dtype
-    if dtype is float:
+    if dtype is float or isinstance(dtype, str) and dtype == "float":
         # Warp reads Python's float as float32, numpy (and Python) as 64-bit: a model of either
-        # precision would surprise half the users (it was float32 without a word).
-        raise ValueError("dtype = float is not allowed: Warp reads it as float32, numpy as float64; give wp.float32 or "
-                         "wp.float64")
-    name = getattr(dtype, "__name__", None) or str(dtype)
-    name = {"float": "float32", "double": "float64"}.get(name, name)
-    if name not in _SCALARS:
-        raise ValueError(f"dtype = {dtype!r} is not allowed: use wp.float32 or wp.float64")
-    return _SCALARS[name]
+        # precision would surprise half the users (it was float32 without a word; the name
+        # 'float' was float32 too, where np.dtype('float') is float64).
+        raise ValueError(f"dtype = {'float' if dtype is float else repr(dtype)} is not allowed: Warp reads it as "
+                         "float32, numpy as float64; give wp.float32 or wp.float64")
+    # numpy's reading of a dtype and of its names: np.dtype("f8") was taken and "f8" refused.
+    # None is refused, not numpy's default float64.
+    try:
+        np_dtype = None if dtype is None else np.dtype(dtype)
+    except (TypeError, ValueError):
+        np_dtype = None
+    if np_dtype is not None and np_dtype.kind == "f" and np_dtype.itemsize in (4, 8):
+        return wp.float32 if np_dtype.itemsize == 4 else wp.float64
+    raise ValueError(f"dtype = {dtype!r} is not allowed: {DTYPE_ALLOWED}")
 
 
 def type_set(scalar) -> types.SimpleNamespace:
