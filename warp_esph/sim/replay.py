@@ -43,6 +43,8 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import functools
+import itertools
+import operator
 import sys
 
 import warp as wp
@@ -86,6 +88,7 @@ def kept_through_backward(*arrays):
 SLOTS = 4
 
 _NUMBERS = frozenset((int, float, bool))
+_ARRAY = wp.array
 _WARP_SCALARS = frozenset((wp.int8, wp.uint8, wp.int16, wp.uint16, wp.int32, wp.uint32, wp.int64, wp.uint64, wp.float16,
                            wp.float32, wp.float64))
 
@@ -173,8 +176,13 @@ class Launches:
         best, changed = None, None
         # Least recently used first: with double-buffered states the launch before last
         # was on the same objects, so the first slot usually matches and ends the search.
+        count = range(len(args))
         for slot in slots:
-            diff = [i for i, (a, b) in enumerate(zip(args, slot[1])) if a is not b and not _same(a, b)]
+            held = slot[1]
+            # Identity first, in C (a rollout's states are new arrays at every step, so every
+            # slot is compared in full); an array that is not the very object differs.
+            diff = [i for i in itertools.compress(count, map(operator.is_not, args, held))
+                    if type(args[i]) is _ARRAY or not _same(args[i], held[i])]
             if changed is None or len(diff) < len(changed):
                 best, changed = slot, diff
                 if not diff:
