@@ -826,6 +826,13 @@ def keyframe_times_problem(times, npf) -> str | None:
     return None
 
 
+class _Samples(tuple):
+    """The pose kernel's sample arrays (``ToolSet._sample_arrays``) and, on the CPU, numpy
+    views of their memory once made (None before)."""
+
+    views = None
+
+
 class ToolSet:
     """The model's moving colliders and pinned sets (``model.tools``), and their arrays.
 
@@ -962,7 +969,6 @@ class ToolSet:
         self.model = model
         self._warned_scripted = False
         self._held_samples = None
-        self._held_views = None  # numpy views of _held_samples' memory on the CPU, kept with it
         self._scripted = [k for k, mo in enumerate(self.motions) if isinstance(mo, Scripted)]
         self._scripted_last = None  # (t0, positions, quaternions) of the last step's samples
         self._reach_of = {}
@@ -1088,16 +1094,15 @@ class ToolSet:
         dtypes = (wp.int32, wp.int32, m.scalar, m.scalar, wp.int32, T.vec3, self.quat)
         host = [h if d is wp.int32 else h.astype(T.np_dtype) for h, d in zip(host, dtypes)]
         if held is None or any(a.shape[0] != h.shape[0] or a.dtype != d for a, h, d in zip(held, host, dtypes)):
-            return tuple(wp.array(h, dtype=d, device=m.device) for h, d in zip(host, dtypes))
+            return _Samples(wp.array(h, dtype=d, device=m.device) for h, d in zip(host, dtypes))
         views = None
         if held[0].device.is_cpu:
-            # Views of the arrays' memory; those of the untaped set are kept (a view made per
-            # array and step cost about as much as the pose kernel at small particle counts).
-            views = self._held_views[1] if self._held_views is not None and self._held_views[0] is held else None
+            # Views of the arrays' memory, kept with them, the untaped set's and each taped
+            # state's alike (a view made per array and step cost about as much as the pose
+            # kernel at small particle counts).
+            views = held.views
             if views is None:
-                views = [a.numpy() for a in held]
-                if held is self._held_samples:
-                    self._held_views = (held, views)
+                views = held.views = [a.numpy() for a in held]
         for k, (a, h) in enumerate(zip(held, host)):
             if views is not None:
                 views[k][...] = h
