@@ -1117,6 +1117,25 @@ def test_keyframe_times_equal_in_float32_are_refused_at_finalize_and_float64_tak
     assert b.finalize(dtype=wp.float64).tools.keyframe_times.numpy().tolist() == times
 
 
+def test_keyframe_times_written_in_place_between_steps_are_checked_again():
+    """Each step reads the keyframe times as they are now (a fit writes the array in place)
+    and refuses times that are not increasing, also after steps that found the earlier
+    times valid (the step keeps which values it checked last)."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="d")
+    b.add_tool("sphere", radius=0.05, name="ball", motion=tools.Keyframes([0.0, 1.0], [(0, 0.5, 0)] * 2))
+    m = b.finalize()
+    s, x, y = we.Solver(m), m.state(), m.state()
+    s.step(x, y, 1e-4)
+    s.step(y, x, 1e-4)
+    m.tools.keyframe_times.assign(np.array([1.0, 0.5], dtype=np.float32))
+    with pytest.raises(ValueError, match=r"^keyframe_times of tool 'ball' = \[1\.0, 0\.5\] is not allowed: must be finite "
+                                         r"and increasing$"):
+        s.step(x, y, 1e-4)
+    m.tools.keyframe_times.assign(np.array([0.0, 2.0], dtype=np.float32))
+    s.step(x, y, 1e-4)
+
+
 # ------------------------------------------------------------- scene files, CLI, USD
 SCENE_TOML = """
 [scene]

@@ -969,6 +969,7 @@ class ToolSet:
         self.model = model
         self._warned_scripted = False
         self._held_samples = None
+        self._checked_times = None  # (keyframe_times' bytes, motions) that _times_now last found valid
         self._scripted = [k for k, mo in enumerate(self.motions) if isinstance(mo, Scripted)]
         self._scripted_last = None  # (t0, positions, quaternions) of the last step's samples
         self._reach_of = {}
@@ -1007,12 +1008,18 @@ class ToolSet:
         """The keyframe times as they are now (an optimiser may have changed the array)."""
         if not any(isinstance(mo, Keyframes) for mo in self.motions):
             return np.zeros(0)
-        kt = self.keyframe_times.numpy().astype(np.float64)
+        raw = self.keyframe_times.numpy()
+        kt = raw.astype(np.float64)
+        # Every step asks: the checks below ran on these very values at an earlier call.
+        key = (raw.tobytes(), tuple(self.motions))
+        if self._checked_times == key:
+            return kt
         for k, mo in enumerate(self.motions):
             if isinstance(mo, Keyframes):
                 ts = kt[self.keyframe_start[k]:self.keyframe_start[k] + len(mo.times)]
                 if not np.isfinite(ts).all() or np.any(np.diff(ts) <= 0.0):
                     raise ValueError(f"keyframe_times of tool {self.names[k]!r} = {ts.tolist()!r} is not allowed: must be finite and increasing")
+        self._checked_times = key
         return kt
 
     def motion_gradient(self, name: str) -> dict[str, np.ndarray]:
