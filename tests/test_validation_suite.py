@@ -716,7 +716,8 @@ def bent():
 
 def test_three_point_bending_is_soft_at_4_across(bent):
     """Held 0.5 s with mass-proportional damping and ``Solver(hourglass=0.1)``, measured: mid-span
-    stiffness 0.724 x Timoshenko (0.629 x 48 E I / L^3) at 4 across (0.726 where docs/physics.md
+    stiffness 0.737 x Timoshenko (0.640 x 48 E I / L^3) at 4 across (0.724 while the contact
+    bounced through its margin on the tools, docs/tools.md; 0.726 where docs/physics.md
     measured it, float64 then 0.725; 0.699 before F's round-off was
     carried, docs/physics.md, "Three-point bending in float32"),
     0.848 x at 8 across (docs/validation.md, measured then): soft, as the linear fit's beams
@@ -728,16 +729,16 @@ def test_three_point_bending_is_soft_at_4_across(bent):
 
 
 def test_three_point_bending_supports_carry_the_pin_load_in_a_static_state(bent):
-    """Static equilibrium: over the last 0.1 s the supports carry the pin's load (measured
-    0.988 x, 0.986 x before the cylinder tools' inside test had the contact's margin; 0.997 x
-    at 8 across) and the deflection changes by less than 1 % over those
-    0.1 s (measured: it creeps by 6.5 % of itself per s, 1.2 % before the tools' inside tests
-    had the contact's margin; the reading moves with the window, 4.5 % after a 0.7 s hold; the
-    incremental deformation model creeps so, docs/validation.md; kinetic damping instead of
-    the mass-proportional one let
-    a motion at the free ends grow until contact was lost)."""
-    assert bent["support_force"] == pytest.approx(bent["force"], rel=3e-2), (bent["support_force"], bent["force"])
-    assert abs(bent["creep"]) < 0.1, bent["creep"]
+    """Static equilibrium: over the last 0.1 s the supports carry the pin's load to 1e-3
+    (measured: to 1e-5; 0.997 x at 8 across when last measured) and the deflection changes by
+    less than 1e-3 of itself per s (measured: 1e-6). While a particle the tools put the
+    contact's margin outside was not touching them the next step, the contact bounced through
+    the margin: the supports carried 0.988 x (0.986 x before the inside test had the margin)
+    and the deflection crept 6.5 % of itself per s (1.2 %), which docs/validation.md read as
+    the incremental deformation model's creep (docs/tools.md). Kinetic damping instead of the
+    mass-proportional one let a motion at the free ends grow until contact was lost."""
+    assert bent["support_force"] == pytest.approx(bent["force"], rel=1e-3), (bent["support_force"], bent["force"])
+    assert abs(bent["creep"]) < 1e-3, bent["creep"]
 
 
 @pytest.fixture(scope="module")
