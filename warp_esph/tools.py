@@ -63,7 +63,7 @@ from ._types import type_set
 #: projections gets a wrong adjoint).
 KINDS = ("plane", "box", "sphere", "capsule", "cylinder", "mesh")
 #: How far outside a tool (in spacings) the contact puts a particle that met it; a particle
-#: this close to a box, sphere, capsule or cylinder tool counts as touching it.
+#: this close to a tool (but a plane) counts as touching it.
 CONTACT_MARGIN = 1.0e-3
 MAX_TOOLS = 16
 IDENTITY = (0.0, 0.0, 0.0, 1.0)
@@ -691,14 +691,25 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         qf = wp.vec3f(wp.float32(xl[0]), wp.float32(xl[1]), wp.float32(xl[2]))
         far = wp.float32(wp.length(hi - lo))
         res = wp.mesh_query_point(mesh, qf, far)
-        if res.result and res.sign < wp.float32(0.0):
+        if res.result:
             f = 3 * (fofs + res.face)
             cl = closest_on_triangle(xl, verts[vofs + tris[f]], verts[vofs + tris[f + 1]], verts[vofs + tris[f + 2]])
             d = cl - xl
             dl = wp.length(d)
             if dl > ZERO:
-                nl = d / dl
-                return 1, cl + margin * nl, nl
+                if res.sign < wp.float32(0.0):
+                    nl = d / dl
+                    return 1, cl + margin * nl, nl
+                # Outside but within the margin counts as touching, as the other shapes'
+                # grown surfaces do: a particle put the margin out is found there again the
+                # next step, not falling back through the margin to be lifted again (a
+                # bouncing rest). Only where the face's own normal, in the model's precision,
+                # agrees that it is outside: the float32 sign of a particle on the surface
+                # may be wrong, and the direction would then put it the margin inside.
+                fn = wp.cross(verts[vofs + tris[f + 1]] - verts[vofs + tris[f]], verts[vofs + tris[f + 2]] - verts[vofs + tris[f]])
+                if dl < margin and wp.dot(fn, -d) > ZERO:
+                    nl = -d / dl
+                    return 1, cl + margin * nl, nl
         return 0, xl, vec3()
 
     # Tools of the swept kinds (box, sphere, capsule, cylinder: KINDS[1:5], stored in that
