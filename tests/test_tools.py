@@ -1564,6 +1564,36 @@ def test_a_block_on_a_held_box_tool_comes_to_rest_at_the_contacts_margin(shape):
     assert np.mean(forces) == pytest.approx(mass.sum() * G, rel=2e-3)
 
 
+@pytest.mark.parametrize("shape", ["box", "sphere"])
+def test_where_a_path_ends_just_inside_or_outside_a_tool_or_its_margin_moves_the_particle_alike(shape):
+    """A particle falling 1 mm in a step onto a held tool, float64: its path ending 1e-9 m
+    inside the surface or 1e-9 m outside, or as far inside or outside the margin, it ends the
+    step within 1e-8 m of the same height, the margin (a thousandth of a spacing) above the
+    surface. When a particle within the margin did not count as touching, the entry test put
+    one whose path ended just inside the margin outside and left one that ended just outside
+    where it was: the two ended the margin (2e-5 m) apart (docs/method.md §1)."""
+    dx = 0.02
+    margin = tools.CONTACT_MARGIN * dx
+
+    def height(end):
+        b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
+        b.add_box((0.0, 0.5, 0.0), (dx, dx, dx), we.Material(density=1000.0, mu=1e3, lam=1e3), velocity=(0.0, -1.0, 0.0))
+        if shape == "box":
+            b.add_tool("box", half_extents=(0.5, 0.05, 0.5), position=(0.0, -0.05, 0.0), name="t")
+        else:
+            b.add_tool("sphere", radius=0.5, position=(0.0, -0.5, 0.0), name="t")
+        m = b.finalize(dtype=wp.float64)
+        assert m.particle_count == 1
+        m.particle_x0 = np.array([[0.0, 1e-3 + end, 0.0]])
+        a, c = m.state(), m.state()
+        we.Solver(m).step(a, c, 1e-3)
+        return c.x.numpy()[0, 1]
+
+    for surface in (0.0, margin):
+        below, above = height(surface - 1e-9), height(surface + 1e-9)
+        assert below == pytest.approx(margin, abs=1e-8) and above == pytest.approx(margin, abs=1e-8), (surface, below, above)
+
+
 @pytest.mark.parametrize("kind", ["sphere", "cylinder"])
 def test_a_block_pressed_into_a_curved_held_tool_has_a_loss_without_round_off_jumps(kind):
     """A float64 block started 0.2 mm inside a held sphere (or a cylinder's side) of radius
