@@ -72,6 +72,10 @@ def test_material_accepts_inf_yield_and_converts_young():
         (lambda: _one_box().finalize(dtype="float16"), r"dtype = 'float16' is not allowed: use wp\.float32 or wp\.float64 \(or 'float32'/'float64', numpy's float32/float64 or 'f4'/'f8'\)$"),
         (lambda: _one_box().finalize(dtype="f2"), r"dtype = 'f2' is not allowed: use wp\.float32 or wp\.float64"),
         (lambda: _one_box().finalize(dtype=None), r"dtype = None is not allowed: use wp\.float32 or wp\.float64"),
+        # A value, not a type: numpy reads a numpy number (or bytes) as its dtype, and a model
+        # was built from np.float64(1.0).
+        (lambda: _one_box().finalize(dtype=np.float64(1.0)), r"^dtype = np\.float64\(1\.0\) is not allowed: use wp\.float32 or wp\.float64"),
+        (lambda: _one_box().finalize(dtype=b"f8"), r"^dtype = b'f8' is not allowed: use wp\.float32 or wp\.float64"),
         (lambda: _one_box().finalize(dtype=float), r"dtype = float is not allowed: Warp reads it as float32, numpy as float64"),
         (lambda: _one_box().finalize(dtype="float"), r"dtype = 'float' is not allowed: Warp reads it as float32, numpy as float64"),
         (lambda: _one_box().finalize(device="tpu"), r"device = 'tpu' is not allowed"),

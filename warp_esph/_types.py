@@ -32,9 +32,10 @@ def scalar_type(dtype) -> type:
         raise ValueError(f"dtype = {'float' if dtype is float else repr(dtype)} is not allowed: Warp reads it as "
                          "float32, numpy as float64; give wp.float32 or wp.float64")
     # numpy's reading of a dtype and of its names: np.dtype("f8") was taken and "f8" refused.
-    # None is refused, not numpy's default float64.
+    # None is refused, not numpy's default float64; so is a value (np.float64(1.0), b"f8"),
+    # which numpy also reads as a dtype: only a name, a numpy dtype or a type is one.
     try:
-        np_dtype = None if dtype is None else np.dtype(dtype)
+        np_dtype = np.dtype(dtype) if isinstance(dtype, (str, np.dtype, type)) else None
     except (TypeError, ValueError):
         np_dtype = None
     if np_dtype is not None and np_dtype.kind == "f" and np_dtype.itemsize in (4, 8):
