@@ -72,6 +72,29 @@ def load_example():
 
 
 @pytest.fixture
+def start_checks(monkeypatch):
+    """The names of the starts ``rollout.check_initial`` checks, in order, wherever the package
+    calls it (the rollout, and the fit and torch bridge where imported): for the tests that a
+    start is checked once, not at every evaluation."""
+    import sys
+
+    import warp_esph.rollout as rollout_module
+
+    calls = []
+    real = rollout_module.check_initial
+
+    def counted(m, name, value):
+        calls.append(name)
+        return real(m, name, value)
+
+    monkeypatch.setattr(rollout_module, "check_initial", counted)
+    for name in ("warp_esph.fit", "warp_esph.torch"):
+        if name in sys.modules:
+            monkeypatch.setattr(sys.modules[name], "check_initial", counted, raising=False)
+    return calls
+
+
+@pytest.fixture
 def dough_scene():
     """``dough_scene(yield_stress, flow_rate, frames=6)``: the TOML of a 64-particle dough
     block dropped on the ground at 1 m/s (the command-line fit tests' scene)."""

@@ -871,29 +871,19 @@ def test_a_prestrained_start_that_recoils_is_no_divergence():
     assert result.params["mu"][0] == pytest.approx(1e4, rel=1e-6)
 
 
-def test_an_experiments_starts_are_checked_once_at_set_up(monkeypatch):
+def test_an_experiments_starts_are_checked_once_at_set_up(monkeypatch, start_checks):
     """Each evaluation ran ``Rollout.forward(**initial)``, which checked the given starts again
     (x0's search for coincident particles, milliseconds at tens of thousands of particles, every
     loss evaluation), and a refused start surfaced only at the first evaluation. Now each is
     checked once, at set-up, and every evaluation (the fit's and its diagnostics') runs from the
     values checked; the fit is the one it was."""
-    import warp_esph.fit as fit_module  # noqa: PLC0415
-    import warp_esph.rollout as rollout_module  # noqa: PLC0415
-
     model = _block()
     x = Rollout(model, 2, DT, frames=[2]).forward(alpha0=ALPHA0)
     initial = {"x0": model.particle_x0.copy(), "alpha0": ALPHA0}
     kw = dict(steps=2, dt=DT, frames=[2], iterations=3, progress=False)
     want = fit(_block(), x * 1.001, ["mu"], initial=initial, diagnostics=False, **kw)
-    calls = []
-    real = rollout_module.check_initial
-
-    def counted(m, name, value):
-        calls.append(name)
-        return real(m, name, value)
-
-    monkeypatch.setattr(rollout_module, "check_initial", counted)
-    monkeypatch.setattr(fit_module, "check_initial", counted, raising=False)
+    calls = start_checks
+    calls.clear()
     got = fit(_block(), x * 1.001, ["mu"], initial=initial, diagnostics=True, **kw)
     assert len(got.history) >= 3 and got.diagnostics is not None
     assert calls == ["x0", "alpha0"]

@@ -111,25 +111,14 @@ def test_backward_leaves_the_model_holding_the_values_it_held():
         loss.backward()
 
 
-def test_each_start_is_checked_once_per_forward_and_backward(monkeypatch):
+def test_each_start_is_checked_once_per_forward_and_backward(start_checks):
     """x0's check (``check_initial``: its search for coincident particles, 17 ms at 64k
     particles) ran in ``rollout_positions``, again in the forward, and a third time where the
     backward re-ran that forward: once per start now, and the re-run starts from the values
     checked, also where the tensor was changed in place since (its gradient is the forward's)."""
-    import warp_esph.rollout as rollout_module
-    import warp_esph.torch as torch_module
-
     model = _cube()
     rollout = Rollout(model, 2, 1.0e-3, frames=[2])
-    calls = []
-    real = rollout_module.check_initial
-
-    def counted(m, name, value):
-        calls.append(name)
-        return real(m, name, value)
-
-    monkeypatch.setattr(rollout_module, "check_initial", counted)
-    monkeypatch.setattr(torch_module, "check_initial", counted)
+    calls = start_checks
 
     def start():
         return torch.tensor(model.particle_x0, dtype=torch.float64, requires_grad=True)
