@@ -221,11 +221,9 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
         # moved only by gravity; a NaN ran to NaN positions. Its answer, in the model's precision,
         # is what the forward (and a backward's re-run of it) starts from, not checked again.
         host = given.detach().to(device="cpu", dtype=torch.float64).resolve_neg().numpy()  # numpy has no bfloat16
+        # check_initial returns its own copy (in the model's precision), so a tensor changed in
+        # place after the forward does not change the start of a backward's re-run.
         checked[label] = check_initial(rollout.model, label, host)
-        if np.shares_memory(checked[label], host):
-            # A CPU float64 tensor's own memory: changed in place after the forward, it would
-            # change the start of a backward's re-run.
-            checked[label] = checked[label].copy()
     return _function().apply(rollout, tuple(names), checked, start["x0"], start["v0"], *values)
 
 
