@@ -331,6 +331,28 @@ def test_a_sweep_no_sample_of_which_can_step_at_its_fps_is_refused_before_the_fi
     assert len(_plan(_box(), ["mu=1e9,1e3"], "grid", None, 0, 1, None, 0.01, None, 1.0, "float32", "cpu", 1, 100, None).tasks) == 2
 
 
+def test_the_python_sweep_takes_and_refuses_the_precisions_finalize_does():
+    """``sweep(dtype=...)`` read only the names 'float32'/'float64' (and what has that
+    ``__name__``): 'f8' and 'double', which ``finalize``, ``fit`` and ``scalar_type`` take,
+    were refused as '--dtype = 'f8' is not allowed: must be one of ...'. It reads them with
+    ``scalar_type`` now, and refuses what that refuses in its words."""
+    import warp as wp
+
+    from warp_esph._types import scalar_type
+
+    def planned(dtype):
+        return _plan(_box(), ["mu=1e3"], "grid", None, 0, 1, None, 30.0, 1 / 300, 1.0, dtype, "cpu", 1, 100, None)
+
+    for given, name in (("f8", "float64"), ("double", "float64"), (np.float64, "float64"), (np.dtype("f8"), "float64"),
+                        (wp.float64, "float64"), ("float64", "float64"), ("f4", "float32"), (np.float32, "float32")):
+        assert [task.dtype for _, task in planned(given).tasks] == [name], given
+    for bad in ("float", float, "f2", None, np.float64(1.0), "int32"):
+        with pytest.raises(ValueError) as wanted:
+            scalar_type(bad)
+        with pytest.raises(ValueError, match=f"^{re.escape(str(wanted.value))}$"):
+            planned(bad)
+
+
 def test_bad_input_raises_value_error_in_python():
     with pytest.raises(ValueError, match="flow_rate.*LO < HI"):
         sweep(_box(), ["flow_rate=5:5:lin:2"])

@@ -844,6 +844,8 @@ def sweep(
       frames) at ``fps`` (default the scene's). ``dt``: the time step (must divide
       ``1/fps``); default the scene's, else each sample's own stable step (it depends on
       the swept moduli).
+    - ``dtype``: the precision, in any spelling ``SceneBuilder.finalize`` takes
+      (``'float64'``, ``'f8'``, ``np.float64``, ``wp.float64``, ...); default float32.
     - ``workers``/``ray``: where the samples run (``parallel_map``).
     - ``extra(model, state, seed) -> dict``: more columns per sample, from the final
       state (a module-level function, so it can be sent to the workers); ``seed`` is the
@@ -886,7 +888,12 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
             raise ValueError(f"--fps = {fps!r} is not allowed: must be at most {MAX_FPS:g}")
     if dt is not None:
         dt = checks.positive("--dt", dt)
-    dtype = checks.choice("--dtype", str(getattr(dtype, "__name__", dtype)), ("float32", "float64"))
+    # The normaliser SceneBuilder.finalize and fit use, so the sweep takes the same spellings ('f8',
+    # np.float64, np.dtype('f8'), wp.float64) and refuses the same ones ('float', None) in the same
+    # words; the task keeps the name, which pickles to the workers.
+    from ._types import scalar_type  # noqa: PLC0415 (Warp is loaded only once a sweep is planned)
+
+    dtype = scalar_type(dtype).__name__
     device = checks.choice("--device", device, ("cpu", "cuda"))
     if workers is not None:
         workers = checks.positive_int("--workers", workers)
