@@ -413,6 +413,33 @@ def test_a_float64_run_reads_back_to_the_last_bit(tmp_path, dtype):
         np.testing.assert_array_equal(data.arrays(2)["points"], kept[2][0])
 
 
+def test_appending_with_a_model_of_the_other_precision_is_refused_naming_both(tmp_path):
+    """A model of the other precision appended to a run's file wrote its frames in its own:
+    a float64 model's double positions after a float32 file's (read back float32 up to the
+    resume, float64 after), a float32 model's rounded ones in a file whose warp_esph:dtype
+    says float64. It is refused before anything is written, naming both precisions."""
+    import warp as wp  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.06, 0.06, 0.06), Material(mu=2e3, lam=3e3))
+    models = {name: b.finalize(dtype=getattr(wp, name)) for name in ("float32", "float64")}
+    for written, other in (("float32", "float64"), ("float64", "float32")):
+        path = tmp_path / f"{written}.usdc"
+        with UsdWriter(path, models[written], 50.0) as w:
+            w.write_frame(0, models[written].state())
+        before = path.read_bytes()
+        with pytest.raises(ValueError, match=rf"^cannot append to .*{written}\.usdc: it holds a {written} run's frames "
+                                             rf"\(warp_esph:dtype\) and the model is {other}; a file keeps one precision: "
+                                             rf"finalize the model with dtype=wp\.{written} to continue it, or write a new file$"):
+            UsdWriter(path, models[other], 50.0, append=True)
+        # The file as it was, and no working copy left beside it.
+        assert path.read_bytes() == before and not [f for f in os.listdir(tmp_path) if f.startswith(".")]
+        # The model of the file's own precision still continues it.
+        with UsdWriter(path, models[written], 50.0, append=True) as w:
+            w.write_frame(1, models[written].state())
+        assert open_fresh(path).GetEndTimeCode() == 1
+
+
 def test_a_foreign_files_surfaces_colliders_and_tools_are_read_in_metres_and_world_coordinates_as_its_particles(tmp_path):
     """Another program's copy of a run's file, in centimetres (metersPerUnit 0.01) under a
     /World moved 50 cm up and turned 90 degrees about y: its particles were read in metres and

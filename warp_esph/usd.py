@@ -193,8 +193,9 @@ def _singular_values(F: np.ndarray) -> np.ndarray:
 def _set_primvar(attr, values: np.ndarray, t) -> None:
     """Set a per-particle primvar at ``t`` in the precision the attribute was authored in:
     a file appended to keeps the type its first run gave it (a float64 run resumed into a
-    file from before the double primvars, or a model of the other precision), where USD
-    would refuse a value of the other type."""
+    file from before the double primvars, or another program's file naming no precision),
+    where USD would refuse a value of the other type. A model of the other precision than a
+    file names is refused at ``append`` (``_check_compatible``)."""
     double = attr.GetTypeName() in (Sdf.ValueTypeNames.DoubleArray, Sdf.ValueTypeNames.Double3Array)
     values = np.ascontiguousarray(values, dtype=np.float64 if double else np.float32)
     vec = values.ndim == 2
@@ -216,7 +217,10 @@ class UsdWriter:
     core). ``view``: a suggested camera direction (azimuth, elevation) in degrees for
     renderers, stored in the layer's custom data. ``run_id``: a text naming the run, stored
     in the layer's custom data by a new file; appending with one refuses a file that names
-    another run (a checkpoint of one run resumed onto the frames of another).
+    another run (a checkpoint of one run resumed onto the frames of another). A file keeps
+    one precision: appending with a model of the other precision than the file's
+    (``warp_esph:dtype`` in its custom data) is refused, naming both, rather than writing
+    the later frames in the other precision.
     """
 
     def __init__(self, path, model: Model, fps: float = 30.0, *, append: bool = False, plane_size: float | None = None,
@@ -346,6 +350,17 @@ class UsdWriter:
             # frames and the checkpoint's state would be spliced into one file.
             raise ValueError(f"{where}: it holds the frames of another run (run id {theirs!r}), not those of the run "
                              f"{self.run_id!r} it would continue")
+        # A file holds one run's precision, as a checkpoint's run record does (``run --resume``
+        # refuses --dtype): a model of the other one wrote its frames in its own precision after
+        # the file's (a float64 model's double positions after float32 ones, a float32 model's
+        # rounded positions where the layer's warp_esph:dtype promised float64), and converting
+        # up cannot restore the digits a float32 run never had. A file naming no precision
+        # (another program's) names nothing to keep.
+        written = (stage.GetRootLayer().customLayerData or {}).get(f"{_KEY}:dtype")
+        ours = self.model.scalar.__name__
+        if written is not None and written != ours:
+            raise ValueError(f"{where}: it holds a {written} run's frames (warp_esph:dtype) and the model is {ours}; a file "
+                             f"keeps one precision: finalize the model with dtype=wp.{written} to continue it, or write a new file")
         for body, name in zip(self.model.bodies, self._prim_names):
             prim = stage.GetPrimAtPath(f"{_ROOT}/{name}")
             if not prim or not prim.IsA(UsdGeom.Points):
