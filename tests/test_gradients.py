@@ -1055,3 +1055,35 @@ def test_a_taped_step_refuses_a_state_the_tape_wrote_and_says_when_no_gradient_c
     with pytest.warns(RuntimeWarning, match="state_out made without requires_grad: no gradient flows back"):
         with wp.Tape():
             solver.step(a, plain, DT)
+
+
+def test_a_parameter_written_in_place_after_the_taped_steps_is_named_before_the_backward_pass():
+    """The adjoints read the parameter arrays as they are at ``tape.backward()``: a shear
+    modulus written in place after the taped steps gave the gradient of neither value without
+    a word (-1: 4 % off; NaN: every gradient NaN). The first thing the backward pass runs
+    names the parameter, the material and both values; nothing has flowed back yet."""
+    model = _model()
+    solver = we.Solver(model)
+    states = [model.state(requires_grad=True) for _ in range(3)]
+    tape = wp.Tape()
+    with tape:
+        for k in range(2):
+            solver.step(states[k], states[k + 1], DT)
+    mu = float(model.mu.numpy()[0])
+    seed = np.random.default_rng(3).normal(size=(model.particle_count, 3))
+    for bad, why in ((-1.0, r" \(Material\.mu = -1\.0 is not allowed: must be > 0\)"),
+                     (float("nan"), r" \(Material\.mu = nan is not allowed: must be a finite number\)"),
+                     (3.0 * mu, "")):
+        model.mu.assign([bad])
+        tape.zero()
+        states[2].x.grad.assign(seed)
+        with pytest.raises(RuntimeError, match=rf"^tape\.backward\(\) is not allowed: the model's mu \(material 0\) = "
+                                               rf"{bad:g} now{why}, {mu:g} when Solver\.step ran under this wp\.Tape; "
+                                               "the backward pass reads the parameter arrays again"):
+            tape.backward()
+        assert not states[1].x.grad.numpy().any() and not model.mu.grad.numpy().any()
+    model.mu.assign([mu])  # the value the steps ran with: the backward pass runs
+    tape.zero()
+    states[2].x.grad.assign(seed)
+    tape.backward()
+    assert np.isfinite(model.mu.grad.numpy()).all() and model.mu.grad.numpy()[0] != 0.0

@@ -318,6 +318,29 @@ class Solver:
                           "requires_grad: no gradient flows back through this step (finalize(requires_grad=True), "
                           "model.state(requires_grad=True))", RuntimeWarning, stacklevel=3)
 
+    def _check_taped_parameters(self, rows: np.ndarray) -> None:
+        """In the backward pass of a tape this solver's step was recorded on: the parameter
+        arrays still hold the values the step ran with (``rows``). The adjoints read the arrays
+        as they are then: a mu written in place between the taped steps and ``tape.backward()``
+        gave the gradient of neither value without a word (-1: 4 % off; NaN: every gradient
+        NaN). ``Rollout.backward`` refuses the same before it runs the tape."""
+        m = self.model
+        now = m._read_parameters()
+        for f, name in enumerate(m.MATERIAL_FIELDS):
+            changed = np.flatnonzero(~(rows[f] == now[f]))
+            if len(changed) == 0:
+                continue
+            k = int(changed[0])
+            try:
+                m.materials[k].replace(**{name: float(now[f, k])})
+                why = ""
+            except ValueError as e:
+                why = f" ({e})"
+            raise RuntimeError(f"tape.backward() is not allowed: the model's {name} (material {k}) = {float(now[f, k]):g} "
+                               f"now{why}, {float(rows[f, k]):g} when Solver.step ran under this wp.Tape; the backward "
+                               "pass reads the parameter arrays again, so its gradient would be that of neither value: "
+                               "record the steps again after changing a parameter")
+
     def _fast_under_tape(self, state_in, state_out) -> bool:
         return (self.fast_under_tape() and state_in.x.grad is not None and state_out.x.grad is not None
                 and state_in.F.grad is not None)
@@ -423,13 +446,14 @@ class Solver:
         """One step of the method, stage by stage (docs/physics.md has the table)."""
         checks.step_states(self.model, state_in, state_out)
         m = self.model
+        tape = recording_tape()
         with m._parameters_read_once():  # one read-back of the parameter arrays for the three
             if self._auto:
                 self._choose()
             dt = self.check_dt(dt)
             sph = m.sph_active
+            taped_rows = m._read_parameters() if tape is not None else None  # the same read, held
         scratch = self.scratch
-        tape = recording_tape()
         if tape is not None:
             self._check_taped_step(tape, state_in, state_out)
         hand = self._hand()
@@ -552,6 +576,11 @@ class Solver:
             if images:
                 # Each image's hardening, blended by the share the update just wrote.
                 plasticity.launch_image_hardening_update(m, state_out)
+        if tape is not None:
+            # Last on the tape, so first in its backward pass: before this step's adjoints read the
+            # parameter arrays again (and every earlier step's), a value written there in place since
+            # (a negative or NaN mu) is named, not differentiated at.
+            tape.record_func(lambda: self._check_taped_parameters(taped_rows), [])
         # A Python float whatever the user set: a np.float32 time would sum every later step in float32.
         state_out.time = float(state_in.time) + dt
         if self.step_count == 0:
