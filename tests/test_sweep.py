@@ -567,6 +567,12 @@ def test_python_sweep_inputs_are_value_errors_and_extra_cannot_overwrite_the_row
     assert row["status"] == "failed" and "['status'] (the table's own)" in row["reason"]
 
 
+def _sweep_three_samples(scene_file, out) -> int:
+    """``warp-esph sweep`` of 3 one-frame samples, one worker, into ``out``: its exit status."""
+    return cli.main(["sweep", scene_file, "--param", "yield_stress=10,100,1000", "--frames", "1", "--workers", "1",
+                     "-o", str(out), "--no-progress"])
+
+
 def test_a_sweep_keeps_the_samples_finished_while_it_runs(scene_file, tmp_path, monkeypatch):
     """The table is rewritten as samples finish (here after each one), so a sweep killed
     outright (SIGKILL, out of memory) keeps what it had; before, nothing was written until
@@ -583,10 +589,28 @@ def test_a_sweep_keeps_the_samples_finished_while_it_runs(scene_file, tmp_path, 
     monkeypatch.setattr(sweep_module, "PARTIAL_EVERY_S", 0.0)
     monkeypatch.setattr(sweep_module, "write_outputs", spy)
     out = tmp_path / "sw"
-    assert cli.main(["sweep", scene_file, "--param", "yield_stress=10,100,1000", "--frames", "1", "--workers", "1",
-                     "-o", str(out), "--no-progress"]) == 0
+    assert _sweep_three_samples(scene_file, out) == 0
     assert seen == [(1, True), (2, True), (3, True), (3, False)]
     assert len(SweepTable.read_csv(out / "sweep.csv")) == 3
+
+
+def _sweep_signalled_at_the_second_sample(scene_file, tmp_path, monkeypatch, capsys, signal_it):
+    """``warp-esph sweep`` of 3 one-frame samples in this process, ``signal_it()`` called
+    as the second sample starts; returns (status, stderr, the table's rows, samples begun)."""
+    from warp_esph import sweep as sweep_module
+
+    real, runs = sweep_module._run_sample, []
+
+    def run_and_signal(scene, task):
+        runs.append(1)
+        if len(runs) == 2:
+            signal_it()
+        return real(scene, task)
+
+    monkeypatch.setattr(sweep_module, "_run_sample", run_and_signal)
+    out = tmp_path / "sw"
+    status = _sweep_three_samples(scene_file, out)
+    return status, capsys.readouterr().err, len(SweepTable.read_csv(out / "sweep.csv")), len(runs)
 
 
 def test_a_terminated_sweep_keeps_its_finished_samples_and_says_terminated(scene_file, tmp_path, monkeypatch, capsys):
@@ -594,24 +618,11 @@ def test_a_terminated_sweep_keeps_its_finished_samples_and_says_terminated(scene
     'interrupted', as for Ctrl-C."""
     import signal
 
-    from warp_esph import sweep as sweep_module
-
-    real, runs = sweep_module._run_sample, []
-
-    def run_then_terminate(scene, task):
-        runs.append(1)
-        if len(runs) == 2:
-            os.kill(os.getpid(), signal.SIGTERM)
-        return real(scene, task)
-
-    monkeypatch.setattr(sweep_module, "_run_sample", run_then_terminate)
-    out = tmp_path / "sw"
-    status = cli.main(["sweep", scene_file, "--param", "yield_stress=10,100,1000", "--frames", "1", "--workers", "1",
-                       "-o", str(out), "--no-progress"])
-    err = capsys.readouterr().err
+    status, err, rows, _ = _sweep_signalled_at_the_second_sample(scene_file, tmp_path, monkeypatch, capsys,
+                                                                 lambda: os.kill(os.getpid(), signal.SIGTERM))
     assert status == 143, err
     assert err.splitlines()[-1] == "warp-esph: terminated: the table keeps the 1 of 3 samples finished"
-    assert len(SweepTable.read_csv(out / "sweep.csv")) == 1
+    assert rows == 1
 
 
 def test_a_signal_in_a_finalizer_stops_the_sweep_after_that_sample(scene_file, tmp_path, monkeypatch, capsys):
@@ -620,28 +631,15 @@ def test_a_signal_in_a_finalizer_stops_the_sweep_after_that_sample(scene_file, t
     once the sample it landed in is finished and kept."""
     import signal
 
-    from warp_esph import sweep as sweep_module
-
     class Finalized:
         def __del__(self):
             os.kill(os.getpid(), signal.SIGTERM)
 
-    real, runs = sweep_module._run_sample, []
-
-    def run_with_a_finalizer(scene, task):
-        runs.append(1)
-        if len(runs) == 2:
-            Finalized()
-        return real(scene, task)
-
-    monkeypatch.setattr(sweep_module, "_run_sample", run_with_a_finalizer)
-    out = tmp_path / "sw"
-    status = cli.main(["sweep", scene_file, "--param", "yield_stress=10,100,1000", "--frames", "1", "--workers", "1",
-                       "-o", str(out), "--no-progress"])
-    err = capsys.readouterr().err
+    status, err, rows, runs = _sweep_signalled_at_the_second_sample(scene_file, tmp_path, monkeypatch, capsys,
+                                                                    lambda: Finalized())
     assert status == 143, err
     assert err.splitlines()[-1] == "warp-esph: terminated: the table keeps the 2 of 3 samples finished"
-    assert len(SweepTable.read_csv(out / "sweep.csv")) == 2 and len(runs) == 2
+    assert rows == 2 and runs == 2
 
 
 def test_a_table_that_cannot_be_written_leaves_no_working_file_and_the_old_table_whole(tmp_path, monkeypatch):
