@@ -11,8 +11,8 @@ import textwrap
 
 import numpy as np
 import pytest
-from pxr import Sdf, Usd
 
+from run_files import box_on_ground, frames_in, open_fresh, refused_run
 from warp_esph.sim import solver as solver_module
 from warp_esph.cli import main
 from warp_esph.scenes import SCENES, get_scene
@@ -21,39 +21,7 @@ from warp_esph.simulate import resolve_timestep
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TINY = ["--scale", "0.3", "--frames", "2", "--no-progress"]
 
-GOOD_TOML = textwrap.dedent(
-    """
-    [scene]
-    name = "tiny"
-    spacing = 0.05
-    frames = 2
-
-    [materials.soft]
-    preset = "dough"
-    E = 1.5e4
-    nu = 0.3
-
-    [[bodies]]
-    shape = "box"
-    material = "soft"
-    center = [0.0, 0.15, 0.0]
-    size = [0.2, 0.15, 0.2]
-
-    [[colliders]]
-    type = "ground"
-    """
-)
-
-
-def open_fresh(path) -> Usd.Stage:
-    layer = Sdf.Layer.OpenAsAnonymous(str(path))
-    assert layer is not None, f"pxr cannot open {path}"
-    return Usd.Stage.Open(layer)
-
-
-def frames_in(path, prim="/World/dough") -> list[float]:
-    stage = open_fresh(path)  # keep the stage alive while its prims are used
-    return stage.GetPrimAtPath(prim).GetAttribute("points").GetTimeSamples()
+GOOD_TOML = box_on_ground("tiny", 2, "soft", "dough", "1.5e4")
 
 
 def log_frames(usd_path) -> dict[str, list[int]]:
@@ -400,9 +368,7 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
     text, needles = BAD_TOML[case]
     scene = tmp_path / f"{case}.toml"
     scene.write_text(text)
-    assert main(["run", str(scene), "-o", str(tmp_path / "x.usdc"), "--no-progress"]) == 2
-    out, err = capsys.readouterr()
-    assert_one_line_error(err, f"{case}.toml", *needles)
+    assert_one_line_error(refused_run(capsys, scene, tmp_path / "x.usdc"), f"{case}.toml", *needles)
     assert not (tmp_path / "x.usdc").exists()
 
 

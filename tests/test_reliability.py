@@ -18,6 +18,7 @@ import warp as wp
 from pxr import Sdf, Usd
 
 import warp_esph as we
+from run_files import box_on_ground, frames_in, refused_run
 from warp_esph.checkpoint import read_checkpoint, save_state
 from warp_esph.cli import main
 from warp_esph.scenes import get_scene
@@ -26,26 +27,9 @@ from warp_esph.simulate import DivergenceMonitor, resolve_timestep
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SMALL = ["--scale", "0.3", "--no-progress"]
 
-STIFF_TOML = """
-[scene]
-name = "stiff"
-spacing = 0.05
-frames = 10
-
-[materials.hard]
-preset = "rubber"
-E = {E}
-nu = 0.3
-
-[[bodies]]
-shape = "box"
-material = "hard"
-center = [0.0, 0.15, 0.0]
-size = [0.2, 0.15, 0.2]
-
-[[colliders]]
-type = "ground"
-"""
+def stiff_toml(E) -> str:
+    """A rubber box of Young's modulus ``E`` on the ground, 10 frames."""
+    return box_on_ground("stiff", 10, "hard", "rubber", E)
 
 
 def one_error_line(err: str) -> str:
@@ -53,11 +37,6 @@ def one_error_line(err: str) -> str:
     assert len(lines) == 1 and lines[0].startswith("warp-esph: error: "), err
     assert "Traceback" not in err
     return lines[0]
-
-
-def frames_in(path, prim="/World/dough"):
-    stage = Usd.Stage.Open(Sdf.Layer.OpenAsAnonymous(str(path)))
-    return stage.GetPrimAtPath(prim).GetAttribute("points").GetTimeSamples()
 
 
 # ------------------------------------------------------------------ the divergence monitor
@@ -99,7 +78,7 @@ def test_very_stiff_material_at_a_large_dt_exits_3(tmp_path, capsys):
     """E = 1e9 Pa has a stable step of 1.2e-5 s at 5 cm; at 3.3e-4 s speeds reached 1e9 m/s
     with exit 0."""
     scene = tmp_path / "stiff.toml"
-    scene.write_text(STIFF_TOML.format(E="1e9"))
+    scene.write_text(stiff_toml(E="1e9"))
     status = main(["run", str(scene), "-o", str(tmp_path / "s.usdc"), "--dt", repr(1 / 3000), "--no-progress"])
     line = one_error_line(capsys.readouterr().err)
     assert status == 3 and "'box0'" in line and "step" in line
@@ -217,8 +196,7 @@ def test_counts_beyond_the_machine_name_file_and_key(tmp_path, capsys, extra, ne
     scene = tmp_path / "big.toml"
     body = "" if "bodies" in extra else "\n[[bodies]]\nshape = 'box'\nmaterial = 'dough'\ncenter = [0.0, 0.2, 0.0]\nsize = [0.2, 0.2, 0.2]\n"
     scene.write_text(extra + body)
-    assert main(["run", str(scene), "-o", str(tmp_path / "x.usdc"), "--no-progress"]) == 2
-    line = one_error_line(capsys.readouterr().err)
+    line = one_error_line(refused_run(capsys, scene, tmp_path / "x.usdc"))
     for needle in ["big.toml", *needles]:
         assert needle in line, line
 
@@ -228,9 +206,8 @@ def test_counts_beyond_the_machine_name_file_and_key(tmp_path, capsys, extra, ne
                    (str(10**400), ["'E'", "must be a number, not int 1.000e+400"])])
 def test_overflowing_stiffness_in_a_scene_file_is_one_line(tmp_path, capsys, E, needles):
     scene = tmp_path / "hard.toml"
-    scene.write_text(STIFF_TOML.format(E=E))
-    assert main(["run", str(scene), "-o", str(tmp_path / "x.usdc"), "--no-progress"]) == 2
-    line = one_error_line(capsys.readouterr().err)
+    scene.write_text(stiff_toml(E=E))
+    line = one_error_line(refused_run(capsys, scene, tmp_path / "x.usdc"))
     for needle in needles:
         assert needle in line, line
 
@@ -321,10 +298,10 @@ def test_resume_onto_an_output_that_is_gone_is_one_line(tmp_path, capsys):
 
 def test_resume_refuses_an_edited_scene_file(tmp_path, capsys):
     scene = tmp_path / "box.toml"
-    scene.write_text(STIFF_TOML.format(E="1.5e4").replace("frames = 10", "frames = 2"))
+    scene.write_text(stiff_toml(E="1.5e4").replace("frames = 10", "frames = 2"))
     out = tmp_path / "box.usdc"
     assert main(["run", str(scene), "-o", str(out), "--checkpoint-every", "1", "--no-progress"]) == 0
-    scene.write_text(STIFF_TOML.format(E="1.5e4").replace("frames = 10", "frames = 2").replace("0.15, 0.0]", "0.25, 0.0]"))
+    scene.write_text(stiff_toml(E="1.5e4").replace("frames = 10", "frames = 2").replace("0.15, 0.0]", "0.25, 0.0]"))
     assert main(["run", "--resume", str(out) + ".checkpoint.npz", "--frames", "3", "--no-progress"]) == 2
     assert "written for another scene" in one_error_line(capsys.readouterr().err)
 
@@ -465,8 +442,7 @@ def test_an_hourglass_strength_beyond_its_measured_step_bound_is_refused_by_name
         scene.write_text('[solver]\nhourglass = 1e308\n[scene]\nspacing = 0.05\nframes = 1\n'
                          '[materials.m]\npreset = "dough"\n[[bodies]]\nshape = "box"\ncenter = [0, 0.2, 0]\n'
                          'size = [0.2, 0.2, 0.2]\nmaterial = "m"\n')
-        assert main(["run", str(scene), "--no-progress", "-o", str(tmp_path / "o.usdc")]) == 2
-        err = capsys.readouterr().err
+        err = refused_run(capsys, scene, tmp_path / "o.usdc")
         assert err.count("\n") == 1 and "'hourglass'" in err and "<= 1000" in err, err
 
 
@@ -567,12 +543,11 @@ def test_a_scene_file_body_faster_than_the_step_can_follow_is_one_line_naming_th
     """The scene file's velocity = [1e37, 0, 0] ran and exited 0; now exit 2 before the writer
     replaced the file an earlier run left at the output."""
     scene = tmp_path / "fast.toml"
-    text = STIFF_TOML.format(E=1e5).replace('material = "hard"', 'material = "hard"\nvelocity = [1e37, 0.0, 0.0]')
+    text = stiff_toml(E=1e5).replace('material = "hard"', 'material = "hard"\nvelocity = [1e37, 0.0, 0.0]')
     scene.write_text(text.replace('[[colliders]]\ntype = "ground"\n', ""))  # nothing in the way: it exited 0
     out = tmp_path / "fast.usdc"
     out.write_text("kept")
-    assert main(["run", str(scene), "-o", str(out), "--no-progress"]) == 2
-    line = one_error_line(capsys.readouterr().err)
+    line = one_error_line(refused_run(capsys, scene, out))
     assert f"{scene}: [[bodies]] #1 (shape 'box'): initial velocity of body 'box0'" in line and "1e+37 m/s" in line and "at most" in line
     assert out.read_text() == "kept"
 

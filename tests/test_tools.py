@@ -1674,16 +1674,15 @@ def test_a_tool_smaller_than_the_contacts_margin_is_refused_naming_its_size_and_
     on as if it were not there. A tool smaller in every direction than the contact's margin
     (a thousandth of a spacing) is refused, naming the key that sized it; a tenth of a
     spacing is still taken (it stops the particles in its path, the test above)."""
+    from run_files import refused_run
     from warp_esph import meshes
-    from warp_esph.cli import main
 
     meshes.write_mesh(tmp_path / "cube.obj", *tools.box_mesh((0.1, 0.1, 0.1)))
     scene = tmp_path / "tool.toml"
     scene.write_text('[scene]\nspacing = 0.05\nframes = 1\n[[bodies]]\nshape = "box"\nmaterial = "dough"\n'
                      'center = [0, 0.15, 0]\nsize = [0.2, 0.15, 0.2]\n'
                      '[[tools]]\nshape = "mesh"\nfile = "cube.obj"\nscale = 1e-9\nposition = [0, 0.5, 0]\n')
-    assert main(["run", str(scene), "--no-progress", "-o", str(tmp_path / "t.usdc")]) == 2
-    err = capsys.readouterr().err
+    err = refused_run(capsys, scene, tmp_path / "t.usdc")
     assert err == (f"warp-esph: error: {scene}: [[tools]] #1 (shape 'mesh'): scale = 1e-09 is not allowed for mesh tool "
                    f"'mesh_tool0' of '{tmp_path / 'cube.obj'}': the tool is 2e-10 m across at most, less than 5e-05 m, a "
                    "thousandth of the spacing 0.05 (the contact's margin): the particles pass it by; give a larger scale or "

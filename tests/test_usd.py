@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from pxr import Sdf, Usd, UsdGeom
 
+from run_files import open_fresh
 from warp_esph import Material, SceneBuilder, Solver
 from warp_esph.simulate import SimulationError, resolve_timestep, simulate
 from warp_esph.usd import UsdWriter
@@ -30,13 +31,6 @@ def model():
     b.add_sphere_collider((0.0, -0.5, 1.0), 0.2)
     b.add_box_collider((1.0, -0.5, 0.0), (0.1, 0.2, 0.3))
     return b.finalize()
-
-
-def open_fresh(path) -> Usd.Stage:
-    """Open ``path`` from disk, bypassing any layer of that name cached in this process."""
-    layer = Sdf.Layer.OpenAsAnonymous(str(path))
-    assert layer is not None, f"pxr cannot open {path}"
-    return Usd.Stage.Open(layer)
 
 
 def sampled_frames(stage: Usd.Stage, prim_path: str) -> dict:
