@@ -1695,3 +1695,24 @@ def test_a_tool_smaller_than_the_contacts_margin_is_refused_naming_its_size_and_
         b.add_tool("box", half_extents=(1e-6, 1e-6, 1e-6))
     assert b.add_tool("sphere", radius=1e-3) == "sphere_tool0"  # a tenth of a spacing across
     assert b.add_tool("box", half_extents=(0.1, 1e-6, 0.1)) == "box_tool1"  # a thin plate
+
+
+def test_a_mesh_tool_whose_points_float32_cannot_resolve_the_contacts_margin_is_refused():
+    """Warp's mesh queries are float32: a box mesh modelled 1000 m from its origin (put back
+    by its position) at spacing 0.02 resolves 1.2e-4 m there, six times the contact's margin,
+    and a block landing on it was put the margin inside it in 41 of 400 steps (130 m out:
+    still wrong; 10 km out it ended inside). It is refused, naming the reach, what float32
+    resolves there and the margin; the same mesh about its origin, placed 1000 m out by its
+    position, and one 40 m out are taken."""
+    pts, tri = tools.box_mesh((0.1, 0.05, 0.1))
+    b = we.SceneBuilder(spacing=0.02)
+    with pytest.raises(ValueError, match=r"^mesh \(points, triangles\) is not allowed: its points \(scale 1\) lie up to 1e\+03 m "
+                                         r"from the tool's origin, where float32 \(Warp's mesh queries\) resolves 0\.00012 m, "
+                                         r"more than half the contact's margin 2e-05 m \(a thousandth of the spacing 0\.02\): "
+                                         r"particles that touch it would be put inside it; model the mesh about its origin"):
+        b.add_tool("mesh", mesh=(pts + 1000.0, tri), position=(-1000.0, -1000.0, -1000.0))
+    with pytest.raises(ValueError, match=r"^scale = 1000\.0 is not allowed for mesh \(points, triangles\): it puts the mesh's "
+                                         r"points up to 100 m from the tool's origin, where float32"):
+        b.add_tool("mesh", mesh=(pts, tri), scale=1000.0)
+    assert b.add_tool("mesh", mesh=(pts, tri), position=(1000.0, 0.0, 0.0)) == "mesh_tool0"
+    assert b.add_tool("mesh", mesh=(pts + 40.0, tri), position=(-40.0, -40.0, -40.0)) == "mesh_tool1"

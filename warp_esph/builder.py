@@ -562,8 +562,9 @@ class SceneBuilder:
         below), ``"box"`` (``half_extents``), ``"sphere"`` (``radius``), ``"capsule"`` and
         ``"cylinder"`` (``radius``, ``half_height``, along the tool's y axis) or ``"mesh"``
         (``mesh``: a file meshio or USD reads, or ``(points, triangles)``, closed, in the
-        tool's frame, times ``scale``; ``prim_path`` names a USD file's Mesh prim, as in
-        ``add_mesh``). ``motion``: ``tools.Keyframes``, ``tools.Velocity``
+        tool's frame, times ``scale``, near enough its origin that float32, which Warp's mesh
+        queries use, resolves half the contact's margin at its farthest point (docs/tools.md);
+        ``prim_path`` names a USD file's Mesh prim, as in ``add_mesh``). ``motion``: ``tools.Keyframes``, ``tools.Velocity``
         or ``tools.Scripted``; ``None``: held at ``position`` / ``orientation`` (x, y, z, w).
         ``friction``: kinetic Coulomb coefficient; ``static_friction`` (>= friction;
         default: ``friction``)."""
@@ -630,12 +631,27 @@ class SceneBuilder:
             # distances: a bunny at scale 1e39 became a tool of inf points (a numpy warning
             # only), and the run went on as if it were not there.
             reach, far = float(np.abs(points).max()), math.sqrt(float(np.finfo(np.float32).max))
-            if not reach <= far:
+            # The queries' float32 must also resolve the contact's margin where the particles
+            # meet the mesh: a box mesh modelled 130 m from its origin (placed back by its
+            # position) at spacing 0.02, float64, put a block landing on it the margin inside
+            # it (the inside test's axis rays, run along the top face, hit the side faces' top
+            # edges from within), 1000 m out in 41 of 400 steps, 10 km out in 120 and it ended
+            # there; measured wrong where float32 resolves 0.78 of the margin and coarser, right
+            # at 0.67 (112 m) and finer: refused from a half.
+            margin = tools.CONTACT_MARGIN * self.spacing
+            resolved = reach * float(np.finfo(np.float32).eps)
+            if not (reach <= far and resolved <= 0.5 * margin):
                 label = repr(os.fsdecode(os.fspath(mesh))) if meshes._is_path(mesh) else "(points, triangles)"
                 what = (f"scale = {checks.shorten(scale)!r} is not allowed for mesh {label}: it puts the mesh's points"
                         if s != 1.0 else f"mesh {label} is not allowed: its points (scale 1) lie")
-                raise ValueError(f"{what} up to {reach:.3g} m from the tool's origin; a mesh tool's points must be within "
-                                 f"{far:.3g} m of it (Warp's mesh queries are float32); give a smaller scale")
+                if not reach <= far:
+                    raise ValueError(f"{what} up to {reach:.3g} m from the tool's origin; a mesh tool's points must be "
+                                     f"within {far:.3g} m of it (Warp's mesh queries are float32); give a smaller scale")
+                raise ValueError(f"{what} up to {reach:.3g} m from the tool's origin, where float32 (Warp's mesh queries) "
+                                 f"resolves {resolved:.2g} m, more than half the contact's margin {margin:.2g} m (a thousandth "
+                                 f"of the spacing {self.spacing:g}): particles that touch it would be put inside it; model "
+                                 "the mesh about its origin (its points less their centre, the centre added to position) "
+                                 "or use a larger spacing")
         param = tools.shape_param(kind, normal=normal, half_extents=half_extents, radius=radius, half_height=half_height)
         self._check_tool_size(name, kind, param, points, mesh, scale)
         self.tools.append(tools.Collider(name, kind, param, motion, mu_k, mu_s, points, triangles))
