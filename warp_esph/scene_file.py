@@ -22,7 +22,7 @@ except ModuleNotFoundError:  # Python 3.10: the same parser as the tomli package
         tomllib = None
 
 from . import checks
-from .builder import MAX_FLOOR_LAYERS, SceneBuilder
+from .builder import MAX_FLOOR_LAYERS, MAX_NEIGHBORS, SceneBuilder
 from .material import PRESETS, Material
 from .model import CONTACTS, FITS
 from .sim.neighbors import MIN_NEIGHBORS
@@ -471,6 +471,10 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
     try:
         spacing = checks.positive("spacing", scene.get("spacing", 0.02)) / scale
         support = scene.get("support_radius")
+        wide = scene.get("max_neighbors")
+        if wide is not None and wide > MAX_NEIGHBORS:
+            # The builder would say [1, 1024], but a file cannot go below the Solver's min_neighbors.
+            raise ValueError(f"max_neighbors = {wide} is not allowed: must be an integer in [{MIN_NEIGHBORS}, {MAX_NEIGHBORS}]")
         builder = SceneBuilder(
             spacing=spacing,
             gravity=scene.get("gravity", (0.0, -9.81, 0.0)),
