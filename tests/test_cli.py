@@ -399,6 +399,8 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         (["run", "--hourglass", "inf"], ["--hourglass = 'inf'", "finite number >= 0"]),
         (["fit", "dough_drop", "--target", "t.npz", "--hourglass", "-1"], ["--hourglass = '-1'", ">= 0"]),
         (["run", "--fit-weight", "gauss"], ["--fit-weight = 'gauss'", "'poly6', 'biweight'"]),
+        # The checkpoint reader's parameter was named, not the option: "checkpoint = 'nope.npz'".
+        (["run", "--resume", "nope.npz"], ["--resume = 'nope.npz' is not allowed: no such file"]),
         (["sweep", "dough_drop", "--param", "mu=1:2:linear:2", "--fit-weight", "cubic"], ["--fit-weight = 'cubic'"]),
         # fit's options are checked before its scene and targets are read (here neither exists):
         # --lr 0 and -0.1 used to run the whole L-BFGS fit and exit 0.

@@ -355,6 +355,37 @@ def test_render_command(tmp_path, capsys):
     assert err.startswith("warp-esph: error: ") and "frame 7" in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize("options, message", [
+    (["--zoom", "0"], "--zoom = 0.0 is not allowed: must be in [0.001, 1000.0]"),
+    (["--supersample", "5"], "--supersample = 5 is not allowed: must be 1, 2, 3 or 4"),
+    (["-o", "{d}/a.gif", "--fps", "0"], "--fps = 0.0 is not allowed: must be in [0.01, 1000.0]"),
+    (["--radius-scale", "0"], "--radius-scale = 0.0 is not allowed"),
+    (["--elevation", "95"], "--elevation = 95.0 is not allowed"),
+    (["--azimuth", "nan"], "--azimuth = nan is not allowed"),
+    (["--width", "10"], "--width x --height = 10 x 600 is not allowed"),
+    (["--frames", "7"], "--frames = '7' is not allowed: frame 7 is not in the file"),
+    (["-o", "{d}/a.png", "--fps", "10"], "--fps = 10.0 is not allowed with --output = '{d}/a.png'"),
+    (["-o", "{d}/a.gif", "--columns", "2"], "--columns = 2 is not allowed with --output = '{d}/a.gif'"),
+    (["-o", "{d}/a.obj"], "--output = '{d}/a.obj' is not allowed: the extension must be"),
+])
+def test_render_and_export_refusals_name_the_option_typed(tmp_path, capsys, options, message):
+    """The library's checks named their parameters (``zoom = 0.0``, ``frames = '7'``), which
+    the command does not have; the command names its own options."""
+    from warp_esph.cli import main
+
+    path = tmp_path / "cli.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=2)
+    capsys.readouterr()
+    assert main(["render", str(path), *(o.format(d=tmp_path) for o in options)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("warp-esph: error: " + message.format(d=tmp_path)) and err.count("\n") == 1, err
+    if options[0] == "--frames":
+        assert main(["export", str(path), *options]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("warp-esph: error: " + message) and err.count("\n") == 1, err
+    assert sorted(os.listdir(tmp_path)) == ["cli.usdc"]
+
+
 @pytest.mark.skipif(render_module.ffmpeg_path() is None, reason="ffmpeg is not installed")
 def test_mp4_with_ffmpeg(tmp_path):
     import subprocess

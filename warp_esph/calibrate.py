@@ -136,7 +136,7 @@ def run_fit(args, out=None, err=None) -> int:
     err = sys.stderr if err is None else err
     import warp as wp  # noqa: PLC0415
 
-    from .cli import _parse_bounds, _safe_point  # noqa: PLC0415
+    from .cli import _parse_bounds, _safe_point, option_flag  # noqa: PLC0415
     from .fit import Experiment, FitInterrupted, _material_indices, check_options, fit, load_target  # noqa: PLC0415
     from .scenes import load_scene  # noqa: PLC0415
     from .simulate import resolve_timestep  # noqa: PLC0415
@@ -156,7 +156,7 @@ def run_fit(args, out=None, err=None) -> int:
                          optimizer=_arg(args, "optimizer") or "adam", patience=_arg(args, "patience", 20),
                          samples=_arg(args, "samples", 0), starts=_arg(args, "starts", 1),
                          sample_range=sample_range, seed=seed, noise=_arg(args, "noise"),
-                         memory_limit=memory_limit, flag=lambda name: "--" + name.replace("_", "-"))
+                         memory_limit=memory_limit, flag=option_flag)
     params = opts["params"]
     # Options nothing would read: refused, not ignored (each ran as without it).
     if given_range is not None and opts["samples"] == 0 and opts["starts"] == 1:

@@ -217,12 +217,13 @@ def _check_state_model(model: Model, state: State) -> None:
                          "load_state(path, model))")
 
 
-def read_checkpoint(path) -> tuple[dict, dict[str, np.ndarray]]:
-    """The metadata and arrays of a checkpoint file; ``ValueError`` if it is not one."""
+def read_checkpoint(path, what: str = "checkpoint") -> tuple[dict, dict[str, np.ndarray]]:
+    """The metadata and arrays of a checkpoint file; ``ValueError`` if it is not one, naming the
+    file as ``what`` (the CLI's ``--resume``)."""
     if not isinstance(path, (str, os.PathLike)):  # None, 123: a TypeError from pathlib
         from . import checks  # noqa: PLC0415
 
-        raise ValueError(f"checkpoint = {checks.shorten(path)!r} is not allowed: must be a path")
+        raise ValueError(f"{what} = {checks.shorten(path)!r} is not allowed: must be a path")
     path = pathlib.Path(path)
     try:
         # Our own handle: np.load leaves its file open when the zip is damaged.
@@ -230,24 +231,24 @@ def read_checkpoint(path) -> tuple[dict, dict[str, np.ndarray]]:
             arrays = {k: data[k] for k in data.files}
         meta = json.loads(arrays.pop("meta").tobytes().decode())
     except FileNotFoundError:
-        raise ValueError(f"checkpoint = {str(path)!r} is not allowed: no such file") from None
+        raise ValueError(f"{what} = {str(path)!r} is not allowed: no such file") from None
     # zipfile also raises RuntimeError (a damaged 'encrypted' flag) and NotImplementedError
     # (a damaged compression method): in this block, only reading the file can raise them.
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, json.JSONDecodeError, UnicodeDecodeError,
             RuntimeError, NotImplementedError) as e:
-        raise ValueError(f"checkpoint = {str(path)!r} is not allowed: not a readable warp_esph checkpoint ({type(e).__name__})") from None
+        raise ValueError(f"{what} = {str(path)!r} is not allowed: not a readable warp_esph checkpoint ({type(e).__name__})") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise ValueError(f"checkpoint = {str(path)!r} is not allowed: unknown format {meta.get('format') if isinstance(meta, dict) else None!r}")
+        raise ValueError(f"{what} = {str(path)!r} is not allowed: unknown format {meta.get('format') if isinstance(meta, dict) else None!r}")
     missing = [n for n in State.STATE_FIELDS if n not in arrays and n not in State.OPTIONAL_FIELDS]
     # Every checkpoint of this format holds every material array (MATERIAL_FIELDS has not
     # changed since the first): without one, the model's value resumed without a word.
     missing += [f"material_{n}" for n in Model.MATERIAL_FIELDS if f"material_{n}" not in arrays]
     if missing:
-        raise ValueError(f"checkpoint = {str(path)!r} is not allowed: it lacks {', '.join(missing)}")
+        raise ValueError(f"{what} = {str(path)!r} is not allowed: it lacks {', '.join(missing)}")
     return meta, arrays
 
 
-def load_state(path, model: Model, solver=None) -> tuple[State, dict]:
+def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tuple[State, dict]:
     """A new ``State`` of ``model`` from a checkpoint, and the checkpoint's metadata.
 
     The model's material parameters are set to the checkpoint's. The checkpoint must
@@ -263,7 +264,8 @@ def load_state(path, model: Model, solver=None) -> tuple[State, dict]:
     Where the checkpoint records the settings of the solver that ran (``save_state(...,
     solver=)``), a setting that differs is refused (``ValueError`` naming it and both values):
     the continuation would not be the run it continues. A checkpoint saved without
-    ``solver=`` records none, and is not compared.
+    ``solver=`` records none, and is not compared. ``what``: how a refusal names the file
+    (the CLI's ``--resume``).
     """
     if not isinstance(model, Model):
         from . import checks  # noqa: PLC0415
@@ -271,8 +273,8 @@ def load_state(path, model: Model, solver=None) -> tuple[State, dict]:
         raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be the warp_esph.Model the checkpoint "
                          "resumes")
     _check_solver(model, solver)
-    meta, arrays = read_checkpoint(path)
-    where = f"checkpoint = {str(path)!r} is not allowed"
+    meta, arrays = read_checkpoint(path, what)
+    where = f"{what} = {str(path)!r} is not allowed"
     _check_meta(where, meta)
     if meta["particle_count"] != model.particle_count or meta["bodies"] != [b.name for b in model.bodies]:
         raise ValueError(

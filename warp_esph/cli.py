@@ -54,6 +54,12 @@ def _err(message) -> None:
     print(f"{PROG}: error: {_one_line(message)}", file=sys.stderr)
 
 
+def option_flag(name: str) -> str:
+    """The option a Python parameter is given by (``radius_scale`` -> ``--radius-scale``): the
+    library's checks name their parameters, and a user of the CLI typed the option."""
+    return "--" + name.replace("_", "-")
+
+
 def _show_warning(message, category, filename, lineno, file=None, line=None):
     print(f"{PROG}: warning: {_one_line(message)}", file=sys.stderr)
 
@@ -363,7 +369,7 @@ def _cmd_run(args) -> int:
         if given:
             raise ValueError(f"{given[0]} is not allowed with --resume: the checkpoint's run decides it "
                              f"(give --resume, and --frames to extend the run)")
-        meta, _ = read_checkpoint(args.resume)
+        meta, _ = read_checkpoint(args.resume, "--resume")
         run = meta.get("run", {})
         if not isinstance(run, dict) or not {"scene", "scale", "fps", "dt", "frames", "output", "dtype"} <= run.keys():
             raise ValueError(f"--resume = {args.resume!r} is not allowed: the checkpoint was not written by 'warp-esph run'")
@@ -386,7 +392,7 @@ def _cmd_run(args) -> int:
 
     model = scene.builder.finalize(device=args.device, dtype=args.dtype)
     if args.resume is not None:
-        state, meta = load_state(args.resume, model)
+        state, meta = load_state(args.resume, model, what="--resume")
         start_frame = meta["frame"]
     frames = frames_total - start_frame
     if frames < 1:
@@ -841,7 +847,7 @@ def _cmd_render(args) -> int:
         args.usd, args.output, args.frames, color=args.color, width=args.width, height=args.height,
         supersample=args.supersample, radius_scale=args.radius_scale, azimuth=args.azimuth, elevation=args.elevation,
         zoom=args.zoom, label=not args.no_label, shadows=not args.no_shadows, columns=args.columns, fps=args.fps,
-        fit=args.fit, surfaces=not args.particles, progress=progress,
+        fit=args.fit, surfaces=not args.particles, progress=progress, flag=option_flag,
     )
     what = {"dir": f"{len(result.files)} PNG files in {result.output}", "png": result.output,
             "gif": f"{result.output} ({len(result.frames)} frames)", "mp4": f"{result.output} ({len(result.frames)} frames)"}
@@ -862,7 +868,7 @@ def _cmd_export(args) -> int:
     folder = args.output if args.output is not None else f"{os.path.abspath(args.usd)}_{args.format}"
     checks.output_place("--output", folder, folder=True)
     _arm(args)
-    files = export_frames(args.usd, args.format, folder, frames=args.frames)
+    files = export_frames(args.usd, args.format, folder, frames=args.frames, flag=option_flag)
     frames = len(files) - (1 if args.format == "vtu" else 0)
     extra = " and frames.pvd (open it in ParaView)" if args.format == "vtu" else ""
     print(f"wrote {frames} .{args.format} files{extra} to {folder}")

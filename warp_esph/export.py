@@ -77,23 +77,25 @@ def frame_arrays_to_mesh(arrays: dict, fmt: str):
     return meshio.Mesh(pts, cells, point_data=data)
 
 
-def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None) -> list[str]:
+def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, flag=None) -> list[str]:
     """Write ``frames`` (see ``usd.parse_frames``; default all) of ``usd_path`` as ``fmt``
     (``vtu`` or ``ply``) files into ``output_dir`` (created); returns the files written. A file
     that cannot be written raises ``ExportWriteError`` (an ``OSError``) naming it; the files
-    written before stay whole, and ``frames.pvd`` lists them where it can still be written."""
+    written before stay whole, and ``frames.pvd`` lists them where it can still be written.
+    ``flag(name)``: how a refusal names the option ``name`` (the CLI's ``--frames``)."""
     import meshio  # noqa: PLC0415
 
     from . import checks  # noqa: PLC0415
     from .usd import UsdFrames, parse_frames  # noqa: PLC0415
 
-    fmt = checks.choice("format", fmt, EXPORT_FORMATS)
+    flag = flag or (lambda name: name)
+    fmt = checks.choice(flag("format"), fmt, EXPORT_FORMATS)
     if progress is not None and not callable(progress):  # 5 failed after the first frame was written
         raise ValueError(f"progress = {progress!r} is not allowed: must be callable as progress(k, n)")
-    out = checks.output_place("output", output_dir, folder=True)
+    out = checks.output_place(flag("output"), output_dir, folder=True)
     data = UsdFrames(usd_path)
     # One file per frame: a frame asked for twice was written once and counted twice.
-    chosen = list(dict.fromkeys(parse_frames(frames, data.frames)))
+    chosen = list(dict.fromkeys(parse_frames(frames, data.frames, flag("frames"))))
     os.makedirs(out, exist_ok=True)
     files = []
 

@@ -467,14 +467,19 @@ def _machine_memory() -> int | None:
         return None
 
 
-def _check_pixels(o: "RenderOptions") -> None:
+def _same_name(name: str) -> str:
+    return name
+
+
+def _check_pixels(o: "RenderOptions", flag=_same_name) -> None:
     """Refuse a picture whose drawing would not fit in the machine's memory, before it is
     drawn: measured at about 185 B a supersampled pixel (rays, z-buffers, normals, colours),
     8192 x 8192 at supersample 2 needed some 50 GiB and was killed part way."""
     pixels = o.width * o.height * o.supersample**2
     need, have = pixels * BYTES_PER_PIXEL, _machine_memory()
     if have is not None and need > have:
-        raise ValueError(f"width x height = {o.width} x {o.height} at supersample = {o.supersample} is not allowed on "
+        raise ValueError(f"{flag('width')} x {flag('height')} = {o.width} x {o.height} at {flag('supersample')} = "
+                         f"{o.supersample} is not allowed on "
                          f"this machine: its {pixels:.3g} pixels (supersampled) need about {need / 2**30:.3g} GiB "
                          f"({BYTES_PER_PIXEL} B a pixel), more than its {have / 2**30:.3g} GiB; use a smaller picture or "
                          f"supersample")
@@ -494,33 +499,38 @@ class RenderOptions:
     label: bool = True
     shadows: bool = True
     surfaces: bool = True
+    #: How a refusal names an option (``flag("radius_scale")``): the CLI passes its own
+    #: (``--radius-scale``), so a message names what the user typed; not kept.
+    flag: dataclasses.InitVar[object] = None
 
-    def __post_init__(self):
-        self.width = checks.positive_int("width", self.width)
-        self.height = checks.positive_int("height", self.height)
+    def __post_init__(self, flag=None):
+        flag = flag or _same_name
+        self.width = checks.positive_int(flag("width"), self.width)
+        self.height = checks.positive_int(flag("height"), self.height)
         if not (16 <= self.width <= 8192 and 16 <= self.height <= 8192):
-            raise ValueError(f"width x height = {self.width} x {self.height} is not allowed: each must be in [16, 8192]")
-        checks.choice("color", self.color, COLOR_MODES)
-        self.supersample = checks.positive_int("supersample", self.supersample)
+            raise ValueError(f"{flag('width')} x {flag('height')} = {self.width} x {self.height} is not allowed: "
+                             "each must be in [16, 8192]")
+        checks.choice(flag("color"), self.color, COLOR_MODES)
+        self.supersample = checks.positive_int(flag("supersample"), self.supersample)
         if self.supersample > 4:
-            raise ValueError(f"supersample = {self.supersample!r} is not allowed: must be 1, 2, 3 or 4")
+            raise ValueError(f"{flag('supersample')} = {self.supersample!r} is not allowed: must be 1, 2, 3 or 4")
         # Beyond these a particle is far below a pixel or covers the picture; 1e300 overflowed
         # the float32 radii and failed as 'cannot convert float NaN to integer'.
-        self.radius_scale = checks.in_range("radius_scale", self.radius_scale, 1e-3, 1e3)
+        self.radius_scale = checks.in_range(flag("radius_scale"), self.radius_scale, 1e-3, 1e3)
         # Beyond these the camera stands inside the scene or so far that it is one pixel, and
         # its distance overflowed (1e308) or its picture's size did (1e-308).
-        self.zoom = checks.in_range("zoom", self.zoom, 1e-3, 1e3)
+        self.zoom = checks.in_range(flag("zoom"), self.zoom, 1e-3, 1e3)
         if not isinstance(self.surfaces, bool):
-            raise ValueError(f"surfaces = {self.surfaces!r} is not allowed: must be True or False")
-        self.fov = checks.positive("fov", self.fov)
+            raise ValueError(f"{flag('surfaces')} = {self.surfaces!r} is not allowed: must be True or False")
+        self.fov = checks.positive(flag("fov"), self.fov)
         if not self.fov < 170:
-            raise ValueError(f"fov = {self.fov!r} is not allowed: must be in (0, 170) degrees")
+            raise ValueError(f"{flag('fov')} = {self.fov!r} is not allowed: must be in (0, 170) degrees")
         for name in ("azimuth", "elevation"):
             value = getattr(self, name)
             if value is not None:
-                setattr(self, name, checks.number(name, value))
+                setattr(self, name, checks.number(flag(name), value))
         if self.elevation is not None and not -89.0 <= self.elevation <= 89.0:
-            raise ValueError(f"elevation = {self.elevation!r} is not allowed: must be in [-89, 89] degrees")
+            raise ValueError(f"{flag('elevation')} = {self.elevation!r} is not allowed: must be in [-89, 89] degrees")
 
 
 class Renderer:
@@ -1021,14 +1031,15 @@ def _font(size: int):
 
 
 # ----------------------------------------------------------------------------- frames / output
-def output_kind(output) -> str:
-    """'png', 'gif', 'mp4' or 'dir' from an output name (no extension: a folder)."""
+def output_kind(output, what: str = "output") -> str:
+    """'png', 'gif', 'mp4' or 'dir' from an output name (no extension: a folder); ``what``
+    names it in a refusal."""
     name = os.fspath(output)
     ext = os.path.splitext(name)[1].lower()
     if not ext or name.endswith(os.sep):
         return "dir"
     if ext not in OUTPUT_EXTENSIONS:
-        raise ValueError(f"output = {name!r} is not allowed: the extension must be one of {', '.join(OUTPUT_EXTENSIONS)}, "
+        raise ValueError(f"{what} = {name!r} is not allowed: the extension must be one of {', '.join(OUTPUT_EXTENSIONS)}, "
                          f"or no extension for a folder of PNG frames")
     return ext[1:]
 
@@ -1062,17 +1073,17 @@ def _sheet(images: list[Image.Image], columns: int) -> Image.Image:
 GIF_MIN_FRAME_MS = 20
 
 
-def gif_durations(count: int, fps: float) -> list[int]:
+def gif_durations(count: int, fps: float, what: str = "fps") -> list[int]:
     """Each GIF frame's duration (ms) for playback at ``fps``: a GIF stores centiseconds, so
     one duration for all (33 ms at 30 fps, stored 30) played 11 % fast; the frames' ends
     rounded to 10 ms instead keep the rate on average (30, 40, 30, ...). Above 50 fps a
     frame would be shorter than ``GIF_MIN_FRAME_MS``: it plays at 50 fps, and a warning
-    says so (an .mp4 keeps any rate)."""
+    says so (an .mp4 keeps any rate); ``what`` names the rate in it."""
     import warnings  # noqa: PLC0415
 
     frame_ms = 1000.0 / fps
     if frame_ms < GIF_MIN_FRAME_MS:
-        warnings.warn(f"fps = {fps:g}: a GIF's frames last at least {GIF_MIN_FRAME_MS} ms, so it plays at "
+        warnings.warn(f"{what} = {fps:g}: a GIF's frames last at least {GIF_MIN_FRAME_MS} ms, so it plays at "
                       f"{1000.0 / GIF_MIN_FRAME_MS:g} fps, {1000.0 / GIF_MIN_FRAME_MS / fps:.2f} x the rate asked "
                       "(write .mp4 to keep it)", RuntimeWarning, stacklevel=3)
         return [GIF_MIN_FRAME_MS] * count
@@ -1106,7 +1117,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
                supersample: int = 2, radius_scale: float = 1.0, azimuth: float | None = None,
                elevation: float | None = None, zoom: float = 1.0, fov: float = 30.0, label: bool = True,
                shadows: bool = True, columns: int | None = None, fps: float | None = None, fit: str = "all",
-               surfaces: bool = True, progress=None) -> RenderResult:
+               surfaces: bool = True, progress=None, flag=None) -> RenderResult:
     """Render frames of a ``UsdWriter`` file.
 
     ``output``: a folder (no extension; PNG per frame, ``frame_00012.png``), a ``.png``
@@ -1118,43 +1129,45 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     ``"each"`` frames every picture on its own (the same view direction, its own
     distance). ``surfaces``: draw a body's surface mesh (``warp-esph run --surface``) instead
     of its particles where the file holds one (``False``: always particles). ``progress(k, n)``
-    is called after each frame.
+    is called after each frame. ``flag(name)``: how a refusal names the option ``name``
+    (default: the parameter's name; the CLI's ``--radius-scale`` for ``radius_scale``).
     """
+    flag = flag or _same_name
     data = UsdFrames(path)
     if output is None:
         output = data.path + ".png"  # the whole name: a.usdc and a.usda must not share a.png
     if not isinstance(output, (str, os.PathLike)):  # 123: a TypeError before
-        raise ValueError(f"output = {output!r} is not allowed: must be a path")
+        raise ValueError(f"{flag('output')} = {output!r} is not allowed: must be a path")
     out = os.fspath(output)
     if progress is not None and not callable(progress):  # 5 failed after the first frame was written
         raise ValueError(f"progress = {progress!r} is not allowed: must be callable as progress(k, n)")
-    kind = output_kind(out)
+    kind = output_kind(out, flag("output"))
     if kind == "mp4" and ffmpeg_path() is None:
-        raise ValueError(f"output = {out!r} is not allowed: writing .mp4 needs the ffmpeg program, which is not on "
+        raise ValueError(f"{flag('output')} = {out!r} is not allowed: writing .mp4 needs the ffmpeg program, which is not on "
                          f"this machine's PATH (install it, e.g. 'apt-get install ffmpeg', or pip install 'warp-esph[mp4]'); write a .gif or a folder "
                          f"of PNG frames instead")
     # Options of another kind of output: refused, not ignored (a .png took --fps, a .gif
     # --columns, and drew as without them).
     if fps is not None and kind not in ("gif", "mp4"):
-        raise ValueError(f"fps = {fps!r} is not allowed with output = {out!r}: it is the playback rate of a .gif or "
+        raise ValueError(f"{flag('fps')} = {fps!r} is not allowed with {flag('output')} = {out!r}: it is the playback rate of a .gif or "
                          f".mp4, and {'a folder of PNG frames' if kind == 'dir' else 'a .png'} has none")
     if columns is not None and kind != "png":
-        raise ValueError(f"columns = {columns!r} is not allowed with output = {out!r}: it lays several frames out "
+        raise ValueError(f"{flag('columns')} = {columns!r} is not allowed with {flag('output')} = {out!r}: it lays several frames out "
                          f"side by side in one .png, and a {'folder' if kind == 'dir' else '.' + kind} holds them "
                          f"one after another")
     if frames is None and kind == "png":
         frames = "last"
-    chosen = parse_frames(frames, data.frames)
+    chosen = parse_frames(frames, data.frames, flag("frames"))
     if kind == "dir":  # one picture per frame (a GIF, MP4 or sheet may repeat a frame on purpose)
         chosen = list(dict.fromkeys(chosen))
     options = RenderOptions(width=width, height=height, color=color, supersample=supersample, radius_scale=radius_scale,
                             azimuth=azimuth, elevation=elevation, zoom=zoom, fov=fov, label=label, shadows=shadows,
-                            surfaces=surfaces)
+                            surfaces=surfaces, flag=flag)
     # A GIF frame lasts at most 655.35 s and an MP4's rate must be one ffmpeg can hold:
     # 1e-9 fps ended in an OverflowError inside the GIF writer.
-    playback = checks.in_range("fps", fps, FPS_RANGE[0], FPS_RANGE[1]) if fps is not None else data.fps
+    playback = checks.in_range(flag("fps"), fps, FPS_RANGE[0], FPS_RANGE[1]) if fps is not None else data.fps
     if columns is not None:
-        columns = checks.positive_int("columns", columns)
+        columns = checks.positive_int(flag("columns"), columns)
     sheet_columns = min(columns or 4, len(chosen))
     if kind == "png" and len(chosen) > 1:
         # One picture holds them all: refused before drawing where it would not fit in memory
@@ -1162,25 +1175,25 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
         rows = math.ceil(len(chosen) / sheet_columns)
         size = (sheet_columns * options.width, rows * options.height)
         if size[0] * size[1] > MAX_SHEET_PIXELS:
-            raise ValueError(f"frames = {frames!r} is not allowed in one .png: {len(chosen)} frames of {options.width} x "
+            raise ValueError(f"{flag('frames')} = {frames!r} is not allowed in one .png: {len(chosen)} frames of {options.width} x "
                              f"{options.height} in {sheet_columns} columns make a {size[0]} x {size[1]} picture, more than "
                              f"{MAX_SHEET_PIXELS:.0e} pixels; choose fewer frames, or write a folder, a .gif or an .mp4")
-    _check_pixels(options)
+    _check_pixels(options, flag)
     if kind == "gif":
         # Every frame is held until the file is written (RGB, then its palette copy): 10000
         # frames of 800 x 600 asked 19 GiB, after all of them had been drawn.
         need, have = len(chosen) * options.width * options.height * 4, _machine_memory()
         if have is not None and need > have:
-            raise ValueError(f"frames = {checks.shorten(frames)!r} is not allowed in one .gif: {len(chosen)} frames of "
+            raise ValueError(f"{flag('frames')} = {checks.shorten(frames)!r} is not allowed in one .gif: {len(chosen)} frames of "
                              f"{options.width} x {options.height} are held together until it is written, about "
                              f"{need / 2**30:.3g} GiB, more than this machine's {have / 2**30:.3g} GiB; choose fewer frames "
                              f"or a smaller picture, or write a folder or an .mp4")
     # Before any frame is drawn: a folder in the way, or a place that takes no file.
-    checks.output_place("output", out, folder=kind == "dir")
+    checks.output_place(flag("output"), out, folder=kind == "dir")
     if kind == "dir":
         os.makedirs(out, exist_ok=True)
 
-    checks.choice("fit", fit, ("all", "each"))
+    checks.choice(flag("fit"), fit, ("all", "each"))
     t0 = time.perf_counter()
     renderer = Renderer(data, chosen, options)
     shared_range = renderer.color_range
@@ -1239,7 +1252,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
         elif kind == "gif":
             pal = [im.quantize(colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE) for im in images]
             with checks.replaced_atomically(out) as part:
-                pal[0].save(part, format="GIF", save_all=True, append_images=pal[1:], duration=gif_durations(len(pal), playback),
+                pal[0].save(part, format="GIF", save_all=True, append_images=pal[1:], duration=gif_durations(len(pal), playback, flag("fps") if fps is not None else "the file's fps"),
                             loop=0, optimize=False, disposal=1)
             files.append(out)
     except OSError as e:

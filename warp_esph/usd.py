@@ -1253,11 +1253,11 @@ class UsdFrames:
         return lo, hi
 
 
-def parse_frames(spec, available: list[int]) -> list[int]:
+def parse_frames(spec, available: list[int], what: str = "frames") -> list[int]:
     """Frame indices from a spec: ``all``, ``first``, ``last``, ``N``, ``-N`` (from the end),
     ``A:B`` or ``A:B:STEP`` (B inclusive, either may be left out), or a comma list of those;
     or any other iterable of frame numbers (a range, a 1-D numpy array, an iterator; not a
-    nested list or a 2-D array)."""
+    nested list or a 2-D array). ``what``: how a refusal names the spec (the CLI's ``--frames``)."""
     if spec is None:
         return list(available)
     if isinstance(spec, np.ndarray) and spec.ndim == 0:
@@ -1289,7 +1289,7 @@ def parse_frames(spec, available: list[int]) -> list[int]:
                        if not isinstance(v, (str, bytes)) and hasattr(v, "__iter__")
                        and not (isinstance(v, np.ndarray) and v.ndim == 0)), None)
         if nested is not None:
-            raise ValueError(f"frames = {checks.shorten(shown)!r} is not allowed: its entry {checks.shorten(nested)!r} is itself "
+            raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: its entry {checks.shorten(nested)!r} is itself "
                              "a sequence (a nested list or a 2-D array); frames must be frame numbers, a range or 'all', "
                              "e.g. [0, 30, 60], range(0, 61, 5), '0:60:5' or 'all'")
     else:
@@ -1299,7 +1299,7 @@ def parse_frames(spec, available: list[int]) -> list[int]:
     if isinstance(spec, (list, tuple)):
         spec = ",".join(str(s) for s in spec)
     if not isinstance(spec, str) or not spec.strip():
-        raise ValueError(f"frames = {checks.shorten(shown)!r} is not allowed: give e.g. 'all', 'last', '10', '0:60:5' or '0,30,60'")
+        raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: give e.g. 'all', 'last', '10', '0:60:5' or '0,30,60'")
     first, last = available[0], available[-1]
     have = set(available)
 
@@ -1333,14 +1333,14 @@ def parse_frames(spec, available: list[int]) -> list[int]:
                 out.append(one(p))
         except ValueError:
             raise ValueError(
-                f"frames = {checks.shorten(shown)!r} is not allowed: {part!r} is not 'all', 'first', 'last', N, -N, A:B or A:B:STEP"
+                f"{what} = {checks.shorten(shown)!r} is not allowed: {part!r} is not 'all', 'first', 'last', N, -N, A:B or A:B:STEP"
             ) from None
     missing = [f for f in out if f not in have]
     if missing and missing[0] < 0:  # -N counted back past the first frame
-        raise ValueError(f"frames = {checks.shorten(shown)!r} is not allowed: it counts back past the first frame (the file holds "
+        raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: it counts back past the first frame (the file holds "
                          f"{first}..{last}, so -1 to -{last + 1 - first})")
     if missing:
-        raise ValueError(f"frames = {checks.shorten(shown)!r} is not allowed: frame {missing[0]} is not in the file (it holds {first}..{last})")
+        raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: frame {missing[0]} is not in the file (it holds {first}..{last})")
     if not out:
-        raise ValueError(f"frames = {checks.shorten(shown)!r} is not allowed: it selects no frame of the file (it holds {first}..{last})")
+        raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: it selects no frame of the file (it holds {first}..{last})")
     return out
