@@ -775,6 +775,24 @@ def test_a_target_body_or_a_force_log_the_target_cannot_serve_is_refused_by_name
         load_target(log)
 
 
+@pytest.mark.parametrize("positions", [(1, 60, 3), (60, 3), (2, 60, 3)])
+def test_a_target_of_another_particle_count_is_told_so_before_its_frames(tmp_path, capsys, dough_scene, positions):
+    """An .npz of one frame and no 'frames' holds frame 0 only: (1, 60, 3) positions for the
+    64-particle scene were refused as 'the targets hold only frame 0', never told the count
+    was wrong, while (60, 3) got the count; each is now refused for its count first."""
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
+    np.savez(tmp_path / "t.npz", positions=np.zeros(positions))
+    capsys.readouterr()
+    assert main(["fit", str(guess), "--target", str(tmp_path / "t.npz"), "--no-progress",
+                 "--output-dir", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "t.npz has 60 particles per frame, the scene 64: use the scene" in err, err
+    assert not (tmp_path / "out").exists()
+
+
 def test_fit_frames_beyond_a_rollout_are_refused_by_the_option(tmp_path, capsys, dough_scene):
     """A frame count whose steps no rollout can take was refused as 'steps = ...', an
     option the command does not have."""

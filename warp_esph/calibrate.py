@@ -559,6 +559,9 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     substeps, dt = resolve_timestep(model, fps, dt=dt if dt is not None else scene.dt)
     shown = [f for t in file_targets for f in (t.frames or [])]
     shown += [f for kind, _, t in loaded if kind == "silhouette" for f in t[2] if f is not None]
+    for t in file_targets:
+        # Before the frames: a file of the wrong size is refused for that, whatever it holds.
+        t.check_particle_count(model)
     if spec.get("frames") is None and shown and max(shown) < 1:
         # It blamed --frames, which was not given.
         raise ValueError(f"{where}--target-frames = {tframes[0] if tframes else 0!r} is not allowed: the targets hold "

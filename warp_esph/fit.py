@@ -1636,6 +1636,28 @@ class Target:
             raise ValueError(f"target body {self.body!r} is not allowed: the scene's bodies are {', '.join(names)}")
         return np.arange(b.start, b.start + b.count)
 
+    def _read_as_cloud(self, model: Model) -> bool:
+        # One (M, 3) .npy array of another size: a point cloud, not particle positions (a
+        # .npz holds 'positions', which are the particles' whatever their number).
+        return (self.kind == "positions" and str(self.path).lower().endswith(".npy") and np.asarray(self.data).shape[0] == 1
+                and np.asarray(self.data).shape[1] != model.particle_count)
+
+    def check_particle_count(self, model: Model) -> None:
+        """Refuse particle positions of another count than the scene's (or ``body``'s): said
+        first, as what is wrong with the file, before what its frames can tell (an .npz of one
+        frame and no 'frames' was refused as 'only frame 0', never told its count was wrong)."""
+        if self.kind != "positions" or self._read_as_cloud(model):
+            return
+        pos = np.asarray(self.data)
+        if self.body is not None:
+            count = len(self.particles(model))
+            if pos.shape[1] != count:
+                raise ValueError(f"target {self.path} has {pos.shape[1]} particles of body {self.body!r} per frame, the scene "
+                                 f"{count}: use the scene and --scale the run was made with")
+        elif pos.shape[1] != model.particle_count:
+            raise ValueError(f"target {self.path} has {pos.shape[1]} particles per frame, the scene {model.particle_count}: "
+                             f"use the scene and --scale the target was made with")
+
     def loss(self, model: Model, frame_steps: Mapping[int, int], radius: float | None = None, mode: str = "surface") -> Loss:
         """The loss for ``model``: ``frame_steps`` maps each rendered frame to its step."""
         steps = [frame_steps[f] for f in sorted(frame_steps)]
@@ -1652,26 +1674,18 @@ class Target:
                                  f"{', '.join(static) or 'none'}")
             chosen = [f for f in sorted(frame_steps) if f > 0]
             return ReactionForceLoss.from_csv(self.path, self.tool, frame_steps, frames=chosen)
+        self.check_particle_count(model)
         if self.kind == "positions" and self.body is not None:
             idx = self.particles(model)
             pos = np.asarray(self.data)
-            if pos.shape[1] != len(idx):
-                raise ValueError(f"target {self.path} has {pos.shape[1]} particles of body {self.body!r} per frame, the scene "
-                                 f"{len(idx)}: use the scene and --scale the run was made with")
             keep = [k for k, f in enumerate(self.frames) if f != 0]
             if not keep:
                 raise ValueError(f"target {self.path} holds only frame 0 (the initial state), which says nothing about the material")
             return PositionLoss({frame_steps[self.frames[k]]: pos[k] for k in keep}, particles=idx)
-        if (self.kind == "positions" and str(self.path).lower().endswith(".npy") and np.asarray(self.data).shape[0] == 1
-                and np.asarray(self.data).shape[1] != model.particle_count):
-            # One (M, 3) .npy array of another size: a point cloud, not particle positions (a
-            # .npz holds 'positions', which are the particles' whatever their number).
+        if self._read_as_cloud(model):
             self.kind, self.data = "points", _cloud(self.path, np.asarray(self.data)[0])
         if self.kind == "positions":
             pos = np.asarray(self.data)
-            if pos.shape[1] != model.particle_count:
-                raise ValueError(f"target {self.path} has {pos.shape[1]} particles per frame, the scene {model.particle_count}: "
-                                 f"use the scene and --scale the target was made with")
             if self.bodies is not None:
                 # Particles are compared by order: a scene listing the run's bodies in another
                 # order (or other bodies of the same total) compared one body's run with another's.
