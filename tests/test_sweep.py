@@ -175,6 +175,31 @@ def test_a_ray_address_where_nothing_answers_is_refused_at_once(capsys, tmp_path
     assert not (tmp_path / "sw").exists()
 
 
+def test_ray_auto_without_a_cluster_says_what_the_command_takes(capsys, tmp_path, monkeypatch):
+    """Ray's refusal of 'auto' with no cluster running advises its own command line's
+    '`--address` flag', which warp-esph has not; the line says what --ray takes instead.
+    Ray's own error is raised without starting anything."""
+    ray = pytest.importorskip("ray")
+    from warp_esph.cli import main
+
+    def no_cluster(*args, **kwargs):
+        raise ConnectionError("Could not find any running Ray instance. Please specify the one to connect to by setting "
+                              "the `--address` flag or `RAY_ADDRESS` environment variable.")
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", no_cluster)
+    status = main(["sweep", "dough_drop", "--param", "yield_stress=100,1000", "--scale", "0.3", "--frames", "1",
+                   "--ray", "auto", "--no-progress", "-o", str(tmp_path / "sw")])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warp-esph: error: ")]
+    assert status == 2 and len(err) == 1, err
+    assert "--address" not in err[0], err
+    assert err[0].endswith("--ray auto is not allowed: cannot connect to a Ray cluster there: Could not find any running "
+                           "Ray instance; give --ray HOST:PORT or ray://HOST:PORT of a running cluster, or with --ray auto "
+                           "start one on this machine first ('ray start --head') or name its address in the RAY_ADDRESS "
+                           "environment variable"), err
+    assert not (tmp_path / "sw").exists()
+
+
 # ------------------------------------------------------------------ the command
 def test_energy_blow_up_check_is_ten_times_the_energy_scale():
     """``_blew_up`` on an end state: at rest and in place, the energy grew by 0.5 M u^2 for

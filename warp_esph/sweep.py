@@ -37,6 +37,7 @@ import json
 import math
 import multiprocessing
 import os
+import re
 import sys
 import time
 import warnings
@@ -740,8 +741,15 @@ def _ray_map(fn, items, address, on_result, on_error, resources):
         try:
             ray.init(address=address, include_dashboard=False, log_to_driver=False)
         except (ConnectionError, ValueError, RuntimeError) as e:
-            raise ValueError(f"--ray {address} is not allowed: cannot connect to a Ray cluster there: "
-                             f"{_one_line(e)}") from None
+            why = _one_line(e)
+            if "--address" in why:
+                # Ray's advice is for its own command line ('the `--address` flag or RAY_ADDRESS'):
+                # warp-esph has no --address; say what the command takes instead.
+                why = re.sub(r"\s*[^.]*--address[^.]*\.?", "", why).strip()
+                why = (f"{why.rstrip('.')}; give --ray HOST:PORT or ray://HOST:PORT of a running cluster, or with "
+                       "--ray auto start one on this machine first ('ray start --head') or name its address in the "
+                       "RAY_ADDRESS environment variable")
+            raise ValueError(f"--ray {address} is not allowed: cannot connect to a Ray cluster there: {why}") from None
         started = True
     try:
         # Not retried: Ray ran a sample whose worker died (a crash in native code, out of memory)
