@@ -793,6 +793,22 @@ def test_a_target_of_another_particle_count_is_told_so_before_its_frames(tmp_pat
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("dt, message", [("0", "--dt = 0.0 is not allowed: must be > 0"),
+                                         ("0.0007", "--dt = 0.0007 is not allowed: a frame (1/fps = 0.0333333 s) must be")])
+def test_fit_dt_is_refused_by_the_option(tmp_path, capsys, dough_scene, dt, message):
+    """The step's check named its parameter, 'dt = 0.0', which the command does not have."""
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
+    np.savez(tmp_path / "t.npz", positions=np.zeros((64, 3)))
+    capsys.readouterr()
+    assert main(["fit", str(guess), "--target", str(tmp_path / "t.npz"), "--dt", dt, "--no-progress",
+                 "--output-dir", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"warp-esph: error: {message}"), err
+
+
 def test_fit_frames_beyond_a_rollout_are_refused_by_the_option(tmp_path, capsys, dough_scene):
     """A frame count whose steps no rollout can take was refused as 'steps = ...', an
     option the command does not have."""

@@ -381,7 +381,9 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         (["run", "no_such_scene"], ["'no_such_scene'", "dough_drop"]),
         (["run", "dough_drp"], ["did you mean 'dough_drop'"]),
         (["run", "--dt", "-1"], ["--dt", "-1"]),
-        (["run", "--dt", "0.0007"], ["dt = 0.0007", "whole number"]),
+        # The step's check named its parameter ('dt = 0.0007 ... leave dt out'), not the option.
+        (["run", "--dt", "0.0007"], ["--dt = 0.0007", "whole number", "or leave --dt out"]),
+        (["run", "dough_drop", "--fps", "1e9"], ["--fps = 1000000000.0 is not allowed: must be at most"]),
         (["run", "--frames", "0"], ["--frames", "0"]),
         (["run", "--frames", "many"], ["--frames", "many"]),
         (["run", "--scale", "0"], ["--scale"]),

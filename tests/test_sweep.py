@@ -313,7 +313,7 @@ def test_cli_solver_options_override_the_scene_files(scene_file, tmp_path, capsy
     # Named as the command's other options are (it said 'max_samples = 0').
     (["--param", "yield_stress=10:100:log:2", "--max-samples", "0"], ["--max-samples = 0 is not allowed: must be an integer >= 1"]),
     (["--param", "yield_stress=10:100:log:2", "--frames", "2", "--duration", "1"], ["--duration", "--frames"]),
-    (["--param", "yield_stress=10:100:log:2", "--dt", "0.007"], ["dt = 0.007", "whole number of steps"]),
+    (["--param", "yield_stress=10:100:log:2", "--dt", "0.007"], ["--dt = 0.007", "whole number of steps", "leave --dt out"]),
     (["--param", "yield_stress=10:100:log:2", "--duration", "1e300"], ["--duration = 1e+300", "more than the 1e+10 steps"]),
     (["--param", "mu=1e-320:1:log:3"], ["mu", "LO = 1e-320", "log scale LO >= 2.23e-308"]),
     (["--param", "yield_stress=10:100:log:2", "--duration", "1", "--fps", "1e12"], ["--fps = 1000000000000.0", "at most 1e+06"]),

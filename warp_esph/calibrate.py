@@ -556,7 +556,10 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                              f"if the log was recorded at {t.fps:g} fps, give {flag} {t.fps:g}")
     fps = rate
     dt = spec.get("dt")
-    substeps, dt = resolve_timestep(model, fps, dt=dt if dt is not None else scene.dt)
+    given = {"fps": spec.get("fps") is not None, "dt": dt is not None}
+    # An experiment's keys are named as written in its file, the command's as its options.
+    substeps, dt = resolve_timestep(model, fps, dt=dt if dt is not None else scene.dt,
+                                    flag=lambda name: (name if where else f"--{name}") if given.get(name) else name)
     shown = [f for t in file_targets for f in (t.frames or [])]
     shown += [f for kind, _, t in loaded if kind == "silhouette" for f in t[2] if f is not None]
     for t in file_targets:

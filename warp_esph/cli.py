@@ -401,10 +401,17 @@ def _cmd_run(args) -> int:
                              f"frame {start_frame}; give more frames than that to extend the run")
         raise ValueError(f"--resume = {args.resume!r} is not allowed: that run finished all {frames_total} frames")
     adaptive = dt == "auto"
+
+    def flag(name):
+        # The option where the value is the one typed (a resumed run's are its checkpoint's).
+        return option_flag(name) if args.resume is None and getattr(args, name, None) is not None else name
+
     try:
-        substeps, dt_shown = resolve_timestep(model, fps) if adaptive else resolve_timestep(model, fps, dt=dt)
+        substeps, dt_shown = (resolve_timestep(model, fps, flag=flag) if adaptive else
+                              resolve_timestep(model, fps, dt=dt, flag=flag))
     except ValueError as e:
-        if args.dt is None and args.resume is None and str(args.scene).lower().endswith(".toml"):
+        if (args.dt is None and args.resume is None and str(args.scene).lower().endswith(".toml")
+                and not str(e).startswith("--")):  # an option typed is named as such, not as the file's
             raise ValueError(f"{args.scene}: [scene] {e}") from None  # the file's dt and fps: name the file
         raise
     if not adaptive:

@@ -258,23 +258,25 @@ def _driven_motion(motion):
 
 
 def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = None, dt: float | None = None,
-                     hourglass: float | None = None) -> tuple[int, float]:
+                     hourglass: float | None = None, flag=None) -> tuple[int, float]:
     """``(substeps, dt)`` with ``substeps * dt = 1 / fps``.
 
     Give at most one of ``substeps`` and ``dt``. With neither, ``dt`` is the model's
     stable step (``model.stable_dt(hourglass=hourglass)``: None, the model's hourglass
     control) rounded down so that a whole number of steps fills a frame. A given ``dt`` must divide ``1 / fps`` into a whole number of steps
-    (to 1e-6 relative).
+    (to 1e-6 relative). ``flag(name)``: how a refusal names ``fps``, ``dt`` or ``substeps``
+    (the CLI's ``--dt`` where the value is the option's).
     """
-    fps = checks.positive("fps", fps)
+    flag = flag or (lambda name: name)
+    fps = checks.positive(flag("fps"), fps)
     if fps > MAX_FPS:
         # 1e300 frames a second ran with dt = 1e-300 s, 0 in float32, and exited 0.
-        raise ValueError(f"fps = {fps!r} is not allowed: must be at most {MAX_FPS:g} (frames of a microsecond and longer)")
+        raise ValueError(f"{flag('fps')} = {fps!r} is not allowed: must be at most {MAX_FPS:g} (frames of a microsecond and longer)")
     frame_dt = 1.0 / fps
     if substeps is not None and dt is not None:
-        raise ValueError(f"substeps = {substeps!r} and dt = {dt!r} are not allowed together: give one of them (or neither)")
+        raise ValueError(f"{flag('substeps')} = {substeps!r} and {flag('dt')} = {dt!r} are not allowed together: give one of them (or neither)")
     if substeps is not None:
-        n = checks.positive_int("substeps", substeps, maximum=MAX_STEPS_PER_FRAME)
+        n = checks.positive_int(flag("substeps"), substeps, maximum=MAX_STEPS_PER_FRAME)
         return n, frame_dt / n
     if dt is None:
         stable = model.stable_dt(hourglass=hourglass)
@@ -290,20 +292,21 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
             )
         n = max(1, math.ceil(ratio))
         return n, frame_dt / n
-    dt = checks.positive("dt", dt)
+    dt = checks.positive(flag("dt"), dt)
     ratio = frame_dt / dt
     if not ratio <= MAX_STEPS_PER_FRAME:
         raise ValueError(
-            f"dt = {dt!r} is not allowed: a frame (1/fps = {frame_dt:.6g} s) would take {ratio:.3g} steps, "
-            f"more than {MAX_STEPS_PER_FRAME:.0e}; use dt >= {frame_dt / MAX_STEPS_PER_FRAME:.3g} s"
+            f"{flag('dt')} = {dt!r} is not allowed: a frame (1/fps = {frame_dt:.6g} s) would take {ratio:.3g} steps, "
+            f"more than {MAX_STEPS_PER_FRAME:.0e}; use {flag('dt')} >= {frame_dt / MAX_STEPS_PER_FRAME:.3g} s"
         )
     n = round(ratio)
     if n < 1 or abs(ratio - n) > 1e-6 * ratio:
         lo = max(1, math.floor(ratio))
-        hint = f"dt = {frame_dt / lo:.6g}" if n < 1 else f"dt = {frame_dt / math.ceil(ratio):.6g} or {frame_dt / lo:.6g}"
+        hint = (f"{flag('dt')} = {frame_dt / lo:.6g}" if n < 1 else
+                f"{flag('dt')} = {frame_dt / math.ceil(ratio):.6g} or {frame_dt / lo:.6g}")
         raise ValueError(
-            f"dt = {dt!r} is not allowed: a frame (1/fps = {frame_dt:.6g} s) must be a whole number of steps, "
-            f"but 1/fps / dt = {ratio:.6g}; use e.g. {hint}, or leave dt out (the stable step, rounded to fill a frame)"
+            f"{flag('dt')} = {dt!r} is not allowed: a frame (1/fps = {frame_dt:.6g} s) must be a whole number of steps, "
+            f"but 1/fps / dt = {ratio:.6g}; use e.g. {hint}, or leave {flag('dt')} out (the stable step, rounded to fill a frame)"
         )
     return n, frame_dt / n
 

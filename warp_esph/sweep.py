@@ -917,6 +917,7 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
     rate = f"--fps = {fps:g}" if fps is not None else f"the scene's fps = {sc.fps:g} (--fps)"
     length = f"--frames = {frames}" if frames is not None else f"--duration = {duration:g}" if duration is not None \
         else f"the scene's frames = {sc.frames} (--frames)"
+    given = {"fps": fps is not None, "dt": dt is not None}
     fps = fps if fps is not None else sc.fps
     if duration is not None:
         from .simulate import MAX_STEPS  # noqa: PLC0415
@@ -931,7 +932,8 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
     if dt is not None:
         from .simulate import resolve_timestep  # noqa: PLC0415
 
-        resolve_timestep(None, fps, dt=dt)  # with dt given only its ratio to 1/fps is checked
+        # With dt given only its ratio to 1/fps is checked; named as the option where it is one.
+        resolve_timestep(None, fps, dt=dt, flag=lambda name: f"--{name}" if given.get(name) else f"the scene's {name}")
     assignments = _assignments(sc, plist)
     # Built once here, so that what the scene itself refuses (a body inside a collider, a device
     # this machine lacks) is bad input before any sample, not the same failure in every row;
