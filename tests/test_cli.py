@@ -435,6 +435,8 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         (["fit", "nothing.toml", "--target", "t.npz", "--checkpoint-every", "50", "--memory-limit", "64"],
          ["--memory-limit = 64.0 is not allowed with --checkpoint-every = 50"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--params", "mu,mu"], ["names must be distinct"]),
+        # The point-cloud loss's own check named its parameter: 'radius = 0.0'.
+        (["fit", "nothing.toml", "--target", "t.npz", "--radius", "0"], ["--radius = 0.0 is not allowed: must be > 0"]),
         # Sizes that exhausted memory (the sample hypercube, the starts' worlds) or a jitter
         # that made the first loss non-finite:
         (["fit", "nothing.toml", "--target", "t.npz", "--samples", "99999999999"], ["--samples = 99999999999", "at most 10000"]),

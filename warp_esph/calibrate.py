@@ -143,6 +143,8 @@ def run_fit(args, out=None, err=None) -> int:
 
     jitter = checks.in_range("--jitter", _arg(args, "jitter", 0.0), 0.0, 0.5)  # a fraction of the spacing
     loss_scale = checks.positive("--loss-scale", _arg(args, "loss_scale", 1.0))
+    if _arg(args, "radius") is not None:  # ChamferLoss refused it later as 'radius = 0.0', no option of the command
+        args.radius = checks.positive("--radius", args.radius)
     given_memory = _arg(args, "memory_limit")  # None: not given (1024 MB)
     memory_limit = checks.positive("--memory-limit", 1024.0 if given_memory is None else given_memory) * 2**20
     bounds = _parse_bounds(args.bounds)
