@@ -463,3 +463,37 @@ def test_a_radius_below_half_the_cells_diagonal_gets_a_finer_grid_or_is_refused_
     beyond = np.concatenate([near_block.max(axis=0) - g[-1], -near_block.min(axis=0)])
     assert (beyond > 0.05 * dx).all() and (beyond < 0.2 * dx).all(), beyond / dx
     assert np.linalg.norm(v - lone, axis=1).min() < 0.3 * dx + 1e-6  # the lone particle has its own surface
+
+def test_a_ctrl_c_mid_export_says_which_frames_are_kept(tmp_path, monkeypatch, capsys):
+    """An interrupted export (and a run's --export) said 'interrupted' and nothing of the
+    frames written whole, where an interrupted run names the frames its file keeps; the run's
+    line did not say that its USD holds the whole run."""
+    from test_render import write_clusters
+
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=3)
+    real = meshio.write
+
+    def interrupted(name, mesh, *a, **k):
+        if "frame_00001" in str(name):
+            raise KeyboardInterrupt
+        return real(name, mesh, *a, **k)
+
+    monkeypatch.setattr(meshio, "write", interrupted)
+    out = tmp_path / "vtu"
+    assert main(["export", str(path), "-o", str(out)]) == 130
+    assert capsys.readouterr().err == (f"warp-esph: interrupted: 1 of the 3 frames are written whole in {out}; "
+                                       "frames.pvd lists them\n")
+    assert sorted(os.listdir(out)) == ["frame_00000.vtu", "frames.pvd"]
+    run = tmp_path / "run.usdc"
+    assert main(["run", "--scale", "0.3", "--frames", "2", "--no-progress", "-o", str(run), "--export", "vtu"]) == 130
+    err = capsys.readouterr().err
+    assert err == (f"warp-esph: interrupted: --export vtu: 1 of the 3 frames are written whole in {run}_vtu; frames.pvd "
+                   f"lists them; {run} holds the whole run\n")
+    from PIL import Image
+
+    Image.init()
+    monkeypatch.setitem(Image.SAVE, "PNG", lambda im, fp, filename: (_ for _ in ()).throw(KeyboardInterrupt))
+    assert main(["run", "--scale", "0.3", "--frames", "2", "--no-progress", "-o", str(run), "--preview"]) == 130
+    assert capsys.readouterr().err == (f"warp-esph: interrupted: --preview: {run}.png is not written; {run} holds the "
+                                       "whole run\n")

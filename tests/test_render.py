@@ -814,9 +814,8 @@ def test_an_interrupted_save_keeps_the_earlier_picture_and_leaves_no_part_file(t
     real = Image.Image.save
 
     def interrupted(self, fp, *a, **k):
-        if "frame_00001" in str(fp):
-            with open(fp, "wb") as f:
-                f.write(b"\x89PNG\r\n")  # a few bytes, then Ctrl-C
+        if "frame_00001" in str(getattr(fp, "name", fp)):
+            fp.write(b"\x89PNG\r\n")  # a few bytes, then Ctrl-C
             raise KeyboardInterrupt
         return real(self, fp, *a, **k)
 
@@ -944,3 +943,35 @@ def test_a_renderer_takes_its_frames_as_a_range_a_numpy_array_or_an_iterator(tmp
     assert Renderer(data, iter([2]), o).frames == [2]
     with pytest.raises(ValueError, match=r"^frames = \[3\] is not allowed: frame 3 is not in the file \(it holds 0\.\.2\)$"):
         Renderer(data, np.arange(3, 4), o)
+
+
+def test_a_ctrl_c_mid_render_says_which_pictures_are_kept_and_leaves_no_open_file(tmp_path, monkeypatch, capsys):
+    """A Ctrl-C inside a PNG's encoding: PIL closes the file it opened only on an ``Exception``,
+    so the working file was left to the garbage collector ('warning: unclosed file
+    <.frame_00001.PID.part.png>'), and the one line said 'interrupted' and nothing of the
+    pictures kept, where an interrupted run or export says what its files hold."""
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=3)
+    Image.init()
+    real = Image.SAVE["PNG"]
+
+    def interrupted(im, fp, filename):
+        if "frame_00001" in str(filename):
+            fp.write(b"\x89PNG\r\n")  # a few bytes, then Ctrl-C
+            raise KeyboardInterrupt
+        return real(im, fp, filename)
+
+    monkeypatch.setitem(Image.SAVE, "PNG", interrupted)
+    folder = tmp_path / "frames"
+    size = ["--width", str(W), "--height", str(H), "--supersample", "1"]
+    assert main(["render", str(path), "-o", str(folder), *size]) == 130
+    assert capsys.readouterr().err == f"warp-esph: interrupted: 1 of the 3 frames are written whole in {folder}\n"
+    assert sorted(os.listdir(folder)) == ["frame_00000.png"]
+    with Image.open(folder / "frame_00000.png") as im:
+        im.load()
+    sheet = tmp_path / "sheet.png"
+    monkeypatch.setitem(Image.SAVE, "PNG", lambda im, fp, filename: (_ for _ in ()).throw(KeyboardInterrupt))
+    assert main(["render", str(path), "-o", str(sheet), "--frames", "all", *size]) == 130
+    assert capsys.readouterr().err == (f"warp-esph: interrupted: {sheet} is not written (a file of that name is left "
+                                       "as it was)\n")
+    assert sorted(os.listdir(tmp_path)) == ["anim.usdc", "frames"]

@@ -444,6 +444,16 @@ class OutputWriteError(OSError):
         return self.message
 
 
+class Interrupted(KeyboardInterrupt):
+    """A Ctrl-C (or SIGTERM) that stopped a command writing several files, with what its files
+    keep (``kept``, e.g. '1 of the 3 frames are written whole in out'): the CLI's one line says
+    it after 'interrupted', as an interrupted run names the frames its file keeps."""
+
+    def __init__(self, kept: str):
+        super().__init__(kept)
+        self.kept = kept
+
+
 @contextlib.contextmanager
 def replaced_atomically(path):
     """Yields a working name beside ``path`` for a writer to fill; once it returns, that file

@@ -659,12 +659,22 @@ def _cmd_run(args) -> int:
         except ExportWriteError as e:
             _err(f"--export {args.export}: {e}; {writer.path} holds the whole run")
             return EXIT_WRITE_FAILED
+        except KeyboardInterrupt as e:
+            # The run is whole: the line said 'interrupted' alone, as if its file were not.
+            kept = f"{e.kept}; " if getattr(e, "kept", None) else ""
+            print(f"{PROG}: {_stopped(args)}: --export {args.export}: {kept}{writer.path} holds the whole run",
+                  file=sys.stderr)
+            return EXIT_INTERRUPTED
         print(f"exported {len(files)} files to {folder}")
     if args.preview:
         from .render import render_usd  # noqa: PLC0415
 
         try:
             result = render_usd(writer.path, writer.path + ".png", frames="last")
+        except KeyboardInterrupt:
+            print(f"{PROG}: {_stopped(args)}: --preview: {writer.path}.png is not written; {writer.path} holds the whole "
+                  "run", file=sys.stderr)
+            return EXIT_INTERRUPTED
         except OSError as e:
             if isinstance(e, BrokenPipeError):
                 raise
@@ -1152,8 +1162,9 @@ def _dispatch(args) -> int:
                 _arm(args)
                 return fit_cli(args)
             return _cmd_run(args)
-        except KeyboardInterrupt:
-            print(f"{PROG}: {_stopped(args)}", file=sys.stderr)
+        except KeyboardInterrupt as e:
+            kept = getattr(e, "kept", None)  # checks.Interrupted: what the files written keep
+            print(f"{PROG}: {_stopped(args)}" + (f": {kept}" if kept else ""), file=sys.stderr)
             return EXIT_INTERRUPTED
         except BrokenPipeError as e:
             if not _stdout_closed():

@@ -36,16 +36,21 @@ __all__ = ["EXPORT_FORMATS", "ExportWriteError", "export_frames", "frame_arrays_
 EXPORT_FORMATS = ("vtu", "ply")
 
 
+def _kept(files: list[str], chosen: int, folder: str) -> str:
+    """The frames an export that stopped early leaves whole in ``folder``."""
+    frames = sum(not f.endswith(".pvd") for f in files)
+    listed = "; frames.pvd lists them" if any(f.endswith(".pvd") for f in files) else ""
+    return f"{frames} of the {chosen} frames are written whole in {folder}{listed}"
+
+
 class ExportWriteError(OutputWriteError):
     """A file ``export_frames`` could not write (a full disk, a folder gone); ``files``: those
     it wrote whole before, which stay. Its text names the file and what is kept."""
 
     def __init__(self, cause: OSError, files: list[str], chosen: int, folder: str):
         self.files = list(files)
-        frames = sum(not f.endswith(".pvd") for f in files)
-        listed = "; frames.pvd lists them" if any(f.endswith(".pvd") for f in files) else ""
-        super().__init__(f"cannot write {cause.filename or folder}: {cause.strerror or cause} ({frames} of the {chosen} "
-                         f"frames are written whole in {folder}{listed})", cause)
+        super().__init__(f"cannot write {cause.filename or folder}: {cause.strerror or cause} "
+                         f"({_kept(files, chosen, folder)})", cause)
 
 
 def _real(values) -> np.ndarray:
@@ -81,7 +86,8 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, fl
     """Write ``frames`` (see ``usd.parse_frames``; default all) of ``usd_path`` as ``fmt``
     (``vtu`` or ``ply``) files into ``output_dir`` (created); returns the files written. A file
     that cannot be written raises ``ExportWriteError`` (an ``OSError``) naming it; the files
-    written before stay whole, and ``frames.pvd`` lists them where it can still be written.
+    written before stay whole, and ``frames.pvd`` lists them where it can still be written; a
+    Ctrl-C raises ``checks.Interrupted`` (a ``KeyboardInterrupt``) whose ``kept`` says so.
     ``flag(name)``: how a refusal names the option ``name`` (the CLI's ``--frames``)."""
     import meshio  # noqa: PLC0415
 
@@ -131,6 +137,8 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, fl
             pass
         if isinstance(e, OSError):
             raise ExportWriteError(e, files, len(chosen), out) from e
+        if isinstance(e, KeyboardInterrupt) and not isinstance(e, checks.Interrupted):
+            raise checks.Interrupted(_kept(files, len(chosen), out)) from e
         raise
     try:
         collection()

@@ -1130,7 +1130,9 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     distance). ``surfaces``: draw a body's surface mesh (``warp-esph run --surface``) instead
     of its particles where the file holds one (``False``: always particles). ``progress(k, n)``
     is called after each frame. ``flag(name)``: how a refusal names the option ``name``
-    (default: the parameter's name; the CLI's ``--radius-scale`` for ``radius_scale``).
+    (default: the parameter's name; the CLI's ``--radius-scale`` for ``radius_scale``). A Ctrl-C
+    raises ``checks.Interrupted`` (a ``KeyboardInterrupt``) whose ``kept`` says which pictures
+    are written whole.
     """
     flag = flag or _same_name
     data = UsdFrames(path)
@@ -1220,7 +1222,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
                     file = os.path.join(out, f"frame_{f:05d}.png")
                     try:
                         with checks.replaced_atomically(file) as part:
-                            img.save(part, format="PNG", optimize=True)
+                            _save_image(img, part, format="PNG", optimize=True)
                     except OSError as e:
                         # A full disk: exit 2, 'bad input', with the bare errno, before.
                         raise checks.OutputWriteError(f"cannot write {file}: {e.strerror or e} ({len(files)} of the "
@@ -1234,12 +1236,14 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
                     images.append(img)
                 if progress is not None:
                     progress(k + 1, len(chosen))
-        except BaseException:
+        except BaseException as e:
             # ffmpeg gets the terminal's Ctrl-C too and fails its close: the interrupt (or the
             # first error) is what happened, not 'ffmpeg failed:'.
             if writer is not None:
                 with contextlib.suppress(OSError):
                     writer.close()
+            if isinstance(e, KeyboardInterrupt) and not isinstance(e, checks.Interrupted):
+                raise checks.Interrupted(_kept(kind, out, files, chosen)) from e
             raise
         if writer is not None:
             writer.close()
@@ -1247,20 +1251,38 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
         if kind == "png":
             img = images[0] if len(images) == 1 else _sheet(images, sheet_columns)
             with checks.replaced_atomically(out) as part:
-                img.save(part, format="PNG", optimize=True)
+                _save_image(img, part, format="PNG", optimize=True)
             files.append(out)
         elif kind == "gif":
             pal = [im.quantize(colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE) for im in images]
             with checks.replaced_atomically(out) as part:
-                pal[0].save(part, format="GIF", save_all=True, append_images=pal[1:], duration=gif_durations(len(pal), playback, flag("fps") if fps is not None else "the file's fps"),
+                _save_image(pal[0], part, format="GIF", save_all=True, append_images=pal[1:],
+                            duration=gif_durations(len(pal), playback, flag("fps") if fps is not None else "the file's fps"),
                             loop=0, optimize=False, disposal=1)
             files.append(out)
+    except KeyboardInterrupt as e:
+        raise checks.Interrupted(_kept(kind, out, files, chosen)) from e
     except OSError as e:
         raise checks.OutputWriteError(f"cannot write {out}: {e.strerror or e} (not written; a file of that name is left as "
                                       "it was)", e) from e
     if kind == "mp4":
         files.append(out)
     return RenderResult(out, kind, chosen, files, time.perf_counter() - t0, count, surface_bodies)
+
+
+def _save_image(img: Image.Image, path: str, **options) -> None:
+    # PIL closes a file it opened itself only on an Exception: a Ctrl-C inside the encoder
+    # left the working file open for the garbage collector ('unclosed file <...part.png>').
+    with open(path, "wb") as fh:
+        img.save(fh, **options)
+
+
+def _kept(kind: str, out: str, files: list[str], chosen: list[int]) -> str:
+    """What an interrupted render leaves: the pictures of a folder written whole, or one file
+    not written (each is renamed over its name only once whole)."""
+    if kind == "dir":
+        return f"{len(files)} of the {len(chosen)} frames are written whole in {out}"
+    return f"{out} is not written (a file of that name is left as it was)"
 
 
 class _Mp4Writer:
