@@ -5,6 +5,7 @@ ground, run for 10 frames at 30 fps (a third of a second): enough for a low yiel
 to slump visibly and a high one to stay a box.
 """
 
+import json
 import math
 import os
 import re
@@ -819,3 +820,42 @@ def test_ray_a_sample_that_crashes_its_worker_is_a_failed_row_at_once(tmp_path):
         ray.shutdown()
     assert note.read_text() == "x\n"
     assert rows[0].startswith("Ray: ") and "Worker" in rows[0], rows[0]
+
+
+def test_a_signal_after_the_last_sample_keeps_the_whole_tables_and_says_so(scene_file, tmp_path, monkeypatch, capsys):
+    """Every sample ran, then a SIGTERM (or Ctrl-C) landed while the final tables were
+    written, or under the plot: the line said 'terminated' alone, a table could be cut short
+    of the partial one, and an earlier sweep's sweep.png stayed beside the new tables. The
+    tables are now finished first, the stale picture removed, and the line says what is kept."""
+    import signal
+
+    from warp_esph import sweep as sweep_module
+
+    real_csv = SweepTable.to_csv
+
+    def to_csv_terminated(self, path):
+        if len(self) == 2:  # the final table: the partial one after the first sample has 1 row
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real_csv(self, path)
+
+    monkeypatch.setattr(sweep_module, "PARTIAL_EVERY_S", 1e9)
+    monkeypatch.setattr(SweepTable, "to_csv", to_csv_terminated)
+    out = tmp_path / "sw"
+    argv = ["sweep", scene_file, "--param", "yield_stress=10,100", "--frames", "1", "--workers", "1", "-o", str(out),
+            "--no-progress"]
+    assert cli.main(argv) == 143
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1] == f"warp-esph: terminated: the tables in {out} keep all 2 samples; sweep.png is not written"
+    assert len(SweepTable.read_csv(out / "sweep.csv")) == 2
+    assert json.loads((out / "sweep.json").read_text())["samples"] == 2 and not (out / "sweep.png").exists()
+    monkeypatch.setattr(SweepTable, "to_csv", real_csv)
+
+    def plot_interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    (out / "sweep.png").write_bytes(b"an earlier sweep's picture")
+    monkeypatch.setattr(sweep_module, "plot", plot_interrupted)
+    assert cli.main(argv) == 130
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1] == f"warp-esph: interrupted: the tables in {out} keep all 2 samples; sweep.png is not written"
+    assert len(SweepTable.read_csv(out / "sweep.csv")) == 2 and not (out / "sweep.png").exists()

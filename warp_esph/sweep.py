@@ -1094,22 +1094,31 @@ def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_pa
             json.dump(dict(meta), f, indent=2)
         lines.append(f"wrote {path}")
     if plot_figure:
-        picture = os.path.join(folder, "sweep.png")
-        try:
-            lines.append(f"wrote {plot(table, picture, log_params)}")
-        except ImportError:
-            lines.append("no plot: matplotlib is not installed (pip install 'warp-esph[plot]')")
-        except (ValueError, ArithmeticError) as e:
-            # matplotlib cannot lay out axes of values near the float range ('arange: cannot
-            # compute length' at 1e307..1.7e308): the sweep ran and its tables stand.
-            lines.append(f"no plot: matplotlib could not draw these values ({e}); the CSV has the data")
-        except OSError as e:
-            # The tables are written whole by now: a picture that cannot be saved (a full disk)
-            # is no failed sweep.
-            lines.append(f"no plot: it could not be written ({e}); the CSV has the data")
-        if lines[-1].startswith("no plot") and os.path.isfile(picture):
-            os.remove(picture)  # an earlier sweep's picture would no longer match the tables
+        lines.append(_plot_line(table, folder, log_params))
     return lines
+
+
+def _plot_line(table: SweepTable, folder: str, log_params: Sequence[str]) -> str:
+    """Draw ``sweep.png`` in ``folder``; the line saying so, or why there is none (an earlier
+    sweep's picture is removed then, also when a Ctrl-C stops the drawing)."""
+    picture = os.path.join(folder, "sweep.png")
+    line = None
+    try:
+        line = f"wrote {plot(table, picture, log_params)}"
+    except ImportError:
+        line = "no plot: matplotlib is not installed (pip install 'warp-esph[plot]')"
+    except (ValueError, ArithmeticError) as e:
+        # matplotlib cannot lay out axes of values near the float range ('arange: cannot
+        # compute length' at 1e307..1.7e308): the sweep ran and its tables stand.
+        line = f"no plot: matplotlib could not draw these values ({e}); the CSV has the data"
+    except OSError as e:
+        # The tables are written whole by now: a picture that cannot be saved (a full disk)
+        # is no failed sweep.
+        line = f"no plot: it could not be written ({e}); the CSV has the data"
+    finally:
+        if (line is None or line.startswith("no plot")) and os.path.isfile(picture):
+            os.remove(picture)  # an earlier sweep's picture would no longer match the tables
+    return line
 
 
 #: Exit status of ``warp-esph sweep`` when at least one sample failed (the table has them).
@@ -1207,8 +1216,22 @@ def sweep_cli(args, out=None) -> int:
     if bar is not None:
         bar.close()
     meta["seconds"] = time.perf_counter() - t0
+    from .cli import _Deferred  # noqa: PLC0415
+
+    lines: list[str] = []
     try:
-        lines = write_outputs(table, folder, meta, log_params)
+        # Every sample ran: a Ctrl-C while the tables are written waits for them (it cut one
+        # short of the partial table, and the line said 'interrupted' alone); one under the
+        # picture stops it, the tables whole.
+        with _Deferred(args, then_stop=True):
+            lines = write_outputs(table, folder, meta, log_params, plot_figure=False)
+        lines.append(_plot_line(table, folder, log_params))
+    except KeyboardInterrupt:
+        for line in lines:
+            print(line, file=out)
+        print(f"{PROG}: {_stopped(args)}: the tables in {folder} keep all {len(table)} samples; sweep.png is not "
+              "written", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except OSError as e:
         # A full disk or a folder gone at the end: a failed write (not bad input, exit 2), and
         # what is left on disk said.
