@@ -475,6 +475,31 @@ def test_cuda_asked_for_where_there_is_none_is_one_line(tmp_path, capsys):
     assert_one_line_error(capsys.readouterr().err, "--device = 'cuda' is not allowed: ", "(use --device cpu)")
 
 
+def test_an_output_another_writer_is_writing_is_refused_and_left_to_it(tmp_path, capsys):
+    """Two runs given one output shared the writer's working copies: the first failed mid-run
+    with pxr's 'Unable to open .t.usdc.wa.usdc for writing', saying its file kept its frames,
+    while the file was the second's. A run now refuses an output that another writer holds,
+    before the run and before it touches that run's force log."""
+    from warp_esph.scenes import load_scene
+    from warp_esph.usd import UsdWriter
+
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    out = tmp_path / "t.usdc"
+    model = load_scene(str(tmp_path / "s.toml")).builder.finalize()
+    with UsdWriter(out, model, 30) as holder:
+        holder.write_frame(0, model.state())
+        (tmp_path / "t.usdc_tools.csv").write_text("the holder's log\n")
+        assert main(["run", str(tmp_path / "s.toml"), "-o", str(out), "--no-progress"]) == 2
+        assert capsys.readouterr().err == (f"warp-esph: error: --output = '{out}' is not allowed: another writer (process "
+                                           f"{os.getpid()}) is writing it; wait for it to finish, or write another file\n")
+        assert (tmp_path / "t.usdc_tools.csv").read_text() == "the holder's log\n"
+        holder.write_frame(1, model.state())
+    assert frames_in(out, "/World/box0") == [0.0, 1.0]
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(out), "--no-progress"]) == 0
+    assert frames_in(out, "/World/box0") == [0.0, 1.0, 2.0]
+    assert sorted(os.listdir(tmp_path)) == ["s.toml", "t.usdc", "t.usdc_tools.csv", "t.usdc_tools.json"]
+
+
 @pytest.mark.parametrize("in_the_way, options, needle", [
     ("t.usdc_tools.csv", [], "the reaction log = "),
     ("t.usdc.checkpoint.npz", ["--checkpoint-every", "1"], "--checkpoint-every's checkpoint = "),

@@ -245,8 +245,12 @@ def test_writer_rejects_bad_arguments(model, tmp_path):
 
 
 @pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SIGKILL")
-def test_killed_process_leaves_valid_file(tmp_path):
-    """SIGKILL a writer at arbitrary moments: the file always opens with every finished frame."""
+def test_killed_process_leaves_valid_file(tmp_path, model):
+    """SIGKILL a writer at arbitrary moments: the file always opens with every finished frame.
+    While it writes, a writer of the same file in another process is refused (the two shared
+    the working copies beside it: the first failed with 'Unable to open .killed.usdc.wa.usdc',
+    saying its file kept its frames, and the file was the second's); once it is killed, the
+    file is free again."""
     path = tmp_path / "killed.usdc"
     child = textwrap.dedent(
         f"""
@@ -273,6 +277,10 @@ def test_killed_process_leaves_valid_file(tmp_path):
         try:
             first = proc.stdout.readline()
             assert first.strip().isdigit(), "the writer process did not start"
+            with pytest.raises(ValueError, match=rf"^path = '{path}' is not allowed: another writer \(process "
+                                                 rf"{proc.pid}\) is writing it; wait for it to finish, or write "
+                                                 "another file"):
+                UsdWriter(path, model, 30)
             time.sleep(float(rng.uniform(0.05, 0.4)))
         finally:
             proc.send_signal(signal.SIGKILL)
@@ -288,6 +296,9 @@ def test_killed_process_leaves_valid_file(tmp_path):
         x_0 = np.array(pts.Get(0))
         np.testing.assert_allclose(x_end - x_0, 0.001 * end, atol=1e-5)
         del stage
+    with UsdWriter(path, model, 30) as w:  # the killed writer's lock went with its process
+        w.write_frame(0, model.state())
+    assert sorted(os.listdir(tmp_path)) == ["killed.usdc"]
 
 
 def test_resolve_timestep(model):

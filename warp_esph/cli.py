@@ -351,7 +351,7 @@ def _cmd_run(args) -> int:
     from .scenes import load_scaled_scene  # noqa: PLC0415
     from .simulate import SimulationError, _check_run_start, check_step_count, resolve_timestep, simulate  # noqa: PLC0415
     from .sim.solver import Solver  # noqa: PLC0415
-    from .usd import UsdWriter  # noqa: PLC0415
+    from .usd import OutputInUse, UsdWriter  # noqa: PLC0415
 
     from .checkpoint import load_state, read_checkpoint, save_state  # noqa: PLC0415
 
@@ -466,6 +466,8 @@ def _cmd_run(args) -> int:
     try:
         writer = UsdWriter(output, model, fps, surface=args.surface, view=getattr(scene, "view", None),
                            append=args.resume is not None, run_id=run_id)
+    except OutputInUse as e:
+        raise ValueError(f"--output = {output!r} is not allowed: {e.reason}") from None
     except FileNotFoundError:
         raise  # the file to append to, or its folder, is not there: the input's fault
     except OSError as e:

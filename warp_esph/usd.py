@@ -55,6 +55,7 @@ import sys
 import tempfile
 import time
 import warnings
+import weakref
 
 import numpy as np
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
@@ -203,6 +204,15 @@ def _set_primvar(attr, values: np.ndarray, t) -> None:
     attr.Set(cls.FromNumpy(values), t)
 
 
+class OutputInUse(ValueError):
+    """A file another ``UsdWriter`` (of this or another process) is writing now: ``reason``
+    says so, for a caller that names the file by its own option (the CLI's ``--output``)."""
+
+    def __init__(self, path: str, reason: str):
+        super().__init__(f"path = {path!r} is not allowed: {reason}")
+        self.reason = reason
+
+
 class UsdWriter:
     """Writes simulation frames to a USD file; use as a context manager.
 
@@ -220,7 +230,9 @@ class UsdWriter:
     another run (a checkpoint of one run resumed onto the frames of another). A file keeps
     one precision: appending with a model of the other precision than the file's
     (``warp_esph:dtype`` in its custom data) is refused, naming both, rather than writing
-    the later frames in the other precision.
+    the later frames in the other precision. While a writer is open no other may write
+    ``path`` (``OutputInUse``, a ``ValueError``): it holds a lock on ``.<name>.lock`` beside
+    it, removed by ``close()``.
     """
 
     def __init__(self, path, model: Model, fps: float = 30.0, *, append: bool = False, plane_size: float | None = None,
@@ -265,6 +277,8 @@ class UsdWriter:
         self._work = [os.path.join(folder, f".{name}.w{tag}{ext}") for tag in "ab"]
         self._tmp = os.path.join(folder, f".{name}.{os.getpid()}.publish{ext}")
         self._prim_names = body_prim_names(model)
+        self._lock_path = os.path.join(folder, f".{name}.lock")
+        self._lock = self._take_lock(os.fspath(path))
         self._stages: list[Usd.Stage] = []
         self._published: int | None = None
         self._use_links = True
@@ -285,7 +299,48 @@ class UsdWriter:
         except BaseException:
             self._release()
             self._remove_work_files()
+            self._drop_lock()
             raise
+
+    def _take_lock(self, given: str):
+        """Hold the file for this writer: two writers of one file (two runs given one
+        output) shared its working copies, and the first failed mid-run with pxr's 'Unable to
+        open .a.usdc.wa.usdc', saying its file kept its frames, while the file was the
+        second's. An advisory lock (flock) on a file beside it, which the system releases
+        with a killed process; ``None`` where there is no flock."""
+        try:
+            import fcntl  # noqa: PLC0415
+        except ImportError:
+            return None
+        while True:
+            fd = os.open(self._lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                try:
+                    holder = os.read(fd, 32).decode(errors="replace").strip() or "?"
+                finally:
+                    os.close(fd)
+                raise OutputInUse(given, f"another writer (process {holder}) is writing it; wait for it to finish, "
+                                         "or write another file") from None
+            try:
+                same = os.fstat(fd).st_ino == os.stat(self._lock_path).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)  # its holder removed it between our open and our lock: take the new one
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
+        # An abandoned writer (never closed) lets the file go when it is collected.
+        return weakref.finalize(self, os.close, fd)
+
+    def _drop_lock(self):
+        if self._lock is not None and self._lock.alive:
+            # Removed while still held, so no other writer takes the old file as this one lets go.
+            with contextlib.suppress(OSError):
+                os.remove(self._lock_path)
+            self._lock()
 
     # ------------------------------------------------------------------ setup
     def _new_layer(self, file: str) -> Sdf.Layer:
@@ -704,6 +759,7 @@ class UsdWriter:
         # returned at once.
         self._release()
         self._remove_work_files()
+        self._drop_lock()
         self.closed = True
 
     def __enter__(self) -> "UsdWriter":
