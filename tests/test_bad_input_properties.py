@@ -11,6 +11,7 @@ import math
 import re
 import string
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -125,6 +126,26 @@ def test_a_body_centre_float64_cannot_resolve_is_named():
     with pytest.raises(ValueError, match=r"center = \(1e\+300, 0.0, 0.0\) is not allowed: must be within 9.01e\+10 of the origin"):
         b.add_box((1e300, 0.0, 0.0), (0.1, 0.1, 0.1), DOUGH)
     b.add_box((1e9, 0.0, 0.0), (0.1, 0.1, 0.1), DOUGH)  # far, but resolved
+
+
+@pytest.mark.parametrize("spacing", [1e308, 1.7976931348623157e308])
+def test_a_spacing_whose_support_radius_overflows_is_refused_by_name(tmp_path, spacing):
+    """The default support radius (2 spacings) and the neighbour cap's ratio overflowed to inf:
+    ``SceneBuilder(spacing=1e308)`` and a scene file's ``spacing = 1e308`` raised
+    OverflowError ('cannot convert float infinity to integer'; ``warp-esph run``: a traceback,
+    exit 1). A spacing 1e300 was refused by its body only after numpy's overflow warning."""
+    with pytest.raises(ValueError, match=re.escape(f"spacing = {spacing!r} is not allowed: must be at most 5.99e+307")):
+        we.SceneBuilder(spacing=spacing)
+    path = tmp_path / "s.toml"
+    path.write_text(f"[scene]\nspacing = {spacing!r}\n[[bodies]]\nshape = 'box'\ncenter = [0, 0.2, 0]\n"
+                    "size = [0.2, 0.2, 0.2]\nmaterial = 'dough'\n")
+    with pytest.raises(ValueError, match=r"s\.toml: .*spacing = .* is not allowed: must be at most 5\.99e\+307"):
+        load_scene_file(path)
+    b = we.SceneBuilder(spacing=1e300)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match="has no particles: it is smaller than the spacing 1e\\+300"):
+            b.add_box((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), DOUGH)
 
 
 def _toml_value(v):

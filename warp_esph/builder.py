@@ -111,6 +111,12 @@ class SceneBuilder:
         fit_weight: str = DEFAULT_FIT_WEIGHT,
     ):
         self.spacing = checks.positive("spacing", spacing)
+        # The support radius (up to SUPPORT_RANGE[1] spacings) and the ratios read from it must be
+        # finite: at 1e308 they overflowed to inf and the neighbour cap raised OverflowError.
+        widest = float(np.finfo(np.float64).max) / SUPPORT_RANGE[1]
+        if self.spacing > widest:
+            raise ValueError(f"spacing = {spacing!r} is not allowed: must be at most {widest:.3g} (the support radius, up "
+                             f"to {SUPPORT_RANGE[1]:g} spacings, must be a finite number)")
         #: ``Model.fit_weight`` of the model ``finalize`` makes.
         self.fit_weight = checks.choice("fit_weight", fit_weight, FIT_WEIGHTS)
         #: ``Model.fit`` of the model ``finalize`` makes (None: the model's default).
@@ -180,7 +186,7 @@ class SceneBuilder:
 
     def _far(self) -> float:
         """How far from the origin float64 still resolves a thousandth of the spacing."""
-        return self.spacing * 1e-3 / np.finfo(np.float64).eps
+        return self.spacing * 1e-3 / float(np.finfo(np.float64).eps)  # inf past 4e302, without numpy's overflow warning
 
     def _lattice(self, lo, hi, name: str, value) -> np.ndarray:
         self._check_lattice_size(lo, hi, name, value)
