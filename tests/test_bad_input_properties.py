@@ -8,6 +8,7 @@ wrong types), scene-file keys, states of another model or precision given to
 configurations that would need an absurd number of steps."""
 
 import math
+import os
 import re
 import string
 import time
@@ -581,3 +582,30 @@ def test_warp_and_torch_bools_and_complex_numbers_are_not_numbers():
         with pytest.raises(ValueError, match="must be a real number"):
             checks.number("x", value)
     assert checks.number("x", wp.float32(2.0)) == 2.0 and checks.number("x", torch.tensor(3.0)) == 3.0
+
+
+def test_a_switch_given_anything_but_true_or_false_is_refused_by_name(tmp_path):
+    """``progress='no'`` drew the bar (the text is true), and so did ``diagnostics='no'`` run
+    the diagnostics, ``append='no'`` reopen a file to continue it, ``label='no'`` draw the
+    label: these switches took any value as its truth, where ``monitor``, ``worlds`` and
+    ``surface`` already refused all but True or False."""
+    from warp_esph.fit import fit
+    from warp_esph.render import render_usd
+
+    model = _box_model()
+    path = tmp_path / "one.usdc"
+    with we.UsdWriter(path, model, 30) as w:
+        w.write_frame(0, model.state())
+    switch = re.escape("is not allowed: must be True or False")
+    with pytest.raises(ValueError, match=r"^progress = 'no' " + switch):
+        we.simulate(model, 1, progress="no")
+    with pytest.raises(ValueError, match=r"^append = 'no' " + switch):
+        we.UsdWriter(tmp_path / "two.usdc", model, 30, append="no")
+    target = {3: model.particle_x0.copy()}
+    for name in ("progress", "diagnostics", "tie_pressure"):
+        with pytest.raises(ValueError, match=rf"^{name} = 'no' " + switch):
+            fit(model, target, steps=3, dt=1e-3, iterations=0, **{name: "no"})
+    for name in ("label", "shadows"):
+        with pytest.raises(ValueError, match=rf"^{name} = 'no' " + switch):
+            render_usd(path, tmp_path / "p.png", width=32, height=32, **{name: "no"})
+    assert sorted(os.listdir(tmp_path)) == ["one.usdc"]

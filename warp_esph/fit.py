@@ -862,6 +862,10 @@ def fit(
     # converged, and a string failed only after the first rollout.
     tol = None if tol is None else checks.positive("tol", tol)
     worlds = checks.boolean("worlds", worlds)
+    # Any value was taken as its truth: diagnostics='no' ran them, progress='no' drew the bar.
+    progress = checks.boolean("progress", progress)
+    diagnostics = checks.boolean("diagnostics", diagnostics)
+    tie_pressure = None if tie_pressure is None else checks.boolean("tie_pressure", tie_pressure)
     # Adam's options, which the other optimisers never read: given with them, they were
     # dropped without a word (a clipped L-BFGS fit ran unclipped).
     for name, value in (("clip", clip), ("lr_end", lr_end)):

@@ -520,8 +520,9 @@ class RenderOptions:
         # Beyond these the camera stands inside the scene or so far that it is one pixel, and
         # its distance overflowed (1e308) or its picture's size did (1e-308).
         self.zoom = checks.in_range(flag("zoom"), self.zoom, 1e-3, 1e3)
-        if not isinstance(self.surfaces, bool):
-            raise ValueError(f"{flag('surfaces')} = {self.surfaces!r} is not allowed: must be True or False")
+        for name in ("surfaces", "label", "shadows"):  # label='no' drew the label
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{flag(name)} = {getattr(self, name)!r} is not allowed: must be True or False")
         self.fov = checks.positive(flag("fov"), self.fov)
         if not self.fov < 170:
             raise ValueError(f"{flag('fov')} = {self.fov!r} is not allowed: must be in (0, 170) degrees")

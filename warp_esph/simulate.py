@@ -559,6 +559,7 @@ def simulate(
             raise ValueError(f"start_frame = {start_frame!r} is not allowed: must be an integer >= 0")
         start_frame = int(start_frame)
         monitor = checks.boolean("monitor", monitor)
+        progress = checks.boolean("progress", progress)  # 'no' drew the bar
         fps = checks.positive("fps", fps)
         # The stable step follows the control the solver runs (a given solver's own).
         hourglass = solver.hourglass if isinstance(solver, Solver) else None

@@ -254,7 +254,7 @@ class UsdWriter:
         self.format = USD_EXTENSIONS[ext]
         self.model = model
         self.fps = checks.positive("fps", fps)
-        self.append = bool(append)
+        self.append = checks.boolean("append", append)  # 'no' reopened the file to continue it
         self._plane_size = None if plane_size is None else checks.positive("plane_size", plane_size)
         if not isinstance(surface, bool):
             raise ValueError(f"surface = {surface!r} is not allowed: must be True or False")
