@@ -488,3 +488,21 @@ def test_a_star_with_points_out_of_range_is_told_the_true_range(points):
     with pytest.raises(ValueError, match=rf"^points = {points} is not allowed: must be an integer in \[3, 1000\]$"):
         b.add_star((0.0, 0.1, 0.0), 0.1, 0.05, 0.04, we.Material.preset("dough"), points=points)
 
+
+
+def test_load_scene_names_a_scene_that_is_no_name_or_path_and_a_scale_that_alone_fails():
+    """``load_scene(3)`` and ``load_scene(b'star')`` raised TypeErrors ('expected str, bytes or
+    os.PathLike object', 'endswith first arg must be bytes'); ``get_scene``/``load_scene`` at
+    an absurd scale blamed the scene's body or centre, as the CLI's ``--scale`` no longer does."""
+    for bad in (3, ["star"]):
+        with pytest.raises(ValueError, match=re.escape(f"scene = {bad!r} is not allowed: must be a built-in scene name "
+                                                       "or the path of a .toml scene file")):
+            load_scene(bad)
+    assert load_scene(b"star", scale=0.3).name == "star"  # a path in bytes, as os.fspath gives them
+    with pytest.raises(ValueError, match=r"^scale = 1e-300 is not allowed for star: it builds at scale 1, but with its "
+                                         r"spacing divided by 1e-300: body 'star' has no particles"):
+        load_scene("star", scale=1e-300)
+    with pytest.raises(ValueError, match=r"^scale = 1e\+300 is not allowed for dough_drop: it builds at scale 1, "):
+        get_scene("dough_drop", scale=1e300)
+    with pytest.raises(ValueError, match=r"^scale = nan is not allowed: must be a finite number$"):
+        load_scene("star", scale=float("nan"))

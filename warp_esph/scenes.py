@@ -586,28 +586,39 @@ def scene_descriptions() -> dict[str, str]:
     return {name: _doc(fn) for name, fn in SCENES.items()}
 
 
+def _unknown(name) -> ValueError:
+    close = difflib.get_close_matches(str(name), SCENES, n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return ValueError(f"scene = {name!r} is not allowed: unknown scene{hint}; the built-in scenes are {', '.join(SCENES)}, "
+                      f"or give the path of a .toml scene file")
+
+
 def get_scene(name: str = DEFAULT_SCENE, scale: float = 1.0) -> Scene:
-    """The built-in scene ``name`` at ``scale``."""
-    if name not in SCENES:
-        close = difflib.get_close_matches(str(name), SCENES, n=1)
-        hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise ValueError(
-            f"scene = {name!r} is not allowed: unknown scene{hint}; the built-in scenes are {', '.join(SCENES)}, "
-            f"or give the path of a .toml scene file"
-        )
-    return SCENES[name](scale=scale)
+    """The built-in scene ``name`` at ``scale`` (a refusal only the scale causes names it)."""
+    if not isinstance(name, str) or name not in SCENES:
+        raise _unknown(name)
+    return load_scaled_scene(name, scale, "scale")
 
 
 def load_scene(name_or_path: str | os.PathLike | None = None, scale: float = 1.0) -> Scene:
-    """A built-in scene by name, or a scene file (``.toml``) by path; ``None``: the default."""
+    """A built-in scene by name, or a scene file (``.toml``) by path; ``None``: the default. A
+    refusal that only the scale causes names ``scale`` (``load_scaled_scene``)."""
+    return load_scaled_scene(name_or_path, scale, "scale")
+
+
+def _load(name_or_path, scale) -> Scene:
     if name_or_path is None:
-        return get_scene(DEFAULT_SCENE, scale)
-    text = os.fspath(name_or_path)
+        name_or_path = DEFAULT_SCENE
+    if not isinstance(name_or_path, (str, bytes, os.PathLike)):
+        # 3 or a list met a TypeError from os.fspath, naming no parameter.
+        raise ValueError(f"scene = {name_or_path!r} is not allowed: must be a built-in scene name or the path of a .toml "
+                         "scene file")
+    text = os.fsdecode(name_or_path)  # a path in bytes failed at str.endswith
     if text in SCENES:
-        return get_scene(text, scale)
+        return SCENES[text](scale=scale)
     if text.lower().endswith(".toml") or os.sep in text or (os.altsep and os.altsep in text) or os.path.exists(text):
         return load_scene_file(text, scale)
-    return get_scene(text, scale)
+    raise _unknown(text)
 
 
 def load_scaled_scene(name_or_path: str | os.PathLike | None, scale: float, what: str = "--scale") -> Scene:
@@ -619,14 +630,18 @@ def load_scaled_scene(name_or_path: str | os.PathLike | None, scale: float, what
     or its centre: where the scene builds at scale 1, the fault is the scale's.
     """
     try:
-        return load_scene(name_or_path, scale)
+        return _load(name_or_path, scale)
     except ValueError as e:
-        if scale == 1.0:
+        try:
+            scale_ok = _scale(scale) != 1.0
+        except ValueError:
+            raise e from None  # the scale's own refusal (NaN, 0, text), as given
+        if not scale_ok:
             raise
         try:
-            load_scene(name_or_path, 1.0)
+            _load(name_or_path, 1.0)
         except Exception:  # noqa: BLE001 (the scene's own fault: its error, as given at this scale)
             raise e from None
-        scene = DEFAULT_SCENE if name_or_path is None else os.fspath(name_or_path)
+        scene = os.fsdecode(DEFAULT_SCENE if name_or_path is None else name_or_path)
         raise ValueError(f"{what} = {scale:g} is not allowed for {scene}: it builds at {what} 1, but with its spacing "
                          f"divided by {scale:g}: {e}; give a {what} nearer 1") from None
