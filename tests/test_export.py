@@ -1,6 +1,7 @@
 """Surfaces from particles (marching cubes), surfaces in USD, and meshio export round trips."""
 
 import os
+import re
 
 import meshio
 import numpy as np
@@ -497,3 +498,21 @@ def test_a_ctrl_c_mid_export_says_which_frames_are_kept(tmp_path, monkeypatch, c
     assert main(["run", "--scale", "0.3", "--frames", "2", "--no-progress", "-o", str(run), "--preview"]) == 130
     assert capsys.readouterr().err == (f"warp-esph: interrupted: --preview: {run}.png is not written; {run} holds the "
                                        "whole run\n")
+
+
+def test_a_frame_the_file_does_not_hold_is_refused_by_the_reader_not_read_as_no_particles(tmp_path):
+    """``UsdFrames.arrays(99)`` of a 3-frame file (or -1) returned no particles, as if the
+    bodies had left; ``True``, ``1.0`` and ``'1'`` were read as frame 1, a list or an array met
+    a TypeError. ``parse_frames`` refused them for the commands; the reader did not."""
+    from test_render import write_clusters
+
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=3)
+    data = UsdFrames(path)
+    assert len(data.arrays(np.int64(2))["points"]) == 125
+    for bad in (99, -1, True, 1.0, "1", [0, 1], np.array([1]), None):
+        with pytest.raises(ValueError, match=re.escape(f"frame = {bad!r} is not allowed: ") + "must be one of the file's "
+                                             r"frames \(0\.\.2\)"):
+            data.arrays(bad)
+        with pytest.raises(ValueError, match=re.escape(f"frame = {bad!r} is not allowed")):
+            data.particles(bad)

@@ -1176,6 +1176,15 @@ class UsdFrames:
         return frame
 
     @_held_stderr
+    def _frame(self, frame) -> int:
+        # A frame not in the file read as no particles at all (every body without a sample
+        # there), and True, 1.0 or '1' as frame 1.
+        if isinstance(frame, (int, np.integer)) and not isinstance(frame, (bool, np.bool_)) and int(frame) in self.frames:
+            return int(frame)
+        held = (f"{self.frames[0]}..{self.frames[-1]}" if self.frames == list(range(self.frames[0], self.frames[-1] + 1))
+                else ", ".join(map(str, self.frames[:8])) + (", ..." if len(self.frames) > 8 else ""))
+        raise ValueError(f"frame = {frame!r} is not allowed: must be one of the file's frames ({held})")
+
     def arrays(self, frame: int) -> dict:
         """Every particle at ``frame``: points, velocities, widths, alpha, singular_values
         (N, 3), body (index into ``bodies``) and material_id. Points, velocities and widths are
@@ -1183,7 +1192,9 @@ class UsdFrames:
         where a float64 run wrote them, to the last bit, else float32; alpha and
         singular_values likewise); velocities under a
         time-sampled transform carry its motion too (``_placement_rate``). A body without a
-        sample at ``frame`` (``has_sample``) is left out of it."""
+        sample at ``frame`` (``has_sample``) is left out of it. ``frame`` must be one of
+        ``frames`` (a ``ValueError`` names it)."""
+        frame = self._frame(frame)
         t = Usd.TimeCode(float(frame))
         cols = {k: [] for k in ("points", "velocities", "widths", "alpha", "singular_values", "body", "material_id")}
         for k, (_, prim) in enumerate(self.bodies):
