@@ -554,6 +554,41 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
     assert not (tmp_path / "fit_tiny").exists()
 
 
+@pytest.mark.parametrize("where", ["plots", "fitted run"])
+def test_a_ctrl_c_while_fit_writes_its_results_says_which_files_are_whole(tmp_path, monkeypatch, capsys, where):
+    """A Ctrl-C after the fit (and its diagnostics) had finished, while its pictures or its
+    fitted run were written: the line said 'interrupted' alone, and a fitted.usdc cut short
+    stayed beside fit.json as if it were the fitted run."""
+    from warp_esph import calibrate
+
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    run = tmp_path / "truth.usdc"
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(run), "--no-progress", "--dtype", "float64"]) == 0
+    if where == "plots":
+        def interrupted(*a, **k):
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(calibrate, "_plots", interrupted)
+    else:
+        simulate_module = sys.modules["warp_esph.simulate"]  # the package's name is the function
+        real = simulate_module.simulate
+
+        def interrupted(model, frames, **kw):
+            return real(model, frames, callback=lambda f, s: (_ for _ in ()).throw(KeyboardInterrupt) if f == 1 else None,
+                        **kw)
+
+        monkeypatch.setattr(simulate_module, "simulate", interrupted)
+    out = tmp_path / "fit"
+    capsys.readouterr()
+    assert main(["fit", str(tmp_path / "s.toml"), "--target", str(run), "--no-progress", "--iterations", "0",
+                 "--no-diagnostics", "--output-dir", str(out)]) == 130
+    err = capsys.readouterr().err.splitlines()
+    kept = f"{out}/fit.json, {out}/history.csv" + (f", {out}/loss.png, {out}/params.png" if where != "plots" else "")
+    assert err[-2:] == [f"warp-esph fit: interrupted while writing the fit's results (printed above): wrote {kept}; the "
+                        "other files are not written", "warp-esph: interrupted"]
+    assert sorted(os.listdir(out)) == sorted(os.path.basename(f) for f in kept.split(", "))
+
+
 def test_fit_refuses_an_empty_path_instead_of_dropping_it(tmp_path, capsys, monkeypatch):
     """'' (an unset shell variable) was taken as not given: --experiments '' and --cameras ''
     ran the fit without them and exited 0, --output-dir '' and -o '' wrote to the defaults."""

@@ -308,20 +308,29 @@ def run_fit(args, out=None, err=None) -> int:
         return checks.OutputWriteError(f"cannot write {where}: {e.strerror or e} (the fit's results are printed above; "
                                        f"{kept})", e)
 
+    usd_path = os.path.join(folder, "fitted.usdc")
     try:
-        _remove_earlier_run(folder, _arg(args, "output"))
-        write_outputs(result, folder, meta, json_path=_arg(args, "output"), written=written)
-    except OSError as e:
-        raise failed(e, e.filename or folder) from None
-    if not args.no_usd:
-        from .fit import write_fitted_usd  # noqa: PLC0415
-
-        usd_path = os.path.join(folder, "fitted.usdc")
         try:
-            if write_fitted_usd(result.model, usd_path, frames, fps, dt):
-                written.append(usd_path)
+            _remove_earlier_run(folder, _arg(args, "output"))
+            write_outputs(result, folder, meta, json_path=_arg(args, "output"), written=written)
         except OSError as e:
-            raise failed(e, usd_path) from None
+            raise failed(e, e.filename or folder) from None
+        if not args.no_usd:
+            from .fit import write_fitted_usd  # noqa: PLC0415
+
+            try:
+                if write_fitted_usd(result.model, usd_path, frames, fps, dt):
+                    written.append(usd_path)
+            except OSError as e:
+                raise failed(e, usd_path) from None
+    except KeyboardInterrupt:
+        # The fit had finished: the line said 'interrupted' alone, and a fitted run cut short
+        # stayed beside fit.json as if it were the fitted run.
+        if usd_path not in written and os.path.isfile(usd_path):
+            os.remove(usd_path)
+        kept = f"wrote {', '.join(written)}; the other files are not written" if written else "none of its files is written"
+        log(f"interrupted while writing the fit's results (printed above): {kept}")
+        raise
     print("wrote " + ", ".join(written), file=out)
     return 0
 
