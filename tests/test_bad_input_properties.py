@@ -609,3 +609,17 @@ def test_a_switch_given_anything_but_true_or_false_is_refused_by_name(tmp_path):
         with pytest.raises(ValueError, match=rf"^{name} = 'no' " + switch):
             render_usd(path, tmp_path / "p.png", width=32, height=32, **{name: "no"})
     assert sorted(os.listdir(tmp_path)) == ["one.usdc"]
+
+
+def test_a_float64_model_is_not_told_to_use_float64():
+    """A value float64 cannot hold was refused with 'use dtype=float64 or a larger value',
+    to a model already in float64; the advice is now the value alone there."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material(mu=1e-320, lam=1.0))
+    with pytest.raises(ValueError, match=r"Material\.mu = 9\.99989e-321 \(material 0\) is not allowed in float64: must be 0 "
+                                         r"or at least 2\.23e-308 in size; use a larger value$"):
+        b.finalize(dtype="float64")
+    with pytest.raises(ValueError, match=r"in float32: must be 0 or at least 1\.18e-38 in size; use dtype=float64 "
+                                         r"\(--dtype float64\) or a larger value$|in float32: must be 0 or at least "
+                                         r"1\.18e-38 in size; use dtype=float64 or a larger value$"):
+        b.finalize(dtype="float32")

@@ -22,7 +22,7 @@ from .sim.neighbors import PAPER_MAX_NEIGHBORS, default_max_neighbors
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 from .material import Material
 from .meshes import lattice_points
-from .model import CONTACTS, FITS, Body, Model, check_contact_ramp, material_precision_problem
+from .model import CONTACTS, FITS, Body, Model, check_contact_ramp, material_precision_problem, wider_precision
 
 #: Allowed support radius, in units of the spacing. Below 1.5 dx an interior particle
 #: sees only its 6 face neighbours; above 3 dx a particle has more than 120 neighbours
@@ -780,7 +780,7 @@ class SceneBuilder:
         became inf in the model without a word."""
         big = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).max)
         T = scalar.__name__
-        hint = "use dtype=float64 (--dtype float64) or a smaller value"
+        hint = wider_precision(scalar, "a smaller value", cli=True)
         for k, m in enumerate(self._materials):
             problem = material_precision_problem(m, scalar)
             if problem is not None:
@@ -800,9 +800,11 @@ class SceneBuilder:
         h = float(self.support_radius)
         if not tiny ** (1 / 9) <= h <= big ** (1 / 9):  # h itself: h ** 9 overflowed a float beyond 1e34
             why = (f"is not allowed in {T}: the kernels' constants (1 / h^9) must fit the precision, so it must be in "
-                   f"[{tiny ** (1 / 9):.3g}, {big ** (1 / 9):.3g}] m; use dtype=float64")
-            self._refuse(("scene",), f"support_radius = {h!r} {why} (or larger units)",
-                         f"support_radius = {h!r} (given, or 2 x spacing) {why} (--dtype float64) or larger units")
+                   f"[{tiny ** (1 / 9):.3g}, {big ** (1 / 9):.3g}] m")
+            f32 = scalar is wp.float32
+            self._refuse(("scene",), f"support_radius = {h!r} {why}; {'use dtype=float64 (or larger units)' if f32 else 'use other units'}",
+                         f"support_radius = {h!r} (given, or 2 x spacing) {why}; "
+                         f"{'use dtype=float64 (--dtype float64) or larger units' if f32 else 'use other units'}")
         # The static colliders' sizes and places enter the contact squared: 1e300 m (or 1e40 m
         # in float32) turned every particle's position into NaN in the first step.
         far = math.sqrt(big)
@@ -830,11 +832,11 @@ class SceneBuilder:
             eps = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).eps)
             if reach * eps > 1e-2 * self.spacing:
                 why = (f"{T} resolves {reach * eps:.2g} m there, more than a hundredth of the spacing {self.spacing:g}; "
-                       "move the scene nearer the origin or use dtype=float64 (--dtype float64)")
+                       f"move the scene nearer the origin{' or use dtype=float64 (--dtype float64)' if scalar is wp.float32 else ''}")
                 k, key = self._body_at(i)
                 self._refuse(("body", k), f"positions {reach:.3g} m from the origin are not allowed in {T}: it resolves "
                              f"{reach * eps:.2g} m there, more than a hundredth of the spacing {self.spacing:g}; move "
-                             "the scene nearer the origin or use dtype=float64",
+                             f"the scene nearer the origin{' or use dtype=float64' if scalar is wp.float32 else ''}",
                              f"{key} puts particles {reach:.3g} m from the origin, which is not allowed in {T}: {why}")
         # Gravity, the bodies' velocities and the tools' poses, sizes and motions are numbers of
         # this precision in the step too (gravity 1e39 in float32 was inf in the first kernel, a
@@ -848,7 +850,7 @@ class SceneBuilder:
             for label, v in (("center", fld.center), ("strength", fld.strength)):
                 if np.abs(np.asarray(v, dtype=np.float64)).max() > far:
                     raise ValueError(f"CompressionField.{label} = {v!r} is not allowed in {T}: must be at "
-                                     f"most {far:.3g} in size; use dtype=float64 or a smaller value")
+                                     f"most {far:.3g} in size; {wider_precision(scalar, 'a smaller value')}")
             finite_times = [t for t in (fld.t_on, fld.t_off) if math.isfinite(t)]
             if finite_times and max(abs(t) for t in finite_times) > big:
                 raise ValueError(f"CompressionField times ({fld.t_on!r}, {fld.t_off!r}) are not allowed in "
@@ -875,7 +877,7 @@ class SceneBuilder:
                 why = tools.keyframe_times_problem(m.times, np.float32 if scalar is wp.float32 else np.float64)
                 if why is not None:
                     shown = checks.shorten(list(m.times))
-                    why = f"is not allowed in {T}: {why}; use dtype=float64 or times further apart"
+                    why = f"is not allowed in {T}: {why}; {wider_precision(scalar, 'times further apart')}"
                     self._refuse(origin, f"{kind} {t.name!r}: Keyframes times = {shown!r} {why}",
                                  f"keyframe_times = {shown!r} {why}")
             param = getattr(t, "param", None)

@@ -53,10 +53,18 @@ def precision_problem(value: float, scalar) -> str | None:
     info = np.finfo(np.float32 if scalar is wp.float32 else np.float64)
     tiny, big = float(info.tiny), float(info.max)
     if math.isfinite(value) and abs(value) > big:
-        return f"must be at most {big:.3g}; use dtype=float64 or a smaller value"
+        return f"must be at most {big:.3g}; {wider_precision(scalar, 'a smaller value')}"
     if value != 0.0 and abs(value) < tiny:
-        return f"must be 0 or at least {tiny:.3g} in size; use dtype=float64 or a larger value"
+        return f"must be 0 or at least {tiny:.3g} in size; {wider_precision(scalar, 'a larger value')}"
     return None
+
+
+def wider_precision(scalar, instead: str, cli: bool = False) -> str:
+    """The advice of a refusal for the precision: float64 where a float32 model was asked for,
+    else ``instead`` alone (a float64 model was told to use dtype=float64)."""
+    if scalar is wp.float32:
+        return f"use dtype=float64{' (--dtype float64)' if cli else ''} or {instead}"
+    return f"use {instead}"
 
 
 def material_precision_problem(material: Material, scalar) -> tuple[str, float, str] | None:
