@@ -623,3 +623,23 @@ def test_a_float64_model_is_not_told_to_use_float64():
                                          r"\(--dtype float64\) or a larger value$|in float32: must be 0 or at least "
                                          r"1\.18e-38 in size; use dtype=float64 or a larger value$"):
         b.finalize(dtype="float32")
+
+
+def test_a_material_whose_wave_speed_overflows_is_refused_also_in_a_rollout():
+    """mu = 1e308 (or a pressure_stiffness of 1e308) with a finite rest of the material: its
+    p-wave speed was inf, the stable step 0, and a float64 rollout of a given dt (the torch
+    bridge's too) ran to NaN positions and returned them without a word."""
+    from warp_esph.rollout import Rollout
+
+    together = "are not allowed together: their p-wave speed"
+    with pytest.raises(ValueError, match=re.escape("Material.mu = 1e+308, Material.lam = 1.0, Material.density = 1000.0 "
+                                                   "and Material.pressure_stiffness = 5.0 " + together)):
+        we.Material(mu=1e308, lam=1.0, density=1000.0, pressure_stiffness=5.0)
+    with pytest.raises(ValueError, match=re.escape(together)):
+        we.Material(mu=1.0, lam=1.0, pressure_stiffness=1e308)
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), DOUGH)
+    rollout = Rollout(b.finalize(dtype="float64", requires_grad=True), 3, 1e-4)
+    with pytest.raises(ValueError, match=r"values are not allowed: material 0: Material\.mu = 1e\+308, .*" + together):
+        rollout.set_parameters({"mu": [1e308]})
+    assert np.isfinite(rollout.forward()).all()  # the model's own values, as they were

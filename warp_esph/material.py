@@ -69,7 +69,8 @@ PRESSURE_BULK_SHARE = {"energy": 0.25, "spiky": 0.5, "energy_spiky": 0.46}
 def p_wave_speed(mu, lam, density, pressure_stiffness):
     """``sqrt((lam + 2 mu + rho0 k_p) / rho0)``, the speed the explicit step must resolve
     (docs/method.md §8); numbers or numpy arrays."""
-    return np.sqrt((lam + 2.0 * mu + density * pressure_stiffness) / density)
+    with np.errstate(over="ignore"):  # inf past the float range, which Material refuses by name
+        return np.sqrt((lam + 2.0 * mu + density * pressure_stiffness) / density)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -178,6 +179,13 @@ class Material:
             set_("pressure_stiffness", derived)
         set_("pressure_stiffness", checks.non_negative("Material.pressure_stiffness", self.pressure_stiffness))
         set_("viscosity", checks.non_negative("Material.viscosity", self.viscosity))
+        # The explicit step resolves this speed: past the float range it was inf, the stable step
+        # 0, and a rollout of a given dt ran to NaN positions and returned them without a word.
+        if not math.isfinite(float(p_wave_speed(self.mu, self.lam, self.density, self.pressure_stiffness))):
+            raise ValueError(
+                f"Material.mu = {self.mu!r}, Material.lam = {self.lam!r}, Material.density = {self.density!r} and "
+                f"Material.pressure_stiffness = {self.pressure_stiffness!r} are not allowed together: their p-wave speed "
+                "sqrt((lam + 2 mu + density pressure_stiffness) / density) is not a finite number")
         checks.choice("Material.model", self.model, MODELS)
         checks.choice("Material.deformation", self.deformation, DEFORMATIONS)
         checks.choice("Material.elastic_force", self.elastic_force, ELASTIC_FORCES)
