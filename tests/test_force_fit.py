@@ -509,3 +509,27 @@ def test_a_force_log_whose_times_imply_another_rate_than_the_fit_is_refused_nami
         out = tmp_path / f"fit_f32{len(extra)}"
         assert main(["fit", str(scene), "--target", str(f32), *extra, *common, "--output-dir", str(out)]) == 0, \
             capsys.readouterr().err
+
+
+def test_a_force_log_row_cut_short_or_too_long_is_refused_not_read_as_its_numbers(tmp_path):
+    """A log cut inside the last row's fz (a copy stopped short, another program's file) read
+    '-2.5' of '-2.5031' as the force, the missing torque columns unchecked; a row with more
+    fields than the header was read too. Each row must have the header's columns."""
+    from warp_esph.losses import read_tools_csv  # noqa: PLC0415
+
+    head = "frame,time,tool,fx,fy,fz,tx,ty,tz\n"
+    whole = head + "0,0,plane0,0,0,0,0,0,0\n1,0.005,plane0,0,0,-1.5,0,0,0\n2,0.01,plane0,0,0,-2.5031,0,0,0\n"
+    assert read_tools_csv(_write(tmp_path / "whole.csv", whole))[-1]["force"].tolist() == [0.0, 0.0, -2.5031]
+    cut = tmp_path / "cut.csv"
+    cut.write_text(whole[:whole.rindex("-2.5031") + len("-2.5")])
+    with pytest.raises(ValueError, match=r"cut\.csv, row 4 is not allowed: it has 6 fields, the header 9 \(a file cut "
+                                         r"short, or a row of another table\?\)"):
+        read_tools_csv(cut)
+    long = _write(tmp_path / "long.csv", whole + "3,0.015,plane0,0,-3,0,0,0,0,7\n")
+    with pytest.raises(ValueError, match=r"long\.csv, row 5 is not allowed: it has 10 fields, the header 9"):
+        ReactionForceLoss.from_csv(long, "plane0", {1: 10})
+
+
+def _write(path, text):
+    path.write_text(text)
+    return path

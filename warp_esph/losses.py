@@ -1283,8 +1283,15 @@ def read_tools_csv(path) -> list[dict]:
             if missing:
                 raise ValueError(f"{p} is not allowed as a force target: it lacks the columns {', '.join(missing)} "
                                  f"(a '<output>_tools.csv' of 'warp-esph run' has them)")
+            width = len(reader.fieldnames)
             for k, row in enumerate(reader):
                 line = k + 2
+                fields = sum(v is not None for key, v in row.items() if key is not None) + len(row.get(None) or [])
+                if fields != width:
+                    # A row cut inside its fz read the digits left as the force (the torque columns
+                    # after it unread), and a longer row was read as if it were this table's.
+                    raise ValueError(f"{p}, row {line} is not allowed: it has {fields} fields, the header {width} (a file "
+                                     "cut short, or a row of another table?)")
                 try:
                     frame, tool = int(row["frame"]), row["tool"]
                     values = {c: float(row[c]) for c in ("time", "fx", "fy", "fz")}
