@@ -237,6 +237,12 @@ def test_writer_rejects_bad_arguments(model, tmp_path):
         UsdWriter(tmp_path / "out.usdc", model, 0)
     with pytest.raises(FileNotFoundError):
         UsdWriter(tmp_path / "no" / "out.usdc", model, 30)
+    if os.path.isdir("/proc"):
+        # A folder that takes no file is a failed write, as pxr's at the working copies was, not
+        # a FileNotFoundError ('the input is missing') from the writer's lock file.
+        with pytest.raises(OSError, match=r"^could not create /proc/\.x\.usdc\.lock: ") as refused:
+            UsdWriter("/proc/x.usdc", model, 30)
+        assert type(refused.value) is OSError
     with UsdWriter(tmp_path / "ok.usdc", model, 30) as w:
         with pytest.raises(ValueError, match="frame_index"):
             w.write_frame(-1, model.state())

@@ -313,7 +313,12 @@ class UsdWriter:
         except ImportError:
             return None
         while True:
-            fd = os.open(self._lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fd = os.open(self._lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+            except OSError as e:
+                # A failed write (a read-only folder), as pxr's at the working copies was: a
+                # FileNotFoundError read as 'the input is missing' (exit 2).
+                raise OSError(f"could not create {self._lock_path}: {e.strerror or e}") from None
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError:
