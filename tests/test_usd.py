@@ -570,3 +570,18 @@ def test_velocities_under_a_time_sampled_rotation_carry_x_dA_dt():
         np.testing.assert_allclose(arrays[f]["velocities"], exact, rtol=0, atol=1e-3 * np.abs(exact).max())
     np.testing.assert_allclose(arrays[0]["velocities"], (turned(2.5) - turned(0.0)) * 48.0, atol=1e-9)
     np.testing.assert_allclose(arrays[3]["velocities"], (turned(15.0) - turned(12.5)) * 48.0, atol=1e-9)
+
+
+def test_a_file_system_without_flock_is_written_unguarded_not_refused(model, tmp_path, monkeypatch):
+    """Only a lock another writer holds refuses the file: a file system without flock (ENOLCK,
+    some network mounts) must not read as 'another writer is writing it'."""
+    import errno
+    import fcntl
+
+    def no_locks(fd, op):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    with UsdWriter(tmp_path / "nfs.usdc", model, 30) as w:
+        w.write_frame(0, model.state())
+    assert sorted(os.listdir(tmp_path)) == ["nfs.usdc"]

@@ -321,13 +321,19 @@ class UsdWriter:
                 raise OSError(f"could not create {self._lock_path}: {e.strerror or e}") from None
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
+            except BlockingIOError:
                 try:
                     holder = os.read(fd, 32).decode(errors="replace").strip() or "?"
                 finally:
                     os.close(fd)
                 raise OutputInUse(given, f"another writer (process {holder}) is writing it; wait for it to finish, "
                                          "or write another file") from None
+            except OSError:
+                # A file system without flock (some network mounts): written as before, unguarded.
+                os.close(fd)
+                with contextlib.suppress(OSError):
+                    os.remove(self._lock_path)
+                return None
             try:
                 same = os.fstat(fd).st_ino == os.stat(self._lock_path).st_ino
             except FileNotFoundError:
