@@ -1186,7 +1186,6 @@ class UsdFrames:
             raise ValueError(f"frame = {frame!r} is not allowed: {self.path} holds frames {self.frames[0]}..{self.frames[-1]}")
         return frame
 
-    @_held_stderr
     def _frame(self, frame) -> int:
         # A frame not in the file read as no particles at all (every body without a sample
         # there), and True, 1.0 or '1' as frame 1.
@@ -1196,6 +1195,7 @@ class UsdFrames:
                 else ", ".join(map(str, self.frames[:8])) + (", ..." if len(self.frames) > 8 else ""))
         raise ValueError(f"frame = {frame!r} is not allowed: must be one of the file's frames ({held})")
 
+    @_held_stderr
     def arrays(self, frame: int) -> dict:
         """Every particle at ``frame``: points, velocities, widths, alpha, singular_values
         (N, 3), body (index into ``bodies``) and material_id. Points, velocities and widths are
