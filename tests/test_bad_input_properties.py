@@ -643,3 +643,13 @@ def test_a_material_whose_wave_speed_overflows_is_refused_also_in_a_rollout():
     with pytest.raises(ValueError, match=r"values are not allowed: material 0: Material\.mu = 1e\+308, .*" + together):
         rollout.set_parameters({"mu": [1e308]})
     assert np.isfinite(rollout.forward()).all()  # the model's own values, as they were
+
+
+def test_target_positions_of_text_are_refused_by_name():
+    """``fit(model, {3: 'x'})`` and ``PositionLoss({3: [['a', 0, 0]]})`` met numpy's 'could not
+    convert string to float: 'x'', naming no parameter."""
+    from warp_esph.losses import PositionLoss
+
+    for bad in ("x", [["a", 0.0, 0.0]]):
+        with pytest.raises(ValueError, match=r"^targets at step 3 = .* is not allowed: must be \(N, 3\) numbers"):
+            PositionLoss({3: bad})

@@ -271,7 +271,10 @@ def _points(name: str, p) -> np.ndarray:
     p = checks.host_values(name, p)
     if np.iscomplexobj(p):  # numpy kept the real part with only a ComplexWarning
         raise ValueError(f"{name} is not allowed: it holds complex numbers; positions are real")
-    a = np.asarray(p, dtype=np.float64)
+    try:
+        a = np.asarray(p, dtype=np.float64)
+    except (TypeError, ValueError):  # numpy's "could not convert string to float" named no parameter
+        raise ValueError(f"{name} = {checks.shorten(p)!r} is not allowed: must be (N, 3) numbers") from None
     if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0:
         raise ValueError(f"{name} with shape {a.shape} is not allowed: must be (N, 3) with N >= 1")
     if not np.isfinite(a).all():
