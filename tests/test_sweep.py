@@ -179,7 +179,8 @@ def test_a_ray_address_where_nothing_answers_is_refused_at_once(capsys, tmp_path
 def test_ray_auto_without_a_cluster_says_what_the_command_takes(capsys, tmp_path, monkeypatch):
     """Ray's refusal of 'auto' with no cluster running advises its own command line's
     '`--address` flag', which warp-esph has not; the line says what --ray takes instead.
-    Ray's own error is raised without starting anything."""
+    Ray's own error is raised without starting anything, and before the plan's line
+    ('... on Ray at auto -> ...'), which printed first: the error is the one stderr line."""
     ray = pytest.importorskip("ray")
     from warp_esph.cli import main
 
@@ -191,8 +192,8 @@ def test_ray_auto_without_a_cluster_says_what_the_command_takes(capsys, tmp_path
     monkeypatch.setattr(ray, "init", no_cluster)
     status = main(["sweep", "dough_drop", "--param", "yield_stress=100,1000", "--scale", "0.3", "--frames", "1",
                    "--ray", "auto", "--no-progress", "-o", str(tmp_path / "sw")])
-    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warp-esph: error: ")]
-    assert status == 2 and len(err) == 1, err
+    err = capsys.readouterr().err.splitlines()
+    assert status == 2 and len(err) == 1 and err[0].startswith("warp-esph: error: "), err
     assert "--address" not in err[0], err
     assert err[0].endswith("--ray auto is not allowed: cannot connect to a Ray cluster there: Could not find any running "
                            "Ray instance; give --ray HOST:PORT or ray://HOST:PORT of a running cluster, or with --ray auto "

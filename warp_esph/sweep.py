@@ -30,6 +30,7 @@ starting point of a multi-start fit, with the starting points from ``sample_poin
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import itertools
@@ -730,27 +731,43 @@ def _check_reachable(address: str, timeout: float = 5.0) -> None:
         raise ValueError(f"--ray = {text!r} is not allowed: nothing answers at {host}:{port} ({e.strerror or e})") from None
 
 
-def _ray_map(fn, items, address, on_result, on_error, resources):
+@contextlib.contextmanager
+def _ray_session(address):
+    """Ray, connected to the cluster at ``address`` for the ``with`` block: a session already
+    started in this process is used as it is and left running; one started here is shut down
+    as the block ends. A cluster that cannot be reached is a ``ValueError``."""
     try:
         import ray  # noqa: PLC0415
     except ModuleNotFoundError:
         raise ValueError(f"--ray {address} is not allowed: Ray is not installed; pip install 'warp-esph[ray]'") from None
-    started = False
-    if not ray.is_initialized():
-        _check_reachable(address)
-        try:
-            ray.init(address=address, include_dashboard=False, log_to_driver=False)
-        except (ConnectionError, ValueError, RuntimeError) as e:
-            why = _one_line(e)
-            if "--address" in why:
-                # Ray's advice is for its own command line ('the `--address` flag or RAY_ADDRESS'):
-                # warp-esph has no --address; say what the command takes instead.
-                why = re.sub(r"\s*[^.]*--address[^.]*\.?", "", why).strip()
-                why = (f"{why.rstrip('.')}; give --ray HOST:PORT or ray://HOST:PORT of a running cluster, or with "
-                       "--ray auto start one on this machine first ('ray start --head') or name its address in the "
-                       "RAY_ADDRESS environment variable")
-            raise ValueError(f"--ray {address} is not allowed: cannot connect to a Ray cluster there: {why}") from None
-        started = True
+    if ray.is_initialized():
+        yield ray
+        return
+    _check_reachable(address)
+    try:
+        ray.init(address=address, include_dashboard=False, log_to_driver=False)
+    except (ConnectionError, ValueError, RuntimeError) as e:
+        why = _one_line(e)
+        if "--address" in why:
+            # Ray's advice is for its own command line ('the `--address` flag or RAY_ADDRESS'):
+            # warp-esph has no --address; say what the command takes instead.
+            why = re.sub(r"\s*[^.]*--address[^.]*\.?", "", why).strip()
+            why = (f"{why.rstrip('.')}; give --ray HOST:PORT or ray://HOST:PORT of a running cluster, or with "
+                   "--ray auto start one on this machine first ('ray start --head') or name its address in the "
+                   "RAY_ADDRESS environment variable")
+        raise ValueError(f"--ray {address} is not allowed: cannot connect to a Ray cluster there: {why}") from None
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+
+
+def _ray_map(fn, items, address, on_result, on_error, resources):
+    with _ray_session(address) as ray:
+        return _ray_tasks(ray, fn, items, on_result, on_error, resources)
+
+
+def _ray_tasks(ray, fn, items, on_result, on_error, resources):
     try:
         # Not retried: Ray ran a sample whose worker died (a crash in native code, out of memory)
         # three more times, each dying the same way, before its row said it failed.
@@ -790,9 +807,6 @@ def _ray_map(fn, items, address, on_result, on_error, resources):
             except Exception:  # noqa: BLE001 (finished tasks cannot be cancelled)
                 pass
         raise
-    finally:
-        if started:
-            ray.shutdown()
 
 
 # ------------------------------------------------------------------ the sweep
@@ -1157,95 +1171,96 @@ def sweep_cli(args, out=None) -> int:
         if os.path.isdir(os.path.join(folder, name)):
             raise ValueError(f"--output = {folder!r} is not allowed: {os.path.join(folder, name)!r} is a folder; the "
                              f"sweep writes its {name} there")
-    if args.ray is not None:
-        _check_reachable(args.ray)  # before the plan's line: one line for a wrong address
-    where = f"Ray at {args.ray}" if args.ray else f"{min(args.workers or _cores(), len(points))} worker(s)"
-    print(f"{PROG} sweep: {sc.name}: {len(points)} samples ({args.sample}) of {', '.join(p.name for p in plist)} "
-          f"on {where} -> {folder}", file=sys.stderr, flush=True)
-    done: list[dict] = []
-    bar = None
-    if not args.no_progress:
-        from .simulate import _progress_bar  # noqa: PLC0415
+    # Connected (or refused) before the plan's line, which says the sweep runs on Ray: an
+    # address or 'auto' where no cluster runs is then the one line on stderr.
+    with _ray_session(args.ray) if args.ray is not None else contextlib.nullcontext():
+        where = f"Ray at {args.ray}" if args.ray else f"{min(args.workers or _cores(), len(points))} worker(s)"
+        print(f"{PROG} sweep: {sc.name}: {len(points)} samples ({args.sample}) of {', '.join(p.name for p in plist)} "
+              f"on {where} -> {folder}", file=sys.stderr, flush=True)
+        done: list[dict] = []
+        bar = None
+        if not args.no_progress:
+            from .simulate import _progress_bar  # noqa: PLC0415
 
-        bar = _progress_bar(len(points), "samples")
+            bar = _progress_bar(len(points), "samples")
 
-    written = [0.0]
+        written = [0.0]
 
-    def record(row):
-        from .cli import _safe_point  # noqa: PLC0415
+        def record(row):
+            from .cli import _safe_point  # noqa: PLC0415
 
-        done.append(row)
-        if bar is not None:
-            bar.update(1)
-        # The samples finished so far, on disk as they come (at most every PARTIAL_EVERY_S): a
-        # killed sweep (SIGKILL, out of memory) kept none of them.
-        if written[0] is not None and time.perf_counter() - written[0] >= PARTIAL_EVERY_S:
-            try:
-                write_outputs(_table(done, [p.name for p in plist]), folder,
-                              {**meta, "partial": True, "samples_done": len(done)}, log_params, plot_figure=False)
-                written[0] = time.perf_counter()
-            except (OSError, ValueError, ImportError) as e:  # a convenience: the sweep goes on without it
-                print(f"{PROG}: warning: the table so far could not be written ({e}); the sweep goes on and writes "
-                      "it at its end", file=sys.stderr)
-                written[0] = None
-        _safe_point(args)  # a Ctrl-C that landed in a finalizer stops the sweep here, this sample kept
+            done.append(row)
+            if bar is not None:
+                bar.update(1)
+            # The samples finished so far, on disk as they come (at most every PARTIAL_EVERY_S): a
+            # killed sweep (SIGKILL, out of memory) kept none of them.
+            if written[0] is not None and time.perf_counter() - written[0] >= PARTIAL_EVERY_S:
+                try:
+                    write_outputs(_table(done, [p.name for p in plist]), folder,
+                                  {**meta, "partial": True, "samples_done": len(done)}, log_params, plot_figure=False)
+                    written[0] = time.perf_counter()
+                except (OSError, ValueError, ImportError) as e:  # a convenience: the sweep goes on without it
+                    print(f"{PROG}: warning: the table so far could not be written ({e}); the sweep goes on and writes "
+                          "it at its end", file=sys.stderr)
+                    written[0] = None
+            _safe_point(args)  # a Ctrl-C that landed in a finalizer stops the sweep here, this sample kept
 
-    meta = {"command": "sweep", "version": __version__, "scene": args.scene if args.scene else sc.name,
-            "scale": args.scale, "params": [dataclasses.asdict(p) for p in plist], "sample": args.sample,
-            "samples": len(points), "seed": args.seed, "frames": args.frames, "duration": args.duration, "fps": args.fps,
-            "dt": args.dt, "dtype": args.dtype, "workers": args.workers, "ray": args.ray,
-            "fit": sc.builder.fit, "contact_ramp": sc.builder.contact_ramp, "hourglass": sc.builder.hourglass,
-            "fit_weight": sc.builder.fit_weight}
-    if args.scene and os.path.exists(str(args.scene)):
-        meta["scene"] = os.path.abspath(args.scene)
-    log_params = [p.name for p in plist if p.values is None and p.scale == "log"]
-    from .cli import _arm, _stopped  # noqa: PLC0415
+        meta = {"command": "sweep", "version": __version__, "scene": args.scene if args.scene else sc.name,
+                "scale": args.scale, "params": [dataclasses.asdict(p) for p in plist], "sample": args.sample,
+                "samples": len(points), "seed": args.seed, "frames": args.frames, "duration": args.duration, "fps": args.fps,
+                "dt": args.dt, "dtype": args.dtype, "workers": args.workers, "ray": args.ray,
+                "fit": sc.builder.fit, "contact_ramp": sc.builder.contact_ramp, "hourglass": sc.builder.hourglass,
+                "fit_weight": sc.builder.fit_weight}
+        if args.scene and os.path.exists(str(args.scene)):
+            meta["scene"] = os.path.abspath(args.scene)
+        log_params = [p.name for p in plist if p.values is None and p.scale == "log"]
+        from .cli import _arm, _stopped  # noqa: PLC0415
 
-    _arm(args)  # from here Ctrl-C unwinds to the except below, which writes the samples finished
-    t0 = time.perf_counter()
-    try:
-        table = _execute(plan, args.workers, args.ray, record)
-    except KeyboardInterrupt:
+        _arm(args)  # from here Ctrl-C unwinds to the except below, which writes the samples finished
+        t0 = time.perf_counter()
+        try:
+            table = _execute(plan, args.workers, args.ray, record)
+        except KeyboardInterrupt:
+            if bar is not None:
+                bar.close()
+            table = _table(done, [p.name for p in plist])
+            for line in write_outputs(table, folder, {**meta, "interrupted": True}, log_params):
+                print(line, file=out)
+            print(f"{PROG}: {_stopped(args)}: the table keeps the {len(done)} of {len(points)} samples finished", file=sys.stderr)
+            return EXIT_INTERRUPTED
         if bar is not None:
             bar.close()
-        table = _table(done, [p.name for p in plist])
-        for line in write_outputs(table, folder, {**meta, "interrupted": True}, log_params):
-            print(line, file=out)
-        print(f"{PROG}: {_stopped(args)}: the table keeps the {len(done)} of {len(points)} samples finished", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    if bar is not None:
-        bar.close()
-    meta["seconds"] = time.perf_counter() - t0
-    from .cli import _Deferred  # noqa: PLC0415
+        meta["seconds"] = time.perf_counter() - t0
+        from .cli import _Deferred  # noqa: PLC0415
 
-    lines: list[str] = []
-    try:
-        # Every sample ran: a Ctrl-C while the tables are written waits for them (it cut one
-        # short of the partial table, and the line said 'interrupted' alone); one under the
-        # picture stops it, the tables whole.
-        with _Deferred(args, then_stop=True):
-            lines = write_outputs(table, folder, meta, log_params, plot_figure=False)
-        lines.append(_plot_line(table, folder, log_params))
-    except KeyboardInterrupt:
+        lines: list[str] = []
+        try:
+            # Every sample ran: a Ctrl-C while the tables are written waits for them (it cut one
+            # short of the partial table, and the line said 'interrupted' alone); one under the
+            # picture stops it, the tables whole.
+            with _Deferred(args, then_stop=True):
+                lines = write_outputs(table, folder, meta, log_params, plot_figure=False)
+            lines.append(_plot_line(table, folder, log_params))
+        except KeyboardInterrupt:
+            for line in lines:
+                print(line, file=out)
+            print(f"{PROG}: {_stopped(args)}: the tables in {folder} keep all {len(table)} samples; sweep.png is not "
+                  "written", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        except OSError as e:
+            # A full disk or a folder gone at the end: a failed write (not bad input, exit 2), and
+            # what is left on disk said.
+            from .cli import _err  # noqa: PLC0415
+
+            _err(f"cannot write the sweep's tables in {folder}: {e} ({len(table)} samples ran; the tables in "
+                 f"{folder} are not this sweep's whole result)")
+            return EXIT_WRITE_FAILED
         for line in lines:
             print(line, file=out)
-        print(f"{PROG}: {_stopped(args)}: the tables in {folder} keep all {len(table)} samples; sweep.png is not "
-              "written", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except OSError as e:
-        # A full disk or a folder gone at the end: a failed write (not bad input, exit 2), and
-        # what is left on disk said.
-        from .cli import _err  # noqa: PLC0415
-
-        _err(f"cannot write the sweep's tables in {folder}: {e} ({len(table)} samples ran; the tables in "
-             f"{folder} are not this sweep's whole result)")
-        return EXIT_WRITE_FAILED
-    for line in lines:
-        print(line, file=out)
-    failed = table.failed
-    print(f"{len(table)} samples, {len(table) - len(failed)} ok, {len(failed)} failed, {meta['seconds']:.1f} s", file=out)
-    for r in failed[:5]:
-        print(f"{PROG}: sample {r['sample']} failed: {r.get('reason')}", file=sys.stderr)
-    if len(failed) > 5:
-        print(f"{PROG}: ... and {len(failed) - 5} more failed samples (see the table's reason column)", file=sys.stderr)
-    return EXIT_SOME_FAILED if failed else 0
+        failed = table.failed
+        print(f"{len(table)} samples, {len(table) - len(failed)} ok, {len(failed)} failed, {meta['seconds']:.1f} s", file=out)
+        for r in failed[:5]:
+            print(f"{PROG}: sample {r['sample']} failed: {r.get('reason')}", file=sys.stderr)
+        if len(failed) > 5:
+            print(f"{PROG}: ... and {len(failed) - 5} more failed samples (see the table's reason column)", file=sys.stderr)
+        return EXIT_SOME_FAILED if failed else 0
