@@ -547,6 +547,11 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
         (tmp_path / "exp.json").write_text(json.dumps([{"scene": "s.toml", "target": "truth.usdc", "material": chosen}]))
         assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
         assert_one_line_error(capsys.readouterr().err, words)
+    # The command's own --material is named as the option typed (it said "material 'nobody'").
+    for chosen, words in (("nobody", "error: --material 'nobody' is not allowed: give a material index or a body name ("),
+                          ("5", "error: --material 5 is not allowed: indices are 0..0")):
+        assert main([*fit, "--material", chosen]) == 2
+        assert_one_line_error(capsys.readouterr().err, words)
     # A key given twice kept the last value without a word (TOML refuses it).
     (tmp_path / "exp.json").write_text('[{"scene": "s.toml", "target": "truth.usdc", "weight": 1, "weight": 2}]')
     assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2

@@ -617,7 +617,8 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         from .fit import _material_indices  # noqa: PLC0415
 
         try:  # refused here, by experiment, not later without its name
-            _material_indices(model, materials)
+            # An experiment's key is named as written in its file, the command's as its option.
+            _material_indices(model, materials, what="material" if where else "--material")
         except ValueError as e:
             raise ValueError(f"{where}{e}") from None
     kinds = ", ".join(sorted({("silhouettes" if kind == "silhouette" else t.kind) for kind, _, t in loaded}))

@@ -217,7 +217,8 @@ def _as_model(model_or_factory, dtype) -> Model:
     raise ValueError(f"model = {model_or_factory!r} is not allowed: give a Model, a SceneBuilder or a callable returning one")
 
 
-def _material_indices(model: Model, materials) -> list[int]:
+def _material_indices(model: Model, materials, what: str = "material") -> list[int]:
+    # ``what``: how a refusal names one entry of ``materials`` (the CLI's ``--material``).
     # An elastic particle floor's material is a wall's: no selection but its index fits it.
     walls = {b.floor_material for b in model.bodies if b.floor_material >= 0}
     if materials is None:
@@ -229,7 +230,7 @@ def _material_indices(model: Model, materials) -> list[int]:
     for m in materials:
         if isinstance(m, str):
             if m not in names:
-                raise ValueError(f"material {m!r} is not allowed: give a material index or a body name ({', '.join(names)})")
+                raise ValueError(f"{what} {m!r} is not allowed: give a material index or a body name ({', '.join(names)})")
             # Every material the body's particles use (one per particle after split_materials).
             b = model.bodies[names.index(m)]
             for k in np.unique(model.particle_material_np[b.start: b.start + b.count]):
@@ -237,7 +238,7 @@ def _material_indices(model: Model, materials) -> list[int]:
                     out.append(int(k))
             continue
         if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or not 0 <= m < len(model.materials):
-            raise ValueError(f"material {m!r} is not allowed: indices are 0..{len(model.materials) - 1}")
+            raise ValueError(f"{what} {m!r} is not allowed: indices are 0..{len(model.materials) - 1}")
         if int(m) not in out:
             out.append(int(m))
     if not out:
