@@ -365,6 +365,8 @@ def test_render_command(tmp_path, capsys):
     (["--width", "10"], "--width x --height = 10 x 600 is not allowed"),
     (["--frames", "7"], "--frames = '7' is not allowed: frame 7 is not in the file"),
     (["-o", "{d}/a.png", "--fps", "10"], "--fps = 10.0 is not allowed with --output = '{d}/a.png'"),
+    # No -o typed: the default output is said as such (it said "with --output = '.../cli.usdc.png'").
+    (["--fps", "10"], "--fps = 10.0 is not allowed with the default output {d}/cli.usdc.png: it is the playback rate"),
     (["-o", "{d}/a.gif", "--columns", "2"], "--columns = 2 is not allowed with --output = '{d}/a.gif'"),
     (["-o", "{d}/a.obj"], "--output = '{d}/a.obj' is not allowed: the extension must be"),
 ])

@@ -1137,6 +1137,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     """
     flag = flag or _same_name
     data = UsdFrames(path)
+    given = output is not None
     if output is None:
         output = data.path + ".png"  # the whole name: a.usdc and a.usda must not share a.png
     if not isinstance(output, (str, os.PathLike)):  # 123: a TypeError before
@@ -1150,12 +1151,14 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
                          f"this machine's PATH (install it, e.g. 'apt-get install ffmpeg', or pip install 'warp-esph[mp4]'); write a .gif or a folder "
                          f"of PNG frames instead")
     # Options of another kind of output: refused, not ignored (a .png took --fps, a .gif
-    # --columns, and drew as without them).
+    # --columns, and drew as without them). An output not given is not named as if it had
+    # been ('with --output = ...' to a command line that typed no --output).
+    named = f"{flag('output')} = {out!r}" if given else f"the default output {out}"
     if fps is not None and kind not in ("gif", "mp4"):
-        raise ValueError(f"{flag('fps')} = {fps!r} is not allowed with {flag('output')} = {out!r}: it is the playback rate of a .gif or "
+        raise ValueError(f"{flag('fps')} = {fps!r} is not allowed with {named}: it is the playback rate of a .gif or "
                          f".mp4, and {'a folder of PNG frames' if kind == 'dir' else 'a .png'} has none")
     if columns is not None and kind != "png":
-        raise ValueError(f"{flag('columns')} = {columns!r} is not allowed with {flag('output')} = {out!r}: it lays several frames out "
+        raise ValueError(f"{flag('columns')} = {columns!r} is not allowed with {named}: it lays several frames out "
                          f"side by side in one .png, and a {'folder' if kind == 'dir' else '.' + kind} holds them "
                          f"one after another")
     if frames is None and kind == "png":
