@@ -362,7 +362,7 @@ BAD_TOML = {
                            ["[scene]: max_neighbors = 2000 is not allowed: must be an integer in [6, 1024]"]),
     # A dt that does not divide the frame is the file's: named with it (it was the bare message).
     "dt_not_dividing": (GOOD_TOML.replace("frames = 2", "frames = 2\nfps = 30\ndt = 0.007"),
-                        ["[scene] dt = 0.007 is not allowed", "whole number of steps", "or leave dt out"]),
+                        ["[scene] dt = 0.007 is not allowed", "whole number of steps", "use e.g. dt = 0.00666667 or 0.00833333, or leave dt out"]),
 }
 
 
@@ -381,8 +381,9 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         (["run", "no_such_scene"], ["'no_such_scene'", "dough_drop"]),
         (["run", "dough_drp"], ["did you mean 'dough_drop'"]),
         (["run", "--dt", "-1"], ["--dt", "-1"]),
-        # The step's check named its parameter ('dt = 0.0007 ... leave dt out'), not the option.
-        (["run", "--dt", "0.0007"], ["--dt = 0.0007", "whole number", "or leave --dt out"]),
+        # The step's check named its parameter ('dt = 0.0007 ... leave dt out'), not the option;
+        # its hint is the option as typed ('--dt = 0.000694444' was no command line).
+        (["run", "--dt", "0.0007"], ["--dt = 0.0007", "whole number", "use e.g. --dt 0.000694444 or 0.00070922, or leave --dt out"]),
         (["run", "dough_drop", "--fps", "1e9"], ["--fps = 1000000000.0 is not allowed: must be at most"]),
         (["run", "--frames", "0"], ["--frames", "0"]),
         (["run", "--frames", "many"], ["--frames", "many"]),

@@ -302,8 +302,11 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
     n = round(ratio)
     if n < 1 or abs(ratio - n) > 1e-6 * ratio:
         lo = max(1, math.floor(ratio))
-        hint = (f"{flag('dt')} = {frame_dt / lo:.6g}" if n < 1 else
-                f"{flag('dt')} = {frame_dt / math.ceil(ratio):.6g} or {frame_dt / lo:.6g}")
+        # Written as it is given: an option as typed on the command line ('--dt 0.000694'), a
+        # parameter or key as assigned ('dt = 0.000694').
+        give = f"{flag('dt')} " if flag("dt").startswith("--") else f"{flag('dt')} = "
+        hint = (f"{give}{frame_dt / lo:.6g}" if n < 1 else
+                f"{give}{frame_dt / math.ceil(ratio):.6g} or {frame_dt / lo:.6g}")
         raise ValueError(
             f"{flag('dt')} = {dt!r} is not allowed: a frame (1/fps = {frame_dt:.6g} s) must be a whole number of steps, "
             f"but 1/fps / dt = {ratio:.6g}; use e.g. {hint}, or leave {flag('dt')} out (the stable step, rounded to fill a frame)"
