@@ -457,13 +457,10 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         usd_spec = fspec if usd else None
         # --target-body picks a body of a run's USD; the other targets of the experiment (a force
         # log beside it) take none (refused below where no target is such a USD).
-        try:
-            t = load_target(path, body=spec.get("target_body") if usd else None, frames=usd_spec, tool=spec.get("target_tool"))
-        except ValueError as e:
-            if usd_spec is not None and str(e).startswith("frames = "):
-                # load_target's parameter is the command's --target-frames: 'frames' named no option.
-                raise ValueError(f"{where}--target-{e}") from None
-            raise
+        # load_target's frames are the command's --target-frames: 'frames' named no option (an
+        # experiment's refusal is prefixed with its name by the caller).
+        t = load_target(path, body=spec.get("target_body") if usd else None, frames=usd_spec,
+                        tool=spec.get("target_tool"), frames_name="--target-frames")
         any_usd = any_usd or usd
         if fspec is not None and usd_spec is None and t.frames_stored:
             # The file numbers its frames: --target-frames chooses among them, as of a run's USD
@@ -478,9 +475,9 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                     continue
                 try:
                     # In frame order whatever the file's (its 'last' is its largest frame).
-                    chosen.extend(parse_frames(part, sorted(t.frames)))
+                    chosen.extend(parse_frames(part, sorted(t.frames), "--target-frames"))
                 except ValueError as e:
-                    raise ValueError(f"{where}--target-{e}; the target {path} holds frames "
+                    raise ValueError(f"{where}{e}; the target {path} holds frames "
                                      f"{', '.join(map(str, sorted(t.frames)))} (-N counts frame numbers back from the "
                                      "last)") from None
             if missing:

@@ -1748,13 +1748,14 @@ def save_target(path, positions, frames: Sequence[int], fps: float | None = None
     np.savez_compressed(path, positions=positions, frames=np.asarray(frames, dtype=np.int64), **extra)
 
 
-def load_target(path, body: str | None = None, frames=None, tool: str | None = None) -> Target:
+def load_target(path, body: str | None = None, frames=None, tool: str | None = None, frames_name: str = "frames") -> Target:
     """Read a target file.
 
     - the ``.usd/.usda/.usdc`` of a previous ``warp-esph run`` (``UsdGeom.Points`` under
       ``/World``): particle positions per rendered frame; ``body`` (a body or prim name)
       keeps one body's particles, ``frames`` (``all``, ``2,4,6``, ``10:60:10``, ...; default
-      every frame after the first) chooses frames. Any other USD file is read as a mesh.
+      every frame after the first) chooses frames (a refusal names them ``frames_name``: the
+      CLI's ``--target-frames``). Any other USD file is read as a mesh.
 
     - ``.npz``: ``positions`` ``(K, n, 3)`` (or ``(n, 3)``), optional ``frames`` (rendered
       frame indices; default 0..K-1) and ``fps``.
@@ -1845,7 +1846,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
             raise ValueError(f"target {p} cannot be read as a point cloud: {e}") from None
         return Target("points", _cloud(p, pts), None, None, p)
     if ext in (".usd", ".usda", ".usdc"):
-        run = _usd_run_target(p, body, frames)
+        run = _usd_run_target(p, body, frames, frames_name)
         if run is not None:
             return run
         if body is not None:
@@ -1963,7 +1964,7 @@ def _forces_target(path: str, tool: str | None) -> Target:
     return Target("forces", mine, frames, fps, path, tool=tool)
 
 
-def _usd_run_target(path: str, body, frames) -> Target | None:
+def _usd_run_target(path: str, body, frames, frames_name: str = "frames") -> Target | None:
     """Positions from a ``warp-esph run`` USD file, or None when the file is not one."""
     try:
         from .render import UsdFrames, parse_frames  # noqa: PLC0415
@@ -1991,7 +1992,7 @@ def _usd_run_target(path: str, body, frames) -> Target | None:
         else:
             raise ValueError(f"--target-body {body!r} is not allowed: {path} holds bodies {', '.join(given)}")
         body = given[index]
-    chosen = parse_frames(frames, data.frames) if frames is not None else [f for f in data.frames if f != data.frames[0]]
+    chosen = parse_frames(frames, data.frames, frames_name) if frames is not None else [f for f in data.frames if f != data.frames[0]]
     if not chosen:
         raise ValueError(f"target {path} holds only frame {data.frames[0]}, which says nothing about the material")
     observed = [(given[k], k) for k in range(len(data.bodies)) if body is None or k == index]

@@ -610,9 +610,9 @@ def read_silhouette_masks(cameras_path, masks_path, frames_spec) -> tuple[list, 
             from .usd import parse_frames  # noqa: PLC0415
 
             try:
-                chosen = parse_frames(frames_spec, sorted(masks))
+                chosen = parse_frames(frames_spec, sorted(masks), "--target-frames")
             except ValueError as e:
-                raise ValueError(f"--target-{e}; the mask file {masks_path} holds frames "
+                raise ValueError(f"{e}; the mask file {masks_path} holds frames "
                                  f"{', '.join(map(str, sorted(masks)))}") from None
             masks = {f: masks[f] for f in dict.fromkeys(chosen)}
     else:
