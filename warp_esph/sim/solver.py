@@ -7,6 +7,7 @@ per step can be recorded on a ``wp.Tape`` and differentiated.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 import warnings
 
@@ -94,6 +95,13 @@ def _check_images(model: Model):
     if kinds:
         raise ValueError(f"Material.deformation = {kinds!r} is not allowed with add_ground(images=True): "
                          f"the images enter the incremental fit only ('incremental')")
+
+
+def _distinct(a: float, b: float) -> tuple[str, str]:
+    """``a`` and ``b`` as a message shows them: ``:g`` where that tells them apart, else every
+    digit (a mu written from 1000 to 1000.0001 read '1000 now, 1000 when ...')."""
+    short = (f"{a:g}", f"{b:g}")
+    return short if short[0] != short[1] else (repr(a), repr(b))
 
 
 class Solver:
@@ -318,15 +326,24 @@ class Solver:
                           "requires_grad: no gradient flows back through this step (finalize(requires_grad=True), "
                           "model.state(requires_grad=True))", RuntimeWarning, stacklevel=3)
 
-    def _check_taped_parameters(self, rows: np.ndarray) -> None:
+    def _check_taped_parameters(self, rows: np.ndarray, materials: tuple) -> None:
         """In the backward pass of a tape this solver's step was recorded on: the parameter
-        arrays still hold the values the step ran with (``rows``). The adjoints read the arrays
-        as they are then: a mu written in place between the taped steps and ``tape.backward()``
-        gave the gradient of neither value without a word (-1: 4 % off; NaN: every gradient
-        NaN). ``Rollout.backward`` refuses the same before it runs the tape."""
+        arrays still hold the values the step ran with (``rows``), and the materials are still
+        those it ran with (``materials``). The adjoints read both as they are then: a mu written
+        in place between the taped steps and ``tape.backward()`` gave the gradient of neither
+        value without a word (-1: 4 % off; NaN: every gradient NaN), and so did a
+        ``set_material`` to another ``elastic_force`` (mu's gradient 63 % off).
+        ``Rollout.backward`` refuses the same before it runs the tape."""
         m = self.model
         now = m._read_parameters()
-        for f, name in enumerate(m.MATERIAL_FIELDS):
+        # One comparison in the common case: the per-field search below costs twice the read
+        # again, once per taped step of every backward pass.
+        same_rows = bool((rows == now).all())
+        # A tuple compares its items by identity first, in C: the same materials cost no dataclass
+        # comparison, and an equal one set again is no change.
+        if same_rows and materials == tuple(m.materials):
+            return
+        for f, name in enumerate(() if same_rows else m.MATERIAL_FIELDS):
             changed = np.flatnonzero(~(rows[f] == now[f]))
             if len(changed) == 0:
                 continue
@@ -336,10 +353,19 @@ class Solver:
                 why = ""
             except ValueError as e:
                 why = f" ({e})"
-            raise RuntimeError(f"tape.backward() is not allowed: the model's {name} (material {k}) = {float(now[f, k]):g} "
-                               f"now{why}, {float(rows[f, k]):g} when Solver.step ran under this wp.Tape; the backward "
+            new, old = _distinct(float(now[f, k]), float(rows[f, k]))
+            raise RuntimeError(f"tape.backward() is not allowed: the model's {name} (material {k}) = {new} "
+                               f"now{why}, {old} when Solver.step ran under this wp.Tape; the backward "
                                "pass reads the parameter arrays again, so its gradient would be that of neither value: "
                                "record the steps again after changing a parameter")
+        for k, (before, after) in enumerate(zip(materials, m.materials)):
+            if before is after or before == after:
+                continue
+            diff = [f.name for f in dataclasses.fields(before) if getattr(before, f.name) != getattr(after, f.name)]
+            said = ", ".join(f"{n} = {getattr(after, n)!r} now, {getattr(before, n)!r} then" for n in diff)
+            raise RuntimeError(f"tape.backward() is not allowed: material {k} was replaced (set_material) since Solver.step "
+                               f"ran under this wp.Tape: {said}; the backward pass reads the materials again, so its "
+                               "gradient would be that of neither material: record the steps again after changing a material")
 
     def _fast_under_tape(self, state_in, state_out) -> bool:
         return (self.fast_under_tape() and state_in.x.grad is not None and state_out.x.grad is not None
@@ -453,6 +479,7 @@ class Solver:
             dt = self.check_dt(dt)
             sph = m.sph_active
             taped_rows = m._read_parameters() if tape is not None else None  # the same read, held
+        taped_materials = tuple(m.materials) if tape is not None else None
         scratch = self.scratch
         if tape is not None:
             self._check_taped_step(tape, state_in, state_out)
@@ -578,9 +605,9 @@ class Solver:
                 plasticity.launch_image_hardening_update(m, state_out)
         if tape is not None:
             # Last on the tape, so first in its backward pass: before this step's adjoints read the
-            # parameter arrays again (and every earlier step's), a value written there in place since
-            # (a negative or NaN mu) is named, not differentiated at.
-            tape.record_func(lambda: self._check_taped_parameters(taped_rows), [])
+            # parameter arrays and the materials again (and every earlier step's), a value written there
+            # in place since (a negative or NaN mu), or a material set since, is named, not differentiated at.
+            tape.record_func(lambda: self._check_taped_parameters(taped_rows, taped_materials), [])
         # A Python float whatever the user set: a np.float32 time would sum every later step in float32.
         state_out.time = float(state_in.time) + dt
         if self.step_count == 0:
