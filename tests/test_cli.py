@@ -360,6 +360,9 @@ BAD_TOML = {
     # Above the widest row: the range a file has (the builder's own said [1, 1024], though 1-5 are refused).
     "max_neighbors_wide": (GOOD_TOML.replace("frames = 2", "frames = 2\nmax_neighbors = 2000"),
                            ["[scene]: max_neighbors = 2000 is not allowed: must be an integer in [6, 1024]"]),
+    # Below 1 the same range (the builder's own said 'an integer >= 1', though 1-5 are refused).
+    "max_neighbors_zero": (GOOD_TOML.replace("frames = 2", "frames = 2\nmax_neighbors = 0"),
+                           ["[scene]: max_neighbors = 0 is not allowed: must be an integer in [6, 1024]"]),
     # A dt that does not divide the frame is the file's: named with it (it was the bare message).
     "dt_not_dividing": (GOOD_TOML.replace("frames = 2", "frames = 2\nfps = 30\ndt = 0.007"),
                         ["[scene] dt = 0.007 is not allowed", "whole number of steps", "use e.g. dt = 0.00666667 or 0.00833333, or leave dt out"]),

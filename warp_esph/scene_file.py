@@ -472,8 +472,9 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
         spacing = checks.positive("spacing", scene.get("spacing", 0.02)) / scale
         support = scene.get("support_radius")
         wide = scene.get("max_neighbors")
-        if wide is not None and wide > MAX_NEIGHBORS:
-            # The builder would say [1, 1024], but a file cannot go below the Solver's min_neighbors.
+        if wide is not None and not 1 <= wide <= MAX_NEIGHBORS:
+            # The builder would say [1, 1024] (or '>= 1' below it), but a file cannot go below the
+            # Solver's min_neighbors; 1-5 get the min_neighbors reason below.
             raise ValueError(f"max_neighbors = {wide} is not allowed: must be an integer in [{MIN_NEIGHBORS}, {MAX_NEIGHBORS}]")
         builder = SceneBuilder(
             spacing=spacing,
