@@ -1120,3 +1120,28 @@ def test_a_material_set_or_a_parameter_nudged_after_the_taped_steps_is_named_bef
     states[2].x.grad.assign(seed)
     tape.backward()
     assert np.isfinite(model.mu.grad.numpy()).all() and model.mu.grad.numpy()[0] != 0.0
+
+
+def test_a_material_changed_in_one_world_after_the_taped_steps_is_named_as_set_material_takes_it():
+    """With worlds, the refusal names the material as ``set_material`` takes it (its index
+    within its world, and the world): ``set_material(1, ..., world=1)`` on two worlds of two
+    materials read 'material 3', an index the user never gave."""
+    soft = we.Material(density=1000.0, mu=1e3, lam=1.5e3)
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), soft)
+    b.add_box((0.2, 0.0, 0.0), (0.06, 0.06, 0.06), soft.replace(mu=2e3))
+    model = b.finalize(dtype=wp.float64, requires_grad=True, worlds=2)
+    solver = we.Solver(model)
+    states = [model.state(requires_grad=True) for _ in range(2)]
+    tape = wp.Tape()
+    with tape:
+        solver.step(states[0], states[1], DT)
+    model.set_material(1, soft.replace(mu=2e3, elastic_force="paper"), world=1)
+    states[1].x.grad.fill_(1.0)
+    with pytest.raises(RuntimeError, match=r"^tape\.backward\(\) is not allowed: material 1 of world 1 \(model material 3\) "
+                                           r"was replaced \(set_material\)"):
+        tape.backward()
+    model.set_material(1, soft.replace(mu=2e3), world=1)
+    model.mu.assign(np.where(np.arange(4) == 2, 5e3, model.mu.numpy()))
+    with pytest.raises(RuntimeError, match=r"the model's mu \(material 0 of world 1 \(model material 2\)\) = 5000 now, 1000 when"):
+        tape.backward()

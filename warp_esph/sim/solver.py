@@ -97,6 +97,16 @@ def _check_images(model: Model):
                          f"the images enter the incremental fit only ('incremental')")
 
 
+def _material_named(model, k: int) -> str:
+    """Model material ``k`` as ``set_material`` takes it: with worlds, its index within its
+    world (a two-world model's ``set_material(1, ..., world=1)`` read 'material 3')."""
+    starts = model.world_material_start
+    if len(starts) <= 2:
+        return f"material {k}"
+    w = int(np.searchsorted(starts, k, side="right")) - 1
+    return f"material {k - int(starts[w])} of world {w} (model material {k})"
+
+
 def _distinct(a: float, b: float) -> tuple[str, str]:
     """``a`` and ``b`` as a message shows them: ``:g`` where that tells them apart, else every
     digit (a mu written from 1000 to 1000.0001 read '1000 now, 1000 when ...')."""
@@ -354,7 +364,7 @@ class Solver:
             except ValueError as e:
                 why = f" ({e})"
             new, old = _distinct(float(now[f, k]), float(rows[f, k]))
-            raise RuntimeError(f"tape.backward() is not allowed: the model's {name} (material {k}) = {new} "
+            raise RuntimeError(f"tape.backward() is not allowed: the model's {name} ({_material_named(m, k)}) = {new} "
                                f"now{why}, {old} when Solver.step ran under this wp.Tape; the backward "
                                "pass reads the parameter arrays again, so its gradient would be that of neither value: "
                                "record the steps again after changing a parameter")
@@ -363,7 +373,7 @@ class Solver:
                 continue
             diff = [f.name for f in dataclasses.fields(before) if getattr(before, f.name) != getattr(after, f.name)]
             said = ", ".join(f"{n} = {getattr(after, n)!r} now, {getattr(before, n)!r} then" for n in diff)
-            raise RuntimeError(f"tape.backward() is not allowed: material {k} was replaced (set_material) since Solver.step "
+            raise RuntimeError(f"tape.backward() is not allowed: {_material_named(m, k)} was replaced (set_material) since Solver.step "
                                f"ran under this wp.Tape: {said}; the backward pass reads the materials again, so its "
                                "gradient would be that of neither material: record the steps again after changing a material")
 
