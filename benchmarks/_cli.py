@@ -325,7 +325,9 @@ def check_output_folder(text, name: str = "--out") -> str:
         raise refuse(name, text, f"'{anc}' is a file, not a folder")
     if not os.access(anc, os.W_OK | os.X_OK):
         raise refuse(name, text, f"the folder cannot be made: '{anc}' is not writable")
-    _probe(name, text, folder=True)
+    # The benchmarks make a missing folder with its parents (warp-esph's commands make only the
+    # last one): the probe is of the folder that would take them.
+    _probe(name, str(anc), folder=True)
     return text
 
 

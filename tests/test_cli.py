@@ -1322,3 +1322,47 @@ def test_a_failed_run_whose_file_is_gone_does_not_say_it_keeps_frames(tmp_path):
     path.write_bytes(b"")
     assert _kept(types.SimpleNamespace(path=str(path), frames_written=0, last_frame=None), 0) == "no frame: none was finished"
     assert _kept(writer, 0) == "the 3 frames finished" and _kept(writer, 1) == "frames 0..2 finished"
+
+
+def _unsimulated_usd(tmp_path, frames=3):
+    """The tiny box scene (``GOOD_TOML``) written as ``frames`` frames of its start, without
+    running it: a USD file render, export and a fit read as a run's."""
+    from warp_esph.scenes import load_scaled_scene  # noqa: PLC0415
+    from warp_esph.usd import UsdWriter  # noqa: PLC0415
+
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    model = load_scaled_scene(str(tmp_path / "s.toml"), 1.0).builder.finalize(dtype="float64")
+    state = model.state(requires_grad=False)
+    path = tmp_path / "a.usdc"
+    with UsdWriter(path, model, 30.0) as writer:
+        for f in range(frames):
+            writer.write_frame(f, state)
+    return path
+
+
+def test_every_command_refuses_an_output_whose_parent_folder_is_missing(tmp_path, capsys):
+    """A folder output is created, but not its missing parents: export, sweep and render into a
+    folder built the whole tree ('/nonexist/q/sw') while run and render into a file refused it."""
+    usd = _unsimulated_usd(tmp_path)
+    missing = tmp_path / "nonexist"
+    commands = {
+        "run": ["run", str(tmp_path / "s.toml"), "-o", str(missing / "x.usdc"), "--no-progress"],
+        "render file": ["render", str(usd), "-o", str(missing / "x.png")],
+        "render folder": ["render", str(usd), "-o", str(missing / "x")],
+        "export": ["export", str(usd), "-o", str(missing / "x")],
+        "sweep": ["sweep", str(tmp_path / "s.toml"), "--param", "yield_stress=100", "--workers", "1", "--no-progress",
+                  "-o", str(missing / "q" / "sw")],
+        "fit": ["fit", str(tmp_path / "s.toml"), "--target", str(usd), "--no-progress", "--iterations", "1",
+                "--output-dir", str(missing / "f")],
+    }
+    for name, argv in commands.items():
+        assert main(argv) == 2, name
+        err = capsys.readouterr().err
+        option = "--output-dir" if name == "fit" else "--output"
+        parent = missing / "q" if name == "sweep" else missing
+        assert_one_line_error(err, f"{option} = ", f"its folder {str(parent)!r} does not exist")
+        assert not missing.exists(), name
+    # The folder itself is still created where its parent is there.
+    assert main(["export", str(usd), "-o", str(tmp_path / "frames")]) == 0
+    assert sorted(os.listdir(tmp_path / "frames"))[:1] == ["frame_00000.vtu"]
+    capsys.readouterr()

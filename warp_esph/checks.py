@@ -481,7 +481,8 @@ def replaced_atomically(path):
 def output_place(what: str, path, folder: bool = False) -> str:
     """``path`` where a command will write a file (``folder``: a folder of files), checked
     before the work that fills it: a ``ValueError`` naming ``what`` where something of the
-    other kind is in the way or its folder cannot take a new file. Creates nothing."""
+    other kind is in the way, its folder (a folder output's parent) does not exist, or it
+    cannot take a new file. Creates nothing."""
     if not isinstance(path, (str, os.PathLike)):  # None, 123: a TypeError from os.fspath before
         raise ValueError(f"{what} = {path!r} is not allowed: must be a path")
     p = os.fspath(path)
@@ -500,9 +501,10 @@ def output_place(what: str, path, folder: bool = False) -> str:
     if os.path.exists(p) and os.path.isdir(p) != folder:
         raise ValueError(f"{what} = {p!r} is not allowed: it is {'a file' if folder else 'a folder'}; "
                          f"a {'folder' if folder else 'file'} is written there")
+    # A folder output is created itself, but never its parents: a typo in a parent's name
+    # ('/data/rsults/sweep') built a whole tree of folders nobody meant, where a file output
+    # (run -o, render -o a.png) was refused; every command now refuses it alike.
     parent = p if folder and os.path.isdir(p) else (os.path.dirname(os.path.abspath(p)) or ".")
-    while folder and not os.path.exists(parent):  # a folder to create: its nearest existing parent takes it
-        parent = os.path.dirname(parent)
     if not os.path.isdir(parent):
         raise ValueError(f"{what} = {p!r} is not allowed: its folder {parent!r} does not exist or is not a folder")
     try:  # the one reliable test that a file can be created there
