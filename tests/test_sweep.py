@@ -860,3 +860,23 @@ def test_a_signal_after_the_last_sample_keeps_the_whole_tables_and_says_so(scene
     err = capsys.readouterr().err
     assert err.splitlines()[-1] == f"warp-esph: interrupted: the tables in {out} keep all 2 samples; sweep.png is not written"
     assert len(SweepTable.read_csv(out / "sweep.csv")) == 2 and not (out / "sweep.png").exists()
+
+
+def test_a_duration_shorter_than_a_frame_records_the_one_frame_it_ran_and_a_long_one_says_frames_and_steps(
+        scene_file, tmp_path, capsys):
+    """A duration is rounded to whole frames, at least one: ``--duration 1e-320`` ran one frame
+    while sweep.json said ``"frames": null``. A duration beyond a run's steps compared its
+    frames with 'the 1e+10 steps' as if they were steps."""
+    out = tmp_path / "short"
+    assert cli.main(["sweep", scene_file, "--param", "paste.yield_stress=10000", "--duration", "1e-320", "--workers", "1",
+                     "-o", str(out), "--no-progress"]) == 0
+    meta = json.loads((out / "sweep.json").read_text())
+    assert (meta["frames"], meta["duration"]) == (1, 1e-320)
+    (row,) = SweepTable.read_csv(out / "sweep.csv").rows
+    assert row["steps"] == round(1 / 30 / row["dt"])  # one frame's steps
+    capsys.readouterr()
+    assert cli.main(["sweep", scene_file, "--param", "paste.yield_stress=10000", "--duration", "1e300", "--workers", "1",
+                     "-o", str(tmp_path / "long"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err == ("warp-esph: error: --duration = 1e+300 is not allowed: at 30 fps it is 3e+301 frames of at least one "
+                   "step each, more than the 1e+10 steps a run may take\n")

@@ -938,8 +938,9 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
 
         # Checked here, before any sample runs: 1e300 s failed every sample and then the table.
         if not duration * fps <= MAX_STEPS:
-            raise ValueError(f"--duration = {duration!r} is not allowed: at {fps:g} fps it is {duration * fps:.3g} frames, "
-                             f"more than the {MAX_STEPS:.0e} steps a run may take")
+            # A frame is at least one step: more frames than a run may take steps is too long.
+            raise ValueError(f"--duration = {duration!r} is not allowed: at {fps:g} fps it is {duration * fps:.3g} frames "
+                             f"of at least one step each, more than the {MAX_STEPS:.0e} steps a run may take")
         frames = max(1, round(duration * fps))
     frames = frames if frames is not None else sc.frames
     dt = dt if dt is not None else sc.dt
@@ -1207,7 +1208,10 @@ def sweep_cli(args, out=None) -> int:
 
         meta = {"command": "sweep", "version": __version__, "scene": args.scene if args.scene else sc.name,
                 "scale": args.scale, "params": [dataclasses.asdict(p) for p in plist], "sample": args.sample,
-                "samples": len(points), "seed": args.seed, "frames": args.frames, "duration": args.duration, "fps": args.fps,
+                "samples": len(points), "seed": args.seed,
+                # The frames each sample ran: a --duration is rounded to whole frames, at least one
+                # (1e-320 s recorded "frames": null beside it, as if no frame had run).
+                "frames": plan.tasks[0][1].frames if plan.tasks else args.frames, "duration": args.duration, "fps": args.fps,
                 "dt": args.dt, "dtype": args.dtype, "workers": args.workers, "ray": args.ray,
                 "fit": sc.builder.fit, "contact_ramp": sc.builder.contact_ramp, "hourglass": sc.builder.hourglass,
                 "fit_weight": sc.builder.fit_weight}
