@@ -446,6 +446,10 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         (["fit", "nothing.toml", "--target", "t.npz", "--samples", "99999999999"], ["--samples = 99999999999", "at most 10000"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--starts", "1000000"], ["--starts = 1000000", "[1, 1000]"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--jitter", "1e300"], ["--jitter = 1e+300", "[0.0, 0.5]"]),
+        # An iteration count no fit reaches was taken, its estimate '~6643201749991729152.0 h'.
+        (["fit", "nothing.toml", "--target", "t.npz", "--iterations", "99999999999999999999999"],
+         ["--iterations = 99999999999999999999999 is not allowed: must be at most 100000"]),
+        (["fit", "nothing.toml", "--target", "t.npz", "--iterations", "100001"], ["--iterations = 100001", "at most 100000"]),
     ],
 )
 def test_bad_input_is_one_line_exit_2(tmp_path, monkeypatch, capsys, args, needles):
@@ -1366,3 +1370,15 @@ def test_every_command_refuses_an_output_whose_parent_folder_is_missing(tmp_path
     assert main(["export", str(usd), "-o", str(tmp_path / "frames")]) == 0
     assert sorted(os.listdir(tmp_path / "frames"))[:1] == ["frame_00000.vtu"]
     capsys.readouterr()
+
+
+def test_the_iteration_cap_is_the_one_the_help_and_the_docs_give(capsys):
+    from warp_esph.fit import MAX_ITERATIONS, check_options  # noqa: PLC0415
+
+    assert check_options(params="mu", iterations=MAX_ITERATIONS)["iterations"] == MAX_ITERATIONS
+    with pytest.raises(ValueError, match=rf"^iterations = {MAX_ITERATIONS + 1} is not allowed: must be at most {MAX_ITERATIONS} "):
+        check_options(params="mu", iterations=MAX_ITERATIONS + 1)
+    with pytest.raises(SystemExit):
+        main(["fit", "--help"])
+    assert f"at most {MAX_ITERATIONS})" in " ".join(capsys.readouterr().out.split())
+    assert f"at most\n  {MAX_ITERATIONS}:" in open(os.path.join(REPO, "docs", "cli.md")).read()

@@ -774,7 +774,7 @@ def add_fit_arguments(parser):
     parser.add_argument("--material", action="append", metavar="BODY",
                         help="fit only this body's material (name or material index); repeatable; default all")
     parser.add_argument("--iterations", type=int, default=50, metavar="N",
-                        help="gradient evaluations after the first, line-search trials included (default 50)")
+                        help="gradient evaluations after the first, line-search trials included (default 50, at most 100000)")
     parser.add_argument("--lr", type=float, metavar="LR",
                         help="Adam step size, relative; L-BFGS: its first step (default 0.1, at most 10; "
                              "not with gauss-newton)")

@@ -636,6 +636,9 @@ class _Problem:
 #: The most samples of a fit's global stage and local starts from them (each a forward run).
 MAX_SAMPLES = 10_000
 MAX_STARTS = 1_000
+#: The most ``iterations`` a fit takes: far above any real fit (the examples converge in tens
+#: of evaluations), and each is at least a rollout; 1e22 was taken and estimated at 6.6e18 h.
+MAX_ITERATIONS = 100_000
 #: The largest step size (``lr``, ``lr_end``): in optimiser space, where a positive
 #: parameter is its log, 10 is a factor e^10 = 2.2e4 in one step.
 MAX_LR = 10.0
@@ -699,6 +702,9 @@ def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds
            "sample_range": checks.greater_than(flag("sample_range"), sample_range, 1.0, "1"),
            "noise": None if noise is None else checks.noise(flag("noise"), noise),
            "memory_limit": checks.positive(flag("memory_limit"), memory_limit)}
+    if out["iterations"] > MAX_ITERATIONS:
+        raise ValueError(f"{flag('iterations')} = {out['iterations']} is not allowed: must be at most {MAX_ITERATIONS} "
+                         "(each is a rollout at least)")
     if lr is not None and out["optimizer"] == "gauss-newton":
         # Levenberg-Marquardt sizes its steps by its damping and never reads lr: the fit ran
         # as if it had not been given.
@@ -808,7 +814,8 @@ def fit(
       loss with few parameters; its first step moves by ``lr`` and no step moves a
       parameter by more than ``max_step`` in optimiser space, i.e. a factor ``e`` for
       log-space parameters). ``iterations`` counts gradient evaluations after the first
-      (line-search trials included), so both optimisers cost ``iterations + 1`` rollouts.
+      (line-search trials included), so both optimisers cost ``iterations + 1`` rollouts;
+      at most ``MAX_ITERATIONS`` (100000).
     - Termination (``result.stopped``): ``"converged"`` when an accepted step moves no
       optimiser coordinate by more than ``xtol`` or the gradient's largest entry falls
       below ``gtol`` times its initial one; ``"stalled"`` when ``patience`` evaluations
