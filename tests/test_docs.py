@@ -84,7 +84,7 @@ DEFAULTS = [
     ("render", "--color", "body", "`--color`: `body`"),
     ("export", "--format", "vtu", "`frame_00012.vtu` (or `.ply`)"),
     ("fit", "--params", "yield_stress,flow_rate", "default `yield_stress,flow_rate`"),
-    ("fit", "--iterations", 50, "included (default 50)"),
+    ("fit", "--iterations", 50, "included (default 50,"),
     ("fit", "--patience", 20, "lower loss (default 20)"),
     ("fit", "--seed", 5, "`--seed S` (default 5;"),
     ("fit", "--dtype", "float64", "`--dtype` (default `float64`"),
