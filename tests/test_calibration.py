@@ -947,6 +947,12 @@ def test_target_frames_choose_among_the_frames_an_npz_stores(tmp_path, capsys, d
     assert err[-1].endswith("--target-frames = '1,2,3' is not allowed: the target " + str(target)
                             + " holds frames 2, 4, 6 (its 'frames'), not 1, 3"), err
     assert not (tmp_path / "bad").exists()
+    # A frame named twice would weigh twice in the loss ('last,6' named frame 6 once here,
+    # while a run's USD target fitted it twice): refused, as of a run's USD.
+    assert main(["fit", str(guess), "--target", str(target), "--target-frames", "last,6", "--output-dir",
+                 str(tmp_path / "bad"), *common]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].endswith("--target-frames = 'last,6' is not allowed: it names frame 6 twice; name each frame once"), err
     # Stored out of order: 'last' is still the largest frame.
     np.savez(target, positions=np.load(target)["positions"][[2, 0, 1]], frames=[6, 2, 4], fps=30.0)
     assert loss("last", "last_shuffled") == pytest.approx(six, rel=1e-12)

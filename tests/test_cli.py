@@ -1382,3 +1382,25 @@ def test_the_iteration_cap_is_the_one_the_help_and_the_docs_give(capsys):
         main(["fit", "--help"])
     assert f"at most {MAX_ITERATIONS})" in " ".join(capsys.readouterr().out.split())
     assert f"at most\n  {MAX_ITERATIONS}:" in open(os.path.join(REPO, "docs", "cli.md")).read()
+
+
+def test_a_frame_or_swept_value_named_twice_is_refused_naming_the_option_and_the_value(tmp_path, capsys):
+    """A sheet drew ``--frames 1,1`` twice, a fit's USD target weighed a repeated frame twice,
+    and a sweep ran ``yield_stress=1,1`` as two identical samples. A GIF may still repeat a
+    frame (it holds it), which ``tests/test_render.py`` checks."""
+    usd = _unsimulated_usd(tmp_path)
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    cases = [
+        (["render", str(usd), "-o", str(tmp_path / "sheet.png"), "--frames", "1,1"],
+         "--frames = '1,1' is not allowed: it names frame 1 twice; name each frame once"),
+        (["render", str(usd), "-o", str(tmp_path / "pics"), "--frames", "last,2"], "--frames = 'last,2' is not allowed: it names frame 2 twice"),
+        (["export", str(usd), "-o", str(tmp_path / "vtu"), "--frames", "0:2,1"], "--frames = '0:2,1' is not allowed: it names frame 1 twice"),
+        (["fit", str(tmp_path / "s.toml"), "--target", str(usd), "--target-frames", "1,2,1", "--no-progress", "--iterations", "1",
+          "--output-dir", str(tmp_path / "fit")], "--target-frames = '1,2,1' is not allowed: it names frame 1 twice"),
+        (["sweep", str(tmp_path / "s.toml"), "--param", "yield_stress=1,1", "--workers", "1", "--no-progress", "-o",
+          str(tmp_path / "sw")], "--param yield_stress: value 1.0 is not allowed twice: each value is a sample; give it once"),
+    ]
+    for argv, message in cases:
+        assert main(argv) == 2, argv
+        assert_one_line_error(capsys.readouterr().err, message)
+    assert sorted(os.listdir(tmp_path)) == ["a.usdc", "s.toml"]  # nothing drawn, written or run

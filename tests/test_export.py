@@ -208,8 +208,9 @@ def test_two_outputs_with_one_stem_keep_their_own_pictures_and_frames(tmp_path, 
 def test_an_interrupted_export_keeps_its_finished_frames_whole_and_listed(tmp_path, monkeypatch):
     """Each frame is written beside its name and renamed over it, and ``frames.pvd`` lists
     the frames finished also when the export stops: Ctrl-C inside a write left a truncated
-    ``.vtu`` (over an earlier export's frame too) and no ``frames.pvd``. A frame asked for
-    twice is written once (it was counted twice and listed twice)."""
+    ``.vtu`` (over an earlier export's frame too) and no ``frames.pvd``. A frame named twice
+    is refused, as every frame selection refuses it (it was counted twice and listed twice,
+    then written once)."""
     import meshio
 
     from test_render import write_clusters
@@ -218,7 +219,10 @@ def test_an_interrupted_export_keeps_its_finished_frames_whole_and_listed(tmp_pa
     path = tmp_path / "anim.usdc"
     write_clusters(path, [(0.0, 0.2, 0.0)], frames=3)
     out = tmp_path / "vtu"
-    files = export_frames(path, "vtu", out, frames="0,0,1")
+    with pytest.raises(ValueError, match=r"^frames = '0,0,1' is not allowed: it names frame 0 twice; name each frame once$"):
+        export_frames(path, "vtu", out, frames="0,0,1")
+    assert not out.exists()
+    files = export_frames(path, "vtu", out, frames="0,1")
     assert [os.path.basename(f) for f in files] == ["frame_00000.vtu", "frame_00001.vtu", "frames.pvd"]
     assert (out / "frames.pvd").read_text().count("<DataSet") == 2
     real = meshio.write

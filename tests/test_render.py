@@ -826,7 +826,7 @@ def test_an_interrupted_save_keeps_the_earlier_picture_and_leaves_no_part_file(t
         render_usd(path, folder, width=W, height=H, supersample=1, azimuth=90.0)
     assert sorted(os.listdir(folder)) == sorted(before)  # no working file left
     monkeypatch.setattr(Image.Image, "save", real)
-    again = render_usd(path, tmp_path / "twice", frames="0,0,1", width=W, height=H, supersample=1)
+    again = render_usd(path, tmp_path / "twice", frames="0,1", width=W, height=H, supersample=1)
     assert again.files == [str(tmp_path / "twice" / "frame_00000.png"), str(tmp_path / "twice" / "frame_00001.png")]
     monkeypatch.setattr(Image.Image, "save", interrupted)
     assert (folder / "frame_00001.png").read_bytes() == before["frame_00001.png"]

@@ -483,7 +483,12 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             if missing:
                 raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: the target {path} holds frames "
                                  f"{', '.join(map(str, sorted(t.frames)))} (its 'frames'), not {', '.join(map(str, missing))}")
-            chosen = list(dict.fromkeys(chosen))  # 'last,6' names frame 6 once
+            twice = next((f for k, f in enumerate(chosen) if f in chosen[:k]), None)
+            if twice is not None:
+                # Fitted twice, the frame weighed twice in the loss ('last,6' named frame 6 once
+                # here, while a run's USD target fitted it twice).
+                raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: it names frame {twice} twice; name "
+                                 "each frame once")
             t.data = np.asarray(t.data)[[t.frames.index(f) for f in chosen]]
             t.frames = chosen
         elif fspec is not None and usd_spec is None:

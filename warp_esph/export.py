@@ -100,8 +100,8 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, fl
         raise ValueError(f"progress = {progress!r} is not allowed: must be callable as progress(k, n)")
     out = checks.output_place(flag("output"), output_dir, folder=True)
     data = UsdFrames(usd_path)
-    # One file per frame: a frame asked for twice was written once and counted twice.
-    chosen = list(dict.fromkeys(parse_frames(frames, data.frames, flag("frames"))))
+    # One file per frame: a frame named twice is refused (it was written once and counted twice).
+    chosen = parse_frames(frames, data.frames, flag("frames"))
     os.makedirs(out, exist_ok=True)
     files = []
 

@@ -548,7 +548,7 @@ class Renderer:
         o = self.options
         # The file's frames, at least one: none framed the bounds of nothing (a picture of
         # whatever an infinite box looked like), and a frame the file lacks failed at its render.
-        self.frames = parse_frames(frames, data.frames)
+        self.frames = parse_frames(frames, data.frames, repeats=True)  # the frames framed: a repeat frames nothing new
         if camera is not None and not isinstance(camera, Camera):
             raise ValueError(f"camera = {checks.shorten(camera)!r} is not allowed: must be a warp_esph.render.Camera or None")
         _check_pixels(o)
@@ -1163,9 +1163,9 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
                          f"one after another")
     if frames is None and kind == "png":
         frames = "last"
-    chosen = parse_frames(frames, data.frames, flag("frames"))
-    if kind == "dir":  # one picture per frame (a GIF, MP4 or sheet may repeat a frame on purpose)
-        chosen = list(dict.fromkeys(chosen))
+    # An animation may repeat a frame on purpose (holding it); a sheet or a folder of pictures
+    # drew it twice, or wrote it once while the rest was drawn as asked.
+    chosen = parse_frames(frames, data.frames, flag("frames"), repeats=kind in ("gif", "mp4"))
     options = RenderOptions(width=width, height=height, color=color, supersample=supersample, radius_scale=radius_scale,
                             azimuth=azimuth, elevation=elevation, zoom=zoom, fov=fov, label=label, shadows=shadows,
                             surfaces=surfaces, flag=flag)

@@ -614,7 +614,7 @@ def read_silhouette_masks(cameras_path, masks_path, frames_spec) -> tuple[list, 
             except ValueError as e:
                 raise ValueError(f"{e}; the mask file {masks_path} holds frames "
                                  f"{', '.join(map(str, sorted(masks)))}") from None
-            masks = {f: masks[f] for f in dict.fromkeys(chosen)}
+            masks = {f: masks[f] for f in chosen}
     else:
         try:
             frame = int(frames_spec) if frames_spec is not None else None

@@ -173,6 +173,10 @@ def parse_param(spec) -> Param:
         for v in p.values:  # None, 'x' and NaN failed in numpy or ran as failed samples
             if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(v):
                 raise ValueError(f"--param {p.name}: value {v!r} is not allowed: must be a finite number")
+        twice = next((v for k, v in enumerate(p.values) if v in p.values[:k]), None)
+        if twice is not None:
+            # Each value is a sample (a grid's level): 1,1 ran the same sample twice.
+            raise ValueError(f"--param {p.name}: value {twice!r} is not allowed twice: each value is a sample; give it once")
         lows = list(p.values)
     else:
         if p.scale not in SCALES:

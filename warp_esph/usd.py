@@ -1331,11 +1331,13 @@ class UsdFrames:
         return lo, hi
 
 
-def parse_frames(spec, available: list[int], what: str = "frames") -> list[int]:
+def parse_frames(spec, available: list[int], what: str = "frames", repeats: bool = False) -> list[int]:
     """Frame indices from a spec: ``all``, ``first``, ``last``, ``N``, ``-N`` (from the end),
     ``A:B`` or ``A:B:STEP`` (B inclusive, either may be left out), or a comma list of those;
     or any other iterable of frame numbers (a range, a 1-D numpy array, an iterator; not a
-    nested list or a 2-D array). ``what``: how a refusal names the spec (the CLI's ``--frames``)."""
+    nested list or a 2-D array). ``what``: how a refusal names the spec (the CLI's ``--frames``).
+    A frame named twice (``1,1``, ``last,2`` of frames 0..2) is refused unless ``repeats``
+    (an animation, where a repeat holds the frame)."""
     if spec is None:
         return list(available)
     if isinstance(spec, np.ndarray) and spec.ndim == 0:
@@ -1421,4 +1423,12 @@ def parse_frames(spec, available: list[int], what: str = "frames") -> list[int]:
         raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: frame {missing[0]} is not in the file (it holds {first}..{last})")
     if not out:
         raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: it selects no frame of the file (it holds {first}..{last})")
+    if not repeats:
+        # A sheet drew the frame twice, a fit's target weighed it twice, and export and a
+        # folder of pictures wrote it once while the rest of the selection was taken as asked.
+        seen = set()
+        twice = next((f for f in out if f in seen or seen.add(f)), None)
+        if twice is not None:
+            raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: it names frame {twice} twice; name each "
+                             "frame once")
     return out
