@@ -319,7 +319,7 @@ def test_cli_solver_options_override_the_scene_files(scene_file, tmp_path, capsy
     (["--param", "yield_stress=10:100:log:2", "--duration", "1e300"], ["--duration = 1e+300", "more than the 1e+10 steps"]),
     (["--param", "mu=1e-320:1:log:3"], ["mu", "LO = 1e-320", "log scale LO >= 2.23e-308"]),
     (["--param", "yield_stress=10:100:log:2", "--duration", "1", "--fps", "1e12"], ["--fps = 1000000000000.0", "at most 1e+06"]),
-    (["--param", "yield_stress=10:100:log:2", "--hourglass", "-1"], ["--hourglass = '-1'", ">= 0"]),
+    (["--param", "yield_stress=10:100:log:2", "--hourglass", "-1"], ["--hourglass = -1 is not allowed", ">= 0"]),
     (["--param", "yield_stress=10:100:log:2", "--hourglass", "x"], ["--hourglass = 'x'", ">= 0"]),
     (["--param", "yield_stress=10:100:log:2", "--solver-fit", "quad"], ["--solver-fit = 'quad'", "'linear'"]),
     (["--param", "yield_stress=10:100:log:2", "--contact", "soft"], ["--contact = 'soft'", "'instant', 'continuous'"]),

@@ -191,13 +191,24 @@ def _hourglass_arg(text) -> float:
         value = float(text)
     except (TypeError, ValueError):
         value = float("nan")
+    shown = _as_typed(text)
     from .checks import HOURGLASS_LIMIT, MAX_HOURGLASS  # noqa: PLC0415
 
     if not 0.0 <= value < float("inf"):
-        raise ValueError(f"--hourglass = {text!r} is not allowed: must be a finite number >= 0 (0: off)")
+        raise ValueError(f"--hourglass = {shown} is not allowed: must be a finite number >= 0 (0: off)")
     if not value <= MAX_HOURGLASS:
-        raise ValueError(f"--hourglass = {text!r} is not allowed: {HOURGLASS_LIMIT}")
+        raise ValueError(f"--hourglass = {shown} is not allowed: {HOURGLASS_LIMIT}")
     return value
+
+
+def _as_typed(text) -> str:
+    """An option's text in a message: a number as typed, as the other numeric options show
+    theirs ('--hourglass = -1', where it said '-1' in the text's quotes); a word quoted."""
+    try:
+        float(text)
+    except (TypeError, ValueError):
+        return repr(text)
+    return str(text).strip()
 
 
 def _apply_solver_options(builder, options: dict) -> None:
@@ -361,7 +372,7 @@ def _cmd_run(args) -> int:
     if args.resume is not None:
         # The run record of the checkpoint decides everything the results depend on: a scene,
         # step, rate or scale given beside it would be ignored, so it is refused.
-        given = [f"{name} = {value!r}" for name, value, default in
+        given = [f"{name} = {_as_typed(value) if name == '--hourglass' else repr(value)}" for name, value, default in
                  (("SCENE", args.scene, None), ("--dt", args.dt, None), ("--fps", args.fps, None), ("--scale", args.scale, 1.0),
                   ("-o", args.output, None), ("--solver-fit", args.solver_fit, None), ("--contact", args.contact, None),
                   ("--hourglass", args.hourglass, None), ("--fit-weight", args.fit_weight, None),
