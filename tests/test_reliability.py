@@ -165,7 +165,7 @@ def test_monitor_bounds_are_physical():
 @pytest.mark.parametrize(
     "args, needles",
     [
-        (["run", "--dt", "1e-300"], ["dt = 1e-300", "3.33e+298 steps", "use dt >= "]),
+        (["run", "--dt", "1e-300"], ["--dt = 1e-300", "3.33e+298 steps", "use --dt >= "]),
         (["run", "--fps", "1e300"], ["fps = 1e+300", "at most 1e+06"]),
         (["run", "--frames", str(10**12)], ["--frames", "must be an integer in [1, 2147483647]"]),
         (["run", "--frames", "2000000000"], ["frames = 2000000000", "more than 1e+10"]),
