@@ -184,7 +184,7 @@ def test_absurd_step_counts_are_refused_quickly(tmp_path, capsys, args, needles)
 @pytest.mark.parametrize(
     "extra, needles",
     [
-        ("[scene]\nspacing = 0.05\nmax_neighbors = 1000000000000\n", ["[scene]", "max_neighbors = 1000000000000", "[1, 1024]"]),
+        ("[scene]\nspacing = 0.05\nmax_neighbors = 1000000000000\n", ["[scene]", "max_neighbors = 1000000000000", "[6, 1024]"]),
         ("[scene]\nspacing = 0.05\n\n[[bodies]]\nshape = 'star'\nmaterial = 'dough'\ncenter = [0.0, 0.2, 0.0]\n"
          "outer_radius = 0.2\ninner_radius = 0.1\nthickness = 0.1\npoints = 1000000000000\n",
          ["shape 'star'", "points = 1000000000000", "[3, 1000]"]),
