@@ -24,6 +24,9 @@ update on and off: a jump in the loss that stalls any line search). The ground's
 is the continuous law (``contact="continuous"``, the default, named here): with the instant
 law the landing makes the loss jump, and with the energy SPH pressure force the CI-size fit
 stalled on such a jump (docs/fitting.md).
+
+``notebooks/fit_dough_star.ipynb`` runs the same steps one cell at a time, calling this
+file's ``build_model``, ``time_step``, ``record`` and ``fit_star``.
 """
 
 import argparse
@@ -80,6 +83,27 @@ def time_step(scale: float, mu_max: float) -> tuple[int, float]:
     return substeps, 1.0 / FPS / substeps
 
 
+def mu_bounds() -> tuple[float, float]:
+    """The fit's bounds on mu: it may rise to 1.25x the guess, so the time step must be stable there."""
+    g0 = guess()
+    return g0.mu / 20.0, 1.25 * g0.mu
+
+
+def record(scale: float, steps: list[int], dt: float) -> tuple[we.Model, np.ndarray]:
+    """The recording: the ground-truth model and its positions at ``steps`` (``(len(steps), n, 3)``)."""
+    truth_model = build_model(truth(), scale)
+    return truth_model, Rollout(truth_model, max(steps), dt, frames=steps).forward()
+
+
+def fit_star(model: we.Model, positions: np.ndarray, steps: list[int], dt: float, iterations: int, optimizer: str = "lbfgs",
+             callback=None, progress: bool = True, checkpoint_every: int | None = None):
+    """The fit of ``PARAMS`` from ``model`` to the recorded ``positions`` at ``steps`` (a ``FitResult``):
+    L-BFGS in log space, mu within ``mu_bounds()``, diagnostics at 0.1 mm observation noise."""
+    return fit(model, PositionLoss(positions, frames=steps), list(PARAMS), steps=max(steps), dt=dt, iterations=iterations,
+               optimizer=optimizer, lr=0.1, bounds={"mu": mu_bounds()}, checkpoint_every=checkpoint_every, callback=callback,
+               progress=progress, noise=1e-4)
+
+
 def run(scale: float = 0.5, frames: int = 15, iterations: int = 40, optimizer: str = "lbfgs", out: str = "fit_dough_star_out",
         usd: bool = True, progress: bool = True, checkpoint_every: int | None = None, verbose: bool = True,
         dtype: str = "float64") -> dict:
@@ -90,15 +114,13 @@ def run(scale: float = 0.5, frames: int = 15, iterations: int = 40, optimizer: s
     an evaluation costs about half."""
     os.makedirs(out, exist_ok=True)
     gt, g0 = truth(), guess()
-    mu_bounds = (g0.mu / 20.0, 1.25 * g0.mu)
-    substeps, dt = time_step(scale, mu_bounds[1])
+    substeps, dt = time_step(scale, mu_bounds()[1])
     target_frames = list(range(2, frames + 1))
     steps = [f * substeps for f in target_frames]
 
     # 1. The recording: the ground-truth run, positions at every target frame.
     t0 = time.perf_counter()
-    truth_model = build_model(gt, scale)
-    positions = Rollout(truth_model, max(steps), dt, frames=steps).forward()
+    truth_model, positions = record(scale, steps, dt)
     save_target(os.path.join(out, "target.npz"), positions, target_frames, fps=FPS)
     if verbose:
         print(f"star: {truth_model.particle_count} particles, dt = {dt:.3g} s ({substeps} steps/frame), "
@@ -107,16 +129,14 @@ def run(scale: float = 0.5, frames: int = 15, iterations: int = 40, optimizer: s
 
     # 2. The fit, from the guess.
     model = build_model(g0, scale, dtype=getattr(wp, dtype))
-    loss = PositionLoss(positions, frames=steps)
 
     def report(k, value, p):
         if verbose and not progress:
             shown = "  ".join(f"{n}/true={p[n][0] / getattr(gt, n):.4f}" for n in PARAMS)
             print(f"  eval {k:3d}  loss {value:.3e}  {shown}", flush=True)
 
-    result = fit(model, loss, list(PARAMS), steps=max(steps), dt=dt, iterations=iterations, optimizer=optimizer,
-                 lr=0.1, bounds={"mu": mu_bounds}, checkpoint_every=checkpoint_every, callback=report, progress=progress,
-                 noise=1e-4)
+    result = fit_star(model, positions, steps, dt, iterations, optimizer, callback=report, progress=progress,
+                      checkpoint_every=checkpoint_every)
     # The evaluations only: the diagnostics after them cost 2 P + 1 forward runs more.
     seconds = sum(h["seconds"] for h in result.history)
 

@@ -1,5 +1,6 @@
-"""``examples/fit_dough_star.py`` itself (the notebook of the same name is a copy of its steps,
-run by tests/test_notebook.py): at the notebook's CI size (142 particles, frames 2..9, 20
+"""``examples/fit_dough_star.py`` itself (the notebook of the same name calls its functions one
+step per cell; tests/test_notebook.py runs it at a size that checks the wiring only, so this
+is the one test that the fit recovers the parameters): at the notebook's CI size (142 particles, frames 2..9, 20
 evaluations after the first) the example's ``main`` fits mu, yield stress and flow rate from
 the factor-2 guess back within its 10 % (measured: 21 evaluations, loss 7.0e-7 -> 1.0e-21,
 converged, every parameter within 0.00 %; 18 s with the diagnostics and plots)."""
