@@ -117,17 +117,20 @@ def minimise_1d(fun_grad, x, step, iterations, label, tol):
     return x
 
 
-def optimise_press(target=0.021):
-    """How deep must the press go (it comes back up to 3 cm) to leave the top at ``target``?"""
+def optimise_press(target=0.021, iterations=10, history=None):
+    """How deep must the press go (it comes back up to 3 cm) to leave the top at ``target``?
+    ``history``: a list to append ``(depth, loss, top, derivative)`` to at every evaluation."""
     print(f"press: target top height {1e3 * target:.1f} mm (top particle layer at rest: 25.0 mm)")
 
     def fun_grad(depth):
         loss, top, g = press_loss(np.array([depth, 0.03]), target, grad=True)
         fun_grad.top = top
+        if history is not None:
+            history.append((depth, loss, top, g[0]))
         return loss, g[0]
 
-    return minimise_1d(fun_grad, 0.020, 0.002, 10, lambda d: f"press down to {1e3 * d:.2f} mm, top {1e3 * fun_grad.top:.2f} mm",
-                       tol=(2e-5) ** 2)
+    return minimise_1d(fun_grad, 0.020, 0.002, iterations,
+                       lambda d: f"press down to {1e3 * d:.2f} mm, top {1e3 * fun_grad.top:.2f} mm", tol=(2e-5) ** 2)
 
 
 # -------------------------------------------------- 2. stiffness from a force curve
@@ -170,11 +173,16 @@ def force_curve(E, target=None, steps=60, dt=2e-4):
     return curve, float(loss.numpy()[0]), dlogE
 
 
-def fit_stiffness(E_true=2.0e4, E_start=1.0e4, iterations=10):
+def fit_stiffness(E_true=2.0e4, E_start=1.0e4, iterations=10, history=None):
+    """``E`` fitted from ``E_start`` to the force curve of ``E_true``. ``history``: a list to
+    append ``(E, loss, curve)`` to at every evaluation."""
     measured = force_curve(E_true)
     print(f"fit: measured plate force {measured[-1]:.3f} N at the end (E = {E_true:g} Pa); start E = {E_start:g} Pa")
+
     def fun_grad(logE):
-        _, loss, g = force_curve(np.exp(logE), measured)
+        curve, loss, g = force_curve(np.exp(logE), measured)
+        if history is not None:
+            history.append((float(np.exp(logE)), loss, curve))
         return loss, g
 
     logE = minimise_1d(fun_grad, np.log(E_start), 0.25, iterations, lambda x: f"E = {np.exp(x):8.1f} Pa",
