@@ -844,6 +844,10 @@ def test_a_signal_after_the_last_sample_keeps_the_whole_tables_and_says_so(scene
     out = tmp_path / "sw"
     argv = ["sweep", scene_file, "--param", "yield_stress=10,100", "--frames", "1", "--workers", "1", "-o", str(out),
             "--no-progress"]
+    out.mkdir()
+    # The signal held until the tables are whole stops the command before the plot: an earlier
+    # sweep's picture must not stay beside the new tables either.
+    (out / "sweep.png").write_bytes(b"an earlier sweep's picture")
     assert cli.main(argv) == 143
     err = capsys.readouterr().err
     assert err.splitlines()[-1] == f"warp-esph: terminated: the tables in {out} keep all 2 samples; sweep.png is not written"

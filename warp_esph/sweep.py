@@ -1250,6 +1250,10 @@ def sweep_cli(args, out=None) -> int:
                 lines = write_outputs(table, folder, meta, log_params, plot_figure=False)
             lines.append(_plot_line(table, folder, log_params))
         except KeyboardInterrupt:
+            # A signal held until the tables were whole stops the command before the plot is
+            # drawn: an earlier sweep's picture stayed beside the new tables.
+            with contextlib.suppress(OSError):
+                os.remove(os.path.join(folder, "sweep.png"))
             for line in lines:
                 print(line, file=out)
             print(f"{PROG}: {_stopped(args)}: the tables in {folder} keep all {len(table)} samples; sweep.png is not "
