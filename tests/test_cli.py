@@ -1404,3 +1404,26 @@ def test_a_frame_or_swept_value_named_twice_is_refused_naming_the_option_and_the
         assert main(argv) == 2, argv
         assert_one_line_error(capsys.readouterr().err, message)
     assert sorted(os.listdir(tmp_path)) == ["a.usdc", "s.toml"]  # nothing drawn, written or run
+def test_a_fitted_run_another_writer_is_writing_is_refused_naming_the_folder_and_the_files_written(tmp_path, capsys):
+    """A fit whose fitted.usdc another writer holds (a second fit into the same folder): the
+    line named the library's parameter ('path = 'fit/fitted.usdc' is not allowed') and nothing
+    of the files the finished fit had written before it."""
+    from warp_esph.scenes import load_scene
+    from warp_esph.usd import UsdWriter
+
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    run = tmp_path / "truth.usdc"
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(run), "--no-progress", "--dtype", "float64"]) == 0
+    out = tmp_path / "fit"
+    out.mkdir()
+    model = load_scene(str(tmp_path / "s.toml")).builder.finalize()
+    capsys.readouterr()
+    with UsdWriter(out / "fitted.usdc", model, 30):
+        assert main(["fit", str(tmp_path / "s.toml"), "--target", str(run), "--no-progress", "--iterations", "0",
+                     "--no-diagnostics", "--output-dir", str(out)]) == 2
+    kept = ", ".join(f"{out}/{name}" for name in ("fit.json", "history.csv", "loss.png", "params.png"))
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f"warp-esph: error: --output-dir = '{out}' is not allowed: another writer (process {os.getpid()}) is writing "
+        f"{out}/fitted.usdc; wait for it to finish, or write another file (the fit's results are printed above; wrote "
+        f"{kept} before it)")
+    assert sorted(os.listdir(out)) == ["fit.json", "history.csv", "loss.png", "params.png"]

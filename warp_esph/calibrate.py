@@ -319,10 +319,21 @@ def run_fit(args, out=None, err=None) -> int:
             from .fit import write_fitted_usd  # noqa: PLC0415
 
             try:
+                from .usd import OutputInUse  # noqa: PLC0415
+            except ImportError:  # without USD support nothing is written there
+                OutputInUse = ()  # noqa: N806
+            try:
                 if write_fitted_usd(result.model, usd_path, frames, fps, dt):
                     written.append(usd_path)
             except OSError as e:
                 raise failed(e, usd_path) from None
+            except OutputInUse as e:
+                # Another writer holds fitted.usdc (a second fit into this folder): the line
+                # named the library's 'path' and not what this fit had written before it.
+                kept = f"wrote {', '.join(map(str, written))} before it" if written else "none of its files was written"
+                named = f"--output-dir = {folder!r}" if _arg(args, "output_dir") else f"the output folder {folder}"
+                raise ValueError(f"{named} is not allowed: {e.reason.replace('writing it', f'writing {usd_path}')} (the "
+                                 f"fit's results are printed above; {kept})") from None
     except KeyboardInterrupt:
         # The fit had finished: the line said 'interrupted' alone, and a fitted run cut short
         # stayed beside fit.json as if it were the fitted run.
