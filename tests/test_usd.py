@@ -585,3 +585,27 @@ def test_a_file_system_without_flock_is_written_unguarded_not_refused(model, tmp
     with UsdWriter(tmp_path / "nfs.usdc", model, 30) as w:
         w.write_frame(0, model.state())
     assert sorted(os.listdir(tmp_path)) == ["nfs.usdc"]
+
+
+def test_another_users_lock_file_left_by_a_killed_run_does_not_refuse_the_output(model, tmp_path, monkeypatch):
+    """A killed run leaves its lock file; in a shared folder it is another user's (mode 0644),
+    which this user cannot open for writing. The lock was refused as 'could not create
+    .shared.usdc.lock: Permission denied', though nobody held it and the output is writable
+    here: flock needs no write access, and the stale file is replaced by this writer's own
+    (a writer refused meanwhile is told this process, not the killed one)."""
+    lock = tmp_path / ".shared.usdc.lock"
+    lock.write_text("4821")
+    real_open = os.open
+
+    def as_another_user(path, flags, *a, **k):  # the tests may run as root, who may open anything
+        foreign = os.fspath(path) == str(lock) and lock.exists() and lock.read_text() == "4821"
+        if foreign and flags & (os.O_RDWR | os.O_WRONLY):
+            raise PermissionError(13, "Permission denied", os.fspath(path))
+        return real_open(path, flags, *a, **k)
+
+    monkeypatch.setattr(os, "open", as_another_user)
+    with UsdWriter(tmp_path / "shared.usdc", model, 30) as w:
+        w.write_frame(0, model.state())
+        with pytest.raises(ValueError, match=rf"another writer \(process {os.getpid()}\) is writing it"):
+            UsdWriter(tmp_path / "shared.usdc", model, 30)  # still held while it writes
+    assert sorted(os.listdir(tmp_path)) == ["shared.usdc"]

@@ -313,8 +313,15 @@ class UsdWriter:
         except ImportError:
             return None
         while True:
+            writable = True
             try:
-                fd = os.open(self._lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+                try:
+                    fd = os.open(self._lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+                except PermissionError:
+                    # Another user's lock file, left by a killed run in a shared folder: flock
+                    # needs no write access, and refusing it refused an output this user may write.
+                    fd = os.open(self._lock_path, os.O_RDONLY)
+                    writable = False
             except OSError as e:
                 # A failed write (a read-only folder), as pxr's at the working copies was: a
                 # FileNotFoundError read as 'the input is missing' (exit 2).
@@ -338,11 +345,20 @@ class UsdWriter:
                 same = os.fstat(fd).st_ino == os.stat(self._lock_path).st_ino
             except FileNotFoundError:
                 same = False
+            if same and not writable:
+                # Held by nobody: replaced by a file of ours, so that a writer refused while
+                # this one writes is told this process, not the killed one named in it.
+                try:
+                    os.remove(self._lock_path)
+                except OSError:
+                    break  # a folder that lets no one remove it (sticky): held as it is
+                same = False
             if same:
                 break
             os.close(fd)  # its holder removed it between our open and our lock: take the new one
-        os.ftruncate(fd, 0)
-        os.write(fd, str(os.getpid()).encode())
+        if writable:
+            os.ftruncate(fd, 0)
+            os.write(fd, str(os.getpid()).encode())
         # An abandoned writer (never closed) lets the file go when it is collected.
         return weakref.finalize(self, os.close, fd)
 
