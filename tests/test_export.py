@@ -490,6 +490,17 @@ def test_a_ctrl_c_mid_export_says_which_frames_are_kept(tmp_path, monkeypatch, c
     assert capsys.readouterr().err == (f"warp-esph: interrupted: 1 of the 3 frames are written whole in {out}; "
                                        "frames.pvd lists them\n")
     assert sorted(os.listdir(out)) == ["frame_00000.vtu", "frames.pvd"]
+    # One while the collection is written, every frame whole: the line said 'interrupted' alone.
+    from warp_esph import export as export_module
+
+    monkeypatch.setattr(meshio, "write", real)
+    quoteattr = export_module.quoteattr
+    monkeypatch.setattr(export_module, "quoteattr", lambda name: (_ for _ in ()).throw(KeyboardInterrupt))
+    assert main(["export", str(path), "-o", str(tmp_path / "whole")]) == 130
+    assert capsys.readouterr().err == (f"warp-esph: interrupted: 3 of the 3 frames are written whole in "
+                                       f"{tmp_path / 'whole'}; frames.pvd is not written\n")
+    monkeypatch.setattr(export_module, "quoteattr", quoteattr)
+    monkeypatch.setattr(meshio, "write", interrupted)
     run = tmp_path / "run.usdc"
     assert main(["run", "--scale", "0.3", "--frames", "2", "--no-progress", "-o", str(run), "--export", "vtu"]) == 130
     err = capsys.readouterr().err

@@ -144,4 +144,7 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, fl
         collection()
     except OSError as e:
         raise ExportWriteError(e, files, len(chosen), out) from e
+    except KeyboardInterrupt as e:
+        # Every frame is whole by now: the line said 'interrupted' alone, as if none were.
+        raise checks.Interrupted(f"{_kept(files, len(chosen), out)}; frames.pvd is not written") from e
     return files
