@@ -498,8 +498,10 @@ def test_an_output_another_writer_is_writing_is_refused_and_left_to_it(tmp_path,
         holder.write_frame(0, model.state())
         (tmp_path / "t.usdc_tools.csv").write_text("the holder's log\n")
         assert main(["run", str(tmp_path / "s.toml"), "-o", str(out), "--no-progress"]) == 2
-        assert capsys.readouterr().err == (f"warp-esph: error: --output = '{out}' is not allowed: another writer (process "
-                                           f"{os.getpid()}) is writing it; wait for it to finish, or write another file\n")
+        # Held by this process here: its own writer, never finished by waiting, is named as such.
+        assert capsys.readouterr().err == (f"warp-esph: error: --output = '{out}' is not allowed: another writer of this "
+                                           f"process ({os.getpid()}) is writing it; close() that one first, or write "
+                                           "another file\n")
         assert (tmp_path / "t.usdc_tools.csv").read_text() == "the holder's log\n"
         holder.write_frame(1, model.state())
     assert frames_in(out, "/World/box0") == [0.0, 1.0]
@@ -1423,7 +1425,7 @@ def test_a_fitted_run_another_writer_is_writing_is_refused_naming_the_folder_and
                      "--no-diagnostics", "--output-dir", str(out)]) == 2
     kept = ", ".join(f"{out}/{name}" for name in ("fit.json", "history.csv", "loss.png", "params.png"))
     assert capsys.readouterr().err.splitlines()[-1] == (
-        f"warp-esph: error: --output-dir = '{out}' is not allowed: another writer (process {os.getpid()}) is writing "
-        f"{out}/fitted.usdc; wait for it to finish, or write another file (the fit's results are printed above; wrote "
+        f"warp-esph: error: --output-dir = '{out}' is not allowed: another writer of this process ({os.getpid()}) is "
+        f"writing {out}/fitted.usdc; close() that one first, or write another file (the fit's results are printed above; wrote "
         f"{kept} before it)")
     assert sorted(os.listdir(out)) == ["fit.json", "history.csv", "loss.png", "params.png"]

@@ -606,6 +606,6 @@ def test_another_users_lock_file_left_by_a_killed_run_does_not_refuse_the_output
     monkeypatch.setattr(os, "open", as_another_user)
     with UsdWriter(tmp_path / "shared.usdc", model, 30) as w:
         w.write_frame(0, model.state())
-        with pytest.raises(ValueError, match=rf"another writer \(process {os.getpid()}\) is writing it"):
+        with pytest.raises(ValueError, match=rf"another writer of this process \({os.getpid()}\) is writing it"):
             UsdWriter(tmp_path / "shared.usdc", model, 30)  # still held while it writes
     assert sorted(os.listdir(tmp_path)) == ["shared.usdc"]

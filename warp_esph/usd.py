@@ -333,6 +333,11 @@ class UsdWriter:
                     holder = os.read(fd, 32).decode(errors="replace").strip() or "?"
                 finally:
                     os.close(fd)
+                if holder == str(os.getpid()):
+                    # One this process opened and did not close (a notebook's cell run again, the
+                    # old writer still referenced): waiting for it would wait forever.
+                    raise OutputInUse(given, f"another writer of this process ({holder}) is writing it; close() that "
+                                             "one first, or write another file") from None
                 raise OutputInUse(given, f"another writer (process {holder}) is writing it; wait for it to finish, "
                                          "or write another file") from None
             except OSError:
