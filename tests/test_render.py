@@ -977,3 +977,8 @@ def test_a_ctrl_c_mid_render_says_which_pictures_are_kept_and_leaves_no_open_fil
     assert capsys.readouterr().err == (f"warp-esph: interrupted: {sheet} is not written (a file of that name is left "
                                        "as it was)\n")
     assert sorted(os.listdir(tmp_path)) == ["anim.usdc", "frames"]
+    # From Python: exactly a KeyboardInterrupt, which Python alone ends a script on with the
+    # SIGINT status (130); a subclass of it exited 1.
+    with pytest.raises(KeyboardInterrupt) as stopped:
+        render_usd(path, str(sheet), frames="all", width=W, height=H, supersample=1)
+    assert type(stopped.value) is KeyboardInterrupt and stopped.value.kept == f"{sheet} is not written (a file of that name is left as it was)"

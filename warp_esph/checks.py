@@ -444,14 +444,16 @@ class OutputWriteError(OSError):
         return self.message
 
 
-class Interrupted(KeyboardInterrupt):
+def interrupted(kept: str) -> KeyboardInterrupt:
     """A Ctrl-C (or SIGTERM) that stopped a command writing several files, with what its files
     keep (``kept``, e.g. '1 of the 3 frames are written whole in out'): the CLI's one line says
-    it after 'interrupted', as an interrupted run names the frames its file keeps."""
-
-    def __init__(self, kept: str):
-        super().__init__(kept)
-        self.kept = kept
+    it after 'interrupted', as an interrupted run names the frames its file keeps. A plain
+    ``KeyboardInterrupt`` with ``kept`` set, not a subclass: Python ends a script on an
+    uncaught ``KeyboardInterrupt`` with the SIGINT status (130) only for that exact type, and a
+    script stopped in ``render_usd`` exited 1."""
+    e = KeyboardInterrupt(kept)
+    e.kept = kept
+    return e
 
 
 @contextlib.contextmanager

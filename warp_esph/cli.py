@@ -1176,7 +1176,7 @@ def _dispatch(args) -> int:
                 return fit_cli(args)
             return _cmd_run(args)
         except KeyboardInterrupt as e:
-            kept = getattr(e, "kept", None)  # checks.Interrupted: what the files written keep
+            kept = getattr(e, "kept", None)  # checks.interrupted: what the files written keep
             print(f"{PROG}: {_stopped(args)}" + (f": {kept}" if kept else ""), file=sys.stderr)
             return EXIT_INTERRUPTED
         except BrokenPipeError as e:

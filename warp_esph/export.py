@@ -87,7 +87,7 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, fl
     (``vtu`` or ``ply``) files into ``output_dir`` (created); returns the files written. A file
     that cannot be written raises ``ExportWriteError`` (an ``OSError``) naming it; the files
     written before stay whole, and ``frames.pvd`` lists them where it can still be written; a
-    Ctrl-C raises ``checks.Interrupted`` (a ``KeyboardInterrupt``) whose ``kept`` says so.
+    Ctrl-C raises a ``KeyboardInterrupt`` whose ``kept`` says so (``checks.interrupted``).
     ``flag(name)``: how a refusal names the option ``name`` (the CLI's ``--frames``)."""
     import meshio  # noqa: PLC0415
 
@@ -137,8 +137,8 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, fl
             pass
         if isinstance(e, OSError):
             raise ExportWriteError(e, files, len(chosen), out) from e
-        if isinstance(e, KeyboardInterrupt) and not isinstance(e, checks.Interrupted):
-            raise checks.Interrupted(_kept(files, len(chosen), out)) from e
+        if isinstance(e, KeyboardInterrupt) and getattr(e, "kept", None) is None:
+            raise checks.interrupted(_kept(files, len(chosen), out)) from e
         raise
     try:
         collection()
@@ -146,5 +146,5 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, fl
         raise ExportWriteError(e, files, len(chosen), out) from e
     except KeyboardInterrupt as e:
         # Every frame is whole by now: the line said 'interrupted' alone, as if none were.
-        raise checks.Interrupted(f"{_kept(files, len(chosen), out)}; frames.pvd is not written") from e
+        raise checks.interrupted(f"{_kept(files, len(chosen), out)}; frames.pvd is not written") from e
     return files

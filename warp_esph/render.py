@@ -1132,8 +1132,8 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     of its particles where the file holds one (``False``: always particles). ``progress(k, n)``
     is called after each frame. ``flag(name)``: how a refusal names the option ``name``
     (default: the parameter's name; the CLI's ``--radius-scale`` for ``radius_scale``). A Ctrl-C
-    raises ``checks.Interrupted`` (a ``KeyboardInterrupt``) whose ``kept`` says which pictures
-    are written whole.
+    raises a ``KeyboardInterrupt`` whose ``kept`` says which pictures are written whole
+    (``checks.interrupted``).
     """
     flag = flag or _same_name
     data = UsdFrames(path)
@@ -1246,8 +1246,8 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
             if writer is not None:
                 with contextlib.suppress(OSError):
                     writer.close()
-            if isinstance(e, KeyboardInterrupt) and not isinstance(e, checks.Interrupted):
-                raise checks.Interrupted(_kept(kind, out, files, chosen)) from e
+            if isinstance(e, KeyboardInterrupt) and getattr(e, "kept", None) is None:
+                raise checks.interrupted(_kept(kind, out, files, chosen)) from e
             raise
         if writer is not None:
             writer.close()
@@ -1265,7 +1265,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
                             loop=0, optimize=False, disposal=1)
             files.append(out)
     except KeyboardInterrupt as e:
-        raise checks.Interrupted(_kept(kind, out, files, chosen)) from e
+        raise checks.interrupted(_kept(kind, out, files, chosen)) from e
     except OSError as e:
         raise checks.OutputWriteError(f"cannot write {out}: {e.strerror or e} (not written; a file of that name is left as "
                                       "it was)", e) from e
