@@ -1052,3 +1052,63 @@ def test_patience_counts_the_evaluations_after_the_guess():
     # It goes on while each evaluation is lower, and stops at the first that is not.
     assert all(b < a for a, b in zip(losses[:-2], losses[1:-1]))
     assert result.stopped == "iterations" or (result.stopped == "stalled" and losses[-1] >= min(losses[:-1]))
+
+
+def _overflowing_cube():
+    """27 float32 particles, stretched at the start, and a rollout whose shear modulus of 3e38 Pa
+    (float32 holds it; twice it, lam + 2 mu, is inf) makes every particle non-finite in the
+    first step; a rollout of 1e37 Pa blows the cube 5e24 m apart in 10 steps, finite."""
+    b = we.SceneBuilder(spacing=0.02, support_radius=0.05, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), we.Material(mu=1.0e3, lam=1.5e3, yield_stress=1e9,
+                                                               pressure_stiffness=0.0, density=1000.0), name="cube")
+    model = b.finalize(dtype=wp.float32, requires_grad=True)
+    model.particle_v0 = 20.0 * model.particle_x0 * np.array([1.0, -0.5, 0.0])
+    return model
+
+
+@pytest.mark.parametrize("checkpoint_every", [None, 4])
+def test_a_rollout_that_blows_up_to_non_finite_values_raises(checkpoint_every):
+    """``Rollout.forward`` returned the NaN positions of a run that blew up as a result (a loss
+    of them went on as NaN). It raises ``NonFiniteRollout`` now (a ``SimulationError`` and a
+    ``FloatingPointError``) naming the first non-finite step (without checkpoints exactly, with
+    them the first checkpoint or frame found so), the particle and its body, dt and the stable
+    step; ``check=False`` returns the run as it is, and a blow-up that stays finite is returned
+    as a result (out of the check's reach, as its docstring says)."""
+    from warp_esph.rollout import NonFiniteRollout  # noqa: PLC0415
+
+    model = _overflowing_cube()
+    r = Rollout(model, 10, 1e-3, frames=[5, 10], checkpoint_every=checkpoint_every)
+    r.set_parameters({"mu": [3e38]})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # dt above the stable step, said once
+        with pytest.raises(NonFiniteRollout) as info:
+            r.forward()
+        e = info.value
+        assert isinstance(e, FloatingPointError) and isinstance(e, we.SimulationError)
+        step = 1 if checkpoint_every is None else 4
+        assert (e.step, e.last_finite, e.particle, e.body) == (step, 0, 0, "cube")
+        assert re.match(rf"^the rollout blew up: particle 0 of body 'cube' has a non-finite position or velocity after "
+                        rf"step {step} of 10.*, at dt = 0\.001 s \(Model\.stable_dt\(\) = [0-9.e-]+ s\); use a smaller dt "
+                        r"\(at most Model\.stable_dt\(\)\)", str(e)), str(e)
+        assert ("checkpoint_every=None to find the first step" in str(e)) == (checkpoint_every is not None)
+        assert not np.isfinite(r.positions()).all()  # the run stays readable
+        assert not np.isfinite(r.forward(check=False)).all()
+        r.set_parameters({"mu": [1e37]})
+        assert np.abs(r.forward()).max() > 1e20
+    with pytest.raises(ValueError, match=r"^check = 'no' is not allowed: must be True or False"):
+        r.forward(check="no")
+
+
+@pytest.mark.parametrize("worlds", [False, True])
+def test_a_fit_whose_guess_runs_to_non_finite_values_fails_as_before(worlds):
+    """The rollout's non-finite check is ``fit``'s to skip: it fails such a trial itself (loss
+    inf; with worlds that world alone), and at the guess it stops with its own message."""
+    model = _overflowing_cube()
+    target = PositionLoss({4: model.particle_x0.astype(np.float64)}, frames=[4])
+    model.set_material(0, model.materials[0].replace(mu=3e38))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        with pytest.raises(FloatingPointError, match=r"^the loss or its gradient is not finite at the "
+                                                        r"initial guess \(loss = nan\)$"):
+            fit(model, target, ["mu"], steps=4, dt=1e-3, iterations=2, worlds=worlds, starts=2 if worlds else 1,
+                progress=False, diagnostics=False)

@@ -175,6 +175,28 @@ def test_a_torch_iteration_reads_the_parameters_whole_and_writes_only_changed_va
     assert rollout.get_parameters()["mu"].tolist() == [2.0e3]
 
 
+def test_a_forward_that_blows_up_to_non_finite_values_raises_not_a_nan_tensor():
+    """A rollout that blew up handed torch a tensor of NaN positions, and the loop went on with
+    NaN losses. The bridge raises ``NonFiniteRollout`` (also a ``FloatingPointError``) naming
+    the step, particle and stable step, and the model keeps the values it held."""
+    from warp_esph.rollout import NonFiniteRollout  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.02, support_radius=0.05, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), we.Material(mu=1.0e3, lam=1.5e3, pressure_stiffness=0.0), name="cube")
+    model = b.finalize(dtype=wp.float32, requires_grad=True)
+    model.particle_v0 = 20.0 * model.particle_x0 * np.array([1.0, -0.5, 0.0])
+    rollout = Rollout(model, 3, 1.0e-3, frames=[3])
+    # float32 holds 3e38 Pa, but not lam + 2 mu: every particle is non-finite after one step.
+    mu = torch.tensor([3e38], dtype=torch.float64, requires_grad=True)
+    with pytest.warns(RuntimeWarning, match="above the explicit stability limit"):
+        with pytest.raises(FloatingPointError, match=r"^the rollout blew up: particle 0 of body 'cube' has a non-finite "
+                                                     r"position or velocity after step 1 of 3, .*use a smaller dt") as info:
+            rollout_positions(rollout, {"mu": mu})
+    assert isinstance(info.value, NonFiniteRollout) and info.value.step == 1
+    assert rollout.get_parameters()["mu"].tolist() == [1.0e3]
+    assert bool(torch.isfinite(rollout_positions(rollout, {"mu": torch.tensor([2.0e3], dtype=torch.float64)})).all())
+
+
 def test_torch_adam_drives_a_fit():
     """torch.optim.Adam on a RolloutModule (log-space parameter) recovers the flow rate from 2x."""
     steps, frames = 12, [4, 8, 12]

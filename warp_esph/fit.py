@@ -403,7 +403,9 @@ class _Run:
 
     def forward(self) -> np.ndarray:
         """The rollout from this experiment's starts (checked once, at set-up)."""
-        return self.rollout._forward_checked(self.starts, self.initial.get("initial_state"))
+        # check=False: a non-finite trial is the fit's to fail (a failed trial, loss inf;
+        # with worlds the one world's start alone), not an error ending the fit.
+        return self.rollout._forward_checked(self.starts, self.initial.get("initial_state"), check=False)
 
     def value_and_grad(self, loss) -> tuple[float, dict[str, np.ndarray]]:
         """``Rollout.value_and_grad(loss, **initial)`` from the starts checked at set-up."""

@@ -71,9 +71,10 @@ from . import checks
 from ._types import type_set
 from .model import Model, State, precision_problem
 from .sim.solver import Solver
+from .simulate import SimulationError
 
 __all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS", "FORCES", "TOOL_NAMES", "COLLIDER_FORCES",
-           "COLLIDER_NAMES"]
+           "COLLIDER_NAMES", "NonFiniteRollout"]
 
 #: The per-material parameter arrays of a ``Model`` whose gradients ``backward`` returns.
 PARAMETERS = Model.MATERIAL_FIELDS
@@ -112,6 +113,29 @@ def _differentiable_solver(model: Model) -> Solver:
     if not solver.fast_under_tape():
         solver.fused = False
     return solver
+
+
+class NonFiniteRollout(SimulationError, FloatingPointError):
+    """``Rollout.forward``'s run holds a non-finite position or velocity: it blew up (a ``dt``
+    above ``Model.stable_dt()``, a parameter far out). Also a ``FloatingPointError``, so
+    ``except FloatingPointError`` catches it as it catches ``fit``'s failed trials.
+
+    ``step``: the first state (steps taken) found non-finite: exact without checkpointing;
+    with ``checkpoint_every`` the first checked one (a checkpoint, a frame or the last state)
+    after ``last_finite``, the last checkpoint found finite. ``particle``, ``body``: the first
+    non-finite particle of that state and its body's name; ``frame``: None."""
+
+    def __init__(self, message: str, *, step: int, particle: int, body: str, last_finite: int):
+        super().__init__(message, step=step, particle=particle, body=body)
+        self.last_finite = last_finite
+
+
+def _first_non_finite(*arrays) -> int | None:
+    """The first particle index at which any of the ``(n, 3)`` arrays is not finite, or None."""
+    bad = np.zeros(len(arrays[0]), dtype=bool)
+    for a in arrays:
+        bad |= ~np.isfinite(a.reshape(len(a), -1)).all(axis=1)
+    return int(np.argmax(bad)) if bad.any() else None
 
 
 class _Checkpoint:
@@ -459,8 +483,20 @@ class Rollout:
         return self._states
 
     # ---------------------------------------------------------------- forward
-    def forward(self, x0=None, v0=None, *, F0=None, alpha0=None, initial_state: State | None = None) -> np.ndarray:
+    def forward(self, x0=None, v0=None, *, F0=None, alpha0=None, initial_state: State | None = None,
+                check: bool = True) -> np.ndarray:
         """Run the rollout; returns the positions at ``frames`` as an ``(frames, n, 3)`` array.
+
+        A run that blew up to a non-finite position (at a frame, or in the last state) or
+        velocity (in the last state) raises ``NonFiniteRollout`` (a ``SimulationError`` and a
+        ``FloatingPointError``) naming the first non-finite step, particle and body and the
+        stable step: its NaN positions were returned as a result, and a loss of them went on
+        as NaN. The run stays readable (``positions()``, ``final_state()``); ``check=False``
+        returns it as it is (``fit`` does, and fails such a trial itself). Only non-finite
+        values are caught: a run that blew up while staying finite (particles far away) is
+        returned as a result; ``simulate.DivergenceMonitor`` holds the bounds that catch it
+        (``fit`` applies them). The check reads the last state's velocities (and its
+        positions where ``steps`` is not a frame) once per forward.
 
         The initial state is the model's (``particle_x0``, ``particle_v0``, F = I, alpha =
         0), or ``initial_state``'s fields, with ``x0, v0, F0, alpha0`` overriding: ``x0``
@@ -470,9 +506,12 @@ class Rollout:
         """
         given = {name: check_initial(self.model, name, value) for name, value in
                  (("x0", x0), ("v0", v0), ("F0", F0), ("alpha0", alpha0)) if value is not None}
-        return self._forward_checked(given, initial_state)
+        if not isinstance(check, bool):
+            raise ValueError(f"check = {check!r} is not allowed: must be True or False")
+        return self._forward_checked(given, initial_state, check)
 
-    def _forward_checked(self, given: Mapping[str, np.ndarray], initial_state: State | None = None) -> np.ndarray:
+    def _forward_checked(self, given: Mapping[str, np.ndarray], initial_state: State | None = None,
+                         check: bool = True) -> np.ndarray:
         """``forward`` from starts ``check_initial`` has answered (``{name: its array}``), not
         checked again: the torch bridge checks each start once, before it sets the parameters,
         and re-runs a forward for its backward from the same arrays (x0's check of coincident
@@ -497,7 +536,49 @@ class Rollout:
         self._forward_done = True
         self._forward_inputs = self._inputs()
         self.forward_count += 1
-        return self.positions()
+        out = self.positions()
+        if check:
+            self._check_finite(out)
+        return out
+
+    def _check_finite(self, positions: np.ndarray):
+        """Raise ``NonFiniteRollout`` where the frame ``positions`` or the last state's
+        positions or velocities are not finite."""
+        final = self._final
+        last = [final.v.numpy()]
+        if self.steps not in self._frame_slot:
+            last.append(final.x.numpy())
+        if np.isfinite(positions).all() and all(np.isfinite(a).all() for a in last):
+            return
+        # The failure path only: find the first non-finite state among those kept.
+        m = self.model
+        known = []  # (steps taken, its first non-finite particle or None, whether x and v were read)
+        if self._states is not None and not self.checkpointing:
+            for k in range(1, self.steps + 1):
+                p = _first_non_finite(self._states[k].x.numpy(), self._states[k].v.numpy())
+                known.append((k, p, True))
+                if p is not None:
+                    break
+        else:
+            known += [(start, _first_non_finite(ck.x.numpy(), ck.v.numpy()), True)
+                      for (start, _), ck in zip(self.segments, self._checkpoints)]
+            known += [(f, _first_non_finite(positions[j]), False) for j, f in enumerate(self.frames)]
+            known.append((self.steps, _first_non_finite(*last, positions[-1]) if self.steps in self._frame_slot
+                          else _first_non_finite(*last), True))
+        step, p = min((k, p) for k, p, _ in known if p is not None)
+        last_finite = max([0] + [k for k, p, full in known if p is None and full and k < step])
+        body = m.bodies[int(m.particle_body_np[p])].name
+        where = f"particle {p} of body {body!r}" + (f" (world {int(m.world_of_particle[p])})" if m.world_count > 1 else "")
+        when = (f"after step {step} of {self.steps}" if step - last_finite <= 1 else
+                f"after step {step} of {self.steps} (finite after step {last_finite}; checkpoint_every={self.segment} keeps "
+                "only the states at its segment starts and frames: run with checkpoint_every=None to find the first step)")
+        stable = m.stable_dt(hourglass=self.solver.hourglass)
+        raise NonFiniteRollout(
+            f"the rollout blew up: {where} has a non-finite position or velocity {when}, at dt = {self.dt:.4g} s "
+            f"(Model.stable_dt() = {stable:.3g} s); use a smaller dt (at most Model.stable_dt()) or check the "
+            "parameters (a stiffness far above the materials' makes the stable step smaller); "
+            "forward(check=False) returns such a run as it is",
+            step=step, particle=p, body=body, last_finite=last_finite)
 
     def _inputs(self) -> tuple:
         """What ``backward`` reads from the model besides the taped states: the parameter

@@ -21,7 +21,9 @@ forward pass first when the rollout has been run with other inputs since (as
 ``torch.autograd.gradcheck`` does), so every output's gradient is taken at its own
 inputs, and leaves the model holding the parameter values it held before. Tensors are
 copied to and from the model's device; use a float64 model with float64 tensors for
-``gradcheck``.
+``gradcheck``. A forward whose run blows up to a non-finite position or velocity raises
+``warp_esph.rollout.NonFiniteRollout`` (a ``FloatingPointError``; ``Rollout.forward``'s check),
+the model keeping the values it held, instead of returning a tensor of NaN positions.
 
 ``RolloutModule`` holds chosen parameters as ``torch.nn.Parameter`` in log space (for
 positive ones) so ``torch.optim.Adam`` can drive a fit.
