@@ -645,6 +645,31 @@ def test_a_material_whose_wave_speed_overflows_is_refused_also_in_a_rollout():
     assert np.isfinite(rollout.forward()).all()  # the model's own values, as they were
 
 
+def test_a_float32_model_refuses_a_p_wave_modulus_float32_cannot_hold():
+    """mu = 3e38 Pa holds in float32, but the modulus lam + 2 mu the step computes does not: a
+    float32 model took it (finalize, set_material, a rollout's set_parameters) and ran to NaN
+    with a stable step of 7.7e-21 s. Refused on mu, naming the modulus; float64 takes it."""
+    from warp_esph.rollout import Rollout
+
+    big = we.Material(mu=3e38, lam=1.0, density=1000.0, pressure_stiffness=0.0)
+    why = (r"is not allowed in float32: with it the p-wave modulus lam \+ 2 mu \+ density pressure_stiffness = 6e\+38 Pa "
+           r"must be at most 3\.4e\+38; use dtype=float64")
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), big)
+    with pytest.raises(ValueError, match=r"^Material\.mu = 3e\+38 \(material 0\) " + why):
+        b.finalize(dtype="float32")
+    assert b.finalize(dtype="float64").materials[0].mu == 3e38
+    small = we.SceneBuilder(spacing=0.05)
+    small.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), big.replace(mu=1e3))
+    model = small.finalize(dtype="float32", requires_grad=True)
+    with pytest.raises(ValueError, match=r"^Material\.mu = 3e\+38 " + why):
+        model.set_material(0, big)
+    rollout = Rollout(model, 3, 1e-4)
+    with pytest.raises(ValueError, match=r"^values are not allowed: material 0: Material\.mu = 3e\+38 " + why):
+        rollout.set_parameters({"mu": [3e38]})
+    assert rollout.get_parameters()["mu"].tolist() == [1e3] and np.isfinite(rollout.forward()).all()
+
+
 def test_target_positions_of_text_are_refused_by_name():
     """``fit(model, {3: 'x'})`` and ``PositionLoss({3: [['a', 0, 0]]})`` met numpy's 'could not
     convert string to float: 'x'', naming no parameter."""

@@ -1055,15 +1055,19 @@ def test_patience_counts_the_evaluations_after_the_guess():
 
 
 def _overflowing_cube():
-    """27 float32 particles, stretched at the start, and a rollout whose shear modulus of 3e38 Pa
-    (float32 holds it; twice it, lam + 2 mu, is inf) makes every particle non-finite in the
-    first step; a rollout of 1e37 Pa blows the cube 5e24 m apart in 10 steps, finite."""
+    """27 float32 particles, stretched at the start; ``BLOWING_UP`` is a start speed (3e38 m/s,
+    which float32 holds) that, at a step of ``BLOWING_DT``, puts every particle past the float32
+    range in the first step; a rollout of 1e37 Pa blows the cube 5e24 m apart in 10 steps,
+    finite. (A shear modulus of 3e38 Pa, whose lam + 2 mu float32 does not hold, is refused.)"""
     b = we.SceneBuilder(spacing=0.02, support_radius=0.05, gravity=(0.0, 0.0, 0.0))
     b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), we.Material(mu=1.0e3, lam=1.5e3, yield_stress=1e9,
                                                                pressure_stiffness=0.0, density=1000.0), name="cube")
     model = b.finalize(dtype=wp.float32, requires_grad=True)
     model.particle_v0 = 20.0 * model.particle_x0 * np.array([1.0, -0.5, 0.0])
     return model
+
+
+BLOWING_UP, BLOWING_DT = [3.0e38, 0.0, 0.0], 2.0
 
 
 @pytest.mark.parametrize("checkpoint_every", [None, 4])
@@ -1077,22 +1081,22 @@ def test_a_rollout_that_blows_up_to_non_finite_values_raises(checkpoint_every):
     from warp_esph.rollout import NonFiniteRollout  # noqa: PLC0415
 
     model = _overflowing_cube()
-    r = Rollout(model, 10, 1e-3, frames=[5, 10], checkpoint_every=checkpoint_every)
-    r.set_parameters({"mu": [3e38]})
+    r = Rollout(model, 10, BLOWING_DT, frames=[5, 10], checkpoint_every=checkpoint_every)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # dt above the stable step, said once
         with pytest.raises(NonFiniteRollout) as info:
-            r.forward()
+            r.forward(v0=BLOWING_UP)
         e = info.value
         assert isinstance(e, FloatingPointError) and isinstance(e, we.SimulationError)
         step = 1 if checkpoint_every is None else 4
         assert (e.step, e.last_finite, e.particle, e.body) == (step, 0, 0, "cube")
         assert re.match(rf"^the rollout blew up: particle 0 of body 'cube' has a non-finite position or velocity after "
-                        rf"step {step} of 10.*, at dt = 0\.001 s \(Model\.stable_dt\(\) = [0-9.e-]+ s\); use a smaller dt "
+                        rf"step {step} of 10.*, at dt = 2 s \(Model\.stable_dt\(\) = [0-9.e-]+ s\); use a smaller dt "
                         r"\(at most Model\.stable_dt\(\)\)", str(e)), str(e)
         assert ("checkpoint_every=None to find the first step" in str(e)) == (checkpoint_every is not None)
         assert not np.isfinite(r.positions()).all()  # the run stays readable
-        assert not np.isfinite(r.forward(check=False)).all()
+        assert not np.isfinite(r.forward(v0=BLOWING_UP, check=False)).all()
+        r = Rollout(model, 10, 1e-3, frames=[5, 10], checkpoint_every=checkpoint_every)
         r.set_parameters({"mu": [1e37]})
         assert np.abs(r.forward()).max() > 1e20
     with pytest.raises(ValueError, match=r"^check = 'no' is not allowed: must be True or False"):
@@ -1105,10 +1109,10 @@ def test_a_fit_whose_guess_runs_to_non_finite_values_fails_as_before(worlds):
     inf; with worlds that world alone), and at the guess it stops with its own message."""
     model = _overflowing_cube()
     target = PositionLoss({4: model.particle_x0.astype(np.float64)}, frames=[4])
-    model.set_material(0, model.materials[0].replace(mu=3e38))
+    model.particle_v0 = np.tile(BLOWING_UP, (model.particle_count, 1))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         with pytest.raises(FloatingPointError, match=r"^the loss or its gradient is not finite at the "
                                                         r"initial guess \(loss = nan\)$"):
-            fit(model, target, ["mu"], steps=4, dt=1e-3, iterations=2, worlds=worlds, starts=2 if worlds else 1,
+            fit(model, target, ["mu"], steps=4, dt=BLOWING_DT, iterations=2, worlds=worlds, starts=2 if worlds else 1,
                 progress=False, diagnostics=False)

@@ -185,13 +185,14 @@ def test_a_forward_that_blows_up_to_non_finite_values_raises_not_a_nan_tensor():
     b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), we.Material(mu=1.0e3, lam=1.5e3, pressure_stiffness=0.0), name="cube")
     model = b.finalize(dtype=wp.float32, requires_grad=True)
     model.particle_v0 = 20.0 * model.particle_x0 * np.array([1.0, -0.5, 0.0])
-    rollout = Rollout(model, 3, 1.0e-3, frames=[3])
-    # float32 holds 3e38 Pa, but not lam + 2 mu: every particle is non-finite after one step.
-    mu = torch.tensor([3e38], dtype=torch.float64, requires_grad=True)
     with pytest.warns(RuntimeWarning, match="above the explicit stability limit"):
-        with pytest.raises(FloatingPointError, match=r"^the rollout blew up: particle 0 of body 'cube' has a non-finite "
-                                                     r"position or velocity after step 1 of 3, .*use a smaller dt") as info:
-            rollout_positions(rollout, {"mu": mu})
+        rollout = Rollout(model, 3, 2.0, frames=[3])
+    # float32 holds 3e38 m/s, but not the position it reaches in one step of 2 s.
+    mu = torch.tensor([2e3], dtype=torch.float64, requires_grad=True)
+    v0 = torch.tensor([3e38, 0.0, 0.0], dtype=torch.float64)
+    with pytest.raises(FloatingPointError, match=r"^the rollout blew up: particle 0 of body 'cube' has a non-finite "
+                                                 r"position or velocity after step 1 of 3, .*use a smaller dt") as info:
+        rollout_positions(rollout, {"mu": mu}, v0=v0)
     assert isinstance(info.value, NonFiniteRollout) and info.value.step == 1
     assert rollout.get_parameters()["mu"].tolist() == [1.0e3]
     assert bool(torch.isfinite(rollout_positions(rollout, {"mu": torch.tensor([2.0e3], dtype=torch.float64)})).all())

@@ -67,15 +67,30 @@ def wider_precision(scalar, instead: str, cli: bool = False) -> str:
     return f"use {instead}"
 
 
+def modulus_precision_problem(material: Material, scalar) -> str | None:
+    """What is allowed, where the p-wave modulus ``lam + 2 mu + density pressure_stiffness`` of
+    ``material`` (each value holding in ``scalar``) does not: in float32 mu = 3e38 holds but
+    the modulus the step computes overflowed, and the rollout ran to NaN (stable_dt 7.7e-21 s)."""
+    big = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).max)
+    with np.errstate(over="ignore"):
+        modulus = float(np.float64(material.lam) + 2.0 * material.mu + material.density * material.pressure_stiffness)
+    if math.isfinite(modulus) and modulus > big:
+        return (f"with it the p-wave modulus lam + 2 mu + density pressure_stiffness = {modulus:.3g} Pa must be at most "
+                f"{big:.3g}; {wider_precision(scalar, 'smaller values')}")
+    return None
+
+
 def material_precision_problem(material: Material, scalar) -> tuple[str, float, str] | None:
     """``(field, value, what is allowed)`` of the first parameter of ``material`` that does not
-    hold in ``scalar``, or None (``check_material_precision``)."""
+    hold in ``scalar``, or None (``check_material_precision``); last, the p-wave modulus they
+    make, reported on ``mu`` (``modulus_precision_problem``)."""
     for name in (*Model.MATERIAL_FIELDS, "density"):
         v = getattr(material, name)
         why = precision_problem(v, scalar)
         if why is not None:
             return name, v, why
-    return None
+    why = modulus_precision_problem(material, scalar)
+    return None if why is None else ("mu", material.mu, why)
 
 
 def check_material_precision(material: Material, scalar, where: str = "") -> None:
@@ -863,9 +878,12 @@ class Model:
         for k, m in enumerate(self.materials):
             values = {name: float(rows[f, k]) for f, name in enumerate(self.MATERIAL_FIELDS)}
             try:
-                m.replace(**values)
+                why = modulus_precision_problem(m.replace(**values), self.scalar)
             except ValueError as e:
                 raise ValueError(f"{what}: material {k}: {e}") from None
+            if why is not None:
+                raise ValueError(f"{what}: material {k}: Material.mu = {values['mu']:g} is not allowed in "
+                                 f"{self.scalar.__name__}: {why}")
 
     def wave_speeds(self, values: dict | None = None) -> np.ndarray:
         """Each material's p-wave speed (``material.p_wave_speed``, m/s) from its current
