@@ -1081,7 +1081,8 @@ def test_a_rollout_that_blows_up_to_non_finite_values_raises(checkpoint_every):
     from warp_esph.rollout import NonFiniteRollout  # noqa: PLC0415
 
     model = _overflowing_cube()
-    r = Rollout(model, 10, BLOWING_DT, frames=[5, 10], checkpoint_every=checkpoint_every)
+    with pytest.warns(RuntimeWarning, match="above the explicit stability limit"):
+        r = Rollout(model, 10, BLOWING_DT, frames=[5, 10], checkpoint_every=checkpoint_every)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # dt above the stable step, said once
         with pytest.raises(NonFiniteRollout) as info:
