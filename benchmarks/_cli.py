@@ -292,15 +292,16 @@ def check_output_file(text, name: str = "--json") -> str:
     return text
 
 
-def _probe(name: str, text, folder: bool) -> None:
-    """Whether a file can really be created there (``warp_esph.checks.output_place``):
-    ``os.access`` says yes to root everywhere, /proc included, and the benchmark then ran to
-    its end and failed writing its result."""
+def _probe(name: str, text, folder: bool, place=None) -> None:
+    """Whether a file can really be created there (``warp_esph.checks.output_place``; ``place``:
+    the folder probed for ``text``, default ``text``): ``os.access`` says yes to root everywhere,
+    /proc included, and the benchmark then ran to its end and failed writing its result."""
     from warp_esph import checks  # noqa: PLC0415
 
     try:
-        checks.output_place(name, text, folder=folder)
+        checks.output_place(name, text if place is None else place, folder=folder)
     except ValueError as e:
+        # The refusal names the value typed: '--out /proc/x/y' read "--out = '/proc'".
         raise refuse(name, text, str(e).split("is not allowed: ", 1)[-1]) from None
 
 
@@ -327,7 +328,7 @@ def check_output_folder(text, name: str = "--out") -> str:
         raise refuse(name, text, f"the folder cannot be made: '{anc}' is not writable")
     # The benchmarks make a missing folder with its parents (warp-esph's commands make only the
     # last one): the probe is of the folder that would take them.
-    _probe(name, str(anc), folder=True)
+    _probe(name, text, folder=True, place=str(anc))
     return text
 
 

@@ -260,7 +260,8 @@ def test_validation_refuses_rows_it_cannot_add(refused, files, tmp_path, name, w
     assert not (tmp_path / "out" / "validation.json").exists()
 
 
-def test_validation_refuses_an_output_folder_it_cannot_make_and_lists_the_cases_of_the_plan(refused, files, tmp_path):
+def test_validation_refuses_an_output_folder_it_cannot_make_and_lists_the_cases_of_the_plan(refused, files, tmp_path,
+                                                                                            monkeypatch):
     good = tmp_path / "good.json"
     good.write_text(json.dumps([{"case": "slump", "S": 0.2, "resolution": 8}]))
     refused("validation", ["--add", str(good), "--out", files["under_file"]], f"--out = {files['under_file']!r}")
@@ -268,6 +269,12 @@ def test_validation_refuses_an_output_folder_it_cannot_make_and_lists_the_cases_
     # An empty --only (an unset shell variable) ran the whole plan; /proc passed os.access as root.
     refused("validation", ["--only", "", "--out", str(tmp_path)], "--only = '' is not allowed: give case names")
     refused("validation", ["--quick", "--only", "bar_frequency", "--out", "/proc"], "--out = '/proc'", "cannot take a new file")
+    # A folder to make under one that takes no file: the refusal names the folder typed, not the
+    # one probed ("--out = '/proc'"). os.access says yes as root; as another user it said no first.
+    monkeypatch.setattr(_cli.os, "access", lambda *args, **kwargs: True)
+    line = refused("validation", ["--quick", "--only", "bar_frequency", "--out", "/proc/x/y"],
+                   "--out = '/proc/x/y' is not allowed: '/proc' cannot take a new file")
+    assert "--out = '/proc' " not in line
     refused("validation", ["--merge", str(good), "--drop", "nosuch", "--out", str(tmp_path)], "--drop = 'nosuch'")
 
 
