@@ -84,7 +84,8 @@ def frame_arrays_to_mesh(arrays: dict, fmt: str):
 
 def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, flag=None) -> list[str]:
     """Write ``frames`` (see ``usd.parse_frames``; default all) of ``usd_path`` as ``fmt``
-    (``vtu`` or ``ply``) files into ``output_dir`` (created); returns the files written. A file
+    (``vtu`` or ``ply``) files into ``output_dir`` (created, but not its parents: a missing parent
+    folder is a ``ValueError``); returns the files written. A frame named twice is refused. A file
     that cannot be written raises ``ExportWriteError`` (an ``OSError``) naming it; the files
     written before stay whole, and ``frames.pvd`` lists them where it can still be written; a
     Ctrl-C raises a ``KeyboardInterrupt`` whose ``kept`` says so (``checks.interrupted``).

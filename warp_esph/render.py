@@ -1121,10 +1121,12 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
                surfaces: bool = True, progress=None, flag=None) -> RenderResult:
     """Render frames of a ``UsdWriter`` file.
 
-    ``output``: a folder (no extension; PNG per frame, ``frame_00012.png``), a ``.png``
+    ``output``: a folder (no extension; PNG per frame, ``frame_00012.png``; created, but not its
+    parents: a missing parent folder is a ``ValueError``, as for a file), a ``.png``
     (one frame; several frames side by side, ``columns`` per row), a ``.gif`` or an
     ``.mp4`` (needs ``ffmpeg`` on the PATH). Default: ``<file>.png`` beside the USD file (``a.usdc.png``).
-    ``frames``: see ``parse_frames``; default all frames, or the last one for a ``.png``.
+    ``frames``: see ``parse_frames``; default all frames, or the last one for a ``.png``; a
+    frame named twice is refused except in a ``.gif`` or ``.mp4``, which holds it.
     ``fps``: playback rate of a GIF/MP4 (default: the file's). ``fit``: ``"all"`` frames the
     bounds of all chosen frames with one camera (the default: motion reads correctly),
     ``"each"`` frames every picture on its own (the same view direction, its own
