@@ -482,6 +482,10 @@ def test_camera_file_and_masks(tmp_path):
     with pytest.raises(ValueError, match=r"--target-frames = '2,3' is not allowed: frame 2 is not in the file .*; the mask "
                                          r"file \S*masks\.npz holds frames 3$"):
         load_silhouette_target(path, tmp_path / "masks.npz", "2,3", frames=6, substeps=10)
+    # A mask frame named twice is refused as every frame selection refuses it (it was taken once).
+    with pytest.raises(ValueError, match=r"^--target-frames = '3,-1' is not allowed: it names frame 3 twice; name each frame "
+                                         r"once; the mask file \S*masks\.npz holds frames 3$"):
+        load_silhouette_target(path, tmp_path / "masks.npz", "3,-1", frames=6, substeps=10)
     np.save(tmp_path / "front.npy", np.ones((24, 32)))
     with pytest.raises(ValueError, match="--target-frames = '2,3' is not allowed with the mask image"):
         load_silhouette_target(path, tmp_path / "front.npy", "2,3", frames=6, substeps=10)
