@@ -527,6 +527,24 @@ def test_a_force_log_whose_times_imply_another_rate_than_the_fit_is_refused_nami
             capsys.readouterr().err
 
 
+def test_a_force_log_frame_named_twice_is_refused_as_every_target_frame(tmp_path, capsys, dough_scene):
+    """``--target-frames 2,2`` of a force log was fitted as frame 2 once (the loss keys its
+    frames) while fit.json recorded ``[[2, 2]]``, exit 0; a run's USD or an ``.npz`` refuses it."""
+    from warp_esph.cli import main  # noqa: PLC0415
+
+    scene = tmp_path / "guess.toml"
+    scene.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    log = _tools_csv(tmp_path / "log.csv", [f"{k},{k / 30.0!r},plane0,0,{k},0" for k in range(3)])
+    for frames, twice in (("2,2", 2), ("1:2,1", 1)):
+        capsys.readouterr()
+        assert main(["fit", str(scene), "--target", str(log), "--target-frames", frames, "--iterations", "0", "--no-usd",
+                     "--no-diagnostics", "--no-progress", "--output-dir", str(tmp_path / "fit")]) == 2
+        err = capsys.readouterr().err
+        assert err == (f"warp-esph: error: --target-frames = {frames!r} is not allowed: it names frame {twice} twice; name "
+                       "each frame once\n"), err
+    assert not (tmp_path / "fit").exists()
+
+
 def test_a_force_log_row_cut_short_or_too_long_is_refused_not_read_as_its_numbers(tmp_path):
     """A log cut inside the last row's fz (a copy stopped short, another program's file) read
     '-2.5' of '-2.5031' as the force, the missing torque columns unchecked; a row with more

@@ -530,6 +530,14 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                 # -1 ended in a KeyError traceback (.npz) or was dropped (a force log).
                 raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: use comma-separated frame "
                                  "indices >= 0 or ranges A:B[:STEP] (B included)") from None
+            if t.kind != "positions":
+                seen = set()
+                twice = next((f for f in chosen if f in seen or seen.add(f)), None)
+                if twice is not None:
+                    # A force log's or a cloud's loss keys its frames: '2,2' was observed once
+                    # while fit.json recorded [2, 2], where every other target refuses it.
+                    raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: it names frame {twice} twice; "
+                                     "name each frame once")
             t.frames = chosen
             numbered.add(id(t))
             if t.kind == "positions" and len(t.frames) != np.asarray(t.data).shape[0]:
