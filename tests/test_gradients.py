@@ -1058,11 +1058,9 @@ def test_a_taped_step_refuses_a_state_the_tape_wrote_and_says_when_no_gradient_c
             solver.step(a, plain, DT)
 
 
-def test_a_parameter_written_in_place_after_the_taped_steps_is_named_before_the_backward_pass():
-    """The adjoints read the parameter arrays as they are at ``tape.backward()``: a shear
-    modulus written in place after the taped steps gave the gradient of neither value without
-    a word (-1: 4 % off; NaN: every gradient NaN). The first thing the backward pass runs
-    names the parameter, the material and both values; nothing has flowed back yet."""
+def _two_taped_steps():
+    """The block of ``_model`` stepped twice on a ``wp.Tape``, and a seed for the last state's
+    gradient: ``(model, states, tape, seed)``."""
     model = _model()
     solver = we.Solver(model)
     states = [model.state(requires_grad=True) for _ in range(3)]
@@ -1070,8 +1068,16 @@ def test_a_parameter_written_in_place_after_the_taped_steps_is_named_before_the_
     with tape:
         for k in range(2):
             solver.step(states[k], states[k + 1], DT)
+    return model, states, tape, np.random.default_rng(3).normal(size=(model.particle_count, 3))
+
+
+def test_a_parameter_written_in_place_after_the_taped_steps_is_named_before_the_backward_pass():
+    """The adjoints read the parameter arrays as they are at ``tape.backward()``: a shear
+    modulus written in place after the taped steps gave the gradient of neither value without
+    a word (-1: 4 % off; NaN: every gradient NaN). The first thing the backward pass runs
+    names the parameter, the material and both values; nothing has flowed back yet."""
+    model, states, tape, seed = _two_taped_steps()
     mu = float(model.mu.numpy()[0])
-    seed = np.random.default_rng(3).normal(size=(model.particle_count, 3))
     for bad, why in ((-1.0, r" \(Material\.mu = -1\.0 is not allowed: must be > 0\)"),
                      (float("nan"), r" \(Material\.mu = nan is not allowed: must be a finite number\)"),
                      (3.0 * mu, "")):
@@ -1096,15 +1102,8 @@ def test_a_material_set_or_a_parameter_nudged_after_the_taped_steps_is_named_bef
     off without a word. It is named (field, both values) before anything flows back; the same
     material set again is no change. A parameter written from 1000 to 1000.0001 is named with
     every digit: ':g' had said '1000 now, 1000 when Solver.step ran'."""
-    model = _model()
-    solver = we.Solver(model)
-    states = [model.state(requires_grad=True) for _ in range(3)]
-    tape = wp.Tape()
-    with tape:
-        for k in range(2):
-            solver.step(states[k], states[k + 1], DT)
+    model, states, tape, seed = _two_taped_steps()
     mat = model.materials[0]
-    seed = np.random.default_rng(3).normal(size=(model.particle_count, 3))
     model.set_material(0, mat.replace(elastic_force="paper"))
     states[2].x.grad.assign(seed)
     with pytest.raises(RuntimeError, match=r"^tape\.backward\(\) is not allowed: material 0 was replaced \(set_material\) "
