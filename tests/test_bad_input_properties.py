@@ -670,6 +670,25 @@ def test_a_float32_model_refuses_a_p_wave_modulus_float32_cannot_hold():
     assert rollout.get_parameters()["mu"].tolist() == [1e3] and np.isfinite(rollout.forward()).all()
 
 
+def test_a_float32_modulus_refusal_names_the_value_that_made_it_too_big():
+    """The modulus refusal named mu whatever made the modulus too big: set_parameters of
+    pressure_stiffness = 4e35 read 'Material.mu = 1000 is not allowed', a value nobody gave.
+    It names the field of the largest term of lam + 2 mu + density pressure_stiffness."""
+    from warp_esph.rollout import Rollout
+
+    why = r" is not allowed in float32: with it the p-wave modulus lam \+ 2 mu \+ density pressure_stiffness = "
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material(mu=1e3, lam=3e38, density=1000.0, pressure_stiffness=1e35))
+    with pytest.raises(ValueError, match=r"^Material\.lam = 3e\+38 \(material 0\)" + why + r"4e\+38 Pa"):
+        b.finalize(dtype="float32")
+    small = we.SceneBuilder(spacing=0.05)
+    small.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material(mu=1e3, lam=1e3, density=1000.0, pressure_stiffness=0.0))
+    rollout = Rollout(small.finalize(dtype="float32", requires_grad=True), 3, 1e-4)
+    with pytest.raises(ValueError, match=r"^values are not allowed: material 0: Material\.pressure_stiffness = 4e\+35"
+                       + why + r"4e\+38 Pa"):
+        rollout.set_parameters({"pressure_stiffness": [4e35]})
+
+
 def test_target_positions_of_text_are_refused_by_name():
     """``fit(model, {3: 'x'})`` and ``PositionLoss({3: [['a', 0, 0]]})`` met numpy's 'could not
     convert string to float: 'x'', naming no parameter."""

@@ -67,15 +67,23 @@ def wider_precision(scalar, instead: str, cli: bool = False) -> str:
     return f"use {instead}"
 
 
-def modulus_precision_problem(material: Material, scalar) -> str | None:
-    """What is allowed, where the p-wave modulus ``lam + 2 mu + density pressure_stiffness`` of
-    ``material`` (each value holding in ``scalar``) does not: in float32 mu = 3e38 holds but
-    the modulus the step computes overflowed, and the rollout ran to NaN (stable_dt 7.7e-21 s)."""
+def modulus_precision_problem(material: Material, scalar) -> tuple[str, float, str] | None:
+    """``(field, value, what is allowed)`` where the p-wave modulus ``lam + 2 mu + density
+    pressure_stiffness`` of ``material`` (each value holding in ``scalar``) does not, or None: in
+    float32 mu = 3e38 holds but the modulus the step computes overflowed, and the rollout ran to
+    NaN (stable_dt 7.7e-21 s). The field named is the one of the largest term, so the value
+    that made the modulus too big is the one named (``mu`` alone named ``mu = 1000`` where
+    ``pressure_stiffness = 4e35`` was given)."""
     big = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).max)
     with np.errstate(over="ignore"):
-        modulus = float(np.float64(material.lam) + 2.0 * material.mu + material.density * material.pressure_stiffness)
+        terms = {"lam": np.float64(material.lam), "mu": 2.0 * np.float64(material.mu),
+                 "density" if material.density > material.pressure_stiffness else "pressure_stiffness":
+                     np.float64(material.density) * material.pressure_stiffness}
+        modulus = float(sum(terms.values()))
     if math.isfinite(modulus) and modulus > big:
-        return (f"with it the p-wave modulus lam + 2 mu + density pressure_stiffness = {modulus:.3g} Pa must be at most "
+        field = max(terms, key=lambda k: terms[k])
+        return (field, float(getattr(material, field)),
+                f"with it the p-wave modulus lam + 2 mu + density pressure_stiffness = {modulus:.3g} Pa must be at most "
                 f"{big:.3g}; {wider_precision(scalar, 'smaller values')}")
     return None
 
@@ -83,14 +91,13 @@ def modulus_precision_problem(material: Material, scalar) -> str | None:
 def material_precision_problem(material: Material, scalar) -> tuple[str, float, str] | None:
     """``(field, value, what is allowed)`` of the first parameter of ``material`` that does not
     hold in ``scalar``, or None (``check_material_precision``); last, the p-wave modulus they
-    make, reported on ``mu`` (``modulus_precision_problem``)."""
+    make, reported on the field of its largest term (``modulus_precision_problem``)."""
     for name in (*Model.MATERIAL_FIELDS, "density"):
         v = getattr(material, name)
         why = precision_problem(v, scalar)
         if why is not None:
             return name, v, why
-    why = modulus_precision_problem(material, scalar)
-    return None if why is None else ("mu", material.mu, why)
+    return modulus_precision_problem(material, scalar)
 
 
 def check_material_precision(material: Material, scalar, where: str = "") -> None:
@@ -878,11 +885,12 @@ class Model:
         for k, m in enumerate(self.materials):
             values = {name: float(rows[f, k]) for f, name in enumerate(self.MATERIAL_FIELDS)}
             try:
-                why = modulus_precision_problem(m.replace(**values), self.scalar)
+                problem = modulus_precision_problem(m.replace(**values), self.scalar)
             except ValueError as e:
                 raise ValueError(f"{what}: material {k}: {e}") from None
-            if why is not None:
-                raise ValueError(f"{what}: material {k}: Material.mu = {values['mu']:g} is not allowed in "
+            if problem is not None:
+                field, v, why = problem
+                raise ValueError(f"{what}: material {k}: Material.{field} = {v:g} is not allowed in "
                                  f"{self.scalar.__name__}: {why}")
 
     def wave_speeds(self, values: dict | None = None) -> np.ndarray:
