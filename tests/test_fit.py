@@ -1104,6 +1104,23 @@ def test_a_rollout_that_blows_up_to_non_finite_values_raises(checkpoint_every):
         r.forward(check="no")
 
 
+def test_a_non_finite_rollout_within_the_stable_step_does_not_blame_dt():
+    """A run at a dt within the stable step that a start past float32's range blew up (F0 =
+    1e18 I: a stress of 1e39 Pa) was told 'use a smaller dt (at most Model.stable_dt())', a
+    dt it already had; it is told to check the start and the parameters."""
+    from warp_esph.rollout import NonFiniteRollout  # noqa: PLC0415
+
+    model = _overflowing_cube()
+    r = Rollout(model, 2, 1e-3)
+    assert r.dt < model.stable_dt()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the stretch above 2 cuts neighbour rows
+        with pytest.raises(NonFiniteRollout, match=r"after step 1 of 2, at dt = 0\.001 s \(Model\.stable_dt\(\) = "
+                           r"[0-9.e-]+ s\); dt is within it, so check the start \(x0, v0, F0, alpha0\) and the "
+                           r"parameters; forward\(check=False\)"):
+            r.forward(F0=1e18 * np.eye(3))
+
+
 @pytest.mark.parametrize("worlds", [False, True])
 def test_a_fit_whose_guess_runs_to_non_finite_values_fails_as_before(worlds):
     """The rollout's non-finite check is ``fit``'s to skip: it fails such a trial itself (loss

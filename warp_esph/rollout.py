@@ -573,11 +573,14 @@ class Rollout:
                 f"after step {step} of {self.steps} (finite after step {last_finite}; checkpoint_every={self.segment} keeps "
                 "only the states at its segment starts and frames: run with checkpoint_every=None to find the first step)")
         stable = m.stable_dt(hourglass=self.solver.hourglass)
+        # Within the stable step a smaller dt is no cure: the cause is the start (a speed or
+        # stretch past the precision's range) or the parameters, and the advice sent users to dt.
+        advice = ("use a smaller dt (at most Model.stable_dt()) or check the parameters (a stiffness far above the "
+                  "materials' makes the stable step smaller)" if self.dt > stable else
+                  "dt is within it, so check the start (x0, v0, F0, alpha0) and the parameters")
         raise NonFiniteRollout(
             f"the rollout blew up: {where} has a non-finite position or velocity {when}, at dt = {self.dt:.4g} s "
-            f"(Model.stable_dt() = {stable:.3g} s); use a smaller dt (at most Model.stable_dt()) or check the "
-            "parameters (a stiffness far above the materials' makes the stable step smaller); "
-            "forward(check=False) returns such a run as it is",
+            f"(Model.stable_dt() = {stable:.3g} s); {advice}; forward(check=False) returns such a run as it is",
             step=step, particle=p, body=body, last_finite=last_finite)
 
     def _inputs(self) -> tuple:
