@@ -133,6 +133,59 @@ def test_the_paper_cap_is_counted_and_warned():
     assert _model(2.0).max_neighbors == 96 and _model(2.5).max_neighbors == 240
 
 
+def _squashed_step(max_neighbors, elastic_force):
+    """One step of a block of 5 x 16 x 5 particles squashed to F = diag(1.3, 0.35, 1.3)
+    (positions and F alike, J = 0.59; 16 layers: the middle ones have their whole ball),
+    float64: what the lowest particles of test_adaptive_dt's ball reach at its landing. The
+    variational force runs with the hourglass control (it weighs rest distances), the
+    paper's without."""
+    F0 = np.diag([1.3, 0.35, 1.3])
+    b = we.SceneBuilder(spacing=DX, max_neighbors=max_neighbors)
+    b.add_box((0.0, 0.0, 0.0), (5 * DX, 16 * DX, 5 * DX), we.Material.from_young(1.0e5, 0.3, elastic_force=elastic_force))
+    model = b.finalize(dtype=wp.float64)
+    X = model.particle_x0 + np.random.default_rng(3).normal(scale=1e-3 * DX, size=model.particle_x0.shape)
+    model.particle_x0 = X  # the rest positions the hourglass control weighs
+    start, out = model.state(), model.state()
+    start.x.assign(X @ F0.T)
+    start.F.assign(np.tile(F0, (model.particle_count, 1, 1)))
+    solver = we.Solver(model)
+    assert (solver.hourglass > 0.0) == (elastic_force == "variational")
+    solver.step(start, out, 1.0e-5)
+    return model, start, out, solver
+
+
+@pytest.mark.parametrize("elastic_force", ["paper", "variational"])
+def test_a_full_row_that_drops_only_unweighed_pairs_is_not_cut(elastic_force):
+    """Squashed as a landing ball's lowest particles are (F = diag(1.3, 0.35, 1.3)), a
+    particle's selection radius h sigma_max(F) = 1.3 h holds up to 113 particles, more than
+    a row's 96, of which at most 69 are weighed by a kernel of the step (closer than h now,
+    at F^-1 (x_j - x_i), or at rest). A full row keeps the weighed pairs first
+    (neighbors.weight_key): it holds them all, the step is bit for bit that of 256-wide rows,
+    and no cut is counted or warned. It kept the 96 nearest, which lacked up to 3 weighed
+    pairs at the rim of F B(h) (1.2-1.3 h away along x and z), and counted that as a cut.
+    Rows of 40 drop weighed pairs: that is still a cut."""
+    model, start, out, solver = _squashed_step(None, elastic_force)
+    wide = _squashed_step(256, elastic_force)
+    h = model.support_radius
+    x, X, F = start.x.numpy(), model.particle_x0, start.F.numpy()
+    nbr, cnt = out.neighbors.numpy(), out.neighbor_count.numpy()
+    in_ball = ((x[:, None] - x[None]) ** 2).sum(-1) < (1.3 * h) ** 2
+    assert model.max_neighbors == 96 and (in_ball.sum(1) - 1).max() == 113 and cnt.max() == 96  # full rows
+    for i in range(model.particle_count):
+        d = x - x[i]
+        ref = np.linalg.solve(F[i], d.T).T
+        weighed = ((d * d).sum(1) < h * h) | ((ref * ref).sum(1) < h * h) | (((X - X[i]) ** 2).sum(1) < h * h)
+        weighed[i] = False
+        assert set(np.flatnonzero(weighed)) <= set(nbr[i, : cnt[i]]), i
+    assert wide[2].neighbor_count.numpy().max() > 96
+    for name in ("x", "v", "F"):
+        np.testing.assert_array_equal(getattr(out, name).numpy(), getattr(wide[2], name).numpy())
+    assert solver.guard_counts()["neighbors_cut"] == 0
+    with pytest.warns(RuntimeWarning, match="a neighbour row was cut: more than max_neighbors = 40"):
+        narrow = _squashed_step(40, elastic_force)[3]
+    assert narrow.guard_counts()["neighbors_cut"] > 0
+
+
 # Through ground contact: a block flowing as it lands on a rough ground (friction 0.6); the
 # first particles touch at step 20 of 60. The continuous contact
 # (``model.contact_ramp = CONTINUOUS_CONTACT_RAMP``) is the default; the instant law is

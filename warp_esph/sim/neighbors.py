@@ -1,6 +1,7 @@
 """Neighbour lists (paper §4, docs/method.md §1): the particles ``j != i`` with
-``|x_j - x_i| < h sigma_max(F_i)`` (with ``F``; else ``< h``), the nearest ``max_neighbors``
-of them where there are more, stored as a fixed-width int32 row plus a count.
+``|x_j - x_i| < h sigma_max(F_i)`` (with ``F``; else ``< h``), the ``max_neighbors`` of
+smallest key where there are more (the nearest; with ``F``, those nearest by the distance a
+kernel weighs them by, ``weight_key``), stored as a fixed-width int32 row plus a count.
 
 Rows reach ``h sigma_max(F_i)`` (an upper bound of it) where the paper's elastic kernel is
 evaluated at ``F_i^-1 (x_j - x_i)`` (eq. 11): a pair then enters or leaves a row only
@@ -8,7 +9,8 @@ where every kernel of the step is zero, and the loss is continuous in the parame
 Without that force every weight of the step ends at ``h`` and the solver asks for rows
 within ``h`` (``Solver._stretch_rows``).
 The default width (``default_max_neighbors``) leaves room for compression, so rows are
-not cut in practice; a row that may be short of a weighted neighbour is counted
+not cut in practice (a full stretched row drops only pairs no kernel weighs, or counts a
+cut); a row that may be short of a weighted neighbour is counted
 (``Solver.guard_counts()["neighbors_cut"]``). The paper's "up to 30 neighbours" is
 ``PAPER_MAX_NEIGHBORS``.
 
@@ -27,14 +29,14 @@ Two stages (a Verlet list with a skin):
    when needed.
 2. ``select_neighbors``, every step: the particles within ``h sigma_max(F_i)`` among the
    candidates; where there are more than the row width, the smallest keys
-   ``(|x_j - x_i|², j)`` (nearest first, ties to the lower index). Rows are written in
-   index order.
+   ``(|x_j - x_i|², j)`` (nearest first, ties to the lower index; with ``F`` the distance
+   is ``weight_key``'s). Rows are written in index order.
 
 The candidates stay complete while every pair has moved by less than ``skin`` relative
 to each other since they were built: ``NeighborSearch.update`` checks a bound on that
 (from the bounding box of the displacements, so a body translating as a whole never
 forces a rebuild) and that no stretch bound grew past its ``s_i``, and rebuilds otherwise. Since the selection and its order depend
-only on the current distances and indices, the lists are then exactly those of a
+only on the current positions (with ``F``: and ``F``, the rest positions) and indices, the lists are then exactly those of a
 fresh search: the skin changes the cost, never the result (so a run resumed from a
 checkpoint with a new solver is bit-identical). ``skin = 0`` searches afresh every
 step.
@@ -132,6 +134,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     guard_code = guard_funcs(scalar).guard_code
     count_weight = guard_funcs(scalar).count_weight
     Materials = materials.struct(scalar)
+    floor_image = deformation.funcs(scalar, "poly6").floor_image
 
     @wp.func
     def stretch_bound2(F: mat33) -> scalar:
@@ -281,6 +284,30 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         if e2 > out[6]:
             wp.atomic_max(out, 6, e2)
 
+    @wp.func
+    def weight_key(xi: vec3, xj: vec3, d2: scalar, Finv: mat33, gi: vec3, rest_i: vec3, rest: wp.array(dtype=vec3),
+                   j: int, slack2: scalar, with_rest: int, images: int, gn: vec3, goff: scalar, gmin: scalar) -> scalar:
+        """The key a full stretched row keeps the smallest of: the least of the distances some
+        kernel of the step may weigh the pair by, each scaled so that ``h^2`` is where its
+        weight ends: ``|x_j - x_i|^2`` (the fit, SPH, the variational force),
+        ``|F_i^-1 (x_j - x_i)|^2 / slack^2`` (the paper's elastic kernel, eq. 11, and with
+        ``images`` its floor images; ``slack``: the force reads the ``F`` this step makes), and
+        with ``with_rest`` the rest distance (the hourglass control). Below ``h^2``: weighed."""
+        k = d2
+        e = Finv * (xj - xi)
+        k = wp.min(k, wp.dot(e, e) / slack2)
+        if images != 0:
+            g = floor_image(xj, gn, goff, gmin) - xi
+            k = wp.min(k, wp.dot(g, g))
+            e = Finv * g
+            k = wp.min(k, wp.dot(e, e) / slack2)
+            e = Finv * (xj - gi)
+            k = wp.min(k, wp.dot(e, e) / slack2)
+        if with_rest != 0:
+            e = rest[j] - rest_i
+            k = wp.min(k, wp.dot(e, e))
+        return k
+
     @wp.kernel(enable_backward=False, module="unique")
     def select_neighbors(
         x: wp.array(dtype=vec3),
@@ -299,6 +326,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         F: wp.array(dtype=mat33),
         with_stretch: int,
         cand_stretch: wp.array(dtype=scalar),
+        slack: scalar,
+        rest: wp.array(dtype=vec3),
+        with_rest: int,
         cut_index: int,
         gn: vec3,
         goff: scalar,
@@ -323,8 +353,11 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         With ``with_stretch`` the rows hold every particle within ``h sigma_max(F_i)``
         (at most ``cand_stretch[i] h``, the candidates' reach), so a pair enters or leaves a row only where every
         kernel of the step, the elastic one at ``F_i^-1 (x_j - x_i)`` included, is zero.
-        A particle whose row may lack a neighbour of non-zero weight (the row width
-        reached, or a stretch beyond the margin) is counted in ``counters[cut_index]``."""
+        A particle whose row may lack a neighbour of non-zero weight is counted in
+        ``counters[cut_index]``: a stretch beyond the margin, or a full row that dropped a
+        candidate some kernel of the step may weigh (its ``weight_key`` below ``h^2``; an
+        ``F_i`` that is not invertible: any candidate). ``rest``
+        (``with_rest``): the rest positions, whose distances the hourglass control weighs."""
         i = wp.tid()
         xi = x[i]
         bi = body[i]
@@ -332,18 +365,37 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         h_fit2 = h * h
         h2 = h_fit2
         cut = int(0)
+        # keyed: a full row keeps the smallest weight_key, not the nearest (needs F_i^-1).
+        keyed = int(0)
+        Finv = mat33()
+        gi = xi
+        slack2 = slack * slack
         if with_stretch != 0:
-            g = stretch_bound2(F[i])
+            Fi = F[i]
+            g = stretch_bound2(Fi)
             m2 = cand_stretch[i] * cand_stretch[i]
             if g > m2:
                 cut = 1
                 g = m2
             h2 = h_fit2 * wp.max(g, scalar(1.0))
+            det = wp.determinant(Fi)
+            if det > scalar(0.0) and det < scalar(1.0e30):
+                keyed = 1
+                Finv = wp.inverse(Fi)
+                if images != 0:
+                    gi = floor_image(xi, gn, goff, gmin)
+        rest_i = vec3()
+        if with_rest != 0:
+            rest_i = rest[i]
         nc = cand_count[i]
-        # Pass 1: the within-h candidates in index order while the row has room. A row
-        # that overflows becomes a max-heap on the key (d2, j); a nearer candidate
-        # replaces its root, so the row ends with the kmax smallest keys. Candidates come
-        # in index order, so a new one is below the root exactly when its d2 is.
+        # Pass 1: the candidates within the selection radius in index order while the row
+        # has room. A row that overflows becomes a max-heap on the key (k, j), k the squared
+        # distance (keyed: weight_key, so that the pairs a kernel weighs are kept before
+        # those of the ball of radius h sigma_max(F_i) no kernel weighs: squashed to
+        # diag(1.3, 1.3, 0.33), a landing ball's lowest particles, the ball held ~100, more
+        # than a row, of which ~58 are weighed); a smaller key replaces its root, so the row
+        # ends with the kmax smallest keys. Candidates come in index order, so a new one is
+        # below the root exactly when its k is.
         n_in = int(0)
         c = int(0)
         # Branch-free while the row has room (whether a candidate is within h is hard to
@@ -362,16 +414,24 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             d = x[j] - xi
             d2 = wp.dot(d, d)
             if d2 < h2:
+                k = d2
+                if keyed != 0:
+                    k = weight_key(xi, x[j], d2, Finv, gi, rest_i, rest, j, slack2, with_rest, images, gn, goff, gmin)
                 if n_in == kmax:
+                    if keyed != 0:
+                        for q in range(kmax):
+                            jq = nbr[i, q]
+                            nbr_d2[i, q] = weight_key(xi, x[jq], nbr_d2[i, q], Finv, gi, rest_i, rest, jq, slack2,
+                                                      with_rest, images, gn, goff, gmin)
                     for q in range(kmax // 2):
                         sift_down(nbr, nbr_d2, i, kmax // 2 - 1 - q, kmax)
-                if d2 < nbr_d2[i, 0]:
+                if k < nbr_d2[i, 0]:
                     nbr[i, 0] = j
-                    nbr_d2[i, 0] = d2
+                    nbr_d2[i, 0] = k
                     sift_down(nbr, nbr_d2, i, 0, kmax)
                 n_in += 1
             c += 1
-        max_d2 = nbr_d2[i, 0]
+        max_k = nbr_d2[i, 0]
         max_j = nbr[i, 0]
         n = n_in
         if n_in > kmax:
@@ -383,11 +443,27 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 j = cand[i, c]
                 d = x[j] - xi
                 d2 = wp.dot(d, d)
+                k = d2
+                if keyed != 0:
+                    k = weight_key(xi, x[j], d2, Finv, gi, rest_i, rest, j, slack2, with_rest, images, gn, goff, gmin)
                 nbr[i, n] = j
                 nbr_d2[i, n] = d2
-                n += wp.where(d2 < max_d2 or (d2 == max_d2 and j <= max_j), 1, 0)
+                n += wp.where(d2 < h2 and (k < max_k or (k == max_k and j <= max_j)), 1, 0)
                 c += 1
-            cut = 1
+            if keyed == 0:
+                cut = 1
+            elif max_k < h_fit2:
+                # Short only if a dropped candidate (a key above the largest kept) is weighed.
+                c = int(0)
+                while c < nc and cut == 0:
+                    j = cand[i, c]
+                    d = x[j] - xi
+                    d2 = wp.dot(d, d)
+                    if d2 < h2:
+                        k = weight_key(xi, x[j], d2, Finv, gi, rest_i, rest, j, slack2, with_rest, images, gn, goff, gmin)
+                        if k < h_fit2 and key_greater(k, j, max_k, max_j):
+                            cut = 1
+                    c += 1
         count[i] = n
         if cut != 0:
             wp.atomic_add(counters, cut_index, 1)
@@ -647,11 +723,12 @@ class NeighborSearch:
         self._centre = tuple(0.5 * (b[k] - b[3 + k]) for k in range(3))
         return spread < SKIN_SAFETY * self.skin
 
-    def _select(self, x, body, nbr, nbr_d2, count, guard, sph=None, F=None, counters=None, cut_index=0):
+    def _select(self, x, body, nbr, nbr_d2, count, guard, sph=None, F=None, counters=None, cut_index=0, rest=None):
         """``sph``: None, or (mass, material, rest_density, materials, rho, p, vol, rho_p, vol_p)
         (``rho_p``, ``vol_p`` None: the pressure reads ``rho``); ``F``:
         None (rows within h) or the deformation gradients the rows must cover
-        (``select_neighbors``); ``counters[cut_index]`` counts the rows that may be short."""
+        (``select_neighbors``); ``counters[cut_index]`` counts the rows that may be short,
+        ``rest`` (None: no term weighs rest distances) the rest positions they are judged by too."""
         d = self._dummy_arrays()
         if sph is None:
             mass, material, rest_density, mats, rho, p, vol = d["s"], d["i"], d["s"], d["mat"], d["s"], d["s"], d["s"]
@@ -666,7 +743,8 @@ class NeighborSearch:
             [
                 x, body, mass, self.candidates, self.candidate_count, self.scalar(self.h), self.min_neighbors,
                 self.scalar(self.max_condition), int(with_guard), with_density, material, rest_density, mats,
-                d["F"] if F is None else F, int(F is not None), self._cand_stretch, int(cut_index),
+                d["F"] if F is None else F, int(F is not None), self._cand_stretch, self.scalar(STRETCH_SLACK),
+                d["v"] if rest is None else rest, int(rest is not None), int(cut_index),
                 *(self.image_args if self.image_args is not None else
                   (type_set(self.scalar).vec3(0.0, 1.0, 0.0), self.scalar(0.0), self.scalar(0.0), 0)),
             ],
@@ -685,6 +763,7 @@ class NeighborSearch:
                 "mat": materials.make(self.scalar, self.device),
                 "F": wp.zeros(1, dtype=type_set(self.scalar).mat33, device=self.device),
                 "c": wp.zeros(1, dtype=wp.int32, device=self.device),
+                "v": wp.zeros(1, dtype=type_set(self.scalar).vec3, device=self.device),
             }
         return self._dummies
 
@@ -703,7 +782,8 @@ class NeighborSearch:
         ``vol_p = mass / rho_p`` (both None: the pressure reads ``rho``) and the pressure ``p``
         (not recorded on a tape). With ``F=`` (the
         deformation gradients at ``x``) the rows reach ``h sigma_max(F)``; with
-        ``counters=, cut_index=`` rows that may be short are counted (``select_neighbors``)."""
+        ``counters=, cut_index=`` rows that may be short are counted (``select_neighbors``;
+        ``rest=``: the rest positions where a term weighs their distances)."""
         self.updates += 1
         F = stretch.get("F")
         if not self.candidates_valid(x, F):

@@ -24,8 +24,8 @@ from . import (comparison, curvature, deformation, fields, forces, fused, ghost_
 #: (docs/method.md: the guards of §2, the flow skipped in §4, ``neighbors_cut`` the rows §1's search cut).
 GUARD_NAMES = ("few_neighbors", "ill_conditioned", "inverted", "plasticity_skipped", "neighbors_cut")
 #: Index of ``neighbors_cut``: particle-steps whose neighbour row may lack a neighbour of
-#: non-zero weight (the row width ``Model.max_neighbors`` reached, or an elastic stretch
-#: beyond ``neighbors.MAX_STRETCH``). Each is a possible jump of the loss.
+#: non-zero weight (more such neighbours than the row width ``Model.max_neighbors``, or an
+#: elastic stretch beyond ``neighbors.MAX_STRETCH``). Each is a possible jump of the loss.
 COUNT_NEIGHBORS_CUT = 4
 
 #: Default Verlet skin of the neighbour candidates, in units of the support radius
@@ -387,8 +387,8 @@ class Solver:
             self._warned_cut = True
             m = self.model
             warnings.warn(
-                f"a neighbour row was cut: more than max_neighbors = {m.max_neighbors} particles within the "
-                f"selection radius, or an elastic stretch above {neighbors.MAX_STRETCH:g}; the step is "
+                f"a neighbour row was cut: more than max_neighbors = {m.max_neighbors} particles that a kernel "
+                f"of the step may weigh, or an elastic stretch above {neighbors.MAX_STRETCH:g}; the step is "
                 f"then not smooth in the parameters (gradients may disagree with finite differences). "
                 f"Raise max_neighbors (default for this support radius: "
                 f"{neighbors.default_max_neighbors(m.support_radius / m.spacing)}); "
@@ -518,6 +518,7 @@ class Solver:
                  pressure.pressure_density(m, state_out) if own else None,
                  scratch.pressure_volume() if own else None) if fast and sph else None,
                 F=state_in.F if self._stretch_rows() else None, counters=scratch.counters, cut_index=COUNT_NEIGHBORS_CUT,
+                rest=self._rest if self.hourglass > 0.0 else None,
             )
             if ghosts is not None:
                 # The ghost floor's stencils and weights at the step's start.
