@@ -365,28 +365,20 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         h_fit2 = h * h
         h2 = h_fit2
         cut = int(0)
-        # keyed: a full row keeps the smallest weight_key, not the nearest (needs F_i^-1).
-        keyed = int(0)
-        Finv = mat33()
-        gi = xi
-        slack2 = slack * slack
         if with_stretch != 0:
-            Fi = F[i]
-            g = stretch_bound2(Fi)
+            g = stretch_bound2(F[i])
             m2 = cand_stretch[i] * cand_stretch[i]
             if g > m2:
                 cut = 1
                 g = m2
             h2 = h_fit2 * wp.max(g, scalar(1.0))
-            det = wp.determinant(Fi)
-            if det > scalar(0.0) and det < scalar(1.0e30):
-                keyed = 1
-                Finv = wp.inverse(Fi)
-                if images != 0:
-                    gi = floor_image(xi, gn, goff, gmin)
-        rest_i = vec3()
-        if with_rest != 0:
-            rest_i = rest[i]
+        # keyed: a full stretched row keeps the smallest weight_key, not the nearest; what it
+        # reads (F_i^-1) is made only when a row overflows, which the default width makes rare.
+        keyed = int(0)
+        Finv = mat33()
+        gi = xi
+        rest_i = xi
+        slack2 = slack * slack
         nc = cand_count[i]
         # Pass 1: the candidates within the selection radius in index order while the row
         # has room. A row that overflows becomes a max-heap on the key (k, j), k the squared
@@ -414,6 +406,16 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             d = x[j] - xi
             d2 = wp.dot(d, d)
             if d2 < h2:
+                if n_in == kmax and with_stretch != 0:
+                    Fi = F[i]
+                    det = wp.determinant(Fi)
+                    if det > scalar(0.0) and det < scalar(1.0e30):
+                        keyed = 1
+                        Finv = wp.inverse(Fi)
+                        if images != 0:
+                            gi = floor_image(xi, gn, goff, gmin)
+                        if with_rest != 0:
+                            rest_i = rest[i]
                 k = d2
                 if keyed != 0:
                     k = weight_key(xi, x[j], d2, Finv, gi, rest_i, rest, j, slack2, with_rest, images, gn, goff, gmin)
