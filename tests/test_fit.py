@@ -781,6 +781,25 @@ def test_ctrl_c_in_the_diagnostics_keeps_the_finished_fit(dough_target, monkeypa
     result = info.value.result
     assert result is not None and result.diagnostics is None and result.stopped != "interrupted"
     assert len(result.history) >= 2 and result.loss <= result.history[0]["loss"]
+    # Exactly a KeyboardInterrupt, which alone Python ends a script on with the SIGINT status
+    # (130): FitInterrupted was a subclass of it, and a script stopped in fit exited 1.
+    assert type(info.value) is KeyboardInterrupt
+
+
+def test_ctrl_c_before_the_first_evaluation_carries_no_result(dough_target, monkeypatch):
+    """Every interrupt out of ``fit`` carries ``result`` (None before the first evaluation), so
+    ``except FitInterrupted as e: e.result`` holds for one during the set-up as well."""
+    from warp_esph import fit as fit_module
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fit_module, "_Problem", interrupted)
+    truth, dt, steps, frames, target = dough_target
+    with pytest.raises(fit_module.FitInterrupted) as info:
+        fit(_dough_block(800.0, 60.0), target[:1], ["yield_stress"], steps=50, dt=dt, frames=frames[:1], iterations=1,
+            progress=False)
+    assert type(info.value) is KeyboardInterrupt and info.value.result is None
 
 
 @pytest.mark.parametrize("worlds", [False, True])

@@ -37,6 +37,7 @@ declares its options); see ``docs/fitting.md``.
 """
 
 import dataclasses
+import functools
 import math
 import os
 import sys
@@ -749,6 +750,41 @@ def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds
     return out
 
 
+#: What ``fit`` raises on Ctrl-C: a plain ``KeyboardInterrupt`` whose ``result`` is a
+#: ``FitResult`` of the evaluations so far, at the best of them (``stopped`` "interrupted";
+#: the model holds its values), or None before the first finite one; during the
+#: diagnostics, the finished fit without them. The command line writes it before it exits.
+#: It was a subclass of ``KeyboardInterrupt``, but Python ends a script on an uncaught
+#: interrupt with the SIGINT status (130) only for that exact type: a script stopped in
+#: ``fit`` exited 1. The name stays so that ``except FitInterrupted as e: e.result`` still
+#: works; it now catches every ``KeyboardInterrupt``, and each one out of ``fit`` has ``result``.
+FitInterrupted = KeyboardInterrupt
+
+
+def _fit_interrupted(result) -> KeyboardInterrupt:
+    e = KeyboardInterrupt()
+    e.result = result
+    return e
+
+
+def _result_on_interrupt(f):
+    """``f`` (``fit``) with ``result`` set (None) on an interrupt raised before its first
+    evaluation: ``except FitInterrupted as e: e.result`` catches it too, now that the name is
+    ``KeyboardInterrupt`` itself."""
+
+    @functools.wraps(f)
+    def wrapper(*args, **kwargs):
+        try:
+            return f(*args, **kwargs)
+        except KeyboardInterrupt as e:
+            if not hasattr(e, "result"):
+                e.result = None
+            raise
+
+    return wrapper
+
+
+@_result_on_interrupt
 def fit(
     model,
     target=None,
@@ -1100,7 +1136,7 @@ def fit(
                                 "grad": None, "seconds": 0.0, **({"note": note} if note else {})})
                 scored.append((v if math.isfinite(v) else math.inf, len(scored), z))
         except KeyboardInterrupt:
-            raise FitInterrupted(_interrupted_result(history, runs, params)) from None
+            raise _fit_interrupted(_interrupted_result(history, runs, params)) from None
         say(f"global stage: {len(cands)} forward-only evaluations in {time.perf_counter() - t0:.3g} s; "
             f"best loss {min(s[0] for s in scored):.4g} (guess {scored[0][0]:.4g})")
         scored.sort(key=lambda s: (s[0], s[1]))
@@ -1135,7 +1171,7 @@ def fit(
                 if stop == "callback":
                     break
     except KeyboardInterrupt:
-        raise FitInterrupted(_interrupted_result(history, runs, params)) from None
+        raise _fit_interrupted(_interrupted_result(history, runs, params)) from None
     finally:
         if state["bar"] is not None:
             state["bar"].close()
@@ -1184,7 +1220,7 @@ def fit(
             # The fit itself is finished: kept, without its diagnostics.
             for r in runs:
                 r.apply(p)
-            raise FitInterrupted(result) from None
+            raise _fit_interrupted(result) from None
         d = result.diagnostics
         say(f"diagnostics ({d.method}): {d.evaluations} evaluations in {time.perf_counter() - t0:.3g} s")
         if iterations > 0 and not result.converged:
@@ -1384,17 +1420,6 @@ def _refused_note(error: FloatingPointError) -> str | None:
     if isinstance(error, Diverged):
         return str(error)
     return f"refused: {error}" if isinstance(error, RefusedPoint) else None
-
-
-class FitInterrupted(KeyboardInterrupt):
-    """Ctrl-C during a fit. ``result``: a ``FitResult`` of the evaluations so far, at the
-    best of them (``stopped`` "interrupted"; the model holds its values), or None before
-    the first finite one; during the diagnostics, the finished fit without them. The
-    command line writes it before it exits."""
-
-    def __init__(self, result):
-        super().__init__()
-        self.result = result
 
 
 def _interrupted_result(history, runs, params):
