@@ -866,6 +866,30 @@ def test_a_signal_after_the_last_sample_keeps_the_whole_tables_and_says_so(scene
     assert len(SweepTable.read_csv(out / "sweep.csv")) == 2 and not (out / "sweep.png").exists()
 
 
+def test_a_signal_held_while_the_final_tables_fail_to_write_is_reported(scene_file, tmp_path, monkeypatch, capsys):
+    """A SIGTERM held while the final tables were written, whose write then failed (a full
+    disk), was dropped: the sweep exited 4 as a plain failed write. The signal wins (143,
+    130 for Ctrl-C) and the one line says both."""
+    import errno
+    import signal
+
+    from warp_esph import sweep as sweep_module
+
+    def to_csv_terminated_then_full(self, path):
+        os.kill(os.getpid(), signal.SIGTERM)  # held: the tables are being written
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(sweep_module, "PARTIAL_EVERY_S", 1e9)
+    monkeypatch.setattr(SweepTable, "to_csv", to_csv_terminated_then_full)
+    out = tmp_path / "sw"
+    assert cli.main(["sweep", scene_file, "--param", "yield_stress=10,100", "--frames", "1", "--workers", "1",
+                     "-o", str(out), "--no-progress"]) == 143
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1] == (f"warp-esph: terminated: cannot write the sweep's tables in {out}: [Errno 28] No "
+                                    f"space left on device: '{out / 'sweep.csv'}' (2 samples ran; the tables in {out} "
+                                    "are not this sweep's whole result)"), err
+
+
 def test_a_duration_shorter_than_a_frame_records_the_one_frame_it_ran_and_a_long_one_says_frames_and_steps(
         scene_file, tmp_path, capsys):
     """A duration is rounded to whole frames, at least one: ``--duration 1e-320`` ran one frame

@@ -1242,6 +1242,8 @@ def sweep_cli(args, out=None) -> int:
         from .cli import _Deferred  # noqa: PLC0415
 
         lines: list[str] = []
+        signals = getattr(args, "signals", None)
+        seen = len(signals.received) if signals is not None else 0
         try:
             # Every sample ran: a Ctrl-C while the tables are written waits for them (it cut one
             # short of the partial table, and the line said 'interrupted' alone); one under the
@@ -1264,8 +1266,14 @@ def sweep_cli(args, out=None) -> int:
             # what is left on disk said.
             from .cli import _err  # noqa: PLC0415
 
-            _err(f"cannot write the sweep's tables in {folder}: {e} ({len(table)} samples ran; the tables in "
-                 f"{folder} are not this sweep's whole result)")
+            said = (f"cannot write the sweep's tables in {folder}: {e} ({len(table)} samples ran; the tables in "
+                    f"{folder} are not this sweep's whole result)")
+            if signals is not None and len(signals.received) > seen:
+                # A signal held under the failed write was dropped with it (exit 4): the command
+                # was asked to stop, so it exits as stopped, and the one line says both.
+                print(f"{PROG}: {_stopped(args)}: {said}", file=sys.stderr)
+                return EXIT_INTERRUPTED
+            _err(said)
             return EXIT_WRITE_FAILED
         for line in lines:
             print(line, file=out)
