@@ -168,6 +168,30 @@ def test_a_close_interrupted_inside_is_finished_by_the_next(model, tmp_path):
     assert writer.closed and sorted(os.listdir(tmp_path)) == [path.name]
 
 
+def test_a_close_whose_clean_up_fails_lets_the_output_go(model, tmp_path, monkeypatch):
+    """A clean-up that raised inside close() kept the output's lock until the writer was
+    collected: a second writer of the path in this process was refused (OutputInUse) though
+    the first was gone. The lock is now let go; a later close() of the first, once the second
+    holds the file, leaves the second's working copies alone."""
+    path = tmp_path / "held.usdc"
+    first = UsdWriter(path, model, 30)
+
+    def fails():
+        raise PermissionError(13, "Permission denied", str(tmp_path / ".held.wa.usdc"))
+
+    monkeypatch.setattr(first, "_remove_work_files", fails)
+    with pytest.raises(PermissionError):
+        first.close()
+    monkeypatch.undo()
+    second = UsdWriter(path, model, 30)  # refused before, the first still referenced here
+    working = sorted(os.listdir(tmp_path))
+    first.close()
+    assert first.closed and sorted(os.listdir(tmp_path)) == working
+    simulate(model, 2, fps=30, writer=second, progress=False)
+    assert second.closed and sorted(os.listdir(tmp_path)) == [path.name]
+    assert open_fresh(path).GetEndTimeCode() == 2
+
+
 def test_simulation_error_names_step_particle_body(model, tmp_path):
     path = tmp_path / "nan.usdc"
     bad = model.bodies[1].start + 2  # a particle of "ball"

@@ -232,7 +232,8 @@ class UsdWriter:
     (``warp_esph:dtype`` in its custom data) is refused, naming both, rather than writing
     the later frames in the other precision. While a writer is open no other may write
     ``path`` (``OutputInUse``, a ``ValueError``): it holds a lock on ``.<name>.lock`` beside
-    it, removed by ``close()``.
+    it, removed by ``close()``, also when its clean-up fails (a later ``close()`` finishes
+    that clean-up unless another writer has taken the file since).
     """
 
     def __init__(self, path, model: Model, fps: float = 30.0, *, append: bool = False, plane_size: float | None = None,
@@ -786,12 +787,24 @@ class UsdWriter:
         """Finish: ``path`` keeps every written frame; the working copies are removed."""
         if self.closed:
             return
+        if self._lock is not None and not self._lock.alive:
+            # An earlier close() failed after letting the file go (below): the working copies
+            # are this writer's to remove only while no other writer has taken the file since.
+            try:
+                self._lock = self._take_lock(os.fspath(self.path))
+            except OutputInUse:
+                self.closed = True
+                return
         # Marked closed only once the working copies are gone: an interrupt inside (a signal
         # while the stages are released) left them beside the output, and every later close()
         # returned at once.
-        self._release()
-        self._remove_work_files()
-        self._drop_lock()
+        try:
+            self._release()
+            self._remove_work_files()
+        finally:
+            # Even when the clean-up fails: the lock was held until the writer was collected,
+            # and a second writer of the path was refused (OutputInUse) though this one was gone.
+            self._drop_lock()
         self.closed = True
 
     def __enter__(self) -> "UsdWriter":
