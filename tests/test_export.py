@@ -531,3 +531,32 @@ def test_a_frame_the_file_does_not_hold_is_refused_by_the_reader_not_read_as_no_
             data.arrays(bad)
         with pytest.raises(ValueError, match=re.escape(f"frame = {bad!r} is not allowed")):
             data.particles(bad)
+
+
+def test_the_reader_finds_a_frame_without_scanning_every_frame(tmp_path):
+    """``UsdFrames`` checked a requested frame against its list of frames one by one: reading
+    each of F frames cost O(F^2) comparisons. A frame is now found in a few comparisons of the
+    sorted frames (here about 17 of 100000), and one it lacks is still refused."""
+    from test_render import write_clusters
+
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=3)
+    data = UsdFrames(path)
+    compared = [0]
+
+    class Frame(int):
+        def __eq__(self, other):
+            compared[0] += 1
+            return int(self) == other
+
+        def __lt__(self, other):
+            compared[0] += 1
+            return int(self) < other
+
+        __hash__ = int.__hash__
+
+    data.frames = [Frame(f) for f in range(100_000)]
+    assert data._frame(99_998) == 99_998 and data.resolve(99_998) == 99_998
+    assert compared[0] < 100, compared[0]
+    with pytest.raises(ValueError, match=r"^frame = 100000 is not allowed: must be one of the file's frames \(0\.\.99999\)$"):
+        data._frame(100_000)

@@ -43,6 +43,7 @@ the working copies stay behind; ``append=True`` and the next run replace them.
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import dataclasses
 import functools
@@ -1215,15 +1216,24 @@ class UsdFrames:
         per_second = self.fps / (hi - lo)
         return (after[0] - before[0]) * per_second, (after[1] - before[1]) * per_second
 
+    def _holds(self, frame: int) -> bool:
+        # A search of the sorted frames: 'frame in self.frames' scanned them all, and reading
+        # each of F frames cost O(F^2).
+        try:
+            i = bisect.bisect_left(self.frames, frame)
+        except TypeError:  # not a number: held by no file, as 'in' answered
+            return False
+        return i < len(self.frames) and self.frames[i] == frame
+
     def resolve(self, frame: int) -> int:
-        if frame not in self.frames:
+        if not self._holds(frame):
             raise ValueError(f"frame = {frame!r} is not allowed: {self.path} holds frames {self.frames[0]}..{self.frames[-1]}")
         return frame
 
     def _frame(self, frame) -> int:
         # A frame not in the file read as no particles at all (every body without a sample
         # there), and True, 1.0 or '1' as frame 1.
-        if isinstance(frame, (int, np.integer)) and not isinstance(frame, (bool, np.bool_)) and int(frame) in self.frames:
+        if isinstance(frame, (int, np.integer)) and not isinstance(frame, (bool, np.bool_)) and self._holds(int(frame)):
             return int(frame)
         held = (f"{self.frames[0]}..{self.frames[-1]}" if self.frames == list(range(self.frames[0], self.frames[-1] + 1))
                 else ", ".join(map(str, self.frames[:8])) + (", ..." if len(self.frames) > 8 else ""))
