@@ -176,6 +176,20 @@ def test_a_ray_address_where_nothing_answers_is_refused_at_once(capsys, tmp_path
     assert not (tmp_path / "sw").exists()
 
 
+def test_every_ray_refusal_names_the_option_as_the_others_do(capsys, tmp_path, monkeypatch):
+    """'--ray = '127.0.0.1:1' is not allowed: ...' for an address nothing answers at, but
+    '--ray auto is not allowed: ...' where Ray is missing or cannot connect: one option, two
+    wordings. Each now says '--ray = <value> is not allowed'."""
+    from warp_esph.cli import main
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # as where Ray is not installed
+    status = main(["sweep", "dough_drop", "--param", "yield_stress=100,1000", "--scale", "0.3", "--frames", "1",
+                   "--ray", "auto", "--no-progress", "-o", str(tmp_path / "sw")])
+    assert status == 2
+    assert capsys.readouterr().err == ("warp-esph: error: --ray = 'auto' is not allowed: Ray is not installed; "
+                                       "pip install 'warp-esph[ray]'\n")
+
+
 def test_ray_auto_without_a_cluster_says_what_the_command_takes(capsys, tmp_path, monkeypatch):
     """Ray's refusal of 'auto' with no cluster running advises its own command line's
     '`--address` flag', which warp-esph has not; the line says what --ray takes instead.
@@ -195,7 +209,7 @@ def test_ray_auto_without_a_cluster_says_what_the_command_takes(capsys, tmp_path
     err = capsys.readouterr().err.splitlines()
     assert status == 2 and len(err) == 1 and err[0].startswith("warp-esph: error: "), err
     assert "--address" not in err[0], err
-    assert err[0].endswith("--ray auto is not allowed: cannot connect to a Ray cluster there: Could not find any running "
+    assert err[0].endswith("--ray = 'auto' is not allowed: cannot connect to a Ray cluster there: Could not find any running "
                            "Ray instance; give --ray HOST:PORT or ray://HOST:PORT of a running cluster, or with --ray auto "
                            "start one on this machine first ('ray start --head') or name its address in the RAY_ADDRESS "
                            "environment variable"), err

@@ -743,7 +743,7 @@ def _ray_session(address):
     try:
         import ray  # noqa: PLC0415
     except ModuleNotFoundError:
-        raise ValueError(f"--ray {address} is not allowed: Ray is not installed; pip install 'warp-esph[ray]'") from None
+        raise ValueError(f"--ray = {str(address)!r} is not allowed: Ray is not installed; pip install 'warp-esph[ray]'") from None
     if ray.is_initialized():
         yield ray
         return
@@ -759,7 +759,7 @@ def _ray_session(address):
             why = (f"{why.rstrip('.')}; give --ray HOST:PORT or ray://HOST:PORT of a running cluster, or with "
                    "--ray auto start one on this machine first ('ray start --head') or name its address in the "
                    "RAY_ADDRESS environment variable")
-        raise ValueError(f"--ray {address} is not allowed: cannot connect to a Ray cluster there: {why}") from None
+        raise ValueError(f"--ray = {str(address)!r} is not allowed: cannot connect to a Ray cluster there: {why}") from None
     try:
         yield ray
     finally:
