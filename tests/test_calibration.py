@@ -813,6 +813,22 @@ def test_fit_dt_is_refused_by_the_option(tmp_path, capsys, dough_scene, dt, mess
     assert err.count("\n") == 1 and err.startswith(f"warp-esph: error: {message}"), err
 
 
+def test_a_stable_step_too_short_for_a_frame_is_refused_with_the_fit_s_options(tmp_path, capsys, dough_scene):
+    """Frames of 10000 s at the stable step: the advice was Python's 'give dt or substeps', and
+    'warp-esph fit' has no substeps; it names the command's options."""
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
+    np.savez(tmp_path / "t.npz", positions=np.zeros((64, 3)))
+    capsys.readouterr()
+    assert main(["fit", str(guess), "--target", str(tmp_path / "t.npz"), "--fps", "0.0001", "--no-progress",
+                 "--output-dir", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("warp-esph: error: the stable step "), err
+    assert err.endswith(" needs it: use softer materials, a larger spacing, a higher --fps, or give --dt\n"), err
+
+
 def test_fit_frames_beyond_a_rollout_are_refused_by_the_option(tmp_path, capsys, dough_scene):
     """A frame count whose steps no rollout can take was refused as 'steps = ...', an
     option the command does not have."""

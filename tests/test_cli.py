@@ -89,6 +89,18 @@ def test_scenes_lists_every_scene(capsys):
     assert "(default)" in lines[0]
 
 
+def test_a_stable_step_too_short_for_a_frame_is_refused_with_the_run_s_options(tmp_path, capsys):
+    """Frames of 10000 s at the stable step: the advice was Python's 'give dt or substeps', and
+    'warp-esph run' has no substeps; it names the command's options."""
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(tmp_path / "t.usdc"), "--fps", "0.0001",
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"warp-esph: error: {tmp_path / 's.toml'}: [scene] the stable step "), err
+    assert err.endswith(" needs it: use softer materials, a larger spacing, a higher --fps, or give --dt\n"), err
+    assert not (tmp_path / "t.usdc").exists()
+
+
 def test_toml_scene_file_runs(tmp_path, capsys):
     scene = tmp_path / "tiny.toml"
     scene.write_text(GOOD_TOML)

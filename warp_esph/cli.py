@@ -360,7 +360,7 @@ def _cmd_run(args) -> int:
 
     _init_warp(args.device)  # refuses --device cuda where Warp finds none
     from .scenes import load_scaled_scene  # noqa: PLC0415
-    from .simulate import SimulationError, _check_run_start, check_step_count, resolve_timestep, simulate  # noqa: PLC0415
+    from .simulate import SimulationError, StepRefusal, _check_run_start, check_step_count, resolve_timestep, simulate  # noqa: PLC0415
     from .sim.solver import Solver  # noqa: PLC0415
     from .usd import OutputInUse, UsdWriter  # noqa: PLC0415
 
@@ -418,8 +418,12 @@ def _cmd_run(args) -> int:
         return option_flag(name) if args.resume is None and getattr(args, name, None) is not None else name
 
     try:
-        substeps, dt_shown = (resolve_timestep(model, fps, flag=flag) if adaptive else
-                              resolve_timestep(model, fps, dt=dt, flag=flag))
+        try:
+            substeps, dt_shown = (resolve_timestep(model, fps, flag=flag) if adaptive else
+                                  resolve_timestep(model, fps, dt=dt, flag=flag))
+        except StepRefusal as e:
+            # Its advice is Python's ('give dt= or substeps='): the command has --dt and --fps.
+            raise ValueError(f"{e.reason}: use softer materials, a larger spacing, a higher --fps, or give --dt") from None
     except ValueError as e:
         if (args.dt is None and args.resume is None and str(args.scene).lower().endswith(".toml")
                 and not str(e).startswith("--")):  # an option typed is named as such, not as the file's

@@ -287,7 +287,7 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
                      f"m/s) or the most viscous one needs it")
             raise StepRefusal(
                 f"the stable step {stable:.3g} s is not allowed: a frame (1/fps = {frame_dt:.6g} s) would take {ratio:.3g} steps, "
-                f"{needs}", ": use softer materials, a larger spacing, or give dt or substeps",
+                f"{needs}", ": use softer materials, a larger spacing, a higher fps, or give dt= or substeps=",
                 detail=f"a frame (1/fps = {frame_dt:.6g} s) would take {ratio:.3g} steps of the stable step {stable:.3g} s, {needs}"
             )
         n = max(1, math.ceil(ratio))

@@ -979,7 +979,7 @@ def _check_some_sample_steps(model, assignments, points, frames, fps, rate, leng
     ``rate``, ``length``: the options (or the scene's values) the refusal names."""
     from .simulate import StepRefusal, check_step_count, resolve_timestep  # noqa: PLC0415
 
-    # The reasons without a run's advice ('give dt or substeps', 'a larger dt'): a sweep has no
+    # The reasons without a run's advice ('give dt= or substeps=', 'a larger dt'): a sweep has no
     # substeps, and a --dt above a sample's stable step blows it up; these are its own options.
     coarser = "a smaller --scale (a larger spacing, whose stable step is longer)"
     first = None
