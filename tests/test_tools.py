@@ -1494,12 +1494,16 @@ def _block_on_tool(shape, friction, velocity=(0.0, 0.0, 0.0)):
     b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), _elastic(1e5, viscosity=1.0), name="block", velocity=velocity)
     if shape == "box":
         b.add_tool("box", half_extents=(0.5, 0.05, 0.5), position=(0.0, 0.01 - 0.05, 0.0), friction=friction, name="support")
-    elif shape == "mesh":
-        b.add_tool("mesh", mesh=tools.box_mesh((0.5, 0.05, 0.5)), position=(0.0, 0.01 - 0.05, 0.0), friction=friction,
+    elif shape in ("mesh", "wide mesh"):
+        # "wide mesh": a floor 20000 spacings wide about its origin, the block near that origin,
+        # float64 (its far corners 200 m out, where float32 resolves 2.4e-5 m: it was refused,
+        # though Warp's float32 queries meet the particles where float32 resolves 1e-8 m).
+        half = 0.5 if shape == "mesh" else 1e4 * 0.02
+        b.add_tool("mesh", mesh=tools.box_mesh((half, 0.05, half)), position=(0.0, 0.01 - 0.05, 0.0), friction=friction,
                    name="support")
     else:
         b.add_tool("sphere", radius=0.5, position=(0.0, 0.01 - 0.5, 0.0), friction=friction, name="support")
-    m = b.finalize()
+    m = b.finalize(dtype=wp.float64 if shape == "wide mesh" else wp.float32)
     return m, we.Solver(m)
 
 
@@ -1530,9 +1534,9 @@ def test_a_block_sticking_on_a_held_sphere_tool_does_not_creep():
     np.testing.assert_allclose(force, [0.0, weight, 0.0], atol=1e-2 * weight)
 
 
-@pytest.mark.parametrize("shape", ["box", "mesh"])
+@pytest.mark.parametrize("shape", ["box", "mesh", "wide mesh"])
 def test_a_block_on_a_held_box_tool_comes_to_rest_at_the_contacts_margin(shape):
-    """A block resting on a held box tool (or a mesh of it): over 0.2-0.4 s its bottom layer stays where the
+    """A block resting on a held box tool (or a mesh of it, also one 20000 spacings wide): over 0.2-0.4 s its bottom layer stays where the
     contact put it, the margin (a thousandth of a spacing) above the top face, to 1e-7 m
     (measured: not at all), its kinetic energy dies out (0.3-0.4 s: 0.35 of 0.2-0.3 s) and
     the tool carries the weight (0.9996). When the inside test put a particle found inside
@@ -1697,22 +1701,63 @@ def test_a_tool_smaller_than_the_contacts_margin_is_refused_naming_its_size_and_
     assert b.add_tool("box", half_extents=(0.1, 1e-6, 0.1)) == "box_tool1"  # a thin plate
 
 
+def test_a_scene_file_s_mesh_tool_the_particles_meet_beyond_float32_is_refused_by_its_table(tmp_path, capsys):
+    """The refusal made at finalize, where the particles are known, names the file's tool
+    table and the command's option, as add_tool's refusals do."""
+    from run_files import refused_run
+    from warp_esph import meshes
+
+    meshes.write_mesh(tmp_path / "slab.obj", *tools.box_mesh((100.0, 50.0, 100.0)))
+    scene = tmp_path / "slab.toml"
+    scene.write_text('[scene]\nspacing = 0.02\nframes = 1\n[[bodies]]\nshape = "box"\nmaterial = "dough"\n'
+                     'center = [0, 50.03, 0]\nsize = [0.06, 0.06, 0.06]\n'
+                     '[[tools]]\nshape = "mesh"\nfile = "slab.obj"\n')
+    err = refused_run(capsys, scene, tmp_path / "t.usdc")
+    assert err.startswith(f"warp-esph: error: {scene}: [[tools]] #1 (shape 'mesh'): mesh tool 'mesh_tool0' is not allowed "
+                          "in float32: the faces the particles can touch reach 100 m from its origin"), err
+    assert err.endswith("split its faces there into smaller ones, use --dtype float64, or a larger spacing\n"), err
+    from warp_esph.cli import main
+
+    assert main(["run", str(scene), "-o", str(tmp_path / "t.usdc"), "--no-progress", "--dtype", "float64"]) == 0
+
+
 def test_a_mesh_tool_whose_points_float32_cannot_resolve_the_contacts_margin_is_refused():
     """Warp's mesh queries are float32: a box mesh modelled 1000 m from its origin (put back
     by its position) at spacing 0.02 resolves 1.2e-4 m there, six times the contact's margin,
     and a block landing on it was put the margin inside it in 41 of 400 steps (130 m out:
     still wrong; 10 km out it ended inside). It is refused, naming the reach, what float32
     resolves there and the margin; the same mesh about its origin, placed 1000 m out by its
-    position, and one 40 m out are taken."""
+    position, and one 40 m out are taken. What counts is where the particles can touch it:
+    a mesh 200 m across about its origin is refused once a block sits near its corner, 90 m
+    out, and taken with the block on the middle of its top, 50 m up (a wide floor under a
+    block near its origin: the test above); a Scripted tool's poses are not known before the
+    run, so there its farthest point counts."""
     pts, tri = tools.box_mesh((0.1, 0.05, 0.1))
     b = we.SceneBuilder(spacing=0.02)
-    with pytest.raises(ValueError, match=r"^mesh \(points, triangles\) is not allowed: its points \(scale 1\) lie up to 1e\+03 m "
-                                         r"from the tool's origin, where float32 \(Warp's mesh queries\) resolves 0\.00012 m, "
-                                         r"more than half the contact's margin 2e-05 m \(a thousandth of the spacing 0\.02\): "
-                                         r"particles that touch it would be put inside it; model the mesh about its origin"):
+    with pytest.raises(ValueError, match=r"^mesh \(points, triangles\) is not allowed: its points \(scale 1\) lie 1e\+03 m "
+                                         r"and more from the tool's origin, where float32 \(Warp's mesh queries\) resolves "
+                                         r"0\.00012 m, more than half the contact's margin 2e-05 m \(a thousandth of the "
+                                         r"spacing 0\.02\): particles that touch it would be put inside it; model the mesh "
+                                         r"about its origin"):
         b.add_tool("mesh", mesh=(pts + 1000.0, tri), position=(-1000.0, -1000.0, -1000.0))
-    with pytest.raises(ValueError, match=r"^scale = 1000\.0 is not allowed for mesh \(points, triangles\): it puts the mesh's "
-                                         r"points up to 100 m from the tool's origin, where float32"):
-        b.add_tool("mesh", mesh=(pts, tri), scale=1000.0)
     assert b.add_tool("mesh", mesh=(pts, tri), position=(1000.0, 0.0, 0.0)) == "mesh_tool0"
     assert b.add_tool("mesh", mesh=(pts + 40.0, tri), position=(-40.0, -40.0, -40.0)) == "mesh_tool1"
+    scripted = tools.Scripted(lambda t: ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
+    queries = (r"^mesh tool 'slab' is not allowed: the particles can touch it up to 100 m from its origin, where float32 "
+               r"\(Warp's mesh queries\) resolves 1\.2e-05 m, more than half the contact's margin 2e-05 m")
+    # A float32 model computes the contact on the face from its vertices: the top's two
+    # triangles reach its corners, 100 m out.
+    faces = (r"^mesh tool 'slab' is not allowed in float32: the faces the particles can touch reach 100 m from its origin, "
+             r"where float32 \(the model's contact and Warp's mesh queries\) resolves 1\.2e-05 m, more than half")
+    for place, motion, dtype, refused in (((90.0, 50.03, 90.0), None, wp.float64, queries),
+                                          ((0.0, 50.03, 0.0), None, wp.float64, None),
+                                          ((0.0, 50.03, 0.0), None, wp.float32, faces),
+                                          ((0.0, 50.03, 0.0), scripted, wp.float64, queries)):
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box(place, (0.06, 0.06, 0.06), we.Material.preset("dough"), name="block")
+        b.add_tool("mesh", mesh=(pts, tri), scale=1000.0, name="slab", motion=motion)  # 200 x 100 x 200 m
+        if refused is None:
+            assert b.finalize(dtype=dtype).particle_count == 27
+            continue
+        with pytest.raises(ValueError, match=refused):
+            b.finalize(dtype=dtype)

@@ -72,6 +72,26 @@ _TOOL_SHAPE_OPTIONS = {"plane": ("normal",), "box": ("half_extents",), "sphere":
                        "mesh": ("mesh", "scale", "prim_path")}
 
 
+def _float32_resolves_margin(reach: float, spacing: float) -> bool:
+    """Whether float32, which Warp's mesh queries use in either precision, resolves half the
+    contact's margin (a thousandth of ``spacing``) at coordinates up to ``reach`` m: a box
+    mesh the particles met 130 m from its origin (placed back by its position) at spacing
+    0.02, float64, put a block landing on it the margin inside it (the inside test's axis
+    rays, run along the top face, hit the side faces' top edges from within), 1000 m out in
+    41 of 400 steps, 10 km out in 120 and it ended there; measured wrong where float32
+    resolves 0.78 of the margin and coarser, right at 0.67 (112 m) and finer: refused from a
+    half. Measured since: it is where they meet that counts, not how far the mesh reaches: a
+    floor 400 m (and 4 km) across about its origin under a block at its middle, 0 steps of
+    2000 wrong; a small mesh met 100 m up, 128 of 3000."""
+    return reach * float(np.finfo(np.float32).eps) <= 0.5 * tools.CONTACT_MARGIN * spacing
+
+
+def _margin_unresolved(reach: float, spacing: float) -> str:
+    margin = tools.CONTACT_MARGIN * spacing
+    return (f"resolves {reach * float(np.finfo(np.float32).eps):.2g} m, more than half the contact's margin {margin:.2g} m "
+            f"(a thousandth of the spacing {spacing:g}): particles that touch it would be put inside it")
+
+
 class SceneBuilder:
     """Collects bodies and colliders; ``finalize`` makes the ``Model``.
 
@@ -568,8 +588,10 @@ class SceneBuilder:
         below), ``"box"`` (``half_extents``), ``"sphere"`` (``radius``), ``"capsule"`` and
         ``"cylinder"`` (``radius``, ``half_height``, along the tool's y axis) or ``"mesh"``
         (``mesh``: a file meshio or USD reads, or ``(points, triangles)``, closed, in the
-        tool's frame, times ``scale``, near enough its origin that float32, which Warp's mesh
-        queries use, resolves half the contact's margin at its farthest point (docs/tools.md);
+        tool's frame, times ``scale``, where the particles meet it near enough its origin that
+        float32, which Warp's mesh queries use, resolves half the contact's margin there
+        (``finalize`` judges it; in float32 the vertices of the faces they meet count;
+        docs/tools.md);
         ``prim_path`` names a USD file's Mesh prim, as in ``add_mesh``). ``motion``: ``tools.Keyframes``, ``tools.Velocity``
         or ``tools.Scripted``; ``None``: held at ``position`` / ``orientation`` (x, y, z, w).
         ``friction``: kinetic Coulomb coefficient; ``static_friction`` (>= friction;
@@ -638,26 +660,20 @@ class SceneBuilder:
             # only), and the run went on as if it were not there.
             reach, far = float(np.abs(points).max()), math.sqrt(float(np.finfo(np.float32).max))
             # The queries' float32 must also resolve the contact's margin where the particles
-            # meet the mesh: a box mesh modelled 130 m from its origin (placed back by its
-            # position) at spacing 0.02, float64, put a block landing on it the margin inside
-            # it (the inside test's axis rays, run along the top face, hit the side faces' top
-            # edges from within), 1000 m out in 41 of 400 steps, 10 km out in 120 and it ended
-            # there; measured wrong where float32 resolves 0.78 of the margin and coarser, right
-            # at 0.67 (112 m) and finer: refused from a half.
-            margin = tools.CONTACT_MARGIN * self.spacing
-            resolved = reach * float(np.finfo(np.float32).eps)
-            if not (reach <= far and resolved <= 0.5 * margin):
+            # meet the mesh (``_check_mesh_tool_reach``). Every point of a mesh whose bounds lie
+            # that far out (modelled far from its origin) is: refused here, particles or not.
+            lo, hi = points.min(axis=0), points.max(axis=0)
+            near = float(np.maximum(np.maximum(lo, -hi), 0.0).max()) if len(points) else 0.0
+            if not (reach <= far and _float32_resolves_margin(near, self.spacing)):
                 label = repr(os.fsdecode(os.fspath(mesh))) if meshes._is_path(mesh) else "(points, triangles)"
                 what = (f"scale = {checks.shorten(scale)!r} is not allowed for mesh {label}: it puts the mesh's points"
                         if s != 1.0 else f"mesh {label} is not allowed: its points (scale 1) lie")
                 if not reach <= far:
                     raise ValueError(f"{what} up to {reach:.3g} m from the tool's origin; a mesh tool's points must be "
                                      f"within {far:.3g} m of it (Warp's mesh queries are float32); give a smaller scale")
-                raise ValueError(f"{what} up to {reach:.3g} m from the tool's origin, where float32 (Warp's mesh queries) "
-                                 f"resolves {resolved:.2g} m, more than half the contact's margin {margin:.2g} m (a thousandth "
-                                 f"of the spacing {self.spacing:g}): particles that touch it would be put inside it; model "
-                                 "the mesh about its origin (its points less their centre, the centre added to position) "
-                                 "or use a larger spacing")
+                raise ValueError(f"{what} {near:.3g} m and more from the tool's origin, where float32 (Warp's mesh "
+                                 f"queries) {_margin_unresolved(near, self.spacing)}; model the mesh about its origin (its "
+                                 "points less their centre, the centre added to position) or use a larger spacing")
         param = tools.shape_param(kind, normal=normal, half_extents=half_extents, radius=radius, half_height=half_height)
         self._check_tool_size(name, kind, param, points, mesh, scale)
         self.tools.append(tools.Collider(name, kind, param, motion, mu_k, mu_s, points, triangles))
@@ -774,6 +790,62 @@ class SceneBuilder:
             if b.start <= i < b.start + b.count:
                 return k, "translation" if b.kind == "mesh" else "center"
         return -1, "center"
+
+    def _check_mesh_tool_reach(self, scalar) -> None:
+        """Refuse a mesh tool whose contact float32 cannot resolve to half its margin where the
+        particles can meet it (``_float32_resolves_margin``); it was judged at the mesh's
+        farthest point, and a floor 20000 spacings wide about its origin was refused with the
+        particles on its middle.
+
+        Where they can meet it is bounded by the distance ``D`` from the tool's origin to the
+        particles' box at the start, grown by its own diagonal on every side (they fall, flow
+        and spread over a run), seen from each place the motion gives before the run: a held
+        or ``Velocity`` tool's start, each key of ``Keyframes`` (a place between two keys is
+        no farther from the box). A distance, so any turn of the tool is covered. A
+        ``Scripted`` tool's places are known only as it runs: its whole mesh counts. A
+        ``Velocity`` tool judged at its start may still carry the contact far out over a long
+        run (a conveyor under the particles).
+
+        Warp's float32 queries only pick the face and say inside or outside: in float64 what
+        counts is how far out the particles meet it (up to ``D``, and no farther than the
+        mesh's farthest point). A float32 model also computes the contact point on the face
+        from its vertices, so there the vertices of every face within ``D`` count (measured:
+        a block resting on the two triangles of a floor's top 400 m across bounced over the
+        whole margin in float32, to 5e-15 m in float64)."""
+        points = np.concatenate(self._points) if self._points else np.zeros((0, 3))
+        if not len(points):
+            return
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        grow = float(np.linalg.norm(hi - lo))
+        f32 = scalar is wp.float32
+        for t in self.tools:
+            if t.kind != "mesh" or not len(t.mesh_points):
+                continue
+            pts = t.mesh_points
+            reach = float(np.abs(pts).max())
+            if not isinstance(t.motion, tools.Scripted):
+                m = t.motion
+                places = np.atleast_2d(np.asarray(m.positions if isinstance(m, tools.Keyframes) else m.position, dtype=np.float64))
+                d = float(np.linalg.norm(corners[:, None, :] - places[None, :, :], axis=2).max()) + grow
+                if f32:
+                    tri = pts[t.mesh_triangles]  # (T, 3, 3)
+                    near = (tri.min(axis=1) <= d).all(axis=1) & (tri.max(axis=1) >= -d).all(axis=1)
+                    reach = float(np.abs(tri[near]).max()) if near.any() else 0.0
+                else:
+                    reach = min(reach, d)
+            if not _float32_resolves_margin(reach, self.spacing):
+                move = "model the mesh about where they touch it (its points less that place, the place added to position)"
+                if f32:
+                    why = (f"mesh tool {t.name!r} is not allowed in float32: the faces the particles can touch reach "
+                           f"{reach:.3g} m from its origin, where float32 (the model's contact and Warp's mesh queries) "
+                           f"{_margin_unresolved(reach, self.spacing)}; {move}, split its faces there into smaller ones, ")
+                    self._refuse(("tool", t.name), why + "use dtype=float64, or a larger spacing",
+                                 why + "use --dtype float64, or a larger spacing")
+                why = (f"mesh tool {t.name!r} is not allowed: the particles can touch it up to {reach:.3g} m from its "
+                       f"origin, where float32 (Warp's mesh queries) {_margin_unresolved(reach, self.spacing)}; {move} or "
+                       "use a larger spacing")
+                self._refuse(("tool", t.name), why, why)
 
     def _check_precision(self, scalar):
         """Every material parameter and position fits the precision: 1e300 Pa cast to float32
@@ -1169,6 +1241,7 @@ def finalize_worlds(builders: Sequence[SceneBuilder], device="cpu", dtype=wp.flo
     scalar = scalar_type(dtype)
     for b in {id(b): b for b in builders}.values():
         b._check_precision(scalar)
+        b._check_mesh_tool_reach(scalar)
     try:
         dev = wp.get_device(device)
     except Exception as e:  # noqa: BLE001 (Warp raises several kinds)
