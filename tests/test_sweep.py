@@ -904,6 +904,34 @@ def test_a_signal_held_while_the_final_tables_fail_to_write_is_reported(scene_fi
                                     "are not this sweep's whole result)"), err
 
 
+def test_a_signal_held_while_the_final_tables_raise_a_value_error_is_reported(scene_file, tmp_path, monkeypatch, capsys):
+    """As above, where the table's write raises a ValueError, not an OSError: the signal was
+    dropped and the sweep exited 2 with the error alone. The signal wins (143) and the one
+    line says both; without a signal the error stays exit 2."""
+    import signal
+
+    from warp_esph import sweep as sweep_module
+
+    def to_csv_terminated_then_bad(self, path):
+        os.kill(os.getpid(), signal.SIGTERM)  # held: the tables are being written
+        raise ValueError("a value the table cannot hold")
+
+    monkeypatch.setattr(sweep_module, "PARTIAL_EVERY_S", 1e9)
+    monkeypatch.setattr(SweepTable, "to_csv", to_csv_terminated_then_bad)
+    command = ["sweep", scene_file, "--param", "yield_stress=10,100", "--frames", "1", "--workers", "1",
+               "-o", str(tmp_path / "sw"), "--no-progress"]
+    assert cli.main(command) == 143
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1] == "warp-esph: terminated: a value the table cannot hold", err
+
+    def to_csv_bad(self, path):
+        raise ValueError("a value the table cannot hold")
+
+    monkeypatch.setattr(SweepTable, "to_csv", to_csv_bad)
+    assert cli.main(command) == 2
+    assert capsys.readouterr().err.splitlines()[-1] == "warp-esph: error: a value the table cannot hold"
+
+
 def test_a_duration_shorter_than_a_frame_records_the_one_frame_it_ran_and_a_long_one_says_frames_and_steps(
         scene_file, tmp_path, capsys):
     """A duration is rounded to whole frames, at least one: ``--duration 1e-320`` ran one frame

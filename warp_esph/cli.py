@@ -272,6 +272,24 @@ def _stopped(args) -> str:
     return "terminated" if signals is not None and signal.SIGTERM in signals.received else "interrupted"
 
 
+def _signals_seen(args) -> int:
+    """How many signals the command has received so far (``_held_signal_wins``' ``seen``)."""
+    signals = getattr(args, "signals", None)
+    return len(signals.received) if signals is not None else 0
+
+
+def _held_signal_wins(args, seen: int, said: str) -> bool:
+    """Where a Ctrl-C or SIGTERM came after ``seen`` (``_signals_seen``) and was never acted on,
+    print ``said`` (a failure's one line) as the stop's line, 'warp-esph: terminated: ...', and
+    return True: the caller exits 130 (143). A signal held while a file was written
+    (``_Deferred``) is raised only when the write ends well, so a failed write dropped it and
+    the command exited as the failure alone (4, or 2), though it had been asked to stop."""
+    if _signals_seen(args) <= seen:
+        return False
+    print(f"{PROG}: {_stopped(args)}: {_one_line(said)}", file=sys.stderr)
+    return True
+
+
 def _arm(args) -> None:
     signals = getattr(args, "signals", None)
     if signals is not None:

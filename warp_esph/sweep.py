@@ -1241,9 +1241,10 @@ def sweep_cli(args, out=None) -> int:
         meta["seconds"] = time.perf_counter() - t0
         from .cli import _Deferred  # noqa: PLC0415
 
+        from .cli import _held_signal_wins, _signals_seen  # noqa: PLC0415
+
         lines: list[str] = []
-        signals = getattr(args, "signals", None)
-        seen = len(signals.received) if signals is not None else 0
+        seen = _signals_seen(args)
         try:
             # Every sample ran: a Ctrl-C while the tables are written waits for them (it cut one
             # short of the partial table, and the line said 'interrupted' alone); one under the
@@ -1268,13 +1269,16 @@ def sweep_cli(args, out=None) -> int:
 
             said = (f"cannot write the sweep's tables in {folder}: {e} ({len(table)} samples ran; the tables in "
                     f"{folder} are not this sweep's whole result)")
-            if signals is not None and len(signals.received) > seen:
-                # A signal held under the failed write was dropped with it (exit 4): the command
-                # was asked to stop, so it exits as stopped, and the one line says both.
-                print(f"{PROG}: {_stopped(args)}: {said}", file=sys.stderr)
+            if _held_signal_wins(args, seen, said):
                 return EXIT_INTERRUPTED
             _err(said)
             return EXIT_WRITE_FAILED
+        except ValueError as e:
+            # Not a failed write (exit 2 as before, said by the command's own handler); but a
+            # signal held under it was dropped with it: the command was asked to stop.
+            if _held_signal_wins(args, seen, str(e)):
+                return EXIT_INTERRUPTED
+            raise
         for line in lines:
             print(line, file=out)
         failed = table.failed
