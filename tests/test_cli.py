@@ -993,6 +993,61 @@ def test_a_checkpoint_that_cannot_be_written_where_none_is_left_does_not_say_it_
                           "(no checkpoint of this run is left there;", f"{out_path} keeps frames 0..4 finished")
 
 
+def test_a_signal_held_while_a_checkpoint_fails_to_write_is_reported(tmp_path, monkeypatch, capsys):
+    """A SIGTERM held while a --checkpoint-every checkpoint was written, whose write then
+    failed (a full disk), was dropped: the run exited 4 as a plain failed write. The signal
+    wins (143), the one line saying both, as a sweep's tables do."""
+    import errno
+
+    from warp_esph import checkpoint as checkpoint_module
+
+    def terminated_then_full(path, model, state, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)  # held: the checkpoint is being written
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(checkpoint_module, "save_state", terminated_then_full)
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    out_path = tmp_path / "m.usdc"
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(out_path), "--frames", "4", "--checkpoint-every", "2",
+                 "--no-progress"]) == 143
+    err = capsys.readouterr().err
+    assert err.splitlines() == [f"warp-esph: terminated: cannot write the checkpoint {out_path}.checkpoint.npz: No space "
+                                f"left on device (no checkpoint of this run is left there; {out_path} keeps the 3 frames "
+                                "finished)"], err
+
+
+def test_a_signal_held_while_the_last_force_log_write_fails_is_reported(tmp_path, monkeypatch, capsys):
+    """A SIGTERM held while the force log's last write ran, which then failed, was dropped: the
+    finished run exited 4. The signal wins (143), the one line naming the log."""
+    import builtins
+    import errno
+
+    from warp_esph import tools as tools_module
+    from warp_esph import usd as usd_module
+
+    ended, real_close = [], usd_module.UsdWriter.close
+
+    def close(self):
+        ended.append(True)  # the run's frames are all written: the log's last write comes next
+        real_close(self)
+
+    def open_(path, mode="r", *args, **kwargs):
+        if ended and "_tools.json" in str(path) and "w" in mode:
+            os.kill(os.getpid(), signal.SIGTERM)  # held: the log is being written
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return builtins.open(path, mode, *args, **kwargs)
+
+    monkeypatch.setattr(usd_module.UsdWriter, "close", close)
+    monkeypatch.setattr(tools_module, "open", open_, raising=False)
+    out_path = tmp_path / "g.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "2", "--no-progress"]) == 143
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == [f"warp-esph: terminated: cannot write the force log {out_path}_tools.csv, "
+                                         f".json: No space left on device (it is left as it was; {out_path} keeps the 3 "
+                                         "frames finished)"], captured.err
+    assert "wrote" not in captured.out
+
+
 @pytest.mark.parametrize("extra", [["--preview"], ["--export", "ply"]])
 def test_a_full_disk_under_the_preview_or_export_of_a_finished_run_is_exit_4(tmp_path, monkeypatch, capsys, extra):
     """The run is whole; its picture or export files could not be written: exit 2, 'bad input',

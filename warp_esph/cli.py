@@ -621,6 +621,8 @@ def _cmd_run(args) -> int:
     except BaseException:
         writer.close()
         raise
+    seen = _signals_seen(args)
+    final_log_error = [None]
     try:
         print(f"{PROG}: {scene.name}: {model.particle_count} particles, {len(model.bodies)} bodies, "
               f"{frames} frames at {fps:g} fps, "
@@ -651,13 +653,17 @@ def _cmd_run(args) -> int:
         writer.close()
         if isinstance(e, BrokenPipeError):  # stdout's reader left, not the output file (main)
             raise
-        if isinstance(e, _BesideWriteError):
-            # The USD was written; naming it sent the reader to the wrong file.
-            _err(beside_failure(e))
-            return EXIT_WRITE_FAILED
-        why = e.strerror or str(e)
-        _err(f"cannot write {writer.path}: {why} (it keeps {_kept(writer, start_frame)})")
+        # The USD was written where the checkpoint or the force log failed: naming it sent the
+        # reader to the wrong file. A signal held under that write (a checkpoint's) was dropped
+        # with it, and the run exited 4 though it had been asked to stop.
+        said = (beside_failure(e) if isinstance(e, _BesideWriteError) else
+                f"cannot write {writer.path}: {e.strerror or str(e)} (it keeps {_kept(writer, start_frame)})")
+        if _held_signal_wins(args, seen, said):
+            return EXIT_INTERRUPTED
+        _err(said)
         return EXIT_WRITE_FAILED
+    else:
+        final_log_error[0] = False  # said below, after what the run's signals decide
     finally:
         # The force log holds every frame's rows only once this last write is done: a Ctrl-C
         # inside it (a second one, or one as the run ended) lost the whole log of a finished run.
@@ -665,7 +671,16 @@ def _cmd_run(args) -> int:
             writer.close()
             log_error = write_final_log()
             if log_error is not None:
-                _err(log_error)
+                if final_log_error[0] is False:
+                    final_log_error[0] = log_error
+                else:
+                    _err(log_error)
+    if final_log_error[0]:
+        # A signal held under the log's last write was dropped for exit 4.
+        if _held_signal_wins(args, seen, final_log_error[0]):
+            return EXIT_INTERRUPTED
+        _err(final_log_error[0])
+        return EXIT_WRITE_FAILED
     if log_failed[0]:
         return EXIT_WRITE_FAILED
     if getattr(getattr(args, "signals", None), "received", None):
