@@ -101,6 +101,28 @@ def test_a_stable_step_too_short_for_a_frame_is_refused_with_the_run_s_options(t
     assert not (tmp_path / "t.usdc").exists()
 
 
+def test_a_run_of_too_many_steps_is_refused_with_the_run_s_options(tmp_path, capsys):
+    """More than 1e10 steps in all: the advice was Python's 'use fewer frames or a larger dt',
+    naming no option; it names the command's (--frames, --dt where a dt is given, else --scale,
+    whose larger spacing lengthens the stable step), and a scene file's frames by the file."""
+    scene = tmp_path / "s.toml"
+    output = ["-o", str(tmp_path / "t.usdc"), "--no-progress"]
+    for frames, extra, said in (
+            ("1000000000", ["--frames", "1000000000"], "--frames = 1000000000 is not allowed: at 11 steps per frame the run "
+             "would take 1.1e+10 steps, more than 1e+10; give fewer --frames, or a smaller --scale (a larger spacing, whose "
+             "stable step is longer)"),
+            ("2", ["--frames", "1000000000", "--fps", "25", "--dt", "0.0001"], "--frames = 1000000000 is not allowed: at 400 steps per "
+             "frame the run would take 4e+11 steps, more than 1e+10; give fewer --frames or a larger --dt"),
+            ("1000000000", [], f"{scene}: [scene] frames = 1000000000 is not allowed: at 11 steps per frame the run would "
+             "take 1.1e+10 steps, more than 1e+10; give fewer --frames, or a smaller --scale (a larger spacing, whose "
+             "stable step is longer)")):
+        scene.write_text(box_on_ground("tiny", frames, "soft", "dough", "1.5e4"))
+        assert main(["run", str(scene), *output, *extra]) == 2
+        err = capsys.readouterr().err
+        assert err == f"warp-esph: error: {said}\n", err
+        assert not (tmp_path / "t.usdc").exists()
+
+
 def test_toml_scene_file_runs(tmp_path, capsys):
     scene = tmp_path / "tiny.toml"
     scene.write_text(GOOD_TOML)

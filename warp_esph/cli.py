@@ -447,9 +447,21 @@ def _cmd_run(args) -> int:
                 and not str(e).startswith("--")):  # an option typed is named as such, not as the file's
             raise ValueError(f"{args.scene}: [scene] {e}") from None  # the file's dt and fps: name the file
         raise
+    dt_given = dt is not None and not adaptive
     if not adaptive:
         dt = dt_shown
-    check_step_count(frames, substeps)
+    try:
+        check_step_count(frames, substeps)
+    except StepRefusal as e:
+        # Its advice is Python's ('frames=', 'dt=', 'substeps='): the command has --frames and
+        # --dt, and neither --dt nor --scale with --resume. Without a dt the step is the stable
+        # one, and a --dt above it blows the run up: a larger spacing lengthens it.
+        named = f"--frames = {args.frames!r}" if args.frames is not None else f"frames = {frames_total!r}"
+        if args.frames is None and args.resume is None and str(args.scene).lower().endswith(".toml"):
+            named = f"{args.scene}: [scene] {named}"  # the file's frames: name the file, as for its dt and fps
+        cure = ("" if args.resume is not None else " or a larger --dt" if dt_given else
+                ", or a smaller --scale (a larger spacing, whose stable step is longer)")
+        raise ValueError(f"{named} is not allowed: {e.detail}; give fewer --frames{cure}") from None
     solver = Solver(model)
     solver.check_dt(dt_shown)  # the stability warning, once, before the run
     try:

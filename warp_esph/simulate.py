@@ -320,7 +320,7 @@ def check_step_count(frames: int, substeps: int) -> None:
         total = frames * substeps
         shown = f"{total:.3g}" if total < 1e300 else "more than 1e300"  # (10**400 overflowed the formatting)
         detail = f"at {substeps} steps per frame the run would take {shown} steps, more than {MAX_STEPS:.0e}"
-        raise StepRefusal(f"frames = {checks.shorten(frames)!r} is not allowed: {detail}", "; use fewer frames or a larger dt",
+        raise StepRefusal(f"frames = {checks.shorten(frames)!r} is not allowed: {detail}", "; give fewer frames=, or a larger dt= (fewer substeps=)",
                           detail=detail)
 
 
