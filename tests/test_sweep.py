@@ -372,6 +372,20 @@ def test_a_sweep_no_sample_of_which_can_step_at_its_fps_is_refused_before_the_fi
     assert len(_plan(_box(), ["mu=1e9,1e3"], "grid", None, 0, 1, None, 0.01, None, 1.0, "float32", "cpu", 1, 100, None).tasks) == 2
 
 
+def test_a_sample_that_cannot_step_at_its_fps_is_a_row_without_a_run_s_advice():
+    """A sample refused by its stable step (where another sample can run, the sweep runs and
+    this one is a failed row) gave a run's advice in its reason, 'give dt= or substeps=': a
+    sweep has no substeps. The row says the reason alone."""
+    from warp_esph.sweep import _run_sample
+
+    plan = _plan(_box(), ["mu=1e9,1e3"], "grid", None, 0, 1, None, 0.01, None, 1.0, "float32", "cpu", 1, 100, None)
+    row = _run_sample(plan.scene, plan.tasks[0][1])
+    assert row["status"] == "failed", row
+    assert re.fullmatch(r"StepRefusal: the stable step 4\.5e-06 s is not allowed: a frame \(1/fps = 100 s\) would take "
+                        r"\S+ steps, more than 1e\+06; the stiffest material \(p-wave speed \S+ m/s\) or the most "
+                        r"viscous one needs it", row["reason"]), row["reason"]
+
+
 def test_the_python_sweep_takes_and_refuses_the_precisions_finalize_does():
     """``sweep(dtype=...)`` read only the names 'float32'/'float64' (and what has that
     ``__name__``): 'f8' and 'double', which ``finalize``, ``fit`` and ``scalar_type`` take,

@@ -526,7 +526,7 @@ def _run_sample(scene, task: _Task) -> dict:
     from .startup import init_warp  # noqa: PLC0415 (quiet Warp start, shared with the CLI)
 
     init_warp(task.device)
-    from .simulate import SimulationError, resolve_timestep, simulate  # noqa: PLC0415
+    from .simulate import SimulationError, StepRefusal, resolve_timestep, simulate  # noqa: PLC0415
     from .sim.solver import Solver  # noqa: PLC0415
 
     row = {"sample": task.index, "status": "ok", **task.values, "seed": task.seed}
@@ -557,6 +557,11 @@ def _run_sample(scene, task: _Task) -> dict:
                 row.update(more)
     except SimulationError as e:
         row.update(status="failed", reason=_one_line(e))
+    except StepRefusal as e:
+        # The reason without a run's advice ('give dt= or substeps=', 'fewer frames=, or a larger
+        # dt='): a sweep has no substeps, and a dt above a sample's stable step blows it up. The
+        # sweep's own options are said where no sample can run (_check_some_sample_steps).
+        row.update(status="failed", reason=_one_line(f"{type(e).__name__}: {e.reason}"))
     except (ValueError, ArithmeticError, RuntimeError) as e:
         row.update(status="failed", reason=_one_line(f"{type(e).__name__}: {e}"))
     row["wall_s"] = time.perf_counter() - t0
