@@ -1761,3 +1761,25 @@ def test_a_mesh_tool_whose_points_float32_cannot_resolve_the_contacts_margin_is_
             continue
         with pytest.raises(ValueError, match=refused):
             b.finalize(dtype=dtype)
+
+
+def test_a_run_stops_where_the_particles_meet_a_mesh_tool_beyond_float32s_resolution():
+    """finalize bounds where the particles can meet a mesh tool by their start (their box grown
+    by its diagonal, from the tool's start place): a plate 200 m wide about its origin moving
+    at 15 m/s under a block resting 80 m out was taken (float64), and the run went on with the
+    block on it 84 m and more out, where float32 (Warp's mesh queries) no longer resolves half
+    the contact's margin (a small mesh met 100 m out put particles inside it). The run stops
+    at the frame where they meet it there (frame 8: 80 + 15 t passes 83.9 m at t = 0.26 s)."""
+    from warp_esph.simulate import SimulationError
+
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((80.0, 0.03, 0.0), (0.06, 0.06, 0.06), we.Material.preset("dough"), name="block")
+    b.add_tool("mesh", mesh=tools.box_mesh((100.0, 0.05, 100.0)), name="belt", friction=0.0,
+               motion=tools.Velocity((-15.0, 0.0, 0.0), position=(0.0, 0.01 - 0.05, 0.0)))
+    m = b.finalize(dtype=wp.float64)
+    with pytest.raises(SimulationError, match=r"^the simulation stopped after step \d+ \(frame 8, t = 0\.2667 s\): the "
+                                              r"particles met mesh tool 'belt' far from its origin \(they are at it 84 m "
+                                              r"from it\), where float32 \(Warp's mesh queries\) resolves 1e-05 m, more "
+                                              r"than half the contact's margin 2e-05 m") as info:
+        we.simulate(m, 12, fps=30.0, progress=False)
+    assert info.value.frame == 8 and info.value.body == "block"

@@ -802,9 +802,10 @@ class SceneBuilder:
         and spread over a run), seen from each place the motion gives before the run: a held
         or ``Velocity`` tool's start, each key of ``Keyframes`` (a place between two keys is
         no farther from the box). A distance, so any turn of the tool is covered. A
-        ``Scripted`` tool's places are known only as it runs: its whole mesh counts. A
-        ``Velocity`` tool judged at its start may still carry the contact far out over a long
-        run (a conveyor under the particles).
+        ``Scripted`` tool's places are known only as it runs: its whole mesh counts. The
+        particles may go farther than this bound (thrown, carried on a conveyor, dragged by a
+        pinned set): ``simulate`` stops the run where they meet such a mesh there
+        (``simulate._far_mesh_contact``).
 
         Warp's float32 queries only pick the face and say inside or outside: in float64 what
         counts is how far out the particles meet it (up to ``D``, and no farther than the

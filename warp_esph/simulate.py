@@ -502,6 +502,69 @@ def _first_bad(model: Model, state: State, monitor: DivergenceMonitor | None = N
     return None
 
 
+def _far_mesh_tools(model: Model) -> list:
+    """The mesh tools some of whose points lie where float32 does not resolve half the
+    contact's margin (``builder._float32_resolves_margin``), and that move in a known way
+    (not ``tools.Scripted``, whose whole mesh ``finalize`` judged): ``finalize`` judged them
+    where the particles can meet them from their start, but the particles go farther (a block
+    thrown or sliding across a wide floor, one on a conveyor carried far along it, one a
+    pinned set drags), so ``_far_mesh_contact`` looks where they are at each frame."""
+    from .builder import _float32_resolves_margin  # noqa: PLC0415 (builder imports this module's users)
+
+    out = []
+    for k, c in enumerate(model.tools.colliders if model.tools is not None else ()):
+        if c.kind != "mesh" or isinstance(c.motion, tools.Scripted) or c.mesh_points is None or not len(c.mesh_points):
+            continue
+        pts = np.asarray(c.mesh_points, dtype=np.float64)
+        if not _float32_resolves_margin(float(np.abs(pts).max()), model.spacing):
+            out.append((k, c.name, pts, np.asarray(c.mesh_triangles), pts.min(axis=0), pts.max(axis=0)))
+    return out
+
+
+def _far_mesh_contact(model: Model, state: State, far: list):
+    """``None`` or ``(what, particle)``: particles at a mesh tool of ``far`` (within two
+    spacings of its bounds, in its frame) where float32 does not resolve half the contact's
+    margin: in float64 at their own place in the tool's frame, in float32 at the vertices of
+    the faces near them (the model computes the contact point from them). Measured: a small
+    box mesh met 100 m from its origin put particles inside it in 128 of 3000 steps."""
+    from .builder import _float32_resolves_margin, _margin_unresolved  # noqa: PLC0415
+
+    x = state.x.numpy().astype(np.float64)
+    grow = 2.0 * model.spacing
+    import warp as wp  # noqa: PLC0415
+
+    f32 = model.scalar is wp.float32
+    for k, name, pts, tris, lo, hi in far:
+        p, q = model.tools.pose_at(k, float(state.time))
+        qx, qy, qz, qw = (float(v) for v in q / np.linalg.norm(q))
+        rot = np.array([[1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qz * qw), 2 * (qx * qz + qy * qw)],
+                        [2 * (qx * qy + qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qx * qw)],
+                        [2 * (qx * qz - qy * qw), 2 * (qy * qz + qx * qw), 1 - 2 * (qx * qx + qy * qy)]])
+        y = (x - p) @ rot  # the tool's frame: R^T (x - p), row by row
+        near = np.flatnonzero(((y >= lo - grow) & (y <= hi + grow)).all(axis=1))
+        if not len(near):
+            continue
+        yn = y[near]
+        if f32:
+            tri = pts[tris]
+            box_lo, box_hi = yn.min(axis=0) - grow, yn.max(axis=0) + grow
+            faces = ((tri.max(axis=1) >= box_lo) & (tri.min(axis=1) <= box_hi)).all(axis=1)
+            reach = float(np.abs(tri[faces]).max()) if faces.any() else 0.0
+        else:
+            reach = float(np.abs(yn).max())
+        if not _float32_resolves_margin(reach, model.spacing):
+            p_far = int(near[int(np.argmax(np.abs(yn).max(axis=1)))])
+            where = ("the faces they are at reach", "(the model's contact and Warp's mesh queries)") if f32 else \
+                ("they are at it", "(Warp's mesh queries)")
+            return (f"the particles met mesh tool {name!r} far from its origin ({where[0]} {reach:.3g} m from it), where "
+                    f"float32 {where[1]} {_margin_unresolved(reach, model.spacing)}; model the mesh about where they meet "
+                    "it (its points "
+                    "less that place, the place added to position)"
+                    + (", split its faces there into smaller ones, use dtype=float64," if f32 else "")
+                    + " or use a larger spacing"), p_far
+    return None
+
+
 def _body_layout(model: Model) -> list[tuple[str, int]]:
     return [(b.name, b.count) for b in model.bodies]
 
@@ -616,6 +679,7 @@ def simulate(
                                     monitor_exempt) if monitor else None
         t_origin = 0 if monitor_origin is None else start_frame  # frames from the monitor's state to this call's
 
+        far_meshes = _far_mesh_tools(model)
         bar = _progress_bar(frames, f"{model.particle_count} particles") if progress else None
         try:
             if writer is not None:
@@ -657,6 +721,13 @@ def simulate(
                         f"{model.stable_dt(hourglass=solver.hourglass):.3g} s) or stiffer-to-softer material settings",
                         step=step, particle=p, body=body, frame=frame,
                     )
+                met = _far_mesh_contact(model, current, far_meshes) if far_meshes else None
+                if met is not None:
+                    what, p = met
+                    body = model.bodies[int(model.particle_body_np[p])].name
+                    step = steps if adaptive else start_frame * n_sub + steps
+                    raise SimulationError(f"the simulation stopped after step {step} (frame {frame}, t = {frame / fps:.4g} "
+                                          f"s): {what}", step=step, particle=p, body=body, frame=frame)
                 if writer is not None:
                     writer.write_frame(frame, current)
                 if callback is not None:
