@@ -190,6 +190,33 @@ def test_every_ray_refusal_names_the_option_as_the_others_do(capsys, tmp_path, m
                                        "pip install 'warp-esph[ray]'\n")
 
 
+def test_a_python_caller_s_ray_refusals_name_the_parameter_not_the_option(monkeypatch):
+    """``parallel_map(..., ray=...)`` and ``sweep(..., ray=...)`` were refused as '--ray = ...
+    is not allowed', and told to 'give --ray HOST:PORT': an option of the command line, which a
+    Python caller has not. They name the parameter, ``ray``; the command its option."""
+    ray = pytest.importorskip("ray")
+    from warp_esph.sweep import parallel_map
+
+    for address, reason in (("127.0.0.1:1", "nothing answers at 127.0.0.1:1 "), ("nonsense", "give 'auto', HOST:PORT")):
+        with pytest.raises(ValueError, match=f"^ray = {re.escape(repr(address))} is not allowed: {re.escape(reason)}"):
+            parallel_map(abs, [(1,)], ray=address)
+
+    def no_cluster(*args, **kwargs):
+        raise ConnectionError("Could not find any running Ray instance. Please specify the one to connect to by setting "
+                              "the `--address` flag or `RAY_ADDRESS` environment variable.")
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", no_cluster)
+    with pytest.raises(ValueError, match=r"^ray = 'auto' is not allowed: cannot connect to a Ray cluster there: Could not "
+                                         r"find any running Ray instance; give ray = 'HOST:PORT' or 'ray://HOST:PORT' of a "
+                                         r"running cluster, or with ray = 'auto' start one on this machine first \('ray "
+                                         r"start --head'\) or name its address in the RAY_ADDRESS environment variable$"):
+        sweep(_box(), ["mu=1e3,1e4"], frames=1, ray="auto")
+    monkeypatch.setitem(sys.modules, "ray", None)  # as where Ray is not installed
+    with pytest.raises(ValueError, match=r"^ray = 'auto' is not allowed: Ray is not installed; pip install 'warp-esph\[ray\]'$"):
+        parallel_map(abs, [(1,)], ray="auto")
+
+
 def test_ray_auto_without_a_cluster_says_what_the_command_takes(capsys, tmp_path, monkeypatch):
     """Ray's refusal of 'auto' with no cluster running advises its own command line's
     '`--address` flag', which warp-esph has not; the line says what --ray takes instead.

@@ -722,37 +722,41 @@ def _check_sendable(name: str, value, workers: int) -> None:
                          f"at the top level of a module, or run with workers=1") from None
 
 
-def _check_reachable(address: str, timeout: float = 5.0) -> None:
+def _check_reachable(address: str, timeout: float = 5.0, name: str = "ray") -> None:
     """A ``host:port`` (or ``ray://host:port``) address must answer within ``timeout`` s:
-    ``ray.init`` retries an address where nothing listens for minutes, printing as it goes."""
+    ``ray.init`` retries an address where nothing listens for minutes, printing as it goes.
+    ``name``: how a refusal names it (the CLI's ``--ray``, Python's ``ray``)."""
     text = str(address)
     if text in ("auto", "local"):
         return
     hostport = text.split("://", 1)[1] if "://" in text else text
     host, _, port = hostport.rpartition(":")
     if not host or not port.isdigit():
-        raise ValueError(f"--ray = {text!r} is not allowed: give 'auto', HOST:PORT or ray://HOST:PORT")
+        raise ValueError(f"{name} = {text!r} is not allowed: give 'auto', HOST:PORT or ray://HOST:PORT")
     import socket  # noqa: PLC0415
 
     try:
         socket.create_connection((host, int(port)), timeout=timeout).close()
     except OSError as e:
-        raise ValueError(f"--ray = {text!r} is not allowed: nothing answers at {host}:{port} ({e.strerror or e})") from None
+        raise ValueError(f"{name} = {text!r} is not allowed: nothing answers at {host}:{port} ({e.strerror or e})") from None
 
 
 @contextlib.contextmanager
-def _ray_session(address):
+def _ray_session(address, name: str = "ray"):
     """Ray, connected to the cluster at ``address`` for the ``with`` block: a session already
     started in this process is used as it is and left running; one started here is shut down
-    as the block ends. A cluster that cannot be reached is a ``ValueError``."""
+    as the block ends. A cluster that cannot be reached is a ``ValueError`` naming ``name``
+    (``parallel_map``'s and ``sweep``'s ``ray``; ``warp-esph sweep``'s ``--ray``, which it
+    names: '--ray = ...' reached a Python caller, who has no such option)."""
+    cli = name.startswith("--")
     try:
         import ray  # noqa: PLC0415
     except ModuleNotFoundError:
-        raise ValueError(f"--ray = {str(address)!r} is not allowed: Ray is not installed; pip install 'warp-esph[ray]'") from None
+        raise ValueError(f"{name} = {str(address)!r} is not allowed: Ray is not installed; pip install 'warp-esph[ray]'") from None
     if ray.is_initialized():
         yield ray
         return
-    _check_reachable(address)
+    _check_reachable(address, name=name)
     try:
         ray.init(address=address, include_dashboard=False, log_to_driver=False)
     except (ConnectionError, ValueError, RuntimeError) as e:
@@ -761,10 +765,11 @@ def _ray_session(address):
             # Ray's advice is for its own command line ('the `--address` flag or RAY_ADDRESS'):
             # warp-esph has no --address; say what the command takes instead.
             why = re.sub(r"\s*[^.]*--address[^.]*\.?", "", why).strip()
-            why = (f"{why.rstrip('.')}; give --ray HOST:PORT or ray://HOST:PORT of a running cluster, or with "
-                   "--ray auto start one on this machine first ('ray start --head') or name its address in the "
-                   "RAY_ADDRESS environment variable")
-        raise ValueError(f"--ray = {str(address)!r} is not allowed: cannot connect to a Ray cluster there: {why}") from None
+            give, auto = ("--ray HOST:PORT or ray://HOST:PORT", "--ray auto") if cli else \
+                ("ray = 'HOST:PORT' or 'ray://HOST:PORT'", "ray = 'auto'")
+            why = (f"{why.rstrip('.')}; give {give} of a running cluster, or with {auto} start one on this machine "
+                   "first ('ray start --head') or name its address in the RAY_ADDRESS environment variable")
+        raise ValueError(f"{name} = {str(address)!r} is not allowed: cannot connect to a Ray cluster there: {why}") from None
     try:
         yield ray
     finally:
@@ -1183,7 +1188,7 @@ def sweep_cli(args, out=None) -> int:
                              f"sweep writes its {name} there")
     # Connected (or refused) before the plan's line, which says the sweep runs on Ray: an
     # address or 'auto' where no cluster runs is then the one line on stderr.
-    with _ray_session(args.ray) if args.ray is not None else contextlib.nullcontext():
+    with _ray_session(args.ray, "--ray") if args.ray is not None else contextlib.nullcontext():
         where = f"Ray at {args.ray}" if args.ray else f"{min(args.workers or _cores(), len(points))} worker(s)"
         print(f"{PROG} sweep: {sc.name}: {len(points)} samples ({args.sample}) of {', '.join(p.name for p in plist)} "
               f"on {where} -> {folder}", file=sys.stderr, flush=True)
