@@ -707,6 +707,38 @@ def test_a_terminated_sweep_keeps_its_finished_samples_and_says_terminated(scene
     assert rows == 1
 
 
+def test_a_signal_whose_table_of_the_samples_finished_fails_to_write_is_still_reported(scene_file, tmp_path, monkeypatch,
+                                                                                       capsys):
+    """SIGTERM mid-sweep, and the table of the samples finished could not be written (a full
+    disk): the error reached the command's handler as bad input, exit 2 with the bare
+    '[Errno 28] ...', the signal dropped. It exits 143, the one line saying both."""
+    import errno
+    import signal
+
+    from warp_esph import sweep as sweep_module
+
+    def full(self, path):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(sweep_module, "PARTIAL_EVERY_S", 1e9)
+    monkeypatch.setattr(SweepTable, "to_csv", full)
+    real, runs = sweep_module._run_sample, []
+
+    def run_and_signal(scene, task):
+        runs.append(1)
+        if len(runs) == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real(scene, task)
+
+    monkeypatch.setattr(sweep_module, "_run_sample", run_and_signal)
+    out = tmp_path / "sw"
+    assert _sweep_three_samples(scene_file, out) == 143
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1] == (f"warp-esph: terminated: cannot write the table of the 1 of 3 samples finished in {out}: "
+                                    f"[Errno 28] No space left on device: '{out / 'sweep.csv'}' (the tables in {out} do "
+                                    "not keep them all)"), err
+
+
 def test_a_signal_in_a_finalizer_stops_the_sweep_after_that_sample(scene_file, tmp_path, monkeypatch, capsys):
     """A SIGTERM that landed in a finalizer (``__del__``), where it cannot be raised, was only
     recorded: the sweep ran every sample before saying 'terminated'. It now stops the sweep

@@ -1242,7 +1242,15 @@ def sweep_cli(args, out=None) -> int:
             if bar is not None:
                 bar.close()
             table = _table(done, [p.name for p in plist])
-            for line in write_outputs(table, folder, {**meta, "interrupted": True}, log_params):
+            try:
+                written = write_outputs(table, folder, {**meta, "interrupted": True}, log_params)
+            except (OSError, ValueError) as e:
+                # A full disk under the table of the samples finished: the error reached the
+                # command's handler as bad input (exit 2), the signal dropped and the folder unsaid.
+                print(f"{PROG}: {_stopped(args)}: cannot write the table of the {len(done)} of {len(points)} samples "
+                      f"finished in {folder}: {_one_line(e)} (the tables in {folder} do not keep them all)", file=sys.stderr)
+                return EXIT_INTERRUPTED
+            for line in written:
                 print(line, file=out)
             print(f"{PROG}: {_stopped(args)}: the table keeps the {len(done)} of {len(points)} samples finished", file=sys.stderr)
             return EXIT_INTERRUPTED
