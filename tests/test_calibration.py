@@ -1014,6 +1014,48 @@ def test_an_interrupted_fit_keeps_its_evaluations_and_the_best_so_far(tmp_path, 
     assert doc["interrupted"] == "the fit"
 
 
+def test_an_interrupted_fit_whose_files_cannot_be_written_still_exits_130(tmp_path, capsys, dough_scene, monkeypatch):
+    """Ctrl-C during ``warp-esph fit`` writes the evaluations so far; where that write failed
+    (a full disk) its error reached the command's handler as bad input: exit 2 with the bare
+    '[Errno 28] No space left on device', the Ctrl-C dropped. It exits 130, the one line naming
+    the file and what was written before it."""
+    import errno
+
+    from warp_esph import calibrate as calibrate_module
+    from warp_esph import fit as fit_module
+    from warp_esph.cli import main
+
+    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(truth), "-o", str(run), "--frames", "3", "--dtype", "float64", "--no-progress"]) == 0
+    calls = []
+    original = fit_module._Problem.value_and_grad
+
+    def interrupted_second(self, z, losses=None):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return original(self, z, losses)
+
+    def full(result, folder, meta=None, json_path=None, written=None):
+        if written is not None:
+            written.append(os.path.join(folder, "fit.json"))
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), os.path.join(folder, "history.csv"))
+
+    monkeypatch.setattr(fit_module._Problem, "value_and_grad", interrupted_second)
+    monkeypatch.setattr(calibrate_module, "write_outputs", full)
+    out = tmp_path / "fit"
+    capsys.readouterr()
+    status = main(["fit", str(guess), "--target", str(run), "--iterations", "10", "--optimizer", "adam", "--lr", "0.2",
+                   "--no-progress", "--no-usd", "--output-dir", str(out)])
+    err = capsys.readouterr().err
+    assert status == 130, err
+    assert err.splitlines()[-1] == (f"warp-esph: interrupted: cannot write {out / 'history.csv'}: No space left on device "
+                                    f"(the evaluations so far are kept only in {out / 'fit.json'}, written before it)"), err
+
+
 def test_a_ctrl_c_in_a_finalizer_stops_a_fit_after_that_evaluation(tmp_path, capsys, dough_scene, monkeypatch):
     """A Ctrl-C that landed in a finalizer (``__del__``) could not be raised there: it was
     recorded and the fit ran all its iterations before the command said 'interrupted'. It

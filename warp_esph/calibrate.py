@@ -285,7 +285,16 @@ def run_fit(args, out=None, err=None) -> int:
             # Interrupted in the diagnostics, the fit itself had finished: its fit.json read as
             # a complete run with --no-diagnostics, and the log called it the best so far.
             during = "the fit" if e.result.stopped == "interrupted" else "the diagnostics"
-            written = write_outputs(e.result, folder, {**meta, "interrupted": during}, json_path=_arg(args, "output"))
+            done: list = []
+            try:
+                written = write_outputs(e.result, folder, {**meta, "interrupted": during}, json_path=_arg(args, "output"),
+                                        written=done)
+            except OSError as w:
+                # A full disk under them: the error reached the command's handler as bad input
+                # (exit 2, the bare '[Errno 28] ...'), the Ctrl-C dropped.
+                kept = (f"the evaluations so far are kept only in {', '.join(map(str, done))}, written before it" if done
+                        else "none of its files was written: the evaluations so far are lost")
+                raise checks.interrupted(f"cannot write {w.filename or folder}: {w.strerror or w} ({kept})") from None
             if during == "the fit":
                 log(f"interrupted after {len(e.result.history)} evaluations: wrote the best so far (loss "
                     f"{e.result.loss:.4g}) to {', '.join(written)}")
