@@ -133,15 +133,16 @@ def test_the_paper_cap_is_counted_and_warned():
     assert _model(2.0).max_neighbors == 96 and _model(2.5).max_neighbors == 240
 
 
-def _squashed_step(max_neighbors, elastic_force):
+def _squashed_step(max_neighbors, elastic_force, F0=(1.3, 0.35, 1.3), **plastic):
     """One step of a block of 5 x 16 x 5 particles squashed to F = diag(1.3, 0.35, 1.3)
     (positions and F alike, J = 0.59; 16 layers: the middle ones have their whole ball),
     float64: what the lowest particles of test_adaptive_dt's ball reach at its landing. The
     variational force runs with the hourglass control (it weighs rest distances), the
     paper's without."""
-    F0 = np.diag([1.3, 0.35, 1.3])
+    F0 = np.diag(F0)
     b = we.SceneBuilder(spacing=DX, max_neighbors=max_neighbors)
-    b.add_box((0.0, 0.0, 0.0), (5 * DX, 16 * DX, 5 * DX), we.Material.from_young(1.0e5, 0.3, elastic_force=elastic_force))
+    b.add_box((0.0, 0.0, 0.0), (5 * DX, 16 * DX, 5 * DX),
+              we.Material.from_young(1.0e5, 0.3, elastic_force=elastic_force, **plastic))
     model = b.finalize(dtype=wp.float64)
     X = model.particle_x0 + np.random.default_rng(3).normal(scale=1e-3 * DX, size=model.particle_x0.shape)
     model.particle_x0 = X  # the rest positions the hourglass control weighs
@@ -184,6 +185,30 @@ def test_a_full_row_that_drops_only_unweighed_pairs_is_not_cut(elastic_force):
     with pytest.warns(RuntimeWarning, match="a neighbour row was cut: more than max_neighbors = 40"):
         narrow = _squashed_step(40, elastic_force)[3]
     assert narrow.guard_counts()["neighbors_cut"] > 0
+
+
+def test_a_full_row_keys_the_pairs_the_flowed_F_may_weigh():
+    """The paper's force weighs a pair at F'^-1 (x_j - x_i) with F' the F after this step's
+    plastic flow, which moves each singular value to sigma^(1 - gamma) t^gamma (t^3 the volume
+    clamped to [0.8, 1.25]): a squashed axis widens, so F' B(h) reaches pairs that F B(1.05 h)
+    and B(h) both miss. Squashed to diag(1.4, 0.15, 1.4) and flowing (gamma ~ 0.3 in the step),
+    the full rows kept by F^-1's key lacked 175 pairs that F'^-1 weighs, in 43 rows, and counted
+    no cut. The key now bounds F'^-1 over every gamma (neighbors.flow_inverse_bound): a row
+    that lacks a weighed pair is counted (and warned)."""
+    with pytest.warns(RuntimeWarning, match="a neighbour row was cut: more than max_neighbors = 96"):
+        model, start, out, solver = _squashed_step(None, "paper", (1.4, 0.15, 1.4), yield_stress=10.0, flow_rate=3.0e4)
+    h = model.support_radius
+    x, F_inv = start.x.numpy(), out.F_inv.numpy()
+    nbr, cnt = out.neighbors.numpy(), out.neighbor_count.numpy()
+    assert cnt.max() == 96 and np.abs(np.linalg.svd(F_inv, compute_uv=False) - 1 / 0.15).min() > 1.0  # it flowed
+    short = 0
+    for i in range(model.particle_count):
+        e = (x - x[i]) @ F_inv[i].T
+        weighed = (e * e).sum(1) < h * h
+        weighed[i] = False
+        short += not set(np.flatnonzero(weighed)) <= set(nbr[i, : cnt[i]])
+    assert solver.guard_counts()["neighbors_cut"] >= short
+    assert solver.guard_counts()["neighbors_cut"] > 0
 
 
 # Through ground contact: a block flowing as it lands on a rough ground (friction 0.6); the

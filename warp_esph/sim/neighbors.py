@@ -135,6 +135,10 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     count_weight = guard_funcs(scalar).count_weight
     Materials = materials.struct(scalar)
     floor_image = deformation.funcs(scalar, "poly6").floor_image
+    # The volume range the plastic flow keeps (flow_inverse_bound); imported here, plasticity
+    # imports the modules that import this one.
+    from .plasticity import VOLUME_PRESERVING_RANGE  # noqa: PLC0415
+    j_lo, j_hi = scalar(VOLUME_PRESERVING_RANGE[0]), scalar(VOLUME_PRESERVING_RANGE[1])
 
     @wp.func
     def stretch_bound2(F: mat33) -> scalar:
@@ -291,7 +295,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         kernel of the step may weigh the pair by, each scaled so that ``h^2`` is where its
         weight ends: ``|x_j - x_i|^2`` (the fit, SPH, the variational force),
         ``|F_i^-1 (x_j - x_i)|^2 / slack^2`` (the paper's elastic kernel, eq. 11, and with
-        ``images`` its floor images; ``slack``: the force reads the ``F`` this step makes), and
+        ``images`` its floor images; ``slack``: the force reads the ``F`` this step makes; for
+        a material that flows ``Finv`` is ``flow_inverse_bound``'s, the flowed ``F`` being
+        read), and
         with ``with_rest`` the rest distance (the hourglass control). Below ``h^2``: weighed."""
         k = d2
         e = Finv * (xj - xi)
@@ -307,6 +313,22 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             e = rest[j] - rest_i
             k = wp.min(k, wp.dot(e, e))
         return k
+
+    @wp.func
+    def flow_inverse_bound(F: mat33, det: scalar) -> mat33:
+        """``G`` with ``|G d| <= |F'^-1 d|`` for every ``d`` and every ``F'`` this step's plastic
+        flow may make of ``F`` (``det F > 0``): the flow keeps ``F``'s singular vectors and
+        moves each singular value to ``sigma_k^(1 - gamma) t^gamma``, ``gamma`` in [0, 1],
+        ``t = clamp(J, 0.8, 1.25)^(1/3)`` (``plasticity.flow_step``), never past
+        ``max(sigma_k, t)``: ``G = V diag(1 / max(sigma_k, t)) U^T``."""
+        U = mat33()
+        sg = vec3()
+        V = mat33()
+        wp.svd3(F, U, sg, V)
+        t = wp.pow(wp.min(wp.max(det, j_lo), j_hi), scalar(1.0 / 3.0))
+        inv = vec3(scalar(1.0) / wp.max(wp.abs(sg[0]), t), scalar(1.0) / wp.max(wp.abs(sg[1]), t),
+                   scalar(1.0) / wp.max(wp.abs(sg[2]), t))
+        return V * wp.diag(inv) * wp.transpose(U)
 
     @wp.kernel(enable_backward=False, module="unique")
     def select_neighbors(
@@ -329,6 +351,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         slack: scalar,
         rest: wp.array(dtype=vec3),
         with_rest: int,
+        with_flow: int,
         cut_index: int,
         gn: vec3,
         goff: scalar,
@@ -357,7 +380,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         ``counters[cut_index]``: a stretch beyond the margin, or a full row that dropped a
         candidate some kernel of the step may weigh (its ``weight_key`` below ``h^2``; an
         ``F_i`` that is not invertible: any candidate). ``rest``
-        (``with_rest``): the rest positions, whose distances the hourglass control weighs."""
+        (``with_rest``): the rest positions, whose distances the hourglass control weighs;
+        ``with_flow``: ``material`` and ``mat`` say which particles' ``F`` flows this step."""
         i = wp.tid()
         xi = x[i]
         bi = body[i]
@@ -412,6 +436,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                     if det > scalar(0.0) and det < scalar(1.0e30):
                         keyed = 1
                         Finv = wp.inverse(Fi)
+                        if with_flow != 0:
+                            if mat.flow_rate[material[i]] > scalar(0.0):
+                                Finv = flow_inverse_bound(Fi, det)
                         if images != 0:
                             gi = floor_image(xi, gn, goff, gmin)
                         if with_rest != 0:
@@ -725,12 +752,15 @@ class NeighborSearch:
         self._centre = tuple(0.5 * (b[k] - b[3 + k]) for k in range(3))
         return spread < SKIN_SAFETY * self.skin
 
-    def _select(self, x, body, nbr, nbr_d2, count, guard, sph=None, F=None, counters=None, cut_index=0, rest=None):
+    def _select(self, x, body, nbr, nbr_d2, count, guard, sph=None, F=None, counters=None, cut_index=0, rest=None,
+                flow=None):
         """``sph``: None, or (mass, material, rest_density, materials, rho, p, vol, rho_p, vol_p)
         (``rho_p``, ``vol_p`` None: the pressure reads ``rho``); ``F``:
         None (rows within h) or the deformation gradients the rows must cover
         (``select_neighbors``); ``counters[cut_index]`` counts the rows that may be short,
-        ``rest`` (None: no term weighs rest distances) the rest positions they are judged by too."""
+        ``rest`` (None: no term weighs rest distances) the rest positions they are judged by too,
+        ``flow`` (None, or (particle material, materials struct)) which particles' ``F`` may flow
+        before the force reads it."""
         d = self._dummy_arrays()
         if sph is None:
             mass, material, rest_density, mats, rho, p, vol = d["s"], d["i"], d["s"], d["mat"], d["s"], d["s"], d["s"]
@@ -738,6 +768,8 @@ class NeighborSearch:
         else:
             mass, material, rest_density, mats, rho, p, vol, rho_p, vol_p = sph
         with_density = 0 if sph is None else (1 if rho_p is None else 2)
+        if flow is not None:
+            material, mats = flow
         with_guard = guard is not None
         self.launches(
             self.kernels.select_neighbors,
@@ -746,7 +778,7 @@ class NeighborSearch:
                 x, body, mass, self.candidates, self.candidate_count, self.scalar(self.h), self.min_neighbors,
                 self.scalar(self.max_condition), int(with_guard), with_density, material, rest_density, mats,
                 d["F"] if F is None else F, int(F is not None), self._cand_stretch, self.scalar(STRETCH_SLACK),
-                d["v"] if rest is None else rest, int(rest is not None), int(cut_index),
+                d["v"] if rest is None else rest, int(rest is not None), int(flow is not None), int(cut_index),
                 *(self.image_args if self.image_args is not None else
                   (type_set(self.scalar).vec3(0.0, 1.0, 0.0), self.scalar(0.0), self.scalar(0.0), 0)),
             ],
@@ -785,7 +817,8 @@ class NeighborSearch:
         (not recorded on a tape). With ``F=`` (the
         deformation gradients at ``x``) the rows reach ``h sigma_max(F)``; with
         ``counters=, cut_index=`` rows that may be short are counted (``select_neighbors``;
-        ``rest=``: the rest positions where a term weighs their distances)."""
+        ``rest=``: the rest positions where a term weighs their distances; ``flow=``: the
+        materials, whose plastic flow changes the ``F`` the force reads)."""
         self.updates += 1
         F = stretch.get("F")
         if not self.candidates_valid(x, F):

@@ -519,6 +519,7 @@ class Solver:
                  scratch.pressure_volume() if own else None) if fast and sph else None,
                 F=state_in.F if self._stretch_rows() else None, counters=scratch.counters, cut_index=COUNT_NEIGHBORS_CUT,
                 rest=self._rest if self.hourglass > 0.0 else None,
+                flow=(m.particle_material, m.material_arrays()) if self._stretch_rows() else None,
             )
             if ghosts is not None:
                 # The ghost floor's stencils and weights at the step's start.
