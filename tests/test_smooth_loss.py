@@ -211,6 +211,106 @@ def test_a_full_row_keys_the_pairs_the_flowed_F_may_weigh():
     assert solver.guard_counts()["neighbors_cut"] > 0
 
 
+def _reference_rows(x, F, rest, flows, image, kmax, h, cand_stretch):
+    """numpy's rows and cut count of ``neighbors.select_neighbors``: every j within
+    h sqrt(max(min(g, s^2), 1)) (g the stretch bound, s the candidates' stretch); where more
+    than kmax, the kmax smallest (weight_key, j) (F not invertible: the smallest (d2, j)), in
+    index order; a cut where g > s^2, where F is not invertible and the row overflows, or
+    where a dropped candidate's key is below h^2."""
+    def floor_image(p):  # deformation.floor_image in the plane y = image, min depth half a spacing
+        d = p[..., 1] - image
+        md = 0.5 * DX
+        t = np.maximum(1.0 + (d - md) / (0.5 * md), 0.0)
+        s = np.where(d < md, md + 0.5 * md * t * t * (t - 1.0), d)
+        return p - (d + s)[..., None] * np.array([0.0, 1.0, 0.0])
+
+    rows, cuts, slack2 = [], 0, we.sim.neighbors.STRETCH_SLACK ** 2
+    for i in range(len(x)):
+        g = np.abs(F[i].T @ F[i]).sum(1).max()
+        cut = g > cand_stretch[i] ** 2
+        d = x - x[i]
+        d2 = (d * d).sum(1)
+        d2[i] = np.inf
+        idx = np.flatnonzero(d2 < h * h * max(min(g, cand_stretch[i] ** 2), 1.0))
+        if len(idx) > kmax:
+            k = d2[idx]
+            keyed = 0.0 < np.linalg.det(F[i]) < 1e30
+            if keyed:
+                G = np.linalg.inv(F[i])
+                if flows[i]:
+                    U, sg, Vt = np.linalg.svd(F[i])
+                    t = np.clip(np.linalg.det(F[i]), 0.8, 1.25) ** (1.0 / 3.0)
+                    G = Vt.T @ np.diag(1.0 / np.maximum(sg, t)) @ U.T
+                ends = [(x[idx], x[i])]
+                if image is not None:
+                    ends += [(floor_image(x[idx]), x[i]), (x[idx], floor_image(x[i]))]
+                for n, (a, b) in enumerate(ends):
+                    e = (a - b) @ G.T
+                    k = np.minimum(k, (e * e).sum(1) / slack2)
+                    if n == 1:
+                        k = np.minimum(k, ((a - b) ** 2).sum(1))
+                if rest is not None:
+                    k = np.minimum(k, ((rest[idx] - rest[i]) ** 2).sum(1))
+            order = np.lexsort((idx, k))
+            cut = cut or not keyed or bool((k[order[kmax:]] < h * h).any())
+            idx = np.sort(idx[order[:kmax]])
+        rows.append(idx)
+        cuts += int(cut)
+    return rows, cuts
+
+
+def test_full_rows_are_the_smallest_weight_keys_and_count_exactly_the_weighed_drops():
+    """select_neighbors against numpy on random rows: jittered lattices under a random F0, each
+    particle's F random (stretched and squashed 0.3-1.6, some past the rows' reach of 2, some
+    not invertible, some of a material that flows), with or without a floor plane of images
+    and rest positions, rows of 20-40; and exact lattices with F = I, whose keys tie. Each row
+    must be the kmax smallest keys (k, j) of the candidates within the selection radius (ties
+    to the lower index), in index order, and the cut count that of the rows that dropped a
+    candidate of key below h^2 (or of an F not invertible, or past the reach)."""
+    from warp_esph._types import type_set  # noqa: PLC0415
+    from warp_esph.sim import materials, neighbors  # noqa: PLC0415
+
+    T = type_set(wp.float64)
+    rng = np.random.default_rng(5)
+    h = 2.0 * DX
+
+    def rotation():
+        q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+        return q * np.sign(np.diag(r)) * np.sign(np.linalg.det(q * np.sign(np.diag(r))))
+
+    overflowing = keyed_uncut = 0
+    for trial in range(40):
+        X = np.stack(np.meshgrid(*[np.arange(int(rng.integers(5, 7))) * DX] * 3, indexing="ij"), -1).reshape(-1, 3)
+        n = len(X)
+        ties = trial % 5 == 0
+        x = X.copy() if ties else X @ (rotation() * rng.uniform(0.6, 1.3, 3)).T + rng.normal(scale=0.05 * DX, size=X.shape)
+        F = np.stack([rotation() * rng.uniform(0.3, 2.6 if rng.random() < 0.1 else 1.6, 3) @ rotation() for _ in range(n)])
+        F[rng.random(n) < 0.05] *= np.array([1.0, 1.0, -1.0])
+        if ties:
+            F[:] = np.eye(3)
+        flows = (rng.random(n) < 0.5) & (not ties)  # (the SVD of I is exact only to round-off)
+        rest = X + rng.normal(scale=0.02 * DX, size=X.shape) if rng.random() < 0.5 else None
+        image = float(x[:, 1].min() - rng.uniform(-0.3, 1.0) * DX) if rng.random() < 0.5 else None
+        kmax = int(rng.integers(20, 41))
+        search = neighbors.NeighborSearch(n, wp.float64, "cpu", h, spacing=DX)
+        if image is not None:
+            search.image_args = [T.vec3(0.0, 1.0, 0.0), wp.float64(image), wp.float64(0.5 * DX), 1]
+        nbr, counters = wp.zeros((n, kmax), dtype=wp.int32), wp.zeros(8, dtype=wp.int32)
+        count = wp.zeros(n, dtype=wp.int32)
+        flow = (wp.array(flows.astype(np.int32)), materials.make(wp.float64, flow_rate=wp.array([0.0, 1.0], dtype=wp.float64)))
+        search.build(wp.array(x, dtype=T.vec3), wp.zeros(n, dtype=wp.int32), nbr, wp.zeros((n, kmax), dtype=wp.float64),
+                     count, None, F=wp.array(F, dtype=T.mat33), counters=counters, cut_index=4,
+                     rest=None if rest is None else wp.array(rest, dtype=T.vec3), flow=flow)
+        rows, cuts = _reference_rows(x, F, rest, flows, image, kmax, h, search._cand_stretch.numpy())
+        nbr, count = nbr.numpy(), count.numpy()
+        for i in range(n):
+            np.testing.assert_array_equal(nbr[i, : count[i]], rows[i], err_msg=f"trial {trial}, particle {i}")
+        assert counters.numpy()[4] == cuts, trial
+        overflowing += int(sum(len(r) == kmax for r in rows))
+        keyed_uncut += n - cuts
+    assert overflowing > 1000 and keyed_uncut > 1000  # both paths ran
+
+
 # Through ground contact: a block flowing as it lands on a rough ground (friction 0.6); the
 # first particles touch at step 20 of 60. The continuous contact
 # (``model.contact_ramp = CONTINUOUS_CONTACT_RAMP``) is the default; the instant law is
