@@ -101,7 +101,10 @@ class SceneBuilder:
     ``max_neighbors`` is the width of a neighbour row. The default (None) is
     ``neighbors.default_max_neighbors(h / dx)`` (96 at h = 2 dx, 240 at 2.5 dx), wide enough
     that no row is cut in practice, so the loss is smooth in the parameters; ``"paper"``
-    is the paper's 30 nearest (``PAPER_MAX_NEIGHBORS``). A row that is cut is counted in
+    is the paper's width, 30 (``PAPER_MAX_NEIGHBORS``): the 30 nearest where rows reach ``h``;
+    where they reach ``h sigma_max(F)`` (the paper's elastic force, the hourglass control, a
+    comparison model) the 30 of smallest ``neighbors.weight_key``, the pairs a kernel weighs
+    first, not the 30 nearest. A row that is cut is counted in
     ``Solver.guard_counts()["neighbors_cut"]`` (docs/method.md §1).
 
     ``fit`` and ``contact_ramp`` become the model's ``Model.fit`` (the incremental fit a

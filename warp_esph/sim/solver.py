@@ -130,9 +130,9 @@ class Solver:
     ``DEFAULT_SKIN``) is the Verlet margin of the neighbour candidates: they are rebuilt only when two
     particles may have moved by more than it relative to each other, and the rows
     (every particle within ``h sigma_max(F)`` where a material uses the paper's elastic
-    force, else within ``h``; the nearest ``Model.max_neighbors`` where
-    there are more) are selected from them every step, so the lists are those of a fresh
-    search (``0``: search afresh every step). ``guard_counts()["neighbors_cut"]`` counts
+    force, else within ``h``; the nearest ``Model.max_neighbors`` where there are more,
+    in rows reaching ``h sigma_max(F)`` those of smallest ``neighbors.weight_key``) are
+    selected from them every step, so the lists are those of a fresh search (``0``: search afresh every step). ``guard_counts()["neighbors_cut"]`` counts
     the particle-steps whose row may lack a neighbour of non-zero weight (docs/method.md §1);
     the first one is warned about. ``fused`` (default on) runs the
     constitutive update and all pair forces in one kernel with one SVD per particle; under
