@@ -247,7 +247,7 @@ def _reference_rows(x, F, rest, flows, image, kmax, h, cand_stretch):
                 for n, (a, b) in enumerate(ends):
                     e = (a - b) @ G.T
                     k = np.minimum(k, (e * e).sum(1) / slack2)
-                    if n == 1:
+                    if n >= 1:  # the image pairs' current distances (the fit, the variational force)
                         k = np.minimum(k, ((a - b) ** 2).sum(1))
                 if rest is not None:
                     k = np.minimum(k, ((rest[idx] - rest[i]) ** 2).sum(1))

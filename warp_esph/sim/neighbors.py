@@ -295,7 +295,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         kernel of the step may weigh the pair by, each scaled so that ``h^2`` is where its
         weight ends: ``|x_j - x_i|^2`` (the fit, SPH, the variational force),
         ``|F_i^-1 (x_j - x_i)|^2 / slack^2`` (the paper's elastic kernel, eq. 11, and with
-        ``images`` its floor images; ``slack``: the force reads the ``F`` this step makes; for
+        ``images`` its floor images, whose pairs ``g_j - x_i`` and ``x_j - g_i`` the fit, the
+        variational force and SPH also weigh at their current distance; ``slack``: the force reads the ``F`` this step makes; for
         a material that flows ``Finv`` is ``flow_inverse_bound``'s, the flowed ``F`` being
         read), and
         with ``with_rest`` the rest distance (the hourglass control). Below ``h^2``: weighed."""
@@ -307,7 +308,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             k = wp.min(k, wp.dot(g, g))
             e = Finv * g
             k = wp.min(k, wp.dot(e, e) / slack2)
-            e = Finv * (xj - gi)
+            g = xj - gi
+            k = wp.min(k, wp.dot(g, g))
+            e = Finv * g
             k = wp.min(k, wp.dot(e, e) / slack2)
         if with_rest != 0:
             e = rest[j] - rest_i
