@@ -1321,6 +1321,39 @@ def test_a_too_fast_body_of_a_scene_file_is_named_by_its_table(tmp_path, capsys)
                               f"{path}: [[bodies]] #2 (shape 'box'): initial velocity of body 'box1'", "1e+06 m/s")
 
 
+def test_run_refusing_a_start_the_step_cannot_follow_names_its_own_options(tmp_path, capsys):
+    """A start faster than a spacing a step, and an adaptive step too short for the material,
+    were refused by 'warp-esph run' with a Python caller's advice ('a smaller dt, or the
+    adaptive step'; 'a higher fps'): the command names --dt, --dt auto and --fps, as Python
+    names dt=, dt='auto' and fps=."""
+    from warp_esph.scenes import load_scene  # noqa: PLC0415
+    from warp_esph.simulate import check_start_speed, simulate  # noqa: PLC0415
+
+    path = tmp_path / "fast.toml"
+    path.write_text(GOOD_TOML.replace("center = [0.0, 0.15, 0.0]", "center = [0.0, 0.15, 0.0]\nvelocity = [1e6, 0.0, 0.0]"))
+    out = tmp_path / "f.usdc"
+    assert main(["run", str(path), "--frames", "1", "--no-progress", "-o", str(out), "--dt", "1e-3", "--fps", "50"]) == 2
+    err = capsys.readouterr().err
+    assert_one_line_error(err, f"{path}: [[bodies]] #1 (shape 'box'): initial velocity of body 'box0': a speed of 1e+06 m/s")
+    assert err.rstrip().endswith("so at most 50 m/s; give a smaller velocity (or angular_velocity), a smaller --dt, "
+                                 "or --dt auto (the adaptive step)"), err
+    model = load_scene(str(path)).builder.finalize()
+    with pytest.raises(ValueError, match=r"so at most 50 m/s; give a smaller velocity \(or angular_velocity\), a smaller "
+                                         r"dt=, or dt='auto' \(the adaptive step\)$"):
+        check_start_speed(model, model.state(), 50.0, 1e-3)
+    # A frame of 100 s: the gravity it adds (981 m/s) takes the adaptive step below 1e-4 s, though
+    # the stable step (4 ms) is 2.5e4 steps a frame.
+    path.write_text(GOOD_TOML)
+    assert main(["run", str(path), "--frames", "1", "--no-progress", "-o", str(out), "--dt", "auto", "--fps", "0.01"]) == 2
+    err = capsys.readouterr().err
+    assert_one_line_error(err, f"{path}: the adaptive step is not allowed for this model at 0.01 fps")
+    assert err.rstrip().endswith("; use a softer material, a larger spacing or a higher --fps"), err
+    model = load_scene(str(path)).builder.finalize()
+    with pytest.raises(ValueError, match=r"; use a softer material, a larger spacing or a higher fps=$"):
+        simulate(model, 1, fps=0.01, dt="auto", progress=False)
+    assert not out.exists()
+
+
 def test_subprocess_run_and_bad_input(tmp_path):
     done = _run_subprocess("warp_esph.cli", "run", "three_cylinders", "-o", "cyl.usdc", *TINY, cwd=tmp_path)
     assert done.returncode == 0, done.stderr

@@ -49,6 +49,8 @@ def test_finite_runaway_at_18x_the_stable_step_exits_3_keeping_good_frames(tmp_p
     line = one_error_line(capsys.readouterr().err)
     assert status == 3
     assert "diverged after step" in line and "particle" in line and "'dough'" in line, line
+    # The command's option, not a Python caller's dt= (it said 'try a smaller dt').
+    assert "'dough'; try a smaller --dt (stable limit " in line and "dt=" not in line, line
     kept = int(line.split("keeps the ")[1].split()[0])
     assert 1 <= kept < 31
     times = frames_in(out)

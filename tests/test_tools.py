@@ -878,7 +878,7 @@ def test_a_scripted_motion_moving_more_than_a_spacing_a_step_stops_the_run_at_th
         with pytest.raises(we.SimulationError, match=r"^the simulation stopped in step (\d+), in frame 3: tool 'hammer': its "
                                                      r"Scripted motion moves its points at up to [\d.e+]+ m/s \(\|v\| \+ \|omega\| "
                                                      r"r, r = 0\.0714 m; from t = 0\.002 s\), which is not allowed at dt = "
-                                                     r".* so at most [\d.e+]+ m/s; give a slower motion or a smaller dt$") as e:
+                                                     r".* so at most [\d.e+]+ m/s; give a slower motion or a smaller dt=$") as e:
             we.simulate(m, 5, fps=fps, dt=run_dt, progress=False, writer=out)
         assert out.written == [0, 1, 2] and e.value.frame == 3 and e.value.particle is None
         if run_dt == dt:
@@ -930,7 +930,7 @@ def test_a_tool_or_pin_moving_more_than_a_spacing_a_step_is_refused_before_the_r
         (dict(motion=tools.Velocity((-300.0, 0.0, 0.0), position=(0.1, 0.03, 0.0))),
          r"^tool 'hammer': its Velocity motion moves its points at up to 300 m/s \(\|v\| \+ \|omega\| r, r = 0\.0714 m; "
          r"from t = 0 s\), which is not allowed at dt = 0\.0001 s: a step may carry a tool at most one spacing "
-         r"\(0\.01 m\), so at most 100 m/s; give a slower motion or a smaller dt$"),
+         r"\(0\.01 m\), so at most 100 m/s; give a slower motion or a smaller dt=$"),
         # 2000 rad/s about its centre: its corners (0.0714 m out) at 143 m/s.
         (dict(motion=tools.Velocity(angular_velocity=(0.0, 2000.0, 0.0), position=(0.1, 0.03, 0.0))), "up to 143 m/s"),
         # Keyed to jump 0.1 m in 0.5 ms at t = 2 ms.
@@ -958,7 +958,13 @@ def test_a_tool_or_pin_moving_more_than_a_spacing_a_step_is_refused_before_the_r
     path = tmp_path / "fast.toml"
     path.write_text(SCENE_TOML.replace("keyframe_times = [0.0, 0.04]", "keyframe_times = [0.0, 0.0001]"))
     out = tmp_path / "fast.usdc"
+    capsys.readouterr()
     assert main(["run", str(path), "-o", str(out), "--no-progress", "--dt", "0.001"]) == 2
+    # The command's options, not a Python caller's dt=.
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"warp-esph: error: {path}: tool 'plate': its Keyframes motion moves its points"), err
+    assert err[0].endswith("at dt = 0.001 s: a step may carry a tool at most one spacing (0.02 m), so at most 20 m/s; "
+                           "give a slower motion or a smaller --dt"), err
     path.write_text(SCENE_TOML.replace("keyframe_times = [0.0, 0.04]", "keyframe_times = [0.0, 1e-12]"))
     capsys.readouterr()
     assert main(["run", str(path), "-o", str(out), "--no-progress", "--dt", "auto"]) == 2

@@ -355,6 +355,17 @@ def _kept(writer, start_frame: int) -> str:
     return f"frames 0..{writer.last_frame} finished" if writer.last_frame is not None else f"the frames before {start_frame}"
 
 
+def _run_advice() -> dict:
+    """``warp-esph run``'s advice for a ``StepRefusal`` of a run's start, by the Python advice
+    it replaces (which names ``dt=`` and ``fps=``)."""
+    from .simulate import ADAPTIVE_ADVICE, START_ADVICE  # noqa: PLC0415
+    from .tools import TOO_FAST_ADVICE  # noqa: PLC0415
+
+    return {START_ADVICE: "; give a smaller velocity (or angular_velocity), a smaller --dt, or --dt auto (the adaptive step)",
+            TOO_FAST_ADVICE: "; give a slower motion or a smaller --dt",
+            ADAPTIVE_ADVICE: "; use a softer material, a larger spacing or a higher --fps"}
+
+
 def _cmd_run(args) -> int:
     from . import checks  # noqa: PLC0415
 
@@ -378,7 +389,8 @@ def _cmd_run(args) -> int:
 
     _init_warp(args.device)  # refuses --device cuda where Warp finds none
     from .scenes import load_scaled_scene  # noqa: PLC0415
-    from .simulate import SimulationError, StepRefusal, _check_run_start, check_step_count, resolve_timestep, simulate  # noqa: PLC0415
+    from .simulate import (SimulationError, StepRefusal, _check_run_start, check_step_count, divergence_advice,  # noqa: PLC0415
+                           resolve_timestep, simulate)
     from .sim.solver import Solver  # noqa: PLC0415
     from .usd import OutputInUse, UsdWriter  # noqa: PLC0415
 
@@ -469,13 +481,20 @@ def _cmd_run(args) -> int:
         start = state if state is not None else model.state(requires_grad=False)
         checked = _check_run_start(model, start, frames, fps, dt, hourglass=solver.hourglass, start_frame=start_frame)
     except ValueError as e:
+        said = str(e)
+        if isinstance(e, StepRefusal):
+            # Its advice is Python's ('a smaller dt=', 'dt='auto'', 'a higher fps='): the command
+            # has --dt, --dt auto and --fps, and none of them with --resume.
+            said = e.reason + ("" if args.resume is not None else _run_advice().get(e.advice, e.advice))
         if str(args.scene).lower().endswith(".toml"):
             # (the adaptive step's refusal may be a tool's, which names it). The body's own table,
             # as the file's other refusals name it: '[[bodies]]' alone left a reader counting.
             table = ""
-            if str(e).startswith("initial velocity"):
+            if said.startswith("initial velocity"):
                 table = f"{scene.builder.origins.get(('body', getattr(e, 'body_index', None)), '[[bodies]]')}: "
-            raise ValueError(f"{args.scene}: {table}{e}") from None
+            raise ValueError(f"{args.scene}: {table}{said}") from None
+        if said != str(e):
+            raise ValueError(said) from None
         raise
     # Every file the run writes, checked before the run (a folder in the way of the reaction
     # log was found only after the whole run); named after the whole output path, as the writer does.
@@ -658,7 +677,11 @@ def _cmd_run(args) -> int:
         return EXIT_INTERRUPTED
     except SimulationError as e:
         writer.close()
-        _err(f"{e} ({writer.path} keeps {_kept(writer, start_frame)})")
+        # A divergence's advice is Python's ('a smaller dt='): the command has --dt, but not with --resume.
+        said = e.reason if e.advice and args.resume is not None else str(e)
+        if e.advice and args.resume is None:
+            said = f"{e.reason}; {divergence_advice(model.stable_dt(hourglass=solver.hourglass), '--dt')}"
+        _err(f"{said} ({writer.path} keeps {_kept(writer, start_frame)})")
         return EXIT_DIVERGED
     except OSError as e:
         # A full disk or a vanished folder mid-run: the file keeps the last published frame.

@@ -40,16 +40,33 @@ AUTO = "auto"
 
 
 class StepRefusal(ValueError):
-    """A refused time step or step count (``resolve_timestep``, ``check_step_count``): its
-    message is ``reason`` and then the advice of a run; ``reason`` lets a caller with other
-    options (a sweep) give its own advice instead. ``detail``: the reason without the refused
-    value's name ('frames = ... is not allowed: ', 'the stable step ... is not allowed: '), for
-    a caller that refuses its own option by name (default: ``reason``)."""
+    """A refused time step or step count (``resolve_timestep``, ``check_step_count``; a start
+    or a tool faster than a spacing a step, ``check_start_speed``, ``ToolSet.check_speed``; the
+    adaptive step too short for the material, ``adaptive_timestep``): its message is ``reason``
+    and then ``advice``, a Python caller's (naming ``dt=``, ``fps=``); ``reason`` lets a caller
+    with other options (a sweep, ``warp-esph run``) give its own advice instead, ``advice``
+    telling which refusal it is (``START_ADVICE``, ``ADAPTIVE_ADVICE``,
+    ``tools.TOO_FAST_ADVICE``). ``detail``: the reason without the refused value's name
+    ('frames = ... is not allowed: ', 'the stable step ... is not allowed: '), for a caller that
+    refuses its own option by name (default: ``reason``)."""
 
     def __init__(self, reason: str, advice: str = "", detail: str | None = None):
         super().__init__(reason + advice)
         self.reason = reason
+        self.advice = advice
         self.detail = reason if detail is None else detail
+
+
+def divergence_advice(stable: float, dt: str = "dt=") -> str:
+    """The advice of ``simulate``'s divergence (``SimulationError``) at the stable step
+    ``stable``; ``dt``: how the caller names the step (``warp-esph run``: ``--dt``)."""
+    return f"try a smaller {dt} (stable limit {stable:.3g} s) or stiffer-to-softer material settings"
+
+
+#: The advice of ``check_start_speed``'s refusal at a fixed dt, and of ``adaptive_timestep``'s
+#: where the material's own step needs too many steps a frame (a Python caller's names).
+START_ADVICE = f"; give a smaller velocity (or angular_velocity), a smaller dt=, or dt={AUTO!r} (the adaptive step)"
+ADAPTIVE_ADVICE = "; use a softer material, a larger spacing or a higher fps="
 
 
 class SimulationError(RuntimeError):
@@ -60,11 +77,17 @@ class SimulationError(RuntimeError):
     ``step``: the number of steps taken when it was detected (counted from the start of
     the run; the bad value arose in one of the steps of the last frame). ``particle``:
     the first bad particle's index (``None`` where a tool's motion stopped the run);
-    ``body``: its body's name; ``frame``: the frame whose check found it.
+    ``body``: its body's name; ``frame``: the frame whose check found it. ``reason`` and
+    ``advice``: the message without and its advice, a Python caller's (a divergence's 'try a
+    smaller dt= ...'; '' where there is none), as ``StepRefusal`` has them for a caller
+    (``warp-esph run``) that names its own options.
     """
 
-    def __init__(self, message: str, *, step: int, particle: int | None, body: str | None = None, frame: int | None = None):
-        super().__init__(message)
+    def __init__(self, message: str, *, step: int, particle: int | None, body: str | None = None, frame: int | None = None,
+                 advice: str = ""):
+        super().__init__(message + advice)
+        self.reason = message
+        self.advice = advice
         self.step = step
         self.particle = particle
         self.body = body
@@ -374,10 +397,10 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
                 f"{fastest:.3g} m/s at this spacing and fps"
             )
         # Not the speed: the material's own step (a body at rest was told its speed of 0 m/s was too much).
-        raise ValueError(
+        raise StepRefusal(
             f"the adaptive step is not allowed for this model at {fps:g} fps: its stable step, {dt:.3g} s (wave speed "
             f"c_P = {c:.3g} m/s at spacing {model.spacing:g} m), would take {ratio:.3g} steps a frame, more than "
-            f"{MAX_STEPS_PER_FRAME:.0e}; use a softer material, a larger spacing or a higher fps"
+            f"{MAX_STEPS_PER_FRAME:.0e}", ADAPTIVE_ADVICE
         )
     n = max(1, math.ceil(ratio))
     return n, frame_dt / n
@@ -419,14 +442,13 @@ def check_start_speed(model: Model, state: State, fps: float, dt, hourglass: flo
         raise _body_error(
             f"initial velocity of body {body!r}: a speed of {speed[p]:.3g} m/s (particle {p}) is not allowed at "
             f"dt = {dt:.4g} s: a step may carry a particle at most one spacing ({model.spacing:g} m), |v| dt <= dx, "
-            f"so at most {limit:.3g} m/s; give a smaller velocity (or angular_velocity), a smaller dt, or the adaptive step",
-            index)
+            f"so at most {limit:.3g} m/s", index, START_ADVICE)
 
 
-def _body_error(message: str, index: int) -> ValueError:
+def _body_error(message: str, index: int, advice: str | None = None) -> ValueError:
     """A ``ValueError`` about body ``index`` (``body_index``: the CLI names the scene file's
-    table of that body by it)."""
-    error = ValueError(message)
+    table of that body by it); with ``advice``, a ``StepRefusal`` of ``message`` and it."""
+    error = ValueError(message) if advice is None else StepRefusal(message, advice)
     error.body_index = index
     return error
 
@@ -717,9 +739,8 @@ def simulate(
                     step = steps if adaptive else start_frame * n_sub + steps
                     raise SimulationError(
                         f"the simulation diverged after step {step} (frame {frame}, t = {frame / fps:.4g} s, "
-                        f"dt = {dt:.4g} s): {what}, at particle {p} of body {body!r}; try a smaller dt (stable limit "
-                        f"{model.stable_dt(hourglass=solver.hourglass):.3g} s) or stiffer-to-softer material settings",
-                        step=step, particle=p, body=body, frame=frame,
+                        f"dt = {dt:.4g} s): {what}, at particle {p} of body {body!r}", step=step, particle=p, body=body,
+                        frame=frame, advice=f"; {divergence_advice(model.stable_dt(hourglass=solver.hourglass))}",
                     )
                 met = _far_mesh_contact(model, current, far_meshes) if far_meshes else None
                 if met is not None:

@@ -66,6 +66,9 @@ KINDS = ("plane", "box", "sphere", "capsule", "cylinder", "mesh")
 #: this close to a tool (but a plane) counts as touching it.
 CONTACT_MARGIN = 1.0e-3
 MAX_TOOLS = 16
+#: The advice of ``ToolSet.check_speed``'s refusal (a Python caller's names; ``warp-esph run``
+#: gives its options').
+TOO_FAST_ADVICE = "; give a slower motion or a smaller dt="
 IDENTITY = (0.0, 0.0, 0.0, 1.0)
 
 
@@ -1263,14 +1266,17 @@ class ToolSet:
         at each step, from the poses the step evaluates (``check_scripted_step``)."""
         for k, speed, when in self.fastest(t0, t1):
             if not speed <= self.model.spacing / dt:
-                raise ValueError(self._too_fast(k, speed, when, dt))
+                raise self._too_fast(k, speed, when, dt)
 
-    def _too_fast(self, k: int, speed: float, when: float, dt: float) -> str:
+    def _too_fast(self, k: int, speed: float, when: float, dt: float) -> ValueError:
+        from .simulate import StepRefusal  # noqa: PLC0415 (simulate imports this module)
+
         limit = self.model.spacing / dt
-        return (f"{self._owner(k)}: its {type(self.motions[k]).__name__} motion moves its points at up to {speed:.3g} m/s "
-                f"(|v| + |omega| r, r = {self.reach(k):.3g} m; from t = {when:.4g} s), which is not allowed at dt = "
-                f"{dt:.4g} s: a step may carry a tool at most one spacing ({self.model.spacing:g} m), so at most "
-                f"{limit:.3g} m/s; give a slower motion or a smaller dt")
+        return StepRefusal(
+            f"{self._owner(k)}: its {type(self.motions[k]).__name__} motion moves its points at up to {speed:.3g} m/s "
+            f"(|v| + |omega| r, r = {self.reach(k):.3g} m; from t = {when:.4g} s), which is not allowed at dt = "
+            f"{dt:.4g} s: a step may carry a tool at most one spacing ({self.model.spacing:g} m), so at most "
+            f"{limit:.3g} m/s", TOO_FAST_ADVICE)
 
     def check_scripted_step(self, dt: float) -> None:
         """Refuse (``ValueError``, ``check_speed``'s message) a ``Scripted`` tool or pinned set
@@ -1289,7 +1295,7 @@ class ToolSet:
                 turn *= self._scripted_reach(k)
             speed = (float(np.linalg.norm(p1 - p0)) + turn) / dt
             if not speed <= self.model.spacing / dt:
-                raise ValueError(self._too_fast(k, speed, t0, dt))
+                raise self._too_fast(k, speed, t0, dt)
 
     def _scripted_reach(self, k: int) -> float:
         # Computed once: a plane's reads its pose at t = 0, which would call the function again.
