@@ -1,6 +1,7 @@
 """USD output: content, metadata, crash safety, append; and ``simulate``'s frame loop."""
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -183,6 +184,9 @@ def test_a_close_whose_clean_up_fails_lets_the_output_go(model, tmp_path, monkey
     with pytest.raises(PermissionError):
         first.close()
     monkeypatch.undo()
+    # Its stages are gone: a frame is refused as by a closed writer (it was an IndexError).
+    with pytest.raises(ValueError, match=rf"^cannot write frame 0: the writer of {re.escape(str(first.path))} is closed$"):
+        first.write_frame(0, model.state())
     second = UsdWriter(path, model, 30)  # refused before, the first still referenced here
     working = sorted(os.listdir(tmp_path))
     first.close()

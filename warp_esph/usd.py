@@ -631,7 +631,9 @@ class UsdWriter:
     # ----------------------------------------------------------------- frames
     def write_frame(self, frame_index: int, state) -> None:
         """Write ``state`` as frame ``frame_index`` (time code = frame index) and make it durable."""
-        if self.closed:
+        if self.closed or not self._stages:
+            # A close() whose clean-up raised has released the stages but is not marked closed
+            # (a later close() finishes it): writing on raised an IndexError from the publish.
             raise ValueError(f"cannot write frame {frame_index!r}: the writer of {self.path} is closed")
         if isinstance(frame_index, bool) or not isinstance(frame_index, (int, np.integer)) or frame_index < 0:
             raise ValueError(f"frame_index = {frame_index!r} is not allowed: must be an integer >= 0")
