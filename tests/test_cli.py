@@ -1070,6 +1070,34 @@ def test_a_signal_held_while_the_last_force_log_write_fails_is_reported(tmp_path
     assert "wrote" not in captured.out
 
 
+def test_a_stopped_run_whose_writer_fails_to_close_still_exits_as_stopped(tmp_path, monkeypatch, capsys):
+    """A run stopped by a SIGTERM whose writer then failed to close (its working copies not
+    removed: a full disk, a folder made read-only) left with the close's OSError and exited 4,
+    the signal dropped. The stop wins (143), its one line naming the failure."""
+    import errno
+
+    from warp_esph import usd as usd_module
+
+    def close(self):
+        os.kill(os.getpid(), signal.SIGTERM)  # the run's end: raised, or held inside the stop's close
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(usd_module.UsdWriter, "close", close)
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    out_path = tmp_path / "c.usdc"
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(out_path), "--frames", "2", "--no-progress"]) == 143
+    err = capsys.readouterr().err
+    assert err.splitlines() == [f"warp-esph: terminated: cannot finish {out_path}: No space left on device (its working "
+                                f"copies may be left beside it; it keeps the 3 frames finished)"], err
+    # Unstopped, the same close is a failed write (it was exit 2, '[Errno 28] No space left on device').
+    monkeypatch.setattr(usd_module.UsdWriter, "close", lambda self: (_ for _ in ()).throw(OSError(errno.ENOSPC, "No space left on device")))
+    out_path = tmp_path / "d.usdc"
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(out_path), "--frames", "2", "--no-progress"]) == 4
+    err = capsys.readouterr().err
+    assert err.splitlines() == [f"warp-esph: error: cannot write {out_path}: No space left on device (it keeps the 3 frames "
+                                "finished)"], err
+
+
 @pytest.mark.parametrize("extra", [["--preview"], ["--export", "ply"]])
 def test_a_full_disk_under_the_preview_or_export_of_a_finished_run_is_exit_4(tmp_path, monkeypatch, capsys, extra):
     """The run is whole; its picture or export files could not be written: exit 2, 'bad input',

@@ -649,6 +649,22 @@ def _cmd_run(args) -> int:
                 log.record(frame, current)
             checkpoint(frame, current)
             _safe_point(args)  # after the frame's rows and checkpoint: they go with the frame kept
+
+        close_said = [False]
+
+        def close_writer():
+            """``writer.close()``; the line of its failure (its working copies not removed), once,
+            or None. A close that raised left with its OSError, a stop's signal dropped (exit 2,
+            the errno alone); a later close tries the clean-up again."""
+            try:
+                writer.close()
+            except OSError as e:
+                if close_said[0]:
+                    return None
+                close_said[0] = True
+                return (f"cannot finish {writer.path}: {e.strerror or str(e)} (its working copies may be left beside it; "
+                        f"it keeps {_kept(writer, start_frame)})")
+            return None
     except BaseException:
         writer.close()
         raise
@@ -669,23 +685,28 @@ def _cmd_run(args) -> int:
         # Ctrl-C here waits for them, and one after them ends the process at once (the log was
         # written only in the cleanup below, which that second one never reached).
         with _Deferred(args):
-            writer.close()
+            close_error = close_writer()
             log_error = write_final_log()
-        print(f"{PROG}: {_stopped(args)}: {writer.path} keeps {_kept(writer, start_frame)}", file=sys.stderr)
+        if close_error is None or not _held_signal_wins(args, seen, close_error):
+            print(f"{PROG}: {_stopped(args)}: {writer.path} keeps {_kept(writer, start_frame)}", file=sys.stderr)
+            if close_error is not None:
+                _err(close_error)
         if log_error is not None:
             _err(log_error)
         return EXIT_INTERRUPTED
     except SimulationError as e:
-        writer.close()
+        close_error = close_writer()
         # A divergence's advice is Python's ('a smaller dt='): the command has --dt, but not with --resume.
         said = e.reason if e.advice and args.resume is not None else str(e)
         if e.advice and args.resume is None:
             said = f"{e.reason}; {divergence_advice(model.stable_dt(hourglass=solver.hourglass), '--dt')}"
         _err(f"{said} ({writer.path} keeps {_kept(writer, start_frame)})")
+        if close_error is not None:
+            _err(close_error)
         return EXIT_DIVERGED
     except OSError as e:
         # A full disk or a vanished folder mid-run: the file keeps the last published frame.
-        writer.close()
+        close_writer()  # (failing, most likely as e did: e's line says what the file keeps)
         if isinstance(e, BrokenPipeError):  # stdout's reader left, not the output file (main)
             raise
         # The USD was written where the checkpoint or the force log failed: naming it sent the
@@ -703,7 +724,12 @@ def _cmd_run(args) -> int:
         # The force log holds every frame's rows only once this last write is done: a Ctrl-C
         # inside it (a second one, or one as the run ended) lost the whole log of a finished run.
         with _Deferred(args):
-            writer.close()
+            close_error = close_writer()
+            if close_error is not None:
+                if final_log_error[0] is False:
+                    final_log_error[0] = close_error
+                else:
+                    _err(close_error)
             log_error = write_final_log()
             if log_error is not None:
                 if final_log_error[0] is False:
