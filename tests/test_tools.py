@@ -1789,3 +1789,33 @@ def test_a_run_stops_where_the_particles_meet_a_mesh_tool_beyond_float32s_resolu
                                               r"than half the contact's margin 2e-05 m") as info:
         we.simulate(m, 12, fps=30.0, progress=False)
     assert info.value.frame == 8 and info.value.body == "block"
+
+
+def test_a_run_stopped_at_a_far_mesh_tool_names_the_callers_precision_option(tmp_path, monkeypatch, capsys):
+    """That stop told 'warp-esph run' to 'use dtype=float64', a Python caller's parameter: the
+    command's option is --dtype float64. The scene above in float32, finalize's bound left out
+    (in float32 it refuses this scene already; a scene file reaches the stop with a mesh file)."""
+    from warp_esph import scenes  # noqa: PLC0415
+    from warp_esph.cli import main  # noqa: PLC0415
+
+    def belt():
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((80.0, 0.03, 0.0), (0.06, 0.06, 0.06), we.Material.preset("dough"), name="block")
+        b.add_tool("mesh", mesh=tools.box_mesh((100.0, 0.05, 100.0)), name="belt", friction=0.0,
+                   motion=tools.Velocity((-15.0, 0.0, 0.0), position=(0.0, 0.01 - 0.05, 0.0)))
+        return b
+
+    monkeypatch.setattr(we.SceneBuilder, "_check_mesh_tool_reach", lambda self, scalar: None)
+    monkeypatch.setattr(scenes, "load_scaled_scene", lambda *a, **k: scenes.Scene("belt", "", belt(), frames=2))
+    cure = (r"; model the mesh about where they meet it \(its points less that place, the place added to position\), split "
+            r"its faces there into smaller ones, use {}, or use a larger spacing")
+    out = tmp_path / "f.usdc"
+    assert main(["run", "-o", str(out), "--no-progress"]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert re.fullmatch(r"warp-esph: error: the simulation stopped after step \d+ \(frame 1, t = 0\.03333 s\): the particles "
+                        r"met mesh tool 'belt' far from its origin \(the faces they are at reach 100 m from it\), where float32 "
+                        r"\(the model's contact and Warp's mesh queries\) .*" + cure.format("--dtype float64")
+                        + rf" \({re.escape(str(out))} keeps the 1 frame finished\)", err[0]), err
+    with pytest.raises(we.SimulationError, match=cure.format("dtype=float64") + "$"):
+        we.simulate(belt().finalize(), 2, fps=30.0, progress=False)

@@ -390,7 +390,7 @@ def _cmd_run(args) -> int:
     _init_warp(args.device)  # refuses --device cuda where Warp finds none
     from .scenes import load_scaled_scene  # noqa: PLC0415
     from .simulate import (SimulationError, StepRefusal, _check_run_start, check_step_count, divergence_advice,  # noqa: PLC0415
-                           resolve_timestep, simulate)
+                           far_mesh_advice, resolve_timestep, simulate)
     from .sim.solver import Solver  # noqa: PLC0415
     from .usd import OutputInUse, UsdWriter  # noqa: PLC0415
 
@@ -696,10 +696,15 @@ def _cmd_run(args) -> int:
         return EXIT_INTERRUPTED
     except SimulationError as e:
         close_error = close_writer()
-        # A divergence's advice is Python's ('a smaller dt='): the command has --dt, but not with --resume.
+        # Its advice is Python's ('a smaller dt=', 'use dtype=float64'): the command has --dt and
+        # --dtype, and neither with --resume.
         said = e.reason if e.advice and args.resume is not None else str(e)
         if e.advice and args.resume is None:
-            said = f"{e.reason}; {divergence_advice(model.stable_dt(hourglass=solver.hourglass), '--dt')}"
+            f32 = args.dtype == "float32"
+            ours = {f"; {divergence_advice(model.stable_dt(hourglass=solver.hourglass))}":
+                    divergence_advice(model.stable_dt(hourglass=solver.hourglass), "--dt"),
+                    f"; {far_mesh_advice(f32)}": far_mesh_advice(f32, "--dtype float64")}
+            said = f"{e.reason}; {ours[e.advice]}" if e.advice in ours else str(e)
         _err(f"{said} ({writer.path} keeps {_kept(writer, start_frame)})")
         if close_error is not None:
             _err(close_error)

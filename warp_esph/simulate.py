@@ -79,7 +79,8 @@ class SimulationError(RuntimeError):
     the first bad particle's index (``None`` where a tool's motion stopped the run);
     ``body``: its body's name; ``frame``: the frame whose check found it. ``reason`` and
     ``advice``: the message without and its advice, a Python caller's (a divergence's 'try a
-    smaller dt= ...'; '' where there is none), as ``StepRefusal`` has them for a caller
+    smaller dt= ...', ``divergence_advice``; a far mesh tool's, ``far_mesh_advice``; '' where
+    there is none), as ``StepRefusal`` has them for a caller
     (``warp-esph run``) that names its own options.
     """
 
@@ -579,12 +580,16 @@ def _far_mesh_contact(model: Model, state: State, far: list):
             where = ("the faces they are at reach", "(the model's contact and Warp's mesh queries)") if f32 else \
                 ("they are at it", "(Warp's mesh queries)")
             return (f"the particles met mesh tool {name!r} far from its origin ({where[0]} {reach:.3g} m from it), where "
-                    f"float32 {where[1]} {_margin_unresolved(reach, model.spacing)}; model the mesh about where they meet "
-                    "it (its points "
-                    "less that place, the place added to position)"
-                    + (", split its faces there into smaller ones, use dtype=float64," if f32 else "")
-                    + " or use a larger spacing"), p_far
+                    f"float32 {where[1]} {_margin_unresolved(reach, model.spacing)}"), p_far
     return None
+
+
+def far_mesh_advice(f32: bool, dtype: str = "dtype=float64") -> str:
+    """The advice of ``simulate``'s stop at a mesh tool beyond float32's resolution
+    (``_far_mesh_contact``), for a model of float32 or not; ``dtype``: how the caller names
+    the precision (``warp-esph run``: ``--dtype float64``)."""
+    return ("model the mesh about where they meet it (its points less that place, the place added to position)"
+            + (f", split its faces there into smaller ones, use {dtype}," if f32 else "") + " or use a larger spacing")
 
 
 def _body_layout(model: Model) -> list[tuple[str, int]]:
@@ -744,11 +749,14 @@ def simulate(
                     )
                 met = _far_mesh_contact(model, current, far_meshes) if far_meshes else None
                 if met is not None:
+                    import warp as wp  # noqa: PLC0415
+
                     what, p = met
                     body = model.bodies[int(model.particle_body_np[p])].name
                     step = steps if adaptive else start_frame * n_sub + steps
                     raise SimulationError(f"the simulation stopped after step {step} (frame {frame}, t = {frame / fps:.4g} "
-                                          f"s): {what}", step=step, particle=p, body=body, frame=frame)
+                                          f"s): {what}", step=step, particle=p, body=body, frame=frame,
+                                          advice=f"; {far_mesh_advice(model.scalar is wp.float32)}")
                 if writer is not None:
                     writer.write_frame(frame, current)
                 if callback is not None:
