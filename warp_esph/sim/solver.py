@@ -130,7 +130,8 @@ class Solver:
     ``DEFAULT_SKIN``) is the Verlet margin of the neighbour candidates: they are rebuilt only when two
     particles may have moved by more than it relative to each other, and the rows
     (every particle within ``h sigma_max(F)`` where a material uses the paper's elastic
-    force, else within ``h``; the nearest ``Model.max_neighbors`` where there are more,
+    force or a comparison model, or the hourglass control runs, else within ``h``
+    (``_stretch_rows``); the nearest ``Model.max_neighbors`` where there are more,
     in rows reaching ``h sigma_max(F)`` those of smallest ``neighbors.weight_key``) are
     selected from them every step, so the lists are those of a fresh search (``0``: search afresh every step). ``guard_counts()["neighbors_cut"]`` counts
     the particle-steps whose row may lack a neighbour of non-zero weight (docs/method.md §1);
