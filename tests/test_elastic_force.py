@@ -6,6 +6,8 @@ not), its linear stiffness is symmetric with real frequencies (the paper's is no
 growing modes), and an undamped elastic body keeps its energy with it, while with the
 paper's force it gains energy at a rate the time step does not change."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import warp as wp
@@ -254,6 +256,33 @@ def test_elastic_force_is_read_from_scene_files_and_presets(tmp_path):
                     '[[bodies]]\nshape = "box"\nmaterial = "m"\ncenter = [0, 0.5, 0]\nsize = [0.2, 0.2, 0.2]\n')
     with pytest.raises(ValueError, match=r"\[materials\.m\]: Material\.elastic_force = 'exact' is not allowed"):
         scenes.load_scene_file(str(path))
+
+
+def test_a_preset_given_a_comparison_model_gets_that_models_default_force():
+    """The presets leave ``elastic_force`` to its default, which depends on ``deformation``
+    (the comparison models' is the paper's): overriding ``deformation`` alone gives the
+    force ``Material(...)`` would. It kept the incremental model's ``"variational"``, so
+    ``deformation="additive"`` was refused for a force no one asked for."""
+    for deformation in ("rest", "additive"):
+        mat = we.Material.preset("rubber", deformation=deformation)
+        assert mat.elastic_force == "paper"
+        assert mat == we.Material(**{**dataclasses.asdict(we.Material.preset("rubber")), "deformation": deformation,
+                                     "elastic_force": None})
+    assert we.Material.preset("rubber", deformation="rest", elastic_force="variational").elastic_force == "variational"
+    assert we.Material.preset("rubber", deformation="incremental").elastic_force == "variational"
+
+
+def test_a_scene_file_preset_given_a_comparison_model_gets_that_models_default_force(tmp_path):
+    """The same rule in a scene file's ``[materials]`` table: ``preset`` and ``deformation``
+    without ``elastic_force`` is the comparison model's default force, ``"paper"``."""
+    from warp_esph import scenes
+
+    path = tmp_path / "s.toml"
+    path.write_text('[materials.m]\npreset = "rubber"\ndeformation = "additive"\n'
+                    '[[bodies]]\nshape = "box"\nmaterial = "m"\ncenter = [0, 0.5, 0]\nsize = [0.2, 0.2, 0.2]\n')
+    material = scenes.load_scene_file(str(path)).builder._materials[0]
+    assert material == we.Material.preset("rubber", deformation="additive")
+    assert material.elastic_force == "paper"
 
 
 def test_rubber_ball_bounces_and_settles_in_its_shape():

@@ -270,11 +270,18 @@ class Material:
 
     @classmethod
     def preset(cls, name: str, **overrides) -> "Material":
-        """A named preset (see ``PRESETS``), with any field overridden."""
+        """A named preset (see ``PRESETS``), with any field overridden. Fields the presets
+        leave at their defaults follow the overrides they depend on, as ``Material(...)``
+        would derive them: ``pressure_stiffness`` new moduli, a density or a
+        ``pressure_force``, and ``elastic_force`` a ``deformation`` (the comparison models'
+        is ``"paper"``), unless the overrides set them too."""
         checks.choice("preset", name, tuple(PRESETS))
         _check_fields("Material.preset", overrides)
         if {"mu", "lam", "density", "pressure_force"} & overrides.keys() and "pressure_stiffness" not in overrides:
             overrides["pressure_stiffness"] = None  # re-derive it from the new moduli / force
+        if "deformation" in overrides and "elastic_force" not in overrides:
+            # The presets' force is the incremental model's default, which "additive" refuses.
+            overrides["elastic_force"] = None
         return dataclasses.replace(PRESETS[name], **overrides)
 
     def replace(self, **changes) -> "Material":

@@ -262,6 +262,10 @@ def _material(file: str, name: str, table: dict) -> Material:
             if "pressure_stiffness" not in fields:
                 # Recomputed from the (possibly changed) bulk modulus, as for a new material.
                 fields["pressure_stiffness"] = None
+            if "deformation" in fields and "elastic_force" not in fields:
+                # The deformation model's default force, as for a new material (the presets
+                # hold the incremental model's, which "additive" refuses).
+                fields["elastic_force"] = None
             return dataclasses.replace(PRESETS[preset], **fields)
         if "mu" not in fields or "lam" not in fields:
             raise ValueError(f"{file}: {where} needs a preset, E and nu, or mu and lam")
