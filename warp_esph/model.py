@@ -499,7 +499,8 @@ class Model:
         that also carries the mixed quadratic terms (``sim/curvature.py``; docs/physics.md,
         "Bending stiffness"); ``"auto"``, one of the two by the materials (``solver_choice``).
         Until one is set: ``DEFAULT_FIT`` (``"auto"``), or ``"linear"`` for a model with a
-        Fig. 8 comparison deformation model (the only fit those have). Scene files set it in
+        Fig. 8 comparison deformation model (``"curvature_corrected"`` runs for those only
+        when asked for and every material is ``"rest"``; ``Solver``). Scene files set it in
         ``[solver]`` (docs/scene_format.md)."""
         if self._fit is not None:
             return self._fit
