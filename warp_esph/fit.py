@@ -882,6 +882,8 @@ def fit(
       errors, correlations and warnings about parameters the data do not determine.
     - ``callback(evaluation, loss, params)``: after each evaluation; return ``True`` to
       stop. ``log``: called with one-line messages (memory, time per evaluation, stages).
+    - ``lbfgs_memory``: the number of past steps L-BFGS keeps (default 10). ``progress``:
+      a progress bar on stderr. ``dtype`` and ``tie_pressure``: the module docstring.
     """
     o = check_options(params=params, iterations=iterations, lr=lr, lr_end=lr_end, clip=clip, bounds=bounds,
                       optimizer=optimizer, patience=patience, samples=samples, starts=starts, sample_range=sample_range,
