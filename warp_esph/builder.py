@@ -301,6 +301,7 @@ class SceneBuilder:
         return self.add_particles(self._lattice(c - s / 2, c + s / 2, "size", size), material, velocity, name, "box", angular_velocity)
 
     def add_sphere(self, center, radius: float, material: Material, velocity=(0.0, 0.0, 0.0), name: str | None = None, angular_velocity=(0.0, 0.0, 0.0)) -> int:
+        """A solid ball of ``radius`` centred at ``center``: the lattice points within it."""
         c = self._center(center)
         r = checks.positive("radius", radius)
         p = self._lattice(c - r, c + r, "radius", radius)
@@ -555,6 +556,7 @@ class SceneBuilder:
         self._add_collider(self.planes, Plane(n, distance, checks.non_negative("friction", friction)), "plane")
 
     def add_sphere_collider(self, center, radius: float, friction: float = 0.5):
+        """A fixed solid sphere; Coulomb ``friction`` >= 0 (its reaction row is ``sphere<k>``)."""
         self._add_collider(
             self.spheres,
             Sphere(checks.vector("center", center), checks.positive("radius", radius), checks.non_negative("friction", friction)),
@@ -562,7 +564,8 @@ class SceneBuilder:
         )
 
     def add_box_collider(self, center, half_extents, friction: float = 0.5):
-        """An axis-aligned solid box."""
+        """A fixed axis-aligned solid box of ``half_extents`` about ``center``; Coulomb
+        ``friction`` >= 0 (its reaction row is ``box<k>``)."""
         self._add_collider(
             self.boxes,
             Box(checks.vector("center", center), checks.positive_vector("half_extents", half_extents), checks.non_negative("friction", friction)),
