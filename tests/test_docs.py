@@ -180,3 +180,10 @@ def test_every_public_name_has_a_docstring_and_is_in_the_docs():
         elif name != "__version__":
             # A constant's documentation is a '#:' comment above its assignment.
             assert any(re.search(rf"#:.*\n(#:.*\n)*{name}\b.*=", src) for src in sources.values()), f"{name} has no #: comment"
+        if isinstance(value, type):
+            # help(SceneBuilder.add_sphere) showed nothing, nor eight other public methods and
+            # properties of the exported classes.
+            for attr, member in vars(value).items():
+                func = member.__func__ if isinstance(member, (staticmethod, classmethod)) else member
+                if not attr.startswith("_") and (callable(func) or isinstance(func, property)):
+                    assert (func.__doc__ or "").strip(), f"{name}.{attr} has no docstring"

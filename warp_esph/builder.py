@@ -750,6 +750,7 @@ class SceneBuilder:
     # --------------------------------------------------------------- finalize
     @property
     def particle_count(self) -> int:
+        """The particles added so far (pinned floors included)."""
         return self._count
 
     def _check_overlap(self):

@@ -305,14 +305,17 @@ class Material:
 
     @property
     def youngs_modulus(self) -> float:
+        """``E = mu (3 lam + 2 mu) / (lam + mu)`` (Pa)."""
         return self.mu * (3.0 * self.lam + 2.0 * self.mu) / (self.lam + self.mu)
 
     @property
     def poisson_ratio(self) -> float:
+        """``nu = lam / (2 (lam + mu))``."""
         return self.lam / (2.0 * (self.lam + self.mu))
 
     @property
     def bulk_modulus(self) -> float:
+        """``K = lam + 2 mu / 3`` (Pa), which the default ``pressure_stiffness`` scales."""
         return self.lam + 2.0 * self.mu / 3.0
 
     @property
@@ -352,6 +355,7 @@ class Material:
 
     @property
     def plastic(self) -> bool:
+        """Whether the material can flow: a finite ``yield_stress`` and ``flow_rate > 0``."""
         return math.isfinite(self.yield_stress) and self.flow_rate > 0.0
 
 

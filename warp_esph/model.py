@@ -270,6 +270,7 @@ class State:
 
     @property
     def particle_count(self) -> int:
+        """The number of particles this state holds (every world's, with worlds)."""
         return self.x.shape[0]
 
 
@@ -932,6 +933,7 @@ class Model:
 
     @property
     def body_names(self) -> list[str]:
+        """The bodies' names, in the order they were added."""
         return [b.name for b in self.bodies]
 
     def __repr__(self):

@@ -456,9 +456,13 @@ class Solver:
                 for r, name in enumerate(integrate.static_collider_names(self.model))}
 
     def reset_counts(self):
+        """Zero the counts ``guard_counts`` reports."""
         self.scratch.counters.zero_()
 
     def check_dt(self, dt) -> float:
+        """``dt`` as a float, refused (ValueError) unless positive and representable in the
+        model's precision; warns once per value above ``Model.stable_dt`` (with the
+        hourglass strength this solver runs). ``step`` calls it."""
         dt = checks.positive("dt", dt)
         info = np.finfo(np.float32 if self.model.scalar is wp.float32 else np.float64)
         if not float(info.tiny) <= dt <= float(info.max):
