@@ -272,6 +272,50 @@ def test_a_preset_given_a_comparison_model_gets_that_models_default_force():
     assert we.Material.preset("rubber", deformation="incremental").elastic_force == "variational"
 
 
+def test_replace_of_a_defaulted_force_follows_a_new_deformation_and_a_given_one_stays():
+    """``Material.replace(deformation=...)`` kept the resolved ``"variational"`` of a force left
+    to its default: ``preset("rubber").replace(deformation="additive")`` was refused for a force
+    no one gave, and ``deformation="rest"`` ran the variational force where ``Material(...)``
+    gives the paper's. A defaulted force now follows the deformation, also after other
+    replaces; a given one is kept (and refused with ``"additive"``). Whether it was given is
+    no field: equality, hash, repr and ``asdict`` are the resolved values', and pickling keeps it."""
+    import copy
+    import pickle
+
+    rubber = we.Material.preset("rubber")
+    assert rubber.replace(deformation="additive").elastic_force == "paper"
+    assert rubber.replace(mu=2e5).replace(deformation="rest").elastic_force == "paper"
+    assert rubber.replace(deformation="rest").replace(deformation="incremental").elastic_force == "variational"
+    assert we.Material.preset("rubber", mu=2e5).replace(deformation="additive").elastic_force == "paper"
+    assert pickle.loads(pickle.dumps(rubber)).replace(deformation="rest").elastic_force == "paper"
+    assert copy.deepcopy(rubber).replace(deformation="rest").elastic_force == "paper"
+    given = we.Material(mu=1e4, lam=1e4, elastic_force="variational")
+    defaulted = we.Material(mu=1e4, lam=1e4)
+    assert given == defaulted and hash(given) == hash(defaulted) and repr(given) == repr(defaulted)
+    assert dataclasses.asdict(given) == dataclasses.asdict(defaulted)
+    assert given.replace(deformation="rest").elastic_force == "variational"
+    assert pickle.loads(pickle.dumps(given)).replace(deformation="rest").elastic_force == "variational"
+    with pytest.raises(ValueError, match=r"^Material\.elastic_force = 'variational' is not allowed with deformation = "
+                                         r"'additive': .*, or elastic_force = 'paper'$"):
+        given.replace(deformation="additive")
+    assert given.replace(deformation="additive", elastic_force="paper").elastic_force == "paper"
+    paper = we.Material.preset("rubber", elastic_force="paper")
+    assert paper.replace(deformation="incremental").elastic_force == "paper"
+
+
+def test_a_scene_file_preset_keeps_its_force_defaulted(tmp_path):
+    """A scene file's preset with another field changed left the preset's force as if given:
+    its ``replace(deformation="rest")`` kept ``"variational"``."""
+    from warp_esph import scenes
+
+    path = tmp_path / "s.toml"
+    path.write_text('[materials.m]\npreset = "rubber"\nmu = 2e5\n'
+                    '[[bodies]]\nshape = "box"\nmaterial = "m"\ncenter = [0, 0.5, 0]\nsize = [0.2, 0.2, 0.2]\n')
+    material = scenes.load_scene_file(str(path)).builder._materials[0]
+    assert material.elastic_force == "variational"
+    assert material.replace(deformation="rest").elastic_force == "paper"
+
+
 def test_a_scene_file_preset_given_a_comparison_model_gets_that_models_default_force(tmp_path):
     """The same rule in a scene file's ``[materials]`` table: ``preset`` and ``deformation``
     without ``elastic_force`` is the comparison model's default force, ``"paper"``."""

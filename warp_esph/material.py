@@ -157,6 +157,10 @@ class Material:
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
+        # Not a field: equality, hash, repr and asdict stay the resolved values'; replace() and
+        # preset() read it so that a new deformation gets its model's default force (a defaulted
+        # 'variational' kept through replace(deformation='additive') was refused, never asked for).
+        set_("_elastic_force_defaulted", self.elastic_force is None)
         if self.elastic_force is None:
             # The variational force is defined only for the incremental fit (its energy's
             # gradient); the comparison models keep the force they were published with.
@@ -279,19 +283,19 @@ class Material:
         _check_fields("Material.preset", overrides)
         if {"mu", "lam", "density", "pressure_force"} & overrides.keys() and "pressure_stiffness" not in overrides:
             overrides["pressure_stiffness"] = None  # re-derive it from the new moduli / force
-        if "deformation" in overrides and "elastic_force" not in overrides:
-            # The presets' force is the incremental model's default, which "additive" refuses.
-            overrides["elastic_force"] = None
-        return dataclasses.replace(PRESETS[name], **overrides)
+        return dataclasses.replace(PRESETS[name], **_following_force(PRESETS[name], overrides))
 
     def replace(self, **changes) -> "Material":
         """A copy with ``changes``. A ``pressure_stiffness`` at its default follows a new
         ``pressure_force`` (each force's default adds the same bulk stiffness) unless
-        ``changes`` sets it; new moduli keep the old value."""
+        ``changes`` sets it; new moduli keep the old value. An ``elastic_force`` left to its
+        default (not given to ``Material(...)``, a preset's) follows a new ``deformation``
+        unless ``changes`` sets it: ``"paper"`` for the comparison models; one given keeps
+        its value (``"variational"`` with ``deformation="additive"`` is refused)."""
         _check_fields("Material.replace", changes)
         if "pressure_force" in changes and "pressure_stiffness" not in changes and self.has_default_pressure_stiffness:
             changes["pressure_stiffness"] = None
-        return dataclasses.replace(self, **changes)
+        return dataclasses.replace(self, **_following_force(self, changes))
 
     @property
     def default_pressure_stiffness(self) -> float:
@@ -357,6 +361,16 @@ class Material:
     def plastic(self) -> bool:
         """Whether the material can flow: a finite ``yield_stress`` and ``flow_rate > 0``."""
         return math.isfinite(self.yield_stress) and self.flow_rate > 0.0
+
+
+def _following_force(material: "Material", changes: dict) -> dict:
+    """``changes`` with ``elastic_force = None`` where ``material``'s force was its default
+    and ``changes`` does not set one: it is derived again, from a new ``deformation`` (the
+    comparison models' is ``"paper"``), and stays defaulted in the copy (a copy given the
+    resolved value would keep it through a later change of ``deformation``)."""
+    if "elastic_force" not in changes and getattr(material, "_elastic_force_defaulted", False):
+        return {**changes, "elastic_force": None}
+    return changes
 
 
 def _check_fields(where: str, given) -> None:

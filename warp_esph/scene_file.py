@@ -23,7 +23,7 @@ except ModuleNotFoundError:  # Python 3.10: the same parser as the tomli package
 
 from . import checks
 from .builder import MAX_FLOOR_LAYERS, MAX_NEIGHBORS, SceneBuilder
-from .material import PRESETS, Material
+from .material import PRESETS, Material, _following_force
 from .model import CONTACTS, FITS
 from .sim.neighbors import MIN_NEIGHBORS
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
@@ -262,11 +262,9 @@ def _material(file: str, name: str, table: dict) -> Material:
             if "pressure_stiffness" not in fields:
                 # Recomputed from the (possibly changed) bulk modulus, as for a new material.
                 fields["pressure_stiffness"] = None
-            if "deformation" in fields and "elastic_force" not in fields:
-                # The deformation model's default force, as for a new material (the presets
-                # hold the incremental model's, which "additive" refuses).
-                fields["elastic_force"] = None
-            return dataclasses.replace(PRESETS[preset], **fields)
+            # The deformation model's default force, as for a new material (the presets hold
+            # the incremental model's, which "additive" refuses), and left defaulted as a preset's.
+            return dataclasses.replace(PRESETS[preset], **_following_force(PRESETS[preset], fields))
         if "mu" not in fields or "lam" not in fields:
             raise ValueError(f"{file}: {where} needs a preset, E and nu, or mu and lam")
         return Material(**fields)
