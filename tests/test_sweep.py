@@ -278,6 +278,11 @@ def test_cli_records_a_blown_up_sample_and_exits_3(scene_file, tmp_path, capsys)
     # the run before the sweep's own energy check sees its end state (that check:
     # test_energy_blow_up_check_is_ten_times_the_energy_scale); the reason is its message.
     assert "the simulation diverged after step" in table.rows[1]["reason"] and table.rows[0]["reason"] is None
+    # The reason alone and the stable step, no caller's option (it said 'try a smaller dt= (stable
+    # limit ...)', a Python caller's parameter, where a refused start's row gave its reason alone).
+    assert re.fullmatch(r"the simulation diverged after step \d+ \(frame \d+, t = \S+ s, dt = 0\.003333 s\): .*, at "
+                        r"particle \d+ of body 'paste'; the sample's stable step is [\d.e-]+ s", table.rows[1]["reason"]), \
+        table.rows[1]["reason"]
     assert "1 ok, 1 failed" in captured.out
     assert "sample 1 failed" in captured.err and "Traceback" not in captured.err
     assert (out / "sweep.json").exists()
@@ -411,6 +416,28 @@ def test_a_sample_that_cannot_step_at_its_fps_is_a_row_without_a_run_s_advice():
     assert re.fullmatch(r"StepRefusal: the stable step 4\.5e-06 s is not allowed: a frame \(1/fps = 100 s\) would take "
                         r"\S+ steps, more than 1e\+06; the stiffest material \(p-wave speed \S+ m/s\) or the most "
                         r"viscous one needs it", row["reason"]), row["reason"]
+
+
+def test_a_sample_stopped_at_a_far_mesh_tool_is_a_row_without_a_run_s_advice(monkeypatch):
+    """A sample stopped at a mesh tool beyond float32's resolution gave the Python advice
+    'use dtype=float64' in its row, where a refused start's row gave its reason alone: the
+    table serves the command (--dtype) too, so every row is the reason without advice."""
+    from warp_esph import tools
+    from warp_esph.sweep import _run_sample
+
+    b = SceneBuilder(spacing=0.02)
+    b.add_box((80.0, 0.03, 0.0), (0.06, 0.06, 0.06), Material.preset("dough"), name="block")
+    b.add_tool("mesh", mesh=tools.box_mesh((100.0, 0.05, 100.0)), name="belt", friction=0.0,
+               motion=tools.Velocity((-15.0, 0.0, 0.0), position=(0.0, 0.01 - 0.05, 0.0)))
+    # finalize refuses this mesh in float32 already; the stop is what is looked at here.
+    monkeypatch.setattr(SceneBuilder, "_check_mesh_tool_reach", lambda self, scalar: None)
+    plan = _plan(Scene("belt", "", b, frames=2, fps=30.0), ["mu=1e4"], "grid", None, 0, 2, None, 30.0, None, 1.0,
+                 "float32", "cpu", 1, 100, None)
+    row = _run_sample(plan.scene, plan.tasks[0][1])
+    assert row["status"] == "failed", row
+    assert re.fullmatch(r"the simulation stopped after step \d+ \(frame 1, t = 0\.03333 s\): the particles met mesh tool "
+                        r"'belt' far from its origin \(the faces they are at reach 100 m from it\), where float32 .*: particles "
+                        r"that touch it would be put inside it", row["reason"]), row["reason"]
 
 
 def test_the_python_sweep_takes_and_refuses_the_precisions_finalize_does():

@@ -22,7 +22,10 @@ depend on where or in which order the samples ran; only ``wall_s`` (the seconds 
 sample took) varies from run to run. Rows are sorted by sample index.
 
 A sample that diverges (``SimulationError``) or whose values make an invalid material is
-a row with ``status = "failed"`` and the one-line ``reason``; the sweep goes on.
+a row with ``status = "failed"`` and the one-line ``reason``; the sweep goes on. A reason
+is the refusal's or the stop's without a run's advice, which names one caller's options
+(``dt=`` or ``--dt``): the table is the same for ``sweep()`` and ``warp-esph sweep``; a
+divergence adds the sample's stable step.
 
 ``parallel_map`` is the executor underneath, for other per-sample jobs (e.g. one fit per
 starting point of a multi-start fit, with the starting points from ``sample_points``).
@@ -526,7 +529,7 @@ def _run_sample(scene, task: _Task) -> dict:
     from .startup import init_warp  # noqa: PLC0415 (quiet Warp start, shared with the CLI)
 
     init_warp(task.device)
-    from .simulate import SimulationError, StepRefusal, resolve_timestep, simulate  # noqa: PLC0415
+    from .simulate import SimulationError, StepRefusal, divergence_advice, resolve_timestep, simulate  # noqa: PLC0415
     from .sim.solver import Solver  # noqa: PLC0415
 
     row = {"sample": task.index, "status": "ok", **task.values, "seed": task.seed}
@@ -556,11 +559,18 @@ def _run_sample(scene, task: _Task) -> dict:
                                      + (f", not {taken} (the table's own)" if taken else ""))
                 row.update(more)
     except SimulationError as e:
-        row.update(status="failed", reason=_one_line(e))
+        # The reason alone, as for a StepRefusal: the advice named a Python caller's parameters
+        # ('a smaller dt=', 'use dtype=float64'), and the table is the command's too. A
+        # divergence keeps the advice's one fact, the stable step, to read the row's dt against.
+        why = e.reason
+        if e.advice and e.advice == f"; {divergence_advice(stable := model.stable_dt(hourglass=solver.hourglass))}":
+            why += f"; the sample's stable step is {stable:.3g} s"
+        row.update(status="failed", reason=_one_line(why))
     except StepRefusal as e:
         # The reason without a run's advice ('give dt= or substeps=', 'fewer frames=, or a larger
-        # dt='): a sweep has no substeps, and a dt above a sample's stable step blows it up. The
-        # sweep's own options are said where no sample can run (_check_some_sample_steps).
+        # dt=', 'a smaller dt=', 'a higher fps='): a sweep has no substeps, a dt above a sample's
+        # stable step blows it up, and the table is the command's too. The sweep's own options are
+        # said where no sample can run (_check_some_sample_steps).
         row.update(status="failed", reason=_one_line(f"{type(e).__name__}: {e.reason}"))
     except (ValueError, ArithmeticError, RuntimeError) as e:
         row.update(status="failed", reason=_one_line(f"{type(e).__name__}: {e}"))
