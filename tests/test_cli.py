@@ -1370,14 +1370,19 @@ def test_run_refusing_a_start_the_step_cannot_follow_names_its_own_options(tmp_p
                                          r"dt=, or dt='auto' \(the adaptive step\)$"):
         check_start_speed(model, model.state(), 50.0, 1e-3)
     # A frame of 100 s: the gravity it adds (981 m/s) takes the adaptive step below 1e-4 s, though
-    # the stable step (4 ms) is 2.5e4 steps a frame.
+    # the stable step (3 ms) is 3.2e4 steps a frame. It was called 'its stable step, 1.52e-05 s'
+    # and a softer material advised, which leaves gravity's term as it is.
     path.write_text(GOOD_TOML)
     assert main(["run", str(path), "--frames", "1", "--no-progress", "-o", str(out), "--dt", "auto", "--fps", "0.01"]) == 2
     err = capsys.readouterr().err
-    assert_one_line_error(err, f"{path}: the adaptive step is not allowed for this model at 0.01 fps")
-    assert err.rstrip().endswith("; use a softer material, a larger spacing or a higher --fps"), err
+    assert_one_line_error(err, f"{path}: the adaptive step is not allowed for this model at 0.01 fps: its step C dx / (c_P "
+                               "+ v_max + |g| / fps) = 1.52e-05 s (c_P = 4.75 m/s, v_max = 0 m/s, |g| / fps = 981 m/s, at "
+                               "spacing 0.05 m; the stable step is 0.00316 s), would take 6.57e+06 steps a frame")
+    assert err.rstrip().endswith("; use a higher --fps (gravity adds up to |g| / fps to a speed within a frame) or a larger "
+                                 "spacing"), err
     model = load_scene(str(path)).builder.finalize()
-    with pytest.raises(ValueError, match=r"; use a softer material, a larger spacing or a higher fps=$"):
+    with pytest.raises(ValueError, match=r"; use a higher fps= \(gravity adds up to \|g\| / fps to a speed within a frame\) "
+                                         r"or a larger spacing$"):
         simulate(model, 1, fps=0.01, dt="auto", progress=False)
     assert not out.exists()
 

@@ -45,7 +45,7 @@ class StepRefusal(ValueError):
     adaptive step too short for the material, ``adaptive_timestep``): its message is ``reason``
     and then ``advice``, a Python caller's (naming ``dt=``, ``fps=``); ``reason`` lets a caller
     with other options (a sweep, ``warp-esph run``) give its own advice instead, ``advice``
-    telling which refusal it is (``START_ADVICE``, ``ADAPTIVE_ADVICE``,
+    telling which refusal it is (``START_ADVICE``, ``ADAPTIVE_ADVICE``, ``ADAPTIVE_FALL_ADVICE``,
     ``tools.TOO_FAST_ADVICE``). ``detail``: the reason without the refused value's name
     ('frames = ... is not allowed: ', 'the stable step ... is not allowed: '), for a caller that
     refuses its own option by name (default: ``reason``)."""
@@ -67,6 +67,9 @@ def divergence_advice(stable: float, dt: str = "dt=") -> str:
 #: where the material's own step needs too many steps a frame (a Python caller's names).
 START_ADVICE = f"; give a smaller velocity (or angular_velocity), a smaller dt=, or dt={AUTO!r} (the adaptive step)"
 ADAPTIVE_ADVICE = "; use a softer material, a larger spacing or a higher fps="
+#: ``adaptive_timestep``'s where gravity's gain over a frame, ``|g| / fps``, is the largest speed
+#: the step resolves (a softer material hardly lengthens it).
+ADAPTIVE_FALL_ADVICE = "; use a higher fps= (gravity adds up to |g| / fps to a speed within a frame) or a larger spacing"
 
 
 class SimulationError(RuntimeError):
@@ -397,11 +400,18 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
                 f"steps a frame, more than {MAX_STEPS_PER_FRAME:.0e} (dt = C dx / (c_P + v_max + |g| / fps)), so at most "
                 f"{fastest:.3g} m/s at this spacing and fps"
             )
-        # Not the speed: the material's own step (a body at rest was told its speed of 0 m/s was too much).
+        # Not the speed: the material's own step (a body at rest was told its speed of 0 m/s was too
+        # much), or gravity's term, which a long frame makes the largest: at 0.01 fps it was called
+        # 'its stable step, 1.52e-05 s' of a model whose stable step is 200 times that.
+        fall = g * frame_dt
+        if dt == stable:
+            which = f"its stable step, {dt:.3g} s (wave speed c_P = {c:.3g} m/s at spacing {model.spacing:g} m)"
+        else:
+            which = (f"its step C dx / (c_P + v_max + |g| / fps) = {dt:.3g} s (c_P = {c:.3g} m/s, v_max = {v_max:.3g} m/s, "
+                     f"|g| / fps = {fall:.3g} m/s, at spacing {model.spacing:g} m; the stable step is {stable:.3g} s)")
         raise StepRefusal(
-            f"the adaptive step is not allowed for this model at {fps:g} fps: its stable step, {dt:.3g} s (wave speed "
-            f"c_P = {c:.3g} m/s at spacing {model.spacing:g} m), would take {ratio:.3g} steps a frame, more than "
-            f"{MAX_STEPS_PER_FRAME:.0e}", ADAPTIVE_ADVICE
+            f"the adaptive step is not allowed for this model at {fps:g} fps: {which}, would take {ratio:.3g} steps a "
+            f"frame, more than {MAX_STEPS_PER_FRAME:.0e}", ADAPTIVE_FALL_ADVICE if fall > c + v_max else ADAPTIVE_ADVICE
         )
     n = max(1, math.ceil(ratio))
     return n, frame_dt / n
