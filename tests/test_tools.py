@@ -1819,3 +1819,39 @@ def test_a_run_stopped_at_a_far_mesh_tool_names_the_callers_precision_option(tmp
                         + rf" \({re.escape(str(out))} keeps the 1 frame finished\)", err[0]), err
     with pytest.raises(we.SimulationError, match=cure.format("dtype=float64") + "$"):
         we.simulate(belt().finalize(), 2, fps=30.0, progress=False)
+
+
+def test_the_far_mesh_check_of_a_frame_does_not_rebuild_the_meshs_faces(monkeypatch):
+    """In float32 the frame's check of a far mesh tool built the (faces, 3, 3) array of the
+    whole mesh's vertices (float64) at every frame; the faces' bounds and reach are now built
+    once a run (``_far_mesh_tools``), and a frame's check allocates per face only a few
+    booleans. A floor of 20172 faces 200 m wide, a block on it 90 m out: the check finds the
+    faces the block is at reaching 92.4 m (as the vertices gave it) and allocates less than a
+    third of the one array it built (1.45 MB)."""
+    import tracemalloc  # noqa: PLC0415
+
+    from warp_esph.simulate import _far_mesh_contact, _far_mesh_tools  # noqa: PLC0415
+
+    # 41 x 41 tiles 5 m apart (closed boxes, 12 faces each), their tops at y = 0.
+    box_pts, box_tri = tools.box_mesh((2.4, 0.05, 2.4))
+    centres = [(x, -0.05, z) for x in np.linspace(-100.0, 100.0, 41) for z in np.linspace(-100.0, 100.0, 41)]
+    pts = np.concatenate([box_pts + c for c in centres])
+    tri = np.concatenate([box_tri + 8 * k for k in range(len(centres))])
+    assert len(tri) == 20172
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((90.0, 0.04, 0.0), (0.06, 0.06, 0.06), we.Material.preset("dough"), name="block")
+    b.add_tool("mesh", mesh=(pts, tri), name="floor", friction=0.0, motion=tools.Velocity((0.0, 0.0, 0.0)))
+    # finalize refuses this plate in float32 already; the frame's check is what is looked at here.
+    monkeypatch.setattr(we.SceneBuilder, "_check_mesh_tool_reach", lambda self, scalar: None)
+    model = b.finalize(dtype=wp.float32)
+    far = _far_mesh_tools(model)
+    state = model.state()
+    _far_mesh_contact(model, state, far)  # warm: imports, first calls
+    tracemalloc.start()
+    try:
+        met = _far_mesh_contact(model, state, far)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert met is not None and "(the faces they are at reach 92.4 m from it)" in met[0], met
+    assert peak < len(tri) * 9 * 8 / 3, peak

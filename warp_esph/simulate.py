@@ -543,6 +543,7 @@ def _far_mesh_tools(model: Model) -> list:
     thrown or sliding across a wide floor, one on a conveyor carried far along it, one a
     pinned set drags), so ``_far_mesh_contact`` looks where they are at each frame."""
     from .builder import _float32_resolves_margin  # noqa: PLC0415 (builder imports this module's users)
+    import warp as wp  # noqa: PLC0415
 
     out = []
     for k, c in enumerate(model.tools.colliders if model.tools is not None else ()):
@@ -550,7 +551,13 @@ def _far_mesh_tools(model: Model) -> list:
             continue
         pts = np.asarray(c.mesh_points, dtype=np.float64)
         if not _float32_resolves_margin(float(np.abs(pts).max()), model.spacing):
-            out.append((k, c.name, pts, np.asarray(c.mesh_triangles), pts.min(axis=0), pts.max(axis=0)))
+            faces = None
+            if model.scalar is wp.float32:
+                # Each face's bounds and farthest coordinate, once a run: the frame's check built
+                # the (faces, 3, 3) vertex array of the whole mesh anew every frame.
+                tri = pts[np.asarray(c.mesh_triangles)]
+                faces = (tri.min(axis=1), tri.max(axis=1), np.abs(tri).max(axis=(1, 2)))
+            out.append((k, c.name, pts.min(axis=0), pts.max(axis=0), faces))
     return out
 
 
@@ -567,7 +574,7 @@ def _far_mesh_contact(model: Model, state: State, far: list):
     import warp as wp  # noqa: PLC0415
 
     f32 = model.scalar is wp.float32
-    for k, name, pts, tris, lo, hi in far:
+    for k, name, lo, hi, faces in far:
         p, q = model.tools.pose_at(k, float(state.time))
         qx, qy, qz, qw = (float(v) for v in q / np.linalg.norm(q))
         rot = np.array([[1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qz * qw), 2 * (qx * qz + qy * qw)],
@@ -579,10 +586,10 @@ def _far_mesh_contact(model: Model, state: State, far: list):
             continue
         yn = y[near]
         if f32:
-            tri = pts[tris]
+            tri_lo, tri_hi, tri_reach = faces
             box_lo, box_hi = yn.min(axis=0) - grow, yn.max(axis=0) + grow
-            faces = ((tri.max(axis=1) >= box_lo) & (tri.min(axis=1) <= box_hi)).all(axis=1)
-            reach = float(np.abs(tri[faces]).max()) if faces.any() else 0.0
+            met = ((tri_hi >= box_lo) & (tri_lo <= box_hi)).all(axis=1)
+            reach = float(tri_reach[met].max()) if met.any() else 0.0
         else:
             reach = float(np.abs(yn).max())
         if not _float32_resolves_margin(reach, model.spacing):
