@@ -440,6 +440,27 @@ def test_a_sample_stopped_at_a_far_mesh_tool_is_a_row_without_a_run_s_advice(mon
                         r"that touch it would be put inside it", row["reason"]), row["reason"]
 
 
+def test_a_sample_stopped_by_a_scripted_tool_too_fast_is_a_row_without_a_run_s_advice():
+    """A ``tools.Scripted`` tool that a step moves more than a spacing stops the run; its
+    row said 'give a slower motion or a smaller dt=' inside the stop's reason (the advice was
+    not apart): the reason alone now, as the refused start's row."""
+    from warp_esph import tools
+    from warp_esph.sweep import _run_sample
+
+    b = SceneBuilder(spacing=0.01)
+    b.add_box((0.0, 0.03, 0.0), (0.04, 0.04, 0.04), Material.preset("clay"), name="blk")
+    b.add_ground()
+    # 0.1 m in the step from t = 2 ms (frame 3), 1000 m/s.
+    b.add_tool("box", half_extents=(0.01, 0.05, 0.05), name="hammer",
+               motion=tools.Scripted(lambda t: ((0.1 if t <= 0.002 + 1e-9 else 0.2, 0.03, 0.0), tools.IDENTITY)))
+    plan = _plan(Scene("hammer", "", b, frames=5, fps=1000.0), ["mu=1e5"], "grid", None, 0, 5, None, 1000.0, 1e-4, 1.0,
+                 "float32", "cpu", 1, 100, None)
+    row = _run_sample(plan.scene, plan.tasks[0][1])
+    assert row["status"] == "failed", row
+    assert re.fullmatch(r"the simulation stopped in step 21, in frame 3: tool 'hammer': its Scripted motion moves its points "
+                        r"at up to 1e\+03 m/s .* so at most 100 m/s", row["reason"]), row["reason"]
+
+
 def test_the_python_sweep_takes_and_refuses_the_precisions_finalize_does():
     """``sweep(dtype=...)`` read only the names 'float32'/'float64' (and what has that
     ``__name__``): 'f8' and 'double', which ``finalize``, ``fit`` and ``scalar_type`` take,

@@ -881,6 +881,8 @@ def test_a_scripted_motion_moving_more_than_a_spacing_a_step_stops_the_run_at_th
                                                      r".* so at most [\d.e+]+ m/s; give a slower motion or a smaller dt=$") as e:
             we.simulate(m, 5, fps=fps, dt=run_dt, progress=False, writer=out)
         assert out.written == [0, 1, 2] and e.value.frame == 3 and e.value.particle is None
+        # The advice apart, as a divergence's (a sweep's row leaves it out; run names --dt).
+        assert e.value.advice == tools.TOO_FAST_ADVICE and str(e.value) == e.value.reason + e.value.advice
         if run_dt == dt:
             assert e.value.step == 21 and "up to 1e+03 m/s" in str(e.value) and "at most 100 m/s" in str(e.value)
     # A pinned set turning about its centroid at 1e4 rad/s: 1 rad a step, its farthest

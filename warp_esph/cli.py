@@ -394,6 +394,7 @@ def _cmd_run(args) -> int:
     from .simulate import (SimulationError, StepRefusal, _check_run_start, check_step_count, divergence_advice,  # noqa: PLC0415
                            far_mesh_advice, resolve_timestep, simulate)
     from .sim.solver import Solver  # noqa: PLC0415
+    from .tools import TOO_FAST_ADVICE  # noqa: PLC0415
     from .usd import OutputInUse, UsdWriter  # noqa: PLC0415
 
     from .checkpoint import load_state, read_checkpoint, save_state  # noqa: PLC0415
@@ -705,7 +706,8 @@ def _cmd_run(args) -> int:
             f32 = args.dtype == "float32"
             ours = {f"; {divergence_advice(model.stable_dt(hourglass=solver.hourglass))}":
                     divergence_advice(model.stable_dt(hourglass=solver.hourglass), "--dt"),
-                    f"; {far_mesh_advice(f32)}": far_mesh_advice(f32, "--dtype float64")}
+                    f"; {far_mesh_advice(f32)}": far_mesh_advice(f32, "--dtype float64"),
+                    TOO_FAST_ADVICE: _run_advice()[TOO_FAST_ADVICE][2:]}  # a tools.Scripted motion's (Python scenes)
             said = f"{e.reason}; {ours[e.advice]}" if e.advice in ours else str(e)
         _err(f"{said} ({writer.path} keeps {_kept(writer, start_frame)})")
         if close_error is not None:

@@ -750,8 +750,12 @@ def simulate(
                             model.tools.check_scripted_step(dt)
                         except ValueError as e:  # its poses are known only as the steps evaluate them
                             step = steps + i + 1 if adaptive else start_frame * n_sub + steps + i + 1
-                            raise SimulationError(f"the simulation stopped in step {step}, in frame {start_frame + k}: {e}",
-                                                  step=step, particle=None, frame=start_frame + k) from None
+                            # Its advice apart, as a divergence's: it names dt=, which a sweep's row
+                            # (the command's table too) leaves out.
+                            refused = isinstance(e, StepRefusal)
+                            raise SimulationError(f"the simulation stopped in step {step}, in frame {start_frame + k}: "
+                                                  f"{e.reason if refused else e}", step=step, particle=None,
+                                                  frame=start_frame + k, advice=e.advice if refused else "") from None
                 steps += n_sub
                 frame = start_frame + k
                 bad = _first_bad(model, current, monitor, (t_origin + k) / fps)  # simulated time since the monitor's state
