@@ -27,6 +27,37 @@ from warp_esph.silhouette import PinholeCamera, SilhouetteLoss, load_cameras, lo
 pxr = pytest.importorskip("pxr")
 
 
+def test_cli_fit_refuses_a_tool_faster_than_a_spacing_a_step_before_the_fit(tmp_path, capsys, dough_scene):
+    """A tool whose keyframes move it 50 spacings a step was fitted to (the rollouts do not
+    check speeds), and only fitted.usdc's run refused it, after the fit, naming a Python
+    caller's 'a smaller dt=' (exit 2, the fit's files written). It is refused before the fit
+    now, as 'warp-esph run' refuses it, naming fit's --dt; a body started too fast likewise."""
+    from warp_esph.cli import main
+
+    tool = ('\n[[tools]]\nshape = "box"\nname = "fast"\nhalf_extents = [0.02, 0.02, 0.02]\nkeyframe_times = [0.0, 0.001]\n'
+            'keyframe_positions = [[1.0, 0.5, 0.0], [1.5, 0.5, 0.0]]\n')
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2) + tool)
+    np.save(tmp_path / "t.npy", np.zeros((3, 64, 3)))
+    out = tmp_path / "cal"
+    capsys.readouterr()
+    argv = ["fit", str(guess), "--target", str(tmp_path / "t.npy"), "--iterations", "1", "--output-dir", str(out), "--no-progress"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"warp-esph: error: {guess}: tool 'fast': its Keyframes motion moves its "
+                                               "points at up to 500 m/s"), err
+    assert err[0].endswith("so at most 10.2 m/s; give a slower motion or a smaller --dt"), err
+    assert not out.exists()
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2).replace("velocity = [0.0, -1.0, 0.0]",
+                                                                                        "velocity = [0.0, -100.0, 0.0]"))
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"warp-esph: error: {guess}: [[bodies]] #1 (shape 'box'): initial velocity of "
+                                               "body 'dough': a speed of 100 m/s"), err
+    assert err[0].endswith("; give a smaller velocity (or angular_velocity) or a smaller --dt"), err
+    assert not out.exists()
+
+
 def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys, dough_scene):
     """``warp-esph run`` a dough block dropped on the ground (64 particles, 102 steps), then
     ``warp-esph fit`` a copy that starts 2x off in yield stress and flow rate, with the

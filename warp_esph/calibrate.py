@@ -630,6 +630,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                   f"the targets' last frame, {frames}," if shown else f"the scene's frames = {frames}")
         raise ValueError(f"{source} is not allowed: at {substeps} steps a frame the fit's rollout would "
                          f"take {frames * substeps} steps, more than {checks.MAX_INT}")
+    _check_fit_start(spec, scene, model, frames, fps, dt, where)
 
     loss = None
     for kind, path, t in loaded:
@@ -682,6 +683,28 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                                                                    for kind, _, t in loaded],
                                  weight=checks.positive(f"{where}weight", spec.get("weight", 1.0)),
                                  noise=None if noise is None else checks.noise(f"{where}noise", noise))
+
+
+def _check_fit_start(spec, scene, model, frames, fps, dt, where) -> None:
+    """Refuse, before the fit, a start or a tool faster than a spacing a step, as ``warp-esph
+    run`` does (``simulate._check_run_start``): the rollouts took them, a tool at 50 spacings a
+    step was fitted to, and fitted.usdc's run refused it after the fit with a Python caller's
+    'a smaller dt='. The advice names the command's --dt, or an experiment's dt."""
+    from .simulate import START_ADVICE, StepRefusal, _check_run_start  # noqa: PLC0415
+    from .tools import TOO_FAST_ADVICE  # noqa: PLC0415
+
+    try:
+        _check_run_start(model, model.state(requires_grad=False), frames, fps, dt)
+    except StepRefusal as e:
+        step = "dt in the experiment" if where else "--dt"
+        advice = {START_ADVICE: f"; give a smaller velocity (or angular_velocity) or a smaller {step}",
+                  TOO_FAST_ADVICE: f"; give a slower motion or a smaller {step}"}.get(e.advice, "")
+        table = ""
+        if str(spec["scene"]).lower().endswith(".toml"):
+            if e.reason.startswith("initial velocity"):
+                table = f"{scene.builder.origins.get(('body', getattr(e, 'body_index', None)), '[[bodies]]')}: "
+            table = f"{spec['scene']}: {table}"
+        raise ValueError(f"{where}{table}{e.reason}{advice}") from None
 
 
 def _frame_reading(path, t, numbered: bool, model) -> str:
