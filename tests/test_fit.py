@@ -1153,3 +1153,21 @@ def test_a_fit_whose_guess_runs_to_non_finite_values_fails_as_before(worlds):
                                                         r"initial guess \(loss = nan\)$"):
             fit(model, target, ["mu"], steps=4, dt=BLOWING_DT, iterations=2, worlds=worlds, starts=2 if worlds else 1,
                 progress=False, diagnostics=False)
+
+
+def test_a_fitted_material_keeps_its_force_defaulted_or_given():
+    """The fitted materials were built with ``dataclasses.replace`` of the model's, which gave
+    them the resolved ``"variational"`` as if asked for: a fitted ``Material(...)`` then
+    refused ``replace(deformation="additive")`` and ran ``deformation="rest"`` with the
+    variational force, where the material before the fit followed the new model's default
+    (``"paper"``). A force given to ``Material(...)`` stays given."""
+    for force, want in ((None, "paper"), ("variational", "variational")):
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.05, 0.0), (0.06, 0.06, 0.06),
+                  we.Material(mu=2e3, lam=3e3, yield_stress=40.0, flow_rate=20.0, elastic_force=force))
+        model = b.finalize(dtype=wp.float64, requires_grad=True)
+        loss = PositionLoss({2: model.particle_x0.astype(np.float64) - 0.001})
+        r = fit(model, loss, ["yield_stress"], steps=2, dt=2e-4, iterations=0, progress=False, diagnostics=False)
+        for m in (r.materials[0], r.model.materials[0]):
+            assert m.elastic_force == "variational"
+            assert m.replace(deformation="rest").elastic_force == want

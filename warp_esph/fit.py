@@ -51,7 +51,7 @@ from . import checks
 from ._types import scalar_type
 from .builder import SceneBuilder
 from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, SumLoss, WorldLoss, is_tools_csv, read_tools_csv
-from .material import PRESSURE_BULK_SHARE, Material
+from .material import PRESSURE_BULK_SHARE, Material, _following_force
 from .model import Model, check_material_precision
 from .rollout import PARAMETERS, Rollout, check_initial
 
@@ -472,7 +472,9 @@ class _Run:
             changes = {name: float(p[name][j]) for name in params}
             if self.tie and k in self.tied:
                 changes["pressure_stiffness"] = float(kp_now[k])
-            fitted[k] = dataclasses.replace(self.model.materials[k], **changes)
+            # A force left to its default stays so (its replace(deformation=...) follows the new
+            # model); dataclasses.replace alone marked the resolved 'variational' as given.
+            fitted[k] = dataclasses.replace(self.model.materials[k], **_following_force(self.model.materials[k], changes))
         for k in self.idx:
             self.model.set_material(k, fitted[k])
         return fitted
