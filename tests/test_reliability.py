@@ -510,6 +510,29 @@ def test_a_start_faster_than_the_step_can_follow_is_refused_before_a_step(speed,
     assert len(steps) == 40
 
 
+def test_an_adaptive_step_set_by_the_viscous_limit_names_it():
+    """Where the viscous limit ``(C / 12) rho0 h^2 / eta`` sets the stable step, the refusal
+    cited the wave speed (6.14 m/s, whose limit is 2.4 ms here, not the 2.5 ns named) and
+    advised a softer material, which leaves that limit as it is; it now names the viscous
+    limit, the material and its viscosity, and advises a less viscous one
+    (``warp-esph run``: ``--fps``)."""
+    from warp_esph.cli import _run_advice  # noqa: PLC0415
+    from warp_esph.simulate import ADAPTIVE_VISCOUS_ADVICE, StepRefusal, simulate  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.15, 0.15, 0.15), we.Material(mu=1e4, lam=1e4, viscosity=1e8))
+    model = b.finalize()
+    assert model.stable_dt() == pytest.approx(0.3 / 12.0 * 1000.0 * 0.1**2 / 1e8, rel=1e-12)
+    with pytest.raises(StepRefusal, match=r"^the adaptive step is not allowed for this model at 30 fps: its stable step, "
+                                          r"2\.5e-09 s \(the viscous limit \(C / 12\) rho0 h\^2 / eta of material 0, "
+                                          r"viscosity eta = 1e\+08 Pa s at support radius h = 0\.1 m\), would take 1\.33e\+07 "
+                                          r"steps a frame, more than 1e\+06; use a less viscous material, a larger spacing "
+                                          r"or a higher fps=$") as info:
+        simulate(model, 1, fps=30.0, dt="auto", progress=False)
+    assert info.value.advice == ADAPTIVE_VISCOUS_ADVICE
+    assert _run_advice()[ADAPTIVE_VISCOUS_ADVICE] == "; use a less viscous material, a larger spacing or a higher --fps"
+
+
 def test_an_adaptive_step_too_short_for_the_material_is_not_blamed_on_a_speed(monkeypatch):
     """A stiff material at rest whose own stable step needs more than 1e6 steps a frame was
     refused as "initial velocity of body 'box0' ...: a particle speed of 0 m/s is not allowed";

@@ -46,6 +46,7 @@ class StepRefusal(ValueError):
     and then ``advice``, a Python caller's (naming ``dt=``, ``fps=``); ``reason`` lets a caller
     with other options (a sweep, ``warp-esph run``) give its own advice instead, ``advice``
     telling which refusal it is (``START_ADVICE``, ``ADAPTIVE_ADVICE``, ``ADAPTIVE_FALL_ADVICE``,
+    ``ADAPTIVE_VISCOUS_ADVICE``,
     ``tools.TOO_FAST_ADVICE``). ``detail``: the reason without the refused value's name
     ('frames = ... is not allowed: ', 'the stable step ... is not allowed: '), for a caller that
     refuses its own option by name (default: ``reason``)."""
@@ -69,6 +70,8 @@ START_ADVICE = f"; give a smaller velocity (or angular_velocity), a smaller dt=,
 ADAPTIVE_ADVICE = "; use a softer material, a larger spacing or a higher fps="
 #: ``adaptive_timestep``'s where gravity's gain over a frame, ``|g| / fps``, is the largest speed
 #: the step resolves (a softer material hardly lengthens it).
+#: ``adaptive_timestep``'s where the viscous limit sets the stable step (stiffness leaves it as it is).
+ADAPTIVE_VISCOUS_ADVICE = "; use a less viscous material, a larger spacing or a higher fps="
 ADAPTIVE_FALL_ADVICE = "; use a higher fps= (gravity adds up to |g| / fps to a speed within a frame) or a larger spacing"
 
 
@@ -404,17 +407,38 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
         # much), or gravity's term, which a long frame makes the largest: at 0.01 fps it was called
         # 'its stable step, 1.52e-05 s' of a model whose stable step is 200 times that.
         fall = g * frame_dt
+        advice = ADAPTIVE_FALL_ADVICE if fall > c + v_max else ADAPTIVE_ADVICE
         if dt == stable:
             which = f"its stable step, {dt:.3g} s (wave speed c_P = {c:.3g} m/s at spacing {model.spacing:g} m)"
+            viscous = _viscous_limit(model, courant)
+            if viscous is not None and viscous[0] <= stable * (1.0 + 1e-9):
+                # The viscous limit set it: the wave speed was cited, and a softer material
+                # advised, which leaves that limit as it is.
+                which = (f"its stable step, {dt:.3g} s (the viscous limit (C / 12) rho0 h^2 / eta of material "
+                         f"{viscous[1]}, viscosity eta = {viscous[2]:.3g} Pa s at support radius h = "
+                         f"{model.support_radius:g} m)")
+                advice = ADAPTIVE_VISCOUS_ADVICE
         else:
             which = (f"its step C dx / (c_P + v_max + |g| / fps) = {dt:.3g} s (c_P = {c:.3g} m/s, v_max = {v_max:.3g} m/s, "
                      f"|g| / fps = {fall:.3g} m/s, at spacing {model.spacing:g} m; the stable step is {stable:.3g} s)")
         raise StepRefusal(
             f"the adaptive step is not allowed for this model at {fps:g} fps: {which}, would take {ratio:.3g} steps a "
-            f"frame, more than {MAX_STEPS_PER_FRAME:.0e}", ADAPTIVE_FALL_ADVICE if fall > c + v_max else ADAPTIVE_ADVICE
+            f"frame, more than {MAX_STEPS_PER_FRAME:.0e}", advice
         )
     n = max(1, math.ceil(ratio))
     return n, frame_dt / n
+
+
+def _viscous_limit(model: Model, courant: float):
+    """``Model.stable_dt``'s viscous limit ``(C / 12) rho0 h^2 / eta`` at its most viscous
+    material, as ``(limit, material index, eta)``; None where no material is viscous."""
+    eta = np.asarray(model.parameter_values()["viscosity"], dtype=np.float64)
+    rho = np.array([m.density for m in model.materials], dtype=np.float64)
+    if not (eta > 0.0).any():
+        return None
+    limits = np.where(eta > 0.0, courant / 12.0 * rho * model.support_radius**2 / np.where(eta > 0.0, eta, 1.0), np.inf)
+    k = int(np.argmin(limits))
+    return float(limits[k]), k, float(eta[k])
 
 
 def check_start_speed(model: Model, state: State, fps: float, dt, hourglass: float | None = None,
