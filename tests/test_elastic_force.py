@@ -505,3 +505,18 @@ def test_floor_images_store_the_update_of_the_fit_their_energy_is_of(fit):
     own = near & (c.image_share.numpy() == 1.0)
     assert own.sum() >= 12
     np.testing.assert_allclose(c.F_image.numpy()[own], Fg[own], rtol=0, atol=1e-11)
+
+
+def test_an_elastic_particle_floor_keeps_its_bodys_force_defaulted_or_given():
+    """``add_particle_floor(elastic=True)``'s own material (the body's without a yield stress)
+    was built with ``dataclasses.replace``, which marked a defaulted force as given: its
+    ``replace(deformation="rest")`` kept ``"variational"`` where the body's material follows
+    the comparison model's default, ``"paper"``."""
+    for force, want in ((None, "paper"), ("variational", "variational")):
+        b = we.SceneBuilder(spacing=0.05)
+        b.add_box((0.0, 0.2, 0.0), (0.15, 0.15, 0.15),
+                  we.Material(mu=1e4, lam=1e4, yield_stress=100.0, flow_rate=10.0, elastic_force=force), name="blk")
+        b.add_particle_floor("blk", margin=0.1, elastic=True)
+        floor = b._materials[1]
+        assert floor.yield_stress == float("inf") and floor.elastic_force == "variational"
+        assert floor.replace(deformation="rest").elastic_force == want

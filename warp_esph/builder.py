@@ -20,7 +20,7 @@ from ._types import scalar_type
 from .sim.colliders import CONTACT_RAMP, MAX_PER_KIND, Box, Plane, Sphere
 from .sim.neighbors import PAPER_MAX_NEIGHBORS, default_max_neighbors
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
-from .material import Material
+from .material import Material, _following_force
 from .meshes import lattice_points
 from .model import CONTACTS, FITS, Body, Model, check_contact_ramp, material_precision_problem, wider_precision
 
@@ -505,7 +505,9 @@ class SceneBuilder:
         own = self._materials[bd.material]
         floor_material = bd.material
         if elastic and own.yield_stress != math.inf:
-            floor_material = self._material_index(dataclasses.replace(own, yield_stress=math.inf))
+            # A force left to its default stays so, as the body's (dataclasses.replace alone
+            # marked the resolved 'variational' as given).
+            floor_material = self._material_index(dataclasses.replace(own, **_following_force(own, {"yield_stress": math.inf})))
         self._points[-1] = np.vstack([pts, floor])
         self._velocities[-1] = np.vstack([self._velocities[-1], np.zeros_like(floor)])
         self._material_ids[-1] = np.concatenate([self._material_ids[-1], np.full(len(floor), floor_material, dtype=np.int32)])
