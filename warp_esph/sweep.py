@@ -23,7 +23,7 @@ sample took) varies from run to run. Rows are sorted by sample index.
 
 A sample that diverges (``SimulationError``) or whose values make an invalid material is
 a row with ``status = "failed"`` and the one-line ``reason``; the sweep goes on. A reason
-is the refusal's or the stop's without a run's advice, which names one caller's options
+is the stop's, or ``StepRefusal: `` and the refusal's, without a run's advice, which names one caller's options
 (``dt=`` or ``--dt``): the table is the same for ``sweep()`` and ``warp-esph sweep``; a
 divergence adds the sample's stable step.
 
