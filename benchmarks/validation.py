@@ -23,6 +23,12 @@ Where a case needs a static equilibrium of an elastic body (beam, column, plates
 found by dynamic relaxation: every particle's velocity is multiplied by ``exp(-c dt)``
 after each step, a mass-proportional damping that does not change the equilibrium (SPH
 viscosity cannot damp a bending mode within its explicit step limit).
+
+Every result also says how its run's neighbour rows were chosen (``_row_fields``):
+``neighbors_cut`` (``Solver.guard_counts``), ``full_row_particle_steps`` and
+``particle_steps``. A row that is full had more candidates than ``max_neighbors``; which of
+them it keeps is the search's choice, so only such a run's numbers can move when that choice
+changes.
 """
 
 from __future__ import annotations
@@ -73,6 +79,38 @@ def _we():
     we.init_warp()
 
     return wp, we
+
+
+def _solver(model, **kwargs):
+    """``warp_esph.Solver(model, **kwargs)`` that also counts, over its steps, the particle-steps
+    whose neighbour row was full (``State.neighbor_count`` at ``Model.max_neighbors``);
+    ``_row_fields`` reads the counts into a case's result."""
+    _, we = _we()
+
+    class RowCountingSolver(we.Solver):
+        full_rows = 0
+        particle_steps = 0
+
+        def step(self, state_in, state_out, dt):
+            super().step(state_in, state_out, dt)
+            # Every step, not once per sample: a row is full for a few steps of a collision or
+            # a stretch, between samples. On the CPU the count is a view, no copy.
+            self.full_rows += int((state_out.neighbor_count.numpy() >= self.model.max_neighbors).sum())
+            self.particle_steps += self.model.particle_count
+
+    return RowCountingSolver(model, **kwargs)
+
+
+def _row_fields(solver) -> dict:
+    """What a reader needs to judge a run's neighbour rows: a full row is one whose members the
+    search chose (of more candidates than ``max_neighbors``: since the stretched rows of
+    ``select_neighbors``, by their weight, not their distance), so a result whose run had full
+    rows may differ from one measured before that choice changed; ``neighbors_cut`` counts the
+    particle-steps whose row may have dropped a neighbour of non-zero weight
+    (``Solver.guard_counts``), ``full_row_particle_steps`` those whose row was full, of
+    ``particle_steps`` (every particle, pinned ones included, every step)."""
+    return {"neighbors_cut": solver.guard_counts()["neighbors_cut"], "full_row_particle_steps": solver.full_rows,
+            "particle_steps": solver.particle_steps}
 
 
 def _swap_run(model, solver, a, c, dt, steps, after=None):
@@ -310,7 +348,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     plug = (depth0 < 0.5 * S * H0) & (r0 < 0.5 * R0) & resolved
     # More than h below the 1-D yield surface the material has flowed: the reference scale.
     flowed = (depth0 > S * H0 + model.support_radius) & (r0 < 0.5 * R0)
-    solver = we.Solver(model)
+    solver = _solver(model)
     dt = dt_factor * model.stable_dt()
     steps = int(round(duration / dt))
     every = max(1, steps // samples)
@@ -404,7 +442,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
         "radius_over_spread_theory": radii[-1] / R_rc,
         "spread_theory_h_over_H0": spread_height_theory(R_rc, tau_y) / H0,
         "time_history": t.tolist(), "h_history": (h / H0).tolist(), "ke_history": (ke / weight_scale).tolist(),
-        "finite": bool(np.isfinite(h).all()), "wall_s": wall,
+        "finite": bool(np.isfinite(h).all()), "wall_s": wall, **_row_fields(solver)
     }
 
 
@@ -461,7 +499,7 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
     free = _add_on_floor(b, pts, mat, floor, floor_radius * R_rc, friction, "cylinder0")
     model = b.finalize(device=wp.get_device())
     n = int(free.sum())
-    solver = we.Solver(model)
+    solver = _solver(model)
     dt = dt_factor * model.stable_dt()
     steps = int(round(duration / dt))
     every = max(1, steps // samples)
@@ -516,7 +554,7 @@ def spread(resolution: int = 4, shallowness: float = 0.25, duration: float = 4.0
         "kinetic_energy": ke[-1], "kinetic_over_Mgh": ke[-1] / weight_scale,
         "fraction_at_yield": float((ratio >= 0.99).mean()),
         "time_history": t.tolist(), "radius_history": (R / R_rc).tolist(), "height_history": (h / h_rc).tolist(),
-        "finite": bool(np.isfinite(R).all()), "wall_s": wall,
+        "finite": bool(np.isfinite(R).all()), "wall_s": wall, **_row_fields(solver)
     }
 
 
@@ -586,7 +624,7 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
     b.add_plane((0.0, 0.0, 1.0), inset, 0.0)
     b.add_plane((0.0, 0.0, -1.0), -(W - inset), 0.0)
     model = b.finalize(device=wp.get_device())
-    solver = we.Solver(model)
+    solver = _solver(model)
     dt = dt_factor * model.stable_dt()
     steps = int(round(duration / dt))
     every = max(1, steps // samples)
@@ -628,6 +666,7 @@ def incline(layers: int = 3, load: float = 1.0, floor: str = "ground", duration:
         # its mid-plane in z) over the middle quarter.
         "top_height_ratio": float(x_end[top, 1].mean() / x0[top, 1].mean()),
         "width_ratio": float(np.abs(x_end[middle, 2] - W / 2.0).mean() / np.abs(x0[middle, 2] - W / 2.0).mean()),
+        **_row_fields(solver)
     }
 
 
@@ -660,7 +699,7 @@ def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slend
     a.v.assign(v)
     left = x0[:, 0] < x0[:, 0].min() + 0.5 * dx
     right = x0[:, 0] > x0[:, 0].max() - 0.5 * dx
-    solver = we.Solver(model, fit=fit, hourglass=hourglass)
+    solver = _solver(model, fit=fit, hourglass=hourglass)
     dt = model.stable_dt(hourglass=solver.hourglass)
     steps = int(periods / f_theory / dt)
     lengths = []
@@ -677,7 +716,8 @@ def bar_frequency(resolution: int = 4, elastic_force: str = "variational", slend
     f = (len(tc) - 1) / (tc[-1] - tc[0]) if len(tc) >= 2 else float("nan")
     return {"case": "bar", "resolution": n, "elastic_force": elastic_force, "fit_weight": fit_weight,
             "particles": model.particle_count,
-            "frequency": f, "theory": f_theory, "ratio": f / f_theory, "periods_measured": len(tc) - 1}
+            "frequency": f, "theory": f_theory, "ratio": f / f_theory, "periods_measured": len(tc) - 1,
+            **_row_fields(solver)}
 
 
 # --------------------------------------------------------------------- beam
@@ -722,7 +762,7 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
     ends = np.abs(np.abs(x0[:, 0]) - L / 2.0) < 0.25 * dx
     omega1 = (math.pi / L) ** 2 * math.sqrt(E * I / (RHO * A))
     damping = 1.4 * omega1
-    solver = we.Solver(model, fit=fit, hourglass=hourglass)
+    solver = _solver(model, fit=fit, hourglass=hourglass)
     dt = model.stable_dt(hourglass=solver.hourglass)
     steps = int(periods * 2.0 * math.pi / omega1 / dt)
     factor = math.exp(-damping * dt)
@@ -751,7 +791,7 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
             "particles": model.particle_count, "span_over_thickness": span_over_thickness, "deflection": hd[-1], "theory": theory,
             "theory_euler_bernoulli": theory_eb, "ratio": hd[-1] / theory,
             "residual_rate_pct_per_s": 100.0 * rate / theory, "kinetic_energy": ke, "blew_up": blew_up,
-            "t": ht.tolist(), "deflection_over_theory": (hd / theory).tolist()}
+            "t": ht.tolist(), "deflection_over_theory": (hd / theory).tolist(), **_row_fields(solver)}
 
 
 # ------------------------------------------------------------------- column
@@ -810,7 +850,7 @@ def column_settlement(resolution: int = 6, elastic_force: str = "variational", a
     model, H, x0, top, bottom, _, L0 = _free_column(we, mat, n, aspect, dx, floor=floor, fit_weight=fit_weight)
     theory = RHO * G * H * (H - dx) / (2.0 * E)
     omega = 0.5 * math.pi * math.sqrt(E / RHO) / H  # fixed-free axial mode
-    solver = we.Solver(model, fit=fit, hourglass=hourglass)
+    solver = _solver(model, fit=fit, hourglass=hourglass)
     dt = model.stable_dt(hourglass=solver.hourglass)
     steps = int(periods * 2.0 * math.pi / omega / dt)
     factor = math.exp(-1.4 * omega * dt)
@@ -829,7 +869,8 @@ def column_settlement(resolution: int = 6, elastic_force: str = "variational", a
     return {"case": "column", "resolution": n, "elastic_force": elastic_force, "fit_weight": fit_weight,
             "particles": model.particle_count,
             "shortening": h[-1, 1], "theory": theory, "ratio": h[-1, 1] / theory,
-            "residual_rate_pct_per_s": 100.0 * rate / theory, "kinetic_energy": _kinetic(model, a)}
+            "residual_rate_pct_per_s": 100.0 * rate / theory, "kinetic_energy": _kinetic(model, a),
+            **_row_fields(solver)}
 
 
 def near_yield_column_theory(yield_depth: float) -> float:
@@ -887,7 +928,7 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     elastic = RHO * G * H * (H - dx) / (2.0 * E)
     plastic = near_yield_column_theory(yield_depth) * (H - dx)
     omega = 0.5 * math.pi * math.sqrt(E / RHO) / H  # fixed-free axial mode
-    solver = we.Solver(model)
+    solver = _solver(model)
     dt = model.stable_dt()
     steps = int(periods * 2.0 * math.pi / omega / dt)
     factor = math.exp(-1.4 * omega * dt)
@@ -940,7 +981,8 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
             # Per tenth of the initial depth (top first): the fraction of its particles that
             # reached the yield stress, and the largest yield ratio any of them reached.
             "yielded_by_depth": [float(yielded[(depth >= k / 10) & (depth < (k + 1) / 10)].mean()) for k in range(10)],
-            "peak_ratio_by_depth": [float(peak[(depth >= k / 10) & (depth < (k + 1) / 10)].max()) for k in range(10)]}
+            "peak_ratio_by_depth": [float(peak[(depth >= k / 10) & (depth < (k + 1) / 10)].max()) for k in range(10)],
+            **_row_fields(solver)}
 
 
 # ------------------------------------------------------------------ poisson
@@ -976,7 +1018,7 @@ def poisson_compression(resolution: int = 6, elastic_force: str = "variational",
     end = x0[:, 0] > x0[:, 0].max() - 0.5 * dx
     c_p = mat.p_wave_speed
     omega = math.pi * c_p / (n * dx)
-    solver = we.Solver(model, fit=fit, hourglass=hourglass)
+    solver = _solver(model, fit=fit, hourglass=hourglass)
     dt = model.stable_dt(hourglass=solver.hourglass)
     steps = int(periods * 2.0 * math.pi / omega / dt)
     factor = math.exp(-omega * dt)
@@ -999,7 +1041,7 @@ def poisson_compression(resolution: int = 6, elastic_force: str = "variational",
             "poisson_ratio": lat / strain / nu, "force": force, "force_theory": E * area * strain,
             "young_ratio": force / (E * area * strain),
             "lateral_rate_per_s": float(np.polyfit(h[:, 0], h[:, 1], 1)[0]) / strain,
-            "kinetic_energy": _kinetic(model, a)}
+            "kinetic_energy": _kinetic(model, a), **_row_fields(solver)}
 
 
 # ------------------------------------------------------------------ lab tests with tools
@@ -1062,7 +1104,7 @@ def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e
     b.add_tool("plane", normal=(0, 1, 0), position=(0, ylo, 0), name="bottom")
     b.add_tool("plane", normal=(0, -1, 0), motion=tools.Keyframes([0.0, 0.05], [(0, yhi, 0), (0, yhi - d, 0)]), name="top")
     model = b.finalize(device=wp.get_device())
-    solver = we.Solver(model)
+    solver = _solver(model)
     a, c, f = _relaxed_reaction(model, solver, ["top", "bottom"], 0.05, 0.10)
     force = 0.5 * (-f["top"][1] + f["bottom"][1])
     xs = pts[:, 0]
@@ -1073,7 +1115,7 @@ def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e
     return {"case": "plates", "resolution": n, "particles": model.particle_count, "strain": strain,
             "force": force, "force_theory": theory, "force_ratio": force / theory,
             "lateral_strain": lateral, "lateral_theory": nu * strain, "lateral_ratio": lateral / (nu * strain),
-            "kinetic_energy": _kinetic(model, a)}
+            "kinetic_energy": _kinetic(model, a), **_row_fields(solver)}
 
 
 def _plastic_cube(resolution: int, S: float, H0: float, pressure_stiffness, support_radius: float, squeeze: float,
@@ -1133,7 +1175,7 @@ def plastic_compression(resolution: int = 8, squeeze: float = 0.25, S: float = 0
         raise ValueError(f"squeeze = {squeeze!r} is not allowed: must be in (0, 1)")
     _, we = _we()
     model, _, dx, mu, Y, sigma_y = _plastic_cube(resolution, S, H0, pressure_stiffness, 2.0, squeeze, load_time)
-    solver = we.Solver(model)
+    solver = _solver(model)
     a, c, f = _relaxed_reaction(model, solver, ["top", "bottom"], load_time, hold_time, viscous=50.0)
     force = 0.5 * (-f["top"][1] + f["bottom"][1])
     area = H0 * H0 / (1.0 - squeeze)
@@ -1144,7 +1186,7 @@ def plastic_compression(resolution: int = 8, squeeze: float = 0.25, S: float = 0
             "log_strain": -math.log(1.0 - squeeze), "pressure_stiffness": pressure_stiffness,
             "stress_over_sigma_y": float(force / area / sigma_y), "interior_axial_over_sigma_y": axial,
             "particle_yield_ratio_mean": float((_deviatoric_norm(F, mu) / Y).mean()),
-            "nearest_neighbor_min": float(nn.min() / dx), "kinetic_energy": _kinetic(model, a)}
+            "nearest_neighbor_min": float(nn.min() / dx), "kinetic_energy": _kinetic(model, a), **_row_fields(solver)}
 
 
 def bingham_uniaxial_stress(S: float, strain_rate: float, H0: float = 0.1, stiffness: float = 10.0,
@@ -1184,7 +1226,7 @@ def uniaxial_flow(resolution: int = 8, strain: float = 0.75, duration: float = 4
     model, span, dx, mu, Y, sigma_y = _plastic_cube(resolution, S, H0, pressure_stiffness, support_radius, strain,
                                                     duration, fit_weight)
     speed = strain * span / duration
-    solver = we.Solver(model)
+    solver = _solver(model)
     dt = model.stable_dt()
     steps = int(round(duration / dt))
     every = max(1, steps // samples)
@@ -1212,7 +1254,7 @@ def uniaxial_flow(resolution: int = 8, strain: float = 0.75, duration: float = 4
         acc = []
     return {"case": "uniaxial_flow", "resolution": resolution, "strain": strain, "duration": duration,
             "pressure_stiffness": pressure_stiffness, "support_radius": support_radius, "fit_weight": fit_weight, "dt": dt,
-            "history": rows}
+            "history": rows, **_row_fields(solver)}
 
 
 def hertz_force(E: float, nu: float, R: float, depth: float) -> float:
@@ -1290,7 +1332,7 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
     b.add_tool("sphere", radius=R, name="indenter",
                motion=tools.Keyframes(times, [(0.0, h, 0.0) for h in heights]))
     model = b.finalize(device=wp.get_device())
-    solver = we.Solver(model, hourglass=hourglass, fit=fit)
+    solver = _solver(model, hourglass=hourglass, fit=fit)
     x0 = model.particle_x0.astype(np.float64)
     base = x0[:, 1] < ylo + 0.5 * dx
     a = c = None
@@ -1323,7 +1365,7 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
             "chi": [math.sqrt(R * dep) / h for dep in depths], "exponent": exponent, "theory_exponent": theory_exponent,
             "contact_radius_over_dx": [math.sqrt(R * dep) / dx for dep in depths], "kinetic_energy": ke,
             "base_slip": base_slip, "base_lift": base_lift,
-            "late_s": late, "late_force": late_force, "late_ratio": late_force / theory[-1]}
+            "late_s": late, "late_force": late_force, "late_ratio": late_force / theory[-1], **_row_fields(solver)}
 
 
 def three_point_stiffness(E: float, nu: float, L: float, t: float, kappa: float = 0.85) -> tuple[float, float]:
@@ -1371,7 +1413,7 @@ def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, 
     b.add_tool("cylinder", radius=r, half_height=t, name="pin", orientation=along_z,
                motion=tools.Keyframes([0.0, 0.1], [top, (0.0, yhi + r - deflection, 0.0)], [along_z, along_z]))
     model = b.finalize(device=wp.get_device())
-    solver = we.Solver(model, hourglass=hourglass, fit=fit)
+    solver = _solver(model, hourglass=hourglass, fit=fit)
     x0 = model.particle_x0.astype(np.float64)
     core = np.abs(x0[:, 1] - 0.5 * (ylo + yhi)) < 0.5 * t - 0.75 * dx  # away from the loaded faces
     mid = core & (np.abs(x0[:, 0]) < 0.6 * dx)
@@ -1396,7 +1438,8 @@ def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, 
             "damping": damping, "fit": fit, "hold": hold, "force": force,
             "support_force": float(f["support_left"][1] + f["support_right"][1]), "deflection": sag,
             "creep": creep, "pin_travel": deflection, "stiffness": k, "theory_euler_bernoulli": eb, "theory": timo,
-            "ratio": k / timo, "ratio_euler_bernoulli": k / eb, "kinetic_energy": _kinetic(model, a)}
+            "ratio": k / timo, "ratio_euler_bernoulli": k / eb, "kinetic_energy": _kinetic(model, a),
+            **_row_fields(solver)}
 
 
 # ------------------------------------------------------------------- energy
@@ -1437,7 +1480,7 @@ def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", r
     a.v.assign(rate * (x0 - x0.mean(axis=0)))
     mu, lam = mat.mu, mat.lam
     e0 = _kinetic(model, a) + _stvk_energy(model, a.F.numpy(), mu, lam)
-    solver = we.Solver(model, fit=fit, hourglass=hourglass)
+    solver = _solver(model, fit=fit, hourglass=hourglass)
     dt = dt_factor * model.stable_dt(hourglass=solver.hourglass)
     steps = int(periods * 2.0 * math.pi / omega / dt)
     every = max(1, steps // 400)
@@ -1471,7 +1514,7 @@ def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", r
             "fit": solver.fit, "hourglass": solver.hourglass, "resolution": n,
             "dt_factor": dt_factor, "periods": float(h[-1, 0] * omega / (2.0 * math.pi)),
             "peak_strain": peak_strain[0], "drift": float(h[-1, 1]), "max_deviation": float(np.nanmax(np.abs(h[:, 1]))),
-            "blew_up": blew, "t": h[:, 0].tolist(), "relative_energy": h[:, 1].tolist()}
+            "blew_up": blew, "t": h[:, 0].tolist(), "relative_energy": h[:, 1].tolist(), **_row_fields(solver)}
 
 
 # ---------------------------------------------------------------- stability
@@ -1503,7 +1546,7 @@ def stability(material, duration: float = 1.0, resolution: int = 6, dt_factor: f
     b.add_box((0.0, n * dx / 2.0, 0.0), (n * dx,) * 3, material)
     b.add_ground(0.0, friction=0.5)
     model = b.finalize(device=wp.get_device())
-    solver = we.Solver(model)
+    solver = _solver(model)
     dt = dt_factor * model.stable_dt()
     steps = int(duration / dt)
     peak = [0.0, None]
@@ -1522,7 +1565,7 @@ def stability(material, duration: float = 1.0, resolution: int = 6, dt_factor: f
     return {"case": "stability", "elastic_force": material.elastic_force, "fit_weight": fit_weight, "dt": dt,
             "duration": duration,
             "max_speed": peak[0], "blew_up": peak[1] is not None, "blew_up_at": peak[1],
-            "final_speed": float(np.abs(a.v.numpy()).max()) if peak[1] is None else None}
+            "final_speed": float(np.abs(a.v.numpy()).max()) if peak[1] is None else None, **_row_fields(solver)}
 
 
 # ------------------------------------------------------------------- driver

@@ -611,6 +611,36 @@ def test_no_preset_or_default_material_blows_up_at_half_the_stable_dt(label):
     r = validation.stability(material, duration=0.3)
     assert not r["blew_up"], r
     assert r["max_speed"] < 2.0, r  # a start of a blow-up shows well before the 5 m/s limit
+    # The row says how its run's neighbour rows were chosen: a box at rest keeps its lattice
+    # rows (26 within h), far from full.
+    assert r["particle_steps"] > 0 and r["full_row_particle_steps"] == 0 and r["neighbors_cut"] == 0, r
+
+
+def test_a_cases_solver_counts_every_particle_step_whose_neighbour_row_was_full():
+    """A result of the suite records its full rows, whose members the search chose: rows 12
+    wide in a lattice box, where an interior particle has 26 neighbours within h and a corner
+    fewer than 12, are full inside and not at the corners, every step, and the full interior
+    rows dropped neighbours of non-zero weight (``neighbors_cut``)."""
+    import warnings
+
+    import warp_esph as we
+
+    b = we.SceneBuilder(spacing=0.02, max_neighbors=12)
+    b.add_box((0.0, 0.0, 0.0), (0.1, 0.1, 0.1), we.Material(mu=1e5, lam=1e5))
+    model = b.finalize()
+    solver = validation._solver(model)
+    a, c = model.state(), model.state()
+    full = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the cut rows' warning: counted below
+        for _ in range(3):
+            solver.step(a, c, 1e-4)
+            a, c = c, a
+            full += int((a.neighbor_count.numpy() == 12).sum())
+    fields = validation._row_fields(solver)
+    assert fields == {"neighbors_cut": solver.guard_counts()["neighbors_cut"], "full_row_particle_steps": full,
+                      "particle_steps": 3 * model.particle_count}, fields
+    assert 0 < full < 3 * model.particle_count and fields["neighbors_cut"] > 0, fields
 
 
 @pytest.fixture(scope="module")
