@@ -533,6 +533,31 @@ def test_an_adaptive_step_set_by_the_viscous_limit_names_it():
     assert _run_advice()[ADAPTIVE_VISCOUS_ADVICE] == "; use a less viscous material, a larger spacing or a higher --fps"
 
 
+def test_an_adaptive_step_set_by_the_hourglass_control_names_it():
+    """Where the hourglass control's limit is what shortens the stable step (``c = 1000`` on a
+    stiff box: 2.96e-8 s, the wave limit alone 1.55e-7 s, which is allowed), the refusal cited
+    only c_P at the spacing and advised a softer material; it now names the control's limit at
+    its strength and advises a smaller one (``warp-esph run``: ``--hourglass``)."""
+    from warp_esph.cli import _run_advice  # noqa: PLC0415
+    from warp_esph.sim.solver import Solver  # noqa: PLC0415
+    from warp_esph.simulate import ADAPTIVE_HOURGLASS_ADVICE, StepRefusal, simulate  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.001, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.004, 0.004, 0.004), we.Material(mu=1e9, lam=1e9))
+    model = b.finalize()
+    assert model.stable_dt(hourglass=0.0) * 30.0 * 1e6 > 4.0  # the wave limit alone: 2.2e5 steps a frame
+    with pytest.raises(StepRefusal, match=r"^the adaptive step is not allowed for this model at 30 fps: its stable step, "
+                                          r"2\.96e-08 s \(the hourglass control's limit at strength c = 1000, 3\.02e-08 s, "
+                                          r"with the wave limit C dx / c_P = 1\.55e-07 s, c_P = 1\.94e\+03 m/s at spacing "
+                                          r"0\.001 m\), would take 1\.13e\+06 steps a frame, more than 1e\+06; use a smaller "
+                                          r"hourglass control strength \(Solver\(hourglass=\) or SceneBuilder\(hourglass=\)\), "
+                                          r"a larger spacing or a higher fps=$") as info:
+        simulate(model, 1, fps=30.0, dt="auto", progress=False, solver=Solver(model, hourglass=1000.0))
+    assert info.value.advice == ADAPTIVE_HOURGLASS_ADVICE
+    assert _run_advice()[ADAPTIVE_HOURGLASS_ADVICE] == ("; use a smaller --hourglass (or [solver] hourglass), a larger "
+                                                        "spacing or a higher --fps")
+
+
 def test_an_adaptive_step_too_short_for_the_material_is_not_blamed_on_a_speed(monkeypatch):
     """A stiff material at rest whose own stable step needs more than 1e6 steps a frame was
     refused as "initial velocity of body 'box0' ...: a particle speed of 0 m/s is not allowed";

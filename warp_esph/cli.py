@@ -358,13 +358,15 @@ def _kept(writer, start_frame: int) -> str:
 def _run_advice() -> dict:
     """``warp-esph run``'s advice for a ``StepRefusal`` of a run's start, by the Python advice
     it replaces (which names ``dt=`` and ``fps=``)."""
-    from .simulate import ADAPTIVE_ADVICE, ADAPTIVE_FALL_ADVICE, ADAPTIVE_VISCOUS_ADVICE, START_ADVICE  # noqa: PLC0415
+    from .simulate import (  # noqa: PLC0415
+        ADAPTIVE_ADVICE, ADAPTIVE_FALL_ADVICE, ADAPTIVE_HOURGLASS_ADVICE, ADAPTIVE_VISCOUS_ADVICE, START_ADVICE)
     from .tools import TOO_FAST_ADVICE  # noqa: PLC0415
 
     return {START_ADVICE: "; give a smaller velocity (or angular_velocity), a smaller --dt, or --dt auto (the adaptive step)",
             TOO_FAST_ADVICE: "; give a slower motion or a smaller --dt",
             ADAPTIVE_ADVICE: "; use a softer material, a larger spacing or a higher --fps",
             ADAPTIVE_VISCOUS_ADVICE: "; use a less viscous material, a larger spacing or a higher --fps",
+            ADAPTIVE_HOURGLASS_ADVICE: "; use a smaller --hourglass (or [solver] hourglass), a larger spacing or a higher --fps",
             ADAPTIVE_FALL_ADVICE: "; use a higher --fps (gravity adds up to |g| / fps to a speed within a frame) or a larger "
                                   "spacing"}
 

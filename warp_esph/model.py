@@ -903,16 +903,27 @@ class Model:
         rho = np.array([m.density for m in self.materials], dtype=np.float64)
         return p_wave_speed(p["mu"], p["lam"], rho, p["pressure_stiffness"])
 
+    def _hourglass_limit(self, courant: float, hourglass: float | None, p: dict | None = None) -> tuple[float, float]:
+        """``(dt_c, c)``: the hourglass control's own limit ``dt_c`` of ``stable_dt`` and the
+        strength ``c`` it is taken at (None: ``solver_choice()``'s); ``dt_c`` is ``inf`` where
+        ``c = 0``. ``p``: the parameter values (default: ``parameter_values()``)."""
+        strength = self.solver_choice()[1] if hourglass is None else checks.hourglass("hourglass", hourglass)
+        if not strength > 0.0:
+            return math.inf, strength
+        from .sim import hourglass as hg  # noqa: PLC0415 (model data first, kernels on demand)
+
+        p = self.parameter_values() if p is None else p
+        rho = np.array([m.density for m in self.materials], dtype=np.float64)
+        limit = hg.stable_dt(strength, float(np.max(p["mu"] / rho)), self.spacing, self.support_radius)
+        return 0.8 * courant / 0.3 * limit, strength
+
     def _stable_dt_now(self, courant: float, hourglass: float | None, rows: np.ndarray) -> float:
         p = self._parameter_values(rows)
         rho = np.array([m.density for m in self.materials], dtype=np.float64)
         c = self.wave_speeds(p)
         dt = courant * self.spacing / float(np.max(c))
-        strength = self.solver_choice()[1] if hourglass is None else checks.hourglass("hourglass", hourglass)
+        dt_c, strength = self._hourglass_limit(courant, hourglass, p)
         if strength > 0.0:
-            from .sim import hourglass as hg  # noqa: PLC0415 (model data first, kernels on demand)
-
-            dt_c = 0.8 * courant / 0.3 * hg.stable_dt(strength, float(np.max(p["mu"] / rho)), self.spacing, self.support_radius)
             # In numpy: dt_c^2 passes the float range for a strength below 1e-155, where Python's
             # float raised OverflowError; its inverse, 0, is the right limit (dt itself).
             with np.errstate(over="ignore"):

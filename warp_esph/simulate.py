@@ -46,8 +46,7 @@ class StepRefusal(ValueError):
     and then ``advice``, a Python caller's (naming ``dt=``, ``fps=``); ``reason`` lets a caller
     with other options (a sweep, ``warp-esph run``) give its own advice instead, ``advice``
     telling which refusal it is (``START_ADVICE``, ``ADAPTIVE_ADVICE``, ``ADAPTIVE_FALL_ADVICE``,
-    ``ADAPTIVE_VISCOUS_ADVICE``,
-    ``tools.TOO_FAST_ADVICE``). ``detail``: the reason without the refused value's name
+    ``ADAPTIVE_VISCOUS_ADVICE``, ``ADAPTIVE_HOURGLASS_ADVICE``, ``tools.TOO_FAST_ADVICE``). ``detail``: the reason without the refused value's name
     ('frames = ... is not allowed: ', 'the stable step ... is not allowed: '), for a caller that
     refuses its own option by name (default: ``reason``)."""
 
@@ -68,10 +67,14 @@ def divergence_advice(stable: float, dt: str = "dt=") -> str:
 #: where the material's own step needs too many steps a frame (a Python caller's names).
 START_ADVICE = f"; give a smaller velocity (or angular_velocity), a smaller dt=, or dt={AUTO!r} (the adaptive step)"
 ADAPTIVE_ADVICE = "; use a softer material, a larger spacing or a higher fps="
-#: ``adaptive_timestep``'s where gravity's gain over a frame, ``|g| / fps``, is the largest speed
-#: the step resolves (a softer material hardly lengthens it).
 #: ``adaptive_timestep``'s where the viscous limit sets the stable step (stiffness leaves it as it is).
 ADAPTIVE_VISCOUS_ADVICE = "; use a less viscous material, a larger spacing or a higher fps="
+#: ``adaptive_timestep``'s where the hourglass control's limit is shorter than the wave limit
+#: (its springs, of strength ``Solver(hourglass=)``, are what shortens the step).
+ADAPTIVE_HOURGLASS_ADVICE = ("; use a smaller hourglass control strength (Solver(hourglass=) or SceneBuilder(hourglass=)), a "
+                             "larger spacing or a higher fps=")
+#: ``adaptive_timestep``'s where gravity's gain over a frame, ``|g| / fps``, is the largest speed
+#: the step resolves (a softer material hardly lengthens it).
 ADAPTIVE_FALL_ADVICE = "; use a higher fps= (gravity adds up to |g| / fps to a speed within a frame) or a larger spacing"
 
 
@@ -410,6 +413,16 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
         advice = ADAPTIVE_FALL_ADVICE if fall > c + v_max else ADAPTIVE_ADVICE
         if dt == stable:
             which = f"its stable step, {dt:.3g} s (wave speed c_P = {c:.3g} m/s at spacing {model.spacing:g} m)"
+            control, strength = model._hourglass_limit(courant, hourglass)
+            wave = courant * model.spacing / c
+            if control <= wave:
+                # The control's springs shortened it (Solver(hourglass=1000) on a stiff box: 5 x
+                # the wave limit): c_P alone was cited, and a softer material advised, where a
+                # smaller strength lengthens the step the most.
+                which = (f"its stable step, {dt:.3g} s (the hourglass control's limit at strength c = {strength:g}, "
+                         f"{control:.3g} s, with the wave limit C dx / c_P = {wave:.3g} s, c_P = {c:.3g} m/s at "
+                         f"spacing {model.spacing:g} m)")
+                advice = ADAPTIVE_HOURGLASS_ADVICE
             viscous = _viscous_limit(model, courant)
             if viscous is not None and viscous[0] <= stable * (1.0 + 1e-9):
                 # The viscous limit set it: the wave speed was cited, and a softer material
