@@ -22,6 +22,7 @@ import csv
 import json
 import math
 import os
+import re
 import sys
 
 import numpy as np
@@ -203,8 +204,15 @@ def run_fit(args, out=None, err=None) -> int:
             exps.append(_experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep))
         except ValueError as e:
             # Every refusal of an experiment of the file names it (fps, dt, a target's).
-            if where and not str(e).startswith(where):
-                raise ValueError(f"{where}{e}") from None
+            said = str(e)
+            message = said[len(where):] if where and said.startswith(where) else said
+            written = spec.get("scene_as_written")
+            if written is not None:
+                # The scene file as the JSON wrote it: its resolved path ('/tmp/x/fast.toml:
+                # ...') read as a name the user never gave.
+                message = re.sub(re.escape(spec["scene"]) + r"(?![\w./\\-])", lambda _: written, message)
+            if where and f"{where}{message}" != said:
+                raise ValueError(f"{where}{message}") from None
             raise
 
     # Where the results go, checked before the fit (a folder in the way was found after it).
@@ -415,6 +423,8 @@ def _read_experiments(path) -> list[tuple[str, dict]]:
 
         spec["target"] = [rel(t) for t in (spec["target"] if isinstance(spec["target"], list) else [spec["target"]])]
         if os.path.splitext(str(spec["scene"]))[1].lower() == ".toml":
+            if not os.path.isabs(spec["scene"]):
+                spec["scene_as_written"] = spec["scene"]  # how a refusal names it (the caller's)
             spec["scene"] = rel(spec["scene"])
         cams = spec.get("cameras")
         if cams is not None and not (isinstance(cams, str) and cams.strip()):
