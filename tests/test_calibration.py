@@ -858,6 +858,13 @@ def test_a_stable_step_too_short_for_a_frame_is_refused_with_the_fit_s_options(t
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("warp-esph: error: the stable step "), err
     assert err.endswith(" needs it: use softer materials, a larger spacing, a higher --fps, or give --dt\n"), err
+    # Where the hourglass control's limit sets the step, its option is named, not a softer material.
+    assert main(["fit", str(guess), "--target", str(tmp_path / "t.npz"), "--fps", "0.0001", "--hourglass", "1000",
+                 "--no-progress", "--output-dir", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "; the hourglass control sets it (the hourglass control's limit at strength c = 1000, " in err
+    assert err.endswith(": use a smaller --hourglass (or the scene's [solver] hourglass), a larger spacing, a higher --fps, "
+                        "or give --dt\n"), err
 
 
 def test_fit_frames_beyond_a_rollout_are_refused_by_the_option(tmp_path, capsys, dough_scene):

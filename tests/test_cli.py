@@ -99,6 +99,13 @@ def test_a_stable_step_too_short_for_a_frame_is_refused_with_the_run_s_options(t
     assert err.count("\n") == 1 and err.startswith(f"warp-esph: error: {tmp_path / 's.toml'}: [scene] the stable step "), err
     assert err.endswith(" needs it: use softer materials, a larger spacing, a higher --fps, or give --dt\n"), err
     assert not (tmp_path / "t.usdc").exists()
+    # Where the hourglass control's limit sets the step, its option is named, not a softer material.
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(tmp_path / "t.usdc"), "--fps", "0.0001", "--hourglass", "1000",
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "; the hourglass control sets it (the hourglass control's limit at strength c = 1000, " in err
+    assert err.endswith(": use a smaller --hourglass (or [solver] hourglass), a larger spacing, a higher --fps, or give "
+                        "--dt\n"), err
 
 
 def test_a_run_of_too_many_steps_is_refused_with_the_run_s_options(tmp_path, capsys):

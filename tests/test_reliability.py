@@ -558,6 +558,34 @@ def test_an_adaptive_step_set_by_the_hourglass_control_names_it():
                                                         "spacing or a higher --fps")
 
 
+def test_a_fixed_stable_step_set_by_the_hourglass_control_names_it():
+    """With no dt (``resolve_timestep``), where the hourglass control's limit is what shortens
+    the stable step (``c = 1000`` on a stiff box: 2.96e-8 s, the wave limit alone 1.55e-7 s),
+    the refusal blamed 'the stiffest material ... or the most viscous one' and advised softer
+    materials; it now names the control's limit at its strength and advises a smaller one
+    (``warp-esph run``: ``--hourglass``)."""
+    from warp_esph.cli import _run_advice  # noqa: PLC0415
+    from warp_esph.sim.solver import Solver  # noqa: PLC0415
+    from warp_esph.simulate import STABLE_HOURGLASS_ADVICE, StepRefusal, simulate  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.001, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.004, 0.004, 0.004), we.Material(mu=1e9, lam=1e9))
+    model = b.finalize()
+    with pytest.raises(StepRefusal, match=r"^the stable step 2\.96e-08 s is not allowed: a frame \(1/fps = 0\.0333333 s\) "
+                                          r"would take 1\.13e\+06 steps, more than 1e\+06; the hourglass control sets it "
+                                          r"\(the hourglass control's limit at strength c = 1000, 3\.02e-08 s, with the wave "
+                                          r"limit C dx / c_P = 1\.55e-07 s, c_P = 1\.94e\+03 m/s at spacing 0\.001 m\): use a "
+                                          r"smaller hourglass control strength \(Solver\(hourglass=\) or "
+                                          r"SceneBuilder\(hourglass=\)\), a larger spacing, a higher fps, or give dt= or "
+                                          r"substeps=$") as info:
+        simulate(model, 1, fps=30.0, progress=False, solver=Solver(model, hourglass=1000.0))
+    assert info.value.advice == STABLE_HOURGLASS_ADVICE
+    assert _run_advice()[STABLE_HOURGLASS_ADVICE] == (": use a smaller --hourglass (or [solver] hourglass), a larger "
+                                                      "spacing, a higher --fps, or give --dt")
+    # Without the control the wave limit alone is allowed (2.2e5 steps a frame).
+    assert model.stable_dt(hourglass=0.0) * 30.0 * 1e6 > 4.0
+
+
 def test_an_adaptive_step_too_short_for_the_material_is_not_blamed_on_a_speed(monkeypatch):
     """A stiff material at rest whose own stable step needs more than 1e6 steps a frame was
     refused as "initial velocity of body 'box0' ...: a particle speed of 0 m/s is not allowed";

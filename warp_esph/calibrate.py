@@ -609,7 +609,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     dt = spec.get("dt")
     given = {"fps": spec.get("fps") is not None, "dt": dt is not None}
     # An experiment's keys are named as written in its file, the command's as its options.
-    from .simulate import StepRefusal  # noqa: PLC0415
+    from .simulate import STABLE_HOURGLASS_ADVICE, StepRefusal  # noqa: PLC0415
 
     try:
         substeps, dt = resolve_timestep(model, fps, dt=dt if dt is not None else scene.dt,
@@ -618,7 +618,11 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         # Its advice is Python's ('give dt= or substeps='): the command has --dt, an experiment its
         # dt; and a rate the targets recorded is no choice.
         higher = "" if stored else (" a higher fps in the experiment," if where else " a higher --fps,")
-        raise ValueError(f"{where}{e.reason}: use softer materials, a larger spacing,{higher} or give "
+        # Where the hourglass control's limit sets the step, its strength (--hourglass, or the
+        # scene's [solver] hourglass) is what lengthens it, not a softer material.
+        cure = ("a smaller --hourglass (or the scene's [solver] hourglass)" if e.advice == STABLE_HOURGLASS_ADVICE else
+                "softer materials")
+        raise ValueError(f"{where}{e.reason}: use {cure}, a larger spacing,{higher} or give "
                          f"{'its dt' if where else '--dt'}") from None
     shown = [f for t in file_targets for f in (t.frames or [])]
     shown += [f for kind, _, t in loaded if kind == "silhouette" for f in t[2] if f is not None]

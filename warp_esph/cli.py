@@ -359,7 +359,8 @@ def _run_advice() -> dict:
     """``warp-esph run``'s advice for a ``StepRefusal`` of a run's start, by the Python advice
     it replaces (which names ``dt=`` and ``fps=``)."""
     from .simulate import (  # noqa: PLC0415
-        ADAPTIVE_ADVICE, ADAPTIVE_FALL_ADVICE, ADAPTIVE_HOURGLASS_ADVICE, ADAPTIVE_VISCOUS_ADVICE, START_ADVICE)
+        ADAPTIVE_ADVICE, ADAPTIVE_FALL_ADVICE, ADAPTIVE_HOURGLASS_ADVICE, ADAPTIVE_VISCOUS_ADVICE, STABLE_ADVICE,
+        STABLE_HOURGLASS_ADVICE, START_ADVICE)
     from .tools import TOO_FAST_ADVICE  # noqa: PLC0415
 
     return {START_ADVICE: "; give a smaller velocity (or angular_velocity), a smaller --dt, or --dt auto (the adaptive step)",
@@ -367,6 +368,9 @@ def _run_advice() -> dict:
             ADAPTIVE_ADVICE: "; use a softer material, a larger spacing or a higher --fps",
             ADAPTIVE_VISCOUS_ADVICE: "; use a less viscous material, a larger spacing or a higher --fps",
             ADAPTIVE_HOURGLASS_ADVICE: "; use a smaller --hourglass (or [solver] hourglass), a larger spacing or a higher --fps",
+            STABLE_ADVICE: ": use softer materials, a larger spacing, a higher --fps, or give --dt",
+            STABLE_HOURGLASS_ADVICE: ": use a smaller --hourglass (or [solver] hourglass), a larger spacing, a higher --fps, or "
+                                     "give --dt",
             ADAPTIVE_FALL_ADVICE: "; use a higher --fps (gravity adds up to |g| / fps to a speed within a frame) or a larger "
                                   "spacing"}
 
@@ -459,7 +463,7 @@ def _cmd_run(args) -> int:
                                   resolve_timestep(model, fps, dt=dt, flag=flag))
         except StepRefusal as e:
             # Its advice is Python's ('give dt= or substeps='): the command has --dt and --fps.
-            raise ValueError(f"{e.reason}: use softer materials, a larger spacing, a higher --fps, or give --dt") from None
+            raise ValueError(e.reason + _run_advice().get(e.advice, e.advice)) from None
     except ValueError as e:
         if (args.dt is None and args.resume is None and str(args.scene).lower().endswith(".toml")
                 and not str(e).startswith("--")):  # an option typed is named as such, not as the file's

@@ -46,7 +46,8 @@ class StepRefusal(ValueError):
     and then ``advice``, a Python caller's (naming ``dt=``, ``fps=``); ``reason`` lets a caller
     with other options (a sweep, ``warp-esph run``) give its own advice instead, ``advice``
     telling which refusal it is (``START_ADVICE``, ``ADAPTIVE_ADVICE``, ``ADAPTIVE_FALL_ADVICE``,
-    ``ADAPTIVE_VISCOUS_ADVICE``, ``ADAPTIVE_HOURGLASS_ADVICE``, ``tools.TOO_FAST_ADVICE``). ``detail``: the reason without the refused value's name
+    ``ADAPTIVE_VISCOUS_ADVICE``, ``ADAPTIVE_HOURGLASS_ADVICE``, ``STABLE_ADVICE``, ``STABLE_HOURGLASS_ADVICE``,
+    ``tools.TOO_FAST_ADVICE``). ``detail``: the reason without the refused value's name
     ('frames = ... is not allowed: ', 'the stable step ... is not allowed: '), for a caller that
     refuses its own option by name (default: ``reason``)."""
 
@@ -73,6 +74,11 @@ ADAPTIVE_VISCOUS_ADVICE = "; use a less viscous material, a larger spacing or a 
 #: (its springs, of strength ``Solver(hourglass=)``, are what shortens the step).
 ADAPTIVE_HOURGLASS_ADVICE = ("; use a smaller hourglass control strength (Solver(hourglass=) or SceneBuilder(hourglass=)), a "
                              "larger spacing or a higher fps=")
+#: ``resolve_timestep``'s where the stable step needs more than ``MAX_STEPS_PER_FRAME`` steps a
+#: frame; ``STABLE_HOURGLASS_ADVICE`` where the hourglass control's limit is what shortens it.
+STABLE_ADVICE = ": use softer materials, a larger spacing, a higher fps, or give dt= or substeps="
+STABLE_HOURGLASS_ADVICE = (": use a smaller hourglass control strength (Solver(hourglass=) or SceneBuilder(hourglass=)), "
+                           "a larger spacing, a higher fps, or give dt= or substeps=")
 #: ``adaptive_timestep``'s where gravity's gain over a frame, ``|g| / fps``, is the largest speed
 #: the step resolves (a softer material hardly lengthens it).
 ADAPTIVE_FALL_ADVICE = "; use a higher fps= (gravity adds up to |g| / fps to a speed within a frame) or a larger spacing"
@@ -312,15 +318,25 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
         n = checks.positive_int(flag("substeps"), substeps, maximum=MAX_STEPS_PER_FRAME)
         return n, frame_dt / n
     if dt is None:
-        stable = model.stable_dt(hourglass=hourglass)
+        courant = 0.3  # stable_dt's own
+        stable = model.stable_dt(courant, hourglass=hourglass)
         ratio = frame_dt / stable * (1.0 - 1e-12)
         if not ratio <= MAX_STEPS_PER_FRAME:
             stiff = max(model.materials, key=lambda m: m.p_wave_speed)
             needs = (f"more than {MAX_STEPS_PER_FRAME:.0e}; the stiffest material (p-wave speed {stiff.p_wave_speed:.3g} "
                      f"m/s) or the most viscous one needs it")
+            advice = STABLE_ADVICE
+            control = _hourglass_cause(model, courant, hourglass)
+            viscous = _viscous_limit(model, courant)
+            if control is not None and not (viscous is not None and viscous[0] <= stable * (1.0 + 1e-9)):
+                # The control's springs shortened it (Solver(hourglass=1000) on a stiff box: 5 x
+                # the wave limit): the stiffest material was blamed, and softer ones advised,
+                # where a smaller strength lengthens the step the most.
+                needs = f"more than {MAX_STEPS_PER_FRAME:.0e}; the hourglass control sets it ({control})"
+                advice = STABLE_HOURGLASS_ADVICE
             raise StepRefusal(
                 f"the stable step {stable:.3g} s is not allowed: a frame (1/fps = {frame_dt:.6g} s) would take {ratio:.3g} steps, "
-                f"{needs}", ": use softer materials, a larger spacing, a higher fps, or give dt= or substeps=",
+                f"{needs}", advice,
                 detail=f"a frame (1/fps = {frame_dt:.6g} s) would take {ratio:.3g} steps of the stable step {stable:.3g} s, {needs}"
             )
         n = max(1, math.ceil(ratio))
@@ -413,15 +429,12 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
         advice = ADAPTIVE_FALL_ADVICE if fall > c + v_max else ADAPTIVE_ADVICE
         if dt == stable:
             which = f"its stable step, {dt:.3g} s (wave speed c_P = {c:.3g} m/s at spacing {model.spacing:g} m)"
-            control, strength = model._hourglass_limit(courant, hourglass)
-            wave = courant * model.spacing / c
-            if control <= wave:
+            control = _hourglass_cause(model, courant, hourglass)
+            if control is not None:
                 # The control's springs shortened it (Solver(hourglass=1000) on a stiff box: 5 x
                 # the wave limit): c_P alone was cited, and a softer material advised, where a
                 # smaller strength lengthens the step the most.
-                which = (f"its stable step, {dt:.3g} s (the hourglass control's limit at strength c = {strength:g}, "
-                         f"{control:.3g} s, with the wave limit C dx / c_P = {wave:.3g} s, c_P = {c:.3g} m/s at "
-                         f"spacing {model.spacing:g} m)")
+                which = f"its stable step, {dt:.3g} s ({control})"
                 advice = ADAPTIVE_HOURGLASS_ADVICE
             viscous = _viscous_limit(model, courant)
             if viscous is not None and viscous[0] <= stable * (1.0 + 1e-9):
@@ -440,6 +453,19 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
         )
     n = max(1, math.ceil(ratio))
     return n, frame_dt / n
+
+
+def _hourglass_cause(model: Model, courant: float, hourglass: float | None) -> str | None:
+    """Where the hourglass control's limit (``Model._hourglass_limit``, strength ``hourglass``;
+    None: the model's) is at most the wave limit ``C dx / c_P``, so that it is what shortens
+    ``stable_dt``: the refusals' words for it, naming both limits; else None."""
+    control, strength = model._hourglass_limit(courant, hourglass)
+    c = float(np.max(model.wave_speeds()))
+    wave = courant * model.spacing / c
+    if not control <= wave:
+        return None
+    return (f"the hourglass control's limit at strength c = {strength:g}, {control:.3g} s, with the wave limit "
+            f"C dx / c_P = {wave:.3g} s, c_P = {c:.3g} m/s at spacing {model.spacing:g} m")
 
 
 def _viscous_limit(model: Model, courant: float):
