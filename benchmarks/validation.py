@@ -83,19 +83,36 @@ def _we():
 
 def _solver(model, **kwargs):
     """``warp_esph.Solver(model, **kwargs)`` that also counts, over its steps, the particle-steps
-    whose neighbour row was full (``State.neighbor_count`` at ``Model.max_neighbors``);
-    ``_row_fields`` reads the counts into a case's result."""
-    _, we = _we()
+    whose neighbour row was full (``State.neighbor_count`` at ``Model.max_neighbors``), on the
+    model's device; ``_row_fields`` reads the counts into a case's result."""
+    wp, we = _we()
+
+    @wp.kernel
+    def count_full_rows(count: wp.array(dtype=wp.int32), width: int, total: wp.array(dtype=wp.int64)):
+        i = wp.tid()
+        if count[i] >= width:
+            wp.atomic_add(total, 0, wp.int64(1))
 
     class RowCountingSolver(we.Solver):
-        full_rows = 0
         particle_steps = 0
+
+        def __init__(self, model, **kw):
+            super().__init__(model, **kw)
+            # On the device the rows are counted: reading neighbor_count back every step was a
+            # device-to-host copy and a sync a step on a GPU. int64: a long fine run passes 2^31.
+            self.full_row_total = wp.zeros(1, dtype=wp.int64, device=model.device)
+
+        @property
+        def full_rows(self) -> int:
+            return int(self.full_row_total.numpy()[0])
 
         def step(self, state_in, state_out, dt):
             super().step(state_in, state_out, dt)
             # Every step, not once per sample: a row is full for a few steps of a collision or
-            # a stretch, between samples. On the CPU the count is a view, no copy.
-            self.full_rows += int((state_out.neighbor_count.numpy() >= self.model.max_neighbors).sum())
+            # a stretch, between samples.
+            wp.launch(count_full_rows, dim=self.model.particle_count,
+                      inputs=[state_out.neighbor_count, self.model.max_neighbors, self.full_row_total],
+                      device=self.model.device)
             self.particle_steps += self.model.particle_count
 
     return RowCountingSolver(model, **kwargs)
