@@ -355,6 +355,11 @@ def test_cli_solver_options_override_the_scene_files(scene_file, tmp_path, capsy
     (["--param", "mu=1e3:1e5:log:3", "--fps", "1e-4", "--frames", "1"],
      ["--fps = 0.0001 is not allowed for this sweep: no sample can run at its own stable step (sample 0, mu = 1000: a frame "
       "(1/fps = 10000 s) would take 4.79e+06 steps of the stable step 0.00209 s, more than 1e+06"]),
+    # Where the hourglass control's limit sets the step, its option is advised, not softer materials.
+    (["--param", "mu=1e3:1e5:log:3", "--fps", "1e-4", "--frames", "1", "--hourglass", "1000"],
+     ["--fps = 0.0001 is not allowed for this sweep", "; the hourglass control sets it (the hourglass control's limit at "
+      "strength c = 1000, ", "; give a higher --fps, a smaller --scale (a larger spacing, whose stable step is longer), or a "
+      "smaller --hourglass (or the scene's [solver] hourglass)"]),
     (["--param", "crust.yield_stress=10:100:log:2"], ["crust.yield_stress", "'crust'", "paste"]),
     (["--param", "yield_stress=10:100:log:2", "--param", "paste.yield_stress=1:2:lin:2"], ["paste.yield_stress", "already"]),
     (["--param", "yield_stress=10:100:log:2", "--workers", "0"], ["--workers", "0"]),

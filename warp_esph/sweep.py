@@ -997,7 +997,7 @@ def _check_some_sample_steps(model, assignments, points, frames, fps, rate, leng
     failed alone, one after the other, with the same refusal, and the sweep exited 3. A
     sample that can is enough (the others are rows of the table, as a blown-up sample is).
     ``rate``, ``length``: the options (or the scene's values) the refusal names."""
-    from .simulate import StepRefusal, check_step_count, resolve_timestep  # noqa: PLC0415
+    from .simulate import STABLE_HOURGLASS_ADVICE, StepRefusal, check_step_count, resolve_timestep  # noqa: PLC0415
 
     # The reasons without a run's advice ('give dt= or substeps=', 'a larger dt'): a sweep has no
     # substeps, and a --dt above a sample's stable step blows it up; these are its own options.
@@ -1013,8 +1013,11 @@ def _check_some_sample_steps(model, assignments, points, frames, fps, rate, leng
         except StepRefusal as e:
             # Its detail, as below: its reason's 'the stable step ... is not allowed' inside the
             # sweep's own '--fps = ... is not allowed for this sweep' said the refusal twice.
-            first = first or (k, values, e.detail, rate,
-                              f"give a higher --fps, {coarser}, or softer or less viscous materials or swept values")
+            # Where the hourglass control's limit sets the step, its strength lengthens it, not a
+            # softer material.
+            cure = ("a smaller --hourglass (or the scene's [solver] hourglass)" if e.advice == STABLE_HOURGLASS_ADVICE
+                    else "softer or less viscous materials or swept values")
+            first = first or (k, values, e.detail, rate, f"give a higher --fps, {coarser}, or {cure}")
             continue
         try:
             check_step_count(frames, substeps)
