@@ -740,18 +740,14 @@ def _cmd_run(args) -> int:
         # The force log holds every frame's rows only once this last write is done: a Ctrl-C
         # inside it (a second one, or one as the run ended) lost the whole log of a finished run.
         with _Deferred(args):
-            close_error = close_writer()
-            if close_error is not None:
+            for finish in (close_writer, write_final_log):
+                error = finish()
+                if error is None:
+                    continue
                 if final_log_error[0] is False:
-                    final_log_error[0] = close_error
+                    final_log_error[0] = error
                 else:
-                    _err(close_error)
-            log_error = write_final_log()
-            if log_error is not None:
-                if final_log_error[0] is False:
-                    final_log_error[0] = log_error
-                else:
-                    _err(log_error)
+                    _err(error)
     if final_log_error[0]:
         # A signal held under the log's last write was dropped for exit 4.
         if _held_signal_wins(args, seen, final_log_error[0]):
