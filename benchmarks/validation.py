@@ -26,9 +26,9 @@ viscosity cannot damp a bending mode within its explicit step limit).
 
 Every result also says how its run's neighbour rows were chosen (``_row_fields``):
 ``neighbors_cut`` (``Solver.guard_counts``), ``full_row_particle_steps`` and
-``particle_steps``. A row that is full had more candidates than ``max_neighbors``; which of
-them it keeps is the search's choice, so only such a run's numbers can move when that choice
-changes.
+``particle_steps``. A full row holds ``max_neighbors`` particles: exactly that many
+candidates, or more, of which the search chose which to keep. Only a run with full rows can
+move when that choice changes; a run with none cannot (the count errs on the full side).
 """
 
 from __future__ import annotations
