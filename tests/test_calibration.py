@@ -753,6 +753,19 @@ def test_mesh_residuals_match_the_loss(mode):
     assert np.sum(r**2) == pytest.approx(loss.residual_scale() * value, rel=1e-10)
 
 
+def _dough_guess_and_target(tmp_path, dough_scene):
+    """A dough scene at twice the true yield stress and flow rate, and a 3-frame float64 run of
+    the truth to fit it to: the set-up of the interrupted-fit tests."""
+    from warp_esph.cli import main
+
+    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(truth), "-o", str(run), "--frames", "3", "--dtype", "float64", "--no-progress"]) == 0
+    return guess, run
+
+
 def _summary_with_range_rises(rises):
     """The diagnostics' summary of a made two-parameter fit (log space, well curved at the
     optimum), given the range check's chi-square changes ``rises`` (per parameter: down, up)."""
@@ -919,11 +932,7 @@ def test_cli_fit_refuses_what_would_lose_data_or_mistime_the_targets(tmp_path, c
     from warp_esph.cli import main
     from warp_esph.usd import UsdFrames
 
-    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
-    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
-    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
-    run = tmp_path / "run.usdc"
-    assert main(["run", str(truth), "-o", str(run), "--frames", "3", "--dtype", "float64", "--no-progress"]) == 0
+    guess, run = _dough_guess_and_target(tmp_path, dough_scene)
     frames = UsdFrames(str(run))
     x = np.stack([frames.particles(k)["points"] for k in range(1, 4)])
     np.savez(tmp_path / "float_frames.npz", positions=x, frames=np.array([1.5, 2.0, 3.0]))
@@ -1023,11 +1032,7 @@ def test_an_interrupted_fit_keeps_its_evaluations_and_the_best_so_far(tmp_path, 
     from warp_esph import fit as fit_module
     from warp_esph.cli import main
 
-    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
-    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
-    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
-    run = tmp_path / "run.usdc"
-    assert main(["run", str(truth), "-o", str(run), "--frames", "3", "--dtype", "float64", "--no-progress"]) == 0
+    guess, run = _dough_guess_and_target(tmp_path, dough_scene)
     calls = []
     original = fit_module._Problem.value_and_grad
 
@@ -1063,11 +1068,7 @@ def test_an_interrupted_fit_whose_files_cannot_be_written_still_exits_130(tmp_pa
     from warp_esph import fit as fit_module
     from warp_esph.cli import main
 
-    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
-    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
-    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
-    run = tmp_path / "run.usdc"
-    assert main(["run", str(truth), "-o", str(run), "--frames", "3", "--dtype", "float64", "--no-progress"]) == 0
+    guess, run = _dough_guess_and_target(tmp_path, dough_scene)
     calls = []
     original = fit_module._Problem.value_and_grad
 
@@ -1104,11 +1105,7 @@ def test_a_ctrl_c_in_a_finalizer_stops_a_fit_after_that_evaluation(tmp_path, cap
     from warp_esph import fit as fit_module
     from warp_esph.cli import main
 
-    truth, guess = tmp_path / "truth.toml", tmp_path / "guess.toml"
-    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
-    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0))
-    run = tmp_path / "run.usdc"
-    assert main(["run", str(truth), "-o", str(run), "--frames", "3", "--dtype", "float64", "--no-progress"]) == 0
+    guess, run = _dough_guess_and_target(tmp_path, dough_scene)
 
     class Finalized:
         def __del__(self):
