@@ -766,6 +766,21 @@ def _dough_guess_and_target(tmp_path, dough_scene):
     return guess, run
 
 
+def _interrupt_evaluation(monkeypatch, n):
+    """A Ctrl-C (KeyboardInterrupt) in the fit's ``n``-th evaluation."""
+    from warp_esph import fit as fit_module
+
+    calls, original = [], fit_module._Problem.value_and_grad
+
+    def interrupted(self, z, losses=None):
+        calls.append(1)
+        if len(calls) == n:
+            raise KeyboardInterrupt
+        return original(self, z, losses)
+
+    monkeypatch.setattr(fit_module._Problem, "value_and_grad", interrupted)
+
+
 def _summary_with_range_rises(rises):
     """The diagnostics' summary of a made two-parameter fit (log space, well curved at the
     optimum), given the range check's chi-square changes ``rises`` (per parameter: down, up)."""
@@ -1029,20 +1044,10 @@ def test_an_interrupted_fit_keeps_its_evaluations_and_the_best_so_far(tmp_path, 
     """Ctrl-C during ``warp-esph fit`` kept nothing (no fit.json, no history): the command
     now writes the evaluations so far and the best of them (``stopped`` "interrupted"),
     then exits 130 as an interrupted run does. Here the third evaluation is interrupted."""
-    from warp_esph import fit as fit_module
     from warp_esph.cli import main
 
     guess, run = _dough_guess_and_target(tmp_path, dough_scene)
-    calls = []
-    original = fit_module._Problem.value_and_grad
-
-    def interrupted_third(self, z, losses=None):
-        calls.append(1)
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        return original(self, z, losses)
-
-    monkeypatch.setattr(fit_module._Problem, "value_and_grad", interrupted_third)
+    _interrupt_evaluation(monkeypatch, 3)
     out = tmp_path / "fit"
     capsys.readouterr()
     status = main(["fit", str(guess), "--target", str(run), "--iterations", "10", "--optimizer", "adam", "--lr", "0.2",
@@ -1065,25 +1070,15 @@ def test_an_interrupted_fit_whose_files_cannot_be_written_still_exits_130(tmp_pa
     import errno
 
     from warp_esph import calibrate as calibrate_module
-    from warp_esph import fit as fit_module
     from warp_esph.cli import main
 
     guess, run = _dough_guess_and_target(tmp_path, dough_scene)
-    calls = []
-    original = fit_module._Problem.value_and_grad
-
-    def interrupted_second(self, z, losses=None):
-        calls.append(1)
-        if len(calls) == 2:
-            raise KeyboardInterrupt
-        return original(self, z, losses)
-
     def full(result, folder, meta=None, json_path=None, written=None):
         if written is not None:
             written.append(os.path.join(folder, "fit.json"))
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), os.path.join(folder, "history.csv"))
 
-    monkeypatch.setattr(fit_module._Problem, "value_and_grad", interrupted_second)
+    _interrupt_evaluation(monkeypatch, 2)
     monkeypatch.setattr(calibrate_module, "write_outputs", full)
     out = tmp_path / "fit"
     capsys.readouterr()
@@ -1229,15 +1224,7 @@ def test_an_earlier_fits_run_does_not_stay_beside_a_new_fits_results(tmp_path, c
 
     (out / "fitted.usdc").write_bytes(b"an earlier fit's run")
     original = fit_module._Problem.value_and_grad
-    calls = []
-
-    def interrupted_second(self, z, losses=None):
-        calls.append(1)
-        if len(calls) == 2:
-            raise KeyboardInterrupt
-        return original(self, z, losses)
-
-    monkeypatch.setattr(fit_module._Problem, "value_and_grad", interrupted_second)
+    _interrupt_evaluation(monkeypatch, 2)
     capsys.readouterr()
     assert main([*common, "--iterations", "5", "--optimizer", "adam"]) == 130
     assert json.loads((out / "fit.json").read_text())["stopped"] == "interrupted"
