@@ -376,6 +376,72 @@ def test_hourglass_control_gradients_match_central_differences(weights, name):
     assert grads["mu"][0] == pytest.approx(fd, rel=1e-4)
 
 
+#: A block of 3 x 10 x 3 particles squashed to F = diag(1.7, 0.4, 1.7), positions and F
+#: alike, and moving: rows reach h sigma_max(F) = 1.7 h (the paper's force; a comparison
+#: model). There, 42 particles have more than ``KEYED_WIDTH`` others (up to the whole block),
+#: of which at most 41 are weighed by a kernel of the step (closer than h now, at
+#: F^-1 (x_j - x_i), or at rest). The 48 nearest would lack weighed pairs: those one spacing
+#: apart along both x and z (0.71 h at rest), 1.2 h apart now.
+KEYED_F0 = np.diag([1.7, 0.4, 1.7])
+KEYED_WIDTH = 48
+#: (material options, parameter differentiated).
+KEYED_CASES = {"paper": ({"elastic_force": "paper"}, "mu"), "rest_model": ({"deformation": "rest"}, "lam")}
+
+
+def _keyed_rollout(case, max_neighbors=KEYED_WIDTH, params=None, grad=False):
+    """The squashed block's 6 taped steps of 1e-5 s: ``(loss, neighbors_cut, rows, grad)``,
+    ``rows`` each step's (neighbour rows, counts), ``grad`` the loss's in the case's parameter."""
+    options, name = KEYED_CASES[case]
+    p = {"mu": 3.8e4, "lam": 5.8e4, "pressure_stiffness": 1.0, **options, **(params or {})}
+    b = we.SceneBuilder(spacing=0.02, max_neighbors=max_neighbors)
+    b.add_box((0.0, 0.0, 0.0), (0.06, 0.2, 0.06), we.Material(density=1000.0, **p))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    X = model.particle_x0 + np.random.default_rng(3).normal(scale=2e-5, size=model.particle_x0.shape)
+    model.particle_x0 = X  # the rest positions the rest model weighs
+    solver = we.Solver(model)
+    states = [model.state() for _ in range(7)]
+    states[0].x.assign(X @ KEYED_F0.T)
+    states[0].F.assign(np.tile(KEYED_F0, (model.particle_count, 1, 1)))
+    states[0].v.assign(20.0 * (X - X.mean(0)) * np.array([0.5, -0.3, 0.2]))
+    loss, tape = taped_rollout_loss(solver, states, 1.0e-5, random_weights(model.particle_count, 4))
+    rows = [(s.neighbors.numpy(), s.neighbor_count.numpy()) for s in states[1:]]
+    g = None
+    if grad:
+        tape.backward(loss)
+        g = getattr(model, name).grad.numpy()[0]
+    return loss.numpy()[0], solver.guard_counts()["neighbors_cut"], rows, g
+
+
+@pytest.mark.parametrize("case", sorted(KEYED_CASES))
+def test_gradients_through_full_keyed_rows_match_central_differences(case):
+    """Rows reaching h sigma_max(F) that overflow keep the pairs some kernel weighs first
+    (``neighbors.weight_key``) and drop only unweighed ones; the tape records those rows and
+    its backward pass replays them. Every taped step has full rows short of particles within
+    their reach (the same rollout at the default width holds them, the narrow rows among
+    them), none is counted cut, the loss and the tape's gradient are those of the wide rows
+    to round-off, and the gradient is that of central differences. Rows of the 48 nearest
+    (dropping weighed pairs) moved the loss by 8e-6 and its gradient by 2 %; a backward pass
+    that replayed those behind the keyed forward put the gradient 2 % off central differences."""
+    name = KEYED_CASES[case][1]
+    loss, cut, rows, g = _keyed_rollout(case, grad=True)
+    wide_loss, wide_cut, wide_rows, wide_g = _keyed_rollout(case, max_neighbors=None, grad=True)
+    for (nbr, cnt), (wide_nbr, wide_cnt) in zip(rows, wide_rows):
+        over = wide_cnt > KEYED_WIDTH
+        assert over.any() and (cnt[over] == KEYED_WIDTH).all(), "every step has full rows"
+        assert (cnt[~over] == wide_cnt[~over]).all()
+        for i in range(len(cnt)):
+            assert set(nbr[i, :cnt[i]]) <= set(wide_nbr[i, :wide_cnt[i]]), i
+    assert cut == 0 and wide_cut == 0
+    assert loss == pytest.approx(wide_loss, rel=1e-13, abs=0.0)
+    assert g == pytest.approx(wide_g, rel=1e-10, abs=0.0)
+    base = 3.8e4 if name == "mu" else 5.8e4
+    for rel, tol in ((1e-5, 1e-4), LARGE_STEP):
+        eps = rel * base
+        fd = (_keyed_rollout(case, params={name: base + eps})[0] - _keyed_rollout(case, params={name: base - eps})[0]) / (2 * eps)
+        assert abs(fd) > 1e-11, f"the loss does not reach {name}"
+        assert g == pytest.approx(fd, rel=tol), rel
+
+
 def _energy_spiky_model(case, params=None):
     """The block with the ``energy_spiky`` pressure force (``docs/method.md §6``): ``rest``,
     at rest under gravity with the pressure clamp off (so the pressure answers both ways
