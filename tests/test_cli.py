@@ -599,13 +599,15 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
         assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
         assert_one_line_error(capsys.readouterr().err, words)
     # The scene file is named as the JSON wrote it, not by the path it resolves to beside the JSON
-    # ('exp.json: experiment #1: /tmp/.../fast.toml: ...'); it is still read from there.
+    # ('exp.json: experiment #1: /tmp/.../fast.toml: ...'); it is still read from there, and a
+    # missing one says so (it said only 'nope.toml', as if looked for in the working folder).
     (tmp_path / "fast.toml").write_text(GOOD_TOML.replace("[[bodies]]", "[[bodies]]\nvelocity = [0.0, -1e3, 0.0]"))
     (tmp_path / "bad.toml").write_text(GOOD_TOML + "\n[scene]\n")
     for scene, words in (("fast.toml", "fast.toml: [[bodies]] #1 (shape 'box'): initial velocity of body 'box0': a speed "
                                         "of 1e+03 m/s"),
                          ("bad.toml", "bad.toml: invalid TOML: "),
-                         ("nope.toml", "cannot read scene file 'nope.toml': ")):
+                         ("nope.toml", f"cannot read scene file 'nope.toml' (looked for relative to {tmp_path}, "
+                                       "the folder of the --experiments file): ")):
         (tmp_path / "exp.json").write_text(json.dumps([{"scene": scene, "target": "truth.usdc"}]))
         assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
         err = capsys.readouterr().err

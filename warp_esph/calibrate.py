@@ -211,6 +211,12 @@ def run_fit(args, out=None, err=None) -> int:
                 # The scene file as the JSON wrote it: its resolved path ('/tmp/x/fast.toml:
                 # ...') read as a name the user never gave.
                 message = re.sub(re.escape(spec["scene"]) + r"(?![\w./\\-])", lambda _: written, message)
+                unread = f"cannot read scene file {written!r}"
+                if message.startswith(unread):
+                    # The name alone read as a file missing from the working folder, where nobody
+                    # looked.
+                    message = (f"{unread} (looked for relative to {spec['scene_folder']}, the folder of the "
+                               f"--experiments file){message[len(unread):]}")
             if where and f"{where}{message}" != said:
                 raise ValueError(f"{where}{message}") from None
             raise
@@ -425,6 +431,7 @@ def _read_experiments(path) -> list[tuple[str, dict]]:
         if os.path.splitext(str(spec["scene"]))[1].lower() == ".toml":
             if not os.path.isabs(spec["scene"]):
                 spec["scene_as_written"] = spec["scene"]  # how a refusal names it (the caller's)
+                spec["scene_folder"] = base  # where a missing one was looked for
             spec["scene"] = rel(spec["scene"])
         cams = spec.get("cameras")
         if cams is not None and not (isinstance(cams, str) and cams.strip()):
