@@ -316,6 +316,28 @@ def test_a_scene_file_preset_keeps_its_force_defaulted(tmp_path):
     assert material.replace(deformation="rest").elastic_force == "paper"
 
 
+@pytest.mark.parametrize("name, force", [("three_cylinders", None), ("lab_fig8_plates", None),
+                                         ("fig2_three_cylinders", "paper"), ("fig8_comparison", "paper")])
+def test_a_built_in_scenes_material_follows_a_new_deformation_as_a_users_would(name, force):
+    """three_cylinders and lab_fig8_plates named the default force (``elastic_force="variational"``),
+    so their materials counted as given: ``replace(deformation="additive")`` was refused where the
+    same material built with the default gets the paper force. They now leave it defaulted; the
+    figure scenes still ask for the paper's, which a new deformation keeps."""
+    from warp_esph import scenes
+
+    materials = scenes.get_scene(name, scale=0.3).builder._materials
+    assert materials
+    for m in materials:
+        users = we.Material(**{**dataclasses.asdict(m), "elastic_force": force})
+        assert m == users
+        for deformation in ("rest", "additive", "incremental"):
+            assert m.replace(deformation=deformation) == users.replace(deformation=deformation), (m, deformation)
+        if force is None:
+            assert m.elastic_force == "variational" and m.replace(deformation="additive").elastic_force == "paper"
+        else:
+            assert m.replace(deformation="incremental").elastic_force == "paper"
+
+
 def test_a_scene_file_preset_given_a_comparison_model_gets_that_models_default_force(tmp_path):
     """The same rule in a scene file's ``[materials]`` table: ``preset`` and ``deformation``
     without ``elastic_force`` is the comparison model's default force, ``"paper"``."""

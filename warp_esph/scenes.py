@@ -85,8 +85,10 @@ def clay_on_sphere(scale: float = 1.0) -> Scene:
 
 #: Fig. 2's materials: one stiffness, increasing plasticity (left to right). A little
 #: viscosity settles the elastic one: undamped, with the paper's force, its ringing after
-#: the impact grows until the run diverges (about 1 s after landing).
-def _cylinder_materials(elastic_force: str = "variational") -> list[tuple[str, Material]]:
+#: the impact grows until the run diverges (about 1 s after landing). ``None`` leaves the
+#: force to ``Material``'s default, as a user's material would: named, it counted as given,
+#: and ``replace(deformation="additive")`` refused it.
+def _cylinder_materials(elastic_force: str | None = None) -> list[tuple[str, Material]]:
     E, nu = 3.0e4, 0.3
     base = dict(density=1000.0, viscosity=5.0, elastic_force=elastic_force)
     return [
@@ -96,7 +98,7 @@ def _cylinder_materials(elastic_force: str = "variational") -> list[tuple[str, M
     ]
 
 
-def _cylinder_bodies(b: SceneBuilder, only=None, elastic_force: str = "variational"):
+def _cylinder_bodies(b: SceneBuilder, only=None, elastic_force: str | None = None):
     """Fig. 2: three upright cylinders (radius 5 cm, 15 cm tall) dropped 10 cm, 16 cm apart."""
     for k, (name, mat) in enumerate(_cylinder_materials(elastic_force)):
         if _wanted(only, name):
@@ -324,7 +326,7 @@ def fig7_plastic_grid(scale: float = 1.0, only=None) -> Scene:
                  dt=_figure_dt(1.0e-4, scale), figure="Fig. 7", view=(20.0, 40.0))
 
 
-def _fig8_materials(elastic_force: str = PAPER) -> list[tuple[str, Material]]:
+def _fig8_materials(elastic_force: str | None = PAPER) -> list[tuple[str, Material]]:
     """Fig. 8: (row, material) of the elastic (top) and very plastic (bottom) rows."""
     # SPH viscosity damps the ringing after the release, so the final shape is read at rest.
     # The comparison models (rest, additive) have only the paper's force: the figure's
@@ -493,8 +495,9 @@ def lab_fig8_plates(scale: float = 1.0) -> Scene:
 
     b = SceneBuilder(spacing=0.02 / _scale(scale), gravity=(0.0, 0.0, 0.0), bodies_interact=False)
     squeeze = 0.15
-    # The default (variational) force: a lab test, not a reproduction of the figure.
-    for (row, mat), z0 in zip(_fig8_materials("variational"), (-0.35, 0.35)):
+    # The default (variational) force, left to its default as a user's: a lab test, not a
+    # reproduction of the figure.
+    for (row, mat), z0 in zip(_fig8_materials(None), (-0.35, 0.35)):
         center = np.array([0.0, 0.3, z0])
         b.add_box(tuple(center), (0.2, 0.2, 0.2), mat, name=row)
         pts = b._points[-1]
