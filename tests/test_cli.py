@@ -1060,9 +1060,10 @@ def test_a_signal_held_while_a_checkpoint_fails_to_write_is_reported(tmp_path, m
                                 "finished)"], err
 
 
-def test_a_signal_held_while_the_last_force_log_write_fails_is_reported(tmp_path, monkeypatch, capsys):
-    """A SIGTERM held while the force log's last write ran, which then failed, was dropped: the
-    finished run exited 4. The signal wins (143), the one line naming the log."""
+def _fill_the_disk_at_the_last_force_log_write(monkeypatch, terminate=False):
+    """The force log's write after the run's frames are all written fails as on a full disk
+    (its earlier writes, at checkpoints, succeed); with ``terminate`` a SIGTERM comes while
+    it is written, so the run holds it."""
     import builtins
     import errno
 
@@ -1077,12 +1078,19 @@ def test_a_signal_held_while_the_last_force_log_write_fails_is_reported(tmp_path
 
     def open_(path, mode="r", *args, **kwargs):
         if ended and "_tools.json" in str(path) and "w" in mode:
-            os.kill(os.getpid(), signal.SIGTERM)  # held: the log is being written
+            if terminate:
+                os.kill(os.getpid(), signal.SIGTERM)  # held: the log is being written
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         return builtins.open(path, mode, *args, **kwargs)
 
     monkeypatch.setattr(usd_module.UsdWriter, "close", close)
     monkeypatch.setattr(tools_module, "open", open_, raising=False)
+
+
+def test_a_signal_held_while_the_last_force_log_write_fails_is_reported(tmp_path, monkeypatch, capsys):
+    """A SIGTERM held while the force log's last write ran, which then failed, was dropped: the
+    finished run exited 4. The signal wins (143), the one line naming the log."""
+    _fill_the_disk_at_the_last_force_log_write(monkeypatch, terminate=True)
     out_path = tmp_path / "g.usdc"
     assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "2", "--no-progress"]) == 143
     captured = capsys.readouterr()
@@ -1149,25 +1157,7 @@ def test_a_force_log_that_cannot_be_written_is_exit_4_and_keeps_its_last_whole_v
     """The disk fills as the force log is written at the end of a finished run: one line naming
     the log, exit 4 (it was exit 2, 'bad input', naming no file), and the log as its last
     checkpoint wrote it, whole, the CSV and the JSON agreeing (it was cut where the disk filled)."""
-    import builtins
-    import errno
-
-    from warp_esph import tools as tools_module
-    from warp_esph import usd as usd_module
-
-    ended, real_close = [], usd_module.UsdWriter.close
-
-    def close(self):
-        ended.append(True)  # the run's frames are all written: the log's last write comes next
-        real_close(self)
-
-    def open_(path, mode="r", *args, **kwargs):
-        if ended and "_tools.json" in str(path) and "w" in mode:
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        return builtins.open(path, mode, *args, **kwargs)
-
-    monkeypatch.setattr(usd_module.UsdWriter, "close", close)
-    monkeypatch.setattr(tools_module, "open", open_, raising=False)
+    _fill_the_disk_at_the_last_force_log_write(monkeypatch)
     out_path = tmp_path / "g.usdc"
     assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "5", "--checkpoint-every", "2",
                  "--no-progress"]) == 4

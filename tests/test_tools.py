@@ -1681,20 +1681,28 @@ def test_a_rollouts_backward_leaves_the_tools_gradients_a_plain_tape_gives():
         assert m.tools.friction.grad.numpy()[0] == pytest.approx(ref_f, rel=1e-10)
 
 
+def _refused_box_mesh_tool_run(tmp_path, capsys, name, half_extents, spacing, center, size, tool_keys=""):
+    """``(scene, stderr)`` of the refused run of NAME.toml: a dough box of ``size`` at
+    ``center`` (TOML arrays) at ``spacing``, and a mesh tool of NAME.obj, a box mesh of
+    ``half_extents``, with the further keys ``tool_keys`` (TOML lines)."""
+    from run_files import refused_run
+    from warp_esph import meshes
+
+    meshes.write_mesh(tmp_path / f"{name}.obj", *tools.box_mesh(half_extents))
+    scene = tmp_path / f"{name}.toml"
+    scene.write_text(f'[scene]\nspacing = {spacing}\nframes = 1\n[[bodies]]\nshape = "box"\nmaterial = "dough"\n'
+                     f'center = {center}\nsize = {size}\n'
+                     f'[[tools]]\nshape = "mesh"\nfile = "{name}.obj"\n{tool_keys}')
+    return scene, refused_run(capsys, scene, tmp_path / "t.usdc")
+
+
 def test_a_tool_smaller_than_the_contacts_margin_is_refused_naming_its_size_and_the_spacing(tmp_path, capsys):
     """A mesh tool at scale 1e-9 (a 2e-10 m box at spacing 0.05) was taken, and the run went
     on as if it were not there. A tool smaller in every direction than the contact's margin
     (a thousandth of a spacing) is refused, naming the key that sized it; a tenth of a
     spacing is still taken (it stops the particles in its path, the test above)."""
-    from run_files import refused_run
-    from warp_esph import meshes
-
-    meshes.write_mesh(tmp_path / "cube.obj", *tools.box_mesh((0.1, 0.1, 0.1)))
-    scene = tmp_path / "tool.toml"
-    scene.write_text('[scene]\nspacing = 0.05\nframes = 1\n[[bodies]]\nshape = "box"\nmaterial = "dough"\n'
-                     'center = [0, 0.15, 0]\nsize = [0.2, 0.15, 0.2]\n'
-                     '[[tools]]\nshape = "mesh"\nfile = "cube.obj"\nscale = 1e-9\nposition = [0, 0.5, 0]\n')
-    err = refused_run(capsys, scene, tmp_path / "t.usdc")
+    scene, err = _refused_box_mesh_tool_run(tmp_path, capsys, "cube", (0.1, 0.1, 0.1), 0.05, "[0, 0.15, 0]",
+                                            "[0.2, 0.15, 0.2]", "scale = 1e-9\nposition = [0, 0.5, 0]\n")
     assert err == (f"warp-esph: error: {scene}: [[tools]] #1 (shape 'mesh'): scale = 1e-09 is not allowed for mesh tool "
                    f"'mesh_tool0' of '{tmp_path / 'cube.obj'}': the tool is 2e-10 m across at most, less than 5e-05 m, a "
                    "thousandth of the spacing 0.05 (the contact's margin): the particles pass it by; give a larger scale or "
@@ -1712,15 +1720,8 @@ def test_a_tool_smaller_than_the_contacts_margin_is_refused_naming_its_size_and_
 def test_a_scene_file_s_mesh_tool_the_particles_meet_beyond_float32_is_refused_by_its_table(tmp_path, capsys):
     """The refusal made at finalize, where the particles are known, names the file's tool
     table and the command's option, as add_tool's refusals do."""
-    from run_files import refused_run
-    from warp_esph import meshes
-
-    meshes.write_mesh(tmp_path / "slab.obj", *tools.box_mesh((100.0, 50.0, 100.0)))
-    scene = tmp_path / "slab.toml"
-    scene.write_text('[scene]\nspacing = 0.02\nframes = 1\n[[bodies]]\nshape = "box"\nmaterial = "dough"\n'
-                     'center = [0, 50.03, 0]\nsize = [0.06, 0.06, 0.06]\n'
-                     '[[tools]]\nshape = "mesh"\nfile = "slab.obj"\n')
-    err = refused_run(capsys, scene, tmp_path / "t.usdc")
+    scene, err = _refused_box_mesh_tool_run(tmp_path, capsys, "slab", (100.0, 50.0, 100.0), 0.02, "[0, 50.03, 0]",
+                                            "[0.06, 0.06, 0.06]")
     assert err.startswith(f"warp-esph: error: {scene}: [[tools]] #1 (shape 'mesh'): mesh tool 'mesh_tool0' is not allowed "
                           "in float32: the faces the particles can touch reach 100 m from its origin"), err
     assert err.endswith("split its faces there into smaller ones, use --dtype float64, or a larger spacing\n"), err
