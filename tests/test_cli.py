@@ -603,16 +603,28 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
     # missing one says so (it said only 'nope.toml', as if looked for in the working folder).
     (tmp_path / "fast.toml").write_text(GOOD_TOML.replace("[[bodies]]", "[[bodies]]\nvelocity = [0.0, -1e3, 0.0]"))
     (tmp_path / "bad.toml").write_text(GOOD_TOML + "\n[scene]\n")
+    # A path without '.toml' (a scene file all the same) was read relative to the working folder.
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "bad").write_text(GOOD_TOML + "\n[scene]\n")
+    looked = f"(looked for relative to {tmp_path}, the folder of the --experiments file): No such file or directory"
     for scene, words in (("fast.toml", "fast.toml: [[bodies]] #1 (shape 'box'): initial velocity of body 'box0': a speed "
                                         "of 1e+03 m/s"),
                          ("bad.toml", "bad.toml: invalid TOML: "),
-                         ("nope.toml", f"cannot read scene file 'nope.toml' (looked for relative to {tmp_path}, "
-                                       "the folder of the --experiments file): ")):
+                         ("nope.toml", f"cannot read scene file 'nope.toml' {looked}"),
+                         ("sub/nope.toml", f"cannot read scene file 'sub/nope.toml' {looked}"),
+                         ("sub/bad", "sub/bad: invalid TOML: "),
+                         ("sub/nope", f"cannot read scene file 'sub/nope' {looked}")):
         (tmp_path / "exp.json").write_text(json.dumps([{"scene": scene, "target": "truth.usdc"}]))
         assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
-        err = capsys.readouterr().err
-        assert_one_line_error(err, f"error: {tmp_path / 'exp.json'}: experiment #1: {words}")
-        assert str(tmp_path / scene) not in err, err
+        captured = capsys.readouterr()
+        assert_one_line_error(captured.err, f"error: {tmp_path / 'exp.json'}: experiment #1: {words}")
+        assert str(tmp_path / scene) not in captured.err and not captured.out, captured
+    # An absolute path is named as written, and was looked for nowhere else.
+    (tmp_path / "exp.json").write_text(json.dumps([{"scene": str(tmp_path / "nope.toml"), "target": "truth.usdc"}]))
+    assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
+    err = capsys.readouterr().err
+    assert_one_line_error(err, f"experiment #1: cannot read scene file '{tmp_path / 'nope.toml'}': No such file or directory")
+    assert "relative to" not in err, err
     # The command's own --material is named as the option typed (it said "material 'nobody'").
     for chosen, words in (("nobody", "error: --material 'nobody' is not allowed: give a material index or a body name ("),
                           ("5", "error: --material 5 is not allowed: indices are 0..0")):

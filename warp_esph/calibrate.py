@@ -394,6 +394,8 @@ def _read_experiments(path) -> list[tuple[str, dict]]:
     """``(where, spec)`` of each entry of an ``--experiments`` JSON file: a list of objects
     with ``EXPERIMENT_KEYS`` (``scene`` and ``target`` required; files relative to the JSON
     file's folder)."""
+    from .scenes import SCENES  # noqa: PLC0415
+
     p = os.fspath(path)
     doc = checks.json_file("--experiments", p)
     if isinstance(doc, dict):
@@ -428,8 +430,12 @@ def _read_experiments(path) -> list[tuple[str, dict]]:
             return x if os.path.isabs(str(x)) else os.path.join(base, str(x))
 
         spec["target"] = [rel(t) for t in (spec["target"] if isinstance(spec["target"], list) else [spec["target"]])]
-        if os.path.splitext(str(spec["scene"]))[1].lower() == ".toml":
-            if not os.path.isabs(spec["scene"]):
+        scene = spec["scene"]
+        # Every name load_scene reads as a file, not only '.toml' ones: 'sub/plain' was read
+        # relative to the working folder, named without the folder it was looked for in.
+        if scene not in SCENES and (os.path.splitext(scene)[1].lower() == ".toml" or os.sep in scene
+                                    or (os.altsep and os.altsep in scene) or os.path.exists(rel(scene))):
+            if not os.path.isabs(scene):
                 spec["scene_as_written"] = spec["scene"]  # how a refusal names it (the caller's)
                 spec["scene_folder"] = base  # where a missing one was looked for
             spec["scene"] = rel(spec["scene"])
