@@ -14,6 +14,7 @@ import warp as wp
 
 import warp_esph as we
 from energy_fd import central_gradient, image_heights, mover, stvk_energy, stvk_psi
+from warp_esph.scenes import FIGURE_SCENES, SCENES, get_scene
 
 SPACING = 0.02
 
@@ -316,16 +317,14 @@ def test_a_scene_file_preset_keeps_its_force_defaulted(tmp_path):
     assert material.replace(deformation="rest").elastic_force == "paper"
 
 
-@pytest.mark.parametrize("name, force", [("three_cylinders", None), ("lab_fig8_plates", None),
-                                         ("fig2_three_cylinders", "paper"), ("fig8_comparison", "paper")])
-def test_a_built_in_scenes_material_follows_a_new_deformation_as_a_users_would(name, force):
+@pytest.mark.parametrize("name", SCENES)
+def test_a_built_in_scenes_material_follows_a_new_deformation_as_a_users_would(name):
     """three_cylinders and lab_fig8_plates named the default force (``elastic_force="variational"``),
     so their materials counted as given: ``replace(deformation="additive")`` was refused where the
-    same material built with the default gets the paper force. They now leave it defaulted; the
-    figure scenes still ask for the paper's, which a new deformation keeps."""
-    from warp_esph import scenes
-
-    materials = scenes.get_scene(name, scale=0.3).builder._materials
+    same material built with the default gets the paper force. Every scene but the figures'
+    leaves it defaulted; the figure scenes ask for the paper's, which a new deformation keeps."""
+    force = "paper" if name in FIGURE_SCENES else None
+    materials = get_scene(name, scale=0.3).builder._materials
     assert materials
     for m in materials:
         users = we.Material(**{**dataclasses.asdict(m), "elastic_force": force})
