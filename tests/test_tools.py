@@ -1144,6 +1144,39 @@ def test_keyframe_times_written_in_place_between_steps_are_checked_again():
     s.step(x, y, 1e-4)
 
 
+@pytest.mark.parametrize("name, bad, message", [
+    ("friction", [float("nan")], r"friction of tool 'ball' = nan is not allowed: must be a finite number >= 0"),
+    ("friction", [-5.0], r"friction of tool 'ball' = -5\.0 is not allowed: must be a finite number >= 0"),
+    ("static_friction", [-1.0], r"static_friction of tool 'ball' = -1\.0 is not allowed: must be a finite number >= 0"),
+    ("keyframe_positions", [[0, 0.5, 0], [0, np.nan, 0], [0, 0, 0]],
+     r"keyframe_positions of tool 'ball' = \[\[0\.0, 0\.5, 0\.0\], \[0\.0, nan, 0\.0\]\] is not allowed: must be finite"),
+    ("keyframe_orientations", [[0, 0, 0, 1], [0, 0, 0, 0], [0, 0, 0, 1]],
+     r"keyframe_orientations of tool 'ball' = \[\[0\.0, 0\.0, 0\.0, 1\.0\], \[0\.0, 0\.0, 0\.0, 0\.0\]\] is not allowed: must "
+     r"be finite quaternions \(x, y, z, w\), none zero"),
+    ("velocity", [[0, 0, 0], [0, np.inf, 0]], r"velocity of pinned set 'base' = \[0\.0, inf, 0\.0\] is not allowed: must be finite"),
+])
+def test_tool_arrays_written_in_place_are_checked_before_the_step(name, bad, message):
+    """The tools' other differentiable arrays are refused as the keyframe times are, when they
+    hold what no tool could, before the step launches anything: a NaN keyframe position took
+    the tool out of the contact and a negative friction drove the material along it, and the
+    steps went on without a word (a NaN friction ran to NaN positions)."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="d")
+    b.add_tool("sphere", radius=0.05, name="ball", friction=0.2, motion=tools.Keyframes([0.0, 1.0], [(0, 0.5, 0)] * 2))
+    b.pin(region=((-0.1, 0.0, -0.1), (0.1, 0.08, 0.1)), motion=tools.Velocity(), name="base")
+    m = b.finalize()
+    s, x, y = we.Solver(m), m.state(), m.state()
+    s.step(x, y, 1e-4)
+    good = getattr(m.tools, name).numpy().copy()
+    getattr(m.tools, name).assign(np.array(bad, dtype=np.float32))
+    before = x.x.numpy().copy()
+    with pytest.raises(ValueError, match=f"^{message}$"):
+        s.step(y, x, 1e-4)
+    np.testing.assert_array_equal(x.x.numpy(), before)  # refused before any kernel wrote state_out
+    getattr(m.tools, name).assign(good)
+    s.step(y, x, 1e-4)
+
+
 # ------------------------------------------------------------- scene files, CLI, USD
 SCENE_TOML = """
 [scene]

@@ -993,6 +993,9 @@ class ToolSet:
         self._warned_scripted = False
         self._held_samples = None
         self._checked_times = None  # (keyframe_times' bytes, motions) that _times_now last found valid
+        self._checked_arrays = None  # the bytes of the other arrays check_arrays last found valid
+        self._array_stage = None  # check_arrays' one buffer on a GPU (allocated on first use)
+        self._array_views = None  # check_arrays' views of the arrays on the CPU, with the arrays
         self._scripted = [k for k, mo in enumerate(self.motions) if isinstance(mo, Scripted)]
         self._scripted_last = None  # (t0, positions, quaternions) of the last step's samples
         self._reach_of = {}
@@ -1044,6 +1047,66 @@ class ToolSet:
                     raise ValueError(f"keyframe_times of tool {self.names[k]!r} = {ts.tolist()!r} is not allowed: must be finite and increasing")
         self._checked_times = key
         return kt
+
+    def check_arrays(self) -> None:
+        """Refuse (``ValueError``) the tools' differentiable arrays as they are now where no
+        tool could hold them (an optimiser, or a caller, writes them in place): keyframe times
+        finite and increasing (``_times_now``), friction coefficients finite and >= 0,
+        velocities and keyframe positions finite, keyframe orientations finite and non-zero.
+        ``Solver.step`` calls it before its first launch. Unchecked, a NaN keyframe position
+        took the tool out of the contact and a negative friction drove the material along it,
+        and the run went on without a word; a NaN friction ran to NaN positions."""
+        self._times_now()
+        names = ("friction", "static_friction", "velocity", "angular_velocity", "keyframe_positions", "keyframe_orientations")
+        arrays = [getattr(self, name) for name in names]
+        if self.model.device.is_cpu:
+            # Views of the arrays' memory, kept while they are the same arrays: nothing is copied,
+            # and a view made per array and step cost twice the check.
+            held = self._array_views
+            if held is None or any(a is not b for a, b in zip(held[0], arrays)):
+                held = self._array_views = (arrays, [a.numpy() for a in arrays])
+            raw = held[1]
+        else:
+            # One transfer: each read of a device array waits for the device, and every step asks.
+            flat = [a.view(self.scalar).flatten() if a.ndim == 1 and a.dtype != self.scalar else a for a in arrays]
+            sizes = [f.shape[0] for f in flat]
+            stage = self._array_stage
+            if stage is None or stage.shape[0] != sum(sizes):
+                stage = self._array_stage = wp.empty(sum(sizes), dtype=self.scalar, device=self.model.device)
+            offset = 0
+            for f, size in zip(flat, sizes):
+                wp.copy(stage, f, dest_offset=offset, count=size)
+                offset += size
+            host, offset, raw = stage.numpy(), 0, []
+            for a, size in zip(arrays, sizes):
+                raw.append(host[offset:offset + size].reshape(a.shape[0], -1))
+                offset += size
+        key = b"".join(np.ascontiguousarray(r).tobytes() for r in raw)
+        # Every step asks: the values below were found valid at an earlier call.
+        if self._checked_arrays == key:
+            return
+        values = {name: np.asarray(r, dtype=np.float64).reshape(a.shape[0], -1) for name, r, a in zip(names, raw, arrays)}
+
+        def refuse(name, k, value, allowed):
+            shown = checks.shorten(np.round(value, 12).tolist())
+            raise ValueError(f"{name} of {self._owner(k)} = {shown!r} is not allowed: {allowed}")
+
+        for k in range(len(self.colliders)):  # a pinned set has no friction
+            for name in ("friction", "static_friction"):
+                v = float(values[name][k, 0])
+                if not (math.isfinite(v) and v >= 0.0):
+                    refuse(name, k, v, "must be a finite number >= 0")
+        for k, motion in enumerate(self.motions):
+            for name in ("velocity", "angular_velocity"):
+                if not np.isfinite(values[name][k]).all():
+                    refuse(name, k, values[name][k], "must be finite")
+            rows = slice(self.keyframe_start[k], self.keyframe_start[k] + (len(motion.times) if isinstance(motion, Keyframes) else 1))
+            p, q = values["keyframe_positions"][rows], values["keyframe_orientations"][rows]
+            if not np.isfinite(p).all():
+                refuse("keyframe_positions", k, p, "must be finite")
+            if not np.isfinite(q).all() or not (np.abs(q).max(axis=1) > 0.0).all():
+                refuse("keyframe_orientations", k, q, "must be finite quaternions (x, y, z, w), none zero")
+        self._checked_arrays = key
 
     def motion_gradient(self, name: str) -> dict[str, np.ndarray]:
         """The gradient a backward pass left on tool ``name``'s motion parameters:

@@ -487,6 +487,9 @@ class Solver:
         """One step of the method, stage by stage (docs/physics.md has the table)."""
         checks.step_states(self.model, state_in, state_out)
         m = self.model
+        if m.tools is not None:
+            # Before any launch: the tools' arrays as a caller or an optimiser left them.
+            m.tools.check_arrays()
         tape = recording_tape()
         with m._parameters_read_once():  # one read-back of the parameter arrays for the three
             if self._auto:
