@@ -58,6 +58,35 @@ def test_cli_fit_refuses_a_tool_faster_than_a_spacing_a_step_before_the_fit(tmp_
     assert not out.exists()
 
 
+def test_python_fit_refuses_a_tool_or_a_start_faster_than_a_spacing_a_step_before_any_rollout():
+    """``fit`` itself took them, as the command line's once did: a box pressing at two
+    spacings a step drove the block 0.25 m through the ground, and the fit fitted to that.
+    Refused at set-up now, naming the experiment, the tool or body and fit's ``dt=``."""
+    from warp_esph import tools
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="d")
+    b.add_ground()
+    b.add_tool("box", half_extents=(0.3, 0.05, 0.3), name="plate", motion=tools.Velocity((0.0, -100.0, 0.0), position=(0.0, 0.3, 0.0)))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    target = PositionLoss(model.particle_x0[None], frames=[2])
+    seen = []
+    with pytest.raises(ValueError, match=r"^the experiment: tool 'plate': its Velocity motion moves its points at up to 100 m/s "
+                                         r".* at dt = 0\.001 s: a step may carry a tool at most one spacing \(0\.05 m\), so at "
+                                         r"most 50 m/s; give a slower motion or a smaller dt=$"):
+        fit(model, target, ["mu"], steps=2, dt=1e-3, iterations=1, progress=False, callback=lambda *a: seen.append(a))
+    assert seen == []  # no evaluation ran
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="d")
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    with pytest.raises(ValueError, match=r"^the experiment: initial velocity of body 'd': a speed of 60 m/s \(particle 0\) is "
+                                         r"not allowed at dt = 0\.001 s: .* so at most 50 m/s; give a smaller velocity \(or "
+                                         r"angular_velocity, or v0\) or a smaller dt=$"):
+        fit(model, target, ["mu"], steps=2, dt=1e-3, iterations=1, progress=False, initial={"v0": (0.0, 60.0, 0.0)})
+    fit(model, target, ["mu"], steps=2, dt=1e-3, iterations=1, progress=False, diagnostics=False,
+        initial={"v0": (0.0, 40.0, 0.0)})
+
+
 def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys, dough_scene):
     """``warp-esph run`` a dough block dropped on the ground (64 particles, 102 steps), then
     ``warp-esph fit`` a copy that starts 2x off in yield stress and flow rate, with the

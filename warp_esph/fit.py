@@ -393,6 +393,7 @@ class _Run:
         # of particles, every evaluation), and a refused start surfaced only at the first one.
         self.starts = {name: check_initial(self.model, name, value) for name, value in self.initial.items()
                        if name != "initial_state" and value is not None}
+        self._check_speeds()
         self.weight = checks.positive("weight", exp.weight)  # a negative weight would maximise its loss
         self.noise = None if exp.noise is None else checks.noise("noise", exp.noise)
         # In float64 whatever the model's precision, the materials' own values where the arrays
@@ -401,6 +402,31 @@ class _Run:
         self.rho = np.array([m.density for m in self.model.materials])
         # k_p = share K / rho0 of the tied materials (material.PRESSURE_BULK_SHARE)
         self.kp_share = np.array([PRESSURE_BULK_SHARE[m.pressure_force] for m in self.model.materials])
+
+    def _check_speeds(self) -> None:
+        """Refuse, before any rollout, a start or a tool (or pinned set) that moves more than
+        one spacing in a step, as ``simulate`` and ``warp-esph fit`` do: the rollouts ran them
+        and the fit fitted to what they made (a box pressing at two spacings a step drove a
+        block 0.25 m through the ground). The fitted parameters are the materials', so the
+        speeds are those of the whole fit."""
+        from .model import State  # noqa: PLC0415
+        from .simulate import START_ADVICE, StepRefusal, check_particle_speed  # noqa: PLC0415
+
+        m = self.model
+        init = self.initial.get("initial_state")
+        if not (isinstance(init, State) and init.particle_count == m.particle_count):
+            init = None  # Rollout.forward refuses another one by name
+        v = self.starts.get("v0")
+        if v is None:
+            v = init.v.numpy() if init is not None else m.particle_v0
+        t0 = float(init.time) if init is not None else 0.0
+        try:
+            check_particle_speed(m, v, self.dt)
+            if m.tools is not None:
+                m.tools.check_speed(self.dt, t0, t0 + self.steps * self.dt)
+        except StepRefusal as e:
+            advice = "; give a smaller velocity (or angular_velocity, or v0) or a smaller dt=" if e.advice == START_ADVICE else e.advice
+            raise ValueError(f"{self.name}: {e.reason}{advice}") from None
 
     def forward(self) -> np.ndarray:
         """The rollout from this experiment's starts (checked once, at set-up)."""

@@ -499,18 +499,31 @@ def check_start_speed(model: Model, state: State, fps: float, dt, hourglass: flo
     v = state.v.numpy().astype(np.float64)
     if not len(v):
         return
-    speed = np.sqrt((v * v).sum(axis=1))
-    p = int(np.argmax(speed))
-    index = int(model.particle_body_np[p])
-    body = model.bodies[index].name
     if isinstance(dt, str):
+        speed = np.sqrt((v * v).sum(axis=1))
+        p = int(np.argmax(speed))
+        index = int(model.particle_body_np[p])
         try:
             adaptive_timestep(model, state, fps, hourglass=hourglass, until=until)
         except ValueError as e:
             if not str(e).startswith("a particle speed"):
                 raise  # a tool's, which names it, or the material's own step
-            raise _body_error(f"initial velocity of body {body!r} (particle {p}): {e}", index) from None
+            raise _body_error(f"initial velocity of body {model.bodies[index].name!r} (particle {p}): {e}", index) from None
         return
+    check_particle_speed(model, v, dt)
+
+
+def check_particle_speed(model: Model, v: np.ndarray, dt: float) -> None:
+    """``check_start_speed`` at a fixed ``dt`` of the velocities ``v`` (n, 3): a
+    ``StepRefusal`` (``START_ADVICE``) naming the fastest particle and its body where it
+    moves more than one spacing in a step (``fit`` checks its starts with it)."""
+    v = np.asarray(v, dtype=np.float64)
+    if not len(v):
+        return
+    speed = np.sqrt((v * v).sum(axis=1))
+    p = int(np.argmax(speed))
+    index = int(model.particle_body_np[p])
+    body = model.bodies[index].name
     limit = model.spacing / dt
     if not speed[p] <= limit:
         raise _body_error(
