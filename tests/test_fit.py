@@ -654,6 +654,22 @@ def test_a_particle_mask_of_the_wrong_length_is_named_not_the_targets():
         r.backward(loss)
 
 
+def test_a_particle_selection_of_nothing_is_named_as_such():
+    """An all-False mask and an empty list were refused with 'give non-negative particle
+    indices or a boolean mask', which is what they were; a wrong kind is named by its value."""
+    from warp_esph.losses import PositionLoss
+
+    target = np.zeros((1, 4, 3))
+    with pytest.raises(ValueError, match=r"^particles \(a boolean mask of 4 entries, all False\) is not allowed: it selects "
+                                         r"no particle$"):
+        PositionLoss(target, frames=[2], particles=np.zeros(4, dtype=bool))
+    with pytest.raises(ValueError, match=r"^particles = \[\] is not allowed: it selects no particle$"):
+        PositionLoss(target, frames=[2], particles=[])
+    with pytest.raises(ValueError, match=r"^particles = \[-1, 2\] is not allowed: give non-negative particle indices or a "
+                                         r"boolean mask$"):
+        PositionLoss(target, frames=[2], particles=[-1, 2])
+
+
 def test_a_step_size_beyond_any_parameter_range_is_refused_before_any_rollout(dough_target):
     """``lr = 1e300`` stepped the log of a positive parameter past the floats: the fit failed
     mid-run with the material's refusal of an infinite value. It is refused by name first."""

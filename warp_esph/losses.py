@@ -318,12 +318,19 @@ class Loss:
         self.weight = checks.positive("weight", weight)
         self._mask_size = None
         if particles is not None:
-            idx = np.asarray(checks.host_values("particles", particles))
-            if idx.dtype == bool:
+            given = checks.host_values("particles", particles)
+            idx = np.asarray(given)
+            mask = idx.dtype == bool
+            if mask:
                 self._mask_size = idx.size  # checked against the positions (a wrong length blamed the targets)
                 idx = np.flatnonzero(idx)
-            if idx.ndim != 1 or len(idx) == 0 or not np.issubdtype(idx.dtype, np.integer) or idx.min() < 0:
-                raise ValueError("particles is not allowed: give non-negative particle indices or a boolean mask")
+            if idx.ndim == 1 and len(idx) == 0:
+                # An all-False mask and an empty list were told to give what they were.
+                what = f"particles (a boolean mask of {self._mask_size} entries, all False)" if mask else "particles = []"
+                raise ValueError(f"{what} is not allowed: it selects no particle")
+            if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer) or idx.min() < 0:
+                raise ValueError(f"particles = {checks.shorten(given)!r} is not allowed: give non-negative particle indices "
+                                 "or a boolean mask")
             if int(idx.max()) > checks.MAX_INT:
                 # int32 wrapped it: 2**31 crashed the process, 2**32 + 1 read particle 1.
                 raise ValueError(f"particles is not allowed: index {int(idx.max())} is beyond any model's particles "
