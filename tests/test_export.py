@@ -40,6 +40,19 @@ def test_block_surface_is_closed_outward_and_where_the_material_ends(n):
     assert vol == pytest.approx((n * dx) ** 3, rel=0.08 if n == 6 else 0.02)
 
 
+@pytest.mark.parametrize("offset", [1e4, 1e6])
+def test_a_block_far_from_the_origin_gets_the_surface_it_gets_there(offset):
+    """The field was computed in float32 world coordinates: 10 km out a block's surface was 1.6 mm
+    off with 930 vertices for its 750, 1000 km out a shape of its own, at 1e12 m none, without a
+    word (float64 runs and the builder place bodies there). It is computed about the grid's corner."""
+    dx = 0.02
+    pts = lattice_points(np.full(3, -0.05), np.full(3, 0.05), dx)
+    v0, t0 = particle_surface(pts, dx)
+    v, tri = particle_surface(pts + offset, dx)
+    np.testing.assert_array_equal(tri, t0)
+    np.testing.assert_allclose(v - offset, v0, rtol=0.0, atol=1e-6 + 4.0 * float(np.spacing(offset)))
+
+
 def test_separate_clusters_give_separate_components():
     dx = 0.01
     a = lattice_points(np.zeros(3), np.full(3, 0.06), dx)

@@ -15,7 +15,9 @@ within 1 % of ``n^3 dx^3`` for n = 24); grid cell ``dx / 2``, or finer where a s
 is given: at most ``2 r / sqrt(3)``, so that a particle alone within its kernel, whose field
 is negative only within ``r`` of it, reaches a node wherever it sits.
 
-Each body gets its own surface (bodies do not merge). Triangles face outward.
+Each body gets its own surface (bodies do not merge). Triangles face outward. The kernels run
+in float32 on the points relative to the grid's corner (taken in float64), and the vertices
+are moved back in float64: a body's surface is the same wherever the body lies.
 """
 
 import math
@@ -92,7 +94,9 @@ def _down4(x: float) -> float:
 
 def surface_field(points, spacing: float, *, kernel_radius: float | None = None, radius: float | None = None,
                   cell: float | None = None, device="cpu"):
-    """The implicit field of ``points`` on a grid: ``(field (nx, ny, nz) float32 warp array, origin, cell)``."""
+    """The implicit field of ``points`` on a grid: ``(field (nx, ny, nz) float32 warp array, origin, cell)``,
+    node ``(i, j, k)`` at ``origin + (i, j, k) cell`` (``origin`` float64; the field is computed
+    from the points relative to it, so that float32 resolves the cell wherever they lie)."""
     dx = checks.positive("spacing", spacing)
     R = 2.0 * dx if kernel_radius is None else checks.positive("kernel_radius", kernel_radius)
     r = 0.55 * dx if radius is None else checks.positive("radius", radius)
@@ -135,7 +139,11 @@ def surface_field(points, spacing: float, *, kernel_radius: float | None = None,
         # mixed coordinates and a (3, 4) array four, without a word; text failed in numpy.
         raise ValueError(f"points = {checks.shorten(points)!r} is not allowed: must be real numbers of shape (n, 3), "
                          f"not {p.dtype} values of shape {p.shape}")
-    p = p.astype(np.float32).reshape(-1, 3)
+    # In float64 here; the kernels get the points relative to the grid's corner (below): float32
+    # coordinates far from the origin did not resolve the cell (10 km out, 1.6 mm off and 930
+    # vertices for a block's 750; 100 km out, a shape of its own; 1e12 m, no surface), all
+    # without a word, for particles that float64 runs and the builder place there.
+    p = p.astype(np.float64).reshape(-1, 3)
     p = p[np.isfinite(p).all(axis=1)]
     if len(p) == 0:
         raise ValueError("points = [] is not allowed: a surface needs at least one finite particle position")
@@ -143,8 +151,8 @@ def surface_field(points, spacing: float, *, kernel_radius: float | None = None,
     # In float64 and counted as floats: in float32 a spread of 1e37 m overflowed to inf, whose
     # integer cast made a grid of 2 nodes that the particles were scattered past (a segmentation
     # fault), and an int64 product of three counts of millions wraps.
-    lo = p.min(axis=0).astype(np.float64) - pad
-    hi = p.max(axis=0).astype(np.float64) + pad
+    lo = p.min(axis=0) - pad
+    hi = p.max(axis=0) + pad
     counts = np.maximum(np.ceil((hi - lo) / h) + 1.0, 2.0)
     if not float(np.prod(counts)) <= 256.0**3:
         if fitted:
@@ -156,11 +164,11 @@ def surface_field(points, spacing: float, *, kernel_radius: float | None = None,
                          f"({counts[0]:.4g} x {counts[1]:.4g} x {counts[2]:.4g}); use a larger cell")
     n = counts.astype(int)
     dev = wp.get_device(device)
-    pts = wp.array(p, dtype=wp.vec3f, device=dev)
+    pts = wp.array((p - lo).astype(np.float32), dtype=wp.vec3f, device=dev)
     shape = tuple(int(v) for v in n)
     wsum = wp.zeros(shape, dtype=wp.float32, device=dev)
     xsum = wp.zeros(shape, dtype=wp.vec3f, device=dev)
-    origin = wp.vec3f(*lo)
+    origin = wp.vec3f(0.0, 0.0, 0.0)  # the grid's corner: node (i, j, k) lies at lo + (i, j, k) cell
     # The padding keeps every node a particle reaches inside the grid.
     reach = int(math.ceil(R / h))
     wp.launch(_scatter_weights, dim=len(p), inputs=[pts, origin, float(h), float(R), reach], outputs=[wsum, xsum], device=dev)
@@ -182,10 +190,10 @@ def particle_surface(points, spacing: float, *, kernel_radius: float | None = No
 
     field, lo, h = surface_field(points, spacing, kernel_radius=kernel_radius, radius=radius, cell=cell, device=device)
     n = np.array(field.shape)
-    upper = lo + (n - 1) * h
+    # Extracted about the grid's corner and moved there in float64, as the field was computed.
     verts, indices = warp.geometry.IsoSurfaceMarchingCubes.extract(
-        field, 0.0, lower=wp.vec3f(*lo.astype(np.float32)), upper=wp.vec3f(*upper.astype(np.float32))
+        field, 0.0, lower=wp.vec3f(0.0, 0.0, 0.0), upper=wp.vec3f(*((n - 1) * h).astype(np.float32))
     )
-    v = verts.numpy().astype(np.float64).reshape(-1, 3)
+    v = verts.numpy().astype(np.float64).reshape(-1, 3) + lo
     t = indices.numpy().astype(np.int64).reshape(-1, 3)
     return v, t
