@@ -633,6 +633,31 @@ def test_rollout_frames_are_whole_step_indices_named_where_not():
     assert Rollout(model, 3, 1e-3, frames=2).frames == (2,)
 
 
+def test_a_rollout_that_cannot_fit_in_memory_is_refused_before_it_allocates(monkeypatch):
+    """``Rollout(model, 10**6, dt)`` of 8 particles was taken, and its first forward allocated a
+    million taped states (about 72 GiB) until the machine killed it. The taped states and the
+    per-step force rows are weighed against the device's memory (here made 1 GiB) first."""
+    import warp as wp
+
+    import warp_esph as we
+    from warp_esph import builder
+    from warp_esph.rollout import Rollout
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    b.add_ground()
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 2**30)
+    with pytest.raises(ValueError, match=r"^steps = 100000 is not allowed with checkpoint_every = None on cpu: the rollout "
+                                         r"would need about 7\.\d+ GiB, more than its 1 GiB; give checkpoint_every \(about "
+                                         r"sqrt\(steps\) = 316 needs the least, about 0\.0\d+ GiB\) or fewer steps$"):
+        Rollout(model, 10**5, 1e-3)
+    with pytest.raises(ValueError, match=r"^steps = 100000000 is not allowed with checkpoint_every = 5000 on cpu: .* give "
+                                         r"fewer steps \(with checkpoint_every = 10000, the least, it would need about \d\.\d+ GiB\)$"):
+        Rollout(model, 10**8, 1e-3, checkpoint_every=5000)  # the ground's force rows alone take 2.2 GiB
+    assert Rollout(model, 10**5, 1e-3, checkpoint_every=316).checkpointing
+
+
 def test_a_particle_mask_of_the_wrong_length_is_named_not_the_targets():
     """A boolean mask with one entry too few kept fewer particles than the targets hold, and
     the refusal blamed the targets' point count."""

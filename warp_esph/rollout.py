@@ -182,6 +182,43 @@ def state_nbytes(state: State) -> int:
     return total
 
 
+#: What a taped ``State`` holds besides its arrays' bytes (``state_nbytes``), measured on the
+#: CPU: its some sixty arrays and gradients took 76 kB each for 12 kB of values at 8 particles.
+STATE_OVERHEAD = 64 * 1024
+
+
+def _check_rollout_memory(model: Model, steps: int, segment: int | None, checkpoint_every) -> None:
+    """Refuse, before anything is allocated, a rollout whose taped states and per-step force rows
+    could not fit in the device's memory: ``Rollout(model, 10**6, dt)`` of 8 particles allocated
+    a million taped states (about 72 GiB) at its first forward, minutes on, until the machine
+    killed it, where a checkpointed one needs kilobytes."""
+    from .builder import _device_memory  # noqa: PLC0415
+    from .fit import _state_bytes, memory_estimate  # noqa: PLC0415 (fit imports this module)
+
+    have = _device_memory(model.device)
+    if have is None:
+        return
+    sizes = _state_bytes(model)
+    rows = len(getattr(model.tools, "row_names", ())) + model.world_count * (
+        len(model.planes) + len(model.spheres) + len(model.boxes))
+
+    def need(segment):
+        taped = (segment if segment is not None and segment < steps else steps) + 1
+        return (memory_estimate(model, steps, segment, sizes) + taped * STATE_OVERHEAD
+                + steps * rows * 3 * np.dtype(model.types.np_dtype).itemsize)  # the per-step force rows
+
+    given = need(segment)
+    if given <= have:
+        return
+    least = max(1, round(math.sqrt(steps)))
+    fix = (f"give checkpoint_every (about sqrt(steps) = {least} needs the least, about {need(least) / 2**30:.3g} GiB) or "
+           "fewer steps" if need(least) <= have else
+           "give fewer steps" if segment == least else
+           f"give fewer steps (with checkpoint_every = {least}, the least, it would need about {need(least) / 2**30:.3g} GiB)")
+    raise ValueError(f"steps = {steps} is not allowed with checkpoint_every = {checkpoint_every!r} on {model.device}: the "
+                     f"rollout would need about {given / 2**30:.3g} GiB, more than its {have / 2**30:.3g} GiB; {fix}")
+
+
 def _step_indices(frames) -> list[int]:
     """``Rollout``'s ``frames`` as integers: whole numbers only (1.7 was truncated to step 1,
     '2' and True taken as steps), one level deep, each named where it is not one."""
@@ -315,7 +352,8 @@ class Rollout:
     - ``frames``: step indices in ``[0, steps]`` whose positions ``forward`` returns and
       whose position gradients ``backward`` takes; default ``[steps]``. Sorted, unique.
     - ``checkpoint_every``: ``None`` records the whole run on one tape; an integer ``S``
-      keeps only segment starts every ``S`` steps and re-runs segments in ``backward``.
+      keeps only segment starts every ``S`` steps and re-runs segments in ``backward``. A
+      rollout whose taped states would not fit in the device's memory is refused here.
     - ``solver``: a ``Solver`` of ``model`` (default: a new one). It and its hash grid are
       kept for the rollout's lifetime. Its fused fast path (``solver.fused``) is switched
       off unless ``solver.fast_under_tape()`` (then a taped step runs the fused kernels too),
@@ -347,6 +385,7 @@ class Rollout:
         else:
             self.segment = min(checks.positive_int("checkpoint_every", checkpoint_every), self.steps)
         self.checkpointing = self.segment < self.steps
+        _check_rollout_memory(model, self.steps, self.segment if self.checkpointing else None, checkpoint_every)
         if solver is None:
             solver = _differentiable_solver(model)
         elif not isinstance(solver, Solver) or solver.model is not model:
