@@ -1007,6 +1007,10 @@ def test_api_values_python_would_have_taken_are_refused_by_name():
         s0.time = t
         with pytest.raises(ValueError, match=f"state_in.time = .* is not allowed: {needle}"):
             we.Solver(model).step(s0, s1, 1e-4)
+        # simulate names the state it was given, not the step's argument (a NaN was called
+        # state_in.time; a string failed adding the run's length to it).
+        with pytest.raises(ValueError, match=rf"^state\.time = .* is not allowed: {needle}"):
+            we.simulate(model, 1, state=s0, progress=False)
 
 
 def test_a_plain_install_carries_every_package(tmp_path):

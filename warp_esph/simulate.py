@@ -781,6 +781,9 @@ def simulate(
         current = model.state(requires_grad=False)
         if state is not None:
             checks.same_state(model, "state", state)
+            # By the name the caller gave it: the step's check named state_in.time, and a string
+            # failed adding the run's length to it.
+            checks.number("state.time", state.time)
             current.assign(state)
         initial = _first_bad(model, current)
         if initial is not None:
