@@ -296,6 +296,15 @@ def test_compression_field_checks_its_values():
         b.add_compression_field((0, 0, 0), 10.0, 0.2, 0.1)
     with pytest.raises(ValueError, match="CompressionField.strength = nan is not allowed"):
         b.add_compression_field((0, 0, 0), float("nan"))
+    # A body by its index too, as add_particle_floor takes it (body=0 was refused: "must be
+    # one of ['a']"); an index beyond the bodies, or a bool, is not one.
+    b.add_compression_field((0, 0, 0), 10.0, body=0)
+    b.add_compression_field((0, 0, 0), 10.0, body=np.int64(0))
+    b.add_compression_field((0, 0, 0), 10.0, body="a")
+    assert [f.body for f in b.force_fields] == [0, 0, 0]
+    for bad in (1, -1, True):
+        with pytest.raises(ValueError, match=rf"body = {bad!r} is not allowed: must be a body name or index \(0..0\)"):
+            b.add_compression_field((0, 0, 0), 10.0, body=bad)
 
 
 def test_separate_bodies_do_not_feel_each_other():

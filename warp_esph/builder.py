@@ -423,14 +423,7 @@ class SceneBuilder:
         particles still acts). The solver then runs the non-fused kernels, with the paper's
         linear fit and the variational elastic force only."""
         names = [b.name for b in self._bodies]
-        if isinstance(body, str):
-            if body not in names:
-                raise ValueError(f"body = {body!r} is not allowed: must be one of {names!r}")
-            k = names.index(body)
-        elif isinstance(body, (int, np.integer)) and not isinstance(body, bool) and 0 <= body < len(names):
-            k = int(body)
-        else:
-            raise ValueError(f"body = {body!r} is not allowed: must be a body name or index (0..{len(names) - 1})")
+        k = self._body_index(body)
         bd = self._bodies[k]
         if k != len(self._bodies) - 1:
             raise ValueError(f"body = {body!r} is not allowed: a particle floor grows its body, so it must be the body "
@@ -736,18 +729,27 @@ class SceneBuilder:
         self.pins.append(tools.PinSet(name, idx, tools.Velocity() if motion is None else motion))
         return name
 
-    def add_compression_field(self, center, strength: float, t_on: float = 0.0, t_off: float = float("inf"), body: str | None = None):
+    def add_compression_field(self, center, strength: float, t_on: float = 0.0, t_off: float = float("inf"),
+                              body: str | int | None = None):
         """A horizontal compression ``a = -strength (x - center)`` (1/s^2) while ``t_on <= t < t_off``,
-        on the particles of ``body`` (a body name; ``None``: all). See ``fields.CompressionField``."""
+        on the particles of ``body`` (a name, or the index an ``add_*`` returned; ``None``: all).
+        See ``fields.CompressionField``; ``Model.stable_dt`` bounds the step by its strength."""
         from .sim.fields import CompressionField  # noqa: PLC0415
 
-        index = -1
-        if body is not None:
-            names = [b.name for b in self._bodies]
+        index = -1 if body is None else self._body_index(body)
+        self.force_fields.append(CompressionField(center, strength, t_on, t_off, body=index))
+
+    def _body_index(self, body) -> int:
+        """The index of ``body``, a body's name or the index its ``add_*`` returned; refused by
+        name otherwise (a bool is no index)."""
+        names = [b.name for b in self._bodies]
+        if isinstance(body, str):
             if body not in names:
                 raise ValueError(f"body = {body!r} is not allowed: must be one of {names!r}")
-            index = names.index(body)
-        self.force_fields.append(CompressionField(center, strength, t_on, t_off, body=index))
+            return names.index(body)
+        if isinstance(body, (int, np.integer)) and not isinstance(body, bool) and 0 <= body < len(names):
+            return int(body)
+        raise ValueError(f"body = {body!r} is not allowed: must be a body name or index (0..{len(names) - 1})")
 
     # --------------------------------------------------------------- finalize
     @property
