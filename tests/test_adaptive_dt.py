@@ -268,3 +268,81 @@ def test_stable_dt_includes_the_hourglass_control_and_holds():
     model.hourglass = 0.0
     with pytest.raises(ValueError, match="hourglass = -1 is not allowed"):
         model.stable_dt(hourglass=-1)
+
+
+def _dots(strength, **field):
+    """Three particles far apart (0.2 m: no neighbours, so no material force) under a
+    compression field of ``strength`` (1/s^2), without gravity: each particle is the field's
+    harmonic oscillator alone, of angular frequency ``sqrt(strength)``."""
+    b = we.SceneBuilder(spacing=DX, gravity=(0.0, 0.0, 0.0))
+    b.add_particles(np.array([[0.1, 0.2 * i, 0.05] for i in range(3)]),
+                    we.Material.from_young(1.0e5, 0.3, density=1000.0), name="dots")
+    if strength is not None:
+        b.add_compression_field((0.0, 0.0, 0.0), strength, **field)
+    return b.finalize()
+
+
+def test_stable_dt_includes_the_force_fields_and_holds():
+    """A compression field of strength ``k`` is a spring of angular frequency ``sqrt(k)``,
+    which symplectic Euler follows only while ``dt < 2 / sqrt(k)``: ``Model.stable_dt()``
+    adds its limit ``2 / (1.5 sqrt(k))`` to the wave and hourglass limits as they add
+    (``1 / dt^2`` summed). At ``k = 1e9`` (``2 / sqrt(k) = 6.3e-5 s``, a seventh of the wave
+    limit) it ignored the field: a run at half its step multiplied the particles' distance
+    from the axis about 50-fold a step, and ``simulate`` at its default step raised a
+    divergence advising a smaller dt than the stable limit it was already under. A field
+    switched on later bounds the step from the start; a repelling one (``k < 0``) sets none
+    of its own and lessens the net strength of those it overlaps."""
+    k = 1.0e9
+    plain = _dots(None).stable_dt()
+    model = _dots(k)
+    stable = model.stable_dt()
+    assert stable < 2.0 / math.sqrt(k)
+    assert math.isclose(stable ** -2, plain ** -2 + (1.5 * math.sqrt(k) / 2.0) ** 2, rel_tol=1e-9)
+    assert _dots(k, t_on=0.5, t_off=0.6).stable_dt() == stable
+    assert _dots(-k).stable_dt() == plain
+    b = we.SceneBuilder(spacing=DX, gravity=(0.0, 0.0, 0.0))
+    for i, name in enumerate(("a", "b")):
+        b.add_particles(np.array([[0.1, 0.2 * i, 0.05]]), we.Material.from_young(1.0e5, 0.3, density=1000.0), name=name)
+    b.add_compression_field((0.0, 0.0, 0.0), 2.0 * k, body="a")
+    b.add_compression_field((0.0, 0.0, 0.0), -k)  # on both: a net k on "a", -k on "b"
+    assert b.finalize().stable_dt() == stable
+
+    solver = we.Solver(model)
+    a, c = model.state(), model.state()
+    r0 = np.hypot(a.x.numpy()[:, 0], a.x.numpy()[:, 2]).max()
+    peak = 0.0
+    for _ in range(200):  # 21 periods
+        solver.step(a, c, 0.5 * stable)
+        a, c = c, a
+        peak = max(peak, float(np.hypot(a.x.numpy()[:, 0], a.x.numpy()[:, 2]).max()))
+    # Symplectic Euler keeps the amplitude within 1 / sqrt(1 - (omega dt / 2)^2) = 1.06 x.
+    assert peak < 1.1 * r0, peak / r0
+    end = simulate(model, 2, fps=300.0, progress=False)
+    assert np.hypot(end.x.numpy()[:, 0], end.x.numpy()[:, 2]).max() < 1.1 * r0
+
+
+def test_a_field_that_sets_the_step_is_named():
+    """Where a field's limit is the shortest, the refusals name it and advise a weaker field,
+    not a softer material or a larger spacing (which leave its limit as it is), and the
+    solver's warning lists it. ``k = 1e17`` switched on at 0.5 s: a step of 4.2e-9 s, 7.9e6
+    steps a frame."""
+    model = _dots(1.0e17, t_on=0.5)
+    named = r"the limit of compression field 0 \(on every body\) at net strength k = 1e\+17 1/s\^2, .* = 4.22e-09 s, with the wave limit"
+    with pytest.raises(ValueError, match=rf"the stable step 4.22e-09 s is not allowed: .* a compression field sets it \({named}"
+                                         r".*\): use a weaker compression field"):
+        resolve_timestep(model, FPS)
+    with pytest.raises(ValueError, match=rf"the adaptive step is not allowed .* its stable step, 4.22e-09 s \({named}"
+                                         r".*\), would take 7.91e\+06 steps a frame, .*; use a weaker compression field"):
+        adaptive_timestep(model, model.state(), FPS)
+    with pytest.warns(RuntimeWarning, match=r"and that of the compression fields at net strength k = 1e\+17 1/s\^2"):
+        we.Solver(model).check_dt(1e-3)
+    # A field that sets the step crushes a body of more than a particle across, which is then
+    # stiffer than the limit allows for (docs/method.md §8): the divergence's advice says so,
+    # where it advised softer material settings and a smaller dt than the run was already under.
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.5, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))
+    b.add_compression_field((0.0, 0.0, 0.0), 1.0e7)
+    box = b.finalize()
+    with pytest.raises(we.SimulationError, match=r"try a smaller dt= \(stable limit 0.000417 s, set by a compression field "
+                                                 r"of net strength k = 1e\+07 1/s\^2; a body it crushes is stiffer"):
+        simulate(box, 2, progress=False)

@@ -359,8 +359,8 @@ def _run_advice() -> dict:
     """``warp-esph run``'s advice for a ``StepRefusal`` of a run's start, by the Python advice
     it replaces (which names ``dt=`` and ``fps=``)."""
     from .simulate import (  # noqa: PLC0415
-        ADAPTIVE_ADVICE, ADAPTIVE_FALL_ADVICE, ADAPTIVE_HOURGLASS_ADVICE, ADAPTIVE_VISCOUS_ADVICE, STABLE_ADVICE,
-        STABLE_HOURGLASS_ADVICE, START_ADVICE)
+        ADAPTIVE_ADVICE, ADAPTIVE_FALL_ADVICE, ADAPTIVE_FIELD_ADVICE, ADAPTIVE_HOURGLASS_ADVICE, ADAPTIVE_VISCOUS_ADVICE,
+        STABLE_ADVICE, STABLE_FIELD_ADVICE, STABLE_HOURGLASS_ADVICE, START_ADVICE)
     from .tools import TOO_FAST_ADVICE  # noqa: PLC0415
 
     return {START_ADVICE: "; give a smaller velocity (or angular_velocity), a smaller --dt, or --dt auto (the adaptive step)",
@@ -368,7 +368,9 @@ def _run_advice() -> dict:
             ADAPTIVE_ADVICE: "; use a softer material, a larger spacing or a higher --fps",
             ADAPTIVE_VISCOUS_ADVICE: "; use a less viscous material, a larger spacing or a higher --fps",
             ADAPTIVE_HOURGLASS_ADVICE: "; use a smaller --hourglass (or [solver] hourglass), a larger spacing or a higher --fps",
+            ADAPTIVE_FIELD_ADVICE: "; use a weaker compression field or a higher --fps",
             STABLE_ADVICE: ": use softer materials, a larger spacing, a higher --fps, or give --dt",
+            STABLE_FIELD_ADVICE: ": use a weaker compression field, a higher --fps, or give --dt",
             STABLE_HOURGLASS_ADVICE: ": use a smaller --hourglass (or [solver] hourglass), a larger spacing, a higher --fps, or "
                                      "give --dt",
             ADAPTIVE_FALL_ADVICE: "; use a higher --fps (gravity adds up to |g| / fps to a speed within a frame) or a larger "
@@ -711,8 +713,7 @@ def _cmd_run(args) -> int:
         said = e.reason if e.advice and args.resume is not None else str(e)
         if e.advice and args.resume is None:
             f32 = args.dtype == "float32"
-            ours = {f"; {divergence_advice(model.stable_dt(hourglass=solver.hourglass))}":
-                    divergence_advice(model.stable_dt(hourglass=solver.hourglass), "--dt"),
+            ours = {f"; {divergence_advice(model, solver.hourglass)}": divergence_advice(model, solver.hourglass, "--dt"),
                     f"; {far_mesh_advice(f32)}": far_mesh_advice(f32, "--dtype float64"),
                     TOO_FAST_ADVICE: _run_advice()[TOO_FAST_ADVICE][2:]}  # a tools.Scripted motion's (Python scenes)
             said = f"{e.reason}; {ours[e.advice]}" if e.advice in ours else str(e)

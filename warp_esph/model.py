@@ -45,6 +45,10 @@ CONTACTS = {"instant": INSTANT_CONTACT_RAMP, "continuous": CONTINUOUS_CONTACT_RA
 #: The largest ``Model.contact_ramp``: a touchdown spread over more than ten steps' drift lets
 #: a particle sink that far into a collider (1e300 let every particle fall through).
 MAX_CONTACT_RAMP = 10.0
+#: How far below its own explicit limit ``2 / sqrt(k)`` ``Model.stable_dt`` keeps a force
+#: field's step at ``C = 0.3``: the margin the wave limit was measured to have at least
+#: (docs/method.md §8), which the hourglass control's limit keeps too.
+FIELD_MARGIN = 1.5
 
 
 def precision_problem(value: float, scalar) -> str | None:
@@ -860,13 +864,25 @@ class Model:
         shorter at ``c = 0.1``, 4.0 % at 3 without the SPH pressure (3.1 % with the default
         pressure force, whose stiffness already shortens the wave limit); the control rules from ``c`` of about 100.
         (Measured, 512 particles shaken at random, ``tests/test_adaptive_dt.py``: at ``c = 1000``
-        stable at 1.45 x the returned step, blown up at 1.6 x; at ``c = 300``, 1.6 and 1.8 x.)"""
+        stable at 1.45 x the returned step, blown up at 1.6 x; at ``c = 300``, 1.6 and 1.8 x.)
+
+        The force fields (``SceneBuilder.add_compression_field``) are springs too: a field of
+        strength ``k`` adds ``k`` to every squared frequency of the particles it acts on, and
+        symplectic Euler follows a spring only while ``dt < 2 / sqrt(k)``. Their limit
+        ``dt_f = (C / 0.3) 2 / (1.5 sqrt(k))`` (``_field_limit``: ``k`` the largest net
+        strength a particle ever feels, fields switched on later included; the margin of 1.5
+        the wave limit has) joins the same sum, ``1 / dt^2 = 1 / dt_w^2 + 1 / dt_c^2 + 1 /
+        dt_f^2``. (Measured, isolated particles under the field alone: bounded up to 0.98-0.99
+        x ``2 / sqrt(k)``.) It bounds the field's own oscillation; a field strong enough to set
+        the step also crushes any body of more than a particle across (strain about ``k L^2 /
+        (8 c_P^2)`` over a width ``L``), and the crushed material's stiffness is not the rest
+        state's: docs/method.md §8."""
         courant = checks.courant(courant)
         # Solver.check_dt asks every step; the answer is kept while the parameter arrays hold
         # the same values (a fit or torch writes them in place) and the materials and settings
         # are the same.
         rows = self._read_parameters()
-        key = (rows.tobytes(), tuple(self.materials),
+        key = (rows.tobytes(), tuple(self.materials), tuple(self.force_fields),
                self.fit, self._hourglass, self.spacing, self.support_radius, courant, hourglass)
         cached = self._stable_dt
         if cached is not None and cached[0] == key:
@@ -917,17 +933,43 @@ class Model:
         limit = hg.stable_dt(strength, float(np.max(p["mu"] / rho)), self.spacing, self.support_radius)
         return 0.8 * courant / 0.3 * limit, strength
 
+    def _field_limit(self, courant: float) -> tuple[float, float, tuple[int, ...]]:
+        """``(dt_f, k, fields)``: the force fields' own limit ``dt_f = (C / 0.3) 2 / (1.5
+        sqrt(k))`` of ``stable_dt``, the net strength ``k`` (1/s^2) it is taken at and the
+        indices into ``force_fields`` of the fields that make it; ``(inf, 0.0, ())`` where no
+        particle ever feels a net ``k > 0``.
+
+        Fields acting on one particle at one time add up to one spring of the summed strength,
+        so ``k`` is the largest such sum over the times a field switches on and over the
+        bodies: a field switched on later (``t_on``) bounds the step from the start, since the
+        step is chosen before the run and a run crosses ``t_on``. A repelling field (``k < 0``)
+        grows as ``exp(sqrt(-k) t)`` at any step size, so it sets no limit of its own; it
+        lessens the net strength of the fields it overlaps, as it does the force."""
+        fields = self.force_fields
+        best, chosen = 0.0, ()
+        for t in sorted({f.t_on for f in fields}):
+            for body in sorted({f.body for f in fields} | {-1}):
+                acting = tuple(i for i, f in enumerate(fields) if f.active(t) and f.body in (-1, body))
+                net = math.fsum(fields[i].strength for i in acting)
+                if net > best:
+                    best, chosen = net, acting
+        if not best > 0.0:
+            return math.inf, 0.0, ()
+        return courant / 0.3 * 2.0 / (FIELD_MARGIN * math.sqrt(best)), best, chosen
+
     def _stable_dt_now(self, courant: float, hourglass: float | None, rows: np.ndarray) -> float:
         p = self._parameter_values(rows)
         rho = np.array([m.density for m in self.materials], dtype=np.float64)
         c = self.wave_speeds(p)
         dt = courant * self.spacing / float(np.max(c))
         dt_c, strength = self._hourglass_limit(courant, hourglass, p)
-        if strength > 0.0:
+        dt_f, k, _ = self._field_limit(courant)
+        if strength > 0.0 or k > 0.0:
             # In numpy: dt_c^2 passes the float range for a strength below 1e-155, where Python's
-            # float raised OverflowError; its inverse, 0, is the right limit (dt itself).
+            # float raised OverflowError; its inverse, 0, is the right limit (dt itself). So
+            # does dt_f^2 for a field strength below 1e-300.
             with np.errstate(over="ignore"):
-                dt = 1.0 / float(np.sqrt(1.0 / dt**2 + 1.0 / np.float64(dt_c) ** 2))
+                dt = 1.0 / float(np.sqrt(1.0 / dt**2 + 1.0 / np.float64(dt_c) ** 2 + 1.0 / np.float64(dt_f) ** 2))
         eta = p["viscosity"]
         viscous = eta > 0.0
         if viscous.any():

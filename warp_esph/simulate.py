@@ -46,7 +46,8 @@ class StepRefusal(ValueError):
     and then ``advice``, a Python caller's (naming ``dt=``, ``fps=``); ``reason`` lets a caller
     with other options (a sweep, ``warp-esph run``) give its own advice instead, ``advice``
     telling which refusal it is (``START_ADVICE``, ``ADAPTIVE_ADVICE``, ``ADAPTIVE_FALL_ADVICE``,
-    ``ADAPTIVE_VISCOUS_ADVICE``, ``ADAPTIVE_HOURGLASS_ADVICE``, ``STABLE_ADVICE``, ``STABLE_HOURGLASS_ADVICE``,
+    ``ADAPTIVE_VISCOUS_ADVICE``, ``ADAPTIVE_HOURGLASS_ADVICE``, ``ADAPTIVE_FIELD_ADVICE``, ``STABLE_ADVICE``,
+    ``STABLE_HOURGLASS_ADVICE``, ``STABLE_FIELD_ADVICE``,
     ``tools.TOO_FAST_ADVICE``). ``detail``: the reason without the refused value's name
     ('frames = ... is not allowed: ', 'the stable step ... is not allowed: '), for a caller that
     refuses its own option by name (default: ``reason``)."""
@@ -58,9 +59,18 @@ class StepRefusal(ValueError):
         self.detail = reason if detail is None else detail
 
 
-def divergence_advice(stable: float, dt: str = "dt=") -> str:
-    """The advice of ``simulate``'s divergence (``SimulationError``) at the stable step
-    ``stable``; ``dt``: how the caller names the step (``warp-esph run``: ``--dt``)."""
+def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=") -> str:
+    """The advice of ``simulate``'s divergence (``SimulationError``) of ``model`` at the stable
+    step of the hourglass control ``hourglass`` (``Model.stable_dt``); ``dt``: how the caller
+    names the step (``warp-esph run``: ``--dt``). Where a compression field's limit sets the
+    stable step, it says so: the field's spring is bounded, but a body it crushes is stiffer
+    than the rest state the limit assumes (docs/method.md §8), so the run may blow up below it,
+    and softer material settings do not help."""
+    stable = model.stable_dt(hourglass=hourglass)
+    if _field_cause(model, 0.3, hourglass) is not None:
+        k = model._field_limit(0.3)[1]
+        return (f"try a smaller {dt} (stable limit {stable:.3g} s, set by a compression field of net strength k = {k:g} "
+                f"1/s^2; a body it crushes is stiffer than that limit allows for, docs/method.md §8) or a weaker field")
     return f"try a smaller {dt} (stable limit {stable:.3g} s) or stiffer-to-softer material settings"
 
 
@@ -77,6 +87,11 @@ ADAPTIVE_HOURGLASS_ADVICE = ("; use a smaller hourglass control strength (Solver
 #: ``resolve_timestep``'s where the stable step needs more than ``MAX_STEPS_PER_FRAME`` steps a
 #: frame; ``STABLE_HOURGLASS_ADVICE`` where the hourglass control's limit is what shortens it.
 STABLE_ADVICE = ": use softer materials, a larger spacing, a higher fps, or give dt= or substeps="
+#: ``resolve_timestep``'s and ``adaptive_timestep``'s where a force field's limit is what
+#: shortens the stable step (its strength sets it; neither the material nor the spacing does).
+STABLE_FIELD_ADVICE = (": use a weaker compression field (SceneBuilder.add_compression_field's strength), a higher fps, "
+                       "or give dt= or substeps=")
+ADAPTIVE_FIELD_ADVICE = "; use a weaker compression field (SceneBuilder.add_compression_field's strength) or a higher fps="
 STABLE_HOURGLASS_ADVICE = (": use a smaller hourglass control strength (Solver(hourglass=) or SceneBuilder(hourglass=)), "
                            "a larger spacing, a higher fps, or give dt= or substeps=")
 #: ``adaptive_timestep``'s where gravity's gain over a frame, ``|g| / fps``, is the largest speed
@@ -327,13 +342,20 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
                      f"m/s) or the most viscous one needs it")
             advice = STABLE_ADVICE
             control = _hourglass_cause(model, courant, hourglass)
+            field = _field_cause(model, courant, hourglass)
             viscous = _viscous_limit(model, courant)
-            if control is not None and not (viscous is not None and viscous[0] <= stable * (1.0 + 1e-9)):
-                # The control's springs shortened it (Solver(hourglass=1000) on a stiff box: 5 x
-                # the wave limit): the stiffest material was blamed, and softer ones advised,
-                # where a smaller strength lengthens the step the most.
-                needs = f"more than {MAX_STEPS_PER_FRAME:.0e}; the hourglass control sets it ({control})"
-                advice = STABLE_HOURGLASS_ADVICE
+            if not (viscous is not None and viscous[0] <= stable * (1.0 + 1e-9)):
+                if field is not None:
+                    # A field's spring shortened it (strength 1e15 1/s^2: 4e-8 s): the stiffest
+                    # material was blamed, and softer ones advised, which leave its limit as it is.
+                    needs = f"more than {MAX_STEPS_PER_FRAME:.0e}; a compression field sets it ({field})"
+                    advice = STABLE_FIELD_ADVICE
+                elif control is not None:
+                    # The control's springs shortened it (Solver(hourglass=1000) on a stiff box: 5 x
+                    # the wave limit): the stiffest material was blamed, and softer ones advised,
+                    # where a smaller strength lengthens the step the most.
+                    needs = f"more than {MAX_STEPS_PER_FRAME:.0e}; the hourglass control sets it ({control})"
+                    advice = STABLE_HOURGLASS_ADVICE
             raise StepRefusal(
                 f"the stable step {stable:.3g} s is not allowed: a frame (1/fps = {frame_dt:.6g} s) would take {ratio:.3g} steps, "
                 f"{needs}", advice,
@@ -384,9 +406,9 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
 
     where ``v_max`` is the largest particle speed of ``state`` (or of a tool's points over the
     frame, ``ToolSet.fastest``: a tool gives the particles it meets its speed) and ``|g| / fps`` bounds
-    what gravity adds to it within the frame; and ``dt`` is at most the viscous limit of
-    ``Model.stable_dt`` (with the limit of the hourglass control of strength ``hourglass``;
-    None: the model's). A body at rest gets ``stable_dt`` (to the gravity term); one in
+    what gravity adds to it within the frame; and ``dt`` is at most ``Model.stable_dt`` (its
+    viscous limit, with the limits of the force fields and of the hourglass control of strength
+    ``hourglass``; None: the model's). A body at rest gets ``stable_dt`` (to the gravity term); one in
     flight or hit hard gets smaller steps. Rounded down to a whole number of steps per frame.
     ``until``: take the tools' speeds up to that time instead of over the next frame (a run
     checks its whole span before its first step).
@@ -436,6 +458,12 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
                 # smaller strength lengthens the step the most.
                 which = f"its stable step, {dt:.3g} s ({control})"
                 advice = ADAPTIVE_HOURGLASS_ADVICE
+            field = _field_cause(model, courant, hourglass)
+            if field is not None:
+                # A field's spring shortened it: the wave speed was cited, and a softer material
+                # or a larger spacing advised, which leave its limit as it is.
+                which = f"its stable step, {dt:.3g} s ({field})"
+                advice = ADAPTIVE_FIELD_ADVICE
             viscous = _viscous_limit(model, courant)
             if viscous is not None and viscous[0] <= stable * (1.0 + 1e-9):
                 # The viscous limit set it: the wave speed was cited, and a softer material
@@ -466,6 +494,27 @@ def _hourglass_cause(model: Model, courant: float, hourglass: float | None) -> s
         return None
     return (f"the hourglass control's limit at strength c = {strength:g}, {control:.3g} s, with the wave limit "
             f"C dx / c_P = {wave:.3g} s, c_P = {c:.3g} m/s at spacing {model.spacing:g} m")
+
+
+def _field_cause(model: Model, courant: float, hourglass: float | None) -> str | None:
+    """Where the force fields' limit (``Model._field_limit``) is at most both the wave limit
+    ``C dx / c_P`` and the hourglass control's (strength ``hourglass``; None: the model's), so
+    that it is what shortens ``stable_dt``: the refusals' words for it, naming the fields, their
+    net strength and both limits; else None."""
+    limit, k, which = model._field_limit(courant)
+    c = float(np.max(model.wave_speeds()))
+    wave = courant * model.spacing / c
+    if not (limit <= wave and limit <= model._hourglass_limit(courant, hourglass)[0]):
+        return None
+    names = model.body_names
+    bodies = sorted({model.force_fields[i].body for i in which})
+    on = ("every body" if bodies == [-1] else
+          "body " + ", ".join(repr(names[b]) if 0 <= b < len(names) else str(b) for b in bodies if b >= 0)
+          + (" (and fields on every body)" if -1 in bodies else ""))
+    fields = f"field {which[0]}" if len(which) == 1 else "fields " + ", ".join(str(i) for i in which)
+    return (f"the limit of compression {fields} (on {on}) at net strength "
+            f"k = {k:g} 1/s^2, (C / 0.3) 2 / (1.5 sqrt(k)) = {limit:.3g} s, with the wave limit C dx / c_P = {wave:.3g} s, "
+            f"c_P = {c:.3g} m/s at spacing {model.spacing:g} m")
 
 
 def _viscous_limit(model: Model, courant: float):
@@ -845,7 +894,7 @@ def simulate(
                     raise SimulationError(
                         f"the simulation diverged after step {step} (frame {frame}, t = {frame / fps:.4g} s, "
                         f"dt = {dt:.4g} s): {what}, at particle {p} of body {body!r}", step=step, particle=p, body=body,
-                        frame=frame, advice=f"; {divergence_advice(model.stable_dt(hourglass=solver.hourglass))}",
+                        frame=frame, advice=f"; {divergence_advice(model, solver.hourglass)}",
                     )
                 met = _far_mesh_contact(model, current, far_meshes) if far_meshes else None
                 if met is not None:

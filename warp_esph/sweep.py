@@ -563,8 +563,8 @@ def _run_sample(scene, task: _Task) -> dict:
         # ('a smaller dt=', 'use dtype=float64'), and the table is the command's too. A
         # divergence keeps the advice's one fact, the stable step, to read the row's dt against.
         why = e.reason
-        if e.advice and e.advice == f"; {divergence_advice(stable := model.stable_dt(hourglass=solver.hourglass))}":
-            why += f"; the sample's stable step is {stable:.3g} s"
+        if e.advice and e.advice == f"; {divergence_advice(model, solver.hourglass)}":
+            why += f"; the sample's stable step is {model.stable_dt(hourglass=solver.hourglass):.3g} s"
         row.update(status="failed", reason=_one_line(why))
     except StepRefusal as e:
         # The reason without a run's advice ('give dt= or substeps=', 'fewer frames=, or a larger
@@ -997,7 +997,7 @@ def _check_some_sample_steps(model, assignments, points, frames, fps, rate, leng
     failed alone, one after the other, with the same refusal, and the sweep exited 3. A
     sample that can is enough (the others are rows of the table, as a blown-up sample is).
     ``rate``, ``length``: the options (or the scene's values) the refusal names."""
-    from .simulate import STABLE_HOURGLASS_ADVICE, StepRefusal, check_step_count, resolve_timestep  # noqa: PLC0415
+    from .simulate import STABLE_FIELD_ADVICE, STABLE_HOURGLASS_ADVICE, StepRefusal, check_step_count, resolve_timestep  # noqa: PLC0415
 
     # The reasons without a run's advice ('give dt= or substeps=', 'a larger dt'): a sweep has no
     # substeps, and a --dt above a sample's stable step blows it up; these are its own options.
@@ -1016,6 +1016,7 @@ def _check_some_sample_steps(model, assignments, points, frames, fps, rate, leng
             # Where the hourglass control's limit sets the step, its strength lengthens it, not a
             # softer material.
             cure = ("a smaller --hourglass (or the scene's [solver] hourglass)" if e.advice == STABLE_HOURGLASS_ADVICE
+                    else "a weaker compression field" if e.advice == STABLE_FIELD_ADVICE
                     else "softer or less viscous materials or swept values")
             first = first or (k, values, e.detail, rate, f"give a higher --fps, {coarser}, or {cure}")
             continue
