@@ -8,6 +8,7 @@ distance ties under a finite-difference perturbation.
 import argparse
 import json
 import math
+import os
 import re
 import types
 import warnings
@@ -656,6 +657,45 @@ def test_a_rollout_that_cannot_fit_in_memory_is_refused_before_it_allocates(monk
                                          r"fewer steps \(with checkpoint_every = 10000, the least, it would need about \d\.\d+ GiB\)$"):
         Rollout(model, 10**8, 1e-3, checkpoint_every=5000)  # the ground's force rows alone take 2.2 GiB
     assert Rollout(model, 10**5, 1e-3, checkpoint_every=316).checkpointing
+
+
+def _eight_particles():
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    b.add_ground()
+    return b.finalize(dtype=wp.float64, requires_grad=True)
+
+
+def test_a_rollout_is_weighed_against_the_memory_limit_of_its_container(monkeypatch, tmp_path):
+    """The CPU's memory was the machine's physical memory: in a container limited below it (a CI
+    runner's), a rollout (or a model) that could not fit was taken and the container killed it,
+    as before the check. The limit of the process's control group counts where it is lower:
+    cgroup v2's ``memory.max`` of the group or an ancestor, v1's ``memory.limit_in_bytes``."""
+    from warp_esph import builder
+
+    model = _eight_particles()
+    physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    proc, root = tmp_path / "cgroup", tmp_path / "fs"
+    (root / "ci" / "job").mkdir(parents=True)
+    proc.write_text("0::/ci/job\n")
+    (root / "memory.max").write_text("max\n")
+    (root / "ci" / "memory.max").write_text(f"{2**20}\n")  # the parent's limit holds for the job
+    (root / "ci" / "job" / "memory.max").write_text("max\n")
+    monkeypatch.setattr(builder, "_PROC_CGROUP", str(proc), raising=False)
+    monkeypatch.setattr(builder, "_CGROUP_ROOT", str(root), raising=False)
+    with pytest.raises(ValueError, match=r"^steps = 200 is not allowed with checkpoint_every = None on cpu: the rollout would "
+                                         r"need about 0\.01\d+ GiB, more than its 0\.000977 GiB; give fewer steps \(with "
+                                         r"checkpoint_every = 14, the least, it would need about 0\.00\d+ GiB\)$"):
+        Rollout(model, 200, 1e-3)
+    proc.write_text("5:cpu,cpuacct:/docker/abc\n4:memory:/docker/abc\n")  # v1: the container's group is the mount's root
+    (root / "memory").mkdir()
+    (root / "memory" / "memory.limit_in_bytes").write_text("9223372036854771712\n")  # v1's "no limit"
+    assert builder._device_memory(model.device) == physical
+    (root / "memory" / "memory.limit_in_bytes").write_text(f"{2**31}\n")
+    assert builder._device_memory(model.device) == min(physical, 2**31)
+    proc.write_text("0::/\n")
+    (root / "memory.max").write_text(f"{2**40 * 1024}\n")  # above the machine's: the machine's
+    assert builder._device_memory(model.device) == physical
 
 
 def test_a_particle_mask_of_the_wrong_length_is_named_not_the_targets():

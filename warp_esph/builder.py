@@ -1023,11 +1023,55 @@ BYTES_PER_PARTICLE = 1000
 BYTES_PER_NEIGHBOR = 24
 
 
+#: Where the memory limit of this process's control group is read (``_cgroup_memory_limit``).
+_PROC_CGROUP = "/proc/self/cgroup"
+_CGROUP_ROOT = "/sys/fs/cgroup"
+
+
+def _cgroup_memory_limit() -> int | None:
+    """The lowest memory limit, in bytes, of this process's control group and its ancestors
+    (cgroup v2 ``memory.max``, v1 ``memory.limit_in_bytes``), or None where none is set or
+    none can be read."""
+    try:
+        with open(_PROC_CGROUP) as f:
+            lines = f.read().splitlines()
+    except OSError:
+        return None
+    found = []
+    for line in lines:
+        parts = line.split(":", 2)
+        if len(parts) != 3:
+            continue
+        if parts[1] == "":
+            base, name = _CGROUP_ROOT, "memory.max"
+        elif "memory" in parts[1].split(","):
+            base, name = os.path.join(_CGROUP_ROOT, "memory"), "memory.limit_in_bytes"
+        else:
+            continue
+        steps = [p for p in parts[2].split("/") if p]
+        # The ancestors too: a limit set on a parent holds for its children, and a container
+        # sees its own group at the mount's root whatever path the process's record names.
+        for k in range(len(steps) + 1):
+            try:
+                with open(os.path.join(base, *steps[:k], name)) as f:
+                    text = f.read().strip()
+            except OSError:
+                continue
+            # v2 writes "max" for no limit, v1 a number near 2**63.
+            if text.isdigit() and 0 < int(text) < 2**62:
+                found.append(int(text))
+    return min(found) if found else None
+
+
 def _device_memory(dev) -> int | None:
-    """The memory of ``dev`` in bytes (the machine's for the CPU), or None where not known."""
+    """The memory of ``dev`` in bytes, or None where not known: for the CPU the machine's, or
+    the limit of the process's control group where lower (a container's: the machine's took
+    what the container could not hold, and the container killed the run)."""
     try:
         if dev.is_cpu:
-            return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+            machine = int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+            limit = _cgroup_memory_limit()
+            return machine if limit is None else min(machine, limit)
         return int(dev.total_memory)
     except (AttributeError, OSError, ValueError, TypeError):
         return None
