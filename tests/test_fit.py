@@ -698,6 +698,33 @@ def test_a_rollout_is_weighed_against_the_memory_limit_of_its_container(monkeypa
     assert builder._device_memory(model.device) == physical
 
 
+def test_on_a_gpu_the_taped_states_own_memory_is_the_hosts(monkeypatch):
+    """A taped state's some 64 kB besides its arrays (Python objects, the tape's records) is
+    host memory, which was weighed against a GPU's memory with the arrays: a million steps of 8
+    particles, 12 GB of arrays and 64 GB of the host's, were refused on a 24 GB GPU. Each is
+    weighed against its own memory (a GPU stood in for: this machine has none)."""
+    from warp_esph import builder
+    from warp_esph import fit as fit_module
+    from warp_esph.rollout import _check_rollout_memory
+
+    model = _eight_particles()
+    sizes = fit_module._state_bytes(model)
+    monkeypatch.setattr(fit_module, "_state_bytes", lambda m: sizes)
+    monkeypatch.setattr(model, "device", type("GPU", (), {"is_cpu": False, "__str__": lambda self: "cuda:0"})())
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 4 * 2**30 if not dev.is_cpu else 64 * 2**30)
+    _check_rollout_memory(model, 10**5, None, None)  # 1.1 GiB of arrays on the GPU, 6.1 GiB of the host's
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 4 * 2**30 if not dev.is_cpu else 2 * 2**30)
+    with pytest.raises(ValueError, match=r"^steps = 100000 is not allowed with checkpoint_every = None on cuda:0: the rollout's "
+                                         r"taped states would need about 6\.1\d* GiB of the host's memory besides their "
+                                         r"arrays on the device, more than its 2 GiB; give checkpoint_every \(about "
+                                         r"sqrt\(steps\) = 316 needs the least, about 0\.0\d+ GiB\) or fewer steps$"):
+        _check_rollout_memory(model, 10**5, None, None)
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 2**30 if not dev.is_cpu else 64 * 2**30)
+    with pytest.raises(ValueError, match=r"^steps = 100000 is not allowed with checkpoint_every = None on cuda:0: the rollout "
+                                         r"would need about 1\.1\d GiB, more than its 1 GiB; give checkpoint_every"):
+        _check_rollout_memory(model, 10**5, None, None)
+
+
 def test_a_particle_mask_of_the_wrong_length_is_named_not_the_targets():
     """A boolean mask with one entry too few kept fewer particles than the targets hold, and
     the refusal blamed the targets' point count."""

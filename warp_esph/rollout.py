@@ -184,6 +184,7 @@ def state_nbytes(state: State) -> int:
 
 #: What a taped ``State`` holds besides its arrays' bytes (``state_nbytes``), measured on the
 #: CPU: its some sixty arrays and gradients took 76 kB each for 12 kB of values at 8 particles.
+#: Python objects and the tape's records: host memory, on a GPU too.
 STATE_OVERHEAD = 64 * 1024
 
 
@@ -191,32 +192,52 @@ def _check_rollout_memory(model: Model, steps: int, segment: int | None, checkpo
     """Refuse, before anything is allocated, a rollout whose taped states and per-step force rows
     could not fit in the device's memory: ``Rollout(model, 10**6, dt)`` of 8 particles allocated
     a million taped states (about 72 GiB) at its first forward, minutes on, until the machine
-    killed it, where a checkpointed one needs kilobytes."""
+    killed it, where a checkpointed one needs kilobytes. On a GPU the arrays are weighed against
+    its memory and the states' own overhead against the host's."""
     from .builder import _device_memory  # noqa: PLC0415
     from .fit import _state_bytes, memory_estimate  # noqa: PLC0415 (fit imports this module)
 
     have = _device_memory(model.device)
     if have is None:
         return
+    cpu = model.device.is_cpu
+    host = None if cpu else _device_memory(wp.get_device("cpu"))
     sizes = _state_bytes(model)
     rows = len(getattr(model.tools, "row_names", ())) + model.world_count * (
         len(model.planes) + len(model.spheres) + len(model.boxes))
 
     def need(segment):
+        """``(bytes on the device, bytes of the host's besides)`` of the rollout with ``segment``."""
         taped = (segment if segment is not None and segment < steps else steps) + 1
-        return (memory_estimate(model, steps, segment, sizes) + taped * STATE_OVERHEAD
-                + steps * rows * 3 * np.dtype(model.types.np_dtype).itemsize)  # the per-step force rows
+        arrays = (memory_estimate(model, steps, segment, sizes)
+                  + steps * rows * 3 * np.dtype(model.types.np_dtype).itemsize)  # the per-step force rows
+        own = taped * STATE_OVERHEAD
+        return (arrays + own, 0) if cpu else (arrays, own)
 
-    given = need(segment)
-    if given <= have:
+    def overrun(segment):
+        """0 where the rollout with ``segment`` fits, 1 where it overruns the device's memory, 2
+        the host's (a GPU's run of few particles and many steps: 12 GB of arrays and 64 GB of the
+        host's, weighed together against a 24 GB GPU, refused a run that fits)."""
+        d, h = need(segment)
+        return 1 if d > have else 2 if host is not None and h > host else 0
+
+    where = overrun(segment)
+    if not where:
         return
     least = max(1, round(math.sqrt(steps)))
-    fix = (f"give checkpoint_every (about sqrt(steps) = {least} needs the least, about {need(least) / 2**30:.3g} GiB) or "
-           "fewer steps" if need(least) <= have else
-           "give fewer steps" if segment == least else
-           f"give fewer steps (with checkpoint_every = {least}, the least, it would need about {need(least) / 2**30:.3g} GiB)")
-    raise ValueError(f"steps = {steps} is not allowed with checkpoint_every = {checkpoint_every!r} on {model.device}: the "
-                     f"rollout would need about {given / 2**30:.3g} GiB, more than its {have / 2**30:.3g} GiB; {fix}")
+    if not overrun(least):
+        fix = (f"give checkpoint_every (about sqrt(steps) = {least} needs the least, about "
+               f"{need(least)[where - 1] / 2**30:.3g} GiB) or fewer steps")
+    elif segment == least:
+        fix = "give fewer steps"
+    else:
+        fix = (f"give fewer steps (with checkpoint_every = {least}, the least, it would need about "
+               f"{need(least)[overrun(least) - 1] / 2**30:.3g} GiB)")
+    what = ("the rollout would need about {:.3g} GiB" if where == 1 else
+            "the rollout's taped states would need about {:.3g} GiB of the host's memory besides their arrays on the device")
+    raise ValueError(f"steps = {steps} is not allowed with checkpoint_every = {checkpoint_every!r} on {model.device}: "
+                     f"{what.format(need(segment)[where - 1] / 2**30)}, more than its "
+                     f"{(have if where == 1 else host) / 2**30:.3g} GiB; {fix}")
 
 
 def _step_indices(frames) -> list[int]:
