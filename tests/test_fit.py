@@ -725,6 +725,26 @@ def test_on_a_gpu_the_taped_states_own_memory_is_the_hosts(monkeypatch):
         _check_rollout_memory(model, 10**5, None, None)
 
 
+def test_fits_automatic_checkpointing_counts_the_taped_states_own_memory(monkeypatch):
+    """``checkpoint_every="auto"`` weighed only the states' arrays against ``memory_limit``: for
+    8 particles and 1e5 steps it chose segments of 89475 steps, which with each taped state's
+    own 64 kB need 6.5 GiB, not 1 GiB, and on a 3 GiB machine the rollout refused the fit (its
+    default settings) though segments of 316 steps need 0.03 GiB. The overhead counts now."""
+    from warp_esph import builder
+    from warp_esph.fit import choose_checkpointing, memory_estimate
+    from warp_esph.rollout import STATE_OVERHEAD
+
+    model = _eight_particles()
+    s = choose_checkpointing(model, 10**5)
+    assert 316 <= s < 10**5 and memory_estimate(model, 10**5, s) + (s + 1) * STATE_OVERHEAD <= 2**30
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 3 * 2**30)
+    seen = []
+    with pytest.raises(ValueError, match=r"^the experiment: initial velocity"):  # past the rollout's check: to the next
+        fit(model, PositionLoss({10**5: model.particle_x0}), ["mu"], steps=10**5, dt=1e-3, iterations=1, progress=False,
+            initial={"v0": (0.0, 60.0, 0.0)}, callback=lambda *a: seen.append(a))
+    assert seen == []
+
+
 def test_a_particle_mask_of_the_wrong_length_is_named_not_the_targets():
     """A boolean mask with one entry too few kept fewer particles than the targets hold, and
     the refusal blamed the targets' point count."""
