@@ -7,6 +7,7 @@ import pytest
 
 import warp_esph as we
 from warp_esph.sim.colliders import INSTANT_CONTACT_RAMP
+from warp_esph.sim.fields import CompressionField
 from warp_esph.simulate import adaptive_timestep, resolve_timestep, simulate
 
 FPS = 30.0
@@ -346,3 +347,30 @@ def test_a_field_that_sets_the_step_is_named():
     with pytest.raises(we.SimulationError, match=r"try a smaller dt= \(stable limit 0.000417 s, set by a compression field "
                                                  r"of net strength k = 1e\+07 1/s\^2; a body it crushes is stiffer"):
         simulate(box, 2, progress=False)
+
+
+def test_the_field_limit_is_the_largest_net_strength_a_particle_feels():
+    """``k`` is the largest net strength a particle of some body feels at some time. Taken only
+    at the times a field switches on, a repelling field switched off under an attracting one
+    (net 0, then ``k``) set no limit: the run past ``t_off`` had the unbounded step. Taken also
+    for fields on every body alone, it counted a net no particle feels where each body's own
+    field cancels them. A field added to the model after ``finalize`` counts at once."""
+    k = 1.0e9
+    plain, alone = _dots(None).stable_dt(), _dots(k).stable_dt()
+    b = we.SceneBuilder(spacing=DX, gravity=(0.0, 0.0, 0.0))
+    b.add_particles(np.array([[0.1, 0.0, 0.05]]), we.Material.from_young(1.0e5, 0.3, density=1000.0), name="a")
+    b.add_compression_field((0.0, 0.0, 0.0), k)
+    b.add_compression_field((0.0, 0.0, 0.0), -k, 0.0, 0.5)
+    assert b.finalize().stable_dt() == alone
+    b = we.SceneBuilder(spacing=DX, gravity=(0.0, 0.0, 0.0))
+    for i, name in enumerate(("a", "b")):
+        b.add_particles(np.array([[0.1, 0.2 * i, 0.05]]), we.Material.from_young(1.0e5, 0.3, density=1000.0), name=name)
+        b.add_compression_field((0.0, 0.0, 0.0), -k, body=name)
+    b.add_compression_field((0.0, 0.0, 0.0), k)
+    model = b.finalize()
+    assert model.stable_dt() == plain
+    # Each world's bodies feel their own fields: a field on one world's body only sets it.
+    worlds = we.finalize_worlds([b, b])
+    assert worlds.stable_dt() == plain
+    worlds.force_fields.append(CompressionField((0.0, 0.0, 0.0), k, body=3))  # w1/b: net k
+    assert worlds.stable_dt() == alone

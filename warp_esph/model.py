@@ -940,19 +940,33 @@ class Model:
         particle ever feels a net ``k > 0``.
 
         Fields acting on one particle at one time add up to one spring of the summed strength,
-        so ``k`` is the largest such sum over the times a field switches on and over the
-        bodies: a field switched on later (``t_on``) bounds the step from the start, since the
-        step is chosen before the run and a run crosses ``t_on``. A repelling field (``k < 0``)
-        grows as ``exp(sqrt(-k) t)`` at any step size, so it sets no limit of its own; it
-        lessens the net strength of the fields it overlaps, as it does the force."""
+        so ``k`` is the largest such sum over the bodies (each has particles) and over the times
+        the set of active fields changes, a field's ``t_on`` and its ``t_off``: a field switched
+        on later bounds the step from the start, since the step is chosen before the run and a
+        run crosses ``t_on``, and so does one left alone when a repelling field over it
+        switches off. A repelling field (``k < 0``) grows as ``exp(sqrt(-k) t)`` at any step
+        size, so it sets no limit of its own; it lessens the net strength of the fields it
+        overlaps, as it does the force. A field on an index past the bodies acts on nothing."""
         fields = self.force_fields
+        bodies = len(self.bodies)
         best, chosen = 0.0, ()
-        for t in sorted({f.t_on for f in fields}):
-            for body in sorted({f.body for f in fields} | {-1}):
-                acting = tuple(i for i, f in enumerate(fields) if f.active(t) and f.body in (-1, body))
-                net = math.fsum(fields[i].strength for i in acting)
+        # Taken at the t_on only, a repelling field's t_off was missed: +k on [0, inf) under -k
+        # on [0, 0.5) set no limit, and the run past 0.5 s had the field's spring unbounded.
+        for t in sorted({f.t_on for f in fields} | {f.t_off for f in fields if math.isfinite(f.t_off)}):
+            acting = [i for i, f in enumerate(fields) if f.active(t) and f.body < bodies]
+            on_all = [i for i in acting if fields[i].body < 0]
+            own: dict[int, list[int]] = {}
+            for i in acting:
+                if fields[i].body >= 0:
+                    own.setdefault(fields[i].body, []).append(i)
+            # The fields on every body alone act on a body only where it has none of its own
+            # (counted anyway, they set a limit no particle needed when every body's own field
+            # cancelled them).
+            groups = ([on_all] if len(own) < bodies else []) + [sorted(on_all + mine) for mine in own.values()]
+            for group in groups:
+                net = math.fsum(fields[i].strength for i in group)
                 if net > best:
-                    best, chosen = net, acting
+                    best, chosen = net, tuple(group)
         if not best > 0.0:
             return math.inf, 0.0, ()
         return courant / 0.3 * 2.0 / (FIELD_MARGIN * math.sqrt(best)), best, chosen
