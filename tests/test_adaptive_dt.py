@@ -8,7 +8,7 @@ import pytest
 import warp_esph as we
 from warp_esph.sim.colliders import INSTANT_CONTACT_RAMP
 from warp_esph.sim.fields import CompressionField
-from warp_esph.simulate import adaptive_timestep, resolve_timestep, simulate
+from warp_esph.simulate import adaptive_timestep, divergence_advice, resolve_timestep, simulate
 
 FPS = 30.0
 DX = 0.02
@@ -335,7 +335,7 @@ def test_a_field_that_sets_the_step_is_named():
     with pytest.raises(ValueError, match=rf"the adaptive step is not allowed .* its stable step, 4.22e-09 s \({named}"
                                          r".*\), would take 7.91e\+06 steps a frame, .*; use a weaker compression field"):
         adaptive_timestep(model, model.state(), FPS)
-    with pytest.warns(RuntimeWarning, match=r"and that of the compression fields at net strength k = 1e\+17 1/s\^2"):
+    with pytest.warns(RuntimeWarning, match=r"and that of compression field 0 \(on every body\) at net strength k = 1e\+17 1/s\^2"):
         we.Solver(model).check_dt(1e-3)
     # A field that sets the step crushes a body of more than a particle across, which is then
     # stiffer than the limit allows for (docs/method.md §8): the divergence's advice says so,
@@ -344,8 +344,8 @@ def test_a_field_that_sets_the_step_is_named():
     b.add_box((0.0, 0.5, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))
     b.add_compression_field((0.0, 0.0, 0.0), 1.0e7)
     box = b.finalize()
-    with pytest.raises(we.SimulationError, match=r"try a smaller dt= \(stable limit 0.000417 s, set by a compression field "
-                                                 r"of net strength k = 1e\+07 1/s\^2; a body it crushes is stiffer"):
+    with pytest.raises(we.SimulationError, match=r"try a smaller dt= \(stable limit 0.000417 s, set by compression field 0 "
+                                                 r"\(on every body\) at net strength k = 1e\+07 1/s\^2; a body it crushes is stiffer"):
         simulate(box, 2, progress=False)
 
 
@@ -374,3 +374,20 @@ def test_the_field_limit_is_the_largest_net_strength_a_particle_feels():
     assert worlds.stable_dt() == plain
     worlds.force_fields.append(CompressionField((0.0, 0.0, 0.0), k, body=3))  # w1/b: net k
     assert worlds.stable_dt() == alone
+
+
+def test_a_field_is_named_only_where_it_sets_the_step():
+    """Where the viscous limit is shorter than the field's, the viscous limit sets the step,
+    and a divergence names no field (it said the field set the limit, and advised a weaker
+    one, where only a less viscous material lengthens the step); where the field sets it, each
+    message names it alike: its index, its body and the net strength."""
+    b = we.SceneBuilder(spacing=DX, gravity=(0.0, 0.0, 0.0))
+    b.add_particles(np.array([[0.1, 0.2 * i, 0.05] for i in range(2)]),
+                    we.Material.from_young(1.0e5, 0.3, density=1000.0, viscosity=1.0e4), name="dots")
+    b.add_compression_field((0.0, 0.0, 0.0), 1.0e9, body="dots")
+    model = b.finalize()
+    assert model.stable_dt() == pytest.approx(0.025 * 1000.0 * model.support_radius**2 / 1.0e4, rel=1e-12)
+    assert divergence_advice(model, 0.0) == f"try a smaller dt= (stable limit {model.stable_dt():.3g} s) or stiffer-to-softer material settings"
+    model.set_material(0, we.Material.from_young(1.0e5, 0.3, density=1000.0))
+    assert divergence_advice(model, 0.0, "--dt").startswith(
+        "try a smaller --dt (stable limit 4.2e-05 s, set by compression field 0 (on body 'dots') at net strength k = 1e+09 1/s^2;")

@@ -971,6 +971,17 @@ class Model:
             return math.inf, 0.0, ()
         return courant / 0.3 * 2.0 / (FIELD_MARGIN * math.sqrt(best)), best, chosen
 
+    def _field_words(self, which: tuple[int, ...]) -> str:
+        """How every message names the force fields ``which`` (``_field_limit``'s indices):
+        their indices into ``force_fields`` and the bodies they act on, ``compression field 0
+        (on body 'a')``; the refusals, the divergence's advice and the solver's warning alike."""
+        names = self.body_names
+        bodies = sorted({self.force_fields[i].body for i in which})
+        on = ("every body" if bodies == [-1] else
+              "body " + ", ".join(repr(names[b]) for b in bodies if b >= 0) + (" (and fields on every body)" if -1 in bodies else ""))
+        fields = f"field {which[0]}" if len(which) == 1 else "fields " + ", ".join(str(i) for i in which)
+        return f"compression {fields} (on {on})"
+
     def _stable_dt_now(self, courant: float, hourglass: float | None, rows: np.ndarray) -> float:
         p = self._parameter_values(rows)
         rho = np.array([m.density for m in self.materials], dtype=np.float64)

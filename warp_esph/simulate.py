@@ -68,9 +68,9 @@ def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=") ->
     and softer material settings do not help."""
     stable = model.stable_dt(hourglass=hourglass)
     if _field_cause(model, 0.3, hourglass) is not None:
-        k = model._field_limit(0.3)[1]
-        return (f"try a smaller {dt} (stable limit {stable:.3g} s, set by a compression field of net strength k = {k:g} "
-                f"1/s^2; a body it crushes is stiffer than that limit allows for, docs/method.md §8) or a weaker field")
+        _, k, which = model._field_limit(0.3)
+        return (f"try a smaller {dt} (stable limit {stable:.3g} s, set by {model._field_words(which)} at net strength "
+                f"k = {k:g} 1/s^2; a body it crushes is stiffer than that limit allows for, docs/method.md §8) or a weaker field")
     return f"try a smaller {dt} (stable limit {stable:.3g} s) or stiffer-to-softer material settings"
 
 
@@ -498,21 +498,20 @@ def _hourglass_cause(model: Model, courant: float, hourglass: float | None) -> s
 
 def _field_cause(model: Model, courant: float, hourglass: float | None) -> str | None:
     """Where the force fields' limit (``Model._field_limit``) is at most both the wave limit
-    ``C dx / c_P`` and the hourglass control's (strength ``hourglass``; None: the model's), so
-    that it is what shortens ``stable_dt``: the refusals' words for it, naming the fields, their
-    net strength and both limits; else None."""
+    ``C dx / c_P`` and the hourglass control's (strength ``hourglass``; None: the model's), and
+    the viscous limit is not shorter than ``stable_dt``, so that the field is what shortens it:
+    the refusals' words for it, naming the fields, their net strength and both limits; else None."""
     limit, k, which = model._field_limit(courant)
     c = float(np.max(model.wave_speeds()))
     wave = courant * model.spacing / c
     if not (limit <= wave and limit <= model._hourglass_limit(courant, hourglass)[0]):
         return None
-    names = model.body_names
-    bodies = sorted({model.force_fields[i].body for i in which})
-    on = ("every body" if bodies == [-1] else
-          "body " + ", ".join(repr(names[b]) if 0 <= b < len(names) else str(b) for b in bodies if b >= 0)
-          + (" (and fields on every body)" if -1 in bodies else ""))
-    fields = f"field {which[0]}" if len(which) == 1 else "fields " + ", ".join(str(i) for i in which)
-    return (f"the limit of compression {fields} (on {on}) at net strength "
+    viscous = _viscous_limit(model, courant)
+    if viscous is not None and viscous[0] <= model.stable_dt(courant, hourglass=hourglass) * (1.0 + 1e-9):
+        # The viscous limit set the step: a divergence was put on the field, and a weaker one
+        # advised, which leaves the step as it is.
+        return None
+    return (f"the limit of {model._field_words(which)} at net strength "
             f"k = {k:g} 1/s^2, (C / 0.3) 2 / (1.5 sqrt(k)) = {limit:.3g} s, with the wave limit C dx / c_P = {wave:.3g} s, "
             f"c_P = {c:.3g} m/s at spacing {model.spacing:g} m")
 

@@ -477,8 +477,8 @@ class Solver:
                 f"(Model.stable_dt: 0.3 * spacing / p-wave speed, docs/method.md §8, the viscous limit "
                 f"0.025 rho0 h^2 / viscosity"
                 + (f", and that of the hourglass control at c = {self.hourglass:g}" if self.hourglass > 0.0 else "")
-                + (f", and that of the compression fields at net strength k = {k:g} 1/s^2, 2 / (1.5 sqrt(k))"
-                   if (k := self.model._field_limit(0.3)[1]) > 0.0 else "")
+                + (f", and that of {self.model._field_words(field[2])} at net strength k = {field[1]:g} 1/s^2, "
+                   f"2 / (1.5 sqrt(k))" if (field := self.model._field_limit(0.3))[1] > 0.0 else "")
                 + "); the run may blow up",
                 RuntimeWarning,
                 stacklevel=3,
