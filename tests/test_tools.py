@@ -800,6 +800,8 @@ def test_gradients_of_swept_tools_and_moving_pins_and_their_reaction_torque_matc
     (lambda b: b.pin(), "pin 'pin0': no selection is not allowed: give indices, body, region"),
     (lambda b: b.pin(region=((1, 1, 1), (2, 2, 2))), "pin 'pin0' is not allowed: the selection holds no particle"),
     (lambda b: b.pin(body="nope"), r"body = 'nope' is not allowed: must be one of \['d'\]"),
+    (lambda b: b.pin(body=1), r"body = 1 is not allowed: must be a body name or index \(0\.\.0\)"),
+    (lambda b: b.pin(body=True), r"body = True is not allowed: must be a body name or index \(0\.\.0\)"),
     (lambda b: b.pin(indices=[0, 10_000]), r"indices = \[0, 10000\] is not allowed: must be integers in \[0, 124\]"),
     (lambda b: (b.pin(indices=[0, 1]), b.pin(indices=[1, 2])), "pin 'pin1' is not allowed: it shares particles with pin 'pin0'"),
     (lambda b: tools.Keyframes([0.0, 0.0], [(0, 0, 0), (1, 0, 0)]), r"times = \[0\.0, 0\.0\] is not allowed: must be one or more finite, increasing"),
@@ -811,6 +813,19 @@ def test_bad_tool_input_is_a_value_error_naming_it(call, match):
     b.add_box((0, 0, 0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="d")
     with pytest.raises(ValueError, match=match):
         call(b)
+
+
+def test_a_pin_takes_a_body_by_its_index_as_the_other_builder_calls_do():
+    """``pin(body=k)`` takes the index an ``add_*`` returned, as ``add_particle_floor`` and
+    ``add_compression_field`` do (it was refused, 'must be one of ['a', '0']'); a body named
+    "0" is still taken by its name."""
+    b = we.SceneBuilder(spacing=0.02)
+    first = b.add_box((0, 0, 0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="a")
+    second = b.add_box((0.5, 0, 0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="0")
+    start, count = b._bodies[second].start, b._bodies[second].count
+    b.pin(body=np.int64(second), name="by_index")
+    assert (first, second) == (0, 1) and b.pins[0].indices.tolist() == list(range(start, start + count))
+    assert tools.select_particles(b, body="0", name="by_name").tolist() == list(range(start, start + count))
 
 
 def test_a_body_starting_inside_a_mesh_tool_is_refused_as_inside_the_other_shapes():

@@ -707,11 +707,12 @@ class SceneBuilder:
             raise ValueError(f"{what}: the tool is {across:.3g} m across at most, less than {least:.3g} m, a thousandth of "
                              f"the spacing {self.spacing:g} (the contact's margin): the particles pass it by; give {fix}")
 
-    def pin(self, indices=None, *, body: str | None = None, region=None, where=None, motion=None, name: str | None = None) -> str:
+    def pin(self, indices=None, *, body: str | int | None = None, region=None, where=None, motion=None, name: str | None = None) -> str:
         """Hold a set of particles fixed, or move it rigidly (``tools.py``); returns its name.
 
         The set is the intersection of the given selections among the particles added so
-        far: ``indices`` (integer indices or a boolean mask), ``body`` (a body name),
+        far: ``indices`` (integer indices or a boolean mask), ``body`` (a body's name or the
+        index its ``add_*`` returned),
         ``region = (lo, hi)`` (an axis-aligned box of rest positions), ``where`` (a predicate
         on the rest positions, ``(N, 3) -> bool (N,)``). ``motion``: ``None`` (held fixed),
         ``tools.Velocity`` (from the set's rest centroid unless it gives a position),

@@ -1444,7 +1444,7 @@ def allocate_state(model, state, requires_grad: bool):
 # --------------------------------------------------------------------------- selection
 def select_particles(builder, *, indices=None, body=None, region=None, where=None, name: str) -> np.ndarray:
     """Indices of the particles selected by all the given criteria (intersection): an index
-    array, a body name, an axis-aligned box ``region = (lo, hi)`` and a predicate ``where``
+    array, a body (its name or index), an axis-aligned box ``region = (lo, hi)`` and a predicate ``where``
     on rest positions ``(N, 3) -> bool (N,)``."""
     n = builder.particle_count
     points = np.concatenate(builder._points) if builder._points else np.zeros((0, 3))
@@ -1466,10 +1466,9 @@ def select_particles(builder, *, indices=None, body=None, region=None, where=Non
             sel[idx] = True
         mask &= sel
     if body is not None:
-        names = [b.name for b in builder._bodies]
-        if body not in names:
-            raise ValueError(f"body = {body!r} is not allowed: must be one of {names!r}")
-        b = builder._bodies[names.index(body)]
+        # A name or the index an add_* returned, as add_particle_floor and add_compression_field
+        # take it (an index was refused here alone).
+        b = builder._bodies[builder._body_index(body)]
         sel = np.zeros(n, dtype=bool)
         sel[b.start:b.start + b.count] = True
         mask &= sel
