@@ -289,6 +289,11 @@ def test_deformation_is_checked_and_read_from_scene_files(tmp_path):
 
 def test_compression_field_checks_its_values():
     b = we.SceneBuilder(spacing=0.05)
+    # Before any body, the index range was "(0..-1)" and the names "one of []".
+    for body in (0, "a"):
+        with pytest.raises(ValueError, match=rf"^body = {body!r} is not allowed: the builder has no body yet; add one "
+                                             r"\(add_box, add_particles, \.\.\.\) first$"):
+            b.add_compression_field((0, 0, 0), 10.0, body=body)
     b.add_box((0, 0.5, 0), (0.2, 0.2, 0.2), we.Material(mu=1e4, lam=1e4), name="a")
     with pytest.raises(ValueError, match="body = 'b' is not allowed"):
         b.add_compression_field((0, 0, 0), 10.0, body="b")

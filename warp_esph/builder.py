@@ -744,6 +744,10 @@ class SceneBuilder:
         """The index of ``body``, a body's name or the index its ``add_*`` returned; refused by
         name otherwise (a bool is no index)."""
         names = [b.name for b in self._bodies]
+        if not names:
+            # Refused as "index (0..-1)" or "one of []".
+            raise ValueError(f"body = {body!r} is not allowed: the builder has no body yet; add one (add_box, "
+                             f"add_particles, ...) first")
         if isinstance(body, str):
             if body not in names:
                 raise ValueError(f"body = {body!r} is not allowed: must be one of {names!r}")
