@@ -376,6 +376,36 @@ def test_the_field_limit_is_the_largest_net_strength_a_particle_feels():
     assert worlds.stable_dt() == alone
 
 
+def test_a_field_added_after_finalize_is_checked_as_finalize_checks_it():
+    """``finalize`` refuses a field the model's float type cannot run (1e39 in float32 wrote
+    NaN positions in the first step); one appended to ``model.force_fields`` afterwards had no
+    check, nor had its body index (past the bodies, it acted on nothing without a word). Now
+    ``stable_dt``, which the step asks before its first launch, refuses it by name, and the
+    state is left as it was."""
+    model = _dots(None)
+    solver = we.Solver(model)
+    a, b = model.state(), model.state()
+    x0 = a.x.numpy().copy()
+    cases = [(CompressionField((0.0, 0.0, 0.0), 1.0e39), r"CompressionField.strength = 1e\+39 is not allowed in float32: "
+              r"must be at most 1.84e\+19 in size; use dtype=float64 or a smaller value"),
+             (CompressionField((0.0, 0.0, 0.0), 1.0e3, body=1), r"CompressionField.body = 1 is not a body of the model: "
+              r"must be a body index in 0..0 or -1 \(every particle\)"),
+             ((0.0, 1.0e3), "must be a warp_esph.sim.fields.CompressionField")]
+    for field, why in cases:
+        model.force_fields.append(field)
+        with pytest.raises(ValueError, match=r"^model.force_fields\[0\] = .* is not allowed: " + why):
+            model.stable_dt()
+        with pytest.raises(ValueError, match=why):
+            solver.step(a, b, 1.0e-4)
+        assert (a.x.numpy() == x0).all() and a.time == 0.0
+        model.force_fields.clear()
+    model.force_fields = None
+    with pytest.raises(ValueError, match=r"model.force_fields = None is not allowed: must be a list of CompressionField"):
+        model.stable_dt()
+    model.force_fields = (CompressionField((0.0, 0.0, 0.0), 1.0e3, body=0),)
+    assert model.stable_dt() < _dots(None).stable_dt()
+
+
 def test_a_field_is_named_only_where_it_sets_the_step():
     """Where the viscous limit is shorter than the field's, the viscous limit sets the step,
     and a divergence names no field (it said the field set the limit, and advised a weaker

@@ -18,6 +18,7 @@ import warp as wp
 from . import checks, meshes, tools
 from ._types import scalar_type
 from .sim.colliders import CONTACT_RAMP, MAX_PER_KIND, Box, Plane, Sphere
+from .sim.fields import precision_problem as field_precision_problem
 from .sim.neighbors import PAPER_MAX_NEIGHBORS, default_max_neighbors
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
 from .material import Material, _following_force
@@ -933,17 +934,10 @@ class SceneBuilder:
         if np.abs(self.gravity).max() > big:
             why = f"is not allowed in {T}: must be at most {big:.3g}"
             self._refuse(("scene",), f"gravity = {self.gravity!r} {why}", f"gravity = {list(self.gravity)!r} {why}")
-        # A field's acceleration is strength times a distance from its center: 1e39 (or a
-        # center 1e300 m out) wrote NaN positions in the first step.
         for fld in self.force_fields:
-            for label, v in (("center", fld.center), ("strength", fld.strength)):
-                if np.abs(np.asarray(v, dtype=np.float64)).max() > far:
-                    raise ValueError(f"CompressionField.{label} = {v!r} is not allowed in {T}: must be at "
-                                     f"most {far:.3g} in size; {wider_precision(scalar, 'a smaller value')}")
-            finite_times = [t for t in (fld.t_on, fld.t_off) if math.isfinite(t)]
-            if finite_times and max(abs(t) for t in finite_times) > big:
-                raise ValueError(f"CompressionField times ({fld.t_on!r}, {fld.t_off!r}) are not allowed in "
-                                 f"{T}: must be at most {big:.3g} s")
+            problem = field_precision_problem(fld, scalar)
+            if problem is not None:
+                raise ValueError(problem)
         velocities = np.concatenate(self._velocities) if self._velocities else np.zeros((0, 3))
         if len(velocities) and np.abs(velocities).max() > big:
             k, _ = self._body_at(int(np.argmax(np.abs(velocities).max(axis=1))))

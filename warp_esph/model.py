@@ -19,6 +19,8 @@ import warp as wp
 
 from . import checks, tools
 from ._types import type_set
+from .sim.fields import CompressionField
+from .sim.fields import precision_problem as field_precision_problem
 from .sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP, INSTANT_CONTACT_RAMP, Box, Plane, Sphere
 from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, PRESSURE_FORCE_IDS, Material, p_wave_speed
 from .sim import ghost_floor, integrate
@@ -410,8 +412,11 @@ class Model:
         self.material_pressure_force = wp.array(
             [PRESSURE_FORCE_IDS[m.pressure_force] for m in materials], dtype=wp.int32, device=dev
         )
-        #: External force fields (``fields.CompressionField``), set by the builder.
+        #: External force fields (``fields.CompressionField``), set by the builder. A caller may
+        #: append more (or replace the list) after ``finalize``: ``stable_dt``, so each step
+        #: before its first launch, refuses what ``finalize`` refuses (``_check_force_fields``).
         self.force_fields: list = []
+        self._checked_fields: list = []  # the fields _check_force_fields last passed
         #: Moving colliders and pinned sets (``tools.ToolSet``), set by the builder; None: none.
         self.tools = None
         # Rest positions and initial neighbour lists of the rest-configuration model
@@ -878,6 +883,7 @@ class Model:
         (8 c_P^2)`` over a width ``L``), and the crushed material's stiffness is not the rest
         state's: docs/method.md §8."""
         courant = checks.courant(courant)
+        self._check_force_fields()
         # Solver.check_dt asks every step; the answer is kept while the parameter arrays hold
         # the same values (a fit or torch writes them in place) and the materials and settings
         # are the same.
@@ -891,6 +897,34 @@ class Model:
         dt = self._stable_dt_now(courant, hourglass, rows)
         self._stable_dt = (key, dt)
         return dt
+
+    def _check_force_fields(self) -> None:
+        """The force fields as they are now hold what ``finalize`` asks of them: each a
+        ``CompressionField`` whose centre, strength and times fit the model's float type, on a
+        body the model has (or -1, every particle). A field appended after ``finalize`` had no
+        check: a strength of 1e39 in float32 wrote NaN positions in the first step, and a body
+        index past the bodies acted on nothing without a word. Runs where ``stable_dt`` reads
+        them, so before any step (``Solver.step`` asks it before its first launch); a list of
+        the same fields is not checked again."""
+        fields = self.force_fields
+        checked = self._checked_fields
+        if isinstance(fields, list) and len(fields) == len(checked) and all(a is b for a, b in zip(fields, checked)):
+            return
+        if not isinstance(fields, (list, tuple)):
+            raise ValueError(f"model.force_fields = {checks.shorten(fields)!r} is not allowed: must be a list of "
+                             f"CompressionField (SceneBuilder.add_compression_field makes them)")
+        bodies = len(self.bodies)
+        for i, f in enumerate(fields):
+            what = f"model.force_fields[{i}] = {checks.shorten(f)!r} is not allowed"
+            if not isinstance(f, CompressionField):
+                raise ValueError(f"{what}: must be a warp_esph.sim.fields.CompressionField")
+            problem = field_precision_problem(f, self.scalar)
+            if problem is not None:
+                raise ValueError(f"{what}: {problem}")
+            if not f.body < bodies:
+                raise ValueError(f"{what}: CompressionField.body = {f.body} is not a body of the model: must be a body "
+                                 f"index in 0..{bodies - 1} or -1 (every particle)")
+        self._checked_fields = list(fields)
 
     def _check_parameter_values(self, rows: np.ndarray,
                                 what: str = "the model's parameter arrays are not allowed as they are") -> None:
@@ -946,14 +980,14 @@ class Model:
         run crosses ``t_on``, and so does one left alone when a repelling field over it
         switches off. A repelling field (``k < 0``) grows as ``exp(sqrt(-k) t)`` at any step
         size, so it sets no limit of its own; it lessens the net strength of the fields it
-        overlaps, as it does the force. A field on an index past the bodies acts on nothing."""
+        overlaps, as it does the force."""
         fields = self.force_fields
         bodies = len(self.bodies)
         best, chosen = 0.0, ()
         # Taken at the t_on only, a repelling field's t_off was missed: +k on [0, inf) under -k
         # on [0, 0.5) set no limit, and the run past 0.5 s had the field's spring unbounded.
         for t in sorted({f.t_on for f in fields} | {f.t_off for f in fields if math.isfinite(f.t_off)}):
-            acting = [i for i, f in enumerate(fields) if f.active(t) and f.body < bodies]
+            acting = [i for i, f in enumerate(fields) if f.active(t)]
             on_all = [i for i in acting if fields[i].body < 0]
             own: dict[int, list[int]] = {}
             for i in acting:

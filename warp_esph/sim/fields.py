@@ -12,6 +12,7 @@ import functools
 import math
 import types
 
+import numpy as np
 import warp as wp
 
 from .. import checks
@@ -42,6 +43,25 @@ class CompressionField:
 
     def active(self, t: float) -> bool:
         return self.t_on <= t < self.t_off
+
+
+def precision_problem(fld: CompressionField, scalar) -> str | None:
+    """Why the field ``fld`` cannot run in the float type ``scalar``, or None: its acceleration
+    is its strength times a distance from its centre, so each is held to the square root of
+    the largest float (1e39 in float32, or a centre 1e300 m out, wrote NaN positions in the
+    first step), and its times to the largest float."""
+    from ..model import wider_precision  # noqa: PLC0415 (the model imports this module's package)
+
+    big = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).max)
+    far = math.sqrt(big)
+    T = scalar.__name__
+    for label, v in (("center", fld.center), ("strength", fld.strength)):
+        if not np.abs(np.asarray(v, dtype=np.float64)).max() <= far:
+            return (f"CompressionField.{label} = {v!r} is not allowed in {T}: must be at most {far:.3g} in size; "
+                    f"{wider_precision(scalar, 'a smaller value')}")
+    if max((abs(t) for t in (fld.t_on, fld.t_off) if math.isfinite(t)), default=0.0) > big:
+        return f"CompressionField times ({fld.t_on!r}, {fld.t_off!r}) are not allowed in {T}: must be at most {big:.3g} s"
+    return None
 
 
 @functools.cache
