@@ -102,7 +102,7 @@ def test_built_in_scene_at_its_own_dt_does_not_trip_the_monitor(name):
         x, v = state.x.numpy().astype(np.float64), state.v.numpy().astype(np.float64)
         worst["speed"] = max(worst["speed"], math.sqrt((v * v).sum(1).max()) / mon.speed_bound(t))
         ke = 0.5 * (mon.mass * (v * v).sum(1)).sum()
-        budget = mon.ke0 + (mon.mass * mon.g * (mon.h0 - x @ mon.up)).sum() + mon.e_fields
+        budget = mon.ke0 + (mon.mass * mon.g * (mon.h0 - x @ mon.up)).sum() + mon.field_energy(x, t)[1]
         worst["energy"] = max(worst["energy"], (ke - mon.e_floor) / max(budget, 1e-12))
 
     we.simulate(model, scene.frames, fps=scene.fps, substeps=n_sub, progress=False, callback=record)
@@ -161,6 +161,38 @@ def test_monitor_bounds_are_physical():
     hot = np.tile([0.0, 0.0, 9.0 * mon.speed_bound(0.0)], (model.particle_count, 1))
     what, _ = mon.check(x0, hot, 0.0)
     assert what.startswith("kinetic energy")
+
+
+def test_a_compression_field_s_potential_energy_is_part_of_the_scene_s_energy():
+    """A dough box under a field of k = 1e6 at 0.66 x its stable step blew up (crushed, it is
+    stiffer than the limit allows for, docs/method.md §8) and the run ended with particles
+    42 m from the axis of a 0.2 m box and no error: the monitor allowed the field
+    ``0.5 k M (r + D)^2`` of energy and ``10 sqrt(k) (r + D)`` m/s, some 300 m of travel. Now
+    the kinetic energy and the fields' potential energy ``0.5 k m r^2`` together stay within
+    what the fields held when they came on (plus the rest of the budget): a particle thrown
+    far out is caught even at rest there, while its field acts; at a fifth of the step the
+    run passes."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.5, 0.0), (0.2, 0.2, 0.2), we.Material.preset("dough"))
+    b.add_compression_field((0.0, 0.0, 0.0), 1.0e6, 0.0, 0.5)
+    model = b.finalize()
+    with pytest.raises(we.SimulationError, match=r"diverged after step 42 \(frame 1.*: kinetic energy and the fields' "
+                                                 r"potential energy .* J, more than the .* J the scene can give: .*released "
+                                                 r"\(gravity's, and all the fields held when they came on;.*set by compression "
+                                                 r"field 0 \(on every body\)"):
+        we.simulate(model, 2, dt=1.0 / 30.0 / 42.0, progress=False)
+    end = we.simulate(model, 2, dt=1.0 / 30.0 / 200.0, progress=False)
+    assert np.hypot(end.x.numpy()[:, 0], end.x.numpy()[:, 2]).max() < 0.1
+    state = model.state()
+    mon = DivergenceMonitor(model, state)
+    x, v = state.x.numpy().astype(np.float64), np.zeros((model.particle_count, 3))
+    x[7, 0] = 42.0
+    what, p = mon.check(x, v, 1.0 / 30.0)
+    assert p == 7 and what.startswith("kinetic energy and the fields' potential energy")
+    assert mon.check(x, v, 1.0) is None  # the field is off: only its energy when it came on counts
+    v[3, 2] = 11.0 * mon.speed_bound(0.1)  # the speed bound names the fields' part (it read as fall + p-wave alone)
+    what, p = mon.check(state.x.numpy(), v, 0.1)
+    assert p == 3 and what.endswith("(fall + p-wave + initial speed + the fields' sqrt(k) R)")
 
 
 # ------------------------------------------------------------------ refused before running

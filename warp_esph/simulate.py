@@ -140,9 +140,12 @@ class DivergenceMonitor:
     - energy: with no work done on the bodies, the kinetic energy is at most the initial
       one plus the elastic energy stored at the start (``_stored_energy_bound``, from F's
       singular values: a prestrained ``F0`` recoils) plus the potential
-      energy released since (``sum m g (h_0 - h)``) plus the fields' potential energy;
-      ``ENERGY_FACTOR`` times that, plus a floor ``0.5 M (0.1 c_P)^2`` (the strain a
-      rest-configuration body's positions may hold), is a blow-up.
+      energy released since (``sum m g (h_0 - h)``) plus what the force fields held when they
+      came on (``0.5 k sum m r^2``, ``r`` the distance from the field's axis; for a field
+      switched on later, ``r`` up to the farthest start plus the diagonal); kinetic energy
+      plus the potential energy of the fields acting now beyond ``ENERGY_FACTOR`` times that,
+      plus a floor ``0.5 M (0.1 c_P)^2`` (the strain a rest-configuration body's positions
+      may hold), is a blow-up.
 
     The wave speeds and energies read the parameters the model runs now (a fit's trial
     writes them without changing ``model.materials``) of the particles checked.
@@ -214,17 +217,49 @@ class DivergenceMonitor:
         material = model.particle_material_np[self.keep]
         self.wave = float(model.wave_speeds(p)[np.unique(material)].max())  # of the particles checked
         self.e_elastic = _stored_energy_bound(model, p, state.F.numpy(), self.keep)
-        self.v_fields, self.e_fields = 0.0, 0.0
+        self.v_fields = 0.0
         for f in model.force_fields:
             r = np.linalg.norm((x0 - np.asarray(f.center))[:, [0, 2]], axis=1).max() + self.diagonal
             self.v_fields += math.sqrt(f.strength) * r
-            self.e_fields += 0.5 * f.strength * r * r * float(self.mass.sum())
+        # Each field's potential energy 0.5 k m r^2 (r its horizontal distance from the centre)
+        # is part of the scene's energy: at most what it held when it came on is released, and
+        # while it acts a particle thrown out far holds more than that (a dough box under k = 1e6
+        # at 0.66 x its stable step ran with particles 42 m out of a 0.2 m box, inside the bound
+        # of 0.5 k M (r + D)^2 given once, far beyond the 0.5 k sum m r0^2 it started with).
+        self.t0 = float(state.time)
+        self.fields = []  # (field, its particles among those checked, the energy it gives at most)
+        body = model.particle_body_np[self.keep]
+        for f in model.force_fields:
+            on = np.ones(len(body), dtype=bool) if f.body < 0 else body == f.body
+            if not (on.any() and f.t_off > self.t0):
+                continue
+            r = np.linalg.norm((x0[on] - np.asarray(f.center))[:, [0, 2]], axis=1)
+            if f.active(self.t0):
+                given = 0.5 * f.strength * float((self.mass[on] * r * r).sum())
+            else:  # switched on later, where the particles are then is not known: as far as the box they start in, and its diagonal
+                given = 0.5 * f.strength * (r.max() + self.diagonal) ** 2 * float(self.mass[on].sum())
+            self.fields.append((f, on, given))
         self.ke0 = 0.5 * float((self.mass * (v0 * v0).sum(axis=1)).sum())
         self.e_floor = 0.5 * float(self.mass.sum()) * (0.1 * self.wave) ** 2
 
     def driven_speed(self, t: float) -> float:
         """The fastest point of a moving tool or pinned set by time ``t`` (0 without them)."""
         return self.v_tools + self.w_tools * (self.diagonal + self.v_tools * t)
+
+    def field_energy(self, x: np.ndarray, t: float) -> tuple[np.ndarray, float]:
+        """``(potential, given)`` at ``t`` seconds since the monitor's state, of the particles
+        checked at positions ``x``: each one's potential energy (J) in the fields acting now,
+        and the most the fields switched on by then can have given (J; each one's potential
+        energy when it came on)."""
+        potential, given = np.zeros(len(x)), 0.0
+        now = self.t0 + t
+        for f, on, e in self.fields:
+            if f.t_on <= now:
+                given += e
+            if f.active(now):
+                r2 = ((x[on] - np.asarray(f.center))[:, [0, 2]] ** 2).sum(axis=1)
+                potential[on] += 0.5 * f.strength * self.mass[on] * r2
+        return potential, given
 
     def speed_bound(self, t: float) -> float:
         fall = self.g * t if self.fall_height is None else min(self.g * t, math.sqrt(2.0 * self.g * self.fall_height))
@@ -243,20 +278,27 @@ class DivergenceMonitor:
         limit = self.SPEED_FACTOR * bound
         p = int(np.argmax(speed2))
         if speed2[p] > limit * limit:
-            parts = "fall + p-wave + initial speed" + (" + the tools' speed" if self.driven_speed(t) > 0.0 else "")
+            parts = ("fall + p-wave + initial speed" + (" + the fields' sqrt(k) R" if self.v_fields > 0.0 else "")
+                     + (" + the tools' speed" if self.driven_speed(t) > 0.0 else ""))
             return (f"speed {math.sqrt(speed2[p]):.3g} m/s, more than {self.SPEED_FACTOR:g} x the {bound:.3g} m/s "
                     f"the scene can produce ({parts})"), int(self.index[p])
         ke = 0.5 * self.mass * speed2
         released = float((self.mass * self.g * (self.h0 - x @ self.up)).sum())
         driven = 0.5 * float(self.mass.sum()) * self.driven_speed(t) ** 2
-        budget = max(self.ke0 + self.e_elastic + released + self.e_fields + driven, 0.0)
+        potential, given = self.field_energy(x, t)
+        budget = max(self.ke0 + self.e_elastic + released + given + driven, 0.0)
         limit = self.ENERGY_FACTOR * budget + self.e_floor
-        if ke.sum() > limit:
-            what = ("and potential energy released, and every particle at the tools' speed" if driven > 0.0
-                    else "and potential energy released (no work is done on the bodies)")
-            return (f"kinetic energy {ke.sum():.3g} J, more than the {limit:.3g} J the scene can give: {self.ENERGY_FACTOR:g} "
+        held = ke + potential
+        energy = float(held.sum())
+        if energy > limit:
+            fields = "gravity's, and all the fields held when they came on" if self.fields else ""
+            what = (f"and potential energy released{f' ({fields})' if fields else ''}, and every particle at the tools' speed"
+                    if driven > 0.0 else f"and potential energy released ({fields + '; ' if fields else ''}no work is done on the bodies)")
+            kind = "kinetic energy and the fields' potential energy" if potential.any() else "kinetic energy"
+            # The particle holding the most: one thrown far out may be at rest there.
+            return (f"{kind} {energy:.3g} J, more than the {limit:.3g} J the scene can give: {self.ENERGY_FACTOR:g} "
                     f"x the {budget:.3g} J of initial kinetic and elastic energy {what}, plus a floor of {self.e_floor:.3g} J "
-                    f"(0.5 M (0.1 c_P)^2)"), int(self.index[np.argmax(ke)])
+                    f"(0.5 M (0.1 c_P)^2)"), int(self.index[np.argmax(held)])
         reach = self.REACH_FACTOR * (self.diagonal + bound * t)
         outside = np.maximum(np.maximum(self.lo - x, x - self.hi), 0.0)
         d2 = (outside * outside).sum(axis=1)
