@@ -307,6 +307,28 @@ def test_a_picture_or_gif_larger_than_the_memory_is_refused_before_anything_is_w
     assert Image.open(tmp_path / "short.gif").size == (1024, 1024)
 
 
+def test_a_picture_is_weighed_against_the_containers_memory_limit(tmp_path, monkeypatch):
+    """The renderer weighed a picture against the machine's memory, where a model and a
+    rollout are weighed against the control group's limit where lower: in a container of 256
+    MiB a picture of some 0.8 GiB was drawn until the container killed it."""
+    from warp_esph import builder
+
+    path = tmp_path / "one.usdc"
+    write_clusters(path, [(0.0, 0.0, 0.0)])
+    proc, root = tmp_path / "cgroup", tmp_path / "fs"
+    root.mkdir()
+    proc.write_text("0::/\n")
+    (root / "memory.max").write_text(f"{2**28}\n")
+    monkeypatch.setattr(builder, "_PROC_CGROUP", str(proc), raising=False)
+    monkeypatch.setattr(builder, "_CGROUP_ROOT", str(root), raising=False)
+    physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    assert render_module._machine_memory() == min(physical, 2**28)
+    with pytest.raises(ValueError, match=r"^width x height = 1024 x 1024 at supersample = 2 is not allowed on this machine: "
+                                         r".*more than its 0\.25 GiB; use a smaller picture or supersample$"):
+        render_usd(path, tmp_path / "big.png", width=1024, height=1024)
+    assert not (tmp_path / "big.png").exists()
+
+
 def test_a_camera_renderer_or_particle_size_that_cannot_draw_is_refused_by_name(tmp_path):
     """A camera whose eye is its target, with a NaN or a fov of 0, or 1e300 m out, failed at
     the first frame ('cannot convert float NaN to integer', ZeroDivisionError); a camera

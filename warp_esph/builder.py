@@ -1062,15 +1062,24 @@ def _cgroup_memory_limit() -> int | None:
     return min(found) if found else None
 
 
-def _device_memory(dev) -> int | None:
-    """The memory of ``dev`` in bytes, or None where not known: for the CPU the machine's, or
-    the limit of the process's control group where lower (a container's: the machine's took
-    what the container could not hold, and the container killed the run)."""
+def _host_memory() -> int | None:
+    """The host's memory in bytes, or None where not known: the machine's, or the limit of the
+    process's control group where lower (a container's: the machine's took what the container
+    could not hold, and the container killed the run)."""
     try:
-        if dev.is_cpu:
-            machine = int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
-            limit = _cgroup_memory_limit()
-            return machine if limit is None else min(machine, limit)
+        machine = int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, OSError, ValueError, TypeError):
+        return None
+    limit = _cgroup_memory_limit()
+    return machine if limit is None else min(machine, limit)
+
+
+def _device_memory(dev) -> int | None:
+    """The memory of ``dev`` in bytes, or None where not known: for the CPU the host's
+    (``_host_memory``)."""
+    if getattr(dev, "is_cpu", False):
+        return _host_memory()
+    try:
         return int(dev.total_memory)
     except (AttributeError, OSError, ValueError, TypeError):
         return None

@@ -460,11 +460,12 @@ BYTES_PER_PIXEL = 200
 
 
 def _machine_memory() -> int | None:
-    """The machine's memory in bytes, or None where not known."""
-    try:
-        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
-    except (AttributeError, OSError, ValueError, TypeError):
-        return None
+    """The memory a picture is drawn in, in bytes, or None where not known: the host's as a
+    model's is weighed (``builder._host_memory``: a container's limit where lower; the
+    machine's let a container kill a drawing it could not hold)."""
+    from .builder import _host_memory  # noqa: PLC0415
+
+    return _host_memory()
 
 
 def _same_name(name: str) -> str:
