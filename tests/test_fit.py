@@ -782,6 +782,33 @@ def test_a_particle_selection_of_nothing_is_named_as_such():
         PositionLoss(target, frames=[2], particles=[-1, 2])
 
 
+def test_a_particle_selection_that_is_no_list_of_distinct_particles_is_refused_by_name():
+    """A boolean ``particles`` of another shape was flattened: True selected particle 0 (and
+    was refused later as 'a boolean mask of 1 entries'), a 2 x 2 mask on 4 particles selected
+    0 and 3 without a word; [True, 2] read True as index 1; a repeated index counted its
+    particle twice in the mean. Values show as given, in a plain form (not 'array([0., 1.])',
+    and a tuple not as '[]')."""
+    from warp_esph.losses import PositionLoss
+
+    target = np.zeros((1, 4, 3))
+    for given, words in ((True, r"True is not allowed: a boolean mask is one-dimensional, one entry per particle; this "
+                                r"one has shape \(\)$"),
+                         (np.array(False), r"False is not allowed: a boolean mask is one-dimensional, .* shape \(\)$"),
+                         (np.eye(2, dtype=bool), r"\[\[True, False\], \[False, True\]\] is not allowed: a boolean mask is "
+                                                 r"one-dimensional, one entry per particle; this one has shape \(2, 2\)$"),
+                         ([True, 2], r"\[True, 2\] is not allowed: it mixes True/False with indices; give particle "
+                                     r"indices or a boolean mask$"),
+                         ([0, 2, 0], r"\[0, 2, 0\] is not allowed: particle 0 is listed 2 times; list each particle once$"),
+                         (np.array([3, 1, 3]), r"\[3, 1, 3\] is not allowed: particle 3 is listed 2 times"),
+                         ((), r"\(\) is not allowed: it selects no particle$"),
+                         (np.array([0.0, 1.0]), r"\[0\.0, 1\.0\] is not allowed: give non-negative particle indices or a "
+                                                r"boolean mask$")):
+        with pytest.raises(ValueError, match=r"^particles = " + words):
+            PositionLoss(target, frames=[2], particles=given)
+    np.testing.assert_array_equal(PositionLoss(target[:, :2], frames=[2], particles=[3, 1]).particles, [3, 1])
+    np.testing.assert_array_equal(PositionLoss(target[:, :1], frames=[2], particles=[np.True_, False]).particles, [0])
+
+
 def test_a_step_size_beyond_any_parameter_range_is_refused_before_any_rollout(dough_target):
     """``lr = 1e300`` stepped the log of a positive parameter past the floats: the fit failed
     mid-run with the material's refusal of an infinite value. It is refused by name first."""

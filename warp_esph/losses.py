@@ -22,8 +22,9 @@ kernels on a tape and returns the value and ``{step: dL/dx}``, which is what
 The nearest-point choices are discrete and made in untaped kernels; the distance to the
 chosen point is taped. Their gradient is then exact (for a closest point on a surface,
 by the envelope theorem) except where the choice itself switches. Losses combine:
-``loss_a + 0.5 * loss_b``. Each takes ``particles`` (indices) to use a subset (e.g.
-surface particles) and ``weight``.
+``loss_a + 0.5 * loss_b``. Each takes ``particles`` (distinct indices, or a one-dimensional
+boolean mask of one entry per particle) to use a subset (e.g. surface particles) and
+``weight``.
 
 Normalisation: each loss is the mean over its frames of its per-frame value, times
 ``weight``.
@@ -319,22 +320,38 @@ class Loss:
         self._mask_size = None
         if particles is not None:
             given = checks.host_values("particles", particles)
+            # As given, in a plain form: an array showed as 'array([0., 1.])', a tuple as a list.
+            shown = checks.shorten(given.tolist() if isinstance(given, np.ndarray) else given)
             idx = np.asarray(given)
             mask = idx.dtype == bool
             if mask:
+                if idx.ndim != 1:
+                    # Flattened: True selected particle 0, a 2 x 2 mask on 4 particles 0 and 3.
+                    raise ValueError(f"particles = {shown!r} is not allowed: a boolean mask is one-dimensional, one "
+                                     f"entry per particle; this one has shape {idx.shape}")
                 self._mask_size = idx.size  # checked against the positions (a wrong length blamed the targets)
                 idx = np.flatnonzero(idx)
+            elif isinstance(given, (list, tuple)) and any(isinstance(v, (bool, np.bool_)) for v in given):
+                # numpy made [True, 2] the indices [1, 2].
+                raise ValueError(f"particles = {shown!r} is not allowed: it mixes True/False with indices; give "
+                                 "particle indices or a boolean mask")
             if idx.ndim == 1 and len(idx) == 0:
                 # An all-False mask and an empty list were told to give what they were.
-                what = f"particles (a boolean mask of {self._mask_size} entries, all False)" if mask else "particles = []"
+                what = f"particles (a boolean mask of {self._mask_size} entries, all False)" if mask else f"particles = {shown!r}"
                 raise ValueError(f"{what} is not allowed: it selects no particle")
             if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer) or idx.min() < 0:
-                raise ValueError(f"particles = {checks.shorten(given)!r} is not allowed: give non-negative particle indices "
+                raise ValueError(f"particles = {shown!r} is not allowed: give non-negative particle indices "
                                  "or a boolean mask")
             if int(idx.max()) > checks.MAX_INT:
                 # int32 wrapped it: 2**31 crashed the process, 2**32 + 1 read particle 1.
                 raise ValueError(f"particles is not allowed: index {int(idx.max())} is beyond any model's particles "
                                  f"(at most {checks.MAX_INT})")
+            values, counts = np.unique(idx, return_counts=True)
+            if (counts > 1).any():
+                # A repeat counted that particle twice in the loss's mean, without a word.
+                k = int(np.argmax(counts > 1))
+                raise ValueError(f"particles = {shown!r} is not allowed: particle {int(values[k])} is listed "
+                                 f"{int(counts[k])} times; list each particle once")
             particles = idx.astype(np.int32)
         self.particles = particles
         self._out = {}
