@@ -745,6 +745,27 @@ def test_fits_automatic_checkpointing_counts_the_taped_states_own_memory(monkeyp
     assert seen == []
 
 
+def test_automatic_checkpointing_caps_the_memory_limit_at_the_devices_memory(monkeypatch):
+    """``checkpoint_every="auto"`` chose the longest segment under ``memory_limit`` (1 GiB by
+    default) whatever the device's memory: on a machine of 4 MiB it chose a full tape of 200
+    steps (some 15 MiB), which the rollout refused, where a segment of 14 steps runs."""
+    from warp_esph import builder
+    from warp_esph.fit import choose_checkpointing
+    from warp_esph.rollout import Rollout
+
+    model = _eight_particles()
+    assert choose_checkpointing(model, 200) is None
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 4 * 2**20)
+    s = choose_checkpointing(model, 200)
+    assert s is not None and 14 <= s < 200
+    assert Rollout(model, 200, 1e-3, checkpoint_every=s).checkpointing
+    with pytest.raises(ValueError, match=r"checkpoint_every = \d+ on cpu"):
+        Rollout(model, 200, 1e-3, checkpoint_every=s + 1)  # the longest that fits
+    with pytest.raises(ValueError, match=r"^the experiment: initial velocity"):  # past the rollout's check: to the next
+        fit(model, PositionLoss({200: model.particle_x0}), ["mu"], steps=200, dt=1e-3, iterations=1, progress=False,
+            initial={"v0": (0.0, 60.0, 0.0)})
+
+
 def test_a_particle_mask_of_the_wrong_length_is_named_not_the_targets():
     """A boolean mask with one entry too few kept fewer particles than the targets hold, and
     the refusal blamed the targets' point count."""

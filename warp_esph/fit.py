@@ -53,7 +53,7 @@ from .builder import SceneBuilder
 from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, SumLoss, WorldLoss, is_tools_csv, read_tools_csv
 from .material import PRESSURE_BULK_SHARE, Material, _following_force
 from .model import Model, check_material_precision
-from .rollout import PARAMETERS, STATE_OVERHEAD, Rollout, check_initial
+from .rollout import PARAMETERS, STATE_OVERHEAD, Rollout, _RolloutMemory, check_initial
 
 __all__ = ["fit", "FitResult", "Experiment", "Adam", "memory_estimate", "choose_checkpointing", "latin_hypercube",
            "load_target", "save_target", "Target", "write_fitted_usd"]
@@ -319,24 +319,29 @@ def choose_checkpointing(model: Model, steps: int, memory_limit: float = MEMORY_
     fastest) when that fits in ``memory_limit`` bytes, else the longest segment whose
     rollout fits, and never shorter than ``sqrt(steps)`` (the memory minimum). A rollout's
     bytes here are its arrays' (``memory_estimate``) and each taped state's own besides
-    (``rollout.STATE_OVERHEAD``)."""
-    sizes = _state_bytes(model)
+    (``rollout.STATE_OVERHEAD``). A ``memory_limit`` above the device's memory counts as that
+    memory: a rollout fits where ``Rollout`` takes it (its force rows included; on a GPU its
+    arrays in the GPU's memory and the states' own in the host's)."""
+    memory = _RolloutMemory(model, steps)
+    sizes = memory.sizes
 
-    def estimate(segment):
+    def fits(segment):
         # The arrays alone chose segments of 89475 steps for 8 particles and 1e5 steps: 6.5 GiB
-        # with the states' own bytes, for a limit of 1 GiB.
+        # with the states' own bytes, for a limit of 1 GiB. A limit above the machine's memory
+        # chose a segment the rollout then refused, where a shorter one would run.
         taped = (steps if segment is None else segment) + 1
-        return memory_estimate(model, steps, segment, sizes) + taped * STATE_OVERHEAD
+        return (memory_estimate(model, steps, segment, sizes) + taped * STATE_OVERHEAD <= memory_limit
+                and not memory.overrun(segment))
 
-    if estimate(None) <= memory_limit:
+    if fits(None):
         return None
     shortest = max(1, round(math.sqrt(steps)))
     lo, hi = shortest, steps - 1
-    if estimate(lo) > memory_limit:
+    if not fits(lo):
         return shortest
-    while lo < hi:  # the estimate grows with S beyond sqrt(steps)
+    while lo < hi:  # the memory grows with S beyond sqrt(steps)
         mid = (lo + hi + 1) // 2
-        if estimate(mid) <= memory_limit:
+        if fits(mid):
             lo = mid
         else:
             hi = mid - 1
@@ -876,8 +881,8 @@ def fit(
       ``lr_end``: decay Adam's step size geometrically to this value at the last iteration.
     - ``bounds``: ``{name: (lo, hi)}`` in the parameter's units. ``clip``: gradient norm cap.
     - ``checkpoint_every``: segment length for checkpointed rollouts; ``"auto"``: a full
-      tape when it fits in ``memory_limit`` bytes, else the longest segment that fits
-      (``choose_checkpointing``).
+      tape when it fits in ``memory_limit`` bytes (and in the device's memory), else the
+      longest segment that fits (``choose_checkpointing``).
     - ``initial``: ``Rollout.forward`` keywords (``x0, v0, F0, alpha0, initial_state``),
       checked once at set-up (``rollout.check_initial``; a refused start before any rollout);
       every evaluation starts from the values checked.

@@ -74,7 +74,7 @@ from .sim.solver import Solver
 from .simulate import SimulationError
 
 __all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS", "FORCES", "TOOL_NAMES", "COLLIDER_FORCES",
-           "COLLIDER_NAMES", "NonFiniteRollout"]
+           "COLLIDER_NAMES", "NonFiniteRollout", "RolloutMemoryError"]
 
 #: The per-material parameter arrays of a ``Model`` whose gradients ``backward`` returns.
 PARAMETERS = Model.MATERIAL_FIELDS
@@ -188,56 +188,105 @@ def state_nbytes(state: State) -> int:
 STATE_OVERHEAD = 64 * 1024
 
 
-def _check_rollout_memory(model: Model, steps: int, segment: int | None, checkpoint_every) -> None:
-    """Refuse, before anything is allocated, a rollout whose taped states and per-step force rows
-    could not fit in the device's memory: ``Rollout(model, 10**6, dt)`` of 8 particles allocated
-    a million taped states (about 72 GiB) at its first forward, minutes on, until the machine
-    killed it, where a checkpointed one needs kilobytes. On a GPU the arrays are weighed against
-    its memory and the states' own overhead against the host's."""
-    from .builder import _device_memory  # noqa: PLC0415
-    from .fit import _state_bytes, memory_estimate  # noqa: PLC0415 (fit imports this module)
+class RolloutMemoryError(ValueError):
+    """A rollout refused because it could not fit in memory (``_check_rollout_memory``). Its
+    message names ``steps`` and ``checkpoint_every``, a Python caller's; a caller with other
+    names for them (``fit``'s ``checkpoint_every="auto"``, ``warp-esph fit``'s options) words
+    its own from ``reason`` (what would not fit: 'the rollout would need about 7.2 GiB, more
+    than its 1 GiB'), ``device``, ``steps``, ``segment`` (the refused one, None: a full
+    tape), ``least`` (the segment that needs the least memory), ``least_gib`` (what that
+    would need) and ``least_fits``. ``experiment``: the ``fit.Experiment`` refused, where a
+    fit refused it (else None)."""
 
-    have = _device_memory(model.device)
-    if have is None:
-        return
-    cpu = model.device.is_cpu
-    host = None if cpu else _device_memory(wp.get_device("cpu"))
-    sizes = _state_bytes(model)
-    rows = len(getattr(model.tools, "row_names", ())) + model.world_count * (
-        len(model.planes) + len(model.spheres) + len(model.boxes))
+    def __init__(self, message: str, *, reason: str, device: str, steps: int, segment: int | None, least: int,
+                 least_gib: float, least_fits: bool, experiment=None):
+        super().__init__(message)
+        self.reason, self.device, self.steps, self.segment = reason, device, steps, segment
+        self.least, self.least_gib, self.least_fits = least, least_gib, least_fits
+        self.experiment = experiment
 
-    def need(segment):
+    def reworded(self, message: str, experiment=None) -> "RolloutMemoryError":
+        """The same refusal under another message (and the experiment refused)."""
+        return RolloutMemoryError(message, reason=self.reason, device=self.device, steps=self.steps,
+                                  segment=self.segment, least=self.least, least_gib=self.least_gib,
+                                  least_fits=self.least_fits,
+                                  experiment=self.experiment if experiment is None else experiment)
+
+
+class _RolloutMemory:
+    """What a rollout of ``steps`` steps of ``model`` would hold (``need``) against the memory
+    it has (``overrun``): on a GPU its arrays against the GPU's memory and the taped states'
+    own overhead against the host's, on the CPU both against the host's."""
+
+    def __init__(self, model: Model, steps: int, sizes=None):
+        from .builder import _device_memory  # noqa: PLC0415
+        from .fit import _state_bytes  # noqa: PLC0415 (fit imports this module)
+
+        self.model, self.steps = model, steps
+        self.have = _device_memory(model.device)
+        self.cpu = model.device.is_cpu
+        self.host = None if self.cpu or self.have is None else _device_memory(wp.get_device("cpu"))
+        self.sizes = _state_bytes(model) if sizes is None else sizes
+        self.rows = len(getattr(model.tools, "row_names", ())) + model.world_count * (
+            len(model.planes) + len(model.spheres) + len(model.boxes))
+
+    def need(self, segment: int | None) -> tuple[int, int]:
         """``(bytes on the device, bytes of the host's besides)`` of the rollout with ``segment``."""
+        from .fit import memory_estimate  # noqa: PLC0415
+
+        steps = self.steps
         taped = (segment if segment is not None and segment < steps else steps) + 1
-        arrays = (memory_estimate(model, steps, segment, sizes)
-                  + steps * rows * 3 * np.dtype(model.types.np_dtype).itemsize)  # the per-step force rows
+        arrays = (memory_estimate(self.model, steps, segment, self.sizes)
+                  + steps * self.rows * 3 * np.dtype(self.model.types.np_dtype).itemsize)  # the per-step force rows
         own = taped * STATE_OVERHEAD
-        return (arrays + own, 0) if cpu else (arrays, own)
+        return (arrays + own, 0) if self.cpu else (arrays, own)
 
-    def overrun(segment):
-        """0 where the rollout with ``segment`` fits, 1 where it overruns the device's memory, 2
-        the host's (a GPU's run of few particles and many steps: 12 GB of arrays and 64 GB of the
-        host's, weighed together against a 24 GB GPU, refused a run that fits)."""
-        d, h = need(segment)
-        return 1 if d > have else 2 if host is not None and h > host else 0
+    def overrun(self, segment: int | None) -> int:
+        """0 where the rollout with ``segment`` fits (or the memory is not known), 1 where it
+        overruns the device's memory, 2 the host's (a GPU's run of few particles and many steps:
+        12 GB of arrays and 64 GB of the host's, weighed together against a 24 GB GPU, refused
+        a run that fits)."""
+        if self.have is None:
+            return 0
+        d, h = self.need(segment)
+        return 1 if d > self.have else 2 if self.host is not None and h > self.host else 0
 
-    where = overrun(segment)
+    def reason(self, segment: int | None) -> str:
+        """What would not fit of the rollout with ``segment`` (which overruns)."""
+        where = self.overrun(segment)
+        what = ("the rollout would need about {:.3g} GiB" if where == 1 else
+                "the rollout's taped states would need about {:.3g} GiB of the host's memory besides their arrays on "
+                "the device")
+        return (f"{what.format(self.need(segment)[where - 1] / 2**30)}, more than its "
+                f"{(self.have if where == 1 else self.host) / 2**30:.3g} GiB")
+
+
+def _check_rollout_memory(model: Model, steps: int, segment: int | None, checkpoint_every,
+                          memory: _RolloutMemory | None = None) -> None:
+    """Refuse, before anything is allocated, a rollout whose taped states and per-step force rows
+    could not fit in the device's memory (``RolloutMemoryError``): ``Rollout(model, 10**6, dt)``
+    of 8 particles allocated a million taped states (about 72 GiB) at its first forward, minutes
+    on, until the machine killed it, where a checkpointed one needs kilobytes. On a GPU the
+    arrays are weighed against its memory and the states' own overhead against the host's."""
+    m = _RolloutMemory(model, steps) if memory is None else memory
+    where = m.overrun(segment)
     if not where:
         return
     least = max(1, round(math.sqrt(steps)))
-    if not overrun(least):
-        fix = (f"give checkpoint_every (about sqrt(steps) = {least} needs the least, about "
-               f"{need(least)[where - 1] / 2**30:.3g} GiB) or fewer steps")
+    least_where = m.overrun(least)
+    # Where the least fits, what it needs of the memory the refused one overran.
+    least_gib = m.need(least)[(least_where or where) - 1] / 2**30
+    if not least_where:
+        fix = (f"give checkpoint_every (about sqrt(steps) = {least} needs the least, about {least_gib:.3g} GiB) or "
+               "fewer steps")
     elif segment == least:
         fix = "give fewer steps"
     else:
-        fix = (f"give fewer steps (with checkpoint_every = {least}, the least, it would need about "
-               f"{need(least)[overrun(least) - 1] / 2**30:.3g} GiB)")
-    what = ("the rollout would need about {:.3g} GiB" if where == 1 else
-            "the rollout's taped states would need about {:.3g} GiB of the host's memory besides their arrays on the device")
-    raise ValueError(f"steps = {steps} is not allowed with checkpoint_every = {checkpoint_every!r} on {model.device}: "
-                     f"{what.format(need(segment)[where - 1] / 2**30)}, more than its "
-                     f"{(have if where == 1 else host) / 2**30:.3g} GiB; {fix}")
+        fix = f"give fewer steps (with checkpoint_every = {least}, the least, it would need about {least_gib:.3g} GiB)"
+    reason = m.reason(segment)
+    raise RolloutMemoryError(f"steps = {steps} is not allowed with checkpoint_every = {checkpoint_every!r} on "
+                             f"{model.device}: {reason}; {fix}", reason=reason, device=str(model.device), steps=steps,
+                             segment=segment, least=least, least_gib=least_gib, least_fits=not least_where)
 
 
 def _step_indices(frames) -> list[int]:
