@@ -87,6 +87,50 @@ def test_python_fit_refuses_a_tool_or_a_start_faster_than_a_spacing_a_step_befor
         initial={"v0": (0.0, 40.0, 0.0)})
 
 
+def test_cli_fit_names_its_own_options_when_the_rollout_cannot_fit_in_memory(tmp_path, capsys, dough_scene, monkeypatch):
+    """The rollout's memory refusal reached the command as the fit's Python one: 'steps = 170
+    is not allowed with checkpoint_every = None', naming no option of the command and giving
+    the segment --checkpoint-every auto had chosen as if typed. It names what set the run's
+    length, the command's --checkpoint-every as given, and the command's options to change;
+    an experiment of an --experiments file is named as its other refusals are."""
+    from warp_esph import builder
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=10))
+    np.save(tmp_path / "t.npy", np.zeros((11, 64, 3)))
+    out = tmp_path / "cal"
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 2 * 10**6)  # 170 steps need 3 MB at the least
+    argv = ["fit", str(guess), "--target", str(tmp_path / "t.npy"), "--iterations", "1", "--output-dir", str(out), "--no-progress"]
+    capsys.readouterr()
+    plan = r" on cpu: at 17 steps a frame \(dt = 0\.001961 s at 30 fps\) the fit's rollout takes 170 steps, and "
+    need = r"the rollout would need about 0\.0\d+ GiB, more than its 0\.00186 GiB; "
+    for extra, said in (([], r"the targets' last frame, 10, is not allowed with --checkpoint-every auto" + plan
+                          + r"even at its least memory, a checkpoint every 13 steps, " + need
+                          + r"fit fewer frames \(--frames, --target-frames\)"),
+                        (["--frames", "10", "--checkpoint-every", "100"],
+                         r"--frames = 10 is not allowed with --checkpoint-every 100" + plan + need
+                         + r"fit fewer frames \(--frames, --target-frames\) \(with --checkpoint-every 13, the least, it "
+                           r"would need about 0\.0\d+ GiB\)")):
+        assert main(argv + extra) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and re.fullmatch("warp-esph: error: " + said, err[0]), err
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 4 * 10**6)
+    assert main(argv + ["--checkpoint-every", "100"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith("; give --checkpoint-every auto (the default: it chooses a segment that fits) "
+                                             "or 13 (the least memory, about 0.0031 GiB), or fit fewer frames (--frames, "
+                                             "--target-frames)"), err
+    # The command's own experiment fits (auto chooses a segment that does), the file's longer one not.
+    (tmp_path / "e.json").write_text(json.dumps([{"scene": "guess.toml", "target": "t.npy", "frames": 200}]))
+    assert main(argv + ["--experiments", str(tmp_path / "e.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"warp-esph: error: {tmp_path / 'e.json'}: experiment #1: --frames = 200 is "
+                                               "not allowed with --checkpoint-every auto on cpu"), err
+    assert err[0].endswith("; fit fewer frames (the experiment's frames, target_frames)"), err
+    assert not out.exists()
+
+
 def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys, dough_scene):
     """``warp-esph run`` a dough block dropped on the ground (64 particles, 102 steps), then
     ``warp-esph fit`` a copy that starts 2x off in yield stress and flow rate, with the

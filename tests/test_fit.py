@@ -745,6 +745,26 @@ def test_fits_automatic_checkpointing_counts_the_taped_states_own_memory(monkeyp
     assert seen == []
 
 
+def test_fits_memory_refusal_names_the_experiment_and_auto_as_given(monkeypatch):
+    """The rollout's memory refusal reached ``fit`` bare, without the experiment's name its
+    other refusals carry, and under ``checkpoint_every="auto"`` it showed the segment auto had
+    chosen as if the caller had given it ('with checkpoint_every = 14')."""
+    from warp_esph import builder
+    from warp_esph.fit import Experiment
+
+    model = _eight_particles()
+    loss = PositionLoss({200: model.particle_x0}, frames=None)
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 2**20)
+    with pytest.raises(ValueError, match=r"^the experiment: steps = 200 is not allowed with checkpoint_every = 'auto' on cpu: "
+                                         r"even at its least memory, a checkpoint every 14 steps, the rollout would need about "
+                                         r"0\.00\d+ GiB, more than its 0\.000977 GiB; give fewer steps$"):
+        fit(model, loss, ["mu"], steps=200, dt=1e-3, iterations=1, progress=False)
+    with pytest.raises(ValueError, match=r"^drop: steps = 200 is not allowed with checkpoint_every = None on cpu: the rollout "
+                                         r"would need about 0\.01\d+ GiB, more than its 0\.000977 GiB; give fewer steps"):
+        fit([Experiment(model, loss, steps=200, dt=1e-3, checkpoint_every=None, name="drop")], None, ["mu"],
+            iterations=1, progress=False)
+
+
 def test_automatic_checkpointing_caps_the_memory_limit_at_the_devices_memory(monkeypatch):
     """``checkpoint_every="auto"`` chose the longest segment under ``memory_limit`` (1 GiB by
     default) whatever the device's memory: on a machine of 4 MiB it chose a full tape of 200

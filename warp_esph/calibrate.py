@@ -139,6 +139,7 @@ def run_fit(args, out=None, err=None) -> int:
 
     from .cli import _parse_bounds, _safe_point, option_flag  # noqa: PLC0415
     from .fit import Experiment, FitInterrupted, _material_indices, check_options, fit, load_target  # noqa: PLC0415
+    from .rollout import RolloutMemoryError  # noqa: PLC0415
     from .scenes import load_scene  # noqa: PLC0415
     from .simulate import resolve_timestep  # noqa: PLC0415
 
@@ -291,6 +292,11 @@ def run_fit(args, out=None, err=None) -> int:
                      sample_range=sample_range, seed=seed,
                      patience=_arg(args, "patience", 20), diagnostics=not _arg(args, "no_diagnostics", False),
                      noise=_arg(args, "noise"), log=log, callback=lambda *_: _safe_point(args))
+    except RolloutMemoryError as e:
+        k = next((k for k, x in enumerate(experiments) if x is e.experiment), None)
+        if k is None:
+            raise
+        raise ValueError(_memory_refusal(e, exps[k], specs[k][0], ck)) from None
     except FitInterrupted as e:
         # Ctrl-C: the evaluations so far and the best of them are kept, as a run keeps its
         # finished frames; the exit is still the interrupt's.
@@ -652,9 +658,10 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         raise ValueError(f"{where}the targets' last frame, {max(shown)}, is not allowed: the fit runs to it, and a run has at "
                          f"most {checks.MAX_INT} frames (a target's frames are rendered frame indices)")
     frames = checks.positive_int(f"{where}--frames", frames if frames is not None else (max(shown) if shown else scene.frames))
+    # What set the rollout's length, as its refusals name it.
+    source = (f"{where}--frames = {frames}" if spec.get("frames") is not None else
+              f"the targets' last frame, {frames}," if shown else f"the scene's frames = {frames}")
     if frames * substeps > checks.MAX_INT:  # a rollout's step count (Rollout's steps), named by what set it
-        source = (f"{where}--frames = {frames}" if spec.get("frames") is not None else
-                  f"the targets' last frame, {frames}," if shown else f"the scene's frames = {frames}")
         raise ValueError(f"{source} is not allowed: at {substeps} steps a frame the fit's rollout would "
                          f"take {frames * substeps} steps, more than {checks.MAX_INT}")
     _check_fit_start(spec, scene, model, frames, fps, dt, where)
@@ -705,11 +712,32 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                          f"force-curve target (<output>_tools.csv), and the targets are {kinds}")
     noise = spec.get("noise")
     return types.SimpleNamespace(scene=scene, model=model, loss=loss, frames=frames, fps=fps, dt=dt, substeps=substeps,
+                                 frames_source=source[len(where):],
                                  materials=materials, kinds=kinds, targets=targets, scale=scale,
                                  readings=readings, target_frames=[None if kind == "silhouette" else list(t.frames)
                                                                    for kind, _, t in loaded],
                                  weight=checks.positive(f"{where}weight", spec.get("weight", 1.0)),
                                  noise=None if noise is None else checks.noise(f"{where}noise", noise))
+
+
+def _memory_refusal(e, exp, where: str, ck) -> str:
+    """``warp-esph fit``'s refusal of an experiment's rollout that would not fit in memory
+    (``rollout.RolloutMemoryError``), in the command's words: the fit's refusal named
+    ``steps`` and ``checkpoint_every``, no options of the command, and gave the segment
+    ``--checkpoint-every auto`` had chosen as if it had been typed."""
+    fewer = "fit fewer frames (" + ("the experiment's frames, target_frames)" if where else "--frames, --target-frames)")
+    if ck == "auto":
+        said, fix = f"even at its least memory, a checkpoint every {e.least} steps, ", fewer
+    elif e.least_fits:
+        said, fix = "", (f"give --checkpoint-every auto (the default: it chooses a segment that fits) or {e.least} (the "
+                         f"least memory, about {e.least_gib:.3g} GiB), or {fewer}")
+    elif e.segment == e.least:
+        said, fix = "", fewer
+    else:
+        said, fix = "", f"{fewer} (with --checkpoint-every {e.least}, the least, it would need about {e.least_gib:.3g} GiB)"
+    return (f"{where}{exp.frames_source} is not allowed with --checkpoint-every {ck} on {e.device}: at {exp.substeps} "
+            f"steps a frame (dt = {exp.dt:.4g} s at {exp.fps:g} fps) the fit's rollout takes {e.steps} steps, and "
+            f"{said}{e.reason}; {fix}")
 
 
 def _check_fit_start(spec, scene, model, frames, fps, dt, where) -> None:

@@ -53,7 +53,7 @@ from .builder import SceneBuilder
 from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, SumLoss, WorldLoss, is_tools_csv, read_tools_csv
 from .material import PRESSURE_BULK_SHARE, Material, _following_force
 from .model import Model, check_material_precision
-from .rollout import PARAMETERS, STATE_OVERHEAD, Rollout, _RolloutMemory, check_initial
+from .rollout import PARAMETERS, STATE_OVERHEAD, Rollout, RolloutMemoryError, _RolloutMemory, check_initial
 
 __all__ = ["fit", "FitResult", "Experiment", "Adam", "memory_estimate", "choose_checkpointing", "latin_hypercube",
            "load_target", "save_target", "Target", "write_fitted_usd"]
@@ -386,12 +386,20 @@ class _Run:
         if max(loss.frames) > self.steps:
             raise ValueError(f"{name}: the target has frames up to step {max(loss.frames)}, beyond steps = {self.steps}")
         self.dt = self.model.stable_dt() if exp.dt is None else checks.positive("dt", exp.dt)
-        ck = exp.checkpoint_every
+        ck = auto = exp.checkpoint_every
         if isinstance(ck, str):
             if ck != "auto":
                 raise ValueError(f"checkpoint_every = {ck!r} is not allowed: give 'auto', None or a number of steps")
             ck = choose_checkpointing(self.model, self.steps, memory_limit)
-        self.rollout = Rollout(self.model, self.steps, self.dt, frames=loss.frames, checkpoint_every=ck)
+        try:
+            self.rollout = Rollout(self.model, self.steps, self.dt, frames=loss.frames, checkpoint_every=ck)
+        except RolloutMemoryError as e:
+            # Named by the experiment, as its other refusals; and 'auto' as given: its choice
+            # (the least memory here) read as a checkpoint_every the caller had given.
+            said = (f"steps = {e.steps} is not allowed with checkpoint_every = 'auto' on {e.device}: even at its least "
+                    f"memory, a checkpoint every {e.least} steps, {e.reason}; give fewer steps"
+                    if auto == "auto" else str(e))
+            raise e.reworded(f"{name}: {said}", experiment=exp) from None
         self.memory = memory_estimate(self.model, self.steps, self.rollout.segment if self.rollout.checkpointing else None)
         initial = {} if exp.initial is None else exp.initial
         if not isinstance(initial, Mapping):
@@ -882,7 +890,8 @@ def fit(
     - ``bounds``: ``{name: (lo, hi)}`` in the parameter's units. ``clip``: gradient norm cap.
     - ``checkpoint_every``: segment length for checkpointed rollouts; ``"auto"``: a full
       tape when it fits in ``memory_limit`` bytes (and in the device's memory), else the
-      longest segment that fits (``choose_checkpointing``).
+      longest segment that fits (``choose_checkpointing``). A rollout that cannot fit even
+      so is refused (``rollout.RolloutMemoryError``) under the experiment's name.
     - ``initial``: ``Rollout.forward`` keywords (``x0, v0, F0, alpha0, initial_state``),
       checked once at set-up (``rollout.check_initial``; a refused start before any rollout);
       every evaluation starts from the values checked.
