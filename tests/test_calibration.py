@@ -100,17 +100,17 @@ def test_cli_fit_names_its_own_options_when_the_rollout_cannot_fit_in_memory(tmp
     guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=10))
     np.save(tmp_path / "t.npy", np.zeros((11, 64, 3)))
     out = tmp_path / "cal"
-    monkeypatch.setattr(builder, "_device_memory", lambda dev: 2 * 10**6)  # 170 steps need 3 MB at the least
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 2 * 10**6)  # 170 steps need 2.2 MB at the least
     argv = ["fit", str(guess), "--target", str(tmp_path / "t.npy"), "--iterations", "1", "--output-dir", str(out), "--no-progress"]
     capsys.readouterr()
     plan = r" on cpu: at 17 steps a frame \(dt = 0\.001961 s at 30 fps\) the fit's rollout takes 170 steps, and "
     need = r"the rollout would need about 0\.0\d+ GiB, more than its 0\.00186 GiB; "
     for extra, said in (([], r"the targets' last frame, 10, is not allowed with --checkpoint-every auto" + plan
-                          + r"even at its least memory, a checkpoint every 13 steps, " + need
+                          + r"even at its least memory, a checkpoint every 5 steps, " + need
                           + r"fit fewer frames \(--frames, --target-frames\)"),
                         (["--frames", "10", "--checkpoint-every", "100"],
                          r"--frames = 10 is not allowed with --checkpoint-every 100" + plan + need
-                         + r"fit fewer frames \(--frames, --target-frames\) \(with --checkpoint-every 13, the least, it "
+                         + r"fit fewer frames \(--frames, --target-frames\) \(with --checkpoint-every 5, the least, it "
                            r"would need about 0\.0\d+ GiB\)")):
         assert main(argv + extra) == 2
         err = capsys.readouterr().err.strip().splitlines()
@@ -119,7 +119,7 @@ def test_cli_fit_names_its_own_options_when_the_rollout_cannot_fit_in_memory(tmp
     assert main(argv + ["--checkpoint-every", "100"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].endswith("; give --checkpoint-every auto (the default: it chooses a segment that fits) "
-                                             "or 13 (the least memory, about 0.0031 GiB), or fit fewer frames (--frames, "
+                                             "or 5 (the least memory, about 0.00207 GiB), or fit fewer frames (--frames, "
                                              "--target-frames)"), err
     # The command's own experiment fits (auto chooses a segment that does), the file's longer one not.
     (tmp_path / "e.json").write_text(json.dumps([{"scene": "guess.toml", "target": "t.npy", "frames": 200}]))

@@ -650,11 +650,11 @@ def test_a_rollout_that_cannot_fit_in_memory_is_refused_before_it_allocates(monk
     model = b.finalize(dtype=wp.float64, requires_grad=True)
     monkeypatch.setattr(builder, "_device_memory", lambda dev: 2**30)
     with pytest.raises(ValueError, match=r"^steps = 100000 is not allowed with checkpoint_every = None on cpu: the rollout "
-                                         r"would need about 7\.\d+ GiB, more than its 1 GiB; give checkpoint_every \(about "
-                                         r"sqrt\(steps\) = 316 needs the least, about 0\.0\d+ GiB\) or fewer steps$"):
+                                         r"would need about 7\.\d+ GiB, more than its 1 GiB; give checkpoint_every \(62 needs "
+                                         r"the least, about 0\.0113 GiB\) or fewer steps$"):
         Rollout(model, 10**5, 1e-3)
     with pytest.raises(ValueError, match=r"^steps = 100000000 is not allowed with checkpoint_every = 5000 on cpu: .* give "
-                                         r"fewer steps \(with checkpoint_every = 10000, the least, it would need about \d\.\d+ GiB\)$"):
+                                         r"fewer steps \(with checkpoint_every = 1972, the least, it would need about 2\.52 GiB\)$"):
         Rollout(model, 10**8, 1e-3, checkpoint_every=5000)  # the ground's force rows alone take 2.2 GiB
     assert Rollout(model, 10**5, 1e-3, checkpoint_every=316).checkpointing
 
@@ -684,8 +684,8 @@ def test_a_rollout_is_weighed_against_the_memory_limit_of_its_container(monkeypa
     monkeypatch.setattr(builder, "_PROC_CGROUP", str(proc), raising=False)
     monkeypatch.setattr(builder, "_CGROUP_ROOT", str(root), raising=False)
     with pytest.raises(ValueError, match=r"^steps = 200 is not allowed with checkpoint_every = None on cpu: the rollout would "
-                                         r"need about 0\.01\d+ GiB, more than its 0\.000977 GiB; give fewer steps \(with "
-                                         r"checkpoint_every = 14, the least, it would need about 0\.00\d+ GiB\)$"):
+                                         r"need about 0\.01\d+ GiB, more than its 0\.000977 GiB; give checkpoint_every \(3 "
+                                         r"needs the least, about 0\.000498 GiB\) or fewer steps$"):
         Rollout(model, 200, 1e-3)
     proc.write_text("5:cpu,cpuacct:/docker/abc\n4:memory:/docker/abc\n")  # v1: the container's group is the mount's root
     (root / "memory").mkdir()
@@ -716,8 +716,8 @@ def test_on_a_gpu_the_taped_states_own_memory_is_the_hosts(monkeypatch):
     monkeypatch.setattr(builder, "_device_memory", lambda dev: 4 * 2**30 if not dev.is_cpu else 2 * 2**30)
     with pytest.raises(ValueError, match=r"^steps = 100000 is not allowed with checkpoint_every = None on cuda:0: the rollout's "
                                          r"taped states would need about 6\.1\d* GiB of the host's memory besides their "
-                                         r"arrays on the device, more than its 2 GiB; give checkpoint_every \(about "
-                                         r"sqrt\(steps\) = 316 needs the least, about 0\.0\d+ GiB\) or fewer steps$"):
+                                         r"arrays on the device, more than its 2 GiB; give checkpoint_every \(61 needs the "
+                                         r"least, about 0\.00378 GiB\) or fewer steps$"):
         _check_rollout_memory(model, 10**5, None, None)
     monkeypatch.setattr(builder, "_device_memory", lambda dev: 2**30 if not dev.is_cpu else 64 * 2**30)
     with pytest.raises(ValueError, match=r"^steps = 100000 is not allowed with checkpoint_every = None on cuda:0: the rollout "
@@ -745,6 +745,26 @@ def test_fits_automatic_checkpointing_counts_the_taped_states_own_memory(monkeyp
     assert seen == []
 
 
+def test_the_segment_of_least_memory_is_found_not_taken_as_sqrt_steps(monkeypatch):
+    """sqrt(steps) was taken as the segment of least memory, which it is only where a taped
+    state weighs what a checkpoint does: a taped state of 8 particles (12 kB of arrays and 64
+    kB of its own) outweighs a 3 kB checkpoint, and at 1e5 steps segments of 62 need 11.6 MiB
+    where 316 took 26.7 MiB. A rollout that fit at the least was refused as one that did not
+    ('give fewer steps (with checkpoint_every = 14, the least, ...)'), under auto too."""
+    from warp_esph import builder
+    from warp_esph.fit import choose_checkpointing
+    from warp_esph.rollout import Rollout, _RolloutMemory
+
+    model = _eight_particles()
+    m = _RolloutMemory(model, 10**5)
+    least = m.least()
+    assert m.need(least)[0] < 0.5 * m.need(316)[0]
+    assert all(m.need(least)[0] <= m.need(s)[0] for s in range(1, 1000))
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 2**20)  # 200 steps: 14 need 1.2 MiB, 3 need 0.5
+    s = choose_checkpointing(model, 200)
+    assert Rollout(model, 200, 1e-3, checkpoint_every=s).checkpointing and s < 14
+
+
 def test_fits_memory_refusal_names_the_experiment_and_auto_as_given(monkeypatch):
     """The rollout's memory refusal reached ``fit`` bare, without the experiment's name its
     other refusals carry, and under ``checkpoint_every="auto"`` it showed the segment auto had
@@ -754,13 +774,13 @@ def test_fits_memory_refusal_names_the_experiment_and_auto_as_given(monkeypatch)
 
     model = _eight_particles()
     loss = PositionLoss({200: model.particle_x0}, frames=None)
-    monkeypatch.setattr(builder, "_device_memory", lambda dev: 2**20)
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 2**18)
     with pytest.raises(ValueError, match=r"^the experiment: steps = 200 is not allowed with checkpoint_every = 'auto' on cpu: "
-                                         r"even at its least memory, a checkpoint every 14 steps, the rollout would need about "
-                                         r"0\.00\d+ GiB, more than its 0\.000977 GiB; give fewer steps$"):
+                                         r"even at its least memory, a checkpoint every 3 steps, the rollout would need about "
+                                         r"0\.000498 GiB, more than its 0\.000244 GiB; give fewer steps$"):
         fit(model, loss, ["mu"], steps=200, dt=1e-3, iterations=1, progress=False)
     with pytest.raises(ValueError, match=r"^drop: steps = 200 is not allowed with checkpoint_every = None on cpu: the rollout "
-                                         r"would need about 0\.01\d+ GiB, more than its 0\.000977 GiB; give fewer steps"):
+                                         r"would need about 0\.01\d+ GiB, more than its 0\.000244 GiB; give fewer steps"):
         fit([Experiment(model, loss, steps=200, dt=1e-3, checkpoint_every=None, name="drop")], None, ["mu"],
             iterations=1, progress=False)
 

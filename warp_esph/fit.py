@@ -317,7 +317,7 @@ def memory_estimate(model: Model, steps: int, checkpoint_every: int | None, _siz
 def choose_checkpointing(model: Model, steps: int, memory_limit: float = MEMORY_LIMIT) -> int | None:
     """The segment length for ``checkpoint_every="auto"``: ``None`` (one full tape, the
     fastest) when that fits in ``memory_limit`` bytes, else the longest segment whose
-    rollout fits, and never shorter than ``sqrt(steps)`` (the memory minimum). A rollout's
+    rollout fits, and never shorter than the segment that needs the least memory. A rollout's
     bytes here are its arrays' (``memory_estimate``) and each taped state's own besides
     (``rollout.STATE_OVERHEAD``). A ``memory_limit`` above the device's memory counts as that
     memory: a rollout fits where ``Rollout`` takes it (its force rows included; on a GPU its
@@ -335,11 +335,11 @@ def choose_checkpointing(model: Model, steps: int, memory_limit: float = MEMORY_
 
     if fits(None):
         return None
-    shortest = max(1, round(math.sqrt(steps)))
+    shortest = memory.least()
     lo, hi = shortest, steps - 1
     if not fits(lo):
         return shortest
-    while lo < hi:  # the memory grows with S beyond sqrt(steps)
+    while lo < hi:  # the memory grows with S beyond the least
         mid = (lo + hi + 1) // 2
         if fits(mid):
             lo = mid
