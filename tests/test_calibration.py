@@ -121,6 +121,15 @@ def test_cli_fit_names_its_own_options_when_the_rollout_cannot_fit_in_memory(tmp
     assert len(err) == 1 and err[0].endswith("; give --checkpoint-every auto (the default: it chooses a segment that fits) "
                                              "or 5 (the least memory, about 0.00207 GiB), or fit fewer frames (--frames, "
                                              "--target-frames)"), err
+    # Room for one world's rollout at the least, not for two worlds' (--starts 2 --worlds).
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 2.5e6)
+    assert main(argv + ["--starts", "2", "--worlds"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("warp-esph: error: the targets' last frame, 10, is not allowed with "
+                                               "--checkpoint-every auto and --worlds (2 copies of the scene) on cpu: "), err
+    assert err[0].endswith("; fit fewer frames (--frames, --target-frames), or fewer --starts, or leave out --worlds (the "
+                           "starts one after another)"), err
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 4 * 10**6)
     # The command's own experiment fits (auto chooses a segment that does), the file's longer one not.
     (tmp_path / "e.json").write_text(json.dumps([{"scene": "guess.toml", "target": "t.npy", "frames": 200}]))
     assert main(argv + ["--experiments", str(tmp_path / "e.json")]) == 2

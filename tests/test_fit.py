@@ -806,6 +806,32 @@ def test_automatic_checkpointing_caps_the_memory_limit_at_the_devices_memory(mon
             initial={"v0": (0.0, 60.0, 0.0)})
 
 
+def test_worlds_choose_their_own_checkpointing_and_their_memory_refusal_says_so(monkeypatch):
+    """``worlds=True`` ran its copies with the segment ``checkpoint_every="auto"`` had chosen
+    for one world: two worlds of 8 particles, 200 steps, on 4 MiB were refused 'with
+    checkpoint_every = 52', a value never given, where segments of 4 fit. Auto chooses for the
+    copies now; where even its least does not fit, the refusal names the starts' worlds."""
+    from warp_esph import builder
+
+    class Started(Exception):
+        pass
+
+    def started(message):
+        raise Started  # the fit's first message comes after every run is made
+
+    model = _eight_particles()
+    loss = PositionLoss({200: model.particle_x0})
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 4 * 2**20)
+    with pytest.raises(Started):
+        fit(model, loss, ["mu"], steps=200, dt=1e-3, iterations=1, progress=False, starts=2, worlds=True, log=started)
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 600 * 2**10)  # one world's least fits, two worlds' not
+    with pytest.raises(ValueError, match=r"^the experiment \(2 worlds\): steps = 200 is not allowed with checkpoint_every = "
+                                         r"'auto' on cpu: even at its least memory, a checkpoint every \d+ steps, .*; give "
+                                         r"fewer steps, or fewer starts, or worlds = False \(the starts one after another, "
+                                         r"each in one world's memory\)$"):
+        fit(model, loss, ["mu"], steps=200, dt=1e-3, iterations=1, progress=False, starts=2, worlds=True, log=started)
+
+
 def test_a_particle_mask_of_the_wrong_length_is_named_not_the_targets():
     """A boolean mask with one entry too few kept fewer particles than the targets hold, and
     the refusal blamed the targets' point count."""

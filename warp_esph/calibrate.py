@@ -735,9 +735,11 @@ def _memory_refusal(e, exp, where: str, ck) -> str:
         said, fix = "", fewer
     else:
         said, fix = "", f"{fewer} (with --checkpoint-every {e.least}, the least, it would need about {e.least_gib:.3g} GiB)"
-    return (f"{where}{exp.frames_source} is not allowed with --checkpoint-every {ck} on {e.device}: at {exp.substeps} "
-            f"steps a frame (dt = {exp.dt:.4g} s at {exp.fps:g} fps) the fit's rollout takes {e.steps} steps, and "
-            f"{said}{e.reason}; {fix}")
+    copies = f" and --worlds ({e.worlds} copies of the scene)" if e.worlds else ""
+    fix += ", or fewer --starts, or leave out --worlds (the starts one after another)" if e.worlds else ""
+    return (f"{where}{exp.frames_source} is not allowed with --checkpoint-every {ck}{copies} on {e.device}: at "
+            f"{exp.substeps} steps a frame (dt = {exp.dt:.4g} s at {exp.fps:g} fps) the fit's rollout takes {e.steps} "
+            f"steps, and {said}{e.reason}; {fix}")
 
 
 def _check_fit_start(spec, scene, model, frames, fps, dt, where) -> None:

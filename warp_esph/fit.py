@@ -357,6 +357,7 @@ class _Run:
 
     def __init__(self, exp: Experiment, dtype, memory_limit, name):
         self.name = name
+        self.exp = exp
         exempt = exp.monitor_exempt
         if exempt is not None and (isinstance(exempt, str) or not hasattr(exempt, "__iter__")):
             raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: must be a list of body names")
@@ -1320,9 +1321,15 @@ class _WorldsProblem:
                                  f"{'reaction-force' if 'Reaction' in type(host[0]).__name__ else 'host-evaluated'} "
                                  "target): it is evaluated on the host for one model (use worlds=False)")
             model = replicate_worlds(r.model, worlds)
+            # checkpoint_every as given: "auto" chooses again for the copies, which need W times
+            # the memory; the segment it chose for one world was refused where a shorter fits.
             exp = Experiment(model, WorldLoss(model, r.loss), steps=r.steps, dt=r.dt,
-                             checkpoint_every=r.rollout.segment if r.rollout.checkpointing else None, weight=r.weight)
-            wr = _Run(exp, dtype, memory_limit, f"{r.name} ({worlds} worlds)")
+                             checkpoint_every=r.exp.checkpoint_every, weight=r.weight)
+            try:
+                wr = _Run(exp, dtype, memory_limit, f"{r.name} ({worlds} worlds)")
+            except RolloutMemoryError as e:
+                raise e.reworded(f"{e}, or fewer starts, or worlds = False (the starts one after another, each in one "
+                                 "world's memory)", experiment=r.exp, worlds=worlds) from None
             M = len(r.model.materials)
             wr.idx = [w * M + k for w in range(worlds) for k in r.idx]
             wr.tied = [w * M + k for w in range(worlds) for k in getattr(r, "tied", [])]

@@ -196,21 +196,23 @@ class RolloutMemoryError(ValueError):
     than its 1 GiB'), ``device``, ``steps``, ``segment`` (the refused one, None: a full
     tape), ``least`` (the segment that needs the least memory), ``least_gib`` (what that
     would need) and ``least_fits``. ``experiment``: the ``fit.Experiment`` refused, where a
-    fit refused it (else None)."""
+    fit refused it (else None); ``worlds``: the copies of its scene a fit's ``worlds=True``
+    ran it as (else None)."""
 
     def __init__(self, message: str, *, reason: str, device: str, steps: int, segment: int | None, least: int,
-                 least_gib: float, least_fits: bool, experiment=None):
+                 least_gib: float, least_fits: bool, experiment=None, worlds: int | None = None):
         super().__init__(message)
         self.reason, self.device, self.steps, self.segment = reason, device, steps, segment
         self.least, self.least_gib, self.least_fits = least, least_gib, least_fits
-        self.experiment = experiment
+        self.experiment, self.worlds = experiment, worlds
 
-    def reworded(self, message: str, experiment=None) -> "RolloutMemoryError":
-        """The same refusal under another message (and the experiment refused)."""
+    def reworded(self, message: str, experiment=None, worlds: int | None = None) -> "RolloutMemoryError":
+        """The same refusal under another message (and the experiment refused, its worlds)."""
         return RolloutMemoryError(message, reason=self.reason, device=self.device, steps=self.steps,
                                   segment=self.segment, least=self.least, least_gib=self.least_gib,
                                   least_fits=self.least_fits,
-                                  experiment=self.experiment if experiment is None else experiment)
+                                  experiment=self.experiment if experiment is None else experiment,
+                                  worlds=self.worlds if worlds is None else worlds)
 
 
 class _RolloutMemory:
