@@ -245,6 +245,34 @@ def test_guarded_rest_neighbourhoods_keep_their_f(elastic_force):
         assert np.abs(c.force.numpy()).max() == 0.0
 
 
+@pytest.mark.parametrize("yield_stress, flows", [(0.0, False), (1.0e9, False), (100.0, True)])
+def test_the_rest_model_keeps_its_plastic_f_exactly_where_nothing_flows(yield_stress, flows):
+    """Float32, a stretched 4x4x3 block of the rest model ringing for 60 steps: where no flow
+    changes ``F`` (elastic, or a yield stress far above the stress), ``F_p`` stays ``I`` bit
+    for bit. It was rewritten ``F_e^-1 (F F_p)`` every step, whose round-off walked it (a
+    1.7e-6 here; 3e-4 over a period of the 4-thick beam, whose largest strain is 1.4e-3), and an
+    undamped or relaxing body crept with its rest shape (docs/physics.md, "The energy of
+    undamped elastic bodies"). Where the flow acts, ``F_p`` takes it."""
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, elastic_force="variational", deformation="rest",
+                                 yield_stress=yield_stress, flow_rate=1.0e3 if yield_stress else 0.0)
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (4 * SPACING, 4 * SPACING, 3 * SPACING), mat)
+    model = b.finalize(dtype=wp.float32)
+    solver = we.Solver(model, fit="curvature_corrected", hourglass=0.05)
+    a, c = model.state(), model.state()
+    a.x.assign(model.particle_x0 * np.array([1.05, 0.98, 1.0], dtype=np.float32))
+    dt = model.stable_dt(hourglass=solver.hourglass)
+    for _ in range(60):
+        solver.step(a, c, dt)
+        a, c = c, a
+    Fp = a.F_p.numpy()
+    assert np.isfinite(a.x.numpy()).all()
+    if flows:
+        assert np.abs(Fp - np.eye(3)).max() > 1e-3
+    else:
+        assert np.array_equal(Fp, np.tile(np.eye(3, dtype=np.float32), (model.particle_count, 1, 1)))
+
+
 def test_elastic_force_is_read_from_scene_files_and_presets(tmp_path):
     from warp_esph import scenes
 

@@ -6,7 +6,8 @@ Selected per material with ``Material(deformation=...)``:
 - ``"rest"`` (Müller et al. 2004 style): the total ``F = (Σ w yb Xbᵀ)(Σ w Xb Xbᵀ)⁻¹`` is
   fitted against the rest positions ``X`` with the initial (same-body) neighbour lists;
   a plastic ``F_p`` per particle is stored, ``F_e = F F_p⁻¹``. The plastic flow of
-  ``plasticity.py`` updates ``F_e`` and then ``F_p <- F_e⁻¹ F``. ``State.F`` holds ``F_e``.
+  ``plasticity.py`` updates ``F_e`` and then, where it changed ``F_e``, ``F_p <- F_e⁻¹ F``.
+  ``State.F`` holds ``F_e``.
 - ``"additive"``: a symmetric strain ``ε`` per particle, ``ε <- ε + ½(dFᵀdF − I)`` with the
   step's MLS ``dF``; plastic flow removes the fraction ``γ = min(nu_f dt (|s| − Y − K α)/|s|, 1)``
   of ``dev ε`` where ``|s| = 2 mu |dev ε| > Y + K α``; stress ``σ = 2 mu ε + lam tr(ε) I``,
@@ -93,8 +94,13 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         else:
             Fe, Fe_lo, a_new = flow(F, mat33(), a, mu, mat.yield_stress[m], mat.flow_rate[m], mat.hardening[m], kind, dt, counters)
             Fe_inv = wp.inverse(Fe)
-            if d == 1:
-                # Rest configuration: F_total = F_e F_p is kept, F_p <- F_e_new^-1 F_total.
+            # Rest configuration: F_total = F_e F_p is kept, F_p <- F_e_new^-1 F_total, only
+            # where the flow changed F: unflowed, F_e^-1 (F_e F_p) is F_p exactly (of zero
+            # derivative in F), but its float32 round-off walked F_p a few ulps a step, a
+            # creeping rest shape that kept relaxed bodies from settling (docs/physics.md,
+            # "The energy of undamped elastic bodies").
+            D = Fe - F
+            if d == 1 and wp.ddot(D, D) > scalar(0.0):
                 Fp = Fe_inv * (F * Fp)
             F_out[i] = Fe
             alpha_out[i] = a_new
