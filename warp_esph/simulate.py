@@ -142,7 +142,8 @@ class DivergenceMonitor:
       singular values: a prestrained ``F0`` recoils) plus the potential
       energy released since (``sum m g (h_0 - h)``) plus what the force fields held when they
       came on (``0.5 k sum m r^2``, ``r`` the distance from the field's axis; for a field
-      switched on later, ``r`` up to the farthest start plus the diagonal); kinetic energy
+      switched on later, ``r`` up to the farthest start plus the diagonal plus the distance
+      the speed bound covers until it comes on, which its ``sqrt(k) R`` counts too); kinetic energy
       plus the potential energy of the fields acting now beyond ``ENERGY_FACTOR`` times that,
       plus a floor ``0.5 M (0.1 c_P)^2`` (the strain a rest-configuration body's positions
       may hold), is a blow-up.
@@ -217,30 +218,35 @@ class DivergenceMonitor:
         material = model.particle_material_np[self.keep]
         self.wave = float(model.wave_speeds(p)[np.unique(material)].max())  # of the particles checked
         self.e_elastic = _stored_energy_bound(model, p, state.F.numpy(), self.keep)
+        self.ke0 = 0.5 * float((self.mass * (v0 * v0).sum(axis=1)).sum())
+        self.e_floor = 0.5 * float(self.mass.sum()) * (0.1 * self.wave) ** 2
+        self.t0 = float(state.time)
         self.v_fields = 0.0
-        for f in model.force_fields:
-            r = np.linalg.norm((x0 - np.asarray(f.center))[:, [0, 2]], axis=1).max() + self.diagonal
-            self.v_fields += math.sqrt(f.strength) * r
+        self.fields = []  # (field, its particles among those checked, the energy it gives at most)
+        if not self.enabled:  # a repelling field's sqrt(k) is not real (it ended in 'math domain error')
+            return
         # Each field's potential energy 0.5 k m r^2 (r its horizontal distance from the centre)
         # is part of the scene's energy: at most what it held when it came on is released, and
         # while it acts a particle thrown out far holds more than that (a dough box under k = 1e6
         # at 0.66 x its stable step ran with particles 42 m out of a 0.2 m box, inside the bound
         # of 0.5 k M (r + D)^2 given once, far beyond the 0.5 k sum m r0^2 it started with).
-        self.t0 = float(state.time)
-        self.fields = []  # (field, its particles among those checked, the energy it gives at most)
+        # Where a field comes on later the particles may have moved by then as fast as the
+        # scene allows (with the fields on before it): a body drifting at 1 m/s into a field
+        # switched on at 2 s, 2 m out, was stopped as a blow-up where r0 + D was taken.
         body = model.particle_body_np[self.keep]
-        for f in model.force_fields:
+        for f in sorted(model.force_fields, key=lambda f: f.t_on):
+            later = max(f.t_on - self.t0, 0.0)
+            travel = self.speed_bound(later) * later
+            r = np.linalg.norm((x0 - np.asarray(f.center))[:, [0, 2]], axis=1)
+            self.v_fields += math.sqrt(f.strength) * (r.max() + self.diagonal + travel)
             on = np.ones(len(body), dtype=bool) if f.body < 0 else body == f.body
             if not (on.any() and f.t_off > self.t0):
                 continue
-            r = np.linalg.norm((x0[on] - np.asarray(f.center))[:, [0, 2]], axis=1)
             if f.active(self.t0):
-                given = 0.5 * f.strength * float((self.mass[on] * r * r).sum())
-            else:  # switched on later, where the particles are then is not known: as far as the box they start in, and its diagonal
-                given = 0.5 * f.strength * (r.max() + self.diagonal) ** 2 * float(self.mass[on].sum())
+                given = 0.5 * f.strength * float((self.mass[on] * r[on] * r[on]).sum())
+            else:
+                given = 0.5 * f.strength * (r[on].max() + self.diagonal + travel) ** 2 * float(self.mass[on].sum())
             self.fields.append((f, on, given))
-        self.ke0 = 0.5 * float((self.mass * (v0 * v0).sum(axis=1)).sum())
-        self.e_floor = 0.5 * float(self.mass.sum()) * (0.1 * self.wave) ** 2
 
     def driven_speed(self, t: float) -> float:
         """The fastest point of a moving tool or pinned set by time ``t`` (0 without them)."""
