@@ -10,6 +10,7 @@ import dataclasses
 import json
 import math
 import os
+import pathlib
 import re
 import warnings
 
@@ -100,6 +101,7 @@ def test_cli_fit_names_its_own_options_when_the_rollout_cannot_fit_in_memory(tmp
     guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=10))
     np.save(tmp_path / "t.npy", np.zeros((11, 64, 3)))
     out = tmp_path / "cal"
+    errors_md = (pathlib.Path(__file__).parents[1] / "docs" / "errors.md").read_text()
     monkeypatch.setattr(builder, "_device_memory", lambda dev: 2 * 10**6)  # 170 steps need 2.2 MB at the least
     argv = ["fit", str(guess), "--target", str(tmp_path / "t.npy"), "--iterations", "1", "--output-dir", str(out), "--no-progress"]
     capsys.readouterr()
@@ -115,12 +117,14 @@ def test_cli_fit_names_its_own_options_when_the_rollout_cannot_fit_in_memory(tmp
         assert main(argv + extra) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and re.fullmatch("warp-esph: error: " + said, err[0]), err
+        if not extra:  # docs/errors.md shows this one whole (it showed sqrt(steps) = 13 as the least)
+            assert f"`{err[0].removeprefix('warp-esph: error: ')}`" in errors_md
     monkeypatch.setattr(builder, "_device_memory", lambda dev: 4 * 10**6)
     assert main(argv + ["--checkpoint-every", "100"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].endswith("; give --checkpoint-every auto (the default: it chooses a segment that fits) "
-                                             "or 5 (the least memory, about 0.00207 GiB), or fit fewer frames (--frames, "
-                                             "--target-frames)"), err
+    fix = ("; give --checkpoint-every auto (the default: it chooses a segment that fits) or 5 (the least memory, about "
+           "0.00207 GiB), or fit fewer frames (--frames, --target-frames)")
+    assert len(err) == 1 and err[0].endswith(fix) and f"`...{fix}`" in errors_md, err
     # Room for one world's rollout at the least, not for two worlds' (--starts 2 --worlds).
     monkeypatch.setattr(builder, "_device_memory", lambda dev: 2.5e6)
     assert main(argv + ["--starts", "2", "--worlds"]) == 2

@@ -9,6 +9,7 @@ import argparse
 import json
 import math
 import os
+import pathlib
 import re
 import types
 import warnings
@@ -793,8 +794,10 @@ def test_fits_memory_refusal_names_the_experiment_and_auto_as_given(monkeypatch)
     monkeypatch.setattr(builder, "_device_memory", lambda dev: 2**18)
     with pytest.raises(ValueError, match=r"^the experiment: steps = 200 is not allowed with checkpoint_every = 'auto' on cpu: "
                                          r"even at its least memory, a checkpoint every 3 steps, the rollout would need about "
-                                         r"0\.000498 GiB, more than its 0\.000244 GiB; give fewer steps$"):
+                                         r"0\.000498 GiB, more than its 0\.000244 GiB; give fewer steps$") as refused:
         fit(model, loss, ["mu"], steps=200, dt=1e-3, iterations=1, progress=False)
+    # docs/errors.md shows it whole (it showed sqrt(steps) = 14 as the least, on 1 MiB, where 3 fits)
+    assert f"`{refused.value}`" in (pathlib.Path(__file__).parents[1] / "docs" / "errors.md").read_text()
     with pytest.raises(ValueError, match=r"^drop: steps = 200 is not allowed with checkpoint_every = None on cpu: the rollout "
                                          r"would need about 0\.01\d+ GiB, more than its 0\.000244 GiB; give fewer steps"):
         fit([Experiment(model, loss, steps=200, dt=1e-3, checkpoint_every=None, name="drop")], None, ["mu"],
