@@ -4,6 +4,7 @@ configurations are refused before running, damaged inputs and checkpoints of ano
 scene are one line and exit 2, two outputs with one stem keep separate checkpoints, and
 Ctrl-C at any moment of start-up exits 130 without a traceback."""
 
+import contextlib
 import math
 import os
 import re
@@ -108,8 +109,12 @@ def test_built_in_scene_at_its_own_dt_does_not_trip_the_monitor(name):
         budget = mon.ke0 + (mon.mass * mon.g * (mon.h0 - x @ mon.up)).sum() + given
         worst["energy"] = max(worst["energy"], (held - mon.e_floor) / max(budget, 1e-12))
 
-    we.simulate(model, scene.frames, fps=scene.fps, substeps=n_sub, progress=False, callback=record,
-                monitor_exempt=scene.diverges)
+    # The body a scene shows blowing up (Fig. 8's plastic rest cube) inverts its F past the rows'
+    # reach (neighbors.MAX_STRETCH = 2), and the step says so.
+    cut = pytest.warns(RuntimeWarning, match="a neighbour row was cut: .* or an elastic stretch above 2")
+    with cut if scene.diverges else contextlib.nullcontext():
+        we.simulate(model, scene.frames, fps=scene.fps, substeps=n_sub, progress=False, callback=record,
+                    monitor_exempt=scene.diverges)
     assert worst["speed"] < 0.5 and worst["energy"] < 1.0, worst
 
 
