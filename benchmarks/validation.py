@@ -95,6 +95,7 @@ def _solver(model, **kwargs):
 
     class RowCountingSolver(we.Solver):
         particle_steps = 0
+        rest_model_steps = 0
 
         def __init__(self, model, **kw):
             super().__init__(model, **kw)
@@ -114,6 +115,8 @@ def _solver(model, **kwargs):
                       inputs=[state_out.neighbor_count, self.model.max_neighbors, self.full_row_total],
                       device=self.model.device)
             self.particle_steps += self.model.particle_count
+            # What ran: fit="auto" runs the rest-configuration model for purely elastic scenes.
+            self.rest_model_steps += int(self.rest_model)
 
     return RowCountingSolver(model, **kwargs)
 
@@ -125,9 +128,11 @@ def _row_fields(solver) -> dict:
     rows may differ from one measured before that choice changed; ``neighbors_cut`` counts the
     particle-steps whose row may have dropped a neighbour of non-zero weight
     (``Solver.guard_counts``), ``full_row_particle_steps`` those whose row was full, of
-    ``particle_steps`` (every particle, pinned ones included, every step)."""
+    ``particle_steps`` (every particle, pinned ones included, every step); ``rest_model_steps``:
+    the steps that ran the rest-configuration model (``Solver.rest_model``: ``fit="auto"`` on
+    a purely elastic scene without tools), the deformation model the row measured."""
     return {"neighbors_cut": solver.guard_counts()["neighbors_cut"], "full_row_particle_steps": solver.full_rows,
-            "particle_steps": solver.particle_steps}
+            "particle_steps": solver.particle_steps, "rest_model_steps": solver.rest_model_steps}
 
 
 def _swap_run(model, solver, a, c, dt, steps, after=None):

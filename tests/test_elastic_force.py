@@ -569,3 +569,90 @@ def test_an_elastic_particle_floor_keeps_its_bodys_force_defaulted_or_given():
         floor = b._materials[1]
         assert floor.yield_stress == float("inf") and floor.elastic_force == "variational"
         assert floor.replace(deformation="rest").elastic_force == want
+
+
+def _sheared_block_flowing(steps):
+    """A 4^3 float64 block of a material elastic until its ``flow_rate`` is set, sheared by 0.2
+    (positions and ``F``), stepped ``steps`` times by the default solver with ``flow_rate``
+    1e4 (the incremental composition: it flows); ``(model, solver, state, spare, dt)``."""
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, yield_stress=50.0, flow_rate=0.0)
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (4 * SPACING,) * 3, mat)
+    model = b.finalize(dtype=wp.float64)
+    solver = we.Solver(model)
+    assert solver.rest_model and solver.fit == "curvature_corrected"
+    dt = 0.5 * model.stable_dt()
+    a, c = model.state(), model.state()
+    shear = np.eye(3)
+    shear[0, 1] = 0.2
+    x0 = model.particle_x0
+    a.x.assign((x0 - x0.mean(0)) @ shear.T + x0.mean(0))
+    a.F.assign(np.tile(shear, (model.particle_count, 1, 1)))
+    model.flow_rate.assign(np.array([1.0e4]))
+    for _ in range(steps):
+        solver.step(a, c, dt)
+        a, c = c, a
+        assert not solver.rest_model and a.rest_model is False
+    return model, solver, a, c, dt
+
+
+def test_auto_runs_the_rest_model_for_elastic_bodies_and_hands_f_over_after_flow():
+    """``fit="auto"`` on a model that cannot flow runs the rest-configuration model
+    (``Solver.rest_model``); a parameter that makes it flow turns it to the incremental
+    composition, and back. At the switch back the stored ``F`` of the flowed body is handed over
+    (``F_p = F^-1 G(x)``, ``comparison.rest_handover``): without it the rest model's first step
+    set ``F`` to the total fit of the sheared positions, the plastic flow undone in one step."""
+    model, solver, a, c, dt = _sheared_block_flowing(20)
+    flowed = a.F.numpy()
+    # The flow took most of the shear out of the stored F; the positions keep it.
+    assert np.abs(flowed[:, 0, 1]).max() < 0.1
+    model.flow_rate.assign(np.array([0.0]))
+    solver.step(a, c, dt)
+    assert solver.rest_model
+    assert np.abs(c.F.numpy() - flowed).max() < 0.02
+
+
+def test_auto_runs_the_rest_model_only_where_nothing_can_cut_the_body():
+    """A tool can cut a body apart, which a rest neighbourhood cannot follow: with one the
+    elastic block runs the incremental composition; pins, the ground and an explicit fit leave
+    the choice as it is (``Model.may_run_rest``)."""
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0)
+
+    def block(**extra):
+        b = we.SceneBuilder(spacing=SPACING)
+        b.add_box((0.0, 0.0, 0.0), (4 * SPACING,) * 3, mat, name="block")
+        b.add_ground(-3 * SPACING)
+        if extra.get("pin"):
+            b.pin(body="block", where=lambda x: x[:, 1] < 0.5 * SPACING)
+        if extra.get("tool"):
+            b.add_tool("sphere", radius=SPACING, position=(1.0, 1.0, 1.0), name="far")
+        return b.finalize()
+
+    assert we.Solver(block()).rest_model and we.Solver(block(pin=True)).rest_model
+    tooled = block(tool=True)
+    assert not tooled.may_run_rest() and not we.Solver(tooled).rest_model
+    assert we.Solver(tooled).fit == "curvature_corrected"  # the same fit, incremental
+    assert not we.Solver(block(), fit="curvature_corrected").rest_model
+
+
+def test_the_rest_models_hand_over_survives_a_checkpoint_and_a_copy(tmp_path):
+    """Which model wrote a state (``State.rest_model``) travels with it, so a run resumed from
+    a checkpoint, or from ``State.assign``'s copy, hands ``F`` over where the uninterrupted run
+    does: the same next state, bit for bit."""
+    from warp_esph.checkpoint import load_state, save_state
+
+    model, solver, a, c, dt = _sheared_block_flowing(5)
+    path = save_state(tmp_path / "flowed.npz", model, a, step=5, frame=0)
+    copy = model.state()
+    copy.assign(a)
+    resumed, _ = load_state(path, model)  # sets the checkpoint's parameters: flowing
+    model.flow_rate.assign(np.array([0.0]))
+    assert resumed.rest_model is False and copy.rest_model is False
+    outs = []
+    for start in (a, resumed, copy):
+        out = model.state()
+        solver.step(start, out, dt)
+        assert out.rest_model is True
+        outs.append(out.F.numpy())
+    np.testing.assert_array_equal(outs[1], outs[0])
+    np.testing.assert_array_equal(outs[2], outs[0])

@@ -529,6 +529,54 @@ def test_default_solver_of_an_elastic_model_gradients_match_central_differences(
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
 
 
+def _handover_loss(weights, dF=None, dx=None, grad=False):
+    """The elastic block's default solver (the rest model) from a state an incremental step
+    wrote (``State.rest_model`` False) whose stored ``F`` is not the rest fit of its positions
+    (a flowed body's): its first step hands ``F`` over (``F_p = F^-1 G(x)``,
+    ``comparison.rest_handover``). ``dF``/``dx``: ``(i, a, b, delta)``/``(i, c, delta)`` added
+    to the first state's ``F``/``x``."""
+    model = _elastic_model()
+    solver = we.Solver(model)
+    assert solver.rest_model
+    states = [model.state() for _ in range(STEPS + 1)]
+    n = model.particle_count
+    shear = np.eye(3)
+    shear[0, 1], shear[2, 0] = 0.04, -0.03
+    F = np.tile(shear, (n, 1, 1)) + np.random.default_rng(3).normal(scale=0.01, size=(n, 3, 3))
+    x = model.particle_x0.copy()
+    if dF is not None:
+        F[dF[0], dF[1], dF[2]] += dF[3]
+    if dx is not None:
+        x[dx[0], dx[1]] += dx[2]
+    states[0].F.assign(F)
+    states[0].x.assign(x)
+    states[0].rest_model = False
+    loss, tape = taped_rollout_loss(solver, states, DT, weights)
+    if not grad:
+        return loss.numpy()[0]
+    # Handed over: the rest shape F_p = F^-1 G(x) carries the stored F's departure from the fit.
+    assert np.abs(states[1].F_p.numpy() - np.eye(3)).max() > 0.02
+    tape.backward(loss)
+    return loss.numpy()[0], states[0].F.grad.numpy().copy(), states[0].x.grad.numpy().copy()
+
+
+def test_gradient_through_the_rest_models_hand_over_matches_central_differences(weights):
+    """The switch back to the rest model after incremental steps (a parameter made the body
+    elastic again) hands the stored ``F`` over through ``F_p = F^-1 G(x)``: the gradient of
+    the loss in the first state's ``F`` and ``x`` through that hand-over, the rest model's
+    steps after it, and its ``F_p``, against central differences (float64)."""
+    loss, gF, gx = _handover_loss(weights, grad=True)
+    for i, a, b in [(7, 0, 1), (20, 2, 0), (33, 1, 1)]:
+        eps = 1e-6
+        fd = (_handover_loss(weights, dF=(i, a, b, eps)) - _handover_loss(weights, dF=(i, a, b, -eps))) / (2 * eps)
+        assert abs(fd) > 1e-9
+        assert gF[i, a, b] == pytest.approx(fd, rel=1e-4, abs=1e-10), (i, a, b)
+    for i, c in [(7, 0), (20, 1)]:
+        eps = 1e-7
+        fd = (_handover_loss(weights, dx=(i, c, eps)) - _handover_loss(weights, dx=(i, c, -eps))) / (2 * eps)
+        assert gx[i, c] == pytest.approx(fd, rel=1e-4, abs=1e-9), (i, c)
+
+
 def _images_model(params=None, ground=-0.045, v0=None, fit_weight="poly6"):
     """The block over the ground with floor images (``add_ground(images=True)``): by default
     the plane three quarters of a spacing under its bottom layer, so every particle's fit,

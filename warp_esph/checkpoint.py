@@ -157,6 +157,9 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
         "bodies": [b.name for b in model.bodies],
         "run": run or {},
         "time": float(getattr(state, "time", 0.0)),
+        # Whether the step that wrote it ran the rest model: a resumed run hands F over as the
+        # uninterrupted one would (State.rest_model).
+        "rest_model": getattr(state, "rest_model", None),
         "fingerprint": model_fingerprint(model),
         "fingerprint_version": FINGERPRINT_VERSION,
     }
@@ -189,7 +192,7 @@ def solver_settings(solver) -> dict:
     fused = solver.fused and not solver._cmp and fit != "curvature_corrected" and solver.ghost_search is None
     return {"fit": fit, "hourglass": float(c), "contact_ramp": float(m.contact_ramp),
             "min_neighbors": int(solver.min_neighbors), "max_condition": float(solver.max_condition),
-            "fused": bool(fused)}
+            "fused": bool(fused), "rest_model": bool(solver._auto and m.auto_runs_rest(solver._asked[0]))}
 
 
 def _check_solver(model: Model, solver) -> None:
@@ -334,6 +337,7 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
                                  f"{(a.shape[0], 3)} finite values")
             a.assign(b)
     state.time = float(meta.get("time", 0.0))
+    state.rest_model = meta.get("rest_model") if meta.get("rest_model") in (True, False) else None
     before = {name: getattr(model, name).numpy().copy() for name in Model.MATERIAL_FIELDS}
     for name in Model.MATERIAL_FIELDS:
         getattr(model, name).assign(arrays[f"material_{name}"])

@@ -177,9 +177,10 @@ class State:
         self.alpha = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad)
         # The plastic F_p of the rest-configuration comparison model (docs/method.md §7; I elsewhere).
         # The additive model's strain needs no field of its own: F holds I + eps there.
-        # Its gradient only where a comparison model reads it (a taped step's memory).
+        # Its gradient only where a comparison model reads it, or fit="auto" runs the rest model
+        # (Model.auto_runs_rest; a taped hand-over to it needs F_p's gradient): a taped step's memory.
         self.F_p = wp.array(np.tile(np.eye(3, dtype=T.np_dtype), (n, 1, 1)), dtype=T.mat33, device=dev,
-                            requires_grad=requires_grad and model.uses_comparison_models)
+                            requires_grad=requires_grad and (model.uses_comparison_models or model.auto_runs_rest()))
         # Each floor image's own elastic F (``SceneBuilder.add_ground(images=True)``): the image
         # of a particle near the plane is a floor particle at rest over the step whose energy
         # works on its own fit, so its F is stored as a particle's is, or that work would have
@@ -195,6 +196,10 @@ class State:
         self.alpha_image = wp.zeros(n, dtype=T.scalar, device=dev, requires_grad=requires_grad and images)
         #: Simulated time (s) of this state: the step that writes it sets ``time_in + dt``.
         self.time = 0.0
+        #: Whether the step that wrote this state ran the rest-configuration model in place of the
+        #: incremental composition (``Solver.rest_model``; None: no step wrote it). A rest step
+        #: after an incremental one hands the stored ``F`` over (``comparison.rest_handover``).
+        self.rest_model = None
         # Written by the step that produced this state.
         self.neighbors = wp.zeros((n, K), dtype=wp.int32, device=dev)
         # The selection's squared distances: scratch of the search, allocated only when asked
@@ -273,6 +278,7 @@ class State:
             if isinstance(a, wp.array) and isinstance(b, wp.array) and a.shape == b.shape and a.dtype is b.dtype:
                 wp.copy(a, b)
         self.time = getattr(other, "time", 0.0)
+        self.rest_model = getattr(other, "rest_model", None)
 
     @property
     def particle_count(self) -> int:
@@ -330,6 +336,8 @@ class Model:
         self._gravity = tuple(float(g) for g in gravity)
         self.materials = list(materials)
         self._material_struct = None  # material_arrays' struct and what it was built from
+        self._rest_material_struct = None  # the same with every deformation code "rest" (material_arrays(rest=True))
+        self._rest_codes = None
         self._stable_dt = None  # stable_dt's last answer and what it was computed from
         self._parameter_stage = None  # _read_parameters's one buffer (allocated on first use)
         self._parameter_views = None  # on the CPU, _read_parameters's views of the arrays, with their key
@@ -564,6 +572,29 @@ class Model:
         alone = [self._elastic_only(self.world_materials(w)) for w in range(self.world_count)]
         return [] if self.elastic_only else [w for w, elastic in enumerate(alone) if elastic]
 
+    def auto_runs_rest(self, fit: str | None = None) -> bool:
+        """Whether a ``Solver(model, fit=fit)`` runs the rest-configuration model now in place of
+        the incremental composition ``F <- dF F``: where ``may_run_rest(fit)`` and
+        ``elastic_only`` hold. Then the stored ``F`` is the curvature-corrected total fit against
+        the rest neighbourhood, with its variational force (``sim/comparison.py``), the gradient
+        of an energy of the positions alone: the undamped energy of an elastic body is kept at
+        the stable step, where the incremental composition's grows (docs/physics.md, "The energy
+        of undamped elastic bodies")."""
+        return self.may_run_rest(fit) and self.elastic_only
+
+    def may_run_rest(self, fit: str | None = None) -> bool:
+        """Whether ``fit="auto"`` (``fit``; None: the model's) may run the rest-configuration model
+        for this scene, whatever the parameters: every material variational and incremental, and
+        none of what the rest neighbourhood cannot follow. A ghost floor and floor images enter
+        the incremental fit only; a tool (a moving collider, ``SceneBuilder.add_tool``) can cut
+        a body apart, which the incremental fit follows as its neighbours part, while a rest
+        neighbourhood holds every pair it began with, across the cut (a block cut by a fast blade
+        blew up). Pins are not tools here: they hold particles, they cut nothing."""
+        asked = self.fit if fit is None else fit
+        return (asked == "auto" and self.ghost_floor is None and self.image_plane is None
+                and not (self.tools is not None and self.tools.colliders)
+                and all(m.deformation == "incremental" and m.elastic_force == "variational" for m in self.materials))
+
     def solver_choice(self, fit: str | None = None, hourglass: float | None = None) -> tuple[str, float]:
         """``(fit, c)``: the incremental fit and the hourglass strength a ``Solver(model, fit=fit,
         hourglass=hourglass)`` runs now (None: this model's ``fit``, ``hourglass``).
@@ -714,9 +745,30 @@ class Model:
         """A new state at the initial configuration (F = I, alpha = 0)."""
         return State(self, self.requires_grad if requires_grad is None else checks.boolean("requires_grad", requires_grad))
 
-    def material_arrays(self):
+    def material_arrays(self, rest: bool = False):
         """The per-material arrays as one ``sim.materials`` struct, holding these very
-        arrays (so gradients reach ``model.mu.grad`` and the others)."""
+        arrays (so gradients reach ``model.mu.grad`` and the others). ``rest``: with every
+        material's deformation code ``"rest"`` (what ``fit="auto"`` runs for a purely elastic
+        model, ``auto_runs_rest``), the other arrays the same."""
+        if rest:
+            codes = self._rest_codes
+            if codes is None or codes.shape[0] != len(self.materials):
+                codes = self._rest_codes = wp.full(len(self.materials), DEFORMATION_IDS["rest"], dtype=wp.int32,
+                                                   device=self.device)
+            key = pointer_key([self.mu, self.lam, self.yield_stress, self.flow_rate, self.hardening,
+                               self.pressure_stiffness, self.viscosity, self.material_model, codes,
+                               self.material_elastic_force, self.clamp_pressure, self.material_pressure_force])
+            cached = self._rest_material_struct
+            if cached is None or cached[0] != key:
+                arrays = dict(
+                    mu=self.mu, lam=self.lam, yield_stress=self.yield_stress, flow_rate=self.flow_rate,
+                    hardening=self.hardening, pressure_stiffness=self.pressure_stiffness, viscosity=self.viscosity,
+                    model=self.material_model, deformation=codes, elastic_force=self.material_elastic_force,
+                    clamp_pressure=self.clamp_pressure, pressure_force=self.material_pressure_force,
+                )
+                cached = (key, material_struct.make(self.scalar, self.device, **arrays), tuple(arrays.values()))
+                self._rest_material_struct = cached
+            return cached[1]
         arrays = dict(
             mu=self.mu, lam=self.lam, yield_stress=self.yield_stress, flow_rate=self.flow_rate,
             hardening=self.hardening, pressure_stiffness=self.pressure_stiffness, viscosity=self.viscosity,

@@ -153,11 +153,13 @@ class _Checkpoint:
         self.F_image = wp.zeros(n, dtype=T.mat33, device=dev)
         self.alpha_image = wp.zeros(n, dtype=T.scalar, device=dev)
         self.time = 0.0
+        self.rest_model = None
 
     def save(self, state):
         for name in State.STATE_FIELDS:
             wp.copy(getattr(self, name), getattr(state, name))
         self.time = state.time
+        self.rest_model = state.rest_model
 
     @property
     def nbytes(self) -> int:
@@ -623,6 +625,7 @@ class Rollout:
             init.F_p.assign(eye)
             init.alpha.zero_()
             init.time = 0.0
+            init.rest_model = None
         for name, v in given.items():
             getattr(init, STATE_GRADIENTS[name]).assign(v)
             if name in ("x0", "F0"):

@@ -44,6 +44,31 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     third = scalar(1.0 / 3.0)
     cf = curvature.funcs(scalar, weight)
 
+    @wp.func
+    def rest_total_fit(
+        i: int,
+        rest_x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        rest_nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        curved: int,
+    ):
+        """``G_i(y)``, the rest model's total fit of the positions ``y`` against particle ``i``'s
+        rest neighbourhood (the paper's eqs. 5-6 with the rest offsets in place of the current
+        ones; ``curved``: the curvature-corrected fit, ``curvature.corrected_fit``). The
+        moments from their own functions: an inverse must not see a loop accumulator
+        (docs/method.md, Warp pitfall 1). The positions' round-off is not carried (y, y)."""
+        G = mat33()
+        if curved != 0:
+            A, B, C, D, E, same = cf.moment_sums(i, rest_x, y, y, y, body, rest_nbr, n, h)
+            G = cf.corrected_fit(A, B, C, D, E)
+        else:
+            A, B, same = moment_sums(i, rest_x, y, y, y, body, rest_nbr, n, h)
+            G = wp.identity(n=3, dtype=scalar) + df.affine_fit(A, B)
+        return G
+
     @wp.kernel(module="unique")
     def constitutive_update(
         F_in: wp.array(dtype=mat33),
@@ -147,13 +172,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             elif code == 2:
                 wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
             else:
-                G = mat33()
-                if curved != 0:
-                    A, B, C, D, E, same = cf.moment_sums(i, rest_x, y, y, y, body, rest_nbr, rest_count[i], h)
-                    G = cf.corrected_fit(A, B, C, D, E)
-                else:
-                    A, B, same = moment_sums(i, rest_x, y, y, y, body, rest_nbr, rest_count[i], h)
-                    G = I + df.affine_fit(A, B)
+                G = rest_total_fit(i, rest_x, y, body, rest_nbr, rest_count[i], h, curved)
                 F = unless_inverted(G * wp.inverse(Fp[i]), F, counters)
         else:
             A, B, same = moment_sums(i, x, y, y, y, body, nbr, count[i], h)
@@ -213,16 +232,60 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 fi = fn.variational_forces(i, rest_x, body, rest_nbr, rest_count[i], M, h, f)
             wp.atomic_add(f, i, fi)
 
+    @wp.kernel(module="unique")
+    def rest_handover(
+        x: wp.array(dtype=vec3),
+        rest_x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        rest_nbr: wp.array2d(dtype=wp.int32),
+        rest_count: wp.array(dtype=wp.int32),
+        rest_guard: wp.array(dtype=wp.int32),
+        F: wp.array(dtype=mat33),
+        Fp_in: wp.array(dtype=mat33),
+        h: scalar,
+        curved: int,
+        Fp_out: wp.array(dtype=mat33),
+    ):
+        """``F_p = F^-1 G(x)``: the plastic part that makes the rest model's ``F_e = G F_p^-1``
+        the stored ``F`` of an incremental run at the positions ``x``, so the solver's switch
+        from the incremental composition to the rest model (``Solver``, ``fit="auto"``) keeps
+        the stress where it is instead of jumping to the rest fit of a body that flowed, or
+        drifted. Kept where the rest neighbourhood is guarded or ``G`` inverted."""
+        i = wp.tid()
+        out = Fp_in[i]
+        if rest_guard[i] == 0:
+            G = rest_total_fit(i, rest_x, x, body, rest_nbr, rest_count[i], h, curved)
+            if wp.determinant(G) > scalar(0.0):
+                out = wp.inverse(F[i]) * G
+        Fp_out[i] = out
+
     return types.SimpleNamespace(constitutive_update=constitutive_update, update_deformation=update_deformation,
-                                 rest_variational_forces=rest_variational_forces)
+                                 rest_variational_forces=rest_variational_forces, rest_handover=rest_handover)
 
 
-def launch_constitutive_update(model, state_in, state_out, dt, counters):
-    """``plasticity.launch_constitutive_update`` for models with a Fig. 8 comparison material."""
+def launch_rest_handover(model, state_in, Fp_out, curved: bool = False):
+    """``rest_handover`` of ``state_in`` into ``Fp_out`` (read by the step's constitutive update in
+    place of ``state_in.F_p``; ``state_in`` is only read)."""
+    rest_x, rest_nbr, rest_count = model.rest_neighbors()
+    model.launches(
+        kernels(model.scalar, model.fit_weight).rest_handover,
+        model.particle_count,
+        [state_in.x, rest_x, model.particle_body, rest_nbr, rest_count, model.rest_guard, state_in.F, state_in.F_p,
+         model.scalar(model.support_radius), int(curved)],
+        [Fp_out],
+        device=model.device,
+    )
+
+
+def launch_constitutive_update(model, state_in, state_out, dt, counters, mats=None, Fp_in=None):
+    """``plasticity.launch_constitutive_update`` for models with a Fig. 8 comparison material
+    (``mats``: the material struct the kernels read, default ``model.material_arrays()``;
+    ``Fp_in``: the ``F_p`` read in place of ``state_in.F_p``, a hand-over's)."""
     model.launches(
         kernels(model.scalar, model.fit_weight).constitutive_update,
         model.particle_count,
-        [state_in.F, state_in.alpha, state_in.F_p, model.particle_material, model.material_arrays(), model.scalar(dt)],
+        [state_in.F, state_in.alpha, state_in.F_p if Fp_in is None else Fp_in, model.particle_material,
+         model.material_arrays() if mats is None else mats, model.scalar(dt)],
         [state_out.F_flowed, state_out.alpha, state_out.F_p, state_out.stress, state_out.F_inv, counters],
         device=model.device,
     )
@@ -230,7 +293,7 @@ def launch_constitutive_update(model, state_in, state_out, dt, counters):
 
 def launch_update_deformation(model, state_in, state_out, counters, curved: bool = False,
                               max_condition: float = deformation.guards.MAX_CONDITION,
-                              min_neighbors: int = deformation.guards.MIN_NEIGHBORS):
+                              min_neighbors: int = deformation.guards.MIN_NEIGHBORS, mats=None):
     """``deformation.launch_update_deformation`` for models with a Fig. 8 comparison material
     (``curved``: the rest model's total fit is the curvature-corrected one)."""
     rest_x, rest_nbr, rest_count = model.rest_neighbors()
@@ -239,7 +302,8 @@ def launch_update_deformation(model, state_in, state_out, counters, curved: bool
         model.particle_count,
         [
             state_in.x, state_out.x, rest_x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
-            rest_nbr, rest_count, model.rest_guard, state_out.guard, model.particle_material, model.material_arrays(), state_out.F_flowed,
+            rest_nbr, rest_count, model.rest_guard, state_out.guard, model.particle_material,
+            model.material_arrays() if mats is None else mats, state_out.F_flowed,
             state_out.F_p, model.scalar(model.support_radius), int(min_neighbors), model.scalar(max_condition), int(curved),
         ],
         [state_out.F, counters],
@@ -247,7 +311,7 @@ def launch_update_deformation(model, state_in, state_out, counters, curved: bool
     )
 
 
-def launch_rest_variational_forces(model, state_out, curved: bool = False):
+def launch_rest_variational_forces(model, state_out, curved: bool = False, mats=None):
     """``rest_variational_forces`` into ``state_out.force``, from the stress and ``F_p`` the
     constitutive update wrote (launched only when a material asks for it; ``curved``: of the
     curvature-corrected total fit)."""
@@ -256,7 +320,8 @@ def launch_rest_variational_forces(model, state_out, curved: bool = False):
         model.launches(
             kernels(model.scalar, model.fit_weight).rest_variational_forces,
             model.particle_count,
-            [rest_x, model.particle_body, model.particle_material, model.material_arrays(), rest_nbr, rest_count,
+            [rest_x, model.particle_body, model.particle_material, model.material_arrays() if mats is None else mats,
+             rest_nbr, rest_count,
              model.rest_guard, model.particle_volume, state_out.stress, state_out.F_p, model.scalar(model.support_radius),
              int(curved)],
             [state_out.force],

@@ -163,7 +163,16 @@ class Solver:
     its deformation update) and cannot be combined with a comparison deformation model, except
     where every material is ``"rest"``: then it is the rest model's total fit that is corrected
     (with ``elastic_force="variational"`` a conservative elastic force, docs/physics.md, "The
-    energy of undamped elastic bodies"). With
+    energy of undamped elastic bodies"). Where ``"auto"`` chose the corrected fit and the scene
+    allows it (``Model.may_run_rest``: no floor images, no ghost floor, no tool, which could cut
+    a body apart), the step runs the rest-configuration model for every material
+    (``rest_model``; the kernels read the deformation code ``"rest"``,
+    ``Model.material_arrays(rest=True)``): the corrected total fit against the rest
+    neighbourhood with its variational force, a conservative elastic force. When a parameter
+    makes a material flow the step turns to the incremental composition from the stored ``F``;
+    a rest step after an incremental one (``State.rest_model`` False) hands the stored ``F``
+    over (``F_p = F^-1 G(x)``, ``comparison.rest_handover``), so a flowed body keeps its
+    stress. A new state's ``F_p`` (``I``) and a checkpoint's are taken as they are. With
     ``"auto"`` the choice follows the model's parameter arrays at every step (a fit that makes
     ``flow_rate`` positive turns it to the linear fit, without the control); ``fit`` and
     ``hourglass`` hold what runs now. The model's force fields (``fields.CompressionField``)
@@ -274,6 +283,11 @@ class Solver:
     def _choose(self):
         """Set ``fit`` and ``hourglass`` to what the step runs now (``Model.solver_choice``)."""
         fit, c = self.model.solver_choice(*self._asked)
+        #: Whether the step runs the rest-configuration model for materials that say
+        #: ``"incremental"`` (``Model.auto_runs_rest``: ``fit="auto"`` on a purely elastic model).
+        self.rest_model = self._auto and self.model.auto_runs_rest(self._asked[0])
+        if self.rest_model:
+            self.model.rest_neighbors()
         #: The incremental fit the step runs (``"linear"`` or ``"curvature_corrected"``); the
         #: corrected one runs the non-fused kernels.
         self.fit = fit
@@ -508,10 +522,27 @@ class Solver:
         if ghosts is not None:
             # Again each step: Model.set_material may have changed a material's force since.
             _check_ghost_floor(m, self.fit)
-        fast = (self.fused and not self._cmp and not self._curved and ghosts is None
+        rest_model = self.rest_model
+        cmp = self._cmp or rest_model
+        # The material struct the comparison kernels read: with the rest model switched on, every
+        # material's deformation code reads "rest" (its own arrays otherwise, None).
+        mats = m.material_arrays(rest=True) if rest_model else None
+        fast = (self.fused and not cmp and not self._curved and ghosts is None
                 and (tape is None or self._fast_under_tape(state_in, state_out)))
         # With comparison models the corrected fit is the rest model's total fit (every material 'rest').
-        curved_rest = self._cmp and self._curved
+        curved_rest = cmp and self._curved
+        Fp_in = None
+        if rest_model and state_in.rest_model is False:
+            # Elastic again after a step of the incremental composition: F_p such that the rest
+            # model's F_e is the stored F (comparison.rest_handover); state_in is only read.
+            if tape is not None and state_in.F.requires_grad and state_out.F_p.grad is None:
+                raise RuntimeError("step is not allowed under a tape here: a parameter turned the model elastic, so "
+                                   "this step hands its F over to the rest-configuration model (State.rest_model), "
+                                   "and the states' F_p carry no gradient (made before the model's fit, materials "
+                                   "or tools allowed the rest model, Model.may_run_rest); make the states again "
+                                   "with Model.state(requires_grad=True)")
+            Fp_in = wp.empty_like(state_in.F_p, requires_grad=state_in.F.requires_grad)
+            comparison.launch_rest_handover(m, state_in, Fp_in, curved_rest)
         fast_tape = tape if fast else None
         phase = self._phase
 
@@ -555,21 +586,23 @@ class Solver:
                     pressure.launch_state_densities(m, state_in.x, state_out, hand)
             # 3. Plastic flow of the stored F, stress, F^-1.
             with phase("constitutive"):
-                if self._cmp:
-                    comparison.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters)
+                if cmp:
+                    comparison.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters, mats, Fp_in)
                 else:
                     plasticity.launch_constitutive_update(m, state_in, state_out, dt, scratch.counters)
                 if images:
                     plasticity.launch_image_constitutive_update(m, state_in, state_out, dt, scratch.counters)
             # 4. Elastic pair forces, pressure and viscosity.
             with phase("forces"):
-                if self._curved and not self._cmp:
+                if self._curved and not cmp:
                     curvature.launch_elastic_forces(m, state_in, state_out, hand, scratch.max_condition,
                                                     scratch.min_neighbors)
-                else:
+                elif not rest_model:
+                    # (With the rest model switched on every material is variational and 'rest':
+                    # this kernel would add nothing.)
                     forces.launch_elastic_forces(m, state_in, state_out, hand, scratch.max_condition, scratch.min_neighbors)
-                if self._rest_variational:
-                    comparison.launch_rest_variational_forces(m, state_out, curved_rest)
+                if self._rest_variational or rest_model:
+                    comparison.launch_rest_variational_forces(m, state_out, curved_rest, mats)
                 if ghosts is not None:
                     # The energies' forces on the ghosts go to their stencils.
                     ghost_floor.launch_hand_over(m, state_out)
@@ -603,9 +636,9 @@ class Solver:
         with phase("deformation"):
             if fast:
                 fused.launch_update_deformation(m, state_in, state_out, scratch, fast_tape)
-            elif self._cmp:
+            elif cmp:
                 comparison.launch_update_deformation(m, state_in, state_out, scratch.counters, curved_rest,
-                                                     scratch.max_condition, scratch.min_neighbors)
+                                                     scratch.max_condition, scratch.min_neighbors, mats)
             elif self._curved:
                 deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, hand,
                                                       max_condition=scratch.max_condition,
@@ -619,7 +652,7 @@ class Solver:
                 deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, hand,
                                                       max_condition=scratch.max_condition,
                                                       min_neighbors=scratch.min_neighbors)
-            if not fast and self._cmp:
+            if not fast and cmp:
                 # Their updates rebuild F without carrying its round-off (State.F_lo).
                 state_out.F_lo.zero_()
             if images:
@@ -632,6 +665,7 @@ class Solver:
             tape.record_func(lambda: self._check_taped_parameters(taped_rows, taped_materials), [])
         # A Python float whatever the user set: a np.float32 time would sum every later step in float32.
         state_out.time = float(state_in.time) + dt
+        state_out.rest_model = rest_model
         if self.step_count == 0:
             self._warn_all_few()
         self.step_count += 1
