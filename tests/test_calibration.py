@@ -138,7 +138,7 @@ def test_cli_fit_names_its_own_options_when_the_rollout_cannot_fit_in_memory(tmp
     (tmp_path / "e.json").write_text(json.dumps([{"scene": "guess.toml", "target": "t.npy", "frames": 200}]))
     assert main(argv + ["--experiments", str(tmp_path / "e.json")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith(f"warp-esph: error: {tmp_path / 'e.json'}: experiment #1: --frames = 200 is "
+    assert len(err) == 1 and err[0].startswith(f"warp-esph: error: {tmp_path / 'e.json'}: experiment #1: frames = 200 is "
                                                "not allowed with --checkpoint-every auto on cpu"), err
     assert err[0].endswith("; fit fewer frames (the experiment's frames, target_frames)"), err
     assert not out.exists()
@@ -1041,6 +1041,11 @@ def test_cli_fit_refuses_what_would_lose_data_or_mistime_the_targets(tmp_path, c
     np.savez(tmp_path / "complex.npz", positions=x.astype(complex), frames=[1, 2, 3])
     np.savez(tmp_path / "good.npz", positions=x, frames=[1, 2, 3])
     (tmp_path / "exps.json").write_text(json.dumps([{"scene": 3, "target": "run.usdc"}]))
+    # An entry's frames keys were refused as the command's options (--frames, --target-frames),
+    # which the command line never gave.
+    for name, entry in (("frames0.json", {"frames": 0}), ("tframes0.json", {"target_frames": "0"}),
+                        ("tbody.json", {"target": "good.npz", "target_body": "x"})):
+        (tmp_path / name).write_text(json.dumps([{"scene": "guess.toml", "target": "run.usdc", **entry}]))
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "fitted.usdc").write_bytes(run.read_bytes())
     before = {p: p.read_bytes() for p in (run, guess, tmp_path / "out" / "fitted.usdc")}
@@ -1059,6 +1064,12 @@ def test_cli_fit_refuses_what_would_lose_data_or_mistime_the_targets(tmp_path, c
         (["--target", str(run), "--target-frames", "0"], "--target-frames = '0' is not allowed: the targets hold only frame 0"),
         (["--target", str(run), "--experiments", str(tmp_path / "exps.json")],
          "experiment #1: scene = 3 is not allowed: must be a scene name or a .toml path"),
+        (["--target", str(run), "--experiments", str(tmp_path / "frames0.json")],
+         "experiment #1: frames = 0 is not allowed: must be an integer >= 1"),
+        (["--target", str(run), "--experiments", str(tmp_path / "tframes0.json")],
+         "experiment #1: target_frames = '0' is not allowed: the targets hold only frame 0"),
+        (["--target", str(run), "--experiments", str(tmp_path / "tbody.json")],
+         "experiment #1: target_body = 'x' is not allowed: it picks a body of a run's USD target"),
         (["--target", str(run), "--worlds"], "--worlds is not allowed with --starts = 1"),
         (["--target", str(run), "--starts", "3", "--samples", "1"], "--starts = 3 is not allowed with --samples = 1"),
         (["--target", str(run), "--bounds", "yield_stress=1:2", "--bounds", "yield_stress=3:4"],

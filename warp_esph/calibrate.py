@@ -466,14 +466,20 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     """One experiment of the command: scene, model (jittered), targets, loss, time step."""
     import types  # noqa: PLC0415
 
-    scale_name = f"{where}--scale" if not where else f"{where}scale"
+    def key(name):
+        # An experiment's keys are named as its file writes them ('frames'), the command's as
+        # its options ('--frames'): the file's bad frames were refused as '--frames', which the
+        # command line never gave.
+        return name if where else "--" + name.replace("_", "-")
+
+    scale_name = f"{where}{key('scale')}"
     scale = checks.positive(scale_name, spec["scale"])
     targets = spec["target"] if isinstance(spec["target"], (list, tuple)) else [spec["target"]]
     tframes = spec.get("target_frames")
     tframes = tframes if isinstance(tframes, (list, tuple)) else ([tframes] if tframes else [])
     if len(tframes) > 1 and len(tframes) != len(targets):
-        raise ValueError(f"{where}--target-frames is given {len(tframes)} times for {len(targets)} --target files: "
-                         f"give it once per --target, in the same order, or once for all")
+        raise ValueError(f"{where}{key('target_frames')} is given {len(tframes)} times for {len(targets)} "
+                         f"{key('target')} files: give it once per {key('target')}, in the same order, or once for all")
     from .scenes import load_scaled_scene  # noqa: PLC0415
 
     scene = load_scene(spec["scene"], scale=scale) if scale == 1.0 else load_scaled_scene(spec["scene"], scale, scale_name)
@@ -509,7 +515,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         # load_target's frames are the command's --target-frames: 'frames' named no option (an
         # experiment's refusal is prefixed with its name by the caller).
         t = load_target(path, body=spec.get("target_body") if usd else None, frames=usd_spec,
-                        tool=spec.get("target_tool"), frames_name="--target-frames")
+                        tool=spec.get("target_tool"), frames_name=key("target_frames"))
         any_usd = any_usd or usd
         if fspec is not None and usd_spec is None and t.frames_stored:
             # The file numbers its frames: --target-frames chooses among them, as of a run's USD
@@ -524,19 +530,19 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                     continue
                 try:
                     # In frame order whatever the file's (its 'last' is its largest frame).
-                    chosen.extend(parse_frames(part, sorted(t.frames), "--target-frames"))
+                    chosen.extend(parse_frames(part, sorted(t.frames), key("target_frames")))
                 except ValueError as e:
                     raise ValueError(f"{where}{e}; the target {path} holds frames "
                                      f"{', '.join(map(str, sorted(t.frames)))} (-N counts frame numbers back from the "
                                      "last)") from None
             if missing:
-                raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: the target {path} holds frames "
+                raise ValueError(f"{where}{key('target_frames')} = {fspec!r} is not allowed: the target {path} holds frames "
                                  f"{', '.join(map(str, sorted(t.frames)))} (its 'frames'), not {', '.join(map(str, missing))}")
             twice = next((f for k, f in enumerate(chosen) if f in chosen[:k]), None)
             if twice is not None:
                 # Fitted twice, the frame weighed twice in the loss ('last,6' named frame 6 once
                 # here, while a run's USD target fitted it twice).
-                raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: it names frame {twice} twice; name "
+                raise ValueError(f"{where}{key('target_frames')} = {fspec!r} is not allowed: it names frame {twice} twice; name "
                                  "each frame once")
             t.data = np.asarray(t.data)[[t.frames.index(f) for f in chosen]]
             t.frames = chosen
@@ -555,7 +561,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                             raise ValueError
                         span = range(a, b + 1, step)
                         if len(chosen) + len(span) > MAX_TARGET_FRAMES:  # counted before the list is made
-                            raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: it names more than "
+                            raise ValueError(f"{where}{key('target_frames')} = {fspec!r} is not allowed: it names more than "
                                              f"{MAX_TARGET_FRAMES} frames")
                         chosen.extend(span)
                     else:
@@ -563,10 +569,10 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                 if min(chosen) < 0:
                     raise ValueError
             except ValueError as e:
-                if str(e).startswith(f"{where}--target-frames"):
+                if str(e).startswith(f"{where}{key('target_frames')}"):
                     raise
                 # -1 ended in a KeyError traceback (.npz) or was dropped (a force log).
-                raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: use comma-separated frame "
+                raise ValueError(f"{where}{key('target_frames')} = {fspec!r} is not allowed: use comma-separated frame "
                                  "indices >= 0 or ranges A:B[:STEP] (B included)") from None
             if t.kind != "positions":
                 seen = set()
@@ -574,16 +580,16 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                 if twice is not None:
                     # A force log's or a cloud's loss keys its frames: '2,2' was observed once
                     # while fit.json recorded [2, 2], where every other target refuses it.
-                    raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: it names frame {twice} twice; "
+                    raise ValueError(f"{where}{key('target_frames')} = {fspec!r} is not allowed: it names frame {twice} twice; "
                                      "name each frame once")
             t.frames = chosen
             numbered.add(id(t))
             if t.kind == "positions" and len(t.frames) != np.asarray(t.data).shape[0]:
-                raise ValueError(f"{where}--target-frames = {fspec!r} names {len(t.frames)} frames, the target {path} "
+                raise ValueError(f"{where}{key('target_frames')} = {fspec!r} names {len(t.frames)} frames, the target {path} "
                                  f"holds {np.asarray(t.data).shape[0]} (one frame number per entry, in order)")
             if t.kind == "positions" and len(set(t.frames)) != len(t.frames):
                 # Two entries named as one frame: the later one silently replaced the earlier.
-                raise ValueError(f"{where}--target-frames = {fspec!r} is not allowed: it names a frame twice, and "
+                raise ValueError(f"{where}{key('target_frames')} = {fspec!r} is not allowed: it names a frame twice, and "
                                  f"each entry of the target {path} is one frame")
         loaded.append(("file", path, t))
     file_targets = [t for kind, _, t in loaded if kind == "file"]
@@ -650,16 +656,16 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         t.check_particle_count(model)
     if spec.get("frames") is None and shown and max(shown) < 1:
         # It blamed --frames, which was not given.
-        raise ValueError(f"{where}--target-frames = {tframes[0] if tframes else 0!r} is not allowed: the targets hold "
+        raise ValueError(f"{where}{key('target_frames')} = {tframes[0] if tframes else 0!r} is not allowed: the targets hold "
                          "only frame 0, the initial state, which says nothing about the material")
     frames = spec.get("frames")
     if frames is None and shown and max(shown) > checks.MAX_INT:
         # It was refused as '--frames = 1000000000000', which was not given (a foreign USD's time code).
         raise ValueError(f"{where}the targets' last frame, {max(shown)}, is not allowed: the fit runs to it, and a run has at "
                          f"most {checks.MAX_INT} frames (a target's frames are rendered frame indices)")
-    frames = checks.positive_int(f"{where}--frames", frames if frames is not None else (max(shown) if shown else scene.frames))
+    frames = checks.positive_int(f"{where}{key('frames')}", frames if frames is not None else (max(shown) if shown else scene.frames))
     # What set the rollout's length, as its refusals name it.
-    source = (f"{where}--frames = {frames}" if spec.get("frames") is not None else
+    source = (f"{where}{key('frames')} = {frames}" if spec.get("frames") is not None else
               f"the targets' last frame, {frames}," if shown else f"the scene's frames = {frames}")
     if frames * substeps > checks.MAX_INT:  # a rollout's step count (Rollout's steps), named by what set it
         raise ValueError(f"{source} is not allowed: at {substeps} steps a frame the fit's rollout would "
@@ -671,14 +677,14 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         if kind == "silhouette":
             from .silhouette import silhouette_target  # noqa: PLC0415
 
-            source = ("--frames" if spec.get("frames") is not None else
+            source = (key("frames") if spec.get("frames") is not None else
                       "the targets' last frame" if shown else "the scene's frames")
             term = silhouette_target(t, frames, substeps, source, camera_file=cameras)
         else:
             if t.frames is None:
                 t.frames = [frames]
             if max(t.frames) > frames:
-                raise ValueError(f"{where}the target {path} has frame {max(t.frames)}, beyond --frames = {frames}")
+                raise ValueError(f"{where}the target {path} has frame {max(t.frames)}, beyond {key('frames')} = {frames}")
             frame_steps = {f: f * substeps for f in t.frames if f > 0 or t.kind not in ("positions", "forces")}
             term = t.loss(model, frame_steps, radius=args.radius, mode=_arg(args, "mesh_mode") or "surface")
         loss = term if loss is None else loss + term
@@ -705,10 +711,10 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
         raise ValueError(f"{where}--mesh-mode = {args.mesh_mode!r} is not allowed: it is how mesh targets are compared, "
                          f"and the targets are {kinds}")
     if spec.get("target_body") is not None and not any_usd:
-        raise ValueError(f"{where}--target-body = {spec['target_body']!r} is not allowed: it picks a body of a run's USD "
+        raise ValueError(f"{where}{key('target_body')} = {spec['target_body']!r} is not allowed: it picks a body of a run's USD "
                          f"target, and the targets are {kinds}")
     if spec.get("target_tool") is not None and "forces" not in file_kinds:
-        raise ValueError(f"{where}--target-tool = {spec['target_tool']!r} is not allowed: it picks the tool of a "
+        raise ValueError(f"{where}{key('target_tool')} = {spec['target_tool']!r} is not allowed: it picks the tool of a "
                          f"force-curve target (<output>_tools.csv), and the targets are {kinds}")
     noise = spec.get("noise")
     return types.SimpleNamespace(scene=scene, model=model, loss=loss, frames=frames, fps=fps, dt=dt, substeps=substeps,
