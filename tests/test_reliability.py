@@ -240,6 +240,45 @@ def test_a_field_switched_on_later_counts_what_the_particles_may_travel_before_i
     assert np.isfinite(end.x.numpy()).all() and not DivergenceMonitor(model, model.state()).enabled
 
 
+def test_a_field_s_speed_counts_only_for_the_particles_it_can_have_sped_up_by_then():
+    """The speed bound's field term summed every field for every particle: a field of k = 1e6
+    on one body let the calm body beside it (p-wave speed 5.5 m/s) run at 10 x 2280 m/s
+    unstopped, and one not yet on every body at 10 x 5030 m/s. Each particle's bound now counts the fields on
+    by then that act on its body, or on any body where bodies interact (pressure passes their
+    speed on); one switched off since still counts, as its speed stays."""
+    def two(interact, t_on=0.0, t_off=math.inf):
+        b = we.SceneBuilder(spacing=0.05, gravity=(0.0, 0.0, 0.0), bodies_interact=interact)
+        b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="calm")
+        b.add_box((1.0, 0.1, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="squeezed")
+        b.add_compression_field((1.0, 0.0, 0.0), 1.0e6, t_on, t_off, body="squeezed")
+        model = b.finalize()
+        return model, DivergenceMonitor(model, model.state())
+
+    model, mon = two(False)
+    x = model.state().x.numpy().astype(np.float64)
+    v = np.zeros_like(x)
+    v[2] = (11.0 * mon.wave, 0.0, 0.0)  # a particle of 'calm', 11 x its own bound
+    what, p = mon.check(x, v, 0.01)
+    assert p == 2 and what == (f"speed {11.0 * mon.wave:.3g} m/s, more than 10 x the {mon.wave:.3g} m/s the scene can "
+                               "produce (fall + p-wave + initial speed)"), what
+    v[2] = (0.0, 0.0, 0.0)
+    v[-1] = (20.0 * mon.wave, 0.0, 0.0)  # 'squeezed', as fast, within its own (and the energy's)
+    assert mon.check(x, v, 0.01) is None
+    calm = model.particle_body_np == 0
+    bounds = mon.speed_bounds(0.01)
+    assert bounds[calm] == pytest.approx(mon.wave) and (bounds[~calm] > 100.0 * mon.wave).all()
+    model, mon = two(True)  # bodies that touch: the squeezed body may strike the calm one
+    assert mon.speed_bounds(0.01) == pytest.approx(np.full(model.particle_count, bounds[-1]))
+    model, mon = two(True, t_on=0.5, t_off=0.6)
+    v = np.zeros_like(x)
+    v[2] = (11.0 * mon.wave, 0.0, 0.0)  # before the field comes on
+    what, p = mon.check(x, v, 0.49)
+    assert p == 2 and what.startswith("speed "), what  # not only the energy's (no energy given yet)
+    assert mon.speed_bounds(0.49) == pytest.approx(np.full(model.particle_count, mon.wave))
+    assert (mon.speed_bounds(0.5) > 100.0 * mon.wave).all()
+    assert mon.speed_bounds(5.0) == pytest.approx(mon.speed_bounds(0.5))  # off since 0.6 s: its speed stays
+
+
 # ------------------------------------------------------------------ refused before running
 @pytest.mark.parametrize(
     "args, needles",

@@ -135,8 +135,12 @@ class DivergenceMonitor:
     - speed: no particle can move faster than its initial speed, plus the fall from the
       highest particle to the lowest floor (``sqrt(2 g H)``; ``g t`` where nothing stops a
       fall), plus the fastest p-wave speed (an elastic rebound), plus what the force fields
-      can give (``sqrt(strength) R``, a harmonic field over the scene's radius);
-      ``SPEED_FACTOR`` times that is a blow-up.
+      can have given it by ``t`` (``sqrt(strength) R``, a harmonic field over the radius of
+      the particles it acts on): each particle's own bound counts the fields that have come
+      on by then (one switched off since leaves its speed behind), and of those the fields
+      acting on its body, or any body's where bodies interact (SPH pressure passes a field's
+      speed on to the bodies its body strikes; ``bodies_interact=False`` keeps each body to
+      its own fields); ``SPEED_FACTOR`` times that is a blow-up.
     - energy: with no work done on the bodies, the kinetic energy is at most the initial
       one plus the elastic energy stored at the start (``_stored_energy_bound``, from F's
       singular values: a prestrained ``F0`` recoils) plus the potential
@@ -221,7 +225,8 @@ class DivergenceMonitor:
         self.ke0 = 0.5 * float((self.mass * (v0 * v0).sum(axis=1)).sum())
         self.e_floor = 0.5 * float(self.mass.sum()) * (0.1 * self.wave) ** 2
         self.t0 = float(state.time)
-        self.v_fields = 0.0
+        #: (t_on, speed it can give, which particles checked may get it) of each attracting field
+        self.field_speeds = []
         self.fields = []  # (field, its particles among those checked, the energy it gives at most)
         if not self.enabled:  # a repelling field's sqrt(k) is not real (it ended in 'math domain error')
             return
@@ -234,12 +239,22 @@ class DivergenceMonitor:
         # scene allows (with the fields on before it): a body drifting at 1 m/s into a field
         # switched on at 2 s, 2 m out, was stopped as a blow-up where r0 + D was taken.
         body = model.particle_body_np[self.keep]
+        # Each field's speed counted for every particle loosened the bound of those it never
+        # reaches (another body's, or all of them before it came on) by sqrt(k) R.
+        world = model.world_of_particle[self.keep]
         for f in sorted(model.force_fields, key=lambda f: f.t_on):
             later = max(f.t_on - self.t0, 0.0)
-            travel = self.speed_bound(later) * later
             r = np.linalg.norm((x0 - np.asarray(f.center))[:, [0, 2]], axis=1)
-            self.v_fields += math.sqrt(f.strength) * (r.max() + self.diagonal + travel)
             on = np.ones(len(body), dtype=bool) if f.body < 0 else body == f.body
+            # Where bodies interact, the bodies of the worlds its body is in (a world's bodies
+            # never touch another's); an exempt body it acts on may push the checked ones, and
+            # the farthest of those then stands for it.
+            acting = model.particle_body_np == f.body if f.body >= 0 else np.ones(model.particle_count, dtype=bool)
+            felt = np.isin(world, model.world_of_particle[acting]) if model.bodies_interact else on
+            source = on if on.any() else np.ones(len(body), dtype=bool)
+            if felt.any():
+                travel = float(self.speed_bounds(later)[source].max()) * later
+                self.field_speeds.append((f.t_on, math.sqrt(f.strength) * (r[source].max() + self.diagonal + travel), felt))
             if not (on.any() and f.t_off > self.t0):
                 continue
             if f.active(self.t0):
@@ -267,9 +282,24 @@ class DivergenceMonitor:
                 potential[on] += 0.5 * f.strength * self.mass[on] * r2
         return potential, given
 
-    def speed_bound(self, t: float) -> float:
+    def field_speed(self, t: float) -> np.ndarray:
+        """Per particle checked, the most speed (m/s) the fields can have given it by ``t``
+        seconds since the monitor's state: those on by then that act on its body (or on any,
+        where bodies interact)."""
+        speed = np.zeros(len(self.mass))
+        for t_on, given, felt in self.field_speeds:
+            if t_on <= self.t0 + t:
+                speed[felt] += given
+        return speed
+
+    def speed_bounds(self, t: float) -> np.ndarray:
+        """Per particle checked, the speed bound (m/s, before ``SPEED_FACTOR``) at ``t``."""
         fall = self.g * t if self.fall_height is None else min(self.g * t, math.sqrt(2.0 * self.g * self.fall_height))
-        return self.v0 + fall + self.wave + self.v_fields + self.driven_speed(t)
+        return self.v0 + fall + self.wave + self.driven_speed(t) + self.field_speed(t)
+
+    def speed_bound(self, t: float) -> float:
+        """The largest of ``speed_bounds(t)``."""
+        return float(self.speed_bounds(t).max())
 
     def check(self, x: np.ndarray, v: np.ndarray, t: float):
         """``None``, or ``(why, particle)`` for the first bound exceeded."""
@@ -280,13 +310,16 @@ class DivergenceMonitor:
         x = x.astype(np.float64, copy=False)
         v = v.astype(np.float64, copy=False)
         speed2 = (v * v).sum(axis=1)
-        bound = self.speed_bound(t)
-        limit = self.SPEED_FACTOR * bound
-        p = int(np.argmax(speed2))
-        if speed2[p] > limit * limit:
-            parts = ("fall + p-wave + initial speed" + (" + the fields' sqrt(k) R" if self.v_fields > 0.0 else "")
+        bounds = self.speed_bounds(t)
+        limit = self.SPEED_FACTOR * bounds
+        # The speed farthest past its particle's own bound (a bound of 0: at rest at the start,
+        # no wave speed, nothing falling yet, any speed is past it).
+        ratio = np.divide(speed2, limit * limit, out=np.where(speed2 > 0.0, np.inf, 0.0), where=limit > 0.0)
+        p = int(np.argmax(ratio))
+        if speed2[p] > limit[p] * limit[p]:
+            parts = ("fall + p-wave + initial speed" + (" + the fields' sqrt(k) R" if self.field_speed(t)[p] > 0.0 else "")
                      + (" + the tools' speed" if self.driven_speed(t) > 0.0 else ""))
-            return (f"speed {math.sqrt(speed2[p]):.3g} m/s, more than {self.SPEED_FACTOR:g} x the {bound:.3g} m/s "
+            return (f"speed {math.sqrt(speed2[p]):.3g} m/s, more than {self.SPEED_FACTOR:g} x the {bounds[p]:.3g} m/s "
                     f"the scene can produce ({parts})"), int(self.index[p])
         ke = 0.5 * self.mass * speed2
         released = float((self.mass * self.g * (self.h0 - x @ self.up)).sum())
@@ -305,12 +338,12 @@ class DivergenceMonitor:
             return (f"{kind} {energy:.3g} J, more than the {limit:.3g} J the scene can give: {self.ENERGY_FACTOR:g} "
                     f"x the {budget:.3g} J of initial kinetic and elastic energy {what}, plus a floor of {self.e_floor:.3g} J "
                     f"(0.5 M (0.1 c_P)^2)"), int(self.index[np.argmax(held)])
-        reach = self.REACH_FACTOR * (self.diagonal + bound * t)
+        reach = self.REACH_FACTOR * (self.diagonal + bounds * t)
         outside = np.maximum(np.maximum(self.lo - x, x - self.hi), 0.0)
         d2 = (outside * outside).sum(axis=1)
-        p = int(np.argmax(d2))
-        if d2[p] > reach * reach:
-            return (f"a particle {math.sqrt(d2[p]):.3g} m outside the scene, more than {reach:.3g} m "
+        p = int(np.argmax(d2 / (reach * reach)))
+        if d2[p] > reach[p] * reach[p]:
+            return (f"a particle {math.sqrt(d2[p]):.3g} m outside the scene, more than {reach[p]:.3g} m "
                     f"({self.REACH_FACTOR:g} x its size plus the speed bound x time)"), int(self.index[p])
         return None
 
