@@ -566,7 +566,7 @@ def test_a_folder_where_run_writes_a_file_is_refused_before_the_run(tmp_path, ca
     assert not out.exists()  # nothing ran
 
 
-def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experiments_file(tmp_path, capsys):
+def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experiments_file(tmp_path, capsys, monkeypatch):
     (tmp_path / "s.toml").write_text(GOOD_TOML)
     run = tmp_path / "truth.usdc"
     assert main(["run", str(tmp_path / "s.toml"), "-o", str(run), "--no-progress", "--dtype", "float64"]) == 0
@@ -619,6 +619,20 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
         captured = capsys.readouterr()
         assert_one_line_error(captured.err, f"error: {tmp_path / 'exp.json'}: experiment #1: {words}")
         assert str(tmp_path / scene) not in captured.err and not captured.out, captured
+    # A bare name that is neither a built-in scene nor a file beside the JSON was read from the
+    # working folder, silently (exit 0); one beside the JSON is still read from there.
+    (tmp_path / "cwd").mkdir()
+    (tmp_path / "cwd" / "plain").write_text(GOOD_TOML)
+    (tmp_path / "cwd" / "twice").write_text(GOOD_TOML)
+    (tmp_path / "twice").write_text(GOOD_TOML + "\n[scene]\n")
+    monkeypatch.chdir(tmp_path / "cwd")
+    for scene, words in (("plain", ("scene = 'plain' is not allowed: unknown scene; the built-in scenes are ",
+                                    f"scene file (relative to {tmp_path}, the folder of the --experiments file)")),
+                         ("twice", ("twice: invalid TOML: ",))):
+        (tmp_path / "exp.json").write_text(json.dumps([{"scene": scene, "target": "truth.usdc"}]))
+        assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2
+        assert_one_line_error(capsys.readouterr().err, f"error: {tmp_path / 'exp.json'}: experiment #1: {words[0]}", *words[1:])
+    monkeypatch.chdir(tmp_path)
     # An absolute path is named as written, and was looked for nowhere else.
     (tmp_path / "exp.json").write_text(json.dumps([{"scene": str(tmp_path / "nope.toml"), "target": "truth.usdc"}]))
     assert main([*fit, "--experiments", str(tmp_path / "exp.json")]) == 2

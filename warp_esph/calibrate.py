@@ -445,6 +445,12 @@ def _read_experiments(path) -> list[tuple[str, dict]]:
                 spec["scene_as_written"] = spec["scene"]  # how a refusal names it (the caller's)
                 spec["scene_folder"] = base  # where a missing one was looked for
             spec["scene"] = rel(spec["scene"])
+        elif scene not in SCENES:
+            # Neither a built-in nor a file beside the JSON: load_scene would read a file of that
+            # name from the working folder, which an experiment's names are never relative to.
+            from .scenes import _unknown  # noqa: PLC0415
+
+            raise ValueError(f"{where}{_unknown(scene)} (relative to {base}, the folder of the --experiments file)")
         cams = spec.get("cameras")
         if cams is not None and not (isinstance(cams, str) and cams.strip()):
             # "" was taken as no cameras: the masks were then read as other targets, or refused for another reason.
