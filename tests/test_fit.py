@@ -1006,6 +1006,11 @@ def test_the_rollout_fit_and_checkpoint_api_refuse_wrong_kinds_by_name(tmp_path)
         (lambda: r.forward(F0=np.zeros((n, 3, 3))), "F0 is not allowed: particle 0 has det F = 0"),
         (lambda: r.forward(F0=eye * np.array([1.0, 1.0, -1.0])), "F0 is not allowed: particle 0 has det F = -1"),
         (lambda: r.forward(alpha0=-np.ones(n)), "alpha0 is not allowed: particle 0 has -1"),
+        # Both were 'target is required (or give a list of Experiment)', which had been given.
+        (lambda: fit([], None, ["mu"]), r"^model = \[\] is not allowed: give a Model and a target, or a non-empty list "
+                                        r"of Experiment$"),
+        (lambda: fit([Experiment(model, PositionLoss({3: x[1]}), steps=3, dt=1e-3), model], None, ["mu"]),
+         r"^model\[1\] = Model\(243 particles, .* is not allowed: a list of experiments holds only Experiment"),
     ]
     for call, message in cases:
         with pytest.raises(ValueError, match=message):

@@ -991,6 +991,15 @@ def fit(
             raise ValueError("target is not allowed with a list of Experiments: each carries its own")
         exps = list(model)
     else:
+        if isinstance(model, (list, tuple)):
+            # [] and a list holding something else were refused as 'target is required (or give a
+            # list of Experiment)', which the caller had given.
+            bad = next((k for k, e in enumerate(model) if not isinstance(e, Experiment)), None)
+            if bad is None:
+                raise ValueError(f"model = {model!r} is not allowed: give a Model and a target, or a non-empty list "
+                                 "of Experiment")
+            raise ValueError(f"model[{bad}] = {checks.shorten(model[bad])!r} is not allowed: a list of experiments holds "
+                             "only Experiment (each its model, loss, steps and dt)")
         if target is None:
             raise ValueError("target is required (or give a list of Experiment)")
         exps = [Experiment(model, target, steps=steps, dt=dt, frames=frames, materials=materials, initial=initial,
