@@ -5,6 +5,7 @@ import json
 import os
 import shutil
 import signal
+import stat
 import subprocess
 import sys
 import textwrap
@@ -577,6 +578,13 @@ def test_fit_refuses_its_output_places_before_fitting_and_names_a_damaged_experi
     assert_one_line_error(capsys.readouterr().err, "--output-dir = ", "fitted.usdc in it is a folder")
     assert main([*fit, "-o", str(tmp_path / "no" / "dir" / "fit.json")]) == 2
     assert_one_line_error(capsys.readouterr().err, "--output = ", "does not exist or is not a folder")
+    # A named pipe (or a device: -o /dev/null, run as root) was replaced by a file of the fit's
+    # JSON, which renames its file over the name, and the fit reported it written, exit 0.
+    os.mkfifo(tmp_path / "pipe.json")
+    assert main([*fit, "-o", str(tmp_path / "pipe.json")]) == 2
+    assert_one_line_error(capsys.readouterr().err, f"--output = '{tmp_path / 'pipe.json'}' is not allowed: it is a named "
+                                                   "pipe, not a file; the output is written beside it and renamed over it")
+    assert stat.S_ISFIFO(os.stat(tmp_path / "pipe.json").st_mode)
     # Options of another kind of target are refused, not ignored (both ran the fit and exited 0).
     assert main([*fit, "--radius", "0.01"]) == 2
     assert_one_line_error(capsys.readouterr().err, "--radius = 0.01 is not allowed: it is the search radius of point-cloud")

@@ -990,6 +990,8 @@ def test_the_rollout_fit_and_checkpoint_api_refuse_wrong_kinds_by_name(tmp_path)
     r = Rollout(model, 3, 1e-3, frames=[1, 3])
     x = r.forward()
     eye = np.tile(np.eye(3), (n, 1, 1))
+    pipe = tmp_path / "pipe.npz"
+    os.mkfifo(pipe)
     cases = [
         (lambda: r.backward(None), "grads = None is not allowed: give a warp_esph.losses.Loss"),
         (lambda: r.set_parameters(["mu"]), r"values = \['mu'\] is not allowed: must be a mapping"),
@@ -1000,6 +1002,9 @@ def test_the_rollout_fit_and_checkpoint_api_refuse_wrong_kinds_by_name(tmp_path)
         (lambda: fit(model, PositionLoss({3: x[1]}), ["yield_stress"], steps=3, dt=1e-3, log=5),
          "log = 5 is not allowed: must be callable"),
         (lambda: checkpoint.load_state(tmp_path / "none.npz", None), "model = None is not allowed"),
+        # Renamed over, it was replaced by a file (a device such as /dev/null too, run as root).
+        (lambda: checkpoint.save_state(pipe, model, model.state(), step=0, frame=0),
+         f"path = '{pipe}' is not allowed: it is a named pipe, not a file"),
         (lambda: checkpoint.save_state(tmp_path / "c.npz", model, model.state(), step=0, frame=0, run={"a": object()}),
          "run is not allowed: it must hold JSON values"),
         (lambda: r.backward([np.full((n, 3), np.nan)] * 2), "gradient for step 1 is not allowed: it has non-finite"),

@@ -11,6 +11,7 @@ import json
 import math
 import os
 import re
+import stat
 import struct
 import zipfile
 import zlib
@@ -456,6 +457,29 @@ def interrupted(kept: str) -> KeyboardInterrupt:
     return e
 
 
+def special_file(path) -> str | None:
+    """What ``path`` is where it exists and is neither a regular file nor a folder (a device,
+    a named pipe, a socket; through a link too), else None. A writer renames its file over
+    the path (``replaced_atomically``): ``fit -o /dev/null`` run as root replaced the device
+    with a regular file holding the fit's JSON, and reported it written."""
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return None
+    for test, kind in ((stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISFIFO, "a named pipe"), (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return kind
+    return None
+
+
+def _refuse_special(what: str, p: str) -> None:
+    kind = special_file(p)
+    if kind is not None:
+        raise ValueError(f"{what} = {p!r} is not allowed: it is {kind}, not a file; the output is written beside it and "
+                         "renamed over it, which would replace it: give the name of a file")
+
+
 @contextlib.contextmanager
 def replaced_atomically(path):
     """Yields a working name beside ``path`` for a writer to fill; once it returns, that file
@@ -464,6 +488,7 @@ def replaced_atomically(path):
     removed and ``path`` is as it was. The working name keeps ``path``'s extension, so
     writers that read the format from it still can."""
     p = os.fspath(path)
+    _refuse_special("path", p)
     head, name = os.path.split(p)
     stem, ext = os.path.splitext(name)
     tmp = os.path.join(head, f".{stem}.{os.getpid()}.part{ext}")  # two processes writing one name keep apart
@@ -503,6 +528,8 @@ def output_place(what: str, path, folder: bool = False) -> str:
     if os.path.exists(p) and os.path.isdir(p) != folder:
         raise ValueError(f"{what} = {p!r} is not allowed: it is {'a file' if folder else 'a folder'}; "
                          f"a {'folder' if folder else 'file'} is written there")
+    if not folder:
+        _refuse_special(what, p)
     # A folder output is created itself, but never its parents: a typo in a parent's name
     # ('/data/rsults/sweep') built a whole tree of folders nobody meant, where a file output
     # (run -o, render -o a.png) was refused; every command now refuses it alike.
