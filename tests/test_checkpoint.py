@@ -85,6 +85,11 @@ def test_bad_checkpoints_are_refused_by_name(tmp_path):
     junk.write_bytes(b"not a zip")
     with pytest.raises(ValueError, match=r"junk\.npz' is not allowed: not a readable warp_esph checkpoint"):
         read_checkpoint(junk)
+    # A .npy (np.load reads it as one array) ended in a TypeError traceback, --resume too.
+    np.save(tmp_path / "x.npy", np.zeros((3, 4, 3)))
+    with pytest.raises(ValueError, match=r"^checkpoint = '.*x\.npy' is not allowed: it holds one numpy array of shape "
+                                         r"\(3, 4, 3\) \(a \.npy\), not a warp_esph checkpoint"):
+        load_state(tmp_path / "x.npy", model)
     with pytest.raises(ValueError, match=r"must end in \.npz"):
         save_state(tmp_path / "c.bin", model, model.state(), step=0, frame=0)
     other = we.SceneBuilder(spacing=0.02)

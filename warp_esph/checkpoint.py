@@ -228,11 +228,19 @@ def read_checkpoint(path, what: str = "checkpoint") -> tuple[dict, dict[str, np.
 
         raise ValueError(f"{what} = {checks.shorten(path)!r} is not allowed: must be a path")
     path = pathlib.Path(path)
+    single = None
     try:
         # Our own handle: np.load leaves its file open when the zip is damaged.
-        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-        meta = json.loads(arrays.pop("meta").tobytes().decode())
+        with open(path, "rb") as fh:
+            loaded = np.load(fh, allow_pickle=False)
+            if isinstance(loaded, np.ndarray):
+                # A .npy, which np.load reads as one array: a TypeError traceback at 'with' before.
+                single = loaded.shape
+            else:
+                with loaded as data:
+                    arrays = {k: data[k] for k in data.files}
+        if single is None:
+            meta = json.loads(arrays.pop("meta").tobytes().decode())
     except FileNotFoundError:
         raise ValueError(f"{what} = {str(path)!r} is not allowed: no such file") from None
     # zipfile also raises RuntimeError (a damaged 'encrypted' flag) and NotImplementedError
@@ -240,6 +248,9 @@ def read_checkpoint(path, what: str = "checkpoint") -> tuple[dict, dict[str, np.
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, json.JSONDecodeError, UnicodeDecodeError,
             RuntimeError, NotImplementedError) as e:
         raise ValueError(f"{what} = {str(path)!r} is not allowed: not a readable warp_esph checkpoint ({type(e).__name__})") from None
+    if single is not None:
+        raise ValueError(f"{what} = {str(path)!r} is not allowed: it holds one numpy array of shape {single} (a .npy), not a "
+                         "warp_esph checkpoint (the .npz save_state writes)")
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise ValueError(f"{what} = {str(path)!r} is not allowed: unknown format {meta.get('format') if isinstance(meta, dict) else None!r}")
     missing = [n for n in State.STATE_FIELDS if n not in arrays and n not in State.OPTIONAL_FIELDS]
