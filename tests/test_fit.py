@@ -483,6 +483,13 @@ def test_an_empty_or_nan_positions_file_is_refused_by_its_name(tmp_path):
         load_target(tmp_path / "empty.npy")
     with pytest.raises(ValueError, match=r"target .*nan\.npy is not allowed: it has non-finite positions"):
         load_target(tmp_path / "nan.npy")
+    # A stored rate of nan was taken ('recorded at nan fps, the other at nan fps'), 0 refused as
+    # 'fps = 0.0', naming no file.
+    for rate in (np.nan, 0.0, -30.0, np.inf):
+        np.savez(tmp_path / "rate.npz", positions=np.zeros((2, 5, 3)), frames=[1, 2], fps=rate)
+        with pytest.raises(ValueError, match=rf"^target .*rate\.npz is not allowed: its 'fps' = {rate!r} must be a finite "
+                                             r"number of frames per second > 0$"):
+            load_target(tmp_path / "rate.npz")
     np.save(tmp_path / "one.npy", np.zeros((5, 3)))
     t = load_target(tmp_path / "one.npy")  # (n, 3): the last frame, as before
     assert t.kind == "positions" and t.frames is None and np.asarray(t.data).shape == (1, 5, 3)

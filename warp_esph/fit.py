@@ -1907,6 +1907,11 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
                     raise ValueError(f"target {p} is not allowed: its 'fps' must be one number, not an array of shape "
                                      f"{rate.shape} ({rate.dtype})")
                 fps = float(rate.reshape(()))
+                if not (math.isfinite(fps) and fps > 0.0):
+                    # nan was read as the rate ('recorded at nan fps, the other at nan fps'), 0 refused
+                    # as 'fps = 0.0', naming no file.
+                    raise ValueError(f"target {p} is not allowed: its 'fps' = {fps!r} must be a finite number of "
+                                     "frames per second > 0")
         else:
             pos = _real_array(p, "positions", data)
         shape = pos.shape
