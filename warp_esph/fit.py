@@ -796,7 +796,11 @@ def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds
             lo, hi = (float(v) for v in rng)
         except (TypeError, ValueError):
             raise ValueError(f"{flag('bounds')}[{name!r}] = {rng!r} is not allowed: must be (lo, hi) numbers") from None
-        if math.isnan(lo) or math.isnan(hi) or not lo < hi:
+        if math.isnan(lo) or math.isnan(hi):
+            # It said 'need lo < hi' of (nan, 1.0), which reads as a wrong order.
+            raise ValueError(f"{flag('bounds')}[{name!r}] = ({lo}, {hi}) is not allowed: a bound must be a number, not "
+                             "NaN (an open end is -inf or inf)")
+        if not lo < hi:
             raise ValueError(f"{flag('bounds')}[{name!r}] = ({lo}, {hi}) is not allowed: need lo < hi")
     return out
 
