@@ -81,6 +81,9 @@ def test_material_accepts_inf_yield_and_converts_young():
         (lambda: _one_box().finalize(device="tpu"), r"device = 'tpu' is not allowed"),
         (lambda: _one_box(name="a").add_box((1, 0, 0), (0.1, 0.1, 0.1), DOUGH, name="a"), r"name = 'a' .* exists already"),
         (lambda: we.SceneBuilder().add_particles(np.zeros((4, 2)), DOUGH), r"positions with shape \(4, 2\) .* \(N, 3\)"),
+        # Said 'it is smaller than the spacing', a shape's words, of no positions at all.
+        (lambda: we.SceneBuilder().add_particles(np.zeros((0, 3)), DOUGH),
+         r"^positions with shape \(0, 3\) is not allowed: body 'particles0' would have no particles; give at least one"),
         (lambda: we.SceneBuilder().add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, velocity=(1, 2)), r"velocity with shape \(2,\) is not allowed: must be 3 finite numbers or one per particle"),
         (lambda: we.SceneBuilder().add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, angular_velocity=(1, float("nan"), 0)), r"angular_velocity\[1\] = nan .* finite"),
     ],

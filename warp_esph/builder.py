@@ -266,6 +266,10 @@ class SceneBuilder:
             raise ValueError(f"name = {name!r} is not allowed: must be a non-empty string")
         if name in (b.name for b in self._bodies):
             raise ValueError(f"name = {name!r} is not allowed: a body of that name exists already")
+        if len(pts) == 0 and kind == "particles":
+            # The shapes' words ('it is smaller than the spacing') for positions given as none.
+            raise ValueError(f"positions with shape {pts.shape} is not allowed: body {name!r} would have no particles; give "
+                             "at least one position")
         if len(pts) == 0:
             raise ValueError(f"body {name!r} has no particles: it is smaller than the spacing {self.spacing:g}")
         if not np.isfinite(pts).all():
