@@ -490,6 +490,10 @@ def test_an_empty_or_nan_positions_file_is_refused_by_its_name(tmp_path):
         with pytest.raises(ValueError, match=rf"^target .*rate\.npz is not allowed: its 'fps' = {rate!r} must be a finite "
                                              r"number of frames per second > 0$"):
             load_target(tmp_path / "rate.npz")
+    (tmp_path / "s.toml").write_text("[scene]\n")  # the scene given as its own target: meshio's 'Could not deduce'
+    with pytest.raises(ValueError, match=r"^target .*s\.toml is not allowed: it is a scene file \(\.toml\), not a "
+                                         r"measurement; give the run's USD"):
+        load_target(tmp_path / "s.toml")
     np.save(tmp_path / "one.npy", np.zeros((5, 3)))
     t = load_target(tmp_path / "one.npy")  # (n, 3): the last frame, as before
     assert t.kind == "positions" and t.frames is None and np.asarray(t.data).shape == (1, 5, 3)

@@ -1880,6 +1880,11 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
     if not os.path.isfile(p):
         raise FileNotFoundError(f"target file {p} does not exist")
     ext = os.path.splitext(p)[1].lower()
+    if ext == ".toml":
+        # The scene given twice ('fit s.toml --target s.toml') was handed to meshio: "mesh
+        # 's.toml' is not allowed: meshio cannot read it (ReadError: Could not deduce ...)".
+        raise ValueError(f"target {p} is not allowed: it is a scene file (.toml), not a measurement; give the run's USD, "
+                         "positions (.npz, .npy), a force log (_tools.csv), a mesh or a point cloud")
     if body is not None and ext not in (".usd", ".usda", ".usdc"):
         # It was ignored: every position of the file was the target.
         raise ValueError(f"--target-body {body!r} is not allowed with the target {p}: only the USD of a run holds bodies "
