@@ -305,6 +305,12 @@ class DivergenceMonitor:
         """``None``, or ``(why, particle)`` for the first bound exceeded."""
         if not self.enabled:
             return None
+        # A blown-up speed past 1e154 m/s squares to inf in float64, which is past every bound
+        # and reported as such: numpy's overflow warning would only add noise to that report.
+        with np.errstate(over="ignore"):
+            return self._check(x, v, t)
+
+    def _check(self, x: np.ndarray, v: np.ndarray, t: float):
         if not self.keep.all():
             x, v = x[self.keep], v[self.keep]
         x = x.astype(np.float64, copy=False)
