@@ -410,6 +410,23 @@ def test_render_and_export_refusals_name_the_option_typed(tmp_path, capsys, opti
     assert sorted(os.listdir(tmp_path)) == ["cli.usdc"]
 
 
+def test_render_and_export_refuse_a_file_that_is_not_usd_by_its_name(tmp_path, capsys):
+    """A scene file given where the USD output belongs was read by pxr, whose words named no
+    format ("Cannot determine file format for @guess.toml@"): it is refused as not USD, with
+    how a scene file runs; nothing is written."""
+    from warp_esph.cli import main
+
+    (tmp_path / "guess.toml").write_text("[scene]\n")
+    (tmp_path / "frames.txt").write_text("1 2 3\n")
+    for args in (["render", str(tmp_path / "guess.toml")], ["export", str(tmp_path / "guess.toml")],
+                 ["render", str(tmp_path / "frames.txt")]):
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "it is not a USD file (.usd, .usda, .usdc, .usdz)" in err, err
+        assert ("'warp-esph run'" in err) == args[1].endswith(".toml"), err
+    assert sorted(os.listdir(tmp_path)) == ["frames.txt", "guess.toml"]
+
+
 @pytest.mark.skipif(render_module.ffmpeg_path() is None, reason="ffmpeg is not installed")
 def test_mp4_with_ffmpeg(tmp_path):
     import subprocess

@@ -940,6 +940,10 @@ class NotAnOutput(ValueError):
     """A USD file that opens but holds no ``warp-esph run`` particles (a mesh file, say)."""
 
 
+#: The file name endings pxr reads as USD (``UsdFrames`` refuses others up front).
+USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+
+
 class UsdFrames:
     """The particles, surfaces, colliders and tools of a ``UsdWriter`` file, frame by frame,
     all in metres and world coordinates (``placement``: another program's file may be in
@@ -953,6 +957,11 @@ class UsdFrames:
         if not os.path.isfile(self.path):
             why = "it is a folder" if os.path.isdir(self.path) else "no such file"
             raise FileNotFoundError(f"cannot read {self.path}: {why}")
+        suffix = os.path.splitext(self.path)[1].lower()
+        if suffix not in USD_SUFFIXES:
+            # pxr's own words named no format it reads ("Cannot determine file format for @s.toml@").
+            hint = ": a scene file is run with 'warp-esph run' (or warp_esph.simulate)" if suffix == ".toml" else ""
+            raise ValueError(f"cannot read {self.path!r}: it is not a USD file ({', '.join(USD_SUFFIXES)}){hint}")
         # Anonymous: a file rewritten in this process (run, then render) is read afresh.
         layer = open_layer_checked(self.path)
         if layer.GetCompositionAssetDependencies():
