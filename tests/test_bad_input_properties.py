@@ -446,6 +446,22 @@ def test_absurd_step_count_is_refused_before_running(dt, fps):
 _MODEL_FOR_STEPS = _box_model()
 
 
+def test_a_tiny_density_is_named_for_the_pressure_stiffness_it_derives():
+    """``density = 1e-300`` derives the default pressure stiffness K / (4 density) = 7.7e303,
+    past float32: the refusal names the density given (it named the derived value, with the
+    advice of a smaller one); a pressure stiffness given is named as itself."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material(mu=1e4, lam=1e4, density=1e-300))
+    with pytest.raises(ValueError, match=r"^Material.density = 1e-300 \(material 0\) is not allowed in float32: the "
+                                         r"pressure_stiffness it gives by default, K / \(4 density\) = 7.67e\+303, must be "
+                                         r"at most 3.4e\+38 in float32; give pressure_stiffness, or a larger density"):
+        b.finalize()
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material(mu=1e4, lam=1e4, density=1000.0, pressure_stiffness=1e39))
+    with pytest.raises(ValueError, match=r"^Material.pressure_stiffness = 1e\+39 \(material 0\) is not allowed in float32"):
+        b.finalize()
+
+
 @pytest.mark.parametrize("E", [1e20, 1e30, 1e300])
 def test_extreme_stiffness_without_dt_is_refused(E):
     import warp as wp

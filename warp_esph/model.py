@@ -101,6 +101,15 @@ def material_precision_problem(material: Material, scalar) -> tuple[str, float, 
     for name in (*Model.MATERIAL_FIELDS, "density"):
         v = getattr(material, name)
         why = precision_problem(v, scalar)
+        if why is not None and name == "pressure_stiffness" and material.has_default_pressure_stiffness:
+            # No one gave it: density = 1e-300 was refused as "pressure_stiffness = 7.67e+303
+            # ... or a smaller value", a value derived from the density, which a smaller one raises.
+            source = "density" if material.density < 0.25 else ("mu" if material.mu >= material.lam else "lam")
+            big = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).max)
+            return source, float(getattr(material, source)), (
+                f"the pressure_stiffness it gives by default, K / (4 density) = {v:.3g}, must be at most {big:.3g} "
+                f"in {scalar.__name__}; give pressure_stiffness, or a " + ("larger density" if source == "density"
+                                                                          else "smaller modulus"))
         if why is not None:
             return name, v, why
     return modulus_precision_problem(material, scalar)
