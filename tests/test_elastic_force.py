@@ -656,3 +656,40 @@ def test_the_rest_models_hand_over_survives_a_checkpoint_and_a_copy(tmp_path):
         outs.append(out.F.numpy())
     np.testing.assert_array_equal(outs[1], outs[0])
     np.testing.assert_array_equal(outs[2], outs[0])
+
+
+def test_a_checkpoint_written_before_the_rest_model_hands_f_over_when_resumed(tmp_path):
+    """A checkpoint written before ``fit="auto"`` ran the rest model has no ``rest_model`` in
+    its metadata, and every step then ran the incremental composition: resumed by the default
+    solver it hands ``F`` over as a state the incremental composition wrote does (read as None
+    before, the flowed block sprang to the rest fit of its sheared positions in one step)."""
+    import json
+
+    from warp_esph.checkpoint import load_state, save_state
+
+    model, solver, a, c, dt = _sheared_block_flowing(5)
+    path = save_state(tmp_path / "flowed.npz", model, a, step=5, frame=0)
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(arrays["meta"].tobytes().decode())
+    del meta["rest_model"]
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez(tmp_path / "old.npz", **arrays)
+    old, _ = load_state(tmp_path / "old.npz", model)
+    model.flow_rate.assign(np.array([0.0]))
+    assert old.rest_model is False
+    outs = []
+    for start in (a, old):
+        out = model.state()
+        solver.step(start, out, dt)
+        outs.append(out.F.numpy())
+    np.testing.assert_array_equal(outs[1], outs[0])
+    # A checkpoint of a state no step wrote (step 0) is a new state's start, as before.
+    path = save_state(tmp_path / "new.npz", model, model.state(), step=0, frame=0)
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(arrays["meta"].tobytes().decode())
+    del meta["rest_model"]
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez(tmp_path / "old0.npz", **arrays)
+    assert load_state(tmp_path / "old0.npz", model)[0].rest_model is None

@@ -348,7 +348,13 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
                                  f"{(a.shape[0], 3)} finite values")
             a.assign(b)
     state.time = float(meta.get("time", 0.0))
-    state.rest_model = meta.get("rest_model") if meta.get("rest_model") in (True, False) else None
+    if "rest_model" in meta:
+        state.rest_model = meta["rest_model"] if meta["rest_model"] in (True, False) else None
+    else:
+        # Written before fit="auto" ran the rest model: every step then ran the incremental
+        # composition, so a rest step hands its F over (a flag of None skipped that, and the
+        # resumed body sprang to the rest fit of its positions); a state no step wrote is new.
+        state.rest_model = False if meta.get("step", 0) else None
     before = {name: getattr(model, name).numpy().copy() for name in Model.MATERIAL_FIELDS}
     for name in Model.MATERIAL_FIELDS:
         getattr(model, name).assign(arrays[f"material_{name}"])
