@@ -439,6 +439,7 @@ class Model:
         # Rest positions and initial neighbour lists of the rest-configuration model
         # (``rest_neighbors()`` builds them once).
         self.rest_x = None
+        self._rest_from = None  # the particle_x0 they were built from (_drop_stale_rest)
         self.rest_nbr = None
         self.rest_count = None
         #: The neighbourhood guard (``neighbors.GUARD_*``) of each particle's rest neighbourhood,
@@ -1134,7 +1135,17 @@ class Model:
             search.build(state.x, self.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count, state.guard)
             self.rest_x, self.rest_nbr, self.rest_count = state.x, state.neighbors, state.neighbor_count
             self.rest_guard = state.guard
+            self._rest_from = self.particle_x0.copy()
         return self.rest_x, self.rest_nbr, self.rest_count
+
+    def _drop_stale_rest(self):
+        """Forget the rest neighbourhoods where ``particle_x0`` changed since they were built
+        (``Solver`` calls it when made): a solver made since takes the rest configuration as
+        the positions are now, as its hourglass control does. Kept, they held the positions an
+        earlier solver saw, so a body edited after it (``calibrate.jitter_model``, a scaled or
+        moved ``particle_x0``) started stressed against them and sprang back."""
+        if self.rest_x is not None and not np.array_equal(self._rest_from, self.particle_x0):
+            self.rest_x = self.rest_nbr = self.rest_count = self.rest_guard = None
 
     @property
     def separate_pressure_density(self) -> bool:

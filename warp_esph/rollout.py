@@ -55,7 +55,9 @@ under ``COLLIDER_FORCES``, whose gradient ``backward`` seeds into each step's
 ``collider_force`` adjoint.
 
 The gradient with respect to ``x0`` holds the SPH rest density fixed (it is a constant
-of the model, computed once from the model's own initial positions).
+of the model, computed once from the model's own initial positions), and so the rest
+configuration of the rest model that ``fit="auto"`` runs for purely elastic scenes
+(``Model.auto_runs_rest``): there an ``x0`` off ``particle_x0`` starts a strained body.
 """
 
 import dataclasses

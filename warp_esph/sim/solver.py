@@ -245,6 +245,8 @@ class Solver:
                           f"they differ from their separate runs; set SceneBuilder(fit=...) (and hourglass) to compare "
                           f"worlds with separate runs", RuntimeWarning, stacklevel=2)
         self._rest = None
+        # Before _choose builds them: the rest configuration is particle_x0 as it is now.
+        model._drop_stale_rest()
         self._choose()
         if model.ghost_floor is not None:
             _check_ghost_floor(model, self.fit)
