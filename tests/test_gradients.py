@@ -497,17 +497,19 @@ def test_energy_spiky_pressure_gradients_match_central_differences(weights, case
 
 def _elastic_model(params=None):
     """The hourglass block made purely elastic (no yield, no flow): the default solver
-    (``fit="auto"``) then runs the curvature-corrected fit with the hourglass control."""
+    (``fit="auto"``) then runs the curvature-corrected fit with the hourglass control, on the
+    rest model (no tools)."""
     return _hourglass_model({"yield_stress": float("inf"), "flow_rate": 0.0, "hardening": 0.0, **(params or {})})
 
 
 @pytest.mark.parametrize("name", ["mu", "lam", "v0"])
 def test_default_solver_of_an_elastic_model_gradients_match_central_differences(weights, name):
-    """What the default solver runs for a purely elastic model under a tape (the corrected
-    fit's hand-written adjoints and the control's generated one, together) against central
-    differences."""
+    """What the default solver runs for a purely elastic model without tools under a tape (the
+    rest model with the corrected total fit, ``Solver.rest_model``: Warp's generated adjoints
+    of its kernels and of the control) against central differences."""
     _, solver = _rollout_loss(_elastic_model(), weights, fit=None, hourglass=None)
-    assert solver.fit == "curvature_corrected" and solver.hourglass > 0.0, (solver.fit, solver.hourglass)
+    assert solver.fit == "curvature_corrected" and solver.hourglass > 0.0 and solver.rest_model, (solver.fit,
+                                                                                                 solver.hourglass)
     _, grads = _rollout_loss(_elastic_model(), weights, grad_of=(name,), fit=None, hourglass=None)
     if name == "v0":
         i, comp, eps = 7, 1, 1e-6
