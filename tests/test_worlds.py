@@ -300,14 +300,16 @@ def test_a_loss_sized_for_the_whole_model_or_another_model_is_refused_before_any
 def test_an_elastic_world_beside_a_plastic_one_is_told_its_fit_is_the_models():
     """``fit="auto"`` is one choice for the whole model: with a world that can flow it is the
     linear fit for every world, where an elastic world alone runs the curvature-corrected fit
-    and the hourglass control (measured: a ball's world 5.4e-3 m off its separate run, F
-    0.12 off). The solver says so, naming the world; an explicit fit matches separate runs."""
+    and the hourglass control, on the rest model (measured before that: a ball's world 5.4e-3 m
+    off its separate run, F 0.12 off). The solver says so, naming the world and what it would
+    run (the rest model was left unsaid); an explicit fit matches separate runs."""
     elastic = MAT_A.replace(yield_stress=float("inf"))
     model = _builder(MAT_A).finalize(worlds=2)
     model.set_material(0, elastic, world=0)
     assert model.worlds_auto_differ() == [0] and model.solver_choice()[0] == "linear"
     for asked in (None, "auto"):
-        with pytest.warns(RuntimeWarning, match=r"world\(s\) \[0\], all elastic, alone would run 'curvature_corrected'"):
+        with pytest.warns(RuntimeWarning, match=r"world\(s\) \[0\], all elastic, alone would run 'curvature_corrected' "
+                                                   r"with the hourglass control on the rest-configuration model, so"):
             we.Solver(model, fit=asked)
     with warnings.catch_warnings():
         warnings.simplefilter("error")

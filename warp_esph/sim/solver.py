@@ -240,8 +240,12 @@ class Solver:
         if differ:
             # One fit for the whole model: an elastic world next to a plastic one ran the linear
             # fit, 5e-3 m off its separate run's 81-particle ball (0.07 m), without a word.
+            # Alone, such a world runs the rest model where the scene allows it (Model.may_run_rest:
+            # its materials are incremental and variational, being elastic_only).
+            rest = model.image_plane is None and not (model.tools is not None and model.tools.colliders)
             warnings.warn(f"fit = 'auto' runs the linear fit for every world: a world's material can flow; world(s) "
-                          f"{differ}, all elastic, alone would run 'curvature_corrected' with the hourglass control, so "
+                          f"{differ}, all elastic, alone would run 'curvature_corrected' with the hourglass control"
+                          f"{' on the rest-configuration model' if rest else ''}, so "
                           f"they differ from their separate runs; set SceneBuilder(fit=...) (and hourglass) to compare "
                           f"worlds with separate runs", RuntimeWarning, stacklevel=2)
         self._rest = None
