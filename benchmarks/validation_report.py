@@ -46,11 +46,43 @@ def _device(r: dict) -> str:
 
 
 def _energy_force(r: dict) -> str:
-    """The energy run's force, with the deformation model where it is not the incremental one."""
+    """The energy run's force, with the deformation model where it is not the incremental
+    composition: the row's own ``deformation``, or the rest model the default solver ran
+    (``rest_model_steps``), whose row says ``deformation="incremental"`` as the material does."""
     d = r.get("deformation", "incremental")
+    if d == "incremental" and r.get("rest_model_steps"):
+        return f"{r['elastic_force']} (default: rest, {r.get('fit', 'linear')} fit, control {r.get('hourglass', 0.0):g})"
     if d == "incremental":
         return r["elastic_force"]
     return f"{r['elastic_force']} ({d}, {r.get('fit', 'linear')} fit, control {r.get('hourglass', 0.0):g})"
+
+
+def _model_note(rows, labels: bool = False) -> str:
+    """A sentence on which deformation model the variational rows of ``rows`` ran: the
+    tables name the force, and the default solver (``fit="auto"``) runs the rest-configuration
+    model where the scene is purely elastic and has no tool, so one force column holds rows of
+    either model. ``rest_model_steps`` (recorded since that default) counts the steps that ran
+    it; a row without the field ran the incremental composition, the default then.
+    ``labels``: name the rows (their ``label``) that ran the rest model. Empty where none did."""
+    var = [r for r in rows if r.get("elastic_force") == "variational" and r.get("deformation", "incremental") == "incremental"]
+    rest = [r for r in var if r.get("rest_model_steps")]
+    if not rest:
+        return ""
+    # Quoted: a label holds commas of its own ("preset rubber, viscosity 0").
+    which = ", ".join(f'"{label}"' for label in dict.fromkeys(str(r["label"]) for r in rest)) + "; " if labels else ""
+    text = (" The default solver (`fit=\"auto\"`) runs the rest-configuration model where a scene is purely elastic "
+            "and has no tool, and the incremental composition `F <- dF F` elsewhere (docs/physics.md, \"The default "
+            f"for purely elastic scenes: the rest model\"): {len(rest)} of the {len(var)} variational rows ran the rest "
+            f"model ({which}`rest_model_steps` in docs/validation.json counts its steps)")
+    if len(rest) < len(var):
+        before = [r for r in var if "rest_model_steps" not in r]
+        others = len(var) - len(rest)
+        text += f"; {others} ran the incremental composition"
+        if before:
+            text += (f" ({'' if len(before) == others else f'{len(before)} of them '}measured by {_runs_of(before)}, "
+                     "before that default)")
+    return text + "."
+
 
 def _f(x, digits=3):
     if x is None:
@@ -967,7 +999,8 @@ def write(results, out: pathlib.Path, meta: dict):
             "(`beam_deflection`). Column: square, 5 x as tall, frictionless floor, E = 1.5e5 Pa, shortening between the "
             "centres of the top and bottom layers against rho g L (L - dx) / (2E) (`column_settlement`). Plates: block "
             "2 x as long, compressed 1e-3 with F consistent and held by two frictionless planes, no gravity; lateral "
-            "strain of the middle third and the internal force on an end layer (`poisson_compression`).\n\n"
+            "strain of the middle third and the internal force on an end layer (`poisson_compression`)."
+            + _model_note([r for r in results if r["case"] in ("bar", "beam", "column", "poisson")]) + "\n\n"
             + "\n\n".join(ela) + "\n\n![elastic results against resolution](images/validation/elastic_resolution.png)\n")
     lab = _lab_tests(results)
     if lab:
@@ -985,7 +1018,10 @@ def write(results, out: pathlib.Path, meta: dict):
             "the St. Venant-Kirchhoff psi of the stored F (the energy the variational force is the gradient of), "
             "each sample at x_k with the mean of the half-step velocities around it (the hourglass control's energy "
             "not counted); `variational (rest, ...)`: `Material(deformation=\"rest\")`, the total fit against the "
-            "rest neighbourhood (docs/physics.md, \"The energy of undamped elastic bodies\"). "
+            "rest neighbourhood (docs/physics.md, \"The energy of undamped elastic bodies\"); `variational (default: "
+            "rest, ...)`: the default solver (`fit=\"auto\"`), which runs that model for this purely elastic body "
+            "(docs/physics.md, \"The default for purely elastic scenes: the rest model\"; `rest_model_steps` in "
+            "docs/validation.json); `variational` alone: the incremental composition `F <- dF F`. "
             "Drift: (E_end - E0) / E0; max: largest |E - E0| / E0; a run stops when E passes 100 E0.\n\n"
             + _table(["force", "dt / stable", "peak strain", "periods", "drift", "max deviation", "blew up", "run"],
                      [[_energy_force(r), r["dt_factor"], r["peak_strain"], r["periods"], r["drift"], r["max_deviation"], r["blew_up"],
@@ -997,7 +1033,8 @@ def write(results, out: pathlib.Path, meta: dict):
             "## Stability at half of `Model.stable_dt()`\n\n"
             "`stability`: a 6^3 box (2 cm spacing) resting on the ground (friction 0.5), each preset with its own "
             "viscosity and with none, and `Material(mu=1e5, lam=1e5)` (defaults: pressure on, no viscosity), each with "
-            "both elastic forces, for the stated time at 0.5 `stable_dt()`. Blew up: a particle faster than 5 m/s.\n\n"
+            "both elastic forces, for the stated time at 0.5 `stable_dt()`. Blew up: a particle faster than 5 m/s."
+            + _model_note(st, labels=True) + "\n\n"
             + _table(["material", "force", "preset's force", "fit weight", "dt (s)", "t (s)", "max speed (m/s)", "blew up", "at (s)",
                       "run"],
                      [[r["label"], r["elastic_force"], r["preset_force"], _fit_weight(r), r["dt"], r["duration"], r["max_speed"],

@@ -972,6 +972,39 @@ def test_report_judges_the_elastic_references_and_the_step_bound_per_fit_weight(
     assert len([line for line in lines if line.startswith("| preset clay | variational | variational | biweight |")]) == 1
 
 
+def test_report_says_which_deformation_model_the_default_ran_for_the_variational_rows(tmp_path):
+    """The default solver runs the rest model for a purely elastic scene without tools and the
+    incremental composition elsewhere (``rest_model_steps`` counts the former's steps; a row
+    without the field predates that default): the force column cannot tell them apart, so the
+    energy table names the default's rest rows and each section says which rows ran which."""
+    from benchmarks import validation_report
+
+    energy = {"case": "energy", "amplitude": 0.002, "elastic_force": "variational", "deformation": "incremental",
+              "fit": "curvature_corrected", "hourglass": 0.05, "resolution": 6, "dt_factor": 1.0, "periods": 50.0,
+              "peak_strain": 0.005, "drift": -0.001, "max_deviation": 0.02, "blew_up": False, "t": [0.0, 1.0],
+              "relative_energy": [0.0, -0.001]}
+    bar = {"case": "bar", "elastic_force": "variational", "particles": 640, "frequency": 12.5, "theory": 12.5,
+           "ratio": 0.9975}
+    stab = {"case": "stability", "elastic_force": "variational", "preset_force": "variational", "dt": 3e-4,
+            "duration": 1.0, "max_speed": 0.5, "blew_up": False, "blew_up_at": None}
+    meta = {"command": "python -m benchmarks.validation", "machine": "x86_64", "python": "3.11", "wall_s": 1.0}
+    earlier = validation.merge(None, [energy | {"dt_factor": 0.5, "drift": 0.034}, bar | {"resolution": 6}], meta)
+    doc = validation.merge(earlier, [energy | {"rest_model_steps": 2001}, bar | {"resolution": 4, "rest_model_steps": 990},
+                                     stab | {"label": "preset rubber", "rest_model_steps": 3000},
+                                     stab | {"label": "preset clay", "rest_model_steps": 0}], meta)
+    md, _ = validation_report.write(doc["results"], tmp_path, doc)
+    text = md.read_text()
+    lines = text.splitlines()
+    assert [line.split(" | ")[0] for line in lines if line.startswith("| variational")] == [
+        "| variational", "| variational (default: rest, curvature_corrected fit, control 0.05)"]
+    elastic = text[text.index("## Elastic references"):text.index("### Free-free bar")]
+    assert "1 of the 2 variational rows ran the rest model (`rest_model_steps`" in elastic, elastic
+    assert "; 1 ran the incremental composition (measured by R1, before that default)." in elastic, elastic
+    stability = text[text.index("## Stability at half"):]
+    assert '1 of the 2 variational rows ran the rest model ("preset rubber"; `rest_model_steps`' in stability, stability
+    assert "; 1 ran the incremental composition." in stability, stability
+
+
 # ------------------------------------------------------- the rest verdict of the slumps
 def test_the_full_plan_reads_every_slump_at_its_rest_duration_and_the_quick_plan_stays_short():
     """Every slump of the full plan runs ``SLUMP_DURATION`` (8 s: at 4 s the S = 0.3 and 0.05
