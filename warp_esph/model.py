@@ -596,10 +596,10 @@ class Model:
         """Whether ``fit="auto"`` (``fit``; None: the model's) may run the rest-configuration model
         for this scene, whatever the parameters: every material variational and incremental, and
         none of what the rest neighbourhood cannot follow. A ghost floor and floor images enter
-        the incremental fit only; a tool (a moving collider, ``SceneBuilder.add_tool``) can cut
-        a body apart, which the incremental fit follows as its neighbours part, while a rest
-        neighbourhood holds every pair it began with, across the cut (a block cut by a fast blade
-        blew up). Pins are not tools here: they hold particles, they cut nothing."""
+        the incremental fit only; a tool (a moving collider, ``SceneBuilder.add_tool``) can force
+        a body through a rearrangement, which the incremental fit follows as its neighbours
+        change, while a rest neighbourhood holds every pair it began with (a fast blade sweeping
+        through a block blew it up). Pins are not tools here: they hold particles in place."""
         asked = self.fit if fit is None else fit
         return (asked == "auto" and self.ghost_floor is None and self.image_plane is None
                 and not (self.tools is not None and self.tools.colliders)

@@ -164,8 +164,8 @@ class Solver:
     where every material is ``"rest"``: then it is the rest model's total fit that is corrected
     (with ``elastic_force="variational"`` a conservative elastic force, docs/physics.md, "The
     energy of undamped elastic bodies"). Where ``"auto"`` chose the corrected fit and the scene
-    allows it (``Model.may_run_rest``: no floor images, no ghost floor, no tool, which could cut
-    a body apart), the step runs the rest-configuration model for every material
+    allows it (``Model.may_run_rest``: no floor images, no ghost floor, no tool, which could
+    force a body through a rearrangement no rest neighbourhood follows), the step runs the rest-configuration model for every material
     (``rest_model``; the kernels read the deformation code ``"rest"``,
     ``Model.material_arrays(rest=True)``): the corrected total fit against the rest
     neighbourhood with its variational force, a conservative elastic force. When a parameter
