@@ -667,15 +667,18 @@ def test_a_checkpoint_written_before_the_rest_model_hands_f_over_when_resumed(tm
 
     from warp_esph.checkpoint import load_state, save_state
 
+    def written_before(state, name, step):
+        """A checkpoint of ``state`` as written before: its metadata without ``rest_model``."""
+        with np.load(save_state(tmp_path / f"{name}_new.npz", model, state, step=step, frame=0)) as data:
+            arrays = {k: data[k] for k in data.files}
+        meta = json.loads(arrays["meta"].tobytes().decode())
+        del meta["rest_model"]
+        arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+        np.savez(tmp_path / f"{name}.npz", **arrays)
+        return tmp_path / f"{name}.npz"
+
     model, solver, a, c, dt = _sheared_block_flowing(5)
-    path = save_state(tmp_path / "flowed.npz", model, a, step=5, frame=0)
-    with np.load(path) as data:
-        arrays = {k: data[k] for k in data.files}
-    meta = json.loads(arrays["meta"].tobytes().decode())
-    del meta["rest_model"]
-    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-    np.savez(tmp_path / "old.npz", **arrays)
-    old, _ = load_state(tmp_path / "old.npz", model)
+    old, _ = load_state(written_before(a, "old", 5), model)
     model.flow_rate.assign(np.array([0.0]))
     assert old.rest_model is False
     outs = []
@@ -685,14 +688,7 @@ def test_a_checkpoint_written_before_the_rest_model_hands_f_over_when_resumed(tm
         outs.append(out.F.numpy())
     np.testing.assert_array_equal(outs[1], outs[0])
     # A checkpoint of a state no step wrote (step 0) is a new state's start, as before.
-    path = save_state(tmp_path / "new.npz", model, model.state(), step=0, frame=0)
-    with np.load(path) as data:
-        arrays = {k: data[k] for k in data.files}
-    meta = json.loads(arrays["meta"].tobytes().decode())
-    del meta["rest_model"]
-    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-    np.savez(tmp_path / "old0.npz", **arrays)
-    assert load_state(tmp_path / "old0.npz", model)[0].rest_model is None
+    assert load_state(written_before(model.state(), "old0", 0), model)[0].rest_model is None
 
 
 def test_a_solver_made_after_particle_x0_changed_takes_the_rest_configuration_as_it_is_now():
