@@ -245,6 +245,36 @@ def test_guarded_rest_neighbourhoods_keep_their_f(elastic_force):
         assert np.abs(c.force.numpy()).max() == 0.0
 
 
+@pytest.mark.parametrize("fit", ["auto", "explicit rest"])
+def test_the_rest_models_guard_follows_the_solvers_thresholds(fit):
+    """A two-layer 8x8 plate: with ``Solver(min_neighbors=20)`` no particle has that many rest
+    neighbours, so the rest model keeps every F (counted), as the incremental fit does (the
+    guard was evaluated once with the default thresholds: it fitted every F); the
+    default solver on the same model still fits (the model's default rest guard is not
+    changed by the other solver's thresholds)."""
+    deformation = "rest" if fit == "explicit rest" else "incremental"
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, deformation=deformation)
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (8 * SPACING, 8 * SPACING, 2 * SPACING), mat)
+    model = b.finalize(dtype=wp.float64)
+    F0 = np.tile(np.diag([1.1, 0.95, 1.0]), (model.particle_count, 1, 1))
+    few = {}
+    for min_neighbors in (20, we.Solver(model).min_neighbors, 20):
+        solver = we.Solver(model, min_neighbors=min_neighbors)
+        assert fit != "auto" or solver.rest_model
+        a, c = model.state(), model.state()
+        a.F.assign(F0)
+        solver.step(a, c, 1.0e-5)
+        few[min_neighbors] = solver.guard_counts()["few_neighbors"]
+        if min_neighbors == 20:
+            assert np.array_equal(c.F.numpy(), F0)
+    assert few == {20: model.particle_count, 6: 0}, few
+    # max_condition reaches it too: no rest neighbourhood of the plate passes cond(A) <= 1.01.
+    solver = we.Solver(model, max_condition=1.01)
+    solver.step(model.state(), model.state(), 1.0e-5)
+    assert solver.guard_counts()["ill_conditioned"] > 0
+
+
 @pytest.mark.parametrize("yield_stress, flows", [(0.0, False), (1.0e9, False), (100.0, True)])
 def test_the_rest_model_keeps_its_plastic_f_exactly_where_nothing_flows(yield_stress, flows):
     """Float32, a stretched 4x4x3 block of the rest model ringing for 60 steps: where no flow

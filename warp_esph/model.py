@@ -443,8 +443,11 @@ class Model:
         self.rest_nbr = None
         self.rest_count = None
         #: The neighbourhood guard (``neighbors.GUARD_*``) of each particle's rest neighbourhood,
-        #: with the default thresholds (6 neighbours, ``cond(A) <= 20``); ``rest_neighbors()`` fills it.
+        #: with the default thresholds (6 neighbours, ``cond(A) <= 20``); ``rest_neighbors()`` fills it
+        #: (a solver's own thresholds: ``rest_guard_for``).
         self.rest_guard = None
+        # The same with a solver's other thresholds (rest_guard_for), keyed by them.
+        self._rest_guards = {}
 
         V, S = self.types.vec3, scalar
         self.plane_normal = self._collider_array([p.normal for p in planes], V)
@@ -1138,6 +1141,27 @@ class Model:
             self._rest_from = self.particle_x0.copy()
         return self.rest_x, self.rest_nbr, self.rest_count
 
+    def rest_guard_for(self, min_neighbors: int, max_condition: float) -> wp.array:
+        """The guard (``neighbors.GUARD_*``) of each rest neighbourhood with a solver's thresholds
+        (``Solver(min_neighbors=..., max_condition=...)``): ``rest_guard`` itself with the
+        defaults, else evaluated once per pair of thresholds on the same rest neighbourhoods.
+        The rest model reads it as the incremental fit reads the guard of the current ones."""
+        from .sim import neighbors  # noqa: PLC0415
+
+        self.rest_neighbors()
+        key = (int(min_neighbors), float(max_condition))
+        if key == (neighbors.MIN_NEIGHBORS, float(neighbors.MAX_CONDITION)):
+            return self.rest_guard
+        if key not in self._rest_guards:
+            state = State(self, requires_grad=False)
+            search = neighbors.NeighborSearch(
+                self.particle_count, self.scalar, self.device, self.support_radius,
+                min_neighbors=key[0], max_condition=key[1], **self.neighbor_options(bodies=False)
+            )
+            search.build(state.x, self.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count, state.guard)
+            self._rest_guards[key] = state.guard
+        return self._rest_guards[key]
+
     def _drop_stale_rest(self):
         """Forget the rest neighbourhoods where ``particle_x0`` changed since they were built
         (``Solver`` calls it when made): a solver made since takes the rest configuration as
@@ -1146,6 +1170,7 @@ class Model:
         moved ``particle_x0``) started stressed against them and sprang back."""
         if self.rest_x is not None and not np.array_equal(self._rest_from, self.particle_x0):
             self.rest_x = self.rest_nbr = self.rest_count = self.rest_guard = None
+            self._rest_guards = {}
 
     @property
     def separate_pressure_density(self) -> bool:

@@ -263,14 +263,17 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                                  rest_variational_forces=rest_variational_forces, rest_handover=rest_handover)
 
 
-def launch_rest_handover(model, state_in, Fp_out, curved: bool = False):
+def launch_rest_handover(model, state_in, Fp_out, curved: bool = False, rest_guard=None):
     """``rest_handover`` of ``state_in`` into ``Fp_out`` (read by the step's constitutive update in
-    place of ``state_in.F_p``; ``state_in`` is only read)."""
+    place of ``state_in.F_p``; ``state_in`` is only read). ``rest_guard``: the rest
+    neighbourhoods' guard with the solver's thresholds (``Model.rest_guard_for``; None: the
+    default ``Model.rest_guard``), as in the launches below."""
     rest_x, rest_nbr, rest_count = model.rest_neighbors()
+    rest_guard = model.rest_guard if rest_guard is None else rest_guard
     model.launches(
         kernels(model.scalar, model.fit_weight).rest_handover,
         model.particle_count,
-        [state_in.x, rest_x, model.particle_body, rest_nbr, rest_count, model.rest_guard, state_in.F, state_in.F_p,
+        [state_in.x, rest_x, model.particle_body, rest_nbr, rest_count, rest_guard, state_in.F, state_in.F_p,
          model.scalar(model.support_radius), int(curved)],
         [Fp_out],
         device=model.device,
@@ -293,16 +296,19 @@ def launch_constitutive_update(model, state_in, state_out, dt, counters, mats=No
 
 def launch_update_deformation(model, state_in, state_out, counters, curved: bool = False,
                               max_condition: float = deformation.guards.MAX_CONDITION,
-                              min_neighbors: int = deformation.guards.MIN_NEIGHBORS, mats=None):
+                              min_neighbors: int = deformation.guards.MIN_NEIGHBORS, mats=None, rest_guard=None):
     """``deformation.launch_update_deformation`` for models with a Fig. 8 comparison material
-    (``curved``: the rest model's total fit is the curvature-corrected one)."""
+    (``curved``: the rest model's total fit is the curvature-corrected one; ``rest_guard``: the
+    rest neighbourhoods' guard with the thresholds given, ``Model.rest_guard_for``, None: the
+    default's)."""
     rest_x, rest_nbr, rest_count = model.rest_neighbors()
+    rest_guard = model.rest_guard if rest_guard is None else rest_guard
     model.launches(
         kernels(model.scalar, model.fit_weight).update_deformation,
         model.particle_count,
         [
             state_in.x, state_out.x, rest_x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
-            rest_nbr, rest_count, model.rest_guard, state_out.guard, model.particle_material,
+            rest_nbr, rest_count, rest_guard, state_out.guard, model.particle_material,
             model.material_arrays() if mats is None else mats, state_out.F_flowed,
             state_out.F_p, model.scalar(model.support_radius), int(min_neighbors), model.scalar(max_condition), int(curved),
         ],
@@ -311,18 +317,19 @@ def launch_update_deformation(model, state_in, state_out, counters, curved: bool
     )
 
 
-def launch_rest_variational_forces(model, state_out, curved: bool = False, mats=None):
+def launch_rest_variational_forces(model, state_out, curved: bool = False, mats=None, rest_guard=None):
     """``rest_variational_forces`` into ``state_out.force``, from the stress and ``F_p`` the
     constitutive update wrote (launched only when a material asks for it; ``curved``: of the
-    curvature-corrected total fit)."""
+    curvature-corrected total fit; ``rest_guard``: as in ``launch_update_deformation``)."""
     rest_x, rest_nbr, rest_count = model.rest_neighbors()
+    rest_guard = model.rest_guard if rest_guard is None else rest_guard
     with kept_through_backward(state_out.force):
         model.launches(
             kernels(model.scalar, model.fit_weight).rest_variational_forces,
             model.particle_count,
             [rest_x, model.particle_body, model.particle_material, model.material_arrays() if mats is None else mats,
              rest_nbr, rest_count,
-             model.rest_guard, model.particle_volume, state_out.stress, state_out.F_p, model.scalar(model.support_radius),
+             rest_guard, model.particle_volume, state_out.stress, state_out.F_p, model.scalar(model.support_radius),
              int(curved)],
             [state_out.force],
             device=model.device,

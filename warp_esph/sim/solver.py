@@ -538,6 +538,8 @@ class Solver:
         # With comparison models the corrected fit is the rest model's total fit (every material 'rest').
         curved_rest = cmp and self._curved
         Fp_in = None
+        # The rest neighbourhoods' guard with this solver's thresholds, as the incremental fit's.
+        rest_guard = m.rest_guard_for(scratch.min_neighbors, scratch.max_condition) if cmp else None
         if rest_model and state_in.rest_model is False:
             # Elastic again after a step of the incremental composition: F_p such that the rest
             # model's F_e is the stored F (comparison.rest_handover); state_in is only read.
@@ -548,7 +550,7 @@ class Solver:
                                    "or tools allowed the rest model, Model.may_run_rest); make the states again "
                                    "with Model.state(requires_grad=True)")
             Fp_in = wp.empty_like(state_in.F_p, requires_grad=state_in.F.requires_grad)
-            comparison.launch_rest_handover(m, state_in, Fp_in, curved_rest)
+            comparison.launch_rest_handover(m, state_in, Fp_in, curved_rest, rest_guard)
         fast_tape = tape if fast else None
         phase = self._phase
 
@@ -608,7 +610,7 @@ class Solver:
                     # this kernel would add nothing.)
                     forces.launch_elastic_forces(m, state_in, state_out, hand, scratch.max_condition, scratch.min_neighbors)
                 if self._rest_variational or rest_model:
-                    comparison.launch_rest_variational_forces(m, state_out, curved_rest, mats)
+                    comparison.launch_rest_variational_forces(m, state_out, curved_rest, mats, rest_guard)
                 if ghosts is not None:
                     # The energies' forces on the ghosts go to their stencils.
                     ghost_floor.launch_hand_over(m, state_out)
@@ -644,7 +646,7 @@ class Solver:
                 fused.launch_update_deformation(m, state_in, state_out, scratch, fast_tape)
             elif cmp:
                 comparison.launch_update_deformation(m, state_in, state_out, scratch.counters, curved_rest,
-                                                     scratch.max_condition, scratch.min_neighbors, mats)
+                                                     scratch.max_condition, scratch.min_neighbors, mats, rest_guard)
             elif self._curved:
                 deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, hand,
                                                       max_condition=scratch.max_condition,
