@@ -529,7 +529,8 @@ def _run_sample(scene, task: _Task) -> dict:
     from .startup import init_warp  # noqa: PLC0415 (quiet Warp start, shared with the CLI)
 
     init_warp(task.device)
-    from .simulate import SimulationError, StepRefusal, divergence_advice, resolve_timestep, simulate  # noqa: PLC0415
+    from .simulate import (SimulationError, StepRefusal, divergence_advice, resolve_timestep, rest_inversions,  # noqa: PLC0415
+                           simulate)
     from .sim.solver import Solver  # noqa: PLC0415
 
     row = {"sample": task.index, "status": "ok", **task.values, "seed": task.seed}
@@ -565,6 +566,9 @@ def _run_sample(scene, task: _Task) -> dict:
         why = e.reason
         if e.advice and e.advice == f"; {divergence_advice(model, solver.hourglass)}":
             why += f"; the sample's stable step is {model.stable_dt(hourglass=solver.hourglass):.3g} s"
+        elif e.advice and rest_inversions(solver) and e.advice == f"; {divergence_advice(model, solver.hourglass, solver=solver)}":
+            # Its fact without the caller's options: a smaller step does not mend it.
+            why += f"; the rest-configuration model's fit inverted in {rest_inversions(solver)} particle-steps"
         row.update(status="failed", reason=_one_line(why))
     except StepRefusal as e:
         # The reason without a run's advice ('give dt= or substeps=', 'fewer frames=, or a larger
