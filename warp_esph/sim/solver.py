@@ -125,6 +125,8 @@ class Solver:
     jump in the step (docs/method.md §2 and §8). Likewise from ``min_neighbors`` (default 6)
     same-body neighbours down to one fewer, counted smoothly (each neighbour fades from 0.95
     ``h`` to ``h``, where its fit weight ends), so no neighbour crossing ``h`` makes a jump.
+    The rest-configuration model reads the same thresholds on its rest neighbourhoods, once
+    (``Model.rest_guard_for``): a guarded one keeps its ``F``, without the fade.
 
     ``neighbor_skin`` (in units of the support radius ``h``, in [0, 1]; default
     ``DEFAULT_SKIN``) is the Verlet margin of the neighbour candidates: they are rebuilt only when two
