@@ -307,7 +307,7 @@ def test_diagnostics_flag_an_unobservable_yield_stress(yield_stress, flagged, dr
 def test_the_large_strain_bias_is_said_for_the_poly6_weight_past_its_measured_strain():
     """``large_strain_bias``: more than a tenth of the particles of materials that can flow
     past alpha = 0.65 (the median alpha where the uniaxial flow stress falls, 8 and 12
-    across) with the poly6 fit weight; not with the biweight, whose packing holds 0.83-0.94
+    across) with the poly6 fit weight; not with the biweight, whose packing holds 0.83-0.95
     of the Bingham stress. An elastic body's particles (a floor, alpha 0 for ever) do not
     dilute the share."""
     from types import SimpleNamespace
