@@ -604,9 +604,13 @@ class Model:
         change, while a rest neighbourhood holds every pair it began with (a fast blade sweeping
         through a block blew it up). Pins are not tools here: they hold particles in place."""
         asked = self.fit if fit is None else fit
-        return (asked == "auto" and self.ghost_floor is None and self.image_plane is None
-                and not (self.tools is not None and self.tools.colliders)
+        return (asked == "auto" and self.scene_allows_rest
                 and all(m.deformation == "incremental" and m.elastic_force == "variational" for m in self.materials))
+
+    @property
+    def scene_allows_rest(self) -> bool:
+        """The scene's part of ``may_run_rest``: no ghost floor, no floor images, no tool."""
+        return self.ghost_floor is None and self.image_plane is None and not (self.tools is not None and self.tools.colliders)
 
     def solver_choice(self, fit: str | None = None, hourglass: float | None = None) -> tuple[str, float]:
         """``(fit, c)``: the incremental fit and the hourglass strength a ``Solver(model, fit=fit,

@@ -167,8 +167,9 @@ class Solver:
     (with ``elastic_force="variational"`` a conservative elastic force, docs/physics.md, "The
     energy of undamped elastic bodies"). Where ``"auto"`` chose the corrected fit and the scene
     allows it (``Model.may_run_rest``: no floor images, no ghost floor, no tool, which could
-    force a body through a rearrangement no rest neighbourhood follows), the step runs the rest-configuration model for every material
-    (``rest_model``; the kernels read the deformation code ``"rest"``,
+    force a body through a rearrangement no rest neighbourhood follows), the step runs the
+    rest-configuration model for every material (``rest_model``; the kernels read the
+    deformation code ``"rest"``,
     ``Model.material_arrays(rest=True)``): the corrected total fit against the rest
     neighbourhood with its variational force, a conservative elastic force. When a parameter
     makes a material flow the step turns to the incremental composition from the stored ``F``;
@@ -244,7 +245,7 @@ class Solver:
             # fit, 5e-3 m off its separate run's 81-particle ball (0.07 m), without a word.
             # Alone, such a world runs the rest model where the scene allows it (Model.may_run_rest:
             # its materials are incremental and variational, being elastic_only).
-            rest = model.image_plane is None and not (model.tools is not None and model.tools.colliders)
+            rest = model.scene_allows_rest
             warnings.warn(f"fit = 'auto' runs the linear fit for every world: a world's material can flow; world(s) "
                           f"{differ}, all elastic, alone would run 'curvature_corrected' with the hourglass control"
                           f"{' on the rest-configuration model' if rest else ''}, so "
