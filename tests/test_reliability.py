@@ -227,6 +227,38 @@ def test_a_rest_model_divergence_of_inverted_fits_names_them_not_a_smaller_step(
     assert "dt=" not in line and "fit=" not in line, line
 
 
+@pytest.mark.filterwarnings("ignore:a neighbour row was cut")
+def test_the_inverted_fits_advice_counts_only_this_run_at_no_more_than_the_stable_step():
+    """The rest model's 'a smaller dt= does not mend' is for a run at the stable step: at 12 x
+    it a 4x4x4 block blows up and its fits invert on the way, where the cure is the smaller
+    step (it was advised against). And a solver's counts run on from its earlier runs: a
+    mirrored block's 64 inverted fits stepped before were counted as this run's."""
+    mat = we.Material.from_young(2.0e5, 0.3)
+    b = we.SceneBuilder(spacing=0.01, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.04, 0.04, 0.04), mat)
+    model = b.finalize(dtype=wp.float64)
+
+    def start(scale):
+        s = model.state()
+        x = s.x.numpy()
+        s.x.assign(x.mean(axis=0) + scale * (x - x.mean(axis=0)))
+        return s
+
+    solver = we.Solver(model)
+    assert solver.rest_model
+    substeps = int((1.0 / 30.0) / (12.0 * model.stable_dt()))
+    with pytest.warns(RuntimeWarning, match="above the explicit stability limit"):
+        with pytest.raises(we.SimulationError, match=r"; try a smaller dt= \(stable limit [^)]* s\) or stiffer-to-softer"):
+            we.simulate(model, 10, substeps=substeps, solver=solver, state=start(1.02), progress=False)
+    assert solver.guard_counts()["inverted"] > 0
+    solver = we.Solver(model)
+    solver.step(start(-1.0), model.state(), 1.0e-6)
+    assert solver.guard_counts()["inverted"] == 64
+    with pytest.raises(we.SimulationError, match="the rest-configuration model's fit inverted in") as e:
+        we.simulate(model, 3, solver=solver, state=start(1.3), progress=False)
+    assert f"inverted in {solver.guard_counts()['inverted'] - 64} particle-steps" in str(e.value)
+
+
 def test_a_compression_field_s_potential_energy_is_part_of_the_scene_s_energy():
     """A dough box under a field of k = 1e6 at 0.66 x its stable step blew up (crushed, it is
     stiffer than the limit allows for, docs/method.md §8) and the run ended with particles

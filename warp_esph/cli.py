@@ -713,7 +713,9 @@ def _cmd_run(args) -> int:
         said = e.reason if e.advice and args.resume is not None else str(e)
         if e.advice and args.resume is None:
             f32 = args.dtype == "float32"
-            ours = {f"; {divergence_advice(model, solver.hourglass, solver=solver)}":
+            # The fresh solver's counts are the run's; above the stable step simulate gave the plain advice.
+            ours = {f"; {divergence_advice(model, solver.hourglass)}": divergence_advice(model, solver.hourglass, "--dt"),
+                    f"; {divergence_advice(model, solver.hourglass, solver=solver)}":
                     divergence_advice(model, solver.hourglass, "--dt", solver),
                     f"; {far_mesh_advice(f32)}": far_mesh_advice(f32, "--dtype float64"),
                     TOO_FAST_ADVICE: _run_advice()[TOO_FAST_ADVICE][2:]}  # a tools.Scripted motion's (Python scenes)

@@ -59,7 +59,8 @@ class StepRefusal(ValueError):
         self.detail = reason if detail is None else detail
 
 
-def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=", solver: Solver | None = None) -> str:
+def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=", solver: Solver | None = None,
+                      since: int = 0, step: float | None = None) -> str:
     """The advice of ``simulate``'s divergence (``SimulationError``) of ``model`` at the stable
     step of the hourglass control ``hourglass`` (``Model.stable_dt``); ``dt``: how the caller
     names the step (``warp-esph run``: ``--dt``, and then its options for the fit). Where a
@@ -70,15 +71,18 @@ def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=", so
     fits, it says that: a body crushed or folded past what its rest neighbourhoods follow,
     which no smaller step mends (a soft cantilever hanging under its own weight diverged at
     0.299 s at the stable step and at 0.293 s at half of it), where a stiffer material or the
-    incremental composition, which follows the neighbours as a body parts, runs on."""
-    inverted = rest_inversions(solver) if solver is not None else 0
-    if inverted:
+    incremental composition, which follows the neighbours as a body parts, runs on. ``since``:
+    the solver's inverted count when the run began (an earlier run's are not this one's);
+    ``step``: the run's step, above the stable one a blow-up inverts the fits too, and a
+    smaller step is the cure."""
+    stable = model.stable_dt(hourglass=hourglass)
+    inverted = rest_inversions(solver) - since if solver is not None and rest_inversions(solver) else 0
+    if inverted > 0 and (step is None or step <= stable * (1.0 + 1e-6)):
         fit = ("--solver-fit curvature_corrected --hourglass 0.05" if dt == "--dt" else
                "fit='curvature_corrected' with hourglass=0.05 (SceneBuilder or Solver)")
         return (f"the rest-configuration model's fit inverted in {inverted} particle-steps: a body crushed or folded "
                 f"past what its rest neighbourhoods follow, which a smaller {dt} does not mend; try a stiffer "
                 f"material, or {fit}, the incremental composition, which follows the neighbours as a body parts")
-    stable = model.stable_dt(hourglass=hourglass)
     if _field_cause(model, 0.3, hourglass) is not None:
         _, k, which = model._field_limit(0.3)
         return (f"try a smaller {dt} (stable limit {stable:.3g} s, set by {model._field_words(which)} at net strength "
@@ -955,6 +959,8 @@ def simulate(
                                     monitor_exempt) if monitor else None
         t_origin = 0 if monitor_origin is None else start_frame  # frames from the monitor's state to this call's
 
+        # A solver's counts run on from its earlier runs: theirs are not this run's inversions.
+        inverted0 = solver.guard_counts()["inverted"]
         far_meshes = _far_mesh_tools(model)
         bar = _progress_bar(frames, f"{model.particle_count} particles") if progress else None
         try:
@@ -998,7 +1004,7 @@ def simulate(
                     raise SimulationError(
                         f"the simulation diverged after step {step} (frame {frame}, t = {frame / fps:.4g} s, "
                         f"dt = {dt:.4g} s): {what}, at particle {p} of body {body!r}", step=step, particle=p, body=body,
-                        frame=frame, advice=f"; {divergence_advice(model, solver.hourglass, solver=solver)}",
+                        frame=frame, advice=f"; {divergence_advice(model, solver.hourglass, solver=solver, since=inverted0, step=dt)}",
                     )
                 met = _far_mesh_contact(model, current, far_meshes) if far_meshes else None
                 if met is not None:
