@@ -364,6 +364,17 @@ def test_a_field_s_speed_counts_only_for_the_particles_it_can_have_sped_up_by_th
     assert mon.speed_bounds(0.49) == pytest.approx(np.full(model.particle_count, mon.wave))
     assert (mon.speed_bounds(0.5) > 100.0 * mon.wave).all()
     assert mon.speed_bounds(5.0) == pytest.approx(mon.speed_bounds(0.5))  # off since 0.6 s: its speed stays
+    # A run that starts after the field went off (simulate(state=...) of a run in parts): its
+    # speed is in the state's own (v0), and it gives no more; it loosened every bound by
+    # sqrt(k) R again, and a blow-up at 11 x the wave speed went unstopped.
+    state = model.state()
+    state.time = 0.7
+    mon = DivergenceMonitor(model, state)
+    assert mon.speed_bounds(0.1) == pytest.approx(np.full(model.particle_count, mon.wave))
+    v[2] = (0.0, 0.0, 0.0)
+    v[-1] = (11.0 * mon.wave, 0.0, 0.0)
+    what, p = mon.check(x, v, 0.1)
+    assert p == model.particle_count - 1 and what.startswith("speed "), what
 
 
 # ------------------------------------------------------------------ refused before running

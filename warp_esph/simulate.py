@@ -159,7 +159,8 @@ class DivergenceMonitor:
       fall), plus the fastest p-wave speed (an elastic rebound), plus what the force fields
       can have given it by ``t`` (``sqrt(strength) R``, a harmonic field over the radius of
       the particles it acts on): each particle's own bound counts the fields that have come
-      on by then (one switched off since leaves its speed behind), and of those the fields
+      on by then (one switched off since leaves its speed behind; one off before the state
+      left it in the state's own), and of those the fields
       acting on its body, or any body's where bodies interact (SPH pressure passes a field's
       speed on to the bodies its body strikes; ``bodies_interact=False`` keeps each body to
       its own fields); ``SPEED_FACTOR`` times that is a blow-up.
@@ -274,7 +275,9 @@ class DivergenceMonitor:
             acting = model.particle_body_np == f.body if f.body >= 0 else np.ones(model.particle_count, dtype=bool)
             felt = np.isin(world, model.world_of_particle[acting]) if model.bodies_interact else on
             source = on if on.any() else np.ones(len(body), dtype=bool)
-            if felt.any():
+            # One off by the start gave its speed before it, in the state's own (v0): counted
+            # again, a run resumed from a state after it was allowed sqrt(k) R more.
+            if felt.any() and f.t_off > self.t0:
                 travel = float(self.speed_bounds(later)[source].max()) * later
                 self.field_speeds.append((f.t_on, math.sqrt(f.strength) * (r[source].max() + self.diagonal + travel), felt))
             if not (on.any() and f.t_off > self.t0):
