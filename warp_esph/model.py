@@ -767,40 +767,31 @@ class Model:
         arrays (so gradients reach ``model.mu.grad`` and the others). ``rest``: with every
         material's deformation code ``"rest"`` (what ``fit="auto"`` runs for a purely elastic
         model, ``auto_runs_rest``), the other arrays the same."""
+        deformation = self.material_deformation
         if rest:
-            codes = self._rest_codes
-            if codes is None or codes.shape[0] != len(self.materials):
-                codes = self._rest_codes = wp.full(len(self.materials), DEFORMATION_IDS["rest"], dtype=wp.int32,
-                                                   device=self.device)
-            key = pointer_key([self.mu, self.lam, self.yield_stress, self.flow_rate, self.hardening,
-                               self.pressure_stiffness, self.viscosity, self.material_model, codes,
-                               self.material_elastic_force, self.clamp_pressure, self.material_pressure_force])
-            cached = self._rest_material_struct
-            if cached is None or cached[0] != key:
-                arrays = dict(
-                    mu=self.mu, lam=self.lam, yield_stress=self.yield_stress, flow_rate=self.flow_rate,
-                    hardening=self.hardening, pressure_stiffness=self.pressure_stiffness, viscosity=self.viscosity,
-                    model=self.material_model, deformation=codes, elastic_force=self.material_elastic_force,
-                    clamp_pressure=self.clamp_pressure, pressure_force=self.material_pressure_force,
-                )
-                cached = (key, material_struct.make(self.scalar, self.device, **arrays), tuple(arrays.values()))
-                self._rest_material_struct = cached
-            return cached[1]
+            deformation = self._rest_codes
+            if deformation is None or deformation.shape[0] != len(self.materials):
+                deformation = self._rest_codes = wp.full(len(self.materials), DEFORMATION_IDS["rest"], dtype=wp.int32,
+                                                         device=self.device)
         arrays = dict(
             mu=self.mu, lam=self.lam, yield_stress=self.yield_stress, flow_rate=self.flow_rate,
             hardening=self.hardening, pressure_stiffness=self.pressure_stiffness, viscosity=self.viscosity,
-            model=self.material_model, deformation=self.material_deformation, elastic_force=self.material_elastic_force,
+            model=self.material_model, deformation=deformation, elastic_force=self.material_elastic_force,
             clamp_pressure=self.clamp_pressure, pressure_force=self.material_pressure_force,
         )
         # A struct copies each array's data and gradient pointers when it is filled, so it is
         # reused only while every array and its gradient are the very same allocations: a
         # gradient attached later (requires_grad) or an array replaced (set_material) builds
         # a new one. Building it costs about as much as a small model's kernel, once per stage.
+        # The rest codes' struct is cached beside the model's own: a step reads one or the other.
         key = pointer_key(arrays.values())
-        cached = self._material_struct
+        cached = self._rest_material_struct if rest else self._material_struct
         if cached is None or cached[0] != key:
             cached = (key, material_struct.make(self.scalar, self.device, **arrays), tuple(arrays.values()))
-            self._material_struct = cached
+            if rest:
+                self._rest_material_struct = cached
+            else:
+                self._material_struct = cached
         return cached[1]
 
     def settings(self) -> dict:
