@@ -579,6 +579,40 @@ def test_gradient_through_the_rest_models_hand_over_matches_central_differences(
         assert gx[i, c] == pytest.approx(fd, rel=1e-4, abs=1e-9), (i, c)
 
 
+@pytest.mark.parametrize("checkpoint_every", [None, 2])
+def test_a_rollout_made_while_its_body_could_flow_hands_f_over_once_elastic(weights, checkpoint_every):
+    """A ``Rollout`` makes its taped states once, and a state's ``F_p`` has a gradient only where
+    the model could run the rest model then (``Model.auto_runs_rest``). Made while the block
+    could flow, a forward from a start an incremental step wrote (``State.rest_model`` False)
+    after a parameter made it elastic was refused ('make the states again', which a rollout's
+    caller cannot); it now runs, with the gradients of a rollout made on the elastic model."""
+    from warp_esph.rollout import Rollout
+
+    model = _model({"elastic_force": "variational"})
+    start = model.state()
+    shear = np.eye(3)
+    shear[0, 1] = 0.04
+    start.F.assign(np.tile(shear, (model.particle_count, 1, 1)))
+    start.rest_model = False
+    elastic = {"yield_stress": [float("inf")], "flow_rate": [0.0]}
+    grads = {}
+    for made_plastic in (True, False):
+        rollout = Rollout(model, STEPS, DT, checkpoint_every=checkpoint_every)
+        if made_plastic:
+            rollout.forward()
+            rollout.backward([weights])  # a checkpointed rollout makes its taped states here
+            assert not rollout.solver.rest_model
+        rollout.set_parameters(elastic)
+        rollout.forward(initial_state=start)
+        assert rollout.solver.rest_model
+        grads[made_plastic] = rollout.backward([weights])[1]
+        model.yield_stress.assign(np.array([10.0]))
+        model.flow_rate.assign(np.array([50.0]))
+    assert np.abs(grads[False]["F0"]).max() > 0.0
+    for name in ("mu", "lam", "F0", "x0"):
+        np.testing.assert_array_equal(grads[True][name], grads[False][name])
+
+
 def _images_model(params=None, ground=-0.045, v0=None, fit_weight="poly6"):
     """The block over the ground with floor images (``add_ground(images=True)``): by default
     the plane three quarters of a spacing under its bottom layer, so every particle's fit,

@@ -634,6 +634,13 @@ class Rollout:
                 getattr(init, STATE_GRADIENTS[name] + "_lo").zero_()  # the whole value is given
 
     def _taped_states(self, count: int) -> list[State]:
+        m = self.model
+        if (self._states is not None and self._states[0].F_p.grad is None
+                and (m.uses_comparison_models or m.auto_runs_rest())):
+            # Made while the model could flow, so without F_p's gradient (Model.state), which a
+            # step handing F over to the rest model now needs (Solver.step refused it, telling
+            # the caller to make states that only the rollout makes).
+            self._states = None
         if self._states is None or len(self._states) < count:
             self._states = [self.model.state(requires_grad=True) for _ in range(count)]
         return self._states
