@@ -275,6 +275,26 @@ def test_the_rest_models_guard_follows_the_solvers_thresholds(fit):
     assert solver.guard_counts()["ill_conditioned"] > 0
 
 
+def test_the_rest_guard_of_a_solvers_thresholds_is_that_of_the_rest_neighbourhoods_it_guards():
+    """``Model.rest_guard_for`` evaluates a solver's own thresholds at its first step, on the
+    rest neighbourhoods the solver runs against (built from ``particle_x0`` when it was made).
+    It searched ``particle_x0`` as it was then: moved apart by 3 x after the solver was made,
+    every particle of a 4^3 block was guarded for ``min_neighbors=7`` (no F fitted, no elastic
+    force) while its rest neighbourhood held 7 to 29, where the default thresholds fitted
+    every F of the same neighbourhoods."""
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0)
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (4 * SPACING,) * 3, mat)
+    model = b.finalize(dtype=wp.float64)
+    solvers = {k: we.Solver(model, min_neighbors=k) for k in (6, 7)}
+    assert all(s.rest_model for s in solvers.values())
+    assert model.rest_count.numpy().min() >= 7
+    model.particle_x0 = model.particle_x0 * 3.0
+    for k, solver in solvers.items():
+        solver.step(model.state(), model.state(), 1.0e-5)
+        assert solver.guard_counts()["few_neighbors"] == 0, k
+
+
 @pytest.mark.parametrize("yield_stress, flows", [(0.0, False), (1.0e9, False), (100.0, True)])
 def test_the_rest_model_keeps_its_plastic_f_exactly_where_nothing_flows(yield_stress, flows):
     """Float32, a stretched 4x4x3 block of the rest model ringing for 60 steps: where no flow

@@ -1153,7 +1153,10 @@ class Model:
                 self.particle_count, self.scalar, self.device, self.support_radius,
                 min_neighbors=key[0], max_condition=key[1], **self.neighbor_options(bodies=False)
             )
-            search.build(state.x, self.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count, state.guard)
+            # From the positions the rest neighbourhoods were built from, not particle_x0 as it
+            # is now: a solver made before particle_x0 changed runs against those.
+            search.build(self.rest_x, self.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count,
+                         state.guard)
             self._rest_guards[key] = state.guard
         return self._rest_guards[key]
 
