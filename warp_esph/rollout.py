@@ -632,6 +632,12 @@ class Rollout:
             getattr(init, STATE_GRADIENTS[name]).assign(v)
             if name in ("x0", "F0"):
                 getattr(init, STATE_GRADIENTS[name] + "_lo").zero_()  # the whole value is given
+        if "F0" in given:
+            # A given F is the body's strain: the rest model takes it over as it takes over an
+            # incremental step's (State.rest_model False: F_p = F0^-1 G(x0)). As a new state's it
+            # set only the first step's stress, the next F being the rest fit of the positions:
+            # a block released from a 20 % stretch kept 2 % of its recoil's kinetic energy.
+            init.rest_model = False
 
     def _taped_states(self, count: int) -> list[State]:
         m = self.model
@@ -666,6 +672,9 @@ class Rollout:
         ``(n, 3)``; ``v0`` ``(n, 3)`` or one ``(3,)`` velocity for every particle; ``F0``
         ``(n, 3, 3)`` or one ``(3, 3)``; ``alpha0`` ``(n,)`` or one number. Their gradients
         (``backward``) are per particle whichever was given (sum them for a shared value).
+        A given ``F0`` is the body's strain on the rest model too (``Model.auto_runs_rest``: the
+        start is handed over as an incremental step's, ``State.rest_model`` False); without it
+        the rest model starts from the fit of the positions.
         """
         given = {name: check_initial(self.model, name, value) for name, value in
                  (("x0", x0), ("v0", v0), ("F0", F0), ("alpha0", alpha0)) if value is not None}
