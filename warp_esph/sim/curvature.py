@@ -422,6 +422,28 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return fi
 
     @wp.func
+    def map_adjoint_sums(i: int, x: wp.array(dtype=vec3), body: wp.array(dtype=wp.int32),
+                         nbr: wp.array2d(dtype=wp.int32), n: int, h: scalar, adj_f: wp.array(dtype=vec3)):
+        """``S1 = sum_j w_j a_j xb_j^T`` and ``S2 = sum_j w_j a_j q_j^T`` over ``i``'s row
+        (``a_j = adj f_i - adj f_j``: ``variational_forces`` adds each pair's force to ``i`` and
+        takes it from ``j``): the adjoint of its map is ``adj M = S1 - S2 K``, and ``adj K``
+        has ``-S2^T M`` (``K = 0``: the linear fit's, ``S1``)."""
+        xi = x[i]
+        bi = body[i]
+        ai = adj_f[i]
+        c6 = fw.coef(h)
+        S1 = mat33()
+        S2 = mat33()
+        for k in range(n):
+            j = nbr[i, k]
+            if body[j] == bi:
+                d = x[j] - xi
+                wa = fw.w_c(wp.dot(d, d), h, c6) * (ai - adj_f[j])
+                S1 += wp.outer(wa, d)
+                S2 += wp.outer(wa, curvature_basis(d, h))
+        return S1, S2
+
+    @wp.func
     def image_map(volume: scalar, P: mat33, F: mat33, A: mat33, C: mat33, D: mat33):
         """``forces.image_map`` of the corrected fit: ``M_g = V P F^T A~_g^-1`` and ``K_g`` of the
         image's own moments (``floor_image_moment``)."""
@@ -752,6 +774,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         moment_pair_adjoint=moment_pair_adjoint, variational_pair_adjoint=variational_pair_adjoint,
         scatter_variational_pair_adjoint=scatter_variational_pair_adjoint,
         curvature_basis=curvature_basis, curvature_basis_adjoint=curvature_basis_adjoint, moment_sums=moment_sums,
+        map_adjoint_sums=map_adjoint_sums,
         curvature_kept=curvature_kept, ridge_inverse=ridge_inverse, projection_terms=projection_terms,
         curvature_projection=curvature_projection, projection_adjoint=projection_adjoint,
         corrected_moment=corrected_moment, corrected_offset=corrected_offset, corrected_increment=corrected_increment,
@@ -824,17 +847,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         c6 = fw.coef(h)
         hh = h * h
         A, B, C, D, E, same = fn.fit_sums(i, x, x, x, x, body, nbr, n, h, gn, goff, gmin, images)
-        # adj M = S1 - S2 K and adj K = -S2^T M (which need K and M), S1 = sum w a xb^T and
-        # S2 = sum w a q^T; the same for the own image's Mg, Kg (S1g, S2g).
-        S1 = mat33()
-        S2 = mat33()
-        for k in range(n):
-            j = nbr[i, k]
-            if body[j] == bi:
-                d = x[j] - xi
-                wa = fw.w_c(wp.dot(d, d), h, c6) * (ai - adj_f[j])
-                S1 += wp.outer(wa, d)
-                S2 += wp.outer(wa, fn.curvature_basis(d, h))
+        # adj M = S1 - S2 K and adj K = -S2^T M (which need K and M); the same for the own
+        # image's Mg, Kg (S1g, S2g).
+        S1, S2 = fn.map_adjoint_sums(i, x, body, nbr, n, h, adj_f)
         n_img = df.image_slots(xi, n, h, gn, goff, images)
         gi = df.floor_image(xi, gn, goff, gmin)
         S1g = mat33()
