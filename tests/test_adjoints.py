@@ -369,8 +369,9 @@ def test_backward_leaves_the_recorded_forces_as_the_forward_wrote_them(case):
     ``State.force`` once more (2.5-93 % off, measured by an audit; the gradients were right).
     ``replay.kept_through_backward`` restores them: every state the tape recorded reads after
     the backward what it read before, on each path that records a generated adjoint (the
-    non-fused linear and corrected fits, a rest-configuration material, the paper's force on
-    the imaged ground, a ghost floor; each failed without it)."""
+    non-fused linear and corrected fits, a rest-configuration material (whose hand-written
+    adjoint, ``comparison.adjoint_kernels``, the solver records by default), the paper's force
+    on the imaged ground, a ghost floor; each failed without it)."""
     import warp_esph as we  # noqa: PLC0415
 
     elastic = "paper" if case == "paper_images" else "variational"
@@ -385,7 +386,7 @@ def test_backward_leaves_the_recorded_forces_as_the_forward_wrote_them(case):
     model = b.finalize(dtype=wp.float64, requires_grad=True)
     model.particle_v0 = -20.0 * model.particle_x0 * np.array([1.0, -0.5, 0.0])
     solver = we.Solver(model, fit="curvature_corrected" if case == "corrected" else None, fused=case != "generated")
-    if case in ("generated", "corrected", "paper_images"):
+    if case in ("generated", "corrected", "paper_images", "rest"):
         solver.hand_adjoints = False
     states = [model.state() for _ in range(4)]
     tape = wp.Tape()

@@ -14,6 +14,7 @@ import warp as wp
 import warp_esph as we
 from taped_loss import random_weights, taped_rollout_loss
 from warp_esph.sim.guards import COUNT_FADE
+from warp_esph.sim.neighbors import MIN_NEIGHBORS
 
 STEPS = 5
 DT = 1.0e-3
@@ -25,7 +26,7 @@ ALPHA0 = 0.02
 LARGE_STEP = (1e-2, 1e-3)
 
 
-def _model(params=None, velocity_scale=20.0, fit_weight="poly6", field=False):
+def _model(params=None, velocity_scale=20.0, fit_weight="poly6", field=False, ground=None):
     # pressure_stiffness fixed: its default follows mu and lam, which would make the
     # finite difference in mu also move the pressure.
     p = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "hardening": 200.0, "pressure_stiffness": 1.0,
@@ -36,6 +37,8 @@ def _model(params=None, velocity_scale=20.0, fit_weight="poly6", field=False):
     b.add_box((0.0, 0.0, 0.0), (0.1, 0.08, 0.08), mat)
     if field:  # a horizontal squeeze towards a point off the block's centre
         b.add_compression_field((0.01, 0.0, 0.005), 400.0)
+    if ground is not None:
+        b.add_ground(ground, friction=0.5)
     model = b.finalize(dtype=wp.float64, requires_grad=True)
     # A slightly jittered lattice: exact distance ties make the 30-nearest selection (a
     # discrete choice) flip under a finite-difference perturbation.
@@ -90,7 +93,7 @@ def test_material_gradient_matches_central_differences(weights, name, rel_step):
 def test_comparison_models_gradients_match_central_differences(weights, deformation, name):
     """The Fig. 8 comparison kernels (``comparison.py``; the additive model's flow its own,
     hardening included) are differentiable too, and so is the
-    rest model's variational force (``rest_variational``: Warp's generated adjoint), also
+    rest model's variational force (``rest_variational``: its hand-written adjoint), also
     with the curvature-corrected total fit (``..._corrected``): at a relative step of 1e-5
     and at ``LARGE_STEP``."""
     p = {"deformation": deformation}
@@ -339,10 +342,10 @@ def test_curvature_corrected_fit_gradients_match_central_differences(weights, na
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
 
 
-def _hourglass_model(params=None):
+def _hourglass_model(params=None, **kw):
     """The variational block with a random velocity on top of the stretch: non-affine, so
-    the hourglass control (which an affine motion does not see) acts."""
-    m = _model({"elastic_force": "variational", **(params or {})})
+    the hourglass control (which an affine motion does not see) acts (``kw``: ``_model``'s)."""
+    m = _model({"elastic_force": "variational", **(params or {})}, **kw)
     m.particle_v0 = m.particle_v0 + np.random.default_rng(11).normal(scale=0.05, size=m.particle_v0.shape)
     return m
 
@@ -495,18 +498,19 @@ def test_energy_spiky_pressure_gradients_match_central_differences(weights, case
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
 
 
-def _elastic_model(params=None):
+def _elastic_model(params=None, **kw):
     """The hourglass block made purely elastic (no yield, no flow): the default solver
     (``fit="auto"``) then runs the curvature-corrected fit with the hourglass control, on the
-    rest model (no tools)."""
-    return _hourglass_model({"yield_stress": float("inf"), "flow_rate": 0.0, "hardening": 0.0, **(params or {})})
+    rest model (no tools; ``kw``: ``_model``'s)."""
+    return _hourglass_model({"yield_stress": float("inf"), "flow_rate": 0.0, "hardening": 0.0, **(params or {})}, **kw)
 
 
 @pytest.mark.parametrize("name", ["mu", "lam", "v0"])
 def test_default_solver_of_an_elastic_model_gradients_match_central_differences(weights, name):
     """What the default solver runs for a purely elastic model without tools under a tape (the
-    rest model with the corrected total fit, ``Solver.rest_model``: Warp's generated adjoints
-    of its kernels and of the control) against central differences."""
+    rest model with the corrected total fit, ``Solver.rest_model``: the hand-written adjoints of
+    its kernels, ``comparison.adjoint_kernels``, and Warp's generated one of the control)
+    against central differences."""
     _, solver = _rollout_loss(_elastic_model(), weights, fit=None, hourglass=None)
     assert solver.fit == "curvature_corrected" and solver.hourglass > 0.0 and solver.rest_model, (solver.fit,
                                                                                                  solver.hourglass)
@@ -529,6 +533,103 @@ def test_default_solver_of_an_elastic_model_gradients_match_central_differences(
     fd = (plus - minus) / (2 * eps)
     assert abs(fd) > 1e-11, f"the loss does not reach {name}"
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+
+
+#: The rest model's scenes for its hand-written adjoints (``comparison.adjoint_kernels``):
+#: ``rest``, the elastic block from F = I; ``strained``, its positions stretched to
+#: ``REST_STRAIN`` of the rest ones (a stored F and stress away from I from the first step);
+#: ``contact``, squeezed towards the ground 0.5 mm under its bottom layer, which it reaches
+#: in the second step; ``guarded``, ``Solver(min_neighbors=10)``: the block's 8 corners'
+#: rest neighbourhoods are guarded (a guarded particle keeps its F, no force).
+REST_CASES = ("rest", "strained", "contact", "guarded")
+REST_STRAIN = np.diag([1.04, 0.97, 1.02])
+
+
+def _rest_case_loss(case, weights, params=None, dx=None, dv=None, grad_of=(), hand_adjoints=True, F_loss=False):
+    """The loss of ``case`` (``REST_CASES``) on the default solver, which runs the rest model
+    (``Solver.rest_model``); ``dx``/``dv``: ``(i, c, delta)`` added to the first state's
+    ``x``/``v``. With ``grad_of``: ``(loss, grads)`` as ``_rollout_loss``'s, the first state's
+    ``x`` as ``"x0"``; ``F_loss``: their gradients with a random weighted sum of the last
+    state's ``F`` added to the loss (a guarded particle's F reaches no position)."""
+    model = _elastic_model(params, ground=-0.0305 if case == "contact" else None)
+    if case == "contact":
+        model.particle_v0 = -model.particle_v0
+    solver = we.Solver(model, min_neighbors=10 if case == "guarded" else MIN_NEIGHBORS)
+    solver.hand_adjoints = hand_adjoints
+    assert solver.rest_model
+    states = [model.state() for _ in range(STEPS + 1)]
+    x = model.particle_x0 @ REST_STRAIN.T if case == "strained" else model.particle_x0.copy()
+    v = model.particle_v0.copy()
+    if dx is not None:
+        x[dx[0], dx[1]] += dx[2]
+    if dv is not None:
+        v[dv[0], dv[1]] += dv[2]
+    states[0].x.assign(x)
+    states[0].v.assign(v)
+    loss, tape = taped_rollout_loss(solver, states, DT, weights)
+    if not grad_of:
+        return loss.numpy()[0]
+    if F_loss:
+        states[-1].F.grad.assign(np.random.default_rng(1).normal(size=(model.particle_count, 3, 3)))
+    tape.backward(loss)
+    arrays = {"x0": states[0].x, "v0": states[0].v, "F": states[0].F, "F_p": states[0].F_p}
+    return loss.numpy()[0], {n: (arrays[n] if n in arrays else getattr(model, n)).grad.numpy().copy() for n in grad_of}
+
+
+@pytest.mark.parametrize("case", REST_CASES)
+@pytest.mark.parametrize("name", ["mu", "lam", "v0", "x0"])
+def test_rest_models_hand_written_adjoints_match_central_differences(weights, case, name):
+    """The rest model's hand-written adjoints (its total fit's and its variational force's,
+    ``comparison.adjoint_kernels``, with those of the rest of the step) against float64
+    central differences in ``mu``, ``lam`` and a particle's initial velocity and position, at
+    rest, strained, through ground contact and with guarded rest neighbourhoods (a bottom
+    corner, 0: guarded in ``guarded``, on the ground in ``contact``; an interior particle, 41)."""
+    loss, grads = _rest_case_loss(case, weights, grad_of=(name,))
+    if name in ("v0", "x0"):
+        key = "dv" if name == "v0" else "dx"
+        eps = 1e-6 if name == "v0" else 1e-7
+        for i, c in [(0, 1), (41, 0)]:
+            fd = (_rest_case_loss(case, weights, **{key: (i, c, eps)})
+                  - _rest_case_loss(case, weights, **{key: (i, c, -eps)})) / (2 * eps)
+            assert abs(fd) > 1e-6, (i, c)
+            assert grads[name][i, c] == pytest.approx(fd, rel=1e-5, abs=1e-9), (i, c)
+        return
+    base = getattr(_elastic_model().materials[0], name)
+    eps = 1e-5 * base
+    fd = (_rest_case_loss(case, weights, {name: base + eps}) - _rest_case_loss(case, weights, {name: base - eps})) / (2 * eps)
+    assert abs(fd) > 1e-11, f"the loss does not reach {name}"
+    assert grads[name][0] == pytest.approx(fd, rel=1e-4)
+
+
+#: Rest-configuration materials (``Material(deformation="rest")``) beside the default's rest
+#: model, on the yielding block (its flow moves ``F_p``): (material options, fit).
+REST_MATERIALS = {
+    "rest_linear_variational": ({"deformation": "rest", "elastic_force": "variational"}, "linear"),
+    "rest_corrected_variational": ({"deformation": "rest", "elastic_force": "variational"}, "curvature_corrected"),
+    "rest_linear_paper": ({"deformation": "rest"}, "linear"),
+}
+
+
+@pytest.mark.parametrize("case", REST_CASES + tuple(REST_MATERIALS))
+def test_rest_models_hand_written_adjoints_match_the_generated_ones(weights, case):
+    """The rest kernels' hand-written adjoints (``comparison.adjoint_kernels``) give Warp's
+    generated adjoints' gradients to round-off (float64) in every initial state field and
+    material parameter the loss reaches: the default's rest model (``REST_CASES``, the loss
+    with the last state's ``F`` in it, which a guarded particle keeps) and the
+    rest materials of either fit and elastic force, flowing (``REST_MATERIALS``; eqs. 10-13's
+    force has its own adjoint, the total fit's is this one)."""
+    if case in REST_MATERIALS:
+        options, fit = REST_MATERIALS[case]
+        names = ("x0", "v0", "mu", "lam", "yield_stress", "flow_rate", "hardening", "viscosity")
+        hand, gen = (_rollout_loss(_model(options), weights, grad_of=names, fit=fit, hand_adjoints=h)[1]
+                     for h in (True, False))
+    else:
+        names = ("x0", "v0", "F", "F_p", "mu", "lam", "viscosity")
+        hand, gen = (_rest_case_loss(case, weights, grad_of=names, hand_adjoints=h, F_loss=True)[1] for h in (True, False))
+    for name in names:
+        scale = np.abs(gen[name]).max()
+        assert scale > 0, f"the loss does not reach {name}"
+        assert np.abs(hand[name] - gen[name]).max() <= 1e-10 * scale, name
 
 
 def _handover_loss(weights, dF=None, dx=None, grad=False):

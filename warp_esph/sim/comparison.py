@@ -15,6 +15,11 @@ Selected per material with ``Material(deformation=...)``:
 
 Both run only on the solver's differentiable (non-fused) path; the incremental particles of
 a model that mixes models go through the same kernels as in ``plasticity``/``deformation``.
+Under a tape, where every material runs the rest model (the solver's ``rest_model``, or
+every material ``"rest"``), the total fit and the rest variational force record hand-written
+adjoints (``adjoint_kernels``), of either fit; a model that mixes deformation models, and
+``Solver.hand_adjoints = False``, keep Warp's generated ones. The constitutive update and
+the hand-over keep the generated ones.
 """
 
 import functools
@@ -24,7 +29,7 @@ import warp as wp
 
 from .._types import type_set
 from . import curvature, deformation, forces, materials, plasticity
-from .replay import kept_through_backward
+from .replay import kept_through_backward, recording_tape
 
 COUNT_FEW_NEIGHBORS = deformation.COUNT_FEW_NEIGHBORS
 COUNT_ILL_CONDITIONED = deformation.COUNT_ILL_CONDITIONED
@@ -186,6 +191,31 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
 
     fn = forces.funcs(scalar, weight)
 
+    @wp.func
+    def rest_map_moments(
+        i: int,
+        rest_x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        rest_nbr: wp.array2d(dtype=wp.int32),
+        n: int,
+        h: scalar,
+        curved: int,
+    ):
+        """The fixed moments of particle ``i``'s rest variational force: ``A~`` and ``K`` of its
+        rest neighbourhood (``curved``: the curvature-corrected fit's, ``curvature.py``; else
+        ``A`` and ``K = 0``), from their own functions: an inverse must not see a loop
+        accumulator (docs/method.md, Warp pitfall 1)."""
+        K = mat33()
+        At = mat33()
+        if curved != 0:
+            A, B, C, D, E, same = cf.moment_sums(i, rest_x, rest_x, rest_x, rest_x, body, rest_nbr, n, h)
+            K = cf.curvature_projection(A, C, D)
+            At = cf.corrected_moment(A, C, K)
+        else:
+            A, B, same = moment_sums(i, rest_x, rest_x, rest_x, rest_x, body, rest_nbr, n, h)
+            At = A
+        return At, K
+
     @wp.kernel(module="unique")
     def rest_variational_forces(
         rest_x: wp.array(dtype=vec3),
@@ -218,17 +248,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         # A guarded rest neighbourhood keeps its F whatever the positions do: no energy
         # gradient, no force (as the incremental fit's guard).
         if mat.deformation[m] == 1 and mat.elastic_force[m] == 1 and rest_guard[i] == 0:
+            At, K = rest_map_moments(i, rest_x, body, rest_nbr, rest_count[i], h, curved)
+            M = fn.variational_map(volume[i], stress[i], wp.inverse(Fp[i]), wp.inverse(At))
             fi = vec3()
-            # The moments from their own functions: an inverse must not see a loop
-            # accumulator (docs/method.md, Warp pitfall 1).
             if curved != 0:
-                A, B, C, D, E, same = cf.moment_sums(i, rest_x, rest_x, rest_x, rest_x, body, rest_nbr, rest_count[i], h)
-                K = cf.curvature_projection(A, C, D)
-                M = fn.variational_map(volume[i], stress[i], wp.inverse(Fp[i]), wp.inverse(cf.corrected_moment(A, C, K)))
                 fi = cf.variational_forces(i, rest_x, body, rest_nbr, rest_count[i], M, K, h, f)
             else:
-                A, B, same = moment_sums(i, rest_x, rest_x, rest_x, rest_x, body, rest_nbr, rest_count[i], h)
-                M = fn.variational_map(volume[i], stress[i], wp.inverse(Fp[i]), wp.inverse(A))
                 fi = fn.variational_forces(i, rest_x, body, rest_nbr, rest_count[i], M, h, f)
             wp.atomic_add(f, i, fi)
 
@@ -260,7 +285,122 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         Fp_out[i] = out
 
     return types.SimpleNamespace(constitutive_update=constitutive_update, update_deformation=update_deformation,
-                                 rest_variational_forces=rest_variational_forces, rest_handover=rest_handover)
+                                 rest_variational_forces=rest_variational_forces, rest_handover=rest_handover,
+                                 rest_map_moments=rest_map_moments)
+
+
+@functools.cache
+def adjoint_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
+    """Hand-written adjoints of the rest model's kernels (``kernels``' ``update_deformation``
+    and ``rest_variational_forces``) where every material is ``"rest"``, for the total fit
+    ``fit`` ("linear" or "curvature_corrected"). The rest fit is the incremental fit's
+    moment fit with the rest positions as the reference and the rest neighbourhood as the
+    row, and its variational force that fit's pair force: both take the incremental fit's
+    adjoint functions (``deformation.fit_funcs``' ``moments_adjoint``, ``curvature``'s
+    ``map_adjoint_sums``, ``forces``' ``variational_map_adjoint``; the force's fixed moments
+    are ``kernels``' ``rest_map_moments``, as in the forward).
+    The rest positions are constant (no gradient): what those functions give them goes to a
+    scratch array nobody reads."""
+    T = type_set(scalar)
+    vec3, mat33 = T.vec3, T.mat33
+    fn = deformation.fit_funcs(scalar, weight, fit)
+    cf = curvature.funcs(scalar, weight)
+    fo = forces.funcs(scalar, weight)
+    Materials = materials.struct(scalar)
+    rest_map_moments = kernels(scalar, weight).rest_map_moments
+    curved = 1 if fit == "curvature_corrected" else 0
+
+    @wp.func
+    def inverse_adjoint(M_inv: mat33, adj_M_inv: mat33) -> mat33:
+        """Adjoint of ``M^-1`` in ``M``: ``-M^-T adj(M^-1) M^-T``."""
+        T_inv = wp.transpose(M_inv)
+        return -(T_inv * adj_M_inv * T_inv)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def update_deformation_adjoint(
+        rest_x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        rest_nbr: wp.array2d(dtype=wp.int32),
+        rest_count: wp.array(dtype=wp.int32),
+        rest_guard: wp.array(dtype=wp.int32),
+        Fp: wp.array(dtype=mat33),
+        h: scalar,
+        adj_F_out: wp.array(dtype=mat33),
+        adj_rest_x: wp.array(dtype=vec3),
+        adj_y: wp.array(dtype=vec3),
+        adj_F_prev: wp.array(dtype=mat33),
+        adj_Fp: wp.array(dtype=mat33),
+    ):
+        """Adjoint of the rest model's ``F = G(y) F_p^-1`` (``update_deformation`` with every
+        deformation code "rest"): ``adj G = adj F F_p^-T``, taken to the positions by the fit's
+        ``moments_adjoint`` (``G - I`` is its ``moments_increment`` of the rest moments; no
+        guard fade: a guarded rest neighbourhood keeps its ``F`` whole, and all of ``adj F``
+        goes to the flowed ``F``, as where ``G F_p^-1`` would invert), and ``adj F_p^-1 =
+        G^T adj F`` to ``F_p`` (``inverse_adjoint``)."""
+        i = wp.tid()
+        G = adj_F_out[i]
+        if rest_guard[i] != 0:
+            adj_F_prev[i] = adj_F_prev[i] + G
+            return
+        n = rest_count[i]
+        # The positions' round-off is not carried (y, y), as the forward's rest_total_fit.
+        m = fn.fit_moments(i, rest_x, y, y, y, body, rest_nbr, n, h, vec3(), scalar(0.0), scalar(0.0), 0)
+        inc0 = fn.moments_increment(m)
+        Fp_inv = wp.inverse(Fp[i])
+        fit = wp.identity(n=3, dtype=scalar) + inc0
+        if wp.determinant(fit * Fp_inv) <= scalar(0.0):
+            adj_F_prev[i] = adj_F_prev[i] + G
+            return
+        adj_Fp[i] = adj_Fp[i] + inverse_adjoint(Fp_inv, wp.transpose(fit) * G)
+        gx_i, gy_i = fn.moments_adjoint(i, rest_x, y, body, rest_nbr, n, h, vec3(), scalar(0.0), scalar(0.0), 0, m,
+                                        inc0, G * wp.transpose(Fp_inv), mat33(), scalar(0.0), adj_rest_x, adj_y)
+        wp.atomic_add(adj_y, i, gy_i)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def rest_variational_forces_adjoint(
+        rest_x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        rest_nbr: wp.array2d(dtype=wp.int32),
+        rest_count: wp.array(dtype=wp.int32),
+        rest_guard: wp.array(dtype=wp.int32),
+        volume: wp.array(dtype=scalar),
+        stress: wp.array(dtype=mat33),
+        Fp: wp.array(dtype=mat33),
+        h: scalar,
+        adj_f: wp.array(dtype=vec3),
+        adj_stress: wp.array(dtype=mat33),
+        adj_Fp: wp.array(dtype=mat33),
+    ):
+        """Adjoint of ``rest_variational_forces``: its pairs' offsets are the rest ones, so only
+        the map ``M = V P* F_p^-T A~^-1`` varies. With ``a_j = adj f_i - adj f_j``, ``adj M =
+        S1 - S2 K`` (``curvature``'s ``map_adjoint_sums``; ``rest_map_moments``' ``K = 0``,
+        ``A~ = A`` for the linear fit), then ``variational_map_adjoint`` to ``P*`` and
+        ``F_p^-1``, and ``inverse_adjoint`` to ``F_p``."""
+        i = wp.tid()
+        m = material[i]
+        if mat.deformation[m] != 1 or mat.elastic_force[m] != 1 or rest_guard[i] != 0:
+            return
+        n = rest_count[i]
+        S1, S2 = cf.map_adjoint_sums(i, rest_x, body, rest_nbr, n, h, adj_f)
+        At, K = rest_map_moments(i, rest_x, body, rest_nbr, n, h, wp.static(curved))
+        Fp_inv = wp.inverse(Fp[i])
+        adj_P, adj_Fp_inv, adj_At = fo.variational_map_adjoint(volume[i], stress[i], Fp_inv, wp.inverse(At), S1 - S2 * K)
+        adj_stress[i] = adj_stress[i] + adj_P
+        adj_Fp[i] = adj_Fp[i] + inverse_adjoint(Fp_inv, adj_Fp_inv)
+
+    return types.SimpleNamespace(update_deformation_adjoint=update_deformation_adjoint,
+                                 rest_variational_forces_adjoint=rest_variational_forces_adjoint)
+
+
+def all_rest(model, mats) -> bool:
+    """Whether every material runs the rest model: the rest model switched on (``mats``, the
+    rest codes' struct, ``Model.material_arrays(rest=True)``) or every material ``"rest"``.
+    Only then do the rest kernels' hand-written adjoints stand in for the generated ones
+    (``adjoint_kernels``; a model that mixes deformation models keeps the generated ones)."""
+    return mats is not None or all(mt.deformation == "rest" for mt in model.materials)
 
 
 def launch_rest_handover(model, state_in, Fp_out, curved: bool = False, rest_guard=None):
@@ -296,41 +436,77 @@ def launch_constitutive_update(model, state_in, state_out, dt, counters, mats=No
 
 def launch_update_deformation(model, state_in, state_out, counters, curved: bool = False,
                               max_condition: float = deformation.guards.MAX_CONDITION,
-                              min_neighbors: int = deformation.guards.MIN_NEIGHBORS, mats=None, rest_guard=None):
+                              min_neighbors: int = deformation.guards.MIN_NEIGHBORS, mats=None, rest_guard=None,
+                              hand_adjoint: bool = True):
     """``deformation.launch_update_deformation`` for models with a Fig. 8 comparison material
     (``curved``: the rest model's total fit is the curvature-corrected one; ``rest_guard``: the
     rest neighbourhoods' guard with the thresholds given, ``Model.rest_guard_for``, None: the
-    default's)."""
+    default's). Under a ``wp.Tape``, where every material runs the rest model (``all_rest``),
+    the backward runs ``adjoint_kernels``' ``update_deformation_adjoint``
+    (``hand_adjoint=False``, or a model mixing deformation models: Warp's generated adjoint)."""
     rest_x, rest_nbr, rest_count = model.rest_neighbors()
     rest_guard = model.rest_guard if rest_guard is None else rest_guard
-    model.launches(
-        kernels(model.scalar, model.fit_weight).update_deformation,
-        model.particle_count,
-        [
-            state_in.x, state_out.x, rest_x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
-            rest_nbr, rest_count, rest_guard, state_out.guard, model.particle_material,
-            model.material_arrays() if mats is None else mats, state_out.F_flowed,
-            state_out.F_p, model.scalar(model.support_radius), int(min_neighbors), model.scalar(max_condition), int(curved),
-        ],
-        [state_out.F, counters],
-        device=model.device,
-    )
+    inputs = [
+        state_in.x, state_out.x, rest_x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
+        rest_nbr, rest_count, rest_guard, state_out.guard, model.particle_material,
+        model.material_arrays() if mats is None else mats, state_out.F_flowed,
+        state_out.F_p, model.scalar(model.support_radius), int(min_neighbors), model.scalar(max_condition), int(curved),
+    ]
+    kernel = kernels(model.scalar, model.fit_weight).update_deformation
+    tape = recording_tape()
+    grads = (state_out.x, state_out.F_flowed, state_out.F_p, state_out.F)
+    if tape is None or not hand_adjoint or not all_rest(model, mats) or any(a.grad is None for a in grads):
+        model.launches(kernel, model.particle_count, inputs, [state_out.F, counters], device=model.device)
+        return
+    # Under a tape: the forward unrecorded, and the hand-written adjoint in its place.
+    model.launches(kernel, model.particle_count, inputs, [state_out.F, counters], device=model.device, record_tape=False)
+    fit = "curvature_corrected" if curved else "linear"
+
+    def adjoint():
+        y = state_out.x
+        model.launches(
+            adjoint_kernels(model.scalar, model.fit_weight, fit).update_deformation_adjoint, model.particle_count,
+            [rest_x, y, model.particle_body, rest_nbr, rest_count, rest_guard, state_out.F_p,
+             model.scalar(model.support_radius), state_out.F.grad,
+             # The rest positions' adjoint, which the fit's adjoint functions scatter: constant, not read.
+             wp.empty_like(rest_x), y.grad, state_out.F_flowed.grad, state_out.F_p.grad],
+            device=model.device, record_tape=False,
+        )
+
+    tape.record_func(adjoint, list(grads))
 
 
-def launch_rest_variational_forces(model, state_out, curved: bool = False, mats=None, rest_guard=None):
+def launch_rest_variational_forces(model, state_out, curved: bool = False, mats=None, rest_guard=None,
+                                   hand_adjoint: bool = True):
     """``rest_variational_forces`` into ``state_out.force``, from the stress and ``F_p`` the
     constitutive update wrote (launched only when a material asks for it; ``curved``: of the
-    curvature-corrected total fit; ``rest_guard``: as in ``launch_update_deformation``)."""
+    curvature-corrected total fit; ``rest_guard``: as in ``launch_update_deformation``). Under
+    a ``wp.Tape``, where every material runs the rest model (``all_rest``), the backward runs
+    ``adjoint_kernels``' ``rest_variational_forces_adjoint`` (``hand_adjoint=False``, or a
+    model mixing deformation models: Warp's generated adjoint)."""
     rest_x, rest_nbr, rest_count = model.rest_neighbors()
     rest_guard = model.rest_guard if rest_guard is None else rest_guard
-    with kept_through_backward(state_out.force):
+    mat_struct = model.material_arrays() if mats is None else mats
+    S = model.scalar
+    inputs = [rest_x, model.particle_body, model.particle_material, mat_struct, rest_nbr, rest_count, rest_guard,
+              model.particle_volume, state_out.stress, state_out.F_p, S(model.support_radius), int(curved)]
+    kernel = kernels(S, model.fit_weight).rest_variational_forces
+    tape = recording_tape()
+    grads = (state_out.stress, state_out.F_p, state_out.force)
+    if tape is None or not hand_adjoint or not all_rest(model, mats) or any(a.grad is None for a in grads):
+        with kept_through_backward(state_out.force):
+            model.launches(kernel, model.particle_count, inputs, [state_out.force], device=model.device)
+        return
+    model.launches(kernel, model.particle_count, inputs, [state_out.force], device=model.device, record_tape=False)
+    fit = "curvature_corrected" if curved else "linear"
+
+    def adjoint():
         model.launches(
-            kernels(model.scalar, model.fit_weight).rest_variational_forces,
-            model.particle_count,
-            [rest_x, model.particle_body, model.particle_material, model.material_arrays() if mats is None else mats,
-             rest_nbr, rest_count,
-             rest_guard, model.particle_volume, state_out.stress, state_out.F_p, model.scalar(model.support_radius),
-             int(curved)],
-            [state_out.force],
-            device=model.device,
+            adjoint_kernels(S, model.fit_weight, fit).rest_variational_forces_adjoint, model.particle_count,
+            [rest_x, model.particle_body, model.particle_material, mat_struct, rest_nbr, rest_count, rest_guard,
+             model.particle_volume, state_out.stress, state_out.F_p, S(model.support_radius), state_out.force.grad,
+             state_out.stress.grad, state_out.F_p.grad],
+            device=model.device, record_tape=False,
         )
+
+    tape.record_func(adjoint, list(grads))

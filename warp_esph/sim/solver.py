@@ -171,7 +171,9 @@ class Solver:
     rest-configuration model for every material (``rest_model``; the kernels read the
     deformation code ``"rest"``,
     ``Model.material_arrays(rest=True)``): the corrected total fit against the rest
-    neighbourhood with its variational force, a conservative elastic force. When a parameter
+    neighbourhood with its variational force, a conservative elastic force (under a tape
+    with hand-written adjoints for both, ``comparison.adjoint_kernels``, as for any model
+    whose materials are all ``"rest"``). When a parameter
     makes a material flow the step turns to the incremental composition from the stored ``F``;
     a rest step after an incremental one (``State.rest_model`` False) hands the stored ``F``
     over (``F_p = F^-1 G(x)``, ``comparison.rest_handover``), so a flowed body keeps its
@@ -282,8 +284,9 @@ class Solver:
         self._warned_tape = False
         self._warned_cut = False
         self.step_count = 0
-        #: Under a tape, run the hand-written adjoints (``deformation.update_deformation_adjoint``)
-        #: in place of Warp's generated ones; False: the generated ones (the tests' reference).
+        #: Under a tape, run the hand-written adjoints (``deformation.update_deformation_adjoint``,
+        #: the rest model's ``comparison.adjoint_kernels``) in place of Warp's generated ones;
+        #: False: the generated ones (the tests' reference).
         self.hand_adjoints = True
         #: ``(impulse, angular impulse)`` arrays of the static colliders' rows that untaped
         #: steps add ``dt`` times their reaction to (``tools.ReactionLog`` sets them); None: off.
@@ -613,7 +616,7 @@ class Solver:
                     # this kernel would add nothing.)
                     forces.launch_elastic_forces(m, state_in, state_out, hand, scratch.max_condition, scratch.min_neighbors)
                 if self._rest_variational or rest_model:
-                    comparison.launch_rest_variational_forces(m, state_out, curved_rest, mats, rest_guard)
+                    comparison.launch_rest_variational_forces(m, state_out, curved_rest, mats, rest_guard, hand)
                 if ghosts is not None:
                     # The energies' forces on the ghosts go to their stencils.
                     ghost_floor.launch_hand_over(m, state_out)
@@ -649,7 +652,8 @@ class Solver:
                 fused.launch_update_deformation(m, state_in, state_out, scratch, fast_tape)
             elif cmp:
                 comparison.launch_update_deformation(m, state_in, state_out, scratch.counters, curved_rest,
-                                                     scratch.max_condition, scratch.min_neighbors, mats, rest_guard)
+                                                     scratch.max_condition, scratch.min_neighbors, mats, rest_guard,
+                                                     hand)
             elif self._curved:
                 deformation.launch_update_deformation(m, state_in, state_out, scratch.counters, hand,
                                                       max_condition=scratch.max_condition,
