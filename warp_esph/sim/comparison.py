@@ -503,9 +503,8 @@ def launch_rest_variational_forces(model, state_out, curved: bool = False, mats=
     def adjoint():
         model.launches(
             adjoint_kernels(S, model.fit_weight, fit).rest_variational_forces_adjoint, model.particle_count,
-            [rest_x, model.particle_body, model.particle_material, mat_struct, rest_nbr, rest_count, rest_guard,
-             model.particle_volume, state_out.stress, state_out.F_p, S(model.support_radius), state_out.force.grad,
-             state_out.stress.grad, state_out.F_p.grad],
+            # The forward's inputs but the fit, which the adjoint kernel is built for.
+            [*inputs[:-1], state_out.force.grad, state_out.stress.grad, state_out.F_p.grad],
             device=model.device, record_tape=False,
         )
 
