@@ -198,7 +198,7 @@ def test_rest_model_fits_the_total_deformation_exactly():
     F_out = wp.zeros(n, dtype=wp.mat33d)
     counters = wp.zeros(4, dtype=wp.int32)
     wp.launch(k.update_deformation, n, [X, y, X, model.particle_body, nbr, count, nbr, count, wp.zeros(n, dtype=wp.int32),
-                                        wp.zeros(n, dtype=wp.int32), model.particle_material, model.material_arrays(),
+                                        *model.rest_moments(False), wp.zeros(n, dtype=wp.int32), model.particle_material, model.material_arrays(),
                                         wp.array(eye, dtype=wp.mat33d), wp.array(Fp, dtype=wp.mat33d), model.support_radius,
                                         MIN_NEIGHBORS, MAX_CONDITION, 0], [F_out, counters])
     inner = _interior(model, model.support_radius)
@@ -224,7 +224,9 @@ def test_additive_model_adds_the_green_strain_of_the_step():
     counters = wp.zeros(4, dtype=wp.int32)
     eye = np.tile(np.eye(3), (n, 1, 1))
     wp.launch(k.update_deformation, n, [X, y, X, model.particle_body, state.neighbors, state.neighbor_count, state.neighbors,
-                                        state.neighbor_count, wp.zeros(n, dtype=wp.int32), state.guard,
+                                        state.neighbor_count, wp.zeros(n, dtype=wp.int32),
+                                        # The rest moments, which the additive model does not read.
+                                        wp.zeros(n, dtype=wp.mat33d), wp.zeros(n, dtype=wp.mat33d), state.guard,
                                         model.particle_material, model.material_arrays(),
                                         wp.array(eye + eps0, dtype=wp.mat33d), wp.array(eye, dtype=wp.mat33d),
                                         model.support_radius, MIN_NEIGHBORS, MAX_CONDITION, 0], [F_out, counters])

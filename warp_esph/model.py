@@ -448,6 +448,8 @@ class Model:
         self.rest_guard = None
         # The same with a solver's other thresholds (rest_guard_for), keyed by them.
         self._rest_guards = {}
+        # The rest neighbourhoods' fixed moments (rest_moments), keyed by the fit.
+        self._rest_moments = {}
 
         V, S = self.types.vec3, scalar
         self.plane_normal = self._collider_array([p.normal for p in planes], V)
@@ -1160,15 +1162,39 @@ class Model:
             self._rest_guards[key] = state.guard
         return self._rest_guards[key]
 
+    def rest_moments(self, curved: bool) -> tuple[wp.array, wp.array]:
+        """``(A~^-1, K)`` of each particle's rest neighbourhood for the rest model's total fit
+        (``curved``: the curvature-corrected one; else ``A^-1`` and ``K = 0``;
+        ``comparison.rest_moments``), evaluated once per fit on the rest neighbourhoods: they
+        are moments of the rest offsets alone, which every step's fit and variational force
+        (and their adjoints) read, and recomputed each step they cost a pass over every rest
+        pair. Constants: the rest positions carry no gradient."""
+        from .sim import comparison  # noqa: PLC0415
+
+        rest_x, rest_nbr, rest_count = self.rest_neighbors()
+        key = bool(curved)
+        if key not in self._rest_moments:
+            mat33 = self.types.mat33
+            At_inv = wp.empty(self.particle_count, dtype=mat33, device=self.device)
+            K = wp.empty(self.particle_count, dtype=mat33, device=self.device)
+            # Not on a tape a step may be recording: a constant of the model, not of the step.
+            self.launches(comparison.kernels(self.scalar, self.fit_weight).rest_moments, self.particle_count,
+                          [rest_x, self.particle_body, rest_nbr, rest_count, self.scalar(self.support_radius), int(key)],
+                          [At_inv, K], device=self.device, record_tape=False)
+            self._rest_moments[key] = (At_inv, K)
+        return self._rest_moments[key]
+
     def _drop_stale_rest(self):
-        """Forget the rest neighbourhoods where ``particle_x0`` changed since they were built
-        (``Solver`` calls it when made): a solver made since takes the rest configuration as
-        the positions are now, as its hourglass control does. Kept, they held the positions an
+        """Forget the rest neighbourhoods (and their guards and moments, ``rest_moments``) where
+        ``particle_x0`` changed since they were built (``Solver`` calls it when made): a solver
+        made since takes the rest configuration as the positions are now, as its hourglass
+        control does. Kept, they held the positions an
         earlier solver saw, so a body edited after it (``calibrate.jitter_model``, a scaled or
         moved ``particle_x0``) started stressed against them and sprang back."""
         if self.rest_x is not None and not np.array_equal(self._rest_from, self.particle_x0):
             self.rest_x = self.rest_nbr = self.rest_count = self.rest_guard = None
             self._rest_guards = {}
+            self._rest_moments = {}
 
     @property
     def separate_pressure_density(self) -> bool:

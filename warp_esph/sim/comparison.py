@@ -7,7 +7,8 @@ Selected per material with ``Material(deformation=...)``:
   fitted against the rest positions ``X`` with the initial (same-body) neighbour lists;
   a plastic ``F_p`` per particle is stored, ``F_e = F F_p⁻¹``. The plastic flow of
   ``plasticity.py`` updates ``F_e`` and then, where it changed ``F_e``, ``F_p <- F_e⁻¹ F``.
-  ``State.F`` holds ``F_e``.
+  ``State.F`` holds ``F_e``. The moments of the rest offsets alone, ``A~^-1`` and ``K``, are
+  evaluated once per model and fit (``Model.rest_moments``), not at every step.
 - ``"additive"``: a symmetric strain ``ε`` per particle, ``ε <- ε + ½(dFᵀdF − I)`` with the
   step's MLS ``dF``; plastic flow removes the fraction ``γ = min(nu_f dt (|s| − Y − K α)/|s|, 1)``
   of ``dev ε`` where ``|s| = 2 mu |dev ε| > Y + K α``; stress ``σ = 2 mu ε + lam tr(ε) I``,
@@ -58,21 +59,28 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         rest_nbr: wp.array2d(dtype=wp.int32),
         n: int,
         h: scalar,
+        At_inv: mat33,
+        K: mat33,
         curved: int,
     ):
         """``G_i(y)``, the rest model's total fit of the positions ``y`` against particle ``i``'s
         rest neighbourhood (the paper's eqs. 5-6 with the rest offsets in place of the current
-        ones; ``curved``: the curvature-corrected fit, ``curvature.corrected_fit``). The
-        moments from their own functions: an inverse must not see a loop accumulator
-        (docs/method.md, Warp pitfall 1). The positions' round-off is not carried (y, y)."""
-        G = mat33()
+        ones; ``curved``: the curvature-corrected fit, ``curvature.corrected_fit``): ``I + (Bu
+        - Eu K) A~^-1`` of the displacement moments ``Bu``, ``Eu`` (``Eu = 0``, ``K = 0``: the
+        linear fit's ``I + Bu A^-1``), with ``A~^-1`` and ``K`` of the rest offsets alone
+        (``rest_moments``, ``Model.rest_moments``). The sums from their own functions, as
+        every fit's (docs/method.md, Warp pitfall 1). The positions' round-off is not carried
+        (y, y)."""
+        Bu = mat33()
+        Eu = mat33()
         if curved != 0:
             A, B, C, D, E, same = cf.moment_sums(i, rest_x, y, y, y, body, rest_nbr, n, h)
-            G = cf.corrected_fit(A, B, C, D, E)
+            Bu = B
+            Eu = E
         else:
             A, B, same = moment_sums(i, rest_x, y, y, y, body, rest_nbr, n, h)
-            G = wp.identity(n=3, dtype=scalar) + df.affine_fit(A, B)
-        return G
+            Bu = B
+        return wp.identity(n=3, dtype=scalar) + cf.corrected_moment(Bu, Eu, K) * At_inv
 
     @wp.kernel(module="unique")
     def constitutive_update(
@@ -149,6 +157,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         rest_nbr: wp.array2d(dtype=wp.int32),
         rest_count: wp.array(dtype=wp.int32),
         rest_guard: wp.array(dtype=wp.int32),
+        rest_At_inv: wp.array(dtype=mat33),
+        rest_K: wp.array(dtype=mat33),
         guard: wp.array(dtype=wp.int32),
         material: wp.array(dtype=wp.int32),
         mat: Materials,
@@ -162,7 +172,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         counters: wp.array(dtype=wp.int32),
     ):
         """``deformation.update_deformation`` for every deformation model (``curved``: the rest
-        model's total fit is the curvature-corrected one, ``curvature.corrected_fit``)."""
+        model's total fit is the curvature-corrected one, ``curvature.corrected_fit``;
+        ``rest_At_inv``, ``rest_K``: its rest moments, ``Model.rest_moments``)."""
         i = wp.tid()
         F = F_prev[i]
         d = mat.deformation[material[i]]
@@ -177,7 +188,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             elif code == 2:
                 wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
             else:
-                G = rest_total_fit(i, rest_x, y, body, rest_nbr, rest_count[i], h, curved)
+                G = rest_total_fit(i, rest_x, y, body, rest_nbr, rest_count[i], h, rest_At_inv[i], rest_K[i], curved)
                 F = unless_inverted(G * wp.inverse(Fp[i]), F, counters)
         else:
             A, B, same = moment_sums(i, x, y, y, y, body, nbr, count[i], h)
@@ -201,10 +212,11 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         h: scalar,
         curved: int,
     ):
-        """The fixed moments of particle ``i``'s rest variational force: ``A~`` and ``K`` of its
-        rest neighbourhood (``curved``: the curvature-corrected fit's, ``curvature.py``; else
-        ``A`` and ``K = 0``), from their own functions: an inverse must not see a loop
-        accumulator (docs/method.md, Warp pitfall 1)."""
+        """The fixed moments of particle ``i``'s rest fit and variational force: ``A~`` and ``K``
+        of its rest neighbourhood (``curved``: the curvature-corrected fit's, ``curvature.py``;
+        else ``A`` and ``K = 0``), from their own functions: an inverse must not see a loop
+        accumulator (docs/method.md, Warp pitfall 1). Evaluated once per model and fit
+        (``rest_moments``)."""
         K = mat33()
         At = mat33()
         if curved != 0:
@@ -216,6 +228,26 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             At = A
         return At, K
 
+    @wp.kernel(enable_backward=False, module="unique")
+    def rest_moments(
+        rest_x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        rest_nbr: wp.array2d(dtype=wp.int32),
+        rest_count: wp.array(dtype=wp.int32),
+        h: scalar,
+        curved: int,
+        At_inv: wp.array(dtype=mat33),
+        K_out: wp.array(dtype=mat33),
+    ):
+        """``A~^-1`` and ``K`` of ``rest_map_moments`` for every particle (``Model.rest_moments``):
+        the moments of the rest offsets alone, the same at every step (at a guarded rest
+        neighbourhood, which nothing reads them at, whatever the inverse of a near-singular
+        ``A~`` gives)."""
+        i = wp.tid()
+        At, K = rest_map_moments(i, rest_x, body, rest_nbr, rest_count[i], h, curved)
+        At_inv[i] = wp.inverse(At)
+        K_out[i] = K
+
     @wp.kernel(module="unique")
     def rest_variational_forces(
         rest_x: wp.array(dtype=vec3),
@@ -225,6 +257,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         rest_nbr: wp.array2d(dtype=wp.int32),
         rest_count: wp.array(dtype=wp.int32),
         rest_guard: wp.array(dtype=wp.int32),
+        rest_At_inv: wp.array(dtype=mat33),
+        rest_K: wp.array(dtype=mat33),
         volume: wp.array(dtype=scalar),
         stress: wp.array(dtype=mat33),
         Fp: wp.array(dtype=mat33),
@@ -242,14 +276,15 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         elastic bodies"). The same ``variational_map`` and pair force as the incremental one,
         with ``F_p^-1`` in place of ``F`` and the rest offsets in place of the current ones.
         ``curved``: with the curvature-corrected total fit, ``A~_i`` and ``Xb - K_i^T q(Xb)`` in
-        place of ``A_i`` and ``Xb`` (``curvature.py``), also of the rest positions alone."""
+        place of ``A_i`` and ``Xb`` (``curvature.py``), also of the rest positions alone
+        (``rest_At_inv``, ``rest_K``: ``Model.rest_moments``)."""
         i = wp.tid()
         m = material[i]
         # A guarded rest neighbourhood keeps its F whatever the positions do: no energy
         # gradient, no force (as the incremental fit's guard).
         if mat.deformation[m] == 1 and mat.elastic_force[m] == 1 and rest_guard[i] == 0:
-            At, K = rest_map_moments(i, rest_x, body, rest_nbr, rest_count[i], h, curved)
-            M = fn.variational_map(volume[i], stress[i], wp.inverse(Fp[i]), wp.inverse(At))
+            K = rest_K[i]
+            M = fn.variational_map(volume[i], stress[i], wp.inverse(Fp[i]), rest_At_inv[i])
             fi = vec3()
             if curved != 0:
                 fi = cf.variational_forces(i, rest_x, body, rest_nbr, rest_count[i], M, K, h, f)
@@ -265,6 +300,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         rest_nbr: wp.array2d(dtype=wp.int32),
         rest_count: wp.array(dtype=wp.int32),
         rest_guard: wp.array(dtype=wp.int32),
+        rest_At_inv: wp.array(dtype=mat33),
+        rest_K: wp.array(dtype=mat33),
         F: wp.array(dtype=mat33),
         Fp_in: wp.array(dtype=mat33),
         h: scalar,
@@ -279,35 +316,35 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         i = wp.tid()
         out = Fp_in[i]
         if rest_guard[i] == 0:
-            G = rest_total_fit(i, rest_x, x, body, rest_nbr, rest_count[i], h, curved)
+            G = rest_total_fit(i, rest_x, x, body, rest_nbr, rest_count[i], h, rest_At_inv[i], rest_K[i], curved)
             if wp.determinant(G) > scalar(0.0):
                 out = wp.inverse(F[i]) * G
         Fp_out[i] = out
 
     return types.SimpleNamespace(constitutive_update=constitutive_update, update_deformation=update_deformation,
                                  rest_variational_forces=rest_variational_forces, rest_handover=rest_handover,
-                                 rest_map_moments=rest_map_moments)
+                                 rest_map_moments=rest_map_moments, rest_moments=rest_moments,
+                                 rest_total_fit=rest_total_fit)
 
 
 @functools.cache
 def adjoint_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
     """Hand-written adjoints of the rest model's kernels (``kernels``' ``update_deformation``
     and ``rest_variational_forces``) where every material is ``"rest"``, for the total fit
-    ``fit`` ("linear" or "curvature_corrected"). The rest fit is the incremental fit's
-    moment fit with the rest positions as the reference and the rest neighbourhood as the
-    row, and its variational force that fit's pair force: both take the incremental fit's
-    adjoint functions (``deformation.fit_funcs``' ``moments_adjoint``, ``curvature``'s
-    ``map_adjoint_sums``, ``forces``' ``variational_map_adjoint``; the force's fixed moments
-    are ``kernels``' ``rest_map_moments``, as in the forward).
-    The rest positions are constant (no gradient): what those functions give them goes to a
-    scratch array nobody reads."""
+    ``fit`` ("linear" or "curvature_corrected"). Both read the rest moments ``A~^-1`` and
+    ``K`` as their forwards do (``Model.rest_moments``): the rest positions are constant (no
+    gradient), so only what the positions ``y``, the stress and ``F_p`` feed is taken back.
+    The total fit ``G = I + sum_j w_j (u_j - u_i) o_j^T A~^-1`` (``u = y - X``, ``o_j = Xb_j -
+    K^T q(Xb_j)``) is linear in ``y`` with the rest weights: ``adj u_j = w_j adj(G) A~^-T o_j``,
+    the variational force's pair form (``curvature.variational_forces``, ``forces``' for the
+    linear fit) with the map ``-adj(G) A~^-T``. The force's map ``M = V P* F_p^-T A~^-1``
+    takes ``curvature``'s ``map_adjoint_sums`` and ``forces``' ``variational_map_adjoint``."""
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
-    fn = deformation.fit_funcs(scalar, weight, fit)
     cf = curvature.funcs(scalar, weight)
     fo = forces.funcs(scalar, weight)
     Materials = materials.struct(scalar)
-    rest_map_moments = kernels(scalar, weight).rest_map_moments
+    rest_total_fit = kernels(scalar, weight).rest_total_fit
     curved = 1 if fit == "curvature_corrected" else 0
 
     @wp.func
@@ -324,37 +361,41 @@ def adjoint_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         rest_nbr: wp.array2d(dtype=wp.int32),
         rest_count: wp.array(dtype=wp.int32),
         rest_guard: wp.array(dtype=wp.int32),
+        rest_At_inv: wp.array(dtype=mat33),
+        rest_K: wp.array(dtype=mat33),
         Fp: wp.array(dtype=mat33),
         h: scalar,
         adj_F_out: wp.array(dtype=mat33),
-        adj_rest_x: wp.array(dtype=vec3),
         adj_y: wp.array(dtype=vec3),
         adj_F_prev: wp.array(dtype=mat33),
         adj_Fp: wp.array(dtype=mat33),
     ):
         """Adjoint of the rest model's ``F = G(y) F_p^-1`` (``update_deformation`` with every
-        deformation code "rest"): ``adj G = adj F F_p^-T``, taken to the positions by the fit's
-        ``moments_adjoint`` (``G - I`` is its ``moments_increment`` of the rest moments; no
-        guard fade: a guarded rest neighbourhood keeps its ``F`` whole, and all of ``adj F``
-        goes to the flowed ``F``, as where ``G F_p^-1`` would invert), and ``adj F_p^-1 =
-        G^T adj F`` to ``F_p`` (``inverse_adjoint``)."""
+        deformation code "rest"): ``adj G = adj F F_p^-T``, to the positions as the variational
+        force's pairs with ``M = -adj G A~^-T`` (``adjoint_kernels``; no guard fade: a guarded
+        rest neighbourhood keeps its ``F`` whole, and all of ``adj F`` goes to the flowed
+        ``F``, as where ``G F_p^-1`` would invert), and ``adj F_p^-1 = G^T adj F`` to ``F_p``
+        (``inverse_adjoint``)."""
         i = wp.tid()
         G = adj_F_out[i]
         if rest_guard[i] != 0:
             adj_F_prev[i] = adj_F_prev[i] + G
             return
         n = rest_count[i]
-        # The positions' round-off is not carried (y, y), as the forward's rest_total_fit.
-        m = fn.fit_moments(i, rest_x, y, y, y, body, rest_nbr, n, h, vec3(), scalar(0.0), scalar(0.0), 0)
-        inc0 = fn.moments_increment(m)
+        At_inv = rest_At_inv[i]
+        K = rest_K[i]
+        fit = rest_total_fit(i, rest_x, y, body, rest_nbr, n, h, At_inv, K, wp.static(curved))
         Fp_inv = wp.inverse(Fp[i])
-        fit = wp.identity(n=3, dtype=scalar) + inc0
         if wp.determinant(fit * Fp_inv) <= scalar(0.0):
             adj_F_prev[i] = adj_F_prev[i] + G
             return
         adj_Fp[i] = adj_Fp[i] + inverse_adjoint(Fp_inv, wp.transpose(fit) * G)
-        gx_i, gy_i = fn.moments_adjoint(i, rest_x, y, body, rest_nbr, n, h, vec3(), scalar(0.0), scalar(0.0), 0, m,
-                                        inc0, G * wp.transpose(Fp_inv), mat33(), scalar(0.0), adj_rest_x, adj_y)
+        M = -(G * wp.transpose(Fp_inv) * wp.transpose(At_inv))
+        gy_i = vec3()
+        if wp.static(curved != 0):
+            gy_i = cf.variational_forces(i, rest_x, body, rest_nbr, n, M, K, h, adj_y)
+        else:
+            gy_i = fo.variational_forces(i, rest_x, body, rest_nbr, n, M, h, adj_y)
         wp.atomic_add(adj_y, i, gy_i)
 
     @wp.kernel(enable_backward=False, module="unique")
@@ -366,6 +407,8 @@ def adjoint_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         rest_nbr: wp.array2d(dtype=wp.int32),
         rest_count: wp.array(dtype=wp.int32),
         rest_guard: wp.array(dtype=wp.int32),
+        rest_At_inv: wp.array(dtype=mat33),
+        rest_K: wp.array(dtype=mat33),
         volume: wp.array(dtype=scalar),
         stress: wp.array(dtype=mat33),
         Fp: wp.array(dtype=mat33),
@@ -376,18 +419,17 @@ def adjoint_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
     ):
         """Adjoint of ``rest_variational_forces``: its pairs' offsets are the rest ones, so only
         the map ``M = V P* F_p^-T A~^-1`` varies. With ``a_j = adj f_i - adj f_j``, ``adj M =
-        S1 - S2 K`` (``curvature``'s ``map_adjoint_sums``; ``rest_map_moments``' ``K = 0``,
-        ``A~ = A`` for the linear fit), then ``variational_map_adjoint`` to ``P*`` and
-        ``F_p^-1``, and ``inverse_adjoint`` to ``F_p``."""
+        S1 - S2 K`` (``curvature``'s ``map_adjoint_sums``; ``K = 0`` for the linear fit), then
+        ``variational_map_adjoint`` to ``P*`` and ``F_p^-1``, and ``inverse_adjoint`` to ``F_p``."""
         i = wp.tid()
         m = material[i]
         if mat.deformation[m] != 1 or mat.elastic_force[m] != 1 or rest_guard[i] != 0:
             return
         n = rest_count[i]
         S1, S2 = cf.map_adjoint_sums(i, rest_x, body, rest_nbr, n, h, adj_f)
-        At, K = rest_map_moments(i, rest_x, body, rest_nbr, n, h, wp.static(curved))
         Fp_inv = wp.inverse(Fp[i])
-        adj_P, adj_Fp_inv, adj_At = fo.variational_map_adjoint(volume[i], stress[i], Fp_inv, wp.inverse(At), S1 - S2 * K)
+        adj_P, adj_Fp_inv, adj_At = fo.variational_map_adjoint(volume[i], stress[i], Fp_inv, rest_At_inv[i],
+                                                               S1 - S2 * rest_K[i])
         adj_stress[i] = adj_stress[i] + adj_P
         adj_Fp[i] = adj_Fp[i] + inverse_adjoint(Fp_inv, adj_Fp_inv)
 
@@ -413,7 +455,8 @@ def launch_rest_handover(model, state_in, Fp_out, curved: bool = False, rest_gua
     model.launches(
         kernels(model.scalar, model.fit_weight).rest_handover,
         model.particle_count,
-        [state_in.x, rest_x, model.particle_body, rest_nbr, rest_count, rest_guard, state_in.F, state_in.F_p,
+        [state_in.x, rest_x, model.particle_body, rest_nbr, rest_count, rest_guard, *model.rest_moments(curved),
+         state_in.F, state_in.F_p,
          model.scalar(model.support_radius), int(curved)],
         [Fp_out],
         device=model.device,
@@ -446,9 +489,10 @@ def launch_update_deformation(model, state_in, state_out, counters, curved: bool
     (``hand_adjoint=False``, or a model mixing deformation models: Warp's generated adjoint)."""
     rest_x, rest_nbr, rest_count = model.rest_neighbors()
     rest_guard = model.rest_guard if rest_guard is None else rest_guard
+    rest_At_inv, rest_K = model.rest_moments(curved)
     inputs = [
         state_in.x, state_out.x, rest_x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
-        rest_nbr, rest_count, rest_guard, state_out.guard, model.particle_material,
+        rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K, state_out.guard, model.particle_material,
         model.material_arrays() if mats is None else mats, state_out.F_flowed,
         state_out.F_p, model.scalar(model.support_radius), int(min_neighbors), model.scalar(max_condition), int(curved),
     ]
@@ -466,10 +510,9 @@ def launch_update_deformation(model, state_in, state_out, counters, curved: bool
         y = state_out.x
         model.launches(
             adjoint_kernels(model.scalar, model.fit_weight, fit).update_deformation_adjoint, model.particle_count,
-            [rest_x, y, model.particle_body, rest_nbr, rest_count, rest_guard, state_out.F_p,
-             model.scalar(model.support_radius), state_out.F.grad,
-             # The rest positions' adjoint, which the fit's adjoint functions scatter: constant, not read.
-             wp.empty_like(rest_x), y.grad, state_out.F_flowed.grad, state_out.F_p.grad],
+            [rest_x, y, model.particle_body, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K, state_out.F_p,
+             model.scalar(model.support_radius), state_out.F.grad, y.grad, state_out.F_flowed.grad,
+             state_out.F_p.grad],
             device=model.device, record_tape=False,
         )
 
@@ -489,7 +532,7 @@ def launch_rest_variational_forces(model, state_out, curved: bool = False, mats=
     mat_struct = model.material_arrays() if mats is None else mats
     S = model.scalar
     inputs = [rest_x, model.particle_body, model.particle_material, mat_struct, rest_nbr, rest_count, rest_guard,
-              model.particle_volume, state_out.stress, state_out.F_p, S(model.support_radius), int(curved)]
+              *model.rest_moments(curved), model.particle_volume, state_out.stress, state_out.F_p, S(model.support_radius), int(curved)]
     kernel = kernels(S, model.fit_weight).rest_variational_forces
     tape = recording_tape()
     grads = (state_out.stress, state_out.F_p, state_out.force)
