@@ -714,6 +714,32 @@ def test_a_rollout_made_while_its_body_could_flow_hands_f_over_once_elastic(weig
         np.testing.assert_array_equal(grads[True][name], grads[False][name])
 
 
+
+@pytest.mark.parametrize("checkpoint_every", [None, 2])
+def test_a_rollout_whose_solver_runs_the_rest_model_on_another_fits_model_hands_f0_over(weights, checkpoint_every):
+    """A ``Rollout`` whose solver asks ``fit="auto"`` of a model built with another fit runs the
+    rest model, so a given ``F0`` is handed over to it (``State.rest_model`` False), which needs
+    ``F_p``'s gradient. The taped states asked the model's fit (``Model.state``): made without it,
+    the forward was refused ('make the states again'); they now follow the solver's, with the
+    gradients of the same rollout on a model built with ``fit="auto"``."""
+    from warp_esph.rollout import Rollout
+
+    stretch = np.diag([1.04, 0.98, 1.0])
+    grads = {}
+    for fit in ("linear", None):
+        model = _elastic_model()
+        if fit is not None:
+            model.fit = fit
+        solver = we.Solver(model, fit="auto")
+        assert solver.rest_model and model.auto_runs_rest() is (fit is None)
+        rollout = Rollout(model, STEPS, DT, checkpoint_every=checkpoint_every, solver=solver)
+        rollout.forward(F0=stretch)
+        grads[fit] = rollout.backward([weights])[1]
+    assert np.abs(grads[None]["F0"]).max() > 0.0
+    for name in ("mu", "lam", "F0", "x0"):
+        np.testing.assert_array_equal(grads["linear"][name], grads[None][name])
+
+
 def _images_model(params=None, ground=-0.045, v0=None, fit_weight="poly6"):
     """The block over the ground with floor images (``add_ground(images=True)``): by default
     the plane three quarters of a spacing under its bottom layer, so every particle's fit,

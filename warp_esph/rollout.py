@@ -640,15 +640,21 @@ class Rollout:
             init.rest_model = False
 
     def _taped_states(self, count: int) -> list[State]:
-        m = self.model
-        if (self._states is not None and self._states[0].F_p.grad is None
-                and (m.uses_comparison_models or m.auto_runs_rest())):
+        m, solver = self.model, self.solver
+        # Whether this rollout's solver may run the rest model now: its own fit, not the model's
+        # (Model.state asks the model's, so a Solver(fit="auto") on a model built with another
+        # fit was given states whose F_p had no gradient).
+        rest = m.uses_comparison_models or (solver._auto and m.auto_runs_rest(solver._asked[0]))
+        if self._states is not None and self._states[0].F_p.grad is None and rest:
             # Made while the model could flow, so without F_p's gradient (Model.state), which a
             # step handing F over to the rest model now needs (Solver.step refused it, telling
             # the caller to make states that only the rollout makes).
             self._states = None
         if self._states is None or len(self._states) < count:
-            self._states = [self.model.state(requires_grad=True) for _ in range(count)]
+            self._states = [m.state(requires_grad=True) for _ in range(count)]
+            if rest:
+                for state in self._states:
+                    state.F_p.requires_grad = True
         return self._states
 
     # ---------------------------------------------------------------- forward
