@@ -448,7 +448,7 @@ class Model:
         self.rest_guard = None
         # The same with a solver's other thresholds (rest_guard_for), keyed by them.
         self._rest_guards = {}
-        # The rest neighbourhoods' fixed moments (rest_moments), keyed by the fit.
+        # The rest neighbourhoods' fixed moments (rest_moments), keyed by the fit and its weight.
         self._rest_moments = {}
 
         V, S = self.types.vec3, scalar
@@ -1165,21 +1165,24 @@ class Model:
     def rest_moments(self, curved: bool) -> tuple[wp.array, wp.array]:
         """``(A~^-1, K)`` of each particle's rest neighbourhood for the rest model's total fit
         (``curved``: the curvature-corrected one; else ``A^-1`` and ``K = 0``;
-        ``comparison.rest_moments``), evaluated once per fit on the rest neighbourhoods: they
-        are moments of the rest offsets alone, which every step's fit and variational force
-        (and their adjoints) read, and recomputed each step they cost a pass over every rest
-        pair. Constants: the rest positions carry no gradient."""
+        ``comparison.rest_moments``), evaluated once per fit and ``fit_weight`` on the rest
+        neighbourhoods: they are moments of the rest offsets alone, which every step's fit and
+        variational force (and their adjoints) read, and recomputed each step they cost a pass
+        over every rest pair. Constants: the rest positions carry no gradient."""
         from .sim import comparison  # noqa: PLC0415
 
         rest_x, rest_nbr, rest_count = self.rest_neighbors()
-        key = bool(curved)
+        # The weights are in the moments: kept across a change of fit_weight, the fit paired the
+        # new weights' displacement moments with the old weights' A~^-1 (a 5 % stretch fitted
+        # as 1.000003 after poly6 -> biweight, their normalisations differing).
+        key = (bool(curved), self.fit_weight)
         if key not in self._rest_moments:
             mat33 = self.types.mat33
             At_inv = wp.empty(self.particle_count, dtype=mat33, device=self.device)
             K = wp.empty(self.particle_count, dtype=mat33, device=self.device)
             # Not on a tape a step may be recording: a constant of the model, not of the step.
             self.launches(comparison.kernels(self.scalar, self.fit_weight).rest_moments, self.particle_count,
-                          [rest_x, self.particle_body, rest_nbr, rest_count, self.scalar(self.support_radius), int(key)],
+                          [rest_x, self.particle_body, rest_nbr, rest_count, self.scalar(self.support_radius), int(key[0])],
                           [At_inv, K], device=self.device, record_tape=False)
             self._rest_moments[key] = (At_inv, K)
         return self._rest_moments[key]

@@ -8,7 +8,7 @@ Selected per material with ``Material(deformation=...)``:
   a plastic ``F_p`` per particle is stored, ``F_e = F F_p⁻¹``. The plastic flow of
   ``plasticity.py`` updates ``F_e`` and then, where it changed ``F_e``, ``F_p <- F_e⁻¹ F``.
   ``State.F`` holds ``F_e``. The moments of the rest offsets alone, ``A~^-1`` and ``K``, are
-  evaluated once per model and fit (``Model.rest_moments``), not at every step.
+  evaluated once per model, fit and fit weight (``Model.rest_moments``), not at every step.
 - ``"additive"``: a symmetric strain ``ε`` per particle, ``ε <- ε + ½(dFᵀdF − I)`` with the
   step's MLS ``dF``; plastic flow removes the fraction ``γ = min(nu_f dt (|s| − Y − K α)/|s|, 1)``
   of ``dev ε`` where ``|s| = 2 mu |dev ε| > Y + K α``; stress ``σ = 2 mu ε + lam tr(ε) I``,
@@ -215,7 +215,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         """The fixed moments of particle ``i``'s rest fit and variational force: ``A~`` and ``K``
         of its rest neighbourhood (``curved``: the curvature-corrected fit's, ``curvature.py``;
         else ``A`` and ``K = 0``), from their own functions: an inverse must not see a loop
-        accumulator (docs/method.md, Warp pitfall 1). Evaluated once per model and fit
+        accumulator (docs/method.md, Warp pitfall 1). Evaluated once per model, fit and weight
         (``rest_moments``)."""
         K = mat33()
         At = mat33()
