@@ -445,13 +445,21 @@ def all_rest(model, mats) -> bool:
     return mats is not None or all(mt.deformation == "rest" for mt in model.materials)
 
 
-def launch_rest_handover(model, state_in, Fp_out, curved: bool = False, rest_guard=None):
+def _rest_set(model, rest, rest_guard):
+    """``(X, neighbours, counts, guard)`` a launch reads: ``rest`` (a solver's own
+    ``(X, neighbours, counts)``, ``Solver.rest_set``) or the model's (``Model.rest_neighbors``),
+    with ``rest_guard`` or the model's default guard."""
+    rest_x, rest_nbr, rest_count = model.rest_neighbors() if rest is None else rest
+    return rest_x, rest_nbr, rest_count, model.rest_guard if rest_guard is None else rest_guard
+
+
+def launch_rest_handover(model, state_in, Fp_out, curved: bool = False, rest_guard=None, rest=None):
     """``rest_handover`` of ``state_in`` into ``Fp_out`` (read by the step's constitutive update in
     place of ``state_in.F_p``; ``state_in`` is only read). ``rest_guard``: the rest
     neighbourhoods' guard with the solver's thresholds (``Model.rest_guard_for``; None: the
-    default ``Model.rest_guard``), as in the launches below."""
-    rest_x, rest_nbr, rest_count = model.rest_neighbors()
-    rest_guard = model.rest_guard if rest_guard is None else rest_guard
+    default ``Model.rest_guard``), as in the launches below; ``rest``: the rest neighbourhoods
+    ``(X, neighbours, counts)`` the solver holds (``Solver.rest_set``; None: the model's)."""
+    rest_x, rest_nbr, rest_count, rest_guard = _rest_set(model, rest, rest_guard)
     model.launches(
         kernels(model.scalar, model.fit_weight).rest_handover,
         model.particle_count,
@@ -480,15 +488,15 @@ def launch_constitutive_update(model, state_in, state_out, dt, counters, mats=No
 def launch_update_deformation(model, state_in, state_out, counters, curved: bool = False,
                               max_condition: float = deformation.guards.MAX_CONDITION,
                               min_neighbors: int = deformation.guards.MIN_NEIGHBORS, mats=None, rest_guard=None,
-                              hand_adjoint: bool = True):
+                              hand_adjoint: bool = True, rest=None):
     """``deformation.launch_update_deformation`` for models with a Fig. 8 comparison material
     (``curved``: the rest model's total fit is the curvature-corrected one; ``rest_guard``: the
     rest neighbourhoods' guard with the thresholds given, ``Model.rest_guard_for``, None: the
-    default's). Under a ``wp.Tape``, where every material runs the rest model (``all_rest``),
-    the backward runs ``adjoint_kernels``' ``update_deformation_adjoint``
-    (``hand_adjoint=False``, or a model mixing deformation models: Warp's generated adjoint)."""
-    rest_x, rest_nbr, rest_count = model.rest_neighbors()
-    rest_guard = model.rest_guard if rest_guard is None else rest_guard
+    default's; ``rest``: as in ``launch_rest_handover``). Under a ``wp.Tape``, where every
+    material runs the rest model (``all_rest``), the backward runs ``adjoint_kernels``'
+    ``update_deformation_adjoint`` (``hand_adjoint=False``, or a model mixing deformation
+    models: Warp's generated adjoint)."""
+    rest_x, rest_nbr, rest_count, rest_guard = _rest_set(model, rest, rest_guard)
     rest_At_inv, rest_K = model.rest_moments(curved)
     inputs = [
         state_in.x, state_out.x, rest_x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
@@ -520,15 +528,14 @@ def launch_update_deformation(model, state_in, state_out, counters, curved: bool
 
 
 def launch_rest_variational_forces(model, state_out, curved: bool = False, mats=None, rest_guard=None,
-                                   hand_adjoint: bool = True):
+                                   hand_adjoint: bool = True, rest=None):
     """``rest_variational_forces`` into ``state_out.force``, from the stress and ``F_p`` the
     constitutive update wrote (launched only when a material asks for it; ``curved``: of the
-    curvature-corrected total fit; ``rest_guard``: as in ``launch_update_deformation``). Under
-    a ``wp.Tape``, where every material runs the rest model (``all_rest``), the backward runs
-    ``adjoint_kernels``' ``rest_variational_forces_adjoint`` (``hand_adjoint=False``, or a
+    curvature-corrected total fit; ``rest_guard``, ``rest``: as in ``launch_update_deformation``).
+    Under a ``wp.Tape``, where every material runs the rest model (``all_rest``), the backward
+    runs ``adjoint_kernels``' ``rest_variational_forces_adjoint`` (``hand_adjoint=False``, or a
     model mixing deformation models: Warp's generated adjoint)."""
-    rest_x, rest_nbr, rest_count = model.rest_neighbors()
-    rest_guard = model.rest_guard if rest_guard is None else rest_guard
+    rest_x, rest_nbr, rest_count, rest_guard = _rest_set(model, rest, rest_guard)
     mat_struct = model.material_arrays() if mats is None else mats
     S = model.scalar
     inputs = [rest_x, model.particle_body, model.particle_material, mat_struct, rest_nbr, rest_count, rest_guard,
