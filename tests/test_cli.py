@@ -1633,3 +1633,18 @@ def test_a_fitted_run_another_writer_is_writing_is_refused_naming_the_folder_and
         f"writing {out}/fitted.usdc; close() that one first, or write another file (the fit's results are printed above; wrote "
         f"{kept} before it)")
     assert sorted(os.listdir(out)) == ["fit.json", "history.csv", "loss.png", "params.png"]
+
+
+@pytest.mark.parametrize("command", ["run", "sweep", "fit"])
+def test_the_solver_fit_help_names_the_rest_configuration_model(command, capsys):
+    """``--solver-fit auto`` runs the rest-configuration model for purely elastic scenes
+    (``Model.auto_runs_rest``), as docs/cli.md says; the help named only the incremental
+    curvature-corrected fit."""
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    # Without the white space, which the help's wrapping moves (and puts after a hyphen).
+    text = "".join(capsys.readouterr().out.split())
+    auto = text[text.rindex("--solver-fitNAME"):]
+    for said in ("auto (where no material can flow and all use the variational force, the rest-configuration model",
+                 "in a scene with tools or floor images the incremental curvature_corrected fit"):
+        assert "".join(said.split()) in auto

@@ -148,8 +148,10 @@ def _build_parser() -> _Parser:
 def _add_solver_arguments(parser) -> None:
     """``--solver-fit``, ``--contact``, ``--hourglass`` and ``--fit-weight``: the scene's ``[solver]`` options, overridden."""
     parser.add_argument("--solver-fit", metavar="NAME",
-                        help="incremental fit of the solver: auto (curvature_corrected with the hourglass control where no "
-                             "material can flow and all use the variational force, else linear), linear (the paper's) or "
+                        help="fit of the solver: auto (where no material can flow and all use the variational force, the "
+                             "rest-configuration model: the curvature_corrected total fit against each particle's rest "
+                             "neighbourhood, with the hourglass control; in a scene with tools or floor images the "
+                             "incremental curvature_corrected fit with the control; else linear), linear (the paper's) or "
                              "curvature_corrected (stiffer in bending near free surfaces); default: the scene's [solver] fit, "
                              "else auto")
     parser.add_argument("--contact", metavar="NAME",
