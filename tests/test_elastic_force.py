@@ -893,3 +893,37 @@ def test_a_solver_keeps_its_rest_configuration_when_a_later_solver_takes_a_new_o
     # The later solver's rest configuration is the scaled one: the old positions spring out.
     assert speed(later, old) > 0.1
     assert speed(later, model.state()) < 1e-10
+
+
+def test_the_hand_over_takes_f_p_as_a_new_states_where_the_rest_fit_is_inverted():
+    """An incremental step does not write ``F_p``, so a state it wrote holds what that buffer
+    last held: in a loop of two reused states, the ``F_p`` an earlier rest-model period left;
+    in a rollout's states, ``I``. Where the rest fit ``G`` of a particle is inverted (its rest
+    neighbourhood mirrored: a body folded through itself while it flowed) no hand-over
+    ``F^-1 G`` exists, and the hand-over now gives such a particle a new state's ``F_p = I``.
+    Before, it kept the buffer's value, which entered the rest force at once: two states equal
+    in every field an incremental step writes stepped to different velocities."""
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0)
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (4 * SPACING,) * 3, mat)
+    model = b.finalize(dtype=wp.float64)
+    solver = we.Solver(model)
+    n = model.particle_count
+    x0 = model.particle_x0
+    mirrored = (x0 - x0.mean(0)) * np.array([-1.0, 1.0, 1.0]) + x0.mean(0)
+    stretch = np.diag([1.05, 1.0, 1.0])
+    left = np.diag([1.1, 1.0 / 1.1, 1.0])  # an earlier rest period's F_p
+    outs = []
+    for Fp in (np.eye(3), left):
+        start, out = model.state(), model.state()
+        start.x.assign(mirrored)
+        start.F.assign(np.tile(stretch, (n, 1, 1)))
+        start.F_p.assign(np.tile(Fp, (n, 1, 1)))
+        start.rest_model = False  # as an incremental step wrote it
+        solver.step(start, out, 0.5 * model.stable_dt())
+        assert solver.rest_model and out.rest_model
+        assert solver.guard_counts()["inverted"] > 0
+        outs.append(out)
+    np.testing.assert_array_equal(outs[1].v.numpy(), outs[0].v.numpy())
+    np.testing.assert_array_equal(outs[1].F_p.numpy(), np.tile(np.eye(3), (n, 1, 1)))
+    assert np.abs(outs[0].v.numpy()).max() > 1e-3  # the stretch's stress moves the body

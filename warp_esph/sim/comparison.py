@@ -303,7 +303,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         rest_At_inv: wp.array(dtype=mat33),
         rest_K: wp.array(dtype=mat33),
         F: wp.array(dtype=mat33),
-        Fp_in: wp.array(dtype=mat33),
         h: scalar,
         curved: int,
         Fp_out: wp.array(dtype=mat33),
@@ -312,9 +311,14 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         the stored ``F`` of an incremental run at the positions ``x``, so the solver's switch
         from the incremental composition to the rest model (``Solver``, ``fit="auto"``) keeps
         the stress where it is instead of jumping to the rest fit of a body that flowed, or
-        drifted. Kept where the rest neighbourhood is guarded or ``G`` inverted."""
+        drifted. Where the rest neighbourhood is guarded (no ``G``) or ``G`` inverted (a rest
+        neighbourhood mirrored: no ``F_p`` of positive determinant gives ``F``), a new state's
+        ``I``: the rest fit is the particle's ``F_e`` once it is valid again, as on a start. The
+        incoming ``F_p`` is no choice: an incremental step does not write it, so it holds what
+        its buffer last held (an earlier rest period's in a loop of two reused states, ``I``
+        in a rollout's), and it entered the rest force at once."""
         i = wp.tid()
-        out = Fp_in[i]
+        out = wp.identity(n=3, dtype=scalar)
         if rest_guard[i] == 0:
             G = rest_total_fit(i, rest_x, x, body, rest_nbr, rest_count[i], h, rest_At_inv[i], rest_K[i], curved)
             if wp.determinant(G) > scalar(0.0):
@@ -464,7 +468,7 @@ def launch_rest_handover(model, state_in, Fp_out, curved: bool = False, rest_gua
         kernels(model.scalar, model.fit_weight).rest_handover,
         model.particle_count,
         [state_in.x, rest_x, model.particle_body, rest_nbr, rest_count, rest_guard, *model.rest_moments(curved),
-         state_in.F, state_in.F_p,
+         state_in.F,
          model.scalar(model.support_radius), int(curved)],
         [Fp_out],
         device=model.device,
