@@ -1874,3 +1874,33 @@ def test_a_foreign_usd_target_of_widths_0_is_read_and_render_still_refuses_it(tm
     assert len(export_frames(path, "vtu", tmp_path / "vtu")) == 3  # two frames and frames.pvd
     with pytest.raises(ValueError, match=r"w0\.usda'?: body 'cloud' at frame 1 has widths that are not finite and > 0"):
         render_usd(path, tmp_path / "w0.png", width=32, height=24)
+
+
+def test_fit_json_says_which_model_auto_ran(tmp_path, capsys, dough_scene):
+    """``fit.json`` records, beside the requested fit (``"auto"``), what it resolved to at the
+    initial values (``solver_initial``) and at the fitted ones (``solver``, ``FitResult.to_dict``):
+    the dough that flows runs the linear incremental fit, and a model fitted to ``flow_rate = 0``
+    ends on the rest-configuration model with the corrected fit and the control (before,
+    neither was recorded)."""
+    from warp_esph.cli import main
+    from warp_esph.fit import FitResult
+
+    truth = tmp_path / "truth.toml"
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    run = tmp_path / "run.usdc"
+    assert main(["run", str(truth), "-o", str(run), "--frames", "2", "--dtype", "float64", "--no-progress"]) == 0
+    out = tmp_path / "fit"
+    assert main(["fit", str(truth), "--target", str(run), "--output-dir", str(out), "--params", "mu",
+                 "--iterations", "0", "--no-progress", "--no-usd", "--no-diagnostics", "--target-frames", "2"]) == 0
+    doc = json.loads((out / "fit.json").read_text())
+    for record in (doc["solver_initial"], doc["solver"]):
+        assert record == {"fit": "auto", "hourglass": None, "resolved_fit": "linear", "resolved_hourglass": 0.0,
+                          "rest_model": False}
+    capsys.readouterr()
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.1, 0.0), (0.15, 0.15, 0.15), we.Material(mu=1e4, lam=1e4, yield_stress=100.0, flow_rate=0.0))
+    model = b.finalize()
+    result = FitResult(params={"flow_rate": np.array([0.0])}, materials=list(model.materials), material_indices=[0],
+                       loss=0.0, initial_loss=1.0, history=[], model=model)
+    assert result.to_dict()["solver"] == {"fit": "auto", "hourglass": None, "resolved_fit": "curvature_corrected",
+                                          "resolved_hourglass": 0.05, "rest_model": True}

@@ -1648,3 +1648,26 @@ def test_the_solver_fit_help_names_the_rest_configuration_model(command, capsys)
     for said in ("auto (where no material can flow and all use the variational force, the rest-configuration model",
                  "in a scene with tools or floor images the incremental curvature_corrected fit"):
         assert "".join(said.split()) in auto
+
+
+def test_the_run_record_and_the_usd_file_say_which_model_auto_ran(tmp_path, capsys):
+    """``fit = "auto"`` resolves by the materials: the dough (it can flow) runs the linear
+    incremental fit, the same dough with ``flow_rate = 0`` the rest-configuration model with
+    the corrected fit and the control. The checkpoint's run record and the USD file's custom
+    data say which, beside the requested ``"auto"`` (before, only ``"auto"`` was recorded, in
+    the run record alone)."""
+    from warp_esph.checkpoint import read_checkpoint
+
+    elastic = GOOD_TOML.replace("nu = 0.3", "nu = 0.3\nflow_rate = 0.0")
+    want = {"dough": ("linear", 0.0, False), "elastic": ("curvature_corrected", 0.05, True)}
+    for name, text in (("dough", GOOD_TOML), ("elastic", elastic)):
+        scene, out = tmp_path / f"{name}.toml", tmp_path / f"{name}.usdc"
+        scene.write_text(text)
+        assert main(["run", str(scene), "-o", str(out), "--no-progress", "--checkpoint-every", "2"]) == 0
+        run = read_checkpoint(str(out) + ".checkpoint.npz")[0]["run"]
+        assert run["fit"] == "auto"
+        assert (run["resolved_fit"], run["resolved_hourglass"], run["rest_model"]) == want[name]
+        data = open_fresh(out).GetRootLayer().customLayerData
+        assert data["warp_esph:fit"] == "auto"
+        assert (data["warp_esph:resolved_fit"], data["warp_esph:hourglass"], data["warp_esph:rest_model"]) == want[name]
+    capsys.readouterr()

@@ -1076,3 +1076,18 @@ def test_a_duration_shorter_than_a_frame_records_the_one_frame_it_ran_and_a_long
     err = capsys.readouterr().err
     assert err == ("warp-esph: error: --duration = 1e+300 is not allowed: at 30 fps it is 3e+301 frames of at least one "
                    "step each, more than the 1e+10 steps a run may take\n")
+
+
+def test_the_solver_column_shows_where_auto_switches_models(tmp_path):
+    """``fit="auto"`` resolves by the sample's values: ``flow_rate = 0`` runs the
+    rest-configuration model with the corrected fit and the control, ``flow_rate > 0`` the
+    linear incremental fit. The ``solver`` column says which ran (before, only the sweep's
+    requested ``"auto"`` was recorded); a table written before the column still reads."""
+    table = sweep(_box(), ["flow_rate=0,5"], frames=1, workers=1)
+    assert [r["status"] for r in table.rows] == ["ok", "ok"]
+    assert list(table.column("solver")) == ["rest curvature_corrected c=0.05", "incremental linear c=0"]
+    back = SweepTable.read_csv(table.to_csv(tmp_path / "t.csv"))
+    assert back.column("solver").tolist() == table.column("solver").tolist()
+    old = SweepTable([c for c in table.columns if c != "solver"],
+                     [{k: v for k, v in r.items() if k != "solver"} for r in table.rows], table.params)
+    assert "solver" not in SweepTable.read_csv(old.to_csv(tmp_path / "old.csv")).columns

@@ -280,6 +280,9 @@ def run_fit(args, out=None, err=None) -> int:
             "target_frames": exps[0].target_frames, "fps": fps, "dt": dt,
             "frames": frames, "params_fitted": params, "optimizer": optimizer, "jitter": jitter, "loss_scale": loss_scale,
             "support_radius": model.support_radius,
+            # The fit asked for and what it resolves to at the initial values (fit.json's
+            # "solver": at the fitted ones; "auto" resolves by the values).
+            "solver_initial": {"fit": model.fit, "hourglass": model.hourglass, **model.solver_record()},
             "experiments": [{"scene": e.scene.name, "scale": e.scale, "targets": [os.path.abspath(str(p)) for p in e.targets],
                              "target_frames": e.target_frames,
                              "fps": e.fps, "dt": e.dt, "frames": e.frames, "weight": e.weight, "noise": e.noise}

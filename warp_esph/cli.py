@@ -587,7 +587,9 @@ def _cmd_run(args) -> int:
         run_record = {"scene": args.scene if args.scene is not None else scene.name, "scale": scale, "fps": fps, "dt": dt,
                       "frames": frames_total, "output": os.path.abspath(writer.path), "dtype": args.dtype,
                       "surface": bool(args.surface), "checkpoint_every": every, "fit": model.fit, "contact_ramp": model.contact_ramp,
-                      "hourglass": model.hourglass, "fit_weight": model.fit_weight}
+                      "hourglass": model.hourglass, "fit_weight": model.fit_weight,
+                      # What "fit" and "hourglass" resolved to (a resume reads only the requested ones).
+                      **solver.record()}
         if run_id is not None:  # (a checkpoint written before runs were named has none)
             run_record["run_id"] = run_id
         if args.scene is not None and os.path.exists(str(args.scene)):

@@ -180,8 +180,20 @@ class FitResult:
             "termination": self.termination,
             "starts": list(self.starts),
             "diagnostics": None if self.diagnostics is None else self.diagnostics.to_dict(),
+            "solver": self.solver_record(),
             "history": self.history,
         })
+
+    def solver_record(self) -> dict | None:
+        """What the (first) model's default solver runs at the fitted values: the requested
+        ``fit`` and ``hourglass`` with ``Model.solver_record``'s ``resolved_fit``,
+        ``resolved_hourglass`` and ``rest_model`` (``fit="auto"`` resolves by the values, so a
+        fit of ``flow_rate`` that ends at 0 ends on the rest-configuration model); None
+        without a model."""
+        m = self.model
+        if not isinstance(m, Model):
+            return None
+        return {"fit": m.fit, "hourglass": m.hourglass, **m.solver_record()}
 
 
 def _json_safe(obj):

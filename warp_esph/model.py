@@ -638,6 +638,15 @@ class Model:
             strength = AUTO_HOURGLASS if asked == "auto" and chosen == "curvature_corrected" else 0.0
         return chosen, checks.hourglass("hourglass", strength)
 
+    def solver_record(self, fit: str | None = None, hourglass: float | None = None) -> dict:
+        """What a ``Solver(model, fit=fit, hourglass=hourglass)`` runs now, for a run's records
+        beside the requested ``fit`` (``"auto"`` resolves by the parameters, so a sweep over
+        ``flow_rate`` that reaches 0 switches models there): ``resolved_fit`` and
+        ``resolved_hourglass`` (``solver_choice``) and ``rest_model`` (``auto_runs_rest``:
+        whether the step runs the rest-configuration model, whose total fit is ``resolved_fit``)."""
+        chosen, c = self.solver_choice(fit, hourglass)
+        return {"resolved_fit": chosen, "resolved_hourglass": float(c), "rest_model": bool(self.auto_runs_rest(fit))}
+
     def _collider_array(self, values, dtype) -> wp.array:
         # Zero colliders of a kind still pass a (never read) one-element array.
         values = list(values) or [np.zeros(3) if dtype is self.types.vec3 else 0.0]

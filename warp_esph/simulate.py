@@ -872,7 +872,8 @@ def simulate(
     - ``substeps`` / ``dt``: at most one; see ``resolve_timestep``. ``dt="auto"``: an
       adaptive (CFL) step, chosen anew for each frame by ``adaptive_timestep`` (whole
       steps per frame, never above ``model.stable_dt()``).
-    - ``writer``: anything with ``write_frame(frame_index, state)`` (e.g. ``UsdWriter``).
+    - ``writer``: anything with ``write_frame(frame_index, state)`` (e.g. ``UsdWriter``); one
+      with ``record_solver(solver)`` is told the solver at the start (what it runs).
       Frame ``start_frame`` (the initial state) is written first, then one frame per
       rendered frame. The writer is closed when the run ends, also when it fails.
     - ``solver``: a ``Solver`` of ``model`` (default: a new one; pass your own to read
@@ -937,6 +938,9 @@ def simulate(
         elif not isinstance(solver, Solver) or solver.model is not model:
             raise ValueError("solver is not allowed: it must be a warp_esph.Solver built for this model")
         solver.check_dt(dt)  # warns once here, before the progress bar, if dt is above the stable limit
+        if callable(getattr(writer, "record_solver", None)):
+            # Which model writes the frames: fit="auto" resolves by the material values.
+            writer.record_solver(solver)
 
         current = model.state(requires_grad=False)
         if state is not None:

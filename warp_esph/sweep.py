@@ -368,7 +368,7 @@ class SweepTable:
         return cls(columns, rows, columns[start:end])
 
 
-_TEXT_COLUMNS = ("status", "reason", "warnings")
+_TEXT_COLUMNS = ("status", "reason", "warnings", "solver")
 
 
 def _cell(v) -> str:
@@ -544,6 +544,7 @@ def _run_sample(scene, task: _Task) -> dict:
             substeps, dt = resolve_timestep(model, task.fps, dt=task.dt)
             row.update({"particles": model.particle_count, "steps": task.frames * substeps, "dt": dt})
             solver = Solver(model)
+            row["solver"] = solver_label(solver)
             # The bodies a scene shows blowing up are left out of the monitor, as in warp-esph run.
             state = simulate(model, task.frames, fps=task.fps, dt=dt, progress=False, solver=solver,
                              monitor_exempt=getattr(scene, "diverges", ()))
@@ -583,6 +584,16 @@ def _run_sample(scene, task: _Task) -> dict:
     if notes:
         row["warnings"] = "; ".join(notes)
     return row
+
+
+def solver_label(solver) -> str:
+    """The ``solver`` column: what the sample's solver ran (``Solver.record``), as
+    ``"rest curvature_corrected c=0.05"`` (the rest-configuration model, its total fit and the
+    hourglass strength) or ``"incremental linear c=0"`` (the incremental composition and its
+    fit): ``fit="auto"`` resolves by the sample's values, so a sweep of ``flow_rate`` through 0
+    switches models there."""
+    r = solver.record()
+    return f"{'rest' if r['rest_model'] else 'incremental'} {r['resolved_fit']} c={r['resolved_hourglass']:g}"
 
 
 def _call(fn, item):
@@ -853,7 +864,7 @@ def _load(scene, scale):
 
 def _table(rows: list[dict], names: list[str]) -> SweepTable:
     rows = sorted(rows, key=lambda r: r["sample"])
-    head = ["sample", "status", *names, "seed", "particles", "steps", "dt", *SUMMARY_COLUMNS]
+    head = ["sample", "status", *names, "seed", "particles", "steps", "dt", "solver", *SUMMARY_COLUMNS]
     tail = ["wall_s", "reason", "warnings"]
     guards = sorted({k for r in rows for k in r if k.startswith("guard_")})
     extra = sorted({k for r in rows for k in r} - set(head) - set(tail) - set(guards))

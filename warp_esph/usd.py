@@ -18,7 +18,7 @@ Layout of the written stage (Y up, metres, time code = frame index)::
                                 faceVertexIndices, extent; see ``warp_esph.surface``)
 
 The root layer's custom data holds ``warp_esph:*`` facts about the run (particle count,
-spacing, ...) and, where the scene suggests one, ``warp_esph:view`` = (azimuth,
+spacing, ..., and from ``simulate`` what its solver ran, ``UsdWriter.record_solver``) and, where the scene suggests one, ``warp_esph:view`` = (azimuth,
 elevation) in degrees, which ``warp_esph.render`` uses as its default camera direction.
 
 ``.usd``/``.usdc`` are written as binary crate files, ``.usda`` as text.
@@ -629,6 +629,20 @@ class UsdWriter:
             prim.SetCustomDataByKey(f"{_KEY}:{key}", float(value) if isinstance(value, (int, float)) else value)
 
     # ----------------------------------------------------------------- frames
+    def record_solver(self, solver) -> None:
+        """Record in the layer's custom data what ``solver`` runs (``Solver.record``), saved
+        with the next frame: ``warp_esph:fit`` (the fit asked for), ``warp_esph:resolved_fit``,
+        ``warp_esph:hourglass`` (the strength run) and ``warp_esph:rest_model`` (whether the
+        rest-configuration model ran). ``fit="auto"`` resolves by the material values, so the
+        requested fit alone does not say which model wrote the frames. ``simulate`` calls it
+        at the run's start (an appended run's solver replaces the earlier run's entry)."""
+        r = solver.record()
+        entries = {f"{_KEY}:fit": r["fit"], f"{_KEY}:resolved_fit": r["resolved_fit"],
+                   f"{_KEY}:hourglass": float(r["resolved_hourglass"]), f"{_KEY}:rest_model": bool(r["rest_model"])}
+        for stage in self._stages:
+            layer = stage.GetRootLayer()
+            layer.customLayerData = {**dict(layer.customLayerData or {}), **entries}
+
     def write_frame(self, frame_index: int, state) -> None:
         """Write ``state`` as frame ``frame_index`` (time code = frame index) and make it durable."""
         if self.closed or not self._stages:

@@ -311,6 +311,13 @@ class Solver:
             m = self.model
             self._rest = wp.array(m.particle_x0, dtype=m.types.vec3, device=m.device)
 
+    def record(self) -> dict:
+        """What this solver runs at the model's current parameters, for a run's records: the
+        requested ``fit`` (None: the model's) with ``Model.solver_record``'s ``resolved_fit``,
+        ``resolved_hourglass`` and ``rest_model``."""
+        return {"fit": self.model.fit if self._asked[0] is None else self._asked[0],
+                **self.model.solver_record(*self._asked)}
+
     def rest_set(self) -> tuple:
         """``(X, neighbours, counts, guard)``: the rest neighbourhoods this solver's rest model and
         comparison models run against (``Model.rest_neighbors``, with the guard of its own
