@@ -1171,21 +1171,28 @@ class Model:
             self._rest_guards[key] = state.guard
         return self._rest_guards[key]
 
-    def rest_moments(self, curved: bool) -> tuple[wp.array, wp.array]:
+    def rest_moments(self, curved: bool, rest: tuple | None = None) -> tuple[wp.array, wp.array]:
         """``(A~^-1, K)`` of each particle's rest neighbourhood for the rest model's total fit
         (``curved``: the curvature-corrected one; else ``A^-1`` and ``K = 0``;
         ``comparison.rest_moments``), evaluated once per fit and ``fit_weight`` on the rest
         neighbourhoods: they are moments of the rest offsets alone, which every step's fit and
         variational force (and their adjoints) read, and recomputed each step they cost a pass
-        over every rest pair. Constants: the rest positions carry no gradient."""
+        over every rest pair. Constants: the rest positions carry no gradient. ``rest``: a
+        solver's rest set (``Solver.rest_set``), whose moments these are then, kept with it (a
+        solver made before ``particle_x0`` changed fits with its old rest set's moments after a
+        later solver has the model build new ones); None: the model's rest neighbourhoods."""
         from .sim import comparison  # noqa: PLC0415
 
-        rest_x, rest_nbr, rest_count = self.rest_neighbors()
+        if rest is None:
+            rest_x, rest_nbr, rest_count = self.rest_neighbors()
+            cache = self._rest_moments
+        else:
+            rest_x, rest_nbr, rest_count, _, cache = rest
         # The weights are in the moments: kept across a change of fit_weight, the fit paired the
         # new weights' displacement moments with the old weights' A~^-1 (a 5 % stretch fitted
         # as 1.000003 after poly6 -> biweight, their normalisations differing).
         key = (bool(curved), self.fit_weight)
-        if key not in self._rest_moments:
+        if key not in cache:
             mat33 = self.types.mat33
             At_inv = wp.empty(self.particle_count, dtype=mat33, device=self.device)
             K = wp.empty(self.particle_count, dtype=mat33, device=self.device)
@@ -1193,8 +1200,8 @@ class Model:
             self.launches(comparison.kernels(self.scalar, self.fit_weight).rest_moments, self.particle_count,
                           [rest_x, self.particle_body, rest_nbr, rest_count, self.scalar(self.support_radius), int(key[0])],
                           [At_inv, K], device=self.device, record_tape=False)
-            self._rest_moments[key] = (At_inv, K)
-        return self._rest_moments[key]
+            cache[key] = (At_inv, K)
+        return cache[key]
 
     def _drop_stale_rest(self):
         """Forget the rest neighbourhoods (and their guards and moments, ``rest_moments``) where
@@ -1206,6 +1213,8 @@ class Model:
         if self.rest_x is not None and not np.array_equal(self._rest_from, self.particle_x0):
             self.rest_x = self.rest_nbr = self.rest_count = self.rest_guard = None
             self._rest_guards = {}
+            # A new dict, not the old one cleared: a solver made before holds the old one with
+            # its rest set (Solver.rest_set) and keeps fitting with those moments.
             self._rest_moments = {}
 
     @property

@@ -8,7 +8,8 @@ Selected per material with ``Material(deformation=...)``:
   a plastic ``F_p`` per particle is stored, ``F_e = F F_p⁻¹``. The plastic flow of
   ``plasticity.py`` updates ``F_e`` and then, where it changed ``F_e``, ``F_p <- F_e⁻¹ F``.
   ``State.F`` holds ``F_e``. The moments of the rest offsets alone, ``A~^-1`` and ``K``, are
-  evaluated once per model, fit and fit weight (``Model.rest_moments``), not at every step.
+  evaluated once per rest set, fit and fit weight (``Model.rest_moments``; a solver keeps the
+  rest set it obtained, ``Solver.rest_set``), not at every step.
 - ``"additive"``: a symmetric strain ``ε`` per particle, ``ε <- ε + ½(dFᵀdF − I)`` with the
   step's MLS ``dF``; plastic flow removes the fraction ``γ = min(nu_f dt (|s| − Y − K α)/|s|, 1)``
   of ``dev ε`` where ``|s| = 2 mu |dev ε| > Y + K α``; stress ``σ = 2 mu ε + lam tr(ε) I``,
@@ -215,7 +216,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         """The fixed moments of particle ``i``'s rest fit and variational force: ``A~`` and ``K``
         of its rest neighbourhood (``curved``: the curvature-corrected fit's, ``curvature.py``;
         else ``A`` and ``K = 0``), from their own functions: an inverse must not see a loop
-        accumulator (docs/method.md, Warp pitfall 1). Evaluated once per model, fit and weight
+        accumulator (docs/method.md, Warp pitfall 1). Evaluated once per rest set, fit and weight
         (``rest_moments``)."""
         K = mat33()
         At = mat33()
@@ -449,12 +450,13 @@ def all_rest(model, mats) -> bool:
     return mats is not None or all(mt.deformation == "rest" for mt in model.materials)
 
 
-def _rest_set(model, rest, rest_guard):
-    """``(X, neighbours, counts, guard)`` a launch reads: ``rest`` (a solver's own
-    ``(X, neighbours, counts)``, ``Solver.rest_set``) or the model's (``Model.rest_neighbors``),
-    with ``rest_guard`` or the model's default guard."""
-    rest_x, rest_nbr, rest_count = model.rest_neighbors() if rest is None else rest
-    return rest_x, rest_nbr, rest_count, model.rest_guard if rest_guard is None else rest_guard
+def _rest_set(model, rest, rest_guard, curved):
+    """``(X, neighbours, counts, guard, A~^-1, K)`` a launch reads: ``rest`` (a solver's own
+    rest set, ``Solver.rest_set``) or the model's (``Model.rest_neighbors``), with ``rest_guard``
+    or the model's default guard, and the moments of the same rest set (``Model.rest_moments``)."""
+    rest_x, rest_nbr, rest_count = model.rest_neighbors() if rest is None else rest[:3]
+    rest_guard = model.rest_guard if rest_guard is None else rest_guard
+    return rest_x, rest_nbr, rest_count, rest_guard, *model.rest_moments(curved, rest)
 
 
 def launch_rest_handover(model, state_in, Fp_out, curved: bool = False, rest_guard=None, rest=None):
@@ -462,12 +464,12 @@ def launch_rest_handover(model, state_in, Fp_out, curved: bool = False, rest_gua
     place of ``state_in.F_p``; ``state_in`` is only read). ``rest_guard``: the rest
     neighbourhoods' guard with the solver's thresholds (``Model.rest_guard_for``; None: the
     default ``Model.rest_guard``), as in the launches below; ``rest``: the rest neighbourhoods
-    ``(X, neighbours, counts)`` the solver holds (``Solver.rest_set``; None: the model's)."""
-    rest_x, rest_nbr, rest_count, rest_guard = _rest_set(model, rest, rest_guard)
+    and their moments the solver holds (``Solver.rest_set``; None: the model's)."""
+    rest_x, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K = _rest_set(model, rest, rest_guard, curved)
     model.launches(
         kernels(model.scalar, model.fit_weight).rest_handover,
         model.particle_count,
-        [state_in.x, rest_x, model.particle_body, rest_nbr, rest_count, rest_guard, *model.rest_moments(curved),
+        [state_in.x, rest_x, model.particle_body, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K,
          state_in.F,
          model.scalar(model.support_radius), int(curved)],
         [Fp_out],
@@ -500,8 +502,7 @@ def launch_update_deformation(model, state_in, state_out, counters, curved: bool
     material runs the rest model (``all_rest``), the backward runs ``adjoint_kernels``'
     ``update_deformation_adjoint`` (``hand_adjoint=False``, or a model mixing deformation
     models: Warp's generated adjoint)."""
-    rest_x, rest_nbr, rest_count, rest_guard = _rest_set(model, rest, rest_guard)
-    rest_At_inv, rest_K = model.rest_moments(curved)
+    rest_x, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K = _rest_set(model, rest, rest_guard, curved)
     inputs = [
         state_in.x, state_out.x, rest_x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
         rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K, state_out.guard, model.particle_material,
@@ -539,11 +540,12 @@ def launch_rest_variational_forces(model, state_out, curved: bool = False, mats=
     Under a ``wp.Tape``, where every material runs the rest model (``all_rest``), the backward
     runs ``adjoint_kernels``' ``rest_variational_forces_adjoint`` (``hand_adjoint=False``, or a
     model mixing deformation models: Warp's generated adjoint)."""
-    rest_x, rest_nbr, rest_count, rest_guard = _rest_set(model, rest, rest_guard)
+    rest_x, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K = _rest_set(model, rest, rest_guard, curved)
     mat_struct = model.material_arrays() if mats is None else mats
     S = model.scalar
     inputs = [rest_x, model.particle_body, model.particle_material, mat_struct, rest_nbr, rest_count, rest_guard,
-              *model.rest_moments(curved), model.particle_volume, state_out.stress, state_out.F_p, S(model.support_radius), int(curved)]
+              rest_At_inv, rest_K, model.particle_volume, state_out.stress, state_out.F_p, S(model.support_radius),
+              int(curved)]
     kernel = kernels(S, model.fit_weight).rest_variational_forces
     tape = recording_tape()
     grads = (state_out.stress, state_out.F_p, state_out.force)

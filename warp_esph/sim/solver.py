@@ -319,17 +319,24 @@ class Solver:
                 **self.model.solver_record(*self._asked)}
 
     def rest_set(self) -> tuple:
-        """``(X, neighbours, counts, guard)``: the rest neighbourhoods this solver's rest model and
-        comparison models run against (``Model.rest_neighbors``, with the guard of its own
-        thresholds, ``Model.rest_guard_for``), obtained once, when it first needs them (when made,
-        where it runs them then), and kept. A solver made later, after ``particle_x0`` changed,
-        has the model build new ones (``Model._drop_stale_rest``) without touching these: read
-        from the model at every step, they switched under this solver, whose unstressed body
-        then sprang towards the new shape (0.48 m/s in 20 steps of a 4^3 block scaled by 2 %),
-        while its hourglass control kept measuring against the old one."""
+        """``(X, neighbours, counts, guard, moments)``: the rest neighbourhoods this solver's rest
+        model and comparison models run against (``Model.rest_neighbors``, with the guard of its
+        own thresholds, ``Model.rest_guard_for``, and their moments per fit and fit weight,
+        ``Model.rest_moments(curved, rest)``, evaluated when a step first needs them), obtained
+        once, when it first needs them (when made, where it runs them then), and kept. A solver
+        made later, after ``particle_x0`` changed, has the model build new ones
+        (``Model._drop_stale_rest``) without touching these: read from the model at every step,
+        they switched under this solver, whose unstressed body then sprang towards the new
+        shape (0.48 m/s in 20 steps of a 4^3 block scaled by 2 %), while its hourglass control
+        kept measuring against the old one; and its fit of the old offsets read the new set's
+        moments (a 1 % stretch of the old positions fitted 6e-4 off)."""
         if self._rest_set is None:
             m = self.model
-            self._rest_set = (*m.rest_neighbors(), m.rest_guard_for(self.min_neighbors, self.max_condition))
+            # The model's moments dict of these neighbourhoods, not a copy: solvers on the same
+            # ones evaluate each fit's moments once between them, and the model starts a new
+            # dict when it builds new neighbourhoods.
+            self._rest_set = (*m.rest_neighbors(), m.rest_guard_for(self.min_neighbors, self.max_condition),
+                              m._rest_moments)
         return self._rest_set
 
     def _stretch_rows(self) -> bool:
@@ -568,7 +575,7 @@ class Solver:
         Fp_in = None
         # This solver's rest neighbourhoods, with their guard of its thresholds, as the incremental fit's.
         rest = self.rest_set() if cmp else None
-        rest_guard, rest = (rest[3], rest[:3]) if cmp else (None, None)
+        rest_guard = rest[3] if cmp else None
         if rest_model and state_in.rest_model is False:
             # Elastic again after a step of the incremental composition: F_p such that the rest
             # model's F_e is the stored F (comparison.rest_handover); state_in is only read.
