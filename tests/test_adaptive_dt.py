@@ -81,6 +81,29 @@ def test_adaptive_step_is_smaller_in_flight_than_at_rest_and_matches_a_small_fix
     assert np.abs(np.ptp(xa, axis=0) - np.ptp(xf, axis=0)).max() < 0.005 * DX, (np.ptp(xa, axis=0) - np.ptp(xf, axis=0)) / DX
 
 
+def test_the_adaptive_step_follows_a_hourglass_strength_set_during_the_run():
+    """``simulate(dt="auto", solver=...)`` read the solver's hourglass strength once, at the
+    start: a callback that raised it from 0.05 to 1000 (whose control needs a step 4.8 x
+    shorter) left the frames at the old step, which warned and blew up after 61 steps. Each
+    frame's step now bounds the control the frame's steps run."""
+    import warnings
+
+    b = we.SceneBuilder(spacing=DX)
+    b.add_box((0.0, 0.1, 0.0), (0.06, 0.06, 0.06), we.Material(mu=2e4, lam=3e4, density=1000.0), velocity=(0.0, -1.0, 0.0))
+    b.add_ground(friction=0.5)
+    model = b.finalize()
+    solver = we.Solver(model, fit="curvature_corrected", hourglass=0.05)
+    assert model.stable_dt(hourglass=1000.0) < 0.25 * model.stable_dt(hourglass=0.05)
+
+    def raise_control(frame, state):
+        solver.hourglass = 1000.0
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # a step past the stable limit warns
+        final = simulate(model, 1, fps=FPS, dt="auto", solver=solver, callback=raise_control, progress=False)
+    assert np.isfinite(final.v.numpy()).all() and np.abs(final.v.numpy()).max() < 2.0
+
+
 def test_adaptive_step_rejects_bad_input():
     model = _dropped_ball()
     with pytest.raises(ValueError, match=r"dt = 'fast' is not allowed: must be a number of seconds or 'auto'"):

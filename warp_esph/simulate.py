@@ -871,7 +871,9 @@ def simulate(
 
     - ``substeps`` / ``dt``: at most one; see ``resolve_timestep``. ``dt="auto"``: an
       adaptive (CFL) step, chosen anew for each frame by ``adaptive_timestep`` (whole
-      steps per frame, never above ``model.stable_dt()``).
+      steps per frame, never above ``model.stable_dt()`` with the hourglass control the
+      frame's steps run: ``solver.hourglass`` as a callback left it, or an automatic
+      solver's choice from the materials as they are then).
     - ``writer``: anything with ``write_frame(frame_index, state)`` (e.g. ``UsdWriter``); one
       with ``record_solver(solver)`` is told the solver at the start (what it runs).
       Frame ``start_frame`` (the initial state) is written first, then one frame per
@@ -981,7 +983,11 @@ def simulate(
             for k in range(1, frames + 1):
                 if adaptive:
                     try:
-                        n_sub, dt = adaptive_timestep(model, current, fps, hourglass=hourglass)
+                        # The control as the frame's steps will run it: a callback may have set
+                        # solver.hourglass (or the materials an automatic solver chooses it from);
+                        # the strength read at the start had stepped a control set to 1000 from
+                        # 0.05 at 4 x its stable step, which blew up.
+                        n_sub, dt = adaptive_timestep(model, current, fps, hourglass=solver.next_hourglass())
                     except ValueError as e:  # the start was checked: a speed the step cannot follow came in the run
                         p = int(np.argmax((current.v.numpy().astype(np.float64) ** 2).sum(axis=1)))
                         body = model.bodies[int(model.particle_body_np[p])].name

@@ -339,6 +339,12 @@ class Solver:
                               m._rest_moments)
         return self._rest_set
 
+    def next_hourglass(self) -> float:
+        """The strength of the hourglass control the next ``step`` runs: an automatic
+        solver's follows the materials as they are now (``Model.solver_choice``, which its
+        step asks again), another's is ``hourglass`` as it is set now."""
+        return self.model.solver_choice(*self._asked)[1] if self._auto else self.hourglass
+
     def _stretch_rows(self) -> bool:
         """Whether the neighbour rows reach ``h sigma_max(F)`` (``neighbors.select_neighbors``):
         where a term weighs a pair by more than its current distance, the paper's elastic
