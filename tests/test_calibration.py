@@ -58,6 +58,38 @@ def test_cli_fit_refuses_a_tool_faster_than_a_spacing_a_step_before_the_fit(tmp_
         assert not out.exists()
 
 
+def test_cli_fit_with_starts_steps_at_the_stiffest_starts_stable_step(tmp_path, capsys, dough_scene):
+    """``--starts 3`` fitting mu: the steps per frame were chosen from the guess's stable
+    step (34 a frame), past the stable step of the start at 3.7 x mu, which warned and could
+    blow up. Where the command chooses the step (no --dt, none in the scene) it is now the
+    stiffest start's, rounded to fill a frame (48 a frame), for every start."""
+    from warp_esph.cli import main
+    from warp_esph.scenes import load_scene
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    np.save(tmp_path / "t.npy", np.zeros((3, 64, 3)))
+    out = tmp_path / "cal"
+    capsys.readouterr()
+    assert main(["fit", str(guess), "--target", str(tmp_path / "t.npy"), "--params", "mu", "--starts", "3",
+                 "--iterations", "0", "--no-diagnostics", "--no-usd", "--no-progress", "--output-dir", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "warning" not in err, err
+    doc = json.loads((out / "fit.json").read_text())
+    mus = [h["params"]["mu"][0] for h in doc["history"]]
+    assert len(mus) == 3 and max(mus) > 3.0 * 2000.0
+
+    def stable(mu):  # the pressure stiffness tied to mu, as the fit ties it
+        model = load_scene(str(guess)).builder.finalize(requires_grad=True)
+        model.set_material(0, model.materials[0].replace(mu=mu, pressure_stiffness=None))
+        return model.stable_dt()
+
+    least = min(stable(mu) for mu in mus)
+    substeps = math.ceil((1.0 / 30.0) / least)
+    assert substeps == 24 and (1.0 / 30.0) / stable(2000.0) < 17
+    assert f"dt = {1.0 / 30.0 / substeps:.4g} s ({2 * substeps} steps)" in err
+    assert doc["dt"] == pytest.approx(1.0 / 30.0 / substeps, rel=1e-12)
+
 def test_python_fit_refuses_a_tool_or_a_start_faster_than_a_spacing_a_step_before_any_rollout():
     """``fit`` itself took them, as the command line's once did: a box pressing at two
     spacings a step drove the block 0.25 m through the ground, and the fit fitted to that.

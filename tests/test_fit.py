@@ -1085,6 +1085,35 @@ def test_ctrl_c_before_the_first_evaluation_carries_no_result(dough_target, monk
 
 
 @pytest.mark.parametrize("worlds", [False, True])
+def test_every_start_runs_at_the_stable_step_of_the_stiffest_start(worlds):
+    """With ``dt`` left to the fit, the starts ran at the guess's stable step: the start at
+    3.7 x mu (sample_range 4) ran at 1.5 x its own and warned (and could blow up). Every
+    start now runs at the smallest stable step over the points the fit starts from, one step
+    for all (the losses comparable), said in the log; a ``dt`` given is kept, and the log
+    says the starts it is too long for."""
+    target = np.zeros((1, _block_with().particle_count, 3))
+    said = []
+    kw = dict(steps=4, iterations=0, starts=3, sample_range=4.0, seed=1, worlds=worlds, progress=False, diagnostics=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # a step past a start's stable step warns
+        result = fit(_block_with(), PositionLoss(target, frames=[4]), ["mu"], log=said.append, **kw)
+    mus = [h["params"]["mu"][0] for h in result.history]
+    assert len(mus) == 3 and max(mus) > 3.0 * 5.0e3
+    # (the pressure stiffness tied to mu, as the fit ties it)
+    least = min(_block_with(mu=mu, pressure_stiffness=None).stable_dt() for mu in mus)
+    assert least < 0.7 * _block_with().stable_dt()
+    assert f"the experiment: dt = {least:.4g} s, the stable step of the stiffest point the fit starts from" in said[0]
+    assert f"4 steps of {least:.4g} s" in said[1]
+    given = _block_with().stable_dt()
+    said.clear()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        fit(_block_with(), PositionLoss(target, frames=[4]), ["mu"], dt=given, log=said.append, **kw)
+    assert said[0] == (f"the experiment: dt = {given:.4g} s is above {least:.4g} s, the stable step of the stiffest "
+                       f"point the fit starts from: such starts may blow up (failed starts); give dt <= {least:.4g}")
+
+
+@pytest.mark.parametrize("worlds", [False, True])
 def test_a_trial_whose_rollout_blows_up_while_finite_fails(worlds):
     """Adam's first step of 8 in log mu takes mu from 300 to 8.5e5 Pa, at a dt 5x past that
     stiffness's stable step: the block gains 190 J of kinetic energy against the 2.4 J the

@@ -138,7 +138,8 @@ def run_fit(args, out=None, err=None) -> int:
     import warp as wp  # noqa: PLC0415
 
     from .cli import _parse_bounds, _safe_point, option_flag  # noqa: PLC0415
-    from .fit import Experiment, FitInterrupted, _material_indices, check_options, fit, load_target  # noqa: PLC0415
+    from .fit import (  # noqa: PLC0415
+        Experiment, FitInterrupted, _material_indices, check_options, fit, load_target, starts_stable_steps)
     from .rollout import RolloutMemoryError  # noqa: PLC0415
     from .scenes import load_scene  # noqa: PLC0415
     from .simulate import resolve_timestep  # noqa: PLC0415
@@ -199,10 +200,9 @@ def run_fit(args, out=None, err=None) -> int:
     specs = [("", main_spec)]
     if _arg(args, "experiments"):
         specs += _read_experiments(args.experiments)
-    exps = []
-    for where, spec in specs:
+    def load(where, spec):
         try:
-            exps.append(_experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep))
+            return _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resolve_timestep)
         except ValueError as e:
             # Every refusal of an experiment of the file names it (fps, dt, a target's).
             said = str(e)
@@ -221,6 +221,19 @@ def run_fit(args, out=None, err=None) -> int:
             if where and f"{where}{message}" != said:
                 raise ValueError(f"{where}{message}") from None
             raise
+
+    exps = [load(where, spec) for where, spec in specs]
+    if opts["samples"] or opts["starts"] > 1:
+        # The steps per frame chosen from the guess's stable step were too long for every
+        # stiffer start (a start at 4 x mu ran at 2 x its step, warned and could blow up): the
+        # experiments whose step is the command's own choice take the stiffest start's, the
+        # same for all starts (fit.starts_stable_steps: the points fit draws, before any run).
+        limits = starts_stable_steps([e.model for e in exps], params, materials=[e.materials or None for e in exps],
+                                     bounds=bounds, samples=opts["samples"], starts=opts["starts"],
+                                     sample_range=sample_range, seed=seed, names=[e.scene.name for e in exps])
+        for k, (e, limit) in enumerate(zip(exps, limits)):
+            if e.auto_step and limit < e.dt:
+                exps[k] = load(specs[k][0], {**specs[k][1], "step_limit": limit})
 
     # Where the results go, checked before the fit (a folder in the way was found after it).
     folder = _arg(args, "output_dir") or f"fit_{exps[0].scene.name}"
@@ -647,7 +660,8 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
 
     try:
         substeps, dt = resolve_timestep(model, fps, dt=dt if dt is not None else scene.dt,
-                                        flag=lambda name: (name if where else f"--{name}") if given.get(name) else name)
+                                        flag=lambda name: (name if where else f"--{name}") if given.get(name) else name,
+                                        limit=spec.get("step_limit"))
     except StepRefusal as e:
         # Its advice is Python's ('give dt= or substeps='): the command has --dt, an experiment its
         # dt; and a rate the targets recorded is no choice.
@@ -727,6 +741,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                          f"force-curve target (<output>_tools.csv), and the targets are {kinds}")
     noise = spec.get("noise")
     return types.SimpleNamespace(scene=scene, model=model, loss=loss, frames=frames, fps=fps, dt=dt, substeps=substeps,
+                                 auto_step=spec.get("dt") is None and scene.dt is None,
                                  frames_source=source[len(where):],
                                  materials=materials, kinds=kinds, targets=targets, scale=scale,
                                  readings=readings, target_frames=[None if kind == "silhouette" else list(t.frames)

@@ -364,7 +364,70 @@ def choose_checkpointing(model: Model, steps: int, memory_limit: float = MEMORY_
 INITIAL_KEYS = ("x0", "v0", "F0", "alpha0", "initial_state")
 
 
-class _Run:
+class _Values:
+    """The fitted values' side of an experiment: its model's materials ``idx`` and their
+    values, and what writing fitted values would give (``written``, ``refusal``,
+    ``stable_step``), without a rollout."""
+
+    def __init__(self, model: Model, idx, name):
+        self.model, self.idx, self.name = model, idx, name
+        self._read_values()
+
+    def _read_values(self):
+        # In float64 whatever the model's precision, the materials' own values where the arrays
+        # hold them: a float32 guess taken through log in float32 moved the start by 1e-7.
+        self.values = self.model.parameter_values()
+        self.rho = np.array([m.density for m in self.model.materials])
+        # k_p = share K / rho0 of the tied materials (material.PRESSURE_BULK_SHARE)
+        self.kp_share = np.array([PRESSURE_BULK_SHARE[m.pressure_force] for m in self.model.materials])
+
+    def setup_tie(self, params, tie_pressure):
+        m = self.model.materials
+        if tie_pressure is None:
+            self.tied = [k for k in self.idx if m[k].has_default_pressure_stiffness]
+        else:
+            self.tied = list(self.idx) if tie_pressure else []
+        self.tie = bool(self.tied) and ("mu" in params or "lam" in params) and "pressure_stiffness" not in params
+
+    def written(self, p) -> dict[str, np.ndarray]:
+        """The parameter arrays ``apply`` writes for the fitted values ``p`` (the tied
+        pressure stiffness included)."""
+        v = self.values
+        full = {name: _full(v[name], self.idx, val) for name, val in p.items()}
+        if self.tie:
+            mu = full.get("mu", v["mu"])
+            lam = full.get("lam", v["lam"])
+            kp = v["pressure_stiffness"].copy()
+            kp[self.tied] = self.kp_share[self.tied] * (lam[self.tied] + 2.0 * mu[self.tied] / 3.0) / self.rho[self.tied]
+            full["pressure_stiffness"] = kp
+        return full
+
+    def refusal(self, p) -> str | None:
+        """Why a fitted material would refuse the values ``p`` (``Material``'s own checks and
+        the model's precision), or None."""
+        full = self.written(p)
+        for k in sorted(set(self.idx) | set(self.tied if self.tie else [])):
+            try:
+                m = self.model.materials[k].replace(**{n: float(a[k]) for n, a in full.items()})
+                check_material_precision(m, self.model.scalar)
+            except ValueError as e:
+                return str(e)
+        return None
+
+    def stable_step(self, p, rows=None) -> float:
+        """``Model.stable_dt()`` were the materials to hold the fitted values ``p`` (the tied
+        pressure stiffness included), from the values alone: nothing is written to the model.
+        ``rows``: the model's parameter rows as read now (``Model._read_parameters``)."""
+        m = self.model
+        rows = (m._read_parameters() if rows is None else rows).astype(np.float64)
+        full = self.written(p)
+        for i, name in enumerate(m.MATERIAL_FIELDS):
+            if name in full:
+                rows[i] = full[name]
+        return m._stable_dt_now(0.3, None, rows)
+
+
+class _Run(_Values):
     """One experiment made ready: its model, rollout, loss and fitted materials."""
 
     def __init__(self, exp: Experiment, dtype, memory_limit, name):
@@ -404,6 +467,7 @@ class _Run:
             if ck != "auto":
                 raise ValueError(f"checkpoint_every = {ck!r} is not allowed: give 'auto', None or a number of steps")
             ck = choose_checkpointing(self.model, self.steps, memory_limit)
+        self._segment = ck
         try:
             self.rollout = Rollout(self.model, self.steps, self.dt, frames=loss.frames, checkpoint_every=ck)
         except RolloutMemoryError as e:
@@ -431,12 +495,7 @@ class _Run:
         self._check_speeds()
         self.weight = checks.positive("weight", exp.weight)  # a negative weight would maximise its loss
         self.noise = None if exp.noise is None else checks.noise("noise", exp.noise)
-        # In float64 whatever the model's precision, the materials' own values where the arrays
-        # hold them: a float32 guess taken through log in float32 moved the start by 1e-7.
-        self.values = self.model.parameter_values()
-        self.rho = np.array([m.density for m in self.model.materials])
-        # k_p = share K / rho0 of the tied materials (material.PRESSURE_BULK_SHARE)
-        self.kp_share = np.array([PRESSURE_BULK_SHARE[m.pressure_force] for m in self.model.materials])
+        self._read_values()
 
     def _check_speeds(self) -> None:
         """Refuse, before any rollout, a start or a tool (or pinned set) that moves more than
@@ -463,6 +522,11 @@ class _Run:
             advice = "; give a smaller velocity (or angular_velocity, or v0) or a smaller dt=" if e.advice == START_ADVICE else e.advice
             raise ValueError(f"{self.name}: {e.reason}{advice}") from None
 
+    def retime(self, dt: float) -> None:
+        """Run the rollout at ``dt`` (the same steps and frames; before any run)."""
+        self.dt = dt
+        self.rollout = Rollout(self.model, self.steps, dt, frames=self.loss.frames, checkpoint_every=self._segment)
+
     def forward(self) -> np.ndarray:
         """The rollout from this experiment's starts (checked once, at set-up)."""
         # check=False: a non-finite trial is the fit's to fail (a failed trial, loss inf;
@@ -476,39 +540,6 @@ class _Run:
             check(self.model.particle_count)
         self.forward()
         return self.rollout.backward(loss)
-
-    def setup_tie(self, params, tie_pressure):
-        m = self.model.materials
-        if tie_pressure is None:
-            self.tied = [k for k in self.idx if m[k].has_default_pressure_stiffness]
-        else:
-            self.tied = list(self.idx) if tie_pressure else []
-        self.tie = bool(self.tied) and ("mu" in params or "lam" in params) and "pressure_stiffness" not in params
-
-    def written(self, p) -> dict[str, np.ndarray]:
-        """The parameter arrays ``apply`` writes for the fitted values ``p`` (the tied
-        pressure stiffness included)."""
-        v = self.values
-        full = {name: _full(v[name], self.idx, val) for name, val in p.items()}
-        if self.tie:
-            mu = full.get("mu", v["mu"])
-            lam = full.get("lam", v["lam"])
-            kp = v["pressure_stiffness"].copy()
-            kp[self.tied] = self.kp_share[self.tied] * (lam[self.tied] + 2.0 * mu[self.tied] / 3.0) / self.rho[self.tied]
-            full["pressure_stiffness"] = kp
-        return full
-
-    def refusal(self, p) -> str | None:
-        """Why a fitted material would refuse the values ``p`` (``Material``'s own checks and
-        the model's precision), or None."""
-        full = self.written(p)
-        for k in sorted(set(self.idx) | set(self.tied if self.tie else [])):
-            try:
-                m = self.model.materials[k].replace(**{n: float(a[k]) for n, a in full.items()})
-                check_material_precision(m, self.model.scalar)
-            except ValueError as e:
-                return str(e)
-        return None
 
     def apply(self, p):
         self.rollout.set_parameters(self.written(p))
@@ -697,6 +728,69 @@ class _Problem:
             _check_diverged(r)
             total += r.weight * r.loss.value(r.rollout.observations())
         return total
+
+
+def _start_candidates(prob: _Problem, samples: int, starts: int, sample_range: float, seed: int) -> list[np.ndarray]:
+    """The points a fit starts from, in optimiser space, drawn before any run: with
+    ``samples``, the global stage's candidates (the guess and ``samples`` Latin-hypercube
+    points of the box; the starts are the best of them), else the guess and ``starts - 1``
+    points of the same box."""
+    lo, hi = prob.z_bounds()
+    span = np.where(np.array([prob.spaces[n] == "log" for n in prob.params for _ in range(prob.k)]),
+                    math.log(sample_range), sample_range)
+    lo = np.maximum(lo, prob.z0 - span)
+    hi = np.minimum(hi, prob.z0 + span)
+    rng = np.random.default_rng(seed)
+    if samples:
+        return [prob.z0] + [lo + u * (hi - lo) for u in latin_hypercube(samples, len(prob.z0), rng)]
+    return [prob.z0] + [prob.project(lo + u * (hi - lo)) for u in latin_hypercube(starts - 1, len(prob.z0), rng)]
+
+
+def _choose_steps(runs: list[_Run], prob: _Problem, candidates) -> list[str]:
+    """Give every experiment whose ``dt`` the fit chose (``dt=None``) the smallest stable step
+    over ``candidates``, the points its starts (and global stage) begin from; returns the
+    lines to log. One step for all the starts, not each start its own: a start's loss is its
+    misfit at the targets' step indices, and at another step those are other times and
+    another discretisation, so the lowest loss would not tell the best start (and with
+    ``worlds`` all the starts run in one model, at one step). The guess's own step, which
+    it had been, was past the stable step of every stiffer start (a start at 4 x mu ran at 2 x
+    its step, warned and could blow up). A ``dt`` the caller gave is kept; where it is past
+    a start's stable step the log says so."""
+    said = []
+    for r in runs:
+        rows = r.model._read_parameters()
+        least = min(r.stable_step(prob.from_z(z), rows) for z in candidates)
+        if least >= r.dt:
+            continue
+        if r.exp.dt is None:
+            said.append(f"{r.name}: dt = {least:.4g} s, the stable step of the stiffest point the fit starts from "
+                        f"(the guess's is {r.dt:.4g} s)")
+            r.retime(least)
+        else:
+            said.append(f"{r.name}: dt = {r.dt:.4g} s is above {least:.4g} s, the stable step of the stiffest point "
+                        f"the fit starts from: such starts may blow up (failed starts); give dt <= {least:.4g}")
+    return said
+
+
+def starts_stable_steps(models, params, *, materials=None, bounds=None, samples=0, starts=1, sample_range=4.0,
+                        seed=0, tie_pressure=None, names=None) -> list[float]:
+    """For each of ``models`` (a joint fit's, the first holding the guess), the smallest
+    ``Model.stable_dt()`` over the points ``fit(..., samples, starts, sample_range, seed)``
+    starts from (the guess among them), before any run: the step at which a fit of
+    ``params`` can run every start. The command line chooses its steps per frame from it.
+    ``materials``: one selection per model (None: all); ``names``: how refusals name them."""
+    materials = [None] * len(models) if materials is None else materials
+    names = names or [f"experiment {k}" if len(models) > 1 else "the experiment" for k in range(len(models))]
+    vals = [_Values(m, _material_indices(m, sel), name) for m, sel, name in zip(models, materials, names)]
+    for v in vals:
+        v.setup_tie(params, tie_pressure)
+    prob = _Problem(vals, params, bounds)
+    candidates = _start_candidates(prob, samples, starts, sample_range, seed)
+    out = []
+    for v in vals:
+        rows = v.model._read_parameters()
+        out.append(min(v.stable_step(prob.from_z(z), rows) for z in candidates))
+    return out
 
 
 #: The most samples of a fit's global stage and local starts from them (each a forward run).
@@ -896,7 +990,8 @@ def fit(
       list of ``Experiment`` (then ``target`` is None): a joint fit of several experiments
       sharing one material, the sum of their weighted losses.
     - ``steps``/``dt``: the rollout (default ``steps`` = the last target frame, ``dt`` =
-      the model's stable step). ``frames``: step indices of target positions (a ``Loss``
+      the model's stable step; with ``samples`` or ``starts``, the smallest stable step over
+      the points the fit starts from, one step for all: docs/fitting.md). ``frames``: step indices of target positions (a ``Loss``
       carries its own).
     - ``materials``: indices (or body names) of the materials to fit; default all. With a
       per-particle model (``rollout.split_materials``) this fits a field.
@@ -1034,11 +1129,16 @@ def fit(
         if worlds:
             raise ValueError("worlds = True is not allowed with optimizer = 'gauss-newton': its starts run one after "
                              "the other (forward runs only)")
+    # Every point the fit starts from is drawn before any run: the step is chosen for all of them.
+    candidates = _start_candidates(prob, samples, starts, sample_range, seed)
+    steps_said = _choose_steps(runs, prob, candidates)
     # The starts' worlds are made (and refused, where they cannot be) before any run and any
     # message, so a refusal is the one thing a fit says.
     track_count = min(starts, samples + 1) if samples else starts
     use_worlds = worlds and track_count > 1
     worlds_problem = _WorldsProblem(runs, prob, track_count, dtype, memory_limit) if use_worlds else None
+    for line in steps_said:
+        say(line)
     for r in runs:
         mode = f"checkpoint every {r.rollout.segment} steps" if r.rollout.checkpointing else "full tape"
         say(f"{r.name}: {r.model.particle_count} particles, {r.steps} steps of {r.dt:.4g} s; {mode}: "
@@ -1190,17 +1290,10 @@ def fit(
             return str(e)
 
     # ------------------------------------------------------------ global stage
-    start_points = [prob.z0]
-    lo, hi = prob.z_bounds()
-    span = np.where(np.array([prob.spaces[n] == "log" for n in params for _ in range(prob.k)]),
-                    math.log(sample_range), sample_range)
-    lo = np.maximum(lo, prob.z0 - span)
-    hi = np.minimum(hi, prob.z0 + span)
-    rng = np.random.default_rng(seed)
+    start_points = candidates
     if samples:
         state["stage"] = "sample"
-        cube = latin_hypercube(samples, len(prob.z0), rng)
-        cands = [prob.z0] + [lo + u * (hi - lo) for u in cube]
+        cands = candidates
         scored = []
         t0 = time.perf_counter()
         try:
@@ -1221,9 +1314,6 @@ def fit(
         scored.sort(key=lambda s: (s[0], s[1]))
         start_points = [s[2] for s in scored[:starts]]
         state["stage"] = "descent"
-    elif starts > 1:
-        # No sampled stage: the guess and starts - 1 Latin-hypercube points of the same box.
-        start_points += [prob.project(lo + u * (hi - lo)) for u in latin_hypercube(starts - 1, len(prob.z0), rng)]
     assert len(start_points) == track_count
     if use_worlds:
         say(f"multi-start: {track_count} starts as {track_count} worlds of one model per experiment")

@@ -424,14 +424,16 @@ def _driven_motion(motion):
 
 
 def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = None, dt: float | None = None,
-                     hourglass: float | None = None, flag=None) -> tuple[int, float]:
+                     hourglass: float | None = None, flag=None, limit: float | None = None) -> tuple[int, float]:
     """``(substeps, dt)`` with ``substeps * dt = 1 / fps``.
 
     Give at most one of ``substeps`` and ``dt``. With neither, ``dt`` is the model's
     stable step (``model.stable_dt(hourglass=hourglass)``: None, the model's hourglass
     control) rounded down so that a whole number of steps fills a frame. A given ``dt`` must divide ``1 / fps`` into a whole number of steps
     (to 1e-6 relative). ``flag(name)``: how a refusal names ``fps``, ``dt`` or ``substeps``
-    (the CLI's ``--dt`` where the value is the option's).
+    (the CLI's ``--dt`` where the value is the option's). ``limit``: a shorter bound than the
+    model's own stable step where neither is given (``warp-esph fit``'s stiffest start,
+    ``fit.starts_stable_steps``).
     """
     flag = flag or (lambda name: name)
     fps = checks.positive(flag("fps"), fps)
@@ -447,6 +449,8 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
     if dt is None:
         courant = 0.3  # stable_dt's own
         stable = model.stable_dt(courant, hourglass=hourglass)
+        if limit is not None:
+            stable = min(stable, limit)
         ratio = frame_dt / stable * (1.0 - 1e-12)
         if not ratio <= MAX_STEPS_PER_FRAME:
             stiff = max(model.materials, key=lambda m: m.p_wave_speed)
