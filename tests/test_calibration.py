@@ -90,6 +90,29 @@ def test_cli_fit_with_starts_steps_at_the_stiffest_starts_stable_step(tmp_path, 
     assert f"dt = {1.0 / 30.0 / substeps:.4g} s ({2 * substeps} steps)" in err
     assert doc["dt"] == pytest.approx(1.0 / 30.0 / substeps, rel=1e-12)
 
+def test_cli_fit_refuses_a_target_coordinate_past_what_the_loss_can_square(tmp_path, capsys, dough_scene):
+    """A target position of 1e300 (inf in float32, and its square inf in float64) ran the
+    fit's first rollout and stopped it with exit 3, 'the loss or its gradient is not finite
+    at the initial guess'. It is refused first (exit 2), in one line naming the file, the
+    value, where it is and the bound of the model's precision."""
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    target = np.zeros((3, 64, 3))
+    target[2, 5, 1] = 1e300
+    np.save(tmp_path / "t.npy", target)
+    out = tmp_path / "cal"
+    for dtype, bound, largest in (("float32", "1.8e+18", "3.4e+38"), ("float64", "1.3e+153", "1.8e+308")):
+        capsys.readouterr()
+        assert main(["fit", str(guess), "--target", str(tmp_path / "t.npy"), "--dtype", dtype, "--iterations", "1",
+                     "--no-progress", "--output-dir", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [f"warp-esph: error: target {tmp_path / 't.npy'} is not allowed: it holds the coordinate 1e+300 "
+                       f"(frame 2, particle 5), past what the {dtype} loss can square (at most {bound} m; the {dtype} max "
+                       f"is {largest}): give positions in metres, of this scene"], err
+        assert not out.exists()
+
 def test_python_fit_refuses_a_tool_or_a_start_faster_than_a_spacing_a_step_before_any_rollout():
     """``fit`` itself took them, as the command line's once did: a box pressing at two
     spacings a step drove the block 0.25 m through the ground, and the fit fitted to that.

@@ -1831,6 +1831,30 @@ class Target:
     #: Whether ``frames`` are the file's own (an .npz's 'frames'), not numbered 0..K-1 by default.
     frames_stored: bool = False
 
+    def _check_range(self, model: Model) -> None:
+        """Refuse, before any rollout, a coordinate whose square the loss cannot hold in the
+        model's precision (it sums squared distances there): a position of 1e300 was inf in
+        float32, and the fit failed after its first rollout, exit 3, as 'the loss is not
+        finite at the initial guess'."""
+        data = self.data[0] if self.kind == "mesh" else self.data
+        a = np.asarray(data, dtype=np.float64)
+        info = np.finfo(np.float32 if model.scalar is wp.float32 else np.float64)
+        bound = math.sqrt(float(info.max)) / 10.0  # a sum of squares a few decades past it still fits
+        bad = np.flatnonzero(~(np.abs(a) <= bound).reshape(-1))
+        if not bad.size:
+            return
+        where = np.unravel_index(bad[0], a.shape)
+        value = float(a[where])
+        if self.kind == "positions":
+            frame = self.frames[where[0]] if self.frames is not None else where[0]
+            at = f"frame {frame}, particle {where[1]}"
+        else:
+            at = f"{'vertex' if self.kind == 'mesh' else 'point'} {where[0]}"
+        prec = model.scalar.__name__
+        raise ValueError(f"target {self.path} is not allowed: it holds the coordinate {value:g} ({at}), past what the "
+                         f"{prec} loss can square (at most {bound:.2g} m; the {prec} max is {float(info.max):.2g}): give "
+                         "positions in metres, of this scene")
+
     def particles(self, model: Model) -> np.ndarray | None:
         """Indices of the model's particles this target observes (None: all)."""
         if self.body is None:
@@ -1889,6 +1913,7 @@ class Target:
             chosen = [f for f in sorted(frame_steps) if f > 0]
             return ReactionForceLoss.from_csv(self.path, self.tool, frame_steps, frames=chosen)
         self.check_particle_count(model)
+        self._check_range(model)
         if self.kind == "positions" and self.body is not None:
             idx = self.particles(model)
             pos = np.asarray(self.data)
