@@ -573,3 +573,43 @@ def test_the_reader_finds_a_frame_without_scanning_every_frame(tmp_path):
     assert compared[0] < 100, compared[0]
     with pytest.raises(ValueError, match=r"^frame = 100000 is not allowed: must be one of the file's frames \(0\.\.99999\)$"):
         data._frame(100_000)
+
+
+def test_outputs_over_a_link_or_a_special_file_in_an_output_folder_are_refused_before_any_work(tmp_path, capsys):
+    """``render -o link.png`` renamed its picture over the link, which became a regular file
+    and left the file it linked to as it was; every command's output that is a symbolic link
+    is refused now, as a device or a named pipe is, naming the option. A named pipe (or a
+    link) where ``export -o dir`` writes a frame was refused only when that frame came, the
+    frames before it written, naming ``path``, no option: such a file in an output folder is
+    refused before the first frame, naming the option and the file (render's folder of
+    pictures likewise)."""
+    from test_render import write_clusters
+
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=2)
+    (tmp_path / "real.png").write_bytes(b"kept")
+    os.symlink("real.png", tmp_path / "link.png")
+    capsys.readouterr()
+    assert main(["render", str(path), "-o", str(tmp_path / "link.png"), "--frames", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"warp-esph: error: --output = '{tmp_path / 'link.png'}' is not allowed: it is a symbolic link (to "
+                   "'real.png'), not a file; the output is written beside it and renamed over it, which would replace it: "
+                   "give the path of the file it links to, or another name"]
+    assert os.path.islink(tmp_path / "link.png") and (tmp_path / "real.png").read_bytes() == b"kept"
+    out = tmp_path / "vtu"
+    out.mkdir()
+    os.mkfifo(out / "frame_00001.vtu")
+    assert main(["export", str(path), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"warp-esph: error: --output = '{out}' is not allowed: '{out / 'frame_00001.vtu'}' in it is a named "
+                   "pipe, not a file; the output is written beside it and renamed over it, which would replace it: remove "
+                   "it, or give another folder"]
+    assert sorted(os.listdir(out)) == ["frame_00001.vtu"]  # frame 0 was written before
+    pictures = tmp_path / "pictures"
+    pictures.mkdir()
+    os.symlink(tmp_path / "real.png", pictures / "frame_00000.png")
+    assert main(["render", str(path), "-o", str(pictures), "--frames", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"warp-esph: error: --output = '{pictures}' is not allowed: "
+                                               f"'{pictures / 'frame_00000.png'}' in it is a symbolic link"), err
+    assert (tmp_path / "real.png").read_bytes() == b"kept"

@@ -247,6 +247,7 @@ def run_fit(args, out=None, err=None) -> int:
             continue  # not written, and a folder of that name is left alone
         if os.path.isdir(os.path.join(folder, name)):
             raise ValueError(f"--output-dir = {folder!r} is not allowed: {name} in it is a folder; the fit writes a file there")
+        checks.output_files("--output-dir", folder, [name])
     if _arg(args, "output"):
         checks.output_place("--output", args.output)
     # With -o elsewhere, an earlier fit's fit.json in the folder is removed (_remove_earlier_run):

@@ -473,11 +473,44 @@ def special_file(path) -> str | None:
     return None
 
 
-def _refuse_special(what: str, p: str) -> None:
+def _not_plain(p: str) -> tuple[str, str] | None:
+    """``(what it is, the cure)`` where a file renamed over ``p`` would replace something that
+    is not a plain file: a special file (``special_file``), or a symbolic link, which became
+    a regular file and left its target as it was (``render -o link.png``); else None. A link
+    is refused rather than written through: every output is renamed into place, and through
+    a link the working copy, the checks of its folder and the rename would all be the
+    target's, which the command line never named."""
     kind = special_file(p)
     if kind is not None:
-        raise ValueError(f"{what} = {p!r} is not allowed: it is {kind}, not a file; the output is written beside it and "
-                         "renamed over it, which would replace it: give the name of a file")
+        return kind, "give the name of a file"
+    if os.path.islink(p):
+        return (f"a symbolic link (to {os.readlink(p)!r})",
+                "give the path of the file it links to, or another name")
+    return None
+
+
+def _refuse_special(what: str, p: str) -> None:
+    found = _not_plain(p)
+    if found is not None:
+        raise ValueError(f"{what} = {p!r} is not allowed: it is {found[0]}, not a file; the output is written beside it "
+                         f"and renamed over it, which would replace it: {found[1]}")
+
+
+def output_files(what: str, folder, names) -> None:
+    """Refuse, before the work, a folder output ``folder`` (the option ``what``) in which a
+    file of ``names`` the command writes is a special file or a symbolic link
+    (``_not_plain``), naming the option and the file: ``export -o dir`` over a named pipe
+    ``dir/frame_00001.vtu`` wrote frame 0 and then stopped, naming a ``path`` no option is."""
+    folder = os.fspath(folder)
+    if not os.path.isdir(folder):
+        return
+    for name in names:
+        file = os.path.join(folder, name)
+        found = _not_plain(file)
+        if found is not None:
+            raise ValueError(f"{what} = {folder!r} is not allowed: {file!r} in it is {found[0]}, not a file; the "
+                             f"output is written beside it and renamed over it, which would replace it: remove it, "
+                             f"or give another folder")
 
 
 @contextlib.contextmanager
@@ -488,6 +521,8 @@ def replaced_atomically(path):
     removed and ``path`` is as it was. The working name keeps ``path``'s extension, so
     writers that read the format from it still can."""
     p = os.fspath(path)
+    # ("path" is save_state's own parameter; the commands refuse it by option first:
+    # output_place, output_files.)
     _refuse_special("path", p)
     head, name = os.path.split(p)
     stem, ext = os.path.splitext(name)

@@ -526,6 +526,10 @@ def _cmd_run(args) -> int:
         checks.output_place("--checkpoint-every's checkpoint", stem + ".checkpoint.npz")
     if args.export:
         checks.output_place(f"--export {args.export}'s folder", f"{stem}_{args.export}", folder=True)
+        # Every frame of the run's file, as export_frames writes them after the run.
+        checks.output_files(f"--export {args.export}'s folder", f"{stem}_{args.export}",
+                            [f"frame_{f:05d}.{args.export}" for f in range(frames_total + 1)]
+                            + ["frames.pvd"] * (args.export == "vtu"))
     if args.preview:
         checks.output_place("--preview's picture", stem + ".png")
     # Names the run in its file, checkpoints and force log: a checkpoint resumes onto its own run's only.

@@ -103,6 +103,7 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, fl
     data = UsdFrames(usd_path)
     # One file per frame: a frame named twice is refused (it was written once and counted twice).
     chosen = parse_frames(frames, data.frames, flag("frames"))
+    checks.output_files(flag("output"), out, [f"frame_{f:05d}.{fmt}" for f in chosen] + ["frames.pvd"] * (fmt == "vtu"))
     os.makedirs(out, exist_ok=True)
     files = []
 

@@ -1200,6 +1200,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     # Before any frame is drawn: a folder in the way, or a place that takes no file.
     checks.output_place(flag("output"), out, folder=kind == "dir")
     if kind == "dir":
+        checks.output_files(flag("output"), out, [f"frame_{f:05d}.png" for f in chosen])
         os.makedirs(out, exist_ok=True)
 
     checks.choice(flag("fit"), fit, ("all", "each"))

@@ -1215,6 +1215,7 @@ def sweep_cli(args, out=None) -> int:
         if os.path.isdir(os.path.join(folder, name)):
             raise ValueError(f"--output = {folder!r} is not allowed: {os.path.join(folder, name)!r} is a folder; the "
                              f"sweep writes its {name} there")
+    checks.output_files("--output", folder, OUTPUT_FILES)
     # Connected (or refused) before the plan's line, which says the sweep runs on Ray: an
     # address or 'auto' where no cluster runs is then the one line on stderr.
     with _ray_session(args.ray, "--ray") if args.ray is not None else contextlib.nullcontext():
