@@ -377,6 +377,32 @@ def test_a_field_s_speed_counts_only_for_the_particles_it_can_have_sped_up_by_th
     assert p == model.particle_count - 1 and what.startswith("speed "), what
 
 
+
+def test_a_field_on_an_exempt_body_counts_its_energy_for_the_bodies_it_may_strike():
+    """A field acting on an exempt body only (``monitor_exempt``) gave its speed to the
+    checked bodies that body may strike, but not its energy: a body pulled by its field into
+    a checked one at rest gave it 1.1 J, against a budget of the 0.1 J floor alone, and the
+    run was stopped as a blow-up (measured, 0.2 m apart, k = 400). The field's energy when it
+    came on now joins the checked bodies' budget too; 10 x it is still a blow-up."""
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+    mat = we.Material(mu=2e4, lam=3e4, density=1000.0)
+    b.add_box((0.0, 0.1, 0.0), (0.06, 0.06, 0.06), mat, name="B")
+    b.add_box((0.2, 0.1, 0.0), (0.06, 0.06, 0.06), mat, name="R")
+    b.add_compression_field((0.0, 0.0, 0.0), 400.0, body="R")
+    model = b.finalize()
+    mon = DivergenceMonitor(model, model.state(), exempt=("R",))
+    x = model.state().x.numpy().astype(np.float64)
+    m = model.particle_mass.numpy().astype(np.float64)
+    r = model.particle_body_np == 1
+    given = 0.5 * 400.0 * float((m[r] * (x[r][:, [0, 2]] ** 2).sum(axis=1)).sum())
+    assert given > 10.0 * mon.e_floor
+    v = np.zeros_like(x)
+    v[~r, 0] = math.sqrt(2.0 * given / m[~r].sum())  # all of it in the checked body
+    assert mon.check(x, v, 0.1) is None
+    v[~r, 0] *= math.sqrt(11.0)
+    what, _ = mon.check(x, v, 0.1)
+    assert what.startswith(f"kinetic energy {11.0 * given:.3g} J, more than the {10.0 * given + mon.e_floor:.3g} J"), what
+
 # ------------------------------------------------------------------ refused before running
 @pytest.mark.parametrize(
     "args, needles",
