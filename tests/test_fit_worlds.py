@@ -167,3 +167,36 @@ def test_a_callback_that_stops_the_fit_stops_every_world_at_once(dropped_cube, t
     assert result.stopped == "callback"
     assert seen == [0, 1, 2] and len(result.history) == 3  # the three starts' first evaluations
     assert result.loss == min(h["loss"] for h in result.history)
+
+
+def test_an_error_in_a_round_of_the_worlds_ends_the_fit_with_it(dropped_cube, target, monkeypatch):
+    """An error raised while a round of the worlds was evaluated (a warning made an error,
+    Ctrl-C) left the starts' threads waiting for that round's answers, and the fit waiting
+    for them, for ever. The fit now ends with the error (here the second round's)."""
+    import threading
+
+    from warp_esph import fit as fit_module
+
+    evaluate = fit_module._WorldsProblem.evaluate
+    rounds = []
+
+    def failing(self, batch):
+        rounds.append(sorted(batch))
+        if len(rounds) == 2:
+            raise RuntimeError("the second round failed")
+        return evaluate(self, batch)
+
+    monkeypatch.setattr(fit_module._WorldsProblem, "evaluate", failing)
+    raised = []
+
+    def run():
+        try:
+            _fit(dropped_cube, target, "adam", True)
+        except RuntimeError as e:
+            raised.append(str(e))
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(timeout=20.0)
+    assert not t.is_alive(), "the fit hung after the error"
+    assert raised == ["the second round failed"] and rounds == [[0, 1, 2], [0, 1, 2]]

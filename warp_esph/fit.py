@@ -1532,6 +1532,7 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record, hal
     threads = [threading.Thread(target=worker, args=(w,), daemon=True) for w in range(len(tracks))]
     for t in threads:
         t.start()
+    batch: dict[int, np.ndarray] = {}  # the round being evaluated: its starts wait for answers
     try:
         while True:
             with cv:
@@ -1558,12 +1559,15 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record, hal
                     out[w] = e
             with cv:
                 answers.update(out)
+                batch = {}
                 cv.notify_all()
     finally:
         with cv:
-            # Threads still waiting (an error here) end at once.
-            for w in list(pending):
-                answers[w] = _Stop("callback")
+            # Threads still waiting (an error here) end at once: those of the round an error
+            # or Ctrl-C stopped too, which had left their threads waiting and the join below
+            # waiting for them, for ever.
+            for w in [*pending, *batch]:
+                answers.setdefault(w, _Stop("callback"))
             pending.clear()
             cv.notify_all()
         for t in threads:
