@@ -688,6 +688,32 @@ def test_an_hourglass_strength_beyond_its_measured_step_bound_is_refused_by_name
         assert err.count("\n") == 1 and "'hourglass'" in err and "<= 1000" in err, err
 
 
+def test_an_hourglass_control_switched_on_by_hand_runs_and_a_bad_one_is_refused_by_name():
+    """``Solver.hourglass`` set on a solver made without the control: its step read a rest
+    array the solver never made and the process died (segmentation fault). Now the control
+    takes the rest positions when switched on, and runs as on a solver made with it; a
+    strength that ``Solver(hourglass=...)`` refuses is refused here too, by name."""
+    b = we.SceneBuilder(spacing=0.01, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.04, 0.04, 0.04), we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0))
+    model = b.finalize()
+
+    def run(solver):
+        a, c = model.state(), model.state()
+        a.x.assign(model.particle_x0 * np.array([1.02, 1.0, 1.0]))
+        for _ in range(5):
+            solver.step(a, c, 0.5 * model.stable_dt(hourglass=0.05))
+            a, c = c, a
+        return a.v.numpy()
+
+    late = we.Solver(model, fit="linear")
+    assert late.hourglass == 0.0
+    late.hourglass = 0.05
+    np.testing.assert_array_equal(run(late), run(we.Solver(model, fit="linear", hourglass=0.05)))
+    with pytest.raises(ValueError, match=r"Solver\.hourglass = -1 is not allowed"):
+        late.hourglass = -1
+    assert late.hourglass == 0.05
+
+
 @pytest.mark.parametrize("case,needle", [
     ("gravity", "gravity = (0.0, -1e+39, 0.0) is not allowed in float32"),
     ("velocity", "body velocities beyond 3.4e+38 m/s are not allowed in float32"),

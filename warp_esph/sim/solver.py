@@ -305,11 +305,24 @@ class Solver:
         #: corrected one runs the non-fused kernels.
         self.fit = fit
         self._curved = fit == "curvature_corrected"
-        #: Strength ``c`` of the hourglass control the step runs (``hourglass.py``); 0: off.
         self.hourglass = c
+
+    @property
+    def hourglass(self) -> float:
+        """Strength ``c`` of the hourglass control the step runs (``hourglass.py``); 0: off. An
+        automatic solver sets it from the materials at every step (``next_hourglass``); another
+        runs what is set here, checked as ``Solver(hourglass=...)``."""
+        return self._hourglass
+
+    @hourglass.setter
+    def hourglass(self, c):
+        c = checks.hourglass("Solver.hourglass", c)
+        # The control measures against the rest positions: taken when it is first switched on,
+        # also by hand on a solver made without it (its step read no array there and crashed).
         if c > 0.0 and self._rest is None:
             m = self.model
             self._rest = wp.array(m.particle_x0, dtype=m.types.vec3, device=m.device)
+        self._hourglass = c
 
     def record(self) -> dict:
         """What this solver runs at the model's current parameters, for a run's records: the
