@@ -714,6 +714,20 @@ def test_an_hourglass_control_switched_on_by_hand_runs_and_a_bad_one_is_refused_
     assert late.hourglass == 0.05
 
 
+def test_a_run_record_of_an_hourglass_control_set_by_hand_names_the_strength_it_runs(tmp_path):
+    """``Solver.record`` (the USD file's ``warp_esph:hourglass``, the run record) took the
+    strength from the requested values, so a control set by hand on a ``fit="linear"``
+    solver ran at 0.05 and was recorded as 0 (off)."""
+    b = we.SceneBuilder(spacing=0.01, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.03, 0.03, 0.03), we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0))
+    model = b.finalize()
+    solver = we.Solver(model, fit="linear")
+    solver.hourglass = 0.05
+    assert solver.record() == {"fit": "linear", "resolved_fit": "linear", "resolved_hourglass": 0.05, "rest_model": False}
+    auto = we.Solver(model)
+    assert auto.record()["resolved_hourglass"] == auto.hourglass == we.model.AUTO_HOURGLASS
+
+
 @pytest.mark.parametrize("case,needle", [
     ("gravity", "gravity = (0.0, -1e+39, 0.0) is not allowed in float32"),
     ("velocity", "body velocities beyond 3.4e+38 m/s are not allowed in float32"),

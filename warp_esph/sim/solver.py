@@ -327,9 +327,12 @@ class Solver:
     def record(self) -> dict:
         """What this solver runs at the model's current parameters, for a run's records: the
         requested ``fit`` (None: the model's) with ``Model.solver_record``'s ``resolved_fit``,
-        ``resolved_hourglass`` and ``rest_model``."""
+        ``resolved_hourglass`` and ``rest_model``; ``resolved_hourglass`` is the strength the
+        next step runs (``next_hourglass``), also where it was set by hand."""
+        # A strength set by hand on a solver of a fixed fit runs as set, where the model's
+        # choice from the requested values recorded 0 for a control that ran.
         return {"fit": self.model.fit if self._asked[0] is None else self._asked[0],
-                **self.model.solver_record(*self._asked)}
+                **self.model.solver_record(*self._asked), "resolved_hourglass": float(self.next_hourglass())}
 
     def rest_set(self) -> tuple:
         """``(X, neighbours, counts, guard, moments)``: the rest neighbourhoods this solver's rest
