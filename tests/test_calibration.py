@@ -90,6 +90,27 @@ def test_cli_fit_with_starts_steps_at_the_stiffest_starts_stable_step(tmp_path, 
     assert f"dt = {1.0 / 30.0 / substeps:.4g} s ({2 * substeps} steps)" in err
     assert doc["dt"] == pytest.approx(1.0 / 30.0 / substeps, rel=1e-12)
 
+
+def test_cli_fit_starts_whose_stable_step_overruns_the_steps_per_frame_are_refused_by_their_options(tmp_path, capsys,
+                                                                                                 dough_scene):
+    """A start drawn at 1e15 Pa (--sample-range 1e12) needs 2.2e6 steps a frame: the refusal
+    blamed the scene's 'stiffest material (p-wave speed 3 m/s)' and advised softer materials,
+    which the guess already is; it now names the starts and their options."""
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    np.save(tmp_path / "t.npy", np.zeros((3, 64, 3)))
+    out = tmp_path / "cal"
+    capsys.readouterr()
+    assert main(["fit", str(guess), "--target", str(tmp_path / "t.npy"), "--params", "mu", "--starts", "3",
+                 "--sample-range", "1e12", "--bounds", "mu=1:1e16", "--iterations", "0", "--no-diagnostics", "--no-usd",
+                 "--no-progress", "--output-dir", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert "--starts 3 starts from" in err and "more than 1e+06" in err and "--sample-range (now 1e+12)" in err, err
+    assert "p-wave" not in err and not out.exists()
+
 def test_cli_fit_refuses_a_target_coordinate_past_what_the_loss_can_square(tmp_path, capsys, dough_scene):
     """A target position of 1e300 (inf in float32, and its square inf in float64) ran the
     fit's first rollout and stopped it with exit 3, 'the loss or its gradient is not finite

@@ -142,7 +142,7 @@ def run_fit(args, out=None, err=None) -> int:
         Experiment, FitInterrupted, _material_indices, check_options, fit, load_target, starts_stable_steps)
     from .rollout import RolloutMemoryError  # noqa: PLC0415
     from .scenes import load_scene  # noqa: PLC0415
-    from .simulate import resolve_timestep  # noqa: PLC0415
+    from .simulate import MAX_STEPS_PER_FRAME, resolve_timestep  # noqa: PLC0415
 
     jitter = checks.in_range("--jitter", _arg(args, "jitter", 0.0), 0.0, 0.5)  # a fraction of the spacing
     loss_scale = checks.positive("--loss-scale", _arg(args, "loss_scale", 1.0))
@@ -233,6 +233,16 @@ def run_fit(args, out=None, err=None) -> int:
                                      sample_range=sample_range, seed=seed, names=[e.scene.name for e in exps])
         for k, (e, limit) in enumerate(zip(exps, limits)):
             if e.auto_step and limit < e.dt:
+                steps = (1.0 / e.fps) / limit * (1.0 - 1e-12)
+                if not steps <= MAX_STEPS_PER_FRAME:
+                    # resolve_timestep would blame the scene's materials, which the guess's
+                    # own step showed are not the cause: the starts' box is.
+                    starts = f"--samples {opts['samples']}" if opts["samples"] else f"--starts {opts['starts']}"
+                    raise ValueError(
+                        f"{specs[k][0]}the stable step {limit:.3g} s of the stiffest point {starts} starts from is not "
+                        f"allowed: a frame (1/fps = {1.0 / e.fps:g} s) would take {steps:.2g} steps, more than "
+                        f"{MAX_STEPS_PER_FRAME:.0e} (the guess's step is {e.dt:.3g} s): give a smaller --sample-range "
+                        f"(now {sample_range:g}) or narrower --bounds, or give {'its dt' if specs[k][0] else '--dt'}")
                 exps[k] = load(specs[k][0], {**specs[k][1], "step_limit": limit})
 
     # Where the results go, checked before the fit (a folder in the way was found after it).
