@@ -377,10 +377,12 @@ def test_a_refused_resume_leaves_the_models_materials_as_they_were(tmp_path):
 @pytest.mark.parametrize("change,needle", [
     (lambda m: we.Solver(m, fit="curvature_corrected"), r"had fit = 'linear', this solver fit = 'curvature_corrected'"),
     (lambda m: we.Solver(m, hourglass=0.1), r"had hourglass = 0\.0, this solver hourglass = 0\.1"),
+    (lambda m: (s := we.Solver(m, fit="linear"), setattr(s, "hourglass", 0.1))[0],
+     r"had hourglass = 0\.0, this solver hourglass = 0\.1"),
     (lambda m: (setattr(m, "contact_ramp", 0.0), we.Solver(m))[1], r"had contact_ramp = 1\.0, this solver contact_ramp = 0\.0"),
     (lambda m: we.Solver(m, min_neighbors=8), r"had min_neighbors = 6, this solver min_neighbors = 8"),
     (lambda m: we.Solver(m, fused=False), r"had fused = True, this solver fused = False"),
-], ids=["fit", "hourglass", "contact_ramp", "min_neighbors", "fused"])
+], ids=["fit", "hourglass", "hourglass_by_hand", "contact_ramp", "min_neighbors", "fused"])
 def test_load_state_with_a_solver_refuses_other_settings_than_the_run_had(tmp_path, change, needle):
     """A resume with a solver set otherwise (another fit, hourglass control, contact law,
     guard or kernel) continued another run than the one saved, without a word; given the

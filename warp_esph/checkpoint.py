@@ -183,12 +183,16 @@ def solver_settings(solver) -> dict:
     """What of ``solver`` a step depends on beyond the model's scene and the state, as the
     step runs it at the model's current material values: the fit and hourglass strength
     (``Model.solver_choice``: ``"auto"`` resolved, so ``fit="linear"`` where ``"auto"`` runs
-    the linear fit is the same run), the model's contact ramp, the neighbourhood guards and
+    the linear fit is the same run; a strength set by hand, ``Solver.hourglass``, as it runs),
+    the model's contact ramp, the neighbourhood guards and
     whether the fused kernels run (the same equations, another round-off; the curvature-
     corrected fit, comparison models and ghost floors never take them). Not the neighbour
     skin: it changes the cost only, bit for bit (``Solver``)."""
     m = solver.model
-    fit, c = m.solver_choice(*solver._asked)
+    fit = m.solver_choice(*solver._asked)[0]
+    # The strength the step runs: one set by hand (Solver.hourglass) is not the requested one,
+    # which a fresh solver without the control matched.
+    c = solver.next_hourglass()
     fused = solver.fused and not solver._cmp and fit != "curvature_corrected" and solver.ghost_search is None
     return {"fit": fit, "hourglass": float(c), "contact_ramp": float(m.contact_ramp),
             "min_neighbors": int(solver.min_neighbors), "max_condition": float(solver.max_condition),
