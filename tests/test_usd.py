@@ -637,3 +637,32 @@ def test_another_users_lock_file_left_by_a_killed_run_does_not_refuse_the_output
         with pytest.raises(ValueError, match=rf"another writer of this process \({os.getpid()}\) is writing it"):
             UsdWriter(tmp_path / "shared.usdc", model, 30)  # still held while it writes
     assert sorted(os.listdir(tmp_path)) == ["shared.usdc"]
+
+
+def test_a_usd_file_records_every_frame_from_which_a_callback_switched_the_solver(tmp_path):
+    """``fit="auto"`` resolves by the material values, so a callback that makes an elastic
+    body plastic after frame 1 switches the rest-configuration model to the incremental one
+    from frame 2: ``warp_esph:solver_frames`` says so. Before, the file recorded only the
+    run's start (the rest model), for frames the incremental composition wrote. A resumed run
+    rewrites the entries from its start frame on."""
+    b = SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.06, 0.0), (0.06, 0.06, 0.06), Material(mu=2e3, lam=3e3, density=1000.0))
+    b.add_ground(friction=0.5)
+    model = b.finalize()
+    solver = Solver(model)
+
+    def plastic(frame, state):
+        if frame == 1:
+            model.set_material(0, model.materials[0].replace(yield_stress=100.0, flow_rate=10.0))
+
+    out = tmp_path / "run.usda"
+    end = simulate(model, 3, solver=solver, writer=UsdWriter(str(out), model), progress=False, callback=plastic)
+    data = open_fresh(out).GetRootLayer().customLayerData
+    assert data["warp_esph:solver_frames"] == "0: rest curvature_corrected c=0.05; 2: incremental linear c=0"
+    assert (data["warp_esph:resolved_fit"], data["warp_esph:rest_model"]) == ("curvature_corrected", True)
+    # Elastic again from frame 3 on (the state's F handed over to the rest model), appended.
+    model.set_material(0, model.materials[0].replace(yield_stress=float("inf"), flow_rate=0.0))
+    simulate(model, 2, solver=solver, state=end, start_frame=3,
+             writer=UsdWriter(str(out), model, append=True), progress=False)
+    assert open_fresh(out).GetRootLayer().customLayerData["warp_esph:solver_frames"] == (
+        "0: rest curvature_corrected c=0.05; 2: incremental linear c=0; 3: rest curvature_corrected c=0.05")

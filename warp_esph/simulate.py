@@ -895,7 +895,8 @@ def simulate(
       frame's steps run: ``solver.hourglass`` as a callback left it, or an automatic
       solver's choice from the materials as they are then).
     - ``writer``: anything with ``write_frame(frame_index, state)`` (e.g. ``UsdWriter``); one
-      with ``record_solver(solver)`` is told the solver at the start (what it runs).
+      with ``record_solver(solver, frame=None)`` is told the solver at the start and before
+      each frame (what it runs, ``UsdWriter.record_solver``).
       Frame ``start_frame`` (the initial state) is written first, then one frame per
       rendered frame. The writer is closed when the run ends, also when it fails.
     - ``solver``: a ``Solver`` of ``model`` (default: a new one; pass your own to read
@@ -960,8 +961,10 @@ def simulate(
         elif not isinstance(solver, Solver) or solver.model is not model:
             raise ValueError("solver is not allowed: it must be a warp_esph.Solver built for this model")
         solver.check_dt(dt)  # warns once here, before the progress bar, if dt is above the stable limit
-        if callable(getattr(writer, "record_solver", None)):
-            # Which model writes the frames: fit="auto" resolves by the material values.
+        solver_frames = callable(getattr(writer, "record_solver", None))
+        if solver_frames:
+            # Which model writes the frames: fit="auto" resolves by the material values, and a
+            # callback that changes them can switch it (recorded per frame, from the first).
             writer.record_solver(solver)
 
         current = model.state(requires_grad=False)
@@ -994,6 +997,8 @@ def simulate(
         bar = _progress_bar(frames, f"{model.particle_count} particles") if progress else None
         try:
             if writer is not None:
+                if solver_frames:
+                    writer.record_solver(solver, start_frame)
                 writer.write_frame(start_frame, current)
             if callback is not None:
                 callback(start_frame, current)
@@ -1050,6 +1055,8 @@ def simulate(
                                           f"s): {what}", step=step, particle=p, body=body, frame=frame,
                                           advice=f"; {far_mesh_advice(model.scalar is wp.float32)}")
                 if writer is not None:
+                    if solver_frames:
+                        writer.record_solver(solver, frame)
                     writer.write_frame(frame, current)
                 if callback is not None:
                     callback(frame, current)

@@ -587,13 +587,10 @@ def _run_sample(scene, task: _Task) -> dict:
 
 
 def solver_label(solver) -> str:
-    """The ``solver`` column: what the sample's solver ran (``Solver.record``), as
-    ``"rest curvature_corrected c=0.05"`` (the rest-configuration model, its total fit and the
-    hourglass strength) or ``"incremental linear c=0"`` (the incremental composition and its
-    fit): ``fit="auto"`` resolves by the sample's values, so a sweep of ``flow_rate`` through 0
-    switches models there."""
-    r = solver.record()
-    return f"{'rest' if r['rest_model'] else 'incremental'} {r['resolved_fit']} c={r['resolved_hourglass']:g}"
+    """The ``solver`` column: what the sample's solver ran (``Solver.label``): ``fit="auto"``
+    resolves by the sample's values, so a sweep of ``flow_rate`` through 0 switches models
+    there."""
+    return solver.label()
 
 
 def _call(fn, item):

@@ -629,16 +629,33 @@ class UsdWriter:
             prim.SetCustomDataByKey(f"{_KEY}:{key}", float(value) if isinstance(value, (int, float)) else value)
 
     # ----------------------------------------------------------------- frames
-    def record_solver(self, solver) -> None:
+    def record_solver(self, solver, frame: int | None = None) -> None:
         """Record in the layer's custom data what ``solver`` runs (``Solver.record``), saved
-        with the next frame: ``warp_esph:fit`` (the fit asked for), ``warp_esph:resolved_fit``,
-        ``warp_esph:hourglass`` (the strength run) and ``warp_esph:rest_model`` (whether the
-        rest-configuration model ran). ``fit="auto"`` resolves by the material values, so the
-        requested fit alone does not say which model wrote the frames. ``simulate`` calls it
-        at the run's start (an appended run's solver replaces the earlier run's entry)."""
-        r = solver.record()
-        entries = {f"{_KEY}:fit": r["fit"], f"{_KEY}:resolved_fit": r["resolved_fit"],
-                   f"{_KEY}:hourglass": float(r["resolved_hourglass"]), f"{_KEY}:rest_model": bool(r["rest_model"])}
+        with the next frame. ``fit="auto"`` resolves by the material values, so the requested
+        fit alone does not say which model wrote the frames, and a callback that changes a
+        material can switch it within a run.
+
+        Without ``frame`` (a run's start, as ``simulate`` calls it): ``warp_esph:fit`` (the fit
+        asked for), ``warp_esph:resolved_fit``, ``warp_esph:hourglass`` (the strength run) and
+        ``warp_esph:rest_model`` (whether the rest-configuration model ran), for the run's
+        first frames (an appended run's solver replaces the earlier run's entry). With
+        ``frame`` (``simulate`` calls it before writing each frame): ``warp_esph:solver_frames``
+        gains ``"<frame>: <Solver.label>"`` where the label differs from the one before it
+        (``"0: rest curvature_corrected c=0.05; 3: incremental linear c=0"``: frames 3 on ran
+        the incremental composition); entries of an earlier run at or after ``frame`` are
+        dropped (a resumed or appended run rewrites those frames)."""
+        key = f"{_KEY}:solver_frames"
+        if frame is None:
+            r = solver.record()
+            entries = {f"{_KEY}:fit": r["fit"], f"{_KEY}:resolved_fit": r["resolved_fit"],
+                       f"{_KEY}:hourglass": float(r["resolved_hourglass"]), f"{_KEY}:rest_model": bool(r["rest_model"])}
+        else:
+            data = dict(self._stages[0].GetRootLayer().customLayerData or {})
+            kept = [e for e in str(data.get(key, "")).split("; ") if e and int(e.split(":", 1)[0]) < int(frame)]
+            label = solver.label()
+            if kept and kept[-1].split(": ", 1)[1] == label:
+                return
+            entries = {key: "; ".join([*kept, f"{int(frame)}: {label}"])}
         for stage in self._stages:
             layer = stage.GetRootLayer()
             layer.customLayerData = {**dict(layer.customLayerData or {}), **entries}

@@ -334,6 +334,14 @@ class Solver:
         return {"fit": self.model.fit if self._asked[0] is None else self._asked[0],
                 **self.model.solver_record(*self._asked), "resolved_hourglass": float(self.next_hourglass())}
 
+    def label(self) -> str:
+        """``record`` in a few words: ``"rest curvature_corrected c=0.05"`` (the
+        rest-configuration model, its total fit and the hourglass strength) or ``"incremental
+        linear c=0"`` (the incremental composition and its fit), as a sweep's ``solver`` column
+        and a USD file's ``warp_esph:solver_frames`` write it."""
+        r = self.record()
+        return f"{'rest' if r['rest_model'] else 'incremental'} {r['resolved_fit']} c={r['resolved_hourglass']:g}"
+
     def rest_set(self) -> tuple:
         """``(X, neighbours, counts, guard, moments)``: the rest neighbourhoods this solver's rest
         model and comparison models run against (``Model.rest_neighbors``, with the guard of its
