@@ -483,7 +483,8 @@ def test_the_instant_contact_law_jumps_and_is_not_the_default():
 
     Run with the default pressure force (energy_spiky) at its default ``k_p = 0.46 K / rho0``
     (1.0 here), the same added bulk stiffness as the energy force at the scene's k_p = 0.5
-    (``PARAMS``): measured slopes 0.21-2.14 of the tape's. At the scene's k_p = 0.5, half
+    (``PARAMS``): measured slopes 0.65-1.61 of the tape's over the scan's 11 values (0.21-2.14
+    over 21 values, twice as many runs for the same verdict). At the scene's k_p = 0.5, half
     its default bulk share, energy_spiky's loss does not jump in this range (0.999-1.019,
     measured), so the jump is not shown there; the energy force at k_p = 0.5 gives
     -1.99 to 1.70."""
@@ -494,7 +495,7 @@ def test_the_instant_contact_law_jumps_and_is_not_the_default():
     assert model.contact_ramp == 0.0 and _model(2.0).contact_ramp == CONTINUOUS_CONTACT_RAMP
     assert model.materials[0].pressure_stiffness == pytest.approx(0.46 * (1.5e3 + 2.0e3 / 3.0) / 1000.0)
     _, grad, _, _ = _landing_loss(model, grad_of=name)
-    values = base * (1.0 + np.linspace(-1e-2, 1e-2, 21))
+    values = base * (1.0 + np.linspace(-1e-2, 1e-2, 11))  # the values of the scan above
     losses = np.array([_landing_loss(_landing_model(dict(force, **{name: v}), contact_ramp=0.0))[0] for v in values])
     slopes = np.diff(losses) / np.diff(values) / grad
     assert np.abs(slopes - 1.0).max() > 0.2, np.round(slopes, 3)
