@@ -200,3 +200,67 @@ def test_an_error_in_a_round_of_the_worlds_ends_the_fit_with_it(dropped_cube, ta
     t.join(timeout=20.0)
     assert not t.is_alive(), "the fit hung after the error"
     assert raised == ["the second round failed"] and rounds == [[0, 1, 2], [0, 1, 2]]
+
+
+def test_a_start_between_rounds_when_the_fit_stops_ends_with_it(monkeypatch):
+    """Ctrl-C while the fit waited for the next round, with one start still computing its
+    next point (answered, not yet asking), left that start out of the clean-up: it then
+    asked, waited for an answer for ever, and the fit's join with it. It now gets a stop
+    at once and the fit ends with the Ctrl-C. The interrupt is put into the round's wait,
+    and the start asks only once the fit joins its threads (the race, made certain)."""
+    import threading
+
+    from warp_esph import fit as fit_module
+
+    between, go = threading.Event(), threading.Event()
+    recorded, asked_late, raised, main = [], [], [], []
+
+    class InterruptedCondition(threading.Condition):
+        def wait(self, timeout=None):
+            if main and threading.current_thread() is main[0] and len(recorded) == 2:
+                while not between.is_set():  # until the first start has its answer, and computes
+                    super().wait(0.01)  # (this lets go of the lock the starts need to take theirs)
+                raise KeyboardInterrupt
+            return super().wait(timeout)
+
+    class JoinedThread(threading.Thread):
+        def join(self, timeout=None):
+            go.set()
+            return super().join(timeout)
+
+    class Worlds:
+        def evaluate(self, batch):
+            return {w: (1.0, np.zeros(1), 0.0, None) for w in batch}
+
+    def descend(evaluate, z, track):
+        evaluate(z)
+        if track == 0:
+            between.set()
+            go.wait(5.0)
+            try:
+                evaluate(z)
+            except BaseException as e:
+                asked_late.append(type(e).__name__)
+                raise
+        else:
+            evaluate(z)
+        return "done"
+
+    def record(track, z, value, gz, seconds, note):
+        recorded.append(track)
+        return value, gz, True
+
+    def run():
+        try:
+            fit_module._lockstep([0, 1], [np.zeros(1)] * 2, descend, Worlds(), record)
+        except BaseException as e:  # noqa: BLE001
+            raised.append(type(e).__name__)
+
+    t = threading.Thread(target=run, daemon=True)
+    main.append(t)
+    monkeypatch.setattr(threading, "Condition", InterruptedCondition)
+    monkeypatch.setattr(threading, "Thread", JoinedThread)
+    t.start()
+    t.join(timeout=2.0)
+    assert not t.is_alive(), "the fit hung after Ctrl-C"
+    assert raised == ["KeyboardInterrupt"] and asked_late == ["_Stop"] and recorded == [0, 1]

@@ -1498,7 +1498,10 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record, hal
     start that has not finished asks for one evaluation, and one ``worlds.evaluate`` of all of
     them answers. Only this (the calling) thread launches Warp kernels and records history
     (in start order); the optimiser threads do host arithmetic only. ``halted()``: why the
-    whole fit has stopped (a callback's True), or None; then no further round runs."""
+    whole fit has stopped (a callback's True), or None; then no further round runs. When
+    this thread stops answering (an error, Ctrl-C), every start ends: those waiting for an
+    answer get a stop, and those still computing their next point get one when they ask, so
+    the threads are joined and the error reaches the caller."""
     import threading  # noqa: PLC0415
 
     cv = threading.Condition()
@@ -1507,10 +1510,16 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record, hal
     active = set(range(len(tracks)))
     stops: list = [None] * len(tracks)
     errors: list = []
+    closed = False  # set once the calling thread has stopped answering (an error, Ctrl-C)
 
     def worker(w):
         def evaluate(z):
             with cv:
+                if closed:
+                    # A start that was between an answer and its next evaluation when the
+                    # fit stopped was in neither pending nor the round, so the clean-up did
+                    # not answer it: posting now would wait for ever, and the join with it.
+                    raise _Stop("callback")
                 pending[w] = np.array(z, dtype=np.float64)
                 cv.notify_all()
                 while w not in answers:
@@ -1565,7 +1574,9 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record, hal
         with cv:
             # Threads still waiting (an error here) end at once: those of the round an error
             # or Ctrl-C stopped too, which had left their threads waiting and the join below
-            # waiting for them, for ever.
+            # waiting for them, for ever; those still computing their next point find the
+            # fit closed when they ask for it.
+            closed = True
             for w in [*pending, *batch]:
                 answers.setdefault(w, _Stop("callback"))
             pending.clear()
