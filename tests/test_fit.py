@@ -1486,3 +1486,30 @@ def test_a_fitted_material_keeps_its_force_defaulted_or_given():
         for m in (r.materials[0], r.model.materials[0]):
             assert m.elastic_force == "variational"
             assert m.replace(deformation="rest").elastic_force == want
+
+
+def test_python_fit_refuses_a_target_coordinate_past_what_the_loss_can_square_before_any_rollout(monkeypatch):
+    """``fit(model, target)`` with a target coordinate of 1e300 (inf in float32, its square
+    inf in float64) ran the first rollout and stopped with 'the loss or its gradient is not
+    finite at the initial guess'. It is refused first, by the bound ``fit --target`` uses,
+    naming the parameter, the value, where it is and the model's precision."""
+    def forbidden(*a, **k):
+        raise AssertionError("a rollout ran")
+
+    monkeypatch.setattr(Rollout, "_forward_checked", forbidden)  # what fit runs
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.04, 0.04, 0.04), we.Material(mu=2e3, lam=3e3, yield_stress=40.0, flow_rate=20.0))
+    for dtype, bound, largest in ((wp.float32, "1.8e+18", "3.4e+38"), (wp.float64, "1.3e+153", "1.8e+308")):
+        model = b.finalize(dtype=dtype, requires_grad=True)
+        target = np.stack([model.particle_x0.astype(np.float64)] * 2)
+        target[1, 5, 1] = 1e300
+        want = (f"target is not allowed: it holds the coordinate 1e+300 (frame 1 (step 4), particle 5), past what the "
+                f"{dtype.__name__} loss can square (at most {bound} m; the {dtype.__name__} max is {largest}): give "
+                "positions in metres, of this scene")
+        with pytest.raises(ValueError) as e:
+            fit(model, target, ["yield_stress"], frames=[2, 4], dt=2e-4, iterations=1, progress=False, diagnostics=False)
+        assert str(e.value) == want
+        # Where a loss observes some particles only, the particle named is the model's.
+        loss = PositionLoss({4: target[1, 4:8]}, particles=[4, 5, 6, 7]) + PositionLoss({2: target[0]})
+        with pytest.raises(ValueError, match=r"\(frame 0 \(step 4\), particle 5\), past what"):
+            fit(model, loss, ["yield_stress"], steps=4, dt=2e-4, iterations=1, progress=False, diagnostics=False)

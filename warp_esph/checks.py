@@ -137,6 +137,25 @@ def greater_than(name: str, value, bound: float, bound_text: str) -> float:
     return v
 
 
+def squarable_coordinates(what: str, a, precision: str, place) -> None:
+    """Refuse, before any rollout, a target coordinate whose square a loss cannot hold in
+    ``precision`` ('float32' or 'float64', the model's): the losses sum squared distances
+    there, so a position of 1e300 (inf in float32) made the first evaluation's loss inf,
+    and the fit failed after its first rollout as 'not finite at the initial guess'. The
+    bound is sqrt(max) / 10, a tenth leaving the sum of squares room. ``place(index)``
+    says where the first such coordinate of ``a`` is (its index into ``a``)."""
+    a = np.asarray(a, dtype=np.float64)
+    largest = float(np.finfo(precision).max)
+    bound = math.sqrt(largest) / 10.0
+    bad = np.flatnonzero(~(np.abs(a) <= bound).reshape(-1))
+    if not bad.size:
+        return
+    where = np.unravel_index(bad[0], a.shape)
+    raise ValueError(f"{what} is not allowed: it holds the coordinate {float(a[where]):g} ({place(where)}), past what "
+                     f"the {precision} loss can square (at most {bound:.2g} m; the {precision} max is {largest:.2g}): "
+                     "give positions in metres, of this scene")
+
+
 def _is_tensor(value) -> bool:
     return type(value).__module__.split(".")[0] == "torch" and callable(getattr(value, "detach", None))
 

@@ -274,6 +274,21 @@ def _target_loss(target, frames) -> Loss:
     return PositionLoss(a, frames=frames)
 
 
+def _check_target_range(loss: Loss, model: Model, what: str) -> None:
+    """Refuse target positions whose square the loss cannot hold in the model's precision
+    (``checks.squarable_coordinates``, as ``warp-esph fit --target``), before any rollout:
+    ``fit(model, target)`` with a coordinate of 1e300 failed only after its first one."""
+    for leaf in [t for _, t in loss.terms] if isinstance(loss, SumLoss) else [loss]:
+        if not isinstance(leaf, PositionLoss):
+            continue
+        for k, (step, t) in enumerate(leaf.targets.items()):
+            def place(where, k=k, step=step):
+                p = int(where[0]) if leaf.particles is None else int(leaf.particles[where[0]])
+                return f"frame {k} (step {step}), particle {p}"
+
+            checks.squarable_coordinates(what, t, model.scalar.__name__, place)
+
+
 @dataclasses.dataclass
 class Experiment:
     """One experiment of a joint fit: its own scene (``model``) and observation (``target``).
@@ -454,6 +469,7 @@ class _Run(_Values):
             loss.check_positions(self.model.particle_count)
         except ValueError as e:
             raise ValueError(f"{name}: target is not allowed for this model: {e}") from None
+        _check_target_range(loss, self.model, "target" if name == "the experiment" else f"{name}: target")
         if exp.steps is None and max(loss.frames) == 0:
             # "steps = 0 is not allowed" named an option the caller had not given.
             raise ValueError(f"{name}: the target's frames = {list(loss.frames)} end at step 0, the initial state, which "
@@ -1848,27 +1864,16 @@ class Target:
 
     def _check_range(self, model: Model) -> None:
         """Refuse, before any rollout, a coordinate whose square the loss cannot hold in the
-        model's precision (it sums squared distances there): a position of 1e300 was inf in
-        float32, and the fit failed after its first rollout, exit 3, as 'the loss is not
-        finite at the initial guess'."""
+        model's precision (``checks.squarable_coordinates``)."""
         data = self.data[0] if self.kind == "mesh" else self.data
-        a = np.asarray(data, dtype=np.float64)
-        info = np.finfo(np.float32 if model.scalar is wp.float32 else np.float64)
-        bound = math.sqrt(float(info.max)) / 10.0  # a sum of squares a few decades past it still fits
-        bad = np.flatnonzero(~(np.abs(a) <= bound).reshape(-1))
-        if not bad.size:
-            return
-        where = np.unravel_index(bad[0], a.shape)
-        value = float(a[where])
-        if self.kind == "positions":
+
+        def place(where):
+            if self.kind != "positions":
+                return f"{'vertex' if self.kind == 'mesh' else 'point'} {where[0]}"
             frame = self.frames[where[0]] if self.frames is not None else where[0]
-            at = f"frame {frame}, particle {where[1]}"
-        else:
-            at = f"{'vertex' if self.kind == 'mesh' else 'point'} {where[0]}"
-        prec = model.scalar.__name__
-        raise ValueError(f"target {self.path} is not allowed: it holds the coordinate {value:g} ({at}), past what the "
-                         f"{prec} loss can square (at most {bound:.2g} m; the {prec} max is {float(info.max):.2g}): give "
-                         "positions in metres, of this scene")
+            return f"frame {frame}, particle {where[1]}"
+
+        checks.squarable_coordinates(f"target {self.path}", data, model.scalar.__name__, place)
 
     def particles(self, model: Model) -> np.ndarray | None:
         """Indices of the model's particles this target observes (None: all)."""
