@@ -389,6 +389,25 @@ def test_a_folder_where_the_file_goes_is_refused_by_name(model, tmp_path):
         UsdWriter(tmp_path / "d.usda", model, 30.0)
 
 
+def test_a_symbolic_link_where_the_file_goes_is_refused_as_every_command_refuses_it(model, tmp_path):
+    """``UsdWriter(link)`` renamed its frames over the link: the link became a regular file
+    and the file it linked to was left as it was, where every command refuses the link
+    (``checks.output_place``). The writer refuses it too, by the same check, before it
+    takes the file's lock or writes anything."""
+    real = tmp_path / "real.usda"
+    real.write_text("kept")
+    link = tmp_path / "link.usda"
+    link.symlink_to(real.name)
+    before = sorted(os.listdir(tmp_path))
+    for append in (False, True):
+        with pytest.raises(ValueError) as e:
+            UsdWriter(link, model, 30.0, append=append)
+        assert str(e.value) == (f"path = {str(link)!r} is not allowed: it is a symbolic link (to 'real.usda'), not a "
+                                "file; the output is written beside it and renamed over it, which would replace it: "
+                                "give the path of the file it links to, or another name")
+    assert link.is_symlink() and real.read_text() == "kept" and sorted(os.listdir(tmp_path)) == before
+
+
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 def test_a_float64_run_reads_back_to_the_last_bit(tmp_path, dtype):
     """The schema's points and velocities are float: a float64 run's file rounded them to

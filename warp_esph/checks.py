@@ -508,7 +508,10 @@ def _not_plain(p: str) -> tuple[str, str] | None:
     return None
 
 
-def _refuse_special(what: str, p: str) -> None:
+def refuse_special(what: str, p: str) -> None:
+    """Refuse an output ``p`` (the parameter or option ``what``) that a file renamed over it
+    would replace although it is no plain file (``_not_plain``): every writer, the commands'
+    and the Python API's, refuses it alike."""
     found = _not_plain(p)
     if found is not None:
         raise ValueError(f"{what} = {p!r} is not allowed: it is {found[0]}, not a file; the output is written beside it "
@@ -542,7 +545,7 @@ def replaced_atomically(path):
     p = os.fspath(path)
     # ("path" is save_state's own parameter; the commands refuse it by option first:
     # output_place, output_files.)
-    _refuse_special("path", p)
+    refuse_special("path", p)
     head, name = os.path.split(p)
     stem, ext = os.path.splitext(name)
     tmp = os.path.join(head, f".{stem}.{os.getpid()}.part{ext}")  # two processes writing one name keep apart
@@ -583,7 +586,7 @@ def output_place(what: str, path, folder: bool = False) -> str:
         raise ValueError(f"{what} = {p!r} is not allowed: it is {'a file' if folder else 'a folder'}; "
                          f"a {'folder' if folder else 'file'} is written there")
     if not folder:
-        _refuse_special(what, p)
+        refuse_special(what, p)
     # A folder output is created itself, but never its parents: a typo in a parent's name
     # ('/data/rsults/sweep') built a whole tree of folders nobody meant, where a file output
     # (run -o, render -o a.png) was refused; every command now refuses it alike.

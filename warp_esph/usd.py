@@ -234,7 +234,9 @@ class UsdWriter:
     the later frames in the other precision. While a writer is open no other may write
     ``path`` (``OutputInUse``, a ``ValueError``): it holds a lock on ``.<name>.lock`` beside
     it, removed by ``close()``, also when its clean-up fails (a later ``close()`` finishes
-    that clean-up unless another writer has taken the file since).
+    that clean-up unless another writer has taken the file since). A ``path`` that is a
+    symbolic link (or a device, a named pipe, a socket) is refused, as every command refuses
+    it: each frame is renamed over ``path``, which would replace the link with a file.
     """
 
     def __init__(self, path, model: Model, fps: float = 30.0, *, append: bool = False, plane_size: float | None = None,
@@ -253,6 +255,9 @@ class UsdWriter:
             raise FileNotFoundError(f"cannot write {self.path}: the folder {folder} does not exist")
         if os.path.isdir(self.path):  # a folder of that name met an IsADirectoryError at the first frame
             raise ValueError(f"path = {os.fspath(path)!r} is not allowed: it is a folder; a file is written there")
+        # Every frame is renamed over path: a symbolic link there became a regular file and
+        # the file it linked to was left as it was, where every command refuses the link.
+        checks.refuse_special("path", os.fspath(path))
         self.format = USD_EXTENSIONS[ext]
         self.model = model
         self.fps = checks.positive("fps", fps)
