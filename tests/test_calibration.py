@@ -134,6 +134,24 @@ def test_cli_fit_refuses_a_target_coordinate_past_what_the_loss_can_square(tmp_p
                        f"is {largest}): give positions in metres, of this scene"], err
         assert not out.exists()
 
+def test_a_target_coordinate_past_the_bound_in_one_bodys_target_names_that_body():
+    """With ``--target-body``, the target's particles are that body's, numbered from 0
+    within it: the message said 'particle 1', which read as the scene's particle 1 (the
+    first body's). It says 'particle 1 of body 'ball'' now."""
+    from warp_esph.fit import Target
+
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.04, 0.04, 0.04), we.Material(mu=2e3, lam=3e3), name="block")
+    b.add_box((0.2, 0.05, 0.0), (0.04, 0.04, 0.04), we.Material(mu=2e3, lam=3e3), name="ball")
+    model = b.finalize(dtype=wp.float32)
+    data = np.zeros((2, 8, 3))
+    data[1, 1, 2] = 1e300
+    with pytest.raises(ValueError) as e:
+        Target("positions", data, [0, 1], None, "run.usdc", body="ball").loss(model, {0: 0, 1: 10})
+    assert str(e.value) == ("target run.usdc is not allowed: it holds the coordinate 1e+300 (frame 1, particle 1 of body "
+                            "'ball'), past what the float32 loss can square (at most 1.8e+18 m; the float32 max is "
+                            "3.4e+38): give positions in metres, of this scene")
+
 def test_python_fit_refuses_a_tool_or_a_start_faster_than_a_spacing_a_step_before_any_rollout():
     """``fit`` itself took them, as the command line's once did: a box pressing at two
     spacings a step drove the block 0.25 m through the ground, and the fit fitted to that.

@@ -1871,7 +1871,9 @@ class Target:
             if self.kind != "positions":
                 return f"{'vertex' if self.kind == 'mesh' else 'point'} {where[0]}"
             frame = self.frames[where[0]] if self.frames is not None else where[0]
-            return f"frame {frame}, particle {where[1]}"
+            # With a body, the file's particles are that body's, numbered from 0 within it.
+            of = f" of body {self.body!r}" if self.body is not None else ""
+            return f"frame {frame}, particle {where[1]}{of}"
 
         checks.squarable_coordinates(f"target {self.path}", data, model.scalar.__name__, place)
 
