@@ -685,3 +685,27 @@ def test_a_usd_file_records_every_frame_from_which_a_callback_switched_the_solve
              writer=UsdWriter(str(out), model, append=True), progress=False)
     assert open_fresh(out).GetRootLayer().customLayerData["warp_esph:solver_frames"] == (
         "0: rest curvature_corrected c=0.05; 2: incremental linear c=0; 3: rest curvature_corrected c=0.05")
+
+
+def test_a_run_resumed_before_a_switch_by_the_solver_before_it_drops_the_later_entries(model, tmp_path):
+    """``warp_esph:solver_frames`` drops an earlier run's entries at or after a resumed run's
+    frames. A resume at frame 1 whose solver ran as the entry before it (frame 0's) returned
+    early, keeping ``"2: incremental linear c=0"`` for frames the resumed run wrote with the
+    rest model."""
+    class Ran:  # what Solver.label says, without a model to switch
+        def __init__(self, label):
+            self.text = label
+
+        def label(self):
+            return self.text
+
+    rest, incremental = "rest curvature_corrected c=0.05", "incremental linear c=0"
+    writer = UsdWriter(tmp_path / "resumed.usda", model, 30)
+    for frame, label in ((0, rest), (1, rest), (2, incremental)):
+        writer.record_solver(Ran(label), frame)
+    key = "warp_esph:solver_frames"
+    assert writer._stages[0].GetRootLayer().customLayerData[key] == f"0: {rest}; 2: {incremental}"
+    for frame in (1, 2, 3):  # resumed from frame 1, the rest model throughout
+        writer.record_solver(Ran(rest), frame)
+        assert writer._stages[0].GetRootLayer().customLayerData[key] == f"0: {rest}"
+    writer.close()

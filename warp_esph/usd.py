@@ -656,11 +656,16 @@ class UsdWriter:
                        f"{_KEY}:hourglass": float(r["resolved_hourglass"]), f"{_KEY}:rest_model": bool(r["rest_model"])}
         else:
             data = dict(self._stages[0].GetRootLayer().customLayerData or {})
-            kept = [e for e in str(data.get(key, "")).split("; ") if e and int(e.split(":", 1)[0]) < int(frame)]
+            before = str(data.get(key, ""))
+            kept = [e for e in before.split("; ") if e and int(e.split(":", 1)[0]) < int(frame)]
             label = solver.label()
-            if kept and kept[-1].split(": ", 1)[1] == label:
+            if not kept or kept[-1].split(": ", 1)[1] != label:
+                kept.append(f"{int(frame)}: {label}")
+            # A resume at an earlier frame by the solver of the entry before it still drops the
+            # later entries: they named what ran in frames this run rewrites.
+            if "; ".join(kept) == before:
                 return
-            entries = {key: "; ".join([*kept, f"{int(frame)}: {label}"])}
+            entries = {key: "; ".join(kept)}
         for stage in self._stages:
             layer = stage.GetRootLayer()
             layer.customLayerData = {**dict(layer.customLayerData or {}), **entries}
