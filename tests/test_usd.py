@@ -187,6 +187,9 @@ def test_a_close_whose_clean_up_fails_lets_the_output_go(model, tmp_path, monkey
     # Its stages are gone: a frame is refused as by a closed writer (it was an IndexError).
     with pytest.raises(ValueError, match=rf"^cannot write frame 0: the writer of {re.escape(str(first.path))} is closed$"):
         first.write_frame(0, model.state())
+    # simulate tells the writer its solver before each frame: refused alike (an IndexError).
+    with pytest.raises(ValueError, match=rf"^cannot write frame 0: the writer of {re.escape(str(first.path))} is closed$"):
+        simulate(model, 1, fps=30, writer=first, progress=False)
     second = UsdWriter(path, model, 30)  # refused before, the first still referenced here
     working = sorted(os.listdir(tmp_path))
     first.close()
@@ -701,6 +704,9 @@ def test_a_run_resumed_before_a_switch_by_the_solver_before_it_drops_the_later_e
 
     rest, incremental = "rest curvature_corrected c=0.05", "incremental linear c=0"
     writer = UsdWriter(tmp_path / "resumed.usda", model, 30)
+    for frame in (-1, 1.5, True):  # int(frame) wrote "-1: ..." and took 1.5 for frame 1
+        with pytest.raises(ValueError, match=rf"^frame = {re.escape(repr(frame))} is not allowed: must be an integer >= 0"):
+            writer.record_solver(Ran(rest), frame)
     for frame, label in ((0, rest), (1, rest), (2, incremental)):
         writer.record_solver(Ran(label), frame)
     key = "warp_esph:solver_frames"

@@ -648,13 +648,21 @@ class UsdWriter:
         gains ``"<frame>: <Solver.label>"`` where the label differs from the one before it
         (``"0: rest curvature_corrected c=0.05; 3: incremental linear c=0"``: frames 3 on ran
         the incremental composition); entries of an earlier run at or after ``frame`` are
-        dropped (a resumed or appended run rewrites those frames)."""
+        dropped (a resumed or appended run rewrites those frames). ``frame`` is an integer >= 0,
+        and a closed writer refuses it as ``write_frame`` does."""
         key = f"{_KEY}:solver_frames"
         if frame is None:
             r = solver.record()
             entries = {f"{_KEY}:fit": r["fit"], f"{_KEY}:resolved_fit": r["resolved_fit"],
                        f"{_KEY}:hourglass": float(r["resolved_hourglass"]), f"{_KEY}:rest_model": bool(r["rest_model"])}
         else:
+            if self.closed or not self._stages:
+                # Called before each frame's write_frame: a closed writer met an IndexError
+                # here, before write_frame's refusal.
+                raise ValueError(f"cannot write frame {frame!r}: the writer of {self.path} is closed")
+            if isinstance(frame, bool) or not isinstance(frame, (int, np.integer)) or frame < 0:
+                raise ValueError(f"frame = {frame!r} is not allowed: must be an integer >= 0 (the frame index "
+                                 "write_frame writes next)")
             data = dict(self._stages[0].GetRootLayer().customLayerData or {})
             before = str(data.get(key, ""))
             kept = [e for e in before.split("; ") if e and int(e.split(":", 1)[0]) < int(frame)]
