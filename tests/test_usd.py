@@ -715,3 +715,30 @@ def test_a_run_resumed_before_a_switch_by_the_solver_before_it_drops_the_later_e
         writer.record_solver(Ran(rest), frame)
         assert writer._stages[0].GetRootLayer().customLayerData[key] == f"0: {rest}"
     writer.close()
+
+
+def test_a_writer_whose_record_solver_takes_the_solver_alone_is_told_it_at_the_start(model):
+    """``simulate`` told a writer's ``record_solver(solver)`` the solver at the start; once it
+    passed the frame too, such a writer failed at the first frame with a TypeError. It is
+    told at the start only; one that takes the frame is told before each frame too."""
+    class Frames:
+        def __init__(self):
+            self.told, self.written = [], []
+
+        def write_frame(self, frame, state):
+            self.written.append(frame)
+
+    class Alone(Frames):
+        def record_solver(self, solver):
+            self.told.append(solver.label())
+
+    class Each(Frames):
+        def record_solver(self, solver, frame=None):
+            self.told.append(frame)
+
+    alone, each = Alone(), Each()
+    for writer in (alone, each):
+        simulate(model, 2, fps=30, writer=writer, progress=False)
+    assert alone.written == each.written == [0, 1, 2]
+    assert len(alone.told) == 1 and alone.told[0].startswith(("rest ", "incremental "))
+    assert each.told == [None, 0, 1, 2]

@@ -10,6 +10,7 @@ its body, after the writer has kept every finished frame.
 
 from __future__ import annotations
 
+import inspect
 import math
 import sys
 import time
@@ -869,6 +870,17 @@ def _body_layout(model: Model) -> list[tuple[str, int]]:
     return [(b.name, b.count) for b in model.bodies]
 
 
+def _takes_frame(record, solver) -> bool:
+    """Whether a writer's ``record_solver`` takes ``(solver, frame)``, not the solver alone."""
+    try:
+        inspect.signature(record).bind(solver, 0)
+    except TypeError:
+        return False
+    except ValueError:  # no signature to read (a built-in): the documented protocol
+        return True
+    return True
+
+
 def simulate(
     model: Model,
     frames: int,
@@ -896,7 +908,8 @@ def simulate(
       solver's choice from the materials as they are then).
     - ``writer``: anything with ``write_frame(frame_index, state)`` (e.g. ``UsdWriter``); one
       with ``record_solver(solver, frame=None)`` is told the solver at the start and before
-      each frame (what it runs, ``UsdWriter.record_solver``).
+      each frame (what it runs, ``UsdWriter.record_solver``); one whose ``record_solver``
+      takes the solver alone, at the start only.
       Frame ``start_frame`` (the initial state) is written first, then one frame per
       rendered frame. The writer is closed when the run ends, also when it fails.
     - ``solver``: a ``Solver`` of ``model`` (default: a new one; pass your own to read
@@ -961,11 +974,14 @@ def simulate(
         elif not isinstance(solver, Solver) or solver.model is not model:
             raise ValueError("solver is not allowed: it must be a warp_esph.Solver built for this model")
         solver.check_dt(dt)  # warns once here, before the progress bar, if dt is above the stable limit
-        solver_frames = callable(getattr(writer, "record_solver", None))
-        if solver_frames:
+        record = getattr(writer, "record_solver", None)
+        # A writer's record_solver(solver) of the earlier protocol (told the solver at the
+        # start only) met a TypeError at the first frame once the frame was passed.
+        solver_frames = callable(record) and _takes_frame(record, solver)
+        if callable(record):
             # Which model writes the frames: fit="auto" resolves by the material values, and a
             # callback that changes them can switch it (recorded per frame, from the first).
-            writer.record_solver(solver)
+            record(solver)
 
         current = model.state(requires_grad=False)
         if state is not None:
