@@ -1513,3 +1513,39 @@ def test_python_fit_refuses_a_target_coordinate_past_what_the_loss_can_square_be
         loss = PositionLoss({4: target[1, 4:8]}, particles=[4, 5, 6, 7]) + PositionLoss({2: target[0]})
         with pytest.raises(ValueError, match=r"\(frame 0 \(step 4\), particle 5\), past what"):
             fit(model, loss, ["yield_stress"], steps=4, dt=2e-4, iterations=1, progress=False, diagnostics=False)
+
+
+def test_python_fit_refuses_a_cloud_mesh_or_world_coordinate_past_what_the_loss_can_square(monkeypatch):
+    """The bound held for a ``PositionLoss`` only: a ``ChamferLoss`` cloud or a ``MeshLoss``
+    mesh with a point at 1e300 ran (numpy's 'overflow encountered in square', a finite
+    loss, the point silently unmatched), and so did a ``PositionLoss`` inside a
+    ``WorldLoss``. Each is refused before any rollout, naming where the point is."""
+    def forbidden(*a, **k):
+        raise AssertionError("a rollout ran")
+
+    monkeypatch.setattr(Rollout, "_forward_checked", forbidden)
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.04, 0.04, 0.04), we.Material(mu=2e3, lam=3e3, yield_stress=40.0, flow_rate=20.0))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    x0 = model.particle_x0.astype(np.float64)
+    cloud = x0.copy()
+    cloud[3, 2] = 1e300
+    tris = np.array([[0, 1, 2], [0, 2, 3]])
+    verts = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1e300, 1.0]])
+    worlds = b.finalize(dtype=wp.float64, requires_grad=True, worlds=2)
+    far = x0.copy()
+    far[6, 0] = -1e300
+    world_loss = we.losses.WorldLoss(worlds, [PositionLoss({4: x0}), PositionLoss({4: far})])
+    cases = [
+        (model, PositionLoss({2: x0}) + ChamferLoss({4: cloud}, radius=0.05), "frame 0 (step 4), point 3", "1e+300"),
+        (model, MeshLoss({2: (verts, tris)}), "frame 0 (step 2), vertex 3", "1e+300"),
+        (worlds, world_loss, "world 1, frame 0 (step 4), particle 6", "-1e+300"),
+    ]
+    for m, loss, where, value in cases:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # numpy's overflow warning was the only sign
+            with pytest.raises(ValueError) as e:
+                fit(m, loss, ["yield_stress"], steps=4, dt=2e-4, iterations=1, progress=False, diagnostics=False)
+        assert str(e.value) == (f"target is not allowed: it holds the coordinate {value} ({where}), past what the "
+                                "float64 loss can square (at most 1.3e+153 m; the float64 max is 1.8e+308): give "
+                                "positions in metres, of this scene")

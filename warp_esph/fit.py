@@ -50,7 +50,7 @@ import warp as wp
 from . import checks
 from ._types import scalar_type
 from .builder import SceneBuilder
-from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, SumLoss, WorldLoss, is_tools_csv, read_tools_csv
+from .losses import ChamferLoss, Loss, MeshLoss, PositionLoss, SumLoss, WorldLoss, _leaves, is_tools_csv, read_tools_csv
 from .material import PRESSURE_BULK_SHARE, Material, _following_force
 from .model import Model, check_material_precision
 from .rollout import PARAMETERS, STATE_OVERHEAD, Rollout, RolloutMemoryError, _RolloutMemory, check_initial
@@ -275,16 +275,36 @@ def _target_loss(target, frames) -> Loss:
 
 
 def _check_target_range(loss: Loss, model: Model, what: str) -> None:
-    """Refuse target positions whose square the loss cannot hold in the model's precision
+    """Refuse target coordinates whose square the loss cannot hold in the model's precision
     (``checks.squarable_coordinates``, as ``warp-esph fit --target``), before any rollout:
-    ``fit(model, target)`` with a coordinate of 1e300 failed only after its first one."""
-    for leaf in [t for _, t in loss.terms] if isinstance(loss, SumLoss) else [loss]:
-        if not isinstance(leaf, PositionLoss):
+    ``fit(model, target)`` with a coordinate of 1e300 failed only after its first one, and
+    a cloud's or mesh's such point, or one in a world's loss, was silently left unmatched
+    (numpy warning only of an overflow), the fit running on without it."""
+    def leaves(loss, world):
+        for leaf in _leaves(loss):
+            if isinstance(leaf, WorldLoss):
+                # A world's loss numbers its particles within that world.
+                for w, inner in enumerate(leaf.losses):
+                    yield from leaves(inner, w)
+            else:
+                yield leaf, world
+
+    for leaf, world in leaves(loss, None):
+        at = f"world {world}, " if world is not None else ""
+        if isinstance(leaf, PositionLoss):
+            items = [(step, t, "particle") for step, t in leaf.targets.items()]
+        elif isinstance(leaf, ChamferLoss):
+            items = [(step, t, "point") for step, t in leaf.targets.items()]
+        elif isinstance(leaf, MeshLoss):
+            items = [(step, m[0], "vertex") for step, m in leaf.meshes.items()]
+        else:
             continue
-        for k, (step, t) in enumerate(leaf.targets.items()):
-            def place(where, k=k, step=step):
-                p = int(where[0]) if leaf.particles is None else int(leaf.particles[where[0]])
-                return f"frame {k} (step {step}), particle {p}"
+        for k, (step, t, name) in enumerate(items):
+            def place(where, k=k, step=step, name=name, leaf=leaf, at=at):
+                i = int(where[0])
+                if name == "particle" and leaf.particles is not None:
+                    i = int(leaf.particles[i])
+                return f"{at}frame {k} (step {step}), {name} {i}"
 
             checks.squarable_coordinates(what, t, model.scalar.__name__, place)
 
@@ -1380,7 +1400,6 @@ def fit(
     result.experiment_materials = fitted
     result.starts = stops
     result.evaluations = sum(1 for h in history if h["stage"] == "descent")
-    from .losses import _leaves  # noqa: PLC0415
 
     if stopped == "flat":
         # The generic reason names the material ('no particle reaches the yield stress'): a
