@@ -264,3 +264,37 @@ def test_a_start_between_rounds_when_the_fit_stops_ends_with_it(monkeypatch):
     t.join(timeout=2.0)
     assert not t.is_alive(), "the fit hung after Ctrl-C"
     assert raised == ["KeyboardInterrupt"] and asked_late == ["_Stop"] and recorded == [0, 1]
+
+
+def test_an_error_in_one_start_ends_the_other_starts_at_the_next_round():
+    """An error in one start's optimiser (raised in its thread) did not stop the fit: the
+    other starts ran on to their end, every round a batched rollout, and only then was the
+    error raised. It now ends the lockstep before the next round: the other start gets a
+    stop and the error reaches the caller."""
+    from warp_esph import fit as fit_module
+
+    recorded, stopped = [], []
+
+    class Worlds:
+        def evaluate(self, batch):
+            return {w: (1.0, np.zeros(1), 0.0, None) for w in batch}
+
+    def descend(evaluate, z, track):
+        evaluate(z)
+        if track == 0:
+            raise ValueError("start 0 failed")
+        try:
+            for _ in range(5):
+                evaluate(z)
+        except fit_module._Stop as e:
+            stopped.append(str(e))
+            return str(e)
+        return "done"
+
+    def record(track, z, value, gz, seconds, note):
+        recorded.append(track)
+        return value, gz, True
+
+    with pytest.raises(ValueError, match="start 0 failed"):
+        fit_module._lockstep([0, 1], [np.zeros(1)] * 2, descend, Worlds(), record)
+    assert sorted(recorded) == [0, 1] and stopped == ["callback"]

@@ -1534,9 +1534,10 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record, hal
     them answers. Only this (the calling) thread launches Warp kernels and records history
     (in start order); the optimiser threads do host arithmetic only. ``halted()``: why the
     whole fit has stopped (a callback's True), or None; then no further round runs. When
-    this thread stops answering (an error, Ctrl-C), every start ends: those waiting for an
-    answer get a stop, and those still computing their next point get one when they ask, so
-    the threads are joined and the error reaches the caller."""
+    this thread stops answering (an error, Ctrl-C, or an error in any start, which ends the
+    lockstep before the next round), every start ends: those waiting for an answer get a
+    stop, and those still computing their next point get one when they ask, so the threads
+    are joined and the (first) error reaches the caller."""
     import threading  # noqa: PLC0415
 
     cv = threading.Condition()
@@ -1564,12 +1565,17 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record, hal
                 raise answer
             return answer
 
+        error = None
         try:
             stops[w] = descend(evaluate, start_points[w], tracks[w])
         except BaseException as e:  # noqa: BLE001 (handed to the calling thread)
-            errors.append(e)
+            error = e
         finally:
             with cv:
+                # Under the lock with the discard: the round's wait sees the error as soon as
+                # it sees the start gone, and ends the lockstep before another round.
+                if error is not None:
+                    errors.append(error)
                 active.discard(w)
                 cv.notify_all()
 
@@ -1580,9 +1586,11 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record, hal
     try:
         while True:
             with cv:
-                while active and not active.issubset(pending):
+                while active and not errors and not active.issubset(pending):
                     cv.wait()
-                if not active:
+                if not active or errors:
+                    # An error in one start ends them all: the others ran on to their end,
+                    # full rounds of rollouts, before the error was raised.
                     break
                 batch = {w: pending.pop(w) for w in sorted(active)}
             why = halted()
