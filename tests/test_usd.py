@@ -717,6 +717,26 @@ def test_a_run_resumed_before_a_switch_by_the_solver_before_it_drops_the_later_e
     writer.close()
 
 
+def test_a_file_written_before_solver_frames_has_the_key_start_at_the_resume_frame(model, tmp_path):
+    """A file written before ``warp_esph:solver_frames`` existed (frames, no key), appended
+    to from frame 2: the key starts at frame 2, the earlier frames without an entry, as
+    docs/cli.md says (not "0: ...", which would claim a solver for frames it never saw)."""
+    class Ran:
+        def label(self):
+            return "incremental linear c=0"
+
+    path = tmp_path / "old.usda"
+    state = model.state()
+    with UsdWriter(path, model, 30) as w:
+        for frame in range(4):
+            w.write_frame(frame, state)
+    with UsdWriter(path, model, 30, append=True) as w:
+        for frame in (2, 3):
+            w.record_solver(Ran(), frame)
+            w.write_frame(frame, state)
+    assert open_fresh(path).GetRootLayer().customLayerData["warp_esph:solver_frames"] == "2: incremental linear c=0"
+
+
 def test_a_writer_whose_record_solver_takes_the_solver_alone_is_told_it_at_the_start(model):
     """``simulate`` told a writer's ``record_solver(solver)`` the solver at the start; once it
     passed the frame too, such a writer failed at the first frame with a TypeError. It is

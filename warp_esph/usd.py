@@ -648,7 +648,9 @@ class UsdWriter:
         gains ``"<frame>: <Solver.label>"`` where the label differs from the one before it
         (``"0: rest curvature_corrected c=0.05; 3: incremental linear c=0"``: frames 3 on ran
         the incremental composition); entries of an earlier run at or after ``frame`` are
-        dropped (a resumed or appended run rewrites those frames). ``frame`` is an integer >= 0,
+        dropped (a resumed or appended run rewrites those frames). In a file written before
+        this key existed (appended to or resumed into), it starts at that run's first ``frame``:
+        the earlier frames have no entry, their solver not recorded. ``frame`` is an integer >= 0,
         and a closed writer refuses it as ``write_frame`` does."""
         key = f"{_KEY}:solver_frames"
         if frame is None:
