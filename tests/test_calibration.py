@@ -111,6 +111,7 @@ def test_cli_fit_starts_whose_stable_step_overruns_the_steps_per_frame_are_refus
     assert "--starts 3 starts from" in err and "more than 1e+06" in err and "--sample-range (now 1e+12)" in err, err
     assert "p-wave" not in err and not out.exists()
 
+
 def test_cli_fit_refuses_a_target_coordinate_past_what_the_loss_can_square(tmp_path, capsys, dough_scene):
     """A target position of 1e300 (inf in float32, and its square inf in float64) ran the
     fit's first rollout and stopped it with exit 3, 'the loss or its gradient is not finite
@@ -134,6 +135,7 @@ def test_cli_fit_refuses_a_target_coordinate_past_what_the_loss_can_square(tmp_p
                        f"is {largest}): give positions in metres, of this scene"], err
         assert not out.exists()
 
+
 def test_a_target_coordinate_past_the_bound_in_one_bodys_target_names_that_body():
     """With ``--target-body``, the target's particles are that body's, numbered from 0
     within it: the message said 'particle 1', which read as the scene's particle 1 (the
@@ -151,6 +153,7 @@ def test_a_target_coordinate_past_the_bound_in_one_bodys_target_names_that_body(
     assert str(e.value) == ("target run.usdc is not allowed: it holds the coordinate 1e+300 (frame 1, particle 1 of body "
                             "'ball'), past what the float32 loss can square (at most 1.8e+18 m; the float32 max is "
                             "3.4e+38): give positions in metres, of this scene")
+
 
 def test_python_fit_refuses_a_tool_or_a_start_faster_than_a_spacing_a_step_before_any_rollout():
     """``fit`` itself took them, as the command line's once did: a box pressing at two
@@ -783,7 +786,6 @@ def test_targets_from_data(tmp_path):
     meshio.write(tmp_path / "shape.ply", tri)
     t = load_target(tmp_path / "shape.ply")
     assert t.kind == "mesh" and isinstance(t.loss(model, {3: 30}), MeshLoss)
-
 
 
 def test_target_body_is_the_same_body_in_the_file_and_the_loss(tmp_path):

@@ -777,7 +777,6 @@ def test_the_segment_of_least_memory_is_found_not_taken_as_sqrt_steps(monkeypatc
     assert Rollout(model, 200, 1e-3, checkpoint_every=s).checkpointing and s < 14
 
 
-
 def test_the_least_segment_is_the_least_of_every_segment():
     """The search for the least stopped in a dip beside it: ceil(steps / S) checkpoints make
     the need wander by up to a checkpoint, and for 8 particles and 1e9 steps it named 6231
