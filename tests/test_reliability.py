@@ -222,7 +222,7 @@ def test_a_rest_model_whose_fits_invert_falls_back_to_the_incremental_compositio
         we.simulate(model, 12, solver=solver, progress=False, rest_fallback=False)
     assert solver.guard_counts()["inverted"] > 0 and solver.rest_model
     out = tmp_path / "beam.usdc"
-    assert main(["run", str(path), "-o", str(out), "--no-progress"]) == 0
+    assert main(["run", str(path), "-o", str(out), "--checkpoint-every", "9", "--no-progress"]) == 0
     warned = [line for line in capsys.readouterr().err.splitlines() if "inverted" in line]
     assert len(warned) == 1, warned
     assert re.search(r"warning: frame 6: the rest-configuration model's fit inverted in \d+ particle-steps .* the run goes "
@@ -231,6 +231,15 @@ def test_a_rest_model_whose_fits_invert_falls_back_to_the_incremental_compositio
     data = open_fresh(out).GetRootLayer().customLayerData
     assert data["warp_esph:solver_frames"] == "0: rest curvature_corrected c=0.05; 7: incremental curvature_corrected c=0.05"
     assert len(frames_in(out, "/World/beam")) == 13
+    # Resumed after the fall-back (frame 9), the run goes on as it did: a new solver ran the
+    # rest model again on the parted beam and blew up in its first frame (exit 3).
+    stage = open_fresh(out)
+    last = np.array(stage.GetPrimAtPath("/World/beam").GetAttribute("points").Get(12))
+    assert main(["run", "--resume", str(out) + ".checkpoint.npz", "--no-progress"]) == 0
+    assert "inverted" not in capsys.readouterr().err
+    resumed = open_fresh(out)
+    assert np.array_equal(np.array(resumed.GetPrimAtPath("/World/beam").GetAttribute("points").Get(12)), last)
+    assert resumed.GetRootLayer().customLayerData["warp_esph:solver_frames"] == data["warp_esph:solver_frames"]
 
 
 @pytest.mark.filterwarnings("ignore:a neighbour row was cut")
