@@ -726,7 +726,8 @@ def _targets(results, mpm=None) -> list[tuple[str, str, str, str]]:
                 "plastic shortening 0.064 / 0.29 / 0.55 x the 1-D analysis's free spreading (the collider's bottom "
                 "layer holds the base in; the continuum MPM's column: 1.03 / 0.96 / 0.99 / 0.94 x at 4 / 6 / 9 / 12 cells across; "
                 "on the slip ghost floor, which fits the bottom layer two-sided: 0.44 / 0.61 / 0.82 / 0.90 / 1.01 x at 4 / 6 / 8 / 10 / 12 "
-                "across, the 12-across base still creeping 0.19 % of the theory's shortening per s)",
+                "across after 36 periods, the 12-across base still creeping 0.19 % of the theory's shortening per s; "
+                "run on to 72 periods it went into gross motion, 10.5 x the 1-D plastic shortening, docs/physics.md)",
                 "holds, base only yielding (within a width): yes; the 1-D spreading: no (on the slip ghost floor: "
                 "within 10 % at 10 and 12 across, converging; at rest: not at 12 across)", "–"))
     for weight in FIT_WEIGHT_ORDER:
