@@ -420,3 +420,51 @@ def test_load_state_with_a_solver_refuses_other_settings_than_the_run_had(tmp_pa
     np.savez(path, **arrays)
     with pytest.raises(ValueError, match=r"its metadata has solver = \[1\] \(must be a table\)"):
         load_state(path, _model(), solver=None)
+
+
+def _elastic():
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.15, 0.0), (0.1, 0.1, 0.1), we.Material(mu=1e4, lam=1e4, density=1000.0))
+    b.add_ground(0.0, friction=0.5)
+    return b.finalize()
+
+
+def test_a_resume_with_a_solver_goes_on_where_the_run_left_the_rest_model(tmp_path):
+    """simulate's fall-back leaves the rest model on the solver: the settings ignored it, and
+    a resume's new solver ran the rest model again on the body the incremental steps had
+    moved. The resume takes the fall-back over and goes on bit for bit; a solver that fell
+    back in a run of its own is refused for a run that had not."""
+    model = _elastic()
+    solver = we.Solver(model)
+    assert solver.rest_model
+    a, b = model.state(), model.state()
+    for k in range(20):
+        if k == 10:
+            solver.leave_rest_model()
+        solver.step(a, b, 4e-4)
+        a, b = b, a
+    path = save_state(tmp_path / "c.npz", model, a, step=20, frame=2, solver=solver)
+    straight = a
+    for _ in range(10):
+        solver.step(straight, b, 4e-4)
+        straight, b = b, straight
+    fresh = _elastic()
+    other = we.Solver(fresh, min_neighbors=8)  # a refused resume leaves the solver as it was
+    with pytest.raises(ValueError, match=r"had min_neighbors = 6, this solver min_neighbors = 8"):
+        load_state(path, fresh, solver=other)
+    assert other.rest_model and not other.left_rest_model
+    again = we.Solver(fresh)
+    resumed, meta = load_state(path, fresh, solver=again)
+    assert meta["solver"]["left_rest_model"] is True and meta["solver"]["rest_model"] is True
+    assert again.left_rest_model and not again.rest_model and again.label() == solver.label()
+    x, y = resumed, fresh.state()
+    for _ in range(10):
+        again.step(x, y, 4e-4)
+        x, y = y, x
+    np.testing.assert_array_equal(x.x.numpy(), straight.x.numpy())
+    np.testing.assert_array_equal(x.F.numpy(), straight.F.numpy())
+    # The other way round: the run ran the rest model, this solver left it.
+    path = save_state(tmp_path / "d.npz", fresh, fresh.state(), step=0, frame=0, solver=we.Solver(fresh))
+    with pytest.raises(ValueError, match=r"the run it continues ran the rest-configuration model, this solver left it "
+                                         r"for the incremental composition \(Solver\.left_rest_model"):
+        load_state(path, fresh, solver=again)

@@ -235,6 +235,8 @@ def test_a_rest_model_whose_fits_invert_falls_back_to_the_incremental_compositio
     # rest model again on the parted beam and blew up in its first frame (exit 3).
     stage = open_fresh(out)
     last = np.array(stage.GetPrimAtPath("/World/beam").GetAttribute("points").Get(12))
+    # Its solver settings say so, as save_state(..., solver=) records them for load_state.
+    assert read_checkpoint(str(out) + ".checkpoint.npz")[0]["solver"]["left_rest_model"] is True
     assert main(["run", "--resume", str(out) + ".checkpoint.npz", "--no-progress"]) == 0
     assert "inverted" not in capsys.readouterr().err
     resumed = open_fresh(out)

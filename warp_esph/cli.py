@@ -408,7 +408,7 @@ def _cmd_run(args) -> int:
     from .tools import TOO_FAST_ADVICE  # noqa: PLC0415
     from .usd import OutputInUse, UsdWriter  # noqa: PLC0415
 
-    from .checkpoint import load_state, read_checkpoint, save_state  # noqa: PLC0415
+    from .checkpoint import _continue_fallback, load_state, read_checkpoint, save_state  # noqa: PLC0415
 
     every = None if args.checkpoint_every is None else checks.positive_int("--checkpoint-every", args.checkpoint_every)
     options = _solver_options(args)
@@ -489,9 +489,9 @@ def _cmd_run(args) -> int:
                 ", or a smaller --scale (a larger spacing, whose stable step is longer)")
         raise ValueError(f"{named} is not allowed: {e.detail}; give fewer --frames{cure}") from None
     solver = Solver(model)
-    if args.resume is not None and run.get("left_rest_model") is True and solver.rest_model:
-        # The run it continues fell back from the rest model (simulate's rest_fallback): a new
-        # solver ran the rest model again on the parted body, which blew up in its first frame.
+    if args.resume is not None and _continue_fallback(solver, meta.get("solver", {})):
+        # The run it continues fell back from the rest model (simulate's rest_fallback), as its
+        # checkpoint's solver settings say (load_state(..., solver=) does the same).
         solver.leave_rest_model()
     solver.check_dt(dt_shown)  # the stability warning, once, before the run
     try:
@@ -630,11 +630,10 @@ def _cmd_run(args) -> int:
                         write_log()
                     # With the adaptive step the step count is not a function of the frame: -1.
                     try:
-                        # A run that fell back from the rest model (simulate's rest_fallback) says so:
-                        # its resume's new solver ran the rest model again on the parted body.
+                        # With the solver's settings: a run that fell back from the rest model
+                        # (simulate's rest_fallback) says so there, and its resume does too.
                         save_state(checkpoint_path, model, current, step=-1 if adaptive else frame * substeps,
-                                   frame=frame, run={**run_record, "left_rest_model": True} if solver.left_rest_model
-                                   else run_record)
+                                   frame=frame, run=run_record, solver=solver)
                     except OSError as e:
                         raise _BesideWriteError("the checkpoint", checkpoint_path, e) from None
                     checkpointed[0] = frame
@@ -879,7 +878,6 @@ def _check_run_record(path, run: dict) -> None:
         checks.boolean("surface", run.get("surface", False))
         if run.get("checkpoint_every") is not None:
             checks.positive_int("checkpoint_every", run["checkpoint_every"])
-        checks.boolean("left_rest_model", run.get("left_rest_model", False))
         if "fit" in run:
             from .model import FITS  # noqa: PLC0415
 
