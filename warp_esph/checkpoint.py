@@ -106,9 +106,8 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     made it), unless that model is of the same scene (the same ``model_fingerprint``).
 
     ``solver`` (a ``Solver`` of ``model``; optional) records the settings of the solver that
-    ran (``solver_settings``: fit, hourglass, contact ramp, guards, fused kernels, and whether
-    it left the rest-configuration model), which ``load_state(..., solver=)`` compares with the
-    solver that resumes.
+    ran (``solver_settings``: fit, hourglass, contact ramp, guards, fused kernels), which
+    ``load_state(..., solver=)`` compares with the solver that resumes.
     """
     from . import checks  # noqa: PLC0415
 
@@ -188,10 +187,7 @@ def solver_settings(solver) -> dict:
     the model's contact ramp, the neighbourhood guards and
     whether the fused kernels run (the same equations, another round-off; the curvature-
     corrected fit, comparison models and ghost floors never take them). Not the neighbour
-    skin: it changes the cost only, bit for bit (``Solver``). ``rest_model``: whether
-    ``fit="auto"`` runs the rest-configuration model on this model; ``left_rest_model``:
-    whether the solver left it for the incremental composition (``Solver.leave_rest_model``,
-    ``simulate``'s fall-back where its fits inverted)."""
+    skin: it changes the cost only, bit for bit (``Solver``)."""
     m = solver.model
     fit = m.solver_choice(*solver._asked)[0]
     # The strength the step runs: one set by hand (Solver.hourglass) is not the requested one,
@@ -200,20 +196,7 @@ def solver_settings(solver) -> dict:
     fused = solver.fused and not solver._cmp and fit != "curvature_corrected" and solver.ghost_search is None
     return {"fit": fit, "hourglass": float(c), "contact_ramp": float(m.contact_ramp),
             "min_neighbors": int(solver.min_neighbors), "max_condition": float(solver.max_condition),
-            "fused": bool(fused), "rest_model": bool(solver._auto and m.auto_runs_rest(solver._asked[0])),
-            "left_rest_model": bool(solver.left_rest_model)}
-
-
-def _continue_fallback(solver, saved: dict) -> bool:
-    """Whether ``solver`` must leave the rest-configuration model to continue the run whose
-    solver settings are ``saved`` (``solver_settings``): that run fell back to the incremental
-    composition (``simulate``'s ``rest_fallback``), and ``solver`` would run the rest model.
-    Left on it, a new solver ran the rest model again on the torn body: a hanging cantilever
-    resumed after its fall-back blew up in its first frame. The fall-back is the run's doing,
-    not a setting asked for, so the resume takes it over (as it takes the checkpoint's
-    material values), where a setting asked for otherwise is refused."""
-    return (saved.get("left_rest_model") is True and not solver.left_rest_model
-            and solver._auto and solver.model.auto_runs_rest(solver._asked[0]))
+            "fused": bool(fused), "rest_model": bool(solver._auto and m.auto_runs_rest(solver._asked[0]))}
 
 
 def _check_solver(model: Model, solver) -> None:
@@ -298,12 +281,8 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
     ``solver`` (a ``Solver`` of ``model``; optional): the solver that will continue the run.
     Where the checkpoint records the settings of the solver that ran (``save_state(...,
     solver=)``), a setting that differs is refused (``ValueError`` naming it and both values):
-    the continuation would not be the run it continues; the model and ``solver`` are left as
-    they were. A run that fell back from the rest-configuration model (``simulate``'s
-    ``rest_fallback``; ``left_rest_model``) is not a setting asked for: a solver that would
-    run the rest model leaves it (``Solver.leave_rest_model``) and resumes as the run went on,
-    where one that left it in a run of its own is refused for a run that had not. A checkpoint
-    saved without ``solver=`` records none, and is not compared. ``what``: how a refusal names the file
+    the continuation would not be the run it continues. A checkpoint saved without
+    ``solver=`` records none, and is not compared. ``what``: how a refusal names the file
     (the CLI's ``--resume``).
     """
     if not isinstance(model, Model):
@@ -386,23 +365,12 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
     if solver is not None and "solver" in meta:
         # Compared at the checkpoint's material values, which decide what "auto" runs.
         ours = solver_settings(solver)
-        leave = _continue_fallback(solver, meta["solver"])
-        if leave:
-            ours["left_rest_model"] = True
         for key, value in meta["solver"].items():
             if key in ours and value != ours[key]:
                 for name, a in before.items():  # a refused resume leaves the model as it was
                     getattr(model, name).assign(a)
-                if key == "left_rest_model":
-                    # This solver fell back in a run of its own; a rest step of the continued run
-                    # would compose onto its F, not fit its rest neighbourhoods.
-                    raise ValueError(f"{where} with this solver: the run it continues ran the rest-configuration model, "
-                                     "this solver left it for the incremental composition (Solver.left_rest_model: "
-                                     "simulate's fall-back where its fits inverted); make a new Solver as that run's")
                 raise ValueError(f"{where} with this solver: the run it continues had {key} = {value!r}, this solver "
                                  f"{key} = {ours[key]!r}; make the Solver (and set the model) as that run's")
-        if leave:
-            solver.leave_rest_model()
     return state, meta
 
 

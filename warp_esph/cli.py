@@ -408,7 +408,7 @@ def _cmd_run(args) -> int:
     from .tools import TOO_FAST_ADVICE  # noqa: PLC0415
     from .usd import OutputInUse, UsdWriter  # noqa: PLC0415
 
-    from .checkpoint import _continue_fallback, load_state, read_checkpoint, save_state  # noqa: PLC0415
+    from .checkpoint import load_state, read_checkpoint, save_state  # noqa: PLC0415
 
     every = None if args.checkpoint_every is None else checks.positive_int("--checkpoint-every", args.checkpoint_every)
     options = _solver_options(args)
@@ -489,10 +489,6 @@ def _cmd_run(args) -> int:
                 ", or a smaller --scale (a larger spacing, whose stable step is longer)")
         raise ValueError(f"{named} is not allowed: {e.detail}; give fewer --frames{cure}") from None
     solver = Solver(model)
-    if args.resume is not None and _continue_fallback(solver, meta.get("solver", {})):
-        # The run it continues fell back from the rest model (simulate's rest_fallback), as its
-        # checkpoint's solver settings say (load_state(..., solver=) does the same).
-        solver.leave_rest_model()
     solver.check_dt(dt_shown)  # the stability warning, once, before the run
     try:
         # Before the writer replaces an earlier run's file; simulate does not repeat them.
@@ -630,10 +626,8 @@ def _cmd_run(args) -> int:
                         write_log()
                     # With the adaptive step the step count is not a function of the frame: -1.
                     try:
-                        # With the solver's settings: a run that fell back from the rest model
-                        # (simulate's rest_fallback) says so there, and its resume does too.
                         save_state(checkpoint_path, model, current, step=-1 if adaptive else frame * substeps,
-                                   frame=frame, run=run_record, solver=solver)
+                                   frame=frame, run=run_record)
                     except OSError as e:
                         raise _BesideWriteError("the checkpoint", checkpoint_path, e) from None
                     checkpointed[0] = frame

@@ -14,7 +14,6 @@ import inspect
 import math
 import sys
 import time
-import warnings
 
 import numpy as np
 
@@ -871,20 +870,6 @@ def _body_layout(model: Model) -> list[tuple[str, int]]:
     return [(b.name, b.count) for b in model.bodies]
 
 
-def _leave_rest_model(solver: Solver, frame: int, inverted: int):
-    """``simulate``'s fall-back from the rest-configuration model, whose fits inverted in
-    ``inverted`` particle-steps of frame ``frame``: left there, the run diverged a few frames
-    later at any step (a soft cantilever sagging under its own weight, at 0.3 s), where the
-    incremental composition, which follows the neighbours as a body parts, runs on."""
-    solver.leave_rest_model()
-    warnings.warn(f"frame {frame}: the rest-configuration model's fit inverted in {inverted} particle-steps (a body "
-                  f"crushed or folded past what its rest neighbourhoods follow, which diverges); the run goes on from "
-                  f"the next step with the incremental composition (fit {solver.fit!r}, hourglass "
-                  f"c = {solver.hourglass:g}), which follows the neighbours as a body parts; a stiffer material keeps "
-                  f"the rest model, and the fit 'curvature_corrected' with hourglass 0.05 asked for runs the "
-                  f"incremental composition from the start", RuntimeWarning, stacklevel=3)
-
-
 def _takes_frame(record, solver) -> bool:
     """Whether a writer's ``record_solver`` takes ``(solver, frame)``, not the solver alone."""
     try:
@@ -912,7 +897,6 @@ def simulate(
     monitor: bool = True,
     monitor_exempt=(),
     monitor_origin: State | None = None,
-    rest_fallback: bool = True,
     _checked: tuple | None = None,
 ) -> State:
     """Simulate ``frames`` frames at ``fps``; returns the final state.
@@ -942,15 +926,6 @@ def simulate(
       ``monitor_origin``: the state of frame 0 whose bounds the monitor keeps, the time
       counted from it (a resumed run: the run's initial state, so that each frame is judged
       as the uninterrupted run judged it; default: the state this call starts from).
-    - ``rest_fallback``: where the solver runs the rest-configuration model
-      (``Solver.rest_model``) and a frame's steps inverted its fits (``guard_counts()
-      ["inverted"]`` rose in that frame: a body crushed or folded past what its rest
-      neighbourhoods follow, which diverged a few frames later), the solver runs the
-      incremental composition from the next step to the run's end
-      (``Solver.leave_rest_model``; the same fit and hourglass control), with one
-      RuntimeWarning naming the frame; a writer's ``record_solver`` records the switch from
-      the next frame. ``False``: the rest model runs on, and its divergence names the
-      inverted fits (``divergence_advice``).
 
     Two states are swapped, so nothing is allocated per step. Raises ``SimulationError``
     when a position or velocity becomes non-finite, the monitor finds a blow-up, or a step
@@ -967,7 +942,6 @@ def simulate(
             raise ValueError(f"start_frame = {start_frame!r} is not allowed: must be an integer >= 0")
         start_frame = int(start_frame)
         monitor = checks.boolean("monitor", monitor)
-        rest_fallback = checks.boolean("rest_fallback", rest_fallback)
         progress = checks.boolean("progress", progress)  # 'no' drew the bar
         fps = checks.positive("fps", fps)
         # The stable step follows the control the solver runs (a given solver's own).
@@ -1035,7 +1009,6 @@ def simulate(
 
         # A solver's counts run on from its earlier runs: theirs are not this run's inversions.
         inverted0 = solver.guard_counts()["inverted"]
-        inverted = inverted0  # the count after the last frame, read once a frame
         far_meshes = _far_mesh_tools(model)
         bar = _progress_bar(frames, f"{model.particle_count} particles") if progress else None
         try:
@@ -1101,11 +1074,6 @@ def simulate(
                     if solver_frames:
                         writer.record_solver(solver, frame)
                     writer.write_frame(frame, current)
-                if rest_fallback and solver.rest_model:
-                    count = solver.guard_counts()["inverted"]
-                    if count > inverted:
-                        _leave_rest_model(solver, frame, count - inverted)
-                    inverted = count
                 if callback is not None:
                     callback(frame, current)
                 if bar is not None:

@@ -544,15 +544,10 @@ def _run_sample(scene, task: _Task) -> dict:
             substeps, dt = resolve_timestep(model, task.fps, dt=task.dt)
             row.update({"particles": model.particle_count, "steps": task.frames * substeps, "dt": dt})
             solver = Solver(model)
-            row["solver"] = start = solver_label(solver)
-            try:
-                # The bodies a scene shows blowing up are left out of the monitor, as in warp-esph run.
-                state = simulate(model, task.frames, fps=task.fps, dt=dt, progress=False, solver=solver,
-                                 monitor_exempt=getattr(scene, "diverges", ()))
-            finally:
-                # The solver may change models within the run (simulate's fall-back from the rest
-                # model): the label made before it read "rest ..." for a sample that fell back.
-                row["solver"] = solver_label(solver, start)
+            row["solver"] = solver_label(solver)
+            # The bodies a scene shows blowing up are left out of the monitor, as in warp-esph run.
+            state = simulate(model, task.frames, fps=task.fps, dt=dt, progress=False, solver=solver,
+                             monitor_exempt=getattr(scene, "diverges", ()))
             row.update(_summary(model, state, solver))
             why = _blew_up(model, state)
             if why is not None:
@@ -591,14 +586,11 @@ def _run_sample(scene, task: _Task) -> dict:
     return row
 
 
-def solver_label(solver, start: str | None = None) -> str:
+def solver_label(solver) -> str:
     """The ``solver`` column: what the sample's solver ran (``Solver.label``): ``fit="auto"``
     resolves by the sample's values, so a sweep of ``flow_rate`` through 0 switches models
-    there. ``start``: the label when the run began; where the solver ran another model by its
-    end (``simulate``'s fall-back from the rest model, ``Solver.leave_rest_model``), both:
-    ``"rest curvature_corrected c=0.05 -> incremental curvature_corrected c=0.05"``."""
-    end = solver.label()
-    return end if start is None or start == end else f"{start} -> {end}"
+    there."""
+    return solver.label()
 
 
 def _call(fn, item):

@@ -255,9 +255,6 @@ class Solver:
                           f"worlds with separate runs", RuntimeWarning, stacklevel=2)
         self._rest = None
         self._rest_set = None
-        #: Whether this solver left the rest-configuration model for the incremental composition
-        #: for good (``leave_rest_model``; ``simulate`` does where the rest fits invert).
-        self.left_rest_model = False
         # Before _choose builds them: the rest configuration is particle_x0 as it is now.
         model._drop_stale_rest()
         self._choose()
@@ -301,7 +298,7 @@ class Solver:
         fit, c = self.model.solver_choice(*self._asked)
         #: Whether the step runs the rest-configuration model for materials that say
         #: ``"incremental"`` (``Model.auto_runs_rest``: ``fit="auto"`` on a purely elastic model).
-        self.rest_model = self._auto and not self.left_rest_model and self.model.auto_runs_rest(self._asked[0])
+        self.rest_model = self._auto and self.model.auto_runs_rest(self._asked[0])
         if self.rest_model:
             self.rest_set()
         #: The incremental fit the step runs (``"linear"`` or ``"curvature_corrected"``); the
@@ -334,20 +331,8 @@ class Solver:
         next step runs (``next_hourglass``), also where it was set by hand."""
         # A strength set by hand on a solver of a fixed fit runs as set, where the model's
         # choice from the requested values recorded 0 for a control that ran.
-        r = self.model.solver_record(*self._asked)
         return {"fit": self.model.fit if self._asked[0] is None else self._asked[0],
-                **r, "resolved_hourglass": float(self.next_hourglass()),
-                "rest_model": r["rest_model"] and not self.left_rest_model}
-
-    def leave_rest_model(self):
-        """Run the incremental composition ``F <- dF F`` from the next step on, for good, where
-        ``fit="auto"`` would run the rest-configuration model (``rest_model``): the same fit and
-        hourglass control, whose deformation update follows the neighbours as a body parts,
-        where a rest neighbourhood crushed or folded past what it follows inverts its fit and
-        the run diverges (``simulate`` calls it there). The next step composes onto the stored
-        ``F`` as it is: the rest model's ``F`` is its elastic part, the body's strain."""
-        self.left_rest_model = True
-        self.rest_model = False
+                **self.model.solver_record(*self._asked), "resolved_hourglass": float(self.next_hourglass())}
 
     def label(self) -> str:
         """``record`` in a few words: ``"rest curvature_corrected c=0.05"`` (the
