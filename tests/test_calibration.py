@@ -58,22 +58,30 @@ def test_cli_fit_refuses_a_tool_faster_than_a_spacing_a_step_before_the_fit(tmp_
         assert not out.exists()
 
 
-def test_cli_fit_with_starts_steps_at_the_stiffest_starts_stable_step(tmp_path, capsys, dough_scene):
-    """``--starts 3`` fitting mu: the steps per frame were chosen from the guess's stable
-    step (34 a frame), past the stable step of the start at 3.7 x mu, which warned and could
-    blow up. Where the command chooses the step (no --dt, none in the scene) it is now the
-    stiffest start's, rounded to fill a frame (48 a frame), for every start."""
+def _fit_mu_from_three_starts(tmp_path, capsys, dough_scene, *options):
+    """``warp-esph fit`` of the dough's mu from three starts (no iterations) to a zero target;
+    returns the scene file, the output folder, the exit status and stderr."""
     from warp_esph.cli import main
-    from warp_esph.scenes import load_scene
 
     guess = tmp_path / "guess.toml"
     guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
     np.save(tmp_path / "t.npy", np.zeros((3, 64, 3)))
     out = tmp_path / "cal"
     capsys.readouterr()
-    assert main(["fit", str(guess), "--target", str(tmp_path / "t.npy"), "--params", "mu", "--starts", "3",
-                 "--iterations", "0", "--no-diagnostics", "--no-usd", "--no-progress", "--output-dir", str(out)]) == 0
-    err = capsys.readouterr().err
+    status = main(["fit", str(guess), "--target", str(tmp_path / "t.npy"), "--params", "mu", "--starts", "3", *options,
+                   "--iterations", "0", "--no-diagnostics", "--no-usd", "--no-progress", "--output-dir", str(out)])
+    return guess, out, status, capsys.readouterr().err
+
+
+def test_cli_fit_with_starts_steps_at_the_stiffest_starts_stable_step(tmp_path, capsys, dough_scene):
+    """``--starts 3`` fitting mu: the steps per frame were chosen from the guess's stable
+    step (34 a frame), past the stable step of the start at 3.7 x mu, which warned and could
+    blow up. Where the command chooses the step (no --dt, none in the scene) it is now the
+    stiffest start's, rounded to fill a frame (48 a frame), for every start."""
+    from warp_esph.scenes import load_scene
+
+    guess, out, status, err = _fit_mu_from_three_starts(tmp_path, capsys, dough_scene)
+    assert status == 0
     assert "warning" not in err, err
     doc = json.loads((out / "fit.json").read_text())
     mus = [h["params"]["mu"][0] for h in doc["history"]]
@@ -96,17 +104,9 @@ def test_cli_fit_starts_whose_stable_step_overruns_the_steps_per_frame_are_refus
     """A start drawn at 1e15 Pa (--sample-range 1e12) needs 2.2e6 steps a frame: the refusal
     blamed the scene's 'stiffest material (p-wave speed 3 m/s)' and advised softer materials,
     which the guess already is; it now names the starts and their options."""
-    from warp_esph.cli import main
-
-    guess = tmp_path / "guess.toml"
-    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
-    np.save(tmp_path / "t.npy", np.zeros((3, 64, 3)))
-    out = tmp_path / "cal"
-    capsys.readouterr()
-    assert main(["fit", str(guess), "--target", str(tmp_path / "t.npy"), "--params", "mu", "--starts", "3",
-                 "--sample-range", "1e12", "--bounds", "mu=1:1e16", "--iterations", "0", "--no-diagnostics", "--no-usd",
-                 "--no-progress", "--output-dir", str(out)]) == 2
-    err = capsys.readouterr().err
+    _, out, status, err = _fit_mu_from_three_starts(tmp_path, capsys, dough_scene,
+                                                    "--sample-range", "1e12", "--bounds", "mu=1:1e16")
+    assert status == 2
     assert err.count("\n") == 1, err
     assert "--starts 3 starts from" in err and "more than 1e+06" in err and "--sample-range (now 1e+12)" in err, err
     assert "p-wave" not in err and not out.exists()
