@@ -1536,15 +1536,48 @@ def test_python_fit_refuses_a_cloud_mesh_or_world_coordinate_past_what_the_loss_
     far[6, 0] = -1e300
     world_loss = we.losses.WorldLoss(worlds, [PositionLoss({4: x0}), PositionLoss({4: far})])
     cases = [
-        (model, PositionLoss({2: x0}) + ChamferLoss({4: cloud}, radius=0.05), "frame 0 (step 4), point 3", "1e+300"),
-        (model, MeshLoss({2: (verts, tris)}), "frame 0 (step 2), vertex 3", "1e+300"),
-        (worlds, world_loss, "world 1, frame 0 (step 4), particle 6", "-1e+300"),
+        (model, PositionLoss({2: x0}) + ChamferLoss({4: cloud}, radius=0.05), "frame 0 (step 4), point 3", "1e+300", 32),
+        (model, MeshLoss({2: (verts, tris)}), "frame 0 (step 2), vertex 3", "1e+300", 32),
+        (worlds, world_loss, "world 1, frame 0 (step 4), particle 6", "-1e+300", 64),
     ]
-    for m, loss, where, value in cases:
+    # A cloud or a mesh is searched in float32 whatever the model's precision.
+    bounds = {32: "float32 loss can square (at most 1.8e+18 m; the float32 max is 3.4e+38)",
+              64: "float64 loss can square (at most 1.3e+153 m; the float64 max is 1.8e+308)"}
+    for m, loss, where, value, bits in cases:
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # numpy's overflow warning was the only sign
             with pytest.raises(ValueError) as e:
                 fit(m, loss, ["yield_stress"], steps=4, dt=2e-4, iterations=1, progress=False, diagnostics=False)
         assert str(e.value) == (f"target is not allowed: it holds the coordinate {value} ({where}), past what the "
-                                "float64 loss can square (at most 1.3e+153 m; the float64 max is 1.8e+308): give "
+                                f"{bounds[bits]}: give positions in metres, of this scene")
+
+
+def test_a_cloud_or_mesh_coordinate_past_float32_is_refused_also_in_a_float64_model(monkeypatch, tmp_path):
+    """A cloud's points and a mesh's vertices are searched in float32 whatever the model's
+    precision: in a float64 model a point at 1e100 (under the float64 bound, 1.3e153) ran,
+    became inf in the search (numpy's 'overflow encountered in cast') and was silently
+    unmatched. It is refused by the float32 bound, by ``fit`` and by a file target."""
+    def forbidden(*a, **k):
+        raise AssertionError("a rollout ran")
+
+    monkeypatch.setattr(Rollout, "_forward_checked", forbidden)
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.04, 0.04, 0.04), we.Material(mu=2e3, lam=3e3, yield_stress=40.0, flow_rate=20.0))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    x0 = model.particle_x0.astype(np.float64)
+    cloud = x0 + 1e5  # far, but a float32 search holds it: not refused
+    from warp_esph.fit import _check_target_range
+
+    _check_target_range(ChamferLoss({2: cloud}, radius=0.05), model, "target")
+    cloud[3, 2] = 1e100
+    verts = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1e100, 1.0]])
+    bound = "past what the float32 loss can square (at most 1.8e+18 m; the float32 max is 3.4e+38)"
+    for loss, where in ((ChamferLoss({2: cloud}, radius=0.05), "frame 0 (step 2), point 3"),
+                        (MeshLoss({2: (verts, np.array([[0, 1, 2], [0, 2, 3]]))}), "frame 0 (step 2), vertex 3")):
+        with pytest.raises(ValueError) as e:
+            fit(model, loss, ["yield_stress"], steps=2, dt=2e-4, iterations=0, progress=False, diagnostics=False)
+        assert str(e.value) == (f"target is not allowed: it holds the coordinate 1e+100 ({where}), {bound}: give "
                                 "positions in metres, of this scene")
+    np.savetxt(tmp_path / "c.xyz", cloud)
+    with pytest.raises(ValueError, match=rf"\(point 3\), {re.escape(bound)}"):
+        load_target(tmp_path / "c.xyz").loss(model, {0: 2}, radius=0.05)

@@ -306,7 +306,11 @@ def _check_target_range(loss: Loss, model: Model, what: str) -> None:
                     i = int(leaf.particles[i])
                 return f"{at}frame {k} (step {step}), {name} {i}"
 
-            checks.squarable_coordinates(what, t, model.scalar.__name__, place)
+            # A cloud's points and a mesh's vertices are searched in float32 (hash grid, BVH)
+            # whatever the model's precision: in a float64 model a point at 1e100 became inf
+            # there and was silently unmatched, under the float64 bound.
+            precision = model.scalar.__name__ if name == "particle" else "float32"
+            checks.squarable_coordinates(what, t, precision, place)
 
 
 @dataclasses.dataclass
@@ -1902,7 +1906,9 @@ class Target:
             of = f" of body {self.body!r}" if self.body is not None else ""
             return f"frame {frame}, particle {where[1]}{of}"
 
-        checks.squarable_coordinates(f"target {self.path}", data, model.scalar.__name__, place)
+        # A cloud or a mesh is searched in float32 whatever the model's precision (as above).
+        precision = model.scalar.__name__ if self.kind == "positions" else "float32"
+        checks.squarable_coordinates(f"target {self.path}", data, precision, place)
 
     def particles(self, model: Model) -> np.ndarray | None:
         """Indices of the model's particles this target observes (None: all)."""
