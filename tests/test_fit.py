@@ -1487,17 +1487,25 @@ def test_a_fitted_material_keeps_its_force_defaulted_or_given():
             assert m.replace(deformation="rest").elastic_force == want
 
 
-def test_python_fit_refuses_a_target_coordinate_past_what_the_loss_can_square_before_any_rollout(monkeypatch):
+@pytest.fixture
+def no_rollout_block(monkeypatch):
+    """A builder of a small plastic block, with every rollout of ``fit`` made a failure: the
+    refusals below must come before any rollout (``Rollout._forward_checked`` is what fit runs)."""
+    def forbidden(*a, **k):
+        raise AssertionError("a rollout ran")
+
+    monkeypatch.setattr(Rollout, "_forward_checked", forbidden)
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.04, 0.04, 0.04), we.Material(mu=2e3, lam=3e3, yield_stress=40.0, flow_rate=20.0))
+    return b
+
+
+def test_python_fit_refuses_a_target_coordinate_past_what_the_loss_can_square_before_any_rollout(no_rollout_block):
     """``fit(model, target)`` with a target coordinate of 1e300 (inf in float32, its square
     inf in float64) ran the first rollout and stopped with 'the loss or its gradient is not
     finite at the initial guess'. It is refused first, by the bound ``fit --target`` uses,
     naming the parameter, the value, where it is and the model's precision."""
-    def forbidden(*a, **k):
-        raise AssertionError("a rollout ran")
-
-    monkeypatch.setattr(Rollout, "_forward_checked", forbidden)  # what fit runs
-    b = we.SceneBuilder(spacing=0.02)
-    b.add_box((0.0, 0.05, 0.0), (0.04, 0.04, 0.04), we.Material(mu=2e3, lam=3e3, yield_stress=40.0, flow_rate=20.0))
+    b = no_rollout_block
     for dtype, bound, largest in ((wp.float32, "1.8e+18", "3.4e+38"), (wp.float64, "1.3e+153", "1.8e+308")):
         model = b.finalize(dtype=dtype, requires_grad=True)
         target = np.stack([model.particle_x0.astype(np.float64)] * 2)
@@ -1514,17 +1522,12 @@ def test_python_fit_refuses_a_target_coordinate_past_what_the_loss_can_square_be
             fit(model, loss, ["yield_stress"], steps=4, dt=2e-4, iterations=1, progress=False, diagnostics=False)
 
 
-def test_python_fit_refuses_a_cloud_mesh_or_world_coordinate_past_what_the_loss_can_square(monkeypatch):
+def test_python_fit_refuses_a_cloud_mesh_or_world_coordinate_past_what_the_loss_can_square(no_rollout_block):
     """The bound held for a ``PositionLoss`` only: a ``ChamferLoss`` cloud or a ``MeshLoss``
     mesh with a point at 1e300 ran (numpy's 'overflow encountered in square', a finite
     loss, the point silently unmatched), and so did a ``PositionLoss`` inside a
     ``WorldLoss``. Each is refused before any rollout, naming where the point is."""
-    def forbidden(*a, **k):
-        raise AssertionError("a rollout ran")
-
-    monkeypatch.setattr(Rollout, "_forward_checked", forbidden)
-    b = we.SceneBuilder(spacing=0.02)
-    b.add_box((0.0, 0.05, 0.0), (0.04, 0.04, 0.04), we.Material(mu=2e3, lam=3e3, yield_stress=40.0, flow_rate=20.0))
+    b = no_rollout_block
     model = b.finalize(dtype=wp.float64, requires_grad=True)
     x0 = model.particle_x0.astype(np.float64)
     cloud = x0.copy()
@@ -1552,17 +1555,12 @@ def test_python_fit_refuses_a_cloud_mesh_or_world_coordinate_past_what_the_loss_
                                 f"{bounds[bits]}: give positions in metres, of this scene")
 
 
-def test_a_cloud_or_mesh_coordinate_past_float32_is_refused_also_in_a_float64_model(monkeypatch, tmp_path):
+def test_a_cloud_or_mesh_coordinate_past_float32_is_refused_also_in_a_float64_model(no_rollout_block, tmp_path):
     """A cloud's points and a mesh's vertices are searched in float32 whatever the model's
     precision: in a float64 model a point at 1e100 (under the float64 bound, 1.3e153) ran,
     became inf in the search (numpy's 'overflow encountered in cast') and was silently
     unmatched. It is refused by the float32 bound, by ``fit`` and by a file target."""
-    def forbidden(*a, **k):
-        raise AssertionError("a rollout ran")
-
-    monkeypatch.setattr(Rollout, "_forward_checked", forbidden)
-    b = we.SceneBuilder(spacing=0.02)
-    b.add_box((0.0, 0.05, 0.0), (0.04, 0.04, 0.04), we.Material(mu=2e3, lam=3e3, yield_stress=40.0, flow_rate=20.0))
+    b = no_rollout_block
     model = b.finalize(dtype=wp.float64, requires_grad=True)
     x0 = model.particle_x0.astype(np.float64)
     cloud = x0 + 1e5  # far, but a float32 search holds it: not refused
