@@ -137,13 +137,16 @@ def greater_than(name: str, value, bound: float, bound_text: str) -> float:
     return v
 
 
-def squarable_coordinates(what: str, a, precision: str, place) -> None:
+def squarable_coordinates(what: str, a, precision: str, place, quantity: str = "coordinate", unit: str = "m",
+                          hint: str = "give positions in metres, of this scene") -> None:
     """Refuse, before any rollout, a target coordinate whose square a loss cannot hold in
     ``precision`` ('float32' or 'float64', the model's): the losses sum squared distances
     there, so a position of 1e300 (inf in float32) made the first evaluation's loss inf,
     and the fit failed after its first rollout as 'not finite at the initial guess'. The
     bound is sqrt(max) / 10, a tenth leaving the sum of squares room. ``place(index)``
-    says where the first such coordinate of ``a`` is (its index into ``a``)."""
+    says where the first such coordinate of ``a`` is (its index into ``a``). A measured force
+    or height, squared by its loss the same way, names itself with ``quantity``, ``unit`` and
+    ``hint``."""
     a = np.asarray(a, dtype=np.float64)
     largest = float(np.finfo(precision).max)
     bound = math.sqrt(largest) / 10.0
@@ -151,9 +154,9 @@ def squarable_coordinates(what: str, a, precision: str, place) -> None:
     if not bad.size:
         return
     where = np.unravel_index(bad[0], a.shape)
-    raise ValueError(f"{what} is not allowed: it holds the coordinate {float(a[where]):g} ({place(where)}), past what "
-                     f"the {precision} loss can square (at most {bound:.2g} m; the {precision} max is {largest:.2g}): "
-                     "give positions in metres, of this scene")
+    raise ValueError(f"{what} is not allowed: it holds the {quantity} {float(a[where]):g} ({place(where)}), past what "
+                     f"the {precision} loss can square (at most {bound:.2g} {unit}; the {precision} max is {largest:.2g}): "
+                     f"{hint}")
 
 
 def _is_tensor(value) -> bool:
