@@ -740,7 +740,8 @@ def test_a_file_written_before_solver_frames_has_the_key_start_at_the_resume_fra
 def test_a_writer_whose_record_solver_takes_the_solver_alone_is_told_it_at_the_start(model):
     """``simulate`` told a writer's ``record_solver(solver)`` the solver at the start; once it
     passed the frame too, such a writer failed at the first frame with a TypeError. It is
-    told at the start only; one that takes the frame is told before each frame too."""
+    told at the start only; one that takes the frame is told before each frame too, also
+    where ``frame`` is keyword-only (bound positionally, that one was told at the start only)."""
     class Frames:
         def __init__(self):
             self.told, self.written = [], []
@@ -756,9 +757,13 @@ def test_a_writer_whose_record_solver_takes_the_solver_alone_is_told_it_at_the_s
         def record_solver(self, solver, frame=None):
             self.told.append(frame)
 
-    alone, each = Alone(), Each()
-    for writer in (alone, each):
+    class Keyword(Frames):
+        def record_solver(self, solver, *, frame=None):
+            self.told.append(frame)
+
+    alone, each, keyword = Alone(), Each(), Keyword()
+    for writer in (alone, each, keyword):
         simulate(model, 2, fps=30, writer=writer, progress=False)
-    assert alone.written == each.written == [0, 1, 2]
+    assert alone.written == each.written == keyword.written == [0, 1, 2]
     assert len(alone.told) == 1 and alone.told[0].startswith(("rest ", "incremental "))
-    assert each.told == [None, 0, 1, 2]
+    assert each.told == keyword.told == [None, 0, 1, 2]

@@ -871,9 +871,11 @@ def _body_layout(model: Model) -> list[tuple[str, int]]:
 
 
 def _takes_frame(record, solver) -> bool:
-    """Whether a writer's ``record_solver`` takes ``(solver, frame)``, not the solver alone."""
+    """Whether a writer's ``record_solver`` takes ``(solver, frame=...)``, not the solver alone.
+    The frame is bound (and passed) by keyword: bound positionally, a ``record_solver(self,
+    solver, *, frame=None)`` did not take it and was told the solver at the start only."""
     try:
-        inspect.signature(record).bind(solver, 0)
+        inspect.signature(record).bind(solver, frame=0)
     except TypeError:
         return False
     except ValueError:  # no signature to read (a built-in): the documented protocol
@@ -908,8 +910,9 @@ def simulate(
       solver's choice from the materials as they are then).
     - ``writer``: anything with ``write_frame(frame_index, state)`` (e.g. ``UsdWriter``); one
       with ``record_solver(solver, frame=None)`` is told the solver at the start and before
-      each frame (what it runs, ``UsdWriter.record_solver``); one whose ``record_solver``
-      takes the solver alone, at the start only.
+      each frame, the frame passed by keyword (``frame=``, so a keyword-only ``frame`` takes
+      it too; what it runs, ``UsdWriter.record_solver``); one whose ``record_solver`` takes
+      the solver alone (or no ``frame`` keyword), at the start only.
       Frame ``start_frame`` (the initial state) is written first, then one frame per
       rendered frame. The writer is closed when the run ends, also when it fails.
     - ``solver``: a ``Solver`` of ``model`` (default: a new one; pass your own to read
@@ -1014,7 +1017,7 @@ def simulate(
         try:
             if writer is not None:
                 if solver_frames:
-                    writer.record_solver(solver, start_frame)
+                    writer.record_solver(solver, frame=start_frame)
                 writer.write_frame(start_frame, current)
             if callback is not None:
                 callback(start_frame, current)
@@ -1072,7 +1075,7 @@ def simulate(
                                           advice=f"; {far_mesh_advice(model.scalar is wp.float32)}")
                 if writer is not None:
                     if solver_frames:
-                        writer.record_solver(solver, frame)
+                        writer.record_solver(solver, frame=frame)
                     writer.write_frame(frame, current)
                 if callback is not None:
                     callback(frame, current)
