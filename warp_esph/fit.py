@@ -50,8 +50,8 @@ import warp as wp
 from . import checks
 from ._types import scalar_type
 from .builder import SceneBuilder
-from .losses import (ChamferLoss, Loss, MeshLoss, PositionLoss, ReactionForceLoss, SlumpLoss, SumLoss, WorldLoss, _leaves,
-                     is_tools_csv, read_tools_csv)
+from .losses import (ChamferLoss, Loss, MeshLoss, PositionLoss, SlumpLoss, SumLoss, WorldLoss, _leaves, is_tools_csv,
+                     read_tools_csv)
 from .material import PRESSURE_BULK_SHARE, Material, _following_force
 from .model import Model, check_material_precision
 from .rollout import PARAMETERS, STATE_OVERHEAD, Rollout, RolloutMemoryError, _RolloutMemory, check_initial
@@ -280,9 +280,9 @@ def _check_target_range(loss: Loss, model: Model, what: str) -> None:
     (``checks.squarable_coordinates``, as ``warp-esph fit --target``), before any rollout:
     ``fit(model, target)`` with a coordinate of 1e300 failed only after its first one, and
     a cloud's or mesh's such point, or one in a world's loss, was silently left unmatched
-    (numpy warning only of an overflow), the fit running on without it. A measured reaction
-    force (``ReactionForceLoss``, N) or slump height or spread (``SlumpLoss``, m) is bounded
-    the same way, in float64, the precision those losses are evaluated in on the host."""
+    (numpy warning only of an overflow), the fit running on without it. A slump height or
+    spread (``SlumpLoss``, m) is bounded the same way, in float64, the precision that loss is
+    evaluated in on the host (a ``ReactionForceLoss`` refuses such a force when made)."""
     def leaves(loss, world):
         for leaf in _leaves(loss):
             if isinstance(leaf, WorldLoss):
@@ -300,16 +300,6 @@ def _check_target_range(loss: Loss, model: Model, what: str) -> None:
             items = [(step, t, "point") for step, t in leaf.targets.items()]
         elif isinstance(leaf, MeshLoss):
             items = [(step, m[0], "vertex") for step, m in leaf.meshes.items()]
-        elif isinstance(leaf, ReactionForceLoss):
-            # Squared on the host in float64 whatever the model's precision: a force of 1e300
-            # made the loss inf (numpy's 'overflow encountered in multiply') after a rollout.
-            def place(where, leaf=leaf, at=at):
-                j, c = (int(i) for i in where)
-                return f"{at}window {j} (ending at step {leaf.frames[j]}), component {leaf.components[c]}"
-
-            checks.squarable_coordinates(what, leaf.targets, "float64", place, quantity="force", unit="N",
-                                         hint="give forces in newtons")
-            continue
         elif isinstance(leaf, SlumpLoss):
             # Squared on the host in float64 too: a height of 1e300 stopped the fit after its
             # first rollout with Python's OverflowError ('Numerical result out of range').

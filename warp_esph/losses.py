@@ -1161,6 +1161,10 @@ class ReactionForceLoss(Loss):
             j, c = (int(i) for i in bad[0])
             raise ValueError(f"targets[{j}][{c}] = {float(t[j, c])!r} is not allowed: must be a finite force (N) (window ending "
                              f"at step {steps[j]}, component {comps[c]})")
+        # Before the default noise squares them (its RMS overflowed past 1.3e154 N and the force
+        # was refused as 'noise = inf', a value the caller never gave).
+        checks.squarable_coordinates("targets", t, "float64", lambda w: f"window ending at step {steps[w[0]]}, "
+                                     f"component {comps[w[1]]}", quantity="force", unit="N", hint="give forces in newtons")
         self.targets = t
         if isinstance(tool, bool) or not isinstance(tool, (str, int, np.integer)):
             raise ValueError(f"tool = {tool!r} is not allowed: give the tool's or static collider's name, or the tool's index")
