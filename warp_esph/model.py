@@ -1159,16 +1159,20 @@ class Model:
         if key == (neighbors.MIN_NEIGHBORS, float(neighbors.MAX_CONDITION)):
             return self.rest_guard
         if key not in self._rest_guards:
-            state = State(self, requires_grad=False)
+            n, K, dev = self.particle_count, self.max_neighbors, self.device
+            # Only what the search writes (a whole State allocated every state array as scratch).
+            nbr = wp.zeros((n, K), dtype=wp.int32, device=dev)
+            d2 = wp.zeros((n, K), dtype=self.scalar, device=dev)
+            count = wp.zeros(n, dtype=wp.int32, device=dev)
+            guard = wp.zeros(n, dtype=wp.int32, device=dev)
             search = neighbors.NeighborSearch(
                 self.particle_count, self.scalar, self.device, self.support_radius,
                 min_neighbors=key[0], max_condition=key[1], **self.neighbor_options(bodies=False)
             )
             # From the positions the rest neighbourhoods were built from, not particle_x0 as it
             # is now: a solver made before particle_x0 changed runs against those.
-            search.build(self.rest_x, self.particle_body, state.neighbors, state.neighbor_d2, state.neighbor_count,
-                         state.guard)
-            self._rest_guards[key] = state.guard
+            search.build(self.rest_x, self.particle_body, nbr, d2, count, guard)
+            self._rest_guards[key] = guard
         return self._rest_guards[key]
 
     def rest_moments(self, curved: bool, rest: tuple | None = None) -> tuple[wp.array, wp.array]:
