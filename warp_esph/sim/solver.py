@@ -305,7 +305,8 @@ class Solver:
         #: corrected one runs the non-fused kernels.
         self.fit = fit
         self._curved = fit == "curvature_corrected"
-        self.hourglass = c
+        # Checked by solver_choice: the setter's check ran again at every step of an automatic solver.
+        self._set_hourglass(c)
 
     @property
     def hourglass(self) -> float:
@@ -316,7 +317,10 @@ class Solver:
 
     @hourglass.setter
     def hourglass(self, c):
-        c = checks.hourglass("Solver.hourglass", c)
+        self._set_hourglass(checks.hourglass("Solver.hourglass", c))
+
+    def _set_hourglass(self, c: float):
+        """``c`` (checked) as the strength the step runs."""
         # The control measures against the rest positions: taken when it is first switched on,
         # also by hand on a solver made without it (its step read no array there and crashed).
         if c > 0.0 and self._rest is None:
