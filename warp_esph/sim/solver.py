@@ -253,6 +253,9 @@ class Solver:
                           f"{' on the rest-configuration model' if rest else ''}, so "
                           f"they differ from their separate runs; set SceneBuilder(fit=...) (and hourglass) to compare "
                           f"worlds with separate runs", RuntimeWarning, stacklevel=2)
+        # The control's rest positions and the rest set's: one array where both are taken at once
+        # from the same particle_x0 (_set_hourglass); two where taken at different moments (the
+        # control switched on first, or particle_x0 edited between), each keeping what it took.
         self._rest = None
         self._rest_set = None
         # Before _choose builds them: the rest configuration is particle_x0 as it is now.
@@ -325,7 +328,13 @@ class Solver:
         # also by hand on a solver made without it (its step read no array there and crashed).
         if c > 0.0 and self._rest is None:
             m = self.model
-            self._rest = wp.array(m.particle_x0, dtype=m.types.vec3, device=m.device)
+            held = self._rest_set
+            if held is not None and held[0] is m.rest_x and np.array_equal(m._rest_from, m.particle_x0):
+                # This solver's rest set holds particle_x0 as it is now (the rest model chooses
+                # both at once): its positions serve the control too, not a second copy.
+                self._rest = held[0]
+            else:
+                self._rest = wp.array(m.particle_x0, dtype=m.types.vec3, device=m.device)
         self._hourglass = c
 
     def record(self) -> dict:
