@@ -374,6 +374,27 @@ def test_a_refused_resume_leaves_the_models_materials_as_they_were(tmp_path):
     assert other.mu.numpy()[0] == 3e4 and other.materials[0].mu == 3e4
 
 
+def test_a_checkpoint_saved_without_a_solver_records_the_settings_of_the_solver_that_wrote_the_state(tmp_path):
+    """Saved without ``solver=``, a checkpoint recorded no settings: a run with the hourglass
+    control set by hand (``Solver.hourglass = 0.1``) resumed under ``load_state(...,
+    solver=Solver(model, fit="linear"))`` ran without it, without a word. It records those of
+    the solver whose step wrote the state; a state no step wrote records none."""
+    model = _model()
+    solver = we.Solver(model, fit="linear")
+    solver.hourglass = 0.1
+    a, b = model.state(), model.state()
+    for _ in range(3):
+        solver.step(a, b, 4e-4)
+        a, b = b, a
+    path = save_state(tmp_path / "c.npz", model, a, step=3, frame=0)
+    other = _model()
+    with pytest.raises(ValueError, match=r"the run it continues had hourglass = 0\.1, this solver hourglass = 0\.0"):
+        load_state(path, other, solver=we.Solver(other, fit="linear"))
+    load_state(path, other, solver=we.Solver(other, fit="linear", hourglass=0.1))
+    fresh = save_state(tmp_path / "fresh.npz", model, model.state(), step=0, frame=0)
+    assert "solver" not in load_state(fresh, other, solver=we.Solver(other, fit="linear"))[1]
+
+
 @pytest.mark.parametrize("change,needle", [
     (lambda m: we.Solver(m, fit="curvature_corrected"), r"had fit = 'linear', this solver fit = 'curvature_corrected'"),
     (lambda m: we.Solver(m, hourglass=0.1), r"had hourglass = 0\.0, this solver hourglass = 0\.1"),

@@ -7,8 +7,9 @@ loads them as ``I`` and 0, ``F_image`` as ``F``, ``alpha_image`` as ``alpha``),
 the simulated time, the current values of
 the per-material parameters (they may have been fitted or edited since the scene was
 built), the step and frame counters, a free-form ``run`` record (the CLI stores the
-scene, scale, time step, output and solver options there) and, where ``save_state`` is
-given the solver, its settings (``solver_settings``). The step depends on nothing else, so
+scene, scale, time step, output and solver options there) and the settings of the solver
+that ran (``solver_settings``: the one ``save_state`` is given, else the one whose step wrote
+the state, while it exists). The step depends on nothing else, so
 on the CPU a run resumed from a checkpoint with the same solver settings reproduces the
 uninterrupted run bit for bit.
 """
@@ -107,7 +108,10 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
 
     ``solver`` (a ``Solver`` of ``model``; optional) records the settings of the solver that
     ran (``solver_settings``: fit, hourglass, contact ramp, guards, fused kernels), which
-    ``load_state(..., solver=)`` compares with the solver that resumes.
+    ``load_state(..., solver=)`` compares with the solver that resumes. Without it, those of
+    the solver of ``model`` whose step wrote ``state`` (``State.written_by``) are recorded
+    while that solver exists (a hourglass strength set by hand, ``Solver.hourglass``, as it
+    runs); a state no step of it wrote (a new or loaded one) records none.
     """
     from . import checks  # noqa: PLC0415
 
@@ -133,6 +137,12 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
             # It is stored as JSON: a value JSON cannot hold was a TypeError out of json.
             raise ValueError(f"run is not allowed: it must hold JSON values (numbers, text, lists, dicts): {e}") from None
     _check_solver(model, solver)
+    if solver is None and getattr(state, "written_by", None) is not None:
+        # Without solver= no settings were recorded, and a resume with another hourglass
+        # strength (or fit, guard, kernel) ran another run without a word: those of the solver
+        # whose step wrote the state, while it exists (one of another model: none).
+        writer = state.written_by()
+        solver = writer if writer is not None and writer.model is model else None
     checks.output_place("checkpoint path", path)
     checks.same_state(model, "state", state)
     _check_state_model(model, state)
@@ -280,10 +290,11 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
 
     ``solver`` (a ``Solver`` of ``model``; optional): the solver that will continue the run.
     Where the checkpoint records the settings of the solver that ran (``save_state(...,
-    solver=)``), a setting that differs is refused (``ValueError`` naming it and both values):
-    the continuation would not be the run it continues. A checkpoint saved without
-    ``solver=`` records none, and is not compared. ``what``: how a refusal names the file
-    (the CLI's ``--resume``).
+    solver=)``, or without it the solver whose step wrote the state), a setting that differs
+    is refused (``ValueError`` naming it and both values): the continuation would not be the
+    run it continues. A checkpoint that records none (a state no step wrote, saved without
+    ``solver=``; a file written before) is not compared. ``what``: how a refusal names the
+    file (the CLI's ``--resume``).
     """
     if not isinstance(model, Model):
         from . import checks  # noqa: PLC0415

@@ -209,6 +209,10 @@ class State:
         #: incremental composition (``Solver.rest_model``; None: no step wrote it). A rest step
         #: after an incremental one hands the stored ``F`` over (``comparison.rest_handover``).
         self.rest_model = None
+        #: A weak reference to the solver whose step wrote this state (None: no step wrote it):
+        # save_state without solver= records that solver's settings, so a resume with another
+        # hourglass strength (one set by hand, Solver.hourglass) is refused, not run.
+        self.written_by = None
         # Written by the step that produced this state.
         self.neighbors = wp.zeros((n, K), dtype=wp.int32, device=dev)
         # The selection's squared distances: scratch of the search, allocated only when asked
@@ -288,6 +292,7 @@ class State:
                 wp.copy(a, b)
         self.time = getattr(other, "time", 0.0)
         self.rest_model = getattr(other, "rest_model", None)
+        self.written_by = getattr(other, "written_by", None)
 
     @property
     def particle_count(self) -> int:

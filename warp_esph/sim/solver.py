@@ -10,6 +10,7 @@ import contextlib
 import dataclasses
 import time
 import warnings
+import weakref
 
 import numpy as np
 import warp as wp
@@ -288,6 +289,7 @@ class Solver:
         self._warned_tape = False
         self._warned_cut = False
         self.step_count = 0
+        self._weak_self = weakref.ref(self)  # State.written_by of the states this solver's steps write
         #: Under a tape, run the hand-written adjoints (``deformation.update_deformation_adjoint``,
         #: the rest model's ``comparison.adjoint_kernels``) in place of Warp's generated ones;
         #: False: the generated ones (the tests' reference).
@@ -417,8 +419,6 @@ class Solver:
         a gradient 4.5 x the true one, without a word); a model or a state without gradients
         is said once (nothing flows back through such a step: a gradient of 0, or of part of
         the rollout, read as the answer)."""
-        import weakref  # noqa: PLC0415
-
         if self._tape_seen is None or self._tape_seen[0]() is not tape:
             self._tape_seen = (weakref.ref(tape), weakref.WeakValueDictionary())
         written = self._tape_seen[1]
@@ -754,6 +754,7 @@ class Solver:
         # A Python float whatever the user set: a np.float32 time would sum every later step in float32.
         state_out.time = float(state_in.time) + dt
         state_out.rest_model = rest_model
+        state_out.written_by = self._weak_self
         if self.step_count == 0:
             self._warn_all_few()
         self.step_count += 1
