@@ -474,7 +474,9 @@ class Rollout:
       kept for the rollout's lifetime. Its fused fast path (``solver.fused``) is switched
       off unless ``solver.fast_under_tape()`` (then a taped step runs the fused kernels too),
       so an untaped forward step is the step that a tape records. Set ``hand_adjoints``
-      before passing it.
+      before passing it. A forward after ``model.particle_x0`` changed has it take the rest
+      configuration (its rest model's and hourglass control's) as it is now, as a new rollout's
+      solver does: the start is the new ``particle_x0``.
     """
 
     def __init__(self, model: Model, steps: int, dt: float, frames: Sequence[int] | None = None,
@@ -694,6 +696,9 @@ class Rollout:
         checked again: the torch bridge checks each start once, before it sets the parameters,
         and re-runs a forward for its backward from the same arrays (x0's check of coincident
         particles took 17 ms at 64k particles, up to three times an iteration)."""
+        # Its start is particle_x0 as it is now, so its rest configuration too, as a new
+        # rollout's (Solver._take_rest_configuration).
+        self.solver._take_rest_configuration()
         self._load_initial(initial_state, given)
         self._tape = None
         if self.checkpointing:

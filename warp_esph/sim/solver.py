@@ -259,6 +259,8 @@ class Solver:
         # control switched on first, or particle_x0 edited between), each keeping what it took.
         self._rest = None
         self._rest_set = None
+        # The particle_x0 each was taken from (_take_rest_configuration).
+        self._rest_from = self._rest_set_from = None
         # Before _choose builds them: the rest configuration is particle_x0 as it is now.
         model._drop_stale_rest()
         self._choose()
@@ -337,6 +339,7 @@ class Solver:
                 self._rest = held[0]
             else:
                 self._rest = wp.array(m.particle_x0, dtype=m.types.vec3, device=m.device)
+            self._rest_from = m.particle_x0.copy()
         self._hourglass = c
 
     def record(self) -> dict:
@@ -363,7 +366,7 @@ class Solver:
         own thresholds, ``Model.rest_guard_for``, and their moments per fit and fit weight,
         ``Model.rest_moments(curved, rest)``, evaluated when a step first needs them), obtained
         once, when it first needs them (when made, where it runs them then), and kept. A solver
-        made later, after ``particle_x0`` changed, has the model build new ones
+        made, or first needing them, after ``particle_x0`` changed has the model build new ones
         (``Model._drop_stale_rest``) without touching these: read from the model at every step,
         they switched under this solver, whose unstressed body then sprang towards the new
         shape (0.48 m/s in 20 steps of a 4^3 block scaled by 2 %), while its hourglass control
@@ -371,12 +374,31 @@ class Solver:
         moments (a 1 % stretch of the old positions fitted 6e-4 off)."""
         if self._rest_set is None:
             m = self.model
+            # The rest configuration as particle_x0 is now, as the hourglass control takes it: a
+            # solver first needing it after particle_x0 changed took the model's set of the old
+            # positions where another solver had built one (0.48 m/s in 20 steps of a 4^3 block
+            # scaled by 2 %), the new ones where none had.
+            m._drop_stale_rest()
             # The model's moments dict of these neighbourhoods, not a copy: solvers on the same
             # ones evaluate each fit's moments once between them, and the model starts a new
             # dict when it builds new neighbourhoods.
             self._rest_set = (*m.rest_neighbors(), m.rest_guard_for(self.min_neighbors, self.max_condition),
                               m._rest_moments)
+            self._rest_set_from = m._rest_from
         return self._rest_set
+
+    def _take_rest_configuration(self):
+        """Take the rest configuration again where ``particle_x0`` changed since this solver
+        took its rest set (``rest_set``) or its hourglass control's rest positions: what a new
+        solver of the model runs against now. ``Rollout.forward`` calls it, whose start is
+        ``particle_x0`` as it is now: a rollout reused after the body was scaled by 2 % started
+        it stressed against the old positions (0.48 m/s in 20 steps, a new rollout 1e-14)."""
+        m = self.model
+        if self._rest_set is not None and not np.array_equal(self._rest_set_from, m.particle_x0):
+            self._rest_set = None  # the next step that needs it takes the new one (rest_set)
+        if self._rest is not None and not np.array_equal(self._rest_from, m.particle_x0):
+            self._rest = None
+            self.hourglass = self._hourglass
 
     def next_hourglass(self) -> float:
         """The strength of the hourglass control the next ``step`` runs: an automatic
