@@ -608,8 +608,9 @@ class Model:
         none of what the rest neighbourhood cannot follow. A ghost floor and floor images enter
         the incremental fit only; a tool (a moving collider, ``SceneBuilder.add_tool``) can force
         a body through a rearrangement, which the incremental fit follows as its neighbours
-        change, while a rest neighbourhood holds every pair it began with (a fast blade sweeping
-        through a block blew it up). Pins are not tools here: they hold particles in place."""
+        change, while a rest neighbourhood holds every pair it began with (a sphere pressed into
+        a block inverts its rest fits and diverges; docs/physics.md, the rest model's Limits).
+        Pins are not tools here: they hold particles in place."""
         asked = self.fit if fit is None else fit
         return (asked == "auto" and self.scene_allows_rest
                 and all(m.deformation == "incremental" and m.elastic_force == "variational" for m in self.materials))
