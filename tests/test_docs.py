@@ -1,7 +1,8 @@
 """The reference pages against the code they describe: docs/cli.md's option lists against the
 argparse parsers, docs/scene_format.md's tables against the scene-file schema, the measured
-messages of docs/errors.md against what the code raises, and the package's public names
-against their docstrings and the pages. Text only, no kernel runs."""
+messages of docs/errors.md against what the code raises, the package's public names
+against their docstrings and the pages, and the sections the pages quote by name against the
+pages' headings. Text only, no kernel runs."""
 
 import math
 import pathlib
@@ -187,3 +188,44 @@ def test_every_public_name_has_a_docstring_and_is_in_the_docs():
                 func = member.__func__ if isinstance(member, (staticmethod, classmethod)) else member
                 if not attr.startswith("_") and (callable(func) or isinstance(func, property)):
                     assert (func.__doc__ or "").strip(), f"{name}.{attr} has no docstring"
+
+
+def _plain(text: str) -> str:
+    return re.sub(r"\s+", " ", text.replace("`", "")).strip()
+
+
+def _section_names(page: pathlib.Path) -> list[str]:
+    """A page's section names: its headings and the bold words that open its paragraphs and
+    list items, which the pages quote as sections too."""
+    text = re.sub(r"```.*?```", "", page.read_text(), flags=re.S)
+    names = re.findall(r"^#{1,4} (.+)$", text, flags=re.M)
+    names += re.findall(r"^\s*(?:[-*] |\d+\. )?\*\*([^*]+)\*\*", text, flags=re.M)
+    return [_plain(n) for n in names]
+
+
+def _section_references():
+    """Every section a page quotes by name: ``docs/physics.md, "Name"`` (or ``[method.md](method.md)
+    §8, "Name"``), and ``"Name" below`` / ``("Name", above)`` on the same page."""
+    for page in [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]:
+        text = re.sub(r"```.*?```", "", page.read_text(), flags=re.S)
+        # A quote inside inline code is code, not a section name.
+        text = re.sub(r"`[^`\n]*`", lambda m: m.group(0).replace('"', "'"), text)
+        named = r'(docs/\w+\.md|README\.md|\[\w+\.md\]\(([\w./]+)\))(?: §\d+)?(?:,\s+|\s+\()"([^"]+)"'
+        for m in re.finditer(named, text):
+            target = ROOT / m.group(1) if m.group(2) is None else page.parent / m.group(2)
+            yield page, target.resolve(), m.group(3)
+        for m in re.finditer(r'"([A-Z][^"]*)",?\s+(?:below|above)\b', text):
+            yield page, page, m.group(1)
+
+
+def test_every_section_a_page_quotes_by_name_is_there():
+    names = {}
+    wrong = []
+    for page, target, quoted in _section_references():
+        if target not in names:
+            names[target] = _section_names(target)
+        q = _plain(quoted)
+        # A quote may shorten a name to its first words ("Hourglass modes").
+        if not any(n == q or (n.startswith(q) and not n[len(q)].isalnum()) for n in names[target]):
+            wrong.append(f'{page.relative_to(ROOT)}: "{q}" is no section of {target.relative_to(ROOT)}')
+    assert not wrong, "\n".join(wrong)
