@@ -14,6 +14,7 @@ import warp_esph as we
 from warp_esph import scene_file
 from warp_esph.cli import _build_parser
 from warp_esph.model import CONTACTS, FITS
+from warp_esph.sim import guards
 from warp_esph.sim.smoothing import FIT_WEIGHTS
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -229,3 +230,14 @@ def test_every_section_a_page_quotes_by_name_is_there():
         if not any(n == q or (n.startswith(q) and not n[len(q)].isalnum()) for n in names[target]):
             wrong.append(f'{page.relative_to(ROOT)}: "{q}" is no section of {target.relative_to(ROOT)}')
     assert not wrong, "\n".join(wrong)
+
+
+def test_the_rest_models_guard_physics_md_states_is_the_codes():
+    """The rest model reads the guard's switch alone (``guard_code``: the count's fade at zero,
+    ``cond(A)`` beyond ``FADE * max_condition``) and fits a neighbourhood below it whole.
+    docs/physics.md's "Limits" of the rest model said it guards at ``cond(A) > 20``, the
+    incremental fit's fade's start."""
+    text = _plain((DOCS / "physics.md").read_text())
+    assert (f"count of fewer than {guards.MIN_NEIGHBORS} neighbours, or cond(A) beyond "
+            f"{guards.FADE * guards.MAX_CONDITION:g}, twice max_condition") in text
+    assert f"cond(A) between {guards.MAX_CONDITION:g} and {guards.FADE * guards.MAX_CONDITION:g} too" in text

@@ -300,6 +300,37 @@ def test_the_rest_guard_of_a_solvers_thresholds_is_that_of_the_rest_neighbourhoo
         assert solver.guard_counts()["few_neighbors"] == 0, k
 
 
+def test_the_rest_model_fits_whole_where_the_incremental_fit_fades_an_ill_conditioned_one():
+    """Float64, a plate of two 6 x 6 layers 0.17 spacings apart, whose every fit has ``cond(A)``
+    between 29 and 36 (the poly6 moments at ``h = 2 dx``): past ``max_condition`` (20), short of
+    the switch at twice it. The rest model reads the guard's switch alone (``Model.rest_guard``
+    0 for all) and fits a 1 % stretch of the positions whole; the incremental fit takes 0.14 to
+    0.54 of the same stretch made over a step, the fade of ``guards.guard_scale``
+    (docs/physics.md, the rest model's "Limits"; docs/method.md §2)."""
+    g = np.arange(6) * SPACING
+    grid = np.meshgrid(g, g, [0.0, 0.17 * SPACING], indexing="ij")
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0)
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b.add_particles(np.stack([c.ravel() for c in grid], 1), mat)
+    model = b.finalize(dtype=wp.float64)
+    stretch = np.diag([1.01, 1.0, 1.0])
+    rest = we.Solver(model)
+    assert rest.rest_model
+    a, c = model.state(), model.state()
+    a.x.assign(model.particle_x0 @ stretch.T)
+    rest.step(a, c, 1e-9)  # the positions barely move: F is the fit of the stretch
+    assert not model.rest_guard.numpy().any()
+    assert np.abs(c.F.numpy() - stretch).max() < 1e-12
+    incremental = we.Solver(model, fit="linear")
+    a, c = model.state(), model.state()
+    dt = 1e-4
+    a.v.assign(model.particle_x0 @ (stretch - np.eye(3)).T / dt)
+    incremental.step(a, c, dt)
+    share = (c.F.numpy()[:, 0, 0] - 1.0) / 0.01
+    assert 0.1 < share.min() and share.max() < 0.6
+    assert sum(incremental.guard_counts().values()) == 0
+
+
 @pytest.mark.parametrize("yield_stress, flows", [(0.0, False), (1.0e9, False), (100.0, True)])
 def test_the_rest_model_keeps_its_plastic_f_exactly_where_nothing_flows(yield_stress, flows):
     """Float32, a stretched 4x4x3 block of the rest model ringing for 60 steps: where no flow
