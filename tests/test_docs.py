@@ -241,3 +241,15 @@ def test_the_rest_models_guard_physics_md_states_is_the_codes():
     assert (f"count of fewer than {guards.MIN_NEIGHBORS} neighbours, or cond(A) beyond "
             f"{guards.FADE * guards.MAX_CONDITION:g}, twice max_condition") in text
     assert f"cond(A) between {guards.MAX_CONDITION:g} and {guards.FADE * guards.MAX_CONDITION:g} too" in text
+
+
+def test_the_pages_name_every_scene_part_that_keeps_auto_off_the_rest_model():
+    """``fit="auto"`` runs the rest model only where ``Model.scene_allows_rest``: no tool, no
+    floor images, no ghost floor. README.md said it runs "for purely elastic scenes without
+    tools" and "where the scene has no tools", and docs/method.md the same, where a scene with
+    floor images or a ghost floor runs the incremental composition."""
+    assert "ghost floor, no floor images, no tool" in we.Model.scene_allows_rest.__doc__
+    for page in [ROOT / "README.md", DOCS / "cli.md", DOCS / "method.md", DOCS / "physics.md"]:
+        text = _plain(page.read_text())
+        for m in re.finditer(r"(?:scenes without|the scene has no) tools\b(.{0,40})", text):
+            assert "floor images" in m.group(1) and "ghost floor" in m.group(1), (page.name, m.group(0))
