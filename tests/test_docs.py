@@ -253,3 +253,13 @@ def test_the_pages_name_every_scene_part_that_keeps_auto_off_the_rest_model():
         text = _plain(page.read_text())
         for m in re.finditer(r"(?:scenes without|the scene has no) tools\b(.{0,40})", text):
             assert "floor images" in m.group(1) and "ghost floor" in m.group(1), (page.name, m.group(0))
+
+
+def test_the_incremental_guard_physics_md_states_is_the_codes():
+    """The incremental fit's guard switches at ``cond(A)`` beyond ``FADE * max_condition`` and
+    fades the increment from ``max_condition`` (docs/method.md §2); docs/physics.md's "Choices"
+    and its variational force said the update is skipped at ``cond(A) > 20``."""
+    text = _plain((DOCS / "physics.md").read_text())
+    end, start = f"{guards.FADE * guards.MAX_CONDITION:g}", f"{guards.MAX_CONDITION:g}"
+    assert f"when cond(A) > {end} (twice max_condition = {start}, from which the increment fades out" in text
+    assert f"(fewer than {guards.MIN_NEIGHBORS} neighbours, cond(A) > {end}; faded from cond(A) = {start}" in text
