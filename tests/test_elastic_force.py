@@ -657,11 +657,12 @@ def test_an_elastic_particle_floor_keeps_its_bodys_force_defaulted_or_given():
         assert floor.replace(deformation="rest").elastic_force == want
 
 
-def _sheared_block_flowing(steps):
+def _sheared_block_flowing(steps, yield_stress=50.0):
     """A 4^3 float64 block of a material elastic until its ``flow_rate`` is set, sheared by 0.2
     (positions and ``F``), stepped ``steps`` times by the default solver with ``flow_rate``
-    1e4 (the incremental composition: it flows); ``(model, solver, state, spare, dt)``."""
-    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, yield_stress=50.0, flow_rate=0.0)
+    1e4 (the incremental composition: it flows, unless ``yield_stress`` is above its stress);
+    ``(model, solver, state, spare, dt)``."""
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, yield_stress=yield_stress, flow_rate=0.0)
     b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
     b.add_box((0.0, 0.0, 0.0), (4 * SPACING,) * 3, mat)
     model = b.finalize(dtype=wp.float64)
@@ -682,20 +683,102 @@ def _sheared_block_flowing(steps):
     return model, solver, a, c, dt
 
 
-def test_auto_runs_the_rest_model_for_elastic_bodies_and_hands_f_over_after_flow():
+def test_auto_runs_the_rest_model_for_elastic_bodies_and_hands_f_over_where_it_did_not_flow():
     """``fit="auto"`` on a model that cannot flow runs the rest-configuration model
     (``Solver.rest_model``); a parameter that makes it flow turns it to the incremental
-    composition, and back. At the switch back the stored ``F`` of the flowed body is handed over
-    (``F_p = F^-1 G(x)``, ``comparison.rest_handover``): without it the rest model's first step
-    set ``F`` to the total fit of the sheared positions, the plastic flow undone in one step."""
-    model, solver, a, c, dt = _sheared_block_flowing(20)
-    flowed = a.F.numpy()
-    # The flow took most of the shear out of the stored F; the positions keep it.
-    assert np.abs(flowed[:, 0, 1]).max() < 0.1
+    composition, and back where the body did not flow (``State.alpha`` 0): the stored ``F`` is
+    handed over (``F_p = F^-1 G(x)``, ``comparison.rest_handover``)."""
+    model, solver, a, c, dt = _sheared_block_flowing(20, yield_stress=1.0e6)
+    assert a.flowed is None and not a.alpha.numpy().any()
+    stored = a.F.numpy()
     model.flow_rate.assign(np.array([0.0]))
     solver.step(a, c, dt)
-    assert solver.rest_model
-    assert np.abs(c.F.numpy() - flowed).max() < 0.02
+    assert solver.rest_model and c.rest_model is True and c.flowed is False
+    assert solver.label() == f"rest curvature_corrected c={we.model.AUTO_HOURGLASS:g}"
+    assert np.abs(c.F.numpy() - stored).max() < 0.02
+
+
+def test_auto_keeps_the_incremental_composition_for_a_body_that_flowed():
+    """A body that flowed (``State.alpha`` > 0) and is then made elastic is not handed over to
+    the rest model: its rest neighbourhoods no longer describe it, and the automatic solver runs
+    on with the incremental composition, the fit and control the parameters chose, the same
+    steps bit for bit as a solver of that fit (``Solver.record``, ``label`` say so). The choice
+    is carried by the states (``State.flowed``) and holds for the rest of the run."""
+    model, solver, a, c, dt = _sheared_block_flowing(20)
+    assert a.alpha.numpy().max() > 0.0
+    model.flow_rate.assign(np.array([0.0]))
+    fixed = we.Solver(model, fit="curvature_corrected", hourglass=we.model.AUTO_HOURGLASS)
+    b, d = model.state(), model.state()
+    b.assign(a)
+    for _ in range(5):
+        solver.step(a, c, dt)
+        a, c = c, a
+        fixed.step(b, d, dt)
+        b, d = d, b
+        assert not solver.rest_model and a.rest_model is False and a.flowed is True
+    assert solver.record()["rest_model"] is False
+    assert solver.label() == fixed.label() == f"incremental curvature_corrected c={we.model.AUTO_HOURGLASS:g}"
+    np.testing.assert_array_equal(a.x.numpy(), b.x.numpy())
+    np.testing.assert_array_equal(a.F.numpy(), b.F.numpy())
+
+
+def test_a_run_from_a_flowed_state_records_the_incremental_composition_from_its_start():
+    """``simulate`` tells a writer what its solver runs (``Solver.record``, ``label``) before the
+    first step: from a state whose body flowed, made elastic, that is the incremental
+    composition, not the rest model the parameters alone would choose."""
+    from warp_esph.simulate import simulate
+
+    model, _, a, c, dt = _sheared_block_flowing(5)
+    model.flow_rate.assign(np.array([0.0]))
+
+    class Writer:
+        told = []
+
+        def record_solver(self, solver, frame=None):
+            self.told.append((frame, solver.record()["rest_model"], solver.label()))
+
+        def write_frame(self, frame, state):
+            pass
+
+    simulate(model, 1, fps=1.0 / (3 * dt), dt=dt, writer=Writer(), progress=False, solver=we.Solver(model), state=a)
+    label = f"incremental curvature_corrected c={we.model.AUTO_HOURGLASS:g}"
+    assert Writer.told == [(None, False, label), (0, False, label), (1, False, label)]
+
+
+def test_a_slumped_body_made_elastic_stays_at_rest():
+    """A 4x4x6 block slumped on the ground for 0.4 s (``flow_rate`` 200, yield 30 Pa), then set
+    (``flow_rate = 0``, as a callback or a fit's parameter crossing zero does): handed over to
+    the rest model, 15 of its 96 rest fits inverted every step (rest neighbourhoods its flow had
+    left), its top rose 3.3 mm in 0.1 s and its kinetic energy grew from 1.6e-4 J to 0.13 J,
+    120 x the incremental composition's 1.1e-3 J. It now keeps the incremental composition."""
+    mat = we.Material(density=1000.0, mu=3e3, lam=4e3, yield_stress=30.0, flow_rate=200.0)
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.0, 0.0), (0.08, 0.12, 0.08), mat)
+    b.add_ground(-0.07, friction=0.5)
+    model = b.finalize(dtype=wp.float64)
+    solver = we.Solver(model)
+    dt = 0.5 * model.stable_dt()
+    a, c = model.state(), model.state()
+    for _ in range(int(0.4 / dt)):
+        solver.step(a, c, dt)
+        a, c = c, a
+    model.flow_rate.assign(np.array([0.0]))
+    start = model.state()
+    start.assign(a)
+    top0 = start.x.numpy()[:, 1].max()
+    ran = {}
+    for label, s in (("default", solver), ("incremental", we.Solver(model, fit="curvature_corrected", hourglass=0.05))):
+        s.reset_counts()
+        a.assign(start)
+        for _ in range(int(0.1 / dt)):
+            s.step(a, c, dt)
+            a, c = c, a
+        v = a.v.numpy()
+        ran[label] = (0.5 * (model.particle_mass.numpy() * (v * v).sum(axis=1)).sum(), a.x.numpy()[:, 1].max() - top0,
+                      s.guard_counts()["inverted"])
+    (energy, rise, inverted), (energy_incremental, _, _) = ran["default"], ran["incremental"]
+    assert energy < 2.0 * energy_incremental, ran
+    assert rise < 5e-4 and inverted == 0, ran
 
 
 def test_auto_runs_the_rest_model_only_where_nothing_can_cut_the_body():
@@ -721,24 +804,27 @@ def test_auto_runs_the_rest_model_only_where_nothing_can_cut_the_body():
     assert not we.Solver(block(), fit="curvature_corrected").rest_model
 
 
-def test_the_rest_models_hand_over_survives_a_checkpoint_and_a_copy(tmp_path):
-    """Which model wrote a state (``State.rest_model``) travels with it, so a run resumed from
-    a checkpoint, or from ``State.assign``'s copy, hands ``F`` over where the uninterrupted run
-    does: the same next state, bit for bit."""
+@pytest.mark.parametrize("flows", [False, True])
+def test_the_rest_models_hand_over_survives_a_checkpoint_and_a_copy(tmp_path, flows):
+    """Which model wrote a state (``State.rest_model``) and whether its body flowed
+    (``State.flowed``, from ``alpha`` in a checkpoint) travel with it, so a run resumed from a
+    checkpoint, or from ``State.assign``'s copy, hands ``F`` over where the uninterrupted run
+    does (a body that did not flow) and keeps the incremental composition where it does (one
+    that flowed): the same next state, bit for bit."""
     from warp_esph.checkpoint import load_state, save_state
 
-    model, solver, a, c, dt = _sheared_block_flowing(5)
+    model, solver, a, c, dt = _sheared_block_flowing(5, yield_stress=50.0 if flows else 1.0e6)
     path = save_state(tmp_path / "flowed.npz", model, a, step=5, frame=0)
     copy = model.state()
     copy.assign(a)
     resumed, _ = load_state(path, model)  # sets the checkpoint's parameters: flowing
     model.flow_rate.assign(np.array([0.0]))
-    assert resumed.rest_model is False and copy.rest_model is False
+    assert resumed.rest_model is False and copy.rest_model is False and resumed.flowed is flows
     outs = []
     for start in (a, resumed, copy):
         out = model.state()
         solver.step(start, out, dt)
-        assert out.rest_model is True
+        assert out.rest_model is not flows and out.flowed is flows
         outs.append(out.F.numpy())
     np.testing.assert_array_equal(outs[1], outs[0])
     np.testing.assert_array_equal(outs[2], outs[0])

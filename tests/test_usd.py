@@ -666,7 +666,9 @@ def test_a_usd_file_records_every_frame_from_which_a_callback_switched_the_solve
     body plastic after frame 1 switches the rest-configuration model to the incremental one
     from frame 2: ``warp_esph:solver_frames`` says so. Before, the file recorded only the
     run's start (the rest model), for frames the incremental composition wrote. A resumed run
-    rewrites the entries from its start frame on."""
+    rewrites the entries from its start frame on; one made elastic again after its body flowed
+    keeps the incremental composition (``State.flowed``), with the elastic parameters' fit and
+    control, and says so from its first frame."""
     b = SceneBuilder(spacing=0.02)
     b.add_box((0.0, 0.06, 0.0), (0.06, 0.06, 0.06), Material(mu=2e3, lam=3e3, density=1000.0))
     b.add_ground(friction=0.5)
@@ -682,12 +684,16 @@ def test_a_usd_file_records_every_frame_from_which_a_callback_switched_the_solve
     data = open_fresh(out).GetRootLayer().customLayerData
     assert data["warp_esph:solver_frames"] == "0: rest curvature_corrected c=0.05; 2: incremental linear c=0"
     assert (data["warp_esph:resolved_fit"], data["warp_esph:rest_model"]) == ("curvature_corrected", True)
-    # Elastic again from frame 3 on (the state's F handed over to the rest model), appended.
+    # Elastic again from frame 3 on, appended: the body flowed, so it is not handed over to the
+    # rest model.
+    assert end.alpha.numpy().max() > 0.0
     model.set_material(0, model.materials[0].replace(yield_stress=float("inf"), flow_rate=0.0))
     simulate(model, 2, solver=solver, state=end, start_frame=3,
              writer=UsdWriter(str(out), model, append=True), progress=False)
-    assert open_fresh(out).GetRootLayer().customLayerData["warp_esph:solver_frames"] == (
-        "0: rest curvature_corrected c=0.05; 2: incremental linear c=0; 3: rest curvature_corrected c=0.05")
+    data = open_fresh(out).GetRootLayer().customLayerData
+    assert data["warp_esph:solver_frames"] == (
+        "0: rest curvature_corrected c=0.05; 2: incremental linear c=0; 3: incremental curvature_corrected c=0.05")
+    assert (data["warp_esph:resolved_fit"], data["warp_esph:rest_model"]) == ("curvature_corrected", False)
 
 
 def test_a_run_resumed_before_a_switch_by_the_solver_before_it_drops_the_later_entries(model, tmp_path):

@@ -370,6 +370,9 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
         # composition, so a rest step hands its F over (a flag of None skipped that, and the
         # resumed body sprang to the rest fit of its positions); a state no step wrote is new.
         state.rest_model = False if meta.get("step", 0) else None
+    # Whether the body has flowed (State.flowed), from the hardening the file holds: a resumed
+    # flowed body is not handed over to the rest model, as the uninterrupted run's was not.
+    state.flowed = bool((arrays["alpha"] > 0.0).any())
     before = {name: getattr(model, name).numpy().copy() for name in Model.MATERIAL_FIELDS}
     for name in Model.MATERIAL_FIELDS:
         getattr(model, name).assign(arrays[f"material_{name}"])

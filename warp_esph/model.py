@@ -207,8 +207,14 @@ class State:
         self.time = 0.0
         #: Whether the step that wrote this state ran the rest-configuration model in place of the
         #: incremental composition (``Solver.rest_model``; None: no step wrote it). A rest step
-        #: after an incremental one hands the stored ``F`` over (``comparison.rest_handover``).
+        #: after an incremental one hands the stored ``F`` over (``comparison.rest_handover``),
+        #: unless the body has flowed (``flowed``).
         self.rest_model = None
+        #: Whether the body has flowed (``alpha`` > 0 somewhere; it never decreases): True, False,
+        #: or None where no step or load has read it. A step keeps the incremental composition for
+        #: a flowed state in place of handing it over to the rest model (``Solver.step``), and
+        #: carries True on; it reads ``alpha`` back only at a hand-over of a state of None.
+        self.flowed = None
         #: A weak reference to the solver whose step wrote this state (None: no step wrote it):
         # save_state without solver= records that solver's settings, so a resume with another
         # hourglass strength (one set by hand, Solver.hourglass) is refused, not run.
@@ -292,6 +298,7 @@ class State:
                 wp.copy(a, b)
         self.time = getattr(other, "time", 0.0)
         self.rest_model = getattr(other, "rest_model", None)
+        self.flowed = getattr(other, "flowed", None)
         self.written_by = getattr(other, "written_by", None)
 
     @property

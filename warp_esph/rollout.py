@@ -156,12 +156,14 @@ class _Checkpoint:
         self.alpha_image = wp.zeros(n, dtype=T.scalar, device=dev)
         self.time = 0.0
         self.rest_model = None
+        self.flowed = None
 
     def save(self, state):
         for name in State.STATE_FIELDS:
             wp.copy(getattr(self, name), getattr(state, name))
         self.time = state.time
         self.rest_model = state.rest_model
+        self.flowed = state.flowed
 
     @property
     def nbytes(self) -> int:
@@ -630,6 +632,7 @@ class Rollout:
             init.alpha.zero_()
             init.time = 0.0
             init.rest_model = None
+            init.flowed = False
         for name, v in given.items():
             getattr(init, STATE_GRADIENTS[name]).assign(v)
             if name in ("x0", "F0"):
@@ -640,6 +643,9 @@ class Rollout:
             # set only the first step's stress, the next F being the rest fit of the positions:
             # a block released from a 20 % stretch kept 2 % of its recoil's kinetic energy.
             init.rest_model = False
+        if "alpha0" in given:
+            # A given hardening may say the body has flowed: the step reads it at a hand-over.
+            init.flowed = None
 
     def _taped_states(self, count: int) -> list[State]:
         m, solver = self.model, self.solver
@@ -681,8 +687,9 @@ class Rollout:
         ``(n, 3, 3)`` or one ``(3, 3)``; ``alpha0`` ``(n,)`` or one number. Their gradients
         (``backward``) are per particle whichever was given (sum them for a shared value).
         A given ``F0`` is the body's strain on the rest model too (``Model.auto_runs_rest``: the
-        start is handed over as an incremental step's, ``State.rest_model`` False); without it
-        the rest model starts from the fit of the positions.
+        start is handed over as an incremental step's, ``State.rest_model`` False, unless an
+        ``alpha0`` > 0 says the body has flowed: then the incremental composition runs,
+        ``State.flowed``); without it the rest model starts from the fit of the positions.
         """
         given = {name: check_initial(self.model, name, value) for name, value in
                  (("x0", x0), ("v0", v0), ("F0", F0), ("alpha0", alpha0)) if value is not None}

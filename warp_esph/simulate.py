@@ -981,10 +981,6 @@ def simulate(
         # A writer's record_solver(solver) of the earlier protocol (told the solver at the
         # start only) met a TypeError at the first frame once the frame was passed.
         solver_frames = callable(record) and _takes_frame(record, solver)
-        if callable(record):
-            # Which model writes the frames: fit="auto" resolves by the material values, and a
-            # callback that changes them can switch it (recorded per frame, from the first).
-            record(solver)
 
         current = model.state(requires_grad=False)
         if state is not None:
@@ -993,6 +989,13 @@ def simulate(
             # failed adding the run's length to it.
             checks.number("state.time", state.time)
             current.assign(state)
+        # What the first step runs from this start: a body that flowed is not handed over to the
+        # rest model (Solver._runs_rest), which a record of the parameters alone named.
+        solver._note_start(current)
+        if callable(record):
+            # Which model writes the frames: fit="auto" resolves by the material values, and a
+            # callback that changes them can switch it (recorded per frame, from the first).
+            record(solver)
         initial = _first_bad(model, current)
         if initial is not None:
             raise ValueError(f"state is not allowed: it has a {initial[0]}")

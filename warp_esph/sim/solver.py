@@ -177,8 +177,11 @@ class Solver:
     whose materials are all ``"rest"``). When a parameter
     makes a material flow the step turns to the incremental composition from the stored ``F``;
     a rest step after an incremental one (``State.rest_model`` False) hands the stored ``F``
-    over (``F_p = F^-1 G(x)``, ``comparison.rest_handover``), so a flowed body keeps its
-    stress. A new state's ``F_p`` (``I``) and a checkpoint's are taken as they are. With
+    over (``F_p = F^-1 G(x)``, ``comparison.rest_handover``), so the body keeps its stress,
+    where the body has not flowed; a state whose body has flowed (``State.flowed``: ``alpha``
+    > 0 somewhere) is never handed over, the step keeps the incremental composition for it
+    (its rest neighbourhoods no longer describe it), and ``rest_model``, ``record`` and
+    ``label`` say so. A new state's ``F_p`` (``I``) and a checkpoint's are taken as they are. With
     ``"auto"`` the choice follows the model's parameter arrays at every step (a fit that makes
     ``flow_rate`` positive turns it to the linear fit, without the control); ``fit`` and
     ``hourglass`` hold what runs now. The model's force fields (``fields.CompressionField``)
@@ -291,6 +294,9 @@ class Solver:
         self._warned_tape = False
         self._warned_cut = False
         self.step_count = 0
+        # Whether the last step kept the incremental composition for a flowed body where the
+        # parameters chose the rest model (_runs_rest): what record() reports.
+        self._kept_incremental = False
         self._weak_self = weakref.ref(self)  # State.written_by of the states this solver's steps write
         #: Under a tape, run the hand-written adjoints (``deformation.update_deformation_adjoint``,
         #: the rest model's ``comparison.adjoint_kernels``) in place of Warp's generated ones;
@@ -304,7 +310,9 @@ class Solver:
         """Set ``fit`` and ``hourglass`` to what the step runs now (``Model.solver_choice``)."""
         fit, c = self.model.solver_choice(*self._asked)
         #: Whether the step runs the rest-configuration model for materials that say
-        #: ``"incremental"`` (``Model.auto_runs_rest``: ``fit="auto"`` on a purely elastic model).
+        #: ``"incremental"`` (``Model.auto_runs_rest``: ``fit="auto"`` on a purely elastic model);
+        #: after a step, what it ran (False where it kept the incremental composition for a body
+        #: that had flowed, ``State.flowed``).
         self.rest_model = self._auto and self.model.auto_runs_rest(self._asked[0])
         if self.rest_model:
             self.rest_set()
@@ -346,11 +354,16 @@ class Solver:
         """What this solver runs at the model's current parameters, for a run's records: the
         requested ``fit`` (None: the model's) with ``Model.solver_record``'s ``resolved_fit``,
         ``resolved_hourglass`` and ``rest_model``; ``resolved_hourglass`` is the strength the
-        next step runs (``next_hourglass``), also where it was set by hand."""
+        next step runs (``next_hourglass``), also where it was set by hand. ``rest_model`` is
+        False where the last step kept the incremental composition for a body that had flowed
+        (``State.flowed``), as the steps after it on that body do."""
         # A strength set by hand on a solver of a fixed fit runs as set, where the model's
         # choice from the requested values recorded 0 for a control that ran.
-        return {"fit": self.model.fit if self._asked[0] is None else self._asked[0],
-                **self.model.solver_record(*self._asked), "resolved_hourglass": float(self.next_hourglass())}
+        r = {"fit": self.model.fit if self._asked[0] is None else self._asked[0],
+             **self.model.solver_record(*self._asked), "resolved_hourglass": float(self.next_hourglass())}
+        if self._kept_incremental:
+            r["rest_model"] = False
+        return r
 
     def label(self) -> str:
         """``record`` in a few words: ``"rest curvature_corrected c=0.05"`` (the
@@ -399,6 +412,32 @@ class Solver:
         if self._rest is not None and not np.array_equal(self._rest_from, m.particle_x0):
             self._rest = None
             self.hourglass = self._hourglass
+
+    def _runs_rest(self, state_in: State) -> tuple[bool, bool | None]:
+        """``(rest_model, flowed)``: whether a step from ``state_in`` runs the rest model, and
+        whether its body has flowed (``State.flowed``; None: not known). A state an incremental
+        step wrote (``State.rest_model`` False) whose body has flowed (``alpha`` > 0 somewhere)
+        is not handed over: its rest neighbourhoods no longer describe the body (a 4x4x6 block
+        slumped on the ground for 0.4 s and set then inverted 15 of its 96 rest fits every step,
+        and its kinetic energy grew 200-fold), so the step keeps the incremental composition,
+        with the fit and control the parameters chose. ``alpha`` is read back only there, for a
+        state whose ``flowed`` is not known; the states the step writes carry what it found."""
+        flowed = getattr(state_in, "flowed", None)
+        if not (self.rest_model and state_in.rest_model is False):
+            return self.rest_model, flowed
+        if flowed is None:
+            flowed = bool(np.any(state_in.alpha.numpy() > 0.0))
+        return not flowed, flowed
+
+    def _note_start(self, state: State):
+        """Before a run's first record (``simulate``): have ``record`` and ``label`` say what a
+        step from ``state`` runs at the current parameters, and set ``state.flowed`` where
+        that read ``alpha`` back (``state`` is the run's own, which its first step reads)."""
+        self._kept_incremental = False
+        if self._auto and state.rest_model is False and self.model.auto_runs_rest(self._asked[0]):
+            if getattr(state, "flowed", None) is None:
+                state.flowed = bool(np.any(state.alpha.numpy() > 0.0))
+            self._kept_incremental = state.flowed
 
     def next_hourglass(self) -> float:
         """The strength of the hourglass control the next ``step`` runs: an automatic
@@ -628,7 +667,11 @@ class Solver:
         if ghosts is not None:
             # Again each step: Model.set_material may have changed a material's force since.
             _check_ghost_floor(m, self.fit)
-        rest_model = self.rest_model
+        rest_model, flowed = self._runs_rest(state_in)
+        # What ran, for record() and label(): an automatic solver kept the incremental
+        # composition for a flowed body where the parameters allow the rest model.
+        self._kept_incremental = self.rest_model and not rest_model
+        self.rest_model = rest_model
         cmp = self._cmp or rest_model
         # The material struct the comparison kernels read: with the rest model switched on, every
         # material's deformation code reads "rest" (its own arrays otherwise, None).
@@ -776,6 +819,10 @@ class Solver:
         # A Python float whatever the user set: a np.float32 time would sum every later step in float32.
         state_out.time = float(state_in.time) + dt
         state_out.rest_model = rest_model
+        # alpha never decreases, and the rest model does not flow (it runs on elastic parameters):
+        # a flowed body stays flowed, an unflowed one stays so on the rest model, and an
+        # incremental step may have made it flow (read at a later hand-over, not here).
+        state_out.flowed = True if flowed else (flowed if rest_model else None)
         state_out.written_by = self._weak_self
         if self.step_count == 0:
             self._warn_all_few()
