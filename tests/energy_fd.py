@@ -13,6 +13,27 @@ def stvk_psi(model, F):
     return mu * np.einsum("nij,nij->n", E, E) + 0.5 * lam * tr**2
 
 
+def continued_stvk_psi(model, F):
+    """``stvk_psi``, and where det F <= 0 the rest model's continuation through det = 0
+    (``comparison``'s ``inverted_stress``): ``psi(s_0, s_1, 0) + (lam + 2 mu) s_2^2 / 2`` of the
+    singular values with the reflection in the smallest, ``s_2 <= 0``."""
+    F = np.asarray(F, dtype=np.float64)
+    psi = stvk_psi(model, F)
+    inverted = np.linalg.det(F) <= 0.0
+    if inverted.any():
+        s = np.linalg.svd(F[inverted], compute_uv=False)
+        s2 = -s[:, 2]
+        s[:, 2] = 0.0
+        mu, lam = model.materials[0].mu, model.materials[0].lam
+        psi[inverted] = stvk_psi(model, np.einsum("ni,ij->nij", s, np.eye(3))) + 0.5 * (lam + 2.0 * mu) * s2**2
+    return psi
+
+
+def continued_stvk_energy(model, F) -> float:
+    """``sum_i V_i continued_stvk_psi(F_i)``."""
+    return float((model.particle_volume.numpy() * continued_stvk_psi(model, F)).sum())
+
+
 def stvk_energy(model, F) -> float:
     """``sum_i V_i psi(F_i)`` with ``Model.particle_volume``."""
     return float((model.particle_volume.numpy() * stvk_psi(model, F)).sum())

@@ -540,9 +540,12 @@ def test_default_solver_of_an_elastic_model_gradients_match_central_differences(
 #: ``REST_STRAIN`` of the rest ones (a stored F and stress away from I from the first step);
 #: ``contact``, squeezed towards the ground 0.5 mm under its bottom layer, which it reaches
 #: in the second step; ``guarded``, ``Solver(min_neighbors=10)``: the block's 8 corners'
-#: rest neighbourhoods are guarded (a guarded particle keeps its F, no force).
-REST_CASES = ("rest", "strained", "contact", "guarded")
+#: rest neighbourhoods are guarded (a guarded particle keeps its F, no force); ``inverted``, its
+#: positions mirrored through one axis, ``REST_INVERSION`` of the rest ones: every rest fit
+#: inverted, taken with its energy continued through det = 0 (``comparison``'s ``inverted_stress``).
+REST_CASES = ("rest", "strained", "contact", "guarded", "inverted")
 REST_STRAIN = np.diag([1.04, 0.97, 1.02])
+REST_INVERSION = np.diag([1.04, 0.97, -0.6])
 
 
 def _rest_case_loss(case, weights, params=None, dx=None, dv=None, grad_of=(), hand_adjoints=True, F_loss=False):
@@ -558,7 +561,7 @@ def _rest_case_loss(case, weights, params=None, dx=None, dv=None, grad_of=(), ha
     solver.hand_adjoints = hand_adjoints
     assert solver.rest_model
     states = [model.state() for _ in range(STEPS + 1)]
-    x = model.particle_x0 @ REST_STRAIN.T if case == "strained" else model.particle_x0.copy()
+    x = model.particle_x0 @ {"strained": REST_STRAIN, "inverted": REST_INVERSION}.get(case, np.eye(3)).T
     v = model.particle_v0.copy()
     if dx is not None:
         x[dx[0], dx[1]] += dx[2]
@@ -567,6 +570,9 @@ def _rest_case_loss(case, weights, params=None, dx=None, dv=None, grad_of=(), ha
     states[0].x.assign(x)
     states[0].v.assign(v)
     loss, tape = taped_rollout_loss(solver, states, DT, weights)
+    if case == "inverted":
+        # Inverted all the way, clear of det = 0 (where the continued energy's stress has a kink).
+        assert all((np.linalg.det(st.F.numpy()) < -0.1).all() for st in states[1:])
     if not grad_of:
         return loss.numpy()[0]
     if F_loss:
@@ -582,8 +588,9 @@ def test_rest_models_hand_written_adjoints_match_central_differences(weights, ca
     """The rest model's hand-written adjoints (its total fit's and its variational force's,
     ``comparison.adjoint_kernels``, with those of the rest of the step) against float64
     central differences in ``mu``, ``lam`` and a particle's initial velocity and position, at
-    rest, strained, through ground contact and with guarded rest neighbourhoods (a bottom
-    corner, 0: guarded in ``guarded``, on the ground in ``contact``; an interior particle, 41)."""
+    rest, strained, through ground contact, with guarded rest neighbourhoods and through
+    inverted rest fits (a bottom corner, 0: guarded in ``guarded``, on the ground in
+    ``contact``; an interior particle, 41)."""
     loss, grads = _rest_case_loss(case, weights, grad_of=(name,))
     if name in ("v0", "x0"):
         key = "dv" if name == "v0" else "dx"

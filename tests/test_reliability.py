@@ -23,7 +23,7 @@ from run_files import box_on_ground, frames_in, refused_run
 from warp_esph.checkpoint import read_checkpoint, save_state
 from warp_esph.cli import main
 from warp_esph.scenes import get_scene, load_scene_file
-from warp_esph.simulate import DivergenceMonitor, resolve_timestep
+from warp_esph.simulate import DivergenceMonitor, divergence_advice, resolve_timestep
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SMALL = ["--scale", "0.3", "--no-progress"]
@@ -198,33 +198,24 @@ region = [[-1, -1, -1], [0.015, 1, 1]]
 """
 
 
-def test_a_rest_model_divergence_of_inverted_fits_names_them_not_a_smaller_step(tmp_path, capsys):
+@pytest.mark.filterwarnings("ignore:a neighbour row was cut")
+def test_a_soft_cantilever_crushed_at_its_clamp_holds_on_the_rest_model(tmp_path):
     """A 12 cm cantilever of mu = 5 kPa clamped at one end sags under its own weight until its
-    bottom fibre at the clamp is crushed (a strain near 1): the default's rest model inverts
-    there and diverges at 0.3 s, at the stable step as at half of it, where the advice was "a
-    smaller dt= ... or stiffer-to-softer material settings". Now it names the inverted fits and
-    the cures that run on: a stiffer material, or the incremental composition (which runs the
-    same 12 frames; it follows the neighbours as the beam parts)."""
+    bottom fibre at the clamp is crushed (a strain near 1) and the default's rest fits there
+    invert. They are taken, their energy continued through det = 0 (``comparison``'s
+    ``inverted_stress``), and the beam swings on its 12 frames, its tip within 10 cm of where
+    it hung. Before, an inverted rest fit kept its last F, a frozen stress that is the gradient
+    of no energy: the run diverged at 0.3 s, at the stable step as at half of it (the advice
+    that names such inverted fits stays, ``test_the_inverted_fits_advice_...``)."""
     path = tmp_path / "beam.toml"
     path.write_text(HANGING_BEAM)
     model = load_scene_file(path).builder.finalize()
     solver = we.Solver(model)
     assert solver.rest_model
-    # The crushed fibre stretches its neighbours' rows past their width on the way: warned.
-    with pytest.warns(RuntimeWarning, match="a neighbour row was cut"), \
-            pytest.raises(we.SimulationError, match=r"diverged after step .*; the rest-configuration model's fit inverted in "
-                                                    r"\d+ particle-steps: a body crushed or folded past what its rest "
-                                                    r"neighbourhoods follow, which a smaller dt= does not mend; try a "
-                                                    r"stiffer material, or fit='curvature_corrected' with hourglass=0\.05 "):
-        we.simulate(model, 12, solver=solver, progress=False)
+    end = we.simulate(model, 12, solver=solver, progress=False)
     assert solver.guard_counts()["inverted"] > 0
-    end = we.simulate(model, 12, solver=we.Solver(model, fit="curvature_corrected", hourglass=0.05), progress=False)
-    assert np.isfinite(end.x.numpy()).all()
-    status = main(["run", str(path), "-o", str(tmp_path / "beam.usdc"), "--no-progress"])
-    line = one_error_line(capsys.readouterr().err)
-    assert status == 3
-    assert "does not mend; try a stiffer material, or --solver-fit curvature_corrected --hourglass 0.05, the " in line
-    assert "dt=" not in line and "fit=" not in line, line
+    drop = end.x.numpy()[:, 1] - model.particle_x0[:, 1]
+    assert np.isfinite(drop).all() and drop.min() > -0.1, drop.min()
 
 
 @pytest.mark.filterwarnings("ignore:a neighbour row was cut")
@@ -257,6 +248,10 @@ def test_the_inverted_fits_advice_counts_only_this_run_at_no_more_than_the_stabl
     with pytest.raises(we.SimulationError, match="the rest-configuration model's fit inverted in") as e:
         we.simulate(model, 3, solver=solver, state=start(1.3), progress=False)
     assert f"inverted in {solver.guard_counts()['inverted'] - 64} particle-steps" in str(e.value)
+    # warp-esph run's words for the same advice: its options, not the Python call's.
+    cli = divergence_advice(model, solver.hourglass, "--dt", solver=solver)
+    assert "which a smaller --dt does not mend; try a stiffer material, or --solver-fit curvature_corrected " \
+           "--hourglass 0.05, the " in cli
 
 
 def test_a_compression_field_s_potential_energy_is_part_of_the_scene_s_energy():

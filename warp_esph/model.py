@@ -616,7 +616,8 @@ class Model:
         the incremental fit only; a tool (a moving collider, ``SceneBuilder.add_tool``) can force
         a body through a rearrangement, which the incremental fit follows as its neighbours
         change, while a rest neighbourhood holds every pair it began with (a sphere pressed into
-        a block inverts its rest fits and diverges; docs/physics.md, the rest model's Limits).
+        a block inverts its rest fits, and diverged until their energy was continued through
+        det = 0; docs/physics.md, the rest model's Limits).
         Pins are not tools here: they hold particles in place."""
         asked = self.fit if fit is None else fit
         return (asked == "auto" and self.scene_allows_rest

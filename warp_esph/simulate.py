@@ -71,7 +71,8 @@ def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=", so
     ``solver`` runs the rest-configuration model (``Solver.rest_model``) and counted inverted
     fits, it says that: a body crushed or folded past what its rest neighbourhoods follow,
     which no smaller step mends (a soft cantilever hanging under its own weight diverged at
-    0.299 s at the stable step and at 0.293 s at half of it), where a stiffer material or the
+    0.299 s at the stable step and at 0.293 s at half of it, before an inverted rest fit's
+    energy was continued through det = 0; it now holds), where a stiffer material or the
     incremental composition, which follows the neighbours as a body parts, runs on. ``since``:
     the solver's inverted count when the run began (an earlier run's are not this one's);
     ``step``: the run's step, above the stable one a blow-up inverts the fits too, and a

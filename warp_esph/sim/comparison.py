@@ -9,7 +9,9 @@ Selected per material with ``Material(deformation=...)``:
   ``plasticity.py`` updates ``F_e`` and then, where it changed ``F_e``, ``F_p <- F_e⁻¹ F``.
   ``State.F`` holds ``F_e``. The moments of the rest offsets alone, ``A~^-1`` and ``K``, are
   evaluated once per rest set, fit and fit weight (``Model.rest_moments``; a solver keeps the
-  rest set it obtained, ``Solver.rest_set``), not at every step.
+  rest set it obtained, ``Solver.rest_set``), not at every step. Where the fit inverts
+  (a body crushed through zero thickness), a variational material that cannot flow takes it,
+  its energy continued through det = 0 (``inverted_stress``); others keep the last ``F``.
 - ``"additive"``: a symmetric strain ``ε`` per particle, ``ε <- ε + ½(dFᵀdF − I)`` with the
   step's MLS ``dF``; plastic flow removes the fraction ``γ = min(nu_f dt (|s| − Y − K α)/|s|, 1)``
   of ``dev ε`` where ``|s| = 2 mu |dev ε| > Y + K α``; stress ``σ = 2 mu ε + lam tr(ε) I``,
@@ -30,11 +32,12 @@ import types
 import warp as wp
 
 from .._types import type_set
-from . import curvature, deformation, forces, materials, plasticity
+from . import curvature, deformation, forces, isotropic, materials, plasticity
 from .replay import kept_through_backward, recording_tape
 
 COUNT_FEW_NEIGHBORS = deformation.COUNT_FEW_NEIGHBORS
 COUNT_ILL_CONDITIONED = deformation.COUNT_ILL_CONDITIONED
+COUNT_INVERTED = deformation.COUNT_INVERTED
 
 
 @functools.cache
@@ -50,6 +53,53 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     Materials = materials.struct(scalar)
     third = scalar(1.0 / 3.0)
     cf = curvature.funcs(scalar, weight)
+    iso = isotropic.funcs(scalar)
+    ff = forces.funcs(scalar, weight)
+
+    @wp.func
+    def pair_difference(gi: scalar, gj: scalar, si: scalar, sj: scalar) -> scalar:
+        """``(g_i - g_j) / (s_i - s_j)`` for ``s_i > 0 >= s_j`` (``inverted_stress``): apart
+        but where both are 0, an ``F`` of rank 1 at most."""
+        return (gi - gj) / wp.max(si - sj, scalar(1.0e-6))
+
+    @wp.func
+    def inverted_stress(F: mat33, mu: scalar, lam: scalar, model: int) -> mat33:
+        """P* of an inverted rest fit (det ``F`` <= 0; ``forces.stress`` where det > 0), the
+        stress of the energy continued through det = 0 as invertible finite elements do: in the
+        rotation-variant SVD (``isotropic.py``: ``U``, ``V`` rotations, the smallest singular
+        value ``s_2 <= 0``) ``psi(s_0, s_1, 0) + k s_2^2 / 2``, ``k`` the model's stiffness along
+        one singular value at rest (``lam + 2 mu``; ``2 (lam + 2 mu)`` for ``hyperelastic``). Every
+        model's ``P*`` is ``s_2`` times a factor in its third principal value, so ``P*`` and the
+        energy are continuous at det = 0, and the inverted side pushes back out (``k s_2``)
+        where ``forces.stress`` of the mirrored ``F`` pulled on through (St. Venant-Kirchhoff's
+        energy is even in each ``s``: the mirror image of the rest shape costs none).
+        ``d1``: the divided differences ``isotropic_map``'s adjoint needs."""
+        s = iso.singular_values(F)
+        z = vec3(s[0], s[1], scalar(0.0))
+        c = wp.where(model == 2, scalar(1.0), scalar(0.5))
+        tr = s[0] * s[0] + s[1] * s[1] - scalar(3.0)
+        # polynomial_stress in the SVD frame: c (2 mu (s^3 - s) + lam (sum s^2 - 3) s)
+        g_poly = c * (scalar(2.0) * mu * (wp.cw_mul(wp.cw_mul(z, z), z) - z) + lam * tr * z)
+        d_poly = c * (scalar(2.0) * mu * (s[0] * s[0] + s[0] * s[1] + s[1] * s[1] - scalar(1.0)) + lam * tr)
+        g_lin = ff.principal_stress(z, mu, lam)
+        d_lin = ff.principal_stress_differences(z, mu, lam)[0]
+        poly = model >= 2
+        k = wp.where(model == 2, scalar(2.0), scalar(1.0)) * (lam + scalar(2.0) * mu)
+        g0 = wp.where(poly, g_poly[0], g_lin[0])
+        g1 = wp.where(poly, g_poly[1], g_lin[1])
+        g2 = k * s[2]
+        d1 = vec3(wp.where(poly, d_poly, d_lin), pair_difference(g0, g2, s[0], s[2]),
+                  pair_difference(g1, g2, s[1], s[2]))
+        return iso.isotropic_map(F, vec3(g0, g1, g2), d1)
+
+    @wp.func
+    def continues_inverted(mat: Materials, m: int) -> bool:
+        """Whether material ``m``'s rest fit is taken where it inverts, its energy continued
+        through det = 0 (``inverted_stress``): a variational force that cannot flow (``yield_stress
+        = inf`` or ``flow_rate <= 0``), the rest model that ``fit="auto"`` runs. Elsewhere an
+        inverted fit keeps the last ``F``, as before: the paper's force is the gradient of no
+        energy anyway, and a flow of an inverted ``F_e`` would write a mirrored ``F_p``."""
+        return mat.elastic_force[m] == 1 and (mat.flow_rate[m] <= scalar(0.0) or wp.isinf(mat.yield_stress[m]))
 
     @wp.func
     def rest_total_fit(
@@ -144,7 +194,11 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             F_out[i] = Fe
             alpha_out[i] = a_new
             Fp_out[i] = Fp
-            stress_out[i] = stress(Fe, mu, lam, kind)
+            if d == 1 and wp.determinant(Fe) <= scalar(0.0) and continues_inverted(mat, m):
+                # An inverted rest fit (update_deformation takes it): the continued energy's stress.
+                stress_out[i] = inverted_stress(Fe, mu, lam, kind)
+            else:
+                stress_out[i] = stress(Fe, mu, lam, kind)
             F_inv_out[i] = Fe_inv
 
     @wp.kernel(module="unique")
@@ -174,7 +228,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     ):
         """``deformation.update_deformation`` for every deformation model (``curved``: the rest
         model's total fit is the curvature-corrected one, ``curvature.corrected_fit``;
-        ``rest_At_inv``, ``rest_K``: its rest moments, ``Model.rest_moments``)."""
+        ``rest_At_inv``, ``rest_K``: its rest moments, ``Model.rest_moments``). An inverted rest
+        fit is taken where ``continues_inverted`` (counted), else the last ``F`` is kept."""
         i = wp.tid()
         F = F_prev[i]
         d = mat.deformation[material[i]]
@@ -190,7 +245,15 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 wp.atomic_add(counters, COUNT_ILL_CONDITIONED, 1)
             else:
                 G = rest_total_fit(i, rest_x, y, body, rest_nbr, rest_count[i], h, rest_At_inv[i], rest_K[i], curved)
-                F = unless_inverted(G * wp.inverse(Fp[i]), F, counters)
+                # Taken inverted too (counted): its energy is continued through det = 0
+                # (inverted_stress). Keeping the last F there left a frozen stress whose force
+                # is the gradient of no energy, which pumped a crushed body up until it diverged.
+                if continues_inverted(mat, material[i]):
+                    F = G * wp.inverse(Fp[i])
+                    if wp.determinant(F) <= scalar(0.0):
+                        wp.atomic_add(counters, COUNT_INVERTED, 1)
+                else:
+                    F = unless_inverted(G * wp.inverse(Fp[i]), F, counters)
         else:
             A, B, same = moment_sums(i, x, y, y, y, body, nbr, count[i], h)
             dF = step_gradient(A, B, guard[i], gf.guard_scale(A, same, min_neighbors, max_condition), counters)
@@ -269,6 +332,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     ):
         """The variational force of a rest-configuration material (``Material(deformation="rest",
         elastic_force="variational")``): minus the gradient of ``E = sum_i V_i psi(G_i F_p,i^-1)``
+        (``psi`` continued through det = 0 where the fit inverts, ``inverted_stress``)
         with ``G_i = (sum_j w_ij yb_j Xb_j^T) A_i^-1`` the total fit of the end positions ``y``
         against the rest ones (weights and ``A_i`` of the rest neighbourhood, fixed). ``G_i`` is
         linear in ``y``, so ``g_ij = w_ij V_i P*_i F_p,i^-T A_i^-1 Xb_ij`` is the exact gradient
@@ -329,7 +393,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     return types.SimpleNamespace(constitutive_update=constitutive_update, update_deformation=update_deformation,
                                  rest_variational_forces=rest_variational_forces, rest_handover=rest_handover,
                                  rest_map_moments=rest_map_moments, rest_moments=rest_moments,
-                                 rest_total_fit=rest_total_fit)
+                                 rest_total_fit=rest_total_fit, continues_inverted=continues_inverted,
+                                 inverted_stress=inverted_stress)
 
 
 @functools.cache
@@ -350,6 +415,7 @@ def adjoint_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
     fo = forces.funcs(scalar, weight)
     Materials = materials.struct(scalar)
     rest_total_fit = kernels(scalar, weight).rest_total_fit
+    continues_inverted = kernels(scalar, weight).continues_inverted
     curved = 1 if fit == "curvature_corrected" else 0
 
     @wp.func
@@ -369,6 +435,8 @@ def adjoint_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         rest_At_inv: wp.array(dtype=mat33),
         rest_K: wp.array(dtype=mat33),
         Fp: wp.array(dtype=mat33),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
         h: scalar,
         adj_F_out: wp.array(dtype=mat33),
         adj_y: wp.array(dtype=vec3),
@@ -379,8 +447,8 @@ def adjoint_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         deformation code "rest"): ``adj G = adj F F_p^-T``, to the positions as the variational
         force's pairs with ``M = -adj G A~^-T`` (``adjoint_kernels``; no guard fade: a guarded
         rest neighbourhood keeps its ``F`` whole, and all of ``adj F`` goes to the flowed
-        ``F``, as where ``G F_p^-1`` would invert), and ``adj F_p^-1 = G^T adj F`` to ``F_p``
-        (``inverse_adjoint``)."""
+        ``F``, as where ``G F_p^-1`` inverts and its material does not take it,
+        ``continues_inverted``), and ``adj F_p^-1 = G^T adj F`` to ``F_p`` (``inverse_adjoint``)."""
         i = wp.tid()
         G = adj_F_out[i]
         if rest_guard[i] != 0:
@@ -391,7 +459,7 @@ def adjoint_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         K = rest_K[i]
         fit = rest_total_fit(i, rest_x, y, body, rest_nbr, n, h, At_inv, K, wp.static(curved))
         Fp_inv = wp.inverse(Fp[i])
-        if wp.determinant(fit * Fp_inv) <= scalar(0.0):
+        if wp.determinant(fit * Fp_inv) <= scalar(0.0) and not continues_inverted(mat, material[i]):
             adj_F_prev[i] = adj_F_prev[i] + G
             return
         adj_Fp[i] = adj_Fp[i] + inverse_adjoint(Fp_inv, wp.transpose(fit) * G)
@@ -503,10 +571,11 @@ def launch_update_deformation(model, state_in, state_out, counters, curved: bool
     ``update_deformation_adjoint`` (``hand_adjoint=False``, or a model mixing deformation
     models: Warp's generated adjoint)."""
     rest_x, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K = _rest_set(model, rest, rest_guard, curved)
+    mat_struct = model.material_arrays() if mats is None else mats
     inputs = [
         state_in.x, state_out.x, rest_x, model.particle_body, state_out.neighbors, state_out.neighbor_count,
         rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K, state_out.guard, model.particle_material,
-        model.material_arrays() if mats is None else mats, state_out.F_flowed,
+        mat_struct, state_out.F_flowed,
         state_out.F_p, model.scalar(model.support_radius), int(min_neighbors), model.scalar(max_condition), int(curved),
     ]
     kernel = kernels(model.scalar, model.fit_weight).update_deformation
@@ -524,7 +593,7 @@ def launch_update_deformation(model, state_in, state_out, counters, curved: bool
         model.launches(
             adjoint_kernels(model.scalar, model.fit_weight, fit).update_deformation_adjoint, model.particle_count,
             [rest_x, y, model.particle_body, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K, state_out.F_p,
-             model.scalar(model.support_radius), state_out.F.grad, y.grad, state_out.F_flowed.grad,
+             model.particle_material, mat_struct, model.scalar(model.support_radius), state_out.F.grad, y.grad, state_out.F_flowed.grad,
              state_out.F_p.grad],
             device=model.device, record_tape=False,
         )
