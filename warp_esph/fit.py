@@ -641,7 +641,7 @@ def _divergence(model: Model, rollout: Rollout, particles=None) -> str | None:
     initial state, ``particles`` as there), or None."""
     from .simulate import DivergenceMonitor  # noqa: PLC0415
 
-    monitor = DivergenceMonitor(model, rollout._initial, particles=particles)
+    monitor = DivergenceMonitor(model, rollout._initial, particles=particles, solver=rollout.solver)
     final = rollout.final_state()
     hit = monitor.check(final.x.numpy(), final.v.numpy(), rollout.steps * rollout.dt)
     return None if hit is None else f"diverged: {hit[0]} (particle {hit[1]}, at the rollout's last step)"

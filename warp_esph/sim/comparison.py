@@ -29,6 +29,7 @@ the hand-over keep the generated ones.
 import functools
 import types
 
+import numpy as np
 import warp as wp
 
 from .._types import type_set
@@ -390,8 +391,42 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 out = wp.inverse(F[i]) * G
         Fp_out[i] = out
 
+    @wp.kernel(enable_backward=False, module="unique")
+    def rest_start_fit(
+        x: wp.array(dtype=vec3),
+        rest_x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        rest_nbr: wp.array2d(dtype=wp.int32),
+        rest_count: wp.array(dtype=wp.int32),
+        rest_guard: wp.array(dtype=wp.int32),
+        rest_At_inv: wp.array(dtype=mat33),
+        rest_K: wp.array(dtype=mat33),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        F: wp.array(dtype=mat33),
+        Fp: wp.array(dtype=mat33),
+        h: scalar,
+        curved: int,
+        F_out: wp.array(dtype=mat33),
+    ):
+        """The ``F`` that ``update_deformation`` takes at the positions ``x`` (not counted): a
+        rest particle's ``G(x) F_p^-1`` where its guard holds no singular neighbourhood and the
+        fit is taken (``continues_inverted``, or not inverted), else the stored ``F``. The
+        strain a start holds against the rest shape, whatever its stored ``F`` says
+        (``Solver.start_deformation``)."""
+        i = wp.tid()
+        out = F[i]
+        m = material[i]
+        if mat.deformation[m] == 1 and rest_guard[i] == 0:
+            G = rest_total_fit(i, rest_x, x, body, rest_nbr, rest_count[i], h, rest_At_inv[i], rest_K[i], curved)
+            Fe = G * wp.inverse(Fp[i])
+            if continues_inverted(mat, m) or wp.determinant(Fe) > scalar(0.0):
+                out = Fe
+        F_out[i] = out
+
     return types.SimpleNamespace(constitutive_update=constitutive_update, update_deformation=update_deformation,
                                  rest_variational_forces=rest_variational_forces, rest_handover=rest_handover,
+                                 rest_start_fit=rest_start_fit,
                                  rest_map_moments=rest_map_moments, rest_moments=rest_moments,
                                  rest_total_fit=rest_total_fit, continues_inverted=continues_inverted,
                                  inverted_stress=inverted_stress)
@@ -543,6 +578,21 @@ def launch_rest_handover(model, state_in, Fp_out, curved: bool = False, rest_gua
         [Fp_out],
         device=model.device,
     )
+
+
+def start_fit(model, state, curved: bool = False, mats=None, rest_guard=None, rest=None) -> np.ndarray:
+    """``rest_start_fit`` of ``state``: the ``(n, 3, 3)`` deformation gradients a rest step's fit
+    takes at its positions (``mats``, ``rest_guard``, ``rest``: as in the launches here)."""
+    rest_x, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K = _rest_set(model, rest, rest_guard, curved)
+    out = wp.empty_like(state.F, requires_grad=False)
+    wp.launch(
+        kernels(model.scalar, model.fit_weight).rest_start_fit, model.particle_count,
+        [state.x, rest_x, model.particle_body, rest_nbr, rest_count, rest_guard, rest_At_inv, rest_K,
+         model.particle_material, model.material_arrays() if mats is None else mats, state.F, state.F_p,
+         model.scalar(model.support_radius), int(curved)],
+        [out], device=model.device, record_tape=False,
+    )
+    return out.numpy()
 
 
 def launch_constitutive_update(model, state_in, state_out, dt, counters, mats=None, Fp_in=None):

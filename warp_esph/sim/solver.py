@@ -439,6 +439,29 @@ class Solver:
                 state.flowed = bool(np.any(state.alpha.numpy() > 0.0))
             self._kept_incremental = state.flowed
 
+    def start_deformation(self, state: State) -> np.ndarray:
+        """The ``(n, 3, 3)`` elastic deformation gradients the body holds at ``state`` as a step
+        from it sees them, with the parameters as they are now: where that step runs the rest
+        model (``_runs_rest``, or a ``"rest"`` material) on a state not handed over, the rest
+        fit of its positions (``G(x) F_p^-1``, ``comparison.rest_start_fit``), else the stored
+        ``F``. A start whose positions are strained against the rest shape holds that strain's
+        energy although its stored ``F`` is ``I``: the first step writes the fit
+        (``simulate.DivergenceMonitor`` counts it). Only reads ``state``."""
+        m = self.model
+        F = state.F.numpy()
+        rest_model = self._auto and m.auto_runs_rest(self._asked[0])
+        if rest_model and state.rest_model is False:
+            flowed = state.flowed if state.flowed is not None else bool(np.any(state.alpha.numpy() > 0.0))
+            if not flowed:  # handed over (F_p = F^-1 G): the rest model goes on from the stored F
+                return F
+            rest_model = False
+        if not (self._cmp or rest_model):
+            return F
+        curved = self._curved if not self._auto else m.solver_choice(*self._asked)[0] == "curvature_corrected"
+        rest = self.rest_set()
+        return comparison.start_fit(m, state, curved, m.material_arrays(rest=True) if rest_model else None, rest[3],
+                                    rest)
+
     def next_hourglass(self) -> float:
         """The strength of the hourglass control the next ``step`` runs: an automatic
         solver's follows the materials as they are now (``Model.solver_choice``, which its
