@@ -900,6 +900,29 @@ def test_the_rest_models_hand_over_survives_a_checkpoint_and_a_copy(tmp_path, fl
     np.testing.assert_array_equal(outs[2], outs[0])
 
 
+def test_a_checkpoint_of_a_flowed_body_records_the_incremental_composition_it_ran(tmp_path):
+    """A body that flowed, made elastic, runs the incremental composition under the default
+    solver, the same steps as a solver of its fit and control: its checkpoint records
+    ``rest_model`` False, and either solver resumes the other's run. Before, it recorded
+    ``rest_model = True`` (the parameters' choice) and the resume under the solver of the fit
+    and control was refused, 'the run it continues had rest_model = True'."""
+    from warp_esph.checkpoint import load_state, save_state
+
+    model, solver, a, c, dt = _sheared_block_flowing(5)
+    model.flow_rate.assign(np.array([0.0]))
+    solver.step(a, c, dt)
+    assert c.rest_model is False and c.flowed is True
+    fixed = we.Solver(model, fit="curvature_corrected", hourglass=we.model.AUTO_HOURGLASS)
+    for name, writer in (("auto", solver), ("fixed", fixed)):
+        path = save_state(tmp_path / f"{name}.npz", model, c, step=6, frame=0, solver=writer)
+        assert load_state(path, model)[1]["solver"]["rest_model"] is False
+        for reader in (we.Solver(model), fixed):
+            load_state(path, model, solver=reader)
+    path = save_state(tmp_path / "auto.npz", model, c, step=6, frame=0, solver=solver)
+    with pytest.raises(ValueError, match=r"had fit = 'curvature_corrected', this solver fit = 'linear'"):
+        load_state(path, model, solver=we.Solver(model, fit="linear"))
+
+
 def test_a_checkpoint_written_before_the_rest_model_hands_f_over_when_resumed(tmp_path):
     """A checkpoint written before ``fit="auto"`` ran the rest model has no ``rest_model`` in
     its metadata, and every step then ran the incremental composition: resumed by the default

@@ -107,7 +107,8 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     made it), unless that model is of the same scene (the same ``model_fingerprint``).
 
     ``solver`` (a ``Solver`` of ``model``; optional) records the settings of the solver that
-    ran (``solver_settings``: fit, hourglass, contact ramp, guards, fused kernels), which
+    ran (``solver_settings``: fit, hourglass, contact ramp, guards, fused kernels, whether the
+    rest-configuration model runs from ``state``: not where its body flowed), which
     ``load_state(..., solver=)`` compares with the solver that resumes. Without it, those of
     the solver of ``model`` whose step wrote ``state`` (``State.written_by``) are recorded
     while that solver exists (a hourglass strength set by hand, ``Solver.hourglass``, as it
@@ -174,7 +175,8 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
         "fingerprint_version": FINGERPRINT_VERSION,
     }
     if solver is not None:
-        meta["solver"] = solver_settings(solver)
+        # What it runs from this state: a body that flowed keeps the incremental composition.
+        meta["solver"] = solver_settings(solver, kept_incremental=_keeps_incremental(state.rest_model, arrays["alpha"]))
     arrays.update({name: getattr(state, name).numpy() for name in State.STEP_REPORTS if hasattr(state, name)})
     arrays.update({f"material_{name}": getattr(model, name).numpy() for name in Model.MATERIAL_FIELDS})
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
@@ -189,15 +191,24 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     return path
 
 
-def solver_settings(solver) -> dict:
+def _keeps_incremental(rest_model, alpha: np.ndarray) -> bool:
+    """Whether a step from a state an incremental step wrote (``rest_model`` False) whose body
+    has flowed (``alpha`` > 0 somewhere) keeps the incremental composition whatever the
+    parameters allow (``Solver._runs_rest``)."""
+    return rest_model is False and bool((alpha > 0.0).any())
+
+
+def solver_settings(solver, kept_incremental: bool = False) -> dict:
     """What of ``solver`` a step depends on beyond the model's scene and the state, as the
     step runs it at the model's current material values: the fit and hourglass strength
     (``Model.solver_choice``: ``"auto"`` resolved, so ``fit="linear"`` where ``"auto"`` runs
     the linear fit is the same run; a strength set by hand, ``Solver.hourglass``, as it runs),
-    the model's contact ramp, the neighbourhood guards and
+    the model's contact ramp, the neighbourhood guards,
     whether the fused kernels run (the same equations, another round-off; the curvature-
-    corrected fit, comparison models and ghost floors never take them). Not the neighbour
-    skin: it changes the cost only, bit for bit (``Solver``)."""
+    corrected fit, comparison models and ghost floors never take them) and whether it runs
+    the rest-configuration model, False from a state whose body flowed (``kept_incremental``,
+    ``State.flowed``: the incremental composition runs whatever the parameters allow). Not
+    the neighbour skin: it changes the cost only, bit for bit (``Solver``)."""
     m = solver.model
     fit = m.solver_choice(*solver._asked)[0]
     # The strength the step runs: one set by hand (Solver.hourglass) is not the requested one,
@@ -206,7 +217,8 @@ def solver_settings(solver) -> dict:
     fused = solver.fused and not solver._cmp and fit != "curvature_corrected" and solver.ghost_search is None
     return {"fit": fit, "hourglass": float(c), "contact_ramp": float(m.contact_ramp),
             "min_neighbors": int(solver.min_neighbors), "max_condition": float(solver.max_condition),
-            "fused": bool(fused), "rest_model": bool(solver._auto and m.auto_runs_rest(solver._asked[0]))}
+            "fused": bool(fused),
+            "rest_model": bool(solver._auto and m.auto_runs_rest(solver._asked[0]) and not kept_incremental)}
 
 
 def _check_solver(model: Model, solver) -> None:
@@ -378,7 +390,9 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
         getattr(model, name).assign(arrays[f"material_{name}"])
     if solver is not None and "solver" in meta:
         # Compared at the checkpoint's material values, which decide what "auto" runs.
-        ours = solver_settings(solver)
+        # From this state, as at the save: a flowed body's run said rest_model = True, and a
+        # solver of its fit and control, which runs the same steps bit for bit, was refused.
+        ours = solver_settings(solver, kept_incremental=_keeps_incremental(state.rest_model, arrays["alpha"]))
         for key, value in meta["solver"].items():
             if key in ours and value != ours[key]:
                 for name, a in before.items():  # a refused resume leaves the model as it was
