@@ -630,6 +630,11 @@ class Rollout:
             init.x_lo.zero_()
             init.F_p.assign(eye)
             init.alpha.zero_()
+            # The floor images' own F and hardening too (a new state's I and 0): kept, a forward
+            # after one from an initial_state started from that state's images (0.25 mm off in
+            # 5 steps of a block pressed onto them).
+            init.F_image.assign(eye)
+            init.alpha_image.zero_()
             init.time = 0.0
             init.rest_model = None
             init.flowed = False
@@ -682,7 +687,7 @@ class Rollout:
         positions where ``steps`` is not a frame) once per forward.
 
         The initial state is the model's (``particle_x0``, ``particle_v0``, F = I, alpha =
-        0), or ``initial_state``'s fields, with ``x0, v0, F0, alpha0`` overriding: ``x0``
+        0, the floor images' too, whatever an earlier forward started from), or ``initial_state``'s fields, with ``x0, v0, F0, alpha0`` overriding: ``x0``
         ``(n, 3)``; ``v0`` ``(n, 3)`` or one ``(3,)`` velocity for every particle; ``F0``
         ``(n, 3, 3)`` or one ``(3, 3)``; ``alpha0`` ``(n,)`` or one number. Their gradients
         (``backward``) are per particle whichever was given (sum them for a shared value).
