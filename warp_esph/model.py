@@ -216,8 +216,8 @@ class State:
         #: carries True on; it reads ``alpha`` back only at a hand-over of a state of None.
         self.flowed = None
         #: A weak reference to the solver whose step wrote this state (None: no step wrote it):
-        # save_state without solver= records that solver's settings, so a resume with another
-        # hourglass strength (one set by hand, Solver.hourglass) is refused, not run.
+        #: save_state without solver= records that solver's settings while it exists, so a resume
+        #: with another hourglass strength (one set by hand, Solver.hourglass) is refused, not run.
         self.written_by = None
         # Written by the step that produced this state.
         self.neighbors = wp.zeros((n, K), dtype=wp.int32, device=dev)
