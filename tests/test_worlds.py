@@ -4,6 +4,7 @@ A world of a multi-world model must compute what the same scene computes alone: 
 neighbour lists (so SPH pressure and viscosity) never reach into another world, even
 where the worlds occupy the same space, and its gradients are those of its own loss."""
 
+import re
 import warnings
 
 import numpy as np
@@ -317,6 +318,34 @@ def test_an_elastic_world_beside_a_plastic_one_is_told_its_fit_is_the_models():
         model.set_material(0, MAT_A, world=0)
         assert model.worlds_auto_differ() == []
         we.Solver(model)
+
+
+def test_a_world_that_did_not_flow_beside_one_that_did_is_told_it_keeps_the_incremental_composition():
+    """Made elastic after world 1's body flowed (``State.alpha`` > 0 there, a state the
+    incremental composition wrote), the default solver keeps the incremental composition for
+    the whole model, where world 0, which did not flow, alone would be handed over to the rest
+    model. The solver says so once, naming world 0 (before: nothing said); with every world
+    flowed there is nothing to say."""
+    model = _builder(MAT_A.replace(flow_rate=0.0)).finalize(worlds=2)
+    for flowed_worlds, told in (((1,), r"world\(s\) \[0\], which did not flow, alone would be handed over"),
+                                ((0, 1), None)):
+        solver = we.Solver(model)
+        assert solver.rest_model
+        a, b = model.state(), model.state()
+        a.rest_model = False
+        alpha = np.zeros(model.particle_count)
+        for w in flowed_worlds:
+            alpha[model.world_particles(w)] = 0.1
+        a.alpha.assign(alpha)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            solver.step(a, b, DT)
+            solver.step(b, a, DT)
+        assert solver.label().startswith("incremental")
+        said = [str(w.message) for w in caught if "keeps the incremental composition" in str(w.message)]
+        assert len(said) == (told is not None), said
+        if told is not None:
+            assert re.search(told, said[0]), said
 
 
 def test_compression_field_acts_in_every_world():

@@ -293,6 +293,7 @@ class Solver:
         self._tape_seen = None  # (the recording tape, the states its steps wrote): _check_taped_step
         self._warned_tape = False
         self._warned_cut = False
+        self._warned_worlds_kept = False
         self.step_count = 0
         # Whether the last step kept the incremental composition for a flowed body where the
         # parameters chose the rest model (_runs_rest): what record() reports.
@@ -427,7 +428,24 @@ class Solver:
             return self.rest_model, flowed
         if flowed is None:
             flowed = bool(np.any(state_in.alpha.numpy() > 0.0))
+        if flowed and self.model.world_count > 1 and not self._warned_worlds_kept:
+            self._warn_worlds_kept(state_in)
         return not flowed, flowed
+
+    def _warn_worlds_kept(self, state: State):
+        """Once: the worlds whose bodies did not flow keep the incremental composition with the
+        rest, where alone each would be handed over to the rest model. One choice runs every
+        world, as for the parameters (the warning of ``Model.worlds_auto_differ``): a world that
+        never flowed beside one that did differed from its separate run without a word."""
+        self._warned_worlds_kept = True
+        m = self.model
+        alpha = state.alpha.numpy()
+        still = [w for w in range(m.world_count) if not (alpha[m.world_particles(w)] > 0.0).any()]
+        if still:
+            warnings.warn(f"fit = 'auto' keeps the incremental composition for every world: a world's body has flowed "
+                          f"(State.flowed); world(s) {still}, which did not flow, alone would be handed over to the "
+                          f"rest-configuration model, so they differ from their separate runs; set SceneBuilder(fit=...) "
+                          f"(and hourglass) to compare worlds with separate runs", RuntimeWarning, stacklevel=4)
 
     def _note_start(self, state: State):
         """Before a run's first record (``simulate``): have ``record`` and ``label`` say what a
