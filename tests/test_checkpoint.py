@@ -395,6 +395,32 @@ def test_a_checkpoint_saved_without_a_solver_records_the_settings_of_the_solver_
     assert "solver" not in load_state(fresh, other, solver=we.Solver(other, fit="linear"))[1]
 
 
+def test_a_checkpoint_of_a_runs_start_frame_records_that_runs_solver(tmp_path):
+    """``simulate`` from a state another solver wrote (the control set by hand, 0.1): a callback's
+    checkpoint of the start frame recorded that solver's settings, and a resume with the run's
+    own (no control) was refused ('had hourglass = 0.1'). The run's copy of its start is its
+    solver's: the run's settings are recorded."""
+    from warp_esph.simulate import simulate
+
+    model = _model()
+    earlier = we.Solver(model, fit="linear")
+    earlier.hourglass = 0.1
+    a, b = model.state(), model.state()
+    earlier.step(a, b, 4e-4)
+    path = tmp_path / "start.npz"
+
+    def save_start(frame, state):
+        if frame == 0:
+            save_state(path, model, state, step=0, frame=frame)
+
+    simulate(model, 1, fps=100.0, dt=4e-4, solver=we.Solver(model, fit="linear"), state=b, progress=False,
+             callback=save_start)
+    other = _model()
+    assert load_state(path, other, solver=we.Solver(other, fit="linear"))[1]["solver"]["hourglass"] == 0.0
+    with pytest.raises(ValueError, match=r"had hourglass = 0\.0, this solver hourglass = 0\.1"):
+        load_state(path, other, solver=we.Solver(other, fit="linear", hourglass=0.1))
+
+
 @pytest.mark.parametrize("change,needle", [
     (lambda m: we.Solver(m, fit="curvature_corrected"), r"had fit = 'linear', this solver fit = 'curvature_corrected'"),
     (lambda m: we.Solver(m, hourglass=0.1), r"had hourglass = 0\.0, this solver hourglass = 0\.1"),

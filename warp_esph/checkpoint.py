@@ -110,9 +110,10 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     ran (``solver_settings``: fit, hourglass, contact ramp, guards, fused kernels, whether the
     rest-configuration model runs from ``state``: not where its body flowed), which
     ``load_state(..., solver=)`` compares with the solver that resumes. Without it, those of
-    the solver of ``model`` whose step wrote ``state`` (``State.written_by``) are recorded
-    while that solver exists (a hourglass strength set by hand, ``Solver.hourglass``, as it
-    runs); a state no step of it wrote (a new or loaded one) records none.
+    the solver of ``model`` whose step wrote ``state``, or whose ``simulate`` run it starts (a
+    callback's checkpoint of the start frame), are recorded (``State.written_by``) while that
+    solver exists (a hourglass strength set by hand, ``Solver.hourglass``, as it runs); a
+    state no step of it wrote (a new or loaded one) records none.
     """
     from . import checks  # noqa: PLC0415
 

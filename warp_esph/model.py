@@ -215,9 +215,10 @@ class State:
         #: a flowed state in place of handing it over to the rest model (``Solver.step``), and
         #: carries True on; it reads ``alpha`` back only at a hand-over of a state of None.
         self.flowed = None
-        #: A weak reference to the solver whose step wrote this state (None: no step wrote it):
-        #: save_state without solver= records that solver's settings while it exists, so a resume
-        #: with another hourglass strength (one set by hand, Solver.hourglass) is refused, not run.
+        #: A weak reference to the solver whose step wrote this state, or whose ``simulate`` run it
+        #: starts (None: neither): save_state without solver= records that solver's settings while
+        #: it exists, so a resume with another hourglass strength (one set by hand,
+        #: Solver.hourglass) is refused, not run.
         self.written_by = None
         # Written by the step that produced this state.
         self.neighbors = wp.zeros((n, K), dtype=wp.int32, device=dev)

@@ -999,6 +999,10 @@ def simulate(
             # failed adding the run's length to it.
             checks.number("state.time", state.time)
             current.assign(state)
+        # The run's own copy is this solver's run from its start: a checkpoint of the start frame
+        # (a callback's) recorded the settings of the solver that wrote the given state, and a
+        # resume with this run's own was refused (State.written_by).
+        current.written_by = solver._weak_self
         # What the first step runs from this start: a body that flowed is not handed over to the
         # rest model (Solver._runs_rest), which a record of the parameters alone named.
         solver._note_start(current)
