@@ -236,9 +236,11 @@ def _vibrate(elastic_force, dt_factor, duration, stop_at=None, fit=None, deforma
                                  "conservative rest variant, stable step", "paper force, stable and half step"])
 def test_undamped_elastic_body_keeps_its_energy_only_with_the_variational_force(run):
     """Measured: the variational cube's kinetic energy never exceeds its initial value
-    (peak 1.00001 in 1.5 s); the paper's passes 10x it after 2.42 s at the stable step,
-    1.71 s at half of it and 1.91 s at a quarter (1.5x after 2.11, 1.29, 1.19 s): a flutter
-    of the force, not a time-step instability, which a smaller step would delay or remove.
+    (peak 1.00001 in 1.5 s); the paper's passes 10x it after 2.49 s at the stable step and
+    2.95 s at half of it (1.5x after 2.24 and 2.57 s, 3x after 2.40 and 2.75 s; measured at
+    5a7a948; an older tree read 2.42 s and 1.71 s, and 1.91 s at a quarter): a flutter of the
+    force, not a time-step instability, which a smaller step would delay by far more or
+    remove. The half step now postpones it by 18 % of the bound's 25 %.
 
     The onset time itself is not a property of the force: the flutter grows from rounding-level
     asymmetries, so it moves with anything that changes them. With rows of the paper's 30
