@@ -1390,8 +1390,14 @@ def test_patience_counts_the_evaluations_after_the_guess():
 def _overflowing_cube():
     """27 float32 particles, stretched at the start; ``BLOWING_UP`` is a start speed (3e38 m/s,
     which float32 holds) that, at a step of ``BLOWING_DT``, puts every particle past the float32
-    range in the first step; a rollout of 1e37 Pa blows the cube 5e24 m apart in 10 steps,
-    finite. (A shear modulus of 3e38 Pa, whose lam + 2 mu float32 does not hold, is refused.)"""
+    range in the first step; a rollout of 1e37 Pa on the incremental composition (an explicit
+    ``fit``) blows the cube 5e24 m apart in 10 steps, finite: its first step flings the particles
+    out of each other's support, and a particle without neighbours feels no force. (On the rest
+    model, which ``fit="auto"`` runs, every rest pair holds: that first step's fit, entries near
+    3e25, overflows float32 in its stress and the run is non-finite after step 2. Before an
+    inverted rest fit's energy was continued through det = 0, that fit's overflowed determinant
+    read as inverted and the particles kept ``F = I``.) (A shear modulus of 3e38 Pa, whose
+    lam + 2 mu float32 does not hold, is refused.)"""
     b = we.SceneBuilder(spacing=0.02, support_radius=0.05, gravity=(0.0, 0.0, 0.0))
     b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), we.Material(mu=1.0e3, lam=1.5e3, yield_stress=1e9,
                                                                pressure_stiffness=0.0, density=1000.0), name="cube")
@@ -1410,7 +1416,8 @@ def test_a_rollout_that_blows_up_to_non_finite_values_raises(checkpoint_every):
     ``FloatingPointError``) naming the first non-finite step (without checkpoints exactly, with
     them the first checkpoint or frame found so), the particle and its body, dt and the stable
     step; ``check=False`` returns the run as it is, and a blow-up that stays finite is returned
-    as a result (out of the check's reach, as its docstring says)."""
+    as a result (out of the check's reach, as its docstring says; one made on the incremental
+    composition, ``_overflowing_cube``)."""
     from warp_esph.rollout import NonFiniteRollout  # noqa: PLC0415
 
     model = _overflowing_cube()
@@ -1430,7 +1437,9 @@ def test_a_rollout_that_blows_up_to_non_finite_values_raises(checkpoint_every):
         assert ("checkpoint_every=None to find the first step" in str(e)) == (checkpoint_every is not None)
         assert not np.isfinite(r.positions()).all()  # the run stays readable
         assert not np.isfinite(r.forward(v0=BLOWING_UP, check=False)).all()
-        r = Rollout(model, 10, 1e-3, frames=[5, 10], checkpoint_every=checkpoint_every)
+        r = Rollout(model, 10, 1e-3, frames=[5, 10], checkpoint_every=checkpoint_every,
+                    solver=we.Solver(model, fit="curvature_corrected"))
+        assert not r.solver.rest_model
         r.set_parameters({"mu": [1e37]})
         assert np.abs(r.forward()).max() > 1e20
     with pytest.raises(ValueError, match=r"^check = 'no' is not allowed: must be True or False"):
