@@ -71,7 +71,8 @@ def _model_note(rows, labels: bool = False) -> str:
     # Quoted: a label holds commas of its own ("preset rubber, viscosity 0").
     which = ", ".join(f'"{label}"' for label in dict.fromkeys(str(r["label"]) for r in rest)) + "; " if labels else ""
     text = (" The default solver (`fit=\"auto\"`) runs the rest-configuration model where a scene is purely elastic "
-            "and has no tool, and the incremental composition `F <- dF F` elsewhere (docs/physics.md, \"The default "
+            "and has no floor images or ghost floor, and the incremental composition `F <- dF F` elsewhere "
+            "(docs/physics.md, \"The default "
             f"for purely elastic scenes: the rest model\"): {len(rest)} of the {len(var)} variational rows ran the rest "
             f"model ({which}`rest_model_steps` in docs/validation.json counts its steps)")
     if len(rest) < len(var):

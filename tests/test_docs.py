@@ -244,15 +244,22 @@ def test_the_rest_models_guard_physics_md_states_is_the_codes():
 
 
 def test_the_pages_name_every_scene_part_that_keeps_auto_off_the_rest_model():
-    """``fit="auto"`` runs the rest model only where ``Model.scene_allows_rest``: no tool, no
-    floor images, no ghost floor. README.md said it runs "for purely elastic scenes without
-    tools" and "where the scene has no tools", and docs/method.md the same, where a scene with
-    floor images or a ghost floor runs the incremental composition."""
-    assert "ghost floor, no floor images, no tool" in we.Model.scene_allows_rest.__doc__
+    """``fit="auto"`` runs the rest model only where ``Model.scene_allows_rest``: no floor
+    images, no ghost floor; tools are allowed. README.md once said it runs "for purely elastic
+    scenes without tools" and "where the scene has no tools", and docs/method.md the same,
+    where a scene with floor images or a ghost floor runs the incremental composition; then,
+    once tools were allowed, a page still naming them would send a tool's scene to the wrong
+    model."""
+    doc = we.Model.scene_allows_rest.__doc__
+    assert "no ghost floor, no floor images (tools" in doc and "allowed" in doc
+    named = 0
     for page in [ROOT / "README.md", DOCS / "cli.md", DOCS / "method.md", DOCS / "physics.md"]:
         text = _plain(page.read_text())
-        for m in re.finditer(r"(?:scenes without|the scene has no) tools\b(.{0,40})", text):
-            assert "floor images" in m.group(1) and "ghost floor" in m.group(1), (page.name, m.group(0))
+        for m in re.finditer(r"(?:scenes without|the scene has no) (?:tools|floor images)\b(.{0,50})", text):
+            named += 1
+            assert not re.search(r"\btools\b(?! allowed)", m.group(0)), (page.name, m.group(0))
+            assert "floor images" in m.group(0) and "ghost floor" in m.group(0), (page.name, m.group(0))
+    assert named >= 6
 
 
 def test_the_incremental_guard_physics_md_states_is_the_codes():

@@ -614,20 +614,20 @@ class Model:
         """Whether ``fit="auto"`` (``fit``; None: the model's) may run the rest-configuration model
         for this scene, whatever the parameters: every material variational and incremental, and
         none of what the rest neighbourhood cannot follow. A ghost floor and floor images enter
-        the incremental fit only; a tool (a moving collider, ``SceneBuilder.add_tool``) can force
-        a body through a rearrangement, which the incremental fit follows as its neighbours
-        change, while a rest neighbourhood holds every pair it began with (a sphere pressed into
-        a block inverts its rest fits, and diverged until their energy was continued through
-        det = 0; docs/physics.md, the rest model's Limits).
-        Pins are not tools here: they hold particles in place."""
+        the incremental fit only. Tools (moving colliders, ``SceneBuilder.add_tool``), pins and
+        static colliders are allowed: a tool pressed deep into a body inverts rest fits, whose
+        energy is continued through det = 0, and every probe of a tool striking, squeezing,
+        pressing or sweeping a body runs on (the incremental composition diverged in some),
+        keeping energy and rebound better (docs/physics.md, the rest model's Limits)."""
         asked = self.fit if fit is None else fit
         return (asked == "auto" and self.scene_allows_rest
                 and all(m.deformation == "incremental" and m.elastic_force == "variational" for m in self.materials))
 
     @property
     def scene_allows_rest(self) -> bool:
-        """The scene's part of ``may_run_rest``: no ghost floor, no floor images, no tool."""
-        return self.ghost_floor is None and self.image_plane is None and not (self.tools is not None and self.tools.colliders)
+        """The scene's part of ``may_run_rest``: no ghost floor, no floor images (tools, pins
+        and static colliders allowed)."""
+        return self.ghost_floor is None and self.image_plane is None
 
     def solver_choice(self, fit: str | None = None, hourglass: float | None = None) -> tuple[str, float]:
         """``(fit, c)``: the incremental fit and the hourglass strength a ``Solver(model, fit=fit,

@@ -167,8 +167,8 @@ class Solver:
     where every material is ``"rest"``: then it is the rest model's total fit that is corrected
     (with ``elastic_force="variational"`` a conservative elastic force, docs/physics.md, "The
     energy of undamped elastic bodies"). Where ``"auto"`` chose the corrected fit and the scene
-    allows it (``Model.may_run_rest``: no floor images, no ghost floor, no tool, which could
-    force a body through a rearrangement no rest neighbourhood follows), the step runs the
+    allows it (``Model.may_run_rest``: no floor images, no ghost floor, which enter the
+    incremental fit only; tools are allowed), the step runs the
     rest-configuration model for every material (``rest_model``; the kernels read the
     deformation code ``"rest"``,
     ``Model.material_arrays(rest=True)``): the corrected total fit against the rest
@@ -731,8 +731,8 @@ class Solver:
             if tape is not None and state_in.F.requires_grad and state_out.F_p.grad is None:
                 raise RuntimeError("step is not allowed under a tape here: a parameter turned the model elastic, so "
                                    "this step hands its F over to the rest-configuration model (State.rest_model), "
-                                   "and the states' F_p carry no gradient (made before the model's fit, materials "
-                                   "or tools allowed the rest model, Model.may_run_rest); make the states again "
+                                   "and the states' F_p carry no gradient (made before the model's fit or materials "
+                                   "allowed the rest model, Model.may_run_rest); make the states again "
                                    "with Model.state(requires_grad=True)")
             Fp_in = wp.empty_like(state_in.F_p, requires_grad=state_in.F.requires_grad)
             comparison.launch_rest_handover(m, state_in, Fp_in, curved_rest, rest_guard, rest)
