@@ -501,13 +501,13 @@ def test_energy_spiky_pressure_gradients_match_central_differences(weights, case
 def _elastic_model(params=None, **kw):
     """The hourglass block made purely elastic (no yield, no flow): the default solver
     (``fit="auto"``) then runs the curvature-corrected fit with the hourglass control, on the
-    rest model (no tools; ``kw``: ``_model``'s)."""
+    rest model (``kw``: ``_model``'s)."""
     return _hourglass_model({"yield_stress": float("inf"), "flow_rate": 0.0, "hardening": 0.0, **(params or {})}, **kw)
 
 
 @pytest.mark.parametrize("name", ["mu", "lam", "v0"])
 def test_default_solver_of_an_elastic_model_gradients_match_central_differences(weights, name):
-    """What the default solver runs for a purely elastic model without tools under a tape (the
+    """What the default solver runs for a purely elastic model under a tape (the
     rest model with the corrected total fit, ``Solver.rest_model``: the hand-written adjoints of
     its kernels, ``comparison.adjoint_kernels``, and Warp's generated one of the control)
     against central differences."""

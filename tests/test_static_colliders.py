@@ -204,8 +204,8 @@ def test_reaction_is_the_same_on_both_schedules_and_with_tools():
     the same state: the fused and the staged schedule, and a model with a (never touching)
     moving tool, whose step runs the static colliders in the tools' integrate kernel,
     report the same ground force and torque. All with the linear fit, which the fused schedule
-    runs: for this elastic block ``fit="auto"`` runs the rest model without a tool and the
-    incremental composition with one (``Model.may_run_rest``)."""
+    runs: for this elastic block ``fit="auto"`` runs the rest model, with a tool or without
+    (``Model.may_run_rest``)."""
     m, s = _block(0.3, "ground")
     a, _ = _settle(m, s, 600)
     v = a.v.numpy()

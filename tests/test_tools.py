@@ -533,6 +533,9 @@ def _loss_kernel(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), rf: w
 
 def _loss(model, grad=False):
     s = we.Solver(model)
+    # The elastic block runs the default's rest model, tools and all: the tape through the
+    # tools' contact is checked on it.
+    assert s.rest_model
     states = [model.state() for _ in range(STEPS + 1)]
     n = model.particle_count
     w = wp.array(np.random.default_rng(7).normal(size=(n, 3)), dtype=wp.vec3d, requires_grad=False)
@@ -698,8 +701,10 @@ def _row_loss_kernel(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), r
 def _row_loss(model, row, params=(), steps=STEPS):
     """The positions' weighted sum after ``steps`` plus tool ``row``'s reaction force and
     torque, weighed, at every step; with ``params`` (``(array of model.tools, component)``
-    pairs), also the tape's gradient in each, at ``row``."""
+    pairs), also the tape's gradient in each, at ``row``. The elastic block runs the
+    default's rest model."""
     s = we.Solver(model)
+    assert s.rest_model
     states = [model.state() for _ in range(steps + 1)]
     n = model.particle_count
     w = wp.array(np.random.default_rng(7).normal(size=(n, 3)), dtype=wp.vec3d)
