@@ -1394,10 +1394,9 @@ def _overflowing_cube():
     ``fit``) blows the cube 5e24 m apart in 10 steps, finite: its first step flings the particles
     out of each other's support, and a particle without neighbours feels no force. (On the rest
     model, which ``fit="auto"`` runs, every rest pair holds: that first step's fit, entries near
-    3e25, overflows float32 in its stress and the run is non-finite after step 2. Before an
-    inverted rest fit's energy was continued through det = 0, that fit's overflowed determinant
-    read as inverted and the particles kept ``F = I``.) (A shear modulus of 3e38 Pa, whose
-    lam + 2 mu float32 does not hold, is refused.)"""
+    3e25, has a NaN float32 determinant, and the particles keep ``F = I``, counted as inverted,
+    a blow-up as finite.) (A shear modulus of 3e38 Pa, whose lam + 2 mu float32 does not hold,
+    is refused.)"""
     b = we.SceneBuilder(spacing=0.02, support_radius=0.05, gravity=(0.0, 0.0, 0.0))
     b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), we.Material(mu=1.0e3, lam=1.5e3, yield_stress=1e9,
                                                                pressure_stiffness=0.0, density=1000.0), name="cube")
@@ -1444,6 +1443,24 @@ def test_a_rollout_that_blows_up_to_non_finite_values_raises(checkpoint_every):
         assert np.abs(r.forward()).max() > 1e20
     with pytest.raises(ValueError, match=r"^check = 'no' is not allowed: must be True or False"):
         r.forward(check="no")
+
+
+def test_a_rest_fit_whose_determinant_is_nan_keeps_F_and_is_counted_inverted():
+    """On the rest model (``fit="auto"`` here), a fit whose float32 determinant overflows to
+    NaN (``_overflowing_cube`` at 1e37 Pa: the first step's fit has entries near 3e25) is on
+    neither side of det = 0. Since an inverted fit was taken (det <= 0) it was taken too, and
+    not counted: 0 inverted, and the stress of the overflowed fit made the run non-finite after
+    step 2. It keeps the particle's last ``F`` and is counted as inverted, as before that
+    change: every particle, every step, and the run stays finite with ``F = I``."""
+    model = _overflowing_cube()
+    r = Rollout(model, 10, 1e-3, frames=[5, 10])
+    assert r.solver.rest_model
+    r.set_parameters({"mu": [1e37]})
+    with pytest.warns(RuntimeWarning, match="above the explicit stability limit"):  # the blow-up's premise
+        positions = r.forward(check=False)
+    assert r.solver.guard_counts()["inverted"] == model.particle_count * 10
+    assert np.isfinite(positions).all() and np.abs(positions).max() > 1e20
+    np.testing.assert_array_equal(r.final_state().F.numpy(), np.broadcast_to(np.eye(3), (model.particle_count, 3, 3)))
 
 
 def test_a_non_finite_rollout_within_the_stable_step_does_not_blame_dt():

@@ -103,6 +103,13 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         return mat.elastic_force[m] == 1 and (mat.flow_rate[m] <= scalar(0.0) or wp.isinf(mat.yield_stress[m]))
 
     @wp.func
+    def takes_rest_fit(mat: Materials, m: int, det: scalar) -> bool:
+        """Whether material ``m``'s rest fit ``F_e`` of determinant ``det`` is taken: where
+        ``det > 0``, and where ``det <= 0`` if ``continues_inverted``. A ``det`` that is neither
+        (NaN: a fit overflowed in float32) is not: the last ``F`` is kept, counted as inverted."""
+        return det > scalar(0.0) or (det <= scalar(0.0) and continues_inverted(mat, m))
+
+    @wp.func
     def rest_total_fit(
         i: int,
         rest_x: wp.array(dtype=vec3),
@@ -230,7 +237,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         """``deformation.update_deformation`` for every deformation model (``curved``: the rest
         model's total fit is the curvature-corrected one, ``curvature.corrected_fit``;
         ``rest_At_inv``, ``rest_K``: its rest moments, ``Model.rest_moments``). An inverted rest
-        fit is taken where ``continues_inverted`` (counted), else the last ``F`` is kept."""
+        fit is taken where ``continues_inverted`` (counted), else the last ``F`` is kept
+        (counted); so is the last ``F`` where the fit's determinant is NaN (``takes_rest_fit``)."""
         i = wp.tid()
         F = F_prev[i]
         d = mat.deformation[material[i]]
@@ -249,12 +257,14 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 # Taken inverted too (counted): its energy is continued through det = 0
                 # (inverted_stress). Keeping the last F there left a frozen stress whose force
                 # is the gradient of no energy, which pumped a crushed body up until it diverged.
-                if continues_inverted(mat, material[i]):
-                    F = G * wp.inverse(Fp[i])
-                    if wp.determinant(F) <= scalar(0.0):
-                        wp.atomic_add(counters, COUNT_INVERTED, 1)
-                else:
-                    F = unless_inverted(G * wp.inverse(Fp[i]), F, counters)
+                # A NaN det (an overflowed fit) is neither side of 0: it keeps the last F,
+                # counted, as every fit not > 0 did before; taking it hid it from the counts.
+                Fe = G * wp.inverse(Fp[i])
+                det = wp.determinant(Fe)
+                if takes_rest_fit(mat, material[i], det):
+                    F = Fe
+                if not (det > scalar(0.0)):
+                    wp.atomic_add(counters, COUNT_INVERTED, 1)
         else:
             A, B, same = moment_sums(i, x, y, y, y, body, nbr, count[i], h)
             dF = step_gradient(A, B, guard[i], gf.guard_scale(A, same, min_neighbors, max_condition), counters)
@@ -411,16 +421,15 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     ):
         """The ``F`` that ``update_deformation`` takes at the positions ``x`` (not counted): a
         rest particle's ``G(x) F_p^-1`` where its guard holds no singular neighbourhood and the
-        fit is taken (``continues_inverted``, or not inverted), else the stored ``F``. The
-        strain a start holds against the rest shape, whatever its stored ``F`` says
-        (``Solver.start_deformation``)."""
+        fit is taken (``takes_rest_fit``), else the stored ``F``. The strain a start holds
+        against the rest shape, whatever its stored ``F`` says (``Solver.start_deformation``)."""
         i = wp.tid()
         out = F[i]
         m = material[i]
         if mat.deformation[m] == 1 and rest_guard[i] == 0:
             G = rest_total_fit(i, rest_x, x, body, rest_nbr, rest_count[i], h, rest_At_inv[i], rest_K[i], curved)
             Fe = G * wp.inverse(Fp[i])
-            if continues_inverted(mat, m) or wp.determinant(Fe) > scalar(0.0):
+            if takes_rest_fit(mat, m, wp.determinant(Fe)):
                 out = Fe
         F_out[i] = out
 
@@ -429,7 +438,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                                  rest_start_fit=rest_start_fit,
                                  rest_map_moments=rest_map_moments, rest_moments=rest_moments,
                                  rest_total_fit=rest_total_fit, continues_inverted=continues_inverted,
-                                 inverted_stress=inverted_stress)
+                                 takes_rest_fit=takes_rest_fit, inverted_stress=inverted_stress)
 
 
 @functools.cache
@@ -450,7 +459,7 @@ def adjoint_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
     fo = forces.funcs(scalar, weight)
     Materials = materials.struct(scalar)
     rest_total_fit = kernels(scalar, weight).rest_total_fit
-    continues_inverted = kernels(scalar, weight).continues_inverted
+    takes_rest_fit = kernels(scalar, weight).takes_rest_fit
     curved = 1 if fit == "curvature_corrected" else 0
 
     @wp.func
@@ -482,8 +491,8 @@ def adjoint_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         deformation code "rest"): ``adj G = adj F F_p^-T``, to the positions as the variational
         force's pairs with ``M = -adj G A~^-T`` (``adjoint_kernels``; no guard fade: a guarded
         rest neighbourhood keeps its ``F`` whole, and all of ``adj F`` goes to the flowed
-        ``F``, as where ``G F_p^-1`` inverts and its material does not take it,
-        ``continues_inverted``), and ``adj F_p^-1 = G^T adj F`` to ``F_p`` (``inverse_adjoint``)."""
+        ``F``, as where the forward does not take ``G F_p^-1``, ``takes_rest_fit``), and
+        ``adj F_p^-1 = G^T adj F`` to ``F_p`` (``inverse_adjoint``)."""
         i = wp.tid()
         G = adj_F_out[i]
         if rest_guard[i] != 0:
@@ -494,7 +503,7 @@ def adjoint_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         K = rest_K[i]
         fit = rest_total_fit(i, rest_x, y, body, rest_nbr, n, h, At_inv, K, wp.static(curved))
         Fp_inv = wp.inverse(Fp[i])
-        if wp.determinant(fit * Fp_inv) <= scalar(0.0) and not continues_inverted(mat, material[i]):
+        if not takes_rest_fit(mat, material[i], wp.determinant(fit * Fp_inv)):
             adj_F_prev[i] = adj_F_prev[i] + G
             return
         adj_Fp[i] = adj_Fp[i] + inverse_adjoint(Fp_inv, wp.transpose(fit) * G)
