@@ -1498,6 +1498,32 @@ def test_a_fit_whose_guess_runs_to_non_finite_values_fails_as_before(worlds):
                 progress=False, diagnostics=False)
 
 
+def test_fit_json_records_the_composition_a_flowed_start_ran():
+    """fit.json's ``solver.rest_model`` was read from the fitted values alone: a fit of an
+    elastic body from a flowed start (``initial_state`` of an incremental step, ``alpha`` > 0),
+    which its rollouts ran on the incremental composition (``Solver._runs_rest``), said True.
+    It says what ran, as the rollout's solver records it; a list where experiments differ."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.06, 0.06, 0.06), we.Material(mu=2e3, lam=3e3))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    flowed = model.state()
+    flowed.alpha.fill_(0.01)
+    flowed.rest_model = False  # written by an incremental step
+    loss = PositionLoss({2: model.particle_x0.astype(np.float64) - 0.001})
+    kw = dict(steps=2, dt=2e-4)
+    args = dict(iterations=0, progress=False, diagnostics=False)
+    r = fit(model, loss, ["mu"], initial={"initial_state": flowed}, **kw, **args)
+    assert model.solver_record()["rest_model"] is True
+    rollout = Rollout(model, 2, 2e-4)
+    rollout.forward(initial_state=flowed)
+    assert rollout.solver.record()["rest_model"] is False
+    assert r.to_dict()["solver"]["rest_model"] is False
+    assert fit(model, loss, ["mu"], **kw, **args).to_dict()["solver"]["rest_model"] is True
+    both = fit([Experiment(model, loss, initial={"initial_state": flowed}, **kw), Experiment(model, loss, **kw)],
+               None, ["mu"], **args)
+    assert both.to_dict()["solver"]["rest_model"] == [False, True]
+
+
 def test_a_fitted_material_keeps_its_force_defaulted_or_given():
     """The fitted materials were built with ``dataclasses.replace`` of the model's, which gave
     them the resolved ``"variational"`` as if asked for: a fitted ``Material(...)`` then

@@ -53,7 +53,7 @@ from .builder import SceneBuilder
 from .losses import (ChamferLoss, Loss, MeshLoss, PositionLoss, SlumpLoss, SumLoss, WorldLoss, _leaves, is_tools_csv,
                      read_tools_csv)
 from .material import PRESSURE_BULK_SHARE, Material, _following_force
-from .model import Model, check_material_precision
+from .model import Model, State, check_material_precision
 from .rollout import PARAMETERS, STATE_OVERHEAD, Rollout, RolloutMemoryError, _RolloutMemory, check_initial
 
 __all__ = ["fit", "FitResult", "Experiment", "Adam", "memory_estimate", "choose_checkpointing", "latin_hypercube",
@@ -134,6 +134,9 @@ class FitResult:
     evaluations: int = 0
     #: Why the gradient was zero, where a loss knows (``Loss.out_of_reach``); else "".
     flat_cause: str = ""
+    #: Per experiment, whether its start is a flowed body an incremental step wrote, which the
+    #: rest model is never handed (``Solver._runs_rest``): it runs the incremental composition.
+    flowed_starts: list = dataclasses.field(default_factory=list)
 
     TERMINATION = {
         "converged": "converged: the last step (or the gradient) fell below its tolerance",
@@ -190,11 +193,20 @@ class FitResult:
         ``fit`` and ``hourglass`` with ``Model.solver_record``'s ``resolved_fit``,
         ``resolved_hourglass`` and ``rest_model`` (``fit="auto"`` resolves by the values, so a
         fit of ``flow_rate`` that ends at 0 ends on the rest-configuration model); None
-        without a model."""
+        without a model. ``rest_model`` is what the experiments' rollouts run from their
+        starts: False for one whose start is a flowed body (``flowed_starts``), and a list,
+        one per experiment, where the experiments differ."""
         m = self.model
         if not isinstance(m, Model):
             return None
-        return {"fit": m.fit, "hourglass": m.hourglass, **m.solver_record()}
+        record = {"fit": m.fit, "hourglass": m.hourglass, **m.solver_record()}
+        # From the parameters alone it said True for a flowed start, which the rollouts ran on
+        # the incremental composition.
+        models = self.models or [m]
+        flowed = self.flowed_starts or [False] * len(models)
+        ran = [bool(e.auto_runs_rest(None)) and not f for e, f in zip(models, flowed)]
+        record["rest_model"] = ran[0] if len(set(ran)) == 1 else ran
+        return record
 
 
 def _json_safe(obj):
@@ -555,7 +567,6 @@ class _Run(_Values):
         and the fit fitted to what they made (a box pressing at two spacings a step drove a
         block 0.25 m through the ground). The fitted parameters are the materials', so the
         speeds are those of the whole fit."""
-        from .model import State  # noqa: PLC0415
         from .simulate import START_ADVICE, StepRefusal, check_particle_speed  # noqa: PLC0415
 
         m = self.model
@@ -578,6 +589,19 @@ class _Run(_Values):
         """Run the rollout at ``dt`` (the same steps and frames; before any run)."""
         self.dt = dt
         self.rollout = Rollout(self.model, self.steps, dt, frames=self.loss.frames, checkpoint_every=self._segment)
+
+    def flowed_start(self) -> bool:
+        """Whether the rollout's start is a flowed body an incremental step wrote
+        (``State.rest_model`` False, ``alpha`` > 0 somewhere), as ``Rollout.forward`` builds it
+        from ``initial``: its solver keeps the incremental composition (``Solver._runs_rest``)."""
+        init = self.initial.get("initial_state")
+        rest_model = init.rest_model if isinstance(init, State) else None
+        if "F0" in self.starts:
+            rest_model = False
+        alpha = self.starts.get("alpha0")
+        if alpha is None:
+            alpha = init.alpha.numpy() if isinstance(init, State) else 0.0
+        return rest_model is False and bool(np.any(np.asarray(alpha) > 0.0))
 
     def forward(self) -> np.ndarray:
         """The rollout from this experiment's starts (checked once, at set-up)."""
@@ -1414,6 +1438,7 @@ def fit(
     )
     result.models = [r.model for r in runs]
     result.experiment_materials = fitted
+    result.flowed_starts = [r.flowed_start() for r in runs]
     result.starts = stops
     result.evaluations = sum(1 for h in history if h["stage"] == "descent")
 
@@ -1682,6 +1707,7 @@ def _interrupted_result(history, runs, params):
                        initial_loss=history[0]["loss"], history=history, model=runs[0].model, stopped="interrupted")
     result.models = [r.model for r in runs]
     result.experiment_materials = fitted
+    result.flowed_starts = [r.flowed_start() for r in runs]
     result.evaluations = sum(1 for h in history if h["stage"] == "descent")
     return result
 
