@@ -1474,13 +1474,26 @@ def _stvk_energy(model, F: np.ndarray, mu: float, lam: float) -> float:
     return float((model.particle_volume.numpy() * psi).sum())
 
 
+def _corotated_energy(model, F: np.ndarray, mu: float, lam: float) -> float:
+    """``sum V psi(F)`` of the corotated energy ``psi = mu sum(s - 1)^2 + lam/2 (sum(s - 1))^2``
+    in the signed singular values (the smallest negative where det F < 0): the energy whose
+    gradient the linear models' stress is where the material cannot flow."""
+    U, s, Vt = np.linalg.svd(F.astype(np.float64))
+    s[:, 2] *= np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    e = s - 1.0
+    psi = mu * (e * e).sum(axis=1) + 0.5 * lam * e.sum(axis=1) ** 2
+    return float((model.particle_volume.numpy() * psi).sum())
+
+
 def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", resolution: int = 6,
                  periods: float = 50.0, dt_factor: float = 1.0, E: float = 2.0e5, nu: float = 0.3, fit: str | None = None, hourglass: float | None = None,
-                 deformation: str = "incremental") -> dict:
-    """An undamped elastic cube (``resolution``^3 particles, St. Venant-Kirchhoff, pressure
-    off, no gravity, no viscosity) set breathing with ``v = a (x - c)`` so that its peak
-    strain is about ``amplitude``. The total energy (kinetic + sum V psi(F), psi the
-    St. Venant-Kirchhoff energy of the stored F) over ``periods`` breathing periods:
+                 deformation: str = "incremental", model: str = "stvk") -> dict:
+    """An undamped elastic cube (``resolution``^3 particles, St. Venant-Kirchhoff or the
+    material ``model`` given, pressure off, no gravity, no viscosity) set breathing with
+    ``v = a (x - c)`` so that its peak strain is about ``amplitude``. The total energy
+    (kinetic + sum V psi(F), psi the energy of the stored F whose gradient the model's stress
+    is: St. Venant-Kirchhoff's, twice it for ``hyperelastic``, the corotated one,
+    ``_corotated_energy``, for ``linear`` and ``non_newtonian``) over ``periods`` breathing periods:
     drift = (E_end - E_0) / E_0 and the largest |E - E_0| / E_0. With the variational
     force the elastic force is minus the gradient of exactly this energy: of the step's
     incremental fit ``dF F`` (``deformation="incremental"``, path dependent), or of the total
@@ -1489,11 +1502,18 @@ def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", r
     wp, we = _we()
     dx = 0.02
     n = resolution
-    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, model="stvk", elastic_force=elastic_force,
+    mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, model=model, elastic_force=elastic_force,
                                  deformation=deformation)
+    material_model = model
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
     b.add_box((0.0, 0.0, 0.0), (n * dx,) * 3, mat)
     model = b.finalize(device=wp.get_device())
+
+    def elastic_energy(F, mu, lam):
+        if material_model in ("linear", "non_newtonian"):
+            return _corotated_energy(model, F, mu, lam)
+        return (2.0 if material_model == "hyperelastic" else 1.0) * _stvk_energy(model, F, mu, lam)
+
     x0 = model.particle_x0.astype(np.float64)
     # Breathing mode of a free cube: omega ~ pi c_p / side; strain amplitude a / omega.
     omega = math.pi * mat.p_wave_speed / (n * dx)
@@ -1501,7 +1521,7 @@ def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", r
     a, c = model.state(), model.state()
     a.v.assign(rate * (x0 - x0.mean(axis=0)))
     mu, lam = mat.mu, mat.lam
-    e0 = _kinetic(model, a) + _stvk_energy(model, a.F.numpy(), mu, lam)
+    e0 = _kinetic(model, a) + elastic_energy(a.F.numpy(), mu, lam)
     solver = _solver(model, fit=fit, hourglass=hourglass)
     dt = dt_factor * model.stable_dt(hourglass=solver.hourglass)
     steps = int(periods * 2.0 * math.pi / omega / dt)
@@ -1525,7 +1545,7 @@ def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", r
                 return False
         if k % every == 0 or k == steps - 1:
             F = state.F.numpy()
-            pending.append((k * dt, _stvk_energy(model, F, mu, lam), v))
+            pending.append((k * dt, elastic_energy(F, mu, lam), v))
             s = np.linalg.svd(F.astype(np.float64), compute_uv=False)
             peak_strain[0] = max(peak_strain[0], float(np.abs(s - 1.0).max()))
 
@@ -1533,6 +1553,7 @@ def energy_drift(amplitude: float = SMALL, elastic_force: str = "variational", r
     h = np.array(hist)
     blew = bool(not np.isfinite(h[-1, 1]) or h[-1, 1] > 99.0)
     return {"case": "energy", "amplitude": amplitude, "elastic_force": elastic_force, "deformation": deformation,
+            "model": material_model,
             "fit": solver.fit, "hourglass": solver.hourglass, "resolution": n,
             "dt_factor": dt_factor, "periods": float(h[-1, 0] * omega / (2.0 * math.pi)),
             "peak_strain": peak_strain[0], "drift": float(h[-1, 1]), "max_deviation": float(np.nanmax(np.abs(h[:, 1]))),
