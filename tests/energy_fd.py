@@ -13,6 +13,23 @@ def stvk_psi(model, F):
     return mu * np.einsum("nij,nij->n", E, E) + 0.5 * lam * tr**2
 
 
+def corotated_psi(model, F):
+    """The corotated energy density ``mu sum(s - 1)^2 + lam/2 (sum(s - 1))^2`` of each ``F``
+    (material 0's ``mu``, ``lam``) in its signed singular values (the smallest negative where
+    det F < 0, as the rotation-variant SVD's): the energy whose gradient the linear models'
+    stress is where the material cannot flow (``forces.corotated_stress``)."""
+    U, s, Vt = np.linalg.svd(np.asarray(F, dtype=np.float64))
+    s[:, 2] *= np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    e = s - 1.0
+    mu, lam = model.materials[0].mu, model.materials[0].lam
+    return mu * (e * e).sum(axis=1) + 0.5 * lam * e.sum(axis=1) ** 2
+
+
+def corotated_energy(model, F) -> float:
+    """``sum_i V_i corotated_psi(F_i)``."""
+    return float((model.particle_volume.numpy() * corotated_psi(model, F)).sum())
+
+
 def continued_stvk_psi(model, F):
     """``stvk_psi``, and where det F <= 0 the rest model's continuation through det = 0
     (``comparison``'s ``inverted_stress``): ``psi(s_0, s_1, 0) + (lam + 2 mu) s_2^2 / 2`` of the

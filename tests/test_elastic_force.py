@@ -13,7 +13,8 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from energy_fd import central_gradient, continued_stvk_energy, image_heights, mover, stvk_energy, stvk_psi
+from energy_fd import (central_gradient, continued_stvk_energy, corotated_energy, image_heights, mover,
+                       stvk_energy, stvk_psi)
 from warp_esph import tools
 from warp_esph.scenes import FIGURE_SCENES, SCENES, get_scene
 
@@ -126,6 +127,144 @@ def test_the_rest_force_through_inverted_fits_is_minus_the_gradient_of_the_conti
     assert np.abs(force + dEdx).max() < 1e-6 * np.abs(dEdx).max()
     even = scale * central_gradient(lambda k, d: stvk_energy(model, moved(k, d).F.numpy()), range(3 * n))
     assert np.abs(force + even).max() > 0.1 * np.abs(even).max()
+
+
+@pytest.mark.parametrize("material_model", ["linear", "non_newtonian"])
+@pytest.mark.parametrize("case", ["incremental fused", "incremental", "rest", "rest inverted"])
+def test_the_force_of_a_linear_material_that_cannot_flow_is_minus_the_gradient_of_the_corotated_energy(
+        case, material_model):
+    """A ``linear`` or ``non_newtonian`` material on the variational force that cannot flow
+    (``yield_stress = inf``) takes the corotated stress (``forces.corotated_stress``): its force
+    equals the central difference of ``sum V psi(F)``, ``psi`` the corotated energy
+    (``energy_fd.corotated_psi``), of the incremental fit ``dF(y) F`` (``F`` up to 15 % from
+    ``I``, fused and not) and of the rest model's total fit, strained 10 % and inverted
+    through one axis (the corotated energy is smooth through det = 0 in the signed singular
+    values: no continuation). Before, these materials took eq. 9's ``U diag(s o P^) V^T``,
+    the gradient of no energy beyond small strain: measured 18 % (incremental), 11 % (rest) and
+    64 % (inverted, its energy then continued as ``stvk``'s is) off the largest force."""
+    rest = case.startswith("rest")
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, model=material_model,
+                                 elastic_force="variational", deformation="rest" if rest else "incremental")
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (4 * SPACING, 4 * SPACING, 3 * SPACING), mat)
+    model = b.finalize(dtype=wp.float64)
+    n = model.particle_count
+    rng = np.random.default_rng(2)
+    X = model.particle_x0
+    solver = we.Solver(model, fit="linear", hourglass=0.0, fused=case == "incremental fused")
+    a, b_, c = model.state(), model.state(), model.state()
+    dt = 1.0e-9
+    if rest:
+        strain = np.diag([1.0, 1.0, -0.5]) if case == "rest inverted" else np.eye(3)
+        x0 = X @ (strain + 0.1 * rng.uniform(-1.0, 1.0, size=(3, 3))).T + rng.normal(scale=0.03 * SPACING, size=(n, 3))
+        a.x.assign(x0)
+        solver.step(a, b_, dt)  # b_: at x0 (to 1e-9), with F = G(x0)
+        a = b_
+        det = np.linalg.det(a.F.numpy())
+        assert (det < -0.05).all() if case == "rest inverted" else (det > 0.5).all()
+    else:
+        a.x.assign(X + rng.normal(scale=0.02 * SPACING, size=(n, 3)))
+        a.F.assign(np.eye(3) + rng.uniform(-0.15, 0.15, size=(n, 3, 3)))
+    moved = mover(solver, a, c, dt)
+    force = moved(0, 0.0).force.numpy().ravel().copy()
+    dEdx = central_gradient(lambda k, d: corotated_energy(model, moved(k, d).F.numpy()), range(3 * n))
+    assert sum(v for k, v in solver.guard_counts().items() if k != "inverted") == 0
+    assert np.abs(force + dEdx).max() < 1e-6 * np.abs(dEdx).max(), np.abs(force + dEdx).max() / np.abs(dEdx).max()
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_only_materials_that_cannot_flow_take_the_corotated_stress(fused):
+    """The stress a step writes (``State.stress``) of ``F = U diag(s) V^T`` (the flowed ``F``,
+    up to 15 % from ``I``): a ``linear`` or ``non_newtonian`` material on the variational force
+    that cannot flow (``yield_stress = inf``, or ``flow_rate = 0``) takes the corotated stress
+    ``U diag(P^) V^T``, ``P^ = 2 mu (s - 1) + lam sum(s - 1)``; one that can flow (finite yield
+    stress and a flow rate; not reached here) and one on the paper's force keep eq. 9's
+    ``U diag(s o P^) V^T``, as before (docs/physics.md, "Choices")."""
+    cases = {
+        "elastic": ({}, True),
+        "flow rate 0": ({"yield_stress": 1.0e9, "flow_rate": 0.0}, True),
+        "non_newtonian elastic": ({"model": "non_newtonian"}, True),
+        "can flow": ({"yield_stress": 1.0e9, "flow_rate": 50.0}, False),
+        "paper force": ({"elastic_force": "paper"}, False),
+    }
+    rng = np.random.default_rng(4)
+    for name, (options, corotated) in cases.items():
+        mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, **options)
+        b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+        b.add_box((0.0, 0.0, 0.0), (3 * SPACING,) * 3, mat)
+        model = b.finalize(dtype=wp.float64)
+        n = model.particle_count
+        solver = we.Solver(model, fit="linear", fused=fused)
+        a, c = model.state(), model.state()
+        a.F.assign(np.eye(3) + rng.uniform(-0.15, 0.15, size=(n, 3, 3)))
+        solver.step(a, c, 1.0e-9)
+        F = c.F_flowed.numpy()
+        U, s, Vt = np.linalg.svd(F)
+        assert (np.linalg.det(F) > 0).all()
+        p_hat = 2.0 * mat.mu * (s - 1.0) + mat.lam * (s - 1.0).sum(axis=1, keepdims=True)
+        expected = np.einsum("nij,nj,njk->nik", U, p_hat if corotated else s * p_hat, Vt)
+        other = np.einsum("nij,nj,njk->nik", U, s * p_hat if corotated else p_hat, Vt)
+        P = c.stress.numpy()
+        assert np.abs(P - expected).max() < 1e-9 * np.abs(expected).max(), name
+        assert np.abs(P - other).max() > 0.02 * np.abs(expected).max(), name
+
+
+def _pressure_energy(model, x) -> float:
+    """The clamped SPH pressure energy of the default ``energy_spiky`` force at ``x``:
+    ``sum m k_p (ln(rho / rho0) + rho0 / rho - 1)`` where ``rho > rho0``, ``rho`` the spiky
+    density sum, ``rho0`` its value in the initial configuration."""
+    h = model.support_radius
+    m = model.particle_mass.numpy().astype(np.float64)
+
+    def rho(y):
+        r = np.sqrt(((y[:, None, :] - y[None, :, :]) ** 2).sum(-1))
+        return (m[None, :] * 15.0 / (np.pi * h**6) * np.clip(h - r, 0.0, None) ** 3).sum(1)
+
+    r, r0 = rho(np.asarray(x, dtype=np.float64)), rho(model.particle_x0.astype(np.float64))
+    k_p = model.materials[0].pressure_stiffness
+    return float((m * np.where(r > r0, k_p * (np.log(r / r0) + r0 / r - 1.0), 0.0)).sum())
+
+
+def test_a_block_of_the_default_material_released_from_a_stretch_keeps_its_energy():
+    """The default material (``Material.from_young(2e5, 0.3)``: ``linear``, variational force,
+    default SPH pressure) as a 4^3 block (1 cm, float64, no gravity) released from a 10 %
+    uniform stretch, on the default solver (the rest model), at half the stable step: its
+    energy (kinetic, with the mean of the half-step velocities, plus the corotated elastic
+    and the pressure energy) stays within 2 % of its start over 0.17 s (measured 0.9 %: the
+    O(dt^2) offset of the sampled energy; 3.6 % at the stable step over 1.33 s, as ``stvk``'s
+    3.7 %). Before, the ``linear`` stress was eq. 9's ``U diag(s o P^) V^T``, the gradient of no
+    energy beyond small strain: on this conservative scheme the block gained energy, 26 %
+    within these 0.17 s; at the stable step it went on to invert its rest fits and
+    diverge at 0.97 s."""
+    mat = we.Material.from_young(2.0e5, 0.3)
+    b = we.SceneBuilder(spacing=0.01, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.04, 0.04, 0.04), mat)
+    model = b.finalize(dtype=wp.float64)
+    solver = we.Solver(model)
+    a, c = model.state(), model.state()
+    x = a.x.numpy()
+    a.x.assign(x.mean(axis=0) + 1.1 * (x - x.mean(axis=0)))
+    m = model.particle_mass.numpy()[:, None]
+    frame = 1.0 / 30.0
+    sub = int(np.ceil(2.0 * frame / model.stable_dt(hourglass=solver.hourglass)))
+    dt = frame / sub
+
+    def energy(state, v):
+        return (0.5 * float((m * v * v).sum()) + corotated_energy(model, solver.start_deformation(state))
+                + _pressure_energy(model, state.x.numpy()))
+
+    e0 = energy(a, np.zeros_like(x))
+    relative = []
+    for _ in range(5):
+        for _ in range(sub - 1):
+            solver.step(a, c, dt)
+            a, c = c, a
+        v_before = a.v.numpy()
+        solver.step(a, c, dt)
+        relative.append(energy(a, 0.5 * (v_before + c.v.numpy())) / e0 - 1.0)
+        a, c = c, a
+    assert solver.rest_model and solver.guard_counts()["inverted"] == 0
+    assert np.abs(relative).max() < 0.02, relative
 
 
 def test_a_ball_thrown_hard_onto_a_plane_keeps_its_energy_on_the_rest_model():
@@ -597,9 +736,15 @@ def test_rubber_ball_bounces_and_settles_in_its_shape():
     (docs/physics.md, the SPH pressure): the earlier bounds on these (1e-4 J/kg, 0.03 m/s)
     held for one realization only. So the bounds are on the deformation's kinetic energy, the
     rigid rotation about the centroid removed (measured 3.0e-6 to 3.2e-5 / 6.7e-6 to 3.8e-5
-    J/kg), on the shape by its principal second moments (0.966-1.006 / 0.972-1.016 of the
-    start's; the axis extents of a turned lattice sphere change by up to 15 %), on the
-    centroid's drift (at most 0.012 m) and on its speed with room for the rocking."""
+    J/kg on the incremental composition), on the shape by its principal second moments
+    (0.966-1.006 / 0.972-1.016 of the start's; the axis extents of a turned lattice sphere
+    change by up to 15 %), on the centroid's drift (at most 0.012 m) and on its speed with room
+    for the rocking. On the rest model, the default for this elastic ball, the deformation's
+    kinetic energy at 4 s is as chaotic: over the same four starts 1.7e-5 to 5.3e-4 J/kg with
+    eq. 9's stress (the centroid's speed 0.011-0.069 m/s) and 9.2e-6 to 1.6e-3 J/kg with the
+    corotated stress it takes now (0.015-0.064 m/s), from 1e-2 to 3e-2 J/kg at 2 s either way;
+    the shape within 0.989-1.005 of the start's. The bounds sit above those spreads: one
+    realization of eq. 9 already broke the earlier 1e-4 J/kg and 0.06 m/s."""
     from warp_esph.scenes import get_scene
 
     scene = get_scene("rubber_bounce", scale=0.6)
@@ -623,8 +768,8 @@ def test_rubber_ball_bounces_and_settles_in_its_shape():
     r0 = model.particle_x0 - model.particle_x0.mean(axis=0)
     moments = np.linalg.eigvalsh(r.T @ r) / np.linalg.eigvalsh(r0.T @ r0)
     assert bounced
-    assert deformation < 1e-4, deformation
-    assert np.abs(v.mean(axis=0)).max() < 0.06
+    assert deformation < 3e-3, deformation
+    assert np.abs(v.mean(axis=0)).max() < 0.08
     centroid_drift = np.abs(x.mean(axis=0) - model.particle_x0.mean(axis=0))[[0, 2]].max()
     assert centroid_drift < 0.02
     np.testing.assert_allclose(moments, 1.0, atol=0.05)

@@ -543,8 +543,11 @@ def test_default_solver_of_an_elastic_model_gradients_match_central_differences(
 #: rest neighbourhoods are guarded (a guarded particle keeps its F, no force); ``inverted``, its
 #: positions mirrored through one axis, ``REST_INVERSION`` of the rest ones: every rest fit
 #: inverted, taken with its energy continued through det = 0 (``comparison``'s ``inverted_stress``).
-REST_CASES = ("rest", "strained", "contact", "guarded", "inverted")
+REST_CASES = ("rest", "strained", "stretched", "contact", "guarded", "inverted")
 REST_STRAIN = np.diag([1.04, 0.97, 1.02])
+# Far past small strain, where the corotated stress a linear material that cannot flow takes
+# (forces.corotated_stress) and eq. 9's part.
+REST_STRETCH = np.array([[1.15, 0.05, 0.0], [0.0, 0.9, 0.04], [0.03, 0.0, 1.1]])
 REST_INVERSION = np.diag([1.04, 0.97, -0.6])
 
 
@@ -561,7 +564,8 @@ def _rest_case_loss(case, weights, params=None, dx=None, dv=None, grad_of=(), ha
     solver.hand_adjoints = hand_adjoints
     assert solver.rest_model
     states = [model.state() for _ in range(STEPS + 1)]
-    x = model.particle_x0 @ {"strained": REST_STRAIN, "inverted": REST_INVERSION}.get(case, np.eye(3)).T
+    x = model.particle_x0 @ {"strained": REST_STRAIN, "stretched": REST_STRETCH,
+                             "inverted": REST_INVERSION}.get(case, np.eye(3)).T
     v = model.particle_v0.copy()
     if dx is not None:
         x[dx[0], dx[1]] += dx[2]
@@ -588,9 +592,10 @@ def test_rest_models_hand_written_adjoints_match_central_differences(weights, ca
     """The rest model's hand-written adjoints (its total fit's and its variational force's,
     ``comparison.adjoint_kernels``, with those of the rest of the step) against float64
     central differences in ``mu``, ``lam`` and a particle's initial velocity and position, at
-    rest, strained, through ground contact, with guarded rest neighbourhoods and through
-    inverted rest fits (a bottom corner, 0: guarded in ``guarded``, on the ground in
-    ``contact``; an interior particle, 41)."""
+    rest, strained (a few %, and up to 15 %: the block's linear material cannot flow, so it
+    takes the corotated stress, ``forces.corotated_stress``), through ground contact, with
+    guarded rest neighbourhoods and through inverted rest fits (a bottom corner, 0: guarded in
+    ``guarded``, on the ground in ``contact``; an interior particle, 41)."""
     loss, grads = _rest_case_loss(case, weights, grad_of=(name,))
     if name in ("v0", "x0"):
         key = "dv" if name == "v0" else "dx"

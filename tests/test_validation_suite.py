@@ -188,8 +188,11 @@ def test_column_settles_by_rho_g_l2_over_2e():
     """A free-standing column 4 across and 20 tall on a frictionless ground, pressure off,
     relaxed dynamically (``validation.column_settlement``): the top settles by the continuum
     ``rho g L (L - dx) / (2 E)`` between the end layers' centres. Measured with the default
-    (the rest model) 0.979 x, residual -8e-4 % of it per s (the incremental composition before
-    it: 0.978; 6 across: 0.993; the paper's force 1.31 / 1.21, docs/validation.md).
+    (the rest model, the corotated stress of a linear material that cannot flow) 0.971 x,
+    residual +8e-4 % of it per s, as at a tenth of the load (E 10 x: 0.971); 6 across: 0.981
+    (with eq. 9's stress, which softened the column by about its mean strain, 1.3 % at the
+    base: 0.979, the incremental composition 0.978; 6 across 0.993; the paper's force 1.31 /
+    1.21, docs/validation.md).
     An earlier form of this test ran the column damped by viscosity alone for 3000 steps
     (0.95 x over the second half, ringing 0.72-1.20 x): seven times the cost."""
     r = validation.column_settlement(resolution=4)
@@ -807,22 +810,24 @@ def indented():
     return validation.sphere_indentation(resolution=8)
 
 
-def test_sphere_indentation_at_2_mm_within_5_percent_of_the_bonded_layer(indented):
+def test_sphere_indentation_at_2_mm_within_10_percent_of_the_bonded_layer(indented):
     """The 4 cm block on its held base is a layer bonded to a rigid base, not a half-space:
     at 2 mm (contact radius 1.8 dx, chi = a / h = 0.26) the layer correction of Dimitriadis et
     al. (2002) makes it 28 % stiffer than Hertz. Measured with the default solver (the rest
-    model): 1.020 x the bonded layer (1.305 x Hertz) at 2 mm, 0.928 x at 1 mm (contact radius
-    1.3 dx: under-resolved), exponent 1.75 for the layer's 1.61 (docs/validation.md, R61; on
-    the incremental composition, the default with tools before, 1.043 x, 1.335 x Hertz, 0.928 x
-    and 1.78, R56; 1.042 / 0.917 and 1.79 before a particle within the tool's contact margin
-    counted as touching); at 12 across, on the incremental composition, 1.015 and 1.052 x,
-    exponent 1.55 (docs/validation.md). The bound is 5 %, not the 3 % the linear fit was
-    held to: at 8 across the two fits bracket the layer theory and differ by 3 % (5 % on the
-    incremental composition; the paper's linear fit with the control at 0.1: 0.991 at 2 mm;
-    0.984 and 0.969 at 12 and 16 across), the discretisation error of a contact 1.8 spacings
-    wide; both move towards it with resolution."""
+    model): 1.071 x the bonded layer (1.370 x Hertz) at 2 mm, 0.949 x at 1 mm (contact radius
+    1.3 dx: under-resolved), exponent 1.78 for the layer's 1.61; at 12 across 1.047 at 2 mm,
+    1.068 at 1 mm, exponent 1.57. The bound is 10 %: the contact is past small strain
+    (a / R = 0.22 at 2 mm), where the stress model moves the force by 5 %. The block's elastic
+    ``linear`` material takes the corotated stress (``forces.corotated_stress``), linear in the
+    stretch, where eq. 9's first Piola stress, which it took before, is the stretch times that,
+    softer in compression by about the contact's strain: with it 1.020 / 0.928 x at 8 across,
+    exponent 1.75 (docs/validation.md, R61), 0.993 / 1.037 at 12 across. Under either stress the
+    force comes towards the layer theory with resolution (1.071 -> 1.047; 1.020 -> 0.993), the
+    discretisation error of a contact 1.8 spacings wide (the paper's linear fit with the
+    control at 0.1, on the incremental composition with eq. 9: 0.991 at 2 mm; 0.984 and 0.969
+    at 12 and 16 across)."""
     r = indented
-    assert r["ratios"][1] == pytest.approx(1.0, abs=0.05), r["ratios"]
+    assert r["ratios"][1] == pytest.approx(1.0, abs=0.10), r["ratios"]
     assert r["ratios_hertz"][1] > 1.15, r["ratios_hertz"]  # the half-space misses the layer's stiffening
     assert 0.8 < r["ratios"][0] < 1.05, r["ratios"]
     assert r["exponent"] == pytest.approx(r["theory_exponent"], abs=0.25), (r["exponent"], r["theory_exponent"])
@@ -840,9 +845,10 @@ def test_sphere_indentation_base_is_bonded_and_carries_the_load(indented):
 
 
 def test_sphere_indentation_force_holds_while_the_sphere_is_held(indented):
-    """Held 0.1 s longer at 2 mm: measured 1.015 x the bonded layer against 1.020 x at the
-    first reading (R61; on the incremental composition 1.039 against 1.043, R56) (without the
-    control it fell to half, next test)."""
+    """Held 0.1 s longer at 2 mm: measured 1.068 x the bonded layer against 1.071 x at the
+    first reading (with eq. 9's stress, before the block's elastic material took the corotated
+    one: 1.015 against 1.020, R61; on the incremental composition 1.039 against 1.043, R56)
+    (without the control it fell to half, next test)."""
     assert indented["late_ratio"] == pytest.approx(indented["ratios"][-1], rel=0.01)
 
 
@@ -850,8 +856,9 @@ def test_without_the_hourglass_control_the_lattice_under_a_held_sphere_gives_way
     """The cause of the decay, kept visible: the same indentation straight to 2 mm with the
     paper's linear fit and no control (``fit="linear", hourglass=0``; the default adds the
     control to this elastic block), the force 0.1 s later is well below its first reading
-    (measured: 0.632 x Hertz from 1.254 x): the layers under the apex take up the fit's
-    zero-energy pattern."""
+    (measured: 0.670 x Hertz from 1.319 x; 0.685 from 1.254 with eq. 9's stress, which the
+    block's elastic linear material took before the corotated one): the layers under the apex
+    take up the fit's zero-energy pattern."""
     r = validation.sphere_indentation(resolution=8, depths=(0.002,), fit="linear", hourglass=0.0)
     print(f"without the control: {r['ratios'][-1]:.3f} then {r['late_ratio']:.3f} x the bonded layer")
     assert r["late_ratio"] < 0.8 * r["ratios"][-1], (r["ratios"], r["late_ratio"])

@@ -18,7 +18,9 @@ from . import checks
 #: ``non_newtonian``: eq. 9, flow rate divided by the stress magnitude (paper Fig. 1).
 #: ``hyperelastic``: eq. 9 with squared singular values (paper Fig. 5), twice the St.
 #: Venant-Kirchhoff stress. ``stvk``: the St. Venant-Kirchhoff stress itself, for
-#: quantitative work (its small-strain stiffness equals the linear model's).
+#: quantitative work (its small-strain stiffness equals the linear model's). A ``linear`` or
+#: ``non_newtonian`` material on the variational force that cannot flow takes the corotated
+#: stress instead of eq. 9's (``Material``'s docstring).
 MODELS = ("linear", "non_newtonian", "hyperelastic", "stvk")
 #: The models whose steady simple shear is a Bingham fluid of ``Material.shear_yield_stress``
 #: and ``Material.plastic_viscosity`` (``Material.from_rheology``).
@@ -119,7 +121,14 @@ class Material:
     only (the others refuse)
     (``tests/test_units.py`` checks the relation in a simulated simple-shear test).
 
-    ``yield_stress = inf`` (or ``flow_rate = 0``) gives a purely elastic material.
+    ``yield_stress = inf`` (or ``flow_rate = 0``) gives a purely elastic material. With the
+    variational force, such a ``linear`` or ``non_newtonian`` material (the default
+    ``Material.from_young(E, nu)`` is one) takes the corotated stress ``P = U diag(P^) V^T``,
+    ``P^ = 2 mu (sigma - 1) + lam sum(sigma - 1)``, minus the gradient of the energy
+    ``mu sum(sigma - 1)^2 + lam/2 (sum(sigma - 1))^2``, where eq. 9's ``U diag(sigma o P^) V^T``
+    (the same at small strain) is the gradient of no energy, and gained energy on the
+    conservative rest model that ``fit="auto"`` runs for it (docs/physics.md, "Choices"). A
+    material that can flow, and one on the paper's force, keeps eq. 9.
     ``pressure_stiffness = None`` picks ``k_p = K / (4 rho0)`` (``K = lam + 2 mu / 3`` the
     bulk modulus) for the energy force, ``K / (2 rho0)`` for the spiky one and ``0.46 K /
     rho0`` for ``energy_spiky`` (``PRESSURE_BULK_SHARE``): either way SPH pressure adds about a quarter of the bulk

@@ -11,7 +11,8 @@ Selected per material with ``Material(deformation=...)``:
   evaluated once per rest set, fit and fit weight (``Model.rest_moments``; a solver keeps the
   rest set it obtained, ``Solver.rest_set``), not at every step. Where the fit inverts
   (a body crushed through zero thickness), a variational material that cannot flow takes it,
-  its energy continued through det = 0 (``inverted_stress``); others keep the last ``F``.
+  its energy continued through det = 0 (``inverted_stress``; the linear models' corotated
+  stress, ``forces.corotated_stress``, needs no continuation); others keep the last ``F``.
 - ``"additive"``: a symmetric strain ``ε`` per particle, ``ε <- ε + ½(dFᵀdF − I)`` with the
   step's MLS ``dF``; plastic flow removes the fraction ``γ = min(nu_f dt (|s| − Y − K α)/|s|, 1)``
   of ``dev ε`` where ``|s| = 2 mu |dev ε| > Y + K α``; stress ``σ = 2 mu ε + lam tr(ε) I``,
@@ -65,15 +66,18 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
 
     @wp.func
     def inverted_stress(F: mat33, mu: scalar, lam: scalar, model: int) -> mat33:
-        """P* of an inverted rest fit (det ``F`` <= 0; ``forces.stress`` where det > 0), the
-        stress of the energy continued through det = 0 as invertible finite elements do: in the
-        rotation-variant SVD (``isotropic.py``: ``U``, ``V`` rotations, the smallest singular
-        value ``s_2 <= 0``) ``psi(s_0, s_1, 0) + k s_2^2 / 2``, ``k`` the model's stiffness along
-        one singular value at rest (``lam + 2 mu``; ``2 (lam + 2 mu)`` for ``hyperelastic``). Every
-        model's ``P*`` is ``s_2`` times a factor in its third principal value, so ``P*`` and the
-        energy are continuous at det = 0, and the inverted side pushes back out (``k s_2``)
-        where ``forces.stress`` of the mirrored ``F`` pulled on through (St. Venant-Kirchhoff's
-        energy is even in each ``s``: the mirror image of the rest shape costs none).
+        """P* of an inverted rest fit (det ``F`` <= 0; ``forces.stress`` where det > 0) of a
+        polynomial model (``hyperelastic``, ``stvk``), the stress of the energy continued
+        through det = 0 as invertible finite elements do: in the rotation-variant SVD
+        (``isotropic.py``: ``U``, ``V`` rotations, the smallest singular value ``s_2 <= 0``)
+        ``psi(s_0, s_1, 0) + k s_2^2 / 2``, ``k`` the model's stiffness along one singular value
+        at rest (``lam + 2 mu``; ``2 (lam + 2 mu)`` for ``hyperelastic``). ``P*`` is ``s_2``
+        times a factor in its third principal value, so ``P*`` and the energy are continuous at
+        det = 0, and the inverted side pushes back out (``k s_2``) where ``forces.stress`` of
+        the mirrored ``F`` pulled on through (St. Venant-Kirchhoff's energy is even in each
+        ``s``: the mirror image of the rest shape costs none). The linear models need none:
+        where the fit is taken inverted they run ``forces.corotated_stress``, whose energy is
+        already smooth and restoring through det = 0 in the signed singular values.
         ``d1``: the divided differences ``isotropic_map``'s adjoint needs."""
         s = iso.singular_values(F)
         z = vec3(s[0], s[1], scalar(0.0))
@@ -82,25 +86,20 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         # polynomial_stress in the SVD frame: c (2 mu (s^3 - s) + lam (sum s^2 - 3) s)
         g_poly = c * (scalar(2.0) * mu * (wp.cw_mul(wp.cw_mul(z, z), z) - z) + lam * tr * z)
         d_poly = c * (scalar(2.0) * mu * (s[0] * s[0] + s[0] * s[1] + s[1] * s[1] - scalar(1.0)) + lam * tr)
-        g_lin = ff.principal_stress(z, mu, lam)
-        d_lin = ff.principal_stress_differences(z, mu, lam)[0]
-        poly = model >= 2
         k = wp.where(model == 2, scalar(2.0), scalar(1.0)) * (lam + scalar(2.0) * mu)
-        g0 = wp.where(poly, g_poly[0], g_lin[0])
-        g1 = wp.where(poly, g_poly[1], g_lin[1])
         g2 = k * s[2]
-        d1 = vec3(wp.where(poly, d_poly, d_lin), pair_difference(g0, g2, s[0], s[2]),
-                  pair_difference(g1, g2, s[1], s[2]))
-        return iso.isotropic_map(F, vec3(g0, g1, g2), d1)
+        d1 = vec3(d_poly, pair_difference(g_poly[0], g2, s[0], s[2]), pair_difference(g_poly[1], g2, s[1], s[2]))
+        return iso.isotropic_map(F, vec3(g_poly[0], g_poly[1], g2), d1)
 
     @wp.func
     def continues_inverted(mat: Materials, m: int) -> bool:
         """Whether material ``m``'s rest fit is taken where it inverts, its energy continued
-        through det = 0 (``inverted_stress``): a variational force that cannot flow (``yield_stress
+        through det = 0 (``inverted_stress``, or the corotated stress's own, smooth there): a
+        variational force that cannot flow (``forces.cannot_flow_variational``: ``yield_stress
         = inf`` or ``flow_rate <= 0``), the rest model that ``fit="auto"`` runs. Elsewhere an
         inverted fit keeps the last ``F``, as before: the paper's force is the gradient of no
         energy anyway, and a flow of an inverted ``F_e`` would write a mirrored ``F_p``."""
-        return mat.elastic_force[m] == 1 and (mat.flow_rate[m] <= scalar(0.0) or wp.isinf(mat.yield_stress[m]))
+        return ff.cannot_flow_variational(mat, m)
 
     @wp.func
     def takes_rest_fit(mat: Materials, m: int, det: scalar) -> bool:
@@ -202,11 +201,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             F_out[i] = Fe
             alpha_out[i] = a_new
             Fp_out[i] = Fp
-            if d == 1 and wp.determinant(Fe) <= scalar(0.0) and continues_inverted(mat, m):
+            sk = ff.stress_model(mat, m)
+            if d == 1 and kind >= 2 and wp.determinant(Fe) <= scalar(0.0) and continues_inverted(mat, m):
                 # An inverted rest fit (update_deformation takes it): the continued energy's stress.
                 stress_out[i] = inverted_stress(Fe, mu, lam, kind)
             else:
-                stress_out[i] = stress(Fe, mu, lam, kind)
+                stress_out[i] = stress(Fe, mu, lam, sk)
             F_inv_out[i] = Fe_inv
 
     @wp.kernel(module="unique")
@@ -255,8 +255,9 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             else:
                 G = rest_total_fit(i, rest_x, y, body, rest_nbr, rest_count[i], h, rest_At_inv[i], rest_K[i], curved)
                 # Taken inverted too (counted): its energy is continued through det = 0
-                # (inverted_stress). Keeping the last F there left a frozen stress whose force
-                # is the gradient of no energy, which pumped a crushed body up until it diverged.
+                # (inverted_stress, or the corotated stress's, smooth there). Keeping the last F
+                # there left a frozen stress whose force is the gradient of no energy, which
+                # pumped a crushed body up until it diverged.
                 # A NaN det (an overflowed fit) is neither side of 0: it keeps the last F,
                 # counted, as every fit not > 0 did before; taking it hid it from the counts.
                 Fe = G * wp.inverse(Fp[i])

@@ -5,7 +5,10 @@ Stress, in the SVD frame ``F = U diag(sigma) V^T``:
     P^ = 2 mu (sigma - 1) + lam sum(sigma - 1)                    (eq. 9)
     P* = U diag(sigma o P^) V^T                                   (U F^ P^ V^T of eq. 10)
 
-and the variants: ``hyperelastic`` squares the singular values first (paper Fig. 5),
+and the variants: a ``linear`` or ``non_newtonian`` material on the variational force that
+cannot flow takes the corotated stress ``P = U diag(P^) V^T`` (``corotated_stress``: eq. 9
+is the gradient of no energy beyond small strain, and that force must be one's);
+``hyperelastic`` squares the singular values first (paper Fig. 5),
 ``P* = 2 mu (F F^T F - F) + lam (tr F^T F - 3) F`` (twice St. Venant-Kirchhoff), and
 ``stvk`` is half of that, whose small-strain stiffness equals the linear model's.
 
@@ -41,8 +44,13 @@ import warp as wp
 
 from .._types import type_set
 from .. import checks
+from ..material import MODELS
 from . import deformation, guards, isotropic, materials, neighbors, smoothing
 from .replay import kept_through_backward, recording_tape
+
+
+#: ``stress_model``'s code for ``corotated_stress``, past ``material.MODELS``' indices.
+COROTATED = len(MODELS)
 
 
 @functools.cache
@@ -58,6 +66,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     image_row_length = deformation.funcs(scalar, weight).image_row_length
     image_slots = deformation.funcs(scalar, weight).image_slots
     image_row_particle = deformation.image_row_particle
+    Materials = materials.struct(scalar)
 
     @wp.func
     def principal_stress(s: vec3, mu: scalar, lam: scalar) -> vec3:
@@ -81,6 +90,47 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         )
 
     @wp.func
+    def corotated_principal_stress(s: vec3, mu: scalar, lam: scalar) -> vec3:
+        """The principal values ``P^ = 2 mu (s - 1) + lam sum(s - 1)`` of ``corotated_stress``:
+        the gradient in ``s`` of ``psi = mu sum(s - 1)^2 + lam/2 (sum(s - 1))^2``."""
+        tr = s[0] + s[1] + s[2] - scalar(3.0)
+        one = vec3(scalar(1.0), scalar(1.0), scalar(1.0))
+        return scalar(2.0) * mu * (s - one) + lam * tr * one
+
+    @wp.func
+    def corotated_stress(F: mat33, mu: scalar, lam: scalar) -> mat33:
+        """``P = U diag(P^) V^T``, minus the gradient in ``F`` of the corotated energy
+        ``psi = mu sum(s - 1)^2 + lam/2 (sum(s - 1))^2`` (``s`` the rotation-variant singular
+        values, so ``psi`` is smooth and restoring through det ``F`` = 0): the first Piola
+        stress with eq. 9's small-strain limit that the variational force of a material that
+        cannot flow takes (``stress_model``). Eq. 9's ``P* = U diag(s o P^) V^T`` is the gradient
+        of no energy beyond small strain (``d(s_k P^_k)/ds_j = lam s_k`` is not symmetric),
+        which let a conservative scheme gain energy. The divided differences of ``P^`` are
+        ``2 mu`` for every pair, exact also at repeated singular values."""
+        s = iso.singular_values(F)
+        two_mu = scalar(2.0) * mu
+        return iso.isotropic_map(F, corotated_principal_stress(s, mu, lam), vec3(two_mu, two_mu, two_mu))
+
+    @wp.func
+    def cannot_flow_variational(mat: Materials, m: int) -> bool:
+        """Whether material ``m`` takes the variational force and cannot flow (``yield_stress
+        = inf`` or ``flow_rate <= 0``): its elastic force is minus the gradient of an energy,
+        so its stress must be one's (``stress_model``); the rest model that ``fit="auto"``
+        runs, and whose inverted fit is taken (``comparison.continues_inverted``)."""
+        return mat.elastic_force[m] == 1 and (mat.flow_rate[m] <= scalar(0.0) or wp.isinf(mat.yield_stress[m]))
+
+    @wp.func
+    def stress_model(mat: Materials, m: int) -> int:
+        """The stress ``stress`` computes for material ``m``: its model (``material.MODELS``),
+        but ``COROTATED`` for a linear or non-Newtonian one that ``cannot_flow_variational``
+        (eq. 9's stress is no energy's gradient; ``corotated_stress``). Materials that can
+        flow keep the paper's stress."""
+        k = mat.model[m]
+        if k <= 1 and cannot_flow_variational(mat, m):
+            k = COROTATED
+        return k
+
+    @wp.func
     def polynomial_stress(F: mat33, mu: scalar, lam: scalar, model: int) -> mat33:
         """Eq. 9 with squared singular values (paper Fig. 5), a polynomial in ``F``:
         ``2 mu (F F^T F - F) + lam (tr F^T F - 3) F`` for ``hyperelastic`` (model 2),
@@ -92,8 +142,11 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
 
     @wp.func
     def stress(F: mat33, mu: scalar, lam: scalar, model: int) -> mat33:
-        """P* for material model ``model`` (index into ``material.MODELS``), differentiable:
-        eq. 9 through ``isotropic_map`` (its adjoint stable at repeated singular values)."""
+        """P* for material model ``model`` (index into ``material.MODELS``, or ``COROTATED``:
+        ``stress_model``), differentiable: eq. 9 through ``isotropic_map`` (its adjoint stable
+        at repeated singular values)."""
+        if model == COROTATED:
+            return corotated_stress(F, mu, lam)
         if model >= 2:
             return polynomial_stress(F, mu, lam, model)
         s = iso.singular_values(F)
@@ -307,6 +360,8 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         fit_variational_forces=fit_variational_forces,
         image_map=image_map, floor_image_forces=floor_image_forces,
         stress=stress, principal_stress=principal_stress, principal_stress_differences=principal_stress_differences,
+        corotated_principal_stress=corotated_principal_stress, corotated_stress=corotated_stress,
+        cannot_flow_variational=cannot_flow_variational, stress_model=stress_model,
         polynomial_stress=polynomial_stress, elastic_pair_force=elastic_pair_force, paper_forces=paper_forces,
         elastic_pair_adjoint=elastic_pair_adjoint, paper_image_count=paper_image_count,
         scatter_image_pair_adjoint=deformation.funcs(scalar, weight).scatter_image_pair_adjoint,

@@ -3,8 +3,9 @@
 ``constitutive_forces`` does, per particle, what ``plasticity.constitutive_update``,
 ``forces.elastic_forces`` and ``pressure.pressure_forces`` do in three launches, calling
 the same functions for every formula (``plasticity.guarded_flow_step``,
-``forces.principal_stress`` / ``polynomial_stress``, ``forces.elastic_pair_force`` /
-``variational_pair_force``, ``pressure.sph_pair_force``). What it saves:
+``forces.principal_stress`` / ``corotated_principal_stress`` / ``polynomial_stress``,
+``forces.elastic_pair_force`` / ``variational_pair_force``, ``pressure.sph_pair_force``).
+What it saves:
 
 * one SVD of ``F`` instead of four: the plastic flow ``F_e = F + U diag(g - sigma) V^T``
   (``isotropic.isotropic_change``, compensated into ``F_lo``) keeps the singular vectors,
@@ -55,6 +56,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     df = deformation.funcs(scalar, weight)
     image_update = deformation.image_update_funcs(scalar, weight, "linear").floor_image_update
     Materials = materials.struct(scalar)
+    COROTATED = forces.COROTATED
 
     @wp.kernel(enable_backward=False, module="unique")
     def constitutive_forces(
@@ -124,12 +126,16 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
 
         # 2. Stress P* (forces.stress, reusing the SVD) and F^-1.
         P = mat33()
-        if kind >= 2:
-            P = fo.polynomial_stress(Fe, mu, lam, kind)
+        sk = fo.stress_model(mat, m)
+        if sk >= 2 and sk != COROTATED:
+            P = fo.polynomial_stress(Fe, mu, lam, sk)
         else:
             if have_svd == 0:
                 wp.svd3(Fe, U, s, V)
-            P = iso.from_principal(U, fo.principal_stress(s, mu, lam), V)
+            if sk == COROTATED:
+                P = iso.from_principal(U, fo.corotated_principal_stress(s, mu, lam), V)
+            else:
+                P = iso.from_principal(U, fo.principal_stress(s, mu, lam), V)
         Finv = wp.inverse(Fe)
         F_out[i] = Fe
         F_lo_out[i] = Fe_lo

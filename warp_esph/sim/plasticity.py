@@ -186,6 +186,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     mat33 = T.mat33
     flow = funcs(scalar).flow
     stress = forces.funcs(scalar, "poly6").stress
+    stress_model = forces.funcs(scalar, "poly6").stress_model
     Materials = materials.struct(scalar)
 
     @wp.kernel(module="unique")
@@ -213,7 +214,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         F_out[i] = Fe
         F_lo_out[i] = Fe_lo
         alpha_out[i] = a_new
-        stress_out[i] = stress(Fe, mu, mat.lam[m], kind)
+        stress_out[i] = stress(Fe, mu, mat.lam[m], stress_model(mat, m))
         F_inv_out[i] = wp.inverse(Fe)
 
     @wp.kernel(module="unique")
@@ -248,7 +249,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             Fe, Fe_lo, a = flow(Fg, mat33(), a, mu, mat.yield_stress[m], mat.flow_rate[m], mat.hardening[m], kind, dt,
                                 counters)
             Fg = Fe + Fe_lo
-            P = stress(Fg, mu, mat.lam[m], kind)
+            P = stress(Fg, mu, mat.lam[m], stress_model(mat, m))
         F_out[i] = Fg
         alpha_out[i] = a
         stress_out[i] = P
@@ -275,6 +276,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     j_hi = scalar(VOLUME_PRESERVING_RANGE[1])
 
     # The isotropic map's adjoint in the SVD frame: its formulas, used step by step here.
+    COROTATED = forces.COROTATED
     off_diagonal = isotropic.funcs(scalar).off_diagonal
     pair_d2 = isotropic.funcs(scalar).pair_skew_coefficients
 
@@ -305,7 +307,8 @@ def kernels(scalar) -> types.SimpleNamespace:
         ``isotropic_map``), as the fused forward reuses one.
 
         ``F = U diag(s) V^T``; plastic flow ``F_e = U diag(g) V^T`` (``g = c s^p``,
-        ``flow_step``); ``P = U diag(f(g)) V^T`` (eq. 9, ``principal_stress``); ``F^-1``.
+        ``flow_step``); ``P = U diag(f(g)) V^T`` (eq. 9, ``principal_stress``, or
+        ``corotated_principal_stress`` where ``forces.stress_model`` says so); ``F^-1``.
         Backward: ``adj F_e = adj F_out - F^-T adj F^-1 F^-T + U (diag(J_f^T diag(C_P)) + M_P) V^T``
         with ``C_P = U^T adj P V`` and ``M_P`` the off-diagonal part with the divided
         differences of ``f`` (isotropic.py); then ``C = U^T adj F_e V``, ``adj g = diag(C)``
@@ -367,13 +370,27 @@ def kernels(scalar) -> types.SimpleNamespace:
         af = vec3(CP[0, 0], CP[1, 1], CP[2, 2])
         tr = g[0] + g[1] + g[2] - scalar(3.0)
         one = vec3(scalar(1.0), scalar(1.0), scalar(1.0))
-        f = fo.principal_stress(g, mu, lam)
         base = scalar(2.0) * mu * (g - one) + lam * tr * one
-        afg = wp.dot(af, g)
-        ag_P = wp.cw_mul(af, base) + scalar(2.0) * mu * wp.cw_mul(af, g) + lam * afg * one
-        a_mu = scalar(2.0) * wp.dot(af, wp.cw_mul(g, g - one))
-        a_lam = afg * tr
-        C = C + wp.diag(ag_P) + off_diagonal(CP, fo.principal_stress_differences(g, mu, lam), pair_d2(f, g))
+        f = base
+        d_f = vec3(scalar(2.0) * mu, scalar(2.0) * mu, scalar(2.0) * mu)
+        ag_P = vec3()
+        a_mu = scalar(0.0)
+        a_lam = scalar(0.0)
+        if fo.stress_model(mat, m) == COROTATED:
+            # f = P^ (forces.corotated_stress)
+            saf = af[0] + af[1] + af[2]
+            ag_P = scalar(2.0) * mu * af + lam * saf * one
+            a_mu = scalar(2.0) * wp.dot(af, g - one)
+            a_lam = saf * tr
+        else:
+            # f = g o P^ (eq. 9)
+            f = fo.principal_stress(g, mu, lam)
+            d_f = fo.principal_stress_differences(g, mu, lam)
+            afg = wp.dot(af, g)
+            ag_P = wp.cw_mul(af, base) + scalar(2.0) * mu * wp.cw_mul(af, g) + lam * afg * one
+            a_mu = scalar(2.0) * wp.dot(af, wp.cw_mul(g, g - one))
+            a_lam = afg * tr
+        C = C + wp.diag(ag_P) + off_diagonal(CP, d_f, pair_d2(f, g))
 
         a_alpha = adj_alpha_out[i]
         ag = vec3(C[0, 0], C[1, 1], C[2, 2])
