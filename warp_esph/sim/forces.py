@@ -99,7 +99,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
 
     @wp.func
     def corotated_stress(F: mat33, mu: scalar, lam: scalar) -> mat33:
-        """``P = U diag(P^) V^T``, minus the gradient in ``F`` of the corotated energy
+        """``P = U diag(P^) V^T``, the gradient in ``F`` of the corotated energy
         ``psi = mu sum(s - 1)^2 + lam/2 (sum(s - 1))^2`` (``s`` the rotation-variant singular
         values, so ``psi`` is smooth and restoring through det ``F`` = 0): the first Piola
         stress with eq. 9's small-strain limit that the variational force of a material that
