@@ -416,6 +416,10 @@ def test_fast_blade_does_not_tunnel_and_momentum_balances_the_impulse(shape):
     np.testing.assert_allclose(p1 - p0, impulse, rtol=1e-9, atol=1e-12 * np.abs(impulse).max())
 
 
+# The rods drag the particles of their row out of the block, whose rest neighbourhoods (the
+# elastic default runs the rest model, tools included) then stretch past the rows' reach of 2:
+# the step says so, as it must; this test is about tunnelling and momentum, not smoothness.
+@pytest.mark.filterwarnings("ignore:a neighbour row was cut:RuntimeWarning")
 @pytest.mark.parametrize("shape", ["sphere", "capsule", "cylinder", "box", "mesh", "plane"])
 def test_fast_primitive_does_not_tunnel_at_the_stable_step_and_momentum_balances_the_impulse(shape):
     """A 2 mm thick sphere, or a rod across the block (capsule, cylinder, square box or box
