@@ -190,9 +190,9 @@ def test_column_settles_by_rho_g_l2_over_2e():
     ``rho g L (L - dx) / (2 E)`` between the end layers' centres. Measured with the default
     (the rest model, the corotated stress of a linear material that cannot flow) 0.971 x,
     residual +8e-4 % of it per s, as at a tenth of the load (E 10 x: 0.971); 6 across: 0.981
-    (with eq. 9's stress, which softened the column by about its mean strain, 1.3 % at the
-    base: 0.979, the incremental composition 0.978; 6 across 0.993; the paper's force 1.31 /
-    1.21, docs/validation.md).
+    (docs/validation.md, R62; with eq. 9's stress, which softened the column by about its mean
+    strain, 1.3 % at the base: 0.979, R52, the incremental composition 0.978; 6 across 0.993;
+    the paper's force 1.31 / 1.25).
     An earlier form of this test ran the column damped by viscosity alone for 3000 steps
     (0.95 x over the second half, ringing 0.72-1.20 x): seven times the cost."""
     r = validation.column_settlement(resolution=4)
@@ -712,10 +712,12 @@ def test_near_yield_column_base_spreads_as_the_1d_analysis(near_yield4):
 
 # ------------------------------------------------------------- lab tests with tools
 def test_plate_compression_force_and_lateral_strain_within_10_percent_at_8_across():
-    """Frictionless plane tools, 1 % strain: measured force 1.078 x E A eps and lateral
-    strain 0.955 x nu eps at 8 across (4 across: 1.214 and 0.917), docs/validation.md, R61, on
-    the rest model the default runs with tools (the incremental composition, which it ran with
-    them before: 1.080, 0.956 and 1.218, 0.920, R56)."""
+    """Frictionless plane tools, 1 % strain: measured force 1.089 x E A eps and lateral
+    strain 0.955 x nu eps at 8 across (4 across: 1.227 and 0.917), docs/validation.md, R62, on
+    the rest model the default runs with tools, the block's elastic material taking the
+    corotated stress (with eq. 9's stress: 1.078, 0.955 and 1.214, 0.917, R61; on the
+    incremental composition, which it ran with tools before: 1.080, 0.956 and 1.218, 0.920,
+    R56)."""
     r = validation.plate_compression(resolution=8)
     assert r["force_ratio"] == pytest.approx(1.0, abs=0.10), r["force_ratio"]
     assert r["lateral_ratio"] == pytest.approx(1.0, abs=0.10), r["lateral_ratio"]
@@ -815,17 +817,17 @@ def test_sphere_indentation_at_2_mm_within_10_percent_of_the_bonded_layer(indent
     at 2 mm (contact radius 1.8 dx, chi = a / h = 0.26) the layer correction of Dimitriadis et
     al. (2002) makes it 28 % stiffer than Hertz. Measured with the default solver (the rest
     model): 1.071 x the bonded layer (1.370 x Hertz) at 2 mm, 0.949 x at 1 mm (contact radius
-    1.3 dx: under-resolved), exponent 1.78 for the layer's 1.61; at 12 across 1.047 at 2 mm,
-    1.068 at 1 mm, exponent 1.57. The bound is 10 %: the contact is past small strain
-    (a / R = 0.22 at 2 mm), where the stress model moves the force by 5 %. The block's elastic
-    ``linear`` material takes the corotated stress (``forces.corotated_stress``), linear in the
+    1.3 dx: under-resolved), exponent 1.78 for the layer's 1.61 (docs/validation.md, R62); at
+    12 across 1.047 at 2 mm, 1.068 at 1 mm, exponent 1.57. The bound is 10 %: the contact is
+    past small strain (a / R = 0.22 at 2 mm), where the stress model moves the force by 5 %.
+    The block's elastic ``linear`` material takes the corotated stress (``forces.corotated_stress``), linear in the
     stretch, where eq. 9's first Piola stress, which it took before, is the stretch times that,
     softer in compression by about the contact's strain: with it 1.020 / 0.928 x at 8 across,
     exponent 1.75 (docs/validation.md, R61), 0.993 / 1.037 at 12 across. Under either stress the
     force comes towards the layer theory with resolution (1.071 -> 1.047; 1.020 -> 0.993), the
     discretisation error of a contact 1.8 spacings wide (the paper's linear fit with the
     control at 0.1, on the incremental composition with eq. 9: 0.991 at 2 mm; 0.984 and 0.969
-    at 12 and 16 across)."""
+    at 12 and 16 across; with the corotated stress 1.043 at 8 across, R62)."""
     r = indented
     assert r["ratios"][1] == pytest.approx(1.0, abs=0.10), r["ratios"]
     assert r["ratios_hertz"][1] > 1.15, r["ratios_hertz"]  # the half-space misses the layer's stiffening
@@ -846,8 +848,8 @@ def test_sphere_indentation_base_is_bonded_and_carries_the_load(indented):
 
 def test_sphere_indentation_force_holds_while_the_sphere_is_held(indented):
     """Held 0.1 s longer at 2 mm: measured 1.068 x the bonded layer against 1.071 x at the
-    first reading (with eq. 9's stress, before the block's elastic material took the corotated
-    one: 1.015 against 1.020, R61; on the incremental composition 1.039 against 1.043, R56)
+    first reading (R62; with eq. 9's stress, before the block's elastic material took the
+    corotated one: 1.015 against 1.020, R61; on the incremental composition 1.039 against 1.043, R56)
     (without the control it fell to half, next test)."""
     assert indented["late_ratio"] == pytest.approx(indented["ratios"][-1], rel=0.01)
 
