@@ -300,6 +300,22 @@ def test_a_block_strained_against_its_rest_shape_rings_within_the_monitor_s_budg
     assert DivergenceMonitor(model, start()).e_elastic == 0.0  # the stored F = I alone
 
 
+def test_the_monitor_counts_the_energy_a_mirrored_start_holds():
+    """The rest model takes an inverted fit (its energy continued through det F = 0), so a start
+    can hold a mirrored F. The monitor's bound read F's unsigned singular values: F =
+    diag(1, 1, -1) counted as no strain at all, and a mirrored block's recoil was stopped as a
+    blow-up at frame 1. Signed by det F, the bound counts it (and an unmirrored F as before)."""
+    b = we.SceneBuilder(spacing=0.01, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.03, 0.03, 0.03), we.Material.from_young(2.0e5, 0.3))
+    model = b.finalize(dtype=wp.float64)
+    state = model.state()
+    mirrored = np.tile(np.diag([1.0, 1.0, -1.0]), (model.particle_count, 1, 1))
+    state.F.assign(mirrored.astype(state.F.numpy().dtype))
+    assert DivergenceMonitor(model, state).e_elastic > 0.0
+    state.F.assign(np.abs(mirrored).astype(state.F.numpy().dtype))
+    assert DivergenceMonitor(model, state).e_elastic == 0.0
+
+
 def test_a_compression_field_s_potential_energy_is_part_of_the_scene_s_energy():
     """A dough box under a field of k = 1e6 at 0.66 x its stable step blew up (crushed, it is
     stiffer than the limit allows for, docs/method.md §8) and the run ended with particles

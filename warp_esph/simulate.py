@@ -414,7 +414,8 @@ def _stored_energy_bound(model: Model, p: dict, F: np.ndarray, keep: np.ndarray)
     ((s_i^2 - 1) / 2)^2) V`` over F's singular values ``s``: rotation-free (``|F - I|^2``
     read a body turned by 90 degrees as 4 units of strain and so let a blow-up of a resumed
     tumbling body pass), at least each model's energy (the linear model's in ``s - 1``, St.
-    Venant-Kirchhoff's in Green's strain, the hyperelastic one's twice that), and with lam
+    Venant-Kirchhoff's in Green's strain, the hyperelastic one's twice that; the smallest
+    ``s`` signed by det F, so a mirrored F counts its inversion), and with lam
     < 0 (down to -2 mu / 3) the shear energy still counted."""
     if not keep.any():
         return 0.0
@@ -424,6 +425,9 @@ def _stored_energy_bound(model: Model, p: dict, F: np.ndarray, keep: np.ndarray)
     finite = np.isfinite(F).all(axis=(1, 2))  # a NaN F (numpy's SVD fails on it) is the non-finite check's
     s = np.ones((len(F), 3))
     s[finite] = np.linalg.svd(F[finite], compute_uv=False)
+    # Signed, as the energies read them: a mirrored F (an inverted rest fit, which the rest
+    # model takes) holds the energy of its negative singular value, where |s| read none.
+    s[finite, 2] *= np.sign(np.linalg.det(F[finite]))
     strain = np.maximum((s - 1.0) ** 2, (0.5 * (s * s - 1.0)) ** 2).sum(axis=1)
     volume = model.particle_volume.numpy().astype(np.float64)[keep]
     return float(2.0 * (stiffness[model.particle_material_np[keep]] * strain * volume).sum())
