@@ -649,8 +649,9 @@ class Rollout:
             # a block released from a 20 % stretch kept 2 % of its recoil's kinetic energy.
             init.rest_model = False
         if "alpha0" in given:
-            # A given hardening may say the body has flowed: the step reads it at a hand-over.
-            init.flowed = None
+            # A given hardening says whether the body has flowed, read here on the host: left
+            # unknown, the first step of every forward read alpha back from the device.
+            init.flowed = bool(np.any(np.asarray(given["alpha0"]) > 0.0))
 
     def _taped_states(self, count: int) -> list[State]:
         m, solver = self.model, self.solver
