@@ -279,6 +279,11 @@ class State:
             self.__dict__.pop("_checked_for", None)
         object.__setattr__(self, name, value)
 
+    def has_flowed(self) -> bool:
+        """Whether the body has flowed: ``flowed`` where known, else ``alpha`` > 0 somewhere,
+        read back from the device (not cached: a step only reads its ``state_in``)."""
+        return self.flowed if self.flowed is not None else bool(np.any(self.alpha.numpy() > 0.0))
+
     def assign(self, other: "State"):
         """Copy ``other``'s state fields (and time) into this state, and the reactions the
         step that produced it reported (``STEP_REPORTS``) where both have them alike."""

@@ -423,11 +423,9 @@ class Solver:
         and its kinetic energy grew 200-fold), so the step keeps the incremental composition,
         with the fit and control the parameters chose. ``alpha`` is read back only there, for a
         state whose ``flowed`` is not known; the states the step writes carry what it found."""
-        flowed = getattr(state_in, "flowed", None)
         if not (self.rest_model and state_in.rest_model is False):
-            return self.rest_model, flowed
-        if flowed is None:
-            flowed = bool(np.any(state_in.alpha.numpy() > 0.0))
+            return self.rest_model, getattr(state_in, "flowed", None)
+        flowed = state_in.has_flowed()
         if flowed and self.model.world_count > 1 and not self._warned_worlds_kept:
             self._warn_worlds_kept(state_in)
         return not flowed, flowed
@@ -453,8 +451,7 @@ class Solver:
         that read ``alpha`` back (``state`` is the run's own, which its first step reads)."""
         self._kept_incremental = False
         if self._auto and state.rest_model is False and self.model.auto_runs_rest(self._asked[0]):
-            if getattr(state, "flowed", None) is None:
-                state.flowed = bool(np.any(state.alpha.numpy() > 0.0))
+            state.flowed = state.has_flowed()
             self._kept_incremental = state.flowed
 
     def start_deformation(self, state: State) -> np.ndarray:
@@ -469,8 +466,7 @@ class Solver:
         F = state.F.numpy()
         rest_model = self._auto and m.auto_runs_rest(self._asked[0])
         if rest_model and state.rest_model is False:
-            flowed = state.flowed if state.flowed is not None else bool(np.any(state.alpha.numpy() > 0.0))
-            if not flowed:  # handed over (F_p = F^-1 G): the rest model goes on from the stored F
+            if not state.has_flowed():  # handed over (F_p = F^-1 G): the rest model goes on from the stored F
                 return F
             rest_model = False
         if not (self._cmp or rest_model):
