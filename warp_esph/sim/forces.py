@@ -124,7 +124,9 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         """The stress ``stress`` computes for material ``m``: its model (``material.MODELS``),
         but ``COROTATED`` for a linear or non-Newtonian one that ``cannot_flow_variational``
         (eq. 9's stress is no energy's gradient; ``corotated_stress``). Materials that can
-        flow keep the paper's stress."""
+        flow keep the paper's stress. The choice jumps where ``flow_rate`` leaves 0 or
+        ``yield_stress`` leaves inf (by about the strain squared at finite strain), which no
+        gradient sees: a fit of ``flow_rate`` started at 0 gets none from it."""
         k = mat.model[m]
         if k <= 1 and cannot_flow_variational(mat, m):
             k = COROTATED
