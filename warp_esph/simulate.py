@@ -69,11 +69,13 @@ def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=", so
     but a body it crushes is stiffer than the rest state the limit assumes (docs/method.md §8),
     so the run may blow up below it, and softer material settings do not help. Where
     ``solver`` runs the rest-configuration model (``Solver.rest_model``) and counted inverted
-    fits, it says that: a body crushed or folded past what its rest neighbourhoods follow,
-    which no smaller step mends (a soft cantilever hanging under its own weight diverged at
-    0.299 s at the stable step and at 0.293 s at half of it, before an inverted rest fit's
-    energy was continued through det = 0; it now holds), where a stiffer material or the
-    incremental composition, which follows the neighbours as a body parts, runs on. ``since``:
+    fits, it says that: a body crushed or folded through itself, where a smaller step, a
+    stiffer material or the incremental composition (which follows the neighbours as a body
+    parts) may run on. Before an inverted rest fit's energy was continued through det = 0 no
+    smaller step mended it (a soft cantilever hanging under its own weight diverged at 0.299 s
+    at the stable step and at 0.293 s at half of it; it now holds); since, a St.
+    Venant-Kirchhoff block released from twice its size, stiffer at that strain than the
+    stable step assumes, blows up at the stable step and runs on at a quarter of it. ``since``:
     the solver's inverted count when the run began (an earlier run's are not this one's);
     ``step``: the run's step, above the stable one a blow-up inverts the fits too, and a
     smaller step is the cure."""
@@ -83,8 +85,9 @@ def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=", so
         fit = ("--solver-fit curvature_corrected --hourglass 0.05" if dt == "--dt" else
                "fit='curvature_corrected' with hourglass=0.05 (SceneBuilder or Solver)")
         return (f"the rest-configuration model's fit inverted in {inverted} particle-steps: a body crushed or folded "
-                f"past what its rest neighbourhoods follow, which a smaller {dt} does not mend; try a stiffer "
-                f"material, or {fit}, the incremental composition, which follows the neighbours as a body parts")
+                f"through itself, whose strain may be stiffer than the stable limit ({stable:.3g} s) assumes; try a "
+                f"smaller {dt}, a stiffer material, or {fit}, the incremental composition, which follows the "
+                f"neighbours as a body parts")
     if _field_cause(model, 0.3, hourglass) is not None:
         _, k, which = model._field_limit(0.3)
         return (f"try a smaller {dt} (stable limit {stable:.3g} s, set by {model._field_words(which)} at net strength "

@@ -568,7 +568,7 @@ def _run_sample(scene, task: _Task) -> dict:
         if e.advice and e.advice == f"; {divergence_advice(model, solver.hourglass)}":
             why += f"; the sample's stable step is {model.stable_dt(hourglass=solver.hourglass):.3g} s"
         elif e.advice and rest_inversions(solver) and e.advice == f"; {divergence_advice(model, solver.hourglass, solver=solver)}":
-            # Its fact without the caller's options: a smaller step does not mend it.
+            # Its fact without the caller's options ('a smaller dt=', 'fit=').
             why += f"; the rest-configuration model's fit inverted in {rest_inversions(solver)} particle-steps"
         row.update(status="failed", reason=_one_line(why))
     except StepRefusal as e:
