@@ -60,6 +60,17 @@ def test_variational_force_is_minus_the_gradient_of_the_fit_energy(fused, fit, f
     assert errors["paper"] > 0.05, errors
 
 
+def _rest_block(material_model):
+    """A float64 4x4x3 block of a variational rest-model material without pressure, its
+    particle count, the jitter's generator and its rest positions: the rest force tests' scene."""
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, model=material_model, elastic_force="variational",
+                                 deformation="rest")
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (4 * SPACING, 4 * SPACING, 3 * SPACING), mat)
+    model = b.finalize(dtype=wp.float64)
+    return model, model.particle_count, np.random.default_rng(2), model.particle_x0
+
+
 @pytest.mark.parametrize("fit", ["linear", "curvature_corrected"])
 def test_rest_variational_force_is_minus_the_gradient_of_an_energy_of_the_positions(fit):
     """``Material(deformation="rest", elastic_force="variational")``: at a deformed,
@@ -69,14 +80,7 @@ def test_rest_variational_force_is_minus_the_gradient_of_an_energy_of_the_positi
     (``dF(y) F`` with the stored, path-dependent F), this one is a function of the positions
     alone: the force is conservative (docs/physics.md, "The energy of undamped elastic
     bodies")."""
-    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, model="stvk", elastic_force="variational",
-                                 deformation="rest")
-    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
-    b.add_box((0.0, 0.0, 0.0), (4 * SPACING, 4 * SPACING, 3 * SPACING), mat)
-    model = b.finalize(dtype=wp.float64)
-    n = model.particle_count
-    rng = np.random.default_rng(2)
-    X = model.particle_x0
+    model, n, rng, X = _rest_block("stvk")
     x0 = X + 0.1 * X @ rng.uniform(-1.0, 1.0, size=(3, 3)).T + rng.normal(scale=0.05 * SPACING, size=(n, 3))
     solver = we.Solver(model, fit=fit)
     assert solver.fit == fit and solver.hourglass == 0.0
@@ -102,15 +106,8 @@ def test_the_rest_force_through_inverted_fits_is_minus_the_gradient_of_the_conti
     St. Venant-Kirchhoff's own, even in the reflection (``hyperelastic``: twice both). Before, an
     inverted fit kept the last ``F`` (here ``I``: no force at all), a stress that is the gradient
     of no energy."""
-    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, model=material_model, elastic_force="variational",
-                                 deformation="rest")
     scale = 2.0 if material_model == "hyperelastic" else 1.0
-    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
-    b.add_box((0.0, 0.0, 0.0), (4 * SPACING, 4 * SPACING, 3 * SPACING), mat)
-    model = b.finalize(dtype=wp.float64)
-    n = model.particle_count
-    rng = np.random.default_rng(2)
-    X = model.particle_x0
+    model, n, rng, X = _rest_block(material_model)
     x0 = X @ (np.diag([1.0, 1.0, -0.5]) + 0.1 * rng.uniform(-1.0, 1.0, size=(3, 3))).T
     x0 += rng.normal(scale=0.03 * SPACING, size=(n, 3))
     solver = we.Solver(model, fit=fit)
