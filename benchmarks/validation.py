@@ -115,8 +115,9 @@ def _solver(model, **kwargs):
                       inputs=[state_out.neighbor_count, self.model.max_neighbors, self.full_row_total],
                       device=self.model.device)
             self.particle_steps += self.model.particle_count
-            # What ran: fit="auto" runs the rest-configuration model for purely elastic scenes.
-            self.rest_model_steps += int(self.rest_model)
+            # What ran, as the state it wrote says: fit="auto" runs the rest-configuration model
+            # for purely elastic scenes.
+            self.rest_model_steps += int(bool(state_out.rest_model))
 
     return RowCountingSolver(model, **kwargs)
 
@@ -129,7 +130,7 @@ def _row_fields(solver) -> dict:
     particle-steps whose row may have dropped a neighbour of non-zero weight
     (``Solver.guard_counts``), ``full_row_particle_steps`` those whose row was full, of
     ``particle_steps`` (every particle, pinned ones included, every step); ``rest_model_steps``:
-    the steps that ran the rest-configuration model (``Solver.rest_model``: ``fit="auto"`` on
+    the steps that ran the rest-configuration model (``State.rest_model``: ``fit="auto"`` on
     a purely elastic scene without tools), the deformation model the row measured."""
     return {"neighbors_cut": solver.guard_counts()["neighbors_cut"], "full_row_particle_steps": solver.full_rows,
             "particle_steps": solver.particle_steps, "rest_model_steps": solver.rest_model_steps}

@@ -971,17 +971,116 @@ def test_auto_keeps_the_incremental_composition_for_a_body_that_flowed():
         a, c = c, a
         fixed.step(b, d, dt)
         b, d = d, b
-        assert not solver.rest_model and a.rest_model is False and a.flowed is True
-    assert solver.record()["rest_model"] is False
-    assert solver.label() == fixed.label() == f"incremental curvature_corrected c={we.model.AUTO_HOURGLASS:g}"
+        assert not solver.runs_rest(a) and a.rest_model is False and a.flowed is True
+    assert solver.record(a)["rest_model"] is False
+    assert solver.label(a) == fixed.label(b) == f"incremental curvature_corrected c={we.model.AUTO_HOURGLASS:g}"
     np.testing.assert_array_equal(a.x.numpy(), b.x.numpy())
     np.testing.assert_array_equal(a.F.numpy(), b.F.numpy())
 
 
+def _elastic_block_and_a_flowed_start(requires_grad=False):
+    """A 3^3 float64 block of an elastic material on the default solver (the rest model), and a
+    state an incremental step wrote whose body flowed (``State.rest_model`` False, ``alpha`` >
+    0): from it the solver keeps the incremental composition."""
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0)
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (3 * SPACING,) * 3, mat)
+    model = b.finalize(dtype=wp.float64, requires_grad=requires_grad)
+    flowed = model.state(requires_grad=requires_grad)
+    flowed.alpha.fill_(0.01)
+    flowed.rest_model = False
+    return model, flowed
+
+
+def test_a_solvers_record_follows_the_state_it_is_given_not_the_run_it_stepped_last():
+    """One solver steps two rollouts (segments of 2 steps): A from a flowed start (the
+    incremental composition), B from a new state (the rest model); A's backward pass replays its
+    segments after B ran. The step wrote what ran on the states only, so ``record(state)`` and
+    ``label(state)`` of each rollout's last state say what that rollout ran, and ``record()``
+    what a step from a new state runs. Before, ``record()`` said what the step the solver ran
+    last ran, A's replay of its first segment: the incremental composition, while B's run, the
+    latest forward, ran the rest model."""
+    from warp_esph.rollout import Rollout
+
+    model, flowed = _elastic_block_and_a_flowed_start(requires_grad=True)
+    solver = we.Solver(model)
+    dt = 0.5 * model.stable_dt()
+    a = Rollout(model, 4, dt, frames=[4], checkpoint_every=2, solver=solver)
+    b = Rollout(model, 4, dt, frames=[4], checkpoint_every=2, solver=solver)
+    a.forward(initial_state=flowed)
+    b.forward()
+    a.backward([np.ones((model.particle_count, 3))])
+    ran_a, ran_b = a.final_state(), b.final_state()
+    assert (ran_a.rest_model, ran_a.flowed, ran_b.rest_model) == (False, True, True)
+    assert solver.record()["rest_model"] is True and solver.rest_model
+    assert solver.record(ran_a)["rest_model"] is False and solver.record(ran_b)["rest_model"] is True
+    c = we.model.AUTO_HOURGLASS
+    assert (solver.label(ran_a), solver.label(ran_b)) == (f"incremental curvature_corrected c={c:g}",
+                                                          f"rest curvature_corrected c={c:g}")
+    assert solver.runs_rest(flowed) is False and solver.runs_rest(model.state()) is True
+    with pytest.raises(ValueError, match=r"^state = .* is not allowed"):
+        solver.record("not a state")
+
+
+def test_the_inverted_fits_advice_reads_what_runs_from_the_diverged_state():
+    """``simulate``'s divergence advice blames the rest model's inverted fits only where a step
+    from the state the diverging step wrote runs the rest model (``rest_inversions(solver,
+    state)``): the incremental composition, kept for a flowed body, counts its own inverted fits
+    in the same guard count. It read the solver's record of its last step before, which the
+    step no longer writes."""
+    from warp_esph.simulate import divergence_advice, rest_inversions
+
+    model, flowed = _elastic_block_and_a_flowed_start()
+    solver = we.Solver(model)
+    counts = np.zeros(solver.scratch.counters.shape[0], dtype=np.int32)
+    counts[list(solver.guard_counts()).index("inverted")] = 7
+    solver.scratch.counters.assign(counts)
+    assert rest_inversions(solver, flowed) == 0 and rest_inversions(solver, model.state()) == 7
+    assert "inverted in 7" not in divergence_advice(model, solver.hourglass, solver=solver, state=flowed)
+    assert "inverted in 7" in divergence_advice(model, solver.hourglass, solver=solver, state=model.state())
+
+
+def _solver_facts(solver) -> dict:
+    """The solver's attributes that are not Warp arrays, copied where mutable (the step counter,
+    a count of work as ``guard_counts`` is, left out)."""
+    out = {}
+    for k, v in vars(solver).items():
+        if isinstance(v, wp.array) or k == "step_count":
+            continue
+        out[k] = v.copy() if isinstance(v, (np.ndarray, set, dict, list)) else v
+    return out
+
+
+def test_a_step_writes_state_out_only_not_the_solver():
+    """``Solver.step`` reads ``state_in`` and writes ``state_out``: after its first step (which
+    takes what it builds once), steps from other states leave the solver's attributes as they
+    were, also where those steps run another model (a flowed body keeps the incremental
+    composition, a new state runs the rest model). Before, each step wrote what it ran on the
+    solver (``rest_model``, ``_kept_incremental``), so the solver described whichever state it
+    stepped last."""
+    model, flowed = _elastic_block_and_a_flowed_start()
+    solver = we.Solver(model)
+    dt = 0.5 * model.stable_dt()
+    fresh, out, kept, again = model.state(), model.state(), model.state(), model.state()
+    solver.step(fresh, out, dt)
+    before = _solver_facts(solver)
+    for state_in, state_out in ((flowed, kept), (out, again), (kept, fresh)):
+        solver.step(state_in, state_out, dt)
+        after = _solver_facts(solver)
+        assert before.keys() == after.keys(), set(before) ^ set(after)
+        changed = [k for k in before if not (before[k] is after[k] or (np.array_equal(before[k], after[k])
+                                                                       if isinstance(before[k], np.ndarray)
+                                                                       else before[k] == after[k]))]
+        assert not changed, {k: (before[k], after[k]) for k in changed}
+    assert (out.rest_model, kept.rest_model, again.rest_model, fresh.rest_model) == (True, False, True, False)
+    assert solver.step_count == 4
+
+
 def test_a_run_from_a_flowed_state_records_the_incremental_composition_from_its_start():
     """``simulate`` tells a writer what its solver runs (``Solver.record``, ``label``) before the
-    first step: from a state whose body flowed, made elastic, that is the incremental
-    composition, not the rest model the parameters alone would choose."""
+    first step and before each frame, with the state it writes next (``state=``): from a state
+    whose body flowed, made elastic, that is the incremental composition, not the rest model
+    the parameters alone would choose (``record()`` without the state)."""
     from warp_esph.simulate import simulate
 
     model, _, a, c, dt = _sheared_block_flowing(5)
@@ -990,15 +1089,25 @@ def test_a_run_from_a_flowed_state_records_the_incremental_composition_from_its_
     class Writer:
         told = []
 
-        def record_solver(self, solver, frame=None):
-            self.told.append((frame, solver.record()["rest_model"], solver.label()))
+        def record_solver(self, solver, frame=None, state=None):
+            self.told.append((frame, solver.record(state)["rest_model"], solver.label(state)))
 
         def write_frame(self, frame, state):
             pass
 
-    simulate(model, 1, fps=1.0 / (3 * dt), dt=dt, writer=Writer(), progress=False, solver=we.Solver(model), state=a)
+    class Stateless(Writer):
+        told = []
+
+        def record_solver(self, solver, frame=None):
+            self.told.append((frame, solver.record()["rest_model"], solver.label()))
+
+    for writer in (Writer, Stateless):
+        simulate(model, 1, fps=1.0 / (3 * dt), dt=dt, writer=writer(), progress=False, solver=we.Solver(model), state=a)
     label = f"incremental curvature_corrected c={we.model.AUTO_HOURGLASS:g}"
     assert Writer.told == [(None, False, label), (0, False, label), (1, False, label)]
+    # Without the state: what a step from a new state runs, as record() says.
+    rest = f"rest curvature_corrected c={we.model.AUTO_HOURGLASS:g}"
+    assert Stateless.told == [(None, True, rest), (0, True, rest), (1, True, rest)]
 
 
 def test_a_slumped_body_made_elastic_stays_at_rest():

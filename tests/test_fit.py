@@ -1518,7 +1518,7 @@ def test_fit_json_records_the_composition_a_flowed_start_ran():
     assert model.solver_record()["rest_model"] is True
     rollout = Rollout(model, 2, 2e-4)
     rollout.forward(initial_state=flowed)
-    assert rollout.solver.record()["rest_model"] is False
+    assert rollout.solver.record(rollout.final_state())["rest_model"] is False
     assert r.to_dict()["solver"]["rest_model"] is False
     assert fit(model, loss, ["mu"], **kw, **args).to_dict()["solver"]["rest_model"] is True
     both = fit([Experiment(model, loss, initial={"initial_state": flowed}, **kw), Experiment(model, loss, **kw)],

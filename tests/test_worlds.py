@@ -341,7 +341,7 @@ def test_a_world_that_did_not_flow_beside_one_that_did_is_told_it_keeps_the_incr
             warnings.simplefilter("always")
             solver.step(a, b, DT)
             solver.step(b, a, DT)
-        assert solver.label().startswith("incremental")
+        assert solver.label(a).startswith("incremental")
         said = [str(w.message) for w in caught if "keeps the incremental composition" in str(w.message)]
         assert len(said) == (told is not None), said
         if told is not None:

@@ -592,8 +592,9 @@ def _cmd_run(args) -> int:
                       "frames": frames_total, "output": os.path.abspath(writer.path), "dtype": args.dtype,
                       "surface": bool(args.surface), "checkpoint_every": every, "fit": model.fit, "contact_ramp": model.contact_ramp,
                       "hourglass": model.hourglass, "fit_weight": model.fit_weight,
-                      # What "fit" and "hourglass" resolved to (a resume reads only the requested ones).
-                      **solver.record()}
+                      # What "fit" and "hourglass" resolved to (a resume reads only the requested ones),
+                      # from the run's start: a resumed body that flowed keeps the incremental composition.
+                      **solver.record(state)}
         if run_id is not None:  # (a checkpoint written before runs were named has none)
             run_record["run_id"] = run_id
         if args.scene is not None and os.path.exists(str(args.scene)):

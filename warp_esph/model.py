@@ -206,7 +206,8 @@ class State:
         #: Simulated time (s) of this state: the step that writes it sets ``time_in + dt``.
         self.time = 0.0
         #: Whether the step that wrote this state ran the rest-configuration model in place of the
-        #: incremental composition (``Solver.rest_model``; None: no step wrote it). A rest step
+        #: incremental composition (None: no step wrote it); the record of what ran, which the
+        #: solver does not keep (``Solver.record(state)``, ``Solver.runs_rest``). A rest step
         #: after an incremental one hands the stored ``F`` over (``comparison.rest_handover``),
         #: unless the body has flowed (``flowed``).
         self.rest_model = None

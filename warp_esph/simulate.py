@@ -61,17 +61,18 @@ class StepRefusal(ValueError):
 
 
 def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=", solver: Solver | None = None,
-                      since: int = 0, step: float | None = None) -> str:
+                      since: int = 0, step: float | None = None, state: State | None = None) -> str:
     """The advice of ``simulate``'s divergence (``SimulationError``) of ``model`` at the stable
     step of the hourglass control ``hourglass`` (``Model.stable_dt``); ``dt``: how the caller
     names the step (``warp-esph run``: ``--dt``, and then its options for the fit). Where a
     compression field's limit sets the stable step, it says so: the field's spring is bounded,
     but a body it crushes is stiffer than the rest state the limit assumes (docs/method.md §8),
     so the run may blow up below it, and softer material settings do not help. Where
-    ``solver`` runs the rest-configuration model (``Solver.rest_model``) and counted inverted
-    fits, it says that: a body crushed or folded through itself, where a smaller step, a
-    stiffer material or the incremental composition (which follows the neighbours as a body
-    parts) may run on. Before an inverted rest fit's energy was continued through det = 0 no
+    ``solver`` runs the rest-configuration model from ``state`` (``Solver.runs_rest``: the
+    state the diverging step wrote, which says what that step ran; None: a new state) and
+    counted inverted fits, it says that: a body crushed or folded through itself, where a
+    smaller step, a stiffer material or the incremental composition (which follows the
+    neighbours as a body parts) may run on. Before an inverted rest fit's energy was continued through det = 0 no
     smaller step mended it (a soft cantilever hanging under its own weight diverged at 0.299 s
     at the stable step and at 0.293 s at half of it; it now holds); since, a St.
     Venant-Kirchhoff block released from twice its size, stiffer at that strain than the
@@ -80,7 +81,7 @@ def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=", so
     ``step``: the run's step, above the stable one a blow-up inverts the fits too, and a
     smaller step is the cure."""
     stable = model.stable_dt(hourglass=hourglass)
-    inverted = rest_inversions(solver) - since if solver is not None and rest_inversions(solver) else 0
+    inverted = rest_inversions(solver, state) - since if solver is not None and rest_inversions(solver, state) else 0
     if inverted > 0 and (step is None or step <= stable * (1.0 + 1e-6)):
         fit = ("--solver-fit curvature_corrected --hourglass 0.05" if dt == "--dt" else
                "fit='curvature_corrected' with hourglass=0.05 (SceneBuilder or Solver)")
@@ -95,10 +96,12 @@ def divergence_advice(model: Model, hourglass: float | None, dt: str = "dt=", so
     return f"try a smaller {dt} (stable limit {stable:.3g} s) or stiffer-to-softer material settings"
 
 
-def rest_inversions(solver: Solver) -> int:
+def rest_inversions(solver: Solver, state: State | None = None) -> int:
     """The particle-steps whose rest fit inverted (``Solver.guard_counts()["inverted"]``) where
-    ``solver`` runs the rest-configuration model now; 0 otherwise."""
-    return solver.guard_counts()["inverted"] if solver.rest_model else 0
+    ``solver`` runs the rest-configuration model from ``state`` now (``Solver.runs_rest``; the
+    state a run's last step wrote: what that step ran; None: a new state); 0 otherwise (the
+    incremental composition counts its own inverted fits there)."""
+    return solver.guard_counts()["inverted"] if solver.runs_rest(state) else 0
 
 
 #: The advice of ``check_start_speed``'s refusal at a fixed dt, and of ``adaptive_timestep``'s
@@ -887,12 +890,13 @@ def _body_layout(model: Model) -> list[tuple[str, int]]:
     return [(b.name, b.count) for b in model.bodies]
 
 
-def _takes_frame(record, solver) -> bool:
-    """Whether a writer's ``record_solver`` takes ``(solver, frame=...)``, not the solver alone.
-    The frame is bound (and passed) by keyword: bound positionally, a ``record_solver(self,
-    solver, *, frame=None)`` did not take it and was told the solver at the start only."""
+def _takes_keyword(record, solver, **keyword) -> bool:
+    """Whether a writer's ``record_solver`` takes ``(solver, frame=...)`` (or ``state=``), not
+    the solver alone. Bound (and passed) by keyword: bound positionally, a
+    ``record_solver(self, solver, *, frame=None)`` did not take it and was told the solver at
+    the start only."""
     try:
-        inspect.signature(record).bind(solver, frame=0)
+        inspect.signature(record).bind(solver, **keyword)
     except TypeError:
         return False
     except ValueError:  # no signature to read (a built-in): the documented protocol
@@ -926,10 +930,13 @@ def simulate(
       frame's steps run: ``solver.hourglass`` as a callback left it, or an automatic
       solver's choice from the materials as they are then).
     - ``writer``: anything with ``write_frame(frame_index, state)`` (e.g. ``UsdWriter``); one
-      with ``record_solver(solver, frame=None)`` is told the solver at the start and before
-      each frame, the frame passed by keyword (``frame=``, so a keyword-only ``frame`` takes
-      it too; what it runs, ``UsdWriter.record_solver``); one whose ``record_solver`` takes
-      the solver alone (or no ``frame`` keyword), at the start only.
+      with ``record_solver(solver, frame=None, state=None)`` is told the solver at the start
+      and before each frame, the frame passed by keyword (``frame=``, so a keyword-only
+      ``frame`` takes it too; what it runs, ``UsdWriter.record_solver``), and the state it
+      writes next (``state=``: the start, then the state the frame's last step wrote, whose
+      ``Solver.record(state)`` says what ran); one whose ``record_solver`` takes the solver
+      alone (or no ``frame`` keyword), at the start only; one without ``state`` reads the
+      solver alone (``Solver.record()``: what a step from a new state runs).
       Frame ``start_frame`` (the initial state) is written first, then one frame per
       rendered frame. The writer is closed when the run ends, also when it fails.
     - ``solver``: a ``Solver`` of ``model`` (default: a new one; pass your own to read
@@ -997,7 +1004,7 @@ def simulate(
         record = getattr(writer, "record_solver", None)
         # A writer's record_solver(solver) of the earlier protocol (told the solver at the
         # start only) met a TypeError at the first frame once the frame was passed.
-        solver_frames = callable(record) and _takes_frame(record, solver)
+        solver_frames = callable(record) and _takes_keyword(record, solver, frame=0)
 
         current = model.state(requires_grad=False)
         if state is not None:
@@ -1011,12 +1018,13 @@ def simulate(
         # resume with this run's own was refused (State.written_by).
         current.written_by = solver._weak_self
         # What the first step runs from this start: a body that flowed is not handed over to the
-        # rest model (Solver._runs_rest), which a record of the parameters alone named.
-        solver._note_start(current)
+        # rest model (Solver._runs_rest), which a record of the parameters alone named. Later
+        # frames' records read the state the frame's last step wrote, which says what it ran.
+        told = {"state": current} if callable(record) and _takes_keyword(record, solver, state=current) else {}
         if callable(record):
             # Which model writes the frames: fit="auto" resolves by the material values, and a
             # callback that changes them can switch it (recorded per frame, from the first).
-            record(solver)
+            record(solver, **told)
         initial = _first_bad(model, current)
         if initial is not None:
             raise ValueError(f"state is not allowed: it has a {initial[0]}")
@@ -1041,7 +1049,7 @@ def simulate(
         try:
             if writer is not None:
                 if solver_frames:
-                    writer.record_solver(solver, frame=start_frame)
+                    writer.record_solver(solver, frame=start_frame, **told)
                 writer.write_frame(start_frame, current)
             if callback is not None:
                 callback(start_frame, current)
@@ -1085,7 +1093,8 @@ def simulate(
                     raise SimulationError(
                         f"the simulation diverged after step {step} (frame {frame}, t = {frame / fps:.4g} s, "
                         f"dt = {dt:.4g} s): {what}, at particle {p} of body {body!r}", step=step, particle=p, body=body,
-                        frame=frame, advice=f"; {divergence_advice(model, solver.hourglass, solver=solver, since=inverted0, step=dt)}",
+                        frame=frame, advice="; " + divergence_advice(model, solver.hourglass, solver=solver,
+                                                                     since=inverted0, step=dt, state=current),
                     )
                 met = _far_mesh_contact(model, current, far_meshes) if far_meshes else None
                 if met is not None:
@@ -1099,7 +1108,7 @@ def simulate(
                                           advice=f"; {far_mesh_advice(model.scalar is wp.float32)}")
                 if writer is not None:
                     if solver_frames:
-                        writer.record_solver(solver, frame=frame)
+                        writer.record_solver(solver, frame=frame, **({"state": current} if told else {}))
                     writer.write_frame(frame, current)
                 if callback is not None:
                     callback(frame, current)

@@ -634,11 +634,13 @@ class UsdWriter:
             prim.SetCustomDataByKey(f"{_KEY}:{key}", float(value) if isinstance(value, (int, float)) else value)
 
     # ----------------------------------------------------------------- frames
-    def record_solver(self, solver, frame: int | None = None) -> None:
-        """Record in the layer's custom data what ``solver`` runs (``Solver.record``), saved
-        with the next frame. ``fit="auto"`` resolves by the material values, so the requested
-        fit alone does not say which model wrote the frames, and a callback that changes a
-        material can switch it within a run.
+    def record_solver(self, solver, frame: int | None = None, state=None) -> None:
+        """Record in the layer's custom data what ``solver`` runs from ``state``
+        (``Solver.record(state)``; ``simulate`` passes the state it writes next: the start, then
+        the state the frame's last step wrote, which says what that step ran; None: from a new
+        state), saved with the next frame. ``fit="auto"`` resolves by the material values, so
+        the requested fit alone does not say which model wrote the frames, and a callback that
+        changes a material can switch it within a run.
 
         Without ``frame`` (a run's start, as ``simulate`` calls it): ``warp_esph:fit`` (the fit
         asked for), ``warp_esph:resolved_fit``, ``warp_esph:hourglass`` (the strength run) and
@@ -654,7 +656,9 @@ class UsdWriter:
         and a closed writer refuses it as ``write_frame`` does."""
         key = f"{_KEY}:solver_frames"
         if frame is None:
-            r = solver.record()
+            # Asked without the state where none is given: a solver-like object of the earlier
+            # protocol takes none.
+            r = solver.record() if state is None else solver.record(state)
             entries = {f"{_KEY}:fit": r["fit"], f"{_KEY}:resolved_fit": r["resolved_fit"],
                        f"{_KEY}:hourglass": float(r["resolved_hourglass"]), f"{_KEY}:rest_model": bool(r["rest_model"])}
         else:
@@ -668,7 +672,7 @@ class UsdWriter:
             data = dict(self._stages[0].GetRootLayer().customLayerData or {})
             before = str(data.get(key, ""))
             kept = [e for e in before.split("; ") if e and int(e.split(":", 1)[0]) < int(frame)]
-            label = solver.label()
+            label = solver.label() if state is None else solver.label(state)
             if not kept or kept[-1].split(": ", 1)[1] != label:
                 kept.append(f"{int(frame)}: {label}")
             # A resume at an earlier frame by the solver of the entry before it still drops the

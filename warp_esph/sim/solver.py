@@ -180,8 +180,12 @@ class Solver:
     over (``F_p = F^-1 G(x)``, ``comparison.rest_handover``), so the body keeps its stress,
     where the body has not flowed; a state whose body has flowed (``State.flowed``: ``alpha``
     > 0 somewhere) is never handed over, the step keeps the incremental composition for it
-    (its rest neighbourhoods no longer describe it), and ``rest_model``, ``record`` and
-    ``label`` say so. A new state's ``F_p`` (``I``) and a checkpoint's are taken as they are. With
+    (its rest neighbourhoods no longer describe it), and ``runs_rest``, ``record`` and
+    ``label`` of that state say so. The step writes what it ran on ``state_out`` only
+    (``State.rest_model``, ``State.flowed``), never on the solver, so one solver may step
+    several runs, and a rollout's backward pass may replay its segments, without changing what
+    any record says of another state. A new state's ``F_p`` (``I``) and a checkpoint's are
+    taken as they are. With
     ``"auto"`` the choice follows the model's parameter arrays at every step (a fit that makes
     ``flow_rate`` positive turns it to the linear fit, without the control); ``fit`` and
     ``hourglass`` hold what runs now. The model's force fields (``fields.CompressionField``)
@@ -294,10 +298,9 @@ class Solver:
         self._warned_tape = False
         self._warned_cut = False
         self._warned_worlds_kept = False
+        #: Steps taken since construction, replays of a rollout's backward pass included (as
+        #: ``guard_counts``): a count of work, not a fact about any state.
         self.step_count = 0
-        # Whether the last step kept the incremental composition for a flowed body where the
-        # parameters chose the rest model (_runs_rest): what record() reports.
-        self._kept_incremental = False
         self._weak_self = weakref.ref(self)  # State.written_by of the states this solver's steps write
         #: Under a tape, run the hand-written adjoints (``deformation.update_deformation_adjoint``,
         #: the rest model's ``comparison.adjoint_kernels``) in place of Warp's generated ones;
@@ -307,15 +310,13 @@ class Solver:
         #: steps add ``dt`` times their reaction to (``tools.ReactionLog`` sets them); None: off.
         self.collider_impulse = None
 
-    def _choose(self):
-        """Set ``fit`` and ``hourglass`` to what the step runs now (``Model.solver_choice``)."""
+    def _choose(self) -> bool:
+        """Set ``fit`` and ``hourglass`` to what the step runs now (``Model.solver_choice``);
+        returns ``rest_model`` at the same parameters. Both follow the parameter arrays alone,
+        so every step at the same parameters sets the same values."""
         fit, c = self.model.solver_choice(*self._asked)
-        #: Whether the step runs the rest-configuration model for materials that say
-        #: ``"incremental"`` (``Model.auto_runs_rest``: ``fit="auto"`` on a purely elastic model);
-        #: after a step, what it ran (False where it kept the incremental composition for a body
-        #: that had flowed, ``State.flowed``).
-        self.rest_model = self._auto and self.model.auto_runs_rest(self._asked[0])
-        if self.rest_model:
+        rest = self._auto and self.model.auto_runs_rest(self._asked[0])
+        if rest:
             self.rest_set()
         #: The incremental fit the step runs (``"linear"`` or ``"curvature_corrected"``); the
         #: corrected one runs the non-fused kernels.
@@ -323,6 +324,28 @@ class Solver:
         self._curved = fit == "curvature_corrected"
         # Checked by solver_choice: the setter's check ran again at every step of an automatic solver.
         self._set_hourglass(c)
+        return rest
+
+    @property
+    def rest_model(self) -> bool:
+        """Whether a step from a new state runs the rest-configuration model for materials that
+        say ``"incremental"`` at the model's current parameters (``Model.auto_runs_rest``:
+        ``fit="auto"`` on a purely elastic model). From a given state: ``runs_rest(state)``;
+        what the step that wrote a state ran: ``State.rest_model``."""
+        return self._auto and self.model.auto_runs_rest(self._asked[0])
+
+    def runs_rest(self, state: State | None = None) -> bool:
+        """Whether a step from ``state`` runs the rest-configuration model at the model's current
+        parameters: ``rest_model``, except from a state an incremental step wrote whose body has
+        flowed (``State.rest_model`` False, ``State.flowed``), for which the step keeps the
+        incremental composition (``_runs_rest``). For the state a step wrote, at the parameters
+        it ran with, that is what the step ran. None: a new state. Only reads ``state`` (its
+        ``alpha``, where ``flowed`` does not say and the parameters allow the rest model)."""
+        rest = self.rest_model
+        if state is None or not rest:
+            return rest
+        checks.same_state(self.model, "state", state)
+        return not (state.rest_model is False and state.has_flowed())
 
     @property
     def hourglass(self) -> float:
@@ -351,27 +374,31 @@ class Solver:
             self._rest_from = m.particle_x0.copy()
         self._hourglass = c
 
-    def record(self) -> dict:
-        """What this solver runs at the model's current parameters, for a run's records: the
-        requested ``fit`` (None: the model's) with ``Model.solver_record``'s ``resolved_fit``,
-        ``resolved_hourglass`` and ``rest_model``; ``resolved_hourglass`` is the strength the
-        next step runs (``next_hourglass``), also where it was set by hand. ``rest_model`` is
-        False where the last step kept the incremental composition for a body that had flowed
-        (``State.flowed``), as the steps after it on that body do."""
+    def record(self, state: State | None = None) -> dict:
+        """What a step of this solver from ``state`` runs at the model's current parameters, for
+        a run's records: the requested ``fit`` (None: the model's) with
+        ``Model.solver_record``'s ``resolved_fit``, ``resolved_hourglass`` and ``rest_model``;
+        ``resolved_hourglass`` is the strength the next step runs (``next_hourglass``), also
+        where it was set by hand. ``rest_model`` is ``runs_rest(state)``: False from a state
+        whose body flowed under the incremental composition (``State.flowed``), as every step
+        after it on that body. Pass the state a run's last step wrote to record what that step
+        ran (the parameters it ran with choose the same); None: what a step from a new state
+        runs. The solver holds no record of its last step: it may have stepped another run's
+        state since (a rollout's backward pass replays its first segment last)."""
         # A strength set by hand on a solver of a fixed fit runs as set, where the model's
         # choice from the requested values recorded 0 for a control that ran.
         r = {"fit": self.model.fit if self._asked[0] is None else self._asked[0],
              **self.model.solver_record(*self._asked), "resolved_hourglass": float(self.next_hourglass())}
-        if self._kept_incremental:
-            r["rest_model"] = False
+        if state is not None:
+            r["rest_model"] = bool(self.runs_rest(state))
         return r
 
-    def label(self) -> str:
-        """``record`` in a few words: ``"rest curvature_corrected c=0.05"`` (the
+    def label(self, state: State | None = None) -> str:
+        """``record(state)`` in a few words: ``"rest curvature_corrected c=0.05"`` (the
         rest-configuration model, its total fit and the hourglass strength) or ``"incremental
         linear c=0"`` (the incremental composition and its fit), as a sweep's ``solver`` column
         and a USD file's ``warp_esph:solver_frames`` write it."""
-        r = self.record()
+        r = self.record(state)
         return f"{'rest' if r['rest_model'] else 'incremental'} {r['resolved_fit']} c={r['resolved_hourglass']:g}"
 
     def rest_set(self) -> tuple:
@@ -414,17 +441,18 @@ class Solver:
             self._rest = None
             self.hourglass = self._hourglass
 
-    def _runs_rest(self, state_in: State) -> tuple[bool, bool | None]:
-        """``(rest_model, flowed)``: whether a step from ``state_in`` runs the rest model, and
-        whether its body has flowed (``State.flowed``; None: not known). A state an incremental
-        step wrote (``State.rest_model`` False) whose body has flowed (``alpha`` > 0 somewhere)
-        is not handed over: its rest neighbourhoods no longer describe the body (a 4x4x6 block
+    def _runs_rest(self, state_in: State, rest: bool) -> tuple[bool, bool | None]:
+        """``(rest_model, flowed)``: whether a step from ``state_in`` runs the rest model where
+        the parameters choose it (``rest``: ``rest_model``), and whether its body has flowed
+        (``State.flowed``; None: not known). A state an incremental step wrote
+        (``State.rest_model`` False) whose body has flowed (``alpha`` > 0 somewhere) is not
+        handed over: its rest neighbourhoods no longer describe the body (a 4x4x6 block
         slumped on the ground for 0.4 s and set then inverted 15 of its 96 rest fits every step,
         and its kinetic energy grew 200-fold), so the step keeps the incremental composition,
         with the fit and control the parameters chose. ``alpha`` is read back only there, for a
         state whose ``flowed`` is not known; the states the step writes carry what it found."""
-        if not (self.rest_model and state_in.rest_model is False):
-            return self.rest_model, getattr(state_in, "flowed", None)
+        if not (rest and state_in.rest_model is False):
+            return rest, getattr(state_in, "flowed", None)
         flowed = state_in.has_flowed()
         if flowed and self.model.world_count > 1 and not self._warned_worlds_kept:
             self._warn_worlds_kept(state_in)
@@ -444,15 +472,6 @@ class Solver:
                           f"(State.flowed); world(s) {still}, which did not flow, alone would be handed over to the "
                           f"rest-configuration model, so they differ from their separate runs; set SceneBuilder(fit=...) "
                           f"(and hourglass) to compare worlds with separate runs", RuntimeWarning, stacklevel=4)
-
-    def _note_start(self, state: State):
-        """Before a run's first record (``simulate``): have ``record`` and ``label`` say what a
-        step from ``state`` runs at the current parameters, and set ``state.flowed`` where
-        that read ``alpha`` back (``state`` is the run's own, which its first step reads)."""
-        self._kept_incremental = False
-        if self._auto and state.rest_model is False and self.model.auto_runs_rest(self._asked[0]):
-            state.flowed = state.has_flowed()
-            self._kept_incremental = state.flowed
 
     def start_deformation(self, state: State) -> np.ndarray:
         """The ``(n, 3, 3)`` elastic deformation gradients the body holds at ``state`` as a step
@@ -690,8 +709,8 @@ class Solver:
             m.tools.check_arrays()
         tape = recording_tape()
         with m._parameters_read_once():  # one read-back of the parameter arrays for the three
-            if self._auto:
-                self._choose()
+            # Only an automatic solver's choice follows the parameters (rest_model is False otherwise).
+            chose_rest = self._choose() if self._auto else False
             dt = self.check_dt(dt)
             sph = m.sph_active
             taped_rows = m._read_parameters() if tape is not None else None  # the same read, held
@@ -704,11 +723,9 @@ class Solver:
         if ghosts is not None:
             # Again each step: Model.set_material may have changed a material's force since.
             _check_ghost_floor(m, self.fit)
-        rest_model, flowed = self._runs_rest(state_in)
-        # What ran, for record() and label(): an automatic solver kept the incremental
-        # composition for a flowed body where the parameters allow the rest model.
-        self._kept_incremental = self.rest_model and not rest_model
-        self.rest_model = rest_model
+        # What runs is a fact of this step, carried by state_out (State.rest_model) alone: the
+        # solver's attributes would describe whichever state it stepped last.
+        rest_model, flowed = self._runs_rest(state_in, chose_rest)
         cmp = self._cmp or rest_model
         # The material struct the comparison kernels read: with the rest model switched on, every
         # material's deformation code reads "rest" (its own arrays otherwise, None).
