@@ -1500,6 +1500,29 @@ def test_a_fit_whose_guess_runs_to_non_finite_values_fails_as_before(worlds):
                 progress=False, diagnostics=False)
 
 
+def test_fit_json_reads_a_flowed_start_as_its_rollout_does():
+    """Whether a fit's start is flowed (``flowed_starts``, fit.json's ``rest_model``) was read
+    from the start's ``alpha`` alone, where the rollout's step reads the state's ``flowed``
+    where known (``State.has_flowed``): a start a rest step wrote (``flowed`` False), its
+    hardening set by hand and an ``F0`` given, ran the rest model while fit.json said it ran
+    the incremental composition. Both now read ``State.has_flowed``."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.06, 0.06, 0.06), we.Material(mu=2e3, lam=3e3))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    s0, s1, start = model.state(), model.state(), model.state()
+    we.Solver(model, fit="linear").step(s0, s1, 2e-4)
+    we.Solver(model).step(s1, start, 2e-4)  # handed over to the rest model: it has not flowed
+    assert start.rest_model is True and start.flowed is False
+    start.alpha.fill_(0.01)
+    initial = {"initial_state": start, "F0": np.eye(3)}
+    loss = PositionLoss({2: model.particle_x0.astype(np.float64) - 0.001})
+    r = fit(model, loss, ["mu"], initial=initial, steps=2, dt=2e-4, iterations=0, progress=False, diagnostics=False)
+    rollout = Rollout(model, 2, 2e-4)
+    rollout.forward(**initial)
+    assert r.to_dict()["solver"]["rest_model"] == rollout.solver.record()["rest_model"]
+    assert r.flowed_starts == [not rollout.solver.record()["rest_model"]]
+
+
 def test_fit_json_records_the_composition_a_flowed_start_ran():
     """fit.json's ``solver.rest_model`` was read from the fitted values alone: a fit of an
     elastic body from a flowed start (``initial_state`` of an incremental step, ``alpha`` > 0),

@@ -26,7 +26,7 @@ import zlib
 
 import numpy as np
 
-from .model import Model, State
+from .model import Model, State, flowed_by_hardening
 
 FORMAT = "warp_esph.checkpoint/1"
 
@@ -177,7 +177,9 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     }
     if solver is not None:
         # What it runs from this state: a body that flowed keeps the incremental composition.
-        meta["solver"] = solver_settings(solver, kept_incremental=_keeps_incremental(state.rest_model, arrays["alpha"]))
+        # From the hardening the file holds, as load_state reads it (State.flowed is not saved).
+        flowed = flowed_by_hardening(arrays["alpha"])
+        meta["solver"] = solver_settings(solver, kept_incremental=_keeps_incremental(state.rest_model, flowed))
     arrays.update({name: getattr(state, name).numpy() for name in State.STEP_REPORTS if hasattr(state, name)})
     arrays.update({f"material_{name}": getattr(model, name).numpy() for name in Model.MATERIAL_FIELDS})
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
@@ -192,11 +194,11 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     return path
 
 
-def _keeps_incremental(rest_model, alpha: np.ndarray) -> bool:
+def _keeps_incremental(rest_model, flowed: bool) -> bool:
     """Whether a step from a state an incremental step wrote (``rest_model`` False) whose body
-    has flowed (``alpha`` > 0 somewhere) keeps the incremental composition whatever the
-    parameters allow (``Solver._runs_rest``)."""
-    return rest_model is False and bool((alpha > 0.0).any())
+    has flowed (``flowed``) keeps the incremental composition whatever the parameters allow
+    (``Solver._runs_rest``)."""
+    return rest_model is False and flowed
 
 
 def solver_settings(solver, kept_incremental: bool = False) -> dict:
@@ -385,7 +387,7 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
         state.rest_model = False if meta.get("step", 0) else None
     # Whether the body has flowed (State.flowed), from the hardening the file holds: a resumed
     # flowed body is not handed over to the rest model, as the uninterrupted run's was not.
-    state.flowed = bool((arrays["alpha"] > 0.0).any())
+    state.flowed = flowed_by_hardening(arrays["alpha"])
     before = {name: getattr(model, name).numpy().copy() for name in Model.MATERIAL_FIELDS}
     for name in Model.MATERIAL_FIELDS:
         getattr(model, name).assign(arrays[f"material_{name}"])
@@ -393,7 +395,7 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
         # Compared at the checkpoint's material values, which decide what "auto" runs.
         # From this state, as at the save: a flowed body's run said rest_model = True, and a
         # solver of its fit and control, which runs the same steps bit for bit, was refused.
-        ours = solver_settings(solver, kept_incremental=_keeps_incremental(state.rest_model, arrays["alpha"]))
+        ours = solver_settings(solver, kept_incremental=_keeps_incremental(state.rest_model, state.has_flowed()))
         for key, value in meta["solver"].items():
             if key in ours and value != ours[key]:
                 for name, a in before.items():  # a refused resume leaves the model as it was

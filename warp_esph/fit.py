@@ -53,7 +53,7 @@ from .builder import SceneBuilder
 from .losses import (ChamferLoss, Loss, MeshLoss, PositionLoss, SlumpLoss, SumLoss, WorldLoss, _leaves, is_tools_csv,
                      read_tools_csv)
 from .material import PRESSURE_BULK_SHARE, Material, _following_force
-from .model import Model, State, check_material_precision
+from .model import Model, State, check_material_precision, flowed_by_hardening
 from .rollout import PARAMETERS, STATE_OVERHEAD, Rollout, RolloutMemoryError, _RolloutMemory, check_initial
 
 __all__ = ["fit", "FitResult", "Experiment", "Adam", "memory_estimate", "choose_checkpointing", "latin_hypercube",
@@ -592,16 +592,20 @@ class _Run(_Values):
 
     def flowed_start(self) -> bool:
         """Whether the rollout's start is a flowed body an incremental step wrote
-        (``State.rest_model`` False, ``alpha`` > 0 somewhere), as ``Rollout.forward`` builds it
-        from ``initial``: its solver keeps the incremental composition (``Solver._runs_rest``)."""
+        (``State.rest_model`` False; ``State.has_flowed``, or a given ``alpha0`` > 0 somewhere),
+        as ``Rollout.forward`` builds it from ``initial``: its solver keeps the incremental
+        composition (``Solver._runs_rest``)."""
         init = self.initial.get("initial_state")
         rest_model = init.rest_model if isinstance(init, State) else None
         if "F0" in self.starts:
             rest_model = False
+        if rest_model is not False:
+            return False
         alpha = self.starts.get("alpha0")
-        if alpha is None:
-            alpha = init.alpha.numpy() if isinstance(init, State) else 0.0
-        return rest_model is False and bool(np.any(np.asarray(alpha) > 0.0))
+        if alpha is not None:
+            return flowed_by_hardening(alpha)
+        # The start's own flag where known, as the rollout's step reads the state it copies.
+        return isinstance(init, State) and init.has_flowed()
 
     def forward(self) -> np.ndarray:
         """The rollout from this experiment's starts (checked once, at set-up)."""

@@ -125,6 +125,14 @@ def check_material_precision(material: Material, scalar, where: str = "") -> Non
         raise ValueError(f"Material.{name} = {v:g}{where} is not allowed in {scalar.__name__}: {why}")
 
 
+def flowed_by_hardening(alpha) -> bool:
+    """Whether a body of hardening ``alpha`` (host values: a state's, a checkpoint's, a given
+    ``alpha0``) has flowed: ``alpha`` > 0 somewhere. The one test of it, so that a state, a
+    checkpoint and a fit's start cannot disagree on which body keeps the incremental
+    composition (``State.has_flowed``)."""
+    return bool(np.any(np.asarray(alpha) > 0.0))
+
+
 def check_contact_ramp(name: str, value) -> float:
     """A contact ramp: a number in [0, ``MAX_CONTACT_RAMP``] (0: the instant law; 1: the continuous one)."""
     v = checks.non_negative(name, value)
@@ -283,7 +291,7 @@ class State:
     def has_flowed(self) -> bool:
         """Whether the body has flowed: ``flowed`` where known, else ``alpha`` > 0 somewhere,
         read back from the device (not cached: a step only reads its ``state_in``)."""
-        return self.flowed if self.flowed is not None else bool(np.any(self.alpha.numpy() > 0.0))
+        return self.flowed if self.flowed is not None else flowed_by_hardening(self.alpha.numpy())
 
     def assign(self, other: "State"):
         """Copy ``other``'s state fields (and time) into this state, and the reactions the

@@ -71,7 +71,7 @@ import warp as wp
 
 from . import checks
 from ._types import type_set
-from .model import Model, State, precision_problem
+from .model import Model, State, flowed_by_hardening, precision_problem
 from .sim.solver import Solver
 from .simulate import SimulationError
 
@@ -651,7 +651,7 @@ class Rollout:
         if "alpha0" in given:
             # A given hardening says whether the body has flowed, read here on the host: left
             # unknown, the first step of every forward read alpha back from the device.
-            init.flowed = bool(np.any(np.asarray(given["alpha0"]) > 0.0))
+            init.flowed = flowed_by_hardening(given["alpha0"])
 
     def _taped_states(self, count: int) -> list[State]:
         m, solver = self.model, self.solver

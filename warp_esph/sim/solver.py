@@ -16,7 +16,7 @@ import numpy as np
 import warp as wp
 
 from .. import checks
-from ..model import FITS, Model, State  # noqa: F401 (FITS: re-exported)
+from ..model import FITS, Model, State, flowed_by_hardening  # noqa: F401 (FITS: re-exported)
 from .replay import recording_tape
 from . import (comparison, curvature, deformation, fields, forces, fused, ghost_floor, hourglass, integrate, neighbors,
                plasticity, pressure)
@@ -466,7 +466,7 @@ class Solver:
         self._warned_worlds_kept = True
         m = self.model
         alpha = state.alpha.numpy()
-        still = [w for w in range(m.world_count) if not (alpha[m.world_particles(w)] > 0.0).any()]
+        still = [w for w in range(m.world_count) if not flowed_by_hardening(alpha[m.world_particles(w)])]
         if still:
             warnings.warn(f"fit = 'auto' keeps the incremental composition for every world: a world's body has flowed "
                           f"(State.flowed); world(s) {still}, which did not flow, alone would be handed over to the "
