@@ -876,6 +876,29 @@ def test_cli_joint_experiments_file(tmp_path, dough_scene):
                  "--output-dir", str(out), *common]) == 2
 
 
+def test_fit_json_records_each_experiments_solver_settings(tmp_path, dough_scene):
+    """A joint fit's ``solver_initial`` and ``solver`` in fit.json recorded the first scene's
+    solver settings for every experiment: an ``--experiments`` scene of its own ``[solver]
+    hourglass`` was said to run the first's strength. Where the experiments differ, the key
+    is a list, one per experiment (the others, alike, one value)."""
+    from warp_esph.cli import main
+
+    truth, other = tmp_path / "truth.toml", tmp_path / "other.toml"
+    truth.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    other.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0) + "\n[solver]\nhourglass = 0.1\n")
+    assert main(["run", str(truth), "-o", str(tmp_path / "run.usdc"), "--frames", "2", "--dtype", "float64",
+                 "--no-progress"]) == 0
+    (tmp_path / "exps.json").write_text(json.dumps([{"scene": "other.toml", "target": "run.usdc", "target_frames": "2"}]))
+    out = tmp_path / "joint"
+    assert main(["fit", str(truth), "--target", str(tmp_path / "run.usdc"), "--target-frames", "2", "--params", "mu",
+                 "--experiments", str(tmp_path / "exps.json"), "--output-dir", str(out), "--iterations", "0",
+                 "--no-progress", "--no-usd", "--no-diagnostics"]) == 0
+    doc = json.loads((out / "fit.json").read_text())
+    for record in (doc["solver_initial"], doc["solver"]):
+        assert record["hourglass"] == [None, 0.1] and record["resolved_hourglass"] == [0.0, 0.1], record
+        assert (record["fit"], record["resolved_fit"], record["rest_model"]) == ("auto", "linear", False), record
+
+
 @pytest.mark.parametrize("options", [["--solver-fit", "curvature_corrected", "--contact", "continuous"],
                                      ["--hourglass", "0.1"]], ids=["fit_contact", "hourglass"])
 def test_cli_fit_takes_the_solver_options(tmp_path, capsys, options, dough_scene):

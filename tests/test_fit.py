@@ -1549,6 +1549,34 @@ def test_fit_json_records_the_composition_a_flowed_start_ran():
     assert both.to_dict()["solver"]["rest_model"] == [False, True]
 
 
+def test_fit_json_records_each_experiments_solver_where_they_differ():
+    """fit.json's ``solver`` recorded the requested and resolved fit and hourglass of the first
+    experiment's model alone: a joint fit of an elastic body (``"auto"``: the corrected fit with
+    the control, on the rest model) and one built with ``fit="linear"`` said the second ran the
+    first's. Each key is one value where the experiments agree and a list, one per
+    experiment, where they differ, as ``rest_model`` was."""
+    def block(**solver):
+        b = we.SceneBuilder(spacing=0.02, **solver)
+        b.add_box((0.0, 0.05, 0.0), (0.06, 0.06, 0.06), we.Material(mu=2e3, lam=3e3))
+        return b.finalize(dtype=wp.float64, requires_grad=True)
+
+    auto, linear = block(), block(fit="linear")
+    loss = PositionLoss({2: auto.particle_x0.astype(np.float64) - 0.001})
+    kw = dict(steps=2, dt=2e-4)
+    r = fit([Experiment(auto, loss, **kw), Experiment(linear, loss, **kw)], None, ["mu"], iterations=0,
+            progress=False, diagnostics=False)
+    records = [{"fit": m.fit, "hourglass": m.hourglass, **m.solver_record()} for m in (auto, linear)]
+    assert records[0]["resolved_fit"] != records[1]["resolved_fit"]  # the case this test is about
+    assert records[0]["resolved_hourglass"] != records[1]["resolved_hourglass"]
+    solver = r.to_dict()["solver"]
+    for key in ("fit", "resolved_fit", "resolved_hourglass", "rest_model"):
+        assert solver[key] == [rec[key] for rec in records], key
+    assert solver["hourglass"] is None  # alike in both: one value
+    same = fit([Experiment(auto, loss, **kw), Experiment(block(), loss, **kw)], None, ["mu"], iterations=0,
+               progress=False, diagnostics=False)
+    assert same.to_dict()["solver"] == records[0]
+
+
 def test_a_fitted_material_keeps_its_force_defaulted_or_given():
     """The fitted materials were built with ``dataclasses.replace`` of the model's, which gave
     them the resolved ``"variational"`` as if asked for: a fitted ``Material(...)`` then

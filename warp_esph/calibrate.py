@@ -139,7 +139,7 @@ def run_fit(args, out=None, err=None) -> int:
 
     from .cli import _parse_bounds, _safe_point, option_flag  # noqa: PLC0415
     from .fit import (  # noqa: PLC0415
-        Experiment, FitInterrupted, _material_indices, check_options, fit, load_target, starts_stable_steps)
+        Experiment, FitInterrupted, _material_indices, check_options, fit, load_target, solvers_record, starts_stable_steps)
     from .rollout import RolloutMemoryError  # noqa: PLC0415
     from .scenes import load_scene  # noqa: PLC0415
     from .simulate import MAX_STEPS_PER_FRAME, resolve_timestep  # noqa: PLC0415
@@ -304,9 +304,9 @@ def run_fit(args, out=None, err=None) -> int:
             "target_frames": exps[0].target_frames, "fps": fps, "dt": dt,
             "frames": frames, "params_fitted": params, "optimizer": optimizer, "jitter": jitter, "loss_scale": loss_scale,
             "support_radius": model.support_radius,
-            # The fit asked for and what it resolves to at the initial values (fit.json's
-            # "solver": at the fitted ones; "auto" resolves by the values).
-            "solver_initial": {"fit": model.fit, "hourglass": model.hourglass, **model.solver_record()},
+            # The fit asked for and what it resolves to at the initial values, per experiment
+            # where they differ (fit.json's "solver": at the fitted ones; "auto" resolves by the values).
+            "solver_initial": solvers_record([e.model for e in exps]),
             "experiments": [{"scene": e.scene.name, "scale": e.scale, "targets": [os.path.abspath(str(p)) for p in e.targets],
                              "target_frames": e.target_frames,
                              "fps": e.fps, "dt": e.dt, "frames": e.frames, "weight": e.weight, "noise": e.noise}

@@ -189,24 +189,37 @@ class FitResult:
         })
 
     def solver_record(self) -> dict | None:
-        """What the (first) model's default solver runs at the fitted values: the requested
-        ``fit`` and ``hourglass`` with ``Model.solver_record``'s ``resolved_fit``,
-        ``resolved_hourglass`` and ``rest_model`` (``fit="auto"`` resolves by the values, so a
-        fit of ``flow_rate`` that ends at 0 ends on the rest-configuration model); None
-        without a model. ``rest_model`` is what the experiments' rollouts run from their
-        starts: False for one whose start is a flowed body (``flowed_starts``), and a list,
-        one per experiment, where the experiments differ."""
+        """What the experiments' default solvers run at the fitted values (``solvers_record``
+        of ``models``, or of ``model``): the requested ``fit`` and ``hourglass`` with
+        ``Model.solver_record``'s ``resolved_fit``, ``resolved_hourglass`` and ``rest_model``
+        (``fit="auto"`` resolves by the values, so a fit of ``flow_rate`` that ends at 0 ends
+        on the rest-configuration model); None without a model. ``rest_model`` is what the
+        experiments' rollouts run from their starts: False for one whose start is a flowed
+        body (``flowed_starts``). Each is a list, one per experiment, where they differ."""
         m = self.model
         if not isinstance(m, Model):
             return None
-        record = {"fit": m.fit, "hourglass": m.hourglass, **m.solver_record()}
-        # From the parameters alone it said True for a flowed start, which the rollouts ran on
-        # the incremental composition.
-        models = self.models or [m]
-        flowed = self.flowed_starts or [False] * len(models)
-        ran = [bool(e.auto_runs_rest(None)) and not f for e, f in zip(models, flowed)]
-        record["rest_model"] = ran[0] if len(set(ran)) == 1 else ran
-        return record
+        return solvers_record(self.models or [m], self.flowed_starts or None)
+
+
+def solvers_record(models: Sequence[Model], flowed: Sequence[bool] | None = None) -> dict:
+    """What each model's default solver runs at its current values: its requested ``fit`` and
+    ``hourglass`` and ``Model.solver_record``, ``rest_model`` False where ``flowed`` says its
+    start is a flowed body an incremental step wrote (the rollouts ran it on the incremental
+    composition; from the values alone it said True). A key holds one value where every model
+    agrees and a list, one per model, where they differ: the experiments of a joint fit may
+    be scenes of their own solver settings (the first's alone had been recorded for all)."""
+    flowed = flowed or [False] * len(models)
+    records = []
+    for m, f in zip(models, flowed):
+        r = {"fit": m.fit, "hourglass": m.hourglass, **m.solver_record()}
+        r["rest_model"] = r["rest_model"] and not f
+        records.append(r)
+    out = {}
+    for key in records[0]:
+        values = [r[key] for r in records]
+        out[key] = values[0] if all(v == values[0] for v in values) else values
+    return out
 
 
 def _json_safe(obj):
