@@ -181,7 +181,8 @@ def measure(folder: str, s: Setup, seed: int = 1) -> dict:
     _, log = _run(model, frames, s.press_fps, s, lambda f, st: None)
     stem = os.path.join(folder, "compression")
     csv_path, _ = log.write(stem)
-    rows = list(csv.reader(open(csv_path)))
+    with open(csv_path, newline="") as fh:
+        rows = list(csv.reader(fh))
     peak = max(abs(float(r[rows[0].index("fy")])) for r in rows[1:])
     sigma_f = s.force_noise * peak
     for r in rows[1:]:
@@ -196,6 +197,11 @@ def measure(folder: str, s: Setup, seed: int = 1) -> dict:
     with open(os.path.join(folder, "compression.json"), "w") as fh:
         json.dump(press, fh, indent=1)
     return {"slump": slump, "press": press, "csv": csv_path}
+
+
+def _read_json(path: str):
+    with open(path) as fh:
+        return json.load(fh)
 
 
 # ------------------------------------------------------------ closed forms
@@ -231,8 +237,7 @@ def invert_plateau(rows: list[dict], press: dict, tail: float = 0.4) -> float:
 # ------------------------------------------------------------ the fit
 def calibrate(folder: str, s: Setup, guess: dict, progress: bool = False):
     """The joint fit of yield_stress and flow_rate to the lab files in ``folder``."""
-    slump = json.load(open(os.path.join(folder, "slump.json")))
-    press = json.load(open(os.path.join(folder, "compression.json")))
+    slump, press = (_read_json(os.path.join(folder, name)) for name in ("slump.json", "compression.json"))
     start = material(**guess)
 
     sm = slump_scene(start, s).finalize(dtype=wp.float64, requires_grad=True)
@@ -261,8 +266,7 @@ def calibrate(folder: str, s: Setup, guess: dict, progress: bool = False):
 
 
 def closed_forms(folder: str) -> dict:
-    slump = json.load(open(os.path.join(folder, "slump.json")))
-    press = json.load(open(os.path.join(folder, "compression.json")))
+    slump, press = (_read_json(os.path.join(folder, name)) for name in ("slump.json", "compression.json"))
     rows = [r for r in read_tools_csv(os.path.join(folder, "compression_tools.csv")) if r["tool"] == "plate"]
     root23 = math.sqrt(2.0 / 3.0)
     return {

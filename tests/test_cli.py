@@ -36,7 +36,8 @@ def log_frames(usd_path) -> dict[str, list[int]]:
         rows = list(csv.DictReader(fh))
     for r in rows:
         out.setdefault(r["tool"], []).append(int(r["frame"]))
-    data = json.load(open(f"{usd_path}_tools.json"))["rows"]
+    with open(f"{usd_path}_tools.json") as fh:
+        data = json.load(fh)["rows"]
     assert [(r["tool"], r["frame"]) for r in data] == [(r["tool"], int(r["frame"])) for r in rows]
     assert all(np.isfinite(r["force"]).all() and np.isfinite(r["torque"]).all() for r in data)
     return out
@@ -296,13 +297,15 @@ def test_run_writes_the_static_colliders_reaction_rows_and_usd_attributes(tmp_pa
     out = tmp_path / "rest.usdc"
     assert main(["run", str(scene), "-o", str(out), "--dtype", "float64", "--no-progress"]) == 0
     assert "reaction forces (static colliders)" in capsys.readouterr().out
-    rows = list(csv.DictReader(open(f"{out}_tools.csv", newline="")))
+    with open(f"{out}_tools.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
     assert [r["tool"] for r in rows] == ["plane0"] * 21 and [int(r["frame"]) for r in rows] == list(range(21))
     force = np.array([[float(r[k]) for k in ("fx", "fy", "fz")] for r in rows])
     torque = np.array([[float(r[k]) for k in ("tx", "ty", "tz")] for r in rows])
     np.testing.assert_array_equal([[float(r[k]) for k in ("px", "py", "pz")] for r in rows[:1]], [[0.0, 0.01, 0.0]])
     # A float64 run's CSV holds its values to the last bit, as its JSON does (9 digits rounded them).
-    doc = json.load(open(f"{out}_tools.json"))
+    with open(f"{out}_tools.json") as fh:
+        doc = json.load(fh)
     assert [float(r["time"]) for r in rows] == [r["time"] for r in doc["rows"]]
     np.testing.assert_array_equal(force, [r["force"] for r in doc["rows"]])
 
@@ -346,7 +349,8 @@ def test_resumed_run_keeps_and_continues_the_force_log(tmp_path, capsys):
     # The file's frames, and those this run wrote (from the checkpoint's frame on).
     assert f"wrote {part}: frames 0..6 (2..6 by this run)," in capsys.readouterr().out
     assert log_frames(part) == {"plane0": list(range(7))}
-    assert open(f"{part}_tools.csv").read() == open(f"{whole}_tools.csv").read()
+    with open(f"{part}_tools.csv") as a, open(f"{whole}_tools.csv") as b:
+        assert a.read() == b.read()
     capsys.readouterr()
 
 
@@ -1233,18 +1237,19 @@ def test_a_reader_that_leaves_is_not_bad_input_and_leaves_no_traceback(tmp_path)
     written. Not exit 2 (bad input) with 'Broken pipe', not a traceback from the flush at
     exit: 141, as a shell reports a writer stopped by SIGPIPE, and nothing on stderr."""
     env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    p = subprocess.Popen([sys.executable, "-m", "warp_esph", "scenes"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
-    p.stdout.close()  # before the child, still importing, writes its first line
-    err = p.stderr.read()
-    assert p.wait(timeout=120) == 141, err
+    # As context managers: the stderr pipe read here is closed with them (left open, unclosed).
+    with subprocess.Popen([sys.executable, "-m", "warp_esph", "scenes"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True) as p:
+        p.stdout.close()  # before the child, still importing, writes its first line
+        err = p.stderr.read()
+        assert p.wait(timeout=120) == 141, err
     assert err == "", err
     # A run whose reader left: not a write failure of its output file (exit 4).
-    p = subprocess.Popen([sys.executable, "-m", "warp_esph", "run", "three_cylinders", "-o", "c.usdc", *TINY], cwd=tmp_path,
-                         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    p.stdout.close()
-    err = p.stderr.read()
-    assert p.wait(timeout=120) == 141, err
+    with subprocess.Popen([sys.executable, "-m", "warp_esph", "run", "three_cylinders", "-o", "c.usdc", *TINY],
+                          cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as p:
+        p.stdout.close()
+        err = p.stderr.read()
+        assert p.wait(timeout=120) == 141, err
     assert "Traceback" not in err and "cannot write" not in err, err
 
 
@@ -1587,7 +1592,8 @@ def test_the_iteration_cap_is_the_one_the_help_and_the_docs_give(capsys):
     with pytest.raises(SystemExit):
         main(["fit", "--help"])
     assert f"at most {MAX_ITERATIONS})" in " ".join(capsys.readouterr().out.split())
-    assert f"at most\n  {MAX_ITERATIONS}:" in open(os.path.join(REPO, "docs", "cli.md")).read()
+    with open(os.path.join(REPO, "docs", "cli.md")) as fh:
+        assert f"at most\n  {MAX_ITERATIONS}:" in fh.read()
 
 
 def test_a_frame_or_swept_value_named_twice_is_refused_naming_the_option_and_the_value(tmp_path, capsys):

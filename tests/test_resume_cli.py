@@ -245,6 +245,8 @@ def test_a_killed_run_resumes_with_its_force_log_whole(tmp_path, capsys):
     whole = tmp_path / "whole.usdc"
     assert main(["run", "dough_drop", "--scale", "0.3", "--frames", str(frame + 2), "-o", str(whole), "--no-progress"]) == 0
     capsys.readouterr()
-    csv = open(f"{out}_tools.csv").read()
+    with open(f"{out}_tools.csv") as fh:
+        csv = fh.read()
     assert [int(line.split(",")[0]) for line in csv.splitlines()[1:]] == list(range(frame + 3))
-    assert csv == open(f"{whole}_tools.csv").read()
+    with open(f"{whole}_tools.csv") as fh:
+        assert csv == fh.read()

@@ -1247,12 +1247,14 @@ def test_scene_file_tools_and_pins_run_through_the_cli_to_usd_csv_and_json(tmp_p
     path.write_text(SCENE_TOML)
     out = tmp_path / "press.usdc"
     assert main(["run", str(path), "-o", str(out), "--no-progress"]) == 0
-    rows = list(csv.DictReader(open(tmp_path / "press.usdc_tools.csv")))
+    with open(tmp_path / "press.usdc_tools.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
     assert [r["tool"] for r in rows] == ["base", "plate", "left"] * 3
     plate = [r for r in rows if r["tool"] == "plate"]
     assert [float(r["py"]) for r in plate] == pytest.approx([0.1, 0.095, 0.09], abs=1e-6)  # keyframes at t = 0, 0.02, 0.04
     assert float(plate[-1]["fy"]) < 0.0  # the plate presses down on the block
-    data = json.load(open(tmp_path / "press.usdc_tools.json"))
+    with open(tmp_path / "press.usdc_tools.json") as fh:
+        data = json.load(fh)
     assert len(data["rows"]) == 9 and data["units"]["force"] == "N"
     stage = Usd.Stage.Open(str(out))
     prim = stage.GetPrimAtPath("/World/Tools/plate")
@@ -1267,7 +1269,8 @@ def test_scene_file_tools_and_pins_run_through_the_cli_to_usd_csv_and_json(tmp_p
     # A second output with the same stem in the same folder keeps its own force log.
     before = (tmp_path / "press.usdc_tools.csv").read_bytes()
     assert main(["run", str(path), "-o", str(tmp_path / "press.usda"), "--no-progress", "--frames", "1"]) == 0
-    assert len(list(csv.DictReader(open(tmp_path / "press.usda_tools.csv")))) == 6  # frames 0 and 1
+    with open(tmp_path / "press.usda_tools.csv", newline="") as fh:
+        assert len(list(csv.DictReader(fh))) == 6  # frames 0 and 1
     assert (tmp_path / "press.usdc_tools.csv").read_bytes() == before
 
 
