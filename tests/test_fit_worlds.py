@@ -202,6 +202,23 @@ def test_an_error_in_a_round_of_the_worlds_ends_the_fit_with_it(dropped_cube, ta
     assert raised == ["the second round failed"] and rounds == [[0, 1, 2], [0, 1, 2]]
 
 
+def _lockstep_two_starts(descend, recorded):
+    """``fit._lockstep`` of two starts at 0, each run by ``descend`` (its optimiser), over fake
+    worlds whose every evaluation is loss 1 with a zero gradient; the start of each evaluation
+    recorded is appended to ``recorded``. What the fit does around the optimisers alone."""
+    from warp_esph import fit as fit_module
+
+    class Worlds:
+        def evaluate(self, batch):
+            return {w: (1.0, np.zeros(1), 0.0, None) for w in batch}
+
+    def record(track, z, value, gz, seconds, note):
+        recorded.append(track)
+        return value, gz, True
+
+    return fit_module._lockstep([0, 1], [np.zeros(1)] * 2, descend, Worlds(), record)
+
+
 def test_a_start_between_rounds_when_the_fit_stops_ends_with_it(monkeypatch):
     """Ctrl-C while the fit waited for the next round, with one start still computing its
     next point (answered, not yet asking), left that start out of the clean-up: it then
@@ -209,8 +226,6 @@ def test_a_start_between_rounds_when_the_fit_stops_ends_with_it(monkeypatch):
     at once and the fit ends with the Ctrl-C. The interrupt is put into the round's wait,
     and the start asks only once the fit joins its threads (the race, made certain)."""
     import threading
-
-    from warp_esph import fit as fit_module
 
     between, go = threading.Event(), threading.Event()
     recorded, asked_late, raised, main = [], [], [], []
@@ -228,10 +243,6 @@ def test_a_start_between_rounds_when_the_fit_stops_ends_with_it(monkeypatch):
             go.set()
             return super().join(timeout)
 
-    class Worlds:
-        def evaluate(self, batch):
-            return {w: (1.0, np.zeros(1), 0.0, None) for w in batch}
-
     def descend(evaluate, z, track):
         evaluate(z)
         if track == 0:
@@ -246,13 +257,9 @@ def test_a_start_between_rounds_when_the_fit_stops_ends_with_it(monkeypatch):
             evaluate(z)
         return "done"
 
-    def record(track, z, value, gz, seconds, note):
-        recorded.append(track)
-        return value, gz, True
-
     def run():
         try:
-            fit_module._lockstep([0, 1], [np.zeros(1)] * 2, descend, Worlds(), record)
+            _lockstep_two_starts(descend, recorded)
         except BaseException as e:  # noqa: BLE001
             raised.append(type(e).__name__)
 
@@ -275,10 +282,6 @@ def test_an_error_in_one_start_ends_the_other_starts_at_the_next_round():
 
     recorded, stopped = [], []
 
-    class Worlds:
-        def evaluate(self, batch):
-            return {w: (1.0, np.zeros(1), 0.0, None) for w in batch}
-
     def descend(evaluate, z, track):
         evaluate(z)
         if track == 0:
@@ -291,10 +294,6 @@ def test_an_error_in_one_start_ends_the_other_starts_at_the_next_round():
             return str(e)
         return "done"
 
-    def record(track, z, value, gz, seconds, note):
-        recorded.append(track)
-        return value, gz, True
-
     with pytest.raises(ValueError, match="start 0 failed"):
-        fit_module._lockstep([0, 1], [np.zeros(1)] * 2, descend, Worlds(), record)
+        _lockstep_two_starts(descend, recorded)
     assert sorted(recorded) == [0, 1] and stopped == ["callback"]
