@@ -1372,6 +1372,112 @@ def test_backward_refuses_parameters_or_materials_changed_since_forward(segment)
         np.testing.assert_array_equal(grads_again[name], grads[name])
 
 
+class _CountingTape(wp.Tape):
+    """``wp.Tape`` that counts the tapes made and the launches recorded on them."""
+
+    made = 0
+    launches = 0
+
+    def __init__(self, *args, **kwargs):
+        type(self).made += 1
+        super().__init__(*args, **kwargs)
+
+    def record_launch(self, *args, **kwargs):
+        type(self).launches += 1
+        return super().record_launch(*args, **kwargs)
+
+
+@pytest.fixture
+def counting_tape(monkeypatch):
+    _CountingTape.made = _CountingTape.launches = 0
+    monkeypatch.setattr(wp, "Tape", _CountingTape)
+    return _CountingTape
+
+
+@pytest.mark.parametrize("kind", ["dough", "elastic"])
+def test_a_loss_only_forward_records_no_tape_and_gives_the_taped_bits(counting_tape, kind):
+    """``forward(taped=False)``, for a loss value alone, records no tape and no launch, and
+    runs the very steps a taped forward runs: the same positions at every frame and the same
+    last state, bit for bit (the fused dough step; an elastic block on the rest model's
+    non-fused kernels). A backward after it is refused (no tape to go back through), and a
+    taped forward after it differentiates as before."""
+    model = _block() if kind == "dough" else _block_with(yield_stress=math.inf, flow_rate=0.0, hardening=0.0)
+    r = Rollout(model, STEPS, DT, frames=FRAMES)
+    loss = PositionLoss(_targets(r), frames=FRAMES)
+    counting_tape.made = counting_tape.launches = 0
+    untaped = r.forward(alpha0=ALPHA0, taped=False)
+    last = {name: getattr(r.final_state(), name).numpy().copy() for name in ("x", "v", "F", "alpha")}
+    assert (counting_tape.made, counting_tape.launches) == (0, 0)
+    with pytest.raises(RuntimeError, match=r"backward\(\) is not allowed after forward\(taped=False\)"):
+        r.backward(loss)
+    taped = r.forward(alpha0=ALPHA0)
+    assert counting_tape.made == 1 and counting_tape.launches > 0
+    np.testing.assert_array_equal(untaped, taped)
+    for name, value in last.items():
+        np.testing.assert_array_equal(getattr(r.final_state(), name).numpy(), value, err_msg=name)
+    value, grads = r.backward(loss)
+    fresh = Rollout(model, STEPS, DT, frames=FRAMES)
+    value_fresh, grads_fresh = fresh.value_and_grad(loss, alpha0=ALPHA0)
+    assert value == value_fresh
+    for name in ("mu", "lam", "v0"):
+        np.testing.assert_array_equal(grads[name], grads_fresh[name], err_msg=name)
+    with pytest.raises(ValueError, match=r"taped = 'no' is not allowed: must be True or False"):
+        r.forward(taped="no")
+
+
+def _gauss_newton_problem():
+    """A 5x4x4 block 2x off its yield stress and flow rate, and a target 6 steps long."""
+    truth = _block({"yield_stress": 20.0, "flow_rate": 100.0})
+    target = Rollout(truth, STEPS, DT, frames=FRAMES).forward(alpha0=ALPHA0)
+    return PositionLoss(target, frames=FRAMES)
+
+
+@pytest.mark.parametrize("optimizer", ["gauss-newton", "lbfgs"])
+def test_loss_only_fit_evaluations_run_untaped_and_leave_the_fit_as_it_was(monkeypatch, optimizer):
+    """A fit's loss-only evaluations (the global stage, Gauss-Newton's residual runs, the
+    diagnostics' forward differences) step with no tape recording; its gradient evaluations
+    (L-BFGS's) step under one. The fit is the one whose every run was taped
+    (``_Run.tape_values``, as before): the same history (loss, parameters, gradients),
+    result and diagnostics, bit for bit."""
+    from warp_esph import fit as fit_module
+    from warp_esph.sim.replay import recording_tape
+
+    loss = _gauss_newton_problem()
+    taped_steps = []
+    step = we.Solver.step
+
+    def counted(self, state_in, state_out, dt):
+        taped_steps.append(recording_tape() is not None)
+        return step(self, state_in, state_out, dt)
+
+    monkeypatch.setattr(we.Solver, "step", counted)
+
+    def run(tape_values):
+        monkeypatch.setattr(fit_module._Run, "tape_values", tape_values)
+        taped_steps.clear()
+        result = fit(_block(), loss, ["yield_stress", "flow_rate"], steps=STEPS, dt=DT, iterations=6, samples=2,
+                     optimizer=optimizer, initial={"alpha0": ALPHA0}, noise=1e-4, progress=False)
+        return result, list(taped_steps)
+
+    before, steps_before = run(True)
+    after, steps_after = run(False)
+    gradient_runs = sum(1 for h in after.history if h["grad"] is not None)
+    assert len(after.history) > 5 and after.diagnostics.method == "gauss-newton"
+    assert gradient_runs == (0 if optimizer == "gauss-newton" else after.evaluations)
+    # Every run of the fit and of its diagnostics (the first at the fitted point and the one their
+    # range check starts from besides their evaluations) taped, as before.
+    assert len(steps_after) == len(steps_before) == (len(before.history) + before.diagnostics.evaluations + 2) * STEPS
+    assert all(steps_before)
+    assert sum(steps_after) == gradient_runs * STEPS
+    def timeless(history):
+        return [{k: v for k, v in h.items() if k != "seconds"} for h in history]
+
+    assert timeless(after.history) == timeless(before.history)
+    assert after.stopped == before.stopped
+    for name in after.params:
+        np.testing.assert_array_equal(after.params[name], before.params[name])
+    np.testing.assert_array_equal(after.diagnostics.fisher, before.diagnostics.fisher)
+
 def test_patience_counts_the_evaluations_after_the_guess():
     """The guess's own evaluation counted as one without a lower loss (inf - 1e-9 * inf is
     NaN): ``patience=1`` stopped every fit at its guess as stalled, and every stall came one
@@ -1436,6 +1542,14 @@ def test_a_rollout_that_blows_up_to_non_finite_values_raises(checkpoint_every):
         assert ("checkpoint_every=None to find the first step" in str(e)) == (checkpoint_every is not None)
         assert not np.isfinite(r.positions()).all()  # the run stays readable
         assert not np.isfinite(r.forward(v0=BLOWING_UP, check=False)).all()
+        if checkpoint_every is None:
+            # A loss-only forward keeps its frames and last state alone: the first found so, not
+            # a step of the taped run before it (its states are still there).
+            with pytest.raises(NonFiniteRollout) as info:
+                r.forward(v0=BLOWING_UP, taped=False)
+            assert (info.value.step, info.value.last_finite) == (5, 0)
+            assert ("(finite after step 0; forward(taped=False) keeps only the frames and the last state: run forward() "
+                    "taped to find the first step)") in str(info.value)
         r = Rollout(model, 10, 1e-3, frames=[5, 10], checkpoint_every=checkpoint_every,
                     solver=we.Solver(model, fit="curvature_corrected"))
         assert not r.solver.rest_model

@@ -249,7 +249,7 @@ def _scaled_residuals(prob, z, sigmas, leaf_sigmas) -> np.ndarray:
     prob.apply(z)
     out = []
     for run, sigma in zip(prob.runs, sigmas):
-        run.forward()
+        run.value_forward()
         positions = run.rollout.observations(numpy=True)
         for leaf in leaf_terms(run.loss):
             out.append(leaf.residuals(positions) / leaf_sigmas.get(id(leaf), sigma))
@@ -265,7 +265,7 @@ def _chi_square_at(prob, z, chi2s) -> float:
     prob.apply(z)
     total = 0.0
     for run, chi2 in zip(prob.runs, chi2s):
-        run.forward()
+        run.value_forward()
         total += chi2.value(run.rollout.observations())
     return total
 
@@ -292,7 +292,7 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
     sigmas, rms, chi2s, observations, leaf_sigmas, grouped = [], [], [], 0, {}, 0
     bias = []
     for k_run, run in enumerate(prob.runs):
-        run.forward()
+        run.value_forward()
         where = f"experiment {k_run}: " if len(prob.runs) > 1 else ""
         said = large_strain_bias(run.rollout.model, run.rollout.final_state().alpha.numpy(), where)
         if said is not None:

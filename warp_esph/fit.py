@@ -620,11 +620,21 @@ class _Run(_Values):
         # The start's own flag where known, as the rollout's step reads the state it copies.
         return isinstance(init, State) and init.has_flowed()
 
-    def forward(self) -> np.ndarray:
+    #: Whether the runs for a loss value alone (``value_forward``) record a tape all the same,
+    #: as every run did before: the baseline ``benchmarks.fit_bench --loss-only`` times.
+    tape_values = False
+
+    def forward(self, taped: bool = True) -> np.ndarray:
         """The rollout from this experiment's starts (checked once, at set-up)."""
         # check=False: a non-finite trial is the fit's to fail (a failed trial, loss inf;
         # with worlds the one world's start alone), not an error ending the fit.
-        return self.rollout._forward_checked(self.starts, self.initial.get("initial_state"), check=False)
+        return self.rollout._forward_checked(self.starts, self.initial.get("initial_state"), check=False, taped=taped)
+
+    def value_forward(self) -> np.ndarray:
+        """``forward`` for an evaluation that reads the loss alone (Gauss-Newton's residuals,
+        the global stage, the diagnostics' forward differences): no tape is recorded, the
+        same bits in less time (``Rollout.forward(taped=False)``)."""
+        return self.forward(taped=self.tape_values)
 
     def value_and_grad(self, loss) -> tuple[float, dict[str, np.ndarray]]:
         """``Rollout.value_and_grad(loss, **initial)`` from the starts checked at set-up."""
@@ -817,7 +827,7 @@ class _Problem:
         self.apply(z)
         total = 0.0
         for r in self.runs:
-            r.forward()
+            r.value_forward()
             _check_diverged(r)
             total += r.weight * r.loss.value(r.rollout.observations())
         return total
@@ -1319,7 +1329,7 @@ def fit(
             try:
                 prob.apply(z)
                 for r in prob.runs:
-                    r.forward()
+                    r.value_forward()
                     _check_diverged(r)
                     arrays = r.rollout.observations(numpy=True)
                     terms = r.loss.terms if isinstance(r.loss, SumLoss) else [(1.0, r.loss)]

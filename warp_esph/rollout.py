@@ -18,7 +18,9 @@ Memory
 ------
 Without checkpointing (``checkpoint_every=None``) the forward pass is recorded on one
 ``wp.Tape`` with one ``State`` per step: memory grows with ``steps`` (about 0.95 kB
-per particle per step in float64, see ``docs/fitting.md``). With ``checkpoint_every=S``
+per particle per step in float64, see ``docs/fitting.md``); ``forward(taped=False)``, for a
+loss value alone, runs the same steps unrecorded between two states (as the checkpointed
+forward does). With ``checkpoint_every=S``
 the forward pass runs untaped, keeping only the state fields (``x, v, F, alpha``) at the
 start of every segment of ``S`` steps; ``backward`` re-runs each segment on a fresh tape,
 last segment first, seeds its end state with the adjoint that the later segment left at
@@ -539,7 +541,7 @@ class Rollout:
         self._initial = model.state(requires_grad=False)
         self._states: list[State] | None = None  # taped states: whole run, or one segment
         self._final: State | None = None  # the latest forward's last state (final_state)
-        self._pair: list[State] | None = None  # untaped ping-pong pair (checkpointed forward)
+        self._pair: list[State] | None = None  # untaped ping-pong pair (checkpointed or taped=False forward)
         self._checkpoints: list[_Checkpoint] = []
         self._tape: wp.Tape | None = None
         self._forward_done = False
@@ -673,7 +675,7 @@ class Rollout:
 
     # ---------------------------------------------------------------- forward
     def forward(self, x0=None, v0=None, *, F0=None, alpha0=None, initial_state: State | None = None,
-                check: bool = True) -> np.ndarray:
+                check: bool = True, taped: bool = True) -> np.ndarray:
         """Run the rollout; returns the positions at ``frames`` as an ``(frames, n, 3)`` array.
 
         A run that blew up to a non-finite position (at a frame, or in the last state) or
@@ -696,15 +698,22 @@ class Rollout:
         start is handed over as an incremental step's, ``State.rest_model`` False, unless an
         ``alpha0`` > 0 says the body has flowed: then the incremental composition runs,
         ``State.flowed``); without it the rest model starts from the fit of the positions.
+
+        ``taped=False`` runs for a loss value alone: the same steps, in the same bits, with no
+        tape recorded, between two states as the checkpointed forward runs; a ``backward``
+        then needs a taped ``forward`` first. With ``checkpoint_every`` the forward records no tape either way
+        (``backward`` re-runs the segments on tapes).
         """
         given = {name: check_initial(self.model, name, value) for name, value in
                  (("x0", x0), ("v0", v0), ("F0", F0), ("alpha0", alpha0)) if value is not None}
         if not isinstance(check, bool):
             raise ValueError(f"check = {check!r} is not allowed: must be True or False")
-        return self._forward_checked(given, initial_state, check)
+        if not isinstance(taped, bool):
+            raise ValueError(f"taped = {taped!r} is not allowed: must be True or False")
+        return self._forward_checked(given, initial_state, check, taped)
 
     def _forward_checked(self, given: Mapping[str, np.ndarray], initial_state: State | None = None,
-                         check: bool = True) -> np.ndarray:
+                         check: bool = True, taped: bool = True) -> np.ndarray:
         """``forward`` from starts ``check_initial`` has answered (``{name: its array}``), not
         checked again: the torch bridge checks each start once, before it sets the parameters,
         and re-runs a forward for its backward from the same arrays (x0's check of coincident
@@ -714,8 +723,11 @@ class Rollout:
         self.solver._take_rest_configuration()
         self._load_initial(initial_state, given)
         self._tape = None
-        if self.checkpointing:
-            self._forward_checkpointed()
+        if self.checkpointing or not taped:
+            # A loss value alone needs no tape: the same steps, unrecorded, on the two states the
+            # checkpointed forward steps between (the very bits a taped run gives; a step between
+            # the same two states also repacks fewer launch arguments, docs/performance.md).
+            self._forward_untaped()
         else:
             states = self._taped_states(self.steps + 1)
             states[0].assign(self._initial)
@@ -749,7 +761,7 @@ class Rollout:
         # The failure path only: find the first non-finite state among those kept.
         m = self.model
         known = []  # (steps taken, its first non-finite particle or None, whether x and v were read)
-        if self._states is not None and not self.checkpointing:
+        if self._tape is not None:  # a full tape keeps every state
             for k in range(1, self.steps + 1):
                 p = _first_non_finite(self._states[k].x.numpy(), self._states[k].v.numpy())
                 known.append((k, p, True))
@@ -765,9 +777,11 @@ class Rollout:
         last_finite = max([0] + [k for k, p, full in known if p is None and full and k < step])
         body = m.bodies[int(m.particle_body_np[p])].name
         where = f"particle {p} of body {body!r}" + (f" (world {int(m.world_of_particle[p])})" if m.world_count > 1 else "")
+        kept = (f"checkpoint_every={self.segment} keeps only the states at its segment starts and frames: run with "
+                "checkpoint_every=None to find the first step" if self.checkpointing else
+                "forward(taped=False) keeps only the frames and the last state: run forward() taped to find the first step")
         when = (f"after step {step} of {self.steps}" if step - last_finite <= 1 else
-                f"after step {step} of {self.steps} (finite after step {last_finite}; checkpoint_every={self.segment} keeps "
-                "only the states at its segment starts and frames: run with checkpoint_every=None to find the first step)")
+                f"after step {step} of {self.steps} (finite after step {last_finite}; {kept})")
         stable = m.stable_dt(hourglass=self.solver.hourglass)
         # Within the stable step a smaller dt is no cure: the cause is the start (a speed or
         # stretch past the precision's range) or the parameters, and the advice sent users to dt.
@@ -798,16 +812,18 @@ class Rollout:
             raise RuntimeError(f"backward() is not allowed: {', '.join(changed)} changed since forward(); run forward() "
                                "again with the new values first")
 
-    def _forward_checkpointed(self):
+    def _forward_untaped(self):
+        """The forward of a checkpointed rollout (its segment starts saved) or of
+        ``forward(taped=False)``, stepping between two states without a tape."""
         if self._pair is None:
             self._pair = [self.model.state(requires_grad=False) for _ in range(2)]
-        if len(self._checkpoints) != len(self.segments):
+        if self.checkpointing and len(self._checkpoints) != len(self.segments):
             self._checkpoints = [_Checkpoint(self.model) for _ in self.segments]
         cur, nxt = self._pair
         cur.assign(self._initial)
         seg = 0
         for k in range(self.steps + 1):
-            if seg < len(self.segments) and self.segments[seg][0] == k:
+            if self.checkpointing and seg < len(self.segments) and self.segments[seg][0] == k:
                 self._checkpoints[seg].save(cur)
                 seg += 1
             if k in self._frame_slot:
@@ -959,6 +975,9 @@ class Rollout:
         """
         if not self._forward_done:
             raise RuntimeError("backward() before forward(): run forward() first")
+        if self._tape is None and not self.checkpointing:
+            raise RuntimeError("backward() is not allowed after forward(taped=False): that run recorded no tape to go "
+                               "back through; run forward() (taped=True) first")
         self._check_inputs_unchanged()
         if grads is None or isinstance(grads, (str, bytes, int, float)):
             raise ValueError(f"grads = {checks.shorten(grads)!r} is not allowed: give a warp_esph.losses.Loss or the "
