@@ -15,6 +15,17 @@ checkpointing (``checkpoint_every = ceil(sqrt(steps))`` by default), it measures
     python -m benchmarks.fit_bench --particles 500 --steps 20 --json out.json
     python -m benchmarks.fit_bench --quick
 
+``--loss-only`` times instead a small fit of the block's yield stress and flow rate (from 2x
+off, a global stage of 3 samples, the diagnostics) whose loss-only runs (the global stage,
+Gauss-Newton's residual runs, the diagnostics' forward differences) record no tape, against
+the same fit with every run taped, as all were before (``fit._Run.tape_values``): the two
+alternate in one process, best of ``--repeats`` each, wall-clock and CPU time, for
+Gauss-Newton (forward runs only) and L-BFGS (taped gradients; its diagnostics forward only),
+and the two histories must be equal (losses, parameters, gradients)::
+
+    python -m benchmarks.fit_bench --loss-only                          # 125, 1000 particles x 40 steps
+    python -m benchmarks.fit_bench --loss-only --particles 125 --steps 40 --repeats 5
+
 It prints a table and writes JSON (``--json``, default ``fit_bench.json``). Not a test.
 """
 
@@ -39,6 +50,7 @@ except ImportError:  # run from a checkout without installing the package
 
 from benchmarks import _cli
 from benchmarks.blocks import block_model
+from warp_esph import fit as fit_module
 from warp_esph.losses import PositionLoss
 from warp_esph.rollout import PARAMETERS, Rollout
 
@@ -97,6 +109,114 @@ def measure(model: we.Model, steps: int, checkpoint_every: int | None, repeats: 
     }
 
 
+#: The loss-only benchmark's fit: the fitted values, optimisers, evaluations and global stage.
+LOSS_ONLY_PARAMS = ("yield_stress", "flow_rate")
+LOSS_ONLY_OPTIMIZERS = ("gauss-newton", "lbfgs")
+LOSS_ONLY_ITERATIONS = 12
+LOSS_ONLY_SAMPLES = 3
+
+
+def _guess_model(particles: int, factor: float) -> we.Model:
+    """The benchmark block (float64) with its yield stress and flow rate times ``factor``."""
+    model = block_model(particles, wp.float64)
+    m = model.materials[0]
+    model.set_material(0, m.replace(yield_stress=factor * m.yield_stress, flow_rate=factor * m.flow_rate))
+    return model
+
+
+def _timeless(history) -> list[dict]:
+    return [{k: v for k, v in h.items() if k != "seconds"} for h in history]
+
+
+def measure_loss_only(particles: int, steps: int, repeats: int = 3) -> list[dict]:
+    """The fit (module doc) with its loss-only runs untaped and, alternating, taped: one row
+    per optimiser."""
+    truth = _guess_model(particles, 1.0)
+    dt = truth.stable_dt()
+    frames = sorted({steps // 2, steps})
+    loss = PositionLoss(Rollout(truth, steps, dt, frames=frames).forward(), frames=frames)
+
+    def run(tape_values, optimizer):
+        model = _guess_model(particles, 2.0)  # fit leaves the model holding its result
+        fit_module._Run.tape_values = tape_values
+        try:
+            gc.collect()
+            w0, c0 = time.perf_counter(), time.process_time()
+            result = fit_module.fit(model, loss, list(LOSS_ONLY_PARAMS), steps=steps, dt=dt, optimizer=optimizer,
+                                    iterations=LOSS_ONLY_ITERATIONS, samples=LOSS_ONLY_SAMPLES, noise=1e-4,
+                                    progress=False)
+            return result, time.perf_counter() - w0, time.process_time() - c0
+        finally:
+            fit_module._Run.tape_values = False
+
+    rows = []
+    for optimizer in LOSS_ONLY_OPTIMIZERS:
+        for tape_values in (True, False):  # warm-up: each path's kernels compiled or loaded
+            run(tape_values, optimizer)
+        best = {True: (math.inf, math.inf), False: (math.inf, math.inf)}
+        results = {}
+        for k in range(repeats):
+            # Alternating, the order swapped every repeat: the shared machine's load hits both alike.
+            for tape_values in ((True, False) if k % 2 == 0 else (False, True)):
+                result, wall, cpu = run(tape_values, optimizer)
+                results[tape_values] = result
+                best[tape_values] = (min(best[tape_values][0], wall), min(best[tape_values][1], cpu))
+        old, new = results[True], results[False]
+        same = (_timeless(old.history) == _timeless(new.history)
+                and all(np.array_equal(old.params[n], new.params[n]) for n in old.params)
+                and np.array_equal(old.diagnostics.fisher, new.diagnostics.fisher))
+        gradient_runs = sum(1 for h in new.history if h["grad"] is not None)
+        # Each diagnostics run list: the first at the fitted point, its evaluations, the range check's start.
+        runs = len(new.history) + new.diagnostics.evaluations + 2
+        rows.append({
+            "particles": truth.particle_count,
+            "steps": steps,
+            "optimizer": optimizer,
+            "forward_runs": runs,
+            "gradient_runs": gradient_runs,
+            "loss_only_runs": runs - gradient_runs,
+            "taped_wall_s": best[True][0],
+            "untaped_wall_s": best[False][0],
+            "wall_ratio": best[False][0] / best[True][0],
+            "taped_cpu_s": best[True][1],
+            "untaped_cpu_s": best[False][1],
+            "cpu_ratio": best[False][1] / best[True][1],
+            "same_history": bool(same),
+            "stopped": new.stopped,
+        })
+    return rows
+
+
+def _loss_only_main(a, sizes, step_counts, argv) -> int:
+    rows = []
+    for n in sizes:
+        for steps in step_counts:
+            rows += measure_loss_only(n, steps, a.repeats)
+    hdr = (f"{'particles':>9} {'steps':>6} {'optimizer':>12} {'runs':>5} {'loss-only':>9} {'taped s':>8} {'untaped s':>9} "
+           f"{'wall ratio':>10} {'taped cpu':>9} {'untaped cpu':>11} {'cpu ratio':>9} {'same':>5}")
+    print(hdr)
+    print("-" * len(hdr))
+    for r in rows:
+        print(f"{r['particles']:>9} {r['steps']:>6} {r['optimizer']:>12} {r['forward_runs']:>5} {r['loss_only_runs']:>9} "
+              f"{r['taped_wall_s']:>8.3f} {r['untaped_wall_s']:>9.3f} {r['wall_ratio']:>10.3f} {r['taped_cpu_s']:>9.3f} "
+              f"{r['untaped_cpu_s']:>11.3f} {r['cpu_ratio']:>9.3f} {str(r['same_history']):>5}")
+    _write(a, argv, rows)
+    return 0 if all(r["same_history"] for r in rows) else 1
+
+
+def _write(a, argv, rows) -> None:
+    report = {
+        "command": " ".join([os.path.basename(sys.argv[0])] + (argv if argv is not None else sys.argv[1:])),
+        "machine": {"platform": platform.platform(), "processor": platform.processor(), "python": platform.python_version(),
+                    "warp": wp.config.version, "device": "cpu", "dtype": "float64",
+                    "load_average": list(os.getloadavg())},
+        "rows": rows,
+    }
+    with open(a.json, "w") as f:
+        json.dump(report, f, indent=2)
+    print("wrote", a.json)
+
+
 def _checkpoint(text, name):
     """'sqrt' or a segment length >= 1."""
     if str(text).strip() == "sqrt":
@@ -112,8 +232,10 @@ def main(argv=None) -> int:
     ap.add_argument("--particles", default=None, type=_cli.positive_int_list,
                     help="comma-separated particle counts (approximate; default 250,1000,4000)")
     ap.add_argument("--steps", default=None, type=_cli.positive_int_list, help="comma-separated step counts (default 50,200)")
-    ap.add_argument("--checkpoint", default="sqrt", type=_cli.Check(_checkpoint),
-                    help="segment length for the checkpointed runs: an integer or 'sqrt'")
+    ap.add_argument("--checkpoint", default=None, type=_cli.Check(_checkpoint),
+                    help="segment length for the checkpointed runs: an integer or 'sqrt' (default)")
+    ap.add_argument("--loss-only", action="store_true",
+                    help="time a small fit's loss-only runs untaped against taped (default 125, 1000 particles x 40 steps)")
     ap.add_argument("--repeats", type=_cli.positive_int, default=1, help="timed repeats per configuration (the fastest is kept)")
     ap.add_argument("--quick", action="store_true", help="a tiny run: 125 particles, 20 steps (not with --particles, --steps)")
     ap.add_argument("--json", default="fit_bench.json", type=_cli.output_file, help="output JSON path")
@@ -122,17 +244,25 @@ def main(argv=None) -> int:
         for option, value in (("--particles", a.particles), ("--steps", a.steps)):
             if value is not None:
                 ap.error(f"{option} is not allowed with --quick (it runs 125 particles, 20 steps)")
+    if a.loss_only and a.checkpoint is not None:
+        # Its fits run a full tape: a checkpointed rollout's forward is untaped either way.
+        ap.error(f"--checkpoint = {a.checkpoint!r} is not allowed with --loss-only (its fits run one full tape each)")
     from warp_esph.startup import init_warp  # noqa: PLC0415 (log_level, no native CUDA note)
 
     init_warp()
+    if a.loss_only:
+        sizes = [125] if a.quick else (a.particles or [125, 1000])
+        step_counts = [20] if a.quick else (a.steps or [40])
+        return _loss_only_main(a, sizes, step_counts, argv)
     sizes = [125] if a.quick else (a.particles or [250, 1000, 4000])
     step_counts = [20] if a.quick else (a.steps or [50, 200])
+    checkpoint = a.checkpoint or "sqrt"
 
     rows = []
     for n in sizes:
         model = block_model(n, wp.float64)
         for steps in step_counts:
-            seg = math.ceil(math.sqrt(steps)) if a.checkpoint == "sqrt" else a.checkpoint
+            seg = math.ceil(math.sqrt(steps)) if checkpoint == "sqrt" else checkpoint
             full = measure(model, steps, None, a.repeats)
             ck = measure(model, steps, seg, a.repeats)
             worst = 0.0
@@ -153,15 +283,7 @@ def main(argv=None) -> int:
               f"{r['array_bytes']['total'] / 2**20:>10.1f} {r['array_bytes_per_particle_step']:>11.0f} {r['python_peak_bytes'] / 2**20:>11.2f}")
     diffs = [r["max_relative_gradient_difference_vs_full_tape"] for r in rows if "max_relative_gradient_difference_vs_full_tape" in r]
     print(f"checkpointed vs full-tape gradients: max relative difference {max(diffs):.2e}")
-    report = {
-        "command": " ".join([os.path.basename(sys.argv[0])] + (argv if argv is not None else sys.argv[1:])),
-        "machine": {"platform": platform.platform(), "processor": platform.processor(), "python": platform.python_version(),
-                    "warp": wp.config.version, "device": "cpu", "dtype": "float64"},
-        "rows": rows,
-    }
-    with open(a.json, "w") as f:
-        json.dump(report, f, indent=2)
-    print("wrote", a.json)
+    _write(a, argv, rows)
     return 0
 
 
