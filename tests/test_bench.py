@@ -73,3 +73,20 @@ def test_launches_benchmark_times_the_replayed_step_against_plain_launches(tmp_p
     assert [r["scene"] for r in report["rows"]] == ["ground", "particle floor", "taped press (float64)"]
     assert all(r["plain_ms"] > 0 and r["rebuilt_ms"] > 0 and r["replayed_ms"] > 0 for r in report["rows"])
     assert all(r["kept_struct_speedup"] == pytest.approx(r["rebuilt_ms"] / r["replayed_ms"]) for r in report["rows"])
+
+
+def test_fit_benchmark_times_a_fits_loss_only_runs_untaped_against_taped(tmp_path):
+    """``benchmarks.fit_bench --loss-only`` at a tiny size: a Gauss-Newton fit (every run loss
+    only) and an L-BFGS fit (its diagnostics' runs loss only), each timed with those runs
+    untaped and taped, and the two histories equal."""
+    from benchmarks import fit_bench
+
+    out = tmp_path / "fit_bench.json"
+    assert fit_bench.main(["--loss-only", "--particles", "27", "--steps", "4", "--repeats", "1", "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["optimizer"] for r in rows] == ["gauss-newton", "lbfgs"]
+    assert all(r["same_history"] for r in rows)
+    gauss, lbfgs = rows
+    assert gauss["gradient_runs"] == 0 and gauss["loss_only_runs"] == gauss["forward_runs"]
+    assert 0 < lbfgs["gradient_runs"] < lbfgs["forward_runs"]
+    assert all(r["cpu_ratio"] == pytest.approx(r["untaped_cpu_s"] / r["taped_cpu_s"]) for r in rows)
