@@ -467,3 +467,70 @@ def test_load_state_with_a_solver_refuses_other_settings_than_the_run_had(tmp_pa
     np.savez(path, **arrays)
     with pytest.raises(ValueError, match=r"its metadata has solver = \[1\] \(must be a table\)"):
         load_state(path, _model(), solver=None)
+
+
+def _pushed_through(dtype=wp.float32):
+    """An elastic 4^3 block (no gravity) whose corner particle 0 starts pushed through the
+    block, past its neighbours: the rest model (the default solver's, ``Solver.rest_model``)
+    takes that particle's inverted rest fit, its energy continued through det = 0."""
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.08, 0.08, 0.08), we.Material(mu=1e3, lam=1.5e3, density=1000.0))
+    model = b.finalize(dtype=dtype)
+    state = model.state()
+    x = model.particle_x0.copy()
+    x[0] += 0.02
+    state.x.assign(x)
+    return model, state
+
+
+@pytest.mark.parametrize("dtype", [wp.float32, wp.float64], ids=["float32", "float64"])
+def test_a_rest_model_state_holding_an_inverted_fit_is_saved_and_resumed_bit_for_bit(tmp_path, dtype):
+    """The rest model takes an inverted rest fit (a body crushed through itself, as a tool
+    pressed deep into it does): save_state refused that state as 'not a deformation', so a
+    run with --checkpoint-every stopped at its first checkpoint there. It is saved, and the
+    resumed run equals the uninterrupted one bit for bit."""
+    model, start = _pushed_through(dtype)
+    solver = we.Solver(model)
+    assert solver.rest_model
+    first = _advance_with(solver, model, start, 2)
+    assert (np.linalg.det(first.F.numpy().astype(np.float64)) < 0.0).any()
+    straight = _advance_with(solver, model, first, 3)
+    path = save_state(tmp_path / "c.npz", model, first, step=2, frame=0, solver=solver)
+    fresh, _ = _pushed_through(dtype)
+    fresh_solver = we.Solver(fresh)
+    resumed, _ = load_state(path, fresh, solver=fresh_solver)
+    resumed = _advance_with(fresh_solver, fresh, resumed, 3)
+    for name in we.State.STATE_FIELDS:
+        np.testing.assert_array_equal(getattr(resumed, name).numpy(), getattr(straight, name).numpy())
+
+
+def test_an_inverted_F_is_refused_where_no_step_takes_one(tmp_path):
+    """Only the rest model's fits of a material that cannot flow on the variational force are
+    taken inverted: the same inverted F in a file of a state an incremental step wrote (the
+    linear fit's), or of a material that can flow, is refused as before."""
+    model, start = _pushed_through()
+    solver = we.Solver(model)
+    state = _advance_with(solver, model, start, 2)
+    path = save_state(tmp_path / "c.npz", model, state, step=2, frame=0)
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(bytes(arrays["meta"]).decode())
+    for edit in ("incremental", "flows"):
+        edited = dict(arrays)
+        if edit == "incremental":
+            edited["meta"] = np.frombuffer(json.dumps({**meta, "rest_model": False}).encode(), dtype=np.uint8)
+        else:
+            edited["material_yield_stress"] = np.full_like(arrays["material_yield_stress"], 10.0)
+            edited["material_flow_rate"] = np.full_like(arrays["material_flow_rate"], 5.0)
+        np.savez(tmp_path / "e.npz", **edited)
+        with pytest.raises(ValueError, match=r"its F at particle 0 has determinant -[0-9.]+: not a deformation"):
+            load_state(tmp_path / "e.npz", _pushed_through()[0])
+
+
+def _advance_with(solver, model, state, steps, dt=2e-4):
+    a, b = model.state(), model.state()
+    a.assign(state)
+    for _ in range(steps):
+        solver.step(a, b, dt)
+        a, b = b, a
+    return a

@@ -159,7 +159,9 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
         if not np.isfinite(a).all():
             raise ValueError(f"state is not allowed: its {name} has non-finite values; a checkpoint must resume a sound run")
     _renormalised_roundoff(arrays, model)
-    _check_state_values("state is not allowed", arrays, model)
+    rows = dict(zip(Model.MATERIAL_FIELDS, model._read_parameters()))
+    _check_state_values("state is not allowed", arrays, model,
+                        _takes_inverted_fits(model, state.rest_model, rows["yield_stress"], rows["flow_rate"]))
     meta = {
         "format": FORMAT,
         "step": int(step),
@@ -298,7 +300,8 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
     come from the same scene: same particle count, bodies and precision. It must hold
     every material array, and values a step leaves (else ``ValueError``, naming the array
     and the first bad particle): finite; ``F``, ``F_p``, ``F_image`` of positive
-    determinant; ``alpha``, ``alpha_image`` >= 0; the round-off ``x_lo``, ``F_lo`` at most
+    determinant (but an ``F`` the rest model takes inverted, a material that cannot flow on
+    the variational force, ``comparison.continues_inverted``); ``alpha``, ``alpha_image`` >= 0; the round-off ``x_lo``, ``F_lo`` at most
     the precision's epsilon times the particle's largest ``|x|``, ``|F|`` entry (a step leaves
     at most half that). ``save_state`` refuses a state that breaks the others, and files a
     state's round-off split again where it exceeds that bound (a state moved by hand).
@@ -358,7 +361,9 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
             m.replace(**values)
         except ValueError as e:
             raise ValueError(f"{where}: its material {k}: {e}") from None
-    _check_state_values(where, arrays, model)
+    _check_state_values(where, arrays, model,
+                        _takes_inverted_fits(model, meta.get("rest_model"), arrays["material_yield_stress"],
+                                             arrays["material_flow_rate"]))
     state = model.state()
     for name in State.STATE_FIELDS:
         if name in arrays:
@@ -405,18 +410,34 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
     return state, meta
 
 
-def _check_state_values(where: str, arrays: dict[str, np.ndarray], model: Model) -> None:
+def _takes_inverted_fits(model: Model, rest_model, yield_stress: np.ndarray, flow_rate: np.ndarray) -> np.ndarray:
+    """Per particle, whether a step may have left its ``F`` inverted: a rest fit, which the
+    rest model (``rest_model`` True: the step that wrote the state ran it, ``State.rest_model``)
+    or a ``"rest"`` material takes inverted where the material cannot flow on the variational
+    force (``yield_stress`` inf or ``flow_rate`` <= 0: ``comparison.continues_inverted``)."""
+    takes = np.array([m.elastic_force == "variational" and (rest_model is True or m.deformation == "rest")
+                      for m in model.materials], dtype=bool)
+    takes &= np.isinf(np.asarray(yield_stress)) | (np.asarray(flow_rate) <= 0.0)
+    return takes[model.particle_material_np]
+
+
+def _check_state_values(where: str, arrays: dict[str, np.ndarray], model: Model,
+                        inverted_ok: np.ndarray | None = None) -> None:
     """The state arrays in ``arrays`` (finite, of the model's shapes) hold values a step
     leaves: a hand-edited or foreign file resumed them without a word. ``F``, ``F_p`` and
-    ``F_image`` are deformations (determinant > 0); the hardening ``alpha``, ``alpha_image``
+    ``F_image`` are deformations (determinant > 0), but ``F`` where ``inverted_ok`` (a rest
+    fit taken inverted, ``_takes_inverted_fits``); the hardening ``alpha``, ``alpha_image``
     is an accumulated plastic strain (>= 0); the round-off ``x_lo``, ``F_lo`` of ``x``, ``F``
     (``sim/roundoff.py``) is within the last place of the particle's largest entry. Arrays an
     older checkpoint lacks are skipped."""
     for name in ("F", "F_p", "F_image"):
         if name in arrays:
             det = np.linalg.det(arrays[name].astype(np.float64))
-            if not (det > 0.0).all():
-                bad = int(np.argmax(~(det > 0.0)))
+            refused = ~(det > 0.0)
+            if name == "F" and inverted_ok is not None:
+                refused &= ~inverted_ok
+            if refused.any():
+                bad = int(np.argmax(refused))
                 raise ValueError(f"{where}: its {name} at particle {bad} has determinant {det[bad]:.3g}: not a deformation "
                                  "(must be > 0)")
     for name in ("alpha", "alpha_image"):
