@@ -13,6 +13,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
+from taped_loss import random_weights, taped_rollout_loss
 from energy_fd import (central_gradient, continued_stvk_energy, corotated_energy, image_heights, mover,
                        stvk_energy, stvk_psi)
 from warp_esph import tools
@@ -1529,3 +1530,84 @@ def test_a_rollout_reused_after_particle_x0_changed_runs_as_a_new_one():
     assert np.abs(rollout.final_state().v.numpy()).max() < 1e-10
     np.testing.assert_array_equal(rollout.positions(),
                                   Rollout(model, 20, 0.5 * model.stable_dt()).forward())
+
+
+def _pushed_through_flowing(fused=True):
+    """An elastic 4^3 block whose corner particle 0 starts pushed through the block: the rest
+    model's first step takes its inverted rest fit; then a yield stress and flow rate make the
+    material flow, and ``(model, solver, state)`` run on with the incremental composition."""
+    mat = we.Material(mu=1e3, lam=1.5e3, density=1000.0, pressure_stiffness=0.0)
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (4 * SPACING,) * 3, mat)
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    a, c = model.state(), model.state()
+    x = model.particle_x0.copy()
+    x[0] += SPACING
+    a.x.assign(x)
+    we.Solver(model).step(a, c, 2e-4)
+    assert c.rest_model is True and np.linalg.det(c.F.numpy()[0]) < -1.0
+    model.yield_stress.assign(np.array([1e5]))
+    model.flow_rate.assign(np.array([10.0]))
+    solver = we.Solver(model, fit="linear", fused=fused)
+    return model, solver, c
+
+
+@pytest.mark.parametrize("fused", [True, False], ids=["fused", "unfused"])
+def test_an_inverted_rest_fit_handed_back_to_the_incremental_composition_follows_the_body(fused):
+    """A parameter that makes a material flow turns the step from the rest model to the
+    incremental composition ``F <- dF F``, which keeps the last ``F`` where a step would
+    invert it (paper §4): from a rest fit taken inverted every step was such a step, and the
+    particle's ``F`` stayed the inverted fit for the rest of the run, whatever the body did
+    (counted inverted at every step). The step hands it back as ``-F``, a mirror image of the
+    same stretches (``comparison.rest_handback``), which the composition follows."""
+    model, solver, a = _pushed_through_flowing(fused)
+    c = model.state()
+    handed = np.linalg.svd(a.F.numpy()[0], compute_uv=False)
+    inverted = solver.guard_counts()["inverted"]
+    Fs = []
+    for _ in range(10):
+        solver.step(a, c, 2e-4)
+        a, c = c, a
+        assert not solver.rest_model and a.rest_model is False
+        Fs.append(a.F.numpy()[0])
+    assert solver.guard_counts()["inverted"] == inverted
+    assert np.linalg.det(Fs[0]) > 1.0 and np.abs(np.linalg.svd(Fs[0], compute_uv=False) - handed).max() < 0.05
+    assert np.abs(Fs[-1] - Fs[0]).max() > 1e-4  # kept, it was the inverted fit to the bit
+
+
+@pytest.mark.parametrize("hand", [True, False], ids=["hand_written", "generated"])
+def test_the_gradient_through_the_hand_back_of_an_inverted_rest_fit_matches_central_differences(hand):
+    """Three taped incremental steps from a state a rest step wrote whose fit of particle 0 is
+    inverted (``_pushed_through_flowing``; its singular values ``(1.92, 1, -1)``, where a
+    mirror along the smallest one would jump): the gradient in that ``F`` goes back through
+    the hand-back ``-F`` (``comparison.rest_handback``), with the hand-written adjoints of the
+    step and Warp's generated ones, against float64 central differences; and in ``x``."""
+    weights = random_weights(64, 7)
+
+    def loss_of(dF=None, dx=None, grad=False):
+        model, solver, start = _pushed_through_flowing()
+        solver.hand_adjoints = hand
+        states = [model.state() for _ in range(4)]
+        states[0].assign(start)
+        F, x = start.F.numpy(), start.x.numpy()
+        if dF is not None:
+            F[0][dF[:2]] += dF[2]
+        if dx is not None:
+            x[dx[0], dx[1]] += dx[2]
+        states[0].F.assign(F)
+        states[0].x.assign(x)
+        loss, tape = taped_rollout_loss(solver, states, 2e-4, weights)
+        if not grad:
+            return loss.numpy()[0]
+        tape.backward(loss)
+        return states[0].F.grad.numpy()[0], states[0].x.grad.numpy()[0]
+
+    gF, gx = loss_of(grad=True)
+    eps = 1e-6
+    for a, b in [(0, 0), (0, 2), (1, 2), (2, 1)]:
+        fd = (loss_of(dF=(a, b, eps)) - loss_of(dF=(a, b, -eps))) / (2 * eps)
+        assert abs(fd) > 1e-8, (a, b)
+        assert gF[a, b] == pytest.approx(fd, rel=1e-5, abs=1e-10), (a, b)
+    for c in range(3):
+        fd = (loss_of(dx=(0, c, eps)) - loss_of(dx=(0, c, -eps))) / (2 * eps)
+        assert gx[c] == pytest.approx(fd, rel=1e-5, abs=1e-10), c

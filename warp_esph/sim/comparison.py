@@ -402,6 +402,30 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 out = wp.inverse(F[i]) * G
         Fp_out[i] = out
 
+    @wp.kernel(module="unique")
+    def rest_handback(
+        F: wp.array(dtype=mat33),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        F_out: wp.array(dtype=mat33),
+    ):
+        """The ``F`` an incremental step reads from a state a rest step wrote: the stored one,
+        but ``-F`` where it is an inverted rest fit (det < 0) of a particle the incremental
+        composition runs (deformation code "incremental"). That composition keeps the last
+        ``F`` where a step would invert it (paper §4), and from an inverted ``F`` every step
+        would: the fit stayed as it was for the rest of the run, whatever the body did. ``-F``
+        is a mirror image of positive determinant with the same stretches: ``F F^T``, so the
+        stress ``P F^T`` of every (isotropic) model, is unchanged, and it is what the
+        composition holds of a neighbourhood that turned inside out in its own steps, up to a
+        rotation of the rest frame. Linear in ``F``, it is smooth where the singular-value
+        mirror ``U diag(s_0, s_1, -s_2) V^T`` jumps (``|s_1| = |s_2|``: a neighbourhood
+        mirrored through a plane, ``s = (1, 1, -1)``)."""
+        i = wp.tid()
+        if mat.deformation[material[i]] == 0 and wp.determinant(F[i]) < scalar(0.0):
+            F_out[i] = -F[i]
+        else:
+            F_out[i] = F[i]
+
     @wp.kernel(enable_backward=False, module="unique")
     def rest_start_fit(
         x: wp.array(dtype=vec3),
@@ -436,7 +460,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(constitutive_update=constitutive_update, update_deformation=update_deformation,
                                  rest_variational_forces=rest_variational_forces, rest_handover=rest_handover,
-                                 rest_start_fit=rest_start_fit,
+                                 rest_start_fit=rest_start_fit, rest_handback=rest_handback,
                                  rest_map_moments=rest_map_moments, rest_moments=rest_moments,
                                  rest_total_fit=rest_total_fit, continues_inverted=continues_inverted,
                                  takes_rest_fit=takes_rest_fit, inverted_stress=inverted_stress)
@@ -587,6 +611,15 @@ def launch_rest_handover(model, state_in, Fp_out, curved: bool = False, rest_gua
          model.scalar(model.support_radius), int(curved)],
         [Fp_out],
         device=model.device,
+    )
+
+
+def launch_rest_handback(model, state_in, F_out):
+    """``rest_handback`` of ``state_in.F`` into ``F_out`` (read by an incremental step in place
+    of ``state_in.F``; ``state_in`` is only read)."""
+    model.launches(
+        kernels(model.scalar, model.fit_weight).rest_handback, model.particle_count,
+        [state_in.F, model.particle_material, model.material_arrays()], [F_out], device=model.device,
     )
 
 

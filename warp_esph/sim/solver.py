@@ -7,6 +7,7 @@ per step can be recorded on a ``wp.Tape`` and differentiated.
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import time
 import warnings
@@ -175,7 +176,8 @@ class Solver:
     neighbourhood with its variational force, a conservative elastic force (under a tape
     with hand-written adjoints for both, ``comparison.adjoint_kernels``, as for any model
     whose materials are all ``"rest"``). When a parameter
-    makes a material flow the step turns to the incremental composition from the stored ``F``;
+    makes a material flow the step turns to the incremental composition from the stored ``F``
+    (an inverted rest fit as ``-F``, which that composition can follow, ``_handed_back``);
     a rest step after an incremental one (``State.rest_model`` False) hands the stored ``F``
     over (``F_p = F^-1 G(x)``, ``comparison.rest_handover``), so the body keeps its stress,
     where the body has not flowed; a state whose body has flowed (``State.flowed``: ``alpha``
@@ -458,6 +460,18 @@ class Solver:
             self._warn_worlds_kept(state_in)
         return not flowed, flowed
 
+    def _handed_back(self, state_in: State) -> State:
+        """A view of ``state_in`` whose ``F`` is what the incremental composition takes over
+        from a rest step (``comparison.rest_handback``: an inverted rest fit as ``-F``, which
+        that composition otherwise kept for good); its other arrays are ``state_in``'s own, and
+        ``state_in`` is only read. Under a tape the hand-back's adjoint carries ``F``'s gradient
+        back to ``state_in.F``."""
+        F = wp.empty_like(state_in.F, requires_grad=state_in.F.requires_grad)
+        comparison.launch_rest_handback(self.model, state_in, F)
+        view = copy.copy(state_in)
+        view.F = F
+        return view
+
     def _warn_worlds_kept(self, state: State):
         """Once: the worlds whose bodies did not flow keep the incremental composition with the
         rest, where alone each would be handed over to the rest model. One choice runs every
@@ -727,6 +741,11 @@ class Solver:
         # solver's attributes would describe whichever state it stepped last.
         rest_model, flowed = self._runs_rest(state_in, chose_rest)
         cmp = self._cmp or rest_model
+        if not rest_model and state_in.rest_model is True:
+            # Handed back from the rest model (a parameter made a material flow, or a solver of
+            # the incremental composition goes on from a rest run): its inverted fits mirrored,
+            # which that composition kept for good.
+            state_in = self._handed_back(state_in)
         # The material struct the comparison kernels read: with the rest model switched on, every
         # material's deformation code reads "rest" (its own arrays otherwise, None).
         mats = m.material_arrays(rest=True) if rest_model else None
