@@ -1563,6 +1563,8 @@ def test_an_inverted_rest_fit_handed_back_to_the_incremental_composition_follows
     model, solver, a = _pushed_through_flowing(fused)
     c = model.state()
     handed = np.linalg.svd(a.F.numpy()[0], compute_uv=False)
+    # What the first step sees (simulate's DivergenceMonitor bounds the start's energy by it).
+    np.testing.assert_array_equal(solver.start_deformation(a)[0], -a.F.numpy()[0])
     inverted = solver.guard_counts()["inverted"]
     Fs = []
     for _ in range(10):

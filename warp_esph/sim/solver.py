@@ -492,7 +492,8 @@ class Solver:
         from it sees them, with the parameters as they are now: where that step runs the rest
         model (``_runs_rest``, or a ``"rest"`` material) on a state not handed over, the rest
         fit of its positions (``G(x) F_p^-1``, ``comparison.rest_start_fit``), else the stored
-        ``F``. A start whose positions are strained against the rest shape holds that strain's
+        ``F`` (an incremental step's from a state a rest step wrote: its inverted fits as
+        ``-F``, ``_handed_back``). A start whose positions are strained against the rest shape holds that strain's
         energy although its stored ``F`` is ``I``: the first step writes the fit
         (``simulate.DivergenceMonitor`` counts it). Only reads ``state``."""
         m = self.model
@@ -502,6 +503,9 @@ class Solver:
             if not state.has_flowed():  # handed over (F_p = F^-1 G): the rest model goes on from the stored F
                 return F
             rest_model = False
+        if not rest_model and state.rest_model is True:
+            state = self._handed_back(state)  # a rest step's inverted fits, as the step takes them
+            F = state.F.numpy()
         if not (self._cmp or rest_model):
             return F
         curved = self._curved if not self._auto else m.solver_choice(*self._asked)[0] == "curvature_corrected"
