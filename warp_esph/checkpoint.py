@@ -300,8 +300,8 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
     come from the same scene: same particle count, bodies and precision. It must hold
     every material array, and values a step leaves (else ``ValueError``, naming the array
     and the first bad particle): finite; ``F``, ``F_p``, ``F_image`` of positive
-    determinant (but an ``F`` the rest model takes inverted, a material that cannot flow on
-    the variational force, ``comparison.continues_inverted``); ``alpha``, ``alpha_image`` >= 0; the round-off ``x_lo``, ``F_lo`` at most
+    determinant (but an ``F`` that is a rest fit taken inverted: of a state the rest model
+    wrote, or of a ``"rest"`` material that cannot flow, ``_takes_inverted_fits``); ``alpha``, ``alpha_image`` >= 0; the round-off ``x_lo``, ``F_lo`` at most
     the precision's epsilon times the particle's largest ``|x|``, ``|F|`` entry (a step leaves
     at most half that). ``save_state`` refuses a state that breaks the others, and files a
     state's round-off split again where it exceeds that bound (a state moved by hand).
@@ -411,13 +411,15 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
 
 
 def _takes_inverted_fits(model: Model, rest_model, yield_stress: np.ndarray, flow_rate: np.ndarray) -> np.ndarray:
-    """Per particle, whether a step may have left its ``F`` inverted: a rest fit, which the
-    rest model (``rest_model`` True: the step that wrote the state ran it, ``State.rest_model``)
-    or a ``"rest"`` material takes inverted where the material cannot flow on the variational
-    force (``yield_stress`` inf or ``flow_rate`` <= 0: ``comparison.continues_inverted``)."""
-    takes = np.array([m.elastic_force == "variational" and (rest_model is True or m.deformation == "rest")
-                      for m in model.materials], dtype=bool)
-    takes &= np.isinf(np.asarray(yield_stress)) | (np.asarray(flow_rate) <= 0.0)
+    """Per particle, whether a step may have left its ``F`` inverted: a rest fit taken inverted
+    where the material cannot flow on the variational force (``comparison.continues_inverted``),
+    by the rest model (``rest_model`` True: the step that wrote the state ran it,
+    ``State.rest_model``; it runs only where no material could flow then, so whatever the
+    parameters are now: a step that lets one flow hands such an ``F`` back, ``Solver``) or by a
+    ``"rest"`` material (``yield_stress`` inf or ``flow_rate`` <= 0)."""
+    cannot_flow = np.isinf(np.asarray(yield_stress)) | (np.asarray(flow_rate) <= 0.0)
+    takes = np.array([m.elastic_force == "variational" and (rest_model is True or (m.deformation == "rest" and c))
+                      for m, c in zip(model.materials, cannot_flow)], dtype=bool)
     return takes[model.particle_material_np]
 
 
