@@ -1121,8 +1121,9 @@ def fit(
       (line-search trials included), so both optimisers cost ``iterations + 1`` rollouts;
       at most ``MAX_ITERATIONS`` (100000).
     - Termination (``result.stopped``): ``"converged"`` when an accepted step moves no
-      optimiser coordinate by more than ``xtol`` or the gradient's largest entry falls
-      below ``gtol`` times its initial one; ``"stalled"`` when ``patience`` evaluations
+      optimiser coordinate by more than ``xtol``, the gradient's largest entry falls
+      below ``gtol`` times its initial one, or a rejected L-BFGS trial's slope puts the
+      minimum along its direction within ``xtol``; ``"stalled"`` when ``patience`` evaluations
       in a row did not lower the best loss (by 1e-9 relative); ``"iterations"`` at the
       cap; ``"flat"`` when the initial gradient is exactly zero (nothing to follow);
 
@@ -1784,6 +1785,21 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
     return "iterations"
 
 
+def _minimum_within(g: np.ndarray, g_new: np.ndarray, step: np.ndarray, xtol: float) -> bool:
+    """Whether a rejected line-search trial ``z + step`` shows the loss's minimum along
+    ``step`` within ``xtol`` of ``z`` (every coordinate): the slope along the step falls at
+    ``z`` and rises at the trial, and the secant between the two slopes puts its zero at
+    that fraction of the step. L-BFGS's first step has no curvature to size it (it moves by
+    ``lr``): from a minimum (a fit started at the values that made its target) every trial
+    lay uphill, and halving the step down to ``xtol`` had reported the minimum as stalled,
+    or as the iteration cap."""
+    down, up = float(g.dot(step)), float(g_new.dot(step))
+    if not (down <= 0.0 < up):
+        # A trial still sloping down that is no lower: the loss is rough there, not minimal.
+        return False
+    return (down / (down - up)) * float(np.abs(step).max()) < xtol
+
+
 def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-4, xtol=1e-6, gtol=0.0) -> str:
     """L-BFGS (two-loop recursion) with a backtracking Armijo line search, in optimiser space.
 
@@ -1836,6 +1852,8 @@ def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-
             evals += 1
             if finite and f_new <= f + c1 * g.dot(step):
                 break
+            if finite and _minimum_within(g, g_new, step, xtol):
+                return "converged"
             if evals >= iterations:
                 return "iterations"
             t *= 0.5

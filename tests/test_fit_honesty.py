@@ -1,0 +1,52 @@
+"""What a fit says of itself against what is so: small fits whose answer is known (a target
+the simulator made at known values), probing the termination and the diagnostics."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warp_esph as we
+from warp_esph.fit import fit
+from warp_esph.rollout import Rollout
+
+STEPS = 40
+FRAMES = [20, 40]
+TRUTH = {"yield_stress": 300.0, "flow_rate": 10.0}
+
+
+def _cube(yield_stress=TRUTH["yield_stress"], flow_rate=TRUTH["flow_rate"]):
+    """27 particles of a soft plastic cube landing on the ground at 1 m/s, float64, the
+    lattice jittered by 1e-3 spacings: both yield stress and flow rate shape its landing."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.035, 0.0), (0.06, 0.06, 0.06), we.Material(mu=2e3, lam=3e3, density=1000.0,
+              yield_stress=yield_stress, flow_rate=flow_rate), velocity=(0.0, -1.0, 0.0))
+    b.add_ground(friction=0.5)
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * 0.02, size=model.particle_x0.shape)
+    model.compute_rest_density()
+    return model
+
+
+@pytest.fixture(scope="module")
+def landing():
+    truth = _cube()
+    dt = 0.5 * truth.stable_dt()
+    return dt, Rollout(truth, STEPS, dt, frames=FRAMES).forward()
+
+
+@pytest.mark.parametrize("optimizer", ["lbfgs", "adam", "gauss-newton"])
+def test_a_fit_started_at_the_answer_stays_there_and_says_it_converged(landing, optimizer):
+    """At the values that made the target the loss is 0 to round-off (3e-36 m^2) and its
+    gradient too. L-BFGS's first step has no curvature to size it (it moves by ``lr``), so
+    every trial lay uphill and its line search halved the step until the iteration cap (or,
+    given more, below ``xtol``: "stalled"): the fit said it had not converged and "the result
+    may not be a minimum", and the diagnostics that their errors were not a minimum's. The
+    trials' slopes show the minimum along the search direction within ``xtol`` of the start."""
+    dt, target = landing
+    result = fit(_cube(), target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES, optimizer=optimizer,
+                 iterations=12, progress=False, noise=1e-4)
+    assert result.stopped == "converged", (result.stopped, [h["loss"] for h in result.history])
+    assert result.converged
+    for name, value in TRUTH.items():
+        assert result.params[name][0] == pytest.approx(value, rel=1e-9)
+    assert not any("did not converge" in w for w in result.diagnostics.warnings), result.diagnostics.summary()
