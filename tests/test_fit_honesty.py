@@ -50,3 +50,23 @@ def test_a_fit_started_at_the_answer_stays_there_and_says_it_converged(landing, 
     for name, value in TRUTH.items():
         assert result.params[name][0] == pytest.approx(value, rel=1e-9)
     assert not any("did not converge" in w for w in result.diagnostics.warnings), result.diagnostics.summary()
+
+
+def test_a_value_held_at_its_bound_is_said_to_be_there_not_given_an_error_as_if_free(landing):
+    """The target's flow rate (10/s) lies below the bound the fit is given (15/s): the fit
+    ends on the bound, the chi-square still falling beyond it. The diagnostics reported
+    15 +- 4.9/s and nothing else, an interval about a value the data did not choose."""
+    dt, target = landing
+    result = fit(_cube(flow_rate=20.0), target, ["flow_rate"], steps=STEPS, dt=dt, frames=FRAMES,
+                 optimizer="gauss-newton", iterations=12, bounds={"flow_rate": (15.0, 100.0)}, progress=False, noise=1e-4)
+    assert result.params["flow_rate"][0] == 15.0
+    d = result.diagnostics
+    assert d.at_bound == ["flow_rate"], d.summary()
+    said = [w for w in d.warnings if w.startswith("flow_rate is at its lower bound 15:")]
+    assert len(said) == 1 and "beyond it" in said[0], d.warnings
+    assert "flow_rate" in d.to_dict()["at_bound"]
+    # Within its bounds the same fit names no bound.
+    free = fit(_cube(flow_rate=20.0), target, ["flow_rate"], steps=STEPS, dt=dt, frames=FRAMES,
+               optimizer="gauss-newton", iterations=12, bounds={"flow_rate": (5.0, 100.0)}, progress=False, noise=1e-4)
+    assert free.params["flow_rate"][0] == pytest.approx(10.0, rel=1e-3)
+    assert free.diagnostics.at_bound == [] and not any("bound" in w for w in free.diagnostics.warnings)

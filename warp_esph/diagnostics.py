@@ -36,6 +36,10 @@ the local curvature says (if it falls by 1 or more, the fit stopped short of the
 along it, which a warning says) (a silhouette fit stopped at 1.88 x the true yield stress, where
 the loss is curved but 0.15 % below its value at 1.5 x less).
 
+A value held at one of the fit's bounds, where the chi-square falls beyond the bound, is
+named in ``at_bound`` and a warning: the data's best value lies outside the bounds, and its
+Fisher error is the curvature at the bound, no interval about a value the data chose.
+
 Silhouette residuals are pixels, and the pixels within a particle's splat rise and fall
 together: each silhouette loss counts one observation per splat area ``pi (2 s)^2``
 (``SilhouetteLoss.correlated_pixels``), i.e. its pixel noise is multiplied by the square
@@ -89,7 +93,7 @@ class Diagnostics:
     (``standard_error / |value|``), ``sensitivity`` (``sqrt(I_ii)``), ``gradient`` (of the
     chi-square, optimiser space). ``fisher``, ``covariance`` (optimiser space),
     ``correlation``; ``noise``: the sigma used per experiment; ``residual_rms`` per
-    experiment; ``observations``; ``warnings`` (sentences) and ``undetermined`` (labels).
+    experiment; ``observations``; ``warnings`` (sentences), ``undetermined`` and ``at_bound`` (labels).
     ``weakest``: the least determined direction of optimiser space (unit vector) and its
     standard error.
     """
@@ -121,6 +125,9 @@ class Diagnostics:
     #: Sentences on the model's own bias at this point (``large_strain_bias``): not about
     #: what the data determine, so they do not join ``warnings``.
     bias: list[str] = dataclasses.field(default_factory=list)
+    #: Labels of the values held at one of their bounds with the chi-square falling beyond it:
+    #: the data's best value lies outside the bounds (a warning says so).
+    at_bound: list[str] = dataclasses.field(default_factory=list)
 
     def summary(self) -> str:
         """A table of values, standard errors, sensitivities and correlations, then warnings."""
@@ -169,7 +176,7 @@ class Diagnostics:
             "warnings": list(self.warnings), "undetermined": list(self.undetermined),
             "evaluations": self.evaluations, "step": self.step, "method": self.method,
             "range_rise": None if self.range_rise is None else [fl(r) for r in np.reshape(self.range_rise, (n, 2))],
-            "notes": list(self.notes), "bias": list(self.bias),
+            "notes": list(self.notes), "bias": list(self.bias), "at_bound": list(self.at_bound),
         }
 
 
@@ -367,7 +374,7 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
                 evaluations += 1
     prob.apply(z)
     d = _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations, step,
-                   max_relative_error, min_sensitivity, max_correlation, rises)
+                   max_relative_error, min_sensitivity, max_correlation, rises, (lo, hi))
     d.method = method
     d.bias = bias
     if grouped:
@@ -376,7 +383,7 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
 
 
 def _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations, step,
-               max_relative_error, min_sensitivity, max_correlation, rises=None) -> Diagnostics:
+               max_relative_error, min_sensitivity, max_correlation, rises=None, z_bounds=None) -> Diagnostics:
     P = len(z)
     labels = list(prob.labels)
     spaces = [prob.spaces[name] for name in prob.params for _ in range(prob.k)]
@@ -413,6 +420,7 @@ def _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations
     weakest_error = math.inf if flat[k_weak] else 1.0 / math.sqrt(lam[k_weak])
 
     warnings, undetermined = [], []
+    at_bound = _held_at_bounds(z, z_bounds, labels, values, spaces, scales, fisher, gradient, warnings)
     if top > 0 and float(lam.min()) < -1e-6 * top:
         warnings.append(f"the curvature is negative along some direction (eigenvalue {lam.min():.3g}, largest {top:.3g}): "
                         f"this is not a minimum, or the loss is rough at the difference step; the errors are unreliable")
@@ -462,8 +470,38 @@ def _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations
         gradient=gradient, fisher=fisher, covariance=cov, correlation=corr, noise=list(sigmas), residual_rms=list(rms),
         observations=int(round(observations)), weakest=weakest, weakest_error=weakest_error, warnings=warnings,
         undetermined=undetermined, evaluations=evaluations, step=step,
-        range_rise=np.full((P, 2), np.nan) if rises is None else rises,
+        range_rise=np.full((P, 2), np.nan) if rises is None else rises, at_bound=at_bound,
     )
+
+
+def _held_at_bounds(z, z_bounds, labels, values, spaces, scales, fisher, gradient, warnings) -> list[str]:
+    """The labels of the values at a bound (optimiser space ``z_bounds``) whose chi-square
+    falls beyond it, each with a warning in ``warnings``: there the fit stopped because the
+    bound held it, not because the data chose the value, and the Fisher errors (an interval
+    about it) had been reported as for a free value."""
+    if z_bounds is None:
+        return []
+    held = []
+    for k, label in enumerate(labels):
+        for side, end, outward in (("lower", z_bounds[0][k], -1.0), ("upper", z_bounds[1][k], 1.0)):
+            if not (math.isfinite(end) and abs(z[k] - end) <= 1e-12 * max(1.0, abs(end))):
+                continue
+            slope = outward * float(gradient[k])  # the chi-square's, per unit of z past the bound
+            if not (math.isfinite(slope) and slope < 0.0):
+                continue
+            # chi2(z + d) ~ chi2 + gradient d + fisher d^2 along this value alone.
+            curvature = float(fisher[k, k]) if math.isfinite(float(fisher[k, k])) else 0.0
+            beyond = ""
+            if curvature > 0.0:
+                d = -float(gradient[k]) / (2.0 * curvature)
+                best = values[k] * math.exp(d) if spaces[k] == "log" else values[k] + d * scales[k]
+                beyond = f" (by about {slope * slope / (4.0 * curvature):.3g} at {best:.4g}, from its slope and curvature there)"
+            held.append(label)
+            warnings.append(f"{label} is at its {side} bound {values[k]:g}: the chi-square falls beyond it{beyond}, so the "
+                            f"data's best value lies outside the bounds; the fitted value is the bound's, and its standard "
+                            f"error describes the curvature there, not the uncertainty of a value the data chose (widen the "
+                            f"bound where the material allows)")
+    return held
 
 
 def diagnose(model, target, params=("yield_stress", "flow_rate"), *, noise: float | None = None, step: float = 1e-3,
