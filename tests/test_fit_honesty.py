@@ -1,6 +1,8 @@
 """What a fit says of itself against what is so: small fits whose answer is known (a target
 the simulator made at known values), probing the termination and the diagnostics."""
 
+import warnings
+
 import numpy as np
 import pytest
 import warp as wp
@@ -70,3 +72,20 @@ def test_a_value_held_at_its_bound_is_said_to_be_there_not_given_an_error_as_if_
                optimizer="gauss-newton", iterations=12, bounds={"flow_rate": (5.0, 100.0)}, progress=False, noise=1e-4)
     assert free.params["flow_rate"][0] == pytest.approx(10.0, rel=1e-3)
     assert free.diagnostics.at_bound == [] and not any("bound" in w for w in free.diagnostics.warnings)
+
+
+def test_target_positions_in_millimetres_are_warned_of_before_the_fit_runs_on_them(landing):
+    """Positions given in millimetres (a lab's usual unit) were fitted as metres without a
+    word: the fit ran its iterations against a body 1000 times the scene's, and with the
+    default noise (the residual RMS, 17.5 "m") even the diagnostics' residual warning stayed
+    silent. Their spread about their centroid, 1000 times the scene's, is said before any run.
+    Positions in metres, a body that has squashed on landing included, are not."""
+    dt, target = landing
+    with pytest.warns(UserWarning, match=r"spread \d{3} times as far as the scene's particles .* other units than "
+                                         r"metres"):
+        fit(_cube(), target * 1000.0, ["yield_stress"], steps=STEPS, dt=dt, frames=FRAMES, iterations=0, progress=False,
+            diagnostics=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit(_cube(), target, ["yield_stress"], steps=STEPS, dt=dt, frames=FRAMES, iterations=0, progress=False,
+            diagnostics=False)

@@ -350,6 +350,42 @@ def _check_target_range(loss: Loss, model: Model, what: str) -> None:
             checks.squarable_coordinates(what, t, precision, place)
 
 
+#: The factor between the spread of target positions about their centroid and the scene's
+#: particles' at the start past which ``_warn_target_scale`` asks for the units: far above
+#: what a body's flow makes of its shape (a slump's pancake spreads 2-3 times), below
+#: centimetres' 100 and inches' 39 per metre.
+TARGET_SCALE_FACTOR = 20.0
+
+
+def _spread(points: np.ndarray) -> float:
+    """RMS distance of ``points`` (``(n, 3)``) from their centroid."""
+    return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
+
+
+def _warn_target_scale(loss: Loss, model: Model, what: str) -> None:
+    """Warn where every frame of a ``PositionLoss`` spreads ``TARGET_SCALE_FACTOR`` times as
+    far (or as little) as the scene's observed particles at the start: positions in
+    millimetres were fitted as metres without a word (with the default noise, the residual
+    RMS, the diagnostics' residual warning cannot fire either)."""
+    x0 = np.asarray(model.particle_x0, dtype=np.float64)
+    for leaf in _leaves(loss):
+        if not isinstance(leaf, PositionLoss):
+            continue  # a WorldLoss numbers its particles within a world; clouds have no correspondence
+        start = x0 if leaf.particles is None else x0[np.asarray(leaf.particles)]
+        reference = _spread(start) if len(start) > 1 else 0.0
+        if not reference > 0.0:
+            continue
+        ratios = [_spread(np.asarray(t, dtype=np.float64)) / reference for t in leaf.targets.values()]
+        if all(r > TARGET_SCALE_FACTOR for r in ratios) or all(r < 1.0 / TARGET_SCALE_FACTOR for r in ratios):
+            import warnings  # noqa: PLC0415
+
+            r = float(np.median(ratios))
+            warnings.warn(f"{what}: its positions spread {r:.3g} times as far as the scene's particles at the start "
+                          f"(RMS distance from their centroid, the median over its {len(ratios)} frames): targets in "
+                          "other units than metres? (millimetres are 1000 times, centimetres 100 times the metres' "
+                          "numbers); positions are fitted as metres", UserWarning, stacklevel=2)
+
+
 @dataclasses.dataclass
 class Experiment:
     """One experiment of a joint fit: its own scene (``model``) and observation (``target``).
@@ -531,6 +567,7 @@ class _Run(_Values):
         except ValueError as e:
             raise ValueError(f"{name}: target is not allowed for this model: {e}") from None
         _check_target_range(loss, self.model, "target" if name == "the experiment" else f"{name}: target")
+        _warn_target_scale(loss, self.model, "target" if name == "the experiment" else f"{name}: target")
         if exp.steps is None and max(loss.frames) == 0:
             # "steps = 0 is not allowed" named an option the caller had not given.
             raise ValueError(f"{name}: the target's frames = {list(loss.frames)} end at step 0, the initial state, which "
