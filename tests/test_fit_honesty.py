@@ -89,3 +89,41 @@ def test_target_positions_in_millimetres_are_warned_of_before_the_fit_runs_on_th
         warnings.simplefilter("error")
         fit(_cube(), target, ["yield_stress"], steps=STEPS, dt=dt, frames=FRAMES, iterations=0, progress=False,
             diagnostics=False)
+
+
+def test_the_fitted_values_and_their_errors_are_printed_with_their_units(landing, tmp_path):
+    """The diagnostics' table and the command line's fitted values gave numbers alone
+    ("yield_stress = 102.421"), a pascal, a rate per second and a stiffness in m^2/s^2 looking
+    alike: each now names its unit (``material.UNITS``, SI as the material takes them)."""
+    import argparse
+    import io
+
+    from warp_esph.cli import add_fit_arguments
+    from warp_esph.fit import save_target
+    from warp_esph.material import UNITS
+
+    assert UNITS["yield_stress"] == "Pa" and UNITS["flow_rate"] == "1/s" and UNITS["pressure_stiffness"] == "m^2/s^2"
+    dt, target = landing
+    d = fit(_cube(), target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES, iterations=0, progress=False,
+            noise=1e-4).diagnostics
+    rows = {line.split()[0]: line for line in d.summary().splitlines()[2:4]}
+    assert rows["yield_stress"].rstrip().endswith(" Pa") and rows["flow_rate"].rstrip().endswith(" 1/s"), d.summary()
+    assert d.to_dict()["units"] == ["Pa", "1/s"]
+
+    from warp_esph.calibrate import run_fit
+    from warp_esph.scenes import load_scene
+    from warp_esph.simulate import resolve_timestep
+
+    scene = load_scene("dough_drop", scale=0.25)
+    model = scene.builder.finalize(dtype=wp.float64, requires_grad=True)
+    substeps, dt = resolve_timestep(model, scene.fps)
+    path = tmp_path / "drop.npz"
+    save_target(path, Rollout(model, substeps, dt, frames=[substeps]).forward(), [1], fps=scene.fps)
+    args = add_fit_arguments(argparse.ArgumentParser()).parse_args(
+        ["dough_drop", "--target", str(path), "--params", "yield_stress,flow_rate", "--scale", "0.25", "--iterations",
+         "0", "--no-progress", "--no-diagnostics", "--no-usd", "--output-dir", str(tmp_path / "out")])
+    out = io.StringIO()
+    assert run_fit(args, out=out, err=io.StringIO()) == 0
+    lines = out.getvalue().splitlines()
+    assert any(line.startswith("  yield_stress = ") and line.endswith(" Pa") for line in lines), lines
+    assert any(line.startswith("  flow_rate = ") and line.endswith(" 1/s") for line in lines), lines

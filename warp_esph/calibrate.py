@@ -28,6 +28,7 @@ import sys
 import numpy as np
 
 from . import checks
+from .material import UNITS
 
 __all__ = ["add_calibration_arguments", "run_fit", "write_outputs", "jitter_model", "default_optimizer"]
 
@@ -354,7 +355,7 @@ def run_fit(args, out=None, err=None) -> int:
     print(f"fit {result.termination}", file=out)
     print(f"loss {result.initial_loss:.4g} -> {result.loss:.4g} in {result.evaluations} evaluations", file=out)
     for name, v in result.params.items():
-        print(f"  {name} = {', '.join(f'{x:.6g}' for x in v)}", file=out)
+        print(f"  {name} = {', '.join(f'{x:.6g}' for x in v)} {UNITS[name]}", file=out)
     if result.diagnostics is not None:
         print(result.diagnostics.summary(), file=out)
     written = []

@@ -65,6 +65,7 @@ import math
 import numpy as np
 
 from .losses import Loss, SumLoss
+from .material import UNITS
 
 __all__ = ["Diagnostics", "diagnose", "diagnose_problem", "chi_square_loss", "leaf_terms", "large_strain_bias"]
 
@@ -129,18 +130,23 @@ class Diagnostics:
     #: the data's best value lies outside the bounds (a warning says so).
     at_bound: list[str] = dataclasses.field(default_factory=list)
 
+    @property
+    def units(self) -> list[str]:
+        """Each value's unit (``material.UNITS``; of its value and standard error)."""
+        return [UNITS.get(label.split("[")[0], "") for label in self.labels]
+
     def summary(self) -> str:
         """A table of values, standard errors, sensitivities and correlations, then warnings."""
         noise = ", ".join(f"{s:.3g}" for s in self.noise)
         lines = [f"diagnostics ({self.method}, observation noise sigma = {noise}; "
                  f"{self.observations} observations):"]
         w = max(len(label) for label in self.labels)
-        lines.append(f"  {'parameter':<{w}}  {'value':>11}  {'std. error':>11}  {'relative':>9}  {'sensitivity':>11}")
+        lines.append(f"  {'parameter':<{w}}  {'value':>11}  {'std. error':>11}  {'relative':>9}  {'sensitivity':>11}  unit")
         for k, label in enumerate(self.labels):
             rel = self.relative_error[k]
             rel_s = f"{100 * rel:8.3g}%" if math.isfinite(rel) else "     inf"
             lines.append(f"  {label:<{w}}  {self.values[k]:11.5g}  {self.standard_error[k]:11.4g}  {rel_s:>9}  "
-                         f"{self.sensitivity[k]:11.4g}")
+                         f"{self.sensitivity[k]:11.4g}  {self.units[k]}")
         if len(self.labels) > 1:
             lines.append("  correlation:")
             for k, label in enumerate(self.labels):
@@ -176,7 +182,7 @@ class Diagnostics:
             "warnings": list(self.warnings), "undetermined": list(self.undetermined),
             "evaluations": self.evaluations, "step": self.step, "method": self.method,
             "range_rise": None if self.range_rise is None else [fl(r) for r in np.reshape(self.range_rise, (n, 2))],
-            "notes": list(self.notes), "bias": list(self.bias), "at_bound": list(self.at_bound),
+            "notes": list(self.notes), "bias": list(self.bias), "at_bound": list(self.at_bound), "units": self.units,
         }
 
 

@@ -22,6 +22,9 @@ from . import checks
 #: ``non_newtonian`` material on the variational force that cannot flow takes the corotated
 #: stress instead of eq. 9's (``Material``'s docstring).
 MODELS = ("linear", "non_newtonian", "hyperelastic", "stvk")
+#: The unit of each fitted parameter (the module doc's SI), as fits print them.
+UNITS = {"mu": "Pa", "lam": "Pa", "yield_stress": "Pa", "flow_rate": "1/s", "hardening": "Pa",
+         "pressure_stiffness": "m^2/s^2", "viscosity": "Pa s"}
 #: The models whose steady simple shear is a Bingham fluid of ``Material.shear_yield_stress``
 #: and ``Material.plastic_viscosity`` (``Material.from_rheology``).
 BINGHAM_MODELS = ("linear", "stvk")
