@@ -79,7 +79,8 @@ def test_target_positions_in_millimetres_are_warned_of_before_the_fit_runs_on_th
     word: the fit ran its iterations against a body 1000 times the scene's, and with the
     default noise (the residual RMS, 17.5 "m") even the diagnostics' residual warning stayed
     silent. Their spread about their centroid, 1000 times the scene's, is said before any run.
-    Positions in metres, a body that has squashed on landing included, are not."""
+    Positions in metres, a body that has squashed on landing included, are not, nor a
+    placeholder target of no spread (every point at the origin), which no unit explains."""
     dt, target = landing
     with pytest.warns(UserWarning, match=r"spread \d{3} times as far as the scene's particles .* other units than "
                                          r"metres"):
@@ -89,6 +90,8 @@ def test_target_positions_in_millimetres_are_warned_of_before_the_fit_runs_on_th
         warnings.simplefilter("error")
         fit(_cube(), target, ["yield_stress"], steps=STEPS, dt=dt, frames=FRAMES, iterations=0, progress=False,
             diagnostics=False)
+        fit(_cube(), {f: np.zeros_like(t) for f, t in target.items()} if isinstance(target, dict) else 0.0 * target,
+            ["yield_stress"], steps=STEPS, dt=dt, frames=FRAMES, iterations=0, progress=False, diagnostics=False)
 
 
 def test_the_fitted_values_and_their_errors_are_printed_with_their_units(landing, tmp_path):

@@ -366,7 +366,9 @@ def _warn_target_scale(loss: Loss, model: Model, what: str) -> None:
     """Warn where every frame of a ``PositionLoss`` spreads ``TARGET_SCALE_FACTOR`` times as
     far (or as little) as the scene's observed particles at the start: positions in
     millimetres were fitted as metres without a word (with the default noise, the residual
-    RMS, the diagnostics' residual warning cannot fire either)."""
+    RMS, the diagnostics' residual warning cannot fire either). A frame of no spread at all (a
+    body's points at one place, a placeholder target) is not a unit's mistake and is not named
+    as one."""
     x0 = np.asarray(model.particle_x0, dtype=np.float64)
     for leaf in _leaves(loss):
         if not isinstance(leaf, PositionLoss):
@@ -376,7 +378,7 @@ def _warn_target_scale(loss: Loss, model: Model, what: str) -> None:
         if not reference > 0.0:
             continue
         ratios = [_spread(np.asarray(t, dtype=np.float64)) / reference for t in leaf.targets.values()]
-        if all(r > TARGET_SCALE_FACTOR for r in ratios) or all(r < 1.0 / TARGET_SCALE_FACTOR for r in ratios):
+        if all(r > TARGET_SCALE_FACTOR for r in ratios) or all(0.0 < r < 1.0 / TARGET_SCALE_FACTOR for r in ratios):
             import warnings  # noqa: PLC0415
 
             r = float(np.median(ratios))
