@@ -307,6 +307,28 @@ def test_a_mesh_tool_takes_prim_path_as_add_mesh_does(tmp_path):
     np.testing.assert_allclose(pts.max(axis=0) - pts.min(axis=0), [1.0] * 3, atol=1e-7)
 
 
+def test_run_refuses_an_output_that_is_a_mesh_its_scene_reads(tmp_path, monkeypatch, capsys):
+    """part.toml beside its mesh part.usdc: the default output part.usdc replaced the mesh with
+    the run's particles (exit 0), and the scene could not be run again."""
+    from warp_esph.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    write_usd(tmp_path / "part.usdc", {"/root/box": (cube()[0] * 0.2, *QUAD_CUBE[1:])})
+    write_usd(tmp_path / "cutter.usda", {"/root/box": QUAD_CUBE})
+    (tmp_path / "part.toml").write_text(
+        '[scene]\nspacing = 0.05\nframes = 1\n'
+        '[[bodies]]\nshape = "mesh"\nmaterial = "dough"\nfile = "part.usdc"\ntranslation = [0, 0.01, 0]\n'
+        '[[tools]]\nshape = "mesh"\nfile = "cutter.usda"\nposition = [0, 2, 0]\n[[colliders]]\ntype = "ground"\n')
+    mesh_bytes = {name: (tmp_path / name).read_bytes() for name in ("part.usdc", "cutter.usda")}
+    for extra, needle in (([], "the default output = 'part.usdc' is not allowed: it is the mesh of [[bodies]] #1 of part.toml"),
+                          (["-o", str(tmp_path / "cutter.usda")], "it is the mesh of [[tools]] #1 of part.toml")):
+        assert main(["run", "part.toml", "--no-progress", *extra]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("warp-esph: error: ") and len(err.strip().splitlines()) == 1, err
+        assert needle in err and "which the run would overwrite; give another --output" in err, err
+        assert {name: (tmp_path / name).read_bytes() for name in mesh_bytes} == mesh_bytes  # both meshes as they were
+    assert main(["run", "part.toml", "--no-progress", "-o", "run.usdc"]) == 0  # and the scene still runs
+
 def test_usd_without_meters_per_unit_is_read_in_centimetres_with_a_warning(tmp_path):
     """USD's fallback is 0.01 m per unit; a file modelled in metres without the metadata came
     in 100 x too small without a word."""

@@ -357,6 +357,16 @@ def _kept(writer, start_frame: int) -> str:
     return f"frames 0..{writer.last_frame} finished" if writer.last_frame is not None else f"the frames before {start_frame}"
 
 
+def _refuse_writing_over_inputs(scene, scene_arg, output: str, what: str) -> None:
+    """Refuse a run whose USD output is a file its scene reads (a mesh body's or tool's
+    ``.usdc``): the run replaced it, and the scene could not be run again."""
+    read = {os.path.realpath(path): source for source, path in scene.inputs}
+    source = read.get(os.path.realpath(output))
+    if source is not None:
+        raise ValueError(f"{what} = {output!r} is not allowed: it is {source} of {os.fsdecode(scene_arg)}, which the run "
+                         "would overwrite; give another --output")
+
+
 def _run_advice() -> dict:
     """``warp-esph run``'s advice for a ``StepRefusal`` of a run's start, by the Python advice
     it replaces (which names ``dt=`` and ``fps=``)."""
@@ -443,6 +453,8 @@ def _cmd_run(args) -> int:
     dt = args.dt if args.dt is not None else scene.dt
     output = args.output or f"{scene.name}.usdc"
     if args.resume is None:
+        # (a resumed run appends to its own output, which its scene did not read)
+        _refuse_writing_over_inputs(scene, args.scene, output, "--output" if args.output else "the default output")
         frames_total = args.frames if args.frames is not None else scene.frames
 
     model = scene.builder.finalize(device=args.device, dtype=args.dtype)

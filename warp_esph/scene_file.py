@@ -44,6 +44,8 @@ class Scene:
     the USD file for ``warp-esph render`` (``None``: the renderer's default).
     ``diverges``: names of bodies the scene shows blowing up (a method's failure, as the
     paper's Fig. 8 does); ``simulate``'s divergence monitor leaves them out.
+    ``inputs``: ``(what, path)`` of each file the scene was read from (a scene file and the
+    mesh files of its bodies and tools, absolute): a command refuses to write over them.
     """
 
     name: str
@@ -55,6 +57,7 @@ class Scene:
     figure: str | None = None
     view: tuple[float, float] | None = None
     diverges: tuple[str, ...] = ()
+    inputs: tuple[tuple[str, str], ...] = ()
 
 
 # ------------------------------------------------------------------ schema
@@ -318,10 +321,7 @@ def _body(file: str, k: int, table: dict, builder: SceneBuilder, materials: dict
         elif shape == "star":
             index = builder.add_star(material=material, **args)
         else:
-            source = args.pop("file")
-            if not os.path.isabs(source):
-                source = os.path.join(base_dir, source)
-            index = builder.add_mesh(source, material, **args)
+            index = builder.add_mesh(_in_folder(args.pop("file"), base_dir), material, **args)
         if "floor_margin" in table:
             # Checked here so that the message names the file's keys, not the method's arguments.
             margin = checks.non_negative("floor_margin", table["floor_margin"])
@@ -400,14 +400,18 @@ def _tool(file: str, k: int, table: dict, builder: SceneBuilder, base_dir: str):
     try:
         motion = _motion(args)
         if "file" in args:
-            source = args.pop("file")
-            args["mesh"] = source if os.path.isabs(source) else os.path.join(base_dir, source)
+            args["mesh"] = _in_folder(args.pop("file"), base_dir)
         if "orientation" in args:
             args["orientation"] = tuple(args["orientation"])
         builder.add_tool(shape, motion=motion, **args)
     except ValueError as e:
         raise ValueError(f"{file}: {where}: {e}") from None
     builder.origins[("tool", builder.tools[-1].name)] = where
+
+
+def _in_folder(source: str, base_dir: str) -> str:
+    """A mesh file's path: one relative to the scene file is in the scene file's folder."""
+    return source if os.path.isabs(source) else os.path.join(base_dir, source)
 
 
 def _pin(file: str, k: int, table: dict, builder: SceneBuilder):
@@ -526,4 +530,10 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
                          "must be a file name (not empty, no '/', '\\' or '..')")
     name = name or os.path.splitext(os.path.basename(file))[0]
     description = scene.get("description") or f"scene file {file}"
-    return Scene(name, description, builder, frames=frames, fps=fps, dt=dt)
+    # The default output is <name>.usdc in the working folder: a bunny.toml beside its mesh
+    # bunny.usdc had its mesh replaced by the run, and could not be run again.
+    inputs = [("the scene file", os.path.abspath(file))]
+    inputs += [(f"the mesh of [[{kind}]] #{k + 1}", os.path.abspath(_in_folder(table["file"], base_dir)))
+               for kind, tables in (("bodies", bodies), ("tools", tool_tables))
+               for k, table in enumerate(tables) if table.get("shape") == "mesh"]
+    return Scene(name, description, builder, frames=frames, fps=fps, dt=dt, inputs=tuple(inputs))
