@@ -701,6 +701,32 @@ def test_a_ctrl_c_while_fit_writes_its_results_says_which_files_are_whole(tmp_pa
     assert sorted(os.listdir(out)) == sorted(os.path.basename(f) for f in kept.split(", "))
 
 
+def test_a_usd_output_named_in_bytes_that_are_not_utf8_is_refused_before_the_work(tmp_path, capsys):
+    """USD takes file names as UTF-8: run -o b'\\xfe.usdc' failed at the writer's first save with
+    a bare "'utf-8' codec can't encode ..." naming no option; fit --output-dir b'\\xfa' ran the
+    whole fit, wrote four files, then failed the same way at fitted.usdc, exit 2."""
+    from warp_esph.usd import UsdWriter
+
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    odd = os.fsdecode(b"\xfe")  # a name Linux holds, which Python keeps as a surrogate escape
+    out = tmp_path / f"{odd}.usdc"
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(out), "--no-progress"]) == 2
+    assert_one_line_error(capsys.readouterr().err, f"--output = {str(out)!r} is not allowed: USD names its files in UTF-8")
+    assert os.listdir(tmp_path) == ["s.toml"]  # no lock, no working copy
+    run = tmp_path / "truth.usdc"
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(run), "--no-progress"]) == 0
+    capsys.readouterr()
+    fit = ["fit", str(tmp_path / "s.toml"), "--target", str(run), "--no-progress", "--iterations", "1", "--no-diagnostics"]
+    assert main([*fit, "--output-dir", str(tmp_path / odd)]) == 2
+    assert_one_line_error(capsys.readouterr().err, f"--output-dir = {str(tmp_path / odd)!r} is not allowed: USD names")
+    assert not (tmp_path / odd).exists()  # refused before the fit
+    from warp_esph.scenes import load_scene_file
+
+    model = load_scene_file(tmp_path / "s.toml").builder.finalize()
+    with pytest.raises(ValueError, match=r"^path = '.*' is not allowed: USD names its files in UTF-8 text"):
+        UsdWriter(out, model)
+
+
 def test_fit_refuses_an_empty_path_instead_of_dropping_it(tmp_path, capsys, monkeypatch):
     """'' (an unset shell variable) was taken as not given: --experiments '' and --cameras ''
     ran the fit without them and exited 0, --output-dir '' and -o '' wrote to the defaults."""

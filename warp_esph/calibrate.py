@@ -256,6 +256,8 @@ def run_fit(args, out=None, err=None) -> int:
     for name in names:
         if name == "fitted.usdc" and args.no_usd:
             continue  # not written, and a folder of that name is left alone
+        if name == "fitted.usdc":
+            checks.usd_output("--output-dir", folder, os.path.join(folder, name))
         if os.path.isdir(os.path.join(folder, name)):
             raise ValueError(f"--output-dir = {folder!r} is not allowed: {name} in it is a folder; the fit writes a file there")
         checks.output_files("--output-dir", folder, [name])

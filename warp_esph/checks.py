@@ -538,6 +538,19 @@ def output_files(what: str, folder, names) -> None:
                              f"or give another folder")
 
 
+def usd_output(what: str, path, written=None) -> None:
+    """Refuse ``path`` (where a USD file is written: ``written``, default ``path`` itself) where
+    its absolute path is not UTF-8 text. USD takes file names as UTF-8 strings, so a name of
+    other bytes (which Python holds as surrogate escapes) failed at the first save: a fit or a
+    run's set-up done, then a bare UnicodeEncodeError naming no option."""
+    full = os.path.abspath(os.fsdecode(os.fspath(path if written is None else written)))
+    try:
+        full.encode("utf-8")
+    except UnicodeEncodeError:
+        raise ValueError(f"{what} = {os.fsdecode(os.fspath(path))!r} is not allowed: USD names its files in UTF-8 text, "
+                         f"and {full!r} is not; give a path of UTF-8 text") from None
+
+
 @contextlib.contextmanager
 def replaced_atomically(path):
     """Yields a working name beside ``path`` for a writer to fill; once it returns, that file

@@ -455,6 +455,7 @@ def _cmd_run(args) -> int:
     if args.resume is None:
         # (a resumed run appends to its own output, which its scene did not read)
         _refuse_writing_over_inputs(scene, args.scene, output, "--output" if args.output else "the default output")
+        checks.usd_output("--output" if args.output else "the default output", output)
         frames_total = args.frames if args.frames is not None else scene.frames
 
     model = scene.builder.finalize(device=args.device, dtype=args.dtype)

@@ -258,6 +258,7 @@ class UsdWriter:
         # Every frame is renamed over path: a symbolic link there became a regular file and
         # the file it linked to was left as it was, where every command refuses the link.
         checks.refuse_special("path", os.fspath(path))
+        checks.usd_output("path", path)
         self.format = USD_EXTENSIONS[ext]
         self.model = model
         self.fps = checks.positive("fps", fps)
