@@ -945,6 +945,26 @@ def test_write_outputs_into_a_file_is_a_value_error_naming_it(tmp_path):
             if line.startswith("wrote")][:1] == ["sweep.csv"]
 
 
+def test_the_tables_are_written_into_a_folder_named_in_bytes_that_are_not_utf8(tmp_path):
+    """pyarrow reads a file name as a UTF-8 URI: a sweep -o $'\\xfc' ran every sample, wrote
+    sweep.csv, then failed sweep.parquet with "'utf-8' codec can't encode ...", exit 2, its
+    sweep.json and sweep.png never written."""
+    pq = pytest.importorskip("pyarrow.parquet")
+    from warp_esph.sweep import SUMMARY_COLUMNS, write_outputs
+
+    q = SUMMARY_COLUMNS[0]
+    table = SweepTable(columns=["sample", "yield_stress", "status", q],
+                       rows=[{"sample": k, "yield_stress": 10.0 * (k + 1), "status": "ok", q: 0.5 * k} for k in range(3)],
+                       params=["yield_stress"])
+    folder = tmp_path / os.fsdecode(b"\xfc")  # a name Linux holds, which Python keeps as a surrogate escape
+    write_outputs(table, folder, meta={"partial": False}, plot_figure=False)
+    assert {"sweep.csv", "sweep.parquet", "sweep.json"} <= set(os.listdir(folder))
+    with open(folder / "sweep.parquet", "rb") as fh:
+        back = pq.read_table(fh)
+    assert back.column("yield_stress").to_pylist() == [10.0, 20.0, 30.0]
+    assert back.column(q).to_pylist() == [0.0, 0.5, 1.0]
+
+
 def test_ray_a_sample_that_crashes_its_worker_is_a_failed_row_at_once(tmp_path):
     """Ray retried a task whose worker died (3 more times by default): a sample that crashes
     its worker every time (a fault in native code, out of memory) ran four times, each dying

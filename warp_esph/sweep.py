@@ -345,8 +345,10 @@ class SweepTable:
             data[c] = pa.array(col, type=pa.float64()) if col.dtype == np.float64 and c not in _TEXT_COLUMNS else pa.array(
                 [None if v is None else str(v) for v in col], type=pa.string())
         path = os.fspath(path)
-        with checks.replaced_atomically(path) as tmp:
-            pq.write_table(pa.table(data), tmp)
+        # An open file, not its name: pyarrow reads a name as a UTF-8 URI, so a folder named in other
+        # bytes failed the table after every sample had run (sweep.csv beside it written).
+        with checks.replaced_atomically(path) as tmp, open(tmp, "wb") as fh:
+            pq.write_table(pa.table(data), fh)
         return path
 
     @classmethod
