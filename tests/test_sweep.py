@@ -10,6 +10,7 @@ import math
 import os
 import re
 import sys
+import textwrap
 import warnings
 
 import numpy as np
@@ -596,6 +597,50 @@ def test_a_failing_sample_is_a_row_and_the_sweep_goes_on():
     assert [r["sample"] for r in table.rows] == [0, 1]
     assert table.rows[0]["status"] == "failed" and "worker process died" in table.rows[0]["reason"]
     assert table.rows[0]["yield_stress"] == 10.0 and table.rows[1]["status"] == "failed"
+
+
+def test_a_second_signal_while_a_stopped_sweep_writes_its_table_waits_for_it(tmp_path):
+    """A stopped sweep writes the table of the samples finished; a second signal there (a
+    second Ctrl-C, or ``timeout``, which signals the command and then its process group) ended
+    the process at once: no table of the stopped sweep, the last partial one left beside a
+    stray ``.sweep.<pid>.part.csv``. Run as the console script, the only place a second signal
+    ends the process."""
+    import subprocess
+
+    (tmp_path / "s.toml").write_text(SCENE_TOML)
+    script = tmp_path / "twice.py"
+    script.write_text(textwrap.dedent("""
+        import os, signal, sys
+        import warp_esph.sweep as s
+        from warp_esph.cli import console_main
+
+        real_execute, real_write = s._execute, s.write_outputs
+
+        def execute(plan, workers, ray, record):
+            def first_then_stop(row):
+                record(row)
+                os.kill(os.getpid(), signal.SIGTERM)  # the first signal, after one sample
+            return real_execute(plan, workers, ray, first_then_stop)
+
+        def write(table, folder, meta=None, *args, **kwargs):
+            if meta and meta.get("interrupted"):
+                os.kill(os.getpid(), signal.SIGTERM)  # the second, as the stopped sweep writes its table
+            return real_write(table, folder, meta, *args, **kwargs)
+
+        s._execute, s.write_outputs = execute, write
+        sys.argv = ["warp-esph", "sweep", "s.toml", "--param", "yield_stress=10,100,1000", "--frames", "1",
+                    "--workers", "1", "--no-progress", "-o", "sw"]
+        console_main()
+    """))
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=repo + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    done = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 143, done.stderr
+    assert done.stderr.splitlines()[-1] == "warp-esph: terminated: the table keeps the 1 of 3 samples finished", done.stderr
+    assert sorted(os.listdir(tmp_path / "sw")) == ["sweep.csv", "sweep.json", "sweep.parquet", "sweep.png"]
+    meta = json.loads((tmp_path / "sw" / "sweep.json").read_text())
+    assert meta.get("interrupted") is True and "partial" not in meta
+    assert len(SweepTable.read_csv(tmp_path / "sw" / "sweep.csv").rows) == 1
 
 
 def test_workers_started_from_a_script_without_a_main_guard_say_so(tmp_path):

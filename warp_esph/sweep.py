@@ -1271,8 +1271,14 @@ def sweep_cli(args, out=None) -> int:
             if bar is not None:
                 bar.close()
             table = _table(done, [p.name for p in plist])
+            from .cli import _Deferred  # noqa: PLC0415
+
             try:
-                written = write_outputs(table, folder, {**meta, "interrupted": True}, log_params)
+                # A second signal here (a second Ctrl-C; timeout signals the command, then its
+                # group) ended the process at once: no table of the stopped sweep, a stray
+                # .sweep.<pid>.part.csv beside the last partial one. It waits for the tables.
+                with _Deferred(args):
+                    written = write_outputs(table, folder, {**meta, "interrupted": True}, log_params)
             except (OSError, ValueError) as e:
                 # A full disk under the table of the samples finished: the error reached the
                 # command's handler as bad input (exit 2), the signal dropped and the folder unsaid.
