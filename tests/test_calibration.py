@@ -238,6 +238,27 @@ def test_cli_fit_names_its_own_options_when_the_rollout_cannot_fit_in_memory(tmp
                                                "not allowed with --checkpoint-every auto on cpu"), err
     assert err[0].endswith("; fit fewer frames (the experiment's frames, target_frames)"), err
     assert not out.exists()
+    # A Gauss-Newton fit records no tape: on the memory that refused the taped fit its rollout
+    # (two states) is taken and the fit runs.
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 2 * 10**6)
+    assert main(argv[:4] + ["--iterations", "0", "--output-dir", str(out), "--no-progress", "--optimizer", "gauss-newton",
+                            "--no-diagnostics"]) == 0
+    err = capsys.readouterr().err
+    assert "170 steps of 0.001961 s; no tape (Gauss-Newton runs forward only)" in err, err
+    import types
+
+    from warp_esph.calibrate import _memory_refusal
+    from warp_esph.rollout import RolloutMemoryError
+
+    # Where even the two states do not fit, the refusal says so in the command's words, not as a
+    # checkpointed tape's ('--checkpoint-every auto ... even at its least memory, a checkpoint').
+    e = RolloutMemoryError("", reason="the rollout would need about 0.5 GiB, more than its 0.25 GiB", device="cpu",
+                           steps=170, segment=None, least=170, least_gib=0.5, least_fits=False, taped=False)
+    exp = types.SimpleNamespace(frames_source="the targets' last frame, 10,", substeps=17, dt=0.001961, fps=30.0)
+    assert _memory_refusal(e, exp, "", "auto") == (
+        "the targets' last frame, 10, is not allowed with --optimizer gauss-newton on cpu: at 17 steps a frame (dt = "
+        "0.001961 s at 30 fps) the fit's rollout takes 170 steps, and even untaped (as every run of a Gauss-Newton fit "
+        "is) the rollout would need about 0.5 GiB, more than its 0.25 GiB; fit fewer frames (--frames, --target-frames)")
 
 
 def test_cli_fits_two_parameters_to_a_usd_run(tmp_path, capsys, dough_scene):

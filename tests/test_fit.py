@@ -814,6 +814,65 @@ def test_fits_memory_refusal_names_the_experiment_and_auto_as_given(monkeypatch)
             iterations=1, progress=False)
 
 
+def test_a_gauss_newton_fit_is_weighed_for_the_two_states_its_runs_hold(monkeypatch):
+    """A Gauss-Newton fit records no tape (its Jacobian and its diagnostics are forward
+    differences), yet each of its rollouts was weighed as a full tape: under a ``memory_limit``
+    below the tape ``checkpoint_every="auto"`` checkpointed it, and on a device too small for
+    the least checkpointed tape the fit was refused, where its runs hold two states. Its
+    rollouts are weighed as the two states now (the estimate is the pair an untaped run
+    allocates); a taped run's estimate, and a taped fit's choice and refusal, are as before."""
+    from warp_esph import builder
+    from warp_esph.fit import choose_checkpointing, memory_estimate
+    from warp_esph.rollout import _RolloutMemory, state_nbytes
+
+    model = _eight_particles()
+    steps = 60
+    loss = PositionLoss({steps: model.particle_x0}, frames=None)
+    args = dict(steps=steps, dt=1e-3, iterations=1, progress=False, diagnostics=False)
+    limit = memory_estimate(model, steps, None) // 2
+    assert choose_checkpointing(model, steps, limit) is not None  # a taped fit checkpoints under it
+    said = []
+    result = fit(model, loss, ["mu"], optimizer="gauss-newton", memory_limit=limit, log=said.append, **args)
+    assert result.history and np.isfinite(result.loss)
+    line = next(m for m in said if m.startswith("the experiment: 8 particles"))
+    assert "no tape" in line and "checkpoint every" not in line, line
+    # A device that holds the two states but not the least checkpointed tape.
+    device = 2**18
+    assert _RolloutMemory(model, steps, taped=False).need(None)[0] < device
+    taped = _RolloutMemory(model, steps)
+    assert taped.need(taped.least())[0] > device
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: device)
+    result = fit(model, loss, ["mu"], optimizer="gauss-newton", **args)
+    assert result.history and np.isfinite(result.loss)
+    with pytest.raises(ValueError, match=r"^the experiment: steps = 60 is not allowed with checkpoint_every = 'auto' on "
+                                         r"cpu: even at its least memory"):
+        fit(model, loss, ["mu"], optimizer="lbfgs", **args)
+    # The estimates are what the rollouts allocate: a full tape's taped states, an untaped run's pair.
+    monkeypatch.undo()
+    r = Rollout(model, 20, 1e-3)
+    r.forward()
+    taped_bytes = r.memory_bytes()["taped_states"]
+    assert memory_estimate(model, 20, None) == taped_bytes == 21 * state_nbytes(model.state(requires_grad=True))
+    u = Rollout(model, 20, 1e-3, taped=False)
+    u.forward()
+    assert memory_estimate(model, 20, None, taped=False) == u.memory_bytes()["untaped_states"]
+    assert u.memory_bytes()["taped_states"] == 0
+    with pytest.raises(RuntimeError, match=r"^backward\(\) is not allowed: this rollout was made with taped = False"):
+        u.backward(PositionLoss({20: model.particle_x0}, frames=None))
+    with pytest.raises(ValueError, match=r"^taped = True is not allowed: this rollout was made with taped = False"):
+        u.forward(taped=True)
+    with pytest.raises(ValueError, match=r"^checkpoint_every = 5 is not allowed with taped = False"):
+        Rollout(model, 20, 1e-3, checkpoint_every=5, taped=False)
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 2**16)  # not even the two states
+    with pytest.raises(ValueError, match=r"^steps = 60 is not allowed with taped = False on cpu") as refused:
+        Rollout(model, steps, 1e-3, taped=False)
+    assert f"`{refused.value}`" in (pathlib.Path(__file__).parents[1] / "docs" / "errors.md").read_text()
+    with pytest.raises(ValueError, match=r"^the experiment: steps = 60 is not allowed on cpu: even untaped, as every run "
+                                         r"of a Gauss-Newton fit is, the rollout would need about 0\.000\d+ GiB, more than "
+                                         r"its 6\.1\d*e-05 GiB; give fewer steps$"):
+        fit(model, loss, ["mu"], optimizer="gauss-newton", **args)
+
+
 def test_automatic_checkpointing_caps_the_memory_limit_at_the_devices_memory(monkeypatch):
     """``checkpoint_every="auto"`` chose the longest segment under ``memory_limit`` (1 GiB by
     default) whatever the device's memory: on a machine of 4 MiB it chose a full tape of 200

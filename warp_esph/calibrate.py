@@ -770,6 +770,11 @@ def _memory_refusal(e, exp, where: str, ck) -> str:
     ``steps`` and ``checkpoint_every``, no options of the command, and gave the segment
     ``--checkpoint-every auto`` had chosen as if it had been typed."""
     fewer = "fit fewer frames (" + ("the experiment's frames, target_frames)" if where else "--frames, --target-frames)")
+    if not e.taped:
+        # A Gauss-Newton fit's rollout, which records no tape: --checkpoint-every is not read.
+        return (f"{where}{exp.frames_source} is not allowed with --optimizer gauss-newton on {e.device}: at "
+                f"{exp.substeps} steps a frame (dt = {exp.dt:.4g} s at {exp.fps:g} fps) the fit's rollout takes {e.steps} "
+                f"steps, and even untaped (as every run of a Gauss-Newton fit is) {e.reason}; {fewer}")
     if ck == "auto":
         said, fix = f"even at its least memory, a checkpoint every {e.least} steps, ", fewer
     elif e.least_fits:

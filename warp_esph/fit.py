@@ -430,24 +430,41 @@ def _state_bytes(model: Model) -> tuple[int, int, int]:
             _Checkpoint(model).nbytes)
 
 
-def memory_estimate(model: Model, steps: int, checkpoint_every: int | None, _sizes=None) -> int:
+def memory_estimate(model: Model, steps: int, checkpoint_every: int | None, _sizes=None, *, taped: bool = True) -> int:
     """Bytes the rollout's Warp arrays will hold: ``steps + 1`` taped states for a full
     tape; ``S + 1`` taped states, two untaped ones and ``steps / S`` checkpoints with
-    ``checkpoint_every = S`` (measured from this model's own ``State``, not a constant)."""
-    taped, light, ck = _sizes or _state_bytes(model)
+    ``checkpoint_every = S`` (measured from this model's own ``State``, not a constant).
+    ``taped=False``: a rollout whose runs record no tape (``Rollout(taped=False)``, every run
+    of a Gauss-Newton fit): the two untaped states its forward steps between, whatever
+    ``steps`` (``checkpoint_every`` must be None: it keeps no checkpoints)."""
+    if not isinstance(taped, bool):
+        raise ValueError(f"taped = {checks.shorten(taped)!r} is not allowed: must be True or False")
+    if not taped and checkpoint_every is not None:
+        raise ValueError(f"checkpoint_every = {checkpoint_every!r} is not allowed with taped = False: an untaped "
+                         "rollout keeps no checkpoints; give None")
+    heavy, light, ck = _sizes or _state_bytes(model)
+    if not taped:
+        return 2 * light
     if checkpoint_every is None or checkpoint_every >= steps:
-        return (steps + 1) * taped
-    return (checkpoint_every + 1) * taped + 2 * light + math.ceil(steps / checkpoint_every) * ck
+        return (steps + 1) * heavy
+    return (checkpoint_every + 1) * heavy + 2 * light + math.ceil(steps / checkpoint_every) * ck
 
 
-def choose_checkpointing(model: Model, steps: int, memory_limit: float = MEMORY_LIMIT) -> int | None:
+def choose_checkpointing(model: Model, steps: int, memory_limit: float = MEMORY_LIMIT, *,
+                         taped: bool = True) -> int | None:
     """The segment length for ``checkpoint_every="auto"``: ``None`` (one full tape, the
     fastest) when that fits in ``memory_limit`` bytes, else the longest segment whose
     rollout fits, and never shorter than the segment that needs the least memory. A rollout's
     bytes here are its arrays' (``memory_estimate``) and each taped state's own besides
     (``rollout.STATE_OVERHEAD``). A ``memory_limit`` above the device's memory counts as that
     memory: a rollout fits where ``Rollout`` takes it (its force rows included; on a GPU its
-    arrays in the GPU's memory and the states' own in the host's)."""
+    arrays in the GPU's memory and the states' own in the host's). ``taped=False`` (runs
+    without a tape, a Gauss-Newton fit's): None, whatever the limit: such a run holds two
+    states, and a checkpoint would only add to them (``Rollout`` refuses one that cannot fit)."""
+    if not isinstance(taped, bool):
+        raise ValueError(f"taped = {checks.shorten(taped)!r} is not allowed: must be True or False")
+    if not taped:
+        return None
     memory = _RolloutMemory(model, steps)
     sizes = memory.sizes
 
@@ -542,11 +559,15 @@ class _Values:
 
 
 class _Run(_Values):
-    """One experiment made ready: its model, rollout, loss and fitted materials."""
+    """One experiment made ready: its model, rollout, loss and fitted materials. ``taped``:
+    whether the fit takes gradients through its runs (False: a Gauss-Newton fit, whose every
+    run reads the loss alone, ``value_forward``); its rollout is weighed for what they hold."""
 
-    def __init__(self, exp: Experiment, dtype, memory_limit, name):
+    def __init__(self, exp: Experiment, dtype, memory_limit, name, taped: bool = True):
         self.name = name
         self.exp = exp
+        # tape_values: every loss-only run taped all the same (the benchmark's baseline).
+        self.taped = taped or self.tape_values
         exempt = exp.monitor_exempt
         if exempt is not None and (isinstance(exempt, str) or not hasattr(exempt, "__iter__")):
             raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: must be a list of body names")
@@ -582,18 +603,31 @@ class _Run(_Values):
         if isinstance(ck, str):
             if ck != "auto":
                 raise ValueError(f"checkpoint_every = {ck!r} is not allowed: give 'auto', None or a number of steps")
-            ck = choose_checkpointing(self.model, self.steps, memory_limit)
+            ck = choose_checkpointing(self.model, self.steps, memory_limit, taped=self.taped)
+        if not self.taped:
+            if ck is not None:
+                checks.positive_int("checkpoint_every", ck)  # refused as before, though unread
+            # No run goes back through its steps: no tape to checkpoint, whatever was asked; a
+            # full tape weighed for each run refused or checkpointed fits that hold two states.
+            ck = None
         self._segment = ck
         try:
-            self.rollout = Rollout(self.model, self.steps, self.dt, frames=loss.frames, checkpoint_every=ck)
+            self.rollout = Rollout(self.model, self.steps, self.dt, frames=loss.frames, checkpoint_every=ck,
+                                   taped=self.taped)
         except RolloutMemoryError as e:
             # Named by the experiment, as its other refusals; and 'auto' as given: its choice
             # (the least memory here) read as a checkpoint_every the caller had given.
-            said = (f"steps = {e.steps} is not allowed with checkpoint_every = 'auto' on {e.device}: even at its least "
-                    f"memory, a checkpoint every {e.least} steps, {e.reason}; give fewer steps"
-                    if auto == "auto" else str(e))
+            if not e.taped:
+                said = (f"steps = {e.steps} is not allowed on {e.device}: even untaped, as every run of a Gauss-Newton "
+                        f"fit is, {e.reason}; give fewer steps")
+            elif auto == "auto":
+                said = (f"steps = {e.steps} is not allowed with checkpoint_every = 'auto' on {e.device}: even at its "
+                        f"least memory, a checkpoint every {e.least} steps, {e.reason}; give fewer steps")
+            else:
+                said = str(e)
             raise e.reworded(f"{name}: {said}", experiment=exp) from None
-        self.memory = memory_estimate(self.model, self.steps, self.rollout.segment if self.rollout.checkpointing else None)
+        self.memory = memory_estimate(self.model, self.steps, self.rollout.segment if self.rollout.checkpointing else None,
+                                      taped=self.taped)
         initial = {} if exp.initial is None else exp.initial
         if not isinstance(initial, Mapping):
             raise ValueError(f"initial = {checks.shorten(initial)!r} is not allowed: must be a mapping of "
@@ -640,7 +674,8 @@ class _Run(_Values):
     def retime(self, dt: float) -> None:
         """Run the rollout at ``dt`` (the same steps and frames; before any run)."""
         self.dt = dt
-        self.rollout = Rollout(self.model, self.steps, dt, frames=self.loss.frames, checkpoint_every=self._segment)
+        self.rollout = Rollout(self.model, self.steps, dt, frames=self.loss.frames, checkpoint_every=self._segment,
+                               taped=self.taped)
 
     def flowed_start(self) -> bool:
         """Whether the rollout's start is a flowed body an incremental step wrote
@@ -1145,7 +1180,9 @@ def fit(
     - ``checkpoint_every``: segment length for checkpointed rollouts; ``"auto"``: a full
       tape when it fits in ``memory_limit`` bytes (and in the device's memory), else the
       longest segment that fits (``choose_checkpointing``). A rollout that cannot fit even
-      so is refused (``rollout.RolloutMemoryError``) under the experiment's name.
+      so is refused (``rollout.RolloutMemoryError``) under the experiment's name. A
+      Gauss-Newton fit records no tape (every run forward only): its rollouts hold two
+      states each and are weighed so, ``checkpoint_every`` and ``memory_limit`` unread.
     - ``initial``: ``Rollout.forward`` keywords (``x0, v0, F0, alpha0, initial_state``),
       checked once at set-up (``rollout.check_initial``; a refused start before any rollout);
       every evaluation starts from the values checked.
@@ -1258,8 +1295,10 @@ def fit(
             raise ValueError("target is required (or give a list of Experiment)")
         exps = [Experiment(model, target, steps=steps, dt=dt, frames=frames, materials=materials, initial=initial,
                            checkpoint_every=checkpoint_every, noise=noise)]
-    runs = [_Run(e, dtype, memory_limit, e.name or (f"experiment {k}" if len(exps) > 1 else "the experiment"))
-            for k, e in enumerate(exps)]
+    # Gauss-Newton takes no gradient: its Jacobian is forward differences and its diagnostics
+    # (every loss has residuals) too, so none of its runs records a tape.
+    runs = [_Run(e, dtype, memory_limit, e.name or (f"experiment {k}" if len(exps) > 1 else "the experiment"),
+                 taped=optimizer != "gauss-newton") for k, e in enumerate(exps)]
     for r in runs:
         r.setup_tie(params, tie_pressure)
     prob = _Problem(runs, params, bounds)
@@ -1283,6 +1322,11 @@ def fit(
     for line in steps_said:
         say(line)
     for r in runs:
+        if not r.taped:
+            say(f"{r.name}: {r.model.particle_count} particles, {r.steps} steps of {r.dt:.4g} s; no tape (Gauss-Newton "
+                f"runs forward only): ~{r.memory / 2**20:.1f} MiB of Warp arrays (two states, "
+                f"{r.memory / r.model.particle_count:.0f} B per particle, whatever the steps)")
+            continue
         mode = f"checkpoint every {r.rollout.segment} steps" if r.rollout.checkpointing else "full tape"
         say(f"{r.name}: {r.model.particle_count} particles, {r.steps} steps of {r.dt:.4g} s; {mode}: "
             f"~{r.memory / 2**20:.1f} MiB of Warp arrays "

@@ -20,7 +20,9 @@ Without checkpointing (``checkpoint_every=None``) the forward pass is recorded o
 ``wp.Tape`` with one ``State`` per step: memory grows with ``steps`` (about 0.95 kB
 per particle per step in float64, see ``docs/fitting.md``); ``forward(taped=False)``, for a
 loss value alone, runs the same steps unrecorded between two states (as the checkpointed
-forward does). With ``checkpoint_every=S``
+forward does); a rollout made with ``taped=False`` runs every forward so and is weighed for
+it: two untaped states, whatever ``steps``, where a tape holds ``steps + 1`` taped states.
+With ``checkpoint_every=S``
 the forward pass runs untaped, keeping only the state fields (``x, v, F, alpha``) at the
 start of every segment of ``S`` steps; ``backward`` re-runs each segment on a fresh tape,
 last segment first, seeds its end state with the adjoint that the later segment left at
@@ -208,11 +210,14 @@ class RolloutMemoryError(ValueError):
     ran it as (else None)."""
 
     def __init__(self, message: str, *, reason: str, device: str, steps: int, segment: int | None, least: int,
-                 least_gib: float, least_fits: bool, experiment=None, worlds: int | None = None):
+                 least_gib: float, least_fits: bool, experiment=None, worlds: int | None = None, taped: bool = True):
         super().__init__(message)
         self.reason, self.device, self.steps, self.segment = reason, device, steps, segment
         self.least, self.least_gib, self.least_fits = least, least_gib, least_fits
         self.experiment, self.worlds = experiment, worlds
+        #: False: a ``Rollout(taped=False)`` was refused, which records no tape (its least is
+        #: no checkpointing: ``least`` is ``steps``), so only fewer steps fit.
+        self.taped = taped
 
     def reworded(self, message: str, experiment=None, worlds: int | None = None) -> "RolloutMemoryError":
         """The same refusal under another message (and the experiment refused, its worlds)."""
@@ -220,19 +225,21 @@ class RolloutMemoryError(ValueError):
                                   segment=self.segment, least=self.least, least_gib=self.least_gib,
                                   least_fits=self.least_fits,
                                   experiment=self.experiment if experiment is None else experiment,
-                                  worlds=self.worlds if worlds is None else worlds)
+                                  worlds=self.worlds if worlds is None else worlds, taped=self.taped)
 
 
 class _RolloutMemory:
     """What a rollout of ``steps`` steps of ``model`` would hold (``need``) against the memory
     it has (``overrun``): on a GPU its arrays against the GPU's memory and the taped states'
-    own overhead against the host's, on the CPU both against the host's."""
+    own overhead against the host's, on the CPU both against the host's. ``taped=False``: a
+    rollout whose runs record no tape (``Rollout(taped=False)``): two untaped states hold it,
+    whatever the segment."""
 
-    def __init__(self, model: Model, steps: int, sizes=None):
+    def __init__(self, model: Model, steps: int, sizes=None, taped: bool = True):
         from .builder import _device_memory  # noqa: PLC0415
         from .fit import _state_bytes  # noqa: PLC0415 (fit imports this module)
 
-        self.model, self.steps = model, steps
+        self.model, self.steps, self.taped = model, steps, taped
         self.have = _device_memory(model.device)
         self.cpu = model.device.is_cpu
         self.host = None if self.cpu or self.have is None else _device_memory(wp.get_device("cpu"))
@@ -245,10 +252,13 @@ class _RolloutMemory:
         from .fit import memory_estimate  # noqa: PLC0415
 
         steps = self.steps
-        taped = (segment if segment is not None and segment < steps else steps) + 1
-        arrays = (memory_estimate(self.model, steps, segment, self.sizes)
+        if self.taped:
+            states = (segment if segment is not None and segment < steps else steps) + 1
+        else:
+            segment, states = None, 2  # the two states an untaped forward steps between
+        arrays = (memory_estimate(self.model, steps, segment, self.sizes, taped=self.taped)
                   + steps * self.rows * 3 * np.dtype(self.model.types.np_dtype).itemsize)  # the per-step force rows
-        own = taped * STATE_OVERHEAD
+        own = states * STATE_OVERHEAD
         return (arrays + own, 0) if self.cpu else (arrays, own)
 
     def overrun(self, segment: int | None) -> int:
@@ -267,7 +277,10 @@ class _RolloutMemory:
         arrays and its own 64 kB) outweighs a checkpoint several times, and the least lies
         below: for 8 particles and 1e5 steps 62 steps need 11.6 MiB, 316 needed 26.7 MiB, and
         a rollout that fit at 62 was refused 'even at the least'. On a GPU, of the memory it
-        overruns most (the device's or the host's)."""
+        overruns most (the device's or the host's). Untaped: ``steps``, no checkpoints (its
+        forward keeps none)."""
+        if not self.taped:
+            return self.steps
         have, host, steps, checkpoint = self.have, self.host, self.steps, self.sizes[2]
 
         def worst(segment, smooth=False):
@@ -318,11 +331,18 @@ def _check_rollout_memory(model: Model, steps: int, segment: int | None, checkpo
     could not fit in the device's memory (``RolloutMemoryError``): ``Rollout(model, 10**6, dt)``
     of 8 particles allocated a million taped states (about 72 GiB) at its first forward, minutes
     on, until the machine killed it, where a checkpointed one needs kilobytes. On a GPU the
-    arrays are weighed against its memory and the states' own overhead against the host's."""
+    arrays are weighed against its memory and the states' own overhead against the host's.
+    ``memory``'s ``taped`` says which runs are weighed (``Rollout(taped=False)``: two states)."""
     m = _RolloutMemory(model, steps) if memory is None else memory
     where = m.overrun(segment)
     if not where:
         return
+    if not m.taped:
+        # Two states already: no segment needs less, only fewer steps (their force rows) do.
+        reason = m.reason(segment)
+        raise RolloutMemoryError(f"steps = {steps} is not allowed with taped = False on {model.device}: {reason}; give "
+                                 "fewer steps", reason=reason, device=str(model.device), steps=steps, segment=None,
+                                 least=steps, least_gib=m.need(None)[where - 1] / 2**30, least_fits=False, taped=False)
     least = m.least()
     least_where = m.overrun(least)
     # Where the least fits, what it needs of the memory the refused one overran.
@@ -481,10 +501,15 @@ class Rollout:
       before passing it. A forward after ``model.particle_x0`` changed has it take the rest
       configuration (its rest model's and hourglass control's) as it is now, as a new rollout's
       solver does: the start is the new ``particle_x0``.
+    - ``taped``: False for a rollout run for loss values alone (a Gauss-Newton fit's): every
+      ``forward`` runs as ``forward(taped=False)`` (a ``forward(taped=True)`` and ``backward``
+      are refused), and its memory is weighed as what those runs hold, two untaped states and
+      the force rows, not ``steps + 1`` taped states: a run whose tape would not fit is not
+      refused. Not with ``checkpoint_every`` (it keeps no checkpoints).
     """
 
     def __init__(self, model: Model, steps: int, dt: float, frames: Sequence[int] | None = None,
-                 checkpoint_every: int | None = None, solver: Solver | None = None):
+                 checkpoint_every: int | None = None, solver: Solver | None = None, taped: bool = True):
         if not isinstance(model, Model):
             raise ValueError(f"model = {model!r} is not allowed: must be a warp_esph.Model")
         if not model.requires_grad:
@@ -507,7 +532,15 @@ class Rollout:
         else:
             self.segment = min(checks.positive_int("checkpoint_every", checkpoint_every), self.steps)
         self.checkpointing = self.segment < self.steps
-        _check_rollout_memory(model, self.steps, self.segment if self.checkpointing else None, checkpoint_every)
+        if not isinstance(taped, bool):
+            raise ValueError(f"taped = {checks.shorten(taped)!r} is not allowed: must be True or False")
+        if not taped and checkpoint_every is not None:
+            raise ValueError(f"checkpoint_every = {checkpoint_every!r} is not allowed with taped = False: an untaped "
+                             "rollout keeps no checkpoints (nothing goes back through it); give checkpoint_every = None")
+        #: Whether this rollout's runs may record a tape (``taped=False``: loss values alone).
+        self.taped = taped
+        _check_rollout_memory(model, self.steps, self.segment if self.checkpointing else None, checkpoint_every,
+                              _RolloutMemory(model, self.steps, taped=taped))
         if solver is None:
             solver = _differentiable_solver(model)
         elif not isinstance(solver, Solver) or solver.model is not model:
@@ -675,7 +708,7 @@ class Rollout:
 
     # ---------------------------------------------------------------- forward
     def forward(self, x0=None, v0=None, *, F0=None, alpha0=None, initial_state: State | None = None,
-                check: bool = True, taped: bool = True) -> np.ndarray:
+                check: bool = True, taped: bool | None = None) -> np.ndarray:
         """Run the rollout; returns the positions at ``frames`` as an ``(frames, n, 3)`` array.
 
         A run that blew up to a non-finite position (at a frame, or in the last state) or
@@ -704,14 +737,17 @@ class Rollout:
         fit of 125 particles, all its runs so, in 0.73 of the time: docs/performance.md,
         "Loss-only fit evaluations without a tape"); a ``backward`` then needs a taped
         ``forward`` first. With ``checkpoint_every`` the forward records no tape either way
-        (``backward`` re-runs the segments on tapes).
+        (``backward`` re-runs the segments on tapes). None (the default): the rollout's own
+        ``taped``, True unless it was made with ``taped=False``.
         """
         given = {name: check_initial(self.model, name, value) for name, value in
                  (("x0", x0), ("v0", v0), ("F0", F0), ("alpha0", alpha0)) if value is not None}
         if not isinstance(check, bool):
             raise ValueError(f"check = {check!r} is not allowed: must be True or False")
-        if not isinstance(taped, bool):
-            raise ValueError(f"taped = {taped!r} is not allowed: must be True or False")
+        if taped is None:
+            taped = self.taped
+        elif not isinstance(taped, bool):
+            raise ValueError(f"taped = {taped!r} is not allowed: must be True or False (or None: the rollout's own)")
         return self._forward_checked(given, initial_state, check, taped)
 
     def _forward_checked(self, given: Mapping[str, np.ndarray], initial_state: State | None = None,
@@ -720,6 +756,10 @@ class Rollout:
         checked again: the torch bridge checks each start once, before it sets the parameters,
         and re-runs a forward for its backward from the same arrays (x0's check of coincident
         particles took 17 ms at 64k particles, up to three times an iteration)."""
+        if taped and not self.taped:
+            # Its memory was weighed for untaped runs: a tape of every step may not fit.
+            raise ValueError("taped = True is not allowed: this rollout was made with taped = False (its memory weighed "
+                             "for runs without a tape); make it with taped = True to run taped")
         # Its start is particle_x0 as it is now, so its rest configuration too, as a new
         # rollout's (Solver._take_rest_configuration).
         self.solver._take_rest_configuration()
@@ -975,6 +1015,9 @@ class Rollout:
         The model's parameter values, materials and tool parameters must not change between
         ``forward`` and ``backward`` (a ``RuntimeError`` names what did).
         """
+        if not self.taped:
+            raise RuntimeError("backward() is not allowed: this rollout was made with taped = False, for loss values "
+                               "alone; make it with taped = True to take gradients")
         if not self._forward_done:
             raise RuntimeError("backward() before forward(): run forward() first")
         if self._tape is None and not self.checkpointing:
@@ -1126,7 +1169,7 @@ class Rollout:
         self._forward_done = False
 
     def __repr__(self):
-        mode = f"checkpoint_every={self.segment}" if self.checkpointing else "full tape"
+        mode = f"checkpoint_every={self.segment}" if self.checkpointing else "full tape" if self.taped else "untaped"
         return f"Rollout({self.model.particle_count} particles, {self.steps} steps of {self.dt:g} s, frames={list(self.frames)}, {mode})"
 
 
