@@ -1221,6 +1221,61 @@ def test_a_checkpoint_of_a_flowed_body_records_the_incremental_composition_it_ra
         load_state(path, model, solver=we.Solver(model, fit="linear"))
 
 
+def test_checkpoints_and_fit_json_say_what_solver_runs_rest_says_of_each_start(tmp_path):
+    """A checkpoint's ``solver.rest_model`` (``checkpoint.solver_settings``, written by
+    ``save_state`` and compared by ``load_state``) and fit.json's (``solvers_record`` with
+    ``flowed_starts``) each worked out whether a step from a state runs the rest model in words
+    of their own; they ask ``Solver.runs_rest`` (``sim.solver.keeps_incremental``) now, and say
+    what it says for a new state, one a rest step wrote, and ones an incremental step wrote
+    whose body did not flow and did: True, True, True, False."""
+    from warp_esph.checkpoint import load_state, save_state, solver_settings
+    from warp_esph.fit import fit
+    from warp_esph.losses import PositionLoss
+
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, yield_stress=50.0, flow_rate=0.0)
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (3 * SPACING,) * 3, mat)
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    dt = 0.5 * model.stable_dt()
+    shear = np.eye(3)
+    shear[0, 1] = 0.2
+    x0 = model.particle_x0
+
+    def sheared():
+        s = model.state()
+        s.x.assign((x0 - x0.mean(0)) @ shear.T + x0.mean(0))
+        s.F.assign(np.tile(shear, (model.particle_count, 1, 1)))
+        return s
+
+    def stepped(yield_stress, flow_rate, steps):
+        model.yield_stress.assign(np.array([yield_stress]))
+        model.flow_rate.assign(np.array([flow_rate]))
+        solver, a, c = we.Solver(model), sheared(), model.state()
+        for _ in range(steps):
+            solver.step(a, c, dt)
+            a, c = c, a
+        model.yield_stress.assign(np.array([50.0]))
+        model.flow_rate.assign(np.array([0.0]))  # elastic: the parameters choose the rest model
+        return a
+
+    starts = {"new": model.state(), "rest": stepped(50.0, 0.0, 1), "unflowed": stepped(1.0e6, 1.0e4, 3),
+              "flowed": stepped(50.0, 1.0e4, 3)}
+    assert starts["rest"].rest_model is True and starts["unflowed"].rest_model is False
+    assert not starts["unflowed"].alpha.numpy().any() and starts["flowed"].alpha.numpy().max() > 0.0
+    loss = PositionLoss({1: x0.astype(np.float64)})
+    for k, (name, start) in enumerate(starts.items()):
+        solver = we.Solver(model)
+        runs = solver.runs_rest(start)
+        assert runs is (name != "flowed"), name
+        assert solver_settings(solver, start)["rest_model"] is runs, name
+        path = save_state(tmp_path / f"{name}.npz", model, start, step=k, frame=0, solver=solver)
+        resumed, meta = load_state(path, model, solver=we.Solver(model))  # refused where the two disagree
+        assert meta["solver"]["rest_model"] is runs and we.Solver(model).runs_rest(resumed) is runs, name
+        r = fit(model, loss, ["mu"], initial={"initial_state": start}, steps=1, dt=dt, iterations=0, progress=False,
+                diagnostics=False)
+        assert r.to_dict()["solver"]["rest_model"] is runs and r.flowed_starts == [not runs], name
+
+
 def test_a_checkpoint_written_before_the_rest_model_hands_f_over_when_resumed(tmp_path):
     """A checkpoint written before ``fit="auto"`` ran the rest model has no ``rest_model`` in
     its metadata, and every step then ran the incremental composition: resumed by the default

@@ -16,6 +16,7 @@ uninterrupted run bit for bit.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import math
@@ -178,10 +179,12 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
         "fingerprint_version": FINGERPRINT_VERSION,
     }
     if solver is not None:
-        # What it runs from this state: a body that flowed keeps the incremental composition.
-        # From the hardening the file holds, as load_state reads it (State.flowed is not saved).
-        flowed = flowed_by_hardening(arrays["alpha"])
-        meta["solver"] = solver_settings(solver, kept_incremental=_keeps_incremental(state.rest_model, flowed))
+        # What it runs from this state (a body that flowed keeps the incremental composition),
+        # as a resume reads it: State.flowed is not saved, load_state reads it from the
+        # hardening the file holds, so the state is asked so here too.
+        resumed = copy.copy(state)
+        resumed.flowed = flowed_by_hardening(arrays["alpha"])
+        meta["solver"] = solver_settings(solver, resumed)
     arrays.update({name: getattr(state, name).numpy() for name in State.STEP_REPORTS if hasattr(state, name)})
     arrays.update({f"material_{name}": getattr(model, name).numpy() for name in Model.MATERIAL_FIELDS})
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
@@ -196,24 +199,18 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     return path
 
 
-def _keeps_incremental(rest_model, flowed: bool) -> bool:
-    """Whether a step from a state an incremental step wrote (``rest_model`` False) whose body
-    has flowed (``flowed``) keeps the incremental composition whatever the parameters allow
-    (``Solver._runs_rest``)."""
-    return rest_model is False and flowed
-
-
-def solver_settings(solver, kept_incremental: bool = False) -> dict:
+def solver_settings(solver, state: State | None = None) -> dict:
     """What of ``solver`` a step depends on beyond the model's scene and the state, as the
     step runs it at the model's current material values: the fit and hourglass strength
     (``Model.solver_choice``: ``"auto"`` resolved, so ``fit="linear"`` where ``"auto"`` runs
     the linear fit is the same run; a strength set by hand, ``Solver.hourglass``, as it runs),
     the model's contact ramp, the neighbourhood guards,
     whether the fused kernels run (the same equations, another round-off; the curvature-
-    corrected fit, comparison models and ghost floors never take them) and whether it runs
-    the rest-configuration model, False from a state whose body flowed (``kept_incremental``,
-    ``State.flowed``: the incremental composition runs whatever the parameters allow). Not
-    the neighbour skin: it changes the cost only, bit for bit (``Solver``)."""
+    corrected fit, comparison models and ghost floors never take them) and whether a step
+    from ``state`` runs the rest-configuration model (``Solver.runs_rest``; None: a new
+    state): False from a state an incremental step wrote whose body flowed, where the
+    incremental composition runs whatever the parameters allow. Not the neighbour skin: it
+    changes the cost only, bit for bit (``Solver``)."""
     m = solver.model
     fit = m.solver_choice(*solver._asked)[0]
     # The strength the step runs: one set by hand (Solver.hourglass) is not the requested one,
@@ -223,7 +220,7 @@ def solver_settings(solver, kept_incremental: bool = False) -> dict:
     return {"fit": fit, "hourglass": float(c), "contact_ramp": float(m.contact_ramp),
             "min_neighbors": int(solver.min_neighbors), "max_condition": float(solver.max_condition),
             "fused": bool(fused),
-            "rest_model": bool(solver._auto and m.auto_runs_rest(solver._asked[0]) and not kept_incremental)}
+            "rest_model": bool(solver.runs_rest(state))}
 
 
 def _check_solver(model: Model, solver) -> None:
@@ -400,7 +397,7 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
         # Compared at the checkpoint's material values, which decide what "auto" runs.
         # From this state, as at the save: a flowed body's run said rest_model = True, and a
         # solver of its fit and control, which runs the same steps bit for bit, was refused.
-        ours = solver_settings(solver, kept_incremental=_keeps_incremental(state.rest_model, state.has_flowed()))
+        ours = solver_settings(solver, state)
         for key, value in meta["solver"].items():
             if key in ours and value != ours[key]:
                 for name, a in before.items():  # a refused resume leaves the model as it was

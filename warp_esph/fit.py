@@ -53,8 +53,9 @@ from .builder import SceneBuilder
 from .losses import (ChamferLoss, Loss, MeshLoss, PositionLoss, SlumpLoss, SumLoss, WorldLoss, _leaves, is_tools_csv,
                      read_tools_csv)
 from .material import PRESSURE_BULK_SHARE, Material, _following_force
-from .model import Model, State, check_material_precision, flowed_by_hardening
+from .model import Model, State, check_material_precision
 from .rollout import PARAMETERS, STATE_OVERHEAD, Rollout, RolloutMemoryError, _RolloutMemory, check_initial
+from .sim.solver import keeps_incremental
 
 __all__ = ["fit", "FitResult", "Experiment", "Adam", "memory_estimate", "choose_checkpointing", "latin_hypercube",
            "load_target", "save_target", "Target", "write_fitted_usd"]
@@ -135,7 +136,8 @@ class FitResult:
     #: Why the gradient was zero, where a loss knows (``Loss.out_of_reach``); else "".
     flat_cause: str = ""
     #: Per experiment, whether its start is a flowed body an incremental step wrote, which the
-    #: rest model is never handed (``Solver._runs_rest``): it runs the incremental composition.
+    #: rest model is never handed (``sim.solver.keeps_incremental``): it runs the incremental
+    #: composition.
     flowed_starts: list = dataclasses.field(default_factory=list)
 
     TERMINATION = {
@@ -205,8 +207,9 @@ class FitResult:
 def solvers_record(models: Sequence[Model], flowed: Sequence[bool] | None = None) -> dict:
     """What each model's default solver runs at its current values: its requested ``fit`` and
     ``hourglass`` and ``Model.solver_record``, ``rest_model`` False where ``flowed`` says its
-    start is a flowed body an incremental step wrote (the rollouts ran it on the incremental
-    composition; from the values alone it said True). A key holds one value where every model
+    start is a flowed body an incremental step wrote (``_Run.flowed_start``,
+    ``sim.solver.keeps_incremental``: the rollouts ran it on the incremental composition; from
+    the values alone it said True), so ``Solver.runs_rest`` of that start. A key holds one value where every model
     agrees and a list, one per model, where they differ: the experiments of a joint fit may
     be scenes of their own solver settings (the first's alone had been recorded for all)."""
     flowed = flowed or [False] * len(models)
@@ -678,21 +681,14 @@ class _Run(_Values):
                                taped=self.taped)
 
     def flowed_start(self) -> bool:
-        """Whether the rollout's start is a flowed body an incremental step wrote
-        (``State.rest_model`` False; ``State.has_flowed``, or a given ``alpha0`` > 0 somewhere),
-        as ``Rollout.forward`` builds it from ``initial``: its solver keeps the incremental
-        composition (``Solver._runs_rest``)."""
-        init = self.initial.get("initial_state")
-        rest_model = init.rest_model if isinstance(init, State) else None
-        if "F0" in self.starts:
-            rest_model = False
-        if rest_model is not False:
-            return False
-        alpha = self.starts.get("alpha0")
-        if alpha is not None:
-            return flowed_by_hardening(alpha)
-        # The start's own flag where known, as the rollout's step reads the state it copies.
-        return isinstance(init, State) and init.has_flowed()
+        """Whether the rollout's start keeps the incremental composition whatever the values
+        allow (``sim.solver.keeps_incremental``: a flowed body an incremental step wrote): the
+        start ``Rollout.forward`` builds from ``initial``, asked as its solver's step asks it
+        (``Solver.runs_rest`` is the parameters' choice and not this)."""
+        # The rollout's own start, not a reading of initial beside it: the two had to agree on
+        # what F0, alpha0 and a given state's flags make of it.
+        self.rollout._load_initial(self.initial.get("initial_state"), self.starts)
+        return keeps_incremental(self.rollout._initial)
 
     #: Whether the runs for a loss value alone (``value_forward``) record a tape all the same,
     #: as every run did before: the baseline ``benchmarks.fit_bench --loss-only`` times.

@@ -43,6 +43,17 @@ PHASES = ("neighbors", "density", "constitutive", "forces", "pressure", "fused",
 _NO_PHASE = contextlib.nullcontext()
 
 
+def keeps_incremental(state: State) -> bool:
+    """Whether a step from ``state`` keeps the incremental composition whatever the parameters
+    allow: an incremental step wrote it (``State.rest_model`` False) and its body has flowed
+    (``State.has_flowed``), so its rest neighbourhoods no longer describe it and it is never
+    handed over to the rest model (``Solver._runs_rest``). Not a function of the parameters:
+    ``Solver.runs_rest`` is ``rest_model and not keeps_incremental(state)``, and a record made
+    later at other values (fit.json's ``solver``) combines the two alike. Reads ``alpha`` back
+    only where ``rest_model`` is False and ``flowed`` does not say."""
+    return state.rest_model is False and state.has_flowed()
+
+
 def tape_recording() -> bool:
     """Whether a ``wp.Tape`` is recording launches now."""
     return recording_tape() is not None
@@ -347,7 +358,7 @@ class Solver:
         if state is None or not rest:
             return rest
         checks.same_state(self.model, "state", state)
-        return not (state.rest_model is False and state.has_flowed())
+        return not keeps_incremental(state)
 
     @property
     def hourglass(self) -> float:
@@ -498,11 +509,9 @@ class Solver:
         (``simulate.DivergenceMonitor`` counts it). Only reads ``state``."""
         m = self.model
         F = state.F.numpy()
-        rest_model = self._auto and m.auto_runs_rest(self._asked[0])
+        rest_model = self.runs_rest(state)
         if rest_model and state.rest_model is False:
-            if not state.has_flowed():  # handed over (F_p = F^-1 G): the rest model goes on from the stored F
-                return F
-            rest_model = False
+            return F  # handed over (F_p = F^-1 G): the rest model goes on from the stored F
         if not rest_model and state.rest_model is True:
             state = self._handed_back(state)  # a rest step's inverted fits, as the step takes them
             F = state.F.numpy()
