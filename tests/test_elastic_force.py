@@ -1276,6 +1276,54 @@ def test_checkpoints_and_fit_json_say_what_solver_runs_rest_says_of_each_start(t
         assert r.to_dict()["solver"]["rest_model"] is runs and r.flowed_starts == [not runs], name
 
 
+def test_a_hardening_set_by_hand_after_the_step_that_wrote_flowed_false_counts(tmp_path):
+    """A step trusted ``State.flowed`` where it was set: a state a rest step wrote, or a
+    checkpoint of an unflowed run loaded, says False, and an ``alpha`` set by hand after that
+    (``state.alpha.fill_``) was not read: the next hand-over gave the flowed body to the rest
+    model, whose rest neighbourhoods no longer describe it. False is read again at the hand-over
+    now (True, which a step never undoes, is still taken as it stands), on the package's paths:
+    a rollout's ``initial_state`` (with ``F0``, which hands over), a fit's start (its
+    ``flowed_starts`` and fit.json) and a loaded checkpoint."""
+    from warp_esph.checkpoint import load_state, save_state
+    from warp_esph.fit import fit
+    from warp_esph.losses import PositionLoss
+    from warp_esph.rollout import Rollout
+
+    mat = we.Material.from_young(2.0e5, 0.3, pressure_stiffness=0.0, yield_stress=1.0e6, flow_rate=0.0)
+    b = we.SceneBuilder(spacing=SPACING, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (3 * SPACING,) * 3, mat)
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    dt = 0.5 * model.stable_dt()
+    solver = we.Solver(model)
+    first, rest, spare = model.state(), model.state(), model.state()
+    we.Solver(model, fit="linear").step(model.state(), first, dt)
+    solver.step(first, rest, dt)  # handed over to the rest model: it had not flowed
+    assert rest.rest_model is True and rest.flowed is False
+    rest.alpha.fill_(0.01)  # by hand, after the step
+    assert solver.runs_rest(rest)  # no hand-over from a rest step's state: the rest model goes on
+    # A rollout from it with F0 hands it over: the body has flowed, so it is not.
+    rollout = Rollout(model, 2, dt)
+    rollout.forward(initial_state=rest, F0=np.eye(3))
+    assert rollout.final_state().rest_model is False and rollout.final_state().flowed is True
+    r = fit(model, PositionLoss({2: model.particle_x0.astype(np.float64)}), ["mu"], steps=2, dt=dt, iterations=0,
+            initial={"initial_state": rest, "F0": np.eye(3)}, progress=False, diagnostics=False)
+    assert r.flowed_starts == [True] and r.to_dict()["solver"]["rest_model"] is False
+    # A checkpoint of a run the incremental composition wrote, unflowed: loaded, it says False.
+    model.flow_rate.assign(np.array([1.0e4]))
+    incremental = model.state()
+    solver.step(model.state(), incremental, dt)
+    assert incremental.rest_model is False and not incremental.alpha.numpy().any()
+    path = save_state(tmp_path / "unflowed.npz", model, incremental, step=1, frame=0)
+    model.flow_rate.assign(np.array([0.0]))
+    resumed, _ = load_state(path, model)
+    model.flow_rate.assign(np.array([0.0]))  # the checkpoint's parameters were flowing
+    assert resumed.flowed is False and solver.runs_rest(resumed)
+    resumed.alpha.fill_(0.01)
+    assert not solver.runs_rest(resumed)
+    solver.step(resumed, spare, dt)
+    assert spare.rest_model is False and spare.flowed is True
+
+
 def test_a_checkpoint_written_before_the_rest_model_hands_f_over_when_resumed(tmp_path):
     """A checkpoint written before ``fit="auto"`` ran the rest model has no ``rest_model`` in
     its metadata, and every step then ran the incremental composition: resumed by the default

@@ -222,7 +222,11 @@ class State:
         #: Whether the body has flowed (``alpha`` > 0 somewhere; it never decreases): True, False,
         #: or None where no step or load has read it. A step keeps the incremental composition for
         #: a flowed state in place of handing it over to the rest model (``Solver.step``), and
-        #: carries True on; it reads ``alpha`` back only at a hand-over of a state of None.
+        #: carries True on. Only True is taken as it stands (``has_flowed``): a step never lowers
+        #: ``alpha``, and a body that flowed stays so. False is what the writer found, which an
+        #: ``alpha`` set by hand since (``state.alpha.assign(...)``) makes stale, so a hand-over
+        #: reads ``alpha`` back for a state of False or None (once: the rest steps after it carry
+        #: their own flag and are no hand-over).
         self.flowed = None
         #: A weak reference to the solver whose step wrote this state, or whose ``simulate`` run it
         #: starts (None: neither): save_state without solver= records that solver's settings while
@@ -289,9 +293,12 @@ class State:
         object.__setattr__(self, name, value)
 
     def has_flowed(self) -> bool:
-        """Whether the body has flowed: ``flowed`` where known, else ``alpha`` > 0 somewhere,
-        read back from the device (not cached: a step only reads its ``state_in``)."""
-        return self.flowed if self.flowed is not None else flowed_by_hardening(self.alpha.numpy())
+        """Whether the body has flowed: True where ``flowed`` is True, else ``alpha`` > 0
+        somewhere, read back from the device (not cached: a step only reads its ``state_in``).
+        A ``flowed`` of False is not trusted: the step that wrote it would hand a body whose
+        ``alpha`` was set by hand since to the rest model, whose rest neighbourhoods no longer
+        describe it."""
+        return True if self.flowed else flowed_by_hardening(self.alpha.numpy())
 
     def assign(self, other: "State"):
         """Copy ``other``'s state fields (and time) into this state, and the reactions the

@@ -684,8 +684,9 @@ class Rollout:
             # a block released from a 20 % stretch kept 2 % of its recoil's kinetic energy.
             init.rest_model = False
         if "alpha0" in given:
-            # A given hardening says whether the body has flowed, read here on the host: left
-            # unknown, the first step of every forward read alpha back from the device.
+            # A given hardening says whether the body has flowed, read here on the host: where it
+            # has, the first step of every forward need not read alpha back from the device (a
+            # False is read there again, as any state's: State.has_flowed).
             init.flowed = flowed_by_hardening(given["alpha0"])
 
     def _taped_states(self, count: int) -> list[State]:

@@ -50,7 +50,7 @@ def keeps_incremental(state: State) -> bool:
     handed over to the rest model (``Solver._runs_rest``). Not a function of the parameters:
     ``Solver.runs_rest`` is ``rest_model and not keeps_incremental(state)``, and a record made
     later at other values (fit.json's ``solver``) combines the two alike. Reads ``alpha`` back
-    only where ``rest_model`` is False and ``flowed`` does not say."""
+    only where ``rest_model`` is False and ``flowed`` is not True (``State.has_flowed``)."""
     return state.rest_model is False and state.has_flowed()
 
 
@@ -353,7 +353,7 @@ class Solver:
         flowed (``State.rest_model`` False, ``State.flowed``), for which the step keeps the
         incremental composition (``_runs_rest``). For the state a step wrote, at the parameters
         it ran with, that is what the step ran. None: a new state. Only reads ``state`` (its
-        ``alpha``, where ``flowed`` does not say and the parameters allow the rest model)."""
+        ``alpha``, where ``flowed`` is not True and the parameters allow the rest model)."""
         rest = self.rest_model
         if state is None or not rest:
             return rest
@@ -463,7 +463,8 @@ class Solver:
         slumped on the ground for 0.4 s and set then inverted 15 of its 96 rest fits every step,
         and its kinetic energy grew 200-fold), so the step keeps the incremental composition,
         with the fit and control the parameters chose. ``alpha`` is read back only there, for a
-        state whose ``flowed`` is not known; the states the step writes carry what it found."""
+        state whose ``flowed`` is not True (``State.has_flowed``: a False may predate an
+        ``alpha`` set by hand); the states the step writes carry what it found."""
         if not (rest and state_in.rest_model is False):
             return rest, getattr(state_in, "flowed", None)
         flowed = state_in.has_flowed()
