@@ -359,7 +359,12 @@ def _kept(writer, start_frame: int) -> str:
 
 def _refuse_writing_over_inputs(scene, scene_arg, output: str, what: str) -> None:
     """Refuse a run whose USD output is a file its scene reads (a mesh body's or tool's
-    ``.usdc``): the run replaced it, and the scene could not be run again."""
+    ``.usdc``): the run replaced it, and the scene could not be run again. The path is checked
+    as one first (``checks.output_place``): a NUL in it failed in ``realpath`` as a bare
+    'embedded null byte'."""
+    from . import checks  # noqa: PLC0415
+
+    checks.output_place(what, output)
     read = {os.path.realpath(path): source for source, path in scene.inputs}
     source = read.get(os.path.realpath(output))
     if source is not None:
