@@ -1326,6 +1326,59 @@ def test_an_interrupted_fit_whose_files_cannot_be_written_still_exits_130(tmp_pa
                                     f"(the evaluations so far are kept only in {out / 'fit.json'}, written before it)"), err
 
 
+def test_a_second_signal_while_a_stopped_fit_writes_the_best_so_far_waits_for_it(tmp_path, dough_scene):
+    """A stopped fit writes the evaluations so far; a second signal there (a second Ctrl-C, or
+    ``timeout``, which signals the command and then its process group) ended the process at
+    once: no fit.json, the best so far lost. Run as the console script, the only place a
+    second signal ends the process."""
+    import subprocess
+    import sys
+    import textwrap
+
+    from warp_esph.scenes import load_scene
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    x0 = load_scene(str(guess)).builder.finalize().particle_x0
+    np.savez(tmp_path / "t.npz", positions=np.stack([x0 + np.random.default_rng(2).normal(0, 0.005, x0.shape)]),
+             frames=[2])
+    script = tmp_path / "twice.py"
+    script.write_text(textwrap.dedent("""
+        import os, signal, sys
+        import warp_esph.calibrate as c
+        import warp_esph.fit as f
+        from warp_esph.cli import console_main
+
+        calls, real_value, real_write = [], f._Problem.value_and_grad, c.write_outputs
+
+        def value_and_grad(self, z, losses=None):
+            calls.append(1)
+            if len(calls) == 3:
+                os.kill(os.getpid(), signal.SIGTERM)  # the first signal, in the third evaluation
+            return real_value(self, z, losses)
+
+        def write(result, folder, meta=None, *args, **kwargs):
+            if meta and meta.get("interrupted"):
+                os.kill(os.getpid(), signal.SIGTERM)  # the second, as the stopped fit writes its files
+            return real_write(result, folder, meta, *args, **kwargs)
+
+        f._Problem.value_and_grad, c.write_outputs = value_and_grad, write
+        sys.argv = ["warp-esph", "fit", "guess.toml", "--target", "t.npz", "--params", "yield_stress",
+                    "--iterations", "10", "--optimizer", "adam", "--no-progress", "--no-usd", "--no-diagnostics",
+                    "--output-dir", "out"]
+        console_main()
+    """))
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=repo + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    done = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 143, done.stderr
+    assert done.stderr.splitlines()[-1] == "warp-esph: terminated", done.stderr
+    assert "interrupted after 2 evaluations: wrote the best so far" in done.stderr, done.stderr
+    doc = json.loads((tmp_path / "out" / "fit.json").read_text())
+    assert doc["stopped"] == "interrupted" and doc["interrupted"] == "the fit" and len(doc["history"]) == 2
+    assert sorted(os.listdir(tmp_path / "out")) == ["fit.json", "history.csv", "loss.png", "params.png"]
+
+
 def test_a_ctrl_c_in_a_finalizer_stops_a_fit_after_that_evaluation(tmp_path, capsys, dough_scene, monkeypatch):
     """A Ctrl-C that landed in a finalizer (``__del__``) could not be raised there: it was
     recorded and the fit ran all its iterations before the command said 'interrupted'. It

@@ -331,26 +331,32 @@ def run_fit(args, out=None, err=None) -> int:
         # Ctrl-C: the evaluations so far and the best of them are kept, as a run keeps its
         # finished frames; the exit is still the interrupt's.
         if e.result is not None:
-            _remove_earlier_run(folder, _arg(args, "output"))
+            from .cli import _Deferred  # noqa: PLC0415
+
             # Interrupted in the diagnostics, the fit itself had finished: its fit.json read as
             # a complete run with --no-diagnostics, and the log called it the best so far.
             during = "the fit" if e.result.stopped == "interrupted" else "the diagnostics"
             done: list = []
-            try:
-                written = write_outputs(e.result, folder, {**meta, "interrupted": during}, json_path=_arg(args, "output"),
-                                        written=done)
-            except OSError as w:
-                # A full disk under them: the error reached the command's handler as bad input
-                # (exit 2, the bare '[Errno 28] ...'), the Ctrl-C dropped.
-                kept = (f"the evaluations so far are kept only in {', '.join(map(str, done))}, written before it" if done
-                        else "none of its files was written: the evaluations so far are lost")
-                raise checks.interrupted(f"cannot write {w.filename or folder}: {w.strerror or w} ({kept})") from None
-            if during == "the fit":
-                log(f"interrupted after {len(e.result.history)} evaluations: wrote the best so far (loss "
-                    f"{e.result.loss:.4g}) to {', '.join(written)}")
-            else:
-                log(f"interrupted during the diagnostics: wrote the finished fit ({e.result.stopped}, loss "
-                    f"{e.result.loss:.4g}) without them to {', '.join(written)}")
+            # A second signal here (a second Ctrl-C; timeout signals the command, then its
+            # group) ended the process at once: no fit.json, the best so far lost. It waits
+            # for the files and their line; the exit is still the interrupt's.
+            with _Deferred(args):
+                _remove_earlier_run(folder, _arg(args, "output"))
+                try:
+                    written = write_outputs(e.result, folder, {**meta, "interrupted": during},
+                                            json_path=_arg(args, "output"), written=done)
+                except OSError as w:
+                    # A full disk under them: the error reached the command's handler as bad input
+                    # (exit 2, the bare '[Errno 28] ...'), the Ctrl-C dropped.
+                    kept = (f"the evaluations so far are kept only in {', '.join(map(str, done))}, written before it"
+                            if done else "none of its files was written: the evaluations so far are lost")
+                    raise checks.interrupted(f"cannot write {w.filename or folder}: {w.strerror or w} ({kept})") from None
+                if during == "the fit":
+                    log(f"interrupted after {len(e.result.history)} evaluations: wrote the best so far (loss "
+                        f"{e.result.loss:.4g}) to {', '.join(written)}")
+                else:
+                    log(f"interrupted during the diagnostics: wrote the finished fit ({e.result.stopped}, loss "
+                        f"{e.result.loss:.4g}) without them to {', '.join(written)}")
         raise KeyboardInterrupt from None
     # The results first: a file that cannot be written (a full disk) lost them, the values
     # printed only after every file was written.
