@@ -329,6 +329,39 @@ def test_run_refuses_an_output_that_is_a_mesh_its_scene_reads(tmp_path, monkeypa
         assert {name: (tmp_path / name).read_bytes() for name in mesh_bytes} == mesh_bytes  # both meshes as they were
     assert main(["run", "part.toml", "--no-progress", "-o", "run.usdc"]) == 0  # and the scene still runs
 
+def test_fit_refuses_an_output_that_is_a_mesh_its_scene_reads(tmp_path, monkeypatch, capsys):
+    """``fit part.toml -o part.usdc`` (or ``--output-dir`` holding the mesh as fitted.usdc)
+    replaced the mesh the scene reads with the fit's JSON (or fitted run), and the scene could
+    not be run or fitted again. Refused as ``run`` refuses it, one line, exit 2."""
+    from warp_esph.cli import main
+    from warp_esph.scenes import load_scene
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "out").mkdir()
+    toml = ('[scene]\nspacing = 0.05\nframes = 1\n'
+            '[[bodies]]\nshape = "mesh"\nmaterial = "dough"\nfile = "{}"\ntranslation = [0, 0.01, 0]\n'
+            '[[colliders]]\ntype = "ground"\n')
+    (tmp_path / "part.toml").write_text(toml.format("part.usdc"))
+    (tmp_path / "inside.toml").write_text(toml.format("out/fitted.usdc"))
+    for name in ("part.usdc", "out/fitted.usdc"):
+        write_usd(tmp_path / name, {"/root/box": (cube()[0] * 0.2, *QUAD_CUBE[1:])})
+    x0 = load_scene("part.toml").builder.finalize().particle_x0
+    np.savez(tmp_path / "t.npz", positions=x0[None], frames=[1])
+    mesh_bytes = {name: (tmp_path / name).read_bytes() for name in ("part.usdc", "out/fitted.usdc")}
+    for scene, extra, needle in (
+            ("part.toml", ["-o", "part.usdc"], "--output = 'part.usdc' is not allowed: it is the mesh of [[bodies]] #1 of "
+                                               "part.toml"),
+            ("inside.toml", ["--output-dir", "out"], "--output-dir out: fitted.usdc = 'out/fitted.usdc' is not allowed: "
+                                                     "it is the mesh of [[bodies]] #1 of inside.toml")):
+        assert main(["fit", scene, "--target", "t.npz", "--params", "yield_stress", "--iterations", "0",
+                     "--no-progress", "--no-diagnostics", *extra]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("warp-esph: error: ") and len(err.strip().splitlines()) == 1, err
+        assert needle in err and "which the fit would overwrite; write the results elsewhere" in err, err
+        assert {name: (tmp_path / name).read_bytes() for name in mesh_bytes} == mesh_bytes  # the meshes as they were
+    assert not (tmp_path / "out" / "fit.json").exists()
+
+
 def test_usd_without_meters_per_unit_is_read_in_centimetres_with_a_warning(tmp_path):
     """USD's fallback is 0.01 m per unit; a file modelled in metres without the metadata came
     in 100 x too small without a word."""

@@ -272,7 +272,11 @@ def run_fit(args, out=None, err=None) -> int:
         + [("--target", str(t)) for _, spec in specs for t in (spec["target"] if isinstance(spec["target"], (list, tuple))
                                                                 else [spec["target"]])]
         + [("--cameras", str(spec["cameras"])) for _, spec in specs if spec.get("cameras")]
-        + ([("--experiments", str(args.experiments))] if _arg(args, "experiments") else []))
+        + ([("--experiments", str(args.experiments))] if _arg(args, "experiments") else [])
+        # The meshes a scene file reads (Scene.inputs, as run refuses them): -o part.usdc beside
+        # part.toml replaced its mesh with the fit's JSON. (Its own file is "the scene" above.)
+        + [(f"{what} of {os.fsdecode(spec.get('scene_as_written') or spec['scene'])}", path)
+           for (_, spec), e in zip(specs, exps) for what, path in e.scene.inputs])
 
     # The experiments' lines wait for the fit's first message, which it gives once every
     # option it checks itself has passed: a refusal stays the run's one line.
