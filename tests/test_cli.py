@@ -399,6 +399,12 @@ BAD_TOML = {
     # The name makes the default output file: '../../x' wrote x.usdc two folders up.
     "name_a_path": (GOOD_TOML.replace('name = "tiny"', 'name = "../../x"'), ["[scene] name = '../../x'", "a file name"]),
     "name_empty": (GOOD_TOML.replace('name = "tiny"', 'name = " "'), ["[scene] name = ' '", "not empty"]),
+    # A newline in the name made the default output 'ti\nny.usdc' and split every one-line message
+    # that names the scene; other control characters (a tab, DEL, ESC) went into it as well.
+    "name_newline": (GOOD_TOML.replace('name = "tiny"', 'name = "ti\\nny"'),
+                     ["[scene] name = 'ti\\nny' is not allowed", "no control characters"]),
+    "name_escape": (GOOD_TOML.replace('name = "tiny"', 'name = "ti\\u001bny"'),
+                    ["[scene] name = 'ti\\x1bny' is not allowed", "no control characters"]),
     # Rows narrower than the solver's min_neighbors = 6: refused naming the file and table (the
     # Solver's refusal named neither).
     "max_neighbors_narrow": (GOOD_TOML.replace("frames = 2", "frames = 2\nmax_neighbors = 4"),

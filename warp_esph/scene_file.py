@@ -12,6 +12,7 @@ import difflib
 import math
 import os
 import sys
+import unicodedata
 
 try:
     import tomllib
@@ -528,6 +529,12 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
         # The name makes the default output <name>.usdc: '../../x' wrote two folders up.
         raise ValueError(f"{file}: [scene] name = {name!r} is not allowed: it names the default output file, so it "
                          "must be a file name (not empty, no '/', '\\' or '..')")
+    if name is not None and any(unicodedata.category(c) in ("Cc", "Zl", "Zp") for c in name):
+        # A newline went into the default output's name ('ti\nny.usdc') and split every one-line
+        # message naming the scene; a tab or an escape sequence read as terminal control.
+        raise ValueError(f"{file}: [scene] name = {name!r} is not allowed: it names the default output file and the "
+                         "scene in one-line messages, so it must be one line of text (no control characters, no "
+                         "line breaks)")
     name = name or os.path.splitext(os.path.basename(file))[0]
     description = scene.get("description") or f"scene file {file}"
     # The default output is <name>.usdc in the working folder: a bunny.toml beside its mesh
