@@ -733,6 +733,26 @@ def test_a_usd_output_named_in_bytes_that_are_not_utf8_is_refused_before_the_wor
         UsdWriter(out, model)
 
 
+def test_a_usd_input_named_in_bytes_that_are_not_utf8_is_refused_naming_what_is_allowed(tmp_path, capsys):
+    """USD takes file names as UTF-8: render, export and fit --target of b'\\xfb.usdc' exited 2
+    with "cannot read '\\udcfb.usdc': 'utf-8' codec can't encode ..." (fit's adding 'a damaged
+    or foreign file?'), which said neither what was wrong with the file nor what is allowed."""
+    (tmp_path / "s.toml").write_text(GOOD_TOML)
+    odd = tmp_path / (os.fsdecode(b"\xfb") + ".usdc")  # a name Linux holds, which Python keeps as a surrogate escape
+    assert main(["run", str(tmp_path / "s.toml"), "-o", str(tmp_path / "run.usdc"), "--no-progress"]) == 0
+    os.rename(tmp_path / "run.usdc", odd)
+    capsys.readouterr()
+    for command in (["render", str(odd), "-o", str(tmp_path / "x.png")], ["export", str(odd), "-o", str(tmp_path / "e")],
+                    ["fit", str(tmp_path / "s.toml"), "--target", str(odd), "--no-progress", "--iterations", "0",
+                     "--no-diagnostics", "--output-dir", str(tmp_path / "f")]):
+        assert main(command) == 2, command
+        err = capsys.readouterr().err
+        assert_one_line_error(err, f"{str(odd)!r}", "USD names its files in UTF-8 text", "give a path of UTF-8 text")
+        assert "codec" not in err and "damaged" not in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["s.toml", odd.name, "run.usdc_tools.csv",
+                                                                 "run.usdc_tools.json"])  # nothing written
+
+
 def test_fit_refuses_an_empty_path_instead_of_dropping_it(tmp_path, capsys, monkeypatch):
     """'' (an unset shell variable) was taken as not given: --experiments '' and --cameras ''
     ran the fit without them and exited 0, --output-dir '' and -o '' wrote to the defaults."""

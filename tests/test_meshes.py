@@ -362,6 +362,28 @@ def test_fit_refuses_an_output_that_is_a_mesh_its_scene_reads(tmp_path, monkeypa
     assert not (tmp_path / "out" / "fit.json").exists()
 
 
+def test_a_mesh_file_in_a_folder_named_in_bytes_that_are_not_utf8_is_refused_naming_what_is_allowed(tmp_path, capsys,
+                                                                                                     monkeypatch):
+    """USD takes file names as UTF-8: a scene file's mesh in a folder named b'\\xfb' was refused
+    as "pxr cannot open it (UnicodeEncodeError: 'utf-8' codec can't encode ...)", which said
+    neither what was wrong nor what is allowed."""
+    from warp_esph.cli import main
+
+    odd = tmp_path / os.fsdecode(b"\xfb")  # a name Linux holds, which Python keeps as a surrogate escape
+    write_usd(tmp_path / "part.usdc", {"/root/box": (cube()[0] * 0.2, *QUAD_CUBE[1:])})
+    odd.mkdir()
+    os.rename(tmp_path / "part.usdc", odd / "part.usdc")  # (pxr cannot write it there either)
+    (odd / "part.toml").write_text('[scene]\nspacing = 0.05\nframes = 1\n'
+                                   '[[bodies]]\nshape = "mesh"\nmaterial = "dough"\nfile = "part.usdc"\n')
+    monkeypatch.chdir(odd)  # the scene named as part.toml: the line quotes the mesh's path alone
+    assert main(["run", "part.toml", "-o", str(tmp_path / "run.usdc"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("warp-esph: error: ") and len(err.strip().splitlines()) == 1, err
+    assert f"[[bodies]] #1 (shape 'mesh'): mesh {str(odd / 'part.usdc')!r} is not allowed: USD names its files in UTF-8 " \
+           "text" in err and "give a path of UTF-8 text" in err and "codec" not in err, err
+    assert not (tmp_path / "run.usdc").exists()
+
+
 def test_usd_without_meters_per_unit_is_read_in_centimetres_with_a_warning(tmp_path):
     """USD's fallback is 0.01 m per unit; a file modelled in metres without the metadata came
     in 100 x too small without a word."""

@@ -543,12 +543,31 @@ def usd_output(what: str, path, written=None) -> None:
     its absolute path is not UTF-8 text. USD takes file names as UTF-8 strings, so a name of
     other bytes (which Python holds as surrogate escapes) failed at the first save: a fit or a
     run's set-up done, then a bare UnicodeEncodeError naming no option."""
-    full = os.path.abspath(os.fsdecode(os.fspath(path if written is None else written)))
+    full = not_utf8_path(path if written is None else written)
+    if full is not None:
+        raise ValueError(f"{what} = {os.fsdecode(os.fspath(path))!r} is not allowed: USD names its files in UTF-8 text, "
+                         f"and {full!r} is not; give a path of UTF-8 text")
+
+
+def usd_input(path, verb: str = "read") -> None:
+    """Refuse a USD file to read at ``path`` where its absolute path is not UTF-8 text, as
+    ``usd_output`` refuses one to write: pxr's failure was "cannot read '\\udcfb.usdc': 'utf-8'
+    codec can't encode ...", which said neither what was wrong nor what is allowed."""
+    full = not_utf8_path(path)
+    if full is not None:
+        raise ValueError(f"cannot {verb} {os.fsdecode(os.fspath(path))!r}: USD names its files in UTF-8 text, and "
+                         f"{full!r} is not; give a path of UTF-8 text (rename the file or its folder)")
+
+
+def not_utf8_path(path) -> str | None:
+    """``path`` made absolute where it is not UTF-8 text (bytes Python holds as surrogate
+    escapes), else None."""
+    full = os.path.abspath(os.fsdecode(os.fspath(path)))
     try:
         full.encode("utf-8")
     except UnicodeEncodeError:
-        raise ValueError(f"{what} = {os.fsdecode(os.fspath(path))!r} is not allowed: USD names its files in UTF-8 text, "
-                         f"and {full!r} is not; give a path of UTF-8 text") from None
+        return full
+    return None
 
 
 @contextlib.contextmanager

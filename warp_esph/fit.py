@@ -2307,6 +2307,8 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
             raise ValueError(f"target {p} cannot be read as a point cloud: {e}") from None
         return Target("points", _cloud(p, pts), None, None, p)
     if ext in (".usd", ".usda", ".usdc"):
+        # Before the run's reader, whose refusals are taken as a damaged file's.
+        checks.usd_input(p)
         run = _usd_run_target(p, body, frames, frames_name)
         if run is not None:
             return run

@@ -151,6 +151,11 @@ def _fan(counts: np.ndarray, indices: np.ndarray) -> np.ndarray:
 def _read_usd(label: str, path: str, prim_path: str | None):
     from pxr import Sdf, Usd, UsdGeom  # noqa: PLC0415 (USD only when a USD file is given)
 
+    full = checks.not_utf8_path(path)
+    if full is not None:
+        # pxr's refusal was the codec's ("'utf-8' codec can't encode ..."), naming nothing allowed.
+        _reject(label, f"USD names its files in UTF-8 text, and {full!r} is not; give a path of UTF-8 text (rename the "
+                       "file or its folder)")
     try:
         stage = Usd.Stage.Open(path)
     except Exception as e:  # noqa: BLE001 (pxr raises Tf.ErrorException and others)

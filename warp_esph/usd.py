@@ -122,6 +122,7 @@ def open_layer_checked(path, action: str = "read") -> Sdf.Layer:
     ``ValueError`` naming the file and pxr's reason: a truncated, garbled or foreign file
     makes pxr raise ``Tf.ErrorException`` with a C++ location, or return ``None``."""
     path = os.fspath(path)
+    checks.usd_input(path, action)
     try:
         with _native_stderr() as notes:
             layer = Sdf.Layer.OpenAsAnonymous(path)
