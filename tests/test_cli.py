@@ -468,6 +468,14 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         # Levenberg-Marquardt never reads a step size: --lr ran as if it had not been given.
         (["fit", "nothing.toml", "--target", "t.npz", "--optimizer", "gauss-newton", "--lr", "0.5"],
          ["--lr = 0.5 is not allowed with --optimizer gauss-newton", "leave --lr out, or give --optimizer lbfgs or adam"]),
+        # Nor does it record a tape to checkpoint: --memory-limit and --checkpoint-every N ran as if
+        # they had not been given.
+        (["fit", "nothing.toml", "--target", "t.npz", "--optimizer", "gauss-newton", "--memory-limit", "512"],
+         ["--memory-limit = 512.0 is not allowed with --optimizer gauss-newton: it sizes the checkpointing of",
+          "records none", "leave --memory-limit out"]),
+        (["fit", "nothing.toml", "--target", "t.npz", "--optimizer", "gauss-newton", "--checkpoint-every", "10"],
+         ["--checkpoint-every = 10 is not allowed with --optimizer gauss-newton: it sizes the checkpointing of",
+          "records none", "leave --checkpoint-every out"]),
         # A first step at or below the step tolerance: named by the flag, before the scene is read
         # (it was refused after, naming lr).
         (["fit", "nothing.toml", "--target", "t.npz", "--lr", "1e-7"],

@@ -65,7 +65,8 @@ def add_calibration_arguments(parser):
     g.add_argument("--loss-scale", type=float, default=1.0, metavar="K",
                    help="multiply the loss by K (e.g. 1e6 to work in mm^2 with Adam); default 1")
     g.add_argument("--memory-limit", type=float, metavar="MB",
-                   help="with --checkpoint-every auto: a full tape when it fits in MB, else checkpoint (default 1024)")
+                   help="with --checkpoint-every auto: a full tape when it fits in MB, else checkpoint (default 1024; "
+                        "not with --optimizer gauss-newton, which records no tape)")
     g.add_argument("--samples", type=int, default=0, metavar="N",
                    help="global first stage: N Latin-hypercube points (loss only) before gradient descent (default 0)")
     g.add_argument("--starts", type=int, default=1, metavar="K",
@@ -193,6 +194,14 @@ def run_fit(args, out=None, err=None) -> int:
             # Only the automatic choice reads the limit: a fixed segment ran as without it.
             raise ValueError(f"--memory-limit = {given_memory!r} is not allowed with --checkpoint-every = {ck}: it sizes "
                              "the automatic checkpointing (--checkpoint-every auto, the default); give one of the two")
+    if _arg(args, "optimizer") == "gauss-newton":
+        # Its runs go forward only (the Jacobian by forward differences), two states each: there
+        # is no tape to checkpoint, and either option ran as if it had not been given.
+        for flag, given in (("--memory-limit", given_memory), ("--checkpoint-every", None if ck == "auto" else ck)):
+            if given is not None:
+                raise ValueError(f"{flag} = {given!r} is not allowed with --optimizer gauss-newton: it sizes the "
+                                 "checkpointing of the tape that gradient runs record, and a Gauss-Newton fit records "
+                                 f"none (its runs go forward only, two states each); leave {flag} out")
 
     main_spec = {"scene": args.scene, "target": args.target, "target_frames": _arg(args, "target_frames"),
                  "target_body": _arg(args, "target_body"), "target_tool": _arg(args, "target_tool"), "cameras": _arg(args, "cameras"), "scale": args.scale,
@@ -781,7 +790,7 @@ def _memory_refusal(e, exp, where: str, ck) -> str:
     ``--checkpoint-every auto`` had chosen as if it had been typed."""
     fewer = "fit fewer frames (" + ("the experiment's frames, target_frames)" if where else "--frames, --target-frames)")
     if not e.taped:
-        # A Gauss-Newton fit's rollout, which records no tape: --checkpoint-every is not read.
+        # A Gauss-Newton fit's rollout, which records no tape (--checkpoint-every N is refused with it).
         return (f"{where}{exp.frames_source} is not allowed with --optimizer gauss-newton on {e.device}: at "
                 f"{exp.substeps} steps a frame (dt = {exp.dt:.4g} s at {exp.fps:g} fps) the fit's rollout takes {e.steps} "
                 f"steps, and even untaped (as every run of a Gauss-Newton fit is) {e.reason}; {fewer}")
