@@ -74,6 +74,22 @@ def test_a_value_held_at_its_bound_is_said_to_be_there_not_given_an_error_as_if_
     assert free.diagnostics.at_bound == [] and not any("bound" in w for w in free.diagnostics.warnings)
 
 
+def test_gauss_newton_releases_a_value_started_on_its_upper_bound_whose_optimum_lies_inside(landing):
+    """Gauss-Newton's Jacobian column of a value on its upper bound stepped out of the box,
+    was projected back onto the bound and read no change: a zero column, so the value never
+    left the bound whatever the loss, and the fit "converged" there (yield stress 600 Pa and
+    flow rate 13.04/s, the target's 300 Pa and 10/s; at a bound whose log does not map back
+    to it exactly, only round-off in that column moved it). Its difference steps into the box."""
+    dt, target = landing
+    result = fit(_cube(yield_stress=600.0, flow_rate=20.0), target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES,
+                 optimizer="gauss-newton", iterations=30, bounds={"yield_stress": (10.0, 600.0)}, progress=False,
+                 noise=1e-4)
+    assert result.converged, result.stopped
+    for name, value in TRUTH.items():
+        assert result.params[name][0] == pytest.approx(value, rel=1e-4), result.params
+    assert result.diagnostics.at_bound == []
+
+
 def test_target_positions_in_millimetres_are_warned_of_before_the_fit_runs_on_them(landing):
     """Positions given in millimetres (a lab's usual unit) were fitted as metres without a
     word: the fit ran its iterations against a body 1000 times the scene's, and with the

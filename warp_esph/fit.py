@@ -1464,7 +1464,8 @@ def fit(
 
         try:
             if optimizer == "gauss-newton":
-                return _run_gauss_newton(evaluate, prob.project, z_start, iterations, max_step, GN_STEP, xtol)
+                return _run_gauss_newton(evaluate, prob.project, z_start, iterations, max_step, GN_STEP, xtol,
+                                         bounds=prob.z_bounds())
             if optimizer == "adam":
                 return _run_adam(evaluate, prob.project, z_start, iterations, lr, lr_end, clip, annotate, xtol, gtol)
             return _run_lbfgs(evaluate, prob.project, z_start, iterations, lr, max_step, memory=lbfgs_memory,
@@ -1957,7 +1958,7 @@ def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-
 GN_STEP = 1e-2
 
 
-def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6) -> str:
+def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6, bounds=None) -> str:
     """Levenberg-Marquardt on the residual vector ``r(z)`` (``loss = r . r``), in optimiser
     space, from forward runs only: the Jacobian by forward differences of step ``h`` (one
     run per value), then steps ``-(J^T J + lam diag(J^T J))^-1 J^T r``, with ``lam`` set by
@@ -1965,7 +1966,11 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6)
     model predicted well lowers ``lam``, a rejected one doubles its growth factor). A least-squares
     loss with few parameters and a curved valley (yield stress against flow rate) is what
     it is for: each step uses the valley's curvature at once, where L-BFGS learns it over
-    many steps. ``iterations`` counts runs after the first, Jacobian runs included."""
+    many steps. ``iterations`` counts runs after the first, Jacobian runs included.
+
+    ``bounds``: the box ``(lo, hi)`` in optimiser space, or None. A Jacobian column's
+    difference steps into the box: a step out of it is projected back onto the bound and
+    reads no change, a zero column that holds the value on its bound whatever the loss."""
     r, finite = residuals(z, reset=True)
     if not finite:
         raise _FirstPointFailed("the loss is not finite at the initial guess")
@@ -1976,11 +1981,11 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6)
         J = np.empty((len(r), len(z)))
         for j in range(len(z)):
             zj = z.copy()
-            zj[j] += h
+            zj[j] += h if bounds is None or z[j] + h <= bounds[1][j] else -h
             rj, ok = residuals(zj)
             evals += 1
             if not ok:
-                zj[j] = z[j] - h  # a blow-up on one side: the other
+                zj[j] = z[j] - h if zj[j] > z[j] else z[j] + h  # a blow-up on one side: the other
                 rj, ok = residuals(zj)
                 evals += 1
                 if not ok:
