@@ -23,8 +23,10 @@ the ``<output>_tools.csv`` of ``warp-esph run`` as one).
 
 Positive parameters are optimised in log space (a step of Adam changes them by about
 ``lr`` relative), others (e.g. ``hardening = 0``) in linear space scaled by their initial
-magnitude. ``bounds={"flow_rate": (1, 1e3)}`` clips them; ``clip`` caps the norm of the
-optimiser-space gradient (long horizons can give exploding gradients, docs/method.md).
+magnitude. ``bounds={"flow_rate": (1, 1e3)}`` keeps them in a box: every evaluated point is
+clipped into it, and L-BFGS and Gauss-Newton hold a value on a bound while the loss falls
+beyond it, fitting the others (an active set; Adam projects its steps). ``clip`` caps the norm
+of the optimiser-space gradient (long horizons can give exploding gradients, docs/method.md).
 
 ``tie_pressure``: a ``Material`` whose ``pressure_stiffness`` was left at its default
 follows ``mu`` and ``lam`` (``k_p = share (lam + 2 mu / 3) / rho0``, ``share`` the pressure
@@ -1172,7 +1174,10 @@ def fit(
       default ``LR`` = 0.1; Adam's step and L-BFGS's first step, refused with
       ``"gauss-newton"``, which never reads it);
       ``lr_end``: decay Adam's step size geometrically to this value at the last iteration.
-    - ``bounds``: ``{name: (lo, hi)}`` in the parameter's units. ``clip``: gradient norm cap.
+    - ``bounds``: ``{name: (lo, hi)}`` in the parameter's units: L-BFGS and Gauss-Newton hold
+      a value on a bound whose gradient points out of the box and step the others alone, so a
+      fit whose optimum lies beyond a bound converges to the others' optimum there
+      (docs/fitting.md, "Bounds"). ``clip``: gradient norm cap.
     - ``checkpoint_every``: segment length for checkpointed rollouts; ``"auto"``: a full
       tape when it fits in ``memory_limit`` bytes (and in the device's memory), else the
       longest segment that fits (``choose_checkpointing``). A rollout that cannot fit even
@@ -1469,7 +1474,7 @@ def fit(
             if optimizer == "adam":
                 return _run_adam(evaluate, prob.project, z_start, iterations, lr, lr_end, clip, annotate, xtol, gtol)
             return _run_lbfgs(evaluate, prob.project, z_start, iterations, lr, max_step, memory=lbfgs_memory,
-                              xtol=xtol, gtol=gtol)
+                              xtol=xtol, gtol=gtol, bounds=prob.z_bounds())
         except _Stop as e:
             return str(e)
 
@@ -1880,42 +1885,91 @@ def _minimum_within(g: np.ndarray, g_new: np.ndarray, step: np.ndarray, xtol: fl
     return (down / (down - up)) * float(np.abs(step).max()) < xtol
 
 
-def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-4, xtol=1e-6, gtol=0.0) -> str:
+def _held(z: np.ndarray, g: np.ndarray, bounds) -> np.ndarray:
+    """The coordinates of ``z`` on a bound of the box ``bounds`` (``(lo, hi)`` in optimiser
+    space, or None) whose gradient ``g`` points out of it: descent would leave the box there,
+    so the optimisers hold them and fit the others (an active set). Projecting such a
+    coordinate back onto its bound after every step had left the quasi-Newton direction and
+    the Gauss-Newton step computed as if it were free: the free values crept along the valley
+    until the iteration cap. "On the bound" to 1e-12 relative, as the diagnostics' ``at_bound``
+    reads it: projection maps the bound through ``exp`` and ``log``."""
+    if bounds is None:
+        return np.zeros(len(z), dtype=bool)
+    lo, hi = bounds
+    tol = 1e-12 * np.maximum(1.0, np.abs(z))
+    at_lo = np.isfinite(lo) & (z <= lo + tol)
+    at_hi = np.isfinite(hi) & (z >= hi - tol)
+    return (at_lo & (g > 0.0)) | (at_hi & (g < 0.0))
+
+
+def _two_loop(g: np.ndarray, S, Y, lr: float) -> np.ndarray:
+    """``H g`` of L-BFGS's two-loop recursion over the pairs ``S, Y``; without pairs the
+    gradient scaled so its largest entry moves by ``lr``."""
+    q = g.copy()
+    alphas = []
+    for s, y in reversed(list(zip(S, Y))):
+        a = s.dot(q) / y.dot(s)
+        alphas.append(a)
+        q -= a * y
+    if S:
+        q *= S[-1].dot(Y[-1]) / Y[-1].dot(Y[-1])
+    else:
+        q *= lr / max(float(np.abs(g).max()), 1e-300)
+    for (s, y), a in zip(zip(S, Y), reversed(alphas)):
+        b = y.dot(q) / y.dot(s)
+        q += (a - b) * s
+    return q
+
+
+def _curved(s: np.ndarray, y: np.ndarray) -> bool:
+    """Whether a pair carries positive curvature (``s.y > 0`` to round-off), as L-BFGS keeps it."""
+    return bool(s.dot(y) > 1e-12 * np.linalg.norm(s) * np.linalg.norm(y))
+
+
+def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-4, xtol=1e-6, gtol=0.0,
+               bounds=None) -> str:
     """L-BFGS (two-loop recursion) with a backtracking Armijo line search, in optimiser space.
 
-    Box bounds are handled by projecting each trial point; pairs with ``s.y <= 0`` are
-    skipped. A non-finite trial (a blown-up rollout) counts as a failed trial.
+    Box bounds (``bounds``: ``(lo, hi)`` in optimiser space, or None): the coordinates on a
+    bound whose gradient points outward are held there for the step (``_held``) and left out
+    of the quasi-Newton direction, whose recursion runs over the free coordinates of the
+    pairs (those of no positive curvature there skipped); the other coordinates' trials are
+    projected onto the box. ``gtol`` is read on the gradient of the free coordinates, so a fit
+    whose optimum lies beyond a bound converges to the optimum of the others with it held.
+    Pairs with ``s.y <= 0`` are skipped. A non-finite trial (a blown-up rollout) counts as a
+    failed trial.
     """
     f, g, finite = evaluate(z)
     if not finite:
         raise _FirstPointFailed(f"the loss or its gradient is not finite at the initial guess (loss = {f})")
-    g0 = float(np.abs(g).max())
-    if g0 == 0.0:
+    if float(np.abs(g).max()) == 0.0:
         return "flat"
+    held = _held(z, g, bounds)
+    # The gradient the free coordinates follow: the held ones' entries point out of the box.
+    g0 = float(np.abs(np.where(held, 0.0, g)).max())
+    if g0 == 0.0:
+        # Every coordinate on a bound with the loss falling beyond it: the corner is the minimum within the box.
+        return "converged"
     evals = 0
     S, Y = [], []
     while evals < iterations:
-        if float(np.abs(g).max()) <= gtol * g0:
+        held = _held(z, g, bounds)
+        if float(np.abs(np.where(held, 0.0, g)).max()) <= gtol * g0:
             return "converged"
-        # Two-loop recursion: d = -H g.
-        q = g.copy()
-        alphas = []
-        for s, y in reversed(list(zip(S, Y))):
-            a = s.dot(q) / y.dot(s)
-            alphas.append(a)
-            q -= a * y
-        if S:
-            q *= S[-1].dot(Y[-1]) / Y[-1].dot(Y[-1])
+        if held.any():
+            free = ~held
+            if not free.any():
+                return "converged"
+            pairs = [(s[free], y[free]) for s, y in zip(S, Y) if _curved(s[free], y[free])]
+            d = np.zeros(len(z))
+            d[free] = -_two_loop(g[free], [s for s, _ in pairs], [y for _, y in pairs], lr)
         else:
-            q *= lr / max(float(np.abs(g).max()), 1e-300)
-        for (s, y), a in zip(zip(S, Y), reversed(alphas)):
-            b = y.dot(q) / y.dot(s)
-            q += (a - b) * s
-        d = -q
+            d = -_two_loop(g, S, Y, lr)
+        gf = np.where(held, 0.0, g) if held.any() else g
         if not g.dot(d) < 0.0:
             S.clear()
             Y.clear()
-            d = -g * (lr / max(float(np.abs(g).max()), 1e-300))
+            d = -gf * (lr / max(float(np.abs(gf).max()), 1e-300))
         big = float(np.abs(d).max())
         if big > max_step:
             d *= max_step / big
@@ -1938,7 +1992,7 @@ def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-
                 return "iterations"
             t *= 0.5
         s, y = z_new - z, g_new - g
-        if s.dot(y) > 1e-12 * np.linalg.norm(s) * np.linalg.norm(y):
+        if _curved(s, y):
             S.append(s)
             Y.append(y)
             if len(S) > memory:
@@ -1947,7 +2001,7 @@ def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-
         z, f, g = z_new, f_new, g_new
         if float(np.abs(s).max()) < xtol:
             return "converged"
-    if float(np.abs(g).max()) <= gtol * g0:
+    if float(np.abs(np.where(_held(z, g, bounds), 0.0, g)).max()) <= gtol * g0:
         return "converged"
     return "iterations"
 
@@ -1968,9 +2022,11 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
     it is for: each step uses the valley's curvature at once, where L-BFGS learns it over
     many steps. ``iterations`` counts runs after the first, Jacobian runs included.
 
-    ``bounds``: the box ``(lo, hi)`` in optimiser space, or None. A Jacobian column's
-    difference steps into the box: a step out of it is projected back onto the bound and
-    reads no change, a zero column that holds the value on its bound whatever the loss."""
+    Box bounds (``bounds``: ``(lo, hi)`` in optimiser space, or None): the values on a bound
+    whose gradient ``J^T r`` points outward are held there (``_held``) and the damped normal
+    equations solved for the free ones alone, so with one value held the fit becomes a fit of
+    the others and converges to their optimum; a Jacobian column's difference steps into the
+    box (a step out of it is projected back onto the bound and reads no change)."""
     r, finite = residuals(z, reset=True)
     if not finite:
         raise _FirstPointFailed("the loss is not finite at the initial guess")
@@ -1994,12 +2050,23 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
         A, g = J.T @ J, J.T @ r
         if not np.any(A.diagonal() > 0.0):
             return "flat"
+        held = _held(z, g, bounds)
+        free = ~held
+        if not free.any():
+            # Every value on a bound with the loss falling beyond it: the corner is the minimum within the box.
+            return "converged"
+        Af, gf = (A[np.ix_(free, free)], g[free]) if held.any() else (A, g)
         while True:
-            D = np.diag(np.maximum(A.diagonal(), 1e-12 * max(float(A.diagonal().max()), 1e-300)))
+            D = np.diag(np.maximum(Af.diagonal(), 1e-12 * max(float(Af.diagonal().max()), 1e-300)))
             try:
-                dz = -np.linalg.solve(A + lam * D, g)
+                dzf = -np.linalg.solve(Af + lam * D, gf)
             except np.linalg.LinAlgError:
-                dz = -g / max(float(np.abs(g).max()), 1e-300) * h
+                dzf = -gf / max(float(np.abs(gf).max()), 1e-300) * h
+            if held.any():
+                dz = np.zeros(len(z))
+                dz[free] = dzf
+            else:
+                dz = dzf
             big = float(np.abs(dz).max())
             if big > max_step:
                 dz *= max_step / big
