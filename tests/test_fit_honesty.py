@@ -145,6 +145,26 @@ def test_gauss_newton_releases_a_value_started_on_its_upper_bound_whose_optimum_
     assert result.diagnostics.at_bound == []
 
 
+def test_a_value_on_its_bound_at_the_datas_best_is_not_said_to_lie_beyond_it(landing):
+    """A fit whose answer is its bound (the target's flow rate 10/s, the lower bound 10/s, the
+    fit started there) ends on the bound with the chi-square at its minimum: its slope there
+    is round-off. Any outward slope named the value held at the bound, "the data's best value
+    lies outside the bounds", by a fall of 8e-28. A fall below 1 (the change the range check
+    calls telling values apart) is no evidence of a better value beyond; the fit of 15/s
+    against 10/s falls by far more and is still named."""
+    dt, target = landing
+    result = fit(_cube(flow_rate=10.0), target, ["flow_rate"], steps=STEPS, dt=dt, frames=FRAMES,
+                 optimizer="gauss-newton", iterations=4, bounds={"flow_rate": (10.0, 100.0)}, progress=False, noise=1e-4)
+    d = result.diagnostics
+    assert result.params["flow_rate"][0] == pytest.approx(10.0, rel=1e-12)
+    assert d.at_bound == [] and not any("bound" in w for w in d.warnings), d.warnings
+    held = fit(_cube(flow_rate=20.0), target, ["flow_rate"], steps=STEPS, dt=dt, frames=FRAMES,
+               optimizer="gauss-newton", iterations=12, bounds={"flow_rate": (15.0, 100.0)}, progress=False, noise=1e-4)
+    assert held.diagnostics.at_bound == ["flow_rate"]
+    fall = float(held.diagnostics.warnings[0].split("by about ")[1].split(" ")[0])
+    assert fall >= 1.0, held.diagnostics.warnings
+
+
 def test_target_positions_in_millimetres_are_warned_of_before_the_fit_runs_on_them(landing):
     """Positions given in millimetres (a lab's usual unit) were fitted as metres without a
     word: the fit ran its iterations against a body 1000 times the scene's, and with the

@@ -36,7 +36,8 @@ the local curvature says (if it falls by 1 or more, the fit stopped short of the
 along it, which a warning says) (a silhouette fit stopped at 1.88 x the true yield stress, where
 the loss is curved but 0.15 % below its value at 1.5 x less).
 
-A value held at one of the fit's bounds, where the chi-square falls beyond the bound, is
+A value held at one of the fit's bounds, where the chi-square falls beyond the bound by 1 or
+more (``BOUND_FALL``, as the range check; by its slope and curvature there), is
 named in ``at_bound`` and a warning: the data's best value lies outside the bounds, and its
 Fisher error is the curvature at the bound, no interval about a value the data chose.
 
@@ -480,11 +481,17 @@ def _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations
     )
 
 
+#: The fall of the chi-square beyond a bound (its slope and curvature there) from which a value
+#: on the bound is named held by it (``at_bound``): the change the range check takes as telling
+#: two values apart. A fit whose best value is the bound itself has a slope of round-off there.
+BOUND_FALL = 1.0
+
+
 def _held_at_bounds(z, z_bounds, labels, values, spaces, scales, fisher, gradient, warnings) -> list[str]:
     """The labels of the values at a bound (optimiser space ``z_bounds``) whose chi-square
-    falls beyond it, each with a warning in ``warnings``: there the fit stopped because the
-    bound held it, not because the data chose the value, and the Fisher errors (an interval
-    about it) had been reported as for a free value."""
+    falls beyond it by ``BOUND_FALL`` or more, each with a warning in ``warnings``: there the
+    fit stopped because the bound held it, not because the data chose the value, and the
+    Fisher errors (an interval about it) had been reported as for a free value."""
     if z_bounds is None:
         return []
     held = []
@@ -497,6 +504,9 @@ def _held_at_bounds(z, z_bounds, labels, values, spaces, scales, fisher, gradien
                 continue
             # chi2(z + d) ~ chi2 + gradient d + fisher d^2 along this value alone.
             curvature = float(fisher[k, k]) if math.isfinite(float(fisher[k, k])) else 0.0
+            # Without curvature the model falls without end: no bound on the fall to weigh.
+            if curvature > 0.0 and slope * slope / (4.0 * curvature) < BOUND_FALL:
+                continue
             beyond = ""
             if curvature > 0.0:
                 d = -float(gradient[k]) / (2.0 * curvature)
