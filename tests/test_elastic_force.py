@@ -1023,6 +1023,23 @@ def test_a_solvers_record_follows_the_state_it_is_given_not_the_run_it_stepped_l
         solver.record("not a state")
 
 
+def test_what_a_solver_runs_from_a_state_refuses_what_is_no_state_of_its_model_whatever_it_runs():
+    """``runs_rest(state)``, ``record(state)`` and ``label(state)`` checked ``state`` only where
+    the parameters chose the rest model: a solver of the incremental composition (a fixed fit,
+    or ``"auto"`` on a material that flows) answered for a string, or for another model's
+    state, as for a state of its own."""
+    model, _ = _elastic_block_and_a_flowed_start()
+    other = we.SceneBuilder(spacing=SPACING)
+    other.add_box((0.0, 0.0, 0.0), (2 * SPACING,) * 3, we.Material.from_young(2.0e5, 0.3))
+    foreign = other.finalize(dtype=wp.float64).state()
+    for solver in (we.Solver(model), we.Solver(model, fit="linear")):
+        for bad in ("not a state", foreign):
+            for ask in (solver.runs_rest, solver.record, solver.label):
+                with pytest.raises(ValueError, match=r"^state (= .* is not allowed|does not belong to this model)"):
+                    ask(bad)
+        assert solver.runs_rest(model.state()) is solver.rest_model
+
+
 def test_the_inverted_fits_advice_reads_what_runs_from_the_diverged_state():
     """``simulate``'s divergence advice blames the rest model's inverted fits only where a step
     from the state the diverging step wrote runs the rest model (``rest_inversions(solver,

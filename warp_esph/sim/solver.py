@@ -355,10 +355,12 @@ class Solver:
         it ran with, that is what the step ran. None: a new state. Only reads ``state`` (its
         ``alpha``, where ``flowed`` is not True and the parameters allow the rest model)."""
         rest = self.rest_model
-        if state is None or not rest:
+        if state is None:
             return rest
+        # Whatever the parameters choose: checked only where they chose the rest model, a string
+        # or another model's state was answered for as a state of this one.
         checks.same_state(self.model, "state", state)
-        return not keeps_incremental(state)
+        return rest and not keeps_incremental(state)
 
     @property
     def hourglass(self) -> float:
