@@ -1618,6 +1618,28 @@ def test_a_rollout_that_blows_up_to_non_finite_values_raises(checkpoint_every):
         r.forward(check="no")
 
 
+def test_a_loss_only_rollout_that_blows_up_advises_what_it_can_run():
+    """A ``Rollout(taped=False)`` that blew up between two checked states advised "run
+    forward() taped to find the first step", which that rollout refuses ("taped = True is not
+    allowed"). It advises a rollout of its steps made with ``taped=True``, whose forward then
+    finds that step."""
+    from warp_esph.rollout import NonFiniteRollout  # noqa: PLC0415
+
+    model = _overflowing_cube()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # dt above the stable step
+        r = Rollout(model, 10, BLOWING_DT, frames=[5, 10], taped=False)
+        with pytest.raises(NonFiniteRollout) as info:
+            r.forward(v0=BLOWING_UP)
+        said = str(info.value)
+        assert (info.value.step, info.value.last_finite) == (5, 0)
+        assert "(finite after step 0; a rollout made with taped=False keeps only the frames and the last state: " \
+               "run a Rollout of these steps made with taped=True to find the first step)" in said, said
+        with pytest.raises(NonFiniteRollout) as found:
+            Rollout(model, 10, BLOWING_DT, frames=[5, 10], taped=True).forward(v0=BLOWING_UP)
+        assert found.value.step == 1
+
+
 def test_a_rest_fit_whose_determinant_is_nan_keeps_F_and_is_counted_inverted():
     """On the rest model (``fit="auto"`` here), a fit whose float32 determinant overflows to
     NaN (``_overflowing_cube`` at 1e37 Pa: the first step's fit has entries near 3e25) is on

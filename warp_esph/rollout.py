@@ -820,9 +820,13 @@ class Rollout:
         last_finite = max([0] + [k for k, p, full in known if p is None and full and k < step])
         body = m.bodies[int(m.particle_body_np[p])].name
         where = f"particle {p} of body {body!r}" + (f" (world {int(m.world_of_particle[p])})" if m.world_count > 1 else "")
+        # A rollout made with taped=False refuses forward(taped=True): the advice names one that runs.
         kept = (f"checkpoint_every={self.segment} keeps only the states at its segment starts and frames: run with "
                 "checkpoint_every=None to find the first step" if self.checkpointing else
-                "forward(taped=False) keeps only the frames and the last state: run forward() taped to find the first step")
+                "forward(taped=False) keeps only the frames and the last state: run forward() taped to find the first step"
+                if self.taped else
+                "a rollout made with taped=False keeps only the frames and the last state: run a Rollout of these steps "
+                "made with taped=True to find the first step")
         when = (f"after step {step} of {self.steps}" if step - last_finite <= 1 else
                 f"after step {step} of {self.steps} (finite after step {last_finite}; {kept})")
         stable = m.stable_dt(hourglass=self.solver.hourglass)
