@@ -19,7 +19,9 @@ positions at the rollout's ``frames``. The forward pass sets the model's paramet
 arrays to the given values (they keep them afterwards). The backward pass re-runs the
 forward pass first when the rollout has been run with other inputs since (as
 ``torch.autograd.gradcheck`` does), so every output's gradient is taken at its own
-inputs, and leaves the model holding the parameter values it held before. Tensors are
+inputs (the model's ``particle_x0`` / ``particle_v0`` and the tools' arrays too, as that
+forward read them), and leaves the model holding the parameter values, start and tool
+arrays it held before. Tensors are
 copied to and from the model's device; use a float64 model with float64 tensors for
 ``gradcheck``. A forward whose run blows up to a non-finite position or velocity raises
 ``warp_esph.rollout.NonFiniteRollout`` (a ``FloatingPointError``; ``Rollout.forward``'s check),
@@ -93,6 +95,11 @@ def _function():
                 raise
             ctx.forward_count = rollout.forward_count
             ctx.materials = tuple(rollout.model.materials)
+            # What a re-run of this forward reads besides the parameters, as it read them: the
+            # model's own start (particle_x0 is the rest configuration too, where x0 is given)
+            # and the tools' arrays (the rollout's copies of this forward's).
+            ctx.model_start = {name: getattr(rollout.model, name).copy() for name in _MODEL_STARTS}
+            ctx.tools = rollout._forward_inputs[2]
             ref = next((t for t in (x0, v0, *values) if t is not None), None)
             # Real numbers in at least the model's precision: an integer input (a viscosity given
             # as 0) made them integers, each truncated to 0; a float16 one rounded them (1.7 mm
@@ -120,6 +127,7 @@ def _function():
             changed = not all(np.array_equal(current[k], ctx.params[k]) for k in PARAMETERS)
             if changed:
                 rollout._set_parameters(ctx.params, current)
+            held = None
             try:
                 redo = rollout.forward_count != ctx.forward_count
                 if not redo:
@@ -128,11 +136,16 @@ def _function():
                     except RuntimeError:
                         redo = True
                 if redo:
-                    # The rollout ran with other inputs since: redo this forward first.
+                    # The rollout ran with other inputs since: redo this forward first, from
+                    # its own start and tools (a model's particle_v0 or a tool's velocity set
+                    # since for a later forward were re-run here: the gradient of another point).
+                    held = _put_back(rollout, ctx.model_start, ctx.tools)
                     rollout._forward_checked(ctx.starts)
                     ctx.forward_count = rollout.forward_count
                 _, grads = rollout.backward(_numpy(grad_out, rollout.model.types.np_dtype))
             finally:
+                if held is not None:
+                    _put_back(rollout, *held)  # what was set since, as the parameters below
                 if changed:
                     # The model keeps the values it held (a later forward's, or set_parameters'
                     # since): this forward's had replaced them without a word.
@@ -149,6 +162,28 @@ def _function():
 
     _FUNCTION = RolloutFunction
     return _FUNCTION
+
+
+#: The model's start, which a forward reads where ``x0`` / ``v0`` are not given.
+_MODEL_STARTS = ("particle_x0", "particle_v0")
+
+
+def _put_back(rollout: Rollout, start: dict, tools: dict) -> tuple[dict, dict]:
+    """Give the model ``start`` (``{name: array}`` of ``_MODEL_STARTS``) and the tools' arrays
+    ``tools`` (``{name: values}``) where they differ; returns what it replaced, for the same call
+    to put back."""
+    model = rollout.model
+    held_start = {name: getattr(model, name) for name, v in start.items() if not np.array_equal(getattr(model, name), v)}
+    for name in held_start:
+        setattr(model, name, start[name])
+    held_tools = {}
+    for name, a in rollout._tool_arrays().items():
+        if name in tools:
+            now = a.numpy()
+            if not np.array_equal(now, tools[name]):
+                held_tools[name] = now.copy()
+                a.assign(tools[name])
+    return held_start, held_tools
 
 
 def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
