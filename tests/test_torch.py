@@ -159,6 +159,21 @@ def test_backward_re_runs_its_forward_from_the_start_and_tools_that_forward_ran_
     assert abs(gradient(rollout) - ref) > 1e-3 * abs(ref)
 
 
+def test_backward_after_the_rollout_was_released_re_runs_its_forward():
+    """``rollout.release()`` between a torch forward and its backward freed the run, and the
+    backward raised Rollout's 'backward() before forward(): run forward() first', a call the
+    bridge's user never makes; it re-runs the forward, as after another forward."""
+    model = _cube()
+    rollout = Rollout(model, 3, 1.0e-3, frames=[3])
+    ref = torch.tensor([1.0e3], dtype=torch.float64, requires_grad=True)
+    rollout_positions(rollout, {"mu": ref}).square().sum().backward()
+    mu = torch.tensor([1.0e3], dtype=torch.float64, requires_grad=True)
+    loss = rollout_positions(rollout, {"mu": mu}).square().sum()
+    rollout.release()
+    loss.backward()
+    assert mu.grad.item() == pytest.approx(ref.grad.item(), rel=1e-12) and ref.grad.item() != 0.0
+
+
 def test_each_start_is_checked_once_per_forward_and_backward(start_checks):
     """x0's check (``check_initial``: its search for coincident particles, 17 ms at 64k
     particles) ran in ``rollout_positions``, again in the forward, and a third time where the

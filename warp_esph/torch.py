@@ -18,7 +18,7 @@ velocities ``v0`` (``(n, 3)``, or one ``(3,)`` velocity for every particle); inp
 positions at the rollout's ``frames``. The forward pass sets the model's parameter
 arrays to the given values (they keep them afterwards). The backward pass re-runs the
 forward pass first when the rollout has been run with other inputs since (as
-``torch.autograd.gradcheck`` does), so every output's gradient is taken at its own
+``torch.autograd.gradcheck`` does) or released (``Rollout.release``), so every output's gradient is taken at its own
 inputs (the model's ``particle_x0`` / ``particle_v0`` and the tools' arrays too, as that
 forward read them), and leaves the model holding the parameter values, start and tool
 arrays it held before. Tensors are
@@ -129,7 +129,9 @@ def _function():
                 rollout._set_parameters(ctx.params, current)
             held = None
             try:
-                redo = rollout.forward_count != ctx.forward_count
+                # rollout.release() since freed its run (backward said 'run forward() first', a
+                # call the torch user never makes): re-run as after another forward.
+                redo = rollout.forward_count != ctx.forward_count or not rollout._forward_done
                 if not redo:
                     try:  # set_material since: the point is not this forward's, whatever the arrays say
                         rollout._check_inputs_unchanged()
