@@ -174,6 +174,35 @@ def test_backward_after_the_rollout_was_released_re_runs_its_forward():
     assert mu.grad.item() == pytest.approx(ref.grad.item(), rel=1e-12) and ref.grad.item() != 0.0
 
 
+def test_a_run_nothing_goes_back_through_records_no_tape():
+    """Under ``torch.no_grad()``, or with no input that requires grad, the bridge recorded a tape
+    of every step for nothing, and a ``Rollout(taped=False)``, made for such runs, was refused
+    as 'taped = True is not allowed', a value its caller never gave. Such a run is untaped now
+    (the same positions; a new rollout's taped states are never allocated), and a
+    ``Rollout(taped=False)`` is refused in the bridge's words only where an input requires grad."""
+    model = _cube()
+    ref = Rollout(model, 3, 1.0e-3, frames=[2, 3])
+    mu = torch.tensor([1.2e3], dtype=torch.float64, requires_grad=True)
+    expected = rollout_positions(ref, {"mu": mu})
+    assert expected.requires_grad
+    for taped in (True, False):
+        rollout = Rollout(model, 3, 1.0e-3, frames=[2, 3], taped=taped)
+        with torch.no_grad():
+            out = rollout_positions(rollout, {"mu": mu})
+        assert torch.equal(out, expected.detach()) and not out.requires_grad
+        assert torch.equal(rollout_positions(rollout, {"mu": mu.detach()}), expected.detach())
+        assert rollout.memory_bytes()["taped_states"] == 0
+    with pytest.raises(ValueError, match=r"^rollout is not allowed with inputs that require grad: it was made with "
+                                         r"taped = False"):
+        rollout_positions(rollout, {"mu": mu})
+    # The taped graph made before the untaped runs still gives its own gradient.
+    expected.square().sum().backward()
+    g = mu.grad.item()
+    mu.grad = None
+    rollout_positions(ref, {"mu": mu}).square().sum().backward()
+    assert mu.grad.item() == pytest.approx(g, rel=1e-12) and g != 0.0
+
+
 def test_each_start_is_checked_once_per_forward_and_backward(start_checks):
     """x0's check (``check_initial``: its search for coincident particles, 17 ms at 64k
     particles) ran in ``rollout_positions``, again in the forward, and a third time where the

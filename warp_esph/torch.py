@@ -71,11 +71,12 @@ def _function():
         return t.detach().to(device="cpu", dtype=torch.float64).resolve_neg().numpy().astype(dtype, copy=True)
 
     class RolloutFunction(torch.autograd.Function):
-        """``(rollout, names, starts, x0, v0, *values) -> positions (frames, n, 3)``; ``starts``:
-        ``{name: array}`` of ``x0``/``v0`` as ``check_initial`` answered them."""
+        """``(rollout, names, starts, taped, x0, v0, *values) -> positions (frames, n, 3)``;
+        ``starts``: ``{name: array}`` of ``x0``/``v0`` as ``check_initial`` answered them;
+        ``taped``: whether the run is recorded for a backward."""
 
         @staticmethod
-        def forward(ctx, rollout, names, starts, x0, v0, *values):
+        def forward(ctx, rollout, names, starts, taped, x0, v0, *values):
             np_dtype = rollout.model.types.np_dtype
             # In float64: the rollout checks the values as given before it casts them to the
             # model's precision (1e39 Pa cast to float32 here was refused as inf, 'not finite').
@@ -88,7 +89,7 @@ def _function():
             ctx.names = names
             ctx.starts = starts
             try:
-                out = rollout._forward_checked(starts)
+                out = rollout._forward_checked(starts, taped=taped)
             except BaseException:
                 # A forward that fails (a step's refusal) left the model running the new values.
                 rollout._set_parameters(before, ctx.params)
@@ -157,10 +158,10 @@ def _function():
                 return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=ctx.tensor_dtype, device=ctx.device)
 
             need = ctx.needs_input_grad
-            gx0 = tensor(grads["x0"]) if need[3] else None
-            gv0 = tensor(grads["v0"]) if need[4] else None
-            gvals = [tensor(grads[name]) if need[5 + k] else None for k, name in enumerate(ctx.names)]
-            return (None, None, None, gx0, gv0, *gvals)
+            gx0 = tensor(grads["x0"]) if need[4] else None
+            gv0 = tensor(grads["v0"]) if need[5] else None
+            gvals = [tensor(grads[name]) if need[6 + k] else None for k, name in enumerate(ctx.names)]
+            return (None, None, None, None, gx0, gv0, *gvals)
 
     _FUNCTION = RolloutFunction
     return _FUNCTION
@@ -197,7 +198,10 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
     sum) or None. Each is
     checked before the parameters are set or anything runs (``Rollout.forward``'s checks,
     ``rollout.check_initial``): finite real numbers, and ``x0`` with no two particles at one
-    place (``SceneBuilder`` refuses those).
+    place (``SceneBuilder`` refuses those). Under ``torch.no_grad()``, or where no input
+    requires grad, the run records no tape (``Rollout.forward(taped=False)``: the same
+    positions), so a ``Rollout(taped=False)`` serves there; one is refused where an input
+    requires grad.
     """
     torch = require_torch()
     if not isinstance(rollout, Rollout):
@@ -263,7 +267,15 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
         # check_initial returns its own copy (in the model's precision), so a tensor changed in
         # place after the forward does not change the start of a backward's re-run.
         checked[label] = check_initial(rollout.model, label, host)
-    return _function().apply(rollout, tuple(names), checked, start["x0"], start["v0"], *values)
+    # A tape only where a backward can follow: under torch.no_grad(), or with no input that
+    # requires grad, every step was recorded for nothing (and a Rollout(taped=False), made for
+    # such runs, was refused as 'taped = True is not allowed', a value nobody gave).
+    taped = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (x0, v0, *values))
+    if taped and not rollout.taped:
+        raise ValueError("rollout is not allowed with inputs that require grad: it was made with taped = False (for "
+                         "loss values alone), so nothing can go back through it; make it with taped = True, or run "
+                         "under torch.no_grad()")
+    return _function().apply(rollout, tuple(names), checked, taped, start["x0"], start["v0"], *values)
 
 
 def _check_dense(torch, name: str, t) -> None:
