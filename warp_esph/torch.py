@@ -18,12 +18,11 @@ velocities ``v0`` (``(n, 3)``, or one ``(3,)`` velocity for every particle); inp
 positions at the rollout's ``frames``. The forward pass sets the model's parameter
 arrays to the given values (they keep them afterwards). The backward pass re-runs the
 forward pass first when the rollout has been run with other inputs since (as
-``torch.autograd.gradcheck`` does) or released (``Rollout.release``), so every output's gradient is taken at its own
-inputs (the model's ``particle_x0`` / ``particle_v0`` and the tools' arrays too, as that
-forward read them), and leaves the model holding the parameter values, start and tool
-arrays it held before. Tensors are
-copied to and from the model's device; use a float64 model with float64 tensors for
-``gradcheck``. A forward whose run blows up to a non-finite position or velocity raises
+``torch.autograd.gradcheck`` does) or released (``Rollout.release``), so every output's
+gradient is taken at its own inputs (the model's ``particle_x0`` / ``particle_v0`` and the
+tools' arrays too, as that forward read them), and leaves the model holding the parameter
+values, start and tool arrays it held before. Tensors are copied to and from the model's
+device; use a float64 model with float64 tensors for ``gradcheck``. A forward whose run blows up to a non-finite position or velocity raises
 ``warp_esph.rollout.NonFiniteRollout`` (a ``FloatingPointError``; ``Rollout.forward``'s check),
 the model keeping the values it held, instead of returning a tensor of NaN positions.
 
