@@ -446,6 +446,23 @@ def test_mp4_with_ffmpeg(tmp_path):
     assert np.abs(frames[2] - frames[0]).mean() > 5.0
 
 
+
+
+@pytest.mark.skipif(render_module.ffmpeg_path() is None, reason="ffmpeg is not installed")
+@pytest.mark.parametrize("name", ["take:1.mp4", "12:30.mp4"])
+def test_an_mp4_named_with_a_colon_in_the_working_folder_is_written_there(tmp_path, monkeypatch, name):
+    """ffmpeg reads what comes before a colon in a relative name as a protocol: 'take:1.mp4'
+    failed with "Error opening output .take:1.<pid>.part.mp4: Protocol not found" (exit 2), a
+    name the file system takes. The movie is handed to ffmpeg by its absolute path."""
+    import subprocess
+
+    write_clusters(tmp_path / "m.usdc", [(0.0, 0.2, 0.0)], frames=2, shift=(0.0, -0.05, 0.0))
+    monkeypatch.chdir(tmp_path)
+    result = render_usd("m.usdc", name, width=32, height=24, supersample=1)
+    assert result.files == [name] and sorted(os.listdir(tmp_path)) == sorted(["m.usdc", name])
+    raw = subprocess.run([render_module.ffmpeg_path(), "-v", "error", "-i", os.path.abspath(name), "-f", "rawvideo",
+                          "-pix_fmt", "rgb24", "-"], capture_output=True, check=True).stdout
+    assert len(raw) == 2 * 32 * 24 * 3  # both frames, whole
 # ----------------------------------------------------------------------------- surfaces
 BOX_TOML = textwrap.dedent(
     """

@@ -1300,7 +1300,10 @@ class _Mp4Writer:
         w, h = size
         self.size = (w - w % 2, h - h % 2)  # yuv420p needs even sizes
         cmd = [ffmpeg_path(), "-y", "-loglevel", "error", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{self.size[0]}x{self.size[1]}",
-               "-r", f"{fps:g}", "-i", "-", "-c:v", "libx264", "-pix_fmt", "yuv420p", "-crf", "20", path]
+               "-r", f"{fps:g}", "-i", "-", "-c:v", "libx264", "-pix_fmt", "yuv420p", "-crf", "20",
+               # Absolute: ffmpeg takes what precedes a colon in a relative name as a protocol
+               # ('take:1.mp4' was 'Protocol not found'), where an absolute path names a file.
+               os.path.abspath(path)]
         self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=subprocess.PIPE)
 
     def write(self, img: Image.Image):
