@@ -1351,6 +1351,36 @@ def test_tool_names_that_clean_to_the_same_usd_prim_get_prims_of_their_own(tmp_p
         "tool_0_x_y_2", "tool_0_x_y", "tool_2_a_", "tool_3_a_", "tool_0_x_y_1", "ok"]
 
 
+def test_each_tool_geometry_in_usd_authors_the_extent_of_its_own_size(tmp_path):
+    """A sphere, capsule or cylinder tool authored its radius and height but no extent, so USD
+    answered with the schema's fallback extent, that of radius 1 (a capsule's 0.5, height 1):
+    a tool sphere of radius 0.03 read as 2 m across, one of radius 2 m as only 2 m across,
+    though USD asks an extent of whoever authors a radius, height or size. Each tool's
+    authored extent is the one its geometry computes, at every kind and size."""
+    from pxr import Sdf, Usd, UsdGeom  # noqa: PLC0415
+
+    b = we.SceneBuilder(spacing=0.04)
+    b.add_box((0.0, 0.06, 0.0), (0.08, 0.08, 0.08), we.Material.preset("dough"))
+    b.add_tool("sphere", radius=0.03, position=(0.5, 0.5, 0.0), name="ball")
+    b.add_tool("sphere", radius=2.0, position=(0.0, 5.0, 0.0), name="big")
+    b.add_tool("capsule", radius=0.02, half_height=0.1, position=(-0.5, 0.5, 0.0), name="pin")
+    b.add_tool("cylinder", radius=0.05, half_height=0.01, position=(0.0, 0.5, 0.5), name="disc")
+    b.add_tool("box", half_extents=(0.1, 0.02, 0.05), position=(0.0, 0.5, -0.5), name="plate")
+    m = b.finalize()
+    out = tmp_path / "tools.usda"
+    with we.UsdWriter(out, m, 30.0) as w:
+        w.write_frame(0, m.state())
+    stage = Usd.Stage.Open(Sdf.Layer.OpenAsAnonymous(str(out)))
+    sizes = {"ball": 0.03, "big": 2.0, "pin": 0.12, "disc": 0.05, "plate": 1.0}  # the largest half extent in its frame
+    for name, half in sizes.items():
+        geom = UsdGeom.Boundable(stage.GetPrimAtPath(f"/World/Tools/{name}/geom"))
+        assert geom.GetExtentAttr().HasAuthoredValue(), name
+        authored = np.array(geom.GetExtentAttr().Get(0.0), dtype=np.float64)
+        computed = np.array(UsdGeom.Boundable.ComputeExtentFromPlugins(geom, Usd.TimeCode(0.0)), dtype=np.float64)
+        np.testing.assert_allclose(authored, computed, rtol=1e-6, err_msg=name)
+        assert np.abs(authored).max() == pytest.approx(half, rel=1e-6), name
+
+
 def test_fig8_with_plates_elastic_cube_recovers_and_plastic_cube_keeps_the_squeeze():
     from warp_esph.scenes import get_scene  # noqa: PLC0415
 

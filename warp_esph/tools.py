@@ -1516,7 +1516,7 @@ def usd_author(stage, model, key: str = "warp_esph", plane_size: float = 1.0):
     """One Xform prim per tool under ``/World/Tools`` (pose written per frame by
     ``usd_write_frame``) with its geometry in the tool's frame as a child ``geom``; pinned
     sets get an Xform only. Static custom data: kind, friction coefficients."""
-    from pxr import Gf, Sdf, UsdGeom, Vt  # noqa: PLC0415 (USD only when writing it)
+    from pxr import Gf, Sdf, Usd, UsdGeom, Vt  # noqa: PLC0415 (USD only when writing it)
 
     tools = getattr(model, "tools", None)
     if tools is None:
@@ -1571,6 +1571,10 @@ def usd_author(stage, model, key: str = "warp_esph", plane_size: float = 1.0):
             geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
             geom.CreateDoubleSidedAttr(c.kind == "plane")
             geom.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, pts.min(axis=0))), Gf.Vec3f(*map(float, pts.max(axis=0)))]))
+        if not geom.GetExtentAttr().HasAuthoredValue():
+            # USD asks an extent of whoever authors a radius, height or size: without one, a
+            # sphere, capsule or cylinder read the schema's fallback extent (radius 1), not its own.
+            geom.CreateExtentAttr(UsdGeom.Boundable.ComputeExtentFromPlugins(geom, Usd.TimeCode.Default()))
         geom.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(steel)
 
 
