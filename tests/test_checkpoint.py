@@ -534,3 +534,37 @@ def _advance_with(solver, model, state, steps, dt=2e-4):
         solver.step(a, b, dt)
         a, b = b, a
     return a
+
+
+@pytest.mark.parametrize("written, resumed", [("float32", "float64"), ("float64", "float32")])
+def test_a_checkpoint_of_the_other_precision_is_refused_naming_the_precision_to_resume_in(tmp_path, written, resumed):
+    """A float32 checkpoint resumed into a float64 model (or back) is refused, not converted:
+    converted up it would continue neither the float32 run nor a float64 one. The refusal said
+    'it is float32, the model float64' and not what resumes it; it names the dtype to finalize
+    with, and leaves the model's parameters as they were."""
+    def scene(dtype):
+        b = we.SceneBuilder(spacing=0.04)
+        b.add_box((0.0, 0.1, 0.0), (0.08, 0.08, 0.08), we.Material.preset("dough"))
+        b.add_ground()
+        return b.finalize(dtype=getattr(wp, dtype))
+
+    source = scene(written)
+    source.mu.assign(source.mu.numpy() * 2.0)  # a fitted value the checkpoint carries
+    path = save_state(tmp_path / "run.npz", source, source.state(), step=3, frame=1)
+    target = scene(resumed)
+    before = target.mu.numpy().copy()
+    with pytest.raises(ValueError) as e:
+        load_state(path, target)
+    assert str(e.value) == (f"checkpoint = {str(path)!r} is not allowed: it is {written}, the model {resumed}; a checkpoint "
+                            f"resumes in the precision it was written in: finalize the model with dtype=wp.{written}")
+    np.testing.assert_array_equal(target.mu.numpy(), before)
+    state, meta = load_state(path, scene(written))  # the precision it names resumes it
+    assert meta["dtype"] == written and state.x.numpy().dtype == np.dtype(written)
+    # A precision no model has is the file's fault, not advice to finalize with it.
+    data = dict(np.load(path))
+    meta = json.loads(bytes(data["meta"]).decode())
+    meta["dtype"] = "float16"
+    data["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez(tmp_path / "f16.npz", **data)
+    with pytest.raises(ValueError, match=r"its metadata has dtype = 'float16' \(must be 'float32' or 'float64'\)$"):
+        load_state(tmp_path / "f16.npz", target)

@@ -326,7 +326,10 @@ def load_state(path, model: Model, solver=None, what: str = "checkpoint") -> tup
             f"the model {model.particle_count} in {[b.name for b in model.bodies]}"
         )
     if meta["dtype"] != model.scalar.__name__:
-        raise ValueError(f"{where}: it is {meta['dtype']}, the model {model.scalar.__name__}")
+        # Refused, not converted: a float32 state taken up to float64 continues neither the float32
+        # run (another round-off from the first step on) nor a float64 one (digits it never had).
+        raise ValueError(f"{where}: it is {meta['dtype']}, the model {model.scalar.__name__}; a checkpoint resumes in the "
+                         f"precision it was written in: finalize the model with dtype=wp.{meta['dtype']}")
     version = meta.get("fingerprint_version", 1)
     if "fingerprint" in meta and meta["fingerprint"] != model_fingerprint(model, version):
         raise ValueError(
@@ -501,7 +504,7 @@ def _check_meta(where: str, meta: dict) -> None:
     for key, lowest in (("step", -1), ("frame", 0), ("particle_count", 0)):
         if not is_int(meta.get(key), lowest):
             wrong.append(f"{key} = {meta.get(key)!r} (must be an integer >= {lowest})")
-    if not isinstance(meta.get("dtype"), str):
+    if meta.get("dtype") not in ("float32", "float64"):  # a refusal of the other one names it as the dtype to resume in
         wrong.append(f"dtype = {meta.get('dtype')!r} (must be 'float32' or 'float64')")
     bodies = meta.get("bodies")
     if not isinstance(bodies, list) or not all(isinstance(b, str) for b in bodies):
