@@ -501,6 +501,38 @@ def test_appending_with_a_model_of_the_other_precision_is_refused_naming_both(tm
         assert open_fresh(path).GetEndTimeCode() == 1
 
 
+def test_appending_with_a_model_without_a_body_the_file_holds_is_refused_naming_it(tmp_path):
+    """A model of the file's first body alone continued a file of two: the second body's
+    samples from the resume on were dropped and none written, so the file held it up to
+    frame 1 only (rendered and exported without it, refused as a fit target) while its
+    warp_esph:particle_count still said 16 for frames of 8. Refused before anything is
+    written, naming the body; the model of the file's scene still continues it."""
+    def scene(bodies):
+        b = SceneBuilder(spacing=0.04)
+        for name, x in (("a", 0.0), ("b", 0.5))[:bodies]:
+            b.add_box((x, 0.1, 0.0), (0.08, 0.08, 0.08), Material.preset("dough"), name=name)
+        return b.finalize()
+
+    both, first = scene(2), scene(1)
+    path = tmp_path / "two.usdc"
+    with UsdWriter(path, both, 24.0) as w:
+        for frame in range(3):
+            w.write_frame(frame, both.state())
+    before = path.read_bytes()
+    with pytest.raises(ValueError) as e:
+        UsdWriter(path, first, 24.0, append=True)
+    assert str(e.value) == (f"cannot append to {path}: it holds body 'b' (8 particles, Points prim /World/b), which the "
+                            "model has not; a file continues the scene that wrote it: append with that scene's model, "
+                            "or write a new file")
+    assert path.read_bytes() == before and not [f for f in os.listdir(tmp_path) if f.startswith(".")]
+    with UsdWriter(path, both, 24.0, append=True) as w:
+        w.write_frame(2, both.state())
+        w.write_frame(3, both.state())
+    stage = open_fresh(path)
+    for name in ("a", "b"):
+        assert stage.GetPrimAtPath(f"/World/{name}").GetAttribute("points").GetTimeSamples() == [0.0, 1.0, 2.0, 3.0]
+
+
 def test_a_foreign_files_surfaces_colliders_and_tools_are_read_in_metres_and_world_coordinates_as_its_particles(tmp_path):
     """Another program's copy of a run's file, in centimetres (metersPerUnit 0.01) under a
     /World moved 50 cm up and turned 90 degrees about y: its particles were read in metres and

@@ -222,7 +222,8 @@ class UsdWriter:
     second; the time code of frame ``k`` is ``k``. ``append=True`` reopens an existing
     file written for the same scene and continues it: the first frame written then
     replaces that frame and every later one already in the file (resume from a
-    checkpoint). ``plane_size``: edge length of the quads that show plane colliders
+    checkpoint); a model without one of the file's bodies, or with another particle count
+    in one, is refused, naming the body. ``plane_size``: edge length of the quads that show plane colliders
     (default: 10x the scene size, at least 4 m). ``surface=True`` also writes a triangle
     surface per body and frame under ``/World/Surfaces`` (marching cubes of a Zhu-Bridson
     field, ``warp_esph.surface``; costs about 0.15 s per frame per 50k particles on one CPU
@@ -464,6 +465,18 @@ class UsdWriter:
             count = (prim.GetCustomDataByKey(f"{_KEY}:particle_count"))
             if count is not None and int(count) != body.count:
                 raise ValueError(f"{where}: body {body.name!r} has {count} particles there, {body.count} in the model")
+        # A body the model has not: its samples from the resume on were dropped and none written,
+        # so the file held it up to there only, and its particle count named frames it no longer had.
+        ours = {f"{_ROOT}/{name}" for name in self._prim_names}
+        world = stage.GetPrimAtPath(_ROOT)
+        for prim in world.GetChildren() if world else []:
+            if prim.IsA(UsdGeom.Points) and str(prim.GetPath()) not in ours:
+                name = prim.GetCustomDataByKey(f"{_KEY}:body_name") or prim.GetName()
+                count = prim.GetCustomDataByKey(f"{_KEY}:particle_count")
+                held = f"{count} particles, " if count is not None else ""
+                raise ValueError(f"{where}: it holds body {name!r} ({held}Points prim {prim.GetPath()}), which the model has "
+                                 "not; a file continues the scene that wrote it: append with that scene's model, or write "
+                                 "a new file")
 
     def _author_static(self, stage: Usd.Stage):
         m = self.model
