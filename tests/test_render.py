@@ -619,6 +619,42 @@ def test_frames_without_a_surface_render_particles(tmp_path):
         RenderOptions(surfaces="yes")
 
 
+def test_a_surface_without_a_sample_at_a_frame_is_not_the_last_one_held(tmp_path):
+    """A file written with surfaces and continued without them (``UsdWriter(append=True)``,
+    surface=False) holds surfaces up to the resume only: USD answers a later frame with the
+    last sample held, and the body was drawn there as its surface of frame 1, standing still
+    while its particles moved on. A frame where the surface has no sample of its own has no
+    surface (as a body's points without a sample are not drawn), and the particles are drawn."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_particles(lattice_points(np.full(3, -0.05), np.full(3, 0.05), 0.02), we.Material.preset("clay"))
+    model = b.finalize()
+    state = model.state()
+    x0 = model.particle_x0.copy()
+    path = tmp_path / "resumed.usda"
+
+    def write(frames, **kw):
+        with we.UsdWriter(path, model, 10.0, **kw) as w:
+            for f in frames:
+                state.x.assign((x0 + [0.1 * f, 0.0, 0.0]).astype(np.float32))
+                w.write_frame(f, state)
+
+    write(range(3), surface=True)
+    write(range(2, 5), append=True)  # resumed at frame 2 without surfaces
+    data = UsdFrames(path)
+    assert data.has_surfaces
+    for f in data.frames:
+        mesh = data.surface(f, 0)
+        assert (mesh is not None) == (f < 2), f
+        if mesh is not None:  # a frame's surface surrounds that frame's particles
+            assert np.mean(mesh[0], axis=0)[0] == pytest.approx(np.mean(data.arrays(f)["points"], axis=0)[0], abs=1e-3)
+    opts = dict(width=W, height=H, supersample=1, label=False, shadows=False)
+    cam = front_camera()
+    drawn = Renderer(data, data.frames, RenderOptions(**opts), camera=cam)
+    particles = Renderer(data, data.frames, RenderOptions(**opts, surfaces=False), camera=cam)
+    assert drawn.surfaces(4) == {} and list(drawn.surfaces(1)) == [0]
+    assert np.array_equal(np.asarray(drawn.render(4)), np.asarray(particles.render(4)))
+
+
 def test_triangles_cover_exactly_the_pixel_centres_inside_and_depth_is_the_plane():
     from warp_esph.render import raster_triangles
 

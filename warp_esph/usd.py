@@ -1143,12 +1143,18 @@ class UsdFrames:
     @_held_stderr
     def surface(self, frame: int, body: int):
         """``(vertices (V, 3) float32, triangles (T, 3) int64)`` of body ``body``'s surface at
-        ``frame`` (polygons split into fans), or None where there is no surface or it is empty."""
+        ``frame`` (polygons split into fans), or None where there is no surface, it is empty,
+        or its points have time samples but none at ``frame``."""
         prim = self.surface_prims[body]
         if prim is None:
             return None
         t = Usd.TimeCode(float(frame))
         mesh = UsdGeom.Mesh(prim)
+        points = mesh.GetPointsAttr()
+        if points.GetNumTimeSamples() and not points.GetTimeSamplesInInterval(Gf.Interval(float(frame), float(frame))):
+            # USD answers with the last sample held: a file continued without surfaces (append,
+            # surface=False) drew the body as its surface of the resume frame, standing still.
+            return None
         pts, counts, idx = (a.Get(t) for a in (mesh.GetPointsAttr(), mesh.GetFaceVertexCountsAttr(),
                                                 mesh.GetFaceVertexIndicesAttr()))
         if pts is None or counts is None or idx is None or len(pts) == 0 or len(counts) == 0:
