@@ -534,8 +534,10 @@ def write_mesh(path, points, triangles) -> None:
     import meshio  # noqa: PLC0415
 
     points, triangles = checks.host_values("points", points), checks.host_values("triangles", triangles)
+    # PLY has no 64-bit integers: meshio casts them down itself, printing a warning on stdout.
+    index = np.int32 if os.fsdecode(os.fspath(path)).lower().endswith(".ply") else np.int64
     meshio.write_points_cells(
-        os.fspath(path), np.asarray(points, dtype=np.float64), [("triangle", np.asarray(triangles, dtype=np.int64))]
+        os.fspath(path), np.asarray(points, dtype=np.float64), [("triangle", np.asarray(triangles, dtype=index))]
     )
 
 
