@@ -1156,3 +1156,20 @@ def test_the_solver_column_shows_where_auto_switches_models(tmp_path):
     old = SweepTable([c for c in table.columns if c != "solver"],
                      [{k: v for k, v in r.items() if k != "solver"} for r in table.rows], table.params)
     assert "solver" not in SweepTable.read_csv(old.to_csv(tmp_path / "old.csv")).columns
+
+
+def test_a_sample_s_error_is_the_same_reason_on_ray_as_here():
+    """A sample whose ``extra`` raised was a row whose reason was Ray's text on Ray (colour
+    codes, the worker's pid and ip, a traceback: 'Ray: RayTaskError(TypeError): ...'), and
+    ``TypeError: ...`` in this process or a worker process: the same sweep, another table on
+    every run. ``int`` is an ``extra`` every Ray worker can import, and it raises a TypeError."""
+    ray = pytest.importorskip("ray")
+    here = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=1, extra=int)
+    assert [r["status"] for r in here.rows] == ["failed", "failed"]
+    assert here.rows[0]["reason"].startswith("TypeError: int() takes"), here.rows[0]["reason"]
+    ray.init(num_cpus=1, include_dashboard=False)
+    try:
+        remote = sweep(_box(), ["yield_stress=10,100"], frames=1, ray="auto", extra=int)
+    finally:
+        ray.shutdown()
+    assert _rows(remote) == _rows(here)

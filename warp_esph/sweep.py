@@ -659,6 +659,7 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
     of memory: every item not finished in that pool fails with it) or its Ray task or
     worker fails (a Ray task whose worker died is not retried: ``ray_resources`` may set
     ``max_retries``). With ``on_error(index, message)`` its return value is that item's result
+    (``message``: ``'TypeError: ...'`` where ``fn`` raised, the same words wherever it ran)
     and the others go on; without, the first failure raises (``RuntimeError`` for a dead
     worker). Ctrl-C stops the workers and raises ``KeyboardInterrupt``.
     """
@@ -834,7 +835,15 @@ def _ray_tasks(ray, fn, items, on_result, on_error, resources):
                 except ray.exceptions.RayError as e:
                     if on_error is None:
                         raise
-                    results[i] = on_error(i, _one_line(f"Ray: {type(e).__name__}: {e}")[:2000])
+                    cause = getattr(e, "cause", None) if isinstance(e, ray.exceptions.RayTaskError) else None
+                    if isinstance(cause, Exception) and not isinstance(cause, ray.exceptions.RayError):
+                        # The item's own exception, worded as the other executors word it: Ray's text
+                        # (colour codes, the worker's pid and ip, its traceback) made the same failed
+                        # sample another reason on every run, and another than the local table's.
+                        why = _one_line(f"{type(cause).__name__}: {cause}")
+                    else:  # the task or its worker failed, not the item
+                        why = _one_line(f"Ray: {type(e).__name__}: {e}")[:2000]
+                    results[i] = on_error(i, why)
                 if on_result is not None:
                     on_result(i, results[i])
         return results
