@@ -1173,3 +1173,22 @@ def test_a_sample_s_error_is_the_same_reason_on_ray_as_here():
     finally:
         ray.shutdown()
     assert _rows(remote) == _rows(here)
+
+
+def test_the_parquet_table_has_no_value_where_the_csv_has_none(tmp_path):
+    """A diverged sample has no summary: its CSV cells are empty (no value, read back as None),
+    but its Parquet cells were NaN, a number, so a mean over the Parquet column (pyarrow,
+    polars, DuckDB) was NaN where the CSV's skipped the failed sample. Both now say the same:
+    no value, and the mean is the ok sample's."""
+    pq = pytest.importorskip("pyarrow.parquet")
+    import pyarrow.compute as pc
+
+    # dt = 1/300 s is stable for mu = 1e3 Pa and 20x above the limit for mu = 1e6 Pa.
+    table = sweep(_box(), ["mu=1000,1000000"], frames=2, dt=1 / 300, workers=1)
+    assert [r["status"] for r in table.rows] == ["ok", "failed"]
+    back = SweepTable.read_csv(table.to_csv(tmp_path / "t.csv"))
+    par = pq.read_table(table.to_parquet(tmp_path / "t.parquet"))
+    assert par.column_names == back.columns
+    assert par.to_pylist() == back.rows
+    for q in ("max_height", "kinetic_energy"):
+        assert pc.mean(par[q]).as_py() == table.rows[0][q]

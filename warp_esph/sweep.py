@@ -332,7 +332,8 @@ class SweepTable:
         return path
 
     def to_parquet(self, path) -> str:
-        """Write the table as Parquet; ``ImportError`` without pyarrow."""
+        """Write the table as Parquet; ``ImportError`` without pyarrow. A cell the CSV leaves
+        empty (no value: a failed sample's summary, a NaN) is a null, as the CSV reads back."""
         import pyarrow as pa  # noqa: PLC0415
         import pyarrow.parquet as pq  # noqa: PLC0415
 
@@ -342,8 +343,10 @@ class SweepTable:
                 data[c] = pa.array([None if r.get(c) is None else int(r[c]) for r in self.rows], type=pa.int64())
                 continue
             col = self.column(c)
-            data[c] = pa.array(col, type=pa.float64()) if col.dtype == np.float64 and c not in _TEXT_COLUMNS else pa.array(
-                [None if v is None else str(v) for v in col], type=pa.string())
+            # from_pandas: NaN (a cell with no value, empty in the CSV) is a null, not a number: a
+            # failed sample's NaN summary made a Parquet column's mean NaN, where the CSV's skipped it.
+            data[c] = pa.array(col, type=pa.float64(), from_pandas=True) if col.dtype == np.float64 and \
+                c not in _TEXT_COLUMNS else pa.array([None if v is None else str(v) for v in col], type=pa.string())
         path = os.fspath(path)
         # An open file, not its name: pyarrow reads a name as a UTF-8 URI, so a folder named in other
         # bytes failed the table after every sample had run (sweep.csv beside it written).
