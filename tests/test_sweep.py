@@ -1192,3 +1192,14 @@ def test_the_parquet_table_has_no_value_where_the_csv_has_none(tmp_path):
     assert par.to_pylist() == back.rows
     for q in ("max_height", "kinetic_energy"):
         assert pc.mean(par[q]).as_py() == table.rows[0][q]
+
+
+def test_a_sweep_whose_samples_all_ran_has_no_reason_in_its_parquet_table(serial, tmp_path):
+    """Where every sample ran, no row has a reason or a warning: the CSV's cells are empty, but
+    the Parquet table's were the text 'nan' (the empty column read as numbers, then written as
+    text), so a filter for the failed samples ('reason is not null') found every one."""
+    pq = pytest.importorskip("pyarrow.parquet")
+    assert serial.all_ok and not any(r["reason"] or r["warnings"] for r in serial.rows)
+    par = pq.read_table(serial.to_parquet(tmp_path / "t.parquet"))
+    assert par["reason"].null_count == par["warnings"].null_count == len(serial)
+    assert par.to_pylist() == SweepTable.read_csv(serial.to_csv(tmp_path / "t.csv")).rows

@@ -343,10 +343,14 @@ class SweepTable:
                 data[c] = pa.array([None if r.get(c) is None else int(r[c]) for r in self.rows], type=pa.int64())
                 continue
             col = self.column(c)
-            # from_pandas: NaN (a cell with no value, empty in the CSV) is a null, not a number: a
-            # failed sample's NaN summary made a Parquet column's mean NaN, where the CSV's skipped it.
-            data[c] = pa.array(col, type=pa.float64(), from_pandas=True) if col.dtype == np.float64 and \
-                c not in _TEXT_COLUMNS else pa.array([None if v is None else str(v) for v in col], type=pa.string())
+            if col.dtype == np.float64 and c not in _TEXT_COLUMNS:
+                # from_pandas: NaN (a cell with no value, empty in the CSV) is a null, not a number: a
+                # failed sample's NaN summary made a Parquet column's mean NaN, where the CSV's skipped it.
+                data[c] = pa.array(col, type=pa.float64(), from_pandas=True)
+            else:
+                # The rows' values, not the column's: a text column with no value in any row (no
+                # sample failed) reads as NaNs, which were written as the text 'nan'.
+                data[c] = pa.array([None if r.get(c) is None else str(r[c]) for r in self.rows], type=pa.string())
         path = os.fspath(path)
         # An open file, not its name: pyarrow reads a name as a UTF-8 URI, so a folder named in other
         # bytes failed the table after every sample had run (sweep.csv beside it written).
