@@ -1203,3 +1203,28 @@ def test_a_sweep_whose_samples_all_ran_has_no_reason_in_its_parquet_table(serial
     par = pq.read_table(serial.to_parquet(tmp_path / "t.parquet"))
     assert par["reason"].null_count == par["warnings"].null_count == len(serial)
     assert par.to_pylist() == SweepTable.read_csv(serial.to_csv(tmp_path / "t.csv")).rows
+
+
+def _extra_numpy(model, state, seed):
+    """An ``extra`` as one is written: numpy's float32 and int64, not Python numbers."""
+    y = state.x.numpy()[:, 1]
+    return {"top_y": y.max(), "above_5cm": np.sum(y > 0.05)}
+
+
+def test_extra_columns_of_numpy_numbers_are_the_same_numbers_in_every_table(tmp_path):
+    """An ``extra`` returning numpy numbers (``y.max()`` is a float32, ``np.sum(mask)`` an
+    int64) made Parquet columns of text ('0.0475') and CSV cells of float32's shortest text,
+    read back as another float; an int column read back as floats, and Parquet wrote it as
+    doubles. The table, its CSV read back and its Parquet now hold the same numbers."""
+    table = sweep(_box(), ["yield_stress=10,10000"], frames=4, workers=1, extra=_extra_numpy)
+    x = [r["top_y"] for r in table.rows]
+    n = [r["above_5cm"] for r in table.rows]
+    assert all(type(v) is float for v in x) and all(type(v) is int for v in n), table.rows
+    # A higher yield stress slumps less: its top stays higher, with more particles above 5 cm.
+    assert x[0] < x[1] and n[0] <= n[1]
+    back = SweepTable.read_csv(table.to_csv(tmp_path / "t.csv"))
+    assert back.rows == table.rows
+    pq = pytest.importorskip("pyarrow.parquet")
+    par = pq.read_table(table.to_parquet(tmp_path / "t.parquet"))
+    assert str(par.schema.field("top_y").type) == "double" and str(par.schema.field("above_5cm").type) == "int64"
+    assert par.to_pylist() == table.rows

@@ -311,6 +311,14 @@ class SweepTable:
             return np.array([np.nan if v is None else v for v in values], dtype=np.float64)
         return np.array(values, dtype=object)
 
+    def _ints(self, name: str) -> bool:
+        """Whether column ``name`` is whole numbers: its values are ints (an ``extra``'s count as
+        the table's own ``steps``), or it has none and is one of the table's integer columns."""
+        values = [r.get(name) for r in self.rows if r.get(name) is not None]
+        if not values:
+            return _is_int_column(name)
+        return all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in values)
+
     @property
     def failed(self) -> list[dict]:
         return [r for r in self.rows if r["status"] != "ok"]
@@ -339,7 +347,7 @@ class SweepTable:
 
         data = {}
         for c in self.columns:
-            if _is_int_column(c):
+            if self._ints(c):
                 data[c] = pa.array([None if r.get(c) is None else int(r[c]) for r in self.rows], type=pa.int64())
                 continue
             col = self.column(c)
@@ -360,7 +368,8 @@ class SweepTable:
 
     @classmethod
     def read_csv(cls, path) -> "SweepTable":
-        """Read a table written by ``to_csv`` (numbers back as floats, empty cells as None)."""
+        """Read a table written by ``to_csv`` (ints back as ints, other numbers as floats, empty
+        cells as None)."""
         path = os.fspath(path)
         wanted = "must be a sweep table written by SweepTable.to_csv (a header with sample, status, the parameters, seed)"
         try:
@@ -388,16 +397,23 @@ def _cell(v) -> str:
     return str(v)
 
 
+_INTEGER = re.compile(r"[+-]?[0-9]+")
+
+
 def _parse_cell(column: str, text: str):
     if text == "":
         return None
     if column in _TEXT_COLUMNS:
         return text
+    if _INTEGER.fullmatch(text):
+        # A float is written by repr, with '.', 'e', 'inf' or 'nan': digits alone were an int
+        # (an extra's count read back as a float).
+        return int(text)
     try:
         v = float(text)
     except ValueError:  # a text column of an ``extra`` function
         return text
-    return int(v) if _is_int_column(column) else v
+    return int(v) if _is_int_column(column) and v.is_integer() else v
 
 
 def _is_int_column(column: str) -> bool:
@@ -568,7 +584,9 @@ def _run_sample(scene, task: _Task) -> dict:
                 if taken is None or taken:  # a key 'status' or a parameter's name overwrote the row's own
                     raise ValueError(f"extra returned {checks.shorten(more)!r}: it must return a dict of new columns"
                                      + (f", not {taken} (the table's own)" if taken else ""))
-                row.update(more)
+                # numpy's numbers as Python's (a float32 max, an int64 count): as they were, the
+                # Parquet column was text and the CSV's float32 text read back as another float.
+                row.update({k: v.item() if isinstance(v, np.generic) else v for k, v in more.items()})
     except SimulationError as e:
         # The reason alone, as for a StepRefusal: the advice named a Python caller's parameters
         # ('a smaller dt=', 'use dtype=float64'), and the table is the command's too. A
@@ -925,7 +943,8 @@ def sweep(
     - ``workers``/``ray``: where the samples run (``parallel_map``).
     - ``extra(model, state, seed) -> dict``: more columns per sample, from the final
       state (a module-level function, so it can be sent to the workers); ``seed`` is the
-      sample's own seed, the same wherever it runs.
+      sample's own seed, the same wherever it runs. numpy numbers (``x.max()``, a float32)
+      are kept as Python's, so the CSV and Parquet tables hold the same numbers.
     - ``on_result(row)``: called as each sample finishes (in finishing order).
 
     Raises ``ValueError`` for bad input before any sample runs.
