@@ -1228,3 +1228,13 @@ def test_extra_columns_of_numpy_numbers_are_the_same_numbers_in_every_table(tmp_
     par = pq.read_table(table.to_parquet(tmp_path / "t.parquet"))
     assert str(par.schema.field("top_y").type) == "double" and str(par.schema.field("above_5cm").type) == "int64"
     assert par.to_pylist() == table.rows
+
+
+@pytest.mark.parametrize("lo, hi, mid", [(100.0, 1e4, 1e3), (1e-200, 1e-150, 1e-175), (1e200, 1e300, 1e250)])
+def test_one_log_level_is_the_geometric_midpoint_of_any_range(lo, hi, mid):
+    """``NAME=LO:HI:log:1`` is sqrt(LO HI), inside the range: the product LO HI underflowed to 0
+    (1e-200 x 1e-150; the sample ran with a yield stress of 0, outside the range) or
+    overflowed to inf (1e200 x 1e300), where sqrt(LO) sqrt(HI) is the number."""
+    (point,) = sample_points([f"yield_stress={lo!r}:{hi!r}:log:1"])
+    y = point["yield_stress"]
+    assert lo < y < hi and y == pytest.approx(mid, rel=1e-12)

@@ -104,7 +104,13 @@ class Param:
                              f"give NAME=LO:HI:SCALE:N (e.g. {self.name}={self.lo:g}:{self.hi:g}:{self.scale}:4), "
                              f"or use --sample random|lhs with --samples N")
         if self.n == 1:
-            return np.array([self.lo if self.scale == "lin" else math.sqrt(self.lo * self.hi)])
+            if self.scale == "lin":
+                return np.array([self.lo])
+            product = self.lo * self.hi
+            # sqrt(LO) sqrt(HI) where LO HI leaves the floats: 1e-200 x 1e-150 was 0 (a sample
+            # outside its range), 1e200 x 1e300 inf; sqrt(LO HI) elsewhere, exact as 1e2:1e4 -> 1e3.
+            exact = sys.float_info.min <= product <= sys.float_info.max
+            return np.array([math.sqrt(product) if exact else math.sqrt(self.lo) * math.sqrt(self.hi)])
         if self.scale == "log":
             return np.geomspace(self.lo, self.hi, self.n)
         return np.linspace(self.lo, self.hi, self.n)
