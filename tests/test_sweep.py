@@ -1238,3 +1238,20 @@ def test_one_log_level_is_the_geometric_midpoint_of_any_range(lo, hi, mid):
     (point,) = sample_points([f"yield_stress={lo!r}:{hi!r}:log:1"])
     y = point["yield_stress"]
     assert lo < y < hi and y == pytest.approx(mid, rel=1e-12)
+
+
+def test_a_worker_that_dies_takes_down_only_the_samples_it_ran_beside():
+    """A sample that kills its worker process (a crash in native code, out of memory) broke
+    the pool, and every sample not finished then failed with it, the many never started too:
+    one crash in a long sweep left its remaining rows 'a worker process died'. The samples not
+    yet handed to a worker now run in a fresh pool, as on Ray, where only the task fails."""
+    table = sweep(_box(), ["yield_stress=10,20,40,80,160,320"], frames=4, workers=2, extra=_extra_that_fails)
+    status = [r["status"] for r in table.rows]
+    assert status[0] == "failed" and "worker process died" in table.rows[0]["reason"], table.rows[0]
+    # Sample 1 raises; at most one more was running beside sample 0 when it died.
+    assert status[3:] == ["ok"] * 3, [(r["status"], r["reason"]) for r in table.rows]
+    assert all(r["reason"] is None or "worker process died" in r["reason"] or r["reason"].startswith("TypeError")
+               for r in table.rows)
+    # The fresh pool's samples are the same runs: the slump still follows the yield stress.
+    top = table.column("max_height")[3:]
+    assert top[0] < top[1] < top[2]

@@ -687,7 +687,8 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
     ``on_result(index, result)`` is called in this process as each item finishes.
 
     An item fails when ``fn`` raises, its worker process dies (a crash in native code, out
-    of memory: every item not finished in that pool fails with it) or its Ray task or
+    of memory: the items running beside it fail with it, those not yet started go on in a
+    fresh pool, since each worker is handed one item at a time) or its Ray task or
     worker fails (a Ray task whose worker died is not retried: ``ray_resources`` may set
     ``max_retries``). With ``on_error(index, message)`` its return value is that item's result
     (``message``: ``'TypeError: ...'`` where ``fn`` raised, the same words wherever it ran)
@@ -729,33 +730,68 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
 
     # spawn, not fork: a forked child would inherit this process's Warp runtime (and any
     # threads), which Warp does not support; a spawned one initialises its own.
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_ignore_sigint)
+    def new_pool():
+        return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_ignore_sigint)
+
+    def finish(i, result):
+        results[i] = result
+        if on_result is not None:
+            on_result(i, result)
+
+    def why_dead() -> str:
+        script = _unguarded_main_script()
+        if script is not None:
+            return (f"the worker processes could not start: each one first imports the script {script}, which runs "
+                    "its parallel call again at import; put the script's top-level code under "
+                    "'if __name__ == \"__main__\":'")
+        return ("a worker process died before this item finished (a crash in native code or out of memory, in this "
+                "item or another one running at the time); run it again")
+
+    def settle(fut, i) -> bool:
+        """Take item ``i``'s outcome; True where its pool is broken."""
+        try:
+            result = fut.result()
+        except BrokenProcessPool:
+            if on_error is None:
+                raise RuntimeError(f"item {i}: {why_dead()}") from None
+            finish(i, on_error(i, why_dead()))
+            return True
+        except Exception as e:
+            if on_error is None:
+                raise
+            result = on_error(i, _one_line(f"{type(e).__name__}: {e}"))
+        finish(i, result)
+        return False
+
+    # At most one item per worker is handed to the pool: a worker that dies breaks the pool and
+    # fails every item in it, and with every item handed over at once that was the whole rest of
+    # the run. The items not handed over go on in a fresh pool.
+    todo = list(range(len(items)))[::-1]
+    pool = new_pool()
+    pending: dict = {}
     try:
-        pending = {pool.submit(_call, fn, item): i for i, item in enumerate(items)}
-        while pending:
+        while todo or pending:
+            while todo and len(pending) < workers:
+                i = todo.pop()
+                pending[pool.submit(_call, fn, items[i])] = i
             done, _ = wait(pending, return_when=FIRST_COMPLETED)
+            broken = False
             for fut in done:
-                i = pending.pop(fut)
-                try:
-                    results[i] = fut.result()
-                except BrokenProcessPool:
-                    why = ("a worker process died before this item finished (a crash in native code or out of "
-                           "memory, in this item or another one running at the time); run it again")
-                    script = _unguarded_main_script()
-                    if script is not None:
-                        why = (f"the worker processes could not start: each one first imports the script {script}, "
-                               "which runs its parallel call again at import; put the script's top-level code under "
-                               "'if __name__ == \"__main__\":'")
-                    if on_error is None:
-                        raise RuntimeError(f"item {i}: {why}") from None
-                    results[i] = on_error(i, why)
-                except Exception as e:
-                    if on_error is None:
-                        raise
-                    results[i] = on_error(i, _one_line(f"{type(e).__name__}: {e}"))
-                if on_result is not None:
-                    on_result(i, results[i])
+                broken = settle(fut, pending.pop(fut)) or broken
+            if not broken:
+                continue
+            for fut, i in list(pending.items()):  # the items it ran beside, each as it ended
+                wait([fut])
+                settle(fut, pending.pop(fut))
+            pool.shutdown(wait=True)
+            if todo and _unguarded_main_script() is not None:
+                # Its workers cannot start: a fresh pool would die as this one did.
+                for i in todo[::-1]:
+                    finish(i, on_error(i, why_dead()))
+                todo = []
+            if todo:
+                pool = new_pool()
     except BaseException:
         # Running samples would otherwise finish before the interpreter can exit.
         for proc in list((getattr(pool, "_processes", None) or {}).values()):
