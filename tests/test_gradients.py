@@ -498,6 +498,52 @@ def test_energy_spiky_pressure_gradients_match_central_differences(weights, case
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
 
 
+#: (parameter at 0, the other SPH parameter's value, pressure force, ``Solver(fused=)``): the
+#: stiffness at 0 beside a viscosity, where the clamp of each pressure force held every pressure at 0.
+SPH_AT_ZERO = {
+    "stiffness-beside-viscosity": ("pressure_stiffness", 2.0, "energy_spiky", True),
+    "stiffness-beside-viscosity-energy": ("pressure_stiffness", 2.0, "energy", True),
+    "stiffness-beside-viscosity-spiky": ("pressure_stiffness", 2.0, "spiky", False),
+}
+
+
+@pytest.mark.parametrize("case", sorted(SPH_AT_ZERO))
+def test_gradients_in_a_pressure_stiffness_or_viscosity_of_zero_are_the_one_sided_slopes(weights, case):
+    """A fit may start a pressure stiffness or a viscosity at 0, the lower end of its range
+    (``fit._NON_NEGATIVE``): the tape's gradient there is the loss's slope into the range,
+    against the second-order one-sided difference ``(-3 L(0) + 4 L(e) - L(2 e)) / (2 e)`` in
+    float64 at two steps a hundred times apart (the loss is smooth in either parameter from
+    0 on: the tolerance 1e-4 is the difference's round-off at the small step). With the
+    stiffness at 0, every clamped pressure's adjoint took the tie of ``max(k_p (rho - rho0),
+    0)`` at 0 and the tape read 0 (measured: one-sided -3.9e-7). A taped step's positions
+    stay those of an untaped one, bitwise."""
+    name, other_value, pressure_force, fused = SPH_AT_ZERO[case]
+    other = "viscosity" if name == "pressure_stiffness" else "pressure_stiffness"
+
+    def make(value):
+        return _model({name: value, other: other_value, "pressure_force": pressure_force})
+
+    model = make(0.0)
+    loss, grads = _rollout_loss(model, weights, grad_of=(name,), fused=fused)
+    untaped = we.Solver(make(0.0), fused=fused)
+    a, b = untaped.model.state(), untaped.model.state()
+    a.alpha.fill_(ALPHA0)
+    for _ in range(STEPS):
+        untaped.step(a, b, DT)
+        a, b = b, a
+    taped_model = make(0.0)
+    solver = we.Solver(taped_model, fused=fused)
+    states = [taped_model.state() for _ in range(STEPS + 1)]
+    states[0].alpha.fill_(ALPHA0)
+    taped_rollout_loss(solver, states, DT, weights)
+    np.testing.assert_array_equal(states[-1].x.numpy(), a.x.numpy())
+    for e in (1e-2, 1e-4):
+        slope = (-3.0 * loss + 4.0 * _rollout_loss(make(e), weights, fused=fused)[0]
+                 - _rollout_loss(make(2.0 * e), weights, fused=fused)[0]) / (2.0 * e)
+        assert abs(slope) > 1e-9, f"the loss does not reach {name}"
+        assert grads[name][0] == pytest.approx(slope, rel=1e-4), e
+
+
 def _elastic_model(params=None, **kw):
     """The hourglass block made purely elastic (no yield, no flow): the default solver
     (``fit="auto"``) then runs the curvature-corrected fit with the hourglass control, on the

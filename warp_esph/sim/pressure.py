@@ -41,11 +41,15 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     @wp.func
     def pressure(rho: scalar, rho0: scalar, k_p: scalar, clamp: int) -> scalar:
-        """The equation of state ``p = k_p (rho - rho0)``, clamped at 0 when ``clamp``."""
-        p = k_p * (rho - rho0)
+        """The equation of state ``p = k_p (rho - rho0)``, clamped at 0 when ``clamp``.
+        The clamp holds the density's excess, not the product: the same value for
+        ``k_p >= 0``, and at ``k_p = 0`` (where a fit may start it) the adjoint keeps the
+        slope ``dp/dk_p = rho - rho0`` of a compressed particle, where ``max(k_p (rho - rho0),
+        0)`` tied at 0 and gave none."""
+        d = rho - rho0
         if clamp != 0:
-            p = wp.max(p, scalar(0.0))
-        return p
+            d = wp.max(d, scalar(0.0))
+        return k_p * d
 
     @wp.func
     def pressure_pair_force(VV: scalar, p_i: scalar, p_j: scalar, rij: vec3, rl: scalar, h: scalar, c_spiky: scalar) -> vec3:
@@ -386,11 +390,13 @@ def kernels(scalar) -> types.SimpleNamespace:
 
     @wp.func
     def pressure_slope(rho: scalar, rho0: scalar, k_p: scalar, clamp: int) -> scalar:
-        """1 where ``pressure`` follows ``k_p (rho - rho0)``, 0 where the clamp holds it at 0
-        (as Warp's adjoint of ``max``: a tie goes to the clamp)."""
+        """1 where ``pressure`` follows ``k_p (rho - rho0)``, 0 where the clamp holds the
+        density's excess at 0 (as Warp's adjoint of ``max``: a tie goes to the clamp),
+        whatever ``k_p``: at ``k_p = 0`` a compressed particle's pressure still has the slope
+        ``rho - rho0`` in ``k_p``."""
         out = scalar(1.0)
         if clamp != 0:
-            if not (k_p * (rho - rho0) > scalar(0.0)):
+            if not (rho - rho0 > scalar(0.0)):
                 out = scalar(0.0)
         return out
 
