@@ -498,9 +498,13 @@ def test_energy_spiky_pressure_gradients_match_central_differences(weights, case
     assert grads[name][0] == pytest.approx(fd, rel=1e-4)
 
 
-#: (parameter at 0, the other SPH parameter's value, pressure force, ``Solver(fused=)``): the
-#: stiffness at 0 beside a viscosity, where the clamp of each pressure force held every pressure at 0.
+#: (parameter at 0, the other SPH parameter's value, pressure force, ``Solver(fused=)``): both at 0,
+#: where the step ran no SPH term at all, and the stiffness alone at 0 beside a viscosity,
+#: where the clamp of each pressure force held every pressure at 0.
 SPH_AT_ZERO = {
+    "stiffness-alone": ("pressure_stiffness", 0.0, "energy_spiky", True),
+    "viscosity-alone": ("viscosity", 0.0, "energy_spiky", True),
+    "stiffness-alone-unfused": ("pressure_stiffness", 0.0, "energy_spiky", False),
     "stiffness-beside-viscosity": ("pressure_stiffness", 2.0, "energy_spiky", True),
     "stiffness-beside-viscosity-energy": ("pressure_stiffness", 2.0, "energy", True),
     "stiffness-beside-viscosity-spiky": ("pressure_stiffness", 2.0, "spiky", False),
@@ -513,10 +517,11 @@ def test_gradients_in_a_pressure_stiffness_or_viscosity_of_zero_are_the_one_side
     (``fit._NON_NEGATIVE``): the tape's gradient there is the loss's slope into the range,
     against the second-order one-sided difference ``(-3 L(0) + 4 L(e) - L(2 e)) / (2 e)`` in
     float64 at two steps a hundred times apart (the loss is smooth in either parameter from
-    0 on: the tolerance 1e-4 is the difference's round-off at the small step). With the
-    stiffness at 0, every clamped pressure's adjoint took the tie of ``max(k_p (rho - rho0),
-    0)`` at 0 and the tape read 0 (measured: one-sided -3.9e-7). A taped step's positions
-    stay those of an untaped one, bitwise."""
+    0 on: the tolerance 1e-4 is the difference's round-off at the small step). With both at 0
+    the step ran no SPH term and the tape read 0 for both (measured: one-sided -3.7e-7 and
+    -4.5e-4); with the stiffness alone at 0, every clamped pressure's adjoint took the tie of
+    ``max(k_p (rho - rho0), 0)`` at 0 and read 0 too (-3.9e-7). A taped step's positions stay
+    those of an untaped one, bitwise."""
     name, other_value, pressure_force, fused = SPH_AT_ZERO[case]
     other = "viscosity" if name == "pressure_stiffness" else "pressure_stiffness"
 

@@ -158,7 +158,10 @@ class Solver:
 
     Whether SPH pressure and viscosity run, and the stable time step ``check_dt`` warns
     against, follow the model's parameter arrays at each step (``Model.sph_active``,
-    ``Model.stable_dt``): values a fit or ``warp_esph.torch`` wrote are the ones used.
+    ``Model.stable_dt``): values a fit or ``warp_esph.torch`` wrote are the ones used. Under a
+    recording ``wp.Tape`` of a ``requires_grad`` model they run also where every pressure
+    stiffness and viscosity is 0, adding zero forces, so the gradients in both are the
+    loss's slopes from 0, not 0.
 
     A model with a material of a Fig. 8 comparison deformation model (``Material.deformation``
     ``"rest"`` or ``"additive"``, docs/method.md §7) always runs the non-fused kernels, with the
@@ -742,7 +745,11 @@ class Solver:
             # Only an automatic solver's choice follows the parameters (rest_model is False otherwise).
             chose_rest = self._choose() if self._auto else False
             dt = self.check_dt(dt)
-            sph = m.sph_active
+            # Under a tape of a model with gradients the SPH terms run also where every pressure
+            # stiffness and viscosity is 0 (adding exact zeros to the forces): their adjoints
+            # carry the loss's slope in both from 0, where a fit may start them, which a skipped
+            # term made 0 (a fit of the viscosity from 0 stopped as 'flat').
+            sph = m.sph_active or (tape is not None and m.requires_grad)
             taped_rows = m._read_parameters() if tape is not None else None  # the same read, held
         taped_materials = tuple(m.materials) if tape is not None else None
         scratch = self.scratch
