@@ -1,0 +1,146 @@
+"""Float64 central differences for the step's kernel and option combinations that no other
+gradient test takes: each at rest on its floor (F = I, every singular value repeated, the
+contact law holding the block) and thrown into it (strained, sliding, pressed), at two steps
+a hundred times apart, the larger one large enough that a jump in the loss would show, and
+the hand-written adjoints against Warp's generated ones (``Solver.hand_adjoints``).
+
+Where the other combinations are checked (float64 central differences of a taped rollout):
+
+- the fused linear fit with either elastic force, plasticity, pressure and viscosity,
+  the stress models, the non-fused schedule, a force field: ``test_gradients.py``
+  (``test_material_gradient...``, ``_OTHER_PATHS``; at rest on a floor, ``AT_REST``);
+- the comparison models (``rest``, ``additive``) and the default elastic solver's rest model:
+  ``test_gradients.py`` (``test_comparison_models...``, ``REST_CASES``, the hand-over);
+- the curvature-corrected fit, the hourglass control, ``energy_spiky``, the biweight fit
+  weight on the incremental fits, the floor images, the guards' fades, keyed rows:
+  ``test_gradients.py``; a pressure stiffness or viscosity of 0: ``SPH_AT_ZERO`` there;
+- the ghost floor: ``test_ghost_floor.py``; the static colliders and the contact ramps:
+  ``test_static_colliders.py``, ``test_friction.py``, ``test_smooth_loss.py``;
+- tools (plane, box, sphere, capsule, cylinder, mesh; keyframes, pins, a particle floor):
+  ``test_tools.py``; worlds: ``test_worlds.py`` (against separate tapes).
+"""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warp_esph as we
+from taped_loss import random_weights, taped_rollout_loss
+from warp_esph import tools
+
+DT = 1.0e-3
+STEPS = 8
+DX = 0.02
+ELASTIC = {"yield_stress": float("inf"), "flow_rate": 0.0, "hardening": 0.0}
+
+#: name -> (material options, ``Solver`` options, ``SceneBuilder`` options, floor). ``corotated*``:
+#: an elastic linear (or non-Newtonian) material on the variational force takes the corotated
+#: stress (``forces.corotated_stress``) on the incremental fits, fused, not fused and corrected;
+#: ``default_elastic*``: what ``Solver(model)`` runs for an elastic model (the rest model with
+#: the corrected total fit and the hourglass control), also with the biweight; the biweight on
+#: the rest and additive materials, the ghost floor and the non-fused floor images; the hourglass
+#: control beside the paper's force, the floor images and the ghost floor; the ``energy`` and
+#: ``spiky`` pressure forces on the non-fused schedule (one unclamped); a block held on a mesh
+#: tool and on a cylinder tool standing on its axis.
+CASES = {
+    "corotated": (ELASTIC, {"fit": "linear"}, {}, "ground"),
+    "corotated_unfused": (ELASTIC, {"fit": "linear", "fused": False}, {}, "ground"),
+    "corotated_non_newtonian": ({**ELASTIC, "model": "non_newtonian"}, {"fit": "linear"}, {}, "ground"),
+    "corotated_corrected": (ELASTIC, {"fit": "curvature_corrected"}, {}, "ground"),
+    "default_elastic": (ELASTIC, {}, {}, "ground"),
+    "default_elastic_biweight": (ELASTIC, {}, {"fit_weight": "biweight"}, "ground"),
+    "biweight_rest_variational": ({"deformation": "rest", "elastic_force": "variational"}, {}, {"fit_weight": "biweight"},
+                                  "ground"),
+    "biweight_rest_paper": ({"deformation": "rest"}, {}, {"fit_weight": "biweight"}, "ground"),
+    "biweight_additive": ({"deformation": "additive"}, {}, {"fit_weight": "biweight"}, "ground"),
+    "biweight_ghost_floor": ({}, {}, {"fit_weight": "biweight"}, "ghost"),
+    "biweight_unfused_images": ({}, {"fused": False}, {"fit_weight": "biweight"}, "images"),
+    "hourglass_paper": ({"elastic_force": "paper"}, {"hourglass": 0.5}, {}, "ground"),
+    "hourglass_images": ({}, {"hourglass": 0.5}, {}, "images"),
+    "hourglass_ghost_floor": ({}, {"hourglass": 0.5}, {}, "ghost"),
+    "energy_unfused": ({"pressure_force": "energy"}, {"fused": False}, {}, "ground"),
+    "spiky_unfused_unclamped": ({"pressure_force": "spiky", "clamp_pressure": False}, {"fused": False}, {}, "ground"),
+    "mesh_tool": ({}, {}, {}, "mesh"),
+    "cylinder_tool": ({}, {}, {}, "cylinder"),
+}
+
+
+def _model(case, scene, params=None):
+    """A 4 x 3 x 3 block (36 particles, jittered by 1e-3 dx) whose bottom layer lies on the
+    case's floor at y = 0.01: ``rest``, from rest (F = I, v = 0) under gravity; ``thrown``, with
+    a stretching and squeezing velocity field, a slide along x and a push into the floor."""
+    options, _solver, builder, floor = CASES[case]
+    p = {"mu": 1.0e3, "lam": 1.5e3, "yield_stress": 10.0, "flow_rate": 50.0, "hardening": 200.0, "pressure_stiffness": 1.0,
+         "viscosity": 2.0, **options, **(params or {})}
+    b = we.SceneBuilder(spacing=DX, gravity=(0.0, -9.81, 0.0), **builder)
+    b.add_box((0.0, 0.03, 0.0), (4 * DX, 3 * DX, 3 * DX), we.Material(density=1000.0, **p), name="block")
+    if floor == "ghost":
+        b.add_particle_floor("block", margin=DX, ghost=True)
+    elif floor == "mesh":
+        b.add_tool("mesh", mesh=tools.box_mesh((0.1, 0.01, 0.1)), position=(0.0, 0.0, 0.0), friction=0.5, name="floor")
+    elif floor == "cylinder":
+        b.add_tool("cylinder", radius=0.05, half_height=0.05, position=(0.0, -0.04, 0.0), friction=0.5, name="floor")
+    else:
+        b.add_ground(0.01, friction=0.5, images=floor == "images")
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * DX, size=model.particle_x0.shape)
+    if scene == "thrown":
+        x0 = model.particle_x0
+        model.particle_v0 = (10.0 * (x0 - x0.mean(axis=0)) * np.array([1.0, -0.5, 0.0]) + np.array([0.2, -0.3, 0.0])
+                             + np.random.default_rng(11).normal(scale=0.02, size=x0.shape))
+    return model
+
+
+def _loss(case, model, w, grad_of=None, hand_adjoints=True):
+    solver = we.Solver(model, **CASES[case][1])
+    solver.hand_adjoints = hand_adjoints
+    states = [model.state() for _ in range(STEPS + 1)]
+    loss, tape = taped_rollout_loss(solver, states, DT, w)
+    if grad_of is None:
+        return loss.numpy()[0]
+    tape.backward(loss)
+    grads = {n: (states[0].v if n == "v0" else getattr(model, n)).grad.numpy().copy() for n in grad_of}
+    return grads, solver, states
+
+
+@pytest.mark.parametrize("scene", ["rest", "thrown"])
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_gradients_of_the_remaining_step_options_match_central_differences(case, scene):
+    """The tape's gradient in a material parameter (``lam`` at rest, where the stress is near
+    0 and ``mu`` reaches the loss by 1e-10 only; ``mu`` thrown) and in the initial velocity of
+    the lowest particle along x against float64 central differences at a relative step of
+    1e-3 and 1e-5 (1e-4 and 1e-6 m/s), within 1e-4 (measured: within 5e-6 at the larger steps,
+    the loss's curvature, and 3e-5 at the smaller, its round-off); the hand-written adjoints
+    give the generated ones' gradients to 1e-8 (measured: 5e-15 of the largest)."""
+    model = _model(case, scene)
+    w = random_weights(model.particle_count, 2)
+    name = "lam" if scene == "rest" else "mu"
+    grads, solver, states = _loss(case, model, w, (name, "v0"))
+    generated = _loss(case, _model(case, scene), w, (name, "v0"), hand_adjoints=False)[0]
+    for n in (name, "v0"):
+        np.testing.assert_allclose(grads[n], generated[n], rtol=1e-8, atol=1e-12 * np.abs(generated[n]).max())
+    # The case runs what its name says, and the floor holds the block.
+    floor = CASES[case][3]
+    if case.startswith("default_elastic"):
+        assert solver.rest_model and solver.fit == "curvature_corrected" and solver.hourglass > 0.0
+    if floor in ("mesh", "cylinder"):
+        assert np.abs(states[-1].reaction_force.numpy()).max() > 0.0
+    elif floor != "ghost":
+        assert np.abs(states[-1].collider_force.numpy()).max() > 0.0
+    base = getattr(model.materials[0], name)
+    for rel in (1e-3, 1e-5):
+        eps = rel * base
+        fd = (_loss(case, _model(case, scene, {name: base + eps}), w)
+              - _loss(case, _model(case, scene, {name: base - eps}), w)) / (2 * eps)
+        assert abs(fd) > 1e-11, f"the loss does not reach {name}"
+        assert grads[name][0] == pytest.approx(fd, rel=1e-4), (name, rel)
+    i = int(np.argmin(model.particle_x0[:36, 1]))
+    for eps in (1e-4, 1e-6):
+        def loss_with(delta):
+            m = _model(case, scene)
+            m.particle_v0[i, 0] += delta
+            return _loss(case, m, w)
+
+        fd = (loss_with(eps) - loss_with(-eps)) / (2 * eps)
+        assert abs(fd) > 1e-9
+        assert grads["v0"][i, 0] == pytest.approx(fd, rel=1e-4, abs=1e-9), eps
