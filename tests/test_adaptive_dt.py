@@ -104,6 +104,30 @@ def test_the_adaptive_step_follows_a_hourglass_strength_set_during_the_run():
     assert np.isfinite(final.v.numpy()).all() and np.abs(final.v.numpy()).max() < 2.0
 
 
+def test_a_step_fitted_to_the_frame_is_not_warned_as_above_the_stable_limit():
+    """The default and the adaptive step fit a whole number of steps to a frame, to rounding
+    (1e-12): asked for ``fps = 1 / (n stable_dt)``, a natural way to run n stable steps a
+    frame, 81 of n = 1..999 gave this clay box a step one rounding above ``stable_dt()``, and
+    the solver warned of its own choice that the run may blow up. A step beyond rounding
+    still warns."""
+    import warnings
+
+    b = we.SceneBuilder(spacing=DX, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.05, 0.0), (0.06, 0.06, 0.06), we.Material.preset("clay"))
+    model = b.finalize()
+    stable = model.stable_dt()
+    n = next(n for n in range(1, 100) if resolve_timestep(model, 1.0 / (n * stable))[1] > stable)
+    fps = 1.0 / (n * stable)
+    assert adaptive_timestep(model, model.state(), fps)[1] > stable  # the premise: both choose it
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        simulate(model, 1, fps=fps, progress=False)
+        simulate(model, 1, fps=fps, dt="auto", progress=False)
+    a, c = model.state(), model.state()
+    with pytest.warns(RuntimeWarning, match="above the explicit stability limit"):
+        we.Solver(model).step(a, c, stable * (1.0 + 1e-6))
+
+
 def test_adaptive_step_rejects_bad_input():
     model = _dropped_ball()
     with pytest.raises(ValueError, match=r"dt = 'fast' is not allowed: must be a number of seconds or 'auto'"):

@@ -34,6 +34,12 @@ COUNT_NEIGHBORS_CUT = 4
 #: (measured in benchmarks/step.py, docs/performance.md).
 DEFAULT_SKIN = 0.15
 
+#: Relative amount by which a step may pass ``Model.stable_dt`` without the warning: the
+#: default and adaptive steps (``simulate.resolve_timestep``, ``adaptive_timestep``) fit a
+#: whole number of steps to a frame to 1e-12, so ``fps = 1 / (n stable_dt)`` got a step one
+#: rounding above the limit, warned of as if the run might blow up.
+STEP_ROUNDING = 1e-9
+
 #: Names ``profile_phases`` times: the fused step has neighbors, fused, integrate and
 #: deformation; the differentiable one (under a tape, or ``fused=False``) splits
 #: ``fused`` into density, constitutive, forces and pressure.
@@ -710,7 +716,8 @@ class Solver:
     def check_dt(self, dt) -> float:
         """``dt`` as a float, refused (ValueError) unless positive and representable in the
         model's precision; warns once per value above ``Model.stable_dt`` (with the
-        hourglass strength this solver runs). ``step`` calls it."""
+        hourglass strength this solver runs) by more than rounding, ``STEP_ROUNDING``. ``step``
+        calls it."""
         dt = checks.positive("dt", dt)
         info = np.finfo(np.float32 if self.model.scalar is wp.float32 else np.float64)
         if not float(info.tiny) <= dt <= float(info.max):
@@ -718,7 +725,7 @@ class Solver:
             raise ValueError(f"dt = {dt!r} is not allowed in {self.model.scalar.__name__}: must be in "
                              f"[{float(info.tiny):.3g}, {float(info.max):.3g}] s")
         stable = self.model.stable_dt(hourglass=self.hourglass)
-        if dt > stable and (dt, stable) not in self._warned_dt:
+        if dt > stable * (1.0 + STEP_ROUNDING) and (dt, stable) not in self._warned_dt:
             self._warned_dt.add((dt, stable))
             warnings.warn(
                 f"dt = {dt:g} s is above the explicit stability limit {stable:.3g} s "
