@@ -60,7 +60,7 @@ def _energy_force(r: dict) -> str:
 def _model_note(rows, labels: bool = False) -> str:
     """A sentence on which deformation model the variational rows of ``rows`` ran: the
     tables name the force, and the default solver (``fit="auto"``) runs the rest-configuration
-    model where the scene is purely elastic and has no tool, so one force column holds rows of
+    model where the scene is purely elastic and has no floor images or ghost floor (tools allowed), so one force column holds rows of
     either model. ``rest_model_steps`` (recorded since that default) counts the steps that ran
     it; a row without the field ran the incremental composition, the default then.
     ``labels``: name the rows (their ``label``) that ran the rest model. Empty where none did."""

@@ -1712,7 +1712,7 @@ def test_the_solver_fit_help_names_the_rest_configuration_model(command, capsys)
     text = "".join(capsys.readouterr().out.split())
     auto = text[text.rindex("--solver-fitNAME"):]
     for said in ("auto (where no material can flow and all use the variational force, the rest-configuration model",
-                 "in a scene with tools or floor images the incremental curvature_corrected fit"):
+                 "tools allowed; in a scene with floor images or a ghost floor the incremental curvature_corrected fit"):
         assert "".join(said.split()) in auto
 
 

@@ -249,17 +249,27 @@ def test_the_pages_name_every_scene_part_that_keeps_auto_off_the_rest_model():
     scenes without tools" and "where the scene has no tools", and docs/method.md the same,
     where a scene with floor images or a ghost floor runs the incremental composition; then,
     once tools were allowed, a page still naming them would send a tool's scene to the wrong
-    model."""
+    model: docs/scene_format.md's ``fit`` row ("no tools, floor images or ghost floor"),
+    docs/performance.md ("the scene has no tool") and ``--solver-fit``'s help ("in a scene with
+    tools or floor images the incremental ... fit") said so after the change."""
     doc = we.Model.scene_allows_rest.__doc__
     assert "no ghost floor, no floor images (tools" in doc and "allowed" in doc
     named = 0
-    for page in [ROOT / "README.md", DOCS / "cli.md", DOCS / "method.md", DOCS / "physics.md"]:
+    for page in [ROOT / "README.md", DOCS / "cli.md", DOCS / "method.md", DOCS / "physics.md", DOCS / "scene_format.md",
+                 DOCS / "performance.md"]:
         text = _plain(page.read_text())
-        for m in re.finditer(r"(?:scenes without|the scene has no) (?:tools|floor images)\b(.{0,50})", text):
+        for m in re.finditer(r"(?:scenes without|the scene has no) (?:tools?|floor images)\b(.{0,50})", text):
             named += 1
-            assert not re.search(r"\btools\b(?! allowed)", m.group(0)), (page.name, m.group(0))
+            assert not re.search(r"\btools?\b(?! allowed)", m.group(0)), (page.name, m.group(0))
             assert "floor images" in m.group(0) and "ghost floor" in m.group(0), (page.name, m.group(0))
-    assert named >= 6
+    assert named >= 8
+    _, commands = _subparsers()
+    for name, sub in commands.items():
+        for action in sub._actions:
+            if "--solver-fit" in action.option_strings:
+                text = _plain(action.help)
+                assert not re.search(r"\btools?\b(?! allowed)", text), (name, text)
+                assert "floor images" in text and "ghost floor" in text, (name, text)
 
 
 def test_the_incremental_guard_physics_md_states_is_the_codes():

@@ -150,8 +150,8 @@ def _add_solver_arguments(parser) -> None:
     parser.add_argument("--solver-fit", metavar="NAME",
                         help="fit of the solver: auto (where no material can flow and all use the variational force, the "
                              "rest-configuration model: the curvature_corrected total fit against each particle's rest "
-                             "neighbourhood, with the hourglass control; in a scene with tools or floor images the "
-                             "incremental curvature_corrected fit with the control; else linear), linear (the paper's) or "
+                             "neighbourhood, with the hourglass control, tools allowed; in a scene with floor images or a ghost "
+                             "floor the incremental curvature_corrected fit with the control; else linear), linear (the paper's) or "
                              "curvature_corrected (stiffer in bending near free surfaces); default: the scene's [solver] fit, "
                              "else auto")
     parser.add_argument("--contact", metavar="NAME",
