@@ -14,6 +14,7 @@ import warp_esph as we
 from taped_loss import random_weights, taped_rollout_loss
 from warp_esph import tools
 from warp_esph.builder import finalize_worlds
+from warp_esph.model import CONTACTS
 
 G = 9.81
 
@@ -1199,6 +1200,57 @@ def test_tool_arrays_written_in_place_are_checked_before_the_step(name, bad, mes
     np.testing.assert_array_equal(x.x.numpy(), before)  # refused before any kernel wrote state_out
     getattr(m.tools, name).assign(good)
     s.step(y, x, 1e-4)
+
+
+_coulomb64 = we.sim.colliders.funcs(wp.float64).coulomb_response
+
+
+@wp.kernel
+def _tangential_after_contact(vt: wp.array(dtype=wp.float64), mu_s: wp.float64, mu_k: wp.float64, ramp: wp.float64,
+                              out: wp.array(dtype=wp.float64)):
+    # A particle resting on a plane (normal +y) whose step added 1 m/s inward: all of it is removed.
+    i = wp.tid()
+    dt = wp.float64(1.0e-3)
+    v = _coulomb64(wp.vec3d(vt[i], wp.float64(-1.0), wp.float64(0.0)), wp.vec3d(), wp.vec3d(0.0, 1.0, 0.0), dt, dt, ramp,
+                   mu_s, mu_k)
+    out[i] = v[0]
+
+
+@pytest.mark.parametrize("contact", ["continuous", "instant"])
+def test_a_kinetic_friction_written_above_the_static_one_acts_as_both(contact):
+    """``friction`` and ``static_friction`` are separate arrays: a descent on the kinetic
+    coefficient alone leaves the static one below it, which the builder refuses. The contact
+    law then ran its slip branch on a negative excess, where friction raised a particle's
+    tangential speed (0.01 to 1.43 m/s at static 0, kinetic 0.5, 1 m/s of normal speed
+    removed) or reversed it (to -0.49 m/s, the instant law). The static coefficient is now
+    taken as at least the kinetic one: the law leaves what Coulomb friction at the kinetic
+    coefficient leaves, and a block sliding to rest on a plane tool whose friction was written
+    from 0.1 to 0.6 runs as one built with 0.6 (before: 1e-5 m apart at 80 ms)."""
+    ramp = CONTACTS[contact]
+    vt = np.array([0.01, 0.1, 0.3, 0.45, 0.5, 0.55, 0.6, 1.0])
+    out = wp.zeros(len(vt), dtype=wp.float64)
+    wp.launch(_tangential_after_contact, len(vt), [wp.array(vt, dtype=wp.float64), 0.0, 0.5, ramp], [out])
+    left = out.numpy()
+    assert (left >= 0.0).all() and (left <= np.maximum(vt - 0.5, 0.0) + 1e-12).all(), left  # Coulomb's, or less in the rounding
+    assert left[-1] == pytest.approx(0.5)  # sliding past the band: exactly Coulomb
+
+    def run(built, written=None):
+        b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0), contact=contact)
+        b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), _elastic(1e5, viscosity=1.0), name="block", velocity=(0.3, 0.0, 0.1))
+        b.add_tool("plane", position=(0.0, 0.01, 0.0), friction=built, name="floor")
+        m = b.finalize(dtype=wp.float64)
+        if written is not None:
+            m.tools.friction.assign(np.array([written]))
+        s, x, y = we.Solver(m), m.state(), m.state()
+        for _ in range(400):
+            s.step(x, y, 2e-4)
+            x, y = y, x
+        return x.x.numpy(), x.v.numpy()
+
+    x_built, v_built = run(0.6)
+    x_written, v_written = run(0.1, 0.6)
+    np.testing.assert_array_equal(x_written, x_built)
+    np.testing.assert_array_equal(v_written, v_built)
 
 
 # ------------------------------------------------------------- scene files, CLI, USD

@@ -155,6 +155,11 @@ def funcs(scalar) -> types.SimpleNamespace:
         (else 0), over which the friction's normal impulse is rounded off to zero."""
         vr = v - vs
         vn = wp.dot(vr, n)
+        # A static coefficient below the kinetic one (a descent that moved a tool's
+        # ``friction`` array alone; the builder refuses it) acts as the kinetic one: the slip
+        # branch below it would run on a negative excess, where friction raised the
+        # tangential speed (0.01 to 1.43 m/s at 0 and 0.5) or reversed it (instant law).
+        mu_stick = wp.max(mu_s, mu_k)
         if vn < scalar(0.0) and depth > scalar(0.0):
             vt = vr - vn * n
             vt_len = wp.length(vt)
@@ -164,14 +169,14 @@ def funcs(scalar) -> types.SimpleNamespace:
                 dvn_f = dvn
                 if band > scalar(0.0):
                     dvn_f = slip_speed(dvn, band)
-                if vt_len <= mu_s * dvn_f:
+                if vt_len <= mu_stick * dvn_f:
                     return vs + vn_left
                 slip = slip_speed(vt_len - mu_k * dvn_f, mu_k * dvn_f)
                 return vs + vn_left + vt * (slip / vt_len)
             # The instant law, as it was computed (a float32 run of the rubber ball settles
             # differently under a rounding-level change of this expression).
             dvn = -vn
-            if vt_len <= mu_s * dvn:
+            if vt_len <= mu_stick * dvn:
                 return vs
             return vs + vt * (scalar(1.0) - mu_k * dvn / vt_len)
         return v
@@ -182,7 +187,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         particle found ``depth`` inside it after the drift: the share ``touchdown_share`` of
         the inward relative normal velocity ``-vn`` is removed; Coulomb friction on the
         relative tangential velocity, sticking while it is at most ``mu_s`` times the normal
-        velocity removed, else reduced by ``mu_k`` times it. The one contact law of the
+        velocity removed (``mu_s`` taken as at least ``mu_k``), else reduced by ``mu_k`` times it. The one contact law of the
         static colliders and the moving tools (``warp_esph/tools.py``).
 
         A particle that barely crosses the surface in a step loses barely any normal
