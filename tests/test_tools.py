@@ -1684,6 +1684,29 @@ def test_a_block_sticking_on_a_held_sphere_tool_does_not_creep():
     np.testing.assert_allclose(force, [0.0, weight, 0.0], atol=1e-2 * weight)
 
 
+@pytest.mark.parametrize("face", [0.0217, 0.10432, 0.3, 1.0])
+def test_particles_on_a_mesh_tools_face_within_float32s_resolution_are_put_the_margin_outside(face):
+    """A sheet of particles at rest on a box mesh's top face, modelled ``face`` m up, 0 to 2e-8
+    m above it (within float32's resolution there), no gravity: one step puts every one the
+    contact's margin above the face, straight up. Warp's float32 sign read most of them
+    inside: 99 of 100 were put the margin inside the face at 0.3 and 1.0 m (4 and 6 at 0.104
+    and 0.022), their inward speed kept, and the one on the diagonal between the top's two
+    triangles went the margin sideways; within the margin the face's plane now decides."""
+    b = we.SceneBuilder(spacing=0.01, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, face + 0.005, 0.0), (0.1, 0.01, 0.1), _elastic(1e5), name="sheet")
+    pts, tris = tools.box_mesh((0.2, 0.05, 0.2))
+    b.add_tool("mesh", mesh=(pts + np.array([0.0, face - 0.05, 0.0]), tris), name="table")
+    m = b.finalize(dtype=wp.float64)
+    x0 = m.particle_x0.copy()
+    x0[:, 1] = face + np.linspace(0.0, 2e-8, len(x0))
+    m.particle_x0 = x0
+    s, a, c = we.Solver(m), m.state(), m.state()
+    s.step(a, c, 1e-4)
+    x = c.x.numpy()
+    np.testing.assert_allclose(x[:, 1] - face, m.tools.margin, rtol=1e-9)
+    np.testing.assert_allclose(x[:, [0, 2]], x0[:, [0, 2]], rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("shape", ["box", "mesh", "wide mesh"])
 def test_a_block_on_a_held_box_tool_comes_to_rest_at_the_contacts_margin(shape):
     """A block resting on a held box tool (or a mesh of it, also one 20000 spacings wide): over 0.2-0.4 s its bottom layer stays where the
