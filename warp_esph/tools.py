@@ -662,15 +662,12 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         return out, on_face
 
     @wp.func
-    def shape_mesh(xl: vec3, xs: vec3, mesh: wp.uint64, lo: vec3, hi: vec3, margin: scalar,
+    def mesh_entry(xl: vec3, xs: vec3, mesh: wp.uint64, lo: vec3, hi: vec3, margin: scalar,
                    verts: wp.array(dtype=vec3), tris: wp.array(dtype=wp.int32), vofs: int, fofs: int):
-        """Closed mesh in its own frame: the entry point of the relative path ``xs -> xl``
-        if it enters a face, else the nearest surface point if ``xl`` ends inside.
-
-        Warp's mesh queries are float32: they only pick the face (and inside / outside); the
-        entry point and the nearest point are then computed on that face from the mesh's
-        vertices in the model's precision, so a float64 run has float64 contact geometry
-        and its gradient matches central differences."""
+        """Where the path ``xs -> xl`` (the mesh's own frame) first enters a face of the closed
+        mesh, put ``margin`` outward of it, and the face's normal; hit 0 where it enters none.
+        The float32 ray only picks the face: the crossing is computed on it from the mesh's
+        vertices in the model's precision."""
         # Both ends beyond the padded bounds on the same side: no contact.
         a = wp.min(xl, xs)
         b = wp.max(xl, xs)
@@ -693,6 +690,25 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
                     # Where the path crosses the face's plane (the face the float32 ray hit).
                     t = wp.clamp(wp.dot(va - xs, nl) / den, ZERO, ONE)
                     return 1, xs + t * seg + margin * nl, nl
+        return 0, xl, vec3()
+
+    @wp.func
+    def shape_mesh(xl: vec3, xs: vec3, mesh: wp.uint64, lo: vec3, hi: vec3, margin: scalar,
+                   verts: wp.array(dtype=vec3), tris: wp.array(dtype=wp.int32), vofs: int, fofs: int):
+        """Closed mesh in its own frame: the entry point of the relative path ``xs -> xl``
+        if it enters a face, else the nearest surface point if ``xl`` ends inside.
+
+        Warp's mesh queries are float32: they only pick the face (and inside / outside); the
+        entry point and the nearest point are then computed on that face from the mesh's
+        vertices in the model's precision, so a float64 run has float64 contact geometry
+        and its gradient matches central differences."""
+        hit, xc, nl = mesh_entry(xl, xs, mesh, lo, hi, margin, verts, tris, vofs, fofs)
+        if hit != 0:
+            return hit, xc, nl
+        a = wp.min(xl, xs)
+        b = wp.max(xl, xs)
+        if b[0] < lo[0] or b[1] < lo[1] or b[2] < lo[2] or a[0] > hi[0] or a[1] > hi[1] or a[2] > hi[2]:
+            return 0, xl, vec3()
         qf = wp.vec3f(wp.float32(xl[0]), wp.float32(xl[1]), wp.float32(xl[2]))
         far = wp.float32(wp.length(hi - lo))
         res = wp.mesh_query_point(mesh, qf, far)
@@ -815,6 +831,14 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
                 xs = local(pose_p[2 * k], pose_q[2 * k], x_in[i])
                 hit, xc, nl = shape_mesh(xl, xs, mesh_id[k], mesh_lo[k], mesh_hi[k], margin, mesh_verts, mesh_tris, mesh_vofs[k], mesh_fofs[k])
                 x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+                if hit != 0:
+                    # The contact's tangential move along the face it met may enter another face
+                    # of the same mesh, where a convex shape has none: a particle sliding on a
+                    # floor into a 2 mm fin of it at 4 mm a step went through the fin. That
+                    # move, from the contact point, meets the mesh as a path does.
+                    hit, xc, nl = mesh_entry(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), xc, mesh_id[k], mesh_lo[k],
+                                             mesh_hi[k], margin, mesh_verts, mesh_tris, mesh_vofs[k], mesh_fofs[k])
+                    x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
         if wp.static(n_pins > 0):
             k = pin[i]
             if k >= 0:
