@@ -1255,3 +1255,16 @@ def test_a_worker_that_dies_takes_down_only_the_samples_it_ran_beside():
     # The fresh pool's samples are the same runs: the slump still follows the yield stress.
     top = table.column("max_height")[3:]
     assert top[0] < top[1] < top[2]
+
+
+def test_a_sample_whose_value_does_not_hold_in_float32_names_the_command_s_dtype_too():
+    """A sample value that float32 does not hold is a failed row whose reason advised
+    'use dtype=float64', Python's spelling, in the table warp-esph sweep writes too, where
+    the option is --dtype float64: the reason names both."""
+    from warp_esph.sweep import _run_sample
+
+    plan = _plan(_box(), ["mu=1e4,1e39"], "grid", None, 0, 1, None, 30.0, None, 1.0, "float32", "cpu", 1, 100, None)
+    rows = [_run_sample(plan.scene, t) for _, t in plan.tasks]
+    assert [r["status"] for r in rows] == ["ok", "failed"], rows
+    assert rows[1]["reason"] == ("ValueError: Material.mu = 1e+39 is not allowed in float32: must be at most 3.4e+38; "
+                                 "use dtype=float64 (--dtype float64) or a smaller value"), rows[1]["reason"]

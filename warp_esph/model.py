@@ -53,15 +53,16 @@ MAX_CONTACT_RAMP = 10.0
 FIELD_MARGIN = 1.5
 
 
-def precision_problem(value: float, scalar) -> str | None:
+def precision_problem(value: float, scalar, cli: bool = False) -> str | None:
     """What is allowed, where the finite ``value`` does not hold in ``scalar`` (it would become
-    inf, or 0), or None."""
+    inf, or 0), or None. ``cli``: the advice names the command's ``--dtype`` too
+    (``wider_precision``)."""
     info = np.finfo(np.float32 if scalar is wp.float32 else np.float64)
     tiny, big = float(info.tiny), float(info.max)
     if math.isfinite(value) and abs(value) > big:
-        return f"must be at most {big:.3g}; {wider_precision(scalar, 'a smaller value')}"
+        return f"must be at most {big:.3g}; {wider_precision(scalar, 'a smaller value', cli)}"
     if value != 0.0 and abs(value) < tiny:
-        return f"must be 0 or at least {tiny:.3g} in size; {wider_precision(scalar, 'a larger value')}"
+        return f"must be 0 or at least {tiny:.3g} in size; {wider_precision(scalar, 'a larger value', cli)}"
     return None
 
 
@@ -73,7 +74,7 @@ def wider_precision(scalar, instead: str, cli: bool = False) -> str:
     return f"use {instead}"
 
 
-def modulus_precision_problem(material: Material, scalar) -> tuple[str, float, str] | None:
+def modulus_precision_problem(material: Material, scalar, cli: bool = False) -> tuple[str, float, str] | None:
     """``(field, value, what is allowed)`` where the p-wave modulus ``lam + 2 mu + density
     pressure_stiffness`` of ``material`` (each value holding in ``scalar``) does not, or None: in
     float32 mu = 3e38 holds but the modulus the step computes overflowed, and the rollout ran to
@@ -90,17 +91,18 @@ def modulus_precision_problem(material: Material, scalar) -> tuple[str, float, s
         field = max(terms, key=lambda k: terms[k])
         return (field, float(getattr(material, field)),
                 f"with it the p-wave modulus lam + 2 mu + density pressure_stiffness = {modulus:.3g} Pa must be at most "
-                f"{big:.3g}; {wider_precision(scalar, 'smaller values')}")
+                f"{big:.3g}; {wider_precision(scalar, 'smaller values', cli)}")
     return None
 
 
-def material_precision_problem(material: Material, scalar) -> tuple[str, float, str] | None:
+def material_precision_problem(material: Material, scalar, cli: bool = False) -> tuple[str, float, str] | None:
     """``(field, value, what is allowed)`` of the first parameter of ``material`` that does not
     hold in ``scalar``, or None (``check_material_precision``); last, the p-wave modulus they
-    make, reported on the field of its largest term (``modulus_precision_problem``)."""
+    make, reported on the field of its largest term (``modulus_precision_problem``). ``cli``:
+    the advice names ``--dtype`` too."""
     for name in (*Model.MATERIAL_FIELDS, "density"):
         v = getattr(material, name)
-        why = precision_problem(v, scalar)
+        why = precision_problem(v, scalar, cli)
         if why is not None and name == "pressure_stiffness" and material.has_default_pressure_stiffness:
             # No one gave it: density = 1e-300 was refused as "pressure_stiffness = 7.67e+303
             # ... or a smaller value", a value derived from the density, which a smaller one raises.
@@ -112,14 +114,15 @@ def material_precision_problem(material: Material, scalar) -> tuple[str, float, 
                                                                           else "smaller modulus"))
         if why is not None:
             return name, v, why
-    return modulus_precision_problem(material, scalar)
+    return modulus_precision_problem(material, scalar, cli)
 
 
-def check_material_precision(material: Material, scalar, where: str = "") -> None:
+def check_material_precision(material: Material, scalar, where: str = "", cli: bool = False) -> None:
     """Every parameter of ``material`` holds in ``scalar``: 1e300 Pa cast to float32 became
     inf, 1e-300 Pa became 0 (a modulus of nothing, NaN by the third step), without a word.
-    ``where`` follows the field in the message (``" (material 0)"``)."""
-    problem = material_precision_problem(material, scalar)
+    ``where`` follows the field in the message (``" (material 0)"``); ``cli``: the advice
+    names ``--dtype`` too (a table the command writes)."""
+    problem = material_precision_problem(material, scalar, cli)
     if problem is not None:
         name, v, why = problem
         raise ValueError(f"Material.{name} = {v:g}{where} is not allowed in {scalar.__name__}: {why}")

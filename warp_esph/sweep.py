@@ -25,7 +25,8 @@ A sample that diverges (``SimulationError``) or whose values make an invalid mat
 a row with ``status = "failed"`` and the one-line ``reason``; the sweep goes on. A reason
 is the stop's, or ``StepRefusal: `` and the refusal's, without a run's advice, which names one caller's options
 (``dt=`` or ``--dt``): the table is the same for ``sweep()`` and ``warp-esph sweep``; a
-divergence adds the sample's stable step.
+divergence adds the sample's stable step. A value the precision does not hold is advised
+in both spellings, ``use dtype=float64 (--dtype float64)``.
 
 ``parallel_map`` is the executor underneath, for other per-sample jobs (e.g. one fit per
 starting point of a multi-start fit, with the starting points from ``sample_points``).
@@ -496,7 +497,12 @@ def _apply(model, assignments, values):
         m = model.materials[k]
         if ({"mu", "lam"} & ch.keys()) and "pressure_stiffness" not in ch and m.has_default_pressure_stiffness:
             ch["pressure_stiffness"] = None
-        model.set_material(k, m.replace(**ch))
+        new = m.replace(**ch)
+        # The row's reason serves sweep() and warp-esph sweep alike: its advice names both
+        # precisions' spellings (it said only dtype=float64, which the command does not take).
+        from .model import check_material_precision  # noqa: PLC0415 (as the module's other model imports)
+        check_material_precision(new, model.scalar, cli=True)
+        model.set_material(k, new)
 
 
 def _summary(model, state, solver) -> dict:
