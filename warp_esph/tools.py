@@ -207,7 +207,9 @@ class Velocity:
 @dataclasses.dataclass(frozen=True)
 class Scripted:
     """A Python callable ``fn(t) -> (position, quaternion (x, y, z, w))``, evaluated on the
-    host every step. Not differentiable: its poses enter the tape as constants, so nothing
+    host at each step's start and end, at t = 0 by ``finalize``'s checks, and again at a
+    frame's time by ``ToolSet.pose_at``'s readers (``ReactionLog.record``, the USD writer):
+    it must give the same pose when asked again at the same t. Not differentiable: its poses enter the tape as constants, so nothing
     flows back to the motion (``ToolSet.motion_gradient`` refuses it, and a taped step warns
     once per tool set); ``Keyframes`` and ``Velocity`` are the differentiable motions."""
 
