@@ -1,5 +1,10 @@
 """What the command-line, reliability, tool and USD tests share: the small box-on-the-ground
-scene file, a run the CLI refuses, and reading a run's USD file back from disk."""
+scene file, a run the CLI refuses, reading a run's USD file back from disk, and running a
+script in a process of its own."""
+
+import os
+import subprocess
+import sys
 
 from pxr import Sdf, Usd
 
@@ -51,3 +56,13 @@ def frames_in(path, prim="/World/dough") -> list[float]:
     """The time samples of ``prim``'s points in the USD file at ``path``."""
     stage = open_fresh(path)  # kept alive while its prims are used
     return stage.GetPrimAtPath(prim).GetAttribute("points").GetTimeSamples()
+
+
+def run_script(script, cwd, timeout: float) -> subprocess.CompletedProcess:
+    """Run the Python file ``script`` in a process of its own from ``cwd``, with this checkout
+    first on its path: what only a process's own end shows (a second signal ending it, workers
+    importing their parent's script)."""
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=repo + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.run([sys.executable, str(script)], cwd=cwd, env=env, capture_output=True, text=True,
+                          timeout=timeout)

@@ -24,6 +24,7 @@ from warp_esph.fit import Experiment, choose_checkpointing, fit, latin_hypercube
 from warp_esph.losses import PositionLoss
 from warp_esph.rollout import Rollout, state_nbytes
 from warp_esph.silhouette import PinholeCamera, SilhouetteLoss, load_cameras, load_masks, soft_silhouette
+from run_files import run_script
 
 pxr = pytest.importorskip("pxr")
 
@@ -1331,8 +1332,6 @@ def test_a_second_signal_while_a_stopped_fit_writes_the_best_so_far_waits_for_it
     ``timeout``, which signals the command and then its process group) ended the process at
     once: no fit.json, the best so far lost. Run as the console script, the only place a
     second signal ends the process."""
-    import subprocess
-    import sys
     import textwrap
 
     from warp_esph.scenes import load_scene
@@ -1368,9 +1367,7 @@ def test_a_second_signal_while_a_stopped_fit_writes_the_best_so_far_waits_for_it
                     "--output-dir", "out"]
         console_main()
     """))
-    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    env = dict(os.environ, PYTHONPATH=repo + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    done = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    done = run_script(script, tmp_path, timeout=300)
     assert done.returncode == 143, done.stderr
     assert done.stderr.splitlines()[-1] == "warp-esph: terminated", done.stderr
     assert "interrupted after 2 evaluations: wrote the best so far" in done.stderr, done.stderr

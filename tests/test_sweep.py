@@ -22,6 +22,7 @@ from warp_esph.builder import SceneBuilder
 from warp_esph.material import Material
 from warp_esph.scenes import Scene
 from warp_esph.sweep import SweepTable, _plan, parse_param, sample_points, sweep
+from run_files import run_script
 
 FRAMES = 10
 YIELD = "yield_stress=10:10000:log:3"
@@ -605,7 +606,6 @@ def test_a_second_signal_while_a_stopped_sweep_writes_its_table_waits_for_it(tmp
     the process at once: no table of the stopped sweep, the last partial one left beside a
     stray ``.sweep.<pid>.part.csv``. Run as the console script, the only place a second signal
     ends the process."""
-    import subprocess
 
     (tmp_path / "s.toml").write_text(SCENE_TOML)
     script = tmp_path / "twice.py"
@@ -632,9 +632,7 @@ def test_a_second_signal_while_a_stopped_sweep_writes_its_table_waits_for_it(tmp
                     "--workers", "1", "--no-progress", "-o", "sw"]
         console_main()
     """))
-    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    env = dict(os.environ, PYTHONPATH=repo + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    done = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    done = run_script(script, tmp_path, timeout=120)
     assert done.returncode == 143, done.stderr
     assert done.stderr.splitlines()[-1] == "warp-esph: terminated: the table keeps the 1 of 3 samples finished", done.stderr
     assert sorted(os.listdir(tmp_path / "sw")) == ["sweep.csv", "sweep.json", "sweep.parquet", "sweep.png"]
@@ -647,21 +645,17 @@ def test_workers_started_from_a_script_without_a_main_guard_say_so(tmp_path):
     """Spawned workers start by importing the script that runs: one without an
     ``if __name__ == "__main__":`` guard runs its parallel call again there and every worker
     dies starting. The failure says that, not 'a crash in native code or out of memory'."""
-    import subprocess
-    import sys
 
     script = tmp_path / "unguarded.py"
     script.write_text("import math\nfrom warp_esph.sweep import parallel_map\n"
                       "print(parallel_map(math.sqrt, [(4.0,), (9.0,)], workers=2, on_error=lambda i, why: why))\n")
-    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    env = dict(os.environ, PYTHONPATH=repo + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    done = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    done = run_script(script, tmp_path, timeout=120)
     assert done.returncode == 0, done.stderr
     assert "could not start" in done.stdout and "unguarded.py" in done.stdout and "__main__" in done.stdout, done.stdout
     guarded = tmp_path / "guarded.py"
     guarded.write_text("import math\nfrom warp_esph.sweep import parallel_map\n\nif __name__ == '__main__':\n"
                        "    print(parallel_map(math.sqrt, [(4.0,), (9.0,)], workers=2, on_error=lambda i, why: why))\n")
-    done = subprocess.run([sys.executable, str(guarded)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    done = run_script(guarded, tmp_path, timeout=120)
     assert done.returncode == 0 and done.stdout.strip() == "[2.0, 3.0]", (done.stdout, done.stderr)
 
 
