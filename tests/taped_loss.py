@@ -28,3 +28,10 @@ def taped_rollout_loss(solver, states, dt: float, weights: wp.array):
             solver.step(a, b, dt)
         wp.launch(dot_loss, len(weights), [states[-1].x, weights], [loss])
     return loss, tape
+
+
+def taped_gradients(model, states, loss, tape, names) -> dict:
+    """Runs ``tape.backward(loss)`` and returns the gradients of ``names``, each a copy keyed by
+    name: ``"v0"`` the first state's velocities, any other name the model's array of it."""
+    tape.backward(loss)
+    return {n: (states[0].v if n == "v0" else getattr(model, n)).grad.numpy().copy() for n in names}

@@ -8,7 +8,7 @@ import warp as wp
 import warp_esph as we
 from warp_esph.sim import forces
 from energy_fd import central_gradient, mover, stvk_energy
-from taped_loss import random_weights, taped_rollout_loss
+from taped_loss import random_weights, taped_gradients, taped_rollout_loss
 
 STEPS = 5
 DT = 1.0e-3
@@ -47,8 +47,7 @@ def _loss(model, weights, grad_of=(), hand_adjoints=True):
     loss, tape = taped_rollout_loss(solver, states, DT, weights)
     if not grad_of:
         return loss.numpy()[0]
-    tape.backward(loss)
-    return loss.numpy()[0], {n: (states[0].v if n == "v0" else getattr(model, n)).grad.numpy().copy() for n in grad_of}
+    return loss.numpy()[0], taped_gradients(model, states, loss, tape, grad_of)
 
 
 @pytest.fixture(scope="module")

@@ -25,7 +25,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from taped_loss import random_weights, taped_rollout_loss
+from taped_loss import random_weights, taped_gradients, taped_rollout_loss
 from warp_esph import tools
 
 DT = 1.0e-3
@@ -98,8 +98,7 @@ def _loss(case, model, w, grad_of=None, hand_adjoints=True):
     loss, tape = taped_rollout_loss(solver, states, DT, w)
     if grad_of is None:
         return loss.numpy()[0]
-    tape.backward(loss)
-    grads = {n: (states[0].v if n == "v0" else getattr(model, n)).grad.numpy().copy() for n in grad_of}
+    grads = taped_gradients(model, states, loss, tape, grad_of)
     return grads, solver, states
 
 

@@ -12,7 +12,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from taped_loss import random_weights, taped_rollout_loss
+from taped_loss import random_weights, taped_gradients, taped_rollout_loss
 from warp_esph.sim.guards import COUNT_FADE
 from warp_esph.sim.neighbors import MIN_NEIGHBORS
 
@@ -1343,8 +1343,7 @@ def _resting_loss(model, case, w, grad_of=None, steps=8):
     loss, tape = taped_rollout_loss(solver, states, DT, w)
     if grad_of is None:
         return loss.numpy()[0]
-    tape.backward(loss)
-    grads = {name: (states[0].v if name == "v0" else getattr(model, name)).grad.numpy().copy() for name in grad_of}
+    grads = taped_gradients(model, states, loss, tape, grad_of)
     return loss.numpy()[0], grads, states
 
 
