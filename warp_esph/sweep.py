@@ -693,8 +693,9 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
     ``on_result(index, result)`` is called in this process as each item finishes.
 
     An item fails when ``fn`` raises, its worker process dies (a crash in native code, out
-    of memory: the items running beside it fail with it, those not yet started go on in a
-    fresh pool, since each worker is handed one item at a time) or its Ray task or
+    of memory: the items running beside it, which the broken pool fails with it, run again
+    alone, so only an item that kills its worker alone fails; those not yet started go on in
+    a fresh pool, since each worker is handed one item at a time) or its Ray task or
     worker fails (a Ray task whose worker died is not retried: ``ray_resources`` may set
     ``max_retries``). With ``on_error(index, message)`` its return value is that item's result
     (``message``: ``'TypeError: ...'`` where ``fn`` raised, the same words wherever it ran)
@@ -745,58 +746,78 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
         if on_result is not None:
             on_result(i, result)
 
-    def why_dead() -> str:
+    def why_dead(alone: bool = False) -> str:
         script = _unguarded_main_script()
         if script is not None:
             return (f"the worker processes could not start: each one first imports the script {script}, which runs "
                     "its parallel call again at import; put the script's top-level code under "
                     "'if __name__ == \"__main__\":'")
+        if alone:
+            return ("a worker process died running this item alone (a crash in native code or out of memory); "
+                    "it may run with more memory or fewer workers")
         return ("a worker process died before this item finished (a crash in native code or out of memory, in this "
                 "item or another one running at the time); run it again")
 
     def settle(fut, i) -> bool:
-        """Take item ``i``'s outcome; True where its pool is broken."""
+        """Take item ``i``'s outcome; False where its worker died (the outcome is not taken)."""
         try:
             result = fut.result()
         except BrokenProcessPool:
-            if on_error is None:
-                raise RuntimeError(f"item {i}: {why_dead()}") from None
-            finish(i, on_error(i, why_dead()))
-            return True
+            return False
         except Exception as e:
             if on_error is None:
                 raise
             result = on_error(i, _one_line(f"{type(e).__name__}: {e}"))
         finish(i, result)
-        return False
+        return True
 
     # At most one item per worker is handed to the pool: a worker that dies breaks the pool and
     # fails every item in it, and with every item handed over at once that was the whole rest of
-    # the run. The items not handed over go on in a fresh pool.
+    # the run. The items not handed over go on in a fresh pool; those in flight when it broke
+    # cannot be told apart (any of them may have killed its worker, or a queued one was never
+    # started), so each runs again alone, and only one that dies alone fails.
     todo = list(range(len(items)))[::-1]
+    alone_next: list = []
     pool = new_pool()
     pending: dict = {}
     try:
-        while todo or pending:
-            while todo and len(pending) < workers:
-                i = todo.pop()
-                pending[pool.submit(_call, fn, items[i])] = i
+        while todo or pending or alone_next:
+            if alone_next:
+                if not pending:
+                    i = alone_next.pop(0)
+                    pending[pool.submit(_call, fn, items[i])] = i
+            else:
+                while todo and len(pending) < workers:
+                    i = todo.pop()
+                    pending[pool.submit(_call, fn, items[i])] = i
+            in_flight = len(pending)
             done, _ = wait(pending, return_when=FIRST_COMPLETED)
-            broken = False
+            dead = []
             for fut in done:
-                broken = settle(fut, pending.pop(fut)) or broken
-            if not broken:
+                i = pending.pop(fut)
+                if not settle(fut, i):
+                    dead.append(i)
+            if not dead:
                 continue
             for fut, i in list(pending.items()):  # the items it ran beside, each as it ended
                 wait([fut])
-                settle(fut, pending.pop(fut))
+                if not settle(fut, pending.pop(fut)):
+                    dead.append(i)
             pool.shutdown(wait=True)
-            if todo and _unguarded_main_script() is not None:
+            unstartable = _unguarded_main_script() is not None
+            if on_error is None:
+                raise RuntimeError(f"item {min(dead)}: {why_dead(in_flight == 1 and not unstartable)}")
+            if in_flight == 1 or unstartable:
+                for i in dead:
+                    finish(i, on_error(i, why_dead(alone=in_flight == 1 and not unstartable)))
+            else:
+                alone_next.extend(sorted(dead))
+            if unstartable:
                 # Its workers cannot start: a fresh pool would die as this one did.
-                for i in todo[::-1]:
+                for i in todo[::-1] + alone_next:
                     finish(i, on_error(i, why_dead()))
-                todo = []
-            if todo:
+                todo, alone_next = [], []
+            if todo or alone_next:
                 pool = new_pool()
     except BaseException:
         # Running samples would otherwise finish before the interpreter can exit.
