@@ -68,6 +68,20 @@ def test_an_older_checkpoint_loads_the_fields_it_lacks(tmp_path):
     np.testing.assert_array_equal(loaded.alpha.numpy(), state.alpha.numpy())
 
 
+@pytest.mark.parametrize("name", ["STATE.NPZ", "state.Npz"])
+def test_a_checkpoint_name_ending_in_npz_in_any_case_is_written_under_that_name(tmp_path, name):
+    """'STATE.NPZ' was refused ('must end in .npz') where every other .npz reader here takes
+    any case; it is written under that very name (numpy's own np.savez would append '.npz'),
+    and loads back as the state it holds."""
+    model = _model()
+    state = _advance(model, model.state(), 3)
+    path = save_state(tmp_path / name, model, state, step=3, frame=0)
+    assert path == tmp_path / name and sorted(os.listdir(tmp_path)) == [name]
+    loaded, meta = load_state(path, _model())
+    assert meta["step"] == 3
+    np.testing.assert_array_equal(loaded.x.numpy(), state.x.numpy())
+
+
 def test_checkpoint_keeps_edited_material_parameters(tmp_path):
     model = _model()
     model.set_material(0, we.Material.preset("dough", yield_stress=75.0))

@@ -98,7 +98,8 @@ def _motion_key(motion):
 
 def save_state(path, model: Model, state: State, *, step: int, frame: int, run: dict | None = None,
                solver=None) -> pathlib.Path:
-    """Write ``state`` (and ``model``'s material parameters) to ``path`` atomically.
+    """Write ``state`` (and ``model``'s material parameters) to ``path`` (ending in ``.npz``,
+    in any case: ``STATE.NPZ`` is written under that very name) atomically.
 
     The file appears complete or not at all: it is written beside ``path`` and renamed
     over it, so an interrupted save leaves the previous checkpoint intact. A state with a
@@ -121,8 +122,11 @@ def save_state(path, model: Model, state: State, *, step: int, frame: int, run: 
     if not isinstance(path, (str, os.PathLike)):
         raise ValueError(f"checkpoint path = {path!r} is not allowed: must be a file path ending in .npz")
     path = pathlib.Path(path)
-    if path.suffix != ".npz":
-        raise ValueError(f"checkpoint path = {str(path)!r} is not allowed: must end in .npz")
+    # Any case, as every other reader of .npz here takes it (fit targets, masks): 'STATE.NPZ'
+    # was refused. The file is written through a handle, so numpy appends no second '.npz'
+    # (np.savez('STATE.NPZ') would write 'STATE.NPZ.npz').
+    if path.suffix.lower() != ".npz":
+        raise ValueError(f"checkpoint path = {str(path)!r} is not allowed: must end in .npz (any case)")
     if not isinstance(model, Model):
         raise ValueError(f"model = {checks.shorten(model)!r} is not allowed: must be a warp_esph Model")
     # What load_state asks of them, asked here: it refused the files this wrote with a step of
