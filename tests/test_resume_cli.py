@@ -250,3 +250,26 @@ def test_a_killed_run_resumes_with_its_force_log_whole(tmp_path, capsys):
     assert [int(line.split(",")[0]) for line in csv.splitlines()[1:]] == list(range(frame + 3))
     with open(f"{whole}_tools.csv") as fh:
         assert csv == fh.read()
+
+
+def test_a_resume_onto_a_file_that_holds_no_frame_is_refused_naming_the_frames_it_would_leave(tmp_path, capsys):
+    """A file of no frame (its samples gone: a writer stopped before its first frame, or an
+    output replaced) read as holding frame 0, so a resume at frame 1 onto it wrote frames 1..2
+    and exited 0 with frame 0 never written; it is refused, as a file short of frames is."""
+    from warp_esph.usd import UsdWriter
+
+    out = tmp_path / "a.usdc"
+    tiny = ["run", "dough_drop", "--scale", "0.3", "--no-progress", "-o", str(out)]
+    assert main(tiny + ["--frames", "1", "--checkpoint-every", "1"]) == 0
+    ckpt = tmp_path / "a.usdc.checkpoint.npz"
+    assert read_checkpoint(ckpt)[0]["frame"] == 1
+    stage = Usd.Stage.Open(str(out))
+    UsdWriter._drop_frames_from(stage, 0)
+    stage.GetRootLayer().Save()
+    before = _time_samples(out)
+    assert not before
+    capsys.readouterr()
+    assert main(["run", "--resume", str(ckpt), "--frames", "2", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the file holds no frames" in err[0] and "frames 0..0 unwritten" in err[0], err
+    assert not _time_samples(out)

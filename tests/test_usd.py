@@ -15,7 +15,7 @@ from pxr import Sdf, Usd, UsdGeom
 from run_files import open_fresh
 from warp_esph import Material, SceneBuilder, Solver
 from warp_esph.simulate import SimulationError, resolve_timestep, simulate
-from warp_esph.usd import UsdWriter
+from warp_esph.usd import UsdFrames, UsdWriter
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SAMPLED = ("points", "velocities", "widths", "extent", "primvars:singular_values", "primvars:alpha")
@@ -246,6 +246,35 @@ def test_append_resumes_and_replaces_later_frames(model, tmp_path):
         UsdWriter(path, model, 24, append=True)
     with pytest.raises(FileNotFoundError):
         UsdWriter(tmp_path / "missing.usdc", model, 30, append=True)
+
+
+def test_appending_to_a_file_with_no_frame_starts_it_at_the_first_frame_written(model, tmp_path):
+    """A file whose writer stopped before its first frame holds none: appended to, it read as
+    holding frame 0 (the stage's start and end time codes, 0 in a file of no frame), so the
+    writer's first and last frame said 0 and the file's start time code stayed 0 before a
+    first frame of 5; ``run --resume`` took it as holding frame 0."""
+    path = tmp_path / "empty.usdc"
+    UsdWriter(path, model, 30).close()
+    with pytest.raises(ValueError, match="it holds no frames"):
+        UsdFrames(str(path))
+    with UsdWriter(path, model, 30, append=True) as w:
+        assert (w.first_frame, w.last_frame) == (None, None)
+        w.write_frame(5, model.state())
+        w.write_frame(6, model.state())
+        assert (w.first_frame, w.last_frame) == (5, 6)
+    stage = open_fresh(path)
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (5.0, 6.0)
+    assert UsdFrames(str(path)).frames == [5, 6]
+    # A file that holds frames 2..4 (start time code 0 left as a file written so): its own frames.
+    with UsdWriter(path, model, 30) as w:
+        for f in (2, 3, 4):
+            w.write_frame(f, model.state())
+    layer = Sdf.Layer.FindOrOpen(str(path))
+    layer.Reload(force=True)
+    layer.startTimeCode = 0.0
+    layer.Save()
+    with UsdWriter(path, model, 30, append=True) as w:
+        assert (w.first_frame, w.last_frame) == (2, 4)
 
 
 def test_a_writer_opened_for_another_model_is_named_not_the_state(model, tmp_path):

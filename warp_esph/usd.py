@@ -295,7 +295,8 @@ class UsdWriter:
         self._truncate_pending = self.append
         self._widths = [Vt.FloatArray.FromNumpy(np.full(b.count, model.spacing, dtype=np.float32)) for b in model.bodies]
         self.closed = False
-        #: Frames written by this writer, and the largest frame index in the file.
+        #: Frames written by this writer; the smallest and largest frame index in the file (None
+        #: while it holds none: a new file, or one appended to that holds no frame).
         self.frames_written = 0
         self.first_frame: int | None = None
         self.last_frame: int | None = None
@@ -429,9 +430,13 @@ class UsdWriter:
             self._author_surfaces(stage)
             self._author_collider_reactions(stage)
             self._stages.append(stage)
-        times = self._stages[0].GetEndTimeCode()
-        start = self._stages[0].GetStartTimeCode()
-        self.first_frame, self.last_frame = int(start), int(times)
+        # The frames the file holds are its bodies' point samples (what UsdFrames reads), not the
+        # stage's start and end time codes: a file with no frame yet (its writer stopped before
+        # the first) has both at 0, and read as holding frame 0, so a resume at frame 1 onto it
+        # passed the CLI's check of the frames before it and left frame 0 unwritten.
+        held = sorted({t for name in self._prim_names
+                       for t in UsdGeom.Points(self._stages[0].GetPrimAtPath(f"{_ROOT}/{name}")).GetPointsAttr().GetTimeSamples()})
+        self.first_frame, self.last_frame = (int(held[0]), int(held[-1])) if held else (None, None)
         # ``path`` itself stays untouched until the first frame is published.
 
     def _check_compatible(self, stage: Usd.Stage):
