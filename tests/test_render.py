@@ -195,6 +195,10 @@ def test_parse_frames():
     with pytest.raises(ValueError, match=r"frames = '-99' is not allowed: it counts back past the first frame "
                                          r"\(the file holds 0\.\.10, so -1 to -11\)"):
         parse_frames("-99", have)
+    # Nothing to choose from (a mask file or target of no frame): an IndexError before.
+    for spec in ("first", "last", "all", "0:3", [0]):
+        with pytest.raises(ValueError, match=r"^--frames = .* is not allowed: there is no frame to choose from"):
+            parse_frames(spec, [], "--frames")
 
 
 

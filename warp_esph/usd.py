@@ -1516,6 +1516,9 @@ def parse_frames(spec, available: list[int], what: str = "frames", repeats: bool
         spec = ",".join(str(s) for s in spec)
     if not isinstance(spec, str) or not spec.strip():
         raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: give e.g. 'all', 'last', '10', '0:60:5' or '0,30,60'")
+    if not len(available):
+        # An IndexError before: 'first' of nothing names no frame, and no spec selects one.
+        raise ValueError(f"{what} = {checks.shorten(shown)!r} is not allowed: there is no frame to choose from (none is held)")
     first, last = available[0], available[-1]
     have = set(available)
 
