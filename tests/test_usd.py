@@ -503,6 +503,34 @@ def test_a_float64_run_reads_back_to_the_last_bit(tmp_path, dtype):
         np.testing.assert_array_equal(data.arrays(2)["points"], kept[2][0])
 
 
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_an_inverted_particles_singular_values_are_written_signed(tmp_path, dtype):
+    """The primvar held numpy's singular values, all >= 0: a particle whose F is inverted
+    (det F < 0) read back as one of the mirrored, uninverted shape. It holds the rotation-variant
+    SVD's (docs/method.md §3), the smallest of det F's sign, as the export writes them."""
+    import warp as wp  # noqa: PLC0415
+
+    from warp_esph.export import frame_arrays_to_mesh  # noqa: PLC0415
+
+    b = SceneBuilder(spacing=0.02)
+    b.add_particles(np.array([[0.0, 0.1, 0.0], [0.02, 0.1, 0.0], [0.04, 0.1, 0.0]]), Material.preset("dough"))
+    m = b.finalize(dtype=getattr(wp, dtype))
+    # A rotation times diag(1.3, 0.9, -0.6) (inverted), its sound twin diag(1.3, 0.9, 0.6), and I.
+    c, s_ = np.cos(0.7), np.sin(0.7)
+    R = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    F = np.stack([R @ np.diag([1.3, 0.9, -0.6]), R @ np.diag([1.3, 0.9, 0.6]), np.eye(3)])
+    state = m.state()
+    state.F.assign(F.astype(m.types.np_dtype))
+    path = tmp_path / "inv.usdc"
+    with UsdWriter(path, m) as w:
+        w.write_frame(0, state)
+    a = UsdFrames(str(path)).arrays(0)
+    want = np.array([[1.3, 0.9, -0.6], [1.3, 0.9, 0.6], [1.0, 1.0, 1.0]])
+    np.testing.assert_allclose(a["singular_values"], want, rtol=1e-6)
+    assert np.sign(np.linalg.det(F)).tolist() == np.sign(a["singular_values"].prod(axis=1)).tolist()
+    np.testing.assert_array_equal(frame_arrays_to_mesh(a, "vtu").point_data["singular_values"], a["singular_values"])
+
+
 def test_appending_with_a_model_of_the_other_precision_is_refused_naming_both(tmp_path):
     """A model of the other precision appended to a run's file wrote its frames in its own:
     a float64 model's double positions after a float32 file's (read back float32 up to the

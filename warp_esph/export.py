@@ -9,7 +9,8 @@ name               shape      meaning
 =================  =========  =================================================================
 velocity           (N, 3)     m/s, in world coordinates (with the motion of a moving transform)
 alpha              (N,)       accumulated plastic strain
-singular_values    (N, 3)     singular values of the elastic deformation gradient
+singular_values    (N, 3)     signed singular values of the elastic deformation gradient (the
+                              smallest negative where it is inverted, det F < 0)
 body_id            (N,)       index of the body (order of the USD prims / the model)
 material_id        (N,)       index of the material
 =================  =========  =================================================================

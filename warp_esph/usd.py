@@ -7,7 +7,8 @@ Layout of the written stage (Y up, metres, time code = frame index)::
 
     /World                      Xform, the default prim
     /World/<body>               Points: points, velocities, widths, extent (time-sampled);
-                                primvars singular_values (float3, vertex), alpha (float,
+                                primvars singular_values (float3, vertex: F's signed
+                                singular values, the smallest < 0 where det F < 0), alpha (float,
                                 vertex) per frame, double3 and double in a float64 run;
                                 material_id (int, constant) and displayColor (constant) once
     /World/Colliders/plane_<k>  Mesh: a large quad on the plane (solid below it)
@@ -183,13 +184,18 @@ def surface_prim_path(body_prim: str) -> str:
 
 
 def _singular_values(F: np.ndarray) -> np.ndarray:
-    """Singular values (descending) of each 3x3 matrix in ``F`` (N, 3, 3), in ``F``'s
-    precision (float32 or float64)."""
+    """The signed singular values of each 3x3 matrix in ``F`` (N, 3, 3), in ``F``'s precision
+    (float32 or float64): those of the rotation-variant SVD the solver runs (docs/method.md
+    §3), ``s1 >= s2 >= |s3|`` with ``s3`` of the sign of ``det F``. numpy's are all >= 0, and an
+    inverted particle (det F < 0) was written as one of the mirrored shape, not told from a
+    sound one."""
     F64 = np.asarray(F, dtype=np.float64)
     finite = np.isfinite(F64).all(axis=(1, 2))
     out = np.full((len(F64), 3), np.nan)
     if finite.any():
         out[finite] = np.linalg.svd(F64[finite], compute_uv=False)
+        inverted = np.flatnonzero(finite)[np.linalg.det(F64[finite]) < 0.0]
+        out[inverted, 2] = -out[inverted, 2]
     return out.astype(np.float64 if np.asarray(F).dtype == np.float64 else np.float32)
 
 
