@@ -438,16 +438,27 @@ def test_mp4_with_ffmpeg(tmp_path):
     path = tmp_path / "m.usdc"
     write_clusters(path, [(0.0, 0.2, 0.0)], frames=3, ground=True, shift=(0.0, -0.05, 0.0))
     out = tmp_path / "m.mp4"
-    result = render_usd(path, out, width=W + 1, height=H, supersample=1)  # an odd width is cropped to even
+    # An odd width and height (H.264 in yuv420p needs even ones) are padded by one pixel, the
+    # last column and row repeated: they were cropped, the picture's edge dropped without a word.
+    result = render_usd(path, out, width=W + 1, height=H + 1, supersample=1)
     assert result.kind == "mp4" and out.stat().st_size > 0
-    # Decode with the same ffmpeg (ffprobe need not exist): 3 frames of W x H, and the
-    # particles moved between them (the clusters shift), so the frames differ (measured: mean
+    # Decode with the same ffmpeg (ffprobe need not exist): its stream is W + 2 x H + 2, 3 frames,
+    # and the particles moved between them (the clusters shift), so the frames differ (measured: mean
     # |frame 2 - frame 0| 24.9 levels; encoding noise of a still picture is far below 5).
+    probe = subprocess.run([render_module.ffmpeg_path(), "-hide_banner", "-i", str(out)], capture_output=True).stderr.decode()
+    assert re.search(r"Video: .*\b(\d+)x(\d+)\b", probe).groups() == (str(W + 2), str(H + 2)), probe
     raw = subprocess.run([render_module.ffmpeg_path(), "-v", "error", "-i", str(out), "-f", "rawvideo",
                           "-pix_fmt", "rgb24", "-"], capture_output=True, check=True).stdout
-    assert W % 2 == 0 and len(raw) == 3 * W * H * 3
-    frames = np.frombuffer(raw, np.uint8).reshape(3, H, W, 3).astype(float)
+    assert W % 2 == 0 and len(raw) == 3 * (W + 2) * (H + 2) * 3
+    frames = np.frombuffer(raw, np.uint8).reshape(3, H + 2, W + 2, 3).astype(float)
     assert np.abs(frames[2] - frames[0]).mean() > 5.0
+    # Every drawn pixel is kept: frame 0 is the picture drawn at W + 1 x H + 1 (to the encoding's
+    # noise: mean 2.2 levels measured; 5.2 against it moved by one column, 25 against frame 2),
+    # its last column and row repeated (0.0 measured).
+    drawn = np.asarray(Renderer(UsdFrames(path), [0, 1, 2], RenderOptions(width=W + 1, height=H + 1, supersample=1)).render(0),
+                       dtype=float)
+    assert np.abs(frames[0, :H + 1, :W + 1] - drawn).mean() < 3.5
+    assert np.abs(frames[0, :, W + 1] - frames[0, :, W]).mean() < 3.0 and np.abs(frames[0, H + 1] - frames[0, H]).mean() < 3.0
 
 
 

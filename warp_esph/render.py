@@ -1125,7 +1125,8 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     ``output``: a folder (no extension; PNG per frame, ``frame_00012.png``; created, but not its
     parents: a missing parent folder is a ``ValueError``, as for a file), a ``.png``
     (one frame; several frames side by side, ``columns`` per row), a ``.gif`` or an
-    ``.mp4`` (needs ``ffmpeg`` on the PATH). Default: ``<file>.png`` beside the USD file (``a.usdc.png``).
+    ``.mp4`` (needs ``ffmpeg`` on the PATH; H.264 needs an even width and height, so an odd one is
+    padded by one pixel, a copy of the last column or row). Default: ``<file>.png`` beside the USD file (``a.usdc.png``).
     ``frames``: see ``parse_frames``; default all frames, or the last one for a ``.png``; a
     frame named twice is refused except in a ``.gif`` or ``.mp4``, which holds it.
     ``fps``: playback rate of a GIF/MP4 (default: the file's). ``fit``: ``"all"`` frames the
@@ -1294,11 +1295,13 @@ def _kept(kind: str, out: str, files: list[str], chosen: list[int]) -> str:
 
 
 class _Mp4Writer:
-    """Pipes RGB frames into ffmpeg (H.264, yuv420p)."""
+    """Pipes RGB frames into ffmpeg (H.264, yuv420p). yuv420p needs an even width and height:
+    an odd one is padded by a copy of the last column or row (cropped before, which dropped
+    the picture's edge without a word, a label or colour bar there too)."""
 
     def __init__(self, path: str, size, fps: float):
         w, h = size
-        self.size = (w - w % 2, h - h % 2)  # yuv420p needs even sizes
+        self.size = (w + w % 2, h + h % 2)
         cmd = [ffmpeg_path(), "-y", "-loglevel", "error", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{self.size[0]}x{self.size[1]}",
                "-r", f"{fps:g}", "-i", "-", "-c:v", "libx264", "-pix_fmt", "yuv420p", "-crf", "20",
                # Absolute: ffmpeg takes what precedes a colon in a relative name as a protocol
@@ -1307,10 +1310,11 @@ class _Mp4Writer:
         self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=subprocess.PIPE)
 
     def write(self, img: Image.Image):
+        data = np.asarray(img)
         if img.size != self.size:
-            img = img.crop((0, 0, *self.size))
+            data = np.pad(data, ((0, self.size[1] - img.size[1]), (0, self.size[0] - img.size[0]), (0, 0)), mode="edge")
         try:
-            self.proc.stdin.write(img.tobytes())
+            self.proc.stdin.write(np.ascontiguousarray(data).tobytes())
         except BrokenPipeError:  # ffmpeg stopped: its own message says why (close)
             self._failed()
 
