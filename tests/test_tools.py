@@ -2062,3 +2062,68 @@ def test_the_far_mesh_check_of_a_frame_does_not_rebuild_the_meshs_faces(monkeypa
         tracemalloc.stop()
     assert met is not None and "(the faces they are at reach 92.4 m from it)" in met[0], met
     assert peak < len(tri) * 9 * 8 / 3, peak
+
+
+@wp.kernel
+def _pinned_x_plus_y(x: wp.array(dtype=wp.vec3d), i: int, weight: wp.float64, loss: wp.array(dtype=wp.float64)):
+    wp.atomic_add(loss, 0, weight * (x[i][0] + x[i][1]))
+
+
+def test_keyframes_on_step_boundaries_give_the_keyframe_pose_the_crossed_segments_velocity_and_a_one_sided_time_gradient():
+    """A keyframed motion is a kink at each keyframe time; where one falls exactly on a step
+    boundary (dt = 2^-10 s, keyframes at 0, 2 dt, 4 dt: +x, then +y), both steps that meet
+    there take the pose at it from the same side. The pinned particles sit at the keyframe pose
+    there, and their velocity is the segment the step just crossed (symplectic Euler's
+    backward difference, x_n - x_{n-1} = dt v_n). The loss reads the pose at the keyframe
+    through the step ending there (x_2) and the step starting there (v_3 = (x_3 - x_2) / dt):
+    L = f(x_2) + 2 dt f(v_3). The tape's derivative in the keyframe's time is one of its two
+    one-sided derivatives (measured: 0 from the tape; the left difference 0, the right -1.024:
+    the segment that starts there, as for the keyframe moved earlier); the step ending there
+    taking its end pose from the segment before and the next its start from the one after would
+    give +1.024, neither (measured with the samples so split)."""
+    dt = 2.0 ** -10
+    c = np.array([-0.02, 0.1, 0.0])  # the pinned column's rest centroid
+
+    def model(t1=2 * dt):
+        b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+        b.add_box((0.0, 0.1, 0.0), (0.06, 0.06, 0.06), _elastic(2e3), name="block")
+        b.pin(body="block", region=((-1.0, -1.0, -1.0), (-0.01, 1.0, 1.0)), name="grip",
+              motion=tools.Keyframes((0.0, t1, 4 * dt), (c, c + (0.002, 0.0, 0.0), c + (0.002, 0.004, 0.0))))
+        return b.finalize(dtype=wp.float64, requires_grad=True)
+
+    m = model()
+    i = int(m.tools.pins[0].indices[0])
+    x0 = m.particle_x0[i]
+    solver = we.Solver(m)
+    states = [m.state() for _ in range(5)]
+    for n in range(4):
+        solver.step(states[n], states[n + 1], dt)
+    x = np.array([s.x.numpy()[i] for s in states])
+    v = np.array([s.v.numpy()[i] for s in states])
+    np.testing.assert_allclose(x[2] - x0, (0.002, 0.0, 0.0), atol=1e-15)  # the keyframe's pose
+    np.testing.assert_allclose(x[4] - x0, (0.002, 0.004, 0.0), atol=1e-15)
+    np.testing.assert_allclose(v[1:], np.diff(x, axis=0) / dt, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(v[2], (0.002 / (2 * dt), 0.0, 0.0), rtol=1e-12)  # the segment crossed, +x
+    np.testing.assert_allclose(v[3], (0.0, 0.004 / (2 * dt), 0.0), rtol=1e-12)  # the next one, +y
+
+    def loss(mm, grad=False):
+        s = we.Solver(mm)
+        sts = [mm.state() for _ in range(4)]
+        out = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+        tape = wp.Tape()
+        with tape:
+            for n in range(3):  # across the keyframe's time
+                s.step(sts[n], sts[n + 1], dt)
+            wp.launch(_pinned_x_plus_y, 1, [sts[2].x, i, 1.0], [out])
+            wp.launch(_pinned_x_plus_y, 1, [sts[3].v, i, 2.0 * dt], [out])
+        if grad:
+            tape.backward(out)
+            return mm.tools.keyframe_times.grad.numpy()[1]
+        return out.numpy()[0]
+
+    tape = loss(model(), grad=True)
+    h = 1e-8
+    here = loss(model())
+    left, right = (here - loss(model(2 * dt - h))) / h, (loss(model(2 * dt + h)) - here) / h
+    assert abs(left - right) > 0.5  # a kink: 0 and -1.024
+    assert min(abs(tape - left), abs(tape - right)) < 1e-4, (tape, left, right)
