@@ -8,7 +8,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from warp_esph.fit import fit
+from warp_esph.fit import _run_adam, fit
 from warp_esph.rollout import Rollout
 
 STEPS = 40
@@ -145,6 +145,46 @@ def test_gauss_newton_releases_a_value_started_on_its_upper_bound_whose_optimum_
     for name, value in TRUTH.items():
         assert result.params[name][0] == pytest.approx(value, rel=1e-4), result.params
     assert result.diagnostics.at_bound == []
+
+
+def test_adam_leaves_a_bound_at_the_first_gradient_pointing_back_into_the_box(landing):
+    """Adam from 450 Pa and 20/s with the flow rate bounded by 15/s (the target's 10/s below
+    it): the flow rate reaches its bound and is held there while the yield stress climbs;
+    when the yield stress has overshot, the flow rate's gradient turns and points back into
+    the box. Adam had kept the first moment it built pushing into the bound (each step
+    projected back onto it), and stayed on the bound 13 more evaluations with the gradient
+    pointing inward. A held value's moment is dropped (an active set, as L-BFGS's), so the
+    evaluation after the turn is off the bound."""
+    dt, target = landing
+    result = fit(_cube(yield_stress=450.0, flow_rate=20.0), target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES,
+                 optimizer="adam", iterations=12, bounds={"flow_rate": (15.0, 100.0)}, progress=False,
+                 diagnostics=False)
+    flow = [h["params"]["flow_rate"][0] for h in result.history]
+    slope = [h["grad"][1] for h in result.history]  # d loss / d log(flow rate)
+    assert any(f == 15.0 and s > 0.0 for f, s in zip(flow, slope)), "the flow rate was never held on its bound"
+    turned = [k for k in range(len(flow) - 1) if flow[k] == 15.0 and slope[k] < 0.0]
+    assert turned, "the flow rate's gradient never turned back into the box on its bound"
+    assert all(flow[k + 1] > 15.0 for k in turned), list(zip(flow, slope))
+
+
+def test_adam_reads_gtol_on_the_values_free_of_the_bounds():
+    """A loss whose second value lies on its lower bound with the loss falling beyond it (its
+    gradient 0.5 for ever) and whose first has its minimum at 1: Adam read ``gtol`` on the
+    whole gradient, the held value's included, so it never converged and reported the
+    iteration cap (301 evaluations) at the minimum within the box. As L-BFGS, it reads the
+    free values' gradient."""
+    lo, hi = np.array([-np.inf, 0.0]), np.array([np.inf, np.inf])
+    points = []
+
+    def evaluate(z):
+        points.append(z.copy())
+        return (z[0] - 1.0) ** 2 + 0.5 * z[1], np.array([2.0 * (z[0] - 1.0), 0.5]), True
+
+    stop = _run_adam(evaluate, lambda z: np.clip(z, lo, hi), np.zeros(2), 300, 0.1, None, None, lambda text: None,
+                     xtol=1e-9, gtol=1e-3, bounds=(lo, hi))
+    assert stop == "converged", (stop, len(points))
+    assert abs(points[-1][0] - 1.0) <= 1e-3 and points[-1][1] == 0.0, points[-1]
+    assert all(z[1] == 0.0 for z in points)
 
 
 def test_a_value_on_its_bound_at_the_datas_best_is_not_said_to_lie_beyond_it(landing):

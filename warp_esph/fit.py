@@ -24,8 +24,8 @@ the ``<output>_tools.csv`` of ``warp-esph run`` as one).
 Positive parameters are optimised in log space (a step of Adam changes them by about
 ``lr`` relative), others (e.g. ``hardening = 0``) in linear space scaled by their initial
 magnitude. ``bounds={"flow_rate": (1, 1e3)}`` keeps them in a box: every evaluated point is
-clipped into it, and L-BFGS and Gauss-Newton hold a value on a bound while the loss falls
-beyond it, fitting the others (an active set; Adam projects its steps). ``clip`` caps the norm
+clipped into it, and the optimisers hold a value on a bound while the loss falls beyond it,
+fitting the others (an active set; Adam drops a held value's moment). ``clip`` caps the norm
 of the optimiser-space gradient (long horizons can give exploding gradients, docs/method.md).
 
 ``tie_pressure``: a ``Material`` whose ``pressure_stiffness`` was left at its default
@@ -79,7 +79,16 @@ class Adam:
         self.v = np.zeros(size)
         self.t = 0
 
-    def step(self, z: np.ndarray, g: np.ndarray) -> np.ndarray:
+    def step(self, z: np.ndarray, g: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
+        """The next point from ``z`` and its gradient ``g``. ``held``: entries on a bound whose
+        gradient points out of the box (``_held``): they do not move, and their first moment
+        is dropped, so that they leave the bound at the first gradient pointing back in."""
+        if held is not None and held.any():
+            # The momentum of a value the bound stops is motion that never happened: kept, it
+            # went on pushing into the bound after the gradient had turned (14 evaluations on
+            # the landing cube, docs/fitting.md, "Bounds").
+            self.m = np.where(held, 0.0, self.m)
+            g = np.where(held, 0.0, g)
         self.t += 1
         self.m = self.b1 * self.m + (1 - self.b1) * g
         self.v = self.b2 * self.v + (1 - self.b2) * g * g
@@ -1174,8 +1183,8 @@ def fit(
       default ``LR`` = 0.1; Adam's step and L-BFGS's first step, refused with
       ``"gauss-newton"``, which never reads it);
       ``lr_end``: decay Adam's step size geometrically to this value at the last iteration.
-    - ``bounds``: ``{name: (lo, hi)}`` in the parameter's units: L-BFGS and Gauss-Newton hold
-      a value on a bound whose gradient points out of the box and step the others alone, so a
+    - ``bounds``: ``{name: (lo, hi)}`` in the parameter's units: the optimisers hold a value
+      on a bound whose gradient points out of the box and step the others alone, so a
       fit whose optimum lies beyond a bound converges to the others' optimum there
       (docs/fitting.md, "Bounds"). ``clip``: gradient norm cap.
     - ``checkpoint_every``: segment length for checkpointed rollouts; ``"auto"``: a full
@@ -1472,7 +1481,8 @@ def fit(
                 return _run_gauss_newton(evaluate, prob.project, z_start, iterations, max_step, GN_STEP, xtol,
                                          bounds=prob.z_bounds())
             if optimizer == "adam":
-                return _run_adam(evaluate, prob.project, z_start, iterations, lr, lr_end, clip, annotate, xtol, gtol)
+                return _run_adam(evaluate, prob.project, z_start, iterations, lr, lr_end, clip, annotate, xtol, gtol,
+                                 bounds=prob.z_bounds())
             return _run_lbfgs(evaluate, prob.project, z_start, iterations, lr, max_step, memory=lbfgs_memory,
                               xtol=xtol, gtol=gtol, bounds=prob.z_bounds())
         except _Stop as e:
@@ -1833,19 +1843,30 @@ class _Stop(Exception):
     """Raised inside an evaluation to end the fit (callback, tol or stalled)."""
 
 
-def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol=1e-6, gtol=0.0) -> str:
+def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol=1e-6, gtol=0.0, bounds=None) -> str:
+    """Adam in optimiser space, each step projected onto the box. Box bounds (``bounds``:
+    ``(lo, hi)`` in optimiser space, or None) as L-BFGS holds them: a value on a bound whose
+    gradient points outward (``_held``) is held for the step, its moment dropped, and left out
+    of ``clip``'s norm and of ``gtol``'s test (with every value held, converged)."""
     opt = Adam(len(z), lr=lr)
     decay = 1.0 if lr_end is None or iterations <= 1 else (lr_end / lr) ** (1.0 / (iterations - 1))
     good = None
     g0 = None
     for it in range(iterations + 1):
         value, g, finite = evaluate(z)
+        held = _held(z, g, bounds) if finite else None
         if finite and g0 is None:
-            g0 = float(np.abs(g).max())
-            if g0 == 0.0:
+            if float(np.abs(g).max()) == 0.0:
                 return "flat"
-        if finite and g0 is not None and float(np.abs(g).max()) <= gtol * g0:
-            return "converged"
+            # The free values' gradient, as L-BFGS reads it: a held one's does not fall.
+            g0 = float(np.abs(np.where(held, 0.0, g)).max())
+            if g0 == 0.0:
+                return "converged"  # every value on a bound with the loss falling beyond it: the corner
+        if finite and g0 is not None:
+            if held.all():
+                return "converged"
+            if float(np.abs(np.where(held, 0.0, g)).max()) <= gtol * g0:
+                return "converged"
         if it == iterations:
             break
         if not finite:
@@ -1858,11 +1879,13 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
             z = good
             continue
         good = z.copy()
+        if held.any():
+            g = np.where(held, 0.0, g)
         if clip is not None:
             norm = float(np.linalg.norm(g))
             if norm > clip:
                 g = g * (clip / norm)
-        z_new = project(opt.step(z, g))
+        z_new = project(opt.step(z, g, held))
         if float(np.abs(z_new - z).max()) < xtol:
             return "converged"
         z = z_new
