@@ -1171,6 +1171,34 @@ def test_every_start_runs_at_the_stable_step_of_the_stiffest_start(worlds):
                        f"point the fit starts from: such starts may blow up (failed starts); give dt <= {least:.4g}")
 
 
+@pytest.mark.parametrize("optimizer", ["adam", "lbfgs"])
+def test_a_trial_whose_rollout_diverged_runs_no_backward(monkeypatch, optimizer):
+    """A trial the divergence monitor fails (the first step of 10 in log mu, at a dt far past
+    that stiffness's stable step) is a failed trial whose gradient no optimiser reads (Adam
+    steps back, L-BFGS shortens its line search): its backward ran all the same, before the
+    monitor read the last state. The monitor now reads it first: one backward per evaluation
+    that did not diverge, the history's losses and values as before."""
+    m = _block_with()
+    dt = 0.5 * m.stable_dt()
+    target = Rollout(_block_with(), 40, dt, frames=[40]).forward()
+    backwards = []
+    original = Rollout.backward
+
+    def counted(self, grads):
+        backwards.append(self)
+        return original(self, grads)
+
+    monkeypatch.setattr(Rollout, "backward", counted)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the trials' dt past their stable step
+        result = fit(_block_with(mu=300.0), PositionLoss(target, frames=[40]), ["mu"], steps=40, dt=dt, iterations=3,
+                     optimizer=optimizer, lr=10.0, max_step=10.0, progress=False, diagnostics=False)
+    diverged = [h for h in result.history if h.get("note", "").startswith("diverged: ")]
+    assert diverged, [(h["loss"], h["params"]) for h in result.history]
+    assert all(h["loss"] == math.inf for h in diverged)
+    assert len(backwards) == len(result.history) - len(diverged), (len(backwards), len(result.history))
+
+
 @pytest.mark.parametrize("worlds", [False, True])
 def test_a_trial_whose_rollout_blows_up_while_finite_fails(worlds):
     """Adam's first step of 8 in log mu takes mu from 300 to 8.5e5 Pa, at a dt 5x past that

@@ -717,12 +717,16 @@ class _Run(_Values):
         same bits in less time (``Rollout.forward(taped=False)``)."""
         return self.forward(taped=self.tape_values)
 
-    def value_and_grad(self, loss) -> tuple[float, dict[str, np.ndarray]]:
-        """``Rollout.value_and_grad(loss, **initial)`` from the starts checked at set-up."""
+    def value_and_grad(self, loss, before_backward=None) -> tuple[float, dict[str, np.ndarray]]:
+        """``Rollout.value_and_grad(loss, **initial)`` from the starts checked at set-up.
+        ``before_backward(self)``: called between the forward and the backward; what it
+        raises ends the evaluation before the backward runs."""
         check = getattr(loss, "check_positions", None)
         if check is not None:
             check(self.model.particle_count)
         self.forward()
+        if before_backward is not None:
+            before_backward(self)
         return self.rollout.backward(loss)
 
     def apply(self, p):
@@ -896,9 +900,10 @@ class _Problem:
         for k, r in enumerate(self.runs):
             loss = r.loss if losses is None else losses[k]
             w = r.weight if losses is None else 1.0
-            value, grads = r.value_and_grad(loss)
-            if losses is None:  # the fit's own evaluations (the diagnostics' read the fitted point's neighbourhood)
-                _check_diverged(r)
+            # The fit's own evaluations fail a diverged trial (the diagnostics' read the fitted
+            # point's neighbourhood), before its backward: no optimiser reads a failed trial's
+            # gradient, which had been computed all the same.
+            value, grads = r.value_and_grad(loss, _check_diverged if losses is None else None)
             total += w * float(value)
             gz += w * self.grad_z(p, r.grads(self.params, grads))
         return total, gz
