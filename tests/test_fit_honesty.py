@@ -1,6 +1,7 @@
 """What a fit says of itself against what is so: small fits whose answer is known (a target
 the simulator made at known values), probing the termination and the diagnostics."""
 
+import math
 import warnings
 
 import numpy as np
@@ -8,7 +9,7 @@ import pytest
 import warp as wp
 
 import warp_esph as we
-from warp_esph.fit import _run_adam, fit
+from warp_esph.fit import GN_STEP, _run_adam, fit
 from warp_esph.rollout import Rollout
 
 STEPS = 40
@@ -129,6 +130,31 @@ def test_a_fit_whose_optimum_lies_beyond_a_bound_converges_to_the_optimum_of_the
     d = result.diagnostics
     assert d.at_bound == [name], d.summary()
     assert not any("did not converge" in w for w in d.warnings), d.warnings
+
+
+def test_gauss_newton_runs_no_column_of_a_value_it_goes_on_holding(landing):
+    """The target's yield stress (300 Pa) lies above its bound (250 Pa): from 200 Pa the fit
+    reaches the bound and holds the yield stress there for every later step, whose damped
+    equations never read its Jacobian column. That column's run (the yield stress a step
+    below the bound, the flow rate at the iterate) had been made at every Jacobian on the bound
+    all the same. It is now made where the value is first held (its gradient must be read
+    there) and once more, at the fitted point, before the fit says it converged; the other
+    Jacobians keep the last column, which still points out of the box. The fit converges where
+    it did (the free value at the scan's optimum: the test above, one fit per optimiser)."""
+    dt, target = landing
+    result = fit(_cube(yield_stress=200.0, flow_rate=20.0), target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES,
+                 optimizer="gauss-newton", iterations=30, bounds={"yield_stress": (10.0, 250.0)}, progress=False,
+                 diagnostics=False)
+    assert result.stopped == "converged" and result.params["yield_stress"][0] == pytest.approx(250.0, rel=1e-12)
+    below = 250.0 * math.exp(-GN_STEP)  # the held value's column steps into the box
+    points = [(h["params"]["yield_stress"][0], h["params"]["flow_rate"][0]) for h in result.history]
+    on_bound = [f for y, f in points if y == pytest.approx(250.0, rel=1e-12)]
+    # A Jacobian on the bound: the flow rate's difference run, GN_STEP above a point on the bound.
+    jacobians = [f for f in on_bound if any(f == pytest.approx(g * math.exp(GN_STEP), rel=1e-12) for g in on_bound)]
+    held_columns = [f for y, f in points if y == pytest.approx(below, rel=1e-12)]
+    assert len(jacobians) >= 3, points
+    assert len(held_columns) == 2, (held_columns, jacobians)
+    assert held_columns[-1] == pytest.approx(result.params["flow_rate"][0], rel=1e-12)  # the check at the fitted point
 
 
 def test_gauss_newton_releases_a_value_started_on_its_upper_bound_whose_optimum_lies_inside(landing):

@@ -2054,27 +2054,70 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
     whose gradient ``J^T r`` points outward are held there (``_held``) and the damped normal
     equations solved for the free ones alone, so with one value held the fit becomes a fit of
     the others and converges to their optimum; a Jacobian column's difference steps into the
-    box (a step out of it is projected back onto the bound and reads no change)."""
+    box (a step out of it is projected back onto the bound and reads no change). A value held
+    at the last Jacobian whose column from then, against the new residuals, still points out
+    keeps that column (the step never reads a held value's column; its run is skipped), and
+    such columns are run afresh before the fit says it converged: a value the fresh column
+    frees is stepped again."""
     r, finite = residuals(z, reset=True)
     if not finite:
         raise _FirstPointFailed("the loss is not finite at the initial guess")
     f = float(r @ r)
     lam, nu = 1e-3, 2.0
     evals = 0
-    while evals + len(z) < iterations:
-        J = np.empty((len(r), len(z)))
-        for j in range(len(z)):
-            zj = z.copy()
-            zj[j] += h if bounds is None or z[j] + h <= bounds[1][j] else -h
+    n = len(z)
+    J = None  # the last Jacobian
+    held = np.zeros(n, dtype=bool)
+    kept = np.zeros(n, dtype=bool)  # the held values whose column is the last Jacobian's, not z's
+    current = False  # whether J is z's already (the kept columns run afresh at z)
+
+    def column(j):
+        """The forward difference of the residuals in value ``j`` at ``z`` (one or two runs),
+        or None where both sides blew up."""
+        nonlocal evals
+        zj = z.copy()
+        zj[j] += h if bounds is None or z[j] + h <= bounds[1][j] else -h
+        rj, ok = residuals(zj)
+        evals += 1
+        if not ok:
+            zj[j] = z[j] - h if zj[j] > z[j] else z[j] + h  # a blow-up on one side: the other
             rj, ok = residuals(zj)
             evals += 1
             if not ok:
-                zj[j] = z[j] - h if zj[j] > z[j] else z[j] + h  # a blow-up on one side: the other
-                rj, ok = residuals(zj)
-                evals += 1
-                if not ok:
+                return None
+        return (rj - r) / (zj[j] - z[j])
+
+    def refresh():
+        """Runs the kept columns at z; returns False where one blew up on both sides."""
+        for j in np.flatnonzero(kept):
+            c = column(j)
+            if c is None:
+                return False
+            J[:, j] = c
+        kept[:] = False
+        return True
+
+    while True:
+        if not current:
+            # The held values whose last column, against these residuals, still points out of
+            # the box (the same correspondences: a residual vector of the same length).
+            if J is not None and J.shape[0] == len(r) and held.any():
+                kept = held & _held(z, J.T @ r, bounds)
+            else:
+                kept = np.zeros(n, dtype=bool)
+            if evals + n - int(kept.sum()) >= iterations:
+                return "iterations"
+            J_new = np.empty((len(r), n))
+            for j in range(n):
+                if kept[j]:
+                    J_new[:, j] = J[:, j]
+                    continue
+                c = column(j)
+                if c is None:
                     return "stalled"
-            J[:, j] = (rj - r) / (zj[j] - z[j])
+                J_new[:, j] = c
+            J = J_new
+        current = False
         A, g = J.T @ J, J.T @ r
         if not np.any(A.diagonal() > 0.0):
             return "flat"
@@ -2082,7 +2125,14 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
         free = ~held
         if not free.any():
             # Every value on a bound with the loss falling beyond it: the corner is the minimum within the box.
-            return "converged"
+            if not kept.any():
+                return "converged"
+            if evals + int(kept.sum()) > iterations:
+                return "iterations"
+            if not refresh():
+                return "stalled"
+            current = True
+            continue
         Af, gf = (A[np.ix_(free, free)], g[free]) if held.any() else (A, g)
         while True:
             D = np.diag(np.maximum(Af.diagonal(), 1e-12 * max(float(Af.diagonal().max()), 1e-300)))
@@ -2091,7 +2141,7 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
             except np.linalg.LinAlgError:
                 dzf = -gf / max(float(np.abs(gf).max()), 1e-300) * h
             if held.any():
-                dz = np.zeros(len(z))
+                dz = np.zeros(n)
                 dz[free] = dzf
             else:
                 dz = dzf
@@ -2102,8 +2152,16 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
             step = z_new - z
             if float(np.abs(step).max()) < xtol:
                 # No lower loss along the damped steps down to xtol (MINPACK's xtol test):
-                # the minimum is found to the resolution asked for.
-                return "converged"
+                # the minimum is found to the resolution asked for, once the held values'
+                # columns are z's own.
+                if not kept.any():
+                    return "converged"
+                if evals + int(kept.sum()) > iterations:
+                    return "iterations"
+                if not refresh():
+                    return "stalled"
+                current = True
+                break
             if evals >= iterations:
                 return "iterations"
             r_new, ok = residuals(z_new, reset=True)
@@ -2120,10 +2178,11 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
             nu *= 2.0
             if lam > 1e8:
                 return "stalled"
+        if current:
+            continue
         z, r, f = z_new, r_new, f_new
         if float(np.abs(step).max()) < xtol:
             return "converged"
-    return "iterations"
 
 
 def _full(base: np.ndarray, idx: list[int], v: np.ndarray) -> np.ndarray:
