@@ -616,11 +616,11 @@ def test_a_second_signal_while_a_stopped_sweep_writes_its_table_waits_for_it(tmp
 
         real_execute, real_write = s._execute, s.write_outputs
 
-        def execute(plan, workers, ray, record):
+        def execute(plan, workers, ray, record, *rest):
             def first_then_stop(row):
                 record(row)
                 os.kill(os.getpid(), signal.SIGTERM)  # the first signal, after one sample
-            return real_execute(plan, workers, ray, first_then_stop)
+            return real_execute(plan, workers, ray, first_then_stop, *rest)
 
         def write(table, folder, meta=None, *args, **kwargs):
             if meta and meta.get("interrupted"):
@@ -1288,3 +1288,162 @@ def test_a_sample_whose_value_does_not_hold_in_float32_names_the_command_s_dtype
     assert [r["status"] for r in rows] == ["ok", "failed"], rows
     assert rows[1]["reason"] == ("ValueError: Material.mu = 1e+39 is not allowed in float32: must be at most 3.4e+38; "
                                  "use dtype=float64 (--dtype float64) or a smaller value"), rows[1]["reason"]
+
+
+# ------------------------------------------------------------------ resuming a stopped sweep
+def _stopped_after(k: int):
+    """An ``on_result`` that stops the sweep (as Ctrl-C does) once ``k`` samples finished."""
+    finished = []
+
+    def stop(row):
+        finished.append(row["sample"])
+        if len(finished) == k:
+            raise KeyboardInterrupt
+
+    return stop
+
+
+def test_a_python_sweep_stopped_after_one_sample_resumes_to_the_table_of_one_run_straight_through(serial, tmp_path):
+    """A stopped sweep kept nothing and had to run every sample again. Its KeyboardInterrupt
+    now carries the samples finished, and ``resume=`` runs only the others: the table is the
+    one run straight through gives, from the table itself, its Parquet file or its folder."""
+    from warp_esph.sweep import write_outputs
+
+    with pytest.raises(KeyboardInterrupt) as stopped:
+        sweep(_box(), [YIELD], frames=FRAMES, workers=1, on_result=_stopped_after(1))
+    part = stopped.value.table
+    assert [r["sample"] for r in part.rows] == [0]
+    write_outputs(part, tmp_path / "sw", plot_figure=False)
+    for source in (part, tmp_path / "sw", tmp_path / "sw" / "sweep.csv", tmp_path / "sw" / "sweep.parquet"):
+        ran = []
+        whole = sweep(_box(), [YIELD], frames=FRAMES, workers=1, resume=source, on_result=lambda r: ran.append(r["sample"]))
+        assert ran == [1, 2], source
+        assert whole.columns == serial.columns and _rows(whole) == _rows(serial), source
+        assert whole.rows[0]["wall_s"] == part.rows[0]["wall_s"]  # the row kept, not run again
+
+
+def test_a_resumed_sweep_runs_its_failed_samples_again_only_when_asked(serial, monkeypatch):
+    """``retry_failed``: a sample that failed in the stopped run (its worker died) runs again;
+    without it the failed row is kept as it is, as the table's other rows are."""
+    from warp_esph import sweep as sweep_module
+
+    real = sweep_module._run_sample
+
+    def dies_at_sample_1(scene, task):
+        if task.index == 1:
+            return {"sample": 1, "status": "failed", **task.values, "seed": task.seed, "reason": "a worker died"}
+        return real(scene, task)
+
+    monkeypatch.setattr(sweep_module, "_run_sample", dies_at_sample_1)
+    first = sweep(_box(), [YIELD], frames=FRAMES, workers=1)
+    monkeypatch.setattr(sweep_module, "_run_sample", real)
+    assert [r["status"] for r in first.rows] == ["ok", "failed", "ok"]
+    ran = []
+    kept = sweep(_box(), [YIELD], frames=FRAMES, workers=1, resume=first, on_result=lambda r: ran.append(r["sample"]))
+    assert ran == [] and _rows(kept) == _rows(first)
+    again = sweep(_box(), [YIELD], frames=FRAMES, workers=1, resume=first, retry_failed=True,
+                  on_result=lambda r: ran.append(r["sample"]))
+    assert ran == [1] and _rows(again) == _rows(serial)
+    with pytest.raises(ValueError, match="^retry_failed is not allowed without resume"):
+        sweep(_box(), [YIELD], frames=FRAMES, workers=1, retry_failed=True)
+
+
+def test_a_table_of_another_sweep_is_refused_naming_what_differs(serial):
+    """Resuming must not mix two sweeps' rows: other frames, levels, sampling or seed,
+    another scene or precision, each is refused before any sample runs, by name."""
+    assert serial.identity is not None
+    cases = [
+        (dict(frames=FRAMES + 1), "frames = 10 there, 11 here"),
+        (dict(params=["yield_stress=10:10000:log:4"]), "params = [yield_stress=10.0:10000.0:log:3] there, "
+                                                       "[yield_stress=10.0:10000.0:log:4] here; samples = 3 there, 4 here"),
+        (dict(params=["yield_stress=10:10000:log"], sample="lhs", samples=3, seed=1),
+         "params = [yield_stress=10.0:10000.0:log:3] there, [yield_stress=10.0:10000.0:log] here; sample = \"grid\" "
+         "there, \"lhs\" here; seed = 0 there, 1 here"),
+        (dict(dtype="float64"), "dtype = \"float32\" there, \"float64\" here"),
+    ]
+    for change, words in cases:
+        args = {"params": [YIELD], "frames": FRAMES, **change}
+        with pytest.raises(ValueError, match=re.escape(f"its table is of another sweep: {words};")):
+            sweep(_box(), args.pop("params"), workers=1, resume=serial, **args)
+    other = _box()
+    other.builder.add_sphere((0.3, 0.1, 0.0), 0.04, Material.preset("toothpaste"), name="blob")
+    with pytest.raises(ValueError, match=r"^resume = <SweepTable of 3 rows> is not allowed: its table is of another "
+                                         r"sweep: model = \"125 particles, [0-9a-f]+\" there, \"1[0-9]+ particles, "):
+        sweep(other, [YIELD], frames=FRAMES, workers=1, resume=serial)
+    plain = SweepTable(serial.columns, serial.rows, serial.params)  # as read from a CSV file alone
+    with pytest.raises(ValueError, match="it holds no record of the sweep that wrote it"):
+        sweep(_box(), [YIELD], frames=FRAMES, workers=1, resume=plain)
+
+
+def test_a_terminated_cli_sweep_resumed_gives_the_table_of_one_run_straight_through(scene_file, tmp_path, monkeypatch,
+                                                                                   capsys):
+    """``warp-esph sweep ... --resume`` after a SIGTERM at the second of 3 samples runs the
+    two it lacks and writes the table (CSV and Parquet) an uninterrupted run writes."""
+    import signal
+
+    from warp_esph import sweep as sweep_module
+
+    status, err, rows, _ = _sweep_signalled_at_the_second_sample(scene_file, tmp_path, monkeypatch, capsys,
+                                                                 lambda: os.kill(os.getpid(), signal.SIGTERM))
+    assert status == 143 and rows == 1, err
+    real, ran = sweep_module._run_sample, []
+
+    def counted(scene, task):
+        ran.append(task.index)
+        return real(scene, task)
+
+    monkeypatch.setattr(sweep_module, "_run_sample", counted)
+    out = tmp_path / "sw"
+    assert cli.main(["sweep", scene_file, "--param", "yield_stress=10,100,1000", "--frames", "1", "--workers", "1",
+                     "-o", str(out), "--no-progress", "--resume"]) == 0
+    assert ran == [1, 2]
+    assert "3 samples (grid) of yield_stress on 1 worker(s) -> " in capsys.readouterr().err
+    monkeypatch.setattr(sweep_module, "_run_sample", real)
+    assert _sweep_three_samples(scene_file, tmp_path / "straight") == 0
+    straight = SweepTable.read_csv(tmp_path / "straight" / "sweep.csv")
+    for table in (SweepTable.read_csv(out / "sweep.csv"), SweepTable.read_parquet(out / "sweep.parquet")):
+        assert table.columns == straight.columns and _rows(table) == _rows(straight)
+    record = json.loads((out / "sweep.json").read_text())
+    assert record["resumed"] == {"kept": 1, "retry_failed": False} and record["sweep"]["frames"] == 1
+
+
+@pytest.mark.parametrize("change, words", [
+    (["--frames", "2"], "--resume of --output = '{out}' is not allowed: its table is of another sweep: frames = 1 there, "
+                        "2 here; resume it with the settings it was run with, or run this sweep anew without resuming"),
+    (["--param", "yield_stress=10,100"], "its table is of another sweep: params = [yield_stress=10.0,100.0,1000.0] "
+                                         "there, [yield_stress=10.0,100.0] here; samples = 3 there, 2 here;"),
+    (["--hourglass", "0.2"], "its table is of another sweep: solver = {{\"fit\": null, \"contact_ramp\": 1.0, "
+                             "\"hourglass\": null, \"fit_weight\": \"poly6\"}} there, {{\"fit\": null, "
+                             "\"contact_ramp\": 1.0, \"hourglass\": 0.2, \"fit_weight\": \"poly6\"}} here;"),
+    (["--edit-scene"], "its table is of another sweep: scene_file = "),
+    (["--elsewhere"], "--resume of --output = '{out}' is not allowed: there is no such file or folder, so there is "
+                      "nothing to resume; run the sweep without it"),
+    (["--no-resume", "--retry-failed"], "--retry-failed is not allowed without --resume"),
+])
+def test_the_command_refuses_to_resume_a_table_of_another_sweep_before_any_sample(scene_file, tmp_path, monkeypatch,
+                                                                                   capsys, change, words):
+    from warp_esph import sweep as sweep_module
+
+    out = tmp_path / "sw"
+    assert cli.main(["sweep", scene_file, "--param", "yield_stress=10,100,1000", "--frames", "1", "--workers", "1",
+                     "-o", str(out), "--no-progress"]) == 0
+    before = (out / "sweep.csv").read_bytes()
+    capsys.readouterr()
+    monkeypatch.setattr(sweep_module, "_run_sample", lambda *a: pytest.fail("a sample ran"))
+    args = {"--param": "yield_stress=10,100,1000", "--frames": "1"}
+    flags = ["--resume"]
+    if change == ["--edit-scene"]:
+        with open(scene_file, "a") as f:
+            f.write("\n# edited\n")
+    elif change == ["--elsewhere"]:
+        out = tmp_path / "none"
+    elif change[0] == "--no-resume":
+        flags = change[1:]
+    else:
+        args[change[0]] = change[1]
+    argv = ["sweep", scene_file, *[x for kv in args.items() for x in kv], "--workers", "1", "-o", str(out),
+            "--no-progress", *flags]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and words.format(out=out) in err, err
+    assert (tmp_path / "sw" / "sweep.csv").read_bytes() == before

@@ -244,6 +244,10 @@ def _add_sweep_parser(sub) -> None:
     sw.add_argument("-o", "--output", metavar="FOLDER", help="output folder (default: sweep_<scene>)")
     sw.add_argument("--workers", type=int, metavar="N", help="processes, one per core (default: every core)")
     sw.add_argument("--ray", metavar="ADDRESS", help="run the samples on the Ray cluster at ADDRESS (warp-esph[ray])")
+    sw.add_argument("--resume", action="store_true",
+                    help="keep the samples of the table in the output folder (a stopped run of this same sweep) and "
+                         "run only those it lacks")
+    sw.add_argument("--retry-failed", action="store_true", help="with --resume: run the table's failed samples again too")
     sw.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_solver_arguments(sw)
 

@@ -28,6 +28,10 @@ is the stop's, or ``StepRefusal: `` and the refusal's, without a run's advice, w
 divergence adds the sample's stable step. A value the precision does not hold is advised
 in both spellings, ``use dtype=float64 (--dtype float64)``.
 
+A sweep that stopped goes on with ``resume=`` (the CLI's ``--resume``): the rows of its
+table are kept and only the samples it lacks run, after a check that the table is of this
+same sweep (``SweepTable.identity``, recorded in ``sweep.json`` and the Parquet table).
+
 ``parallel_map`` is the executor underneath, for other per-sample jobs (e.g. one fit per
 starting point of a multi-start fit, with the starting points from ``sample_points``).
 """
@@ -300,11 +304,17 @@ def _sample_seed(seed: int, index: int) -> int:
 # ------------------------------------------------------------------ the table
 @dataclasses.dataclass
 class SweepTable:
-    """The sweep's rows (one dict per sample, sorted by ``sample``) and their column order."""
+    """The sweep's rows (one dict per sample, sorted by ``sample``) and their column order.
+
+    ``identity``: what made the rows (the scene, the parameters and their sampling, the
+    frames and settings; ``sweep`` sets it), which a resumed sweep must match (``resume=``);
+    ``None`` for a table read from a CSV file, which has no place for it (``sweep.json``
+    beside it keeps it; a Parquet table keeps it in its own metadata)."""
 
     columns: list[str]
     rows: list[dict]
     params: list[str]
+    identity: dict | None = None
 
     def __len__(self):
         return len(self.rows)
@@ -367,10 +377,14 @@ class SweepTable:
                 # sample failed) reads as NaNs, which were written as the text 'nan'.
                 data[c] = pa.array([None if r.get(c) is None else str(r[c]) for r in self.rows], type=pa.string())
         path = os.fspath(path)
+        table = pa.table(data)
+        if self.identity is not None:
+            # In the file itself, so that the Parquet table alone can be resumed.
+            table = table.replace_schema_metadata({_IDENTITY_KEY: json.dumps(self.identity)})
         # An open file, not its name: pyarrow reads a name as a UTF-8 URI, so a folder named in other
         # bytes failed the table after every sample had run (sweep.csv beside it written).
         with checks.replaced_atomically(path) as tmp, open(tmp, "wb") as fh:
-            pq.write_table(pa.table(data), fh)
+            pq.write_table(table, fh)
         return path
 
     @classmethod
@@ -386,13 +400,42 @@ class SweepTable:
                 rows = [{c: _parse_cell(c, v) for c, v in zip(columns, line)} for line in reader]
         except (UnicodeDecodeError, csv.Error) as e:
             raise ValueError(f"path = {path!r} is not allowed: {wanted}; it is not CSV text ({e})") from None
+        return cls._checked(path, columns, rows, None)
+
+    @classmethod
+    def read_parquet(cls, path) -> "SweepTable":
+        """Read a table written by ``to_parquet`` (nulls as None, its ``identity`` from the
+        file's metadata); ``ImportError`` without pyarrow."""
+        import pyarrow.parquet as pq  # noqa: PLC0415
+
+        path = os.fspath(path)
+        try:
+            with open(path, "rb") as fh:
+                table = pq.read_table(fh)
+        except (OSError, ValueError) as e:  # pyarrow's ArrowInvalid is a ValueError
+            if not os.path.isfile(path):
+                raise
+            raise ValueError(f"path = {path!r} is not allowed: must be a sweep table written by SweepTable.to_parquet; "
+                             f"it is not a Parquet file ({_one_line(e)})") from None
+        columns = list(table.column_names)
+        data = table.to_pydict()
+        rows = [{c: data[c][k] for c in columns} for k in range(table.num_rows)]
+        meta = table.schema.metadata or {}
+        identity = json.loads(meta[_IDENTITY_KEY.encode()]) if _IDENTITY_KEY.encode() in meta else None
+        return cls._checked(path, columns, rows, identity, "to_parquet")
+
+    @classmethod
+    def _checked(cls, path, columns, rows, identity, writer: str = "to_csv") -> "SweepTable":
+        wanted = f"must be a sweep table written by SweepTable.{writer} (a header with sample, status, the parameters, seed)"
         # An empty file raised StopIteration; another CSV "'status' is not in list".
         if columns[:2] != ["sample", "status"] or "seed" not in columns:
             raise ValueError(f"path = {path!r} is not allowed: {wanted}; its header is {checks.shorten(columns)!r}")
         start, end = columns.index("status") + 1, columns.index("seed")
-        return cls(columns, rows, columns[start:end])
+        return cls(columns, rows, columns[start:end], identity)
 
 
+#: The key of a Parquet table's metadata that holds its sweep's identity.
+_IDENTITY_KEY = "warp_esph.sweep"
 _TEXT_COLUMNS = ("status", "reason", "warnings", "solver")
 
 
@@ -964,7 +1007,7 @@ def _load(scene, scale):
     raise ValueError(f"scene = {scene!r} is not allowed: give a built-in scene name, a .toml scene file, a Scene or a SceneBuilder")
 
 
-def _table(rows: list[dict], names: list[str]) -> SweepTable:
+def _table(rows: list[dict], names: list[str], identity: dict | None = None) -> SweepTable:
     rows = sorted(rows, key=lambda r: r["sample"])
     head = ["sample", "status", *names, "seed", "particles", "steps", "dt", "solver", *SUMMARY_COLUMNS]
     tail = ["wall_s", "reason", "warnings"]
@@ -973,7 +1016,7 @@ def _table(rows: list[dict], names: list[str]) -> SweepTable:
     columns = head + guards + extra + tail
     # Every row has every column (None: no value), as read back from the CSV.
     rows = [{c: r.get(c) for c in columns} for r in rows]
-    return SweepTable(columns, rows, list(names))
+    return SweepTable(columns, rows, list(names), identity)
 
 
 def sweep(
@@ -995,6 +1038,8 @@ def sweep(
     max_samples: int = MAX_SAMPLES,
     extra: Callable | None = None,
     on_result: Callable | None = None,
+    resume=None,
+    retry_failed: bool = False,
 ) -> SweepTable:
     """Run ``scene`` once per sample of ``params``; returns the table (see the module doc).
 
@@ -1015,12 +1060,34 @@ def sweep(
       sample's own seed, the same wherever it runs. numpy numbers (``x.max()``, a float32)
       are kept as Python's, so the CSV and Parquet tables hold the same numbers.
     - ``on_result(row)``: called as each sample finishes (in finishing order).
+    - ``resume``: the table of an earlier run of the same sweep that did not finish: a
+      ``SweepTable`` (a Ctrl-C's ``KeyboardInterrupt`` carries the samples finished as its
+      ``table``), a Parquet table, or a folder ``write_outputs`` (or ``warp-esph sweep``)
+      wrote, or its ``sweep.csv`` (the identity is in ``sweep.json`` beside it). Its rows
+      are kept and only the samples it lacks run (with ``retry_failed``, its failed ones
+      too); the table returned is the whole sweep's, as one run straight through gives
+      (``wall_s`` aside). A table of another sweep (scene, parameters, sampling, seed,
+      frames or settings) is refused, naming what differs.
 
-    Raises ``ValueError`` for bad input before any sample runs.
+    Raises ``ValueError`` for bad input before any sample runs. Ctrl-C raises
+    ``KeyboardInterrupt`` with ``table``: the samples finished, to give as ``resume``.
     """
     plan = _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale, dtype, device, workers,
                  max_samples, extra, ray)
-    return _execute(plan, workers, ray, on_result)
+    kept = _resumed_rows(resume, plan, retry_failed, "resume", "retry_failed")
+    done = list(kept)
+
+    def record(row):
+        done.append(row)
+        if on_result is not None:
+            on_result(row)
+
+    try:
+        return _execute(plan, workers, ray, record, kept)
+    except KeyboardInterrupt as e:
+        # What ran is not lost with the exception: it resumes as resume=e.table.
+        e.table = _table(done, [p.name for p in plan.params], plan.identity)
+        raise
 
 
 @dataclasses.dataclass
@@ -1028,6 +1095,7 @@ class _Plan:
     scene: object
     params: list
     tasks: list
+    identity: dict
 
 
 def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale, dtype, device, workers, max_samples,
@@ -1100,13 +1168,65 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
     here = "cpu" if ray is not None else device
     init_warp(here)
     model = sc.builder.finalize(device=here, dtype=dtype)
+    # Before the check of the steps below, which sets sample values in the model's materials.
+    identity = _identity(scene, sc, scale, plist, sample, len(points), seed, frames, fps, dt, dtype, device, extra, model)
     if dt is None:
         _check_some_sample_steps(model, assignments, points, frames, fps, rate, length)
     if extra is not None and ray is None and min(workers or _cores(), len(points)) > 1:
         _check_sendable("extra", extra, min(workers or _cores(), len(points)))
     tasks = [(sc, _Task(i, _sample_seed(seed, i), values, assignments, frames, fps, dt, dtype, device, extra))
              for i, values in enumerate(points)]
-    return _Plan(sc, plist, tasks)
+    return _Plan(sc, plist, tasks, identity)
+
+
+def _spec(p: Param) -> str:
+    """``p`` as a spec ``parse_param`` reads, every number as a float's repr (100 and 100.0 are one level)."""
+    if p.values is not None:
+        return f"{p.name}={','.join(repr(float(v)) for v in p.values)}"
+    return f"{p.name}={p.lo!r}:{p.hi!r}:{p.scale}" + (f":{p.n}" if p.n is not None else "")
+
+
+def _model_digest(model) -> str:
+    """A digest of what a scene puts in the model: the particles, their materials and bodies,
+    the spacing, gravity and the colliders; equal for the same scene however it was given.
+    Positions and velocities in float32 and no masses (computed in the model's precision), so
+    that the precision is told apart by ``dtype`` alone, not as another model too."""
+    import hashlib  # noqa: PLC0415
+
+    h = hashlib.sha256()
+    for a in (np.asarray(model.particle_x0, np.float32), np.asarray(model.particle_v0, np.float32),
+              model.particle_material_np, model.particle_body_np):
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    h.update(repr((model.spacing, tuple(model.gravity), model.materials, model.planes, model.spheres,
+                   model.boxes)).encode())
+    return h.hexdigest()[:16]
+
+
+def _identity(scene, sc, scale, plist, sample, count, seed, frames, fps, dt, dtype, device, extra, model) -> dict:
+    """What makes a sweep's rows: two sweeps of one identity have the same table (``wall_s``
+    aside), so a resumed sweep's must be its table's. JSON values, as ``sweep.json`` and a
+    Parquet table's metadata keep them."""
+    b = sc.builder
+    from_file = isinstance(scene, (str, os.PathLike)) and os.path.isfile(scene)
+    digest = None
+    if from_file:
+        import hashlib  # noqa: PLC0415
+
+        # The file's every setting (a tool, a mesh's path) and not only what the model holds.
+        with open(scene, "rb") as f:
+            digest = hashlib.sha256(f.read()).hexdigest()[:16]
+    by_name = isinstance(scene, (str, os.PathLike)) or scene is None
+    out = {"scene": sc.name, "scene_file": digest, "scale": float(scale) if by_name else None,
+           "model": f"{model.particle_count} particles, {_model_digest(model)}",
+           "params": [_spec(p) for p in plist], "sample": sample, "samples": int(count), "seed": int(seed),
+           "frames": int(frames), "fps": float(fps), "dt": None if dt is None else float(dt), "dtype": dtype,
+           "device": device, "solver": {"fit": b.fit, "contact_ramp": b.contact_ramp, "hourglass": b.hourglass,
+                                        "fit_weight": b.fit_weight},
+           "extra": None if extra is None else f"{getattr(extra, '__module__', '?')}.{getattr(extra, '__qualname__', repr(extra))}"}
+    # Through JSON and back, so that it compares equal to what a file read gives (tuples as lists).
+    return json.loads(json.dumps(out, default=str))
 
 
 def _check_some_sample_steps(model, assignments, points, frames, fps, rate, length) -> None:
@@ -1154,16 +1274,116 @@ def _check_some_sample_steps(model, assignments, points, frames, fps, rate, leng
                      f"{shown}: {why}); {hint}")
 
 
-def _execute(plan: _Plan, workers, ray, on_result) -> SweepTable:
+def _execute(plan: _Plan, workers, ray, on_result, kept: Sequence[dict] = ()) -> SweepTable:
+    """Run the plan's samples but those of ``kept`` (rows of a resumed table); the table of all."""
     callback = None if on_result is None else (lambda i, row: on_result(row))
+    have = {r["sample"] for r in kept}
+    todo = [t for t in plan.tasks if t[1].index not in have]
 
     def failed(i, why):
         # The worker could not return a row (it died, or Ray lost it): the sample still gets one.
-        task = plan.tasks[i][1]
+        task = todo[i][1]
         return {"sample": task.index, "status": "failed", **task.values, "seed": task.seed, "reason": why}
 
-    rows = parallel_map(_run_sample, plan.tasks, workers=workers, ray=ray, on_result=callback, on_error=failed)
-    return _table(rows, [p.name for p in plan.params])
+    rows = parallel_map(_run_sample, todo, workers=workers, ray=ray, on_result=callback, on_error=failed) if todo else []
+    return _table([*kept, *rows], [p.name for p in plan.params], plan.identity)
+
+
+def _resumed_rows(source, plan: _Plan, retry_failed, name: str, retry_name: str) -> list[dict]:
+    """The rows of the table ``source`` (``resume``; the CLI's ``--resume``, the ``--output``
+    folder) to keep: every one, or with ``retry_failed`` the ``ok`` ones. Refuses a table
+    that is not of this sweep, naming what differs."""
+    if not isinstance(retry_failed, bool):
+        raise ValueError(f"{retry_name} = {retry_failed!r} is not allowed: must be True or False")
+    if source is None:
+        if retry_failed:
+            raise ValueError(f"{retry_name} is not allowed without {name}: it runs again the failed samples of the "
+                             f"table resumed")
+        return []
+    table, shown = _resume_table(source, name)
+    if table.identity is None:
+        raise ValueError(f"{name} = {shown} is not allowed: it holds no record of the sweep that wrote it (sweep.json "
+                         f"beside the CSV table, or a Parquet table's metadata, as this version writes), so it cannot "
+                         f"be told to be this sweep's; run the sweep anew")
+    diff = [f"{k} = {_shown(table.identity.get(k))} there, {_shown(v)} here" for k, v in plan.identity.items()
+            if table.identity.get(k) != v]
+    if diff:
+        raise ValueError(f"{name} = {shown} is not allowed: its table is of another sweep: {'; '.join(diff)}; resume "
+                         f"it with the settings it was run with, or run this sweep anew without resuming")
+    names = [p.name for p in plan.params]
+    kept: dict[int, dict] = {}
+    for r in table.rows:
+        i = r.get("sample")
+        if isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < len(plan.tasks):
+            raise ValueError(f"{name} = {shown} is not allowed: it has a row of sample {i!r}, and this sweep's samples "
+                             f"are 0..{len(plan.tasks) - 1}")
+        if i in kept:
+            raise ValueError(f"{name} = {shown} is not allowed: it has two rows of sample {i}")
+        task = plan.tasks[i][1]
+        have = {k: r.get(k) for k in names}
+        if have != task.values or r.get("seed") != task.seed or r.get("status") not in ("ok", "failed"):
+            raise ValueError(f"{name} = {shown} is not allowed: its row of sample {i} ({_row_values(have, r.get('seed'))}, "
+                             f"status {r.get('status')!r}) is not this sweep's ({_row_values(task.values, task.seed)}, "
+                             f"status ok or failed)")
+        kept[i] = r
+    # A cell read back as None is a key the run's own row would not have had: without it the
+    # resumed table's columns are those of one run straight through.
+    return [{k: v for k, v in r.items() if v is not None} for i, r in sorted(kept.items())
+            if not retry_failed or r["status"] == "ok"]
+
+
+def _shown(v) -> str:
+    if isinstance(v, list) and all(isinstance(x, str) for x in v):
+        return "[" + ", ".join(v) + "]"
+    return json.dumps(v)
+
+
+def _row_values(values: Mapping, seed) -> str:
+    return ", ".join([*(f"{k} = {v!r}" for k, v in values.items()), f"seed = {seed!r}"])
+
+
+def _resume_table(source, name: str) -> tuple[SweepTable, str]:
+    """The table ``source`` names and how a refusal shows it."""
+    if isinstance(source, SweepTable):
+        return source, f"<SweepTable of {len(source)} rows>"
+    if not isinstance(source, (str, bytes, os.PathLike)):
+        raise ValueError(f"{name} = {checks.shorten(source)!r} is not allowed: give a SweepTable, a sweep's output "
+                         f"folder, its sweep.csv or a Parquet table")
+    path = os.fspath(source)
+    if isinstance(path, bytes):
+        path = os.fsdecode(path)
+    shown = repr(path)
+    if os.path.isdir(path):
+        folder = path
+        path = next((os.path.join(folder, f) for f in ("sweep.csv", "sweep.parquet")
+                     if os.path.isfile(os.path.join(folder, f))), None)
+        if path is None:
+            raise ValueError(f"{name} = {shown} is not allowed: the folder holds no sweep.csv or sweep.parquet, so there "
+                             f"is nothing to resume; run the sweep without it")
+    elif os.path.isfile(path):
+        folder = os.path.dirname(path)
+    else:
+        raise ValueError(f"{name} = {shown} is not allowed: there is no such file or folder, so there is nothing to "
+                         f"resume; run the sweep without it")
+    if path.endswith(".parquet"):
+        try:
+            table = SweepTable.read_parquet(path)
+        except ImportError:
+            raise ValueError(f"{name} = {shown} is not allowed: reading {path!r} needs pyarrow (pip install pyarrow); "
+                             f"or resume from the sweep.csv beside it") from None
+    else:
+        table = SweepTable.read_csv(path)
+    if table.identity is None:
+        record = os.path.join(folder, "sweep.json")
+        if os.path.isfile(record):
+            try:
+                with open(record, encoding="utf-8") as f:
+                    meta = json.load(f)
+            except (OSError, ValueError) as e:
+                raise ValueError(f"{name} = {shown} is not allowed: its record {record!r} cannot be read: "
+                                 f"{_one_line(e)}") from None
+            table.identity = meta.get("sweep") if isinstance(meta, dict) else None
+    return table, shown
 
 
 # ------------------------------------------------------------------ outputs
@@ -1248,11 +1468,13 @@ def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_pa
         lines.append(f"wrote {table.to_parquet(os.path.join(folder, 'sweep.parquet'))}")
     except ImportError:
         lines.append("no Parquet table: pyarrow is not installed (pip install pyarrow); the CSV has the same data")
-    if meta is not None:
-        # Before the plot: the record of a finished sweep must not wait on a figure.
+    if meta is not None or table.identity is not None:
+        # Before the plot: the record of a finished sweep must not wait on a figure. It holds the
+        # sweep's identity, which a resumed sweep is checked against (the CSV has no place for it).
+        record = {**(meta or {}), **({"sweep": table.identity} if table.identity is not None else {})}
         path = os.path.join(folder, "sweep.json")
         with checks.replaced_atomically(path) as tmp, open(tmp, "w") as f:
-            json.dump(dict(meta), f, indent=2)
+            json.dump(record, f, indent=2)
         lines.append(f"wrote {path}")
     if plot_figure:
         lines.append(_plot_line(table, folder, log_params))
@@ -1294,7 +1516,8 @@ PARTIAL_EVERY_S = 2.0
 def sweep_cli(args, out=None) -> int:
     """Run ``warp-esph sweep`` from parsed ``args``: 0 every sample ran, ``EXIT_SOME_FAILED``
     (3) some failed (see the table's ``reason``), 130 interrupted (the finished samples are
-    written). Raises ``ValueError`` on bad input (the CLI exits 2)."""
+    written; ``--resume`` goes on from them). Raises ``ValueError`` on bad input (the CLI
+    exits 2)."""
     from . import __version__  # noqa: PLC0415
     from .cli import EXIT_INTERRUPTED, EXIT_WRITE_FAILED, PROG  # noqa: PLC0415
 
@@ -1319,18 +1542,26 @@ def sweep_cli(args, out=None) -> int:
             raise ValueError(f"--output = {folder!r} is not allowed: {os.path.join(folder, name)!r} is a folder; the "
                              f"sweep writes its {name} there")
     checks.output_files("--output", folder, OUTPUT_FILES)
+    if args.retry_failed and not args.resume:
+        raise ValueError("--retry-failed is not allowed without --resume: it runs again the failed samples of the table "
+                         "resumed")
+    # Read and checked before the first sample: a table of another sweep is refused, not overwritten.
+    kept = _resumed_rows(folder if args.resume else None, plan, args.retry_failed, "--resume of --output", "--retry-failed")
+    to_run = len(points) - len(kept)
     # Connected (or refused) before the plan's line, which says the sweep runs on Ray: an
     # address or 'auto' where no cluster runs is then the one line on stderr.
     with _ray_session(args.ray, "--ray") if args.ray is not None else contextlib.nullcontext():
-        where = f"Ray at {args.ray}" if args.ray else f"{min(args.workers or _cores(), len(points))} worker(s)"
+        where = f"Ray at {args.ray}" if args.ray else f"{min(args.workers or _cores(), max(to_run, 1))} worker(s)"
+        resumed = f", {len(kept)} kept from its table, {to_run} to run" if args.resume else ""
         print(f"{PROG} sweep: {sc.name}: {len(points)} samples ({args.sample}) of {', '.join(p.name for p in plist)} "
-              f"on {where} -> {folder}", file=sys.stderr, flush=True)
-        done: list[dict] = []
+              f"on {where} -> {folder}{resumed}", file=sys.stderr, flush=True)
+        # The kept rows first: the tables written as samples finish, and on a stop, keep them too.
+        done: list[dict] = list(kept)
         bar = None
         if not args.no_progress:
             from .simulate import _progress_bar  # noqa: PLC0415
 
-            bar = _progress_bar(len(points), "samples")
+            bar = _progress_bar(to_run, "samples")
 
         written = [0.0]
 
@@ -1344,7 +1575,7 @@ def sweep_cli(args, out=None) -> int:
             # killed sweep (SIGKILL, out of memory) kept none of them.
             if written[0] is not None and time.perf_counter() - written[0] >= PARTIAL_EVERY_S:
                 try:
-                    write_outputs(_table(done, [p.name for p in plist]), folder,
+                    write_outputs(_table(done, [p.name for p in plist], plan.identity), folder,
                                   {**meta, "partial": True, "samples_done": len(done)}, log_params, plot_figure=False)
                     written[0] = time.perf_counter()
                 except (OSError, ValueError, ImportError) as e:  # a convenience: the sweep goes on without it
@@ -1364,17 +1595,19 @@ def sweep_cli(args, out=None) -> int:
                 "fit_weight": sc.builder.fit_weight}
         if args.scene and os.path.exists(str(args.scene)):
             meta["scene"] = os.path.abspath(args.scene)
+        if args.resume:
+            meta["resumed"] = {"kept": len(kept), "retry_failed": args.retry_failed}
         log_params = [p.name for p in plist if p.values is None and p.scale == "log"]
         from .cli import _arm, _stopped  # noqa: PLC0415
 
         _arm(args)  # from here Ctrl-C unwinds to the except below, which writes the samples finished
         t0 = time.perf_counter()
         try:
-            table = _execute(plan, args.workers, args.ray, record)
+            table = _execute(plan, args.workers, args.ray, record, kept)
         except KeyboardInterrupt:
             if bar is not None:
                 bar.close()
-            table = _table(done, [p.name for p in plist])
+            table = _table(done, [p.name for p in plist], plan.identity)
             from .cli import _Deferred  # noqa: PLC0415
 
             try:
