@@ -1447,3 +1447,44 @@ def test_the_command_refuses_to_resume_a_table_of_another_sweep_before_any_sampl
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and words.format(out=out) in err, err
     assert (tmp_path / "sw" / "sweep.csv").read_bytes() == before
+
+
+# ------------------------------------------------------------------ CUDA samples on Ray
+def test_a_cuda_sweep_s_ray_tasks_see_a_gpu_where_ray_hides_them_from_tasks_that_ask_none(monkeypatch):
+    """Older Ray (as Ray with RAY_ACCEL_ENV_VAR_OVERRIDE_ON_ZERO=1, set here) sets
+    CUDA_VISIBLE_DEVICES='' in a task that asks for no GPU: a device='cuda' sweep's tasks,
+    which asked for one CPU only, found no GPU, every sample failing. Each asks for a GPU, and
+    its task sees the one Ray gave it (a cluster declaring one GPU; this machine may have none,
+    so the samples' own rows are not read)."""
+    ray = pytest.importorskip("ray")
+    from warp_esph import sweep as sweep_module
+    from warp_esph.sweep import parallel_map
+
+    asked = []
+    real = sweep_module._ray_tasks
+
+    def spy(session, fn, items, on_result, on_error, resources):
+        asked.append(resources)
+        return real(session, fn, items, on_result, on_error, resources)
+
+    monkeypatch.setattr(sweep_module, "_ray_tasks", spy)
+    monkeypatch.setenv("RAY_ACCEL_ENV_VAR_OVERRIDE_ON_ZERO", "1")
+    ray.init(num_cpus=1, num_gpus=1, include_dashboard=False, log_to_driver=False)
+    try:
+        sweep(_box(), ["mu=1e4"], frames=1, device="cuda", ray="auto")
+        seen = parallel_map(os.getenv, [("CUDA_VISIBLE_DEVICES",)], ray="auto", ray_resources=asked[0])
+    finally:
+        ray.shutdown()
+    assert seen == ["0"], asked
+
+
+def test_a_cuda_sweep_on_a_ray_cluster_without_a_gpu_is_refused_before_any_sample():
+    """Ray holds a task that asks for a GPU where the cluster has none, without an end."""
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=1, num_gpus=0, include_dashboard=False, log_to_driver=False)
+    try:
+        with pytest.raises(ValueError, match=r"^device = 'cuda' is not allowed with ray = 'auto': the Ray cluster has no "
+                                             r"GPU \(0\), and each CUDA sample asks it for one"):
+            sweep(_box(), ["mu=1e4"], frames=1, device="cuda", ray="auto")
+    finally:
+        ray.shutdown()

@@ -1285,8 +1285,34 @@ def _execute(plan: _Plan, workers, ray, on_result, kept: Sequence[dict] = ()) ->
         task = todo[i][1]
         return {"sample": task.index, "status": "failed", **task.values, "seed": task.seed, "reason": why}
 
-    rows = parallel_map(_run_sample, todo, workers=workers, ray=ray, on_result=callback, on_error=failed) if todo else []
+    if not todo:
+        rows = []
+    elif ray is not None and plan.identity["device"] != "cpu":
+        with _ray_session(ray) as session:
+            _check_ray_gpus(session, ray)
+            rows = parallel_map(_run_sample, todo, ray=ray, on_result=callback, on_error=failed,
+                                ray_resources=_ray_resources(plan.identity["device"]))
+    else:
+        rows = parallel_map(_run_sample, todo, workers=workers, ray=ray, on_result=callback, on_error=failed)
     return _table([*kept, *rows], [p.name for p in plan.params], plan.identity)
+
+
+def _ray_resources(device: str) -> dict | None:
+    """What each sample's Ray task asks for beyond its CPU: a GPU where the samples run on
+    CUDA. Ray makes only the GPUs a task was given visible to it (``CUDA_VISIBLE_DEVICES``);
+    older Ray (and a newer one with ``RAY_ACCEL_ENV_VAR_OVERRIDE_ON_ZERO=1``) hides every GPU
+    from a task that asks for none, so each CUDA sample failed, finding no device, and a
+    newer one shows such a task every GPU, so that all samples ran on the first."""
+    return {"num_gpus": 1} if device != "cpu" else None
+
+
+def _check_ray_gpus(session, address) -> None:
+    """Refuse CUDA samples on a Ray cluster without a GPU: Ray holds a task that asks for one
+    where none is, without an end."""
+    have = float(session.cluster_resources().get("GPU", 0))
+    if have < 1:
+        raise ValueError(f"device = 'cuda' is not allowed with ray = {str(address)!r}: the Ray cluster has no GPU "
+                         f"({have:g}), and each CUDA sample asks it for one; give device='cpu', or a cluster with GPUs")
 
 
 def _resumed_rows(source, plan: _Plan, retry_failed, name: str, retry_name: str) -> list[dict]:
