@@ -1373,6 +1373,9 @@ def test_a_table_of_another_sweep_is_refused_naming_what_differs(serial):
     plain = SweepTable(serial.columns, serial.rows, serial.params)  # as read from a CSV file alone
     with pytest.raises(ValueError, match="it holds no record of the sweep that wrote it"):
         sweep(_box(), [YIELD], frames=FRAMES, workers=1, resume=plain)
+    garbled = SweepTable(serial.columns, serial.rows, serial.params, ["not", "a", "record"])  # a sweep.json edited by hand
+    with pytest.raises(ValueError, match="it holds no record of the sweep that wrote it"):
+        sweep(_box(), [YIELD], frames=FRAMES, workers=1, resume=garbled)
 
 
 def test_a_terminated_cli_sweep_resumed_gives_the_table_of_one_run_straight_through(scene_file, tmp_path, monkeypatch,
@@ -1488,3 +1491,33 @@ def test_a_cuda_sweep_on_a_ray_cluster_without_a_gpu_is_refused_before_any_sampl
             sweep(_box(), ["mu=1e4"], frames=1, device="cuda", ray="auto")
     finally:
         ray.shutdown()
+
+
+def test_a_resumed_sweep_stopped_again_keeps_the_rows_it_resumed_from(scene_file, tmp_path, monkeypatch, capsys):
+    """The tables a resumed sweep writes on a stop (and as samples finish) hold the rows it
+    kept as well as those it ran, so that a second stop loses neither; a third run finishes."""
+    import signal
+
+    from warp_esph import sweep as sweep_module
+
+    status, err, rows, _ = _sweep_signalled_at_the_second_sample(scene_file, tmp_path, monkeypatch, capsys,
+                                                                 lambda: os.kill(os.getpid(), signal.SIGTERM))
+    assert status == 143 and rows == 1, err
+    monkeypatch.setattr(sweep_module, "PARTIAL_EVERY_S", 0.0)
+    out = tmp_path / "sw"
+    argv = ["sweep", scene_file, "--param", "yield_stress=10,100,1000", "--frames", "1", "--workers", "1", "-o", str(out),
+            "--no-progress", "--resume"]
+    real = sweep_module._run_sample
+
+    def stop_at_the_second_run(scene, task):
+        if task.index == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real(scene, task)
+
+    monkeypatch.setattr(sweep_module, "_run_sample", stop_at_the_second_run)
+    assert cli.main(argv) == 143
+    assert capsys.readouterr().err.splitlines()[-1] == "warp-esph: terminated: the table keeps the 2 of 3 samples finished"
+    assert [r["sample"] for r in SweepTable.read_csv(out / "sweep.csv").rows] == [0, 1]
+    monkeypatch.setattr(sweep_module, "_run_sample", real)
+    assert cli.main(argv) == 0
+    assert [r["sample"] for r in SweepTable.read_csv(out / "sweep.csv").rows] == [0, 1, 2]

@@ -1327,7 +1327,7 @@ def _resumed_rows(source, plan: _Plan, retry_failed, name: str, retry_name: str)
                              f"table resumed")
         return []
     table, shown = _resume_table(source, name)
-    if table.identity is None:
+    if not isinstance(table.identity, dict):
         raise ValueError(f"{name} = {shown} is not allowed: it holds no record of the sweep that wrote it (sweep.json "
                          f"beside the CSV table, or a Parquet table's metadata, as this version writes), so it cannot "
                          f"be told to be this sweep's; run the sweep anew")
