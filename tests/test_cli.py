@@ -405,6 +405,18 @@ BAD_TOML = {
                      ["[scene] name = 'ti\\nny' is not allowed", "no control characters"]),
     "name_escape": (GOOD_TOML.replace('name = "tiny"', 'name = "ti\\u001bny"'),
                     ["[scene] name = 'ti\\x1bny' is not allowed", "no control characters"]),
+    # So did a newline (or NUL, ESC) in a body's, tool's, pinned set's or material's name and in
+    # the description: they reach one-line messages, the force log's rows and the USD file.
+    "body_name_newline": (GOOD_TOML.replace('shape = "box"', 'shape = "box"\nname = "a\\nb"'),
+                          ["[[bodies]] #1 (shape 'box'): name = 'a\\nb' is not allowed", "one line of text"]),
+    "tool_name_escape": (GOOD_TOML + '[[tools]]\nshape = "sphere"\nradius = 0.05\nposition = [2, 2, 2]\nname = "t\\u001b"\n',
+                         ["[[tools]] #1 (shape 'sphere'): name = 't\\x1b' is not allowed", "one line of text"]),
+    "pin_name_nul": (GOOD_TOML + '[[pins]]\nbody = "box0"\nname = "p\\u0000"\n',
+                     ["[[pins]] #1: name = 'p\\x00' is not allowed", "one line of text"]),
+    "material_name_newline": (GOOD_TOML + '[materials."a\\nb"]\npreset = "clay"\n',
+                              ['[materials."a\\nb"] is not allowed', "one line of text"]),
+    "description_newline": (GOOD_TOML.replace('name = "tiny"', 'name = "tiny"\ndescription = """two\nlines"""'),
+                            ["[scene] description = 'two\\nlines' is not allowed", "one line of text"]),
     # Rows narrower than the solver's min_neighbors = 6: refused naming the file and table (the
     # Solver's refusal named neither).
     "max_neighbors_narrow": (GOOD_TOML.replace("frames = 2", "frames = 2\nmax_neighbors = 4"),

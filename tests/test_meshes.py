@@ -509,6 +509,19 @@ def test_add_mesh_of_one_file_twice_gets_unique_default_names(tmp_path):
     assert [x.name for x in load_scene_file(tmp_path / "two.toml").builder._bodies] == ["part", "part_1"]
 
 
+def test_a_mesh_file_name_with_a_newline_gives_a_one_line_default_name(tmp_path):
+    """A body's name must be one line of text (it names the body in one-line messages and the
+    USD file); a default made from a file's name only labels, so its line breaks are cleaned,
+    not refused under a name the caller never gave."""
+    dough = warp_esph.Material.preset("dough")
+    meshes.write_mesh(tmp_path / "pa\nrt\x1b.obj", *cube((0.0, 0.0, 0.0), (0.1, 0.1, 0.1)))
+    b = warp_esph.SceneBuilder(spacing=0.05)
+    k = b.add_mesh(str(tmp_path / "pa\nrt\x1b.obj"), dough)
+    assert b._bodies[k].name == "pa_rt_"
+    with pytest.raises(ValueError, match=r"^name = 'pa\\nrt' is not allowed: .*one line of text"):
+        b.add_mesh(str(tmp_path / "pa\nrt\x1b.obj"), dough, translation=(1.0, 0.0, 0.0), name="pa\nrt")
+
+
 def test_mesh_name():
     assert meshes.mesh_name("/a/b/bunny.usd") == "bunny"
     assert meshes.mesh_name(pathlib.Path("my.model.obj")) == "my.model"

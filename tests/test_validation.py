@@ -80,6 +80,14 @@ def test_material_accepts_inf_yield_and_converts_young():
         (lambda: _one_box().finalize(dtype="float"), r"dtype = 'float' is not allowed: Warp reads it as float32, numpy as float64"),
         (lambda: _one_box().finalize(device="tpu"), r"device = 'tpu' is not allowed"),
         (lambda: _one_box(name="a").add_box((1, 0, 0), (0.1, 0.1, 0.1), DOUGH, name="a"), r"name = 'a' .* exists already"),
+        # Names reach one-line messages, the force log's rows and the USD file's custom data: a
+        # newline split every message naming the body, a NUL or ESC went into the files as it was.
+        (lambda: we.SceneBuilder().add_box((0, 0, 0), (0.1, 0.1, 0.1), DOUGH, name="a\nb"),
+         r"^name = 'a\\nb' is not allowed: it names the body in messages, .*so it must be one line of text \(no control"),
+        (lambda: _one_box().add_tool("sphere", radius=0.05, position=(2, 2, 2), name="t\x1b[31m"),
+         r"^name = 't\\x1b\[31m' is not allowed: it names the tool or pinned set .*one line of text"),
+        (lambda: _one_box().pin(body=0, name="p\x00"), r"^name = 'p\\x00' is not allowed: .*one line of text"),
+        (lambda: _one_box().add_particle_floor(0, margin=0.0, name="f\u2028"), r"^name = 'f\\u2028' is not allowed: .*one line"),
         (lambda: we.SceneBuilder().add_particles(np.zeros((4, 2)), DOUGH), r"positions with shape \(4, 2\) .* \(N, 3\)"),
         # Said 'it is smaller than the spacing', a shape's words, of no positions at all.
         (lambda: we.SceneBuilder().add_particles(np.zeros((0, 3)), DOUGH),

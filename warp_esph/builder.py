@@ -264,6 +264,7 @@ class SceneBuilder:
             name = f"{kind}{k}"
         if not isinstance(name, str) or not name:
             raise ValueError(f"name = {name!r} is not allowed: must be a non-empty string")
+        checks.one_line("name", name, "it names the body in messages, in the USD file and in a sweep's --param")
         if name in (b.name for b in self._bodies):
             raise ValueError(f"name = {name!r} is not allowed: a body of that name exists already")
         if len(pts) == 0 and kind == "particles":
@@ -383,7 +384,8 @@ class SceneBuilder:
             # Unique as every default name is: a second body of one file was refused for the
             # first one's name.
             taken = {b.name for b in self._bodies}
-            stem = name = meshes.mesh_name(source)
+            # A file's name may hold a newline; as a default the name only labels, so it is cleaned.
+            stem = name = checks.one_line_label(meshes.mesh_name(source))
             k = 1
             while name in taken:
                 name, k = f"{stem}_{k}", k + 1
@@ -580,6 +582,8 @@ class SceneBuilder:
 
         if not isinstance(name, str) or not name or name in [t.name for t in self.tools] + [p.name for p in self.pins]:
             raise ValueError(f"name = {name!r} is not allowed: must be a new non-empty string")
+        checks.one_line("name", name, "it names the tool or pinned set in messages, in the force log's rows and in the "
+                        "USD file")
         if re.fullmatch(r"(plane|sphere|box)[0-9]+", name):
             raise ValueError(f"name = {name!r} is not allowed: plane<k>, sphere<k> and box<k> name the static colliders' "
                              f"reaction rows; choose another name")

@@ -13,6 +13,7 @@ import os
 import re
 import stat
 import struct
+import unicodedata
 import zipfile
 import zlib
 from collections.abc import Mapping, Sequence
@@ -375,6 +376,31 @@ def choice(name: str, value, allowed: Sequence[str]) -> str:
     if value not in allowed:
         _fail(name, value, "must be one of " + ", ".join(repr(a) for a in allowed))
     return value
+
+
+#: Unicode categories that break a line of text or act on a terminal: control characters
+#: (newline, tab, NUL, ESC, DEL) and the line and paragraph separators.
+LINE_BREAKING = ("Cc", "Zl", "Zp")
+
+
+def breaks_line(text: str) -> bool:
+    """Whether ``text`` holds a character of ``LINE_BREAKING``."""
+    return any(unicodedata.category(c) in LINE_BREAKING for c in text)
+
+
+def one_line(name: str, value: str, role: str) -> str:
+    """``value``, a name that goes into one-line messages, log rows and file metadata
+    (``role`` says where), refused when it is not one line of text: a newline in a body's
+    name split every message naming it, a NUL went into the USD file's custom data."""
+    if breaks_line(value):
+        _fail(name, value, f"{role}, so it must be one line of text (no control characters, no line breaks)")
+    return value
+
+
+def one_line_label(text: str) -> str:
+    """``text`` with each character of ``LINE_BREAKING`` replaced by ``_``: for a name made
+    from something the user did not write as a name (a mesh file's name), which only labels."""
+    return "".join("_" if unicodedata.category(c) in LINE_BREAKING else c for c in text)
 
 
 # ---------------------------------------------------------------- files that cannot be read

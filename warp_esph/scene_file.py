@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import json
 import math
 import os
+import re
 import sys
-import unicodedata
 
 try:
     import tomllib
@@ -244,8 +245,19 @@ def _choice(file: str, where: str, key: str, value: str, allowed) -> str:
     return value
 
 
+def _table_key(name: str) -> str:
+    """``name`` as a TOML key: bare where TOML allows, else quoted with TOML's escapes (JSON's
+    are TOML's), so a table named in a message is the one the file holds, on one line."""
+    return name if re.fullmatch(r"[A-Za-z0-9_-]+", name) else json.dumps(name, ensure_ascii=False)
+
+
 def _material(file: str, name: str, table: dict) -> Material:
-    where = f"[materials.{name}]"
+    where = f"[materials.{_table_key(name)}]"
+    if checks.breaks_line(name):
+        # Every message about the material names its table: a newline split them in two.
+        raise ValueError(f"{file}: {where} is not allowed: the name {name!r} names the material in one-line messages "
+                         "and in the bodies' material keys, so it must be one line of text (no control characters, "
+                         "no line breaks)")
     _check_table(file, where, table, MATERIAL_KEYS)
     fields = {k: v for k, v in table.items() if k not in ("preset", "E", "nu")}
     if ("E" in table) != ("nu" in table):
@@ -304,7 +316,7 @@ def _body(file: str, k: int, table: dict, builder: SceneBuilder, materials: dict
     else:
         known = list(materials) + [p for p in PRESETS if p not in materials]
         raise ValueError(
-            f"{file}: material = {mat_name!r} in {where} is not allowed: no [materials.{mat_name}] table and no preset "
+            f"{file}: material = {mat_name!r} in {where} is not allowed: no [materials.{_table_key(mat_name)}] table and no preset "
             f"of that name{_did_you_mean(mat_name, known)} (known: {', '.join(known)})"
         )
     args = {k: v for k, v in table.items() if k not in ("shape", "material") + FLOOR_KEYS}
@@ -523,18 +535,21 @@ def load_scene_file(path, scale: float = 1.0) -> Scene:
     for name, material in materials.items():
         for k, used in enumerate(builder._materials):
             if used is material:
-                builder.origins[("material", k)] = f"[materials.{name}]" if name in materials_table else f"material {name!r}"
+                builder.origins[("material", k)] = f"[materials.{_table_key(name)}]" if name in materials_table else f"material {name!r}"
     name = scene.get("name")
     if name is not None and (not name.strip() or name in (".", "..") or any(c in name for c in "/\\\0")):
         # The name makes the default output <name>.usdc: '../../x' wrote two folders up.
         raise ValueError(f"{file}: [scene] name = {name!r} is not allowed: it names the default output file, so it "
                          "must be a file name (not empty, no '/', '\\' or '..')")
-    if name is not None and any(unicodedata.category(c) in ("Cc", "Zl", "Zp") for c in name):
-        # A newline went into the default output's name ('ti\nny.usdc') and split every one-line
-        # message naming the scene; a tab or an escape sequence read as terminal control.
-        raise ValueError(f"{file}: [scene] name = {name!r} is not allowed: it names the default output file and the "
-                         "scene in one-line messages, so it must be one line of text (no control characters, no "
-                         "line breaks)")
+    try:
+        if name is not None:
+            # A newline went into the default output's name ('ti\nny.usdc') and split every one-line
+            # message naming the scene; a tab or an escape sequence read as terminal control.
+            checks.one_line("[scene] name", name, "it names the default output file and the scene in one-line messages")
+        if "description" in scene:
+            checks.one_line("[scene] description", scene["description"], "it is the scene's one-line description (Scene.description)")
+    except ValueError as e:
+        raise ValueError(f"{file}: {e}") from None
     name = name or os.path.splitext(os.path.basename(file))[0]
     description = scene.get("description") or f"scene file {file}"
     # The default output is <name>.usdc in the working folder: a bunny.toml beside its mesh
