@@ -185,7 +185,9 @@ _TOOL = '[[tools]]\nshape = "sphere"\nradius = 0.05\n'
     "changes, pattern",
     [
         ({'preset = "dough"': 'preset = "dough"\nmu = 1e39\nlam = 1e39'},
-         r"\[materials\.m\]: mu = 1e\+39 is not allowed in float32: must be at most 3\.4e\+38"),
+         # The advice names both spellings, the command's and Python's (it named dtype=float64 only).
+         r"\[materials\.m\]: mu = 1e\+39 is not allowed in float32: must be at most 3\.4e\+38; "
+         r"use dtype=float64 \(--dtype float64\) or a smaller value$"),
         ({'preset = "dough"': 'preset = "dough"\nviscosity = 1e-39'},
          r"\[materials\.m\]: viscosity = 1e-39 is not allowed in float32: must be 0 or at least 1\.18e-38"),
         ({"center = [0, 0.2, 0]": "center = [1e7, 0.2, 0]"},
@@ -206,7 +208,7 @@ _TOOL = '[[tools]]\nshape = "sphere"\nradius = 0.05\n'
          r"\[\[tools\]\] #1 \(shape 'sphere'\): position = \[0\.0, 1e\+20, 0\.0\] is not allowed in float32"),
         ({"[scene]": _TOOL + "keyframe_times = [1.0, 1.000000001]\nkeyframe_positions = [[0, 1, 0], [0, 1, 0]]\n[scene]"},
          r"\[\[tools\]\] #1 \(shape 'sphere'\): keyframe_times = \[1\.0, 1\.000000001\] is not allowed in float32: "
-         r"1\.0 and 1\.000000001 are equal"),
+         r"1\.0 and 1\.000000001 are equal.*; use dtype=float64 \(--dtype float64\) or times further apart$"),
         ({"[scene]": '[[pins]]\nbody = "sphere0"\nangular_velocity = [0, 1e20, 0]\n[scene]'},
          r"\[\[pins\]\] #1: angular_velocity = \[0\.0, 1e\+20, 0\.0\] is not allowed in float32"),
     ],

@@ -1928,7 +1928,7 @@ def test_a_scene_file_s_mesh_tool_the_particles_meet_beyond_float32_is_refused_b
                                             "[0.06, 0.06, 0.06]")
     assert err.startswith(f"warp-esph: error: {scene}: [[tools]] #1 (shape 'mesh'): mesh tool 'mesh_tool0' is not allowed "
                           "in float32: the faces the particles can touch reach 100 m from its origin"), err
-    assert err.endswith("split its faces there into smaller ones, use --dtype float64, or a larger spacing\n"), err
+    assert err.endswith("split its faces there into smaller ones, use dtype=float64 (--dtype float64), or a larger spacing\n"), err
     from warp_esph.cli import main
 
     assert main(["run", str(scene), "-o", str(tmp_path / "t.usdc"), "--no-progress", "--dtype", "float64"]) == 0

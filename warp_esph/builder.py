@@ -867,7 +867,7 @@ class SceneBuilder:
                            f"{reach:.3g} m from its origin, where float32 (the model's contact and Warp's mesh queries) "
                            f"{_margin_unresolved(reach, self.spacing)}; {move}, split its faces there into smaller ones, ")
                     self._refuse(("tool", t.name), why + "use dtype=float64, or a larger spacing",
-                                 why + "use --dtype float64, or a larger spacing")
+                                 why + "use dtype=float64 (--dtype float64), or a larger spacing")
                 why = (f"mesh tool {t.name!r} is not allowed: the particles can touch it up to {reach:.3g} m from its "
                        f"origin, where float32 (Warp's mesh queries) {_margin_unresolved(reach, self.spacing)}; {move} or "
                        "use a larger spacing")
@@ -883,8 +883,10 @@ class SceneBuilder:
             problem = material_precision_problem(m, scalar)
             if problem is not None:
                 name, v, why = problem
+                # A scene file's is read by the command (--dtype) and by Python (dtype=): its
+                # advice names both, as a sweep's sample refusal does (it named dtype=float64 only).
                 self._refuse(("material", k), f"Material.{name} = {v:g} (material {k}) is not allowed in {T}: {why}",
-                             f"{name} = {v:g} is not allowed in {T}: {why}")
+                             f"{name} = {v:g} is not allowed in {T}: {material_precision_problem(m, scalar, cli=True)[2]}")
         points = np.concatenate(self._points) if self._points else np.zeros((0, 3))
         if len(points) and np.abs(points).max() > big:
             i = int(np.argmax(np.abs(points).max(axis=1)))
@@ -968,9 +970,10 @@ class SceneBuilder:
                 why = tools.keyframe_times_problem(m.times, np.float32 if scalar is wp.float32 else np.float64)
                 if why is not None:
                     shown = checks.shorten(list(m.times))
-                    why = f"is not allowed in {T}: {why}; {wider_precision(scalar, 'times further apart')}"
-                    self._refuse(origin, f"{kind} {t.name!r}: Keyframes times = {shown!r} {why}",
-                                 f"keyframe_times = {shown!r} {why}")
+                    why = f"is not allowed in {T}: {why}; "
+                    self._refuse(origin, f"{kind} {t.name!r}: Keyframes times = {shown!r} {why}"
+                                 f"{wider_precision(scalar, 'times further apart')}",
+                                 f"keyframe_times = {shown!r} {why}{wider_precision(scalar, 'times further apart', cli=True)}")
             param = getattr(t, "param", None)
             if param is not None and np.abs(np.asarray(param, dtype=np.float64)).max() > far:
                 size = np.abs(np.asarray(param)).max()
