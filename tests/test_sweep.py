@@ -571,6 +571,27 @@ def test_a_function_the_workers_cannot_be_sent_is_refused_before_any_item(tmp_pa
     assert sweep(_box(), ["yield_stress=10"], frames=1, workers=1, extra=lambda model, state, seed: {"q": 1.0}).rows[0]["q"] == 1.0
 
 
+def _extra_seed(model, state, seed):
+    """An ``extra`` column function: the sample seed it is handed."""
+    return {"handed": seed}
+
+
+def test_a_python_sweep_refuses_a_seed_a_grid_without_extra_never_reads():
+    """As ``warp-esph sweep`` refuses ``--seed`` with ``--sample grid``: ``sweep(..., seed=3)`` of a
+    grid ran every sample exactly as without it. With ``extra`` the seed is read (it seeds the
+    sample seeds ``extra`` is handed), so it is taken there."""
+    from warp_esph.sweep import _sample_seed
+
+    for seed in (3, 0):
+        with pytest.raises(ValueError, match=rf"^seed = {seed} is not allowed with sample = 'grid' and no extra: it "
+                                             r"seeds the draws of sample = 'random' and 'lhs' and the sample seeds "
+                                             r"handed to extra, and a grid without extra reads neither$"):
+            sweep(_box(), ["yield_stress=10"], seed=seed, frames=1, workers=1)
+    handed = [sweep(_box(), ["yield_stress=10"], frames=1, workers=1, extra=_extra_seed, **kw).rows[0]["handed"]
+              for kw in ({}, {"seed": 3})]
+    assert handed == [_sample_seed(0, 0), _sample_seed(3, 0)] and handed[0] != handed[1]
+
+
 def _extra_that_fails(model, state, seed):
     """An ``extra`` column function: kills its worker process in sample 0, raises in sample 1."""
     from warp_esph.sweep import _sample_seed

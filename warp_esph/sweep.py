@@ -1025,7 +1025,7 @@ def sweep(
     *,
     sample: str = "grid",
     samples: int | None = None,
-    seed: int = 0,
+    seed: int | None = None,
     frames: int | None = None,
     duration: float | None = None,
     fps: float | None = None,
@@ -1047,7 +1047,9 @@ def sweep(
       takes, at ``scale``), a ``Scene`` or a ``SceneBuilder``.
     - ``params``: specs (``"yield_stress=100:1000:log:8"``), ``Param``s, or
       ``{name: values}``. ``sample``: ``grid`` (default), ``random`` or ``lhs`` with
-      ``samples`` draws from ``seed``. More than ``max_samples`` samples is an error.
+      ``samples`` draws from ``seed`` (default 0). More than ``max_samples`` samples is an
+      error. A ``seed`` with a grid and no ``extra`` is refused, as ``--seed`` with
+      ``--sample grid`` is: nothing reads it.
     - ``frames`` or ``duration`` (s): how long each sample runs (default the scene's
       frames) at ``fps`` (default the scene's). ``dt``: the time step (must divide
       ``1/fps``); default the scene's, else each sample's own stable step (it depends on
@@ -1072,6 +1074,14 @@ def sweep(
     Raises ``ValueError`` for bad input before any sample runs. Ctrl-C raises
     ``KeyboardInterrupt`` with ``table``: the samples finished, to give as ``resume``.
     """
+    if seed is not None and sample == "grid" and extra is None:
+        # Refused, not ignored, as the command refuses --seed with --sample grid: the samples
+        # ran exactly as without it, only the table's seed column differed. With extra it
+        # seeds the sample seeds extra is handed.
+        raise ValueError(f"seed = {checks.shorten(seed)!r} is not allowed with sample = 'grid' and no extra: it seeds "
+                         "the draws of sample = 'random' and 'lhs' and the sample seeds handed to extra, and a grid "
+                         "without extra reads neither")
+    seed = 0 if seed is None else seed
     plan = _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale, dtype, device, workers,
                  max_samples, extra, ray)
     kept = _resumed_rows(resume, plan, retry_failed, "resume", "retry_failed")
