@@ -288,6 +288,9 @@ def _material(file: str, name: str, table: dict) -> Material:
         msg = str(e)
         if msg.startswith(file):
             raise
+        # The table's keys are Material's fields: named as the file writes them ('model = ...',
+        # not 'Material.model = ...'), as every other table's refusals name their keys.
+        msg = msg.removeprefix("Material.")
         raise ValueError(f"{file}: {where}: {msg}") from None
 
 
@@ -347,7 +350,9 @@ def _body(file: str, k: int, table: dict, builder: SceneBuilder, materials: dict
             except ValueError as e:
                 # The method names its arguments; the file's keys are floor_<argument>.
                 msg = str(e)
-                raise ValueError("floor_" + msg if msg.startswith(("margin = ", "layers = ", "elastic = ", "ghost = ", "slip = ")) else msg) from None
+                # Every argument it names, not only the first: 'floor_elastic = True is not allowed with
+                # ghost = True' named a key the file has not.
+                raise ValueError(re.sub(r"\b(margin|layers|elastic|ghost|slip) = ", r"floor_\1 = ", msg)) from None
     except ValueError as e:
         raise ValueError(f"{file}: {where}: {e}") from None
     builder.origins[("body", index)] = where
