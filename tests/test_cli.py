@@ -417,6 +417,12 @@ BAD_TOML = {
                               ['[materials."a\\nb"] is not allowed', "one line of text"]),
     "description_newline": (GOOD_TOML.replace('name = "tiny"', 'name = "tiny"\ndescription = """two\nlines"""'),
                             ["[scene] description = 'two\\nlines' is not allowed", "one line of text"]),
+    # A tool named like a body's floor (its pinned set, '<body>_floor') was refused as 'must be a
+    # new non-empty string', naming no clash with a set the file never named.
+    "tool_name_taken_by_floor": (GOOD_TOML.replace('shape = "box"', 'shape = "box"\nfloor_margin = 0.0')
+                                 + '[[tools]]\nshape = "sphere"\nradius = 0.05\nposition = [2, 2, 2]\nname = "box0_floor"\n',
+                                 ["[[tools]] #1 (shape 'sphere'): name = 'box0_floor' is not allowed: a pinned set of that "
+                                  "name exists already; tools and pinned sets share one set of names"]),
     # Rows narrower than the solver's min_neighbors = 6: refused naming the file and table (the
     # Solver's refusal named neither).
     "max_neighbors_narrow": (GOOD_TOML.replace("frames = 2", "frames = 2\nmax_neighbors = 4"),

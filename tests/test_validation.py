@@ -88,6 +88,9 @@ def test_material_accepts_inf_yield_and_converts_young():
          r"^name = 't\\x1b\[31m' is not allowed: it names the tool or pinned set .*one line of text"),
         (lambda: _one_box().pin(body=0, name="p\x00"), r"^name = 'p\\x00' is not allowed: .*one line of text"),
         (lambda: _one_box().add_particle_floor(0, margin=0.0, name="f\u2028"), r"^name = 'f\\u2028' is not allowed: .*one line"),
+        # Said only 'must be a new non-empty string', naming no clash.
+        (lambda: _two_tools_named("t"), r"^name = 't' is not allowed: a tool of that name exists already; tools and pinned "
+                                        r"sets share one set of names"),
         (lambda: we.SceneBuilder().add_particles(np.zeros((4, 2)), DOUGH), r"positions with shape \(4, 2\) .* \(N, 3\)"),
         # Said 'it is smaller than the spacing', a shape's words, of no positions at all.
         (lambda: we.SceneBuilder().add_particles(np.zeros((0, 3)), DOUGH),
@@ -113,6 +116,12 @@ def test_finalize_takes_a_numpy_dtype_as_its_precision(dtype, scalar):
     model = _one_box().finalize(dtype=dtype)
     assert model.scalar is scalar
     assert model.state().x.dtype is (wp.vec3d if scalar is wp.float64 else wp.vec3f)
+
+
+def _two_tools_named(name):
+    b = _one_box()
+    for x in (2.0, 3.0):
+        b.add_tool("sphere", radius=0.05, position=(x, 2.0, 2.0), name=name)
 
 
 def _one_box(name=None):

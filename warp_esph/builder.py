@@ -580,8 +580,14 @@ class SceneBuilder:
         the force log and ``ReactionForceLoss`` look both up by name)."""
         import re  # noqa: PLC0415
 
-        if not isinstance(name, str) or not name or name in [t.name for t in self.tools] + [p.name for p in self.pins]:
+        if not isinstance(name, str) or not name:
             raise ValueError(f"name = {name!r} is not allowed: must be a new non-empty string")
+        for what, items in (("tool", self.tools), ("pinned set", self.pins)):
+            if name in [t.name for t in items]:
+                # Said only 'must be a new non-empty string': a scene file's tool named like a
+                # body's floor ('<body>_floor') clashed with a set the file never named.
+                raise ValueError(f"name = {name!r} is not allowed: a {what} of that name exists already; tools and "
+                                 "pinned sets share one set of names (the force log's rows)")
         checks.one_line("name", name, "it names the tool or pinned set in messages, in the force log's rows and in the "
                         "USD file")
         if re.fullmatch(r"(plane|sphere|box)[0-9]+", name):
