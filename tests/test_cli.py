@@ -423,6 +423,13 @@ BAD_TOML = {
                                  + '[[tools]]\nshape = "sphere"\nradius = 0.05\nposition = [2, 2, 2]\nname = "box0_floor"\n',
                                  ["[[tools]] #1 (shape 'sphere'): name = 'box0_floor' is not allowed: a pinned set of that "
                                   "name exists already; tools and pinned sets share one set of names"]),
+    # A mesh path the file gives relative is read from the file's folder: its refusal named the
+    # joined path alone, not the key, nor where a relative path is read from.
+    "mesh_not_beside_the_file": (GOOD_TOML + '[[bodies]]\nshape = "mesh"\nmaterial = "dough"\nfile = "meshes/part.obj"\n',
+                                 ["[[bodies]] #2 (shape 'mesh'): file = 'meshes/part.obj' is not allowed: there is no ",
+                                  "mesh_not_beside_the_file.toml", "read from the scene file's folder", "not the working folder"]),
+    "tool_mesh_home": (GOOD_TOML + '[[tools]]\nshape = "mesh"\nfile = "~/part.obj"\nposition = [2, 2, 2]\n',
+                       ["[[tools]] #1 (shape 'mesh'): file = '~/part.obj' is not allowed", "'~' is not expanded"]),
     # Rows narrower than the solver's min_neighbors = 6: refused naming the file and table (the
     # Solver's refusal named neither).
     "max_neighbors_narrow": (GOOD_TOML.replace("frames = 2", "frames = 2\nmax_neighbors = 4"),

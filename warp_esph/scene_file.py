@@ -337,7 +337,7 @@ def _body(file: str, k: int, table: dict, builder: SceneBuilder, materials: dict
         elif shape == "star":
             index = builder.add_star(material=material, **args)
         else:
-            index = builder.add_mesh(_in_folder(args.pop("file"), base_dir), material, **args)
+            index = builder.add_mesh(_mesh_file(args.pop("file"), base_dir), material, **args)
         if "floor_margin" in table:
             # Checked here so that the message names the file's keys, not the method's arguments.
             margin = checks.non_negative("floor_margin", table["floor_margin"])
@@ -418,7 +418,7 @@ def _tool(file: str, k: int, table: dict, builder: SceneBuilder, base_dir: str):
     try:
         motion = _motion(args)
         if "file" in args:
-            args["mesh"] = _in_folder(args.pop("file"), base_dir)
+            args["mesh"] = _mesh_file(args.pop("file"), base_dir)
         if "orientation" in args:
             args["orientation"] = tuple(args["orientation"])
         builder.add_tool(shape, motion=motion, **args)
@@ -430,6 +430,19 @@ def _tool(file: str, k: int, table: dict, builder: SceneBuilder, base_dir: str):
 def _in_folder(source: str, base_dir: str) -> str:
     """A mesh file's path: one relative to the scene file is in the scene file's folder."""
     return source if os.path.isabs(source) else os.path.join(base_dir, source)
+
+
+def _mesh_file(source: str, base_dir: str) -> str:
+    """``_in_folder``, refused by the file's key where a relative path names no file there: the
+    mesh's refusal named the joined path alone, and did not say it is read from the scene
+    file's folder, not the working folder."""
+    path = _in_folder(source, base_dir)
+    if not os.path.isabs(source) and not os.path.lexists(path):
+        tilde = "; '~' is not expanded" if source.startswith("~") else ""
+        raise ValueError(f"file = {source!r} is not allowed: there is no {path!r}; a relative path is read from the "
+                         f"scene file's folder ({base_dir!r}), not the working folder (give an absolute path for another)"
+                         f"{tilde}")
+    return path
 
 
 def _pin(file: str, k: int, table: dict, builder: SceneBuilder):
