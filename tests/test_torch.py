@@ -111,6 +111,33 @@ def test_backward_leaves_the_model_holding_the_values_it_held():
         loss.backward()
 
 
+def _cube_under_plate(motion=None):
+    """``_cube``'s 27 particles with a plate pressing on the top layer (y = 0.02) from the first
+    step (float64): the tool's motion, gravity (against the plate) and the contact law matter."""
+    from warp_esph import tools  # noqa: PLC0415
+
+    model = _cube()
+    b = we.SceneBuilder(spacing=0.02, support_radius=0.05)
+    b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), model.materials[0])
+    if motion is None:
+        motion = tools.Velocity(position=(0.0, 0.021, 0.0), velocity=(0.0, -1.0, 0.0))
+    b.add_tool("plane", normal=(0.0, -1.0, 0.0), motion=motion)
+    with_tool = b.finalize(dtype=wp.float64, requires_grad=True)
+    with_tool.particle_x0[:], with_tool.particle_v0[:] = model.particle_x0, model.particle_v0
+    return with_tool
+
+
+def _mu():
+    return torch.tensor([1.0e3], dtype=torch.float64, requires_grad=True)
+
+
+def _mu_gradient(rollout):
+    """The gradient of the squared positions' sum with respect to mu = 1000, through the bridge."""
+    m = _mu()
+    rollout_positions(rollout, {"mu": m}).square().sum().backward()
+    return m.grad.item()
+
+
 @pytest.mark.parametrize("change", ["particle_v0", "particle_x0", "tool velocity"])
 def test_backward_re_runs_its_forward_from_the_start_and_tools_that_forward_ran_with(change):
     """A backward that re-ran its forward (the rollout had run since) started it from the
@@ -118,28 +145,8 @@ def test_backward_re_runs_its_forward_from_the_start_and_tools_that_forward_ran_
     as that forward had: set for a later forward, they gave the gradient of another point
     without a word (measured: the shear modulus's gradient 2.2 times its own for a doubled particle_v0).
     The re-run takes the forward's; the model keeps what was set since."""
-    from warp_esph import tools  # noqa: PLC0415
-
-    def model_with_tool():
-        model = _cube()
-        b = we.SceneBuilder(spacing=0.02, support_radius=0.05)
-        b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), model.materials[0])
-        # A plate pressing on the top layer (y = 0.02) from the first step.
-        b.add_tool("plane", normal=(0.0, -1.0, 0.0), motion=tools.Velocity(position=(0.0, 0.021, 0.0),
-                                                                          velocity=(0.0, -1.0, 0.0)))
-        with_tool = b.finalize(dtype=wp.float64, requires_grad=True)
-        with_tool.particle_x0[:], with_tool.particle_v0[:] = model.particle_x0, model.particle_v0
-        return with_tool
-
-    def mu():
-        return torch.tensor([1.0e3], dtype=torch.float64, requires_grad=True)
-
-    def gradient(rollout):
-        m = mu()
-        rollout_positions(rollout, {"mu": m}).square().sum().backward()
-        return m.grad.item()
-
-    model = model_with_tool()
+    mu, gradient = _mu, _mu_gradient
+    model = _cube_under_plate()
     rollout = Rollout(model, 3, 1.0e-3, frames=[3])
     ref = gradient(rollout)
     m = mu()
@@ -157,6 +164,64 @@ def test_backward_re_runs_its_forward_from_the_start_and_tools_that_forward_ran_
     now = model.tools.velocity.numpy() if change == "tool velocity" else getattr(model, change)
     np.testing.assert_array_equal(now, new)
     assert abs(gradient(rollout) - ref) > 1e-3 * abs(ref)
+
+
+@pytest.mark.parametrize("change", ["dt", "gravity", "contact_ramp"])
+def test_backward_re_runs_its_forward_at_the_dt_gravity_and_contact_law_that_forward_ran_with(change):
+    """A backward that re-ran its forward (the rollout had run since) ran it at ``rollout.dt``,
+    the model's gravity and contact ramp as they were then, not as that forward had: set for a
+    later forward, they gave the gradient of another run without a word (measured: dt 1 -> 2 ms,
+    the shear modulus's gradient 6.5 times its own). The re-run takes the forward's; the
+    rollout and model keep what was set since."""
+    model = _cube_under_plate()
+    rollout = Rollout(model, 3, 1.0e-3, frames=[3])
+    owner, new = {"dt": (rollout, 2.0e-3), "gravity": (model, (0.0, -300.0, 0.0)),
+                  "contact_ramp": (model, 0.0)}[change]
+    ref = _mu_gradient(rollout)
+    m = _mu()
+    loss = rollout_positions(rollout, {"mu": m}).square().sum()
+    setattr(owner, change, new)
+    rollout_positions(rollout, {"mu": torch.tensor([1.0e3], dtype=torch.float64)})  # a later forward
+    loss.backward()
+    assert m.grad.item() == pytest.approx(ref, rel=1e-12)
+    # The setting kept, and it matters (the gradient there is another).
+    assert getattr(owner, change) == new
+    assert abs(_mu_gradient(rollout) - ref) > 1e-3 * abs(ref)
+
+
+def test_a_checkpointed_backward_refuses_a_dt_or_gravity_set_since_its_forward():
+    """A checkpointed backward re-runs its segments, and ran them at the dt and gravity it found:
+    set after the forward, they gave the gradient of another run (measured: dt 1 -> 2 ms, mu's
+    5.1 times its own; gravity 9.81 -> 300 m/s^2, 0.57 times), through ``Rollout.backward``
+    and the bridge alike. ``Rollout.backward`` refuses such a change by name, as it refuses a
+    parameter's; the bridge re-runs its forward at the forward's settings. A solver setting the bridge cannot put back (the model's
+    hourglass strength) is refused by name."""
+    model = _cube_under_plate()
+    rollout = Rollout(model, 4, 1.0e-3, frames=[4], checkpoint_every=2)
+    ref = _mu_gradient(rollout)
+    g = np.ones((1, 27, 3))
+    for name, owner, new, shown in (("dt", rollout, 2.0e-3, r"dt \(0\.001, now 0\.002\)"),
+                                    ("gravity", model, (0.0, -300.0, 0.0), r"gravity \(\(0\.0, -9\.81, 0\.0\), now "
+                                                                            r"\(0\.0, -300\.0, 0\.0\)\)")):
+        old = getattr(owner, name)
+        rollout.forward()
+        setattr(owner, name, new)
+        with pytest.raises(RuntimeError, match=rf"^backward\(\) is not allowed: {shown} changed since forward\(\)"):
+            rollout.backward(g)
+        setattr(owner, name, old)
+        m = _mu()
+        loss = rollout_positions(rollout, {"mu": m}).square().sum()
+        setattr(owner, name, new)
+        loss.backward()
+        assert m.grad.item() == pytest.approx(ref, rel=1e-12), name
+        assert getattr(owner, name) == new
+        setattr(owner, name, old)
+    loss = rollout_positions(rollout, {"mu": _mu()}).square().sum()
+    model.hourglass = 0.1
+    with pytest.raises(RuntimeError, match=r"^backward is not allowed: the solver's hourglass \(0\.0, now 0\.1\) changed "
+                                           r"since this forward"):
+        loss.backward()
+    assert rollout.get_parameters()["mu"].tolist() == [1.0e3]
 
 
 def test_backward_after_the_rollout_was_released_re_runs_its_forward():

@@ -842,19 +842,34 @@ class Rollout:
 
     def _inputs(self) -> tuple:
         """What ``backward`` reads from the model besides the taped states: the parameter
-        arrays, the materials and the tools' differentiable arrays."""
+        arrays, the materials, the tools' differentiable arrays, and the run's settings
+        (``run_settings``)."""
         return (self.model._read_parameters(), tuple(self.model.materials),  # a copy already
-                {name: a.numpy().copy() for name, a in self._tool_arrays().items()})
+                {name: a.numpy().copy() for name, a in self._tool_arrays().items()}, self.run_settings())
+
+    def run_settings(self) -> dict:
+        """What a run of this rollout reads besides the parameters, materials, tools and start:
+        ``dt``, the model's ``gravity`` and the solver's settings (``checkpoint.solver_settings``:
+        the fit, hourglass strength, contact ramp, neighbourhood guards, fused kernels, rest
+        model), as a run now would take them."""
+        from .checkpoint import solver_settings  # noqa: PLC0415 (checkpoint imports the model, as this module)
+
+        return {"dt": self.dt, "gravity": tuple(self.model.gravity), **solver_settings(self.solver)}
 
     def _check_inputs_unchanged(self):
         # The tape re-reads the arrays, and a checkpointed backward re-runs the segments with
         # them: values written after forward gave the gradient of another point with the value
         # of this one, without a word (3x the shear modulus: the yield stress's gradient 37 % off).
-        rows, materials, tools = self._forward_inputs
-        now_rows, now_materials, now_tools = self._inputs()
+        # A checkpointed backward re-runs its segments at the dt, gravity and solver settings it
+        # finds: set since the forward, they gave the gradient of another run (dt doubled: the
+        # shear modulus's gradient 5.1 times its own), without a word.
+        rows, materials, tools, settings = self._forward_inputs
+        now_rows, now_materials, now_tools, now_settings = self._inputs()
         changed = [name for k, name in enumerate(PARAMETERS) if not np.array_equal(rows[k], now_rows[k])]
         changed += [f"materials[{k}]" for k, (a, b) in enumerate(zip(materials, now_materials)) if a != b]
         changed += [f"tools.{name}" for name in tools if not np.array_equal(tools[name], now_tools[name])]
+        changed += [f"{name} ({settings[name]!r}, now {now_settings[name]!r})" for name in settings
+                    if settings[name] != now_settings[name]]
         if changed:
             raise RuntimeError(f"backward() is not allowed: {', '.join(changed)} changed since forward(); run forward() "
                                "again with the new values first")
@@ -1017,8 +1032,9 @@ class Rollout:
         parameter name (one value per material) and ``x0, v0, F0, alpha0`` (per particle).
         The gradients of the tools' parameters (``TOOL_GRADIENTS``) are left on the arrays of
         ``model.tools`` (``model.tools.motion_gradient(name)``, ``model.tools.friction.grad``).
-        The model's parameter values, materials and tool parameters must not change between
-        ``forward`` and ``backward`` (a ``RuntimeError`` names what did).
+        The model's parameter values, materials and tool parameters, and the run's settings
+        (``run_settings``: ``dt``, gravity, the solver's) must not change between ``forward``
+        and ``backward`` (a ``RuntimeError`` names what did).
         """
         if not self.taped:
             raise RuntimeError("backward() is not allowed: this rollout was made with taped = False, for loss values "

@@ -19,9 +19,10 @@ positions at the rollout's ``frames``. The forward pass sets the model's paramet
 arrays to the given values (they keep them afterwards). The backward pass re-runs the
 forward pass first when the rollout has been run with other inputs since (as
 ``torch.autograd.gradcheck`` does) or released (``Rollout.release``), so every output's
-gradient is taken at its own inputs (the model's ``particle_x0`` / ``particle_v0`` and the
-tools' arrays too, as that forward read them), and leaves the model holding the parameter
-values, start and tool arrays it held before. Tensors are copied to and from the model's
+gradient is taken at its own inputs (the model's ``particle_x0`` / ``particle_v0``, the
+tools' arrays, the rollout's ``dt`` and the model's gravity and contact ramp too, as that forward
+read them; the solver's other settings changed since are refused), and leaves the model holding
+the parameter values, start, tool arrays and settings it held before. Tensors are copied to and from the model's
 device; use a float64 model with float64 tensors for ``gradcheck``. A forward whose run blows up to a non-finite position or velocity raises
 ``warp_esph.rollout.NonFiniteRollout`` (a ``FloatingPointError``; ``Rollout.forward``'s check),
 the model keeping the values it held, instead of returning a tensor of NaN positions.
@@ -100,6 +101,9 @@ def _function():
             # and the tools' arrays (the rollout's copies of this forward's).
             ctx.model_start = {name: getattr(rollout.model, name).copy() for name in _MODEL_STARTS}
             ctx.tools = rollout._forward_inputs[2]
+            # dt, gravity and the solver's settings as this forward ran them (Rollout.run_settings):
+            # a re-run after one was set since ran at the new one, the gradient of another run.
+            ctx.settings = rollout._forward_inputs[3]
             ref = next((t for t in (x0, v0, *values) if t is not None), None)
             # Real numbers in at least the model's precision: an integer input (a viscosity given
             # as 0) made them integers, each truncated to 0; a float16 one rounded them (1.7 mm
@@ -129,6 +133,12 @@ def _function():
                 rollout._set_parameters(ctx.params, current)
             held = None
             try:
+                now = rollout.run_settings()  # at this forward's parameters: the automatic fit follows them
+                fixed = [f"{name} ({ctx.settings[name]!r}, now {now[name]!r})" for name in ctx.settings
+                         if name not in _SETTINGS_PUT_BACK and now[name] != ctx.settings[name]]
+                if fixed:
+                    raise RuntimeError(f"backward is not allowed: the solver's {', '.join(fixed)} changed since this "
+                                       "forward, and its run cannot be re-run; set it back, or run the forward again")
                 # rollout.release() since freed its run (backward said 'run forward() first', a
                 # call the torch user never makes): re-run as after another forward.
                 redo = rollout.forward_count != ctx.forward_count or not rollout._forward_done
@@ -141,7 +151,7 @@ def _function():
                     # The rollout ran with other inputs since: redo this forward first, from
                     # its own start and tools (a model's particle_v0 or a tool's velocity set
                     # since for a later forward were re-run here: the gradient of another point).
-                    held = _put_back(rollout, ctx.model_start, ctx.tools)
+                    held = _put_back(rollout, ctx.model_start, ctx.tools, ctx.settings)
                     rollout._forward_checked(ctx.starts)
                     ctx.forward_count = rollout.forward_count
                 _, grads = rollout.backward(_numpy(grad_out, rollout.model.types.np_dtype))
@@ -169,12 +179,25 @@ def _function():
 #: The model's start, which a forward reads where ``x0`` / ``v0`` are not given.
 _MODEL_STARTS = ("particle_x0", "particle_v0")
 
+#: The settings (``Rollout.run_settings``) a backward's re-run puts back as its forward ran
+#: them, and where each is set (the others, the solver's fit, hourglass and guards, are
+#: refused when changed: they are set in several places, some with side effects).
+_SETTINGS_PUT_BACK = {"dt": "rollout", "gravity": "model", "contact_ramp": "model"}
 
-def _put_back(rollout: Rollout, start: dict, tools: dict) -> tuple[dict, dict]:
-    """Give the model ``start`` (``{name: array}`` of ``_MODEL_STARTS``) and the tools' arrays
-    ``tools`` (``{name: values}``) where they differ; returns what it replaced, for the same call
-    to put back."""
+
+def _put_back(rollout: Rollout, start: dict, tools: dict, settings: dict | None = None) -> tuple[dict, dict, dict]:
+    """Give the model ``start`` (``{name: array}`` of ``_MODEL_STARTS``), the tools' arrays
+    ``tools`` (``{name: values}``) and the ``_SETTINGS_PUT_BACK`` of ``settings`` where they
+    differ; returns what it replaced, for the same call to put back."""
     model = rollout.model
+    held_settings = {}
+    for name, owner in _SETTINGS_PUT_BACK.items():
+        if settings is not None and name in settings:
+            target = rollout if owner == "rollout" else model
+            now = getattr(target, name)
+            if now != settings[name]:
+                held_settings[name] = now
+                setattr(target, name, settings[name])
     held_start = {name: getattr(model, name) for name, v in start.items() if not np.array_equal(getattr(model, name), v)}
     for name in held_start:
         setattr(model, name, start[name])
@@ -185,7 +208,7 @@ def _put_back(rollout: Rollout, start: dict, tools: dict) -> tuple[dict, dict]:
             if not np.array_equal(now, tools[name]):
                 held_tools[name] = now.copy()
                 a.assign(tools[name])
-    return held_start, held_tools
+    return held_start, held_tools, held_settings
 
 
 def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
