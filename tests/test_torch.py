@@ -479,6 +479,40 @@ def test_elastic_models_refused_starts_and_input_kinds():
     assert float(g) != 0.0
 
 
+def test_the_output_is_of_every_given_tensor_s_dtype_and_tensors_on_two_devices_are_refused():
+    """The output took the first given tensor's dtype and device: a float32 model gave float32
+    positions for a float16 ``v0`` and a float64 ``mu``, float64 for the two swapped; and a
+    ``mu`` on one device with an ``x0`` on another sent the positions (and every gradient) to
+    ``x0``'s, where torch refused ``mu``'s gradient at the backward, naming no input (or, as here
+    on a host without CUDA, the copy out failed). The dtype is promoted over every given float
+    tensor and the model's precision; tensors on two devices are refused by name before
+    anything runs. (A CUDA tensor cannot be made here: a tensor that reports ``cuda:0`` stands
+    in for one.)"""
+
+    class Elsewhere(torch.Tensor):
+        @property
+        def device(self):
+            return torch.device("cuda", 0)
+
+    b = we.SceneBuilder(spacing=0.02, support_radius=0.05)
+    b.add_box((0.0, 0.0, 0.0), (0.04, 0.04, 0.04), we.Material(mu=1.0e3, lam=1.5e3))
+    single = Rollout(b.finalize(dtype=wp.float32, requires_grad=True), 2, 1.0e-3)
+    v = torch.tensor([0.25, -0.5, 0.0])
+    one = rollout_positions(single, {"mu": torch.tensor([2.0e3], dtype=torch.float64)}, v0=v.half())
+    other = rollout_positions(single, {"mu": torch.tensor([2.0e3], dtype=torch.float16)}, v0=v.double())
+    assert one.dtype == other.dtype == torch.float64 and torch.equal(one, other)
+    assert rollout_positions(single, v0=v.half()).dtype == torch.float32  # the model's precision at least
+
+    model = _cube()
+    rollout = Rollout(model, 2, 1.0e-3)
+    runs, before = rollout.forward_count, rollout.get_parameters()["mu"].copy()
+    x0 = torch.tensor(model.particle_x0).as_subclass(Elsewhere).requires_grad_()
+    with pytest.raises(ValueError, match=r"^mu on cpu and x0 on cuda:0 are not allowed together: give every tensor on "
+                                         r"one device"):
+        rollout_positions(rollout, {"mu": torch.tensor([2.0e3], dtype=torch.float64, requires_grad=True)}, x0=x0)
+    assert rollout.forward_count == runs and rollout.get_parameters()["mu"].tolist() == before.tolist()
+
+
 def test_a_start_the_builder_would_refuse_is_refused_before_anything_runs():
     """``x0`` with every particle at one point (which ``SceneBuilder`` refuses) ran and
     returned the start moved only by gravity; the bridge now refuses it, a non-finite ``x0``

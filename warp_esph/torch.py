@@ -22,8 +22,10 @@ forward pass first when the rollout has been run with other inputs since (as
 gradient is taken at its own inputs (the model's ``particle_x0`` / ``particle_v0``, the
 tools' arrays, the rollout's ``dt`` and the model's gravity and contact ramp too, as that forward
 read them; the solver's other settings changed since are refused), and leaves the model holding
-the parameter values, start, tool arrays and settings it held before. Tensors are copied to and from the model's
-device; use a float64 model with float64 tensors for ``gradcheck``. A forward whose run blows up to a non-finite position or velocity raises
+the parameter values, start, tool arrays and settings it held before. The given tensors must be on one
+device (two are refused by name); they are copied to and from the model's device, and the
+positions come back on theirs, in their dtype promoted with the model's precision (float64
+where no float tensor is given); use a float64 model with float64 tensors for ``gradcheck``. A forward whose run blows up to a non-finite position or velocity raises
 ``warp_esph.rollout.NonFiniteRollout`` (a ``FloatingPointError``; ``Rollout.forward``'s check),
 the model keeping the values it held, instead of returning a tensor of NaN positions.
 
@@ -35,6 +37,7 @@ PyTorch is imported only when these functions are used; without it they raise an
 """
 
 import dataclasses
+import functools
 from collections.abc import Mapping
 
 import numpy as np
@@ -71,13 +74,13 @@ def _function():
         return t.detach().to(device="cpu", dtype=torch.float64).resolve_neg().numpy().astype(dtype, copy=True)
 
     class RolloutFunction(torch.autograd.Function):
-        """``(rollout, names, starts, taped, x0, v0, *values) -> positions (frames, n, 3)``;
+        """``(rollout, names, starts, taped, out, x0, v0, *values) -> positions (frames, n, 3)``;
         ``starts``: ``{name: array}`` of ``x0``/``v0`` as ``check_initial`` answered them;
-        ``taped``: whether the run is recorded for a backward."""
+        ``taped``: whether the run is recorded for a backward; ``out``: the output's
+        ``(dtype, device)``."""
 
         @staticmethod
-        def forward(ctx, rollout, names, starts, taped, x0, v0, *values):
-            np_dtype = rollout.model.types.np_dtype
+        def forward(ctx, rollout, names, starts, taped, out_as, x0, v0, *values):
             # In float64: the rollout checks the values as given before it casts them to the
             # model's precision (1e39 Pa cast to float32 here was refused as inf, 'not finite').
             given = {name: _numpy(v, np.float64) for name, v in zip(names, values)}
@@ -104,15 +107,7 @@ def _function():
             # dt, gravity and the solver's settings as this forward ran them (Rollout.run_settings):
             # a re-run after one was set since ran at the new one, the gradient of another run.
             ctx.settings = rollout._forward_inputs[3]
-            ref = next((t for t in (x0, v0, *values) if t is not None), None)
-            # Real numbers in at least the model's precision: an integer input (a viscosity given
-            # as 0) made them integers, each truncated to 0; a float16 one rounded them (1.7 mm
-            # at 5 m from the origin).
-            model_dtype = torch.float64 if np_dtype == np.float64 else torch.float32
-            dtype = torch.promote_types(ref.dtype, model_dtype) if ref is not None and ref.is_floating_point() \
-                else torch.float64
-            device = ref.device if ref is not None else torch.device("cpu")
-            ctx.tensor_dtype, ctx.device = dtype, device
+            ctx.tensor_dtype, ctx.device = dtype, device = out_as
             return torch.from_numpy(out).to(dtype=dtype, device=device)
 
         @staticmethod
@@ -167,10 +162,10 @@ def _function():
                 return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=ctx.tensor_dtype, device=ctx.device)
 
             need = ctx.needs_input_grad
-            gx0 = tensor(grads["x0"]) if need[4] else None
-            gv0 = tensor(grads["v0"]) if need[5] else None
-            gvals = [tensor(grads[name]) if need[6 + k] else None for k, name in enumerate(ctx.names)]
-            return (None, None, None, None, gx0, gv0, *gvals)
+            gx0 = tensor(grads["x0"]) if need[5] else None
+            gv0 = tensor(grads["v0"]) if need[6] else None
+            gvals = [tensor(grads[name]) if need[7 + k] else None for k, name in enumerate(ctx.names)]
+            return (None, None, None, None, None, gx0, gv0, *gvals)
 
     _FUNCTION = RolloutFunction
     return _FUNCTION
@@ -234,6 +229,7 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
                          "value per material}")
     params = dict(params or {})
     names, values = [], []
+    given_tensors = {}  # name: tensor, of those given as tensors (plain numbers have no device of their own)
     n_mat = len(rollout.model.materials)
     n = rollout.model.particle_count
     for name, value in params.items():
@@ -254,7 +250,9 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
             else np.asarray(value).dtype.kind
         if kind not in "iuf":  # a bool ran as 1 Pa
             raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be numbers, one per material")
-        if not isinstance(value, torch.Tensor):
+        if isinstance(value, torch.Tensor):
+            given_tensors[name] = value
+        else:
             value = torch.as_tensor(value, dtype=torch.float64)
         _check_dense(torch, name, value)
         if value.dim() == 0:
@@ -271,7 +269,7 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
         shapes = initial_shapes(label, n)
         if not isinstance(t, torch.Tensor):
             raise ValueError(f"{label} = {checks.shorten(t)!r} is not allowed: must be a torch tensor of shape {shapes}")
-        given = t  # checked as given, so that a refusal of one velocity for every particle says so
+        given = given_tensors[label] = t  # checked as given, so that a refusal of one velocity for every particle says so
         if label == "v0" and tuple(t.shape) == (3,):
             # One velocity for every particle, as Rollout.forward takes it; expanded here so
             # autograd sums the particles' gradients into its own.
@@ -297,7 +295,30 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
         raise ValueError("rollout is not allowed with inputs that require grad: it was made with taped = False (for "
                          "loss values alone), so nothing can go back through it; make it with taped = True, or run "
                          "under torch.no_grad()")
-    return _function().apply(rollout, tuple(names), checked, taped, start["x0"], start["v0"], *values)
+    return _function().apply(rollout, tuple(names), checked, taped, _output_as(torch, rollout, given_tensors),
+                             start["x0"], start["v0"], *values)
+
+
+def _output_as(torch, rollout: Rollout, given: dict) -> tuple:
+    """The output's ``(dtype, device)`` from the tensors given (``{name: tensor}``): real numbers
+    in at least the model's precision, promoted over every given float tensor (it was the first
+    input's dtype: a float32 model gave float32 positions for a float16 ``v0`` and a float64
+    ``mu``, float64 for the two swapped), on their one device. Tensors on several devices are
+    refused by name: the output went to the first one's, and torch refused the others' gradients
+    there at the backward, naming no input."""
+    devices = {}
+    for name, t in given.items():
+        devices.setdefault(t.device, name)
+    if len(devices) > 1:
+        (d0, a), (d1, b) = list(devices.items())[:2]
+        raise ValueError(f"{a} on {d0} and {b} on {d1} are not allowed together: give every tensor on one device (the "
+                         "positions and gradients are returned there; the rollout copies to its model's device itself)")
+    # An integer input (a viscosity given as 0) made integer positions, each truncated to 0; a
+    # float16 one rounded them (1.7 mm at 5 m from the origin).
+    model_dtype = torch.float64 if rollout.model.types.np_dtype == np.float64 else torch.float32
+    floats = [t.dtype for t in given.values() if t.is_floating_point()]
+    dtype = functools.reduce(torch.promote_types, floats, model_dtype) if floats else torch.float64
+    return dtype, next(iter(devices), torch.device("cpu"))
 
 
 def _check_dense(torch, name: str, t) -> None:
