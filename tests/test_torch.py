@@ -224,6 +224,44 @@ def test_a_checkpointed_backward_refuses_a_dt_or_gravity_set_since_its_forward()
     assert rollout.get_parameters()["mu"].tolist() == [1.0e3]
 
 
+def test_a_scripted_motion_changed_since_the_forward_is_refused_where_a_backward_calls_it_again():
+    """A Scripted motion is a Python callable, called again by a checkpointed backward's re-run
+    of its segments and by the bridge's re-run of its forward: one changed since (here its
+    closure's speed, doubled for a later forward) gave the gradient of another trajectory
+    without a word (measured: the shear modulus's 0.58 times its own). Each re-run checks the
+    poses it is given against the forward's and refuses another by tool and time; the same
+    motion, set back, gives the forward's gradient."""
+    from warp_esph import tools  # noqa: PLC0415
+
+    speed = [1.0]
+    model = _cube_under_plate(tools.Scripted(lambda t: ((0.0, 0.021 - speed[0] * t, 0.0), (0.0, 0.0, 0.0, 1.0))))
+    gone = r"the Scripted motion of tool 'plane_tool0' gives position \[0\.0, 0\.019.*\] at t = 0\.001 s, where"
+    with pytest.warns(UserWarning, match="Scripted motions, evaluated on the host"):  # once per tool set
+        for every in (None, 2):
+            rollout = Rollout(model, 4, 1.0e-3, frames=[4], checkpoint_every=every)
+            ref = _mu_gradient(rollout)
+            for later in (True, False):
+                m = _mu()
+                loss = rollout_positions(rollout, {"mu": m}).square().sum()
+                speed[0] = 2.0
+                if later:
+                    rollout_positions(rollout, {"mu": torch.tensor([1.0e3], dtype=torch.float64)})
+                if later or every:
+                    words = (r"^backward is not allowed: " + gone + r" this forward had") if later else \
+                        (r"^backward\(\) is not allowed: " + gone + r" forward\(\) had")
+                    with pytest.raises(RuntimeError, match=words):
+                        loss.backward()
+                    speed[0] = 1.0
+                    m = _mu()
+                    loss = rollout_positions(rollout, {"mu": m}).square().sum()
+                    if later:
+                        rollout_positions(rollout, {"mu": torch.tensor([1.1e3], dtype=torch.float64)})
+                loss.backward()  # a full tape's recorded poses, without a re-run: its own gradient
+                speed[0] = 1.0
+                assert m.grad.item() == pytest.approx(ref, rel=1e-12), (every, later)
+                assert rollout.get_parameters()["mu"].tolist() == [1.0e3 if not later else 1.1e3]
+
+
 def test_backward_after_the_rollout_was_released_re_runs_its_forward():
     """``rollout.release()`` between a torch forward and its backward freed the run, and the
     backward raised Rollout's 'backward() before forward(): run forward() first', a call the

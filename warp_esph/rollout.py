@@ -64,6 +64,7 @@ configuration of the rest model that ``fit="auto"`` runs for purely elastic scen
 (``Model.auto_runs_rest``): there an ``x0`` off ``particle_x0`` starts a strained body.
 """
 
+import contextlib
 import dataclasses
 import functools
 import math
@@ -578,6 +579,7 @@ class Rollout:
         self._checkpoints: list[_Checkpoint] = []
         self._tape: wp.Tape | None = None
         self._forward_done = False
+        self._scripted_poses = None  # the Scripted poses the latest forward evaluated (_scripted_log)
         self._force_grads = None
         self._collider_grads = None
         #: Incremented by every ``forward``: lets callers (the torch wrapper) tell runs apart.
@@ -766,6 +768,52 @@ class Rollout:
         self.solver._take_rest_configuration()
         self._load_initial(initial_state, given)
         self._tape = None
+        with self._scripted_log() as log:
+            self._run(taped)
+        # The Scripted tools' poses this forward evaluated (``{(tool, t): (position, quaternion)}``;
+        # None without Scripted tools), against which a re-run is checked.
+        self._scripted_poses = log
+        self._forward_done = True
+        self._forward_inputs = self._inputs()
+        self.forward_count += 1
+        out = self.positions()
+        if check:
+            self._check_finite(out)
+        return out
+
+    @contextlib.contextmanager
+    def _scripted_log(self):
+        """Inside, the Scripted tools' poses evaluated are logged (``ToolSet._pose_log``); yields
+        the log, or None where the model has no Scripted tool."""
+        tools = self.model.tools
+        if tools is None or not tools._scripted:
+            yield None
+            return
+        held, log = tools._pose_log, {}
+        tools._pose_log = log
+        try:
+            yield log
+        finally:
+            tools._pose_log = held
+
+    def _check_scripted(self, log, then, who: str = "backward()", since: str = "forward()"):
+        """Refuse (``RuntimeError``) a re-run whose Scripted poses ``log`` are not those ``then``
+        of the run it re-runs: a Scripted motion is called again by a checkpointed backward and
+        by the torch bridge's re-run of a forward, and one changed since (a closure's speed)
+        gave the gradient of another trajectory without a word."""
+        if log is None or then is None:
+            return
+        for (k, t), pose in sorted(log.items(), key=lambda item: (item[0][1], item[0][0])):  # the earliest named
+            was = then.get((k, t))
+            if was != pose:
+                old = "none" if was is None else f"position {list(was[0])}, quaternion {list(was[1])}"
+                raise RuntimeError(
+                    f"{who} is not allowed: the Scripted motion of {self.model.tools._owner(k)} gives position "
+                    f"{list(pose[0])}, quaternion {list(pose[1])} at t = {t:g} s, where {since} had {old}; it must give "
+                    "the same pose when asked again at the same t (set it back, or run the forward again)")
+
+    def _run(self, taped: bool):
+        """The steps of ``_forward_checked`` from the loaded initial state."""
         if self.checkpointing or not taped:
             # A loss value alone needs no tape: the same steps, unrecorded, on the two states the
             # checkpointed forward steps between (the very bits a taped run gives; a step between
@@ -784,13 +832,6 @@ class Rollout:
             for k in range(self.steps):
                 self._store_forces(k, states[k + 1])
             self._final = states[self.steps]
-        self._forward_done = True
-        self._forward_inputs = self._inputs()
-        self.forward_count += 1
-        out = self.positions()
-        if check:
-            self._check_finite(out)
-        return out
 
     def _check_finite(self, positions: np.ndarray):
         """Raise ``NonFiniteRollout`` where the frame ``positions`` or the last state's
@@ -1077,7 +1118,9 @@ class Rollout:
         acc = {name: np.zeros(getattr(self.model, name).shape[0], dtype=self.model.types.np_dtype) for name in PARAMETERS}
         self._tool_acc = {}
         if self.checkpointing:
-            adj = self._backward_checkpointed(frame_grads, acc)
+            with self._scripted_log() as log:
+                adj = self._backward_checkpointed(frame_grads, acc)
+            self._check_scripted(log, self._scripted_poses)
         else:
             adj = self._backward_full(frame_grads, acc)
         # The tools' gradients stay on their arrays (ToolSet.motion_gradient reads them): the

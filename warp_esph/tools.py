@@ -208,8 +208,10 @@ class Velocity:
 class Scripted:
     """A Python callable ``fn(t) -> (position, quaternion (x, y, z, w))``, evaluated on the
     host at each step's start and end, at t = 0 by ``finalize``'s checks, and again at a
-    frame's time by ``ToolSet.pose_at``'s readers (``ReactionLog.record``, the USD writer):
-    it must give the same pose when asked again at the same t. Not differentiable: its poses enter the tape as constants, so nothing
+    frame's time by ``ToolSet.pose_at``'s readers (``ReactionLog.record``, the USD writer),
+    and again at a forward's times by a re-run of it (a checkpointed ``Rollout.backward``, the
+    torch bridge's backward), which refuses another pose: it must give the same pose when
+    asked again at the same t. Not differentiable: its poses enter the tape as constants, so nothing
     flows back to the motion (``ToolSet.motion_gradient`` refuses it, and a taped step warns
     once per tool set); ``Keyframes`` and ``Velocity`` are the differentiable motions."""
 
@@ -1045,6 +1047,9 @@ class ToolSet:
         self._array_views = None  # check_arrays' views of the arrays on the CPU, with the arrays
         self._scripted = [k for k, mo in enumerate(self.motions) if isinstance(mo, Scripted)]
         self._scripted_last = None  # (t0, positions, quaternions) of the last step's samples
+        #: ``{(tool, t): (position, quaternion)}`` of the Scripted poses evaluated while a
+        #: ``Rollout`` records them (its forward, and the re-runs it checks against that forward).
+        self._pose_log = None
         self._reach_of = {}
 
     def mesh_depth(self, k: int, xl: np.ndarray) -> np.ndarray:
@@ -1075,6 +1080,8 @@ class ToolSet:
             prec = np.dtype(self.model.types.np_dtype).name
             raise ValueError(f"{owner}: its scripted motion at t = {t:g} is not allowed in {prec}: it returned position = "
                              f"{p!r}, beyond {far:.3g} m; use dtype=float64 or a nearer position")
+        if self._pose_log is not None:
+            self._pose_log[(k, t)] = (p, q)
         return p, q
 
     def _times_now(self) -> np.ndarray:

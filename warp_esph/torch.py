@@ -107,6 +107,7 @@ def _function():
             # dt, gravity and the solver's settings as this forward ran them (Rollout.run_settings):
             # a re-run after one was set since ran at the new one, the gradient of another run.
             ctx.settings = rollout._forward_inputs[3]
+            ctx.scripted = rollout._scripted_poses  # a Scripted motion's poses: a Python callable is no array to put back
             ctx.tensor_dtype, ctx.device = dtype, device = out_as
             return torch.from_numpy(out).to(dtype=dtype, device=device)
 
@@ -149,6 +150,7 @@ def _function():
                     held = _put_back(rollout, ctx.model_start, ctx.tools, ctx.settings)
                     rollout._forward_checked(ctx.starts)
                     ctx.forward_count = rollout.forward_count
+                    rollout._check_scripted(rollout._scripted_poses, ctx.scripted, "backward", "this forward")
                 _, grads = rollout.backward(_numpy(grad_out, rollout.model.types.np_dtype))
             finally:
                 if held is not None:
