@@ -52,6 +52,39 @@ def test_gradcheck_parameters_and_initial_state():
     assert torch.autograd.gradcheck(positions, (log_p, x0, v0), eps=1e-6, atol=1e-8, rtol=1e-5)
 
 
+@pytest.mark.parametrize("motion", ["velocity", "keyframes"])
+def test_gradcheck_under_a_moving_tool_with_view_and_non_contiguous_inputs(motion):
+    """Under a plate that presses on the cube (the contact's force about 46 N in the second
+    step), every input's gradient matches central differences: the five parameters, ``x0`` as a
+    non-contiguous view of a wider leaf and ``v0`` as a transposed one. A float32 ``mu`` into
+    the float64 model gets the float64 gradient, rounded. eps = 1e-7: the contact's smoothstep
+    curves the positions within 1e-5 m of ``x0`` (a difference of 1e-6 is 3e-4 off there)."""
+    from warp_esph import tools  # noqa: PLC0415
+
+    kind = None if motion == "velocity" else tools.Keyframes(times=(0.0, 0.003), positions=((0.0, 0.021, 0.0),
+                                                                                            (0.0, 0.018, 0.0)))
+    model = _cube_under_plate(kind)
+    rollout = Rollout(model, 3, 1.0e-3, frames=[3])
+    names = ["mu", "lam", "yield_stress", "flow_rate", "hardening"]
+    log_p = torch.log(torch.tensor([[1.0e3], [1.5e3], [10.0], [50.0], [200.0]], dtype=torch.float64)).requires_grad_()
+    wide = torch.zeros(27, 5, dtype=torch.float64)
+    wide[:, 1:4] = torch.from_numpy(model.particle_x0)
+    wide.requires_grad_()
+    vt = torch.tensor(model.particle_v0.T.copy(), requires_grad=True)
+    assert not wide[:, 1:4].is_contiguous() and not vt.t().is_contiguous()
+
+    def positions(log_p, wide, vt):
+        return rollout_positions(rollout, {n: torch.exp(log_p[k]) for k, n in enumerate(names)}, x0=wide[:, 1:4], v0=vt.t())
+
+    positions(log_p, wide, vt)
+    assert np.abs(rollout.step_forces()).max() > 10.0  # the plate presses
+    assert torch.autograd.gradcheck(positions, (log_p, wide, vt), eps=1e-7, atol=1e-8, rtol=1e-5, fast_mode=True)
+    mu32 = torch.tensor([1.0e3], dtype=torch.float32, requires_grad=True)
+    rollout_positions(rollout, {"mu": mu32}).square().sum().backward()
+    assert mu32.grad.dtype == torch.float32
+    assert mu32.grad.item() == np.float32(_mu_gradient(rollout))
+
+
 def test_one_v0_for_every_particle_runs_as_the_same_v0_per_particle_and_gets_their_summed_gradient():
     """``Rollout.forward`` took ``alpha0`` as one number for every particle but refused one
     ``(3,)`` ``v0``; both it and the bridge now take one velocity for every particle, whose
