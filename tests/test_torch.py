@@ -295,6 +295,26 @@ def test_a_scripted_motion_changed_since_the_forward_is_refused_where_a_backward
                 assert rollout.get_parameters()["mu"].tolist() == [1.0e3 if not later else 1.1e3]
 
 
+def test_a_rollout_s_steps_frames_and_segments_are_fixed_once_made():
+    """``rollout.frames`` or ``rollout.steps`` set after the rollout was made (between a torch
+    forward and its backward, say) was taken without a word and ran half of it: frames = (3,)
+    on a rollout of frames (2, 3) still returned both, steps = 5 ran five steps and returned the
+    third's positions. Each is refused by name; the rollout runs as made."""
+    model = _cube()
+    rollout = Rollout(model, 3, 1.0e-3, frames=[2, 3], checkpoint_every=2)
+    mu = _mu()
+    out = rollout_positions(rollout, {"mu": mu})
+    for name, value in (("steps", 5), ("frames", (3,)), ("segment", 3), ("checkpointing", False),
+                        ("segments", [(0, 3)]), ("taped", False)):
+        was = getattr(rollout, name)
+        with pytest.raises(ValueError, match=rf"^Rollout\.{name} = .* is not allowed: this rollout's states, frame slots "
+                                             rf"and force rows were made for {name} = "):
+            setattr(rollout, name, value)
+        assert getattr(rollout, name) == was
+    out.square().sum().backward()
+    assert mu.grad.item() == pytest.approx(_mu_gradient(Rollout(model, 3, 1.0e-3, frames=[2, 3])), rel=1e-9)
+
+
 def test_backward_after_the_rollout_was_released_re_runs_its_forward():
     """``rollout.release()`` between a torch forward and its backward freed the run, and the
     backward raised Rollout's 'backward() before forward(): run forward() first', a call the

@@ -488,6 +488,9 @@ def check_initial(model: Model, name: str, value) -> np.ndarray:
 
 class Rollout:
     """A differentiable run of ``steps`` steps of ``dt`` observing positions at ``frames``.
+    ``steps``, ``frames``, the checkpoint segments and ``taped`` are fixed once made (setting
+    one is refused); ``dt``, the model's gravity and the solver's settings may be set between
+    runs (``run_settings``; not between a forward and its backward).
 
     - ``model``: finalized with ``requires_grad=True`` (float64 to validate gradients).
     - ``frames``: step indices in ``[0, steps]`` whose positions ``forward`` returns and
@@ -508,6 +511,20 @@ class Rollout:
       the force rows, not ``steps + 1`` taped states: a run whose tape would not fit is not
       refused. Not with ``checkpoint_every`` (it keeps no checkpoints).
     """
+
+    #: Set once, by ``__init__``: the taped states, frame slots, force rows, segments and memory
+    #: check were made for them (``dt``, read by each step, may be set between runs).
+    _FIXED = ("steps", "frames", "segment", "checkpointing", "segments", "taped")
+
+    def __setattr__(self, name, value):
+        # A steps or frames set after __init__ was taken without a word and ran half of it:
+        # frames = (3,) on a rollout of frames (2, 3) still returned both; steps = 5 ran five
+        # steps and returned the third's positions.
+        if name in self._FIXED and name in self.__dict__:
+            raise ValueError(f"Rollout.{name} = {checks.shorten(value)!r} is not allowed: this rollout's states, frame "
+                             f"slots and force rows were made for {name} = {checks.shorten(getattr(self, name))!r}; make a "
+                             "new Rollout")
+        super().__setattr__(name, value)
 
     def __init__(self, model: Model, steps: int, dt: float, frames: Sequence[int] | None = None,
                  checkpoint_every: int | None = None, solver: Solver | None = None, taped: bool = True):
