@@ -257,6 +257,35 @@ def test_a_checkpointed_backward_refuses_a_dt_or_gravity_set_since_its_forward()
     assert rollout.get_parameters()["mu"].tolist() == [1.0e3]
 
 
+def test_a_tool_parameter_is_refused_as_an_input_and_its_gradient_is_left_on_the_tools():
+    """A tool's friction given to ``rollout_positions`` was refused as 'must be one of mu, lam,
+    ...', which did not say where a tool's parameter goes: it is refused as a tool parameter,
+    set on ``model.tools``, whose gradient the bridge's backward leaves on the tools' array; that
+    gradient matches central differences of the bridge's loss."""
+    model = _cube_under_plate()
+    model.tools.friction.assign(np.array([0.3]))
+    rollout = Rollout(model, 3, 1.0e-3, frames=[3])
+    with pytest.raises(ValueError, match=r"^parameter 'friction' is not allowed: it is a tool parameter, not an input of "
+                                         r"the torch bridge \(set model\.tools\.friction before the forward; the backward "
+                                         r"leaves its gradient on model\.tools\.friction\.grad\); the bridge takes mu, lam"):
+        rollout_positions(rollout, {"friction": torch.tensor([0.3], dtype=torch.float64, requires_grad=True)})
+    with pytest.raises(ValueError, match=r"^parameter 'velocity' is not allowed: it is a tool parameter"):
+        RolloutModule(rollout, ["velocity"], log_space=False)
+    weights = torch.from_numpy(np.random.default_rng(1).normal(size=(1, 27, 3)))
+
+    def loss():
+        return (rollout_positions(rollout, {"mu": _mu()}) * weights).sum()
+
+    loss().backward()
+    g = model.tools.friction.grad.numpy()[0]
+    e = 1.0e-6
+    model.tools.friction.assign(np.array([0.3 + e]))
+    up = loss().item()
+    model.tools.friction.assign(np.array([0.3 - e]))
+    down = loss().item()
+    assert g != 0.0 and g == pytest.approx((up - down) / (2.0 * e), rel=1e-6)
+
+
 def test_a_scripted_motion_changed_since_the_forward_is_refused_where_a_backward_calls_it_again():
     """A Scripted motion is a Python callable, called again by a checkpointed backward's re-run
     of its segments and by the bridge's re-run of its forward: one changed since (here its

@@ -43,7 +43,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from . import checks
-from .rollout import PARAMETERS, Rollout, check_initial, initial_shapes
+from .rollout import PARAMETERS, TOOL_GRADIENTS, Rollout, check_initial, initial_shapes
 
 __all__ = ["rollout_positions", "RolloutModule", "require_torch"]  # noqa: F822 (RolloutModule: module __getattr__)
 
@@ -235,8 +235,7 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
     n_mat = len(rollout.model.materials)
     n = rollout.model.particle_count
     for name, value in params.items():
-        if name not in PARAMETERS:
-            raise ValueError(f"parameter {name!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
+        _check_name(name)
         if isinstance(value, (list, tuple)) and any(isinstance(v, torch.Tensor) for v in value):
             # One tensor per material: stacked, so each keeps its gradient (numpy refused a
             # tensor that requires one with a RuntimeError); each checked as a number first.
@@ -323,6 +322,18 @@ def _output_as(torch, rollout: Rollout, given: dict) -> tuple:
     return dtype, next(iter(devices), torch.device("cpu"))
 
 
+def _check_name(name) -> None:
+    """Refuse a name that is no input of the bridge (one of ``PARAMETERS``)."""
+    if name in TOOL_GRADIENTS:
+        # A tool's array is no input here ('must be one of mu, ...' did not say where it goes);
+        # its gradient is on model.tools after a backward.
+        raise ValueError(f"parameter {name!r} is not allowed: it is a tool parameter, not an input of the torch "
+                         f"bridge (set model.tools.{name} before the forward; the backward leaves its gradient on "
+                         f"model.tools.{name}.grad); the bridge takes {', '.join(PARAMETERS)}")
+    if name not in PARAMETERS:
+        raise ValueError(f"parameter {name!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
+
+
 def _check_dense(torch, name: str, t) -> None:
     """Refuse a tensor whose values cannot be read (torch's own 'Cannot copy out of meta
     tensor' or 'can't convert Sparse layout tensor to numpy' named no input)."""
@@ -368,8 +379,7 @@ def _module_class():
             self.log_space = log_space
             current = rollout.get_parameters()
             for name in self.names:
-                if name not in PARAMETERS:
-                    raise ValueError(f"parameter {name!r} is not allowed: must be one of {', '.join(PARAMETERS)}")
+                _check_name(name)
                 v = torch.tensor(current[name], dtype=torch.float64)
                 if self.log_space:
                     if not bool((v > 0).all() and torch.isfinite(v).all()):  # log(inf) failed only at forward()
