@@ -291,7 +291,8 @@ def test_a_scripted_motion_changed_since_the_forward_is_refused_where_a_backward
     of its segments and by the bridge's re-run of its forward: one changed since (here its
     closure's speed, doubled for a later forward) gave the gradient of another trajectory
     without a word (measured: the shear modulus's 0.58 times its own). Each re-run checks the
-    poses it is given against the forward's and refuses another by tool and time; the same
+    poses it is given against the forward's and refuses another by tool and time (also at a
+    second backward, ``retain_graph``, which had gone through the refused run's tape); the same
     motion, set back, gives the forward's gradient."""
     from warp_esph import tools  # noqa: PLC0415
 
@@ -312,6 +313,8 @@ def test_a_scripted_motion_changed_since_the_forward_is_refused_where_a_backward
                     words = (r"^backward is not allowed: " + gone + r" this forward had") if later else \
                         (r"^backward\(\) is not allowed: " + gone + r" forward\(\) had")
                     with pytest.raises(RuntimeError, match=words):
+                        loss.backward(retain_graph=True)
+                    with pytest.raises(RuntimeError, match=words):  # again: the refused run is not the forward's
                         loss.backward()
                     speed[0] = 1.0
                     m = _mu()

@@ -149,8 +149,10 @@ def _function():
                     # since for a later forward were re-run here: the gradient of another point).
                     held = _put_back(rollout, ctx.model_start, ctx.tools, ctx.settings)
                     rollout._forward_checked(ctx.starts)
-                    ctx.forward_count = rollout.forward_count
+                    # Checked before this run is taken as the forward's: a second backward
+                    # (retain_graph) after a refusal went through the refused run's tape.
                     rollout._check_scripted(rollout._scripted_poses, ctx.scripted, "backward", "this forward")
+                    ctx.forward_count = rollout.forward_count
                 _, grads = rollout.backward(_numpy(grad_out, rollout.model.types.np_dtype))
             finally:
                 if held is not None:
