@@ -16,6 +16,7 @@
 Everything is float64 (``finalize(dtype=wp.float64, requires_grad=True)``); see docs/tools.md.
 """
 
+import argparse
 import os
 import sys
 
@@ -190,9 +191,18 @@ def fit_stiffness(E_true=2.0e4, E_start=1.0e4, iterations=10, history=None):
     return float(np.exp(logE))
 
 
-if __name__ == "__main__":
+def main(argv=None) -> int:
+    # No options: a parser all the same, so that --help prints what the example does and a
+    # mistyped option is refused before the minute of work rather than ignored.
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.parse_args(argv)
     we.init_warp()  # no start-up banner, no native note about a missing CUDA driver
     depth = optimise_press()
     print(f"press depth: {1e3 * depth:.2f} mm")
     E = fit_stiffness()
     print(f"fitted E = {E:.1f} Pa (true 20000)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

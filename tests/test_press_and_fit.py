@@ -49,3 +49,20 @@ def test_force_curve_loss_derivative_matches_central_differences_and_the_fit_rec
     assert g == pytest.approx(fd, rel=1e-4)
     E = pf.fit_stiffness(E_true=2.0e4, E_start=1.0e4)
     assert E == pytest.approx(2.0e4, rel=1e-3)
+
+
+def test_the_example_refuses_an_option_it_does_not_have_before_any_work(capsys, monkeypatch):
+    """The example takes no options. It used to read none either: ``--help`` or a mistyped
+    option ran both searches (most of a minute on the shared machine) and exited 0, where the
+    other two examples print their usage or refuse it, exit 2."""
+    ran = []
+    monkeypatch.setattr(pf, "optimise_press", lambda *a, **k: ran.append("press"))
+    monkeypatch.setattr(pf, "fit_stiffness", lambda *a, **k: ran.append("fit"))
+    with pytest.raises(SystemExit) as info:
+        pf.main(["--iterations", "3"])
+    assert info.value.code == 2 and ran == []
+    assert "unrecognized arguments: --iterations 3" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:
+        pf.main(["--help"])
+    assert info.value.code == 0 and ran == []
+    assert "Gradients through a tool" in capsys.readouterr().out
