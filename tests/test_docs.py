@@ -106,6 +106,22 @@ def test_the_defaults_cli_md_states_are_the_parsers(command, option, value, phra
     assert action.default == value
 
 
+def test_every_commands_dt_help_names_the_scene_files_dt_as_its_default():
+    """``run``, ``fit`` and ``sweep`` without ``--dt`` take a scene file's ``[scene] dt`` (cli.py's
+    ``args.dt if args.dt is not None else scene.dt``, calibrate.py's and sweep.py's alike), and
+    only where the scene gives none the stable step. Their ``--help``, and docs/cli.md of ``run``
+    and ``fit``, named the stable step alone as the default: a scene with ``dt = 0.001`` ran,
+    fitted and swept at 0.001 s where they said its stable step, 0.00196 s, would be taken."""
+    _, commands = _subparsers()
+    for name in ("run", "fit", "sweep"):
+        action = next(a for a in commands[name]._actions if "--dt" in a.option_strings)
+        assert "(default: the scene's dt, else " in action.help, f"{name} --dt: {action.help}"
+    text = (DOCS / "cli.md").read_text()
+    assert "without it the scene's `dt` is used, and where the scene\n  gives none the stable step" in text
+    assert "`--dt` (default the scene's, else the stable step)" in text
+    assert "`--dt` (default the scene's, else each sample's own stable step" in text
+
+
 def _table(text: str, heading: str) -> list[list[str]]:
     """The rows (cells) of the first table after ``heading``."""
     lines = text[text.index(heading):].splitlines()

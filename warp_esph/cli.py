@@ -78,7 +78,8 @@ def _build_parser() -> _Parser:
     run.add_argument("--frames", type=int, metavar="N", help="number of frames after the initial one (default: the scene's)")
     run.add_argument("--fps", type=float, metavar="F", help="frames per second (default: the scene's)")
     run.add_argument("--dt", type=_dt_arg, metavar="DT",
-                     help="time step in s; must divide 1/fps (default: the stable step); 'auto': an adaptive (CFL) step per frame")
+                     help="time step in s; must divide 1/fps (default: the scene's dt, else the stable step); 'auto': an adaptive "
+                          "(CFL) step per frame")
     run.add_argument("--adaptive-dt", action="store_true", help="the same as --dt auto")
     run.add_argument("--scale", type=float, default=1.0, metavar="S",
                      help="resolution scale: spacing / S, particle count ~ S^3 (default 1)")
@@ -238,7 +239,7 @@ def _add_sweep_parser(sub) -> None:
     when.add_argument("--frames", type=int, metavar="N", help="frames per sample (default: the scene's)")
     when.add_argument("--duration", type=float, metavar="SEC", help="simulated seconds per sample")
     sw.add_argument("--fps", type=float, metavar="F", help="frames per second (default: the scene's)")
-    sw.add_argument("--dt", type=float, metavar="DT", help="time step; must divide 1/fps (default: each sample's stable step)")
+    sw.add_argument("--dt", type=float, metavar="DT", help="time step; must divide 1/fps (default: the scene's dt, else each sample's stable step)")
     sw.add_argument("--scale", type=float, default=1.0, metavar="S", help="resolution scale of the scene (default 1)")
     sw.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="precision (default float32)")
     sw.add_argument("-o", "--output", metavar="FOLDER", help="output folder (default: sweep_<scene>)")
@@ -943,7 +944,7 @@ def add_fit_arguments(parser):
                              "shows (default: the last); once per --target or once for all")
     parser.add_argument("--frames", type=int, metavar="N", help="frames to simulate (default: the last target frame or the scene's)")
     parser.add_argument("--fps", type=float, metavar="F", help="frames per second (default: the target's or the scene's; a force log's times must give it)")
-    parser.add_argument("--dt", type=float, metavar="DT", help="time step in s (default: the stable step)")
+    parser.add_argument("--dt", type=float, metavar="DT", help="time step in s (default: the scene's dt, else the stable step)")
     parser.add_argument("--scale", type=float, default=1.0, metavar="S", help="resolution scale of the scene (default 1)")
     parser.add_argument("--radius", type=float, metavar="R", help="Chamfer search radius for point-cloud targets (default 3 spacings)")
     parser.add_argument("--mesh-mode", choices=MeshLoss.MODES,
