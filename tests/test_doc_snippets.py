@@ -6,11 +6,14 @@ line that is cut."""
 
 import pathlib
 import re
+import shlex
 
 import numpy as np
 import pytest
 
 import warp_esph as we
+from warp_esph import cli
+from warp_esph.cli import _build_parser
 from warp_esph.usd import UsdFrames
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -69,3 +72,30 @@ def test_the_tools_md_press_exerts_the_force_the_page_states():
     force = np.asarray(scope["force"], dtype=float)
     assert force[1] == pytest.approx(float(stated.group(1)), rel=0.02)
     assert np.hypot(force[0], force[2]) < 1e-3 * abs(force[1])
+
+
+def _command_lines():
+    """Every ``warp-esph`` command of the pages' code blocks (docs/validation.md's are the
+    benchmark's own), continuation lines joined and comments dropped."""
+    for page in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        if page.name == "validation.md":
+            continue
+        for block in re.findall(r"^```[a-z]*\n(.*?)^```", page.read_text(), flags=re.S | re.M):
+            for line in block.replace("\\\n", " ").splitlines():
+                argv = shlex.split(line, comments=True)
+                # The synopsis at the top of docs/cli.md ([OPTION], ...) is no command to run.
+                if argv[:1] == ["warp-esph"] and not any(a.startswith("[") or a == "..." for a in argv):
+                    yield page.name, argv[1:]
+
+
+def test_the_pages_command_examples_are_command_lines_the_parser_takes():
+    """Each example command a page shows parses as written: an option renamed or dropped, a
+    choice that no longer exists, fails here (docs/cli.md's option lists are checked against
+    the parsers by tests/test_docs.py; these are the examples a reader copies)."""
+    commands = list(_command_lines())
+    assert len(commands) >= 15 and {argv[0] for _, argv in commands} >= {"run", "render", "fit", "sweep", "scenes"}
+    for page, argv in commands:
+        try:
+            _build_parser().parse_args(argv)
+        except (SystemExit, cli._UsageError) as exc:
+            pytest.fail(f"{page}: warp-esph {' '.join(argv)} is refused by the parser ({exc})")
