@@ -1,8 +1,8 @@
 """The Python snippets the pages show, run as they are written: README.md's quick start,
-docs/scene_format.md's loader and docs/tools.md's press. Each is read from its page, so a page
-whose snippet stops running (a renamed call, a changed signature) fails here; only a loop count
-is cut, where the page's run is longer than a test's, and the page is checked to hold the
-line that is cut."""
+docs/scene_format.md's loader and docs/tools.md's press; and the pages' example command lines,
+parsed. Each is read from its page, so a page whose snippet stops running (a renamed call, a
+changed signature, a dropped option) fails here; only a loop count is cut, where the page's run
+is longer than a test's, and the page is checked to hold the line that is cut."""
 
 import pathlib
 import re
