@@ -271,6 +271,40 @@ def test_chamfer_and_position_losses_over_several_frames():
         assert np.array([grads[f].numpy()[i, c] for i, c in entries]) == pytest.approx(fd, rel=1e-6, abs=1e-10)
 
 
+
+@wp.kernel
+def _twice(x: wp.array(dtype=wp.vec3d), y: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    y[i] = wp.float64(2.0) * x[i]
+
+
+def test_a_loss_value_under_a_recording_tape_records_nothing_on_it():
+    """``Loss.value`` while the caller's ``wp.Tape`` records: the value it gives outside any
+    tape, nothing recorded on the caller's tape, which records on after it and differentiates
+    what it recorded (Warp refused the loss's own tape inside the caller's, after the loss's
+    copy of the positions had been recorded on the caller's)."""
+    from taped_loss import dot_loss, random_weights
+    from warp_esph.sim.replay import recording_tape
+
+    rng = np.random.default_rng(4)
+    x0 = rng.normal(size=(30, 3)) * 0.03
+    loss = ChamferLoss(rng.normal(size=(40, 3)) * 0.03, radius=0.05, frames=[2]) + PositionLoss({2: 2.0 * x0 + 0.01})
+    expect = loss.value({2: wp.array(2.0 * x0, dtype=wp.vec3d)})
+    x = wp.array(x0, dtype=wp.vec3d, requires_grad=True)
+    y = wp.zeros_like(x)
+    w = random_weights(30, 5)
+    out = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        wp.launch(_twice, 30, [x], [y])
+        recorded = len(tape.launches)
+        assert loss.value({2: y}) == pytest.approx(expect, rel=1e-12)
+        assert len(tape.launches) == recorded
+        assert recording_tape() is tape
+        wp.launch(dot_loss, 30, [y, w], [out])
+    tape.backward(out)
+    assert np.array_equal(x.grad.numpy(), 2.0 * w.numpy())
+
 def _box_mesh(c, h):
     c, h = np.asarray(c, float), np.asarray(h, float)
     corners = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)

@@ -41,6 +41,7 @@ import numpy as np
 import warp as wp
 
 from . import checks
+from .sim.replay import outside_recording_tape
 from ._types import type_set
 
 __all__ = ["Loss", "PositionLoss", "ChamferLoss", "MeshLoss", "SumLoss", "WorldLoss", "surface_particles",
@@ -428,10 +429,19 @@ class Loss:
         return out
 
     def value_and_grad(self, positions: Mapping[int, wp.array]) -> tuple[float, dict[int, wp.array]]:
-        """The loss at ``positions`` (``{step: wp.array of vec3}``) and ``{step: dL/dx}``."""
+        """The loss at ``positions`` (``{step: wp.array of vec3}``) and ``{step: dL/dx}``. It
+        records on a tape of its own, also where the caller's ``wp.Tape`` is recording: that
+        tape is set aside meanwhile and records nothing of it (the value is a number, no part
+        of the caller's graph; ``launch`` records the loss on the caller's tape)."""
         missing = [f for f in self.frames if f not in positions]
         if missing:
             raise ValueError(f"the loss needs positions at steps {missing}, given only at {sorted(k for k in positions if isinstance(k, int))}")
+        # Under a caller's tape Warp refused the inner one, after the copies below had been
+        # recorded on the caller's, whose backward pass would have replayed them.
+        with outside_recording_tape():
+            return self._value_and_grad(positions)
+
+    def _value_and_grad(self, positions: Mapping[int, wp.array]) -> tuple[float, dict[int, wp.array]]:
         any_x = positions[self.frames[0]]
         out = self._accumulator(any_x)
         out.zero_()

@@ -50,12 +50,32 @@ import sys
 import warp as wp
 
 
-def recording_tape():
-    """The ``wp.Tape`` recording launches now, or None."""
+def _runtime():
     runtime = getattr(getattr(getattr(wp, "_src", None), "context", None), "runtime", None)
     if runtime is None:  # pragma: no cover (older layout)
         runtime = wp.context.runtime
-    return getattr(runtime, "tape", None)
+    return runtime
+
+
+def recording_tape():
+    """The ``wp.Tape`` recording launches now, or None."""
+    return getattr(_runtime(), "tape", None)
+
+
+@contextlib.contextmanager
+def outside_recording_tape():
+    """Runs its block with no ``wp.Tape`` recording, the caller's (if any) recording again
+    after it, also where the block raises. For work that keeps a tape of its own and whose
+    launches are no part of the caller's: Warp refuses a tape entered inside another
+    ("entering a tape while one is already active"), and the launches before it would have
+    been recorded on the caller's tape, whose backward pass then replayed them."""
+    runtime = _runtime()
+    outer = getattr(runtime, "tape", None)
+    runtime.tape = None
+    try:
+        yield
+    finally:
+        runtime.tape = outer
 
 
 @contextlib.contextmanager
