@@ -56,7 +56,7 @@ from .losses import (ChamferLoss, Loss, MeshLoss, PositionLoss, SlumpLoss, SumLo
                      read_tools_csv)
 from .material import PRESSURE_BULK_SHARE, Material, _following_force
 from .model import Model, State, check_material_precision
-from .rollout import PARAMETERS, STATE_OVERHEAD, Rollout, RolloutMemoryError, _RolloutMemory, check_initial
+from .rollout import FRAME_BUFFERS, PARAMETERS, Rollout, RolloutMemoryError, _RolloutMemory, check_initial
 from .sim.solver import keeps_incremental
 
 __all__ = ["fit", "FitResult", "Experiment", "Adam", "memory_estimate", "choose_checkpointing", "latin_hypercube",
@@ -444,33 +444,45 @@ def _state_bytes(model: Model) -> tuple[int, int, int]:
             _Checkpoint(model).nbytes)
 
 
-def memory_estimate(model: Model, steps: int, checkpoint_every: int | None, _sizes=None, *, taped: bool = True) -> int:
-    """Bytes the rollout's Warp arrays will hold: ``steps + 1`` taped states for a full
-    tape; ``S + 1`` taped states, two untaped ones and ``steps / S`` checkpoints with
+def memory_estimate(model: Model, steps: int, checkpoint_every: int | None, _sizes=None, *, taped: bool = True,
+                    frames: int = 1) -> int:
+    """Bytes the rollout's Warp arrays will hold at most: ``steps + 1`` taped states for a full
+    tape; ``S + 1`` taped states, two untaped ones, ``steps / S`` checkpoints and the two
+    adjoints a backward pass carries between segments (each a checkpoint's size) with
     ``checkpoint_every = S`` (measured from this model's own ``State``, not a constant).
     ``taped=False``: a rollout whose runs record no tape (``Rollout(taped=False)``, every run
     of a Gauss-Newton fit): the two untaped states its forward steps between, whatever
-    ``steps`` (``checkpoint_every`` must be None: it keeps no checkpoints)."""
+    ``steps`` (``checkpoint_every`` must be None: it keeps no checkpoints). Besides, in every
+    case: the untaped copy of the start every forward begins from (``Rollout._initial``) and,
+    for each of ``frames`` observed steps, ``rollout.FRAME_BUFFERS`` positions' worth (the
+    positions kept, the loss's target, its copy of them and their gradient, the gradient handed
+    back) and 4 kB of small arrays. The start's copy and the frames had been left out: an 8 x 8 x
+    8 untaped rollout held 1.5 x the estimate. Measured at 8-1728 particles, a run's Warp arrays
+    at their peak are at most this and within 4 % of it."""
     if not isinstance(taped, bool):
         raise ValueError(f"taped = {checks.shorten(taped)!r} is not allowed: must be True or False")
     if not taped and checkpoint_every is not None:
         raise ValueError(f"checkpoint_every = {checkpoint_every!r} is not allowed with taped = False: an untaped "
                          "rollout keeps no checkpoints; give None")
     heavy, light, ck = _sizes or _state_bytes(model)
+    # 4 kB for the few small arrays besides (the loss's accumulator and its gradient: 8 bytes
+    # over, measured).
+    besides = (light + frames * FRAME_BUFFERS * model.particle_count * 3 * np.dtype(model.types.np_dtype).itemsize
+               + 4096)
     if not taped:
-        return 2 * light
+        return 2 * light + besides
     if checkpoint_every is None or checkpoint_every >= steps:
-        return (steps + 1) * heavy
-    return (checkpoint_every + 1) * heavy + 2 * light + math.ceil(steps / checkpoint_every) * ck
+        return (steps + 1) * heavy + besides
+    return (checkpoint_every + 1) * heavy + 2 * light + (math.ceil(steps / checkpoint_every) + 2) * ck + besides
 
 
 def choose_checkpointing(model: Model, steps: int, memory_limit: float = MEMORY_LIMIT, *,
-                         taped: bool = True) -> int | None:
+                         taped: bool = True, frames: int = 1) -> int | None:
     """The segment length for ``checkpoint_every="auto"``: ``None`` (one full tape, the
     fastest) when that fits in ``memory_limit`` bytes, else the longest segment whose
     rollout fits, and never shorter than the segment that needs the least memory. A rollout's
-    bytes here are its arrays' (``memory_estimate``) and each taped state's own besides
-    (``rollout.STATE_OVERHEAD``). A ``memory_limit`` above the device's memory counts as that
+    bytes here are its arrays' (``memory_estimate``, ``frames`` observed steps) and their Python
+    objects' and the tape's besides (``rollout._RolloutMemory.need``). A ``memory_limit`` above the device's memory counts as that
     memory: a rollout fits where ``Rollout`` takes it (its force rows included; on a GPU its
     arrays in the GPU's memory and the states' own in the host's). ``taped=False`` (runs
     without a tape, a Gauss-Newton fit's): None, whatever the limit: such a run holds two
@@ -479,16 +491,13 @@ def choose_checkpointing(model: Model, steps: int, memory_limit: float = MEMORY_
         raise ValueError(f"taped = {checks.shorten(taped)!r} is not allowed: must be True or False")
     if not taped:
         return None
-    memory = _RolloutMemory(model, steps)
-    sizes = memory.sizes
+    memory = _RolloutMemory(model, steps, frames=frames)
 
     def fits(segment):
         # The arrays alone chose segments of 89475 steps for 8 particles and 1e5 steps: 6.5 GiB
         # with the states' own bytes, for a limit of 1 GiB. A limit above the machine's memory
         # chose a segment the rollout then refused, where a shorter one would run.
-        taped = (steps if segment is None else segment) + 1
-        return (memory_estimate(model, steps, segment, sizes) + taped * STATE_OVERHEAD <= memory_limit
-                and not memory.overrun(segment))
+        return sum(memory.need(segment)) <= memory_limit and not memory.overrun(segment)
 
     if fits(None):
         return None
@@ -617,7 +626,8 @@ class _Run(_Values):
         if isinstance(ck, str):
             if ck != "auto":
                 raise ValueError(f"checkpoint_every = {ck!r} is not allowed: give 'auto', None or a number of steps")
-            ck = choose_checkpointing(self.model, self.steps, memory_limit, taped=self.taped)
+            ck = choose_checkpointing(self.model, self.steps, memory_limit, taped=self.taped,
+                                      frames=len(loss.frames))
         if not self.taped:
             if ck is not None:
                 checks.positive_int("checkpoint_every", ck)  # refused as before, though unread
@@ -641,7 +651,7 @@ class _Run(_Values):
                 said = str(e)
             raise e.reworded(f"{name}: {said}", experiment=exp) from None
         self.memory = memory_estimate(self.model, self.steps, self.rollout.segment if self.rollout.checkpointing else None,
-                                      taped=self.taped)
+                                      taped=self.taped, frames=len(self.rollout.frames))
         initial = {} if exp.initial is None else exp.initial
         if not isinstance(initial, Mapping):
             raise ValueError(f"initial = {checks.shorten(initial)!r} is not allowed: must be a mapping of "
@@ -1339,7 +1349,7 @@ def fit(
     for r in runs:
         if not r.taped:
             say(f"{r.name}: {r.model.particle_count} particles, {r.steps} steps of {r.dt:.4g} s; no tape (Gauss-Newton "
-                f"runs forward only): ~{r.memory / 2**20:.1f} MiB of Warp arrays (two states, "
+                f"runs forward only): ~{r.memory / 2**20:.1f} MiB of Warp arrays (three states, "
                 f"{r.memory / r.model.particle_count:.0f} B per particle, whatever the steps)")
             continue
         mode = f"checkpoint every {r.rollout.segment} steps" if r.rollout.checkpointing else "full tape"

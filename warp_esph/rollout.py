@@ -193,10 +193,26 @@ def state_nbytes(state: State) -> int:
     return total
 
 
-#: What a taped ``State`` holds besides its arrays' bytes (``state_nbytes``), measured on the
-#: CPU: its some sixty arrays and gradients took 76 kB each for 12 kB of values at 8 particles.
-#: Python objects and the tape's records: host memory, on a GPU too.
+#: What a taped ``State`` holds besides its arrays' bytes (``state_nbytes``): the Python objects
+#: of its some sixty arrays and gradients, 64.2-64.9 kB at 8 and 512 particles (measured with
+#: ``tracemalloc``). Host memory, on a GPU too; so are the overheads below.
 STATE_OVERHEAD = 64 * 1024
+#: The tape's record of one taped step besides its states: 77.7 kB a step, less the state's
+#: 64 kB, with 8 and 64 particles (measured).
+TAPE_STEP_OVERHEAD = 16 * 1024
+#: An untaped ``State``'s Python objects (the start's copy, a forward's two states): 42.7-43.2 kB.
+UNTAPED_STATE_OVERHEAD = 48 * 1024
+#: A checkpoint's Python objects: 16.8-17.0 kB at 8 and 512 particles.
+CHECKPOINT_OVERHEAD = 20 * 1024
+#: What a rollout's run holds besides, whatever its size: the replayed launches' records of
+#: its states, and garbage the collector frees in its own time (0.1-1.8 MB beyond the
+#: overheads above, measured at 8 and 64 particles and 50-3000 steps; an untaped run's did
+#: not grow from 2000 to 20000 steps).
+ROLLOUT_OVERHEAD = 2 * 1024 * 1024
+#: Positions' worth of Warp arrays per observed step (``frames``): the rollout's copy, the
+#: loss's target, its copy of the positions and their gradient, and the gradient handed back
+#: (``fit.memory_estimate``; a ``PositionLoss``'s, measured).
+FRAME_BUFFERS = 5
 
 
 class RolloutMemoryError(ValueError):
@@ -236,11 +252,11 @@ class _RolloutMemory:
     rollout whose runs record no tape (``Rollout(taped=False)``): two untaped states hold it,
     whatever the segment."""
 
-    def __init__(self, model: Model, steps: int, sizes=None, taped: bool = True):
+    def __init__(self, model: Model, steps: int, sizes=None, taped: bool = True, frames: int = 1):
         from .builder import _device_memory  # noqa: PLC0415
         from .fit import _state_bytes  # noqa: PLC0415 (fit imports this module)
 
-        self.model, self.steps, self.taped = model, steps, taped
+        self.model, self.steps, self.taped, self.frames = model, steps, taped, frames
         self.have = _device_memory(model.device)
         self.cpu = model.device.is_cpu
         self.host = None if self.cpu or self.have is None else _device_memory(wp.get_device("cpu"))
@@ -253,13 +269,20 @@ class _RolloutMemory:
         from .fit import memory_estimate  # noqa: PLC0415
 
         steps = self.steps
-        if self.taped:
-            states = (segment if segment is not None and segment < steps else steps) + 1
+        checkpoints = 0
+        if not self.taped:
+            segment = None
+            taped, untaped = 0, 3  # the start's copy and the two states an untaped forward steps between
+        elif segment is not None and segment < steps:
+            taped, untaped, checkpoints = segment, 3, math.ceil(steps / segment)
         else:
-            segment, states = None, 2  # the two states an untaped forward steps between
-        arrays = (memory_estimate(self.model, steps, segment, self.sizes, taped=self.taped)
+            taped, untaped = steps, 1
+        arrays = (memory_estimate(self.model, steps, segment, self.sizes, taped=self.taped, frames=self.frames)
                   + steps * self.rows * 3 * np.dtype(self.model.types.np_dtype).itemsize)  # the per-step force rows
-        own = states * STATE_OVERHEAD
+        # The start's copy and a checkpointed run's two untaped states, the tape's records and the
+        # checkpoints' objects had been left out: 0.3-0.9 x what 8 particles held (measured).
+        own = ((taped + 1 if taped else 0) * STATE_OVERHEAD + taped * TAPE_STEP_OVERHEAD
+               + untaped * UNTAPED_STATE_OVERHEAD + checkpoints * CHECKPOINT_OVERHEAD + ROLLOUT_OVERHEAD)
         return (arrays + own, 0) if self.cpu else (arrays, own)
 
     def overrun(self, segment: int | None) -> int:
@@ -282,7 +305,8 @@ class _RolloutMemory:
         forward keeps none)."""
         if not self.taped:
             return self.steps
-        have, host, steps, checkpoint = self.have, self.host, self.steps, self.sizes[2]
+        have, host, steps = self.have, self.host, self.steps
+        checkpoint = self.sizes[2] + (CHECKPOINT_OVERHEAD if self.cpu else 0)
 
         def worst(segment, smooth=False):
             d, h = self.need(segment)
@@ -558,7 +582,7 @@ class Rollout:
         #: Whether this rollout's runs may record a tape (``taped=False``: loss values alone).
         self.taped = taped
         _check_rollout_memory(model, self.steps, self.segment if self.checkpointing else None, checkpoint_every,
-                              _RolloutMemory(model, self.steps, taped=taped))
+                              _RolloutMemory(model, self.steps, taped=taped, frames=len(self.frames)))
         if solver is None:
             solver = _differentiable_solver(model)
         elif not isinstance(solver, Solver) or solver.model is not model:
@@ -1232,13 +1256,14 @@ class Rollout:
         return value, grads
 
     def memory_bytes(self) -> dict[str, int]:
-        """Bytes held by the rollout's Warp arrays: taped states, checkpoints, frame buffers."""
+        """Bytes held by the rollout's Warp arrays: taped states, untaped ones (the start's copy
+        and a forward's two), checkpoints, frame buffers."""
         taped = sum(state_nbytes(s) for s in (self._states or []))
-        pair = sum(state_nbytes(s) for s in (self._pair or []))
+        untaped = sum(state_nbytes(s) for s in (self._initial, *(self._pair or [])))
         ck = sum(c.nbytes for c in self._checkpoints)
         frames = sum(a.capacity for a in self.frame_positions)
-        return {"taped_states": taped, "untaped_states": pair, "checkpoints": ck, "frames": frames,
-                "total": taped + pair + ck + frames}
+        return {"taped_states": taped, "untaped_states": untaped, "checkpoints": ck, "frames": frames,
+                "total": taped + untaped + ck + frames}
 
     def release(self):
         """Free the taped states and checkpoints (they are re-allocated when needed)."""
