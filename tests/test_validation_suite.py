@@ -184,6 +184,23 @@ def test_undamped_energy_is_kept_by_the_conservative_rest_fit_at_the_stable_step
     assert incremental["drift"] > 0.2, incremental["drift"]
 
 
+
+def test_energy_drift_says_which_force_conserves_the_energy_it_measures():
+    """``energy_drift``'s total, kinetic + sum V psi(F), is what the variational force
+    conserves (minus psi's gradient) up to the integration's error: a 4^3 breathing cube keeps
+    it within 5 % over 3 periods (measured: drift 1.8 %, largest deviation 2.9 %). The
+    paper's force is the gradient of no energy, and its row says so (``conservative``, the
+    report's 'conserved by the force'), which is true of what it measures: the sum swings by
+    most of itself and the swing does not shrink with the step as an integration error would
+    (measured 0.81 at dt, 0.79 at dt / 4; dt^2 would be 1/16). Before, the rows read alike."""
+    variational = validation.energy_drift(amplitude=validation.SMALL, resolution=4, periods=3.0)
+    assert variational["conservative"] and variational["energy"] == "St. Venant-Kirchhoff"
+    assert abs(variational["drift"]) < 0.05 and variational["max_deviation"] < 0.05, variational["max_deviation"]
+    paper = [validation.energy_drift(amplitude=validation.SMALL, elastic_force="paper", resolution=4, periods=3.0,
+                                     dt_factor=f) for f in (1.0, 0.25)]
+    assert not any(r["conservative"] for r in paper)
+    assert paper[1]["max_deviation"] > 0.5 * paper[0]["max_deviation"] > 0.1, [r["max_deviation"] for r in paper]
+
 def test_column_settles_by_rho_g_l2_over_2e():
     """A free-standing column 4 across and 20 tall on a frictionless ground, pressure off,
     relaxed dynamically (``validation.column_settlement``): the top settles by the continuum
