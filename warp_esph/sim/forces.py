@@ -101,7 +101,9 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     def corotated_stress(F: mat33, mu: scalar, lam: scalar) -> mat33:
         """``P = U diag(P^) V^T``, the gradient in ``F`` of the corotated energy
         ``psi = mu sum(s - 1)^2 + lam/2 (sum(s - 1))^2`` (``s`` the rotation-variant singular
-        values, so ``psi`` is smooth and restoring through det ``F`` = 0): the first Piola
+        values, so ``psi`` is smooth and restoring through det ``F`` = 0; it has a crease, and
+        ``P`` a jump, where an inverted ``F`` has two singular values of one size, ``s_j = -s_i``:
+        docs/method.md, "Stable adjoints of the SVD maps"): the first Piola
         stress with eq. 9's small-strain limit that the variational force of a material that
         cannot flow takes (``stress_model``). Eq. 9's ``P* = U diag(s o P^) V^T`` is the gradient
         of no energy beyond small strain (``d(s_k P^_k)/ds_j = lam s_k`` is not symmetric),

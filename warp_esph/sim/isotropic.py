@@ -67,8 +67,11 @@ def funcs(scalar) -> types.SimpleNamespace:
         """``(g_i + g_j) / (sigma_i + sigma_j)``: the skew part's factor of the map's derivative
         for the singular-value pair ``(i, j)`` (module doc)."""
         den = si + sj
-        # sigma_i + sigma_j >= 0 with the rotation-variant ordering; it reaches 0 only for
-        # a degenerate F, where the skew part of the derivative is unbounded anyway.
+        # sigma_i + sigma_j >= 0 with the rotation-variant ordering; it reaches 0 for a
+        # degenerate F, and for an inverted one whose two singular values are equal in size
+        # (sigma_j = -sigma_i: diag(a, b, -b)). There a map of the signed singular values (the
+        # corotated stress, the inverted fit's) jumps, by more than its size (docs/method.md),
+        # and no derivative exists; near it the derivative is this quotient, large but true.
         eps = scalar(1.0e-6)
         if wp.abs(den) < eps:
             den = wp.where(den < scalar(0.0), -eps, eps)
