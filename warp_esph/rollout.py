@@ -298,9 +298,10 @@ class _RolloutMemory:
     def least(self) -> int:
         """The segment that needs the least memory. ``sqrt(steps)`` was taken for it, which is
         the least where a taped state weighs what a checkpoint does; a taped state (its
-        arrays and its own 64 kB) outweighs a checkpoint several times, and the least lies
-        below: for 8 particles and 1e5 steps 62 steps need 11.6 MiB, 316 needed 26.7 MiB, and
-        a rollout that fit at 62 was refused 'even at the least'. On a GPU, of the memory it
+        arrays, its own 64 kB and the tape's record of its step) outweighs a checkpoint several
+        times, and the least lies below: for 8 particles and 1e5 steps 160 steps need 32.9 MiB,
+        316 need 39.9 MiB (sqrt(steps) had a rollout that fit at the least refused 'even at the
+        least'). On a GPU, of the memory it
         overruns most (the device's or the host's). Untaped: ``steps``, no checkpoints (its
         forward keeps none)."""
         if not self.taped:
