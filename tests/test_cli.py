@@ -391,6 +391,10 @@ BAD_TOML = {
     "wrong_type": (GOOD_TOML.replace("frames = 2", 'frames = "two"'), ["'frames'", "[scene]", "integer"]),
     "wrong_vector": (GOOD_TOML.replace("size = [0.2, 0.15, 0.2]", "size = [0.2, 0.15]"), ["'size'", "3 numbers"]),
     "bad_value": (GOOD_TOML.replace("nu = 0.3", "nu = 0.7"), ["nu = 0.7", "[materials.soft]"]),
+    # A softening of 2 mu or more (E = 15 kPa, nu = 0.3: mu = 5769 Pa) ran, its yield stress gone
+    # at the first flow (tests/test_units.py, the softening test).
+    "hardening_beyond_minus_two_mu": (GOOD_TOML.replace("nu = 0.3", "nu = 0.3\nhardening = -1e30"),
+                                      ["[materials.soft]: hardening = -1e+30 is not allowed: must be > -2 mu = -11538.5"]),
     "bad_syntax": (GOOD_TOML.replace("frames = 2", "frames = = 2"), ["invalid TOML", "line"]),
     "bad_material": (GOOD_TOML.replace('material = "soft"', 'material = "sofft"'), ["'sofft'", "did you mean 'soft'"]),
     "bad_fit": ('[solver]\nfit = "quadratic"\n' + GOOD_TOML, ["fit = 'quadratic' in [solver]", "linear, curvature_corrected"]),

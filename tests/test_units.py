@@ -10,6 +10,7 @@ flow, then eq. 9 stress) in simple shear and reads the steady stress.
 
 import functools
 import math
+import re
 
 import numpy as np
 import pytest
@@ -176,3 +177,87 @@ def test_below_yield_simple_shear_is_elastic():
     tau, _ = _steady_shear(m, [rate], dt=dt, duration=duration)
     # No flow: tau = mu gamma (small strain), far below tau_y.
     assert tau[0] == pytest.approx(m.mu * rate * duration, rel=2e-3)
+
+
+@functools.cache
+def _held_strain_kernel():
+    S = wp.float64
+    flow = plasticity.kernels(S).flow
+    mat33 = wp.types.matrix(shape=(3, 3), dtype=S)
+    vec3 = wp.types.vector(length=3, dtype=S)
+
+    @wp.kernel
+    def held_strain(
+        hardening: wp.array(dtype=S),
+        strain: S,
+        mu: S,
+        yield_stress: S,
+        flow_rate: S,
+        dt: S,
+        steps: int,
+        counters: wp.array(dtype=wp.int32),
+        s_norm: wp.array(dtype=S),
+        alpha: wp.array(dtype=S),
+    ):
+        # One material point per hardening modulus, stretched once and then held: only the
+        # flow moves its elastic F, so it stops where the stress meets the (softened) yield stress.
+        i = wp.tid()
+        F = wp.diag(vec3(wp.exp(strain), wp.exp(S(-0.5) * strain), wp.exp(S(-0.5) * strain)))
+        a = S(0.0)
+        for _ in range(steps):
+            F, F_lo, a = flow(F, mat33(), a, mu, yield_stress, flow_rate, hardening[i], 0, dt, counters)
+        U = mat33()
+        sig = vec3()
+        V = mat33()
+        wp.svd3(F, U, sig, V)
+        mean = (sig[0] + sig[1] + sig[2]) / S(3.0)
+        s_norm[i] = S(2.0) * mu * wp.length(sig - vec3(mean, mean, mean))
+        alpha[i] = a
+
+    return held_strain
+
+
+def _held_strain(hardening, strain, mu=1.0e3, yield_stress=100.0, flow_rate=50.0, dt=1.0e-3, steps=3000):
+    n = len(hardening)
+    s, a = wp.zeros(n, dtype=wp.float64, device="cpu"), wp.zeros(n, dtype=wp.float64, device="cpu")
+    wp.launch(_held_strain_kernel(), n,
+              [wp.array(hardening, dtype=wp.float64, device="cpu"), strain, mu, yield_stress, flow_rate, dt, steps,
+               wp.zeros(4, dtype=wp.int32, device="cpu")], [s, a], device="cpu")
+    return s.numpy(), a.numpy()
+
+
+def test_softening_stops_at_a_softened_yield_stress_above_minus_two_mu_and_is_refused_beyond():
+    """``hardening < 0`` softens: the flow stress ``Y + K alpha`` falls by ``|K|`` per unit of
+    plastic strain while the flow relaxes ``|s|`` by ``2 mu`` per unit, so a point stretched to
+    1.1 Y and held stops at ``Y + K (|s0| - Y) / (2 mu + K)`` for ``K > -2 mu`` and, at or below
+    it, flows on until no yield stress is left, however small the overstress. ``Material``
+    took any hardening (-1e30 ran, its yield stress gone at the first flow); it now refuses
+    ``hardening <= -2 mu``, naming it, as the rheometer constructor and a preset's override do."""
+    mu, Y = 1.0e3, 100.0
+    strain = 0.0444  # |s0| = 110 Pa, 1.1 Y
+    s0, _ = _held_strain([0.0], strain, steps=0)
+    assert s0[0] == pytest.approx(1.1 * Y, rel=0.01)
+    softening = np.array([-500.0, -1000.0, -1500.0])
+    s, alpha = _held_strain(softening, strain)
+    # The small-strain balance (|s| = 2 mu |dev ln sigma|), within the finite strain's 3 %.
+    np.testing.assert_allclose(s, Y + softening * (s0[0] - Y) / (2.0 * mu + softening), rtol=0.05)
+    np.testing.assert_allclose(s, Y + softening * alpha, rtol=1e-3)  # at rest on the softened yield surface
+    beyond = np.array([-2.0 * mu, -2.1 * mu, -3.0 * mu, -1e30])
+    s, alpha = _held_strain(beyond, strain)
+    assert (s < 1e-6 * Y).all() and (Y + beyond * alpha <= 0.0).all(), (s, alpha)
+
+    for K in (-2.0 * mu, -1e30):
+        message = rf"^Material\.hardening = {re.escape(repr(K))} is not allowed: must be > -2 mu = -2000: a softening"
+        with pytest.raises(ValueError, match=message):
+            we.Material(mu=mu, lam=mu, yield_stress=Y, flow_rate=50.0, hardening=K)
+    rheology = we.Material.from_rheology(2.0e4, 0.3, shear_yield_stress=Y, plastic_viscosity=10.0)
+    for K in (-2.0 * rheology.mu, -1e30):
+        with pytest.raises(ValueError, match=r"^Material\.hardening = .* must be > -2 mu = -15384\.6"):
+            we.Material.from_rheology(2.0e4, 0.3, shear_yield_stress=Y, plastic_viscosity=10.0, hardening=K)
+    for K in (-2.0 * we.PRESETS["dough"].mu, -1e30):
+        with pytest.raises(ValueError, match=r"^Material\.hardening = .* must be > -2 mu = -15384\.6"):
+            we.Material.preset("dough", hardening=K)
+    assert we.Material.preset("dough", hardening=-0.99 * 2.0 * we.PRESETS["dough"].mu).hardening < -15000.0
+    # A change of mu moves the bound: the softening it leaves beyond it is refused by name.
+    with pytest.raises(ValueError, match=r"^Material\.hardening = -1500\.0 is not allowed: must be > -2 mu = -1000"):
+        we.Material(mu=mu, lam=mu, hardening=-1500.0).replace(mu=500.0)

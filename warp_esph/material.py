@@ -124,6 +124,15 @@ class Material:
     only (the others refuse)
     (``tests/test_units.py`` checks the relation in a simulated simple-shear test).
 
+    ``hardening`` (Pa per unit of accumulated plastic strain ``alpha``) raises the yield stress
+    to ``Y = yield_stress + hardening * alpha`` as the material flows; ``hardening < 0``
+    softens it, down to 0 and no further (a yield stress is never negative). It must be
+    above ``-2 mu``: the flow lowers ``|s|`` by ``2 mu`` per unit of ``alpha`` (small elastic
+    strain), so at ``hardening <= -2 mu`` the yield stress falls at least as fast as the
+    stress and a point that yields flows on until its yield stress is gone, however small the
+    overstress, where above it the flow stops at a softened yield stress
+    (``tests/test_units.py``, the softening test; docs/method.md §4).
+
     ``yield_stress = inf`` (or ``flow_rate = 0``) gives a purely elastic material. With the
     variational force, such a ``linear`` or ``non_newtonian`` material (the default
     ``Material.from_young(E, nu)`` is one) takes the corotated stress ``P = U diag(P^) V^T``,
@@ -182,7 +191,7 @@ class Material:
         set_("lam", checks.greater_than("Material.lam", self.lam, -2.0 * mu / 3.0, "-2 mu / 3"))
         set_("yield_stress", checks.non_negative("Material.yield_stress", self.yield_stress, allow_inf=True))
         set_("flow_rate", checks.non_negative("Material.flow_rate", self.flow_rate))
-        set_("hardening", checks.number("Material.hardening", self.hardening))
+        set_("hardening", _checked_hardening(self.hardening, mu))
         set_("density", checks.positive("Material.density", self.density))
         checks.choice("Material.pressure_force", self.pressure_force, PRESSURE_FORCES)
         if self.pressure_stiffness is None:
@@ -373,6 +382,22 @@ class Material:
     def plastic(self) -> bool:
         """Whether the material can flow: a finite ``yield_stress`` and ``flow_rate > 0``."""
         return math.isfinite(self.yield_stress) and self.flow_rate > 0.0
+
+
+def _checked_hardening(hardening, mu: float) -> float:
+    """``hardening`` if it is a number above ``-2 mu``. A flow of ``d alpha`` lowers the flow
+    stress by ``|hardening| d alpha`` and the deviatoric stress by ``2 mu d alpha`` (``|s| = 2 mu
+    |dev ln sigma|`` at small elastic strain, every model's flow rule): at ``hardening <= -2 mu``
+    the flow stress falls at least as fast as the stress, so a particle that yields at all
+    flows on until its yield stress is gone, whatever the load (-1e30 did so at its first
+    flow), where a softening above it stops at a softened yield stress (docs/method.md §4)."""
+    v = checks.number("Material.hardening", hardening)
+    if not v > -2.0 * mu:
+        raise ValueError(
+            f"Material.hardening = {checks.shorten(hardening)!r} is not allowed: must be > -2 mu = {-2.0 * mu:g}: a "
+            "softening of 2 mu or more lowers the yield stress at least as fast as the flow relaxes the stress, so a "
+            "particle that yields flows until its yield stress is gone, whatever the load")
+    return v
 
 
 def _following_force(material: "Material", changes: dict) -> dict:
