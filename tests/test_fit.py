@@ -1134,6 +1134,26 @@ def test_trial_values_a_material_refuses_are_failed_trials_not_errors(lam_target
     assert result.params["lam"][0] == pytest.approx(-3000.0, rel=0.1)
 
 
+def test_a_softening_fitted_past_minus_two_mu_is_a_failed_trial_and_a_bound_past_it_an_error():
+    """``hardening`` is fitted in linear space (it may be negative) and ``Material`` takes it
+    above ``-2 mu`` only (tests/test_units.py, the softening test). A trial below, here a start
+    the multi-start box draws at -3135 Pa (mu = 1 kPa), is a failed trial named by the
+    material's refusal, the other starts go on, and no accepted point lies below the bound;
+    a bound below it is refused before any rollout. Before, the material took any hardening:
+    the start ran, and so did a fit bounded at -5000 Pa."""
+    truth = _block({"hardening": -1500.0})
+    target = PositionLoss(dict(zip(FRAMES, Rollout(truth, STEPS, DT, frames=FRAMES).forward(alpha0=0.002))))
+    result = fit(_block({"hardening": -500.0}), target, ["hardening"], steps=STEPS, dt=DT, initial={"alpha0": 0.002},
+                 iterations=1, optimizer="adam", starts=4, sample_range=8.0, seed=1, progress=False, diagnostics=False)
+    refused = [h for h in result.history if h.get("note", "").startswith("refused: Material.hardening")]
+    assert [h["start"] for h in refused] == [2] and result.starts[2] == "failed", result.history
+    assert "must be > -2 mu = -2000" in refused[0]["note"] and refused[0]["loss"] == math.inf
+    assert all(h["params"]["hardening"][0] > -2000.0 for h in result.history if h not in refused)
+    with pytest.raises(ValueError, match=r"^bounds\['hardening'\] = \(-5000, 0\) is not allowed: at -5000, "
+                                         r"Material\.hardening = -5000\.0 is not allowed: must be > -2 mu = -2000"):
+        fit(_block({"hardening": -500.0}), target, ["hardening"], steps=STEPS, dt=DT, bounds={"hardening": (-5000.0, 0.0)})
+
+
 def test_a_value_fitted_from_zero_stays_in_its_range_and_bounds_a_material_refuses_are_errors(lam_target):
     """A viscosity fitted from 0 (linear) is bounded below by 0 unless bounds say otherwise:
     the global stage, the starts' box and the diagnostics' differences (which stopped a fit
