@@ -395,6 +395,10 @@ BAD_TOML = {
     # at the first flow (tests/test_units.py, the softening test).
     "hardening_beyond_minus_two_mu": (GOOD_TOML.replace("nu = 0.3", "nu = 0.3\nhardening = -1e30"),
                                       ["[materials.soft]: hardening = -1e+30 is not allowed: must be > -2 mu = -11538.5"]),
+    # mu = E / (2 (1 + nu)) = inf was refused as 'mu = inf', a key the file does not hold.
+    "young_past_the_floats": (GOOD_TOML.replace("E = 1.5e4", "E = 1e308").replace("nu = 0.3", "nu = -0.9"),
+                              ["[materials.soft]: E = 1e+308 and nu = -0.9 are not allowed together",
+                               "mu = E / (2 (1 + nu)) = inf"]),
     "bad_syntax": (GOOD_TOML.replace("frames = 2", "frames = = 2"), ["invalid TOML", "line"]),
     "bad_material": (GOOD_TOML.replace('material = "soft"', 'material = "sofft"'), ["'sofft'", "did you mean 'soft'"]),
     "bad_fit": ('[solver]\nfit = "quadratic"\n' + GOOD_TOML, ["fit = 'quadratic' in [solver]", "linear, curvature_corrected"]),

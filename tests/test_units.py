@@ -116,6 +116,28 @@ def test_rheology_constructor_names_the_bad_parameter(kwargs, name):
         we.Material.from_rheology(1.0e5, 0.3, **kwargs)
 
 
+@pytest.mark.parametrize("call, message", [
+    # sqrt(2) x 1.5e308 overflowed to inf: an elastic material, the yield stress given without effect.
+    (lambda: we.Material.from_rheology(1.0e5, 0.3, shear_yield_stress=1.5e308, plastic_viscosity=50.0),
+     r"^shear_yield_stress = 1\.5e\+308 is not allowed: yield_stress = sqrt\(2\) shear_yield_stress must be a finite"),
+    # mu / 1e-320 was refused as 'Material.flow_rate = inf', a value nobody gave.
+    (lambda: we.Material.from_rheology(1.0e5, 0.3, shear_yield_stress=100.0, plastic_viscosity=1e-320),
+     r"^plastic_viscosity = 1e-320 is not allowed with E = 100000\.0, nu = 0\.3: flow_rate = mu / plastic_viscosity "
+     r"= 38461\.5 / 9\.99989e-321 = inf must be a finite number above 0"),
+    # mu / 1e100 underflowed to a flow rate of 0: an elastic material, without a word.
+    (lambda: we.Material.from_rheology(1e-300, 0.3, shear_yield_stress=0.0, plastic_viscosity=1e100),
+     r"^plastic_viscosity = 1e\+100 is not allowed with E = 1e-300, nu = 0\.3: .* = 0 must be a finite number above 0"),
+    # mu or lam past the floats were refused as 'Material.mu = inf', 'Material.lam = inf'.
+    (lambda: we.Material.from_young(1e308, -0.9), r"^E = 1e\+308 and nu = -0\.9 are not allowed together: the Lame "
+                                                   r"parameters they give, mu = E / \(2 \(1 \+ nu\)\) = inf"),
+    (lambda: we.Material.from_rheology(1e300, 0.4999999999999999, shear_yield_stress=1.0, plastic_viscosity=1.0),
+     r"^E = 1e\+300 and nu = 0\.4999999999999999 are not allowed together: .* lam = .* = inf, must be finite"),
+])
+def test_the_constructors_name_the_lab_quantity_whose_derived_value_leaves_the_floats(call, message):
+    with pytest.raises(ValueError, match=message):
+        call()
+
+
 def test_rheology_constructor_needs_the_plastic_viscosity():
     """Left out, the plastic viscosity was infinite: a flow rate of 0, an elastic material on
     which the shear yield stress given had no effect. An explicit ``inf`` still says so. The

@@ -233,8 +233,7 @@ class Material:
         if {"mu", "lam"} & kwargs.keys():
             raise ValueError(f"{', '.join(sorted({'mu', 'lam'} & kwargs.keys()))} is not allowed in Material.from_young: "
                              "mu and lam are derived from E and nu")
-        mu = E / (2.0 * (1.0 + nu))
-        lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+        mu, lam = _lame(E, nu)
         return cls(mu=mu, lam=lam, **kwargs)
 
     @classmethod
@@ -255,7 +254,8 @@ class Material:
         (Pa, a compression or tensile test's ``sigma_y``); ``plastic_viscosity`` (Pa s,
         the Bingham ``eta_p``: ``tau = tau_y + eta_p gamma_dot`` in steady shear; a required
         keyword, ``math.inf`` for a material that never flows), which sets ``flow_rate = mu / eta_p``. See the class docstring for the derivation.
-        """
+        A value whose derived ``yield_stress`` or ``flow_rate`` leaves the floats (or a flow
+        rate that underflows to 0) is refused naming the quantity given, not the derived field."""
         if (shear_yield_stress is None) == (uniaxial_yield_stress is None):
             raise ValueError(
                 f"shear_yield_stress = {shear_yield_stress!r} and uniaxial_yield_stress = {uniaxial_yield_stress!r} "
@@ -271,9 +271,16 @@ class Material:
                 "shear_yield_stress / uniaxial_yield_stress and plastic_viscosity"
             )
         if shear_yield_stress is not None:
-            Y = math.sqrt(2.0) * checks.non_negative("shear_yield_stress", shear_yield_stress)
+            given, factor, Y = "shear_yield_stress", "sqrt(2)", math.sqrt(2.0) * checks.non_negative(
+                "shear_yield_stress", shear_yield_stress)
         else:
-            Y = math.sqrt(2.0 / 3.0) * checks.non_negative("uniaxial_yield_stress", uniaxial_yield_stress)
+            given, factor, Y = "uniaxial_yield_stress", "sqrt(2/3)", math.sqrt(2.0 / 3.0) * checks.non_negative(
+                "uniaxial_yield_stress", uniaxial_yield_stress)
+        if not math.isfinite(Y):
+            # sqrt(2) x 1.5e308 is inf: an elastic material, the yield stress given without effect.
+            value = shear_yield_stress if given == "shear_yield_stress" else uniaxial_yield_stress
+            raise ValueError(f"{given} = {checks.shorten(value)!r} is not allowed: yield_stress = {factor} {given} "
+                             "must be a finite number (for a material that never yields, use Material.from_young)")
         if plastic_viscosity is None:
             # Once the default, it was infinite: flow_rate 0, an elastic material on which the
             # yield stress given had no effect, without a word.
@@ -291,7 +298,15 @@ class Material:
                              f"model {' or '.join(map(repr, BINGHAM_MODELS))} with deformation 'incremental' only "
                              "(give yield_stress and flow_rate to Material for the others)")
         probe = cls.from_young(E, nu)
-        return cls.from_young(E, nu, yield_stress=Y, flow_rate=probe.mu / eta, **kwargs)
+        flow_rate = probe.mu / eta
+        if not math.isfinite(flow_rate) or flow_rate == 0.0 and math.isfinite(eta):
+            # 1e-320 Pa s was refused as Material.flow_rate = inf, a value the caller never gave;
+            # a flow rate that underflows to 0 is an elastic material, the viscosity given without effect.
+            raise ValueError(f"plastic_viscosity = {checks.shorten(plastic_viscosity)!r} is not allowed with E = "
+                             f"{checks.shorten(E)!r}, nu = {checks.shorten(nu)!r}: flow_rate = mu / plastic_viscosity = "
+                             f"{probe.mu:g} / {eta:g} = {flow_rate:g} must be a finite number above 0 (math.inf: "
+                             "a material that never flows)")
+        return cls.from_young(E, nu, yield_stress=Y, flow_rate=flow_rate, **kwargs)
 
     @classmethod
     def preset(cls, name: str, **overrides) -> "Material":
@@ -382,6 +397,21 @@ class Material:
     def plastic(self) -> bool:
         """Whether the material can flow: a finite ``yield_stress`` and ``flow_rate > 0``."""
         return math.isfinite(self.yield_stress) and self.flow_rate > 0.0
+
+
+def _lame(E: float, nu: float) -> tuple[float, float]:
+    """``(mu, lam)`` of Young's modulus ``E`` and Poisson's ratio ``nu`` (each checked by the
+    caller), or a ValueError naming both where either leaves the floats (a huge ``E``, or ``nu``
+    within 1e-16 of -1 or 0.5): the refusal named ``Material.mu = inf`` or ``Material.lam = inf``
+    (a scene file's ``mu = inf``), values the caller never gave."""
+    mu = E / (2.0 * (1.0 + nu))
+    lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    if not (math.isfinite(mu) and math.isfinite(lam)):
+        raise ValueError(
+            f"E = {checks.shorten(E)!r} and nu = {checks.shorten(nu)!r} are not allowed together: the Lame "
+            f"parameters they give, mu = E / (2 (1 + nu)) = {mu:g} and lam = E nu / ((1 + nu) (1 - 2 nu)) = "
+            f"{lam:g}, must be finite numbers; give a smaller E or a nu further from -1 and 0.5")
+    return mu, lam
 
 
 def _checked_hardening(hardening, mu: float) -> float:

@@ -25,7 +25,7 @@ except ModuleNotFoundError:  # Python 3.10: the same parser as the tomli package
 
 from . import checks
 from .builder import MAX_FLOOR_LAYERS, MAX_NEIGHBORS, SceneBuilder
-from .material import PRESETS, Material, _following_force
+from .material import PRESETS, Material, _following_force, _lame
 from .model import CONTACTS, FITS
 from .sim.neighbors import MIN_NEIGHBORS
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
@@ -270,9 +270,9 @@ def _material(file: str, name: str, table: dict) -> Material:
             raise ValueError(f"{file}: E = {E!r} in {where} is not allowed: must be > 0")
         if not -1.0 < nu < 0.5:
             raise ValueError(f"{file}: nu = {nu!r} in {where} is not allowed: must be in (-1, 0.5)")
-        fields["mu"] = E / (2.0 * (1.0 + nu))
-        fields["lam"] = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
     try:
+        if "E" in table:
+            fields["mu"], fields["lam"] = _lame(E, nu)
         if "preset" in table:
             preset = _choice(file, where, "preset", table["preset"], tuple(PRESETS))
             if "pressure_stiffness" not in fields:
