@@ -714,6 +714,38 @@ def test_a_float32_modulus_refusal_names_the_value_that_made_it_too_big():
         rollout.set_parameters({"pressure_stiffness": [4e35]})
 
 
+def test_a_plastic_material_whose_squared_flow_stress_the_precision_cannot_hold_is_refused():
+    """The flow rule compares 4 mu^2 |dev sigma|^2 with the yield stress squared: in float32
+    with mu = 1e19 (1e160 in float64) the square was inf and every flow removed the whole
+    deviatoric strain in one step, whatever the flow rate (measured: alpha 0.0122 after 3 steps of
+    1 ms at 50/s, the whole |dev ln sigma|, where mu = 1e18 gives 0.0017). Refused on mu for a
+    material that can flow (finalize, a rollout's set_parameters); an elastic one, and float64
+    below its own limit, take it."""
+    from warp_esph.rollout import Rollout
+
+    plastic = we.Material(mu=1e19, lam=1e19, yield_stress=100.0, flow_rate=50.0)
+    why = r"with a yield stress and a flow rate it must be at most 9\.22e\+16: the flow rule squares"
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), plastic)
+    with pytest.raises(ValueError, match=r"^Material\.mu = 1e\+19 \(material 0\) is not allowed in float32: " + why):
+        b.finalize(dtype="float32")
+    assert b.finalize(dtype="float64").materials[0].mu == 1e19
+    huge = we.SceneBuilder(spacing=0.05)
+    huge.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), plastic.replace(mu=1e160, lam=1e160))
+    with pytest.raises(ValueError, match=r"^Material\.mu = 1e\+160 \(material 0\) is not allowed in float64: with a "
+                                         r"yield stress and a flow rate it must be at most 6\.7e\+151"):
+        huge.finalize(dtype="float64")
+    elastic = we.SceneBuilder(spacing=0.05)
+    elastic.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), plastic.replace(yield_stress=math.inf))
+    assert elastic.finalize(dtype="float32").materials[0].mu == 1e19
+    small = we.SceneBuilder(spacing=0.05)
+    small.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), we.Material(mu=1e3, lam=1e3, yield_stress=100.0, flow_rate=50.0))
+    rollout = Rollout(small.finalize(dtype="float32", requires_grad=True), 3, 1e-4)
+    with pytest.raises(ValueError, match=r"^values are not allowed: material 0: Material\.mu = 1e\+19 is not allowed in "
+                                         r"float32: " + why):
+        rollout.set_parameters({"mu": [1e19]})
+
+
 def test_target_positions_of_text_are_refused_by_name():
     """``fit(model, {3: 'x'})`` and ``PositionLoss({3: [['a', 0, 0]]})`` met numpy's 'could not
     convert string to float: 'x'', naming no parameter."""

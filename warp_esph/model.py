@@ -53,6 +53,11 @@ MAX_CONTACT_RAMP = 10.0
 FIELD_MARGIN = 1.5
 
 
+#: The deviatoric singular-value spread ``|dev sigma|`` a plastic material's squared flow stress
+#: leaves room for in the model's precision (``modulus_precision_problem``).
+FLOW_DEVIATOR_ROOM = 100.0
+
+
 def precision_problem(value: float, scalar, cli: bool = False) -> str | None:
     """What is allowed, where the finite ``value`` does not hold in ``scalar`` (it would become
     inf, or 0), or None. ``cli``: the advice names the command's ``--dtype`` too
@@ -92,6 +97,17 @@ def modulus_precision_problem(material: Material, scalar, cli: bool = False) -> 
         return (field, float(getattr(material, field)),
                 f"with it the p-wave modulus lam + 2 mu + density pressure_stiffness = {modulus:.3g} Pa must be at most "
                 f"{big:.3g}; {wider_precision(scalar, 'smaller values', cli)}")
+    # The flow rule compares squares, 4 mu^2 |dev sigma|^2 against the yield stress's
+    # (plasticity.flow_fraction): past the precision's range the square was inf, the rate NaN,
+    # and every flow removed the whole deviatoric strain in one step whatever the flow rate
+    # (float32, mu = 1e19, measured). Room is left for |dev sigma| up to FLOW_DEVIATOR_ROOM.
+    limit = math.sqrt(big) / (2.0 * FLOW_DEVIATOR_ROOM)
+    if material.plastic and material.mu > limit:
+        return ("mu", float(material.mu),
+                f"with a yield stress and a flow rate it must be at most {limit:.3g}: the flow rule squares the "
+                f"deviatoric stress, 2 mu times the singular values' deviator (room left for a deviator of norm "
+                f"{FLOW_DEVIATOR_ROOM:g}); "
+                f"{wider_precision(scalar, 'a smaller value', cli)}")
     return None
 
 
