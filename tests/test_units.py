@@ -178,8 +178,11 @@ def test_models_that_are_no_bingham_fluid_get_no_rheometer_quantities(model):
         we.Material.from_rheology(1.0e5, 0.3, shear_yield_stress=100.0, plastic_viscosity=50.0, deformation="rest")
 
 
-def test_steady_simple_shear_is_bingham_with_the_documented_constants():
-    tau_y, eta = 100.0, 50.0
+@pytest.mark.parametrize("tau_y", [100.0, 0.0])
+def test_steady_simple_shear_is_bingham_with_the_documented_constants(tau_y):
+    """With ``shear_yield_stress = 0`` (``yield_stress = 0``, ``flow_rate > 0``) the line goes
+    through 0: a Newtonian fluid of viscosity ``mu / flow_rate`` (Material's docstring)."""
+    eta = 50.0
     m = we.Material.from_rheology(1.0e5, 0.3, shear_yield_stress=tau_y, plastic_viscosity=eta)
     rates = [0.5, 1.0, 2.0, 4.0]
     tau, s = _steady_shear(m, rates)
@@ -190,7 +193,7 @@ def test_steady_simple_shear_is_bingham_with_the_documented_constants():
     # The Bingham line through the points: intercept tau_y, slope eta_p.
     slope, intercept = np.polyfit(rates, tau, 1)
     assert slope == pytest.approx(eta, rel=0.02)
-    assert intercept == pytest.approx(tau_y, rel=0.02)
+    assert intercept == pytest.approx(tau_y, rel=0.02, abs=0.01)
 
 
 def test_below_yield_simple_shear_is_elastic():

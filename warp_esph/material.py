@@ -133,6 +133,10 @@ class Material:
     overstress, where above it the flow stops at a softened yield stress
     (``tests/test_units.py``, the softening test; docs/method.md §4).
 
+    ``yield_stress = 0`` with ``flow_rate > 0`` flows at any deviatoric stress: a Maxwell
+    fluid, in steady simple shear a Newtonian one of viscosity ``mu / flow_rate``
+    (``tests/test_units.py``: 49.2 Pa s for 50 asked at ``E`` = 100 kPa, intercept 0).
+
     ``yield_stress = inf`` (or ``flow_rate = 0``) gives a purely elastic material. With the
     variational force, such a ``linear`` or ``non_newtonian`` material (the default
     ``Material.from_young(E, nu)`` is one) takes the corotated stress ``P = U diag(P^) V^T``,
