@@ -289,3 +289,34 @@ def test_the_fitted_values_and_their_errors_are_printed_with_their_units(landing
     lines = out.getvalue().splitlines()
     assert any(line.startswith("  yield_stress = ") and line.endswith(" Pa") for line in lines), lines
     assert any(line.startswith("  flow_rate = ") and line.endswith(" 1/s") for line in lines), lines
+
+
+def _plate(mu, dtype):
+    """A 3 x 3 plate one particle thick at h = 1.5 dx, landing: its 8 rim particles have fewer
+    than 6 neighbours, so their fits are guarded (paper §4) in every step."""
+    b = we.SceneBuilder(spacing=0.02, support_radius=0.03)
+    b.add_box((0.0, 0.03, 0.0), (0.06, 0.02, 0.06), we.Material(mu=mu, lam=3e3, density=1000.0),
+              velocity=(0.0, -1.0, 0.0))
+    b.add_ground(friction=0.5)
+    return b.finalize(dtype=dtype, requires_grad=True)
+
+
+@pytest.mark.parametrize("dtype", [wp.float32, wp.float64], ids=["float32", "float64"])
+def test_a_checkpointed_fit_records_the_guarded_particle_steps_of_its_runs_once(dtype):
+    """A checkpointed backward re-runs every step, and the solver counts its guards again:
+    each evaluation of a checkpointed fit recorded twice the guarded particle-steps of the
+    same fit on a full tape (320 against 160). Both record what a run of the evaluation's
+    values guards."""
+    steps, frames = 20, [10, 20]
+    dt = 0.5 * _plate(2e3, dtype).stable_dt()
+    target = Rollout(_plate(2e3, dtype), steps, dt, frames=frames).forward()
+    histories = [fit(_plate(3e3, dtype), target, ["mu"], steps=steps, dt=dt, frames=frames, iterations=2,
+                     checkpoint_every=every, progress=False, diagnostics=False).history
+                 for every in (None, 5)]
+    for plain, checkpointed in zip(*histories, strict=True):
+        run = Rollout(_plate(plain["params"]["mu"][0], dtype), steps, dt, frames=frames)
+        run.forward()
+        guarded = run.solver.guard_counts()["few_neighbors"]
+        assert guarded > 0
+        assert plain["guarded"] == checkpointed["guarded"] == guarded, (plain, checkpointed)
+        assert run.guard_counts()["few_neighbors"] == guarded

@@ -104,8 +104,9 @@ GUARDS = ("few_neighbors",)
 
 
 def _guarded(runs) -> int:
-    """Particle-steps the guards held in the runs' solvers since they were built."""
-    return sum(r.rollout.solver.guard_counts()[k] for r in runs for k in GUARDS)
+    """Particle-steps the guards held in the runs' forwards since their rollouts were made
+    (``Rollout.guard_counts``: a checkpointed backward's re-run of the steps not again)."""
+    return sum(r.rollout.guard_counts(last=False)[k] for r in runs for k in GUARDS)
 
 
 @dataclasses.dataclass

@@ -77,7 +77,7 @@ import warp as wp
 from . import checks
 from ._types import type_set
 from .model import Model, State, flowed_by_hardening, precision_problem
-from .sim.solver import Solver
+from .sim.solver import GUARD_NAMES, Solver
 from .simulate import SimulationError
 
 __all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS", "FORCES", "TOOL_NAMES", "COLLIDER_FORCES",
@@ -626,6 +626,11 @@ class Rollout:
         self._collider_grads = None
         #: Incremented by every ``forward``: lets callers (the torch wrapper) tell runs apart.
         self.forward_count = 0
+        # The solver's guard counters as the latest forward began (a copy on the device, so the
+        # forward waits for nothing), and the particle-steps each guard held in its forwards.
+        self._counts_before = wp.zeros_like(self.solver.scratch.counters)
+        self._forward_guards = np.zeros(self._counts_before.shape[0], dtype=np.int64)
+        self._last_guards = np.zeros_like(self._forward_guards)
         #: Each world's loss term at the last ``backward`` with a ``losses.WorldLoss`` (else None).
         self.world_values = None
 
@@ -810,8 +815,15 @@ class Rollout:
         self.solver._take_rest_configuration()
         self._load_initial(initial_state, given)
         self._tape = None
+        counters = self.solver.scratch.counters
+        wp.copy(self._counts_before, counters)
         with self._scripted_log() as log:
             self._run(taped)
+        # A checkpointed backward re-runs every step and its solver counts them again (work
+        # done); the run's own counts are the forward's, taken here (a fit's history gave a
+        # checkpointed fit twice the guarded particle-steps of the same fit on a full tape).
+        self._last_guards = counters.numpy().astype(np.int64) - self._counts_before.numpy()
+        self._forward_guards += self._last_guards
         # The Scripted tools' poses this forward evaluated (``{(tool, t): (position, quaternion)}``;
         # None without Scripted tools), against which a re-run is checked.
         self._scripted_poses = log
@@ -986,6 +998,15 @@ class Rollout:
         if self.collider_forces is not None:
             n = len(self.collider_names)
             wp.copy(self.collider_forces, state.collider_force, dest_offset=k * n, src_offset=0, count=n)
+
+    def guard_counts(self, last: bool = True) -> dict[str, int]:
+        """The particle-steps each guard of the solver held (``Solver.guard_counts``' keys) in
+        the latest ``forward`` (``last=False``: in every forward since the rollout was made).
+        The steps a checkpointed ``backward`` re-runs are not counted again, as the solver's
+        own counts, a count of work, do: a run's counts are the same whatever its checkpoints."""
+        last = checks.boolean("last", last)
+        counts = self._last_guards if last else self._forward_guards
+        return dict(zip(GUARD_NAMES, (int(c) for c in counts)))
 
     def step_forces(self) -> np.ndarray:
         """Reaction force of every tool in every step of the last ``forward``, ``(steps, tools, 3)``
