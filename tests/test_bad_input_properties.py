@@ -754,3 +754,44 @@ def test_target_positions_of_text_are_refused_by_name():
     for bad in ("x", [["a", 0.0, 0.0]]):
         with pytest.raises(ValueError, match=r"^targets at step 3 = .* is not allowed: must be \(N, 3\) numbers"):
             PositionLoss({3: bad})
+
+
+@pytest.fixture(scope="module")
+def small_rollout():
+    from warp_esph.rollout import Rollout
+
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), DOUGH)
+    return Rollout(b.finalize(dtype="float32", requires_grad=True), 2, 1e-4)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(value=st.one_of(ANY_VALUE, st.just(1e-50), st.just(1e39)))
+def test_a_rollouts_dt_is_checked_when_set(small_rollout, value):
+    """``rollout.dt = value`` took anything (0, -1, NaN, a string, 1e-50 that float32 holds as
+    0) and only the next step refused it, or ``repr(rollout)`` failed on it. It is checked
+    when set: a positive float the model's precision holds, or a ValueError naming dt, the
+    rollout keeping its step."""
+    rollout = small_rollout
+    was = rollout.dt
+    try:
+        rollout.dt = value
+    except ValueError as e:
+        assert re.match(r"dt = .* is not allowed( in float32)?: must be ", str(e)), e
+        assert rollout.dt == was
+        return
+    assert isinstance(rollout.dt, float) and 1.18e-38 <= rollout.dt <= 3.4e38
+    assert rollout.dt == value
+    repr(rollout)
+    rollout.dt = was
+
+
+def test_a_rollouts_model_and_solver_are_fixed_once_made(small_rollout):
+    """Another model or solver set on a rollout ran on the states, guard counters and frame
+    slots made for the first; each is refused by name, the rollout keeping its own."""
+    rollout = small_rollout
+    for name in ("model", "solver"):
+        was = getattr(rollout, name)
+        with pytest.raises(ValueError, match=rf"^Rollout\.{name} = .* is not allowed: this rollout's states"):
+            setattr(rollout, name, None)
+        assert getattr(rollout, name) is was

@@ -77,7 +77,7 @@ import warp as wp
 from . import checks
 from ._types import type_set
 from .model import Model, State, flowed_by_hardening, precision_problem
-from .sim.solver import GUARD_NAMES, Solver
+from .sim.solver import GUARD_NAMES, Solver, representable_dt
 from .simulate import SimulationError
 
 __all__ = ["Rollout", "split_materials", "PARAMETERS", "STATE_GRADIENTS", "FORCES", "TOOL_NAMES", "COLLIDER_FORCES",
@@ -514,8 +514,9 @@ def check_initial(model: Model, name: str, value) -> np.ndarray:
 class Rollout:
     """A differentiable run of ``steps`` steps of ``dt`` observing positions at ``frames``.
     ``steps``, ``frames``, the checkpoint segments and ``taped`` are fixed once made (setting
-    one is refused); ``dt``, the model's gravity and the solver's settings may be set between
-    runs (``run_settings``; not between a forward and its backward).
+    one is refused), as are ``model`` and ``solver``; ``dt`` (checked when set), the model's
+    gravity and the solver's settings may be set between runs (``run_settings``; not between a
+    forward and its backward).
 
     - ``model``: finalized with ``requires_grad=True`` (float64 to validate gradients).
     - ``frames``: step indices in ``[0, steps]`` whose positions ``forward`` returns and
@@ -538,18 +539,34 @@ class Rollout:
     """
 
     #: Set once, by ``__init__``: the taped states, frame slots, force rows, segments and memory
-    #: check were made for them (``dt``, read by each step, may be set between runs).
-    _FIXED = ("steps", "frames", "segment", "checkpointing", "segments", "taped")
+    #: check were made for them, and for the model and solver (``dt``, read by each step, may
+    #: be set between runs).
+    _FIXED = ("steps", "frames", "segment", "checkpointing", "segments", "taped", "model", "solver")
 
     def __setattr__(self, name, value):
         # A steps or frames set after __init__ was taken without a word and ran half of it:
         # frames = (3,) on a rollout of frames (2, 3) still returned both; steps = 5 ran five
-        # steps and returned the third's positions.
+        # steps and returned the third's positions. Another model or solver ran on states,
+        # counters and a hash grid made for the first.
         if name in self._FIXED and name in self.__dict__:
             raise ValueError(f"Rollout.{name} = {checks.shorten(value)!r} is not allowed: this rollout's states, frame "
                              f"slots and force rows were made for {name} = {checks.shorten(getattr(self, name))!r}; make a "
                              "new Rollout")
         super().__setattr__(name, value)
+
+    @property
+    def dt(self) -> float:
+        """The step (s) every run takes. Checked when set (``ValueError`` unless positive and
+        representable in the model's precision); a step above ``Model.stable_dt`` is warned of
+        by the solver's step, as any run's. Set it between runs, not between a forward and its
+        backward (``backward`` refuses that run)."""
+        return self._dt
+
+    @dt.setter
+    def dt(self, value):
+        # Any value was taken (0, -1, NaN, a string) and refused only by the next step, or by
+        # repr as a format error.
+        self._dt = representable_dt(self.model.scalar, value)
 
     def __init__(self, model: Model, steps: int, dt: float, frames: Sequence[int] | None = None,
                  checkpoint_every: int | None = None, solver: Solver | None = None, taped: bool = True):
@@ -560,7 +577,7 @@ class Rollout:
                              "parameter arrays have no gradients; use builder.finalize(requires_grad=True)")
         self.model = model
         self.steps = checks.positive_int("steps", steps)
-        self.dt = checks.positive("dt", dt)
+        self.dt = dt
         if frames is None:
             frames = [self.steps]
         frames = _step_indices(frames)

@@ -65,6 +65,18 @@ def tape_recording() -> bool:
     return recording_tape() is not None
 
 
+def representable_dt(scalar, dt) -> float:
+    """``dt`` as a float, refused (ValueError) unless positive and representable in ``scalar``
+    (``wp.float32`` or ``wp.float64``): ``Solver.check_dt`` without its stability warning."""
+    dt = checks.positive("dt", dt)
+    info = np.finfo(np.float32 if scalar is wp.float32 else np.float64)
+    if not float(info.tiny) <= dt <= float(info.max):
+        # 1e-50 was 0 in float32 (a step that moved nothing while the time advanced), 1e39 inf.
+        raise ValueError(f"dt = {dt!r} is not allowed in {scalar.__name__}: must be in "
+                         f"[{float(info.tiny):.3g}, {float(info.max):.3g}] s")
+    return dt
+
+
 class StepScratch:
     """What the launches of one step share besides the model and the two states: the
     guard counters, the fast path's per-particle SPH pressure and volume ``m / rho`` (and
@@ -718,12 +730,7 @@ class Solver:
         model's precision; warns once per value above ``Model.stable_dt`` (with the
         hourglass strength this solver runs) by more than rounding, ``STEP_ROUNDING``. ``step``
         calls it."""
-        dt = checks.positive("dt", dt)
-        info = np.finfo(np.float32 if self.model.scalar is wp.float32 else np.float64)
-        if not float(info.tiny) <= dt <= float(info.max):
-            # 1e-50 was 0 in float32 (a step that moved nothing while the time advanced), 1e39 inf.
-            raise ValueError(f"dt = {dt!r} is not allowed in {self.model.scalar.__name__}: must be in "
-                             f"[{float(info.tiny):.3g}, {float(info.max):.3g}] s")
+        dt = representable_dt(self.model.scalar, dt)
         stable = self.model.stable_dt(hourglass=self.hourglass)
         if dt > stable * (1.0 + STEP_ROUNDING) and (dt, stable) not in self._warned_dt:
             self._warned_dt.add((dt, stable))
