@@ -21,7 +21,7 @@ import warp as wp
 import warp_esph as we
 from warp_esph.cli import add_fit_arguments, fit_cli
 from warp_esph.fit import Experiment, fit, load_target, save_target
-from warp_esph.losses import ChamferLoss, MeshLoss, PositionLoss, surface_particles
+from warp_esph.losses import ChamferLoss, MeshLoss, PositionLoss, WorldLoss, surface_particles
 from warp_esph.rollout import PARAMETERS, Rollout, split_materials
 
 DT = 1.0e-3
@@ -304,6 +304,49 @@ def test_a_loss_value_under_a_recording_tape_records_nothing_on_it():
         wp.launch(dot_loss, 30, [y, w], [out])
     tape.backward(out)
     assert np.array_equal(x.grad.numpy(), 2.0 * w.numpy())
+
+
+@pytest.mark.parametrize("kind", ["position_subset", "chamfer", "mesh", "worlds", "sum"])
+def test_a_loss_value_between_a_callers_launch_and_backward_leaves_the_callers_gradient(kind):
+    """A caller records ``loss.launch`` on a tape of its own and asks ``loss.value`` at other
+    positions before ``tape.backward()``: the value's evaluation overwrote the buffers the
+    caller's backward reads (the subset's gathered positions, a Chamfer loss's nearest
+    points, a mesh loss's closest points, a WorldLoss's worlds' positions), and the caller's
+    gradient was off by 0.5-1.9 times its largest entry (central differences). Evaluations
+    run on buffers of their own: the gradient matches central differences of the loss."""
+    rng = np.random.default_rng(6)
+    n = 20
+    x0 = rng.normal(size=(n, 3)) * 0.03
+    half = np.arange(0, n, 2)
+    subset = PositionLoss({2: x0[half] + 0.01 * rng.normal(size=(len(half), 3))}, particles=half)
+    chamfer = ChamferLoss(rng.normal(size=(25, 3)) * 0.03, radius=0.05, frames=[2])
+    mesh = MeshLoss(_box_mesh((0.0, 0.0, 0.0), (0.02, 0.02, 0.02)), frames=[2])
+    worlds = types.SimpleNamespace(world_start=np.array([0, n // 2, n]))
+    loss = {"position_subset": subset, "chamfer": chamfer, "mesh": mesh,
+            "worlds": WorldLoss(worlds, [chamfer, mesh]), "sum": subset + 2.0 * chamfer + mesh}[kind]
+
+    def value(x):
+        return loss.value({2: wp.array(x, dtype=wp.vec3d)})
+
+    x = wp.array(x0, dtype=wp.vec3d, requires_grad=True)
+    out = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        loss.launch(2, x, out)
+    assert out.numpy()[0] == pytest.approx(value(x0), rel=1e-12)
+    value(x0 + rng.normal(size=(n, 3)) * 0.02)  # another point, between the launch and the backward
+    tape.backward(out)
+    grad = x.grad.numpy()
+    h = 1e-7
+    fd = np.zeros_like(grad)
+    for i in range(n):
+        for c in range(3):
+            step = np.zeros_like(x0)
+            step[i, c] = h
+            fd[i, c] = (value(x0 + step) - value(x0 - step)) / (2.0 * h)
+    assert np.abs(fd).max() > 1e-3
+    assert grad == pytest.approx(fd, abs=1e-6 * np.abs(fd).max())
+
 
 def _box_mesh(c, h):
     c, h = np.asarray(c, float), np.asarray(h, float)

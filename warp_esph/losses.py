@@ -30,6 +30,7 @@ Normalisation: each loss is the mean over its frames of its per-frame value, tim
 ``weight``.
 """
 
+import contextlib
 import copy
 import functools
 import math
@@ -310,7 +311,10 @@ class Loss:
     ``record_tape=False``). ``x`` is the frame's positions (or the ``particles`` subset).
     """
     #: What a launch fills and its adjoint reads, per frame (``copy_for_world`` makes them anew).
-    _CACHES = ("_out", "_copies", "_subsets", "_keep", "_counts")
+    _CACHES = ("_out", "_copies", "_subsets", "_keep", "_counts", "_value_buffers")
+    #: The buffers a taped ``launch`` writes and its adjoint reads (or holds alive for it):
+    #: ``value`` and ``value_and_grad`` run on a set of their own (``_own_buffers``).
+    _TAPED = ("_subsets", "_keep")
 
 
     def __init__(self, frames, weight: float = 1.0, particles=None):
@@ -360,6 +364,9 @@ class Loss:
         self._subsets = {}
         self._keep = []  # grids and meshes used by the last evaluation
         self._counts: dict[int, int] = {}  # points used per frame at the last evaluation
+        # The other set of the _TAPED buffers (_own_buffers), and whether value's are in place.
+        self._value_buffers: dict = {}
+        self._value_side = False
         #: Observation noise of this loss's residuals for ``warp_esph.diagnostics`` (None:
         #: the noise given there).
         self.noise = None
@@ -432,14 +439,52 @@ class Loss:
         """The loss at ``positions`` (``{step: wp.array of vec3}``) and ``{step: dL/dx}``. It
         records on a tape of its own, also where the caller's ``wp.Tape`` is recording: that
         tape is set aside meanwhile and records nothing of it (the value is a number, no part
-        of the caller's graph; ``launch`` records the loss on the caller's tape)."""
+        of the caller's graph; ``launch`` records the loss on the caller's tape). It runs on
+        buffers of its own, so a caller's ``launch`` recorded before it is differentiated by
+        the caller's ``tape.backward()`` after it as recorded (``_own_buffers``)."""
         missing = [f for f in self.frames if f not in positions]
         if missing:
             raise ValueError(f"the loss needs positions at steps {missing}, given only at {sorted(k for k in positions if isinstance(k, int))}")
         # Under a caller's tape Warp refused the inner one, after the copies below had been
         # recorded on the caller's, whose backward pass would have replayed them.
-        with outside_recording_tape():
+        with outside_recording_tape(), self._own_buffers():
             return self._value_and_grad(positions)
+
+    def _nested(self) -> list["Loss"]:
+        """The losses this one launches (a sum's terms, a WorldLoss's worlds' losses)."""
+        return []
+
+    @contextlib.contextmanager
+    def _own_buffers(self):
+        """Inside, this loss and every loss it launches use the ``_TAPED`` buffers of their
+        own evaluations, not those of a caller's ``launch``: a ``value`` between a caller's
+        taped ``launch`` and its ``tape.backward()`` overwrote what that backward reads (the
+        subset's positions, a Chamfer loss's nearest points, a mesh loss's closest points),
+        and the caller's gradient was another point's (off by more than itself)."""
+        seen, stack = {}, [self]
+        while stack:
+            loss = stack.pop()
+            if id(loss) not in seen:
+                seen[id(loss)] = loss
+                stack.extend(loss._nested())
+        # Not those a nested evaluation (a sum's kernel terms) has switched already.
+        switched = [loss for loss in seen.values() if not getattr(loss, "_value_side", False)]
+        for loss in switched:
+            loss._swap_buffers()
+        try:
+            yield
+        finally:
+            for loss in switched:
+                loss._swap_buffers()
+
+    def _swap_buffers(self):
+        other = self.__dict__.setdefault("_value_buffers", {})
+        for name in {n for cls in type(self).__mro__ for n in vars(cls).get("_TAPED", ())}:
+            if name in vars(self):
+                held = getattr(self, name)
+                setattr(self, name, other[name] if name in other else type(held)())
+                other[name] = held
+        self._value_side = not getattr(self, "_value_side", False)
 
     def _value_and_grad(self, positions: Mapping[int, wp.array]) -> tuple[float, dict[int, wp.array]]:
         any_x = positions[self.frames[0]]
@@ -599,6 +644,9 @@ class SumLoss(Loss):
         for k, loss in self.terms:
             loss.launch(frame, x, out, scale * k)
 
+    def _nested(self) -> list[Loss]:
+        return [loss for _, loss in self.terms]
+
     def value_and_grad(self, positions):
         # Terms evaluated on the host (reaction forces) add their own value and gradient.
         host = [(k, loss) for k, loss in self.terms if getattr(loss, "_host", False)]
@@ -696,6 +744,11 @@ class WorldLoss(Loss):
             return None
         return np.array([sum(float(a.numpy()[0]) for a in used.values()) for used in self._used])
 
+    _TAPED = ("_world_x", "_world_acc")
+
+    def _nested(self) -> list[Loss]:
+        return list(self.losses)
+
     def check_positions(self, n: int) -> None:
         if n != self.world_start[-1]:
             raise ValueError(f"positions with {n} particles are not allowed: the worlds have {int(self.world_start[-1])}")
@@ -787,6 +840,7 @@ class ChamferLoss(Loss):
     match within ``radius``.
     """
     _CACHES = ("_target_data", "_particle_grid", "_scratch", "_pairs")
+    _TAPED = ("_scratch",)  # the nearest points' indices nearest_term's adjoint reads
 
 
     def __init__(self, targets, radius: float, frames=None, weight: float = 1.0, particles=None):
@@ -934,6 +988,7 @@ class MeshLoss(Loss):
     without gradient. ``unmatched[step]`` counts them after an evaluation.
     """
     _CACHES = ("_wp", "_scratch", "_planes")
+    _TAPED = ("_scratch",)  # the closest points and codes mesh_term's adjoint reads
 
 
     MODES = ("surface", "outside")
@@ -1053,9 +1108,9 @@ class MeshLoss(Loss):
                 x = x[self.particles]
             if f not in planes:
                 xw = wp.array(x, dtype=wp.vec3d)
-                self._launch_query(f, xw)
-                s = self._scratch[(f, xw.dtype, str(xw.device), len(x))]
-                c, code = s.closest.numpy().astype(np.float64), s.code.numpy()
+                with self._own_buffers():  # not a caller's launch's, which its backward reads
+                    s = self._launch_query(f, xw)
+                    c, code = s.closest.numpy().astype(np.float64), s.code.numpy()
                 d = x - c
                 norm = np.linalg.norm(d, axis=1)
                 normal = np.where(norm[:, None] > 1e-12, d / np.maximum(norm, 1e-300)[:, None], 0.0)
