@@ -320,3 +320,56 @@ def test_a_checkpointed_fit_records_the_guarded_particle_steps_of_its_runs_once(
         assert guarded > 0
         assert plain["guarded"] == checkpointed["guarded"] == guarded, (plain, checkpointed)
         assert run.guard_counts()["few_neighbors"] == guarded
+
+
+@pytest.mark.parametrize("worlds", [False, True], ids=["one_after_another", "worlds"])
+@pytest.mark.parametrize("dtype", [wp.float32, wp.float64], ids=["float32", "float64"])
+def test_every_number_of_a_fits_history_is_what_it_says(dtype, worlds):
+    """A global stage of 2 samples and 2 starts, one after another or as worlds. Each entry's
+    loss is a re-run's at its values, the result the best entry; every sample recorded 0.0 s,
+    each worlds entry the whole round's time (the history's seconds added up to about twice
+    the fit's wall time), and fit.json's ``iterations`` was ``evaluations - 1``, counting the
+    second start's first evaluation as an iteration."""
+    import time
+
+    from warp_esph.losses import PositionLoss
+
+    def cube(yield_stress, flow_rate):
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.035, 0.0), (0.06, 0.06, 0.06), we.Material(mu=2e3, lam=3e3, density=1000.0,
+                  yield_stress=yield_stress, flow_rate=flow_rate), velocity=(0.0, -1.0, 0.0))
+        b.add_ground(friction=0.5)
+        return b.finalize(dtype=dtype, requires_grad=True)
+
+    steps, frames = 30, [15, 30]
+    dt = 0.5 * cube(*TRUTH.values()).stable_dt()
+    loss = PositionLoss(Rollout(cube(*TRUTH.values()), steps, dt, frames=frames).forward(), frames=frames)
+    t0 = time.perf_counter()
+    result = fit(cube(500.0, 20.0), loss, list(TRUTH), steps=steps, dt=dt, iterations=3, samples=2, starts=2,
+                 worlds=worlds, optimizer="lbfgs", progress=False, diagnostics=False)
+    wall = time.perf_counter() - t0
+    history = result.history
+    for entry in history:
+        run = Rollout(cube(*(entry["params"][name][0] for name in TRUTH)), steps, dt, frames=frames)
+        run.forward()
+        assert entry["loss"] == pytest.approx(loss.value(run.observations()), rel=1e-12), entry
+        assert entry["seconds"] > 0.0, entry
+    assert sum(entry["seconds"] for entry in history) <= wall
+    if worlds:
+        rounds = {}
+        for entry in history:
+            if entry["stage"] == "descent":
+                rounds.setdefault(entry["round_seconds"], []).append(entry["seconds"])
+        assert all(sum(shares) == pytest.approx(total, rel=1e-12) for total, shares in rounds.items())
+    descent = [entry for entry in history if entry["stage"] == "descent"]
+    best = min((entry for entry in descent if math.isfinite(entry["loss"])), key=lambda entry: entry["loss"])
+    assert result.loss == best["loss"]
+    assert {name: list(v) for name, v in result.params.items()} == best["params"]
+    assert result.initial_loss == history[0]["loss"]
+    assert [history[0]["params"][name][0] for name in TRUTH] == pytest.approx([500.0, 20.0], rel=1e-12)  # the guess
+    record = result.to_dict()
+    assert record["evaluations"] == result.evaluations == len(descent)
+    assert record["sample_evaluations"] == 3  # the guess and 2 samples
+    assert record["iterations"] == len(descent) - len({entry["start"] for entry in descent})
+    per_start = [sum(1 for entry in descent if entry["start"] == k) for k in (0, 1)]
+    assert record["iterations"] == sum(n - 1 for n in per_start) <= 2 * 3

@@ -124,7 +124,12 @@ class FitResult:
     exactly zero), ``tol``, ``callback``;
     ``converged`` is True only for ``converged`` and ``tol``. ``diagnostics``: a
     ``warp_esph.diagnostics.Diagnostics`` at the optimum (None when not asked for).
-    ``models``/``experiment_materials``: per experiment of a joint fit. Each descent
+    ``models``/``experiment_materials``: per experiment of a joint fit. An entry's
+    ``seconds`` is the wall-clock time of its evaluation; with ``worlds`` each round's starts
+    run in one pass, and its entries share its time (``seconds``, the round's divided by the
+    starts it evaluated; ``round_seconds``, the round's). ``evaluations``: the descent's
+    evaluations, every start's (``to_dict``: ``iterations``, those after each start's first,
+    and ``sample_evaluations``, the global stage's). Each descent
     entry of the history records ``guarded``: the particle-steps without a fit for too few
     neighbours in that evaluation (paper §4; not recorded for a worlds fit). ``starts``:
     each start's ``stopped``, or ``failed`` for a start other than the guess whose first
@@ -192,7 +197,11 @@ class FitResult:
             "materials": [mat(m) for m in self.materials],
             "loss": self.loss,
             "initial_loss": self.initial_loss,
-            "iterations": self.evaluations - 1,
+            # Each start's first evaluation is no iteration: evaluations - 1 had counted the
+            # other starts' first ones as iterations of one descent.
+            "iterations": self.evaluations - len({h.get("start", 0) for h in self.history if h.get("stage") == "descent"}),
+            "evaluations": self.evaluations,
+            "sample_evaluations": sum(1 for h in self.history if h.get("stage") == "sample"),
             "stopped": self.stopped,
             "converged": self.converged,
             "termination": self.termination,
@@ -1378,7 +1387,9 @@ def fit(
 
     def record(track, z, value, gz, seconds, note=None):
         """Records one evaluation of ``track``'s start (history, best, callback); raises
-        ``_Stop`` where the start ends; returns ``(value, gz, finite)`` for the optimiser."""
+        ``_Stop`` where the start ends; returns ``(value, gz, finite)`` for the optimiser.
+        With worlds ``seconds`` is the start's share of its round
+        (``_WorldsProblem.evaluate``)."""
         p = prob.from_z(z)
         value = float(value)
         # gz None: a forward-only evaluation (Gauss-Newton's residuals).
@@ -1386,6 +1397,8 @@ def fit(
         entry = {"iteration": len(history), "stage": state["stage"], "loss": value,
                  "params": {k: [float(x) for x in v] for k, v in p.items()},
                  "grad": None if gz is None else [float(x) for x in gz], "seconds": seconds}
+        if use_worlds:
+            entry["round_seconds"] = worlds_problem.round_seconds
         if not use_worlds:
             # The guards' particle-steps of this evaluation (the solvers count since built).
             total = _guarded(runs)
@@ -1514,13 +1527,15 @@ def fit(
         try:
             for z in cands:
                 note = None
+                t_sample = time.perf_counter()
                 try:
                     v = float(prob.value(z))
                 except FloatingPointError as e:
                     v, note = math.inf, _refused_note(e)
+                # Each sample's own time: every one had recorded 0.0 s.
                 history.append({"iteration": len(history), "stage": "sample", "loss": v,
                                 "params": {k: [float(x) for x in vv] for k, vv in prob.from_z(z).items()},
-                                "grad": None, "seconds": 0.0, **({"note": note} if note else {})})
+                                "grad": None, "seconds": time.perf_counter() - t_sample, **({"note": note} if note else {})})
                 scored.append((v if math.isfinite(v) else math.inf, len(scored), z))
         except KeyboardInterrupt:
             raise _fit_interrupted(_interrupted_result(history, runs, params)) from None
@@ -1667,11 +1682,16 @@ class _WorldsProblem:
             wr.checked = np.tile(r.checked, worlds)  # particles world after world
             self.runs.append(wr)
         self.p = [None] * worlds
+        #: Wall-clock seconds of the latest ``evaluate``.
+        self.round_seconds = 0.0
 
     def evaluate(self, batch: dict[int, np.ndarray]) -> dict[int, tuple[float, np.ndarray, float, str | None]]:
         """Loss, optimiser-space gradient, seconds and note (why the materials refused the
         values, or None) of each start in ``batch`` (``{world: z}``); the other worlds keep
-        their last parameters."""
+        their last parameters. One pass evaluates them all: each start's seconds are its
+        share, the round's divided by the starts in it (each had been given the whole round's,
+        and a history's seconds added up to about W times the fit's); ``round_seconds``
+        holds the round's."""
         t0 = time.perf_counter()
         prob, W, k = self.prob, self.W, self.prob.k
         refused = {}
@@ -1704,7 +1724,8 @@ class _WorldsProblem:
             gz = {w: np.full(len(prob.z0), np.nan) for w in batch}
         for w in refused:
             values[w], gz[w] = math.inf, np.full(len(prob.z0), np.nan)
-        seconds = time.perf_counter() - t0
+        self.round_seconds = time.perf_counter() - t0
+        seconds = self.round_seconds / len(batch)
         return {w: (float(values[w]), gz[w], seconds, refused.get(w)) for w in batch}
 
 
