@@ -297,3 +297,65 @@ def test_an_error_in_one_start_ends_the_other_starts_at_the_next_round():
     with pytest.raises(ValueError, match="start 0 failed"):
         _lockstep_two_starts(descend, recorded)
     assert sorted(recorded) == [0, 1] and stopped == ["callback"]
+
+
+def _elastic_drop(mu):
+    """27 particles of an elastic block (stable step 2e-3 s at mu = 2 kPa) dropped at 1 m/s."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.055, 0.0), (0.06, 0.06, 0.06), we.Material(mu=mu, lam=1.5 * mu, density=1000.0),
+              velocity=(0.0, -1.0, 0.0))
+    b.add_ground(friction=0.5)
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * 0.02, size=model.particle_x0.shape)
+    model.compute_rest_density()
+    return model
+
+
+def test_a_start_that_blows_up_fails_alone_as_run_alone_and_its_world_stops_blowing_up(monkeypatch):
+    """Three starts of mu (guess 4 kPa, truth 2 kPa) in a box a factor 1000 wide, at a dt of
+    1e-3 s: start 2 begins at 2.8 MPa, 20 x past its stable step, and its block blows up
+    (finite). As worlds, the healthy starts make the evaluations they make alone (nothing of
+    the diverged world reaches another), the failed start is noted as alone (its particle
+    named by its index in the one-world model: it was the worlds model's, 54 higher), and its
+    world no longer reruns the values that blew up in every later round (each such round took
+    4-5 x a healthy one's time, 3 worlds of 216 particles): it runs the guess."""
+    import warnings
+
+    from warp_esph import fit as fit_module
+
+    steps, dt, frames = 60, 1e-3, [30, 60]
+    target = Rollout(_elastic_drop(2e3), steps, dt, frames=frames).forward()
+    ran = []  # the mu of every world, round by round
+    apply = fit_module._Run.apply
+
+    def spy(self, p):
+        if self.model.world_count > 1:
+            ran.append(np.array(p["mu"], dtype=np.float64))
+        return apply(self, p)
+
+    monkeypatch.setattr(fit_module._Run, "apply", spy)
+
+    def run(worlds):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # dt past the stiff start's stable step
+            return fit(_elastic_drop(4e3), PositionLoss(target, frames=frames), ["mu"], steps=steps, dt=dt,
+                       iterations=3, progress=False, starts=3, worlds=worlds, diagnostics=False, seed=1,
+                       sample_range=1e3)
+
+    seq, par = run(False), run(True)
+    assert seq.starts == par.starts == ["iterations", "iterations", "failed"]
+    key = lambda h: (h["start"], h["iteration"])  # noqa: E731
+    a, b = sorted(seq.history, key=key), sorted(par.history, key=key)
+    assert [h["start"] for h in a] == [h["start"] for h in b]
+    for x, y in zip(a, b):
+        assert y["params"] == x["params"]
+        assert y["loss"] == pytest.approx(x["loss"], rel=1e-12, abs=0.0)
+        np.testing.assert_array_equal(y["grad"], x["grad"])
+        assert y.get("note") == x.get("note")
+    failed = [h for h in b if h["start"] == 2]
+    assert len(failed) == 1 and failed[0]["loss"] == np.inf and failed[0]["params"]["mu"][0] > 1e6
+    assert failed[0]["note"].startswith("diverged: ") and "(particle " in failed[0]["note"]
+    assert int(failed[0]["note"].split("(particle ")[1].split(",")[0]) < 27
+    # Round 1 ran the failing values; every later round runs the guess in that world.
+    assert len(ran) == 4 and ran[0][2] == failed[0]["params"]["mu"][0]
+    assert [r[2] for r in ran[1:]] == [pytest.approx(4e3, rel=1e-12)] * 3
