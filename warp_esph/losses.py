@@ -686,7 +686,9 @@ class WorldLoss(Loss):
     parameters (``model.world_materials(w)``) and initial state
     (``model.world_particles(w)``) is that of world ``w``'s loss alone: one backward
     pass gives every world's gradient. ``world_values`` holds each world's term after an
-    evaluation (scaled as it entered the sum).
+    evaluation (scaled as it entered the sum): summed over the world's frames as its loss
+    alone sums them, it is the separate run's value to the bit on the CPU (a loss whose
+    frames are in ascending order).
     """
 
     def __init__(self, model, losses):
@@ -764,14 +766,21 @@ class WorldLoss(Loss):
                 idx = wp.array(np.arange(self.world_start[w], self.world_start[w + 1], dtype=np.int32), device=x.device)
                 n = len(idx)
                 self._world_x[key] = (idx, wp.zeros(n, dtype=x.dtype, device=x.device, requires_grad=True))
-                self._world_acc[key] = wp.zeros(1, dtype=_scalar_of(x), device=x.device, requires_grad=True)
             idx, xw = self._world_x[key]
-            acc = self._world_acc[key]
-            acc.zero_()
+            # One running total per world over its frames (launched in ascending order), added
+            # to ``out`` after its last: the world's value is then summed as the loss alone sums
+            # it, to the bit. Summed frame by frame and the frames added after, it was 1-2 ulp off.
+            acc_key = (w, x.dtype, str(x.device))
+            acc = self._world_acc.get(acc_key)
+            if acc is None:
+                acc = self._world_acc[acc_key] = wp.zeros(1, dtype=_scalar_of(x), device=x.device, requires_grad=True)
+            if frame == min(loss.frames):
+                acc.zero_()
             wp.launch(k.gather, len(idx), [x, idx], [xw], device=x.device)
             loss.launch(frame, xw, acc, scale)
-            wp.launch(k.add_scalar, 1, [acc], [out], device=x.device)
-            self._used[w][key] = acc
+            if frame == max(loss.frames):
+                wp.launch(k.add_scalar, 1, [acc], [out], device=x.device)
+            self._used[w][acc_key] = acc
 
     def value_and_grad(self, positions):
         self._used = [{} for _ in self.losses]
