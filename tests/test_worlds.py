@@ -623,3 +623,79 @@ def test_each_worlds_loss_over_several_frames_is_the_separate_runs_to_the_bit(ki
         for name in ("mu", "yield_stress", "x0"):
             np.testing.assert_array_equal(per_world[w][name], g[name])
     assert value == pytest.approx(sum(v for v, _ in alone), rel=1e-15)
+
+
+def _probe_scene(kind, material):
+    """A small scene of each kind of contact a world may meet: a press, a clamp and a floor
+    tool ("tools"); the ground and a box collider ("colliders"); the ground's floor images
+    ("images"); a ghost particle floor ("ghost")."""
+    from warp_esph import tools
+
+    b = we.SceneBuilder(spacing=0.02)
+    if kind == "tools":
+        b.add_box((0.0, 0.035, 0.0), (0.1, 0.06, 0.06), material, name="bar", velocity=(0.0, -0.3, 0.0))
+        b.pin(region=((-0.06, -1, -1), (-0.03, 1, 1)), name="clamp")
+        b.add_tool("sphere", radius=0.03, friction=0.3, motion=tools.Velocity((0.0, -0.6, 0.0), position=(0.03, 0.09, 0.0)),
+                   name="press")
+        b.add_tool("plane", position=(0.0, 0.012, 0.0), friction=0.5, name="floor")
+    elif kind == "colliders":
+        b.add_box((0.0, 0.05, 0.0), (0.08, 0.06, 0.06), material, name="block", velocity=(0.3, -1.0, 0.0))
+        b.add_ground(friction=0.4)
+        b.add_box_collider((0.07, 0.03, 0.0), (0.02, 0.03, 0.05), friction=0.3)
+    elif kind == "images":
+        b.add_box((0.0, 0.021, 0.0), (0.12, 0.04, 0.04), material, name="layer", velocity=(0.5, -0.3, 0.0))
+        b.add_ground(friction=0.4, images=True)
+    else:
+        b.add_box((0.0, 0.05, 0.0), (0.08, 0.04, 0.04), material, name="layer", velocity=(0.5, -0.5, 0.0))
+        b.add_particle_floor("layer", ghost=True, margin=0.04)
+    return b
+
+
+@pytest.mark.parametrize("kind", ["tools", "colliders", "images", "ghost"])
+def test_worlds_beside_ones_that_blow_up_are_their_separate_runs_to_the_bit(kind):
+    """Four worlds of one scene (tools and a pinned clamp, static colliders, floor images or
+    a ghost floor), two healthy of different materials and two far past their stable step
+    (one blown up to huge finite values, one to NaN): every world's positions, deformation,
+    hardening, reaction rows, loss and gradients are those of its scene run alone, bit for
+    bit on the CPU. Nothing of a blown-up world (its NaN included) reaches another: the
+    multi-start fit's claim that a failed start disturbs no other rests on it."""
+    def plastic(mu, **changes):
+        return we.Material(**({"mu": mu, "lam": 1.5 * mu, "density": 1000.0, "yield_stress": 30.0, "flow_rate": 40.0}
+                              | changes))
+
+    materials = [plastic(2e3), plastic(4e3, yield_stress=60.0, viscosity=1.0), plastic(1e12), plastic(1e200)]
+    steps, dt, frames = 30, 2e-4, [15, 30]
+
+    def run(model, loss):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # the stiff worlds' dt past their stable step
+            r = Rollout(model, steps, dt, frames=frames)
+            r.forward(check=False)
+        value, grads = r.backward(loss)
+        final = r.final_state()
+        rows = {}
+        for names, forces in ((r.tool_names, r.forces), (r.collider_names, r.collider_forces)):
+            if forces is not None:
+                f = forces.numpy().reshape(steps, len(names), 3)
+                rows.update({name: f[:, j] for j, name in enumerate(names)})
+        return r, value, grads, {f: getattr(final, f).numpy() for f in ("x", "v", "F", "alpha")}, rows
+
+    model = _probe_scene(kind, materials[0]).finalize(dtype=wp.float64, requires_grad=True, worlds=len(materials))
+    for w, mat in enumerate(materials):
+        model.set_material(0, mat, world=w)
+    n = model.world_particles(0).stop
+    target = model.particle_x0[:n] + np.array([0.003, -0.01, 0.002])
+    r, _, grads, state, rows = run(model, losses.WorldLoss(model, losses.PositionLoss(target, frames=frames)))
+    per_world = r.per_world(grads)
+    for w, mat in enumerate(materials):
+        alone = _probe_scene(kind, mat).finalize(dtype=wp.float64, requires_grad=True)
+        _, value1, grads1, state1, rows1 = run(alone, losses.PositionLoss(target, frames=frames))
+        if w >= 2:  # it did blow up
+            assert not np.isfinite(state1["x"]).all() or np.abs(state1["x"]).max() > 1.0
+        sl = model.world_particles(w)
+        for f, a in state1.items():
+            np.testing.assert_array_equal(state[f][sl], a, err_msg=f"world {w} {f}")
+        assert rows1 and all(np.array_equal(rows[f"w{w}/{name}"], a, equal_nan=True) for name, a in rows1.items())
+        np.testing.assert_array_equal(r.world_values[w], value1)
+        for name in ("mu", "yield_stress", "viscosity", "x0", "v0"):
+            np.testing.assert_array_equal(per_world[w][name], grads1[name], err_msg=f"world {w} {name}")
