@@ -57,7 +57,11 @@ strain ``alpha`` above ``LARGE_STRAIN_ALPHA`` (of the particles whose material c
 Noise: ``noise`` (m) for geometric losses; a loss with its own ``noise`` attribute (the
 silhouette loss, in occupancy units) uses that. With ``noise=None`` the residual RMS at
 the optimum is used, floored at 1 % of the particle spacing (a synthetic target fits to
-round-off, which would make every parameter look perfectly determined).
+round-off, which would make every parameter look perfectly determined). A force curve
+(``ReactionForceLoss``, newtons) whose noise was not stated gets its own residual RMS,
+floored at its ``noise`` (1 % of its RMS force); its residuals are checked against a stated
+noise term by term (a warning naming the curve), since they cannot join the metres of the
+experiment's RMS.
 """
 
 import dataclasses
@@ -230,16 +234,40 @@ def leaf_noise(leaf: Loss, noise: float, positions=None) -> float:
     return sigma
 
 
-def chi_square_loss(loss: Loss, noise: float, positions=None) -> Loss:
+def chi_square_loss(loss: Loss, noise: float, positions=None, sigmas=None) -> Loss:
     """``sum_leaves residual_scale / sigma^2 * leaf``: the chi-square of ``loss``'s residuals
-    (``sigma``: ``leaf_noise``; ``positions``, numpy ``{step: (n, 3)}``, size the groups of
-    correlated residuals). The leaves must have been evaluated once (their residual counts
-    are known then)."""
+    (``sigma``: ``sigmas[id(leaf)]`` where given, else ``leaf_noise``; ``positions``, numpy
+    ``{step: (n, 3)}``, size the groups of correlated residuals). The leaves must have been
+    evaluated once (their residual counts are known then)."""
     terms = []
     for leaf in leaf_terms(loss):
-        sigma = leaf_noise(leaf, noise, positions)
+        sigma = (sigmas or {}).get(id(leaf)) or leaf_noise(leaf, noise, positions)
         terms.append((leaf.residual_scale() / sigma**2, leaf))
     return SumLoss(terms)
+
+
+def _term_name(leaf: Loss) -> str:
+    return getattr(leaf, "term_name", None) or type(leaf).__name__
+
+
+def _own_noise_terms(loss: Loss, positions) -> list[tuple]:
+    """``(leaf, residual RMS, sigma, stated)`` of each term whose residuals are in units of
+    their own, with their own noise (a force curve, a slump's stated lengths), at the last
+    forward (``positions``: numpy observations). Silhouettes (pixels grouped by splat) are
+    left to their own noise. ``sigma`` is the stated noise, or, where the term's noise was not
+    stated (``noise_stated`` False), its residual RMS floored at its ``noise``: as positions'
+    noise is estimated, so that the errors follow the data's scatter."""
+    out = []
+    for leaf in leaf_terms(loss):
+        if getattr(leaf, "noise", None) is None or hasattr(leaf, "correlated_pixels") or not hasattr(leaf, "residuals"):
+            continue
+        res = np.asarray(leaf.residuals(positions), dtype=np.float64).ravel()
+        if hasattr(leaf, "reset_residuals"):
+            leaf.reset_residuals()  # nearest points chosen here are not the diagnostics' own
+        t_rms = float(np.sqrt(np.mean(res * res))) if res.size else 0.0
+        stated = getattr(leaf, "noise_stated", True)
+        out.append((leaf, t_rms, leaf.noise if stated else max(t_rms, leaf.noise), stated))
+    return out
 
 
 def _residuals(run) -> tuple[float, int, float]:
@@ -304,6 +332,7 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
         raise ValueError("method = 'gauss-newton' is not allowed: a loss of the fit has no residual vector; use 'hessian'")
     prob.apply(z)
     sigmas, rms, chi2s, observations, leaf_sigmas, grouped = [], [], [], 0, {}, 0
+    misfits, geometric = [], []
     bias = []
     for k_run, run in enumerate(prob.runs):
         run.value_forward()
@@ -317,20 +346,36 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
             leaf.value(positions)  # records the residual counts
         s, n, spacing = _residuals(run)
         r = math.sqrt(s / n) if n else 0.0
-        rms.append(r)
         sigma = run.noise or noise or max(r, 0.01 * spacing)
-        own = [leaf.noise for leaf in leaf_terms(run.loss) if getattr(leaf, "noise", None) is not None]
-        # A run observed only through losses with their own noise (silhouettes) reports that.
+        own_terms = _own_noise_terms(run.loss, arrays)
+        for leaf, t_rms, t_sigma, stated in own_terms:
+            if stated and t_rms > 3.0 * t_sigma:
+                # These residuals are in units of their own (a force curve's newtons) and
+                # never entered the experiment's RMS: a curve the model cannot follow was
+                # reported determined, without a word.
+                which = f"experiment {k_run}'s " if len(prob.runs) > 1 else "the "
+                unit = getattr(leaf, "noise_unit", "")
+                misfits.append(f"the residuals of {which}{_term_name(leaf)} (RMS {t_rms:.3g} {unit}) are "
+                               f"{t_rms / t_sigma:.3g} times its stated noise {t_sigma:.3g} {unit}: the model does not "
+                               "fit the data to the noise level (not at a minimum, a model that cannot match, or the "
+                               "noise is larger than stated)")
+        own = [t_sigma for _, _, t_sigma, _ in own_terms] or [
+            leaf.noise for leaf in leaf_terms(run.loss) if getattr(leaf, "noise", None) is not None]
+        # A run observed only through losses with their own noise (silhouettes, force curves)
+        # reports that noise and those residuals.
         sigmas.append(sigma if n or not own else own[0])
+        rms.append(r if n or not own_terms else own_terms[0][1])
+        geometric.append(bool(n))
         sigma_geometric = sigma
+        estimated = {id(leaf): t_sigma for leaf, _, t_sigma, _ in own_terms}
         for leaf in leaf_terms(run.loss):
-            leaf_sigmas[id(leaf)] = leaf_noise(leaf, sigma_geometric, arrays)
+            leaf_sigmas[id(leaf)] = estimated.get(id(leaf)) or leaf_noise(leaf, sigma_geometric, arrays)
             count = leaf.observation_count()
             if hasattr(leaf, "correlated_pixels"):
                 count = count / leaf.correlated_pixels(arrays)
                 grouped += 1
             observations += count
-        chi2s.append(chi_square_loss(run.loss, sigma_geometric, arrays))
+        chi2s.append(chi_square_loss(run.loss, sigma_geometric, arrays, estimated))
     P = len(z)
     lo, hi = prob.z_bounds()
     # Central where the bounds allow, one-sided at a bound.
@@ -381,7 +426,8 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
                 evaluations += 1
     prob.apply(z)
     d = _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations, step,
-                   max_relative_error, min_sensitivity, max_correlation, rises, (lo, hi))
+                   max_relative_error, min_sensitivity, max_correlation, rises, (lo, hi), misfits=misfits,
+                   geometric=geometric)
     d.method = method
     d.bias = bias
     if grouped:
@@ -390,7 +436,8 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
 
 
 def _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations, step,
-               max_relative_error, min_sensitivity, max_correlation, rises=None, z_bounds=None) -> Diagnostics:
+               max_relative_error, min_sensitivity, max_correlation, rises=None, z_bounds=None, misfits=(),
+               geometric=None) -> Diagnostics:
     P = len(z)
     labels = list(prob.labels)
     spaces = [prob.spaces[name] for name in prob.params for _ in range(prob.k)]
@@ -432,11 +479,14 @@ def _summarise(prob, z, fisher, gradient, sigmas, rms, observations, evaluations
         warnings.append(f"the curvature is negative along some direction (eigenvalue {lam.min():.3g}, largest {top:.3g}): "
                         f"this is not a minimum, or the loss is rough at the difference step; the errors are unreliable")
     for k, (r, sigma) in enumerate(zip(rms, sigmas)):
+        if geometric is not None and not geometric[k]:
+            continue  # its terms of their own units are judged term by term (misfits)
         if r > 3.0 * sigma:
             which = f"experiment {k}" if len(rms) > 1 else "the experiment"
             warnings.append(f"the residuals of {which} (RMS {r:.3g} per coordinate) are {r / sigma:.3g} times the stated noise "
                             f"{sigma:.3g}: the model does not fit the data to the noise level (not at a minimum, a model "
                             f"that cannot match, or the noise is larger than stated)")
+    warnings.extend(misfits)
     smax = float(sens.max()) if P else 0.0
     for k, label in enumerate(labels):
         reasons = []
