@@ -639,3 +639,50 @@ def test_a_force_curve_the_model_cannot_follow_is_not_reported_determined():
             said = [w for w in d.warnings if w.startswith("the residuals of the force curve of 'plate' (RMS ")]
             assert len(said) == 1 and f"times its stated noise {noise:.3g} N" in said[0], d.warnings
             assert d.residual_rms[0] > 3.0 * noise
+
+
+def test_a_force_logs_noise_is_given_as_force_noise_and_noise_in_metres_is_refused_where_nothing_reads_it(
+        tmp_path, capsys, dough_scene):
+    """``--noise`` is metres, read by position, cloud and mesh targets: a force-only fit had
+    dropped ``--noise 0.05`` (meant as newtons) and an experiment's ``noise`` on a force log,
+    exit 0, the diagnostics at another noise. Both are refused by name; ``--force-noise`` (an
+    experiment's ``force_noise``) states the force log's noise, which the diagnostics use."""
+    from warp_esph.cli import main  # noqa: PLC0415
+
+    scene = tmp_path / "guess.toml"
+    scene.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    log = _tools_csv(tmp_path / "log.csv", [f"{k},{k / 30.0!r},plane0,0,{3.0 * k},0" for k in range(3)])
+    positions = tmp_path / "x.npy"
+    from warp_esph.fit import load_target  # noqa: PLC0415
+
+    common = ["--iterations", "0", "--no-usd", "--no-progress", "--params", "yield_stress"]
+
+    def refused(*argv):
+        capsys.readouterr()
+        out = tmp_path / "refused"
+        assert main(["fit", str(scene), *argv, *common, "--output-dir", str(out)]) == 2
+        assert not out.exists()
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1, err
+        return err
+
+    err = refused("--target", str(log), "--noise", "0.05")
+    assert ("--noise = 0.05 is not allowed: it is the noise of position, point-cloud and mesh targets (m), and the "
+            "targets are forces; give a force log's noise in newtons as --force-noise") in err, err
+    experiments = tmp_path / "exp.json"
+    experiments.write_text(json.dumps([{"scene": "guess.toml", "target": "log.csv", "noise": 0.05}]))
+    err = refused("--target", str(log), "--experiments", str(experiments))
+    assert "experiment #1: noise = 0.05 is not allowed: it is the noise of position, point-cloud and mesh" in err, err
+    # A position target beside the log reads --noise; --force-noise without a log is refused.
+    capsys.readouterr()
+    assert main(["run", str(scene), "-o", str(tmp_path / "run.usdc"), "--dtype", "float64", "--no-progress"]) == 0
+    np.save(positions, load_target(tmp_path / "run.usdc").data)
+    err = refused("--target", str(positions), "--target-frames", "1:2", "--force-noise", "0.1")
+    assert "--force-noise = 0.1 is not allowed: it is the noise of force-log targets (N), and the targets are positions" \
+        in err, err
+    capsys.readouterr()
+    out = tmp_path / "fit"
+    assert main(["fit", str(scene), "--target", str(log), "--force-noise", "0.25", *common, "--output-dir", str(out)]) == 0, \
+        capsys.readouterr().err
+    doc = json.loads((out / "fit.json").read_text())
+    assert doc["diagnostics"]["noise"] == [0.25] and doc["experiments"][0]["force_noise"] == 0.25

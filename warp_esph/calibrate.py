@@ -80,6 +80,9 @@ def add_calibration_arguments(parser):
                    help="stop as stalled after N evaluations without a lower loss (default 20)")
     g.add_argument("--noise", type=float, metavar="SIGMA",
                    help="observation noise in m for the diagnostics (default: the residual RMS, at least 1%% of the spacing)")
+    g.add_argument("--force-noise", type=float, metavar="N",
+                   help="a force log's measurement noise in N for the diagnostics (default: the curve's residual RMS, "
+                        "at least 1%% of its RMS force)")
     g.add_argument("--no-diagnostics", action="store_true", help="skip the diagnostics (4 P + 1 extra runs for P values, the range check included)")
     g.add_argument("--experiments", metavar="EXPERIMENTS.json",
                    help="a joint fit: more experiments (each its own scene and target) sharing the fitted material "
@@ -176,6 +179,11 @@ def run_fit(args, out=None, err=None) -> int:
     if _arg(args, "noise") is not None and _arg(args, "no_diagnostics", False):
         raise ValueError(f"--noise = {args.noise!r} is not allowed with --no-diagnostics: it is the observation noise "
                          "the diagnostics assume, and they are skipped")
+    if _arg(args, "force_noise") is not None:
+        if _arg(args, "no_diagnostics", False):
+            raise ValueError(f"--force-noise = {args.force_noise!r} is not allowed with --no-diagnostics: it is the force "
+                             "noise the diagnostics assume, and they are skipped")
+        checks.noise("--force-noise", args.force_noise)
     if _arg(args, "worlds", False) and opts["starts"] < 2:
         raise ValueError(f"--worlds is not allowed with --starts = {opts['starts']}: it runs several starts at once "
                          "as worlds of one model; give --starts K > 1")
@@ -206,7 +214,7 @@ def run_fit(args, out=None, err=None) -> int:
     main_spec = {"scene": args.scene, "target": args.target, "target_frames": _arg(args, "target_frames"),
                  "target_body": _arg(args, "target_body"), "target_tool": _arg(args, "target_tool"), "cameras": _arg(args, "cameras"), "scale": args.scale,
                  "frames": args.frames, "fps": args.fps, "dt": args.dt, "material": args.material, "weight": 1.0,
-                 "noise": _arg(args, "noise")}
+                 "noise": _arg(args, "noise"), "force_noise": _arg(args, "force_noise")}
     specs = [("", main_spec)]
     if _arg(args, "experiments"):
         specs += _read_experiments(args.experiments)
@@ -233,6 +241,17 @@ def run_fit(args, out=None, err=None) -> int:
             raise
 
     exps = [load(where, spec) for where, spec in specs]
+    # A noise nothing reads: refused, not ignored. --noise is metres, read by position, cloud
+    # and mesh targets; a force log (newtons) and silhouettes (occupancy) have noises of
+    # their own, and a force-only fit had dropped '--noise 0.05' (meant as newtons) without a word.
+    if _arg(args, "noise") is not None and not any(e.geometric for e in exps):
+        raise ValueError(f"--noise = {args.noise!r} is not allowed: it is the noise of position, point-cloud and mesh "
+                         f"targets (m), and the targets are {', '.join(dict.fromkeys(e.kinds for e in exps))}"
+                         + ("; give a force log's noise in newtons as --force-noise" if any(e.forces for e in exps)
+                            else ""))
+    if _arg(args, "force_noise") is not None and not any(e.forces for e in exps):
+        raise ValueError(f"--force-noise = {args.force_noise!r} is not allowed: it is the noise of force-log targets "
+                         f"(N), and the targets are {', '.join(dict.fromkeys(e.kinds for e in exps))}")
     if opts["samples"] or opts["starts"] > 1:
         # The steps per frame chosen from the guess's stable step were too long for every
         # stiffer start (a start at 4 x mu ran at 2 x its step, warned and could blow up): the
@@ -325,7 +344,8 @@ def run_fit(args, out=None, err=None) -> int:
             "solver_initial": solvers_record([e.model for e in exps]),
             "experiments": [{"scene": e.scene.name, "scale": e.scale, "targets": [os.path.abspath(str(p)) for p in e.targets],
                              "target_frames": e.target_frames,
-                             "fps": e.fps, "dt": e.dt, "frames": e.frames, "weight": e.weight, "noise": e.noise}
+                             "fps": e.fps, "dt": e.dt, "frames": e.frames, "weight": e.weight, "noise": e.noise,
+                             "force_noise": e.force_noise}
                             for e in exps]}
     try:
         result = fit(experiments, None, params, iterations=args.iterations,
@@ -442,7 +462,7 @@ def _remove_earlier_run(folder, json_path=None) -> None:
 
 #: Keys of an entry of the ``--experiments`` file.
 EXPERIMENT_KEYS = ("scene", "target", "target_frames", "target_body", "target_tool", "cameras", "scale", "frames", "fps", "dt", "material",
-                   "weight", "noise")
+                   "weight", "noise", "force_noise")
 
 
 def _read_experiments(path) -> list[tuple[str, dict]]:
@@ -728,6 +748,10 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                          f"take {frames * substeps} steps, more than {checks.MAX_INT}")
     _check_fit_start(spec, scene, model, frames, fps, dt, where)
 
+    # The experiment's own force noise, else the command's (as --noise reaches every experiment).
+    force_noise = spec.get("force_noise")
+    force_noise = checks.noise(f"{where}{key('force_noise')}", force_noise) if force_noise is not None else (
+        _arg(args, "force_noise") if where else None)
     loss = None
     for kind, path, t in loaded:
         if kind == "silhouette":
@@ -742,7 +766,8 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
             if max(t.frames) > frames:
                 raise ValueError(f"{where}the target {path} has frame {max(t.frames)}, beyond {key('frames')} = {frames}")
             frame_steps = {f: f * substeps for f in t.frames if f > 0 or t.kind not in ("positions", "forces")}
-            term = t.loss(model, frame_steps, radius=args.radius, mode=_arg(args, "mesh_mode") or "surface")
+            term = t.loss(model, frame_steps, radius=args.radius, mode=_arg(args, "mesh_mode") or "surface",
+                          force_noise=force_noise)
         loss = term if loss is None else loss + term
     readings = [_frame_reading(path, t, id(t) in numbered, model)
                 for kind, path, t in loaded if kind == "file" and t.kind == "positions" and not t.frames_stored
@@ -772,7 +797,15 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     if spec.get("target_tool") is not None and "forces" not in file_kinds:
         raise ValueError(f"{where}{key('target_tool')} = {spec['target_tool']!r} is not allowed: it picks the tool of a "
                          f"force-curve target (<output>_tools.csv), and the targets are {kinds}")
+    if where and spec.get("force_noise") is not None and "forces" not in file_kinds:
+        raise ValueError(f"{where}force_noise = {spec['force_noise']!r} is not allowed: it is the noise of force-log "
+                         f"targets (N), and the targets are {kinds}")
+    geometric = bool(file_kinds & {"positions", "points", "mesh"})
     noise = spec.get("noise")
+    if where and noise is not None and not geometric:
+        raise ValueError(f"{where}noise = {noise!r} is not allowed: it is the noise of position, point-cloud and mesh "
+                         f"targets (m), and the targets are {kinds}"
+                         + ("; give a force log's noise in newtons as force_noise" if "forces" in file_kinds else ""))
     return types.SimpleNamespace(scene=scene, model=model, loss=loss, frames=frames, fps=fps, dt=dt, substeps=substeps,
                                  auto_step=spec.get("dt") is None and scene.dt is None,
                                  frames_source=source[len(where):],
@@ -780,6 +813,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                                  readings=readings, target_frames=[None if kind == "silhouette" else list(t.frames)
                                                                    for kind, _, t in loaded],
                                  weight=checks.positive(f"{where}weight", spec.get("weight", 1.0)),
+                                 geometric=geometric, forces="forces" in file_kinds, force_noise=force_noise,
                                  noise=None if noise is None else checks.noise(f"{where}noise", noise))
 
 

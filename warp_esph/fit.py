@@ -2321,8 +2321,10 @@ class Target:
             raise ValueError(f"target {self.path} has {pos.shape[1]} particles per frame, the scene {model.particle_count}: "
                              f"use the scene and --scale the target was made with")
 
-    def loss(self, model: Model, frame_steps: Mapping[int, int], radius: float | None = None, mode: str = "surface") -> Loss:
-        """The loss for ``model``: ``frame_steps`` maps each rendered frame to its step."""
+    def loss(self, model: Model, frame_steps: Mapping[int, int], radius: float | None = None, mode: str = "surface",
+             force_noise: float | None = None) -> Loss:
+        """The loss for ``model``: ``frame_steps`` maps each rendered frame to its step;
+        ``force_noise``: a force curve's noise (N; None: estimated, ``ReactionForceLoss``)."""
         steps = [frame_steps[f] for f in sorted(frame_steps)]
         if self.kind == "forces":
             from .losses import ReactionForceLoss  # noqa: PLC0415
@@ -2336,7 +2338,7 @@ class Target:
                                  f"scene's tools are {', '.join(names) or 'none'}, its static colliders "
                                  f"{', '.join(static) or 'none'}")
             chosen = [f for f in sorted(frame_steps) if f > 0]
-            return ReactionForceLoss.from_csv(self.path, self.tool, frame_steps, frames=chosen)
+            return ReactionForceLoss.from_csv(self.path, self.tool, frame_steps, frames=chosen, noise=force_noise)
         self.check_particle_count(model)
         self._check_range(model)
         if self.kind == "positions" and self.body is not None:
