@@ -686,3 +686,56 @@ def test_a_force_logs_noise_is_given_as_force_noise_and_noise_in_metres_is_refus
         capsys.readouterr().err
     doc = json.loads((out / "fit.json").read_text())
     assert doc["diagnostics"]["noise"] == [0.25] and doc["experiments"][0]["force_noise"] == 0.25
+
+
+def test_a_lab_force_log_in_a_spreadsheets_layout_is_read_or_refused_for_what_it_is(tmp_path):
+    """A lab's force log as a spreadsheet writes it: a byte-order mark ('CSV UTF-8'), spaces
+    after the commas, capitals, units in the header. These were refused as lacking columns
+    they have ('it lacks frame'), or read as a point cloud ('could not convert string
+    'Frame''); now they read as the plain log. A unit other than s and N, semicolons between
+    fields (decimal commas), a log by time alone, a lost header row, an empty cell or a decimal
+    comma are refused, each for what it is."""
+    from warp_esph.fit import load_target  # noqa: PLC0415
+
+    rows = [(0, 0.0, 0.0), (1, 0.005, -1.5), (2, 0.01, -2.5)]
+
+    def log(name, header, sep=",", decimal=".", quote=""):
+        text = header + "\n" + "".join(
+            sep.join([str(f), quote + repr(t).replace(".", decimal) + quote, "plate", "0",
+                      quote + repr(fy).replace(".", decimal) + quote, "0"]) + "\n" for f, t, fy in rows)
+        path = tmp_path / name
+        path.write_bytes(text.encode("utf-8-sig" if name.startswith("bom") else "utf-8"))
+        return path
+
+    plain = load_target(log("plain.csv", "frame,time,tool,fx,fy,fz"))
+    for name, header in (("bom.csv", "frame,time,tool,fx,fy,fz"), ("spaces.csv", "frame, time, tool, fx, fy, fz"),
+                         ("capitals.csv", "Frame,Time,Tool,Fx,Fy,Fz"),
+                         ("units.csv", "frame,time (s),tool,fx [N],fy [N],fz [N]")):
+        t = load_target(log(name, header))
+        assert (t.kind, t.tool, t.frames, t.fps) == ("forces", "plate", plain.frames, plain.fps), name
+        assert [r["force"].tolist() for r in t.data] == [r["force"].tolist() for r in plain.data], name
+    spaced = tmp_path / "spaced_cells.csv"
+    spaced.write_text("frame, time, tool, fx, fy, fz\n0, 0, plate, 0, 0, 0\n1, 0.005, plate, 0, -1.5, 0\n")
+    assert load_target(spaced).tool == "plate"
+    cases = [
+        (log("mN.csv", "frame,time,tool,fx [mN],fy [mN],fz [mN]"),
+         r"mN\.csv is not allowed as a force target: its column 'fx \[mN\]' is in mN; give fx in N"),
+        (log("ms.csv", "frame,time [ms],tool,fx,fy,fz"),
+         r"ms\.csv is not allowed as a force target: its column 'time \[ms\]' is in ms; give time in s"),
+        (log("semicolons.csv", "frame;time;tool;fx;fy;fz", sep=";", decimal=","),
+         r"semicolons\.csv is not allowed: its fields are separated by semicolons \(a spreadsheet's export with decimal "
+         r"commas\?\); a reaction-force log needs the columns frame, time, tool, fx, fy, fz, comma-separated"),
+        (log("comma.csv", "frame,time,tool,fx,fy,fz", decimal=",", quote='"'),
+         r"comma\.csv, row 2: time = '0,0' is not allowed: a decimal comma\? write numbers with a decimal point \(s\)"),
+        (_write(tmp_path / "by_time.csv", "time,fy\n0.0,0.0\n0.005,-1.5\n"),
+         r"by_time\.csv is not allowed: a reaction-force log needs .*; it lacks frame, tool, fx, fz \(its header: "
+         r"'time,fy'\); a log by time alone is not resampled"),
+        (_write(tmp_path / "headless.csv", "0,0,plate,0,0,0\n1,0.005,plate,0,-1.5,0\n"),
+         r"headless\.csv cannot be read as a point cloud: .*; its first row reads as a force log's .* without the header "
+         r"row"),
+        (_write(tmp_path / "empty.csv", "frame,time,tool,fx,fy,fz\n0,0,plate,0,0,0\n1,0.005,plate,0,,0\n"),
+         r"empty\.csv, row 3: fy = '' is not allowed: it is empty \(N\)"),
+    ]
+    for path, message in cases:
+        with pytest.raises(ValueError, match=message):
+            load_target(path, tool="plate")

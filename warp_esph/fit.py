@@ -2498,14 +2498,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
     if ext == ".csv" and is_tools_csv(p):
         return _forces_target(p, tool)
     if ext == ".csv":
-        with open(p, newline="", errors="replace") as fh:
-            head = [c.strip() for c in fh.readline().split(",")]
-        if "tool" in head:  # a reaction-force log with columns lost: not a point cloud
-            from .losses import TOOLS_CSV_COLUMNS  # noqa: PLC0415
-
-            missing = [c for c in TOOLS_CSV_COLUMNS if c not in head]
-            raise ValueError(f"target {p} is not allowed: a reaction-force log needs the columns "
-                             f"{', '.join(TOOLS_CSV_COLUMNS)}; it lacks {', '.join(missing)}")
+        _refuse_other_force_logs(p)
     if ext in _CLOUD_TEXT:
         import warnings  # noqa: PLC0415
 
@@ -2514,7 +2507,15 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
                 warnings.simplefilter("ignore")  # 'input contained no data': refused below, by name
                 pts = np.loadtxt(p, delimiter="," if ext == ".csv" else None, ndmin=2)
         except Exception as e:  # noqa: BLE001
-            raise ValueError(f"target {p} cannot be read as a point cloud: {e}") from None
+            hint = ""
+            if ext == ".csv":
+                with open(p, newline="", encoding="utf-8-sig", errors="replace") as fh:
+                    first = fh.readline().split(",")
+                if len(first) >= 6 and not _is_number(first[2]) and all(_is_number(c) for c in first[:2] + first[3:6]):
+                    # frame, time, tool, fx, fy, fz: a force log whose header row was lost.
+                    hint = ("; its first row reads as a force log's (frame, time, tool, fx, fy, fz) without the header "
+                            "row a force log starts with: add the line 'frame,time,tool,fx,fy,fz'")
+            raise ValueError(f"target {p} cannot be read as a point cloud: {str(e).rstrip('.')}{hint}") from None
         return Target("points", _cloud(p, pts), None, None, p)
     if ext in (".usd", ".usda", ".usdc"):
         # Before the run's reader, whose refusals are taken as a damaged file's.
@@ -2547,6 +2548,49 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
 
         return Target("mesh", load_mesh(p), None, None, p)
     return Target("points", _cloud(p, np.asarray(m.points, dtype=np.float64)), None, None, p)
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+#: Column names of a lab's force or time log that are no point cloud's.
+_FORCE_LOG_NAMES = ("frame", "time", "tool", "fx", "fy", "fz", "force", "load", "t")
+
+
+def _refuse_other_force_logs(p: str) -> None:
+    """Refuse, by what is wrong with it, a CSV that is a force log in another layout than
+    ``<output>_tools.csv``'s: such files had been read as point clouds and refused as
+    'cannot be read as a point cloud: could not convert string ...', which they never were."""
+    import re  # noqa: PLC0415
+
+    from .losses import TOOLS_CSV_COLUMNS, tools_csv_header  # noqa: PLC0415
+
+    with open(p, newline="", encoding="utf-8-sig", errors="replace") as fh:
+        line = fh.readline().rstrip("\r\n")
+    names = [re.sub(r"\s*[\[(].*$", "", c).strip().lower() for c in re.split(r"[,;\t]", line)]
+    if not any(n in _FORCE_LOG_NAMES for n in names):
+        return
+    need = (f"a reaction-force log needs the columns {', '.join(TOOLS_CSV_COLUMNS)}, comma-separated (times in s, "
+            "forces in N, numbers with a decimal point), one row per frame and tool")
+    for sep, what in ((";", "semicolons"), ("\t", "tabs")):
+        if sep in line and "," not in line:
+            # A spreadsheet in a locale of decimal commas writes ';' between fields.
+            raise ValueError(f"target {p} is not allowed: its fields are separated by {what} (a spreadsheet's "
+                             f"export with decimal commas?); {need}")
+    header = tools_csv_header(p) or []
+    missing = [c for c in TOOLS_CSV_COLUMNS if c not in header]
+    extra = ""
+    if "frame" in missing and "time" not in missing:
+        # A lab's log by time alone: the fit compares frame k's window mean at k / fps.
+        extra = ("; a log by time alone is not resampled: average its samples over each frame's interval "
+                 "((k - 1) / fps, k / fps] and number the rows by frame k")
+    raise ValueError(f"target {p} is not allowed: {need}; it lacks {', '.join(missing)} (its header: "
+                     f"{line.strip()[:120]!r}){extra}")
 
 
 def _points_elsewhere(path: str) -> list[str]:

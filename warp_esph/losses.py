@@ -1369,16 +1369,37 @@ class ReactionForceLoss(Loss):
 TOOLS_CSV_COLUMNS = ("frame", "time", "tool", "fx", "fy", "fz")
 
 
-def is_tools_csv(path) -> bool:
-    """Whether ``path`` is a reaction-force log (``<output>_tools.csv``): its header names
-    ``frame``, ``time``, ``tool`` and ``fx, fy, fz``."""
+#: The unit a force log's column may name in its header (``fy [N]``, ``time (s)``).
+TOOLS_CSV_UNITS = {"time": "s", "fx": "N", "fy": "N", "fz": "N"}
+
+
+def _column(name: str) -> tuple[str, str | None]:
+    """A header cell as ``(name, unit)``: ``' Fy [N]'`` is ``('fy', 'N')``."""
+    import re  # noqa: PLC0415
+
+    m = re.fullmatch(r"\s*(.*?)\s*(?:[\[(]\s*([^\])]*?)\s*[\])])?\s*", name or "")
+    return m.group(1).lower(), m.group(2)
+
+
+def tools_csv_header(path) -> list[str] | None:
+    """The column names of a CSV file's first line as a force log reads them (a spreadsheet's
+    byte-order mark, spaces and capitals left out), or None where it cannot be read."""
     try:
-        with open(path, newline="") as fh:
+        # utf-8-sig: a spreadsheet's 'CSV UTF-8' starts with a byte-order mark, which made its
+        # 'frame' column '\ufeffframe' and the log 'lacks frame', as printed beside it.
+        with open(path, newline="", encoding="utf-8-sig", errors="replace") as fh:
             head = fh.readline()
     except OSError:
-        return False
-    cols = [c.strip() for c in head.split(",")]
-    return all(c in cols for c in TOOLS_CSV_COLUMNS)
+        return None
+    return [_column(c)[0] for c in head.rstrip("\r\n").split(",")]
+
+
+def is_tools_csv(path) -> bool:
+    """Whether ``path`` is a reaction-force log (``<output>_tools.csv``): its header names
+    ``frame``, ``time``, ``tool`` and ``fx, fy, fz`` (in any case, with or without spaces
+    after the commas)."""
+    cols = tools_csv_header(path)
+    return cols is not None and all(c in cols for c in TOOLS_CSV_COLUMNS)
 
 
 def read_tools_csv(path) -> list[dict]:
@@ -1396,8 +1417,19 @@ def read_tools_csv(path) -> list[dict]:
     out = []
     seen: dict[tuple[str, int], int] = {}
     try:
-        with open(p, newline="") as fh:
-            reader = csv.DictReader(fh)
+        with open(p, newline="", encoding="utf-8-sig") as fh:
+            # 'frame, time, tool, ...' (spaces after the commas) read as the columns ' time',
+            # ' tool', ... and the log was refused as lacking them, printed beside it.
+            reader = csv.DictReader(fh, skipinitialspace=True)
+            if reader.fieldnames:
+                columns = [_column(c) for c in reader.fieldnames]
+                for (name, unit), cell in zip(columns, reader.fieldnames):
+                    if unit is not None and name in TOOLS_CSV_UNITS and unit != TOOLS_CSV_UNITS[name]:
+                        # A log in mN or ms is 1000 times off: refused, not read as newtons and seconds.
+                        raise ValueError(f"{p} is not allowed as a force target: its column {cell.strip()!r} is in "
+                                         f"{unit}; give {name} in {TOOLS_CSV_UNITS[name]} (header '{name}' or "
+                                         f"'{name} [{TOOLS_CSV_UNITS[name]}]')")
+                reader.fieldnames = [name for name, _ in columns]
             missing = [c for c in TOOLS_CSV_COLUMNS if c not in (reader.fieldnames or [])]
             if missing:
                 raise ValueError(f"{p} is not allowed as a force target: it lacks the columns {', '.join(missing)} "
@@ -1411,11 +1443,20 @@ def read_tools_csv(path) -> list[dict]:
                     # after it unread), and a longer row was read as if it were this table's.
                     raise ValueError(f"{p}, row {line} is not allowed: it has {fields} fields, the header {width} (a file "
                                      "cut short, or a row of another table?)")
-                try:
-                    frame, tool = int(row["frame"]), row["tool"]
-                    values = {c: float(row[c]) for c in ("time", "fx", "fy", "fz")}
-                except (TypeError, ValueError):
-                    raise ValueError(f"{p}, row {line} is not allowed: frame, time, fx, fy, fz must be numbers") from None
+                tool = (row["tool"] or "").strip()
+                values = {}
+                for c in ("frame", "time", "fx", "fy", "fz"):
+                    cell = (row[c] or "").strip()
+                    try:
+                        values[c] = int(cell) if c == "frame" else float(cell)
+                    except ValueError:
+                        # It said 'frame, time, fx, fy, fz must be numbers', not which cell or why.
+                        why = ("it is empty" if not cell else
+                               "a decimal comma? write numbers with a decimal point" if c != "frame" and "," in cell else
+                               "frames are whole rendered frame indices" if c == "frame" else "must be a number")
+                        unit = f" ({TOOLS_CSV_UNITS[c]})" if c in TOOLS_CSV_UNITS else ""
+                        raise ValueError(f"{p}, row {line}: {c} = {cell!r} is not allowed: {why}{unit}") from None
+                frame = values.pop("frame")
                 if frame < 0:
                     raise ValueError(f"{p}, row {line}: frame = {frame} is not allowed: frames are rendered frame "
                                      "indices >= 0")
