@@ -739,3 +739,23 @@ def test_a_lab_force_log_in_a_spreadsheets_layout_is_read_or_refused_for_what_it
     for path, message in cases:
         with pytest.raises(ValueError, match=message):
             load_target(path, tool="plate")
+
+
+def test_a_force_curve_of_the_opposite_sign_convention_is_named_by_the_diagnostics():
+    """A log that counts compression positive (or the force on the tool) is the negative of
+    the force the tool exerts on the material: the fit drove mu from 8000 to 7 Pa, where the
+    soft sample hardly pushes back, and said only that it had not converged and mu was not
+    determined. The diagnostics now say the curve points against the model's; a curve of the
+    right sign with noise does not draw the warning."""
+    from warp_esph.diagnostics import diagnose  # noqa: PLC0415
+    from warp_esph.fit import fit  # noqa: PLC0415
+
+    ends, truth = _press_curve(60, 10)
+    result = fit(_elastic_press(8000.0), ReactionForceLoss(-truth, "plate", ends, window=10, components="y"), ["mu"],
+                 steps=60, dt=2.0e-4, optimizer="gauss-newton", iterations=12, progress=False)
+    said = [w for w in result.diagnostics.warnings if "points against the model's" in w]
+    assert len(said) == 1 and said[0].startswith("the force curve of 'plate' points against") and "negate" in said[0]
+    noisy = truth + 0.05 * np.sqrt(np.mean(truth**2)) * np.random.default_rng(3).standard_normal(truth.shape)
+    d = diagnose(_elastic_press(5000.0), ReactionForceLoss(noisy, "plate", ends, window=10, components="y"), ["mu"],
+                 steps=60, dt=2.0e-4, progress=False)
+    assert not [w for w in d.warnings if "points against" in w], d.warnings

@@ -359,6 +359,10 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
                                f"{t_rms / t_sigma:.3g} times its stated noise {t_sigma:.3g} {unit}: the model does not "
                                "fit the data to the noise level (not at a minimum, a model that cannot match, or the "
                                "noise is larger than stated)")
+        for leaf in leaf_terms(run.loss):
+            said = leaf.opposite_sign(arrays) if hasattr(leaf, "opposite_sign") else None
+            if said is not None:
+                misfits.append(f"experiment {k_run}: {said}" if len(prob.runs) > 1 else said)
         own = [t_sigma for _, _, t_sigma, _ in own_terms] or [
             leaf.noise for leaf in leaf_terms(run.loss) if getattr(leaf, "noise", None) is not None]
         # A run observed only through losses with their own noise (silhouettes, force curves)

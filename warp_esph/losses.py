@@ -1309,6 +1309,24 @@ class ReactionForceLoss(Loss):
     def residuals(self, obs) -> np.ndarray:
         return (self.curve(obs) - self.targets).ravel()
 
+    def opposite_sign(self, obs) -> str | None:
+        """A sentence where the simulated curve points against the target (a negative cosine
+        over the observed windows, the simulated curve's RMS at least a tenth of the target's):
+        it then fits worse than no force at all. A log of the force on the tool, or of
+        compression counted positive, measures the negative of the force the tool exerts on the
+        material, which no material value reaches: a fit drove mu from 8000 to 7 Pa and said
+        only that it had not converged."""
+        sim = self.curve(obs)
+        norm = float(np.linalg.norm(sim) * np.linalg.norm(self.targets))
+        if not norm > 0.0 or np.linalg.norm(sim) < 0.1 * np.linalg.norm(self.targets):
+            return None
+        cosine = float(np.sum(sim * self.targets)) / norm
+        if cosine >= 0.0:
+            return None
+        return (f"the {self.term_name} points against the model's (cosine {cosine:.2f} over the observed windows; no "
+                "force at all would fit it better): the target is the force the tool exerts on the material, and a log "
+                "of the force on the tool, or of compression counted positive, is its negative (negate its columns)")
+
     def value_and_grad(self, obs):
         f, c, key = self._forces(obs)
         r = self.curve(obs) - self.targets
