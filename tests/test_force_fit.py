@@ -759,3 +759,28 @@ def test_a_force_curve_of_the_opposite_sign_convention_is_named_by_the_diagnosti
     d = diagnose(_elastic_press(5000.0), ReactionForceLoss(noisy, "plate", ends, window=10, components="y"), ["mu"],
                  steps=60, dt=2.0e-4, progress=False)
     assert not [w for w in d.warnings if "points against" in w], d.warnings
+
+
+def test_fit_refuses_a_geometric_noise_that_no_term_of_a_force_fit_reads():
+    """``fit(..., noise=0.05)`` (or an ``Experiment``'s ``noise``) for a force curve alone was
+    dropped: the curve's own noise (N) serves its diagnostics, and the metres of ``noise`` no
+    term reads. Refused by name, before any run; the curve's own ``noise`` is read."""
+    from warp_esph.fit import Experiment, fit  # noqa: PLC0415
+
+    ends = [10, 20]
+    curve = ReactionForceLoss(np.array([-0.2, -0.1]), "plate", ends, window=10, components="y")
+    with pytest.raises(ValueError, match=r"^noise = 0\.05 is not allowed: it is the noise \(m\) of position, cloud, mesh "
+                                         r"and slump terms, and every term of the target has a noise of its own "
+                                         r"\(ReactionForceLoss: give it there"):
+        fit(_elastic_press(5000.0), curve, ["mu"], steps=20, dt=2.0e-4, noise=0.05, iterations=0, progress=False)
+    both = [Experiment(_elastic_press(5000.0), curve, steps=20, dt=2.0e-4, name=name) for name in ("a", "b")]
+    with pytest.raises(ValueError, match=r"^noise = 0\.05 is not allowed: .* and in every experiment every term"):
+        fit(both, None, ["mu"], noise=0.05, iterations=0, progress=False)
+    both[1] = Experiment(_elastic_press(5000.0), curve, steps=20, dt=2.0e-4, name="b", noise=0.05)
+    with pytest.raises(ValueError, match=r"^b: noise = 0\.05 is not allowed"):
+        fit(both, None, ["mu"], iterations=0, progress=False)
+    # Beside a position term the noise is read: accepted.
+    positions = PositionLoss({20: _elastic_press(5000.0).particle_x0})
+    result = fit(_elastic_press(5000.0), curve + positions, ["mu"], steps=20, dt=2.0e-4, noise=0.05, iterations=0,
+                 progress=False)
+    assert result.diagnostics.noise == [0.05]

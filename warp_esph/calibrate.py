@@ -330,7 +330,8 @@ def run_fit(args, out=None, err=None) -> int:
                        f"{optimizer} to {e.kinds} from {', '.join(str(p) for p in e.targets)}")
         waiting.extend(e.readings)
     experiments = [Experiment(e.model, e.loss, steps=e.frames * e.substeps, dt=e.dt, materials=e.materials,
-                              checkpoint_every=ck, weight=e.weight, noise=e.noise, name=e.scene.name,
+                              checkpoint_every=ck, weight=e.weight, noise=e.noise if e.geometric else None,
+                              name=e.scene.name,
                               monitor_exempt=tuple(getattr(e.scene, "diverges", ()) or ())) for e in exps]
     scene, model, frames, fps, dt = exps[0].scene, exps[0].model, exps[0].frames, exps[0].fps, exps[0].dt
     scale = exps[0].scale

@@ -442,6 +442,31 @@ class Experiment:
     monitor_exempt: Sequence[str] | None = None
 
 
+def _refuse_unread_noise(runs, noise) -> None:
+    """Refuse a geometric noise (m) no term reads: every term of a force curve or a silhouette
+    has a noise of its own (N, occupancy), and ``noise=0.05`` given for a force-only fit (meant
+    as newtons) was dropped without a word. ``noise``: ``fit``'s, for a joint fit (a single
+    experiment's is its own)."""
+    from .diagnostics import leaf_terms  # noqa: PLC0415
+
+    def reads(run):
+        return any(getattr(leaf, "noise", None) is None for leaf in leaf_terms(run.loss))
+
+    def own(runs_):
+        names = dict.fromkeys(type(leaf).__name__ for r in runs_ for leaf in leaf_terms(r.loss))
+        return (f"every term of the target has a noise of its own ({', '.join(names)}: give it there, e.g. "
+                "ReactionForceLoss(..., noise=) in N)")
+
+    for r in runs:
+        if r.noise is not None and not reads(r):
+            where = "" if r.name == "the experiment" else f"{r.name}: "
+            raise ValueError(f"{where}noise = {r.noise!r} is not allowed: it is the noise (m) of position, cloud, mesh "
+                             f"and slump terms, and {own([r])}")
+    if noise is not None and not any(reads(r) for r in runs):
+        raise ValueError(f"noise = {noise!r} is not allowed: it is the noise (m) of position, cloud, mesh and slump terms, "
+                         f"and in every experiment {own(runs)}")
+
+
 #: Default memory budget (bytes) of ``checkpoint_every="auto"``.
 MEMORY_LIMIT = 1 << 30
 
@@ -1336,6 +1361,7 @@ def fit(
     # (every loss has residuals) too, so none of its runs records a tape.
     runs = [_Run(e, dtype, memory_limit, e.name or (f"experiment {k}" if len(exps) > 1 else "the experiment"),
                  taped=optimizer != "gauss-newton") for k, e in enumerate(exps)]
+    _refuse_unread_noise(runs, noise if len(exps) > 1 else None)
     for r in runs:
         r.setup_tie(params, tie_pressure)
     prob = _Problem(runs, params, bounds)
