@@ -253,6 +253,27 @@ def test_target_positions_in_millimetres_are_warned_of_before_the_fit_runs_on_th
             ["yield_stress"], steps=STEPS, dt=dt, frames=FRAMES, iterations=0, progress=False, diagnostics=False)
 
 
+def test_a_scanned_cloud_or_mesh_in_millimetres_is_warned_of_before_the_fit_runs_on_it(landing):
+    """A point cloud or a mesh in millimetres (a scanner's usual unit) was fitted as metres
+    without a word: every point beyond the truncated Chamfer radius, the loss flat. Its spread,
+    1000 times the scene's, is now said before any run, as positions' is. A cloud in metres,
+    or a scan of a small part of the body, is not (only the larger side is a unit's sign)."""
+    from warp_esph.losses import ChamferLoss, MeshLoss  # noqa: PLC0415
+
+    dt, target = landing
+    last = np.asarray(target[-1])
+    tris = np.array([[0, 1, 2], [0, 2, 3]])
+    for loss in (ChamferLoss(last * 1000.0, radius=0.06, frames=[STEPS]),
+                 MeshLoss((last[:4] * 1000.0, tris), frames=[STEPS])):
+        with pytest.warns(UserWarning, match=r"its (points|vertices) spread \d{3,4} times as far as the scene's particles "
+                                             r".* a scan in other units than metres"):
+            fit(_cube(), loss, ["yield_stress"], steps=STEPS, dt=dt, iterations=0, progress=False, diagnostics=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for loss in (ChamferLoss(last, radius=0.06, frames=[STEPS]), ChamferLoss(last[:3], radius=0.06, frames=[STEPS])):
+            fit(_cube(), loss, ["yield_stress"], steps=STEPS, dt=dt, iterations=0, progress=False, diagnostics=False)
+
+
 def test_the_fitted_values_and_their_errors_are_printed_with_their_units(landing, tmp_path):
     """The diagnostics' table and the command line's fitted values gave numbers alone
     ("yield_stress = 102.421"), a pascal, a rate per second and a stiffness in m^2/s^2 looking

@@ -395,8 +395,11 @@ def _warn_target_scale(loss: Loss, model: Model, what: str) -> None:
     as one."""
     x0 = np.asarray(model.particle_x0, dtype=np.float64)
     for leaf in _leaves(loss):
+        if isinstance(leaf, (ChamferLoss, MeshLoss)):
+            _warn_surface_scale(leaf, x0, what)
+            continue
         if not isinstance(leaf, PositionLoss):
-            continue  # a WorldLoss numbers its particles within a world; clouds have no correspondence
+            continue  # a WorldLoss numbers its particles within a world
         start = x0 if leaf.particles is None else x0[np.asarray(leaf.particles)]
         reference = _spread(start) if len(start) > 1 else 0.0
         if not reference > 0.0:
@@ -410,6 +413,27 @@ def _warn_target_scale(loss: Loss, model: Model, what: str) -> None:
                           f"(RMS distance from their centroid, the median over its {len(ratios)} frames): targets in "
                           "other units than metres? (millimetres are 1000 times, centimetres 100 times the metres' "
                           "numbers); positions are fitted as metres", UserWarning, stacklevel=2)
+
+
+def _warn_surface_scale(leaf, x0: np.ndarray, what: str) -> None:
+    """A point cloud's or a mesh's side of ``_warn_target_scale``: a scan in millimetres was
+    fitted as metres without a word (its points all beyond the truncated loss's radius, the
+    loss flat). Only the larger side: a scan of part of the body spreads less than the body."""
+    reference = _spread(x0) if len(x0) > 1 else 0.0
+    if not reference > 0.0:
+        return
+    if isinstance(leaf, ChamferLoss):
+        clouds, kind = list(leaf.targets.values()), "points"
+    else:
+        clouds, kind = [m[0] for m in leaf.meshes.values()], "vertices"
+    ratios = [_spread(np.asarray(c, dtype=np.float64)) / reference for c in clouds if len(c) > 1]
+    if ratios and all(r > TARGET_SCALE_FACTOR for r in ratios):
+        import warnings  # noqa: PLC0415
+
+        r = float(np.median(ratios))
+        warnings.warn(f"{what}: its {kind} spread {r:.0f} times as far as the scene's particles at "
+                      "the start (RMS distance from their centroid): a scan in other units than metres? (millimetres "
+                      "are 1000 times the metres' numbers); points are fitted as metres", UserWarning, stacklevel=3)
 
 
 @dataclasses.dataclass
