@@ -751,10 +751,15 @@ def test_a_force_curve_of_the_opposite_sign_convention_is_named_by_the_diagnosti
     from warp_esph.fit import fit  # noqa: PLC0415
 
     ends, truth = _press_curve(60, 10)
+    logged = []
     result = fit(_elastic_press(8000.0), ReactionForceLoss(-truth, "plate", ends, window=10, components="y"), ["mu"],
-                 steps=60, dt=2.0e-4, optimizer="gauss-newton", iterations=12, progress=False)
+                 steps=60, dt=2.0e-4, optimizer="gauss-newton", iterations=12, progress=False, log=logged.append)
     said = [w for w in result.diagnostics.warnings if "points against the model's" in w]
     assert len(said) == 1 and said[0].startswith("the force curve of 'plate' points against") and "negate" in said[0]
+    # Said at the start too, where the guess's curve is the whole curve (cosine -1): a fit
+    # driven soft enough ends where the curve has faded and points nowhere.
+    start = [m for m in logged if m.startswith("warning: the force curve of 'plate' points against")]
+    assert len(start) == 1 and "(cosine -1.00" in start[0] and start[0].endswith("(at the start)"), logged
     noisy = truth + 0.05 * np.sqrt(np.mean(truth**2)) * np.random.default_rng(3).standard_normal(truth.shape)
     d = diagnose(_elastic_press(5000.0), ReactionForceLoss(noisy, "plate", ends, window=10, components="y"), ["mu"],
                  steps=60, dt=2.0e-4, progress=False)

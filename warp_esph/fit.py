@@ -466,6 +466,24 @@ class Experiment:
     monitor_exempt: Sequence[str] | None = None
 
 
+def _opposite_signs(runs) -> list[str]:
+    """``ReactionForceLoss.opposite_sign`` of every term of ``runs`` at their last forward, said
+    as at the fit's start."""
+    out = []
+    for r in runs:
+        for leaf in _leaves(r.loss):
+            if not hasattr(leaf, "opposite_sign"):
+                continue
+            try:
+                said = leaf.opposite_sign(r.rollout.observations(numpy=True))
+            except (KeyError, ValueError):  # no forces recorded at this evaluation
+                continue
+            if said is not None:
+                where = "" if r.name == "the experiment" else f"{r.name}: "
+                out.append(f"{where}{said} (at the start)")
+    return out
+
+
 def _refuse_unread_noise(runs, noise) -> None:
     """Refuse a geometric noise (m) no term reads: every term of a force curve or a silhouette
     has a noise of its own (N, occupancy), and ``noise=0.05`` given for a force-only fit (meant
@@ -1462,6 +1480,13 @@ def fit(
             entry["note"] = note
         history.append(entry)
         track.entry = entry
+        if len(history) == 1 and not use_worlds:
+            # At the start, where the guess's curve has the sign a pressing tool gives: a fit
+            # to a curve of the opposite sign drives the material soft, where the curve fades
+            # and no longer points anywhere (mu 8000 -> 54 Pa, nothing said of the sign).
+            state["signs"] = _opposite_signs(runs)
+            for said in state["signs"]:
+                say(f"warning: {said}")
         if not state.get("timed"):
             state["timed"] = True
             per = "" if not use_worlds else f" for {track_count} worlds at once"
@@ -1674,6 +1699,8 @@ def fit(
             raise _fit_interrupted(result) from None
         d = result.diagnostics
         say(f"diagnostics ({d.method}): {d.evaluations} evaluations in {time.perf_counter() - t0:.3g} s")
+        if not any("points against the model's" in w for w in d.warnings):
+            d.warnings.extend(state.get("signs", []))
         if iterations > 0 and not result.converged:
             d.warnings.insert(0, f"the fit did not converge ({stopped}): these errors describe the curvature at its last "
                                  f"point, not the uncertainty of a minimum")
