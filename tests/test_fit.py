@@ -1540,8 +1540,14 @@ def test_a_fit_to_targets_out_of_every_particles_reach_says_so():
              "no target point of the point clouds lies within radius = 0.03 m of a particle in any frame"),
             (MeshLoss((pts, tris), frames=FRAMES, max_dist=0.5),
              "no particle lies within max_dist = 0.5 m of the target mesh in any frame")):
-        result = fit(model, loss, ["mu"], steps=STEPS, dt=DT, frames=FRAMES, iterations=3, progress=False,
-                     diagnostics=False)
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            result = fit(model, loss, ["mu"], steps=STEPS, dt=DT, frames=FRAMES, iterations=3, progress=False,
+                         diagnostics=False)
+        # The cloud in millimetres is also warned of before any run (its spread); the mesh, in
+        # metres but elsewhere, is not a unit's mistake.
+        units = [w for w in said if "a scan in other units than metres" in str(w.message)]
+        assert len(units) == (1 if isinstance(loss, ChamferLoss) else 0), [str(w.message) for w in said]
         assert result.stopped == "flat", result.stopped
         assert result.termination.startswith(f"stopped at once: the gradient is exactly zero: {needle} (")
         assert "yield stress" not in result.termination and needle in result.to_dict()["termination"]
