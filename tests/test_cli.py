@@ -1330,20 +1330,31 @@ def test_a_reader_that_leaves_is_not_bad_input_and_leaves_no_traceback(tmp_path)
     written. Not exit 2 (bad input) with 'Broken pipe', not a traceback from the flush at
     exit: 141, as a shell reports a writer stopped by SIGPIPE, and nothing on stderr."""
     env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    # As context managers: the stderr pipe read here is closed with them (left open, unclosed).
-    with subprocess.Popen([sys.executable, "-m", "warp_esph", "scenes"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
-                          stderr=subprocess.PIPE, text=True) as p:
-        p.stdout.close()  # before the child, still importing, writes its first line
-        err = p.stderr.read()
-        assert p.wait(timeout=120) == 141, err
-    assert err == "", err
+
+    def reader_gone(*args):
+        """Run ``python -m warp_esph ARGS`` with a standard output whose reader is gone before
+        it starts: its exit status and stderr. (Closed after the start, the reader raced the
+        child: one slower to close than the child to write its short listing into the pipe's
+        buffer saw it exit 0.)"""
+        read_end, write_end = os.pipe()
+        os.close(read_end)
+        try:
+            # As a context manager: the stderr pipe read here is closed with it (left open, unclosed).
+            with subprocess.Popen([sys.executable, "-m", "warp_esph", *args], cwd=tmp_path, env=env, stdout=write_end,
+                                  stderr=subprocess.PIPE, text=True) as p:
+                os.close(write_end)
+                write_end = None
+                err = p.stderr.read()
+                return p.wait(timeout=120), err
+        finally:
+            if write_end is not None:
+                os.close(write_end)
+
+    status, err = reader_gone("scenes")
+    assert status == 141 and err == "", (status, err)
     # A run whose reader left: not a write failure of its output file (exit 4).
-    with subprocess.Popen([sys.executable, "-m", "warp_esph", "run", "three_cylinders", "-o", "c.usdc", *TINY],
-                          cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as p:
-        p.stdout.close()
-        err = p.stderr.read()
-        assert p.wait(timeout=120) == 141, err
-    assert "Traceback" not in err and "cannot write" not in err, err
+    status, err = reader_gone("run", "three_cylinders", "-o", "c.usdc", *TINY)
+    assert status == 141 and "Traceback" not in err and "cannot write" not in err, (status, err)
 
 
 _SMALL_RUN = ["run", "three_cylinders", "-o", "c.usdc", "--scale", "0.3", "--frames", "2", "--no-progress"]
