@@ -1298,6 +1298,32 @@ def test_an_item_in_flight_when_another_kills_its_worker_runs_again_alone():
         parallel_map(_dies_first, [(0,), (1,)], workers=2)
 
 
+def _dies_second(i, marker):
+    """A parallel_map item: item 1 kills its worker; item 0 is still running then (it waits
+    for item 1's note, then 1 s more), and returns 0 whenever it runs once item 1 has died."""
+    import time
+
+    if i == 1:
+        open(marker, "w").close()
+        os._exit(7)
+    while not os.path.exists(marker):
+        time.sleep(0.01)
+    time.sleep(1.0)
+    return i
+
+
+def test_without_on_error_the_item_that_kills_its_worker_is_the_one_named(tmp_path):
+    """Without ``on_error`` a dead worker raised at once, naming the lowest item in flight:
+    item 0, still running beside item 1 when item 1 killed its worker, was named, and the
+    message (and which item) depended on what happened to be in flight. The items in flight
+    run again alone first, as with ``on_error``, and the one that dies alone is named."""
+    from warp_esph.sweep import parallel_map
+
+    marker = str(tmp_path / "item 1 ran")
+    with pytest.raises(RuntimeError, match=r"^item 1: a worker process died running this item alone"):
+        parallel_map(_dies_second, [(0, marker), (1, marker)], workers=2)
+
+
 def test_a_sample_whose_value_does_not_hold_in_float32_names_the_command_s_dtype_too():
     """A sample value that float32 does not hold is a failed row whose reason advised
     'use dtype=float64', Python's spelling, in the table warp-esph sweep writes too, where

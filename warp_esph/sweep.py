@@ -742,8 +742,9 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
     worker fails (a Ray task whose worker died is not retried: ``ray_resources`` may set
     ``max_retries``). With ``on_error(index, message)`` its return value is that item's result
     (``message``: ``'TypeError: ...'`` where ``fn`` raised, the same words wherever it ran)
-    and the others go on; without, the first failure raises (``RuntimeError`` for a dead
-    worker). Ctrl-C stops the workers and raises ``KeyboardInterrupt``.
+    and the others go on; without, the first failure raises (``RuntimeError`` naming the item
+    that kills its worker alone: the items beside it run again alone first, as above). Ctrl-C
+    stops the workers and raises ``KeyboardInterrupt``.
     """
     if not callable(fn):
         raise ValueError(f"fn = {checks.shorten(fn)!r} is not allowed: must be callable as fn(*item)")
@@ -848,7 +849,10 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
                     dead.append(i)
             pool.shutdown(wait=True)
             unstartable = _unguarded_main_script() is not None
-            if on_error is None:
+            if on_error is None and (in_flight == 1 or unstartable):
+                # Only now is the item known: raised at the first death, the error named the
+                # lowest item in flight, which was whichever happened to run beside the one
+                # that killed its worker.
                 raise RuntimeError(f"item {min(dead)}: {why_dead(in_flight == 1 and not unstartable)}")
             if in_flight == 1 or unstartable:
                 for i in dead:
