@@ -558,7 +558,8 @@ def test_an_empty_or_nan_positions_file_is_refused_by_its_name(tmp_path):
     np.save(tmp_path / "nan.npy", np.full((5, 3), np.nan))
     with pytest.raises(ValueError, match=r"target .*empty\.npy with shape \(0, 3\) is not allowed: positions must be"):
         load_target(tmp_path / "empty.npy")
-    with pytest.raises(ValueError, match=r"target .*nan\.npy is not allowed: it has non-finite positions"):
+    # NaN marks a missing marker; a file of nothing else observes nothing.
+    with pytest.raises(ValueError, match=r"target .*nan\.npy is not allowed: every position in it is NaN \(missing\)"):
         load_target(tmp_path / "nan.npy")
     # A stored rate of nan was taken ('recorded at nan fps, the other at nan fps'), 0 refused as
     # 'fps = 0.0', naming no file.

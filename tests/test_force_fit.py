@@ -382,6 +382,8 @@ def test_non_finite_position_or_cloud_targets_name_the_step_and_point():
     with pytest.raises(ValueError, match=r"^targets at step 124 is not allowed: it has non-finite values \(first at "
                                          r"point 2: \[nan, nan, nan\]\)"):
         ChamferLoss(cloud, radius=0.1, frames=[124])
+    # A NaN position is a missing marker (tests/test_measured_targets.py); inf is refused.
+    cloud[2] = np.inf
     with pytest.raises(ValueError, match=r"^targets at step 7 is not allowed: it has non-finite values \(first at point 2"):
         PositionLoss({7: cloud})
 

@@ -884,8 +884,10 @@ def _frame_reading(path, t, numbered: bool, model) -> str:
             "entry 0 as frame 0, the initial state, which is not fitted")
     first = np.asarray(t.data)[0]
     x0 = np.asarray(model.particle_x0, dtype=np.float64)
-    if first.shape == x0.shape:
-        rms = float(np.sqrt(np.mean(np.sum((first - x0) ** 2, axis=1))))
+    seen = np.isfinite(first).all(axis=1) if first.ndim == 2 else None
+    if first.shape == x0.shape and seen.any():
+        # Over the markers entry 0 observes (NaN: missing; the mean of all read 'nan spacings').
+        rms = float(np.sqrt(np.mean(np.sum((first[seen] - x0[seen]) ** 2, axis=1))))
         line += f" (it lies {rms / model.spacing:.3g} spacings RMS from the scene's initial positions)"
     return line + f"; if they are other frames, name them with --target-frames (e.g. 1:{entries} for frames 1 to {entries})"
 

@@ -344,7 +344,8 @@ def _check_target_range(loss: Loss, model: Model, what: str) -> None:
     for leaf, world in leaves(loss, None):
         at = f"world {world}, " if world is not None else ""
         if isinstance(leaf, PositionLoss):
-            items = [(step, t, "particle") for step, t in leaf.targets.items()]
+            # A missing marker (NaN) is no coordinate to square: checked as 0.
+            items = [(step, np.where(leaf.observed[step][:, None], t, 0.0), "particle") for step, t in leaf.targets.items()]
         elif isinstance(leaf, ChamferLoss):
             items = [(step, t, "point") for step, t in leaf.targets.items()]
         elif isinstance(leaf, MeshLoss):
@@ -401,10 +402,17 @@ def _warn_target_scale(loss: Loss, model: Model, what: str) -> None:
         if not isinstance(leaf, PositionLoss):
             continue  # a WorldLoss numbers its particles within a world
         start = x0 if leaf.particles is None else x0[np.asarray(leaf.particles)]
-        reference = _spread(start) if len(start) > 1 else 0.0
-        if not reference > 0.0:
+        ratios = []
+        for step, t in leaf.targets.items():
+            # The markers a frame sees against the same particles at the start (a NaN, missing,
+            # made the spread NaN and the check silent).
+            seen = leaf.observed[step]
+            same = start[seen] if len(seen) == len(start) else start  # a wrong count is refused elsewhere
+            reference = _spread(same) if seen.sum() > 1 and len(same) > 1 else 0.0
+            if reference > 0.0:
+                ratios.append(_spread(np.asarray(t[seen], dtype=np.float64)) / reference)
+        if not ratios:
             continue
-        ratios = [_spread(np.asarray(t, dtype=np.float64)) / reference for t in leaf.targets.values()]
         if all(r > TARGET_SCALE_FACTOR for r in ratios) or all(0.0 < r < 1.0 / TARGET_SCALE_FACTOR for r in ratios):
             import warnings  # noqa: PLC0415
 
@@ -2355,6 +2363,8 @@ class Target:
 
         # A cloud or a mesh is searched in float32 whatever the model's precision (as above).
         precision = model.scalar.__name__ if self.kind == "positions" else "float32"
+        if self.kind == "positions":
+            data = np.nan_to_num(np.asarray(data, dtype=np.float64), nan=0.0, posinf=np.inf, neginf=-np.inf)  # NaN: missing
         checks.squarable_coordinates(f"target {self.path}", data, precision, place)
 
     def particles(self, model: Model) -> np.ndarray | None:
@@ -2398,6 +2408,26 @@ class Target:
             raise ValueError(f"target {self.path} has {pos.shape[1]} particles per frame, the scene {model.particle_count}: "
                              f"use the scene and --scale the target was made with")
 
+    def _fitted_frames(self) -> list[int]:
+        """Indices into ``data`` of the position frames fitted: not frame 0 (the initial state),
+        nor a frame whose every marker is missing (NaN: nothing observed), which is left out
+        with a warning naming it."""
+        keep = [k for k, f in enumerate(self.frames) if f != 0]
+        if not keep:
+            raise ValueError(f"target {self.path} holds only frame 0 (the initial state), which says nothing about the material")
+        pos = np.asarray(self.data)
+        blank = [k for k in keep if np.isnan(pos[k]).any(axis=1).all()]
+        if blank:
+            if len(blank) == len(keep):
+                raise ValueError(f"target {self.path} is not allowed: every position of its frames after frame 0 is NaN "
+                                 "(missing); it observes nothing to fit")
+            import warnings  # noqa: PLC0415
+
+            warnings.warn(f"target {self.path}: frame{'s' if len(blank) > 1 else ''} "
+                          f"{', '.join(str(self.frames[k]) for k in blank)} observe{'' if len(blank) > 1 else 's'} no "
+                          f"particle (every position NaN, missing) and {'are' if len(blank) > 1 else 'is'} left out of the fit", UserWarning, stacklevel=3)
+        return [k for k in keep if k not in blank]
+
     def loss(self, model: Model, frame_steps: Mapping[int, int], radius: float | None = None, mode: str = "surface",
              force_noise: float | None = None) -> Loss:
         """The loss for ``model``: ``frame_steps`` maps each rendered frame to its step;
@@ -2421,9 +2451,7 @@ class Target:
         if self.kind == "positions" and self.body is not None:
             idx = self.particles(model)
             pos = np.asarray(self.data)
-            keep = [k for k, f in enumerate(self.frames) if f != 0]
-            if not keep:
-                raise ValueError(f"target {self.path} holds only frame 0 (the initial state), which says nothing about the material")
+            keep = self._fitted_frames()
             return PositionLoss({frame_steps[self.frames[k]]: pos[k] for k in keep}, particles=idx)
         if self._read_as_cloud(model):
             self.kind, self.data = "points", _cloud(self.path, np.asarray(self.data)[0])
@@ -2455,9 +2483,7 @@ class Target:
                     raise ValueError(f"target {self.path} is not allowed: it holds the bodies {listed(self.bodies)} "
                                      f"in that order, the scene {listed((b.name, b.count) for b in model.bodies)}; particles "
                                      "are compared in order: use the scene the run was made with, or --target-body NAME")
-            keep = [k for k, f in enumerate(self.frames) if f != 0]
-            if not keep:
-                raise ValueError(f"target {self.path} holds only frame 0 (the initial state), which says nothing about the material")
+            keep = self._fitted_frames()
             return PositionLoss({frame_steps[self.frames[k]]: pos[k] for k in keep})
         if self.kind == "points":
             r = radius if radius is not None else 3.0 * model.spacing
@@ -2496,7 +2522,8 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
       CLI's ``--target-frames``). Any other USD file is read as a mesh.
 
     - ``.npz``: ``positions`` ``(K, n, 3)`` (or ``(n, 3)``), optional ``frames`` (rendered
-      frame indices; default 0..K-1) and ``fps``.
+      frame indices; default 0..K-1) and ``fps``. A NaN position (``.npz`` or ``.npy``) is a
+      missing marker, left out of the loss (``PositionLoss``); a file all NaN is refused.
     - ``.npy``: positions ``(K, n, 3)`` of frames ``0..K-1``, or ``(n, 3)``: the last frame.
     - ``<output>_tools.csv`` of ``warp-esph run`` (a CSV whose header names ``frame, time,
       tool, fx, fy, fz``): the reaction-force curve of ``tool`` (a tool's or a static
@@ -2563,8 +2590,13 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         if pos.ndim != 3 or pos.shape[2] != 3 or pos.shape[0] == 0 or pos.shape[1] == 0:
             raise ValueError(f"target {p} with shape {shape} is not allowed: positions must be (K, n, 3) or (n, 3) "
                              f"with K, n >= 1")
-        if not np.isfinite(pos).all():
-            raise ValueError(f"target {p} is not allowed: it has non-finite positions")
+        if np.isinf(pos).any():
+            k, i = (int(v) for v in np.argwhere(np.isinf(pos))[0][:2])
+            raise ValueError(f"target {p} is not allowed: it has an infinite position (frame entry {k}, particle {i}); "
+                             "a missing one (an occluded marker) is NaN")
+        if np.isnan(pos).all():
+            # NaN marks a gap in the data; a file of nothing but gaps observes nothing.
+            raise ValueError(f"target {p} is not allowed: every position in it is NaN (missing); it observes nothing")
         if one_frame and frames is None:
             return Target("positions", pos, None, fps, p)  # (n, 3): the last frame
         if frames is None:

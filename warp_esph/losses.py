@@ -6,7 +6,8 @@ positions at its ``frames`` (step indices of a ``Rollout``); ``value_and_grad(po
 kernels on a tape and returns the value and ``{step: dL/dx}``, which is what
 ``Rollout.backward`` consumes (``rollout.backward(loss)`` calls it for you).
 
-- ``PositionLoss``: mean squared distance to target positions, particle by particle.
+- ``PositionLoss``: mean squared distance to target positions, particle by particle; a NaN
+  target (a missing marker) leaves that particle's term at that frame out.
 - ``ChamferLoss``: truncated Chamfer distance to a target point cloud of any size. One
   ``wp.HashGrid`` on the target finds the nearest target point of each particle, a
   second one on the particles (rebuilt at each evaluation) the nearest particle of each
@@ -27,7 +28,7 @@ boolean mask of one entry per particle) to use a subset (e.g. surface particles)
 ``weight``.
 
 Normalisation: each loss is the mean over its frames of its per-frame value, times
-``weight``.
+``weight`` (a ``PositionLoss`` with missing targets: the mean over its observed pairs).
 """
 
 import contextlib
@@ -77,6 +78,15 @@ def _kernels(scalar):
         i = wp.tid()
         d = x[i] - target[i]
         wp.atomic_add(out, 0, w * wp.dot(d, d))
+
+    @wp.kernel(module="unique")
+    def masked_squared_distance(x: wp.array(dtype=vec3), target: wp.array(dtype=vec3), observed: wp.array(dtype=wp.int32),
+                                w: scalar, out: wp.array(dtype=scalar)):
+        # A missing marker's target is a placeholder: its term (and gradient) is left out, not zeroed by w.
+        i = wp.tid()
+        if observed[i] != 0:
+            d = x[i] - target[i]
+            wp.atomic_add(out, 0, w * wp.dot(d, d))
 
     @wp.kernel(enable_backward=False, module="unique")
     def nearest(
@@ -210,7 +220,8 @@ def _kernels(scalar):
             wp.atomic_add(out, 0, w * d2_max)
 
     return types.SimpleNamespace(
-        gather=gather, add_scalar=add_scalar, to_float32=to_float32, squared_distance=squared_distance, nearest=nearest,
+        gather=gather, add_scalar=add_scalar, to_float32=to_float32, squared_distance=squared_distance,
+        masked_squared_distance=masked_squared_distance, nearest=nearest,
         nearest_term=nearest_term, closest_on_mesh=closest_on_mesh, mesh_term=mesh_term,
     )
 
@@ -270,7 +281,10 @@ def _per_frame(name: str, data, frames, item_ndim: int) -> dict:
     return dict(zip(frames, items))
 
 
-def _points(name: str, p) -> np.ndarray:
+def _points(name: str, p, missing: bool = False) -> np.ndarray:
+    """``p`` as ``(N, 3)`` finite float64 points, else refused naming ``name``. ``missing``: a
+    row holding NaN is a missing observation (an occluded marker) and kept as NaN; inf is
+    still refused (no export writes a gap as inf: it is an overflow)."""
     p = checks.host_values(name, p)
     if np.iscomplexobj(p):  # numpy kept the real part with only a ComplexWarning
         raise ValueError(f"{name} is not allowed: it holds complex numbers; positions are real")
@@ -280,9 +294,11 @@ def _points(name: str, p) -> np.ndarray:
         raise ValueError(f"{name} = {checks.shorten(p)!r} is not allowed: must be (N, 3) numbers") from None
     if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0:
         raise ValueError(f"{name} with shape {a.shape} is not allowed: must be (N, 3) with N >= 1")
-    if not np.isfinite(a).all():
-        i = int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])
-        raise ValueError(f"{name} is not allowed: it has non-finite values (first at point {i}: {a[i].tolist()})")
+    bad = np.isinf(a) if missing else ~np.isfinite(a)
+    if bad.any():
+        i = int(np.flatnonzero(bad.any(axis=1))[0])
+        allowed = " (NaN marks a missing point; inf is no position)" if missing else ""
+        raise ValueError(f"{name} is not allowed: it has non-finite values (first at point {i}: {a[i].tolist()}){allowed}")
     return a
 
 
@@ -791,11 +807,15 @@ class WorldLoss(Loss):
 
 
 class PositionLoss(Loss):
-    """``weight * mean over frames of mean_i |x_i - target_i|^2``.
+    """``weight * mean over the observed (frame, particle) pairs of |x_i - target_i|^2``:
+    with every particle observed, the mean over frames of ``mean_i |x_i - target_i|^2``.
 
     ``targets``: ``(frames, n, 3)``, one ``(n, 3)`` array per frame, ``{step: (n, 3)}``,
     or one ``(n, 3)`` array for every frame. ``particles``: use only these particles
-    (then targets are ``(len(particles), 3)`` per frame).
+    (then targets are ``(len(particles), 3)`` per frame). A target row holding NaN is a
+    missing observation (an occluded marker): that particle's term at that frame is left
+    out of the value, the gradient, ``residuals`` and ``observation_count``. A frame, or a
+    target, with no observed particle is refused (it says nothing; leave the frame out).
     """
     _CACHES = ("_wp_targets",)
 
@@ -803,7 +823,18 @@ class PositionLoss(Loss):
     def __init__(self, targets, frames=None, weight: float = 1.0, particles=None):
         per = _per_frame("targets", targets, frames, 2)
         super().__init__(list(per), weight, particles)
-        self.targets = {f: _points(f"targets at step {f}", t) for f, t in per.items()}
+        self.targets = {f: _points(f"targets at step {f}", t, missing=True) for f, t in per.items()}
+        #: ``{step: bool (n,)}``: which particles each frame observes (every one: all True).
+        self.observed = {f: np.isfinite(t).all(axis=1) for f, t in self.targets.items()}
+        empty = [f for f in self.frames if not self.observed[f].any()]
+        if empty:
+            every = "every step" if len(empty) == len(self.frames) else f"step{'s' if len(empty) > 1 else ''} {', '.join(map(str, empty))}"
+            raise ValueError(f"targets at {every} are not allowed: every point there is NaN (missing), so the frame "
+                             "observes nothing; leave such frames out")
+        # Each observed (frame, particle) pair weighs the same: the per-frame mean over a
+        # frame's own observed count weighed a frame of 2 visible markers as much as one of
+        # 200, and then no c had c * value = the sum of squared residuals (diagnostics).
+        self._observed_count = int(sum(int(m.sum()) for m in self.observed.values()))
         self._wp_targets = {}
 
     def _check_count(self, n):
@@ -813,25 +844,39 @@ class PositionLoss(Loss):
 
     def _launch(self, frame, x, out, scale):
         key = (frame, x.dtype, str(x.device))
-        t = self._wp_targets.get(key)
-        if t is None:
-            t = wp.array(self.targets[frame], dtype=x.dtype, device=x.device)
-            self._wp_targets[key] = t
+        seen = self.observed[frame]
+        cached = self._wp_targets.get(key)
+        if cached is None:
+            # Placeholders of 0 where missing: NaN times a zero weight is NaN in the sum.
+            t = wp.array(np.where(seen[:, None], self.targets[frame], 0.0), dtype=x.dtype, device=x.device)
+            m = None if seen.all() else wp.array(seen.astype(np.int32), dtype=wp.int32, device=x.device)
+            cached = self._wp_targets[key] = (t, m)
+        t, m = cached
         S = _scalar_of(x)
-        wp.launch(_kernels(S).squared_distance, x.shape[0], [x, t, S(scale / x.shape[0])], [out], device=x.device)
+        # ``scale`` divides by the frames; this, by the observed pairs per frame: the mean
+        # over every observed pair (x.shape[0] itself where nothing is missing).
+        per_frame = self._observed_count / len(self.frames)
+        self._counts[frame] = int(seen.sum())
+        k = _kernels(S)
+        if m is None:
+            wp.launch(k.squared_distance, x.shape[0], [x, t, S(scale / per_frame)], [out], device=x.device)
+        else:
+            wp.launch(k.masked_squared_distance, x.shape[0], [x, t, m, S(scale / per_frame)], [out], device=x.device)
 
     def observation_count(self) -> int:
         return 3 * super().observation_count()
 
     def residuals(self, positions: Mapping[int, np.ndarray]) -> np.ndarray:
         """The residual vector ``r`` (``sum r^2 = residual_scale() * value``): every
-        coordinate of ``x_i - target_i`` at every frame, from numpy ``{step: (n, 3)}``."""
+        coordinate of ``x_i - target_i`` of every observed particle at every frame, from
+        numpy ``{step: (n, 3)}`` (a missing target's particle has none)."""
         out = []
         for f in self.frames:
             x = np.asarray(positions[f], dtype=np.float64)
             if self.particles is not None:
                 x = x[self.particles]
-            out.append((x - self.targets[f]).ravel())
+            seen = self.observed[f]
+            out.append((x[seen] - self.targets[f][seen]).ravel())
         return np.concatenate(out)
 
     def __repr__(self):

@@ -1,0 +1,173 @@
+"""Measured position data as fit targets: gaps (NaN, an occluded marker) in position
+targets, point-cloud files as a lab writes them, and what the readers make of lab data.
+
+Gradients are judged in float64 against central finite differences.
+"""
+
+import warnings
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warp_esph as we
+from warp_esph.fit import _warn_target_scale, load_target
+from warp_esph.losses import PositionLoss
+from warp_esph.rollout import Rollout
+
+DT = 1.0e-3
+STEPS = 4
+FRAMES = [2, 4]
+
+
+def _block():
+    """A 3x3x3 block thrown sideways, float64: a loss on its positions reaches mu and v0."""
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -9.81, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06),
+              we.Material(density=1000.0, mu=1.0e3, lam=1.5e3, yield_stress=10.0, flow_rate=50.0))
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    model.particle_x0 += np.random.default_rng(5).normal(scale=2e-5, size=model.particle_x0.shape)
+    model.particle_v0 = 20.0 * model.particle_x0 * np.array([1.0, -0.5, 0.3])
+    return model
+
+
+def _gappy(x, rng):
+    """``x`` (frames, n, 3) moved a little, with a few particles missing (NaN) per frame."""
+    t = x + rng.normal(scale=1e-3, size=x.shape)
+    for k in range(len(t)):
+        t[k, rng.choice(t.shape[1], 3 + k, replace=False)] = np.nan
+    return t
+
+
+def _numpy_loss(x, t):
+    seen = np.isfinite(t).all(axis=2)
+    d = np.where(seen[..., None], x - np.nan_to_num(t), 0.0)
+    return float(np.sum(d * d) / seen.sum()), int(seen.sum())
+
+
+def test_missing_target_points_drop_out_of_value_residuals_and_counts():
+    """A NaN row is a missing observation: the loss is the mean over the observed
+    (frame, particle) pairs, the residual vector holds only theirs, and the count that the
+    diagnostics' degrees of freedom come from is 3 per observed pair. (Such a target was
+    refused whole as 'non-finite values'.)"""
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0.0, 0.1, (2, 10, 3))
+    t = _gappy(x, rng)
+    loss = PositionLoss(t, frames=[3, 7])
+    positions = {3: x[0], 7: x[1]}
+    expect, pairs = _numpy_loss(x, t)
+    assert loss(positions) == pytest.approx(expect, rel=1e-12)
+    r = loss.residuals(positions)
+    assert len(r) == 3 * pairs == loss.observation_count()
+    assert np.isfinite(r).all()
+    assert loss.residual_scale() * loss(positions) == pytest.approx(float(np.sum(r * r)), rel=1e-12)
+    # A particle missing everywhere is the same as leaving it out by ``particles``.
+    t2 = x + 1e-3
+    t2[:, 4] = np.nan
+    keep = [i for i in range(10) if i != 4]
+    gone = PositionLoss(t2, frames=[3, 7])
+    subset = PositionLoss(t2[:, keep], frames=[3, 7], particles=keep)
+    assert gone(positions) == pytest.approx(subset(positions), rel=1e-12)
+    # The position gradient of a missing particle is 0 at that frame only.
+    _, g = loss.value_and_grad({f: wp.array(p, dtype=wp.vec3d) for f, p in positions.items()})
+    for k, f in enumerate([3, 7]):
+        gf = g[f].numpy()
+        missing = ~np.isfinite(t[k]).all(axis=1)
+        assert np.all(gf[missing] == 0.0) and np.all(np.abs(gf[~missing]).sum(axis=1) > 0.0)
+
+
+def test_gradients_with_missing_targets_match_central_differences():
+    """d loss / d mu and d loss / d v0 through a rollout, with markers missing at each
+    frame, vs central differences (float64)."""
+    model = _block()
+    r = Rollout(model, STEPS, DT, frames=FRAMES)
+    x = np.stack(r.forward())
+    loss = PositionLoss(_gappy(x, np.random.default_rng(1)), frames=FRAMES)
+    _, grads = r.value_and_grad(loss)
+    base = r.get_parameters()
+
+    def value(params=None, v0=None):
+        r.set_parameters(params or base)
+        r.forward(v0=v0)
+        return loss.value(dict(zip(r.frames, r.frame_positions)))
+
+    h = 1e-5 * base["mu"][0]
+    plus, minus = ({k: v.copy() for k, v in base.items()} for _ in range(2))
+    plus["mu"] += h
+    minus["mu"] -= h
+    fd = (value(plus) - value(minus)) / (2 * h)
+    assert abs(fd) > 1e-14
+    assert grads["mu"][0] == pytest.approx(fd, rel=1e-4)
+    for i, c in ((0, 0), (5, 1), (13, 2)):
+        vals = []
+        for d in (1e-6, -1e-6):
+            v = model.particle_v0.copy()
+            v[i, c] += d
+            vals.append(value(v0=v))
+        assert grads["v0"][i, c] == pytest.approx((vals[0] - vals[1]) / 2e-6, rel=1e-4, abs=1e-12)
+
+
+def test_positions_missing_everywhere_or_in_a_whole_frame_are_refused_by_name():
+    t = np.zeros((2, 4, 3))
+    t[1] = np.nan
+    with pytest.raises(ValueError, match=r"^targets at step 9 are not allowed: every point there is NaN \(missing\)"):
+        PositionLoss(t, frames=[5, 9])
+    t[:] = np.nan
+    with pytest.raises(ValueError, match=r"^targets at every step are not allowed: every point there is NaN"):
+        PositionLoss(t, frames=[5, 9])
+    t = np.zeros((4, 3))
+    t[2, 1] = np.inf  # an overflow is no gap
+    with pytest.raises(ValueError, match=r"^targets at step 5 is not allowed: it has non-finite values \(first at point 2"):
+        PositionLoss({5: t})
+
+
+def test_a_positions_file_with_gaps_is_read_and_fitted_by_its_observed_markers(tmp_path):
+    """An .npz of a motion-capture export with occluded markers (NaN) is read; its frames
+    keep their gaps, a frame with no marker seen is left out with a warning, a file of
+    nothing but NaN or with an inf is refused by its name."""
+    model = _block()
+    n = model.particle_count
+    x = np.stack([model.particle_x0 + 0.001 * k for k in range(4)])
+    x[1, 3] = np.nan
+    x[2] = np.nan
+    x[3, :5] = np.nan
+    np.savez(tmp_path / "mocap.npz", positions=x, frames=[0, 1, 2, 3])
+    t = load_target(tmp_path / "mocap.npz")
+    with pytest.warns(UserWarning, match=r"mocap\.npz: frame 2 observes no particle \(every position NaN, missing\) and is left out"):
+        loss = t.loss(model, {0: 0, 1: 10, 2: 20, 3: 30})
+    assert loss.frames == (10, 30)
+    assert [int(loss.observed[f].sum()) for f in loss.frames] == [n - 1, n - 5]
+    np.savez(tmp_path / "blank.npz", positions=np.full((2, n, 3), np.nan))
+    with pytest.raises(ValueError, match=r"target .*blank\.npz is not allowed: every position in it is NaN \(missing\)"):
+        load_target(tmp_path / "blank.npz")
+    x[3, 7, 1] = -np.inf
+    np.save(tmp_path / "inf.npy", x)
+    with pytest.raises(ValueError, match=r"target .*inf\.npy is not allowed: it has an infinite position \(frame entry 3, "
+                                         r"particle 7\); a missing one \(an occluded marker\) is NaN"):
+        load_target(tmp_path / "inf.npy")
+
+
+def test_a_millimetre_target_with_gaps_is_still_warned_of():
+    """The units check (positions 20 times the scene's spread) read a frame with a missing
+    marker as a spread of NaN, and said nothing of a target in millimetres."""
+    model = _block()
+    t = np.stack([model.particle_x0 * 1000.0] * 2)
+    t[:, 0] = np.nan
+    with pytest.warns(UserWarning, match=r"targets in other units than metres"):
+        _warn_target_scale(PositionLoss(t, frames=[2, 4]), model, "target")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _warn_target_scale(PositionLoss(t / 1000.0, frames=[2, 4]), model, "target")
+
+
+def test_the_plan_line_measures_entry_zero_over_its_observed_markers(tmp_path):
+    """The plan's line on an unnumbered file says how far its entry 0 lies from the scene's
+    start; with a marker missing there it said 'nan spacings'."""
+    from warp_esph.calibrate import _frame_reading  # noqa: PLC0415
+
+    model = _block()
+    x = np.stack([model.particle_x0 + 0.5 * model.spacing, model.particle_x0])
+    x[0, 2] = np.nan
+    np.save(tmp_path / "gaps.npy", x)
+    line = _frame_reading(tmp_path / "gaps.npy", load_target(tmp_path / "gaps.npy"), False, model)
+    assert f"lies {0.5 * np.sqrt(3.0):.3g} spacings RMS from the scene's initial positions" in line  # (h/2)(1, 1, 1)
