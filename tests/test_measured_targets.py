@@ -171,3 +171,44 @@ def test_the_plan_line_measures_entry_zero_over_its_observed_markers(tmp_path):
     np.save(tmp_path / "gaps.npy", x)
     line = _frame_reading(tmp_path / "gaps.npy", load_target(tmp_path / "gaps.npy"), False, model)
     assert f"lies {0.5 * np.sqrt(3.0):.3g} spacings RMS from the scene's initial positions" in line  # (h/2)(1, 1, 1)
+
+
+@pytest.mark.parametrize("name, text", [
+    ("header.csv", "x,y,z\n0.1,0.2,0.3\n0.2,0.25,0.3\n"),
+    ("bom.csv", "\ufeff0.1,0.2,0.3\n0.2,0.25,0.3\n"),
+    ("bom_header.csv", "\ufeffX,Y,Z\r\n0.1,0.2,0.3\r\n0.2,0.25,0.3\r\n"),
+    ("ids_first.csv", "marker,z,x,y (m)\n7,0.3,0.1,0.2\n8,0.3,0.2,0.25\n"),
+    ("header.xyz", "# scanner export\nx y z\n0.1 0.2 0.3\n0.2 0.25 0.3\n"),
+])
+def test_a_cloud_text_file_with_a_header_row_or_a_byte_order_mark_is_read(tmp_path, name, text):
+    """A spreadsheet's CSV starts with a byte-order mark, a scanner's with a header row
+    naming its columns; both were refused with numpy's "could not convert string". The
+    columns named x, y, z are read, whatever else the file holds and in whatever order."""
+    (tmp_path / name).write_bytes(text.encode("utf-8"))
+    t = load_target(tmp_path / name)
+    assert t.kind == "points"
+    np.testing.assert_array_equal(t.data, [[0.1, 0.2, 0.3], [0.2, 0.25, 0.3]])
+
+
+@pytest.mark.parametrize("name, text, message", [
+    ("mm.csv", "x (mm),y (mm),z (mm)\n100,200,300\n", r"its header gives the coordinates in mm; positions are metres"),
+    ("names.csv", "u,v,w\n1,2,3\n", r"its first row 'u,v,w' is a header that names no columns x, y and z"),
+    ("semicolons.csv", "x;y;z\n0,1;0,2;0,3\n", r"its fields are separated by semicolons"),
+    ("ragged.csv", "0.1,0.2,0.3\n0.4,0.5\n", r"the number of columns changed from 3 to 2 at row 2; every line of a point "
+                                             r"cloud holds the same number of columns$"),
+    ("flat.xyz", "0.1 0.2\n0.3 0.4\n", r"is not allowed as a point cloud: it holds points of shape \(2, 2\)"),
+    ("empty.xyz", "", r"is not allowed as a point cloud: it holds no points"),
+    ("header_only.csv", "x,y,z\n", r"is not allowed as a point cloud: it holds no points"),
+])
+def test_a_cloud_text_file_that_is_no_cloud_in_metres_is_refused_by_name(tmp_path, name, text, message):
+    (tmp_path / name).write_text(text)
+    with pytest.raises(ValueError, match=rf"^target .*{name.replace('.', r'[.]')} .*{message}"):
+        load_target(tmp_path / name)
+
+
+@pytest.mark.parametrize("shape", [(6,), (5, 2), (7, 4), (0, 3)])
+def test_an_npy_of_no_positions_or_cloud_shape_says_both_are_allowed(tmp_path, shape):
+    np.save(tmp_path / "a.npy", np.zeros(shape))
+    with pytest.raises(ValueError, match=r"positions must be \(K, n, 3\) or \(n, 3\) with K, n >= 1 \(an \(M, 3\) \.npy of "
+                                         r"another count than the scene's particles is a point cloud\)$"):
+        load_target(tmp_path / "a.npy")

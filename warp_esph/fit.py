@@ -2529,7 +2529,9 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
       tool, fx, fy, fz``): the reaction-force curve of ``tool`` (a tool's or a static
       collider's name, ``plane0`` for the ground; default: the only one when the file holds
       one), a ``ReactionForceLoss`` per rendered frame.
-    - ``.xyz/.txt/.csv/.pts``: a point cloud, three numbers per line.
+    - ``.xyz/.txt/.csv/.pts``: a point cloud, three numbers per line (metres), under an
+      optional header row naming the columns ``x``, ``y``, ``z`` (read whatever other columns
+      there are; a unit beside them other than ``m`` is refused); a byte-order mark is read past.
     - anything else ``meshio`` (or ``.usd``) reads: a mesh when it has faces, else a cloud.
     """
     p = os.fspath(path)
@@ -2588,8 +2590,9 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         # Checked here, with the file's name: an empty or NaN (n, 3) array was refused later as
         # "targets[62]", by the step it was compared at.
         if pos.ndim != 3 or pos.shape[2] != 3 or pos.shape[0] == 0 or pos.shape[1] == 0:
+            cloud = " (an (M, 3) .npy of another count than the scene's particles is a point cloud)" if ext == ".npy" else ""
             raise ValueError(f"target {p} with shape {shape} is not allowed: positions must be (K, n, 3) or (n, 3) "
-                             f"with K, n >= 1")
+                             f"with K, n >= 1{cloud}")
         if np.isinf(pos).any():
             k, i = (int(v) for v in np.argwhere(np.isinf(pos))[0][:2])
             raise ValueError(f"target {p} is not allowed: it has an infinite position (frame entry {k}, particle {i}); "
@@ -2614,8 +2617,11 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # 'input contained no data': refused below, by name
-                pts = np.loadtxt(p, delimiter="," if ext == ".csv" else None, ndmin=2)
-        except Exception as e:  # noqa: BLE001
+                skip, cols = _cloud_header(p, ext)
+                # utf-8-sig: a spreadsheet's byte-order mark had made the first number '\ufeff0.1'.
+                pts = np.loadtxt(p, delimiter="," if ext == ".csv" else None, ndmin=2, skiprows=skip, usecols=cols,
+                                 encoding="utf-8-sig")
+        except Exception as e:  # noqa: BLE001 (a header's refusal too: a force log's first row is no header)
             hint = ""
             if ext == ".csv":
                 with open(p, newline="", encoding="utf-8-sig", errors="replace") as fh:
@@ -2624,7 +2630,11 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
                     # frame, time, tool, fx, fy, fz: a force log whose header row was lost.
                     hint = ("; its first row reads as a force log's (frame, time, tool, fx, fy, fz) without the header "
                             "row a force log starts with: add the line 'frame,time,tool,fx,fy,fz'")
-            raise ValueError(f"target {p} cannot be read as a point cloud: {str(e).rstrip('.')}{hint}") from None
+            why = str(e).rstrip(".")
+            if "number of columns changed" in why:
+                # numpy's advice ('use `usecols`') is its own API's, no user's cure.
+                why = why.split(";")[0] + "; every line of a point cloud holds the same number of columns"
+            raise ValueError(f"target {p} cannot be read as a point cloud: {why}{hint}") from None
         return Target("points", _cloud(p, pts), None, None, p)
     if ext in (".usd", ".usda", ".usdc"):
         # Before the run's reader, whose refusals are taken as a damaged file's.
@@ -2657,6 +2667,50 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
 
         return Target("mesh", load_mesh(p), None, None, p)
     return Target("points", _cloud(p, np.asarray(m.points, dtype=np.float64)), None, None, p)
+
+
+#: Units a point cloud's header may state beside a column name (``x (mm)``, ``x_mm``, ``x [m]``).
+_HEADER_UNIT = r"(?:[\s_]*[\[(]?\s*(m|mm|cm|um|µm|in|inch|ft)\s*[\])]?)?"
+
+
+def _cloud_header(path: str, ext: str) -> tuple[int, tuple[int, int, int] | None]:
+    """``(lines to skip, the x, y, z columns or None)`` of a point-cloud text file. A first
+    line (after blank and ``#`` lines) that is not all numbers is a header row: it must
+    name columns ``x``, ``y`` and ``z`` (any case, in any order, among others; a unit
+    beside them must be ``m``), which are then read; else a ValueError says what is
+    allowed. Such a header (a spreadsheet's or a scanner's export) had been refused with
+    numpy's "could not convert string 'x' to float64"."""
+    import re  # noqa: PLC0415
+
+    sep = "," if ext == ".csv" else None
+    with open(path, encoding="utf-8-sig", errors="replace") as fh:
+        for k, line in enumerate(fh):
+            text = line.strip()
+            if text and not text.startswith("#"):
+                break
+        else:
+            return 0, None
+    fields = [c.strip().strip('"').strip("'") for c in text.split(sep)]
+    if all(_is_number(c) for c in fields):
+        return 0, None
+    if ext == ".csv" and ";" in text and "," not in text:
+        raise ValueError("its fields are separated by semicolons (a spreadsheet's export with decimal commas?); a "
+                               "point cloud .csv has comma-separated columns x, y, z in metres with decimal points")
+    found, units = {}, {}
+    for i, f in enumerate(fields):
+        m = re.fullmatch(r"([A-Za-z]+?)" + _HEADER_UNIT, f)
+        if m and m.group(1).lower() in ("x", "y", "z") and m.group(1).lower() not in found:
+            found[m.group(1).lower()] = i
+            units[m.group(1).lower()] = (m.group(2) or "m").lower()
+    if len(found) < 3:
+        raise ValueError(f"its first row {text[:120]!r} is a header that names no columns x, y and z; a point "
+                               "cloud's text file holds three numbers per line (x y z, metres), under an optional "
+                               "header row naming its columns x, y, z")
+    other = sorted({u for u in units.values() if u != "m"})
+    if other:
+        raise ValueError(f"its header gives the coordinates in {', '.join(other)}; positions are metres: convert "
+                               "the file to metres (and its header to x, y, z)")
+    return k + 1, (found["x"], found["y"], found["z"])
 
 
 def _is_number(text: str) -> bool:
