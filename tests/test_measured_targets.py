@@ -212,3 +212,26 @@ def test_an_npy_of_no_positions_or_cloud_shape_says_both_are_allowed(tmp_path, s
     with pytest.raises(ValueError, match=r"positions must be \(K, n, 3\) or \(n, 3\) with K, n >= 1 \(an \(M, 3\) \.npy of "
                                          r"another count than the scene's particles is a point cloud\)$"):
         load_target(tmp_path / "a.npy")
+
+
+def test_markers_numbered_otherwise_than_the_particles_are_refused_by_frame_zero(tmp_path):
+    """A lab's positions compare marker i with particle i. Markers in another order passed,
+    and the fit pulled each particle toward another's path; where the file's frame 0 holds
+    the scene's start point for point in another order, it is refused naming a marker."""
+    model = _block()
+    n = model.particle_count
+    x0 = model.particle_x0 + np.random.default_rng(2).normal(scale=1e-4, size=(n, 3))
+    x = np.stack([x0, x0 + 0.001])
+    order = np.arange(n)
+    order[[3, 8]] = order[[8, 3]]  # two markers' labels swapped
+    np.savez(tmp_path / "swapped.npz", positions=x[:, order], frames=[0, 1])
+    with pytest.raises(ValueError, match=r"swapped\.npz is not allowed: its frame 0 holds the scene's initial positions in "
+                                         rf"another order \(2 of {n} observed markers on another particle's start; marker 3 "
+                                         r"on particle 8's\); particles are compared by index"):
+        load_target(tmp_path / "swapped.npz").loss(model, {0: 0, 1: 10})
+    # In order (with a marker missing at frame 0), or a frame 0 that is no start at all: read.
+    x[0, 5] = np.nan
+    np.savez(tmp_path / "ordered.npz", positions=x, frames=[0, 1])
+    assert load_target(tmp_path / "ordered.npz").loss(model, {0: 0, 1: 10}).frames == (10,)
+    np.savez(tmp_path / "moved.npz", positions=x[:, order] + 0.3, frames=[0, 1])
+    assert load_target(tmp_path / "moved.npz").loss(model, {0: 0, 1: 10}).frames == (10,)

@@ -2408,6 +2408,35 @@ class Target:
             raise ValueError(f"target {self.path} has {pos.shape[1]} particles per frame, the scene {model.particle_count}: "
                              f"use the scene and --scale the target was made with")
 
+    def _check_start_order(self, model: Model, idx=None) -> None:
+        """Refuse positions whose frame 0 holds the scene's initial positions in another order.
+        Particles are compared by index (marker i with particle i): a lab's markers numbered
+        otherwise than the particles passed, and the fit pulled each particle toward another's
+        path. Frame 0 shows it where each of its markers sits on some particle's start (within
+        a quarter spacing, closer than any neighbour) but not all on their own."""
+        if self.frames is None or 0 not in self.frames:
+            return
+        from .losses import _nearest_within  # noqa: PLC0415
+
+        first = np.asarray(self.data, dtype=np.float64)[self.frames.index(0)]
+        x0 = np.asarray(model.particle_x0, dtype=np.float64)
+        if idx is not None:
+            x0 = x0[idx]
+        seen = np.flatnonzero(np.isfinite(first).all(axis=1))
+        if first.shape != x0.shape or not seen.size:
+            return
+        near = _nearest_within(first[seen], x0, 0.25 * model.spacing)
+        if (near < 0).any():
+            return  # not the scene's start point for point: nothing said here of the order
+        wrong = np.flatnonzero(near != seen)
+        if wrong.size:
+            i, j = int(seen[wrong[0]]), int(near[wrong[0]])
+            of = f" of body {self.body!r}" if self.body is not None else ""
+            raise ValueError(f"target {self.path} is not allowed: its frame 0 holds the scene's initial positions in "
+                             f"another order ({wrong.size} of {seen.size} observed markers on another particle's start; "
+                             f"marker {i} on particle {j}'s{of}); particles are compared by index, marker i with particle i: "
+                             "reorder the markers to the particles' order")
+
     def _fitted_frames(self) -> list[int]:
         """Indices into ``data`` of the position frames fitted: not frame 0 (the initial state),
         nor a frame whose every marker is missing (NaN: nothing observed), which is left out
@@ -2451,6 +2480,7 @@ class Target:
         if self.kind == "positions" and self.body is not None:
             idx = self.particles(model)
             pos = np.asarray(self.data)
+            self._check_start_order(model, idx)
             keep = self._fitted_frames()
             return PositionLoss({frame_steps[self.frames[k]]: pos[k] for k in keep}, particles=idx)
         if self._read_as_cloud(model):
@@ -2483,6 +2513,7 @@ class Target:
                     raise ValueError(f"target {self.path} is not allowed: it holds the bodies {listed(self.bodies)} "
                                      f"in that order, the scene {listed((b.name, b.count) for b in model.bodies)}; particles "
                                      "are compared in order: use the scene the run was made with, or --target-body NAME")
+            self._check_start_order(model)
             keep = self._fitted_frames()
             return PositionLoss({frame_steps[self.frames[k]]: pos[k] for k in keep})
         if self.kind == "points":
