@@ -235,3 +235,16 @@ def test_markers_numbered_otherwise_than_the_particles_are_refused_by_frame_zero
     assert load_target(tmp_path / "ordered.npz").loss(model, {0: 0, 1: 10}).frames == (10,)
     np.savez(tmp_path / "moved.npz", positions=x[:, order] + 0.3, frames=[0, 1])
     assert load_target(tmp_path / "moved.npz").loss(model, {0: 0, 1: 10}).frames == (10,)
+
+
+def test_a_fit_to_gappy_positions_counts_only_the_observed_residuals():
+    """The diagnostics' residual count (their degrees of freedom) is 3 per observed
+    (frame, particle) pair, and the residual RMS stays finite."""
+    from warp_esph.fit import fit  # noqa: PLC0415
+
+    r = Rollout(_block(), STEPS, DT, frames=FRAMES)
+    t = _gappy(np.stack(r.forward()), np.random.default_rng(3))
+    res = fit(_block(), PositionLoss(t, frames=FRAMES), ["mu"], steps=STEPS, dt=DT, iterations=2, noise=1e-3,
+              progress=False)
+    assert res.diagnostics.observations == 3 * int(np.isfinite(t).all(axis=2).sum()) < t.size
+    assert np.isfinite(res.diagnostics.residual_rms).all()
