@@ -1726,9 +1726,9 @@ def test_loss_only_fit_evaluations_run_untaped_and_leave_the_fit_as_it_was(monke
     gradient_runs = sum(1 for h in after.history if h["grad"] is not None)
     assert len(after.history) > 5 and after.diagnostics.method == "gauss-newton"
     assert gradient_runs == (0 if optimizer == "gauss-newton" else after.evaluations)
-    # Every run of the fit and of its diagnostics (the first at the fitted point and the one their
-    # range check starts from besides their evaluations) taped, as before.
-    assert len(steps_after) == len(steps_before) == (len(before.history) + before.diagnostics.evaluations + 2) * STEPS
+    # Every run of the fit and of its diagnostics (their evaluations count the one at the fitted
+    # point and the one their range check starts from) taped, as before.
+    assert len(steps_after) == len(steps_before) == (len(before.history) + before.diagnostics.evaluations) * STEPS
     assert all(steps_before)
     assert sum(steps_after) == gradient_runs * STEPS
     def timeless(history):

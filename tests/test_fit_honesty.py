@@ -394,3 +394,31 @@ def test_every_number_of_a_fits_history_is_what_it_says(dtype, worlds):
     assert record["iterations"] == len(descent) - len({entry["start"] for entry in descent})
     per_start = [sum(1 for entry in descent if entry["start"] == k) for k in (0, 1)]
     assert record["iterations"] == sum(n - 1 for n in per_start) <= 2 * 3
+
+
+@pytest.mark.parametrize("method", ["gauss-newton", "hessian"])
+def test_the_diagnostics_count_every_run_they_make(landing, monkeypatch, method):
+    """``Diagnostics.evaluations`` (fit.json's ``diagnostics.evaluations``, and what the fit
+    command says they ran) counted the forward differences and the range check but not the
+    run at the fitted point that sizes the noise, nor the one the range check starts from:
+    two runs fewer than were made."""
+    from warp_esph import diagnostics
+    from warp_esph import fit as fit_module
+
+    if method == "hessian":
+        monkeypatch.setattr(diagnostics, "_has_residuals", lambda prob: False)
+    runs = []
+    forward = fit_module._Run.forward
+
+    def counted(self, *args, **kwargs):
+        runs.append(self)
+        return forward(self, *args, **kwargs)
+
+    monkeypatch.setattr(fit_module._Run, "forward", counted)
+    dt, target = landing
+    result = fit(_cube(), target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES, iterations=0, progress=False,
+                 noise=1e-4)
+    d = result.diagnostics
+    assert d.method == method
+    assert len(runs) - len(result.history) == d.evaluations, (len(runs), len(result.history), d.evaluations)
+    assert d.to_dict()["evaluations"] == d.evaluations

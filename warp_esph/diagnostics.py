@@ -30,7 +30,9 @@ fix a combination of the two, e.g. yield stress and flow rate along a valley).
 
 The Fisher matrix describes the loss near the optimum only. A **range check** therefore
 also moves each log-space parameter alone by a factor ``RANGE_FACTOR`` (1.5) both ways
-(``2 P`` forward runs): if the chi-square changes by less than 1 on either side, the data
+(``2 P`` forward runs; ``Diagnostics.evaluations`` counts these, the differences' and the
+runs at ``z`` that size the noise and start the range check, ``4 P + 3`` in all, ``4 P + 2``
+with the Hessian): if the chi-square changes by less than 1 on either side, the data
 cannot tell these values apart and the parameter is reported as not determined, whatever
 the local curvature says (if it falls by 1 or more, the fit stopped short of the minimum
 along it, which a warning says) (a silhouette fit stopped at 1.88 x the true yield stress, where
@@ -398,7 +400,8 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
             J[:, j] = (_scaled_residuals(prob, zp, sigmas, leaf_sigmas) - _scaled_residuals(prob, zm, sigmas, leaf_sigmas)) / (ups[j] - downs[j])
         fisher = J.T @ J
         gradient = 2.0 * J.T @ r0
-        evaluations = 2 * P + 1
+        # The run at z above that sizes the noise is one too: it had gone uncounted.
+        evaluations = 1 + 2 * P + 1
     else:
         H = np.zeros((P, P))
         gsum = np.zeros(P)
@@ -411,12 +414,13 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
             gsum += 0.5 * (gp + gm)
         fisher = 0.25 * (H + H.T)
         gradient = gsum / P
-        evaluations = 2 * P
+        evaluations = 1 + 2 * P
     # The range check: the curvature at z describes the loss near z only. A loss that is
     # flat over a wide range but curved at the optimum (a silhouette fit that stopped at
     # 1.88 x the true yield stress, its loss 0.15 % below that at 1.5 x less) looks
     # determined there; moving each value by a factor RANGE_FACTOR both ways shows it.
     chi0 = _chi_square_at(prob, z, chi2s)
+    evaluations += 1
     log_space = [prob.spaces[name] == "log" for name in prob.params for _ in range(prob.k)]
     rises = np.full((P, 2), np.nan)
     for j in range(P):

@@ -1332,8 +1332,9 @@ def fit(
       losses (``SlumpLoss``, ``ReactionForceLoss``) or ``initial``.
     - ``diagnostics``: at the optimum, the Fisher (Gauss-Newton) information of the data
       for observation noise ``noise`` (m; see ``warp_esph.diagnostics``), from central
-      differences (step ``fd_step`` in optimiser space) of taped gradients: ``2 P``
-      extra evaluations for ``P`` fitted values. ``result.diagnostics`` holds standard
+      differences (step ``fd_step`` in optimiser space) of the residuals (or of taped
+      gradients) and a range check: up to ``4 P + 3`` extra runs for ``P`` fitted values
+      (``result.diagnostics.evaluations``). ``result.diagnostics`` holds standard
       errors, correlations and warnings about parameters the data do not determine.
     - ``callback(evaluation, loss, params)``: after each evaluation; return ``True`` to
       stop. ``log``: called with one-line messages (memory, time per evaluation, stages).
