@@ -2098,3 +2098,41 @@ def test_fit_json_says_which_model_auto_ran(tmp_path, capsys, dough_scene):
                        loss=0.0, initial_loss=1.0, history=[], model=model)
     assert result.to_dict()["solver"] == {"fit": "auto", "hourglass": None, "resolved_fit": "curvature_corrected",
                                           "resolved_hourglass": 0.05, "rest_model": True}
+
+
+def test_the_fit_summary_counts_what_ran_as_fit_json_does(tmp_path, capsys, dough_scene):
+    """'loss a -> b in N evaluations' counted the descent's alone: a fit with a global stage
+    said 2 where 5 had run, and nothing of the diagnostics' runs. The line now names each
+    stage's count, the numbers fit.json records."""
+    from warp_esph.cli import main
+    from warp_esph.scenes import load_scene
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    x0 = load_scene(str(guess)).builder.finalize().particle_x0
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.stack([x0 + np.random.default_rng(2).normal(0, 0.005, x0.shape)]), frames=[2])
+    common = ["fit", str(guess), "--target", str(target), "--params", "yield_stress", "--iterations", "1",
+              "--no-progress", "--no-usd"]
+
+    capsys.readouterr()
+    assert main([*common, "--samples", "2", "--output-dir", str(tmp_path / "a")]) == 0
+    out = capsys.readouterr().out
+    doc = json.loads((tmp_path / "a" / "fit.json").read_text())
+    said = re.search(r"^loss (\S+) -> (\S+) in (\d+) evaluations: (\d+) of the global stage \(loss only: the guess "
+                     r"and (\d+) samples\), (\d+) of the descent; then (\d+) runs of the diagnostics$", out, re.M)
+    assert said, out
+    total, samples, drawn, descent, diagnosed = map(int, said.groups()[2:])
+    assert samples == doc["sample_evaluations"] == drawn + 1 == 3
+    assert descent == doc["evaluations"] == sum(1 for h in doc["history"] if h["stage"] == "descent") > 0
+    assert total == samples + descent == len(doc["history"])
+    assert diagnosed == doc["diagnostics"]["evaluations"] > 0
+    assert float(said.group(1)) == pytest.approx(doc["initial_loss"], rel=1e-3)
+    assert float(said.group(2)) == pytest.approx(doc["loss"], rel=1e-3)
+
+    assert main([*common, "--no-diagnostics", "--output-dir", str(tmp_path / "b")]) == 0
+    out = capsys.readouterr().out
+    doc = json.loads((tmp_path / "b" / "fit.json").read_text())
+    said = re.search(r"^loss \S+ -> \S+ in (\d+) evaluations of the descent$", out, re.M)
+    assert said, out
+    assert int(said.group(1)) == doc["evaluations"] == len(doc["history"]) and doc["sample_evaluations"] == 0

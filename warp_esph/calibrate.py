@@ -395,7 +395,7 @@ def run_fit(args, out=None, err=None) -> int:
     # The results first: a file that cannot be written (a full disk) lost them, the values
     # printed only after every file was written.
     print(f"fit {result.termination}", file=out)
-    print(f"loss {result.initial_loss:.4g} -> {result.loss:.4g} in {result.evaluations} evaluations", file=out)
+    print(f"loss {result.initial_loss:.4g} -> {result.loss:.4g} in {_evaluations_said(result)}", file=out)
     for name, v in result.params.items():
         print(f"  {name} = {', '.join(f'{x:.6g}' for x in v)} {UNITS[name]}", file=out)
     if result.diagnostics is not None:
@@ -443,6 +443,29 @@ def run_fit(args, out=None, err=None) -> int:
         raise
     print("wrote " + ", ".join(written), file=out)
     return 0
+
+
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
+
+
+def _evaluations_said(result) -> str:
+    """What ran, as fit.json counts it: ``sample_evaluations`` (the global stage, loss only,
+    the guess first), ``evaluations`` (the descent's, every start's) and the diagnostics'
+    ``evaluations``. The descent's count alone had been printed as the fit's, a fit with 8
+    samples saying 13 evaluations where 22 had run, and the diagnostics' runs not at all."""
+    record = result.to_dict()
+    descent, samples = record["evaluations"], record["sample_evaluations"]
+    starts = len(result.starts)
+    of_descent = "of the descent" + (f" ({starts} starts)" if starts > 1 else "")
+    if samples:
+        said = (f"{_plural(samples + descent, 'evaluation')}: {samples} of the global stage (loss only: the guess and "
+                f"{_plural(samples - 1, 'sample')}), {descent} {of_descent}")
+    else:
+        said = f"{_plural(descent, 'evaluation')} {of_descent}"
+    if result.diagnostics is not None:
+        said += f"; then {_plural(result.diagnostics.evaluations, 'run')} of the diagnostics"
+    return said
 
 
 def _remove_earlier_run(folder, json_path=None) -> None:
