@@ -399,6 +399,10 @@ BAD_TOML = {
     "young_past_the_floats": (GOOD_TOML.replace("E = 1.5e4", "E = 1e308").replace("nu = 0.3", "nu = -0.9"),
                               ["[materials.soft]: E = 1e+308 and nu = -0.9 are not allowed together",
                                "mu = E / (2 (1 + nu)) = inf"]),
+    # ... and E = 1e-320 as 'mu = 3.84383e-321 is not allowed in float32', a key it does not hold either.
+    "young_below_the_floats": (GOOD_TOML.replace("E = 1.5e4", "E = 1e-320"),
+                               ["[materials.soft]: E = 1e-320 and nu = 0.3 are not allowed together",
+                                "mu = E / (2 (1 + nu)) = 3.84383e-321", "give a larger E"]),
     "bad_syntax": (GOOD_TOML.replace("frames = 2", "frames = = 2"), ["invalid TOML", "line"]),
     "bad_material": (GOOD_TOML.replace('material = "soft"', 'material = "sofft"'), ["'sofft'", "did you mean 'soft'"]),
     "bad_fit": ('[solver]\nfit = "quadratic"\n' + GOOD_TOML, ["fit = 'quadratic' in [solver]", "linear, curvature_corrected"]),

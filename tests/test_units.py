@@ -132,6 +132,17 @@ def test_rheology_constructor_names_the_bad_parameter(kwargs, name):
                                                    r"parameters they give, mu = E / \(2 \(1 \+ nu\)\) = inf"),
     (lambda: we.Material.from_rheology(1e300, 0.4999999999999999, shear_yield_stress=1.0, plastic_viscosity=1.0),
      r"^E = 1e\+300 and nu = 0\.4999999999999999 are not allowed together: .* lam = .* = inf, must be finite"),
+    # A subnormal or tiny E (or nu) was accepted and refused only at the model's build, naming
+    # Material.mu (or lam) = 3.84383e-321, in either dtype; E = 5e-324 as 'Material.mu = 0.0'.
+    (lambda: we.Material.from_young(1e-320, 0.3), r"^E = 1e-320 and nu = 0\.3 are not allowed together: .* mu = E / "
+                                                  r"\(2 \(1 \+ nu\)\) = 3\.84383e-321 .* must be at least 2\.23e-308 \(mu\).*"
+                                                  r"give a larger E$"),
+    (lambda: we.Material.from_young(5e-324, 0.3), r"^E = 5e-324 and nu = 0\.3 are not allowed together: .* mu = .* = 0 "),
+    (lambda: we.Material.from_young(3e-308, 0.49), r"^E = 3e-308 and nu = 0\.49 are not allowed together: .* = 1\.00671e-308"),
+    (lambda: we.Material.from_young(1.0, 1e-310), r"^E = 1\.0 and nu = 1e-310 are not allowed together: .* lam = .* "
+                                                  r"= 1e-310, must be .*; give nu = 0 or a nu further from 0$"),
+    (lambda: we.Material.from_rheology(1e-320, 0.3, shear_yield_stress=1.0, plastic_viscosity=1.0),
+     r"^E = 1e-320 and nu = 0\.3 are not allowed together"),
 ])
 def test_the_constructors_name_the_lab_quantity_whose_derived_value_leaves_the_floats(call, message):
     with pytest.raises(ValueError, match=message):

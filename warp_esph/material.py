@@ -406,15 +406,24 @@ class Material:
 def _lame(E: float, nu: float) -> tuple[float, float]:
     """``(mu, lam)`` of Young's modulus ``E`` and Poisson's ratio ``nu`` (each checked by the
     caller), or a ValueError naming both where either leaves the floats (a huge ``E``, or ``nu``
-    within 1e-16 of -1 or 0.5): the refusal named ``Material.mu = inf`` or ``Material.lam = inf``
-    (a scene file's ``mu = inf``), values the caller never gave."""
+    within 1e-16 of -1 or 0.5), or falls below float64's normal numbers (a subnormal or tiny
+    ``E``; a subnormal ``nu``): the refusal named ``Material.mu = inf`` or ``Material.lam = inf``
+    (a scene file's ``mu = inf``), or, at the model's build, ``Material.mu = 3.84e-321``,
+    values the caller never gave."""
     mu = E / (2.0 * (1.0 + nu))
     lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    given = f"E = {checks.shorten(E)!r} and nu = {checks.shorten(nu)!r} are not allowed together: the Lame parameters " \
+            f"they give, mu = E / (2 (1 + nu)) = {mu:g} and lam = E nu / ((1 + nu) (1 - 2 nu)) = {lam:g}"
     if not (math.isfinite(mu) and math.isfinite(lam)):
-        raise ValueError(
-            f"E = {checks.shorten(E)!r} and nu = {checks.shorten(nu)!r} are not allowed together: the Lame "
-            f"parameters they give, mu = E / (2 (1 + nu)) = {mu:g} and lam = E nu / ((1 + nu) (1 - 2 nu)) = "
-            f"{lam:g}, must be finite numbers; give a smaller E or a nu further from -1 and 0.5")
+        raise ValueError(f"{given}, must be finite numbers; give a smaller E or a nu further from -1 and 0.5")
+    # No precision holds a modulus below the smallest normal float64 (Model refuses it in either
+    # dtype, or as mu = 0 here): refused now, by what was given, not at the build by mu.
+    tiny = float(np.finfo(np.float64).tiny)
+    if not mu >= tiny or lam != 0.0 and abs(lam) < tiny:
+        # mu holding, lam is below it by nu's factor: nu is the tiny one.
+        cure = "a larger E" if not mu >= tiny else "nu = 0 or a nu further from 0"
+        raise ValueError(f"{given}, must be at least {tiny:.3g} (mu) and 0 or at least {tiny:.3g} in size (lam), the "
+                         f"smallest normal float64; give {cure}")
     return mu, lam
 
 
