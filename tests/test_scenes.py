@@ -190,6 +190,13 @@ _TOOL = '[[tools]]\nshape = "sphere"\nradius = 0.05\n'
          # The advice names both spellings, the command's and Python's (it named dtype=float64 only).
          r"\[materials\.m\]: mu = 1e\+39 is not allowed in float32: must be at most 3\.4e\+38; "
          r"use dtype=float64 \(--dtype float64\) or a smaller value$"),
+        # The Lame parameters of the E and nu given were named as keys the table does not hold ('mu = 3.84615e-40').
+        ({'preset = "dough"': 'preset = "dough"\nE = 1e-39\nnu = 0.3'},
+         r"\[materials\.m\]: E = 1e-39 is not allowed in float32: with nu = 0\.3 it gives mu = E / \(2 \(1 \+ nu\)\) = "
+         r"3\.84615e-40: must be 0 or at least 1\.18e-38 in size; use dtype=float64 \(--dtype float64\) or a larger value$"),
+        ({'preset = "dough"': 'E = 1e39\nnu = 0.3'},
+         r"\[materials\.m\]: E = 1e\+39 is not allowed in float32: with nu = 0\.3 it gives mu = .* = 3\.84615e\+38: must "
+         r"be at most 3\.4e\+38"),
         ({'preset = "dough"': 'preset = "dough"\nviscosity = 1e-39'},
          r"\[materials\.m\]: viscosity = 1e-39 is not allowed in float32: must be 0 or at least 1\.18e-38"),
         ({"center = [0, 0.2, 0]": "center = [1e7, 0.2, 0]"},

@@ -149,6 +149,28 @@ def test_the_constructors_name_the_lab_quantity_whose_derived_value_leaves_the_f
         call()
 
 
+def test_a_modulus_from_e_and_nu_that_a_precision_cannot_hold_is_refused_naming_e_and_nu():
+    """E = 1e-39 holds in float64 but its mu = 3.8e-40 not in float32: the build refused it as
+    'Material.mu = 3.84615e-40', a value never given. It names E and nu now, as the constructor
+    does for what no precision holds; a copy with other moduli names its own."""
+    import warp as wp
+
+    def build(material, dtype):
+        b = we.SceneBuilder(spacing=0.05)
+        b.add_box((0.0, 0.2, 0.0), (0.1, 0.1, 0.1), material)
+        return b.finalize(dtype=dtype)
+
+    for soft in (we.Material.from_young(1e-39, 0.3),
+                 we.Material.from_rheology(1e-39, 0.3, shear_yield_stress=0.0, plastic_viscosity=1e-40)):
+        with pytest.raises(ValueError, match=r"^E = 1e-39 \(material 0\) is not allowed in float32: with nu = 0\.3 it "
+                                             r"gives mu = E / \(2 \(1 \+ nu\)\) = 3\.84615e-40: must be 0 or at least "
+                                             r"1\.18e-38 in size; use dtype=float64 or a larger value$"):
+            build(soft, wp.float32)
+        assert build(soft, wp.float64).particle_count > 0
+    with pytest.raises(ValueError, match=r"^Material\.mu = 1e-40 \(material 0\) is not allowed in float32"):
+        build(we.Material.from_young(1e-39, 0.3).replace(mu=1e-40), wp.float32)
+
+
 def test_rheology_constructor_needs_the_plastic_viscosity():
     """Left out, the plastic viscosity was infinite: a flow rate of 0, an elastic material on
     which the shear yield stress given had no effect. An explicit ``inf`` still says so. The

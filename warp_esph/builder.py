@@ -891,8 +891,9 @@ class SceneBuilder:
                 name, v, why = problem
                 # A scene file's is read by the command (--dtype) and by Python (dtype=): its
                 # advice names both, as a sweep's sample refusal does (it named dtype=float64 only).
-                self._refuse(("material", k), f"Material.{name} = {v:g} (material {k}) is not allowed in {T}: {why}",
-                             f"{name} = {v:g} is not allowed in {T}: {material_precision_problem(m, scalar, cli=True)[2]}")
+                self._refuse(("material", k), f"{name} = {v:g} (material {k}) is not allowed in {T}: {why}",
+                             f"{name.removeprefix('Material.')} = {v:g} is not allowed in {T}: "
+                             f"{material_precision_problem(m, scalar, cli=True)[2]}")
         points = np.concatenate(self._points) if self._points else np.zeros((0, 3))
         if len(points) and np.abs(points).max() > big:
             i = int(np.argmax(np.abs(points).max(axis=1)))

@@ -238,7 +238,7 @@ class Material:
             raise ValueError(f"{', '.join(sorted({'mu', 'lam'} & kwargs.keys()))} is not allowed in Material.from_young: "
                              "mu and lam are derived from E and nu")
         mu, lam = _lame(E, nu)
-        return cls(mu=mu, lam=lam, **kwargs)
+        return _from_young(cls(mu=mu, lam=lam, **kwargs), E, nu)
 
     @classmethod
     def from_rheology(
@@ -403,6 +403,24 @@ class Material:
         return math.isfinite(self.yield_stress) and self.flow_rate > 0.0
 
 
+#: The Lame parameters of Young's modulus and Poisson's ratio, as the refusals write them.
+LAME_FORMULAS = {"mu": "E / (2 (1 + nu))", "lam": "E nu / ((1 + nu) (1 - 2 nu))"}
+
+
+def _from_young(material: Material, E: float, nu: float) -> Material:
+    """``material``, noting the ``E`` and ``nu`` its ``mu`` and ``lam`` came from (not a field:
+    equality, ``asdict`` and ``replace`` ignore it) so that a model's precision check names
+    them: ``E = 1e-39`` in float32 was refused as ``Material.mu = 3.84615e-40``, a value never given."""
+    object.__setattr__(material, "_young", (E, nu))
+    return material
+
+
+def young_given(material: Material) -> tuple[float, float] | None:
+    """``(E, nu)`` where ``material`` was made from them (``Material.from_young``, a scene
+    table's ``E`` and ``nu``), else None (a copy with other values, ``replace``'s, is made anew)."""
+    return getattr(material, "_young", None)
+
+
 def _lame(E: float, nu: float) -> tuple[float, float]:
     """``(mu, lam)`` of Young's modulus ``E`` and Poisson's ratio ``nu`` (each checked by the
     caller), or a ValueError naming both where either leaves the floats (a huge ``E``, or ``nu``
@@ -413,7 +431,7 @@ def _lame(E: float, nu: float) -> tuple[float, float]:
     mu = E / (2.0 * (1.0 + nu))
     lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
     given = f"E = {checks.shorten(E)!r} and nu = {checks.shorten(nu)!r} are not allowed together: the Lame parameters " \
-            f"they give, mu = E / (2 (1 + nu)) = {mu:g} and lam = E nu / ((1 + nu) (1 - 2 nu)) = {lam:g}"
+            f"they give, mu = {LAME_FORMULAS['mu']} = {mu:g} and lam = {LAME_FORMULAS['lam']} = {lam:g}"
     if not (math.isfinite(mu) and math.isfinite(lam)):
         raise ValueError(f"{given}, must be finite numbers; give a smaller E or a nu further from -1 and 0.5")
     # No precision holds a modulus below the smallest normal float64 (Model refuses it in either

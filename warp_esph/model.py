@@ -22,7 +22,8 @@ from ._types import type_set
 from .sim.fields import CompressionField
 from .sim.fields import precision_problem as field_precision_problem
 from .sim.colliders import CONTACT_RAMP, CONTINUOUS_CONTACT_RAMP, INSTANT_CONTACT_RAMP, Box, Plane, Sphere
-from .material import DEFORMATION_IDS, ELASTIC_FORCE_IDS, MODEL_IDS, PRESSURE_FORCE_IDS, Material, p_wave_speed
+from .material import (DEFORMATION_IDS, ELASTIC_FORCE_IDS, LAME_FORMULAS, MODEL_IDS, PRESSURE_FORCE_IDS, Material,
+                       p_wave_speed, young_given)
 from .sim import ghost_floor, integrate
 from .sim.replay import Launches, pointer_key
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
@@ -112,10 +113,11 @@ def modulus_precision_problem(material: Material, scalar, cli: bool = False) -> 
 
 
 def material_precision_problem(material: Material, scalar, cli: bool = False) -> tuple[str, float, str] | None:
-    """``(field, value, what is allowed)`` of the first parameter of ``material`` that does not
+    """``(name, value, what is allowed)`` of the first parameter of ``material`` that does not
     hold in ``scalar``, or None (``check_material_precision``); last, the p-wave modulus they
-    make, reported on the field of its largest term (``modulus_precision_problem``). ``cli``:
-    the advice names ``--dtype`` too."""
+    make, reported on the field of its largest term (``modulus_precision_problem``). ``name``
+    is ``Material.<field>``, or ``E`` (``value`` the E given) for a ``mu`` or ``lam`` derived
+    from the E and nu given (``_named_as_given``). ``cli``: the advice names ``--dtype`` too."""
     for name in (*Model.MATERIAL_FIELDS, "density"):
         v = getattr(material, name)
         why = precision_problem(v, scalar, cli)
@@ -124,13 +126,24 @@ def material_precision_problem(material: Material, scalar, cli: bool = False) ->
             # ... or a smaller value", a value derived from the density, which a smaller one raises.
             source = "density" if material.density < 0.25 else ("mu" if material.mu >= material.lam else "lam")
             big = float(np.finfo(np.float32 if scalar is wp.float32 else np.float64).max)
-            return source, float(getattr(material, source)), (
+            return _named_as_given(material, source, float(getattr(material, source)), (
                 f"the pressure_stiffness it gives by default, K / (4 density) = {v:.3g}, must be at most {big:.3g} "
                 f"in {scalar.__name__}; give pressure_stiffness, or a " + ("larger density" if source == "density"
-                                                                          else "smaller modulus"))
+                                                                          else "smaller modulus")))
         if why is not None:
-            return name, v, why
-    return modulus_precision_problem(material, scalar, cli)
+            return _named_as_given(material, name, v, why)
+    problem = modulus_precision_problem(material, scalar, cli)
+    return None if problem is None else _named_as_given(material, *problem)
+
+
+def _named_as_given(material: Material, name: str, value: float, why: str) -> tuple[str, float, str]:
+    """The problem of a modulus derived from the ``E`` and ``nu`` given (``young_given``) as
+    theirs: ``("E", E, ...)``; field names stay prefixed ``Material.``, ``E`` is no field."""
+    young = young_given(material)
+    if young is None or name not in LAME_FORMULAS:
+        return f"Material.{name}", value, why
+    E, nu = young
+    return "E", E, f"with nu = {nu!r} it gives {name} = {LAME_FORMULAS[name]} = {value:g}: {why}"
 
 
 def check_material_precision(material: Material, scalar, where: str = "", cli: bool = False) -> None:
@@ -141,7 +154,7 @@ def check_material_precision(material: Material, scalar, where: str = "", cli: b
     problem = material_precision_problem(material, scalar, cli)
     if problem is not None:
         name, v, why = problem
-        raise ValueError(f"Material.{name} = {v:g}{where} is not allowed in {scalar.__name__}: {why}")
+        raise ValueError(f"{name} = {v:g}{where} is not allowed in {scalar.__name__}: {why}")
 
 
 def flowed_by_hardening(alpha) -> bool:

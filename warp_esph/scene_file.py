@@ -25,7 +25,7 @@ except ModuleNotFoundError:  # Python 3.10: the same parser as the tomli package
 
 from . import checks
 from .builder import MAX_FLOOR_LAYERS, MAX_NEIGHBORS, SceneBuilder
-from .material import PRESETS, Material, _following_force, _lame
+from .material import PRESETS, Material, _following_force, _from_young, _lame
 from .model import CONTACTS, FITS
 from .sim.neighbors import MIN_NEIGHBORS
 from .sim.smoothing import DEFAULT_FIT_WEIGHT, FIT_WEIGHTS
@@ -280,10 +280,11 @@ def _material(file: str, name: str, table: dict) -> Material:
                 fields["pressure_stiffness"] = None
             # The deformation model's default force, as for a new material (the presets hold
             # the incremental model's, which "additive" refuses), and left defaulted as a preset's.
-            return dataclasses.replace(PRESETS[preset], **_following_force(PRESETS[preset], fields))
+            made = dataclasses.replace(PRESETS[preset], **_following_force(PRESETS[preset], fields))
+            return _from_young(made, E, nu) if "E" in table else made
         if "mu" not in fields or "lam" not in fields:
             raise ValueError(f"{file}: {where} needs a preset, E and nu, or mu and lam")
-        return Material(**fields)
+        return _from_young(Material(**fields), E, nu) if "E" in table else Material(**fields)
     except ValueError as e:
         msg = str(e)
         if msg.startswith(file):
