@@ -2136,3 +2136,38 @@ def test_the_fit_summary_counts_what_ran_as_fit_json_does(tmp_path, capsys, doug
     said = re.search(r"^loss \S+ -> \S+ in (\d+) evaluations of the descent$", out, re.M)
     assert said, out
     assert int(said.group(1)) == doc["evaluations"] == len(doc["history"]) and doc["sample_evaluations"] == 0
+
+
+@pytest.mark.parametrize("lam, params, bounds, said", [
+    (3000.0, "hardening", "hardening=-1e6:100",
+     "--bounds hardening=-1e+06:100 is not allowed: at -1e+06, Material.hardening = -1000000.0 is not allowed: must be "
+     "> -2 mu = -4000"),
+    # lam fitted as itself (from 0): a lower end below -2 mu / 3 makes the bulk modulus negative.
+    (0.0, "lam", "lam=-1e5:100", "--bounds lam=-100000:100 is not allowed: at -100000, Material.lam = -100000.0 is not "
+                                 "allowed: must be > -2 mu / 3"),
+    (3000.0, "lam", "lam=-1e5:100", "--bounds lam=-100000:100 is not allowed: need lo > 0: lam is fitted as its logarithm, "
+                                    "its initial value 3000 being positive (from 0 or below it is fitted as itself"),
+    (3000.0, "mu", "mu=-5:100", "--bounds mu=-5:100 is not allowed: need lo > 0: mu is positive"),
+])
+@pytest.mark.parametrize("stage", [[], ["--samples", "2"]])
+def test_cli_fit_bounds_the_fit_refuses_are_one_line_naming_the_option(tmp_path, capsys, dough_scene, lam, params,
+                                                                       bounds, said, stage):
+    """Bounds refused once the scene is known (an end the material refuses: a softening past
+    -2 mu, a bulk modulus below 0; lo <= 0 of a parameter fitted as its logarithm) were named
+    as fit's Python parameter, "bounds['hardening'] = (-1e+06, 100)", not as the option typed;
+    with --samples too, whose steps are sized from the bounds before the fit."""
+    from warp_esph.cli import main
+    from warp_esph.scenes import load_scene
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2).replace("lam = 3000.0", f"lam = {lam}"))
+    x0 = load_scene(str(guess)).builder.finalize().particle_x0
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.stack([x0]), frames=[2])
+    capsys.readouterr()
+    out = tmp_path / "fit"
+    assert main(["fit", str(guess), "--target", str(target), "--params", params, "--bounds", bounds, "--iterations", "1",
+                 "--no-progress", "--no-usd", "--output-dir", str(out), *stage]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("warp-esph fit: ")]
+    assert len(err) == 1 and err[0].startswith(f"warp-esph: error: {said}"), err
+    assert not out.exists()

@@ -144,7 +144,8 @@ def run_fit(args, out=None, err=None) -> int:
 
     from .cli import _parse_bounds, _safe_point, option_flag  # noqa: PLC0415
     from .fit import (  # noqa: PLC0415
-        Experiment, FitInterrupted, _material_indices, check_options, fit, load_target, solvers_record, starts_stable_steps)
+        BoundsError, Experiment, FitInterrupted, _material_indices, check_options, fit, load_target, solvers_record,
+        starts_stable_steps)
     from .rollout import RolloutMemoryError  # noqa: PLC0415
     from .scenes import load_scene  # noqa: PLC0415
     from .simulate import MAX_STEPS_PER_FRAME, resolve_timestep  # noqa: PLC0415
@@ -257,9 +258,13 @@ def run_fit(args, out=None, err=None) -> int:
         # stiffer start (a start at 4 x mu ran at 2 x its step, warned and could blow up): the
         # experiments whose step is the command's own choice take the stiffest start's, the
         # same for all starts (fit.starts_stable_steps: the points fit draws, before any run).
-        limits = starts_stable_steps([e.model for e in exps], params, materials=[e.materials or None for e in exps],
-                                     bounds=bounds, samples=opts["samples"], starts=opts["starts"],
-                                     sample_range=sample_range, seed=seed, names=[e.scene.name for e in exps])
+        try:
+            limits = starts_stable_steps([e.model for e in exps], params, materials=[e.materials or None for e in exps],
+                                         bounds=bounds, samples=opts["samples"], starts=opts["starts"],
+                                         sample_range=sample_range, seed=seed, names=[e.scene.name for e in exps])
+        except BoundsError as e:
+            # Named as typed: it was "bounds['lam'] = (-1e+05, 100)", fit's parameter.
+            raise ValueError(e.said(option_flag)) from None
         for k, (e, limit) in enumerate(zip(exps, limits)):
             if e.auto_step and limit < e.dt:
                 steps = (1.0 / e.fps) / limit * (1.0 - 1e-12)
@@ -356,6 +361,8 @@ def run_fit(args, out=None, err=None) -> int:
                      sample_range=sample_range, seed=seed,
                      patience=_arg(args, "patience", 20), diagnostics=not _arg(args, "no_diagnostics", False),
                      noise=_arg(args, "noise"), log=log, callback=lambda *_: _safe_point(args))
+    except BoundsError as e:
+        raise ValueError(e.said(option_flag)) from None
     except RolloutMemoryError as e:
         k = next((k for k, x in enumerate(experiments) if x is e.experiment), None)
         if k is None:

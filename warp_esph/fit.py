@@ -855,6 +855,28 @@ class _Run(_Values):
         return fitted
 
 
+def bounds_said(name: str, lo: float, hi: float, flag=lambda name: name) -> str:
+    """A parameter's bounds as the caller gave them: ``bounds['mu'] = (1, 10)`` to ``fit``,
+    ``--bounds mu=1:10`` on the command line (``flag`` names options with ``--``; it was
+    ``--bounds['mu'] = (1.0, 10.0)``, which no one types)."""
+    if flag("bounds").startswith("--"):
+        return f"{flag('bounds')} {name}={lo:g}:{hi:g}"
+    return f"{flag('bounds')}[{name!r}] = ({lo:g}, {hi:g})"
+
+
+class BoundsError(ValueError):
+    """Bounds of a fitted parameter that the fit refuses once the model is known (``lo`` of a
+    log-space parameter at or below 0; an end the material refuses). ``said(flag)``: the
+    message naming them as ``flag`` names options (the command line's ``--bounds NAME=LO:HI``)."""
+
+    def __init__(self, name: str, lo: float, hi: float, reason: str):
+        self.name, self.lo, self.hi, self.reason = name, lo, hi, reason
+        super().__init__(self.said())
+
+    def said(self, flag=lambda name: name) -> str:
+        return f"{bounds_said(self.name, self.lo, self.hi, flag)} is not allowed: {self.reason}"
+
+
 class RefusedPoint(FloatingPointError):
     """A point of optimiser space whose values the materials refuse; the optimisers treat it
     as a failed trial (as a rollout that blew up), its reason kept in the history's note."""
@@ -915,7 +937,13 @@ class _Problem:
         for name, (lo, hi) in (bounds or {}).items():  # their form checked by check_options
             lo, hi = float(lo), float(hi)
             if self.spaces[name] == "log" and lo <= 0.0 and lo != -math.inf:
-                raise ValueError(f"bounds[{name!r}] = ({lo}, {hi}) is not allowed: need lo > 0 for a positive parameter")
+                # Fitted as log(value): lam or a hardening of positive initial values is too, and
+                # 'a positive parameter' did not say why, nor how to fit one across 0.
+                why = (f"{name} is positive" if name in _POSITIVE else
+                       f"{name} is fitted as its logarithm, its initial value{'s' if self.k > 1 else ''} "
+                       f"{', '.join(f'{x:g}' for x in values[name][first.idx])} being positive (from 0 or below it is "
+                       "fitted as itself, and may cross 0)")
+                raise BoundsError(name, lo, hi, f"need lo > 0: {why}")
             self.bounds[name] = (lo, hi)
         for name in params:
             # A value fitted in linear space whose range starts at 0 (a viscosity, a pressure
@@ -930,7 +958,7 @@ class _Problem:
                 if math.isfinite(end):
                     why = self.refusal(guess | {name: np.full(self.k, end)})
                     if why is not None:
-                        raise ValueError(f"bounds[{name!r}] = ({lo:g}, {hi:g}) is not allowed: at {end:g}, {why}")
+                        raise BoundsError(name, lo, hi, f"at {end:g}, {why}")
         why = self.refusal(self.from_z(self.to_z(guess)))
         if why is not None:
             raise ValueError(f"the initial values are not allowed within the bounds: {why}")
@@ -1190,10 +1218,10 @@ def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds
             raise ValueError(f"{flag('bounds')}[{name!r}] = {rng!r} is not allowed: must be (lo, hi) numbers") from None
         if math.isnan(lo) or math.isnan(hi):
             # It said 'need lo < hi' of (nan, 1.0), which reads as a wrong order.
-            raise ValueError(f"{flag('bounds')}[{name!r}] = ({lo}, {hi}) is not allowed: a bound must be a number, not "
-                             "NaN (an open end is -inf or inf)")
+            raise ValueError(f"{bounds_said(name, lo, hi, flag)} is not allowed: a bound must be a number, not NaN (an "
+                             "open end is -inf or inf)")
         if not lo < hi:
-            raise ValueError(f"{flag('bounds')}[{name!r}] = ({lo}, {hi}) is not allowed: need lo < hi")
+            raise ValueError(f"{bounds_said(name, lo, hi, flag)} is not allowed: need lo < hi")
     return out
 
 
