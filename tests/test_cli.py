@@ -519,6 +519,10 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
          ["--lr = 1e-07 is not allowed with xtol = 1e-06: must be > xtol (the first step of Adam and of L-BFGS moves "
           "by --lr, and a step below xtol counts as converged)"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--seed", "-1"], ["--seed = -1 is not allowed: must be an integer >= 0"]),
+        # Named as fit()'s parameters (worlds = True, optimizer = 'gauss-newton'), after the scene was read.
+        (["fit", "nothing.toml", "--target", "t.npz", "--optimizer", "gauss-newton", "--starts", "2", "--worlds"],
+         ["--worlds is not allowed with --optimizer gauss-newton: its starts run one after the other",
+          "leave --worlds out"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--bounds", "yield_stress=10:1"],
          ["--bounds yield_stress=10:1 is not allowed: need lo < hi"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--bounds", "yield_stress=nan:1"],

@@ -188,6 +188,11 @@ def run_fit(args, out=None, err=None) -> int:
     if _arg(args, "worlds", False) and opts["starts"] < 2:
         raise ValueError(f"--worlds is not allowed with --starts = {opts['starts']}: it runs several starts at once "
                          "as worlds of one model; give --starts K > 1")
+    if _arg(args, "worlds", False) and _arg(args, "optimizer") == "gauss-newton":
+        # fit() refused it after the scene and targets were read, naming its own parameters
+        # ("worlds = True ... optimizer = 'gauss-newton'").
+        raise ValueError("--worlds is not allowed with --optimizer gauss-newton: its starts run one after the other "
+                         "(forward runs only); leave --worlds out, or give --optimizer lbfgs or adam")
     for flag, name in (("--output-dir", "output_dir"), ("--output", "output"), ("--experiments", "experiments"),
                        ("--cameras", "cameras")):
         value = _arg(args, name)
