@@ -2171,3 +2171,27 @@ def test_cli_fit_bounds_the_fit_refuses_are_one_line_naming_the_option(tmp_path,
     err = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("warp-esph fit: ")]
     assert len(err) == 1 and err[0].startswith(f"warp-esph: error: {said}"), err
     assert not out.exists()
+
+
+def test_the_fit_help_says_the_iteration_cap_is_each_starts_as_it_is(tmp_path, capsys, dough_scene):
+    """--help said 'gradient evaluations after the first': the cap is each start's (two
+    starts at --iterations 1 make up to 4), Gauss-Newton's are forward runs, and --clip, which
+    only Adam takes, read as an option of every fit."""
+    from warp_esph.cli import main
+    from warp_esph.scenes import load_scene
+
+    with pytest.raises(SystemExit):
+        main(["fit", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "evaluations of each start after its first, line-search trials (gauss-newton: Jacobian runs) included" in text
+    assert "--clip C Adam only:" in text
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    x0 = load_scene(str(guess)).builder.finalize().particle_x0
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.stack([x0 + np.random.default_rng(2).normal(0, 0.005, x0.shape)]), frames=[2])
+    assert main(["fit", str(guess), "--target", str(target), "--params", "yield_stress", "--iterations", "1", "--starts",
+                 "2", "--no-progress", "--no-usd", "--no-diagnostics", "--output-dir", str(tmp_path / "o")]) == 0
+    history = json.loads((tmp_path / "o" / "fit.json").read_text())["history"]
+    per_start = [sum(1 for h in history if h.get("start") == k) for k in (0, 1)]
+    assert 1 <= max(per_start) <= 2 and sum(per_start) == len(history) > 2, per_start

@@ -931,12 +931,13 @@ def add_fit_arguments(parser):
     parser.add_argument("--material", action="append", metavar="BODY",
                         help="fit only this body's material (name or material index); repeatable; default all")
     parser.add_argument("--iterations", type=int, default=50, metavar="N",
-                        help="gradient evaluations after the first, line-search trials included (default 50, at most 100000)")
+                        help="evaluations of each start after its first, line-search trials (gauss-newton: Jacobian "
+                             "runs) included; --samples' runs not counted (default 50, at most 100000)")
     parser.add_argument("--lr", type=float, metavar="LR",
                         help="Adam step size, relative; L-BFGS: its first step (default 0.1, at most 10; "
                              "not with gauss-newton)")
     parser.add_argument("--bounds", action="append", default=[], metavar="NAME=LO:HI", help="bounds of a parameter; repeatable")
-    parser.add_argument("--clip", type=float, metavar="C", help="clip the gradient norm (log space) to C")
+    parser.add_argument("--clip", type=float, metavar="C", help="Adam only: clip the gradient norm (log space) to C")
     parser.add_argument("--target-frames", action="append", metavar="F,G",
                         help="a run's USD: the frames to fit ('2,4,6', '10:60:10', 'last'; default all after the first); "
                              ".npz with 'frames': which of them; .npy (.npz without 'frames'): the frame of each entry "
