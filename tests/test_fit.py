@@ -1397,6 +1397,38 @@ def test_a_trial_whose_rollout_blows_up_while_finite_fails(worlds):
                 progress=False, diagnostics=False)
 
 
+def _expanding_cube(mu=1e3):
+    """27 float32 particles expanding from their centre at 2 1/s, under gravity."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), we.Material(mu=mu, lam=1.5 * mu, density=1000.0), name="cube")
+    m = b.finalize(dtype=wp.float32, requires_grad=True)
+    m.particle_v0 = 2.0 * (m.particle_x0 - m.particle_x0.mean(axis=0))
+    return m
+
+
+@pytest.mark.parametrize("worlds", [False, True])
+def test_a_start_whose_rollout_goes_non_finite_fails_with_a_note(worlds):
+    """Adam's step of 10 in log mu takes start 0 from 8000 to 2.4e6 Pa at a dt far past that
+    stiffness's stable step: the float32 cube goes non-finite after step 16 of 20 (measured).
+    The divergence monitor caught only finite blow-ups, so that trial was recorded with loss
+    NaN and no word of where it blew up (with worlds too); it is a divergence as a finite one
+    is now: loss inf, noted with the first non-finite particle and step."""
+    m = _expanding_cube()
+    dt, steps = 0.5 * m.stable_dt(), 20
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the target's and the trials' dt past their stable step
+        target = Rollout(_expanding_cube(1e4), steps, dt, frames=[steps]).forward()
+        result = fit(_expanding_cube(), PositionLoss(target, frames=[steps]), ["mu"], steps=steps, dt=dt, iterations=3,
+                     optimizer="adam", lr=10.0, starts=2, sample_range=2.0, seed=1, worlds=worlds, progress=False,
+                     diagnostics=False)
+    trials = [(h.get("start"), h["loss"], h["params"]["mu"][0], h.get("note")) for h in result.history]
+    assert not any(math.isnan(h["loss"]) for h in result.history), trials
+    gone = [h for h in result.history if h.get("note", "").startswith("diverged: non-finite position or velocity")]
+    assert gone, trials
+    assert all(h["loss"] == math.inf and h["params"]["mu"][0] > 1e6 for h in gone), trials
+    assert all(re.search(r"\(particle \d+, after step \d+ of 20", h["note"]) for h in gone), trials
+
+
 def test_a_float32_model_is_fitted_from_its_guess():
     """A float32 model's guess was taken through log in float32 (the arrays' values), so the
     fit's start missed it by 1e-7, was said to lie outside bounds never given, and that
@@ -1881,19 +1913,21 @@ def test_a_non_finite_rollout_within_the_stable_step_does_not_blame_dt():
 
 
 @pytest.mark.parametrize("worlds", [False, True])
-def test_a_fit_whose_guess_runs_to_non_finite_values_fails_as_before(worlds):
+def test_a_fit_whose_guess_runs_to_non_finite_values_fails_naming_the_step(worlds):
     """The rollout's non-finite check is ``fit``'s to skip: it fails such a trial itself (loss
-    inf; with worlds that world alone), and at the guess it stops with its own message. (A
-    start at ``BLOWING_UP`` is refused before any rollout now, as faster than a spacing a step:
-    here gravity of 2e37 m/s^2 takes the cube past the float32 range in the third step, from rest.)"""
+    inf; with worlds that world alone), and at the guess it stops saying where the run went
+    non-finite (it said only that the loss was NaN, as a divergence that stayed finite names
+    its bound). (A start at ``BLOWING_UP`` is refused before any rollout now, as faster than a
+    spacing a step: here gravity of 2e37 m/s^2 takes the cube past the float32 range in the
+    third step, from rest.)"""
     model = _overflowing_cube()
     target = PositionLoss({4: model.particle_x0.astype(np.float64)}, frames=[4])
     model.particle_v0 = np.zeros_like(model.particle_v0)
     model.gravity = (2.0e37, 0.0, 0.0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        with pytest.raises(FloatingPointError, match=r"^the loss or its gradient is not finite at the "
-                                                        r"initial guess \(loss = nan\)$"):
+        with pytest.raises(FloatingPointError, match=r"^the rollout at the initial guess diverged: non-finite position "
+                                                        r"or velocity \(particle 0, after step 3 of 4\)$"):
             fit(model, target, ["mu"], steps=4, dt=BLOWING_DT, iterations=2, worlds=worlds, starts=2 if worlds else 1,
                 progress=False, diagnostics=False)
 

@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -170,6 +171,66 @@ def test_monitor_bounds_are_physical():
     hot = np.tile([0.0, 0.0, 9.0 * mon.speed_bound(0.0)], (model.particle_count, 1))
     what, _ = mon.check(x0, hot, 0.0)
     assert what.startswith("kinetic energy")
+
+
+def test_monitor_counts_a_non_finite_state_as_a_blow_up():
+    """A NaN passes every comparison of the monitor's bounds, so ``check`` passed a NaN state
+    (a fit's trial, which reads the monitor alone, was recorded with loss NaN and no note).
+    A non-finite position or velocity among the particles checked is a blow-up now, named by
+    its first particle, also where the bounds do not run (a repelling field); an exempt body's
+    is left to it as its bounds are."""
+    b = we.SceneBuilder(spacing=0.05)
+    b.add_box((0.0, 0.0, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="a")
+    b.add_box((1.0, 0.0, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"), name="b")
+    model = b.finalize()
+    state = model.state()
+    x, v = state.x.numpy().astype(np.float64), state.v.numpy().astype(np.float64)
+    first_b = model.bodies[1].start
+    for mon in (DivergenceMonitor(model, state), DivergenceMonitor(model, state, ["b"])):
+        assert mon.check(x, v, 0.1) is None
+        bad_v = v.copy()
+        bad_v[[5, 6]] = np.nan
+        what, p = mon.check(x, bad_v, 0.1)
+        assert p == 5 and what == "non-finite position or velocity (particle 5 is the first of 2 bad particles)"
+        bad_x = x.copy()
+        bad_x[first_b + 1, 2] = np.inf
+        hit = mon.check(bad_x, v, 0.1)
+        assert (hit is None) == (mon.keep[first_b + 1] == 0), hit
+        if hit is not None:
+            assert hit == ("non-finite position or velocity (particle %d is the first of 1 bad particles)" % (first_b + 1),
+                           first_b + 1)
+    repelled = we.SceneBuilder(spacing=0.05)
+    repelled.add_box((0.0, 0.0, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
+    repelled.add_compression_field((0.0, 0.0, 0.0), strength=-1.0)
+    model = repelled.finalize()
+    state = model.state()
+    mon = DivergenceMonitor(model, state)
+    assert not mon.enabled
+    x = state.x.numpy().copy()
+    x[2] = np.nan
+    assert mon.check(x, state.v.numpy(), 0.1)[1] == 2
+
+
+def test_simulate_stops_a_run_gone_non_finite_naming_step_frame_and_particle():
+    """The float32 cube of the fit's non-finite trial (mu 2.4e6 Pa at a dt 25 x its stable
+    step) goes non-finite within the first frame's 20 steps: ``simulate`` stops it as a
+    divergence (as ``sweep``'s samples, which run it, record), naming the step, the frame and
+    the first non-finite particle, as it names a finite blow-up's."""
+    def cube(mu):
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), we.Material(mu=mu, lam=1.5 * mu, density=1000.0), name="cube")
+        m = b.finalize(dtype=wp.float32)
+        m.particle_v0 = 2.0 * (m.particle_x0 - m.particle_x0.mean(axis=0))
+        return m
+
+    dt = 0.5 * cube(1e3).stable_dt()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # dt past the stable step, on purpose
+        with pytest.raises(we.SimulationError, match=r"^the simulation diverged after step 20 \(frame 1, .*\): non-finite "
+                           r"position or velocity \(particle (\d+) is the first of \d+ bad particles\), at particle \1 of "
+                           r"body 'cube'; try a smaller dt=") as e:
+            we.simulate(cube(2.4e6), 1, fps=1.0 / (20 * dt), substeps=20, progress=False)
+    assert (e.value.step, e.value.frame, e.value.body) == (20, 1, "cube")
 
 
 HANGING_BEAM = """

@@ -883,19 +883,27 @@ class RefusedPoint(FloatingPointError):
 
 
 class Diverged(FloatingPointError):
-    """A rollout that blew up while staying finite (``simulate.DivergenceMonitor``'s bounds,
-    which stop ``simulate`` and the CLI's runs, on its last state): a failed trial, as a
-    non-finite one, its reason kept in the history's note. Its loss, finite, had been taken
-    as a result (a block at 1 km scored 1.6e6 m^2 and the fit reported its values)."""
+    """A rollout that blew up, to non-finite values or while staying finite
+    (``simulate.DivergenceMonitor``'s bounds, which stop ``simulate`` and the CLI's runs, on
+    its last state): a failed trial, its reason kept in the history's note. Its loss, finite,
+    had been taken as a result (a block at 1 km scored 1.6e6 m^2 and the fit reported its
+    values); a NaN one was recorded as NaN with no word of where the run went non-finite."""
 
 
 def _divergence(model: Model, rollout: Rollout, particles=None, first: int = 0) -> str | None:
-    """Why the rollout's last state is a blow-up (``simulate.DivergenceMonitor`` from its
-    initial state, ``particles`` as there), or None. The particle is named by its index less
-    ``first``: a world's first particle, so that a start run as a world is noted as it is
-    run alone (its history describes the one-world model)."""
+    """Why the rollout is a blow-up, or None: a non-finite position or velocity among
+    ``particles`` (at a frame or in the last state; the first step found so), else
+    ``simulate.DivergenceMonitor``'s bounds from its initial state on the last state. The
+    particle is named by its index less ``first``: a world's first particle, so that a start
+    run as a world is noted as it is run alone (its history describes the one-world model)."""
     from .simulate import DivergenceMonitor  # noqa: PLC0415
 
+    bad = rollout.first_non_finite(particles)
+    if bad is not None:
+        step, p, last_finite = bad
+        since = "" if step - last_finite <= 1 else f", finite after step {last_finite}"
+        return (f"diverged: non-finite position or velocity (particle {p - first}, after step {step} of "
+                f"{rollout.steps}{since})")
     monitor = DivergenceMonitor(model, rollout._initial, particles=particles, solver=rollout.solver)
     final = rollout.final_state()
     hit = monitor.check(final.x.numpy(), final.v.numpy(), rollout.steps * rollout.dt)

@@ -904,32 +904,56 @@ class Rollout:
                 self._store_forces(k, states[k + 1])
             self._final = states[self.steps]
 
-    def _check_finite(self, positions: np.ndarray):
-        """Raise ``NonFiniteRollout`` where the frame ``positions`` or the last state's
-        positions or velocities are not finite."""
+    def first_non_finite(self, particles=None, positions: np.ndarray | None = None) -> tuple[int, int, int] | None:
+        """``(step, particle, last_finite)`` of the latest forward's first non-finite position
+        or velocity among ``particles`` (a boolean mask; None: all), or None where the frames
+        and the last state are finite there. ``step``: the first state (steps taken) found
+        non-finite, exact with a full tape; otherwise the first checked one (a checkpoint, a
+        frame or the last state) after ``last_finite``, the last full state found finite.
+        ``positions``: the frames' positions where the caller has read them already."""
+        if positions is None:
+            positions = self.positions()
+        keep = slice(None) if particles is None else np.asarray(particles, dtype=bool)
+
+        def first(*arrays):
+            # The mask's own first: a model of worlds fails the world that blew up alone.
+            if particles is None:
+                return _first_non_finite(*arrays)
+            p = _first_non_finite(*(a[keep] for a in arrays))
+            return None if p is None else int(np.flatnonzero(keep)[p])
+
         final = self._final
         last = [final.v.numpy()]
         if self.steps not in self._frame_slot:
             last.append(final.x.numpy())
-        if np.isfinite(positions).all() and all(np.isfinite(a).all() for a in last):
-            return
+        if np.isfinite(positions[:, keep]).all() and all(np.isfinite(a[keep]).all() for a in last):
+            return None
         # The failure path only: find the first non-finite state among those kept.
-        m = self.model
         known = []  # (steps taken, its first non-finite particle or None, whether x and v were read)
         if self._tape is not None:  # a full tape keeps every state
             for k in range(1, self.steps + 1):
-                p = _first_non_finite(self._states[k].x.numpy(), self._states[k].v.numpy())
+                p = first(self._states[k].x.numpy(), self._states[k].v.numpy())
                 known.append((k, p, True))
                 if p is not None:
                     break
         else:
-            known += [(start, _first_non_finite(ck.x.numpy(), ck.v.numpy()), True)
+            known += [(start, first(ck.x.numpy(), ck.v.numpy()), True)
                       for (start, _), ck in zip(self.segments, self._checkpoints)]
-            known += [(f, _first_non_finite(positions[j]), False) for j, f in enumerate(self.frames)]
-            known.append((self.steps, _first_non_finite(*last, positions[-1]) if self.steps in self._frame_slot
-                          else _first_non_finite(*last), True))
+            known += [(f, first(positions[j]), False) for j, f in enumerate(self.frames)]
+            known.append((self.steps, first(*last, positions[-1]) if self.steps in self._frame_slot
+                          else first(*last), True))
         step, p = min((k, p) for k, p, _ in known if p is not None)
         last_finite = max([0] + [k for k, p, full in known if p is None and full and k < step])
+        return step, p, last_finite
+
+    def _check_finite(self, positions: np.ndarray):
+        """Raise ``NonFiniteRollout`` where the frame ``positions`` or the last state's
+        positions or velocities are not finite."""
+        bad = self.first_non_finite(positions=positions)
+        if bad is None:
+            return
+        step, p, last_finite = bad
+        m = self.model
         body = m.bodies[int(m.particle_body_np[p])].name
         where = f"particle {p} of body {body!r}" + (f" (world {int(m.world_of_particle[p])})" if m.world_count > 1 else "")
         # A rollout made with taped=False refuses forward(taped=True): the advice names one that runs.

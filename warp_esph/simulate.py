@@ -156,11 +156,13 @@ class SimulationError(RuntimeError):
 
 
 class DivergenceMonitor:
-    """Catches a run that has blown up but stays finite, from what the scene can do.
+    """Catches a run that has blown up, to non-finite values or while staying finite, from
+    what the scene can do.
 
-    Made from the model and the run's first state; ``check(state, t)`` (``t``: seconds since
-    that state) returns ``None`` or ``(what, particle)``. Three bounds, each a generous
-    multiple of what the physics allows:
+    Made from the model and the run's first state; ``check(x, v, t)`` (``t``: seconds since
+    that state) returns ``None`` or ``(what, particle)``: a non-finite position or velocity
+    among the particles checked is a blow-up whatever the bounds below (also where they do
+    not run). Three bounds, each a generous multiple of what the physics allows:
 
     - speed: no particle can move faster than its initial speed, plus the fall from the
       highest particle to the lowest floor (``sqrt(2 g H)``; ``g t`` where nothing stops a
@@ -360,7 +362,14 @@ class DivergenceMonitor:
         return float(self.speed_bounds(t).max())
 
     def check(self, x: np.ndarray, v: np.ndarray, t: float):
-        """``None``, or ``(why, particle)`` for the first bound exceeded."""
+        """``None``, or ``(why, particle)``: a non-finite position or velocity among the
+        particles checked (whatever bounds run: a NaN passes every comparison, and a caller
+        reading this alone, a fit's trial, took a NaN run as no blow-up), else the first bound
+        exceeded."""
+        bad = ~(np.isfinite(x[self.keep]).all(axis=1) & np.isfinite(v[self.keep]).all(axis=1))
+        if bad.any():
+            p = int(np.flatnonzero(self.keep)[int(np.argmax(bad))])
+            return f"non-finite position or velocity (particle {p} is the first of {int(bad.sum())} bad particles)", p
         if not self.enabled:
             return None
         # A blown-up speed past 1e154 m/s squares to inf in float64, which is past every bound
