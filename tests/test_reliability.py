@@ -23,6 +23,7 @@ import warp_esph as we
 from run_files import box_on_ground, frames_in, refused_run
 from warp_esph.checkpoint import read_checkpoint, save_state
 from warp_esph.cli import main
+from warp_esph.rollout import Rollout
 from warp_esph.scenes import get_scene, load_scene_file
 from warp_esph.simulate import DivergenceMonitor, divergence_advice, resolve_timestep
 
@@ -231,6 +232,60 @@ def test_simulate_stops_a_run_gone_non_finite_naming_step_frame_and_particle():
                            r"body 'cube'; try a smaller dt=") as e:
             we.simulate(cube(2.4e6), 1, fps=1.0 / (20 * dt), substeps=20, progress=False)
     assert (e.value.step, e.value.frame, e.value.body) == (20, 1, "cube")
+
+
+def _stiff_cube(mu):
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.1, 0.0), (0.06, 0.06, 0.06), we.Material(mu=mu, lam=1.5 * mu, density=1000.0), name="cube")
+    b.add_ground()
+    m = b.finalize(dtype=wp.float64, requires_grad=True)
+    m.particle_v0 = 2.0 * (m.particle_x0 - m.particle_x0.mean(axis=0))
+    return m
+
+
+def test_monitor_reach_holds_at_any_stiffness():
+    """The reach bound grew with the p-wave speed (sqrt(mu / rho)): a 6 cm float64 cube at
+    mu = 1e25 Pa stepped once at half the stable step of 1e3 Pa put particles 2.5 km out of
+    the scene (1e30 Pa: 2.5e8 m), and no bound caught it. Positions that far are a blow-up at
+    any stiffness now; a fall and the recoil of the elastic energy stored at the start (which
+    a stiff prestrained body really has) stay within it."""
+    dt = 0.5 * _stiff_cube(1e3).stable_dt()
+    model = _stiff_cube(1e25)
+    state = model.state()
+    mon = DivergenceMonitor(model, state)
+    x0 = state.x.numpy().astype(np.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # dt far past the stable step, on purpose
+        after = Rollout(model, 1, dt, frames=[1]).forward(check=False)[0].astype(np.float64)
+    assert np.abs(after).max() > 1e3
+    what, p = mon.check(after, np.zeros_like(after), dt)
+    assert "outside the scene" in what and "at any stiffness" in what, what
+    # Within the bound that reads the p-wave speed: only the one that holds at any stiffness caught it.
+    outside = np.maximum(np.maximum(mon.lo - after, after - mon.hi), 0.0)
+    assert (np.linalg.norm(outside, axis=1) < mon.REACH_FACTOR * (mon.diagonal + mon.speed_bounds(dt) * dt)).all()
+    # A free fall of 2 s is no blow-up, at any stiffness.
+    for mu in (1e3, 1e30):
+        m = _stiff_cube(mu)
+        m.planes = []
+        mon = DivergenceMonitor(m, m.state())
+        t = 2.0
+        v = np.tile([0.0, -9.81 * t, 0.0], (m.particle_count, 1))
+        assert mon.check(x0 + [0.0, -0.5 * 9.81 * t * t, 0.0], v, t) is None
+    # A stiff cube prestrained by 1 %: its stored energy can throw a particle farther than the
+    # bound without it (its recoil joins the distance), and a particle beyond every bound is caught.
+    model = _stiff_cube(1e12)
+    state = model.state()
+    state.F.assign(np.tile(np.diag([1.01, 1.0, 1.0]), (model.particle_count, 1, 1)))
+    mon = DivergenceMonitor(model, state)
+    t = 0.1
+    plain = mon.FAR_FACTOR * (mon.diagonal + float((mon.speed_bounds(t) - mon.wave).max()) * t)
+    assert mon.recoil * t > plain
+    x = x0.copy()
+    x[7, 0] = mon.hi[0] + 2.0 * plain
+    assert mon.check(x, np.zeros_like(x), t) is None
+    x[7, 0] = mon.hi[0] + 1.01 * mon.FAR_FACTOR * (mon.diagonal + float((mon.speed_bounds(t) - mon.wave).max() + mon.recoil) * t)
+    what, p = mon.check(x, np.zeros_like(x), t)
+    assert p == 7 and "outside the scene" in what, what
 
 
 HANGING_BEAM = """
