@@ -1429,6 +1429,41 @@ def test_a_start_whose_rollout_goes_non_finite_fails_with_a_note(worlds):
     assert all(re.search(r"\(particle \d+, after step \d+ of 20", h["note"]) for h in gone), trials
 
 
+@pytest.mark.parametrize("worlds", [False, True])
+def test_a_trial_the_neighbour_search_stops_fails_alone(monkeypatch, worlds):
+    """A row of candidates past ``MAX_CANDIDATES`` (a blow-up whose stretch widens the search
+    over the whole body; lowered here to 100 so that a 125-particle cube shows it, whose rows
+    hold at most 59 at rest and all 124 once it blows up) raised a RuntimeError out of the
+    step, shared by every world: one start's trial at mu 1.2e7 Pa (its Adam step, measured)
+    ended the whole fit, as it did without worlds. It is that trial's failure now (loss inf,
+    noted with the particle), and the fit goes on."""
+    import warp_esph.sim.neighbors as nb  # noqa: PLC0415
+
+    def cube(mu):
+        b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+        b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), we.Material(mu=mu, lam=1.5 * mu, density=1000.0), name="cube")
+        m = b.finalize(dtype=wp.float64, requires_grad=True)
+        m.particle_v0 = 2.0 * (m.particle_x0 - m.particle_x0.mean(axis=0))
+        return m
+
+    monkeypatch.setattr(nb, "MAX_CANDIDATES", 100)
+    dt, steps = 0.5 * cube(1e3).stable_dt(), 10
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the target's and the trials' dt past their stable step
+        target = Rollout(cube(1e4), steps, dt, frames=[steps]).forward()
+        result = fit(cube(1e3), PositionLoss(target, frames=[steps]), ["mu"], steps=steps, dt=dt, iterations=3,
+                     optimizer="adam", lr=10.0, starts=2, sample_range=2e4, seed=4, worlds=worlds, progress=False,
+                     diagnostics=False)
+    trials = [(h.get("start"), h["loss"], h["params"]["mu"][0], h.get("note")) for h in result.history]
+    stopped = [h for h in result.history if h.get("note", "").startswith("diverged: the neighbour search found")]
+    assert stopped, trials
+    assert all(h["loss"] == math.inf and re.search(r"more than 100 .*\(particle \d+\)", h["note"]) for h in stopped), trials
+    # The start goes on past it, and the other start's trials are its own.
+    assert any(math.isfinite(h["loss"]) and h["iteration"] > stopped[0]["iteration"] and h["start"] == stopped[0]["start"]
+               for h in result.history), trials
+    assert math.isfinite(result.loss)
+
+
 def test_a_float32_model_is_fitted_from_its_guess():
     """A float32 model's guess was taken through log in float32 (the arrays' values), so the
     fit's start missed it by 1e-7, was said to lie outside bounds never given, and that

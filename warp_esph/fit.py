@@ -57,6 +57,7 @@ from .losses import (ChamferLoss, Loss, MeshLoss, PositionLoss, SlumpLoss, SumLo
 from .material import PRESSURE_BULK_SHARE, Material, _following_force
 from .model import Model, State, check_material_precision
 from .rollout import FRAME_BUFFERS, PARAMETERS, Rollout, RolloutMemoryError, _RolloutMemory, check_initial
+from .sim.neighbors import NeighborOverflow
 from .sim.solver import keeps_incremental
 
 __all__ = ["fit", "FitResult", "Experiment", "Adam", "memory_estimate", "choose_checkpointing", "latin_hypercube",
@@ -801,10 +802,16 @@ class _Run(_Values):
     tape_values = False
 
     def forward(self, taped: bool = True) -> np.ndarray:
-        """The rollout from this experiment's starts (checked once, at set-up)."""
+        """The rollout from this experiment's starts (checked once, at set-up). A neighbour
+        search whose row overflows (``NeighborOverflow``) raises ``Collapsed``, a failed trial."""
         # check=False: a non-finite trial is the fit's to fail (a failed trial, loss inf;
         # with worlds the one world's start alone), not an error ending the fit.
-        return self.rollout._forward_checked(self.starts, self.initial.get("initial_state"), check=False, taped=taped)
+        try:
+            return self.rollout._forward_checked(self.starts, self.initial.get("initial_state"), check=False,
+                                                 taped=taped)
+        except NeighborOverflow as e:
+            # A blow-up the search met before the monitor could read it: it had ended the whole fit.
+            raise Collapsed(e) from None
 
     def value_forward(self) -> np.ndarray:
         """``forward`` for an evaluation that reads the loss alone (Gauss-Newton's residuals,
@@ -888,6 +895,27 @@ class Diverged(FloatingPointError):
     its last state): a failed trial, its reason kept in the history's note. Its loss, finite,
     had been taken as a result (a block at 1 km scored 1.6e6 m^2 and the fit reported its
     values); a NaN one was recorded as NaN with no word of where the run went non-finite."""
+
+
+class Collapsed(Diverged):
+    """A rollout whose neighbour search stopped it (``NeighborOverflow``: a particle with more
+    than ``MAX_CANDIDATES`` candidates, a body crushed together or a blow-up whose stretch
+    widened the search over it): a failed trial, as a divergence. ``particles``: those past
+    the limit (with worlds, the worlds whose starts fail)."""
+
+    def __init__(self, error, first: int = 0, particles=None):
+        self.error = error
+        self.particles = error.particles if particles is None else particles
+        super().__init__(_collapse_note(error, self.particles, first))
+
+
+def _collapse_note(error, particles, first: int = 0) -> str:
+    from .sim.neighbors import MAX_CANDIDATES  # noqa: PLC0415 (read when raised: a test may lower it)
+
+    p = int(particles[0]) - first if len(particles) else None
+    return (f"diverged: the neighbour search found up to {error.need} particles within a particle's search radius, "
+            f"more than {MAX_CANDIDATES} (a body crushed together, or a blow-up whose stretch widened the search over "
+            f"it){'' if p is None else f' (particle {p})'}")
 
 
 def _divergence(model: Model, rollout: Rollout, particles=None, first: int = 0) -> str | None:
@@ -1819,7 +1847,7 @@ class _WorldsProblem:
         starts in it (each had been given the whole round's, and a history's seconds added up
         to about W times the fit's); ``round_seconds`` holds the round's."""
         t0 = time.perf_counter()
-        prob, W, k = self.prob, self.W, self.prob.k
+        prob, W = self.prob, self.W
         refused = {}
         for w, z in batch.items():
             p = prob.from_z(z)
@@ -1836,13 +1864,52 @@ class _WorldsProblem:
                 # failed start's world reran them every later round, 4-5 x a healthy round's time
                 # (6.4-7.5 s against 1.5-1.7 s, 3 worlds of 216 particles, 60 steps).
                 self.p[w] = prob.from_z(prob.z0)
+        guess = prob.from_z(prob.z0)
+        while True:
+            try:
+                values, gz, blew_up = self._round(batch, refused)
+                break
+            except Collapsed as e:
+                # The search stopped the whole round at the worlds it overflowed in: those starts
+                # fail (their worlds run the guess) and the round runs again for the others (it had
+                # ended the whole multi-start fit). Where a world running the guess overflows, or
+                # the particles name no world, every start of the round fails.
+                worlds = e.particles_worlds
+                hit = [w for w in worlds if not all(np.array_equal(self.p[w][n], guess[n]) for n in prob.params)]
+                if not hit or len(hit) < len(worlds):
+                    values, gz, blew_up = np.full(W, math.inf), {w: np.full(len(prob.z0), np.nan) for w in batch}, [True] * W
+                    for w in batch:
+                        refused.setdefault(w, e.world_notes.get(w, str(e)))
+                    break
+                for w in hit:
+                    refused.setdefault(w, e.world_notes[w])
+                    self.p[w] = guess
+        self.blew_up = blew_up
+        for w in refused:
+            values[w], gz[w] = math.inf, np.full(len(prob.z0), np.nan)
+        self.round_seconds = time.perf_counter() - t0
+        seconds = self.round_seconds / len(batch)
+        return {w: (float(values[w]), gz[w], seconds, refused.get(w)) for w in batch}
+
+    def _round(self, batch, refused):
+        """One pass of every world at ``self.p``: ``(values, gz, blew_up)``, each world that blew
+        up noted in ``refused``; raises ``Collapsed`` (with ``particles_worlds`` and
+        ``world_notes``) where the neighbour search stopped the pass."""
+        prob, W, k = self.prob, self.W, self.prob.k
         values = np.zeros(W)
         gz = {w: np.zeros(len(prob.z0)) for w in batch}
         blew_up = [False] * W
         try:
             for r in self.runs:
                 r.apply({name: np.concatenate([self.p[w][name] for w in range(W)]) for name in prob.params})
-                _, grads = r.value_and_grad(r.loss)
+                try:
+                    _, grads = r.value_and_grad(r.loss)
+                except Collapsed as e:
+                    of = r.model.world_of_particle[e.particles]
+                    e.particles_worlds = sorted({int(w) for w in of})
+                    e.world_notes = {w: _collapse_note(e.error, e.particles[of == w], int(r.model.world_start[w]))
+                                     for w in e.particles_worlds}
+                    raise
                 world_values = np.asarray(r.loss.world_values, dtype=np.float64)
                 g = r.grads(prob.params, grads)
                 for w in range(W):  # a world that blew up fails its start alone
@@ -1856,16 +1923,13 @@ class _WorldsProblem:
                     if w in batch:
                         gz[w] += r.weight * prob.grad_z(self.p[w], ran)
                 values += r.weight * world_values
+        except Collapsed:
+            raise
         except FloatingPointError:
             values[:] = math.inf
             gz = {w: np.full(len(prob.z0), np.nan) for w in batch}
             blew_up = [True] * W
-        self.blew_up = blew_up
-        for w in refused:
-            values[w], gz[w] = math.inf, np.full(len(prob.z0), np.nan)
-        self.round_seconds = time.perf_counter() - t0
-        seconds = self.round_seconds / len(batch)
-        return {w: (float(values[w]), gz[w], seconds, refused.get(w)) for w in batch}
+        return values, gz, blew_up
 
 
 def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record, halted=lambda: None) -> list[str]:

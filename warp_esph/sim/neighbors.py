@@ -259,6 +259,43 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         x_ref[i] = xi
 
     @wp.kernel(enable_backward=False, module="unique")
+    def count_candidates(
+        grid: wp.uint64,
+        grid_points: wp.array(dtype=wp.vec3f),
+        x: wp.array(dtype=vec3),
+        h: scalar,
+        skin: scalar,
+        F: wp.array(dtype=mat33),
+        with_stretch: int,
+        slack: scalar,
+        max_stretch: scalar,
+        group: wp.array(dtype=wp.int32),
+        same_group: int,
+        count: wp.array(dtype=wp.int32),
+    ):
+        """``build_candidates``'s count per particle, not capped: run only where a row would
+        pass ``MAX_CANDIDATES``, to name the particles (and so the worlds) that do."""
+        i = wp.tid()
+        xi = x[i]
+        bi = group[i]
+        st = scalar(1.0)
+        if with_stretch != 0:
+            st = candidate_stretch(F[i], with_stretch, slack, max_stretch)
+        radius = h * st + skin
+        r2 = radius * radius
+        n = int(0)
+        gp = grid_points[i]
+        query = wp.hash_grid_query(grid, gp, padded_query_radius(gp, wp.float32(radius)))
+        j = int(0)
+        while wp.hash_grid_query_next(query, j):
+            if j == i or (same_group != 0 and group[j] != bi):
+                continue
+            d = x[j] - xi
+            if wp.dot(d, d) < r2:
+                n += 1
+        count[i] = n
+
+    @wp.kernel(enable_backward=False, module="unique")
     def displacement_bounds(
         x: wp.array(dtype=vec3),
         x_ref: wp.array(dtype=vec3),
@@ -564,10 +601,23 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     return types.SimpleNamespace(
         grid_points=grid_points,
         build_candidates=build_candidates,
+        count_candidates=count_candidates,
         displacement_bounds=displacement_bounds,
         select_neighbors=select_neighbors,
         guard_code=guard_code,
     )
+
+
+class NeighborOverflow(RuntimeError):
+    """A candidate row past ``MAX_CANDIDATES``: a body crushed together, or a blow-up whose
+    stretch widened the search radius over the whole body. ``particles``: the indices of
+    those past it (a model of worlds: the worlds that blew up, ``fit`` failing their starts
+    alone); ``need``: the largest row."""
+
+    def __init__(self, message: str, *, particles, need: int):
+        super().__init__(message)
+        self.particles = np.asarray(particles, dtype=np.int64)
+        self.need = need
 
 
 class NeighborSearch:
@@ -687,15 +737,16 @@ class NeighborSearch:
             if self.candidates is None or self.candidates.shape[1] != self._capacity:
                 self.candidates = wp.empty((n, self._capacity), dtype=wp.int32, device=self.device)
             self._overflow.zero_()
+            args = [
+                self.grid.id, points, x, self.scalar(self.h), self.scalar(self.skin),
+                self._dummy_arrays()["F"] if F is None else F, int(F is not None), self.scalar(STRETCH_SLACK),
+                self.scalar(MAX_STRETCH), body if self.group is None else self.group,
+                int(self.group is not None or not self.bodies_interact),
+            ]
             self.launches(
                 self.kernels.build_candidates,
                 n,
-                [
-                    self.grid.id, points, x, self.scalar(self.h), self.scalar(self.skin),
-                    self._dummy_arrays()["F"] if F is None else F, int(F is not None), self.scalar(STRETCH_SLACK),
-                    self.scalar(MAX_STRETCH), body if self.group is None else self.group,
-                    int(self.group is not None or not self.bodies_interact),
-                ],
+                args,
                 [self.candidates, self.candidate_count, self._overflow, self._x_ref, self._cand_stretch],
                 device=self.device,
                 record_tape=False,
@@ -704,10 +755,14 @@ class NeighborSearch:
             if need == 0:
                 break
             if need > MAX_CANDIDATES:
-                raise RuntimeError(
+                counts = wp.empty(n, dtype=wp.int32, device=self.device)
+                # Launched plainly, not replayed: once, on the way out, nothing to keep.
+                wp.launch(self.kernels.count_candidates, dim=n, inputs=args, outputs=[counts], device=self.device,
+                          record_tape=False)
+                over = np.flatnonzero(counts.numpy() > MAX_CANDIDATES)
+                raise NeighborOverflow(
                     f"a particle has {need} particles within h s + skin = {self.h:g} s + {self.skin:g}: more than {MAX_CANDIDATES}; "
-                    "the body has collapsed (reduce dt)"
-                )
+                    "the body has collapsed (reduce dt)", particles=over, need=need)
             self._capacity = int(8 * math.ceil(1.25 * need / 8))
         self._have_candidates = True
         self._cand_with_stretch = F is not None
