@@ -1568,3 +1568,20 @@ def test_a_resumed_sweep_stopped_again_keeps_the_rows_it_resumed_from(scene_file
     monkeypatch.setattr(sweep_module, "_run_sample", real)
     assert cli.main(argv) == 0
     assert [r["sample"] for r in SweepTable.read_csv(out / "sweep.csv").rows] == [0, 1, 2]
+
+
+def test_a_sample_gone_non_finite_is_a_failed_row_naming_step_frame_and_particle():
+    """A sample whose run goes non-finite (a 27-particle float32 cube at mu 2.4e6 Pa, 20 steps
+    of a dt 17 x its stable step, within its first frame) is a failed row whose reason names
+    the step, the frame and the first non-finite particle, as a finite blow-up's does; the
+    other sample runs."""
+    b = SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), Material(mu=1e3, lam=1.5e3, density=1000.0), name="cube")
+    dt = 0.5 * b.finalize().stable_dt()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the stiff sample's dt past its stable step, on purpose
+        table = sweep(b, {"mu": [1e3, 2.4e6], "lam": [1.5e3]}, frames=1, fps=1.0 / (20 * dt), dt=dt, workers=1)
+    assert [r["status"] for r in table.rows] == ["ok", "failed"]
+    assert re.fullmatch(r"the simulation diverged after step 20 \(frame 1, .*\): non-finite position or velocity "
+                        r"\(particle (\d+) is the first of \d+ bad particles\), at particle \1 of body 'cube'; the "
+                        r"sample's stable step is \S+ s", table.rows[1]["reason"]), table.rows[1]["reason"]
