@@ -215,10 +215,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         overflow: wp.array(dtype=wp.int32),
         x_ref: wp.array(dtype=vec3),
         cand_stretch: wp.array(dtype=scalar),
+        cand_found: wp.array(dtype=wp.int32),
     ):
         """Every ``j != i`` with ``|x_j - x_i| < h s_i + skin`` (of ``i``'s group only, with
         ``same_group``: its body without body interaction, its world with worlds), sorted by
-        index; ``s_i`` (``candidate_stretch``) goes to ``cand_stretch``."""
+        index; ``s_i`` (``candidate_stretch``) goes to ``cand_stretch``, the count before the
+        row's cap to ``cand_found`` (which names the particles past ``MAX_CANDIDATES``)."""
         i = wp.tid()
         xi = x[i]
         bi = group[i]
@@ -243,6 +245,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             if n < cap:
                 cand[i, n] = j
             n += 1
+        cand_found[i] = n
         if n > cap:
             wp.atomic_max(overflow, 0, n)
             n = cap
@@ -257,43 +260,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 b -= 1
             cand[i, b] = v
         x_ref[i] = xi
-
-    @wp.kernel(enable_backward=False, module="unique")
-    def count_candidates(
-        grid: wp.uint64,
-        grid_points: wp.array(dtype=wp.vec3f),
-        x: wp.array(dtype=vec3),
-        h: scalar,
-        skin: scalar,
-        F: wp.array(dtype=mat33),
-        with_stretch: int,
-        slack: scalar,
-        max_stretch: scalar,
-        group: wp.array(dtype=wp.int32),
-        same_group: int,
-        count: wp.array(dtype=wp.int32),
-    ):
-        """``build_candidates``'s count per particle, not capped: run only where a row would
-        pass ``MAX_CANDIDATES``, to name the particles (and so the worlds) that do."""
-        i = wp.tid()
-        xi = x[i]
-        bi = group[i]
-        st = scalar(1.0)
-        if with_stretch != 0:
-            st = candidate_stretch(F[i], with_stretch, slack, max_stretch)
-        radius = h * st + skin
-        r2 = radius * radius
-        n = int(0)
-        gp = grid_points[i]
-        query = wp.hash_grid_query(grid, gp, padded_query_radius(gp, wp.float32(radius)))
-        j = int(0)
-        while wp.hash_grid_query_next(query, j):
-            if j == i or (same_group != 0 and group[j] != bi):
-                continue
-            d = x[j] - xi
-            if wp.dot(d, d) < r2:
-                n += 1
-        count[i] = n
 
     @wp.kernel(enable_backward=False, module="unique")
     def displacement_bounds(
@@ -601,7 +567,6 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     return types.SimpleNamespace(
         grid_points=grid_points,
         build_candidates=build_candidates,
-        count_candidates=count_candidates,
         displacement_bounds=displacement_bounds,
         select_neighbors=select_neighbors,
         guard_code=guard_code,
@@ -681,6 +646,7 @@ class NeighborSearch:
         self._have_candidates = False
         # Per particle: the stretch its candidates cover (candidate_stretch).
         self._cand_stretch = wp.ones(particle_count, dtype=scalar, device=device)
+        self._cand_found = wp.zeros(particle_count, dtype=wp.int32, device=device)
         self._cand_with_stretch = False
         self.rebuilds = 0
         self.updates = 0
@@ -747,7 +713,8 @@ class NeighborSearch:
                 self.kernels.build_candidates,
                 n,
                 args,
-                [self.candidates, self.candidate_count, self._overflow, self._x_ref, self._cand_stretch],
+                [self.candidates, self.candidate_count, self._overflow, self._x_ref, self._cand_stretch,
+                 self._cand_found],
                 device=self.device,
                 record_tape=False,
             )
@@ -755,11 +722,7 @@ class NeighborSearch:
             if need == 0:
                 break
             if need > MAX_CANDIDATES:
-                counts = wp.empty(n, dtype=wp.int32, device=self.device)
-                # Launched plainly, not replayed: once, on the way out, nothing to keep.
-                wp.launch(self.kernels.count_candidates, dim=n, inputs=args, outputs=[counts], device=self.device,
-                          record_tape=False)
-                over = np.flatnonzero(counts.numpy() > MAX_CANDIDATES)
+                over = np.flatnonzero(self._cand_found.numpy() > MAX_CANDIDATES)
                 raise NeighborOverflow(
                     f"a particle has {need} particles within h s + skin = {self.h:g} s + {self.skin:g}: more than {MAX_CANDIDATES}; "
                     "the body has collapsed (reduce dt)", particles=over, need=need)
