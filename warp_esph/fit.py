@@ -2332,6 +2332,15 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
         kept[:] = False
         return True
 
+    def stop_or_refresh():
+        """At a minimum: 'converged' where no column is kept from an earlier z; else the kept
+        columns are run afresh (None: go on from them) or the reason that stops the fit."""
+        if not kept.any():
+            return "converged"
+        if evals + int(kept.sum()) > iterations:
+            return "iterations"
+        return None if refresh() else "stalled"
+
     while True:
         if not current:
             # The held values whose last column, against these residuals, still points out of
@@ -2360,12 +2369,9 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
         free = ~held
         if not free.any():
             # Every value on a bound with the loss falling beyond it: the corner is the minimum within the box.
-            if not kept.any():
-                return "converged"
-            if evals + int(kept.sum()) > iterations:
-                return "iterations"
-            if not refresh():
-                return "stalled"
+            stop = stop_or_refresh()
+            if stop is not None:
+                return stop
             current = True
             continue
         Af, gf = (A[np.ix_(free, free)], g[free]) if held.any() else (A, g)
@@ -2389,12 +2395,9 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
                 # No lower loss along the damped steps down to xtol (MINPACK's xtol test):
                 # the minimum is found to the resolution asked for, once the held values'
                 # columns are z's own.
-                if not kept.any():
-                    return "converged"
-                if evals + int(kept.sum()) > iterations:
-                    return "iterations"
-                if not refresh():
-                    return "stalled"
+                stop = stop_or_refresh()
+                if stop is not None:
+                    return stop
                 current = True
                 break
             if evals >= iterations:
