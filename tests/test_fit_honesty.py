@@ -422,3 +422,60 @@ def test_the_diagnostics_count_every_run_they_make(landing, monkeypatch, method)
     assert d.method == method
     assert len(runs) - len(result.history) == d.evaluations, (len(runs), len(result.history), d.evaluations)
     assert d.to_dict()["evaluations"] == d.evaluations
+
+
+def _diagnostics_bits(d) -> dict:
+    return {"standard_error": d.standard_error.tobytes(), "correlation": d.correlation.tobytes(),
+            "fisher": d.fisher.tobytes(), "gradient": d.gradient.tobytes(), "range_rise": d.range_rise.tobytes(),
+            "noise": d.noise, "residual_rms": d.residual_rms, "at_bound": d.at_bound, "warnings": d.warnings}
+
+
+@pytest.mark.parametrize("method", ["gauss-newton", "hessian"])
+def test_the_diagnostics_run_the_fitted_point_once_and_read_it_where_they_ran_it_again(landing, monkeypatch, method):
+    """The diagnostics ran the model at the fitted point up to three times: the run that sizes
+    the noise, Gauss-Newton's residuals there and the chi-square the range check starts from,
+    the same parameters and settings each time. The later two now read the first's
+    observations: ``4 P + 1`` runs for either method (``4 P + 3`` and ``4 P + 2`` before), and
+    the same diagnostics, bit for bit, as where they ran the point again."""
+    from warp_esph import diagnostics
+    from warp_esph import fit as fit_module
+
+    if method == "hessian":
+        monkeypatch.setattr(diagnostics, "_has_residuals", lambda prob: False)
+    runs = []
+    forward = fit_module._Run.forward
+
+    def counted(self, *args, **kwargs):
+        runs.append(self)
+        return forward(self, *args, **kwargs)
+
+    monkeypatch.setattr(fit_module._Run, "forward", counted)
+    at = {}
+    diagnose_problem = diagnostics.diagnose_problem
+
+    def noted(prob, z, **kwargs):
+        at.update(prob=prob, z=np.array(z, dtype=np.float64))
+        return diagnose_problem(prob, z, **kwargs)
+
+    monkeypatch.setattr(diagnostics, "diagnose_problem", noted)
+    dt, target = landing
+
+    def diagnosed():
+        runs.clear()
+        result = fit(_cube(), target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES, iterations=0, progress=False,
+                     noise=1e-4)
+        return result.diagnostics, len(runs) - len(result.history)
+
+    d, ran = diagnosed()
+    P = len(TRUTH)
+    assert d.method == method
+    assert ran == d.evaluations == 4 * P + 1, (ran, d.evaluations)
+    # The fitted point run again where its observations are read, as before.
+    monkeypatch.setattr(diagnostics, "_scaled_residuals_kept",
+                        lambda prob, at_z, sigmas, leaf_sigmas: diagnostics._scaled_residuals(prob, at["z"], sigmas,
+                                                                                                leaf_sigmas))
+    monkeypatch.setattr(diagnostics, "_chi_square_of",
+                        lambda chi2s, at_z: diagnostics._chi_square_at(at["prob"], at["z"], chi2s))
+    again, ran_again = diagnosed()
+    assert ran_again == ran + (2 if method == "gauss-newton" else 1)
+    assert _diagnostics_bits(again) == _diagnostics_bits(d)

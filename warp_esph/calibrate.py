@@ -83,7 +83,7 @@ def add_calibration_arguments(parser):
     g.add_argument("--force-noise", type=float, metavar="N",
                    help="a force log's measurement noise in N for the diagnostics (default: the curve's residual RMS, "
                         "at least 1%% of its RMS force)")
-    g.add_argument("--no-diagnostics", action="store_true", help="skip the diagnostics (up to 4 P + 3 extra runs for P values, the range check included)")
+    g.add_argument("--no-diagnostics", action="store_true", help="skip the diagnostics (up to 4 P + 1 extra runs for P values, the range check included)")
     g.add_argument("--experiments", metavar="EXPERIMENTS.json",
                    help="a joint fit: more experiments (each its own scene and target) sharing the fitted material "
                         "with SCENE; a JSON list of objects with keys " + ", ".join(EXPERIMENT_KEYS))

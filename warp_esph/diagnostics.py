@@ -31,8 +31,9 @@ fix a combination of the two, e.g. yield stress and flow rate along a valley).
 The Fisher matrix describes the loss near the optimum only. A **range check** therefore
 also moves each log-space parameter alone by a factor ``RANGE_FACTOR`` (1.5) both ways
 (``2 P`` forward runs; ``Diagnostics.evaluations`` counts these, the differences' and the
-runs at ``z`` that size the noise and start the range check, ``4 P + 3`` in all, ``4 P + 2``
-with the Hessian): if the chi-square changes by less than 1 on either side, the data
+run at ``z`` that sizes the noise, up to ``4 P + 1`` in all, with the Hessian too: Gauss-Newton's
+residuals at ``z`` and the chi-square the range check starts from are read from that run's
+observations, kept, where each had run ``z`` again for the same bits): if the chi-square changes by less than 1 on either side, the data
 cannot tell these values apart and the parameter is reported as not determined, whatever
 the local curvature says (if it falls by 1 or more, the fit stopped short of the minimum
 along it, which a warning says) (a silhouette fit stopped at 1.88 x the true yield stress, where
@@ -70,6 +71,7 @@ import dataclasses
 import math
 
 import numpy as np
+import warp as wp
 
 from .losses import Loss, SumLoss
 from .material import UNITS
@@ -291,13 +293,36 @@ def _has_residuals(prob) -> bool:
 def _scaled_residuals(prob, z, sigmas, leaf_sigmas) -> np.ndarray:
     """Every residual of every experiment divided by its noise, at ``z`` (forward passes)."""
     prob.apply(z)
-    out = []
-    for run, sigma in zip(prob.runs, sigmas):
+    observed = []
+    for run in prob.runs:
         run.value_forward()
-        positions = run.rollout.observations(numpy=True)
+        observed.append(run.rollout.observations(numpy=True))
+    return _scaled_residuals_of(prob, observed, sigmas, leaf_sigmas)
+
+
+def _scaled_residuals_of(prob, observed, sigmas, leaf_sigmas) -> np.ndarray:
+    """``_scaled_residuals`` of runs already made: ``observed``, each run's numpy observations."""
+    out = []
+    for run, sigma, positions in zip(prob.runs, sigmas, observed):
         for leaf in leaf_terms(run.loss):
             out.append(leaf.residuals(positions) / leaf_sigmas.get(id(leaf), sigma))
     return np.concatenate(out)
+
+
+def _scaled_residuals_kept(prob, at_z, sigmas, leaf_sigmas) -> np.ndarray:
+    """``_scaled_residuals`` at the point whose observations ``at_z`` (``_kept_observations``,
+    one per run) were kept: no run."""
+    return _scaled_residuals_of(prob, [_numpy_observations(o) for o in at_z], sigmas, leaf_sigmas)
+
+
+def _kept_observations(run) -> dict:
+    """The observations of ``run``'s last forward, copied: the next forward overwrites the
+    rollout's own (and on the CPU ``numpy=True`` gives views of them)."""
+    return {k: wp.clone(v) if isinstance(v, wp.array) else v for k, v in run.rollout.observations().items()}
+
+
+def _numpy_observations(observed: dict) -> dict:
+    return {k: v.numpy() if isinstance(v, wp.array) else v for k, v in observed.items()}
 
 
 #: The range check: each log-space parameter alone is moved by this factor both ways.
@@ -311,6 +336,14 @@ def _chi_square_at(prob, z, chi2s) -> float:
     for run, chi2 in zip(prob.runs, chi2s):
         run.value_forward()
         total += chi2.value(run.rollout.observations())
+    return total
+
+
+def _chi_square_of(chi2s, observed) -> float:
+    """``_chi_square_at`` of runs already made: ``observed``, each run's observations."""
+    total = 0.0
+    for chi2, positions in zip(chi2s, observed):
+        total += chi2.value(positions)
     return total
 
 
@@ -336,8 +369,12 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
     sigmas, rms, chi2s, observations, leaf_sigmas, grouped = [], [], [], 0, {}, 0
     misfits, geometric = [], []
     bias = []
+    # The runs at z, kept: Gauss-Newton's residuals at z and the chi-square the range check
+    # starts from read them (each had run the rollouts at z again, for the same bits).
+    at_z = []
     for k_run, run in enumerate(prob.runs):
         run.value_forward()
+        at_z.append(_kept_observations(run))
         where = f"experiment {k_run}: " if len(prob.runs) > 1 else ""
         said = large_strain_bias(run.rollout.model, run.rollout.final_state().alpha.numpy(), where)
         if said is not None:
@@ -392,7 +429,7 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
             for leaf in leaf_terms(run.loss):
                 if hasattr(leaf, "reset_residuals"):
                     leaf.reset_residuals()
-        r0 = _scaled_residuals(prob, z, sigmas, leaf_sigmas)
+        r0 = _scaled_residuals_kept(prob, at_z, sigmas, leaf_sigmas)
         J = np.zeros((len(r0), P))
         for j in range(P):
             zp, zm = z.copy(), z.copy()
@@ -400,8 +437,9 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
             J[:, j] = (_scaled_residuals(prob, zp, sigmas, leaf_sigmas) - _scaled_residuals(prob, zm, sigmas, leaf_sigmas)) / (ups[j] - downs[j])
         fisher = J.T @ J
         gradient = 2.0 * J.T @ r0
-        # The run at z above that sizes the noise is one too: it had gone uncounted.
-        evaluations = 1 + 2 * P + 1
+        # The run at z above that sizes the noise is one too (it had gone uncounted); r0 is
+        # read from it.
+        evaluations = 1 + 2 * P
     else:
         H = np.zeros((P, P))
         gsum = np.zeros(P)
@@ -419,8 +457,7 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
     # flat over a wide range but curved at the optimum (a silhouette fit that stopped at
     # 1.88 x the true yield stress, its loss 0.15 % below that at 1.5 x less) looks
     # determined there; moving each value by a factor RANGE_FACTOR both ways shows it.
-    chi0 = _chi_square_at(prob, z, chi2s)
-    evaluations += 1
+    chi0 = _chi_square_of(chi2s, at_z)
     log_space = [prob.spaces[name] == "log" for name in prob.params for _ in range(prob.k)]
     rises = np.full((P, 2), np.nan)
     for j in range(P):

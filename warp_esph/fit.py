@@ -1397,7 +1397,7 @@ def fit(
     - ``diagnostics``: at the optimum, the Fisher (Gauss-Newton) information of the data
       for observation noise ``noise`` (m; see ``warp_esph.diagnostics``), from central
       differences (step ``fd_step`` in optimiser space) of the residuals (or of taped
-      gradients) and a range check: up to ``4 P + 3`` extra runs for ``P`` fitted values
+      gradients) and a range check: up to ``4 P + 1`` extra runs for ``P`` fitted values
       (``result.diagnostics.evaluations``). ``result.diagnostics`` holds standard
       errors, correlations and warnings about parameters the data do not determine.
     - ``callback(evaluation, loss, params)``: after each evaluation; return ``True`` to
