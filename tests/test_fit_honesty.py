@@ -427,21 +427,27 @@ def test_the_diagnostics_count_every_run_they_make(landing, monkeypatch, method)
 def _diagnostics_bits(d) -> dict:
     return {"standard_error": d.standard_error.tobytes(), "correlation": d.correlation.tobytes(),
             "fisher": d.fisher.tobytes(), "gradient": d.gradient.tobytes(), "range_rise": d.range_rise.tobytes(),
-            "noise": d.noise, "residual_rms": d.residual_rms, "at_bound": d.at_bound, "warnings": d.warnings}
+            "noise": list(d.noise), "residual_rms": list(d.residual_rms), "at_bound": list(d.at_bound),
+            "warnings": list(d.warnings)}
 
 
+@pytest.mark.parametrize("kept", [True, False])
 @pytest.mark.parametrize("method", ["gauss-newton", "hessian"])
-def test_the_diagnostics_run_the_fitted_point_once_and_read_it_where_they_ran_it_again(landing, monkeypatch, method):
+def test_the_diagnostics_run_the_fitted_point_at_most_once(landing, monkeypatch, method, kept):
     """The diagnostics ran the model at the fitted point up to three times: the run that sizes
     the noise, Gauss-Newton's residuals there and the chi-square the range check starts from,
-    the same parameters and settings each time. The later two now read the first's
-    observations: ``4 P + 1`` runs for either method (``4 P + 3`` and ``4 P + 2`` before), and
-    the same diagnostics, bit for bit, as where they ran the point again."""
+    the same parameters and settings each time, and the fit had run that point already. The
+    later two now read the first's observations, and the first is the fit's own run at its best
+    point where that ran with the same inputs: ``4 P`` runs for either method (``4 P + 1`` where
+    the fit's run is not taken; ``4 P + 3`` and ``4 P + 2`` before), and the same diagnostics,
+    bit for bit, as where they ran the point again."""
     from warp_esph import diagnostics
     from warp_esph import fit as fit_module
 
     if method == "hessian":
         monkeypatch.setattr(diagnostics, "_has_residuals", lambda prob: False)
+    if not kept:
+        monkeypatch.setattr(fit_module._KeptRun, "ran_as", lambda self, rollout: False)
     runs = []
     forward = fit_module._Run.forward
 
@@ -462,20 +468,51 @@ def test_the_diagnostics_run_the_fitted_point_once_and_read_it_where_they_ran_it
 
     def diagnosed():
         runs.clear()
-        result = fit(_cube(), target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES, iterations=0, progress=False,
-                     noise=1e-4)
+        result = fit(_cube(450.0, 15.0), target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES, iterations=2,
+                     optimizer="lbfgs", progress=False, noise=1e-4)
         return result.diagnostics, len(runs) - len(result.history)
 
     d, ran = diagnosed()
     P = len(TRUTH)
     assert d.method == method
-    assert ran == d.evaluations == 4 * P + 1, (ran, d.evaluations)
-    # The fitted point run again where its observations are read, as before.
+    assert ran == d.evaluations == 4 * P + (0 if kept else 1), (ran, d.evaluations)
+    # The fitted point run again wherever it is read, as before.
+    monkeypatch.setattr(fit_module._KeptRun, "ran_as", lambda self, rollout: False)
     monkeypatch.setattr(diagnostics, "_scaled_residuals_kept",
                         lambda prob, at_z, sigmas, leaf_sigmas: diagnostics._scaled_residuals(prob, at["z"], sigmas,
                                                                                                 leaf_sigmas))
     monkeypatch.setattr(diagnostics, "_chi_square_of",
                         lambda chi2s, at_z: diagnostics._chi_square_at(at["prob"], at["z"], chi2s))
     again, ran_again = diagnosed()
-    assert ran_again == ran + (2 if method == "gauss-newton" else 1)
+    assert ran_again == 4 * P + (3 if method == "gauss-newton" else 2)
     assert _diagnostics_bits(again) == _diagnostics_bits(d)
+
+
+def test_the_diagnostics_run_a_point_the_fit_kept_no_run_of(landing, monkeypatch):
+    """The fit's run at its best point stands in for the diagnostics' first run only where it
+    ran with the inputs theirs would: diagnosed elsewhere (the yield stress 1 % up), they run
+    that point and give what they give without it."""
+    from warp_esph import diagnostics
+
+    got = {}
+    diagnose_problem = diagnostics.diagnose_problem
+
+    def elsewhere(prob, z, kept=None, **kwargs):
+        moved = np.array(z, dtype=np.float64)
+        moved[0] += 0.01
+        d = diagnose_problem(prob, moved, kept=kept, **kwargs)
+        # Their bits as they come (the fit adds its own warnings to the one it is given).
+        got["kept"] = d.evaluations, _diagnostics_bits(d)
+        none = diagnose_problem(prob, moved, **kwargs)
+        got["none"] = none.evaluations, _diagnostics_bits(none)
+        got["here"] = diagnose_problem(prob, z, kept=kept, **kwargs).evaluations
+        return d
+
+    monkeypatch.setattr(diagnostics, "diagnose_problem", elsewhere)
+    dt, target = landing
+    fit(_cube(450.0, 15.0), target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES, iterations=2, optimizer="lbfgs",
+        progress=False, noise=1e-4)
+    P = len(TRUTH)
+    assert got["here"] == 4 * P  # the fit's run taken at its own point
+    assert got["kept"][0] == got["none"][0] == 4 * P + 1
+    assert got["kept"][1] == got["none"][1]

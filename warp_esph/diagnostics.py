@@ -33,7 +33,8 @@ also moves each log-space parameter alone by a factor ``RANGE_FACTOR`` (1.5) bot
 (``2 P`` forward runs; ``Diagnostics.evaluations`` counts these, the differences' and the
 run at ``z`` that sizes the noise, up to ``4 P + 1`` in all, with the Hessian too: Gauss-Newton's
 residuals at ``z`` and the chi-square the range check starts from are read from that run's
-observations, kept, where each had run ``z`` again for the same bits): if the chi-square changes by less than 1 on either side, the data
+observations, kept, where each had run ``z`` again for the same bits; after a fit that run is
+the fit's own at its best point where it ran with the same inputs, ``4 P`` then): if the chi-square changes by less than 1 on either side, the data
 cannot tell these values apart and the parameter is reported as not determined, whatever
 the local curvature says (if it falls by 1 or more, the fit stopped short of the minimum
 along it, which a warning says) (a silhouette fit stopped at 1.88 x the true yield stress, where
@@ -274,9 +275,8 @@ def _own_noise_terms(loss: Loss, positions) -> list[tuple]:
     return out
 
 
-def _residuals(run) -> tuple[float, int, float]:
-    """(sum of squared geometric residuals, their count, spacing) of a run at its last forward."""
-    positions = run.rollout.observations()
+def _residuals(run, positions) -> tuple[float, int, float]:
+    """(sum of squared geometric residuals, their count, spacing) of a run observed at ``positions``."""
     total, count = 0.0, 0
     for leaf in leaf_terms(run.loss):
         if getattr(leaf, "noise", None) is not None:
@@ -349,7 +349,7 @@ def _chi_square_of(chi2s, observed) -> float:
 
 def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, method: str = "auto",
                      max_relative_error: float = MAX_RELATIVE_ERROR, min_sensitivity: float = MIN_SENSITIVITY,
-                     max_correlation: float = MAX_CORRELATION) -> Diagnostics:
+                     max_correlation: float = MAX_CORRELATION, kept=None) -> Diagnostics:
     """Diagnostics of ``fit``'s problem at optimiser-space point ``z`` (see the module doc).
 
     ``method``: ``"gauss-newton"`` (``I = J^T J`` from central differences of the residual
@@ -357,6 +357,10 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
     ``ChamferLoss`` (nearest points kept from ``z``), ``MeshLoss`` (tangent planes kept
     from ``z``) and ``SilhouetteLoss`` do), ``"hessian"`` (central differences of taped gradients of
     the chi-square; any loss) or ``"auto"`` (the first where possible).
+
+    ``kept``: one ``fit._KeptRun`` (or None) per run, the fit's runs at its best point: where
+    one ran with the inputs ``z`` gives (``ran_as``), its observations are read and the
+    diagnostics do not run ``z`` again (``evaluations`` counts ``4 P``, not ``4 P + 1``).
     """
     z = np.asarray(z, dtype=np.float64)
     if method not in ("auto", "gauss-newton", "hessian"):
@@ -371,19 +375,25 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
     bias = []
     # The runs at z, kept: Gauss-Newton's residuals at z and the chi-square the range check
     # starts from read them (each had run the rollouts at z again, for the same bits).
-    at_z = []
+    at_z, ran = [], False
     for k_run, run in enumerate(prob.runs):
-        run.value_forward()
-        at_z.append(_kept_observations(run))
+        held = kept[k_run] if kept is not None else None
+        if held is not None and held.ran_as(run.rollout):
+            # The fit's run at this point: the same inputs, so the same bits as running it.
+            positions, alpha = held.observations, held.alpha
+        else:
+            run.value_forward()
+            ran = True
+            positions, alpha = _kept_observations(run), run.rollout.final_state().alpha
+        at_z.append(positions)
         where = f"experiment {k_run}: " if len(prob.runs) > 1 else ""
-        said = large_strain_bias(run.rollout.model, run.rollout.final_state().alpha.numpy(), where)
+        said = large_strain_bias(run.rollout.model, alpha.numpy(), where)
         if said is not None:
             bias.append(said)
-        positions = run.rollout.observations()
-        arrays = run.rollout.observations(numpy=True)
+        arrays = _numpy_observations(positions)
         for leaf in leaf_terms(run.loss):
             leaf.value(positions)  # records the residual counts
-        s, n, spacing = _residuals(run)
+        s, n, spacing = _residuals(run, positions)
         r = math.sqrt(s / n) if n else 0.0
         sigma = run.noise or noise or max(r, 0.01 * spacing)
         own_terms = _own_noise_terms(run.loss, arrays)
@@ -439,7 +449,7 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
         gradient = 2.0 * J.T @ r0
         # The run at z above that sizes the noise is one too (it had gone uncounted); r0 is
         # read from it.
-        evaluations = 1 + 2 * P
+        evaluations = int(ran) + 2 * P
     else:
         H = np.zeros((P, P))
         gsum = np.zeros(P)
@@ -452,7 +462,7 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
             gsum += 0.5 * (gp + gm)
         fisher = 0.25 * (H + H.T)
         gradient = gsum / P
-        evaluations = 1 + 2 * P
+        evaluations = int(ran) + 2 * P
     # The range check: the curvature at z describes the loss near z only. A loss that is
     # flat over a wide range but curved at the optimum (a silhouette fit that stopped at
     # 1.88 x the true yield stress, its loss 0.15 % below that at 1.5 x less) looks

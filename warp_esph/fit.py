@@ -667,6 +667,36 @@ class _Values:
         return m._stable_dt_now(0.3, None, rows)
 
 
+class _KeptRun:
+    """What the diagnostics read of a run (its observations and final plastic strain), copied
+    after its forward, with the inputs it ran with (``Rollout._forward_inputs``): a fit's run
+    at its best point, which the diagnostics' first run at that point would repeat."""
+
+    def __init__(self, rollout: Rollout):
+        self.inputs = rollout._forward_inputs
+        # Copies: the next forward writes the rollout's own buffers.
+        self.observations = {k: wp.clone(v) if isinstance(v, wp.array) else v for k, v in rollout.observations().items()}
+        self.alpha = wp.clone(rollout.final_state().alpha)
+
+    def ran_as(self, rollout: Rollout) -> bool:
+        """Whether a forward of ``rollout`` now would run with the inputs this one ran with:
+        the parameter arrays, tools and settings bit for bit, and the materials in every field
+        the parameter arrays do not hold (``finish`` writes the fitted values into the
+        materials, which the kernels read from the arrays)."""
+        rows, materials, tools, settings = self.inputs
+        now_rows, now_materials, now_tools, now_settings = rollout._inputs()
+        if not (np.array_equal(rows, now_rows) and settings == now_settings and tools.keys() == now_tools.keys()
+                and all(np.array_equal(tools[k], now_tools[k]) for k in tools) and len(materials) == len(now_materials)):
+            return False
+        for a, b in zip(materials, now_materials):
+            if a is b or a == b:
+                continue
+            if type(a) is not type(b) or any(getattr(a, f.name) != getattr(b, f.name) for f in dataclasses.fields(a)
+                                             if f.name not in Model.MATERIAL_FIELDS):
+                return False
+        return True
+
+
 class _Run(_Values):
     """One experiment made ready: its model, rollout, loss and fitted materials. ``taped``:
     whether the fit takes gradients through its runs (False: a Gauss-Newton fit, whose every
@@ -800,18 +830,27 @@ class _Run(_Values):
     #: Whether the runs for a loss value alone (``value_forward``) record a tape all the same,
     #: as every run did before: the baseline ``benchmarks.fit_bench --loss-only`` times.
     tape_values = False
+    #: Whether each forward keeps a copy of what the diagnostics read (``kept``): set by a fit
+    #: whose diagnostics will run, so they need not run its best point again.
+    keep = False
+    #: The latest forward's ``_KeptRun`` where ``keep`` (None before, or after a failed one).
+    kept = None
 
     def forward(self, taped: bool = True) -> np.ndarray:
         """The rollout from this experiment's starts (checked once, at set-up). A neighbour
         search whose row overflows (``NeighborOverflow``) raises ``Collapsed``, a failed trial."""
         # check=False: a non-finite trial is the fit's to fail (a failed trial, loss inf;
         # with worlds the one world's start alone), not an error ending the fit.
+        self.kept = None
         try:
-            return self.rollout._forward_checked(self.starts, self.initial.get("initial_state"), check=False,
-                                                 taped=taped)
+            out = self.rollout._forward_checked(self.starts, self.initial.get("initial_state"), check=False,
+                                                taped=taped)
         except NeighborOverflow as e:
             # A blow-up the search met before the monitor could read it: it had ended the whole fit.
             raise Collapsed(e) from None
+        if self.keep:
+            self.kept = _KeptRun(self.rollout)
+        return out
 
     def value_forward(self) -> np.ndarray:
         """``forward`` for an evaluation that reads the loss alone (Gauss-Newton's residuals,
@@ -1397,7 +1436,8 @@ def fit(
     - ``diagnostics``: at the optimum, the Fisher (Gauss-Newton) information of the data
       for observation noise ``noise`` (m; see ``warp_esph.diagnostics``), from central
       differences (step ``fd_step`` in optimiser space) of the residuals (or of taped
-      gradients) and a range check: up to ``4 P + 1`` extra runs for ``P`` fitted values
+      gradients) and a range check: up to ``4 P`` extra runs for ``P`` fitted values (one more where
+      the fit's own run at its best point cannot stand in for theirs)
       (``result.diagnostics.evaluations``). ``result.diagnostics`` holds standard
       errors, correlations and warnings about parameters the data do not determine.
     - ``callback(evaluation, loss, params)``: after each evaluation; return ``True`` to
@@ -1527,6 +1567,7 @@ def fit(
         def __init__(self, index):
             self.index, self.best, self.best_p, self.since_best = index, math.inf, None, 0
             self.entry = None  # its last history entry
+            self.kept = None  # the runs at its best point (_Run.kept), one per experiment
 
     def record(track, z, value, gz, seconds, note=None):
         """Records one evaluation of ``track``'s start (history, best, callback); raises
@@ -1575,6 +1616,8 @@ def fit(
             track.since_best += 1
         if finite and value < track.best:
             track.best, track.best_p = value, {k: v.copy() for k, v in p.items()}
+            # Every run has just run at z (an evaluation that failed is no improvement).
+            track.kept = None if use_worlds else [r.kept for r in runs]
         bar = state["bar"]
         if bar is not None:
             shown = ", ".join(f"{k}={v[0]:.4g}" for k, v in p.items())
@@ -1699,6 +1742,11 @@ def fit(
         say(f"multi-start: {track_count} starts as {track_count} worlds of one model per experiment")
     tracks = [_Track(k) for k in range(track_count)]
     state["guarded"] = _guarded(runs)  # the global stage's forward runs counted too
+    # The descent's runs keep what the diagnostics read: at the best point they had run the
+    # model again, the same inputs and bits, for what the fit had already had in hand.
+    diagnosed = diagnostics and not any(isinstance(leaf, WorldLoss) for r in runs for leaf in _leaves(r.loss))
+    for r in runs:
+        r.keep = diagnosed and not use_worlds
 
     stops = []
     if progress:
@@ -1724,11 +1772,13 @@ def fit(
     finally:
         if state["bar"] is not None:
             state["bar"].close()
-    run_best = [(t.best, t.best_p, stop) for t, stop in zip(tracks, stops)]
+        for r in runs:
+            r.keep = False  # the diagnostics' own runs need no copies
+    run_best = [(t.best, t.best_p, stop, t.kept) for t, stop in zip(tracks, stops)]
     finite_runs = [rb for rb in run_best if rb[1] is not None]
     if not finite_runs:
         raise FloatingPointError("no finite loss was found")
-    value, p, stopped = min(finite_runs, key=lambda rb: rb[0])
+    value, p, stopped, kept = min(finite_runs, key=lambda rb: rb[0])
     fitted = [r.finish(p, params) for r in runs]
     result = FitResult(
         params={k: v.copy() for k, v in p.items()},
@@ -1764,7 +1814,7 @@ def fit(
 
         t0 = time.perf_counter()
         try:
-            result.diagnostics = diagnose_problem(prob, prob.to_z(p), noise=noise, step=fd_step)
+            result.diagnostics = diagnose_problem(prob, prob.to_z(p), noise=noise, step=fd_step, kept=kept)
         except KeyboardInterrupt:
             # The fit itself is finished: kept, without its diagnostics.
             for r in runs:
