@@ -166,8 +166,8 @@ def measure_loss_only(particles: int, steps: int, repeats: int = 3) -> list[dict
                 and all(np.array_equal(old.params[n], new.params[n]) for n in old.params)
                 and np.array_equal(old.diagnostics.fisher, new.diagnostics.fisher))
         gradient_runs = sum(1 for h in new.history if h["grad"] is not None)
-        # Each diagnostics run list: the first at the fitted point, its evaluations, the range check's start.
-        runs = len(new.history) + new.diagnostics.evaluations + 2
+        # Diagnostics.evaluations counts every run the diagnostics make.
+        runs = len(new.history) + new.diagnostics.evaluations
         rows.append({
             "particles": truth.particle_count,
             "steps": steps,

@@ -90,3 +90,34 @@ def test_fit_benchmark_times_a_fits_loss_only_runs_untaped_against_taped(tmp_pat
     assert gauss["gradient_runs"] == 0 and gauss["loss_only_runs"] == gauss["forward_runs"]
     assert 0 < lbfgs["gradient_runs"] < lbfgs["forward_runs"]
     assert all(r["cpu_ratio"] == pytest.approx(r["untaped_cpu_s"] / r["taped_cpu_s"]) for r in rows)
+
+
+def test_fit_benchmarks_loss_only_rows_count_the_runs_that_ran(tmp_path, monkeypatch):
+    """``forward_runs`` of ``fit_bench --loss-only`` is what its fit ran: it added two runs of
+    the diagnostics at the fitted point to ``Diagnostics.evaluations``, which had come to
+    count them itself (and then no longer made them)."""
+    from benchmarks import fit_bench
+    from warp_esph import fit as fit_module
+
+    forward, fit = fit_module._Run.forward, fit_module.fit
+    ran, per_fit = [0], []
+
+    def counted(self, *args, **kwargs):
+        ran[0] += 1
+        return forward(self, *args, **kwargs)
+
+    def counted_fit(*args, **kwargs):
+        ran[0] = 0
+        result = fit(*args, **kwargs)
+        per_fit.append((fit_module._Run.tape_values, ran[0]))
+        return result
+
+    monkeypatch.setattr(fit_module._Run, "forward", counted)
+    monkeypatch.setattr(fit_module, "fit", counted_fit)
+    out = tmp_path / "fit_bench.json"
+    assert fit_bench.main(["--loss-only", "--particles", "27", "--steps", "4", "--repeats", "1", "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    # Per optimizer: two warm-ups and one timed pair; the row's counts are the untaped fit's.
+    untaped = [n for taped, n in per_fit if not taped]
+    assert len(untaped) == 2 * len(rows)
+    assert [r["forward_runs"] for r in rows] == untaped[1::2]
