@@ -516,3 +516,62 @@ def test_the_diagnostics_run_a_point_the_fit_kept_no_run_of(landing, monkeypatch
     assert got["here"] == 4 * P  # the fit's run taken at its own point
     assert got["kept"][0] == got["none"][0] == 4 * P + 1
     assert got["kept"][1] == got["none"][1]
+
+
+def _pressed_cube(motion):
+    """``_cube`` (at the fit's start, 450 Pa and 15/s) under a plate ``motion`` moves."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.035, 0.0), (0.06, 0.06, 0.06), we.Material(mu=2e3, lam=3e3, density=1000.0, yield_stress=450.0,
+              flow_rate=15.0), velocity=(0.0, -1.0, 0.0))
+    b.add_ground(friction=0.5)
+    at = {} if isinstance(motion, we.tools.Scripted) else {"position": (0.0, 0.07, 0.0)}  # its poses are absolute
+    b.add_tool("box", half_extents=(0.05, 0.005, 0.05), motion=motion, name="press", **at)
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * 0.02, size=model.particle_x0.shape)
+    model.compute_rest_density()
+    return model
+
+
+@pytest.mark.filterwarnings("ignore:tools .* follow tools.Scripted motions")
+@pytest.mark.parametrize("change", ["particle_x0", "particle_v0", "tool size", "scripted speed"])
+def test_the_diagnostics_run_the_fitted_point_again_where_the_scene_changed_since_the_fit_ran_it(landing, monkeypatch,
+                                                                                                 change):
+    """The fit's run at its best point stands in for the diagnostics' own only where theirs
+    would run the same scene: a callback that moves the body's start, its start velocity, the
+    plate's size or the speed of its Scripted motion after that run changes what they run, but
+    not the parameters, materials, differentiable tool arrays and settings that ``ran_as``
+    compared: the diagnostics read the old scene's run (their gradient and range check off the
+    bits of the run they make themselves)."""
+    from warp_esph import fit as fit_module
+    from warp_esph import tools
+
+    speed = {"v": 1.0}
+    motion = (tools.Scripted(lambda t: ((0.0, 0.07 - speed["v"] * t, 0.0), (0.0, 0.0, 0.0, 1.0)))
+              if change == "scripted speed" else tools.Velocity(velocity=(0.0, -1.0, 0.0)))
+
+    def diagnosed():
+        speed["v"] = 1.0
+        model = _pressed_cube(motion)
+
+        def after_the_first_run(i, loss, params):
+            if change == "particle_x0":
+                model.particle_x0 = model.particle_x0 + np.array([0.0, 0.002, 0.0])
+            elif change == "particle_v0":
+                model.particle_v0 = 1.1 * model.particle_v0
+            elif change == "tool size":
+                half = model.tools.param.numpy()
+                half[0] *= 1.5
+                model.tools.param.assign(half)
+            else:
+                speed["v"] = 1.5
+            return False
+
+        dt, target = landing
+        return fit(model, target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES, iterations=0, progress=False,
+                   noise=1e-4, callback=after_the_first_run).diagnostics
+
+    d = diagnosed()
+    monkeypatch.setattr(fit_module._KeptRun, "ran_as", lambda self, rollout: False)
+    own = diagnosed()
+    assert _diagnostics_bits(d) == _diagnostics_bits(own)
+    assert d.evaluations == own.evaluations == 4 * len(TRUTH) + 1  # the reuse declined

@@ -56,7 +56,7 @@ from .losses import (ChamferLoss, Loss, MeshLoss, PositionLoss, SlumpLoss, SumLo
                      read_tools_csv)
 from .material import PRESSURE_BULK_SHARE, Material, _following_force
 from .model import Model, State, check_material_precision
-from .rollout import FRAME_BUFFERS, PARAMETERS, Rollout, RolloutMemoryError, _RolloutMemory, check_initial
+from .rollout import FRAME_BUFFERS, PARAMETERS, TOOL_GRADIENTS, Rollout, RolloutMemoryError, _RolloutMemory, check_initial
 from .sim.neighbors import NeighborOverflow
 from .sim.solver import keeps_incremental
 
@@ -672,19 +672,54 @@ class _KeptRun:
     after its forward, with the inputs it ran with (``Rollout._forward_inputs``): a fit's run
     at its best point, which the diagnostics' first run at that point would repeat."""
 
+    #: The tools' arrays a step reads besides the differentiable ones ``_forward_inputs``
+    #: holds where they keep gradients: what a caller may write in place.
+    TOOL_ARRAYS = TOOL_GRADIENTS + ("param", "pin_center")
+
     def __init__(self, rollout: Rollout):
         self.inputs = rollout._forward_inputs
+        # What else decides the run and ``_forward_inputs`` leaves out: the start a forward
+        # takes from the model, the tools' arrays and the Scripted poses it evaluated. A fit's
+        # callback that moved particle_x0, changed particle_v0, a plate's size or a Scripted
+        # motion's speed after this run left them as they were, and the diagnostics read the
+        # old scene's run (their gradient and range check off their own run's bits).
+        self.scene = self._scene(rollout.model)
+        self.scripted = rollout._scripted_poses
         # Copies: the next forward writes the rollout's own buffers.
         self.observations = {k: wp.clone(v) if isinstance(v, wp.array) else v for k, v in rollout.observations().items()}
         self.alpha = wp.clone(rollout.final_state().alpha)
 
+    @classmethod
+    def _scene(cls, model: Model) -> dict[str, np.ndarray]:
+        out = {"particle_x0": np.array(model.particle_x0), "particle_v0": np.array(model.particle_v0)}
+        if model.tools is not None:
+            out.update({f"tools.{name}": getattr(model.tools, name).numpy().copy() for name in cls.TOOL_ARRAYS})
+        return out
+
+    def _same_scripted(self, model: Model) -> bool:
+        """Whether each Scripted motion gives now the poses this run evaluated (it must, as a
+        re-run's check, ``Rollout._check_scripted``, asks)."""
+        if not self.scripted:
+            return True
+        motions = model.tools.motions
+        try:
+            return all(motions[k].pose(t) == pose for (k, t), pose in self.scripted.items())
+        except ValueError:  # it refuses the time now: the diagnostics' own run says so
+            return False
+
     def ran_as(self, rollout: Rollout) -> bool:
         """Whether a forward of ``rollout`` now would run with the inputs this one ran with:
-        the parameter arrays, tools and settings bit for bit, and the materials in every field
+        the parameter arrays, tools (their arrays and Scripted poses), the model's start
+        positions and velocities and the settings bit for bit, and the materials in every field
         the parameter arrays do not hold (``finish`` writes the fitted values into the
         materials, which the kernels read from the arrays)."""
         rows, materials, tools, settings = self.inputs
         now_rows, now_materials, now_tools, now_settings = rollout._inputs()
+        scene = self._scene(rollout.model)
+        if scene.keys() != self.scene.keys() or not all(np.array_equal(self.scene[k], scene[k]) for k in scene):
+            return False
+        if not self._same_scripted(rollout.model):
+            return False
         if not (np.array_equal(rows, now_rows) and settings == now_settings and tools.keys() == now_tools.keys()
                 and all(np.array_equal(tools[k], now_tools[k]) for k in tools) and len(materials) == len(now_materials)):
             return False
