@@ -533,12 +533,13 @@ def _pressed_cube(motion):
 
 
 @pytest.mark.filterwarnings("ignore:tools .* follow tools.Scripted motions")
-@pytest.mark.parametrize("change", ["particle_x0", "particle_v0", "tool size", "scripted speed"])
+@pytest.mark.parametrize("change", ["particle_x0", "particle_v0", "tool size", "scripted speed", "initial_state"])
 def test_the_diagnostics_run_the_fitted_point_again_where_the_scene_changed_since_the_fit_ran_it(landing, monkeypatch,
                                                                                                  change):
     """The fit's run at its best point stands in for the diagnostics' own only where theirs
     would run the same scene: a callback that moves the body's start, its start velocity, the
-    plate's size or the speed of its Scripted motion after that run changes what they run, but
+    plate's size, the speed of its Scripted motion or the velocities of the state the fit starts
+    from after that run changes what they run, but
     not the parameters, materials, differentiable tool arrays and settings that ``ran_as``
     compared: the diagnostics read the old scene's run (their gradient and range check off the
     bits of the run they make themselves)."""
@@ -552,12 +553,15 @@ def test_the_diagnostics_run_the_fitted_point_again_where_the_scene_changed_sinc
     def diagnosed():
         speed["v"] = 1.0
         model = _pressed_cube(motion)
+        start = model.state(requires_grad=False)  # the model's own start, given as a state
 
         def after_the_first_run(i, loss, params):
             if change == "particle_x0":
                 model.particle_x0 = model.particle_x0 + np.array([0.0, 0.002, 0.0])
             elif change == "particle_v0":
                 model.particle_v0 = 1.1 * model.particle_v0
+            elif change == "initial_state":
+                start.v.assign(1.1 * start.v.numpy())
             elif change == "tool size":
                 half = model.tools.param.numpy()
                 half[0] *= 1.5
@@ -568,7 +572,8 @@ def test_the_diagnostics_run_the_fitted_point_again_where_the_scene_changed_sinc
 
         dt, target = landing
         return fit(model, target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES, iterations=0, progress=False,
-                   noise=1e-4, callback=after_the_first_run).diagnostics
+                   noise=1e-4, callback=after_the_first_run,
+                   initial={"initial_state": start} if change == "initial_state" else None).diagnostics
 
     d = diagnosed()
     monkeypatch.setattr(fit_module._KeptRun, "ran_as", lambda self, rollout: False)

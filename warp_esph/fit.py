@@ -676,7 +676,7 @@ class _KeptRun:
     #: holds where they keep gradients: what a caller may write in place.
     TOOL_ARRAYS = TOOL_GRADIENTS + ("param", "pin_center")
 
-    def __init__(self, rollout: Rollout):
+    def __init__(self, rollout: Rollout, initial_state: State | None = None):
         self.inputs = rollout._forward_inputs
         # What else decides the run and ``_forward_inputs`` leaves out: the start a forward
         # takes from the model, the tools' arrays and the Scripted poses it evaluated. A fit's
@@ -685,6 +685,11 @@ class _KeptRun:
         # old scene's run (their gradient and range check off their own run's bits).
         self.scene = self._scene(rollout.model)
         self.scripted = rollout._scripted_poses
+        # The state the run started from (``initial``'s ``initial_state``), as it was: the
+        # forward copies it in each time, and a callback may write it in place. Device copies,
+        # read only where the diagnostics ask.
+        self.initial_state = initial_state
+        self.start = None if initial_state is None else self._start(initial_state)
         # Copies: the next forward writes the rollout's own buffers.
         self.observations = {k: wp.clone(v) if isinstance(v, wp.array) else v for k, v in rollout.observations().items()}
         self.alpha = wp.clone(rollout.final_state().alpha)
@@ -695,6 +700,19 @@ class _KeptRun:
         if model.tools is not None:
             out.update({f"tools.{name}": getattr(model.tools, name).numpy().copy() for name in cls.TOOL_ARRAYS})
         return out
+
+    @staticmethod
+    def _start(state: State) -> tuple:
+        return ({name: wp.clone(getattr(state, name)) for name in State.STATE_FIELDS},
+                (state.time, state.rest_model, getattr(state, "flowed", None)))
+
+    def _same_start(self) -> bool:
+        if self.initial_state is None:
+            return True
+        arrays, flags = self.start
+        now = self.initial_state
+        return flags == (now.time, now.rest_model, getattr(now, "flowed", None)) and all(
+            np.array_equal(a.numpy(), getattr(now, name).numpy()) for name, a in arrays.items())
 
     def _same_scripted(self, model: Model) -> bool:
         """Whether each Scripted motion gives now the poses this run evaluated (it must, as a
@@ -710,7 +728,7 @@ class _KeptRun:
     def ran_as(self, rollout: Rollout) -> bool:
         """Whether a forward of ``rollout`` now would run with the inputs this one ran with:
         the parameter arrays, tools (their arrays and Scripted poses), the model's start
-        positions and velocities and the settings bit for bit, and the materials in every field
+        positions and velocities, the state it started from and the settings bit for bit, and the materials in every field
         the parameter arrays do not hold (``finish`` writes the fitted values into the
         materials, which the kernels read from the arrays)."""
         rows, materials, tools, settings = self.inputs
@@ -718,7 +736,7 @@ class _KeptRun:
         scene = self._scene(rollout.model)
         if scene.keys() != self.scene.keys() or not all(np.array_equal(self.scene[k], scene[k]) for k in scene):
             return False
-        if not self._same_scripted(rollout.model):
+        if not (self._same_scripted(rollout.model) and self._same_start()):
             return False
         if not (np.array_equal(rows, now_rows) and settings == now_settings and tools.keys() == now_tools.keys()
                 and all(np.array_equal(tools[k], now_tools[k]) for k in tools) and len(materials) == len(now_materials)):
@@ -884,7 +902,7 @@ class _Run(_Values):
             # A blow-up the search met before the monitor could read it: it had ended the whole fit.
             raise Collapsed(e) from None
         if self.keep:
-            self.kept = _KeptRun(self.rollout)
+            self.kept = _KeptRun(self.rollout, self.initial.get("initial_state"))
         return out
 
     def value_forward(self) -> np.ndarray:
