@@ -1328,6 +1328,26 @@ def test_diverged_run_exit_3_keeps_frames(tmp_path, monkeypatch, capsys):
     assert log_frames(out_path) == {"plane0": [0, 1]}
 
 
+def test_a_run_the_neighbour_search_stops_exits_3_naming_step_and_frame(tmp_path, monkeypatch, capsys):
+    """A step the neighbour search stops (``NeighborOverflow``: a body crushed together, or a
+    blow-up) left ``run`` as a traceback, the step, frame and time said nowhere. It is one line
+    now, as a divergence's, naming them and what the file keeps, exit 3."""
+    from warp_esph.sim.neighbors import NeighborOverflow  # noqa: PLC0415
+
+    def overflow(state):
+        raise NeighborOverflow("a particle has 5000 particles within h s + skin = 0.04 s + 0.006: more than 4096; "
+                               "the body has collapsed (reduce dt)", particles=[7], need=5000)
+
+    n = _steps_per_frame()
+    _fail_after(monkeypatch, n + 2, overflow)  # the second step of frame 2
+    out_path = tmp_path / "collapsed.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "10", "--no-progress"]) == 3
+    err = capsys.readouterr().err
+    assert_one_line_error(err, f"stopped in step {n + 2} (frame 2, t = ", "more than 4096; the body has collapsed",
+                          "(particle 7 of body 'dough'", "keeps the 2 frames")
+    assert frames_in(out_path) == [0.0, 1.0]
+
+
 def _run_subprocess(*args, cwd):
     env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
     return subprocess.run([sys.executable, "-m", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=120)

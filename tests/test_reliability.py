@@ -234,6 +234,40 @@ def test_simulate_stops_a_run_gone_non_finite_naming_step_frame_and_particle():
     assert (e.value.step, e.value.frame, e.value.body) == (20, 1, "cube")
 
 
+def test_a_run_the_neighbour_search_stops_names_its_step_frame_and_time(monkeypatch):
+    """A blow-up whose stretch widens the search over the whole body (``MAX_CANDIDATES``
+    lowered to 100 so that a 125-particle cube shows it; its rows hold all 124 once it blows
+    up, mu 1.2e7 Pa at 0.5 x the stable step of 1e3) stopped ``simulate`` with the search's
+    ``NeighborOverflow``, which named no step, frame nor time: a long run said only that a
+    body had collapsed somewhere in it. It is a ``SimulationError`` naming them now, its
+    step within its frame's, the search's message and its particle kept."""
+    import warp_esph.sim.neighbors as nb  # noqa: PLC0415
+
+    def cube(mu):
+        b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+        b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), we.Material(mu=mu, lam=1.5 * mu, density=1000.0), name="cube")
+        m = b.finalize(dtype=wp.float64)
+        m.particle_v0 = 2.0 * (m.particle_x0 - m.particle_x0.mean(axis=0))
+        return m
+
+    monkeypatch.setattr(nb, "MAX_CANDIDATES", 100)
+    dt, per_frame = 0.5 * cube(1e3).stable_dt(), 5
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # dt past the stable step, on purpose
+        with pytest.raises(we.SimulationError, match=r"^the simulation stopped in step (\d+) \(frame (\d+), t = \S+ s, dt = "
+                           r"\S+ s\): the neighbour search found that a particle has \d+ particles within h s \+ skin = .*: "
+                           r"more than 100; the body has collapsed \(reduce dt\) \(particle (\d+) of body 'cube' is the "
+                           r"first past it\)$") as e:
+            we.simulate(cube(1.2e7), 3, fps=1.0 / (per_frame * dt), dt=dt, progress=False)
+    err = e.value
+    step, frame, p = (int(g) for g in re.match(r"^\D+(\d+) \(frame (\d+).*\(particle (\d+) of", str(err)).groups())
+    assert (err.step, err.frame, err.particle, err.body) == (step, frame, p, "cube")
+    assert (frame - 1) * per_frame < step <= frame * per_frame
+    t = float(re.search(r"t = (\S+) s", str(err)).group(1))
+    assert t == pytest.approx(step * dt, rel=1e-3)
+    assert isinstance(err.__cause__, nb.NeighborOverflow) and p in err.__cause__.particles
+
+
 def _stiff_cube(mu):
     b = we.SceneBuilder(spacing=0.02)
     b.add_box((0.0, 0.1, 0.0), (0.06, 0.06, 0.06), we.Material(mu=mu, lam=1.5 * mu, density=1000.0), name="cube")

@@ -19,6 +19,7 @@ import numpy as np
 
 from . import checks, tools
 from .model import Model, State
+from .sim.neighbors import NeighborOverflow
 from .sim.solver import Solver
 
 __all__ = [
@@ -132,7 +133,9 @@ ADAPTIVE_FALL_ADVICE = "; use a higher fps= (gravity adds up to |g| / fps to a s
 class SimulationError(RuntimeError):
     """The simulation produced a non-finite position or velocity, or blew up while staying
     finite (``DivergenceMonitor``), or a ``tools.Scripted`` motion moved a tool more than a
-    spacing in a step (``ToolSet.check_scripted_step``).
+    spacing in a step (``ToolSet.check_scripted_step``), or the neighbour search found a row
+    past ``MAX_CANDIDATES`` (``sim.neighbors.NeighborOverflow``, kept as ``__cause__``: a
+    body crushed together, or a blow-up).
 
     ``step``: the number of steps taken when it was detected (counted from the start of
     the run; the bad value arose in one of the steps of the last frame). ``particle``:
@@ -826,6 +829,17 @@ def _progress_bar(total: int, desc: str):
     return tqdm(total=total, unit="frame", file=unread_stream(sys.stderr), dynamic_ncols=True, leave=True, desc=desc)
 
 
+def _overflow_error(model: Model, e: NeighborOverflow, step: int, frame: int, t: float, dt: float) -> SimulationError:
+    """The ``SimulationError`` of a step the neighbour search stopped (``NeighborOverflow``),
+    naming the step, frame and time as a divergence's does: the search's own message named
+    none, and a long run said only that a body had collapsed somewhere in it."""
+    p = int(e.particles[0]) if len(e.particles) else None
+    body = None if p is None else model.bodies[int(model.particle_body_np[p])].name
+    at = "" if p is None else f" (particle {p} of body {body!r} is the first past it)"
+    return SimulationError(f"the simulation stopped in step {step} (frame {frame}, t = {t:.4g} s, dt = {dt:.4g} s): "
+                           f"the neighbour search found that {e}{at}", step=step, particle=p, body=body, frame=frame)
+
+
 def _first_bad(model: Model, state: State, monitor: DivergenceMonitor | None = None, t: float = 0.0):
     """``None`` or ``(what went wrong, first bad particle)``: a non-finite position or
     velocity, else a bound of ``monitor`` exceeded."""
@@ -986,8 +1000,9 @@ def simulate(
     when a position or velocity becomes non-finite, the monitor finds a blow-up, or a step
     moved a ``tools.Scripted`` tool more than a spacing (checked from the poses each step
     evaluates, with a fixed ``dt`` and with ``dt="auto"`` alike: the function may read what
-    ``callback`` sets, so it is never called ahead of the run); the frame that shows it is
-    not written.
+    ``callback`` sets, so it is never called ahead of the run), or the neighbour search
+    stopped a step (``NeighborOverflow``, a collapsed or blown-up body: the message names the
+    step, frame and time); the frame that shows it is not written.
     """
     try:
         if not isinstance(model, Model):
@@ -1098,7 +1113,11 @@ def simulate(
                         raise SimulationError(f"the simulation ran away before frame {start_frame + k}: {e}", step=steps,
                                               particle=p, body=body, frame=start_frame + k) from None
                 for i in range(n_sub):
-                    solver.step(current, spare, dt)
+                    try:
+                        solver.step(current, spare, dt)
+                    except NeighborOverflow as e:
+                        raise _overflow_error(model, e, steps + i + 1 if adaptive else start_frame * n_sub + steps + i + 1,
+                                              start_frame + k, float(current.time) + dt, dt) from e
                     current, spare = spare, current
                     if scripted:
                         try:
