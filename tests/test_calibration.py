@@ -1299,8 +1299,29 @@ def test_an_interrupted_fit_keeps_its_evaluations_and_the_best_so_far(tmp_path, 
     assert doc["stopped"] == "interrupted" and len(doc["history"]) == 2
     assert doc["loss"] == min(h["loss"] for h in doc["history"]) < doc["initial_loss"]
     assert len((out / "history.csv").read_text().strip().splitlines()) == 3
-    assert "interrupted after 2 evaluations: wrote the best so far" in err
+    assert "interrupted after 2 evaluations of the descent; wrote the best so far" in err
     assert doc["interrupted"] == "the fit"
+
+
+def test_an_interrupted_fit_counts_its_evaluations_as_its_summary_line_does(tmp_path, capsys, dough_scene, monkeypatch):
+    """With a global stage, the interrupt's line 'interrupted after N evaluations' counted its
+    samples and the descent's under one word, where the summary line of a finished fit says
+    which are which. It says so too now: 3 of the global stage (the guess and 2 samples), and
+    the descent's first evaluation; its second is interrupted."""
+    from warp_esph.cli import main
+
+    guess, run = _dough_guess_and_target(tmp_path, dough_scene)
+    _interrupt_evaluation(monkeypatch, 2)  # the descent's second: the global stage reads the loss alone
+    out = tmp_path / "fit"
+    capsys.readouterr()
+    status = main(["fit", str(guess), "--target", str(run), "--iterations", "10", "--optimizer", "adam", "--lr", "0.2",
+                   "--samples", "2", "--no-progress", "--no-usd", "--output-dir", str(out)])
+    err = capsys.readouterr().err
+    assert status == 130, err
+    doc = json.loads((out / "fit.json").read_text())
+    assert (doc["sample_evaluations"], doc["evaluations"], len(doc["history"])) == (3, 1, 4), doc["history"]
+    assert ("interrupted after 4 evaluations: 3 of the global stage (loss only: the guess and 2 samples), 1 of the "
+            "descent; wrote the best so far") in err, err
 
 
 def test_an_interrupted_fit_whose_files_cannot_be_written_still_exits_130(tmp_path, capsys, dough_scene, monkeypatch):
@@ -1374,7 +1395,7 @@ def test_a_second_signal_while_a_stopped_fit_writes_the_best_so_far_waits_for_it
     done = run_script(script, tmp_path, timeout=300)
     assert done.returncode == 143, done.stderr
     assert done.stderr.splitlines()[-1] == "warp-esph: terminated", done.stderr
-    assert "interrupted after 2 evaluations: wrote the best so far" in done.stderr, done.stderr
+    assert "interrupted after 2 evaluations of the descent; wrote the best so far" in done.stderr, done.stderr
     doc = json.loads((tmp_path / "out" / "fit.json").read_text())
     assert doc["stopped"] == "interrupted" and doc["interrupted"] == "the fit" and len(doc["history"]) == 2
     assert sorted(os.listdir(tmp_path / "out")) == ["fit.json", "history.csv", "loss.png", "params.png"]
@@ -1419,7 +1440,7 @@ def test_a_ctrl_c_in_a_finalizer_stops_a_fit_after_that_evaluation(tmp_path, cap
     assert status == 130, err
     doc = json.loads((out / "fit.json").read_text())
     assert doc["stopped"] == "interrupted" and len(doc["history"]) == 2
-    assert "interrupted after 2 evaluations: wrote the best so far" in err
+    assert "interrupted after 2 evaluations of the descent; wrote the best so far" in err
 
 
 def test_a_fit_whose_results_cannot_be_written_prints_them_and_exits_4(tmp_path, capsys, dough_scene, monkeypatch):

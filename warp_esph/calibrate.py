@@ -398,7 +398,9 @@ def run_fit(args, out=None, err=None) -> int:
                             if done else "none of its files was written: the evaluations so far are lost")
                     raise checks.interrupted(f"cannot write {w.filename or folder}: {w.strerror or w} ({kept})") from None
                 if during == "the fit":
-                    log(f"interrupted after {len(e.result.history)} evaluations: wrote the best so far (loss "
+                    # Counted as the summary line counts them: the history's length alone had
+                    # added the global stage's samples to the descent's under one word.
+                    log(f"interrupted after {_evaluations_said(e.result)}; wrote the best so far (loss "
                         f"{e.result.loss:.4g}) to {', '.join(written)}")
                 else:
                     log(f"interrupted during the diagnostics: wrote the finished fit ({e.result.stopped}, loss "
