@@ -98,6 +98,14 @@ def test_cli_fit_with_starts_steps_at_the_stiffest_starts_stable_step(tmp_path, 
     assert substeps == 24 and (1.0 / 30.0) / stable(2000.0) < 17
     assert f"dt = {1.0 / 30.0 / substeps:.4g} s ({2 * substeps} steps)" in err
     assert doc["dt"] == pytest.approx(1.0 / 30.0 / substeps, rel=1e-12)
+    # The help says so: it said 'else the stable step', read as the guess's.
+    from warp_esph.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["fit", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert ("else the stable step, rounded to fill a frame; with --samples or --starts K > 1, that of the stiffest point "
+            "they start from, the guess included, for every start)") in text
 
 
 def test_cli_fit_starts_whose_stable_step_overruns_the_steps_per_frame_are_refused_by_their_options(tmp_path, capsys,

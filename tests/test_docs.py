@@ -118,7 +118,8 @@ def test_every_commands_dt_help_names_the_scene_files_dt_as_its_default():
         assert "(default: the scene's dt, else " in action.help, f"{name} --dt: {action.help}"
     text = (DOCS / "cli.md").read_text()
     assert "without it the scene's `dt` is used, and where the scene\n  gives none the stable step" in text
-    assert "`--dt` (default the scene's, else the stable step)" in text
+    assert "`--dt` (default the scene's, else the stable step; with `--samples` or `--starts K` > 1, the stable step of the " \
+           "stiffest point they start from" in text
     assert "`--dt` (default the scene's, else each sample's own stable step" in text
 
 

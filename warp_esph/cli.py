@@ -945,7 +945,12 @@ def add_fit_arguments(parser):
                              "shows (default: the last); once per --target or once for all")
     parser.add_argument("--frames", type=int, metavar="N", help="frames to simulate (default: the last target frame or the scene's)")
     parser.add_argument("--fps", type=float, metavar="F", help="frames per second (default: the target's or the scene's; a force log's times must give it)")
-    parser.add_argument("--dt", type=float, metavar="DT", help="time step in s (default: the scene's dt, else the stable step)")
+    # The command picks the stiffest start's step where it picks one (calibrate.run_fit): the
+    # help said 'the stable step', which a reader took for the guess's.
+    parser.add_argument("--dt", type=float, metavar="DT",
+                        help="time step in s (default: the scene's dt, else the stable step, rounded to fill a frame; "
+                             "with --samples or --starts K > 1, that of the stiffest point they start from, the guess "
+                             "included, for every start)")
     parser.add_argument("--scale", type=float, default=1.0, metavar="S", help="resolution scale of the scene (default 1)")
     parser.add_argument("--radius", type=float, metavar="R", help="Chamfer search radius for point-cloud targets (default 3 spacings)")
     parser.add_argument("--mesh-mode", choices=MeshLoss.MODES,
