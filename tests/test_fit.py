@@ -1464,6 +1464,41 @@ def test_a_trial_the_neighbour_search_stops_fails_alone(monkeypatch, worlds):
     assert math.isfinite(result.loss)
 
 
+@pytest.mark.parametrize("worlds", [False, True])
+def test_a_fit_whose_exempt_body_goes_non_finite_fails_as_simulate_stops(worlds):
+    """``monitor_exempt`` leaves a body out of the divergence monitor's bounds; ``simulate``
+    stops on a NaN in it all the same, but a fit's trial read the non-finite check of the
+    checked bodies alone: a fit whose exempt body (its own material, mu 2.4e6 Pa at 0.5 x
+    the stable step of 1e3, blowing up from its start) went non-finite at the guess went on
+    and reported 'converged', its loss read from the other body. It fails as ``simulate``
+    stops, naming the particle."""
+    def model():
+        b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0), bodies_interact=False)
+        b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), we.Material(mu=1e3, lam=1.5e3, density=1000.0), name="calm")
+        b.add_box((1.0, 0.0, 0.0), (0.06, 0.06, 0.06), we.Material(mu=2.4e6, lam=3.6e6, density=1000.0), name="wild")
+        m = b.finalize(dtype=wp.float32, requires_grad=True)
+        v, wild = m.particle_v0.copy(), m.particle_body_np == 1
+        v[wild] = 2.0 * (m.particle_x0[wild] - m.particle_x0[wild].mean(axis=0))
+        m.particle_v0 = v
+        return m
+
+    m = model()
+    calm = np.flatnonzero(m.particle_body_np == 0)
+    wild = set(np.flatnonzero(m.particle_body_np == 1).tolist())
+    steps = 20
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), we.Material(mu=1e3, lam=1.5e3, density=1000.0))
+    dt = 0.5 * b.finalize(dtype=wp.float32).stable_dt()
+    loss = PositionLoss({steps: m.particle_x0[calm] + 0.001}, particles=calm)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # dt past the wild body's stable step, on purpose
+        with pytest.raises(FloatingPointError, match=r"^the rollout at the initial guess diverged: non-finite position or "
+                                                     r"velocity \(particle (\d+), after step \d+ of 20") as e:
+            fit([Experiment(model(), loss, steps=steps, dt=dt, materials=[0], monitor_exempt=["wild"])], params=["mu"],
+                iterations=2, progress=False, diagnostics=False, starts=2 if worlds else 1, worlds=worlds)
+    assert int(re.search(r"particle (\d+)", str(e.value)).group(1)) in wild
+
+
 def test_a_float32_model_is_fitted_from_its_guess():
     """A float32 model's guess was taken through log in float32 (the arrays' values), so the
     fit's start missed it by 1e-7, was said to lie outside bounds never given, and that

@@ -456,9 +456,10 @@ class Experiment:
     the initial guess is the first experiment's. ``weight`` scales this experiment's loss
     in the joint sum; ``noise`` is its observation noise for the diagnostics (None: the
     ``noise`` given to ``fit``). ``name`` labels it in messages. ``monitor_exempt`` names
-    bodies whose blow-up the divergence check ignores (a scene showing a method fail; None:
-    a ``scenes.Scene`` given as ``model``, or made by it, brings its own ``diverges``), as
-    ``simulate``'s.
+    bodies whose finite blow-up the divergence monitor's bounds ignore (a scene showing a
+    method fail; None: a ``scenes.Scene`` given as ``model``, or made by it, brings its own
+    ``diverges``), as ``simulate``'s: a non-finite position or velocity in them still fails
+    the trial.
     """
 
     model: object
@@ -772,7 +773,8 @@ class _Run(_Values):
         for body in exempt:
             if body not in names:
                 raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: {body!r} is not a body of the model ({names})")
-        #: The particles the divergence check reads (``_divergence``).
+        #: The particles the divergence monitor's bounds read (``_divergence``; the non-finite
+        #: check reads every one).
         self.checked = ~np.isin(self.model.particle_body_np, [names.index(b) for b in exempt])
         self.idx = _material_indices(self.model, exp.materials)
         self.loss = _target_loss(exp.target, exp.frames)
@@ -1010,28 +1012,34 @@ def _collapse_note(error, particles, first: int = 0) -> str:
             f"it){'' if p is None else f' (particle {p})'}")
 
 
-def _divergence(model: Model, rollout: Rollout, particles=None, first: int = 0) -> str | None:
+def _divergence(model: Model, rollout: Rollout, particles=None, first: int = 0, checked=None) -> str | None:
     """Why the rollout is a blow-up, or None: a non-finite position or velocity among
-    ``particles`` (at a frame or in the last state; the first step found so), else
-    ``simulate.DivergenceMonitor``'s bounds from its initial state on the last state. The
-    particle is named by its index less ``first``: a world's first particle, so that a start
-    run as a world is noted as it is run alone (its history describes the one-world model)."""
+    ``particles`` (a boolean mask, None: all; at a frame or in the last state; the first step
+    found so), else ``simulate.DivergenceMonitor``'s bounds from its initial state on the last
+    state, of ``checked`` (``particles`` less the monitor's exempt bodies; None: ``particles``).
+    An exempt body is left out of the bounds alone, as ``simulate`` leaves it: a non-finite
+    value is no blow-up a scene shows but a lost state, which spreads to what it meets and
+    makes the gradient of its material NaN (a fit whose exempt body went non-finite at the
+    guess had gone on and reported 'converged'). The particle is named by its index less
+    ``first``: a world's first particle, so that a start run as a world is noted as it is run
+    alone (its history describes the one-world model)."""
     from .simulate import DivergenceMonitor  # noqa: PLC0415
 
+    checked = particles if checked is None else checked
     bad = rollout.first_non_finite(particles)
     if bad is not None:
         step, p, last_finite = bad
         since = "" if step - last_finite <= 1 else f", finite after step {last_finite}"
         return (f"diverged: non-finite position or velocity (particle {p - first}, after step {step} of "
                 f"{rollout.steps}{since})")
-    monitor = DivergenceMonitor(model, rollout._initial, particles=particles, solver=rollout.solver)
+    monitor = DivergenceMonitor(model, rollout._initial, particles=checked, solver=rollout.solver)
     final = rollout.final_state()
     hit = monitor.check(final.x.numpy(), final.v.numpy(), rollout.steps * rollout.dt)
     return None if hit is None else f"diverged: {hit[0]} (particle {hit[1] - first}, at the rollout's last step)"
 
 
 def _check_diverged(run) -> None:
-    why = _divergence(run.model, run.rollout, run.checked)
+    why = _divergence(run.model, run.rollout, checked=run.checked)
     if why is not None:
         raise Diverged(why)
 
@@ -2016,8 +2024,8 @@ class _WorldsProblem:
                 world_values = np.asarray(r.loss.world_values, dtype=np.float64)
                 g = r.grads(prob.params, grads)
                 for w in range(W):  # a world that blew up fails its start alone
-                    why = _divergence(r.model, r.rollout, r.checked & (r.model.world_of_particle == w),
-                                      int(r.model.world_start[w]))
+                    world = r.model.world_of_particle == w
+                    why = _divergence(r.model, r.rollout, world, int(r.model.world_start[w]), checked=r.checked & world)
                     ran = {n: g[n][w * k:(w + 1) * k] for n in prob.params}
                     if why is not None or not (np.isfinite(world_values[w]) and all(np.isfinite(a).all() for a in ran.values())):
                         blew_up[w] = True

@@ -164,8 +164,9 @@ class DivergenceMonitor:
 
     Made from the model and the run's first state; ``check(x, v, t)`` (``t``: seconds since
     that state) returns ``None`` or ``(what, particle)``: a non-finite position or velocity
-    among the particles checked is a blow-up whatever the bounds below (also where they do
-    not run). Three bounds, each a generous multiple of what the physics allows:
+    (of ``particles``, the exempt bodies' too) is a blow-up whatever the bounds below (also
+    where they do not run); the bounds read the particles checked, the exempt bodies left
+    out. Three bounds, each a generous multiple of what the physics allows:
 
     - speed: no particle can move faster than its initial speed, plus the fall from the
       highest particle to the lowest floor (``sqrt(2 g H)``; ``g t`` where nothing stops a
@@ -233,10 +234,10 @@ class DivergenceMonitor:
         for name in exempt:
             if name not in names:
                 raise ValueError(f"monitor_exempt = {exempt!r} is not allowed: {name!r} is not a body of the model ({names})")
-        #: Particles checked: all but those of the exempt bodies (a scene showing a method fail).
-        self.keep = ~np.isin(model.particle_body_np, [names.index(n) for n in exempt])
-        if particles is not None:
-            self.keep &= np.asarray(particles, dtype=bool)
+        #: Particles the non-finite check reads: all (of ``particles``), the exempt bodies' too.
+        self.finite = np.ones(model.particle_count, dtype=bool) if particles is None else np.asarray(particles, dtype=bool)
+        #: Particles the bounds read: all but those of the exempt bodies (a scene showing a method fail).
+        self.keep = ~np.isin(model.particle_body_np, [names.index(n) for n in exempt]) & self.finite
         x0 = state.x.numpy().astype(np.float64)[self.keep]
         v0 = state.v.numpy().astype(np.float64)[self.keep]
         self.mass = model.particle_mass.numpy().astype(np.float64)[self.keep]
@@ -375,13 +376,14 @@ class DivergenceMonitor:
         return float(self.speed_bounds(t).max())
 
     def check(self, x: np.ndarray, v: np.ndarray, t: float):
-        """``None``, or ``(why, particle)``: a non-finite position or velocity among the
-        particles checked (whatever bounds run: a NaN passes every comparison, and a caller
-        reading this alone, a fit's trial, took a NaN run as no blow-up), else the first bound
-        exceeded."""
-        bad = ~(np.isfinite(x[self.keep]).all(axis=1) & np.isfinite(v[self.keep]).all(axis=1))
+        """``None``, or ``(why, particle)``: a non-finite position or velocity (whatever bounds
+        run: a NaN passes every comparison, and a caller reading this alone, a fit's trial, took
+        a NaN run as no blow-up), the exempt bodies' too (an exempt body is left out of the
+        bounds alone: a non-finite value is no blow-up a scene shows but a lost state, which
+        spreads to what it meets; ``simulate`` stops on it), else the first bound exceeded."""
+        bad = ~(np.isfinite(x[self.finite]).all(axis=1) & np.isfinite(v[self.finite]).all(axis=1))
         if bad.any():
-            p = int(np.flatnonzero(self.keep)[int(np.argmax(bad))])
+            p = int(np.flatnonzero(self.finite)[int(np.argmax(bad))])
             return f"non-finite position or velocity (particle {p} is the first of {int(bad.sum())} bad particles)", p
         if not self.enabled:
             return None
@@ -991,7 +993,8 @@ def simulate(
 
     - ``monitor``: stop a run that blows up but stays finite (``DivergenceMonitor``);
       ``False`` keeps only the check for non-finite values. ``monitor_exempt``: names of
-      bodies it leaves out (``Scene.diverges``: a body a scene shows blowing up).
+      bodies its bounds leave out (``Scene.diverges``: a body a scene shows blowing up); a
+      non-finite position or velocity in them still stops the run, as ``fit`` fails the trial.
       ``monitor_origin``: the state of frame 0 whose bounds the monitor keeps, the time
       counted from it (a resumed run: the run's initial state, so that each frame is judged
       as the uninterrupted run judged it; default: the state this call starts from).
