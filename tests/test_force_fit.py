@@ -4,6 +4,7 @@ gradient of a force-curve loss through the tape against float64 central differen
 from the ``<output>_tools.csv`` a previous ``warp-esph run`` wrote."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -596,7 +597,8 @@ def test_a_force_curves_standard_error_follows_its_measured_scatter():
     """A force curve's noise was 1 % of its RMS force unless stated, whatever its scatter: a
     curve measured with 5 % noise got standard errors a fifth of the spread (measured over 20
     noise draws at 3 %: 15.9 Pa against a spread of 38.5 Pa of the fitted mu). Left unstated,
-    the noise is now the curve's residual RMS (floored at that 1 %), so the standard error is
+    the noise is now estimated from the curve's residuals, ``sqrt(SSR / (N - P))`` (floored at
+    that 1 %; their plain RMS had read low by the fitted value), so the standard error is
     that of the stated true noise, within the scatter of an RMS of 30 residuals."""
     from warp_esph.diagnostics import diagnose  # noqa: PLC0415
 
@@ -613,7 +615,9 @@ def test_a_force_curves_standard_error_follows_its_measured_scatter():
     noise_left, se_left, rms_left = errors(None)
     assert se_left == pytest.approx(se_given, rel=0.25)
     assert noise_given == sigma and rms_given == rms_left
-    assert noise_left == pytest.approx(rms_left) and noise_left == pytest.approx(sigma, rel=0.25)
+    # sqrt(SSR / (N - P)) of its 30 residuals for the one fitted value, not their RMS.
+    assert noise_left == pytest.approx(rms_left * math.sqrt(30 / 29), rel=1e-9)
+    assert noise_left == pytest.approx(sigma, rel=0.25)
     # A curve fitted to round-off keeps the floor: 1 % of its RMS force.
     exact = ReactionForceLoss(truth, "plate", ends, window=2, components="y")
     d = diagnose(_elastic_press(5000.0), exact, ["mu"], steps=60, dt=2.0e-4, progress=False)

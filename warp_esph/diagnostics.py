@@ -59,13 +59,17 @@ strain ``alpha`` above ``LARGE_STRAIN_ALPHA`` (of the particles whose material c
 ``bias`` says so (``large_strain_bias``).
 
 Noise: ``noise`` (m) for geometric losses; a loss with its own ``noise`` attribute (the
-silhouette loss, in occupancy units) uses that. With ``noise=None`` the residual RMS at
-the optimum is used, floored at 1 % of the particle spacing (a synthetic target fits to
-round-off, which would make every parameter look perfectly determined). A force curve
-(``ReactionForceLoss``, newtons) whose noise was not stated gets its own residual RMS,
-floored at its ``noise`` (1 % of its RMS force); its residuals are checked against a stated
-noise term by term (a warning naming the curve), since they cannot join the metres of the
-experiment's RMS.
+silhouette loss, in occupancy units) uses that. With ``noise=None`` it is estimated from
+the ``N`` residuals at the optimum as ``sqrt(SSR / (N - P))`` (``estimated_noise``; ``P``
+fitted values: the fit drew the residuals towards zero along ``P`` directions, so their
+plain RMS ``sqrt(SSR / N)`` reads low), floored at 1 % of the particle spacing (a synthetic
+target fits to round-off, which would make every parameter look perfectly determined);
+where ``N <= P`` nothing is left to estimate it from, and a warning says the RMS used
+instead understates it. Each experiment is charged all ``P`` (they share the values). A
+force curve (``ReactionForceLoss``, newtons) whose noise was not stated gets its own
+estimate the same way, floored at its ``noise`` (1 % of its RMS force); its residuals are
+checked against a stated noise term by term (a warning naming the curve), since they cannot
+join the metres of the experiment's RMS.
 """
 
 import dataclasses
@@ -77,7 +81,8 @@ import warp as wp
 from .losses import Loss, SumLoss
 from .material import UNITS
 
-__all__ = ["Diagnostics", "diagnose", "diagnose_problem", "chi_square_loss", "leaf_terms", "large_strain_bias"]
+__all__ = ["Diagnostics", "diagnose", "diagnose_problem", "chi_square_loss", "leaf_terms", "large_strain_bias",
+           "estimated_noise"]
 
 #: Defaults of the warnings (see the module doc).
 MAX_RELATIVE_ERROR = 0.25
@@ -255,13 +260,31 @@ def _term_name(leaf: Loss) -> str:
     return getattr(leaf, "term_name", None) or type(leaf).__name__
 
 
-def _own_noise_terms(loss: Loss, positions) -> list[tuple]:
-    """``(leaf, residual RMS, sigma, stated)`` of each term whose residuals are in units of
-    their own, with their own noise (a force curve, a slump's stated lengths), at the last
-    forward (``positions``: numpy observations). Silhouettes (pixels grouped by splat) are
+def estimated_noise(ssr: float, count: int, fitted: int) -> float | None:
+    """``sqrt(SSR / (N - P))``, the noise of ``count`` (N) residuals whose squares sum to
+    ``ssr`` after a fit of ``fitted`` (P) values; None where ``N <= P`` (nothing left to
+    estimate it from). The fit drew the residuals towards zero along P directions, so their
+    plain RMS, ``sqrt(SSR / N)``, reads low: its square's mean is ``(N - P) / N`` of the noise's
+    variance."""
+    if count <= fitted:
+        return None
+    return math.sqrt(max(ssr, 0.0) / (count - fitted))
+
+
+def _unestimated(which: str, count: int, fitted: int) -> str:
+    return (f"the noise of {which} cannot be estimated from its {count} residuals for {fitted} fitted values (it needs "
+            f"more residuals than fitted values): the diagnostics use their RMS, which understates the noise, so the "
+            f"errors are too small; state the noise")
+
+
+def _own_noise_terms(loss: Loss, positions, fitted: int = 0) -> list[tuple]:
+    """``(leaf, residual RMS, sigma, stated, residual count)`` of each term whose residuals are in
+    units of their own, with their own noise (a force curve, a slump's stated lengths), at the
+    last forward (``positions``: numpy observations). Silhouettes (pixels grouped by splat) are
     left to their own noise. ``sigma`` is the stated noise, or, where the term's noise was not
-    stated (``noise_stated`` False), its residual RMS floored at its ``noise``: as positions'
-    noise is estimated, so that the errors follow the data's scatter."""
+    stated (``noise_stated`` False), ``estimated_noise`` of its residuals for ``fitted`` values
+    (their RMS where there are too few), floored at its ``noise``: as positions' noise is
+    estimated, so that the errors follow the data's scatter."""
     out = []
     for leaf in leaf_terms(loss):
         if getattr(leaf, "noise", None) is None or hasattr(leaf, "correlated_pixels") or not hasattr(leaf, "residuals"):
@@ -269,9 +292,12 @@ def _own_noise_terms(loss: Loss, positions) -> list[tuple]:
         res = np.asarray(leaf.residuals(positions), dtype=np.float64).ravel()
         if hasattr(leaf, "reset_residuals"):
             leaf.reset_residuals()  # nearest points chosen here are not the diagnostics' own
-        t_rms = float(np.sqrt(np.mean(res * res))) if res.size else 0.0
+        ssr = float(np.sum(res * res))
+        t_rms = math.sqrt(ssr / res.size) if res.size else 0.0
         stated = getattr(leaf, "noise_stated", True)
-        out.append((leaf, t_rms, leaf.noise if stated else max(t_rms, leaf.noise), stated))
+        unbiased = estimated_noise(ssr, res.size, fitted)
+        t_sigma = leaf.noise if stated else max(t_rms if unbiased is None else unbiased, leaf.noise)
+        out.append((leaf, t_rms, t_sigma, stated, res.size))
     return out
 
 
@@ -370,6 +396,7 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
     elif method == "gauss-newton" and not _has_residuals(prob):
         raise ValueError("method = 'gauss-newton' is not allowed: a loss of the fit has no residual vector; use 'hessian'")
     prob.apply(z)
+    P = len(z)
     sigmas, rms, chi2s, observations, leaf_sigmas, grouped = [], [], [], 0, {}, 0
     misfits, geometric = [], []
     bias = []
@@ -395,14 +422,23 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
             leaf.value(positions)  # records the residual counts
         s, n, spacing = _residuals(run, positions)
         r = math.sqrt(s / n) if n else 0.0
-        sigma = run.noise or noise or max(r, 0.01 * spacing)
-        own_terms = _own_noise_terms(run.loss, arrays)
-        for leaf, t_rms, t_sigma, stated in own_terms:
+        which = f"experiment {k_run}'s " if len(prob.runs) > 1 else "the "
+        sigma = run.noise or noise
+        if not sigma:
+            # Each experiment is charged all P fitted values (they are shared): with several
+            # whose noise is estimated, a little high, never low.
+            unbiased = estimated_noise(s, n, P) if n else None
+            if n and unbiased is None:
+                misfits.append(_unestimated(f"{which}positions", n, P))
+            sigma = max(r if unbiased is None else unbiased, 0.01 * spacing)
+        own_terms = _own_noise_terms(run.loss, arrays, P)
+        for leaf, t_rms, t_sigma, stated, count in own_terms:
+            if not stated and count <= P:
+                misfits.append(_unestimated(f"{which}{_term_name(leaf)}", count, P))
             if stated and t_rms > 3.0 * t_sigma:
                 # These residuals are in units of their own (a force curve's newtons) and
                 # never entered the experiment's RMS: a curve the model cannot follow was
                 # reported determined, without a word.
-                which = f"experiment {k_run}'s " if len(prob.runs) > 1 else "the "
                 unit = getattr(leaf, "noise_unit", "")
                 misfits.append(f"the residuals of {which}{_term_name(leaf)} (RMS {t_rms:.3g} {unit}) are "
                                f"{t_rms / t_sigma:.3g} times its stated noise {t_sigma:.3g} {unit}: the model does not "
@@ -412,7 +448,7 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
             said = leaf.opposite_sign(arrays) if hasattr(leaf, "opposite_sign") else None
             if said is not None:
                 misfits.append(f"experiment {k_run}: {said}" if len(prob.runs) > 1 else said)
-        own = [t_sigma for _, _, t_sigma, _ in own_terms] or [
+        own = [t_sigma for _, _, t_sigma, _, _ in own_terms] or [
             leaf.noise for leaf in leaf_terms(run.loss) if getattr(leaf, "noise", None) is not None]
         # A run observed only through losses with their own noise (silhouettes, force curves)
         # reports that noise and those residuals.
@@ -420,7 +456,7 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
         rms.append(r if n or not own_terms else own_terms[0][1])
         geometric.append(bool(n))
         sigma_geometric = sigma
-        estimated = {id(leaf): t_sigma for leaf, _, t_sigma, _ in own_terms}
+        estimated = {id(leaf): t_sigma for leaf, _, t_sigma, _, _ in own_terms}
         for leaf in leaf_terms(run.loss):
             leaf_sigmas[id(leaf)] = estimated.get(id(leaf)) or leaf_noise(leaf, sigma_geometric, arrays)
             count = leaf.observation_count()
@@ -429,7 +465,6 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
                 grouped += 1
             observations += count
         chi2s.append(chi_square_loss(run.loss, sigma_geometric, arrays, estimated))
-    P = len(z)
     lo, hi = prob.z_bounds()
     # Central where the bounds allow, one-sided at a bound.
     ups = np.minimum(z + step, hi)

@@ -1244,8 +1244,8 @@ class ReactionForceLoss(Loss):
     simulation is the tape's.
 
     ``noise``: the force measurement's standard deviation (N) for ``warp_esph.diagnostics``.
-    Default None: the diagnostics estimate it from the curve's residual RMS at the optimum, at
-    least 1 % of the target's RMS force (``noise`` then holds that floor, ``noise_stated`` is
+    Default None: the diagnostics estimate it from the curve's residuals at the optimum
+    (``sqrt(SSR / (N - P))``, ``diagnostics.estimated_noise``), at least 1 % of the target's RMS force (``noise`` then holds that floor, ``noise_stated`` is
     False), as positions' noise is estimated; a fixed 1 % had been taken for the noise whatever
     the curve's scatter, so a curve measured with 3 % noise got standard errors 0.41 x the
     fitted values' spread over noise draws, and a curve the model cannot follow was reported
