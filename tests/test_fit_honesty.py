@@ -533,13 +533,15 @@ def _pressed_cube(motion):
 
 
 @pytest.mark.filterwarnings("ignore:tools .* follow tools.Scripted motions")
-@pytest.mark.parametrize("change", ["particle_x0", "particle_v0", "tool size", "scripted speed", "initial_state"])
+@pytest.mark.parametrize("change", ["particle_x0", "particle_v0", "tool size", "scripted speed", "initial_state",
+                                    "ground height", "particle mass", "rest density"])
 def test_the_diagnostics_run_the_fitted_point_again_where_the_scene_changed_since_the_fit_ran_it(landing, monkeypatch,
                                                                                                  change):
     """The fit's run at its best point stands in for the diagnostics' own only where theirs
     would run the same scene: a callback that moves the body's start, its start velocity, the
-    plate's size, the speed of its Scripted motion or the velocities of the state the fit starts
-    from after that run changes what they run, but
+    plate's size, the speed of its Scripted motion, the velocities of the state the fit starts
+    from, the ground's height, the particles' masses or their rest densities after that run
+    changes what they run, but
     not the parameters, materials, differentiable tool arrays and settings that ``ran_as``
     compared: the diagnostics read the old scene's run (their gradient and range check off the
     bits of the run they make themselves)."""
@@ -566,6 +568,12 @@ def test_the_diagnostics_run_the_fitted_point_again_where_the_scene_changed_sinc
                 half = model.tools.param.numpy()
                 half[0] *= 1.5
                 model.tools.param.assign(half)
+            elif change == "ground height":
+                model.plane_offset.assign(model.plane_offset.numpy() + 0.005)
+            elif change == "particle mass":
+                model.particle_mass.assign(1.2 * model.particle_mass.numpy())
+            elif change == "rest density":
+                model.particle_rest_density.assign(1.05 * model.particle_rest_density.numpy())
             else:
                 speed["v"] = 1.5
             return False

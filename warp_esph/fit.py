@@ -674,8 +674,16 @@ class _KeptRun:
     at its best point, which the diagnostics' first run at that point would repeat."""
 
     #: The tools' arrays a step reads besides the differentiable ones ``_forward_inputs``
-    #: holds where they keep gradients: what a caller may write in place.
-    TOOL_ARRAYS = TOOL_GRADIENTS + ("param", "pin_center")
+    #: holds where they keep gradients: what a caller may write in place (a mesh tool's
+    #: vertices, triangles and bounds among them).
+    TOOL_ARRAYS = TOOL_GRADIENTS + ("param", "pin_center", "mesh_id", "mesh_lo", "mesh_hi", "mesh_verts", "mesh_tris",
+                                    "mesh_vofs", "mesh_fofs")
+    #: The model's arrays a step reads that neither the parameter arrays nor the start hold:
+    #: the particles' masses, energy volumes, rest densities and materials, and the static
+    #: colliders (planes, spheres, boxes).
+    MODEL_ARRAYS = ("particle_mass", "particle_volume", "particle_rest_density", "particle_material", "plane_normal",
+                    "plane_offset", "plane_friction", "sphere_center", "sphere_radius", "sphere_friction", "box_center",
+                    "box_half", "box_friction")
 
     def __init__(self, rollout: Rollout, initial_state: State | None = None):
         self.inputs = rollout._forward_inputs
@@ -698,8 +706,16 @@ class _KeptRun:
     @classmethod
     def _scene(cls, model: Model) -> dict[str, np.ndarray]:
         out = {"particle_x0": np.array(model.particle_x0), "particle_v0": np.array(model.particle_v0)}
+        # A callback that wrote a plane's offset, the particles' masses or rest densities after
+        # the run left the diagnostics reading the old scene's run, as for the start above.
+        out.update({name: getattr(model, name).numpy().copy() for name in cls.MODEL_ARRAYS})
+        # The step's kernels are made for these counts (a collider added to the lists).
+        out["colliders"] = np.array([len(model.planes), len(model.spheres), len(model.boxes)])
         if model.tools is not None:
             out.update({f"tools.{name}": getattr(model.tools, name).numpy().copy() for name in cls.TOOL_ARRAYS})
+            # The float32 copy of each mesh that the contact's queries pick faces from.
+            out.update({f"tools.meshes[{k}].points": mesh.points.numpy().copy()
+                        for k, mesh in enumerate(model.tools.meshes)})
         return out
 
     @staticmethod
@@ -728,8 +744,9 @@ class _KeptRun:
 
     def ran_as(self, rollout: Rollout) -> bool:
         """Whether a forward of ``rollout`` now would run with the inputs this one ran with:
-        the parameter arrays, tools (their arrays and Scripted poses), the model's start
-        positions and velocities, the state it started from and the settings bit for bit, and the materials in every field
+        the parameter arrays, tools (their arrays, meshes and Scripted poses), the model's start
+        positions and velocities, particle masses, volumes, rest densities and materials, static
+        colliders, the state it started from and the settings bit for bit, and the materials in every field
         the parameter arrays do not hold (``finish`` writes the fitted values into the
         materials, which the kernels read from the arrays)."""
         rows, materials, tools, settings = self.inputs
