@@ -14,7 +14,7 @@ mu and lambda (P = 2) by Gauss-Newton from the truth, 15 iterations, and diagnos
 their standard errors (the old estimate's: scaled by the ratio of the two noises). Not a test.
 """
 
-import argparse
+import sys
 
 import numpy as np
 import warp as wp
@@ -23,6 +23,10 @@ import warp_esph as we
 from warp_esph.fit import fit
 from warp_esph.losses import PositionLoss
 from warp_esph.rollout import Rollout
+
+from . import _cli
+
+PROG = "python -m benchmarks.noise_estimate"
 
 STEPS = 100
 PARAMS = ["mu", "lam"]
@@ -39,13 +43,21 @@ def cube(**values):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--draws", type=int, default=40)
-    ap.add_argument("--sigma", type=float, default=1e-3)
-    ap.add_argument("--particles", default="all", help="observed particles: 'all' or indices, e.g. 0,7")
-    ap.add_argument("--seed", type=int, default=11)
+    ap = _cli.Parser(prog=PROG, description=__doc__.splitlines()[0])
+    ap.add_argument("--draws", type=_cli.int_at_least(2), default=40, help="noise draws, each a fit (default 40)")
+    ap.add_argument("--sigma", type=_cli.number(lo=0.0, lo_open=True), default=1e-3, help="noise (m, default 1e-3)")
+    ap.add_argument("--particles", default="all", help="observed particles: 'all' or indices in 0..7, e.g. 0,7")
+    ap.add_argument("--seed", type=_cli.nonnegative_int, default=11)
     a = ap.parse_args(argv)
-    parts = list(range(8)) if a.particles == "all" else [int(i) for i in a.particles.split(",")]
+    if a.particles == "all":
+        parts = list(range(8))
+    else:
+        parts = _cli.int_list(lo=0)(a.particles, "--particles")
+        if max(parts) > 7 or len(set(parts)) != len(parts):
+            raise _cli.refuse("--particles", a.particles, "must be distinct particle indices in 0..7, or 'all'")
+    from warp_esph.startup import init_warp  # noqa: PLC0415
+
+    init_warp()
     model = cube()
     dt = 0.5 * model.stable_dt()
     truth = np.asarray(Rollout(model, STEPS, dt, frames=[STEPS]).forward(), dtype=np.float64)[-1][parts]
@@ -74,4 +86,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(_cli.run(main, PROG))

@@ -121,3 +121,22 @@ def test_fit_benchmarks_loss_only_rows_count_the_runs_that_ran(tmp_path, monkeyp
     untaped = [n for taped, n in per_fit if not taped]
     assert len(untaped) == 2 * len(rows)
     assert [r["forward_runs"] for r in rows] == untaped[1::2]
+
+
+def test_noise_estimate_benchmark_reads_the_variance_n_over_n_minus_p_above_the_rms(capsys):
+    """``python -m benchmarks.noise_estimate`` (two draws here): the estimate the diagnostics
+    use, sqrt(SSR / (N - P)), is the residuals' RMS times sqrt(N / (N - P)) in every draw,
+    so the mean variances it prints stand in that ratio; bad options are refused by name."""
+    import re
+
+    from benchmarks import noise_estimate
+
+    noise_estimate.main(["--draws", "2"])
+    out = capsys.readouterr().out
+    n, p = (int(v) for v in re.search(r"N = (\d+) residuals, P = (\d+)", out).groups())
+    new, old = (float(v) for v in re.search(r"\(N-P\)\) ([\d.]+) \+- [\d.]+, RMS \(before\) ([\d.]+)", out).groups())
+    assert (n, p) == (24, 2)
+    assert new / old == pytest.approx(n / (n - p), rel=3e-3)  # the printed 3 decimals
+    with pytest.raises(SystemExit):
+        noise_estimate.main(["--draws", "1"])
+    assert "--draws = 1 is not allowed" in capsys.readouterr().err
