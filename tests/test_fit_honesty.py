@@ -396,17 +396,10 @@ def test_every_number_of_a_fits_history_is_what_it_says(dtype, worlds):
     assert record["iterations"] == sum(n - 1 for n in per_start) <= 2 * 3
 
 
-@pytest.mark.parametrize("method", ["gauss-newton", "hessian"])
-def test_the_diagnostics_count_every_run_they_make(landing, monkeypatch, method):
-    """``Diagnostics.evaluations`` (fit.json's ``diagnostics.evaluations``, and what the fit
-    command says they ran) counted the forward differences and the range check but not the
-    run at the fitted point that sizes the noise, nor the one the range check starts from:
-    two runs fewer than were made."""
-    from warp_esph import diagnostics
+def _count_runs(monkeypatch) -> list:
+    """A list that each forward run of the fit's and diagnostics' models appends its run to."""
     from warp_esph import fit as fit_module
 
-    if method == "hessian":
-        monkeypatch.setattr(diagnostics, "_has_residuals", lambda prob: False)
     runs = []
     forward = fit_module._Run.forward
 
@@ -415,6 +408,20 @@ def test_the_diagnostics_count_every_run_they_make(landing, monkeypatch, method)
         return forward(self, *args, **kwargs)
 
     monkeypatch.setattr(fit_module._Run, "forward", counted)
+    return runs
+
+
+@pytest.mark.parametrize("method", ["gauss-newton", "hessian"])
+def test_the_diagnostics_count_every_run_they_make(landing, monkeypatch, method):
+    """``Diagnostics.evaluations`` (fit.json's ``diagnostics.evaluations``, and what the fit
+    command says they ran) counted the forward differences and the range check but not the
+    run at the fitted point that sizes the noise, nor the one the range check starts from:
+    two runs fewer than were made."""
+    from warp_esph import diagnostics
+
+    if method == "hessian":
+        monkeypatch.setattr(diagnostics, "_has_residuals", lambda prob: False)
+    runs = _count_runs(monkeypatch)
     dt, target = landing
     result = fit(_cube(), target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES, iterations=0, progress=False,
                  noise=1e-4)
@@ -448,14 +455,7 @@ def test_the_diagnostics_run_the_fitted_point_at_most_once(landing, monkeypatch,
         monkeypatch.setattr(diagnostics, "_has_residuals", lambda prob: False)
     if not kept:
         monkeypatch.setattr(fit_module._KeptRun, "ran_as", lambda self, rollout: False)
-    runs = []
-    forward = fit_module._Run.forward
-
-    def counted(self, *args, **kwargs):
-        runs.append(self)
-        return forward(self, *args, **kwargs)
-
-    monkeypatch.setattr(fit_module._Run, "forward", counted)
+    runs = _count_runs(monkeypatch)
     at = {}
     diagnose_problem = diagnostics.diagnose_problem
 
