@@ -237,6 +237,26 @@ def test_a_step_leaves_every_bit_of_state_in_as_it_was(option, dtype, fused, tap
         assert "State.x.grad" in seen
 
 
+@pytest.mark.parametrize("option", OPTIONS)
+def test_a_backward_pass_leaves_every_value_the_forward_steps_wrote(option):
+    """The adjoints Warp generates replay the forward, atomic adds included: the tools' and
+    static colliders' reaction rows a step reports (``State.reaction_force``,
+    ``collider_force``) read 2-3x the forward's after ``tape.backward()`` (measured), as
+    ``State.force`` did before ``replay.kept_through_backward``."""
+    model, kw = _scene(option, wp.float64, requires_grad=True)
+    solver = we.Solver(model, **kw)
+    states = [_stirred(model, model.state()) for _ in range(4)]
+    tape = wp.Tape()
+    with tape:
+        for a, b in zip(states, states[1:]):
+            solver.step(a, b, 0.5 * model.stable_dt())
+    values = {id(a): (f"{i}: {p}", a, a.numpy().tobytes()) for i, s in enumerate(states)
+              for p, a in _arrays(s, skip=(we.Model, we.Solver)).items()}
+    states[-1].x.grad.fill_(1.0)
+    tape.backward()
+    assert [p for p, a, bits in values.values() if a.numpy().tobytes() != bits] == []
+
+
 @pytest.mark.parametrize("dtype", [wp.float32, wp.float64])
 def test_the_calls_that_read_a_state_leave_every_bit_of_it_as_it_was(tmp_path, dtype):
     model, _ = _scene("keyframed_tools", dtype, requires_grad=True)

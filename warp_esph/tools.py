@@ -56,6 +56,7 @@ import warp as wp
 from . import checks
 from .sim import colliders
 from .sim.integrate import funcs as integrate_funcs, static_collider_struct, struct as static_struct
+from .sim.replay import kept_through_backward
 from ._types import type_set
 
 #: Collider shapes, in the order their loops run in ``integrate`` (each kind's loop is
@@ -1283,21 +1284,25 @@ class ToolSet:
         state_out.reaction_torque.zero_()
         state_out.collider_force.zero_()
         state_out.collider_torque.zero_()
-        self.model.launches(
-            self.kernels.integrate,
-            m.particle_count,
-            [
-                state_in.x, state_in.x_lo, state_in.v, state_out.force, m.particle_mass, T.vec3(*m.gravity), S(dt),
-                static_collider_struct(m),
-                state_out.tool_pose_p, state_out.tool_pose_q, self.param, self.static_friction, self.friction,
-                self.mesh_id, self.mesh_lo, self.mesh_hi, self.mesh_verts, self.mesh_tris, self.mesh_vofs, self.mesh_fofs,
-                S(self.margin),
-                self.pin, self.rest_x, self.pin_center, m.particle_world, int(n),
-            ],
-            [state_out.x, state_out.x_lo, state_out.v, state_out.reaction_force, state_out.reaction_torque,
-             state_out.collider_force, state_out.collider_torque],
-            device=dev,
-        )
+        reactions = (state_out.reaction_force, state_out.reaction_torque, state_out.collider_force,
+                     state_out.collider_torque)
+        # The generated adjoint replays the forward's atomic adds into the reaction rows: a
+        # backward pass left them 2-3x the step's (tests/test_contracts.py).
+        with kept_through_backward(*reactions):
+            self.model.launches(
+                self.kernels.integrate,
+                m.particle_count,
+                [
+                    state_in.x, state_in.x_lo, state_in.v, state_out.force, m.particle_mass, T.vec3(*m.gravity), S(dt),
+                    static_collider_struct(m),
+                    state_out.tool_pose_p, state_out.tool_pose_q, self.param, self.static_friction, self.friction,
+                    self.mesh_id, self.mesh_lo, self.mesh_hi, self.mesh_verts, self.mesh_tris, self.mesh_vofs,
+                    self.mesh_fofs, S(self.margin),
+                    self.pin, self.rest_x, self.pin_center, m.particle_world, int(n),
+                ],
+                [state_out.x, state_out.x_lo, state_out.v, *reactions],
+                device=dev,
+            )
         acc = getattr(solver, "tool_impulse", None)
         if acc is not None and not _taping():
             rows = n * self.world_count

@@ -26,7 +26,7 @@ import warp as wp
 
 from .._types import type_set
 from . import colliders, fields
-from .replay import pointer_key
+from .replay import kept_through_backward, pointer_key
 from .roundoff import compensated_sum
 
 
@@ -240,14 +240,17 @@ def launch_integrate(model, state_in, state_out, dt):
     m = model
     state_out.collider_force.zero_()
     state_out.collider_torque.zero_()
-    model.launches(
-        kernels(S, len(m.planes), len(m.spheres), len(m.boxes)).integrate,
-        m.particle_count,
-        [state_in.x, state_in.x_lo, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt),
-         static_collider_struct(m), m.particle_world],
-        [state_out.x, state_out.x_lo, state_out.v, state_out.collider_force, state_out.collider_torque],
-        device=m.device,
-    )
+    # The generated adjoint replays the forward's atomic adds into the reaction rows: a
+    # backward pass left them 3x the step's (tests/test_contracts.py).
+    with kept_through_backward(state_out.collider_force, state_out.collider_torque):
+        model.launches(
+            kernels(S, len(m.planes), len(m.spheres), len(m.boxes)).integrate,
+            m.particle_count,
+            [state_in.x, state_in.x_lo, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt),
+             static_collider_struct(m), m.particle_world],
+            [state_out.x, state_out.x_lo, state_out.v, state_out.collider_force, state_out.collider_torque],
+            device=m.device,
+        )
 
 
 def accumulate_impulse(model, state_out, dt, impulse):
