@@ -194,8 +194,8 @@ def test_a_cloud_text_file_with_a_header_row_or_a_byte_order_mark_is_read(tmp_pa
     ("mm.csv", "x (mm),y (mm),z (mm)\n100,200,300\n", r"its header gives the coordinates in mm; positions are metres"),
     ("names.csv", "u,v,w\n1,2,3\n", r"its first row 'u,v,w' is a header that names no columns x, y and z"),
     ("semicolons.csv", "x;y;z\n0,1;0,2;0,3\n", r"its fields are separated by semicolons"),
-    ("ragged.csv", "0.1,0.2,0.3\n0.4,0.5\n", r"the number of columns changed from 3 to 2 at row 2; every line of a point "
-                                             r"cloud holds the same number of columns$"),
+    ("ragged.csv", "0.1,0.2,0.3\n0.4,0.5\n", r"line 2 has 2 columns, line 1 has 3; every line of a point cloud holds "
+                                             r"the same number of columns$"),
     ("flat.xyz", "0.1 0.2\n0.3 0.4\n", r"is not allowed as a point cloud: it holds points of shape \(2, 2\)"),
     ("empty.xyz", "", r"is not allowed as a point cloud: it holds no points"),
     ("header_only.csv", "x,y,z\n", r"is not allowed as a point cloud: it holds no points"),
@@ -248,3 +248,98 @@ def test_a_fit_to_gappy_positions_counts_only_the_observed_residuals():
               progress=False)
     assert res.diagnostics.observations == 3 * int(np.isfinite(t).all(axis=2).sum()) < t.size
     assert np.isfinite(res.diagnostics.residual_rms).all()
+
+
+CLOUD = [[0.1, 0.2, 0.3], [0.2, 0.25, 0.3], [0.15, 0.22, 0.31]]
+
+
+def _cloud_lines(sep=",", first=None):
+    rows = CLOUD if first is None else [[f, *p] for f, p in zip(first, CLOUD)]
+    return "".join(sep.join(repr(v) for v in row) + "\n" for row in rows)
+
+
+@pytest.mark.parametrize("name, first", [("ids0.csv", [0, 1, 2]), ("ids1.csv", [1, 2, 3]), ("ids1.xyz", [1, 2, 3]),
+                                         ("ids7.txt", [7, 8, 9])])
+def test_a_headerless_cloud_whose_first_column_counts_its_rows_is_refused(tmp_path, name, first):
+    """A lab's marker export without a header, 'id, x, y, z', was read as x, y, z: the ids
+    taken for x (metres), the z column dropped, and the fit ran against a cloud that never
+    was. A first column of consecutive whole numbers beside three more is refused, saying
+    how a header row tells which columns are x, y, z; with that header it is read."""
+    sep = "," if name.endswith(".csv") else " "
+    (tmp_path / name).write_text(_cloud_lines(sep, first))
+    with pytest.raises(ValueError, match=rf"^target .*{name.replace('.', '[.]')} cannot be read as a point cloud: its first "
+                                         rf"column counts its rows \({first[0]}, {first[1]}, \.\.\., {first[-1]}: a marker or "
+                                         r"point id\?\) beside 3 more columns, and a cloud without a header row is read as "
+                                         r"x, y, z from its first three columns: add a header row naming them"):
+        load_target(tmp_path / name)
+    (tmp_path / name).write_text(sep.join(["id", "x", "y", "z"]) + "\n" + _cloud_lines(sep, first))
+    np.testing.assert_array_equal(load_target(tmp_path / name).data, CLOUD)
+
+
+def test_a_headerless_cloud_of_three_columns_or_of_no_counted_column_is_read_as_before(tmp_path):
+    """Only four columns or more with a counting first column are refused: three columns are
+    x, y, z whatever they hold, and a fourth column after them (an intensity) is read past."""
+    (tmp_path / "three.csv").write_text("0,0.2,0.3\n1,0.25,0.3\n2,0.22,0.31\n")
+    np.testing.assert_array_equal(load_target(tmp_path / "three.csv").data, [[0, 0.2, 0.3], [1, 0.25, 0.3], [2, 0.22, 0.31]])
+    (tmp_path / "intensity.csv").write_text("".join(f"{x!r},{y!r},{z!r},{k}\n" for k, (x, y, z) in enumerate(CLOUD)))
+    np.testing.assert_array_equal(load_target(tmp_path / "intensity.csv").data, CLOUD)
+
+
+def test_a_cloud_point_of_nan_is_a_missing_point_left_out_with_a_warning(tmp_path):
+    """A NaN in a position target is a missing marker; a point cloud's was refused ('every
+    point must be finite'), though a cloud is unordered and a NaN row can only be a point
+    not seen. It is left out with a warning naming how many; a cloud of nothing but NaN, or
+    an infinite coordinate, is refused by name."""
+    (tmp_path / "gap.csv").write_text("x,y,z\n0.1,0.2,0.3\nnan,nan,nan\n0.2,nan,0.3\n0.2,0.25,0.3\n")
+    with pytest.warns(UserWarning, match=r"gap\.csv: 2 of its 4 points have a NaN coordinate \(missing\) and are left out "
+                                         r"\(2 points\)"):
+        t = load_target(tmp_path / "gap.csv")
+    np.testing.assert_array_equal(t.data, [[0.1, 0.2, 0.3], [0.2, 0.25, 0.3]])
+    (tmp_path / "none.xyz").write_text("nan nan nan\nnan 0.1 0.2\n")
+    with pytest.raises(ValueError, match=r"none\.xyz is not allowed as a point cloud: every point has a NaN coordinate "
+                                         r"\(missing\); it observes nothing"):
+        load_target(tmp_path / "none.xyz")
+    (tmp_path / "inf.xyz").write_text("0.1 0.2 0.3\n0.1 inf 0.2\n")
+    with pytest.raises(ValueError, match=r"inf\.xyz is not allowed as a point cloud: point 1 is \[0\.1, inf, 0\.2\]; a "
+                                         r"coordinate must be finite, or NaN for a missing point"):
+        load_target(tmp_path / "inf.xyz")
+
+
+@pytest.mark.parametrize("name, text", [
+    ("tabs.csv", _cloud_lines("\t")),
+    ("commas.txt", _cloud_lines(",")),
+    ("commas.xyz", _cloud_lines(", ")),
+    ("trailing_commas.csv", _cloud_lines(",").replace("\n", ",\n")),
+    ("empty_rows.csv", "x,y,z\r\n" + _cloud_lines(",").replace("\n", "\r\n") + ",,\r\n,,\r\n\r\n"),
+])
+def test_a_cloud_as_lab_software_writes_it_is_read(tmp_path, name, text):
+    """Tab-separated '.csv' files, comma-separated '.txt'/'.xyz', a comma after every line
+    and a spreadsheet's empty rows at the end were refused, the first three as 'a header
+    that names no columns x, y and z' though their first row is numbers, the last as
+    "could not convert string ''" at a row number of numpy's counting."""
+    (tmp_path / name).write_text(text)
+    np.testing.assert_array_equal(load_target(tmp_path / name).data, CLOUD)
+
+
+def test_a_cloud_line_that_cannot_be_read_is_named_by_its_line_in_the_file(tmp_path):
+    """numpy numbered rows from 0 for a bad number and from 1 for a short row, counting
+    neither the header nor comments: the line said was not the file's."""
+    (tmp_path / "bad.csv").write_text("# scanner\nx,y,z\n0.1,0.2,0.3\n\n0.2,O.3,0.4\n")
+    with pytest.raises(ValueError, match=r"bad\.csv cannot be read as a point cloud: line 5, column 2: 'O\.3' is not a "
+                                         r"number$"):
+        load_target(tmp_path / "bad.csv")
+    (tmp_path / "short.csv").write_text("# scanner\nx,y,z\n0.1,0.2,0.3\n0.2,0.3\n")
+    with pytest.raises(ValueError, match=r"short\.csv cannot be read as a point cloud: line 4 has 2 columns, line 3 has "
+                                         r"3; every line of a point cloud holds the same number of columns$"):
+        load_target(tmp_path / "short.csv")
+
+
+def test_a_chamfer_loss_given_a_nan_point_says_to_leave_it_out():
+    """The Python API's refusal of a NaN cloud point said only 'non-finite values', where a
+    position target takes NaN as a missing marker: it now says how a cloud holds a point
+    not seen (by leaving it out)."""
+    from warp_esph.losses import ChamferLoss  # noqa: PLC0415
+
+    with pytest.raises(ValueError, match=r"^targets at step 2 is not allowed: it has non-finite values \(first at point 1: "
+                                         r"\[nan, 0\.2, 0\.3\]\); a cloud is unordered: leave a point not seen out of it"):
+        ChamferLoss(np.array([[0.1, 0.2, 0.3], [np.nan, 0.2, 0.3]]), radius=0.05, frames=[2])

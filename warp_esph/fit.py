@@ -2794,7 +2794,11 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
       one), a ``ReactionForceLoss`` per rendered frame.
     - ``.xyz/.txt/.csv/.pts``: a point cloud, three numbers per line (metres), under an
       optional header row naming the columns ``x``, ``y``, ``z`` (read whatever other columns
-      there are; a unit beside them other than ``m`` is refused); a byte-order mark is read past.
+      there are; a unit beside them other than ``m`` is refused); a byte-order mark, empty
+      rows and a comma after every line are read past, commas or tabs taken for the other
+      separator where the first line's numbers say so. Without a header, four or more columns
+      whose first counts the rows (a marker id) are refused, asking for a header row. A point
+      with a NaN coordinate is one not seen: left out with a warning (every point NaN: refused).
     - anything else ``meshio`` (or ``.usd``) reads: a mesh when it has faces, else a cloud.
     """
     p = os.fspath(path)
@@ -2875,16 +2879,9 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
     if ext == ".csv":
         _refuse_other_force_logs(p)
     if ext in _CLOUD_TEXT:
-        import warnings  # noqa: PLC0415
-
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # 'input contained no data': refused below, by name
-                skip, cols = _cloud_header(p, ext)
-                # utf-8-sig: a spreadsheet's byte-order mark had made the first number '\ufeff0.1'.
-                pts = np.loadtxt(p, delimiter="," if ext == ".csv" else None, ndmin=2, skiprows=skip, usecols=cols,
-                                 encoding="utf-8-sig")
-        except Exception as e:  # noqa: BLE001 (a header's refusal too: a force log's first row is no header)
+            pts = _read_cloud_text(p, ext)
+        except ValueError as e:  # a header's refusal too: a force log's first row is no header
             hint = ""
             if ext == ".csv":
                 with open(p, newline="", encoding="utf-8-sig", errors="replace") as fh:
@@ -2893,11 +2890,7 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
                     # frame, time, tool, fx, fy, fz: a force log whose header row was lost.
                     hint = ("; its first row reads as a force log's (frame, time, tool, fx, fy, fz) without the header "
                             "row a force log starts with: add the line 'frame,time,tool,fx,fy,fz'")
-            why = str(e).rstrip(".")
-            if "number of columns changed" in why:
-                # numpy's advice ('use `usecols`') is its own API's, no user's cure.
-                why = why.split(";")[0] + "; every line of a point cloud holds the same number of columns"
-            raise ValueError(f"target {p} cannot be read as a point cloud: {why}{hint}") from None
+            raise ValueError(f"target {p} cannot be read as a point cloud: {str(e).rstrip('.')}{hint}") from None
         return Target("points", _cloud(p, pts), None, None, p)
     if ext in (".usd", ".usda", ".usdc"):
         # Before the run's reader, whose refusals are taken as a damaged file's.
@@ -2936,44 +2929,115 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
 _HEADER_UNIT = r"(?:[\s_]*[\[(]?\s*(m|mm|cm|um|µm|in|inch|ft)\s*[\])]?)?"
 
 
-def _cloud_header(path: str, ext: str) -> tuple[int, tuple[int, int, int] | None]:
-    """``(lines to skip, the x, y, z columns or None)`` of a point-cloud text file. A first
-    line (after blank and ``#`` lines) that is not all numbers is a header row: it must
-    name columns ``x``, ``y`` and ``z`` (any case, in any order, among others; a unit
-    beside them must be ``m``), which are then read; else a ValueError says what is
-    allowed. Such a header (a spreadsheet's or a scanner's export) had been refused with
-    numpy's "could not convert string 'x' to float64"."""
-    import re  # noqa: PLC0415
+def _fields(line: str, sep: str | None) -> list[str]:
+    """The cells of a line split at ``sep`` (None: whitespace), quotes and spaces taken off;
+    empty cells at the end (a comma after every line, as some exports write) left out."""
+    fields = [c.strip().strip('"').strip("'") for c in line.split(sep)]
+    while fields and not fields[-1]:
+        fields.pop()
+    return fields
 
-    sep = "," if ext == ".csv" else None
+
+def _cloud_separator(text: str, ext: str) -> str | None:
+    """The separator of a point cloud's first line: the extension's (``,`` for ``.csv``,
+    whitespace for ``.xyz/.txt/.pts``) unless the line's numbers are split by the other (a
+    tab-separated ``.csv``, a comma-separated ``.txt``, which had been refused as a header
+    naming no columns x, y, z though its first row is numbers)."""
+    usual, other = (",", None) if ext == ".csv" else (None, ",")
+    for sep in (usual, other):
+        fields = _fields(text, sep)
+        if fields and all(_is_number(c) for c in fields):
+            return sep
+    # A header row: split as its commas say.
+    return "," if "," in text else None
+
+
+def _read_cloud_text(path: str, ext: str) -> np.ndarray:
+    """The points of a point-cloud text file, ``(M, 3)`` (NaN rows kept: ``_cloud`` leaves
+    them out), or a ValueError saying why not, naming a line by its number in the file.
+
+    Blank lines, ``#`` lines and rows of empty cells (a spreadsheet's empty rows) are read
+    past. A first line that is not all numbers is a header row: it must name columns ``x``,
+    ``y`` and ``z`` (any case, in any order, among others; a unit beside them must be ``m``),
+    which are then read. Without a header the first three columns are x, y, z; four or more
+    columns whose first counts the rows (0, 1, 2, ... from any start: a marker's id) are
+    refused, as it had been read as x."""
+    import re  # noqa: PLC0415
+    import warnings  # noqa: PLC0415
+
     with open(path, encoding="utf-8-sig", errors="replace") as fh:
-        for k, line in enumerate(fh):
-            text = line.strip()
-            if text and not text.startswith("#"):
-                break
-        else:
-            return 0, None
-    fields = [c.strip().strip('"').strip("'") for c in text.split(sep)]
-    if all(_is_number(c) for c in fields):
-        return 0, None
-    if ext == ".csv" and ";" in text and "," not in text:
+        text = fh.read()
+    lines = [(k + 1, line.strip()) for k, line in enumerate(text.splitlines())]
+    lines = [(k, line) for k, line in lines if line and not line.startswith("#")]
+    if not lines:
+        return np.zeros((0, 3))
+    first = lines[0][1]
+    if ext == ".csv" and ";" in first and "," not in first:
         raise ValueError("its fields are separated by semicolons (a spreadsheet's export with decimal commas?); a "
-                               "point cloud .csv has comma-separated columns x, y, z in metres with decimal points")
-    found, units = {}, {}
-    for i, f in enumerate(fields):
-        m = re.fullmatch(r"([A-Za-z]+?)" + _HEADER_UNIT, f)
-        if m and m.group(1).lower() in ("x", "y", "z") and m.group(1).lower() not in found:
-            found[m.group(1).lower()] = i
-            units[m.group(1).lower()] = (m.group(2) or "m").lower()
-    if len(found) < 3:
-        raise ValueError(f"its first row {text[:120]!r} is a header that names no columns x, y and z; a point "
-                               "cloud's text file holds three numbers per line (x y z, metres), under an optional "
-                               "header row naming its columns x, y, z")
-    other = sorted({u for u in units.values() if u != "m"})
-    if other:
-        raise ValueError(f"its header gives the coordinates in {', '.join(other)}; positions are metres: convert "
-                               "the file to metres (and its header to x, y, z)")
-    return k + 1, (found["x"], found["y"], found["z"])
+                         "point cloud .csv has comma-separated columns x, y, z in metres with decimal points")
+    sep = _cloud_separator(first, ext)
+    fields = _fields(first, sep)
+    cols = None
+    if not all(_is_number(c) for c in fields):
+        found, units = {}, {}
+        for i, f in enumerate(fields):
+            m = re.fullmatch(r"([A-Za-z]+?)" + _HEADER_UNIT, f)
+            if m and m.group(1).lower() in ("x", "y", "z") and m.group(1).lower() not in found:
+                found[m.group(1).lower()] = i
+                units[m.group(1).lower()] = (m.group(2) or "m").lower()
+        if len(found) < 3:
+            raise ValueError(f"its first row {first[:120]!r} is a header that names no columns x, y and z; a point "
+                             "cloud's text file holds three numbers per line (x y z, metres), under an optional "
+                             "header row naming its columns x, y, z")
+        other = sorted({u for u in units.values() if u != "m"})
+        if other:
+            raise ValueError(f"its header gives the coordinates in {', '.join(other)}; positions are metres: convert "
+                             "the file to metres (and its header to x, y, z)")
+        cols = (found["x"], found["y"], found["z"])
+        lines = lines[1:]
+    # A comma after every value, and rows of empty cells (a spreadsheet's empty rows), hold nothing.
+    ends = ", \t" if sep == "," else None
+    lines = [(k, line.rstrip(ends)) for k, line in lines]
+    lines = [(k, line) for k, line in lines if line]
+    if not lines:
+        return np.zeros((0, 3))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            pts = np.loadtxt([line for _, line in lines], delimiter=sep, ndmin=2, usecols=cols, quotechar='"',
+                             dtype=np.float64)
+    except ValueError as e:
+        # numpy numbers rows from 0 for a bad number and from 1 for a short row, counting neither
+        # the header nor comments: the line is found here, by its number in the file.
+        _refuse_cloud_line(lines, sep, cols)
+        raise ValueError(str(e).split(";")[0]) from None  # numpy's advice ('use `usecols`') is its API's
+    width = pts.shape[1]
+    if cols is None and width >= 4 and len(pts) >= 2:
+        ids = pts[:, 0]
+        if (ids == np.round(ids)).all() and (np.diff(ids) == 1.0).all():
+            raise ValueError(f"its first column counts its rows ({ids[0]:.0f}, {ids[1]:.0f}, ..., {ids[-1]:.0f}: a marker "
+                             f"or point id?) beside {width - 1} more columns, and a cloud without a header row is read as "
+                             "x, y, z from its first three columns: add a header row naming them (e.g. 'id,x,y,z'; "
+                             "'x,y,z,...' if the first column is x)")
+    return pts
+
+
+def _refuse_cloud_line(lines, sep, cols) -> None:
+    """Raise a ValueError naming the first line of ``lines`` (``(line number, text)``) that
+    holds another number of columns than the first, or a cell of ``cols`` (None: every
+    cell) that is no number."""
+    width, first = None, None
+    for k, line in lines:
+        f = _fields(line, sep)
+        if width is None:
+            width, first = len(f), k
+        if len(f) != width:
+            raise ValueError(f"line {k} has {len(f)} columns, line {first} has {width}; every line of a point "
+                             "cloud holds the same number of columns")
+        for c, cell in enumerate(f):
+            if not _is_number(cell) and (cols is None or c in cols):
+                raise ValueError(f"line {k}, column {c + 1}: {cell!r} is not a number" if cell else
+                                 f"line {k}, column {c + 1} is empty; a point not seen is a row of nan (or no row)")
 
 
 def _is_number(text: str) -> bool:
@@ -3039,10 +3103,22 @@ def _cloud(path: str, pts: np.ndarray) -> np.ndarray:
         raise ValueError(f"target {path} is not allowed as a point cloud: it holds {shape}; it needs one or more points "
                          "of three coordinates (x y z)")
     pts = pts[:, :3]
-    bad = np.flatnonzero(~np.isfinite(pts).all(axis=1))
+    bad = np.flatnonzero(np.isinf(pts).any(axis=1))
     if bad.size:
         raise ValueError(f"target {path} is not allowed as a point cloud: point {bad[0]} is {pts[bad[0]].tolist()}; "
-                         "every point must be finite")
+                         "a coordinate must be finite, or NaN for a missing point")
+    # A cloud is unordered: a NaN row can only be a point not seen (as a NaN marker of a
+    # position target is one), and had been refused as if the file were damaged.
+    missing = np.isnan(pts).any(axis=1)
+    if missing.all():
+        raise ValueError(f"target {path} is not allowed as a point cloud: every point has a NaN coordinate (missing); "
+                         "it observes nothing")
+    if missing.any():
+        import warnings  # noqa: PLC0415
+
+        warnings.warn(f"target {path}: {int(missing.sum())} of its {len(pts)} points have a NaN coordinate (missing) and "
+                      f"are left out ({int((~missing).sum())} points)", stacklevel=2)
+        pts = pts[~missing]
     from .losses import unique_points  # noqa: PLC0415
 
     pts, repeats = unique_points(np.asarray(pts, dtype=np.float64))

@@ -281,10 +281,11 @@ def _per_frame(name: str, data, frames, item_ndim: int) -> dict:
     return dict(zip(frames, items))
 
 
-def _points(name: str, p, missing: bool = False) -> np.ndarray:
+def _points(name: str, p, missing: bool = False, unseen: str = "") -> np.ndarray:
     """``p`` as ``(N, 3)`` finite float64 points, else refused naming ``name``. ``missing``: a
     row holding NaN is a missing observation (an occluded marker) and kept as NaN; inf is
-    still refused (no export writes a gap as inf: it is an overflow)."""
+    still refused (no export writes a gap as inf: it is an overflow). ``unseen``: what the
+    refusal of a NaN says to do instead."""
     p = checks.host_values(name, p)
     if np.iscomplexobj(p):  # numpy kept the real part with only a ComplexWarning
         raise ValueError(f"{name} is not allowed: it holds complex numbers; positions are real")
@@ -297,7 +298,7 @@ def _points(name: str, p, missing: bool = False) -> np.ndarray:
     bad = np.isinf(a) if missing else ~np.isfinite(a)
     if bad.any():
         i = int(np.flatnonzero(bad.any(axis=1))[0])
-        allowed = " (NaN marks a missing point; inf is no position)" if missing else ""
+        allowed = " (NaN marks a missing point; inf is no position)" if missing else unseen if np.isnan(a[i]).any() else ""
         raise ValueError(f"{name} is not allowed: it has non-finite values (first at point {i}: {a[i].tolist()}){allowed}")
     return a
 
@@ -903,7 +904,9 @@ class ChamferLoss(Loss):
         self.radius = checks.positive("radius", radius)
         self.targets = {}
         for f, t in per.items():
-            pts, repeats = unique_points(_points(f"targets at step {f}", t))
+            # Unordered, a cloud has no place to hold a gap: a point not seen is left out.
+            pts, repeats = unique_points(_points(f"targets at step {f}", t, unseen=(
+                "; a cloud is unordered: leave a point not seen out of it (load_target leaves out a file's NaN rows)")))
             if repeats:
                 import warnings  # noqa: PLC0415
 
