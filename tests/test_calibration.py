@@ -2168,13 +2168,16 @@ def test_the_fit_summary_counts_what_ran_as_fit_json_does(tmp_path, capsys, doug
 
 
 @pytest.mark.parametrize("lam, params, bounds, said", [
+    # Named as typed, with what the material allows: it had embedded the material's own
+    # refusal, "at -1e+06, Material.hardening = -1000000.0 is not allowed", a parameter of a
+    # class the user never wrote, for the --bounds entry "hardening=-1e6:100".
     (3000.0, "hardening", "hardening=-1e6:100",
-     "--bounds hardening=-1e+06:100 is not allowed: at -1e+06, Material.hardening = -1000000.0 is not allowed: must be "
-     "> -2 mu = -4000"),
+     "--bounds hardening=-1e6:100 is not allowed: its lower end, -1e+06, is a hardening the material refuses: hardening "
+     "must be > -2 mu = -4000: a softening"),
     # lam fitted as itself (from 0): a lower end below -2 mu / 3 makes the bulk modulus negative.
-    (0.0, "lam", "lam=-1e5:100", "--bounds lam=-100000:100 is not allowed: at -100000, Material.lam = -100000.0 is not "
-                                 "allowed: must be > -2 mu / 3"),
-    (3000.0, "lam", "lam=-1e5:100", "--bounds lam=-100000:100 is not allowed: need lo > 0: lam is fitted as its logarithm, "
+    (0.0, "lam", "lam=-1e5:100", "--bounds lam=-1e5:100 is not allowed: its lower end, -100000, is a lam the material "
+                                 "refuses: lam must be > -2 mu / 3"),
+    (3000.0, "lam", "lam=-1e5:100", "--bounds lam=-1e5:100 is not allowed: need lo > 0: lam is fitted as its logarithm, "
                                     "its initial value 3000 being positive (from 0 or below it is fitted as itself"),
     (3000.0, "mu", "mu=-5:100", "--bounds mu=-5:100 is not allowed: need lo > 0: mu is positive"),
 ])

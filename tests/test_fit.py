@@ -1193,8 +1193,8 @@ def test_a_softening_fitted_past_minus_two_mu_is_a_failed_trial_and_a_bound_past
     assert [h["start"] for h in refused] == [2] and result.starts[2] == "failed", result.history
     assert "must be > -2 mu = -2000" in refused[0]["note"] and refused[0]["loss"] == math.inf
     assert all(h["params"]["hardening"][0] > -2000.0 for h in result.history if h not in refused)
-    with pytest.raises(ValueError, match=r"^bounds\['hardening'\] = \(-5000, 0\) is not allowed: at -5000, "
-                                         r"Material\.hardening = -5000\.0 is not allowed: must be > -2 mu = -2000"):
+    with pytest.raises(ValueError, match=r"^bounds\['hardening'\] = \(-5000, 0\) is not allowed: its lower end, -5000, is "
+                                         r"a hardening the material refuses: hardening must be > -2 mu = -2000"):
         fit(_block({"hardening": -500.0}), target, ["hardening"], steps=STEPS, dt=DT, bounds={"hardening": (-5000.0, 0.0)})
 
 
@@ -1210,9 +1210,11 @@ def test_a_value_fitted_from_zero_stays_in_its_range_and_bounds_a_material_refus
     assert min(h["params"]["viscosity"][0] for h in result.history) == 0.0
     assert result.diagnostics is not None and result.params["viscosity"][0] >= 0.0
     model = _block_with(lam=-3000.0, viscosity=0.0)  # the fit left its result in the first
-    with pytest.raises(ValueError, match=r"bounds\['viscosity'\] = \(-4, 4\) is not allowed: at -4, Material.viscosity"):
+    with pytest.raises(ValueError, match=r"bounds\['viscosity'\] = \(-4, 4\) is not allowed: its lower end, -4, is a "
+                                         r"viscosity the material refuses: viscosity must be >= 0"):
         fit(model, target, ["viscosity"], steps=40, dt=dt, frames=[40], bounds={"viscosity": (-4.0, 4.0)})
-    with pytest.raises(ValueError, match=r"bounds\['lam'\] = \(-5000, -3500\) is not allowed: at -5000, Material.lam"):
+    with pytest.raises(ValueError, match=r"bounds\['lam'\] = \(-5000, -3500\) is not allowed: its lower end, -5000, is a "
+                                         r"lam the material refuses: lam must be > -2 mu / 3"):
         fit(model, target, ["lam"], steps=40, dt=dt, frames=[40], bounds={"lam": (-5000.0, -3500.0)})
 
 

@@ -157,6 +157,8 @@ def run_fit(args, out=None, err=None) -> int:
     given_memory = _arg(args, "memory_limit")  # None: not given (1024 MB)
     memory_limit = checks.positive("--memory-limit", 1024.0 if given_memory is None else given_memory) * 2**20
     bounds = _parse_bounds(args.bounds)
+    # Each entry as typed ('hardening=-1e6:100'), for a refusal to name it so (_parse_bounds refused any other form).
+    typed_bounds = {item.split("=", 1)[0].strip(): item for item in args.bounds or []}
     given_range = _arg(args, "sample_range")  # None: not given (a factor 4)
     sample_range = 4.0 if given_range is None else given_range
     lr = _arg(args, "lr")  # None: not given (fit's default; refused with gauss-newton when given)
@@ -269,7 +271,7 @@ def run_fit(args, out=None, err=None) -> int:
                                          sample_range=sample_range, seed=seed, names=[e.scene.name for e in exps])
         except BoundsError as e:
             # Named as typed: it was "bounds['lam'] = (-1e+05, 100)", fit's parameter.
-            raise ValueError(e.said(option_flag)) from None
+            raise ValueError(e.said(option_flag, typed_bounds.get(e.name))) from None
         for k, (e, limit) in enumerate(zip(exps, limits)):
             if e.auto_step and limit < e.dt:
                 steps = (1.0 / e.fps) / limit * (1.0 - 1e-12)
@@ -367,7 +369,7 @@ def run_fit(args, out=None, err=None) -> int:
                      patience=_arg(args, "patience", 20), diagnostics=not _arg(args, "no_diagnostics", False),
                      noise=_arg(args, "noise"), log=log, callback=lambda *_: _safe_point(args))
     except BoundsError as e:
-        raise ValueError(e.said(option_flag)) from None
+        raise ValueError(e.said(option_flag, typed_bounds.get(e.name))) from None
     except RolloutMemoryError as e:
         k = next((k for k, x in enumerate(experiments) if x is e.experiment), None)
         if k is None:

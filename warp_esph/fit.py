@@ -991,8 +991,27 @@ class BoundsError(ValueError):
         self.name, self.lo, self.hi, self.reason = name, lo, hi, reason
         super().__init__(self.said())
 
-    def said(self, flag=lambda name: name) -> str:
-        return f"{bounds_said(self.name, self.lo, self.hi, flag)} is not allowed: {self.reason}"
+    def said(self, flag=lambda name: name, typed: str | None = None) -> str:
+        """``typed``: the entry as the user wrote it (``hardening=-1e6:100``), named so."""
+        given = f"{flag('bounds')} {typed}" if typed is not None else bounds_said(self.name, self.lo, self.hi, flag)
+        return f"{given} is not allowed: {self.reason}"
+
+
+def _end_refused(name: str, side: str, end: float, why: str) -> str:
+    """Why the ``side`` end of ``name``'s bounds is refused, from the material's refusal
+    ``why`` of it: said of the parameter and the end, not as the material's own
+    ``Material.hardening = -1000000.0 is not allowed`` (a field of a class the user, who
+    typed ``--bounds hardening=-1e6:100``, never wrote), with what is allowed."""
+    import re  # noqa: PLC0415
+
+    m = re.match(r"(?:Material\.)?(\w+) = (\S+?)(?: \(material \d+\))? is not allowed( in \w+)?: (.*)$", why, re.S)
+    if m is None:
+        return f"at its {side} end, {end:g}, the material refuses it: {why}"
+    other, value, where, rest = m.group(1), m.group(2), m.group(3) or "", m.group(4)
+    said = f"{other} {rest}" if rest.startswith("must") else rest
+    if other == name:
+        return f"its {side} end, {end:g}, is a {name} the material refuses{where}: {said}"
+    return f"its {side} end, {end:g}, gives the material {other} = {value}, which it refuses{where}: {said}"
 
 
 class RefusedPoint(FloatingPointError):
@@ -1107,11 +1126,11 @@ class _Problem:
         guess = {name: values[name][first.idx] for name in params}
         for name, (lo, hi) in self.bounds.items():
             # A bound a material refuses would only make refused trials: said at once.
-            for end in (lo, hi):
+            for side, end in (("lower", lo), ("upper", hi)):
                 if math.isfinite(end):
                     why = self.refusal(guess | {name: np.full(self.k, end)})
                     if why is not None:
-                        raise BoundsError(name, lo, hi, f"at {end:g}, {why}")
+                        raise BoundsError(name, lo, hi, _end_refused(name, side, end, why))
         why = self.refusal(self.from_z(self.to_z(guess)))
         if why is not None:
             raise ValueError(f"the initial values are not allowed within the bounds: {why}")
