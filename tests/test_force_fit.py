@@ -449,7 +449,8 @@ def test_a_force_log_whose_times_are_not_its_frames_is_refused_by_row(tmp_path):
                     r"swapped\.csv, row 3 \(frame 1, tool 'plane0'\): time = 0\.01 is not allowed: must be frame / fps = "
                     r"1 / 400 = 0\.0025 s"),
         "offset": (["0,12.0,plane0,0,0,0", "1,12.005,plane0,0,-1.5,0", "2,12.01,plane0,0,-2.5,0"],
-                   r"offset\.csv, row 2 \(frame 0, tool 'plane0'\): time = 12\.0 is not allowed: must be frame / fps"),
+                   r"offset\.csv is not allowed: its times for tool 'plane0' start at 12 s \(row 2, frame 0\), 12 s "
+                   r"after frame / fps; .* so subtract 12 s from the time column"),
         "uneven": (GOOD_ROWS + ["3,0.03,plane0,0,-3,0"],
                    r"uneven\.csv, row 3 \(frame 1, tool 'plane0'\): time = 0\.005 is not allowed: must be frame / fps = "
                    r"1 / 100 = 0\.01 s"),
@@ -795,3 +796,30 @@ def test_fit_refuses_a_geometric_noise_that_no_term_of_a_force_fit_reads():
     result = fit(_elastic_press(5000.0), curve + positions, ["mu"], steps=20, dt=2.0e-4, noise=0.05, iterations=0,
                  progress=False)
     assert result.diagnostics.noise == [0.05]
+
+
+def test_a_force_log_as_a_lab_writes_it_is_read_or_refused_for_what_it_is(tmp_path):
+    """A spreadsheet's empty rows at the end (',,,,,') were refused as 'frame = '' is not
+    allowed: it is empty'; a log whose clock did not start at 0 (times 10.000, 10.005, ...)
+    was refused as 'time = 10.0 ... must be frame / fps = 0 / 0.1998 = 0 s', a rate no one
+    measured; two rows of one time were refused at a row that was right, as one frame period
+    off the rate the repeated last time implied. The empty rows are read past, the clock's
+    offset and the repeated time are named."""
+    from warp_esph.fit import load_target  # noqa: PLC0415
+
+    head = "frame,time,tool,fx,fy,fz\r\n"
+    body = "0,0,plate,0,0,0\r\n1,0.005,plate,0,-1.5,0\r\n2,0.01,plate,0,-2.5,0\r\n"
+    plain = load_target(_write(tmp_path / "plain.csv", head + body))
+    padded = load_target(_write(tmp_path / "padded.csv", head + body + ",,,,,\r\n,,,,,\r\n\r\n"))
+    assert (padded.frames, padded.fps) == (plain.frames, plain.fps) == ([1, 2], pytest.approx(200.0))
+    assert [r["force"].tolist() for r in padded.data] == [r["force"].tolist() for r in plain.data]
+    shifted = _write(tmp_path / "shifted.csv", head + "0,10,plate,0,0,0\n1,10.005,plate,0,-1.5,0\n2,10.01,plate,0,-2.5,0\n")
+    with pytest.raises(ValueError, match=r"shifted\.csv is not allowed: its times for tool 'plate' start at 10 s \(row 2, "
+                                         r"frame 0\), 10 s after frame / fps; frame k is fitted at k / fps from time 0 at "
+                                         r"frame 0, so subtract 10 s from the time column"):
+        load_target(shifted)
+    repeated = _write(tmp_path / "repeated.csv", head + body + "3,0.01,plate,0,-2.5,0\n")
+    with pytest.raises(ValueError, match=r"repeated\.csv, rows 4 and 5 \(frames 2 and 3 of tool 'plate'\) are not allowed: "
+                                         r"both give time = 0\.01 s; each frame's row is one frame period after the one "
+                                         r"before"):
+        load_target(repeated)

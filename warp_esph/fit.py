@@ -3186,6 +3186,7 @@ def _forces_target(path: str, tool: str | None) -> Target:
     if not frames:
         raise ValueError(f"target {path} holds only frame 0 of tool {tool!r}, which has no force yet")
     fps = None
+    _refuse_shifted_or_repeated_times(path, tool, mine)
     if any(r["time"] != 0.0 for r in mine):
         # The rate from the last frame (the most digits), and every row held to it: frame k is
         # fitted at k / fps, so a row whose time says otherwise (times out of order, a clock
@@ -3200,6 +3201,31 @@ def _forces_target(path: str, tool: str | None) -> Target:
                                  f"not allowed: must be {expected} (the rate its last frame, {last['frame']}, gives; "
                                  "frame k is fitted at k / fps, so rows are one frame period apart from time 0)")
     return Target("forces", mine, frames, fps, path, tool=tool)
+
+
+def _refuse_shifted_or_repeated_times(path: str, tool: str, rows: list[dict]) -> None:
+    """Refuse a force log's ``rows`` (one tool's) where two frames give one time, or where
+    every time is ``frame / fps`` plus one offset (a lab clock that did not start at 0): each
+    had been refused at a row that was right, or as off a rate that no one measured (the
+    last row's time over its frame), which said nothing of the cause."""
+    by_frame = sorted(rows, key=lambda r: r["frame"])
+    for a, b in zip(by_frame, by_frame[1:]):
+        if a["time"] == b["time"] and any(r["time"] != 0.0 for r in rows):
+            raise ValueError(f"{path}, rows {a['row']} and {b['row']} (frames {a['frame']} and {b['frame']} of tool "
+                             f"{tool!r}) are not allowed: both give time = {a['time']!r} s; each frame's row is one frame "
+                             "period after the one before (frame k at k / fps)")
+    first, last = by_frame[0], by_frame[-1]
+    if last["frame"] == first["frame"] or last["time"] == first["time"]:
+        return
+    fps = (last["frame"] - first["frame"]) / (last["time"] - first["time"])
+    offset = first["time"] - first["frame"] / fps
+    if not (fps > 0.0 and abs(offset * fps) > 0.1):
+        return  # time 0 at frame 0 (or no steady rate at all: said row by row after this)
+    if all(abs((r["time"] - offset) * fps - r["frame"]) <= 0.1 for r in rows):
+        cure = f"{'subtract' if offset > 0 else 'add'} {abs(offset):g} s {'from' if offset > 0 else 'to'} the time column"
+        raise ValueError(f"{path} is not allowed: its times for tool {tool!r} start at {first['time']:g} s (row "
+                         f"{first['row']}, frame {first['frame']}), {abs(offset):g} s {'after' if offset > 0 else 'before'} "
+                         f"frame / fps; frame k is fitted at k / fps from time 0 at frame 0, so {cure}")
 
 
 def _usd_run_target(path: str, body, frames, frames_name: str = "frames") -> Target | None:

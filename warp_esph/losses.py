@@ -1503,6 +1503,8 @@ def read_tools_csv(path) -> list[dict]:
             width = len(reader.fieldnames)
             for k, row in enumerate(reader):
                 line = k + 2
+                if not row.get(None) and not any((v or "").strip() for key, v in row.items() if key is not None):
+                    continue  # a spreadsheet's empty row (',,,,,') holds nothing
                 fields = sum(v is not None for key, v in row.items() if key is not None) + len(row.get(None) or [])
                 if fields != width:
                     # A row cut inside its fz read the digits left as the force (the torque columns
