@@ -5,6 +5,7 @@ from the ``<output>_tools.csv`` a previous ``warp-esph run`` wrote."""
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -823,3 +824,39 @@ def test_a_force_log_as_a_lab_writes_it_is_read_or_refused_for_what_it_is(tmp_pa
                                          r"both give time = 0\.01 s; each frame's row is one frame period after the one "
                                          r"before"):
         load_target(repeated)
+
+
+def test_a_force_curve_the_fit_cannot_reach_in_size_is_named_by_the_diagnostics():
+    """A log in mN read as newtons is 1000 times the force: with mu bounded where the
+    material could be, the fit ran mu to its bound and the diagnostics said it was held
+    there, not that the fitted curve was still hundreds of times smaller than the target,
+    which is what a unit slip looks like. They now say how far apart the sizes are; a curve
+    of the right size with noise does not draw it."""
+    from warp_esph.diagnostics import diagnose  # noqa: PLC0415
+    from warp_esph.fit import fit  # noqa: PLC0415
+
+    ends, truth = _press_curve(60, 10)
+    result = fit(_elastic_press(5000.0), ReactionForceLoss(1000.0 * truth, "plate", ends, window=10, components="y"),
+                 ["mu"], steps=60, dt=2.0e-4, optimizer="gauss-newton", iterations=6, bounds={"mu": (1000.0, 20000.0)},
+                 progress=False)
+    assert result.params["mu"][0] == pytest.approx(20000.0)
+    said = [w for w in result.diagnostics.warnings if "than the fitted curve (RMS" in w]
+    assert len(said) == 1, result.diagnostics.warnings
+    ro = Rollout(_elastic_press(5000.0), 60, 2.0e-4, frames=ends)  # the curve at the bound the fit stopped at
+    ro.set_parameters({"mu": [20000.0]})
+    ro.forward(taped=False)
+    fitted = ReactionForceLoss(np.zeros(len(ends)), "plate", ends, window=10, components="y").curve(ro.observations())
+    rms = float(np.sqrt(np.mean((1000.0 * truth) ** 2))), float(np.sqrt(np.mean(fitted**2)))
+    m = re.match(r"the force curve of 'plate' is (\S+) times larger than the fitted curve \(RMS (\S+) N against (\S+) N "
+                 r"at the fitted values\): the fit could not reach its size", said[0])
+    assert m, said
+    ratio, target, sim = (float(v) for v in m.groups())
+    # The fitted curve's size as a rollout at the bound gives it (within the fit's own tied
+    # pressure stiffness, which set_parameters leaves as built), and hundreds of times short.
+    assert target == pytest.approx(rms[0], rel=5e-3) and sim == pytest.approx(rms[1], rel=0.1)
+    assert ratio == pytest.approx(target / sim, rel=1e-2) and ratio > 100.0
+    assert "a log in mN read as newtons is 1000 times too large" in said[0], said
+    noisy = truth + 0.05 * np.sqrt(np.mean(truth**2)) * np.random.default_rng(3).standard_normal(truth.shape)
+    d = diagnose(_elastic_press(5000.0), ReactionForceLoss(noisy, "plate", ends, window=10, components="y"), ["mu"],
+                 steps=60, dt=2.0e-4, progress=False)
+    assert not [w for w in d.warnings if "than the fitted curve (RMS" in w], d.warnings

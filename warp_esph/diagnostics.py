@@ -446,6 +446,8 @@ def diagnose_problem(prob, z, noise: float | None = None, step: float = 1e-3, me
                                "noise is larger than stated)")
         for leaf in leaf_terms(run.loss):
             said = leaf.opposite_sign(arrays) if hasattr(leaf, "opposite_sign") else None
+            if said is None and hasattr(leaf, "size_mismatch"):
+                said = leaf.size_mismatch(arrays)  # a curve of the opposite sign is that already
             if said is not None:
                 misfits.append(f"experiment {k_run}: {said}" if len(prob.runs) > 1 else said)
         own = [t_sigma for _, _, t_sigma, _, _ in own_terms] or [

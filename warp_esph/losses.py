@@ -1375,6 +1375,32 @@ class ReactionForceLoss(Loss):
                 "force at all would fit it better): the target is the force the tool exerts on the material, and a log "
                 "of the force on the tool, or of compression counted positive, is its negative (negate its columns)")
 
+    #: A target this many times larger or smaller (RMS) than the fitted curve is named (``size_mismatch``).
+    SIZE_MISMATCH = 10.0
+
+    def size_mismatch(self, obs) -> str | None:
+        """A sentence where the target's RMS force is ``SIZE_MISMATCH`` times the simulated
+        curve's or more (or that much smaller). At a fit's end this is a curve the fit could
+        not reach: a log in mN read as newtons is 1000 times the force, and a fit with mu
+        bounded where the material could be ran mu to its bound, which the diagnostics named
+        as held there, not that the curve was still hundreds of times short. Nothing in the
+        numbers tells a unit slip from a scene that does not press as the experiment did, so
+        both are said."""
+        sim = float(np.sqrt(np.mean(self.curve(obs) ** 2)))
+        target = float(np.sqrt(np.mean(self.targets**2)))
+        f = self.SIZE_MISMATCH
+        if not target > 0.0 or target / f < sim < target * f:
+            return None
+        if sim > 0.0:
+            ratio = max(target, sim) / min(target, sim)
+            size = f"{ratio:.3g} times {'larger' if target > sim else 'smaller'} than the fitted curve"
+        else:
+            size = "larger than the fitted curve, which is 0"
+        return (f"the {self.term_name} is {size} (RMS {target:.3g} N against {sim:.3g} N at the fitted values): the fit "
+                "could not reach its size (a value held at a bound, a scene that does not load the material as the "
+                "experiment did, or a log in another unit than newtons: a log in mN read as newtons is 1000 times too "
+                "large, one in kN 1000 times too small)")
+
     def value_and_grad(self, obs):
         f, c, key = self._forces(obs)
         r = self.curve(obs) - self.targets
