@@ -259,7 +259,7 @@ def _cloud_lines(sep=",", first=None):
 
 
 @pytest.mark.parametrize("name, first", [("ids0.csv", [0, 1, 2]), ("ids1.csv", [1, 2, 3]), ("ids1.xyz", [1, 2, 3]),
-                                         ("ids7.txt", [7, 8, 9])])
+                                         ("ids7.txt", [7, 8, 9]), ("gap.csv", [1, 2, 4])])
 def test_a_headerless_cloud_whose_first_column_counts_its_rows_is_refused(tmp_path, name, first):
     """A lab's marker export without a header, 'id, x, y, z', was read as x, y, z: the ids
     taken for x (metres), the z column dropped, and the fit ran against a cloud that never
@@ -268,12 +268,24 @@ def test_a_headerless_cloud_whose_first_column_counts_its_rows_is_refused(tmp_pa
     sep = "," if name.endswith(".csv") else " "
     (tmp_path / name).write_text(_cloud_lines(sep, first))
     with pytest.raises(ValueError, match=rf"^target .*{name.replace('.', '[.]')} cannot be read as a point cloud: its first "
-                                         rf"column counts its rows \({first[0]}, {first[1]}, \.\.\., {first[-1]}: a marker or "
-                                         r"point id\?\) beside 3 more columns, and a cloud without a header row is read as "
-                                         r"x, y, z from its first three columns: add a header row naming them"):
+                                         rf"column numbers its rows in order \({first[0]}, {first[1]}, \.\.\., {first[-1]}: "
+                                         r"a marker or point id\?\) beside 3 more columns, and a cloud without a header row "
+                                         r"is read as x, y, z from its first three columns: add a header row naming them"):
         load_target(tmp_path / name)
     (tmp_path / name).write_text(sep.join(["id", "x", "y", "z"]) + "\n" + _cloud_lines(sep, first))
     np.testing.assert_array_equal(load_target(tmp_path / name).data, CLOUD)
+
+
+def test_a_headerless_table_of_markers_per_frame_is_refused_as_no_cloud(tmp_path):
+    """A lab's long table 'frame, marker, x, y, z' without a header was read as a cloud of
+    (frame, marker, x) points."""
+    rows = "".join(f"{f},{m},{0.1 * m + 0.01 * f!r},0.2,0.3\n" for f in (0, 1) for m in (0, 1, 2))
+    (tmp_path / "long.csv").write_text(rows)
+    with pytest.raises(ValueError, match=r"long\.csv cannot be read as a point cloud: its first column holds whole numbers in "
+                                         r"order, some repeated \(0 to 1: a frame number of a table of frames\?\) beside 4 "
+                                         r"more columns, .*: a table of markers per frame is no point cloud: give positions "
+                                         r"per frame as an \.npz"):
+        load_target(tmp_path / "long.csv")
 
 
 def test_a_headerless_cloud_of_three_columns_or_of_no_counted_column_is_read_as_before(tmp_path):
@@ -283,6 +295,9 @@ def test_a_headerless_cloud_of_three_columns_or_of_no_counted_column_is_read_as_
     np.testing.assert_array_equal(load_target(tmp_path / "three.csv").data, [[0, 0.2, 0.3], [1, 0.25, 0.3], [2, 0.22, 0.31]])
     (tmp_path / "intensity.csv").write_text("".join(f"{x!r},{y!r},{z!r},{k}\n" for k, (x, y, z) in enumerate(CLOUD)))
     np.testing.assert_array_equal(load_target(tmp_path / "intensity.csv").data, CLOUD)
+    # A flat scan at x = 0 (one whole number throughout) is a cloud.
+    (tmp_path / "flat.csv").write_text("".join(f"0,{y!r},{z!r},7\n" for _, y, z in CLOUD))
+    np.testing.assert_array_equal(load_target(tmp_path / "flat.csv").data, [[0.0, y, z] for _, y, z in CLOUD])
 
 
 def test_a_cloud_point_of_nan_is_a_missing_point_left_out_with_a_warning(tmp_path):

@@ -2816,7 +2816,8 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
       there are; a unit beside them other than ``m`` is refused); a byte-order mark, empty
       rows and a comma after every line are read past, commas or tabs taken for the other
       separator where the first line's numbers say so. Without a header, four or more columns
-      whose first counts the rows (a marker id) are refused, asking for a header row. A point
+      whose first holds whole numbers in order (a marker id, a frame number) are refused,
+      asking for a header row. A point
       with a NaN coordinate is one not seen: left out with a warning (every point NaN: refused).
     - anything else ``meshio`` (or ``.usd``) reads: a mesh when it has faces, else a cloud.
     """
@@ -2979,8 +2980,8 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
     past. A first line that is not all numbers is a header row: it must name columns ``x``,
     ``y`` and ``z`` (any case, in any order, among others; a unit beside them must be ``m``),
     which are then read. Without a header the first three columns are x, y, z; four or more
-    columns whose first counts the rows (0, 1, 2, ... from any start: a marker's id) are
-    refused, as it had been read as x."""
+    columns whose first holds whole numbers in order (0, 1, 2, ...: a marker's id; 0, 0, 1,
+    1, ...: a frame number) are refused, as it had been read as x."""
     import re  # noqa: PLC0415
     import warnings  # noqa: PLC0415
 
@@ -3032,12 +3033,20 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
         raise ValueError(str(e).split(";")[0]) from None  # numpy's advice ('use `usecols`') is its API's
     width = pts.shape[1]
     if cols is None and width >= 4 and len(pts) >= 2:
-        ids = pts[:, 0]
-        if (ids == np.round(ids)).all() and (np.diff(ids) == 1.0).all():
-            raise ValueError(f"its first column counts its rows ({ids[0]:.0f}, {ids[1]:.0f}, ..., {ids[-1]:.0f}: a marker "
-                             f"or point id?) beside {width - 1} more columns, and a cloud without a header row is read as "
-                             "x, y, z from its first three columns: add a header row naming them (e.g. 'id,x,y,z'; "
-                             "'x,y,z,...' if the first column is x)")
+        ids, step = pts[:, 0], np.diff(pts[:, 0])
+        # Whole numbers in order, not all one (a flat scan at x = 0 is a cloud): an index
+        # column, no coordinate in metres.
+        if (ids == np.round(ids)).all() and (step >= 0.0).all() and (step > 0.0).any():
+            header = ("add a header row naming them (e.g. 'id,x,y,z'; 'x,y,z,...' if the first column is x)")
+            if (step >= 1.0).all():
+                what = f"numbers its rows in order ({ids[0]:.0f}, {ids[1]:.0f}, ..., {ids[-1]:.0f}: a marker or point id?)"
+            else:
+                what = (f"holds whole numbers in order, some repeated ({ids[0]:.0f} to {ids[-1]:.0f}: a frame number "
+                        "of a table of frames?)")
+                header = ("a table of markers per frame is no point cloud: give positions per frame as an .npz "
+                          "('positions' (K, n, 3), 'frames'); else " + header)
+            raise ValueError(f"its first column {what} beside {width - 1} more columns, and a cloud without a header "
+                             f"row is read as x, y, z from its first three columns: {header}")
     return pts
 
 
@@ -3225,7 +3234,8 @@ def _refuse_shifted_or_repeated_times(path: str, tool: str, rows: list[dict]) ->
         cure = f"{'subtract' if offset > 0 else 'add'} {abs(offset):g} s {'from' if offset > 0 else 'to'} the time column"
         raise ValueError(f"{path} is not allowed: its times for tool {tool!r} start at {first['time']:g} s (row "
                          f"{first['row']}, frame {first['frame']}), {abs(offset):g} s {'after' if offset > 0 else 'before'} "
-                         f"frame / fps; frame k is fitted at k / fps from time 0 at frame 0, so {cure}")
+                         f"frame / fps; frame k is fitted at k / fps from time 0 at frame 0, so {cure} (or, where the "
+                         "frames are what is off, number the rows so that time 0 is frame 0)")
 
 
 def _usd_run_target(path: str, body, frames, frames_name: str = "frames") -> Target | None:
