@@ -716,9 +716,11 @@ def test_a_lab_force_log_in_a_spreadsheets_layout_is_read_or_refused_for_what_it
         return path
 
     plain = load_target(log("plain.csv", "frame,time,tool,fx,fy,fz"))
+    # 'time / s': ISO 80000's quantity / unit, which had been refused as lacking time, fx, fy, fz.
     for name, header in (("bom.csv", "frame,time,tool,fx,fy,fz"), ("spaces.csv", "frame, time, tool, fx, fy, fz"),
                          ("capitals.csv", "Frame,Time,Tool,Fx,Fy,Fz"),
-                         ("units.csv", "frame,time (s),tool,fx [N],fy [N],fz [N]")):
+                         ("units.csv", "frame,time (s),tool,fx [N],fy [N],fz [N]"),
+                         ("slashed.csv", "frame,time / s,tool,fx / N,fy / N,fz / N")):
         t = load_target(log(name, header))
         assert (t.kind, t.tool, t.frames, t.fps) == ("forces", "plate", plain.frames, plain.fps), name
         assert [r["force"].tolist() for r in t.data] == [r["force"].tolist() for r in plain.data], name
@@ -730,6 +732,8 @@ def test_a_lab_force_log_in_a_spreadsheets_layout_is_read_or_refused_for_what_it
          r"mN\.csv is not allowed as a force target: its column 'fx \[mN\]' is in mN; give fx in N"),
         (log("ms.csv", "frame,time [ms],tool,fx,fy,fz"),
          r"ms\.csv is not allowed as a force target: its column 'time \[ms\]' is in ms; give time in s"),
+        (log("slashed_mN.csv", "frame,time / s,tool,fx / mN,fy / mN,fz / mN"),
+         r"slashed_mN\.csv is not allowed as a force target: its column 'fx / mN' is in mN; give fx in N"),
         (log("semicolons.csv", "frame;time;tool;fx;fy;fz", sep=";", decimal=","),
          r"semicolons\.csv is not allowed: its fields are separated by semicolons \(a spreadsheet's export with decimal "
          r"commas\?\); a reaction-force log needs the columns frame, time, tool, fx, fy, fz, comma-separated"),

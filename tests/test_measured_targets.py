@@ -179,6 +179,8 @@ def test_the_plan_line_measures_entry_zero_over_its_observed_markers(tmp_path):
     ("bom_header.csv", "\ufeffX,Y,Z\r\n0.1,0.2,0.3\r\n0.2,0.25,0.3\r\n"),
     ("ids_first.csv", "marker,z,x,y (m)\n7,0.3,0.1,0.2\n8,0.3,0.2,0.25\n"),
     ("header.xyz", "# scanner export\nx y z\n0.1 0.2 0.3\n0.2 0.25 0.3\n"),
+    # 'quantity / unit', as ISO 80000 writes a column head: refused as naming no x, y, z.
+    ("slash.csv", "x / m,y / m,z / m\n0.1,0.2,0.3\n0.2,0.25,0.3\n"),
 ])
 def test_a_cloud_text_file_with_a_header_row_or_a_byte_order_mark_is_read(tmp_path, name, text):
     """A spreadsheet's CSV starts with a byte-order mark, a scanner's with a header row
@@ -192,6 +194,7 @@ def test_a_cloud_text_file_with_a_header_row_or_a_byte_order_mark_is_read(tmp_pa
 
 @pytest.mark.parametrize("name, text, message", [
     ("mm.csv", "x (mm),y (mm),z (mm)\n100,200,300\n", r"its header gives the coordinates in mm; positions are metres"),
+    ("slash_mm.csv", "x / mm,y / mm,z / mm\n100,200,300\n", r"its header gives the coordinates in mm; positions are metres"),
     ("names.csv", "u,v,w\n1,2,3\n", r"its first row 'u,v,w' is a header that names no columns x, y and z"),
     ("semicolons.csv", "x;y;z\n0,1;0,2;0,3\n", r"its fields are separated by semicolons"),
     ("ragged.csv", "0.1,0.2,0.3\n0.4,0.5\n", r"line 2 has 2 columns, line 1 has 3; every line of a point cloud holds "

@@ -2945,8 +2945,9 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
     return Target("points", _cloud(p, np.asarray(m.points, dtype=np.float64)), None, None, p)
 
 
-#: Units a point cloud's header may state beside a column name (``x (mm)``, ``x_mm``, ``x [m]``).
-_HEADER_UNIT = r"(?:[\s_]*[\[(]?\s*(m|mm|cm|um|µm|in|inch|ft)\s*[\])]?)?"
+#: Units a point cloud's header may state beside a column name (``x (mm)``, ``x_mm``, ``x [m]``,
+#: ``x / mm``: ISO 80000's quantity / unit).
+_HEADER_UNIT = r"(?:[\s_]*(?:/\s*)?[\[(]?\s*(m|mm|cm|um|µm|in|inch|ft)\s*[\])]?)?"
 
 
 def _fields(line: str, sep: str | None) -> list[str]:

@@ -1466,11 +1466,12 @@ TOOLS_CSV_UNITS = {"time": "s", "fx": "N", "fy": "N", "fz": "N"}
 
 
 def _column(name: str) -> tuple[str, str | None]:
-    """A header cell as ``(name, unit)``: ``' Fy [N]'`` is ``('fy', 'N')``."""
+    """A header cell as ``(name, unit)``: ``' Fy [N]'`` and ``'Fy / N'`` (ISO 80000's quantity /
+    unit, which had read as a column 'fy / n' and the log as lacking fy) are ``('fy', 'N')``."""
     import re  # noqa: PLC0415
 
-    m = re.fullmatch(r"\s*(.*?)\s*(?:[\[(]\s*([^\])]*?)\s*[\])])?\s*", name or "")
-    return m.group(1).lower(), m.group(2)
+    m = re.fullmatch(r"\s*(.*?)\s*(?:[\[(]\s*([^\])]*?)\s*[\])]|/\s*([^/]*?))?\s*", name or "")
+    return m.group(1).lower(), m.group(2) if m.group(2) is not None else m.group(3)
 
 
 def tools_csv_header(path) -> list[str] | None:
