@@ -363,6 +363,19 @@ def test_json_nested_too_deeply_is_refused_by_name(tmp_path):
         checks.json_file("--experiments", deep)
 
 
+def test_an_experiments_or_camera_json_saved_with_a_byte_order_mark_is_read(tmp_path):
+    """Windows' Notepad saves UTF-8 with a byte-order mark, which json refused: '--experiments
+    e.json is not valid JSON: Unexpected UTF-8 BOM (decode using utf-8-sig)', advice for
+    Python code, not for the file's author. It is read past, as the CSV targets' is; text
+    in UTF-8 (a scene's name with an accent) is read as UTF-8 whatever the locale."""
+    from warp_esph import checks
+
+    doc = [{"scene": "pâte.toml", "target": "t.npz"}]
+    path = tmp_path / "e.json"
+    path.write_bytes(b"\xef\xbb\xbf" + json.dumps(doc, ensure_ascii=False).encode("utf-8") + b"\r\n")
+    assert checks.json_file("--experiments", path) == doc
+
+
 def test_resuming_beside_a_damaged_force_log_refuses_before_it_loses_the_rows(tmp_path, capsys):
     """The force log of the run to resume is damaged: resuming would rewrite it with the
     resumed frames only. Refused by name before anything is written; the USD keeps its

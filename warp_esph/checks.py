@@ -451,7 +451,9 @@ def json_file(what: str, path):
         return dict(pairs)
 
     try:
-        with open(p) as f:
+        # utf-8-sig: Notepad's UTF-8 starts with a byte-order mark, which json refused with
+        # advice for Python code ('decode using utf-8-sig'); JSON is UTF-8 whatever the locale.
+        with open(p, encoding="utf-8-sig") as f:
             return json.load(f, object_pairs_hook=unique)
     except OSError as e:
         raise ValueError(f"{what} {p} cannot be read: {e}") from None
