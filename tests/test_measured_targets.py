@@ -346,6 +346,10 @@ def test_a_cloud_line_that_cannot_be_read_is_named_by_its_line_in_the_file(tmp_p
     with pytest.raises(ValueError, match=r"bad\.csv cannot be read as a point cloud: line 5, column 2: 'O\.3' is not a "
                                          r"number$"):
         load_target(tmp_path / "bad.csv")
+    (tmp_path / "na.csv").write_text("x,y,z\n0.1,0.2,0.3\n0.2,NA,0.4\n")
+    with pytest.raises(ValueError, match=r"na\.csv cannot be read as a point cloud: line 3, column 2: 'NA' is not a number; "
+                                         r"a point not seen is a row of nan \(or no row\)$"):
+        load_target(tmp_path / "na.csv")
     (tmp_path / "short.csv").write_text("# scanner\nx,y,z\n0.1,0.2,0.3\n0.2,0.3\n")
     with pytest.raises(ValueError, match=r"short\.csv cannot be read as a point cloud: line 4 has 2 columns, line 3 has "
                                          r"3; every line of a point cloud holds the same number of columns$"):

@@ -3065,8 +3065,11 @@ def _refuse_cloud_line(lines, sep, cols) -> None:
                              "cloud holds the same number of columns")
         for c, cell in enumerate(f):
             if not _is_number(cell) and (cols is None or c in cols):
-                raise ValueError(f"line {k}, column {c + 1}: {cell!r} is not a number" if cell else
-                                 f"line {k}, column {c + 1} is empty; a point not seen is a row of nan (or no row)")
+                # A spreadsheet's or a tracker's mark of a value not measured: said how a gap is written.
+                gap = "; a point not seen is a row of nan (or no row)" if cell.lower() in (
+                    "", "na", "n/a", "-", "null", "none", "missing") else ""
+                raise ValueError(f"line {k}, column {c + 1}: {cell!r} is not a number{gap}" if cell else
+                                 f"line {k}, column {c + 1} is empty{gap}")
 
 
 def _is_number(text: str) -> bool:
