@@ -404,6 +404,7 @@ def test_a_force_log_row_repeated_negative_or_non_finite_is_refused_by_file_row_
     dropped, and a NaN or 1e400 force was refused as 'targets with shape (2, 3) is not
     allowed: must be (2, 3) finite newtons' naming no file. Each is refused where the log is
     read, by the file, the row (line), the frame and the column."""
+    from warp_esph.fit import load_target  # noqa: PLC0415
     from warp_esph.losses import read_tools_csv  # noqa: PLC0415
 
     ok = ReactionForceLoss.from_csv(_tools_csv(tmp_path / "ok.csv", GOOD_ROWS), "plane0", {1: 10, 2: 20})
@@ -415,7 +416,8 @@ def test_a_force_log_row_repeated_negative_or_non_finite_is_refused_by_file_row_
         "negative": (["-1,0,plane0,0,0,0"] + GOOD_ROWS,
                      r"negative\.csv, row 2: frame = -1 is not allowed: frames are rendered frame indices >= 0"),
         "nan": ([GOOD_ROWS[0], "1,0.005,plane0,0,nan,0", GOOD_ROWS[2]],
-                r"nan\.csv, row 3 \(frame 1, tool 'plane0'\): fy = 'nan' is not allowed: must be a finite number \(N\)"),
+                r"nan\.csv, row 3 \(frame 1, tool 'plane0'\): fy = 'nan' is not allowed: must be a finite number \(N\); "
+                r"a frame not measured is left out of the log \(no row\), as NaN marks a missing marker in positions"),
         "huge": ([GOOD_ROWS[0], GOOD_ROWS[1], "2,0.01,plane0,0,-2.5,1e400"],
                  r"huge\.csv, row 4 \(frame 2, tool 'plane0'\): fz = '1e400' is not allowed: must be a finite number"),
         "time": ([GOOD_ROWS[0], "1,inf,plane0,0,-1.5,0"],
@@ -427,6 +429,9 @@ def test_a_force_log_row_repeated_negative_or_non_finite_is_refused_by_file_row_
             ReactionForceLoss.from_csv(path, "plane0", {1: 10, 2: 20})
         with pytest.raises(ValueError, match=message):
             read_tools_csv(path)
+    # A frame not measured, left out as the refusal says, is read without it.
+    gap = load_target(_tools_csv(tmp_path / "gap.csv", [GOOD_ROWS[0], GOOD_ROWS[2], "3,0.015,plane0,0,-3,0"]))
+    assert gap.frames == [2, 3] and gap.fps == pytest.approx(200.0)
     # The same frame of two tools is two measurements, not a repeat.
     both = _tools_csv(tmp_path / "both.csv", GOOD_ROWS + ["1,0.005,plate,0,1.5,0", "2,0.01,plate,0,2.5,0"])
     assert len(read_tools_csv(both)) == 5
@@ -746,7 +751,8 @@ def test_a_lab_force_log_in_a_spreadsheets_layout_is_read_or_refused_for_what_it
          r"headless\.csv cannot be read as a point cloud: .*; its first row reads as a force log's .* without the header "
          r"row"),
         (_write(tmp_path / "empty.csv", "frame,time,tool,fx,fy,fz\n0,0,plate,0,0,0\n1,0.005,plate,0,,0\n"),
-         r"empty\.csv, row 3: fy = '' is not allowed: it is empty \(N\)"),
+         r"empty\.csv, row 3: fy = '' is not allowed: it is empty \(N\); a frame not measured is left out of the "
+         r"log \(no row\)$"),
     ]
     for path, message in cases:
         with pytest.raises(ValueError, match=message):

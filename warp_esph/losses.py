@@ -1550,6 +1550,8 @@ def read_tools_csv(path) -> list[dict]:
                                "a decimal comma? write numbers with a decimal point" if c != "frame" and "," in cell else
                                "frames are whole rendered frame indices" if c == "frame" else "must be a number")
                         unit = f" ({TOOLS_CSV_UNITS[c]})" if c in TOOLS_CSV_UNITS else ""
+                        if c in ("fx", "fy", "fz") and (not cell or cell.lower() in ("na", "n/a", "-", "null", "none")):
+                            unit += "; a frame not measured is left out of the log (no row)"
                         raise ValueError(f"{p}, row {line}: {c} = {cell!r} is not allowed: {why}{unit}") from None
                 frame = values.pop("frame")
                 if frame < 0:
@@ -1558,8 +1560,11 @@ def read_tools_csv(path) -> list[dict]:
                 for c, v in values.items():
                     # float() reads 'nan' and '1e400' (inf) without complaint.
                     if not math.isfinite(v):
+                        # NaN is a missing marker in positions: said how a log leaves a frame out.
+                        gap = ("; a frame not measured is left out of the log (no row), as NaN marks a missing marker "
+                               "in positions") if math.isnan(v) else ""
                         raise ValueError(f"{p}, row {line} (frame {frame}, tool {tool!r}): {c} = {row[c]!r} is not "
-                                         f"allowed: must be a finite number{' (s)' if c == 'time' else ' (N)'}")
+                                         f"allowed: must be a finite number{' (s)' if c == 'time' else ' (N)'}{gap}")
                 if (tool, frame) in seen:
                     # Silently the last row won: which of two measurements is the force is not ours to choose.
                     raise ValueError(f"{p}, row {line}: frame {frame} of tool {tool!r} is not allowed: row "
