@@ -365,3 +365,26 @@ def test_a_chamfer_loss_given_a_nan_point_says_to_leave_it_out():
     with pytest.raises(ValueError, match=r"^targets at step 2 is not allowed: it has non-finite values \(first at point 1: "
                                          r"\[nan, 0\.2, 0\.3\]\); a cloud is unordered: leave a point not seen out of it"):
         ChamferLoss(np.array([[0.1, 0.2, 0.3], [np.nan, 0.2, 0.3]]), radius=0.05, frames=[2])
+
+
+def test_a_pts_file_that_starts_with_its_point_count_is_read(tmp_path):
+    """A Leica .pts (as CloudCompare writes it) starts with a line holding its point count,
+    then 'x y z intensity r g b': refused as 'line 2 has 7 columns, line 1 has 1'. The count
+    line is read past where it is the number of points that follow; another count (a file
+    cut short) is refused saying both."""
+    rows = "".join(f"{x!r} {y!r} {z!r} -1200 90 80 70\n" for x, y, z in CLOUD)
+    (tmp_path / "scan.pts").write_text(f"{len(CLOUD)}\n" + rows)
+    np.testing.assert_array_equal(load_target(tmp_path / "scan.pts").data, CLOUD)
+    (tmp_path / "cut.pts").write_text(f"{len(CLOUD) + 5}\n" + rows)
+    with pytest.raises(ValueError, match=r"cut\.pts cannot be read as a point cloud: its first line says it holds 8 points, "
+                                         r"and 3 follow \(a file cut short\?\)"):
+        load_target(tmp_path / "cut.pts")
+
+
+def test_a_cloud_of_decimal_commas_is_refused_as_such(tmp_path):
+    """'0,1 0,2 0,3' (a locale of decimal commas) was refused as a header naming no columns
+    x, y and z."""
+    (tmp_path / "comma.txt").write_text("0,1 0,2 0,3\n0,2 0,25 0,3\n")
+    with pytest.raises(ValueError, match=r"comma\.txt cannot be read as a point cloud: its numbers have decimal commas "
+                                         r"\('0,1'\); write them with a decimal point"):
+        load_target(tmp_path / "comma.txt")

@@ -2978,7 +2978,8 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
     them out), or a ValueError saying why not, naming a line by its number in the file.
 
     Blank lines, ``#`` lines and rows of empty cells (a spreadsheet's empty rows) are read
-    past. A first line that is not all numbers is a header row: it must name columns ``x``,
+    past, and a first line of one whole number (a ``.pts`` file's point count) where that many
+    rows follow. A first line that is not all numbers is a header row: it must name columns ``x``,
     ``y`` and ``z`` (any case, in any order, among others; a unit beside them must be ``m``),
     which are then read. Without a header the first three columns are x, y, z; four or more
     columns whose first holds whole numbers in order (0, 1, 2, ...: a marker's id; 0, 0, 1,
@@ -2993,6 +2994,11 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
     if not lines:
         return np.zeros((0, 3))
     first = lines[0][1]
+    count = None
+    if len(lines) > 1 and re.fullmatch(r"\d+", first) and len(_fields(lines[1][1], _cloud_separator(lines[1][1], ext))) >= 3:
+        # A Leica .pts (CloudCompare's too) starts with its point count: read past, held to the rows.
+        count, lines = int(first), lines[1:]
+        first = lines[0][1]
     if ext == ".csv" and ";" in first and "," not in first:
         raise ValueError("its fields are separated by semicolons (a spreadsheet's export with decimal commas?); a "
                          "point cloud .csv has comma-separated columns x, y, z in metres with decimal points")
@@ -3007,6 +3013,10 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
                 found[m.group(1).lower()] = i
                 units[m.group(1).lower()] = (m.group(2) or "m").lower()
         if len(found) < 3:
+            split = _fields(first.replace(";", " "), None)
+            if any("," in c for c in split) and all(_is_number(c.replace(",", ".")) for c in split):
+                raise ValueError(f"its numbers have decimal commas ({split[0]!r}); write them with a decimal point (x y z "
+                                 "in metres, separated by spaces, tabs or commas)")
             raise ValueError(f"its first row {first[:120]!r} is a header that names no columns x, y and z; a point "
                              "cloud's text file holds three numbers per line (x y z, metres), under an optional "
                              "header row naming its columns x, y, z")
@@ -3032,6 +3042,8 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
         # the header nor comments: the line is found here, by its number in the file.
         _refuse_cloud_line(lines, sep, cols)
         raise ValueError(str(e).split(";")[0]) from None  # numpy's advice ('use `usecols`') is its API's
+    if count is not None and count != len(pts):
+        raise ValueError(f"its first line says it holds {count} points, and {len(pts)} follow (a file cut short?)")
     width = pts.shape[1]
     if cols is None and width >= 4 and len(pts) >= 2:
         ids, step = pts[:, 0], np.diff(pts[:, 0])
