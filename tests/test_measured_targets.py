@@ -329,6 +329,7 @@ def test_a_cloud_point_of_nan_is_a_missing_point_left_out_with_a_warning(tmp_pat
     ("commas.xyz", _cloud_lines(", ")),
     ("trailing_commas.csv", _cloud_lines(",").replace("\n", ",\n")),
     ("empty_rows.csv", "x,y,z\r\n" + _cloud_lines(",").replace("\n", "\r\n") + ",,\r\n,,\r\n\r\n"),
+    ("comma_header.txt", "x,y,z\n" + _cloud_lines(" ")),
 ])
 def test_a_cloud_as_lab_software_writes_it_is_read(tmp_path, name, text):
     """Tab-separated '.csv' files, comma-separated '.txt'/'.xyz', a comma after every line

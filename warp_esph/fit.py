@@ -3026,6 +3026,8 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
                              "the file to metres (and its header to x, y, z)")
         cols = (found["x"], found["y"], found["z"])
         lines = lines[1:]
+        if lines:
+            sep = _cloud_separator(lines[0][1], ext)  # the numbers' own ('x,y,z' over '0.1 0.2 0.3')
     # A comma after every value, and rows of empty cells (a spreadsheet's empty rows), hold nothing.
     ends = ", \t" if sep == "," else None
     lines = [(k, line.rstrip(ends)) for k, line in lines]
