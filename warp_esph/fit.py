@@ -3029,9 +3029,9 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
         if lines:
             sep = _cloud_separator(lines[0][1], ext)  # the numbers' own ('x,y,z' over '0.1 0.2 0.3')
     # A comma after every value, and rows of empty cells (a spreadsheet's empty rows), hold nothing.
-    ends = ", \t" if sep == "," else None
-    lines = [(k, line.rstrip(ends)) for k, line in lines]
-    lines = [(k, line) for k, line in lines if line]
+    if sep == ",":  # (a whitespace-separated line was stripped already)
+        lines = [(k, line.rstrip(", \t")) for k, line in lines]
+        lines = [(k, line) for k, line in lines if line]
     if not lines:
         return np.zeros((0, 3))
     try:
