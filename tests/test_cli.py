@@ -541,6 +541,13 @@ def test_bad_scene_file_is_one_line_exit_2(tmp_path, capsys, case):
         (["fit", "nothing.toml", "--target", "t.npz", "--bounds", "yield_stress=nan:1"],
          ["--bounds yield_stress=nan:1 is not allowed: a bound must be a number, not NaN (an open end is -inf "
           "or inf)"]),
+        # Named as typed ('1e3:1e2', not '1000:100'), and a parameter not fitted by its entry
+        # (it was "--bounds for 'mu' are not allowed", neither typed nor a sentence).
+        (["fit", "nothing.toml", "--target", "t.npz", "--bounds", "yield_stress=1e3:1e2"],
+         ["--bounds yield_stress=1e3:1e2 is not allowed: need lo < hi"]),
+        (["fit", "nothing.toml", "--target", "t.npz", "--bounds", "mu=1e3:1e4"],
+         ["--bounds mu=1e3:1e4 is not allowed: mu is not fitted (--params yield_stress,flow_rate); give bounds of a "
+          "fitted parameter"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--starts", "0"], ["--starts = 0 is not allowed: must be an integer >= 1"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--sample-range", "0.5"], ["--sample-range = 0.5 is not allowed: must be > 1"]),
         (["fit", "nothing.toml", "--target", "t.npz", "--checkpoint-every", "0"], ["--checkpoint-every = 0 is not allowed"]),

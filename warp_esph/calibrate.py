@@ -169,7 +169,7 @@ def run_fit(args, out=None, err=None) -> int:
                          optimizer=_arg(args, "optimizer") or "adam", patience=_arg(args, "patience", 20),
                          samples=_arg(args, "samples", 0), starts=_arg(args, "starts", 1),
                          sample_range=sample_range, seed=seed, noise=_arg(args, "noise"),
-                         memory_limit=memory_limit, flag=option_flag)
+                         memory_limit=memory_limit, flag=option_flag, bounds_typed=typed_bounds)
     params = opts["params"]
     # Options nothing would read: refused, not ignored (each ran as without it).
     if given_range is not None and opts["samples"] == 0 and opts["starts"] == 1:

@@ -1316,7 +1316,7 @@ def _step_size(name: str, value) -> float:
 
 def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds=None, optimizer="adam", patience=20,
                   samples=0, starts=1, sample_range=4.0, seed=0, noise=None, memory_limit=MEMORY_LIMIT, xtol=XTOL,
-                  flag=lambda name: name) -> dict:
+                  flag=lambda name: name, bounds_typed: Mapping | None = None) -> dict:
     """``fit``'s options that need no model, checked (as ``fit`` checks them, before any
     rollout): a dict of the validated values. ``flag(name)`` is how a message names an
     option (the command line passes ``--lr`` for ``lr``). ``lr``: ``None`` is ``LR``, and
@@ -1381,8 +1381,17 @@ def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds
     if bounds is not None and not isinstance(bounds, Mapping):
         raise ValueError(f"{flag('bounds')} = {checks.shorten(bounds)!r} is not allowed: must be a mapping "
                          "{name: (lo, hi)}")
+    typed = bounds_typed or {}
+
+    def said(name, lo, hi):
+        # The command line's entry as typed ('mu=1e3:1e2'), else as bounds_said writes it.
+        return f"{flag('bounds')} {typed[name]}" if name in typed else bounds_said(name, lo, hi, flag)
+
     for name, rng in (bounds or {}).items():
         if name not in params:
+            if name in typed:
+                raise ValueError(f"{said(name, 0, 0)} is not allowed: {name} is not fitted ({flag('params')} "
+                                 f"{','.join(params)}); give bounds of a fitted parameter")
             raise ValueError(f"{flag('bounds')} for {name!r} are not allowed: {name} is not fitted (params = {params})")
         try:
             lo, hi = (float(v) for v in rng)
@@ -1390,10 +1399,10 @@ def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds
             raise ValueError(f"{flag('bounds')}[{name!r}] = {rng!r} is not allowed: must be (lo, hi) numbers") from None
         if math.isnan(lo) or math.isnan(hi):
             # It said 'need lo < hi' of (nan, 1.0), which reads as a wrong order.
-            raise ValueError(f"{bounds_said(name, lo, hi, flag)} is not allowed: a bound must be a number, not NaN (an "
+            raise ValueError(f"{said(name, lo, hi)} is not allowed: a bound must be a number, not NaN (an "
                              "open end is -inf or inf)")
         if not lo < hi:
-            raise ValueError(f"{bounds_said(name, lo, hi, flag)} is not allowed: need lo < hi")
+            raise ValueError(f"{said(name, lo, hi)} is not allowed: need lo < hi")
     return out
 
 
