@@ -389,3 +389,22 @@ def test_a_cloud_of_decimal_commas_is_refused_as_such(tmp_path):
     with pytest.raises(ValueError, match=r"comma\.txt cannot be read as a point cloud: its numbers have decimal commas "
                                          r"\('0,1'\); write them with a decimal point"):
         load_target(tmp_path / "comma.txt")
+
+
+def test_a_cloud_with_a_time_or_frame_column_is_read_as_a_cloud_or_refused_as_a_table_of_frames(tmp_path):
+    """A cloud whose header names x, y, z and a 'time' column (a scanner's time stamp per
+    point) or a 'frame' column was refused as a force log lacking fx, fy, fz. It is a cloud
+    where that column takes one value, or a distinct one per point; where its values repeat
+    (several points per frame) it is a table of positions over frames, which a cloud would
+    merge into one: refused saying so."""
+    (tmp_path / "stamped.csv").write_text("x,y,z,time\n" + "".join(f"{x!r},{y!r},{z!r},{0.1 * k!r}\n"
+                                                                  for k, (x, y, z) in enumerate(CLOUD)))
+    np.testing.assert_array_equal(load_target(tmp_path / "stamped.csv").data, CLOUD)
+    (tmp_path / "one_frame.csv").write_text("frame,x,y,z\n" + _cloud_lines(",", [7, 7, 7]))
+    np.testing.assert_array_equal(load_target(tmp_path / "one_frame.csv").data, CLOUD)
+    (tmp_path / "frames.csv").write_text("frame,x,y,z\n" + _cloud_lines(",", [0, 0, 1]))
+    with pytest.raises(ValueError, match=r"frames\.csv cannot be read as a point cloud: its column 'frame' holds 2 different "
+                                         r"values over 3 rows: a table of positions over frames, which one cloud would "
+                                         r"merge; give positions per frame as an \.npz \('positions' \(K, n, 3\), 'frames'\), "
+                                         r"or one frame's points as a cloud"):
+        load_target(tmp_path / "frames.csv")

@@ -3034,9 +3034,14 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
             raise ValueError(f"its header gives the coordinates in {', '.join(other)}; positions are metres: convert "
                              "the file to metres (and its header to x, y, z)")
         cols = (found["x"], found["y"], found["z"])
+        # A frame or time column beside them: a cloud's time stamps, or a table over frames.
+        stamp = next((i for i, f in enumerate(fields) if re.fullmatch(r"(frame|time|t)\b.*", f.lower())), None)
         lines = lines[1:]
         if lines:
             sep = _cloud_separator(lines[0][1], ext)  # the numbers' own ('x,y,z' over '0.1 0.2 0.3')
+            row = _fields(lines[0][1], sep)
+            if stamp is not None and stamp < len(row) and _is_number(row[stamp]):  # a clock time ('12:00:01') is left unread
+                cols += (stamp,)
     # A comma after every value, and rows of empty cells (a spreadsheet's empty rows), hold nothing.
     if sep == ",":  # (a whitespace-separated line was stripped already)
         lines = [(k, line.rstrip(", \t")) for k, line in lines]
@@ -3053,6 +3058,14 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
         # the header nor comments: the line is found here, by its number in the file.
         _refuse_cloud_line(lines, sep, cols)
         raise ValueError(str(e).split(";")[0]) from None  # numpy's advice ('use `usecols`') is its API's
+    if cols is not None and len(cols) == 4:
+        stamps, pts = pts[:, 3], pts[:, :3]
+        distinct = np.unique(stamps[np.isfinite(stamps)])
+        if 1 < len(distinct) < len(stamps):
+            # Several points share each value: frames of markers, which one cloud would merge.
+            raise ValueError(f"its column {fields[cols[3]]!r} holds {len(distinct)} different values over {len(stamps)} "
+                             "rows: a table of positions over frames, which one cloud would merge; give positions per "
+                             "frame as an .npz ('positions' (K, n, 3), 'frames'), or one frame's points as a cloud")
     if count is not None and count != len(pts):
         raise ValueError(f"its first line says it holds {count} points, and {len(pts)} follow (a file cut short?)")
     width = pts.shape[1]
@@ -3120,6 +3133,10 @@ def _refuse_other_force_logs(p: str) -> None:
     names = [re.sub(r"\s*[\[(].*$", "", c).strip().lower() for c in re.split(r"[,;\t]", line)]
     if not any(n in _FORCE_LOG_NAMES for n in names):
         return
+    axes = {m.group(1).lower() for c in re.split(r"[,;\t]", line)
+            if (m := re.fullmatch(r"([A-Za-z]+?)" + _HEADER_UNIT, c.strip().strip('"')))}
+    if {"x", "y", "z"} <= axes and not {"fx", "fy", "fz", "force", "load"} & set(names):
+        return  # a cloud's header with a time stamp or frame column beside x, y, z: read as a cloud
     need = (f"a reaction-force log needs the columns {', '.join(TOOLS_CSV_COLUMNS)}, comma-separated (times in s, "
             "forces in N, numbers with a decimal point), one row per frame and tool")
     for sep, what in ((";", "semicolons"), ("\t", "tabs")):
