@@ -300,10 +300,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         applied = int(0)
         if code == 0 and sums.wsum > scalar(0.0):
             Ag, Cg, Dg = floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
-            cand = Fg + scale * corrected_increment(Ag, sums.Bu, Cg, Dg, sums.Eu) * Fg
-            if wp.determinant(cand) > scalar(0.0):
-                out = cand
-                applied = 1
+            out, applied = df.uncompensated_update(Fg, corrected_increment(Ag, sums.Bu, Cg, Dg, sums.Eu), scale)
         return out, applied
 
     @wp.func

@@ -403,6 +403,20 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return c, dc
 
     @wp.func
+    def uncompensated_update(F: mat33, inc: mat33, scale: scalar):
+        """Eq. 8 faded and without ``F``'s round-off carried (``carried_update`` carries it):
+        ``F + (scale inc) F``, ``inc = dF - I`` unfaded, and 1; or ``F`` and 0 where that would
+        invert (det <= 0, paper §4). A floor image's own update is this (``State.F_image``
+        carries no round-off), and the adjoints recompute with it what the update took."""
+        out = F
+        applied = int(0)
+        cand = F + (scale * inc) * F
+        if wp.determinant(cand) > scalar(0.0):
+            out = cand
+            applied = 1
+        return out, applied
+
+    @wp.func
     def floor_image_own_update(
         i: int,
         x: wp.array(dtype=vec3),
@@ -425,10 +439,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         applied = int(0)
         if code == 0 and sums.wsum > scalar(0.0):
             Ag = floor_image_moment(i, x, body, nbr, n, h, gn, goff, gmin)
-            cand = Fg + scale * (sums.Bu * wp.inverse(Ag)) * Fg
-            if wp.determinant(cand) > scalar(0.0):
-                out = cand
-                applied = 1
+            out, applied = uncompensated_update(Fg, affine_fit(Ag, sums.Bu), scale)
         return out, applied
 
     @wp.func
@@ -445,8 +456,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         (``code``) or where that would invert."""
         F_new = Fp
         if code == 0:
-            if wp.determinant(Fp + (scale * D0) * Fp) > scalar(0.0):
-                F_new = Fp + (scale * D0) * Fp
+            F_new, applied = uncompensated_update(Fp, D0, scale)
         return F_new
 
     @wp.func
@@ -688,6 +698,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         ImageSums=ImageSums, floor_image_own_update=floor_image_own_update,
         floor_image_blend=floor_image_blend, floor_image_blend_adjoint=floor_image_blend_adjoint,
         floor_image_own_update_adjoint=floor_image_own_update_adjoint, affine_fit=affine_fit, step_increment=step_increment,
+        uncompensated_update=uncompensated_update,
         step_gradient=step_gradient, unless_inverted=unless_inverted,
         carried_update=carried_update, deformation_update=deformation_update, fit_increment=fit_increment,
         FitMoments=FitMoments, fit_moments=fit_moments, moments_increment=moments_increment, moments_adjoint=moments_adjoint,
@@ -811,6 +822,7 @@ def update_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3, mat33 = T.vec3, T.mat33
     gf = guards.guard_funcs(scalar)
+    df = funcs(scalar, weight)
     fn = fit_funcs(scalar, weight, fit)
     fi = image_update_funcs(scalar, weight, fit)
 
@@ -923,9 +935,9 @@ def update_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         if code == 1 or code == 2:
             adj_F_prev[i] = adj_F_prev[i] + G
             return
-        inc = s * inc0
-        dF = wp.identity(n=3, dtype=scalar) + inc
-        if wp.determinant(Fp + inc * Fp) <= scalar(0.0):
+        dF = wp.identity(n=3, dtype=scalar) + s * inc0
+        F_new, applied = df.uncompensated_update(Fp, inc0, s)
+        if applied == 0:
             # F is kept; the image's fade (adj s) still reaches A through the guard.
             adj_F_prev[i] = adj_F_prev[i] + G
             if adj_s == scalar(0.0):
