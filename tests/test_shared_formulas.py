@@ -58,3 +58,32 @@ def test_uncompensated_update_is_eq8_unless_it_inverts(scalar):
     assert np.array_equal(out[1], F[1]), "an inverting update keeps F"
     assert np.array_equal(out[3], F[3]), "a fade of 0 leaves F as it was"
     assert np.linalg.det(want[1]) < 0 < np.linalg.det(want[2])
+
+
+@functools.cache
+def _pair_viscosity_kernel(scalar):
+    from warp_esph.sim import pressure
+
+    pair_viscosity = pressure.funcs(scalar).pair_viscosity
+
+    @wp.kernel
+    def run(eta: wp.array(dtype=scalar), out: wp.array(dtype=scalar)):
+        i = wp.tid()
+        out[i] = pair_viscosity(eta[2 * i], eta[2 * i + 1])
+
+    return run
+
+
+@pytest.mark.parametrize("scalar", SCALARS)
+def test_pair_viscosity_is_the_mean_and_symmetric(scalar):
+    """``pressure``'s ``pair_viscosity``, the ``eta_ij`` of the viscous force on both the
+    fused and the differentiable path (and its adjoint): the mean of the two viscosities,
+    the same for ``(i, j)`` and ``(j, i)`` so that a pair's forces are equal and opposite
+    across materials."""
+    np_t = np.float32 if scalar == wp.float32 else np.float64
+    eta = np.array([0.0, 3.0, 3.0, 0.0, 1.5, 1.5, 0.25, 40.0], dtype=np_t)
+    out = wp.zeros(len(eta) // 2, dtype=scalar)
+    wp.launch(_pair_viscosity_kernel(scalar), len(out), [wp.array(eta, dtype=scalar)], [out])
+    got = out.numpy()
+    np.testing.assert_allclose(got, 0.5 * (eta[0::2] + eta[1::2]), rtol=1e-7, atol=0)
+    assert got[0] == got[1], "the pair's coefficient does not depend on its order"

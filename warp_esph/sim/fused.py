@@ -50,6 +50,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     fo = forces.funcs(scalar, weight)
     fw = smoothing.fit_weight_funcs(scalar, weight)
     sph_pair_force = pressure.funcs(scalar).sph_pair_force
+    pair_viscosity = pressure.funcs(scalar).pair_viscosity
     image_pressure_forces = pressure.funcs(scalar).image_pressure_forces
     guarded_flow_step = plasticity.funcs(scalar).guarded_flow_step
     guard_state = neighbors.guard_funcs(scalar).guard
@@ -207,7 +208,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 fj = g
                 fi -= g
             if sph != 0:
-                eta = scalar(0.5) * (visc_i + mat.viscosity[material[j]])
+                eta = pair_viscosity(visc_i, mat.viscosity[material[j]])
                 VV = Vi * vol[j]
                 VVp = VV
                 if sph == 2:

@@ -144,6 +144,13 @@ def funcs(scalar) -> types.SimpleNamespace:
             f += viscous_pair_force(eta * VV, rij, r2, sm.lap_w_viscosity_at(rl, h, c_visc), vji)
         return f
 
+    @wp.func
+    def pair_viscosity(eta_i: scalar, eta_j: scalar) -> scalar:
+        """The viscous force's ``eta_ij`` of a pair (docs/method.md §6): the mean of the two
+        particles' viscosities, so that a pair of materials acts on each as one coefficient and
+        the pair's forces stay equal and opposite."""
+        return scalar(0.5) * (eta_i + eta_j)
+
     Materials = materials.struct(scalar)
 
     @wp.func
@@ -168,7 +175,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         pj = pressure(rho_p[j], rest_density[j], mat.pressure_stiffness[mj], mat.clamp_pressure[mj])
         VV = Vi * mass[j] / rho[j]
         VVp = Vpi * mass[j] / rho_p[j]
-        eta = scalar(0.5) * (visc_i + mat.viscosity[mj])
+        eta = pair_viscosity(visc_i, mat.viscosity[mj])
         return pj, VV, VVp, eta
 
     # The images' geometry only (no fit weight in it): any weight's namespace serves.
@@ -237,7 +244,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         energy_pressure_pair_force=energy_pressure_pair_force, viscous_pair_force=viscous_pair_force,
         density_weight=density_weight, energy_spiky_pair_force=energy_spiky_pair_force,
         density_weight_gradient=density_weight_gradient,
-        sph_pair_force=sph_pair_force,
+        sph_pair_force=sph_pair_force, pair_viscosity=pair_viscosity,
     )
 
 
@@ -463,7 +470,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 k_j = mat.pressure_stiffness[mj]
                 pj = fn.pressure(rp_j, rest_density[j], k_j, mat.clamp_pressure[mj])
                 VV = Vi * mass[j] / rho_j
-                eta = scalar(0.5) * (visc_i + mat.viscosity[mj])
+                eta = fn.pair_viscosity(visc_i, mat.viscosity[mj])
                 a = scalar(0.5) * (afi - adj_f[j])
                 rl = wp.sqrt(r2)
                 adj_r = vec3()
@@ -525,6 +532,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                     gv_i -= adj_vji
                     base = scalar(5.0) * lap / r2
                     adj_eta = adj_s * base * VV
+                    # pair_viscosity's adjoint: half to each particle's viscosity.
                     adj_visc_i += scalar(0.5) * adj_eta
                     wp.atomic_add(adj_visc, mj, scalar(0.5) * adj_eta)
                     adj_VV += adj_s * base * eta
