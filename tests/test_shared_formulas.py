@@ -87,3 +87,68 @@ def test_pair_viscosity_is_the_mean_and_symmetric(scalar):
     got = out.numpy()
     np.testing.assert_allclose(got, 0.5 * (eta[0::2] + eta[1::2]), rtol=1e-7, atol=0)
     assert got[0] == got[1], "the pair's coefficient does not depend on its order"
+
+
+@functools.cache
+def _flow_kernel(scalar):
+    from warp_esph.sim import plasticity
+
+    T = type_set(scalar)
+    fl = plasticity.funcs(scalar)
+
+    @wp.kernel
+    def run(s: wp.array(dtype=T.vec3), gamma: wp.array(dtype=scalar), mu: scalar, dev: wp.array(dtype=T.vec3),
+            norm2: wp.array(dtype=scalar), g: wp.array(dtype=T.vec3), cp: wp.array(dtype=T.vec3)):
+        i = wp.tid()
+        d = fl.deviatoric(s[i])
+        dev[i] = d
+        norm2[i] = fl.deviatoric_stress_norm2(mu, wp.dot(d, d))
+        gi, c, p = fl.flowed_values(s[i], gamma[i])
+        g[i] = gi
+        cp[i] = T.vec3(c, p, fl.flow_rate_fraction(wp.sqrt(norm2[i]), fl.yield_surface(scalar(10.0), scalar(-4.0),
+                                                                                             gamma[i]),
+                                                  scalar(50.0), scalar(0.01), i % 2))
+
+    return run
+
+
+@pytest.mark.parametrize("scalar", SCALARS)
+def test_flow_formulas_keep_volume_and_rate(scalar):
+    """``plasticity``'s flow formulas, shared by ``flow_step``, its hand-written adjoint and
+    the additive model: the deviatoric part has no mean; ``|s|^2 = |2 mu dev|^2``; the flowed
+    singular values ``g = c s^p`` keep the volume ``J`` inside the volume-preserving range and
+    relax only the part beyond it outside, and ``gamma = 0`` leaves ``s``; the flow fraction
+    before its clamp is ``nu dt (|s| - y) / |s|`` (non-Newtonian: over ``|s|`` again) with
+    the yield surface ``max(Y + K alpha, 0)``."""
+    from warp_esph.sim import plasticity
+
+    T = type_set(scalar)
+    np_t = np.float32 if scalar == wp.float32 else np.float64
+    mu = 30.0
+    s = np.array([[1.2, 1.0, 0.9], [1.1, 0.95, 1.0], [1.4, 1.3, 1.2], [0.7, 0.8, 0.75], [1.3, 0.9, 1.05]], dtype=np_t)
+    gamma = np.array([0.3, 0.0, 0.5, 0.2, 4.0], dtype=np_t)
+    n = len(s)
+    dev, norm2 = wp.zeros(n, dtype=T.vec3), wp.zeros(n, dtype=scalar)
+    g, cp = wp.zeros(n, dtype=T.vec3), wp.zeros(n, dtype=T.vec3)
+    wp.launch(_flow_kernel(scalar), n, [wp.array(s, dtype=T.vec3), wp.array(gamma, dtype=scalar), scalar(mu)],
+              [dev, norm2, g, cp])
+    dev, norm2, g, cp = (a.numpy().astype(np.float64) for a in (dev, norm2, g, cp))
+    s64, g64 = s.astype(np.float64), gamma.astype(np.float64)
+    rtol = 1e-5 if scalar == wp.float32 else 1e-12
+    want_dev = s64 - s64.mean(axis=1, keepdims=True)
+    np.testing.assert_allclose(dev, want_dev, rtol=0, atol=rtol)
+    np.testing.assert_allclose(norm2, ((2.0 * mu * want_dev) ** 2).sum(axis=1), rtol=rtol)
+    J = s64.prod(axis=1)
+    lo, hi = plasticity.VOLUME_PRESERVING_RANGE
+    Jc = np.clip(J, lo, hi)
+    assert lo < J[0] < hi and J[2] > hi and J[3] < lo
+    np.testing.assert_allclose(g.prod(axis=1), Jc ** g64 * J ** (1.0 - g64), rtol=10 * rtol)
+    np.testing.assert_allclose(g[0].prod(), J[0], rtol=10 * rtol)  # volume kept inside the range
+    assert np.array_equal(g[1], s64[1]), "no flow leaves the singular values"
+    np.testing.assert_allclose(cp[:, 1], 1.0 - g64, rtol=rtol)
+    y = np.maximum(10.0 - 4.0 * g64, 0.0)
+    assert y[4] == 0.0
+    sn = np.sqrt(norm2)
+    rate = 50.0 * 0.01 * (sn - y) / sn
+    rate[1::2] /= sn[1::2]
+    np.testing.assert_allclose(cp[:, 2], rate, rtol=10 * rtol)

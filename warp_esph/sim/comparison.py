@@ -175,7 +175,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
             a_new = a
             if mat.flow_rate[m] > scalar(0.0):
                 flowed, gamma = flow_fraction(
-                    scalar(4.0) * mu * mu * dn2, mat.yield_stress[m], mat.hardening[m], a, mat.flow_rate[m], dt,
+                    pf.deviatoric_stress_norm2(mu, dn2), mat.yield_stress[m], mat.hardening[m], a, mat.flow_rate[m], dt,
                     wp.where(kind == 1, 1, 0),
                 )
                 if flowed != 0:

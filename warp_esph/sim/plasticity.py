@@ -53,6 +53,47 @@ def funcs(scalar) -> types.SimpleNamespace:
         return c * (wp.pow(a, p) - wp.pow(b, p)) / (a - b)
 
     @wp.func
+    def deviatoric(v: vec3) -> vec3:
+        """``v`` less its mean: the deviatoric part of principal values (the flow's
+        ``dev sigma``, the hardening's log strain). A symmetric projection: also its own adjoint."""
+        mean = (v[0] + v[1] + v[2]) / scalar(3.0)
+        return v - vec3(mean, mean, mean)
+
+    @wp.func
+    def deviatoric_stress_norm2(mu: scalar, dev_norm2: scalar) -> scalar:
+        """``|s|^2`` of the deviatoric stress ``s = 2 mu dev`` the flow rule compares with the
+        yield surface (paper §4), from ``|dev|^2``."""
+        return scalar(4.0) * mu * mu * dev_norm2
+
+    @wp.func
+    def yield_surface(yield_stress: scalar, hardening: scalar, alpha: scalar) -> scalar:
+        """The yield surface ``Y + K alpha`` with hardening, not below 0 (a negative ``K``
+        softens to no strength, not to a negative one)."""
+        return wp.max(yield_stress + hardening * alpha, scalar(0.0))
+
+    @wp.func
+    def flow_rate_fraction(s_norm: scalar, y: scalar, flow_rate: scalar, dt: scalar, non_newtonian: int) -> scalar:
+        """The flow fraction before its clamp at 1: ``nu_f dt (|s| - y) / |s|`` (non-Newtonian:
+        ``/ |s|^2``) of a deviatoric stress ``|s|`` above the yield surface ``y``."""
+        rate = flow_rate * dt * (s_norm - y) / s_norm
+        if non_newtonian != 0:
+            rate = rate / s_norm
+        return rate
+
+    @wp.func
+    def flowed_values(s: vec3, gamma: scalar):
+        """The singular values after a flow of fraction ``gamma``, ``g = c s^p`` with ``p = 1 -
+        gamma`` and ``c = J_c^(gamma / 3)``: volume is kept inside ``[j_lo, j_hi]``; outside,
+        only the volume change beyond the range is relaxed (paper §4), so ``c`` is continuous
+        in ``J = s_0 s_1 s_2`` (``J_c`` it clamped to the range; docs/method.md §4). Returns
+        ``(g, c, p)``."""
+        J = s[0] * s[1] * s[2]
+        c = wp.pow(wp.min(wp.max(J, j_lo), j_hi), gamma / scalar(3.0))
+        p = scalar(1.0) - gamma
+        g = c * vec3(wp.pow(s[0], p), wp.pow(s[1], p), wp.pow(s[2], p))
+        return g, c, p
+
+    @wp.func
     def flow_fraction(
         s_norm2: scalar,
         yield_stress: scalar,
@@ -65,16 +106,12 @@ def funcs(scalar) -> types.SimpleNamespace:
         """Returns (flowed, gamma): whether the deviatoric stress ``|s|`` (given squared)
         exceeds the yield surface ``Y + K alpha``, and the flow fraction
         ``gamma = min(nu_f dt (|s| - Y - K alpha) / |s|, 1)`` (non-Newtonian: ``/ |s|^2``)."""
-        y = wp.max(yield_stress + hardening * alpha, scalar(0.0))
+        y = yield_surface(yield_stress, hardening, alpha)
         flowed = int(0)
         gamma = scalar(0.0)
         # Compare squares: |s| = 0 at rest, where sqrt has an infinite derivative.
         if s_norm2 > y * y:
-            s_norm = wp.sqrt(s_norm2)
-            rate = flow_rate * dt * (s_norm - y) / s_norm
-            if non_newtonian != 0:
-                rate = rate / s_norm
-            gamma = wp.min(rate, scalar(1.0))
+            gamma = wp.min(flow_rate_fraction(wp.sqrt(s_norm2), y, flow_rate, dt, non_newtonian), scalar(1.0))
             flowed = 1
         return flowed, gamma
 
@@ -91,25 +128,17 @@ def funcs(scalar) -> types.SimpleNamespace:
     ):
         """The flow of the singular values ``s``; returns (flowed, new singular values
         g = c s^p, c, p, new alpha)."""
-        mean = (s[0] + s[1] + s[2]) / scalar(3.0)
-        dev = s - vec3(mean, mean, mean)
+        dev = deviatoric(s)
         flowed, gamma = flow_fraction(
-            scalar(4.0) * mu * mu * wp.dot(dev, dev), yield_stress, hardening, alpha, flow_rate, dt, non_newtonian
+            deviatoric_stress_norm2(mu, wp.dot(dev, dev)), yield_stress, hardening, alpha, flow_rate, dt, non_newtonian
         )
         g = s
         c = scalar(1.0)
         p = scalar(1.0)
         alpha_new = alpha
         if flowed != 0:
-            # Volume is kept inside [j_lo, j_hi]; outside, only the volume change beyond
-            # the range is relaxed (paper §4), so c is continuous in J (docs/method.md §4).
-            J = s[0] * s[1] * s[2]
-            c = wp.pow(wp.min(wp.max(J, j_lo), j_hi), gamma / scalar(3.0))
-            p = scalar(1.0) - gamma
-            g = c * vec3(wp.pow(s[0], p), wp.pow(s[1], p), wp.pow(s[2], p))
-            ls = vec3(wp.log(s[0]), wp.log(s[1]), wp.log(s[2]))
-            lm = (ls[0] + ls[1] + ls[2]) / scalar(3.0)
-            ld = ls - vec3(lm, lm, lm)
+            g, c, p = flowed_values(s, gamma)
+            ld = deviatoric(vec3(wp.log(s[0]), wp.log(s[1]), wp.log(s[2])))
             alpha_new = alpha + gamma * wp.sqrt(wp.dot(ld, ld))
         return flowed, g, c, p, alpha_new
 
@@ -176,7 +205,8 @@ def funcs(scalar) -> types.SimpleNamespace:
 
     return types.SimpleNamespace(
         flow=flow, flow_step=flow_step, guarded_flow_step=guarded_flow_step, flow_fraction=flow_fraction,
-        power_difference=power_difference,
+        power_difference=power_difference, deviatoric=deviatoric, deviatoric_stress_norm2=deviatoric_stress_norm2,
+        yield_surface=yield_surface, flow_rate_fraction=flow_rate_fraction, flowed_values=flowed_values,
     )
 
 
@@ -340,26 +370,19 @@ def kernels(scalar) -> types.SimpleNamespace:
         s_norm = scalar(0.0)
         y = scalar(0.0)
         nn = wp.where(kind == 1, 1, 0)
-        mean = (s[0] + s[1] + s[2]) / scalar(3.0)
-        dev = s - vec3(mean, mean, mean)
+        dev = fl.deviatoric(s)
         if nu > scalar(0.0) and wp.min(wp.min(s[0], s[1]), s[2]) >= min_sigma:
-            y = wp.max(Y + K * a0, scalar(0.0))
-            s_norm2 = scalar(4.0) * mu * mu * wp.dot(dev, dev)
+            y = fl.yield_surface(Y, K, a0)
+            s_norm2 = fl.deviatoric_stress_norm2(mu, wp.dot(dev, dev))
             if s_norm2 > y * y:
                 flowed = 1
                 s_norm = wp.sqrt(s_norm2)
-                rate = nu * dt * (s_norm - y) / s_norm
-                if nn != 0:
-                    rate = rate / s_norm
-                gamma = wp.min(rate, scalar(1.0))
+                gamma = wp.min(fl.flow_rate_fraction(s_norm, y, nu, dt, nn), scalar(1.0))
+                g, c, p = fl.flowed_values(s, gamma)
+                # c = J_c^(gamma/3) (flowed_values): where J is inside the range, c follows s.
                 J = s[0] * s[1] * s[2]
-                # As flow_step: c = J_c^(gamma/3), J_c = J clamped to [j_lo, j_hi].
-                Jc = wp.min(wp.max(J, j_lo), j_hi)
-                c = wp.pow(Jc, gamma / scalar(3.0))
                 if J >= j_lo and J <= j_hi:
                     in_range = 1
-                p = scalar(1.0) - gamma
-                g = c * vec3(wp.pow(s[0], p), wp.pow(s[1], p), wp.pow(s[2], p))
 
         # Stress P = U diag(f(g)) V^T and F^-1 into adj F_e (in the frame: C = U^T adj V).
         Finv = F_inv_out[i]
@@ -417,19 +440,13 @@ def kernels(scalar) -> types.SimpleNamespace:
                 # c = J_c^(gamma / 3) with J_c the end of the range: no dependence on s.
                 a_gamma += a_c * c * wp.log(wp.min(wp.max(s[0] * s[1] * s[2], j_lo), j_hi)) / scalar(3.0)
             # alpha_new = alpha + gamma |ld|, ld = ls - mean(ls)
-            lm = (ls[0] + ls[1] + ls[2]) / scalar(3.0)
-            ld = ls - vec3(lm, lm, lm)
+            ld = fl.deviatoric(ls)
             nld = wp.sqrt(wp.dot(ld, ld))
             a_gamma += a_alpha * nld
             if nld > scalar(0.0):
-                a_ld = (a_alpha * gamma / nld) * ld
-                a_ldm = (a_ld[0] + a_ld[1] + a_ld[2]) / scalar(3.0)
-                a_s += wp.cw_div(a_ld - vec3(a_ldm, a_ldm, a_ldm), s)
+                a_s += wp.cw_div(fl.deviatoric((a_alpha * gamma / nld) * ld), s)
             # gamma = min(rate, 1) (the gradient goes to rate only below the clamp, as Warp's min)
-            rate = nu * dt * (s_norm - y) / s_norm
-            if nn != 0:
-                rate = rate / s_norm
-            if rate < scalar(1.0):
+            if fl.flow_rate_fraction(s_norm, y, nu, dt, nn) < scalar(1.0):
                 a_rate = a_gamma
                 a_sn = scalar(0.0)
                 a_y = scalar(0.0)
@@ -449,9 +466,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                 # s_norm = sqrt(4 mu^2 |dev|^2)
                 a_n2 = a_sn / (scalar(2.0) * s_norm)
                 a_mu += a_n2 * scalar(8.0) * mu * wp.dot(dev, dev)
-                a_dev = (a_n2 * scalar(8.0) * mu * mu) * dev
-                a_devm = (a_dev[0] + a_dev[1] + a_dev[2]) / scalar(3.0)
-                a_s += a_dev - vec3(a_devm, a_devm, a_devm)
+                a_s += fl.deviatoric((a_n2 * scalar(8.0) * mu * mu) * dev)
             adj_F_in[i] = adj_F_in[i] + U * (wp.diag(a_s) + M) * wp.transpose(V)
         else:
             # F_e = F: adj F = adj F_e = U C V^T.
