@@ -152,3 +152,37 @@ def test_flow_formulas_keep_volume_and_rate(scalar):
     rate = 50.0 * 0.01 * (sn - y) / sn
     rate[1::2] /= sn[1::2]
     np.testing.assert_allclose(cp[:, 2], rate, rtol=10 * rtol)
+
+
+@functools.cache
+def _rest_elastic_kernel(scalar):
+    from warp_esph.sim import comparison
+
+    T = type_set(scalar)
+    part = comparison.kernels(scalar, "poly6").rest_elastic_part
+
+    @wp.kernel
+    def run(G: wp.array(dtype=T.mat33), Fp: wp.array(dtype=T.mat33), Fe: wp.array(dtype=T.mat33)):
+        i = wp.tid()
+        Fe[i] = part(G[i], Fp[i])
+
+    return run
+
+
+@pytest.mark.parametrize("scalar", SCALARS)
+def test_rest_elastic_part_is_the_multiplicative_split(scalar):
+    """``comparison``'s ``rest_elastic_part``, the rest model's ``F_e`` in its update, its start
+    fit and its adjoint: ``F_e F_p = G``; a total fit that is all plastic (``G = F_p``) holds
+    no elastic strain."""
+    T = type_set(scalar)
+    np_t = np.float32 if scalar == wp.float32 else np.float64
+    rng = np.random.default_rng(5)
+    Fp = np.eye(3) + 0.2 * rng.normal(size=(2, 3, 3))
+    G = np.stack([np.eye(3) + 0.2 * rng.normal(size=(3, 3)), Fp[1]]).astype(np_t)
+    Fp = Fp.astype(np_t)
+    Fe = wp.zeros(2, dtype=T.mat33)
+    wp.launch(_rest_elastic_kernel(scalar), 2, [wp.array(G, dtype=T.mat33), wp.array(Fp, dtype=T.mat33)], [Fe])
+    Fe = Fe.numpy().astype(np.float64)
+    tol = 1e-5 if scalar == wp.float32 else 1e-13
+    np.testing.assert_allclose(Fe @ Fp.astype(np.float64), G.astype(np.float64), rtol=0, atol=tol)
+    np.testing.assert_allclose(Fe[1], np.eye(3), rtol=0, atol=tol)

@@ -109,6 +109,12 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         return det > scalar(0.0) or (det <= scalar(0.0) and continues_inverted(mat, m))
 
     @wp.func
+    def rest_elastic_part(G: mat33, Fp: mat33) -> mat33:
+        """The rest model's ``F_e = G F_p^-1``: the elastic part of its total fit ``G`` in the
+        multiplicative split ``G = F_e F_p`` (module docstring)."""
+        return G * wp.inverse(Fp)
+
+    @wp.func
     def rest_total_fit(
         i: int,
         rest_x: wp.array(dtype=vec3),
@@ -260,7 +266,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 # pumped a crushed body up until it diverged.
                 # A NaN det (an overflowed fit) is neither side of 0: it keeps the last F,
                 # counted, as every fit not > 0 did before; taking it hid it from the counts.
-                Fe = G * wp.inverse(Fp[i])
+                Fe = rest_elastic_part(G, Fp[i])
                 det = wp.determinant(Fe)
                 if takes_rest_fit(mat, material[i], det):
                     F = Fe
@@ -453,7 +459,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         m = material[i]
         if mat.deformation[m] == 1 and rest_guard[i] == 0:
             G = rest_total_fit(i, rest_x, x, body, rest_nbr, rest_count[i], h, rest_At_inv[i], rest_K[i], curved)
-            Fe = G * wp.inverse(Fp[i])
+            Fe = rest_elastic_part(G, Fp[i])
             if takes_rest_fit(mat, m, wp.determinant(Fe)):
                 out = Fe
         F_out[i] = out
@@ -462,7 +468,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                                  rest_variational_forces=rest_variational_forces, rest_handover=rest_handover,
                                  rest_start_fit=rest_start_fit, rest_handback=rest_handback,
                                  rest_map_moments=rest_map_moments, rest_moments=rest_moments,
-                                 rest_total_fit=rest_total_fit, continues_inverted=continues_inverted,
+                                 rest_total_fit=rest_total_fit, rest_elastic_part=rest_elastic_part,
+                                 continues_inverted=continues_inverted,
                                  takes_rest_fit=takes_rest_fit, inverted_stress=inverted_stress)
 
 
@@ -484,6 +491,7 @@ def adjoint_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
     fo = forces.funcs(scalar, weight)
     Materials = materials.struct(scalar)
     rest_total_fit = kernels(scalar, weight).rest_total_fit
+    rest_elastic_part = kernels(scalar, weight).rest_elastic_part
     takes_rest_fit = kernels(scalar, weight).takes_rest_fit
     curved = 1 if fit == "curvature_corrected" else 0
 
@@ -528,7 +536,7 @@ def adjoint_kernels(scalar, weight: str, fit: str) -> types.SimpleNamespace:
         K = rest_K[i]
         fit = rest_total_fit(i, rest_x, y, body, rest_nbr, n, h, At_inv, K, wp.static(curved))
         Fp_inv = wp.inverse(Fp[i])
-        if not takes_rest_fit(mat, material[i], wp.determinant(fit * Fp_inv)):
+        if not takes_rest_fit(mat, material[i], wp.determinant(rest_elastic_part(fit, Fp[i]))):
             adj_F_prev[i] = adj_F_prev[i] + G
             return
         adj_Fp[i] = adj_Fp[i] + inverse_adjoint(Fp_inv, wp.transpose(fit) * G)
