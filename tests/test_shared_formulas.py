@@ -186,3 +186,56 @@ def test_rest_elastic_part_is_the_multiplicative_split(scalar):
     tol = 1e-5 if scalar == wp.float32 else 1e-13
     np.testing.assert_allclose(Fe @ Fp.astype(np.float64), G.astype(np.float64), rtol=0, atol=tol)
     np.testing.assert_allclose(Fe[1], np.eye(3), rtol=0, atol=tol)
+
+
+@functools.cache
+def _partner_kernel():
+    S = wp.float64
+    T = type_set(S)
+    fn = deformation.funcs(S, "poly6")
+
+    @wp.kernel
+    def run(x: wp.array(dtype=T.vec3), g: T.vec3, gn: T.vec3, goff: S, gmin: S, image: int,
+            adj_x: wp.array(dtype=T.vec3), img: wp.array(dtype=T.vec3)):
+        i = wp.tid()
+        fn.scatter_partner_adjoint(adj_x, i, x[i], g, gn, goff, gmin, image)
+        img[i] = fn.floor_image(x[i], gn, goff, gmin)
+
+    return run
+
+
+@pytest.mark.parametrize("image", [0, 1])
+def test_partner_adjoint_is_the_chain_rule_through_the_image(image):
+    """``deformation``'s ``scatter_partner_adjoint``, the variational force adjoints' (both
+    fits) scatter of a pair's far end: the adjoint ``g`` of ``x_j`` itself, or of ``j``'s floor
+    image, ``(d g_j / d x_j)^T g``, against central differences of ``floor_image`` (above the
+    plane, in the cubic blend and below it), added to what ``adj x_j`` held."""
+    T = type_set(wp.float64)
+    n = np.array([0.2, 0.95, 0.1])
+    n /= np.linalg.norm(n)
+    goff, gmin = 0.1, 0.01
+    heights = np.array([0.03, 0.008, 0.006, -0.004])
+    t = np.cross(n, [1.0, 0.0, 0.0])
+    x = (goff + heights)[:, None] * n + 0.3 * t
+    g = np.array([0.4, -1.1, 0.7])
+    held = np.full((len(x), 3), 0.25)
+    args = [T.vec3(*g), T.vec3(*n), goff, gmin, image]
+
+    def run(pts):
+        adj = wp.array(held, dtype=T.vec3)
+        img = wp.zeros(len(pts), dtype=T.vec3)
+        wp.launch(_partner_kernel(), len(pts), [wp.array(pts, dtype=T.vec3), *args], [adj, img])
+        return adj.numpy(), img.numpy()
+
+    adj, _ = run(x)
+    want = np.tile(g, (len(x), 1))
+    if image:
+        eps = 1e-7
+        for k in range(len(x)):
+            jac = np.empty((3, 3))
+            for c in range(3):
+                e = np.zeros(3)
+                e[c] = eps
+                jac[:, c] = (run(x[k:k + 1] + e)[1][0] - run(x[k:k + 1] - e)[1][0]) / (2 * eps)
+            want[k] = jac.T @ g
+    np.testing.assert_allclose(adj - held, want, rtol=0, atol=1e-6)

@@ -554,10 +554,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
             w, dw = fw.w_inside(r2, hh, c6)
             c, dc = gf.count_weight(r2, hh)
             g = variational_pair_adjoint(d, a, w, dw, h, M, K, adj_A, adj_A_sym, adj_C, adj_D, adj_D_sym, adj_same * dc)
-            if image != 0:
-                wp.atomic_add(adj_x, j, df.floor_image_jacobian(xj, gn, goff, gmin) * g)
-            else:
-                wp.atomic_add(adj_x, j, g)
+            df.scatter_partner_adjoint(adj_x, j, xj, g, gn, goff, gmin, image)
         return g
 
     @wp.func

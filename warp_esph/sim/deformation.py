@@ -237,6 +237,17 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         return wp.identity(n=3, dtype=scalar) - (scalar(1.0) + ds) * wp.outer(n, n)
 
     @wp.func
+    def scatter_partner_adjoint(adj_x: wp.array(dtype=vec3), j: int, xj: vec3, g: vec3, gn: vec3, goff: scalar,
+                                gmin: scalar, image: int):
+        """Adds the adjoint ``g`` of a pair's far end to its particle ``j``: to ``x_j``, or where
+        the far end is ``j``'s floor image (``image`` 1) by the chain rule through ``g_j(x_j)``,
+        ``floor_image_jacobian(x_j) g`` (symmetric)."""
+        if image != 0:
+            wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * g)
+        else:
+            wp.atomic_add(adj_x, j, g)
+
+    @wp.func
     def fit_pair_adjoint(w: scalar, dw: scalar, xb: vec3, yb: vec3, adj_A: mat33, adj_A_sym: mat33, adj_B: mat33,
                          adj_r2: scalar):
         """Adjoint of one pair's terms ``w(|xb|^2) xb xb^T`` in ``A`` and ``w yb xb^T`` in ``B``
@@ -692,6 +703,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         image_row_length=image_row_length, image_slots=image_slots, image_row_particle=image_row_particle,
         fit_sums=fit_sums,
         floor_image_jacobian=floor_image_jacobian, fit_pair_adjoint=fit_pair_adjoint,
+        scatter_partner_adjoint=scatter_partner_adjoint,
         scatter_pair_adjoint=scatter_pair_adjoint, fit_pairs_adjoint=fit_pairs_adjoint,
         floor_image_moment=floor_image_moment, scatter_image_pair_adjoint=scatter_image_pair_adjoint,
         floor_image_displacement_sums=floor_image_displacement_sums, floor_image_share=floor_image_share,

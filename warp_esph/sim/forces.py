@@ -62,7 +62,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     fw = smoothing.fit_weight_funcs(scalar, weight)
     gf = guards.guard_funcs(scalar)
     floor_image = deformation.funcs(scalar, weight).floor_image
-    floor_image_jacobian = deformation.funcs(scalar, weight).floor_image_jacobian
+    scatter_partner_adjoint = deformation.funcs(scalar, weight).scatter_partner_adjoint
     image_row_length = deformation.funcs(scalar, weight).image_row_length
     image_slots = deformation.funcs(scalar, weight).image_slots
     image_row_particle = deformation.image_row_particle
@@ -276,10 +276,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
             w, dw = fw.w_inside(r2, hh, c6)
             c, dc = gf.count_weight(r2, hh)
             g = variational_pair_adjoint(M, adj_A, adj_A_sym, a, d, w, dw, adj_same * dc)
-            if image != 0:
-                wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * g)
-            else:
-                wp.atomic_add(adj_x, j, g)
+            scatter_partner_adjoint(adj_x, j, xj, g, gn, goff, gmin, image)
         return g
 
     @wp.func
