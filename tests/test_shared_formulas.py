@@ -239,3 +239,41 @@ def test_partner_adjoint_is_the_chain_rule_through_the_image(image):
                 jac[:, c] = (run(x[k:k + 1] + e)[1][0] - run(x[k:k + 1] - e)[1][0]) / (2 * eps)
             want[k] = jac.T @ g
     np.testing.assert_allclose(adj - held, want, rtol=0, atol=1e-6)
+
+
+@functools.cache
+def _p_hat_kernel(scalar):
+    from warp_esph.sim import forces
+
+    T = type_set(scalar)
+    fo = forces.funcs(scalar, "poly6")
+
+    @wp.kernel
+    def run(s: wp.array(dtype=T.vec3), mu: scalar, lam: scalar, eq9: wp.array(dtype=T.vec3),
+            p_hat: wp.array(dtype=T.vec3)):
+        i = wp.tid()
+        eq9[i] = fo.principal_stress(s[i], mu, lam)
+        p_hat[i] = fo.corotated_principal_stress(s[i], mu, lam)
+
+    return run
+
+
+@pytest.mark.parametrize("scalar", SCALARS)
+def test_eq9_is_the_corotated_principal_stress_scaled_by_sigma(scalar):
+    """Eq. 9's principal values ``sigma o P^`` (``principal_stress``) scale the corotated
+    stress's ``P^ = 2 mu (sigma - 1) + lam sum(sigma - 1)`` (``corotated_principal_stress``,
+    also the hand-written constitutive adjoint's): to the bit, one formula; and ``P^`` is 0 at
+    rest and the small-strain linear stress."""
+    T = type_set(scalar)
+    np_t = np.float32 if scalar == wp.float32 else np.float64
+    s = np.array([[1.0, 1.0, 1.0], [1.2, 0.9, 0.7], [1.001, 1.0, 0.999], [-0.4, 0.8, 1.3]], dtype=np_t)
+    mu, lam = 3.0e4, 2.0e4
+    eq9, p_hat = wp.zeros(len(s), dtype=T.vec3), wp.zeros(len(s), dtype=T.vec3)
+    wp.launch(_p_hat_kernel(scalar), len(s), [wp.array(s, dtype=T.vec3), scalar(mu), scalar(lam)], [eq9, p_hat])
+    eq9, p_hat = eq9.numpy(), p_hat.numpy()
+    assert np.array_equal(eq9, s * p_hat), "eq. 9 is sigma o P^ to the bit"
+    assert np.all(p_hat[0] == 0.0)
+    e = s.astype(np.float64) - 1.0
+    want = 2.0 * mu * e + lam * e.sum(axis=1, keepdims=True)
+    rtol = 1e-5 if scalar == wp.float32 else 1e-12
+    np.testing.assert_allclose(p_hat, want, rtol=rtol, atol=rtol * mu)

@@ -69,13 +69,19 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
     Materials = materials.struct(scalar)
 
     @wp.func
-    def principal_stress(s: vec3, mu: scalar, lam: scalar) -> vec3:
-        """Eq. 9 in the SVD frame: the principal values ``sigma o P^`` of ``P* = U F^ P^ V^T``,
-        ``P^ = 2 mu (sigma - 1) + lam sum(sigma - 1)``."""
+    def corotated_principal_stress(s: vec3, mu: scalar, lam: scalar) -> vec3:
+        """The principal values ``P^ = 2 mu (s - 1) + lam sum(s - 1)`` of ``corotated_stress``:
+        the gradient in ``s`` of ``psi = mu sum(s - 1)^2 + lam/2 (sum(s - 1))^2``; also eq. 9's
+        ``P^``, which ``principal_stress`` scales by ``s``."""
         tr = s[0] + s[1] + s[2] - scalar(3.0)
         one = vec3(scalar(1.0), scalar(1.0), scalar(1.0))
-        p_hat = scalar(2.0) * mu * (s - one) + lam * tr * one
-        return wp.cw_mul(s, p_hat)
+        return scalar(2.0) * mu * (s - one) + lam * tr * one
+
+    @wp.func
+    def principal_stress(s: vec3, mu: scalar, lam: scalar) -> vec3:
+        """Eq. 9 in the SVD frame: the principal values ``sigma o P^`` of ``P* = U F^ P^ V^T``,
+        ``P^ = 2 mu (sigma - 1) + lam sum(sigma - 1)`` (``corotated_principal_stress``)."""
+        return wp.cw_mul(s, corotated_principal_stress(s, mu, lam))
 
     @wp.func
     def principal_stress_differences(s: vec3, mu: scalar, lam: scalar) -> vec3:
@@ -88,14 +94,6 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
             scalar(2.0) * mu * (s[0] + s[2] - scalar(1.0)) + lam * tr,
             scalar(2.0) * mu * (s[1] + s[2] - scalar(1.0)) + lam * tr,
         )
-
-    @wp.func
-    def corotated_principal_stress(s: vec3, mu: scalar, lam: scalar) -> vec3:
-        """The principal values ``P^ = 2 mu (s - 1) + lam sum(s - 1)`` of ``corotated_stress``:
-        the gradient in ``s`` of ``psi = mu sum(s - 1)^2 + lam/2 (sum(s - 1))^2``."""
-        tr = s[0] + s[1] + s[2] - scalar(3.0)
-        one = vec3(scalar(1.0), scalar(1.0), scalar(1.0))
-        return scalar(2.0) * mu * (s - one) + lam * tr * one
 
     @wp.func
     def corotated_stress(F: mat33, mu: scalar, lam: scalar) -> mat33:

@@ -393,7 +393,7 @@ def kernels(scalar) -> types.SimpleNamespace:
         af = vec3(CP[0, 0], CP[1, 1], CP[2, 2])
         tr = g[0] + g[1] + g[2] - scalar(3.0)
         one = vec3(scalar(1.0), scalar(1.0), scalar(1.0))
-        base = scalar(2.0) * mu * (g - one) + lam * tr * one
+        base = fo.corotated_principal_stress(g, mu, lam)
         f = base
         d_f = vec3(scalar(2.0) * mu, scalar(2.0) * mu, scalar(2.0) * mu)
         ag_P = vec3()
