@@ -277,3 +277,42 @@ def test_eq9_is_the_corotated_principal_stress_scaled_by_sigma(scalar):
     want = 2.0 * mu * e + lam * e.sum(axis=1, keepdims=True)
     rtol = 1e-5 if scalar == wp.float32 else 1e-12
     np.testing.assert_allclose(p_hat, want, rtol=rtol, atol=rtol * mu)
+
+
+@functools.cache
+def _energy_weight_kernel(scalar):
+    from warp_esph.sim import pressure
+
+    weight = pressure.funcs(scalar).energy_pair_weight
+
+    @wp.kernel
+    def run(m: wp.array(dtype=scalar), p: wp.array(dtype=scalar), rho: wp.array(dtype=scalar),
+            out: wp.array(dtype=scalar)):
+        k = wp.tid()
+        i = 2 * k
+        j = i + 1
+        VV = m[i] * m[j] / (rho[i] * rho[j])
+        out[i] = weight(VV, p[i], p[j], rho[i], rho[j])
+        out[j] = weight(VV, p[j], p[i], rho[j], rho[i])
+
+    return run
+
+
+@pytest.mark.parametrize("scalar", SCALARS)
+def test_energy_pair_weight_is_the_pressure_energys_factor(scalar):
+    """``pressure``'s ``energy_pair_weight``, the factor of both energy forms' pair force
+    (poly6 ``energy``, ``energy_spiky``): ``m_i m_j (p_i / rho_i^2 + p_j / rho_j^2)`` from
+    ``VV = m_i m_j / (rho_i rho_j)``, the same from either end of the pair (so the pair's
+    forces are equal and opposite)."""
+    np_t = np.float32 if scalar == wp.float32 else np.float64
+    m = np.array([1.0e-3, 2.0e-3, 5.0e-4, 5.0e-4], dtype=np_t)
+    p = np.array([120.0, -30.0, 0.0, 800.0], dtype=np_t)
+    rho = np.array([1010.0, 990.0, 1200.0, 1000.0], dtype=np_t)
+    out = wp.zeros(len(m), dtype=scalar)
+    wp.launch(_energy_weight_kernel(scalar), len(m) // 2,
+              [wp.array(m, dtype=scalar), wp.array(p, dtype=scalar), wp.array(rho, dtype=scalar)], [out])
+    got = out.numpy().astype(np.float64)
+    m64, p64, r64 = (a.astype(np.float64) for a in (m, p, rho))
+    want = np.repeat(m64[0::2] * m64[1::2] * (p64[0::2] / r64[0::2] ** 2 + p64[1::2] / r64[1::2] ** 2), 2)
+    rtol = 1e-5 if scalar == wp.float32 else 1e-13
+    np.testing.assert_allclose(got, want, rtol=rtol, atol=0)

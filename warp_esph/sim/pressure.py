@@ -59,6 +59,15 @@ def funcs(scalar) -> types.SimpleNamespace:
         return -VV * scalar(0.5) * (p_i + p_j) * sm.grad_w_spiky_at(rij, rl, h, c_spiky)
 
     @wp.func
+    def energy_pair_weight(VV: scalar, p_i: scalar, p_j: scalar, rho_i: scalar, rho_j: scalar) -> scalar:
+        """``m_i m_j (p_i / rho_i^2 + p_j / rho_j^2)``, the pair's factor of the energy forms'
+        pressure force (``energy_pressure_pair_force``, ``energy_spiky_pair_force``: the
+        gradient of ``sum_k m_k e_k(rho_k)`` with ``de/drho = p / rho^2``), from ``VV = m_i m_j /
+        (rho_i rho_j)``: ``p_i rho_j / rho_i + p_j rho_i / rho_j`` over one division (one per
+        pair, not two)."""
+        return VV * (p_i * rho_j * rho_j + p_j * rho_i * rho_i) / (rho_i * rho_j)
+
+    @wp.func
     def energy_pressure_pair_force(
         VV: scalar, p_i: scalar, p_j: scalar, rho_i: scalar, rho_j: scalar, rij: vec3, r2: scalar, h: scalar, c6: scalar
     ) -> vec3:
@@ -68,8 +77,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         m_i m_j / (rho_i rho_j)``, ``rij = x_i - x_j``, ``r2 = |rij|^2 < h^2``; ``grad W_poly6(r)
         = -6 c6 (h^2 - |r|^2)^2 r``."""
         e = h * h - r2
-        # p_i rho_j / rho_i + p_j rho_i / rho_j over one division (one per pair, not two)
-        w = VV * (p_i * rho_j * rho_j + p_j * rho_i * rho_i) / (rho_i * rho_j)
+        w = energy_pair_weight(VV, p_i, p_j, rho_i, rho_j)
         return (scalar(6.0) * c6 * w * e * e) * rij
 
     @wp.func
@@ -108,8 +116,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         (h - |r|)^2`` stays finite at ``r = 0``, so the push between two particles grows until
         they meet. ``VV = m_i m_j / (rho_i rho_j)``, ``rij = x_i - x_j``, ``rl = |rij|`` in
         (0, h)."""
-        w = VV * (p_i * rho_j * rho_j + p_j * rho_i * rho_i) / (rho_i * rho_j)
-        return -w * sm.grad_w_spiky_at(rij, rl, h, c_spiky)
+        return -energy_pair_weight(VV, p_i, p_j, rho_i, rho_j) * sm.grad_w_spiky_at(rij, rl, h, c_spiky)
 
     @wp.func
     def viscous_pair_force(eta_VV: scalar, rij: vec3, r2: scalar, lap_w: scalar, vji: vec3) -> vec3:
@@ -244,7 +251,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         energy_pressure_pair_force=energy_pressure_pair_force, viscous_pair_force=viscous_pair_force,
         density_weight=density_weight, energy_spiky_pair_force=energy_spiky_pair_force,
         density_weight_gradient=density_weight_gradient,
-        sph_pair_force=sph_pair_force, pair_viscosity=pair_viscosity,
+        sph_pair_force=sph_pair_force, pair_viscosity=pair_viscosity, energy_pair_weight=energy_pair_weight,
     )
 
 
