@@ -316,3 +316,48 @@ def test_energy_pair_weight_is_the_pressure_energys_factor(scalar):
     want = np.repeat(m64[0::2] * m64[1::2] * (p64[0::2] / r64[0::2] ** 2 + p64[1::2] / r64[1::2] ** 2), 2)
     rtol = 1e-5 if scalar == wp.float32 else 1e-13
     np.testing.assert_allclose(got, want, rtol=rtol, atol=0)
+
+
+@functools.cache
+def _eos_kernel():
+    from warp_esph.sim import pressure
+
+    S = wp.float64
+    eos = pressure.funcs(S).pressure
+    eos_adjoint = pressure.kernels(S).pressure_adjoint
+
+    @wp.kernel
+    def run(rho: wp.array(dtype=S), k: wp.array(dtype=S), clamp: wp.array(dtype=wp.int32), rho0: S, adj_p: S,
+            p: wp.array(dtype=S), adj: wp.array(dtype=S)):
+        i = wp.tid()
+        p[i] = eos(rho[i], rho0, k[i], clamp[i])
+        a_rho, a_k = eos_adjoint(adj_p, rho[i], rho0, k[i], clamp[i])
+        adj[2 * i] = a_rho
+        adj[2 * i + 1] = a_k
+
+    return run
+
+
+def test_pressure_adjoint_is_the_equation_of_states_derivative():
+    """``pressure``'s ``pressure_adjoint``, the hand-written SPH adjoint's for every particle
+    and pair: ``adj p`` times the derivative of ``p = k_p (rho - rho0)`` (clamped at 0) in
+    ``rho`` and ``k_p``, against central differences, compressed and stretched, clamped or not,
+    and at ``k_p = 0``, where a compressed particle keeps its slope in ``k_p``."""
+    rho0, adj_p, eps = 1000.0, 0.7, 1e-4
+    rho = np.array([1010.0, 990.0, 990.0, 1005.0])
+    k = np.array([50.0, 50.0, 50.0, 0.0])
+    clamp = np.array([1, 1, 0, 1], dtype=np.int32)
+
+    def run(r, kk):
+        p, adj = wp.zeros(len(r), dtype=wp.float64), wp.zeros(2 * len(r), dtype=wp.float64)
+        wp.launch(_eos_kernel(), len(r), [wp.array(r, dtype=wp.float64), wp.array(kk, dtype=wp.float64),
+                                          wp.array(clamp, dtype=wp.int32), rho0, adj_p], [p, adj])
+        return p.numpy(), adj.numpy().reshape(-1, 2)
+
+    _, adj = run(rho, k)
+    d_rho = (run(rho + eps, k)[0] - run(rho - eps, k)[0]) / (2 * eps)
+    d_k = (run(rho, k + eps)[0] - run(rho, k - eps)[0]) / (2 * eps)
+    np.testing.assert_allclose(adj[:, 0], adj_p * d_rho, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(adj[:, 1], adj_p * d_k, rtol=1e-8, atol=1e-10)
+    assert adj[1, 0] == 0.0 and adj[1, 1] == 0.0, "the clamp holds a stretched particle's pressure at 0"
+    assert adj[3, 1] == adj_p * 5.0, "at k_p = 0 the compressed particle's slope in k_p stays"

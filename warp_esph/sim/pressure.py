@@ -414,6 +414,13 @@ def kernels(scalar) -> types.SimpleNamespace:
                 out = scalar(0.0)
         return out
 
+    @wp.func
+    def pressure_adjoint(adj_p: scalar, rho: scalar, rho0: scalar, k_p: scalar, clamp: int):
+        """Adjoint of ``pressure`` (the equation of state) in the density and the stiffness:
+        ``(adj rho, adj k_p) = adj p s (k_p, rho - rho0)``, ``s`` its ``pressure_slope``."""
+        a = adj_p * pressure_slope(rho, rho0, k_p, clamp)
+        return a * k_p, a * (rho - rho0)
+
     @wp.kernel(enable_backward=False, module="unique")
     def pressure_forces_adjoint(
         x: wp.array(dtype=vec3),
@@ -512,19 +519,19 @@ def kernels(scalar) -> types.SimpleNamespace:
                     adj_VV -= scalar(0.5) * (pi + pj) * q
                     adj_p = scalar(-0.5) * VV * q
                     adj_pi += adj_p
-                    adj_pj = adj_p * pressure_slope(rp_j, rest_density[j], k_j, mat.clamp_pressure[mj])
-                    wp.atomic_add(adj_rho_p, j, adj_pj * k_j)
-                    wp.atomic_add(adj_k, mj, adj_pj * (rp_j - rest_density[j]))
+                    adj_rp_j, adj_k_j = pressure_adjoint(adj_p, rp_j, rest_density[j], k_j, mat.clamp_pressure[mj])
+                    wp.atomic_add(adj_rho_p, j, adj_rp_j)
+                    wp.atomic_add(adj_k, mj, adj_k_j)
                     b = scalar(-0.5) * VV * (pi + pj) * a
                     adj_r += psi * b
                     adj_rl += -c_spiky * d * (scalar(2.0) * rl + d) / r2 * wp.dot(r, b)
                 if energy_like != 0:
                     # A = p / rho_p^2 of both particles (i's summed over the pairs, below).
                     adj_Ai += adj_A
-                    adj_pj = adj_A / (rp_j * rp_j)
-                    adj_pj *= pressure_slope(rp_j, rest_density[j], k_j, mat.clamp_pressure[mj])
-                    wp.atomic_add(adj_rho_p, j, scalar(-2.0) * adj_A * pj / (rp_j * rp_j * rp_j) + adj_pj * k_j)
-                    wp.atomic_add(adj_k, mj, adj_pj * (rp_j - rest_density[j]))
+                    adj_rp_j, adj_k_j = pressure_adjoint(adj_A / (rp_j * rp_j), rp_j, rest_density[j], k_j,
+                                                         mat.clamp_pressure[mj])
+                    wp.atomic_add(adj_rho_p, j, scalar(-2.0) * adj_A * pj / (rp_j * rp_j * rp_j) + adj_rp_j)
+                    wp.atomic_add(adj_k, mj, adj_k_j)
                 if r2 > scalar(1.0e-30):
                     vji = v[j] - vi
                     lap = sm.lap_w_viscosity_at(rl, h, c_visc)
@@ -555,14 +562,15 @@ def kernels(scalar) -> types.SimpleNamespace:
         wp.atomic_add(adj_v, i, gv_i)
         adj_pi += adj_Ai / (rp_i * rp_i)
         adj_rp_i -= scalar(2.0) * adj_Ai * pi / (rp_i * rp_i * rp_i)
-        adj_pi *= pressure_slope(rp_i, rest_density[i], k_i, mat.clamp_pressure[mi])
+        adj_rp_p, adj_k_i = pressure_adjoint(adj_pi, rp_i, rest_density[i], k_i, mat.clamp_pressure[mi])
         wp.atomic_add(adj_rho, i, adj_rho_i)
-        wp.atomic_add(adj_rho_p, i, adj_rp_i + adj_pi * k_i)
-        wp.atomic_add(adj_k, mi, adj_pi * (rp_i - rest_density[i]))
+        wp.atomic_add(adj_rho_p, i, adj_rp_i + adj_rp_p)
+        wp.atomic_add(adj_k, mi, adj_k_i)
         wp.atomic_add(adj_visc, mi, adj_visc_i)
 
     return types.SimpleNamespace(density=density, pressure_forces=pressure_forces,
-                                 pressure_forces_adjoint=pressure_forces_adjoint, density_adjoint=density_adjoint)
+                                 pressure_forces_adjoint=pressure_forces_adjoint, density_adjoint=density_adjoint,
+                                 pressure_slope=pressure_slope, pressure_adjoint=pressure_adjoint)
 
 
 def launch_density(model, x, neighbors, neighbor_count, rho, hand_adjoint: bool = True, of_pressure: bool = False):
