@@ -361,3 +361,43 @@ def test_pressure_adjoint_is_the_equation_of_states_derivative():
     np.testing.assert_allclose(adj[:, 1], adj_p * d_k, rtol=1e-8, atol=1e-10)
     assert adj[1, 0] == 0.0 and adj[1, 1] == 0.0, "the clamp holds a stretched particle's pressure at 0"
     assert adj[3, 1] == adj_p * 5.0, "at k_p = 0 the compressed particle's slope in k_p stays"
+
+
+@functools.cache
+def _spiky_kernel():
+    from warp_esph.sim import smoothing
+
+    S = wp.float64
+    T = type_set(S)
+    sm = smoothing.funcs(S)
+
+    @wp.kernel
+    def run(rl: wp.array(dtype=S), h: S, out: wp.array(dtype=T.vec3)):
+        i = wp.tid()
+        c = sm.spiky_coef(h)
+        r = T.vec3(rl[i], S(0.0), S(0.0))
+        psi = sm.spiky_gradient_factor(rl[i], h, c)
+        out[i] = T.vec3(psi, sm.spiky_gradient_factor_slope(rl[i], h, c, rl[i] * rl[i]),
+                        sm.grad_w_spiky_at(r, rl[i], h, c)[0] - psi * rl[i])
+
+    return run
+
+
+def test_spiky_gradient_factor_and_its_slope():
+    """``smoothing``'s ``spiky_gradient_factor`` ``psi`` (``grad W_spiky(r) = psi(|r|) r``,
+    the forward's and the SPH adjoint's) and ``spiky_gradient_factor_slope``, its derivative in
+    ``|r|`` the adjoint takes: ``psi r`` is ``grad_w_spiky_at`` to the bit, ``psi`` is Müller et
+    al.'s ``-45/(pi h^6) (h - |r|)^2 / |r|``, and the slope matches central differences."""
+    h, eps = 0.1, 1e-7
+    rl = np.array([0.01, 0.04, 0.07, 0.099])
+
+    def run(r):
+        out = wp.zeros(len(r), dtype=type_set(wp.float64).vec3)
+        wp.launch(_spiky_kernel(), len(r), [wp.array(r, dtype=wp.float64), h], [out])
+        return out.numpy()
+
+    out = run(rl)
+    np.testing.assert_allclose(out[:, 0], -45.0 / (np.pi * h ** 6) * (h - rl) ** 2 / rl, rtol=1e-13)
+    assert np.all(out[:, 2] == 0.0), "grad_w_spiky_at is psi r"
+    fd = (run(rl + eps)[:, 0] - run(rl - eps)[:, 0]) / (2 * eps)
+    np.testing.assert_allclose(out[:, 1], fd, rtol=1e-6)

@@ -503,18 +503,16 @@ def kernels(scalar) -> types.SimpleNamespace:
                     adj_r += (scalar(6.0) * c6 * w * e) * (e * a - scalar(4.0) * ar * r)
                 elif form == 2 and r2 > scalar(1.0e-24) * hh:
                     # energy_spiky_pair_force: G = -w psi(|r|) r, w = m_i m_j (A_i + A_j).
-                    d = h - rl
-                    psi = c_spiky * d * d / rl
+                    psi = sm.spiky_gradient_factor(rl, h, c_spiky)
                     mm = mass[i] * mass[j]
                     w = mm * (pi / (rp_i * rp_i) + pj / (rp_j * rp_j))
                     adj_A = -psi * mm * wp.dot(a, r)
                     energy_like = 1
                     b = -w * a
                     adj_r += psi * b
-                    adj_rl += -c_spiky * d * (scalar(2.0) * rl + d) / r2 * wp.dot(r, b)
+                    adj_rl += sm.spiky_gradient_factor_slope(rl, h, c_spiky, r2) * wp.dot(r, b)
                 elif form == 1 and r2 > scalar(1.0e-24) * hh:
-                    d = h - rl
-                    psi = c_spiky * d * d / rl
+                    psi = sm.spiky_gradient_factor(rl, h, c_spiky)
                     q = psi * wp.dot(a, r)
                     adj_VV -= scalar(0.5) * (pi + pj) * q
                     adj_p = scalar(-0.5) * VV * q
@@ -524,7 +522,7 @@ def kernels(scalar) -> types.SimpleNamespace:
                     wp.atomic_add(adj_k, mj, adj_k_j)
                     b = scalar(-0.5) * VV * (pi + pj) * a
                     adj_r += psi * b
-                    adj_rl += -c_spiky * d * (scalar(2.0) * rl + d) / r2 * wp.dot(r, b)
+                    adj_rl += sm.spiky_gradient_factor_slope(rl, h, c_spiky, r2) * wp.dot(r, b)
                 if energy_like != 0:
                     # A = p / rho_p^2 of both particles (i's summed over the pairs, below).
                     adj_Ai += adj_A

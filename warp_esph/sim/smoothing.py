@@ -131,10 +131,24 @@ def funcs(scalar) -> types.SimpleNamespace:
         return -scalar(45.0) / (PI * wp.pow(h, scalar(6.0)))
 
     @wp.func
-    def grad_w_spiky_at(r: vec3, rl: scalar, h: scalar, coef: scalar) -> vec3:
-        """-45/(pi h^6) (h - |r|)^2 r/|r| (Müller et al. 2003) given ``rl = |r|`` in (0, h)."""
+    def spiky_gradient_factor(rl: scalar, h: scalar, coef: scalar) -> scalar:
+        """``psi(|r|) = coef (h - |r|)^2 / |r|``, ``grad_w_spiky_at``'s ``psi r`` (``rl = |r|`` in
+        (0, h), ``coef = spiky_coef``)."""
         d = h - rl
-        return coef * d * d / rl * r
+        return coef * d * d / rl
+
+    @wp.func
+    def spiky_gradient_factor_slope(rl: scalar, h: scalar, coef: scalar, r2: scalar) -> scalar:
+        """``d psi / d |r| = -coef (h - |r|) (h + |r|) / |r|^2`` of ``spiky_gradient_factor``
+        (``r2 = |r|^2``), for the adjoints of the spiky forces."""
+        d = h - rl
+        return -coef * d * (scalar(2.0) * rl + d) / r2
+
+    @wp.func
+    def grad_w_spiky_at(r: vec3, rl: scalar, h: scalar, coef: scalar) -> vec3:
+        """-45/(pi h^6) (h - |r|)^2 r/|r| (Müller et al. 2003) given ``rl = |r|`` in (0, h):
+        ``spiky_gradient_factor(|r|) r``."""
+        return spiky_gradient_factor(rl, h, coef) * r
 
     @wp.func
     def grad_w_spiky_c(r: vec3, h: scalar, coef: scalar) -> vec3:
@@ -186,7 +200,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         grad_w_elastic_c=grad_w_elastic_c,
         grad_w_elastic_adjoint=grad_w_elastic_adjoint, elastic_cos_dr2=elastic_cos_dr2,
         elastic_cos=elastic_cos, spiky_coef=spiky_coef, w_spiky_coef=w_spiky_coef, w_spiky_c=w_spiky_c,
-        grad_w_spiky_c=grad_w_spiky_c, grad_w_spiky_at=grad_w_spiky_at,
+        grad_w_spiky_c=grad_w_spiky_c, grad_w_spiky_at=grad_w_spiky_at, spiky_gradient_factor=spiky_gradient_factor,
+        spiky_gradient_factor_slope=spiky_gradient_factor_slope,
         viscosity_coef=viscosity_coef, lap_w_viscosity_c=lap_w_viscosity_c, lap_w_viscosity_at=lap_w_viscosity_at,
     )
 
