@@ -652,7 +652,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                                                         goff, gmin)
                     gg_i -= gg
                     gx_i -= gp
-        wp.atomic_add(adj_x, i, gx_i + df.floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
+        df.scatter_own_adjoint(adj_x, i, xi, gx_i, gg_i, gn, goff, gmin)
         adj_Fg = Gg
         if applied != 0:
             adj_Fg = wp.transpose(wp.identity(n=3, dtype=scalar) + scale * inc0) * Gg
@@ -933,7 +933,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                                                            adj_Dg, adj_Dg_sym, adj_x, j, xj, gn, goff, gmin)
                     gg_i -= gg
                     gx_i -= gp
-        wp.atomic_add(adj_x, i, gx_i + df.floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
+        df.scatter_own_adjoint(adj_x, i, xi, gx_i, gg_i, gn, goff, gmin)
 
     # Eq. 8's update, its adjoint and the elastic forces are the linear fit's kernels on
     # this fit's functions.

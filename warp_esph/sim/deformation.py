@@ -248,6 +248,14 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
             wp.atomic_add(adj_x, j, g)
 
     @wp.func
+    def scatter_own_adjoint(adj_x: wp.array(dtype=vec3), i: int, xi: vec3, gx: vec3, gg: vec3, gn: vec3, goff: scalar,
+                            gmin: scalar):
+        """Adds to ``adj x_i`` the adjoint ``gx`` of ``x_i`` itself and ``gg`` of its floor image
+        ``g_i``, by the chain rule through ``g_i(x_i)``: ``gx + floor_image_jacobian(x_i) gg``
+        (one add: the image terms of a particle's loops summed first)."""
+        wp.atomic_add(adj_x, i, gx + floor_image_jacobian(xi, gn, goff, gmin) * gg)
+
+    @wp.func
     def fit_pair_adjoint(w: scalar, dw: scalar, xb: vec3, yb: vec3, adj_A: mat33, adj_A_sym: mat33, adj_B: mat33,
                          adj_r2: scalar):
         """Adjoint of one pair's terms ``w(|xb|^2) xb xb^T`` in ``A`` and ``w yb xb^T`` in ``B``
@@ -545,7 +553,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
                                                         hh, c6, adj_x, j, xj, gn, goff, gmin)
                     gg_i -= gg
                     gx_i -= gp
-        wp.atomic_add(adj_x, i, gx_i + floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
+        scatter_own_adjoint(adj_x, i, xi, gx_i, gg_i, gn, goff, gmin)
         adj_Fg = Gg
         if applied != 0:
             adj_Fg = wp.transpose(wp.identity(n=3, dtype=scalar) + scale * D0) * Gg
@@ -703,7 +711,7 @@ def funcs(scalar, weight: str) -> types.SimpleNamespace:
         image_row_length=image_row_length, image_slots=image_slots, image_row_particle=image_row_particle,
         fit_sums=fit_sums,
         floor_image_jacobian=floor_image_jacobian, fit_pair_adjoint=fit_pair_adjoint,
-        scatter_partner_adjoint=scatter_partner_adjoint,
+        scatter_partner_adjoint=scatter_partner_adjoint, scatter_own_adjoint=scatter_own_adjoint,
         scatter_pair_adjoint=scatter_pair_adjoint, fit_pairs_adjoint=fit_pairs_adjoint,
         floor_image_moment=floor_image_moment, scatter_image_pair_adjoint=scatter_image_pair_adjoint,
         floor_image_displacement_sums=floor_image_displacement_sums, floor_image_share=floor_image_share,

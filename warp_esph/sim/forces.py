@@ -443,7 +443,8 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
     floor_image = deformation.funcs(scalar, weight).floor_image
     image_slots = deformation.funcs(scalar, weight).image_slots
     image_row_particle = deformation.image_row_particle
-    floor_image_jacobian = deformation.funcs(scalar, weight).floor_image_jacobian
+    scatter_partner_adjoint = deformation.funcs(scalar, weight).scatter_partner_adjoint
+    scatter_own_adjoint = deformation.funcs(scalar, weight).scatter_own_adjoint
 
     @wp.kernel(enable_backward=False, module="unique")
     def elastic_forces_adjoint(
@@ -510,14 +511,14 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 dP, dFinv, ad = fn.elastic_pair_adjoint(VV, -ai, P, Finv, floor_image(xj, gn, goff, gmin) - xi, h, c_el)
                 aP += dP
                 aFinv += dFinv
-                wp.atomic_add(adj_x, j, floor_image_jacobian(xj, gn, goff, gmin) * ad)
+                scatter_partner_adjoint(adj_x, j, xj, ad, gn, goff, gmin, 1)
                 gx_i -= ad
                 dP, dFinv, ad = fn.elastic_pair_adjoint(VV, adj_f[j], P, Finv, xj - gi, h, c_el)
                 aP += dP
                 aFinv += dFinv
                 wp.atomic_add(adj_x, j, ad)
                 gg_i -= ad
-        wp.atomic_add(adj_x, i, gx_i + floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
+        scatter_own_adjoint(adj_x, i, xi, gx_i, gg_i, gn, goff, gmin)
         adj_stress[i] = adj_stress[i] + aP
         adj_F_inv[i] = adj_F_inv[i] + aFinv
 
@@ -653,7 +654,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                                                            goff, gmin)
                     gg_i -= gg
                     gx_i -= gp
-        wp.atomic_add(adj_x, i, gx_i + floor_image_jacobian(xi, gn, goff, gmin) * gg_i)
+        scatter_own_adjoint(adj_x, i, xi, gx_i, gg_i, gn, goff, gmin)
 
     return types.SimpleNamespace(elastic_forces=elastic_kernels(scalar, weight, "linear").elastic_forces,
                                  elastic_forces_adjoint=elastic_forces_adjoint,

@@ -263,6 +263,7 @@ def kernels(scalar) -> types.SimpleNamespace:
     fn = funcs(scalar)
     image_slots = deformation.funcs(scalar, "poly6").image_slots
     image_row_particle = deformation.image_row_particle
+    scatter_partner_adjoint = deformation.funcs(scalar, "poly6").scatter_partner_adjoint
     Materials = materials.struct(scalar)
 
     @wp.kernel(module="unique")
@@ -398,7 +399,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             r2 = wp.dot(d, d)
             if r2 < hh:
                 g = (a * mass[j]) * fn.density_weight_gradient(d, r2, h, c6, c_spiky, form)
-                wp.atomic_add(adj_x, j, fn.floor_image_jacobian(xj, gn, goff, gmin) * g)
+                scatter_partner_adjoint(adj_x, j, xj, g, gn, goff, gmin, 1)
                 gx_i -= g
         wp.atomic_add(adj_x, i, gx_i)
 
