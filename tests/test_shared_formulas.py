@@ -189,56 +189,81 @@ def test_rest_elastic_part_is_the_multiplicative_split(scalar):
 
 
 @functools.cache
-def _partner_kernel():
+def _image_chain_kernel():
     S = wp.float64
     T = type_set(S)
     fn = deformation.funcs(S, "poly6")
 
     @wp.kernel
-    def run(x: wp.array(dtype=T.vec3), g: T.vec3, gn: T.vec3, goff: S, gmin: S, image: int,
-            adj_x: wp.array(dtype=T.vec3), img: wp.array(dtype=T.vec3)):
+    def run(x: wp.array(dtype=T.vec3), g: T.vec3, gg: T.vec3, gn: T.vec3, goff: S, gmin: S, image: int,
+            adj_x: wp.array(dtype=T.vec3), adj_own: wp.array(dtype=T.vec3), img: wp.array(dtype=T.vec3)):
         i = wp.tid()
         fn.scatter_partner_adjoint(adj_x, i, x[i], g, gn, goff, gmin, image)
+        fn.scatter_own_adjoint(adj_own, i, x[i], g, gg, gn, goff, gmin)
         img[i] = fn.floor_image(x[i], gn, goff, gmin)
 
     return run
 
 
+def _image_chain(x, g, gg, n, goff, gmin, image, held):
+    """``scatter_partner_adjoint`` and ``scatter_own_adjoint`` at the points ``x`` onto
+    ``held``, and the points' floor images."""
+    T = type_set(wp.float64)
+    adj, own = wp.array(held, dtype=T.vec3), wp.array(held, dtype=T.vec3)
+    img = wp.zeros(len(x), dtype=T.vec3)
+    wp.launch(_image_chain_kernel(), len(x),
+              [wp.array(x, dtype=T.vec3), T.vec3(*g), T.vec3(*gg), T.vec3(*n), goff, gmin, image], [adj, own, img])
+    return adj.numpy(), own.numpy(), img.numpy()
+
+
+def _image_jacobians(x, n, goff, gmin, eps=1e-7):
+    """``d g / d x`` of each point's floor image by central differences: ``[k, a, c] = d g_a /
+    d x_c``."""
+    zero, held = np.zeros(3), np.zeros((len(x), 3))
+    jac = np.empty((len(x), 3, 3))
+    for c in range(3):
+        e = np.zeros(3)
+        e[c] = eps
+        plus = _image_chain(x + e, zero, zero, n, goff, gmin, 0, held)[2]
+        minus = _image_chain(x - e, zero, zero, n, goff, gmin, 0, held)[2]
+        jac[:, :, c] = (plus - minus) / (2 * eps)
+    return jac
+
+
 @pytest.mark.parametrize("image", [0, 1])
 def test_partner_adjoint_is_the_chain_rule_through_the_image(image):
-    """``deformation``'s ``scatter_partner_adjoint``, the variational force adjoints' (both
-    fits) scatter of a pair's far end: the adjoint ``g`` of ``x_j`` itself, or of ``j``'s floor
-    image, ``(d g_j / d x_j)^T g``, against central differences of ``floor_image`` (above the
-    plane, in the cubic blend and below it), added to what ``adj x_j`` held."""
-    T = type_set(wp.float64)
+    """``deformation``'s ``scatter_partner_adjoint``, the scatter of a pair's far end in the
+    variational force adjoints (both fits), the paper force's and the density's: the adjoint
+    ``g`` of ``x_j`` itself, or of ``j``'s floor image, ``(d g_j / d x_j)^T g``, against central
+    differences of ``floor_image`` (above the plane, in the cubic blend and below it), added
+    to what ``adj x_j`` held."""
     n = np.array([0.2, 0.95, 0.1])
     n /= np.linalg.norm(n)
     goff, gmin = 0.1, 0.01
     heights = np.array([0.03, 0.008, 0.006, -0.004])
-    t = np.cross(n, [1.0, 0.0, 0.0])
-    x = (goff + heights)[:, None] * n + 0.3 * t
+    x = (goff + heights)[:, None] * n + 0.3 * np.cross(n, [1.0, 0.0, 0.0])
     g = np.array([0.4, -1.1, 0.7])
     held = np.full((len(x), 3), 0.25)
-    args = [T.vec3(*g), T.vec3(*n), goff, gmin, image]
-
-    def run(pts):
-        adj = wp.array(held, dtype=T.vec3)
-        img = wp.zeros(len(pts), dtype=T.vec3)
-        wp.launch(_partner_kernel(), len(pts), [wp.array(pts, dtype=T.vec3), *args], [adj, img])
-        return adj.numpy(), img.numpy()
-
-    adj, _ = run(x)
+    adj = _image_chain(x, g, np.zeros(3), n, goff, gmin, image, held)[0]
     want = np.tile(g, (len(x), 1))
     if image:
-        eps = 1e-7
-        for k in range(len(x)):
-            jac = np.empty((3, 3))
-            for c in range(3):
-                e = np.zeros(3)
-                e[c] = eps
-                jac[:, c] = (run(x[k:k + 1] + e)[1][0] - run(x[k:k + 1] - e)[1][0]) / (2 * eps)
-            want[k] = jac.T @ g
+        want = np.einsum("kac,a->kc", _image_jacobians(x, n, goff, gmin), g)
     np.testing.assert_allclose(adj - held, want, rtol=0, atol=1e-6)
+
+
+def test_own_adjoint_is_the_particle_and_its_image():
+    """``deformation``'s ``scatter_own_adjoint``, the closing add of the adjoints whose loops
+    reach a particle's own floor image (variational and paper forces, both fits, the image's
+    own update): ``adj x_i += gx + (d g_i / d x_i)^T gg``, against central differences of
+    ``floor_image`` above the plane, in the blend and below it."""
+    n = np.array([0.0, 1.0, 0.0])
+    goff, gmin = 0.0, 0.01
+    x = np.array([[0.1, 0.03, 0.2], [0.0, 0.007, 0.0], [0.3, -0.002, 0.1]])
+    gx, gg = np.array([0.5, 0.1, -0.3]), np.array([-0.2, 0.9, 0.4])
+    held = np.full((len(x), 3), -0.5)
+    own = _image_chain(x, gx, gg, n, goff, gmin, 0, held)[1]
+    want = held + gx + np.einsum("kac,a->kc", _image_jacobians(x, n, goff, gmin), gg)
+    np.testing.assert_allclose(own, want, rtol=0, atol=1e-6)
 
 
 @functools.cache
@@ -401,54 +426,3 @@ def test_spiky_gradient_factor_and_its_slope():
     assert np.all(out[:, 2] == 0.0), "grad_w_spiky_at is psi r"
     fd = (run(rl + eps)[:, 0] - run(rl - eps)[:, 0]) / (2 * eps)
     np.testing.assert_allclose(out[:, 1], fd, rtol=1e-6)
-
-
-@functools.cache
-def _own_kernel():
-    S = wp.float64
-    T = type_set(S)
-    fn = deformation.funcs(S, "poly6")
-
-    @wp.kernel
-    def run(x: wp.array(dtype=T.vec3), gx: T.vec3, gg: T.vec3, gn: T.vec3, goff: S, gmin: S,
-            adj_x: wp.array(dtype=T.vec3)):
-        i = wp.tid()
-        fn.scatter_own_adjoint(adj_x, i, x[i], gx, gg, gn, goff, gmin)
-
-    return run
-
-
-def test_own_adjoint_is_the_particle_and_its_image():
-    """``deformation``'s ``scatter_own_adjoint``, the closing add of the adjoints whose loops
-    reach a particle's own floor image (variational and paper forces, both fits, the image's
-    own update): ``adj x_i += gx + (d g_i / d x_i)^T gg``, against central differences of
-    ``floor_image`` above the plane, in the blend and below it."""
-    T = type_set(wp.float64)
-    n = np.array([0.0, 1.0, 0.0])
-    goff, gmin = 0.0, 0.01
-    x = np.array([[0.1, 0.03, 0.2], [0.0, 0.007, 0.0], [0.3, -0.002, 0.1]])
-    gx, gg = np.array([0.5, 0.1, -0.3]), np.array([-0.2, 0.9, 0.4])
-    held = np.full((len(x), 3), -0.5)
-    adj = wp.array(held, dtype=T.vec3)
-    wp.launch(_own_kernel(), len(x), [wp.array(x, dtype=T.vec3), T.vec3(*gx), T.vec3(*gg), T.vec3(*n), goff, gmin],
-              [adj])
-    fn = deformation.funcs(wp.float64, "poly6")
-
-    @wp.kernel
-    def images(p: wp.array(dtype=T.vec3), out: wp.array(dtype=T.vec3)):
-        i = wp.tid()
-        out[i] = fn.floor_image(p[i], T.vec3(0.0, 1.0, 0.0), wp.float64(0.0), wp.float64(0.01))
-
-    def image(p):
-        out = wp.zeros(len(p), dtype=T.vec3)
-        wp.launch(images, len(p), [wp.array(p, dtype=T.vec3)], [out])
-        return out.numpy()
-
-    eps = 1e-7
-    want = np.tile(gx, (len(x), 1)) + held
-    for c in range(3):
-        e = np.zeros(3)
-        e[c] = eps
-        column = (image(x + e) - image(x - e)) / (2 * eps)  # d g / d x_c for each point
-        want[:, c] += column @ gg
-    np.testing.assert_allclose(adj.numpy(), want, rtol=0, atol=1e-6)
