@@ -1348,6 +1348,47 @@ def test_diverged_run_exit_3_keeps_frames(tmp_path, monkeypatch, capsys):
     assert log_frames(out_path) == {"plane0": [0, 1]}
 
 
+def _raise_interrupt(state):
+    raise KeyboardInterrupt
+
+
+def _poison(state):
+    x = state.x.numpy()
+    x[5] = np.inf
+    state.x.assign(x)
+
+
+@pytest.mark.parametrize("stop, status", [(_raise_interrupt, 130), (_poison, 3)], ids=["interrupted", "diverged"])
+def test_a_run_that_stops_early_exports_its_finished_frames_and_no_earlier_run_s(tmp_path, monkeypatch, capsys, stop, status):
+    """``run --export ply --preview`` that was interrupted or diverged wrote no frame file: its
+    finished frames were in the USD alone, and the folder kept an earlier run's frames (of
+    another length) and ``.png`` beside the new file, as if they were this run's. Now the
+    finished frames are exported as the file holds them, and nothing of the earlier run's
+    export or picture is left."""
+    import meshio
+
+    out_path = tmp_path / "e.usdc"
+    folder = tmp_path / "e.usdc_ply"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "4", "--no-progress", "--export", "ply"]) == 0
+    assert len(os.listdir(folder)) == 5
+    (tmp_path / "e.usdc.png").write_bytes(b"an earlier run's picture")
+    capsys.readouterr()
+    n = _steps_per_frame()
+    _fail_after(monkeypatch, 2 * n + 1, stop)  # inside frame 3 (a poisoned step is found as frame 3 ends)
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "10", "--no-progress", "--export", "ply",
+                 "--preview"]) == status
+    captured = capsys.readouterr()
+    assert "wrote" not in captured.out and "Traceback" not in captured.err
+    frames = frames_in(out_path)
+    assert frames and frames == [float(k) for k in range(len(frames))]
+    assert sorted(os.listdir(folder)) == [f"frame_{k:05d}.ply" for k in range(len(frames))]
+    stage = open_fresh(out_path)
+    points = stage.GetPrimAtPath("/World/dough").GetAttribute("points")
+    for k in range(len(frames)):
+        np.testing.assert_array_equal(meshio.read(folder / f"frame_{k:05d}.ply").points, np.asarray(points.Get(k), dtype=np.float64))
+    assert not (tmp_path / "e.usdc.png").exists()
+
+
 def test_a_run_the_neighbour_search_stops_exits_3_naming_step_and_frame(tmp_path, monkeypatch, capsys):
     """A step the neighbour search stops (``NeighborOverflow``: a body crushed together, or a
     blow-up) left ``run`` as a traceback, the step, frame and time said nowhere. It is one line

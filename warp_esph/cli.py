@@ -611,6 +611,12 @@ def _cmd_run(args) -> int:
             for stale in (writer.path + "_tools.csv", writer.path + "_tools.json"):
                 if os.path.isfile(stale) or os.path.islink(stale):
                     os.remove(stale)
+            # So are the frame files and picture this run is to write: a run that stopped early
+            # (or was killed) left the earlier run's, of another length, beside its own file.
+            if args.export:
+                _remove_frame_files(f"{writer.path}_{args.export}", args.export)
+            if args.preview and os.path.isfile(writer.path + ".png"):
+                os.remove(writer.path + ".png")
         run_record = {"scene": args.scene if args.scene is not None else scene.name, "scale": scale, "fps": fps, "dt": dt,
                       "frames": frames_total, "output": os.path.abspath(writer.path), "dtype": args.dtype,
                       "surface": bool(args.surface), "checkpoint_every": every, "fit": model.fit, "contact_ramp": model.contact_ramp,
@@ -737,6 +743,7 @@ def _cmd_run(args) -> int:
                 _err(close_error)
         if log_error is not None:
             _err(log_error)
+        _export_run(args, writer, start_frame, whole=False)
         return EXIT_INTERRUPTED
     except SimulationError as e:
         close_error = close_writer()
@@ -755,7 +762,8 @@ def _cmd_run(args) -> int:
         _err(f"{said} ({writer.path} keeps {_kept(writer, start_frame)})")
         if close_error is not None:
             _err(close_error)
-        return EXIT_DIVERGED
+        status = _export_run(args, writer, start_frame, whole=False)
+        return EXIT_DIVERGED if status in (0, EXIT_WRITE_FAILED) else status
     except OSError as e:
         # A full disk or a vanished folder mid-run: the file keeps the last published frame.
         close_writer()  # (failing, most likely as e did: e's line says what the file keeps)
@@ -769,6 +777,9 @@ def _cmd_run(args) -> int:
         if _held_signal_wins(args, seen, said):
             return EXIT_INTERRUPTED
         _err(said)
+        if isinstance(e, _BesideWriteError):  # the USD is whole to its last frame: its frame files too
+            status = _export_run(args, writer, start_frame, whole=False)
+            return EXIT_WRITE_FAILED if status in (0, EXIT_WRITE_FAILED) else status
         return EXIT_WRITE_FAILED
     else:
         final_log_error[0] = False  # said below, after what the run's signals decide
@@ -807,24 +818,9 @@ def _cmd_run(args) -> int:
         print(f"reaction forces ({', '.join(_log_kinds(model))}): {tool_files[0]}, {tool_files[1]}")
     if args.surface:
         print(f"surfaces: {1e3 * writer.surface_seconds / max(writer.frames_written, 1):.0f} ms/frame (/World/Surfaces)")
-    if args.export:
-        from .export import ExportWriteError, export_frames  # noqa: PLC0415
-
-        # The whole output name, as the checkpoint's: a.usdc and a.usda in one folder must
-        # not share (and overwrite) one folder or picture.
-        folder = f"{writer.path}_{args.export}"
-        try:
-            files = export_frames(writer.path, args.export, folder)
-        except ExportWriteError as e:
-            _err(f"--export {args.export}: {e}; {writer.path} holds the whole run")
-            return EXIT_WRITE_FAILED
-        except KeyboardInterrupt as e:
-            # The run is whole: the line said 'interrupted' alone, as if its file were not.
-            kept = f"{e.kept}; " if getattr(e, "kept", None) else ""
-            print(f"{PROG}: {_stopped(args)}: --export {args.export}: {kept}{writer.path} holds the whole run",
-                  file=sys.stderr)
-            return EXIT_INTERRUPTED
-        print(f"exported {len(files)} files to {folder}")
+    status = _export_run(args, writer, start_frame, whole=True)
+    if status:
+        return status
     if args.preview:
         from .render import render_usd  # noqa: PLC0415
 
@@ -843,6 +839,48 @@ def _cmd_run(args) -> int:
             return EXIT_WRITE_FAILED
         shown = "surfaces" if result.surface_bodies else "particles"
         print(f"preview: {result.output} ({shown}, {result.seconds:.1f} s)")
+    return 0
+
+
+def _remove_frame_files(folder: str, fmt: str, keep=()) -> None:
+    """Remove the frame files (``frame_NNNNN.<fmt>``, and ``frames.pvd`` unless kept) an
+    export of an earlier run of the same output left in ``folder``, but for ``keep``."""
+    if not os.path.isdir(folder):
+        return
+    keep = {os.path.basename(f) for f in keep}
+    for name in os.listdir(folder):
+        stem, dot, ext = name.partition(".")
+        ours = (stem.startswith("frame_") and stem[6:].isdigit() and ext == fmt) or name == "frames.pvd"
+        if ours and dot and name not in keep and os.path.isfile(os.path.join(folder, name)):
+            os.remove(os.path.join(folder, name))
+
+
+def _export_run(args, writer, start_frame: int, whole: bool) -> int:
+    """``run --export``: every frame the output holds into ``<output>_<fmt>/``, once the run has
+    ended, also where it stopped early (``whole`` False: interrupted, diverged), so that the frame
+    files hold the frames the file keeps, no more and none of an earlier run. Returns 0, or the
+    status of an export that could not be written (4) or was interrupted (130, 143), its line said."""
+    if not args.export or writer.last_frame is None or not os.path.isfile(writer.path):
+        return 0
+    from .export import ExportWriteError, export_frames  # noqa: PLC0415
+
+    # The whole output name, as the checkpoint's: a.usdc and a.usda in one folder must
+    # not share (and overwrite) one folder or picture.
+    folder = f"{writer.path}_{args.export}"
+    held = "holds the whole run" if whole else f"keeps {_kept(writer, start_frame)}"
+    try:
+        files = export_frames(writer.path, args.export, folder)
+    except ExportWriteError as e:
+        _err(f"--export {args.export}: {e}; {writer.path} {held}")
+        return EXIT_WRITE_FAILED
+    except KeyboardInterrupt as e:
+        # The run's file is as said: the line said 'interrupted' alone, as if it were not.
+        kept = f"{e.kept}; " if getattr(e, "kept", None) else ""
+        print(f"{PROG}: {_stopped(args)}: --export {args.export}: {kept}{writer.path} {held}", file=sys.stderr)
+        return EXIT_INTERRUPTED  # (main makes it 143 after a SIGTERM)
+    # A resumed run's file may end before frames an earlier export of it wrote.
+    _remove_frame_files(folder, args.export, keep=files)
+    print(f"exported {len(files)} files to {folder}")
     return 0
 
 
