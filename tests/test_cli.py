@@ -584,6 +584,40 @@ def test_bad_input_is_one_line_exit_2(tmp_path, monkeypatch, capsys, args, needl
     assert list(tmp_path.iterdir()) == []  # nothing written
 
 
+def _valued_options():
+    """(command, option, what it must be) for every option of every command that takes a number
+    or one of a list of names: a word neither is refused naming the option, the word and that."""
+    import argparse
+
+    from warp_esph.cli import _build_parser
+
+    commands = next(a for a in _build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
+    for name, parser in commands.items():
+        for action in parser._actions:
+            if not action.option_strings or action.nargs not in (None, 1):
+                continue
+            if action.choices is not None:
+                yield name, action.option_strings[-1], "must be one of " + ", ".join(map(repr, action.choices))
+            elif action.type in (int, float):
+                yield name, action.option_strings[-1], "must be an integer" if action.type is int else "must be a number"
+            elif action.type is not None and action.type is not str:
+                yield name, action.option_strings[-1], "must be"
+
+
+@pytest.mark.parametrize("command, option, allowed", list(_valued_options()))
+def test_a_word_for_a_number_or_a_name_is_one_line_naming_option_value_and_what_is_allowed(tmp_path, monkeypatch, capsys,
+                                                                                         command, option, allowed):
+    """argparse's own line ('argument --frames: invalid int value: 'many'', 'argument --device:
+    invalid choice: ...') named the option and the word but not in the command's form, and said
+    of a number only its Python type; --dt's own line was given twice ('argument --dt: --dt = ...')."""
+    monkeypatch.chdir(tmp_path)
+    head = {"run": [], "scenes": [], "fit": ["dough_drop", "--target", "t.npz"], "render": ["o.usdc"],
+            "export": ["o.usdc"], "sweep": ["dough_drop", "--param", "mu=1:2"]}[command]
+    assert main([command, *head, option, "many"]) == 2
+    assert_one_line_error(capsys.readouterr().err, f"warp-esph: error: {option} = 'many' is not allowed: {allowed}")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_fit_seed_is_taken_where_something_is_drawn(tmp_path, monkeypatch, capsys):
     """--seed is refused only where nothing draws from it: with jitter, samples or extra
     starts it is read, and the fit goes on (here to its missing scene file)."""

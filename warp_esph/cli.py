@@ -39,10 +39,49 @@ class _UsageError(Exception):
     pass
 
 
+def _integer(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not allowed: must be an integer") from None
+
+
+def _number(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not allowed: must be a number") from None
+
+
 class _Parser(argparse.ArgumentParser):
-    """argparse that reports a usage error as one line and lets ``main`` exit 2."""
+    """argparse that reports a usage error as one line and lets ``main`` exit 2; a value that is
+    no number, or none of the names allowed, is said as every other refused value is,
+    ``--frames = 'many' is not allowed: must be an integer`` (argparse's own words named no
+    rule: ``argument --frames: invalid int value: 'many'``)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        # argparse looks its converters up here by the type given (groups share the registry).
+        self.register("type", int, _integer)
+        self.register("type", float, _number)
+
+    def _check_value(self, action, value):
+        if action.choices is not None and value not in action.choices:
+            raise argparse.ArgumentError(action, f"{value!r} is not allowed: must be one of "
+                                                 + ", ".join(map(repr, action.choices)))
 
     def error(self, message):
+        import re  # noqa: PLC0415
+
+        # argparse puts 'argument --frames: ' before a converter's or a choice's line.
+        said = re.fullmatch(r"argument (\S+): (.*)", message, re.S)
+        if said:
+            name = said[1].split("/")[-1]
+            name = "the command" if name == "COMMAND" else name
+            if said[2].startswith(f"{name} = "):  # a converter's line that names the option itself (--dt)
+                message = said[2]
+            elif said[2][:1] in "'\"":
+                message = f"{name} = {said[2]}"
         raise _UsageError(message)
 
 
@@ -1014,7 +1053,7 @@ def _checkpoint_every(text):
     try:
         return int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid value {text!r}: give a number of steps or 'auto'") from None
+        raise argparse.ArgumentTypeError(f"{text!r} is not allowed: must be a whole number of steps or 'auto'") from None
 
 
 def _parse_bounds(items) -> dict:
