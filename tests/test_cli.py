@@ -1423,6 +1423,36 @@ def test_a_run_that_stops_early_exports_its_finished_frames_and_no_earlier_run_s
     assert not (tmp_path / "e.usdc.png").exists()
 
 
+@pytest.mark.parametrize("error", [RuntimeError, ValueError, TypeError])
+def test_an_unexpected_error_in_the_writer_mid_run_is_one_line_saying_what_the_file_keeps(tmp_path, monkeypatch, capsys, error):
+    """An exception of no kind the run expects, raised by the writer (or the solver) once frames
+    are written: a RuntimeError or TypeError left as a traceback (exit 1) that said nothing of
+    the file; a ValueError was called bad input (exit 2), also silent on the file, and the
+    run's --export frames were not written."""
+    import meshio
+
+    from warp_esph.usd import UsdWriter
+
+    write_frame = UsdWriter.write_frame
+
+    def failing(self, frame, state):
+        if frame == 3:
+            raise error("the writer broke")
+        write_frame(self, frame, state)
+
+    monkeypatch.setattr(UsdWriter, "write_frame", failing)
+    out_path = tmp_path / "broken.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "6", "--no-progress", "--export", "ply"]) == 1
+    captured = capsys.readouterr()
+    assert "wrote" not in captured.out
+    assert_one_line_error(captured.err, "the run stopped in frame 3", f"{error.__name__}: the writer broke",
+                          f"{out_path} keeps the 3 frames finished")
+    assert frames_in(out_path) == [0.0, 1.0, 2.0]
+    assert sorted(os.listdir(tmp_path / "broken.usdc_ply")) == [f"frame_{k:05d}.ply" for k in range(3)]
+    assert len(meshio.read(tmp_path / "broken.usdc_ply" / "frame_00002.ply").points) > 0
+    assert not [n for n in os.listdir(tmp_path) if n.startswith(".")]  # no working copy or lock left
+
+
 def test_a_run_the_neighbour_search_stops_exits_3_naming_step_and_frame(tmp_path, monkeypatch, capsys):
     """A step the neighbour search stops (``NeighborOverflow``: a body crushed together, or a
     blow-up) left ``run`` as a traceback, the step, frame and time said nowhere. It is one line

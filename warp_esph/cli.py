@@ -1,7 +1,8 @@
 """Command line: ``warp-esph run [SCENE] ...``, ``scenes``, ``render OUT.usd``, ``export OUT.usd``,
 ``fit SCENE --target FILE`` and ``sweep SCENE --param ...``.
 
-Exit status: 0 success; 2 bad input (unknown scene, bad option value, bad scene file,
+Exit status: 0 success; 1 an unexpected error stopped a run mid-way (one line naming it and
+what the output keeps); 2 bad input (unknown scene, bad option value, bad scene file,
 unreadable or unwritable file); 3 the simulation diverged (``SimulationError``; the
 output keeps every frame finished before); 4 the output could not be written mid-run
 (e.g. a full disk; it keeps every frame published before; ``export``, ``render``: the files
@@ -27,6 +28,7 @@ PROG = "warp-esph"
 # Kept here so the parser is built without importing the renderer (numpy, Pillow, pxr).
 COLOR_CHOICES = ("body", "material", "alpha", "singular_values")
 EXPORT_CHOICES = ("vtu", "ply")
+EXIT_UNEXPECTED = 1  # an error of no kind the run expects stopped it mid-way (Python's status for one)
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3
 EXIT_WRITE_FAILED = 4
@@ -820,6 +822,22 @@ def _cmd_run(args) -> int:
             status = _export_run(args, writer, start_frame, whole=False)
             return EXIT_WRITE_FAILED if status in (0, EXIT_WRITE_FAILED) else status
         return EXIT_WRITE_FAILED
+    except Exception as e:  # noqa: BLE001 (said as one line; a refusal before the first frame is raised as before)
+        if not writer.frames_written:
+            raise  # the start's checks: bad input, said by the caller
+        # An error of no kind the run expects, once frames are written (a bug in a writer or the
+        # solver): a traceback that said nothing of the file, or a ValueError called bad input.
+        close_error = close_writer()
+        where = e.__traceback__
+        while where.tb_next is not None:
+            where = where.tb_next
+        place = f"{os.path.basename(where.tb_frame.f_code.co_filename)}:{where.tb_lineno}"
+        _err(f"the run stopped in frame {writer.last_frame + 1}: {type(e).__name__}: {e} (raised at {place}; "
+             f"{writer.path} keeps {_kept(writer, start_frame)})")
+        if close_error is not None:
+            _err(close_error)
+        status = _export_run(args, writer, start_frame, whole=False)
+        return EXIT_UNEXPECTED if status in (0, EXIT_WRITE_FAILED) else status
     else:
         final_log_error[0] = False  # said below, after what the run's signals decide
     finally:
