@@ -618,6 +618,25 @@ def test_a_word_for_a_number_or_a_name_is_one_line_naming_option_value_and_what_
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_rate_a_built_in_scene_s_own_step_does_not_fill_names_the_rate_and_the_options(tmp_path, monkeypatch, capsys):
+    """A figure scene's own step (dt = 0.005 s at --scale 0.1) at --fps 30, or at the rate a fit's
+    target was recorded at: the line named a bare 'dt = 0.005' that was typed nowhere and advised
+    'leave dt out', which a built-in scene's step cannot be."""
+    monkeypatch.chdir(tmp_path)
+    steps = "a frame (1/fps = 0.0333333 s) must be a whole number of steps, but 1/fps / dt = 6.66667; give --dt 0.0047619 or 0.00555556 with it"
+    assert main(["run", "fig1_non_newtonian", "--scale", "0.1", "--fps", "30", "--no-progress"]) == 2
+    assert_one_line_error(capsys.readouterr().err, "--fps = 30 is not allowed with fig1_non_newtonian's dt = 0.005 s: "
+                          + steps + ", or a rate the step fills (28.5714 or 33.3333 fps)")
+    np.savez(tmp_path / "t.npz", positions=np.zeros((2, 3, 3)), fps=30.0)
+    assert main(["fit", "fig1_non_newtonian", "--scale", "0.1", "--target", "t.npz", "--no-progress"]) == 2
+    line = capsys.readouterr().err
+    assert_one_line_error(line, "the 30 fps the target t.npz was recorded at is not allowed with the scene's dt = 0.005 s: " + steps)
+    assert "a rate the step fills" not in line  # the target's rate is no choice
+    assert main(["fit", "fig1_non_newtonian", "--scale", "0.1", "--target", "t.npz", "--fps", "30", "--no-progress"]) == 2
+    assert_one_line_error(capsys.readouterr().err, "--fps = 30 is not allowed with the scene's dt = 0.005 s: " + steps)
+    assert sorted(os.listdir(tmp_path)) == ["t.npz"]
+
+
 def test_fit_seed_is_taken_where_something_is_drawn(tmp_path, monkeypatch, capsys):
     """--seed is refused only where nothing draws from it: with jitter, samples or extra
     starts it is read, and the fit goes on (here to its missing scene file)."""

@@ -765,6 +765,16 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                 "a weaker compression field" if e.advice == STABLE_FIELD_ADVICE else "softer materials")
         raise ValueError(f"{where}{e.reason}: use {cure}, a larger spacing,{higher} or give "
                          f"{'its dt' if where else '--dt'}") from None
+    except ValueError as e:
+        if given["dt"] or scene.dt is None or "whole number of steps" not in str(e) or not (given["fps"] or stored):
+            raise
+        # The scene's own step (a figure's) at a rate the fit set: resolve_timestep named a bare
+        # 'dt' that was typed nowhere and advised leaving it out, which a built-in scene's cannot be.
+        from .simulate import scene_dt_refusal  # noqa: PLC0415
+
+        set_by = (f"{where}{flag} = {fps:g}" if given["fps"] else f"the {fps:g} fps the target {stored[0][0]} was recorded at")
+        raise scene_dt_refusal(f"{where}the scene's dt", scene.dt, fps, set_by, "its dt" if where else "--dt",
+                               other_rates=given["fps"]) from None
     shown = [f for t in file_targets for f in (t.frames or [])]
     shown += [f for kind, _, t in loaded if kind == "silhouette" for f in t[2] if f is not None]
     for t in file_targets:

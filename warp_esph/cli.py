@@ -536,6 +536,13 @@ def _cmd_run(args) -> int:
         if (args.dt is None and args.resume is None and str(args.scene).lower().endswith(".toml")
                 and not str(e).startswith("--")):  # an option typed is named as such, not as the file's
             raise ValueError(f"{args.scene}: [scene] {e}") from None  # the file's dt and fps: name the file
+        if (args.dt is None and args.resume is None and args.fps is not None and scene.dt is not None
+                and "whole number of steps" in str(e)):
+            # A built-in scene's own step (a figure's) at the --fps typed: the step is no option
+            # to leave out, --dt or --fps is.
+            from .simulate import scene_dt_refusal  # noqa: PLC0415
+
+            raise scene_dt_refusal(f"{scene.name}'s dt", scene.dt, fps, f"--fps = {args.fps:g}", "--dt") from None
         raise
     dt_given = dt is not None and not adaptive
     if not adaptive:

@@ -571,6 +571,23 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
     return n, frame_dt / n
 
 
+def scene_dt_refusal(what: str, dt: float, fps: float, rate: str, give: str, other_rates: bool = True) -> ValueError:
+    """The refusal of a scene's own step ``dt`` (``what``: how it is named, "fig1's dt") that
+    does not fill a frame at a rate the scene did not set (``rate``: what set it, "--fps = 30"),
+    advising the caller's way to give a step (``give``: "--dt") and, with ``other_rates`` (a rate
+    the caller may change, not one its data were recorded at), the rates the step fills:
+    ``resolve_timestep``'s own line named a bare ``dt`` nobody had typed, and advised leaving it
+    out, which a built-in scene's step cannot be."""
+    frame_dt = 1.0 / fps
+    ratio = frame_dt / dt
+    counts = sorted({max(1, math.floor(ratio)), max(1, math.ceil(ratio))}, reverse=True)
+    steps = " or ".join(f"{frame_dt / n:.6g}" for n in counts)
+    rates = " or ".join(f"{1.0 / (dt * n):.6g}" for n in counts)
+    return ValueError(f"{rate} is not allowed with {what} = {dt:.6g} s: a frame (1/fps = {frame_dt:.6g} s) must be a whole "
+                      f"number of steps, but 1/fps / dt = {ratio:.6g}; give {give} {steps} with it"
+                      + (f", or a rate the step fills ({rates} fps)" if other_rates else ""))
+
+
 def check_step_count(frames: int, substeps: int) -> None:
     """Refuse a run of more than ``MAX_STEPS`` steps before it starts."""
     if frames * substeps > MAX_STEPS:
