@@ -637,6 +637,21 @@ def test_a_rate_a_built_in_scene_s_own_step_does_not_fill_names_the_rate_and_the
     assert sorted(os.listdir(tmp_path)) == ["t.npz"]
 
 
+@pytest.mark.parametrize("name", ["run.usdc", "run.USDA", "run.usd"])
+def test_fit_refuses_a_usd_name_for_its_json_before_it_replaces_a_run_s_file(tmp_path, monkeypatch, capsys, dough_scene, name):
+    """fit's -o is its JSON, where run's -o is its USD: `fit ... -o run.usdc` (the fitted run
+    meant) replaced an earlier run's USD file with the fit's JSON, exit 0."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "guess.toml").write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    np.savez(tmp_path / "t.npz", positions=np.zeros((3, 64, 3)))
+    (tmp_path / name).write_bytes(b"an earlier run's frames")
+    assert main(["fit", "guess.toml", "--target", "t.npz", "-o", name, "--iterations", "1", "--no-progress"]) == 2
+    assert_one_line_error(capsys.readouterr().err, f"--output = '{name}' is not allowed: it is the fit's JSON file",
+                          "the fitted run's USD is fitted.usdc in --output-dir", "give a .json name")
+    assert (tmp_path / name).read_bytes() == b"an earlier run's frames"
+    assert sorted(os.listdir(tmp_path)) == sorted(["guess.toml", "t.npz", name])
+
+
 def test_fit_seed_is_taken_where_something_is_drawn(tmp_path, monkeypatch, capsys):
     """--seed is refused only where nothing draws from it: with jitter, samples or extra
     starts it is read, and the fit goes on (here to its missing scene file)."""
