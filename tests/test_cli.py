@@ -1487,6 +1487,18 @@ def test_an_unexpected_error_in_the_writer_mid_run_is_one_line_saying_what_the_f
     assert not [n for n in os.listdir(tmp_path) if n.startswith(".")]  # no working copy or lock left
 
 
+def test_a_resumed_run_s_export_holds_the_frames_of_its_file_and_no_more(tmp_path, capsys):
+    """A run resumed from its checkpoint at frame 8 to frame 9 rewrote its file to 10 frames,
+    and its export folder kept the earlier run's frame 10 beside them."""
+    out_path = tmp_path / "r.usdc"
+    common = ["--no-progress", "--export", "ply"]
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "10", "--checkpoint-every", "4", *common]) == 0
+    assert main(["run", "--resume", f"{out_path}.checkpoint.npz", "--frames", "9", *common]) == 0
+    capsys.readouterr()
+    assert frames_in(out_path) == [float(k) for k in range(10)]
+    assert sorted(os.listdir(tmp_path / "r.usdc_ply")) == [f"frame_{k:05d}.ply" for k in range(10)]
+
+
 def test_a_run_the_neighbour_search_stops_exits_3_naming_step_and_frame(tmp_path, monkeypatch, capsys):
     """A step the neighbour search stops (``NeighborOverflow``: a body crushed together, or a
     blow-up) left ``run`` as a traceback, the step, frame and time said nowhere. It is one line
