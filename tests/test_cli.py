@@ -1499,6 +1499,23 @@ def test_a_resumed_run_s_export_holds_the_frames_of_its_file_and_no_more(tmp_pat
     assert sorted(os.listdir(tmp_path / "r.usdc_ply")) == [f"frame_{k:05d}.ply" for k in range(10)]
 
 
+def test_an_export_that_fails_after_a_run_stopped_keeps_the_run_s_status(tmp_path, monkeypatch, capsys):
+    """The frames of an interrupted run are exported after its line; an export that could not
+    read the file (removed meanwhile) replaced the stop's 130 with 2, 'bad input'."""
+    import warp_esph.export as export_module
+
+    def unreadable(path, *args, **kwargs):
+        raise ValueError(f"cannot read {path}: no such file")
+
+    monkeypatch.setattr(export_module, "export_frames", unreadable)
+    _fail_after(monkeypatch, 2 * _steps_per_frame() + 1, _raise_interrupt)
+    out_path = tmp_path / "gone.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "10", "--no-progress", "--export", "ply"]) == 130
+    lines = capsys.readouterr().err.splitlines()
+    assert lines == [f"warp-esph: interrupted: {out_path} keeps the 3 frames finished",
+                     f"warp-esph: error: --export ply: cannot read {out_path}: no such file; {out_path} keeps the 3 frames finished"]
+
+
 def test_a_run_the_neighbour_search_stops_exits_3_naming_step_and_frame(tmp_path, monkeypatch, capsys):
     """A step the neighbour search stops (``NeighborOverflow``: a body crushed together, or a
     blow-up) left ``run`` as a traceback, the step, frame and time said nowhere. It is one line

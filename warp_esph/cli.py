@@ -937,6 +937,12 @@ def _export_run(args, writer, start_frame: int, whole: bool) -> int:
     except ExportWriteError as e:
         _err(f"--export {args.export}: {e}; {writer.path} {held}")
         return EXIT_WRITE_FAILED
+    except (ValueError, OSError) as e:
+        if whole:
+            raise
+        # After a run that stopped (the file removed meanwhile): said, and the stop's status kept.
+        _err(f"--export {args.export}: {e}; {writer.path} {held}")
+        return EXIT_WRITE_FAILED
     except KeyboardInterrupt as e:
         # The run's file is as said: the line said 'interrupted' alone, as if it were not.
         kept = f"{e.kept}; " if getattr(e, "kept", None) else ""
