@@ -302,13 +302,6 @@ def run_fit(args, out=None, err=None) -> int:
             raise ValueError(f"--output-dir = {folder!r} is not allowed: {name} in it is a folder; the fit writes a file there")
         checks.output_files("--output-dir", folder, [name])
     if _arg(args, "output"):
-        from .usd import USD_EXTENSIONS  # noqa: PLC0415
-
-        if os.path.splitext(os.fsdecode(args.output))[1].lower() in USD_EXTENSIONS:
-            # run's -o is its USD, fit's its JSON: `-o run.usdc` (the fitted run meant) replaced
-            # an earlier run's file with the fit's JSON.
-            raise ValueError(f"--output = {args.output!r} is not allowed: it is the fit's JSON file (fit.json), and the fitted "
-                             "run's USD is fitted.usdc in --output-dir; give a .json name")
         checks.output_place("--output", args.output)
     # With -o elsewhere, an earlier fit's fit.json in the folder is removed (_remove_earlier_run):
     # an input of that name there is refused as one the fit would overwrite.
@@ -324,6 +317,14 @@ def run_fit(args, out=None, err=None) -> int:
         # part.toml replaced its mesh with the fit's JSON. (Its own file is "the scene" above.)
         + [(f"{what} of {os.fsdecode(spec.get('scene_as_written') or spec['scene'])}", path)
            for (_, spec), e in zip(specs, exps) for what, path in e.scene.inputs])
+    if _arg(args, "output"):
+        from .usd import USD_EXTENSIONS  # noqa: PLC0415
+
+        if os.path.splitext(os.fsdecode(args.output))[1].lower() in USD_EXTENSIONS:
+            # run's -o is its USD, fit's its JSON: `-o run.usdc` (the fitted run meant) replaced
+            # an earlier run's file with the fit's JSON. (One that is an input is refused above as such.)
+            raise ValueError(f"--output = {args.output!r} is not allowed: it is the fit's JSON file (fit.json), and the fitted "
+                             "run's USD is fitted.usdc in --output-dir; give a .json name")
 
     # The experiments' lines wait for the fit's first message, which it gives once every
     # option it checks itself has passed: a refusal stays the run's one line.
