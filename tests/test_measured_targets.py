@@ -303,6 +303,25 @@ def test_a_headerless_cloud_of_three_columns_or_of_no_counted_column_is_read_as_
     np.testing.assert_array_equal(load_target(tmp_path / "flat.csv").data, [[0.0, y, z] for _, y, z in CLOUD])
 
 
+@pytest.mark.parametrize("name, xs", [
+    # A lattice centred on 0, sorted by x: no id or frame is negative.
+    ("centred.xyz", [-2, -2, -1, -1, 0, 0, 1, 1, 2, 2]),
+    ("negative_line.xyz", [-5, -4, -3, -2, -1]),
+    # Sorted by x at a spacing of 2 or 5: rows are counted by 1, frames follow one another.
+    ("spacing2.xyz", [0, 0, 0, 2, 2, 2, 4, 4, 4]),
+    ("spacing5.xyz", [0, 5, 10, 15, 20]),
+])
+def test_a_headerless_scan_whose_x_holds_sorted_whole_numbers_is_read(tmp_path, name, xs):
+    """'x y z intensity' of a scan on a lattice of whole coordinates, sorted by x, was
+    refused as a marker id ('numbers its rows in order (-5, -4, ..., -1: a marker or point
+    id?)', '(0, 5, ..., 20: ...)') or as the frame of a table of frames ('0, 0, 0, 2, 2,
+    2'): it had been read, and is. An id or a frame is never negative, ids count rows by 1
+    (a dropped marker leaves a gap, not a stride), and frames follow one another."""
+    rows = [(x, 0.1 * k, 0.2 + 0.01 * (k % 3)) for k, x in enumerate(xs)]
+    (tmp_path / name).write_text("".join(f"{x} {y!r} {z!r} {k % 7}\n" for k, (x, y, z) in enumerate(rows)))
+    np.testing.assert_array_equal(load_target(tmp_path / name).data, rows)
+
+
 def test_a_cloud_point_of_nan_is_a_missing_point_left_out_with_a_warning(tmp_path):
     """A NaN in a position target is a missing marker; a point cloud's was refused ('every
     point must be finite'), though a cloud is unordered and a NaN row can only be a point

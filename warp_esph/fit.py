@@ -2825,8 +2825,8 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
       there are; a unit beside them other than ``m`` is refused); a byte-order mark, empty
       rows and a comma after every line are read past, commas or tabs taken for the other
       separator where the first line's numbers say so. Without a header, four or more columns
-      whose first holds whole numbers in order (a marker id, a frame number) are refused,
-      asking for a header row. A point
+      whose first holds whole numbers in order from 0 or above, counting by 1 (a marker id)
+      or by 0 and 1 (a frame number), are refused, asking for a header row. A point
       with a NaN coordinate is one not seen: left out with a warning (every point NaN: refused).
     - anything else ``meshio`` (or ``.usd``) reads: a mesh when it has faces, else a cloud.
     """
@@ -2991,8 +2991,9 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
     rows follow. A first line that is not all numbers is a header row: it must name columns ``x``,
     ``y`` and ``z`` (any case, in any order, among others; a unit beside them must be ``m``),
     which are then read. Without a header the first three columns are x, y, z; four or more
-    columns whose first holds whole numbers in order (0, 1, 2, ...: a marker's id; 0, 0, 1,
-    1, ...: a frame number) are refused, as it had been read as x."""
+    columns whose first holds whole numbers in order from 0 or above (0, 1, 2, ... or 1, 2,
+    4, ...: a marker's id, counting by 1 but for gaps; 0, 0, 1, 1, ...: a frame number) are
+    refused, as it had been read as x."""
     import re  # noqa: PLC0415
     import warnings  # noqa: PLC0415
 
@@ -3071,11 +3072,15 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
     width = pts.shape[1]
     if cols is None and width >= 4 and len(pts) >= 2:
         ids, step = pts[:, 0], np.diff(pts[:, 0])
-        # Whole numbers in order, not all one (a flat scan at x = 0 is a cloud): an index
-        # column, no coordinate in metres.
-        if (ids == np.round(ids)).all() and (step >= 0.0).all() and (step > 0.0).any():
+        # Whole numbers in order, not all one (a flat scan at x = 0 is a cloud), from 0 or
+        # above, rows counted by 1 (a dropped marker's gap aside) or frames one after another:
+        # an index column, no coordinate in metres. A scan of whole coordinates sorted by x
+        # (centred on 0, or at a spacing of 2 or more) is read as the x it is.
+        counts = (step >= 1.0).all() and 2 * np.count_nonzero(step == 1.0) >= len(step)
+        frames = (step >= 0.0).all() and np.isin(step, (0.0, 1.0)).all()
+        if (ids == np.round(ids)).all() and ids[0] >= 0.0 and (step > 0.0).any() and (counts or frames):
             header = ("add a header row naming them (e.g. 'id,x,y,z'; 'x,y,z,...' if the first column is x)")
-            if (step >= 1.0).all():
+            if counts:
                 what = f"numbers its rows in order ({ids[0]:.0f}, {ids[1]:.0f}, ..., {ids[-1]:.0f}: a marker or point id?)"
             else:
                 what = (f"holds whole numbers in order, some repeated ({ids[0]:.0f} to {ids[-1]:.0f}: a frame number "
