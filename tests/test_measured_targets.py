@@ -427,3 +427,29 @@ def test_a_cloud_with_a_time_or_frame_column_is_read_as_a_cloud_or_refused_as_a_
                                          r"merge; give positions per frame as an \.npz \('positions' \(K, n, 3\), 'frames'\), "
                                          r"or one frame's points as a cloud"):
         load_target(tmp_path / "frames.csv")
+
+
+@pytest.mark.parametrize("name, head", [("temperature.csv", "X,Y,Z,T (degC)"), ("kelvin.txt", "x y z t[K]"),
+                                        ("slash.xyz", "x y z T/degC")])
+def test_a_cloud_column_named_t_in_a_unit_of_no_time_is_no_time_stamp(tmp_path, name, head):
+    """A thermal scan's 'T (degC)' beside x, y, z was taken for a time stamp ('t'), and a
+    temperature shared by two points refused as 'its column 'T (degC)' holds 2 different
+    values over 3 rows: a table of positions over frames'. A column in a unit that is no
+    time's is no time stamp: read past, as any other column is."""
+    sep = "," if name.endswith(".csv") else " "
+    rows = [[*p, t] for p, t in zip(CLOUD, (21.5, 21.5, 21.7))]
+    (tmp_path / name).write_text(head + "\n" + "".join(sep.join(repr(v) for v in r) + "\n" for r in rows))
+    np.testing.assert_array_equal(load_target(tmp_path / name).data, CLOUD)
+
+
+def test_a_cloud_time_column_in_seconds_still_tells_a_table_of_frames_and_says_how_a_scan_is_read(tmp_path):
+    """'time (s)' is a time stamp, and a time shared by several points is still refused as a
+    table over frames; as a scanner stamps every point of one pulse or one profile with one
+    time, the refusal also says how such a scan is read (the column left out or renamed)."""
+    rows = [[*p, t] for p, t in zip(CLOUD, (0.001, 0.001, 0.002))]
+    (tmp_path / "scan.csv").write_text("x,y,z,time (s)\n" + "".join(",".join(repr(v) for v in r) + "\n" for r in rows))
+    with pytest.raises(ValueError, match=r"scan\.csv cannot be read as a point cloud: its column 'time \(s\)' holds 2 "
+                                         r"different values over 3 rows: a table of positions over frames, which one cloud "
+                                         r"would merge; .*; a scanner's time stamps, several points to one time, are read "
+                                         r"as a cloud with the column left out or renamed$"):
+        load_target(tmp_path / "scan.csv")

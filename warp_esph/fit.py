@@ -3036,7 +3036,9 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
                              "the file to metres (and its header to x, y, z)")
         cols = (found["x"], found["y"], found["z"])
         # A frame or time column beside them: a cloud's time stamps, or a table over frames.
-        stamp = next((i for i, f in enumerate(fields) if re.fullmatch(r"(frame|time|t)\b.*", f.lower())), None)
+        # A unit beside 'time' or 't' must be a time's: 'T (degC)' is a thermal scan's temperature.
+        stamp = next((i for i, f in enumerate(fields) if re.fullmatch(r"frame\b.*", f.lower()) or re.fullmatch(
+            r"(?:time|t)(?:[\s_]*(?:/\s*)?[\[(]?\s*(?:s|ms|us|µs|ns|min|h)\s*[\])]?)?", f.lower())), None)
         lines = lines[1:]
         if lines:
             sep = _cloud_separator(lines[0][1], ext)  # the numbers' own ('x,y,z' over '0.1 0.2 0.3')
@@ -3066,7 +3068,10 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
             # Several points share each value: frames of markers, which one cloud would merge.
             raise ValueError(f"its column {fields[cols[3]]!r} holds {len(distinct)} different values over {len(stamps)} "
                              "rows: a table of positions over frames, which one cloud would merge; give positions per "
-                             "frame as an .npz ('positions' (K, n, 3), 'frames'), or one frame's points as a cloud")
+                             "frame as an .npz ('positions' (K, n, 3), 'frames'), or one frame's points as a cloud"
+                             + ("" if fields[cols[3]].lower().startswith("frame") else
+                                "; a scanner's time stamps, several points to one time, are read as a cloud with the "
+                                "column left out or renamed"))
     if count is not None and count != len(pts):
         raise ValueError(f"its first line says it holds {count} points, and {len(pts)} follow (a file cut short?)")
     width = pts.shape[1]
