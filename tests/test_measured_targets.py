@@ -413,7 +413,7 @@ def test_a_cloud_of_decimal_commas_is_refused_as_such(tmp_path):
 def test_a_cloud_with_a_time_or_frame_column_is_read_as_a_cloud_or_refused_as_a_table_of_frames(tmp_path):
     """A cloud whose header names x, y, z and a 'time' column (a scanner's time stamp per
     point) or a 'frame' column was refused as a force log lacking fx, fy, fz. It is a cloud
-    where that column takes one value, or a distinct one per point; where its values repeat
+    where that column takes one value, or a time its own per point; where its values repeat
     (several points per frame) it is a table of positions over frames, which a cloud would
     merge into one: refused saying so."""
     (tmp_path / "stamped.csv").write_text("x,y,z,time\n" + "".join(f"{x!r},{y!r},{z!r},{0.1 * k!r}\n"
@@ -453,3 +453,19 @@ def test_a_cloud_time_column_in_seconds_still_tells_a_table_of_frames_and_says_h
                                          r"would merge; .*; a scanner's time stamps, several points to one time, are read "
                                          r"as a cloud with the column left out or renamed$"):
         load_target(tmp_path / "scan.csv")
+
+
+@pytest.mark.parametrize("name, sep", [("track.csv", ","), ("track.txt", " ")])
+def test_a_frame_column_of_one_point_per_frame_is_a_track_not_a_cloud(tmp_path, name, sep):
+    """'frame, x, y, z' with a frame of its own on every row is one marker tracked over
+    frames: a cloud is one frame's points, and this one was read as a cloud of the marker's
+    whole path (a '.csv' had been refused, as a force log; a '.txt' read so before the frame
+    column was looked at). Refused as a table over frames, as a frame shared by several
+    points is; a time stamp of its own per point stays a scanner's, read as a cloud."""
+    (tmp_path / name).write_text(sep.join(["frame", "x", "y", "z"]) + "\n" + _cloud_lines(sep, [0, 1, 2]))
+    with pytest.raises(ValueError, match=rf"{name.replace('.', '[.]')} cannot be read as a point cloud: its column 'frame' "
+                                         r"holds 3 different values over 3 rows: a table of positions over frames, which "
+                                         r"one cloud would merge; give positions per frame as an \.npz"):
+        load_target(tmp_path / name)
+    (tmp_path / name).write_text(sep.join(["time", "x", "y", "z"]) + "\n" + _cloud_lines(sep, [0.0, 0.001, 0.002]))
+    np.testing.assert_array_equal(load_target(tmp_path / name).data, CLOUD)
