@@ -469,3 +469,13 @@ def test_a_frame_column_of_one_point_per_frame_is_a_track_not_a_cloud(tmp_path, 
         load_target(tmp_path / name)
     (tmp_path / name).write_text(sep.join(["time", "x", "y", "z"]) + "\n" + _cloud_lines(sep, [0.0, 0.001, 0.002]))
     np.testing.assert_array_equal(load_target(tmp_path / name).data, CLOUD)
+
+
+def test_a_pts_count_below_the_points_that_follow_is_not_said_to_be_a_file_cut_short(tmp_path):
+    """A .pts whose count line says fewer points than follow was refused as '(a file cut
+    short?)', a cause that cannot give more points than counted."""
+    rows = "".join(f"{x!r} {y!r} {z!r} -1200 90 80 70\n" for x, y, z in CLOUD)
+    (tmp_path / "more.pts").write_text(f"{len(CLOUD) - 1}\n" + rows)
+    with pytest.raises(ValueError, match=r"more\.pts cannot be read as a point cloud: its first line says it holds 2 "
+                                         r"points, and 3 follow \(points added after the count was written\?\)$"):
+        load_target(tmp_path / "more.pts")

@@ -3076,7 +3076,8 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
                                 "; a scanner's time stamps, several points to one time, are read as a cloud with the "
                                 "column left out or renamed"))
     if count is not None and count != len(pts):
-        raise ValueError(f"its first line says it holds {count} points, and {len(pts)} follow (a file cut short?)")
+        why = "a file cut short?" if len(pts) < count else "points added after the count was written?"
+        raise ValueError(f"its first line says it holds {count} points, and {len(pts)} follow ({why})")
     width = pts.shape[1]
     if cols is None and width >= 4 and len(pts) >= 2:
         ids, step = pts[:, 0], np.diff(pts[:, 0])
