@@ -333,3 +333,75 @@ def test_every_commit_the_measurements_name_is_in_the_history():
     if missing is None:
         pytest.skip("no full git history in this checkout")
     assert missing == [], f"commits named by the measurements but not in the history: {missing}"
+
+
+def _anchors(page: pathlib.Path) -> set:
+    """The fragments GitHub gives a page's headings: lower case, punctuation but ``-`` and
+    ``_`` dropped, spaces as ``-``, a repeated heading's ``-1``, ``-2`` ...."""
+    text = re.sub(r"^```.*?^```", "", page.read_text(), flags=re.S | re.M)
+    seen, out = {}, set()
+    for heading in re.findall(r"^#{1,6} (.+?)\s*#*$", text, flags=re.M):
+        slug = re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+        k = seen.get(slug, 0)
+        seen[slug] = k + 1
+        out.add(slug if k == 0 else f"{slug}-{k}")
+    return out
+
+
+def _relative_links():
+    """Every relative link of README.md and docs/*.md (``[text](path#fragment)`` and
+    ``![alt](image)``), outside code blocks and inline code."""
+    for page in [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]:
+        text = re.sub(r"^```.*?^```", "", page.read_text(), flags=re.S | re.M)
+        text = re.sub(r"`[^`\n]*`", "", text)
+        for m in re.finditer(r"\]\(([^)\s]+)\)", text):
+            if not re.match(r"[a-z]+:", m.group(1)):
+                yield page, m.group(1)
+
+
+def test_every_link_of_the_pages_leads_to_a_file_and_a_heading_there():
+    """A reader who follows a link lands on the file it names and, where it names a fragment,
+    on that heading: a page renamed or moved, or a heading reworded, leaves a link that GitHub
+    shows as working (a fragment that matches nothing opens the page at its top), which no
+    other test follows (the quoted section names are checked above; links were not)."""
+    links = list(_relative_links())
+    assert len(links) > 50 and sum("#" in link for _, link in links) > 10, "the pages' links were not found"
+    anchors, wrong = {}, []
+    for page, link in links:
+        path, _, fragment = link.partition("#")
+        target = (page.parent / path).resolve() if path else page
+        where = f"{page.relative_to(ROOT)}: ({link})"
+        if not target.exists():
+            wrong.append(f"{where} names no file")
+        elif fragment and target.suffix == ".md":
+            if target not in anchors:
+                anchors[target] = _anchors(target)
+            if fragment not in anchors[target]:
+                wrong.append(f"{where}: no heading of {target.relative_to(ROOT)} has the fragment #{fragment}")
+    assert not wrong, "\n".join(wrong)
+
+
+def test_every_file_and_module_the_pages_name_is_there():
+    """The repository paths the pages name in prose (`tests/test_fit.py`, `benchmarks/floors.py`,
+    `examples/...`) and the commands they give (``python -m benchmarks.step``,
+    ``python examples/calibrate_from_lab.py``), and the tests they cite by name
+    (``tests/test_x.py::test_y``), exist: a renamed file or test otherwise leaves the reader a
+    path to nothing."""
+    named, wrong = 0, []
+    for page in [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]:
+        text = page.read_text()
+        for m in re.finditer(r"(?<![\w/.-])((?:docs|tests|benchmarks|examples|notebooks|warp_esph)/[\w/.-]*\w)", text):
+            named += 1
+            if not (ROOT / m.group(1)).exists():
+                wrong.append(f"{page.name}: {m.group(1)}")
+        for m in re.finditer(r"python -m ((?:benchmarks|warp_esph)(?:\.\w+)*)", text):
+            named += 1
+            module = ROOT / m.group(1).replace(".", "/")
+            if not (module.with_suffix(".py").exists() or (module / "__main__.py").exists()):
+                wrong.append(f"{page.name}: python -m {m.group(1)}")
+        for m in re.finditer(r"(tests/test_\w+\.py)::(\w+)", text):
+            source = ROOT / m.group(1)
+            if source.exists() and not re.search(rf"^\s*(?:def|class) {m.group(2)}\b", source.read_text(), flags=re.M):
+                wrong.append(f"{page.name}: {m.group(0)} names no test")
+    assert named > 100, "the pages' paths were not found: has their format changed?"
+    assert not wrong, "\n".join(wrong)
