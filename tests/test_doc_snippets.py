@@ -1,5 +1,6 @@
 """The Python snippets the pages show, run as they are written: README.md's quick start,
-docs/scene_format.md's loader and docs/tools.md's press; and the pages' example command lines,
+docs/scene_format.md's loader, docs/tools.md's press and docs/fitting.md's quick start and worlds;
+and the pages' example command lines,
 parsed. Each is read from its page, so a page whose snippet stops running (a renamed call, a
 changed signature, a dropped option) fails here; only a loop count is cut, where the page's run
 is longer than a test's, and the page is checked to hold the line that is cut."""
@@ -10,6 +11,8 @@ import shlex
 
 import numpy as np
 import pytest
+
+import warp as wp
 
 import warp_esph as we
 from warp_esph import cli
@@ -72,6 +75,54 @@ def test_the_tools_md_press_exerts_the_force_the_page_states():
     force = np.asarray(scope["force"], dtype=float)
     assert force[1] == pytest.approx(float(stated.group(1)), rel=0.02)
     assert np.hypot(force[0], force[2]) < 1e-3 * abs(force[1])
+
+
+def _dough_block(yield_stress: float, spacing: float) -> we.SceneBuilder:
+    """docs/fitting.md's worlds scene (a dough block on the ground), at a given yield stress."""
+    builder = we.SceneBuilder(spacing=spacing)
+    builder.add_box((0, 0.1, 0), (0.12, 0.1, 0.1), we.Material.preset("dough", yield_stress=yield_stress), name="block")
+    builder.add_ground()
+    return builder
+
+
+def test_the_fitting_md_quick_start_fits_and_leaves_the_model_holding_the_fit():
+    """docs/fitting.md's quick start, on a builder and a target the page leaves to the reader (a
+    36-particle dough block at the preset's yield stress; the target its run at 100 Pa), run as
+    written but for 2 of its 30 L-BFGS iterations: the loss falls, the model holds the fitted
+    values (the page says so), and the termination is one of the sentences the page lists."""
+    from warp_esph.rollout import Rollout  # noqa: PLC0415
+
+    truth = _dough_block(100.0, 0.03).finalize(dtype=wp.float64, requires_grad=True)
+    target = Rollout(truth, steps=300, dt=1e-3, frames=[100, 200, 300]).forward()
+    code = _shortened(_python_blocks(ROOT / "docs" / "fitting.md")[0], "iterations=30", "iterations=2")
+    scope = {"__name__": "fitting_md", "builder": _dough_block(150.0, 0.03), "target": target}
+    exec(compile(code, "fitting.md", "exec"), scope)
+    result, model = scope["result"], scope["model"]
+    assert result.loss < result.initial_loss
+    fitted = model.materials[0]
+    assert fitted.yield_stress == pytest.approx(float(result.params["yield_stress"][0]))
+    assert fitted.flow_rate == pytest.approx(float(result.params["flow_rate"][0]))
+    assert (fitted.yield_stress, fitted.flow_rate) != (150.0, 20.0)
+    assert re.match(r"(converged|stalled|hit the iteration cap|stopped at once)", result.termination)
+    assert set(result.diagnostics.summary().split()) >= {"yield_stress", "flow_rate"}
+
+
+def test_the_fitting_md_worlds_snippet_gives_each_world_its_loss_and_gradient():
+    """docs/fitting.md's worlds snippet, run whole (3 worlds of 150 particles, 200 steps), with the
+    one name it leaves to the reader, ``targets``: each world's target the final positions of a
+    one-world run at 150 Pa. The world at 150 Pa has no loss and no gradient; the one at 50 Pa
+    a loss whose gradient says raise the yield stress, the one at 450 Pa lower it."""
+    from warp_esph.rollout import Rollout  # noqa: PLC0415
+
+    one = _dough_block(150.0, 0.02).finalize(dtype=wp.float64, requires_grad=True)
+    final = Rollout(one, steps=200, dt=1e-3, frames=[200]).forward()
+    scope = {"__name__": "fitting_md", "targets": [final] * 3}
+    exec(compile(_python_blocks(ROOT / "docs" / "fitting.md")[5], "fitting.md", "exec"), scope)
+    values = np.asarray(scope["rollout"].world_values, dtype=float)
+    slopes = [float(np.asarray(g["yield_stress"]).ravel()[0]) for g in scope["rollout"].per_world(scope["grads"])]
+    assert values[1] == pytest.approx(0.0, abs=1e-12) and slopes[1] == pytest.approx(0.0, abs=1e-15)
+    assert values[0] > 0 and values[2] > 0
+    assert slopes[0] < 0 < slopes[2]
 
 
 def _command_lines():
