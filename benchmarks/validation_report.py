@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import pathlib
+import re
 import sys
 
 import numpy as np
@@ -746,10 +747,30 @@ def _targets(results, mpm=None) -> list[tuple[str, str, str, str]]:
     return out
 
 
+def _unmet(met: str) -> bool:
+    """Whether a target's "met" entry says that some part of it is not met."""
+    return bool(re.search(r"\bno\b|not shown", met))
+
+
+def _summary(targets) -> str:
+    """The page's opening: how many targets are met in full, and each row that is not, as
+    the targets table says it (a reader should not have to find them among the runs)."""
+    if not targets:
+        return ""
+    unmet = [(t, met) for t, _, met, _ in targets if _unmet(met)]
+    out = (f"\n**In short**: {len(targets) - len(unmet)} of the {len(targets)} rows of \"Targets of issue 12\" "
+           "below are met in full. Not met, or met in part (the row's target, then its \"met\" column):\n\n")
+    out += "".join(f"- {t}: {met}\n" for t, met in unmet)
+    return out + ("\nWhat is known of why, and what is still open: docs/physics.md, \"Still open\". The slump's "
+                  "heights are against the 1-D static analysis (\"The yield stress of this project, and the slump "
+                  "theory for it\" below); what a yield stress fitted to a slump means: \"The yield stress a slump "
+                  "fit recovers\" below.\n\n")
+
+
 INTRO = """# Validation against closed-form results
 
 Written by `python -m benchmarks.validation`; every number is also in `docs/validation.json`.
-Measured by the runs below; the `run` column of every table says which run measured the row.
+{summary}Measured by the runs below; the `run` column of every table says which run measured the row.
 
 {runs}
 
@@ -890,10 +911,10 @@ def write(results, out: pathlib.Path, meta: dict):
                                                                if m.get("superseded") else ""),
                       m.get("commit") or "–", m.get("date") or "–",
                       f"{m.get('wall_s', 0.0):.0f}", m.get("machine", "?")] for i, m in enumerate(runs)])
-    parts = [INTRO.format(runs=listed)]
     mpm_path = out / "mpm_slump.json"
     mpm = json.loads(mpm_path.read_text()) if mpm_path.exists() else None
     tg = _targets(results, mpm)
+    parts = [INTRO.format(runs=listed, summary=_summary(tg))]
     if tg:
         parts.append("## Targets of issue 12\n\nOne row per target, on the defaults (variational elastic force, "
                      "default fit, `energy_spiky` pressure force, particle floor); the case tables below give every "
