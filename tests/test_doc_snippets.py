@@ -1,7 +1,7 @@
 """The Python snippets the pages show, run as they are written: README.md's quick start,
 docs/scene_format.md's loader, docs/tools.md's press and docs/fitting.md's quick start and worlds;
 and the pages' example command lines,
-parsed. Each is read from its page, so a page whose snippet stops running (a renamed call, a
+the CLI's and the benchmarks', parsed. Each is read from its page, so a page whose snippet stops running (a renamed call, a
 changed signature, a dropped option) fails here; only a loop count is cut, where the page's run
 is longer than a test's, and the page is checked to hold the line that is cut."""
 
@@ -150,3 +150,48 @@ def test_the_pages_command_examples_are_command_lines_the_parser_takes():
             _build_parser().parse_args(argv)
         except (SystemExit, cli._UsageError) as exc:
             pytest.fail(f"{page}: warp-esph {' '.join(argv)} is refused by the parser ({exc})")
+
+
+class _Parsed(Exception):
+    """Raised in place of a benchmark's run once its command line has parsed."""
+
+
+def test_the_pages_benchmark_commands_are_command_lines_their_parsers_take(monkeypatch):
+    """Each ``python -m benchmarks.NAME ...`` a page gives a reader to measure again (in a code
+    block or inline code) parses with that benchmark's own parser, up to the run itself, which
+    is stopped there: a renamed option or a dropped choice fails here. docs/validation.md's run
+    column is a log (prose between options) and is left out, as are commands for a device this
+    host lacks."""
+    import argparse  # noqa: PLC0415
+    import importlib  # noqa: PLC0415
+
+    parse = argparse.ArgumentParser.parse_args
+
+    def parse_then_stop(self, args=None, namespace=None):
+        raise _Parsed(parse(self, args, namespace))
+
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_then_stop)
+    commands = []
+    for page in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        if page.name == "validation.md":
+            continue
+        text = page.read_text()
+        lines = re.findall(r"`(python -m benchmarks\.\w+[^`\n]*)`", text)
+        for block in re.findall(r"^```[a-z]*\n(.*?)^```", text, flags=re.S | re.M):
+            lines += [line.strip() for line in block.replace("\\\n", " ").splitlines()
+                      if line.strip().startswith("python -m benchmarks.")]
+        commands += [(page.name, shlex.split(line, comments=True)) for line in lines]
+    assert len(commands) >= 20 and len({argv[2] for _, argv in commands}) >= 8
+    wrong = []
+    for page, argv in commands:
+        if "cuda" in " ".join(argv) and not wp.is_cuda_available():
+            continue
+        try:
+            importlib.import_module(argv[2]).main(argv[3:])
+        except _Parsed:
+            continue
+        except SystemExit as exc:
+            wrong.append(f"{page}: {' '.join(argv)} is refused ({exc})")
+            continue
+        wrong.append(f"{page}: {' '.join(argv)} ran past its parser")
+    assert not wrong, "\n".join(wrong)
