@@ -1,5 +1,5 @@
 """The Python snippets the pages show, run as they are written: README.md's quick start,
-docs/scene_format.md's loader, docs/tools.md's press and docs/fitting.md's quick start and worlds;
+docs/scene_format.md's loader and example file, docs/tools.md's press and docs/fitting.md's quick start and worlds;
 and the pages' example command lines,
 the CLI's and the benchmarks', parsed. Each is read from its page, so a page whose snippet stops running (a renamed call, a
 changed signature, a dropped option) fails here; only a loop count is cut, where the page's run
@@ -61,6 +61,31 @@ def test_the_scene_format_snippet_writes_every_frame_of_the_scene(tmp_path, monk
     frames = UsdFrames(tmp_path / "out.usdc")
     assert frames.frames == [0, 1, 2, 3]
     assert frames.arrays(3)["points"][:, 1].mean() < frames.arrays(0)["points"][:, 1].mean()
+
+
+def test_the_scene_format_example_file_loads_as_its_comments_say(tmp_path):
+    """docs/scene_format.md's example scene file, written out whole beside a mesh where it names
+    one (a cube at ``meshes/part.obj``, read relative to the file, not the working folder) and
+    loaded at half its resolution: each value its comments state is the loaded scene's."""
+    from warp_esph.scenes import load_scene_file  # noqa: PLC0415
+
+    text = re.findall(r"^```toml\n(.*?)^```", (ROOT / "docs" / "scene_format.md").read_text(), flags=re.S | re.M)[0]
+    (tmp_path / "meshes").mkdir()
+    corners = [(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
+    quads = [(1, 2, 4, 3), (5, 7, 8, 6), (1, 5, 6, 2), (3, 4, 8, 7), (1, 3, 7, 5), (2, 6, 8, 4)]
+    (tmp_path / "meshes" / "part.obj").write_text("".join(f"v {x} {y} {z}\n" for x, y, z in corners)
+                                                  + "".join(f"f {a} {b} {c}\nf {a} {c} {d}\n" for a, b, c, d in quads))
+    (tmp_path / "scene.toml").write_text(text)
+    scene = load_scene_file(tmp_path / "scene.toml", scale=0.5)
+    assert (scene.name, scene.frames, scene.fps, scene.dt) == ("dough_and_ball", 60, 30.0, None)
+    assert scene.builder.spacing == pytest.approx(0.02)  # 0.01 at scale 0.5
+    model = scene.builder.finalize()
+    assert model.body_names == ["slab", "ball", "cylinder2", "star3", "part"]
+    soft, bouncy, clay, dough = model.materials
+    assert soft.mu == pytest.approx(1.5e4 / 2.6) and soft.lam == pytest.approx(1.5e4 * 0.3 / (1.3 * 0.4))
+    assert soft.yield_stress == we.Material.preset("dough").yield_stress
+    assert (bouncy.mu, bouncy.lam, bouncy.density, bouncy.yield_stress) == (7.0e4, 2.8e5, 1100.0, float("inf"))
+    assert clay == we.Material.preset("clay") and dough == we.Material.preset("dough")
 
 
 def test_the_tools_md_press_exerts_the_force_the_page_states():
