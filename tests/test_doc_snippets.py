@@ -1,5 +1,5 @@
 """The Python snippets the pages show, run as they are written: README.md's quick start,
-docs/scene_format.md's loader and example file, docs/tools.md's press and docs/fitting.md's quick start and worlds;
+docs/scene_format.md's loader and example file, docs/tools.md's press and docs/fitting.md's quick start and worlds, docs/cli.md's sweep;
 and the pages' example command lines,
 the CLI's and the benchmarks', parsed. Each is read from its page, so a page whose snippet stops running (a renamed call, a
 changed signature, a dropped option) fails here; only a loop count is cut, where the page's run
@@ -175,6 +175,36 @@ def test_the_pages_command_examples_are_command_lines_the_parser_takes():
             _build_parser().parse_args(argv)
         except (SystemExit, cli._UsageError) as exc:
             pytest.fail(f"{page}: warp-esph {' '.join(argv)} is refused by the parser ({exc})")
+
+
+def test_the_cli_md_sweep_snippet_runs_and_its_resume_runs_nothing_again(tmp_path, monkeypatch):
+    """docs/cli.md's Python sweep, run as a script (``__main__``) with its sizes cut: 2 of its
+    8 samples, 1 of its 30 frames, 1 worker (in this process) for 2. Its resume had named the
+    folder the command writes, which the snippet never made, and stopped at a ValueError; it
+    now resumes the table it has, whose samples all ran: the same rows come back, none run."""
+    monkeypatch.chdir(tmp_path)
+    code = _python_blocks(ROOT / "docs" / "cli.md")[0]
+    assert code.count("yield_stress=100:1000:log:8") == 2 and code.count("frames=30") == 2
+    code = code.replace("yield_stress=100:1000:log:8", "yield_stress=100:1000:log:2").replace("frames=30", "frames=1")
+    code = _shortened(code, "workers=2", "workers=1")
+    ran = []
+    import warp_esph.sweep as sweep_module  # noqa: PLC0415
+
+    run_sample = sweep_module.parallel_map
+
+    def counted(fn, items, **kw):
+        ran.extend(items)
+        return run_sample(fn, items, **kw)
+
+    monkeypatch.setattr(sweep_module, "parallel_map", counted)
+    scope = {"__name__": "__main__"}
+    exec(compile(code, "cli.md", "exec"), scope)
+    table = scope["table"]
+    assert len(ran) == 2, "the resume ran samples again"
+    heights = table.column("max_height")
+    assert len(heights) == 2 and np.all(np.isfinite(heights))
+    assert (tmp_path / "sweep.csv").is_file()
+    assert np.asarray(scope["starts"]).shape[0] == 8
 
 
 class _Parsed(Exception):
