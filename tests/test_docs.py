@@ -446,3 +446,14 @@ def test_the_slump_heights_readme_gives_as_not_met_are_the_validation_suites():
     assert m, "README.md no longer says how far the S = 0.2 and 0.3 slumps are from the 1-D theory"
     assert [float(m.group(1)), float(m.group(2))] == [round(off[0.2], 1), round(off[0.3], 1)]
     assert off[0.2] > 10.0 and off[0.3] > 10.0
+
+
+def test_the_readmes_documentation_list_names_every_page():
+    """README.md's "Documentation" list is where a new reader looks for the pages: each page of
+    docs/ is linked there (docs/tools.md, docs/gallery.md and docs/table1.md were linked only
+    from sentences above it)."""
+    text = (ROOT / "README.md").read_text()
+    listed = text[text.index("## Documentation"):]
+    listed = listed[:listed.index("\n## ", 1)] if "\n## " in listed[1:] else listed
+    linked = {m for m in re.findall(r"\]\(docs/([\w.-]+\.md)[)#]", listed)}
+    assert linked == {p.name for p in DOCS.glob("*.md")}, sorted({p.name for p in DOCS.glob("*.md")} - linked)
