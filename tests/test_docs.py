@@ -457,3 +457,14 @@ def test_the_readmes_documentation_list_names_every_page():
     listed = listed[:listed.index("\n## ", 1)] if "\n## " in listed[1:] else listed
     linked = {m for m in re.findall(r"\]\(docs/([\w.-]+\.md)[)#]", listed)}
     assert linked == {p.name for p in DOCS.glob("*.md")}, sorted({p.name for p in DOCS.glob("*.md")} - linked)
+
+
+def test_performance_md_head_names_every_benchmark_the_page_runs():
+    """docs/performance.md's opening says where its numbers come from; it said all came from
+    benchmarks/step.py but for the worlds section, while six of its sections ran other
+    benchmarks."""
+    text = (DOCS / "performance.md").read_text()
+    head = text[:text.index("\n## ")]
+    run = set(re.findall(r"python -m benchmarks\.(\w+)", text)) - {"validation", "table1"}
+    assert len(run) >= 5
+    assert not [name for name in sorted(run) if f"benchmarks/{name}.py" not in head]
