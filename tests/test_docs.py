@@ -468,3 +468,21 @@ def test_performance_md_head_names_every_benchmark_the_page_runs():
     run = set(re.findall(r"python -m benchmarks\.(\w+)", text)) - {"validation", "table1"}
     assert len(run) >= 5
     assert not [name for name in sorted(run) if f"benchmarks/{name}.py" not in head]
+
+
+def test_physics_md_reader_path_links_every_open_problem():
+    """docs/physics.md is a long measurement log; its opening "Reading this page" is the
+    reader's way in and must lead to each section that says a problem is open (a heading with
+    "Still open", "not fixed" or "not mended"), so that none is found only by scrolling."""
+    page = DOCS / "physics.md"
+    text = page.read_text()
+    path = text[text.index("## Reading this page"):]
+    path = path[:path.index("\n## ", 1)]
+    linked = set(re.findall(r"\]\(#([\w-]+)\)", path))
+    assert linked <= _anchors(page)
+    text = re.sub(r"^```.*?^```", "", text, flags=re.S | re.M)
+    open_ = [h for h in re.findall(r"^#{2,4} (.+)$", text, flags=re.M)
+             if re.search(r"Still open|not fixed|not mended", h)]
+    assert len(open_) >= 3
+    slug = {h: re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-") for h in open_}
+    assert not [h for h in open_ if slug[h] not in linked]
