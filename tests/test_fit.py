@@ -534,8 +534,11 @@ def test_fit_cli_writes_json_and_usd(tmp_path):
     assert fit_cli(args) == 0
     doc = json.loads((tmp_path / "out" / "fit.json").read_text())
     # Two frames of a drop stay below yield: the gradient is exactly zero, the fit stops
-    # at once and says so, and the diagnostics say the data do not determine the value.
-    assert doc["params_fitted"] == ["yield_stress"] and len(doc["history"]) == 1
+    # at once and says so, and the diagnostics say the data do not determine the value. The
+    # guess runs as given, so its loss is 0 too: one forward-only run a step away (loss 0
+    # again) tells a loss that does not depend on the value from a guess at a minimum.
+    assert doc["params_fitted"] == ["yield_stress"] and len(doc["history"]) == 2
+    assert doc["history"][1]["loss"] == 0.0 and doc["history"][1]["grad"] is None
     assert doc["stopped"] == "flat" and not doc["converged"] and doc["diagnostics"]["undetermined"] == ["yield_stress"]
     assert doc["loss"] <= doc["initial_loss"]
     assert (tmp_path / "out" / "fitted.usdc").stat().st_size > 0  # usd-core is a dependency
@@ -1516,6 +1519,30 @@ def test_a_float32_model_is_fitted_from_its_guess():
                  diagnostics=False)
     assert result.history[0]["params"]["yield_stress"] == [40.0]
     assert said and not any("outside its bounds" in s for s in said)
+
+
+@pytest.mark.parametrize("optimizer", ["lbfgs", "gauss-newton"])
+def test_the_first_evaluation_runs_the_guess_bit_for_bit(optimizer):
+    """The start was exp(log p): 450 Pa ran as 450.00000000000006, and 7/s clipped onto its
+    bound as 7.000000000000001, so the first evaluation and the initial loss were not the
+    guess's. The values the first rollout reads are the guess's (a bound's where the guess
+    lies past it) to the bit, in the model's arrays and in the history."""
+    assert math.exp(math.log(450.0)) != 450.0 and math.exp(math.log(7.0)) != 7.0  # what the test rests on
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.06, 0.06, 0.06), we.Material(mu=2e3, lam=3e3, yield_stress=450.0, flow_rate=20.0),
+              velocity=(0.0, -1.0, 0.0), name="block")
+    b.add_ground()
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    loss = PositionLoss({5: model.particle_x0 - 0.001})
+    seen = []
+
+    def callback(k, value, params):
+        seen.append((float(model.yield_stress.numpy()[0]), float(model.flow_rate.numpy()[0])))
+
+    result = fit(model, loss, ["yield_stress", "flow_rate"], steps=5, dt=2e-4, iterations=2, progress=False,
+                 bounds={"flow_rate": (1.0, 7.0)}, optimizer=optimizer, callback=callback, diagnostics=False)
+    assert seen[0] == (450.0, 7.0)
+    assert result.history[0]["params"] == {"yield_stress": [450.0], "flow_rate": [7.0]}
 
 
 def test_a_dtype_asked_of_fit_is_the_precision_it_runs_in_or_refused():

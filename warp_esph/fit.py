@@ -122,7 +122,8 @@ class FitResult:
     parameters). ``stopped``: why the fit ended: ``converged`` (step or gradient below
     its tolerance), ``stalled`` (no lower loss for ``patience`` evaluations, or a line
     search that found none), ``iterations`` (the cap), ``flat`` (the initial gradient is
-    exactly zero), ``tol``, ``callback``;
+    exactly zero; at a loss of 0, ``converged`` where a forward-only evaluation ``lr`` away
+    reads a loss above 0), ``tol``, ``callback``;
     ``converged`` is True only for ``converged`` and ``tol``. ``diagnostics``: a
     ``warp_esph.diagnostics.Diagnostics`` at the optimum (None when not asked for).
     ``models``/``experiment_materials``: per experiment of a joint fit. An entry's
@@ -1131,10 +1132,19 @@ class _Problem:
                     why = self.refusal(guess | {name: np.full(self.k, end)})
                     if why is not None:
                         raise BoundsError(name, lo, hi, _end_refused(name, side, end, why))
-        why = self.refusal(self.from_z(self.to_z(guess)))
+        # The start is the guess itself (a value outside the box, its bound), not exp(log p):
+        # that missed the user's value by an ulp (300 Pa ran as 300.00000000000006), and the
+        # fit's first evaluation and its initial loss were not the guess's. Each coordinate at
+        # its start's z reads its start's value (``from_z``), so a point that moved some values
+        # (a Jacobian's difference, a value held on a bound) keeps the others as given.
+        self._start = None
+        start = {name: np.clip(v, *self.bounds[name]) if name in self.bounds else np.array(v, dtype=np.float64)
+                 for name, v in guess.items()}
+        why = self.refusal(start)
         if why is not None:
             raise ValueError(f"the initial values are not allowed within the bounds: {why}")
-        self.z0 = self.project(self.to_z(guess))
+        self.z0 = self.to_z(start)
+        self._start = (self.z0.copy(), np.concatenate([start[n] for n in params]))
         #: One label per entry of z: ``name`` or ``name[k]`` with several materials.
         self.labels = [name if self.k == 1 else f"{name}[{j}]" for name in params for j in range(self.k)]
 
@@ -1144,10 +1154,14 @@ class _Problem:
     def from_z(self, z) -> dict[str, np.ndarray]:
         out = {}
         for j, name in enumerate(self.params):
-            zz = np.asarray(z[j * self.k: (j + 1) * self.k], dtype=np.float64)
+            part = slice(j * self.k, (j + 1) * self.k)
+            zz = np.asarray(z[part], dtype=np.float64)
             v = np.exp(zz) if self.spaces[name] == "log" else zz * self.scales[name]
             if name in self.bounds:
                 v = np.clip(v, *self.bounds[name])
+            if self._start is not None:
+                z0, p0 = self._start
+                v = np.where(zz == z0[part], p0[part], v)
             out[name] = v
         return out
 
@@ -1189,9 +1203,12 @@ class _Problem:
             r.apply(p)
         return p
 
-    def value_and_grad(self, z, losses=None) -> tuple[float, np.ndarray]:
+    def value_and_grad(self, z, losses=None, wants=None) -> tuple[float, np.ndarray | None]:
         """The weighted sum of the experiments' losses (or of ``losses``, one per run) and
-        its gradient in optimiser space."""
+        its gradient in optimiser space. ``wants(value)``: whether the gradient at that loss
+        is read (``_run_lbfgs``'s trials); where not, no backward runs and the gradient is None."""
+        if wants is not None and losses is None:
+            return self._value_then_grad(z, wants)
         p = self.apply(z)
         total, gz = 0.0, np.zeros(len(z))
         for k, r in enumerate(self.runs):
@@ -1203,6 +1220,29 @@ class _Problem:
             value, grads = r.value_and_grad(loss, _check_diverged if losses is None else None)
             total += w * float(value)
             gz += w * self.grad_z(p, r.grads(self.params, grads))
+        return total, gz
+
+    def _value_then_grad(self, z, wants) -> tuple[float, np.ndarray | None]:
+        """``value_and_grad`` whose backwards run only where ``wants`` the loss the taped
+        forwards give: every experiment's forward first (each its own rollout and tape, so the
+        backwards after them give the bits they gave each after its own forward)."""
+        p = self.apply(z)
+        for r in self.runs:
+            check = getattr(r.loss, "check_positions", None)
+            if check is not None:
+                check(r.model.particle_count)
+            r.forward()
+            _check_diverged(r)
+        value = 0.0
+        for r in self.runs:
+            value += r.weight * float(r.loss.value(r.rollout.observations()))
+        if not wants(value):
+            return value, None
+        total, gz = 0.0, np.zeros(len(z))
+        for r in self.runs:
+            v, grads = r.rollout.backward(r.loss)
+            total += r.weight * float(v)
+            gz += r.weight * self.grad_z(p, r.grads(self.params, grads))
         return total, gz
 
     def value(self, z) -> float:
@@ -1522,7 +1562,7 @@ def fit(
       below ``gtol`` times its initial one, or a rejected L-BFGS trial's slope puts the
       minimum along its direction within ``xtol``; ``"stalled"`` when ``patience`` evaluations
       in a row did not lower the best loss (by 1e-9 relative); ``"iterations"`` at the
-      cap; ``"flat"`` when the initial gradient is exactly zero (nothing to follow);
+      cap; ``"flat"`` when the initial gradient is exactly zero at a loss above 0 (nothing to follow);
 
       ``"tol"`` once the loss is below ``tol``; ``"callback"``.
     - Global first stage: ``samples = N > 0`` evaluates the loss alone (forward passes)
@@ -1772,11 +1812,11 @@ def fit(
         return residuals
 
     def sequential_evaluate(track):
-        def evaluate(z):
+        def evaluate(z, wants=None):
             t0 = time.perf_counter()
             note = None
             try:
-                value, gz = prob.value_and_grad(z)
+                value, gz = prob.value_and_grad(z, wants=wants)
             except FloatingPointError as e:
                 value, gz, note = math.inf, np.full(len(z), np.nan), _refused_note(e)
             return record(track, z, value, gz, time.perf_counter() - t0, note)
@@ -2109,7 +2149,9 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record, hal
     closed = False  # set once the calling thread has stopped answering (an error, Ctrl-C)
 
     def worker(w):
-        def evaluate(z):
+        def evaluate(z, wants=None):
+            # ``wants`` is not read: a round's one backward is every world's (each start's
+            # gradient is taken, and read or not).
             with cv:
                 if closed:
                     # A start that was between an answer and its next evaluation when the
@@ -2253,7 +2295,7 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
         held = _held(z, g, bounds) if finite else None
         if finite and g0 is None:
             if float(np.abs(g).max()) == 0.0:
-                return "flat"
+                return _zero_gradient(evaluate, project, z, value, lr)
             # The free values' gradient, as L-BFGS reads it: a held one's does not fall.
             g0 = float(np.abs(np.where(held, 0.0, g)).max())
             if g0 == 0.0:
@@ -2287,6 +2329,22 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
         z = z_new
         opt.lr *= decay
     return "iterations"
+
+
+def _zero_gradient(evaluate, project, z: np.ndarray, value: float, size: float) -> str:
+    """Why a first gradient of exactly zero ends a fit (Adam, L-BFGS). At a loss above 0 the
+    loss does not depend on the values there: ``"flat"``. A loss of exactly 0, the least any
+    takes, is a guess that made its target (run as given, to the bit): a minimum,
+    ``"converged"``, where the loss depends on the values, which one evaluation ``size`` away
+    in every coordinate of optimiser space (into the box) asks, forward only; where it reads
+    0 too, ``"flat"`` (a drop that stays below the yield stress: the data do not determine it)."""
+    if value != 0.0:
+        return "flat"
+    probe = project(z + size)
+    if np.array_equal(probe, z):
+        probe = project(z - size)
+    moved, _, finite = evaluate(probe, lambda loss: False)
+    return "converged" if finite and moved > 0.0 else "flat"
 
 
 def _minimum_within(g: np.ndarray, g_new: np.ndarray, step: np.ndarray, xtol: float) -> bool:
@@ -2362,7 +2420,7 @@ def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-
     if not finite:
         raise _FirstPointFailed(f"the loss or its gradient is not finite at the initial guess (loss = {f})")
     if float(np.abs(g).max()) == 0.0:
-        return "flat"
+        return _zero_gradient(evaluate, project, z, f, lr)
     held = _held(z, g, bounds)
     # The gradient the free coordinates follow: the held ones' entries point out of the box.
     g0 = float(np.abs(np.where(held, 0.0, g)).max())
