@@ -26,6 +26,15 @@ and the two histories must be equal (losses, parameters, gradients)::
     python -m benchmarks.fit_bench --loss-only                          # 125, 1000 particles x 40 steps
     python -m benchmarks.fit_bench --loss-only --particles 125 --steps 40 --repeats 5
 
+``--rejected`` times L-BFGS fits of the block (from 2, 0.5, 1.01 and 1.0001 times the
+yield stress and flow rate, the diagnostics on) whose rejected line-search trials run their
+backward only where the minimum-within test may read it (``fit.LBFGS_TRIAL_BACKWARDS``),
+against the same fits with every trial's backward run, as before: alternating, best of
+``--repeats``; the fits must be the same to the bit (points, losses, gradients both read,
+verdicts, fitted values, Fisher matrix)::
+
+    python -m benchmarks.fit_bench --rejected --repeats 3
+
 It prints a table and writes JSON (``--json``, default ``fit_bench.json``). Not a test.
 """
 
@@ -204,6 +213,95 @@ def _loss_only_main(a, sizes, step_counts, argv) -> int:
     return 0 if all(r["same_history"] for r in rows) else 1
 
 
+#: The rejected-trials benchmark's starts (factors on the block's yield stress and flow rate)
+#: and evaluation cap: starts whose line searches reject trials near and far from the minimum.
+REJECTED_FACTORS = (2.0, 0.5, 1.01, 1.0001)
+REJECTED_ITERATIONS = 40
+
+
+def _backward_count(history) -> int:
+    return sum(1 for h in history if h.get("grad") is not None)
+
+
+def _same_fit(old, new) -> bool:
+    """The same fit to the bit: each evaluation's point and loss, the gradients both read, the
+    fitted values, the verdict and the diagnostics' Fisher matrix."""
+    if len(old.history) != len(new.history) or old.stopped != new.stopped:
+        return False
+    for a, b in zip(old.history, new.history):
+        if a["params"] != b["params"] or a["loss"] != b["loss"]:
+            return False
+        if b["grad"] is not None and a["grad"] != b["grad"]:
+            return False
+    return (all(np.array_equal(old.params[n], new.params[n]) for n in old.params)
+            and np.array_equal(old.diagnostics.fisher, new.diagnostics.fisher))
+
+
+def measure_rejected(particles: int, steps: int, repeats: int = 3) -> list[dict]:
+    """L-BFGS fits of the block (``REJECTED_FACTORS`` off, diagnostics on) with every
+    line-search trial's backward run (``fit.LBFGS_TRIAL_BACKWARDS = "always"``, as before)
+    and, alternating, with a rejected trial's run only where its slope may decide the
+    minimum-within test (``"read"``): one row per start, best of ``repeats`` each."""
+    truth = _guess_model(particles, 1.0)
+    dt = truth.stable_dt()
+    frames = sorted({steps // 2, steps})
+    loss = PositionLoss(Rollout(truth, steps, dt, frames=frames).forward(), frames=frames)
+
+    def run(mode, factor):
+        model = _guess_model(particles, factor)
+        fit_module.LBFGS_TRIAL_BACKWARDS = mode
+        try:
+            gc.collect()
+            w0, c0 = time.perf_counter(), time.process_time()
+            result = fit_module.fit(model, loss, list(LOSS_ONLY_PARAMS), steps=steps, dt=dt, optimizer="lbfgs",
+                                    iterations=REJECTED_ITERATIONS, noise=1e-4, progress=False)
+            return result, time.perf_counter() - w0, time.process_time() - c0
+        finally:
+            fit_module.LBFGS_TRIAL_BACKWARDS = "read"
+
+    rows = []
+    for factor in REJECTED_FACTORS:
+        for mode in ("always", "read"):  # warm-up
+            run(mode, factor)
+        best = {m: (math.inf, math.inf) for m in ("always", "read")}
+        results = {}
+        for k in range(repeats):
+            for mode in (("always", "read") if k % 2 == 0 else ("read", "always")):
+                result, wall, cpu = run(mode, factor)
+                results[mode] = result
+                best[mode] = (min(best[mode][0], wall), min(best[mode][1], cpu))
+        old, new = results["always"], results["read"]
+        evaluations = len(new.history)
+        rows.append({
+            "particles": truth.particle_count, "steps": steps, "factor": factor,
+            "evaluations": evaluations, "stopped": new.stopped,
+            "backwards_before": _backward_count(old.history), "backwards_now": _backward_count(new.history),
+            "wall_before_s": best["always"][0], "wall_now_s": best["read"][0],
+            "wall_ratio": best["read"][0] / best["always"][0],
+            "cpu_before_s": best["always"][1], "cpu_now_s": best["read"][1],
+            "cpu_ratio": best["read"][1] / best["always"][1],
+            "same_fit": bool(_same_fit(old, new)),
+        })
+    return rows
+
+
+def _rejected_main(a, sizes, step_counts, argv) -> int:
+    rows = []
+    for n in sizes:
+        for steps in step_counts:
+            rows += measure_rejected(n, steps, a.repeats)
+    hdr = (f"{'particles':>9} {'steps':>6} {'start':>7} {'evals':>5} {'bwd before':>10} {'bwd now':>7} {'wall before':>11} "
+           f"{'wall now':>8} {'ratio':>6} {'cpu ratio':>9} {'stopped':>10} {'same':>5}")
+    print(hdr)
+    print("-" * len(hdr))
+    for r in rows:
+        print(f"{r['particles']:>9} {r['steps']:>6} {r['factor']:>7g} {r['evaluations']:>5} {r['backwards_before']:>10} "
+              f"{r['backwards_now']:>7} {r['wall_before_s']:>11.3f} {r['wall_now_s']:>8.3f} {r['wall_ratio']:>6.3f} "
+              f"{r['cpu_ratio']:>9.3f} {r['stopped']:>10} {str(r['same_fit']):>5}")
+    _write(a, argv, rows)
+    return 0 if all(r["same_fit"] for r in rows) else 1
+
+
 def _write(a, argv, rows) -> None:
     report = {
         "command": " ".join([os.path.basename(sys.argv[0])] + (argv if argv is not None else sys.argv[1:])),
@@ -236,6 +334,9 @@ def main(argv=None) -> int:
                     help="segment length for the checkpointed runs: an integer or 'sqrt' (default)")
     ap.add_argument("--loss-only", action="store_true",
                     help="time a small fit's loss-only runs untaped against taped (default 125, 1000 particles x 40 steps)")
+    ap.add_argument("--rejected", action="store_true",
+                    help="time L-BFGS fits whose rejected line-search trials run their backward only where read, "
+                         "against every trial's (default 125 particles x 40 steps)")
     ap.add_argument("--repeats", type=_cli.positive_int, default=1, help="timed repeats per configuration (the fastest is kept)")
     ap.add_argument("--quick", action="store_true", help="a tiny run: 125 particles, 20 steps (not with --particles, --steps)")
     ap.add_argument("--json", default="fit_bench.json", type=_cli.output_file, help="output JSON path")
@@ -250,6 +351,13 @@ def main(argv=None) -> int:
     from warp_esph.startup import init_warp  # noqa: PLC0415 (log_level, no native CUDA note)
 
     init_warp()
+    if a.loss_only and a.rejected:
+        ap.error("--loss-only is not allowed with --rejected: each is a benchmark of its own")
+    if a.rejected and a.checkpoint is not None:
+        ap.error(f"--checkpoint = {a.checkpoint!r} is not allowed with --rejected (its fits run one full tape each)")
+    if a.rejected:
+        return _rejected_main(a, [125] if a.quick else (a.particles or [125]), [20] if a.quick else (a.steps or [40]),
+                              argv)
     if a.loss_only:
         sizes = [125] if a.quick else (a.particles or [125, 1000])
         step_counts = [20] if a.quick else (a.steps or [40])

@@ -92,6 +92,21 @@ def test_fit_benchmark_times_a_fits_loss_only_runs_untaped_against_taped(tmp_pat
     assert all(r["cpu_ratio"] == pytest.approx(r["untaped_cpu_s"] / r["taped_cpu_s"]) for r in rows)
 
 
+def test_fit_benchmark_times_lbfgs_fits_whose_rejected_trials_run_no_backward_unread(tmp_path, monkeypatch):
+    """``benchmarks.fit_bench --rejected`` at a tiny size and one start: the fit whose rejected
+    trials run their backward only where it is read runs fewer backwards than the same fit
+    with every trial's, to the same points, verdict and diagnostics, bit for bit."""
+    from benchmarks import fit_bench
+
+    monkeypatch.setattr(fit_bench, "REJECTED_FACTORS", (1.0001,))
+    out = tmp_path / "fit_bench.json"
+    assert fit_bench.main(["--rejected", "--particles", "27", "--steps", "20", "--repeats", "1", "--json", str(out)]) == 0
+    (row,) = json.loads(out.read_text())["rows"]
+    assert row["same_fit"] and row["stopped"] == "converged"
+    assert row["backwards_before"] == row["evaluations"] > row["backwards_now"] > 0
+    assert row["cpu_ratio"] == pytest.approx(row["cpu_now_s"] / row["cpu_before_s"])
+
+
 def test_fit_benchmarks_loss_only_rows_count_the_runs_that_ran(tmp_path, monkeypatch):
     """``forward_runs`` of ``fit_bench --loss-only`` is what its fit ran: it added two runs of
     the diagnostics at the fitted point to ``Diagnostics.evaluations``, which had come to

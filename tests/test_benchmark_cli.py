@@ -23,7 +23,7 @@ from benchmarks import _cli  # noqa: E402
 
 #: Per module, the functions that start the work: none may be called on bad input.
 ENTRY_POINTS = {
-    "fit_bench": ("measure", "measure_loss_only", "block_model"),
+    "fit_bench": ("measure", "measure_loss_only", "measure_rejected", "block_model"),
     "floors": ("_forward", "_taped"),
     "gradient_bench": ("measure", "block_model", "star_model"),
     "launches": ("measure", "measure_taped"),
@@ -138,6 +138,8 @@ def test_run_turns_value_and_os_errors_into_one_line(capsys):
     (["--quick", "--particles", "500"], ["--particles", "--quick"]),
     (["--loss-only", "--checkpoint", "5"], ["--checkpoint = 5 is not allowed with --loss-only"]),
     (["--loss-only", "--repeats", "0"], ["--repeats = 0", ">= 1"]),
+    (["--rejected", "--loss-only"], ["--loss-only is not allowed with --rejected"]),
+    (["--rejected", "--checkpoint", "5"], ["--checkpoint = 5 is not allowed with --rejected"]),
 ])
 def test_fit_bench(refused, argv, words):
     refused("fit_bench", argv, *words)

@@ -588,3 +588,47 @@ def test_the_diagnostics_run_the_fitted_point_again_where_the_scene_changed_sinc
     own = diagnosed()
     assert _diagnostics_bits(d) == _diagnostics_bits(own)
     assert d.evaluations == own.evaluations == 4 * len(TRUTH) + 1  # the reuse declined
+
+
+@pytest.mark.parametrize("factor, backwards", [(1.0001, "fewer"), (1.0000001, "all")])
+def test_a_rejected_lbfgs_trial_runs_its_backward_only_where_its_slope_is_read(landing, monkeypatch, factor,
+                                                                              backwards):
+    """A rejected line-search trial's gradient is read only by the minimum-within test
+    (``_minimum_within``), which decides only where the minimum along the step lies within
+    ``xtol``; every trial's backward had run. From 1e-4 off, most of the trials are rejected
+    far (in ``xtol``) from where that test decides, and run no backward now; from 1e-7 off the
+    one rejected trial decides (converged at the second evaluation), and its backward runs.
+    The fits take the same points, losses and verdicts, to the bit, as with every backward run."""
+    from warp_esph import fit as fit_module
+    from warp_esph.rollout import Rollout as RolloutClass
+
+    dt, target = landing
+    calls = []
+    backward = RolloutClass.backward
+
+    def counted(self, *args, **kwargs):
+        calls.append(1)
+        return backward(self, *args, **kwargs)
+
+    monkeypatch.setattr(RolloutClass, "backward", counted)
+
+    def fitted(mode):
+        monkeypatch.setattr(fit_module, "LBFGS_TRIAL_BACKWARDS", mode)
+        calls.clear()
+        result = fit(_cube(TRUTH["yield_stress"] * factor, TRUTH["flow_rate"] * factor), target, list(TRUTH),
+                     steps=STEPS, dt=dt, frames=FRAMES, optimizer="lbfgs", iterations=30, progress=False,
+                     diagnostics=False)
+        return result, len(calls)
+
+    before, ran_before = fitted("always")
+    now, ran_now = fitted("read")
+    assert now.stopped == before.stopped == "converged"
+    assert [(h["params"], h["loss"]) for h in now.history] == [(h["params"], h["loss"]) for h in before.history]
+    assert all(a["grad"] == b["grad"] for a, b in zip(before.history, now.history) if b["grad"] is not None)
+    assert all(np.array_equal(now.params[n], before.params[n]) for n in TRUTH)
+    assert ran_before == len(before.history)
+    assert ran_now == sum(1 for h in now.history if h["grad"] is not None)
+    if backwards == "all":
+        assert ran_now == ran_before == len(now.history) == 2
+    else:
+        assert ran_now < ran_before / 2, (ran_now, ran_before)

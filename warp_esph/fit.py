@@ -119,7 +119,8 @@ class FitResult:
     ``history``: one dict per evaluation (``iteration, stage, loss, params, grad,
     seconds``; ``stage`` is ``sample`` for the forward-only global stage, whose ``grad`` is
     None, else ``descent``; ``grad`` is in optimiser space: ``p dL/dp`` for log-space
-    parameters). ``stopped``: why the fit ended: ``converged`` (step or gradient below
+    parameters, and None for a run that took none: Gauss-Newton's, a rejected L-BFGS trial's
+    whose slope nothing reads, ``_slope_may_decide``). ``stopped``: why the fit ended: ``converged`` (step or gradient below
     its tolerance), ``stalled`` (no lower loss for ``patience`` evaluations, or a line
     search that found none), ``iterations`` (the cap), ``flat`` (the initial gradient is
     exactly zero; at a loss of 0, ``converged`` where a forward-only evaluation ``lr`` away
@@ -1816,7 +1817,7 @@ def fit(
             t0 = time.perf_counter()
             note = None
             try:
-                value, gz = prob.value_and_grad(z, wants=wants)
+                value, gz = prob.value_and_grad(z, wants=wants if LBFGS_TRIAL_BACKWARDS == "read" else None)
             except FloatingPointError as e:
                 value, gz, note = math.inf, np.full(len(z), np.nan), _refused_note(e)
             return record(track, z, value, gz, time.perf_counter() - t0, note)
@@ -2362,6 +2363,33 @@ def _minimum_within(g: np.ndarray, g_new: np.ndarray, step: np.ndarray, xtol: fl
     return (down / (down - up)) * float(np.abs(step).max()) < xtol
 
 
+#: How many times ``xtol`` the parabola's minimum (``_slope_may_decide``) may lie from the point
+#: for a rejected trial's backward to run: the slopes' secant, which ``_minimum_within`` reads,
+#: and the parabola through the values agree on a quadratic, and a loss's curvature along a
+#: step changes them by a factor, not thousands.
+SLOPE_MARGIN = 10.0
+
+#: ``"read"``: an L-BFGS trial's backward runs only where its gradient is read (an accepted
+#: trial, or a rejected one whose slope ``_minimum_within`` may decide by); ``"always"``: every
+#: trial's, as before (the baseline ``benchmarks.fit_bench --rejected`` times).
+LBFGS_TRIAL_BACKWARDS = "read"
+
+
+def _slope_may_decide(f: float, f_new: float, down: float, step: np.ndarray, xtol: float) -> bool:
+    """Whether the slope at a rejected trial ``z + step`` (loss ``f_new``; ``f`` and the slope
+    ``down`` along the step at ``z``) may show ``_minimum_within`` a minimum within ``xtol``:
+    the parabola through ``f``, ``down`` and ``f_new`` puts its minimum within ``SLOPE_MARGIN``
+    times ``xtol`` of ``z``. Its backward is run only then: elsewhere nothing reads the
+    trial's gradient (the line search halves the step from ``z``). On a quadratic the slopes'
+    secant zero is the parabola's minimum."""
+    if not math.isfinite(f_new) or down > 0.0:
+        return False  # a failed trial's gradient is read by nothing; a rising start by neither
+    curve = f_new - f - down  # the parabola's t^2 coefficient (> (1 - c1) |down| where rejected)
+    if not curve > 0.0:
+        return True
+    return (-down / (2.0 * curve)) * float(np.abs(step).max()) < SLOPE_MARGIN * xtol
+
+
 def _held(z: np.ndarray, g: np.ndarray, bounds) -> np.ndarray:
     """The coordinates of ``z`` on a bound of the box ``bounds`` (``(lo, hi)`` in optimiser
     space, or None) whose gradient ``g`` points out of it: descent would leave the box there,
@@ -2459,11 +2487,14 @@ def _run_lbfgs(evaluate, project, z, iterations, lr, max_step, memory=10, c1=1e-
                 # search that had to shrink the step that far found no better point
                 # along a descent direction: the loss is too rough to make progress.
                 return "converged" if t == 1.0 else "stalled"
-            f_new, g_new, finite = evaluate(z_new)
+            down = float(g.dot(step))
+            f_new, g_new, finite = evaluate(
+                z_new, lambda value, f=f, down=down, step=step: value <= f + c1 * down or _slope_may_decide(
+                    f, value, down, step, xtol))
             evals += 1
             if finite and f_new <= f + c1 * g.dot(step):
                 break
-            if finite and _minimum_within(g, g_new, step, xtol):
+            if finite and g_new is not None and _minimum_within(g, g_new, step, xtol):
                 return "converged"
             if evals >= iterations:
                 return "iterations"
