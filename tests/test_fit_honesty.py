@@ -2,6 +2,7 @@
 the simulator made at known values), probing the termination and the diagnostics."""
 
 import math
+import re
 import warnings
 
 import numpy as np
@@ -585,11 +586,27 @@ def test_the_diagnostics_run_the_fitted_point_again_where_the_scene_changed_sinc
     compared: the diagnostics read the old scene's run (their gradient and range check off the
     bits of the run they make themselves)."""
     from warp_esph import fit as fit_module
+
+    # The fit refuses such a callback now (the test below); the reuse's own check is the
+    # second line, for a scene changed another way (a loss or motion with side effects).
+    monkeypatch.setattr(fit_module._SceneGuard, "check", lambda self, light, evaluation: None)
+    diagnosed = _changed_mid_fit(change, 0, landing)
+    d = diagnosed()
+    monkeypatch.setattr(fit_module._KeptRun, "ran_as", lambda self, rollout: False)
+    own = diagnosed()
+    assert _diagnostics_bits(d) == _diagnostics_bits(own)
+    assert d.evaluations == own.evaluations == 4 * len(TRUTH) + 1  # the reuse declined
+
+
+def _changed_mid_fit(change, iterations, landing):
+    """A function running a fit of ``_pressed_cube`` whose callback makes ``change`` after the
+    first evaluation; returns its diagnostics."""
     from warp_esph import tools
 
     speed = {"v": 1.0}
     motion = (tools.Scripted(lambda t: ((0.0, 0.07 - speed["v"] * t, 0.0), (0.0, 0.0, 0.0, 1.0)))
               if change == "scripted speed" else tools.Velocity(velocity=(0.0, -1.0, 0.0)))
+    dt, target = landing
 
     def diagnosed():
         speed["v"] = 1.0
@@ -597,6 +614,8 @@ def test_the_diagnostics_run_the_fitted_point_again_where_the_scene_changed_sinc
         start = model.state(requires_grad=False)  # the model's own start, given as a state
 
         def after_the_first_run(i, loss, params):
+            if i != 0:
+                return False
             if change == "particle_x0":
                 model.particle_x0 = model.particle_x0 + np.array([0.0, 0.002, 0.0])
             elif change == "particle_v0":
@@ -613,20 +632,37 @@ def test_the_diagnostics_run_the_fitted_point_again_where_the_scene_changed_sinc
                 model.particle_mass.assign(1.2 * model.particle_mass.numpy())
             elif change == "rest density":
                 model.particle_rest_density.assign(1.05 * model.particle_rest_density.numpy())
+            elif change == "pressure clamp":
+                model.set_material(0, model.materials[0].replace(clamp_pressure=not model.materials[0].clamp_pressure))
+            elif change == "shear modulus":
+                model.set_material(0, model.materials[0].replace(mu=2.5e3))
+            elif change == "gravity":
+                model.gravity = (0.0, -5.0, 0.0)
             else:
                 speed["v"] = 1.5
             return False
 
-        dt, target = landing
-        return fit(model, target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES, iterations=0, progress=False,
-                   noise=1e-4, callback=after_the_first_run,
+        return fit(model, target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES, iterations=iterations,
+                   progress=False, noise=1e-4, callback=after_the_first_run,
                    initial={"initial_state": start} if change == "initial_state" else None).diagnostics
 
-    d = diagnosed()
-    monkeypatch.setattr(fit_module._KeptRun, "ran_as", lambda self, rollout: False)
-    own = diagnosed()
-    assert _diagnostics_bits(d) == _diagnostics_bits(own)
-    assert d.evaluations == own.evaluations == 4 * len(TRUTH) + 1  # the reuse declined
+    return diagnosed
+
+
+@pytest.mark.filterwarnings("ignore:tools .* follow tools.Scripted motions")
+@pytest.mark.parametrize("change, named", [
+    ("particle_x0", "particle_x0"), ("particle_v0", "particle_v0"), ("tool size", "tools.param"),
+    ("scripted speed", "tools.motions[0]"), ("initial_state", "initial_state.v"), ("ground height", "plane_offset"),
+    ("particle mass", "particle_mass"), ("rest density", "particle_rest_density"), ("pressure clamp", "materials[0]"),
+    ("shear modulus", "mu"), ("gravity", "gravity")])
+def test_a_callback_that_changes_the_scene_mid_fit_is_refused_naming_what_it_changed(landing, change, named):
+    """A fit's callback that changed the scene after an evaluation was fitted on: the later
+    evaluations ran another scene than the earlier ones (a moved ground, a heavier body, a
+    faster press), the optimiser's steps and best point mixed the two, and the diagnostics
+    read a run of either. The fit now refuses it after that callback, naming what changed."""
+    with pytest.raises(ValueError, match=r"callback is not allowed to change the scene mid-fit: after evaluation 0 "
+                                         r"it changed .*" + re.escape(named)):
+        _changed_mid_fit(change, 2, landing)()
 
 
 @pytest.mark.parametrize("factor, backwards", [(1.0001, "fewer"), (1.0000001, "all")])

@@ -770,6 +770,75 @@ class _KeptRun:
         return True
 
 
+class _SceneGuard:
+    """What a fit's runs read besides the values it writes, so that a callback that changed
+    the scene mid-fit is refused (``check``) rather than fitted: the evaluations after it ran
+    another scene than those before (a plane moved, a material's density, a tool's speed), the
+    optimiser's pairs and the best point mixed the two, and the diagnostics read a run of
+    either. Taken as the descent begins: the particles' start, masses, volumes, rest
+    densities and materials, the static colliders, the tools' arrays and meshes, the materials
+    (their fields the parameter arrays do not hold), the state a run starts from, and each
+    Scripted motion's pose at the run's start and end (``scene``). The parameter arrays, which
+    the fit writes, and the run's settings (``dt``, gravity, the solver's, which follow the
+    values: ``fit="auto"``) are read just before each callback and after it (``light``)."""
+
+    def __init__(self, runs):
+        self.runs = runs
+        self.scenes = [self.scene(r) for r in runs]
+
+    @staticmethod
+    def scene(run) -> dict:
+        m = run.model
+        out = _KeptRun._scene(m)
+        out.update({f"materials[{k}]": mat for k, mat in enumerate(m.materials)})
+        init = run.initial.get("initial_state")
+        if isinstance(init, State):
+            out.update({f"initial_state.{name}": getattr(init, name).numpy().copy() for name in State.STATE_FIELDS
+                        if getattr(init, name, None) is not None})
+            out["initial_state.time"] = init.time
+        if m.tools is not None:
+            t0 = float(init.time) if isinstance(init, State) else 0.0
+            for k in m.tools._scripted:
+                # Two poses, not the run's every one: a Python call each (2 per step).
+                motion = m.tools.motions[k]
+                out[f"tools.motions[{k}]"] = (motion, motion.pose(t0), motion.pose(t0 + run.steps * run.dt))
+        return out
+
+    def light(self) -> list:
+        return [(r.model._read_parameters(), r.rollout.run_settings()) for r in self.runs]
+
+    def check(self, light, evaluation: int) -> None:
+        """Raise a ``ValueError`` naming what the callback after ``evaluation`` changed, if anything."""
+        said = []
+        for r, scene, (rows, settings) in zip(self.runs, self.scenes, light):
+            now = self.scene(r)
+            changed = [k for k in dict.fromkeys([*scene, *now]) if not _same(scene.get(k), now.get(k))]
+            now_rows = r.model._read_parameters()
+            changed += [name for k, name in enumerate(Model.MATERIAL_FIELDS) if not np.array_equal(rows[k], now_rows[k])]
+            now_settings = r.rollout.run_settings()
+            changed += [f"{k} ({settings[k]!r}, now {now_settings[k]!r})" for k in settings
+                        if settings[k] != now_settings.get(k)]
+            if changed:
+                where = "" if r.name == "the experiment" else f"{r.name}: "
+                said.append(where + ", ".join(changed))
+        if said:
+            raise ValueError(f"callback is not allowed to change the scene mid-fit: after evaluation {evaluation} it "
+                             f"changed {'; '.join(said)}; the evaluations after it would fit another scene than "
+                             "those before (and the diagnostics read either): have it return True to stop the fit, "
+                             "and fit the new scene anew")
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.shape == b.shape and np.array_equal(a, b)
+    if isinstance(a, tuple) and isinstance(b, tuple):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    try:
+        return bool(a == b)
+    except ValueError:  # e.g. a pose of arrays
+        return False
+
+
 class _Run(_Values):
     """One experiment made ready: its model, rollout, loss and fitted materials. ``taped``:
     whether the fit takes gradients through its runs (False: a Gauss-Newton fit, whose every
@@ -1588,7 +1657,9 @@ def fit(
       (``result.diagnostics.evaluations``). ``result.diagnostics`` holds standard
       errors, correlations and warnings about parameters the data do not determine.
     - ``callback(evaluation, loss, params)``: after each evaluation; return ``True`` to
-      stop. ``log``: called with one-line messages (memory, time per evaluation, stages).
+      stop. It must leave the scene as it is: one that changed what the runs read (materials,
+      colliders, tools, the start, gravity, the solver's settings) is a ``ValueError`` naming
+      what changed (``_SceneGuard``). ``log``: called with one-line messages (memory, time per evaluation, stages).
     - ``lbfgs_memory``: the number of past steps L-BFGS keeps (default 10). ``progress``:
       a progress bar on stderr. ``dtype`` and ``tie_pressure``: the module docstring.
     """
@@ -1772,9 +1843,13 @@ def fit(
             bar.update(1)
         if state["stop_all"] is not None:
             raise _Stop(state["stop_all"])
-        if callback is not None and callback(len(history) - 1, value, {k: v.copy() for k, v in p.items()}):
-            state["stop_all"] = "callback"
-            raise _Stop("callback")
+        if callback is not None:
+            light = state["guard"].light()
+            stop = callback(len(history) - 1, value, {k: v.copy() for k, v in p.items()})
+            state["guard"].check(light, len(history) - 1)
+            if stop:
+                state["stop_all"] = "callback"
+                raise _Stop("callback")
         if tol is not None and finite and value < tol:
             raise _Stop("tol")
         if track.since_best >= patience:
@@ -1888,6 +1963,8 @@ def fit(
     if use_worlds:
         say(f"multi-start: {track_count} starts as {track_count} worlds of one model per experiment")
     tracks = [_Track(k) for k in range(track_count)]
+    if callback is not None:
+        state["guard"] = _SceneGuard(runs)
     state["guarded"] = _guarded(runs)  # the global stage's forward runs counted too
     # The descent's runs keep what the diagnostics read: at the best point they had run the
     # model again, the same inputs and bits, for what the fit had already had in hand.
