@@ -1892,7 +1892,10 @@ def fit(
             t0 = time.perf_counter()
             note = None
             try:
-                value, gz = prob.value_and_grad(z, wants=wants if LBFGS_TRIAL_BACKWARDS == "read" else None)
+                if wants is None or LBFGS_TRIAL_BACKWARDS != "read":
+                    value, gz = prob.value_and_grad(z)
+                else:
+                    value, gz = prob.value_and_grad(z, wants=wants)
             except FloatingPointError as e:
                 value, gz, note = math.inf, np.full(len(z), np.nan), _refused_note(e)
             return record(track, z, value, gz, time.perf_counter() - t0, note)
