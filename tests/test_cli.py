@@ -1997,3 +1997,31 @@ def test_the_run_record_and_the_usd_file_say_which_model_auto_ran(tmp_path, caps
         assert data["warp_esph:fit"] == "auto"
         assert (data["warp_esph:resolved_fit"], data["warp_esph:hourglass"], data["warp_esph:rest_model"]) == want[name]
     capsys.readouterr()
+
+
+@pytest.mark.parametrize("argv, shown", [
+    (["run", "--scale", "1e400"], "--scale = 1e400 is not allowed: must be a finite number (it overflows a float)"),
+    (["run", "--fps=-1E+999"], "--fps = -1E+999 is not allowed: must be a finite number (it overflows a float)"),
+    (["run", "--dt", "2e308"], "--dt = 2e308 is not allowed: must be a finite number (it overflows a float)"),
+    (["run", "--scale", "1e-400"], "--scale = 1e-400 is not allowed: must be > 0"),
+    (["sweep", "dough_drop", "--param", "yield_stress=1:10:lin:2", "--duration", "1e400"],
+     "--duration = 1e400 is not allowed: must be a finite number (it overflows a float)"),
+])
+def test_a_number_no_float_holds_is_echoed_as_typed(argv, shown, capsys):
+    """'--scale 1e400' was refused as '--scale = inf', a value nobody typed (and '1e-400' as
+    '0.0'); the overflow is said too."""
+    assert main(argv) == 2
+    assert_one_line_error(capsys.readouterr().err, shown)
+
+
+def test_a_number_read_as_typed_computes_as_its_float():
+    import pickle
+
+    from warp_esph.checks import read_number
+
+    assert type(read_number("1.5")) is float and read_number("inf") == float("inf")
+    big = read_number("1e400")
+    assert big == float("inf") and repr(big) == "1e400" and f"{big:g}" == "1e400"
+    assert pickle.loads(pickle.dumps(big)) == big and repr(pickle.loads(pickle.dumps(big))) == "1e400"
+    assert read_number(" 1e-400 ") == 0.0 and repr(read_number("1e-400")) == "1e-400"
+    assert type(read_number("0e5")) is float

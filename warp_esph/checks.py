@@ -58,6 +58,45 @@ def shorten(value):
 MAX_INT = 2**31 - 1
 
 
+class TypedNumber(float):
+    """A number read from text that no float holds (``1e400`` reads as inf, ``1e-400`` as 0.0):
+    it computes as that float, and a message shows it as typed. A refusal said
+    ``--scale = inf`` to a command line that typed ``--scale 1e400``."""
+
+    def __new__(cls, value: float, text: str):
+        self = super().__new__(cls, value)
+        self.text = text
+        return self
+
+    def __getnewargs__(self):
+        return float(self), self.text
+
+    def __repr__(self):
+        return self.text
+
+    __str__ = __repr__
+
+    def __format__(self, spec):
+        return self.text
+
+
+def read_number(text: str) -> float:
+    """``float(text)``, or a ``TypedNumber`` where the text names a finite number other than
+    zero that the float overflows to inf or rounds to 0.0 (a ``ValueError`` where it is no
+    number)."""
+    import decimal  # noqa: PLC0415
+
+    v = float(text)
+    if math.isinf(v) or v == 0.0:
+        try:
+            exact = decimal.Decimal(str(text).strip())
+        except decimal.InvalidOperation:
+            return v
+        if exact.is_finite() and exact != 0:
+            return TypedNumber(v, str(text).strip())
+    return v
+
+
 def number(name: str, value, *, allow_inf: bool = False) -> float:
     """A real number (bools, strings and NaN rejected); ``inf`` only when ``allow_inf``."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(value, "__float__"):
@@ -80,7 +119,7 @@ def number(name: str, value, *, allow_inf: bool = False) -> float:
     except (TypeError, ValueError):
         _fail(name, value, "must be a number")
     if math.isnan(v) or (math.isinf(v) and not allow_inf):
-        _fail(name, value, "must be a finite number")
+        _fail(name, value, "must be a finite number" + (" (it overflows a float)" if isinstance(value, TypedNumber) else ""))
     return v
 
 

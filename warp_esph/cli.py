@@ -49,8 +49,11 @@ def _integer(text: str) -> int:
 
 
 def _number(text: str) -> float:
+    from .checks import read_number  # noqa: PLC0415
+
     try:
-        return float(text)
+        # 1e400 said as typed in a refusal, not as the inf it reads as
+        return read_number(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not allowed: must be a number") from None
 
@@ -357,10 +360,12 @@ def _cmd_scenes() -> int:
 
 def _dt_arg(text: str):
     """``--dt``: seconds, or ``auto`` for the adaptive step."""
+    from .checks import read_number  # noqa: PLC0415
+
     if text.strip().lower() == "auto":
         return "auto"
     try:
-        return float(text)
+        return read_number(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"--dt = {text!r} is not allowed: must be a number of seconds or 'auto'") from None
 
