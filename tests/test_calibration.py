@@ -1849,10 +1849,29 @@ def _foreign_points_usd(path, samples, rate=None, meters=1.0):
     return str(path)
 
 
+def test_a_nan_position_in_a_usd_target_is_a_missing_marker_as_in_an_npz(tmp_path):
+    """NaN in an .npz target is a missing marker, left out of the loss; the same NaN in a USD
+    target (another program's points, an occluded marker) was refused as 'must be finite'."""
+    from warp_esph.fit import load_target, save_target
+
+    p = np.random.default_rng(1).uniform(0.0, 0.1, (3, 8, 3)) + np.array([0.0, 0.01, 0.02])[:, None, None]
+    p[2, 6] = np.nan  # marker 6 not seen at frame 2
+    p[1, 3, 1] = np.nan  # one coordinate lost: the marker is missing there too
+    p = p.astype(np.float32)
+    usd = load_target(_foreign_points_usd(tmp_path / "gap.usda", dict(enumerate(p)), rate=30))
+    save_target(tmp_path / "gap.npz", p, frames=[0, 1, 2], fps=30)
+    npz = load_target(tmp_path / "gap.npz")
+    assert usd.frames == [1, 2] and usd.fps == npz.fps == 30.0
+    assert npz.frames == [0, 1, 2]
+    np.testing.assert_array_equal(np.asarray(usd.data), np.asarray(npz.data)[1:])  # NaN where the .npz has it
+    assert np.isnan(np.asarray(usd.data)[1, 6]).all() and np.isfinite(np.asarray(usd.data)[1, :6]).all()
+    assert [usd.frames[k] for k in usd._fitted_frames()] == [npz.frames[k] for k in npz._fitted_frames()] == [1, 2]
+
+
 def test_a_foreign_usd_target_is_read_by_its_frames_and_rate_or_refused_by_name(tmp_path):
     """Another program's USD of particles: a particle count that changes from frame to frame
     (or an empty sample) failed in numpy, 'all input arrays must have the same shape', naming
-    no file; a NaN position was refused later as 'targets at step 34'; samples at negative
+    no file; an infinite position was refused later as 'targets at step 34'; samples at negative
     time codes ended in a KeyError traceback in the fit command; a file that authors no
     rate was read at USD's fallback of 24 fps as if recorded so, which overrode the scene's
     rate and refused --fps 30 as 'recorded at 24 fps'."""
@@ -1863,9 +1882,9 @@ def test_a_foreign_usd_target_is_read_by_its_frames_and_rate_or_refused_by_name(
         ("fewer", {0: p, 1: p, 2: p[:5]}, r"body 'cloud' has 8 particles at frame 1 and 5 at frame 2; a run's particles "
                                           r"are the same in every frame"),
         ("empty", {0: p, 1: p, 2: p[:0]}, r"body 'cloud' has 8 particles at frame 1 and 0 at frame 2"),
-        ("nan", {0: p, 1: p, 2: np.where(np.arange(8)[:, None] == 6, np.nan, p)},
-         r"at frame 2, 1 of its 8 positions are not finite \(first: particle 6, \[nan, nan, nan\]\); every position of a "
-         r"target must be finite"),
+        ("inf", {0: p, 1: p, 2: np.where(np.arange(8)[:, None] == 6, np.inf, p)},
+         r"at frame 2, 1 of its 8 positions are infinite \(first: particle 6, \[inf, inf, inf\]\); a missing one \(an "
+         r"occluded marker\) is NaN"),
         ("negative", {-2: p, -1: p, 0: p}, r"its points have time samples at negative time codes \(-2, -1\); a warp-esph "
                                            r"output has one per frame, at time code = frame index >= 0"),
     ):

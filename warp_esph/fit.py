@@ -2991,7 +2991,8 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
 
     - ``.npz``: ``positions`` ``(K, n, 3)`` (or ``(n, 3)``), optional ``frames`` (rendered
       frame indices; default 0..K-1) and ``fps``. A NaN position (``.npz`` or ``.npy``) is a
-      missing marker, left out of the loss (``PositionLoss``); a file all NaN is refused.
+      missing marker, left out of the loss (``PositionLoss``), also in a run's USD (another
+      program's); a file all NaN is refused.
     - ``.npy``: positions ``(K, n, 3)`` of frames ``0..K-1``, or ``(n, 3)``: the last frame.
     - ``<output>_tools.csv`` of ``warp-esph run`` (a CSV whose header names ``frame, time,
       tool, fx, fy, fz``): the reaction-force curve of ``tool`` (a tool's or a static
@@ -3531,13 +3532,14 @@ def _usd_run_target(path: str, body, frames, frames_name: str = "frames") -> Tar
             k = index if body is not None else next(k for k in range(len(given)) if here[k] != counts[k])
             raise ValueError(f"target {path} is not allowed: body {given[k]!r} has {counts[k]} particles at frame {first} "
                              f"and {here[k]} at frame {f}; a run's particles are the same in every frame")
-        bad = np.flatnonzero(~np.isfinite(pts).all(axis=1))
+        bad = np.flatnonzero(np.isinf(pts).any(axis=1))
         if bad.size:
             # Refused here, by file and frame: it was named 'targets at step 34', by the step it
-            # was compared at (a particle that blew up in the run, or another program's gap).
-            raise ValueError(f"target {path} is not allowed: at frame {f}, {bad.size} of its {len(pts)} positions are not finite "
+            # was compared at. NaN is a missing marker (another program's gap, an occluded one),
+            # left out of the loss as an .npz target's is; it was refused here as 'not finite'.
+            raise ValueError(f"target {path} is not allowed: at frame {f}, {bad.size} of its {len(pts)} positions are infinite "
                              f"(first: particle {bad[0]}{'' if body is None else f' of body {body!r}'}, "
-                             f"{pts[bad[0]].tolist()}); every position of a target must be finite")
+                             f"{pts[bad[0]].tolist()}); a missing one (an occluded marker) is NaN")
         pos.append(pts)
     bodies = None if body is not None else list(zip(given, counts))
     # A rate the file does not author is USD's fallback (24), not a recorded one: it overrode
