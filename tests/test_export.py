@@ -613,3 +613,54 @@ def test_outputs_over_a_link_or_a_special_file_in_an_output_folder_are_refused_b
     assert len(err) == 1 and err[0].startswith(f"warp-esph: error: --output = '{pictures}' is not allowed: "
                                                f"'{pictures / 'frame_00000.png'}' in it is a symbolic link"), err
     assert (tmp_path / "real.png").read_bytes() == b"kept"
+
+
+@pytest.mark.parametrize("fmt", ["vtu", "ply"])
+def test_an_export_into_a_folder_of_an_earlier_one_leaves_its_own_frames_alone(tmp_path, capsys, fmt):
+    """An export of fewer frames into the folder of an earlier one left the earlier frames
+    beside its own (a .vtu folder's frames.pvd listed only the new ones; a .ply folder said
+    nothing of which were current). Only files of the export's own naming go: not another
+    format's frames, nor any other file."""
+    from test_render import write_clusters
+
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=4, shift=(0.01, 0.0, 0.0))
+    out = tmp_path / "frames"
+    assert main(["export", str(path), "--format", fmt, "-o", str(out)]) == 0
+    others = ["frame_00003.png", "frame_00003.other.vtu", "frame_3.vtu", "notes.txt"] + ["frames.pvd"] * (fmt == "ply")
+    for name in others:
+        (out / name).write_text("not the export's")
+    assert main(["export", str(path), "--format", fmt, "-o", str(out), "--frames", "1:2"]) == 0
+    capsys.readouterr()
+    own = ["frame_00001." + fmt, "frame_00002." + fmt] + ["frames.pvd"] * (fmt == "vtu")
+    assert sorted(os.listdir(out)) == sorted(own + others)
+    for name in others:
+        assert (out / name).read_text() == "not the export's"
+    # The frames written are this export's: frame 2's positions, moved twice from frame 0's.
+    x = UsdFrames(str(path)).arrays(2)["points"]
+    np.testing.assert_array_equal(meshio.read(out / f"frame_00002.{fmt}").points, x)
+    if fmt == "vtu":
+        pvd = (out / "frames.pvd").read_text()
+        assert re.findall(r'file="([^"]+)"', pvd) == ["frame_00001.vtu", "frame_00002.vtu"]
+
+
+def test_a_render_into_a_folder_of_an_earlier_one_leaves_its_own_pictures_alone(tmp_path, capsys):
+    """As for export: a render of fewer frames into a folder of an earlier render's pictures
+    left them beside its own; other files stay."""
+    from test_render import write_clusters
+
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=3)
+    out = tmp_path / "pictures"
+    small = ["--width", "24", "--height", "16", "--supersample", "1", "--no-shadows"]
+    assert main(["render", str(path), "-o", str(out), *small]) == 0
+    assert sorted(os.listdir(out)) == [f"frame_{f:05d}.png" for f in range(3)]
+    (out / "frame_00000.vtu").write_text("an export's frame")
+    (out / "cover.png").write_text("not the render's")
+    # A refused render removes nothing.
+    assert main(["render", str(path), "-o", str(out), "--frames", "2", "--fit", "some", *small]) == 2
+    assert len(os.listdir(out)) == 5
+    assert main(["render", str(path), "-o", str(out), "--frames", "2", *small]) == 0
+    capsys.readouterr()
+    assert sorted(os.listdir(out)) == ["cover.png", "frame_00000.vtu", "frame_00002.png"]
+    assert (out / "frame_00000.vtu").read_text() == "an export's frame"

@@ -605,6 +605,25 @@ def output_files(what: str, folder, names) -> None:
                              f"or give another folder")
 
 
+def remove_frame_files(folder, ext: str, keep=()) -> None:
+    """Remove from ``folder`` the frame files an earlier export or render left there, but for
+    ``keep``: ``frame_NNNNN.<ext>``, and for ``vtu`` the ``frames.pvd`` that lists them; no
+    other file. A new export of fewer frames left the earlier ones beside its own, as if they
+    were (and its ``frames.pvd`` listed only the new)."""
+    folder = os.fspath(folder)
+    if not os.path.isdir(folder):
+        return
+    keep = {os.path.basename(f) for f in keep}
+    for name in os.listdir(folder):
+        stem, _, rest = name.partition(".")
+        digits = stem[6:]
+        # Only a name the writers give (frame_3.vtu, frame_00003.old.vtu are someone else's).
+        frame = stem.startswith("frame_") and digits.isascii() and digits.isdigit() and stem == f"frame_{int(digits):05d}"
+        ours = (frame and rest == ext) or (ext == "vtu" and name == "frames.pvd")
+        if ours and name not in keep and os.path.isfile(os.path.join(folder, name)):
+            os.remove(os.path.join(folder, name))
+
+
 def usd_output(what: str, path, written=None) -> None:
     """Refuse ``path`` (where a USD file is written: ``written``, default ``path`` itself) where
     its absolute path is not UTF-8 text. USD takes file names as UTF-8 strings, so a name of

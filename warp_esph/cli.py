@@ -667,7 +667,7 @@ def _cmd_run(args) -> int:
             # So are the frame files and picture this run is to write: a run that stopped early
             # (or was killed) left the earlier run's, of another length, beside its own file.
             if args.export:
-                _remove_frame_files(f"{writer.path}_{args.export}", args.export)
+                checks.remove_frame_files(f"{writer.path}_{args.export}", args.export)
             if args.preview and os.path.isfile(writer.path + ".png"):
                 os.remove(writer.path + ".png")
         run_record = {"scene": args.scene if args.scene is not None else scene.name, "scale": scale, "fps": fps, "dt": dt,
@@ -911,19 +911,6 @@ def _cmd_run(args) -> int:
     return 0
 
 
-def _remove_frame_files(folder: str, fmt: str, keep=()) -> None:
-    """Remove the frame files (``frame_NNNNN.<fmt>``, and ``frames.pvd`` unless kept) an
-    export of an earlier run of the same output left in ``folder``, but for ``keep``."""
-    if not os.path.isdir(folder):
-        return
-    keep = {os.path.basename(f) for f in keep}
-    for name in os.listdir(folder):
-        stem, dot, ext = name.partition(".")
-        ours = (stem.startswith("frame_") and stem[6:].isdigit() and ext == fmt) or name == "frames.pvd"
-        if ours and dot and name not in keep and os.path.isfile(os.path.join(folder, name)):
-            os.remove(os.path.join(folder, name))
-
-
 def _export_run(args, writer, start_frame: int, whole: bool) -> int:
     """``run --export``: every frame the output holds into ``<output>_<fmt>/``, once the run has
     ended, also where it stopped early (``whole`` False: interrupted, diverged), so that the frame
@@ -931,6 +918,7 @@ def _export_run(args, writer, start_frame: int, whole: bool) -> int:
     status of an export that could not be written (4) or was interrupted (130, 143), its line said."""
     if not args.export or writer.last_frame is None or not os.path.isfile(writer.path):
         return 0
+    from . import checks  # noqa: PLC0415
     from .export import ExportWriteError, export_frames  # noqa: PLC0415
 
     # The whole output name, as the checkpoint's: a.usdc and a.usda in one folder must
@@ -954,7 +942,7 @@ def _export_run(args, writer, start_frame: int, whole: bool) -> int:
         print(f"{PROG}: {_stopped(args)}: --export {args.export}: {kept}{writer.path} {held}", file=sys.stderr)
         return EXIT_INTERRUPTED  # (main makes it 143 after a SIGTERM)
     # A resumed run's file may end before frames an earlier export of it wrote.
-    _remove_frame_files(folder, args.export, keep=files)
+    checks.remove_frame_files(folder, args.export, keep=files)
     print(f"exported {len(files)} files to {folder}")
     return 0
 
@@ -1142,7 +1130,7 @@ def _cmd_render(args) -> int:
         args.usd, args.output, args.frames, color=args.color, width=args.width, height=args.height,
         supersample=args.supersample, radius_scale=args.radius_scale, azimuth=args.azimuth, elevation=args.elevation,
         zoom=args.zoom, label=not args.no_label, shadows=not args.no_shadows, columns=args.columns, fps=args.fps,
-        fit=args.fit, surfaces=not args.particles, progress=progress, flag=option_flag,
+        fit=args.fit, surfaces=not args.particles, progress=progress, flag=option_flag, clear=True,
     )
     what = {"dir": f"{len(result.files)} PNG files in {result.output}", "png": result.output,
             "gif": f"{result.output} ({len(result.frames)} frames)", "mp4": f"{result.output} ({len(result.frames)} frames)"}
@@ -1163,7 +1151,7 @@ def _cmd_export(args) -> int:
     folder = args.output if args.output is not None else f"{os.path.abspath(args.usd)}_{args.format}"
     checks.output_place("--output", folder, folder=True)
     _arm(args)
-    files = export_frames(args.usd, args.format, folder, frames=args.frames, flag=option_flag)
+    files = export_frames(args.usd, args.format, folder, frames=args.frames, flag=option_flag, clear=True)
     frames = len(files) - (1 if args.format == "vtu" else 0)
     extra = " and frames.pvd (open it in ParaView)" if args.format == "vtu" else ""
     print(f"wrote {frames} .{args.format} files{extra} to {folder}")

@@ -83,14 +83,18 @@ def frame_arrays_to_mesh(arrays: dict, fmt: str):
     return meshio.Mesh(pts, cells, point_data=data)
 
 
-def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, flag=None) -> list[str]:
+def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, flag=None, clear: bool = False) -> list[str]:
     """Write ``frames`` (see ``usd.parse_frames``; default all) of ``usd_path`` as ``fmt``
     (``vtu`` or ``ply``) files into ``output_dir`` (created, but not its parents: a missing parent
     folder is a ``ValueError``); returns the files written. A frame named twice is refused. A file
     that cannot be written raises ``ExportWriteError`` (an ``OSError``) naming it; the files
     written before stay whole, and ``frames.pvd`` lists them where it can still be written; a
     Ctrl-C raises a ``KeyboardInterrupt`` whose ``kept`` says so (``checks.interrupted``).
-    ``flag(name)``: how a refusal names the option ``name`` (the CLI's ``--frames``)."""
+    ``flag(name)``: how a refusal names the option ``name`` (the CLI's ``--frames``). ``clear``
+    (the CLI's): first remove the frame files of an earlier export in ``output_dir``
+    (``checks.remove_frame_files``: ``frame_NNNNN.<fmt>``, and ``frames.pvd`` for ``vtu``; no
+    other file), once the input and the selection are checked, so that the folder holds this
+    export's frames alone, also when it stops early."""
     import meshio  # noqa: PLC0415
 
     from . import checks  # noqa: PLC0415
@@ -105,6 +109,8 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, fl
     # One file per frame: a frame named twice is refused (it was written once and counted twice).
     chosen = parse_frames(frames, data.frames, flag("frames"))
     checks.output_files(flag("output"), out, [f"frame_{f:05d}.{fmt}" for f in chosen] + ["frames.pvd"] * (fmt == "vtu"))
+    if clear:
+        checks.remove_frame_files(out, fmt)
     os.makedirs(out, exist_ok=True)
     files = []
 

@@ -1119,7 +1119,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
                supersample: int = 2, radius_scale: float = 1.0, azimuth: float | None = None,
                elevation: float | None = None, zoom: float = 1.0, fov: float = 30.0, label: bool = True,
                shadows: bool = True, columns: int | None = None, fps: float | None = None, fit: str = "all",
-               surfaces: bool = True, progress=None, flag=None) -> RenderResult:
+               surfaces: bool = True, progress=None, flag=None, clear: bool = False) -> RenderResult:
     """Render frames of a ``UsdWriter`` file.
 
     ``output``: a folder (no extension; PNG per frame, ``frame_00012.png``; created, but not its
@@ -1137,7 +1137,9 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     is called after each frame. ``flag(name)``: how a refusal names the option ``name``
     (default: the parameter's name; the CLI's ``--radius-scale`` for ``radius_scale``). A Ctrl-C
     raises a ``KeyboardInterrupt`` whose ``kept`` says which pictures are written whole
-    (``checks.interrupted``).
+    (``checks.interrupted``). ``clear`` (the CLI's): for a folder, first remove the
+    ``frame_NNNNN.png`` an earlier render left there (no other file), once the options are
+    checked, so that the folder holds this render's pictures alone.
     """
     flag = flag or _same_name
     data = UsdFrames(path)
@@ -1208,6 +1210,9 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     t0 = time.perf_counter()
     renderer = Renderer(data, chosen, options)
     shared_range = renderer.color_range
+    if clear and kind == "dir":
+        # Once every option is checked: a refused render left the earlier pictures as they were.
+        checks.remove_frame_files(out, "png")
     files: list[str] = []
     images: list[Image.Image] = []
     count = 0
