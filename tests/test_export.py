@@ -664,3 +664,90 @@ def test_a_render_into_a_folder_of_an_earlier_one_leaves_its_own_pictures_alone(
     capsys.readouterr()
     assert sorted(os.listdir(out)) == ["cover.png", "frame_00000.vtu", "frame_00002.png"]
     assert (out / "frame_00000.vtu").read_text() == "an export's frame"
+
+
+@pytest.mark.parametrize("error", [ValueError, TypeError, RuntimeError])
+def test_an_unexpected_error_mid_export_is_one_line_saying_what_is_written(tmp_path, monkeypatch, capsys, error):
+    """An error of no kind export expects (a bug in a writer), raised once frames are written:
+    a ValueError was exit 2, 'bad input', and the others a traceback, neither saying which
+    files were written. Now one line naming it and where it was raised, exit 1, as run says it."""
+    from test_cli import assert_one_line_error
+    from test_render import write_clusters
+
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=4)
+    real = meshio.write
+
+    def broken(name, mesh, *a, **k):
+        if "frame_00002" in str(name):
+            raise error("the writer broke")
+        return real(name, mesh, *a, **k)
+
+    monkeypatch.setattr(meshio, "write", broken)
+    out = tmp_path / "vtu"
+    assert main(["export", str(path), "-o", str(out)]) == 1
+    captured = capsys.readouterr()
+    assert "wrote" not in captured.out
+    assert_one_line_error(captured.err, f"the export stopped in frame 2: {error.__name__}: the writer broke (raised at "
+                                        "test_export.py:", f"2 of the 4 frames are written whole in {out}; frames.pvd lists them)")
+    assert sorted(os.listdir(out)) == ["frame_00000.vtu", "frame_00001.vtu", "frames.pvd"]
+    assert re.findall(r'file="([^"]+)"', (out / "frames.pvd").read_text()) == ["frame_00000.vtu", "frame_00001.vtu"]
+
+
+def test_a_frame_the_file_refuses_mid_export_or_render_is_still_bad_input(tmp_path, capsys):
+    """A damaged frame (no finite position) met once frames are written is the input's fault:
+    exit 2, naming the file, not an error of no kind expected."""
+    from pxr import Usd, UsdGeom
+    from test_cli import assert_one_line_error
+    from test_render import write_clusters
+
+    path = tmp_path / "anim.usda"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=3)
+    stage = Usd.Stage.Open(str(path))
+    prim = next(p for p in stage.GetPrimAtPath("/World").GetChildren() if p.IsA(UsdGeom.Points))
+    n = len(UsdGeom.Points(prim).GetPointsAttr().Get(Usd.TimeCode(1.0)))
+    UsdGeom.Points(prim).GetPointsAttr().Set([(np.nan, 0.0, 0.0)] * n, Usd.TimeCode(1.0))
+    stage.GetRootLayer().Save()
+    for argv in (["export", str(path), "-o", str(tmp_path / "vtu")],
+                 ["render", str(path), "-o", str(tmp_path / "png"), "--width", "24", "--height", "16", "--supersample", "1"]):
+        assert main(argv) == 2
+        assert_one_line_error(capsys.readouterr().err, "frame 1 has no particle with a finite position")
+
+
+@pytest.mark.parametrize("output", ["pictures", "movie.gif"])
+def test_an_unexpected_error_mid_render_is_one_line_saying_what_is_written(tmp_path, monkeypatch, capsys, output):
+    """As for export: a render stopped by an error of no kind expected (a bug in the renderer or
+    the picture's writer) was a traceback, or for a ValueError exit 2, 'bad input'."""
+    from test_cli import assert_one_line_error
+    from test_render import write_clusters
+
+    from warp_esph import render as render_module
+
+    path = tmp_path / "anim.usdc"
+    write_clusters(path, [(0.0, 0.2, 0.0)], frames=3)
+    out = tmp_path / output
+    if output == "pictures":
+        real = render_module.Renderer.render
+
+        def broken(self, frame):
+            if frame == 1:
+                raise ZeroDivisionError("the renderer broke")
+            return real(self, frame)
+
+        monkeypatch.setattr(render_module.Renderer, "render", broken)
+        needles = ("the render stopped in frame 1: ZeroDivisionError: the renderer broke (raised at test_export.py:",
+                   f"1 of the 3 frames are written whole in {out})")
+    else:
+        def broken(img, part, **options):
+            raise ValueError("the encoder broke")
+
+        monkeypatch.setattr(render_module, "_save_image", broken)
+        needles = ("the render stopped: ValueError: the encoder broke (raised at test_export.py:",
+                   f"{out} is not written (a file of that name is left as it was))")
+    assert main(["render", str(path), "-o", str(out), "--width", "24", "--height", "16", "--supersample", "1"]) == 1
+    captured = capsys.readouterr()
+    assert "wrote" not in captured.out
+    assert_one_line_error(captured.err, *needles)
+    assert sorted(os.listdir(tmp_path)) == ["anim.usdc"] + (["pictures"] if output == "pictures" else [])
+    if output == "pictures":
+        assert os.listdir(out) == ["frame_00000.png"]

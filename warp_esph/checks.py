@@ -546,6 +546,19 @@ def interrupted(kept: str) -> KeyboardInterrupt:
     return e
 
 
+def stopped_writing(exc: BaseException, kept: str, frame: int | None = None) -> None:
+    """Record on ``exc``, an error a writer of several files did not expect (not a write's
+    ``OSError``, not an interrupt), raised once it began writing, what its files keep
+    (``kept``, e.g. '2 of the 4 frames are written whole in out') and the frame it was at
+    (``frame``; None: past the frames, while the file of them was written). The CLI says it
+    in one line, naming the error and where it was raised, and exits 1 (it was a traceback,
+    or for a ``ValueError`` exit 2, 'bad input', saying nothing of what was written)."""
+    if not isinstance(exc, Exception) or isinstance(exc, OSError) or getattr(exc, "kept", None) is not None:
+        return
+    with contextlib.suppress(AttributeError):  # (an exception type without a __dict__)
+        exc.kept, exc.stopped_frame = kept, frame
+
+
 def special_file(path) -> str | None:
     """What ``path`` is where it exists and is neither a regular file nor a folder (a device,
     a named pipe, a socket; through a link too), else None. A writer renames its file over

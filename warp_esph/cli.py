@@ -1,8 +1,8 @@
 """Command line: ``warp-esph run [SCENE] ...``, ``scenes``, ``render OUT.usd``, ``export OUT.usd``,
 ``fit SCENE --target FILE`` and ``sweep SCENE --param ...``.
 
-Exit status: 0 success; 1 an unexpected error stopped a run mid-way (one line naming it and
-what the output keeps); 2 bad input (unknown scene, bad option value, bad scene file,
+Exit status: 0 success; 1 an unexpected error stopped a run, an export or a render mid-way
+(one line naming it, where it was raised and what the output keeps); 2 bad input (unknown scene, bad option value, bad scene file,
 unreadable or unwritable file); 3 the simulation diverged (``SimulationError``; the
 output keeps every frame finished before); 4 the output could not be written mid-run
 (e.g. a full disk; it keeps every frame published before; ``export``, ``render``: the files
@@ -840,11 +840,7 @@ def _cmd_run(args) -> int:
         # An error of no kind the run expects, once frames are written (a bug in a writer or the
         # solver): a traceback that said nothing of the file, or a ValueError called bad input.
         close_error = close_writer()
-        where = e.__traceback__
-        while where.tb_next is not None:
-            where = where.tb_next
-        place = f"{os.path.basename(where.tb_frame.f_code.co_filename)}:{where.tb_lineno}"
-        _err(f"the run stopped in frame {writer.last_frame + 1}: {type(e).__name__}: {e} (raised at {place}; "
+        _err(f"the run stopped in frame {writer.last_frame + 1}: {type(e).__name__}: {e} (raised at {_raised_at(e)}; "
              f"{writer.path} keeps {_kept(writer, start_frame)})")
         if close_error is not None:
             _err(close_error)
@@ -909,6 +905,29 @@ def _cmd_run(args) -> int:
         shown = "surfaces" if result.surface_bodies else "particles"
         print(f"preview: {result.output} ({shown}, {result.seconds:.1f} s)")
     return 0
+
+
+def _raised_at(e: BaseException) -> str:
+    """Where ``e`` was raised, ``file.py:LINE`` (its innermost frame): the line to report a bug with."""
+    where = e.__traceback__
+    while where.tb_next is not None:
+        where = where.tb_next
+    return f"{os.path.basename(where.tb_frame.f_code.co_filename)}:{where.tb_lineno}"
+
+
+def _stopped_writing(what: str, e: BaseException) -> str | None:
+    """The one line of an error of no kind ``what`` (``export``, ``render``) expects, raised once
+    it began writing (``checks.stopped_writing`` records what its files keep), or None: a write
+    that failed (an ``OSError``), an interrupt and a damaged input file (a reader's error, or the
+    refusal of a frame by the file's reader, ``usd.py``) are said as before."""
+    kept = getattr(e, "kept", None)
+    if kept is None or not isinstance(e, Exception) or isinstance(e, OSError) or _is_read_error(e):
+        return None
+    if isinstance(e, ValueError) and _raised_at(e).startswith("usd.py:"):
+        return None  # 'cannot read a.usdc: frame 3 has no particle with a finite position': the input's
+    frame = getattr(e, "stopped_frame", None)
+    at = f" in frame {frame}" if frame is not None else ""
+    return f"the {what} stopped{at}: {type(e).__name__}: {e} (raised at {_raised_at(e)}; {kept})"
 
 
 def _export_run(args, writer, start_frame: int, whole: bool) -> int:
@@ -1126,12 +1145,19 @@ def _cmd_render(args) -> int:
 
     progress = show if sys.stderr.isatty() else None
     _arm(args)
-    result = render_usd(
-        args.usd, args.output, args.frames, color=args.color, width=args.width, height=args.height,
-        supersample=args.supersample, radius_scale=args.radius_scale, azimuth=args.azimuth, elevation=args.elevation,
-        zoom=args.zoom, label=not args.no_label, shadows=not args.no_shadows, columns=args.columns, fps=args.fps,
-        fit=args.fit, surfaces=not args.particles, progress=progress, flag=option_flag, clear=True,
-    )
+    try:
+        result = render_usd(
+            args.usd, args.output, args.frames, color=args.color, width=args.width, height=args.height,
+            supersample=args.supersample, radius_scale=args.radius_scale, azimuth=args.azimuth, elevation=args.elevation,
+            zoom=args.zoom, label=not args.no_label, shadows=not args.no_shadows, columns=args.columns, fps=args.fps,
+            fit=args.fit, surfaces=not args.particles, progress=progress, flag=option_flag, clear=True,
+        )
+    except Exception as e:  # noqa: BLE001 (one line for an error of no kind expected mid-way; the rest raised as before)
+        said = _stopped_writing("render", e)
+        if said is None:
+            raise
+        _err(said)
+        return EXIT_UNEXPECTED
     what = {"dir": f"{len(result.files)} PNG files in {result.output}", "png": result.output,
             "gif": f"{result.output} ({len(result.frames)} frames)", "mp4": f"{result.output} ({len(result.frames)} frames)"}
     drawn = f"{result.particles} particles" + (f" ({result.surface_bodies} bodies as surfaces)" if result.surface_bodies else "")
@@ -1151,7 +1177,14 @@ def _cmd_export(args) -> int:
     folder = args.output if args.output is not None else f"{os.path.abspath(args.usd)}_{args.format}"
     checks.output_place("--output", folder, folder=True)
     _arm(args)
-    files = export_frames(args.usd, args.format, folder, frames=args.frames, flag=option_flag, clear=True)
+    try:
+        files = export_frames(args.usd, args.format, folder, frames=args.frames, flag=option_flag, clear=True)
+    except Exception as e:  # noqa: BLE001 (one line for an error of no kind expected mid-way; the rest raised as before)
+        said = _stopped_writing("export", e)
+        if said is None:
+            raise
+        _err(said)
+        return EXIT_UNEXPECTED
     frames = len(files) - (1 if args.format == "vtu" else 0)
     extra = " and frames.pvd (open it in ParaView)" if args.format == "vtu" else ""
     print(f"wrote {frames} .{args.format} files{extra} to {folder}")

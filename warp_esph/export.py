@@ -126,6 +126,7 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, fl
                 fh.write("\n".join(lines))
             files.append(pvd)
 
+    f = None
     try:
         for k, f in enumerate(chosen):
             file = os.path.join(out, f"frame_{f:05d}.{fmt}")
@@ -148,6 +149,7 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, fl
             raise ExportWriteError(e, files, len(chosen), out) from e
         if isinstance(e, KeyboardInterrupt) and getattr(e, "kept", None) is None:
             raise checks.interrupted(_kept(files, len(chosen), out)) from e
+        checks.stopped_writing(e, _kept(files, len(chosen), out), f)
         raise
     try:
         collection()
@@ -156,4 +158,7 @@ def export_frames(usd_path, fmt: str, output_dir, frames=None, progress=None, fl
     except KeyboardInterrupt as e:
         # Every frame is whole by now: the line said 'interrupted' alone, as if none were.
         raise checks.interrupted(f"{_kept(files, len(chosen), out)}; frames.pvd is not written") from e
+    except Exception as e:
+        checks.stopped_writing(e, f"{_kept(files, len(chosen), out)}; frames.pvd is not written")
+        raise
     return files

@@ -1221,6 +1221,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     # The movie is written beside its name and renamed over it once ffmpeg has finished (an
     # error or interrupt removes it): written in place, an interrupted render left a shorter
     # movie over an earlier one.
+    f = None
     with contextlib.ExitStack() as movie:
         try:
             for k, f in enumerate(chosen):
@@ -1258,6 +1259,7 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
                     writer.close()
             if isinstance(e, KeyboardInterrupt) and getattr(e, "kept", None) is None:
                 raise checks.interrupted(_kept(kind, out, files, chosen)) from e
+            checks.stopped_writing(e, _kept(kind, out, files, chosen), f)
             raise
         if writer is not None:
             writer.close()
@@ -1279,6 +1281,9 @@ def render_usd(path, output=None, frames=None, *, color: str = "body", width: in
     except OSError as e:
         raise checks.OutputWriteError(f"cannot write {out}: {e.strerror or e} (not written; a file of that name is left as "
                                       "it was)", e) from e
+    except Exception as e:
+        checks.stopped_writing(e, _kept(kind, out, files, chosen))
+        raise
     if kind == "mp4":
         files.append(out)
     return RenderResult(out, kind, chosen, files, time.perf_counter() - t0, count, surface_bodies)
