@@ -2025,3 +2025,36 @@ def test_a_number_read_as_typed_computes_as_its_float():
     assert pickle.loads(pickle.dumps(big)) == big and repr(pickle.loads(pickle.dumps(big))) == "1e400"
     assert read_number(" 1e-400 ") == 0.0 and repr(read_number("1e-400")) == "1e-400"
     assert type(read_number("0e5")) is float
+
+
+@pytest.mark.parametrize("error", [ValueError, TypeError])
+def test_an_unexpected_error_in_the_last_force_log_write_is_one_line_exit_1(tmp_path, monkeypatch, capsys, error):
+    """An error of no kind expected (a bug in the log's writer, not a full disk) as the force
+    log was written at the end of a finished run: a ValueError was exit 2, 'bad input', and the
+    others a traceback, neither naming the log nor what the run's file keeps. Now one line, as
+    run says such an error, exit 1; the log as its last checkpoint wrote it."""
+    from warp_esph import tools as tools_module
+    from warp_esph import usd as usd_module
+
+    ended, real_close, real_write = [], usd_module.UsdWriter.close, tools_module.ReactionLog.write
+
+    def close(self):
+        ended.append(True)  # the run's frames are all written: the log's last write comes next
+        real_close(self)
+
+    def write(self, stem):
+        if ended:
+            raise error("the log broke")
+        return real_write(self, stem)
+
+    monkeypatch.setattr(usd_module.UsdWriter, "close", close)
+    monkeypatch.setattr(tools_module.ReactionLog, "write", write)
+    out_path = tmp_path / "g.usdc"
+    assert main(["run", "-o", str(out_path), "--scale", "0.3", "--frames", "5", "--checkpoint-every", "2",
+                 "--no-progress"]) == 1
+    captured = capsys.readouterr()
+    assert_one_line_error(captured.err, f"cannot write the force log {out_path}_tools.csv, .json: {error.__name__}: the log "
+                                        "broke (raised at test_cli.py:", f"it is left as it was; {out_path} keeps the 6 frames")
+    assert "wrote" not in captured.out
+    assert frames_in(out_path) == [float(k) for k in range(6)]
+    assert log_frames(out_path) == {"plane0": [0, 1, 2, 3, 4]}

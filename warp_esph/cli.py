@@ -727,6 +727,7 @@ def _cmd_run(args) -> int:
             return f"cannot write {e.what} {e.path}: {why} ({held}; {writer.path} keeps {_kept(writer, start_frame)})"
 
         log_done = [False]
+        log_unexpected = [False]  # the log's last write failed with an error of no kind expected
         tool_files = None
 
         def write_final_log():
@@ -745,6 +746,13 @@ def _cmd_run(args) -> int:
                     # Said whatever ended the run (its own line stands); a finished run is not a
                     # success without its log (it was exit 2, 'bad input', naming no file).
                     return beside_failure(e)
+                except Exception as e:  # noqa: BLE001 (an error of no kind expected: said as run says one, exit 1)
+                    # A bug in the log's writer: a ValueError was exit 2, 'bad input', the rest a
+                    # traceback, neither naming the log nor what the run's file keeps. The log
+                    # is renamed over its name only once whole: it is left as it was.
+                    log_failed[0] = log_unexpected[0] = True
+                    return (f"cannot write the force log {log_files}: {type(e).__name__}: {e} (raised at {_raised_at(e)}; "
+                            f"it is left as it was; {writer.path} keeps {_kept(writer, start_frame)})")
             return None
 
         def on_frame(frame, current):
@@ -865,7 +873,7 @@ def _cmd_run(args) -> int:
         if _held_signal_wins(args, seen, final_log_error[0]):
             return EXIT_INTERRUPTED
         _err(final_log_error[0])
-        return EXIT_WRITE_FAILED
+        return EXIT_UNEXPECTED if log_unexpected[0] else EXIT_WRITE_FAILED
     if log_failed[0]:
         return EXIT_WRITE_FAILED
     if getattr(getattr(args, "signals", None), "received", None):
