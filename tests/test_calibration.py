@@ -2224,6 +2224,38 @@ def test_cli_fit_bounds_the_fit_refuses_are_one_line_naming_the_option(tmp_path,
     assert not out.exists()
 
 
+@pytest.mark.parametrize("stage", [[], ["--samples", "2"]])
+def test_cli_fit_bounds_past_float32_advise_the_commands_dtype_option(tmp_path, capsys, dough_scene, stage):
+    """An end of --bounds past float32's range is refused through the fit's bounds check; its
+    advice said 'use dtype=float64', fit's Python parameter, which the command does not take:
+    it names --dtype float64 as the command's other precision refusals do. fit() itself keeps
+    its own spelling."""
+    from warp_esph.cli import main
+    from warp_esph.fit import fit
+    from warp_esph.scenes import load_scene
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2))
+    x0 = load_scene(str(guess)).builder.finalize().particle_x0
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.stack([x0]), frames=[2])
+    capsys.readouterr()
+    out = tmp_path / "fit"
+    assert main(["fit", str(guess), "--target", str(target), "--params", "mu", "--bounds", "mu=1:1e39", "--dtype",
+                 "float32", "--iterations", "1", "--no-progress", "--no-usd", "--output-dir", str(out), *stage]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("warp-esph fit: ")]
+    assert len(err) == 1 and err[0].startswith("warp-esph: error: --bounds mu=1:1e39 is not allowed: its upper end"), err
+    assert err[0].endswith("use dtype=float64 (--dtype float64) or a smaller value"), err
+    assert not out.exists()
+    if stage:
+        return
+    model = load_scene(str(guess)).builder.finalize(dtype=wp.float32, requires_grad=True)
+    with pytest.raises(ValueError, match=r"^bounds\['mu'\] = \(1, 1e\+39\) is not allowed: .*in float32: .*; "
+                                         r"use dtype=float64 or a smaller value$"):
+        fit(model, PositionLoss(x0[None], frames=[2]), ["mu"], steps=2, dt=1e-4, bounds={"mu": (1.0, 1e39)}, iterations=1,
+            progress=False, diagnostics=False)
+
+
 def test_the_fit_help_says_the_iteration_cap_is_each_starts_as_it_is(tmp_path, capsys, dough_scene):
     """--help said 'gradient evaluations after the first': the cap is each start's (two
     starts at --iterations 1 make up to 4), Gauss-Newton's are forward runs, and --clip, which

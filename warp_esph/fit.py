@@ -645,14 +645,14 @@ class _Values:
             full["pressure_stiffness"] = kp
         return full
 
-    def refusal(self, p) -> str | None:
+    def refusal(self, p, cli: bool = False) -> str | None:
         """Why a fitted material would refuse the values ``p`` (``Material``'s own checks and
-        the model's precision), or None."""
+        the model's precision), or None; ``cli``: a precision's advice names ``--dtype`` too."""
         full = self.written(p)
         for k in sorted(set(self.idx) | set(self.tied if self.tie else [])):
             try:
                 m = self.model.materials[k].replace(**{n: float(a[k]) for n, a in full.items()})
-                check_material_precision(m, self.model.scalar)
+                check_material_precision(m, self.model.scalar, cli=cli)
             except ValueError as e:
                 return str(e)
         return None
@@ -1056,16 +1056,20 @@ def bounds_said(name: str, lo: float, hi: float, flag=lambda name: name) -> str:
 class BoundsError(ValueError):
     """Bounds of a fitted parameter that the fit refuses once the model is known (``lo`` of a
     log-space parameter at or below 0; an end the material refuses). ``said(flag)``: the
-    message naming them as ``flag`` names options (the command line's ``--bounds NAME=LO:HI``)."""
+    message naming them as ``flag`` names options (the command line's ``--bounds NAME=LO:HI``),
+    with ``cli_reason`` where the reason's advice has the command's spelling (a precision's
+    ``use dtype=float64 (--dtype float64)``: the command takes no ``dtype=``)."""
 
-    def __init__(self, name: str, lo: float, hi: float, reason: str):
+    def __init__(self, name: str, lo: float, hi: float, reason: str, cli_reason: str | None = None):
         self.name, self.lo, self.hi, self.reason = name, lo, hi, reason
+        self.cli_reason = reason if cli_reason is None else cli_reason
         super().__init__(self.said())
 
     def said(self, flag=lambda name: name, typed: str | None = None) -> str:
         """``typed``: the entry as the user wrote it (``hardening=-1e6:100``), named so."""
         given = f"{flag('bounds')} {typed}" if typed is not None else bounds_said(self.name, self.lo, self.hi, flag)
-        return f"{given} is not allowed: {self.reason}"
+        reason = self.cli_reason if flag("bounds").startswith("--") else self.reason
+        return f"{given} is not allowed: {reason}"
 
 
 def _end_refused(name: str, side: str, end: float, why: str) -> str:
@@ -1199,9 +1203,11 @@ class _Problem:
             # A bound a material refuses would only make refused trials: said at once.
             for side, end in (("lower", lo), ("upper", hi)):
                 if math.isfinite(end):
-                    why = self.refusal(guess | {name: np.full(self.k, end)})
+                    at_end = guess | {name: np.full(self.k, end)}
+                    why = self.refusal(at_end)
                     if why is not None:
-                        raise BoundsError(name, lo, hi, _end_refused(name, side, end, why))
+                        raise BoundsError(name, lo, hi, _end_refused(name, side, end, why),
+                                          _end_refused(name, side, end, self.refusal(at_end, cli=True)))
         # The start is the guess itself (a value outside the box, its bound), not exp(log p):
         # that missed the user's value by an ulp (300 Pa ran as 300.00000000000006), and the
         # fit's first evaluation and its initial loss were not the guess's. Each coordinate at
@@ -1253,13 +1259,14 @@ class _Problem:
     def grad_z(self, p, grads: dict[str, np.ndarray]) -> np.ndarray:
         return np.concatenate([grads[n] * p[n] if self.spaces[n] == "log" else grads[n] * self.scales[n] for n in self.params])
 
-    def refusal(self, p) -> str | None:
-        """Why a material would refuse the values ``p``, or None. An optimiser's step too
-        long for the parameters' range (``exp`` past the floats, ``lam`` fitted in linear
-        space stepping below -2 mu / 3) is a failed trial, as a rollout that blew up is, and
-        not an error of the fit: it is refused here, before any value reaches the model."""
+    def refusal(self, p, cli: bool = False) -> str | None:
+        """Why a material would refuse the values ``p``, or None (``cli``: as ``_Run.refusal``).
+        An optimiser's step too long for the parameters' range (``exp`` past the floats,
+        ``lam`` fitted in linear space stepping below -2 mu / 3) is a failed trial, as a
+        rollout that blew up is, and not an error of the fit: it is refused here, before any
+        value reaches the model."""
         for r in self.runs:
-            why = r.refusal(p)
+            why = r.refusal(p, cli)
             if why is not None:
                 return why
         return None
