@@ -455,6 +455,39 @@ def test_a_cloud_time_column_in_seconds_still_tells_a_table_of_frames_and_says_h
         load_target(tmp_path / "scan.csv")
 
 
+@pytest.mark.parametrize("name, head, extra", [
+    ("colours.txt", "//X,Y,Z,R,G,B", [[255, 0, 0], [0, 255, 0], [0, 0, 255]]),
+    ("spaces.xyz", "//X Y Z", None),
+    ("fields.txt", "//X Y Z R G B Scalar_field Intensity", [[1, 2, 3, 0.5, 7], [4, 5, 6, 0.6, 8], [7, 8, 9, 0.7, 9]]),
+    ("lower.asc.txt", "// x y z", None),
+    # Its point count under the header row, as CloudCompare writes both.
+    ("count.txt", "//X,Y,Z\n3", None),
+    # A scalar field named Time, a stamp per point: a .csv had been refused as a force log.
+    ("stamped.csv", "//X,Y,Z,Time", [[0.0], [0.001], [0.002]]),
+])
+def test_a_cloudcompare_ascii_export_whose_header_row_starts_with_slashes_is_read(tmp_path, name, head, extra):
+    """CloudCompare's ASCII export writes its header row as '//X,Y,Z,R,G,B' (spaces for its
+    space separator, its scalar fields' names after them); it was refused as a header that
+    names no columns x, y and z. The '//' is read past and the columns X, Y, Z read."""
+    sep = "," if "," in head else " "
+    rows = [[*p, *(extra[k] if extra else [])] for k, p in enumerate(CLOUD)]
+    (tmp_path / name).write_text(head + "\n" + "".join(sep.join(repr(v) for v in r) + "\n" for r in rows))
+    np.testing.assert_array_equal(load_target(tmp_path / name).data, CLOUD)
+
+
+@pytest.mark.parametrize("name, text, message", [
+    ("names.txt", "//U V W\n0.1 0.2 0.3\n", r"its first row '//U V W' is a header that names no columns x, y and z"),
+    ("mm.txt", "//X (mm),Y (mm),Z (mm)\n100,200,300\n", r"its header gives the coordinates in mm"),
+    ("cut.txt", "//X,Y,Z\n5\n0.1,0.2,0.3\n0.2,0.3,0.4\n", r"its line 2, under the header row, says it holds 5 points, and 2 follow"),
+])
+def test_a_slashed_header_row_is_refused_as_any_header_row_is(tmp_path, name, text, message):
+    """With the '//' read past, a header row naming no x, y, z or another unit than metres, and
+    a count the rows do not hold, are refused as they are without it."""
+    (tmp_path / name).write_text(text)
+    with pytest.raises(ValueError, match=rf"{name.replace('.', '[.]')} cannot be read as a point cloud: {message}"):
+        load_target(tmp_path / name)
+
+
 @pytest.mark.parametrize("name, sep", [("track.csv", ","), ("track.txt", " ")])
 def test_a_frame_column_of_one_point_per_frame_is_a_track_not_a_cloud(tmp_path, name, sep):
     """'frame, x, y, z' with a frame of its own on every row is one marker tracked over

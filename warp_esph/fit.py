@@ -3009,7 +3009,8 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
       optional header row naming the columns ``x``, ``y``, ``z`` (read whatever other columns
       there are; a unit beside them other than ``m`` is refused); a byte-order mark, empty
       rows and a comma after every line are read past, commas or tabs taken for the other
-      separator where the first line's numbers say so. Without a header, four or more columns
+      separator where the first line's numbers say so; a header row may start with ``//``, as
+      CloudCompare's ASCII export writes it (``//X,Y,Z,R,G,B``). Without a header, four or more columns
       whose first holds whole numbers in order from 0 or above, counting by 1 (a marker id)
       or by 0 and 1 (a frame number), are refused, asking for a header row. A point
       with a NaN coordinate is one not seen: left out with a warning (every point NaN: refused).
@@ -3173,7 +3174,8 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
 
     Blank lines, ``#`` lines and rows of empty cells (a spreadsheet's empty rows) are read
     past, and a first line of one whole number (a ``.pts`` file's point count) where that many
-    rows follow. A first line that is not all numbers is a header row: it must name columns ``x``,
+    rows follow (or under a header row: CloudCompare's). A first line that is not all numbers
+    is a header row (a ``//`` before it read past: CloudCompare's): it must name columns ``x``,
     ``y`` and ``z`` (any case, in any order, among others; a unit beside them must be ``m``),
     which are then read. Without a header the first three columns are x, y, z; four or more
     columns whose first holds whole numbers in order from 0 or above (0, 1, 2, ... or 1, 2,
@@ -3189,11 +3191,17 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
     if not lines:
         return np.zeros((0, 3))
     first = lines[0][1]
-    count = None
+    count, count_at = None, "its first line"
     if len(lines) > 1 and re.fullmatch(r"\d+", first) and len(_fields(lines[1][1], _cloud_separator(lines[1][1], ext))) >= 3:
         # A Leica .pts (CloudCompare's too) starts with its point count: read past, held to the rows.
         count, lines = int(first), lines[1:]
         first = lines[0][1]
+    written = first  # as the file has it, for a refusal
+    if first.startswith("//") and first[2:].strip():
+        # CloudCompare's ASCII export starts its header row with '//' ('//X,Y,Z,R,G,B', its
+        # scalar fields' names after them), which named no column x.
+        first = first[2:].lstrip()
+        lines[0] = (lines[0][0], first)
     if ext == ".csv" and ";" in first and "," not in first:
         raise ValueError("its fields are separated by semicolons (a spreadsheet's export with decimal commas?); a "
                          "point cloud .csv has comma-separated columns x, y, z in metres with decimal points")
@@ -3212,7 +3220,7 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
             if any("," in c for c in split) and all(_is_number(c.replace(",", ".")) for c in split):
                 raise ValueError(f"its numbers have decimal commas ({split[0]!r}); write them with a decimal point (x y z "
                                  "in metres, separated by spaces, tabs or commas)")
-            raise ValueError(f"its first row {first[:120]!r} is a header that names no columns x, y and z; a point "
+            raise ValueError(f"its first row {written[:120]!r} is a header that names no columns x, y and z; a point "
                              "cloud's text file holds three numbers per line (x y z, metres), under an optional "
                              "header row naming its columns x, y, z")
         other = sorted({u for u in units.values() if u != "m"})
@@ -3225,6 +3233,10 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
         stamp = next((i for i, f in enumerate(fields) if re.fullmatch(r"frame\b.*", f.lower()) or re.fullmatch(
             r"(?:time|t)(?:[\s_]*(?:/\s*)?[\[(]?\s*(?:s|ms|us|µs|ns|min|h)\s*[\])]?)?", f.lower())), None)
         lines = lines[1:]
+        if count is None and len(lines) > 1 and re.fullmatch(r"\d+", lines[0][1]) and len(
+                _fields(lines[1][1], _cloud_separator(lines[1][1], ext))) >= 3:
+            # CloudCompare writes its point count under its header row: read past, held to the rows.
+            count, count_at, lines = int(lines[0][1]), f"its line {lines[0][0]}, under the header row,", lines[1:]
         if lines:
             sep = _cloud_separator(lines[0][1], ext)  # the numbers' own ('x,y,z' over '0.1 0.2 0.3')
             row = _fields(lines[0][1], sep)
@@ -3262,7 +3274,7 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
                                 "column left out or renamed"))
     if count is not None and count != len(pts):
         why = "a file cut short?" if len(pts) < count else "points added after the count was written?"
-        raise ValueError(f"its first line says it holds {count} points, and {len(pts)} follow ({why})")
+        raise ValueError(f"{count_at} says it holds {count} points, and {len(pts)} follow ({why})")
     width = pts.shape[1]
     if cols is None and width >= 4 and len(pts) >= 2:
         ids, step = pts[:, 0], np.diff(pts[:, 0])
@@ -3329,6 +3341,8 @@ def _refuse_other_force_logs(p: str) -> None:
 
     with open(p, newline="", encoding="utf-8-sig", errors="replace") as fh:
         line = fh.readline().rstrip("\r\n")
+    if line.startswith("//"):  # CloudCompare's header row ('//X,Y,Z,Time'): a cloud's, as _read_cloud_text reads it
+        line = line[2:]
     names = [re.sub(r"\s*[\[(].*$", "", c).strip().lower() for c in re.split(r"[,;\t]", line)]
     if not any(n in _FORCE_LOG_NAMES for n in names):
         return
