@@ -488,6 +488,22 @@ def test_a_slashed_header_row_is_refused_as_any_header_row_is(tmp_path, name, te
         load_target(tmp_path / name)
 
 
+@pytest.mark.parametrize("name, sep", [("stamps.csv", ","), ("stamps.txt", " ")])
+def test_a_nan_time_stamp_is_no_repeat_of_another(tmp_path, name, sep):
+    """A time column of distinct stamps per point, one of them NaN (a time not recorded), was
+    refused as a table over frames: the NaN row was counted as a repeat. It is read as the
+    cloud it is; a stamp shared by two points beside a NaN is still refused."""
+    head = sep.join(["x", "y", "z", "time"]) + "\n"
+    rows = [[*p, t] for p, t in zip(CLOUD, (0.001, float("nan"), 0.003))]
+    (tmp_path / name).write_text(head + "".join(sep.join(repr(v) for v in r) + "\n" for r in rows))
+    np.testing.assert_array_equal(load_target(tmp_path / name).data, CLOUD)
+    rows = [[*p, t] for p, t in zip([*CLOUD, [0.3, 0.1, 0.2]], (0.001, float("nan"), 0.003, 0.003))]
+    (tmp_path / name).write_text(head + "".join(sep.join(repr(v) for v in r) + "\n" for r in rows))
+    with pytest.raises(ValueError, match=r"its column 'time' holds 2 different values over 3 rows \(and 1 of no "
+                                         r"value\): a table of positions over frames"):
+        load_target(tmp_path / name)
+
+
 @pytest.mark.parametrize("name, sep", [("track.csv", ","), ("track.txt", " ")])
 def test_a_frame_column_of_one_point_per_frame_is_a_track_not_a_cloud(tmp_path, name, sep):
     """'frame, x, y, z' with a frame of its own on every row is one marker tracked over

@@ -3260,15 +3260,20 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
         raise ValueError(str(e).split(";")[0]) from None  # numpy's advice ('use `usecols`') is its API's
     if cols is not None and len(cols) == 4:
         stamps, pts = pts[:, 3], pts[:, :3]
-        distinct = np.unique(stamps[np.isfinite(stamps)])
+        # A NaN stamp is a time not recorded, no repeat of another row's: distinct stamps with
+        # one NaN among them had been refused as a table over frames.
+        stamped = stamps[np.isfinite(stamps)]
+        distinct = np.unique(stamped)
         by_frame = fields[cols[3]].lower().startswith("frame")
-        if 1 < len(distinct) and (len(distinct) < len(stamps) or by_frame):
+        if 1 < len(distinct) and (len(distinct) < len(stamped) or by_frame):
             # Several points share each value: frames of markers, which one cloud would merge;
             # and a cloud is one frame's: a frame per row is a marker tracked over frames (a
             # scanner stamps its points with times, each its own).
-            raise ValueError(f"its column {fields[cols[3]]!r} holds {len(distinct)} different values over {len(stamps)} "
-                             "rows: a table of positions over frames, which one cloud would merge; give positions per "
-                             "frame as an .npz ('positions' (K, n, 3), 'frames'), or one frame's points as a cloud"
+            unstamped = f" (and {len(stamps) - len(stamped)} of no value)" if len(stamped) < len(stamps) else ""
+            raise ValueError(f"its column {fields[cols[3]]!r} holds {len(distinct)} different values over {len(stamped)} "
+                             f"rows{unstamped}: a table of positions over frames, which one cloud would merge; give "
+                             "positions per frame as an .npz ('positions' (K, n, 3), 'frames'), or one frame's points as "
+                             "a cloud"
                              + ("" if by_frame else
                                 "; a scanner's time stamps, several points to one time, are read as a cloud with the "
                                 "column left out or renamed"))
