@@ -450,8 +450,10 @@ def test_a_cloud_time_column_in_seconds_still_tells_a_table_of_frames_and_says_h
     (tmp_path / "scan.csv").write_text("x,y,z,time (s)\n" + "".join(",".join(repr(v) for v in r) + "\n" for r in rows))
     with pytest.raises(ValueError, match=r"scan\.csv cannot be read as a point cloud: its column 'time \(s\)' holds 2 "
                                          r"different values over 3 rows: a table of positions over frames, which one cloud "
-                                         r"would merge; .*; a scanner's time stamps, several points to one time, are read "
-                                         r"as a cloud with the column left out or renamed$"):
+                                         r"would merge; .*; a scan whose points share a time stamp \(one pulse's returns, "
+                                         r"one profile's points\) is read as one cloud with the column 'time \(s\)' left out "
+                                         r"of the file, or with its header cell renamed 'scan_time', which is read past as "
+                                         r"any column other than x, y, z is$"):
         load_target(tmp_path / "scan.csv")
 
 
@@ -486,6 +488,41 @@ def test_a_slashed_header_row_is_refused_as_any_header_row_is(tmp_path, name, te
     (tmp_path / name).write_text(text)
     with pytest.raises(ValueError, match=rf"{name.replace('.', '[.]')} cannot be read as a point cloud: {message}"):
         load_target(tmp_path / name)
+
+
+@pytest.mark.parametrize("name, sep", [("shared.txt", " "), ("shared.xyz", " "), ("shared.csv", ",")])
+def test_a_time_shared_by_points_is_refused_with_how_to_read_the_scan_and_that_reads_it(tmp_path, name, sep):
+    """'x y z time' where points share a time is a table of markers over frames or a scan
+    (one laser pulse's returns, a line scanner's profile): the stamps cannot tell which. A
+    line scanner's profiles hold one count of points each, in one order, as frames of the same
+    markers do (the rows below are both: 3 markers over 2 frames, moving 1 mm in z, or 2
+    profiles of 3 points swept 1 mm in z), and a tracker's table that leaves out a marker not
+    seen has unequal counts per time, as a pulse's returns do. So it stays refused, and the
+    refusal says exactly how a scan is read: the column left out, or its header renamed
+    'scan_time'; it said 'left out or renamed', naming neither the column nor a name that
+    is read past. Both cures, done as it says, read the file as one cloud."""
+    pts = [[0.1, 0.2, 0.3], [0.2, 0.25, 0.3], [0.15, 0.22, 0.31],
+           [0.1, 0.2, 0.301], [0.2, 0.25, 0.301], [0.15, 0.22, 0.311]]
+    times = [0.0, 0.0, 0.0, 0.01, 0.01, 0.01]
+
+    def write(head, rows):
+        (tmp_path / name).write_text(sep.join(head) + "\n" + "".join(sep.join(repr(v) for v in r) + "\n" for r in rows))
+
+    cure = (rf"{name.replace('.', '[.]')} cannot be read as a point cloud: its column 'time' holds 2 different values "
+            r"over \d rows: a table of positions over frames, .*; a scan whose points share a time stamp \(one pulse's "
+            r"returns, one profile's points\) is read as one cloud with the column 'time' left out of the file, or with "
+            r"its header cell renamed 'scan_time'")
+    write(["x", "y", "z", "time"], [[*p, t] for p, t in zip(pts, times)])
+    with pytest.raises(ValueError, match=cure):
+        load_target(tmp_path / name)
+    # A marker not seen in the second frame, its row left out: 3 points, then 2.
+    write(["x", "y", "z", "time"], [[*p, t] for p, t in zip(pts[:5], times[:5])])
+    with pytest.raises(ValueError, match=cure):
+        load_target(tmp_path / name)
+    write(["x", "y", "z", "scan_time"], [[*p, t] for p, t in zip(pts, times)])
+    np.testing.assert_array_equal(load_target(tmp_path / name).data, pts)
+    write(["x", "y", "z"], pts)
+    np.testing.assert_array_equal(load_target(tmp_path / name).data, pts)
 
 
 @pytest.mark.parametrize("name, sep", [("stamps.csv", ","), ("stamps.txt", " ")])

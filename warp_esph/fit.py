@@ -3275,8 +3275,13 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
                              "positions per frame as an .npz ('positions' (K, n, 3), 'frames'), or one frame's points as "
                              "a cloud"
                              + ("" if by_frame else
-                                "; a scanner's time stamps, several points to one time, are read as a cloud with the "
-                                "column left out or renamed"))
+                                # Not told apart from a table by the stamps' counts or order: a line
+                                # scanner's profiles hold one count of points each, in one order, as
+                                # frames of markers do, and a tracker's table leaves out a marker not seen.
+                                f"; a scan whose points share a time stamp (one pulse's returns, one profile's points) is "
+                                f"read as one cloud with the column {fields[cols[3]]!r} left out of the file, or with "
+                                "its header cell renamed 'scan_time', which is read past as any column other than "
+                                "x, y, z is"))
     if count is not None and count != len(pts):
         why = "a file cut short?" if len(pts) < count else "points added after the count was written?"
         raise ValueError(f"{count_at} says it holds {count} points, and {len(pts)} follow ({why})")
