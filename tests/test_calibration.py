@@ -2256,6 +2256,30 @@ def test_cli_fit_bounds_past_float32_advise_the_commands_dtype_option(tmp_path, 
             progress=False, diagnostics=False)
 
 
+@pytest.mark.parametrize("stage", [[], ["--samples", "2"]])
+def test_cli_fit_a_start_held_to_bounds_past_float32_advises_the_commands_dtype_option(tmp_path, capsys, dough_scene,
+                                                                                       stage):
+    """Lower ends of lam and mu each allowed alone (an elastic material) but together past
+    float32's p-wave modulus: the guess held to them is refused where the fit starts, and its
+    advice said 'use dtype=float64', which the command does not take."""
+    from warp_esph.cli import main
+    from warp_esph.scenes import load_scene
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2).replace(
+        "yield_stress = 200.0\nflow_rate = 20.0\nviscosity = 2.0\n", ""))
+    x0 = load_scene(str(guess)).builder.finalize().particle_x0
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.stack([x0]), frames=[2])
+    capsys.readouterr()
+    assert main(["fit", str(guess), "--target", str(target), "--params", "lam,mu", "--bounds", "lam=1.5e38:1.6e38",
+                 "--bounds", "mu=1e38:1.1e38", "--dtype", "float32", "--iterations", "1", "--no-progress", "--no-usd",
+                 "--output-dir", str(tmp_path / "fit"), *stage]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("warp-esph fit: ")]
+    assert len(err) == 1 and err[0].startswith("warp-esph: error: the initial values are not allowed within the bounds: "), err
+    assert "p-wave modulus" in err[0] and err[0].endswith("use dtype=float64 (--dtype float64) or smaller values"), err
+
+
 def test_the_fit_help_says_the_iteration_cap_is_each_starts_as_it_is(tmp_path, capsys, dough_scene):
     """--help said 'gradient evaluations after the first': the cap is each start's (two
     starts at --iterations 1 make up to 4), Gauss-Newton's are forward runs, and --clip, which

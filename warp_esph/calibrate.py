@@ -144,8 +144,8 @@ def run_fit(args, out=None, err=None) -> int:
 
     from .cli import _parse_bounds, _safe_point, option_flag  # noqa: PLC0415
     from .fit import (  # noqa: PLC0415
-        BoundsError, Experiment, FitInterrupted, _material_indices, check_options, fit, load_target, solvers_record,
-        starts_stable_steps)
+        BoundsError, Experiment, FitInterrupted, StartRefused, _material_indices, check_options, fit, load_target,
+        solvers_record, starts_stable_steps)
     from .rollout import RolloutMemoryError  # noqa: PLC0415
     from .scenes import load_scene  # noqa: PLC0415
     from .simulate import MAX_STEPS_PER_FRAME, resolve_timestep  # noqa: PLC0415
@@ -272,6 +272,8 @@ def run_fit(args, out=None, err=None) -> int:
         except BoundsError as e:
             # Named as typed: it was "bounds['lam'] = (-1e+05, 100)", fit's parameter.
             raise ValueError(e.said(option_flag, typed_bounds.get(e.name))) from None
+        except StartRefused as e:
+            raise ValueError(e.cli) from None
         for k, (e, limit) in enumerate(zip(exps, limits)):
             if e.auto_step and limit < e.dt:
                 steps = (1.0 / e.fps) / limit * (1.0 - 1e-12)
@@ -378,6 +380,8 @@ def run_fit(args, out=None, err=None) -> int:
                      noise=_arg(args, "noise"), log=log, callback=lambda *_: _safe_point(args))
     except BoundsError as e:
         raise ValueError(e.said(option_flag, typed_bounds.get(e.name))) from None
+    except StartRefused as e:
+        raise ValueError(e.cli) from None
     except RolloutMemoryError as e:
         k = next((k for k, x in enumerate(experiments) if x is e.experiment), None)
         if k is None:

@@ -1072,6 +1072,16 @@ class BoundsError(ValueError):
         return f"{given} is not allowed: {reason}"
 
 
+class StartRefused(ValueError):
+    """The guess, held to the bounds, refused by a material (each end allowed alone, but two
+    ends together past a precision's range); ``cli``: the message with the command's spelling
+    of a precision's advice (``--dtype float64``), as ``BoundsError.said`` gives it."""
+
+    def __init__(self, message: str, cli: str):
+        self.cli = cli
+        super().__init__(message)
+
+
 def _end_refused(name: str, side: str, end: float, why: str) -> str:
     """Why the ``side`` end of ``name``'s bounds is refused, from the material's refusal
     ``why`` of it: said of the parameter and the end, not as the material's own
@@ -1218,7 +1228,8 @@ class _Problem:
                  for name, v in guess.items()}
         why = self.refusal(start)
         if why is not None:
-            raise ValueError(f"the initial values are not allowed within the bounds: {why}")
+            said = "the initial values are not allowed within the bounds: "
+            raise StartRefused(said + why, said + self.refusal(start, cli=True))
         self.z0 = self.to_z(start)
         self._start = (self.z0.copy(), np.concatenate([start[n] for n in params]))
         #: One label per entry of z: ``name`` or ``name[k]`` with several materials.
