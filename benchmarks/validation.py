@@ -1068,6 +1068,28 @@ def poisson_compression(resolution: int = 6, elastic_force: str = "variational",
 
 
 # ------------------------------------------------------------------ lab tests with tools
+def _lab_resolution(value, minimum: int, multiple: int = 1, why: str = "") -> int:
+    """A lab test's ``resolution``: an integer >= ``minimum`` and a multiple of ``multiple``,
+    else a ``ValueError`` naming it (a resolution of 0 was a ZeroDivisionError, and one too
+    coarse for the test's measure a result of NaN or 0 without a word)."""
+    from warp_esph import checks
+
+    n = checks.positive_int("resolution", value, minimum=minimum)
+    if n % multiple:
+        raise ValueError(f"resolution = {value!r} is not allowed: must be a multiple of {multiple}{why}")
+    return n
+
+
+def _open_interval(name: str, value, lo: float, hi: float, why: str = "") -> float:
+    """A number strictly between ``lo`` and ``hi``, else a ``ValueError`` naming it."""
+    from warp_esph import checks
+
+    v = checks.number(name, value)
+    if not lo < v < hi:
+        raise ValueError(f"{name} = {value!r} is not allowed: must be in ({lo:g}, {hi:g}){why}")
+    return v
+
+
 def _relaxed_reaction(model, solver, names, load_time: float, hold_time: float, a=None, c=None, every: int = 10,
                       average: int = 100, after=None, viscous: float = 0.0):
     """Step through ``load_time`` (the tools move) and ``hold_time`` (they stay) with kinetic
@@ -1112,11 +1134,16 @@ def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e
     lowered by ``strain`` of the lattice height in 0.05 s, then held and relaxed for 0.1 s;
     no gravity, pressure off, variational force. Measured: the top plate's reaction force
     against ``E A eps`` (A: the cube's face, resolution x spacing squared) and the lateral
-    strain (centres of the two side layers) against ``nu eps``."""
+    strain (centres of the two side layers) against ``nu eps``; at ``nu = 0`` its ratio is NaN.
+    ``resolution`` >= 2 (the lateral strain needs two side layers), ``strain`` in (0, 1)."""
     wp, we = _we()
     from warp_esph import tools
 
-    n, dx = resolution, 0.08 / resolution
+    n = _lab_resolution(resolution, 2)
+    # 0 read inf x the theory, a negative strain lifted the plate off (force 0), one of 1 or
+    # more put the top plate through the bottom one: each a result without a word.
+    strain = _open_interval("strain", strain, 0.0, 1.0, " (the share of the sample's height the top plate goes down)")
+    dx = 0.08 / n
     H = n * dx
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force="variational")
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
@@ -1137,7 +1164,8 @@ def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e
     theory = E * H * H * strain
     return {"case": "plates", "resolution": n, "particles": model.particle_count, "strain": strain,
             "force": force, "force_theory": theory, "force_ratio": force / theory,
-            "lateral_strain": lateral, "lateral_theory": nu * strain, "lateral_ratio": lateral / (nu * strain),
+            "lateral_strain": lateral, "lateral_theory": nu * strain,
+            "lateral_ratio": lateral / (nu * strain) if nu else float("nan"),
             "kinetic_energy": _kinetic(model, a), **_row_fields(solver)}
 
 
@@ -1334,12 +1362,33 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
     returned: the ratios to Hertz, to the bonded layer of the full ``height``, to a layer that slides on its base, and
     how much the base layer moved (``base_slip``: its largest sideways displacement,
     ``base_lift``: its largest rise off the plane, both over the sphere's depth), which says
-    whether the base is held as the bonded theory assumes."""
-    wp, we = _we()
-    from warp_esph import tools
+    whether the base is held as the bonded theory assumes.
 
-    H, Wd = height, width
+    ``resolution`` >= 2; each depth in (0, min(R, h)) (h at the given resolution); ``hold``
+    and ``late`` > 0."""
+    wp, we = _we()
+    from warp_esph import checks, tools
+
+    resolution = _lab_resolution(resolution, 2)
+    R = checks.positive("R", R)
+    H, Wd = checks.positive("height", height), checks.positive("width", width)
+    # A zero hold was blamed on the keyframe times, a zero late reading was NaN.
+    hold, late = checks.positive("hold", hold), checks.positive("late", late)
     dx = H / resolution
+    deepest = min(R, H - dx)
+    try:
+        depths = tuple(depths)
+    except TypeError:
+        raise ValueError(f"depths = {depths!r} is not allowed: must be a sequence of depths (m)") from None
+    if not depths:
+        # Read as the state of no step: AttributeError 'NoneType' object has no attribute 'x'.
+        raise ValueError(f"depths = {depths!r} is not allowed: must hold one depth or more (m)")
+    for i, dep in enumerate(depths):
+        # A negative depth was a math domain error; one past the block's thickness pushed the
+        # sphere through the block onto its base, and was read against Hertz.
+        _open_interval(f"depths[{i}]", dep, 0.0, deepest,
+                       " m: below the sphere's radius R and the block's thickness between its outer layers' "
+                       "centres, height - height / resolution")
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force="variational",
                                  deformation=deformation)
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))
@@ -1416,11 +1465,27 @@ def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, 
     columns over the supports, which takes out the local indentation under the pin and at
     the supports); the stiffness is force over deflection, against 48 E I / L^3 with and
     without the shear term (``three_point_stiffness``). ``creep``: the deflection's rate of
-    change over that window (a straight-line fit), per s, as a fraction of it."""
+    change over that window (a straight-line fit), per s, as a fraction of it.
+
+    ``resolution``: a multiple of 4, so that particle columns stand over the supports;
+    ``deflection`` in (0, 4 cm); ``average`` in (0, ``hold``]."""
     wp, we = _we()
-    from warp_esph import tools
+    from warp_esph import checks, tools
 
     t, L, r = 0.04, 0.18, 0.01
+    # At other resolutions the supports fell between two columns, below the beam's bottom
+    # layer (0.57 mm at 6 across): the pin's 0.5 mm pushed the beam down without a force, read
+    # as a stiffness of 0.
+    resolution = _lab_resolution(resolution, 4, 4, " (4, 8, 12, ...): only then do particle columns stand over the "
+                                                   "supports 18 cm apart, as the beam must rest on them")
+    deflection = _open_interval("deflection", deflection, 0.0, t, " m (the pin's travel into the 4 cm beam)")
+    hold = checks.positive("hold", hold)
+    average = checks.positive("average", average)
+    if average > hold:
+        # The window then reached back into the loading: creep 17.9 per s at hold = 0.
+        raise ValueError(f"average = {average!r} is not allowed: must be <= hold = {hold!r} (the window the static "
+                         "state is read over lies in the hold)")
+    damping, kappa = checks.non_negative("damping", damping), checks.positive("kappa", kappa)
     dx = t / resolution
     mat = we.Material.from_young(E, nu, density=RHO, pressure_stiffness=0.0, elastic_force="variational")
     b = we.SceneBuilder(spacing=dx, gravity=(0.0, 0.0, 0.0))

@@ -8,6 +8,7 @@ import math
 import pathlib
 import re
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -882,6 +883,48 @@ def test_without_the_hourglass_control_the_lattice_under_a_held_sphere_gives_way
     r = validation.sphere_indentation(resolution=8, depths=(0.002,), fit="linear", hourglass=0.0)
     print(f"without the control: {r['ratios'][-1]:.3f} then {r['late_ratio']:.3f} x the bonded layer")
     assert r["late_ratio"] < 0.8 * r["ratios"][-1], (r["ratios"], r["late_ratio"])
+
+
+@pytest.mark.parametrize("case, kwargs, message", [
+    ("plate_compression", {"resolution": 0}, r"resolution = 0 is not allowed: must be an integer in \[2, "),
+    ("plate_compression", {"resolution": 1}, r"resolution = 1 is not allowed: must be an integer in \[2, "),
+    ("plate_compression", {"strain": 0.0}, r"strain = 0.0 is not allowed: must be in \(0, 1\)"),
+    ("plate_compression", {"strain": -0.01}, r"strain = -0.01 is not allowed: must be in \(0, 1\)"),
+    ("plate_compression", {"strain": 1.5}, r"strain = 1.5 is not allowed: must be in \(0, 1\)"),
+    ("three_point_bending", {"resolution": 0}, r"resolution = 0 is not allowed: must be an integer in \[4, "),
+    ("three_point_bending", {"resolution": 6}, r"resolution = 6 is not allowed: must be a multiple of 4 "),
+    ("three_point_bending", {"deflection": -5e-4}, r"deflection = -0.0005 is not allowed: must be in \(0, 0.04\)"),
+    ("three_point_bending", {"hold": 0.0}, r"hold = 0.0 is not allowed: must be > 0"),
+    ("three_point_bending", {"hold": 0.1, "average": 0.2}, r"average = 0.2 is not allowed: must be <= hold = 0.1"),
+    ("sphere_indentation", {"resolution": 1}, r"resolution = 1 is not allowed: must be an integer in \[2, "),
+    ("sphere_indentation", {"depths": ()}, r"depths = \(\) is not allowed: must hold one depth or more"),
+    ("sphere_indentation", {"depths": 0.001}, r"depths = 0.001 is not allowed: must be a sequence of depths"),
+    ("sphere_indentation", {"depths": (-0.001,)}, r"depths\[0\] = -0.001 is not allowed: must be in \(0, 0.035\)"),
+    ("sphere_indentation", {"depths": (0.001, 0.05)}, r"depths\[1\] = 0.05 is not allowed: must be in \(0, 0.035\)"),
+    ("sphere_indentation", {"hold": 0.0}, r"hold = 0.0 is not allowed: must be > 0"),
+    ("sphere_indentation", {"late": 0.0}, r"late = 0.0 is not allowed: must be > 0"),
+    ("sphere_indentation", {"R": -0.04}, r"R = -0.04 is not allowed: must be > 0"),
+])
+def test_lab_tests_refuse_inputs_they_cannot_measure_by_name(case, kwargs, message):
+    """Measured before these were refused: a resolution of 0 was a ZeroDivisionError; plates
+    at strain 0 read inf x the theory, at -0.01 (the plate lifted off) a force of 0, at 1.5
+    (the top plate through the bottom one) 1.33 x; the beam at 6 across, its supports between
+    two particle columns 0.57 mm under its bottom layer, a force and stiffness of 0; a hold of
+    0 read the loading (creep 17.9 per s) or was blamed on the keyframe times; no depths an
+    AttributeError, a negative one a math domain error, one of 5 cm pushed the sphere through
+    the 4 cm block and read 0.30 x the layer theory."""
+    with pytest.raises(ValueError, match="^" + message):
+        getattr(validation, case)(**kwargs)
+
+
+def test_plate_compression_at_nu_0_reads_its_lateral_ratio_as_nan_not_minus_inf():
+    """nu = 0 is legal (the lateral strain is then measured against 0): its ratio to the theory is
+    undefined, and was -inf with a RuntimeWarning."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        r = validation.plate_compression(resolution=2, nu=0.0)
+    assert math.isnan(r["lateral_ratio"]) and r["lateral_theory"] == 0.0
+    assert r["force_ratio"] > 0.5, r  # the plates still press the cube
 
 
 # ------------------------------------------------------- partial runs merged into a report
