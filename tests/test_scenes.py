@@ -449,12 +449,14 @@ def test_scene_file_unreadable(tmp_path):
         load_scene_file(tmp_path / "empty.toml")
 
 
-@pytest.mark.parametrize("scale", [0.5, 1.0])
+@pytest.mark.parametrize("scale", [0.5, 0.7, 0.8, 1.0])
 def test_lab_tools_start_touching_the_outer_particle_layers(scale):
     """The platen, the indenting ball, the bending pin and supports touch the particle
     centres of the outer layers at t = 0 (placed at the bodies' faces, half a spacing out,
     at scale 0.5 the ball and the pin never reached the material, their force stayed 0), and
-    the beam has particle columns under the pin and over the supports."""
+    the beam has particle columns under the pin and over the supports (at scales other than 0.5
+    and 1 they stood between two columns: the supports up to 0.32 mm below the beam at 0.8,
+    the pin half a spacing off mid-span at 0.7), and its spacing is the scale's to 6 %."""
     def setup(name):
         model = get_scene(name, scale=scale).builder.finalize()
         x0 = model.particle_x0.astype(np.float64)
@@ -476,6 +478,7 @@ def test_lab_tools_start_touching_the_outer_particle_layers(scale):
         assert pose(model, side)[1] + 0.01 == pytest.approx(lo, abs=1e-7)
         assert np.abs(x0[:, 0] - x).min() < 1e-7  # a column over the support's axis
     assert np.abs(x0[:, 0]).min() < 1e-7  # and one under the pin
+    assert model.spacing == pytest.approx(0.005 / scale, rel=0.06)
 
 
 def test_ground_images_key_builds_the_ground_as_a_rough_floor(tmp_path):

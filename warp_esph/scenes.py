@@ -449,15 +449,25 @@ def lab_three_point_bending(scale: float = 1.0) -> Scene:
     """Three-point bending: a 24 cm beam on two support pins 18 cm apart, pushed down at mid-span."""
     from . import tools  # noqa: PLC0415
 
-    b = SceneBuilder(spacing=0.005 / _scale(scale))
-    t = 0.04
-    # 24 cm plus a spacing: an odd number of particle columns, so that one column is at
-    # mid-span under the pin and one over each support.
-    b.add_box((0.0, 0.02 + t / 2, 0.0), (0.24 + b.spacing, t, t), _lab_elastic(1.0e6), name="beam")
+    t, half_span = 0.04, 0.09
+    spacing = 0.005 / _scale(scale)
+    # A column over each support needs a whole number of spacings in the half span: at other
+    # scales the supports stood between two columns, up to 0.32 mm below the beam (scale 0.8),
+    # the span the beam rested on differed from 18 cm by up to a spacing, and at scale 0.7
+    # the pin missed the mid-span column by half a spacing. So the spacing is the nearest
+    # that divides it (scales 0.5 and 1 keep theirs exactly).
+    steps = max(1, round(half_span / spacing))
+    if abs(steps * spacing - half_span) > 1e-9 * half_span:
+        spacing = half_span / steps
+    b = SceneBuilder(spacing=spacing)
+    # An odd number of particle columns, about 24 cm plus a spacing, so that one column is at
+    # mid-span under the pin (and, the half span whole spacings, one over each support).
+    b.add_box((0.0, 0.02 + t / 2, 0.0), ((2 * round(0.12 / spacing) + 1) * spacing, t, t), _lab_elastic(1.0e6),
+              name="beam")
     bottom, top = float(b._points[-1][:, 1].min()), float(b._points[-1][:, 1].max())
     along_z = (math.sin(math.pi / 4), 0.0, 0.0, math.cos(math.pi / 4))  # a cylinder's y axis turned onto z
     # Supports and pin touch the outer particle layers (centres) at t = 0.
-    for name, x in (("support_left", -0.09), ("support_right", 0.09)):
+    for name, x in (("support_left", -half_span), ("support_right", half_span)):
         b.add_tool("cylinder", radius=0.01, half_height=0.05, position=(x, bottom - 0.01, 0.0), orientation=along_z, name=name)
     b.add_tool("cylinder", radius=0.01, half_height=0.05, name="loading_pin",
                motion=tools.Velocity((0.0, -0.005, 0.0), position=(0.0, top + 0.01, 0.0), orientation=along_z))
