@@ -25,7 +25,9 @@ in the keyframes and velocities), then ``integrate`` does the symplectic Euler u
   displacement follows the responded velocity, so a sticking particle stays put;
 - pinned particles: ``x = p(t1) + R(t1) (X - c)`` (evaluated as ``X + (p - c) + (R - I)(X - c)``,
   exactly ``X`` while the set is at rest) with ``X`` the rest position and ``c`` the
-  set's rest centroid (the set's pose at rest is ``(c, identity)``), ``v = (x(t1) - x(t0)) / dt``.
+  set's rest centroid (the set's pose at rest is ``(c, identity)``), ``v = (x(t1) - x(t0)) / dt``
+  (both velocities with the position's step displacement from the motion's rates, not from
+  two rounded places: ``step_displacement``, docs/tools.md, "Reaction forces").
   Pinned particles stay in every neighbour fit and force sum as ordinary particles: only
   their x and v are prescribed, so F is consistent across the clamp.
 
@@ -292,7 +294,7 @@ def pose_kernels(scalar) -> types.SimpleNamespace:
     per scalar type, whatever tools a model has (``kernels`` is specialised)."""
     T = type_set(scalar)
     vec3, quat = T.vec3, (wp.quatf if scalar is wp.float32 else wp.quatd)
-    ONE, HALF = scalar(1.0), scalar(0.5)
+    ONE, HALF, ZERO = scalar(1.0), scalar(0.5), scalar(0.0)
 
     @wp.func
     def quat_exp(r: vec3):
@@ -318,6 +320,37 @@ def pose_kernels(scalar) -> types.SimpleNamespace:
         s = wp.sin(th)
         return a * (wp.sin((ONE - w) * th) / s) + b * (wp.sin(w * th) / s)
 
+    @wp.func
+    def segment_weight(kf_t: wp.array(dtype=scalar), i0: int, i1: int, w_host: scalar, t: scalar):
+        """The weight of keyframe ``i1`` at ``t`` from the keyframe times on the tape
+        (differentiable in them); the host only chose the segment (``w_host`` is its value,
+        for the hold before / after)."""
+        w = w_host
+        if i1 != i0:
+            w = (t - kf_t[i0]) / (kf_t[i1] - kf_t[i0])
+        return w
+
+    @wp.func
+    def sampled_position(kf_t: wp.array(dtype=scalar), kf_p: wp.array(dtype=vec3), lin_v: wp.array(dtype=vec3), c: int,
+                         i0: int, i1: int, w_host: scalar, t: scalar):
+        """The position of tool ``c`` at ``t`` on the keyframe segment ``(i0, i1)``."""
+        w = segment_weight(kf_t, i0, i1, w_host, t)
+        return kf_p[i0] * (ONE - w) + kf_p[i1] * w + lin_v[c] * t
+
+    @wp.func
+    def step_displacement(kf_t: wp.array(dtype=scalar), kf_p: wp.array(dtype=vec3), lin_v: wp.array(dtype=vec3), c: int,
+                          i0: int, i1: int, dt: scalar):
+        """``p(t1) - p(t0)`` over a step of ``dt`` within one keyframe segment, from the
+        motion's rates: the difference of the two positions lost float32's resolution of
+        the position itself, eps |p| / dt in the velocity (1e-4 m/s at 0.3 m and the stable
+        step at 2 cm), and the per-step reaction of a tool or pinned set moving steadily
+        read that over dt again (0.2 N on a 0.24 kg pinned set translating at 0.05 m/s, 8 %
+        of its weight, where it is 0)."""
+        d = lin_v[c] * dt
+        if i1 != i0:
+            d = d + (kf_p[i1] - kf_p[i0]) * (dt / (kf_t[i1] - kf_t[i0]))
+        return d
+
     @wp.kernel(module="unique")
     def poses(
         kf_t: wp.array(dtype=scalar),
@@ -332,31 +365,40 @@ def pose_kernels(scalar) -> types.SimpleNamespace:
         s_direct: wp.array(dtype=wp.int32),
         s_p: wp.array(dtype=vec3),
         s_q: wp.array(dtype=quat),
+        s_dp: wp.array(dtype=vec3),
+        dt: scalar,
         pose_p: wp.array(dtype=vec3),
         pose_q: wp.array(dtype=quat),
+        pose_dp: wp.array(dtype=vec3),
     ):
-        """Pose of tool ``s // 2`` at its sample ``s`` (even: step start, odd: step end)."""
+        """Pose of tool ``s // 2`` at its sample ``s`` (even: step start, odd: step end), and
+        at an odd sample the step's displacement ``p(t1) - p(t0)`` (``step_displacement``)."""
         s = wp.tid()
         c = s // 2
         if s_direct[s] != 0:
             pose_p[s] = s_p[s]
             pose_q[s] = s_q[s]
+            pose_dp[s] = s_dp[s]
         else:
             i0 = s_i0[s]
             i1 = s_i1[s]
             t = s_t[s]
-            # The weight from the keyframe times on the tape (differentiable in them); the
-            # host only chose the segment (s_w is its value, for the hold before / after).
-            w = s_w[s]
-            if i1 != i0:
-                w = (t - kf_t[i0]) / (kf_t[i1] - kf_t[i0])
-            p = kf_p[i0] * (ONE - w) + kf_p[i1] * w + lin_v[c] * t
+            p = sampled_position(kf_t, kf_p, lin_v, c, i0, i1, s_w[s], t)
+            w = segment_weight(kf_t, i0, i1, s_w[s], t)
             # Normalised: a keyframe quaternion a descent moved off the unit sphere would
             # otherwise scale the tool (quat_rotate by |q|^2) and its local frame by the
             # inverse, so a particle placed on its surface would not be on it a step later.
             q = wp.normalize(quat_exp(ang_v[c] * t) * interp_quat(kf_q[i0], kf_q[i1], w))
             pose_p[s] = p
             pose_q[s] = q
+            dp = vec3(ZERO, ZERO, ZERO)
+            if s % 2 == 1:
+                if s_i0[s - 1] == i0 and s_i1[s - 1] == i1:
+                    dp = step_displacement(kf_t, kf_p, lin_v, c, i0, i1, dt)
+                else:
+                    # A step across a keyframe: the two segments' poses, differenced.
+                    dp = p - sampled_position(kf_t, kf_p, lin_v, c, s_i0[s - 1], s_i1[s - 1], s_w[s - 1], s_t[s - 1])
+            pose_dp[s] = dp
 
     @wp.kernel(module="unique")
     def accumulate(src: wp.array(dtype=vec3), scale: scalar, dst: wp.array(dtype=vec3)):
@@ -406,8 +448,8 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
     @wp.func
     def apply(
         x: vec3, v: vec3, x_start: vec3, hit: int, xc: vec3, nl: vec3, c: int, row: int, m: scalar, dt: scalar, ramp: scalar,
-        pose_p: wp.array(dtype=vec3), pose_q: wp.array(dtype=quat), mu_s: wp.array(dtype=scalar), mu_k: wp.array(dtype=scalar),
-        rforce: wp.array(dtype=vec3), rtorque: wp.array(dtype=vec3),
+        pose_p: wp.array(dtype=vec3), pose_q: wp.array(dtype=quat), pose_dp: wp.array(dtype=vec3),
+        mu_s: wp.array(dtype=scalar), mu_k: wp.array(dtype=scalar), rforce: wp.array(dtype=vec3), rtorque: wp.array(dtype=vec3),
     ):
         """Move a particle in contact to the surface point ``xc`` (collider frame) and
         respond relative to that point's velocity; adds the impulse / dt to the reaction row
@@ -419,7 +461,9 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         p1 = pose_p[2 * c + 1]
         q1 = pose_q[2 * c + 1]
         x_s = world(p1, q1, xc)
-        vs = (x_s - world(p0, q0, xc)) / dt
+        # From the step's displacement, not the difference of the two world points (which
+        # carries float32's resolution of the tool's place: pose_dp).
+        vs = (pose_dp[2 * c + 1] + (wp.quat_rotate(q1, xc) - wp.quat_rotate(q0, xc))) / dt
         n = wp.quat_rotate(q1, nl)
         # The whole depth is undone (a particle left inside a moving tool could be passed by
         # it: a thin blade's nearest face may be its back); the touchdown share acts on the
@@ -778,6 +822,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         sc: StaticColliders,
         pose_p: wp.array(dtype=vec3),
         pose_q: wp.array(dtype=quat),
+        pose_dp: wp.array(dtype=vec3),
         param: wp.array(dtype=vec3),
         mu_s: wp.array(dtype=scalar),
         mu_k: wp.array(dtype=scalar),
@@ -819,7 +864,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             for c in range(wp.static(counts[0])):
                 k = wp.static(offsets[0]) + c
                 hit, xc, nl = shape_plane(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
-                x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+                x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, pose_dp, mu_s, mu_k, rforce, rtorque)
             for c in range(wp.static(len(swept_test))):
                 k = wp.static(offsets[1]) + c
                 # The entry point first (a path from outside), the nearest face only for a
@@ -829,13 +874,13 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
                 hit, xc, nl = wp.static(swept_test[c])(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
                 if hit == 0:
                     hit, xc, nl = wp.static(inside_test[c])(xl, param[k], margin)
-                x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+                x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, pose_dp, mu_s, mu_k, rforce, rtorque)
             for c in range(wp.static(counts[5])):
                 k = wp.static(offsets[5]) + c
                 xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
                 xs = local(pose_p[2 * k], pose_q[2 * k], x_in[i])
                 hit, xc, nl = shape_mesh(xl, xs, mesh_id[k], mesh_lo[k], mesh_hi[k], margin, mesh_verts, mesh_tris, mesh_vofs[k], mesh_fofs[k])
-                x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+                x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, pose_dp, mu_s, mu_k, rforce, rtorque)
                 if hit != 0:
                     # The contact's tangential move along the face it met may enter another face
                     # of the same mesh, where a convex shape has none: a particle sliding on a
@@ -843,7 +888,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
                     # move, from the contact point, meets the mesh as a path does.
                     hit, xc, nl = mesh_entry(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), xc, mesh_id[k], mesh_lo[k],
                                              mesh_hi[k], margin, mesh_verts, mesh_tris, mesh_vofs[k], mesh_fofs[k])
-                    x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, mu_s, mu_k, rforce, rtorque)
+                    x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, pose_dp, mu_s, mu_k, rforce, rtorque)
         if wp.static(n_pins > 0):
             k = pin[i]
             if k >= 0:
@@ -852,9 +897,11 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
                 c0 = pin_center[k]
                 xr = X - c0
                 p1 = pose_p[2 * k + 1]
-                x1 = X + (p1 - c0) + (wp.quat_rotate(pose_q[2 * k + 1], xr) - xr)
-                x0 = X + (pose_p[2 * k] - c0) + (wp.quat_rotate(pose_q[2 * k], xr) - xr)
-                v1 = (x1 - x0) / dt
+                r1 = wp.quat_rotate(pose_q[2 * k + 1], xr)
+                x1 = X + (p1 - c0) + (r1 - xr)
+                # The chord (x1 - x0) / dt from the step's displacement: the difference of the
+                # two places carried float32's resolution of them (pose_dp).
+                v1 = (pose_dp[2 * k + 1] + (r1 - wp.quat_rotate(pose_q[2 * k], xr))) / dt
                 fr = m * (v1 - v_in[i]) / dt - f[i] - m * gravity
                 wp.atomic_add(rforce, base + k, fr)
                 wp.atomic_add(rtorque, base + k, wp.cross(x1 - p1, fr))
@@ -1215,6 +1262,7 @@ class ToolSet:
         direct = np.zeros(2 * n, dtype=np.int32)
         sp = np.zeros((2 * n, 3))
         sq = np.tile(np.array(IDENTITY), (2 * n, 1))
+        sdp = np.zeros((2 * n, 3))
         kt = self._times_now()
         for k, motion in enumerate(self.motions):
             for j, t in enumerate((t0, t1)):
@@ -1229,9 +1277,11 @@ class ToolSet:
                 else:
                     direct[s] = 1
                     sp[s], sq[s] = self._scripted_pose(k, t)
+            # A Scripted step's displacement, differenced in float64 here (pose_dp).
+            sdp[2 * k + 1] = sp[2 * k + 1] - sp[2 * k]
         if self._scripted:
             self._scripted_last = (t0, sp, sq)
-        return i0, i1, w, ts, direct, sp, sq
+        return i0, i1, w, ts, direct, sp, sq, sdp
 
     def _sample_arrays(self, host, held):
         """``_samples`` on the device, refilled into ``held`` (the arrays of an earlier
@@ -1239,7 +1289,7 @@ class ToolSet:
         the pose kernel at small particle counts)."""
         m = self.model
         T = m.types
-        dtypes = (wp.int32, wp.int32, m.scalar, m.scalar, wp.int32, T.vec3, self.quat)
+        dtypes = (wp.int32, wp.int32, m.scalar, m.scalar, wp.int32, T.vec3, self.quat, T.vec3)
         host = [h if d is wp.int32 else h.astype(T.np_dtype) for h, d in zip(host, dtypes)]
         if held is None or any(a.shape[0] != h.shape[0] or a.dtype != d for a, h, d in zip(held, host, dtypes)):
             return _Samples(wp.array(h, dtype=d, device=m.device) for h, d in zip(host, dtypes))
@@ -1277,8 +1327,9 @@ class ToolSet:
             self._held_samples = samples
         self.model.launches(
             self.kernels.poses, 2 * n,
-            [self.keyframe_times, self.keyframe_positions, self.keyframe_orientations, self.velocity, self.angular_velocity, *samples],
-            [state_out.tool_pose_p, state_out.tool_pose_q], device=dev,
+            [self.keyframe_times, self.keyframe_positions, self.keyframe_orientations, self.velocity, self.angular_velocity, *samples,
+             S(dt)],
+            [state_out.tool_pose_p, state_out.tool_pose_q, state_out.tool_pose_dp], device=dev,
         )
         state_out.reaction_force.zero_()
         state_out.reaction_torque.zero_()
@@ -1295,7 +1346,7 @@ class ToolSet:
                 [
                     state_in.x, state_in.x_lo, state_in.v, state_out.force, m.particle_mass, T.vec3(*m.gravity), S(dt),
                     static_collider_struct(m),
-                    state_out.tool_pose_p, state_out.tool_pose_q, self.param, self.static_friction, self.friction,
+                    state_out.tool_pose_p, state_out.tool_pose_q, state_out.tool_pose_dp, self.param, self.static_friction, self.friction,
                     self.mesh_id, self.mesh_lo, self.mesh_hi, self.mesh_verts, self.mesh_tris, self.mesh_vofs,
                     self.mesh_fofs, S(self.margin),
                     self.pin, self.rest_x, self.pin_center, m.particle_world, int(n),
@@ -1496,6 +1547,7 @@ def allocate_state(model, state, requires_grad: bool):
     rows = n * tools.world_count
     state.tool_pose_p = wp.zeros(2 * n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
     state.tool_pose_q = wp.zeros(2 * n, dtype=tools.quat, device=dev, requires_grad=requires_grad)
+    state.tool_pose_dp = wp.zeros(2 * n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
     state.reaction_force = wp.zeros(rows, dtype=T.vec3, device=dev, requires_grad=requires_grad)
     state.reaction_torque = wp.zeros(rows, dtype=T.vec3, device=dev, requires_grad=requires_grad)
 
