@@ -1080,6 +1080,13 @@ def _lab_resolution(value, minimum: int, multiple: int = 1, why: str = "") -> in
     return n
 
 
+def _lab_dtype(wp, value):
+    """A lab test's ``dtype``: ``"float32"`` or ``"float64"``, as Warp's scalar type."""
+    from warp_esph import checks
+
+    return getattr(wp, checks.choice("dtype", value, ("float32", "float64")))
+
+
 def _open_interval(name: str, value, lo: float, hi: float, why: str = "") -> float:
     """A number strictly between ``lo`` and ``hi``, else a ``ValueError`` naming it."""
     from warp_esph import checks
@@ -1128,16 +1135,22 @@ def _relaxed_reaction(model, solver, names, load_time: float, hold_time: float, 
     return a, c, {n: f[i] for i, n in enumerate(names)}
 
 
-def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e5, nu: float = 0.3) -> dict:
+def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e5, nu: float = 0.3,
+                      dtype: str = "float32") -> dict:
     """Uniaxial compression between two frictionless plane tools (the texture-analyser test
     with slip): a cube ``resolution`` particles across on a fixed plane, the top plane
     lowered by ``strain`` of the lattice height in 0.05 s, then held and relaxed for 0.1 s;
     no gravity, pressure off, variational force. Measured: the top plate's reaction force
     against ``E A eps`` (A: the cube's face, resolution x spacing squared) and the lateral
     strain (centres of the two side layers) against ``nu eps``; at ``nu = 0`` its ratio is NaN.
-    ``resolution`` >= 2 (the lateral strain needs two side layers), ``strain`` in (0, 1)."""
+    ``resolution`` >= 2 (the lateral strain needs two side layers), ``strain`` in (0, 1).
+    ``dtype``: ``"float32"`` or ``"float64"``; a strain near float32's resolution of the
+    sample's place wants float64 (at 1e-6 and 4 across the lateral ratio read 0.62 in float32,
+    for 0.92 at 1 %)."""
     wp, we = _we()
     from warp_esph import tools
+
+    scalar = _lab_dtype(wp, dtype)
 
     n = _lab_resolution(resolution, 2)
     # 0 read inf x the theory, a negative strain lifted the plate off (force 0), one of 1 or
@@ -1153,7 +1166,7 @@ def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e
     d = strain * (yhi - ylo)  # strain of the particle lattice between the plates
     b.add_tool("plane", normal=(0, 1, 0), position=(0, ylo, 0), name="bottom")
     b.add_tool("plane", normal=(0, -1, 0), motion=tools.Keyframes([0.0, 0.05], [(0, yhi, 0), (0, yhi - d, 0)]), name="top")
-    model = b.finalize(device=wp.get_device())
+    model = b.finalize(device=wp.get_device(), dtype=scalar)
     solver = _solver(model)
     a, c, f = _relaxed_reaction(model, solver, ["top", "bottom"], 0.05, 0.10)
     force = 0.5 * (-f["top"][1] + f["bottom"][1])
@@ -1162,7 +1175,7 @@ def plate_compression(resolution: int = 8, strain: float = 0.01, E: float = 1.0e
     x = a.x.numpy().astype(np.float64)
     lateral = (x[right, 0].mean() - x[left, 0].mean()) / (xs[right].mean() - xs[left].mean()) - 1.0
     theory = E * H * H * strain
-    return {"case": "plates", "resolution": n, "particles": model.particle_count, "strain": strain,
+    return {"case": "plates", "resolution": n, "particles": model.particle_count, "strain": strain, "dtype": dtype,
             "force": force, "force_theory": theory, "force_ratio": force / theory,
             "lateral_strain": lateral, "lateral_theory": nu * strain,
             "lateral_ratio": lateral / (nu * strain) if nu else float("nan"),
@@ -1340,7 +1353,7 @@ def layer_factor(nu: float, chi: float, bonded: bool = True) -> float:
 def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.0e5, nu: float = 0.3,
                        R: float = 0.04, hold: float = 0.015, late: float = 0.1, hourglass: float | None = None,
                        width: float = 0.10, height: float = 0.04, fit: str | None = None,
-                       deformation: str = "incremental") -> dict:
+                       deformation: str = "incremental", dtype: str = "float32") -> dict:
     """A frictionless rigid sphere (R = 4 cm) pressed into a block ``width`` x ``height`` x
     ``width`` (default 10 x 4 x 10 cm; ``resolution`` particles across its height) standing on a plane tool that holds its
     base (mu = 2); no gravity, pressure off, variational force. The sphere starts touching
@@ -1365,10 +1378,11 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
     whether the base is held as the bonded theory assumes.
 
     ``resolution`` >= 2; each depth in (0, min(R, h)) (h at the given resolution); ``hold``
-    and ``late`` > 0."""
+    and ``late`` > 0; ``dtype`` ``"float32"`` or ``"float64"``."""
     wp, we = _we()
     from warp_esph import checks, tools
 
+    scalar = _lab_dtype(wp, dtype)
     resolution = _lab_resolution(resolution, 2)
     R = checks.positive("R", R)
     H, Wd = checks.positive("height", height), checks.positive("width", width)
@@ -1403,7 +1417,7 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
         heights += [ytop + R - dep] * 2
     b.add_tool("sphere", radius=R, name="indenter",
                motion=tools.Keyframes(times, [(0.0, h, 0.0) for h in heights]))
-    model = b.finalize(device=wp.get_device())
+    model = b.finalize(device=wp.get_device(), dtype=scalar)
     solver = _solver(model, hourglass=hourglass, fit=fit)
     x0 = model.particle_x0.astype(np.float64)
     base = x0[:, 1] < ylo + 0.5 * dx
@@ -1427,7 +1441,7 @@ def sphere_indentation(resolution: int = 8, depths=(0.001, 0.002), E: float = 1.
     theory_exponent = (math.log(theory[1] / theory[0]) / math.log(depths[1] / depths[0]) if len(depths) > 1
                        else float("nan"))
     late_force = -f["indenter"][1]
-    return {"case": "indentation", "resolution": resolution, "hourglass": solver.hourglass, "fit": solver.fit,
+    return {"case": "indentation", "resolution": resolution, "hourglass": solver.hourglass, "fit": solver.fit, "dtype": dtype,
             "particles": model.particle_count, "R": R,
             "width": Wd, "height": H, "thickness": h, "depths": list(depths), "forces": forces, "base_forces": base_forces,
             "hertz": hertz, "theory": theory, "ratios": [f / t for f, t in zip(forces, theory)],
@@ -1451,7 +1465,7 @@ def three_point_stiffness(E: float, nu: float, L: float, t: float, kappa: float 
 
 def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, deflection: float = 0.0005,
                         kappa: float = 0.85, hold: float = 0.5, hourglass: float = 0.1, damping: float = 1.0,
-                        average: float = 0.1, fit: str = "linear") -> dict:
+                        average: float = 0.1, fit: str = "linear", dtype: str = "float32") -> dict:
     """A 24 x 4 x 4 cm beam (``resolution`` particles across its 4 cm) on two frictionless
     cylinder tools (r = 1 cm) 18 cm apart, a frictionless cylinder loading pin lowered
     ``deflection`` at mid-span in 0.1 s and held ``hold`` s; no gravity, pressure off,
@@ -1468,10 +1482,12 @@ def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, 
     change over that window (a straight-line fit), per s, as a fraction of it.
 
     ``resolution``: a multiple of 4, so that particle columns stand over the supports;
-    ``deflection`` in (0, 4 cm); ``average`` in (0, ``hold``]."""
+    ``deflection`` in (0, 4 cm); ``average`` in (0, ``hold``]; ``dtype`` ``"float32"`` or
+    ``"float64"``."""
     wp, we = _we()
     from warp_esph import checks, tools
 
+    scalar = _lab_dtype(wp, dtype)
     t, L, r = 0.04, 0.18, 0.01
     # At other resolutions the supports fell between two columns, below the beam's bottom
     # layer (0.57 mm at 6 across): the pin's 0.5 mm pushed the beam down without a force, read
@@ -1500,7 +1516,7 @@ def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, 
     top = (0.0, yhi + r, 0.0)
     b.add_tool("cylinder", radius=r, half_height=t, name="pin", orientation=along_z,
                motion=tools.Keyframes([0.0, 0.1], [top, (0.0, yhi + r - deflection, 0.0)], [along_z, along_z]))
-    model = b.finalize(device=wp.get_device())
+    model = b.finalize(device=wp.get_device(), dtype=scalar)
     solver = _solver(model, hourglass=hourglass, fit=fit)
     x0 = model.particle_x0.astype(np.float64)
     core = np.abs(x0[:, 1] - 0.5 * (ylo + yhi)) < 0.5 * t - 0.75 * dx  # away from the loaded faces
@@ -1523,6 +1539,7 @@ def three_point_bending(resolution: int = 4, E: float = 1.0e6, nu: float = 0.3, 
     eb, timo = three_point_stiffness(E, nu, L, t, kappa)
     k = force / sag
     return {"case": "bending", "resolution": resolution, "particles": model.particle_count, "hourglass": hourglass,
+            "dtype": dtype,
             "damping": damping, "fit": fit, "hold": hold, "force": force,
             "support_force": float(f["support_left"][1] + f["support_right"][1]), "deflection": sag,
             "creep": creep, "pin_travel": deflection, "stiffness": k, "theory_euler_bernoulli": eb, "theory": timo,
