@@ -374,7 +374,7 @@ def same_state(model, name: str, state) -> None:
     if tools is not None:
         want["tool_pose_p"] = ((2 * tools.count,), T.vec3)
         want["tool_pose_q"] = ((2 * tools.count,), tools.quat)
-        want["tool_pose_dp"] = ((2 * tools.count,), T.vec3)
+        want["tool_pose_dp"] = want["tool_pose_dr"] = ((2 * tools.count,), T.vec3)
         want["reaction_force"] = want["reaction_torque"] = ((tools.count * tools.world_count,), T.vec3)
     if getattr(model, "ghost_floor", None) is not None:
         from .sim.ghost_floor import STENCIL  # noqa: PLC0415

@@ -26,8 +26,9 @@ in the keyframes and velocities), then ``integrate`` does the symplectic Euler u
 - pinned particles: ``x = p(t1) + R(t1) (X - c)`` (evaluated as ``X + (p - c) + (R - I)(X - c)``,
   exactly ``X`` while the set is at rest) with ``X`` the rest position and ``c`` the
   set's rest centroid (the set's pose at rest is ``(c, identity)``), ``v = (x(t1) - x(t0)) / dt``
-  (both velocities with the position's step displacement from the motion's rates, not from
-  two rounded places: ``step_displacement``, docs/tools.md, "Reaction forces").
+  (both velocities with the step's displacement and rotation from the motion's rates, not from
+  two rounded places: ``step_displacement``, ``step_rotation``, ``rotation_delta``;
+  docs/tools.md, "Reaction forces").
   Pinned particles stay in every neighbour fit and force sum as ordinary particles: only
   their x and v are prescribed, so F is consistent across the clamp.
 
@@ -351,6 +352,38 @@ def pose_kernels(scalar) -> types.SimpleNamespace:
             d = d + (kf_p[i1] - kf_p[i0]) * (dt / (kf_t[i1] - kf_t[i0]))
         return d
 
+    @wp.func
+    def quat_log(q: quat):
+        """Rotation vector of the rotation ``q`` (normalised here; series below 1e-6 rad, so
+        the gradient at the identity is finite)."""
+        u = wp.normalize(q)
+        v = vec3(u[0], u[1], u[2])
+        sv = wp.length(v)
+        f = scalar(2.0) / u[3]
+        if sv > scalar(1.0e-6):
+            f = scalar(2.0) * wp.atan2(sv, u[3]) / sv
+        return v * f
+
+    @wp.func
+    def sampled_orientation(kf_q: wp.array(dtype=quat), ang_v: wp.array(dtype=vec3), c: int, i0: int, i1: int, w: scalar,
+                            t: scalar):
+        # Normalised: a keyframe quaternion a descent moved off the unit sphere would
+        # otherwise scale the tool (quat_rotate by |q|^2) and its local frame by the
+        # inverse, so a particle placed on its surface would not be on it a step later.
+        return wp.normalize(quat_exp(ang_v[c] * t) * interp_quat(kf_q[i0], kf_q[i1], w))
+
+    @wp.func
+    def step_rotation(kf_t: wp.array(dtype=scalar), kf_q: wp.array(dtype=quat), ang_v: wp.array(dtype=vec3), c: int,
+                      i0: int, i1: int, q0: quat, dt: scalar):
+        """The rotation vector ``r`` of a step of ``dt`` within one keyframe segment, in the
+        tool's frame at the step's start (``R(t1) = R(t0) E(r)``), from the motion's rates
+        (as ``step_displacement``): the angular velocity's ``R(t0)^T w dt``, or the
+        segment's slerp rotation times ``dt`` over its length."""
+        r = wp.quat_rotate_inv(q0, ang_v[c] * dt)
+        if i1 != i0:
+            r = r + quat_log(wp.quat_inverse(wp.normalize(kf_q[i0])) * wp.normalize(kf_q[i1])) * (dt / (kf_t[i1] - kf_t[i0]))
+        return r
+
     @wp.kernel(module="unique")
     def poses(
         kf_t: wp.array(dtype=scalar),
@@ -366,39 +399,47 @@ def pose_kernels(scalar) -> types.SimpleNamespace:
         s_p: wp.array(dtype=vec3),
         s_q: wp.array(dtype=quat),
         s_dp: wp.array(dtype=vec3),
+        s_dr: wp.array(dtype=vec3),
         dt: scalar,
         pose_p: wp.array(dtype=vec3),
         pose_q: wp.array(dtype=quat),
         pose_dp: wp.array(dtype=vec3),
+        pose_dr: wp.array(dtype=vec3),
     ):
         """Pose of tool ``s // 2`` at its sample ``s`` (even: step start, odd: step end), and
-        at an odd sample the step's displacement ``p(t1) - p(t0)`` (``step_displacement``)."""
+        at an odd sample the step's displacement ``p(t1) - p(t0)`` (``step_displacement``)
+        and rotation (``step_rotation``)."""
         s = wp.tid()
         c = s // 2
         if s_direct[s] != 0:
             pose_p[s] = s_p[s]
             pose_q[s] = s_q[s]
             pose_dp[s] = s_dp[s]
+            pose_dr[s] = s_dr[s]
         else:
             i0 = s_i0[s]
             i1 = s_i1[s]
             t = s_t[s]
             p = sampled_position(kf_t, kf_p, lin_v, c, i0, i1, s_w[s], t)
-            w = segment_weight(kf_t, i0, i1, s_w[s], t)
-            # Normalised: a keyframe quaternion a descent moved off the unit sphere would
-            # otherwise scale the tool (quat_rotate by |q|^2) and its local frame by the
-            # inverse, so a particle placed on its surface would not be on it a step later.
-            q = wp.normalize(quat_exp(ang_v[c] * t) * interp_quat(kf_q[i0], kf_q[i1], w))
+            q = sampled_orientation(kf_q, ang_v, c, i0, i1, segment_weight(kf_t, i0, i1, s_w[s], t), t)
             pose_p[s] = p
             pose_q[s] = q
             dp = vec3(ZERO, ZERO, ZERO)
+            dr = vec3(ZERO, ZERO, ZERO)
             if s % 2 == 1:
-                if s_i0[s - 1] == i0 and s_i1[s - 1] == i1:
+                j0 = s_i0[s - 1]
+                j1 = s_i1[s - 1]
+                t0 = s_t[s - 1]
+                q0 = sampled_orientation(kf_q, ang_v, c, j0, j1, segment_weight(kf_t, j0, j1, s_w[s - 1], t0), t0)
+                if j0 == i0 and j1 == i1:
                     dp = step_displacement(kf_t, kf_p, lin_v, c, i0, i1, dt)
+                    dr = step_rotation(kf_t, kf_q, ang_v, c, i0, i1, q0, dt)
                 else:
                     # A step across a keyframe: the two segments' poses, differenced.
-                    dp = p - sampled_position(kf_t, kf_p, lin_v, c, s_i0[s - 1], s_i1[s - 1], s_w[s - 1], s_t[s - 1])
+                    dp = p - sampled_position(kf_t, kf_p, lin_v, c, j0, j1, s_w[s - 1], t0)
+                    dr = quat_log(wp.quat_inverse(q0) * q)
             pose_dp[s] = dp
+            pose_dr[s] = dr
 
     @wp.kernel(module="unique")
     def accumulate(src: wp.array(dtype=vec3), scale: scalar, dst: wp.array(dtype=vec3)):
@@ -429,6 +470,22 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         return wp.quat_rotate_inv(q, x - p)
 
     @wp.func
+    def rotation_delta(r: vec3, y: vec3):
+        """``(E(r) - I) y`` for the rotation ``E`` of rotation vector ``r`` (Rodrigues), without
+        subtracting ``y`` from ``E(r) y``, which carried float32's resolution of ``y`` into a
+        step's velocity (``pose_dp``). Series below 1e-3 rad."""
+        th2 = wp.dot(r, r)
+        s1 = ONE - th2 / scalar(6.0)
+        s2 = scalar(0.5) - th2 / scalar(24.0)
+        if th2 > scalar(1.0e-6):
+            th = wp.sqrt(th2)
+            h = wp.sin(scalar(0.5) * th)
+            s1 = wp.sin(th) / th
+            s2 = scalar(2.0) * h * h / th2
+        ry = wp.cross(r, y)
+        return s1 * ry + s2 * wp.cross(r, ry)
+
+    @wp.func
     def tangential_follow(x_start: vec3, x_s: vec3, v_new: vec3, vs: vec3, n: vec3, p0: vec3, q0: quat, p1: vec3, q1: quat, dt: scalar):
         """Tangential offset from the contact point ``x_s`` (normal ``n``) to where the
         particle's step ends: its start carried with the tool plus ``dt`` times its responded
@@ -449,7 +506,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
     def apply(
         x: vec3, v: vec3, x_start: vec3, hit: int, xc: vec3, nl: vec3, c: int, row: int, m: scalar, dt: scalar, ramp: scalar,
         pose_p: wp.array(dtype=vec3), pose_q: wp.array(dtype=quat), pose_dp: wp.array(dtype=vec3),
-        mu_s: wp.array(dtype=scalar), mu_k: wp.array(dtype=scalar), rforce: wp.array(dtype=vec3), rtorque: wp.array(dtype=vec3),
+        pose_dr: wp.array(dtype=vec3), mu_s: wp.array(dtype=scalar), mu_k: wp.array(dtype=scalar), rforce: wp.array(dtype=vec3), rtorque: wp.array(dtype=vec3),
     ):
         """Move a particle in contact to the surface point ``xc`` (collider frame) and
         respond relative to that point's velocity; adds the impulse / dt to the reaction row
@@ -463,7 +520,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         x_s = world(p1, q1, xc)
         # From the step's displacement, not the difference of the two world points (which
         # carries float32's resolution of the tool's place: pose_dp).
-        vs = (pose_dp[2 * c + 1] + (wp.quat_rotate(q1, xc) - wp.quat_rotate(q0, xc))) / dt
+        vs = (pose_dp[2 * c + 1] + wp.quat_rotate(q0, rotation_delta(pose_dr[2 * c + 1], xc))) / dt
         n = wp.quat_rotate(q1, nl)
         # The whole depth is undone (a particle left inside a moving tool could be passed by
         # it: a thin blade's nearest face may be its back); the touchdown share acts on the
@@ -823,6 +880,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         pose_p: wp.array(dtype=vec3),
         pose_q: wp.array(dtype=quat),
         pose_dp: wp.array(dtype=vec3),
+        pose_dr: wp.array(dtype=vec3),
         param: wp.array(dtype=vec3),
         mu_s: wp.array(dtype=scalar),
         mu_k: wp.array(dtype=scalar),
@@ -864,7 +922,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
             for c in range(wp.static(counts[0])):
                 k = wp.static(offsets[0]) + c
                 hit, xc, nl = shape_plane(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), param[k])
-                x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, pose_dp, mu_s, mu_k, rforce, rtorque)
+                x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, pose_dp, pose_dr, mu_s, mu_k, rforce, rtorque)
             for c in range(wp.static(len(swept_test))):
                 k = wp.static(offsets[1]) + c
                 # The entry point first (a path from outside), the nearest face only for a
@@ -874,13 +932,13 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
                 hit, xc, nl = wp.static(swept_test[c])(local(pose_p[2 * k], pose_q[2 * k], x_in[i]), xl, param[k], margin)
                 if hit == 0:
                     hit, xc, nl = wp.static(inside_test[c])(xl, param[k], margin)
-                x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, pose_dp, mu_s, mu_k, rforce, rtorque)
+                x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, pose_dp, pose_dr, mu_s, mu_k, rforce, rtorque)
             for c in range(wp.static(counts[5])):
                 k = wp.static(offsets[5]) + c
                 xl = local(pose_p[2 * k + 1], pose_q[2 * k + 1], x)
                 xs = local(pose_p[2 * k], pose_q[2 * k], x_in[i])
                 hit, xc, nl = shape_mesh(xl, xs, mesh_id[k], mesh_lo[k], mesh_hi[k], margin, mesh_verts, mesh_tris, mesh_vofs[k], mesh_fofs[k])
-                x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, pose_dp, mu_s, mu_k, rforce, rtorque)
+                x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, pose_dp, pose_dr, mu_s, mu_k, rforce, rtorque)
                 if hit != 0:
                     # The contact's tangential move along the face it met may enter another face
                     # of the same mesh, where a convex shape has none: a particle sliding on a
@@ -888,7 +946,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
                     # move, from the contact point, meets the mesh as a path does.
                     hit, xc, nl = mesh_entry(local(pose_p[2 * k + 1], pose_q[2 * k + 1], x), xc, mesh_id[k], mesh_lo[k],
                                              mesh_hi[k], margin, mesh_verts, mesh_tris, mesh_vofs[k], mesh_fofs[k])
-                    x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, pose_dp, mu_s, mu_k, rforce, rtorque)
+                    x, v = apply(x, v, x_in[i], hit, xc, nl, k, base + k, m, dt, sc.ramp, pose_p, pose_q, pose_dp, pose_dr, mu_s, mu_k, rforce, rtorque)
         if wp.static(n_pins > 0):
             k = pin[i]
             if k >= 0:
@@ -901,7 +959,7 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
                 x1 = X + (p1 - c0) + (r1 - xr)
                 # The chord (x1 - x0) / dt from the step's displacement: the difference of the
                 # two places carried float32's resolution of them (pose_dp).
-                v1 = (pose_dp[2 * k + 1] + (r1 - wp.quat_rotate(pose_q[2 * k], xr))) / dt
+                v1 = (pose_dp[2 * k + 1] + wp.quat_rotate(pose_q[2 * k], rotation_delta(pose_dr[2 * k + 1], xr))) / dt
                 fr = m * (v1 - v_in[i]) / dt - f[i] - m * gravity
                 wp.atomic_add(rforce, base + k, fr)
                 wp.atomic_add(rtorque, base + k, wp.cross(x1 - p1, fr))
@@ -1263,6 +1321,7 @@ class ToolSet:
         sp = np.zeros((2 * n, 3))
         sq = np.tile(np.array(IDENTITY), (2 * n, 1))
         sdp = np.zeros((2 * n, 3))
+        sdr = np.zeros((2 * n, 3))
         kt = self._times_now()
         for k, motion in enumerate(self.motions):
             for j, t in enumerate((t0, t1)):
@@ -1277,11 +1336,12 @@ class ToolSet:
                 else:
                     direct[s] = 1
                     sp[s], sq[s] = self._scripted_pose(k, t)
-            # A Scripted step's displacement, differenced in float64 here (pose_dp).
+            # A Scripted step's displacement and rotation, differenced in float64 here (pose_dp).
             sdp[2 * k + 1] = sp[2 * k + 1] - sp[2 * k]
+            sdr[2 * k + 1] = _np_log(_np_mul(_np_conj(sq[2 * k]), sq[2 * k + 1]))
         if self._scripted:
             self._scripted_last = (t0, sp, sq)
-        return i0, i1, w, ts, direct, sp, sq, sdp
+        return i0, i1, w, ts, direct, sp, sq, sdp, sdr
 
     def _sample_arrays(self, host, held):
         """``_samples`` on the device, refilled into ``held`` (the arrays of an earlier
@@ -1289,7 +1349,7 @@ class ToolSet:
         the pose kernel at small particle counts)."""
         m = self.model
         T = m.types
-        dtypes = (wp.int32, wp.int32, m.scalar, m.scalar, wp.int32, T.vec3, self.quat, T.vec3)
+        dtypes = (wp.int32, wp.int32, m.scalar, m.scalar, wp.int32, T.vec3, self.quat, T.vec3, T.vec3)
         host = [h if d is wp.int32 else h.astype(T.np_dtype) for h, d in zip(host, dtypes)]
         if held is None or any(a.shape[0] != h.shape[0] or a.dtype != d for a, h, d in zip(held, host, dtypes)):
             return _Samples(wp.array(h, dtype=d, device=m.device) for h, d in zip(host, dtypes))
@@ -1329,7 +1389,7 @@ class ToolSet:
             self.kernels.poses, 2 * n,
             [self.keyframe_times, self.keyframe_positions, self.keyframe_orientations, self.velocity, self.angular_velocity, *samples,
              S(dt)],
-            [state_out.tool_pose_p, state_out.tool_pose_q, state_out.tool_pose_dp], device=dev,
+            [state_out.tool_pose_p, state_out.tool_pose_q, state_out.tool_pose_dp, state_out.tool_pose_dr], device=dev,
         )
         state_out.reaction_force.zero_()
         state_out.reaction_torque.zero_()
@@ -1346,7 +1406,7 @@ class ToolSet:
                 [
                     state_in.x, state_in.x_lo, state_in.v, state_out.force, m.particle_mass, T.vec3(*m.gravity), S(dt),
                     static_collider_struct(m),
-                    state_out.tool_pose_p, state_out.tool_pose_q, state_out.tool_pose_dp, self.param, self.static_friction, self.friction,
+                    state_out.tool_pose_p, state_out.tool_pose_q, state_out.tool_pose_dp, state_out.tool_pose_dr, self.param, self.static_friction, self.friction,
                     self.mesh_id, self.mesh_lo, self.mesh_hi, self.mesh_verts, self.mesh_tris, self.mesh_vofs,
                     self.mesh_fofs, S(self.margin),
                     self.pin, self.rest_x, self.pin_center, m.particle_world, int(n),
@@ -1519,6 +1579,18 @@ def _np_mul(a, b):
     ])
 
 
+def _np_conj(q):
+    q = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([-q[0], -q[1], -q[2], q[3]])
+
+
+def _np_log(q):
+    """Rotation vector of the (normalised) quaternion ``q``, as ``quat_log`` in the pose kernel."""
+    q = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    sv = float(np.linalg.norm(q[:3]))
+    return q[:3] * (2.0 * math.atan2(sv, q[3]) / sv if sv > 1e-12 else 2.0 / q[3])
+
+
 def _np_slerp(a, b, w):
     d = float(np.dot(a, b))
     if d > 0.99999:
@@ -1548,6 +1620,7 @@ def allocate_state(model, state, requires_grad: bool):
     state.tool_pose_p = wp.zeros(2 * n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
     state.tool_pose_q = wp.zeros(2 * n, dtype=tools.quat, device=dev, requires_grad=requires_grad)
     state.tool_pose_dp = wp.zeros(2 * n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
+    state.tool_pose_dr = wp.zeros(2 * n, dtype=T.vec3, device=dev, requires_grad=requires_grad)
     state.reaction_force = wp.zeros(rows, dtype=T.vec3, device=dev, requires_grad=requires_grad)
     state.reaction_torque = wp.zeros(rows, dtype=T.vec3, device=dev, requires_grad=requires_grad)
 
