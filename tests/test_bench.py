@@ -75,6 +75,25 @@ def test_launches_benchmark_times_the_replayed_step_against_plain_launches(tmp_p
     assert all(r["kept_struct_speedup"] == pytest.approx(r["rebuilt_ms"] / r["replayed_ms"]) for r in report["rows"])
 
 
+def test_gradient_benchmark_profiles_every_kernel_of_the_step_and_of_its_backward():
+    """``benchmarks.gradient_bench --profile``: every kernel the fused forward and the
+    backward pass launch is in the profile, the replayed ones (``sim/replay.py``, which
+    bypass ``wp.launch``: every launch of the step and the hand-written adjoints) as well as
+    those through ``wp.launch`` (the generated adjoint of the integration). The profile had
+    timed ``wp.launch`` alone, and printed an empty forward and a backward of the
+    integration's adjoint alone."""
+    import warp as wp
+
+    from benchmarks import gradient_bench
+    from benchmarks.blocks import block_model
+
+    r = gradient_bench.measure(block_model(27, wp.float64), steps=2, repeats=1, profile=True)
+    fused, backward = r["fused_launch_ms_per_step"], r["adjoint_ms_per_step"]
+    assert {"constitutive_forces", "update_deformation", "select_neighbors", "integrate"} <= set(fused), fused
+    assert {"variational_forces_adjoint", "update_deformation_adjoint", "pressure_forces_adjoint",
+            "constitutive_update_adjoint", "density_adjoint", "integrate (generated adjoint)"} <= set(backward), backward
+
+
 def test_fit_benchmark_times_a_fits_loss_only_runs_untaped_against_taped(tmp_path):
     """``benchmarks.fit_bench --loss-only`` at a tiny size: a Gauss-Newton fit (every run loss
     only) and an L-BFGS fit (its diagnostics' runs loss only), each timed with those runs
