@@ -411,6 +411,64 @@ def test_hand_written_pressure_adjoints_between_energy_spiky_and_energy_bodies(s
     _assert_hand_matches_generated(scalar, tol, pressure_force="energy_spiky", second_pressure_force="energy")
 
 
+@pytest.mark.parametrize("ground", [None, -0.045], ids=["free", "images"])
+def test_both_densities_adjoints_run_in_one_pass_over_the_pairs(ground):
+    """With ``energy_spiky`` the step sums two densities over the same pairs (the SPH one and
+    the pressure density); the backward takes both gradients back to the positions in one
+    ``density_adjoint`` launch per step (``pressure.launch_state_densities_adjoint``), not one
+    launch per density, and its gradients are the two passes' to float64 round-off (their
+    sums in another order; ``test_hand_written_energy_pressure_adjoint`` checks them against
+    the generated adjoints). With floor images too."""
+    import warp_esph as we  # noqa: PLC0415
+    from warp_esph.sim import pressure  # noqa: PLC0415
+
+    mat = we.Material(density=1000.0, mu=1.0e3, lam=1.5e3, pressure_stiffness=1.0, pressure_force="energy_spiky")
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.0, 0.0), (0.08, 0.06, 0.06), mat)
+    if ground is not None:
+        b.add_ground(ground, images=True)
+    model = b.finalize(dtype=S, requires_grad=True)
+    assert model.separate_pressure_density
+    model.particle_x0 += np.random.default_rng(3).normal(scale=0.1 * 0.02, size=model.particle_x0.shape)
+    solver = we.Solver(model)
+    steps = 2
+    states = [model.state() for _ in range(steps + 1)]
+    tape = wp.Tape()
+    with tape:
+        for k in range(steps):
+            solver.step(states[k], states[k + 1], 1.0e-3)
+    states[-1].x.grad.assign(np.random.default_rng(0).normal(size=(model.particle_count, 3)))
+    launched = []
+    replayed = model.launches
+
+    def counted(kernel, *args, **kwargs):
+        launched.append(kernel.key.rsplit("__locals__", 1)[-1])
+        return replayed(kernel, *args, **kwargs)
+
+    model.launches = counted
+    try:
+        tape.backward()
+    finally:
+        model.launches = replayed
+    assert launched.count("density_adjoint") == steps, launched
+
+    # One pass against the two it replaces, on the last step's densities' gradients.
+    out = states[-1]
+    rng = np.random.default_rng(1)
+    out.density.grad.assign(rng.normal(size=model.particle_count))
+    out.pressure_density.grad.assign(rng.normal(size=model.particle_count))
+    x = states[-2].x
+    x.grad.zero_()
+    pressure.launch_state_densities_adjoint(model, x, out)
+    both = x.grad.numpy().copy()
+    x.grad.zero_()
+    pressure.launch_density_adjoint(model, x, out.neighbors, out.neighbor_count, out.density)
+    pressure.launch_density_adjoint(model, x, out.neighbors, out.neighbor_count, out.pressure_density, of_pressure=True)
+    apart = x.grad.numpy()
+    assert np.abs(apart).max() > 0
+    assert np.abs(both - apart).max() <= 1e-13 * np.abs(apart).max()
+
+
 @pytest.mark.parametrize("pressure_force,ground,elastic_force", [
     ("energy", -0.045, "variational"), ("energy_spiky", -0.045, "variational"), ("spiky", -0.045, "variational"),
     ("energy", -0.031, "variational"), ("energy", -0.045, "paper"), ("energy", -0.031, "paper")],

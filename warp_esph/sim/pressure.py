@@ -30,7 +30,7 @@ import warp as wp
 
 from .._types import type_set
 from . import deformation, materials, smoothing
-from .replay import recording_tape
+from .replay import outside_recording_tape, recording_tape
 
 
 @functools.cache
@@ -351,6 +351,20 @@ def kernels(scalar) -> types.SimpleNamespace:
                                            material, mat, h, c6, c_spiky, c_visc, gn, goff, gmin)
         wp.atomic_add(f, i, fi)
 
+    @wp.func
+    def density_pair_adjoint(a: scalar, a_p: scalar, mj: scalar, d: vec3, r2: scalar, h: scalar, c6: scalar,
+                             c_spiky: scalar, form: int, both: int) -> vec3:
+        """A pair's ``adj d`` through the density ``m_j W(d)`` of gradient ``a`` (``form`` its
+        kernel, ``density_weight_gradient``); with ``both`` also through the pressure density
+        ``m_j W_form(d)`` of gradient ``a_p`` (``a`` then the SPH density's, poly6)."""
+        g = vec3()
+        if both != 0:
+            g = (a * mj) * fn.density_weight_gradient(d, r2, h, c6, c_spiky, 0) + (a_p * mj) * fn.density_weight_gradient(
+                d, r2, h, c6, c_spiky, form)
+        else:
+            g = (a * mj) * fn.density_weight_gradient(d, r2, h, c6, c_spiky, form)
+        return g
+
     @wp.kernel(enable_backward=False, module="unique")
     def density_adjoint(
         x: wp.array(dtype=vec3),
@@ -366,14 +380,22 @@ def kernels(scalar) -> types.SimpleNamespace:
         gmin: scalar,
         images: int,
         adj_rho: wp.array(dtype=scalar),
+        adj_rho_p: wp.array(dtype=scalar),
         adj_x: wp.array(dtype=vec3),
     ):
         """Hand-written adjoint of ``density``: ``d rho_i / d x_j = m_j grad W(d)``,
         ``d = x_j - x_i`` (``density_weight_gradient``); with ``images`` the same for each
         image ``g_j`` of ``image_density`` in place of ``x_j``, scattered to ``x_j`` through
-        ``deformation.floor_image_jacobian``."""
+        ``deformation.floor_image_jacobian``. ``of_pressure`` 1: ``adj_rho`` is the pressure
+        density's; 2: both densities' at once, ``adj_rho`` the SPH density's and ``adj_rho_p``
+        the pressure density's, in one pass over the pairs (one scatter per pair instead of
+        two launches' one each)."""
         i = wp.tid()
         a = adj_rho[i]
+        a_p = scalar(0.0)
+        both = wp.where(of_pressure == 2, 1, 0)
+        if both != 0:
+            a_p = adj_rho_p[i]
         xi = x[i]
         c6 = sm.poly6_coef(h)
         c_spiky = sm.spiky_coef(h)
@@ -388,7 +410,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             d = x[j] - xi
             r2 = wp.dot(d, d)
             if r2 < hh:
-                g = (a * mass[j]) * fn.density_weight_gradient(d, r2, h, c6, c_spiky, form)
+                g = density_pair_adjoint(a, a_p, mass[j], d, r2, h, c6, c_spiky, form, both)
                 wp.atomic_add(adj_x, j, g)
                 gx_i -= g
         n_img = image_slots(xi, n, h, gn, goff, images)
@@ -398,7 +420,7 @@ def kernels(scalar) -> types.SimpleNamespace:
             d = fn.floor_image(xj, gn, goff, gmin) - xi
             r2 = wp.dot(d, d)
             if r2 < hh:
-                g = (a * mass[j]) * fn.density_weight_gradient(d, r2, h, c6, c_spiky, form)
+                g = density_pair_adjoint(a, a_p, mass[j], d, r2, h, c6, c_spiky, form, both)
                 scatter_partner_adjoint(adj_x, j, xj, g, gn, goff, gmin, 1)
                 gx_i -= g
         wp.atomic_add(adj_x, i, gx_i)
@@ -588,12 +610,15 @@ def launch_density(model, x, neighbors, neighbor_count, rho, hand_adjoint: bool 
     tape.record_func(lambda: launch_density_adjoint(model, x, neighbors, neighbor_count, rho, of_pressure), [x, rho])
 
 
-def launch_density_adjoint(model, x, neighbors, neighbor_count, rho, of_pressure: bool = False):
-    """``density_adjoint``: ``rho.grad`` into ``x.grad``."""
+def launch_density_adjoint(model, x, neighbors, neighbor_count, rho, of_pressure: bool = False, rho_p=None):
+    """``density_adjoint``: ``rho.grad`` into ``x.grad``; with ``rho_p`` (the pressure density
+    beside the SPH density ``rho``) ``rho_p.grad`` too, in the same pass."""
+    mode = 2 if rho_p is not None else int(of_pressure)
     model.launches(
         kernels(model.scalar).density_adjoint, model.particle_count,
         [x, model.particle_mass, model.particle_material, model.material_arrays(), neighbors, neighbor_count,
-         model.scalar(model.support_radius), int(of_pressure), *model.image_args(), rho.grad, x.grad],
+         model.scalar(model.support_radius), mode, *model.image_args(), rho.grad,
+         (rho if rho_p is None else rho_p).grad, x.grad],
         device=model.device, record_tape=False,
     )
 
@@ -613,19 +638,28 @@ def pressure_density(model, state):
 def launch_state_densities(model, x, state_out, hand_adjoint: bool = True):
     """The SPH density into ``state_out.density`` and, where a material is ``energy_spiky``
     (``Model.separate_pressure_density``), the pressure density into
-    ``state_out.pressure_density``."""
-    launch_density(model, x, state_out.neighbors, state_out.neighbor_count, state_out.density, hand_adjoint)
-    if model.separate_pressure_density:
-        launch_density(model, x, state_out.neighbors, state_out.neighbor_count, pressure_density(model, state_out),
-                       hand_adjoint, of_pressure=True)
+    ``state_out.pressure_density``. Under a ``wp.Tape`` with both, the backward takes both
+    densities' gradients in one ``density_adjoint`` pass (``launch_state_densities_adjoint``)."""
+    rho = state_out.density
+    rho_p = pressure_density(model, state_out) if model.separate_pressure_density else None
+    tape = recording_tape()
+    if (rho_p is None or tape is None or not hand_adjoint or x.grad is None or rho.grad is None
+            or rho_p.grad is None):
+        launch_density(model, x, state_out.neighbors, state_out.neighbor_count, rho, hand_adjoint)
+        if rho_p is not None:
+            launch_density(model, x, state_out.neighbors, state_out.neighbor_count, rho_p, hand_adjoint, of_pressure=True)
+        return
+    with outside_recording_tape():
+        launch_density(model, x, state_out.neighbors, state_out.neighbor_count, rho)
+        launch_density(model, x, state_out.neighbors, state_out.neighbor_count, rho_p, of_pressure=True)
+    tape.record_func(lambda: launch_state_densities_adjoint(model, x, state_out), [x, rho, rho_p])
 
 
 def launch_state_densities_adjoint(model, x, state_out):
-    """The hand-written adjoints of ``launch_state_densities``."""
-    launch_density_adjoint(model, x, state_out.neighbors, state_out.neighbor_count, state_out.density)
-    if model.separate_pressure_density:
-        launch_density_adjoint(model, x, state_out.neighbors, state_out.neighbor_count, pressure_density(model, state_out),
-                               of_pressure=True)
+    """The hand-written adjoints of ``launch_state_densities``: both densities' in one launch
+    where there are two (their pairs are the same)."""
+    launch_density_adjoint(model, x, state_out.neighbors, state_out.neighbor_count, state_out.density,
+                           rho_p=pressure_density(model, state_out) if model.separate_pressure_density else None)
 
 
 def launch_pressure_forces(model, state_in, state_out, hand_adjoint: bool = True):
