@@ -444,6 +444,166 @@ def kernels(scalar) -> types.SimpleNamespace:
         a = adj_p * pressure_slope(rho, rho0, k_p, clamp)
         return a * k_p, a * (rho - rho0)
 
+    @wp.func
+    def pressure_pair_adjoint(
+        i: int,
+        j: int,
+        r: vec3,
+        r2: scalar,
+        h: scalar,
+        hh: scalar,
+        c6: scalar,
+        c_spiky: scalar,
+        c_visc: scalar,
+        afi: vec3,
+        vi: vec3,
+        Vi: scalar,
+        rho_i: scalar,
+        pi: scalar,
+        rp_i: scalar,
+        visc_i: scalar,
+        form: int,
+        v: wp.array(dtype=vec3),
+        mass: wp.array(dtype=scalar),
+        rho: wp.array(dtype=scalar),
+        rho_p: wp.array(dtype=scalar),
+        rest_density: wp.array(dtype=scalar),
+        material: wp.array(dtype=wp.int32),
+        mat: Materials,
+        adj_f: wp.array(dtype=vec3),
+        adj_x: wp.array(dtype=vec3),
+        adj_v: wp.array(dtype=vec3),
+        adj_rho: wp.array(dtype=scalar),
+        adj_rho_p: wp.array(dtype=scalar),
+        adj_k: wp.array(dtype=scalar),
+        adj_visc: wp.array(dtype=scalar),
+        adj_pi: scalar,
+        adj_Ai: scalar,
+        adj_rho_i: scalar,
+        adj_visc_i: scalar,
+        gx_i: vec3,
+        gv_i: vec3,
+    ):
+        """One pair's part of ``pressure_forces_adjoint`` (its docstring has the formulas), the
+        pair ``i, j`` at ``r = x_i - x_j`` within ``h``: scatters ``j``'s gradients and returns
+        ``i``'s sums ``(adj p_i, adj A_i, adj rho_i, adj visc_i, adj x_i, adj v_i)`` with the
+        pair's terms added. A function of its own so that another pass over the same pairs
+        (``forces.variational_forces_adjoint``'s) can take them too."""
+        mj = material[j]
+        rho_j = rho[j]
+        rp_j = rho_p[j]
+        k_j = mat.pressure_stiffness[mj]
+        pj = fn.pressure(rp_j, rest_density[j], k_j, mat.clamp_pressure[mj])
+        VV = Vi * mass[j] / rho_j
+        eta = fn.pair_viscosity(visc_i, mat.viscosity[mj])
+        a = scalar(0.5) * (afi - adj_f[j])
+        rl = wp.sqrt(r2)
+        adj_r = vec3()
+        adj_VV = scalar(0.0)
+        adj_rl = scalar(0.0)
+        energy_like = int(0)
+        adj_A = scalar(0.0)
+        if form == 0:
+            # energy_pressure_pair_force: G = C w e^2 r, w = m_i m_j (A_i + A_j).
+            e = hh - r2
+            ar = wp.dot(a, r)
+            mm = mass[i] * mass[j]
+            w = mm * (pi / (rp_i * rp_i) + pj / (rp_j * rp_j))
+            adj_A = scalar(6.0) * c6 * mm * e * e * ar
+            energy_like = 1
+            adj_r += (scalar(6.0) * c6 * w * e) * (e * a - scalar(4.0) * ar * r)
+        elif form == 2 and r2 > scalar(1.0e-24) * hh:
+            # energy_spiky_pair_force: G = -w psi(|r|) r, w = m_i m_j (A_i + A_j).
+            psi = sm.spiky_gradient_factor(rl, h, c_spiky)
+            mm = mass[i] * mass[j]
+            w = mm * (pi / (rp_i * rp_i) + pj / (rp_j * rp_j))
+            adj_A = -psi * mm * wp.dot(a, r)
+            energy_like = 1
+            b = -w * a
+            adj_r += psi * b
+            adj_rl += sm.spiky_gradient_factor_slope(rl, h, c_spiky, r2) * wp.dot(r, b)
+        elif form == 1 and r2 > scalar(1.0e-24) * hh:
+            psi = sm.spiky_gradient_factor(rl, h, c_spiky)
+            q = psi * wp.dot(a, r)
+            adj_VV -= scalar(0.5) * (pi + pj) * q
+            adj_p = scalar(-0.5) * VV * q
+            adj_pi += adj_p
+            adj_rp_j, adj_k_j = pressure_adjoint(adj_p, rp_j, rest_density[j], k_j, mat.clamp_pressure[mj])
+            wp.atomic_add(adj_rho_p, j, adj_rp_j)
+            wp.atomic_add(adj_k, mj, adj_k_j)
+            b = scalar(-0.5) * VV * (pi + pj) * a
+            adj_r += psi * b
+            adj_rl += sm.spiky_gradient_factor_slope(rl, h, c_spiky, r2) * wp.dot(r, b)
+        if energy_like != 0:
+            # A = p / rho_p^2 of both particles (i's summed over the pairs, below).
+            adj_Ai += adj_A
+            adj_rp_j, adj_k_j = pressure_adjoint(adj_A / (rp_j * rp_j), rp_j, rest_density[j], k_j,
+                                                 mat.clamp_pressure[mj])
+            wp.atomic_add(adj_rho_p, j, scalar(-2.0) * adj_A * pj / (rp_j * rp_j * rp_j) + adj_rp_j)
+            wp.atomic_add(adj_k, mj, adj_k_j)
+        if r2 > scalar(1.0e-30):
+            vji = v[j] - vi
+            lap = sm.lap_w_viscosity_at(rl, h, c_visc)
+            s5 = scalar(5.0) * eta * VV * lap / r2
+            u = wp.dot(vji, r)
+            ar = wp.dot(a, r)
+            adj_s = u * ar
+            adj_u = s5 * ar
+            adj_r += s5 * u * a + adj_u * vji
+            adj_vji = adj_u * r
+            wp.atomic_add(adj_v, j, adj_vji)
+            gv_i -= adj_vji
+            base = scalar(5.0) * lap / r2
+            adj_eta = adj_s * base * VV
+            # pair_viscosity's adjoint: half to each particle's viscosity.
+            adj_visc_i += scalar(0.5) * adj_eta
+            wp.atomic_add(adj_visc, mj, scalar(0.5) * adj_eta)
+            adj_VV += adj_s * base * eta
+            adj_rl -= c_visc * adj_s * scalar(5.0) * eta * VV / r2
+            adj_r -= scalar(2.0) * adj_s * s5 / r2 * r
+        if rl > scalar(0.0):
+            adj_r += (adj_rl / rl) * r
+        adj_rho_i -= adj_VV * VV / rho_i
+        wp.atomic_add(adj_rho, j, -adj_VV * VV / rho_j)
+        gx_i += adj_r
+        wp.atomic_add(adj_x, j, -adj_r)
+        return adj_pi, adj_Ai, adj_rho_i, adj_visc_i, gx_i, gv_i
+
+    @wp.func
+    def pressure_particle_terms(i: int, v: wp.array(dtype=vec3), mass: wp.array(dtype=scalar),
+                                rho: wp.array(dtype=scalar), rho_p: wp.array(dtype=scalar),
+                                rest_density: wp.array(dtype=scalar), material: wp.array(dtype=wp.int32), mat: Materials):
+        """What ``pressure_pair_adjoint`` reads of particle ``i``: ``(material, v_i, rho_i, V_i = m_i
+        / rho_i, rho_p_i, k_p, p_i, viscosity, pressure force)``."""
+        mi = material[i]
+        vi = v[i]
+        rho_i = rho[i]
+        Vi = mass[i] / rho_i
+        rp_i = rho_p[i]
+        k_i = mat.pressure_stiffness[mi]
+        pi = fn.pressure(rp_i, rest_density[i], k_i, mat.clamp_pressure[mi])
+        visc_i = mat.viscosity[mi]
+        form = mat.pressure_force[mi]
+        return mi, vi, rho_i, Vi, rp_i, k_i, pi, visc_i, form
+
+    @wp.func
+    def pressure_particle_adjoint(i: int, mi: int, rp_i: scalar, k_i: scalar, pi: scalar,
+                                  rest_density: wp.array(dtype=scalar), mat: Materials, adj_pi: scalar, adj_Ai: scalar,
+                                  adj_rho_i: scalar, adj_visc_i: scalar, gv_i: vec3, adj_v: wp.array(dtype=vec3),
+                                  adj_rho: wp.array(dtype=scalar), adj_rho_p: wp.array(dtype=scalar),
+                                  adj_k: wp.array(dtype=scalar), adj_visc: wp.array(dtype=scalar)):
+        """After ``i``'s pairs (``pressure_pair_adjoint``): its sums through ``A_i = p_i /
+        rho_p_i^2`` and ``p_i`` to its densities, ``k_p`` and viscosity, and its ``adj v``."""
+        adj_rp_i = scalar(0.0)
+        wp.atomic_add(adj_v, i, gv_i)
+        adj_pi += adj_Ai / (rp_i * rp_i)
+        adj_rp_i -= scalar(2.0) * adj_Ai * pi / (rp_i * rp_i * rp_i)
+        adj_rp_p, adj_k_i = pressure_adjoint(adj_pi, rp_i, rest_density[i], k_i, mat.clamp_pressure[mi])
+        wp.atomic_add(adj_rho, i, adj_rho_i)
+        wp.atomic_add(adj_rho_p, i, adj_rp_i + adj_rp_p)
+        wp.atomic_add(adj_k, mi, adj_k_i)
+        wp.atomic_add(adj_visc, mi, adj_visc_i)
+
     @wp.kernel(enable_backward=False, module="unique")
     def pressure_forces_adjoint(
         x: wp.array(dtype=vec3),
@@ -474,16 +634,9 @@ def kernels(scalar) -> types.SimpleNamespace:
         ``p`` (then the pressure density ``rho_p`` and ``k_p``) and
         ``eta``. ``adj_rho`` and ``adj_rho_p`` may be one array (``rho_p`` is ``rho``)."""
         i = wp.tid()
-        mi = material[i]
         xi = x[i]
-        vi = v[i]
-        rho_i = rho[i]
-        Vi = mass[i] / rho_i
-        rp_i = rho_p[i]
-        k_i = mat.pressure_stiffness[mi]
-        pi = fn.pressure(rp_i, rest_density[i], k_i, mat.clamp_pressure[mi])
-        visc_i = mat.viscosity[mi]
-        form = mat.pressure_force[mi]
+        mi, vi, rho_i, Vi, rp_i, k_i, pi, visc_i, form = pressure_particle_terms(i, v, mass, rho, rho_p, rest_density,
+                                                                                  material, mat)
         c6 = sm.poly6_coef(h)
         c_spiky = sm.spiky_coef(h)
         c_visc = sm.viscosity_coef(h)
@@ -492,7 +645,6 @@ def kernels(scalar) -> types.SimpleNamespace:
         adj_pi = scalar(0.0)
         adj_Ai = scalar(0.0)
         adj_rho_i = scalar(0.0)
-        adj_rp_i = scalar(0.0)
         adj_visc_i = scalar(0.0)
         gx_i = vec3()
         gv_i = vec3()
@@ -501,96 +653,18 @@ def kernels(scalar) -> types.SimpleNamespace:
             r = xi - x[j]
             r2 = wp.dot(r, r)
             if r2 < hh:
-                mj = material[j]
-                rho_j = rho[j]
-                rp_j = rho_p[j]
-                k_j = mat.pressure_stiffness[mj]
-                pj = fn.pressure(rp_j, rest_density[j], k_j, mat.clamp_pressure[mj])
-                VV = Vi * mass[j] / rho_j
-                eta = fn.pair_viscosity(visc_i, mat.viscosity[mj])
-                a = scalar(0.5) * (afi - adj_f[j])
-                rl = wp.sqrt(r2)
-                adj_r = vec3()
-                adj_VV = scalar(0.0)
-                adj_rl = scalar(0.0)
-                energy_like = int(0)
-                adj_A = scalar(0.0)
-                if form == 0:
-                    # energy_pressure_pair_force: G = C w e^2 r, w = m_i m_j (A_i + A_j).
-                    e = hh - r2
-                    ar = wp.dot(a, r)
-                    mm = mass[i] * mass[j]
-                    w = mm * (pi / (rp_i * rp_i) + pj / (rp_j * rp_j))
-                    adj_A = scalar(6.0) * c6 * mm * e * e * ar
-                    energy_like = 1
-                    adj_r += (scalar(6.0) * c6 * w * e) * (e * a - scalar(4.0) * ar * r)
-                elif form == 2 and r2 > scalar(1.0e-24) * hh:
-                    # energy_spiky_pair_force: G = -w psi(|r|) r, w = m_i m_j (A_i + A_j).
-                    psi = sm.spiky_gradient_factor(rl, h, c_spiky)
-                    mm = mass[i] * mass[j]
-                    w = mm * (pi / (rp_i * rp_i) + pj / (rp_j * rp_j))
-                    adj_A = -psi * mm * wp.dot(a, r)
-                    energy_like = 1
-                    b = -w * a
-                    adj_r += psi * b
-                    adj_rl += sm.spiky_gradient_factor_slope(rl, h, c_spiky, r2) * wp.dot(r, b)
-                elif form == 1 and r2 > scalar(1.0e-24) * hh:
-                    psi = sm.spiky_gradient_factor(rl, h, c_spiky)
-                    q = psi * wp.dot(a, r)
-                    adj_VV -= scalar(0.5) * (pi + pj) * q
-                    adj_p = scalar(-0.5) * VV * q
-                    adj_pi += adj_p
-                    adj_rp_j, adj_k_j = pressure_adjoint(adj_p, rp_j, rest_density[j], k_j, mat.clamp_pressure[mj])
-                    wp.atomic_add(adj_rho_p, j, adj_rp_j)
-                    wp.atomic_add(adj_k, mj, adj_k_j)
-                    b = scalar(-0.5) * VV * (pi + pj) * a
-                    adj_r += psi * b
-                    adj_rl += sm.spiky_gradient_factor_slope(rl, h, c_spiky, r2) * wp.dot(r, b)
-                if energy_like != 0:
-                    # A = p / rho_p^2 of both particles (i's summed over the pairs, below).
-                    adj_Ai += adj_A
-                    adj_rp_j, adj_k_j = pressure_adjoint(adj_A / (rp_j * rp_j), rp_j, rest_density[j], k_j,
-                                                         mat.clamp_pressure[mj])
-                    wp.atomic_add(adj_rho_p, j, scalar(-2.0) * adj_A * pj / (rp_j * rp_j * rp_j) + adj_rp_j)
-                    wp.atomic_add(adj_k, mj, adj_k_j)
-                if r2 > scalar(1.0e-30):
-                    vji = v[j] - vi
-                    lap = sm.lap_w_viscosity_at(rl, h, c_visc)
-                    s5 = scalar(5.0) * eta * VV * lap / r2
-                    u = wp.dot(vji, r)
-                    ar = wp.dot(a, r)
-                    adj_s = u * ar
-                    adj_u = s5 * ar
-                    adj_r += s5 * u * a + adj_u * vji
-                    adj_vji = adj_u * r
-                    wp.atomic_add(adj_v, j, adj_vji)
-                    gv_i -= adj_vji
-                    base = scalar(5.0) * lap / r2
-                    adj_eta = adj_s * base * VV
-                    # pair_viscosity's adjoint: half to each particle's viscosity.
-                    adj_visc_i += scalar(0.5) * adj_eta
-                    wp.atomic_add(adj_visc, mj, scalar(0.5) * adj_eta)
-                    adj_VV += adj_s * base * eta
-                    adj_rl -= c_visc * adj_s * scalar(5.0) * eta * VV / r2
-                    adj_r -= scalar(2.0) * adj_s * s5 / r2 * r
-                if rl > scalar(0.0):
-                    adj_r += (adj_rl / rl) * r
-                adj_rho_i -= adj_VV * VV / rho_i
-                wp.atomic_add(adj_rho, j, -adj_VV * VV / rho_j)
-                gx_i += adj_r
-                wp.atomic_add(adj_x, j, -adj_r)
+                adj_pi, adj_Ai, adj_rho_i, adj_visc_i, gx_i, gv_i = pressure_pair_adjoint(
+                    i, j, r, r2, h, hh, c6, c_spiky, c_visc, afi, vi, Vi, rho_i, pi, rp_i, visc_i, form, v, mass, rho, rho_p,
+                    rest_density, material, mat, adj_f, adj_x, adj_v, adj_rho, adj_rho_p, adj_k, adj_visc, adj_pi, adj_Ai,
+                    adj_rho_i, adj_visc_i, gx_i, gv_i)
         wp.atomic_add(adj_x, i, gx_i)
-        wp.atomic_add(adj_v, i, gv_i)
-        adj_pi += adj_Ai / (rp_i * rp_i)
-        adj_rp_i -= scalar(2.0) * adj_Ai * pi / (rp_i * rp_i * rp_i)
-        adj_rp_p, adj_k_i = pressure_adjoint(adj_pi, rp_i, rest_density[i], k_i, mat.clamp_pressure[mi])
-        wp.atomic_add(adj_rho, i, adj_rho_i)
-        wp.atomic_add(adj_rho_p, i, adj_rp_i + adj_rp_p)
-        wp.atomic_add(adj_k, mi, adj_k_i)
-        wp.atomic_add(adj_visc, mi, adj_visc_i)
+        pressure_particle_adjoint(i, mi, rp_i, k_i, pi, rest_density, mat, adj_pi, adj_Ai, adj_rho_i, adj_visc_i, gv_i, adj_v,
+                                  adj_rho, adj_rho_p, adj_k, adj_visc)
 
     return types.SimpleNamespace(density=density, pressure_forces=pressure_forces,
                                  pressure_forces_adjoint=pressure_forces_adjoint, density_adjoint=density_adjoint,
+                                 pressure_pair_adjoint=pressure_pair_adjoint, pressure_particle_terms=pressure_particle_terms,
+                                 pressure_particle_adjoint=pressure_particle_adjoint,
                                  pressure_slope=pressure_slope, pressure_adjoint=pressure_adjoint)
 
 
