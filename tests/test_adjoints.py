@@ -469,6 +469,87 @@ def test_both_densities_adjoints_run_in_one_pass_over_the_pairs(ground):
     assert np.abs(both - apart).max() <= 1e-13 * np.abs(apart).max()
 
 
+@pytest.mark.parametrize("pressure_force", ["energy", "spiky", "energy_spiky"])
+@pytest.mark.parametrize("ground", [None, -0.045], ids=["free", "images"])
+def test_pressure_pairs_adjoint_runs_in_the_variational_force_adjoints_pass(ground, pressure_force):
+    """The fused step applies the variational force and the SPH pressure and viscosity in one
+    loop over the pairs; its backward takes both in one pass too
+    (``forces.variational_forces_adjoint`` with ``sph``): no ``pressure_forces_adjoint``
+    launch, and the gradients of the two passes it replaces to float64 round-off (their
+    scatters in another order; ``test_hand_written_adjoints_match_the_generated_ones`` and
+    ``..._carry_the_floor_images`` check them against the generated adjoints)."""
+    from warp_esph.sim import forces as forces_, pressure  # noqa: PLC0415
+
+    model, solver, states, tape = _taped_block(pressure_force, ground)
+    launched = _backward_launches(model, tape)
+    assert "pressure_forces_adjoint" not in launched and launched.count("variational_forces_adjoint") == len(states) - 1
+
+    # One pass against the two it replaces, on a step's gradients.
+    s_in, s_out = states[-2], states[-1]
+    rng = np.random.default_rng(1)
+    s_out.force.grad.assign(rng.normal(size=(model.particle_count, 3)))
+    outs = (s_in.x.grad, s_in.v.grad, s_out.stress.grad, s_out.F_flowed.grad, s_out.density.grad,
+            pressure.pressure_density(model, s_out).grad, model.pressure_stiffness.grad, model.viscosity.grad)
+    args = (model, s_in, s_out, solver.min_neighbors, solver.max_condition)
+
+    def run(one_pass):
+        for a in outs:
+            a.zero_()
+        if one_pass:
+            forces_.launch_variational_forces_adjoint(*args, sph=True)
+        else:
+            pressure.launch_pressure_forces_adjoint(model, s_in, s_out)
+            forces_.launch_variational_forces_adjoint(*args)
+        return [a.numpy().copy() for a in outs]
+
+    for both, apart in zip(run(True), run(False)):
+        assert np.abs(apart).max() > 0
+        assert np.abs(both - apart).max() <= 1e-13 * np.abs(apart).max()
+
+
+def _taped_block(pressure_force, ground=None, steps=2, flow_rate=50.0):
+    """A yielding float64 block of the variational force (the fused step under a tape), over
+    the ground with floor images at ``ground``, taped over ``steps`` steps from a stretching
+    start; the last state's position gradient seeded."""
+    import warp_esph as we  # noqa: PLC0415
+
+    mat = we.Material(density=1000.0, mu=1.0e3, lam=1.5e3, yield_stress=10.0, flow_rate=flow_rate, pressure_stiffness=1.0,
+                      viscosity=2.0, pressure_force=pressure_force)
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.0, 0.0), (0.08, 0.06, 0.06), mat)
+    if ground is not None:
+        b.add_ground(ground, images=True)
+    model = b.finalize(dtype=S, requires_grad=True)
+    model.particle_x0 += np.random.default_rng(3).normal(scale=0.1 * 0.02, size=model.particle_x0.shape)
+    model.particle_v0 = 20.0 * model.particle_x0 * np.array([1.0, -0.5, 0.0])
+    solver = we.Solver(model)
+    states = [model.state() for _ in range(steps + 1)]
+    tape = wp.Tape()
+    with tape:
+        for k in range(steps):
+            solver.step(states[k], states[k + 1], 1.0e-3)
+    assert solver.fast_under_tape()
+    states[-1].x.grad.assign(np.random.default_rng(0).normal(size=(model.particle_count, 3)))
+    return model, solver, states, tape
+
+
+def _backward_launches(model, tape):
+    """The names of the kernels ``tape.backward()`` launches through the model's launches."""
+    launched = []
+    replayed = model.launches
+
+    def counted(kernel, *args, **kwargs):
+        launched.append(kernel.key.rsplit("__locals__", 1)[-1])
+        return replayed(kernel, *args, **kwargs)
+
+    model.launches = counted
+    try:
+        tape.backward()
+    finally:
+        model.launches = replayed
+    return launched
+
+
 @pytest.mark.parametrize("pressure_force,ground,elastic_force", [
     ("energy", -0.045, "variational"), ("energy_spiky", -0.045, "variational"), ("spiky", -0.045, "variational"),
     ("energy", -0.031, "variational"), ("energy", -0.045, "paper"), ("energy", -0.031, "paper")],

@@ -45,7 +45,7 @@ import warp as wp
 from .._types import type_set
 from .. import checks
 from ..material import MODELS
-from . import deformation, guards, isotropic, materials, neighbors, smoothing
+from . import deformation, guards, isotropic, materials, neighbors, pressure, smoothing
 from .replay import kept_through_backward, recording_tape
 
 
@@ -524,6 +524,11 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
 
     guard_state = neighbors.guard_funcs(scalar).guard
     count_weight = guards.guard_funcs(scalar).count_weight
+    Materials = materials.struct(scalar)
+    sph_adjoint = pressure.kernels(scalar)
+    sph_pair_adjoint = sph_adjoint.pressure_pair_adjoint
+    sph_particle_terms = sph_adjoint.pressure_particle_terms
+    sph_particle_adjoint = sph_adjoint.pressure_particle_adjoint
 
     @wp.func
     def row_moments_and_adjoint_map(
@@ -559,18 +564,17 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
                 adj_M += w * wp.outer(ai - adj_f[j], xb)
         return A, same, adj_M
 
-    @wp.kernel(enable_backward=False, module="unique")
-    def variational_forces_adjoint(
+    @wp.func
+    def variational_adjoint_maps(
+        i: int,
         x: wp.array(dtype=vec3),
         body: wp.array(dtype=wp.int32),
-        material: wp.array(dtype=wp.int32),
-        elastic_force: wp.array(dtype=wp.int32),
         nbr: wp.array2d(dtype=wp.int32),
-        count: wp.array(dtype=wp.int32),
+        n: int,
+        h: scalar,
         volume: wp.array(dtype=scalar),
         stress: wp.array(dtype=mat33),
         F: wp.array(dtype=mat33),
-        h: scalar,
         min_neighbors: int,
         max_condition: scalar,
         gn: vec3,
@@ -580,40 +584,20 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         image_stress: wp.array(dtype=mat33),
         F_image: wp.array(dtype=mat33),
         adj_f: wp.array(dtype=vec3),
-        adj_x: wp.array(dtype=vec3),
         adj_stress: wp.array(dtype=mat33),
         adj_F: wp.array(dtype=mat33),
         adj_image_stress: wp.array(dtype=mat33),
         adj_F_image: wp.array(dtype=mat33),
     ):
-        """Hand-written adjoint of the variational elastic force (``variational_map``,
-        ``variational_pair_force``) as the fused step applies it: the guard evaluated on the
-        moment matrix ``A`` at the step's start (a guarded particle applies no force).
-
-        With ``a_j = adj f_i - adj f_j`` (``g_j = w_j M xb_j`` is added to ``i``, taken from
-        ``j``) and ``M = V P F^T A^-1``: ``adj M = sum_j w_j a_j xb_j^T``;
-        ``adj P = V adj M A^-T F``, ``adj F = V A^-1 adj M^T P``,
-        ``adj A = -A^-T (V F P^T adj M) A^-T`` (``variational_map_adjoint``); per pair
-        ``adj xb_j`` is ``variational_pair_adjoint``, scattered to ``j`` and taken from ``i``.
-        Recomputes ``A`` and ``M`` (two passes over the row: ``A`` with ``adj M``, then the
-        scatter) instead of storing them.
-
-        With ``images`` (``floor_image_forces``): the image pairs of ``i``'s fit, ``xb = g_j -
-        x_i`` with ``a = adj f_i`` (the floor takes the reaction); the energy of ``i``'s own
-        image, ``Mg = image_map`` on the image's moment matrix ``A_g``
-        (``deformation.floor_image_moment``), its pairs ``d = x_r - g_i`` with ``a = -adj f_r``
-        and the image-image terms ``d = g_r - g_i`` of ``A_g``, weighed by their particles' pair
-        (``scatter_image_pair_adjoint``); an image's ``adj`` goes to its particle through
-        ``deformation.floor_image_jacobian``."""
-        i = wp.tid()
-        if elastic_force[material[i]] != 1:
-            return
+        """The part of ``variational_forces_adjoint`` before its scatter pass: ``adj M`` (and
+        ``adj Mg``), the maps' adjoints into ``adj P``, ``adj F`` (and the image's), and what
+        the scatter needs: ``(applied, M, adj A, adj A + adj A^T, adj same, Mg, adj A_g, adj A_g +
+        adj A_g^T, image slots, g_i)``; ``applied`` 0 where the guard stops the force (then
+        nothing is written)."""
         xi = x[i]
         bi = body[i]
         ai = adj_f[i]
-        n = count[i]
         c6 = fw.coef(h)
-        hh = h * h
         # The fit's moment matrix and guard as the forward's (images included: fit_sums'
         # image part added as it adds it), with adj M, which does not depend on A, summed in
         # the same pass over the row (one pass instead of two; the same bits).
@@ -625,7 +609,7 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         # The guards and the fade s(A, same) of both maps (guards.guard): M = s M0, Mg = s Mg0.
         code, s, ds_dA, ds_dn = guard_state(A, same, min_neighbors, max_condition)
         if code != 0:
-            return
+            return 0, mat33(), mat33(), mat33(), scalar(0.0), mat33(), mat33(), mat33(), 0, vec3()
         # With images, their part of adj M and adj Mg.
         n_img = image_slots(xi, n, h, gn, goff, images)
         gi = floor_image(xi, gn, goff, gmin)
@@ -665,31 +649,155 @@ def kernels(scalar, weight: str) -> types.SimpleNamespace:
         adj_same = adj_s * ds_dn
         adj_stress[i] = adj_stress[i] + adj_P
         adj_F[i] = adj_F[i] + adj_Fi
+        return 1, M, adj_A, adj_A_sym, adj_same, Mg, adj_Ag, adj_Ag_sym, n_img, gi
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def variational_forces_adjoint(
+        x: wp.array(dtype=vec3),
+        body: wp.array(dtype=wp.int32),
+        material: wp.array(dtype=wp.int32),
+        elastic_force: wp.array(dtype=wp.int32),
+        nbr: wp.array2d(dtype=wp.int32),
+        count: wp.array(dtype=wp.int32),
+        volume: wp.array(dtype=scalar),
+        stress: wp.array(dtype=mat33),
+        F: wp.array(dtype=mat33),
+        h: scalar,
+        min_neighbors: int,
+        max_condition: scalar,
+        gn: vec3,
+        goff: scalar,
+        gmin: scalar,
+        images: int,
+        image_stress: wp.array(dtype=mat33),
+        F_image: wp.array(dtype=mat33),
+        sph: int,
+        v: wp.array(dtype=vec3),
+        mass: wp.array(dtype=scalar),
+        rho: wp.array(dtype=scalar),
+        rho_p: wp.array(dtype=scalar),
+        rest_density: wp.array(dtype=scalar),
+        mat: Materials,
+        adj_f: wp.array(dtype=vec3),
+        adj_x: wp.array(dtype=vec3),
+        adj_stress: wp.array(dtype=mat33),
+        adj_F: wp.array(dtype=mat33),
+        adj_image_stress: wp.array(dtype=mat33),
+        adj_F_image: wp.array(dtype=mat33),
+        adj_v: wp.array(dtype=vec3),
+        adj_rho: wp.array(dtype=scalar),
+        adj_rho_p: wp.array(dtype=scalar),
+        adj_k: wp.array(dtype=scalar),
+        adj_visc: wp.array(dtype=scalar),
+    ):
+        """Hand-written adjoint of the variational elastic force (``variational_map``,
+        ``variational_pair_force``) as the fused step applies it: the guard evaluated on the
+        moment matrix ``A`` at the step's start (a guarded particle applies no force).
+
+        With ``a_j = adj f_i - adj f_j`` (``g_j = w_j M xb_j`` is added to ``i``, taken from
+        ``j``) and ``M = V P F^T A^-1``: ``adj M = sum_j w_j a_j xb_j^T``;
+        ``adj P = V adj M A^-T F``, ``adj F = V A^-1 adj M^T P``,
+        ``adj A = -A^-T (V F P^T adj M) A^-T`` (``variational_map_adjoint``); per pair
+        ``adj xb_j`` is ``variational_pair_adjoint``, scattered to ``j`` and taken from ``i``.
+        Recomputes ``A`` and ``M`` (two passes over the row: ``A`` with ``adj M``
+        (``variational_adjoint_maps``), then the scatter) instead of storing them.
+
+        With ``images`` (``floor_image_forces``): the image pairs of ``i``'s fit, ``xb = g_j -
+        x_i`` with ``a = adj f_i`` (the floor takes the reaction); the energy of ``i``'s own
+        image, ``Mg = image_map`` on the image's moment matrix ``A_g``
+        (``deformation.floor_image_moment``), its pairs ``d = x_r - g_i`` with ``a = -adj f_r``
+        and the image-image terms ``d = g_r - g_i`` of ``A_g``, weighed by their particles' pair
+        (``scatter_image_pair_adjoint``); an image's ``adj`` goes to its particle through
+        ``deformation.floor_image_jacobian``.
+
+        With ``sph`` 1 the scatter pass also takes every particle's SPH pressure and viscosity
+        pairs (``pressure.pressure_forces_adjoint``'s, ``pressure_pair_adjoint``), as the fused
+        forward applies both forces in one loop: one pass over the pairs instead of two
+        launches' one each (the floor images' pressure stays with the generated adjoint,
+        ``pressure.launch_pressure_image_forces_adjoint``)."""
+        i = wp.tid()
+        n = count[i]
+        applied = int(0)
+        M = mat33()
+        adj_A = mat33()
+        adj_A_sym = mat33()
+        adj_same = scalar(0.0)
+        Mg = mat33()
+        adj_Ag = mat33()
+        adj_Ag_sym = mat33()
+        n_img = int(0)
+        gi = vec3()
+        if elastic_force[material[i]] == 1:
+            applied, M, adj_A, adj_A_sym, adj_same, Mg, adj_Ag, adj_Ag_sym, n_img, gi = variational_adjoint_maps(
+                i, x, body, nbr, n, h, volume, stress, F, min_neighbors, max_condition, gn, goff, gmin, images,
+                image_stress, F_image, adj_f, adj_stress, adj_F, adj_image_stress, adj_F_image)
+        if applied == 0 and sph == 0:
+            return
+        xi = x[i]
+        bi = body[i]
+        ai = adj_f[i]
+        c6 = fw.coef(h)
+        hh = h * h
+        # The pressure's terms of i (pressure_forces_adjoint).
+        mi = int(0)
+        vi = vec3()
+        rho_i = scalar(0.0)
+        Vi = scalar(0.0)
+        rp_i = scalar(0.0)
+        k_i = scalar(0.0)
+        pi = scalar(0.0)
+        visc_i = scalar(0.0)
+        form = int(0)
+        if sph != 0:
+            mi, vi, rho_i, Vi, rp_i, k_i, pi, visc_i, form = sph_particle_terms(i, v, mass, rho, rho_p, rest_density,
+                                                                                 material, mat)
+        c_sph = sm.poly6_coef(h)
+        c_spiky = sm.spiky_coef(h)
+        c_visc = sm.viscosity_coef(h)
+        adj_pi = scalar(0.0)
+        adj_Ai = scalar(0.0)
+        adj_rho_i = scalar(0.0)
+        adj_visc_i = scalar(0.0)
+        gp_i = vec3()
+        gv_i = vec3()
         gx_i = vec3()
         for k in range(n):
             j = nbr[i, k]
-            if body[j] == bi:
-                xj = x[j]
+            xj = x[j]
+            if applied != 0 and body[j] == bi:
                 gx_i -= fn.scatter_variational_pair_adjoint(M, adj_A, adj_A_sym, adj_same, ai - adj_f[j], xj - xi, hh, c6,
                                                             adj_x, j, xj, gn, goff, gmin, 0)
-        # Through g_i (summed, then by d g_i / d x_i).
-        gg_i = vec3()
-        for k in range(n_img):
-            j = image_row_particle(i, k, n, nbr)
-            if body[j] == bi:
-                xj = x[j]
-                gj = floor_image(xj, gn, goff, gmin)
-                gx_i -= fn.scatter_variational_pair_adjoint(M, adj_A, adj_A_sym, adj_same, ai, gj - xi, hh, c6, adj_x, j,
-                                                            xj, gn, goff, gmin, 1)
-                # (The own image's moments are not the fit's: they do not count.)
-                gg_i -= fn.scatter_variational_pair_adjoint(Mg, adj_Ag, adj_Ag_sym, scalar(0.0), -adj_f[j], xj - gi, hh,
-                                                            c6, adj_x, j, xj, gn, goff, gmin, 0)
-                if j != i:
-                    gg, gp = fn.scatter_image_pair_adjoint(adj_Ag, adj_Ag_sym, gj - gi, xj - xi, hh, c6, adj_x, j, xj, gn,
-                                                           goff, gmin)
-                    gg_i -= gg
-                    gx_i -= gp
-        scatter_own_adjoint(adj_x, i, xi, gx_i, gg_i, gn, goff, gmin)
+            if sph != 0:
+                r = xi - xj
+                r2 = wp.dot(r, r)
+                if r2 < hh:
+                    adj_pi, adj_Ai, adj_rho_i, adj_visc_i, gp_i, gv_i = sph_pair_adjoint(
+                        i, j, r, r2, h, hh, c_sph, c_spiky, c_visc, ai, vi, Vi, rho_i, pi, rp_i, visc_i, form, v, mass,
+                        rho, rho_p, rest_density, material, mat, adj_f, adj_x, adj_v, adj_rho, adj_rho_p, adj_k,
+                        adj_visc, adj_pi, adj_Ai, adj_rho_i, adj_visc_i, gp_i, gv_i)
+        if applied != 0:
+            # Through g_i (summed, then by d g_i / d x_i).
+            gg_i = vec3()
+            for k in range(n_img):
+                j = image_row_particle(i, k, n, nbr)
+                if body[j] == bi:
+                    xj = x[j]
+                    gj = floor_image(xj, gn, goff, gmin)
+                    gx_i -= fn.scatter_variational_pair_adjoint(M, adj_A, adj_A_sym, adj_same, ai, gj - xi, hh, c6, adj_x,
+                                                                j, xj, gn, goff, gmin, 1)
+                    # (The own image's moments are not the fit's: they do not count.)
+                    gg_i -= fn.scatter_variational_pair_adjoint(Mg, adj_Ag, adj_Ag_sym, scalar(0.0), -adj_f[j], xj - gi,
+                                                                hh, c6, adj_x, j, xj, gn, goff, gmin, 0)
+                    if j != i:
+                        gg, gp = fn.scatter_image_pair_adjoint(adj_Ag, adj_Ag_sym, gj - gi, xj - xi, hh, c6, adj_x, j, xj,
+                                                               gn, goff, gmin)
+                        gg_i -= gg
+                        gx_i -= gp
+            scatter_own_adjoint(adj_x, i, xi, gx_i, gg_i, gn, goff, gmin)
+        if sph != 0:
+            wp.atomic_add(adj_x, i, gp_i)
+            sph_particle_adjoint(i, mi, rp_i, k_i, pi, rest_density, mat, adj_pi, adj_Ai, adj_rho_i, adj_visc_i, gv_i,
+                                 adj_v, adj_rho, adj_rho_p, adj_k, adj_visc)
 
     return types.SimpleNamespace(elastic_forces=elastic_kernels(scalar, weight, "linear").elastic_forces,
                                  elastic_forces_adjoint=elastic_forces_adjoint,
@@ -745,17 +853,26 @@ def launch_elastic_forces_adjoint(model, state_in, state_out):
     )
 
 
-def launch_variational_forces_adjoint(model, state_in, state_out, min_neighbors: int, max_condition: float):
+def launch_variational_forces_adjoint(model, state_in, state_out, min_neighbors: int, max_condition: float,
+                                      sph: bool = False):
     """``variational_forces_adjoint``: ``state_out.force.grad`` into the gradients of
     ``state_in.x``, ``state_out.stress`` and ``state_out.F_flowed`` (the particles of the
-    variational force only; the guard as the fused step evaluates it)."""
+    variational force only; the guard as the fused step evaluates it). With ``sph``, in the
+    same pass, ``pressure.launch_pressure_forces_adjoint``'s pairs (every particle's): into
+    those of ``state_in.x, v``, the densities and ``pressure_stiffness``, ``viscosity``; its
+    floor images' part is not taken (``pressure.launch_pressure_image_forces_adjoint``)."""
     S = model.scalar
+    rho_p = pressure.pressure_density(model, state_out)
     model.launches(
         kernels(S, model.fit_weight).variational_forces_adjoint, model.particle_count,
         [state_in.x, model.particle_body, model.particle_material, model.material_elastic_force, state_out.neighbors,
          state_out.neighbor_count, model.particle_volume, state_out.stress, state_out.F_flowed, S(model.support_radius),
-         int(min_neighbors), S(max_condition), *model.image_args(), *image_constitutive(model, state_out),
+         int(min_neighbors), S(max_condition), *model.image_args(), *image_constitutive(model, state_out), int(sph),
+         state_in.v, model.particle_mass, state_out.density, rho_p, model.particle_rest_density, model.material_arrays(),
          state_out.force.grad, state_in.x.grad, state_out.stress.grad, state_out.F_flowed.grad,
-         *(a.grad for a in image_constitutive(model, state_out))],
+         *(a.grad for a in image_constitutive(model, state_out)),
+         # Without sph these are not read: arrays of the right types.
+         *((state_in.v.grad, state_out.density.grad, rho_p.grad, model.pressure_stiffness.grad, model.viscosity.grad)
+           if sph else (state_in.x.grad, state_out.density, state_out.density, model.particle_mass, model.particle_mass))],
         device=model.device, record_tape=False,
     )

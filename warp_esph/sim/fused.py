@@ -324,14 +324,18 @@ def launch_constitutive_forces(model, state_in, state_out, dt, scratch, sph: boo
 
     def backward():
         # Reverse order of the differentiable step: density, constitutive, elastic, pressure.
-        if sph:
-            pressure.launch_pressure_forces_adjoint(model, state_in, state_out)
+        # The pressure's pairs go with the variational force's scatter pass where there is one
+        # (as this kernel applies both in one loop), else in a pass of their own.
         kinds = set(model.material_elastic_force.numpy().tolist())
+        if sph and 1 not in kinds:
+            pressure.launch_pressure_forces_adjoint(model, state_in, state_out)
         if 0 in kinds:
             forces.launch_elastic_forces_adjoint(model, state_in, state_out)
         if 1 in kinds:
             forces.launch_variational_forces_adjoint(model, state_in, state_out, scratch.min_neighbors,
-                                                     scratch.max_condition)
+                                                     scratch.max_condition, sph)
+            if sph:
+                pressure.launch_pressure_image_forces_adjoint(model, state_in, state_out)
         plasticity.launch_constitutive_update_adjoint(model, state_in, state_out, dt, scratch.counters, tape)
         if sph:
             pressure.launch_state_densities_adjoint(model, state_in.x, state_out)

@@ -775,6 +775,13 @@ def launch_pressure_forces_adjoint(model, state_in, state_out):
         ],
         device=model.device, record_tape=False,
     )
+    launch_pressure_image_forces_adjoint(model, state_in, state_out)
+
+
+def launch_pressure_image_forces_adjoint(model, state_in, state_out):
+    """The floor images' part of ``launch_pressure_forces_adjoint`` (with an image plane; else
+    nothing), for a pass that took the pairs' (``forces.launch_variational_forces_adjoint``)."""
+    rho_p = pressure_density(model, state_out)
     if model.image_plane is not None:
         # The images' part: the generated adjoint of pressure_forces without its pairs
         # (pairs = 0: image_pressure_forces alone, which the forward adds to the pairs'
