@@ -665,6 +665,91 @@ def test_a_callback_that_changes_the_scene_mid_fit_is_refused_naming_what_it_cha
         _changed_mid_fit(change, 2, landing)()
 
 
+def _edited_target(kind, landing):
+    """A model, the loss a fit of it reads, and a callback that edits that loss's target in
+    place after the first evaluation (``kind``); None: it edits nothing."""
+    from warp_esph import losses
+
+    dt, target = landing
+    positions = {f: np.array(t) for f, t in zip(FRAMES, target)}
+    model = _cube()
+    if kind in ("positions", "missing marker", "untouched"):
+        if kind != "positions":
+            positions[FRAMES[0]][3] = np.nan  # a marker not seen: NaN, the same NaN after a callback
+        loss = losses.PositionLoss(positions)
+        edit = (None if kind == "untouched"
+                else lambda: loss.targets[FRAMES[-1]].__iadd__(np.array([0.0, 1e-3, 0.0])))
+    elif kind == "cloud":
+        loss = losses.ChamferLoss(positions, radius=0.02)
+        edit = lambda: loss.targets[FRAMES[-1]].__imul__(1.01)  # noqa: E731
+    elif kind == "mesh":
+        floor = (np.array([[-0.1, 0.0, -0.1], [0.1, 0.0, -0.1], [0.0, 0.0, 0.1]]), np.array([[0, 1, 2]]))
+        loss = losses.MeshLoss(floor, frames=FRAMES, max_dist=0.1)
+        edit = lambda: loss.meshes[FRAMES[0]][0].__iadd__(np.array([0.0, 0.01, 0.0]))  # noqa: E731
+    elif kind == "sum":
+        loss = losses.PositionLoss(positions) + losses.ChamferLoss({f: t.copy() for f, t in positions.items()}, radius=0.02)
+        edit = lambda: loss.terms[1][1].targets[FRAMES[0]].__isub__(1e-3)  # noqa: E731
+    elif kind == "weight":
+        loss = losses.PositionLoss(positions)
+        edit = lambda: setattr(loss, "weight", 2.0)  # noqa: E731
+    else:  # a force curve
+        model = _pressed_cube(we.tools.Velocity(velocity=(0.0, -1.0, 0.0)))
+        loss = losses.ReactionForceLoss(np.array([[0.5], [1.0]]), "press", FRAMES, components="y", noise=0.01)
+        edit = lambda: loss.targets.__imul__(2.0)  # noqa: E731
+
+    def callback(i, value, params):
+        if i == 0 and edit is not None:
+            edit()
+        return False
+
+    return model, loss, dt, callback, {} if kind == "force curve" else {"noise": 1e-4}
+
+
+@pytest.mark.parametrize("kind, named", [
+    ("positions", f"target.targets[{FRAMES[-1]}]"), ("missing marker", f"target.targets[{FRAMES[-1]}]"),
+    ("cloud", f"target.targets[{FRAMES[-1]}]"), ("mesh", f"target.meshes[{FRAMES[0]}].points"),
+    ("sum", f"target.terms[1].targets[{FRAMES[0]}]"), ("weight", "target.weight"), ("force curve", "target.targets")])
+def test_a_callback_that_edits_the_target_mid_fit_is_refused_naming_it(landing, kind, named):
+    """The scene's guard did not cover the target: a callback that edited a loss's positions,
+    cloud, mesh or force curve in place had the evaluations after it fit other data than those
+    before (a Gauss-Newton residual or the diagnostics reading the edited arrays, a position
+    loss's device copy the old ones), without a word. It is refused after that callback, naming
+    the edited array; a target with a missing (NaN) marker is not taken for an edited one."""
+    model, loss, dt, callback, noise = _edited_target(kind, landing)
+    with pytest.raises(ValueError, match=r"callback is not allowed to change the scene mid-fit: after evaluation 0 "
+                                         r"it changed " + re.escape(named) + r"(;|,|$)"):
+        fit(model, loss, list(TRUTH), steps=STEPS, dt=dt, iterations=2, progress=False, callback=callback, **noise)
+
+
+def test_a_callback_that_leaves_a_target_with_a_missing_marker_as_it_was_is_not_refused(landing):
+    model, loss, dt, callback, noise = _edited_target("untouched", landing)
+    result = fit(model, loss, list(TRUTH), steps=STEPS, dt=dt, iterations=2, progress=False, callback=callback,
+                 diagnostics=False, **noise)
+    assert len(result.history) >= 2
+
+
+@pytest.mark.filterwarnings("ignore:tools .* follow tools.Scripted motions")
+def test_a_callback_that_changes_a_scripted_motion_between_its_start_and_end_is_refused(landing):
+    """The guard compared a Scripted motion's poses at the run's start and end only: a callback
+    that changed its path between them (a dwell, a deeper stroke that returns) passed, and the
+    later evaluations pressed another way. Every pose the latest run evaluated is compared."""
+    dt, target = landing
+    end = STEPS * dt
+    bulge = {"a": 0.0}  # 0 at t = 0 and t = end whatever its size
+
+    def path(t):
+        return (0.0, 0.07 - t - bulge["a"] * t * (end - t), 0.0), (0.0, 0.0, 0.0, 1.0)
+
+    def callback(i, value, params):
+        if i == 0:
+            bulge["a"] = 5.0
+        return False
+
+    with pytest.raises(ValueError, match=r"after evaluation 0 it changed tools\.motions\[0\]"):
+        fit(_pressed_cube(we.tools.Scripted(path)), target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES,
+            iterations=2, progress=False, noise=1e-4, callback=callback)
+
+
 @pytest.mark.parametrize("factor, backwards", [(1.0001, "fewer"), (1.0000001, "all")])
 def test_a_rejected_lbfgs_trial_runs_its_backward_only_where_its_slope_is_read(landing, monkeypatch, factor,
                                                                               backwards):

@@ -778,13 +778,19 @@ class _SceneGuard:
     either. Taken as the descent begins: the particles' start, masses, volumes, rest
     densities and materials, the static colliders, the tools' arrays and meshes, the materials
     (their fields the parameter arrays do not hold), the state a run starts from, and each
-    Scripted motion's pose at the run's start and end (``scene``). The parameter arrays, which
-    the fit writes, and the run's settings (``dt``, gravity, the solver's, which follow the
-    values: ``fit="auto"``) are read just before each callback and after it (``light``)."""
+    Scripted motion's pose at the run's start and end (``scene``), and the target
+    (``Loss.target_items``: the loss's positions, clouds, meshes, masks or force curves, copied
+    once here). The parameter arrays, which the fit writes, and the run's settings (``dt``,
+    gravity, the solver's, which follow the values: ``fit="auto"``) are read just before each
+    callback and after it (``light``); each Scripted motion is called at every time the latest
+    run evaluated it (``scripted``)."""
 
     def __init__(self, runs):
         self.runs = runs
         self.scenes = [self.scene(r) for r in runs]
+        # The targets are the caller's arrays, not the device's: copied once here and compared
+        # where they lie after each callback, no copy then (``target_items``).
+        self.targets = [{k: _snapshot(v) for k, v in r.loss.target_items().items()} for r in runs]
 
     @staticmethod
     def scene(run) -> dict:
@@ -804,15 +810,39 @@ class _SceneGuard:
                 out[f"tools.motions[{k}]"] = (motion, motion.pose(t0), motion.pose(t0 + run.steps * run.dt))
         return out
 
+    @staticmethod
+    def scripted(run) -> list[str]:
+        """The Scripted motions that give now another pose than the latest run evaluated at any
+        of its times (``scene`` holds the start's and end's: a motion changed between them
+        only, a press's dwell, passed it)."""
+        log = run.rollout._scripted_poses
+        if not log or run.model.tools is None:
+            return []
+        motions, out = run.model.tools.motions, []
+        for (k, t), pose in log.items():
+            name = f"tools.motions[{k}]"
+            if name in out:
+                continue
+            try:
+                now = motions[k].pose(t)
+            except (ValueError, IndexError):  # refused now, or the tool is gone
+                now = None
+            if not _same(now, pose):
+                out.append(name)
+        return out
+
     def light(self) -> list:
         return [(r.model._read_parameters(), r.rollout.run_settings()) for r in self.runs]
 
     def check(self, light, evaluation: int) -> None:
         """Raise a ``ValueError`` naming what the callback after ``evaluation`` changed, if anything."""
         said = []
-        for r, scene, (rows, settings) in zip(self.runs, self.scenes, light):
+        for r, scene, targets, (rows, settings) in zip(self.runs, self.scenes, self.targets, light):
             now = self.scene(r)
             changed = [k for k in dict.fromkeys([*scene, *now]) if not _same(scene.get(k), now.get(k))]
+            changed += [k for k in self.scripted(r) if k not in changed]
+            now = r.loss.target_items()
+            changed += [k for k in dict.fromkeys([*targets, *now]) if not _same(targets.get(k), now.get(k))]
             now_rows = r.model._read_parameters()
             changed += [name for k, name in enumerate(Model.MATERIAL_FIELDS) if not np.array_equal(rows[k], now_rows[k])]
             now_settings = r.rollout.run_settings()
@@ -828,10 +858,19 @@ class _SceneGuard:
                              "and fit the new scene anew")
 
 
+def _snapshot(v):
+    if isinstance(v, np.ndarray):
+        return v.copy()
+    return tuple(_snapshot(x) for x in v) if isinstance(v, (tuple, list)) else v
+
+
 def _same(a, b) -> bool:
     if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-        return isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.shape == b.shape and np.array_equal(a, b)
-    if isinstance(a, tuple) and isinstance(b, tuple):
+        # A position target's NaN is a missing marker, the same as it was.
+        nan = isinstance(a, np.ndarray) and a.dtype.kind in "fc"
+        return (isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.shape == b.shape
+                and a.dtype.kind == b.dtype.kind and np.array_equal(a, b, equal_nan=nan and b.dtype.kind in "fc"))
+    if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)):
         return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
     try:
         return bool(a == b)
@@ -1675,9 +1714,10 @@ def fit(
       (``result.diagnostics.evaluations``). ``result.diagnostics`` holds standard
       errors, correlations and warnings about parameters the data do not determine.
     - ``callback(evaluation, loss, params)``: after each evaluation; return ``True`` to
-      stop. It must leave the scene as it is: one that changed what the runs read (materials,
-      colliders, tools, the start, gravity, the solver's settings) is a ``ValueError`` naming
-      what changed (``_SceneGuard``). ``log``: called with one-line messages (memory, time per evaluation, stages).
+      stop. It must leave the scene and the target as they are: one that changed what the runs
+      read (materials, colliders, tools, the start, gravity, the solver's settings) or what they
+      are compared against (the target's arrays, weights) is a ``ValueError`` naming what
+      changed (``_SceneGuard``). ``log``: called with one-line messages (memory, time per evaluation, stages).
     - ``lbfgs_memory``: the number of past steps L-BFGS keeps (default 10). ``progress``:
       a progress bar on stderr. ``dtype`` and ``tie_pressure``: the module docstring.
     """

@@ -551,6 +551,15 @@ class Loss:
         """``value`` of ``{step: positions}`` (Warp arrays or numpy ``(n, 3)`` arrays)."""
         return self.value(_as_warp_positions(positions))
 
+    def target_items(self, prefix: str = "target") -> dict:
+        """What a run is compared against, by name (``prefix`` and the attribute): the frames,
+        weight and ``particles`` subset, and each subclass's targets (positions, clouds, meshes,
+        masks, force curves, measured lengths) with its settings of the comparison, as held (no
+        copies; a fit's ``_SceneGuard`` copies them once). Numbers, arrays or tuples of them:
+        what a caller might write in place, so that a fit can tell an edited target."""
+        return {f"{prefix}.frames": self.frames, f"{prefix}.weight": self.weight,
+                f"{prefix}.particles": self.particles}
+
     def copy_for_world(self) -> "Loss":
         """This loss with buffers of its own (``WorldLoss``): the same targets, frames and
         weight, but every cache a launch fills and its adjoint reads (the ``particles``
@@ -656,6 +665,13 @@ class SumLoss(Loss):
         new.terms = [(k, loss.copy_for_world()) for k, loss in self.terms]
         new._kernel_sum = None  # built from the terms when needed: the copy's, not these
         return new
+
+    def target_items(self, prefix: str = "target") -> dict:
+        out = {f"{prefix}.terms": tuple(id(loss) for _, loss in self.terms)}
+        for i, (k, loss) in enumerate(self.terms):
+            out[f"{prefix}.terms[{i}].scale"] = k
+            out.update(loss.target_items(f"{prefix}.terms[{i}]"))
+        return out
 
     def launch(self, frame, x, out, scale: float = 1.0):
         for k, loss in self.terms:
@@ -803,6 +819,12 @@ class WorldLoss(Loss):
         self._used = [{} for _ in self.losses]
         return super().value_and_grad(positions)
 
+    def target_items(self, prefix: str = "target") -> dict:
+        out = {f"{prefix}.losses": tuple(id(loss) for loss in self.losses)}
+        for w, loss in enumerate(self.losses):
+            out.update(loss.target_items(f"{prefix}.losses[{w}]"))
+        return out
+
     def __repr__(self):
         return f"WorldLoss({len(self.losses)} worlds: {self.losses[0]!r}, ...)"
 
@@ -879,6 +901,9 @@ class PositionLoss(Loss):
             seen = self.observed[f]
             out.append((x[seen] - self.targets[f][seen]).ravel())
         return np.concatenate(out)
+
+    def target_items(self, prefix: str = "target") -> dict:
+        return {**super().target_items(prefix), **{f"{prefix}.targets[{f}]": t for f, t in self.targets.items()}}
 
     def __repr__(self):
         return f"PositionLoss(frames={list(self.frames)}, weight={self.weight:g})"
@@ -1027,6 +1052,10 @@ class ChamferLoss(Loss):
     def observation_count(self) -> int:
         m = float(np.mean([len(self.targets[f]) for f in self.frames]))
         return int(round(len(self.frames) * (self._points_per_frame() + m)))
+
+    def target_items(self, prefix: str = "target") -> dict:
+        return {**super().target_items(prefix), f"{prefix}.radius": self.radius,
+                **{f"{prefix}.targets[{f}]": t for f, t in self.targets.items()}}
 
     def __repr__(self):
         return f"ChamferLoss(frames={list(self.frames)}, radius={self.radius:g}, weight={self.weight:g})"
@@ -1177,6 +1206,12 @@ class MeshLoss(Loss):
             r = np.einsum("ij,ij->i", normal, x - c)
             out.append(np.concatenate([r, np.full(int((code < 0).sum()), self.max_dist)]))
         return np.concatenate(out)
+
+    def target_items(self, prefix: str = "target") -> dict:
+        out = {**super().target_items(prefix), f"{prefix}.mode": self.mode, f"{prefix}.max_dist": self.max_dist}
+        for f, (points, tris) in self.meshes.items():
+            out[f"{prefix}.meshes[{f}].points"], out[f"{prefix}.meshes[{f}].triangles"] = points, tris
+        return out
 
     def __repr__(self):
         return f"MeshLoss(frames={list(self.frames)}, mode={self.mode!r}, weight={self.weight:g})"
@@ -1416,6 +1451,10 @@ class ReactionForceLoss(Loss):
 
     def observation_count(self) -> int:
         return len(self.frames) * len(self._axes)
+
+    def target_items(self, prefix: str = "target") -> dict:
+        return {**super().target_items(prefix), f"{prefix}.targets": self.targets, f"{prefix}.tool": self.tool,
+                f"{prefix}.window": self.window, f"{prefix}.components": self.components}
 
     def __repr__(self):
         return (f"ReactionForceLoss(tool={self.tool!r}, {len(self.frames)} windows of {self.window} steps, "
@@ -1695,6 +1734,10 @@ class SlumpLoss(Loss):
 
     def observation_count(self) -> int:
         return int(self.height is not None) + int(self.spread is not None)
+
+    def target_items(self, prefix: str = "target") -> dict:
+        return {**super().target_items(prefix), **{f"{prefix}.{name}": getattr(self, name) for name in
+                                                   ("height", "spread", "spacing", "floor", "center", "tau")}}
 
     def __repr__(self):
         return f"SlumpLoss(height={self.height}, spread={self.spread}, frame={self.frames[0]}, weight={self.weight:g})"

@@ -461,6 +461,12 @@ class SilhouetteLoss(Loss):
         self._buffers = {}
         self._covered_checked = set()
 
+    def target_items(self, prefix: str = "target") -> dict:
+        out = {**super().target_items(prefix), f"{prefix}.radius": self.radius, f"{prefix}.opacity": self.opacity}
+        for f, ms in self.masks.items():
+            out.update({f"{prefix}.masks[{f}][{c.name!r}]": m for m, c in zip(ms, self.cameras)})
+        return out
+
     def _window(self, x: wp.array) -> int:
         X = x.numpy().astype(np.float64)
         w = 1
