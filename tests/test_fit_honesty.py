@@ -197,6 +197,76 @@ def test_gauss_newton_runs_afresh_a_held_column_the_free_values_have_moved_away_
     assert steps[2][1] > 0.4, steps
 
 
+def _nearest_residuals(calls, state, residual):
+    """``residual(z, chosen)`` as Gauss-Newton reads a loss that chooses correspondences where
+    it resets (``chosen(z)``) and keeps them for the columns, with ``chosen`` and ``use`` as
+    the fit's own residuals have them (``fit.residual_evaluate``)."""
+
+    def residuals(z, reset=False):
+        if reset:
+            state["chosen"] = residual.choose(z)
+        calls.append((np.array(z), reset, state["chosen"]))
+        return residual(z, state["chosen"]), True
+
+    residuals.chosen = lambda: state["chosen"]
+    residuals.use = lambda chosen: state.update(chosen=chosen)
+    return residuals
+
+
+def test_gauss_newton_runs_afresh_a_held_column_whose_correspondences_changed():
+    """A held value's column was kept where the free values had moved less than the difference
+    step since it was run, whatever the loss's correspondences (a Chamfer loss's nearest
+    points, chosen anew at each point) had done: another pair's row has another derivative.
+    Two particles at ``1 + z1 + 1e-4 (z0 - 0.003)`` and ``1 - z1``, a target point at 0
+    (the nearest one's distance a residual, beside ``z0 - 0.005``), ``z1 >= 0``: the first is
+    nearest at the start, where ``z1``'s column holds it; ``z0`` steps past 0.003, the second is
+    nearest, and ``z1``'s column frees it. The kept column held ``z1`` a step more (14 runs,
+    12 now); it runs afresh where the correspondences changed since it was run."""
+    calls, state = [], {}
+
+    def residual(z, nearest):
+        return np.array([z[0] - 0.005, -(1.0 + z[1] + 1e-4 * (z[0] - 0.003)) if nearest == "a" else -(1.0 - z[1])])
+
+    residual.choose = lambda z: "a" if 1.0 + z[1] + 1e-4 * (z[0] - 0.003) < 1.0 - z[1] else "b"
+    bounds = (np.array([-math.inf, 0.0]), np.array([math.inf, math.inf]))
+    stop = _run_gauss_newton(_nearest_residuals(calls, state, residual), lambda z: np.clip(z, *bounds), np.zeros(2), 30,
+                             10.0, GN_STEP, 1e-6, bounds)
+    steps = [(z, chosen) for z, reset, chosen in calls if reset]
+    assert stop == "converged" and steps[-1][0] == pytest.approx([0.005, 1.0], rel=1e-6)
+    assert steps[0][1] == "a" and steps[1][1] == "b" and abs(steps[1][0][0] - 0.005) < GN_STEP
+    assert steps[2][0][1] > 0.9, calls  # the step after the switch frees z1
+
+
+def test_gauss_newton_columns_read_the_correspondences_of_the_point_they_difference_from():
+    """A rejected trial chooses correspondences of its own (each point the steps reach resets
+    them), and the columns a held value's check runs after it, before the fit says it
+    converged, read the trial's pairs against the point's residuals: a row of one pair less a
+    row of another, a column of neither. A loss whose correspondence switches at ``z0 = 0``
+    (each side pulling ``z0`` across it, so trials across are rejected) and turns ``z1``'s
+    column over, ``z1 >= 0``: every column reads the correspondences chosen at its point."""
+    calls, state = [], {}
+
+    def residual(z, side):
+        a, u = (0.004, -1.0) if side == 0 else (-0.004, 1.0)
+        return np.array([z[0] - a, u * z[1] + 1.0])
+
+    residual.choose = lambda z: int(z[0] > 0.0)
+    bounds = (np.array([-math.inf, 0.0]), np.array([math.inf, math.inf]))
+    _run_gauss_newton(_nearest_residuals(calls, state, residual), lambda z: np.clip(z, *bounds),
+                      np.array([0.002, 0.0]), 60, 10.0, GN_STEP, 1e-6, bounds)
+    points, columns = [], 0
+    for z, reset, chosen in calls:
+        if reset:
+            points.append(z)
+            continue
+        # A column's point is one difference step along one value from the point it differs from.
+        base = [b for b in points if any(np.allclose(np.abs(z - b), GN_STEP * e, rtol=0.0, atol=1e-12) for e in np.eye(2))]
+        assert base, (z, calls)
+        assert chosen == residual.choose(base[-1]), (z, base[-1], calls)
+        columns += 1
+    assert columns >= 8 and any(not reset and z[1] > 0.0 for z, reset, _ in calls)
+
+
 def test_gauss_newton_releases_a_value_started_on_its_upper_bound_whose_optimum_lies_inside(landing):
     """Gauss-Newton's Jacobian column of a value on its upper bound stepped out of the box,
     was projected back onto the bound and read no change: a zero column, so the value never

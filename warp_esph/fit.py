@@ -865,6 +865,10 @@ def _snapshot(v):
 
 
 def _same(a, b) -> bool:
+    if a is b:
+        return True
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
     if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
         # A position target's NaN is a missing marker, the same as it was.
         nan = isinstance(a, np.ndarray) and a.dtype.kind in "fc"
@@ -1943,6 +1947,13 @@ def fit(
             _, _, finite = record(track, z, value, None, time.perf_counter() - t0, note)
             return res, finite
 
+        # The losses that choose correspondences at a reset (nearest points, tangent planes):
+        # Gauss-Newton's columns put back those of the point they difference from.
+        kept = [leaf for r in prob.runs for _, leaf in (r.loss.terms if isinstance(r.loss, SumLoss) else [(1.0, r.loss)])
+                if hasattr(leaf, "set_correspondences")]
+        if kept:
+            residuals.chosen = lambda: [leaf.correspondences() for leaf in kept]
+            residuals.use = lambda chosen: [leaf.set_correspondences(c) for leaf, c in zip(kept, chosen)]
         return residuals
 
     def sequential_evaluate(track):
@@ -2681,10 +2692,20 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
     values moving on change the held value's column (``tests/test_fit_honesty.py``: a column
     of -1 turned to +2 over a step of 3 in the other value, and the value was held for a step
     its fresh column freed it for); within ``h`` of that point the old column differs from a
-    fresh one by about as much as the difference it is made of."""
+    fresh one by about as much as the difference it is made of.
+
+    Correspondences (a Chamfer loss's nearest points, a mesh loss's tangent planes) are chosen
+    anew at each point the steps reach (``reset``) and kept for its columns. Where
+    ``residuals`` has ``chosen()`` (the correspondences it reads now) and ``use(chosen)``, a
+    column runs with those of the point it differences from (a rejected trial had chosen its
+    own, and the columns run after it, to check a held value, read a row of one pair against
+    the other's), and a column is kept only where the correspondences it ran with are the
+    point's: another pair's row has another derivative (``tests/test_fit_honesty.py``)."""
     r, finite = residuals(z, reset=True)
     if not finite:
         raise _FirstPointFailed("the loss is not finite at the initial guess")
+    chosen, use = getattr(residuals, "chosen", None), getattr(residuals, "use", None)
+    at_z = chosen() if chosen is not None else None  # the correspondences r was read with
     f = float(r @ r)
     lam, nu = 1e-3, 2.0
     evals = 0
@@ -2694,12 +2715,16 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
     kept = np.zeros(n, dtype=bool)  # the held values whose column is the last Jacobian's, not z's
     current = False  # whether J is z's already (the kept columns run afresh at z)
     ran_at = np.full((n, n), np.nan)  # row j: the point column j of J was run at
+    ran_with = [None] * n  # the correspondences column j of J was run with
 
     def column(j):
         """The forward difference of the residuals in value ``j`` at ``z`` (one or two runs),
         or None where both sides blew up."""
         nonlocal evals
+        if use is not None:
+            use(at_z)
         ran_at[j] = z
+        ran_with[j] = at_z
         zj = z.copy()
         zj[j] += h if bounds is None or z[j] + h <= bounds[1][j] else -h
         rj, ok = residuals(zj)
@@ -2736,7 +2761,7 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
             # The held values whose last column, run within h of z, against these residuals,
             # still points out of the box (a residual vector of the same length).
             if J is not None and J.shape[0] == len(r) and held.any():
-                near = np.abs(z - ran_at).max(axis=1) <= h
+                near = (np.abs(z - ran_at).max(axis=1) <= h) & np.array([_same(c, at_z) for c in ran_with])
                 kept = held & near & _held(z, J.T @ r, bounds)
             else:
                 kept = np.zeros(n, dtype=bool)
@@ -2810,6 +2835,7 @@ def _run_gauss_newton(residuals, project, z, iterations, max_step, h, xtol=1e-6,
         if current:
             continue
         z, r, f = z_new, r_new, f_new
+        at_z = chosen() if chosen is not None else None
         if float(np.abs(step).max()) < xtol:
             return "converged"
 

@@ -1014,6 +1014,16 @@ class ChamferLoss(Loss):
         """Forget the correspondences ``residuals`` fixed (the next call chooses them anew)."""
         self._pairs = {}
 
+    def correspondences(self):
+        """The nearest points ``residuals`` keeps now (``{step: (ix, iy)}``, None before any
+        call), for ``set_correspondences``: a Gauss-Newton Jacobian's columns read those of
+        the point they difference from, not a later trial's."""
+        return getattr(self, "_pairs", None)
+
+    def set_correspondences(self, kept) -> None:
+        """Keep ``kept`` (a ``correspondences()`` answer) for the next ``residuals``."""
+        self._pairs = kept
+
     def residuals(self, positions) -> np.ndarray:
         """A residual vector for Gauss-Newton diagnostics (numpy, from ``{step: (n, 3)}``):
         ``x_i - y_nn(i)`` and ``y_j - x_nn(j)`` with the nearest points chosen at the first
@@ -1175,6 +1185,15 @@ class MeshLoss(Loss):
     def reset_residuals(self):
         """Forget the closest points and normals ``residuals`` fixed."""
         self._planes = {}
+
+    def correspondences(self):
+        """The tangent planes ``residuals`` keeps now (``{step: (c0, n0, code)}``, None before
+        any call), for ``set_correspondences`` (``ChamferLoss.correspondences``)."""
+        return getattr(self, "_planes", None)
+
+    def set_correspondences(self, kept) -> None:
+        """Keep ``kept`` (a ``correspondences()`` answer) for the next ``residuals``."""
+        self._planes = kept
 
     def residuals(self, positions) -> np.ndarray:
         """A residual vector for Gauss-Newton diagnostics (numpy, from ``{step: (n, 3)}``):
