@@ -35,6 +35,12 @@ verdicts, fitted values, Fisher matrix)::
 
     python -m benchmarks.fit_bench --rejected --repeats 3
 
+With ``--starts K`` (K > 1) each of those fits is a worlds fit of K starts (``worlds=True``,
+the starts drawn within ``--sample-range`` of the guess, default 4), whose rounds run no
+backward where no start of the round reads its gradient::
+
+    python -m benchmarks.fit_bench --rejected --starts 2 --sample-range 1.0000001 --repeats 3
+
 It prints a table and writes JSON (``--json``, default ``fit_bench.json``). Not a test.
 """
 
@@ -237,11 +243,13 @@ def _same_fit(old, new) -> bool:
             and np.array_equal(old.diagnostics.fisher, new.diagnostics.fisher))
 
 
-def measure_rejected(particles: int, steps: int, repeats: int = 3) -> list[dict]:
+def measure_rejected(particles: int, steps: int, repeats: int = 3, starts: int = 1, sample_range: float = 4.0) -> list[dict]:
     """L-BFGS fits of the block (``REJECTED_FACTORS`` off, diagnostics on) with every
     line-search trial's backward run (``fit.LBFGS_TRIAL_BACKWARDS = "always"``, as before)
     and, alternating, with a rejected trial's run only where its slope may decide the
-    minimum-within test (``"read"``): one row per start, best of ``repeats`` each."""
+    minimum-within test (``"read"``): one row per start, best of ``repeats`` each. ``starts``
+    > 1: worlds fits of that many starts within ``sample_range`` of the guess (seed 0), a
+    round's backward skipped only where no start of the round reads its gradient."""
     truth = _guess_model(particles, 1.0)
     dt = truth.stable_dt()
     frames = sorted({steps // 2, steps})
@@ -253,8 +261,9 @@ def measure_rejected(particles: int, steps: int, repeats: int = 3) -> list[dict]
         try:
             gc.collect()
             w0, c0 = time.perf_counter(), time.process_time()
+            many = {"starts": starts, "worlds": True, "sample_range": sample_range} if starts > 1 else {}
             result = fit_module.fit(model, loss, list(LOSS_ONLY_PARAMS), steps=steps, dt=dt, optimizer="lbfgs",
-                                    iterations=REJECTED_ITERATIONS, noise=1e-4, progress=False)
+                                    iterations=REJECTED_ITERATIONS, noise=1e-4, progress=False, **many)
             return result, time.perf_counter() - w0, time.process_time() - c0
         finally:
             fit_module.LBFGS_TRIAL_BACKWARDS = "read"
@@ -273,7 +282,8 @@ def measure_rejected(particles: int, steps: int, repeats: int = 3) -> list[dict]
         old, new = results["always"], results["read"]
         evaluations = len(new.history)
         rows.append({
-            "particles": truth.particle_count, "steps": steps, "factor": factor,
+            "particles": truth.particle_count, "steps": steps, "factor": factor, "starts": starts,
+            "sample_range": sample_range if starts > 1 else None,
             "evaluations": evaluations, "stopped": new.stopped,
             "backwards_before": _backward_count(old.history), "backwards_now": _backward_count(new.history),
             "wall_before_s": best["always"][0], "wall_now_s": best["read"][0],
@@ -289,7 +299,7 @@ def _rejected_main(a, sizes, step_counts, argv) -> int:
     rows = []
     for n in sizes:
         for steps in step_counts:
-            rows += measure_rejected(n, steps, a.repeats)
+            rows += measure_rejected(n, steps, a.repeats, a.starts, a.sample_range)
     hdr = (f"{'particles':>9} {'steps':>6} {'start':>7} {'evals':>5} {'bwd before':>10} {'bwd now':>7} {'wall before':>11} "
            f"{'wall now':>8} {'ratio':>6} {'cpu ratio':>9} {'stopped':>10} {'same':>5}")
     print(hdr)
@@ -337,6 +347,10 @@ def main(argv=None) -> int:
     ap.add_argument("--rejected", action="store_true",
                     help="time L-BFGS fits whose rejected line-search trials run their backward only where read, "
                          "against every trial's (default 125 particles x 40 steps)")
+    ap.add_argument("--starts", type=_cli.positive_int, default=1,
+                    help="with --rejected: worlds fits of this many starts (default 1: single fits)")
+    ap.add_argument("--sample-range", type=_cli.number(1.0, lo_open=True), default=None,
+                    help="with --starts: the starts' range about the guess (factor; default 4)")
     ap.add_argument("--repeats", type=_cli.positive_int, default=1, help="timed repeats per configuration (the fastest is kept)")
     ap.add_argument("--quick", action="store_true", help="a tiny run: 125 particles, 20 steps (not with --particles, --steps)")
     ap.add_argument("--json", default="fit_bench.json", type=_cli.output_file, help="output JSON path")
@@ -355,6 +369,11 @@ def main(argv=None) -> int:
         ap.error("--loss-only is not allowed with --rejected: each is a benchmark of its own")
     if a.rejected and a.checkpoint is not None:
         ap.error(f"--checkpoint = {a.checkpoint!r} is not allowed with --rejected (its fits run one full tape each)")
+    if a.starts > 1 and not a.rejected:
+        ap.error(f"--starts = {a.starts} is not allowed without --rejected (the other benchmarks fit one start)")
+    if a.sample_range is not None and a.starts == 1:
+        ap.error(f"--sample-range = {a.sample_range:g} is not allowed without --starts > 1 (it places the other starts)")
+    a.sample_range = 4.0 if a.sample_range is None else a.sample_range
     if a.rejected:
         return _rejected_main(a, [125] if a.quick else (a.particles or [125]), [20] if a.quick else (a.steps or [40]),
                               argv)

@@ -127,6 +127,33 @@ def test_fit_benchmark_times_lbfgs_fits_whose_rejected_trials_run_no_backward_un
     assert row["cpu_ratio"] == pytest.approx(row["cpu_now_s"] / row["cpu_before_s"])
 
 
+def test_fit_benchmark_times_worlds_fits_whose_rounds_of_unread_trials_run_no_backward(tmp_path, monkeypatch):
+    """``benchmarks.fit_bench --rejected --starts 2`` at a tiny size: worlds fits of two starts
+    1e-7 apart run fewer backwards than with every round's, to the same fit, bit for bit."""
+    from benchmarks import fit_bench
+
+    monkeypatch.setattr(fit_bench, "REJECTED_FACTORS", (1.0001,))
+    out = tmp_path / "fit_bench.json"
+    assert fit_bench.main(["--rejected", "--starts", "2", "--sample-range", "1.0000001", "--particles", "27", "--steps",
+                           "20", "--repeats", "1", "--json", str(out)]) == 0
+    (row,) = json.loads(out.read_text())["rows"]
+    assert row["same_fit"] and row["starts"] == 2 and row["sample_range"] == 1.0000001
+    assert row["backwards_before"] == row["evaluations"] > row["backwards_now"] > 0
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["--starts", "2"], "--starts = 2 is not allowed without --rejected"),
+    (["--rejected", "--sample-range", "2"], "--sample-range = 2 is not allowed without --starts > 1"),
+    (["--rejected", "--starts", "2", "--sample-range", "1"], "--sample-range"),
+])
+def test_fit_benchmark_refuses_starts_it_does_not_run(argv, said, capsys):
+    from benchmarks import fit_bench
+
+    with pytest.raises(SystemExit) as e:
+        fit_bench.main(argv)
+    assert e.value.code == 2 and said in capsys.readouterr().err
+
+
 def test_fit_benchmarks_loss_only_rows_count_the_runs_that_ran(tmp_path, monkeypatch):
     """``forward_runs`` of ``fit_bench --loss-only`` is what its fit ran: it added two runs of
     the diagnostics at the fitted point to ``Diagnostics.evaluations``, which had come to

@@ -53,6 +53,34 @@ def test_worlds_make_the_evaluations_of_separate_starts(dropped_cube, target, op
         assert getattr(par.model, name).numpy()[0] == pytest.approx(par.params[name][0], rel=1e-12)
 
 
+def test_a_round_of_rejected_lbfgs_trials_whose_slopes_nothing_reads_runs_no_backward(dropped_cube, target,
+                                                                                      monkeypatch):
+    """A worlds round ran every world's backward, each start's gradient taken whether its
+    optimiser read it or not; a single fit's rejected L-BFGS trial runs its backward only where
+    its slope may decide the minimum-within test. A round whose every start is such a trial (or
+    refused) now runs none, and the fit is the same to the bit: two starts 1e-7 apart (in log)
+    near the answer, whose line searches reject their trials in the same rounds."""
+    from warp_esph import fit as fit_module
+
+    def run(mode):
+        monkeypatch.setattr(fit_module, "LBFGS_TRIAL_BACKWARDS", mode)
+        return fit(dropped_cube(100.0 * 1.0001, 10.0 * 1.0001, size=0.06), PositionLoss(target, frames=FRAMES),
+                   ["yield_stress", "flow_rate"], steps=STEPS, dt=DT, iterations=30, optimizer="lbfgs", progress=False,
+                   starts=2, worlds=True, sample_range=1.0000001, diagnostics=False)
+
+    old, new = run("always"), run("read")
+    assert old.starts == new.starts == ["converged", "converged"]
+    assert len(old.history) == len(new.history)
+    for a, b in zip(old.history, new.history):
+        assert (a["params"], a["loss"], a["start"]) == (b["params"], b["loss"], b["start"])
+        assert a["grad"] is not None and (b["grad"] is None or b["grad"] == a["grad"])
+    # Whole rounds (recorded start after start): each start's evaluation of the round without its gradient.
+    skipped = [k for k, h in enumerate(new.history) if h["grad"] is None]
+    assert len(skipped) >= 4 and skipped[::2] == [k - 1 for k in skipped[1::2]]
+    assert [new.history[k]["start"] for k in skipped] == [0, 1] * (len(skipped) // 2)
+    assert new.loss == old.loss and all(np.array_equal(new.params[n], old.params[n]) for n in new.params)
+
+
 def test_replicated_worlds_match_the_model(dropped_cube):
     """``replicate_worlds``: every world is the model (positions, parameters, rest density),
     and its rollout gives each world the model's positions."""
@@ -179,11 +207,11 @@ def test_an_error_in_a_round_of_the_worlds_ends_the_fit_with_it(dropped_cube, ta
     evaluate = fit_module._WorldsProblem.evaluate
     rounds = []
 
-    def failing(self, batch):
+    def failing(self, batch, wants=None):
         rounds.append(sorted(batch))
         if len(rounds) == 2:
             raise RuntimeError("the second round failed")
-        return evaluate(self, batch)
+        return evaluate(self, batch, wants)
 
     monkeypatch.setattr(fit_module._WorldsProblem, "evaluate", failing)
     raised = []
@@ -210,7 +238,7 @@ def _lockstep_two_starts(descend, recorded):
     from warp_esph import fit as fit_module
 
     class Worlds:
-        def evaluate(self, batch):
+        def evaluate(self, batch, wants=None):
             return {w: (1.0, np.zeros(1), 0.0, None) for w in batch}
 
     def record(track, z, value, gz, seconds, note):

@@ -2185,9 +2185,12 @@ class _WorldsProblem:
         #: Whether each world's last run blew up (diverged, or non-finite).
         self.blew_up = [False] * worlds
 
-    def evaluate(self, batch: dict[int, np.ndarray]) -> dict[int, tuple[float, np.ndarray, float, str | None]]:
+    def evaluate(self, batch: dict[int, np.ndarray], wants=None) -> dict[int, tuple[float, np.ndarray | None, float, str | None]]:
         """Loss, optimiser-space gradient, seconds and note (why the materials refused the
-        values, or None) of each start in ``batch`` (``{world: z}``); the other worlds keep
+        values, or None) of each start in ``batch`` (``{world: z}``). ``wants``: ``{world:
+        wants(value) or None}`` as each start's optimiser asked (``_Problem.value_and_grad``);
+        where no start of the round reads its gradient, the round runs no backward and every
+        gradient is None (``_round``). The other worlds keep
         their last parameters, except where those blew up: then they run the guess. One pass
         evaluates them all: each start's seconds are its share, the round's divided by the
         starts in it (each had been given the whole round's, and a history's seconds added up
@@ -2213,7 +2216,7 @@ class _WorldsProblem:
         guess = prob.from_z(prob.z0)
         while True:
             try:
-                values, gz, blew_up = self._round(batch, refused)
+                values, gz, blew_up = self._round(batch, refused, wants)
                 break
             except Collapsed as e:
                 # The search stopped the whole round at the worlds it overflowed in: those starts
@@ -2237,10 +2240,30 @@ class _WorldsProblem:
         seconds = self.round_seconds / len(batch)
         return {w: (float(values[w]), gz[w], seconds, refused.get(w)) for w in batch}
 
-    def _round(self, batch, refused):
+    def _unread(self, batch, refused, wants) -> list[np.ndarray] | None:
+        """Each experiment's world values (``WorldLoss.world_values``, read forward-only) where
+        no start of ``batch`` reads its gradient at the loss the forwards just gave: each is an
+        L-BFGS trial whose ``wants`` says so, refused by its materials, or failed (a loss not
+        finite); else None. The loss is summed over the experiments as the round sums it."""
+        if LBFGS_TRIAL_BACKWARDS != "read" or wants is None or any(wants.get(w) is None for w in batch if w not in refused):
+            return None
+        each, values = [], np.zeros(self.W)
+        for r in self.runs:
+            r.loss.value(r.rollout.observations())
+            each.append(np.asarray(r.loss.world_values, dtype=np.float64))
+            values += r.weight * each[-1]
+        if any(wants[w](float(values[w])) for w in batch if w not in refused and math.isfinite(values[w])):
+            return None
+        return each
+
+    def _round(self, batch, refused, wants=None):
         """One pass of every world at ``self.p``: ``(values, gz, blew_up)``, each world that blew
         up noted in ``refused``; raises ``Collapsed`` (with ``particles_worlds`` and
-        ``world_notes``) where the neighbour search stopped the pass."""
+        ``world_notes``) where the neighbour search stopped the pass. Every experiment's forward
+        runs first (each its own rollout and tape, so a backward after them gives the bits it
+        gave after its own forward); the backwards run unless every start of ``batch`` is an
+        L-BFGS trial whose ``wants`` says its gradient is not read at the loss the forwards
+        give (or is refused): then ``gz`` holds None for each (``LBFGS_TRIAL_BACKWARDS``)."""
         prob, W, k = self.prob, self.W, self.prob.k
         values = np.zeros(W)
         gz = {w: np.zeros(len(prob.z0)) for w in batch}
@@ -2249,13 +2272,28 @@ class _WorldsProblem:
             for r in self.runs:
                 r.apply({name: np.concatenate([self.p[w][name] for w in range(W)]) for name in prob.params})
                 try:
-                    _, grads = r.value_and_grad(r.loss)
+                    r.loss.check_positions(r.model.particle_count)
+                    r.forward()
                 except Collapsed as e:
                     of = r.model.world_of_particle[e.particles]
                     e.particles_worlds = sorted({int(w) for w in of})
                     e.world_notes = {w: _collapse_note(e.error, e.particles[of == w], int(r.model.world_start[w]))
                                      for w in e.particles_worlds}
                     raise
+            unread = self._unread(batch, refused, wants)
+            if unread is not None:
+                for r, world_values in zip(self.runs, unread):
+                    for w in range(W):
+                        world = r.model.world_of_particle == w
+                        why = _divergence(r.model, r.rollout, world, int(r.model.world_start[w]), checked=r.checked & world)
+                        if why is not None or not np.isfinite(world_values[w]):
+                            blew_up[w] = True
+                        if why is not None and w not in refused:
+                            refused[w] = why
+                    values += r.weight * world_values
+                return values, {w: None for w in batch}, blew_up
+            for r in self.runs:
+                _, grads = r.rollout.backward(r.loss)
                 world_values = np.asarray(r.loss.world_values, dtype=np.float64)
                 g = r.grads(prob.params, grads)
                 for w in range(W):  # a world that blew up fails its start alone
@@ -2292,6 +2330,7 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record, hal
 
     cv = threading.Condition()
     pending: dict[int, np.ndarray] = {}
+    asked: dict[int, object] = {}  # each pending start's ``wants``
     answers: dict[int, object] = {}
     active = set(range(len(tracks)))
     stops: list = [None] * len(tracks)
@@ -2300,8 +2339,8 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record, hal
 
     def worker(w):
         def evaluate(z, wants=None):
-            # ``wants`` is not read: a round's one backward is every world's (each start's
-            # gradient is taken, and read or not).
+            # ``wants``: a round's one backward is every world's, so it runs unless no start of
+            # the round reads its gradient (``_WorldsProblem._round``).
             with cv:
                 if closed:
                     # A start that was between an answer and its next evaluation when the
@@ -2309,6 +2348,7 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record, hal
                     # not answer it: posting now would wait for ever, and the join with it.
                     raise _Stop("callback")
                 pending[w] = np.array(z, dtype=np.float64)
+                asked[w] = wants
                 cv.notify_all()
                 while w not in answers:
                     cv.wait()
@@ -2345,6 +2385,7 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record, hal
                     # full rounds of rollouts, before the error was raised.
                     break
                 batch = {w: pending.pop(w) for w in sorted(active)}
+                wants = {w: asked.pop(w, None) for w in batch}
             why = halted()
             if why is not None:
                 # A callback stopped the fit: the other starts' next round ran and was recorded
@@ -2353,7 +2394,7 @@ def _lockstep(tracks, start_points, descend, worlds: _WorldsProblem, record, hal
                     answers.update({w: _Stop(why) for w in batch})
                     cv.notify_all()
                 continue
-            results = worlds.evaluate(batch)
+            results = worlds.evaluate(batch, wants)
             out = {}
             for w in sorted(batch):
                 value, gz, seconds, note = results[w]
