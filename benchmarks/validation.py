@@ -759,8 +759,10 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
     by dynamic relaxation with c = 1.4 omega_1 (omega_1 the Euler-Bernoulli first bending
     frequency) over ``periods`` of it. Deflection: mean height of the mid-span column
     against the mean of the two support columns, from the start.
-    Theory (Timoshenko): 5 q L^4 / (384 E I) + q L^2 / (8 kappa G A)."""
+    Theory (Timoshenko): 5 q L^4 / (384 E I) + q L^2 / (8 kappa G A). ``dtype``:
+    ``"float32"`` or ``"float64"``."""
     wp, we = _we()
+    scalar = _lab_dtype(wp, dtype)
     n = resolution
     t = 0.04
     dx = t / n
@@ -779,7 +781,7 @@ def beam_deflection(resolution: int = 6, elastic_force: str = "variational", spa
     b.add_box((0.0, t / 2.0 - dx / 2.0, 0.0), ((cols + 1) * dx, t, t), mat)
     for xs in (-L / 2.0, L / 2.0):
         b.add_box_collider((xs, -0.5, 0.0), (0.5 * dx * 0.999, 0.5, 1.0), friction=0.0)
-    model = b.finalize(device=wp.get_device(), dtype=getattr(wp, dtype))
+    model = b.finalize(device=wp.get_device(), dtype=scalar)
     x0 = model.particle_x0.astype(np.float64)
     mid = np.abs(x0[:, 0]) < 0.25 * dx
     ends = np.abs(np.abs(x0[:, 0]) - L / 2.0) < 0.25 * dx
@@ -847,7 +849,7 @@ def _free_column(we, mat, n: int, aspect: int, dx: float, dtype: str = "float32"
     else:
         b.add_particle_floor("column", margin=2.0 * dx, layers=FLOOR_LAYERS, ghost=True, slip=True)
     wp = _we()[0]
-    model = b.finalize(device=wp.get_device(), dtype=getattr(wp, dtype))
+    model = b.finalize(device=wp.get_device(), dtype=_lab_dtype(wp, dtype))
     x0 = model.particle_x0.astype(np.float64)
     free = np.arange(model.particle_count) < count
     top = free & (x0[:, 1] > x0[free, 1].max() - 0.5 * dx)
@@ -935,8 +937,9 @@ def near_yield_column(resolution: int = 6, aspect: int = 5, yield_depth: float =
     weight's stress at the base and yields the column far above ``yield_depth``, which the
     static analysis does not describe. The run lasts ``periods`` axial periods: the yielded
     base creeps to rest over seconds (6 across: 0.44 x the theory at 12 periods, at rest at
-    0.50 x by 36)."""
+    0.50 x by 36). ``dtype``: ``"float32"`` or ``"float64"``."""
     wp, we = _we()
+    _lab_dtype(wp, dtype)  # refused before the elastic reference run
     dx = 0.01
     n, nh = resolution, resolution * aspect
     H = nh * dx

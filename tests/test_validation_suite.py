@@ -941,6 +941,17 @@ def test_plate_compression_at_a_tiny_strain_reads_the_linear_response_in_float64
         validation.three_point_bending(dtype="float16")
 
 
+@pytest.mark.parametrize("run", [validation.beam_deflection, validation.near_yield_column, validation.three_point_bending])
+@pytest.mark.parametrize("dtype", ["float16", "double", "vec3"])
+def test_validation_runs_refuse_an_unknown_dtype_by_name(run, dtype):
+    """Every validation run that takes ``dtype`` refuses one that is not float32 or float64 by
+    name, before it builds anything (the beam and the near-yield column looked the name up
+    in Warp: ``"double"`` raised AttributeError, ``"float16"`` and ``"vec3"`` reached
+    ``finalize``)."""
+    with pytest.raises(ValueError, match=rf"^dtype = '{dtype}' is not allowed: must be one of 'float32', 'float64'"):
+        run(dtype=dtype)
+
+
 # ------------------------------------------------------- partial runs merged into a report
 def test_only_selects_plan_entries_by_case_and_keyword_values():
     runs = validation.plan(False)
