@@ -463,8 +463,9 @@ def pose_kernels(scalar) -> types.SimpleNamespace:
         pose_dr: wp.array(dtype=vec3),
     ):
         """Pose of tool ``s // 2`` at its sample ``s`` (even: step start, odd: step end), and
-        at an odd sample the step's displacement ``p(t1) - p(t0)`` (``step_displacement``)
-        and rotation (``step_rotation``)."""
+        at an odd sample the step's displacement ``p(t1) - p(t0)`` and rotation
+        (``step_displacement``, ``step_rotation``; ``crossing_displacement``,
+        ``crossing_rotation`` for a step across keyframes)."""
         s = wp.tid()
         c = s // 2
         if s_direct[s] != 0:
