@@ -1585,3 +1585,64 @@ def test_a_sample_gone_non_finite_is_a_failed_row_naming_step_frame_and_particle
     assert re.fullmatch(r"the simulation diverged after step 20 \(frame 1, .*\): non-finite position or velocity "
                         r"\(particle (\d+) is the first of \d+ bad particles\), at particle \1 of body 'cube'; the "
                         r"sample's stable step is \S+ s", table.rows[1]["reason"]), table.rows[1]["reason"]
+
+
+# ------------------------------------------------------------------ values no sample can use
+def _rubber_box() -> Scene:
+    """The test box of an elastic material (rubber: yield_stress = inf, flow_rate = 0)."""
+    b = SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.06, 0.0), (0.1, 0.1, 0.1), Material.preset("rubber"), name="paste")
+    b.add_ground(friction=0.5)
+    return Scene("rubber_box", "a small box of rubber", b, frames=FRAMES, fps=30.0)
+
+
+def _no_sample_runs(monkeypatch):
+    import warp_esph.sweep as sweep_module
+
+    def never(*_):
+        raise AssertionError("a sample ran")
+
+    monkeypatch.setattr(sweep_module, "_run_sample", never)
+
+
+@pytest.mark.parametrize("specs, words", [
+    (["yield_stress=10,100"], ["--param yield_stress is not allowed", "material 0 (body 'paste')", "flow_rate = 0"]),
+    (["hardening=0,1000"], ["--param hardening is not allowed", "flow_rate = 0"]),
+    (["paste.yield_stress=10:100:log:2", "hardening=0,10"], ["--param paste.yield_stress is not allowed"]),
+    (["flow_rate=10,100"], ["--param flow_rate is not allowed", "yield_stress = inf"]),
+])
+def test_a_plastic_parameter_of_a_material_no_sample_lets_flow_is_refused_before_any_sample(monkeypatch, specs, words):
+    """On an elastic material a yield stress, a flow rate alone or a hardening does nothing
+    (measured: rubber's rows of yield_stress 10 and 100, hardening 0 and 1000, were the same
+    to the bit, on the rest model and on the linear fit alike), and the sweep ran every
+    sample and exited 0, a table of one result many times. It is refused before any sample,
+    naming the parameter and what keeps the material from flowing."""
+    _no_sample_runs(monkeypatch)
+    with pytest.raises(ValueError) as e:
+        sweep(_rubber_box(), specs, frames=1, workers=1)
+    for w in words:
+        assert w in str(e.value), (w, str(e.value))
+    # Swept together, a yield stress and a flow rate make it plastic in some sample: taken.
+    plan = _plan(_rubber_box(), ["yield_stress=10,100", "flow_rate=0,50", "hardening=0,10"], "grid", None, 0, 1, None,
+                 30.0, None, 1.0, "float32", "cpu", 1, 100, None)
+    assert len(plan.tasks) == 8
+
+
+def test_a_sweep_every_sample_of_which_the_material_refuses_is_refused_before_any_sample(monkeypatch, scene_file,
+                                                                                        tmp_path, capsys):
+    """lam below -2 mu / 3 in every sample: each sample failed alone with the same refusal and
+    the command exited 3 with a table of failures. Now it is bad input before any sample
+    (exit 2), naming the parameter, the value and what the material allows; a sweep one of
+    whose samples the material takes still runs (the others are failed rows)."""
+    _no_sample_runs(monkeypatch)
+    with pytest.raises(ValueError, match=r"^--param lam is not allowed: the material refuses every sample's values "
+                                         r"\(sample 0, lam = -1e\+09: Material\.lam = -1000000000\.0 is not allowed: "
+                                         r"must be > -2 mu / 3 = "):
+        sweep(_box(), ["lam=-1e9,-2e9"], frames=1, workers=1)
+    rc = cli.main(["sweep", scene_file, "--param", "hardening=-1e9", "--workers", "1", "--no-progress", "-o",
+                   str(tmp_path / "never")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "--param hardening is not allowed" in err[0] and "-2 mu" in err[0], err
+    assert not os.path.exists(tmp_path / "never")
+    assert len(_plan(_box(), ["lam=-1e9,1000"], "grid", None, 0, 1, None, 30.0, None, 1.0, "float32", "cpu", 1, 100,
+                     None).tasks) == 2

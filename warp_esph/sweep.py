@@ -22,7 +22,10 @@ depend on where or in which order the samples ran; only ``wall_s`` (the seconds 
 sample took) varies from run to run. Rows are sorted by sample index.
 
 A sample that diverges (``SimulationError``) or whose values make an invalid material is
-a row with ``status = "failed"`` and the one-line ``reason``; the sweep goes on. A reason
+a row with ``status = "failed"`` and the one-line ``reason``; the sweep goes on. A sweep
+the material refuses in every sample, or one of a flow parameter (``yield_stress``,
+``flow_rate``, ``hardening``) whose materials can flow in no sample (it changes nothing), is
+refused (``ValueError``) before any sample. A reason
 is the stop's, or ``StepRefusal: `` and the refusal's, without a run's advice, which names one caller's options
 (``dt=`` or ``--dt``): the table is the same for ``sweep()`` and ``warp-esph sweep``; a
 divergence adds the sample's stable step. A value the precision does not hold is advised
@@ -1174,6 +1177,7 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
         # With dt given only its ratio to 1/fps is checked; named as the option where it is one.
         resolve_timestep(None, fps, dt=dt, flag=lambda name: f"--{name}" if given.get(name) else f"the scene's {name}")
     assignments = _assignments(sc, plist)
+    _check_flow_parameters_act(sc, assignments, points)
     # Built once here, so that what the scene itself refuses (a body inside a collider, a device
     # this machine lacks) is bad input before any sample, not the same failure in every row;
     # on the CPU where the samples run on a Ray cluster, whose nodes have the device.
@@ -1184,6 +1188,7 @@ def _plan(scene, params, sample, samples, seed, frames, duration, fps, dt, scale
     model = sc.builder.finalize(device=here, dtype=dtype)
     # Before the check of the steps below, which sets sample values in the model's materials.
     identity = _identity(scene, sc, scale, plist, sample, len(points), seed, frames, fps, dt, dtype, device, extra, model)
+    _check_some_sample_material(model, assignments, points)
     if dt is None:
         _check_some_sample_steps(model, assignments, points, frames, fps, rate, length)
     if extra is not None and ray is None and min(workers or _cores(), len(points)) > 1:
@@ -1241,6 +1246,65 @@ def _identity(scene, sc, scale, plist, sample, count, seed, frames, fps, dt, dty
            "extra": None if extra is None else f"{getattr(extra, '__module__', '?')}.{getattr(extra, '__qualname__', repr(extra))}"}
     # Through JSON and back, so that it compares equal to what a file read gives (tuples as lists).
     return json.loads(json.dumps(out, default=str))
+
+
+#: The fields that act only on a material that can flow (a finite ``yield_stress`` and a
+#: ``flow_rate`` above 0, ``Material.plastic``): the flow rule's.
+_FLOW_FIELDS = ("yield_stress", "flow_rate", "hardening")
+
+
+def _check_flow_parameters_act(sc, assignments, points) -> None:
+    """Refuse a parameter of the flow rule (``_FLOW_FIELDS``) none of whose materials can flow
+    in any sample: it changes nothing (an elastic material's rows of two yield stresses were
+    the same to the bit), and the sweep ran every sample to a table of one result."""
+    materials, bodies = sc.builder._materials, sc.builder._bodies
+    swept: dict[int, dict[str, str]] = {}  # material -> {field: the parameter that sets it}
+    for name, field, idx in assignments:
+        for k in idx:
+            swept.setdefault(k, {})[field] = name
+
+    def flow_of(k, values, field):
+        return values[swept[k][field]] if field in swept.get(k, {}) else getattr(materials[k], field)
+
+    def can_flow(k, values):
+        return math.isfinite(flow_of(k, values, "yield_stress")) and flow_of(k, values, "flow_rate") > 0.0
+
+    for name, field, idx in assignments:
+        if field not in _FLOW_FIELDS or any(can_flow(k, v) for v in points for k in idx):
+            continue
+        k = idx[0]
+        of = [b.name for b in bodies if b.material == k]
+        shown = f"material {k}" + (f" (body {', '.join(map(repr, of))})" if of else "")
+        why = []
+        if not any(math.isfinite(flow_of(k, v, "yield_stress")) for v in points):
+            why.append("yield_stress = inf")
+        if not any(flow_of(k, v, "flow_rate") > 0.0 for v in points):
+            why.append("flow_rate = 0")
+        raise ValueError(f"--param {name} is not allowed: it changes nothing in this scene: {field} acts only on a "
+                         f"material that can flow (a finite yield_stress and a flow_rate above 0), and in no sample can "
+                         f"{shown} flow ({' or '.join(why) or 'no sample gives it both'}); sweep yield_stress and "
+                         f"flow_rate too, or give the scene's material them")
+
+
+def _check_some_sample_material(model, assignments, points) -> None:
+    """Refuse a sweep every sample of which makes a material the model refuses (``_apply``:
+    ``Material``'s checks and the precision's): each sample failed alone with the same
+    refusal, and the sweep exited 3 with a table of failures. A sample the material takes is
+    enough (the others are rows of the table, as a sample that blew up is)."""
+    first = None
+    for k, values in enumerate(points):
+        try:
+            _apply(model, assignments, values)
+        except ValueError as e:
+            first = first or (k, values, e)
+            continue
+        return
+    if first is None:
+        return
+    k, values, e = first
+    shown = ", ".join(f"{name} = {v:g}" for name, v in values.items())
+    raise ValueError(f"--param {', '.join(values)} {'is' if len(values) == 1 else 'are'} not allowed: the material refuses every sample's values "
+                     f"(sample {k}, {shown}: {_one_line(e)}); give values it allows")
 
 
 def _check_some_sample_steps(model, assignments, points, frames, fps, rate, length) -> None:
