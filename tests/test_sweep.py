@@ -1646,3 +1646,59 @@ def test_a_sweep_every_sample_of_which_the_material_refuses_is_refused_before_an
     assert not os.path.exists(tmp_path / "never")
     assert len(_plan(_box(), ["lam=-1e9,1000"], "grid", None, 0, 1, None, 30.0, None, 1.0, "float32", "cpu", 1, 100,
                      None).tasks) == 2
+
+
+# ------------------------------------------------------------------ a sample's own exception, wherever it runs
+class _TwoPartError(Exception):
+    """An exception pickle cannot rebuild (``cls(*args)`` with its one message): a worker
+    process sends it, and the parent fails to read it back."""
+
+    def __init__(self, what, why):
+        super().__init__(f"{what}: {why}")
+
+
+def _extra_raising_what_pickle_cannot_rebuild(model, state, seed):
+    raise _TwoPartError("extra", "no column today")
+
+
+def _extra_of_a_function(model, state, seed):
+    return {"top": float(state.x.numpy()[:, 1].max()), "how": _box}
+
+
+def test_a_sample_s_exception_the_parent_cannot_rebuild_is_its_reason_with_workers_too():
+    """With worker processes, an exception that pickle cannot rebuild in the parent broke the
+    pool: each sample ran again alone, broke it again, and its row said a worker process died
+    'a crash in native code or out of memory', where the same sweep in one process said
+    the exception. Each row now says the exception, as in one process."""
+    here = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=1, extra=_extra_raising_what_pickle_cannot_rebuild)
+    assert [r["reason"] for r in here.rows] == ["_TwoPartError: extra: no column today"] * 2
+    there = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=2, extra=_extra_raising_what_pickle_cannot_rebuild)
+    assert _rows(there) == _rows(here)
+
+
+def test_a_sample_s_exception_the_driver_cannot_rebuild_is_its_reason_on_ray_too(monkeypatch):
+    """On Ray the same exception was a row of Ray's words ('Ray: UnserializableException: ...',
+    the worker's pid and ip, colour codes): another reason on every run. It says the exception."""
+    ray = pytest.importorskip("ray")
+    # The Ray workers, started by the instance below, import this module for the extra function.
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in (os.path.dirname(__file__), os.environ.get("PYTHONPATH")) if p))
+    here = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=1, extra=_extra_raising_what_pickle_cannot_rebuild)
+    ray.init(num_cpus=2, include_dashboard=False)
+    try:
+        remote = sweep(_box(), ["yield_stress=10,100"], frames=1, ray="auto", extra=_extra_raising_what_pickle_cannot_rebuild)
+    finally:
+        ray.shutdown()
+    assert _rows(remote) == _rows(here)
+
+
+def test_an_extra_column_that_is_no_number_or_text_fails_its_sample_the_same_wherever_it_runs():
+    """An ``extra`` value that is neither a number nor text (a function) was an ok row holding
+    the object in one process (its CSV cell the object's repr) and a failed row with pickle's
+    words in worker processes: two tables of one sweep. It is a failed row naming the column
+    in both."""
+    here = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=1, extra=_extra_of_a_function)
+    assert [r["status"] for r in here.rows] == ["failed"] * 2
+    assert here.rows[0]["reason"] == ("ValueError: extra returned how = a function: a column's value must be "
+                                       "a number, text or None"), here.rows[0]["reason"]
+    there = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=2, extra=_extra_of_a_function)
+    assert _rows(there) == _rows(here)

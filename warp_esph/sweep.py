@@ -644,7 +644,15 @@ def _run_sample(scene, task: _Task) -> dict:
                                      + (f", not {taken} (the table's own)" if taken else ""))
                 # numpy's numbers as Python's (a float32 max, an int64 count): as they were, the
                 # Parquet column was text and the CSV's float32 text read back as another float.
-                row.update({k: v.item() if isinstance(v, np.generic) else v for k, v in more.items()})
+                more = {k: v.item() if isinstance(v, np.generic) else v for k, v in more.items()}
+                odd = next(((k, v) for k, v in more.items() if v is not None and not isinstance(v, (int, float, str))), None)
+                if odd is not None:
+                    # A table cell: an object (a function) was an ok row holding it in this process
+                    # and a failed one with pickle's words where a worker process sent it back.
+                    # Its type, not its repr: an address made the reason another in every process.
+                    raise ValueError(f"extra returned {odd[0]} = a {type(odd[1]).__name__}: a column's value must be "
+                                     "a number, text or None")
+                row.update(more)
     except SimulationError as e:
         # The reason alone, as for a StepRefusal: the advice named a Python caller's parameters
         # ('a smaller dt=', 'use dtype=float64'), and the table is the command's too. A
@@ -678,8 +686,18 @@ def solver_label(solver) -> str:
     return solver.label()
 
 
+class ItemError(Exception):
+    """An item's exception that its worker process could not send back as it is (pickle
+    cannot rebuild it in the parent), as its one line ``'TypeName: message'``."""
+
+
 def _call(fn, item):
-    return fn(*item)
+    return _call_star(fn, *item)
+
+
+def _words(e: BaseException) -> str:
+    """An item's exception as one line, the same wherever the item ran: ``'TypeName: message'``."""
+    return str(e) if isinstance(e, ItemError) else _one_line(f"{type(e).__name__}: {e}")
 
 
 def _ignore_sigint():
@@ -700,7 +718,19 @@ def _cores() -> int:
 
 def _call_star(fn, *args):
     # Ray resolves object references only among a task's top-level arguments.
-    return fn(*args)
+    try:
+        return fn(*args)
+    except Exception as e:
+        import pickle  # noqa: PLC0415
+
+        try:
+            pickle.loads(pickle.dumps(e))
+        except Exception:  # noqa: BLE001 (whatever pickle raises: the parent would fail the same way)
+            # Sent as it is, the parent failed to read it back: that broke a process pool (the item
+            # ran again alone, broke it again, and its row said its worker process died, a crash or
+            # out of memory), and on Ray its row was Ray's words, with the worker's pid and colours.
+            raise ItemError(_words(e)) from None
+        raise
 
 
 # ------------------------------------------------------------------ executors
@@ -744,7 +774,9 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
     a fresh pool, since each worker is handed one item at a time) or its Ray task or
     worker fails (a Ray task whose worker died is not retried: ``ray_resources`` may set
     ``max_retries``). With ``on_error(index, message)`` its return value is that item's result
-    (``message``: ``'TypeError: ...'`` where ``fn`` raised, the same words wherever it ran)
+    (``message``: ``'TypeError: ...'`` where ``fn`` raised, the same words wherever it ran; an
+    exception pickle cannot rebuild comes back from a worker process or Ray task as an
+    ``ItemError`` of those words)
     and the others go on; without, the first failure raises (``RuntimeError`` naming the item
     that kills its worker alone: the items beside it run again alone first, as above). Ctrl-C
     stops the workers and raises ``KeyboardInterrupt``.
@@ -771,7 +803,7 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
             except Exception as e:
                 if on_error is None:
                     raise
-                results[i] = on_error(i, _one_line(f"{type(e).__name__}: {e}"))
+                results[i] = on_error(i, _words(e))
             if on_result is not None:
                 on_result(i, results[i])
         return results
@@ -814,7 +846,7 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
         except Exception as e:
             if on_error is None:
                 raise
-            result = on_error(i, _one_line(f"{type(e).__name__}: {e}"))
+            result = on_error(i, _words(e))
         finish(i, result)
         return True
 
@@ -984,7 +1016,7 @@ def _ray_tasks(ray, fn, items, on_result, on_error, resources):
                         # The item's own exception, worded as the other executors word it: Ray's text
                         # (colour codes, the worker's pid and ip, its traceback) made the same failed
                         # sample another reason on every run, and another than the local table's.
-                        why = _one_line(f"{type(cause).__name__}: {cause}")
+                        why = _words(cause)
                     else:  # the task or its worker failed, not the item
                         why = _one_line(f"Ray: {type(e).__name__}: {e}")[:2000]
                     results[i] = on_error(i, why)
@@ -1067,7 +1099,8 @@ def sweep(
     - ``extra(model, state, seed) -> dict``: more columns per sample, from the final
       state (a module-level function, so it can be sent to the workers); ``seed`` is the
       sample's own seed, the same wherever it runs. numpy numbers (``x.max()``, a float32)
-      are kept as Python's, so the CSV and Parquet tables hold the same numbers.
+      are kept as Python's, so the CSV and Parquet tables hold the same numbers. A value
+      that is no number, text or None (a function, a list) fails the sample, naming its column.
     - ``on_result(row)``: called as each sample finishes (in finishing order).
     - ``resume``: the table of an earlier run of the same sweep that did not finish: a
       ``SweepTable`` (a Ctrl-C's ``KeyboardInterrupt`` carries the samples finished as its
