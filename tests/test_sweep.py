@@ -1702,3 +1702,32 @@ def test_an_extra_column_that_is_no_number_or_text_fails_its_sample_the_same_whe
                                        "a number, text or None"), here.rows[0]["reason"]
     there = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=2, extra=_extra_of_a_function)
     assert _rows(there) == _rows(here)
+
+
+def test_a_parameter_of_every_material_leaves_an_elastic_particle_floor_as_built():
+    """``yield_stress`` alone sets every material, and it set the elastic floor's too (the
+    body's material made elastic, ``add_particle_floor(elastic=True)``), so the floor under a
+    swept body flowed: a row was not the run of the body's value on the floor the scene built.
+    As in ``fit`` (every material, ``Model.set_material`` of the body's), the floor is left
+    as built: the row is a plain run with the body's yield stress set, to the last bit."""
+    from warp_esph.simulate import resolve_timestep, simulate
+
+    def scene():
+        b = SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.05, 0.0), (0.08, 0.06, 0.06), Material.preset("toothpaste"), name="paste",
+                  velocity=(0.4, -0.5, 0.0))
+        b.add_particle_floor("paste", elastic=True, margin=0.02)
+        return Scene("paste_on_floor", "toothpaste on an elastic floor", b, frames=2, fps=30.0)
+
+    table = sweep(scene(), ["yield_stress=5"], frames=2, workers=1)
+    model = scene().builder.finalize()
+    walls = {b.floor_material for b in model.bodies if b.floor_material >= 0}
+    assert walls and all(not math.isfinite(model.materials[k].yield_stress) for k in walls)
+    for k in range(len(model.materials)):
+        if k not in walls:
+            model.set_material(k, model.materials[k].replace(yield_stress=5.0))
+    _, dt = resolve_timestep(model, 30.0)
+    state = simulate(model, 2, fps=30.0, dt=dt, progress=False)
+    x = state.x.numpy().astype(np.float64)
+    assert table.rows[0]["status"] == "ok" and table.rows[0]["dt"] == dt
+    assert table.rows[0]["max_height"] == float(x[:, 1].max())

@@ -8,8 +8,9 @@
     table.to_csv("sweep.csv")
 
 A parameter is a material field of ``Model.MATERIAL_FIELDS`` (the names ``fit`` uses):
-``yield_stress`` sets it in every material, ``dough.yield_stress`` in the materials of
-the body ``dough``, ``0.yield_stress`` in material 0. A spec is ``NAME=LO:HI:SCALE:N``
+``yield_stress`` sets it in every material (an elastic particle floor's is left as built, as
+in ``fit``), ``dough.yield_stress`` in the materials of the body ``dough``,
+``0.yield_stress`` in material 0. A spec is ``NAME=LO:HI:SCALE:N``
 (``SCALE`` is ``lin`` or ``log``; ``N`` levels on the grid), ``NAME=LO:HI[:SCALE]`` for
 ``random``/``lhs`` sampling (``samples`` draws in all), ``NAME=A,B,C`` (these values) or
 ``NAME=V`` (one value for every sample).
@@ -487,7 +488,9 @@ def _assignments(scene, params: list[Param]) -> list[tuple[str, str, list[int]]]
     for p in params:
         target = p.target
         if target is None:
-            idx = list(range(len(view.materials)))
+            # fit's selection of every material: an elastic particle floor's is left as built.
+            # It was set too, so a swept yield stress made the floor under the body flow.
+            idx = _material_indices(view, None)
         else:
             if target.isdigit() and target in [body.name for body in view.bodies]:
                 # It set material 1 while body '1' is of material 0, without a word.
