@@ -1661,6 +1661,10 @@ def _extra_raising_what_pickle_cannot_rebuild(model, state, seed):
     raise _TwoPartError("extra", "no column today")
 
 
+def _extra_that_exits(model, state, seed):
+    sys.exit(4)
+
+
 def _extra_of_a_function(model, state, seed):
     return {"top": float(state.x.numpy()[:, 1].max()), "how": _box}
 
@@ -1683,12 +1687,27 @@ def test_a_sample_s_exception_the_driver_cannot_rebuild_is_its_reason_on_ray_too
     # The Ray workers, started by the instance below, import this module for the extra function.
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in (os.path.dirname(__file__), os.environ.get("PYTHONPATH")) if p))
     here = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=1, extra=_extra_raising_what_pickle_cannot_rebuild)
+    exits = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=1, extra=_extra_that_exits)
     ray.init(num_cpus=2, include_dashboard=False)
     try:
         remote = sweep(_box(), ["yield_stress=10,100"], frames=1, ray="auto", extra=_extra_raising_what_pickle_cannot_rebuild)
+        # A sample that calls sys.exit was a row of Ray's 'WorkerCrashedError: The worker died unexpectedly'.
+        remote_exits = sweep(_box(), ["yield_stress=10,100"], frames=1, ray="auto", extra=_extra_that_exits)
     finally:
         ray.shutdown()
     assert _rows(remote) == _rows(here)
+    assert _rows(remote_exits) == _rows(exits)
+
+
+def test_a_sample_that_calls_sys_exit_is_a_failed_row_and_the_sweep_goes_on():
+    """A sample whose code calls ``sys.exit`` (an ``extra`` function here) ended the whole sweep
+    with SystemExit, in this process and with worker processes alike, and its samples finished
+    were lost with it (on Ray it was a row saying the worker crashed). It is that sample's
+    failed row, ``SystemExit: 4``, the same wherever it runs, and the other samples run."""
+    here = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=1, extra=_extra_that_exits)
+    assert [(r["status"], r["reason"]) for r in here.rows] == [("failed", "SystemExit: 4")] * 2
+    there = sweep(_box(), ["yield_stress=10,100"], frames=1, workers=2, extra=_extra_that_exits)
+    assert _rows(there) == _rows(here)
 
 
 def test_an_extra_column_that_is_no_number_or_text_fails_its_sample_the_same_wherever_it_runs():

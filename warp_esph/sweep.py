@@ -723,6 +723,10 @@ def _call_star(fn, *args):
     # Ray resolves object references only among a task's top-level arguments.
     try:
         return fn(*args)
+    except SystemExit as e:
+        # An item's sys.exit is its failure: it ended the whole run here and in a process pool (the
+        # items finished lost with it), and on Ray its worker exited, a row saying it crashed.
+        raise ItemError(_words(e)) from None
     except Exception as e:
         import pickle  # noqa: PLC0415
 
@@ -778,8 +782,8 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
     worker fails (a Ray task whose worker died is not retried: ``ray_resources`` may set
     ``max_retries``). With ``on_error(index, message)`` its return value is that item's result
     (``message``: ``'TypeError: ...'`` where ``fn`` raised, the same words wherever it ran; an
-    exception pickle cannot rebuild comes back from a worker process or Ray task as an
-    ``ItemError`` of those words)
+    exception pickle cannot rebuild, or a ``SystemExit``, comes back from a worker process or Ray
+    task as an ``ItemError`` of those words; a ``sys.exit`` in ``fn`` fails its item, not the run)
     and the others go on; without, the first failure raises (``RuntimeError`` naming the item
     that kills its worker alone: the items beside it run again alone first, as above). Ctrl-C
     stops the workers and raises ``KeyboardInterrupt``.
@@ -803,7 +807,7 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
         for i, item in enumerate(items):
             try:
                 results[i] = fn(*item)
-            except Exception as e:
+            except (Exception, SystemExit) as e:  # an item's sys.exit is its failure, as in a worker process
                 if on_error is None:
                     raise
                 results[i] = on_error(i, _words(e))
