@@ -205,7 +205,8 @@ class DivergenceMonitor:
     Moving tools and pinned sets (``model.tools``) do work on the bodies: their fastest
     point, ``|v| + |omega| (D + |v| t)`` over their motions (``D`` the diagonal of the box
     of the particles, colliders and the tools' poses), joins the speed bound and the kinetic
-    energy of every particle moving that fast joins the energy bound.
+    energy of every particle moving that fast joins the energy bound; the potential energy
+    the bodies gain (lifted by a tool) is the tools' work and takes nothing off it.
 
     A repelling field (``strength < 0``) can add energy without bound, and a scripted motion
     (``tools.Scripted``) has no speed known beforehand: then only the non-finite check runs.
@@ -412,6 +413,11 @@ class DivergenceMonitor:
         ke = 0.5 * self.mass * speed2
         released = float((self.mass * self.g * (self.h0 - x @ self.up)).sum())
         driven = 0.5 * float(self.mass.sum()) * self.driven_speed(t) ** 2
+        if driven > 0.0:
+            # The potential energy a moving tool lifts the bodies by is its work, not a debit: a
+            # blob a rising floor carried up had its budget fall to 0 J, and was a blow-up at
+            # the tool's own speed.
+            released = max(released, 0.0)
         potential, given = self.field_energy(x, t)
         budget = max(self.ke0 + self.e_elastic + released + given + driven, 0.0)
         limit = self.ENERGY_FACTOR * budget + self.e_floor
