@@ -60,7 +60,7 @@ import numpy as np
 
 from . import checks
 
-__all__ = ["Param", "SweepTable", "sweep", "parse_param", "sample_points", "parallel_map", "write_outputs", "SAMPLINGS",
+__all__ = ["Param", "SweepTable", "sweep", "parse_param", "sample_points", "parallel_map", "ItemError", "write_outputs", "SAMPLINGS",
            "MAX_SAMPLES", "SUMMARY_COLUMNS"]
 
 SAMPLINGS = ("grid", "random", "lhs")
