@@ -2278,6 +2278,22 @@ def test_cli_fit_a_start_held_to_bounds_past_float32_advises_the_commands_dtype_
     err = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("warp-esph fit: ")]
     assert len(err) == 1 and err[0].startswith("warp-esph: error: the initial values are not allowed within the bounds: "), err
     assert "p-wave modulus" in err[0] and err[0].endswith("use dtype=float64 (--dtype float64) or smaller values"), err
+    # Named as typed, not as the class field Material.mu, which the command's user never wrote.
+    assert "Material." not in err[0] and "--bounds mu=1e38:1.1e38 holds mu's guess, 2000, at its lower end" in err[0], err
+    assert "--bounds lam=1.5e38:1.6e38 holds lam's guess, 3000, at its lower end" in err[0], err
+    assert "mu's lower end, 1e+38, is a mu the material refuses in float32: " in err[0], err
+    if stage:
+        return
+    from warp_esph.fit import fit
+
+    model = load_scene(str(guess)).builder.finalize(dtype=wp.float32, requires_grad=True)
+    with pytest.raises(ValueError, match=r"^the initial values are not allowed within the bounds: bounds\['mu'\] = "
+                                         r"\(1e\+38, 1\.1e\+38\) holds mu's guess, 2000, at its lower end; .*"
+                                         r": mu's lower end, 1e\+38, is a mu the material refuses in float32: .*"
+                                         r"use dtype=float64 or smaller values$") as raised:
+        fit(model, PositionLoss(x0[None], frames=[2]), ["lam", "mu"], steps=2, dt=1e-4, iterations=1, progress=False,
+            bounds={"lam": (1.5e38, 1.6e38), "mu": (1e38, 1.1e38)}, diagnostics=False)
+    assert "Material." not in str(raised.value)
 
 
 def test_the_fit_help_says_the_iteration_cap_is_each_starts_as_it_is(tmp_path, capsys, dough_scene):

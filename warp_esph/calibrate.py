@@ -273,7 +273,7 @@ def run_fit(args, out=None, err=None) -> int:
             # Named as typed: it was "bounds['lam'] = (-1e+05, 100)", fit's parameter.
             raise ValueError(e.said(option_flag, typed_bounds.get(e.name))) from None
         except StartRefused as e:
-            raise ValueError(e.cli) from None
+            raise ValueError(e.said(option_flag, typed_bounds)) from None
         for k, (e, limit) in enumerate(zip(exps, limits)):
             if e.auto_step and limit < e.dt:
                 steps = (1.0 / e.fps) / limit * (1.0 - 1e-12)
@@ -381,7 +381,7 @@ def run_fit(args, out=None, err=None) -> int:
     except BoundsError as e:
         raise ValueError(e.said(option_flag, typed_bounds.get(e.name))) from None
     except StartRefused as e:
-        raise ValueError(e.cli) from None
+        raise ValueError(e.said(option_flag, typed_bounds)) from None
     except RolloutMemoryError as e:
         k = next((k for k, x in enumerate(experiments) if x is e.experiment), None)
         if k is None:

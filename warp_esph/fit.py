@@ -1117,29 +1117,61 @@ class BoundsError(ValueError):
 
 class StartRefused(ValueError):
     """The guess, held to the bounds, refused by a material (each end allowed alone, but two
-    ends together past a precision's range); ``cli``: the message with the command's spelling
-    of a precision's advice (``--dtype float64``), as ``BoundsError.said`` gives it."""
+    ends together past a precision's range). ``held``: ``(name, lo, hi, side)`` of each
+    parameter whose guess the bounds moved, and that guess (None: several materials'), the
+    one the refusal is said of first; ``reason``
+    the material's refusal, ``cli_reason`` with the command's spelling of a precision's advice
+    (``--dtype float64``). ``said(flag, typed)`` names the bounds as ``BoundsError.said`` does:
+    the message had quoted ``Material.mu = 1e+38``, a field of a class neither the command's
+    user (who typed ``--bounds mu=1e38:1.1e38``) nor fit's had written."""
 
-    def __init__(self, message: str, cli: str):
-        self.cli = cli
-        super().__init__(message)
+    def __init__(self, held: list, reason: str, cli_reason: str):
+        self.held, self.reason, self.cli_reason = held, reason, cli_reason
+        super().__init__(self.said())
+
+    def said(self, flag=lambda name: name, typed: dict | None = None) -> str:
+        """``typed``: the ``--bounds`` entries as the user wrote them, by parameter."""
+        typed = typed or {}
+        reason = self.cli_reason if flag("bounds").startswith("--") else self.reason
+        said = "the initial values are not allowed within the bounds: "
+        if not self.held:
+            return said + reason
+
+        def entry(name, lo, hi):
+            return f"{flag('bounds')} {typed[name]}" if name in typed else bounds_said(name, lo, hi, flag)
+
+        (name, lo, hi, side, _), *others = self.held
+
+        def holds(n, lo, hi, s, v):
+            return f"{entry(n, lo, hi)} holds {n}'s guess{'' if v is None else f', {v:g},'} at its {s} end"
+
+        also = "".join(f"; {holds(*h)}" for h in others)
+        end, whose = (lo if side == "lower" else hi), f"{name}'s"
+        return f"{said}{holds(*self.held[0])}{also}: {_end_refused(name, side, end, reason, whose)}"
 
 
-def _end_refused(name: str, side: str, end: float, why: str) -> str:
+def _refused_field(why: str):
+    """The parts of a material's refusal ``Material.<field> = <value> [(material k)] is not
+    allowed[ in <precision>]: <what is allowed>``, or None where it reads otherwise."""
+    import re  # noqa: PLC0415
+
+    return re.match(r"(?:Material\.)?(\w+) = (\S+?)(?: \(material \d+\))? is not allowed( in \w+)?: (.*)$", why, re.S)
+
+
+def _end_refused(name: str, side: str, end: float, why: str, whose: str = "its") -> str:
     """Why the ``side`` end of ``name``'s bounds is refused, from the material's refusal
     ``why`` of it: said of the parameter and the end, not as the material's own
     ``Material.hardening = -1000000.0 is not allowed`` (a field of a class the user, who
-    typed ``--bounds hardening=-1e6:100``, never wrote), with what is allowed."""
-    import re  # noqa: PLC0415
-
-    m = re.match(r"(?:Material\.)?(\w+) = (\S+?)(?: \(material \d+\))? is not allowed( in \w+)?: (.*)$", why, re.S)
+    typed ``--bounds hardening=-1e6:100``, never wrote), with what is allowed. ``whose``: the
+    end's owner as the sentence names it (``mu's`` where several bounds were said before)."""
+    m = _refused_field(why)
     if m is None:
-        return f"at its {side} end, {end:g}, the material refuses it: {why}"
+        return f"at {whose} {side} end, {end:g}, the material refuses it: {why}"
     other, value, where, rest = m.group(1), m.group(2), m.group(3) or "", m.group(4)
     said = f"{other} {rest}" if rest.startswith("must") else rest
     if other == name:
-        return f"its {side} end, {end:g}, is a {name} the material refuses{where}: {said}"
-    return f"its {side} end, {end:g}, gives the material {other} = {value}, which it refuses{where}: {said}"
+        return f"{whose} {side} end, {end:g}, is a {name} the material refuses{where}: {said}"
+    return f"{whose} {side} end, {end:g}, gives the material {other} = {value}, which it refuses{where}: {said}"
 
 
 class RefusedPoint(FloatingPointError):
@@ -1271,8 +1303,18 @@ class _Problem:
                  for name, v in guess.items()}
         why = self.refusal(start)
         if why is not None:
-            said = "the initial values are not allowed within the bounds: "
-            raise StartRefused(said + why, said + self.refusal(start, cli=True))
+            # Said of the bounds that moved the guess, as given (the field the material names
+            # first where the bounds moved it): the guess itself was the model's, and allowed.
+            held = []
+            for name in params:
+                if name in (bounds or {}):
+                    lo, hi = self.bounds[name]
+                    if np.any(guess[name] < lo) or np.any(guess[name] > hi):
+                        held.append((name, lo, hi, "lower" if np.any(guess[name] < lo) else "upper",
+                                     float(guess[name][0]) if self.k == 1 else None))
+            field = _refused_field(why)
+            held.sort(key=lambda h: field is None or h[0] != field.group(1))
+            raise StartRefused(held, why, self.refusal(start, cli=True))
         self.z0 = self.to_z(start)
         self._start = (self.z0.copy(), np.concatenate([start[n] for n in params]))
         #: One label per entry of z: ``name`` or ``name[k]`` with several materials.
