@@ -466,14 +466,19 @@ def test_a_cloud_time_column_in_seconds_still_tells_a_table_of_frames_and_says_h
     ("count.txt", "//X,Y,Z\n3", None),
     # A scalar field named Time, a stamp per point: a .csv had been refused as a force log.
     ("stamped.csv", "//X,Y,Z,Time", [[0.0], [0.001], [0.002]]),
+    # Its semicolon separator: refused as a header naming no x, y, z (and with no header, as one).
+    ("semicolons.txt", "//X;Y;Z;R;G;B", [[255, 0, 0], [0, 255, 0], [0, 0, 255]]),
+    ("semicolons_count.pts", "//X;Y;Z\n3", None),
+    ("no_header.txt", ";", None),
 ])
 def test_a_cloudcompare_ascii_export_whose_header_row_starts_with_slashes_is_read(tmp_path, name, head, extra):
     """CloudCompare's ASCII export writes its header row as '//X,Y,Z,R,G,B' (spaces for its
     space separator, its scalar fields' names after them); it was refused as a header that
     names no columns x, y and z. The '//' is read past and the columns X, Y, Z read."""
-    sep = "," if "," in head else " "
+    sep = "," if "," in head else ";" if ";" in head else " "
+    head = "" if head == sep else head + "\n"
     rows = [[*p, *(extra[k] if extra else [])] for k, p in enumerate(CLOUD)]
-    (tmp_path / name).write_text(head + "\n" + "".join(sep.join(repr(v) for v in r) + "\n" for r in rows))
+    (tmp_path / name).write_text(head + "".join(sep.join(repr(v) for v in r) + "\n" for r in rows))
     np.testing.assert_array_equal(load_target(tmp_path / name).data, CLOUD)
 
 
@@ -481,6 +486,13 @@ def test_a_cloudcompare_ascii_export_whose_header_row_starts_with_slashes_is_rea
     ("names.txt", "//U V W\n0.1 0.2 0.3\n", r"its first row '//U V W' is a header that names no columns x, y and z"),
     ("mm.txt", "//X (mm),Y (mm),Z (mm)\n100,200,300\n", r"its header gives the coordinates in mm"),
     ("cut.txt", "//X,Y,Z\n5\n0.1,0.2,0.3\n0.2,0.3,0.4\n", r"its line 2, under the header row, says it holds 5 points, and 2 follow"),
+    # Semicolons read, but not beside decimal commas (a spreadsheet's locale): said of both, as
+    # under a header it had been refused as a cell that is no number.
+    ("commas.txt", "//X;Y;Z\n0,1;0,2;0,3\n", r"its fields are separated by semicolons and its numbers have decimal commas "
+                                          r"\('0,1'\); write them with a decimal point \(x y z in metres, separated by "
+                                          r"spaces, tabs, commas or semicolons\)$"),
+    ("bare_commas.txt", "0,1;0,2;0,3\n", r"its fields are separated by semicolons and its numbers have decimal commas "
+                                         r"\('0,1'\)"),
 ])
 def test_a_slashed_header_row_is_refused_as_any_header_row_is(tmp_path, name, text, message):
     """With the '//' read past, a header row naming no x, y, z or another unit than metres, and

@@ -3169,8 +3169,9 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
       optional header row naming the columns ``x``, ``y``, ``z`` (read whatever other columns
       there are; a unit beside them other than ``m`` is refused); a byte-order mark, empty
       rows and a comma after every line are read past, commas or tabs taken for the other
-      separator where the first line's numbers say so; a header row may start with ``//``, as
-      CloudCompare's ASCII export writes it (``//X,Y,Z,R,G,B``). Without a header, four or more columns
+      separator where the first line's numbers say so (semicolons too, but in a ``.csv``); a
+      header row may start with ``//``, as CloudCompare's ASCII export writes it
+      (``//X,Y,Z,R,G,B``, ``//X;Y;Z``). Without a header, four or more columns
       whose first holds whole numbers in order from 0 or above, counting by 1 (a marker id)
       or by 0 and 1 (a frame number), are refused, asking for a header row. A point
       with a NaN coordinate is one not seen: left out with a warning (every point NaN: refused).
@@ -3316,16 +3317,31 @@ def _fields(line: str, sep: str | None) -> list[str]:
 
 def _cloud_separator(text: str, ext: str) -> str | None:
     """The separator of a point cloud's first line: the extension's (``,`` for ``.csv``,
-    whitespace for ``.xyz/.txt/.pts``) unless the line's numbers are split by the other (a
+    whitespace for ``.xyz/.txt/.pts``) unless the line's numbers are split by another (a
     tab-separated ``.csv``, a comma-separated ``.txt``, which had been refused as a header
-    naming no columns x, y, z though its first row is numbers)."""
-    usual, other = (",", None) if ext == ".csv" else (None, ",")
-    for sep in (usual, other):
+    naming no columns x, y, z though its first row is numbers). Semicolons too, but in a
+    ``.csv`` (a spreadsheet's of decimal commas, refused there): CloudCompare's ASCII export
+    offers them (``//X;Y;Z``), and they were refused as a header naming no x, y, z."""
+    usual, others = (",", (None,)) if ext == ".csv" else (None, (",", ";"))
+    for sep in (usual, *others):
         fields = _fields(text, sep)
         if fields and all(_is_number(c) for c in fields):
             return sep
-    # A header row: split as its commas say.
-    return "," if "," in text else None
+    # A header row: split as its commas (or, but in a .csv, semicolons) say.
+    return "," if "," in text else ";" if ";" in text and ext != ".csv" else None
+
+
+def _decimal_commas(line: str, ext: str) -> str | None:
+    """Why a line of numbers written with decimal commas is refused, or None where it is not
+    one: said of its semicolons too where it has them (a spreadsheet's export in a locale of
+    decimal commas), as it is no semicolon-separated cloud of decimal points, which reads."""
+    split = _fields(line.replace(";", " "), None)
+    commas = [c for c in split if "," in c]
+    if not commas or not all(_is_number(c.replace(",", ".")) for c in split):
+        return None
+    by = "its fields are separated by semicolons and its numbers have" if ";" in line else "its numbers have"
+    return (f"{by} decimal commas ({commas[0]!r}); write them with a decimal point (x y z in metres, separated by "
+            + ("spaces, tabs or commas)" if ext == ".csv" else "spaces, tabs, commas or semicolons)"))
 
 
 def _read_cloud_text(path: str, ext: str) -> np.ndarray:
@@ -3376,10 +3392,9 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
                 found[m.group(1).lower()] = i
                 units[m.group(1).lower()] = (m.group(2) or "m").lower()
         if len(found) < 3:
-            split = _fields(first.replace(";", " "), None)
-            if any("," in c for c in split) and all(_is_number(c.replace(",", ".")) for c in split):
-                raise ValueError(f"its numbers have decimal commas ({split[0]!r}); write them with a decimal point (x y z "
-                                 "in metres, separated by spaces, tabs or commas)")
+            commas = _decimal_commas(first, ext)
+            if commas is not None:
+                raise ValueError(commas)
             raise ValueError(f"its first row {written[:120]!r} is a header that names no columns x, y and z; a point "
                              "cloud's text file holds three numbers per line (x y z, metres), under an optional "
                              "header row naming its columns x, y, z")
@@ -3400,11 +3415,15 @@ def _read_cloud_text(path: str, ext: str) -> np.ndarray:
         if lines:
             sep = _cloud_separator(lines[0][1], ext)  # the numbers' own ('x,y,z' over '0.1 0.2 0.3')
             row = _fields(lines[0][1], sep)
+            commas = _decimal_commas(lines[0][1], ext)
+            if commas is not None and not all(_is_number(c) for c in row):
+                # Under a header ('//X;Y;Z') it had been refused as a cell '1;0' that is no number.
+                raise ValueError(commas)
             if stamp is not None and stamp < len(row) and _is_number(row[stamp]):  # a clock time ('12:00:01') is left unread
                 cols += (stamp,)
     # A comma after every value, and rows of empty cells (a spreadsheet's empty rows), hold nothing.
-    if sep == ",":  # (a whitespace-separated line was stripped already)
-        lines = [(k, line.rstrip(", \t")) for k, line in lines]
+    if sep in (",", ";"):  # (a whitespace-separated line was stripped already)
+        lines = [(k, line.rstrip(sep + " \t")) for k, line in lines]
         lines = [(k, line) for k, line in lines if line]
     if not lines:
         return np.zeros((0, 3))
