@@ -769,6 +769,13 @@ def _unguarded_main_script() -> str | None:
     return None if "__main__" in source else str(path)
 
 
+#: An item whose worker process died while it ran alone: the reason of its row, the same from
+#: a process pool and from Ray (whose own words named the worker's pid and ip, colour codes
+#: among them, another reason for the same sample on every run).
+_DIED_ALONE = ("a worker process died running this item alone (a crash in native code or out of memory); "
+               "it may run with more memory or fewer workers")
+
+
 def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = None, ray: str | None = None,
                  on_result: Callable | None = None, on_error: Callable | None = None,
                  ray_resources: Mapping | None = None) -> list:
@@ -793,7 +800,7 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
     alone, so only an item that kills its worker alone fails; those not yet started go on in
     a fresh pool, since each worker is handed one item at a time) or its Ray task or
     worker fails (a Ray task whose worker died is not retried: ``ray_resources`` may set
-    ``max_retries``). With ``on_error(index, message)`` its return value is that item's result
+    ``max_retries``; its message is a pool's of an item that kills its worker alone). With ``on_error(index, message)`` its return value is that item's result
     (``message``: ``'TypeError: ...'`` where ``fn`` raised, the same words wherever it ran; an
     exception pickle cannot rebuild, or a ``SystemExit``, comes back from a worker process or Ray
     task as an ``ItemError`` of those words; a ``sys.exit`` in ``fn`` fails its item, not the run)
@@ -852,8 +859,7 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
                     "its parallel call again at import; put the script's top-level code under "
                     "'if __name__ == \"__main__\":'")
         if alone:
-            return ("a worker process died running this item alone (a crash in native code or out of memory); "
-                    "it may run with more memory or fewer workers")
+            return _DIED_ALONE
         return ("a worker process died before this item finished (a crash in native code or out of memory, in this "
                 "item or another one running at the time); run it again")
 
@@ -1037,7 +1043,11 @@ def _ray_tasks(ray, fn, items, on_result, on_error, resources):
                         # (colour codes, the worker's pid and ip, its traceback) made the same failed
                         # sample another reason on every run, and another than the local table's.
                         why = _words(cause)
-                    else:  # the task or its worker failed, not the item
+                    elif isinstance(e, (ray.exceptions.WorkerCrashedError, ray.exceptions.OutOfMemoryError)):
+                        # Its worker died under it (each task runs alone in its worker): a
+                        # pool's item that dies alone, as the pool words it.
+                        why = _DIED_ALONE
+                    else:  # the task or its node failed, not the item
                         why = _one_line(f"Ray: {type(e).__name__}: {e}")[:2000]
                     results[i] = on_error(i, why)
                 if on_result is not None:
