@@ -250,6 +250,19 @@ def test_table1(refused, argv, words):
     refused("table1", argv, *words)
 
 
+@pytest.mark.parametrize("dtype", ["float16", "double", "vec3"])
+def test_table1_measure_refuses_an_unknown_dtype_by_name_before_it_builds_the_scene(monkeypatch, dtype):
+    """measure() looked ``dtype`` up in Warp: "double" raised AttributeError, "float16" and
+    "vec3" reached finalize once the paper's scene was built. It is refused by name, as the
+    lab tests refuse it, and nothing is built."""
+    from warp_esph import scenes
+
+    table1 = importlib.import_module("benchmarks.table1")
+    monkeypatch.setattr(scenes, "paper_run_scene", lambda run: pytest.fail("built the scene of a refused dtype"))
+    with pytest.raises(ValueError, match=rf"^dtype = '{dtype}' is not allowed: must be one of 'float32', 'float64'$"):
+        table1.measure(scenes.TABLE1[0], "cpu", dtype, 0, 1, 0.0)
+
+
 @pytest.mark.parametrize("argv,option", [(["--worlds", "0"], "--worlds = 0"), (["--device", "gpu9"], "--device = 'gpu9'"),
                                          (["--particles", "-5"], "--particles = -5"), (["--repeat", "0"], "--repeat = 0")])
 def test_worlds_bench(refused, argv, option):
