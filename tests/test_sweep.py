@@ -1775,3 +1775,44 @@ def test_a_sample_whose_tool_lifts_the_body_is_no_blow_up():
     table = sweep(Scene("lift", "a blob a rising floor lifts", b, frames=9, fps=30.0), ["yield_stress=1e3,1e4"], workers=1)
     assert [r["status"] for r in table.rows] == ["ok", "ok"], [r["reason"] for r in table.rows]
     assert (table.column("centroid_height") > 1.2).all() and (table.column("centroid_height") < 1.3).all()
+
+
+def test_a_blow_up_beside_a_scripted_tool_fails_its_sample():
+    """A scripted motion has no speed known beforehand, so ``simulate``'s monitor runs only its
+    non-finite check there, and the end-of-run energy check is the one that sees a finite
+    blow-up: leaving every moving tool's scene to the monitor let a sample 5x above its stable
+    step end as an ok row at 1.7e35 J beside a scripted sphere that never touched it. The
+    check counts what the tool can do (its fastest point over the run's poses, and the lift it
+    gives, which is no growth), so the stable sample stays ok."""
+    from warp_esph import tools
+
+    def pose(t):
+        return (3.0, 0.5, 0.0), (0.0, 0.0, 0.0, 1.0)
+
+    b = SceneBuilder(spacing=0.1)
+    b.add_box((0.0, 0.5, 0.0), (0.3, 0.3, 0.3), Material.preset("putty"), name="paste")
+    b.add_ground()
+    b.add_tool("sphere", radius=0.05, motion=tools.Scripted(pose), name="far")
+    table = sweep(Scene("far", "a blow-up beside a scripted tool", b, frames=10, fps=30.0), ["paste.mu=1000,1000000"],
+                  workers=1, dt=1.0 / 300.0)
+    assert [r["status"] for r in table.rows] == ["ok", "failed"], [r["reason"] for r in table.rows]
+    assert "blew up" in table.rows[1]["reason"], table.rows[1]["reason"]
+
+
+def _rise(t):
+    return (0.0, 0.4 * t, 0.0), (0.0, 0.0, 0.0, 1.0)
+
+
+def test_a_sample_whose_scripted_tool_lifts_the_body_is_no_blow_up():
+    """The lift of ``test_a_sample_whose_tool_lifts_the_body_is_no_blow_up`` by a slow scripted
+    floor (0.4 m/s for 3 s): the 1.2 m of height it gives is its work, not growth (counted as
+    growth, 11.8 J/kg against 10 x the scale's 0.95 J/kg)."""
+    from warp_esph import tools
+
+    b = SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), Material.preset("clay"), name="blob")
+    b.add_tool("plane", friction=0.5, motion=tools.Scripted(_rise), name="lift")
+    table = sweep(Scene("lift", "a blob a scripted floor lifts", b, frames=90, fps=30.0), ["yield_stress=1e3,1e4"],
+                  workers=1)
+    assert [r["status"] for r in table.rows] == ["ok", "ok"], [r["reason"] for r in table.rows]
+    assert (table.column("centroid_height") > 1.2).all() and (table.column("centroid_height") < 1.3).all()
