@@ -628,7 +628,8 @@ def _scripted_speed(model, state, dt, steps) -> float | None:
     if not any(isinstance(mo, tools.Scripted) for mo in motions):
         return None
     if dt is None or steps is None:
-        raise ValueError("a scene with a scripted tool needs the run's dt and steps to be checked for a blow-up")
+        raise ValueError(f"dt = {dt!r}, steps = {steps!r} is not allowed: a scene with a Scripted tool or pinned set "
+                         "needs the run's step (s) and step count to be checked for a blow-up")
     t0 = float(state.time) - steps * dt
     times = t0 + dt * np.arange(steps + 1)
     x = np.concatenate([model.particle_x0.astype(np.float64), state.x.numpy().astype(np.float64)])
