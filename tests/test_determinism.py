@@ -173,6 +173,61 @@ def test_replayed_launches_on_a_tape_give_the_very_gradients_of_plain_launches()
         assert np.abs(b).max() > 0.0, name  # the gradient reaches it
 
 
+def _integration_backward(replayed):
+    """A taped block between the ground, a sphere and a box collider, backward twice with the
+    position and every collider row's gradient seeded: the names of the kernels the second
+    backward passed to ``wp.launch`` and the gradients it gave."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.08, 0.06, 0.06), we.Material(mu=1e3, lam=1.5e3, yield_stress=10.0, flow_rate=50.0))
+    b.add_ground(friction=0.5)
+    b.add_sphere_collider((0.07, 0.05, 0.0), 0.03, friction=0.3)
+    b.add_box_collider((-0.07, 0.05, 0.0), (0.02, 0.05, 0.05), friction=0.2)
+    m = b.finalize(dtype=wp.float64, requires_grad=True)
+    m.particle_v0 = m.particle_v0 + np.array([2.0, -1.0, 0.0])
+    s = we.Solver(m)
+    m.launches.enabled = replayed
+    st = [m.state() for _ in range(4)]
+    tape = wp.Tape()
+    with tape:
+        for k in range(3):
+            s.step(st[k], st[k + 1], 0.5 * m.stable_dt())
+    rng = np.random.default_rng(0)
+    seeds = [(st[-1].x, rng.normal(size=(m.particle_count, 3)))]
+    seeds += [(a, rng.normal(size=a.shape + (3,))) for k in range(1, 4) for a in (st[k].collider_force, st[k].collider_torque)]
+    launched = []
+    plain = wp.launch
+
+    def counted(kernel, *args, **kwargs):
+        launched.append(kernel.key.rsplit("__locals__", 1)[-1])
+        return plain(kernel, *args, **kwargs)
+
+    for again in (False, True):
+        tape.zero()
+        for a, g in seeds:
+            a.grad.assign(g)
+        wp.launch = counted if again else plain
+        try:
+            tape.backward()
+        finally:
+            wp.launch = plain
+    return launched, [a.grad.numpy().copy() for a in (st[0].x, st[0].v, st[0].F, m.mu)]
+
+
+def test_the_integrations_adjoint_is_replayed_with_the_gradients_of_wp_launch():
+    """Under a tape the integration records its generated adjoint as a function that launches
+    it through the model's replayed launches (``integrate.launch_integrate``), not as a launch
+    the tape packs again through ``wp.launch`` at every step of every backward pass: a second
+    backward launches nothing through ``wp.launch``, and its gradients, collider rows
+    seeded, are the bits of ``wp.launch``'s (``model.launches.enabled = False``)."""
+    launched, replayed = _integration_backward(True)
+    assert launched == []
+    plain_launched, plain = _integration_backward(False)
+    assert "integrate" in plain_launched
+    for a, b in zip(replayed, plain):
+        assert np.abs(b).max() > 0.0
+        assert np.array_equal(a, b)
+
+
 def test_the_reused_static_collider_struct_follows_the_contact_ramp():
     """``static_collider_struct`` is filled once per model and reused; a new contact ramp
     (``Model.contact_ramp``) must reach the next step, not the struct of the last one."""

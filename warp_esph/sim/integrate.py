@@ -26,7 +26,7 @@ import warp as wp
 
 from .._types import type_set
 from . import colliders, fields
-from .replay import kept_through_backward, pointer_key
+from .replay import pointer_key, recording_tape
 from .roundoff import compensated_sum
 
 
@@ -232,25 +232,62 @@ def static_collider_struct(model):
     return cached[1]
 
 
+def static_collider_adjoint(model, tape, colliders):
+    """``tape.get_adjoint(colliders)`` of ``static_collider_struct``'s instance: the struct of
+    its arrays' gradients, made once per instance (whose key holds those gradients), and
+    registered on ``tape`` for its ``zero()`` as ``get_adjoint`` registers it."""
+    cached = model._static_collider_adjoint
+    if cached is None or cached[0] is not colliders:
+        cached = model._static_collider_adjoint = (colliders, tape.get_adjoint(colliders))
+    else:
+        tape.gradients[colliders] = cached[1]
+    return cached[1]
+
+
+def spare_reaction_rows(model, rows):
+    """A force and a torque array of the shape of ``rows`` (a state's ``collider_force``), kept
+    on the model: where the integration's generated adjoint replays the forward's atomic adds
+    into the reaction rows. Their values are never read."""
+    spare = model._spare_reaction_rows
+    if spare is None or spare[0].shape != rows.shape:
+        spare = model._spare_reaction_rows = (wp.empty_like(rows, requires_grad=False),
+                                              wp.empty_like(rows, requires_grad=False))
+    return spare
+
+
 def launch_integrate(model, state_in, state_out, dt):
     """Symplectic Euler of ``state_in`` under ``state_out.force`` and gravity, then the
     colliders, into ``state_out.x``, ``state_out.v``, and the static colliders' reaction
-    into ``state_out.collider_force``, ``collider_torque``."""
+    into ``state_out.collider_force``, ``collider_torque``.
+
+    Under a tape the launch is not recorded; the tape gets, in its place, a function that
+    launches the kernel's generated adjoint (replayed, ``sim/replay.py``), whose replay of the
+    forward adds into ``spare_reaction_rows`` instead of the state's rows: recorded as a
+    launch, it added the step's reaction to them once more (3x the step's after a backward
+    pass, ``tests/test_contracts.py``), and keeping them took a copy of the rows at every step
+    of the backward (``replay.kept_through_backward``)."""
     S = model.scalar
     m = model
     state_out.collider_force.zero_()
     state_out.collider_torque.zero_()
-    # The generated adjoint replays the forward's atomic adds into the reaction rows: a
-    # backward pass left them 3x the step's (tests/test_contracts.py).
-    with kept_through_backward(state_out.collider_force, state_out.collider_torque):
-        model.launches(
-            kernels(S, len(m.planes), len(m.spheres), len(m.boxes)).integrate,
-            m.particle_count,
-            [state_in.x, state_in.x_lo, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt),
-             static_collider_struct(m), m.particle_world],
-            [state_out.x, state_out.x_lo, state_out.v, state_out.collider_force, state_out.collider_torque],
-            device=m.device,
-        )
+    kernel = kernels(S, len(m.planes), len(m.spheres), len(m.boxes)).integrate
+    colliders = static_collider_struct(m)
+    inputs = [state_in.x, state_in.x_lo, state_in.v, state_out.force, m.particle_mass, m.types.vec3(*m.gravity), S(dt),
+              colliders, m.particle_world]
+    outputs = [state_out.x, state_out.x_lo, state_out.v, state_out.collider_force, state_out.collider_torque]
+    tape = recording_tape()
+    model.launches(kernel, m.particle_count, inputs, outputs, device=m.device, record_tape=tape is None)
+    if tape is None:
+        return
+
+    def backward():
+        adj = tape.get_adjoint
+        replayed = [*outputs[:3], *spare_reaction_rows(m, state_out.collider_force)]
+        m.launches(kernel, m.particle_count, inputs, replayed,
+                   adj_inputs=[static_collider_adjoint(m, tape, a) if a is colliders else adj(a) for a in inputs],
+                   adj_outputs=[adj(a) for a in outputs], adjoint=True, device=m.device, record_tape=False)
+
+    tape.record_func(backward, [])
 
 
 def accumulate_impulse(model, state_out, dt, impulse):
