@@ -210,18 +210,22 @@ def _integration_backward(replayed):
             tape.backward()
         finally:
             wp.launch = plain
-    return launched, [a.grad.numpy().copy() for a in (st[0].x, st[0].v, st[0].F, m.mu)]
+    adjoints = [slot[2] for key, slots in m.launches._recorded.items() if key[-1] for slot in slots]
+    return launched, [a.grad.numpy().copy() for a in (st[0].x, st[0].v, st[0].F, m.mu)], adjoints
 
 
 def test_the_integrations_adjoint_is_replayed_with_the_gradients_of_wp_launch():
     """Under a tape the integration records its generated adjoint as a function that launches
     it through the model's replayed launches (``integrate.launch_integrate``), not as a launch
     the tape packs again through ``wp.launch`` at every step of every backward pass: a second
-    backward launches nothing through ``wp.launch``, and its gradients, collider rows
-    seeded, are the bits of ``wp.launch``'s (``model.launches.enabled = False``)."""
-    launched, replayed = _integration_backward(True)
+    backward launches nothing through ``wp.launch``, its replays call the adjoint's entry
+    point with the two argument structs they keep filled (as forward replays do), and its
+    gradients, collider rows seeded, are the bits of ``wp.launch``'s
+    (``model.launches.enabled = False``)."""
+    launched, replayed, adjoints = _integration_backward(True)
     assert launched == []
-    plain_launched, plain = _integration_backward(False)
+    assert adjoints and all(adjoints), adjoints
+    plain_launched, plain, _ = _integration_backward(False)
     assert "integrate" in plain_launched
     for a, b in zip(replayed, plain):
         assert np.abs(b).max() > 0.0

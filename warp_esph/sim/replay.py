@@ -8,9 +8,10 @@ time (``wp.launch(..., record_cmd=True)``) and afterwards repacks only the argum
 are not the very objects of the launch it replays, then replays it.
 
 On the CPU, ``Launch.launch`` itself builds the kernel's argument struct again, field by
-field, at every call (about 20 us at 20 arguments). A replayed launch keeps that struct filled
-(``_packed_arguments``), updates the fields of the arguments it repacks, and calls the
-kernel's forward entry point with it, as ``Launch.launch`` would; where Warp's layout is not
+field, at every call (about 20 us at 20 arguments; an adjoint launch two of them). A replayed
+launch keeps them filled (``_packed_arguments``), updates the fields of the arguments it
+repacks, and calls the kernel's forward (or backward) entry point with them, as
+``Launch.launch`` would; where Warp's layout is not
 the one this was written against, or a command capture records, it calls ``cmd.launch()``.
 ``tests/test_determinism.py`` compares the states with ``wp.launch``'s, bit for bit.
 
@@ -25,10 +26,10 @@ Under a recording ``wp.Tape`` a replayed launch is recorded on the tape as ``wp.
 records it (kernel, launch size, inputs, outputs), so the backward pass launches the same
 adjoints. An adjoint launch made by hand (``adjoint=True`` with its ``adj_inputs``,
 ``adj_outputs``: a generated adjoint a backward pass runs in place of the tape's) is replayed
-likewise, both halves of its arguments compared and repacked; on the CPU it goes through
-``cmd.launch()``, which fills its two argument structs again (the tape's own ``wp.launch`` of it
-packed and checked every argument of both halves at every step, 0.07 ms a step of the fit
-example's backward). It steps aside, calling ``wp.launch`` itself, wherever replaying could
+likewise, both halves of its arguments compared and repacked, and on the CPU its two
+argument structs kept filled as below (the tape's own ``wp.launch`` of it packed and checked
+every argument of both halves at every step: 0.075 ms a step of the fit example's backward
+against 0.01 ms for the same kernel's replayed forward). It steps aside, calling ``wp.launch`` itself, wherever replaying could
 change what Warp does: on a stream, under ``wp.config.verify_fp``, ``verify_cuda`` or
 ``print_launches``, and under a tape or for an adjoint with
 ``wp.config.verify_autograd_array_access``. An
@@ -236,14 +237,15 @@ class Launches:
             packed = best[2] = _packed_arguments(cmd)
         forward_args = len(args) // 2 if adjoint else len(args)
         for i in changed:
-            if i >= forward_args:
-                # The adjoint half (packed after the forward arguments): Warp packs and checks it.
-                cmd.set_param_at_index(i - forward_args, args[i], adjoint=True)
-            elif not _repack_array(cmd, i, args[i], held[i]):
-                cmd.set_param_at_index(i, args[i])
+            if not _repack_array(cmd, i, args[i], held[i], forward_args):
+                # The adjoint half is packed after the forward arguments.
+                if i >= forward_args:
+                    cmd.set_param_at_index(i - forward_args, args[i], adjoint=True)
+                else:
+                    cmd.set_param_at_index(i, args[i])
             held[i] = args[i]
             if packed:
-                setattr(packed[0], packed[1][i], cmd.params[1 + i])
+                setattr(packed[0][i], packed[1][i], cmd.params[1 + i])
         if best is not slots[-1]:
             slots.remove(best)
             slots.append(best)
@@ -251,13 +253,13 @@ class Launches:
             for i in packed[3]:
                 # A struct, vector or matrix passed again as the same object may have
                 # changed in place: copied at every call, as Launch.launch copies it.
-                setattr(packed[0], packed[1][i], cmd.params[1 + i])
-            packed[2](ctypes.byref(cmd.params[0]), ctypes.byref(packed[0]))
+                setattr(packed[0][i], packed[1][i], cmd.params[1 + i])
+            packed[2](ctypes.byref(cmd.params[0]), *packed[4])
         else:
             cmd.launch()
 
 
-def _repack_array(cmd, i: int, value, old) -> bool:
+def _repack_array(cmd, i: int, value, old, forward_args: int) -> bool:
     """``cmd.set_param_at_index(i, value)`` where a ``wp.array`` takes the place of the
     ``wp.array`` ``old`` of the same dtype and dimension that the launch holds, which Warp
     checked when it packed it: Warp's ``pack_arg`` would check the same again (10 checks,
@@ -277,40 +279,55 @@ def _repack_array(cmd, i: int, value, old) -> bool:
     params[1 + i] = carg
     if addr:
         addr[1 + i] = ctypes.c_void_p(ctypes.addressof(carg))
-    if fwd is not None:
-        # Warp keeps its unpacked arguments in step with the packed ones (a capture reads them).
+    # Warp keeps its unpacked arguments in step with the packed ones (a capture reads them);
+    # argument ``i`` of an adjoint launch from ``forward_args`` on is of its adjoint half.
+    if i >= forward_args:
+        adj = getattr(cmd, "adj_args", None)
+        if adj is not None:
+            adj[i - forward_args] = value
+    elif fwd is not None:
         fwd[i] = value
     return True
 
 
 def _packed_arguments(cmd):
     """What ``Launch.launch`` builds again at every call on the CPU (``invoke``: the kernel's
-    argument struct filled field by field, about 20 us at 20 arguments), built once for
-    this recorded launch: ``(struct, field names, forward entry point, the indices of the
-    arguments copied at every call)``, kept in step with ``cmd.params`` by the caller: a
-    repacked argument's field is updated when it is repacked, and a struct, vector or matrix
-    argument (packed as the caller's live object, which may change in place) at every call.
-    False where the launch does not take that path (a device, an adjoint, tiles) or Warp's
+    argument struct filled field by field, about 20 us at 20 arguments; an adjoint launch's
+    two, the forward arguments' and their adjoints'), built once for this recorded launch:
+    ``(the struct of each argument, field names, entry point, the indices of the arguments
+    copied at every call, the structs passed by reference)``, kept in step with ``cmd.params``
+    by the caller: a repacked argument's field is updated when it is repacked, and a struct,
+    vector or matrix argument (packed as the caller's live object, which may change in place)
+    at every call. False where the launch does not take that path (a device, tiles) or Warp's
     layout is not the one this was written against: the launch then goes through
     ``cmd.launch()``."""
     try:
-        if not cmd.device.is_cpu or cmd.adjoint or cmd.block_dim > 1:
+        if not cmd.device.is_cpu or cmd.block_dim > 1:
             return False
-        cached = cmd.kernel._invoke_cache.get((tuple(type(p) for p in cmd.params[1:]), False))
-        if cached is None or len(cached) != 2:
-            return False
-        struct_type, fields = cached
-        names = [name for name, _ in fields]
+        cached = cmd.kernel._invoke_cache.get((tuple(type(p) for p in cmd.params[1:]), bool(cmd.adjoint)))
+        if cmd.adjoint:
+            if cached is None or len(cached) != 4:
+                return False
+            struct_type, adj_type, fields, adj_fields = cached
+            structs = (struct_type(), adj_type())
+            entry = cmd.hooks.backward
+        else:
+            if cached is None or len(cached) != 2:
+                return False
+            (struct_type, fields), adj_fields = cached, []
+            structs = (struct_type(),)
+            entry = cmd.hooks.forward
+        names = [name for name, _ in fields] + [name for name, _ in adj_fields]
         if len(names) != len(cmd.params) - 1:
             return False
-        packed = struct_type()
-        for name, value in zip(names, cmd.params[1:]):
-            setattr(packed, name, value)
+        owners = [structs[0]] * len(fields) + [structs[-1]] * len(adj_fields)
+        for owner, name, value in zip(owners, names, cmd.params[1:]):
+            setattr(owner, name, value)
         arrays = tuple(t for t in (getattr(wp._src.types, n, None) for n in ("array_t", "indexedarray_t", "fabricarray_t",
                                                                               "indexedfabricarray_t")) if t is not None)
         live = tuple(i for i, value in enumerate(cmd.params[1:])
                      if isinstance(value, (ctypes.Structure, ctypes.Array)) and not isinstance(value, arrays))
-        return packed, names, cmd.hooks.forward, live
+        return owners, names, entry, live, tuple(ctypes.byref(st) for st in structs)
     except (AttributeError, TypeError):  # pragma: no cover (another Warp)
         return False
 
