@@ -859,6 +859,54 @@ def test_a_particle_left_inside_the_plane_has_a_c1_speed_and_its_adjoint():
         assert np.all(np.abs(g - (1.0 if c == 1 else 0.6)) > 1e-3)  # off the plain slope
 
 
+_share64 = we.sim.colliders.funcs(wp.float64).touchdown_share
+
+
+@wp.kernel
+def _shares(depth: wp.array(dtype=wp.float64), tol: wp.float64, out: wp.array(dtype=wp.float64)):
+    # Falling at 1 m/s for 1 ms: the drift's reach is 1 mm.
+    i = wp.tid()
+    out[i] = _share64(wp.float64(-1.0), depth[i], wp.float64(1.0e-3), wp.float64(1.0), tol)
+
+
+def _share_and_slope(depth, tol):
+    d = wp.array(np.asarray(depth, dtype=np.float64), dtype=wp.float64, requires_grad=True)
+    out = wp.zeros(len(depth), dtype=wp.float64, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        wp.launch(_shares, len(depth), [d, wp.float64(tol)], [out])
+    tape.backward(grads={out: wp.ones(len(depth), dtype=wp.float64)})
+    return out.numpy(), d.grad.numpy()
+
+
+@pytest.mark.parametrize("e", [0.1, 0.5, 2.0])
+def test_the_touchdown_shares_round_off_band_keeps_it_c1_and_its_adjoint(e):
+    """``touchdown_share`` given the depth's round-off ``tol = e`` times the drift's reach (at
+    most half of it counts): the plain smoothstep of ``q`` below ``1 - 2e``, 1 from ``1 - e``
+    on (a start within the round-off outside the surface is a resting particle's), monotone
+    between, C1 at both joins and at ``q = 0`` (a touchdown on a step's end), and the tape's
+    slope matches central differences (docs/physics.md, "The touchdown share's round-off")."""
+    reach = 1.0e-3
+    ee = min(e, 0.5)
+    q = np.linspace(1e-4, 1.2, 1201)
+    share, slope = _share_and_slope(q * reach, e * reach)
+    plain = np.where(q < 1.0, q * q * (3.0 - 2.0 * q), 1.0)
+    below = q < 1.0 - 2.0 * ee
+    np.testing.assert_allclose(share[below], plain[below], rtol=1e-13, atol=1e-16)
+    assert np.all(share[q >= 1.0 - ee] == 1.0)
+    assert np.all(np.diff(share) >= 0.0) and np.all(share >= plain - 1e-15)
+    h = 1e-7
+    for end in (0.0, 1.0 - 2.0 * ee, 1.0 - ee):
+        f = lambda u: _share_and_slope(np.asarray(u) * reach, e * reach)[0]  # noqa: E731
+        left, right = ((f([end]) - f([end - h])) / h, (f([end + h]) - f([end])) / h) if end > 0 else (0.0, (f([h]) - f([0.0])) / h)
+        assert left == pytest.approx(right, abs=1e-5), end
+    inside = (q > 1e-3) & (q < 1.0 - ee - 1e-3)
+    eps = 1e-9 * reach
+    fd = (_share_and_slope(q[inside] * reach + eps, e * reach)[0] - _share_and_slope(q[inside] * reach - eps, e * reach)[0]) / (2 * eps)
+    np.testing.assert_allclose(slope[inside], fd, rtol=1e-5, atol=1e-3)
+    assert np.all(slope[q >= 1.0 - ee] == 0.0)
+
+
 def _undamped_strip_kinetic_energy(floor: str, fit: str = "auto", duration: float = 0.5, ramp: float = 0.15):
     """A soft elastic strip (mu 3.6 kPa, no viscosity, the default pressure) 3 particles
     thick, 24 long and 2 wide between frictionless walls through its outer rows' centres,

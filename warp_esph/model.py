@@ -582,7 +582,8 @@ class Model:
         """The contact law of the colliders and tools (``colliders.coulomb_response``): ``r > 0``
         removes, in a touchdown step, the share ``smoothstep(depth / (r (-v_n) dt))`` of the
         inward normal velocity of a particle found inside (``colliders.touchdown_share``;
-        all of it once the particle started the step on the surface), with the stick-slip
+        all of it once the particle started the step on the surface, or within its depth's
+        round-off outside it), with the stick-slip
         transition rounded, which is continuous in the state, so a
         loss is continuous in the parameters through contact (1, the default:
         ``colliders.CONTINUOUS_CONTACT_RAMP``); 0 (``colliders.INSTANT_CONTACT_RAMP``, "instant")

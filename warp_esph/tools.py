@@ -581,7 +581,10 @@ def kernels(scalar, n_planes: int, n_spheres: int, n_boxes: int, counts: tuple, 
         # The whole depth is undone (a particle left inside a moving tool could be passed by
         # it: a thin blade's nearest face may be its back); the touchdown share acts on the
         # velocity alone.
-        v_new = col.coulomb_response(v, vs, n, wp.dot(x_s - x, n), dt, ramp, mu_s[c], mu_k[c])
+        # The depth's round-off: of the world points and of the collider-frame ones (the
+        # surface point and the tool's place) that the contact was found from.
+        tol = col.depth_round_off(col.max_abs(x) + col.max_abs(p1) + col.max_abs(xc))
+        v_new = col.coulomb_response(v, vs, n, wp.dot(x_s - x, n), dt, ramp, mu_s[c], mu_k[c], tol)
         x_new = x_s + tangential_follow(x_start, x_s, v_new, vs, n, p0, q0, p1, q1, dt)
         f = m * (v_new - v) / dt
         wp.atomic_add(rforce, row, f)

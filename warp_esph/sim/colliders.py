@@ -20,6 +20,7 @@ import dataclasses
 import functools
 import types
 
+import numpy as np
 import warp as wp
 
 from .._types import type_set
@@ -38,6 +39,18 @@ INSTANT_CONTACT_RAMP = 0.0
 #: Default ``Model.contact_ramp``: the continuous contact. A loss through the instant one
 #: jumps wherever a particle's first contact moves from one step to the next.
 CONTACT_RAMP = CONTINUOUS_CONTACT_RAMP
+#: Units in the last place, of the largest coordinate a contact's depth is computed from,
+#: taken as that depth's round-off (``depth_round_off``): a particle resting on a float32 tool
+#: starts each step a few of them on either side of the surface, and read as landing when
+#: outside, kept up to a fifth of its inward speed (docs/physics.md, "The touchdown share's
+#: round-off").
+DEPTH_ROUND_OFF_ULPS = 2.0
+#: The largest share of a step's normal drift that ``touchdown_share`` counts as round-off.
+#: At a half its rounding starts at ``q = 0``, as it must to leave the share 0 with slope 0
+#: there; a drift shorter than twice the round-off (a float32 particle at rest on a sphere tool
+#: 0.5 m across in steps of 0.1 ms) is all round-off, and one started within half of it of the
+#: surface is taken as resting.
+MAX_ROUND_OFF_SHARE = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,6 +82,21 @@ class Box:
 def funcs(scalar) -> types.SimpleNamespace:
     T = type_set(scalar)
     vec3 = T.vec3
+    ULP = scalar(DEPTH_ROUND_OFF_ULPS * float(np.finfo(T.np_dtype).eps))
+    MAX_E = scalar(MAX_ROUND_OFF_SHARE)
+
+    @wp.func
+    def depth_round_off(scale: scalar) -> scalar:
+        """Round-off of a contact's depth computed from coordinates up to ``scale`` (the sum
+        of the largest magnitudes of the points and the collider's size that enter it):
+        ``DEPTH_ROUND_OFF_ULPS`` units in their last place, 2.4e-7 m at 1 m in float32, 4.4e-16 m
+        in float64."""
+        return ULP * scale
+
+    @wp.func
+    def max_abs(a: vec3) -> scalar:
+        """The largest magnitude of ``a``'s components: the scale of its round-off."""
+        return wp.max(wp.max(wp.abs(a[0]), wp.abs(a[1])), wp.abs(a[2]))
 
     @wp.func
     def slip_speed(a: scalar, band: scalar) -> scalar:
@@ -84,7 +112,7 @@ def funcs(scalar) -> types.SimpleNamespace:
         return r
 
     @wp.func
-    def touchdown_share(vn: scalar, depth: scalar, dt: scalar, ramp: scalar) -> scalar:
+    def touchdown_share(vn: scalar, depth: scalar, dt: scalar, ramp: scalar, tol: scalar) -> scalar:
         """Share of the inward normal velocity ``-vn`` removed, and of the depth undone, for
         a particle found ``depth`` inside after the drift: 1 for the instant law
         (``ramp = 0``), for one moving outward and for one whose whole drift of the step
@@ -92,13 +120,27 @@ def funcs(scalar) -> types.SimpleNamespace:
         step on or inside the surface: resting, sticking, pressed), else ``smoothstep(q)``.
         ``q`` is the share of the step after the touchdown; the smoothstep's zero slope at
         both ends makes the response C1 where a touchdown moves across a step's end and
-        where a landing particle becomes a resting one."""
+        where a landing particle becomes a resting one.
+
+        ``tol`` is the round-off of ``depth`` (``depth_round_off``). A particle that started
+        the step within it outside the surface is taken as resting: with ``e = tol / reach``
+        (at most ``MAX_ROUND_OFF_SHARE``), ``q`` is read as ``q + (q - a)^2 / e`` above
+        ``a = 1 - 2 e``, which reaches 1 at ``q = 1 - e`` with a finite slope, so the share stays
+        C1 (the smoothstep's slope is 0 there) and is unchanged below ``a``. Without it a
+        float32 particle resting on a tool, a few units in the last place outside, kept up to
+        a fifth of its step's inward speed in single steps (docs/physics.md, "The touchdown
+        share's round-off")."""
         if ramp <= scalar(0.0) or vn >= scalar(0.0):
             return scalar(1.0)
         reach = ramp * (-vn) * dt
-        if depth >= reach:
+        band = wp.min(tol, MAX_E * reach)
+        if depth >= reach - band:
             return scalar(1.0)
         q = depth / reach
+        if band > scalar(0.0):
+            a = scalar(1.0) - scalar(2.0) * band / reach
+            if q > a:
+                q = q + (q - a) * (q - a) * reach / band
         return q * q * (scalar(3.0) - scalar(2.0) * q)
 
     @wp.func
@@ -182,7 +224,8 @@ def funcs(scalar) -> types.SimpleNamespace:
         return v
 
     @wp.func
-    def coulomb_response(v: vec3, vs: vec3, n: vec3, depth: scalar, dt: scalar, ramp: scalar, mu_s: scalar, mu_k: scalar):
+    def coulomb_response(v: vec3, vs: vec3, n: vec3, depth: scalar, dt: scalar, ramp: scalar, mu_s: scalar, mu_k: scalar,
+                         tol: scalar):
         """Velocity after contact with a surface moving at ``vs`` (outward normal ``n``) of a
         particle found ``depth`` inside it after the drift: the share ``touchdown_share`` of
         the inward relative normal velocity ``-vn`` is removed; Coulomb friction on the
@@ -195,20 +238,21 @@ def funcs(scalar) -> types.SimpleNamespace:
         of it at once or none (docs/method.md §1, "Contact"). One that starts the step on
         the surface (resting, sticking, or pressed by a moving tool) has ``depth = -vn dt``
         and loses all of it, as before. ``ramp = 0`` is the instant law (all of it,
-        friction not rounded)."""
+        friction not rounded). ``tol``: the round-off of ``depth`` (``depth_round_off``)."""
         vn = wp.dot(v - vs, n)
         share = scalar(1.0)
         if vn < scalar(0.0) and depth > scalar(0.0):  # where it is used: elsewhere q may overflow
-            share = touchdown_share(vn, depth, dt, ramp)
+            share = touchdown_share(vn, depth, dt, ramp, tol)
         return coulomb_velocity(v, vs, n, depth, share, ramp, mu_s, mu_k, scalar(0.0))
 
     @wp.func
-    def respond(x: vec3, v: vec3, depth: scalar, n: vec3, friction: scalar, dt: scalar, ramp: scalar):
+    def respond(x: vec3, v: vec3, depth: scalar, n: vec3, friction: scalar, dt: scalar, ramp: scalar, scale: scalar):
         """Move a particle ``depth`` inside along outward normal ``n`` of a static collider
         out by ``touchdown_share`` of it (all of it but in a touchdown step); one moving
-        outward by ``exit_correction``; friction over the step ``dt``."""
+        outward by ``exit_correction``; friction over the step ``dt``. ``scale``: the
+        magnitude of the coordinates the depth was computed from (``depth_round_off``)."""
         vn = wp.dot(v, n)
-        share = touchdown_share(vn, depth, dt, ramp)
+        share = touchdown_share(vn, depth, dt, ramp, depth_round_off(scale))
         band = inside_band(vn, depth, dt, ramp)
         v_new = coulomb_velocity(v, vec3(), n, depth, share, ramp, friction, friction, band)
         if band > scalar(0.0) and vn > scalar(0.0) and depth > scalar(0.0):
@@ -226,7 +270,7 @@ def funcs(scalar) -> types.SimpleNamespace:
     def collide_plane(x: vec3, v: vec3, n: vec3, offset: scalar, friction: scalar, dt: scalar, ramp: scalar):
         depth = offset - wp.dot(n, x)
         if in_reach(wp.dot(v, n), depth, dt, ramp):
-            return respond(x, v, depth, n, friction, dt, ramp)
+            return respond(x, v, depth, n, friction, dt, ramp, wp.abs(offset) + max_abs(x))
         return x, v
 
     @wp.func
@@ -237,7 +281,7 @@ def funcs(scalar) -> types.SimpleNamespace:
             r = wp.sqrt(r2)
             n = d / r
             if in_reach(wp.dot(v, n), radius - r, dt, ramp):
-                return respond(x, v, radius - r, n, friction, dt, ramp)
+                return respond(x, v, radius - r, n, friction, dt, ramp, max_abs(x) + max_abs(c) + radius)
         return x, v
 
     @wp.func
@@ -261,10 +305,10 @@ def funcs(scalar) -> types.SimpleNamespace:
             # its edges): a particle leaving through it (exit_correction); at edges and
             # corners the exit is not rounded.
             if in_reach(wp.dot(v, n), -gap[axis], dt, ramp):
-                return respond(x, v, -gap[axis], n, friction, dt, ramp)
+                return respond(x, v, -gap[axis], n, friction, dt, ramp, max_abs(x) + max_abs(c) + max_abs(half))
         return x, v
 
     return types.SimpleNamespace(
         coulomb_response=coulomb_response, coulomb_velocity=coulomb_velocity, slip_speed=slip_speed, touchdown_share=touchdown_share,
-        exit_correction=exit_correction, inside_band=inside_band, respond=respond, collide_plane=collide_plane, collide_sphere=collide_sphere, collide_box=collide_box
+        depth_round_off=depth_round_off, max_abs=max_abs, exit_correction=exit_correction, inside_band=inside_band, respond=respond, collide_plane=collide_plane, collide_sphere=collide_sphere, collide_box=collide_box
     )
