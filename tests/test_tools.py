@@ -2375,3 +2375,36 @@ def test_steps_across_one_or_two_keyframes_move_a_turning_pinned_set_by_its_velo
     assert np.abs(v[1:8]).max() > 1.0  # it moves and turns
     np.testing.assert_allclose(v[1:], np.diff(x, axis=0) / dt, rtol=0, atol=1e-10)
     np.testing.assert_allclose(v[-1], 0.0, atol=1e-10)  # held after the last keyframe
+
+
+@pytest.mark.parametrize("crossing", [False, True])
+def test_a_keyframed_pinned_set_given_an_angular_velocity_too_moves_by_its_step_rotation(crossing):
+    """A pinned set keyframed to turn about z (0.6 rad over its segment) whose angular velocity
+    (about x, 40 rad/s) an optimiser wrote in place: its pose is ``E(w t) Q(t)``, so the step's
+    rotation in the frame at its start is ``E(R(t0)^T w dt) E(r_seg dt / T)``, the two composed
+    in the order the pose is built. The pinned particles' velocity (the step rotation applied
+    to their offsets) must be their places' difference over dt, x_n - x_{n-1} = dt v_n, to
+    round-off in float64 (the two rotation vectors added: 0.012 m/s off within the segment and
+    0.054 m/s on the run across the keyframe, of up to 2.9 m/s, second order in dt;
+    composed: round-off), within a segment and on steps across a keyframe."""
+    dt = 1e-3
+    c = np.array([-0.02, 0.1, 0.0])  # the pinned column's rest centroid
+    turn = (0.0, 0.0, math.sin(0.3), math.cos(0.3))
+    times = (0.0, 0.0045, 0.02) if crossing else (0.0, 0.02)
+    positions = [c, c + (0.001, 0.0, 0.0), c + (0.002, 0.001, 0.0)][:len(times)]
+    orientations = [tools.IDENTITY, turn, tools.IDENTITY][:len(times)]
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.0, 0.1, 0.0), (0.06, 0.06, 0.06), _elastic(2e3), name="block")
+    b.pin(body="block", region=((-1.0, -1.0, -1.0), (-0.01, 1.0, 1.0)), name="grip",
+          motion=tools.Keyframes(times, [tuple(p) for p in positions], orientations))
+    model = b.finalize(dtype=wp.float64)
+    model.tools.angular_velocity.assign(np.array([[40.0, 0.0, 0.0]]))
+    pinned = model.tools.pins[0].indices
+    solver = we.Solver(model)
+    states = [model.state() for _ in range(8)]
+    for n in range(7):
+        solver.step(states[n], states[n + 1], dt)
+    x = np.array([s.x.numpy()[pinned] for s in states])
+    v = np.array([s.v.numpy()[pinned] for s in states])
+    assert np.abs(v[1:]).max() > 0.5  # it turns
+    np.testing.assert_allclose(v[1:], np.diff(x, axis=0) / dt, rtol=0, atol=1e-10)

@@ -383,11 +383,14 @@ def pose_kernels(scalar) -> types.SimpleNamespace:
                       i0: int, i1: int, q0: quat, dt: scalar):
         """The rotation vector ``r`` of a step of ``dt`` within one keyframe segment, in the
         tool's frame at the step's start (``R(t1) = R(t0) E(r)``), from the motion's rates
-        (as ``step_displacement``): the angular velocity's ``R(t0)^T w dt``, or the
-        segment's slerp rotation times ``dt`` over its length."""
+        (as ``step_displacement``): the angular velocity's ``R(t0)^T w dt``, the segment's
+        slerp rotation times ``dt`` over its length, or both composed as the pose
+        ``E(w t) Q(t)`` (``sampled_orientation``) gives them, ``E(R(t0)^T w dt) E(r_seg dt / T)``:
+        their sum is off by their commutator, second order in dt."""
         r = wp.quat_rotate_inv(q0, ang_v[c] * dt)
         if i1 != i0:
-            r = r + segment_rotation(kf_q, i0, i1) * (dt / (kf_t[i1] - kf_t[i0]))
+            rs = segment_rotation(kf_q, i0, i1) * (dt / (kf_t[i1] - kf_t[i0]))
+            r = quat_log(quat_exp(r) * quat_exp(rs))
         return r
 
     @wp.func
@@ -427,7 +430,8 @@ def pose_kernels(scalar) -> types.SimpleNamespace:
                           j0: int, j1: int, i0: int, i1: int, q0: quat, t0: scalar, dt: scalar):
         """The rotation vector of a step that crosses keyframes, in the tool's frame at its
         start (as ``step_rotation``): the rest of the start's segment, the whole segments
-        between, then the part of the end's segment, composed (``crossing_displacement``)."""
+        between, then the part of the end's segment, composed (``crossing_displacement``), after
+        the angular velocity's turn (``step_rotation``)."""
         f0, f1 = crossing_fractions(kf_t, j0, j1, i0, i1, t0, dt)
         qa = quat(ZERO, ZERO, ZERO, ONE)
         qm = quat(ZERO, ZERO, ZERO, ONE)
@@ -438,7 +442,7 @@ def pose_kernels(scalar) -> types.SimpleNamespace:
             qm = wp.quat_inverse(wp.normalize(kf_q[j1])) * wp.normalize(kf_q[i0])
         if i1 != i0:
             qb = quat_exp(segment_rotation(kf_q, i0, i1) * f1)
-        return wp.quat_rotate_inv(q0, ang_v[c] * dt) + quat_log(qa * qm * qb)
+        return quat_log(quat_exp(wp.quat_rotate_inv(q0, ang_v[c] * dt)) * qa * qm * qb)
 
     @wp.kernel(module="unique")
     def poses(
