@@ -1719,6 +1719,26 @@ def test_a_sample_that_calls_sys_exit_is_a_failed_row_and_the_sweep_goes_on():
     assert _rows(there) == _rows(here)
 
 
+def _exits_at(i):
+    """A parallel_map item: item 1 calls sys.exit(5)."""
+    if i == 1:
+        sys.exit(5)
+    return i
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_parallel_map_without_on_error_raises_an_item_s_sys_exit_as_an_item_error_naming_it(workers):
+    """Without ``on_error`` an item's ``sys.exit`` raised ``SystemExit`` in this process (the
+    caller's program ended as if it had exited itself) and an ``ItemError`` from worker
+    processes: one failure, two exceptions. Both raise ``ItemError`` naming the item and the
+    exit's code, the words ``on_error`` is given."""
+    from warp_esph.sweep import ItemError, parallel_map
+
+    with pytest.raises(ItemError, match=r"^item 1: SystemExit: 5$"):
+        parallel_map(_exits_at, [(0,), (1,)], workers=workers)
+    assert parallel_map(_exits_at, [(0,), (1,)], workers=workers, on_error=lambda i, why: why) == [0, "SystemExit: 5"]
+
+
 def test_an_extra_column_that_is_no_number_or_text_fails_its_sample_the_same_wherever_it_runs():
     """An ``extra`` value that is neither a number nor text (a function) was an ok row holding
     the object in one process (its CSV cell the object's repr) and a failed row with pickle's

@@ -753,11 +753,18 @@ def solver_label(solver) -> str:
 
 class ItemError(Exception):
     """An item's exception that its worker process could not send back as it is (pickle
-    cannot rebuild it in the parent), as its one line ``'TypeName: message'``."""
+    cannot rebuild it in the parent), or its ``sys.exit``, as its one line
+    ``'TypeName: message'``; ``parallel_map`` without ``on_error`` raises it as
+    ``'item N: TypeName: message'``."""
 
 
 def _call(fn, item):
     return _call_star(fn, *item)
+
+
+def _named(i: int, e: BaseException) -> ItemError:
+    """The ``ItemError`` that ``parallel_map`` without ``on_error`` raises for item ``i``."""
+    return ItemError(f"item {i}: {_words(e)}")
 
 
 def _words(e: BaseException) -> str:
@@ -853,8 +860,11 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
     (``message``: ``'TypeError: ...'`` where ``fn`` raised, the same words wherever it ran; an
     exception pickle cannot rebuild, or a ``SystemExit``, comes back from a worker process or Ray
     task as an ``ItemError`` of those words; a ``sys.exit`` in ``fn`` fails its item, not the run)
-    and the others go on; without, the first failure raises (``RuntimeError`` naming the item
-    that kills its worker alone: the items beside it run again alone first, as above). Ctrl-C
+    and the others go on; without, the first failure raises: ``fn``'s exception as it is,
+    except a ``sys.exit`` (in this process, in a worker process and on Ray alike) and, from a
+    worker process or Ray, an exception pickle cannot rebuild, which raise ``ItemError``
+    naming the item, ``'item 1: SystemExit: 5'``; an item that kills its worker alone raises
+    ``RuntimeError`` naming it (the items beside it run again alone first, as above). Ctrl-C
     stops the workers and raises ``KeyboardInterrupt``.
     """
     if not callable(fn):
@@ -878,6 +888,9 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
                 results[i] = fn(*item)
             except (Exception, SystemExit) as e:  # an item's sys.exit is its failure, as in a worker process
                 if on_error is None:
+                    if isinstance(e, SystemExit):
+                        # Raised as it is, the caller's program ended as if it had exited itself.
+                        raise _named(i, e) from None
                     raise
                 results[i] = on_error(i, _words(e))
             if on_result is not None:
@@ -920,6 +933,8 @@ def parallel_map(fn: Callable, items: Sequence[tuple], *, workers: int | None = 
             return False
         except Exception as e:
             if on_error is None:
+                if isinstance(e, ItemError):
+                    raise _named(i, e) from None
                 raise
             result = on_error(i, _words(e))
         finish(i, result)
@@ -1084,9 +1099,11 @@ def _ray_tasks(ray, fn, items, on_result, on_error, resources):
                 try:
                     results[i] = ray.get(ref)
                 except ray.exceptions.RayError as e:
-                    if on_error is None:
-                        raise
                     cause = getattr(e, "cause", None) if isinstance(e, ray.exceptions.RayTaskError) else None
+                    if on_error is None:
+                        if isinstance(cause, ItemError):
+                            raise _named(i, cause) from None
+                        raise
                     if isinstance(cause, Exception) and not isinstance(cause, ray.exceptions.RayError):
                         # The item's own exception, worded as the other executors word it: Ray's text
                         # (colour codes, the worker's pid and ip, its traceback) made the same failed
