@@ -1657,6 +1657,23 @@ def test_a_sweep_every_sample_of_which_the_material_refuses_is_refused_before_an
                      None).tasks) == 2
 
 
+@pytest.mark.parametrize("specs, named, shown", [
+    (["lam=-1e9,-2e9", "yield_stress=10,100"], "lam is", "lam = -1e+09: Material.lam = "),
+    (["yield_stress=10,100", "hardening=-1e9"], "hardening is", "hardening = -1e+09: Material.hardening = "),
+    (["yield_stress=10", "mu=1e308", "lam=1e308"], "mu, lam are", "mu = 1e+308, lam = 1e+308: Material.mu = "),
+])
+def test_a_sweep_the_material_refuses_names_only_the_parameters_the_refusal_is_about(monkeypatch, specs, named, shown):
+    """Every swept parameter was named ('--param lam, yield_stress are not allowed') where the
+    material's refusal is about one field of it: the caller was told to change a yield stress
+    that every sample could keep. The refusal's fields (``Material.lam = ...``) are mapped back
+    to the parameters that set them, and only theirs are named and shown."""
+    _no_sample_runs(monkeypatch)
+    with pytest.raises(ValueError) as e:
+        sweep(_box(), specs, frames=1, workers=1)
+    assert str(e.value).startswith(f"--param {named} not allowed: the material refuses every sample's values (sample 0, "
+                                   f"{shown}"), str(e.value)
+
+
 # ------------------------------------------------------------------ a sample's own exception, wherever it runs
 class _TwoPartError(Exception):
     """An exception pickle cannot rebuild (``cls(*args)`` with its one message): a worker

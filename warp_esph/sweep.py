@@ -1419,7 +1419,9 @@ def _check_some_sample_material(model, assignments, points) -> None:
     """Refuse a sweep every sample of which makes a material the model refuses (``_apply``:
     ``Material``'s checks and the precision's): each sample failed alone with the same
     refusal, and the sweep exited 3 with a table of failures. A sample the material takes is
-    enough (the others are rows of the table, as a sample that blew up is)."""
+    enough (the others are rows of the table, as a sample that blew up is). The refusal names
+    the swept parameters whose fields the material's refusal names, with the first sample's
+    values of them."""
     first = None
     for k, values in enumerate(points):
         try:
@@ -1431,8 +1433,13 @@ def _check_some_sample_material(model, assignments, points) -> None:
     if first is None:
         return
     k, values, e = first
-    shown = ", ".join(f"{name} = {v:g}" for name, v in values.items())
-    raise ValueError(f"--param {', '.join(values)} {'is' if len(values) == 1 else 'are'} not allowed: the material refuses every sample's values "
+    # The refusal names the fields it is about ('Material.lam = ...'): only the parameters that
+    # set them are named (all of them were, a swept yield stress told to change beside a lam that
+    # no material takes); a refusal naming no swept field names them all.
+    refused = set(re.findall(r"\bMaterial\.(\w+) =", str(e)))
+    names = [name for name, field, _ in assignments if field in refused] or list(values)
+    shown = ", ".join(f"{name} = {values[name]:g}" for name in names)
+    raise ValueError(f"--param {', '.join(names)} {'is' if len(names) == 1 else 'are'} not allowed: the material refuses every sample's values "
                      f"(sample {k}, {shown}: {_one_line(e)}); give values it allows")
 
 
