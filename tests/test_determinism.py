@@ -232,6 +232,37 @@ def test_the_integrations_adjoint_is_replayed_with_the_gradients_of_wp_launch():
         assert np.array_equal(a, b)
 
 
+def test_each_tapes_zero_clears_the_static_colliders_gradients_as_warps_tape_does():
+    """A static collider's array given a gradient (the ground's friction) on a model whose
+    steps are taped anew each iteration, as a fit tapes them: each tape's ``zero()`` clears
+    it, as ``wp.Tape.get_adjoint`` registers a struct's arrays on the tape that launches
+    the adjoint, so every iteration's backward gives the same gradient. The integration's
+    adjoint keeps the colliders' adjoint struct on the model
+    (``integrate.static_collider_adjoint``); a later tape that reused it without registering
+    the arrays left them uncleared: the third iteration's gradient was twice the first's."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.031, 0.0), (0.06, 0.06, 0.04), we.Material(mu=1e3, lam=1.5e3))
+    b.add_ground(friction=0.5)
+    m = b.finalize(dtype=wp.float64, requires_grad=True)
+    m.particle_v0 = m.particle_v0 + np.array([1.0, -1.5, 0.0])
+    m.plane_friction.requires_grad = True
+    s = we.Solver(m)
+    seed = wp.array(np.ones((m.particle_count, 3)), dtype=wp.vec3d)
+    grads = []
+    for _ in range(3):
+        st = [m.state() for _ in range(21)]
+        tape = wp.Tape()
+        with tape:
+            for k in range(20):
+                s.step(st[k], st[k + 1], 4e-4)
+        tape.backward(grads={st[-1].x: seed})
+        grads.append(m.plane_friction.grad.numpy()[0])
+        tape.zero()
+        assert m.plane_friction.grad.numpy()[0] == 0.0
+    assert grads[0] != 0.0  # the ground's friction acts: the block slides on it
+    assert grads[1] == grads[0] and grads[2] == grads[0], grads
+
+
 def test_the_reused_static_collider_struct_follows_the_contact_ramp():
     """``static_collider_struct`` is filled once per model and reused; a new contact ramp
     (``Model.contact_ramp``) must reach the next step, not the struct of the last one."""

@@ -420,7 +420,7 @@ class Model:
         self._image_args = None  # image_args' list, made once: the plane and spacing are fixed
         self._image_reaction_rows = None  # integrate.launch_floor_image_reaction's row arguments, made once
         self._static_collider_struct = None  # sim.integrate.static_collider_struct's (key, struct, arrays)
-        self._static_collider_adjoint = None  # sim.integrate.static_collider_adjoint's (struct, its adjoint)
+        self._static_collider_adjoint = None  # sim.integrate.static_collider_adjoint's (struct, its adjoint, its arrays' gradients)
         self._spare_reaction_rows = None  # sim.integrate.spare_reaction_rows' (force, torque)
         self.bodies = list(bodies)
         self.planes, self.spheres, self.boxes = list(planes), list(spheres), list(boxes)

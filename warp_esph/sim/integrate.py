@@ -235,12 +235,19 @@ def static_collider_struct(model):
 def static_collider_adjoint(model, tape, colliders):
     """``tape.get_adjoint(colliders)`` of ``static_collider_struct``'s instance: the struct of
     its arrays' gradients, made once per instance (whose key holds those gradients), and
-    registered on ``tape`` for its ``zero()`` as ``get_adjoint`` registers it."""
+    registered on ``tape`` for its ``zero()`` as ``get_adjoint`` registers it: the struct and
+    each array with a gradient, which ``zero()`` clears (the struct's entry clears none of
+    them; left out, a later tape's ``zero()`` left them summing over its backward passes)."""
     cached = model._static_collider_adjoint
     if cached is None or cached[0] is not colliders:
-        cached = model._static_collider_adjoint = (colliders, tape.get_adjoint(colliders))
+        adjoint = tape.get_adjoint(colliders)
+        graded = [(a, a.grad) for a in (getattr(colliders, name) for name in colliders._cls.vars)
+                  if isinstance(a, wp.array) and a.grad is not None]
+        cached = model._static_collider_adjoint = (colliders, adjoint, graded)
     else:
         tape.gradients[colliders] = cached[1]
+        for a, g in cached[2]:
+            tape.gradients[a] = g
     return cached[1]
 
 
