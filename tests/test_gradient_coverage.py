@@ -17,7 +17,10 @@ Where the other combinations are checked (float64 central differences of a taped
 - the ghost floor: ``test_ghost_floor.py``; the static colliders and the contact ramps:
   ``test_static_colliders.py``, ``test_friction.py``, ``test_smooth_loss.py``;
 - tools (plane, box, sphere, capsule, cylinder, mesh; keyframes, pins, a particle floor):
-  ``test_tools.py``; worlds: ``test_worlds.py`` (against separate tapes).
+  ``test_tools.py``; worlds: ``test_worlds.py`` (against separate tapes);
+- the initial positions, deformation gradients and plastic strains and the plasticity
+  parameters of a block flowing on the ground or a plane tool, a flowing block under moving
+  tools, two bodies of different models pressed together: ``test_gradient_inputs.py``.
 """
 
 import numpy as np
