@@ -20,7 +20,8 @@ Where the other combinations are checked (float64 central differences of a taped
   ``test_tools.py``; worlds: ``test_worlds.py`` (against separate tapes);
 - the initial positions, deformation gradients and plastic strains and the plasticity
   parameters of a block flowing on the ground or a plane tool, a flowing block under moving
-  tools, two bodies of different models pressed together: ``test_gradient_inputs.py``.
+  tools, two bodies of different models pressed together, a plane tool and a sphere tool
+  moved at a linear and an angular velocity: ``test_gradient_inputs.py``.
 """
 
 import numpy as np
