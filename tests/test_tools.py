@@ -2194,6 +2194,67 @@ def test_keyframes_on_step_boundaries_give_the_keyframe_pose_the_crossed_segment
     assert min(abs(tape - left), abs(tape - right)) < 1e-4, (tape, left, right)
 
 
+def test_a_motion_keyed_from_t_0_reads_its_first_segment_there_and_its_gradients_match_central_differences():
+    """The first keyframe at t = 0, a step boundary (dt = 2^-10 s, keyframes at 0, 2 dt,
+    4 dt: +x, then +y): the step starting there is inside the first segment, as a step
+    starting at any other keyframe is inside the segment starting there, so the pinned
+    particles move at that segment's velocity from the first step, and the tape's derivative
+    in the first keyframe's time is the one for the keyframe moved earlier, the side every
+    other keyframe on a step boundary gives (measured: tape 0.512, left difference 0.512,
+    right -1.536; the sample at t = 0 took the hold before the first keyframe, and the tape
+    read -1.536, the other side). The derivatives in the keyframe positions, smooth across
+    t = 0, match float64 central differences."""
+    dt = 2.0 ** -10
+    c = np.array([-0.02, 0.1, 0.0])
+
+    def model(t0=0.0, dp=None):
+        p = np.array([c, c + (0.002, 0.0, 0.0), c + (0.002, 0.004, 0.0)])
+        if dp is not None:
+            p = p + dp
+        b = we.SceneBuilder(spacing=0.02, gravity=(0.0, 0.0, 0.0))
+        b.add_box((0.0, 0.1, 0.0), (0.06, 0.06, 0.06), _elastic(2e3), name="block")
+        b.pin(body="block", region=((-1.0, -1.0, -1.0), (-0.01, 1.0, 1.0)), name="grip",
+              motion=tools.Keyframes((t0, 2 * dt, 4 * dt), [tuple(r) for r in p]))
+        return b.finalize(dtype=wp.float64, requires_grad=True)
+
+    m = model()
+    i = int(m.tools.pins[0].indices[0])
+    x0 = m.particle_x0[i]
+
+    def loss(mm, grad=False):
+        s = we.Solver(mm)
+        sts = [mm.state() for _ in range(3)]
+        out = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+        tape = wp.Tape()
+        with tape:
+            for n in range(2):
+                s.step(sts[n], sts[n + 1], dt)
+            # The pose and velocity the first step, which starts at the keyframe, gives.
+            wp.launch(_pinned_x_plus_y, 1, [sts[1].x, i, 1.0], [out])
+            wp.launch(_pinned_x_plus_y, 1, [sts[1].v, i, 2.0 * dt], [out])
+        if grad:
+            tape.backward(out)
+            return (mm.tools.keyframe_times.grad.numpy()[0], mm.tools.keyframe_positions.grad.numpy().copy(),
+                    sts[1].x.numpy()[i] - x0, sts[1].v.numpy()[i])
+        return out.numpy()[0]
+
+    g_t, g_p, x1, v1 = loss(m, grad=True)
+    np.testing.assert_allclose(x1, (0.001, 0.0, 0.0), atol=1e-15)
+    np.testing.assert_allclose(v1, (0.002 / (2 * dt), 0.0, 0.0), rtol=1e-12)  # the first segment's, +x
+    h = 1e-8
+    here = loss(model())
+    left, right = (here - loss(model(-h))) / h, (loss(model(h)) - here) / h
+    assert abs(left - right) > 1.0  # a kink: 0.512 and -1.536
+    assert abs(g_t - left) < 1e-4 * abs(left), (g_t, left, right)
+    h = 1e-7
+    for k in range(3):
+        for a in range(2):
+            e = np.zeros((3, 3))
+            e[k, a] = h
+            fd = (loss(model(dp=e)) - loss(model(dp=-e))) / (2 * h)
+            assert abs(g_p[k, a] - fd) < 1e-6 * max(1.0, abs(fd)), (k, a, g_p[k, a], fd)
+
+
 @pytest.mark.parametrize("motion", ["velocity", "keyframes", "turning", "turning_keyframes"])
 def test_a_pinned_set_moving_steadily_reports_no_force_each_step_in_float32(motion):
     """A weightless body pinned whole and moved at a constant 5 cm/s, 0.3 m from the origin,

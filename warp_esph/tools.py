@@ -179,8 +179,14 @@ class Keyframes:
 
 
 def sample_times(ts, t: float) -> tuple[int, int, float]:
-    """The keyframes ``(a, b)`` around time ``t`` and the weight ``w`` of ``b``."""
-    if t <= ts[0]:
+    """The keyframes ``(a, b)`` around time ``t`` and the weight ``w`` of ``b``. At a
+    keyframe's time the segment that starts there, the first keyframe's included: a step
+    starting at ``times[0]`` (a motion keyed from t = 0) reads that segment's rate, as a step
+    starting at any other keyframe does, and the tape's derivative in each keyframe time on a
+    step boundary is the one for that keyframe moved earlier. The first keyframe's sample took
+    the hold before it, so its time derivative at t = 0 was the other side's (moved later:
+    -1.536 where every other keyframe gives 0.512, docs/tools.md)."""
+    if t < ts[0]:
         return 0, 0, 0.0
     if t >= ts[-1]:
         return len(ts) - 1, len(ts) - 1, 0.0
