@@ -983,3 +983,50 @@ def test_pinned_particles_inside_a_collider_add_nothing_to_its_reaction():
         if motion is None:
             weight = float(model.particle_mass.numpy().sum()) * -model.gravity[1]
             assert solver.reaction_forces(a)["hold"][0][1] == pytest.approx(weight, rel=1e-9)
+
+
+def test_the_spare_reaction_rows_hold_zeros_when_made_and_only_the_last_replayed_step_after_a_backward_pass():
+    """Where the integration's generated adjoint replays the forward's atomic adds
+    (``integrate.spare_reaction_rows``): made empty, they read what the allocator left there
+    (measured: 7e30 from an array freed before, and NaN), and each replay summed into them,
+    over every step of every backward pass. Made where a freed array full of 7e30 was, they
+    are zero; after a backward pass over two taped steps of a block landing on the ground they
+    hold only the replay of the step replayed last (the first; Warp's adjoint of a function
+    runs its forward twice, so twice its reaction), and the same after a second pass (before:
+    the second step's replay added, and every pass added again)."""
+    b = we.SceneBuilder(spacing=0.02, gravity=(0.0, -G, 0.0))
+    b.add_box((0.0, 0.01005, 0.0), (0.04, 0.04, 0.04), we.Material.from_young(1e5, 0.3, pressure_stiffness=0.0), name="block")
+    b.add_ground(friction=0.5)
+    b.add_plane((1.0, 0.0, 0.0), -1.0)
+    m = b.finalize(dtype=wp.float64, requires_grad=True)
+    states = [m.state() for _ in range(3)]
+    for s in states:
+        s.v.fill_(wp.vec3d(0.1, -0.5, 0.0))
+    shape = states[0].collider_force.shape
+    junk = [wp.full(shape, wp.vec3d(7e30, 7e30, 7e30), dtype=wp.vec3d) for _ in range(4)]
+    del junk
+    from warp_esph.sim import integrate  # noqa: PLC0415
+
+    spare = integrate.spare_reaction_rows(m, states[0].collider_force)
+    for a in spare:
+        assert (a.numpy() == 0.0).all(), a.numpy()
+    solver = we.Solver(m)
+    tape = wp.Tape()
+    with tape:
+        for n in range(2):
+            solver.step(states[n], states[n + 1], DT)
+    first = states[1].collider_force.numpy()[0], states[1].collider_torque.numpy()[0]
+    second = states[2].collider_force.numpy()[0]
+    assert first[0][1] > 10.0 and second[1] > 10.0  # the ground stops the landing block in both steps
+    seed = {states[2].x: wp.ones(states[2].x.shape, dtype=wp.vec3d)}
+    tape.backward(grads=seed)
+    after_one = [a.numpy().copy() for a in integrate.spare_reaction_rows(m, states[0].collider_force)]
+    tape.zero()
+    tape.backward(grads=seed)
+    after_two = [a.numpy() for a in integrate.spare_reaction_rows(m, states[0].collider_force)]
+    k = after_one[0][0][1] / first[0][1]
+    assert abs(k - round(k)) < 1e-9 and round(k) in (1, 2), k
+    for one, two, want in zip(after_one, after_two, first):
+        np.testing.assert_array_equal(one, two)
+        assert (one[1:] == 0.0).all()  # the plane's row: nothing touched it
+        np.testing.assert_allclose(one[0], round(k) * want, rtol=1e-12, atol=1e-12 * np.abs(want).max())

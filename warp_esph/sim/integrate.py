@@ -254,11 +254,14 @@ def static_collider_adjoint(model, tape, colliders):
 def spare_reaction_rows(model, rows):
     """A force and a torque array of the shape of ``rows`` (a state's ``collider_force``), kept
     on the model: where the integration's generated adjoint replays the forward's atomic adds
-    into the reaction rows. Their values are never read."""
+    into the reaction rows. Nothing in the package reads them; zeroed when made and before
+    each replay, so that they hold the last replayed step's reaction, not what the allocator
+    left there (made empty, they read 7e30 and NaN where a freed array had been) or a sum over
+    every step of every backward pass."""
     spare = model._spare_reaction_rows
     if spare is None or spare[0].shape != rows.shape:
-        spare = model._spare_reaction_rows = (wp.empty_like(rows, requires_grad=False),
-                                              wp.empty_like(rows, requires_grad=False))
+        spare = model._spare_reaction_rows = (wp.zeros_like(rows, requires_grad=False),
+                                              wp.zeros_like(rows, requires_grad=False))
     return spare
 
 
@@ -289,7 +292,10 @@ def launch_integrate(model, state_in, state_out, dt):
 
     def backward():
         adj = tape.get_adjoint
-        replayed = [*outputs[:3], *spare_reaction_rows(m, state_out.collider_force)]
+        spare = spare_reaction_rows(m, state_out.collider_force)
+        for a in spare:
+            a.zero_()
+        replayed = [*outputs[:3], *spare]
         m.launches(kernel, m.particle_count, inputs, replayed,
                    adj_inputs=[static_collider_adjoint(m, tape, a) if a is colliders else adj(a) for a in inputs],
                    adj_outputs=[adj(a) for a in outputs], adjoint=True, device=m.device, record_tape=False)
