@@ -1336,7 +1336,11 @@ def test_the_builder_refuses_tools_inside_bodies_stray_tool_options_coincident_p
             (dict(shape="box", half_extents=(1, 1, 1), radius=5), "radius = 5 is not allowed for shape 'box'"),
             (dict(shape="sphere", radius=0.01, mesh="none.obj"), "mesh = 'none.obj' is not allowed for shape 'sphere'"),
             (dict(shape="plane", position=(1, 2, 3), motion=tools.Keyframes([0.0], [[0.0, 0.0, 0.0]])),
-             "position / orientation are not allowed with a Keyframes motion")):
+             r"position = \(1, 2, 3\) is not allowed with a Keyframes motion: its poses are absolute \(give them in the "
+             r"motion; its first keyframe's position is \(0.0, 0.0, 0.0\)\)"),
+            (dict(shape="plane", orientation=(0, 0, 1, 0), motion=tools.Scripted(lambda t: ((0, 0, 0), (0, 0, 0, 1)))),
+             r"orientation = \(0, 0, 1, 0\) is not allowed with a Scripted motion: its poses are absolute \(give them in "
+             r"the motion\)$")):
         with pytest.raises(ValueError, match=message):
             builder().add_tool(**kwargs)
     g = np.stack(np.meshgrid(*[np.arange(4) * 0.01] * 3), -1).reshape(-1, 3) + [0.0, 0.02, 0.0]

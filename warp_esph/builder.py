@@ -643,9 +643,16 @@ class SceneBuilder:
                 first = (tuple(motion.positions[0]),
                          tuple(motion.orientations[0]) if motion.orientations is not None else identity)
             same = lambda a, b: np.allclose(a, b, rtol=0.0, atol=1e-12)  # noqa: E731
-            if not (same(pos, (0.0, 0.0, 0.0)) or same(pos, first[0])) or not (same(ori, identity) or same(ori, first[1])):
-                raise ValueError(f"position / orientation are not allowed with a {type(motion).__name__} motion: its "
-                                 "poses are absolute (give them in the motion)")
+            # The value given, and the pose the motion starts at, so the caller sees which
+            # of the two it meant (the message named neither).
+            for label, given, default, start in (("position", position, (0.0, 0.0, 0.0), first[0]),
+                                                 ("orientation", orientation, identity, first[1])):
+                value = pos if label == "position" else ori
+                if not (same(value, default) or same(value, start)):
+                    starts = ("" if isinstance(motion, tools.Scripted) else
+                              f"; its first keyframe's {label} is {checks.shorten(tuple(float(c) for c in start))!r}")
+                    raise ValueError(f"{label} = {checks.shorten(given)!r} is not allowed with a {type(motion).__name__} "
+                                     f"motion: its poses are absolute (give them in the motion{starts})")
         if motion is None:
             motion = tools.Velocity(position=pos, orientation=ori)
         elif isinstance(motion, tools.Velocity):
