@@ -185,7 +185,7 @@ def sample_times(ts, t: float) -> tuple[int, int, float]:
     starting at any other keyframe does, and the tape's derivative in each keyframe time on a
     step boundary is the one for that keyframe moved earlier. The first keyframe's sample took
     the hold before it, so its time derivative at t = 0 was the other side's (moved later:
-    -1.536 where every other keyframe gives 0.512, docs/tools.md)."""
+    -1.536 where the side every other keyframe takes reads 0.512, docs/tools.md)."""
     if t < ts[0]:
         return 0, 0, 0.0
     if t >= ts[-1]:
