@@ -1853,3 +1853,41 @@ def test_a_sample_whose_scripted_tool_lifts_the_body_is_no_blow_up():
                   workers=1)
     assert [r["status"] for r in table.rows] == ["ok", "ok"], [r["reason"] for r in table.rows]
     assert (table.column("centroid_height") > 1.2).all() and (table.column("centroid_height") < 1.3).all()
+
+
+# ------------------------------------------------------------------ what a resumed table must share with its sweep
+def _floored(kind: str = "plastic", field: bool = False) -> Scene:
+    """27 particles of toothpaste on a particle floor (``kind``: plastic, ghost or elastic),
+    with a compression field where ``field``."""
+    b = SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.04, 0.0), (0.06, 0.06, 0.06), Material.preset("toothpaste"), name="paste")
+    b.add_particle_floor("paste", margin=0.0, layers=1, ghost=kind == "ghost", elastic=kind.startswith("elastic"))
+    if kind == "elastic_stiffer":
+        # The floor's own material made another: the body's is the same, the particles are too.
+        k = b._bodies[-1].floor_material
+        b._materials[k] = b._materials[k].replace(mu=2.0 * b._materials[k].mu)
+    if field:
+        b.add_compression_field((0.0, 0.0, 0.0), 50.0)
+    return Scene("floored", "a box on a particle floor", b, frames=2, fps=30.0)
+
+
+@pytest.mark.parametrize("base, changed", [
+    (dict(kind="plastic"), dict(kind="ghost")),
+    (dict(kind="plastic"), dict(kind="plastic", field=True)),
+    (dict(kind="elastic"), dict(kind="elastic_stiffer")),
+])
+def test_a_table_of_the_same_particles_in_another_scene_is_refused(monkeypatch, base, changed):
+    """The identity's model digest held the particles, their materials and the colliders: a
+    ghost floor where the table's was plastic (the same particles and materials) or a force
+    field added resumed without a word, its rows mixed with the other scene's. Each is
+    refused now, naming the model, before any sample runs; the two scenes' tables differ,
+    so the mixed table would have been wrong."""
+    specs = ["yield_stress=10,1000"]
+    first = sweep(_floored(**base), specs, frames=2, workers=1)
+    other = sweep(_floored(**changed), specs, frames=2, workers=1)
+    assert _rows(first) != _rows(other)  # what a resume would have mixed
+    _no_sample_runs(monkeypatch)
+    with pytest.raises(ValueError, match=r"^resume = <SweepTable of 2 rows> is not allowed: its table is of another "
+                                         r"sweep: model = \"[0-9]+ particles, [0-9a-f]+\" there, \"[0-9]+ particles, "
+                                         r"[0-9a-f]+\" here; resume it"):
+        sweep(_floored(**changed), specs, frames=2, workers=1, resume=first)

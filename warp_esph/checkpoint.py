@@ -52,6 +52,15 @@ def model_fingerprint(model: Model, version: int = FINGERPRINT_VERSION) -> str:
         a = np.ascontiguousarray(arr, dtype=np.float64 if arr.dtype.kind == "f" else np.int64)
         h.update(repr(a.shape).encode())
         h.update(a.tobytes())
+    h.update(repr(scene_record(model, version)).encode())
+    return h.hexdigest()[:32]
+
+
+def scene_record(model: Model, version: int = FINGERPRINT_VERSION) -> dict:
+    """What ``model_fingerprint`` hashes beside the particle arrays: the lattice, bodies,
+    colliders, force fields, gravity, each material's kind and density, the ghost floors and
+    the moving tools and pinned sets, as values whose ``repr`` is the same in every process
+    (a sweep's identity hashes it too, ``sweep._model_digest``)."""
     record = {
         "spacing": model.spacing, "support_radius": model.support_radius, "max_neighbors": model.max_neighbors,
         "bodies_interact": model.bodies_interact, "gravity": model.gravity,
@@ -75,8 +84,7 @@ def model_fingerprint(model: Model, version: int = FINGERPRINT_VERSION) -> str:
         record["tools"] = [(c.name, c.kind, c.param, _motion_key(c.motion), c.friction, c.static_friction,
                             _array_key(c.mesh_points), _array_key(c.mesh_triangles)) for c in tools.colliders]
         record["pins"] = [(p.name, _array_key(p.indices), _motion_key(p.motion)) for p in tools.pins]
-    h.update(repr(record).encode())
-    return h.hexdigest()[:32]
+    return record
 
 
 def _array_key(a) -> str | None:

@@ -291,7 +291,8 @@ def _add_sweep_parser(sub) -> None:
     sw.add_argument("--ray", metavar="ADDRESS", help="run the samples on the Ray cluster at ADDRESS (warp-esph[ray])")
     sw.add_argument("--resume", action="store_true",
                     help="keep the samples of the table in the output folder (a stopped run of this same sweep) and "
-                         "run only those it lacks")
+                         "run only those it lacks; a table of another scene, material, sampling or option is refused, "
+                         "naming what differs (without --resume the sweep starts afresh and replaces the folder's tables)")
     sw.add_argument("--retry-failed", action="store_true", help="with --resume: run the table's failed samples again too")
     sw.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_solver_arguments(sw)

@@ -1204,8 +1204,9 @@ def sweep(
       wrote, or its ``sweep.csv`` (the identity is in ``sweep.json`` beside it). Its rows
       are kept and only the samples it lacks run (with ``retry_failed``, its failed ones
       too); the table returned is the whole sweep's, as one run straight through gives
-      (``wall_s`` aside). A table of another sweep (scene, parameters, sampling, seed,
-      frames or settings) is refused, naming what differs.
+      (``wall_s`` aside). A table of another sweep (scene: its particles, materials, floors,
+      colliders, tools and fields; parameters, sampling, seed, frames or settings) is
+      refused, naming what differs; to start afresh, run without ``resume``.
 
     Raises ``ValueError`` for bad input before any sample runs. Ctrl-C raises
     ``KeyboardInterrupt`` with ``table``: the samples finished, to give as ``resume``.
@@ -1335,11 +1336,17 @@ def _spec(p: Param) -> str:
 
 
 def _model_digest(model) -> str:
-    """A digest of what a scene puts in the model: the particles, their materials and bodies,
-    the spacing, gravity and the colliders; equal for the same scene however it was given.
-    Positions and velocities in float32 and no masses (computed in the model's precision), so
-    that the precision is told apart by ``dtype`` alone, not as another model too."""
+    """A digest of what a scene puts in the model: the particles, their materials (every field,
+    an elastic particle floor's too) and bodies, and all a checkpoint's fingerprint holds beside
+    them (``checkpoint.scene_record``: the lattice, colliders, ghost floors, force fields, moving
+    tools and pinned sets); equal for the same scene however it was given. It held the particles,
+    materials and colliders alone, so a ghost floor where the table's was plastic, or a force
+    field added, resumed another scene's table without a word. Positions and velocities in
+    float32 and no masses (computed in the model's precision), so that the precision is told
+    apart by ``dtype`` alone, not as another model too."""
     import hashlib  # noqa: PLC0415
+
+    from .checkpoint import scene_record  # noqa: PLC0415
 
     h = hashlib.sha256()
     for a in (np.asarray(model.particle_x0, np.float32), np.asarray(model.particle_v0, np.float32),
@@ -1348,7 +1355,7 @@ def _model_digest(model) -> str:
         h.update(f"{a.dtype.str}{a.shape}".encode())
         h.update(a.tobytes())
     h.update(repr((model.spacing, tuple(model.gravity), model.materials, model.planes, model.spheres,
-                   model.boxes)).encode())
+                   model.boxes, scene_record(model))).encode())
     return h.hexdigest()[:16]
 
 
