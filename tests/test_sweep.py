@@ -1342,7 +1342,7 @@ def test_a_sample_whose_value_does_not_hold_in_float32_names_the_command_s_dtype
     plan = _plan(_box(), ["mu=1e4,1e39"], "grid", None, 0, 1, None, 30.0, None, 1.0, "float32", "cpu", 1, 100, None)
     rows = [_run_sample(plan.scene, t) for _, t in plan.tasks]
     assert [r["status"] for r in rows] == ["ok", "failed"], rows
-    assert rows[1]["reason"] == ("ValueError: Material.mu = 1e+39 is not allowed in float32: must be at most 3.4e+38; "
+    assert rows[1]["reason"] == ("ValueError: material 0 (body 'paste'): Material.mu = 1e+39 is not allowed in float32: must be at most 3.4e+38; "
                                  "use dtype=float64 (--dtype float64) or a smaller value"), rows[1]["reason"]
 
 
@@ -1645,7 +1645,8 @@ def test_a_sweep_every_sample_of_which_the_material_refuses_is_refused_before_an
     whose samples the material takes still runs (the others are failed rows)."""
     _no_sample_runs(monkeypatch)
     with pytest.raises(ValueError, match=r"^--param lam is not allowed: the material refuses every sample's values "
-                                         r"\(sample 0, lam = -1e\+09: Material\.lam = -1000000000\.0 is not allowed: "
+                                         r"\(sample 0, lam = -1e\+09: material 0 \(body 'paste'\): Material\.lam = -1000000000\.0 is not "
+                                         r"allowed: "
                                          r"must be > -2 mu / 3 = "):
         sweep(_box(), ["lam=-1e9,-2e9"], frames=1, workers=1)
     rc = cli.main(["sweep", scene_file, "--param", "hardening=-1e9", "--workers", "1", "--no-progress", "-o",
@@ -1658,9 +1659,9 @@ def test_a_sweep_every_sample_of_which_the_material_refuses_is_refused_before_an
 
 
 @pytest.mark.parametrize("specs, named, shown", [
-    (["lam=-1e9,-2e9", "yield_stress=10,100"], "lam is", "lam = -1e+09: Material.lam = "),
-    (["yield_stress=10,100", "hardening=-1e9"], "hardening is", "hardening = -1e+09: Material.hardening = "),
-    (["yield_stress=10", "mu=1e308", "lam=1e308"], "mu, lam are", "mu = 1e+308, lam = 1e+308: Material.mu = "),
+    (["lam=-1e9,-2e9", "yield_stress=10,100"], "lam is", "lam = -1e+09: material 0 (body 'paste'): Material.lam = "),
+    (["yield_stress=10,100", "hardening=-1e9"], "hardening is", "hardening = -1e+09: material 0 (body 'paste'): Material.hardening = "),
+    (["yield_stress=10", "mu=1e308", "lam=1e308"], "mu, lam are", "mu = 1e+308, lam = 1e+308: material 0 (body 'paste'): Material.mu = "),
 ])
 def test_a_sweep_the_material_refuses_names_only_the_parameters_the_refusal_is_about(monkeypatch, specs, named, shown):
     """Every swept parameter was named ('--param lam, yield_stress are not allowed') where the
@@ -1891,3 +1892,40 @@ def test_a_table_of_the_same_particles_in_another_scene_is_refused(monkeypatch, 
                                          r"sweep: model = \"[0-9]+ particles, [0-9a-f]+\" there, \"[0-9]+ particles, "
                                          r"[0-9a-f]+\" here; resume it"):
         sweep(_floored(**changed), specs, frames=2, workers=1, resume=first)
+
+
+# ------------------------------------------------------------------ a refusal names the material it is about
+def _two_materials() -> Scene:
+    """A box of toothpaste (material 0) beside a sphere of dough (material 1), far apart."""
+    b = SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.04, 0.0), (0.06, 0.06, 0.06), Material.preset("toothpaste"), name="paste")
+    b.add_sphere((0.3, 0.04, 0.0), 0.03, Material.preset("dough"), name="blob")
+    b.add_ground(friction=0.5)
+    return Scene("two", "two bodies of two materials", b, frames=1, fps=30.0)
+
+
+def test_a_refusal_of_one_material_names_that_material_s_parameter_alone(monkeypatch):
+    """Both materials' lam swept, the dough's below -2 mu / 3 in every sample: the refusal's
+    field (``Material.lam``) was mapped to the parameters by field name alone, so it named
+    ``paste.lam`` too, a value the toothpaste takes in every sample. It names the material
+    refused and its parameter only."""
+    _no_sample_runs(monkeypatch)
+    with pytest.raises(ValueError) as e:
+        sweep(_two_materials(), ["paste.lam=1000,2000", "blob.lam=-1e9,-2e9"], frames=1, workers=1)
+    said = str(e.value)
+    assert said.startswith("--param blob.lam is not allowed: the material refuses every sample's values (sample 0, "
+                           "blob.lam = -1e+09: material 1 (body 'blob'): Material.lam = -1000000000.0 is not allowed"), said
+    assert "paste.lam" not in said, said
+
+
+def test_a_failed_row_of_a_refused_material_names_that_material():
+    """A sample whose value one of two materials refuses is a failed row; its reason said
+    ``Material.lam = ...`` alone, not which of the two materials (both had a lam swept)."""
+    from warp_esph.sweep import _run_sample
+
+    plan = _plan(_two_materials(), ["paste.lam=1000", "blob.lam=1000,-1e9"], "grid", None, 0, 1, None, 30.0, None, 1.0,
+                 "float32", "cpu", 1, 100, None)
+    rows = [_run_sample(plan.scene, t) for _, t in plan.tasks]
+    assert [r["status"] for r in rows] == ["ok", "failed"], rows
+    assert rows[1]["reason"].startswith("ValueError: material 1 (body 'blob'): Material.lam = -1000000000.0 is not "
+                                        "allowed"), rows[1]["reason"]

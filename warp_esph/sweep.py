@@ -23,7 +23,8 @@ depend on where or in which order the samples ran; only ``wall_s`` (the seconds 
 sample took) varies from run to run. Rows are sorted by sample index.
 
 A sample that diverges (``SimulationError``) or whose values make an invalid material is
-a row with ``status = "failed"`` and the one-line ``reason``; the sweep goes on. A sweep
+a row with ``status = "failed"`` and the one-line ``reason`` (an invalid material's names
+it: ``ValueError: material 1 (body 'blob'): Material.lam = ...``); the sweep goes on. A sweep
 the material refuses in every sample, or one of a flow parameter (``yield_stress``,
 ``flow_rate``, ``hardening``) whose materials can flow in no sample (it changes nothing), is
 refused (``ValueError``) before any sample. A reason
@@ -546,12 +547,26 @@ def _apply(model, assignments, values):
         m = model.materials[k]
         if ({"mu", "lam"} & ch.keys()) and "pressure_stiffness" not in ch and m.has_default_pressure_stiffness:
             ch["pressure_stiffness"] = None
-        new = m.replace(**ch)
-        # The row's reason serves sweep() and warp-esph sweep alike: its advice names both
-        # precisions' spellings (it said only dtype=float64, which the command does not take).
-        from .model import check_material_precision  # noqa: PLC0415 (as the module's other model imports)
-        check_material_precision(new, model.scalar, cli=True)
-        model.set_material(k, new)
+        try:
+            new = m.replace(**ch)
+            # The row's reason serves sweep() and warp-esph sweep alike: its advice names both
+            # precisions' spellings (it said only dtype=float64, which the command does not take).
+            from .model import check_material_precision  # noqa: PLC0415 (as the module's other model imports)
+            check_material_precision(new, model.scalar, cli=True)
+            model.set_material(k, new)
+        except ValueError as e:
+            # Which material refused: 'Material.lam = ...' alone did not say which of two
+            # materials whose lam is swept, and the sweep's refusal named both parameters.
+            # A ValueError still, as the row's reason names it; ``index`` for the sweep's own refusal.
+            refused = ValueError(f"{_material_shown(model, k)}: {e}")
+            refused.index = k
+            raise refused from None
+
+
+def _material_shown(model, k: int) -> str:
+    """``material 1 (body 'blob')``: the index and the bodies made of it, as refusals name it."""
+    of = [b.name for b in model.bodies if b.material == k]
+    return f"material {k}" + (f" (body {', '.join(map(repr, of))})" if of else "")
 
 
 def _summary(model, state, solver) -> dict:
@@ -1427,8 +1442,8 @@ def _check_some_sample_material(model, assignments, points) -> None:
     ``Material``'s checks and the precision's): each sample failed alone with the same
     refusal, and the sweep exited 3 with a table of failures. A sample the material takes is
     enough (the others are rows of the table, as a sample that blew up is). The refusal names
-    the swept parameters whose fields the material's refusal names, with the first sample's
-    values of them."""
+    the material refused and the swept parameters of that material whose fields its refusal
+    names, with the first sample's values of them."""
     first = None
     for k, values in enumerate(points):
         try:
@@ -1440,11 +1455,15 @@ def _check_some_sample_material(model, assignments, points) -> None:
     if first is None:
         return
     k, values, e = first
-    # The refusal names the fields it is about ('Material.lam = ...'): only the parameters that
-    # set them are named (all of them were, a swept yield stress told to change beside a lam that
-    # no material takes); a refusal naming no swept field names them all.
+    # The refusal names the material and the fields it is about ('material 1 (body 'blob'):
+    # Material.lam = ...'): only the parameters that set those fields of that material are named
+    # (all of them were, a swept yield stress told to change beside a lam that no material takes;
+    # then every lam, that of a material taking each sample's); one naming no swept field names
+    # that material's parameters, else them all.
     refused = set(re.findall(r"\bMaterial\.(\w+) =", str(e)))
-    names = [name for name, field, _ in assignments if field in refused] or list(values)
+    index = getattr(e, "index", None)
+    concerned = [(name, field) for name, field, idx in assignments if index is None or index in idx]
+    names = [name for name, field in concerned if field in refused] or [name for name, _ in concerned] or list(values)
     shown = ", ".join(f"{name} = {values[name]:g}" for name in names)
     raise ValueError(f"--param {', '.join(names)} {'is' if len(names) == 1 else 'are'} not allowed: the material refuses every sample's values "
                      f"(sample {k}, {shown}: {_one_line(e)}); give values it allows")
