@@ -744,3 +744,58 @@ def test_each_worlds_parameter_gradients_are_its_loss_central_differences():
             assert per_world[w][name][0] == pytest.approx(fd, rel=1e-5), (name, w)
             assert values[0][1 - w] == values[1][1 - w], (name, w)
     r.set_parameters(base)
+
+
+def _floored_world(material, ghost: bool):
+    """A box of ``material`` on a particle floor, a ghost floor where ``ghost``."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.04, 0.0), (0.06, 0.06, 0.06), we.Material.preset(material), name="paste", velocity=(0.1, 0.0, 0.0))
+    b.add_particle_floor("paste", margin=0.02, layers=2, ghost=ghost)
+    b.add_ground(friction=0.5)
+    return b
+
+
+def test_a_world_beside_a_ghost_floor_is_told_it_runs_the_non_fused_kernels_and_matches_such_a_separate_run():
+    """The kernels are chosen for the whole model: a ghost floor in world 0 runs the non-fused
+    ones for every world, so world 1 (a plastic floor, on the fused kernels alone) ended
+    2e-17 m off its separate run (measured, float64), where the worlds' claim is each world's
+    separate run to the bit, and nothing said so. The solver warns naming both worlds, and world
+    1 is its separate run made with ``Solver(fused=False)`` to the bit."""
+    from warp_esph.builder import finalize_worlds
+
+    steps = dict(fps=30.0, dt=1.0 / 30.0 / 80.0, progress=False)
+    model = finalize_worlds([_floored_world("toothpaste", True), _floored_world("dough", False)], dtype=wp.float64)
+    with pytest.warns(RuntimeWarning, match=r"^a ghost floor in world\(s\) \[0\] runs the non-fused kernels for every "
+                                            r"world: world\(s\) \[1\], alone on the fused ones, differ"):
+        solver = we.Solver(model)
+    x = we.simulate(model, 2, solver=solver, **steps).x.numpy()
+    alone = _floored_world("dough", False).finalize(dtype=wp.float64)
+    x1 = we.simulate(alone, 2, solver=we.Solver(alone, fused=False), **steps).x.numpy()
+    np.testing.assert_array_equal(x[model.world_particles(1)], x1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # where every world runs the non-fused kernels alone too, nothing to say
+        we.Solver(model, fused=False)
+        we.Solver(finalize_worlds([_floored_world("toothpaste", True), _floored_world("dough", True)], dtype=wp.float64))
+
+
+def test_a_world_beside_a_comparison_model_is_told_it_differs_from_its_separate_run():
+    """An 'additive' material in world 1 runs the comparison kernels for every world: world 0
+    (incremental dough) ended 2e-16 m off its separate run, fused or not (measured, float64),
+    unsaid. The solver warns naming both worlds, and gives no fused=False advice there."""
+    from warp_esph.builder import finalize_worlds
+
+    def box(deformation):
+        b = we.SceneBuilder(spacing=0.02)
+        b.add_box((0.0, 0.04, 0.0), (0.06, 0.06, 0.06), we.Material.preset("dough").replace(deformation=deformation),
+                  name="paste")
+        b.add_ground(friction=0.5)
+        return b
+
+    model = finalize_worlds([box("incremental"), box("additive")], dtype=wp.float64)
+    with pytest.warns(RuntimeWarning) as seen:
+        we.Solver(model)
+    said = [str(w.message) for w in seen if "non-fused kernels for every world" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith("a comparison deformation model (Material.deformation 'rest' or "
+                                                 "'additive') in world(s) [1] runs the non-fused kernels for every "
+                                                 "world: world(s) [0], alone on the fused ones"), said
+    assert "fused=False" not in said[0]
