@@ -680,6 +680,32 @@ def test_workers_started_from_a_script_without_a_main_guard_say_so(tmp_path):
     assert done.returncode == 0 and done.stdout.strip() == "[2.0, 3.0]", (done.stdout, done.stderr)
 
 
+def test_a_worker_that_dies_under_python_dash_m_fails_its_item_alone(tmp_path):
+    """``python -m warp_esph sweep``: the main module is a package's ``__main__.py``, which
+    spawned workers never run (multiprocessing skips it by name), and whose source need not
+    say ``__main__``. It was taken for a script without a main guard: one worker that died
+    (out of memory, a crash) failed every sample left with 'the worker processes could not
+    start', and a resumed sweep kept those failed rows. Now the item that killed its worker
+    fails alone and the others run."""
+    import subprocess
+
+    pkg = tmp_path / "runner"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "items.py").write_text("import os\n\n\ndef dies_first(i):\n    if i == 0:\n        os._exit(7)\n    return i\n")
+    (pkg / "__main__.py").write_text("from warp_esph.sweep import parallel_map\nfrom runner.items import dies_first\n\n"
+                                     "print(parallel_map(dies_first, [(i,) for i in range(4)], workers=2, "
+                                     "on_error=lambda i, why: why))\n")
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=repo + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    done = subprocess.run([sys.executable, "-m", "runner"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "could not start" not in done.stdout, done.stdout
+    assert "worker process died running this item alone" in done.stdout and done.stdout.rstrip().endswith(", 1, 2, 3]"), \
+        done.stdout
+
+
 # ------------------------------------------------------------------ input found misread or refused without a name
 @pytest.mark.parametrize("args, words", [
     # N = 1e9 levels were allocated (7.5 GiB) before the count was compared.

@@ -828,8 +828,17 @@ def _call_star(fn, *args):
 def _unguarded_main_script() -> str | None:
     """The path of the script this process runs when its source has no ``__main__`` guard,
     else None. A spawned worker starts by importing that script (``multiprocessing``'s spawn),
-    so without the guard it runs the script's parallel call again and dies starting."""
-    path = getattr(sys.modules.get("__main__"), "__file__", None)
+    so without the guard it runs the script's parallel call again and dies starting.
+
+    A package's ``__main__.py`` (``python -m warp_esph``) is never run in a worker: spawn
+    skips a main module named ``*.__main__``, as its source needs no guard. It was taken for
+    an unguarded script, so one worker that died failed every sample left as unstartable. A
+    module run with ``-m`` is imported there as ``__mp_main__``, and its guard is checked."""
+    main = sys.modules.get("__main__")
+    name = getattr(getattr(main, "__spec__", None), "name", None)
+    if name is not None and (name == "__main__" or name.endswith(".__main__")):
+        return None
+    path = getattr(main, "__file__", None)
     if not path or not str(path).endswith(".py"):
         return None
     try:
