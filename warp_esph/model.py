@@ -1062,6 +1062,19 @@ class Model:
         self._stable_dt = (key, dt)
         return dt
 
+    def world_stable_dts(self, courant: float = 0.3, hourglass: float | None = None) -> list[float]:
+        """Each world's ``stable_dt`` alone: its own materials and the fields acting on its
+        bodies, as its separate model's (the hourglass strength is the model's, as
+        ``worlds_auto_differ`` warns). ``stable_dt``, the default step of ``simulate`` and a
+        sweep, is the least of them, the stiffest world's: a softer world runs more steps a frame
+        than alone, and ends off its separate run (2.8e-4 m of a 6 cm box in 3 frames, float64,
+        measured), as ``resolve_timestep`` warns."""
+        courant = checks.courant(courant)
+        self._check_force_fields()
+        rows = self._read_parameters()
+        self._check_parameter_values(rows)
+        return [self._stable_dt_now(courant, hourglass, rows, w) for w in range(self.world_count)]
+
     def _check_force_fields(self) -> None:
         """The force fields as they are now hold what ``finalize`` asks of them: each a
         ``CompressionField`` whose centre, strength and times fit the model's float type, on a
@@ -1117,21 +1130,24 @@ class Model:
         rho = np.array([m.density for m in self.materials], dtype=np.float64)
         return p_wave_speed(p["mu"], p["lam"], rho, p["pressure_stiffness"])
 
-    def _hourglass_limit(self, courant: float, hourglass: float | None, p: dict | None = None) -> tuple[float, float]:
+    def _hourglass_limit(self, courant: float, hourglass: float | None, p: dict | None = None,
+                         rho: np.ndarray | None = None) -> tuple[float, float]:
         """``(dt_c, c)``: the hourglass control's own limit ``dt_c`` of ``stable_dt`` and the
         strength ``c`` it is taken at (None: ``solver_choice()``'s); ``dt_c`` is ``inf`` where
-        ``c = 0``. ``p``: the parameter values (default: ``parameter_values()``)."""
+        ``c = 0``. ``p``: the parameter values (default: ``parameter_values()``); ``rho``: the
+        densities of the materials ``p`` holds (default: every material's)."""
         strength = self.solver_choice()[1] if hourglass is None else checks.hourglass("hourglass", hourglass)
         if not strength > 0.0:
             return math.inf, strength
         from .sim import hourglass as hg  # noqa: PLC0415 (model data first, kernels on demand)
 
         p = self.parameter_values() if p is None else p
-        rho = np.array([m.density for m in self.materials], dtype=np.float64)
+        if rho is None:
+            rho = np.array([m.density for m in self.materials], dtype=np.float64)
         limit = hg.stable_dt(strength, float(np.max(p["mu"] / rho)), self.spacing, self.support_radius)
         return 0.8 * courant / 0.3 * limit, strength
 
-    def _field_limit(self, courant: float) -> tuple[float, float, tuple[int, ...]]:
+    def _field_limit(self, courant: float, world: int | None = None) -> tuple[float, float, tuple[int, ...]]:
         """``(dt_f, k, fields)``: the force fields' own limit ``dt_f = (C / 0.3) 2 / (1.5
         sqrt(k))`` of ``stable_dt``, the net strength ``k`` (1/s^2) it is taken at and the
         indices into ``force_fields`` of the fields that make it; ``(inf, 0.0, ())`` where no
@@ -1144,9 +1160,11 @@ class Model:
         run crosses ``t_on``, and so does one left alone when a repelling field over it
         switches off. A repelling field (``k < 0``) grows as ``exp(sqrt(-k) t)`` at any step
         size, so it sets no limit of its own; it lessens the net strength of the fields it
-        overlaps, as it does the force."""
+        overlaps, as it does the force. ``world``: the fields acting on that world's bodies
+        alone (``world_stable_dts``); None: every body's."""
         fields = self.force_fields
-        bodies = len(self.bodies)
+        mine = range(len(self.bodies)) if world is None else {i for i, b in enumerate(self.bodies) if b.world == world}
+        bodies = len(mine)
         best, chosen = 0.0, ()
         # Taken at the t_on only, a repelling field's t_off was missed: +k on [0, inf) under -k
         # on [0, 0.5) set no limit, and the run past 0.5 s had the field's spring unbounded.
@@ -1155,12 +1173,12 @@ class Model:
             on_all = [i for i in acting if fields[i].body < 0]
             own: dict[int, list[int]] = {}
             for i in acting:
-                if fields[i].body >= 0:
+                if fields[i].body >= 0 and fields[i].body in mine:
                     own.setdefault(fields[i].body, []).append(i)
             # The fields on every body alone act on a body only where it has none of its own
             # (counted anyway, they set a limit no particle needed when every body's own field
             # cancelled them).
-            groups = ([on_all] if len(own) < bodies else []) + [sorted(on_all + mine) for mine in own.values()]
+            groups = ([on_all] if len(own) < bodies else []) + [sorted(on_all + theirs) for theirs in own.values()]
             for group in groups:
                 net = math.fsum(fields[i].strength for i in group)
                 if net > best:
@@ -1180,13 +1198,16 @@ class Model:
         fields = f"field {which[0]}" if len(which) == 1 else "fields " + ", ".join(str(i) for i in which)
         return f"compression {fields} (on {on})"
 
-    def _stable_dt_now(self, courant: float, hourglass: float | None, rows: np.ndarray) -> float:
-        p = self._parameter_values(rows)
-        rho = np.array([m.density for m in self.materials], dtype=np.float64)
-        c = self.wave_speeds(p)
+    def _stable_dt_now(self, courant: float, hourglass: float | None, rows: np.ndarray, world: int | None = None) -> float:
+        # ``world``: that world's materials and fields alone (``world_stable_dts``); None: all.
+        full = self._parameter_values(rows)
+        mats = slice(None) if world is None else self.world_materials(world)
+        c = np.asarray(self.wave_speeds(full))[mats]
+        p = {k: np.asarray(v)[mats] for k, v in full.items()}
+        rho = np.array([m.density for m in self.materials[mats]], dtype=np.float64)
         dt = courant * self.spacing / float(np.max(c))
-        dt_c, strength = self._hourglass_limit(courant, hourglass, p)
-        dt_f, k, _ = self._field_limit(courant)
+        dt_c, strength = self._hourglass_limit(courant, hourglass, p, rho)
+        dt_f, k, _ = self._field_limit(courant, world)
         if strength > 0.0 or k > 0.0:
             # In numpy: dt_c^2 passes the float range for a strength below 1e-155, where Python's
             # float raised OverflowError; its inverse, 0, is the right limit (dt itself). So
