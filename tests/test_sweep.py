@@ -1955,3 +1955,33 @@ def test_a_failed_row_of_a_refused_material_names_that_material():
     assert [r["status"] for r in rows] == ["ok", "failed"], rows
     assert rows[1]["reason"].startswith("ValueError: material 1 (body 'blob'): Material.lam = -1000000000.0 is not "
                                         "allowed"), rows[1]["reason"]
+
+
+def _extra_height(model, state, seed):
+    """An ``extra`` column: the highest particle (m)."""
+    return {"top": float(state.x.numpy()[:, 1].max())}
+
+
+def test_a_blown_up_sample_s_row_holds_no_summary_of_its_blown_up_state():
+    """A sample the end-of-run energy check finds blown up was a failed row that still held the
+    blown-up state's summary (a highest particle at 1.4e17 m, 1.7e35 J) and its ``extra``
+    columns: ``table.column('max_height')``, documented NaN where a sample failed, handed them
+    on as numbers beside the ok rows', and the CSV wrote them. The row keeps its reason and
+    guard counts; its summary and extra cells are empty, as a diverged sample's are."""
+    from warp_esph import tools
+    from warp_esph.sweep import SUMMARY_COLUMNS
+
+    def pose(t):
+        return (3.0, 0.5, 0.0), (0.0, 0.0, 0.0, 1.0)
+
+    b = SceneBuilder(spacing=0.1)
+    b.add_box((0.0, 0.5, 0.0), (0.3, 0.3, 0.3), Material.preset("putty"), name="paste")
+    b.add_ground()
+    b.add_tool("sphere", radius=0.05, motion=tools.Scripted(pose), name="far")
+    table = sweep(Scene("far", "a blow-up beside a scripted tool", b, frames=10, fps=30.0), ["paste.mu=1000,1000000"],
+                  workers=1, dt=1.0 / 300.0, extra=_extra_height)
+    assert [r["status"] for r in table.rows] == ["ok", "failed"] and "blew up" in table.rows[1]["reason"]
+    for name in (*SUMMARY_COLUMNS, "top"):
+        col = table.column(name)
+        assert np.isfinite(col[0]) and np.isnan(col[1]), (name, col)
+    assert table.rows[1]["guard_inverted"] is not None  # what the guards did is kept

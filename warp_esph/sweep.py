@@ -711,11 +711,16 @@ def _run_sample(scene, task: _Task) -> dict:
             # The bodies a scene shows blowing up are left out of the monitor, as in warp-esph run.
             state = simulate(model, task.frames, fps=task.fps, dt=dt, progress=False, solver=solver,
                              monitor_exempt=getattr(scene, "diverges", ()))
-            row.update(_summary(model, state, solver))
+            summary = _summary(model, state, solver)
             why = _blew_up(model, state, dt, task.frames * substeps)
             if why is not None:
+                # The guard counts alone: the blown-up state's summary (a particle at 1.4e17 m) and
+                # extra columns were numbers in a failed row, which column() hands on as measured.
+                row.update({k: v for k, v in summary.items() if k.startswith("guard_")})
                 row.update(status="failed", reason=why)
-            if task.extra is not None:
+            else:
+                row.update(summary)
+            if task.extra is not None and why is None:
                 more = task.extra(model, state, task.seed)
                 taken = sorted(set(more) & (set(row) | {"wall_s", "reason", "warnings"})) if isinstance(more, Mapping) \
                     else None
