@@ -63,13 +63,19 @@ def guess(factor: float = 2.0) -> we.Material:
     return t.replace(**{p: getattr(t, p) * factor for p in PARAMS})
 
 
-def build_model(material: we.Material, scale: float = 0.5, jitter: float = 1e-3, seed: int = 5, dtype=wp.float64) -> we.Model:
-    """The star on the ground at resolution ``scale`` (spacing 1 cm / scale), taped."""
+def scene(material: we.Material, scale: float = 0.5) -> we.SceneBuilder:
+    """The star on the ground at resolution ``scale`` (spacing 1 cm / scale), not yet finalized."""
     dx = 0.01 / scale
     b = we.SceneBuilder(spacing=dx, support_radius=2.5 * dx, contact="continuous")
     b.add_star((0.0, 0.07, 0.0), outer_radius=0.15, inner_radius=0.065, thickness=0.04, material=material, name="star")
     b.add_ground(friction=0.6)
-    model = b.finalize(dtype=dtype, requires_grad=True)
+    return b
+
+
+def build_model(material: we.Material, scale: float = 0.5, jitter: float = 1e-3, seed: int = 5, dtype=wp.float64) -> we.Model:
+    """The star on the ground at resolution ``scale`` (spacing 1 cm / scale), taped."""
+    dx = 0.01 / scale
+    model = scene(material, scale).finalize(dtype=dtype, requires_grad=True)
     if jitter:
         model.particle_x0 += np.random.default_rng(seed).normal(scale=jitter * dx, size=model.particle_x0.shape)
         model.compute_rest_density()
@@ -213,14 +219,50 @@ def plot(history: list[dict], gt: we.Material, out: str) -> list[str]:
     return [loss_png, params_png]
 
 
+def _positive(text: str) -> float:
+    value = float(text)
+    if not (math.isfinite(value) and value > 0.0):
+        raise ValueError
+    return value
+
+
+def _at_least(low: int):
+    def parse(text: str) -> int:
+        value = int(text)
+        if value < low:
+            raise ValueError
+        return value
+
+    return parse
+
+
+def _flag(parse, allowed: str):
+    """An argparse type that refuses with one line naming the value and what is allowed (a
+    zero scale was a ZeroDivisionError traceback, a frame count below 2 'max() arg is an empty
+    sequence', a negative iteration count the library's traceback after the target run)."""
+
+    def check(text: str):
+        try:
+            return parse(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"invalid value {text!r}: must be {allowed}") from None
+
+    return check
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scale", type=float, default=0.5, help="resolution: spacing = 1 cm / scale (default 0.5: 142 particles)")
+    ap.add_argument("--scale", type=_flag(_positive, "a finite number > 0"), default=0.5,
+                    help="resolution: spacing = 1 cm / scale (default 0.5: 142 particles)")
     ap.add_argument("--full", action="store_true", help="full size: scale 1 (1152 particles, the `star` scene's resolution)")
-    ap.add_argument("--frames", type=int, default=15, help="last target frame at 30 fps (default 15: 0.5 s)")
-    ap.add_argument("--iterations", type=int, default=40, help="gradient evaluations after the first (default 40)")
+    # Frame 2 is the first target frame (frames 2..N), so N >= 2.
+    ap.add_argument("--frames", type=_flag(_at_least(2), "an integer >= 2"), default=15,
+                    help="last target frame at 30 fps (default 15: 0.5 s; the targets are frames 2..N)")
+    ap.add_argument("--iterations", type=_flag(_at_least(0), "an integer >= 0"), default=40,
+                    help="gradient evaluations after the first (default 40)")
     ap.add_argument("--optimizer", choices=("lbfgs", "adam"), default="lbfgs")
-    ap.add_argument("--checkpoint-every", type=int, help="checkpoint the rollout every S steps")
+    ap.add_argument("--checkpoint-every", type=_flag(_at_least(1), "an integer >= 1"),
+                    help="checkpoint the rollout every S steps")
     ap.add_argument("--out", default="fit_dough_star_out", help="output folder")
     ap.add_argument("--no-usd", action="store_true", help="do not write USD files")
     ap.add_argument("--progress", action="store_true", help="tqdm bar instead of one line per evaluation")
@@ -228,7 +270,14 @@ def main(argv=None) -> int:
                     help="precision of the fitted model (float32: about half the time per evaluation)")
     a = ap.parse_args(argv)
     scale = 1.0 if a.full else a.scale
+    if os.path.exists(a.out) and not os.path.isdir(a.out):
+        ap.error(f"argument --out: {a.out!r} is a file, not a folder")
     we.init_warp()  # log_level WARNING, no native CUDA-driver note on a CPU machine
+    try:
+        # The builder's lattice check, before the target run (a traceback out of time_step there).
+        scene(truth(), scale)
+    except ValueError as e:
+        ap.error(f"argument --scale: {scale} is not allowed: {e}")
     summary = run(scale, a.frames, a.iterations, a.optimizer, a.out, usd=not a.no_usd, progress=a.progress,
                   checkpoint_every=a.checkpoint_every, dtype=a.dtype)
     return 0 if summary["within_10_percent"] else 1

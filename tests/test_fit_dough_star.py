@@ -20,3 +20,47 @@ def test_fit_dough_star_example_recovers_the_three_parameters(tmp_path, load_exa
         assert doc["fitted"][name] == pytest.approx(doc["truth"][name], rel=0.10), name
     assert doc["loss"] < 1e-6 * doc["initial_loss"]
     assert (tmp_path / "target.npz").exists() and (tmp_path / "fit_loss.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--scale", "0"], "argument --scale: invalid value '0': must be a finite number > 0"),
+    (["--scale", "-1"], "argument --scale: invalid value '-1': must be a finite number > 0"),
+    (["--scale", "nan"], "argument --scale: invalid value 'nan': must be a finite number > 0"),
+    (["--frames", "1"], "argument --frames: invalid value '1': must be an integer >= 2"),
+    (["--frames", "0"], "argument --frames: invalid value '0': must be an integer >= 2"),
+    (["--iterations", "-1"], "argument --iterations: invalid value '-1': must be an integer >= 0"),
+    (["--checkpoint-every", "0"], "argument --checkpoint-every: invalid value '0': must be an integer >= 1"),
+])
+def test_a_bad_flag_is_one_line_of_usage_error_before_any_work(argv, words, capsys, monkeypatch, load_example):
+    """``--scale 0`` ended in a ZeroDivisionError traceback, ``--frames 1`` (no target frame:
+    the targets are frames 2..N) in ``max() arg is an empty sequence``, and a negative
+    ``--iterations`` or ``--checkpoint-every 0`` in the library's traceback after the target
+    run; each is now argparse's one-line error (exit 2) before anything is built or run."""
+    ex = load_example("fit_dough_star")
+    ran = []
+    monkeypatch.setattr(ex, "run", lambda *a, **k: ran.append(a))
+    monkeypatch.setattr(ex, "build_model", lambda *a, **k: ran.append(a))
+    with pytest.raises(SystemExit) as info:
+        ex.main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and ran == []
+    assert err.strip().splitlines()[-1].split(": error: ", 1)[1] == words
+
+
+def test_a_scale_the_builder_refuses_or_an_out_that_is_a_file_is_one_line_of_usage_error(tmp_path, capsys, load_example):
+    """``--scale 1000`` (a 10 micron spacing: 3.6e12 lattice cells) raised the builder's
+    ValueError as a traceback; ``--out`` naming a file, os.makedirs' FileExistsError. Both are
+    now one line of usage error before the target run, the builder's reason kept."""
+    ex = load_example("fit_dough_star")
+    with pytest.raises(SystemExit) as info:
+        ex.main(["--scale", "1000", "--out", str(tmp_path)])
+    last = capsys.readouterr().err.strip().splitlines()[-1].split(": error: ", 1)[1]
+    assert info.value.code == 2
+    assert last.startswith("argument --scale: 1000.0 is not allowed: ")
+    assert "lattice cells" in last
+    a_file = tmp_path / "taken"
+    a_file.write_text("")
+    with pytest.raises(SystemExit) as info:
+        ex.main(["--out", str(a_file)])
+    last = capsys.readouterr().err.strip().splitlines()[-1].split(": error: ", 1)[1]
+    assert info.value.code == 2 and last == f"argument --out: {str(a_file)!r} is a file, not a folder"
