@@ -94,6 +94,7 @@ XTOL = 3e-3
 #: evaluations at ci size still moving 5 % per step) and Gauss-Newton needs a handful of
 #: forward runs (LAB_OPTIMIZER=lbfgs to compare).
 OPTIMIZER = os.environ.get("LAB_OPTIMIZER", "gauss-newton")
+OPTIMIZERS = ("gauss-newton", "lbfgs", "adam")
 
 #: The hidden material: mu = 10 rho g H0 (as benchmarks/validation.py's slump), a uniaxial
 #: yield stress of 0.3 rho g H0 (S = 0.3), a plastic viscosity of 20 Pa s (the compression's
@@ -281,6 +282,11 @@ def main(argv=None) -> int:
     ap.add_argument("--size", choices=sorted(SETUPS), default="full")
     ap.add_argument("--out", help="folder for the lab files and result.json (default: a temporary folder)")
     args = ap.parse_args(argv)
+    # Here, not in fit(): a typo there was a traceback after both lab runs.
+    if OPTIMIZER not in OPTIMIZERS:
+        ap.error(f"LAB_OPTIMIZER = {OPTIMIZER!r} is not allowed: must be one of {', '.join(map(repr, OPTIMIZERS))}")
+    if args.out and os.path.exists(args.out) and not os.path.isdir(args.out):
+        ap.error(f"argument --out: {args.out!r} is a file, not a folder")
     we.init_warp()  # log_level WARNING, no native note about a missing CUDA driver on a CPU machine
     s = SETUPS[args.size]
     folder = args.out or tempfile.mkdtemp(prefix="lab_")

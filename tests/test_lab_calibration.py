@@ -36,3 +36,28 @@ def test_joint_fit_of_slump_and_compression_recovers_yield_stress_and_plastic_vi
     for name in ("yield_stress", "flow_rate"):
         assert fitted[name] == pytest.approx(true[name], rel=TOL), name
         assert abs(fitted[name] - true[name]) < 3.0 * se[name], name
+
+
+def test_an_out_that_is_a_file_or_an_unknown_optimizer_is_one_line_of_usage_error_before_any_work(tmp_path, capsys, monkeypatch,
+                                                                                                  load_example):
+    """``--out`` naming a file ended in os.makedirs' FileExistsError traceback, and a
+    ``LAB_OPTIMIZER`` the fit does not know in the fit's traceback after both lab runs; each is
+    now one line of usage error (exit 2) before anything runs."""
+    a_file = tmp_path / "taken"
+    a_file.write_text("")
+    for env, argv, words in ((None, ["--size", "ci", "--out", str(a_file)], f"argument --out: {str(a_file)!r} is a file, not a folder"),
+                             ("sgd", ["--size", "ci", "--out", str(tmp_path / "lab")],
+                              "LAB_OPTIMIZER = 'sgd' is not allowed: must be one of 'gauss-newton', 'lbfgs', 'adam'")):
+        if env is None:
+            monkeypatch.delenv("LAB_OPTIMIZER", raising=False)
+        else:
+            monkeypatch.setenv("LAB_OPTIMIZER", env)
+        ex = load_example("calibrate_from_lab")  # reads LAB_OPTIMIZER as it is loaded
+        ran = []
+        monkeypatch.setattr(ex, "measure", lambda *a, **k: ran.append(a))
+        with pytest.raises(SystemExit) as info:
+            ex.main(argv)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert info.value.code == 2 and ran == []
+        assert err[-1].split(": error: ", 1)[1] == words
+    assert not (tmp_path / "lab").exists()
