@@ -755,3 +755,16 @@ def test_a_tensor_that_requires_grad_is_refused_by_name_at_the_other_numpy_entry
     # Without requires grad the same tensors are read as numpy (a detached target is saved).
     save_target(tmp_path / "t.npz", t((1, 4, 3)).detach() + 1.0, [0])
     np.testing.assert_array_equal(np.load(tmp_path / "t.npz")["positions"], np.ones((1, 4, 3)))
+
+
+def test_a_parameter_tensor_of_a_non_real_dtype_is_refused_naming_its_dtype():
+    """``x0`` / ``v0`` of a bool or complex dtype were refused naming the dtype; a parameter
+    tensor's refusal showed its values alone (``mu = tensor([1.+0.j])``: a complex128 and a
+    complex64 one read the same, and a long tensor is shortened past its dtype)."""
+    rollout = Rollout(_cube(), 2, 1.0e-3)
+    for t in (torch.tensor([True]), torch.tensor([1.0 + 0j], dtype=torch.complex64), torch.ones(1, dtype=torch.complex128)):
+        with pytest.raises(ValueError, match=rf"^mu = .* \(dtype {t.dtype}\) is not allowed: must be numbers, one per "
+                                             r"material$"):
+            rollout_positions(rollout, {"mu": t})
+    with pytest.raises(ValueError, match=r"^mu = .* \(dtype bool\) is not allowed: must be numbers, one per material$"):
+        rollout_positions(rollout, {"mu": np.array([True])})

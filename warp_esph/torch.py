@@ -252,7 +252,9 @@ def rollout_positions(rollout: Rollout, params=None, x0=None, v0=None):
         kind = ("b" if value.dtype == torch.bool else "c" if value.is_complex() else "f") if isinstance(value, torch.Tensor) \
             else np.asarray(value).dtype.kind
         if kind not in "iuf":  # a bool ran as 1 Pa
-            raise ValueError(f"{name} = {checks.shorten(value)!r} is not allowed: must be numbers, one per material")
+            # The dtype named: complex64 and complex128 values print alike, and a long tensor is shortened past it.
+            typed = f" (dtype {value.dtype})" if isinstance(value, (torch.Tensor, np.ndarray, np.generic)) else ""
+            raise ValueError(f"{name} = {checks.shorten(value)!r}{typed} is not allowed: must be numbers, one per material")
         if isinstance(value, torch.Tensor):
             given_tensors[name] = value
         else:
