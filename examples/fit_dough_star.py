@@ -252,9 +252,11 @@ def _flag(parse, allowed: str):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scale", type=_flag(_positive, "a finite number > 0"), default=0.5,
-                    help="resolution: spacing = 1 cm / scale (default 0.5: 142 particles)")
-    ap.add_argument("--full", action="store_true", help="full size: scale 1 (1152 particles, the `star` scene's resolution)")
+    # One or the other: --full with a --scale ran at scale 1, the typed scale ignored.
+    size = ap.add_mutually_exclusive_group()
+    size.add_argument("--scale", type=_flag(_positive, "a finite number > 0"), default=0.5,
+                      help="resolution: spacing = 1 cm / scale (default 0.5: 142 particles)")
+    size.add_argument("--full", action="store_true", help="full size: scale 1 (1152 particles, the `star` scene's resolution)")
     # Frame 2 is the first target frame (frames 2..N), so N >= 2.
     ap.add_argument("--frames", type=_flag(_at_least(2), "an integer >= 2"), default=15,
                     help="last target frame at 30 fps (default 15: 0.5 s; the targets are frames 2..N)")

@@ -64,3 +64,15 @@ def test_a_scale_the_builder_refuses_or_an_out_that_is_a_file_is_one_line_of_usa
         ex.main(["--out", str(a_file)])
     last = capsys.readouterr().err.strip().splitlines()[-1].split(": error: ", 1)[1]
     assert info.value.code == 2 and last == f"argument --out: {str(a_file)!r} is a file, not a folder"
+
+
+def test_full_and_a_scale_together_are_refused_not_one_ignored(capsys, monkeypatch, load_example):
+    """``--full --scale 0.3`` ran at scale 1, the typed scale ignored without a word."""
+    ex = load_example("fit_dough_star")
+    ran = []
+    monkeypatch.setattr(ex, "run", lambda *a, **k: ran.append(a))
+    with pytest.raises(SystemExit) as info:
+        ex.main(["--full", "--scale", "0.3"])
+    assert info.value.code == 2 and ran == []
+    assert capsys.readouterr().err.strip().splitlines()[-1].split(": error: ", 1)[1] == \
+        "argument --scale: not allowed with argument --full"
