@@ -768,3 +768,52 @@ def test_a_parameter_tensor_of_a_non_real_dtype_is_refused_naming_its_dtype():
             rollout_positions(rollout, {"mu": t})
     with pytest.raises(ValueError, match=r"^mu = .* \(dtype bool\) is not allowed: must be numbers, one per material$"):
         rollout_positions(rollout, {"mu": np.array([True])})
+
+
+@pytest.mark.parametrize("dtype", [wp.float64, wp.float32])
+def test_the_bridge_s_gradients_are_the_rollout_tape_s_bitwise_and_repeat(dtype):
+    """In the model's precision, the bridge's gradients are ``Rollout.backward``'s (the Warp
+    tape's) to the bit, for the inputs that require grad only (``v0`` here does not); a second
+    backward through the same graph (``retain_graph``) adds the same gradient again; and a call
+    with the same inputs after calls with others gives the same positions and gradients bitwise
+    (nothing of the other calls is left in the model or the rollout)."""
+    model = _cube()
+    if dtype is wp.float32:
+        b = we.SceneBuilder(spacing=0.02, support_radius=0.05)
+        b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), model.materials[0])
+        single = b.finalize(dtype=wp.float32, requires_grad=True)
+        single.particle_x0, single.particle_v0 = model.particle_x0, model.particle_v0
+        model = single
+    tdtype = torch.float64 if dtype is wp.float64 else torch.float32
+    rollout = Rollout(model, 3, 1.0e-3, frames=[2, 3])
+    w = torch.from_numpy(np.random.default_rng(2).normal(size=(2, 27, 3))).to(tdtype)
+    x0_values = torch.tensor(model.particle_x0, dtype=tdtype)
+    v0 = torch.tensor(model.particle_v0, dtype=tdtype)
+
+    def run():
+        mu = torch.tensor([1.0e3], dtype=tdtype, requires_grad=True)
+        x0 = x0_values.clone().requires_grad_()
+        out = rollout_positions(rollout, {"mu": mu, "yield_stress": torch.tensor([10.0], dtype=tdtype)}, x0=x0, v0=v0)
+        loss = (out * w).sum()
+        loss.backward(retain_graph=True)
+        first = (mu.grad.clone(), x0.grad.clone())
+        loss.backward()
+        assert torch.equal(mu.grad, 2 * first[0]) and torch.equal(x0.grad, 2 * first[1])
+        assert v0.grad is None and out.dtype == tdtype
+        return out.detach(), first
+
+    out, (g_mu, g_x0) = run()
+    rollout.set_parameters({"mu": np.array([1.0e3]), "yield_stress": np.array([10.0])})
+    expected = rollout.forward(x0=x0_values.numpy(), v0=v0.numpy())
+    _, grads = rollout.backward(w.numpy())
+    np.testing.assert_array_equal(out.numpy(), expected)
+    assert g_mu.dtype == tdtype and g_mu.numpy().tolist() == grads["mu"].tolist()
+    np.testing.assert_array_equal(g_x0.numpy(), grads["x0"])
+    # Other inputs in between, then the same ones again.
+    rollout_positions(rollout, {"mu": torch.tensor([3.0e3], dtype=tdtype, requires_grad=True)},
+                      v0=torch.ones(3, dtype=tdtype)).sum().backward()
+    with torch.no_grad():
+        rollout_positions(rollout, {"flow_rate": torch.tensor([80.0], dtype=tdtype)}, x0=x0_values + 0.001)
+    rollout_positions(rollout, {"flow_rate": torch.tensor([50.0], dtype=tdtype)})  # the cube's own flow rate back
+    again, (h_mu, h_x0) = run()
+    assert torch.equal(again, out) and torch.equal(h_mu, g_mu) and torch.equal(h_x0, g_x0)
