@@ -47,7 +47,11 @@ import time
 import numpy as np
 import warp as wp
 
-import warp_esph as we
+try:
+    import warp_esph as we
+except ImportError:  # run from a checkout without installing the package
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    import warp_esph as we
 from warp_esph import tools
 from warp_esph.fit import Experiment, fit
 from warp_esph.losses import ReactionForceLoss, SlumpLoss, read_tools_csv
