@@ -289,6 +289,39 @@ def test_replacing_an_array_is_checked_again(models):
         a.assign(models["bigger"].state())
 
 
+def test_a_states_check_is_remembered_across_the_steps_that_write_it(models):
+    """The step sets ``time``, ``rest_model``, ``flowed`` and ``written_by`` on its
+    ``state_out``; that cleared the memo of ``checks.same_state``, so both states were checked
+    in full at every step (two of the six launches' worth of Python at 142 particles). The
+    memo now outlives those, and still goes with a replaced array."""
+    import warp as wp
+
+    from warp_esph import checks
+
+    model = models["own"]
+    solver = we.Solver(model)
+    a, b = model.state(), model.state()
+    full = []
+    check = checks.same_state
+
+    def counted(model_, name, state):
+        if state.__dict__.get("_checked_for") is not model_:
+            full.append(name)
+        check(model_, name, state)
+
+    checks.same_state = counted
+    try:
+        for _ in range(4):
+            solver.step(a, b, 1e-4)
+            a, b = b, a
+        assert full == ["state_in", "state_out"], full  # each state checked in full once
+        a.x = wp.zeros(model.particle_count + 5, dtype=wp.vec3)
+        with pytest.raises(ValueError, match=r"state_in does not belong to this model: x has shape"):
+            solver.step(a, b, 1e-4)
+    finally:
+        checks.same_state = check
+
+
 def test_a_parameter_array_put_in_its_place_is_one_the_kernels_take_or_refused(models):
     """``model.mu = ...`` in place of the model's array: a float64 array in a float32 model
     failed in Warp's launch (``Struct field 'mu' expects dtype float32, got float64``), numpy

@@ -318,9 +318,14 @@ class State:
     #: uninterrupted run did (they were zero there).
     STEP_REPORTS = ("reaction_force", "reaction_torque", "collider_force", "collider_torque")
 
+    #: What every step writes on its ``state_out`` besides arrays: none of it is what
+    #: ``checks.same_state`` checks, so setting it keeps that check's memo (cleared by these
+    #: too, the full check ran twice a step, docs/performance.md).
+    BOOKKEEPING = frozenset(("time", "rest_model", "flowed", "written_by"))
+
     def __setattr__(self, name, value):
         # A replaced array may not fit the model any more: ``checks.same_state`` checks again.
-        if name != "time":
+        if name not in self.BOOKKEEPING:
             self.__dict__.pop("_checked_for", None)
         object.__setattr__(self, name, value)
 
