@@ -419,6 +419,7 @@ class Model:
         self._rest_material_struct = None  # the same with every deformation code "rest" (material_arrays(rest=True))
         self._rest_codes = None
         self._stable_dt = None  # stable_dt's last answer and what it was computed from
+        self._row_answers = {}  # _answer's last answer to each question, with the parameter rows' bytes it read
         self._parameter_stage = None  # _read_parameters's one buffer (allocated on first use)
         self._parameter_views = None  # on the CPU, _read_parameters's views of the arrays, with their key
         self._held_parameters = None  # _read_parameters's answer inside _parameters_read_once
@@ -647,8 +648,26 @@ class Model:
         chosen = self.materials[materials]
         if any(m.deformation != "incremental" or m.elastic_force != "variational" for m in chosen):
             return False
-        rows = dict(zip(self.MATERIAL_FIELDS, self._read_parameters()[:, materials]))
-        return bool(np.all(~np.isfinite(rows["yield_stress"]) | (rows["flow_rate"] <= 0.0)))
+
+        def answer(rows):
+            rows = dict(zip(self.MATERIAL_FIELDS, rows[:, materials]))
+            return bool(np.all(~np.isfinite(rows["yield_stress"]) | (rows["flow_rate"] <= 0.0)))
+
+        return self._answer(("elastic_only", materials.start, materials.stop, materials.step), answer)
+
+    def _answer(self, question: tuple, answer):
+        """``answer(rows)`` of the parameter rows (``_read_parameters``), kept with the rows'
+        bytes: asked again of the same bytes, the answer kept. A step asks ``elastic_only``
+        twice and ``sph_active`` once at parameters that seldom change (about 20 us a step of
+        the fit example's 0.55 ms at 142 particles, docs/performance.md)."""
+        rows = self._read_parameters()
+        raw = rows.tobytes()
+        kept = self._row_answers.get(question)
+        if kept is not None and kept[0] == raw:
+            return kept[1]
+        value = answer(rows)
+        self._row_answers[question] = (raw, value)
+        return value
 
     def worlds_auto_differ(self, fit: str | None = None) -> list[int]:
         """The worlds that, alone, ``fit="auto"`` would run otherwise than the model of all of
@@ -969,8 +988,11 @@ class Model:
     @property
     def sph_active(self) -> bool:
         """Whether any material has SPH pressure or viscosity now (``parameter_values``)."""
-        rows = dict(zip(self.MATERIAL_FIELDS, self._read_parameters()))
-        return bool((rows["pressure_stiffness"] > 0.0).any() or (rows["viscosity"] > 0.0).any())
+        def answer(rows):
+            rows = dict(zip(self.MATERIAL_FIELDS, rows))
+            return bool((rows["pressure_stiffness"] > 0.0).any() or (rows["viscosity"] > 0.0).any())
+
+        return self._answer(("sph_active",), answer)
 
     @property
     def spacing(self) -> float:
