@@ -32,6 +32,7 @@ Not a test.
 """
 
 import collections
+import contextlib
 import json
 import os
 import sys
@@ -227,6 +228,63 @@ def measure(model: we.Model, steps: int, repeats: int, profile: bool, hand: bool
     return out
 
 
+@contextlib.contextmanager
+def _without_step_memos(off: bool):
+    """Inside (where ``off``), the step as before its two memos (docs/performance.md, "The
+    step's Python at the fit example's size"): the step's bookkeeping clears the state's check
+    (``State.BOOKKEEPING``), and the parameter rows' answers are computed at every question
+    (``Model._answer``)."""
+    from warp_esph.model import Model, State  # noqa: PLC0415
+
+    kept = State.BOOKKEEPING, Model._answer
+    if off:
+        State.BOOKKEEPING = frozenset(("time",))
+        Model._answer = lambda self, question, answer: answer(self._read_parameters())
+    try:
+        yield
+    finally:
+        State.BOOKKEEPING, Model._answer = kept
+
+
+def step_memos(model, steps: int, blocks: int) -> dict:
+    """The fused forward, taped forward and backward of ``model`` with the step's memos off and
+    on (``_without_step_memos``) in ``blocks`` alternating blocks each: CPU ms a step, best
+    block, the ratio of the best blocks and the median of the paired blocks' ratios, and
+    whether both gave the same bits."""
+    dt = 1.0 / 30.0 / 40.0
+    frames = sorted({max(1, steps // 3), steps})
+    rollout = Rollout(model, steps, dt, frames=frames)
+    loss = PositionLoss(rollout.forward() + 0.001, frames=frames)
+    solver = Solver(model)
+    pair = [model.state(), model.state()]
+    times = {k: {False: [], True: []} for k in ("fused", "taped", "backward")}
+    got = {}
+    for b in range(blocks + 1):  # the first, untimed: the launches' first recordings
+        for on in ((False, True) if b % 2 == 0 else (True, False)):
+            with _without_step_memos(not on):
+                t0 = time.thread_time()
+                for k in range(steps):
+                    solver.step(pair[k % 2], pair[(k + 1) % 2], dt)
+                t1 = time.thread_time()
+                positions = rollout.forward()
+                t2 = time.thread_time()
+                value, grads = rollout.backward(loss)
+                t3 = time.thread_time()
+            for k, t in (("fused", t1 - t0), ("taped", t2 - t1), ("backward", t3 - t2)):
+                if b > 0:
+                    times[k][on].append(t)
+            got[on] = (positions, value, grads)
+    times["gradient"] = {on: [a + b for a, b in zip(times["taped"][on], times["backward"][on])] for on in (False, True)}
+    out = {}
+    for k, t in times.items():
+        off, on = np.array(t[False]), np.array(t[True])
+        out[k] = {"off_ms": 1e3 * off.min() / steps, "on_ms": 1e3 * on.min() / steps, "best_ratio": on.min() / off.min(),
+                  "median_ratio": float(np.median(on / off))}
+    (p0, v0, g0), (p1, v1, g1) = got[False], got[True]
+    out["same_bits"] = bool(np.array_equal(p0, p1) and v0 == v1 and all(np.array_equal(g0[k], g1[k]) for k in g0))
+    return out
+
+
 def report(r: dict, profile: bool):
     print(f"{r['scene']:>6} {r['dtype']} ({r['adjoints']} adjoints): {r['particles']} particles, {r['steps']} steps, "
           f"fused {r['fused_ms_per_step']:.2f} ms/step; taped {r['taped_over_fused']:.2f}x, "
@@ -274,12 +332,27 @@ def main(argv=None) -> int:
     ap.add_argument("--differentiable", action="store_true",
                     help="also time the rollout with the taped forward on the differentiable kernels (Solver.fused = "
                          "False; hand-written adjoints where they exist for them)")
+    ap.add_argument("--step-memos", type=_cli.positive_int, default=None, metavar="BLOCKS",
+                    help="only time the star (--star-steps) with the step's two memos off and on in BLOCKS alternating "
+                         "blocks each (docs/performance.md)")
     ap.add_argument("--json", default=None, type=_cli.output_file, help="write the results here")
     a = ap.parse_args(argv)
     from warp_esph.startup import init_warp  # noqa: PLC0415 (log_level, no native CUDA note)
 
     init_warp()
     rows = []
+    if a.step_memos is not None:
+        for name in a.dtypes:
+            r = step_memos(star_model(getattr(wp, name)), a.star_steps, a.step_memos)
+            print(f"  star {name}, {a.star_steps} steps, memos off -> on, CPU ms a step (best of {a.step_memos} blocks; "
+                  f"ratio of the best, median of the paired ratios): " + "; ".join(
+                      f"{k} {v['off_ms']:.3f} -> {v['on_ms']:.3f} ({v['best_ratio']:.3f}, {v['median_ratio']:.3f})"
+                      for k, v in r.items() if k != "same_bits") + f"; same bits: {r['same_bits']}", flush=True)
+            rows.append({"scene": "star", "dtype": name, "steps": a.star_steps, "step_memos": r})
+        if a.json:
+            with open(a.json, "w") as f:
+                json.dump(rows, f, indent=2)
+        return 0
     for size in a.sizes:
         by_dtype = {}
         for name in a.dtypes:

@@ -95,6 +95,22 @@ def test_gradient_benchmark_profiles_every_kernel_of_the_step_and_of_its_backwar
             "integrate (generated adjoint)"} <= set(backward), backward
 
 
+def test_gradient_benchmark_times_the_steps_memos_off_and_on_and_puts_them_back():
+    """``benchmarks.gradient_bench --step-memos``: the star's fused forward, taped forward and
+    backward with the step's two memos off and on (docs/performance.md) give the same bits,
+    and the memos are on again after it."""
+    import warp as wp
+
+    from benchmarks import gradient_bench
+    from warp_esph.model import Model, State
+
+    kept = State.BOOKKEEPING, Model._answer
+    r = gradient_bench.step_memos(gradient_bench.star_model(wp.float64), steps=3, blocks=1)
+    assert r["same_bits"]
+    assert all(r[k]["off_ms"] > 0.0 and r[k]["on_ms"] > 0.0 for k in ("fused", "taped", "backward", "gradient")), r
+    assert (State.BOOKKEEPING, Model._answer) == kept
+
+
 def test_fit_benchmark_times_a_fits_loss_only_runs_untaped_against_taped(tmp_path):
     """``benchmarks.fit_bench --loss-only`` at a tiny size: a Gauss-Newton fit (every run loss
     only) and an L-BFGS fit (its diagnostics' runs loss only), each timed with those runs
