@@ -23,6 +23,7 @@ and dividing by it gave 2.8e+21).
     python -m benchmarks.gradient_bench                      # 10k block and fit star, f32 + f64
     python -m benchmarks.gradient_bench --generated --profile   # also the old path; per-kernel times
     python -m benchmarks.gradient_bench --sizes 1000 --repeats 2 --profile
+    python -m benchmarks.gradient_bench --step-memos 20   # the star with the step's two memos off / on
 
 ``--generated`` also runs the rollout with ``Solver.hand_adjoints = False`` (the
 differentiable kernels on the tape with Warp's generated adjoints: the code before the
