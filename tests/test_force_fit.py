@@ -836,6 +836,51 @@ def test_a_force_log_as_a_lab_writes_it_is_read_or_refused_for_what_it_is(tmp_pa
         load_target(repeated)
 
 
+def test_a_force_log_quoted_tab_separated_or_under_comment_lines_reads_as_the_plain_log(tmp_path):
+    """Three layouts an instrument's or a spreadsheet's export writes: every cell quoted
+    ('"frame","time",...'), tabs between the fields, and '#' lines before the header (a
+    testing machine's preamble: instrument, sample, date). Each was taken for a point cloud
+    and refused as 'a header that names no columns x, y and z', or (tabs) as semicolons would
+    be, 'a spreadsheet's export with decimal commas?', though its numbers have decimal points.
+    They read as the plain log; a refusal names the row by its line in the file (a preamble,
+    or an empty line between rows, had shifted it), and a decimal comma between tabs is still
+    refused as one."""
+    from warp_esph.fit import load_target  # noqa: PLC0415
+
+    rows = [("0", "0", "0"), ("1", "0.005", "-1.5"), ("2", "0.01", "-2.5")]
+
+    def log(name, sep=",", quote="", preamble="", decimal=".", fy=None):
+        cells = [["frame", "time", "tool", "fx", "fy", "fz"]] + [
+            [f, t.replace(".", decimal), "plate", "0", (fy if fy is not None and f == "2" else v).replace(".", decimal), "0"]
+            for f, t, v in rows]
+        text = preamble + "".join(sep.join(quote + c + quote for c in r) + "\r\n" for r in cells)
+        path = tmp_path / name
+        path.write_bytes(text.encode())
+        return path
+
+    plain = load_target(log("plain.csv"))
+    preamble = "# Instron 5969, Bluehill export\r\n# sample: dough A, 20 mm cube\r\n"
+    for path in (log("quoted.csv", quote='"'), log("tabs.csv", sep="\t"), log("preamble.csv", preamble=preamble),
+                 log("all.csv", sep="\t", quote='"', preamble=preamble)):
+        t = load_target(path)
+        assert (t.kind, t.tool, t.frames, t.fps) == ("forces", "plate", plain.frames, plain.fps), path.name
+        assert [r["force"].tolist() for r in t.data] == [r["force"].tolist() for r in plain.data], path.name
+    # Frame 2's row is line 4 of the plain file, line 6 under the two comment lines.
+    with pytest.raises(ValueError, match=r"empty_fy\.csv, row 6: fy = '' is not allowed: it is empty"):
+        load_target(log("empty_fy.csv", preamble=preamble, fy=""))
+    gap = tmp_path / "gap.csv"
+    gap.write_bytes(b"frame,time,tool,fx,fy,fz\n0,0,plate,0,0,0\n\n1,0.005,plate,0,x,0\n")
+    with pytest.raises(ValueError, match=r"gap\.csv, row 4: fy = 'x' is not allowed"):
+        load_target(gap)
+    with pytest.raises(ValueError, match=r"comma_tabs\.csv, row 3: time = '0,005' is not allowed: a decimal comma\?"):
+        load_target(log("comma_tabs.csv", sep="\t", decimal=","))
+    lacking = tmp_path / "lacking.csv"
+    lacking.write_bytes(b"# export\nframe\ttime\ttool\tfy\n0\t0\tplate\t0\n")
+    with pytest.raises(ValueError, match=r"lacking\.csv is not allowed: a reaction-force log needs the columns frame, time, "
+                                         r"tool, fx, fy, fz, .*; it lacks fx, fz"):
+        load_target(lacking)
+
+
 def test_a_force_curve_the_fit_cannot_reach_in_size_is_named_by_the_diagnostics():
     """A log in mN read as newtons is 1000 times the force: with mu bounded where the
     material could be, the fit ran mu to its bound and the diagnostics said it was held

@@ -3164,7 +3164,8 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
     - ``<output>_tools.csv`` of ``warp-esph run`` (a CSV whose header names ``frame, time,
       tool, fx, fy, fz``): the reaction-force curve of ``tool`` (a tool's or a static
       collider's name, ``plane0`` for the ground; default: the only one when the file holds
-      one), a ``ReactionForceLoss`` per rendered frame.
+      one), a ``ReactionForceLoss`` per rendered frame; quoted cells, tabs between the fields
+      and ``#`` lines before the header (an instrument's preamble) are read.
     - ``.xyz/.txt/.csv/.pts``: a point cloud, three numbers per line (metres), under an
       optional header row naming the columns ``x``, ``y``, ``z`` (read whatever other columns
       there are; a unit beside them other than ``m`` is refused); a byte-order mark, empty
@@ -3526,26 +3527,26 @@ def _refuse_other_force_logs(p: str) -> None:
     'cannot be read as a point cloud: could not convert string ...', which they never were."""
     import re  # noqa: PLC0415
 
-    from .losses import TOOLS_CSV_COLUMNS, tools_csv_header  # noqa: PLC0415
+    from .losses import TOOLS_CSV_COLUMNS, tools_csv_header, tools_log_head  # noqa: PLC0415
 
     with open(p, newline="", encoding="utf-8-sig", errors="replace") as fh:
-        line = fh.readline().rstrip("\r\n")
+        line = tools_log_head(fh)[0].rstrip("\r\n")  # the header below a preamble's '#' lines, as the log reads it
     if line.startswith("//"):  # CloudCompare's header row ('//X,Y,Z,Time'): a cloud's, as _read_cloud_text reads it
         line = line[2:]
-    names = [re.sub(r"\s*[\[(].*$", "", c).strip().lower() for c in re.split(r"[,;\t]", line)]
+    names = [re.sub(r"\s*[\[(].*$", "", c.strip().strip('"')).strip().lower() for c in re.split(r"[,;\t]", line)]
     if not any(n in _FORCE_LOG_NAMES for n in names):
         return
     axes = {m.group(1).lower() for c in re.split(r"[,;\t]", line)
             if (m := re.fullmatch(r"([A-Za-z]+?)" + _HEADER_UNIT, c.strip().strip('"')))}
     if {"x", "y", "z"} <= axes and not {"fx", "fy", "fz", "force", "load"} & set(names):
         return  # a cloud's header with a time stamp or frame column beside x, y, z: read as a cloud
-    need = (f"a reaction-force log needs the columns {', '.join(TOOLS_CSV_COLUMNS)}, comma-separated (times in s, "
-            "forces in N, numbers with a decimal point), one row per frame and tool")
-    for sep, what in ((";", "semicolons"), ("\t", "tabs")):
-        if sep in line and "," not in line:
-            # A spreadsheet in a locale of decimal commas writes ';' between fields.
-            raise ValueError(f"target {p} is not allowed: its fields are separated by {what} (a spreadsheet's "
-                             f"export with decimal commas?); {need}")
+    need = (f"a reaction-force log needs the columns {', '.join(TOOLS_CSV_COLUMNS)}, comma-separated (or tab-separated; "
+            "times in s, forces in N, numbers with a decimal point), one row per frame and tool")
+    if ";" in line and "," not in line and "\t" not in line:
+        # A spreadsheet in a locale of decimal commas writes ';' between fields. Tabs are read
+        # (losses.tools_log_delimiter): they had been refused as if they meant decimal commas.
+        raise ValueError(f"target {p} is not allowed: its fields are separated by semicolons (a spreadsheet's "
+                         f"export with decimal commas?); {need}")
     header = tools_csv_header(p) or []
     missing = [c for c in TOOLS_CSV_COLUMNS if c not in header]
     extra = ""

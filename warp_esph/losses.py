@@ -34,6 +34,7 @@ Normalisation: each loss is the mean over its frames of its per-frame value, tim
 import contextlib
 import copy
 import functools
+import itertools
 import math
 import os
 import types
@@ -1532,17 +1533,55 @@ def _column(name: str) -> tuple[str, str | None]:
     return m.group(1).lower(), m.group(2) if m.group(2) is not None else m.group(3)
 
 
+#: Lines before a force log's header that are read past: a testing machine's preamble
+#: ('# Instron 5969', '# sample: ...'), as a point cloud's '#' lines are.
+_PREAMBLE_LINES = 1000
+
+
+def _is_preamble(line: str) -> bool:
+    """Whether a line before a force log's header is a comment or blank (read past)."""
+    return not line.strip() or line.lstrip().startswith("#")
+
+
+def tools_log_head(fh) -> tuple[str, int]:
+    """A force log's header line and how many lines before it are read past (``#`` comments
+    and blank lines): ``("", n)`` where none follows within ``_PREAMBLE_LINES``."""
+    for skipped in range(_PREAMBLE_LINES):
+        line = fh.readline()
+        if not line:
+            break
+        if not _is_preamble(line):
+            return line, skipped
+    return "", 0
+
+
+def tools_log_delimiter(header: str) -> str:
+    """The field separator of a force log: tabs where its header has tabs and no commas (an
+    instrument's tab-separated export, which had been refused as if its separator meant decimal
+    commas), else commas."""
+    return "\t" if "\t" in header and "," not in header else ","
+
+
 def tools_csv_header(path) -> list[str] | None:
-    """The column names of a CSV file's first line as a force log reads them (a spreadsheet's
-    byte-order mark, spaces and capitals left out), or None where it cannot be read."""
+    """The column names of a CSV file's header line as a force log reads them (a spreadsheet's
+    byte-order mark, quotes, spaces and capitals left out; ``#`` lines before it read past), or
+    None where it cannot be read."""
+    import csv  # noqa: PLC0415
+
     try:
         # utf-8-sig: a spreadsheet's 'CSV UTF-8' starts with a byte-order mark, which made its
         # 'frame' column '\ufeffframe' and the log 'lacks frame', as printed beside it.
         with open(path, newline="", encoding="utf-8-sig", errors="replace") as fh:
-            head = fh.readline()
+            head, _ = tools_log_head(fh)
     except OSError:
         return None
-    return [_column(c)[0] for c in head.rstrip("\r\n").split(",")]
+    # Parsed as the rows are: a header of quoted cells ('"frame","time",...') had been read
+    # as the names '"frame"', ..., and the log taken for a point cloud.
+    try:
+        cells = next(csv.reader([head.rstrip("\r\n")], delimiter=tools_log_delimiter(head)), [])
+    except csv.Error:
+        return None
+    return [_column(c)[0] for c in cells]
 
 
 def is_tools_csv(path) -> bool:
@@ -1569,9 +1608,11 @@ def read_tools_csv(path) -> list[dict]:
     seen: dict[tuple[str, int], int] = {}
     try:
         with open(p, newline="", encoding="utf-8-sig") as fh:
+            head, skipped = tools_log_head(fh)
             # 'frame, time, tool, ...' (spaces after the commas) read as the columns ' time',
             # ' tool', ... and the log was refused as lacking them, printed beside it.
-            reader = csv.DictReader(fh, skipinitialspace=True)
+            reader = csv.DictReader(itertools.chain([head], fh), skipinitialspace=True,
+                                    delimiter=tools_log_delimiter(head))
             if reader.fieldnames:
                 columns = [_column(c) for c in reader.fieldnames]
                 for (name, unit), cell in zip(columns, reader.fieldnames):
@@ -1586,8 +1627,10 @@ def read_tools_csv(path) -> list[dict]:
                 raise ValueError(f"{p} is not allowed as a force target: it lacks the columns {', '.join(missing)} "
                                  f"(a '<output>_tools.csv' of 'warp-esph run' has them)")
             width = len(reader.fieldnames)
-            for k, row in enumerate(reader):
-                line = k + 2
+            for row in reader:
+                # The row's line in the file: counting rows had named the wrong line below a
+                # preamble or an empty line (which the reader skips).
+                line = reader.line_num + skipped
                 if not row.get(None) and not any((v or "").strip() for key, v in row.items() if key is not None):
                     continue  # a spreadsheet's empty row (',,,,,') holds nothing
                 fields = sum(v is not None for key, v in row.items() if key is not None) + len(row.get(None) or [])
