@@ -121,6 +121,28 @@ def test_positions_missing_everywhere_or_in_a_whole_frame_are_refused_by_name():
         PositionLoss({5: t})
 
 
+def test_a_positions_file_holding_arrays_the_reader_does_not_read_is_refused_naming_them(tmp_path):
+    """A lab's .npz of markers with a 'times' array (seconds from a clock not at 0, or in ms)
+    in place of 'frames' and 'fps' was read as frames 0..K-1 at the scene's rate, the times
+    dropped without a word: a run 100 s long was fitted as if it took K frames. Every array
+    other than positions, frames and fps is refused by name; the same positions with frames
+    and fps read."""
+    x0 = _block().particle_x0
+    x = np.stack([x0 + 0.001 * k for k in range(3)])
+    np.savez(tmp_path / "timed.npz", positions=x, times=np.array([12.0, 12.5, 13.0]))
+    with pytest.raises(ValueError, match=r"target .*timed\.npz is not allowed: it holds the array 'times', which a positions "
+                                         r"target does not read \(allowed: positions, frames, fps\); 'times' is not read: "
+                                         r"store the frame of each entry as 'frames'"):
+        load_target(tmp_path / "timed.npz")
+    np.savez(tmp_path / "labelled.npz", positions=x, frames=[0, 1, 2], fps=2.0, labels=np.array(["a", "b"]),
+             units=np.array("mm"))
+    with pytest.raises(ValueError, match=r"labelled\.npz is not allowed: it holds the arrays 'labels', 'units', which"):
+        load_target(tmp_path / "labelled.npz")
+    np.savez(tmp_path / "framed.npz", positions=x, frames=[0, 1, 2], fps=2.0)
+    t = load_target(tmp_path / "framed.npz")
+    assert (t.frames, t.fps) == ([0, 1, 2], 2.0)
+
+
 def test_a_positions_file_with_gaps_is_read_and_fitted_by_its_observed_markers(tmp_path):
     """An .npz of a motion-capture export with occluded markers (NaN) is read; its frames
     keep their gaps, a frame with no marker seen is left out with a warning, a file of

@@ -3147,6 +3147,10 @@ def save_target(path, positions, frames: Sequence[int], fps: float | None = None
     np.savez_compressed(path, positions=positions, frames=np.asarray(frames, dtype=np.int64), **extra)
 
 
+#: The arrays an ``.npz`` target may hold (``save_target`` writes them); any other is refused, not dropped.
+_NPZ_TARGET_KEYS = ("positions", "frames", "fps")
+
+
 def load_target(path, body: str | None = None, frames=None, tool: str | None = None, frames_name: str = "frames") -> Target:
     """Read a target file.
 
@@ -3157,7 +3161,8 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
       CLI's ``--target-frames``). Any other USD file is read as a mesh.
 
     - ``.npz``: ``positions`` ``(K, n, 3)`` (or ``(n, 3)``), optional ``frames`` (rendered
-      frame indices; default 0..K-1) and ``fps``. A NaN position (``.npz`` or ``.npy``) is a
+      frame indices; default 0..K-1) and ``fps``, no other array (a ``times`` is refused, not
+      dropped). A NaN position (``.npz`` or ``.npy``) is a
       missing marker, left out of the loss (``PositionLoss``), also in a run's USD (another
       program's); a file all NaN is refused.
     - ``.npy``: positions ``(K, n, 3)`` of frames ``0..K-1``, or ``(n, 3)``: the last frame.
@@ -3205,6 +3210,16 @@ def load_target(path, body: str | None = None, frames=None, tool: str | None = N
         if ext == ".npz":
             if "positions" not in data:
                 raise ValueError(f"target {p} is not allowed: a .npz target needs a 'positions' array (has {list(data.keys())})")
+            unread = [k for k in data if k not in _NPZ_TARGET_KEYS]
+            if unread:
+                # Dropped without a word: a lab's 'times' (in ms, or from a clock not at 0) left the
+                # entries read as frames 0..K-1 at the scene's rate, whatever the times said.
+                timed = [k for k in unread if k.lower() in ("t", "time", "times", "timestamp", "timestamps")]
+                how = (f"; {timed[0]!r} is not read: store the frame of each entry as 'frames' (whole indices, frame k "
+                       "at k / fps s from time 0 at frame 0) and the rate as 'fps'") if timed else ""
+                raise ValueError(f"target {p} is not allowed: it holds the array{'s' if len(unread) > 1 else ''} "
+                                 f"{', '.join(map(repr, unread))}, which a positions target does not read (allowed: "
+                                 f"{', '.join(_NPZ_TARGET_KEYS)}){how}")
             pos = _real_array(p, "positions", data["positions"])
             if "frames" in data:
                 given = np.atleast_1d(data["frames"])
