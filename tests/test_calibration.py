@@ -1004,6 +1004,34 @@ def _dough_guess_and_target(tmp_path, dough_scene):
     return guess, run
 
 
+def test_a_positions_file_whose_frames_count_from_a_later_start_is_said_in_the_plan(tmp_path, capsys, dough_scene):
+    """A lab's .npz whose stored frames count from a camera's counter (its entry of the start
+    stored as frame 2) was fitted that many frames late without a word: the plan line is said
+    for files without frame numbers only. Its first frame holding the scene's start, after
+    frame 0, is now said; the same positions numbered from 0, or from 1 without the start,
+    draw no such line."""
+    from warp_esph.cli import main
+    from warp_esph.fit import load_target
+
+    guess, run = _dough_guess_and_target(tmp_path, dough_scene)
+    x = np.asarray(load_target(run, frames="all").data)  # frames 0..3, entry 0 the start
+
+    def plan(name, positions, frames):
+        np.savez(tmp_path / name, positions=positions, frames=frames, fps=30.0)
+        capsys.readouterr()
+        status = main(["fit", str(guess), "--target", str(tmp_path / name), "--iterations", "0", "--no-diagnostics",
+                       "--no-progress", "--no-usd", "--output-dir", str(tmp_path / f"out_{name}")])
+        err = capsys.readouterr().err
+        assert status == 0, err
+        return [line for line in err.splitlines() if "first stored frame" in line]
+
+    said = plan("counted.npz", x, [2, 3, 4, 5])
+    assert len(said) == 1 and "its first stored frame, 2, lies 0 spacings RMS from the scene's initial positions" in said[0]
+    assert "renumber them from 0" in said[0]
+    assert plan("from_zero.npz", x, [0, 1, 2, 3]) == []
+    assert plan("from_one.npz", x[1:], [1, 2, 3]) == []
+
+
 def _interrupt_evaluation(monkeypatch, n):
     """A Ctrl-C (KeyboardInterrupt) in the fit's ``n``-th evaluation."""
     from warp_esph import fit as fit_module

@@ -834,6 +834,8 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     readings = [_frame_reading(path, t, id(t) in numbered, model)
                 for kind, path, t in loaded if kind == "file" and t.kind == "positions" and not t.frames_stored
                 and os.path.splitext(str(path))[1].lower() not in (".usd", ".usda", ".usdc")]
+    readings += [said for kind, path, t in loaded if kind == "file" and t.kind == "positions" and t.frames_stored
+                 and (said := _start_frame_later(path, t, model))]
     materials = spec.get("material")
     if materials:
         materials = [int(m) if str(m).isdigit() else m for m in materials]
@@ -951,6 +953,36 @@ def _frame_reading(path, t, numbered: bool, model) -> str:
         rms = float(np.sqrt(np.mean(np.sum((first[seen] - x0[seen]) ** 2, axis=1))))
         line += f" (it lies {rms / model.spacing:.3g} spacings RMS from the scene's initial positions)"
     return line + f"; if they are other frames, name them with --target-frames (e.g. 1:{entries} for frames 1 to {entries})"
+
+
+#: A stored frame after 0 this close to the scene's start (RMS, in spacings), where the data
+#: move at least 1 / START_MOTION_SHARE times as far, is said to hold the start (_start_frame_later).
+START_TOLERANCE = 0.05
+START_MOTION_SHARE = 0.05
+
+
+def _start_frame_later(path, t, model) -> str | None:
+    """A warning where an ``.npz``'s earliest stored frame is after 0 and holds the scene's
+    initial positions (a camera's frame counter, which starts where it was switched on): each
+    entry is fitted at its stored frame's time, so the whole motion was fitted that many
+    frames late, and the diagnostics could only say the residuals were large."""
+    k = int(np.argmin(t.frames))
+    first, start = int(t.frames[k]), np.asarray(model.particle_x0, dtype=np.float64)
+    data = np.asarray(t.data, dtype=np.float64)
+    if first == 0 or data.shape[1:] != start.shape:
+        return None
+
+    def rms(x):
+        seen = np.isfinite(x).all(axis=1)
+        return float(np.sqrt(np.mean(np.sum((x[seen] - start[seen]) ** 2, axis=1)))) / model.spacing if seen.any() else None
+
+    near, moved = rms(data[k]), max((r for r in map(rms, data) if r is not None), default=None)
+    if near is None or moved is None or not (near <= START_TOLERANCE and near <= START_MOTION_SHARE * moved):
+        return None
+    return (f"warning: target {path}: its first stored frame, {first}, lies {near:.3g} spacings RMS from the scene's "
+            f"initial positions (the data move up to {moved:.3g} spacings from them): it holds the start, which is frame 0; each entry is "
+            f"fitted at its stored frame / fps, {first} frames late if the frames count from another start (a camera's "
+            "frame counter): renumber them from 0 at the start")
 
 
 def write_outputs(result, folder, meta: dict | None = None, json_path: str | None = None,
