@@ -980,9 +980,9 @@ def _start_frame_later(path, t, model) -> str | None:
     if near is None or moved is None or not (near <= START_TOLERANCE and near <= START_MOTION_SHARE * moved):
         return None
     return (f"warning: target {path}: its first stored frame, {first}, lies {near:.3g} spacings RMS from the scene's "
-            f"initial positions (the data move up to {moved:.3g} spacings from them): it holds the start, which is frame 0; each entry is "
-            f"fitted at its stored frame / fps, {first} frames late if the frames count from another start (a camera's "
-            "frame counter): renumber them from 0 at the start")
+            f"initial positions (the data move up to {moved:.3g} spacings from them): it holds the start, which is "
+            f"frame 0; each entry is fitted at its stored frame / fps, {first} frames late if the frames count from "
+            "another start (a camera's frame counter): renumber them from 0 at the start")
 
 
 def write_outputs(result, folder, meta: dict | None = None, json_path: str | None = None,
