@@ -874,6 +874,12 @@ def test_a_force_log_quoted_tab_separated_or_under_comment_lines_reads_as_the_pl
         load_target(gap)
     with pytest.raises(ValueError, match=r"comma_tabs\.csv, row 3: time = '0,005' is not allowed: a decimal comma\?"):
         load_target(log("comma_tabs.csv", sep="\t", decimal=","))
+    # A log whose tool column was left empty was read as the forces of a tool named '' and
+    # refused as 'holds the forces of ' (nothing), naming no row.
+    with pytest.raises(ValueError, match=r"no_tool\.csv, row 2: tool = '' is not allowed: it is empty; name the scene's "
+                                         r"tool"):
+        load_target(_write(tmp_path / "no_tool.csv", "frame,time,tool,fx,fy,fz\n0,0,,0,0,0\n1,0.005,,0,-1.5,0\n"),
+                    tool="plate")
     lacking = tmp_path / "lacking.csv"
     lacking.write_bytes(b"# export\nframe\ttime\ttool\tfy\n0\t0\tplate\t0\n")
     with pytest.raises(ValueError, match=r"lacking\.csv is not allowed: a reaction-force log needs the columns frame, time, "

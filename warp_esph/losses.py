@@ -1640,6 +1640,11 @@ def read_tools_csv(path) -> list[dict]:
                     raise ValueError(f"{p}, row {line} is not allowed: it has {fields} fields, the header {width} (a file "
                                      "cut short, or a row of another table?)")
                 tool = (row["tool"] or "").strip()
+                if not tool:
+                    # Read as a tool named '' and refused as 'holds the forces of ', naming no row.
+                    raise ValueError(f"{p}, row {line}: tool = '' is not allowed: it is empty; name the scene's tool (or "
+                                     "static collider, 'plane0' for the ground) that measured the force, as --target-tool "
+                                     "does")
                 values = {}
                 for c in ("frame", "time", "fx", "fy", "fz"):
                     cell = (row[c] or "").strip()
