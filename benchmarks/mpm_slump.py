@@ -92,7 +92,8 @@ import numpy as np
 import warp as wp
 
 from benchmarks import _cli
-from benchmarks.validation import G, RHO, bingham_uniaxial_stress, centre_thickness, pile_profile, slump_theory
+from benchmarks.validation import (G, RHO, bingham_uniaxial_stress, centre_thickness, pile_profile, plug_measures,
+                                   slump_theory)
 
 REST_RATE, REST_KINETIC = 0.1, 1.0e-8  # % H0/s, M g H0: the suite's rest bounds
 FLOOR_PAD = wp.constant(3)  # grid nodes below y = 0 (node index FLOOR_PAD is at y = 0)
@@ -430,6 +431,12 @@ def slump(S, res=16, aspect=1.0, H0=0.1, duration=8.0, max_duration=16.0, eta=2.
         "kinetic_last_quarter_over_MgH0": ke_last, "at_rest": bool(abs(rate) < REST_RATE and ke_last < REST_KINETIC),
         "J_range": [float(J.min()), float(J.max())],
         "plug_depth_over_H0": plug, "plug_1d_depth_over_H0": S,
+        # The particle suite's own plug criterion on the same region (docs/validation.md, the
+        # plug), so the continuum is read as the particle piles are; the region is
+        # S H0 / 2 = S res / 2 cells thick (the particle suite reads it only from one support
+        # radius up, the MPM at any grid).
+        **plug_measures(depth0, np.hypot(x0[:, 0], x0[:, 2]), ratio, plastic, S, H0, R0),
+        "plug_region_cells": 0.5 * S * res,
         "fraction_at_yield": float((ratio >= 0.99).mean()),
         "axis_layers": layers,
         "history": {"t": [round(v, 4) for v in T], "thickness_over_H0": [round(v / H0, 5) for v in TH],

@@ -279,6 +279,31 @@ def pile_profile(x0: np.ndarray, x: np.ndarray, depth0: np.ndarray, plastic: np.
     return bands, layers
 
 
+def plug_measures(depth0: np.ndarray, r0: np.ndarray, ratio: np.ndarray, plastic: np.ndarray, S: float, H0: float,
+                  R0: float, resolved: bool = True) -> dict:
+    """The suite's reading of a slumped pile's plug, shared by both slump solvers (``slump``
+    here, the MPM's in ``benchmarks/mpm_slump.py``) so that the continuum is held to the same
+    criterion: the particles that start within ``R0 / 2`` of the axis and less than
+    ``S H0 / 2`` deep (the part of the 1-D plug the sudden release leaves below yield;
+    docs/validation.md, the plug), from their initial depths ``depth0`` and radii ``r0``, final
+    stress ratios ``ratio`` (|s| / Y) and accumulated plastic strains ``plastic`` (in yield
+    strains ``Y / (2 mu)``). Where ``resolved`` is false, or no particle is in the region, the
+    fractions are nan."""
+    plug = (depth0 < 0.5 * S * H0) & (r0 < 0.5 * R0) & bool(resolved)
+    nan = float("nan")
+    return {
+        "plug_particles": int(plug.sum()),
+        # At rest: a particle of the plug that never flowed keeps |s| < Y (the 0.99 of
+        # "at yield"); one that flowed stays at Y (the flow stops where |s| reaches it).
+        "plug_unyielded_fraction": float((ratio[plug] < 0.99).mean()) if plug.any() else nan,
+        # Accumulated plastic strain (State.alpha, sum of gamma |dev ln sigma|) in yield
+        # strains: below 1 the particle changed shape less plastically than the largest
+        # elastic strain it can hold, i.e. it did not flow.
+        "plug_plastic_strain": float(plastic[plug].mean()) if plug.any() else nan,
+        "plug_plastic_strain_max": float(plastic[plug].max()) if plug.any() else nan,
+    }
+
+
 def slump_model(S: float, resolution: int = 12, elastic_force: str = "variational", H0: float = 0.1,
                 flow_rate: float = 200.0, viscosity: float = 2.0, friction: float = 1.0, pressure_force: str = "energy_spiky",
                 floor: str = "particles", floor_radius: float = 3.2, pressure_stiffness: float | None = None,
@@ -368,7 +393,6 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
     # it is at least h thick; elsewhere the plug measures are nan.
     depth0 = x0[:, 1].max() + 0.5 * dx - x0[:, 1]
     resolved = 0.5 * S * H0 >= model.support_radius * (1.0 - 1e-9)  # equal at S = 0.5, 8 across
-    plug = (depth0 < 0.5 * S * H0) & (r0 < 0.5 * R0) & resolved
     # More than h below the 1-D yield surface the material has flowed: the reference scale.
     flowed = (depth0 > S * H0 + model.support_radius) & (r0 < 0.5 * R0)
     solver = _solver(model)
@@ -449,15 +473,7 @@ def slump(S: float, resolution: int = 12, elastic_force: str = "variational", du
         "rest_rate_pct_H0_per_s": REST_RATE, "rest_kinetic_over_MgH0": REST_KINETIC,
         "fraction_at_yield": float((ratio >= 0.99).mean()),
         "fraction_above_0p9_yield": float((ratio >= 0.9).mean()),
-        "plug_particles": int(plug.sum()),
-        # At rest: a particle of the plug that never flowed keeps |s| < Y (the 0.99 of
-        # "at yield"); one that flowed stays at Y (the flow stops where |s| reaches it).
-        "plug_unyielded_fraction": float((ratio[plug] < 0.99).mean()) if plug.any() else float("nan"),
-        # Accumulated plastic strain (State.alpha, sum of gamma |dev ln sigma|) in units of
-        # the yield strain Y / (2 mu): below 1 the particle changed shape less plastically
-        # than the largest elastic strain it can hold, i.e. it did not flow.
-        "plug_plastic_strain": float(alpha[plug].mean() / yield_strain) if plug.any() else float("nan"),
-        "plug_plastic_strain_max": float(alpha[plug].max() / yield_strain) if plug.any() else float("nan"),
+        **plug_measures(depth0, r0, ratio, alpha / yield_strain, S, H0, R0, resolved),
         "flowed_plastic_strain": float(alpha[flowed].mean() / yield_strain) if flowed.any() else float("nan"),
         "nearest_neighbor_mean": float(nearest[np.isfinite(nearest)].mean()),
         "nearest_neighbor_p05": float(np.percentile(nearest, 5)),

@@ -93,3 +93,17 @@ def test_near_yield_column_spreads_its_base_as_the_1d_analysis():
     assert 0.7 < r["front_depth"] < 0.8, r  # the 1-D front at 0.8 L, the spreading base drags a little above
     assert r["top_offset_over_width"] < 0.01, r  # upright: the tilt comes later
 
+
+
+def test_slump_reads_its_plug_by_the_particle_suites_criterion():
+    """The MPM's slump reports the particle suite's plug measures (``validation.plug_measures``:
+    the top S H0 / 2 within R0 / 2 of the axis) so the continuum is held to the same target
+    (docs/validation.md, the plug). 4 cells over H0 on a slip floor, 1 s: the stiff S = 0.5
+    pile keeps its plug (measured: 24 particles, none yielded), the S = 0.2 one flows through
+    it (12 particles, all at yield, 14 yield strains)."""
+    stiff = mpm_slump.slump(0.5, res=4, duration=1.0, max_duration=1.0, flow_rate=200.0, floor_friction=0.0)
+    weak = mpm_slump.slump(0.2, res=4, duration=1.0, max_duration=1.0, flow_rate=200.0, floor_friction=0.0)
+    assert stiff["plug_particles"] > 0 and weak["plug_particles"] > 0
+    assert stiff["plug_unyielded_fraction"] > 0.9 and stiff["plug_plastic_strain"] < 1.0, stiff
+    assert weak["plug_unyielded_fraction"] < 0.5 and weak["plug_plastic_strain"] > 2.0, weak
+    assert weak["plug_region_cells"] == pytest.approx(0.4)

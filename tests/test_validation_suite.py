@@ -58,16 +58,17 @@ def test_the_pile_profile_reads_a_lattice_cylinder_and_a_uniform_squash_exactly(
     assert np.allclose([L["y_over_H0"] for L in layers], [q * (1.0 - L["depth0_over_H0"]) for L in layers])
 
 
-def _plug_row(plugs):
+def _plug_row(plugs, mpm=None):
     """The report's plug target over made slump rows ``{(S, resolution): (fraction below
-    0.99 Y, plastic strain in yield strains)}``, the other fields those of a pile at rest."""
+    0.99 Y, plastic strain in yield strains)}``, the other fields those of a pile at rest,
+    with the continuum's (MPM) rows ``mpm`` if given."""
     from benchmarks.validation_report import _slump_targets
 
     rows = [{"case": "slump", "S": S, "resolution": n, "elastic_force": "variational", "floor": "particles",
              "theory_h_over_H0": 0.5, "thickness_over_H0": 0.5, "top_rate_pct_H0_per_s": 0.0, "kinetic_over_MgH0": 0.0,
              "at_rest": True, "duration": 8.0, "plug_particles": 24, "plug_unyielded_fraction": f,
              "plug_plastic_strain": e, "run": 0} for (S, n), (f, e) in plugs.items()]
-    return next(t for t in _slump_targets(rows, "particles") if t[0].startswith("an unyielded plug"))
+    return next(t for t in _slump_targets(rows, "particles", mpm=mpm) if t[0].startswith("an unyielded plug"))
 
 
 def test_the_plug_target_is_read_for_each_yield_stress_on_its_own():
@@ -78,6 +79,34 @@ def test_the_plug_target_is_read_for_each_yield_stress_on_its_own():
     assert "S = 0.5 at 16/24: 94-100 % of it below 0.99 Y, 0-0.03 yield strains" in got, got
     assert _plug_row({(0.5, 16): (1.0, 0.0), (0.5, 24): (0.95, 0.5)})[2] == "yes"
     assert _plug_row({(0.5, 16): (0.95, 1.2)})[2] == "no (S = 0.5; held: none)"
+
+
+def test_the_plug_target_says_where_the_continuum_misses_it_too():
+    """The continuum (MPM) read by the same plug criterion (``validation.plug_measures``) on
+    the base the particle floor stands for (slip): where it keeps no plug either, the
+    report's verdict stays "no" and says so with its numbers (docs/validation.md, the plug);
+    an MPM on the other base, a coarser-only reading, or one that keeps its plug changes
+    nothing."""
+    def mpm(S, cells, f, e, floor="slip"):
+        return {"S": S, "aspect": 1.0, "plasticity": "Bingham (Perzyna)", "floor": floor, "res_cells_per_H0": cells,
+                "at_rest": True, "duration": 8.0, "plug_particles": 448, "plug_unyielded_fraction": f,
+                "plug_plastic_strain": e}
+
+    plugs = {(0.2, 24): (0.02, 21.0), (0.3, 24): (0.19, 4.0), (0.5, 24): (0.94, 0.03)}
+    continuum = {"slumps": [mpm(0.2, 12, 0.0, 22.0), mpm(0.3, 12, 0.36, 3.4), mpm(0.3, 16, 0.3, 3.0),
+                            mpm(0.5, 12, 1.0, 0.0)]}
+    _, got, verdict, _ = _plug_row(plugs, continuum)
+    assert verdict == "no (S = 0.2, S = 0.3; held: S = 0.5; the continuum on a slip base misses it too: S = 0.2, S = 0.3)", verdict
+    assert "the continuum (MPM, slip base) by the same criterion: S = 0.2 at H0 / 12: 0 % of it below 0.99 Y, 22 yield strains" in got, got
+    assert "S = 0.3 at H0 / 12/16: 30-36 % of it below 0.99 Y, 3-3.4 yield strains" in got, got
+    bare = _plug_row(plugs)
+    assert bare[2] == "no (S = 0.2, S = 0.3; held: S = 0.5)" and "continuum" not in bare[1], bare
+    # The continuum keeps the plug at S = 0.3: nothing to say for it.
+    kept = _plug_row(plugs, {"slumps": [mpm(0.3, 12, 0.95, 0.2)]})
+    assert kept[2] == "no (S = 0.2, S = 0.3; held: S = 0.5)", kept
+    # Only on the other base: not the continuum this floor stands for.
+    other = _plug_row(plugs, {"slumps": [mpm(0.3, 12, 0.36, 3.4, floor="sticky")]})
+    assert other[2] == "no (S = 0.2, S = 0.3; held: S = 0.5)", other
 
 
 def test_the_yield_stress_a_slump_fit_recovers_inverts_the_measured_piles():
