@@ -533,12 +533,13 @@ def _slump_targets(results, floor: str, weight: str = "poly6", mpm: dict | None 
                                   f"{_span([100 * f for f in fr], '.0f')} % of it below 0.99 Y, {_span(st, '.2g')} "
                                   "yield strains")
             got = "; ".join(parts)
+            named = {"sticky": "no-slip"}.get(base, base)
             if cparts:
-                got += f"; the continuum (MPM, {base} base) by the same criterion: " + "; ".join(cparts)
+                got += f"; the continuum (MPM, {named} base) by the same criterion: " + "; ".join(cparts)
             verdict = "yes" if not short else (
                 f"no ({', '.join(short)}; held: "
                 + (", ".join(f"S = {S:g}" for S in sorted(by_plug_S) if f"S = {S:g}" not in short) or "none")
-                + (f"; the continuum on a {base} base misses it too: {', '.join(missed)}" if missed else "") + ")")
+                + (f"; the continuum on a {named} base misses it too: {', '.join(missed)}" if missed else "") + ")")
             out.append((f"an unyielded plug where the run resolves one{on}: over 90 % of it below 0.99 Y and under one "
                         "yield strain of plastic strain", got, verdict, _runs_of(resolved)))
         else:
@@ -862,9 +863,17 @@ strain it can hold) and by `|s| < 0.99 Y` at rest. Material that flowed rests at
 analysis neglects shear: a plug of thickness `S H0` dragged outward at its base by up to
 `tau_y` yields in tension at its centre once `R / (S H0) > sqrt(3)`, about `S < 0.29` for
 `R = R0 = H0 / 2`, so below that a 3-D pile need not keep one (docs/physics.md, the plug).
-The continuum reference of the notes (MPM) keeps none either: at S = 0.2 the top of its axis
-flowed 23-31 yield strains, at S = 0.3 its top layer 2.7-3.6, the particle piles' 21 and
-2.9-4.7. So the plug target reads each S on its own.
+The continuum reference of the notes (MPM), read by the same criterion on the particle
+suite's 24-across lattice (`dx = H0 / 12`, the same 224 / 448 / 672 particles in the region),
+keeps none either: at S = 0.2 none of the region below 0.99 Y after 19 / 22 yield strains
+(slip / no-slip floor), at S = 0.3 36 / 25 % after 3.4 / 5.6 (the particle piles at 24
+across: 2 % after 21, 19 % after 4.0); at S = 0.5 all of it below, none yielded. Its region
+gains that strain as the pile spreads, not in the release (none through the first period;
+gravity ramped over 0.3 s still leaves 2.7 of the 3.2 yield strains at 3 s), and its axis
+layers at `H0 / 16` and 24 flowed as much (docs/physics.md, "The plug criterion against the
+continuum"). So at S <= 0.3 the target asks for a top plug the continuum does not keep in
+this 3-D slump; the target reads each S on its own, and its row names the continuum's
+numbers where it misses the plug too.
 The shallow pile's central height is `h_RC = sqrt(2 tau_y R_RC / (rho g))`.
 
 """
