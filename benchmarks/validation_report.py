@@ -527,7 +527,9 @@ def _slump_targets(results, floor: str, weight: str = "poly6", mpm: dict | None 
                 rows = sorted(cont.get(S, []), key=lambda r: r["res_cells_per_H0"])
                 fr = [r["plug_unyielded_fraction"] for r in rows]
                 st = [r["plug_plastic_strain"] for r in rows]
-                if f"S = {S:g}" in short and rows and not _plug_kept(fr, st):
+                # Named only where no grid of the continuum keeps it: one that does would say
+                # the continuum can, and the particles' miss is theirs.
+                if f"S = {S:g}" in short and rows and not any(_plug_kept([f], [e]) for f, e in zip(fr, st)):
                     missed.append(f"S = {S:g}")
                     cparts.append(f"S = {S:g} at H0 / {'/'.join(str(r['res_cells_per_H0']) for r in rows)}: "
                                   f"{_span([100 * f for f in fr], '.0f')} % of it below 0.99 Y, {_span(st, '.2g')} "

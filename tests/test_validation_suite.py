@@ -104,6 +104,9 @@ def test_the_plug_target_says_where_the_continuum_misses_it_too():
     # The continuum keeps the plug at S = 0.3: nothing to say for it.
     kept = _plug_row(plugs, {"slumps": [mpm(0.3, 12, 0.95, 0.2)]})
     assert kept[2] == "no (S = 0.2, S = 0.3; held: S = 0.5)", kept
+    # One grid keeps it and another does not: the continuum can, so nothing is named.
+    mixed = _plug_row(plugs, {"slumps": [mpm(0.3, 12, 0.36, 3.4), mpm(0.3, 16, 0.95, 0.2)]})
+    assert mixed[2] == "no (S = 0.2, S = 0.3; held: S = 0.5)", mixed
     # Only on the other base: not the continuum this floor stands for.
     other = _plug_row(plugs, {"slumps": [mpm(0.3, 12, 0.36, 3.4, floor="sticky")]})
     assert other[2] == "no (S = 0.2, S = 0.3; held: S = 0.5)", other
