@@ -10,7 +10,9 @@ import pytest
 
 import warp_esph as we
 from warp_esph import PRESETS
-from warp_esph.scenes import DEFAULT_SCENE, FIGURE_SCENES, SCENES, Scene, get_scene, load_scene, load_scene_file
+from warp_esph import scenes
+from warp_esph.scenes import (DEFAULT_SCENE, FIGURE_SCENES, SCENES, Scene, get_scene, load_scaled_scene, load_scene,
+                              load_scene_file)
 from warp_esph.simulate import simulate
 
 DOCS = pathlib.Path(__file__).resolve().parent.parent / "docs"
@@ -19,9 +21,14 @@ DOCS = pathlib.Path(__file__).resolve().parent.parent / "docs"
 EVERYDAY = [name for name in SCENES if name not in FIGURE_SCENES]
 
 
+#: Scales below 0.35 for scenes whose thinnest body is one particle layer there (refused as
+#: under-resolved: the star is 4 cm thick, the squeeze-flow disc 2 cm).
+TINY = {"star": 0.5, "lab_squeeze_flow": 0.4}
+
+
 @pytest.mark.parametrize("name", EVERYDAY)
 def test_scene_builds_and_runs_two_frames_tiny(name):
-    scene = get_scene(name, scale=0.35)
+    scene = get_scene(name, scale=TINY.get(name, 0.35))
     assert isinstance(scene, Scene) and scene.name == name and scene.description
     assert scene.frames >= 1 and scene.fps > 0
     model = scene.builder.finalize()
@@ -44,7 +51,7 @@ def test_scale_sets_the_resolution(name):
 def test_default_scene_and_lookup(tmp_path):
     assert DEFAULT_SCENE == "dough_drop" and list(SCENES)[0] == DEFAULT_SCENE
     assert load_scene(None, scale=0.3).name == "dough_drop"
-    assert load_scene("star", scale=0.3).name == "star"
+    assert load_scene("star", scale=0.5).name == "star"
     with pytest.raises(ValueError, match="did you mean 'rubber_bounce'"):
         get_scene("rubber_bonce")
     with pytest.raises(ValueError, match="scale"):
@@ -512,7 +519,7 @@ def test_load_scene_names_a_scene_that_is_no_name_or_path_and_a_scale_that_alone
         with pytest.raises(ValueError, match=re.escape(f"scene = {bad!r} is not allowed: must be a built-in scene name "
                                                        "or the path of a .toml scene file")):
             load_scene(bad)
-    assert load_scene(b"star", scale=0.3).name == "star"  # a path in bytes, as os.fspath gives them
+    assert load_scene(b"star", scale=0.5).name == "star"  # a path in bytes, as os.fspath gives them
     with pytest.raises(ValueError, match=r"^scale = 1e-300 is not allowed for star: it builds at scale 1, but with its "
                                          r"spacing divided by 1e-300: body 'star' has no particles"):
         load_scene("star", scale=1e-300)
@@ -520,3 +527,28 @@ def test_load_scene_names_a_scene_that_is_no_name_or_path_and_a_scale_that_alone
         get_scene("dough_drop", scale=1e300)
     with pytest.raises(ValueError, match=r"^scale = nan is not allowed: must be a finite number$"):
         load_scene("star", scale=float("nan"))
+
+
+def test_under_resolved_body_is_refused_naming_body_scale_and_the_least_scale(tmp_path):
+    """At scale 0.3 the squeeze-flow disc (2 cm high) is one layer of 1.33 cm spacing: every
+    particle's fit is skipped by the guards of paper §4, and the run answered nonsense with
+    exit 0. It is refused where it is built, naming the body, the scale and the least scale
+    that resolves it, which loads; a scene file's one-layer sheet likewise."""
+    with pytest.raises(ValueError, match=r"^--scale = 0.3 is not allowed for lab_squeeze_flow: body 'sample' is "
+                       r"under-resolved at spacing 0.0133: it is 1 particle layer thick, .* the smallest --scale above "
+                       r"0.3 that resolves it is (\d\.\d+)$") as e:
+        load_scaled_scene("lab_squeeze_flow", 0.3)
+    least = float(str(e.value).rsplit(" ", 1)[1])
+    model = load_scaled_scene("lab_squeeze_flow", least).builder.finalize()
+    assert len(np.unique(np.round(model.particle_x0[:, 1], 6))) >= 2  # two layers at least
+    with pytest.raises(ValueError, match="under-resolved"):
+        load_scaled_scene("lab_squeeze_flow", least - scenes.SCALE_STEP)
+    path = tmp_path / "sheet.toml"
+    path.write_text('[scene]\nspacing = 0.02\n[[bodies]]\nshape = "box"\nname = "sheet"\nmaterial = "clay"\n'
+                    'center = [0, 0.5, 0]\nsize = [0.2, 0.02, 0.2]\n')
+    with pytest.raises(ValueError, match=r"^scale = 1 is not allowed for .*sheet.toml: body 'sheet' is under-resolved "
+                       r"at spacing 0.02: it is 1 particle layer thick, and 100 of its 100 particles .* the smallest "
+                       r"scale above 1 that resolves it is (\d[.\d]*)$") as e:
+        load_scene(str(path))
+    model = load_scene(str(path), scale=float(str(e.value).rsplit(" ", 1)[1])).builder.finalize()
+    assert len(np.unique(np.round(model.particle_x0[:, 1], 6))) == 2

@@ -607,7 +607,8 @@ def _unknown(name) -> ValueError:
 
 
 def get_scene(name: str = DEFAULT_SCENE, scale: float = 1.0) -> Scene:
-    """The built-in scene ``name`` at ``scale`` (a refusal only the scale causes names it)."""
+    """The built-in scene ``name`` at ``scale`` (a refusal only the scale causes names it; a
+    scale at which a body is under-resolved is refused, ``unresolved_bodies``)."""
     if not isinstance(name, str) or name not in SCENES:
         raise _unknown(name)
     return load_scaled_scene(name, scale, "scale")
@@ -641,9 +642,14 @@ def load_scaled_scene(name_or_path: str | os.PathLike | None, scale: float, what
     A scale far from 1 makes the spacing absurd (``--scale 1e-300``: a spacing of 5e+298 m),
     and the scene's own checks then blamed a body ('it is smaller than the spacing 5e+298')
     or its centre: where the scene builds at scale 1, the fault is the scale's.
+
+    A scene with an under-resolved body (``unresolved_bodies``: a body one particle layer
+    thick) is refused naming the body, ``what`` and the smallest scale above ``scale`` that
+    resolves it; it builds the model once on the CPU to read its rest neighbourhoods (1.4 s
+    for Fig. 1's 52,309 particles at scale 1).
     """
     try:
-        return _load(name_or_path, scale)
+        scene = _load(name_or_path, scale)
     except ValueError as e:
         try:
             scale_ok = _scale(scale) != 1.0
@@ -658,3 +664,67 @@ def load_scaled_scene(name_or_path: str | os.PathLike | None, scale: float, what
         scene = os.fsdecode(DEFAULT_SCENE if name_or_path is None else name_or_path)
         raise ValueError(f"{what} = {scale:g} is not allowed for {scene}: it builds at {what} 1, but with its spacing "
                          f"divided by {scale:g}: {e}; give a {what} nearer 1") from None
+    _refuse_unresolved(scene, name_or_path, scale, what)
+    return scene
+
+
+#: A body whose rest fit the guards of paper §4 skip (too few neighbours, or a neighbourhood
+#: too flat for a 3-D fit) for more than this share of its particles is under-resolved: its
+#: deformation is not computed where it is skipped, so it answers nonsense without failing. A
+#: body one particle layer thick loses every particle (the squeeze-flow disc at scale 0.3, the
+#: star at 0.3, Fig. 3's discs at 0.4: 100 %); lattice bodies of two or more layers lose none;
+#: coarse meshes a few corners (Fig. 1's bear at scale 0.1: 14 %, Fig. 4's bunny: 10 %).
+UNRESOLVED_SHARE = 0.25
+#: ``load_scaled_scene`` looks for the smallest scale that resolves a refused scene in steps of this.
+SCALE_STEP = 0.05
+#: ... up to this many times the scale given, and no further than this many particles.
+SCALE_SEARCH = (4.0, 500_000)
+
+
+def unresolved_bodies(builder: SceneBuilder) -> list[tuple[str, int, int, int]]:
+    """``(name, skipped, particles, layers)`` of each body of ``builder`` whose rest fit the guards of
+    paper §4 (``Solver``'s defaults) skip for more than ``UNRESOLVED_SHARE`` of its particles;
+    ``layers``: the particle layers across its thinnest side (of its bounding box)."""
+    model = builder.finalize(device="cpu")
+    model.rest_neighbors()
+    held = model.rest_guard.numpy() != 0
+    x0 = model.particle_x0.astype(np.float64)
+    out = []
+    for b in model.bodies:
+        skipped = int(np.count_nonzero(held[b.start:b.start + b.count]))
+        if skipped > UNRESOLVED_SHARE * b.count:
+            span = np.ptp(x0[b.start:b.start + b.count], axis=0)
+            out.append((b.name, skipped, b.count, int(round(float(span.min()) / model.spacing)) + 1))
+    return out
+
+
+def _refuse_unresolved(scene: Scene, name_or_path, scale: float, what: str):
+    """Refuses ``scene`` (built at ``scale``) where a body is under-resolved (``unresolved_bodies``),
+    naming the body, ``what`` and the smallest scale above ``scale`` (in ``SCALE_STEP``) that
+    resolves every body: run, it would have skipped their deformation silently."""
+    bad = unresolved_bodies(scene.builder)
+    if not bad:
+        return
+    name, skipped, count, layers = bad[0]
+    label = os.fsdecode(DEFAULT_SCENE if name_or_path is None else name_or_path)
+    thick = f"it is {layers} particle layer{'s' if layers > 1 else ''} thick, and " if layers <= 2 else ""
+    more = f" (and {len(bad) - 1} more {'body' if len(bad) == 2 else 'bodies'})" if len(bad) > 1 else ""
+    least = None
+    k = math.floor(scale / SCALE_STEP + 1e-9) + 1
+    while k * SCALE_STEP <= SCALE_SEARCH[0] * scale + 1e-9:
+        s = round(k * SCALE_STEP, 10)
+        k += 1
+        try:
+            trial = _load(name_or_path, s)
+        except ValueError:
+            continue
+        if trial.builder._count > SCALE_SEARCH[1]:
+            break
+        if not unresolved_bodies(trial.builder):
+            least = s
+            break
+    hint = (f"the smallest {what} above {scale:g} that resolves it is {least:g}" if least is not None else
+            f"no {what} up to {SCALE_SEARCH[0] * scale:g} resolves it; give its bodies more particle layers")
+    raise ValueError(f"{what} = {scale:g} is not allowed for {label}: body {name!r}{more} is under-resolved at spacing "
+                     f"{scene.builder.spacing:.3g}: {thick}{skipped} of its {count} particles have too few neighbours, or too "
+                     f"flat a neighbourhood, for the deformation fit (paper §4), which would skip them silently; {hint}")
