@@ -76,6 +76,8 @@ def test_run_options_and_dt_warning(tmp_path, capsys):
     assert main(["run", "star", "-o", str(out_path), "--fps", "10", "--dt", "0.0025", *TINY, "--scale", "0.5"]) == 0
     out, err = capsys.readouterr()
     warnings = [line for line in err.splitlines() if line.startswith("warp-esph: warning:")]
+    # The star's tips at scale 0.5 are too narrow for the fit: the run says so too (test_resolution.py).
+    warnings = [line for line in warnings if "deformation fit was skipped" not in line]
     assert len(warnings) == 1 and "stability limit" in warnings[0], err
     assert "Traceback" not in err
     assert out_path.read_bytes().startswith(b"#usda")

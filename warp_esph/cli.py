@@ -469,7 +469,7 @@ def _cmd_run(args) -> int:
 
     _init_warp(args.device)  # refuses --device cuda where Warp finds none
     from .scenes import load_scaled_scene  # noqa: PLC0415
-    from .simulate import (SimulationError, StepRefusal, _check_run_start, check_step_count, divergence_advice,  # noqa: PLC0415
+    from .simulate import (SimulationError, StepRefusal, _check_run_start, check_step_count, divergence_advice, skipped_fits,  # noqa: PLC0415
                            far_mesh_advice, resolve_timestep, simulate)
     from .sim.solver import Solver  # noqa: PLC0415
     from .tools import TOO_FAST_ADVICE  # noqa: PLC0415
@@ -791,7 +791,8 @@ def _cmd_run(args) -> int:
         simulate(model, frames, fps=fps, dt=dt, writer=writer, progress=not args.no_progress, solver=solver,
                  state=state, start_frame=start_frame, callback=on_frame,
                  monitor_exempt=getattr(scene, "diverges", ()),
-                 monitor_origin=model.state(requires_grad=False) if start_frame else None, _checked=checked)
+                 monitor_origin=model.state(requires_grad=False) if start_frame else None, _checked=checked,
+                 _finer="a larger --scale, or a smaller spacing in a scene file")
     except KeyboardInterrupt:
         # Its working copies removed and its force log written before the line is built: a second
         # Ctrl-C here waits for them, and one after them ends the process at once (the log was
@@ -882,12 +883,16 @@ def _cmd_run(args) -> int:
         # raised (a finalizer): the run and its files are whole, but it is no success.
         print(f"{PROG}: {_stopped(args)}: {writer.path} keeps {_kept(writer, start_frame)}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    guards = ", ".join(f"{k}={v}" for k, v in solver.guard_counts().items())
+    counts = solver.guard_counts()
+    guards = ", ".join(f"{k}={v}" for k, v in counts.items())
+    # The share the run's warning (simulate.SKIPPED_FIT_SHARE) is judged by, said also where it is small.
+    particle_steps = model.particle_count * solver.step_count
+    skipped = f"; deformation fit skipped in {100.0 * skipped_fits(counts) / max(particle_steps, 1):.3g} % of {particle_steps} particle-steps"
     per_frame = 1e3 * writer.save_seconds / max(writer.frames_written, 1)
     written = (f"{writer.frames_written} frames (0..{writer.last_frame})" if not start_frame else
                f"frames 0..{writer.last_frame} ({start_frame}..{writer.last_frame} by this run)")
     print(f"wrote {writer.path}: {written}, {model.particle_count} particles; USD save {per_frame:.2f} ms/frame")
-    print(f"guard counts (particle-steps skipped): {guards}")
+    print(f"guard counts (particle-steps skipped): {guards}{skipped}")
     if log is not None:
         print(f"reaction forces ({', '.join(_log_kinds(model))}): {tool_files[0]}, {tool_files[1]}")
     if args.surface:

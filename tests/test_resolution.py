@@ -1,0 +1,66 @@
+"""Runs whose bodies are too coarse for the deformation fit say so (the refusal of such a
+scene where it is built is in test_scenes.py)."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+import warp_esph as we
+from warp_esph.cli import main
+from warp_esph.simulate import SKIPPED_FIT_SHARE
+
+
+def _skip_warnings(record) -> list[str]:
+    return [str(w.message) for w in record if "deformation fit was skipped" in str(w.message)]
+
+
+def _run(builder, frames=2):
+    model = builder.finalize()
+    solver = we.Solver(model)
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        we.simulate(model, frames, fps=30.0, progress=False, solver=solver)
+    counts = solver.guard_counts()
+    share = (counts["few_neighbors"] + counts["ill_conditioned"]) / (model.particle_count * solver.step_count)
+    return _skip_warnings(record), share
+
+
+def test_a_run_of_a_sheet_one_layer_thick_warns_with_the_share_and_a_block_landing_does_not():
+    """A sheet one particle layer thick has no 3-D neighbourhood: every fit is skipped, the
+    run said nothing (only guard_counts() knew). A 4-layer block landing on the ground, where
+    the guard may act on a few particles briefly, runs without the warning."""
+    sheet = we.SceneBuilder(spacing=0.02)
+    sheet.add_box((0.0, 0.1, 0.0), (0.1, 0.02, 0.1), we.Material.preset("clay"), name="sheet")
+    sheet.add_ground()
+    said, share = _run(sheet)
+    assert share >= SKIPPED_FIT_SHARE
+    assert len(said) == 1, said
+    assert f"{100.0 * share:.3g} % of the run's particle-steps" in said[0]
+    assert "a smaller spacing" in said[0]
+
+    block = we.SceneBuilder(spacing=0.02)
+    block.add_box((0.0, 0.05, 0.0), (0.08, 0.08, 0.08), we.Material.preset("clay"), velocity=(0.0, -1.0, 0.0), name="block")
+    block.add_ground()
+    said, share = _run(block, frames=4)
+    assert share < SKIPPED_FIT_SHARE and said == []
+
+
+def test_the_command_line_warns_and_sums_up_the_share_of_skipped_fits(tmp_path, capsys):
+    """The star at scale 0.5 (2 cm spacing) is two layers thick with tips too narrow for the
+    fit: its run skipped the tips' fits with exit 0 and a guard-count line only. It still runs
+    (exit 0), with one warning naming the share and --scale, and the summary gives the share."""
+    out = tmp_path / "star.usdc"
+    assert main(["run", "star", "--scale", "0.5", "--frames", "1", "--no-progress", "-o", str(out)]) == 0
+    captured = capsys.readouterr()
+    warned = [line for line in captured.err.splitlines() if "deformation fit was skipped" in line]
+    assert len(warned) == 1 and warned[0].startswith("warp-esph: warning: ") and "a larger --scale" in warned[0], captured.err
+    summary = [line for line in captured.out.splitlines() if line.startswith("guard counts")]
+    assert len(summary) == 1
+    counts = dict(kv.split("=") for kv in summary[0].split(": ", 1)[1].split(";")[0].split(", "))
+    shown = float(summary[0].rsplit("skipped in ", 1)[1].split(" % of ")[0])
+    particle_steps = int(summary[0].rsplit(" % of ", 1)[1].split()[0])
+    share = (int(counts["few_neighbors"]) + int(counts["ill_conditioned"])) / particle_steps
+    assert shown == pytest.approx(100.0 * share, rel=1e-2) and share >= SKIPPED_FIT_SHARE
+    assert f"{shown:.3g} % of the run's particle-steps" in warned[0]
+    assert np.isfinite(shown)
