@@ -119,7 +119,8 @@ def three_cylinders(scale: float = 1.0) -> Scene:
 # Counts are those of lattice sampling at the chosen spacing; ``tests/test_figures.py``
 # checks each is within 5 % of the paper. At ``scale`` S the spacing is divided by S and
 # the time step follows the spacing (dt = paper dt / S: the same Courant number), rounded
-# down so a frame is a whole number of steps: ``--scale 0.3`` is a quick, stable look.
+# down so a frame is a whole number of steps: ``--scale 0.3`` is a quick, stable look
+# (fig3_pile from 0.45: below it its bodies are one layer thick, refused by ``load_scaled_scene``).
 #
 # The frame rate is 25 fps: 1/25 s is a whole number of the paper's steps (400 of 0.1 ms,
 # 80 of 0.5 ms); at 30 fps neither step divides a frame.
