@@ -552,3 +552,15 @@ def test_under_resolved_body_is_refused_naming_body_scale_and_the_least_scale(tm
         load_scene(str(path))
     model = load_scene(str(path), scale=float(str(e.value).rsplit(" ", 1)[1])).builder.finalize()
     assert len(np.unique(np.round(model.particle_x0[:, 1], 6))) == 2
+
+
+def test_an_under_resolved_body_no_scale_searched_resolves_says_how_far_it_looked(tmp_path, monkeypatch):
+    """The search for a scale that resolves a refused scene is bounded (each scale tried builds
+    the model): where none within it does, the refusal says how far it looked."""
+    path = tmp_path / "sheet.toml"
+    path.write_text('[scene]\nspacing = 0.02\n[[bodies]]\nshape = "box"\nname = "sheet"\nmaterial = "clay"\n'
+                    'center = [0, 0.5, 0]\nsize = [0.2, 0.02, 0.2]\n')
+    monkeypatch.setattr(scenes, "SCALE_SEARCH", (1.5, scenes.SCALE_SEARCH[1]))  # the sheet needs 2
+    with pytest.raises(ValueError, match=r"body 'sheet' is under-resolved .*; no scale up to 1.5 resolves it; give the "
+                       r"body more particle layers$"):
+        load_scene(str(path))

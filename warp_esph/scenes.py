@@ -678,8 +678,13 @@ def load_scaled_scene(name_or_path: str | os.PathLike | None, scale: float, what
 UNRESOLVED_SHARE = 0.25
 #: ``load_scaled_scene`` looks for the smallest scale that resolves a refused scene in steps of this.
 SCALE_STEP = 0.05
-#: ... up to this many times the scale given, and no further than this many particles.
-SCALE_SEARCH = (4.0, 500_000)
+#: ... up to this many times the scale given, and no further than this many times the particles
+#: of the scene refused (plus 1000): a body one layer thick needs twice the scale, eight times
+#: the particles of a slab (the squeeze-flow disc: 3.3 times, 0.3 to 0.4), and each scale tried
+#: builds the model.
+SCALE_SEARCH = (4.0, 8.0)
+#: ... trying at most this many scales.
+SCALE_TRIES = 40
 
 
 def unresolved_bodies(builder: SceneBuilder) -> list[tuple[str, int, int, int]]:
@@ -710,22 +715,24 @@ def _refuse_unresolved(scene: Scene, name_or_path, scale: float, what: str):
     label = os.fsdecode(DEFAULT_SCENE if name_or_path is None else name_or_path)
     thick = f"it is {layers} particle layer{'s' if layers > 1 else ''} thick, and " if layers <= 2 else ""
     more = f" (and {len(bad) - 1} more {'body' if len(bad) == 2 else 'bodies'})" if len(bad) > 1 else ""
-    least = None
+    least, s = None, scale
     k = math.floor(scale / SCALE_STEP + 1e-9) + 1
-    while k * SCALE_STEP <= SCALE_SEARCH[0] * scale + 1e-9:
+    for k in range(k, k + SCALE_TRIES):
+        if k * SCALE_STEP > SCALE_SEARCH[0] * scale + 1e-9:
+            break
         s = round(k * SCALE_STEP, 10)
-        k += 1
         try:
             trial = _load(name_or_path, s)
         except ValueError:
             continue
-        if trial.builder._count > SCALE_SEARCH[1]:
+        if trial.builder._count > SCALE_SEARCH[1] * scene.builder._count + 1000:
             break
         if not unresolved_bodies(trial.builder):
             least = s
             break
     hint = (f"the smallest {what} above {scale:g} that resolves it is {least:g}" if least is not None else
-            f"no {what} up to {SCALE_SEARCH[0] * scale:g} resolves it; give its bodies more particle layers")
+            f"no {what} up to {s:g} resolves it; give the body more particle layers" if s > scale else
+            f"give a larger {what}, or the body more particle layers")
     raise ValueError(f"{what} = {scale:g} is not allowed for {label}: body {name!r}{more} is under-resolved at spacing "
                      f"{scene.builder.spacing:.3g}: {thick}{skipped} of its {count} particles have too few neighbours, or too "
                      f"flat a neighbourhood, for the deformation fit (paper §4), which would skip them silently; {hint}")
