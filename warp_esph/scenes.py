@@ -691,7 +691,14 @@ def unresolved_bodies(builder: SceneBuilder) -> list[tuple[str, int, int, int]]:
     """``(name, skipped, particles, layers)`` of each body of ``builder`` whose rest fit the guards of
     paper §4 (``Solver``'s defaults) skip for more than ``UNRESOLVED_SHARE`` of its particles;
     ``layers``: the particle layers across its thinnest side (of its bounding box)."""
-    model = builder.finalize(device="cpu")
+    import warp as wp  # noqa: PLC0415
+
+    try:
+        # float64: a scene float32 cannot hold (a mesh tool far out) runs with --dtype float64,
+        # and its refusal is finalize's, with the dtype asked for.
+        model = builder.finalize(device="cpu", dtype=wp.float64)
+    except ValueError:
+        return []  # refused where the scene's model is built, in the caller's words
     model.rest_neighbors()
     held = model.rest_guard.numpy() != 0
     x0 = model.particle_x0.astype(np.float64)
