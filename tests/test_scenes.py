@@ -546,12 +546,18 @@ def test_under_resolved_body_is_refused_naming_body_scale_and_the_least_scale(tm
     path = tmp_path / "sheet.toml"
     path.write_text('[scene]\nspacing = 0.02\n[[bodies]]\nshape = "box"\nname = "sheet"\nmaterial = "clay"\n'
                     'center = [0, 0.5, 0]\nsize = [0.2, 0.02, 0.2]\n')
-    with pytest.raises(ValueError, match=r"^scale = 1 is not allowed for .*sheet.toml: body 'sheet' is under-resolved "
-                       r"at spacing 0.02: it is 1 particle layer thick, and 100 of its 100 particles .* the smallest "
-                       r"scale above 1 that resolves it is (\d[.\d]*)$") as e:
+    # As written (scale 1) the file's spacing is the fault; the scale names it only where given.
+    with pytest.raises(ValueError, match=r"^.*sheet.toml: \[scene\] spacing = 0.02 is not allowed: body 'sheet' is "
+                       r"under-resolved at spacing 0.02: it is 1 particle layer thick, and 100 of its 100 particles .* the "
+                       r"largest spacing that resolves it is ([.\d]+) \(scale (\d[.\d]*)\)$") as e:
         load_scene(str(path))
-    model = load_scene(str(path), scale=float(str(e.value).rsplit(" ", 1)[1])).builder.finalize()
+    spacing, scale = re.search(r"is ([.\d]+) \(scale ([.\d]+)\)$", str(e.value)).groups()
+    assert float(spacing) == pytest.approx(0.02 / float(scale))
+    model = load_scene(str(path), scale=float(scale)).builder.finalize()
     assert len(np.unique(np.round(model.particle_x0[:, 1], 6))) == 2
+    with pytest.raises(ValueError, match=r"^scale = 1.5 is not allowed for .*sheet.toml: body 'sheet' is under-resolved "
+                       r"at spacing 0.0133: .* the smallest scale above 1.5 that resolves it is "):
+        load_scene(str(path), scale=1.5)
 
 
 def test_an_under_resolved_body_no_scale_searched_resolves_says_how_far_it_looked(tmp_path, monkeypatch):
@@ -561,6 +567,10 @@ def test_an_under_resolved_body_no_scale_searched_resolves_says_how_far_it_looke
     path.write_text('[scene]\nspacing = 0.02\n[[bodies]]\nshape = "box"\nname = "sheet"\nmaterial = "clay"\n'
                     'center = [0, 0.5, 0]\nsize = [0.2, 0.02, 0.2]\n')
     monkeypatch.setattr(scenes, "SCALE_SEARCH", (1.5, scenes.SCALE_SEARCH[1]))  # the sheet needs 2
-    with pytest.raises(ValueError, match=r"body 'sheet' is under-resolved .*; no scale up to 1.5 resolves it; give the "
-                       r"body more particle layers$"):
+    with pytest.raises(ValueError, match=r"body 'sheet' is under-resolved .*; no spacing down to 0.0133 \(scale 1.5\) "
+                       r"resolves it; give the body more particle layers$"):
         load_scene(str(path))
+    last = math.floor(1.5 * 1.05 / scenes.SCALE_STEP + 1e-9) * scenes.SCALE_STEP  # the last scale of the search from 1.05
+    with pytest.raises(ValueError, match=rf"body 'sheet' is under-resolved .*; no scale up to {last:g} resolves it; give "
+                       r"the body more particle layers$"):
+        load_scene(str(path), scale=1.05)

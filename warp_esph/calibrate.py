@@ -609,7 +609,8 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                          f"{key('target')} files: give it once per {key('target')}, in the same order, or once for all")
     from .scenes import load_scaled_scene  # noqa: PLC0415
 
-    scene = load_scene(spec["scene"], scale=scale) if scale == 1.0 else load_scaled_scene(spec["scene"], scale, scale_name)
+    # At scale 1 too: an under-resolved scene file's refusal names the scale that resolves it as the command's option.
+    scene = load_scaled_scene(spec["scene"], scale, scale_name)
     from .cli import _apply_solver_options, _solver_options  # noqa: PLC0415
 
     _apply_solver_options(scene.builder, _solver_options(args))  # --solver-fit / --contact over the scene's [solver]

@@ -738,9 +738,16 @@ def _refuse_unresolved(scene: Scene, name_or_path, scale: float, what: str):
         if not unresolved_bodies(trial.builder):
             least = s
             break
+    why = (f"body {name!r}{more} is under-resolved at spacing {scene.builder.spacing:.3g}: {thick}{skipped} of its {count} "
+           "particles have too few neighbours, or too flat a neighbourhood, for the deformation fit (paper §4), which "
+           "would skip them silently")
+    spacing = scene.builder.spacing * scale  # the file's own
+    if scale == 1.0 and label not in SCENES:
+        # A scene file as written: its spacing is the fault, and the scale is the other way out.
+        hint = (f"the largest spacing that resolves it is {spacing / least:.3g} ({what} {least:g})" if least is not None else
+                f"no spacing down to {spacing / s:.3g} ({what} {s:g}) resolves it; give the body more particle layers")
+        raise ValueError(f"{label}: [scene] spacing = {spacing:g} is not allowed: {why}; {hint}")
     hint = (f"the smallest {what} above {scale:g} that resolves it is {least:g}" if least is not None else
             f"no {what} up to {s:g} resolves it; give the body more particle layers" if s > scale else
             f"give a larger {what}, or the body more particle layers")
-    raise ValueError(f"{what} = {scale:g} is not allowed for {label}: body {name!r}{more} is under-resolved at spacing "
-                     f"{scene.builder.spacing:.3g}: {thick}{skipped} of its {count} particles have too few neighbours, or too "
-                     f"flat a neighbourhood, for the deformation fit (paper §4), which would skip them silently; {hint}")
+    raise ValueError(f"{what} = {scale:g} is not allowed for {label}: {why}; {hint}")
