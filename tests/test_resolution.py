@@ -83,3 +83,15 @@ def test_each_command_refuses_a_scene_file_too_coarse_for_its_body_naming_spacin
                                                "'sheet' is under-resolved"), err
     assert err[0].endswith("the largest spacing that resolves it is 0.01 (--scale 2)")
     assert not out.exists()
+
+
+def test_a_sweep_sample_too_coarse_for_the_fit_says_so_in_its_row():
+    """A sweep's rows keep each sample's warnings: the star at scale 0.5 (its tips too narrow
+    for the fit) says the share and that a larger scale resolves it, where the row held only
+    its guard counts."""
+    from warp_esph.sweep import sweep
+
+    table = sweep("star", ["yield_stress=100"], frames=1, workers=1, scale=0.5)
+    row = table.rows[0]
+    assert row["status"] == "ok", row
+    assert "deformation fit was skipped in" in row.get("warnings", "") and "a larger scale" in row["warnings"], row

@@ -709,8 +709,9 @@ def _run_sample(scene, task: _Task) -> dict:
             solver = Solver(model)
             row["solver"] = solver_label(solver)
             # The bodies a scene shows blowing up are left out of the monitor, as in warp-esph run.
+            # A sweep's scene is resolved by its scale (sweep(scale=), --scale) or its builder's spacing.
             state = simulate(model, task.frames, fps=task.fps, dt=dt, progress=False, solver=solver,
-                             monitor_exempt=getattr(scene, "diverges", ()))
+                             monitor_exempt=getattr(scene, "diverges", ()), _finer="a larger scale, or a smaller spacing")
             summary = _summary(model, state, solver)
             why = _blew_up(model, state, dt, task.frames * substeps)
             if why is not None:
