@@ -210,7 +210,9 @@ def _integration_backward(replayed):
             tape.backward()
         finally:
             wp.launch = plain
-    adjoints = [slot[2] for key, slots in m.launches._recorded.items() if key[-1] for slot in slots]
+    # A taped step's launches are kept in its state_out's own records (sim/replay.py).
+    kept = [m.launches._recorded] + [m.launches.records(state) for state in st[1:]]
+    adjoints = [slot[2] for records in kept for key, slots in records.items() if key[-1] for slot in slots]
     return launched, [a.grad.numpy().copy() for a in (st[0].x, st[0].v, st[0].F, m.mu)], adjoints
 
 
@@ -279,3 +281,53 @@ def test_the_reused_static_collider_struct_follows_the_contact_ramp():
     second = static_collider_struct(m)
     assert second is not first and float(second.ramp) == 0.0
     assert static_collider_struct(m) is second
+
+
+def _taped_block(replayed: bool):
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.08, 0.06, 0.06), we.Material(mu=1e3, lam=1.5e3, yield_stress=10.0, flow_rate=50.0))
+    b.add_ground(friction=0.5)
+    m = b.finalize(dtype=wp.float64, requires_grad=True)
+    m.particle_v0 = m.particle_v0 + np.array([0.5, -1.0, 0.0])
+    m.launches.enabled = replayed
+    return m
+
+
+def test_a_taped_rollouts_next_run_replays_its_launches_on_the_very_arrays(monkeypatch):
+    """A taped rollout steps between new states at every step, so every state array of every
+    launch was repacked at every step of every forward and backward (sim/replay.py). Each taped
+    step's launches are now kept in records of its own ``state_out``: the rollout's next
+    forward and backward repack no array, and give the bits of ``wp.launch``'s
+    (``model.launches.enabled = False``)."""
+    from warp_esph.losses import PositionLoss
+    from warp_esph.rollout import Rollout
+    from warp_esph.sim import replay
+
+    runs = {}
+    for replayed in (False, True):
+        m = _taped_block(replayed)
+        # More steps than the shared slots per kernel (replay.SLOTS), which held a run of 4.
+        r = Rollout(m, 2 * replay.SLOTS, 0.5 * m.stable_dt(), frames=[2, 2 * replay.SLOTS])
+        loss = PositionLoss({2: m.particle_x0 + 0.001, 2 * replay.SLOTS: m.particle_x0 - 0.002})
+        r.forward()
+        r.backward(loss)
+        repacked = []
+        repack = replay._repack_array
+
+        def counted(*args):
+            done = repack(*args)
+            repacked.append(done)
+            return done
+
+        monkeypatch.setattr(replay, "_repack_array", counted)
+        positions = r.forward()
+        value, grads = r.backward(loss)
+        monkeypatch.setattr(replay, "_repack_array", repack)
+        runs[replayed] = positions, value, grads
+        if replayed:
+            assert sum(repacked) == 0, sum(repacked)
+    (p0, v0, g0), (p1, v1, g1) = runs[False], runs[True]
+    assert np.array_equal(p0, p1) and v0 == v1
+    for name in g0:
+        assert np.array_equal(g0[name], g1[name]), name
+    assert np.abs(g1["mu"]).max() > 0.0 and np.abs(g1["v0"]).max() > 0.0  # the gradients reach them

@@ -37,6 +37,14 @@ empty launch (size 0) runs nothing and is only recorded on the tape. The replaye
 hold their last arguments, so the owner keeps up to ``SLOTS`` sets of the arrays it launched
 on alive until it is itself released.
 
+A taped run steps between new states at every step, so its launches' arrays were never the
+very objects of the few kept slots: every state array was repacked at every step, forward and
+backward (51 and 65 arguments a step of the fit example's star, about a tenth of its
+gradient's time). ``keep_in(records(owner))`` keeps the launches made until ``keep_in(None)``
+apart, in records of their own that live as long as ``owner`` (a taped step's ``state_out``,
+to which its rollout steps from the same state at every forward): the next forward's step and
+its backward find their launches there on the very arrays, and repack only the numbers.
+
 A launch no tape records runs the kernel's forward-only twin (``forward_only``): the same
 function compiled without its generated adjoint, which Warp otherwise compiles with every
 kernel. The forward code is the same, so is every bit it computes
@@ -53,6 +61,7 @@ import functools
 import itertools
 import operator
 import sys
+import weakref
 
 import warp as wp
 
@@ -113,6 +122,9 @@ def kept_through_backward(*arrays):
 #: Recorded launches kept per kernel and launch size: two for the states' double buffer,
 #: two more for the arrays of an occasional other state (a rollout's, a fit's).
 SLOTS = 4
+#: The same in the records of one owner (``Launches.records``): a kernel launched twice in
+#: one step on other arrays keeps both.
+KEPT_SLOTS = 2
 
 _NUMBERS = frozenset((int, float, bool))
 _ARRAY = wp.array
@@ -178,6 +190,25 @@ class Launches:
         #: argument struct again (the other baseline ``benchmarks.launches`` times).
         self.keep_struct = True
         self._recorded: dict = {}
+        #: ``records``, by owner, each dropped with its owner.
+        self._kept_by = weakref.WeakKeyDictionary()
+        #: The records launches are kept in now (``keep_in``); None: the shared slots.
+        self._kept = None
+
+    def records(self, owner) -> dict:
+        """``owner``'s own records of launches (``keep_in``), made on first use and dropped
+        with ``owner``."""
+        records = self._kept_by.get(owner)
+        if records is None:
+            records = self._kept_by[owner] = {}
+        return records
+
+    def keep_in(self, records: dict | None):
+        """From now on, launches are replayed from and recorded in ``records`` (``records(owner)``)
+        instead of the slots every launch shares; None: the shared slots again. A call, not a
+        ``with`` block: a tape's backward pass switches between steps' records in functions it
+        runs."""
+        self._kept = records
 
     def __call__(self, kernel, dim, inputs=(), outputs=(), adj_inputs=(), adj_outputs=(), device=None, stream=None,
                  adjoint=False, record_tape=True, max_blocks=0, block_dim=None):
@@ -207,7 +238,9 @@ class Launches:
         adjoint = adj_inputs is not None
         args = [*inputs, *outputs, *adj_inputs, *adj_outputs] if adjoint else [*inputs, *outputs]
         key = (kernel, dim if isinstance(dim, int) else tuple(dim), str(device), max_blocks, block_dim, len(args), adjoint)
-        slots = self._recorded.setdefault(key, [])
+        kept = self._kept
+        slots = (self._recorded if kept is None else kept).setdefault(key, [])
+        room = SLOTS if kept is None else KEPT_SLOTS
         best, changed = None, None
         # Least recently used first: with double-buffered states the launch before last
         # was on the same objects, so the first slot usually matches and ends the search.
@@ -222,7 +255,7 @@ class Launches:
                 best, changed = slot, diff
                 if not diff:
                     break
-        if best is None or (changed and len(slots) < SLOTS):
+        if best is None or (changed and len(slots) < room):
             # Record it beside the others: the next launch on these objects replays it as is.
             cmd = wp.launch(kernel, dim, inputs, outputs, adj_inputs or [], adj_outputs or [], device=device,
                             adjoint=adjoint, max_blocks=max_blocks, block_dim=block_dim, record_tape=False,

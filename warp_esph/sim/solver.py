@@ -759,6 +759,28 @@ class Solver:
 
     def step(self, state_in: State, state_out: State, dt: float):
         """One step of the method, stage by stage (docs/physics.md has the table)."""
+        launches, searches = self.model.launches, self.search.launches
+        tape = recording_tape()
+        if tape is None:
+            # (After a backward pass that raised between its steps' switches.)
+            launches.keep_in(None)
+            self._step(state_in, state_out, dt)
+            return
+        # A taped step's launches are kept in records of its state_out, which its rollout steps
+        # to from the same state_in at every forward: the next forward finds them on the very
+        # arrays (sim/replay.py). The backward pass switches to them around this step's adjoints.
+        records = launches.records(state_out)
+        tape.record_func(lambda: launches.keep_in(None), [])  # run after this step's adjoints
+        launches.keep_in(records)
+        searches.keep_in(searches.records(state_out))
+        try:
+            self._step(state_in, state_out, dt)
+        finally:
+            launches.keep_in(None)
+            searches.keep_in(None)
+        tape.record_func(lambda: launches.keep_in(records), [])  # run before them
+
+    def _step(self, state_in: State, state_out: State, dt: float):
         checks.step_states(self.model, state_in, state_out)
         m = self.model
         if m.tools is not None:
