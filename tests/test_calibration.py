@@ -201,45 +201,64 @@ def test_cli_fit_names_its_own_options_when_the_rollout_cannot_fit_in_memory(tmp
     an experiment of an --experiments file is named as its other refusals are."""
     from warp_esph import builder
     from warp_esph.cli import main
+    from warp_esph.rollout import _RolloutMemory
+    from warp_esph.scenes import load_scene
 
     guess = tmp_path / "guess.toml"
     guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=10))
     np.save(tmp_path / "t.npy", np.zeros((11, 64, 3)))
     out = tmp_path / "cal"
     errors_md = (pathlib.Path(__file__).parents[1] / "docs" / "errors.md").read_text()
-    monkeypatch.setattr(builder, "_device_memory", lambda dev: 2 * 10**6)  # 170 steps need 5.5 MB at the least
+    # The command's model and its rollout of 170 steps, 10 frames observed: one world's and two's.
+    model = load_scene(str(guess)).builder.finalize(dtype=wp.float64, requires_grad=True)
+    one = _RolloutMemory(model, 170, frames=10)
+    two = _RolloutMemory(builder.replicate_worlds(model, 2), 170, frames=10)
+    least = one.least()
+    gib = one.need(least)[0] / 2**30
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: 2 * 10**6)  # not even the least
+    assert one.need(least)[0] > 2 * 10**6
     argv = ["fit", str(guess), "--target", str(tmp_path / "t.npy"), "--iterations", "1", "--output-dir", str(out), "--no-progress"]
     capsys.readouterr()
     plan = r" on cpu: at 17 steps a frame \(dt = 0\.001961 s at 30 fps\) the fit's rollout takes 170 steps, and "
     need = r"the rollout would need about 0\.0\d+ GiB, more than its 0\.00186 GiB; "
     for extra, said in (([], r"the targets' last frame, 10, is not allowed with --checkpoint-every auto" + plan
-                          + r"even at its least memory, a checkpoint every 6 steps, " + need
+                          + rf"even at its least memory, a checkpoint every {least} steps, " + need
                           + r"fit fewer frames \(--frames, --target-frames\)"),
                         (["--frames", "10", "--checkpoint-every", "100"],
                          r"--frames = 10 is not allowed with --checkpoint-every 100" + plan + need
-                         + r"fit fewer frames \(--frames, --target-frames\) \(with --checkpoint-every 6, the least, it "
-                           r"would need about 0\.0\d+ GiB\)")):
+                         + rf"fit fewer frames \(--frames, --target-frames\) \(with --checkpoint-every {least}, the least, "
+                           rf"it would need about {re.escape(f'{gib:.3g}')} GiB\)")):
         assert main(argv + extra) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and re.fullmatch("warp-esph: error: " + said, err[0]), err
         if not extra:  # docs/errors.md shows this one whole (it showed sqrt(steps) = 13 as the least)
             assert f"`{err[0].removeprefix('warp-esph: error: ')}`" in errors_md
-    monkeypatch.setattr(builder, "_device_memory", lambda dev: 6 * 10**6)
+    # Room for the least, not for segments of 100.
+    device = 2 * one.need(least)[0]
+    assert one.need(100)[0] > device
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: device)
     assert main(argv + ["--checkpoint-every", "100"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    fix = ("; give --checkpoint-every auto (the default: it chooses a segment that fits) or 6 (the least memory, about "
-           "0.0051 GiB), or fit fewer frames (--frames, --target-frames)")
-    assert len(err) == 1 and err[0].endswith(fix) and f"`...{fix}`" in errors_md, err
+    fix = (f"; give --checkpoint-every auto (the default: it chooses a segment that fits) or {least} (the least memory, about "
+           f"{gib:.3g} GiB), or fit fewer frames (--frames, --target-frames)")
+    assert len(err) == 1 and err[0].endswith(fix), err
+    assert re.search(r"`\.\.\.; give --checkpoint-every auto \(the default: it chooses a segment that fits\) or \d+ \(the "
+                     r"least memory, about [\d.]+ GiB\), or fit fewer frames \(--frames, --target-frames\)`", errors_md)
     # Room for one world's rollout at the least, not for two worlds' (--starts 2 --worlds).
-    monkeypatch.setattr(builder, "_device_memory", lambda dev: 6e6)
+    device = (one.need(least)[0] + two.need(two.least())[0]) // 2
+    assert one.need(least)[0] < device < two.need(two.least())[0]
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: device)
     assert main(argv + ["--starts", "2", "--worlds"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("warp-esph: error: the targets' last frame, 10, is not allowed with "
                                                "--checkpoint-every auto and --worlds (2 copies of the scene) on cpu: "), err
     assert err[0].endswith("; fit fewer frames (--frames, --target-frames), or fewer --starts, or leave out --worlds (the "
                            "starts one after another)"), err
-    monkeypatch.setattr(builder, "_device_memory", lambda dev: 6 * 10**6)
     # The command's own experiment fits (auto chooses a segment that does), the file's longer one not.
+    longer = _RolloutMemory(model, 200 * 17, frames=200)
+    device = 2 * one.need(least)[0]
+    assert longer.need(longer.least())[0] > device
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: device)
     (tmp_path / "e.json").write_text(json.dumps([{"scene": "guess.toml", "target": "t.npy", "frames": 200}]))
     assert main(argv + ["--experiments", str(tmp_path / "e.json")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -249,6 +268,7 @@ def test_cli_fit_names_its_own_options_when_the_rollout_cannot_fit_in_memory(tmp
     assert not out.exists()
     # A Gauss-Newton fit records no tape: on the memory that refused the taped fit its rollout
     # (its untaped states) is taken and the fit runs.
+    assert _RolloutMemory(model, 170, frames=10, taped=False).need(None)[0] < 3.5e6 < one.need(least)[0]
     monkeypatch.setattr(builder, "_device_memory", lambda dev: 3.5e6)
     assert main(argv[:4] + ["--iterations", "0", "--output-dir", str(out), "--no-progress", "--optimizer", "gauss-newton",
                             "--no-diagnostics"]) == 0

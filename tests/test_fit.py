@@ -735,21 +735,36 @@ def test_a_rollout_that_cannot_fit_in_memory_is_refused_before_it_allocates(monk
 
     import warp_esph as we
     from warp_esph import builder
-    from warp_esph.rollout import Rollout
+    from warp_esph.rollout import STATE_OVERHEAD, TAPE_STEP_OVERHEAD, Rollout, _RolloutMemory
 
     b = we.SceneBuilder(spacing=0.05)
     b.add_box((0.0, 0.1, 0.0), (0.1, 0.1, 0.1), we.Material.preset("dough"))
     b.add_ground()
     model = b.finalize(dtype=wp.float64, requires_grad=True)
     monkeypatch.setattr(builder, "_device_memory", lambda dev: 2**30)
-    with pytest.raises(ValueError, match=r"^steps = 100000 is not allowed with checkpoint_every = None on cpu: the rollout "
-                                         r"would need about 8\.\d+ GiB, more than its 1 GiB; give checkpoint_every \(160 needs "
-                                         r"the least, about 0\.0321 GiB\) or fewer steps$"):
+    memory = _RolloutMemory(model, 10**5)
+    full, least = memory.need(None)[0], memory.least()
+    # Each taped step is weighed with its state's and its tape's Python objects (measured:
+    # test_a_taped_steps_host_memory_is_bounded_by_its_overhead): a million steps were taken.
+    assert full > 10**5 * (STATE_OVERHEAD + TAPE_STEP_OVERHEAD) > 2**30 > memory.need(least)[0]
+    with pytest.raises(ValueError, match=rf"^steps = 100000 is not allowed with checkpoint_every = None on cpu: the rollout "
+                                         rf"would need about {_gib(full)} GiB, more than its 1 GiB; give checkpoint_every "
+                                         rf"\({least} needs the least, about {_gib(memory.need(least)[0])} GiB\) or fewer "
+                                         rf"steps$"):
         Rollout(model, 10**5, 1e-3)
-    with pytest.raises(ValueError, match=r"^steps = 100000000 is not allowed with checkpoint_every = 2000 on cpu: .* give "
-                                         r"fewer steps \(with checkpoint_every = 5000, the least, it would need about 3\.11 GiB\)$"):
-        Rollout(model, 10**8, 1e-3, checkpoint_every=2000)  # the ground's force rows alone take 2.2 GiB
+    memory = _RolloutMemory(model, 10**8)
+    least = memory.least()
+    assert memory.need(least)[0] > 2**30  # the ground's force rows alone take 2.2 GiB
+    with pytest.raises(ValueError, match=rf"^steps = 100000000 is not allowed with checkpoint_every = 2000 on cpu: .* give "
+                                         rf"fewer steps \(with checkpoint_every = {least}, the least, it would need about "
+                                         rf"{_gib(memory.need(least)[0])} GiB\)$"):
+        Rollout(model, 10**8, 1e-3, checkpoint_every=2000)
     assert Rollout(model, 10**5, 1e-3, checkpoint_every=316).checkpointing
+
+
+def _gib(nbytes) -> str:
+    """``nbytes`` in GiB as a memory refusal writes it, for a pattern."""
+    return re.escape(f"{nbytes / 2**30:.3g}")
 
 
 def _eight_particles():
@@ -825,6 +840,85 @@ def test_the_rollout_memory_estimate_bounds_what_a_run_holds(monkeypatch, checkp
     assert peak[0] <= arrays <= 1.2 * peak[0], (peak[0], arrays)
     assert peak[0] + python <= need, (peak[0], python, need)
 
+@pytest.mark.parametrize("images", [False, True], ids=["ground", "images_and_field"])
+def test_a_taped_steps_host_memory_is_bounded_by_its_overhead(images):
+    """A taped step keeps its launches' records with its ``state_out`` (sim/replay.py): about
+    5.4 kB a launch, 58 kB a step on the ground, which its 16 kB of the estimate
+    (``TAPE_STEP_OVERHEAD``) left out, so a rollout the estimate took could overrun the memory
+    by 0.7 x. The host memory a taped step holds after two forwards and backwards (the second
+    builds the records' argument structs), measured with ``tracemalloc`` as the difference of a
+    long and a short rollout, is within the state's and the tape's overheads of the estimate,
+    and not below half of them; the ground's images and a compression field launch six more
+    kernels a step."""
+    import gc
+    import tracemalloc
+
+    from warp_esph.rollout import STATE_OVERHEAD, TAPE_STEP_OVERHEAD, _differentiable_solver
+
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.05, 0.0), (0.08, 0.06, 0.06), we.Material(mu=1e3, lam=1.5e3, yield_stress=10.0, flow_rate=50.0))
+    b.add_ground(friction=0.5, images=images)
+    if images:
+        b.add_compression_field((0.0, 0.05, 0.0), 10.0)
+    model = b.finalize(dtype=wp.float64, requires_grad=True)
+    solver = _differentiable_solver(model)
+    dt = 0.5 * model.stable_dt()
+
+    def held(steps):
+        loss = PositionLoss({steps: model.particle_x0 + 0.001})
+        gc.collect()
+        before = tracemalloc.get_traced_memory()[0]
+        r = Rollout(model, steps, dt, solver=solver)
+        for _ in range(2):
+            r.forward()
+            r.backward(loss)
+        gc.collect()
+        return tracemalloc.get_traced_memory()[0] - before, r
+
+    held(4)  # the kernels loaded, the shared slots filled
+    tracemalloc.start()
+    try:
+        short, kept = held(4)
+        long, kept_too = held(16)
+    finally:
+        tracemalloc.stop()
+    per_step = (long - short) / 12
+    assert 0.5 * (STATE_OVERHEAD + TAPE_STEP_OVERHEAD) < per_step <= STATE_OVERHEAD + TAPE_STEP_OVERHEAD, per_step
+
+
+def test_the_kept_launch_records_go_with_the_fits_states():
+    """Each taped step's launch records live as long as its ``state_out`` (``Launches.records``,
+    weakly keyed): records kept past their states would grow with every fit a process runs.
+    After each of repeated fits none is left, and the host memory does not grow by half of one
+    fit's taped steps' records."""
+    import gc
+    import tracemalloc
+
+    from warp_esph.rollout import TAPE_STEP_OVERHEAD
+
+    model = _block()  # a stretching block: mu moves the loss from the first step
+    steps, dt = 8, 0.5 * model.stable_dt()
+    loss = PositionLoss({steps: model.particle_x0 + 0.001})
+
+    def one_fit():
+        result = fit(model, loss, ["mu"], steps=steps, dt=dt, iterations=2, progress=False, diagnostics=False,
+                     optimizer="lbfgs")
+        assert len(result.history) >= 2  # it ran its taped evaluations
+
+    one_fit()  # the kernels loaded, the shared slots filled
+    tracemalloc.start()
+    held = []
+    try:
+        for _ in range(3):
+            one_fit()
+            gc.collect()
+            held.append((tracemalloc.get_traced_memory()[0], len(model.launches._kept_by)))
+    finally:
+        tracemalloc.stop()
+    assert [n for _, n in held] == [0, 0, 0], held
+    assert held[-1][0] - held[0][0] < steps * TAPE_STEP_OVERHEAD / 2, held
+
+
 def test_a_rollout_is_weighed_against_the_memory_limit_of_its_container(monkeypatch, tmp_path):
     """The CPU's memory was the machine's physical memory: in a container limited below it (a CI
     runner's), a rollout (or a model) that could not fit was taken and the container killed it,
@@ -832,20 +926,28 @@ def test_a_rollout_is_weighed_against_the_memory_limit_of_its_container(monkeypa
     cgroup v2's ``memory.max`` of the group or an ancestor, v1's ``memory.limit_in_bytes``."""
     from warp_esph import builder
 
+    from warp_esph.rollout import _RolloutMemory
+
     model = _eight_particles()
     physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    memory = _RolloutMemory(model, 200)
+    least = memory.least()
+    limit = 2 * memory.need(least)[0]  # room for the least, not for the full tape
+    assert memory.need(None)[0] > limit < physical
     proc, root = tmp_path / "cgroup", tmp_path / "fs"
     (root / "ci" / "job").mkdir(parents=True)
     proc.write_text("0::/ci/job\n")
     (root / "memory.max").write_text("max\n")
-    (root / "ci" / "memory.max").write_text(f"{2**22}\n")  # the parent's limit holds for the job
+    (root / "ci" / "memory.max").write_text(f"{limit}\n")  # the parent's limit holds for the job
     (root / "ci" / "job" / "memory.max").write_text("max\n")
     monkeypatch.setattr(builder, "_PROC_CGROUP", str(proc), raising=False)
     monkeypatch.setattr(builder, "_CGROUP_ROOT", str(root), raising=False)
-    with pytest.raises(ValueError, match=r"^steps = 200 is not allowed with checkpoint_every = None on cpu: the rollout would "
-                                         r"need about 0\.01\d+ GiB, more than its 0\.00391 GiB; give checkpoint_every \(8 "
-                                         r"needs the least, about 0\.00345 GiB\) or fewer steps$"):
+    with pytest.raises(ValueError, match=rf"^steps = 200 is not allowed with checkpoint_every = None on cpu: the rollout would "
+                                         rf"need about {_gib(memory.need(None)[0])} GiB, more than its {_gib(limit)} GiB; give "
+                                         rf"checkpoint_every \({least} needs the least, about {_gib(memory.need(least)[0])} "
+                                         rf"GiB\) or fewer steps$"):
         Rollout(model, 200, 1e-3)
+    assert Rollout(model, 200, 1e-3, checkpoint_every=least).checkpointing
     proc.write_text("5:cpu,cpuacct:/docker/abc\n4:memory:/docker/abc\n")  # v1: the container's group is the mount's root
     (root / "memory").mkdir()
     (root / "memory" / "memory.limit_in_bytes").write_text("9223372036854771712\n")  # v1's "no limit"
@@ -864,23 +966,30 @@ def test_on_a_gpu_the_taped_states_own_memory_is_the_hosts(monkeypatch):
     weighed against its own memory (a GPU stood in for: this machine has none)."""
     from warp_esph import builder
     from warp_esph import fit as fit_module
-    from warp_esph.rollout import _check_rollout_memory
+    from warp_esph.rollout import STATE_OVERHEAD, TAPE_STEP_OVERHEAD, _check_rollout_memory, _RolloutMemory
 
     model = _eight_particles()
     sizes = fit_module._state_bytes(model)
     monkeypatch.setattr(fit_module, "_state_bytes", lambda m: sizes)
     monkeypatch.setattr(model, "device", type("GPU", (), {"is_cpu": False, "__str__": lambda self: "cuda:0"})())
-    monkeypatch.setattr(builder, "_device_memory", lambda dev: 4 * 2**30 if not dev.is_cpu else 64 * 2**30)
-    _check_rollout_memory(model, 10**5, None, None)  # 1.1 GiB of arrays on the GPU, 7.6 GiB of the host's
-    monkeypatch.setattr(builder, "_device_memory", lambda dev: 4 * 2**30 if not dev.is_cpu else 2 * 2**30)
-    with pytest.raises(ValueError, match=r"^steps = 100000 is not allowed with checkpoint_every = None on cuda:0: the rollout's "
-                                         r"taped states would need about 7\.6\d* GiB of the host's memory besides their "
-                                         r"arrays on the device, more than its 2 GiB; give checkpoint_every \(157 needs the "
-                                         r"least, about 0\.0263 GiB\) or fewer steps$"):
+    arrays, own = _RolloutMemory(model, 10**5).need(None)
+    # A step's Python objects, its state's and the tape's, outweigh 8 particles' arrays many times.
+    assert own > 10**5 * (STATE_OVERHEAD + TAPE_STEP_OVERHEAD) > 4 * arrays
+    memory = {False: 2 * arrays, True: 2 * own}  # by dev.is_cpu: room for both
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: memory[dev.is_cpu])
+    _check_rollout_memory(model, 10**5, None, None)
+    memory[True] = own // 2
+    least = _RolloutMemory(model, 10**5)
+    least_own = least.need(least.least())[1]
+    with pytest.raises(ValueError, match=rf"^steps = 100000 is not allowed with checkpoint_every = None on cuda:0: the rollout's "
+                                         rf"taped states would need about {_gib(own)} GiB of the host's memory besides their "
+                                         rf"arrays on the device, more than its {_gib(own // 2)} GiB; give checkpoint_every "
+                                         rf"\({least.least()} needs the least, about {_gib(least_own)} GiB\) or fewer steps$"):
         _check_rollout_memory(model, 10**5, None, None)
-    monkeypatch.setattr(builder, "_device_memory", lambda dev: 2**30 if not dev.is_cpu else 64 * 2**30)
-    with pytest.raises(ValueError, match=r"^steps = 100000 is not allowed with checkpoint_every = None on cuda:0: the rollout "
-                                         r"would need about 1\.1\d GiB, more than its 1 GiB; give checkpoint_every"):
+    memory[False], memory[True] = arrays // 2, 64 * own
+    with pytest.raises(ValueError, match=rf"^steps = 100000 is not allowed with checkpoint_every = None on cuda:0: the rollout "
+                                         rf"would need about {_gib(arrays)} GiB, more than its {_gib(arrays // 2)} GiB; give "
+                                         rf"checkpoint_every"):
         _check_rollout_memory(model, 10**5, None, None)
 
 
@@ -919,7 +1028,10 @@ def test_the_segment_of_least_memory_is_found_not_taken_as_sqrt_steps(monkeypatc
     least = m.least()
     assert m.need(least)[0] < 0.85 * m.need(316)[0]
     assert all(m.need(least)[0] <= m.need(s)[0] for s in range(1, 1000))
-    monkeypatch.setattr(builder, "_device_memory", lambda dev: 3_900_000)  # 200 steps: 14 need 4.03 MB, 8 need 3.70
+    # Room for 200 steps at their least, not at sqrt(200) = 14.
+    m = _RolloutMemory(model, 200)
+    assert m.need(m.least())[0] < m.need(14)[0]
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: (m.need(m.least())[0] + m.need(14)[0]) // 2)
     s = choose_checkpointing(model, 200)
     assert Rollout(model, 200, 1e-3, checkpoint_every=s).checkpointing and s < 14
 
@@ -945,18 +1057,24 @@ def test_fits_memory_refusal_names_the_experiment_and_auto_as_given(monkeypatch)
     chosen as if the caller had given it ('with checkpoint_every = 14')."""
     from warp_esph import builder
     from warp_esph.fit import Experiment
+    from warp_esph.rollout import _RolloutMemory
 
     model = _eight_particles()
     loss = PositionLoss({200: model.particle_x0}, frames=None)
     monkeypatch.setattr(builder, "_device_memory", lambda dev: 2**18)
-    with pytest.raises(ValueError, match=r"^the experiment: steps = 200 is not allowed with checkpoint_every = 'auto' on cpu: "
-                                         r"even at its least memory, a checkpoint every 8 steps, the rollout would need about "
-                                         r"0\.00345 GiB, more than its 0\.000244 GiB; give fewer steps$") as refused:
+    memory = _RolloutMemory(model, 200)
+    least = memory.least()
+    assert memory.need(least)[0] > 2**18
+    with pytest.raises(ValueError, match=rf"^the experiment: steps = 200 is not allowed with checkpoint_every = 'auto' on cpu: "
+                                         rf"even at its least memory, a checkpoint every {least} steps, the rollout would need "
+                                         rf"about {_gib(memory.need(least)[0])} GiB, more than its 0\.000244 GiB; give fewer "
+                                         rf"steps$") as refused:
         fit(model, loss, ["mu"], steps=200, dt=1e-3, iterations=1, progress=False)
     # docs/errors.md shows it whole (it showed sqrt(steps) = 14 as the least, on 1 MiB, where 3 then fit)
     assert f"`{refused.value}`" in (pathlib.Path(__file__).parents[1] / "docs" / "errors.md").read_text()
-    with pytest.raises(ValueError, match=r"^drop: steps = 200 is not allowed with checkpoint_every = None on cpu: the rollout "
-                                         r"would need about 0\.01\d+ GiB, more than its 0\.000244 GiB; give fewer steps"):
+    with pytest.raises(ValueError, match=rf"^drop: steps = 200 is not allowed with checkpoint_every = None on cpu: the rollout "
+                                         rf"would need about {_gib(memory.need(None)[0])} GiB, more than its 0\.000244 GiB; "
+                                         rf"give fewer steps"):
         fit([Experiment(model, loss, steps=200, dt=1e-3, checkpoint_every=None, name="drop")], None, ["mu"],
             iterations=1, progress=False)
 
@@ -1031,13 +1149,17 @@ def test_automatic_checkpointing_caps_the_memory_limit_at_the_devices_memory(mon
     steps (some 15 MiB), which the rollout refused, where a segment of 14 steps runs."""
     from warp_esph import builder
     from warp_esph.fit import choose_checkpointing
-    from warp_esph.rollout import Rollout
+    from warp_esph.rollout import Rollout, _RolloutMemory
 
     model = _eight_particles()
     assert choose_checkpointing(model, 200) is None
-    monkeypatch.setattr(builder, "_device_memory", lambda dev: 4 * 2**20)
+    memory = _RolloutMemory(model, 200)
+    least = memory.least()
+    device = 2 * memory.need(least)[0]  # above the least, below the full tape and the 1 GiB limit
+    assert memory.need(None)[0] > device
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: device)
     s = choose_checkpointing(model, 200)
-    assert s is not None and 14 <= s < 200
+    assert s is not None and least < s < 200
     assert Rollout(model, 200, 1e-3, checkpoint_every=s).checkpointing
     with pytest.raises(ValueError, match=r"checkpoint_every = \d+ on cpu"):
         Rollout(model, 200, 1e-3, checkpoint_every=s + 1)  # the longest that fits
@@ -1052,6 +1174,8 @@ def test_worlds_choose_their_own_checkpointing_and_their_memory_refusal_says_so(
     checkpoint_every = 52', a value never given, where segments of 4 fit. Auto chooses for the
     copies now; where even its least does not fit, the refusal names the starts' worlds."""
     from warp_esph import builder
+    from warp_esph.fit import choose_checkpointing
+    from warp_esph.rollout import _RolloutMemory
 
     class Started(Exception):
         pass
@@ -1061,10 +1185,18 @@ def test_worlds_choose_their_own_checkpointing_and_their_memory_refusal_says_so(
 
     model = _eight_particles()
     loss = PositionLoss({200: model.particle_x0})
-    monkeypatch.setattr(builder, "_device_memory", lambda dev: 8 * 2**20)
+    one, two = _RolloutMemory(model, 200), _RolloutMemory(builder.replicate_worlds(model, 2), 200)
+    # Room for two worlds at a segment that one world's choice would overrun (its longest that fits).
+    device = 2 * two.need(two.least())[0]
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: device)
+    alone = choose_checkpointing(model, 200)
+    assert two.need(alone)[0] > device
     with pytest.raises(Started):
         fit(model, loss, ["mu"], steps=200, dt=1e-3, iterations=1, progress=False, starts=2, worlds=True, log=started)
-    monkeypatch.setattr(builder, "_device_memory", lambda dev: 3_800_000)  # one world's least fits (3.70 MB), two worlds' not (3.93)
+    # One world's least fits, two worlds' not.
+    device = (one.need(one.least())[0] + two.need(two.least())[0]) // 2
+    assert one.need(one.least())[0] < device < two.need(two.least())[0]
+    monkeypatch.setattr(builder, "_device_memory", lambda dev: device)
     with pytest.raises(ValueError, match=r"^the experiment \(2 worlds\): steps = 200 is not allowed with checkpoint_every = "
                                          r"'auto' on cpu: even at its least memory, a checkpoint every \d+ steps, .*; give "
                                          r"fewer steps, or fewer starts, or worlds = False \(the starts one after another, "

@@ -197,9 +197,16 @@ def state_nbytes(state: State) -> int:
 #: of its some sixty arrays and gradients, 64.2-64.9 kB at 8 and 512 particles (measured with
 #: ``tracemalloc``). Host memory, on a GPU too; so are the overheads below.
 STATE_OVERHEAD = 64 * 1024
-#: The tape's record of one taped step besides its states: 77.7 kB a step, less the state's
-#: 64 kB, with 8 and 64 particles (measured).
-TAPE_STEP_OVERHEAD = 16 * 1024
+#: The tape's record of one taped step besides its states, and the step's own records of its
+#: launches (``sim/replay.py``, kept with its ``state_out``; their argument structs are built
+#: at the second run). Per launch, not per particle: a kept record is 5.2-5.5 kB whatever the
+#: particles (8 to 1000) and precision, and a step keeps one per kernel it launches, taped and
+#: adjoint: 11 on the ground (a taped step 132.5-136.4 kB with its state, 74.2-74.8 kB before
+#: the records were kept), 17 with the ground's images and a compression field (183.2-187.6 kB;
+#: 96.3 kB before), measured with ``tracemalloc`` after two forwards and backwards. The
+#: latter's 123.6 kB besides the state's 64 kB and a 16 % margin (11 % of the step's total):
+#: scenes that launch still more a step (tools, a comparison model) may exceed it.
+TAPE_STEP_OVERHEAD = 144 * 1024
 #: An untaped ``State``'s Python objects (the start's copy, a forward's two states): 42.7-43.2 kB.
 UNTAPED_STATE_OVERHEAD = 48 * 1024
 #: A checkpoint's Python objects: 16.8-17.0 kB at 8 and 512 particles.
@@ -298,9 +305,9 @@ class _RolloutMemory:
     def least(self) -> int:
         """The segment that needs the least memory. ``sqrt(steps)`` was taken for it, which is
         the least where a taped state weighs what a checkpoint does; a taped state (its
-        arrays, its own 64 kB and the tape's record of its step) outweighs a checkpoint several
-        times, and the least lies below: for 8 particles and 1e5 steps 160 steps need 32.9 MiB,
-        316 need 39.9 MiB (sqrt(steps) had a rollout that fit at the least refused 'even at the
+        arrays, its own 64 kB and the tape's records of its step) outweighs a checkpoint several
+        times, and the least lies below: for 8 particles and 1e5 steps 103 steps need 48.4 MiB,
+        316 need 79.4 MiB (sqrt(steps) had a rollout that fit at the least refused 'even at the
         least'). On a GPU, of the memory it
         overruns most (the device's or the host's). Untaped: ``steps``, no checkpoints (its
         forward keeps none)."""
