@@ -24,6 +24,7 @@ and dividing by it gave 2.8e+21).
     python -m benchmarks.gradient_bench --generated --profile   # also the old path; per-kernel times
     python -m benchmarks.gradient_bench --sizes 1000 --repeats 2 --profile
     python -m benchmarks.gradient_bench --step-memos 20   # the star with the step's two memos off / on
+    python -m benchmarks.gradient_bench --kept-records 20   # the star with a taped step's kept launch records off / on
 
 ``--generated`` also runs the rollout with ``Solver.hand_adjoints = False`` (the
 differentiable kernels on the tape with Warp's generated adjoints: the code before the
@@ -247,11 +248,37 @@ def _without_step_memos(off: bool):
         State.BOOKKEEPING, Model._answer = kept
 
 
+@contextlib.contextmanager
+def _without_kept_records(off: bool):
+    """Inside (where ``off``), a taped step keeps no records of its launches with its
+    ``state_out`` (docs/performance.md, "Kept records of a taped step's launches"): its
+    launches share the replay's few slots per kernel, as before."""
+    kept = Solver.step
+    if off:
+        Solver.step = Solver._step
+    try:
+        yield
+    finally:
+        Solver.step = kept
+
+
 def step_memos(model, steps: int, blocks: int) -> dict:
     """The fused forward, taped forward and backward of ``model`` with the step's memos off and
     on (``_without_step_memos``) in ``blocks`` alternating blocks each: CPU ms a step, best
     block, the ratio of the best blocks and the median of the paired blocks' ratios, and
     whether both gave the same bits."""
+    return paired(model, steps, blocks, _without_step_memos)
+
+
+def kept_records(model, steps: int, blocks: int) -> dict:
+    """As ``step_memos``, with a taped step's kept launch records off and on
+    (``_without_kept_records``)."""
+    return paired(model, steps, blocks, _without_kept_records)
+
+
+def paired(model, steps: int, blocks: int, without) -> dict:
+    """The fused forward, taped forward and backward of ``model`` with what ``without(True)``
+    turns off off and on, in ``blocks`` alternating blocks each (see ``step_memos``)."""
     dt = 1.0 / 30.0 / 40.0
     frames = sorted({max(1, steps // 3), steps})
     rollout = Rollout(model, steps, dt, frames=frames)
@@ -262,7 +289,7 @@ def step_memos(model, steps: int, blocks: int) -> dict:
     got = {}
     for b in range(blocks + 1):  # the first, untimed: the launches' first recordings
         for on in ((False, True) if b % 2 == 0 else (True, False)):
-            with _without_step_memos(not on):
+            with without(not on):
                 t0 = time.thread_time()
                 for k in range(steps):
                     solver.step(pair[k % 2], pair[(k + 1) % 2], dt)
@@ -336,20 +363,26 @@ def main(argv=None) -> int:
     ap.add_argument("--step-memos", type=_cli.positive_int, default=None, metavar="BLOCKS",
                     help="only time the star (--star-steps) with the step's two memos off and on in BLOCKS alternating "
                          "blocks each (docs/performance.md)")
+    ap.add_argument("--kept-records", type=_cli.positive_int, default=None, metavar="BLOCKS",
+                    help="only time the star (--star-steps) with a taped step's kept launch records off and on in "
+                         "BLOCKS alternating blocks each (docs/performance.md)")
     ap.add_argument("--json", default=None, type=_cli.output_file, help="write the results here")
     a = ap.parse_args(argv)
     from warp_esph.startup import init_warp  # noqa: PLC0415 (log_level, no native CUDA note)
 
     init_warp()
     rows = []
-    if a.step_memos is not None:
+    for what, blocks, run in (("memos", a.step_memos, step_memos), ("kept records", a.kept_records, kept_records)):
+        if blocks is None:
+            continue
         for name in a.dtypes:
-            r = step_memos(star_model(getattr(wp, name)), a.star_steps, a.step_memos)
-            print(f"  star {name}, {a.star_steps} steps, memos off -> on, CPU ms a step (best of {a.step_memos} blocks; "
+            r = run(star_model(getattr(wp, name)), a.star_steps, blocks)
+            print(f"  star {name}, {a.star_steps} steps, {what} off -> on, CPU ms a step (best of {blocks} blocks; "
                   f"ratio of the best, median of the paired ratios): " + "; ".join(
                       f"{k} {v['off_ms']:.3f} -> {v['on_ms']:.3f} ({v['best_ratio']:.3f}, {v['median_ratio']:.3f})"
                       for k, v in r.items() if k != "same_bits") + f"; same bits: {r['same_bits']}", flush=True)
-            rows.append({"scene": "star", "dtype": name, "steps": a.star_steps, "step_memos": r})
+            rows.append({"scene": "star", "dtype": name, "steps": a.star_steps, run.__name__: r})
+    if a.step_memos is not None or a.kept_records is not None:
         if a.json:
             with open(a.json, "w") as f:
                 json.dump(rows, f, indent=2)

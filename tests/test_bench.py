@@ -1,5 +1,6 @@
 """The step benchmark runs at a tiny size and writes every section of its JSON report."""
 
+import contextlib
 import json
 import pathlib
 import sys
@@ -109,6 +110,40 @@ def test_gradient_benchmark_times_the_steps_memos_off_and_on_and_puts_them_back(
     assert r["same_bits"]
     assert all(r[k]["off_ms"] > 0.0 and r[k]["on_ms"] > 0.0 for k in ("fused", "taped", "backward", "gradient")), r
     assert (State.BOOKKEEPING, Model._answer) == kept
+
+
+def test_gradient_benchmark_times_the_kept_launch_records_off_and_on_and_puts_them_back(monkeypatch):
+    """``benchmarks.gradient_bench --kept-records``: the star's passes with a taped step's kept
+    launch records off (its launches repacked in the shared slots) and on give the same bits,
+    the off blocks keep no records, and the step keeps them again after it."""
+    import warp as wp
+
+    from benchmarks import gradient_bench
+    from warp_esph.sim import replay
+    from warp_esph.sim.solver import Solver
+
+    step = Solver.step
+    model = gradient_bench.star_model(wp.float64)
+    without, kept_in = gradient_bench._without_kept_records, replay.Launches.keep_in
+    off, kept = [False], []
+
+    @contextlib.contextmanager
+    def marked(turned_off):
+        off[0] = turned_off
+        with without(turned_off):
+            yield
+        off[0] = False
+
+    monkeypatch.setattr(gradient_bench, "_without_kept_records", marked)
+    monkeypatch.setattr(replay.Launches, "keep_in", lambda self, records: kept.append(
+        (off[0], records is not None)) or kept_in(self, records))
+    r = gradient_bench.kept_records(model, steps=3, blocks=1)
+    assert r["same_bits"]
+    assert all(r[k]["off_ms"] > 0.0 and r[k]["on_ms"] > 0.0 for k in ("fused", "taped", "backward", "gradient")), r
+    # Switched to a step's records in the blocks with them on, never in the blocks with them off.
+    assert any(switched and not was_off for was_off, switched in kept)
+    assert not any(switched and was_off for was_off, switched in kept)
+    assert Solver.step is step
 
 
 def test_fit_benchmark_times_a_fits_loss_only_runs_untaped_against_taped(tmp_path):
