@@ -204,8 +204,9 @@ STATE_OVERHEAD = 64 * 1024
 #: adjoint: 11 on the ground (a taped step 132.5-136.4 kB with its state, 74.2-74.8 kB before
 #: the records were kept), 17 with the ground's images and a compression field (183.2-187.6 kB;
 #: 96.3 kB before), measured with ``tracemalloc`` after two forwards and backwards. The
-#: latter's 123.6 kB besides the state's 64 kB and a 16 % margin (11 % of the step's total):
-#: scenes that launch still more a step (tools, a comparison model) may exceed it.
+#: latter's 123.6 kB besides the state's 64 kB and a 16 % margin (11 % of the step's total).
+#: Not covered: a moving tool's own objects a step (a box tool besides those: 234.6 kB a step,
+#: 148.1 kB before the records, so the estimate left out 52 kB a step of it before too).
 TAPE_STEP_OVERHEAD = 144 * 1024
 #: An untaped ``State``'s Python objects (the start's copy, a forward's two states): 42.7-43.2 kB.
 UNTAPED_STATE_OVERHEAD = 48 * 1024
