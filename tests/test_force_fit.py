@@ -887,6 +887,24 @@ def test_a_force_log_quoted_tab_separated_or_under_comment_lines_reads_as_the_pl
         load_target(lacking)
 
 
+def test_a_quoted_force_log_with_spaces_after_its_commas_reads_as_the_plain_log(tmp_path):
+    """Quoted cells with a space after each comma ('"frame", "time", ...', a spreadsheet's or a
+    script's export): the rows were read (``read_tools_csv`` skips the spaces), but the header
+    that decides what the file is was not, so the log was taken for a point cloud and refused
+    as lacking 'time, tool, fx, fy, fz', the very columns its header names."""
+    from warp_esph.fit import load_target  # noqa: PLC0415
+    from warp_esph.losses import is_tools_csv, tools_csv_header  # noqa: PLC0415
+
+    rows = "0, 0, \"plate\", 0, 0, 0\n1, 0.005, \"plate\", 0, -1.5, 0\n2, 0.01, \"plate\", 0, -2.5, 0\n"
+    plain = load_target(_write(tmp_path / "plain.csv", "frame,time,tool,fx,fy,fz\n" + rows.replace('"', "")))
+    quoted = _write(tmp_path / "quoted.csv", '"frame", "time", "tool", "fx", "fy", "fz"\n' + rows)
+    assert tools_csv_header(quoted) == ["frame", "time", "tool", "fx", "fy", "fz"]
+    assert is_tools_csv(quoted)
+    t = load_target(quoted)
+    assert (t.kind, t.tool, t.frames) == ("forces", "plate", plain.frames)
+    assert [r["force"].tolist() for r in t.data] == [r["force"].tolist() for r in plain.data]
+
+
 def test_a_force_curve_the_fit_cannot_reach_in_size_is_named_by_the_diagnostics():
     """A log in mN read as newtons is 1000 times the force: with mu bounded where the
     material could be, the fit ran mu to its bound and the diagnostics said it was held

@@ -1575,10 +1575,11 @@ def tools_csv_header(path) -> list[str] | None:
             head, _ = tools_log_head(fh)
     except OSError:
         return None
-    # Parsed as the rows are: a header of quoted cells ('"frame","time",...') had been read
-    # as the names '"frame"', ..., and the log taken for a point cloud.
+    # Parsed as the rows are (read_tools_csv's reader, spaces after the separators skipped): a
+    # header of quoted cells ('"frame","time",...') had been read as the names '"frame"', ...,
+    # and with a space after each comma ('"frame", "time"') as '"time"', ... still.
     try:
-        cells = next(csv.reader([head.rstrip("\r\n")], delimiter=tools_log_delimiter(head)), [])
+        cells = next(csv.reader([head.rstrip("\r\n")], delimiter=tools_log_delimiter(head), skipinitialspace=True), [])
     except csv.Error:
         return None
     return [_column(c)[0] for c in cells]
