@@ -671,14 +671,17 @@ class Model:
 
     def worlds_auto_differ(self, fit: str | None = None) -> list[int]:
         """The worlds that, alone, ``fit="auto"`` would run otherwise than the model of all of
-        them does (all elastic where another world can flow: alone, the curvature-corrected
-        fit and the hourglass control; in the model, the linear fit for every world); empty
-        where the choice is the same for every world or the fit (``fit``; None: the model's)
-        is not "auto"."""
-        if self.world_count == 1 or (self.fit if fit is None else fit) != "auto" or self.ghost_floor is not None:
+        them does (all elastic and without a ghost floor where another world can flow or has a
+        ghost floor: alone, the curvature-corrected fit and the hourglass control; in the
+        model, the linear fit for every world); empty where the choice is the same for every
+        world or the fit (``fit``; None: the model's) is not "auto"."""
+        if self.world_count == 1 or (self.fit if fit is None else fit) != "auto":
             return []
-        alone = [self._elastic_only(self.world_materials(w)) for w in range(self.world_count)]
-        return [] if self.elastic_only else [w for w, elastic in enumerate(alone) if elastic]
+        # A ghost floor enters the linear fit only (solver_choice), so a world beside one ran it
+        # though alone it chose the curvature-corrected fit: every such model was left out here.
+        ghost = {b.world for b in self.bodies if b.ghost_floor > 0}
+        alone = [w not in ghost and self._elastic_only(self.world_materials(w)) for w in range(self.world_count)]
+        return [] if self.solver_choice("auto")[0] == "curvature_corrected" else [w for w, c in enumerate(alone) if c]
 
     def worlds_fused_differ(self) -> tuple[list[int], str]:
         """The worlds that alone run the fused kernels where a solver of the model of all of them
@@ -689,7 +692,9 @@ class Model:
         beside a ghost floor, 2e-16 m beside an 'additive' material, measured). Beside a ghost
         floor it equals its separate run made with ``Solver(fused=False)`` to the bit; beside a
         comparison model, whose kernels the other worlds' fits then run too, it does not.
-        ``([], "")`` where every world alone runs the same kernels as in the model."""
+        ``([], "")`` where every world alone runs the same kernels as in the model. With
+        ``fit="auto"`` a world ``worlds_auto_differ`` names runs another fit alone, not these
+        kernels: ``Solver`` leaves it out of its warning here."""
         if self.world_count == 1:
             return [], ""
         ghost = sorted({b.world for b in self.bodies if b.ghost_floor > 0})
