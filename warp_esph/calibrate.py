@@ -142,7 +142,7 @@ def run_fit(args, out=None, err=None) -> int:
     err = sys.stderr if err is None else err
     import warp as wp  # noqa: PLC0415
 
-    from .cli import _parse_bounds, _safe_point, option_flag  # noqa: PLC0415
+    from .cli import _parse_bounds, _safe_point, _signal_name, _stopped, option_flag  # noqa: PLC0415
     from .fit import (  # noqa: PLC0415
         BoundsError, Experiment, FitInterrupted, StartRefused, _material_indices, check_options, fit, load_target,
         solvers_record, starts_stable_steps)
@@ -390,8 +390,13 @@ def run_fit(args, out=None, err=None) -> int:
     except FitInterrupted as e:
         # Ctrl-C: the evaluations so far and the best of them are kept, as a run keeps its
         # finished frames; the exit is still the interrupt's.
+        # The signal by name, as run's and sweep's lines say it: a SIGTERM was written to fit.json
+        # and its line as Ctrl-C ('interrupted'), the exit alone (143) telling.
+        stopped = _stopped(args)
         if e.result is not None:
             from .cli import _Deferred  # noqa: PLC0415
+
+            e.result.signal = _signal_name(args)
 
             # Interrupted in the diagnostics, the fit itself had finished: its fit.json read as
             # a complete run with --no-diagnostics, and the log called it the best so far.
@@ -414,10 +419,10 @@ def run_fit(args, out=None, err=None) -> int:
                 if during == "the fit":
                     # Counted as the summary line counts them: the history's length alone had
                     # added the global stage's samples to the descent's under one word.
-                    log(f"interrupted after {_evaluations_said(e.result)}; wrote the best so far (loss "
+                    log(f"{stopped} after {_evaluations_said(e.result)}; wrote the best so far (loss "
                         f"{e.result.loss:.4g}) to {', '.join(written)}")
                 else:
-                    log(f"interrupted during the diagnostics: wrote the finished fit ({e.result.stopped}, loss "
+                    log(f"{stopped} during the diagnostics: wrote the finished fit ({e.result.stopped}, loss "
                         f"{e.result.loss:.4g}) without them to {', '.join(written)}")
         raise KeyboardInterrupt from None
     # The results first: a file that cannot be written (a full disk) lost them, the values
@@ -467,7 +472,7 @@ def run_fit(args, out=None, err=None) -> int:
         if usd_path not in written and os.path.isfile(usd_path):
             os.remove(usd_path)
         kept = f"wrote {', '.join(written)}; the other files are not written" if written else "none of its files is written"
-        log(f"interrupted while writing the fit's results (printed above): {kept}")
+        log(f"{_stopped(args)} while writing the fit's results (printed above): {kept}")
         raise
     print("wrote " + ", ".join(written), file=out)
     return 0

@@ -324,6 +324,15 @@ def _stopped(args) -> str:
     return "terminated" if signals is not None and signal.SIGTERM in signals.received else "interrupted"
 
 
+def _signal_name(args) -> str:
+    """The signal ``_stopped`` reports, by name ("SIGTERM", "SIGINT"), or "" where none was
+    received (a ``KeyboardInterrupt`` raised otherwise)."""
+    signals = getattr(args, "signals", None)
+    if signals is None or not signals.received:
+        return ""
+    return "SIGTERM" if signal.SIGTERM in signals.received else "SIGINT"
+
+
 def _signals_seen(args) -> int:
     """How many signals the command has received so far (``_held_signal_wins``' ``seen``)."""
     signals = getattr(args, "signals", None)

@@ -159,6 +159,10 @@ class FitResult:
     #: rest model is never handed (``sim.solver.keeps_incremental``): it runs the incremental
     #: composition.
     flowed_starts: list = dataclasses.field(default_factory=list)
+    #: For ``stopped`` "interrupted": the signal that stopped the fit where the caller knows it
+    #: ("SIGINT", "SIGTERM"; ``warp-esph fit`` sets it); "" where only a ``KeyboardInterrupt``
+    #: was seen. A SIGTERM had been reported as Ctrl-C in ``fit.json``'s termination.
+    signal: str = ""
 
     TERMINATION = {
         "converged": "converged: the last step (or the gradient) fell below its tolerance",
@@ -170,7 +174,13 @@ class FitResult:
         "flat": "stopped at once: the gradient is exactly zero, the loss does not depend on the fitted parameters "
                 "here (e.g. no particle reaches the yield stress); start elsewhere or observe another experiment",
         "callback": "stopped by the callback",
-        "interrupted": "interrupted (Ctrl-C): the best of the evaluations so far, not a minimum",
+        "interrupted": "interrupted (a KeyboardInterrupt, as Ctrl-C raises): the best of the evaluations so far, "
+                       "not a minimum",
+    }
+    #: The interrupted fit's termination by the signal that stopped it (``signal``).
+    INTERRUPTED_BY = {
+        "SIGINT": "interrupted (Ctrl-C, SIGINT): the best of the evaluations so far, not a minimum",
+        "SIGTERM": "terminated (SIGTERM): the best of the evaluations so far, not a minimum",
     }
 
     @property
@@ -182,6 +192,8 @@ class FitResult:
         """One sentence: how the fit ended and what it means."""
         if self.stopped == "flat" and self.flat_cause:
             return f"stopped at once: the gradient is exactly zero: {self.flat_cause}"
+        if self.stopped == "interrupted" and self.signal in self.INTERRUPTED_BY:
+            return self.INTERRUPTED_BY[self.signal]
         return self.TERMINATION.get(self.stopped, self.stopped)
 
     @property
@@ -208,6 +220,7 @@ class FitResult:
             "stopped": self.stopped,
             "converged": self.converged,
             "termination": self.termination,
+            **({"signal": self.signal} if self.stopped == "interrupted" and self.signal else {}),
             "starts": list(self.starts),
             "diagnostics": None if self.diagnostics is None else self.diagnostics.to_dict(),
             "solver": self.solver_record(),
