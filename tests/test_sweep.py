@@ -836,7 +836,8 @@ def _sweep_signalled_at_the_second_sample(scene_file, tmp_path, monkeypatch, cap
 
 def test_a_terminated_sweep_keeps_its_finished_samples_and_says_terminated(scene_file, tmp_path, monkeypatch, capsys):
     """SIGTERM in a sweep exits 143 with the table of the samples finished; its line said
-    'interrupted', as for Ctrl-C."""
+    'interrupted', as for Ctrl-C. Its sweep.json names the signal too, as a stopped fit's
+    fit.json does (it said only 'interrupted': true)."""
     import signal
 
     status, err, rows, _ = _sweep_signalled_at_the_second_sample(scene_file, tmp_path, monkeypatch, capsys,
@@ -844,6 +845,8 @@ def test_a_terminated_sweep_keeps_its_finished_samples_and_says_terminated(scene
     assert status == 143, err
     assert err.splitlines()[-1] == "warp-esph: terminated: the table keeps the 1 of 3 samples finished"
     assert rows == 1
+    meta = json.loads((tmp_path / "sw" / "sweep.json").read_text())
+    assert meta["interrupted"] is True and meta["signal"] == "SIGTERM"
 
 
 def test_a_signal_whose_table_of_the_samples_finished_fails_to_write_is_still_reported(scene_file, tmp_path, monkeypatch,

@@ -1879,7 +1879,7 @@ def sweep_cli(args, out=None) -> int:
         if args.resume:
             meta["resumed"] = {"kept": len(kept), "retry_failed": args.retry_failed}
         log_params = [p.name for p in plist if p.values is None and p.scale == "log"]
-        from .cli import _arm, _stopped  # noqa: PLC0415
+        from .cli import _arm, _signal_name, _stopped  # noqa: PLC0415
 
         _arm(args)  # from here Ctrl-C unwinds to the except below, which writes the samples finished
         t0 = time.perf_counter()
@@ -1896,7 +1896,9 @@ def sweep_cli(args, out=None) -> int:
                 # group) ended the process at once: no table of the stopped sweep, a stray
                 # .sweep.<pid>.part.csv beside the last partial one. It waits for the tables.
                 with _Deferred(args):
-                    written = write_outputs(table, folder, {**meta, "interrupted": True}, log_params)
+                    # The signal by name, as the line says it and a stopped fit's fit.json records it.
+                    written = write_outputs(table, folder, {**meta, "interrupted": True, "signal": _signal_name(args) or None},
+                                            log_params)
             except (OSError, ValueError) as e:
                 # A full disk under the table of the samples finished: the error reached the
                 # command's handler as bad input (exit 2), the signal dropped and the folder unsaid.
