@@ -6,7 +6,9 @@ the factor-2 guess back within its 10 % (measured: 21 evaluations, loss 7.0e-7 -
 converged, every parameter within 0.00 %; 18 s with the diagnostics and plots)."""
 
 import json
+import math
 
+import numpy as np
 import pytest
 
 def test_fit_dough_star_example_recovers_the_three_parameters(tmp_path, load_example):
@@ -76,3 +78,32 @@ def test_full_and_a_scale_together_are_refused_not_one_ignored(capsys, monkeypat
     assert info.value.code == 2 and ran == []
     assert capsys.readouterr().err.strip().splitlines()[-1].split(": error: ", 1)[1] == \
         "argument --scale: not allowed with argument --full"
+
+
+def test_frames_before_the_landing_are_refused_naming_the_first_after_it(capsys, monkeypatch, load_example):
+    """``--frames 3`` fitted frames 2 and 3, both free fall: the truth and the guess fall alike,
+    the initial loss was 1e-34 m^2 (round-off) and the fit 'converged' on nothing. The landing
+    frame the example names is where the material first shows: the truth's and the guess's
+    positions agree to round-off in the frame before it and differ in it. A --frames below it is
+    one line of usage error before any work; that frame itself runs."""
+    from warp_esph.rollout import Rollout
+
+    ex = load_example("fit_dough_star")
+    landed, t_land = ex.landing_frame(0.5)
+    assert landed == math.floor(t_land * ex.FPS) + 1 >= 3
+    substeps, dt = ex.time_step(0.5, ex.mu_bounds()[1])
+    steps = [(landed - 1) * substeps, landed * substeps]
+    truth = Rollout(ex.build_model(ex.truth(), 0.5), steps[-1], dt, frames=steps).forward()
+    guess = Rollout(ex.build_model(ex.guess(), 0.5), steps[-1], dt, frames=steps).forward()
+    before, after = (float(np.max(np.abs(a - b))) for a, b in zip(truth, guess))
+    assert before < 1e-12 < 1e-5 < after, (before, after)
+
+    ran = []
+    monkeypatch.setattr(ex, "run", lambda *a, **k: ran.append(a) or {"within_10_percent": True})
+    with pytest.raises(SystemExit) as info:
+        ex.main(["--frames", str(landed - 1)])
+    last = capsys.readouterr().err.strip().splitlines()[-1].split(": error: ", 1)[1]
+    assert info.value.code == 2 and ran == []
+    assert last.startswith(f"argument --frames: {landed - 1} is not allowed: the star lands at t = ")
+    assert f"give --frames {landed} or more" in last
+    assert ex.main(["--frames", str(landed)]) == 0 and ran[0][1] == landed
