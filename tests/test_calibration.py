@@ -2401,3 +2401,48 @@ def test_an_interrupted_fit_names_the_signal_that_stopped_it(tmp_path, capsys, d
     word = said.split()[0]
     assert f"warp-esph fit: {word} after 2 evaluations of the descent; wrote the best so far" in err, err
     assert err.splitlines()[-1].startswith(f"warp-esph: {word}"), err
+
+
+@pytest.mark.parametrize("rate, warned", [(0.03, True), (30.0, False)], ids=["interval_as_rate", "scene_rate"])
+def test_a_plan_of_far_more_steps_than_the_scene_needs_says_so_and_names_the_rate_read(tmp_path, capsys, dough_scene,
+                                                                                      monkeypatch, rate, warned):
+    """An .npz whose fps holds a frame interval (0.03 for 33 fps) planned 99966 steps an
+    evaluation (about 6 minutes each), said only as '(99966 steps)' in the plan. The plan now
+    says what each evaluation runs, and where that is far beyond the scene's own duration, it
+    warns, naming the rate and the file it was read from and that it may be a frame interval.
+    A low rate may be real: the fit goes on (here a stand-in for it stops the command)."""
+    from warp_esph import fit as fit_module
+    from warp_esph.cli import main
+    from warp_esph.scenes import load_scene
+
+    scene = tmp_path / "s.toml"
+    scene.write_text(dough_scene(yield_stress=100.0, flow_rate=10.0))
+    x0 = load_scene(str(scene)).builder.finalize().particle_x0
+    target = tmp_path / "t.npz"
+    np.savez(target, positions=np.stack([x0 - [0.0, 0.001 * k, 0.0] for k in (1, 2, 3)]), frames=[1, 2, 3], fps=rate)
+    reached = []
+
+    def stand_in(*args, log, **kwargs):
+        reached.append(1)
+        log("the fit would start here")
+        raise ValueError("stopped by the test before the first evaluation")
+
+    monkeypatch.setattr(fit_module, "fit", stand_in)
+    capsys.readouterr()
+    assert main(["fit", str(scene), "--target", str(target), "--no-progress", "--no-usd",
+                 "--output-dir", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert reached == [1], err
+    plan = next(line for line in err.splitlines() if "particles, 3 frames at" in line)
+    steps = int(re.search(r"each evaluation runs (\d+) steps", plan).group(1))
+    warning = [line for line in err.splitlines() if "warning: each evaluation runs" in line]
+    if not warned:
+        assert steps < 1000 and warning == [], err
+        return
+    assert steps > 10000, plan
+    assert len(warning) == 1, err
+    said = warning[0]
+    assert f"each evaluation runs {steps} steps, 100 s simulated (3 frames at 0.03 fps)" in said, said
+    assert "500 times the scene's own 6 frames at 30 fps (0.2 s" in said, said
+    assert f"the rate 0.03 fps was read from the target {target}" in said, said
+    assert "if 0.03 is a frame interval (seconds per frame), the rate is 33.33 fps" in said, said

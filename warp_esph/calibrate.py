@@ -348,7 +348,7 @@ def run_fit(args, out=None, err=None) -> int:
                          "--optimizer adam")
     for e in exps:
         waiting.append(f"{e.scene.name}: {e.model.particle_count} particles, {e.frames} frames at {e.fps:g} fps, "
-                       f"dt = {e.dt:.4g} s ({e.frames * e.substeps} steps); fitting {', '.join(params)} with "
+                       f"dt = {e.dt:.4g} s: each evaluation runs {e.frames * e.substeps} steps; fitting {', '.join(params)} with "
                        f"{optimizer} to {e.kinds} from {', '.join(str(p) for p in e.targets)}")
         waiting.extend(e.readings)
     experiments = [Experiment(e.model, e.loss, steps=e.frames * e.substeps, dt=e.dt, materials=e.materials,
@@ -842,6 +842,10 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                 and os.path.splitext(str(path))[1].lower() not in (".usd", ".usda", ".usdc")]
     readings += [said for kind, path, t in loaded if kind == "file" and t.kind == "positions" and t.frames_stored
                  and (said := _start_frame_later(path, t, model))]
+    long_run = _long_rollout_reading(scene, frames, fps, substeps, dt, stored, f"{where}{flag}" if given["fps"] else None,
+                                     source)
+    if long_run:
+        readings.append(long_run)
     materials = spec.get("material")
     if materials:
         materials = [int(m) if str(m).isdigit() else m for m in materials]
@@ -959,6 +963,32 @@ def _frame_reading(path, t, numbered: bool, model) -> str:
         rms = float(np.sqrt(np.mean(np.sum((first[seen] - x0[seen]) ** 2, axis=1))))
         line += f" (it lies {rms / model.spacing:.3g} spacings RMS from the scene's initial positions)"
     return line + f"; if they are other frames, name them with --target-frames (e.g. 1:{entries} for frames 1 to {entries})"
+
+
+#: An evaluation simulating this many times the scene's own duration (its frames at its fps)
+#: or more is warned of in the plan (_long_rollout_reading).
+LONG_ROLLOUT_FACTOR = 10.0
+
+
+def _long_rollout_reading(scene, frames, fps, substeps, dt, stored, fps_flag, source) -> str | None:
+    """A warning where each evaluation simulates ``LONG_ROLLOUT_FACTOR`` times the scene's own
+    duration or more, naming the rate and where it was read. An ``.npz`` storing a frame
+    interval as its ``fps`` (0.03 for 33 fps) planned 99966 steps an evaluation, about 6
+    minutes each, said only as a step count in the plan. A low rate can be a real one (a slow
+    creep filmed once a minute), so it is said, not refused."""
+    seconds, own = frames / fps, scene.frames / scene.fps
+    if not (own > 0 and seconds >= LONG_ROLLOUT_FACTOR * own):
+        return None
+    line = (f"warning: each evaluation runs {frames * substeps} steps, {seconds:.4g} s simulated ({frames} frames at "
+            f"{fps:g} fps), {seconds / own:.3g} times the scene's own {scene.frames} frames at {scene.fps:g} fps "
+            f"({own:.4g} s, {math.ceil(own / dt - 1e-9)} steps at this dt)")
+    interval = (f"if {fps:g} is a frame interval (seconds per frame), the rate is {1.0 / fps:.4g} fps")
+    if fps_flag is not None:
+        return f"{line}: {fps_flag} = {fps:g}; {interval}: give {fps_flag} {1.0 / fps:.4g}"
+    if stored:
+        return (f"{line}: the rate {fps:g} fps was read from the target {stored[0][0]}; {interval}: store "
+                f"fps = {1.0 / fps:.4g} in the file")
+    return f"{line}: {source} sets its length"
 
 
 #: A stored frame after 0 this close to the scene's start (RMS, in spacings), where the data
