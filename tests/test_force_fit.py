@@ -939,3 +939,46 @@ def test_a_force_curve_the_fit_cannot_reach_in_size_is_named_by_the_diagnostics(
     d = diagnose(_elastic_press(5000.0), ReactionForceLoss(noisy, "plate", ends, window=10, components="y"), ["mu"],
                  steps=60, dt=2.0e-4, progress=False)
     assert not [w for w in d.warnings if "than the fitted curve (RMS" in w], d.warnings
+
+
+def test_cli_fits_the_force_components_chosen_and_says_where_a_fitted_column_is_all_zero(tmp_path, capsys, monkeypatch):
+    """``warp-esph fit`` fitted every column of a force log: a load cell that measures the
+    loading axis alone and writes 0 for the others had those zeros fitted as measured forces and
+    counted as observations (3 per frame, not 1), which lowers the noise the diagnostics
+    estimate where the model's lateral force is 0 anyway. The plan now says which fitted columns
+    are all zero, and ``--force-components y`` fits fy alone: one observation per frame."""
+    from warp_esph import fit as fit_module
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(SCENE.format(mu=10000.0, yield_stress=2000.0))
+    log = tmp_path / "lab.csv"
+    log.write_text("frame,time,tool,fx,fy,fz\n" + "".join(f"{f},{f / 200:.6g},plate,0,{-0.1 * f},0\n" for f in range(11)))
+    seen = []
+
+    def stand_in(experiments, *args, log, **kwargs):
+        seen.append(experiments[0].target)
+        log("the fit would start here")
+        raise ValueError("stopped by the test before the first evaluation")
+
+    monkeypatch.setattr(fit_module, "fit", stand_in)
+    argv = ["fit", str(guess), "--target", str(log), "--target-tool", "plate", "--params", "mu", "--no-progress",
+            "--no-usd", "--output-dir", str(tmp_path / "out")]
+    capsys.readouterr()
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert seen[-1].components == "xyz" and seen[-1].observation_count() == 30
+    assert (f"target {log}: fx, fz are 0 in every frame fitted: fitted as measured zeros" in err
+            and "give --force-components y" in err), err
+
+    assert main([*argv, "--force-components", "Y"]) == 2
+    err = capsys.readouterr().err
+    assert seen[-1].components == "y" and seen[-1].observation_count() == 10
+    np.testing.assert_array_equal(seen[-1].targets[:, 0], [-0.1 * f for f in range(1, 11)])
+    assert "are 0 in every frame" not in err, err
+
+    for bad in ("w", "yy", ""):
+        assert main([*argv, "--force-components", bad]) == 2
+        assert capsys.readouterr().err.strip().splitlines()[-1] == (
+            f"warp-esph: error: --force-components = {bad!r} is not allowed: give distinct axes among x, y, z (e.g. z, "
+            "or xz)")

@@ -83,6 +83,10 @@ def add_calibration_arguments(parser):
     g.add_argument("--force-noise", type=float, metavar="N",
                    help="a force log's measurement noise in N for the diagnostics (default: the curve's residual RMS, "
                         "at least 1%% of its RMS force)")
+    g.add_argument("--force-components", metavar="AXES",
+                   help="the force log's columns fitted: distinct axes among x, y, z (default xyz; e.g. z where the log "
+                        "measures the loading axis alone and writes 0 for the others, which otherwise count as "
+                        "measured zeros)")
     g.add_argument("--no-diagnostics", action="store_true", help="skip the diagnostics (up to 4 P + 1 extra runs for P values, the range check included)")
     g.add_argument("--experiments", metavar="EXPERIMENTS.json",
                    help="a joint fit: more experiments (each its own scene and target) sharing the fitted material "
@@ -187,6 +191,13 @@ def run_fit(args, out=None, err=None) -> int:
             raise ValueError(f"--force-noise = {args.force_noise!r} is not allowed with --no-diagnostics: it is the force "
                              "noise the diagnostics assume, and they are skipped")
         checks.noise("--force-noise", args.force_noise)
+    if _arg(args, "force_components") is not None:
+        given = args.force_components
+        axes = given.strip().lower()
+        if not axes or any(c not in "xyz" for c in axes) or len(set(axes)) != len(axes):
+            raise ValueError(f"--force-components = {given!r} is not allowed: give distinct axes among x, y, z (e.g. z, "
+                             "or xz)")
+        args.force_components = axes
     if _arg(args, "worlds", False) and opts["starts"] < 2:
         raise ValueError(f"--worlds is not allowed with --starts = {opts['starts']}: it runs several starts at once "
                          "as worlds of one model; give --starts K > 1")
@@ -257,6 +268,9 @@ def run_fit(args, out=None, err=None) -> int:
                          f"targets (m), and the targets are {', '.join(dict.fromkeys(e.kinds for e in exps))}"
                          + ("; give a force log's noise in newtons as --force-noise" if any(e.forces for e in exps)
                             else ""))
+    if _arg(args, "force_components") is not None and not any(e.forces for e in exps):
+        raise ValueError(f"--force-components = {args.force_components!r} is not allowed: it picks the columns of "
+                         f"force-log targets, and the targets are {', '.join(dict.fromkeys(e.kinds for e in exps))}")
     if _arg(args, "force_noise") is not None and not any(e.forces for e in exps):
         raise ValueError(f"--force-noise = {args.force_noise!r} is not allowed: it is the noise of force-log targets "
                          f"(N), and the targets are {', '.join(dict.fromkeys(e.kinds for e in exps))}")
@@ -360,7 +374,8 @@ def run_fit(args, out=None, err=None) -> int:
     targets = exps[0].targets
     meta = {"scene": scene.name, "scale": scale, "targets": [os.path.abspath(str(p)) for p in targets],
             "target_frames": exps[0].target_frames, "fps": fps, "dt": dt,
-            "frames": frames, "params_fitted": params, "optimizer": optimizer, "jitter": jitter, "loss_scale": loss_scale,
+            "frames": frames, "params_fitted": params,
+            **({"force_components": _arg(args, "force_components") or "xyz"} if any(e.forces for e in exps) else {}), "optimizer": optimizer, "jitter": jitter, "loss_scale": loss_scale,
             "support_radius": model.support_radius,
             # The fit asked for and what it resolves to at the initial values, per experiment
             # where they differ (fit.json's "solver": at the fitted ones; "auto" resolves by the values).
@@ -821,6 +836,7 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
     force_noise = checks.noise(f"{where}{key('force_noise')}", force_noise) if force_noise is not None else (
         _arg(args, "force_noise") if where else None)
     loss = None
+    zero_readings: list[str] = []
     for kind, path, t in loaded:
         if kind == "silhouette":
             from .silhouette import silhouette_target  # noqa: PLC0415
@@ -835,13 +851,18 @@ def _experiment(spec, args, where, jitter, dtype, load_scene, load_target, resol
                 raise ValueError(f"{where}the target {path} has frame {max(t.frames)}, beyond {key('frames')} = {frames}")
             frame_steps = {f: f * substeps for f in t.frames if f > 0 or t.kind not in ("positions", "forces")}
             term = t.loss(model, frame_steps, radius=args.radius, mode=_arg(args, "mesh_mode") or "surface",
-                          force_noise=force_noise)
+                          force_noise=force_noise, force_components=_arg(args, "force_components") or "xyz")
+            if t.kind == "forces":
+                zeros = _zero_force_columns(path, term, _arg(args, "force_components") is not None)
+                if zeros:
+                    zero_readings.append(zeros)
         loss = term if loss is None else loss + term
     readings = [_frame_reading(path, t, id(t) in numbered, model)
                 for kind, path, t in loaded if kind == "file" and t.kind == "positions" and not t.frames_stored
                 and os.path.splitext(str(path))[1].lower() not in (".usd", ".usda", ".usdc")]
     readings += [said for kind, path, t in loaded if kind == "file" and t.kind == "positions" and t.frames_stored
                  and (said := _start_frame_later(path, t, model))]
+    readings += zero_readings
     long_run = _long_rollout_reading(scene, frames, fps, substeps, dt, stored, f"{where}{flag}" if given["fps"] else None,
                                      source)
     if long_run:
@@ -963,6 +984,27 @@ def _frame_reading(path, t, numbered: bool, model) -> str:
         rms = float(np.sqrt(np.mean(np.sum((first[seen] - x0[seen]) ** 2, axis=1))))
         line += f" (it lies {rms / model.spacing:.3g} spacings RMS from the scene's initial positions)"
     return line + f"; if they are other frames, name them with --target-frames (e.g. 1:{entries} for frames 1 to {entries})"
+
+
+def _zero_force_columns(path, term, chosen: bool) -> str | None:
+    """The plan's line where a fitted column of a force log is 0 in every frame fitted, and
+    another is not: a zero is fitted as a measured force (the model's force along that axis held
+    to 0), and the diagnostics count each as an observation, which lowers the noise they
+    estimate where the model's force there is ~0 anyway (a symmetric press). Said, not dropped:
+    a measured zero does inform where the model pushes sideways; a load cell that writes 0 for
+    axes it does not measure is fitted along its axis with --force-components."""
+    t = np.asarray(term.targets)
+    zero = [c for j, c in enumerate(term.components) if not np.any(t[:, j])]
+    if not zero or len(zero) == len(term.components):
+        return None
+    kept = "".join(c for c in term.components if c not in zero)
+    names = ", ".join(f"f{c}" for c in zero)
+    line = (f"target {path}: {names} {'is' if len(zero) == 1 else 'are'} 0 in every frame fitted: fitted as measured "
+            f"zeros, the model's force along {'that axis' if len(zero) == 1 else 'those axes'} held to 0, and counted "
+            "as observations by the diagnostics")
+    if chosen:
+        return line + " (--force-components names them)"
+    return line + f"; if the log does not measure {'it' if len(zero) == 1 else 'them'}, give --force-components {kept}"
 
 
 #: An evaluation simulating this many times the scene's own duration (its frames at its fps)

@@ -3075,9 +3075,11 @@ class Target:
         return [k for k in keep if k not in blank]
 
     def loss(self, model: Model, frame_steps: Mapping[int, int], radius: float | None = None, mode: str = "surface",
-             force_noise: float | None = None) -> Loss:
+             force_noise: float | None = None, force_components: str = "xyz") -> Loss:
         """The loss for ``model``: ``frame_steps`` maps each rendered frame to its step;
-        ``force_noise``: a force curve's noise (N; None: estimated, ``ReactionForceLoss``)."""
+        ``force_noise``: a force curve's noise (N; None: estimated, ``ReactionForceLoss``);
+        ``force_components``: the force log's columns fitted (``ReactionForceLoss``'s
+        ``components``)."""
         steps = [frame_steps[f] for f in sorted(frame_steps)]
         if self.kind == "forces":
             from .losses import ReactionForceLoss  # noqa: PLC0415
@@ -3091,7 +3093,8 @@ class Target:
                                  f"scene's tools are {', '.join(names) or 'none'}, its static colliders "
                                  f"{', '.join(static) or 'none'}")
             chosen = [f for f in sorted(frame_steps) if f > 0]
-            return ReactionForceLoss.from_csv(self.path, self.tool, frame_steps, frames=chosen, noise=force_noise)
+            return ReactionForceLoss.from_csv(self.path, self.tool, frame_steps, components=force_components, frames=chosen,
+                                              noise=force_noise)
         self.check_particle_count(model)
         self._check_range(model)
         if self.kind == "positions" and self.body is not None:
