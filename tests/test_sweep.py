@@ -1988,3 +1988,40 @@ def test_a_blown_up_sample_s_row_holds_no_summary_of_its_blown_up_state():
         col = table.column(name)
         assert np.isfinite(col[0]) and np.isnan(col[1]), (name, col)
     assert table.rows[1]["guard_inverted"] is not None  # what the guards did is kept
+
+
+# ------------------------------------------------------------------ a table another version wrote
+def test_a_table_another_version_wrote_is_refused_naming_both_versions(monkeypatch, tmp_path):
+    """A table of the same scene written by an earlier version (its record without a format,
+    its model digest made otherwise) was refused as another scene's, ``model = ... there,
+    ... here``, and one of another version with the same record resumed, mixing two
+    versions' results. Each is refused now in one line naming both versions and what to do."""
+    import warp_esph
+    from warp_esph.sweep import RECORD_FORMAT, write_outputs
+
+    specs = ["yield_stress=10,1000"]
+    first = sweep(_box(), specs, frames=1, workers=1)
+    assert first.identity["format"] == RECORD_FORMAT and first.identity["version"] == warp_esph.__version__
+    _no_sample_runs(monkeypatch)
+    # Format 1: no format key, another digest, the version in sweep.json beside the record alone.
+    old = {k: v for k, v in first.identity.items() if k not in ("format", "fingerprint_version", "version")}
+    old["model"] = "125 particles, 0123456789abcdef"
+    write_outputs(SweepTable(first.columns, first.rows, first.params, old), tmp_path / "old", {"version": "0.0.9"},
+                  plot_figure=False)
+    with pytest.raises(ValueError, match=re.escape(
+            f"this table was written by warp_esph 0.0.9 (record format 1, model fingerprint 1); this is warp_esph "
+            f"{warp_esph.__version__} (record format {RECORD_FORMAT}, model fingerprint ")) as refused:
+        sweep(_box(), specs, frames=1, workers=1, resume=tmp_path / "old")
+    assert "model = " not in str(refused.value) and str(refused.value).endswith(
+        "rerun without resume (or resume it with the version that wrote it)")
+    # The same record format and model, another version: refused too, the version named.
+    other = SweepTable(first.columns, first.rows, first.params, {**first.identity, "version": "0.0.9"})
+    with pytest.raises(ValueError, match=re.escape(
+            f"this table was written by warp_esph 0.0.9 (record format {RECORD_FORMAT}); this is warp_esph "
+            f"{warp_esph.__version__} (record format {RECORD_FORMAT}): another version may compute other results")):
+        sweep(_box(), specs, frames=1, workers=1, resume=other)
+    # The command's refusal says its option.
+    from warp_esph.sweep import _check_record_format
+
+    with pytest.raises(ValueError, match=r"^--resume of --output = 'sw' is not allowed: .*, or rerun without --resume$"):
+        _check_record_format(other.identity, first.identity, "--resume of --output", "'sw'")

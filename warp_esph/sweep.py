@@ -1236,7 +1236,9 @@ def sweep(
       too); the table returned is the whole sweep's, as one run straight through gives
       (``wall_s`` aside). A table of another sweep (scene: its particles, materials, floors,
       colliders, tools and fields; parameters, sampling, seed, frames or settings) is
-      refused, naming what differs; to start afresh, run without ``resume``.
+      refused, naming what differs, and so is one another version of the package wrote (its
+      record format or version named: another version may compute other results); to start
+      afresh, run without ``resume``.
 
     Raises ``ValueError`` for bad input before any sample runs. Ctrl-C raises
     ``KeyboardInterrupt`` with ``table``: the samples finished, to give as ``resume``.
@@ -1389,10 +1391,22 @@ def _model_digest(model) -> str:
     return h.hexdigest()[:16]
 
 
+#: The format of a sweep's record (``SweepTable.identity``): what it holds and how its model
+#: digest is made. Bumped with them, so that a table of an earlier format is refused as such
+#: and not as another scene: format 1 (no ``format`` key) digested the particles, materials and
+#: colliders alone, and a table of the same scene read "model = ... there, ... here".
+RECORD_FORMAT = 2
+
+
 def _identity(scene, sc, scale, plist, sample, count, seed, frames, fps, dt, dtype, device, extra, model) -> dict:
     """What makes a sweep's rows: two sweeps of one identity have the same table (``wall_s``
     aside), so a resumed sweep's must be its table's. JSON values, as ``sweep.json`` and a
-    Parquet table's metadata keep them."""
+    Parquet table's metadata keep them. ``format`` and ``fingerprint_version`` say how the
+    rest was recorded (the model digest holds ``checkpoint.scene_record`` of that version),
+    ``version`` the package that ran the rows (another may compute other results)."""
+    from . import __version__  # noqa: PLC0415 (the package is imported whole by now)
+    from .checkpoint import FINGERPRINT_VERSION  # noqa: PLC0415
+
     b = sc.builder
     from_file = isinstance(scene, (str, os.PathLike)) and os.path.isfile(scene)
     digest = None
@@ -1403,7 +1417,7 @@ def _identity(scene, sc, scale, plist, sample, count, seed, frames, fps, dt, dty
         with open(scene, "rb") as f:
             digest = hashlib.sha256(f.read()).hexdigest()[:16]
     by_name = isinstance(scene, (str, os.PathLike)) or scene is None
-    out = {"scene": sc.name, "scene_file": digest, "scale": float(scale) if by_name else None,
+    out = {"format": RECORD_FORMAT, "fingerprint_version": FINGERPRINT_VERSION, "version": __version__, "scene": sc.name, "scene_file": digest, "scale": float(scale) if by_name else None,
            "model": f"{model.particle_count} particles, {_model_digest(model)}",
            "params": [_spec(p) for p in plist], "sample": sample, "samples": int(count), "seed": int(seed),
            "frames": int(frames), "fps": float(fps), "dt": None if dt is None else float(dt), "dtype": dtype,
@@ -1586,8 +1600,9 @@ def _resumed_rows(source, plan: _Plan, retry_failed, name: str, retry_name: str)
         raise ValueError(f"{name} = {shown} is not allowed: it holds no record of the sweep that wrote it (sweep.json "
                          f"beside the CSV table, or a Parquet table's metadata, as this version writes), so it cannot "
                          f"be told to be this sweep's; run the sweep anew")
+    _check_record_format(table.identity, plan.identity, name, shown)
     diff = [f"{k} = {_shown(table.identity.get(k))} there, {_shown(v)} here" for k, v in plan.identity.items()
-            if table.identity.get(k) != v]
+            if table.identity.get(k) != v and k != "version"]
     if diff:
         raise ValueError(f"{name} = {shown} is not allowed: its table is of another sweep: {'; '.join(diff)}; resume "
                          f"it with the settings it was run with, or run this sweep anew without resuming")
@@ -1611,6 +1626,28 @@ def _resumed_rows(source, plan: _Plan, retry_failed, name: str, retry_name: str)
     # resumed table's columns are those of one run straight through.
     return [{k: v for k, v in r.items() if v is not None} for i, r in sorted(kept.items())
             if not retry_failed or r["status"] == "ok"]
+
+
+def _check_record_format(theirs: dict, ours: dict, name: str, shown: str) -> None:
+    """Refuse, in one line, a table another version of the package wrote: of another record
+    format its identity cannot be compared (its model digest is made otherwise, and every
+    table of the same scene read as another scene's), and of the same format but another
+    version its rows may hold other results (a physics change), which resumed rows would mix
+    with this version's where a run straight through holds one version's alone."""
+    again = "rerun without --resume" if name.startswith("--") else "rerun without resume"
+    fmt = (theirs.get("format", 1), theirs.get("fingerprint_version", 1 if "format" not in theirs else None))
+    here = (ours["format"], ours["fingerprint_version"])
+    by = f"warp_esph {theirs['version']}" if isinstance(theirs.get("version"), str) else "an earlier warp_esph"
+    if fmt != here:
+        raise ValueError(f"{name} = {shown} is not allowed: this table was written by {by} (record format {fmt[0]}, "
+                         f"model fingerprint {fmt[1]}); this is warp_esph {ours['version']} (record format {here[0]}, "
+                         f"model fingerprint {here[1]}), whose record of a sweep is another, so the table cannot be told "
+                         f"to be this sweep's: {again} (or resume it with the version that wrote it)")
+    if theirs.get("version") != ours["version"]:
+        raise ValueError(f"{name} = {shown} is not allowed: this table was written by {by} (record format {fmt[0]}); "
+                         f"this is warp_esph {ours['version']} (record format {here[0]}): another version may compute "
+                         f"other results, and the table would mix the two: resume it with warp_esph "
+                         f"{theirs.get('version')}, or {again}")
 
 
 def _shown(v) -> str:
@@ -1664,6 +1701,10 @@ def _resume_table(source, name: str) -> tuple[SweepTable, str]:
                 raise ValueError(f"{name} = {shown} is not allowed: its record {record!r} cannot be read: "
                                  f"{_one_line(e)}") from None
             table.identity = meta.get("sweep") if isinstance(meta, dict) else None
+            if isinstance(table.identity, dict) and "version" not in table.identity \
+                    and isinstance(meta.get("version"), str):
+                # A record of format 1 kept the version beside it alone: the refusal names it.
+                table.identity = {**table.identity, "version": meta["version"]}
     return table, shown
 
 
