@@ -2025,3 +2025,54 @@ def test_a_table_another_version_wrote_is_refused_naming_both_versions(monkeypat
 
     with pytest.raises(ValueError, match=r"^--resume of --output = 'sw' is not allowed: .*, or rerun without --resume$"):
         _check_record_format(other.identity, first.identity, "--resume of --output", "'sw'")
+
+
+# ------------------------------------------------------------------ a column's type survives its tables
+def _extra_codes(model, state, seed):
+    """An ``extra`` with a text column whose every value looks like a number ("042")."""
+    y = state.x.numpy()[:, 1]
+    return {"code": f"{seed % 100:03d}", "above_5cm": int(np.sum(y > 0.05))}
+
+
+def test_a_resumed_sweep_keeps_an_extra_s_numeric_looking_text_as_text(tmp_path):
+    """An ``extra``'s text "042" was read back from the CSV as the number 42, so a resumed
+    table held 42 where one run straight through holds "042", and wrote it so. The columns'
+    types are kept beside the CSV (``sweep.json``'s ``column_types``) and read back by."""
+    pytest.importorskip("pyarrow")
+    from warp_esph.sweep import write_outputs
+
+    specs = ["yield_stress=10,1000"]
+    straight = sweep(_box(), specs, frames=1, workers=1, extra=_extra_codes)
+    assert all(isinstance(r["code"], str) and r["code"].startswith("0") for r in straight.rows), straight.rows
+    with pytest.raises(KeyboardInterrupt) as stopped:
+        sweep(_box(), specs, frames=1, workers=1, extra=_extra_codes, on_result=_stopped_after(1))
+    write_outputs(stopped.value.table, tmp_path / "part", plot_figure=False)
+    for source in (tmp_path / "part", tmp_path / "part" / "sweep.parquet"):
+        whole = sweep(_box(), specs, frames=1, workers=1, extra=_extra_codes, resume=source)
+        assert _rows(whole) == _rows(straight), source
+        assert whole.types() == straight.types() and whole.types()["code"] == "text"
+
+
+def test_a_column_of_mixed_values_reads_back_as_the_table_of_all_rows(tmp_path):
+    """A column's type is decided by all its rows (text beside numbers is text, an int beside
+    floats a float), and the table of a resumed sweep, whose first rows were read back from a
+    partial table written when that column held ints alone, equals the table of all rows as
+    run: the same rows, CSV text and Parquet values."""
+    pq = pytest.importorskip("pyarrow.parquet")
+    from warp_esph.sweep import _resume_table, _table, write_outputs
+
+    rows = [{"sample": 0, "status": "ok", "seed": 1, "n": 5, "x": 0, "code": "007"},
+            {"sample": 1, "status": "ok", "seed": 2, "n": "n/a", "x": 0.5, "code": "08"}]
+    whole = _table(rows, [])
+    assert [r["n"] for r in whole.rows] == ["5", "n/a"] and [r["x"] for r in whole.rows] == [0.0, 0.5]
+    write_outputs(_table(rows[:1], []), tmp_path / "part", plot_figure=False)
+    for name in ("sweep.csv", "sweep.parquet"):
+        kept, _ = _resume_table(str(tmp_path / "part" / name), "resume")
+        assert kept.rows[0]["code"] == "007", name
+        resumed = _table([{k: v for k, v in kept.rows[0].items() if v is not None}, rows[1]], [])
+        assert resumed.rows == whole.rows and resumed.types() == whole.types(), name
+        resumed.to_csv(tmp_path / "a.csv")
+        whole.to_csv(tmp_path / "b.csv")
+        assert (tmp_path / "a.csv").read_bytes() == (tmp_path / "b.csv").read_bytes()
+        assert pq.read_table(resumed.to_parquet(tmp_path / "a.parquet")).equals(
+            pq.read_table(whole.to_parquet(tmp_path / "b.parquet")))

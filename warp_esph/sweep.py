@@ -336,10 +336,14 @@ class SweepTable:
     def _ints(self, name: str) -> bool:
         """Whether column ``name`` is whole numbers: its values are ints (an ``extra``'s count as
         the table's own ``steps``), or it has none and is one of the table's integer columns."""
-        values = [r.get(name) for r in self.rows if r.get(name) is not None]
-        if not values:
-            return _is_int_column(name)
-        return all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in values)
+        return self.types()[name] == "int"
+
+    def types(self) -> dict[str, str]:
+        """Each column's type, ``"int"``, ``"float"`` or ``"text"`` (``_column_type``), as the
+        Parquet table's schema holds it and ``sweep.json`` beside a CSV table (``column_types``),
+        which ``read_csv(path, types)`` reads back by: an ``extra``'s text "007" read back from
+        the CSV alone as the number 7."""
+        return {c: _column_type(c, [r.get(c) for r in self.rows]) for c in self.columns}
 
     @property
     def failed(self) -> list[dict]:
@@ -357,8 +361,9 @@ class SweepTable:
         with checks.replaced_atomically(path) as tmp, open(tmp, "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(self.columns)
+            types = self.types()
             for r in self.rows:
-                w.writerow([_cell(r.get(c)) for c in self.columns])
+                w.writerow([_cell(_as_type(r.get(c), types[c])) for c in self.columns])
         return path
 
     def to_parquet(self, path) -> str:
@@ -368,19 +373,20 @@ class SweepTable:
         import pyarrow.parquet as pq  # noqa: PLC0415
 
         data = {}
+        types = self.types()
         for c in self.columns:
-            if self._ints(c):
+            if types[c] == "int":
                 data[c] = pa.array([None if r.get(c) is None else int(r[c]) for r in self.rows], type=pa.int64())
                 continue
             col = self.column(c)
-            if col.dtype == np.float64 and c not in _TEXT_COLUMNS:
+            if types[c] == "float":
                 # from_pandas: NaN (a cell with no value, empty in the CSV) is a null, not a number: a
                 # failed sample's NaN summary made a Parquet column's mean NaN, where the CSV's skipped it.
                 data[c] = pa.array(col, type=pa.float64(), from_pandas=True)
             else:
                 # The rows' values, not the column's: a text column with no value in any row (no
                 # sample failed) reads as NaNs, which were written as the text 'nan'.
-                data[c] = pa.array([None if r.get(c) is None else str(r[c]) for r in self.rows], type=pa.string())
+                data[c] = pa.array([_as_type(r.get(c), "text") for r in self.rows], type=pa.string())
         path = os.fspath(path)
         table = pa.table(data)
         if self.identity is not None:
@@ -393,16 +399,19 @@ class SweepTable:
         return path
 
     @classmethod
-    def read_csv(cls, path) -> "SweepTable":
-        """Read a table written by ``to_csv`` (ints back as ints, other numbers as floats, empty
-        cells as None)."""
+    def read_csv(cls, path, types: Mapping[str, str] | None = None) -> "SweepTable":
+        """Read a table written by ``to_csv`` (empty cells as None). ``types``: the columns'
+        types (``SweepTable.types``; ``sweep.json``'s ``column_types`` beside the table), read
+        back as written: text that looks like a number ("007") stays text. A column without
+        one reads by its cells: ints back as ints, other numbers as floats, the rest as text."""
         path = os.fspath(path)
         wanted = "must be a sweep table written by SweepTable.to_csv (a header with sample, status, the parameters, seed)"
+        types = dict(types or {})
         try:
             with open(path, newline="", encoding="utf-8") as f:
                 reader = csv.reader(f)
                 columns = next(reader, [])
-                rows = [{c: _parse_cell(c, v) for c, v in zip(columns, line)} for line in reader]
+                rows = [{c: _parse_cell(c, v, types.get(c)) for c, v in zip(columns, line)} for line in reader]
         except (UnicodeDecodeError, csv.Error) as e:
             raise ValueError(f"path = {path!r} is not allowed: {wanted}; it is not CSV text ({e})") from None
         return cls._checked(path, columns, rows, None)
@@ -455,11 +464,40 @@ def _cell(v) -> str:
 _INTEGER = re.compile(r"[+-]?[0-9]+")
 
 
-def _parse_cell(column: str, text: str):
+def _column_type(column: str, values: Sequence) -> str:
+    """``"text"`` for a column holding any text (a number beside it is its text, as the CSV
+    and Parquet tables write it), ``"int"`` for one of ints alone, else ``"float"`` (an int
+    beside floats is a float); a column with no value by its name."""
+    if column in _TEXT_COLUMNS:
+        return "text"
+    values = [v for v in values if v is not None]
+    if any(isinstance(v, str) for v in values):
+        return "text"
+    if not values:
+        return "int" if _is_int_column(column) else "float"
+    return "int" if all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in values) else "float"
+
+
+def _as_type(v, kind: str):
+    """``v`` as a value of a column of type ``kind``: a number in a text column is the text
+    ``to_csv`` writes of it, an int in a float column a float; None stays None."""
+    if v is None:
+        return None
+    if kind == "text" and not isinstance(v, str):
+        return _cell(v) or None
+    if kind == "float" and isinstance(v, (int, np.integer)) and not isinstance(v, bool):
+        return float(v)
+    return v
+
+
+def _parse_cell(column: str, text: str, kind: str | None = None):
     if text == "":
         return None
-    if column in _TEXT_COLUMNS:
+    if column in _TEXT_COLUMNS or kind == "text":
         return text
+    if kind == "float":
+        with contextlib.suppress(ValueError):  # a record older than the table (a kill between the two)
+            return float(text)
     if _INTEGER.fullmatch(text):
         # A float is written by repr, with '.', 'e', 'inf' or 'nan': digits alone were an int
         # (an extra's count read back as a float).
@@ -1179,8 +1217,10 @@ def _table(rows: list[dict], names: list[str], identity: dict | None = None) -> 
     guards = sorted({k for r in rows for k in r if k.startswith("guard_")})
     extra = sorted({k for r in rows for k in r} - set(head) - set(tail) - set(guards))
     columns = head + guards + extra + tail
-    # Every row has every column (None: no value), as read back from the CSV.
-    rows = [{c: r.get(c) for c in columns} for r in rows]
+    # Every row has every column (None: no value), as read back from the CSV. A column has one
+    # type, as the tables keep it: a resumed table's rows, read back from them, are then its own.
+    types = {c: _column_type(c, [r.get(c) for r in rows]) for c in columns}
+    rows = [{c: _as_type(r.get(c), types[c]) for c in columns} for r in rows]
     return SweepTable(columns, rows, list(names), identity)
 
 
@@ -1689,22 +1729,26 @@ def _resume_table(source, name: str) -> tuple[SweepTable, str]:
         except ImportError:
             raise ValueError(f"{name} = {shown} is not allowed: reading {path!r} needs pyarrow (pip install pyarrow); "
                              f"or resume from the sweep.csv beside it") from None
-    else:
-        table = SweepTable.read_csv(path)
-    if table.identity is None:
-        record = os.path.join(folder, "sweep.json")
-        if os.path.isfile(record):
-            try:
-                with open(record, encoding="utf-8") as f:
-                    meta = json.load(f)
-            except (OSError, ValueError) as e:
-                raise ValueError(f"{name} = {shown} is not allowed: its record {record!r} cannot be read: "
-                                 f"{_one_line(e)}") from None
-            table.identity = meta.get("sweep") if isinstance(meta, dict) else None
-            if isinstance(table.identity, dict) and "version" not in table.identity \
-                    and isinstance(meta.get("version"), str):
-                # A record of format 1 kept the version beside it alone: the refusal names it.
-                table.identity = {**table.identity, "version": meta["version"]}
+        if table.identity is not None:
+            return table, shown
+    record = os.path.join(folder, "sweep.json")
+    meta = None
+    if os.path.isfile(record):
+        try:
+            with open(record, encoding="utf-8") as f:
+                meta = json.load(f)
+        except (OSError, ValueError) as e:
+            raise ValueError(f"{name} = {shown} is not allowed: its record {record!r} cannot be read: "
+                             f"{_one_line(e)}") from None
+    meta = meta if isinstance(meta, dict) else {}
+    if not path.endswith(".parquet"):
+        types = meta.get("column_types")
+        # The columns' types as written: an extra's text "007" read back by its cells was the number 7.
+        table = SweepTable.read_csv(path, types if isinstance(types, dict) else None)
+    table.identity = meta.get("sweep")
+    if isinstance(table.identity, dict) and "version" not in table.identity and isinstance(meta.get("version"), str):
+        # A record of format 1 kept the version beside it alone: the refusal names it.
+        table.identity = {**table.identity, "version": meta["version"]}
     return table, shown
 
 
@@ -1777,7 +1821,8 @@ def _draw(fig, axes, table, names, quantities, ok, log_params, path) -> str:
 def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_params: Sequence[str] = (),
                   plot_figure: bool = True) -> list[str]:
     """Write ``sweep.csv``, ``sweep.parquet`` (with pyarrow), ``sweep.png`` (with
-    matplotlib) and ``sweep.json`` (``meta``) into ``folder``; returns one line per file
+    matplotlib) and ``sweep.json`` (``meta``, the table's ``identity`` as ``sweep`` and its
+    ``column_types``, which ``sweep.csv`` is read back by) into ``folder``; returns one line per file
     written or skipped. ``folder`` is made where it is not there; a file there is refused
     (``ValueError``: it was a bare ``FileExistsError`` from ``os.makedirs``)."""
     folder = os.fspath(folder)
@@ -1790,14 +1835,15 @@ def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_pa
         lines.append(f"wrote {table.to_parquet(os.path.join(folder, 'sweep.parquet'))}")
     except ImportError:
         lines.append("no Parquet table: pyarrow is not installed (pip install pyarrow); the CSV has the same data")
-    if meta is not None or table.identity is not None:
-        # Before the plot: the record of a finished sweep must not wait on a figure. It holds the
-        # sweep's identity, which a resumed sweep is checked against (the CSV has no place for it).
-        record = {**(meta or {}), **({"sweep": table.identity} if table.identity is not None else {})}
-        path = os.path.join(folder, "sweep.json")
-        with checks.replaced_atomically(path) as tmp, open(tmp, "w") as f:
-            json.dump(record, f, indent=2)
-        lines.append(f"wrote {path}")
+    # Before the plot: the record of a finished sweep must not wait on a figure. It holds the
+    # sweep's identity, which a resumed sweep is checked against, and the columns' types, which
+    # the CSV is read back by (the CSV has no place for either): always, as the CSV is.
+    record = {**(meta or {}), **({"sweep": table.identity} if table.identity is not None else {}),
+              "column_types": table.types()}
+    path = os.path.join(folder, "sweep.json")
+    with checks.replaced_atomically(path) as tmp, open(tmp, "w") as f:
+        json.dump(record, f, indent=2)
+    lines.append(f"wrote {path}")
     if plot_figure:
         lines.append(_plot_line(table, folder, log_params))
     return lines
