@@ -2076,3 +2076,32 @@ def test_a_column_of_mixed_values_reads_back_as_the_table_of_all_rows(tmp_path):
         assert (tmp_path / "a.csv").read_bytes() == (tmp_path / "b.csv").read_bytes()
         assert pq.read_table(resumed.to_parquet(tmp_path / "a.parquet")).equals(
             pq.read_table(whole.to_parquet(tmp_path / "b.parquet")))
+
+
+# ------------------------------------------------------------------ a body the scene shows blowing up
+def _with_exempt_blob() -> Scene:
+    """A box of putty under a compression field beside a separate box, ``blob``, that the scene
+    names as blowing up (``Scene.diverges``, as ``fig8_comparison`` names its plastic
+    rest-configuration cube); the field keeps the end-of-run energy check off, as there."""
+    b = SceneBuilder(spacing=0.1, bodies_interact=False)
+    b.add_box((0.0, 0.5, 0.0), (0.3, 0.3, 0.3), Material.preset("putty"), name="paste")
+    b.add_box((2.0, 0.5, 0.0), (0.3, 0.3, 0.3), Material.preset("putty"), name="blob")
+    b.add_ground()
+    b.add_compression_field((0.0, 0.5, 0.0), 1.0, body="paste")
+    return Scene("exempt", "a body the scene shows blowing up", b, frames=10, fps=30.0, diverges=("blob",))
+
+
+def test_a_sample_whose_exempt_body_blew_up_is_no_ok_row():
+    """The body a scene shows blowing up is left out of the run's divergence monitor, and a
+    force field keeps the end-of-run energy check off, so a sample whose exempt body blew up
+    (finite: 1e6 Pa at 20 x its stable step) was an ok row whose summary was of the blown-up
+    state. It fails now, its reason naming the body, its summary empty; a sample whose exempt
+    body stayed sound is ok."""
+    from warp_esph.sweep import SUMMARY_COLUMNS
+
+    table = sweep(_with_exempt_blob(), ["blob.mu=1000,1000000"], workers=1, dt=1.0 / 300.0)
+    assert [r["status"] for r in table.rows] == ["ok", "failed"], [r.get("reason") for r in table.rows]
+    assert table.rows[1]["reason"].startswith("body 'blob', which the scene shows blowing up"), table.rows[1]["reason"]
+    for name in SUMMARY_COLUMNS:
+        col = table.column(name)
+        assert np.isfinite(col[0]) and np.isnan(col[1]), (name, col)
