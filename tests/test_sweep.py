@@ -2105,3 +2105,20 @@ def test_a_sample_whose_exempt_body_blew_up_is_no_ok_row():
     for name in SUMMARY_COLUMNS:
         col = table.column(name)
         assert np.isfinite(col[0]) and np.isnan(col[1]), (name, col)
+
+
+def _extra_flag(model, state, seed):
+    """An ``extra`` with a bool column, numpy's as one is written (``y.max() > h``)."""
+    return {"tall": state.x.numpy()[:, 1].max() > 0.09}
+
+
+def test_an_extra_s_bool_is_a_count_in_every_table(tmp_path):
+    """A bool from ``extra`` was written 'True' to the CSV and read back as that text, and the
+    Parquet column held 1.0: a resumed table differed from one run straight through. It is the
+    count 1 or 0, an int column in both tables."""
+    pq = pytest.importorskip("pyarrow.parquet")
+    table = sweep(_box(), ["yield_stress=10,10000"], frames=4, workers=1, extra=_extra_flag)
+    assert [type(r["tall"]) for r in table.rows] == [int, int] and {r["tall"] for r in table.rows} <= {0, 1}
+    assert SweepTable.read_csv(table.to_csv(tmp_path / "t.csv")).rows == table.rows
+    par = pq.read_table(table.to_parquet(tmp_path / "t.parquet"))
+    assert str(par.schema.field("tall").type) == "int64" and par.to_pylist() == table.rows

@@ -794,6 +794,9 @@ def _run_sample(scene, task: _Task) -> dict:
                 # numpy's numbers as Python's (a float32 max, an int64 count): as they were, the
                 # Parquet column was text and the CSV's float32 text read back as another float.
                 more = {k: v.item() if isinstance(v, np.generic) else v for k, v in more.items()}
+                # A bool as the count it is (1 or 0): the CSV wrote 'True', read back as text, where
+                # the Parquet column held 1.0, and a resumed table held the text.
+                more = {k: int(v) if isinstance(v, bool) else v for k, v in more.items()}
                 odd = next(((k, v) for k, v in more.items() if v is not None and not isinstance(v, (int, float, str))), None)
                 if odd is not None:
                     # A table cell: an object (a function) was an ok row holding it in this process
@@ -1290,7 +1293,8 @@ def sweep(
     - ``extra(model, state, seed) -> dict``: more columns per sample, from the final
       state (a module-level function, so it can be sent to the workers); ``seed`` is the
       sample's own seed, the same wherever it runs. numpy numbers (``x.max()``, a float32)
-      are kept as Python's, so the CSV and Parquet tables hold the same numbers. A value
+      are kept as Python's, so the CSV and Parquet tables hold the same numbers; a bool as
+      1 or 0. A column has one type (``SweepTable.types``): text beside numbers makes it text. A value
       that is no number, text or None (a function, a list) fails the sample, naming its column.
     - ``on_result(row)``: called as each sample finishes (in finishing order).
     - ``resume``: the table of an earlier run of the same sweep that did not finish: a
