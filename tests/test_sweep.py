@@ -2122,3 +2122,26 @@ def test_an_extra_s_bool_is_a_count_in_every_table(tmp_path):
     assert SweepTable.read_csv(table.to_csv(tmp_path / "t.csv")).rows == table.rows
     par = pq.read_table(table.to_parquet(tmp_path / "t.parquet"))
     assert str(par.schema.field("tall").type) == "int64" and par.to_pylist() == table.rows
+
+
+def test_a_table_cut_off_after_its_csv_still_resumes(serial, tmp_path, monkeypatch):
+    """``write_outputs`` wrote sweep.csv, then the Parquet table (the first write imports pyarrow,
+    a second or so) and then sweep.json: a sweep killed in between (measured: SIGKILL 6 s into a
+    command's run) left a sweep.csv without its record, which ``--resume`` refuses, so every
+    sample ran again. The record is written first: a table cut off after its CSV resumes."""
+    from warp_esph import sweep as sweep_module
+
+    part = SweepTable(serial.columns, serial.rows[:1], serial.params, serial.identity)
+
+    def killed(self, path):
+        raise KeyboardInterrupt  # stands for the kill that lands after the CSV
+
+    monkeypatch.setattr(sweep_module.SweepTable, "to_parquet", killed)
+    with pytest.raises(KeyboardInterrupt):
+        sweep_module.write_outputs(part, tmp_path / "sw", plot_figure=False)
+    monkeypatch.undo()
+    assert not (tmp_path / "sw" / "sweep.parquet").exists()
+    ran = []
+    whole = sweep(_box(), [YIELD], frames=FRAMES, workers=1, resume=tmp_path / "sw",
+                  on_result=lambda r: ran.append(r["sample"]))
+    assert ran == [1, 2] and _rows(whole) == _rows(serial)

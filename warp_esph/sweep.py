@@ -1859,19 +1859,22 @@ def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_pa
         raise ValueError(f"folder = {folder!r} is not allowed: it is a file; the sweep's tables ({', '.join(OUTPUT_FILES)}) "
                          "are written into a folder, one that is there or one that is made")
     os.makedirs(folder, exist_ok=True)
-    lines = [f"wrote {table.to_csv(os.path.join(folder, 'sweep.csv'))}"]
-    try:
-        lines.append(f"wrote {table.to_parquet(os.path.join(folder, 'sweep.parquet'))}")
-    except ImportError:
-        lines.append("no Parquet table: pyarrow is not installed (pip install pyarrow); the CSV has the same data")
-    # Before the plot: the record of a finished sweep must not wait on a figure. It holds the
-    # sweep's identity, which a resumed sweep is checked against, and the columns' types, which
-    # the CSV is read back by (the CSV has no place for either): always, as the CSV is.
+    # The record first, then the tables: it holds the sweep's identity, which a resumed sweep is
+    # checked against, and the columns' types, which the CSV is read back by (the CSV has no
+    # place for either). Written after them, a kill in between (the first Parquet write imports
+    # pyarrow, a second or so) left a sweep.csv with no record, which --resume refuses, so every
+    # sample ran again; the identity is the same in every rewrite, and a record one rewrite
+    # ahead of its table resumes as well. Before the plot, which must not hold it up.
     record = {**(meta or {}), **({"sweep": table.identity} if table.identity is not None else {}),
               "column_types": table.types()}
     path = os.path.join(folder, "sweep.json")
     with checks.replaced_atomically(path) as tmp, open(tmp, "w") as f:
         json.dump(record, f, indent=2)
+    lines = [f"wrote {table.to_csv(os.path.join(folder, 'sweep.csv'))}"]
+    try:
+        lines.append(f"wrote {table.to_parquet(os.path.join(folder, 'sweep.parquet'))}")
+    except ImportError:
+        lines.append("no Parquet table: pyarrow is not installed (pip install pyarrow); the CSV has the same data")
     lines.append(f"wrote {path}")
     if plot_figure:
         lines.append(_plot_line(table, folder, log_params))
