@@ -928,7 +928,8 @@ def test_a_table_that_cannot_be_written_leaves_no_working_file_and_the_old_table
     with pytest.raises(OSError, match="No space left on device") as caught:
         write_outputs(table, tmp_path, meta={"partial": False}, plot_figure=False)
     assert caught.value.filename == str(tmp_path / "sweep.csv")
-    assert os.listdir(tmp_path) == ["sweep.csv"]
+    # sweep.json is written first (a table is never left without its record); no working file.
+    assert sorted(os.listdir(tmp_path)) == ["sweep.csv", "sweep.json"]
     assert (tmp_path / "sweep.csv").read_text() == "an earlier sweep's table\n"
     monkeypatch.setattr(sweep_module.csv, "writer", real)
 
@@ -939,7 +940,7 @@ def test_a_table_that_cannot_be_written_leaves_no_working_file_and_the_old_table
     with pytest.raises(OSError, match="No space left on device"):
         write_outputs(table, tmp_path, meta={"partial": False}, plot_figure=False)
     assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(".") or p.name.endswith(".tmp")]
-    assert len((tmp_path / "sweep.csv").read_text().splitlines()) == 4  # written whole before sweep.json failed
+    assert (tmp_path / "sweep.csv").read_text() == "an earlier sweep's table\n"  # sweep.json failed before it
 
 
 def test_a_sweep_whose_tables_cannot_be_written_at_its_end_is_a_failed_write(scene_file, tmp_path, monkeypatch, capsys):
@@ -2145,3 +2146,28 @@ def test_a_table_cut_off_after_its_csv_still_resumes(serial, tmp_path, monkeypat
     whole = sweep(_box(), [YIELD], frames=FRAMES, workers=1, resume=tmp_path / "sw",
                   on_result=lambda r: ran.append(r["sample"]))
     assert ran == [1, 2] and _rows(whole) == _rows(serial)
+
+
+def test_a_new_sweep_cut_off_in_its_first_write_leaves_no_other_sweep_s_table_beside_its_record(serial, tmp_path,
+                                                                                              monkeypatch):
+    """With sweep.json written before the tables, a new sweep (no resume) over a folder holding
+    another sweep's table, cut off after its record, would leave the other sweep's rows beside
+    this sweep's record, and a resume keep them (the same values and seeds at other frames).
+    The other sweep's tables are removed before the record is written."""
+    from warp_esph import sweep as sweep_module
+
+    other = SweepTable(serial.columns, serial.rows, serial.params, {**serial.identity, "frames": FRAMES + 1})
+    sweep_module.write_outputs(other, tmp_path / "sw", plot_figure=False)
+
+    def killed(self, path):
+        raise KeyboardInterrupt  # stands for the kill that lands after the record
+
+    monkeypatch.setattr(sweep_module.SweepTable, "to_csv", killed)
+    with pytest.raises(KeyboardInterrupt):
+        sweep_module.write_outputs(SweepTable(serial.columns, [], serial.params, serial.identity), tmp_path / "sw",
+                                   plot_figure=False)
+    monkeypatch.undo()
+    assert not (tmp_path / "sw" / "sweep.csv").exists() and not (tmp_path / "sw" / "sweep.parquet").exists()
+    _no_sample_runs(monkeypatch)
+    with pytest.raises(ValueError, match="the folder holds no sweep.csv or sweep.parquet"):
+        sweep(_box(), [YIELD], frames=FRAMES, workers=1, resume=tmp_path / "sw")

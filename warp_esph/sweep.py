@@ -1868,6 +1868,12 @@ def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_pa
     record = {**(meta or {}), **({"sweep": table.identity} if table.identity is not None else {}),
               "column_types": table.types()}
     path = os.path.join(folder, "sweep.json")
+    if table.identity is not None and _recorded_identity(path) != table.identity:
+        # Tables of another sweep (or of none recorded) must not stand beside this sweep's record
+        # if the writes below are cut off: a resume would take their rows for this sweep's.
+        for name in ("sweep.csv", "sweep.parquet"):
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(os.path.join(folder, name))
     with checks.replaced_atomically(path) as tmp, open(tmp, "w") as f:
         json.dump(record, f, indent=2)
     lines = [f"wrote {table.to_csv(os.path.join(folder, 'sweep.csv'))}"]
@@ -1879,6 +1885,16 @@ def write_outputs(table: SweepTable, folder, meta: Mapping | None = None, log_pa
     if plot_figure:
         lines.append(_plot_line(table, folder, log_params))
     return lines
+
+
+def _recorded_identity(path: str):
+    """The sweep identity the record ``path`` (a ``sweep.json``) holds; None where there is none."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            meta = json.load(f)
+    except (OSError, ValueError):
+        return None
+    return meta.get("sweep") if isinstance(meta, dict) else None
 
 
 def _plot_line(table: SweepTable, folder: str, log_params: Sequence[str]) -> str:
