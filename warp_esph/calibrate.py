@@ -152,7 +152,7 @@ def run_fit(args, out=None, err=None) -> int:
         solvers_record, starts_stable_steps)
     from .rollout import RolloutMemoryError  # noqa: PLC0415
     from .scenes import load_scene  # noqa: PLC0415
-    from .simulate import MAX_STEPS_PER_FRAME, resolve_timestep  # noqa: PLC0415
+    from .simulate import MAX_STEPS_PER_FRAME, _steps_a_frame, resolve_timestep  # noqa: PLC0415
 
     jitter = checks.in_range("--jitter", _arg(args, "jitter", 0.0), 0.0, 0.5)  # a fraction of the spacing
     loss_scale = checks.positive("--loss-scale", _arg(args, "loss_scale", 1.0))
@@ -290,8 +290,8 @@ def run_fit(args, out=None, err=None) -> int:
             raise ValueError(e.said(option_flag, typed_bounds)) from None
         for k, (e, limit) in enumerate(zip(exps, limits)):
             if e.auto_step and limit < e.dt:
-                steps = (1.0 / e.fps) / limit * (1.0 - 1e-12)
-                if not steps <= MAX_STEPS_PER_FRAME:
+                steps, n = _steps_a_frame(1.0 / e.fps, limit)
+                if not n:
                     # resolve_timestep would blame the scene's materials, which the guess's
                     # own step showed are not the cause: the starts' box is.
                     starts = f"--samples {opts['samples']}" if opts["samples"] else f"--starts {opts['starts']}"

@@ -508,11 +508,23 @@ def _driven_motion(motion):
     return None
 
 
+def _steps_a_frame(frame_dt: float, stable: float) -> tuple[float, int]:
+    """``(ratio, n)``: the steps of ``stable`` a frame of ``frame_dt`` takes, and the whole
+    number of steps no longer than ``stable`` that fill it (0 where the ratio is above
+    ``MAX_STEPS_PER_FRAME`` or not a number, which the caller refuses). The default step, each
+    world's step alone (``_warn_worlds_step``), the adaptive step and ``warp-esph fit``'s
+    stiffest start are this one count: computed apart, the warning could name a world as
+    differing where only the rounding differed. The ratio is shaved by 1e-12 so that a frame a
+    whole number of stable steps long, to round-off, is that many steps and not one more."""
+    ratio = frame_dt / stable * (1.0 - 1e-12)
+    return ratio, (max(1, math.ceil(ratio)) if ratio <= MAX_STEPS_PER_FRAME else 0)
+
+
 def _warn_worlds_step(model: Model, courant: float, hourglass, frame_dt: float, n: int, flag) -> None:
     """Warn where the step of a model of worlds (the stiffest world's) is not what a world runs
     alone: a soft world beside a stiff one ran 14 steps a frame where alone it runs 1, and ended
     2.8e-4 m off its separate run in 3 frames (float64, measured), unsaid."""
-    alone = [max(1, math.ceil(frame_dt / s * (1.0 - 1e-12))) for s in model.world_stable_dts(courant, hourglass)]
+    alone = [_steps_a_frame(frame_dt, s)[1] for s in model.world_stable_dts(courant, hourglass)]
     other = [w for w, k in enumerate(alone) if k != n]
     if other:
         counts = sorted({alone[w] for w in other})
@@ -549,8 +561,8 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
         stable = model.stable_dt(courant, hourglass=hourglass)
         if limit is not None:
             stable = min(stable, limit)
-        ratio = frame_dt / stable * (1.0 - 1e-12)
-        if not ratio <= MAX_STEPS_PER_FRAME:
+        ratio, n = _steps_a_frame(frame_dt, stable)
+        if not n:
             stiff = max(model.materials, key=lambda m: m.p_wave_speed)
             needs = (f"more than {MAX_STEPS_PER_FRAME:.0e}; the stiffest material (p-wave speed {stiff.p_wave_speed:.3g} "
                      f"m/s) or the most viscous one needs it")
@@ -575,7 +587,6 @@ def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = Non
                 f"{needs}", advice,
                 detail=f"a frame (1/fps = {frame_dt:.6g} s) would take {ratio:.3g} steps of the stable step {stable:.3g} s, {needs}"
             )
-        n = max(1, math.ceil(ratio))
         if model.world_count > 1 and limit is None:
             _warn_worlds_step(model, courant, hourglass, frame_dt, n, flag)
         return n, frame_dt / n
@@ -684,8 +695,8 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
                 who = f"{ts._owner(k)}: its {type(ts.motions[k]).__name__} motion's speed (from t = {when:.4g} s)"
     g = float(np.linalg.norm(model.gravity))
     dt = min(stable, courant * model.spacing / (c + v_max + g * frame_dt))
-    ratio = frame_dt / dt * (1.0 - 1e-12)
-    if not ratio <= MAX_STEPS_PER_FRAME:
+    ratio, n = _steps_a_frame(frame_dt, dt)
+    if not n:
         # A start at 1e37 m/s asked for a step of 6e-40 s, below what float32 holds, and was
         # refused as a bad dt the user never gave.
         fastest = courant * model.spacing * fps * MAX_STEPS_PER_FRAME - c - g * frame_dt
@@ -730,7 +741,6 @@ def adaptive_timestep(model: Model, state: State, fps: float = 30.0, courant: fl
             f"the adaptive step is not allowed for this model at {fps:g} fps: {which}, would take {ratio:.3g} steps a "
             f"frame, more than {MAX_STEPS_PER_FRAME:.0e}", advice
         )
-    n = max(1, math.ceil(ratio))
     return n, frame_dt / n
 
 
