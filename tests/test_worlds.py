@@ -824,8 +824,8 @@ def test_a_world_softer_than_another_is_told_the_default_step_is_the_stiffest_wo
     assert model.world_stable_dts() == [m.stable_dt() for m in alone]
     steps = [math.ceil(1.0 / 30.0 / m.stable_dt() * (1.0 - 1e-12)) for m in alone]
     assert steps[0] < steps[1]
-    with pytest.warns(RuntimeWarning, match=rf"^the step .* \({steps[1]} a frame\) is the stiffest world's: world\(s\) "
-                                            rf"\[0\] alone would run {steps[0]} step\(s\) a frame, not {steps[1]}; give dt="):
+    with pytest.warns(RuntimeWarning, match=rf"^the step .* \({steps[1]} a frame\) is the stiffest world's; alone, a "
+                                            rf"world runs its own \(world 0: {steps[0]} steps a frame\); give dt="):
         x = we.simulate(model, 2, fps=30.0, progress=False).x.numpy()
     dt = 1.0 / 30.0 / steps[1]
     x0 = we.simulate(alone[0], 2, fps=30.0, dt=dt, progress=False).x.numpy()
@@ -833,6 +833,31 @@ def test_a_world_softer_than_another_is_told_the_default_step_is_the_stiffest_wo
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the step given: each world's separate run given it is the same
         we.simulate(model, 1, fps=30.0, dt=dt, progress=False)
+
+
+def test_the_default_step_warning_pairs_each_softer_world_with_its_own_count():
+    """Two softer worlds beside a stiff one: the warning listed the worlds and, apart, their
+    counts sorted and merged ('world(s) [0, 2] alone would run 31, 50'), so which world runs
+    which was not said; each world is named beside its own count."""
+    from warp_esph.builder import finalize_worlds
+    from warp_esph.simulate import resolve_timestep
+
+    def box(mu):
+        b = we.SceneBuilder(spacing=0.02, fit="linear")
+        b.add_box((0.0, 0.04, 0.0), (0.06, 0.06, 0.06), we.Material.preset("dough").replace(mu=mu, lam=1.5 * mu),
+                  name="paste")
+        return b
+
+    # The softest world last, so that the worlds' order is not their counts' order.
+    builders = [box(5e4), box(2e6), box(8e3)]
+    model = finalize_worlds(builders, dtype=wp.float64)
+    steps = [resolve_timestep(b.finalize(dtype=wp.float64), 30.0)[0] for b in builders]
+    assert steps[0] > steps[2] and steps[1] > steps[0]
+    with pytest.warns(RuntimeWarning) as seen:
+        n, _ = resolve_timestep(model, 30.0)
+    assert n == steps[1]
+    said = [str(w.message) for w in seen if "stiffest world's" in str(w.message)]
+    assert len(said) == 1 and f"(world 0: {steps[0]} steps a frame, world 2: {steps[2]});" in said[0], said
 
 
 def test_an_elastic_world_beside_a_ghost_floor_is_told_its_fit_is_the_models_not_round_off():

@@ -527,10 +527,14 @@ def _warn_worlds_step(model: Model, courant: float, hourglass, frame_dt: float, 
     alone = [_steps_a_frame(frame_dt, s)[1] for s in model.world_stable_dts(courant, hourglass)]
     other = [w for w, k in enumerate(alone) if k != n]
     if other:
-        counts = sorted({alone[w] for w in other})
-        warnings.warn(f"the step {frame_dt / n:.3g} s ({n} a frame) is the stiffest world's: world(s) {other} alone would "
-                      f"run {', '.join(map(str, counts))} step(s) a frame, not {n}; give {flag('dt')}= (the same to their "
-                      f"separate runs) to compare the worlds with separate runs", RuntimeWarning, stacklevel=3)
+        # Each world beside its own count: listed apart ('[0, 2] ... 31, 50', the counts sorted
+        # and merged) they did not say which world runs which.
+        first, *rest = other
+        each = ", ".join([f"world {first}: {alone[first]} step{'s' if alone[first] != 1 else ''} a frame"]
+                         + [f"world {w}: {alone[w]}" for w in rest])
+        warnings.warn(f"the step {frame_dt / n:.3g} s ({n} a frame) is the stiffest world's; alone, a world runs its "
+                      f"own ({each}); give {flag('dt')}= (the same to their separate runs) to compare the worlds with "
+                      "separate runs", RuntimeWarning, stacklevel=3)
 
 
 def resolve_timestep(model: Model, fps: float = 30.0, substeps: int | None = None, dt: float | None = None,
