@@ -53,7 +53,7 @@ except ImportError:  # run from a checkout without installing the package
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import warp_esph as we
 from warp_esph import tools
-from warp_esph.fit import Experiment, fit
+from warp_esph.fit import OPTIMIZERS, Experiment, fit
 from warp_esph.losses import ReactionForceLoss, SlumpLoss, read_tools_csv
 from warp_esph.tools import ReactionLog
 
@@ -98,7 +98,6 @@ XTOL = 3e-3
 #: evaluations at ci size still moving 5 % per step) and Gauss-Newton needs a handful of
 #: forward runs (LAB_OPTIMIZER=lbfgs to compare).
 OPTIMIZER = os.environ.get("LAB_OPTIMIZER", "gauss-newton")
-OPTIMIZERS = ("gauss-newton", "lbfgs", "adam")
 
 #: The hidden material: mu = 10 rho g H0 (as benchmarks/validation.py's slump), a uniaxial
 #: yield stress of 0.3 rho g H0 (S = 0.3), a plastic viscosity of 20 Pa s (the compression's

@@ -45,7 +45,7 @@ try:
 except ImportError:  # run from a checkout without installing the package
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import warp_esph as we
-from warp_esph.fit import fit, save_target, write_fitted_usd
+from warp_esph.fit import LR_OPTIMIZERS, fit, save_target, write_fitted_usd
 from warp_esph.losses import PositionLoss
 from warp_esph.rollout import Rollout
 
@@ -279,7 +279,8 @@ def main(argv=None) -> int:
                          "freely, whatever its material")
     ap.add_argument("--iterations", type=_flag(_at_least(0), "an integer >= 0"), default=40,
                     help="gradient evaluations after the first (default 40)")
-    ap.add_argument("--optimizer", choices=("lbfgs", "adam"), default="lbfgs")
+    # Those lr sizes: fit_star gives lr, which Gauss-Newton refuses.
+    ap.add_argument("--optimizer", choices=LR_OPTIMIZERS, default="lbfgs")
     ap.add_argument("--checkpoint-every", type=_flag(_at_least(1), "an integer >= 1"),
                     help="checkpoint the rollout every S steps")
     ap.add_argument("--out", default="fit_dough_star_out", help="output folder")

@@ -30,6 +30,20 @@ from run_files import run_script
 pxr = pytest.importorskip("pxr")
 
 
+def test_cli_fit_offers_every_optimizer_fit_runs():
+    """``warp-esph fit --optimizer`` kept its own copy of fit's names, which a new optimiser
+    would have left behind: it takes each of ``fit.OPTIMIZERS`` and no other."""
+    import argparse
+
+    from warp_esph.calibrate import add_calibration_arguments
+    from warp_esph.fit import OPTIMIZERS
+
+    parser = argparse.ArgumentParser()
+    add_calibration_arguments(parser)
+    assert next(a for a in parser._actions if a.dest == "optimizer").choices == OPTIMIZERS
+    assert [parser.parse_args(["--optimizer", o]).optimizer for o in OPTIMIZERS] == list(OPTIMIZERS)
+
+
 def test_cli_fit_refuses_a_tool_faster_than_a_spacing_a_step_before_the_fit(tmp_path, capsys, dough_scene):
     """A tool whose keyframes move it 50 spacings a step was fitted to (the rollouts do not
     check speeds), and only fitted.usdc's run refused it, after the fit, naming a Python

@@ -28,6 +28,7 @@ import sys
 import numpy as np
 
 from . import checks
+from ._optimizers import OPTIMIZERS
 from .material import UNITS
 
 __all__ = ["add_calibration_arguments", "run_fit", "write_outputs", "jitter_model", "default_optimizer"]
@@ -42,7 +43,7 @@ MAX_TARGET_FRAMES = 10**6
 def add_calibration_arguments(parser):
     """Declare the calibration options of ``warp-esph fit`` on ``parser``."""
     g = parser.add_argument_group("calibration")
-    g.add_argument("--optimizer", choices=("lbfgs", "adam", "gauss-newton"),
+    g.add_argument("--optimizer", choices=OPTIMIZERS,
                    help=f"lbfgs (default for <= {LBFGS_MAX_VALUES} fitted values), adam (default above; --clip is its "
                         "own) or gauss-newton (Levenberg-Marquardt from forward runs: least-squares targets, few values; "
                         "no --lr)")

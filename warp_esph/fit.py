@@ -50,6 +50,7 @@ import numpy as np
 import warp as wp
 
 from . import checks
+from ._optimizers import LR_OPTIMIZERS, OPTIMIZERS
 from ._types import scalar_type
 from .builder import SceneBuilder
 from .losses import (ChamferLoss, Loss, MeshLoss, PositionLoss, SlumpLoss, SumLoss, WorldLoss, _leaves, is_tools_csv,
@@ -1567,7 +1568,7 @@ def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds
            "lr": LR if lr is None else _step_size(flag("lr"), lr),
            "lr_end": None if lr_end is None else _step_size(flag("lr_end"), lr_end),
            "clip": None if clip is None else checks.positive(flag("clip"), clip),
-           "optimizer": checks.choice(flag("optimizer"), optimizer, ("adam", "lbfgs", "gauss-newton")),
+           "optimizer": checks.choice(flag("optimizer"), optimizer, OPTIMIZERS),
            "xtol": checks.positive("xtol", xtol),  # not a command-line option: named as fit's
            "patience": checks.positive_int(flag("patience"), patience),
            "starts": checks.positive_int(flag("starts"), starts, maximum=MAX_STARTS),
@@ -1585,7 +1586,7 @@ def check_options(*, params, iterations, lr=None, lr_end=None, clip=None, bounds
         others = f"{flag('optimizer')} lbfgs or adam" if cli else f"{flag('optimizer')} = 'lbfgs' or 'adam'"
         raise ValueError(f"{flag('lr')} = {checks.shorten(lr)!r} is not allowed with {gn}: its steps are sized by the "
                          f"Levenberg-Marquardt damping, not by a step size; leave {flag('lr')} out, or give {others}")
-    if out["optimizer"] in ("adam", "lbfgs") and out["xtol"] >= out["lr"]:
+    if out["optimizer"] in LR_OPTIMIZERS and out["xtol"] >= out["lr"]:
         # Either's first step moves by lr: at or below xtol it counted as converged. Named by
         # lr when xtol is the default: the command line sets lr (--lr) but not xtol.
         # (Both named: the command line chooses between them only once the scene is read.)
