@@ -597,14 +597,16 @@ def _apply(model, assignments, values):
             # Which material refused: 'Material.lam = ...' alone did not say which of two
             # materials whose lam is swept, and the sweep's refusal named both parameters.
             # A ValueError still, as the row's reason names it; ``index`` for the sweep's own refusal.
-            refused = ValueError(f"{_material_shown(model, k)}: {e}")
+            refused = ValueError(f"{_material_shown(model.bodies, k)}: {e}")
             refused.index = k
             raise refused from None
 
 
-def _material_shown(model, k: int) -> str:
-    """``material 1 (body 'blob')``: the index and the bodies made of it, as refusals name it."""
-    of = [b.name for b in model.bodies if b.material == k]
+def _material_shown(bodies, k: int) -> str:
+    """``material 1 (body 'blob')``: the index and the bodies made of it (``bodies``: a model's
+    or a builder's, each with ``name`` and ``material``), as refusals name it; the sample's
+    refusal and the flow parameters' one name a material alike."""
+    of = [b.name for b in bodies if b.material == k]
     return f"material {k}" + (f" (body {', '.join(map(repr, of))})" if of else "")
 
 
@@ -1522,8 +1524,7 @@ def _check_flow_parameters_act(sc, assignments, points) -> None:
         if field not in _FLOW_FIELDS or any(can_flow(k, v) for v in points for k in idx):
             continue
         k = idx[0]
-        of = [b.name for b in bodies if b.material == k]
-        shown = f"material {k}" + (f" (body {', '.join(map(repr, of))})" if of else "")
+        shown = _material_shown(bodies, k)
         why = []
         if not any(math.isfinite(flow_of(k, v, "yield_stress")) for v in points):
             why.append("yield_stress = inf")
