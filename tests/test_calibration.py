@@ -1067,6 +1067,37 @@ def test_a_positions_file_whose_frames_count_from_a_later_start_is_said_in_the_p
     assert plan("from_one.npz", x[1:], [1, 2, 3]) == []
 
 
+def test_a_body_resting_at_its_start_over_its_first_stored_frames_is_not_said_to_be_numbered_late():
+    """A body at rest at its start over its first stored frames (a press that has not reached
+    it by frame 5) holds the start at frame 3 and 4 alike, as the scene's own start does: it was
+    told its frames counted from a later start. Said only where the motion starts at the first
+    stored frame, the next one already off the start; the same motion with only the first
+    stored frame at rest is still said."""
+    import types
+
+    from warp_esph.calibrate import _start_frame_later
+
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.03, 0.0), (0.06, 0.06, 0.06), we.Material.preset("dough"))
+    b.add_ground()
+    model = b.finalize()
+    start = np.asarray(model.particle_x0, dtype=np.float64)
+
+    def pressed(share):  # the box pressed down to (1 - share) of its height, its base held
+        x = start.copy()
+        x[:, 1] = start[:, 1].min() + (1.0 - share) * (start[:, 1] - start[:, 1].min())
+        return x
+
+    def said(positions, frames):
+        return _start_frame_later("lab.npz", types.SimpleNamespace(frames=frames, data=np.stack(positions)), model)
+
+    presses = [pressed(0.1), pressed(0.2), pressed(0.3)]
+    assert said([start, start, *presses], [3, 4, 5, 6, 7]) is None  # at rest at frames 3 and 4, pressed from 5
+    late = said([start, *presses], [3, 4, 5, 6])  # pressed from the frame after the first
+    assert late is not None and "its first stored frame, 3, lies 0 spacings RMS" in late, late
+    assert said([start, *presses], [0, 1, 2, 3]) is None  # numbered from 0
+
+
 def _interrupt_evaluation(monkeypatch, n):
     """A Ctrl-C (KeyboardInterrupt) in the fit's ``n``-th evaluation."""
     from warp_esph import fit as fit_module

@@ -1035,7 +1035,8 @@ def _long_rollout_reading(scene, frames, fps, substeps, dt, stored, fps_flag, so
 
 
 #: A stored frame after 0 this close to the scene's start (RMS, in spacings), where the data
-#: move at least 1 / START_MOTION_SHARE times as far, is said to hold the start (_start_frame_later).
+#: move at least 1 / START_MOTION_SHARE times as far and the next stored frame is already
+#: farther than this, is said to hold the start (_start_frame_later).
 START_TOLERANCE = 0.05
 START_MOTION_SHARE = 0.05
 
@@ -1044,9 +1045,14 @@ def _start_frame_later(path, t, model) -> str | None:
     """A warning where an ``.npz``'s earliest stored frame is after 0 and holds the scene's
     initial positions (a camera's frame counter, which starts where it was switched on): each
     entry is fitted at its stored frame's time, so the whole motion was fitted that many
-    frames late, and the diagnostics could only say the residuals were large."""
-    k = int(np.argmin(t.frames))
-    first, start = int(t.frames[k]), np.asarray(model.particle_x0, dtype=np.float64)
+    frames late, and the diagnostics could only say the residuals were large.
+
+    Said only where the motion starts at that frame, the next stored frame already off the
+    start: a body that rests at its start over its first stored frames (a press that has not
+    reached it yet) is at its start at any of them, as the scene's own start has it, and was
+    told its frames were late."""
+    order = np.argsort(np.asarray(t.frames), kind="stable")
+    first, start = int(t.frames[order[0]]), np.asarray(model.particle_x0, dtype=np.float64)
     data = np.asarray(t.data, dtype=np.float64)
     if first == 0 or data.shape[1:] != start.shape:
         return None
@@ -1055,8 +1061,11 @@ def _start_frame_later(path, t, model) -> str | None:
         seen = np.isfinite(x).all(axis=1)
         return float(np.sqrt(np.mean(np.sum((x[seen] - start[seen]) ** 2, axis=1)))) / model.spacing if seen.any() else None
 
-    near, moved = rms(data[k]), max((r for r in map(rms, data) if r is not None), default=None)
-    if near is None or moved is None or not (near <= START_TOLERANCE and near <= START_MOTION_SHARE * moved):
+    away = [rms(data[k]) for k in order]  # in frame order
+    near, moved = away[0], max((r for r in away if r is not None), default=None)
+    following = next((r for r in away[1:] if r is not None), None)
+    if near is None or moved is None or following is None or not (
+            near <= START_TOLERANCE and near <= START_MOTION_SHARE * moved and following > START_TOLERANCE):
         return None
     return (f"warning: target {path}: its first stored frame, {first}, lies {near:.3g} spacings RMS from the scene's "
             f"initial positions (the data move up to {moved:.3g} spacings from them): it holds the start, which is "
