@@ -63,12 +63,9 @@ def test_stable_dt_follows_the_parameter_arrays():
         solver.check_dt(0.5 * viscous)
 
 
-def test_a_step_reads_the_parameter_arrays_back_once_and_still_sees_every_write(monkeypatch):
-    """The start of a step asks three questions of the parameter arrays (the fit and control
-    by material, the stable step, whether SPH runs): one read-back answers them (each read of
-    a device array waits for the device; it was 9 of a step's 12; on the CPU the read stacks
-    views of the arrays). A write between steps, as a fit or torch makes in place, is still
-    seen by the next step."""
+def _stepped_flowing_box():
+    """``(model, solver, a, c, dt)``: a box that can flow, without SPH, after one step from ``a``
+    into ``c`` (the parameter questions' tests)."""
     mat = we.Material(mu=1.0e3, lam=1.5e3, density=1000.0, yield_stress=50.0, flow_rate=10.0, viscosity=0.0,
                       pressure_stiffness=0.0, elastic_force="variational")
     b = we.SceneBuilder(spacing=0.02, support_radius=0.05)
@@ -78,6 +75,16 @@ def test_a_step_reads_the_parameter_arrays_back_once_and_still_sees_every_write(
     a, c = model.state(), model.state()
     dt = 0.5 * model.stable_dt()
     solver.step(a, c, dt)
+    return model, solver, a, c, dt
+
+
+def test_a_step_reads_the_parameter_arrays_back_once_and_still_sees_every_write(monkeypatch):
+    """The start of a step asks three questions of the parameter arrays (the fit and control
+    by material, the stable step, whether SPH runs): one read-back answers them (each read of
+    a device array waits for the device; it was 9 of a step's 12; on the CPU the read stacks
+    views of the arrays). A write between steps, as a fit or torch makes in place, is still
+    seen by the next step."""
+    model, solver, a, c, dt = _stepped_flowing_box()
     assert solver.fit == "linear" and not model.sph_active  # it can flow; no SPH
     reads, parameter_reads = [], []
     original = wp.array.numpy
@@ -110,15 +117,7 @@ def test_the_steps_questions_of_unchanged_parameters_are_answered_once(monkeypat
     about 30 us of the fit example's 0.55 ms step at 142 particles. The answers are kept with
     the rows' bytes: steps at unchanged parameters compute none, and a write in place is
     answered anew."""
-    mat = we.Material(mu=1.0e3, lam=1.5e3, density=1000.0, yield_stress=50.0, flow_rate=10.0, viscosity=0.0,
-                      pressure_stiffness=0.0, elastic_force="variational")
-    b = we.SceneBuilder(spacing=0.02, support_radius=0.05)
-    b.add_box((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), mat)
-    model = b.finalize()
-    solver = we.Solver(model)
-    a, c = model.state(), model.state()
-    dt = 0.5 * model.stable_dt()
-    solver.step(a, c, dt)
+    model, solver, a, c, dt = _stepped_flowing_box()
     # The questions' own answers counted, each computed where the memo (Model._answer) runs
     # it: counting a numpy function they call (np.isfinite) counted any step code calling it.
     answered = []

@@ -1845,13 +1845,9 @@ def test_a_sample_whose_tool_lifts_the_body_is_no_blow_up():
     assert (table.column("centroid_height") > 1.2).all() and (table.column("centroid_height") < 1.3).all()
 
 
-def test_a_blow_up_beside_a_scripted_tool_fails_its_sample():
-    """A scripted motion has no speed known beforehand, so ``simulate``'s monitor runs only its
-    non-finite check there, and the end-of-run energy check is the one that sees a finite
-    blow-up: leaving every moving tool's scene to the monitor let a sample 5x above its stable
-    step end as an ok row at 1.7e35 J beside a scripted sphere that never touched it. The
-    check counts what the tool can do (its fastest point over the run's poses, and the lift it
-    gives, which is no growth), so the stable sample stays ok."""
+def _far_scripted_tool_scene():
+    """A putty box beside a scripted sphere that never touches it (3 m off), 10 frames: a sample
+    at 5x its stable step blows up where the monitor cannot see it (the blow-up tests)."""
     from warp_esph import tools
 
     def pose(t):
@@ -1861,8 +1857,17 @@ def test_a_blow_up_beside_a_scripted_tool_fails_its_sample():
     b.add_box((0.0, 0.5, 0.0), (0.3, 0.3, 0.3), Material.preset("putty"), name="paste")
     b.add_ground()
     b.add_tool("sphere", radius=0.05, motion=tools.Scripted(pose), name="far")
-    table = sweep(Scene("far", "a blow-up beside a scripted tool", b, frames=10, fps=30.0), ["paste.mu=1000,1000000"],
-                  workers=1, dt=1.0 / 300.0)
+    return Scene("far", "a blow-up beside a scripted tool", b, frames=10, fps=30.0)
+
+
+def test_a_blow_up_beside_a_scripted_tool_fails_its_sample():
+    """A scripted motion has no speed known beforehand, so ``simulate``'s monitor runs only its
+    non-finite check there, and the end-of-run energy check is the one that sees a finite
+    blow-up: leaving every moving tool's scene to the monitor let a sample 5x above its stable
+    step end as an ok row at 1.7e35 J beside a scripted sphere that never touched it. The
+    check counts what the tool can do (its fastest point over the run's poses, and the lift it
+    gives, which is no growth), so the stable sample stays ok."""
+    table = sweep(_far_scripted_tool_scene(), ["paste.mu=1000,1000000"], workers=1, dt=1.0 / 300.0)
     assert [r["status"] for r in table.rows] == ["ok", "failed"], [r["reason"] for r in table.rows]
     assert "blew up" in table.rows[1]["reason"], table.rows[1]["reason"]
 
@@ -1972,18 +1977,9 @@ def test_a_blown_up_sample_s_row_holds_no_summary_of_its_blown_up_state():
     columns: ``table.column('max_height')``, documented NaN where a sample failed, handed them
     on as numbers beside the ok rows', and the CSV wrote them. The row keeps its reason and
     guard counts; its summary and extra cells are empty, as a diverged sample's are."""
-    from warp_esph import tools
     from warp_esph.sweep import SUMMARY_COLUMNS
 
-    def pose(t):
-        return (3.0, 0.5, 0.0), (0.0, 0.0, 0.0, 1.0)
-
-    b = SceneBuilder(spacing=0.1)
-    b.add_box((0.0, 0.5, 0.0), (0.3, 0.3, 0.3), Material.preset("putty"), name="paste")
-    b.add_ground()
-    b.add_tool("sphere", radius=0.05, motion=tools.Scripted(pose), name="far")
-    table = sweep(Scene("far", "a blow-up beside a scripted tool", b, frames=10, fps=30.0), ["paste.mu=1000,1000000"],
-                  workers=1, dt=1.0 / 300.0, extra=_extra_height)
+    table = sweep(_far_scripted_tool_scene(), ["paste.mu=1000,1000000"], workers=1, dt=1.0 / 300.0, extra=_extra_height)
     assert [r["status"] for r in table.rows] == ["ok", "failed"] and "blew up" in table.rows[1]["reason"]
     for name in (*SUMMARY_COLUMNS, "top"):
         col = table.column(name)
