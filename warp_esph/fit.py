@@ -125,7 +125,9 @@ class FitResult:
     its tolerance), ``stalled`` (no lower loss for ``patience`` evaluations, or a line
     search that found none), ``iterations`` (the cap), ``flat`` (the initial gradient is
     exactly zero; at a loss of 0, ``converged`` where a forward-only evaluation ``lr`` away
-    reads a loss above 0), ``tol``, ``callback``;
+    reads a loss above 0), ``uninformative`` (no evaluation's observations differ from the
+    start's by more than round-off, nor do those of one forward-only probe ``lr`` away in every
+    value: the data do not tell the start from values nearby; docs/fitting.md), ``tol``, ``callback``;
     ``converged`` is True only for ``converged`` and ``tol``. ``diagnostics``: a
     ``warp_esph.diagnostics.Diagnostics`` at the optimum (None when not asked for).
     ``models``/``experiment_materials``: per experiment of a joint fit. An entry's
@@ -174,6 +176,10 @@ class FitResult:
                       "(raise the iteration cap; with Adam, try L-BFGS)",
         "flat": "stopped at once: the gradient is exactly zero, the loss does not depend on the fitted parameters "
                 "here (e.g. no particle reaches the yield stress); start elsewhere or observe another experiment",
+        "uninformative": "learned nothing (not informative): the data do not tell the start from values nearby (moving every fitted value "
+                         "by lr, forward only, changes no observed position or force by more than round-off), so no "
+                         "value is fitted; give target frames after the motion these parameters make (e.g. after the "
+                         "body lands or flows) or observe another experiment",
         "callback": "stopped by the callback",
         "interrupted": "interrupted (a KeyboardInterrupt, as Ctrl-C raises): the best of the evaluations so far, "
                        "not a minimum",
@@ -1750,6 +1756,9 @@ def fit(
       minimum along its direction within ``xtol``; ``"stalled"`` when ``patience`` evaluations
       in a row did not lower the best loss (by 1e-9 relative); ``"iterations"`` at the
       cap; ``"flat"`` when the initial gradient is exactly zero at a loss above 0 (nothing to follow);
+      ``"uninformative"`` (never converged, by any optimiser) where no evaluation's observations
+      differ from the start's beyond round-off and neither do a forward-only probe's ``lr`` away
+      in every value (the target frames precede any motion the values make; docs/fitting.md);
 
       ``"tol"`` once the loss is below ``tol``; ``"callback"``.
     - Global first stage: ``samples = N > 0`` evaluates the loss alone (forward passes)
@@ -1904,6 +1913,9 @@ def fit(
             self.index, self.best, self.best_p, self.since_best = index, math.inf, None, 0
             self.entry = None  # its last history entry
             self.kept = None  # the runs at its best point (_Run.kept), one per experiment
+            # What its first evaluation observed, and whether a later one observed otherwise
+            # (``_tells_apart``): a fit whose observations never move is told by _verdict.
+            self.start_z, self.start_obs, self.moved = None, None, False
 
     def record(track, z, value, gz, seconds, note=None):
         """Records one evaluation of ``track``'s start (history, best, callback); raises
@@ -1930,6 +1942,12 @@ def fit(
             entry["note"] = note
         history.append(entry)
         track.entry = entry
+        if finite and not use_worlds and not track.moved:
+            seen = _observed(runs)
+            if track.start_obs is None:
+                track.start_z, track.start_obs = np.array(z, dtype=np.float64), seen
+            else:
+                track.moved = _tells_apart(track.start_obs, seen, runs)
         if len(history) == 1 and not use_worlds:
             # At the start, where the guess's curve has the sign a pressing tool gives: a fit
             # to a curve of the opposite sign drives the material soft, where the curve fades
@@ -2026,9 +2044,49 @@ def fit(
             return record(track, z, value, gz, time.perf_counter() - t0, note)
         return evaluate
 
+    def verdict(stop, track):
+        """``stop``, or ``"uninformative"`` where the data do not tell the start from values
+        nearby: no evaluation's observations differed from the start's beyond round-off, and
+        neither do those of one forward-only probe ``lr`` (``LR`` for Gauss-Newton) away in
+        every optimiser coordinate (into the box). Asked of a fit that says it converged, and
+        of one that stalled or hit the cap after more than one evaluation: Adam's step from a
+        gradient at round-off is below ``xtol`` (the dough star's frames before landing,
+        float32: "converged" after 1 evaluation), L-BFGS wanders on round-off until the cap."""
+        evaluated = sum(1 for h in history if h.get("stage") == "descent" and h.get("start", 0) == track.index)
+        if (track.moved or track.start_obs is None or stop not in ("converged", "tol", "stalled", "iterations")
+                or (stop in ("stalled", "iterations") and evaluated < 2)):
+            return stop
+        size = lr if lr is not None else LR
+        probe = prob.project(track.start_z + size)
+        if np.array_equal(probe, track.start_z):
+            probe = prob.project(track.start_z - size)
+        t0 = time.perf_counter()
+        try:
+            value = float(prob.value(probe))
+        except FloatingPointError as e:
+            # A probe that blows up moves the observations as far as any run can.
+            history.append({"iteration": len(history), "stage": "descent", "loss": math.inf,
+                            "params": {k: [float(x) for x in v] for k, v in prob.from_z(probe).items()}, "grad": None,
+                            "seconds": time.perf_counter() - t0, "note": f"informativeness probe: {_refused_note(e)}",
+                            **({"start": track.index} if track_count > 1 else {})})
+            return stop
+        moved = _tells_apart(track.start_obs, _observed(runs), runs)
+        entry = {"iteration": len(history), "stage": "descent", "loss": value,
+                 "params": {k: [float(x) for x in v] for k, v in prob.from_z(probe).items()}, "grad": None,
+                 "seconds": time.perf_counter() - t0,
+                 "note": "informativeness probe (forward only): the observations " + (
+                     "move: the start is told apart" if moved else "do not move beyond round-off")}
+        total = _guarded(runs)
+        entry["guarded"] = total - state.get("guarded", 0)
+        state["guarded"] = total
+        if track_count > 1:
+            entry["start"] = track.index
+        history.append(entry)
+        return stop if moved else "uninformative"
+
     def descend(evaluate, z_start, track):
         try:
-            return _descend(evaluate, z_start, track)
+            return verdict(_descend(evaluate, z_start, track), track)
         except _FirstPointFailed as e:
             # A start of the global stage or the multi-start box whose first point fails
             # (its rollout blows up, its materials refuse the values) ends alone; at the
@@ -2576,6 +2634,48 @@ def _run_adam(evaluate, project, z, iterations, lr, lr_end, clip, annotate, xtol
         z = z_new
         opt.lr *= decay
     return "iterations"
+
+
+#: Observations (positions at the target frames, tool and collider forces) that differ from
+#: the start's by no more than this many units of round-off of their precision, relative to
+#: their largest magnitude, tell nothing apart: rounding alone makes runs differ at a few
+#: units (the dough star's frames before it lands, float32: 0.5 unit); a parameter the data
+#: read moves them by per cents.
+ROUNDOFF_UNITS = 1000.0
+
+
+def _observed(runs) -> list[list[np.ndarray]]:
+    """What each experiment's last forward let its loss read, as float64 host arrays: the
+    positions of every observed frame, then its force curves where it has any."""
+    from .rollout import COLLIDER_FORCES, FORCES  # noqa: PLC0415
+
+    out = []
+    for r in runs:
+        obs = r.rollout.observations(numpy=True)
+        frames = [np.asarray(obs[f], dtype=np.float64) for f in r.rollout.frames]
+        kinds = [np.stack(frames)] if frames else []
+        kinds += [np.asarray(obs[k], dtype=np.float64) for k in (FORCES, COLLIDER_FORCES) if k in obs]
+        out.append(kinds)
+    return out
+
+
+def _tells_apart(a, b, runs) -> bool:
+    """Whether two runs' observations (``_observed``) differ anywhere by more than
+    ``ROUNDOFF_UNITS`` units of round-off of the experiment's precision, each kind (positions,
+    forces) against its own largest finite magnitude. The rule reads how the observations move
+    with the values (the loss's sensitivity), never the loss's value: a start that made its
+    target has a loss at round-off whose observations still move a probe away; data taken
+    before any motion the parameters make have observations that do not."""
+    for r, ka, kb in zip(runs, a, b):
+        eps = float(np.finfo(np.float32 if r.model.scalar is wp.float32 else np.float64).eps)
+        for xa, xb in zip(ka, kb):
+            both = np.isfinite(xa) & np.isfinite(xb)
+            if not both.any():
+                continue
+            scale = max(float(np.abs(xa[both]).max()), float(np.abs(xb[both]).max()))
+            if float(np.abs(xa[both] - xb[both]).max()) > ROUNDOFF_UNITS * eps * scale:
+                return True
+    return False
 
 
 def _zero_gradient(evaluate, project, z: np.ndarray, value: float, size: float) -> str:

@@ -1,0 +1,74 @@
+"""A fit whose data carry no information about its values says so, by every optimiser and in
+both precisions, and is never reported as converged; a fit started at the values that made
+an informative target still is."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warp_esph as we
+from warp_esph.fit import fit
+from warp_esph.rollout import Rollout
+
+STEPS = 30
+FRAMES = [15, 30]
+TRUTH = {"mu": 2e3, "yield_stress": 300.0, "flow_rate": 10.0}
+
+
+def _falling(dtype, factor=1.0):
+    """27 particles of a plastic cube in free fall, 1 m above the ground (it does not land in
+    the 30 steps): its motion is gravity's alone, whatever its material; the lattice jittered,
+    so its elastic forces are round-off, not exactly 0. ``factor`` multiplies every value."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 1.0, 0.0), (0.06, 0.06, 0.06),
+              we.Material(lam=3e3, density=1000.0, **{k: v * factor for k, v in TRUTH.items()}))
+    b.add_ground(friction=0.5)
+    model = b.finalize(dtype=dtype, requires_grad=True)
+    model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * 0.02, size=model.particle_x0.shape)
+    model.compute_rest_density()
+    return model
+
+
+@pytest.mark.parametrize("dtype", [wp.float32, wp.float64], ids=["float32", "float64"])
+@pytest.mark.parametrize("optimizer", ["adam", "lbfgs", "gauss-newton"])
+def test_a_fit_to_frames_before_any_motion_the_values_make_is_not_informative(dtype, optimizer):
+    """The target frames precede any motion the material makes: the loss and its gradient are
+    round-off (float32: 1e-17 m^2). Adam's first step from such a gradient is below ``xtol``
+    and the fit said "converged" after one evaluation, the values a factor 2 off; L-BFGS
+    wandered on round-off until the cap."""
+    truth = _falling(wp.float64)
+    dt = 0.5 * truth.stable_dt()
+    target = Rollout(truth, STEPS, dt, frames=FRAMES).forward()
+    result = fit(_falling(dtype, factor=2.0), target, list(TRUTH), steps=STEPS, dt=dt, frames=FRAMES,
+                 optimizer=optimizer, iterations=6, progress=False, noise=1e-4)
+    assert result.stopped == "uninformative", (result.stopped, [(h["loss"], h["grad"]) for h in result.history])
+    assert not result.converged
+    assert result.to_dict()["converged"] is False and result.to_dict()["stopped"] == "uninformative"
+    assert "not informative" in result.termination and "target frames after the motion" in result.termination
+    assert any("did not converge (uninformative)" in w for w in result.diagnostics.warnings)
+
+
+def _landing(dtype, yield_stress=TRUTH["yield_stress"]):
+    """The same cube dropped at 1 m/s from 1.5 cm above the ground: it lands within the steps,
+    and its yield stress and flow rate shape the landing."""
+    b = we.SceneBuilder(spacing=0.02)
+    b.add_box((0.0, 0.035, 0.0), (0.06, 0.06, 0.06), we.Material(lam=3e3, density=1000.0, **{**TRUTH, "yield_stress": yield_stress}),
+              velocity=(0.0, -1.0, 0.0))
+    b.add_ground(friction=0.5)
+    model = b.finalize(dtype=dtype, requires_grad=True)
+    model.particle_x0 += np.random.default_rng(5).normal(scale=1e-3 * 0.02, size=model.particle_x0.shape)
+    model.compute_rest_density()
+    return model
+
+
+@pytest.mark.parametrize("optimizer", ["adam", "lbfgs"])
+def test_a_float32_fit_started_at_the_answer_of_informative_data_is_not_called_uninformative(optimizer):
+    """At the values that made its target (in float32, its own precision) the loss and its
+    gradient are round-off, as before any motion; but a probe ``lr`` away moves the landing
+    by far more than round-off, so the fit reads as converged, not as uninformative."""
+    dt = 0.5 * _landing(wp.float64).stable_dt()
+    target = Rollout(_landing(wp.float32), STEPS, dt, frames=FRAMES).forward()
+    result = fit(_landing(wp.float32), target, ["yield_stress", "flow_rate"], steps=STEPS, dt=dt, frames=FRAMES,
+                 optimizer=optimizer, iterations=6, progress=False, diagnostics=False)
+    assert result.stopped == "converged", (result.stopped, [(h["loss"], h["grad"], h.get("note")) for h in result.history])
+    assert result.params["yield_stress"][0] == pytest.approx(TRUTH["yield_stress"], rel=1e-6)
