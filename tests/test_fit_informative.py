@@ -2,6 +2,8 @@
 both precisions, and is never reported as converged; a fit started at the values that made
 an informative target still is."""
 
+import json
+
 import numpy as np
 import pytest
 import warp as wp
@@ -72,3 +74,28 @@ def test_a_float32_fit_started_at_the_answer_of_informative_data_is_not_called_u
                  optimizer=optimizer, iterations=6, progress=False, diagnostics=False)
     assert result.stopped == "converged", (result.stopped, [(h["loss"], h["grad"], h.get("note")) for h in result.history])
     assert result.params["yield_stress"][0] == pytest.approx(TRUTH["yield_stress"], rel=1e-6)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_cli_fit_to_frames_before_the_body_lands_says_it_learned_nothing_and_why(tmp_path, capsys, dough_scene, dtype):
+    """``warp-esph fit`` of a block 1 m above the ground observed over its first two frames
+    (free fall: its material moves nothing): the first line says the fit learned nothing and
+    to give later frames, fit.json says not converged, and the status is a finished fit's (0),
+    as for one that stalled. With Adam it had said "fit converged" after one evaluation."""
+    from warp_esph.cli import main
+
+    guess = tmp_path / "guess.toml"
+    guess.write_text(dough_scene(yield_stress=200.0, flow_rate=20.0, frames=2)
+                     .replace("center = [0.0, 0.045, 0.0]", "center = [0.0, 1.0, 0.0]")
+                     .replace("velocity = [0.0, -1.0, 0.0]", "velocity = [0.0, 0.0, 0.0]"))
+    np.save(tmp_path / "t.npy", np.zeros((3, 64, 3)))
+    out = tmp_path / "cal"
+    capsys.readouterr()
+    status = main(["fit", str(guess), "--target", str(tmp_path / "t.npy"), "--params", "mu", "--optimizer", "adam", "--dtype", dtype,
+                   "--iterations", "4", "--no-usd", "--no-progress", "--output-dir", str(out)])
+    said = capsys.readouterr().out.splitlines()
+    assert status == 0
+    assert said[0].startswith("fit learned nothing (not informative): "), said
+    assert "give target frames after the motion these parameters make" in said[0]
+    doc = json.loads((out / "fit.json").read_text())
+    assert doc["stopped"] == "uninformative" and doc["converged"] is False
