@@ -817,3 +817,22 @@ def test_the_bridge_s_gradients_are_the_rollout_tape_s_bitwise_and_repeat(dtype)
     rollout_positions(rollout, {"flow_rate": torch.tensor([50.0], dtype=tdtype)})  # the cube's own flow rate back
     again, (h_mu, h_x0) = run()
     assert torch.equal(again, out) and torch.equal(h_mu, g_mu) and torch.equal(h_x0, g_x0)
+
+
+def test_a_second_derivative_is_refused_saying_why_and_create_graph_keeps_the_first():
+    """Differentiating the bridge's gradient again raised torch's 'trying to differentiate
+    twice a function that was marked with @once_differentiable', naming no reason. It says
+    now that second derivatives are not supported (Warp's tape adjoint is not differentiable
+    again); the gradient taken with ``create_graph=True`` is the plain one, bit for bit."""
+    from warp_esph.torch import SECOND_DERIVATIVES
+
+    model = _cube()
+    rollout = Rollout(model, 3, 1.0e-3, frames=[3])
+    mu = torch.tensor([1.0e3], dtype=torch.float64, requires_grad=True)
+    plain = torch.autograd.grad(rollout_positions(rollout, {"mu": mu}).square().sum(), mu)[0]
+    (graphed,) = torch.autograd.grad(rollout_positions(rollout, {"mu": mu}).square().sum(), mu, create_graph=True)
+    assert torch.equal(graphed.detach(), plain) and plain.abs().item() > 0.0
+    with pytest.raises(RuntimeError) as e:
+        graphed.sum().backward()
+    assert str(e.value) == SECOND_DERIVATIVES
+    assert "not supported" in SECOND_DERIVATIVES

@@ -32,6 +32,11 @@ the model keeping the values it held, instead of returning a tensor of NaN posit
 ``RolloutModule`` holds chosen parameters as ``torch.nn.Parameter`` in log space (for
 positive ones) so ``torch.optim.Adam`` can drive a fit.
 
+Second derivatives (a gradient taken with ``create_graph=True`` and differentiated again,
+``torch.autograd.gradgradcheck``, a Hessian) are not supported: the backward is Warp's tape
+adjoint, and differentiating through it raises a ``RuntimeError`` saying so
+(``SECOND_DERIVATIVES``); the first derivatives such a call takes are right.
+
 PyTorch is imported only when these functions are used; without it they raise an
 ``ImportError`` that says how to install it.
 """
@@ -46,6 +51,11 @@ from . import checks
 from .rollout import PARAMETERS, TOOL_GRADIENTS, Rollout, check_initial, initial_shapes
 
 __all__ = ["rollout_positions", "RolloutModule", "require_torch"]  # noqa: F822 (RolloutModule: module __getattr__)
+
+#: Why a second derivative through the bridge is refused.
+SECOND_DERIVATIVES = ("a second derivative through warp_esph.torch is not supported: the rollout's gradient is Warp's tape "
+                      "adjoint, which is not differentiable again (create_graph=True gives first derivatives only; for "
+                      "curvature use finite differences of gradients, as warp_esph.diagnostics does)")
 
 _INSTALL = "warp_esph.torch needs PyTorch: pip install torch==2.13.0 (or pip install 'warp-esph[torch]')"
 
@@ -67,6 +77,35 @@ def _function():
     if _FUNCTION is not None:
         return _FUNCTION
     torch = require_torch()
+
+    class _SecondDerivative(torch.autograd.Function):
+        """Stands in the graph of a gradient taken with ``create_graph=True``: the rollout's
+        adjoint is Warp's tape, which has no derivative of its own."""
+
+        @staticmethod
+        def forward(ctx, value, *inputs):
+            return value.clone()
+
+        @staticmethod
+        def backward(ctx, *grads):
+            raise RuntimeError(SECOND_DERIVATIVES)
+
+    def _first_derivatives_only(backward):
+        """``torch.autograd.function.once_differentiable`` with this bridge's reason: a gradient
+        taken with ``create_graph=True`` is the rollout's first derivative, and differentiating
+        it again raises ``SECOND_DERIVATIVES`` (torch's own said only that the function 'was
+        marked with @once_differentiable')."""
+
+        @functools.wraps(backward)
+        def wrapper(ctx, *args):
+            with torch.no_grad():
+                outputs = backward(ctx, *args)
+            graphed = [a for a in args if isinstance(a, torch.Tensor) and a.requires_grad]
+            if not (torch.is_grad_enabled() and graphed):
+                return outputs
+            return tuple(None if o is None else _SecondDerivative.apply(o, *graphed) for o in outputs)
+
+        return wrapper
 
     def _numpy(t, dtype):
         # Through float64: numpy has no bfloat16, and float16 would round the values first.
@@ -112,7 +151,7 @@ def _function():
             return torch.from_numpy(out).to(dtype=dtype, device=device)
 
         @staticmethod
-        @torch.autograd.function.once_differentiable
+        @_first_derivatives_only
         def backward(ctx, grad_out):
             rollout: Rollout = ctx.rollout
             # What set_parameters cannot put back (a material's force, clamp or plastic model
