@@ -48,6 +48,10 @@ def test_a_fit_to_frames_before_any_motion_the_values_make_is_not_informative(dt
     assert result.to_dict()["converged"] is False and result.to_dict()["stopped"] == "uninformative"
     assert "not informative" in result.termination and "target frames after the motion" in result.termination
     assert any("did not converge (uninformative)" in w for w in result.diagnostics.warnings)
+    # The values stay the guess's: the lowest loss of round-off is no fitted value.
+    for name, value in TRUTH.items():
+        assert result.params[name][0] == pytest.approx(2.0 * value, rel=1e-12), (name, result.params[name])
+    assert result.loss == result.initial_loss
 
 
 def _landing(dtype, yield_stress=TRUTH["yield_stress"]):

@@ -1915,7 +1915,7 @@ def fit(
             self.kept = None  # the runs at its best point (_Run.kept), one per experiment
             # What its first evaluation observed, and whether a later one observed otherwise
             # (``_tells_apart``): a fit whose observations never move is told by _verdict.
-            self.start_z, self.start_obs, self.moved = None, None, False
+            self.start_z, self.start_obs, self.start_loss, self.moved = None, None, None, False
 
     def record(track, z, value, gz, seconds, note=None):
         """Records one evaluation of ``track``'s start (history, best, callback); raises
@@ -1945,7 +1945,7 @@ def fit(
         if finite and not use_worlds and not track.moved:
             seen = _observed(runs)
             if track.start_obs is None:
-                track.start_z, track.start_obs = np.array(z, dtype=np.float64), seen
+                track.start_z, track.start_obs, track.start_loss = np.array(z, dtype=np.float64), seen, value
             else:
                 track.moved = _tells_apart(track.start_obs, seen, runs)
         if len(history) == 1 and not use_worlds:
@@ -2082,7 +2082,12 @@ def fit(
         if track_count > 1:
             entry["start"] = track.index
         history.append(entry)
-        return stop if moved else "uninformative"
+        if moved:
+            return stop
+        # The lowest loss of round-off is no fitted value: L-BFGS had reported a viscosity of
+        # 44 for a guess of 2 that the data did not tell from it. The start is what stands.
+        track.best, track.best_p, track.kept = track.start_loss, prob.from_z(track.start_z), None
+        return "uninformative"
 
     def descend(evaluate, z_start, track):
         try:
